@@ -1,0 +1,1 @@
+//! `hal-sim`: the host twin of the twinstack board and the PC-side tools.

@@ -1,0 +1,149 @@
+//! Duhem hysteresis in fixed point: the forward observer and the inverse compensator.
+//!
+//! Model (normalised by [`Scaling`]): `ẏ = α |u̇| (β u + δ − y) + γ u̇`, discretised per sample
+//! as in DESIGN §2:
+//!
+//! `y_k = y_{k−1} + a_k (β u_{k−1} + δ − y_{k−1}) + γ Δu_k`, with `a_k = min(α |Δu_k|, 1)`.
+//!
+//! The clamp `a_k ≤ 1` is the discrete form's stability bound: beyond it a single large step
+//! would overshoot the anhysteretic curve. At control rates (tens of kHz) `α |Δu|` is far below
+//! 1 and the clamp never acts; it only keeps a step to the range limits bounded.
+//!
+//! Formats: `u, y, δ` Q2.30 normalised; `α, β, γ` Q8.24 normalised; the factor `a` Q2.30 in
+//! [0, 1]; the distance to the anhysteretic curve `e = β u + δ − y` Q2.30, saturated at ±2
+//! (it only reaches that for states far outside the range); products in `i64`.
+//!
+//! **Inverse.** Writing `Δu = s·m` (`s` the sign, `m ≥ 0`), one step of the model gives
+//! `Δy = s·m·g_s` with `g_s = γ + s·α·e`, the local slope in direction `s`. For a desired
+//! `Δy`, take `s = sign(Δy)` and `m = |Δy| / g_s`. The slope can approach zero (or turn
+//! negative for parameters outside the physical set); it is floored at
+//! `g_min = min(β, γ) / 16`, so `m` — and the drive — stay bounded, and the drive is clamped to
+//! the input range. The inverse runs its own forward model on the drive it produced, so any
+//! shortfall in one sample is made up in the next.
+
+use crate::fixed_point::{
+    clamp_full_scale, gain_from_f64, saturate_i64, signal_from_f64, GAIN_FRAC_BITS, SIGNAL_FRAC_BITS,
+    SIGNAL_ONE,
+};
+use crate::params::{DuhemParams, ParamError};
+use crate::scaling::Scaling;
+
+/// Fraction of `min(β, γ)` below which the inverse's slope is floored.
+pub const MIN_SLOPE_DIVISOR: i32 = 16;
+
+/// State of a Duhem model: the previous input and output, Q2.30 normalised.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct DuhemState {
+    /// Previous input `u_{k−1}`, Q2.30 normalised drive.
+    pub u: i32,
+    /// Previous output `y_{k−1}`, Q2.30 normalised displacement.
+    pub y: i32,
+}
+
+/// Forward Duhem model, fixed point (the observer).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Duhem {
+    /// `α`, Q8.24 normalised (per input half-span).
+    alpha: i32,
+    /// `β`, Q8.24 normalised (output span per input span).
+    beta: i32,
+    /// `γ`, Q8.24 normalised.
+    gamma: i32,
+    /// `δ`, offset of the anhysteretic curve, Q2.30 normalised output.
+    offset: i32,
+}
+
+impl Duhem {
+    /// Validates `params` (physical units) and converts them, normalised by `scaling`, into the
+    /// fixed-point form the tick runs.
+    pub fn new(params: &DuhemParams, scaling: &Scaling) -> Result<Self, ParamError> {
+        let n = params.normalized(scaling)?;
+        Ok(Self {
+            alpha: gain_from_f64(n.alpha),
+            beta: gain_from_f64(n.beta),
+            gamma: gain_from_f64(n.gamma),
+            offset: signal_from_f64(n.offset),
+        })
+    }
+
+    /// State at input `u` and output `y` (both Q2.30 normalised).
+    pub fn state_at(&self, u: i32, y: i32) -> DuhemState {
+        DuhemState {
+            u: clamp_full_scale(u),
+            y,
+        }
+    }
+
+    /// Distance to the anhysteretic curve, `e = β u + δ − y`, Q2.30 saturated.
+    #[inline(always)]
+    fn anhysteretic_error(&self, state: &DuhemState) -> i64 {
+        let beta_u = (self.beta as i64 * state.u as i64) >> GAIN_FRAC_BITS;
+        saturate_i64(beta_u + self.offset as i64 - state.y as i64) as i64
+    }
+
+    /// One sample: input `u` (Q2.30 normalised drive, clamped to [-1, 1]) → estimated
+    /// displacement (Q2.30 normalised, saturated).
+    #[inline]
+    pub fn step(&self, state: &mut DuhemState, u: i32) -> i32 {
+        let u = clamp_full_scale(u);
+        // |Δu| ≤ 2 in Q2.30 fits i64 trivially; in i32 it could reach 2^31.
+        let du = u as i64 - state.u as i64;
+        let a = ((self.alpha as i64 * du.abs()) >> GAIN_FRAC_BITS).min(SIGNAL_ONE as i64);
+        let e = self.anhysteretic_error(state);
+        let dy = ((a * e) >> SIGNAL_FRAC_BITS) + ((self.gamma as i64 * du) >> GAIN_FRAC_BITS);
+        state.u = u;
+        state.y = saturate_i64(state.y as i64 + dy);
+        state.y
+    }
+}
+
+/// Inverse Duhem compensator, fixed point: per sample, the drive increment that produces the
+/// desired displacement increment.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct InverseDuhem {
+    model: Duhem,
+    /// Floor of the slope `g_s`, Q8.24, `> 0`.
+    min_slope: i32,
+}
+
+impl InverseDuhem {
+    /// Validates `params` and builds the compensator for them, normalised by `scaling`.
+    pub fn new(params: &DuhemParams, scaling: &Scaling) -> Result<Self, ParamError> {
+        let model = Duhem::new(params, scaling)?;
+        let min_slope = (model.beta.min(model.gamma) / MIN_SLOPE_DIVISOR).max(1);
+        Ok(Self { model, min_slope })
+    }
+
+    /// The forward model the compensator inverts.
+    pub fn model(&self) -> &Duhem {
+        &self.model
+    }
+
+    /// One sample: desired displacement `y_d` (Q2.30 normalised, clamped to [-1, 1]) → drive
+    /// (Q2.30 normalised, within [-1, 1]). `state` is the compensator's own forward model.
+    #[inline]
+    pub fn step(&self, state: &mut DuhemState, y_desired: i32) -> i32 {
+        let dy = clamp_full_scale(y_desired) as i64 - state.y as i64;
+        if dy == 0 {
+            return state.u;
+        }
+        let e = self.model.anhysteretic_error(state);
+        let alpha_e = (self.model.alpha as i64 * e) >> SIGNAL_FRAC_BITS; // Q8.24
+        let slope = if dy > 0 {
+            self.model.gamma as i64 + alpha_e
+        } else {
+            self.model.gamma as i64 - alpha_e
+        }
+        .max(self.min_slope as i64);
+        // m = |Δy| / g: Q2.30 · 2^24 / Q8.24 = Q2.30; |Δy| ≤ 3·2^30 so the shift fits i64.
+        // The slope is at least min_slope ≥ 1, so the division cannot trap; checked_div keeps
+        // the tick free of a panic path all the same.
+        let m = ((dy.abs() << GAIN_FRAC_BITS).checked_div(slope))
+            .unwrap_or(0)
+            .min(2 * SIGNAL_ONE as i64);
+        let du = if dy > 0 { m } else { -m };
+        let u = clamp_full_scale(saturate_i64(state.u as i64 + du));
+        self.model.step(state, u);
+        u
+    }
+}

@@ -1,0 +1,148 @@
+//! Fixed-point formats of the control tick.
+//!
+//! Two formats, both in `i32`, cover every signal and coefficient:
+//!
+//! | name | format | 1.0 is | range | resolution | used for |
+//! |------|--------|--------|-------|------------|----------|
+//! | signal | Q2.30 | `1 << 30` | [-2, 2) | 9.3e-10 | normalised drive, displacement, play states, thresholds |
+//! | gain | Q8.24 | `1 << 24` | [-128, 128) | 6.0e-8 | P–I weights (forward and inverse), Duhem α β γ |
+//!
+//! Signals are *normalised*: the physical range of a quantity (e.g. 0…150 V of drive, or the
+//! stage's stroke in µm) maps to [-1, 1] (see [`crate::scaling::Scaling`]). The extra integer bit
+//! of Q2.30 is headroom: a play operator's state lives in `[u − r, u + r]`, which leaves [-1, 1]
+//! when `r > 0`, and intermediate sums may overshoot before the final saturation.
+//!
+//! The inverse P–I's weights `w'_i = −w_i / (S_i S_{i−1})` routinely exceed 10 in magnitude;
+//! Q8.24 holds ±128 and still resolves 6e-8, i.e. 1/500 of a 16-bit LSB per unit signal.
+//! Products of a gain and a signal are formed in `i64` (Q10.54) and summed there; parameter
+//! validation bounds `Σ|w|` so that the sum provably fits (see [`MAX_GAIN_SUM`]), and only the
+//! final result is saturated back to Q2.30.
+//!
+//! **Why our own Q types rather than the `fixed` crate.** The tick needs exactly two formats,
+//! one widening multiply-accumulate and saturation at a few chosen points. Writing those as
+//! plain `i32`/`i64` operations keeps the generated code obvious (one `SMLAL` per operator on
+//! the Cortex-M4, `QADD`/`QSUB` for saturating adds), makes the rounding explicit, so host and
+//! target are bit-identical by construction, and adds no dependency to the firmware.
+//! Every conversion from `f64` saturates and rejects NaN.
+
+/// Fractional bits of a Q2.30 signal.
+pub const SIGNAL_FRAC_BITS: u32 = 30;
+/// Fractional bits of a Q8.24 gain.
+pub const GAIN_FRAC_BITS: u32 = 24;
+/// 1.0 as a Q2.30 signal (full scale).
+pub const SIGNAL_ONE: i32 = 1 << SIGNAL_FRAC_BITS;
+/// 1.0 as a Q8.24 gain.
+pub const GAIN_ONE: i32 = 1 << GAIN_FRAC_BITS;
+/// Largest `Σ|w_i|` (plus `|offset|`) a model may have, so that a Q10.54 accumulation of
+/// gains × signals (|signal| < 2) stays inside `i64`: `64 · 2 · 2^54 = 2^61 < 2^63`.
+pub const MAX_GAIN_SUM: f64 = 64.0;
+
+/// Converts a real number to Q2.30 with rounding to nearest, saturating at the range ends.
+/// NaN maps to 0 (callers validate parameters before conversion; this is a last guard).
+pub fn signal_from_f64(x: f64) -> i32 {
+    to_fixed(x, SIGNAL_FRAC_BITS)
+}
+
+/// Converts a Q2.30 signal to a real number.
+pub fn signal_to_f64(q: i32) -> f64 {
+    q as f64 / SIGNAL_ONE as f64
+}
+
+/// Converts a real number to Q8.24 with rounding to nearest, saturating at the range ends.
+pub fn gain_from_f64(x: f64) -> i32 {
+    to_fixed(x, GAIN_FRAC_BITS)
+}
+
+/// Converts a Q8.24 gain to a real number.
+pub fn gain_to_f64(q: i32) -> f64 {
+    q as f64 / GAIN_ONE as f64
+}
+
+fn to_fixed(x: f64, frac_bits: u32) -> i32 {
+    if x.is_nan() {
+        return 0;
+    }
+    let scaled = x * (1u64 << frac_bits) as f64;
+    let rounded = if scaled >= 0.0 {
+        scaled + 0.5
+    } else {
+        scaled - 0.5
+    };
+    if rounded >= i32::MAX as f64 {
+        i32::MAX
+    } else if rounded <= i32::MIN as f64 {
+        i32::MIN
+    } else {
+        rounded as i32
+    }
+}
+
+/// Saturates a Q10.54 accumulator (a sum of gain × signal products) to a Q2.30 signal,
+/// rounding to nearest.
+#[inline(always)]
+pub fn saturate_q54_to_signal(acc: i64) -> i32 {
+    let shifted = (acc.saturating_add(1 << (GAIN_FRAC_BITS - 1))) >> GAIN_FRAC_BITS;
+    saturate_i64(shifted)
+}
+
+/// Saturates an `i64` to the `i32` range.
+#[inline(always)]
+pub fn saturate_i64(x: i64) -> i32 {
+    if x > i32::MAX as i64 {
+        i32::MAX
+    } else if x < i32::MIN as i64 {
+        i32::MIN
+    } else {
+        x as i32
+    }
+}
+
+/// Multiplies a Q8.24 gain by a Q2.30 signal into a Q2.30 signal, rounding and saturating.
+#[inline(always)]
+pub fn gain_times_signal(gain: i32, signal: i32) -> i32 {
+    saturate_q54_to_signal(gain as i64 * signal as i64)
+}
+
+/// Clamps a Q2.30 signal to the normalised full-scale range [-1, 1].
+#[inline(always)]
+pub fn clamp_full_scale(signal: i32) -> i32 {
+    signal.clamp(-SIGNAL_ONE, SIGNAL_ONE)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn conversions_round_trip_within_half_an_lsb() {
+        for &x in &[0.0, 1.0, -1.0, 0.123_456_789, -1.999_999, 1.5] {
+            let back = signal_to_f64(signal_from_f64(x));
+            assert!((back - x).abs() <= 0.5 / SIGNAL_ONE as f64, "{x} -> {back}");
+            let back = gain_to_f64(gain_from_f64(x * 50.0));
+            assert!((back - x * 50.0).abs() <= 0.5 / GAIN_ONE as f64);
+        }
+    }
+
+    #[test]
+    fn conversions_saturate_instead_of_wrapping() {
+        assert_eq!(signal_from_f64(5.0), i32::MAX);
+        assert_eq!(signal_from_f64(-5.0), i32::MIN);
+        assert_eq!(gain_from_f64(1e9), i32::MAX);
+        assert_eq!(signal_from_f64(f64::NAN), 0);
+        assert_eq!(saturate_q54_to_signal(i64::MAX), i32::MAX);
+        assert_eq!(saturate_q54_to_signal(i64::MIN), i32::MIN);
+    }
+
+    #[test]
+    fn gain_times_signal_matches_real_product() {
+        let g = gain_from_f64(-12.5);
+        let s = signal_from_f64(0.1);
+        let p = signal_to_f64(gain_times_signal(g, s));
+        assert!((p - (-1.25)).abs() < 1e-8);
+        // 100 × 1.5 saturates at the top of Q2.30 rather than wrapping negative.
+        assert_eq!(
+            gain_times_signal(gain_from_f64(100.0), signal_from_f64(1.5)),
+            i32::MAX
+        );
+    }
+}

@@ -1,0 +1,574 @@
+//! Physical parameter sets (in `f64`, volts and output units) and their validation.
+//!
+//! Parameters are checked and converted once, off the tick path, into the fixed-point
+//! configurations of [`crate::prandtl_ishlinskii`] and [`crate::duhem`]; anything that would make
+//! the tick misbehave (a non-invertible P–I, a gain the Q-formats cannot hold, NaN) is refused
+//! here with a [`ParamError`] that says what and where. Operator numbers in errors are 1-based,
+//! as in the equations of DESIGN §2.
+
+use crate::fixed_point::MAX_GAIN_SUM;
+use crate::scaling::Scaling;
+use heapless::Vec;
+
+/// Most play operators a P–I model may have (not counting its linear term `a0`).
+pub const MAX_OPERATORS: usize = 32;
+/// Operator slots in the canonical form: the linear term `a0` may need a slot of its own.
+pub const MAX_CANONICAL_OPERATORS: usize = MAX_OPERATORS + 1;
+/// Largest normalised threshold: the whole normalised span (2.0 in Q2.30 units).
+pub const MAX_NORM_THRESHOLD: f64 = 2.0;
+/// Largest normalised weight magnitude a Q8.24 gain holds, with a margin.
+pub const MAX_NORM_WEIGHT: f64 = 127.0;
+
+/// Why a parameter set was refused.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub enum ParamError {
+    /// The P–I model has no play operator and no linear term.
+    NoOperators,
+    /// More than [`MAX_OPERATORS`] play operators.
+    TooManyOperators {
+        /// How many were given.
+        count: usize,
+    },
+    /// Thresholds and weights have different lengths.
+    LengthMismatch {
+        /// Number of thresholds.
+        thresholds: usize,
+        /// Number of weights.
+        weights: usize,
+    },
+    /// A parameter is NaN or infinite.
+    NotFinite,
+    /// A threshold is negative (1-based operator number).
+    NegativeThreshold {
+        /// Operator number, 1-based.
+        operator: usize,
+    },
+    /// Thresholds must increase strictly; this one does not exceed its predecessor.
+    ThresholdsNotIncreasing {
+        /// Operator number, 1-based.
+        operator: usize,
+    },
+    /// A threshold exceeds the full span of the configured range.
+    ThresholdOutOfRange {
+        /// Operator number, 1-based.
+        operator: usize,
+    },
+    /// The first operator's threshold is not zero and there is no linear term: the model has
+    /// a dead band at every reversal and no inverse.
+    FirstThresholdNotZero,
+    /// `w_1 ≤ 0` (after folding `a0` into the `r = 0` operator): the loading curve does not rise.
+    FirstWeightNotPositive,
+    /// The partial sum `S_i = Σ_{j≤i} w_j` is not positive: the loading curve stops rising at
+    /// operator `i`, so the inverse does not exist.
+    PartialSumNotPositive {
+        /// Operator number, 1-based.
+        operator: usize,
+    },
+    /// A (forward or inverse) weight, once normalised, does not fit the Q8.24 gain format.
+    WeightOutOfRange {
+        /// Operator number, 1-based.
+        operator: usize,
+    },
+    /// `Σ|w|` exceeds [`MAX_GAIN_SUM`], so the tick's accumulator could overflow.
+    GainSumTooLarge,
+    /// The input (drive) range is empty or not finite.
+    EmptyInputRange,
+    /// The output (displacement) range is empty or not finite.
+    EmptyOutputRange,
+    /// Duhem `α ≤ 0`.
+    DuhemAlphaNotPositive,
+    /// Duhem `β ≤ 0`.
+    DuhemBetaNotPositive,
+    /// Duhem `γ ≤ 0`.
+    DuhemGammaNotPositive,
+    /// A Duhem coefficient, once normalised, does not fit the Q8.24 gain format.
+    DuhemCoefficientOutOfRange,
+}
+
+impl core::fmt::Display for ParamError {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        use ParamError::*;
+        match *self {
+            NoOperators => write!(f, "the P–I model has no operators and no linear term"),
+            TooManyOperators { count } => {
+                write!(f, "{count} play operators given, at most {MAX_OPERATORS} supported")
+            }
+            LengthMismatch {
+                thresholds,
+                weights,
+            } => write!(f, "{thresholds} thresholds but {weights} weights"),
+            NotFinite => write!(f, "a parameter is NaN or infinite"),
+            NegativeThreshold { operator } => {
+                write!(f, "threshold of operator {operator} is negative")
+            }
+            ThresholdsNotIncreasing { operator } => write!(
+                f,
+                "threshold of operator {operator} does not exceed the one before it"
+            ),
+            ThresholdOutOfRange { operator } => write!(
+                f,
+                "threshold of operator {operator} exceeds the span of the input range"
+            ),
+            FirstThresholdNotZero => write!(
+                f,
+                "first threshold is not zero and a0 = 0: the model is not invertible"
+            ),
+            FirstWeightNotPositive => write!(
+                f,
+                "not invertible: w_1 (with a0 folded in) is not positive (operator 1)"
+            ),
+            PartialSumNotPositive { operator } => write!(
+                f,
+                "not invertible: partial sum of weights S_{operator} is not positive (operator {operator})"
+            ),
+            WeightOutOfRange { operator } => write!(
+                f,
+                "weight of operator {operator} does not fit the Q8.24 format (|w| < {MAX_NORM_WEIGHT} normalised)"
+            ),
+            GainSumTooLarge => write!(
+                f,
+                "sum of |weights| exceeds {MAX_GAIN_SUM} (normalised): the accumulator could overflow"
+            ),
+            EmptyInputRange => write!(f, "input range is empty or not finite"),
+            EmptyOutputRange => write!(f, "output range is empty or not finite"),
+            DuhemAlphaNotPositive => write!(f, "Duhem alpha must be positive"),
+            DuhemBetaNotPositive => write!(f, "Duhem beta must be positive"),
+            DuhemGammaNotPositive => write!(f, "Duhem gamma must be positive"),
+            DuhemCoefficientOutOfRange => write!(
+                f,
+                "a Duhem coefficient, normalised, does not fit the Q8.24 format"
+            ),
+        }
+    }
+}
+
+/// How P–I thresholds are spread over the input amplitude (DESIGN §2).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Thresholds {
+    /// `r_i = (i − 1)/N · A` (the first paper; N = 9 was its best fit).
+    Uniform,
+    /// `r_i = A · (q^{i−1} − 1)/(q^N − 1)`: denser near zero for `q > 1` (the second paper's
+    /// geometric progression); `q → 1` gives the uniform spread.
+    Geometric {
+        /// Common ratio `q > 0, q ≠ 1`.
+        ratio: f64,
+    },
+}
+
+impl Thresholds {
+    /// The `n` thresholds over amplitude `amplitude` (input units), first one zero.
+    pub fn generate(&self, n: usize, amplitude: f64) -> Result<Vec<f64, MAX_OPERATORS>, ParamError> {
+        if n == 0 {
+            return Err(ParamError::NoOperators);
+        }
+        if n > MAX_OPERATORS {
+            return Err(ParamError::TooManyOperators { count: n });
+        }
+        if !amplitude.is_finite() || amplitude <= 0.0 {
+            return Err(ParamError::NotFinite);
+        }
+        let mut out = Vec::new();
+        for i in 0..n {
+            let frac = match *self {
+                Thresholds::Uniform => i as f64 / n as f64,
+                Thresholds::Geometric { ratio } => {
+                    if !ratio.is_finite() || ratio <= 0.0 {
+                        return Err(ParamError::NotFinite);
+                    }
+                    if (ratio - 1.0).abs() < 1e-9 {
+                        i as f64 / n as f64
+                    } else {
+                        (libm::pow(ratio, i as f64) - 1.0) / (libm::pow(ratio, n as f64) - 1.0)
+                    }
+                }
+            };
+            // Capacity is MAX_OPERATORS and n <= MAX_OPERATORS: push cannot fail.
+            let _ = out.push(frac * amplitude);
+        }
+        Ok(out)
+    }
+}
+
+/// A Prandtl–Ishlinskii model in physical units:
+/// `y = a0·u + Σ_i w_i · P_{r_i}[u] + offset` (volts in, output units out).
+#[derive(Clone, Debug, PartialEq)]
+pub struct PiParams {
+    /// Linear term `a0`, output units per volt.
+    pub a0: f64,
+    /// Output offset, output units.
+    pub offset: f64,
+    /// Thresholds `r_i`, volts, `0 ≤ r_1 < r_2 < …`.
+    pub thresholds: Vec<f64, MAX_OPERATORS>,
+    /// Weights `w_i`, output units per volt.
+    pub weights: Vec<f64, MAX_OPERATORS>,
+}
+
+/// A P–I model in canonical form: `y = offset + Σ_i w_i · P_{r_i}[u]` with `r_1 = 0` and the
+/// linear term folded into operator 1. Units are those of the model it came from.
+#[derive(Clone, Debug, PartialEq)]
+pub struct CanonicalPi {
+    /// Thresholds, first one zero, strictly increasing.
+    pub thresholds: Vec<f64, MAX_CANONICAL_OPERATORS>,
+    /// Weights.
+    pub weights: Vec<f64, MAX_CANONICAL_OPERATORS>,
+    /// Output offset (forward) or input offset subtracted first (inverse).
+    pub offset: f64,
+}
+
+impl PiParams {
+    /// A model from thresholds and weights (volts, output units per volt).
+    pub fn new(a0: f64, offset: f64, thresholds: &[f64], weights: &[f64]) -> Result<Self, ParamError> {
+        if thresholds.len() > MAX_OPERATORS {
+            return Err(ParamError::TooManyOperators {
+                count: thresholds.len(),
+            });
+        }
+        if weights.len() != thresholds.len() {
+            return Err(ParamError::LengthMismatch {
+                thresholds: thresholds.len(),
+                weights: weights.len(),
+            });
+        }
+        let p = Self {
+            a0,
+            offset,
+            thresholds: Vec::from_slice(thresholds).map_err(|_| ParamError::TooManyOperators {
+                count: thresholds.len(),
+            })?,
+            weights: Vec::from_slice(weights).map_err(|_| ParamError::TooManyOperators {
+                count: weights.len(),
+            })?,
+        };
+        Ok(p)
+    }
+
+    /// Checks the model is well formed: finite, thresholds non-negative and strictly
+    /// increasing, at least one operator or a linear term. (It need not be invertible.)
+    pub fn validate(&self) -> Result<(), ParamError> {
+        if self.weights.len() != self.thresholds.len() {
+            return Err(ParamError::LengthMismatch {
+                thresholds: self.thresholds.len(),
+                weights: self.weights.len(),
+            });
+        }
+        if self.thresholds.is_empty() && self.a0 == 0.0 {
+            return Err(ParamError::NoOperators);
+        }
+        let finite = self.a0.is_finite()
+            && self.offset.is_finite()
+            && self.thresholds.iter().chain(self.weights.iter()).all(|v| v.is_finite());
+        if !finite {
+            return Err(ParamError::NotFinite);
+        }
+        for (i, &r) in self.thresholds.iter().enumerate() {
+            if r < 0.0 {
+                return Err(ParamError::NegativeThreshold { operator: i + 1 });
+            }
+            if i > 0 && r <= self.thresholds[i - 1] {
+                return Err(ParamError::ThresholdsNotIncreasing { operator: i + 1 });
+            }
+        }
+        Ok(())
+    }
+
+    /// The canonical form: `a0` folded into the `r = 0` operator (added to `w_1` when
+    /// `r_1 = 0`, otherwise given an operator of its own in front).
+    pub fn canonical(&self) -> Result<CanonicalPi, ParamError> {
+        self.validate()?;
+        let mut thresholds = Vec::new();
+        let mut weights = Vec::new();
+        let first_is_zero = self.thresholds.first() == Some(&0.0);
+        if !first_is_zero && self.a0 != 0.0 {
+            let _ = thresholds.push(0.0);
+            let _ = weights.push(self.a0);
+        }
+        for (i, (&r, &w)) in self.thresholds.iter().zip(self.weights.iter()).enumerate() {
+            let w = if i == 0 && first_is_zero { w + self.a0 } else { w };
+            // Capacity MAX_OPERATORS + 1 holds the linear slot plus every operator.
+            let _ = thresholds.push(r);
+            let _ = weights.push(w);
+        }
+        Ok(CanonicalPi {
+            thresholds,
+            weights,
+            offset: self.offset,
+        })
+    }
+
+    /// The model in normalised coordinates of `scaling` (both ranges onto [-1, 1]).
+    ///
+    /// The play operator commutes with affine maps of its input, so
+    /// `r → r / U`, `w → w · U / Y`, and the offset absorbs both range centres.
+    pub fn normalized(&self, scaling: &Scaling) -> Result<PiParams, ParamError> {
+        self.validate()?;
+        let u_half = scaling.input_half_span();
+        let y_half = scaling.output_half_span();
+        let g = scaling.gain_to_norm();
+        let total: f64 = self.a0 + self.weights.iter().sum::<f64>();
+        let offset = (self.offset + total * scaling.input_mid() - scaling.output_mid()) / y_half;
+        let mut thresholds = Vec::new();
+        let mut weights = Vec::new();
+        for (&r, &w) in self.thresholds.iter().zip(self.weights.iter()) {
+            let _ = thresholds.push(r / u_half);
+            let _ = weights.push(w * g);
+        }
+        Ok(PiParams {
+            a0: self.a0 * g,
+            offset,
+            thresholds,
+            weights,
+        })
+    }
+}
+
+impl CanonicalPi {
+    /// The analytic inverse (DESIGN §2): `r'_i = Σ_{j≤i} w_j (r_i − r_j)`, `w'_1 = 1/w_1`,
+    /// `w'_i = −w_i / (S_i S_{i−1})`; its offset is the forward offset, subtracted from the
+    /// desired output before the play operators. Refuses non-invertible models with the first
+    /// failing operator.
+    pub fn inverse(&self) -> Result<CanonicalPi, ParamError> {
+        if self.thresholds.is_empty() {
+            return Err(ParamError::NoOperators);
+        }
+        if self.thresholds[0] != 0.0 {
+            return Err(ParamError::FirstThresholdNotZero);
+        }
+        if self.weights[0] <= 0.0 {
+            return Err(ParamError::FirstWeightNotPositive);
+        }
+        let mut thresholds = Vec::new();
+        let mut weights = Vec::new();
+        let mut partial = 0.0;
+        for i in 0..self.weights.len() {
+            let previous = partial;
+            partial += self.weights[i];
+            if partial <= 0.0 {
+                return Err(ParamError::PartialSumNotPositive { operator: i + 1 });
+            }
+            let r_i = self.thresholds[i];
+            let r_inv: f64 = self.thresholds[..=i]
+                .iter()
+                .zip(self.weights[..=i].iter())
+                .map(|(&r_j, &w_j)| w_j * (r_i - r_j))
+                .sum();
+            let w_inv = if i == 0 {
+                1.0 / self.weights[0]
+            } else {
+                -self.weights[i] / (partial * previous)
+            };
+            let _ = thresholds.push(r_inv);
+            let _ = weights.push(w_inv);
+        }
+        Ok(CanonicalPi {
+            thresholds,
+            weights,
+            offset: self.offset,
+        })
+    }
+
+    /// Checks a normalised canonical model fits the fixed-point formats: thresholds within
+    /// the normalised span, weights within Q8.24, `Σ|w| + |offset|` within [`MAX_GAIN_SUM`].
+    pub fn check_fixed_point_range(&self) -> Result<(), ParamError> {
+        let mut sum = self.offset.abs();
+        for (i, (&r, &w)) in self.thresholds.iter().zip(self.weights.iter()).enumerate() {
+            if !(r.is_finite() && w.is_finite()) {
+                return Err(ParamError::NotFinite);
+            }
+            if r > MAX_NORM_THRESHOLD {
+                return Err(ParamError::ThresholdOutOfRange { operator: i + 1 });
+            }
+            if w.abs() > MAX_NORM_WEIGHT {
+                return Err(ParamError::WeightOutOfRange { operator: i + 1 });
+            }
+            sum += w.abs();
+        }
+        if sum > MAX_GAIN_SUM || !self.offset.is_finite() || self.offset.abs() > 1.5 {
+            return Err(ParamError::GainSumTooLarge);
+        }
+        Ok(())
+    }
+}
+
+/// A Duhem model in physical units: `ẏ = α |u̇| (β u + offset − y) + γ u̇`
+/// (volts in, output units out). The discrete form per sample is
+/// `y_k = y_{k−1} + α |Δu| (β u_{k−1} + offset − y_{k−1}) + γ Δu` (DESIGN §2).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct DuhemParams {
+    /// `α > 0`, per volt.
+    pub alpha: f64,
+    /// `β > 0`, output units per volt (slope of the anhysteretic curve).
+    pub beta: f64,
+    /// `γ > 0`, output units per volt (slope just after a reversal).
+    pub gamma: f64,
+    /// Offset of the anhysteretic curve, output units.
+    pub offset: f64,
+}
+
+impl DuhemParams {
+    /// Checks `α, β, γ > 0` and that everything is finite.
+    pub fn validate(&self) -> Result<(), ParamError> {
+        if ![self.alpha, self.beta, self.gamma, self.offset]
+            .iter()
+            .all(|v| v.is_finite())
+        {
+            return Err(ParamError::NotFinite);
+        }
+        if self.alpha <= 0.0 {
+            return Err(ParamError::DuhemAlphaNotPositive);
+        }
+        if self.beta <= 0.0 {
+            return Err(ParamError::DuhemBetaNotPositive);
+        }
+        if self.gamma <= 0.0 {
+            return Err(ParamError::DuhemGammaNotPositive);
+        }
+        Ok(())
+    }
+
+    /// The model in the normalised coordinates of `scaling`:
+    /// `α → α U`, `β, γ → (β, γ) U / Y`, `offset → (β u_mid + offset − y_mid) / Y`.
+    pub fn normalized(&self, scaling: &Scaling) -> Result<DuhemParams, ParamError> {
+        self.validate()?;
+        let g = scaling.gain_to_norm();
+        let n = DuhemParams {
+            alpha: self.alpha * scaling.input_half_span(),
+            beta: self.beta * g,
+            gamma: self.gamma * g,
+            offset: (self.beta * scaling.input_mid() + self.offset - scaling.output_mid())
+                / scaling.output_half_span(),
+        };
+        let fits = [n.alpha, n.beta, n.gamma].iter().all(|v| *v <= MAX_NORM_WEIGHT)
+            && n.offset.abs() <= 1.5;
+        if !fits {
+            return Err(ParamError::DuhemCoefficientOutOfRange);
+        }
+        Ok(n)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn pi(a0: f64, r: &[f64], w: &[f64]) -> PiParams {
+        PiParams::new(a0, 0.0, r, w).unwrap()
+    }
+
+    #[test]
+    fn each_failure_mode_has_its_own_error() {
+        assert_eq!(
+            PiParams::new(0.0, 0.0, &[0.0; 33], &[1.0; 33]),
+            Err(ParamError::TooManyOperators { count: 33 })
+        );
+        assert_eq!(
+            PiParams::new(0.0, 0.0, &[0.0, 1.0], &[1.0]),
+            Err(ParamError::LengthMismatch {
+                thresholds: 2,
+                weights: 1
+            })
+        );
+        assert_eq!(pi(0.0, &[], &[]).validate(), Err(ParamError::NoOperators));
+        assert_eq!(
+            pi(0.0, &[0.0, f64::NAN], &[1.0, 1.0]).validate(),
+            Err(ParamError::NotFinite)
+        );
+        assert_eq!(
+            pi(0.0, &[-1.0, 1.0], &[1.0, 1.0]).validate(),
+            Err(ParamError::NegativeThreshold { operator: 1 })
+        );
+        assert_eq!(
+            pi(0.0, &[0.0, 1.0, 1.0], &[1.0, 1.0, 1.0]).validate(),
+            Err(ParamError::ThresholdsNotIncreasing { operator: 3 })
+        );
+        let inv = |p: PiParams| p.canonical().and_then(|c| c.inverse());
+        assert_eq!(
+            inv(pi(0.0, &[0.5, 1.0], &[1.0, 1.0])),
+            Err(ParamError::FirstThresholdNotZero)
+        );
+        assert_eq!(
+            inv(pi(0.0, &[0.0, 1.0], &[-0.1, 1.0])),
+            Err(ParamError::FirstWeightNotPositive)
+        );
+        // w_1 = 0 is refused too (the boundary case of w_1 <= 0).
+        assert_eq!(
+            inv(pi(0.0, &[0.0, 1.0], &[0.0, 1.0])),
+            Err(ParamError::FirstWeightNotPositive)
+        );
+        assert_eq!(
+            inv(pi(0.0, &[0.0, 1.0, 2.0, 3.0], &[1.0, 0.5, -0.2, -1.5])),
+            Err(ParamError::PartialSumNotPositive { operator: 4 })
+        );
+        // a0 rescues a negative first weight when it is folded in.
+        assert!(inv(pi(2.0, &[0.0, 1.0], &[-1.0, 0.5])).is_ok());
+    }
+
+    #[test]
+    fn fixed_point_range_errors_name_the_operator() {
+        let c = CanonicalPi {
+            thresholds: Vec::from_slice(&[0.0, 1.0, 2.5]).unwrap(),
+            weights: Vec::from_slice(&[1.0, 1.0, 1.0]).unwrap(),
+            offset: 0.0,
+        };
+        assert_eq!(
+            c.check_fixed_point_range(),
+            Err(ParamError::ThresholdOutOfRange { operator: 3 })
+        );
+        let c = CanonicalPi {
+            thresholds: Vec::from_slice(&[0.0, 1.0]).unwrap(),
+            weights: Vec::from_slice(&[1.0, -200.0]).unwrap(),
+            offset: 0.0,
+        };
+        assert_eq!(
+            c.check_fixed_point_range(),
+            Err(ParamError::WeightOutOfRange { operator: 2 })
+        );
+        let c = CanonicalPi {
+            thresholds: Vec::from_slice(&[0.0, 0.1, 0.2]).unwrap(),
+            weights: Vec::from_slice(&[100.0, -50.0, 40.0]).unwrap(),
+            offset: 0.0,
+        };
+        assert_eq!(c.check_fixed_point_range(), Err(ParamError::GainSumTooLarge));
+    }
+
+    #[test]
+    fn duhem_failure_modes_have_their_own_errors() {
+        let ok = DuhemParams {
+            alpha: 0.1,
+            beta: 0.2,
+            gamma: 0.15,
+            offset: 0.0,
+        };
+        assert_eq!(ok.validate(), Ok(()));
+        let bad = |f: fn(&mut DuhemParams)| {
+            let mut p = ok;
+            f(&mut p);
+            p.validate()
+        };
+        assert_eq!(bad(|p| p.alpha = 0.0), Err(ParamError::DuhemAlphaNotPositive));
+        assert_eq!(bad(|p| p.beta = -1.0), Err(ParamError::DuhemBetaNotPositive));
+        assert_eq!(bad(|p| p.gamma = 0.0), Err(ParamError::DuhemGammaNotPositive));
+        assert_eq!(bad(|p| p.offset = f64::INFINITY), Err(ParamError::NotFinite));
+        let s = Scaling::new(0.0, 150.0, 0.0, 1.0).unwrap();
+        assert_eq!(
+            DuhemParams { alpha: 1.0, ..ok }.normalized(&s),
+            Err(ParamError::DuhemCoefficientOutOfRange)
+        );
+    }
+
+    #[test]
+    fn thresholds_uniform_and_geometric_start_at_zero_and_increase() {
+        let u = Thresholds::Uniform.generate(9, 90.0).unwrap();
+        assert_eq!(u[0], 0.0);
+        assert!((u[8] - 80.0).abs() < 1e-12);
+        let g = Thresholds::Geometric { ratio: 1.2 }.generate(17, 150.0).unwrap();
+        assert_eq!(g[0], 0.0);
+        assert!(g.windows(2).all(|w| w[1] > w[0]));
+        assert!(g[16] < 150.0);
+        assert!(g[1] < 150.0 / 17.0, "geometric is denser near zero");
+        assert_eq!(
+            Thresholds::Uniform.generate(33, 1.0),
+            Err(ParamError::TooManyOperators { count: 33 })
+        );
+    }
+}
