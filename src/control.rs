@@ -15,7 +15,7 @@
 use crate::board::{AdcCode, DacCode, DualDac, SensorAdc};
 use crate::drive::DifferentialDrive;
 use crate::duhem::{Duhem, DuhemState, InverseDuhem};
-use crate::fixed_point::{clamp_full_scale, saturate_i64, GAIN_FRAC_BITS, SIGNAL_FRAC_BITS};
+use crate::fixed_point::{clamp_full_scale, limit, saturate_i64, GAIN_FRAC_BITS, SIGNAL_FRAC_BITS};
 use crate::prandtl_ishlinskii::{InversePrandtlIshlinskii, PiState, PrandtlIshlinskii};
 
 /// The feedforward compensator: desired displacement → drive.
@@ -273,10 +273,13 @@ impl Controller {
                     let at_low = self.drive <= self.config.drive.drive_range().0 && error < 0;
                     if !(at_high || at_low) {
                         let i = self.integrator as i64 + ((fb.ki as i64 * error) >> GAIN_FRAC_BITS);
-                        self.integrator = saturate_i64(i).clamp(-fb.limit, fb.limit);
+                        self.integrator = limit(saturate_i64(i), -fb.limit, fb.limit);
                     }
-                    let correction =
-                        saturate_i64(p + self.integrator as i64).clamp(-fb.limit, fb.limit);
+                    let correction = limit(
+                        saturate_i64(p + self.integrator as i64),
+                        -fb.limit,
+                        fb.limit,
+                    );
                     command = feedforward.saturating_add(correction);
                 }
                 Err(_) => {

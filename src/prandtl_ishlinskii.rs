@@ -14,7 +14,7 @@
 //! weights Q8.24 normalised (output span per input span); accumulation Q10.54 in `i64`.
 
 use crate::fixed_point::{
-    clamp_full_scale, gain_from_f64, saturate_q54_to_signal, signal_from_f64, GAIN_FRAC_BITS,
+    clamp_full_scale, gain_from_f64, limit, saturate_q54_to_signal, signal_from_f64, GAIN_FRAC_BITS,
 };
 use crate::params::{CanonicalPi, ParamError, PiParams, MAX_CANONICAL_OPERATORS};
 use crate::play_operator::play;
@@ -154,7 +154,7 @@ impl PlayOperatorBank {
             let mut v = play(x, op.threshold, *p);
             if let Some((pp, pr)) = previous {
                 let d = op.threshold.saturating_sub(pr);
-                v = v.clamp(pp.saturating_sub(d), pp.saturating_add(d));
+                v = limit(v, pp.saturating_sub(d), pp.saturating_add(d));
             }
             *p = v;
             previous = Some((v, op.threshold));
