@@ -26,6 +26,7 @@ pub mod fixed_point;
 pub mod params;
 pub mod play_operator;
 pub mod prandtl_ishlinskii;
+pub mod protocol;
 pub mod reference;
 pub mod scaling;
 

@@ -20,7 +20,7 @@ pub const MAX_NORM_THRESHOLD: f64 = 2.0;
 pub const MAX_NORM_WEIGHT: f64 = 127.0;
 
 /// Why a parameter set was refused.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub enum ParamError {
     /// The P–I model has no play operator and no linear term.
