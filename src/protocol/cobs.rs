@@ -85,8 +85,10 @@ pub fn decode_in_place(buf: &mut [u8]) -> Result<usize, CobsError> {
 
 #[cfg(test)]
 mod tests {
+    extern crate std;
     use super::*;
     use proptest::prelude::*;
+    use std::vec;
 
     #[test]
     fn known_vectors() {

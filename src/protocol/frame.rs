@@ -91,7 +91,7 @@ pub fn decode_body<'a, T: Deserialize<'a> + Message>(body: &'a [u8]) -> Result<T
         Some(_) => {}
     }
     match postcard::take_from_bytes::<T>(message) {
-        Ok((message, rest)) if rest.is_empty() => Ok(message),
+        Ok((message, [])) => Ok(message),
         _ => Err(FrameError::Malformed),
     }
 }
