@@ -29,6 +29,8 @@ pub mod prandtl_ishlinskii;
 pub mod protocol;
 pub mod reference;
 pub mod scaling;
+pub mod setpoint_stream;
+pub mod waveform;
 
 pub use params::{DuhemParams, ParamError, PiParams, Thresholds, MAX_OPERATORS};
 pub use scaling::Scaling;
