@@ -30,6 +30,7 @@ pub mod protocol;
 pub mod reference;
 pub mod scaling;
 pub mod setpoint_stream;
+pub mod settings;
 pub mod waveform;
 
 pub use params::{DuhemParams, ParamError, PiParams, Thresholds, MAX_OPERATORS};
