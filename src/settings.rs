@@ -13,6 +13,7 @@ use crate::prandtl_ishlinskii::{InversePrandtlIshlinskii, PrandtlIshlinskii};
 use crate::scaling::Scaling;
 
 /// The hysteresis model (the compensator inverts it; the observer runs it forward).
+#[allow(clippy::large_enum_variant)] // no heap on the board; settings live in one static
 #[derive(Clone, Debug, PartialEq)]
 pub enum Model {
     /// Prandtl–Ishlinskii.
