@@ -341,10 +341,14 @@ pub fn identify(
             let model = fit_pi(0.0)?;
             match model.check() {
                 Ok(()) => model,
-                Err(ParamError::WeightOutOfRange { .. } | ParamError::GainSumTooLarge) => {
+                Err(
+                    e @ (ParamError::WeightOutOfRange { .. }
+                    | ParamError::GainSumTooLarge
+                    | ParamError::FirstWeightNotPositive),
+                ) => {
                     let floor = MIN_NORM_FIRST_WEIGHT / model.scaling.gain_to_norm();
                     notes.push(format!(
-                        "the inverse's weights did not fit Q8.24: refitted with w_1 >= {floor:.4e}"
+                        "the inverse could not be built ({e}): refitted with w_1 >= {floor:.4e}"
                     ));
                     fit_pi(floor)?
                 }
