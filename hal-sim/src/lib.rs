@@ -1,4 +1,5 @@
 //! `hal-sim`: the host twin of the twinstack board and the PC-side tools.
+pub mod accuracy;
 pub mod cli;
 pub mod identification;
 pub mod measured_data;

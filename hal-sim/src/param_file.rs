@@ -244,15 +244,11 @@ pub enum ParamFileError {
     },
 }
 
-fn fixed_bank(
-    c: &twinstack::params::CanonicalPi,
-    bank: &twinstack::prandtl_ishlinskii::PlayOperatorBank,
-    offset: i32,
-) -> FixedBank {
-    let _ = c;
+fn fixed_bank(bank: &twinstack::prandtl_ishlinskii::PlayOperatorBank, offset: i32) -> FixedBank {
+    let n = bank.operators();
     FixedBank {
-        thresholds_q2_30: bank.thresholds().to_vec(),
-        weights_q8_24: bank.weights().to_vec(),
+        thresholds_q2_30: (0..n).map(|i| bank.threshold(i)).collect(),
+        weights_q8_24: (0..n).map(|i| bank.weight(i)).collect(),
         offset_q2_30: offset,
     }
 }
@@ -269,12 +265,11 @@ pub fn fixed_point_image(model: &StageModel) -> Result<FixedPoint, ParamError> {
     };
     match &model.hysteresis {
         Hysteresis::Pi(p) => {
-            let canonical = p.normalized(s)?.canonical()?;
             let fwd = PrandtlIshlinskii::new(p, s)?;
             let inv = InversePrandtlIshlinskii::new(p, s)?;
-            fp.pi_forward = Some(fixed_bank(&canonical, fwd.bank(), fwd.offset()));
+            fp.pi_forward = Some(fixed_bank(fwd.bank(), fwd.offset()));
             // The inverse subtracts the forward offset from the desired output.
-            fp.pi_inverse = Some(fixed_bank(&canonical, inv.bank(), fwd.offset()));
+            fp.pi_inverse = Some(fixed_bank(inv.bank(), fwd.offset()));
         }
         Hysteresis::Duhem(p) => {
             Duhem::new(p, s)?;
