@@ -1,1 +1,3 @@
 //! `hal-sim`: the host twin of the twinstack board and the PC-side tools.
+
+pub mod plant;
