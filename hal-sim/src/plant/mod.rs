@@ -166,13 +166,13 @@ impl Plant {
         if !(config.dt.is_finite() && config.dt > 0.0) {
             return Err(PlantError::InvalidTimeStep(config.dt));
         }
-        let range = Scaling::new(
-            DRIVE_RANGE_VOLTS.0,
-            DRIVE_RANGE_VOLTS.1,
-            DRIVE_RANGE_VOLTS.0,
-            DRIVE_RANGE_VOLTS.1,
-        )
-        .expect("the drive range constant is a valid range");
+        // Volts in, volts out, over the amplifier's range.
+        let range = Scaling {
+            input_min: DRIVE_RANGE_VOLTS.0,
+            input_max: DRIVE_RANGE_VOLTS.1,
+            output_min: DRIVE_RANGE_VOLTS.0,
+            output_max: DRIVE_RANGE_VOLTS.1,
+        };
         let stack = |which: Stack, cfg: &HysteresisConfig| {
             StackHysteresis::new(cfg, &range, 0.0).map_err(|error| PlantError::Hysteresis {
                 stack: which,
