@@ -23,13 +23,13 @@
 //! data; the paper's ratio is 2.1 % higher. We keep `ωn` exact (the resonance the control rate
 //! must resolve) and split the 2.1 % evenly in the log between `a0` and `ζ`:
 //! `M₂ = √(A·Z / (a0·ζ))` with `A = 2T/ωn²`, `Z = b/(2ωn)`, which gives `Mp = 0.0225 g`,
-//! `K_I = 20.08 N/µm`, hence `Ms = 2.6575 g`, `Ks = 11.09 N/µm`, and the model's differential
+//! `K_I = 19.55 N/µm`, hence `Ms = 2.6575 g`, `Ks = 11.62 N/µm`, and the model's differential
 //! `a0 = 0.5285 µm/V` (−1.0 %) and `ζ = 0.01718` (+1.0 %). (The small `Mp` says the stacks add
 //! about 1 % to the moving mass in the paper's set-up.)
 //!
 //! *Capacitance*: the figures say nothing about `C`; we take the clamped capacitance for a stack
 //! coupling factor `k² = T²/(K_I C_free) = 1/2` (typical of PZT stacks), i.e. `C = T²/K_I`
-//! ≈ 8.9 µF (free capacitance 17.9 µF, that of a ~100 µm commercial stack).
+//! ≈ 9.2 µF (free capacitance 18.4 µF, that of a ~100 µm commercial stack).
 //!
 //! *Contact `K_0`* and the coupled model's own `K_I`, `T`: see [`super::coupled`].
 
