@@ -11,6 +11,7 @@
 //! * [`duhem`] — Duhem forward observer and inverse Duhem compensator.
 //! * [`params`] — physical (`f64`) parameter sets and their validation ([`ParamError`]).
 //! * [`reference`] — `f64` reference implementations the fixed-point code is checked against.
+//! * [`converters`] — SPI drivers of the external DAC (DAC8562/3) and sensor ADC (ADS8689).
 //!
 //! Everything here is allocation-free; the per-sample `step` functions have no panic path
 //! and no unbounded loop.
@@ -20,6 +21,7 @@
 
 pub mod board;
 pub mod control;
+pub mod converters;
 pub mod drive;
 pub mod duhem;
 pub mod fixed_point;
