@@ -25,6 +25,8 @@
 #![warn(missing_docs)]
 
 pub mod board;
+pub mod control;
+pub mod drive;
 pub mod duhem;
 pub mod fixed_point;
 #[cfg(target_os = "none")]

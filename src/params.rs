@@ -158,7 +158,11 @@ pub enum Thresholds {
 
 impl Thresholds {
     /// The `n` thresholds over amplitude `amplitude` (input units), first one zero.
-    pub fn generate(&self, n: usize, amplitude: f64) -> Result<Vec<f64, MAX_OPERATORS>, ParamError> {
+    pub fn generate(
+        &self,
+        n: usize,
+        amplitude: f64,
+    ) -> Result<Vec<f64, MAX_OPERATORS>, ParamError> {
         if n == 0 {
             return Err(ParamError::NoOperators);
         }
@@ -218,7 +222,12 @@ pub struct CanonicalPi {
 
 impl PiParams {
     /// A model from thresholds and weights (volts, output units per volt).
-    pub fn new(a0: f64, offset: f64, thresholds: &[f64], weights: &[f64]) -> Result<Self, ParamError> {
+    pub fn new(
+        a0: f64,
+        offset: f64,
+        thresholds: &[f64],
+        weights: &[f64],
+    ) -> Result<Self, ParamError> {
         if thresholds.len() > MAX_OPERATORS {
             return Err(ParamError::TooManyOperators {
                 count: thresholds.len(),
@@ -257,7 +266,11 @@ impl PiParams {
         }
         let finite = self.a0.is_finite()
             && self.offset.is_finite()
-            && self.thresholds.iter().chain(self.weights.iter()).all(|v| v.is_finite());
+            && self
+                .thresholds
+                .iter()
+                .chain(self.weights.iter())
+                .all(|v| v.is_finite());
         if !finite {
             return Err(ParamError::NotFinite);
         }
@@ -284,7 +297,11 @@ impl PiParams {
             let _ = weights.push(self.a0);
         }
         for (i, (&r, &w)) in self.thresholds.iter().zip(self.weights.iter()).enumerate() {
-            let w = if i == 0 && first_is_zero { w + self.a0 } else { w };
+            let w = if i == 0 && first_is_zero {
+                w + self.a0
+            } else {
+                w
+            };
             // Capacity MAX_OPERATORS + 1 holds the linear slot plus every operator.
             let _ = thresholds.push(r);
             let _ = weights.push(w);
@@ -438,7 +455,9 @@ impl DuhemParams {
             offset: (self.beta * scaling.input_mid() + self.offset - scaling.output_mid())
                 / scaling.output_half_span(),
         };
-        let fits = [n.alpha, n.beta, n.gamma].iter().all(|v| *v <= MAX_NORM_WEIGHT)
+        let fits = [n.alpha, n.beta, n.gamma]
+            .iter()
+            .all(|v| *v <= MAX_NORM_WEIGHT)
             && n.offset.abs() <= 1.5;
         if !fits {
             return Err(ParamError::DuhemCoefficientOutOfRange);
@@ -528,7 +547,10 @@ mod tests {
             weights: Vec::from_slice(&[100.0, -50.0, 40.0]).unwrap(),
             offset: 0.0,
         };
-        assert_eq!(c.check_fixed_point_range(), Err(ParamError::GainSumTooLarge));
+        assert_eq!(
+            c.check_fixed_point_range(),
+            Err(ParamError::GainSumTooLarge)
+        );
     }
 
     #[test]
@@ -545,10 +567,22 @@ mod tests {
             f(&mut p);
             p.validate()
         };
-        assert_eq!(bad(|p| p.alpha = 0.0), Err(ParamError::DuhemAlphaNotPositive));
-        assert_eq!(bad(|p| p.beta = -1.0), Err(ParamError::DuhemBetaNotPositive));
-        assert_eq!(bad(|p| p.gamma = 0.0), Err(ParamError::DuhemGammaNotPositive));
-        assert_eq!(bad(|p| p.offset = f64::INFINITY), Err(ParamError::NotFinite));
+        assert_eq!(
+            bad(|p| p.alpha = 0.0),
+            Err(ParamError::DuhemAlphaNotPositive)
+        );
+        assert_eq!(
+            bad(|p| p.beta = -1.0),
+            Err(ParamError::DuhemBetaNotPositive)
+        );
+        assert_eq!(
+            bad(|p| p.gamma = 0.0),
+            Err(ParamError::DuhemGammaNotPositive)
+        );
+        assert_eq!(
+            bad(|p| p.offset = f64::INFINITY),
+            Err(ParamError::NotFinite)
+        );
         let s = Scaling::new(0.0, 150.0, 0.0, 1.0).unwrap();
         assert_eq!(
             DuhemParams { alpha: 1.0, ..ok }.normalized(&s),
@@ -561,7 +595,9 @@ mod tests {
         let u = Thresholds::Uniform.generate(9, 90.0).unwrap();
         assert_eq!(u[0], 0.0);
         assert!((u[8] - 80.0).abs() < 1e-12);
-        let g = Thresholds::Geometric { ratio: 1.2 }.generate(17, 150.0).unwrap();
+        let g = Thresholds::Geometric { ratio: 1.2 }
+            .generate(17, 150.0)
+            .unwrap();
         assert_eq!(g[0], 0.0);
         assert!(g.windows(2).all(|w| w[1] > w[0]));
         assert!(g[16] < 150.0);

@@ -196,7 +196,8 @@ impl InversePrandtlIshlinskii {
 
     /// The relaxed state after resting at desired output `y` (Q2.30).
     pub fn state_at_rest(&self, y: i32) -> PiState {
-        self.bank.state_at(clamp_full_scale(y).saturating_sub(self.offset))
+        self.bank
+            .state_at(clamp_full_scale(y).saturating_sub(self.offset))
     }
 
     /// One sample: desired displacement `y` (Q2.30 normalised, clamped to [-1, 1]) → drive `u`
