@@ -26,6 +26,7 @@
 
 pub mod board;
 pub mod control;
+pub mod default_config;
 pub mod drive;
 pub mod duhem;
 pub mod fixed_point;

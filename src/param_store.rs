@@ -19,6 +19,8 @@
 
 use core::fmt;
 
+pub use crate::drive::SafeState;
+
 /// First four bytes of a record.
 pub const MAGIC: [u8; 4] = *b"TWST";
 /// Bytes before the payload: magic, version, length.
@@ -78,7 +80,9 @@ impl fmt::Display for StoreError {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         match *self {
             StoreError::Erased => write!(f, "parameter sector is erased (no record stored)"),
-            StoreError::BadMagic => write!(f, "parameter record: bad magic (not a twinstack record)"),
+            StoreError::BadMagic => {
+                write!(f, "parameter record: bad magic (not a twinstack record)")
+            }
             StoreError::UnsupportedVersion { found, expected } => write!(
                 f,
                 "parameter record: version {found}, this firmware reads version {expected}"
@@ -193,16 +197,6 @@ pub fn decode(record: &[u8], expected_version: u16) -> Result<&[u8], StoreError>
         return Err(StoreError::BadCrc { stored, computed });
     }
     Ok(&record[HEADER_LEN..body_end])
-}
-
-/// What the outputs do when the firmware stops (panic, hard fault).
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-#[cfg_attr(feature = "defmt", derive(defmt::Format))]
-pub enum SafeState {
-    /// Both DAC codes 0: both stacks discharged.
-    Zero,
-    /// Both stacks at the common bias `ū` (no differential drive): the stage rests at centre.
-    Bias,
 }
 
 /// The board settings the parameter record holds (payload layout [`BoardSettings::VERSION`]).

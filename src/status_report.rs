@@ -109,7 +109,9 @@ pub enum StatusParseError {
 impl core::fmt::Display for StatusParseError {
     fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
         match self {
-            StatusParseError::MissingPrefix => write!(f, "status line does not start with {LINE_PREFIX:?}"),
+            StatusParseError::MissingPrefix => {
+                write!(f, "status line does not start with {LINE_PREFIX:?}")
+            }
             StatusParseError::MissingField(k) => write!(f, "status line has no field `{k}`"),
             StatusParseError::BadNumber(k) => write!(f, "status field `{k}` is not a u32"),
         }
@@ -122,9 +124,9 @@ impl StatusReport {
         let mut line: heapless::String<MAX_LINE> = heapless::String::new();
         // The longest line is well under MAX_LINE bytes (five u32 fields of at most 10
         // digits, a word of at most 12 characters), so the write cannot run out of room.
-        let _ = write!(
+        let _ = writeln!(
             line,
-            "{LINE_PREFIX}ticks={} overruns={} underruns={} rate_hz={} params={}\n",
+            "{LINE_PREFIX}ticks={} overruns={} underruns={} rate_hz={} params={}",
             self.ticks,
             self.overruns,
             self.underruns,
@@ -148,7 +150,9 @@ impl StatusReport {
                 .ok_or(StatusParseError::MissingField(key))
         };
         let number = |key: &'static str| -> Result<u32, StatusParseError> {
-            field(key)?.parse().map_err(|_| StatusParseError::BadNumber(key))
+            field(key)?
+                .parse()
+                .map_err(|_| StatusParseError::BadNumber(key))
         };
         Ok(ParsedStatus {
             ticks: number("ticks")?,

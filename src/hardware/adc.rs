@@ -32,7 +32,8 @@ impl SensorInput {
     pub fn new(adc: ADC1, common: &ADC_COMMON, rcc: &RCC) -> Self {
         rcc.apb2enr().modify(|_, w| w.adc1en().set_bit());
         common.ccr().modify(|_, w| unsafe { w.adcpre().bits(0b01) });
-        adc.smpr2().modify(|_, w| unsafe { w.smp0().bits(SMP_15_CYCLES) });
+        adc.smpr2()
+            .modify(|_, w| unsafe { w.smp0().bits(SMP_15_CYCLES) });
         adc.sqr1().modify(|_, w| unsafe { w.l().bits(0) });
         adc.sqr3().modify(|_, w| unsafe { w.sq1().bits(0) });
         adc.cr2().modify(|_, w| unsafe {

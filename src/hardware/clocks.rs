@@ -1,6 +1,7 @@
 //! Clock tree: 8 MHz HSE → PLL → 168 MHz SYSCLK (board), or the reset HSI (emulator).
 
 use stm32f4xx_hal::pac::RCC;
+#[cfg(not(feature = "emulator"))]
 use stm32f4xx_hal::prelude::*;
 use stm32f4xx_hal::rcc::{Rcc, RccExt};
 

@@ -53,7 +53,7 @@ impl UsartTx {
                     return Err(TxTimeout);
                 }
             }
-            u.dr().write(|w| unsafe { w.bits(b as u32) });
+            u.dr().write(|w| unsafe { w.bits(b as u16) });
         }
         Ok(())
     }
@@ -69,13 +69,22 @@ pub fn configure(
 ) -> (UsartTx, UsartRx) {
     rcc.apb2enr().modify(|_, w| w.usart1en().set_bit());
     let brr = (clocks.pclk2_hz + BAUD / 2) / BAUD;
-    usart.brr().write(|w| unsafe { w.bits(brr) });
+    usart
+        .brr()
+        .write(|w| unsafe { w.bits(brr.min(u16::MAX as u32) as u16) });
     #[cfg(not(feature = "emulator"))]
     let rx = UsartRx::start_dma(dma, rcc, &usart);
     #[cfg(feature = "emulator")]
     let rx = {
         usart.cr1().write(|w| {
-            w.ue().set_bit().te().set_bit().re().set_bit().rxneie().set_bit()
+            w.ue()
+                .set_bit()
+                .te()
+                .set_bit()
+                .re()
+                .set_bit()
+                .rxneie()
+                .set_bit()
         });
         UsartRx { _private: () }
     };
@@ -120,8 +129,7 @@ mod dma_rx {
                 .write(|w| unsafe { w.bits(usart.dr().as_ptr() as u32) });
             st.m0ar()
                 .write(|w| unsafe { w.bits(RX_RING.0.get() as u32) });
-            st.ndtr()
-                .write(|w| unsafe { w.bits(RX_BUFFER_LEN as u32) });
+            st.ndtr().write(|w| unsafe { w.bits(RX_BUFFER_LEN as u32) });
             clear_flags(&dma);
             // Peripheral → memory, bytes, memory increment, circular, HT + TC interrupts.
             st.cr().write(|w| unsafe {
@@ -140,7 +148,14 @@ mod dma_rx {
             });
             usart.cr3().write(|w| w.dmar().set_bit());
             usart.cr1().write(|w| {
-                w.ue().set_bit().te().set_bit().re().set_bit().idleie().set_bit()
+                w.ue()
+                    .set_bit()
+                    .te()
+                    .set_bit()
+                    .re()
+                    .set_bit()
+                    .idleie()
+                    .set_bit()
             });
             Self { dma, read: 0 }
         }

@@ -20,7 +20,8 @@ impl Watchdog {
     pub fn start(iwdg: IWDG) -> Self {
         iwdg.kr().write(|w| unsafe { w.key().bits(KEY_UNLOCK) });
         iwdg.pr().write(|w| unsafe { w.pr().bits(0b001) }); // /8
-        iwdg.rlr().write(|w| unsafe { w.rl().bits((TIMEOUT_MS * 4 - 1) as u16) });
+        iwdg.rlr()
+            .write(|w| unsafe { w.rl().bits((TIMEOUT_MS * 4 - 1) as u16) });
         iwdg.kr().write(|w| unsafe { w.key().bits(KEY_FEED) });
         iwdg.kr().write(|w| unsafe { w.key().bits(KEY_START) });
         Self { iwdg }
