@@ -7,7 +7,8 @@
 //! every run.
 //!
 //! For each compensator (none, inverse P–I N = 8/16/32, inverse Duhem), with the Duhem
-//! observer and sensor feedback on, it runs [`Controller::tick`] on the firmware's own DAC and
+//! observer and sensor feedback on (plus two breakdown rows: `bypass` = split, limits and DAC
+//! write only; `none-observer-only` = that plus the Duhem observer), it runs [`Controller::tick`] on the firmware's own DAC and
 //! ADC drivers (the DAC write is the real `DHR12RD` store) for a triangle setpoint that
 //! reverses every 100 ticks, and prints one line per configuration over semihosting:
 //!
@@ -31,7 +32,7 @@ use defmt_rtt as _;
 use stm32f4xx_hal::pac;
 
 use twinstack::board::{DualDac, SensorAdc};
-use twinstack::control::{Controller, TickReport};
+use twinstack::control::{ControlConfig, Controller, TickReport};
 use twinstack::default_config::{control_config, CompensatorKind};
 use twinstack::drive::SafeState;
 use twinstack::fixed_point::SIGNAL_ONE;
@@ -104,18 +105,31 @@ fn main() -> ! {
     let mut dac = InternalDac::new(dp.DAC, &dp.RCC, (Default::default(), Default::default()));
     let mut adc = SensorInput::new(dp.ADC1, &dp.ADC_COMMON, &dp.RCC);
 
-    let cases = [
-        ("none", CompensatorKind::None),
-        ("inverse-pi-8", CompensatorKind::InversePi(8)),
-        ("inverse-pi-16", CompensatorKind::InversePi(16)),
-        ("inverse-pi-32", CompensatorKind::InversePi(32)),
-        ("inverse-duhem", CompensatorKind::InverseDuhem),
-    ];
-    for (name, kind) in cases {
-        let config = match control_config(kind, RATE_HZ, SafeState::Bias) {
+    let full = |kind: CompensatorKind| -> ControlConfig {
+        match control_config(kind, RATE_HZ, SafeState::Bias) {
             Ok(c) => c,
-            Err(_) => panic!("configuration {} refused", name),
-        };
+            Err(_) => panic!("configuration {:?} refused", kind),
+        }
+    };
+    let base = full(CompensatorKind::None);
+    let cases: [(&str, ControlConfig); 7] = [
+        // Breakdown of the fixed part: split + limits + DAC alone, then + the Duhem observer.
+        ("bypass", ControlConfig::bypass(base.drive)),
+        (
+            "none-observer-only",
+            ControlConfig {
+                feedback: None,
+                ..base
+            },
+        ),
+        // The table: every compensator with the Duhem observer and sensor feedback on.
+        ("none", base),
+        ("inverse-pi-8", full(CompensatorKind::InversePi(8))),
+        ("inverse-pi-16", full(CompensatorKind::InversePi(16))),
+        ("inverse-pi-32", full(CompensatorKind::InversePi(32))),
+        ("inverse-duhem", full(CompensatorKind::InverseDuhem)),
+    ];
+    for (name, config) in cases {
         let mut c = Controller::new(config);
         // Overhead: the same bracket around an empty call.
         let mut overhead = u32::MAX;
