@@ -14,6 +14,9 @@ struct Cli {
 /// One variant per subcommand, each delegating to `hal_sim::cli::<name>::run`.
 #[derive(Debug, Subcommand)]
 enum Command {
+    /// The main job: the first paper's 750 Hz study on the simulated board and stage —
+    /// identification tables, tracking with each compensator, PNG figures.
+    Demo(cli::demo::Args),
     /// Fit a P–I or Duhem model to a measured CSV and write a parameter file and a figure.
     Identify(cli::identify::Args),
     /// Run the fixed-point forward model on a drive record.
@@ -25,6 +28,7 @@ enum Command {
 fn main() -> std::process::ExitCode {
     let cli = Cli::parse();
     let result = match &cli.command {
+        Command::Demo(a) => cli::demo::run(a),
         Command::Identify(a) => cli::identify::run(a),
         Command::Predict(a) => cli::predict::run(a),
         Command::Compensate(a) => cli::compensate::run(a),
