@@ -15,8 +15,12 @@
 //! 5. **Model**: P–I weights by NNLS ([`pi`]), or Duhem by integrated least squares with a
 //!    stability check and a simulated-error refinement ([`duhem`]).
 //! 6. **Scaling**: the input range is the fitted drive range widened by [`INPUT_MARGIN`], the
-//!    output range the model's output range widened by [`OUTPUT_MARGIN`]; the library then
-//!    has to accept the model for both the observer and the compensator.
+//!    output range the model's output range widened by [`OUTPUT_MARGIN`] — for Duhem, wider
+//!    still if needed so that the distance to the anhysteretic curve stays within
+//!    [`DUHEM_MAX_NORM_DISTANCE`] normalised (the fixed-point model saturates it at 2). The
+//!    library then has to accept the model for both the observer and the compensator; a P–I
+//!    whose inverse it refuses (`w_1 = 0`, inverse weights beyond Q8.24) is refitted with
+//!    `w_1` floored at [`MIN_NORM_FIRST_WEIGHT`] (normalised).
 //!
 //! Every row is fitted against the model run over the whole record from rest, the way
 //! `predict` runs it, so the fitted and the checked model see the same operator states.
