@@ -51,6 +51,24 @@ impl StageModel {
         }
     }
 
+    /// How many drive samples in `u` lie outside the input range (the models clamp them).
+    pub fn drive_outside_range(&self, u: &[f64]) -> usize {
+        let s = &self.scaling;
+        u.iter()
+            .filter(|&&v| v < s.input_min || v > s.input_max)
+            .count()
+    }
+
+    /// How many readings in `x` lie outside the output range once sign-corrected (the
+    /// compensator clamps them).
+    pub fn reading_outside_range(&self, x: &[f64]) -> usize {
+        let s = &self.scaling;
+        x.iter()
+            .map(|&v| self.output_sign * v)
+            .filter(|&y| y < s.output_min || y > s.output_max)
+            .count()
+    }
+
     /// Checks the library accepts the model for both the observer and the compensator.
     pub fn check(&self) -> Result<(), ParamError> {
         match &self.hysteresis {
