@@ -363,7 +363,8 @@ pub fn identify(
             let (y_lo, y_hi) = min_max(y.iter().copied());
             let provisional = Scaling::new(in_lo, in_hi, y_lo, y_hi.max(y_lo + 1e-9))
                 .map_err(IdentifyError::Params)?;
-            let f = duhem::fit(u_fit, &y, &rows, &provisional, options.refine)?;
+            let steady_from = motion::both_extremes_reached(&u_fit[first..]) + first;
+            let f = duhem::fit(u_fit, &y, &rows, &provisional, options.refine, steady_from)?;
             let span = rows.target_span(&y);
             notes.push(format!(
                 "Duhem integrated least squares: simulated RMS {:.3} % of span{}",
@@ -378,7 +379,8 @@ pub fn identify(
             ));
             if f.params != f.least_squares {
                 notes.push(format!(
-                    "Duhem refined on the simulated error: RMS {:.3} % of span",
+                    "Duhem refined on the simulated error from t = {:.4} s (drive has seen both extremes): RMS {:.3} % of span over the fit",
+                    data.t[steady_from.min(n_fit - 1)],
                     100.0 * f.rms / span
                 ));
             }
