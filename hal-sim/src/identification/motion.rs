@@ -124,6 +124,13 @@ mod tests {
     }
 
     #[test]
+    fn both_extremes_are_reached_where_the_drive_first_comes_near_the_later_one() {
+        let u = [0.0, 1.0, 2.0, 1.0, 0.0, -1.0, -2.0, -1.0, 0.0];
+        assert_eq!(both_extremes_reached(&u), 6);
+        assert_eq!(both_extremes_reached(&[]), 0);
+    }
+
+    #[test]
     fn a_constant_drive_has_no_motion() {
         assert_eq!(find(&[1.0; 30]), None);
     }
