@@ -199,6 +199,9 @@ mod tests {
         draw(&path, &fig).unwrap();
         let bytes = std::fs::read(&path).unwrap();
         assert_eq!(&bytes[..8], b"\x89PNG\r\n\x1a\n");
-        assert!(bytes.len() > 10_000, "a figure with axes and text, not an empty image");
+        assert!(
+            bytes.len() > 10_000,
+            "a figure with axes and text, not an empty image"
+        );
     }
 }
