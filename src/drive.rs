@@ -19,7 +19,7 @@ use crate::fixed_point::{
 use crate::scaling::Scaling;
 
 /// How the two stacks are driven.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub enum Configuration {
     /// Both stacks: `u_l = ū + v`, `u_r = ū − v`.
@@ -29,7 +29,7 @@ pub enum Configuration {
 }
 
 /// Where the outputs go on a fault (panic, hard fault, stop).
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub enum SafeState {
     /// Both stacks at the bias `ū` (stage at its centre, no step on a fault).
@@ -65,7 +65,7 @@ pub struct DriveSettings {
 }
 
 /// Why drive settings were refused.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub enum DriveError {
     /// A setting is NaN or infinite.
