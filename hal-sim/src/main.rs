@@ -26,7 +26,29 @@ enum Command {
 }
 
 fn main() -> std::process::ExitCode {
-    let cli = Cli::parse();
+    let cli = match Cli::try_parse() {
+        Ok(cli) => cli,
+        Err(e) => {
+            use clap::error::ErrorKind;
+            if matches!(
+                e.kind(),
+                ErrorKind::DisplayHelp
+                    | ErrorKind::DisplayVersion
+                    | ErrorKind::DisplayHelpOnMissingArgumentOrSubcommand
+            ) {
+                e.exit();
+            }
+            // One line: clap's first paragraph names the bad or missing argument(s).
+            let text = e.to_string();
+            let first: Vec<&str> = text
+                .lines()
+                .take_while(|l| !l.trim().is_empty())
+                .map(str::trim)
+                .collect();
+            eprintln!("{} (see hal-sim --help)", first.join(" "));
+            return std::process::ExitCode::from(2);
+        }
+    };
     let result = match &cli.command {
         Command::Demo(a) => cli::demo::run(a),
         Command::Identify(a) => cli::identify::run(a),
@@ -36,7 +58,8 @@ fn main() -> std::process::ExitCode {
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,
         Err(e) => {
-            eprintln!("error: {e:#}");
+            // Each error's message already includes its cause.
+            eprintln!("error: {e}");
             std::process::ExitCode::FAILURE
         }
     }
