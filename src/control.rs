@@ -15,7 +15,7 @@
 use crate::board::{AdcCode, DacCode, DualDac, SensorAdc};
 use crate::drive::DifferentialDrive;
 use crate::duhem::{Duhem, DuhemState, InverseDuhem};
-use crate::fixed_point::{clamp_full_scale, saturate_i64, GAIN_FRAC_BITS, SIGNAL_FRAC_BITS};
+use crate::fixed_point::{clamp_full_scale, limit, saturate_i64, GAIN_FRAC_BITS, SIGNAL_FRAC_BITS};
 use crate::prandtl_ishlinskii::{InversePrandtlIshlinskii, PiState, PrandtlIshlinskii};
 
 /// The feedforward compensator: desired displacement → drive.
@@ -182,11 +182,19 @@ impl Controller {
     }
 
     fn reset_to_rest(&mut self) {
-        let drive = self.config.drive.rest_drive();
+        self.relax_at(self.config.drive.rest_drive());
+    }
+
+    /// Puts the models in the relaxed state at `drive` (clamped to the drive's limits): the
+    /// observer's estimate there becomes the setpoint, and the compensator's state is derived
+    /// from the observer's, so the compensator starts out agreeing with the stage.
+    fn relax_at(&mut self, drive: i32) {
+        let (lo, hi) = self.config.drive.drive_range();
+        let drive = limit(drive, lo, hi);
         self.drive = drive;
         self.integrator = 0;
         let (observer_state, y) = match &self.config.observer {
-            Observer::None => (ModelState::None, 0),
+            Observer::None => (ModelState::None, drive),
             Observer::Pi(m) => {
                 let mut s = m.state_at_rest(drive);
                 let y = m.step(&mut s, drive);
@@ -197,25 +205,27 @@ impl Controller {
                 (ModelState::Duhem(m.state_at(drive, y)), y)
             }
         };
-        self.observer_state = observer_state;
-        self.compensator_state = match &self.config.compensator {
-            Compensator::None => ModelState::None,
-            Compensator::InversePi(m) => ModelState::Pi(m.state_at_rest(y)),
-            Compensator::InverseDuhem(m) => {
+        self.compensator_state = match (&self.config.compensator, &observer_state) {
+            (Compensator::None, _) => ModelState::None,
+            (Compensator::InversePi(m), ModelState::Pi(fs)) => {
+                ModelState::Pi(m.state_from_forward(fs))
+            }
+            (Compensator::InversePi(m), _) => ModelState::Pi(m.state_at_rest(y)),
+            (Compensator::InverseDuhem(m), _) => {
                 let model = m.model();
                 ModelState::Duhem(model.state_at(drive, model.anhysteretic(drive)))
             }
         };
+        self.observer_state = observer_state;
         self.setpoint = y;
     }
 
-    /// Swaps in a new configuration whole, between two ticks, and relaxes the models at the
-    /// current drive. Counters carry on.
+    /// Swaps in a new configuration whole, between two ticks. The drive stays where it is
+    /// (within the new limits) and the models are relaxed there, so the output does not jump
+    /// to the rest position; counters carry on.
     pub fn reconfigure(&mut self, config: ControlConfig) {
-        let counters = self.counters;
         self.config = config;
-        self.reset_to_rest();
-        self.counters = counters;
+        self.relax_at(self.drive);
     }
 
     /// The active configuration.
@@ -273,10 +283,13 @@ impl Controller {
                     let at_low = self.drive <= self.config.drive.drive_range().0 && error < 0;
                     if !(at_high || at_low) {
                         let i = self.integrator as i64 + ((fb.ki as i64 * error) >> GAIN_FRAC_BITS);
-                        self.integrator = saturate_i64(i).clamp(-fb.limit, fb.limit);
+                        self.integrator = limit(saturate_i64(i), -fb.limit, fb.limit);
                     }
-                    let correction =
-                        saturate_i64(p + self.integrator as i64).clamp(-fb.limit, fb.limit);
+                    let correction = limit(
+                        saturate_i64(p + self.integrator as i64),
+                        -fb.limit,
+                        fb.limit,
+                    );
                     command = feedforward.saturating_add(correction);
                 }
                 Err(_) => {

@@ -13,12 +13,13 @@
 
 use crate::board::DacCode;
 use crate::fixed_point::{
-    gain_from_f64, saturate_i64, signal_from_f64, GAIN_FRAC_BITS, SIGNAL_FRAC_BITS,
+    gain_from_f64, limit, limit_i64, saturate_i64, signal_from_f64, GAIN_FRAC_BITS,
+    SIGNAL_FRAC_BITS,
 };
 use crate::scaling::Scaling;
 
 /// How the two stacks are driven.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub enum Configuration {
     /// Both stacks: `u_l = ū + v`, `u_r = ū − v`.
@@ -28,7 +29,7 @@ pub enum Configuration {
 }
 
 /// Where the outputs go on a fault (panic, hard fault, stop).
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub enum SafeState {
     /// Both stacks at the bias `ū` (stage at its centre, no step on a fault).
@@ -64,7 +65,7 @@ pub struct DriveSettings {
 }
 
 /// Why drive settings were refused.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub enum DriveError {
     /// A setting is NaN or infinite.
@@ -190,10 +191,10 @@ impl DifferentialDrive {
     /// the drive applied on the previous tick, and splits it into both stacks' DAC codes.
     #[inline(always)]
     pub fn split(&self, drive: i32, previous: i32) -> DriveOutput {
-        let ranged = drive.clamp(self.drive_min, self.drive_max);
+        let ranged = limit(drive, self.drive_min, self.drive_max);
         let step_min = previous.saturating_sub(self.slew_per_tick);
         let step_max = previous.saturating_add(self.slew_per_tick);
-        let applied = ranged.clamp(step_min, step_max);
+        let applied = limit(ranged, step_min, step_max);
         let left = self.k0 as i64 + ((self.k1 as i64 * applied as i64) >> GAIN_FRAC_BITS);
         let right = match self.configuration {
             Configuration::Differential => 2 * self.bias as i64 - left,
@@ -213,7 +214,7 @@ impl DifferentialDrive {
     fn code(&self, volts: i64) -> DacCode {
         let fs = self.dac_full_scale as i64;
         let c = (volts * fs + (1 << (SIGNAL_FRAC_BITS - 1))) >> SIGNAL_FRAC_BITS;
-        DacCode(c.clamp(0, fs) as u16)
+        DacCode(limit_i64(c, 0, fs) as u16)
     }
 
     /// The codes of the safe state (both stacks at the bias, or both at zero).
@@ -231,7 +232,7 @@ impl DifferentialDrive {
     pub fn rest_drive(&self) -> i32 {
         // u = (ū − k0) / k1, computed once off the tick path.
         let num = ((self.bias as i64 - self.k0 as i64) << GAIN_FRAC_BITS) / (self.k1 as i64).max(1);
-        saturate_i64(num).clamp(self.drive_min, self.drive_max)
+        limit(saturate_i64(num), self.drive_min, self.drive_max)
     }
 
     /// Lowest and highest model-normalised drive the limits allow, Q2.30.

@@ -36,9 +36,13 @@ pub mod param_store;
 pub mod params;
 pub mod play_operator;
 pub mod prandtl_ishlinskii;
+pub mod protocol;
 pub mod reference;
 pub mod scaling;
+pub mod setpoint_stream;
+pub mod settings;
 pub mod status_report;
+pub mod waveform;
 
 pub use params::{DuhemParams, ParamError, PiParams, Thresholds, MAX_OPERATORS};
 pub use scaling::Scaling;

@@ -20,7 +20,7 @@ pub const MAX_NORM_THRESHOLD: f64 = 2.0;
 pub const MAX_NORM_WEIGHT: f64 = 127.0;
 
 /// Why a parameter set was refused.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub enum ParamError {
     /// The P–I model has no play operator and no linear term.
@@ -72,6 +72,9 @@ pub enum ParamError {
     },
     /// `Σ|w|` exceeds [`MAX_GAIN_SUM`], so the tick's accumulator could overflow.
     GainSumTooLarge,
+    /// The model's output offset, normalised, lies beyond ±1.5 of the output range: the
+    /// ranges do not fit the model.
+    OffsetOutOfRange,
     /// The input (drive) range is empty or not finite.
     EmptyInputRange,
     /// The output (displacement) range is empty or not finite.
@@ -129,6 +132,10 @@ impl core::fmt::Display for ParamError {
             GainSumTooLarge => write!(
                 f,
                 "sum of |weights| exceeds {MAX_GAIN_SUM} (normalised): the accumulator could overflow"
+            ),
+            OffsetOutOfRange => write!(
+                f,
+                "the model's offset lies far outside the output range: check the ranges"
             ),
             EmptyInputRange => write!(f, "input range is empty or not finite"),
             EmptyOutputRange => write!(f, "output range is empty or not finite"),
@@ -400,7 +407,10 @@ impl CanonicalPi {
             }
             sum += w.abs();
         }
-        if sum > MAX_GAIN_SUM || !self.offset.is_finite() || self.offset.abs() > 1.5 {
+        if !self.offset.is_finite() || self.offset.abs() > 1.5 {
+            return Err(ParamError::OffsetOutOfRange);
+        }
+        if sum > MAX_GAIN_SUM {
             return Err(ParamError::GainSumTooLarge);
         }
         Ok(())
