@@ -14,6 +14,7 @@
 //! * [`status_report`] — the minimal UART status query (until the protocol issue's frames).
 //! * `hardware` (firmware build only) — STM32F405 registers behind the [`board`] traits.
 //! * [`reference`] — `f64` reference implementations the fixed-point code is checked against.
+//! * [`converters`] — SPI drivers of the external DAC (DAC8562/3) and sensor ADC (ADS8689).
 //!
 //! Everything here is allocation-free; the per-sample `step` functions have no panic path
 //! and no unbounded loop.
@@ -26,6 +27,7 @@
 
 pub mod board;
 pub mod control;
+pub mod converters;
 pub mod default_config;
 pub mod drive;
 pub mod duhem;

@@ -1,0 +1,266 @@
+//! `SimBoard`: the emulated board — DAC(s), amplifiers, plant, position sensor, sensor ADC —
+//! behind the library's [`DualDac`] and [`SensorAdc`], so the control tick drives it exactly
+//! as it drives the real board.
+//!
+//! Each [`DualDac::write_both`] writes the codes (through the SPI driver and the emulated chip,
+//! for the external variant), passes the DAC outputs through the amplifiers, advances the plant
+//! one control period, and presents the new displacement, through the sensor, at the ADC's
+//! input. [`SensorAdc::read`] returns what the ADC returns: the conversion of the previous
+//! period (one sample of latency, as on the board).
+//!
+//! Two variants:
+//! * [`InternalBoard`]: the STM32's 12-bit DAC (3.3 V reference) and a 12-bit ADC over
+//!   0–3.3 V.
+//! * [`ExternalBoard`]: the library's [`Dac856x`] driver on an emulated DAC8562 (gain 2 on its
+//!   2.5 V reference: 0–5 V), and its [`Ads8689`] driver on an emulated ADS8689 (±10.24 V) with a
+//!   ±10 V sensor.
+
+use crate::converters::{
+    Ads8689FrameError, Amplifier, AmplifierConfig, AnalogDualDac, AnalogSensorAdc,
+    Dac856xFrameError, Dac856xVariant, EmulatedAds8689, EmulatedDac856x, InternalAdc,
+    InternalAdcError, InternalDac, PositionSensor,
+};
+use crate::plant::{Configuration, Plant, PlantConfig, PlantError};
+use twinstack::board::{AdcCode, DacCode, DualDac, SensorAdc};
+use twinstack::converters::{Ads8689, Ads8689Error, Dac856x, Gain, InputRange};
+
+/// The board with the internal converters.
+pub type InternalBoard = SimBoard<InternalDac, InternalAdc>;
+/// The board with the external SPI converters (driver → emulated chip).
+pub type ExternalBoard = SimBoard<Dac856x<EmulatedDac856x>, Ads8689<EmulatedAds8689>>;
+
+/// Settings of a simulated board beyond the plant.
+#[derive(Clone, Debug, PartialEq)]
+pub struct BoardConfig {
+    /// The plant.
+    pub plant: PlantConfig,
+    /// Stage displacement the sensor's output range covers, µm `(min, max)`.
+    pub sensor_range_um: (f64, f64),
+    /// Sensor noise, µm rms.
+    pub sensor_noise_um: f64,
+    /// Amplifier slew limit, V/s.
+    pub slew_volts_per_second: f64,
+    /// Amplifier output noise, V rms.
+    pub amplifier_noise_volts: f64,
+    /// Seed of every noise source on the board.
+    pub seed: u64,
+}
+
+impl BoardConfig {
+    /// The paper's stage in `configuration` with the default converters: sensor range
+    /// ±45 µm (differential) or −5…70 µm (unidirectional), 2 nm rms sensor noise,
+    /// 1 V/µs slew, 1 mV rms amplifier noise.
+    pub fn paper(configuration: Configuration) -> Self {
+        Self {
+            plant: PlantConfig::paper(configuration),
+            sensor_range_um: match configuration {
+                Configuration::Differential => (-45.0, 45.0),
+                Configuration::Unidirectional => (-5.0, 70.0),
+            },
+            sensor_noise_um: 0.002,
+            slew_volts_per_second: 1.0e6,
+            amplifier_noise_volts: 1.0e-3,
+            seed: 1,
+        }
+    }
+
+    fn amplifiers(&self, dac_span_volts: f64) -> [Amplifier; 2] {
+        let config = AmplifierConfig {
+            slew_volts_per_second: self.slew_volts_per_second,
+            noise_rms_volts: self.amplifier_noise_volts,
+            ..AmplifierConfig::for_input_span(dac_span_volts)
+        };
+        [
+            Amplifier::new(config, self.seed.wrapping_mul(3)),
+            Amplifier::new(config, self.seed.wrapping_mul(3).wrapping_add(1)),
+        ]
+    }
+
+    fn sensor(&self, volts: (f64, f64)) -> PositionSensor {
+        let volts_per_um = (volts.1 - volts.0) / (self.sensor_range_um.1 - self.sensor_range_um.0);
+        PositionSensor::spanning(
+            self.sensor_range_um,
+            volts,
+            self.sensor_noise_um * volts_per_um,
+            self.seed.wrapping_mul(3).wrapping_add(2),
+        )
+    }
+}
+
+/// Why a simulated board could not be built.
+#[derive(Debug, PartialEq)]
+pub enum BoardError {
+    /// The plant configuration is invalid.
+    Plant(PlantError),
+    /// The sensor range is empty or not finite.
+    SensorRange((f64, f64)),
+    /// The DAC driver's initialisation failed on the emulated chip.
+    DacInit(Dac856xFrameError),
+    /// The ADC driver's initialisation failed on the emulated chip.
+    AdcInit(Ads8689Error<Ads8689FrameError>),
+    /// The internal ADC's settings are invalid.
+    Adc(InternalAdcError),
+}
+
+impl core::fmt::Display for BoardError {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        match self {
+            Self::Plant(e) => write!(f, "plant: {e}"),
+            Self::SensorRange((lo, hi)) => write!(f, "sensor range {lo}…{hi} µm is empty"),
+            Self::DacInit(e) => write!(f, "DAC8562 initialisation: {e:?}"),
+            Self::AdcInit(e) => write!(f, "ADS8689 initialisation: {e:?}"),
+            Self::Adc(e) => write!(f, "internal ADC: {e:?}"),
+        }
+    }
+}
+
+impl std::error::Error for BoardError {}
+
+/// The emulated board.
+#[derive(Debug)]
+pub struct SimBoard<D, A> {
+    dac: D,
+    amplifiers: [Amplifier; 2],
+    plant: Plant,
+    sensor: PositionSensor,
+    adc: A,
+    periods: u64,
+}
+
+fn checked_sensor_range(config: &BoardConfig) -> Result<(), BoardError> {
+    let (lo, hi) = config.sensor_range_um;
+    if lo.is_finite() && hi.is_finite() && hi > lo {
+        Ok(())
+    } else {
+        Err(BoardError::SensorRange(config.sensor_range_um))
+    }
+}
+
+impl InternalBoard {
+    /// The board with the STM32's converters: 12-bit DAC on 3.3 V, 12-bit ADC over 0–3.3 V.
+    pub fn internal(config: &BoardConfig) -> Result<Self, BoardError> {
+        checked_sensor_range(config)?;
+        let plant = Plant::new(&config.plant).map_err(BoardError::Plant)?;
+        let adc = InternalAdc::new(12, (0.0, 3.3), 1).map_err(BoardError::Adc)?;
+        Ok(SimBoard::new(
+            InternalDac::new(3.3),
+            config.amplifiers(3.3),
+            plant,
+            config.sensor((0.0, 3.3)),
+            adc,
+        ))
+    }
+}
+
+impl ExternalBoard {
+    /// The board with the external converters: the library's drivers initialise the emulated
+    /// DAC8562 (gain 2: 0–5 V) and ADS8689 (±10.24 V) over SPI; the sensor spans ±10 V.
+    pub fn external(config: &BoardConfig) -> Result<Self, BoardError> {
+        checked_sensor_range(config)?;
+        let plant = Plant::new(&config.plant).map_err(BoardError::Plant)?;
+        let mut dac = Dac856x::new(EmulatedDac856x::new(Dac856xVariant::Dac8562, 0.0));
+        dac.init(Gain::Two).map_err(BoardError::DacInit)?;
+        let mut adc = Ads8689::new(EmulatedAds8689::new());
+        adc.init(InputRange::Bipolar2p5)
+            .map_err(BoardError::AdcInit)?;
+        Ok(SimBoard::new(
+            dac,
+            config.amplifiers(5.0),
+            plant,
+            config.sensor((-10.0, 10.0)),
+            adc,
+        ))
+    }
+}
+
+impl<D: AnalogDualDac, A: AnalogSensorAdc> SimBoard<D, A> {
+    /// A board from its parts; the ADC input starts at the plant's present displacement.
+    pub fn new(
+        dac: D,
+        amplifiers: [Amplifier; 2],
+        plant: Plant,
+        mut sensor: PositionSensor,
+        mut adc: A,
+    ) -> Self {
+        adc.set_input_volts(sensor.volts(plant.stage_um()));
+        Self {
+            dac,
+            amplifiers,
+            plant,
+            sensor,
+            adc,
+            periods: 0,
+        }
+    }
+
+    /// The plant (displacement, tips, charges, hysteresis voltages).
+    pub fn plant(&self) -> &Plant {
+        &self.plant
+    }
+
+    /// The DAC (or its driver, whose `device()` is the emulated chip).
+    pub fn dac(&self) -> &D {
+        &self.dac
+    }
+
+    /// The ADC (or its driver).
+    pub fn adc(&self) -> &A {
+        &self.adc
+    }
+
+    /// The position sensor.
+    pub fn sensor(&self) -> &PositionSensor {
+        &self.sensor
+    }
+
+    /// Amplifier outputs `[left, right]` (noiseless), volts.
+    pub fn amplifier_volts(&self) -> [f64; 2] {
+        [
+            self.amplifiers[0].output_volts(),
+            self.amplifiers[1].output_volts(),
+        ]
+    }
+
+    /// Control periods simulated so far.
+    pub fn periods(&self) -> u64 {
+        self.periods
+    }
+
+    /// Simulated time, seconds.
+    pub fn time_seconds(&self) -> f64 {
+        self.periods as f64 * self.plant.dt()
+    }
+}
+
+impl<D: AnalogDualDac, A: AnalogSensorAdc> DualDac for SimBoard<D, A> {
+    type Error = D::Error;
+
+    fn full_scale(&self) -> DacCode {
+        self.dac.full_scale()
+    }
+
+    /// Writes the codes, then advances the board one control period.
+    fn write_both(&mut self, left: DacCode, right: DacCode) -> Result<(), Self::Error> {
+        self.dac.write_both(left, right)?;
+        let dt = self.plant.dt();
+        let [vl, vr] = self.dac.output_volts();
+        let ul = self.amplifiers[0].drive(vl, dt);
+        let ur = self.amplifiers[1].drive(vr, dt);
+        let x = self.plant.step(ul, ur);
+        self.adc.set_input_volts(self.sensor.volts(x));
+        self.periods += 1;
+        Ok(())
+    }
+}
+
+impl<D: AnalogDualDac, A: AnalogSensorAdc> SensorAdc for SimBoard<D, A> {
+    type Error = A::Error;
+
+    fn full_scale(&self) -> AdcCode {
+        self.adc.full_scale()
+    }
+
+    fn read(&mut self) -> Result<AdcCode, Self::Error> {
+        self.adc.read()
+    }
+}
