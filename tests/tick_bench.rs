@@ -122,7 +122,9 @@ fn tick_cost_table_and_image_size() {
 
     println!();
     println!("Instructions per control tick (QEMU netduinoplus2, -icount shift=0, opt-level 3,");
-    println!("Controller::tick on the firmware's DAC/ADC drivers, 1000 ticks of a ±0.8 triangle):");
+    println!(
+        "Controller::tick on the firmware's DAC/ADC drivers, 1000 ticks of a ±0.95 triangle):"
+    );
     println!();
     println!("| compensator | observer | feedback | mean | min | max |");
     println!("|---|---|---|---:|---:|---:|");

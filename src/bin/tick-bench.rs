@@ -9,7 +9,7 @@
 //! For each compensator (none, inverse P–I N = 8/16/32, inverse Duhem), with the Duhem
 //! observer and sensor feedback on (plus two breakdown rows: `bypass` = split, limits and DAC
 //! write only; `none-observer-only` = that plus the Duhem observer), it runs [`Controller::tick`] on the firmware's own DAC and
-//! ADC drivers (the DAC write is the real `DHR12RD` store) for a triangle setpoint that
+//! ADC drivers (the DAC write is the real `DHR12RD` store) for a triangle setpoint (±0.95) that
 //! reverses every 100 ticks, and prints one line per configuration over semihosting:
 //!
 //! ```text
@@ -79,9 +79,9 @@ fn empty_call(c: &mut Controller, setpoint: Option<i32>) -> Option<i32> {
     setpoint
 }
 
-/// Triangle setpoint: ±0.8 of full scale, reversing every [`HALF_PERIOD`] ticks.
+/// Triangle setpoint: ±0.95 of full scale (nearly the whole stroke, so that every play operator moves), reversing every [`HALF_PERIOD`] ticks.
 fn setpoint(k: u32) -> i32 {
-    let amplitude = (SIGNAL_ONE / 10) * 8;
+    let amplitude = (SIGNAL_ONE / 20) * 19;
     let step = 2 * amplitude / HALF_PERIOD;
     let phase = (k as i32) % (2 * HALF_PERIOD);
     if phase < HALF_PERIOD {
