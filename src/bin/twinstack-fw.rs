@@ -219,7 +219,7 @@ mod app {
             &rcc,
             &bus,
         );
-        let watchdog = Watchdog::start(dp.IWDG);
+        let watchdog = Watchdog::start(dp.IWDG, &dp.DBGMCU);
 
         let (setpoints_in, setpoints) = cx.local.setpoint_queue.split();
         let (bytes, bytes_in) = cx.local.rx_queue.split();
