@@ -22,8 +22,8 @@
 //! shortfall in one sample is made up in the next.
 
 use crate::fixed_point::{
-    clamp_full_scale, gain_from_f64, saturate_i64, signal_from_f64, GAIN_FRAC_BITS, SIGNAL_FRAC_BITS,
-    SIGNAL_ONE,
+    clamp_full_scale, gain_from_f64, saturate_i64, signal_from_f64, GAIN_FRAC_BITS,
+    SIGNAL_FRAC_BITS, SIGNAL_ONE,
 };
 use crate::params::{DuhemParams, ParamError};
 use crate::scaling::Scaling;
@@ -72,6 +72,13 @@ impl Duhem {
             u: clamp_full_scale(u),
             y,
         }
+    }
+
+    /// The anhysteretic curve at input `u` (Q2.30): `β u + δ`, where the model settles when the
+    /// input comes to rest after a long excursion; the natural initial output.
+    pub fn anhysteretic(&self, u: i32) -> i32 {
+        let u = clamp_full_scale(u);
+        saturate_i64(((self.beta as i64 * u as i64) >> GAIN_FRAC_BITS) + self.offset as i64)
     }
 
     /// Distance to the anhysteretic curve, `e = β u + δ − y`, Q2.30 saturated.

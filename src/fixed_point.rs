@@ -103,6 +103,19 @@ pub fn gain_times_signal(gain: i32, signal: i32) -> i32 {
     saturate_q54_to_signal(gain as i64 * signal as i64)
 }
 
+/// Limits `x` to `[lo, hi]` without a panic path (`Ord::clamp` asserts `lo ≤ hi`; here an
+/// inverted range yields `hi`, the configuration validation keeps `lo ≤ hi` anyway).
+#[inline(always)]
+pub fn limit(x: i32, lo: i32, hi: i32) -> i32 {
+    x.max(lo).min(hi)
+}
+
+/// [`limit`] for `i64`.
+#[inline(always)]
+pub fn limit_i64(x: i64, lo: i64, hi: i64) -> i64 {
+    x.max(lo).min(hi)
+}
+
 /// Clamps a Q2.30 signal to the normalised full-scale range [-1, 1].
 #[inline(always)]
 pub fn clamp_full_scale(signal: i32) -> i32 {

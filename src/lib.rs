@@ -10,24 +10,41 @@
 //! * [`prandtl_ishlinskii`] — forward and analytic-inverse Prandtl–Ishlinskii models.
 //! * [`duhem`] — Duhem forward observer and inverse Duhem compensator.
 //! * [`params`] — physical (`f64`) parameter sets and their validation ([`ParamError`]).
+//! * [`param_store`] — the CRC-protected parameter record in flash and the board settings.
+//! * [`status_report`] — the minimal UART status query (until the protocol issue's frames).
+//! * `hardware` (firmware build only) — STM32F405 registers behind the [`board`] traits.
 //! * [`reference`] — `f64` reference implementations the fixed-point code is checked against.
 //! * [`converters`] — SPI drivers of the external DAC (DAC8562/3) and sensor ADC (ADS8689).
 //!
 //! Everything here is allocation-free; the per-sample `step` functions have no panic path
 //! and no unbounded loop.
 #![no_std]
-#![forbid(unsafe_code)]
+// Host builds forbid `unsafe` outright; the firmware build only denies it, so that the
+// register-level `hardware` module (and nothing else) can opt in with `#[allow(unsafe_code)]`.
+#![cfg_attr(not(target_os = "none"), forbid(unsafe_code))]
+#![cfg_attr(target_os = "none", deny(unsafe_code))]
 #![warn(missing_docs)]
 
 pub mod board;
+pub mod control;
 pub mod converters;
+pub mod default_config;
+pub mod drive;
 pub mod duhem;
 pub mod fixed_point;
+#[cfg(target_os = "none")]
+pub mod hardware;
+pub mod param_store;
 pub mod params;
 pub mod play_operator;
 pub mod prandtl_ishlinskii;
+pub mod protocol;
 pub mod reference;
 pub mod scaling;
+pub mod setpoint_stream;
+pub mod settings;
+pub mod status_report;
+pub mod waveform;
 
 pub use params::{DuhemParams, ParamError, PiParams, Thresholds, MAX_OPERATORS};
 pub use scaling::Scaling;

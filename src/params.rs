@@ -20,7 +20,7 @@ pub const MAX_NORM_THRESHOLD: f64 = 2.0;
 pub const MAX_NORM_WEIGHT: f64 = 127.0;
 
 /// Why a parameter set was refused.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub enum ParamError {
     /// The P–I model has no play operator and no linear term.
@@ -72,6 +72,9 @@ pub enum ParamError {
     },
     /// `Σ|w|` exceeds [`MAX_GAIN_SUM`], so the tick's accumulator could overflow.
     GainSumTooLarge,
+    /// The model's output offset, normalised, lies beyond ±1.5 of the output range: the
+    /// ranges do not fit the model.
+    OffsetOutOfRange,
     /// The input (drive) range is empty or not finite.
     EmptyInputRange,
     /// The output (displacement) range is empty or not finite.
@@ -130,6 +133,10 @@ impl core::fmt::Display for ParamError {
                 f,
                 "sum of |weights| exceeds {MAX_GAIN_SUM} (normalised): the accumulator could overflow"
             ),
+            OffsetOutOfRange => write!(
+                f,
+                "the model's offset lies far outside the output range: check the ranges"
+            ),
             EmptyInputRange => write!(f, "input range is empty or not finite"),
             EmptyOutputRange => write!(f, "output range is empty or not finite"),
             DuhemAlphaNotPositive => write!(f, "Duhem alpha must be positive"),
@@ -158,7 +165,11 @@ pub enum Thresholds {
 
 impl Thresholds {
     /// The `n` thresholds over amplitude `amplitude` (input units), first one zero.
-    pub fn generate(&self, n: usize, amplitude: f64) -> Result<Vec<f64, MAX_OPERATORS>, ParamError> {
+    pub fn generate(
+        &self,
+        n: usize,
+        amplitude: f64,
+    ) -> Result<Vec<f64, MAX_OPERATORS>, ParamError> {
         if n == 0 {
             return Err(ParamError::NoOperators);
         }
@@ -218,7 +229,12 @@ pub struct CanonicalPi {
 
 impl PiParams {
     /// A model from thresholds and weights (volts, output units per volt).
-    pub fn new(a0: f64, offset: f64, thresholds: &[f64], weights: &[f64]) -> Result<Self, ParamError> {
+    pub fn new(
+        a0: f64,
+        offset: f64,
+        thresholds: &[f64],
+        weights: &[f64],
+    ) -> Result<Self, ParamError> {
         if thresholds.len() > MAX_OPERATORS {
             return Err(ParamError::TooManyOperators {
                 count: thresholds.len(),
@@ -257,7 +273,11 @@ impl PiParams {
         }
         let finite = self.a0.is_finite()
             && self.offset.is_finite()
-            && self.thresholds.iter().chain(self.weights.iter()).all(|v| v.is_finite());
+            && self
+                .thresholds
+                .iter()
+                .chain(self.weights.iter())
+                .all(|v| v.is_finite());
         if !finite {
             return Err(ParamError::NotFinite);
         }
@@ -284,7 +304,11 @@ impl PiParams {
             let _ = weights.push(self.a0);
         }
         for (i, (&r, &w)) in self.thresholds.iter().zip(self.weights.iter()).enumerate() {
-            let w = if i == 0 && first_is_zero { w + self.a0 } else { w };
+            let w = if i == 0 && first_is_zero {
+                w + self.a0
+            } else {
+                w
+            };
             // Capacity MAX_OPERATORS + 1 holds the linear slot plus every operator.
             let _ = thresholds.push(r);
             let _ = weights.push(w);
@@ -383,7 +407,10 @@ impl CanonicalPi {
             }
             sum += w.abs();
         }
-        if sum > MAX_GAIN_SUM || !self.offset.is_finite() || self.offset.abs() > 1.5 {
+        if !self.offset.is_finite() || self.offset.abs() > 1.5 {
+            return Err(ParamError::OffsetOutOfRange);
+        }
+        if sum > MAX_GAIN_SUM {
             return Err(ParamError::GainSumTooLarge);
         }
         Ok(())
@@ -438,7 +465,9 @@ impl DuhemParams {
             offset: (self.beta * scaling.input_mid() + self.offset - scaling.output_mid())
                 / scaling.output_half_span(),
         };
-        let fits = [n.alpha, n.beta, n.gamma].iter().all(|v| *v <= MAX_NORM_WEIGHT)
+        let fits = [n.alpha, n.beta, n.gamma]
+            .iter()
+            .all(|v| *v <= MAX_NORM_WEIGHT)
             && n.offset.abs() <= 1.5;
         if !fits {
             return Err(ParamError::DuhemCoefficientOutOfRange);
@@ -528,7 +557,10 @@ mod tests {
             weights: Vec::from_slice(&[100.0, -50.0, 40.0]).unwrap(),
             offset: 0.0,
         };
-        assert_eq!(c.check_fixed_point_range(), Err(ParamError::GainSumTooLarge));
+        assert_eq!(
+            c.check_fixed_point_range(),
+            Err(ParamError::GainSumTooLarge)
+        );
     }
 
     #[test]
@@ -545,10 +577,22 @@ mod tests {
             f(&mut p);
             p.validate()
         };
-        assert_eq!(bad(|p| p.alpha = 0.0), Err(ParamError::DuhemAlphaNotPositive));
-        assert_eq!(bad(|p| p.beta = -1.0), Err(ParamError::DuhemBetaNotPositive));
-        assert_eq!(bad(|p| p.gamma = 0.0), Err(ParamError::DuhemGammaNotPositive));
-        assert_eq!(bad(|p| p.offset = f64::INFINITY), Err(ParamError::NotFinite));
+        assert_eq!(
+            bad(|p| p.alpha = 0.0),
+            Err(ParamError::DuhemAlphaNotPositive)
+        );
+        assert_eq!(
+            bad(|p| p.beta = -1.0),
+            Err(ParamError::DuhemBetaNotPositive)
+        );
+        assert_eq!(
+            bad(|p| p.gamma = 0.0),
+            Err(ParamError::DuhemGammaNotPositive)
+        );
+        assert_eq!(
+            bad(|p| p.offset = f64::INFINITY),
+            Err(ParamError::NotFinite)
+        );
         let s = Scaling::new(0.0, 150.0, 0.0, 1.0).unwrap();
         assert_eq!(
             DuhemParams { alpha: 1.0, ..ok }.normalized(&s),
@@ -561,7 +605,9 @@ mod tests {
         let u = Thresholds::Uniform.generate(9, 90.0).unwrap();
         assert_eq!(u[0], 0.0);
         assert!((u[8] - 80.0).abs() < 1e-12);
-        let g = Thresholds::Geometric { ratio: 1.2 }.generate(17, 150.0).unwrap();
+        let g = Thresholds::Geometric { ratio: 1.2 }
+            .generate(17, 150.0)
+            .unwrap();
         assert_eq!(g[0], 0.0);
         assert!(g.windows(2).all(|w| w[1] > w[0]));
         assert!(g[16] < 150.0);

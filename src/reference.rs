@@ -127,7 +127,12 @@ pub struct Duhem {
 
 impl Duhem {
     /// The model `params` starting at input `u0` (volts) and output `y0`.
-    pub fn new(params: &DuhemParams, scaling: &Scaling, u0: f64, y0: f64) -> Result<Self, ParamError> {
+    pub fn new(
+        params: &DuhemParams,
+        scaling: &Scaling,
+        u0: f64,
+        y0: f64,
+    ) -> Result<Self, ParamError> {
         params.validate()?;
         Ok(Self {
             params: *params,
@@ -169,7 +174,12 @@ pub struct InverseDuhem {
 
 impl InverseDuhem {
     /// The compensator for `params`, its model starting at `(u0, y0)`.
-    pub fn new(params: &DuhemParams, scaling: &Scaling, u0: f64, y0: f64) -> Result<Self, ParamError> {
+    pub fn new(
+        params: &DuhemParams,
+        scaling: &Scaling,
+        u0: f64,
+        y0: f64,
+    ) -> Result<Self, ParamError> {
         Ok(Self {
             model: Duhem::new(params, scaling, u0, y0)?,
         })

@@ -5,7 +5,19 @@
 //! * [`converters`] — emulated DACs, amplifiers, sensor and ADCs, including the external SPI
 //!   chips (DAC8562/3, ADS8689) at the wire level.
 //! * [`sim_board`] — [`sim_board::SimBoard`]: all of it behind the library's board traits.
+//! * [`identification`], [`measured_data`], [`param_file`] — fitting models to measured data,
+//!   the CSV reader and the versioned parameter file.
+//! * [`accuracy`] — the fixed-point vs `f64` error table.
+//! * [`cli`] — the `hal-sim` subcommands.
 
+pub mod accuracy;
+pub mod cli;
 pub mod converters;
+pub mod identification;
+pub mod measured_data;
+pub mod output_file;
+pub mod param_file;
 pub mod plant;
+pub mod plot;
 pub mod sim_board;
+pub mod stage_model;

@@ -1,0 +1,183 @@
+//! How far the fixed-point models are from their `f64` reference, measured over a fixed,
+//! seeded set of random models and inputs (the figures the README quotes).
+//!
+//! Errors are reported in LSB of a 16-bit output over the configured output range (forward
+//! models) or input range (inverse models): `LSB16 = span / 65536`.
+
+use twinstack::duhem::{Duhem, InverseDuhem};
+use twinstack::fixed_point::{signal_from_f64 as q, signal_to_f64 as f};
+use twinstack::prandtl_ishlinskii::{InversePrandtlIshlinskii, PrandtlIshlinskii};
+use twinstack::{reference, DuhemParams, PiParams, Scaling, Thresholds};
+
+/// One LSB of a 16-bit converter over the normalised range [-1, 1].
+pub const LSB16: f64 = 2.0 / 65536.0;
+
+/// One row of the accuracy table.
+#[derive(Clone, Debug, PartialEq)]
+pub struct AccuracyRow {
+    /// Model and size, e.g. `inverse P–I, N = 16`.
+    pub model: String,
+    /// Largest |fixed − f64| seen, in LSB16.
+    pub max_lsb16: f64,
+    /// RMS |fixed − f64|, in LSB16.
+    pub rms_lsb16: f64,
+    /// Samples compared.
+    pub samples: usize,
+}
+
+/// A small deterministic generator (xorshift64*), so the figures are reproducible.
+struct Rng(u64);
+impl Rng {
+    fn uniform(&mut self) -> f64 {
+        self.0 ^= self.0 >> 12;
+        self.0 ^= self.0 << 25;
+        self.0 ^= self.0 >> 27;
+        (self.0.wrapping_mul(0x2545_F491_4F6C_DD1D) >> 11) as f64 / (1u64 << 53) as f64
+    }
+    fn range(&mut self, lo: f64, hi: f64) -> f64 {
+        lo + (hi - lo) * self.uniform()
+    }
+}
+
+/// A random invertible P–I model over 0…150 V with `n` operators.
+fn random_pi(rng: &mut Rng, n: usize) -> (PiParams, Scaling) {
+    let r = Thresholds::Uniform.generate(n, 150.0).expect("n ≤ 32");
+    let mut w = Vec::with_capacity(n);
+    let mut sum = 0.0;
+    for i in 0..n {
+        let mut x = if i == 0 {
+            rng.range(0.05, 0.2)
+        } else {
+            rng.range(-0.03, 0.1)
+        };
+        if sum + x < 0.3 * sum {
+            x = x.abs();
+        }
+        sum += x;
+        w.push(x);
+    }
+    let reach = w.iter().map(|x: &f64| x.abs()).sum::<f64>() * 150.0;
+    (
+        PiParams::new(0.0, 0.0, &r, &w).expect("lengths match"),
+        Scaling::new(0.0, 150.0, -reach, reach).expect("non-empty"),
+    )
+}
+
+/// A random piecewise-linear drive (normalised) with full-range steps mixed in.
+fn random_drive(rng: &mut Rng, samples: usize) -> Vec<f64> {
+    let mut out = Vec::with_capacity(samples);
+    let mut from = 0.0;
+    while out.len() < samples {
+        let to = if rng.uniform() < 0.1 {
+            if rng.uniform() < 0.5 {
+                -1.0
+            } else {
+                1.0
+            }
+        } else {
+            rng.range(-1.0, 1.0)
+        };
+        let steps = 1 + (rng.uniform() * 200.0) as usize;
+        for k in 1..=steps {
+            out.push(from + (to - from) * k as f64 / steps as f64);
+        }
+        from = to;
+    }
+    out.truncate(samples);
+    out
+}
+
+struct Stats {
+    max: f64,
+    sum_sq: f64,
+    n: usize,
+}
+impl Stats {
+    fn new() -> Self {
+        Self {
+            max: 0.0,
+            sum_sq: 0.0,
+            n: 0,
+        }
+    }
+    fn add(&mut self, err_norm: f64) {
+        let e = err_norm.abs() / LSB16;
+        self.max = self.max.max(e);
+        self.sum_sq += e * e;
+        self.n += 1;
+    }
+    fn row(self, model: String) -> AccuracyRow {
+        AccuracyRow {
+            model,
+            max_lsb16: self.max,
+            rms_lsb16: (self.sum_sq / self.n.max(1) as f64).sqrt(),
+            samples: self.n,
+        }
+    }
+}
+
+/// Measures fixed point against `f64` for forward and inverse P–I at N = 8, 16, 32 and for
+/// the Duhem observer and compensator: `models` random models × `samples` samples each.
+pub fn measure(seed: u64, models: usize, samples: usize) -> Vec<AccuracyRow> {
+    let mut rng = Rng(seed.max(1));
+    let mut rows = Vec::new();
+    for n in [8, 16, 32] {
+        let mut fwd_stats = Stats::new();
+        let mut inv_stats = Stats::new();
+        for _ in 0..models {
+            let (p, s) = random_pi(&mut rng, n);
+            let drive = random_drive(&mut rng, samples);
+            let fwd = PrandtlIshlinskii::new(&p, &s).expect("valid");
+            let mut fs = fwd.state_at_rest(q(-1.0));
+            let mut fr = reference::PrandtlIshlinskii::new(&p, &s, 0.0).expect("valid");
+            // A random model whose inverse needs gains beyond Q8.24 is refused: skip it.
+            let inv = InversePrandtlIshlinskii::new(&p, &s).ok();
+            let y0 = fr.clone().step(0.0);
+            let mut ir = reference::InversePrandtlIshlinskii::new(&p, &s, 0.0).expect("valid");
+            let mut is = inv.map(|i| i.state_at_rest(q(s.output_to_norm(y0))));
+            for &u in &drive {
+                let y_ref = fr.step(s.norm_to_input(u));
+                let y_fix = f(fwd.step(&mut fs, q(u)));
+                fwd_stats.add(y_fix - s.output_to_norm(y_ref));
+                if let (Some(inv), Some(st)) = (inv.as_ref(), is.as_mut()) {
+                    let u_ref = s.input_to_norm(ir.step(y_ref));
+                    let u_fix = f(inv.step(st, q(s.output_to_norm(y_ref))));
+                    inv_stats.add(u_fix - u_ref);
+                }
+            }
+        }
+        rows.push(fwd_stats.row(format!("forward P–I, N = {n}")));
+        rows.push(inv_stats.row(format!("inverse P–I, N = {n}")));
+    }
+    let mut obs = Stats::new();
+    let mut comp = Stats::new();
+    for _ in 0..models {
+        let p = DuhemParams {
+            alpha: rng.range(0.005, 0.05),
+            beta: rng.range(0.05, 0.15),
+            gamma: rng.range(0.04, 0.15),
+            offset: 0.0,
+        };
+        let reach = p.beta * 150.0 + (p.gamma - p.beta).abs() / p.alpha + 1.0;
+        let s = Scaling::new(0.0, 150.0, -reach, reach).expect("non-empty");
+        let fwd = Duhem::new(&p, &s).expect("valid");
+        let inv = InverseDuhem::new(&p, &s).expect("valid");
+        let mut fs = fwd.state_at(q(-1.0), q(s.output_to_norm(0.0)));
+        let mut fr = reference::Duhem::new(&p, &s, 0.0, 0.0).expect("valid");
+        let mut is = fwd.state_at(q(-1.0), q(s.output_to_norm(0.0)));
+        let mut ir = reference::InverseDuhem::new(&p, &s, 0.0, 0.0).expect("valid");
+        let mut truth = reference::Duhem::new(&p, &s, 0.0, 0.0).expect("valid");
+        for &u in &random_drive(&mut rng, samples) {
+            let y_ref = fr.step(s.norm_to_input(u));
+            obs.add(f(fwd.step(&mut fs, q(u))) - s.output_to_norm(y_ref));
+            // Compensator: reachable setpoints from a smooth-enough truth response.
+            let y_d = truth.step(s.norm_to_input(u));
+            let u_ref = s.input_to_norm(ir.step(y_d));
+            let u_fix = f(inv.step(&mut is, q(s.output_to_norm(y_d))));
+            comp.add(u_fix - u_ref);
+        }
+    }
+    rows.push(obs.row("Duhem observer".into()));
+    rows.push(comp.row("inverse Duhem".into()));
+    rows
+}

@@ -1,0 +1,37 @@
+//! `hal-sim compensate --params PARAMS.json --data IN.csv --out OUT.csv`: IN's `t,x` are the
+//! desired readings; writes `t,u,x` with `u` the drive from the library's fixed-point inverse
+//! (inverse P–I or inverse Duhem) and `x` copied.
+
+use crate::measured_data::{Columns, MeasuredData};
+use crate::output_file::{csv_t_u_x, Staged};
+use crate::param_file::ParamFile;
+use std::path::PathBuf;
+
+/// Arguments of `compensate`.
+#[derive(Debug, clap::Args)]
+pub struct Args {
+    /// Parameter file written by `identify`.
+    #[arg(long)]
+    pub params: PathBuf,
+    /// Input CSV with columns t and x (the desired reading).
+    #[arg(long)]
+    pub data: PathBuf,
+    /// Output CSV (t,u,x).
+    #[arg(long)]
+    pub out: PathBuf,
+}
+
+/// Runs `compensate`.
+pub fn run(args: &Args) -> anyhow::Result<()> {
+    let (_, model) = ParamFile::load(&args.params)?;
+    let data = MeasuredData::read(&args.data, Columns::TimeOutput)?;
+    let x = data.x.as_deref().unwrap_or_default();
+    let u = model
+        .compensate(&data.t, x)
+        .map_err(|e| anyhow::anyhow!("{}: {e}", args.params.display()))?;
+    let mut out = Staged::new();
+    out.write(&args.out, csv_t_u_x(&data.t, &u, x).as_bytes())?;
+    out.commit()?;
+    println!("wrote {} ({} samples)", args.out.display(), data.len());
+    Ok(())
+}

@@ -1,0 +1,201 @@
+//! `hal-sim identify --model pi|duhem --data FILE.csv --fit-until SECONDS --out PARAMS.json
+//! [--operators N] [--thresholds uniform|geometric] [--lag N]`: fits on `t < SECONDS`, scores
+//! on the rest, writes the parameter file and a PNG beside it (`PARAMS.png`).
+
+use crate::identification::score::{score, ErrorFigures};
+use crate::identification::{identify, IdentifyOptions, ModelKind, ThresholdSpread};
+use crate::measured_data::{Columns, MeasuredData};
+use crate::output_file::Staged;
+use crate::param_file::{IdentificationRecord, ParamFile};
+use crate::plot::{draw, IdentificationFigure};
+use anyhow::{anyhow, bail};
+use std::path::PathBuf;
+
+/// Arguments of `identify`.
+#[derive(Debug, clap::Args)]
+pub struct Args {
+    /// Model to fit.
+    #[arg(long, value_enum)]
+    pub model: ModelKind,
+    /// Measured CSV (t,u,x).
+    #[arg(long)]
+    pub data: PathBuf,
+    /// Fit on samples with t < SECONDS, score on the rest.
+    #[arg(long, value_name = "SECONDS")]
+    pub fit_until: f64,
+    /// Parameter file to write (the figure goes beside it, extension .png).
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Play operators of a P–I model (1 to 32).
+    #[arg(long, default_value_t = 17)]
+    pub operators: usize,
+    /// Spread of the P–I thresholds.
+    #[arg(long, value_enum, default_value_t = Spread::Uniform)]
+    pub thresholds: Spread,
+    /// Sensor lag in samples (estimated over 0 to 10 samples when not given).
+    #[arg(long)]
+    pub lag: Option<usize>,
+    /// Unit of the x column, recorded in the parameter file.
+    #[arg(long, default_value = "units of the x column")]
+    pub output_unit: String,
+}
+
+/// `--thresholds` values.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum Spread {
+    /// r_i = (i - 1)/N · A.
+    Uniform,
+    /// Geometric progression, denser near zero.
+    Geometric,
+}
+
+fn show(f: &ErrorFigures) -> String {
+    format!(
+        "max {:.2} %  RMS {:.2} %  ({} samples)",
+        f.max_pct, f.rms_pct, f.samples
+    )
+}
+
+/// Runs `identify`.
+pub fn run(args: &Args) -> anyhow::Result<()> {
+    if !args.fit_until.is_finite() {
+        bail!(
+            "--fit-until {}: not a finite number of seconds",
+            args.fit_until
+        );
+    }
+    if args
+        .out
+        .extension()
+        .is_some_and(|e| e.eq_ignore_ascii_case("png"))
+    {
+        bail!(
+            "--out {}: the parameter file must not end in .png (the figure goes there)",
+            args.out.display()
+        );
+    }
+    let data = MeasuredData::read(&args.data, Columns::TimeDriveOutput)?;
+    let mut options = IdentifyOptions::new(args.model, args.fit_until);
+    options.operators = args.operators;
+    options.thresholds = match args.thresholds {
+        Spread::Uniform => ThresholdSpread::Uniform,
+        Spread::Geometric => ThresholdSpread::Geometric,
+    };
+    options.lag = args.lag;
+    let id = identify(&data, &options).map_err(|e| anyhow!("{}: {e}", args.data.display()))?;
+
+    let (t, u, x) = (
+        &data.t,
+        data.u.as_deref().unwrap_or_default(),
+        data.x.as_deref().unwrap_or_default(),
+    );
+    let n = t.len();
+    let model = &id.model;
+    let lib = |e: twinstack::ParamError| anyhow!("{e}");
+    let predicted = model.predict(t, u).map_err(lib)?;
+    let reference = model.predict_reference(t, u).map_err(lib)?;
+    let drive = model.compensate(t, x).map_err(lib)?;
+    let drive_reference = model.compensate_reference(t, x).map_err(lib)?;
+    let fit_from = id.motion.first_fitted;
+    let held = id.held_out_from;
+    let no_score = || {
+        anyhow!(
+            "{}: the measured output is flat, cannot score",
+            args.data.display()
+        )
+    };
+    let fit = score(x, &predicted, fit_from..held).ok_or_else(no_score)?;
+    let held_out = score(x, &predicted, held..n).ok_or_else(no_score)?;
+    let inverse = score(u, &drive, held..n).ok_or_else(no_score)?;
+    let fixed_vs_reference = score(&reference, &predicted, fit_from..n).ok_or_else(no_score)?;
+    let inverse_reference = score(u, &drive_reference, held..n).ok_or_else(no_score)?;
+    let inverse_fixed_vs_reference =
+        score(&drive_reference, &drive, fit_from..n).ok_or_else(no_score)?;
+
+    let model_name = match args.model {
+        ModelKind::Pi => {
+            format!("P-I, {} {:?} operators", args.operators, options.thresholds).to_lowercase()
+        }
+        ModelKind::Duhem => "Duhem".into(),
+    };
+    println!("identified {model_name} from {}", args.data.display());
+    println!(
+        "  fitted t = {:.4} .. {} s ({} rows, {} outliers dropped), scored t >= {} s",
+        t[fit_from], args.fit_until, id.fitted_rows, id.outliers, args.fit_until
+    );
+    println!(
+        "  sensor lag {} samples ({}), output sign {:+}",
+        id.lag_samples,
+        if id.lag_estimated {
+            "estimated"
+        } else {
+            "given"
+        },
+        model.output_sign
+    );
+    for note in &id.notes {
+        println!("  note: {note}");
+    }
+    println!("  fit      (predict vs measured x): {}", show(&fit));
+    println!("  held-out (predict vs measured x): {}", show(&held_out));
+    println!(
+        "  inverse held-out (compensate u vs measured u): {}",
+        show(&inverse)
+    );
+    println!(
+        "  inverse held-out, f64 reference: {}",
+        show(&inverse_reference)
+    );
+    println!(
+        "  fixed point vs f64 reference: predict max {:.2e} %, compensate max {:.2e} % of span",
+        fixed_vs_reference.max_pct, inverse_fixed_vs_reference.max_pct
+    );
+
+    let record = IdentificationRecord {
+        data: args.data.display().to_string(),
+        fit_until_s: args.fit_until,
+        fit_from_s: t[fit_from],
+        operators: args.operators,
+        thresholds: format!("{:?}", options.thresholds).to_lowercase(),
+        lag_samples: id.lag_samples,
+        lag_estimated: id.lag_estimated,
+        outliers: id.outliers,
+        fit,
+        held_out,
+        inverse_held_out: inverse,
+        fixed_vs_reference_max_pct: fixed_vs_reference.max_pct,
+        inverse_fixed_vs_reference_max_pct: inverse_fixed_vs_reference.max_pct,
+        notes: id.notes.clone(),
+    };
+    let file = ParamFile::from_model(model, &args.output_unit, Some(record)).map_err(lib)?;
+
+    let figure_path = args.out.with_extension("png");
+    let mut out = Staged::new();
+    let temp_png = out.temporary_for(&figure_path);
+    let title = format!(
+        "{model_name}: held-out max {:.2} % RMS {:.2} % of span ({})",
+        held_out.max_pct,
+        held_out.rms_pct,
+        args.data
+            .file_name()
+            .map(|f| f.to_string_lossy().into_owned())
+            .unwrap_or_default()
+    );
+    draw(
+        &temp_png,
+        &IdentificationFigure {
+            title: &title,
+            t,
+            u,
+            measured: x,
+            model: &predicted,
+            held_out_from: held,
+            fit_from,
+            output_unit: &args.output_unit,
+        },
+    )?;
+    out.write(&args.out, file.to_json().as_bytes())?;
+    out.commit()?;
+    println!("wrote {} and {}", args.out.display(), figure_path.display());
+    Ok(())
+}

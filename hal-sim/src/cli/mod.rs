@@ -1,0 +1,5 @@
+//! The `hal-sim` subcommands, one module each: `run(&Args) -> anyhow::Result<()>`.
+
+pub mod compensate;
+pub mod identify;
+pub mod predict;

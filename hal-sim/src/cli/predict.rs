@@ -1,0 +1,37 @@
+//! `hal-sim predict --params PARAMS.json --data IN.csv --out OUT.csv`: the forward model
+//! (the library's fixed-point observer) on IN's `t,u`; writes `t,u,x` with `x` the model's
+//! predicted reading.
+
+use crate::measured_data::{Columns, MeasuredData};
+use crate::output_file::{csv_t_u_x, Staged};
+use crate::param_file::ParamFile;
+use std::path::PathBuf;
+
+/// Arguments of `predict`.
+#[derive(Debug, clap::Args)]
+pub struct Args {
+    /// Parameter file written by `identify`.
+    #[arg(long)]
+    pub params: PathBuf,
+    /// Input CSV with columns t and u.
+    #[arg(long)]
+    pub data: PathBuf,
+    /// Output CSV (t,u,x).
+    #[arg(long)]
+    pub out: PathBuf,
+}
+
+/// Runs `predict`.
+pub fn run(args: &Args) -> anyhow::Result<()> {
+    let (_, model) = ParamFile::load(&args.params)?;
+    let data = MeasuredData::read(&args.data, Columns::TimeDrive)?;
+    let u = data.u.as_deref().unwrap_or_default();
+    let x = model
+        .predict(&data.t, u)
+        .map_err(|e| anyhow::anyhow!("{}: {e}", args.params.display()))?;
+    let mut out = Staged::new();
+    out.write(&args.out, csv_t_u_x(&data.t, u, &x).as_bytes())?;
+    out.commit()?;
+    println!("wrote {} ({} samples)", args.out.display(), data.len());
+    Ok(())
+}

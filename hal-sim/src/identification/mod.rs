@@ -1,0 +1,413 @@
+//! Identification: from a measured record (`t, u, x`) to a [`StageModel`] the board can run.
+//!
+//! The record is split in time: samples with `t < fit_until` are fitted, the rest are kept
+//! for scoring. On the fitted part:
+//!
+//! 1. **Motion start** ([`motion`]): rows before the drive moves carry no information; a drive
+//!    that steps at the first sample of motion (a start-up glitch) makes the stage ring, and
+//!    the settling samples are left out.
+//! 2. **Sign**: a sensor whose reading falls as the drive rises is fitted on the negated
+//!    reading, and the model records `output_sign = −1`.
+//! 3. **Lag**: the sensor may lag the drive by a few samples. Unless given, the lag is the one
+//!    (0 … `max_lag` samples) whose P–I fit leaves the smallest residual.
+//! 4. **Outliers**: rows whose P–I residual exceeds [`OUTLIER_FACTOR`] × its RMS (spikes,
+//!    leftover ringing) are dropped and the model refitted.
+//! 5. **Model**: P–I weights by NNLS ([`pi`]), or Duhem by integrated least squares with a
+//!    stability check and a simulated-error refinement ([`duhem`]).
+//! 6. **Scaling**: the input range is the fitted drive range widened by [`INPUT_MARGIN`], the
+//!    output range the model's output range widened by [`OUTPUT_MARGIN`]; the library then
+//!    has to accept the model for both the observer and the compensator.
+//!
+//! Every row is fitted against the model run over the whole record from rest, the way
+//! `predict` runs it, so the fitted and the checked model see the same operator states.
+
+pub mod duhem;
+pub mod least_squares;
+pub mod motion;
+pub mod pi;
+pub mod score;
+pub mod simplex;
+
+use crate::measured_data::MeasuredData;
+use crate::stage_model::{Hysteresis, StageModel};
+use least_squares::LeastSquaresError;
+pub use pi::ThresholdSpread;
+use twinstack::{ParamError, Scaling};
+
+/// Residuals beyond this multiple of the RMS residual are dropped as outliers.
+pub const OUTLIER_FACTOR: f64 = 5.0;
+/// The input range is the fitted drive range widened by this fraction of its span each side.
+pub const INPUT_MARGIN: f64 = 0.02;
+/// The output range is the model's output range widened by this fraction each side.
+pub const OUTPUT_MARGIN: f64 = 0.05;
+/// Fewest samples to fit on.
+pub const MIN_FIT_SAMPLES: usize = 50;
+/// Smallest normalised first weight a P–I model gets when its inverse would otherwise not
+/// fit the fixed-point formats (the inverse's `Σ|w'| ≈ 2/w_1` must stay below 64).
+pub const MIN_NORM_FIRST_WEIGHT: f64 = 1.0 / 24.0;
+
+/// Largest normalised distance to the anhysteretic curve a Duhem model may reach on the
+/// fitted data (the fixed-point model saturates it at 2).
+pub const DUHEM_MAX_NORM_DISTANCE: f64 = 1.0;
+
+/// Which hysteresis model to fit.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum ModelKind {
+    /// Prandtl–Ishlinskii.
+    Pi,
+    /// Duhem.
+    Duhem,
+}
+
+/// The rows a fit uses: row `k` pairs the drive history up to sample `k` with the reading at
+/// sample `k + lag`.
+#[derive(Clone, Debug, PartialEq)]
+pub struct FitRows {
+    /// Sample indices of the rows, increasing.
+    pub index: Vec<usize>,
+    /// Sensor lag, samples.
+    pub lag: usize,
+}
+
+impl FitRows {
+    /// Mean of the targets `y[k + lag]`.
+    pub fn mean_target(&self, y: &[f64]) -> f64 {
+        let n = self.index.len().max(1) as f64;
+        self.index.iter().map(|&k| y[k + self.lag]).sum::<f64>() / n
+    }
+
+    /// Span (max − min) of the targets.
+    pub fn target_span(&self, y: &[f64]) -> f64 {
+        let (lo, hi) = self
+            .index
+            .iter()
+            .map(|&k| y[k + self.lag])
+            .fold((f64::INFINITY, f64::NEG_INFINITY), |(l, h), v| {
+                (l.min(v), h.max(v))
+            });
+        hi - lo
+    }
+}
+
+/// Settings of one identification (the CLI's flags).
+#[derive(Clone, Debug, PartialEq)]
+pub struct IdentifyOptions {
+    /// Model to fit.
+    pub model: ModelKind,
+    /// Samples with `t <` this (seconds) are fitted, the rest scored.
+    pub fit_until_s: f64,
+    /// Play operators of a P–I model (also used for the lag estimate).
+    pub operators: usize,
+    /// Threshold spread of a P–I model.
+    pub thresholds: ThresholdSpread,
+    /// Sensor lag in samples; `None` to estimate it.
+    pub lag: Option<usize>,
+    /// Largest lag tried when estimating, samples.
+    pub max_lag: usize,
+    /// Refine a Duhem fit on its simulated error.
+    pub refine: bool,
+}
+
+impl IdentifyOptions {
+    /// The defaults for `model` fitted on `t < fit_until_s`: 17 uniform operators, lag
+    /// estimated over 0…10 samples, Duhem refined.
+    pub fn new(model: ModelKind, fit_until_s: f64) -> Self {
+        Self {
+            model,
+            fit_until_s,
+            operators: 17,
+            thresholds: ThresholdSpread::Uniform,
+            lag: None,
+            max_lag: 10,
+            refine: true,
+        }
+    }
+}
+
+/// The result of an identification.
+#[derive(Clone, Debug)]
+pub struct Identification {
+    /// The model, ready for the board.
+    pub model: StageModel,
+    /// Where motion starts in the record.
+    pub motion: motion::MotionStart,
+    /// First held-out sample (samples before it were available to the fit).
+    pub held_out_from: usize,
+    /// Sensor lag, samples of this record.
+    pub lag_samples: usize,
+    /// Whether the lag was estimated (rather than given).
+    pub lag_estimated: bool,
+    /// Rows fitted (after outliers were dropped).
+    pub fitted_rows: usize,
+    /// Rows dropped as outliers.
+    pub outliers: usize,
+    /// What the fit had to do, for the user (constraints, refinements).
+    pub notes: Vec<String>,
+}
+
+/// Why identification failed.
+#[derive(Debug, thiserror::Error)]
+pub enum IdentifyError {
+    /// The record was read without the `u` or `x` column.
+    #[error("{0}: identification needs the columns t, u and x")]
+    MissingColumns(String),
+    /// Too few samples before `--fit-until`.
+    #[error("only {found} samples before t = {fit_until_s} s, at least {needed} needed to fit")]
+    TooFewFitSamples {
+        /// The split time.
+        fit_until_s: f64,
+        /// Samples found.
+        found: usize,
+        /// Samples needed.
+        needed: usize,
+    },
+    /// Too few samples after `--fit-until`.
+    #[error(
+        "only {found} samples at or after t = {fit_until_s} s, at least {needed} needed to score"
+    )]
+    NothingToScore {
+        /// The split time.
+        fit_until_s: f64,
+        /// Samples found.
+        found: usize,
+        /// Samples needed.
+        needed: usize,
+    },
+    /// The drive never moves before `--fit-until`.
+    #[error("the drive u does not move before t = {0} s: nothing to identify")]
+    NoMotion(f64),
+    /// The given lag leaves too few rows.
+    #[error("lag of {lag} samples leaves too few samples to fit")]
+    LagTooLong {
+        /// The lag, samples.
+        lag: usize,
+    },
+    /// `--operators` out of range.
+    #[error("--operators {0}: must be 1 to {max}", max = twinstack::MAX_OPERATORS)]
+    BadOperatorCount(usize),
+    /// The least-squares problem failed.
+    #[error("fit failed: {0}")]
+    Fit(#[from] LeastSquaresError),
+    /// The fitted model is refused by the library.
+    #[error("the fitted model cannot run on the board: {0}")]
+    Params(ParamError),
+}
+
+fn min_max(v: impl Iterator<Item = f64>) -> (f64, f64) {
+    v.fold((f64::INFINITY, f64::NEG_INFINITY), |(l, h), x| {
+        (l.min(x), h.max(x))
+    })
+}
+
+fn rms(v: impl Iterator<Item = f64>) -> f64 {
+    let (s, n) = v.fold((0.0, 0usize), |(s, n), e| (s + e * e, n + 1));
+    if n == 0 {
+        f64::INFINITY
+    } else {
+        (s / n as f64).sqrt()
+    }
+}
+
+/// Identifies a model of `data` with `options`.
+pub fn identify(
+    data: &MeasuredData,
+    options: &IdentifyOptions,
+) -> Result<Identification, IdentifyError> {
+    let name = data.path.display().to_string();
+    let (u, x) = match (&data.u, &data.x) {
+        (Some(u), Some(x)) => (u.as_slice(), x.as_slice()),
+        _ => return Err(IdentifyError::MissingColumns(name)),
+    };
+    if options.operators == 0 || options.operators > twinstack::MAX_OPERATORS {
+        return Err(IdentifyError::BadOperatorCount(options.operators));
+    }
+    let fit_until_s = options.fit_until_s;
+    let n_fit = data.t.iter().take_while(|&&t| t < fit_until_s).count();
+    if n_fit < MIN_FIT_SAMPLES {
+        return Err(IdentifyError::TooFewFitSamples {
+            fit_until_s,
+            found: n_fit,
+            needed: MIN_FIT_SAMPLES,
+        });
+    }
+    if data.len() - n_fit < crate::measured_data::MIN_SAMPLES {
+        return Err(IdentifyError::NothingToScore {
+            fit_until_s,
+            found: data.len() - n_fit,
+            needed: crate::measured_data::MIN_SAMPLES,
+        });
+    }
+    let u_fit = &u[..n_fit];
+    let motion = motion::find(u_fit).ok_or(IdentifyError::NoMotion(fit_until_s))?;
+    let first = motion.first_fitted;
+    let mut notes = Vec::new();
+    if motion.stepped {
+        notes.push(format!(
+            "the drive steps at t = {:.4} s (start-up glitch): fitting from t = {:.4} s",
+            data.t[motion.first_moving], data.t[first]
+        ));
+    }
+
+    // Sign: slope of the reading against the drive over the moving part.
+    let n_rows = (n_fit - first) as f64;
+    let (mu, mx) = (first..n_fit).fold((0.0, 0.0), |(a, b), k| {
+        (a + u[k] / n_rows, b + x[k] / n_rows)
+    });
+    let cov: f64 = (first..n_fit).map(|k| (u[k] - mu) * (x[k] - mx)).sum();
+    let output_sign = if cov < 0.0 { -1.0 } else { 1.0 };
+    if output_sign < 0.0 {
+        notes.push("the reading falls as the drive rises: output_sign = -1".into());
+    }
+    let y: Vec<f64> = x[..n_fit].iter().map(|v| output_sign * v).collect();
+
+    let (u_lo, u_hi) = min_max(u_fit.iter().copied());
+    let margin = INPUT_MARGIN * (u_hi - u_lo);
+    let (in_lo, in_hi) = (u_lo - margin, u_hi + margin);
+    let u_mid = 0.5 * (in_lo + in_hi);
+
+    // P–I regressors (also the lag estimate's and the outlier test's).
+    let (m_lo, m_hi) = min_max(u[first..n_fit].iter().copied());
+    let amplitude = 0.5 * (m_hi - m_lo);
+    let thresholds = options
+        .thresholds
+        .generator()
+        .generate(options.operators, amplitude)
+        .map_err(IdentifyError::Params)?;
+    let columns = pi::operator_outputs(u_fit, &thresholds, u_mid);
+    let rows_for = |lag: usize| FitRows {
+        index: (first..n_fit.saturating_sub(lag)).collect(),
+        lag,
+    };
+    let pi_rms = |rows: &FitRows| -> Result<f64, IdentifyError> {
+        let f = pi::fit(&columns, &thresholds, u_mid, &y, rows, 0.0)?;
+        Ok(rms(rows.index.iter().map(|&k| f.residuals[k])))
+    };
+
+    let (lag, lag_estimated) = match options.lag {
+        Some(l) => (l, false),
+        None => {
+            let mut best = (0, f64::INFINITY);
+            for l in 0..=options.max_lag {
+                let rows = rows_for(l);
+                if rows.index.len() < MIN_FIT_SAMPLES {
+                    break;
+                }
+                let r = pi_rms(&rows)?;
+                if r < best.1 {
+                    best = (l, r);
+                }
+            }
+            (best.0, true)
+        }
+    };
+    let mut rows = rows_for(lag);
+    if rows.index.len() < MIN_FIT_SAMPLES {
+        return Err(IdentifyError::LagTooLong { lag });
+    }
+
+    // Outliers, judged on the P–I residual.
+    let screen = pi::fit(&columns, &thresholds, u_mid, &y, &rows, 0.0)?;
+    let limit = OUTLIER_FACTOR * rms(rows.index.iter().map(|&k| screen.residuals[k]));
+    let before = rows.index.len();
+    rows.index.retain(|&k| screen.residuals[k].abs() <= limit);
+    let outliers = before - rows.index.len();
+
+    let sample_period = data.sample_period();
+    let sensor_lag_s = lag as f64 * sample_period;
+    let with_output_range = |hysteresis: Hysteresis, model_output: &[f64], min_half_span: f64| {
+        let (lo, hi) = min_max(model_output.iter().copied().filter(|v| v.is_finite()));
+        let half = (0.5 + OUTPUT_MARGIN) * (hi - lo);
+        let half = half.max(min_half_span);
+        let mid = 0.5 * (lo + hi);
+        let scaling =
+            Scaling::new(in_lo, in_hi, mid - half, mid + half).map_err(IdentifyError::Params)?;
+        Ok::<_, IdentifyError>(StageModel {
+            hysteresis,
+            scaling,
+            output_sign,
+            sensor_lag_s,
+        })
+    };
+
+    let model = match options.model {
+        ModelKind::Pi => {
+            let fit_pi = |min_first: f64| -> Result<StageModel, IdentifyError> {
+                let f = pi::fit(&columns, &thresholds, u_mid, &y, &rows, min_first)?;
+                let output: Vec<f64> = (0..n_fit - lag)
+                    .map(|k| y[k + lag] - f.residuals[k])
+                    .collect();
+                with_output_range(Hysteresis::Pi(f.params), &output, 0.0)
+            };
+            let model = fit_pi(0.0)?;
+            match model.check() {
+                Ok(()) => model,
+                Err(
+                    e @ (ParamError::WeightOutOfRange { .. }
+                    | ParamError::GainSumTooLarge
+                    | ParamError::FirstWeightNotPositive),
+                ) => {
+                    let floor = MIN_NORM_FIRST_WEIGHT / model.scaling.gain_to_norm();
+                    notes.push(format!(
+                        "the inverse could not be built ({e}): refitted with w_1 >= {floor:.4e}"
+                    ));
+                    fit_pi(floor)?
+                }
+                Err(e) => return Err(IdentifyError::Params(e)),
+            }
+        }
+        ModelKind::Duhem => {
+            let (y_lo, y_hi) = min_max(y.iter().copied());
+            let provisional = Scaling::new(in_lo, in_hi, y_lo, y_hi.max(y_lo + 1e-9))
+                .map_err(IdentifyError::Params)?;
+            let f = duhem::fit(u_fit, &y, &rows, &provisional, options.refine)?;
+            let span = rows.target_span(&y);
+            notes.push(format!(
+                "Duhem integrated least squares: simulated RMS {:.3} % of span{}",
+                100.0 * f.least_squares_rms / span,
+                match f.path {
+                    duhem::DuhemFitPath::Plain => String::new(),
+                    duhem::DuhemFitPath::ConstrainedNotPositive =>
+                        " (plain fit had a non-positive coefficient: refitted with alpha, beta, gamma >= 0)".into(),
+                    duhem::DuhemFitPath::ConstrainedDiverged =>
+                        " (plain fit diverged when simulated: refitted with alpha, beta, gamma >= 0)".into(),
+                }
+            ));
+            if f.params != f.least_squares {
+                notes.push(format!(
+                    "Duhem refined on the simulated error: RMS {:.3} % of span",
+                    100.0 * f.rms / span
+                ));
+            }
+            // The fixed-point Duhem saturates the distance to the anhysteretic curve,
+            // e = βu + δ − y, at ±2 normalised: widen the output range until |e| stays
+            // within DUHEM_MAX_NORM_DISTANCE of it on the data.
+            let p = f.params;
+            let max_distance = u_fit
+                .iter()
+                .zip(&f.simulated)
+                .map(|(&u, &y)| (p.beta * u + p.offset - y).abs())
+                .fold(0.0, f64::max);
+            let needed = max_distance / DUHEM_MAX_NORM_DISTANCE;
+            let model = with_output_range(Hysteresis::Duhem(p), &f.simulated, needed)?;
+            let (lo, hi) = min_max(f.simulated.iter().copied());
+            if needed > (0.5 + OUTPUT_MARGIN) * (hi - lo) {
+                notes.push(format!(
+                    "output range widened to +/-{:.4} around the model's centre so that the distance to the anhysteretic curve fits the fixed point",
+                    needed
+                ));
+            }
+            model
+        }
+    };
+    model.check().map_err(IdentifyError::Params)?;
+    Ok(Identification {
+        model,
+        motion,
+        held_out_from: n_fit,
+        lag_samples: lag,
+        lag_estimated,
+        fitted_rows: rows.index.len(),
+        outliers,
+        notes,
+    })
+}

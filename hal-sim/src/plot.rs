@@ -1,0 +1,175 @@
+//! The identification figure: measured against model loops (held-out part), and the model
+//! error over the whole record, as a PNG (plotters, bitmap backend).
+//!
+//! Text is drawn with DejaVu Sans Mono, embedded in the binary (`assets/`, Bitstream Vera
+//! licence, which allows redistribution), so the figure renders without system fonts.
+
+use plotters::prelude::*;
+use std::path::Path;
+use std::sync::Once;
+
+/// The embedded font.
+const FONT: &[u8] = include_bytes!("../assets/DejaVuSansMono.ttf");
+/// Family name the font is registered under.
+const FAMILY: &str = "twinstack-mono";
+
+/// What the figure shows.
+#[derive(Clone, Copy, Debug)]
+pub struct IdentificationFigure<'a> {
+    /// Title line.
+    pub title: &'a str,
+    /// Time, s.
+    pub t: &'a [f64],
+    /// Drive, V.
+    pub u: &'a [f64],
+    /// Measured output.
+    pub measured: &'a [f64],
+    /// Model output (fixed-point predict).
+    pub model: &'a [f64],
+    /// First held-out sample.
+    pub held_out_from: usize,
+    /// First fitted sample.
+    pub fit_from: usize,
+    /// Unit of the output, for the axis labels.
+    pub output_unit: &'a str,
+}
+
+/// Why the figure could not be drawn.
+#[derive(Debug, thiserror::Error)]
+#[error("cannot draw {path}: {message}")]
+pub struct PlotError {
+    path: String,
+    message: String,
+}
+
+fn register_font() -> Result<(), String> {
+    static ONCE: Once = Once::new();
+    let mut result = Ok(());
+    ONCE.call_once(|| {
+        result = plotters::style::register_font(FAMILY, FontStyle::Normal, FONT)
+            .map_err(|_| "embedded font is invalid".to_string());
+    });
+    result
+}
+
+fn bounds(values: impl Iterator<Item = f64>) -> (f64, f64) {
+    let (lo, hi) = values
+        .filter(|v| v.is_finite())
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(l, h), v| {
+            (l.min(v), h.max(v))
+        });
+    if !(lo.is_finite() && hi.is_finite()) {
+        return (-1.0, 1.0);
+    }
+    let pad = 0.05 * (hi - lo).max(1e-9);
+    (lo - pad, hi + pad)
+}
+
+/// Draws `fig` into the PNG `path` (1200 × 1000 px).
+pub fn draw(path: &Path, fig: &IdentificationFigure) -> Result<(), PlotError> {
+    let err = |m: String| PlotError {
+        path: path.display().to_string(),
+        message: m,
+    };
+    register_font().map_err(err)?;
+    let e = |x: &dyn std::fmt::Display| err(x.to_string());
+    let root = BitMapBackend::new(path, (1200, 1000)).into_drawing_area();
+    root.fill(&WHITE).map_err(|x| e(&x))?;
+    let root = root.titled(fig.title, (FAMILY, 22)).map_err(|x| e(&x))?;
+    let (top, bottom) = root.split_vertically(560);
+    let panels = top.split_evenly((1, 2));
+    let n = fig.t.len();
+    let ranges = [
+        (fig.fit_from, fig.held_out_from, "fitted part"),
+        (fig.held_out_from, n, "held-out part"),
+    ];
+    for (area, &(from, to, label)) in panels.iter().zip(ranges.iter()) {
+        let (ulo, uhi) = bounds(fig.u[from..to].iter().copied());
+        let (ylo, yhi) = bounds(
+            fig.measured[from..to]
+                .iter()
+                .chain(fig.model[from..to].iter())
+                .copied(),
+        );
+        let mut chart = ChartBuilder::on(area)
+            .caption(format!("loops, {label}"), (FAMILY, 18))
+            .margin(10)
+            .x_label_area_size(40)
+            .y_label_area_size(70)
+            .build_cartesian_2d(ulo..uhi, ylo..yhi)
+            .map_err(|x| e(&x))?;
+        chart
+            .configure_mesh()
+            .x_desc("drive u [V]")
+            .y_desc(format!("output x [{}]", fig.output_unit))
+            .label_style((FAMILY, 14))
+            .draw()
+            .map_err(|x| e(&x))?;
+        chart
+            .draw_series(LineSeries::new(
+                (from..to).map(|k| (fig.u[k], fig.measured[k])),
+                BLUE.stroke_width(2),
+            ))
+            .map_err(|x| e(&x))?
+            .label("measured")
+            .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], BLUE.stroke_width(2)));
+        chart
+            .draw_series(LineSeries::new(
+                (from..to).map(|k| (fig.u[k], fig.model[k])),
+                RED.stroke_width(1),
+            ))
+            .map_err(|x| e(&x))?
+            .label("model (fixed point)")
+            .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], RED));
+        chart
+            .configure_series_labels()
+            .position(SeriesLabelPosition::UpperLeft)
+            .label_font((FAMILY, 14))
+            .background_style(WHITE.mix(0.8))
+            .border_style(BLACK)
+            .draw()
+            .map_err(|x| e(&x))?;
+    }
+
+    let error: Vec<f64> = (0..n).map(|k| fig.model[k] - fig.measured[k]).collect();
+    let (tlo, thi) = (fig.t[0], fig.t[n - 1]);
+    let (elo, ehi) = bounds(error[fig.fit_from..].iter().copied());
+    let mut chart = ChartBuilder::on(&bottom)
+        .caption(
+            "error = model - measured (grey: before the fit window; the line marks --fit-until)",
+            (FAMILY, 18),
+        )
+        .margin(10)
+        .x_label_area_size(40)
+        .y_label_area_size(70)
+        .build_cartesian_2d(tlo..thi, elo..ehi)
+        .map_err(|x| e(&x))?;
+    chart
+        .configure_mesh()
+        .x_desc("time t [s]")
+        .y_desc(format!("error [{}]", fig.output_unit))
+        .label_style((FAMILY, 14))
+        .draw()
+        .map_err(|x| e(&x))?;
+    chart
+        .draw_series(LineSeries::new(
+            (0..fig.fit_from).map(|k| (fig.t[k], error[k].clamp(elo, ehi))),
+            RGBColor(160, 160, 160),
+        ))
+        .map_err(|x| e(&x))?;
+    chart
+        .draw_series(LineSeries::new(
+            (fig.fit_from..n).map(|k| (fig.t[k], error[k])),
+            RED,
+        ))
+        .map_err(|x| e(&x))?;
+    let split = fig.t[fig.held_out_from.min(n - 1)];
+    chart
+        .draw_series(LineSeries::new(
+            vec![(split, elo), (split, ehi)],
+            BLACK.stroke_width(2),
+        ))
+        .map_err(|x| e(&x))?;
+    root.present().map_err(|x| e(&x))?;
+    Ok(())
+}

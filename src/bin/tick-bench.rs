@@ -1,0 +1,170 @@
+//! # tick-bench — instructions per control tick, counted in QEMU
+//!
+//! Run under `qemu-system-arm -machine netduinoplus2 -icount shift=0 …` (see
+//! `tests/tick_bench.rs`, which builds, runs and tabulates it). With `-icount shift=0` one
+//! guest instruction takes one virtual nanosecond and TIM2 (prescaler 0) counts at 1 GHz, so
+//! the difference of TIM2's counter across a call is its exact instruction count, the same on
+//! every run.
+//!
+//! For each compensator (none, inverse P–I N = 8/16/32, inverse Duhem), with the Duhem
+//! observer and sensor feedback on (plus two breakdown rows: `bypass` = split, limits and DAC
+//! write only; `none-observer-only` = that plus the Duhem observer), it runs [`Controller::tick`] on the firmware's own DAC and
+//! ADC drivers (the DAC write is the real `DHR12RD` store) for a triangle setpoint that
+//! reverses every 100 ticks, and prints one line per configuration over semihosting:
+//!
+//! ```text
+//! BENCH name=<name> ticks=<n> total=<instructions> min=<n> max=<n> overhead=<n>
+//! ```
+//!
+//! `total`, `min`, `max` are net of `overhead`, the count of the same measurement around an
+//! empty function. Then it exits QEMU with status 0 (1 on panic).
+//!
+//! These are instructions, not cycles: QEMU models neither flash wait states nor the
+//! multi-cycle instructions; confirm on the board with DWT's cycle counter.
+#![no_std]
+#![no_main]
+
+use core::hint::black_box;
+
+use cortex_m_rt::entry;
+use cortex_m_semihosting::{debug, hprintln};
+use defmt_rtt as _;
+use stm32f4xx_hal::pac;
+
+use twinstack::board::{DualDac, SensorAdc};
+use twinstack::control::{ControlConfig, Controller, TickReport};
+use twinstack::default_config::{control_config, CompensatorKind};
+use twinstack::drive::SafeState;
+use twinstack::fixed_point::SIGNAL_ONE;
+use twinstack::hardware::adc::SensorInput;
+use twinstack::hardware::dac::InternalDac;
+
+/// Ticks measured per configuration (after as many warm-up ticks).
+const TICKS: u32 = 1000;
+/// Ticks between setpoint reversals.
+const HALF_PERIOD: i32 = 100;
+/// Control rate the configurations are built for, Hz.
+const RATE_HZ: f64 = 100_000.0;
+
+#[panic_handler]
+fn panic(info: &core::panic::PanicInfo) -> ! {
+    hprintln!("BENCH-PANIC {}", info);
+    debug::exit(debug::EXIT_FAILURE);
+    loop {
+        cortex_m::asm::wfi();
+    }
+}
+
+/// TIM2's counter (1 GHz under `-icount shift=0`).
+#[inline(always)]
+fn now(tim: &pac::TIM2) -> u32 {
+    tim.cnt().read().bits()
+}
+
+/// One tick, not inlined, so the measurement brackets exactly one call.
+#[inline(never)]
+fn one_tick<D: DualDac, A: SensorAdc>(
+    c: &mut Controller,
+    setpoint: Option<i32>,
+    adc: &mut A,
+    dac: &mut D,
+) -> TickReport {
+    c.tick(setpoint, adc, dac)
+}
+
+/// The same call shape doing nothing: the measurement's own overhead.
+#[inline(never)]
+fn empty_call(c: &mut Controller, setpoint: Option<i32>) -> Option<i32> {
+    black_box(c);
+    setpoint
+}
+
+/// Triangle setpoint: ±0.8 of full scale, reversing every [`HALF_PERIOD`] ticks.
+fn setpoint(k: u32) -> i32 {
+    let amplitude = (SIGNAL_ONE / 10) * 8;
+    let step = 2 * amplitude / HALF_PERIOD;
+    let phase = (k as i32) % (2 * HALF_PERIOD);
+    if phase < HALF_PERIOD {
+        -amplitude + step * phase
+    } else {
+        amplitude - step * (phase - HALF_PERIOD)
+    }
+}
+
+#[entry]
+fn main() -> ! {
+    let dp = pac::Peripherals::take().unwrap();
+    // Free-running 32-bit counter: PSC = 0, ARR = max.
+    dp.RCC.apb1enr().modify(|_, w| w.tim2en().set_bit());
+    let tim = dp.TIM2;
+    tim.psc().write(|w| unsafe { w.bits(0) });
+    tim.arr().write(|w| unsafe { w.bits(u32::MAX) });
+    tim.egr().write(|w| w.ug().set_bit());
+    tim.cr1().write(|w| w.cen().set_bit());
+
+    let mut dac = InternalDac::new(dp.DAC, &dp.RCC, (Default::default(), Default::default()));
+    let mut adc = SensorInput::new(dp.ADC1, &dp.ADC_COMMON, &dp.RCC);
+
+    let full = |kind: CompensatorKind| -> ControlConfig {
+        match control_config(kind, RATE_HZ, SafeState::Bias) {
+            Ok(c) => c,
+            Err(_) => panic!("configuration {:?} refused", kind),
+        }
+    };
+    let base = full(CompensatorKind::None);
+    let cases: [(&str, ControlConfig); 7] = [
+        // Breakdown of the fixed part: split + limits + DAC alone, then + the Duhem observer.
+        ("bypass", ControlConfig::bypass(base.drive)),
+        (
+            "none-observer-only",
+            ControlConfig {
+                feedback: None,
+                ..base
+            },
+        ),
+        // The table: every compensator with the Duhem observer and sensor feedback on.
+        ("none", base),
+        ("inverse-pi-8", full(CompensatorKind::InversePi(8))),
+        ("inverse-pi-16", full(CompensatorKind::InversePi(16))),
+        ("inverse-pi-32", full(CompensatorKind::InversePi(32))),
+        ("inverse-duhem", full(CompensatorKind::InverseDuhem)),
+    ];
+    for (name, config) in cases {
+        let mut c = Controller::new(config);
+        // Overhead: the same bracket around an empty call.
+        let mut overhead = u32::MAX;
+        for k in 0..16 {
+            let t0 = now(&tim);
+            black_box(empty_call(&mut c, Some(setpoint(k))));
+            let t1 = now(&tim);
+            overhead = overhead.min(t1.wrapping_sub(t0));
+        }
+        for k in 0..TICKS {
+            black_box(one_tick(&mut c, Some(setpoint(k)), &mut adc, &mut dac));
+        }
+        let (mut total, mut min, mut max) = (0u64, u32::MAX, 0u32);
+        for k in TICKS..2 * TICKS {
+            let sp = Some(setpoint(k));
+            let t0 = now(&tim);
+            black_box(one_tick(&mut c, sp, &mut adc, &mut dac));
+            let t1 = now(&tim);
+            let n = t1.wrapping_sub(t0).saturating_sub(overhead);
+            total += n as u64;
+            min = min.min(n);
+            max = max.max(n);
+        }
+        hprintln!(
+            "BENCH name={} ticks={} total={} min={} max={} overhead={}",
+            name,
+            TICKS,
+            total,
+            min,
+            max,
+            overhead
+        );
+    }
+    debug::exit(debug::EXIT_SUCCESS);
+    loop {
+        cortex_m::asm::wfi();
+    }
+}

@@ -1,0 +1,319 @@
+//! # twinstack-fw — the driver board's firmware (STM32F405RG, RTIC 2)
+//!
+//! A thin shell over [`twinstack::control::Controller::tick`]:
+//!
+//! * **Control tick** (highest priority, 3): TIM2's update event, at the rate stored in the
+//!   parameter record (10–100 kHz, default 50 kHz), starts the sensor ADC conversion and raises
+//!   the interrupt; the interrupt pops a setpoint, calls the library's tick (compensator,
+//!   feedback, limits, differential split, both DAC channels in one store), feeds the
+//!   watchdog and counts ticks and overruns (a tick still running when the next is due).
+//! * **USART1 receive** (priority 2): DMA into a ring, drained on idle line and half/full
+//!   transfer, bytes queued for the decoder.
+//! * **Frame decoder** (priority 1, EXTI0 as a software interrupt): the minimal status query
+//!   of [`twinstack::status_report`] (byte `?`).
+//! * **Telemetry** (priority 1, EXTI1): sends the status line.
+//! * **Safety**: a panic or hard fault masks interrupts, drives both outputs to the safe state
+//!   (bias or zero, from the parameter record) and halts; the watchdog then resets the MCU.
+//!   A parameter record with a bad CRC (or none) means defaults and `params=<reason>` in the
+//!   status reply.
+//! * **Logging**: `defmt` over RTT.
+//!
+//! Feature `emulator` (QEMU `netduinoplus2`): HSI clock, SysTick instead of TIM2 for the tick,
+//! interrupt-driven USART receive instead of DMA. Nothing else changes.
+//!
+//! On the host this file compiles to a stub that says how to build the firmware.
+#![cfg_attr(target_os = "none", no_std, no_main)]
+
+#[cfg(not(target_os = "none"))]
+fn main() {
+    eprintln!(
+        "twinstack-fw is the STM32F405 firmware: build it with `cargo build-fw` \
+         (board) or `cargo build-emu` (QEMU); see FIRMWARE.md"
+    );
+    std::process::exit(2);
+}
+
+#[cfg(target_os = "none")]
+use defmt_rtt as _;
+
+/// Counters the tick writes (single writer) and the telemetry task reads.
+#[cfg(target_os = "none")]
+mod tick_counters {
+    use core::sync::atomic::{AtomicU32, Ordering};
+
+    /// Ticks run since boot.
+    pub static TICKS: AtomicU32 = AtomicU32::new(0);
+    /// Ticks that were still running when the next one became due.
+    pub static OVERRUNS: AtomicU32 = AtomicU32::new(0);
+    /// Ticks that found the setpoint queue empty.
+    pub static UNDERRUNS: AtomicU32 = AtomicU32::new(0);
+
+    /// Adds one to a counter only the tick writes (a load and a store, no LDREX/STREX loop).
+    #[inline(always)]
+    pub fn bump(c: &AtomicU32) {
+        c.store(c.load(Ordering::Relaxed).wrapping_add(1), Ordering::Relaxed);
+    }
+
+    /// Reads a counter.
+    pub fn read(c: &AtomicU32) -> u32 {
+        c.load(Ordering::Relaxed)
+    }
+}
+
+#[cfg(target_os = "none")]
+#[panic_handler]
+fn panic(info: &core::panic::PanicInfo) -> ! {
+    twinstack::hardware::safe_state::make_outputs_safe();
+    defmt::error!("panic: {}", defmt::Display2Format(info));
+    twinstack::hardware::safe_state::halt()
+}
+
+#[cfg(target_os = "none")]
+#[cortex_m_rt::exception]
+unsafe fn HardFault(_frame: &cortex_m_rt::ExceptionFrame) -> ! {
+    twinstack::hardware::safe_state::make_outputs_safe();
+    twinstack::hardware::safe_state::halt()
+}
+
+#[cfg(target_os = "none")]
+#[rtic::app(device = stm32f4xx_hal::pac, peripherals = true)]
+mod app {
+    use core::sync::atomic::{AtomicBool, Ordering};
+
+    use heapless::spsc::{Consumer, Producer, Queue};
+    use stm32f4xx_hal::gpio::GpioExt;
+    use stm32f4xx_hal::pac::{self, Interrupt};
+
+    use twinstack::control::Controller;
+    use twinstack::default_config;
+    use twinstack::hardware::adc::SensorInput;
+    use twinstack::hardware::clocks;
+    use twinstack::hardware::control_timer::ControlTimer;
+    use twinstack::hardware::dac::InternalDac;
+    use twinstack::hardware::param_flash;
+    use twinstack::hardware::safe_state;
+    use twinstack::hardware::usart::{self, UsartRx, UsartTx};
+    use twinstack::hardware::watchdog::Watchdog;
+    use twinstack::param_store::{self, ParamSource};
+    use twinstack::status_report::{Request, RequestDecoder, StatusReport, MAX_LINE};
+
+    use crate::tick_counters::{self, OVERRUNS, TICKS, UNDERRUNS};
+
+    /// Setpoints waiting for the tick (Q2.30 normalised displacement).
+    const SETPOINT_QUEUE: usize = 64;
+    /// Received bytes waiting for the decoder.
+    const RX_QUEUE: usize = 256;
+
+    /// Set by the decoder, taken by telemetry: a status reply is owed.
+    static STATUS_OWED: AtomicBool = AtomicBool::new(false);
+
+    /// Everything the control interrupt owns.
+    pub struct ControlTick {
+        controller: Controller,
+        adc: SensorInput,
+        dac: InternalDac,
+        timer: ControlTimer,
+        watchdog: Watchdog,
+        setpoints: Consumer<'static, i32, SETPOINT_QUEUE>,
+    }
+
+    impl ControlTick {
+        /// One tick; see the file header. No allocation, no panic path, no loop.
+        #[inline(always)]
+        fn run(&mut self) {
+            self.timer.acknowledge();
+            let setpoint = self.setpoints.dequeue();
+            if setpoint.is_none() {
+                tick_counters::bump(&UNDERRUNS);
+            }
+            let _report = self.controller.tick(setpoint, &mut self.adc, &mut self.dac);
+            self.watchdog.feed();
+            tick_counters::bump(&TICKS);
+            if self.timer.next_tick_already_due() {
+                tick_counters::bump(&OVERRUNS);
+            }
+        }
+    }
+
+    /// The receive side of USART1 and the decoder's byte queue.
+    pub struct Receiver {
+        rx: UsartRx,
+        bytes: Producer<'static, u8, RX_QUEUE>,
+    }
+
+    impl Receiver {
+        fn drain(&mut self) {
+            let bytes = &mut self.bytes;
+            // A full queue drops the byte: the decoder is behind, the next request recovers.
+            self.rx.drain(|b| {
+                let _ = bytes.enqueue(b);
+            });
+            rtic::pend(Interrupt::EXTI0);
+        }
+    }
+
+    #[shared]
+    struct Shared {
+        /// Shared by the TIM2 (board) and SysTick (emulator) bindings; only one ever fires.
+        tick: ControlTick,
+        /// Shared by the USART1 and DMA2 stream 2 interrupts (same priority).
+        receiver: Receiver,
+    }
+
+    #[local]
+    struct Local {
+        decoder: RequestDecoder,
+        bytes_in: Consumer<'static, u8, RX_QUEUE>,
+        /// For the protocol issue's setpoint frames.
+        _setpoints_in: Producer<'static, i32, SETPOINT_QUEUE>,
+        tx: UsartTx,
+        tick_rate_hz: u32,
+        params: ParamSource,
+    }
+
+    #[init(local = [
+        setpoint_queue: Queue<i32, SETPOINT_QUEUE> = Queue::new(),
+        rx_queue: Queue<u8, RX_QUEUE> = Queue::new(),
+    ])]
+    fn init(cx: init::Context) -> (Shared, Local) {
+        let dp: pac::Peripherals = cx.device;
+        let (settings, params) = param_store::load_settings(param_flash::record_window());
+        match params {
+            ParamSource::Stored => defmt::info!("parameters loaded from flash"),
+            ParamSource::Defaults(_) => {
+                defmt::warn!(
+                    "parameter record refused ({=str}): defaults",
+                    params.as_str()
+                )
+            }
+        }
+
+        let (mut rcc, bus) = clocks::configure(dp.RCC);
+        let gpioa = dp.GPIOA.split(&mut rcc);
+        let _dac_left = gpioa.pa4.into_analog();
+        let _dac_right = gpioa.pa5.into_analog();
+        let _sensor = gpioa.pa0.into_analog();
+        let _tx_pin = gpioa.pa9.into_alternate::<7>();
+        let _rx_pin = gpioa.pa10.into_alternate::<7>();
+
+        // The timer's rate is fixed before the controller is built, so the drive's slew limit
+        // per tick matches the real period.
+        #[cfg(not(feature = "emulator"))]
+        let timer = ControlTimer::start(dp.TIM2, &rcc, &bus, settings.tick_rate_hz);
+        #[cfg(feature = "emulator")]
+        let timer = ControlTimer::start(cx.core.SYST, &bus, settings.tick_rate_hz);
+        let rate = timer.rate_hz();
+
+        let config = match default_config::boot_config(rate as f64, settings.safe_state) {
+            Ok(c) => c,
+            // The compiled-in parameters are valid for every rate the settings allow.
+            Err(_) => panic!("compiled-in configuration refused"),
+        };
+        let controller = Controller::new(config);
+        let (safe_left, safe_right) = controller.safe_codes();
+        safe_state::arm(safe_left, safe_right);
+
+        let dac = InternalDac::new(dp.DAC, &rcc, (safe_left, safe_right));
+        let adc = SensorInput::new(dp.ADC1, &dp.ADC_COMMON, &rcc);
+        let (tx, rx) = usart::configure(
+            dp.USART1,
+            #[cfg(not(feature = "emulator"))]
+            dp.DMA2,
+            &rcc,
+            &bus,
+        );
+        let watchdog = Watchdog::start(dp.IWDG);
+
+        let (setpoints_in, setpoints) = cx.local.setpoint_queue.split();
+        let (bytes, bytes_in) = cx.local.rx_queue.split();
+        defmt::info!(
+            "twinstack-fw up: sysclk {=u32} Hz, tick {=u32} Hz",
+            bus.sysclk_hz,
+            rate
+        );
+        (
+            Shared {
+                tick: ControlTick {
+                    controller,
+                    adc,
+                    dac,
+                    timer,
+                    watchdog,
+                    setpoints,
+                },
+                receiver: Receiver { rx, bytes },
+            },
+            Local {
+                decoder: RequestDecoder::new(),
+                bytes_in,
+                _setpoints_in: setpoints_in,
+                tx,
+                tick_rate_hz: rate,
+                params,
+            },
+        )
+    }
+
+    /// Sleeps between interrupts.
+    #[idle]
+    fn idle(_: idle::Context) -> ! {
+        loop {
+            cortex_m::asm::wfi();
+        }
+    }
+
+    /// The control tick on the board: TIM2 update.
+    #[task(binds = TIM2, priority = 3, shared = [tick])]
+    fn tim2_tick(mut cx: tim2_tick::Context) {
+        cx.shared.tick.lock(|t| t.run());
+    }
+
+    /// The control tick in the emulator: SysTick.
+    #[task(binds = SysTick, priority = 3, shared = [tick])]
+    fn systick_tick(mut cx: systick_tick::Context) {
+        cx.shared.tick.lock(|t| t.run());
+    }
+
+    /// USART1: idle line (board) or a received byte (emulator).
+    #[task(binds = USART1, priority = 2, shared = [receiver])]
+    fn usart1_rx(mut cx: usart1_rx::Context) {
+        cx.shared.receiver.lock(|r| r.drain());
+    }
+
+    /// DMA2 stream 2 (USART1 RX): half or full ring.
+    #[task(binds = DMA2_STREAM2, priority = 2, shared = [receiver])]
+    fn dma_rx(mut cx: dma_rx::Context) {
+        cx.shared.receiver.lock(|r| r.drain());
+    }
+
+    /// The frame decoder: turns queued bytes into requests.
+    #[task(binds = EXTI0, priority = 1, local = [decoder, bytes_in])]
+    fn decode(cx: decode::Context) {
+        while let Some(b) = cx.local.bytes_in.dequeue() {
+            if let Some(Request::Status) = cx.local.decoder.push(b) {
+                STATUS_OWED.store(true, Ordering::Relaxed);
+                rtic::pend(Interrupt::EXTI1);
+            }
+        }
+    }
+
+    /// Telemetry: sends the status line when one is owed.
+    #[task(binds = EXTI1, priority = 1, local = [tx, tick_rate_hz, params])]
+    fn telemetry(cx: telemetry::Context) {
+        if !STATUS_OWED.swap(false, Ordering::Relaxed) {
+            return;
+        }
+        let report = StatusReport {
+            ticks: tick_counters::read(&TICKS),
+            overruns: tick_counters::read(&OVERRUNS),
+            underruns: tick_counters::read(&UNDERRUNS),
+            tick_rate_hz: *cx.local.tick_rate_hz,
+            params: *cx.local.params,
+        };
+        let mut line = [0u8; MAX_LINE];
+        let n = report.write_line(&mut line);
+        if cx.local.tx.write_all(&line[..n]).is_err() {
+            defmt::warn!("USART1 transmit timed out");
+        }
+    }
+}

@@ -1,0 +1,481 @@
+//! The control tick: the one function the firmware's timer interrupt and the simulator both call.
+//!
+//! Read top to bottom, one tick is:
+//!
+//! 1. the next setpoint (Q2.30 normalised displacement; on underrun the last one is held);
+//! 2. the compensator (inverse P–I, inverse Duhem, or none) turns it into a drive command;
+//! 3. with a sensor, a PI controller on the measured error adds its correction;
+//! 4. the differential drive clamps the command to the stacks' range and slew limits and splits
+//!    it into both stacks' DAC codes (`u_l = ū + v`, `u_r = ū − v`), written at once;
+//! 5. the forward observer, fed the drive actually applied, gives the estimated displacement.
+//!
+//! Configuration ([`ControlConfig`]) is built and validated off the tick path and swapped in
+//! whole; state lives in [`Controller`]. Nothing here allocates, panics or loops without bound.
+
+use crate::board::{AdcCode, DacCode, DualDac, SensorAdc};
+use crate::drive::DifferentialDrive;
+use crate::duhem::{Duhem, DuhemState, InverseDuhem};
+use crate::fixed_point::{clamp_full_scale, limit, saturate_i64, GAIN_FRAC_BITS, SIGNAL_FRAC_BITS};
+use crate::prandtl_ishlinskii::{InversePrandtlIshlinskii, PiState, PrandtlIshlinskii};
+
+/// The feedforward compensator: desired displacement → drive.
+// The variants differ in size by design: there is no heap on the board, and the configuration
+// lives in a static, so boxing the large variant is neither possible nor wanted.
+#[allow(clippy::large_enum_variant)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Compensator {
+    /// No compensation: the drive is the setpoint, range onto range (bypass).
+    None,
+    /// Analytic inverse Prandtl–Ishlinskii.
+    InversePi(InversePrandtlIshlinskii),
+    /// Inverse Duhem.
+    InverseDuhem(InverseDuhem),
+}
+
+/// The forward observer: applied drive → estimated displacement.
+#[allow(clippy::large_enum_variant)] // as for `Compensator`
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Observer {
+    /// No observer (estimate reads 0).
+    None,
+    /// Forward Prandtl–Ishlinskii.
+    Pi(PrandtlIshlinskii),
+    /// Forward Duhem.
+    Duhem(Duhem),
+}
+
+/// The position sensor and the PI controller on its error.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Feedback {
+    /// ADC resolution, bits (≤ 30): the code is read as a fraction of full scale.
+    pub adc_bits: u32,
+    /// Displacement at ADC code 0, Q2.30 normalised displacement.
+    pub sensor_offset: i32,
+    /// Normalised displacement per ADC full scale, Q8.24 (negative for an inverted sensor).
+    pub sensor_gain: i32,
+    /// Proportional gain, Q8.24 (normalised drive per normalised displacement error).
+    pub kp: i32,
+    /// Integral gain per tick, Q8.24.
+    pub ki: i32,
+    /// Largest correction (and integrator) magnitude, Q2.30 normalised drive.
+    pub limit: i32,
+}
+
+/// Everything the tick needs, validated and in fixed point.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct ControlConfig {
+    /// Feedforward compensator.
+    pub compensator: Compensator,
+    /// Forward observer.
+    pub observer: Observer,
+    /// Sensor feedback, if the stage has a sensor and closed loop is wanted.
+    pub feedback: Option<Feedback>,
+    /// The differential drive and its limits.
+    pub drive: DifferentialDrive,
+}
+
+impl ControlConfig {
+    /// Bypass: no compensator, no observer, no feedback — the drive follows the setpoint.
+    pub fn bypass(drive: DifferentialDrive) -> Self {
+        Self {
+            compensator: Compensator::None,
+            observer: Observer::None,
+            feedback: None,
+            drive,
+        }
+    }
+}
+
+/// Bit flags of what happened in one tick.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct TickFlags(pub u8);
+
+impl TickFlags {
+    /// No new setpoint: the last one was held.
+    pub const UNDERRUN: u8 = 1 << 0;
+    /// The range limit clipped the drive.
+    pub const RANGE_LIMIT: u8 = 1 << 1;
+    /// The slew limit clipped the drive.
+    pub const SLEW_LIMIT: u8 = 1 << 2;
+    /// The sensor ADC read failed (feedback held its integrator).
+    pub const ADC_ERROR: u8 = 1 << 3;
+    /// The DAC write failed.
+    pub const DAC_ERROR: u8 = 1 << 4;
+
+    /// Whether `flag` is set.
+    pub fn contains(self, flag: u8) -> bool {
+        self.0 & flag != 0
+    }
+}
+
+/// What one tick did.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct TickReport {
+    /// Left stack's DAC code.
+    pub left: DacCode,
+    /// Right stack's DAC code.
+    pub right: DacCode,
+    /// Observer's estimated displacement, Q2.30 normalised.
+    pub estimate: i32,
+    /// Measured displacement, Q2.30 normalised (0 without feedback).
+    pub measured: i32,
+    /// Model-normalised drive applied, Q2.30.
+    pub drive: i32,
+    /// What happened.
+    pub flags: TickFlags,
+}
+
+/// Counters since start-up; they wrap after 2^32 events.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct ControlCounters {
+    /// Ticks run.
+    pub ticks: u32,
+    /// Ticks without a new setpoint.
+    pub underruns: u32,
+    /// Ticks the range limit clipped.
+    pub range_limits: u32,
+    /// Ticks the slew limit clipped.
+    pub slew_limits: u32,
+    /// Failed ADC reads.
+    pub adc_errors: u32,
+    /// Failed DAC writes.
+    pub dac_errors: u32,
+}
+
+/// The controller: configuration plus every piece of state the tick keeps.
+#[derive(Clone, Debug)]
+pub struct Controller {
+    config: ControlConfig,
+    compensator_state: ModelState,
+    observer_state: ModelState,
+    setpoint: i32,
+    drive: i32,
+    integrator: i32,
+    counters: ControlCounters,
+}
+
+/// State of whichever model a slot holds.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum ModelState {
+    Pi(PiState),
+    Duhem(DuhemState),
+    None,
+}
+
+impl Controller {
+    /// A controller at rest: drive at the bias, models relaxed there, setpoint where the
+    /// observer puts the stage.
+    pub fn new(config: ControlConfig) -> Self {
+        let mut c = Self {
+            config,
+            compensator_state: ModelState::None,
+            observer_state: ModelState::None,
+            setpoint: 0,
+            drive: 0,
+            integrator: 0,
+            counters: ControlCounters::default(),
+        };
+        c.reset_to_rest();
+        c
+    }
+
+    fn reset_to_rest(&mut self) {
+        self.relax_at(self.config.drive.rest_drive());
+    }
+
+    /// Puts the models in the relaxed state at `drive` (clamped to the drive's limits): the
+    /// observer's estimate there becomes the setpoint, and the compensator's state is derived
+    /// from the observer's, so the compensator starts out agreeing with the stage.
+    fn relax_at(&mut self, drive: i32) {
+        let (lo, hi) = self.config.drive.drive_range();
+        let drive = limit(drive, lo, hi);
+        self.drive = drive;
+        self.integrator = 0;
+        let (observer_state, y) = match &self.config.observer {
+            Observer::None => (ModelState::None, drive),
+            Observer::Pi(m) => {
+                let mut s = m.state_at_rest(drive);
+                let y = m.step(&mut s, drive);
+                (ModelState::Pi(s), y)
+            }
+            Observer::Duhem(m) => {
+                let y = m.anhysteretic(drive);
+                (ModelState::Duhem(m.state_at(drive, y)), y)
+            }
+        };
+        self.compensator_state = match (&self.config.compensator, &observer_state) {
+            (Compensator::None, _) => ModelState::None,
+            (Compensator::InversePi(m), ModelState::Pi(fs)) => {
+                ModelState::Pi(m.state_from_forward(fs))
+            }
+            (Compensator::InversePi(m), _) => ModelState::Pi(m.state_at_rest(y)),
+            (Compensator::InverseDuhem(m), _) => {
+                let model = m.model();
+                ModelState::Duhem(model.state_at(drive, model.anhysteretic(drive)))
+            }
+        };
+        self.observer_state = observer_state;
+        self.setpoint = y;
+    }
+
+    /// Swaps in a new configuration whole, between two ticks. The drive stays where it is
+    /// (within the new limits) and the models are relaxed there, so the output does not jump
+    /// to the rest position; counters carry on.
+    pub fn reconfigure(&mut self, config: ControlConfig) {
+        self.config = config;
+        self.relax_at(self.drive);
+    }
+
+    /// The active configuration.
+    pub fn config(&self) -> &ControlConfig {
+        &self.config
+    }
+
+    /// Counters since start-up.
+    pub fn counters(&self) -> ControlCounters {
+        self.counters
+    }
+
+    /// DAC codes of the safe state, for the fault handlers.
+    pub fn safe_codes(&self) -> (DacCode, DacCode) {
+        self.config.drive.safe_codes()
+    }
+
+    /// One control tick (see the module doc). `setpoint` is the next desired displacement
+    /// (Q2.30 normalised), `None` on underrun. Reads the sensor (when feedback is on), writes
+    /// both DAC channels at once, and reports what it did.
+    #[inline]
+    pub fn tick<D: DualDac, A: SensorAdc>(
+        &mut self,
+        setpoint: Option<i32>,
+        adc: &mut A,
+        dac: &mut D,
+    ) -> TickReport {
+        let mut flags = 0u8;
+        // 1. Setpoint.
+        match setpoint {
+            Some(s) => self.setpoint = clamp_full_scale(s),
+            None => flags |= TickFlags::UNDERRUN,
+        }
+        let target = self.setpoint;
+
+        // 2. Feedforward.
+        let feedforward = match (&self.config.compensator, &mut self.compensator_state) {
+            (Compensator::InversePi(m), ModelState::Pi(s)) => m.step(s, target),
+            (Compensator::InverseDuhem(m), ModelState::Duhem(s)) => m.step(s, target),
+            _ => target,
+        };
+
+        // 3. Feedback.
+        let mut measured = 0;
+        let mut command = feedforward;
+        if let Some(fb) = &self.config.feedback {
+            match adc.read() {
+                Ok(code) => {
+                    measured = sensor_to_displacement(fb, code);
+                    let error = target as i64 - measured as i64;
+                    let p = (fb.kp as i64 * error) >> GAIN_FRAC_BITS;
+                    // Anti-windup: integrate only while the drive is not held at a limit in the
+                    // direction the error pushes.
+                    let at_high = self.drive >= self.config.drive.drive_range().1 && error > 0;
+                    let at_low = self.drive <= self.config.drive.drive_range().0 && error < 0;
+                    if !(at_high || at_low) {
+                        let i = self.integrator as i64 + ((fb.ki as i64 * error) >> GAIN_FRAC_BITS);
+                        self.integrator = limit(saturate_i64(i), -fb.limit, fb.limit);
+                    }
+                    let correction = limit(
+                        saturate_i64(p + self.integrator as i64),
+                        -fb.limit,
+                        fb.limit,
+                    );
+                    command = feedforward.saturating_add(correction);
+                }
+                Err(_) => {
+                    flags |= TickFlags::ADC_ERROR;
+                    command = feedforward.saturating_add(self.integrator);
+                }
+            }
+        }
+
+        // 4. Limits, split, both DACs at once.
+        let out = self.config.drive.split(command, self.drive);
+        self.drive = out.applied;
+        if out.range_limited {
+            flags |= TickFlags::RANGE_LIMIT;
+        }
+        if out.slew_limited {
+            flags |= TickFlags::SLEW_LIMIT;
+        }
+        if dac.write_both(out.left, out.right).is_err() {
+            flags |= TickFlags::DAC_ERROR;
+        }
+
+        // 5. Observer on the applied drive.
+        let estimate = match (&self.config.observer, &mut self.observer_state) {
+            (Observer::Pi(m), ModelState::Pi(s)) => m.step(s, out.applied),
+            (Observer::Duhem(m), ModelState::Duhem(s)) => m.step(s, out.applied),
+            _ => 0,
+        };
+
+        self.count(flags);
+        TickReport {
+            left: out.left,
+            right: out.right,
+            estimate,
+            measured,
+            drive: out.applied,
+            flags: TickFlags(flags),
+        }
+    }
+
+    #[inline(always)]
+    fn count(&mut self, flags: u8) {
+        let c = &mut self.counters;
+        c.ticks = c.ticks.wrapping_add(1);
+        let bump = |n: &mut u32, f: u8| *n = n.wrapping_add(u32::from(flags & f != 0));
+        bump(&mut c.underruns, TickFlags::UNDERRUN);
+        bump(&mut c.range_limits, TickFlags::RANGE_LIMIT);
+        bump(&mut c.slew_limits, TickFlags::SLEW_LIMIT);
+        bump(&mut c.adc_errors, TickFlags::ADC_ERROR);
+        bump(&mut c.dac_errors, TickFlags::DAC_ERROR);
+    }
+}
+
+/// ADC code → normalised displacement: `offset + gain · code / 2^bits` (Q2.30).
+#[inline(always)]
+fn sensor_to_displacement(fb: &Feedback, code: AdcCode) -> i32 {
+    let shift = SIGNAL_FRAC_BITS.saturating_sub(fb.adc_bits.min(SIGNAL_FRAC_BITS));
+    let fraction = ((code.0 & 0x3FFF_FFFF) as i64) << shift; // Q2.30 fraction of full scale
+    saturate_i64(fb.sensor_offset as i64 + ((fb.sensor_gain as i64 * fraction) >> GAIN_FRAC_BITS))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::drive::{Configuration, DriveSettings, SafeState};
+    use crate::fixed_point::signal_from_f64;
+    use crate::scaling::Scaling;
+    use core::convert::Infallible;
+
+    struct Dac(DacCode, DacCode, u32);
+    impl DualDac for Dac {
+        type Error = Infallible;
+        fn full_scale(&self) -> DacCode {
+            DacCode(65535)
+        }
+        fn write_both(&mut self, l: DacCode, r: DacCode) -> Result<(), Infallible> {
+            self.0 = l;
+            self.1 = r;
+            self.2 += 1;
+            Ok(())
+        }
+    }
+    struct NoAdc;
+    impl SensorAdc for NoAdc {
+        type Error = ();
+        fn full_scale(&self) -> AdcCode {
+            AdcCode(65535)
+        }
+        fn read(&mut self) -> Result<AdcCode, ()> {
+            Err(())
+        }
+    }
+
+    pub(crate) fn paper_drive() -> DriveSettings {
+        DriveSettings {
+            configuration: Configuration::Differential,
+            amplifier_full_scale: 150.0,
+            bias: 70.0,
+            right_idle: 0.0,
+            min_voltage: 0.0,
+            max_voltage: 140.0,
+            slew_rate: 1.0e6,
+            control_rate: 50_000.0,
+            dac_full_scale: 65535,
+            safe_state: SafeState::Bias,
+        }
+    }
+
+    fn bypass() -> Controller {
+        let scaling = Scaling::new(0.0, 140.0, 0.0, 10.0).unwrap();
+        let drive = DifferentialDrive::new(&paper_drive(), &scaling).unwrap();
+        Controller::new(ControlConfig::bypass(drive))
+    }
+
+    fn volts(code: DacCode) -> f64 {
+        code.0 as f64 / 65535.0 * 150.0
+    }
+
+    #[test]
+    fn differential_split_mirrors_the_stacks_about_the_bias() {
+        let mut c = bypass();
+        let mut dac = Dac(DacCode(0), DacCode(0), 0);
+        for &y in &[-0.5, 0.0, 0.3, 0.9] {
+            // Slew allows 20 V per tick: enough ticks to arrive.
+            for _ in 0..20 {
+                c.tick(Some(signal_from_f64(y)), &mut NoAdc, &mut dac);
+            }
+            let (l, r) = (volts(dac.0), volts(dac.1));
+            assert!((l + r - 140.0).abs() < 0.01, "u_l + u_r = 2ū: {l} + {r}");
+            assert!((l - (70.0 + 70.0 * y)).abs() < 0.01, "u_l = ū + v: {l}");
+        }
+    }
+
+    #[test]
+    fn underrun_holds_the_last_setpoint_and_is_counted() {
+        let mut c = bypass();
+        let mut dac = Dac(DacCode(0), DacCode(0), 0);
+        for _ in 0..10 {
+            c.tick(Some(signal_from_f64(0.5)), &mut NoAdc, &mut dac);
+        }
+        let held = dac.0;
+        let r = c.tick(None, &mut NoAdc, &mut dac);
+        assert!(r.flags.contains(TickFlags::UNDERRUN));
+        assert_eq!(dac.0, held);
+        assert_eq!(c.counters().underruns, 1);
+        assert_eq!(c.counters().ticks, 11);
+        assert_eq!(dac.2, 11, "every tick writes both DACs once");
+    }
+
+    #[test]
+    fn range_and_slew_limits_hold_whatever_arrives() {
+        let scaling = Scaling::new(0.0, 140.0, 0.0, 10.0).unwrap();
+        let mut settings = paper_drive();
+        settings.min_voltage = 10.0;
+        settings.max_voltage = 130.0;
+        settings.slew_rate = 50_000.0; // 1 V per tick
+        let drive = DifferentialDrive::new(&settings, &scaling).unwrap();
+        let mut c = Controller::new(ControlConfig::bypass(drive));
+        let mut dac = Dac(DacCode(0), DacCode(0), 0);
+        let mut prev = (70.0, 70.0);
+        let mut seed = 12345u32;
+        for i in 0..5000 {
+            seed = seed.wrapping_mul(1_664_525).wrapping_add(1_013_904_223);
+            let sp = if i % 7 == 0 { None } else { Some(seed as i32) };
+            let r = c.tick(sp, &mut NoAdc, &mut dac);
+            let (l, rv) = (volts(r.left), volts(r.right));
+            for v in [l, rv] {
+                assert!((10.0 - 0.01..=130.0 + 0.01).contains(&v), "range: {v}");
+            }
+            assert!((l - prev.0).abs() <= 1.0 + 0.01 && (rv - prev.1).abs() <= 1.0 + 0.01);
+            prev = (l, rv);
+        }
+        assert!(c.counters().range_limits > 0 && c.counters().slew_limits > 0);
+    }
+
+    #[test]
+    fn safe_state_is_bias_or_zero() {
+        let c = bypass();
+        let (l, r) = c.safe_codes();
+        assert!((volts(l) - 70.0).abs() < 0.01 && l == r);
+        let scaling = Scaling::new(0.0, 140.0, 0.0, 10.0).unwrap();
+        let mut s = paper_drive();
+        s.safe_state = SafeState::Zero;
+        let c = Controller::new(ControlConfig::bypass(
+            DifferentialDrive::new(&s, &scaling).unwrap(),
+        ));
+        assert_eq!(c.safe_codes(), (DacCode(0), DacCode(0)));
+    }
+}

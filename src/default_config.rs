@@ -1,0 +1,237 @@
+//! The compiled-in default configuration the firmware boots with (and the tick-cost bench
+//! measures), until identified parameters are stored on the board.
+//!
+//! The stage is the first paper's differential one: both stacks on a 150 V amplifier, bias
+//! `ū = 70 V`, each stack within 0…140 V, so the left stack's voltage (the models' input)
+//! spans 0…140 V and the stage about 0…70 µm. The hysteresis parameters below are
+//! representative, not identified: a rising, concave P–I loading curve (`w_1` largest, the rest
+//! decaying geometrically, every partial sum positive, so the analytic inverse exists) and a
+//! Duhem model of similar slope. Replace them with the identification tool's output.
+
+use crate::control::{Compensator, ControlConfig, Feedback, Observer};
+use crate::drive::{Configuration, DifferentialDrive, DriveError, DriveSettings, SafeState};
+use crate::duhem::{Duhem, InverseDuhem};
+use crate::fixed_point::{gain_from_f64, signal_from_f64};
+use crate::params::{DuhemParams, ParamError, PiParams, Thresholds, MAX_OPERATORS};
+use crate::prandtl_ishlinskii::InversePrandtlIshlinskii;
+use crate::scaling::Scaling;
+
+/// Left-stack voltage range, volts (model input).
+pub const DRIVE_VOLTS: (f64, f64) = (0.0, 140.0);
+/// Stage displacement range, µm (model output).
+pub const STROKE_UM: (f64, f64) = (0.0, 70.0);
+/// Play operators of the default inverse P–I.
+pub const DEFAULT_OPERATORS: usize = 16;
+
+/// Which feedforward compensator to build.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum CompensatorKind {
+    /// Bypass.
+    None,
+    /// Inverse P–I with this many play operators (1..=[`MAX_OPERATORS`]).
+    InversePi(usize),
+    /// Inverse Duhem.
+    InverseDuhem,
+}
+
+/// Why the default configuration could not be built (only for an out-of-range operator
+/// count or rate: the compiled-in parameters themselves are valid).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum ConfigError {
+    /// A model parameter was refused.
+    Model(ParamError),
+    /// The drive settings were refused.
+    Drive(DriveError),
+}
+
+impl From<ParamError> for ConfigError {
+    fn from(e: ParamError) -> Self {
+        ConfigError::Model(e)
+    }
+}
+
+impl From<DriveError> for ConfigError {
+    fn from(e: DriveError) -> Self {
+        ConfigError::Drive(e)
+    }
+}
+
+/// The model scaling: 0…140 V onto 0…70 µm.
+pub fn scaling() -> Scaling {
+    // Constant, non-empty ranges: `Scaling::new` cannot refuse them.
+    Scaling {
+        input_min: DRIVE_VOLTS.0,
+        input_max: DRIVE_VOLTS.1,
+        output_min: STROKE_UM.0,
+        output_max: STROKE_UM.1,
+    }
+}
+
+/// Differential drive on a 150 V amplifier and the 12-bit DAC, 0…140 V per stack, bias 70 V,
+/// slew limit 2 V/µs, at `control_rate_hz`.
+pub fn drive_settings(control_rate_hz: f64, safe_state: SafeState) -> DriveSettings {
+    DriveSettings {
+        configuration: Configuration::Differential,
+        amplifier_full_scale: 150.0,
+        bias: 70.0,
+        right_idle: 70.0,
+        min_voltage: 0.0,
+        max_voltage: 140.0,
+        slew_rate: 2.0e6,
+        control_rate: control_rate_hz,
+        dac_full_scale: 4095,
+        safe_state,
+    }
+}
+
+/// A representative P–I model with `n` operators, uniform thresholds over the 140 V span:
+/// total slope 0.5 µm/V, `w_1 = 0.3 µm/V`, the other 0.2 µm/V decaying by 0.8 per operator.
+pub fn pi_params(n: usize) -> Result<PiParams, ParamError> {
+    let thresholds = Thresholds::Uniform.generate(n, DRIVE_VOLTS.1 - DRIVE_VOLTS.0)?;
+    let mut weights = [0.0; MAX_OPERATORS];
+    let tail: f64 = (1..n).map(|i| libm::pow(0.8, i as f64)).sum();
+    for (i, w) in weights.iter_mut().enumerate().take(n) {
+        *w = if i == 0 {
+            0.3
+        } else if tail > 0.0 {
+            0.2 * libm::pow(0.8, i as f64) / tail
+        } else {
+            0.0
+        };
+    }
+    let a0 = if n == 1 { 0.2 } else { 0.0 };
+    PiParams::new(a0, 0.0, &thresholds, &weights[..n])
+}
+
+/// A representative Duhem model: anhysteretic slope 0.5 µm/V through the origin, slope after
+/// a reversal 0.35 µm/V, `α = 0.02 /V`.
+pub fn duhem_params() -> DuhemParams {
+    DuhemParams {
+        alpha: 0.02,
+        beta: 0.5,
+        gamma: 0.35,
+        offset: 0.0,
+    }
+}
+
+/// Sensor feedback: a 12-bit ADC spanning the stroke, `kp = 0.2`, `ki = 0.01` per tick,
+/// correction limited to ±0.2 of the drive range.
+pub fn feedback() -> Feedback {
+    Feedback {
+        adc_bits: 12,
+        sensor_offset: signal_from_f64(-1.0),
+        sensor_gain: gain_from_f64(2.0),
+        kp: gain_from_f64(0.2),
+        ki: gain_from_f64(0.01),
+        limit: signal_from_f64(0.2),
+    }
+}
+
+/// A complete configuration: `compensator`, the Duhem observer, feedback on, the default drive.
+pub fn control_config(
+    compensator: CompensatorKind,
+    control_rate_hz: f64,
+    safe_state: SafeState,
+) -> Result<ControlConfig, ConfigError> {
+    let s = scaling();
+    let compensator = match compensator {
+        CompensatorKind::None => Compensator::None,
+        CompensatorKind::InversePi(n) => {
+            Compensator::InversePi(InversePrandtlIshlinskii::new(&pi_params(n)?, &s)?)
+        }
+        CompensatorKind::InverseDuhem => {
+            Compensator::InverseDuhem(InverseDuhem::new(&duhem_params(), &s)?)
+        }
+    };
+    Ok(ControlConfig {
+        compensator,
+        observer: Observer::Duhem(Duhem::new(&duhem_params(), &s)?),
+        feedback: Some(feedback()),
+        drive: DifferentialDrive::new(&drive_settings(control_rate_hz, safe_state), &s)?,
+    })
+}
+
+/// The firmware's boot configuration: inverse P–I with [`DEFAULT_OPERATORS`] operators.
+pub fn boot_config(
+    control_rate_hz: f64,
+    safe_state: SafeState,
+) -> Result<ControlConfig, ConfigError> {
+    control_config(
+        CompensatorKind::InversePi(DEFAULT_OPERATORS),
+        control_rate_hz,
+        safe_state,
+    )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::board::{AdcCode, DacCode, DualDac, SensorAdc};
+    use crate::control::Controller;
+    use core::convert::Infallible;
+
+    struct Dac(DacCode, DacCode);
+    impl DualDac for Dac {
+        type Error = Infallible;
+        fn full_scale(&self) -> DacCode {
+            DacCode(4095)
+        }
+        fn write_both(&mut self, l: DacCode, r: DacCode) -> Result<(), Infallible> {
+            self.0 = l;
+            self.1 = r;
+            Ok(())
+        }
+    }
+    struct Adc;
+    impl SensorAdc for Adc {
+        type Error = Infallible;
+        fn full_scale(&self) -> AdcCode {
+            AdcCode(4095)
+        }
+        fn read(&mut self) -> Result<AdcCode, Infallible> {
+            Ok(AdcCode(2048))
+        }
+    }
+
+    #[test]
+    fn every_compensator_the_bench_measures_builds() {
+        for kind in [
+            CompensatorKind::None,
+            CompensatorKind::InversePi(8),
+            CompensatorKind::InversePi(16),
+            CompensatorKind::InversePi(32),
+            CompensatorKind::InverseDuhem,
+        ] {
+            let c = control_config(kind, 50_000.0, SafeState::Bias);
+            assert!(c.is_ok(), "{kind:?}: {c:?}");
+        }
+        assert_eq!(
+            control_config(CompensatorKind::InversePi(33), 50_000.0, SafeState::Bias),
+            Err(ConfigError::Model(ParamError::TooManyOperators {
+                count: 33
+            }))
+        );
+    }
+
+    #[test]
+    fn boot_config_rests_at_the_bias_and_safe_state_follows_the_setting() {
+        let bias_code = (70.0f64 / 150.0 * 4095.0).round() as u16;
+        let c = Controller::new(boot_config(50_000.0, SafeState::Bias).unwrap());
+        assert_eq!(c.safe_codes(), (DacCode(bias_code), DacCode(bias_code)));
+        let z = Controller::new(boot_config(50_000.0, SafeState::Zero).unwrap());
+        assert_eq!(z.safe_codes(), (DacCode(0), DacCode(0)));
+        // With the sensor reading mid-stroke and no setpoint, the outputs stay near the bias
+        // and mirror about it.
+        let mut c = c;
+        let mut dac = Dac(DacCode(0), DacCode(0));
+        for _ in 0..10 {
+            c.tick(None, &mut Adc, &mut dac);
+        }
+        let sum = dac.0 .0 as i32 + dac.1 .0 as i32;
+        assert!(
+            (sum - 2 * bias_code as i32).abs() <= 1,
+            "{:?}",
+            (dac.0, dac.1)
+        );
+    }
+}

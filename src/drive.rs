@@ -1,0 +1,242 @@
+//! The differential drive: how one normalised drive command becomes the two stacks' voltages,
+//! and the limits that hold whatever the compensator asks for.
+//!
+//! The hysteresis models take the left stack's voltage `u_l` as their input (DESIGN §2), over the
+//! model's input range. In the differential configuration the right stack mirrors it about the
+//! bias: `u_l = ū + v`, `u_r = ū − v`; in the unidirectional one the right stack sits at a fixed
+//! idle voltage. Limits act on the model-normalised drive, so that clamping or slewing `u_l`
+//! moves `u_r` in exact mirror and the observer sees precisely the drive that was applied.
+//!
+//! Formats: model-normalised drive Q2.30 (±1 over the model's input range); amplifier-normalised
+//! voltage Q2.30 (1.0 = the amplifier's full scale, e.g. 150 V); the map between them is
+//! `a = k0 + k1 · u` with `k0` Q2.30 and `k1` Q8.24.
+
+use crate::board::DacCode;
+use crate::fixed_point::{
+    gain_from_f64, limit, limit_i64, saturate_i64, signal_from_f64, GAIN_FRAC_BITS,
+    SIGNAL_FRAC_BITS,
+};
+use crate::scaling::Scaling;
+
+/// How the two stacks are driven.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub enum Configuration {
+    /// Both stacks: `u_l = ū + v`, `u_r = ū − v`.
+    Differential,
+    /// Left stack only; the right one sits at its idle voltage.
+    Unidirectional,
+}
+
+/// Where the outputs go on a fault (panic, hard fault, stop).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub enum SafeState {
+    /// Both stacks at the bias `ū` (stage at its centre, no step on a fault).
+    Bias,
+    /// Both stacks at 0 V (no stored energy).
+    Zero,
+}
+
+/// The drive's physical settings, in volts.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct DriveSettings {
+    /// Stacks driven.
+    pub configuration: Configuration,
+    /// Amplifier output at DAC full scale, volts (e.g. 150).
+    pub amplifier_full_scale: f64,
+    /// Bias `ū`, volts (e.g. 70).
+    pub bias: f64,
+    /// Right stack's voltage in the unidirectional configuration, volts.
+    pub right_idle: f64,
+    /// Lowest voltage either stack may see, volts.
+    pub min_voltage: f64,
+    /// Highest voltage either stack may see, volts.
+    pub max_voltage: f64,
+    /// Largest change of a stack's voltage per second, volts/s (the amplifier's and the
+    /// stack's current limit).
+    pub slew_rate: f64,
+    /// Control rate, Hz.
+    pub control_rate: f64,
+    /// Full-scale DAC code (4095 or 65535).
+    pub dac_full_scale: u16,
+    /// What the outputs do on a fault.
+    pub safe_state: SafeState,
+}
+
+/// Why drive settings were refused.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub enum DriveError {
+    /// A setting is NaN or infinite.
+    NotFinite,
+    /// `0 ≤ min < max ≤ amplifier full scale` does not hold.
+    BadVoltageRange,
+    /// The bias (or right idle voltage) lies outside the voltage range.
+    BiasOutsideRange,
+    /// Slew rate or control rate not positive.
+    BadRate,
+    /// Full-scale DAC code is zero.
+    BadDacFullScale,
+    /// No drive command lands inside the voltage range (model input range and limits disjoint).
+    EmptyDriveRange,
+}
+
+/// The drive, converted once into the fixed-point form the tick uses.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct DifferentialDrive {
+    configuration: Configuration,
+    /// Lowest model-normalised drive, Q2.30.
+    drive_min: i32,
+    /// Highest model-normalised drive, Q2.30.
+    drive_max: i32,
+    /// Largest change of the model-normalised drive per tick, Q2.30.
+    slew_per_tick: i32,
+    /// `k0`: amplifier-normalised voltage of drive 0, Q2.30.
+    k0: i32,
+    /// `k1`: amplifier-normalised volts per unit of drive, Q8.24.
+    k1: i32,
+    /// Bias `ū`, amplifier-normalised, Q2.30.
+    bias: i32,
+    /// Right idle voltage, amplifier-normalised, Q2.30.
+    right_idle: i32,
+    /// DAC full-scale code.
+    dac_full_scale: u16,
+    safe_state: SafeState,
+}
+
+/// Both stacks' DAC codes and what the limits did this tick.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct DriveOutput {
+    /// Left stack code.
+    pub left: DacCode,
+    /// Right stack code.
+    pub right: DacCode,
+    /// The model-normalised drive actually applied, Q2.30 (what the observer is fed).
+    pub applied: i32,
+    /// The range limit clipped the command.
+    pub range_limited: bool,
+    /// The slew limit clipped the command.
+    pub slew_limited: bool,
+}
+
+impl DifferentialDrive {
+    /// Validates `settings` and builds the drive for a model whose input range is that of
+    /// `scaling` (volts of the left stack).
+    pub fn new(settings: &DriveSettings, scaling: &Scaling) -> Result<Self, DriveError> {
+        let s = settings;
+        let all_finite = [
+            s.amplifier_full_scale,
+            s.bias,
+            s.right_idle,
+            s.min_voltage,
+            s.max_voltage,
+            s.slew_rate,
+            s.control_rate,
+        ]
+        .iter()
+        .all(|v| v.is_finite());
+        if !all_finite {
+            return Err(DriveError::NotFinite);
+        }
+        if !(s.min_voltage >= 0.0
+            && s.min_voltage < s.max_voltage
+            && s.max_voltage <= s.amplifier_full_scale)
+        {
+            return Err(DriveError::BadVoltageRange);
+        }
+        let inside = |v: f64| v >= s.min_voltage && v <= s.max_voltage;
+        if !inside(s.bias)
+            || (s.configuration == Configuration::Unidirectional && !inside(s.right_idle))
+        {
+            return Err(DriveError::BiasOutsideRange);
+        }
+        if s.slew_rate <= 0.0 || s.control_rate <= 0.0 {
+            return Err(DriveError::BadRate);
+        }
+        if s.dac_full_scale == 0 {
+            return Err(DriveError::BadDacFullScale);
+        }
+        // Left-stack voltage window: in the differential configuration the right stack
+        // (2ū − u_l) must stay in range too.
+        let (lo, hi) = match s.configuration {
+            Configuration::Differential => (
+                s.min_voltage.max(2.0 * s.bias - s.max_voltage),
+                s.max_voltage.min(2.0 * s.bias - s.min_voltage),
+            ),
+            Configuration::Unidirectional => (s.min_voltage, s.max_voltage),
+        };
+        let drive_min = scaling.input_to_norm(lo).max(-1.0);
+        let drive_max = scaling.input_to_norm(hi).min(1.0);
+        if drive_min > drive_max {
+            return Err(DriveError::EmptyDriveRange);
+        }
+        let fs = s.amplifier_full_scale;
+        let slew = s.slew_rate / s.control_rate / scaling.input_half_span();
+        Ok(Self {
+            configuration: s.configuration,
+            drive_min: signal_from_f64(drive_min),
+            drive_max: signal_from_f64(drive_max),
+            slew_per_tick: signal_from_f64(slew.min(2.0)).max(1),
+            k0: signal_from_f64(scaling.input_mid() / fs),
+            k1: gain_from_f64(scaling.input_half_span() / fs),
+            bias: signal_from_f64(s.bias / fs),
+            right_idle: signal_from_f64(s.right_idle / fs),
+            dac_full_scale: s.dac_full_scale,
+            safe_state: s.safe_state,
+        })
+    }
+
+    /// Applies range and slew limits to the command `drive` (model-normalised, Q2.30), given
+    /// the drive applied on the previous tick, and splits it into both stacks' DAC codes.
+    #[inline(always)]
+    pub fn split(&self, drive: i32, previous: i32) -> DriveOutput {
+        let ranged = limit(drive, self.drive_min, self.drive_max);
+        let step_min = previous.saturating_sub(self.slew_per_tick);
+        let step_max = previous.saturating_add(self.slew_per_tick);
+        let applied = limit(ranged, step_min, step_max);
+        let left = self.k0 as i64 + ((self.k1 as i64 * applied as i64) >> GAIN_FRAC_BITS);
+        let right = match self.configuration {
+            Configuration::Differential => 2 * self.bias as i64 - left,
+            Configuration::Unidirectional => self.right_idle as i64,
+        };
+        DriveOutput {
+            left: self.code(left),
+            right: self.code(right),
+            applied,
+            range_limited: ranged != drive,
+            slew_limited: applied != ranged,
+        }
+    }
+
+    /// Amplifier-normalised voltage (Q2.30, as i64) → DAC code, rounded and clamped.
+    #[inline(always)]
+    fn code(&self, volts: i64) -> DacCode {
+        let fs = self.dac_full_scale as i64;
+        let c = (volts * fs + (1 << (SIGNAL_FRAC_BITS - 1))) >> SIGNAL_FRAC_BITS;
+        DacCode(limit_i64(c, 0, fs) as u16)
+    }
+
+    /// The codes of the safe state (both stacks at the bias, or both at zero).
+    pub fn safe_codes(&self) -> (DacCode, DacCode) {
+        match self.safe_state {
+            SafeState::Bias => {
+                let c = self.code(self.bias as i64);
+                (c, c)
+            }
+            SafeState::Zero => (DacCode(0), DacCode(0)),
+        }
+    }
+
+    /// The model-normalised drive that puts the left stack at the bias (the rest position).
+    pub fn rest_drive(&self) -> i32 {
+        // u = (ū − k0) / k1, computed once off the tick path.
+        let num = ((self.bias as i64 - self.k0 as i64) << GAIN_FRAC_BITS) / (self.k1 as i64).max(1);
+        limit(saturate_i64(num), self.drive_min, self.drive_max)
+    }
+
+    /// Lowest and highest model-normalised drive the limits allow, Q2.30.
+    pub fn drive_range(&self) -> (i32, i32) {
+        (self.drive_min, self.drive_max)
+    }
+}

@@ -1,0 +1,62 @@
+//! The position sensor on ADC1 channel 0 (PA0) as the board's [`SensorAdc`].
+//!
+//! The conversion is started by hardware on TIM2's TRGO (the update event that also fires the
+//! control interrupt), so sampling is jitter-free; the tick reads the data register, which
+//! holds the most recent completed conversion.
+
+use core::convert::Infallible;
+
+use stm32f4xx_hal::pac::{ADC1, ADC_COMMON, RCC};
+
+use crate::board::{AdcCode, SensorAdc};
+
+/// Largest 12-bit code.
+pub const FULL_SCALE: u32 = 4095;
+
+/// ADC1 `EXTSEL` value for TIM2 TRGO (RM0090, ADC_CR2).
+const EXTSEL_TIM2_TRGO: u8 = 0b0110;
+/// `EXTEN`: trigger on the rising edge.
+const EXTEN_RISING: u8 = 0b01;
+/// Sample time 15 ADC cycles for channel 0 (`SMP = 001`); with the 21 MHz ADC clock a
+/// conversion takes (15 + 12) / 21 MHz ≈ 1.3 µs.
+const SMP_15_CYCLES: u8 = 0b001;
+
+/// ADC1 converting channel 0 on each TIM2 TRGO.
+pub struct SensorInput {
+    adc: ADC1,
+}
+
+impl SensorInput {
+    /// Enables ADC1 (clock PCLK2 / 4 = 21 MHz), one-channel regular sequence on channel 0,
+    /// external trigger TIM2 TRGO on the rising edge. PA0 must already be in analog mode.
+    pub fn new(adc: ADC1, common: &ADC_COMMON, rcc: &RCC) -> Self {
+        rcc.apb2enr().modify(|_, w| w.adc1en().set_bit());
+        common.ccr().modify(|_, w| unsafe { w.adcpre().bits(0b01) });
+        adc.smpr2()
+            .modify(|_, w| unsafe { w.smp0().bits(SMP_15_CYCLES) });
+        adc.sqr1().modify(|_, w| unsafe { w.l().bits(0) });
+        adc.sqr3().modify(|_, w| unsafe { w.sq1().bits(0) });
+        adc.cr2().modify(|_, w| unsafe {
+            w.extsel()
+                .bits(EXTSEL_TIM2_TRGO)
+                .exten()
+                .bits(EXTEN_RISING)
+                .adon()
+                .set_bit()
+        });
+        Self { adc }
+    }
+}
+
+impl SensorAdc for SensorInput {
+    type Error = Infallible;
+
+    fn full_scale(&self) -> AdcCode {
+        AdcCode(FULL_SCALE)
+    }
+
+    #[inline(always)]
+    fn read(&mut self) -> Result<AdcCode, Infallible> {
+        Ok(AdcCode(self.adc.dr().read().bits() & FULL_SCALE))
+    }
+}

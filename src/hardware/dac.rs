@@ -1,0 +1,65 @@
+//! The STM32's 12-bit DAC as the board's [`DualDac`]: channel 1 (PA4) drives the left stack,
+//! channel 2 (PA5) the right one.
+//!
+//! Both codes go out in **one** 32-bit store to the dual holding register `DHR12RD`
+//! (`right << 16 | left`). With no trigger selected, the DAC moves both holding registers to
+//! the outputs on the next APB1 clock, together, so the two stacks never see a skewed pair.
+
+use core::convert::Infallible;
+
+use stm32f4xx_hal::pac::{DAC, RCC};
+
+use crate::board::{DacCode, DualDac};
+
+/// Largest 12-bit code.
+pub const FULL_SCALE: u16 = 4095;
+
+/// Both DAC channels, written together.
+pub struct InternalDac {
+    dac: DAC,
+}
+
+/// Packs two codes (clamped to 12 bits) into the `DHR12RD` layout.
+#[inline(always)]
+fn dual_word(left: DacCode, right: DacCode) -> u32 {
+    (right.0.min(FULL_SCALE) as u32) << 16 | left.0.min(FULL_SCALE) as u32
+}
+
+impl InternalDac {
+    /// Enables the DAC's clock and both channels (output buffers on, no trigger), starting at
+    /// `initial` on both channels. PA4/PA5 must already be in analog mode.
+    pub fn new(dac: DAC, rcc: &RCC, initial: (DacCode, DacCode)) -> Self {
+        rcc.apb1enr().modify(|_, w| w.dacen().set_bit());
+        // Load the initial codes before enabling, so the outputs start there.
+        dac.dhr12rd()
+            .write(|w| unsafe { w.bits(dual_word(initial.0, initial.1)) });
+        dac.cr().write(|w| w.en1().set_bit().en2().set_bit());
+        Self { dac }
+    }
+}
+
+impl DualDac for InternalDac {
+    type Error = Infallible;
+
+    fn full_scale(&self) -> DacCode {
+        DacCode(FULL_SCALE)
+    }
+
+    #[inline(always)]
+    fn write_both(&mut self, left: DacCode, right: DacCode) -> Result<(), Infallible> {
+        self.dac
+            .dhr12rd()
+            .write(|w| unsafe { w.bits(dual_word(left, right)) });
+        Ok(())
+    }
+}
+
+/// Writes both channels without owning the DAC: for the panic and hard-fault paths only
+/// ([`super::safe_state`]), after everything else has stopped.
+pub(crate) fn force_both(left: DacCode, right: DacCode) {
+    // SAFETY: called with interrupts disabled on the way to a halt; nothing else touches the
+    // DAC any more. A single store to DHR12RD is atomic with respect to the peripheral.
+    let dac = unsafe { &*DAC::ptr() };
+    dac.dhr12rd()
+        .write(|w| unsafe { w.bits(dual_word(left, right)) });
+}

@@ -1,0 +1,28 @@
+//! Board support for the twinstack driver board (STM32F405RG), firmware build only.
+//!
+//! Each module wraps one peripheral and exposes only what the RTIC shell
+//! (`src/bin/twinstack-fw.rs`) needs; the control algorithm never sees a register, only the
+//! [`crate::board`] traits that [`dac::InternalDac`] and [`adc::SensorInput`] implement.
+//!
+//! | signal | pin | peripheral |
+//! |--------|-----|------------|
+//! | left stack drive `u_l` | PA4 | DAC channel 1 |
+//! | right stack drive `u_r` | PA5 | DAC channel 2 |
+//! | position sensor | PA0 | ADC1 channel 0, triggered by TIM2 TRGO |
+//! | host link TX / RX | PA9 / PA10 | USART1 (AF7), RX by DMA2 stream 2 channel 4 |
+//! | SWD | PA13 / PA14 | debug probe |
+//!
+//! The `emulator` feature swaps exactly three things for QEMU's `netduinoplus2`, which models
+//! neither RCC, DMA, the DAC nor TIM2's update interrupt: the clock stays on HSI
+//! ([`clocks`]), the control tick comes from SysTick instead of TIM2 ([`control_timer`]), and
+//! USART1 receives by RXNE interrupt instead of DMA ([`usart`]).
+#![allow(unsafe_code)]
+
+pub mod adc;
+pub mod clocks;
+pub mod control_timer;
+pub mod dac;
+pub mod param_flash;
+pub mod safe_state;
+pub mod usart;
+pub mod watchdog;

@@ -1,0 +1,97 @@
+//! Frames on the wire: `COBS(version ‖ postcard(message) ‖ CRC-32) 0x00`.
+//!
+//! | field | bytes | meaning |
+//! |---|---|---|
+//! | version | 1 | [`PROTOCOL_VERSION`]; a frame of another version is refused |
+//! | message | n | the message, `postcard`-encoded (varint enum tag, then its fields) |
+//! | crc | 4 | CRC-32 (ISO-HDLC, as zlib), little-endian, over version and message |
+//!
+//! The whole is COBS-stuffed and ends with one `0x00`, so a receiver that lost bytes
+//! resynchronises at the next delimiter.
+
+use super::cobs;
+use crc::{Crc, CRC_32_ISO_HDLC};
+use serde::{Deserialize, Serialize};
+
+/// Version byte every frame starts with.
+pub const PROTOCOL_VERSION: u8 = 1;
+/// Largest frame body (version + message + CRC), bytes.
+pub const MAX_BODY: usize = 400;
+/// Largest frame on the wire, delimiter excluded.
+pub const MAX_ENCODED: usize = cobs::max_encoded_len(MAX_BODY);
+/// The CRC used by frames.
+pub const FRAME_CRC: Crc<u32> = Crc::<u32>::new(&CRC_32_ISO_HDLC);
+
+/// Why a frame was refused. Each is answered with a NACK carrying this reason.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub enum FrameError {
+    /// More bytes than [`MAX_ENCODED`] before a delimiter: discarded up to the next one.
+    Oversize,
+    /// Shorter than a version byte and a CRC.
+    Truncated,
+    /// The COBS stuffing is broken.
+    BadStuffing,
+    /// The CRC does not match.
+    BadCrc,
+    /// The version byte is not [`PROTOCOL_VERSION`].
+    BadVersion {
+        /// Version the frame carried.
+        got: u8,
+    },
+    /// The message tag names no known message.
+    UnknownType,
+    /// The message's fields do not decode (too short, bad varint, trailing bytes).
+    Malformed,
+    /// The message does not fit a frame (sender side).
+    TooLarge,
+}
+
+/// Encodes `message` as a complete frame, delimiter included, into `out`; returns its length.
+pub fn encode<T: Serialize>(message: &T, out: &mut [u8]) -> Result<usize, FrameError> {
+    let mut body = [0u8; MAX_BODY];
+    body[0] = PROTOCOL_VERSION;
+    let used = postcard::to_slice(message, &mut body[1..MAX_BODY - 4])
+        .map_err(|_| FrameError::TooLarge)?
+        .len();
+    let end = 1 + used;
+    let crc = FRAME_CRC.checksum(&body[..end]);
+    body[end..end + 4].copy_from_slice(&crc.to_le_bytes());
+    let n = cobs::encode(&body[..end + 4], out).map_err(|_| FrameError::TooLarge)?;
+    *out.get_mut(n).ok_or(FrameError::TooLarge)? = 0;
+    Ok(n + 1)
+}
+
+/// A message enum carried in frames: its tag is a varint below [`Message::VARIANTS`].
+pub trait Message {
+    /// Number of variants; a tag at or above it is an unknown message type.
+    const VARIANTS: u32;
+}
+
+/// Checks a decoded (un-stuffed) body and decodes its message.
+pub fn decode_body<'a, T: Deserialize<'a> + Message>(body: &'a [u8]) -> Result<T, FrameError> {
+    if body.len() < 5 {
+        return Err(FrameError::Truncated);
+    }
+    let (payload, crc_bytes) = body.split_at(body.len() - 4);
+    let crc = u32::from_le_bytes([crc_bytes[0], crc_bytes[1], crc_bytes[2], crc_bytes[3]]);
+    if FRAME_CRC.checksum(payload) != crc {
+        return Err(FrameError::BadCrc);
+    }
+    if payload[0] != PROTOCOL_VERSION {
+        return Err(FrameError::BadVersion { got: payload[0] });
+    }
+    let message = payload.get(1..).unwrap_or(&[]);
+    // The tag is the message's first varint: one byte below 0x80, more bytes above.
+    match message.first() {
+        None => return Err(FrameError::Truncated),
+        Some(&tag) if tag >= 0x80 || u32::from(tag) >= T::VARIANTS => {
+            return Err(FrameError::UnknownType)
+        }
+        Some(_) => {}
+    }
+    match postcard::take_from_bytes::<T>(message) {
+        Ok((message, [])) => Ok(message),
+        _ => Err(FrameError::Malformed),
+    }
+}

@@ -1,0 +1,267 @@
+//! The messages host and board exchange. Every request is answered by exactly one response.
+//!
+//! Setpoints travel as `i16`, Q1.15 fractions of the output range: the top 16 bits of the
+//! tick's Q2.30 setpoint (`q2_30 = q1_15 << 15`), i.e. one LSB of a 16-bit DAC over the stroke.
+//! That halves the bytes per sample, so that 2 Mbaud carries 50 000 setpoints/s with room for
+//! framing and acknowledgements.
+
+use crate::drive::{Configuration, SafeState};
+use serde::{Deserialize, Serialize};
+
+use super::frame::{FrameError, Message};
+
+impl Message for Request {
+    const VARIANTS: u32 = 10;
+}
+
+impl Message for Response {
+    const VARIANTS: u32 = 4;
+}
+
+/// Most setpoints one batch carries.
+pub const MAX_BATCH: usize = 96;
+/// Most recorder values one chunk carries.
+pub const MAX_CHUNK: usize = 64;
+/// Most P–I operators a parameter message carries.
+pub const MAX_PARAM_OPERATORS: usize = 32;
+
+/// Host → board.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub enum Request {
+    /// Read status and telemetry.
+    Status,
+    /// Queue setpoints; answered with the credits left.
+    Setpoints(SetpointBatch),
+    /// Start or stop the setpoint stream, or set its rate.
+    Stream(StreamControl),
+    /// Select the control mode.
+    Mode(Mode),
+    /// Load a parameter set: validated whole, then swapped in between two ticks.
+    LoadParams(ParamSet),
+    /// Write the active parameters to flash.
+    StoreParams,
+    /// Reload the parameters stored in flash.
+    RecallParams,
+    /// Run the built-in waveform generator instead of the stream.
+    Waveform(Waveform),
+    /// Arm the data recorder.
+    Record(RecordRequest),
+    /// Read recorded values from `offset`.
+    ReadRecord {
+        /// First value to read.
+        offset: u32,
+    },
+}
+
+/// A batch of setpoints with its sequence number (wrapping), so the board can spot a lost batch.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct SetpointBatch {
+    /// Sequence number; the next batch carries `seq + 1`.
+    pub seq: u16,
+    /// Setpoints, Q1.15 normalised displacement.
+    pub samples: heapless::Vec<i16, MAX_BATCH>,
+}
+
+/// Stream control.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub enum StreamControl {
+    /// Start consuming the queue.
+    Start,
+    /// Stop; the output holds.
+    Stop,
+    /// Consume one setpoint every `divider` ticks, interpolating linearly in between.
+    Rate {
+        /// Ticks per streamed setpoint, ≥ 1.
+        divider: u16,
+    },
+    /// What to do when the queue runs dry.
+    Underrun(UnderrunPolicy),
+}
+
+/// What the board does when the setpoint queue runs dry.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub enum UnderrunPolicy {
+    /// Hold the last setpoint.
+    Hold,
+    /// Ramp to the rest position (the bias), within the slew limit.
+    RampToBias,
+}
+
+/// Control mode.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub enum Mode {
+    /// No compensation: the drive follows the setpoint linearly.
+    Bypass,
+    /// Inverse-model feedforward.
+    OpenLoop,
+    /// Feedforward plus sensor feedback.
+    ClosedLoop,
+}
+
+/// A hysteresis model in physical units (`f32` on the wire).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub enum ModelParams {
+    /// Prandtl–Ishlinskii: `y = a0 u + Σ w_i P_{r_i}[u] + offset`.
+    PrandtlIshlinskii {
+        /// Linear term, output units per volt.
+        a0: f32,
+        /// Output offset.
+        offset: f32,
+        /// Thresholds, volts.
+        thresholds: heapless::Vec<f32, MAX_PARAM_OPERATORS>,
+        /// Weights, output units per volt.
+        weights: heapless::Vec<f32, MAX_PARAM_OPERATORS>,
+    },
+    /// Duhem: `ẏ = α|u̇|(βu + offset − y) + γu̇`.
+    Duhem {
+        /// α, per volt.
+        alpha: f32,
+        /// β, output units per volt.
+        beta: f32,
+        /// γ, output units per volt.
+        gamma: f32,
+        /// Offset, output units.
+        offset: f32,
+    },
+}
+
+/// Everything a parameter load sets.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ParamSet {
+    /// The model (compensator and observer).
+    pub model: ModelParams,
+    /// Model input range, volts (left stack).
+    pub input_range: [f32; 2],
+    /// Model output range, output units.
+    pub output_range: [f32; 2],
+    /// Differential or unidirectional.
+    pub configuration: Configuration,
+    /// Bias ū, volts.
+    pub bias: f32,
+    /// Stack voltage limits, volts.
+    pub voltage_limits: [f32; 2],
+    /// Slew limit, volts per second.
+    pub slew_rate: f32,
+    /// Safe state on a fault.
+    pub safe_state: SafeState,
+    /// PI feedback gains `[kp, ki per tick]` and correction limit (normalised drive).
+    pub feedback: Option<[f32; 3]>,
+    /// Mode to enter once loaded.
+    pub mode: Mode,
+}
+
+/// The built-in waveform generator.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Waveform {
+    /// Sine or triangle.
+    pub shape: WaveShape,
+    /// Offset, Q1.15 normalised displacement.
+    pub offset: i16,
+    /// Amplitude, Q1.15 normalised displacement.
+    pub amplitude: i16,
+    /// Frequency, millihertz.
+    pub frequency_mhz: u32,
+}
+
+/// Waveform shape.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub enum WaveShape {
+    /// Sine.
+    Sine,
+    /// Symmetric triangle.
+    Triangle,
+}
+
+/// Signals the recorder can capture.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub enum Signal {
+    /// The setpoint, Q2.30.
+    Setpoint,
+    /// The applied drive, Q2.30 model-normalised.
+    Drive,
+    /// The sensor reading, Q2.30.
+    Sensor,
+    /// The observer's estimate, Q2.30.
+    Estimate,
+}
+
+/// Arm the recorder: capture `ticks` ticks of `signal`, one value every `decimation` ticks.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct RecordRequest {
+    /// What to capture.
+    pub signal: Signal,
+    /// How many values.
+    pub count: u32,
+    /// Ticks per captured value, ≥ 1.
+    pub decimation: u16,
+}
+
+/// Board → host.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub enum Response {
+    /// Accepted; `credits` setpoint slots are free in the queue.
+    Ack {
+        /// Free queue slots: the host never sends more setpoints than this.
+        credits: u16,
+    },
+    /// Refused; nothing was applied and nothing queued was lost.
+    Nack {
+        /// Why.
+        reason: NackReason,
+    },
+    /// Status and telemetry.
+    Status(StatusReport),
+    /// Recorded values.
+    RecordChunk {
+        /// Index of the first value.
+        offset: u32,
+        /// Values, Q2.30.
+        values: heapless::Vec<i32, MAX_CHUNK>,
+    },
+}
+
+/// Why a request was refused.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub enum NackReason {
+    /// The frame itself was bad.
+    Frame(FrameError),
+    /// More setpoints than the credits granted.
+    QueueFull,
+    /// A batch's sequence number is not the one expected (a batch was lost).
+    OutOfSequence {
+        /// The sequence number the board expected.
+        expected: u16,
+    },
+    /// A value is out of its range (rate divider 0, frequency too high, …).
+    OutOfRange,
+    /// The parameters were refused by validation.
+    InvalidParams(crate::params::ParamError),
+    /// The drive settings were refused.
+    InvalidDrive(crate::drive::DriveError),
+    /// The request needs something the board lacks (closed loop without a sensor, …).
+    Unsupported,
+}
+
+/// Status and telemetry.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct StatusReport {
+    /// Ticks since start-up.
+    pub ticks: u32,
+    /// Setpoints queued.
+    pub queue_fill: u16,
+    /// Free queue slots.
+    pub credits: u16,
+    /// Ticks without a setpoint.
+    pub underruns: u32,
+    /// Ticks that did not finish before the next.
+    pub overruns: u32,
+    /// Frames refused for their CRC.
+    pub crc_errors: u32,
+    /// Ticks a limit clipped the drive.
+    pub limit_hits: u32,
+    /// The observer's estimate, Q2.30.
+    pub estimate: i32,
+    /// Flags: bit 0 parameters from defaults (flash record bad or absent).
+    pub flags: u16,
+}

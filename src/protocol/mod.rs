@@ -1,0 +1,14 @@
+//! The UART protocol: COBS-delimited, CRC-checked frames carrying `postcard` messages.
+//!
+//! * [`cobs`] — byte stuffing, so `0x00` delimits frames;
+//! * [`frame`] — the frame layout (version, message, CRC-32) and its errors;
+//! * [`decoder`] — the receiver's byte-at-a-time frame decoder;
+//! * [`messages`] — requests, responses and NACK reasons.
+
+pub mod cobs;
+pub mod decoder;
+pub mod frame;
+// Message enums are sized by their largest variant on purpose: there is no heap on the board,
+// and a message lives in one stack slot while it is handled.
+#[allow(clippy::large_enum_variant)]
+pub mod messages;

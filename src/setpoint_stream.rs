@@ -1,0 +1,232 @@
+//! Where each tick's setpoint comes from: the queue the host streams into, interpolated when the
+//! stream is slower than the control rate, or the built-in waveform generator.
+//!
+//! Streamed samples are Q1.15 normalised displacement (the wire format, see
+//! [`crate::protocol::messages`]); setpoints leave as Q2.30. With a rate divider `D`, sample
+//! `s_k` is reached `D` ticks after `s_{k−1}`, in equal steps (one `SDIV` per sample, not per
+//! tick), and the segment ends exactly on `s_k`.
+//!
+//! When the queue runs dry the policy decides: **hold** returns `None`, so the control tick holds
+//! the last setpoint and counts an underrun; **ramp to bias** walks the setpoint to the rest
+//! position at a bounded rate (counted here, in [`SetpointStream::ramp_underruns`]).
+
+use crate::waveform::WaveformGenerator;
+use heapless::spsc::Consumer;
+
+/// Q1.15 wire sample → Q2.30 setpoint.
+#[inline(always)]
+pub fn setpoint_from_wire(sample: i16) -> i32 {
+    (sample as i32) << 15
+}
+
+/// Q2.30 setpoint → Q1.15 wire sample (rounded, saturated).
+pub fn setpoint_to_wire(setpoint: i32) -> i16 {
+    let rounded = (setpoint as i64 + (1 << 14)) >> 15;
+    rounded.clamp(i16::MIN as i64, i16::MAX as i64) as i16
+}
+
+/// What to do when the queue runs dry.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub enum Underrun {
+    /// Hold the last setpoint (the tick counts the underrun).
+    Hold,
+    /// Walk to `rest` (Q2.30) by at most `step` (Q2.30) per tick.
+    RampToRest {
+        /// Rest setpoint, Q2.30.
+        rest: i32,
+        /// Largest change per tick, Q2.30, > 0.
+        step: i32,
+    },
+}
+
+/// The tick's setpoint source.
+#[derive(Clone, Debug)]
+pub struct SetpointStream {
+    running: bool,
+    divider: u16,
+    /// Ticks left in the current segment.
+    remaining: u16,
+    /// Current setpoint, Q2.30.
+    current: i32,
+    /// End of the current segment, Q2.30.
+    target: i32,
+    /// Change per tick within the segment, Q2.30.
+    increment: i32,
+    underrun: Underrun,
+    waveform: Option<WaveformGenerator>,
+    ramp_underruns: u32,
+}
+
+impl SetpointStream {
+    /// A stopped stream holding `initial` (Q2.30), divider 1, underrun policy hold.
+    pub fn new(initial: i32) -> Self {
+        Self {
+            running: false,
+            divider: 1,
+            remaining: 0,
+            current: initial,
+            target: initial,
+            increment: 0,
+            underrun: Underrun::Hold,
+            waveform: None,
+            ramp_underruns: 0,
+        }
+    }
+
+    /// Starts consuming the queue (and stops the waveform generator).
+    pub fn start(&mut self) {
+        self.running = true;
+        self.waveform = None;
+    }
+
+    /// Stops: the setpoint holds where it is; queued samples stay queued.
+    pub fn stop(&mut self) {
+        self.running = false;
+        self.waveform = None;
+        self.remaining = 0;
+        self.target = self.current;
+    }
+
+    /// Sets the rate divider (ticks per streamed sample); 0 is refused (returns `false`).
+    pub fn set_divider(&mut self, divider: u16) -> bool {
+        if divider == 0 {
+            return false;
+        }
+        self.divider = divider;
+        true
+    }
+
+    /// Sets the underrun policy; a ramp step ≤ 0 is refused (returns `false`).
+    pub fn set_underrun(&mut self, policy: Underrun) -> bool {
+        if let Underrun::RampToRest { step, .. } = policy {
+            if step <= 0 {
+                return false;
+            }
+        }
+        self.underrun = policy;
+        true
+    }
+
+    /// Runs the waveform generator instead of the queue.
+    pub fn play(&mut self, waveform: WaveformGenerator) {
+        self.waveform = Some(waveform);
+        self.running = true;
+    }
+
+    /// Whether the stream is running.
+    pub fn is_running(&self) -> bool {
+        self.running
+    }
+
+    /// Underruns met by ramping (the hold policy's are counted by the tick).
+    pub fn ramp_underruns(&self) -> u32 {
+        self.ramp_underruns
+    }
+
+    /// The next setpoint (Q2.30), or `None` on an underrun under the hold policy.
+    /// Bounded work: at most one queue pop and one division.
+    #[inline]
+    pub fn next<const N: usize>(&mut self, queue: &mut Consumer<'_, i16, N>) -> Option<i32> {
+        if let Some(w) = self.waveform.as_mut() {
+            self.current = w.next_sample();
+            return Some(self.current);
+        }
+        if !self.running {
+            return Some(self.current);
+        }
+        if self.remaining == 0 {
+            match queue.dequeue() {
+                Some(sample) => {
+                    self.target = setpoint_from_wire(sample);
+                    self.remaining = self.divider;
+                    let span = self.target as i64 - self.current as i64;
+                    // |span| < 2^32 and divider ≥ 1: the quotient fits i32.
+                    self.increment = (span / self.divider.max(1) as i64) as i32;
+                }
+                None => return self.underrun(),
+            }
+        }
+        self.remaining = self.remaining.saturating_sub(1);
+        self.current = if self.remaining == 0 {
+            self.target
+        } else {
+            self.current.saturating_add(self.increment)
+        };
+        Some(self.current)
+    }
+
+    fn underrun(&mut self) -> Option<i32> {
+        match self.underrun {
+            Underrun::Hold => None,
+            Underrun::RampToRest { rest, step } => {
+                self.ramp_underruns = self.ramp_underruns.wrapping_add(1);
+                let d = (rest as i64 - self.current as i64)
+                    .max(-(step as i64))
+                    .min(step as i64);
+                self.current = (self.current as i64 + d) as i32;
+                self.target = self.current;
+                Some(self.current)
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use heapless::spsc::Queue;
+
+    #[test]
+    fn a_slow_stream_is_interpolated_linearly_and_lands_on_each_sample() {
+        let mut q: Queue<i16, 8> = Queue::new();
+        let (mut p, mut c) = q.split();
+        p.enqueue(1000).unwrap();
+        p.enqueue(-2000).unwrap();
+        let mut s = SetpointStream::new(0);
+        s.set_divider(4);
+        s.start();
+        let out: [Option<i32>; 8] = core::array::from_fn(|_| s.next(&mut c));
+        let want = |x: i32| Some(x << 15);
+        assert_eq!(out[3], want(1000));
+        assert_eq!(out[7], want(-2000));
+        assert_eq!(out[1], Some((1000 << 15) / 4 * 2));
+        // Then the queue is dry: hold policy → None.
+        assert_eq!(s.next(&mut c), None);
+    }
+
+    #[test]
+    fn ramp_to_rest_walks_at_the_given_rate_and_counts() {
+        let mut q: Queue<i16, 4> = Queue::new();
+        let (_p, mut c) = q.split();
+        let mut s = SetpointStream::new(1 << 29);
+        s.start();
+        assert!(s.set_underrun(Underrun::RampToRest {
+            rest: 0,
+            step: 1 << 27
+        }));
+        let v: [i32; 5] = core::array::from_fn(|_| s.next(&mut c).unwrap());
+        assert_eq!(v, [3 << 27, 2 << 27, 1 << 27, 0, 0]);
+        assert_eq!(s.ramp_underruns(), 5);
+        assert!(!s.set_underrun(Underrun::RampToRest { rest: 0, step: 0 }));
+    }
+
+    #[test]
+    fn a_stopped_stream_holds_and_leaves_the_queue_alone() {
+        let mut q: Queue<i16, 4> = Queue::new();
+        let (mut p, mut c) = q.split();
+        p.enqueue(5).unwrap();
+        let mut s = SetpointStream::new(7);
+        assert_eq!(s.next(&mut c), Some(7));
+        assert_eq!(c.len(), 1);
+        assert!(!s.set_divider(0));
+    }
+
+    #[test]
+    fn wire_format_round_trips() {
+        for x in [i16::MIN, -1, 0, 1, 12345, i16::MAX] {
+            assert_eq!(setpoint_to_wire(setpoint_from_wire(x)), x);
+        }
+        assert_eq!(setpoint_to_wire(i32::MAX), i16::MAX);
+    }
+}

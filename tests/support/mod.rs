@@ -1,0 +1,229 @@
+//! Shared by the tests that run the firmware in QEMU (`tests/emulator.rs`,
+//! `tests/tick_bench.rs`): make sure the prerequisites are installed, build firmware images
+//! (once per test run, serialised, into `target/firmware` so they never fight the host build
+//! for its lock), read an image's flash and RAM size, and run QEMU.
+#![allow(dead_code)] // each test binary uses its own subset
+
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+use std::process::{Command, Stdio};
+use std::sync::{Mutex, OnceLock};
+
+/// The firmware's target triple.
+pub const TARGET: &str = "thumbv7em-none-eabihf";
+/// QEMU's STM32F405 board.
+pub const MACHINE: &str = "netduinoplus2";
+
+/// The workspace root (where `Cargo.toml` and `.cargo/config.toml` are).
+pub fn workspace_root() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+}
+
+/// Separate target directory for the firmware images.
+pub fn firmware_target_dir() -> PathBuf {
+    workspace_root().join("target").join("firmware")
+}
+
+fn run_quiet(cmd: &mut Command) -> Result<(), String> {
+    let out = cmd
+        .stdin(Stdio::null())
+        .output()
+        .map_err(|e| format!("cannot run {cmd:?}: {e}"))?;
+    if out.status.success() {
+        Ok(())
+    } else {
+        Err(format!(
+            "{cmd:?} failed ({}):\n{}{}",
+            out.status,
+            String::from_utf8_lossy(&out.stdout),
+            String::from_utf8_lossy(&out.stderr)
+        ))
+    }
+}
+
+/// `rustup target add thumbv7em-none-eabihf` (idempotent), once per process.
+pub fn ensure_target() {
+    static DONE: OnceLock<Result<(), String>> = OnceLock::new();
+    let r = DONE.get_or_init(|| {
+        run_quiet(Command::new("rustup").args(["target", "add", TARGET]))
+            .map_err(|e| format!("the firmware target is missing and could not be installed: {e}"))
+    });
+    if let Err(e) = r {
+        panic!("{e}");
+    }
+}
+
+fn qemu_works() -> bool {
+    Command::new("qemu-system-arm")
+        .arg("--version")
+        .stdin(Stdio::null())
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .status()
+        .map(|s| s.success())
+        .unwrap_or(false)
+}
+
+/// Makes sure `qemu-system-arm` runs: if it is missing, installs Debian's package
+/// (`apt-get update && apt-get install -y qemu-system-arm`, non-interactive). Panics with what
+/// failed and how to install it by hand otherwise.
+pub fn ensure_qemu() {
+    static DONE: OnceLock<Result<(), String>> = OnceLock::new();
+    let r = DONE.get_or_init(|| {
+        if qemu_works() {
+            return Ok(());
+        }
+        let apt = |args: &[&str]| {
+            run_quiet(
+                Command::new("apt-get")
+                    .args(args)
+                    .env("DEBIAN_FRONTEND", "noninteractive"),
+            )
+        };
+        apt(&["update"])
+            .and_then(|_| apt(&["install", "-y", "qemu-system-arm"]))
+            .map_err(|e| {
+                format!(
+                    "qemu-system-arm is not installed and installing it failed \
+                     (install it with `apt-get install -y qemu-system-arm`, as root):\n{e}"
+                )
+            })?;
+        if qemu_works() {
+            Ok(())
+        } else {
+            Err("qemu-system-arm was installed but does not run".to_string())
+        }
+    });
+    if let Err(e) = r {
+        panic!("{e}");
+    }
+}
+
+/// Builds firmware binary `bin` with `features` (release, for the target) into
+/// [`firmware_target_dir`] and returns the ELF's path. Each (bin, features) is built at most
+/// once per test process; concurrent callers wait for it (and cargo's own lock on the target
+/// directory serialises separate test processes).
+pub fn build_image(bin: &str, features: &[&str]) -> PathBuf {
+    static BUILT: OnceLock<Mutex<HashMap<String, PathBuf>>> = OnceLock::new();
+    ensure_target();
+    let key = format!("{bin}|{}", features.join(","));
+    let mut built = BUILT
+        .get_or_init(|| Mutex::new(HashMap::new()))
+        .lock()
+        .unwrap_or_else(|e| e.into_inner());
+    if let Some(p) = built.get(&key) {
+        return p.clone();
+    }
+    let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".to_string());
+    let mut cmd = Command::new(cargo);
+    cmd.current_dir(workspace_root())
+        .args(["build", "--release", "--target", TARGET, "--bin", bin])
+        .arg("--target-dir")
+        .arg(firmware_target_dir())
+        // RUSTFLAGS from the environment would replace the target's link arguments in
+        // .cargo/config.toml.
+        .env_remove("RUSTFLAGS")
+        .env_remove("CARGO_ENCODED_RUSTFLAGS")
+        .env_remove("CARGO_BUILD_TARGET");
+    if !features.is_empty() {
+        cmd.args(["--features", &features.join(",")]);
+    }
+    if let Err(e) = run_quiet(&mut cmd) {
+        panic!("building firmware image {bin} ({features:?}) failed: {e}");
+    }
+    let path = firmware_target_dir().join(TARGET).join("release").join(bin);
+    assert!(
+        path.is_file(),
+        "cargo built {bin} but {} is missing",
+        path.display()
+    );
+    // Keep a copy per feature set: the next build of the same bin overwrites the file.
+    let copy = firmware_target_dir().join(format!(
+        "{bin}{}{}.elf",
+        if features.is_empty() { "" } else { "-" },
+        features.join("-")
+    ));
+    std::fs::copy(&path, &copy)
+        .unwrap_or_else(|e| panic!("cannot copy {} to {}: {e}", path.display(), copy.display()));
+    built.insert(key, copy.clone());
+    copy
+}
+
+/// Flash and RAM an ELF image occupies, bytes.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct ImageSize {
+    /// Bytes loaded into flash (code, constants, initial values of `.data`).
+    pub flash: u64,
+    /// Bytes of RAM reserved statically (`.data`, `.bss`, `.uninit`; not the stack).
+    pub ram: u64,
+}
+
+fn u16_at(b: &[u8], o: usize) -> Result<u16, String> {
+    b.get(o..o + 2)
+        .map(|s| u16::from_le_bytes([s[0], s[1]]))
+        .ok_or_else(|| format!("ELF truncated at byte {o}"))
+}
+
+fn u32_at(b: &[u8], o: usize) -> Result<u32, String> {
+    b.get(o..o + 4)
+        .map(|s| u32::from_le_bytes([s[0], s[1], s[2], s[3]]))
+        .ok_or_else(|| format!("ELF truncated at byte {o}"))
+}
+
+/// Reads the sizes from an ELF32 little-endian image's program headers: `PT_LOAD` segments
+/// loaded at a flash address count their file size to flash; segments placed in RAM count
+/// their memory size to RAM.
+pub fn image_size(path: &Path) -> Result<ImageSize, String> {
+    let b = std::fs::read(path).map_err(|e| format!("{}: {e}", path.display()))?;
+    if b.get(0..6) != Some(&[0x7f, b'E', b'L', b'F', 1, 1][..]) {
+        return Err(format!(
+            "{}: not a 32-bit little-endian ELF",
+            path.display()
+        ));
+    }
+    let phoff = u32_at(&b, 28)? as usize;
+    let phentsize = u16_at(&b, 42)? as usize;
+    let phnum = u16_at(&b, 44)? as usize;
+    let in_flash = |a: u32| (0x0800_0000..0x0810_0000).contains(&a);
+    let in_ram =
+        |a: u32| (0x2000_0000..0x2002_0000).contains(&a) || (0x1000_0000..0x1001_0000).contains(&a);
+    let mut size = ImageSize { flash: 0, ram: 0 };
+    for i in 0..phnum {
+        let h = phoff + i * phentsize;
+        if u32_at(&b, h)? != 1 {
+            continue; // not PT_LOAD
+        }
+        let vaddr = u32_at(&b, h + 8)?;
+        let paddr = u32_at(&b, h + 12)?;
+        let filesz = u32_at(&b, h + 16)? as u64;
+        let memsz = u32_at(&b, h + 20)? as u64;
+        if in_flash(paddr) {
+            size.flash += filesz;
+        }
+        if in_ram(vaddr) {
+            size.ram += memsz;
+        }
+    }
+    Ok(size)
+}
+
+/// The common QEMU command line for an image: the STM32F405 board, no display, no monitor,
+/// semihosting on (the bench prints and exits through it).
+pub fn qemu_command(elf: &Path) -> Command {
+    ensure_qemu();
+    let mut cmd = Command::new("qemu-system-arm");
+    cmd.args([
+        "-machine",
+        MACHINE,
+        "-cpu",
+        "cortex-m4",
+        "-nographic",
+        "-monitor",
+        "none",
+    ])
+    .args(["-semihosting-config", "enable=on,target=native"])
+    .arg("-kernel")
+    .arg(elf)
+    .stdin(Stdio::null());
+    cmd
+}

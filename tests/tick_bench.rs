@@ -1,0 +1,191 @@
+//! Tick-cost bench: instructions per control tick in QEMU, and the firmware image's size.
+//!
+//! `cargo test --test tick_bench -- --nocapture` builds the `tick-bench` image and the board
+//! and emulator firmware images (into `target/firmware`), runs the bench in
+//! `qemu-system-arm -machine netduinoplus2 -icount shift=0` (one guest instruction per
+//! virtual nanosecond, TIM2 counting at 1 GHz, so counts are exact and repeatable) and prints
+//! a table. It fails if the bench does not run or report every configuration, or if the board
+//! image exceeds its 64 KiB flash budget; the instruction target (≤ 250 for inverse P–I
+//! N = 16 with observer and feedback) is printed, not asserted, because it is a property of
+//! the library's tick (src/control.rs), not of this harness.
+
+mod support;
+
+use std::io::Read;
+use std::process::Stdio;
+use std::time::{Duration, Instant};
+
+/// Flash budget of the board image, bytes.
+const FLASH_BUDGET: u64 = 64 * 1024;
+/// Instruction budget of the N = 16 tick.
+const TICK_BUDGET: f64 = 250.0;
+
+/// One `BENCH` line.
+#[derive(Debug)]
+struct Row {
+    name: String,
+    ticks: u64,
+    total: u64,
+    min: u64,
+    max: u64,
+    overhead: u64,
+}
+
+fn parse_row(line: &str) -> Result<Row, String> {
+    let rest = line
+        .strip_prefix("BENCH ")
+        .ok_or_else(|| format!("not a BENCH line: {line:?}"))?;
+    let field = |key: &str| -> Result<&str, String> {
+        rest.split(' ')
+            .find_map(|kv| kv.strip_prefix(key).and_then(|v| v.strip_prefix('=')))
+            .ok_or_else(|| format!("field {key} missing in {line:?}"))
+    };
+    let num = |key: &str| -> Result<u64, String> {
+        field(key)?
+            .parse()
+            .map_err(|e| format!("field {key} in {line:?}: {e}"))
+    };
+    Ok(Row {
+        name: field("name")?.to_string(),
+        ticks: num("ticks")?,
+        total: num("total")?,
+        min: num("min")?,
+        max: num("max")?,
+        overhead: num("overhead")?,
+    })
+}
+
+fn run_bench() -> Vec<Row> {
+    let elf = support::build_image("tick-bench", &["tick-bench"]);
+    let mut child = support::qemu_command(&elf)
+        .args(["-icount", "shift=0", "-serial", "null"])
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("qemu-system-arm starts");
+    let start = Instant::now();
+    let status = loop {
+        if let Some(s) = child.try_wait().expect("wait for qemu") {
+            break s;
+        }
+        if start.elapsed() > Duration::from_secs(300) {
+            let _ = child.kill();
+            let _ = child.wait();
+            panic!("the bench image did not exit within 300 s");
+        }
+        std::thread::sleep(Duration::from_millis(100));
+    };
+    let mut out = String::new();
+    let mut err = String::new();
+    child
+        .stdout
+        .take()
+        .unwrap()
+        .read_to_string(&mut out)
+        .unwrap();
+    child
+        .stderr
+        .take()
+        .unwrap()
+        .read_to_string(&mut err)
+        .unwrap();
+    assert!(
+        status.success(),
+        "bench exited with {status}:\n{out}\n{err}"
+    );
+    out.lines()
+        .filter(|l| l.starts_with("BENCH"))
+        .map(|l| parse_row(l).unwrap_or_else(|e| panic!("{e}")))
+        .collect()
+}
+
+#[test]
+fn tick_cost_table_and_image_size() {
+    let rows = run_bench();
+    let expected = [
+        "bypass",
+        "none-observer-only",
+        "none",
+        "inverse-pi-8",
+        "inverse-pi-16",
+        "inverse-pi-32",
+        "inverse-duhem",
+    ];
+    let names: Vec<&str> = rows.iter().map(|r| r.name.as_str()).collect();
+    assert_eq!(names, expected, "the bench must report every configuration");
+    for r in &rows {
+        assert!(
+            r.ticks > 0 && r.min > 0 && r.min <= r.max,
+            "implausible row {r:?}"
+        );
+    }
+
+    println!();
+    println!("Instructions per control tick (QEMU netduinoplus2, -icount shift=0, opt-level 3,");
+    println!("Controller::tick on the firmware's DAC/ADC drivers, 1000 ticks of a ±0.8 triangle):");
+    println!();
+    println!("| compensator | observer | feedback | mean | min | max |");
+    println!("|---|---|---|---:|---:|---:|");
+    for r in &rows {
+        let (comp, obs, fb) = match r.name.as_str() {
+            "bypass" => ("none", "off", "off"),
+            "none-observer-only" => ("none", "Duhem", "off"),
+            "none" => ("none", "Duhem", "PI"),
+            "inverse-pi-8" => ("inverse P–I, N = 8", "Duhem", "PI"),
+            "inverse-pi-16" => ("inverse P–I, N = 16", "Duhem", "PI"),
+            "inverse-pi-32" => ("inverse P–I, N = 32", "Duhem", "PI"),
+            _ => ("inverse Duhem", "Duhem", "PI"),
+        };
+        println!(
+            "| {comp} | {obs} | {fb} | {:.1} | {} | {} |",
+            r.total as f64 / r.ticks as f64,
+            r.min,
+            r.max
+        );
+    }
+    println!(
+        "\n(net of {} instructions of measurement overhead per call)",
+        rows[0].overhead
+    );
+    let n16 = &rows[4];
+    let n16_mean = n16.total as f64 / n16.ticks as f64;
+    println!(
+        "target: inverse P–I N = 16 + observer + feedback ≤ {TICK_BUDGET} instructions: {} (max {})",
+        if (n16.max as f64) <= TICK_BUDGET { "met" } else { "NOT met" },
+        n16.max
+    );
+    let _ = n16_mean;
+
+    println!("\n| image | flash (bytes) | static RAM (bytes) |");
+    println!("|---|---:|---:|");
+    let board = support::build_image("twinstack-fw", &[]);
+    let emu = support::build_image("twinstack-fw", &["emulator"]);
+    let bench = support::build_image("tick-bench", &["tick-bench"]);
+    let mut board_size = None;
+    for (label, path) in [
+        ("twinstack-fw (board)", &board),
+        ("twinstack-fw (emulator)", &emu),
+        ("tick-bench", &bench),
+    ] {
+        let s = support::image_size(path).unwrap_or_else(|e| panic!("{e}"));
+        println!("| {label} | {} | {} |", s.flash, s.ram);
+        board_size.get_or_insert(s);
+    }
+    let board_size = board_size.unwrap();
+    assert!(
+        board_size.flash <= FLASH_BUDGET,
+        "board image is {} bytes of flash, over the {FLASH_BUDGET}-byte budget",
+        board_size.flash
+    );
+}
+
+#[test]
+fn bench_lines_parse_and_malformed_ones_are_refused() {
+    let r = parse_row("BENCH name=x ticks=10 total=2000 min=190 max=210 overhead=12").unwrap();
+    assert_eq!(
+        (r.ticks, r.total, r.min, r.max, r.overhead),
+        (10, 2000, 190, 210, 12)
+    );
+    assert!(parse_row("BENCH name=x ticks=ten").is_err());
+    assert!(parse_row("hello").is_err());
+}
