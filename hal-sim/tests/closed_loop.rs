@@ -2,9 +2,8 @@
 //! drives the simulated board through `SimBoard::split`, with the internal converters and with
 //! the SPI drivers on the emulated chips, and closes the loop on the emulated sensor.
 //!
-//! Setpoints are ramped over 10 ms, as a setpoint stream would be: a full-range step in one
-//! tick drives the inverse Duhem into its `α|Δu| ≥ 1` regime, where it limit-cycles at half
-//! the control rate (reported to the lead; not this test's subject).
+//! The setpoint ramps over 10 ms to 20 µm, steps in one tick to −12 µm (the step that made the
+//! inverse Duhem limit-cycle before its drive step was capped at `1/α`), and ramps to 3.5 µm.
 
 use core::fmt::Debug;
 use hal_sim::converters::{AnalogDualDac, AnalogSensorAdc};
@@ -68,19 +67,19 @@ fn settings<D: AnalogDualDac, A: AnalogSensorAdc>(
     }
 }
 
-/// Runs `controller` on `board`: a 10 ms setpoint ramp from `from_um` to `to_um`, then a hold
-/// for the rest of `seconds`; returns the final displacement.
+/// Runs `controller` on `board`: a setpoint ramp of `ramp` ticks from `from_um` to `to_um`,
+/// then a hold for the rest of `seconds`; returns the final displacement.
 fn ramp_and_hold<D, A>(
     controller: &mut Controller,
     board: &mut SimBoard<D, A>,
     (from_um, to_um): (f64, f64),
+    ramp: usize,
     seconds: f64,
 ) -> f64
 where
     D: AnalogDualDac<Error: Debug>,
     A: AnalogSensorAdc<Error: Debug>,
 {
-    let ramp = 500; // ticks
     for k in 0..(seconds * 50_000.0) as usize {
         let f = (k as f64 / ramp as f64).min(1.0);
         let setpoint = signal_from_f64((from_um + f * (to_um - from_um)) / OUTPUT_UM.1);
@@ -98,8 +97,8 @@ where
     let config = settings(&board, adc_volts, adc_bits).build().unwrap();
     let mut controller = Controller::new(config);
     let mut from = 0.0;
-    for target in [20.0, -12.0, 3.5] {
-        let x = ramp_and_hold(&mut controller, &mut board, (from, target), 0.1);
+    for (target, ramp) in [(20.0, 500), (-12.0, 1), (3.5, 500)] {
+        let x = ramp_and_hold(&mut controller, &mut board, (from, target), ramp, 0.1);
         from = target;
         assert!(
             (x - target).abs() < tol_um,
