@@ -106,11 +106,18 @@ impl Duhem {
 
 /// Inverse Duhem compensator, fixed point: per sample, the drive increment that produces the
 /// desired displacement increment.
+///
+/// One sample's drive step `m` is capped at `1/α`: up to there the discrete model is exactly
+/// linear in `Δu` (`α|Δu| ≤ 1`, so `a` does not clamp) and the step lands on the target or
+/// short of it; beyond it `a` clamps, the step overshoots, and a large setpoint step would
+/// ping-pong between the range ends for ever. A larger step is made over several samples.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct InverseDuhem {
     model: Duhem,
     /// Floor of the slope `g_s`, Q8.24, `> 0`.
     min_slope: i32,
+    /// Largest drive step per sample, `min(1/α, 2)`, Q2.30.
+    max_step: i32,
 }
 
 impl InverseDuhem {
@@ -118,7 +125,16 @@ impl InverseDuhem {
     pub fn new(params: &DuhemParams, scaling: &Scaling) -> Result<Self, ParamError> {
         let model = Duhem::new(params, scaling)?;
         let min_slope = (model.beta.min(model.gamma) / MIN_SLOPE_DIVISOR).max(1);
-        Ok(Self { model, min_slope })
+        // 1/α: 2^(30+24) / α(Q8.24) in Q2.30.
+        let max_step = (1i64 << (SIGNAL_FRAC_BITS + GAIN_FRAC_BITS))
+            .checked_div(model.alpha as i64)
+            .unwrap_or(i64::MAX)
+            .clamp(1, 2 * SIGNAL_ONE as i64) as i32;
+        Ok(Self {
+            model,
+            min_slope,
+            max_step,
+        })
     }
 
     /// The forward model the compensator inverts.
@@ -147,7 +163,7 @@ impl InverseDuhem {
         // the tick free of a panic path all the same.
         let m = ((dy.abs() << GAIN_FRAC_BITS).checked_div(slope))
             .unwrap_or(0)
-            .min(2 * SIGNAL_ONE as i64);
+            .min(self.max_step as i64);
         let du = if dy > 0 { m } else { -m };
         let u = clamp_full_scale(saturate_i64(state.u as i64 + du));
         self.model.step(state, u);

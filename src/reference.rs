@@ -166,7 +166,7 @@ impl Duhem {
 }
 
 /// Inverse Duhem, `f64`: the same construction as the fixed-point compensator
-/// (slope floored at `min(β, γ)/16`, drive clamped to the input range).
+/// (slope floored at `min(β, γ)/16`, step capped at `1/α`, drive clamped to the input range).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct InverseDuhem {
     model: Duhem,
@@ -196,7 +196,10 @@ impl InverseDuhem {
         let e = p.beta * self.model.u + p.offset - self.model.y;
         let sign = if dy > 0.0 { 1.0 } else { -1.0 };
         let slope = (p.gamma + sign * p.alpha * e).max(p.beta.min(p.gamma) / 16.0);
-        let m = (dy.abs() / slope).min(2.0 * s.input_half_span());
+        // Steps capped at 1/α, where the discrete model stops being linear in Δu.
+        let m = (dy.abs() / slope)
+            .min(2.0 * s.input_half_span())
+            .min(1.0 / p.alpha);
         let u = clamp(self.model.u + sign * m, s.input_min, s.input_max);
         self.model.step(u);
         u

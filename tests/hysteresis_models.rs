@@ -341,3 +341,53 @@ fn inverse_state_from_forward_state_continues_without_a_jump() {
         "drive {drive} vs applied {u}"
     );
 }
+
+/// A setpoint step across most of the range, with `α` large enough that one sample's drive
+/// step would clamp the discrete model's `a = α|Δu|` at 1: the inverse reaches the new setpoint
+/// in a few samples and stays there, instead of ping-ponging between the range ends.
+#[test]
+fn inverse_duhem_settles_after_a_large_setpoint_step() {
+    let gain = 0.5285;
+    let params = DuhemParams {
+        alpha: 0.03,
+        beta: gain,
+        gamma: 0.75 * gain,
+        offset: -70.0 * gain,
+    };
+    let scaling = Scaling::new(0.0, 140.0, -40.0, 40.0).unwrap();
+    let inverse = InverseDuhem::new(&params, &scaling).unwrap();
+    let forward = Duhem::new(&params, &scaling).unwrap();
+    let mut inv_state = inverse.model().state_at(0, forward.anhysteretic(0));
+    let mut fwd_state = inv_state;
+    let mut reference = reference::InverseDuhem::new(
+        &params,
+        &scaling,
+        70.0,
+        scaling.norm_to_output(f(inv_state.y)),
+    )
+    .unwrap();
+    for (target, ticks) in [(0.5, 2000), (-0.3, 30), (0.7, 30)] {
+        let mut drives = Vec::new();
+        for _ in 0..ticks {
+            let u = inverse.step(&mut inv_state, q(target));
+            reference.step(scaling.norm_to_output(target));
+            forward.step(&mut fwd_state, u);
+            drives.push(u);
+        }
+        // Settled: the last drives agree to well under an LSB16 (the fixed point may still
+        // creep by a few Q2.30 LSB while it rounds onto the target).
+        let last = &drives[drives.len() - 5..];
+        assert!(
+            last.iter()
+                .all(|&u| (f(u) - f(last[0])).abs() < LSB16 / 16.0),
+            "{target}: drive still moving {last:?}"
+        );
+        assert!(
+            (f(fwd_state.y) - target).abs() <= LSB16,
+            "{target}: at {}",
+            f(fwd_state.y)
+        );
+        let r = scaling.output_to_norm(reference.model().y);
+        assert!((r - target).abs() <= LSB16, "reference {target}: at {r}");
+    }
+}
