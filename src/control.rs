@@ -253,6 +253,22 @@ impl Controller {
         adc: &mut A,
         dac: &mut D,
     ) -> TickReport {
+        self.tick_io(setpoint, &mut SplitIo { adc, dac })
+    }
+
+    /// [`Controller::tick`] for a board that is both the DAC and the ADC (the simulated
+    /// board): same code, one borrow.
+    #[inline]
+    pub fn tick_board<B: DualDac + SensorAdc>(
+        &mut self,
+        setpoint: Option<i32>,
+        board: &mut B,
+    ) -> TickReport {
+        self.tick_io(setpoint, &mut JointIo(board))
+    }
+
+    #[inline(always)]
+    fn tick_io<IO: TickIo>(&mut self, setpoint: Option<i32>, io: &mut IO) -> TickReport {
         let mut flags = 0u8;
         // 1. Setpoint.
         match setpoint {
@@ -272,7 +288,7 @@ impl Controller {
         let mut measured = 0;
         let mut command = feedforward;
         if let Some(fb) = &self.config.feedback {
-            match adc.read() {
+            match io.read() {
                 Ok(code) => {
                     measured = sensor_to_displacement(fb, code);
                     let error = target as i64 - measured as i64;
@@ -308,7 +324,7 @@ impl Controller {
         if out.slew_limited {
             flags |= TickFlags::SLEW_LIMIT;
         }
-        if dac.write_both(out.left, out.right).is_err() {
+        if io.write(out.left, out.right).is_err() {
             flags |= TickFlags::DAC_ERROR;
         }
 
@@ -340,6 +356,41 @@ impl Controller {
         bump(&mut c.slew_limits, TickFlags::SLEW_LIMIT);
         bump(&mut c.adc_errors, TickFlags::ADC_ERROR);
         bump(&mut c.dac_errors, TickFlags::DAC_ERROR);
+    }
+}
+
+/// The tick's access to the converters, whether they are two objects or one.
+trait TickIo {
+    fn read(&mut self) -> Result<AdcCode, ()>;
+    fn write(&mut self, left: DacCode, right: DacCode) -> Result<(), ()>;
+}
+
+struct SplitIo<'a, A, D> {
+    adc: &'a mut A,
+    dac: &'a mut D,
+}
+
+impl<A: SensorAdc, D: DualDac> TickIo for SplitIo<'_, A, D> {
+    #[inline(always)]
+    fn read(&mut self) -> Result<AdcCode, ()> {
+        self.adc.read().map_err(|_| ())
+    }
+    #[inline(always)]
+    fn write(&mut self, left: DacCode, right: DacCode) -> Result<(), ()> {
+        self.dac.write_both(left, right).map_err(|_| ())
+    }
+}
+
+struct JointIo<'a, B>(&'a mut B);
+
+impl<B: SensorAdc + DualDac> TickIo for JointIo<'_, B> {
+    #[inline(always)]
+    fn read(&mut self) -> Result<AdcCode, ()> {
+        self.0.read().map_err(|_| ())
+    }
+    #[inline(always)]
+    fn write(&mut self, left: DacCode, right: DacCode) -> Result<(), ()> {
+        self.0.write_both(left, right).map_err(|_| ())
     }
 }
 

@@ -150,6 +150,8 @@ impl core::fmt::Display for ParamError {
     }
 }
 
+impl core::error::Error for ParamError {}
+
 /// How P–I thresholds are spread over the input amplitude (DESIGN §2).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub enum Thresholds {

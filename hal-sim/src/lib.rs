@@ -13,6 +13,7 @@
 pub mod accuracy;
 pub mod cli;
 pub mod converters;
+pub mod demo;
 pub mod identification;
 pub mod measured_data;
 pub mod output_file;

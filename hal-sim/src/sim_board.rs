@@ -2,6 +2,9 @@
 //! behind the library's [`DualDac`] and [`SensorAdc`], so the control tick drives it exactly
 //! as it drives the real board.
 //!
+//! [`SimBoard::split`] gives the DAC and the ADC as two handles for code that takes them
+//! separately, as the control tick does; the board itself implements both traits too.
+//!
 //! Each [`DualDac::write_both`] writes the codes (through the SPI driver and the emulated chip,
 //! for the external variant), passes the DAC outputs through the amplifiers, advances the plant
 //! one control period, and presents the new displacement, through the sensor, at the ADC's
@@ -21,6 +24,7 @@ use crate::converters::{
     InternalAdcError, InternalDac, PositionSensor,
 };
 use crate::plant::{Configuration, Plant, PlantConfig, PlantError};
+use core::cell::Cell;
 use twinstack::board::{AdcCode, DacCode, DualDac, SensorAdc};
 use twinstack::converters::{Ads8689, Ads8689Error, Dac856x, Gain, InputRange};
 
@@ -119,12 +123,79 @@ impl std::error::Error for BoardError {}
 /// The emulated board.
 #[derive(Debug)]
 pub struct SimBoard<D, A> {
+    chain: DriveChain<D>,
+    adc: A,
+    /// The wire from the sensor's output to the ADC's input, volts.
+    sensor_node: Cell<f64>,
+}
+
+/// Everything from the DAC codes to the sensor's output voltage.
+#[derive(Debug)]
+struct DriveChain<D> {
     dac: D,
     amplifiers: [Amplifier; 2],
     plant: Plant,
     sensor: PositionSensor,
-    adc: A,
     periods: u64,
+}
+
+impl<D: AnalogDualDac> DriveChain<D> {
+    /// Writes the codes, runs the amplifiers and one plant period; returns the sensor's output.
+    fn write_and_advance(&mut self, left: DacCode, right: DacCode) -> Result<f64, D::Error> {
+        self.dac.write_both(left, right)?;
+        let dt = self.plant.dt();
+        let [vl, vr] = self.dac.output_volts();
+        let ul = self.amplifiers[0].drive(vl, dt);
+        let ur = self.amplifiers[1].drive(vr, dt);
+        let x = self.plant.step(ul, ur);
+        self.periods += 1;
+        Ok(self.sensor.volts(x))
+    }
+}
+
+/// The board's DAC side as its own [`DualDac`] (from [`SimBoard::split`]): a write advances
+/// the board one control period.
+#[derive(Debug)]
+pub struct BoardDac<'a, D> {
+    chain: &'a mut DriveChain<D>,
+    sensor_node: &'a Cell<f64>,
+}
+
+/// The board's sensor ADC as its own [`SensorAdc`] (from [`SimBoard::split`]).
+#[derive(Debug)]
+pub struct BoardAdc<'a, A> {
+    adc: &'a mut A,
+    sensor_node: &'a Cell<f64>,
+}
+
+impl<D: AnalogDualDac> DualDac for BoardDac<'_, D> {
+    type Error = D::Error;
+
+    fn full_scale(&self) -> DacCode {
+        self.chain.dac.full_scale()
+    }
+
+    /// Writes the codes, then advances the board one control period.
+    fn write_both(&mut self, left: DacCode, right: DacCode) -> Result<(), Self::Error> {
+        let volts = self.chain.write_and_advance(left, right)?;
+        self.sensor_node.set(volts);
+        Ok(())
+    }
+}
+
+impl<A: AnalogSensorAdc> SensorAdc for BoardAdc<'_, A> {
+    type Error = A::Error;
+
+    fn full_scale(&self) -> AdcCode {
+        self.adc.full_scale()
+    }
+
+    /// Converts what the sensor shows now; returns what the ADC returns (the previous
+    /// period's conversion).
+    fn read(&mut self) -> Result<AdcCode, Self::Error> {
+        self.adc.set_input_volts(self.sensor_node.get());
+        self.adc.read()
+    }
 }
 
 fn checked_sensor_range(config: &BoardConfig) -> Result<(), BoardError> {
@@ -180,27 +251,45 @@ impl<D: AnalogDualDac, A: AnalogSensorAdc> SimBoard<D, A> {
         amplifiers: [Amplifier; 2],
         plant: Plant,
         mut sensor: PositionSensor,
-        mut adc: A,
+        adc: A,
     ) -> Self {
-        adc.set_input_volts(sensor.volts(plant.stage_um()));
+        let sensor_node = Cell::new(sensor.volts(plant.stage_um()));
         Self {
-            dac,
-            amplifiers,
-            plant,
-            sensor,
+            chain: DriveChain {
+                dac,
+                amplifiers,
+                plant,
+                sensor,
+                periods: 0,
+            },
             adc,
-            periods: 0,
+            sensor_node,
         }
+    }
+
+    /// The DAC and the ADC as two handles, for code that takes them separately (the control
+    /// tick: `controller.tick(setpoint, &mut adc, &mut dac)`).
+    pub fn split(&mut self) -> (BoardDac<'_, D>, BoardAdc<'_, A>) {
+        (
+            BoardDac {
+                chain: &mut self.chain,
+                sensor_node: &self.sensor_node,
+            },
+            BoardAdc {
+                adc: &mut self.adc,
+                sensor_node: &self.sensor_node,
+            },
+        )
     }
 
     /// The plant (displacement, tips, charges, hysteresis voltages).
     pub fn plant(&self) -> &Plant {
-        &self.plant
+        &self.chain.plant
     }
 
     /// The DAC (or its driver, whose `device()` is the emulated chip).
     pub fn dac(&self) -> &D {
-        &self.dac
+        &self.chain.dac
     }
 
     /// The ADC (or its driver).
@@ -210,25 +299,22 @@ impl<D: AnalogDualDac, A: AnalogSensorAdc> SimBoard<D, A> {
 
     /// The position sensor.
     pub fn sensor(&self) -> &PositionSensor {
-        &self.sensor
+        &self.chain.sensor
     }
 
     /// Amplifier outputs `[left, right]` (noiseless), volts.
     pub fn amplifier_volts(&self) -> [f64; 2] {
-        [
-            self.amplifiers[0].output_volts(),
-            self.amplifiers[1].output_volts(),
-        ]
+        self.chain.amplifiers.each_ref().map(|a| a.output_volts())
     }
 
     /// Control periods simulated so far.
     pub fn periods(&self) -> u64 {
-        self.periods
+        self.chain.periods
     }
 
     /// Simulated time, seconds.
     pub fn time_seconds(&self) -> f64 {
-        self.periods as f64 * self.plant.dt()
+        self.chain.periods as f64 * self.chain.plant.dt()
     }
 }
 
@@ -236,20 +322,12 @@ impl<D: AnalogDualDac, A: AnalogSensorAdc> DualDac for SimBoard<D, A> {
     type Error = D::Error;
 
     fn full_scale(&self) -> DacCode {
-        self.dac.full_scale()
+        self.chain.dac.full_scale()
     }
 
     /// Writes the codes, then advances the board one control period.
     fn write_both(&mut self, left: DacCode, right: DacCode) -> Result<(), Self::Error> {
-        self.dac.write_both(left, right)?;
-        let dt = self.plant.dt();
-        let [vl, vr] = self.dac.output_volts();
-        let ul = self.amplifiers[0].drive(vl, dt);
-        let ur = self.amplifiers[1].drive(vr, dt);
-        let x = self.plant.step(ul, ur);
-        self.adc.set_input_volts(self.sensor.volts(x));
-        self.periods += 1;
-        Ok(())
+        self.split().0.write_both(left, right)
     }
 }
 
@@ -261,6 +339,6 @@ impl<D: AnalogDualDac, A: AnalogSensorAdc> SensorAdc for SimBoard<D, A> {
     }
 
     fn read(&mut self) -> Result<AdcCode, Self::Error> {
-        self.adc.read()
+        self.split().1.read()
     }
 }

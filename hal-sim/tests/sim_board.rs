@@ -154,3 +154,23 @@ fn invalid_board_settings_are_refused_with_their_reason() {
         Some(BoardError::Plant(PlantError::InvalidTimeStep(-1.0)))
     );
 }
+
+/// The two handles of `split` (what the control tick takes) drive the board exactly as the
+/// board's own trait methods do: same readings, same displacement, same noise.
+#[test]
+fn split_handles_drive_the_board_like_the_board_itself() {
+    let config = BoardConfig::paper(Configuration::Differential);
+    let mut whole = ExternalBoard::external(&config).unwrap();
+    let mut parts = ExternalBoard::external(&config).unwrap();
+    for k in 0..300u16 {
+        let (l, r) = (DacCode(18_000 + 20 * k), DacCode(30_000 - 20 * k));
+        let a = whole.read().unwrap();
+        whole.write_both(l, r).unwrap();
+        let (mut dac, mut adc) = parts.split();
+        let b = adc.read().unwrap();
+        dac.write_both(l, r).unwrap();
+        assert_eq!(a, b, "period {k}");
+    }
+    assert_eq!(whole.plant().stage_um(), parts.plant().stage_um());
+    assert_eq!(parts.periods(), 300);
+}

@@ -15,6 +15,7 @@
 //! transaction with an [`Ads8689FrameError`] and are kept in [`EmulatedAds8689::errors`]. The
 //! decoding is written from the datasheet independently of the library's driver.
 
+use super::internal_adc::straight_binary;
 use embedded_hal::spi::{ErrorKind, ErrorType, Operation, SpiDevice};
 use twinstack::converters::ads8689::{InputRange, RANGE_SEL_MASK};
 
@@ -142,13 +143,8 @@ impl EmulatedAds8689 {
 
     /// Straight-binary code of `volts` over the selected range.
     pub fn code(&self, volts: f64) -> u16 {
-        let (lo, hi) = self.range().volts();
-        let x = ((volts - lo) / (hi - lo) * 65536.0).floor();
-        if x.is_nan() {
-            0
-        } else {
-            x.clamp(0.0, 65535.0) as u16
-        }
+        // Clamped to 0..=65535, so the narrowing is exact.
+        straight_binary(volts, self.range().volts(), u16::MAX as u32) as u16
     }
 
     /// Frames received (well formed or not).

@@ -8,6 +8,18 @@ use twinstack::board::{AdcCode, SensorAdc};
 /// Longest pipeline the emulation holds.
 pub const MAX_LATENCY: usize = 4;
 
+/// Straight-binary code of `volts` on a converter spanning `[lo, hi)` with codes
+/// `0 ..= full_scale`: `floor((v − lo)/(hi − lo) · (full_scale + 1))`, clamped to the codes
+/// (NaN reads as 0).
+pub fn straight_binary(volts: f64, (lo, hi): (f64, f64), full_scale: u32) -> u32 {
+    let x = ((volts - lo) / (hi - lo) * (full_scale as f64 + 1.0)).floor();
+    if x.is_nan() {
+        0
+    } else {
+        x.clamp(0.0, full_scale as f64) as u32
+    }
+}
+
 /// Why an ADC could not be built.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub enum InternalAdcError {
@@ -59,15 +71,9 @@ impl InternalAdc {
         })
     }
 
-    /// Quantises `volts`: `floor((v − lo)/(hi − lo) · 2^bits)`, clamped to the codes.
+    /// Quantises `volts` (see [`straight_binary`]).
     pub fn quantise(&self, volts: f64) -> u32 {
-        let (lo, hi) = self.range_volts;
-        let x = ((volts - lo) / (hi - lo) * (self.full_scale as f64 + 1.0)).floor();
-        if x.is_nan() {
-            0
-        } else {
-            x.clamp(0.0, self.full_scale as f64) as u32
-        }
+        straight_binary(volts, self.range_volts, self.full_scale)
     }
 }
 
