@@ -116,7 +116,7 @@ pub struct InverseDuhem {
     model: Duhem,
     /// Floor of the slope `g_s`, Q8.24, `> 0`.
     min_slope: i32,
-    /// Largest drive step per sample, `min(1/α, 2)`, Q2.30.
+    /// Largest drive step per sample, `min(1/α, 2 − 2^-30)`, Q2.30.
     max_step: i32,
 }
 
@@ -129,7 +129,7 @@ impl InverseDuhem {
         let max_step = (1i64 << (SIGNAL_FRAC_BITS + GAIN_FRAC_BITS))
             .checked_div(model.alpha as i64)
             .unwrap_or(i64::MAX)
-            .clamp(1, 2 * SIGNAL_ONE as i64) as i32;
+            .clamp(1, i32::MAX as i64) as i32; // 2.0 does not fit Q2.30: saturate below it
         Ok(Self {
             model,
             min_slope,
