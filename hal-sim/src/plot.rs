@@ -268,6 +268,7 @@ pub fn draw_panels(
     }
     root.present().map_err(|x| e(&x))?;
     Ok(())
+}
 
 #[cfg(test)]
 mod tests {
