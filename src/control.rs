@@ -427,3 +427,177 @@ impl Feedback {
         limit_i64(p + *integrator as i64, -bound, bound) as i32
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::drive::{Configuration, DriveSettings, SafeState};
+    use crate::fixed_point::signal_from_f64;
+    use crate::scaling::Scaling;
+    use core::convert::Infallible;
+
+    struct Dac(DacCode, DacCode, u32);
+    impl DualDac for Dac {
+        type Error = Infallible;
+        fn full_scale(&self) -> DacCode {
+            DacCode(65535)
+        }
+        fn write_both(&mut self, l: DacCode, r: DacCode) -> Result<(), Infallible> {
+            self.0 = l;
+            self.1 = r;
+            self.2 += 1;
+            Ok(())
+        }
+    }
+    struct NoAdc;
+    impl SensorAdc for NoAdc {
+        type Error = ();
+        fn full_scale(&self) -> AdcCode {
+            AdcCode(65535)
+        }
+        fn read(&mut self) -> Result<AdcCode, ()> {
+            Err(())
+        }
+    }
+
+    pub(crate) fn paper_drive() -> DriveSettings {
+        DriveSettings {
+            configuration: Configuration::Differential,
+            amplifier_full_scale: 150.0,
+            bias: 70.0,
+            right_idle: 0.0,
+            min_voltage: 0.0,
+            max_voltage: 140.0,
+            slew_rate: 1.0e6,
+            control_rate: 50_000.0,
+            dac_full_scale: 65535,
+            safe_state: SafeState::Bias,
+        }
+    }
+
+    fn bypass() -> Controller {
+        let scaling = Scaling::new(0.0, 140.0, 0.0, 10.0).unwrap();
+        let drive = DifferentialDrive::new(&paper_drive(), &scaling).unwrap();
+        Controller::new(ControlConfig::bypass(drive))
+    }
+
+    fn volts(code: DacCode) -> f64 {
+        code.0 as f64 / 65535.0 * 150.0
+    }
+
+    #[test]
+    fn differential_split_mirrors_the_stacks_about_the_bias() {
+        let mut c = bypass();
+        let mut dac = Dac(DacCode(0), DacCode(0), 0);
+        for &y in &[-0.5, 0.0, 0.3, 0.9] {
+            // Slew allows 20 V per tick: enough ticks to arrive.
+            for _ in 0..20 {
+                c.tick(Some(signal_from_f64(y)), &mut NoAdc, &mut dac);
+            }
+            let (l, r) = (volts(dac.0), volts(dac.1));
+            assert!((l + r - 140.0).abs() < 0.01, "u_l + u_r = 2ū: {l} + {r}");
+            assert!((l - (70.0 + 70.0 * y)).abs() < 0.01, "u_l = ū + v: {l}");
+        }
+    }
+
+    #[test]
+    fn underrun_holds_the_last_setpoint_and_is_counted() {
+        let mut c = bypass();
+        let mut dac = Dac(DacCode(0), DacCode(0), 0);
+        for _ in 0..10 {
+            c.tick(Some(signal_from_f64(0.5)), &mut NoAdc, &mut dac);
+        }
+        let held = dac.0;
+        let r = c.tick(None, &mut NoAdc, &mut dac);
+        assert!(r.flags.contains(TickFlags::UNDERRUN));
+        assert_eq!(dac.0, held);
+        assert_eq!(c.counters().underruns, 1);
+        assert_eq!(c.counters().ticks, 11);
+        assert_eq!(dac.2, 11, "every tick writes both DACs once");
+    }
+
+    #[test]
+    fn range_and_slew_limits_hold_whatever_arrives() {
+        let scaling = Scaling::new(0.0, 140.0, 0.0, 10.0).unwrap();
+        let mut settings = paper_drive();
+        settings.min_voltage = 10.0;
+        settings.max_voltage = 130.0;
+        settings.slew_rate = 50_000.0; // 1 V per tick
+        let drive = DifferentialDrive::new(&settings, &scaling).unwrap();
+        let mut c = Controller::new(ControlConfig::bypass(drive));
+        let mut dac = Dac(DacCode(0), DacCode(0), 0);
+        let mut prev = (70.0, 70.0);
+        let mut seed = 12345u32;
+        for i in 0..5000 {
+            seed = seed.wrapping_mul(1_664_525).wrapping_add(1_013_904_223);
+            let sp = if i % 7 == 0 { None } else { Some(seed as i32) };
+            let r = c.tick(sp, &mut NoAdc, &mut dac);
+            let (l, rv) = (volts(r.left), volts(r.right));
+            for v in [l, rv] {
+                assert!((10.0 - 0.01..=130.0 + 0.01).contains(&v), "range: {v}");
+            }
+            assert!((l - prev.0).abs() <= 1.0 + 0.01 && (rv - prev.1).abs() <= 1.0 + 0.01);
+            prev = (l, rv);
+        }
+        assert!(c.counters().range_limits > 0 && c.counters().slew_limits > 0);
+    }
+
+    #[test]
+    fn safe_state_is_bias_or_zero() {
+        let c = bypass();
+        let (l, r) = c.safe_codes();
+        assert!((volts(l) - 70.0).abs() < 0.01 && l == r);
+        let scaling = Scaling::new(0.0, 140.0, 0.0, 10.0).unwrap();
+        let mut s = paper_drive();
+        s.safe_state = SafeState::Zero;
+        let c = Controller::new(ControlConfig::bypass(
+            DifferentialDrive::new(&s, &scaling).unwrap(),
+        ));
+        assert_eq!(c.safe_codes(), (DacCode(0), DacCode(0)));
+    }
+
+    fn feedback() -> Feedback {
+        use crate::fixed_point::gain_from_f64;
+        Feedback {
+            adc_bits: 16,
+            sensor_offset: signal_from_f64(-1.0),
+            sensor_gain: gain_from_f64(2.0),
+            kp: gain_from_f64(0.5),
+            ki: gain_from_f64(0.1),
+            limit: signal_from_f64(0.2),
+        }
+    }
+
+    #[test]
+    fn sensor_codes_map_onto_the_output_range_and_stray_bits_are_masked() {
+        let fb = feedback();
+        assert_eq!(fb.displacement(AdcCode(0)), signal_from_f64(-1.0));
+        assert_eq!(fb.displacement(AdcCode(32768)), 0);
+        // A code with bits above the ADC's 16 reads as its low 16 bits, never beyond range.
+        assert_eq!(fb.displacement(AdcCode(0x1_8000)), 0);
+    }
+
+    #[test]
+    fn integrator_is_clamped_and_held_while_the_drive_sits_at_a_limit() {
+        let fb = feedback();
+        let (lo, hi) = (signal_from_f64(-0.9), signal_from_f64(0.9));
+        let mut integrator = 0;
+        // Drive free: a persistent error winds the integrator up to its limit, no further.
+        for _ in 0..1000 {
+            fb.correction(signal_from_f64(0.5), 0, &mut integrator, 0, lo, hi);
+        }
+        assert_eq!(integrator, signal_from_f64(0.2));
+        // Drive held at the top with the error still pushing up: the integrator holds...
+        let mut integrator = signal_from_f64(0.05);
+        for _ in 0..100 {
+            fb.correction(signal_from_f64(0.5), 0, &mut integrator, hi, lo, hi);
+        }
+        assert_eq!(integrator, signal_from_f64(0.05));
+        // ...but unwinds at once when the error reverses.
+        fb.correction(signal_from_f64(-0.5), 0, &mut integrator, hi, lo, hi);
+        assert!(integrator < signal_from_f64(0.05));
+        // The correction never exceeds the limit, whatever the error.
+        let c = fb.correction(i32::MAX, i32::MIN, &mut integrator, 0, lo, hi);
+        assert_eq!(c, signal_from_f64(0.2));
+    }
+}
