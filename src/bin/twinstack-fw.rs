@@ -28,7 +28,7 @@
 fn main() {
     eprintln!(
         "twinstack-fw is the STM32F405 firmware: build it with `cargo build-fw` \
-         (board) or `cargo build-emu` (QEMU); see FIRMWARE.md"
+         (board) or `cargo build-emu` (QEMU); see README.md, Firmware"
     );
     std::process::exit(2);
 }
