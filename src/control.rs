@@ -15,7 +15,9 @@
 use crate::board::{AdcCode, DacCode, DualDac, SensorAdc};
 use crate::drive::DifferentialDrive;
 use crate::duhem::{Duhem, DuhemState, InverseDuhem};
-use crate::fixed_point::{clamp_full_scale, limit, saturate_i64, GAIN_FRAC_BITS, SIGNAL_FRAC_BITS};
+use crate::fixed_point::{
+    clamp_full_scale, limit, limit_i64, saturate_i64, GAIN_FRAC_BITS, SIGNAL_FRAC_BITS,
+};
 use crate::prandtl_ishlinskii::{InversePrandtlIshlinskii, PiState, PrandtlIshlinskii};
 
 /// The feedforward compensator: desired displacement → drive.
@@ -253,11 +255,35 @@ impl Controller {
         adc: &mut A,
         dac: &mut D,
     ) -> TickReport {
+        self.tick_io(setpoint, &mut SplitIo { adc, dac })
+    }
+
+    /// [`Controller::tick`] for a board that is both the DAC and the ADC (the simulated
+    /// board): same code, one borrow.
+    #[inline]
+    pub fn tick_board<B: DualDac + SensorAdc>(
+        &mut self,
+        setpoint: Option<i32>,
+        board: &mut B,
+    ) -> TickReport {
+        self.tick_io(setpoint, &mut JointIo(board))
+    }
+
+    #[inline(always)]
+    fn tick_io<IO: TickIo>(&mut self, setpoint: Option<i32>, io: &mut IO) -> TickReport {
+        // Flags and counters are touched only on the paths where something happened: the
+        // common tick pays for none of them.
         let mut flags = 0u8;
+        let counters = &mut self.counters;
+        counters.ticks = counters.ticks.wrapping_add(1);
+
         // 1. Setpoint.
         match setpoint {
             Some(s) => self.setpoint = clamp_full_scale(s),
-            None => flags |= TickFlags::UNDERRUN,
+            None => {
+                flags |= TickFlags::UNDERRUN;
+                counters.underruns = counters.underruns.wrapping_add(1);
+            }
         }
         let target = self.setpoint;
 
@@ -272,28 +298,23 @@ impl Controller {
         let mut measured = 0;
         let mut command = feedforward;
         if let Some(fb) = &self.config.feedback {
-            match adc.read() {
+            match io.read() {
                 Ok(code) => {
-                    measured = sensor_to_displacement(fb, code);
-                    let error = target as i64 - measured as i64;
-                    let p = (fb.kp as i64 * error) >> GAIN_FRAC_BITS;
-                    // Anti-windup: integrate only while the drive is not held at a limit in the
-                    // direction the error pushes.
-                    let at_high = self.drive >= self.config.drive.drive_range().1 && error > 0;
-                    let at_low = self.drive <= self.config.drive.drive_range().0 && error < 0;
-                    if !(at_high || at_low) {
-                        let i = self.integrator as i64 + ((fb.ki as i64 * error) >> GAIN_FRAC_BITS);
-                        self.integrator = limit(saturate_i64(i), -fb.limit, fb.limit);
-                    }
-                    let correction = limit(
-                        saturate_i64(p + self.integrator as i64),
-                        -fb.limit,
-                        fb.limit,
+                    measured = fb.displacement(code);
+                    let (low, high) = self.config.drive.drive_range();
+                    let correction = fb.correction(
+                        target,
+                        measured,
+                        &mut self.integrator,
+                        self.drive,
+                        low,
+                        high,
                     );
                     command = feedforward.saturating_add(correction);
                 }
                 Err(_) => {
                     flags |= TickFlags::ADC_ERROR;
+                    counters.adc_errors = counters.adc_errors.wrapping_add(1);
                     command = feedforward.saturating_add(self.integrator);
                 }
             }
@@ -304,12 +325,15 @@ impl Controller {
         self.drive = out.applied;
         if out.range_limited {
             flags |= TickFlags::RANGE_LIMIT;
+            counters.range_limits = counters.range_limits.wrapping_add(1);
         }
         if out.slew_limited {
             flags |= TickFlags::SLEW_LIMIT;
+            counters.slew_limits = counters.slew_limits.wrapping_add(1);
         }
-        if dac.write_both(out.left, out.right).is_err() {
+        if io.write(out.left, out.right).is_err() {
             flags |= TickFlags::DAC_ERROR;
+            counters.dac_errors = counters.dac_errors.wrapping_add(1);
         }
 
         // 5. Observer on the applied drive.
@@ -319,7 +343,6 @@ impl Controller {
             _ => 0,
         };
 
-        self.count(flags);
         TickReport {
             left: out.left,
             right: out.right,
@@ -329,153 +352,78 @@ impl Controller {
             flags: TickFlags(flags),
         }
     }
+}
 
+/// The tick's access to the converters, whether they are two objects or one.
+trait TickIo {
+    fn read(&mut self) -> Result<AdcCode, ()>;
+    fn write(&mut self, left: DacCode, right: DacCode) -> Result<(), ()>;
+}
+
+struct SplitIo<'a, A, D> {
+    adc: &'a mut A,
+    dac: &'a mut D,
+}
+
+impl<A: SensorAdc, D: DualDac> TickIo for SplitIo<'_, A, D> {
     #[inline(always)]
-    fn count(&mut self, flags: u8) {
-        let c = &mut self.counters;
-        c.ticks = c.ticks.wrapping_add(1);
-        let bump = |n: &mut u32, f: u8| *n = n.wrapping_add(u32::from(flags & f != 0));
-        bump(&mut c.underruns, TickFlags::UNDERRUN);
-        bump(&mut c.range_limits, TickFlags::RANGE_LIMIT);
-        bump(&mut c.slew_limits, TickFlags::SLEW_LIMIT);
-        bump(&mut c.adc_errors, TickFlags::ADC_ERROR);
-        bump(&mut c.dac_errors, TickFlags::DAC_ERROR);
+    fn read(&mut self) -> Result<AdcCode, ()> {
+        self.adc.read().map_err(|_| ())
+    }
+    #[inline(always)]
+    fn write(&mut self, left: DacCode, right: DacCode) -> Result<(), ()> {
+        self.dac.write_both(left, right).map_err(|_| ())
     }
 }
 
-/// ADC code → normalised displacement: `offset + gain · code / 2^bits` (Q2.30).
-#[inline(always)]
-fn sensor_to_displacement(fb: &Feedback, code: AdcCode) -> i32 {
-    let shift = SIGNAL_FRAC_BITS.saturating_sub(fb.adc_bits.min(SIGNAL_FRAC_BITS));
-    let fraction = ((code.0 & 0x3FFF_FFFF) as i64) << shift; // Q2.30 fraction of full scale
-    saturate_i64(fb.sensor_offset as i64 + ((fb.sensor_gain as i64 * fraction) >> GAIN_FRAC_BITS))
+struct JointIo<'a, B>(&'a mut B);
+
+impl<B: SensorAdc + DualDac> TickIo for JointIo<'_, B> {
+    #[inline(always)]
+    fn read(&mut self) -> Result<AdcCode, ()> {
+        self.0.read().map_err(|_| ())
+    }
+    #[inline(always)]
+    fn write(&mut self, left: DacCode, right: DacCode) -> Result<(), ()> {
+        self.0.write_both(left, right).map_err(|_| ())
+    }
 }
 
-#[cfg(test)]
-mod tests {
-    use super::*;
-    use crate::drive::{Configuration, DriveSettings, SafeState};
-    use crate::fixed_point::signal_from_f64;
-    use crate::scaling::Scaling;
-    use core::convert::Infallible;
-
-    struct Dac(DacCode, DacCode, u32);
-    impl DualDac for Dac {
-        type Error = Infallible;
-        fn full_scale(&self) -> DacCode {
-            DacCode(65535)
-        }
-        fn write_both(&mut self, l: DacCode, r: DacCode) -> Result<(), Infallible> {
-            self.0 = l;
-            self.1 = r;
-            self.2 += 1;
-            Ok(())
-        }
-    }
-    struct NoAdc;
-    impl SensorAdc for NoAdc {
-        type Error = ();
-        fn full_scale(&self) -> AdcCode {
-            AdcCode(65535)
-        }
-        fn read(&mut self) -> Result<AdcCode, ()> {
-            Err(())
-        }
+impl Feedback {
+    /// ADC code → normalised displacement: `offset + gain · code / 2^bits` (Q2.30, saturated).
+    /// The code is masked to `adc_bits` and shifted up to a Q2.30 fraction in 32 bits.
+    #[inline(always)]
+    fn displacement(&self, code: AdcCode) -> i32 {
+        let bits = self.adc_bits.min(SIGNAL_FRAC_BITS);
+        let mask = (1u32 << bits).wrapping_sub(1);
+        let fraction = ((code.0 & mask) << (SIGNAL_FRAC_BITS - bits)) as i32; // [0, 1)
+        saturate_i64(
+            self.sensor_offset as i64
+                + ((self.sensor_gain as i64 * fraction as i64) >> GAIN_FRAC_BITS),
+        )
     }
 
-    pub(crate) fn paper_drive() -> DriveSettings {
-        DriveSettings {
-            configuration: Configuration::Differential,
-            amplifier_full_scale: 150.0,
-            bias: 70.0,
-            right_idle: 0.0,
-            min_voltage: 0.0,
-            max_voltage: 140.0,
-            slew_rate: 1.0e6,
-            control_rate: 50_000.0,
-            dac_full_scale: 65535,
-            safe_state: SafeState::Bias,
+    /// The PI correction for `target` against `measured`, with the integrator clamped to the
+    /// correction limit and held (anti-windup) while the drive sits at a limit in the direction
+    /// the error pushes.
+    #[inline(always)]
+    fn correction(
+        &self,
+        target: i32,
+        measured: i32,
+        integrator: &mut i32,
+        drive: i32,
+        drive_low: i32,
+        drive_high: i32,
+    ) -> i32 {
+        let error = target.saturating_sub(measured);
+        let bound = self.limit as i64;
+        let held = (drive >= drive_high && error > 0) || (drive <= drive_low && error < 0);
+        if !held {
+            let i = *integrator as i64 + ((self.ki as i64 * error as i64) >> GAIN_FRAC_BITS);
+            *integrator = limit_i64(i, -bound, bound) as i32;
         }
-    }
-
-    fn bypass() -> Controller {
-        let scaling = Scaling::new(0.0, 140.0, 0.0, 10.0).unwrap();
-        let drive = DifferentialDrive::new(&paper_drive(), &scaling).unwrap();
-        Controller::new(ControlConfig::bypass(drive))
-    }
-
-    fn volts(code: DacCode) -> f64 {
-        code.0 as f64 / 65535.0 * 150.0
-    }
-
-    #[test]
-    fn differential_split_mirrors_the_stacks_about_the_bias() {
-        let mut c = bypass();
-        let mut dac = Dac(DacCode(0), DacCode(0), 0);
-        for &y in &[-0.5, 0.0, 0.3, 0.9] {
-            // Slew allows 20 V per tick: enough ticks to arrive.
-            for _ in 0..20 {
-                c.tick(Some(signal_from_f64(y)), &mut NoAdc, &mut dac);
-            }
-            let (l, r) = (volts(dac.0), volts(dac.1));
-            assert!((l + r - 140.0).abs() < 0.01, "u_l + u_r = 2ū: {l} + {r}");
-            assert!((l - (70.0 + 70.0 * y)).abs() < 0.01, "u_l = ū + v: {l}");
-        }
-    }
-
-    #[test]
-    fn underrun_holds_the_last_setpoint_and_is_counted() {
-        let mut c = bypass();
-        let mut dac = Dac(DacCode(0), DacCode(0), 0);
-        for _ in 0..10 {
-            c.tick(Some(signal_from_f64(0.5)), &mut NoAdc, &mut dac);
-        }
-        let held = dac.0;
-        let r = c.tick(None, &mut NoAdc, &mut dac);
-        assert!(r.flags.contains(TickFlags::UNDERRUN));
-        assert_eq!(dac.0, held);
-        assert_eq!(c.counters().underruns, 1);
-        assert_eq!(c.counters().ticks, 11);
-        assert_eq!(dac.2, 11, "every tick writes both DACs once");
-    }
-
-    #[test]
-    fn range_and_slew_limits_hold_whatever_arrives() {
-        let scaling = Scaling::new(0.0, 140.0, 0.0, 10.0).unwrap();
-        let mut settings = paper_drive();
-        settings.min_voltage = 10.0;
-        settings.max_voltage = 130.0;
-        settings.slew_rate = 50_000.0; // 1 V per tick
-        let drive = DifferentialDrive::new(&settings, &scaling).unwrap();
-        let mut c = Controller::new(ControlConfig::bypass(drive));
-        let mut dac = Dac(DacCode(0), DacCode(0), 0);
-        let mut prev = (70.0, 70.0);
-        let mut seed = 12345u32;
-        for i in 0..5000 {
-            seed = seed.wrapping_mul(1_664_525).wrapping_add(1_013_904_223);
-            let sp = if i % 7 == 0 { None } else { Some(seed as i32) };
-            let r = c.tick(sp, &mut NoAdc, &mut dac);
-            let (l, rv) = (volts(r.left), volts(r.right));
-            for v in [l, rv] {
-                assert!((10.0 - 0.01..=130.0 + 0.01).contains(&v), "range: {v}");
-            }
-            assert!((l - prev.0).abs() <= 1.0 + 0.01 && (rv - prev.1).abs() <= 1.0 + 0.01);
-            prev = (l, rv);
-        }
-        assert!(c.counters().range_limits > 0 && c.counters().slew_limits > 0);
-    }
-
-    #[test]
-    fn safe_state_is_bias_or_zero() {
-        let c = bypass();
-        let (l, r) = c.safe_codes();
-        assert!((volts(l) - 70.0).abs() < 0.01 && l == r);
-        let scaling = Scaling::new(0.0, 140.0, 0.0, 10.0).unwrap();
-        let mut s = paper_drive();
-        s.safe_state = SafeState::Zero;
-        let c = Controller::new(ControlConfig::bypass(
-            DifferentialDrive::new(&s, &scaling).unwrap(),
-        ));
-        assert_eq!(c.safe_codes(), (DacCode(0), DacCode(0)));
+        let p = (self.kp as i64 * error as i64) >> GAIN_FRAC_BITS;
+        limit_i64(p + *integrator as i64, -bound, bound) as i32
     }
 }

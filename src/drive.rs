@@ -80,6 +80,8 @@ pub enum DriveError {
     BadDacFullScale,
     /// No drive command lands inside the voltage range (model input range and limits disjoint).
     EmptyDriveRange,
+    /// The model's input range reaches far beyond the amplifier's output range.
+    ModelRangeBeyondAmplifier,
 }
 
 /// The drive, converted once into the fixed-point form the tick uses.
@@ -102,6 +104,16 @@ pub struct DifferentialDrive {
     right_idle: i32,
     /// DAC full-scale code.
     dac_full_scale: u16,
+    /// Left stack's code at drive 0, in 2^-15 of a code (Q17.15), so the tick's split is one
+    /// `SMULL` and 32-bit adds: `left = code0 + (per_drive · u) >> 30`.
+    left_code0: i32,
+    /// Left stack's codes per unit of model-normalised drive, 2^-15 of a code (≤ fs · 2^15).
+    left_code_per_drive: i32,
+    /// Right stack: `right = right_code0 − (left & right_mask)`; differential: `2ū` in codes and
+    /// mask −1 (mirror), unidirectional: the idle voltage and mask 0. 2^-15 of a code.
+    right_code0: i32,
+    /// −1 (differential) or 0 (unidirectional).
+    right_mask: i32,
     safe_state: SafeState,
 }
 
@@ -173,6 +185,18 @@ impl DifferentialDrive {
         }
         let fs = s.amplifier_full_scale;
         let slew = s.slew_rate / s.control_rate / scaling.input_half_span();
+        // Volts → 2^-15 of a DAC code. The model's input range must lie within the
+        // amplifier's (so the left stack's code, and the per-drive slope, fit 32 bits).
+        let q15 = s.dac_full_scale as f64 * 32768.0 / fs;
+        let per_drive = scaling.input_half_span() * q15;
+        let code0 = scaling.input_mid() * q15;
+        if !(per_drive < i32::MAX as f64 && code0.abs() < i32::MAX as f64 / 2.0) {
+            return Err(DriveError::ModelRangeBeyondAmplifier);
+        }
+        let (right_code0, right_mask) = match s.configuration {
+            Configuration::Differential => (2.0 * s.bias * q15, -1),
+            Configuration::Unidirectional => (s.right_idle * q15, 0),
+        };
         Ok(Self {
             configuration: s.configuration,
             drive_min: signal_from_f64(drive_min),
@@ -184,6 +208,10 @@ impl DifferentialDrive {
             right_idle: signal_from_f64(s.right_idle / fs),
             dac_full_scale: s.dac_full_scale,
             safe_state: s.safe_state,
+            left_code0: libm::round(code0) as i32,
+            left_code_per_drive: libm::round(per_drive) as i32,
+            right_code0: libm::round(right_code0) as i32,
+            right_mask,
         })
     }
 
@@ -195,22 +223,27 @@ impl DifferentialDrive {
         let step_min = previous.saturating_sub(self.slew_per_tick);
         let step_max = previous.saturating_add(self.slew_per_tick);
         let applied = limit(ranged, step_min, step_max);
-        let left = self.k0 as i64 + ((self.k1 as i64 * applied as i64) >> GAIN_FRAC_BITS);
-        let right = match self.configuration {
-            Configuration::Differential => 2 * self.bias as i64 - left,
-            Configuration::Unidirectional => self.right_idle as i64,
-        };
+        let left = self
+            .left_code0
+            .wrapping_add(((self.left_code_per_drive as i64 * applied as i64) >> 30) as i32);
+        let right = self.right_code0.wrapping_sub(left & self.right_mask);
         DriveOutput {
-            left: self.code(left),
-            right: self.code(right),
+            left: self.code_q15(left),
+            right: self.code_q15(right),
             applied,
             range_limited: ranged != drive,
             slew_limited: applied != ranged,
         }
     }
 
-    /// Amplifier-normalised voltage (Q2.30, as i64) → DAC code, rounded and clamped.
+    /// 2^-15 of a code → DAC code, rounded and clamped to `0 ..= full scale`.
     #[inline(always)]
+    fn code_q15(&self, q15: i32) -> DacCode {
+        let c = (q15.saturating_add(1 << 14) >> 15).max(0);
+        DacCode(c.min(self.dac_full_scale as i32) as u16)
+    }
+
+    /// Amplifier-normalised voltage (Q2.30, as i64) → DAC code, rounded and clamped.
     fn code(&self, volts: i64) -> DacCode {
         let fs = self.dac_full_scale as i64;
         let c = (volts * fs + (1 << (SIGNAL_FRAC_BITS - 1))) >> SIGNAL_FRAC_BITS;

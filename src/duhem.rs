@@ -51,6 +51,8 @@ pub struct Duhem {
     gamma: i32,
     /// `δ`, offset of the anhysteretic curve, Q2.30 normalised output.
     offset: i32,
+    /// `1/α`, Q2.30 (saturated just below 2): the input step at which `a = α|Δu|` reaches 1.
+    inverse_alpha: i32,
 }
 
 impl Duhem {
@@ -58,11 +60,18 @@ impl Duhem {
     /// fixed-point form the tick runs.
     pub fn new(params: &DuhemParams, scaling: &Scaling) -> Result<Self, ParamError> {
         let n = params.normalized(scaling)?;
+        let alpha = gain_from_f64(n.alpha);
+        // 1/α: 2^(30+24) / α(Q8.24) in Q2.30; 2.0 does not fit Q2.30, so saturate below it.
+        let inverse_alpha = (1i64 << (SIGNAL_FRAC_BITS + GAIN_FRAC_BITS))
+            .checked_div(alpha as i64)
+            .unwrap_or(i64::MAX)
+            .clamp(1, i32::MAX as i64) as i32;
         Ok(Self {
-            alpha: gain_from_f64(n.alpha),
+            alpha,
             beta: gain_from_f64(n.beta),
             gamma: gain_from_f64(n.gamma),
             offset: signal_from_f64(n.offset),
+            inverse_alpha,
         })
     }
 
@@ -81,11 +90,13 @@ impl Duhem {
         saturate_i64(((self.beta as i64 * u as i64) >> GAIN_FRAC_BITS) + self.offset as i64)
     }
 
-    /// Distance to the anhysteretic curve, `e = β u + δ − y`, Q2.30 saturated.
+    /// Distance to the anhysteretic curve, `e = β u + δ − y`, Q2.30, saturated at ±2.
+    /// Validation keeps `β + |δ| < 2` (normalised), so `β u + δ` fits Q2.30 exactly and only
+    /// the final subtraction can saturate (a `QSUB` on the M4).
     #[inline(always)]
-    fn anhysteretic_error(&self, state: &DuhemState) -> i64 {
-        let beta_u = (self.beta as i64 * state.u as i64) >> GAIN_FRAC_BITS;
-        saturate_i64(beta_u + self.offset as i64 - state.y as i64) as i64
+    fn anhysteretic_error(&self, state: &DuhemState) -> i32 {
+        let beta_u = ((self.beta as i64 * state.u as i64) >> GAIN_FRAC_BITS) as i32;
+        beta_u.wrapping_add(self.offset).saturating_sub(state.y)
     }
 
     /// One sample: input `u` (Q2.30 normalised drive, clamped to [-1, 1]) → estimated
@@ -93,11 +104,18 @@ impl Duhem {
     #[inline]
     pub fn step(&self, state: &mut DuhemState, u: i32) -> i32 {
         let u = clamp_full_scale(u);
-        // |Δu| ≤ 2 in Q2.30 fits i64 trivially; in i32 it could reach 2^31.
-        let du = u as i64 - state.u as i64;
-        let a = ((self.alpha as i64 * du.abs()) >> GAIN_FRAC_BITS).min(SIGNAL_ONE as i64);
+        // |Δu| ≤ 2; a full-range jump saturates 2^-30 short of 2 (QSUB).
+        let du = u.saturating_sub(state.u);
+        let magnitude = du.unsigned_abs();
+        // a = min(α|Δu|, 1), Q2.30: below 1/α the product is < 2^54 and fits after the shift.
+        let a = if magnitude >= self.inverse_alpha as u32 {
+            SIGNAL_ONE
+        } else {
+            ((self.alpha as i64 * magnitude as i64) >> GAIN_FRAC_BITS) as i32
+        };
         let e = self.anhysteretic_error(state);
-        let dy = ((a * e) >> SIGNAL_FRAC_BITS) + ((self.gamma as i64 * du) >> GAIN_FRAC_BITS);
+        let dy = ((a as i64 * e as i64) >> SIGNAL_FRAC_BITS)
+            + ((self.gamma as i64 * du as i64) >> GAIN_FRAC_BITS);
         state.u = u;
         state.y = saturate_i64(state.y as i64 + dy);
         state.y
@@ -116,7 +134,7 @@ pub struct InverseDuhem {
     model: Duhem,
     /// Floor of the slope `g_s`, Q8.24, `> 0`.
     min_slope: i32,
-    /// Largest drive step per sample, `min(1/α, 2)`, Q2.30.
+    /// Largest drive step per sample, `min(1/α, 2 − 2^-30)`, Q2.30.
     max_step: i32,
 }
 
@@ -125,15 +143,10 @@ impl InverseDuhem {
     pub fn new(params: &DuhemParams, scaling: &Scaling) -> Result<Self, ParamError> {
         let model = Duhem::new(params, scaling)?;
         let min_slope = (model.beta.min(model.gamma) / MIN_SLOPE_DIVISOR).max(1);
-        // 1/α: 2^(30+24) / α(Q8.24) in Q2.30.
-        let max_step = (1i64 << (SIGNAL_FRAC_BITS + GAIN_FRAC_BITS))
-            .checked_div(model.alpha as i64)
-            .unwrap_or(i64::MAX)
-            .clamp(1, 2 * SIGNAL_ONE as i64) as i32;
         Ok(Self {
             model,
             min_slope,
-            max_step,
+            max_step: model.inverse_alpha,
         })
     }
 
@@ -150,7 +163,7 @@ impl InverseDuhem {
         if dy == 0 {
             return state.u;
         }
-        let e = self.model.anhysteretic_error(state);
+        let e = self.model.anhysteretic_error(state) as i64;
         let alpha_e = (self.model.alpha as i64 * e) >> SIGNAL_FRAC_BITS; // Q8.24
         let slope = if dy > 0 {
             self.model.gamma as i64 + alpha_e

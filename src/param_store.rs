@@ -108,18 +108,10 @@ impl fmt::Display for StoreError {
 }
 
 /// CRC-32 (IEEE 802.3 polynomial `0x04C11DB7`, reflected, initial value and final XOR
-/// `0xFFFF_FFFF`: the zlib / Ethernet CRC). Bitwise, so it needs no table in flash; it only
-/// runs at boot and when a record is written.
+/// `0xFFFF_FFFF`: CRC-32/ISO-HDLC, the zlib / Ethernet CRC, the same as the protocol's frames).
 pub fn crc32(bytes: &[u8]) -> u32 {
-    let mut crc = 0xFFFF_FFFFu32;
-    for &b in bytes {
-        crc ^= b as u32;
-        for _ in 0..8 {
-            let mask = (crc & 1).wrapping_neg();
-            crc = (crc >> 1) ^ (0xEDB8_8320 & mask);
-        }
-    }
-    !crc
+    const CRC: crc::Crc<u32> = crc::Crc::<u32>::new(&crc::CRC_32_ISO_HDLC);
+    CRC.checksum(bytes)
 }
 
 /// Writes a record holding `payload` (layout version `version`) into `out`; returns the number

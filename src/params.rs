@@ -150,6 +150,8 @@ impl core::fmt::Display for ParamError {
     }
 }
 
+impl core::error::Error for ParamError {}
+
 /// How P–I thresholds are spread over the input amplitude (DESIGN §2).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub enum Thresholds {
@@ -465,10 +467,13 @@ impl DuhemParams {
             offset: (self.beta * scaling.input_mid() + self.offset - scaling.output_mid())
                 / scaling.output_half_span(),
         };
+        // β + |δ| < 2 keeps the anhysteretic curve βu + δ inside Q2.30 for |u| ≤ 1 (the tick
+        // relies on it); an output range that narrow against the model is a scaling error.
         let fits = [n.alpha, n.beta, n.gamma]
             .iter()
             .all(|v| *v <= MAX_NORM_WEIGHT)
-            && n.offset.abs() <= 1.5;
+            && n.offset.abs() <= 1.5
+            && n.beta + n.offset.abs() < 1.99;
         if !fits {
             return Err(ParamError::DuhemCoefficientOutOfRange);
         }
@@ -596,6 +601,11 @@ mod tests {
         let s = Scaling::new(0.0, 150.0, 0.0, 1.0).unwrap();
         assert_eq!(
             DuhemParams { alpha: 1.0, ..ok }.normalized(&s),
+            Err(ParamError::DuhemCoefficientOutOfRange)
+        );
+        // β so steep against the output range that βu + δ would leave Q2.30.
+        assert_eq!(
+            DuhemParams { beta: 0.014, ..ok }.normalized(&s),
             Err(ParamError::DuhemCoefficientOutOfRange)
         );
     }

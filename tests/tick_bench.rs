@@ -55,7 +55,38 @@ fn parse_row(line: &str) -> Result<Row, String> {
     })
 }
 
-fn run_bench() -> Vec<Row> {
+/// One `PART` line: a piece of the tick measured alone (call overhead included).
+#[derive(Debug)]
+struct Part {
+    name: String,
+    ticks: u64,
+    total: u64,
+    max: u64,
+}
+
+fn parse_part(line: &str) -> Result<Part, String> {
+    let rest = line
+        .strip_prefix("PART ")
+        .ok_or_else(|| format!("not a PART line: {line:?}"))?;
+    let field = |key: &str| -> Result<&str, String> {
+        rest.split(' ')
+            .find_map(|kv| kv.strip_prefix(key).and_then(|v| v.strip_prefix('=')))
+            .ok_or_else(|| format!("field {key} missing in {line:?}"))
+    };
+    let num = |key: &str| -> Result<u64, String> {
+        field(key)?
+            .parse()
+            .map_err(|e| format!("field {key} in {line:?}: {e}"))
+    };
+    Ok(Part {
+        name: field("name")?.to_string(),
+        ticks: num("ticks")?,
+        total: num("total")?,
+        max: num("max")?,
+    })
+}
+
+fn run_bench() -> (Vec<Row>, Vec<Part>) {
     let elf = support::build_image("tick-bench", &["tick-bench"]);
     let mut child = support::qemu_command(&elf)
         .args(["-icount", "shift=0", "-serial", "null"])
@@ -93,15 +124,22 @@ fn run_bench() -> Vec<Row> {
         status.success(),
         "bench exited with {status}:\n{out}\n{err}"
     );
-    out.lines()
-        .filter(|l| l.starts_with("BENCH"))
+    let rows = out
+        .lines()
+        .filter(|l| l.starts_with("BENCH "))
         .map(|l| parse_row(l).unwrap_or_else(|e| panic!("{e}")))
-        .collect()
+        .collect();
+    let parts = out
+        .lines()
+        .filter(|l| l.starts_with("PART "))
+        .map(|l| parse_part(l).unwrap_or_else(|e| panic!("{e}")))
+        .collect();
+    (rows, parts)
 }
 
 #[test]
 fn tick_cost_table_and_image_size() {
-    let rows = run_bench();
+    let (rows, parts) = run_bench();
     let expected = [
         "bypass",
         "none-observer-only",
@@ -122,7 +160,9 @@ fn tick_cost_table_and_image_size() {
 
     println!();
     println!("Instructions per control tick (QEMU netduinoplus2, -icount shift=0, opt-level 3,");
-    println!("Controller::tick on the firmware's DAC/ADC drivers, 1000 ticks of a ±0.8 triangle):");
+    println!(
+        "Controller::tick on the firmware's DAC/ADC drivers, 1000 ticks of a ±0.95 triangle):"
+    );
     println!();
     println!("| compensator | observer | feedback | mean | min | max |");
     println!("|---|---|---|---:|---:|---:|");
@@ -156,6 +196,29 @@ fn tick_cost_table_and_image_size() {
     );
     let _ = n16_mean;
 
+    let part_names: Vec<&str> = parts.iter().map(|p| p.name.as_str()).collect();
+    assert_eq!(
+        part_names,
+        [
+            "drive-split",
+            "duhem-observer-step",
+            "inverse-pi-16-step",
+            "dac-write"
+        ],
+        "the bench must report every part"
+    );
+    println!("\nParts of the tick measured alone (each includes its own call, ≈ 14 instructions):");
+    println!("\n| part | mean | max |");
+    println!("|---|---:|---:|");
+    for p in &parts {
+        println!(
+            "| {} | {:.1} | {} |",
+            p.name,
+            p.total as f64 / p.ticks as f64,
+            p.max
+        );
+    }
+
     println!("\n| image | flash (bytes) | static RAM (bytes) |");
     println!("|---|---:|---:|");
     let board = support::build_image("twinstack-fw", &[]);
@@ -188,4 +251,10 @@ fn bench_lines_parse_and_malformed_ones_are_refused() {
     );
     assert!(parse_row("BENCH name=x ticks=ten").is_err());
     assert!(parse_row("hello").is_err());
+    let p = parse_part("PART name=dac-write ticks=10 total=210 max=21").unwrap();
+    assert_eq!(
+        (p.name.as_str(), p.ticks, p.total, p.max),
+        ("dac-write", 10, 210, 21)
+    );
+    assert!(parse_part("PART name=x ticks=1").is_err());
 }

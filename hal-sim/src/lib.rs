@@ -7,12 +7,16 @@
 //! * [`sim_board`] — [`sim_board::SimBoard`]: all of it behind the library's board traits.
 //! * [`identification`], [`measured_data`], [`param_file`] — fitting models to measured data,
 //!   the CSV reader and the versioned parameter file.
+//! * [`stage_model`] — an identified model as the board runs it (scaling, sensor sign and
+//!   lag), run over whole records in fixed point and in the `f64` reference; [`plot`] — the
+//!   identification figure; [`output_file`] — outputs written only when complete.
 //! * [`accuracy`] — the fixed-point vs `f64` error table.
 //! * [`cli`] — the `hal-sim` subcommands.
 
 pub mod accuracy;
 pub mod cli;
 pub mod converters;
+pub mod demo;
 pub mod identification;
 pub mod measured_data;
 pub mod output_file;

@@ -14,6 +14,9 @@ struct Cli {
 /// One variant per subcommand, each delegating to `hal_sim::cli::<name>::run`.
 #[derive(Debug, Subcommand)]
 enum Command {
+    /// The main job: the first paper's 750 Hz study on the simulated board and stage —
+    /// identification tables, tracking with each compensator, PNG figures.
+    Demo(cli::demo::Args),
     /// Fit a P–I or Duhem model to a measured CSV and write a parameter file and a figure.
     Identify(cli::identify::Args),
     /// Run the fixed-point forward model on a drive record.
@@ -23,8 +26,31 @@ enum Command {
 }
 
 fn main() -> std::process::ExitCode {
-    let cli = Cli::parse();
+    let cli = match Cli::try_parse() {
+        Ok(cli) => cli,
+        Err(e) => {
+            use clap::error::ErrorKind;
+            if matches!(
+                e.kind(),
+                ErrorKind::DisplayHelp
+                    | ErrorKind::DisplayVersion
+                    | ErrorKind::DisplayHelpOnMissingArgumentOrSubcommand
+            ) {
+                e.exit();
+            }
+            // One line: clap's first paragraph names the bad or missing argument(s).
+            let text = e.to_string();
+            let first: Vec<&str> = text
+                .lines()
+                .take_while(|l| !l.trim().is_empty())
+                .map(str::trim)
+                .collect();
+            eprintln!("{} (see hal-sim --help)", first.join(" "));
+            return std::process::ExitCode::from(2);
+        }
+    };
     let result = match &cli.command {
+        Command::Demo(a) => cli::demo::run(a),
         Command::Identify(a) => cli::identify::run(a),
         Command::Predict(a) => cli::predict::run(a),
         Command::Compensate(a) => cli::compensate::run(a),
@@ -32,7 +58,8 @@ fn main() -> std::process::ExitCode {
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,
         Err(e) => {
-            eprintln!("error: {e:#}");
+            // Each error's message already includes its cause.
+            eprintln!("error: {e}");
             std::process::ExitCode::FAILURE
         }
     }

@@ -380,4 +380,24 @@ mod tests {
         let msg = with(5, "2,abc,4").to_string();
         assert!(msg.starts_with("in.csv:5:"), "{msg}");
     }
+
+    proptest::proptest! {
+        /// Whatever the bytes, the reader returns a record or an error — never panics — and
+        /// a record it returns holds only finite numbers with strictly increasing time.
+        #[test]
+        fn any_text_gives_a_valid_record_or_an_error(
+            text in "(#[a-z ]{0,8}\n)?(t,u,x|x,t|t,u)?\n([0-9.eE+-]{0,6}(,[0-9.naNIf-]{0,5}){0,3}\n){0,14}"
+        ) {
+            for c in [Columns::TimeDriveOutput, Columns::TimeDrive, Columns::TimeOutput] {
+                if let Ok(d) = parse(&text, c) {
+                    proptest::prop_assert!(d.t.windows(2).all(|w| w[1] > w[0]));
+                    proptest::prop_assert!(d.t.iter().all(|v| v.is_finite()));
+                    for col in [&d.u, &d.x].into_iter().flatten() {
+                        proptest::prop_assert_eq!(col.len(), d.t.len());
+                        proptest::prop_assert!(col.iter().all(|v| v.is_finite()));
+                    }
+                }
+            }
+        }
+    }
 }

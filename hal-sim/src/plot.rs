@@ -173,3 +173,131 @@ pub fn draw(path: &Path, fig: &IdentificationFigure) -> Result<(), PlotError> {
     root.present().map_err(|x| e(&x))?;
     Ok(())
 }
+
+/// One line of a [`Panel`].
+#[derive(Clone, Debug)]
+pub struct Series {
+    /// Legend text.
+    pub label: String,
+    /// Points `(x, y)`.
+    pub points: Vec<(f64, f64)>,
+    /// Colour.
+    pub color: RGBColor,
+}
+
+/// One chart of a figure.
+#[derive(Clone, Debug)]
+pub struct Panel {
+    /// Caption above the chart.
+    pub caption: String,
+    /// X axis label.
+    pub x_label: String,
+    /// Y axis label.
+    pub y_label: String,
+    /// The lines.
+    pub series: Vec<Series>,
+}
+
+/// Draws `panels` side by side, `columns` to a row, into the PNG `path`.
+pub fn draw_panels(
+    path: &Path,
+    title: &str,
+    panels: &[Panel],
+    columns: usize,
+) -> Result<(), PlotError> {
+    let err = |m: String| PlotError {
+        path: path.display().to_string(),
+        message: m,
+    };
+    register_font().map_err(err)?;
+    let e = |x: &dyn std::fmt::Display| err(x.to_string());
+    let columns = columns.max(1);
+    let rows = panels.len().div_ceil(columns).max(1);
+    let root = BitMapBackend::new(path, (600 * columns as u32, 480 * rows as u32 + 40))
+        .into_drawing_area();
+    root.fill(&WHITE).map_err(|x| e(&x))?;
+    let root = root.titled(title, (FAMILY, 22)).map_err(|x| e(&x))?;
+    for (area, panel) in root.split_evenly((rows, columns)).iter().zip(panels) {
+        let (xlo, xhi) = bounds(
+            panel
+                .series
+                .iter()
+                .flat_map(|s| s.points.iter().map(|p| p.0)),
+        );
+        let (ylo, yhi) = bounds(
+            panel
+                .series
+                .iter()
+                .flat_map(|s| s.points.iter().map(|p| p.1)),
+        );
+        let mut chart = ChartBuilder::on(area)
+            .caption(&panel.caption, (FAMILY, 18))
+            .margin(10)
+            .x_label_area_size(40)
+            .y_label_area_size(70)
+            .build_cartesian_2d(xlo..xhi, ylo..yhi)
+            .map_err(|x| e(&x))?;
+        chart
+            .configure_mesh()
+            .x_desc(&panel.x_label)
+            .y_desc(&panel.y_label)
+            .label_style((FAMILY, 14))
+            .draw()
+            .map_err(|x| e(&x))?;
+        for s in &panel.series {
+            let color = s.color;
+            chart
+                .draw_series(LineSeries::new(
+                    s.points.iter().copied(),
+                    color.stroke_width(2),
+                ))
+                .map_err(|x| e(&x))?
+                .label(&s.label)
+                .legend(move |(x, y)| {
+                    PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(2))
+                });
+        }
+        chart
+            .configure_series_labels()
+            .position(SeriesLabelPosition::UpperLeft)
+            .label_font((FAMILY, 14))
+            .background_style(WHITE.mix(0.8))
+            .border_style(BLACK)
+            .draw()
+            .map_err(|x| e(&x))?;
+    }
+    root.present().map_err(|x| e(&x))?;
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_figure_renders_to_a_png_with_the_embedded_font() {
+        let t: Vec<f64> = (0..400).map(|k| k as f64 * 0.01).collect();
+        let u: Vec<f64> = t.iter().map(|&t| 100.0 * (t * 3.0).sin()).collect();
+        let measured: Vec<f64> = u.iter().map(|&v| 0.1 * v + 0.3).collect();
+        let model: Vec<f64> = u.iter().map(|&v| 0.1 * v).collect();
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("figure.png");
+        let fig = IdentificationFigure {
+            title: "test",
+            t: &t,
+            u: &u,
+            measured: &measured,
+            model: &model,
+            held_out_from: 300,
+            fit_from: 10,
+            output_unit: "um",
+        };
+        draw(&path, &fig).unwrap();
+        let bytes = std::fs::read(&path).unwrap();
+        assert_eq!(&bytes[..8], b"\x89PNG\r\n\x1a\n");
+        assert!(
+            bytes.len() > 10_000,
+            "a figure with axes and text, not an empty image"
+        );
+    }
+}

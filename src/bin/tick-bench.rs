@@ -9,7 +9,7 @@
 //! For each compensator (none, inverse P–I N = 8/16/32, inverse Duhem), with the Duhem
 //! observer and sensor feedback on (plus two breakdown rows: `bypass` = split, limits and DAC
 //! write only; `none-observer-only` = that plus the Duhem observer), it runs [`Controller::tick`] on the firmware's own DAC and
-//! ADC drivers (the DAC write is the real `DHR12RD` store) for a triangle setpoint that
+//! ADC drivers (the DAC write is the real `DHR12RD` store) for a triangle setpoint (±0.95) that
 //! reverses every 100 ticks, and prints one line per configuration over semihosting:
 //!
 //! ```text
@@ -31,13 +31,19 @@ use cortex_m_semihosting::{debug, hprintln};
 use defmt_rtt as _;
 use stm32f4xx_hal::pac;
 
+use twinstack::board::DacCode;
 use twinstack::board::{DualDac, SensorAdc};
 use twinstack::control::{ControlConfig, Controller, TickReport};
-use twinstack::default_config::{control_config, CompensatorKind};
+use twinstack::default_config::{
+    control_config, duhem_params, pi_params, scaling, CompensatorKind,
+};
 use twinstack::drive::SafeState;
+use twinstack::drive::{DifferentialDrive, DriveOutput};
+use twinstack::duhem::{Duhem, DuhemState};
 use twinstack::fixed_point::SIGNAL_ONE;
 use twinstack::hardware::adc::SensorInput;
 use twinstack::hardware::dac::InternalDac;
+use twinstack::prandtl_ishlinskii::{InversePrandtlIshlinskii, PiState};
 
 /// Ticks measured per configuration (after as many warm-up ticks).
 const TICKS: u32 = 1000;
@@ -79,9 +85,33 @@ fn empty_call(c: &mut Controller, setpoint: Option<i32>) -> Option<i32> {
     setpoint
 }
 
-/// Triangle setpoint: ±0.8 of full scale, reversing every [`HALF_PERIOD`] ticks.
+/// [`DifferentialDrive::split`] alone.
+#[inline(never)]
+fn split_part(d: &DifferentialDrive, command: i32, previous: i32) -> DriveOutput {
+    d.split(command, previous)
+}
+
+/// [`Duhem::step`] alone.
+#[inline(never)]
+fn duhem_part(m: &Duhem, s: &mut DuhemState, u: i32) -> i32 {
+    m.step(s, u)
+}
+
+/// [`InversePrandtlIshlinskii::step`] alone.
+#[inline(never)]
+fn pi_part(m: &InversePrandtlIshlinskii, s: &mut PiState, y: i32) -> i32 {
+    m.step(s, y)
+}
+
+/// [`DualDac::write_both`] alone.
+#[inline(never)]
+fn dac_part(d: &mut InternalDac, l: DacCode, r: DacCode) {
+    let _ = d.write_both(l, r);
+}
+
+/// Triangle setpoint: ±0.95 of full scale (nearly the whole stroke, so that every play operator moves), reversing every [`HALF_PERIOD`] ticks.
 fn setpoint(k: u32) -> i32 {
-    let amplitude = (SIGNAL_ONE / 10) * 8;
+    let amplitude = (SIGNAL_ONE / 20) * 19;
     let step = 2 * amplitude / HALF_PERIOD;
     let phase = (k as i32) % (2 * HALF_PERIOD);
     if phase < HALF_PERIOD {
@@ -161,6 +191,55 @@ fn main() -> ! {
             min,
             max,
             overhead
+        );
+    }
+    // The tick's parts alone, on the same triangle: where the instructions go.
+    let drive = base.drive;
+    let mut previous = drive.rest_drive();
+    let duhem = Duhem::new(&duhem_params(), &scaling()).unwrap_or_else(|_| panic!("duhem"));
+    let mut duhem_state = duhem.state_at(0, 0);
+    let inverse =
+        InversePrandtlIshlinskii::new(&pi_params(16).unwrap_or_else(|_| panic!("pi")), &scaling())
+            .unwrap_or_else(|_| panic!("inverse pi"));
+    let mut pi_state = inverse.state_at_rest(0);
+    let (mut split_n, mut duhem_n, mut pi_n, mut dac_n) =
+        ([0u64; 2], [0u64; 2], [0u64; 2], [0u64; 2]);
+    for k in 0..2 * TICKS {
+        let sp = setpoint(k);
+        let t0 = now(&tim);
+        let out = black_box(split_part(&drive, sp, previous));
+        let t1 = now(&tim);
+        black_box(duhem_part(&duhem, &mut duhem_state, out.applied));
+        let t2 = now(&tim);
+        black_box(pi_part(&inverse, &mut pi_state, sp));
+        let t3 = now(&tim);
+        dac_part(&mut dac, out.left, out.right);
+        let t4 = now(&tim);
+        previous = out.applied;
+        if k >= TICKS {
+            for (acc, n) in [
+                (&mut split_n, t1.wrapping_sub(t0)),
+                (&mut duhem_n, t2.wrapping_sub(t1)),
+                (&mut pi_n, t3.wrapping_sub(t2)),
+                (&mut dac_n, t4.wrapping_sub(t3)),
+            ] {
+                acc[0] += n as u64;
+                acc[1] = acc[1].max(n as u64);
+            }
+        }
+    }
+    for (name, acc) in [
+        ("drive-split", split_n),
+        ("duhem-observer-step", duhem_n),
+        ("inverse-pi-16-step", pi_n),
+        ("dac-write", dac_n),
+    ] {
+        hprintln!(
+            "PART name={} ticks={} total={} max={}",
+            name,
+            TICKS,
+            acc[0],
+            acc[1]
         );
     }
     debug::exit(debug::EXIT_SUCCESS);

@@ -63,16 +63,13 @@ mod tick_counters {
 #[cfg(target_os = "none")]
 #[panic_handler]
 fn panic(info: &core::panic::PanicInfo) -> ! {
-    twinstack::hardware::safe_state::make_outputs_safe();
-    defmt::error!("panic: {}", defmt::Display2Format(info));
-    twinstack::hardware::safe_state::halt()
+    twinstack::hardware::safe_state::stop_on_panic(info)
 }
 
 #[cfg(target_os = "none")]
 #[cortex_m_rt::exception]
 unsafe fn HardFault(_frame: &cortex_m_rt::ExceptionFrame) -> ! {
-    twinstack::hardware::safe_state::make_outputs_safe();
-    twinstack::hardware::safe_state::halt()
+    twinstack::hardware::safe_state::stop_on_fault()
 }
 
 #[cfg(target_os = "none")]
@@ -222,7 +219,7 @@ mod app {
             &rcc,
             &bus,
         );
-        let watchdog = Watchdog::start(dp.IWDG);
+        let watchdog = Watchdog::start(dp.IWDG, &dp.DBGMCU);
 
         let (setpoints_in, setpoints) = cx.local.setpoint_queue.split();
         let (bytes, bytes_in) = cx.local.rx_queue.split();

@@ -38,3 +38,17 @@ pub fn halt() -> ! {
         cortex_m::asm::wfi();
     }
 }
+
+/// The firmware's panic handler body: outputs safe first, then the panic logged over defmt,
+/// then [`halt`].
+pub fn stop_on_panic(info: &core::panic::PanicInfo) -> ! {
+    make_outputs_safe();
+    defmt::error!("panic: {}", defmt::Display2Format(info));
+    halt()
+}
+
+/// The firmware's hard-fault handler body: outputs safe, then [`halt`].
+pub fn stop_on_fault() -> ! {
+    make_outputs_safe();
+    halt()
+}

@@ -1,7 +1,7 @@
 //! The independent watchdog (IWDG, on the 32 kHz LSI), fed from the control tick: if the tick
 //! stops (a hung interrupt, a fault loop) the MCU resets within [`TIMEOUT_MS`].
 
-use stm32f4xx_hal::pac::IWDG;
+use stm32f4xx_hal::pac::{DBGMCU, IWDG};
 
 /// Watchdog timeout, ms (LSI 32 kHz / 8 = 4 kHz counter, reload 4 × 20 − 1).
 pub const TIMEOUT_MS: u32 = 20;
@@ -16,8 +16,11 @@ pub struct Watchdog {
 }
 
 impl Watchdog {
-    /// Starts the IWDG with [`TIMEOUT_MS`]. It cannot be stopped again (until reset).
-    pub fn start(iwdg: IWDG) -> Self {
+    /// Starts the IWDG with [`TIMEOUT_MS`]. It cannot be stopped again (until reset). While
+    /// a debugger holds the core halted (a breakpoint), the watchdog's counter is frozen too,
+    /// so debugging does not reset the board.
+    pub fn start(iwdg: IWDG, dbgmcu: &DBGMCU) -> Self {
+        dbgmcu.apb1_fz().modify(|_, w| w.dbg_iwdg_stop().set_bit());
         iwdg.kr().write(|w| unsafe { w.key().bits(KEY_UNLOCK) });
         iwdg.pr().write(|w| unsafe { w.pr().bits(0b001) }); // /8
         iwdg.rlr()

@@ -29,6 +29,13 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     let u = model
         .compensate(&data.t, x)
         .map_err(|e| anyhow::anyhow!("{}: {e}", args.params.display()))?;
+    let outside = model.reading_outside_range(x);
+    if outside > 0 {
+        eprintln!(
+            "warning: {}: {outside} desired readings outside the model's output range were clamped to it",
+            args.data.display()
+        );
+    }
     let mut out = Staged::new();
     out.write(&args.out, csv_t_u_x(&data.t, &u, x).as_bytes())?;
     out.commit()?;

@@ -106,9 +106,11 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     };
     let fit = score(x, &predicted, fit_from..held).ok_or_else(no_score)?;
     let held_out = score(x, &predicted, held..n).ok_or_else(no_score)?;
-    let inverse = score(u, &drive, held..n).ok_or_else(no_score)?;
+    // The last `lag` samples have no later reading to aim the drive at: not scored.
+    let aimed = n - model.lag_samples(t).min(n - held - 1);
+    let inverse = score(u, &drive, held..aimed).ok_or_else(no_score)?;
     let fixed_vs_reference = score(&reference, &predicted, fit_from..n).ok_or_else(no_score)?;
-    let inverse_reference = score(u, &drive_reference, held..n).ok_or_else(no_score)?;
+    let inverse_reference = score(u, &drive_reference, held..aimed).ok_or_else(no_score)?;
     let inverse_fixed_vs_reference =
         score(&drive_reference, &drive, fit_from..n).ok_or_else(no_score)?;
 

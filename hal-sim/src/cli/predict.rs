@@ -29,6 +29,13 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     let x = model
         .predict(&data.t, u)
         .map_err(|e| anyhow::anyhow!("{}: {e}", args.params.display()))?;
+    let outside = model.drive_outside_range(u);
+    if outside > 0 {
+        eprintln!(
+            "warning: {}: {outside} drive samples outside the model's input range were clamped to it",
+            args.data.display()
+        );
+    }
     let mut out = Staged::new();
     out.write(&args.out, csv_t_u_x(&data.t, u, &x).as_bytes())?;
     out.commit()?;

@@ -12,7 +12,10 @@
 //! 3. **Refinement.** The least-squares fit uses the measured output inside `J2`, so noise and
 //!    lag bias it. Starting from it, a simplex search minimises the RMS of the *simulated*
 //!    output against the measurement (what `predict` is scored on), over `ln α, ln β, ln γ, δ`
-//!    (so the parameters stay positive). The refined model is kept only if it is better.
+//!    (so the parameters stay positive), on the rows from `steady_from` on: the model's
+//!    start (on the anhysteretic curve) is an assumption, and fitting the transient out of it
+//!    (the initial loading curve) trades away accuracy on the loops that follow. The refined
+//!    model is kept only if it is better on those rows.
 
 use super::least_squares::{LeastSquaresError, NormalEquations};
 use super::simplex::minimise;
@@ -43,7 +46,7 @@ pub struct DuhemFit {
     pub least_squares_rms: f64,
     /// The final model (refined if that helped).
     pub params: DuhemParams,
-    /// RMS simulated error of the final model over the fit rows, output units.
+    /// RMS simulated error of the final model over the fit rows (all of them), output units.
     pub rms: f64,
     /// Simulated output of the final model over the whole record.
     pub simulated: Vec<f64>,
@@ -83,6 +86,7 @@ pub fn fit(
     rows: &FitRows,
     scaling: &Scaling,
     refine: bool,
+    steady_from: usize,
 ) -> Result<DuhemFit, LeastSquaresError> {
     let (&first, &last) = match (rows.index.first(), rows.index.last()) {
         (Some(f), Some(l)) => (f, l),
@@ -154,7 +158,17 @@ pub fn fit(
     };
 
     let mut best = (ls, ls_rms, ls_sim);
-    if refine {
+    let steady = FitRows {
+        index: rows
+            .index
+            .iter()
+            .copied()
+            .filter(|&k| k >= steady_from)
+            .collect(),
+        lag: rows.lag,
+    };
+    if refine && steady.index.len() >= super::MIN_FIT_SAMPLES {
+        let ls_steady = rms_error(&best.2, y, &steady);
         let start = [ls.alpha.ln(), ls.beta.ln(), ls.gamma.ln(), ls.offset];
         let cost = |v: &[f64; 4]| -> f64 {
             let p = DuhemParams {
@@ -164,7 +178,7 @@ pub fn fit(
                 offset: v[3],
             };
             match p.validate().ok().and_then(|_| simulate(&p, scaling, u)) {
-                Some(sim) => rms_error(&sim, y, rows),
+                Some(sim) => rms_error(&sim, y, &steady),
                 None => f64::INFINITY,
             }
         };
@@ -177,7 +191,7 @@ pub fn fit(
             offset: v[3],
         };
         if let Some((rms, sim)) = evaluate(&p) {
-            if rms < best.1 {
+            if rms_error(&sim, y, &steady) < ls_steady {
                 best = (p, rms, sim);
             }
         }
@@ -218,7 +232,7 @@ mod tests {
             index: (0..u.len()).collect(),
             lag: 0,
         };
-        let f = fit(&u, &y, &rows, &s, false).unwrap();
+        let f = fit(&u, &y, &rows, &s, false, 0).unwrap();
         assert_eq!(f.path, DuhemFitPath::Plain);
         for (got, want) in [
             (f.params.alpha, truth.alpha),
@@ -242,7 +256,7 @@ mod tests {
             index: (0..u.len()).collect(),
             lag: 0,
         };
-        let f = fit(&u, &y, &rows, &s, true).unwrap();
+        let f = fit(&u, &y, &rows, &s, true, 0).unwrap();
         assert_eq!(f.path, DuhemFitPath::ConstrainedNotPositive);
         assert!(f.params.validate().is_ok());
         assert!(f.simulated.iter().all(|v| v.is_finite()));

@@ -15,8 +15,12 @@
 //! 5. **Model**: P–I weights by NNLS ([`pi`]), or Duhem by integrated least squares with a
 //!    stability check and a simulated-error refinement ([`duhem`]).
 //! 6. **Scaling**: the input range is the fitted drive range widened by [`INPUT_MARGIN`], the
-//!    output range the model's output range widened by [`OUTPUT_MARGIN`]; the library then
-//!    has to accept the model for both the observer and the compensator.
+//!    output range the model's output range widened by [`OUTPUT_MARGIN`] — for Duhem, wider
+//!    still if needed so that the distance to the anhysteretic curve stays within
+//!    [`DUHEM_MAX_NORM_DISTANCE`] normalised (the fixed-point model saturates it at 2). The
+//!    library then has to accept the model for both the observer and the compensator; a P–I
+//!    whose inverse it refuses (`w_1 = 0`, inverse weights beyond Q8.24) is refitted with
+//!    `w_1` floored at [`MIN_NORM_FIRST_WEIGHT`] (normalised).
 //!
 //! Every row is fitted against the model run over the whole record from rest, the way
 //! `predict` runs it, so the fitted and the checked model see the same operator states.
@@ -359,7 +363,8 @@ pub fn identify(
             let (y_lo, y_hi) = min_max(y.iter().copied());
             let provisional = Scaling::new(in_lo, in_hi, y_lo, y_hi.max(y_lo + 1e-9))
                 .map_err(IdentifyError::Params)?;
-            let f = duhem::fit(u_fit, &y, &rows, &provisional, options.refine)?;
+            let steady_from = motion::both_extremes_reached(&u_fit[first..]) + first;
+            let f = duhem::fit(u_fit, &y, &rows, &provisional, options.refine, steady_from)?;
             let span = rows.target_span(&y);
             notes.push(format!(
                 "Duhem integrated least squares: simulated RMS {:.3} % of span{}",
@@ -374,7 +379,8 @@ pub fn identify(
             ));
             if f.params != f.least_squares {
                 notes.push(format!(
-                    "Duhem refined on the simulated error: RMS {:.3} % of span",
+                    "Duhem refined on the simulated error from t = {:.4} s (drive has seen both extremes): RMS {:.3} % of span over the fit",
+                    data.t[steady_from.min(n_fit - 1)],
                     100.0 * f.rms / span
                 ));
             }
@@ -410,4 +416,113 @@ pub fn identify(
         outliers,
         notes,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::identification::score::score;
+    use std::path::PathBuf;
+    use twinstack::params::{PiParams, Thresholds};
+    use twinstack::reference;
+
+    /// At rest for 50 samples, then a drive that steps to −80 V and follows a ±100 V sine;
+    /// the reading is a known P–I plus an offset, with ringing after the step and one spike.
+    fn glitchy_record() -> (MeasuredData, PiParams) {
+        let n = 3000;
+        let t: Vec<f64> = (0..n).map(|k| k as f64 * 1e-3).collect();
+        let phase = (-0.8f64).asin();
+        let u: Vec<f64> = (0..n)
+            .map(|k| {
+                if k < 50 {
+                    0.0
+                } else {
+                    100.0 * (2.0 * std::f64::consts::PI * (k - 50) as f64 / 500.0 + phase).sin()
+                }
+            })
+            .collect();
+        let thresholds = Thresholds::Uniform.generate(17, 100.0).unwrap();
+        let weights: Vec<f64> = (0..17).map(|i| 0.04 / (1.0 + 0.5 * i as f64)).collect();
+        let truth = PiParams::new(0.0, 2.0, &thresholds, &weights).unwrap();
+        let s = Scaling::new(-100.0, 100.0, -20.0, 20.0).unwrap();
+        let mut m = reference::PrandtlIshlinskii::new(&truth, &s, 0.0).unwrap();
+        let mut x: Vec<f64> = u.iter().map(|&v| m.step(v)).collect();
+        for (k, v) in x.iter_mut().enumerate().skip(50).take(10) {
+            *v += if k % 2 == 0 { 3.0 } else { -3.0 };
+        }
+        x[1500] += 5.0;
+        let data = MeasuredData {
+            path: PathBuf::from("glitchy.csv"),
+            t,
+            u: Some(u),
+            x: Some(x),
+        };
+        (data, truth)
+    }
+
+    #[test]
+    fn a_start_up_step_and_a_spike_are_skipped_and_the_model_predicts_the_held_out_part() {
+        let (data, _) = glitchy_record();
+        let id = identify(&data, &IdentifyOptions::new(ModelKind::Pi, 2.0)).unwrap();
+        assert!(id.motion.stepped, "the step to −80 V is a start-up glitch");
+        assert_eq!(id.motion.first_moving, 50);
+        assert!(
+            id.motion.first_fitted > 60,
+            "ringing samples not fitted: {:?}",
+            id.motion
+        );
+        assert!(id.outliers >= 1, "the spike is dropped");
+        assert_eq!(id.lag_samples, 0);
+        let (u, x) = (data.u.as_ref().unwrap(), data.x.as_ref().unwrap());
+        let predicted = id.model.predict(&data.t, u).unwrap();
+        let held = score(x, &predicted, 2000..3000).unwrap();
+        // The spike at 1500 is in the fitted part; the held-out part is clean.
+        assert!(held.max_pct < 0.2 && held.rms_pct < 0.05, "{held:?}");
+    }
+
+    #[test]
+    fn bad_options_and_splits_have_their_own_errors() {
+        let (data, _) = glitchy_record();
+        let mut o = IdentifyOptions::new(ModelKind::Pi, 2.0);
+        o.operators = 0;
+        assert!(matches!(
+            identify(&data, &o),
+            Err(IdentifyError::BadOperatorCount(0))
+        ));
+        o.operators = 33;
+        assert!(matches!(
+            identify(&data, &o),
+            Err(IdentifyError::BadOperatorCount(33))
+        ));
+        let o = IdentifyOptions::new(ModelKind::Duhem, 0.01);
+        assert!(matches!(
+            identify(&data, &o),
+            Err(IdentifyError::TooFewFitSamples { .. })
+        ));
+        let mut still = data.clone();
+        if let Some(u) = still.u.as_mut() {
+            u[..200].fill(0.0);
+        }
+        let o = IdentifyOptions::new(ModelKind::Duhem, 0.15);
+        assert!(matches!(
+            identify(&still, &o),
+            Err(IdentifyError::NoMotion(_))
+        ));
+        let o = IdentifyOptions::new(ModelKind::Pi, 2.995);
+        assert!(matches!(
+            identify(&data, &o),
+            Err(IdentifyError::NothingToScore { .. })
+        ));
+        let mut o = IdentifyOptions::new(ModelKind::Pi, 2.0);
+        o.lag = Some(5000);
+        assert!(matches!(
+            identify(&data, &o),
+            Err(IdentifyError::LagTooLong { lag: 5000 })
+        ));
+        let no_x = MeasuredData { x: None, ..data };
+        assert!(matches!(
+            identify(&no_x, &IdentifyOptions::new(ModelKind::Pi, 2.0)),
+            Err(IdentifyError::MissingColumns(_))
+        ));
+    }
 }

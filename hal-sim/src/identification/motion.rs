@@ -60,10 +60,7 @@ pub fn find(u: &[f64]) -> Option<MotionStart> {
     let started_at_rest = first_moving >= REST_SAMPLES;
     let mut first_fitted = first_moving + settle;
     if !started_at_rest {
-        let near = |v: f64, target: f64| (v - target).abs() <= MOTION_FRACTION * span;
-        let reached_lo = u.iter().position(|&v| near(v, lo)).unwrap_or(0);
-        let reached_hi = u.iter().position(|&v| near(v, hi)).unwrap_or(0);
-        first_fitted = first_fitted.max(reached_lo.max(reached_hi));
+        first_fitted = first_fitted.max(both_extremes_reached(u));
     }
     Some(MotionStart {
         first_moving,
@@ -71,6 +68,21 @@ pub fn find(u: &[f64]) -> Option<MotionStart> {
         started_at_rest,
         first_fitted: first_fitted.min(u.len() - 1),
     })
+}
+
+/// First sample by which the drive has come within [`MOTION_FRACTION`] of the span to both
+/// its minimum and its maximum over `u`: from there on every play operator up to the drive's
+/// amplitude has been wiped, whatever the initial state (0 if `u` is empty).
+pub fn both_extremes_reached(u: &[f64]) -> usize {
+    let (lo, hi) = u
+        .iter()
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(l, h), &v| {
+            (l.min(v), h.max(v))
+        });
+    let near = |v: f64, target: f64| (v - target).abs() <= MOTION_FRACTION * (hi - lo);
+    let reached_lo = u.iter().position(|&v| near(v, lo)).unwrap_or(0);
+    let reached_hi = u.iter().position(|&v| near(v, hi)).unwrap_or(0);
+    reached_lo.max(reached_hi)
 }
 
 #[cfg(test)]
@@ -109,6 +121,13 @@ mod tests {
         assert_eq!(m.first_moving, 20);
         assert!(m.stepped);
         assert_eq!(m.first_fitted, 20 + 10);
+    }
+
+    #[test]
+    fn both_extremes_are_reached_where_the_drive_first_comes_near_the_later_one() {
+        let u = [0.0, 1.0, 2.0, 1.0, 0.0, -1.0, -2.0, -1.0, 0.0];
+        assert_eq!(both_extremes_reached(&u), 6);
+        assert_eq!(both_extremes_reached(&[]), 0);
     }
 
     #[test]
