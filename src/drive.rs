@@ -7,15 +7,12 @@
 //! idle voltage. Limits act on the model-normalised drive, so that clamping or slewing `u_l`
 //! moves `u_r` in exact mirror and the observer sees precisely the drive that was applied.
 //!
-//! Formats: model-normalised drive Q2.30 (±1 over the model's input range); amplifier-normalised
-//! voltage Q2.30 (1.0 = the amplifier's full scale, e.g. 150 V); the map between them is
-//! `a = k0 + k1 · u` with `k0` Q2.30 and `k1` Q8.24.
+//! Formats: model-normalised drive Q2.30 (±1 over the model's input range); stack voltages in
+//! 2^-15 of a DAC code (Q17.15), so that the left stack's code is `code0 + (per_drive · u) >> 30`
+//! (one `SMULL`) and the right stack's its mirror about `2ū`, all in 32 bits.
 
 use crate::board::DacCode;
-use crate::fixed_point::{
-    gain_from_f64, limit, limit_i64, saturate_i64, signal_from_f64, GAIN_FRAC_BITS,
-    SIGNAL_FRAC_BITS,
-};
+use crate::fixed_point::{limit, signal_from_f64};
 use crate::scaling::Scaling;
 
 /// How the two stacks are driven.
@@ -94,14 +91,10 @@ pub struct DifferentialDrive {
     drive_max: i32,
     /// Largest change of the model-normalised drive per tick, Q2.30.
     slew_per_tick: i32,
-    /// `k0`: amplifier-normalised voltage of drive 0, Q2.30.
-    k0: i32,
-    /// `k1`: amplifier-normalised volts per unit of drive, Q8.24.
-    k1: i32,
-    /// Bias `ū`, amplifier-normalised, Q2.30.
-    bias: i32,
-    /// Right idle voltage, amplifier-normalised, Q2.30.
-    right_idle: i32,
+    /// Bias `ū` in 2^-15 of a DAC code (the safe state's code).
+    bias_code_q15: i32,
+    /// Model-normalised drive that puts the left stack at the bias, Q2.30 (the rest position).
+    rest_drive: i32,
     /// DAC full-scale code.
     dac_full_scale: u16,
     /// Left stack's code at drive 0, in 2^-15 of a code (Q17.15), so the tick's split is one
@@ -202,10 +195,8 @@ impl DifferentialDrive {
             drive_min: signal_from_f64(drive_min),
             drive_max: signal_from_f64(drive_max),
             slew_per_tick: signal_from_f64(slew.min(2.0)).max(1),
-            k0: signal_from_f64(scaling.input_mid() / fs),
-            k1: gain_from_f64(scaling.input_half_span() / fs),
-            bias: signal_from_f64(s.bias / fs),
-            right_idle: signal_from_f64(s.right_idle / fs),
+            bias_code_q15: libm::round(s.bias * q15) as i32,
+            rest_drive: signal_from_f64(scaling.input_to_norm(s.bias).clamp(drive_min, drive_max)),
             dac_full_scale: s.dac_full_scale,
             safe_state: s.safe_state,
             left_code0: libm::round(code0) as i32,
@@ -243,18 +234,11 @@ impl DifferentialDrive {
         DacCode(c.min(self.dac_full_scale as i32) as u16)
     }
 
-    /// Amplifier-normalised voltage (Q2.30, as i64) → DAC code, rounded and clamped.
-    fn code(&self, volts: i64) -> DacCode {
-        let fs = self.dac_full_scale as i64;
-        let c = (volts * fs + (1 << (SIGNAL_FRAC_BITS - 1))) >> SIGNAL_FRAC_BITS;
-        DacCode(limit_i64(c, 0, fs) as u16)
-    }
-
     /// The codes of the safe state (both stacks at the bias, or both at zero).
     pub fn safe_codes(&self) -> (DacCode, DacCode) {
         match self.safe_state {
             SafeState::Bias => {
-                let c = self.code(self.bias as i64);
+                let c = self.code_q15(self.bias_code_q15);
                 (c, c)
             }
             SafeState::Zero => (DacCode(0), DacCode(0)),
@@ -263,9 +247,7 @@ impl DifferentialDrive {
 
     /// The model-normalised drive that puts the left stack at the bias (the rest position).
     pub fn rest_drive(&self) -> i32 {
-        // u = (ū − k0) / k1, computed once off the tick path.
-        let num = ((self.bias as i64 - self.k0 as i64) << GAIN_FRAC_BITS) / (self.k1 as i64).max(1);
-        limit(saturate_i64(num), self.drive_min, self.drive_max)
+        self.rest_drive
     }
 
     /// Lowest and highest model-normalised drive the limits allow, Q2.30.
