@@ -34,3 +34,44 @@ pub trait SensorAdc {
     /// The most recent conversion (started by the control timer's trigger).
     fn read(&mut self) -> Result<AdcCode, Self::Error>;
 }
+
+/// Test doubles of the board, shared by the library's unit tests.
+#[cfg(test)]
+pub(crate) mod fakes {
+    use super::*;
+
+    /// A DAC that remembers the last pair written and counts the writes.
+    #[derive(Debug, Default)]
+    pub struct RecordingDac {
+        pub left: DacCode,
+        pub right: DacCode,
+        pub writes: u32,
+    }
+
+    impl DualDac for RecordingDac {
+        type Error = ();
+        fn full_scale(&self) -> DacCode {
+            DacCode(65535)
+        }
+        fn write_both(&mut self, left: DacCode, right: DacCode) -> Result<(), ()> {
+            self.left = left;
+            self.right = right;
+            self.writes += 1;
+            Ok(())
+        }
+    }
+
+    /// An ADC that always returns the same result (`None`: the read fails).
+    #[derive(Debug)]
+    pub struct FixedAdc(pub Option<AdcCode>);
+
+    impl SensorAdc for FixedAdc {
+        type Error = ();
+        fn full_scale(&self) -> AdcCode {
+            AdcCode(65535)
+        }
+        fn read(&mut self) -> Result<AdcCode, ()> {
+            self.0.ok_or(())
+        }
+    }
+}

@@ -434,31 +434,8 @@ mod tests {
     use crate::drive::{Configuration, DriveSettings, SafeState};
     use crate::fixed_point::signal_from_f64;
     use crate::scaling::Scaling;
-    use core::convert::Infallible;
 
-    struct Dac(DacCode, DacCode, u32);
-    impl DualDac for Dac {
-        type Error = Infallible;
-        fn full_scale(&self) -> DacCode {
-            DacCode(65535)
-        }
-        fn write_both(&mut self, l: DacCode, r: DacCode) -> Result<(), Infallible> {
-            self.0 = l;
-            self.1 = r;
-            self.2 += 1;
-            Ok(())
-        }
-    }
-    struct NoAdc;
-    impl SensorAdc for NoAdc {
-        type Error = ();
-        fn full_scale(&self) -> AdcCode {
-            AdcCode(65535)
-        }
-        fn read(&mut self) -> Result<AdcCode, ()> {
-            Err(())
-        }
-    }
+    use crate::board::fakes::{FixedAdc, RecordingDac};
 
     pub(crate) fn paper_drive() -> DriveSettings {
         DriveSettings {
@@ -488,13 +465,13 @@ mod tests {
     #[test]
     fn differential_split_mirrors_the_stacks_about_the_bias() {
         let mut c = bypass();
-        let mut dac = Dac(DacCode(0), DacCode(0), 0);
+        let mut dac = RecordingDac::default();
         for &y in &[-0.5, 0.0, 0.3, 0.9] {
             // Slew allows 20 V per tick: enough ticks to arrive.
             for _ in 0..20 {
-                c.tick(Some(signal_from_f64(y)), &mut NoAdc, &mut dac);
+                c.tick(Some(signal_from_f64(y)), &mut FixedAdc(None), &mut dac);
             }
-            let (l, r) = (volts(dac.0), volts(dac.1));
+            let (l, r) = (volts(dac.left), volts(dac.right));
             assert!((l + r - 140.0).abs() < 0.01, "u_l + u_r = 2ū: {l} + {r}");
             assert!((l - (70.0 + 70.0 * y)).abs() < 0.01, "u_l = ū + v: {l}");
         }
@@ -503,17 +480,17 @@ mod tests {
     #[test]
     fn underrun_holds_the_last_setpoint_and_is_counted() {
         let mut c = bypass();
-        let mut dac = Dac(DacCode(0), DacCode(0), 0);
+        let mut dac = RecordingDac::default();
         for _ in 0..10 {
-            c.tick(Some(signal_from_f64(0.5)), &mut NoAdc, &mut dac);
+            c.tick(Some(signal_from_f64(0.5)), &mut FixedAdc(None), &mut dac);
         }
-        let held = dac.0;
-        let r = c.tick(None, &mut NoAdc, &mut dac);
+        let held = dac.left;
+        let r = c.tick(None, &mut FixedAdc(None), &mut dac);
         assert!(r.flags.contains(TickFlags::UNDERRUN));
-        assert_eq!(dac.0, held);
+        assert_eq!(dac.left, held);
         assert_eq!(c.counters().underruns, 1);
         assert_eq!(c.counters().ticks, 11);
-        assert_eq!(dac.2, 11, "every tick writes both DACs once");
+        assert_eq!(dac.writes, 11, "every tick writes both DACs once");
     }
 
     #[test]
@@ -525,13 +502,13 @@ mod tests {
         settings.slew_rate = 50_000.0; // 1 V per tick
         let drive = DifferentialDrive::new(&settings, &scaling).unwrap();
         let mut c = Controller::new(ControlConfig::bypass(drive));
-        let mut dac = Dac(DacCode(0), DacCode(0), 0);
+        let mut dac = RecordingDac::default();
         let mut prev = (70.0, 70.0);
         let mut seed = 12345u32;
         for i in 0..5000 {
             seed = seed.wrapping_mul(1_664_525).wrapping_add(1_013_904_223);
             let sp = if i % 7 == 0 { None } else { Some(seed as i32) };
-            let r = c.tick(sp, &mut NoAdc, &mut dac);
+            let r = c.tick(sp, &mut FixedAdc(None), &mut dac);
             let (l, rv) = (volts(r.left), volts(r.right));
             for v in [l, rv] {
                 assert!((10.0 - 0.01..=130.0 + 0.01).contains(&v), "range: {v}");

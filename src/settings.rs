@@ -228,41 +228,21 @@ mod tests {
     /// relaxed at the present drive and the compensator starts out agreeing with them.
     #[test]
     fn reconfigure_mid_run_does_not_move_the_output() {
-        use crate::board::{AdcCode, DacCode, DualDac, SensorAdc};
+        use crate::board::fakes::{FixedAdc, RecordingDac};
+        use crate::board::{AdcCode, DacCode};
         use crate::control::Controller;
-        struct Dac(DacCode, DacCode);
-        impl DualDac for Dac {
-            type Error = ();
-            fn full_scale(&self) -> DacCode {
-                DacCode(4095)
-            }
-            fn write_both(&mut self, l: DacCode, r: DacCode) -> Result<(), ()> {
-                self.0 = l;
-                self.1 = r;
-                Ok(())
-            }
-        }
-        struct Adc;
-        impl SensorAdc for Adc {
-            type Error = ();
-            fn full_scale(&self) -> AdcCode {
-                AdcCode(65535)
-            }
-            fn read(&mut self) -> Result<AdcCode, ()> {
-                Ok(AdcCode(30000))
-            }
-        }
+        let mut adc = FixedAdc(Some(AdcCode(30000)));
         let mut c = Controller::new(settings(Mode::Bypass).build().unwrap());
-        let mut dac = Dac(DacCode(0), DacCode(0));
+        let mut dac = RecordingDac::default();
         for k in 0..500 {
             let sp = signal_from_f64(0.6 * libm::sin(k as f64 * 0.01));
-            c.tick(Some(sp), &mut Adc, &mut dac);
+            c.tick(Some(sp), &mut adc, &mut dac);
         }
-        let before = (dac.0, dac.1);
+        let before = (dac.left, dac.right);
         c.reconfigure(settings(Mode::OpenLoop).build().unwrap());
-        c.tick(None, &mut Adc, &mut dac);
+        c.tick(None, &mut adc, &mut dac);
         let moved = |a: DacCode, b: DacCode| (a.0 as i32 - b.0 as i32).abs();
-        assert!(moved(dac.0, before.0) <= 1 && moved(dac.1, before.1) <= 1);
+        assert!(moved(dac.left, before.0) <= 1 && moved(dac.right, before.1) <= 1);
     }
 
     #[test]
