@@ -82,21 +82,16 @@ pub enum DriveError {
 }
 
 /// The drive, converted once into the fixed-point form the tick uses.
+// Fields in the order the split reads them, so neighbours load in pairs (`LDRD`).
+#[repr(C)]
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct DifferentialDrive {
-    configuration: Configuration,
     /// Lowest model-normalised drive, Q2.30.
     drive_min: i32,
     /// Highest model-normalised drive, Q2.30.
     drive_max: i32,
     /// Largest change of the model-normalised drive per tick, Q2.30.
     slew_per_tick: i32,
-    /// Bias `ū` in 2^-15 of a DAC code (the safe state's code).
-    bias_code_q15: i32,
-    /// Model-normalised drive that puts the left stack at the bias, Q2.30 (the rest position).
-    rest_drive: i32,
-    /// DAC full-scale code.
-    dac_full_scale: u16,
     /// Left stack's code at drive 0, in 2^-15 of a code (Q17.15), so the tick's split is one
     /// `SMULL` and 32-bit adds: `left = code0 + (per_drive · u) >> 30`.
     left_code0: i32,
@@ -107,7 +102,14 @@ pub struct DifferentialDrive {
     right_code0: i32,
     /// −1 (differential) or 0 (unidirectional).
     right_mask: i32,
+    /// DAC full-scale code.
+    dac_full_scale: u16,
+    configuration: Configuration,
     safe_state: SafeState,
+    /// Bias `ū` in 2^-15 of a DAC code (the safe state's code).
+    bias_code_q15: i32,
+    /// Model-normalised drive that puts the left stack at the bias, Q2.30 (the rest position).
+    rest_drive: i32,
 }
 
 /// Both stacks' DAC codes and what the limits did this tick.
@@ -196,7 +198,10 @@ impl DifferentialDrive {
             drive_max: signal_from_f64(drive_max),
             slew_per_tick: signal_from_f64(slew.min(2.0)).max(1),
             bias_code_q15: libm::round(s.bias * q15) as i32,
-            rest_drive: signal_from_f64(scaling.input_to_norm(s.bias).clamp(drive_min, drive_max)),
+            // max/min, not f64::clamp: its panic message would pull float formatting into flash.
+            rest_drive: signal_from_f64(
+                scaling.input_to_norm(s.bias).max(drive_min).min(drive_max),
+            ),
             dac_full_scale: s.dac_full_scale,
             safe_state: s.safe_state,
             left_code0: libm::round(code0) as i32,
