@@ -1,0 +1,16 @@
+//! [`Transport`]: a byte pipe to a board.
+
+use std::io;
+use std::time::Duration;
+
+/// A byte pipe to a board: a serial device, a pty, a socket to QEMU's UART, or the simulated
+/// board in-process (which advances its simulated time while the host waits).
+pub trait Transport {
+    /// Sends all of `bytes` (blocking until they are handed to the link).
+    fn send(&mut self, bytes: &[u8]) -> io::Result<()>;
+
+    /// Receives what has arrived, up to `buf.len()` bytes, waiting at most `timeout` for the
+    /// first byte. Returns the number of bytes read; `Ok(0)` means the timeout passed with
+    /// nothing received (not end of stream).
+    fn receive(&mut self, buf: &mut [u8], timeout: Duration) -> io::Result<usize>;
+}
