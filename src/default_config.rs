@@ -8,10 +8,12 @@
 //! decaying geometrically, every partial sum positive, so the analytic inverse exists) and a
 //! Duhem model of similar slope. Replace them with the identification tool's output.
 
-use crate::control::{Compensator, ControlConfig, Feedback, Observer};
+use crate::control::{Compensator, ControlConfig, Mode, Observer};
 use crate::drive::{Configuration, DifferentialDrive, DriveError, DriveSettings, SafeState};
 use crate::duhem::{Duhem, InverseDuhem};
-use crate::fixed_point::{gain_from_f64, signal_from_f64};
+use crate::feedback::{Derivative, Feedback};
+use crate::fixed_point::{q1_31_from_f64, q4_28_from_f64, signal_from_f64};
+use crate::notch::{Notch, NotchDesign, NotchError};
 use crate::params::{DuhemParams, ParamError, PiParams, Thresholds, MAX_OPERATORS};
 use crate::prandtl_ishlinskii::InversePrandtlIshlinskii;
 use crate::scaling::Scaling;
@@ -42,6 +44,14 @@ pub enum ConfigError {
     Model(ParamError),
     /// The drive settings were refused.
     Drive(DriveError),
+    /// The notch cannot be designed at this control rate.
+    Notch(NotchError),
+}
+
+impl From<NotchError> for ConfigError {
+    fn from(e: NotchError) -> Self {
+        ConfigError::Notch(e)
+    }
 }
 
 impl From<ParamError> for ConfigError {
@@ -115,16 +125,45 @@ pub fn duhem_params() -> DuhemParams {
 }
 
 /// Sensor feedback: a 12-bit ADC spanning the stroke, `kp = 0.2`, `ki = 0.01` per tick,
-/// correction limited to ±0.2 of the drive range.
+/// correction limited to ±0.2 (normalised drive), drift flagged beyond 2 % of the stroke; no
+/// notch, no derivative.
 pub fn feedback() -> Feedback {
+    let limit = signal_from_f64(0.2);
+    let kp = q4_28_from_f64(0.2);
     Feedback {
         adc_bits: 12,
-        sensor_offset: signal_from_f64(-1.0),
-        sensor_gain: gain_from_f64(2.0),
-        kp: gain_from_f64(0.2),
-        ki: gain_from_f64(0.01),
-        limit: signal_from_f64(0.2),
+        sensor_offset: q4_28_from_f64(-1.0),
+        sensor_gain: q4_28_from_f64(2.0),
+        kp,
+        error_bound: Feedback::error_bound(limit, kp),
+        ki: q1_31_from_f64(0.01),
+        derivative: None,
+        limit,
+        notch: None,
+        drift_limit: signal_from_f64(0.04) as u32,
     }
+}
+
+/// The differential stage's first resonance as a notch: 21.8 kHz, Q = 2, full depth.
+pub fn stage_notch() -> NotchDesign {
+    NotchDesign {
+        frequency_hz: 21_800.0,
+        q: 2.0,
+        depth: 0.0,
+    }
+}
+
+/// [`feedback`] plus the [`stage_notch`] designed for `control_rate_hz` and a derivative term
+/// (`kd = 0.05` per tick, low pass at a tenth of the rate).
+pub fn feedback_with_notch(control_rate_hz: f64) -> Result<Feedback, ConfigError> {
+    Ok(Feedback {
+        notch: Some(Notch::new(&stage_notch(), control_rate_hz)?),
+        derivative: Some(Derivative {
+            kd: q4_28_from_f64(0.05),
+            smoothing: q1_31_from_f64(1.0 - libm::exp(-2.0 * core::f64::consts::PI / 10.0)),
+        }),
+        ..feedback()
+    })
 }
 
 /// A complete configuration: `compensator`, the Duhem observer, feedback on, the default drive.
@@ -148,6 +187,7 @@ pub fn control_config(
         observer: Observer::Duhem(Duhem::new(&duhem_params(), &s)?),
         feedback: Some(feedback()),
         drive: DifferentialDrive::new(&drive_settings(control_rate_hz, safe_state), &s)?,
+        mode: Mode::ClosedLoop,
     })
 }
 

@@ -9,6 +9,9 @@
 //! * [`play_operator`] — the play (backlash) operator, the building block of P–I.
 //! * [`prandtl_ishlinskii`] — forward and analytic-inverse Prandtl–Ishlinskii models.
 //! * [`duhem`] — Duhem forward observer and inverse Duhem compensator.
+//! * [`feedback`] — sensor feedback: PI(D) with anti-windup, the drift check; [`notch`] — the
+//!   resonance notch (fixed-point biquad designed for the control rate); [`mode_switch`] —
+//!   bumpless switching between bypass, open loop and closed loop.
 //! * [`params`] — physical (`f64`) parameter sets and their validation ([`ParamError`]).
 //! * [`param_store`] — the CRC-protected parameter record in flash and the board settings.
 //! * [`status_report`] — the minimal UART status query (until the protocol issue's frames).
@@ -31,9 +34,12 @@ pub mod converters;
 pub mod default_config;
 pub mod drive;
 pub mod duhem;
+pub mod feedback;
 pub mod fixed_point;
 #[cfg(target_os = "none")]
 pub mod hardware;
+pub mod mode_switch;
+pub mod notch;
 pub mod param_store;
 pub mod params;
 pub mod play_operator;

@@ -53,16 +53,16 @@ fn settings<D: AnalogDualDac, A: AnalogSensorAdc>(
             dac_full_scale: DualDac::full_scale(board).0,
             safe_state: SafeState::Bias,
         },
-        feedback: Some(FeedbackSettings {
-            sensor: SensorSettings {
+        feedback: Some(FeedbackSettings::pi(
+            SensorSettings {
                 adc_bits,
                 displacement_at_zero: um_at(adc_volts.0),
                 displacement_at_full_scale: um_at(adc_volts.1),
             },
-            kp: 0.0,
-            ki: 500.0,
-            limit: 1.0,
-        }),
+            0.0,
+            500.0,
+            1.0,
+        )),
         mode: Mode::ClosedLoop,
     }
 }
