@@ -11,11 +11,14 @@
 //!   lag), run over whole records in fixed point and in the `f64` reference; [`plot`] — the
 //!   identification figure; [`output_file`] — outputs written only when complete.
 //! * [`accuracy`] — the fixed-point vs `f64` error table.
+//! * [`closed_loop`] — sensor feedback around the compensator: the tracking table and the
+//!   notch's step.
 //! * [`link`] — the host end of the board link: [`link::Transport`] and the protocol client.
 //! * [`cli`] — the `hal-sim` subcommands.
 
 pub mod accuracy;
 pub mod cli;
+pub mod closed_loop;
 pub mod converters;
 pub mod demo;
 pub mod identification;

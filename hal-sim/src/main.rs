@@ -23,6 +23,9 @@ enum Command {
     Predict(cli::predict::Args),
     /// Run the fixed-point inverse model on a desired-output record.
     Compensate(cli::compensate::Args),
+    /// Sensor feedback around the compensator on the simulated stage: the tracking table
+    /// (none / feedforward / feedback / both) and the step with and without the notch.
+    ClosedLoop(cli::closed_loop::Args),
 }
 
 fn main() -> std::process::ExitCode {
@@ -54,6 +57,7 @@ fn main() -> std::process::ExitCode {
         Command::Identify(a) => cli::identify::run(a),
         Command::Predict(a) => cli::predict::run(a),
         Command::Compensate(a) => cli::compensate::run(a),
+        Command::ClosedLoop(a) => cli::closed_loop::run(a),
     };
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,
