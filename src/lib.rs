@@ -14,6 +14,7 @@
 //! * [`status_report`] — the minimal UART status query (until the protocol issue's frames).
 //! * `hardware` (firmware build only) — STM32F405 registers behind the [`board`] traits.
 //! * [`reference`] — `f64` reference implementations the fixed-point code is checked against.
+//! * [`golden`] — golden vectors: recorded ticks the board must reproduce bit for bit.
 //! * [`converters`] — SPI drivers of the external DAC (DAC8562/3) and sensor ADC (ADS8689).
 //!
 //! Everything here is allocation-free; the per-sample `step` functions have no panic path
@@ -32,6 +33,7 @@ pub mod default_config;
 pub mod drive;
 pub mod duhem;
 pub mod fixed_point;
+pub mod golden;
 #[cfg(target_os = "none")]
 pub mod hardware;
 pub mod param_store;

@@ -23,6 +23,9 @@ enum Command {
     Predict(cli::predict::Args),
     /// Run the fixed-point inverse model on a desired-output record.
     Compensate(cli::compensate::Args),
+    /// Generate the golden vectors (the tick's recorded runs the board must reproduce) and
+    /// check them against the stored file and the f64 reference, or write them (--write).
+    Golden(cli::golden::Args),
 }
 
 fn main() -> std::process::ExitCode {
@@ -54,6 +57,7 @@ fn main() -> std::process::ExitCode {
         Command::Identify(a) => cli::identify::run(a),
         Command::Predict(a) => cli::predict::run(a),
         Command::Compensate(a) => cli::compensate::run(a),
+        Command::Golden(a) => cli::golden::run(a),
     };
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,

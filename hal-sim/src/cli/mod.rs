@@ -2,5 +2,6 @@
 
 pub mod compensate;
 pub mod demo;
+pub mod golden;
 pub mod identify;
 pub mod predict;
