@@ -29,6 +29,8 @@
 pub const SIGNAL_FRAC_BITS: u32 = 30;
 /// Fractional bits of a Q8.24 gain.
 pub const GAIN_FRAC_BITS: u32 = 24;
+/// Fractional bits of an accumulator of gain × signal products (Q10.54 in `i64`).
+pub const Q54_FRAC_BITS: u32 = SIGNAL_FRAC_BITS + GAIN_FRAC_BITS;
 /// 1.0 as a Q2.30 signal (full scale).
 pub const SIGNAL_ONE: i32 = 1 << SIGNAL_FRAC_BITS;
 /// 1.0 as a Q8.24 gain.

@@ -301,73 +301,63 @@ impl PlayOperatorBank {
     fn engage<const UP: bool>(&self, s: &mut PiState, x: i32) {
         let d = if UP { 1 } else { -1 };
         let beyond = |t: i32| if UP { x > t } else { x < t };
-        for _ in 0..=MAX_SEGMENTS {
-            let Some(seg) = s
-                .depth
-                .checked_sub(1)
-                .and_then(|top| s.segments.get(top))
-                .copied()
-            else {
-                // Every operator follows: nothing left to trigger.
-                s.trigger = if UP { i32::MAX } else { i32::MIN };
-                return;
-            };
-            let start = s.following;
-            let end = seg.end.min(self.len);
-            if seg.direction == d {
-                // Left at `e − d·r_k` by a run in this direction: all move once x passes e.
-                if !beyond(seg.extremum) {
-                    s.trigger = seg.extremum;
-                    return;
-                }
-                let (Some(&w0), Some(&w1)) =
-                    (self.weight_prefix.get(start), self.weight_prefix.get(end))
-                else {
-                    return; // unreachable: start ≤ end ≤ len ≤ capacity
+        let never = if UP { i32::MAX } else { i32::MIN };
+        // Work on locals; the state is written once, at the end.
+        let (mut base, mut k, mut depth) = (s.base, s.following, s.depth);
+        let trigger = 'walk: {
+            for _ in 0..=MAX_SEGMENTS {
+                let Some(seg) = depth.checked_sub(1).and_then(|top| s.segments.get(top)) else {
+                    break 'walk never; // every operator follows: nothing left to trigger
                 };
-                s.base -= (w1 - w0) as i64 * seg.extremum as i64; // |Σ w| ≤ 64
-                s.following = end;
-                s.run_weight = w1;
-                s.depth -= 1;
-                continue;
-            }
-            let (Some(thresholds), Some(weights), Some(stored)) = (
-                self.thresholds.get(start..end),
-                self.weights.get(start..end),
-                s.explicit.get(start..end),
-            ) else {
-                return; // unreachable: start ≤ end ≤ len ≤ capacity
-            };
-            let explicit = seg.direction == EXPLICIT;
-            let e = seg.extremum;
-            let mut base = s.base;
-            let mut k = start;
-            let mut trigger = if UP { i32::MAX } else { i32::MIN };
-            for ((&r, &w), &p) in thresholds.iter().zip(weights).zip(stored) {
-                // Output `p` stored, or `e + d·r` left by a run the other way (a value the
-                // operator held: no overflow); the trigger is one more `d·r` on.
-                let t = match (explicit, UP) {
-                    (true, true) => p.saturating_add(r),
-                    (true, false) => p.saturating_sub(r),
-                    (false, true) => e.wrapping_add(r).saturating_add(r),
-                    (false, false) => e.wrapping_sub(r).saturating_sub(r),
-                };
-                if !beyond(t) {
-                    trigger = t;
-                    break;
+                let end = seg.end.min(self.len);
+                let e = seg.extremum;
+                if seg.direction == d {
+                    // Left at `e − d·r` by a run in this direction: all move once x passes e.
+                    if !beyond(e) {
+                        break 'walk e;
+                    }
+                    let (Some(&w0), Some(&w1)) =
+                        (self.weight_prefix.get(k), self.weight_prefix.get(end))
+                    else {
+                        break 'walk never; // unreachable: k ≤ end ≤ len ≤ capacity
+                    };
+                    base -= (w1 - w0) as i64 * e as i64; // |Σ w| ≤ 64
+                    k = end;
+                    depth -= 1;
+                    continue;
                 }
-                base -= w as i64 * t as i64;
-                k += 1;
+                let (Some(thresholds), Some(weights), Some(stored)) = (
+                    self.thresholds.get(k..end),
+                    self.weights.get(k..end),
+                    s.explicit.get(k..end),
+                ) else {
+                    break 'walk never; // unreachable: k ≤ end ≤ len ≤ capacity
+                };
+                let explicit = seg.direction == EXPLICIT;
+                for ((&r, &w), &p) in thresholds.iter().zip(weights).zip(stored) {
+                    // Output `p` stored, or `e + d·r` left by a run the other way (a value
+                    // the operator held: no overflow); the trigger is one more `d·r` on.
+                    let t = match (explicit, UP) {
+                        (true, true) => p.saturating_add(r),
+                        (true, false) => p.saturating_sub(r),
+                        (false, true) => e.wrapping_add(r).saturating_add(r),
+                        (false, false) => e.wrapping_sub(r).saturating_sub(r),
+                    };
+                    if !beyond(t) {
+                        break 'walk t;
+                    }
+                    base -= w as i64 * t as i64;
+                    k += 1;
+                }
+                depth -= 1;
             }
-            s.base = base;
-            s.following = k;
-            s.run_weight = self.weight_prefix.get(k).copied().unwrap_or(0);
-            if k < end {
-                s.trigger = trigger;
-                return;
-            }
-            s.depth -= 1;
-        }
+            never // unreachable: the loop runs out only after every segment is taken
+        };
+        s.base = base;
+        s.following = k;
+        s.depth = depth;
+        s.run_weight = self.weight_prefix.get(k).copied().unwrap_or(0);
+        s.trigger = trigger;
     }
 
     /// A state from operator outputs: projected onto the bank's invariant
