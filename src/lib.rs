@@ -51,5 +51,8 @@ pub mod settings;
 pub mod status_report;
 pub mod waveform;
 
+/// The `heapless` the protocol's messages are built from (`Vec` of setpoints, chunks), so
+/// host code builds them without naming the crate itself.
+pub use heapless;
 pub use params::{DuhemParams, ParamError, PiParams, Thresholds, MAX_OPERATORS};
 pub use scaling::Scaling;
