@@ -242,6 +242,18 @@ impl<T: Transport> Client<T> {
         }
     }
 
+    /// Lets `duration` pass on the link with no request outstanding (an in-process board
+    /// runs its ticks meanwhile); a response arriving now is a protocol error.
+    pub fn wait(&mut self, duration: Duration) -> Result<(), LinkError> {
+        match self.receive(duration)? {
+            None => Ok(()),
+            Some(r) => Err(LinkError::Unexpected {
+                request: "(none)",
+                got: format!("{r:?} while no request was outstanding"),
+            }),
+        }
+    }
+
     /// Sends `request` and waits for its response (a NACK is returned as a response here;
     /// see [`Client::expect_ack`]).
     pub fn request(&mut self, request: &Request) -> Result<Response, LinkError> {

@@ -192,6 +192,11 @@ fn run<T: Transport>(
     let mut rewinding = false; // a batch was refused: waiting out the ones sent after it
     let mut retries = 0u32;
     let mut started = false;
+    // Waiting for room without a batch accepted: bounded by the response timeout plus twice
+    // the time the board needs to play a full queue.
+    let mut stalled = Duration::ZERO;
+    let stall_limit = client.timeout()
+        + Duration::from_secs_f64(2.0 * capacity as f64 * options.divider as f64 * tick);
     let mut sent_ever = vec![false; samples.len().div_ceil(batch_max.max(1)) + 1];
 
     loop {
@@ -243,12 +248,16 @@ fn run<T: Transport>(
             // Out of credits with nothing to wait for: let the board play a batch's worth,
             // then ask how much room there is.
             let wait = Duration::from_secs_f64(batch_max as f64 * options.divider as f64 * tick);
-            if let Some(r) = client.receive(wait)? {
+            if stalled > stall_limit {
                 return Err(LinkError::Unexpected {
-                    request: "(none)",
-                    got: format!("{r:?} while no request was outstanding"),
+                    request: "Status",
+                    got: format!(
+                        "no room in the queue for {stalled:?}: the board is not playing the stream"
+                    ),
                 });
             }
+            client.wait(wait)?;
+            stalled += wait;
             client.send(&Request::Status)?;
             report.credit_probes += 1;
             in_flight.push_back(InFlight::Probe);
@@ -273,6 +282,7 @@ fn run<T: Transport>(
                 report.batches += 1;
                 handshaken = true;
                 retries = 0;
+                stalled = Duration::ZERO;
                 progress(*accepted);
             }
             (InFlight::Batch { first, len, seq: s }, Response::Nack { reason }) => {
@@ -329,12 +339,7 @@ fn run<T: Transport>(
                     ),
                 });
             }
-            if let Some(r) = client.receive(Duration::from_secs_f64(step))? {
-                return Err(LinkError::Unexpected {
-                    request: "(none)",
-                    got: format!("{r:?} while no request was outstanding"),
-                });
-            }
+            client.wait(Duration::from_secs_f64(step))?;
             waited += step;
             status = client.status()?;
         }
