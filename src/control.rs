@@ -230,6 +230,27 @@ impl Controller {
         self.relax_at(self.drive);
     }
 
+    /// The setpoint in force (the last one given, or held), Q2.30 normalised displacement.
+    pub fn setpoint(&self) -> i32 {
+        self.setpoint
+    }
+
+    /// The rest position: the observer's displacement with the drive at rest (the bias),
+    /// Q2.30 normalised (the drive itself without an observer). Computed from the configuration
+    /// alone; the controller's state is not touched.
+    pub fn rest_setpoint(&self) -> i32 {
+        let (lo, hi) = self.config.drive.drive_range();
+        let drive = limit(self.config.drive.rest_drive(), lo, hi);
+        match &self.config.observer {
+            Observer::None => drive,
+            Observer::Pi(m) => {
+                let mut s = m.state_at_rest(drive);
+                m.step(&mut s, drive)
+            }
+            Observer::Duhem(m) => m.anhysteretic(drive),
+        }
+    }
+
     /// The active configuration.
     pub fn config(&self) -> &ControlConfig {
         &self.config
@@ -393,7 +414,7 @@ impl Feedback {
     /// ADC code → normalised displacement: `offset + gain · code / 2^bits` (Q2.30, saturated).
     /// The code is masked to `adc_bits` and shifted up to a Q2.30 fraction in 32 bits.
     #[inline(always)]
-    fn displacement(&self, code: AdcCode) -> i32 {
+    pub fn displacement(&self, code: AdcCode) -> i32 {
         let bits = self.adc_bits.min(SIGNAL_FRAC_BITS);
         let mask = (1u32 << bits).wrapping_sub(1);
         let fraction = ((code.0 & mask) << (SIGNAL_FRAC_BITS - bits)) as i32; // [0, 1)
