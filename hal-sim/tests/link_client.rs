@@ -54,9 +54,10 @@ fn the_streamer_never_exceeds_its_credits_and_everything_plays_in_order() {
 }
 
 #[test]
-fn the_first_batch_adopts_the_sequence_number_the_board_expects() {
+fn the_first_batch_adopts_the_sequence_number_the_board_expects_when_its_status_does_not_say() {
     let mut board = FakeBoard::new(400, 50_000.0);
     board.expected_seq = 65_530; // and it wraps on the way
+    board.status_seq = Some(0); // (a status that does not tell, as protocol version 1's)
     let mut client = Client::new(board);
     let samples = ramp(3000);
     let options = StreamOptions {
@@ -231,4 +232,15 @@ fn a_board_that_never_frees_its_queue_ends_the_stream_instead_of_hanging() {
         .expect_err("stalls");
     assert!(err.to_string().contains("not playing the stream"), "{err}");
     assert_eq!(err.accepted, 192, "two batches fit the queue");
+}
+
+#[test]
+fn the_stream_numbers_its_batches_from_the_board_s_next_sequence_number() {
+    let mut board = FakeBoard::new(400, 50_000.0);
+    board.expected_seq = 1234;
+    let mut client = Client::new(board);
+    let report = stream_setpoints(&mut client, &ramp(1000), &StreamOptions::default(), |_| {})
+        .expect("stream");
+    assert!(report.nacks.is_empty(), "{:?}", report.nacks);
+    assert_eq!(client.transport().batches[0].0, 1234);
 }

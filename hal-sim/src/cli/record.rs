@@ -26,9 +26,6 @@ pub struct Args {
     /// Ticks per captured value.
     #[arg(long, default_value_t = 1)]
     pub decimation: u16,
-    /// The board's control rate, Hz (the time column and the wait).
-    #[arg(long, default_value_t = 50_000.0)]
-    pub tick_rate: f64,
     /// CSV to write.
     #[arg(long)]
     pub out: PathBuf,
@@ -88,21 +85,34 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     if args.decimation == 0 {
         bail!("--decimation must be at least 1");
     }
-    if !(args.tick_rate.is_finite() && args.tick_rate > 0.0) {
-        bail!(
-            "--tick-rate {}: must be a positive number of Hz",
-            args.tick_rate
-        );
-    }
     let mut client = connect(&args.port)?;
+    let tick_rate = client.status()?.tick_rate_hz.max(1) as f64;
     client.arm_recorder(RecordRequest {
         signal: args.signal.signal(),
         count: args.count,
         decimation: args.decimation,
     })?;
-    // Let the capture run (plus 10 %), then read it back.
-    let capture = args.count as f64 * args.decimation as f64 / args.tick_rate;
-    client.wait(Duration::from_secs_f64(capture * 1.1 + 0.01))?;
+    // Wait for the capture: poll the status's `recorded` until it reaches the count, for at
+    // most twice the capture's duration plus the response timeout.
+    let capture = args.count as f64 * args.decimation as f64 / tick_rate;
+    let step = (capture / 20.0).clamp(0.001, 0.25);
+    let budget = capture * 2.0 + client.timeout().as_secs_f64();
+    let mut waited = 0.0;
+    loop {
+        let s = client.status()?;
+        if s.recorded >= args.count {
+            break;
+        }
+        if waited > budget {
+            bail!(
+                "the recorder holds {} of {} values after {waited:.1} s (capture {capture:.3} s): is the board ticking?",
+                s.recorded,
+                args.count
+            );
+        }
+        client.wait(Duration::from_secs_f64(step))?;
+        waited += step;
+    }
     let values = client.read_recording(args.count, |_| {})?;
     let mut out = Staged::new();
     out.write(
@@ -110,17 +120,18 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         recording_csv(
             args.signal.name(),
             &values,
-            args.decimation as f64 / args.tick_rate,
+            args.decimation as f64 / tick_rate,
         )
         .as_bytes(),
     )?;
     out.commit()?;
     println!(
-        "wrote {} ({} values of {}, one every {} ticks)",
+        "wrote {} ({} values of {}, one every {} ticks at {} Hz)",
         args.out.display(),
         values.len(),
         args.signal.name(),
-        args.decimation
+        args.decimation,
+        tick_rate
     );
     Ok(())
 }

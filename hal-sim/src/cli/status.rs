@@ -13,23 +13,35 @@ pub struct Args {
 
 /// The report as `name value` lines.
 pub fn format_status(s: &StatusReport) -> String {
+    let mut flags = Vec::new();
+    for (bit, name) in [
+        (StatusReport::DEFAULTS, "defaults"),
+        (StatusReport::STREAMING, "streaming"),
+        (StatusReport::WAVEFORM, "waveform"),
+        (StatusReport::RECORDING, "recording"),
+        (StatusReport::CONFIG_PENDING, "config-pending"),
+    ] {
+        if s.has(bit) {
+            flags.push(name);
+        }
+    }
     format!(
-        "ticks {}\nqueue_fill {}\ncredits {}\nunderruns {}\noverruns {}\ncrc_errors {}\nlimit_hits {}\nestimate {:.6} (Q2.30 {})\nflags {:#06x}{}\n",
+        "ticks {}\ntick_rate_hz {}\nmode {:?}\nflags {}\nqueue_fill {}\ncredits {}\nnext_seq {}\nunderruns {}\noverruns {}\ncrc_errors {}\nframe_errors {}\nlimit_hits {}\nestimate {:.6} (Q2.30 {})\nrecorded {}\n",
         s.ticks,
+        s.tick_rate_hz,
+        s.mode(),
+        if flags.is_empty() { "-".to_string() } else { flags.join(",") },
         s.queue_fill,
         s.credits,
+        s.next_seq,
         s.underruns,
         s.overruns,
         s.crc_errors,
+        s.frame_errors,
         s.limit_hits,
         s.estimate as f64 / (1u64 << 30) as f64,
         s.estimate,
-        s.flags,
-        if s.flags & 1 != 0 {
-            " (parameters from defaults: no valid record in flash)"
-        } else {
-            ""
-        }
+        s.recorded,
     )
 }
 

@@ -27,7 +27,8 @@ pub struct Args {
     /// column, else 1].
     #[arg(long)]
     pub divider: Option<u16>,
-    /// The board's control rate, Hz (checks the t column, paces the waits).
+    /// The board's control rate, Hz, that the t column is checked against (the board's
+    /// status must agree).
     #[arg(long, default_value_t = 50_000.0)]
     pub tick_rate: f64,
     /// What the board does if the queue runs dry.
@@ -79,6 +80,19 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         ..StreamOptions::default()
     };
     let mut client = connect(&args.port)?;
+    let board_rate = client.status()?.tick_rate_hz;
+    if sp.divider_from_t.is_some() && board_rate > 0 && board_rate as f64 != args.tick_rate {
+        anyhow::bail!(
+            "the board ticks at {board_rate} Hz but the t column of {} was checked against --tick-rate {}: pass --tick-rate {board_rate}; nothing was sent",
+            args.data.display(),
+            args.tick_rate
+        );
+    }
+    let tick_rate = if board_rate > 0 {
+        board_rate as f64
+    } else {
+        args.tick_rate
+    };
     let r = stream_setpoints(&mut client, &sp.samples, &options, |_| {})?;
     if r.before.queue_fill > 0 {
         eprintln!(
@@ -87,7 +101,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         );
     }
     let end = r.drained.unwrap_or(r.after_last_batch);
-    let seconds = end.ticks.wrapping_sub(r.before.ticks) as f64 / args.tick_rate;
+    let seconds = end.ticks.wrapping_sub(r.before.ticks) as f64 / tick_rate;
     println!(
         "streamed {} setpoints from {} at divider {} ({} batches, {} resent, {} refused and retried, {} credit probes)",
         r.accepted,

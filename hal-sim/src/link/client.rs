@@ -105,6 +105,11 @@ pub fn nack_text(reason: &NackReason) -> String {
         NackReason::InvalidParams(e) => format!("parameters refused: {e}"),
         NackReason::InvalidDrive(e) => format!("drive settings refused: {e:?}"),
         NackReason::Unsupported => "not supported by this board".into(),
+        NackReason::Busy => {
+            "busy: not while the stream or the waveform runs (stop it first)".into()
+        }
+        NackReason::NothingStored => "no valid parameter set is stored in flash".into(),
+        NackReason::StoreFailed => "writing the flash record failed".into(),
     }
 }
 

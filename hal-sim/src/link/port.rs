@@ -5,6 +5,7 @@
 use super::serial::{SerialError, SerialTransport};
 use super::socket::SocketTransport;
 use super::Transport;
+use crate::sim_device::{SimDevice, SimDeviceConfig};
 use std::path::PathBuf;
 
 /// Default baud rate of the board link.
@@ -61,7 +62,9 @@ impl std::str::FromStr for PortSpec {
 }
 
 /// Opens `spec`; `baud` sets a serial device's rate and the simulated board's modelled rate
-/// (sockets ignore it).
+/// (sockets ignore it). `sim` is a fresh [`SimDevice`] (the paper's stage,
+/// [`SimDeviceConfig::paper`]) living as long as the returned transport: it starts from boot
+/// every time it is opened.
 pub fn open(spec: &PortSpec, baud: u32) -> Result<Box<dyn Transport>, PortError> {
     Ok(match spec {
         PortSpec::Sim => open_sim(baud)?,
@@ -72,8 +75,10 @@ pub fn open(spec: &PortSpec, baud: u32) -> Result<Box<dyn Transport>, PortError>
 }
 
 fn open_sim(baud: u32) -> Result<Box<dyn Transport>, PortError> {
-    let _ = baud;
-    Err(PortError::Sim(
-        "not available in this build yet (the in-process board lands with the device side)".into(),
-    ))
+    let config = SimDeviceConfig {
+        baud,
+        ..SimDeviceConfig::paper()
+    };
+    let device = SimDevice::new(config).map_err(|e| PortError::Sim(e.to_string()))?;
+    Ok(Box::new(device))
 }

@@ -6,9 +6,9 @@
 //!   moment the board handled that request; the host subtracts what it has sent since, and
 //!   never sends a batch larger than what is left. With nothing in flight and too few credits
 //!   it waits for the board to play some samples, then asks ([`Request::Status`]);
-//! * **sequence numbers**: batches are numbered consecutively (wrapping `u16`); the first
-//!   batch goes alone, and if the board expects another number (`OutOfSequence { expected }`)
-//!   the stream continues from that number;
+//! * **sequence numbers**: batches are numbered consecutively (wrapping `u16`) from the
+//!   `next_seq` the board reports; the first batch goes alone, and if the board expects another
+//!   number (`OutOfSequence { expected }`) the stream continues from that number;
 //! * **refusals**: a NACKed batch was not queued, and neither is any batch sent after it (they
 //!   are out of sequence), so the streamer waits for their answers, asks for the credits and
 //!   resends from the refused batch (go-back-N). Line damage (`Frame(..)`), `QueueFull` and
@@ -34,7 +34,8 @@ pub struct StreamOptions {
     pub divider: u16,
     /// Underrun policy to set first (`None`: leave the board's).
     pub underrun: Option<UnderrunPolicy>,
-    /// The board's control rate, Hz: paces the waits for credits.
+    /// The board's control rate, Hz, if its status does not report one: paces the waits for
+    /// credits.
     pub tick_rate_hz: f64,
     /// Largest batch, ≤ [`MAX_BATCH`].
     pub batch: usize,
@@ -168,7 +169,13 @@ fn run<T: Transport>(
         client.stream(StreamControl::Underrun(policy))?;
     }
     let batch_max = options.batch.clamp(1, MAX_BATCH).min(capacity);
-    let tick = 1.0 / options.tick_rate_hz.max(1.0);
+    // The board's own rate when it reports one.
+    let tick_rate = if before.tick_rate_hz > 0 {
+        before.tick_rate_hz as f64
+    } else {
+        options.tick_rate_hz
+    };
+    let tick = 1.0 / tick_rate.max(1.0);
     let mut report = StreamReport {
         accepted: 0,
         batches: 0,
@@ -187,7 +194,7 @@ fn run<T: Transport>(
     let mut in_flight: VecDeque<InFlight> = VecDeque::new();
     let mut unacked = 0usize; // samples in in-flight batches
     let mut next = 0usize; // next sample to send
-    let mut seq: u16 = 0;
+    let mut seq: u16 = before.next_seq;
     let mut handshaken = false; // a batch has been accepted: the sequence number is agreed
     let mut rewinding = false; // a batch was refused: waiting out the ones sent after it
     let mut retries = 0u32;

@@ -38,6 +38,8 @@ pub struct FakeBoard {
     pub setpoint_requests: usize,
     /// Bytes put on the line before the next response.
     pub garbage: Option<Vec<u8>>,
+    /// What the status reports as the next sequence number, if not the truth.
+    pub status_seq: Option<u16>,
     /// Answer nothing.
     pub mute: bool,
     /// Recorder contents.
@@ -65,6 +67,7 @@ impl FakeBoard {
             refuse: HashMap::new(),
             setpoint_requests: 0,
             garbage: None,
+            status_seq: None,
             mute: false,
             recording: Vec::new(),
             log: Vec::new(),
@@ -94,6 +97,9 @@ impl FakeBoard {
                 queue_fill: self.queue.len() as u16,
                 credits: self.free(),
                 underruns: self.underruns,
+                next_seq: self.status_seq.unwrap_or(self.expected_seq),
+                tick_rate_hz: self.rate as u32,
+                recorded: self.recording.len() as u32,
                 ..StatusReport::default()
             }),
             Request::Setpoints(b) => {
