@@ -260,3 +260,92 @@ fn bad_parameter_files_and_flags_are_refused_before_anything_is_sent() {
         "nothing reached the board"
     );
 }
+
+#[test]
+fn every_command_runs_against_the_simulated_board() {
+    let dir = tempfile::tempdir().unwrap();
+    let o = hal_sim(&["status", "--port", "sim"]);
+    let (out, err) = text(&o);
+    assert!(o.status.success(), "{out}{err}");
+    assert!(out.contains("tick_rate_hz 50000\nmode Bypass\n"), "{out}");
+
+    // 0.2 s of a 20 Hz sine, every 2nd tick (t steps by 40 µs).
+    let mut csv = String::from("t,setpoint\n");
+    for i in 0..5000 {
+        let t = i as f64 * 4e-5;
+        csv.push_str(&format!(
+            "{t},{}\n",
+            0.8 * (2.0 * std::f64::consts::PI * 20.0 * t).sin()
+        ));
+    }
+    let data = write(dir.path(), "sine.csv", &csv);
+    let o = hal_sim(&["stream", "--port", "sim", "--data", &data]);
+    let (out, err) = text(&o);
+    assert!(o.status.success(), "{out}{err}");
+    assert!(
+        out.contains("streamed 5000 setpoints") && out.contains("at divider 2"),
+        "{out}"
+    );
+    assert!(out.contains("underruns during the stream: 0\n"), "{out}");
+
+    let model = hal_sim::stage_model::StageModel {
+        hysteresis: hal_sim::stage_model::Hysteresis::Pi(
+            twinstack::default_config::pi_params(16).unwrap(),
+        ),
+        scaling: twinstack::Scaling::new(0.0, 140.0, -10.0, 80.0).unwrap(),
+        output_sign: 1.0,
+        sensor_lag_s: 0.0,
+    };
+    let file = hal_sim::param_file::ParamFile::from_model(&model, "um", None).unwrap();
+    let params = write(dir.path(), "p.json", &file.to_json());
+    let o = hal_sim(&["load", "--port", "sim", "--params", &params, "--store"]);
+    let (out, err) = text(&o);
+    assert!(o.status.success(), "{out}{err}");
+    assert!(
+        out.contains("(P–I, 16 operators), mode OpenLoop") && out.contains("stored to flash"),
+        "{out}"
+    );
+
+    let rec = dir.path().join("rec.csv");
+    let o = hal_sim(&[
+        "record",
+        "--port",
+        "sim",
+        "--signal",
+        "setpoint",
+        "--count",
+        "300",
+        "--decimation",
+        "5",
+        "--out",
+        rec.to_str().unwrap(),
+    ]);
+    let (out, err) = text(&o);
+    assert!(o.status.success(), "{out}{err}");
+    let csv = std::fs::read_to_string(&rec).unwrap();
+    let lines: Vec<&str> = csv.lines().collect();
+    assert_eq!(lines.len(), 301);
+    assert_eq!(lines[0], "t,setpoint,setpoint_q2_30");
+    assert!(lines[2].starts_with("0.0001,"), "{}", lines[2]);
+
+    for args in [
+        &[
+            "waveform",
+            "--port",
+            "sim",
+            "--shape",
+            "triangle",
+            "--amplitude",
+            "0.5",
+            "--offset",
+            "-0.2",
+            "--frequency",
+            "750",
+        ][..],
+        &["stop", "--port", "sim"][..],
+    ] {
+        let o = hal_sim(args);
+        let (out, err) = text(&o);
+        assert!(o.status.success(), "{args:?}: {out}{err}");
+    }
+}
