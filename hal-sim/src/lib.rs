@@ -27,6 +27,7 @@ pub mod output_file;
 pub mod param_file;
 pub mod plant;
 pub mod plot;
+pub mod setpoint_file;
 pub mod sim_board;
 pub mod sim_device;
 pub mod stage_model;
