@@ -14,6 +14,9 @@
 //! * [`status_report`] — the minimal UART status query (until the protocol issue's frames).
 //! * `hardware` (firmware build only) — STM32F405 registers behind the [`board`] traits.
 //! * [`reference`] — `f64` reference implementations the fixed-point code is checked against.
+//! * [`control_loop`] — the tick side of the board: setpoint queue and stream or waveform,
+//!   the control tick, the data recorder; [`recorder`] — the recorder itself.
+//! * [`protocol`] — the UART protocol: frames, messages, and the board's command handler.
 //! * [`golden`] — golden vectors: recorded ticks the board must reproduce bit for bit.
 //! * [`converters`] — SPI drivers of the external DAC (DAC8562/3) and sensor ADC (ADS8689).
 //!
@@ -28,6 +31,7 @@
 
 pub mod board;
 pub mod control;
+pub mod control_loop;
 pub mod converters;
 pub mod default_config;
 pub mod drive;
@@ -41,6 +45,7 @@ pub mod params;
 pub mod play_operator;
 pub mod prandtl_ishlinskii;
 pub mod protocol;
+pub mod recorder;
 pub mod reference;
 pub mod scaling;
 pub mod setpoint_stream;
@@ -48,5 +53,8 @@ pub mod settings;
 pub mod status_report;
 pub mod waveform;
 
+/// The `heapless` the protocol's messages are built from (`Vec` of setpoints, chunks), so
+/// host code builds them without naming the crate itself.
+pub use heapless;
 pub use params::{DuhemParams, ParamError, PiParams, Thresholds, MAX_OPERATORS};
 pub use scaling::Scaling;

@@ -5,6 +5,8 @@
 //! * [`converters`] — emulated DACs, amplifiers, sensor and ADCs, including the external SPI
 //!   chips (DAC8562/3, ADS8689) at the wire level.
 //! * [`sim_board`] — [`sim_board::SimBoard`]: all of it behind the library's board traits.
+//! * [`sim_device`] — [`sim_device::SimDevice`]: the board, the library's control loop and
+//!   command handler in-process, on a modelled UART, behind [`link::Transport`].
 //! * [`identification`], [`measured_data`], [`param_file`] — fitting models to measured data,
 //!   the CSV reader and the versioned parameter file.
 //! * [`stage_model`] — an identified model as the board runs it (scaling, sensor sign and
@@ -27,5 +29,7 @@ pub mod output_file;
 pub mod param_file;
 pub mod plant;
 pub mod plot;
+pub mod setpoint_file;
 pub mod sim_board;
+pub mod sim_device;
 pub mod stage_model;
