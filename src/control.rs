@@ -159,6 +159,7 @@ pub struct Controller {
 }
 
 /// State of whichever model a slot holds.
+#[allow(clippy::large_enum_variant)] // as for `Compensator`: no heap, the state is in a static
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 enum ModelState {
     Pi(PiState),
@@ -209,9 +210,12 @@ impl Controller {
         };
         self.compensator_state = match (&self.config.compensator, &observer_state) {
             (Compensator::None, _) => ModelState::None,
-            (Compensator::InversePi(m), ModelState::Pi(fs)) => {
-                ModelState::Pi(m.state_from_forward(fs))
-            }
+            (Compensator::InversePi(m), ModelState::Pi(fs)) => match &self.config.observer {
+                Observer::Pi(observer) => {
+                    ModelState::Pi(m.state_from_forward(&observer.bank().outputs(fs)))
+                }
+                _ => ModelState::Pi(m.state_at_rest(y)), // unreachable: the state is the observer's
+            },
             (Compensator::InversePi(m), _) => ModelState::Pi(m.state_at_rest(y)),
             (Compensator::InverseDuhem(m), _) => {
                 let model = m.model();

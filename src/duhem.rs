@@ -22,8 +22,8 @@
 //! shortfall in one sample is made up in the next.
 
 use crate::fixed_point::{
-    clamp_full_scale, gain_from_f64, saturate_i64, signal_from_f64, GAIN_FRAC_BITS,
-    SIGNAL_FRAC_BITS, SIGNAL_ONE,
+    clamp_full_scale, gain_from_f64, q54_to_signal_floor, saturate_i64, signal_from_f64,
+    GAIN_FRAC_BITS, Q54_FRAC_BITS, SIGNAL_FRAC_BITS, SIGNAL_ONE,
 };
 use crate::params::{DuhemParams, ParamError};
 use crate::scaling::Scaling;
@@ -101,23 +101,29 @@ impl Duhem {
 
     /// One sample: input `u` (Q2.30 normalised drive, clamped to [-1, 1]) → estimated
     /// displacement (Q2.30 normalised, saturated).
+    ///
+    /// The update `y + a·e + γ·Δu` is summed in one Q10.54 accumulator (`a·e` is Q4.60,
+    /// shifted down by 6; `γ·Δu` is Q8.24 × Q2.30) and brought back to Q2.30 once, rounding
+    /// toward −∞ and saturating ([`q54_to_signal_floor`]): one rounding per step instead of
+    /// one per term, and a multiply-accumulate instead of two shifts and a 64-bit add.
     #[inline]
     pub fn step(&self, state: &mut DuhemState, u: i32) -> i32 {
         let u = clamp_full_scale(u);
         // |Δu| ≤ 2; a full-range jump saturates 2^-30 short of 2 (QSUB).
         let du = u.saturating_sub(state.u);
         let magnitude = du.unsigned_abs();
-        // a = min(α|Δu|, 1), Q2.30: below 1/α the product is < 2^54 and fits after the shift.
+        // a = min(α|Δu|, 1), Q2.30: below 1/α the product is < 2^54 and fits after the shift;
+        // there |Δu| < 1/α < 2, so it is a non-negative i32 and a signed multiply serves.
         let a = if magnitude >= self.inverse_alpha as u32 {
             SIGNAL_ONE
         } else {
-            ((self.alpha as i64 * magnitude as i64) >> GAIN_FRAC_BITS) as i32
+            ((self.alpha as i64 * magnitude as i32 as i64) >> GAIN_FRAC_BITS) as i32
         };
         let e = self.anhysteretic_error(state);
-        let dy = ((a as i64 * e as i64) >> SIGNAL_FRAC_BITS)
-            + ((self.gamma as i64 * du as i64) >> GAIN_FRAC_BITS);
+        let hysteretic = (a as i64 * e as i64) >> (2 * SIGNAL_FRAC_BITS - Q54_FRAC_BITS);
+        let acc = ((state.y as i64) << GAIN_FRAC_BITS) + hysteretic + self.gamma as i64 * du as i64;
         state.u = u;
-        state.y = saturate_i64(state.y as i64 + dy);
+        state.y = q54_to_signal_floor(acc);
         state.y
     }
 }
