@@ -91,13 +91,20 @@ pub fn drive_settings(control_rate_hz: f64, safe_state: SafeState) -> DriveSetti
 /// total slope 0.5 µm/V, `w_1 = 0.3 µm/V`, the other 0.2 µm/V decaying by 0.8 per operator.
 pub fn pi_params(n: usize) -> Result<PiParams, ParamError> {
     let thresholds = Thresholds::Uniform.generate(n, DRIVE_VOLTS.1 - DRIVE_VOLTS.0)?;
+    // 0.8^i by repeated multiplication (no `libm::pow` in the firmware image).
+    let mut decay = [0.0; MAX_OPERATORS];
+    let mut p = 1.0;
+    for d in decay.iter_mut().take(n).skip(1) {
+        p *= 0.8;
+        *d = p;
+    }
+    let tail: f64 = decay.iter().sum();
     let mut weights = [0.0; MAX_OPERATORS];
-    let tail: f64 = (1..n).map(|i| libm::pow(0.8, i as f64)).sum();
     for (i, w) in weights.iter_mut().enumerate().take(n) {
         *w = if i == 0 {
             0.3
         } else if tail > 0.0 {
-            0.2 * libm::pow(0.8, i as f64) / tail
+            0.2 * decay[i] / tail
         } else {
             0.0
         };

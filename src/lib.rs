@@ -11,7 +11,6 @@
 //! * [`duhem`] — Duhem forward observer and inverse Duhem compensator.
 //! * [`params`] — physical (`f64`) parameter sets and their validation ([`ParamError`]).
 //! * [`param_store`] — the CRC-protected parameter record in flash and the board settings.
-//! * [`status_report`] — the minimal UART status query (until the protocol issue's frames).
 //! * `hardware` (firmware build only) — STM32F405 registers behind the [`board`] traits.
 //! * [`reference`] — `f64` reference implementations the fixed-point code is checked against.
 //! * [`control_loop`] — the tick side of the board: setpoint queue and stream or waveform,
@@ -48,7 +47,6 @@ pub mod reference;
 pub mod scaling;
 pub mod setpoint_stream;
 pub mod settings;
-pub mod status_report;
 pub mod waveform;
 
 /// The `heapless` the protocol's messages are built from (`Vec` of setpoints, chunks), so
