@@ -156,6 +156,7 @@ pub struct Controller {
 }
 
 /// State of whichever model a slot holds.
+#[allow(clippy::large_enum_variant)] // as for `Compensator`: no heap, the state is in a static
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 enum ModelState {
     Pi(PiState),
@@ -209,9 +210,12 @@ impl Controller {
             // Bypass runs no compensator: an empty state slot skips it in the tick.
             _ if self.config.mode == Mode::Bypass => ModelState::None,
             (Compensator::None, _) => ModelState::None,
-            (Compensator::InversePi(m), ModelState::Pi(fs)) => {
-                ModelState::Pi(m.state_from_forward(fs))
-            }
+            (Compensator::InversePi(m), ModelState::Pi(fs)) => match &self.config.observer {
+                Observer::Pi(observer) => {
+                    ModelState::Pi(m.state_from_forward(&observer.bank().outputs(fs)))
+                }
+                _ => ModelState::Pi(m.state_at_rest(y)), // unreachable: the state is the observer's
+            },
             (Compensator::InversePi(m), _) => ModelState::Pi(m.state_at_rest(y)),
             (Compensator::InverseDuhem(m), _) => {
                 let model = m.model();
@@ -275,7 +279,12 @@ impl Controller {
         match (&self.config.compensator, &self.observer_state) {
             (Compensator::None, _) => ModelState::None,
             (Compensator::InversePi(m), ModelState::Pi(fs)) => {
-                ModelState::Pi(m.state_from_forward(fs))
+                match &self.config.observer {
+                    Observer::Pi(observer) => {
+                        ModelState::Pi(m.state_from_forward(&observer.bank().outputs(fs)))
+                    }
+                    _ => ModelState::Pi(m.state_at_rest(self.setpoint)), // unreachable
+                }
             }
             (Compensator::InversePi(m), _) => ModelState::Pi(m.state_at_rest(self.setpoint)),
             (Compensator::InverseDuhem(m), ModelState::Duhem(os))
@@ -311,6 +320,27 @@ impl Controller {
             _ => wanted,
         };
         self.transfer.start(rest);
+    }
+
+    /// The setpoint in force (the last one given, or held), Q2.30 normalised displacement.
+    pub fn setpoint(&self) -> i32 {
+        self.setpoint
+    }
+
+    /// The rest position: the observer's displacement with the drive at rest (the bias),
+    /// Q2.30 normalised (the drive itself without an observer). Computed from the configuration
+    /// alone; the controller's state is not touched.
+    pub fn rest_setpoint(&self) -> i32 {
+        let (lo, hi) = self.config.drive.drive_range();
+        let drive = limit(self.config.drive.rest_drive(), lo, hi);
+        match &self.config.observer {
+            Observer::None => drive,
+            Observer::Pi(m) => {
+                let mut s = m.state_at_rest(drive);
+                m.step(&mut s, drive)
+            }
+            Observer::Duhem(m) => m.anhysteretic(drive),
+        }
     }
 
     /// The active configuration.

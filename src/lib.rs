@@ -14,9 +14,12 @@
 //!   bumpless switching between bypass, open loop and closed loop.
 //! * [`params`] — physical (`f64`) parameter sets and their validation ([`ParamError`]).
 //! * [`param_store`] — the CRC-protected parameter record in flash and the board settings.
-//! * [`status_report`] — the minimal UART status query (until the protocol issue's frames).
 //! * `hardware` (firmware build only) — STM32F405 registers behind the [`board`] traits.
 //! * [`reference`] — `f64` reference implementations the fixed-point code is checked against.
+//! * [`control_loop`] — the tick side of the board: setpoint queue and stream or waveform,
+//!   the control tick, the data recorder; [`recorder`] — the recorder itself.
+//! * [`protocol`] — the UART protocol: frames, messages, and the board's command handler.
+//! * [`golden`] — golden vectors: recorded ticks the board must reproduce bit for bit.
 //! * [`converters`] — SPI drivers of the external DAC (DAC8562/3) and sensor ADC (ADS8689).
 //!
 //! Everything here is allocation-free; the per-sample `step` functions have no panic path
@@ -30,12 +33,14 @@
 
 pub mod board;
 pub mod control;
+pub mod control_loop;
 pub mod converters;
 pub mod default_config;
 pub mod drive;
 pub mod duhem;
 pub mod feedback;
 pub mod fixed_point;
+pub mod golden;
 #[cfg(target_os = "none")]
 pub mod hardware;
 pub mod mode_switch;
@@ -45,12 +50,15 @@ pub mod params;
 pub mod play_operator;
 pub mod prandtl_ishlinskii;
 pub mod protocol;
+pub mod recorder;
 pub mod reference;
 pub mod scaling;
 pub mod setpoint_stream;
 pub mod settings;
-pub mod status_report;
 pub mod waveform;
 
+/// The `heapless` the protocol's messages are built from (`Vec` of setpoints, chunks), so
+/// host code builds them without naming the crate itself.
+pub use heapless;
 pub use params::{DuhemParams, ParamError, PiParams, Thresholds, MAX_OPERATORS};
 pub use scaling::Scaling;

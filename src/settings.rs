@@ -192,7 +192,7 @@ impl Settings {
 
     /// The fixed-point feedback; `observed` says whether an observer runs (the drift check
     /// needs one).
-    fn feedback_config(
+    pub fn feedback_config(
         &self,
         fb: &FeedbackSettings,
         observed: bool,

@@ -5,6 +5,8 @@
 //! * [`converters`] — emulated DACs, amplifiers, sensor and ADCs, including the external SPI
 //!   chips (DAC8562/3, ADS8689) at the wire level.
 //! * [`sim_board`] — [`sim_board::SimBoard`]: all of it behind the library's board traits.
+//! * [`sim_device`] — [`sim_device::SimDevice`]: the board, the library's control loop and
+//!   command handler in-process, on a modelled UART, behind [`link::Transport`].
 //! * [`identification`], [`measured_data`], [`param_file`] — fitting models to measured data,
 //!   the CSV reader and the versioned parameter file.
 //! * [`stage_model`] — an identified model as the board runs it (scaling, sensor sign and
@@ -13,6 +15,7 @@
 //! * [`accuracy`] — the fixed-point vs `f64` error table.
 //! * [`closed_loop`] — sensor feedback around the compensator: the tracking table and the
 //!   notch's step.
+//! * [`golden`] — golden vectors: generating them, and checking them against the `f64` tick.
 //! * [`link`] — the host end of the board link: [`link::Transport`] and the protocol client.
 //! * [`cli`] — the `hal-sim` subcommands.
 
@@ -21,6 +24,7 @@ pub mod cli;
 pub mod closed_loop;
 pub mod converters;
 pub mod demo;
+pub mod golden;
 pub mod identification;
 pub mod link;
 pub mod measured_data;
@@ -28,5 +32,7 @@ pub mod output_file;
 pub mod param_file;
 pub mod plant;
 pub mod plot;
+pub mod setpoint_file;
 pub mod sim_board;
+pub mod sim_device;
 pub mod stage_model;
