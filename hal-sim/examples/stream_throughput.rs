@@ -169,6 +169,7 @@ fn emulator(elf: &str, seconds: f64) -> Result<(), String> {
         .args(["-serial", "chardev:u1", "-kernel", elf])
         .stdin(Stdio::null())
         .stdout(Stdio::null())
+        .stderr(Stdio::null())
         .spawn()
         .map_err(|e| format!("qemu-system-arm: {e}"))?;
     let _qemu = Qemu { child, dir };
