@@ -141,7 +141,7 @@ struct LossyLine<T> {
 impl<T: Transport> Transport for LossyLine<T> {
     fn send(&mut self, bytes: &[u8]) -> std::io::Result<()> {
         self.frames += 1;
-        if self.frames % self.every == 0 && bytes.len() > 4 {
+        if self.frames.is_multiple_of(self.every) && bytes.len() > 4 {
             let mut copy = bytes.to_vec();
             let mid = copy.len() / 2;
             copy[mid] ^= 0x08;
