@@ -16,6 +16,7 @@
 //! * [`control_loop`] — the tick side of the board: setpoint queue and stream or waveform,
 //!   the control tick, the data recorder; [`recorder`] — the recorder itself.
 //! * [`protocol`] — the UART protocol: frames, messages, and the board's command handler.
+//! * [`golden`] — golden vectors: recorded ticks the board must reproduce bit for bit.
 //! * [`converters`] — SPI drivers of the external DAC (DAC8562/3) and sensor ADC (ADS8689).
 //!
 //! Everything here is allocation-free; the per-sample `step` functions have no panic path
@@ -35,6 +36,7 @@ pub mod default_config;
 pub mod drive;
 pub mod duhem;
 pub mod fixed_point;
+pub mod golden;
 #[cfg(target_os = "none")]
 pub mod hardware;
 pub mod param_store;

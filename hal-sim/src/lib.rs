@@ -13,6 +13,7 @@
 //!   lag), run over whole records in fixed point and in the `f64` reference; [`plot`] — the
 //!   identification figure; [`output_file`] — outputs written only when complete.
 //! * [`accuracy`] — the fixed-point vs `f64` error table.
+//! * [`golden`] — golden vectors: generating them, and checking them against the `f64` tick.
 //! * [`link`] — the host end of the board link: [`link::Transport`] and the protocol client.
 //! * [`cli`] — the `hal-sim` subcommands.
 
@@ -20,6 +21,7 @@ pub mod accuracy;
 pub mod cli;
 pub mod converters;
 pub mod demo;
+pub mod golden;
 pub mod identification;
 pub mod link;
 pub mod measured_data;

@@ -35,6 +35,9 @@ enum Command {
     Stop(cli::stop::Args),
     /// Capture a signal with the board's recorder into a CSV.
     Record(cli::record::Args),
+    /// Generate the golden vectors (the tick's recorded runs the board must reproduce) and
+    /// check them against the stored file and the f64 reference, or write them (--write).
+    Golden(cli::golden::Args),
 }
 
 fn main() -> std::process::ExitCode {
@@ -72,6 +75,7 @@ fn main() -> std::process::ExitCode {
         Command::Waveform(a) => cli::waveform::run(a),
         Command::Stop(a) => cli::stop::run(a),
         Command::Record(a) => cli::record::run(a),
+        Command::Golden(a) => cli::golden::run(a),
     };
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,

@@ -198,6 +198,7 @@ impl<S: RecordStorage> CommandHandler<S> {
         }
     }
 
+    #[inline(never)] // rare and large: one copy, not one per caller
     fn status<const N: usize, B, L>(
         &self,
         queue: &Producer<'_, i16, N>,
@@ -241,6 +242,7 @@ impl<S: RecordStorage> CommandHandler<S> {
         }
     }
 
+    #[inline(never)] // rare and large: one copy, not one per caller
     fn setpoints<const N: usize>(
         &mut self,
         batch: SetpointBatch,
@@ -262,28 +264,22 @@ impl<S: RecordStorage> CommandHandler<S> {
         Ok(())
     }
 
-    /// Validates `settings` whole and posts the result to the tick; on success they become
-    /// the settings in force (and `params` the set to store).
-    fn apply<B, L>(
-        &mut self,
-        settings: Settings,
-        params: ParamSet,
-        control: &mut L,
-    ) -> Result<(), NackReason>
+    /// Validates `settings` whole and posts the result to the tick.
+    #[inline(never)]
+    fn post<B, L>(settings: &Settings, control: &mut L) -> Result<(), NackReason>
     where
         B: AsRef<[i32]> + AsMut<[i32]>,
         L: Mutex<T = ControlLoop<B>>,
     {
         let config = TickConfig {
             control: settings.build().map_err(nack_reason)?,
-            sensor: sensor_calibration(&settings),
+            sensor: sensor_calibration(settings),
         };
         control.lock(|c| c.post_config(config));
-        self.settings = settings;
-        self.params = params;
         Ok(())
     }
 
+    #[inline(never)] // rare and large: one copy, not one per caller
     fn mode<B, L>(&mut self, mode: Mode, control: &mut L) -> Result<(), NackReason>
     where
         B: AsRef<[i32]> + AsMut<[i32]>,
@@ -292,28 +288,35 @@ impl<S: RecordStorage> CommandHandler<S> {
         if mode == Mode::ClosedLoop && self.params.feedback.is_none() {
             return Err(NackReason::Unsupported);
         }
-        let settings = Settings {
-            mode,
-            ..self.settings.clone()
-        };
-        let params = ParamSet {
-            mode,
-            ..self.params.clone()
-        };
-        self.apply(settings, params, control)
+        // The settings change in place (no copy of the models), and back if refused.
+        let old = core::mem::replace(&mut self.settings.mode, mode);
+        match Self::post(&self.settings, control) {
+            Ok(()) => {
+                self.params.mode = mode;
+                Ok(())
+            }
+            Err(e) => {
+                self.settings.mode = old;
+                Err(e)
+            }
+        }
     }
 
+    #[inline(never)] // rare and large: one copy, not one per caller
     fn load<B, L>(&mut self, params: ParamSet, control: &mut L) -> Result<(), NackReason>
     where
         B: AsRef<[i32]> + AsMut<[i32]>,
         L: Mutex<T = ControlLoop<B>>,
     {
         let settings = settings_from_params(&params, &self.profile)?;
-        self.apply(settings, params, control)?;
+        Self::post(&settings, control)?;
+        self.settings = settings;
+        self.params = params;
         self.defaults = false;
         Ok(())
     }
 
+    #[inline(never)] // rare and large: one copy, not one per caller
     fn store<B, L>(&mut self, control: &mut L) -> Result<(), NackReason>
     where
         B: AsRef<[i32]> + AsMut<[i32]>,
@@ -331,6 +334,7 @@ impl<S: RecordStorage> CommandHandler<S> {
         })
     }
 
+    #[inline(never)] // rare and large: one copy, not one per caller
     fn recall<B, L>(&mut self, control: &mut L) -> Result<(), NackReason>
     where
         B: AsRef<[i32]> + AsMut<[i32]>,
@@ -340,6 +344,7 @@ impl<S: RecordStorage> CommandHandler<S> {
         self.load(params, control)
     }
 
+    #[inline(never)] // rare and large: one copy, not one per caller
     fn waveform<B, L>(&mut self, w: Waveform, control: &mut L) -> Result<(), NackReason>
     where
         B: AsRef<[i32]> + AsMut<[i32]>,

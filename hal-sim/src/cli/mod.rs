@@ -6,6 +6,7 @@
 pub mod board_link;
 pub mod compensate;
 pub mod demo;
+pub mod golden;
 pub mod identify;
 pub mod load;
 pub mod predict;
