@@ -84,6 +84,23 @@ fn the_vector_sets_cover_every_compensator_and_observer() {
             "no set with observer {want:?}"
         );
     }
+    // Every flag the tick can raise is raised somewhere (the drift flag by the set with a
+    // drift limit).
+    use twinstack::control::TickFlags as F;
+    let raised = sets
+        .iter()
+        .flat_map(|s| s.outputs())
+        .fold(0u8, |acc, o| acc | o.flags);
+    for (flag, name) in [
+        (F::UNDERRUN, "underrun"),
+        (F::RANGE_LIMIT, "range limit"),
+        (F::SLEW_LIMIT, "slew limit"),
+        (F::ADC_ERROR, "ADC error"),
+        (F::DAC_ERROR, "DAC error"),
+        (F::DRIFT, "drift"),
+    ] {
+        assert!(raised & flag != 0, "no set raises the {name} flag");
+    }
 }
 
 #[test]

@@ -26,8 +26,8 @@ fn stored_outputs_agree_with_the_f64_reference_tick() {
     for set in parse(&file) {
         let a = check(&set).unwrap();
         eprintln!(
-            "{:<20} drive {:.4} LSB16  estimate {:.4} LSB16  code {:.4}  ambiguous {}",
-            a.name, a.drive_lsb16, a.estimate_lsb16, a.code_error, a.ambiguous
+            "{:<20} drive {:.4} LSB16  estimate {:.4} LSB16  code {:.4}  ambiguous {}  holds {}",
+            a.name, a.drive_lsb16, a.estimate_lsb16, a.code_error, a.ambiguous, a.integrator_holds
         );
         assert_eq!(a.ticks, set.ticks() as usize);
         assert!(
@@ -38,6 +38,10 @@ fn stored_outputs_agree_with_the_f64_reference_tick() {
         );
         // Ambiguous range/slew decisions are rare; many would mean the check is too lax.
         assert!(a.ambiguous < 20, "set {}: {a:?}", set.name());
+        // Every closed-loop set drives the feedback into its anti-windup hold.
+        if set.recipe().unwrap().feedback.is_some() {
+            assert!(a.integrator_holds > 10, "set {}: {a:?}", set.name());
+        }
     }
 }
 
@@ -110,4 +114,42 @@ fn a_wrong_output_fails_the_reference_check() {
     assert_eq!(a.first_flag_mismatch.map(|m| m.0), Some(300), "{a:?}");
     let untouched = tamper(0, &|_| {});
     assert!(untouched.holds());
+}
+
+/// The check follows the feedback's settings: the same stored outputs against the recipe with
+/// another proportional or integral gain, or without the drift limit, fail it.
+#[test]
+fn the_reference_check_depends_on_the_feedback_settings() {
+    let file = stored();
+    let set = parse(&file)
+        .into_iter()
+        .find(|s| s.name() == "ipi16-pi-closed")
+        .expect("set ipi16-pi-closed");
+    let inputs: Vec<TickInput> = set.inputs().collect();
+    let outputs: Vec<TickOutput> = set.outputs().collect();
+    let recheck = |f: &dyn Fn(&mut twinstack::settings::FeedbackSettings)| {
+        let mut recipe = set.recipe().unwrap();
+        f(recipe.feedback.as_mut().unwrap());
+        let mut b = heapless::Vec::<u8, 1024>::new();
+        recipe.encode(&mut b).unwrap();
+        let mut bytes = Vec::new();
+        encode_record(
+            set.name(),
+            set.config_fingerprint(),
+            &b,
+            &inputs,
+            &outputs,
+            &mut bytes,
+        )
+        .unwrap();
+        let s = VectorSets::new(&bytes).next().unwrap().unwrap();
+        check(&s).unwrap()
+    };
+    assert!(recheck(&|_| {}).holds());
+    let a = recheck(&|f| f.kp *= 1.1);
+    assert!(a.first_violation.is_some(), "kp: {a:?}");
+    let a = recheck(&|f| f.ki *= 1.1);
+    assert!(a.first_violation.is_some(), "ki: {a:?}");
+    let a = recheck(&|f| f.drift_limit = None);
+    assert!(a.flag_mismatches > 100, "drift limit: {a:?}");
 }

@@ -24,8 +24,9 @@ use super::{TickInput, TickOutput, CRC32};
 
 /// Record magic.
 pub const MAGIC: [u8; 4] = *b"TSGV";
-/// Version of the layout above.
-pub const FORMAT_VERSION: u16 = 1;
+/// Version of the layout above and of the recipe's encoding ([`super::recipe`]): 2 since the
+/// feedback carries a drift limit.
+pub const FORMAT_VERSION: u16 = 2;
 /// Bytes per tick of inputs.
 pub const INPUT_BYTES: usize = 7;
 /// Bytes per tick of outputs.
@@ -512,12 +513,15 @@ mod tests {
     #[test]
     fn wrong_version_and_undefined_input_flags_say_so() {
         let buf = sample();
-        let mut bad = buf.b;
-        bad[4] = 2;
-        assert!(matches!(
-            VectorSets::new(&bad[..buf.n]).next(),
-            Some(Err(FormatError::BadVersion { got: 2 }))
-        ));
+        // An older (or newer) version is refused, whatever else the record holds.
+        for other in [FORMAT_VERSION - 1, FORMAT_VERSION + 1] {
+            let mut bad = buf.b;
+            bad[4..6].copy_from_slice(&other.to_le_bytes());
+            assert!(matches!(
+                VectorSets::new(&bad[..buf.n]).next(),
+                Some(Err(FormatError::BadVersion { got })) if got == other
+            ));
+        }
         assert_eq!(TickInput::from_bytes(&[0x08, 0, 0, 0, 0, 0, 0]), None);
         assert!(
             encode_record("Bad Name", 0, &[], &[], &[], &mut Buf { b: [0; 512], n: 0 }).is_none()

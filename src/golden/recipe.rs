@@ -10,7 +10,9 @@
 //! (0 differential, 1 unidirectional), `amplifier_full_scale, bias, right_idle, min_voltage,
 //! max_voltage, slew_rate, control_rate` `f64`, DAC full scale `u16`, safe state `u8` (0 bias,
 //! 1 zero); feedback present `u8`, then ADC bits `u8`, `displacement_at_zero,
-//! displacement_at_full_scale, kp, ki, limit` `f64`.
+//! displacement_at_full_scale, kp, ki, limit` `f64`, drift limit present `u8`, then the drift
+//! limit `f64` (added in format version 2). The feedback is PI with an optional drift check:
+//! no derivative or notch.
 
 use crate::control::{Compensator, ControlConfig, Observer};
 use crate::drive::{Configuration, DifferentialDrive, DriveError, DriveSettings, SafeState};
@@ -218,6 +220,13 @@ impl Recipe {
                     fb.ki,
                     fb.limit,
                 ])?;
+                match fb.drift_limit {
+                    None => w.u8(0)?,
+                    Some(d) => {
+                        w.u8(1)?;
+                        w.f64s(&[d])?;
+                    }
+                }
             }
         }
         Ok(())
@@ -305,8 +314,12 @@ impl Recipe {
                 displacement_at_full_scale: r.f64()?,
             };
             let (kp, ki, limit) = (r.f64()?, r.f64()?, r.f64()?);
-            // PI feedback only: the golden sets carry no derivative, notch or drift limit.
-            Some(FeedbackSettings::pi(sensor, kp, ki, limit))
+            let drift_limit = if r.tag(2)? == 1 { Some(r.f64()?) } else { None };
+            // PI feedback and the drift check: the golden sets carry no derivative or notch.
+            Some(FeedbackSettings {
+                drift_limit,
+                ..FeedbackSettings::pi(sensor, kp, ki, limit)
+            })
         } else {
             None
         };
@@ -409,6 +422,29 @@ mod tests {
                 0.1,
             )),
         }
+    }
+
+    #[test]
+    fn a_drift_limit_round_trips_and_reaches_the_built_feedback() {
+        let mut r = recipe();
+        r.feedback.as_mut().unwrap().drift_limit = Some(0.02);
+        let mut b = heapless::Vec::new();
+        r.encode(&mut b).unwrap();
+        let back = Recipe::decode(&b).unwrap();
+        assert_eq!(back, r);
+        let fb = back.build().unwrap().feedback.unwrap();
+        assert_eq!(
+            fb.drift_limit,
+            crate::fixed_point::signal_from_f64(0.04) as u32
+        );
+        // Without one, no drift check.
+        let fb = recipe().build().unwrap().feedback.unwrap();
+        assert_eq!(fb.drift_limit, u32::MAX);
+        // A bad presence tag is refused where it stands.
+        let mut bad = b.clone();
+        let at = bad.len() - 9;
+        bad[at] = 2;
+        assert_eq!(Recipe::decode(&bad), Err(RecipeError::BadField { at }));
     }
 
     #[test]

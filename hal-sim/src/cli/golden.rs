@@ -28,14 +28,15 @@ fn parse(file: &[u8]) -> anyhow::Result<Vec<VectorSet<'_>>> {
         .map_err(|e| anyhow!("{e:?}"))
 }
 
-/// Ticks with each flag: underrun, range limit, slew limit, ADC error, DAC error.
-pub fn flag_counts(set: &VectorSet<'_>) -> [usize; 5] {
+/// Ticks with each flag: underrun, range limit, slew limit, ADC error, DAC error, drift.
+pub fn flag_counts(set: &VectorSet<'_>) -> [usize; 6] {
     let bits = [
         TickFlags::UNDERRUN,
         TickFlags::RANGE_LIMIT,
         TickFlags::SLEW_LIMIT,
         TickFlags::ADC_ERROR,
         TickFlags::DAC_ERROR,
+        TickFlags::DRIFT,
     ];
     bits.map(|b| set.outputs().filter(|o| o.flags & b != 0).count())
 }
@@ -47,7 +48,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     let (generated, file) = generate::generate_all(&defs)?;
     let fresh = parse(&file)?;
     println!(
-        "set                   ticks    bytes  outputs CRC  drive LSB16  estimate LSB16  code    ambiguous  underrun/range/slew/adc/dac"
+        "set                   ticks    bytes  outputs CRC  drive LSB16  estimate LSB16  code    ambiguous  underrun/range/slew/adc/dac/drift"
     );
     let mut out_of_bounds = Vec::new();
     for set in &fresh {

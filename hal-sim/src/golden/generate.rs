@@ -1,7 +1,9 @@
 //! Generating the vectors: the library's tick in closed loop on a sensor model, recorded.
 //!
-//! Each tick reads the sensor ADC code the previous tick's drive produced (the board's one
-//! sample of ADC latency), so the feedback and the observer see a stage that responds. The
+//! Each tick reads the sensor ADC code of the stage as the drive of two ticks ago left it
+//! ([`twinstack::feedback::SENSOR_DELAY_TICKS`]: the conversion starts at the tick's trigger,
+//! before the tick writes, and the ADC returns the previous conversion — the board's one
+//! sample of latency), so the feedback and the observer see a stage that responds. The
 //! stage is the set's [`Truth`] model (the `f64` reference, in physical units) on the left
 //! stack's voltage as the DAC code puts it out, its displacement mapped onto the ADC's codes
 //! by the set's sensor calibration, plus a deterministic ±2-code dither. Those codes are then
@@ -95,11 +97,16 @@ pub fn generate(def: &SetDefinition) -> anyhow::Result<GeneratedSet> {
     let mut stage = Stage::at_rest(&def.truth, &recipe.scaling, d.bias)
         .with_context(|| format!("set {}: stage model", def.name))?;
     let mut displacement = stage.step(d.bias);
+    // The conversion in the ADC's pipeline: a read returns the one started at the previous
+    // tick's trigger, i.e. the stage after the write of two ticks ago.
+    let mut converting = displacement;
     let mut dither = Dither(0x0060_1DE2);
     let mut inputs = scenario::timeline();
     let mut outputs = Vec::with_capacity(inputs.len());
     for input in inputs.iter_mut() {
-        input.adc_code = adc_code(recipe, displacement, dither.next());
+        input.adc_code = adc_code(recipe, converting, dither.next());
+        // This tick's trigger starts converting the stage as the last write left it.
+        converting = displacement;
         let out = run_tick(&mut controller, input);
         displacement = stage.step(out.left as f64 * volts_per_code);
         outputs.push(out);

@@ -78,6 +78,8 @@ pub struct Agreement {
     pub ambiguous: usize,
     /// First tick whose drive, estimate or code exceeds its bound.
     pub first_violation: Option<usize>,
+    /// Ticks the reference held the integrator (anti-windup) against a non-zero error.
+    pub integrator_holds: usize,
 }
 
 impl Agreement {
@@ -128,6 +130,8 @@ struct ReferenceFeedback {
 struct FeedbackTick {
     /// The correction added to the feedforward.
     correction: f64,
+    /// The integrator was held against a non-zero error.
+    held: bool,
     /// The drift flag, and whether the reference's filter lies within the drift bound of the
     /// limit (the stored flag may go either way).
     drift: bool,
@@ -178,6 +182,7 @@ impl ReferenceFeedback {
         let Some(code) = code else {
             return FeedbackTick {
                 correction: if closed { self.integrator } else { 0.0 },
+                held: false,
                 drift: false,
                 drift_ambiguous: false,
             };
@@ -197,9 +202,11 @@ impl ReferenceFeedback {
         };
 
         let mut correction = 0.0;
+        let mut held = false;
         if closed {
             let error = saturate(reference - measured);
-            if self.clip * error <= 0.0 {
+            held = self.clip * error > 0.0;
+            if !held {
                 self.integrator =
                     (self.integrator + self.ki * error).clamp(-self.limit, self.limit);
             }
@@ -212,6 +219,7 @@ impl ReferenceFeedback {
         }
         FeedbackTick {
             correction,
+            held,
             drift,
             drift_ambiguous,
         }
@@ -347,6 +355,7 @@ pub fn check(set: &VectorSet<'_>) -> anyhow::Result<Agreement> {
         first_flag_mismatch: None,
         ambiguous: 0,
         first_violation: None,
+        integrator_holds: 0,
     };
     for (k, (input, out)) in set.inputs().zip(set.outputs()).enumerate() {
         let mut flags = 0u8;
@@ -371,6 +380,7 @@ pub fn check(set: &VectorSet<'_>) -> anyhow::Result<Agreement> {
             if t.drift {
                 flags |= TickFlags::DRIFT;
             }
+            a.integrator_holds += usize::from(t.held);
             if t.drift_ambiguous {
                 loose |= TickFlags::DRIFT;
             }
