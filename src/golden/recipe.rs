@@ -131,11 +131,18 @@ impl Recipe {
                     (None, Some(d)) => Model::Duhem(*d),
                     (None, None) => return Err(RecipeError::MissingModel),
                 };
+                // The drift check compares the sensor with the observer: none without one.
+                let fb = FeedbackSettings {
+                    drift_limit: fb
+                        .drift_limit
+                        .filter(|_| self.observer != ObserverChoice::None),
+                    ..*fb
+                };
                 let settings = Settings {
                     model: Some(model),
                     scaling: *s,
                     drive: self.drive,
-                    feedback: Some(*fb),
+                    feedback: Some(fb),
                     mode: Mode::ClosedLoop,
                 };
                 settings.build().map_err(RecipeError::Settings)?.feedback
@@ -437,9 +444,17 @@ mod tests {
             fb.drift_limit,
             crate::fixed_point::signal_from_f64(0.04) as u32
         );
-        // Without one, no drift check.
+        // Without one, or without an observer to compare the sensor with, no drift check.
         let fb = recipe().build().unwrap().feedback.unwrap();
         assert_eq!(fb.drift_limit, u32::MAX);
+        let blind = Recipe {
+            observer: ObserverChoice::None,
+            ..r.clone()
+        };
+        assert_eq!(
+            blind.build().unwrap().feedback.unwrap().drift_limit,
+            u32::MAX
+        );
         // A bad presence tag is refused where it stands.
         let mut bad = b.clone();
         let at = bad.len() - 9;

@@ -148,8 +148,8 @@ impl ReferenceFeedback {
         }
         let s = &recipe.scaling;
         let at_zero = s.output_to_norm(fb.sensor.displacement_at_zero);
-        // The drift check needs an observer: without a model the library builds none.
-        let observed = recipe.pi.is_some() || recipe.duhem.is_some();
+        // The drift check compares the sensor with the observer: none without one.
+        let observed = recipe.observer != ObserverChoice::None;
         Ok(Some(Self {
             at_zero,
             gain: s.output_to_norm(fb.sensor.displacement_at_full_scale) - at_zero,
