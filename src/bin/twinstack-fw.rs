@@ -258,13 +258,16 @@ mod app {
         }
     }
 
-    /// The control tick on the board: TIM2 update.
+    /// The control tick on the board: TIM2 update. (One tick handler per image, so the
+    /// inlined tick is in flash once.)
+    #[cfg(not(feature = "emulator"))]
     #[task(binds = TIM2, priority = 3, shared = [tick])]
     fn tim2_tick(mut cx: tim2_tick::Context) {
         cx.shared.tick.lock(|t| t.run());
     }
 
     /// The control tick in the emulator: SysTick.
+    #[cfg(feature = "emulator")]
     #[task(binds = SysTick, priority = 3, shared = [tick])]
     fn systick_tick(mut cx: systick_tick::Context) {
         cx.shared.tick.lock(|t| t.run());
