@@ -170,6 +170,7 @@ pub struct NotchState {
 
 impl Notch {
     /// Designs the notch for a tick at `control_rate` Hz.
+    #[inline(never)] // configuration, off the tick path: one copy in flash
     pub fn new(design: &NotchDesign, control_rate: f64) -> Result<Self, NotchError> {
         Ok(Self::from_coefficients(&design.coefficients(control_rate)?))
     }

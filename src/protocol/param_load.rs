@@ -108,11 +108,9 @@ pub fn settings_from_params(p: &ParamSet, board: &BoardProfile) -> Result<Settin
     }
     // With a sensor on board the feedback settings are always present (the recorder uses
     // the calibration); the gains only act in closed loop.
-    let feedback = board.sensor.map(|sensor| {
-        match &p.feedback {
-            Some(params) => FeedbackSettings::from_wire(params, sensor),
-            None => FeedbackSettings::pi(sensor, 0.0, 0.0, 1.0),
-        }
+    let feedback = board.sensor.map(|sensor| match &p.feedback {
+        Some(params) => FeedbackSettings::from_wire(params, sensor),
+        None => FeedbackSettings::pi(sensor, 0.0, 0.0, 1.0),
     });
     Ok(Settings {
         model: Some(model),

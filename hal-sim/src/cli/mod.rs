@@ -3,8 +3,8 @@
 //! Board commands (`stream`, `load`, `status`, `waveform`, `stop`, `record`) share
 //! [`board_link`]'s `--port` / `--baud` / `--timeout-ms`.
 
-pub mod closed_loop;
 pub mod board_link;
+pub mod closed_loop;
 pub mod compensate;
 pub mod demo;
 pub mod golden;
