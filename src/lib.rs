@@ -15,6 +15,9 @@
 //! * `hardware` (firmware build only) — STM32F405 registers behind the [`board`] traits.
 //! * [`reference`] — `f64` reference implementations the fixed-point code is checked against.
 //! * [`converters`] — SPI drivers of the external DAC (DAC8562/3) and sensor ADC (ADS8689).
+//! * [`dual_stage`] — the dual-actuated stage: ball-screw coarse stage + piezo fine stage under
+//!   one controller (setpoint split, trapezoidal moves, centring, hand-over); [`coarse_axis`] —
+//!   its step generation and quadrature counting.
 //!
 //! Everything here is allocation-free; the per-sample `step` functions have no panic path
 //! and no unbounded loop.
@@ -26,10 +29,12 @@
 #![warn(missing_docs)]
 
 pub mod board;
+pub mod coarse_axis;
 pub mod control;
 pub mod converters;
 pub mod default_config;
 pub mod drive;
+pub mod dual_stage;
 pub mod duhem;
 pub mod fixed_point;
 #[cfg(target_os = "none")]
