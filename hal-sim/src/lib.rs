@@ -12,12 +12,17 @@
 //!   identification figure; [`output_file`] — outputs written only when complete.
 //! * [`accuracy`] — the fixed-point vs `f64` error table.
 //! * [`link`] — the host end of the board link: [`link::Transport`] and the protocol client.
+//! * [`dual_stage_sim`] — the piezo stage on a ball-screw coarse stage ([`plant::ball_screw`]),
+//!   with the emulated step/dir output and encoders ([`coarse_stage`]): the dual-stage controller
+//!   end to end.
 //! * [`cli`] — the `hal-sim` subcommands.
 
 pub mod accuracy;
 pub mod cli;
+pub mod coarse_stage;
 pub mod converters;
 pub mod demo;
+pub mod dual_stage_sim;
 pub mod identification;
 pub mod link;
 pub mod measured_data;

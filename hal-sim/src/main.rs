@@ -23,6 +23,9 @@ enum Command {
     Predict(cli::predict::Args),
     /// Run the fixed-point inverse model on a desired-output record.
     Compensate(cli::compensate::Args),
+    /// The dual-actuated stage (ball screw + piezo) in simulation: a 5 mm move and a
+    /// trajectory larger than the piezo's stroke (coarse only / dual).
+    DualStage(cli::dual_stage::Args),
 }
 
 fn main() -> std::process::ExitCode {
@@ -54,6 +57,7 @@ fn main() -> std::process::ExitCode {
         Command::Identify(a) => cli::identify::run(a),
         Command::Predict(a) => cli::predict::run(a),
         Command::Compensate(a) => cli::compensate::run(a),
+        Command::DualStage(a) => cli::dual_stage::run(a),
     };
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,

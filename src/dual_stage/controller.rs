@@ -17,6 +17,7 @@
 //!
 //! Nothing here allocates, panics or loops: all arithmetic saturates.
 
+use super::carriage_tracker::CarriageTracker;
 use super::split_filter::SplitFilter;
 use super::trapezoid::TrapezoidalProfile;
 use super::DualStageConfig;
@@ -127,8 +128,12 @@ pub struct DualStage {
     /// Last fine setpoint handed out, pm and Q2.30.
     fine_pm: i64,
     fine_q: i32,
-    /// Coarse command at the last tick, pm.
+    /// Coarse command at the last tick, pm, and its velocity, pm per tick.
     last_command: i64,
+    last_command_velocity: i64,
+    tracker: CarriageTracker,
+    /// Coarse ticks since the coarse command last moved.
+    still_ticks: u32,
     counters: DualStageCounters,
 }
 
@@ -154,6 +159,13 @@ impl DualStage {
             fine_pm: config.fine_centre_pm,
             fine_q: Self::to_q(&config, config.fine_centre_pm),
             last_command: carriage,
+            last_command_velocity: 0,
+            tracker: CarriageTracker::new(
+                config.carriage_alpha,
+                config.carriage_alpha_at_rest,
+                carriage,
+            ),
+            still_ticks: 0,
             counters: DualStageCounters::default(),
         }
     }
@@ -312,8 +324,20 @@ impl DualStage {
 
         // 5. The piezo's share at the end of the period: the residual against where the
         // carriage will be (it moves as commanded, to first order).
-        let predicted = carriage.saturating_add(command - self.last_command);
+        let command_velocity = command - self.last_command;
+        self.still_ticks = if command_velocity == 0 {
+            self.still_ticks.saturating_add(1)
+        } else {
+            0
+        };
+        let resting = self.still_ticks > c.settle_ticks;
+        let predicted = self.tracker.update(
+            carriage,
+            command_velocity - self.last_command_velocity,
+            resting,
+        );
         self.last_command = command;
+        self.last_command_velocity = command_velocity;
         let residual = next
             .saturating_sub(predicted)
             .saturating_sub(c.fine_centre_pm);
@@ -436,7 +460,7 @@ mod tests {
         d.set_mode(DualMode::Dual);
         run(&mut d, &mut axis, 50);
         d.move_to(5_000_000_000);
-        let reports = run(&mut d, &mut axis, 2000);
+        let reports = run(&mut d, &mut axis, 4000);
         let mut prev = reports[0].fine.from;
         for r in &reports {
             assert!(!r.fine_clamped);

@@ -29,10 +29,12 @@
 //! Units: positions in picometres (`i64`), the piezo's setpoints and readings in Q2.30 of the
 //! fine controller's output range (as [`crate::control::Controller::tick`] takes them).
 
+pub mod carriage_tracker;
 pub mod controller;
 pub mod split_filter;
 pub mod trapezoid;
 
+use carriage_tracker::CarriageTracker;
 pub use controller::{CoarseReport, DualMode, DualStage, DualStageCounters, FineSetpoints};
 pub use split_filter::{SplitCoefficients, SplitFilter};
 pub use trapezoid::{MotionLimits, TrapezoidalProfile};
@@ -79,6 +81,14 @@ pub struct DualStageSettings {
     pub centring_time_s: f64,
     /// Duration of the hand-over ramp when the piezo is switched in or out, s.
     pub handover_s: f64,
+    /// Gain α of the carriage tracker, (0, 1]: 1 takes each estimate as it is, smaller values
+    /// filter the sensors' noise more and follow changes of speed more slowly.
+    pub carriage_alpha: f64,
+    /// Gain α of the carriage tracker once the coarse command has stood still for
+    /// `settle_s`, (0, 1].
+    pub carriage_alpha_at_rest: f64,
+    /// Time the coarse command must stand still before the resting gain applies, s.
+    pub settle_s: f64,
     /// Backlash of the screw, µm (taken up by extra steps at reversals; 0: none).
     pub backlash_um: f64,
     /// Most step pulses the step/dir output takes per coarse period.
@@ -145,6 +155,12 @@ pub struct DualStageConfig {
     pub centring_gain: i64,
     /// Coarse ticks of the hand-over ramp (≥ 1).
     pub handover_ticks: u32,
+    /// Carriage tracker gain α while moving, Q8.24.
+    pub carriage_alpha: i64,
+    /// Carriage tracker gain α at rest, Q8.24.
+    pub carriage_alpha_at_rest: i64,
+    /// Coarse ticks of standstill before the resting gain applies.
+    pub settle_ticks: u32,
     /// Backlash take-up, microsteps.
     pub backlash_steps: u16,
     /// Most steps per burst.
@@ -164,10 +180,10 @@ impl DualStageSettings {
     /// A ball-screw stage with a 1 mm lead, a 200-step motor at 16 microsteps (0.3125 µm per
     /// step), a 1000-line motor encoder (0.25 µm per count) and a 5 nm linear encoder, carrying
     /// the paper's differential piezo stage (controller range ±40 µm, ±37 µm stroke); moves at
-    /// 10 mm/s and 200 mm/s², coarse loop at 1 kHz under a 50 kHz piezo tick.
+    /// 10 mm/s and 200 mm/s², coarse loop at 5 kHz under a 50 kHz piezo tick.
     pub fn paper_stage() -> Self {
         Self {
-            coarse_rate_hz: 1000.0,
+            coarse_rate_hz: 5000.0,
             fine_rate_hz: 50_000.0,
             step_um: 0.3125,
             motor_count_um: 0.25,
@@ -185,6 +201,9 @@ impl DualStageSettings {
             centring_deadband_um: 3.0,
             centring_time_s: 0.05,
             handover_s: 0.02,
+            carriage_alpha: 1.0,
+            carriage_alpha_at_rest: 0.05,
+            settle_s: 0.01,
             backlash_um: 2.0,
             max_steps_per_burst: 255,
         }
@@ -269,7 +288,18 @@ impl DualStageSettings {
         if !(0.0..=1e6).contains(&handover) {
             return Err(E::Timing);
         }
+        let carriage_alpha =
+            CarriageTracker::alpha_from_f64(self.carriage_alpha).ok_or(E::Timing)?;
+        let carriage_alpha_at_rest =
+            CarriageTracker::alpha_from_f64(self.carriage_alpha_at_rest).ok_or(E::Timing)?;
+        let settle = self.settle_s * rate;
+        if !(0.0..=1e6).contains(&settle) {
+            return Err(E::Timing);
+        }
         Ok(DualStageConfig {
+            carriage_alpha,
+            carriage_alpha_at_rest,
+            settle_ticks: libm::round(settle) as u32,
             fine_ticks: fine_ticks as u32,
             step_pm,
             motor_count_pm,
@@ -299,14 +329,14 @@ mod tests {
     #[test]
     fn paper_stage_builds_into_the_expected_integers() {
         let c = DualStageSettings::paper_stage().build().unwrap();
-        assert_eq!(c.fine_ticks, 50);
+        assert_eq!(c.fine_ticks, 10);
         assert_eq!(c.step_pm, 312_500);
         assert_eq!(c.linear_count_pm, 5_000);
-        assert_eq!(c.move_limits.velocity, 10_000_000); // 10 mm/s = 10 µm per ms
-        assert_eq!(c.move_limits.acceleration, 200_000); // 200 mm/s² = 0.2 µm per ms²
+        assert_eq!(c.move_limits.velocity, 2_000_000); // 10 mm/s = 2 µm per 200 µs tick
+        assert_eq!(c.move_limits.acceleration, 8_000); // 200 mm/s² = 8 nm per tick²
         assert_eq!(c.backlash_steps, 6);
-        assert_eq!(c.handover_ticks, 20);
-        assert_eq!(c.centring_gain, (1 << 24) / 50);
+        assert_eq!(c.handover_ticks, 100);
+        assert_eq!(c.centring_gain, 67_109); // 2^24 / 250, rounded
     }
 
     #[test]
@@ -327,10 +357,7 @@ mod tests {
                 |s| s.coarse_acceleration_um_s2 = f64::INFINITY,
                 DualStageError::MotionLimits,
             ),
-            (
-                |s| s.max_steps_per_burst = 10,
-                DualStageError::BurstTooSmall,
-            ),
+            (|s| s.max_steps_per_burst = 5, DualStageError::BurstTooSmall),
             (|s| s.split_hz = 500.0, DualStageError::SplitBandwidth),
             (|s| s.fine_window_um = 45.0, DualStageError::FineRange),
             (|s| s.centring_time_s = 0.0, DualStageError::Timing),

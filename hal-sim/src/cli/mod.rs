@@ -2,5 +2,6 @@
 
 pub mod compensate;
 pub mod demo;
+pub mod dual_stage;
 pub mod identify;
 pub mod predict;
