@@ -7,8 +7,8 @@
 //! ```
 //!
 //! `β = α² / (2 − α)` (the critically damped choice). One `α` while the coarse stage moves
-//! (fast: it follows the stepper's uneven motion), a smaller one while it rests (the sensors'
-//! noise is what is left to filter). Units: `c` pm, `v` pm per coarse tick
+//! (fast: it follows the stepper's uneven motion), a smaller one while it rests, with the
+//! velocity held at zero (the sensors' noise is then all there is to filter). Units: `c` pm, `v` pm per coarse tick
 //! (`i64`); `α`, `β` Q8.24 (`i64`, in (0, 1]). The error is saturated to ±2^38 pm before the
 //! products, which then fit `i64`.
 //!
@@ -65,7 +65,14 @@ impl CarriageTracker {
     /// slower gain then filters the noise of a carriage that stands still). Returns the
     /// carriage predicted for the end of the coming period, pm.
     pub fn update(&mut self, measured: i64, command_velocity_change: i64, resting: bool) -> i64 {
-        let (alpha, beta) = if resting { self.resting } else { self.moving };
+        let (alpha, beta) = if resting {
+            // A carriage whose command stands still stands still: no velocity to extrapolate
+            // (what the moving gains left in it is noise), only a position to smooth.
+            self.velocity = 0;
+            (self.resting.0, 0)
+        } else {
+            self.moving
+        };
         let predicted = self.position.saturating_add(self.velocity);
         let e = measured
             .saturating_sub(predicted)
@@ -114,6 +121,11 @@ mod tests {
         assert!(sum_sq_out < 0.6 * sum_sq_in, "{sum_sq_out} vs {sum_sq_in}");
         assert!((t.velocity() - 10_000).abs() < 200);
         assert!(CarriageTracker::alpha_from_f64(0.0).is_none());
+        // At rest the velocity is dropped: a constant reading is met without drift.
+        for _ in 0..200 {
+            t.update(1_000, 0, true);
+        }
+        assert_eq!((t.velocity(), (t.position() - 1_000).abs() < 10), (0, true));
         assert!(CarriageTracker::alpha_from_f64(f64::NAN).is_none());
     }
 }
