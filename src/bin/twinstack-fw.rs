@@ -12,6 +12,10 @@
 //! * **Frame decoder** (priority 1, EXTI0 as a software interrupt): the minimal status query
 //!   of [`twinstack::status_report`] (byte `?`).
 //! * **Telemetry** (priority 1, EXTI1): sends the status line.
+//! * **Coarse stage** (priority 2, TIM3 at 5 kHz): the dual-actuated stage's coarse tick
+//!   ([`twinstack::dual_stage::DualStage::coarse_tick`]): reads the motor and linear encoders,
+//!   runs the trajectory and emits a burst of step pulses on TIM1. It holds its power-up
+//!   position until a command moves it (the protocol's job); the piezo tick is untouched.
 //! * **Safety**: a panic or hard fault masks interrupts, drives both outputs to the safe state
 //!   (bias or zero, from the parameter record) and halts; the watchdog then resets the MCU.
 //!   A parameter record with a bad CRC (or none) means defaults and `params=<reason>` in the
@@ -83,8 +87,10 @@ mod app {
 
     use twinstack::control::Controller;
     use twinstack::default_config;
+    use twinstack::dual_stage::{DualStage, DualStageSettings};
     use twinstack::hardware::adc::SensorInput;
     use twinstack::hardware::clocks;
+    use twinstack::hardware::coarse_stage::{CoarseTimer, LinearEncoder, MotorEncoder, StepOutput};
     use twinstack::hardware::control_timer::ControlTimer;
     use twinstack::hardware::dac::InternalDac;
     use twinstack::hardware::param_flash;
@@ -149,6 +155,16 @@ mod app {
         }
     }
 
+    /// Everything the coarse-stage task owns.
+    pub struct CoarseStage {
+        /// `None` when the dual-stage settings are refused for this tick rate (logged at boot).
+        dual: Option<DualStage>,
+        steps: StepOutput,
+        motor: MotorEncoder,
+        linear: LinearEncoder,
+        timer: CoarseTimer,
+    }
+
     #[shared]
     struct Shared {
         /// Shared by the TIM2 (board) and SysTick (emulator) bindings; only one ever fires.
@@ -166,6 +182,7 @@ mod app {
         tx: UsartTx,
         tick_rate_hz: u32,
         params: ParamSource,
+        coarse: CoarseStage,
     }
 
     #[init(local = [
@@ -192,6 +209,14 @@ mod app {
         let _sensor = gpioa.pa0.into_analog();
         let _tx_pin = gpioa.pa9.into_alternate::<7>();
         let _rx_pin = gpioa.pa10.into_alternate::<7>();
+        let gpiob = dp.GPIOB.split(&mut rcc);
+        let gpioc = dp.GPIOC.split(&mut rcc);
+        let _step_pin = gpioa.pa8.into_alternate::<1>();
+        let dir_pin = gpiob.pb0.into_push_pull_output();
+        let _linear_a = gpiob.pb6.into_alternate::<2>();
+        let _linear_b = gpiob.pb7.into_alternate::<2>();
+        let _motor_a = gpioc.pc6.into_alternate::<3>();
+        let _motor_b = gpioc.pc7.into_alternate::<3>();
 
         // The timer's rate is fixed before the controller is built, so the drive's slew limit
         // per tick matches the real period.
@@ -221,6 +246,27 @@ mod app {
         );
         let watchdog = Watchdog::start(dp.IWDG, &dp.DBGMCU);
 
+        // The coarse stage: settings refused for this tick rate leave it idle, not the board.
+        let dual_settings = DualStageSettings {
+            fine_rate_hz: rate as f64,
+            ..DualStageSettings::paper_stage()
+        };
+        let coarse_rate = dual_settings.coarse_rate_hz as u32;
+        let steps = StepOutput::new(dp.TIM1, dir_pin, &rcc, &bus, coarse_rate);
+        let mut motor = MotorEncoder::new(dp.TIM8, &rcc);
+        let mut linear = LinearEncoder::new(dp.TIM4, &rcc);
+        let dual = match dual_settings.build() {
+            Ok(config) => {
+                use twinstack::board::QuadratureEncoder;
+                Some(DualStage::new(config, 0, motor.count(), linear.count()))
+            }
+            Err(e) => {
+                defmt::warn!("coarse stage idle: settings refused ({=str})", e.as_str());
+                None
+            }
+        };
+        let coarse_timer = CoarseTimer::start(dp.TIM3, &rcc, &bus, coarse_rate);
+
         let (setpoints_in, setpoints) = cx.local.setpoint_queue.split();
         let (bytes, bytes_in) = cx.local.rx_queue.split();
         defmt::info!(
@@ -247,6 +293,13 @@ mod app {
                 tx,
                 tick_rate_hz: rate,
                 params,
+                coarse: CoarseStage {
+                    dual,
+                    steps,
+                    motor,
+                    linear,
+                    timer: coarse_timer,
+                },
             },
         )
     }
@@ -269,6 +322,17 @@ mod app {
     #[task(binds = SysTick, priority = 3, shared = [tick])]
     fn systick_tick(mut cx: systick_tick::Context) {
         cx.shared.tick.lock(|t| t.run());
+    }
+
+    /// The coarse stage's tick: TIM3 update. A refused burst (the last one still running)
+    /// keeps its steps for the next tick.
+    #[task(binds = TIM3, priority = 2, local = [coarse])]
+    fn coarse_tick(cx: coarse_tick::Context) {
+        let c = cx.local.coarse;
+        c.timer.acknowledge();
+        if let Some(dual) = c.dual.as_mut() {
+            let _report = dual.coarse_tick(&mut c.steps, &mut c.motor, &mut c.linear, None);
+        }
     }
 
     /// USART1: idle line (board) or a received byte (emulator).

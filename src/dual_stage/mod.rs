@@ -120,6 +120,23 @@ pub enum DualStageError {
     Backlash,
 }
 
+impl DualStageError {
+    /// A one-word reason, for logs and status lines.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Self::Rates => "rates",
+            Self::Resolution => "resolution",
+            Self::Travel => "travel",
+            Self::MotionLimits => "motion-limits",
+            Self::BurstTooSmall => "burst-too-small",
+            Self::SplitBandwidth => "split-bandwidth",
+            Self::FineRange => "fine-range",
+            Self::Timing => "timing",
+            Self::Backlash => "backlash",
+        }
+    }
+}
+
 /// The settings in the integer units the coarse tick runs in (see the field docs).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct DualStageConfig {
