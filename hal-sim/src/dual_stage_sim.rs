@@ -301,10 +301,15 @@ impl DualStageSim {
 /// Largest change of the tracking error from one fine tick to the next, nm: a jump in the
 /// output that the setpoint does not explain.
 pub fn largest_jump_nm(samples: &[Sample]) -> f64 {
+    largest_jump(samples).0
+}
+
+/// [`largest_jump_nm`] and the time it happened, s.
+pub fn largest_jump(samples: &[Sample]) -> (f64, f64) {
     samples
         .windows(2)
-        .map(|w| (w[1].error_um() - w[0].error_um()).abs() * 1e3)
-        .fold(0.0, f64::max)
+        .map(|w| ((w[1].error_um() - w[0].error_um()).abs() * 1e3, w[1].t))
+        .fold((0.0, 0.0), |a, b| if b.0 > a.0 { b } else { a })
 }
 
 /// The 5 mm move's figures.
@@ -337,6 +342,8 @@ pub struct MoveResult {
     pub fine_clamps: u32,
     /// Largest per-tick change of the error during the whole run (hand-over included), nm.
     pub largest_jump_nm: f64,
+    /// When it happened, s after the move started.
+    pub largest_jump_at_s: f64,
     /// Largest tracking error during the move, µm.
     pub max_error_during_move_um: f64,
     /// The samples.
@@ -409,7 +416,8 @@ pub fn five_mm_move(
         window_um,
         range_limited_ticks: samples.iter().filter(|s| s.fine_range_limited).count(),
         fine_clamps: sim.dual().counters().fine_clamps,
-        largest_jump_nm: largest_jump_nm(&samples),
+        largest_jump_nm: largest_jump(&samples).0,
+        largest_jump_at_s: largest_jump(&samples).1 - start,
         max_error_during_move_um: samples[..moving_until]
             .iter()
             .filter(|s| s.t > start)

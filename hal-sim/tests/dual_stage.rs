@@ -11,10 +11,12 @@ use hal_sim::plant::ball_screw::{BallScrew, BallScrewParams};
 use twinstack::board::{QuadratureEncoder, StepBurst, StepDir, StepDirection};
 use twinstack::dual_stage::{DualMode, PM_PER_UM};
 
-/// Largest change of the tracking error from one 20 µs tick to the next that counts as smooth:
-/// a sixth of a microstep (312.5 nm). The stick-slip of the carriage breaking away at the start
-/// of a move is the largest event that reaches it (≈ 50 nm).
-const JUMP_BOUND_NM: f64 = 60.0;
+/// Largest change of the tracking error from one 20 µs tick to the next during a hand-over
+/// between the stages (an abrupt one, in one coarse tick, moves it by ≈ 300 nm).
+const HANDOVER_JUMP_BOUND_NM: f64 = 40.0;
+/// The same over a whole move: a third of a microstep (312.5 nm). The carriage breaking away
+/// from its sticking friction at the start of the move is the largest event (≈ 60 nm).
+const MOVE_JUMP_BOUND_NM: f64 = 100.0;
 
 #[test]
 fn the_piezo_never_saturates_on_the_5_mm_move() {
@@ -58,7 +60,7 @@ fn the_5_mm_move_settles_within_the_linear_encoders_resolution() {
 fn the_5_mm_move_has_no_jump_in_the_combined_output() {
     let m = five_mm_move(&DualStageSimConfig::paper(), 5000.0).unwrap();
     assert!(
-        m.largest_jump_nm <= JUMP_BOUND_NM,
+        m.largest_jump_nm <= MOVE_JUMP_BOUND_NM,
         "largest per-tick change of the error {} nm",
         m.largest_jump_nm
     );
@@ -103,7 +105,11 @@ fn handover_between_the_stages_has_no_jump() {
     );
     for (name, s) in [("to coarse only", &out), ("back to dual", &back)] {
         let jump = largest_jump_nm(s);
-        assert!(jump <= JUMP_BOUND_NM, "{name}: {jump} nm in one tick");
+        eprintln!("hand-over {name}: largest per-tick change {jump:.1} nm");
+        assert!(
+            jump <= HANDOVER_JUMP_BOUND_NM,
+            "{name}: {jump} nm in one tick"
+        );
     }
     // Back in dual mode, after the move, the error returns within the linear encoder's
     // resolution.
@@ -118,8 +124,9 @@ fn an_abrupt_handover_would_break_the_bound() {
     let (out, _, held) = handover_run(0.0);
     assert!(held.abs() > 1.0);
     let jump = largest_jump_nm(&out);
+    eprintln!("abrupt hand-over: largest per-tick change {jump:.1} nm");
     assert!(
-        jump > 2.0 * JUMP_BOUND_NM,
+        jump > 4.0 * HANDOVER_JUMP_BOUND_NM,
         "abrupt hand-over: only {jump} nm"
     );
 }

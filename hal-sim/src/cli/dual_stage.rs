@@ -59,8 +59,10 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         m.peak_piezo_um, m.window_um, m.range_limited_ticks, m.fine_clamps
     );
     println!(
-        "  largest error during the move {:7.3} µm; largest jump per tick {:.1} nm",
-        m.max_error_during_move_um, m.largest_jump_nm
+        "  largest error during the move {:7.3} µm; largest change of the error in one tick {:.1} nm ({:+.1} ms from the start of the move)",
+        m.max_error_during_move_um,
+        m.largest_jump_nm,
+        m.largest_jump_at_s * 1e3
     );
 
     let trajectory = Trajectory::larger_than_the_stroke();
