@@ -159,6 +159,7 @@ pub struct Controller {
 }
 
 /// State of whichever model a slot holds.
+#[allow(clippy::large_enum_variant)] // as for `Compensator`: no heap, the state is in a static
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 enum ModelState {
     Pi(PiState),
@@ -209,9 +210,12 @@ impl Controller {
         };
         self.compensator_state = match (&self.config.compensator, &observer_state) {
             (Compensator::None, _) => ModelState::None,
-            (Compensator::InversePi(m), ModelState::Pi(fs)) => {
-                ModelState::Pi(m.state_from_forward(fs))
-            }
+            (Compensator::InversePi(m), ModelState::Pi(fs)) => match &self.config.observer {
+                Observer::Pi(observer) => {
+                    ModelState::Pi(m.state_from_forward(&observer.bank().outputs(fs)))
+                }
+                _ => ModelState::Pi(m.state_at_rest(y)), // unreachable: the state is the observer's
+            },
             (Compensator::InversePi(m), _) => ModelState::Pi(m.state_at_rest(y)),
             (Compensator::InverseDuhem(m), _) => {
                 let model = m.model();
@@ -228,6 +232,27 @@ impl Controller {
     pub fn reconfigure(&mut self, config: ControlConfig) {
         self.config = config;
         self.relax_at(self.drive);
+    }
+
+    /// The setpoint in force (the last one given, or held), Q2.30 normalised displacement.
+    pub fn setpoint(&self) -> i32 {
+        self.setpoint
+    }
+
+    /// The rest position: the observer's displacement with the drive at rest (the bias),
+    /// Q2.30 normalised (the drive itself without an observer). Computed from the configuration
+    /// alone; the controller's state is not touched.
+    pub fn rest_setpoint(&self) -> i32 {
+        let (lo, hi) = self.config.drive.drive_range();
+        let drive = limit(self.config.drive.rest_drive(), lo, hi);
+        match &self.config.observer {
+            Observer::None => drive,
+            Observer::Pi(m) => {
+                let mut s = m.state_at_rest(drive);
+                m.step(&mut s, drive)
+            }
+            Observer::Duhem(m) => m.anhysteretic(drive),
+        }
     }
 
     /// The active configuration.
@@ -393,7 +418,7 @@ impl Feedback {
     /// ADC code → normalised displacement: `offset + gain · code / 2^bits` (Q2.30, saturated).
     /// The code is masked to `adc_bits` and shifted up to a Q2.30 fraction in 32 bits.
     #[inline(always)]
-    fn displacement(&self, code: AdcCode) -> i32 {
+    pub fn displacement(&self, code: AdcCode) -> i32 {
         let bits = self.adc_bits.min(SIGNAL_FRAC_BITS);
         let mask = (1u32 << bits).wrapping_sub(1);
         let fraction = ((code.0 & mask) << (SIGNAL_FRAC_BITS - bits)) as i32; // [0, 1)

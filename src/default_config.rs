@@ -14,7 +14,10 @@ use crate::duhem::{Duhem, InverseDuhem};
 use crate::fixed_point::{gain_from_f64, signal_from_f64};
 use crate::params::{DuhemParams, ParamError, PiParams, Thresholds, MAX_OPERATORS};
 use crate::prandtl_ishlinskii::InversePrandtlIshlinskii;
+use crate::protocol::messages::{ModelParams, ParamSet, MAX_PARAM_OPERATORS};
+use crate::protocol::param_load::BoardProfile;
 use crate::scaling::Scaling;
+use crate::settings::{Mode, SensorSettings};
 
 /// Left-stack voltage range, volts (model input).
 pub const DRIVE_VOLTS: (f64, f64) = (0.0, 140.0);
@@ -88,13 +91,20 @@ pub fn drive_settings(control_rate_hz: f64, safe_state: SafeState) -> DriveSetti
 /// total slope 0.5 µm/V, `w_1 = 0.3 µm/V`, the other 0.2 µm/V decaying by 0.8 per operator.
 pub fn pi_params(n: usize) -> Result<PiParams, ParamError> {
     let thresholds = Thresholds::Uniform.generate(n, DRIVE_VOLTS.1 - DRIVE_VOLTS.0)?;
+    // 0.8^i by repeated multiplication (no `libm::pow` in the firmware image).
+    let mut decay = [0.0; MAX_OPERATORS];
+    let mut p = 1.0;
+    for d in decay.iter_mut().take(n).skip(1) {
+        p *= 0.8;
+        *d = p;
+    }
+    let tail: f64 = decay.iter().sum();
     let mut weights = [0.0; MAX_OPERATORS];
-    let tail: f64 = (1..n).map(|i| libm::pow(0.8, i as f64)).sum();
     for (i, w) in weights.iter_mut().enumerate().take(n) {
         *w = if i == 0 {
             0.3
         } else if tail > 0.0 {
-            0.2 * libm::pow(0.8, i as f64) / tail
+            0.2 * decay[i] / tail
         } else {
             0.0
         };
@@ -151,6 +161,52 @@ pub fn control_config(
     })
 }
 
+/// The board as a parameter load cannot change it: 150 V amplifier on the 12-bit DAC at
+/// `control_rate_hz`, and the 12-bit sensor ADC spanning the stroke (code 0 at 0 µm, full
+/// scale at 70 µm — the calibration [`feedback`] uses).
+pub fn board_profile(control_rate_hz: f64) -> BoardProfile {
+    BoardProfile {
+        amplifier_full_scale: 150.0,
+        dac_full_scale: 4095,
+        control_rate_hz,
+        sensor: Some(SensorSettings {
+            adc_bits: 12,
+            displacement_at_zero: STROKE_UM.0,
+            displacement_at_full_scale: STROKE_UM.1,
+        }),
+    }
+}
+
+/// The parameter set the firmware boots on when flash holds none: the representative P–I
+/// model of [`pi_params`] with [`DEFAULT_OPERATORS`] operators (compensator and observer),
+/// the drive of [`drive_settings`], the gains of [`feedback`], closed loop.
+pub fn boot_param_set(safe_state: SafeState) -> Result<ParamSet, ParamError> {
+    let pi = pi_params(DEFAULT_OPERATORS)?;
+    let f32s = |v: &[f64]| -> heapless::Vec<f32, MAX_PARAM_OPERATORS> {
+        v.iter().map(|&x| x as f32).collect()
+    };
+    let d = drive_settings(1.0, safe_state);
+    Ok(ParamSet {
+        model: ModelParams::PrandtlIshlinskii {
+            a0: pi.a0 as f32,
+            offset: pi.offset as f32,
+            thresholds: f32s(&pi.thresholds),
+            weights: f32s(&pi.weights),
+        },
+        input_range: [DRIVE_VOLTS.0 as f32, DRIVE_VOLTS.1 as f32],
+        output_range: [STROKE_UM.0 as f32, STROKE_UM.1 as f32],
+        configuration: d.configuration,
+        bias: d.bias as f32,
+        voltage_limits: [d.min_voltage as f32, d.max_voltage as f32],
+        slew_rate: d.slew_rate as f32,
+        safe_state,
+        // kp 0.2, ki 0.01 per tick, correction within ±0.2 of the normalised drive (a tenth
+        // of its range): as `feedback()`.
+        feedback: Some([0.2, 0.01, 0.1]),
+        mode: Mode::ClosedLoop,
+    })
+}
+
 /// The firmware's boot configuration: inverse P–I with [`DEFAULT_OPERATORS`] operators.
 pub fn boot_config(
     control_rate_hz: f64,
@@ -190,6 +246,39 @@ mod tests {
         }
         fn read(&mut self) -> Result<AdcCode, Infallible> {
             Ok(AdcCode(2048))
+        }
+    }
+
+    /// The boot parameter set, through the protocol's load path, runs the same compensator,
+    /// feedback and drive as [`boot_config`] (observer aside: a load runs one model both ways).
+    #[test]
+    fn the_boot_parameter_set_loads_to_the_boot_configuration() {
+        use crate::protocol::param_load::settings_from_params;
+        let rate = 50_000.0;
+        let p = boot_param_set(SafeState::Bias).unwrap();
+        let s = settings_from_params(&p, &board_profile(rate)).unwrap();
+        let c = s.build().unwrap();
+        let want = boot_config(rate, SafeState::Bias).unwrap();
+        let (fa, fb) = (c.feedback.unwrap(), want.feedback.unwrap());
+        assert_eq!(
+            (fa.sensor_offset, fa.sensor_gain),
+            (fb.sensor_offset, fb.sensor_gain)
+        );
+        assert_eq!((fa.kp, fa.ki), (fb.kp, fb.ki));
+        assert!((fa.limit - fb.limit).abs() < 16, "{fa:?} vs {fb:?}"); // f32 on the wire
+        assert_eq!(c.drive.safe_codes(), want.drive.safe_codes());
+        assert_eq!(c.drive.drive_range(), want.drive.drive_range());
+        assert!(matches!(c.compensator, Compensator::InversePi(_)));
+        // Same drive from the same setpoints (f32 on the wire: within a DAC code).
+        use crate::board::fakes::{FixedAdc, RecordingDac};
+        let (mut ours, mut theirs) = (Controller::new(c), Controller::new(want));
+        let (mut da, mut db) = (RecordingDac::default(), RecordingDac::default());
+        let mut adc = FixedAdc(Some(AdcCode(2048)));
+        for k in 0..2000 {
+            let sp = crate::fixed_point::signal_from_f64(0.8 * libm::sin(k as f64 * 0.005));
+            ours.tick(Some(sp), &mut adc, &mut da);
+            theirs.tick(Some(sp), &mut adc, &mut db);
+            assert!((da.left.0 as i32 - db.left.0 as i32).abs() <= 1, "tick {k}");
         }
     }
 

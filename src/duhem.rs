@@ -22,8 +22,8 @@
 //! shortfall in one sample is made up in the next.
 
 use crate::fixed_point::{
-    clamp_full_scale, gain_from_f64, saturate_i64, signal_from_f64, GAIN_FRAC_BITS,
-    SIGNAL_FRAC_BITS, SIGNAL_ONE,
+    clamp_full_scale, gain_from_f64, q54_to_signal_floor, saturate_i64, signal_from_f64,
+    GAIN_FRAC_BITS, Q54_FRAC_BITS, SIGNAL_FRAC_BITS, SIGNAL_ONE,
 };
 use crate::params::{DuhemParams, ParamError};
 use crate::scaling::Scaling;
@@ -101,23 +101,29 @@ impl Duhem {
 
     /// One sample: input `u` (Q2.30 normalised drive, clamped to [-1, 1]) → estimated
     /// displacement (Q2.30 normalised, saturated).
+    ///
+    /// The update `y + a·e + γ·Δu` is summed in one Q10.54 accumulator (`a·e` is Q4.60,
+    /// shifted down by 6; `γ·Δu` is Q8.24 × Q2.30) and brought back to Q2.30 once, rounding
+    /// toward −∞ and saturating ([`q54_to_signal_floor`]): one rounding per step instead of
+    /// one per term, and a multiply-accumulate instead of two shifts and a 64-bit add.
     #[inline]
     pub fn step(&self, state: &mut DuhemState, u: i32) -> i32 {
         let u = clamp_full_scale(u);
         // |Δu| ≤ 2; a full-range jump saturates 2^-30 short of 2 (QSUB).
         let du = u.saturating_sub(state.u);
         let magnitude = du.unsigned_abs();
-        // a = min(α|Δu|, 1), Q2.30: below 1/α the product is < 2^54 and fits after the shift.
+        // a = min(α|Δu|, 1), Q2.30: below 1/α the product is < 2^54 and fits after the shift;
+        // there |Δu| < 1/α < 2, so it is a non-negative i32 and a signed multiply serves.
         let a = if magnitude >= self.inverse_alpha as u32 {
             SIGNAL_ONE
         } else {
-            ((self.alpha as i64 * magnitude as i64) >> GAIN_FRAC_BITS) as i32
+            ((self.alpha as i64 * magnitude as i32 as i64) >> GAIN_FRAC_BITS) as i32
         };
         let e = self.anhysteretic_error(state);
-        let dy = ((a as i64 * e as i64) >> SIGNAL_FRAC_BITS)
-            + ((self.gamma as i64 * du as i64) >> GAIN_FRAC_BITS);
+        let hysteretic = (a as i64 * e as i64) >> (2 * SIGNAL_FRAC_BITS - Q54_FRAC_BITS);
+        let acc = ((state.y as i64) << GAIN_FRAC_BITS) + hysteretic + self.gamma as i64 * du as i64;
         state.u = u;
-        state.y = saturate_i64(state.y as i64 + dy);
+        state.y = q54_to_signal_floor(acc);
         state.y
     }
 }
@@ -171,12 +177,14 @@ impl InverseDuhem {
             self.model.gamma as i64 - alpha_e
         }
         .max(self.min_slope as i64);
-        // m = |Δy| / g: Q2.30 · 2^24 / Q8.24 = Q2.30; |Δy| ≤ 3·2^30 so the shift fits i64.
-        // The slope is at least min_slope ≥ 1, so the division cannot trap; checked_div keeps
-        // the tick free of a panic path all the same.
-        let m = ((dy.abs() << GAIN_FRAC_BITS).checked_div(slope))
-            .unwrap_or(0)
-            .min(self.max_step as i64);
+        // m = |Δy| / g, Q2.30 = Q2.30 · 2^24 / Q8.24. An i64 division is a library call on
+        // the M4 (`__aeabi_ldivmod`, a few hundred instructions); its FPU divides in one
+        // `VDIV.F32`. f32 carries 24 bits, so m is within 3·2^-24 of itself (< 0.02 LSB16 at
+        // the largest step the cap allows); IEEE division and conversion round the same on
+        // the host and the M4, so host and board still agree bit for bit (golden vectors).
+        // The slope is at least min_slope ≥ 1 (no division by zero); `as i32` saturates.
+        let m = (((dy.abs() as f32) / (slope as f32)) * (1u32 << GAIN_FRAC_BITS) as f32) as i32;
+        let m = (m as i64).min(self.max_step as i64);
         let du = if dy > 0 { m } else { -m };
         let u = clamp_full_scale(saturate_i64(state.u as i64 + du));
         self.model.step(state, u);

@@ -29,6 +29,8 @@
 pub const SIGNAL_FRAC_BITS: u32 = 30;
 /// Fractional bits of a Q8.24 gain.
 pub const GAIN_FRAC_BITS: u32 = 24;
+/// Fractional bits of an accumulator of gain × signal products (Q10.54 in `i64`).
+pub const Q54_FRAC_BITS: u32 = SIGNAL_FRAC_BITS + GAIN_FRAC_BITS;
 /// 1.0 as a Q2.30 signal (full scale).
 pub const SIGNAL_ONE: i32 = 1 << SIGNAL_FRAC_BITS;
 /// 1.0 as a Q8.24 gain.
@@ -85,6 +87,27 @@ pub fn saturate_q54_to_signal(acc: i64) -> i32 {
     saturate_i64(shifted)
 }
 
+/// Converts a Q10.54 accumulator to a Q2.30 signal, rounding toward −∞ (truncation of the
+/// 24 dropped bits, at most 2^-30 low) and saturating exactly to the `i32` range — the tick's
+/// conversion. The value fits iff the accumulator's high word fits 24 signed bits; the result
+/// is then that word shifted up by 8 with the low word's top byte below it. On the Cortex-M4
+/// that is an `SSAT`, a compare and two data instructions, where [`saturate_q54_to_signal`]
+/// needs a 64-bit add and two 64-bit compares.
+#[inline(always)]
+pub fn q54_to_signal_floor(acc: i64) -> i32 {
+    const HIGH_BITS: u32 = 32 - GAIN_FRAC_BITS; // 8
+    const HIGH_MAX: i32 = (1 << (31 - HIGH_BITS)) - 1;
+    let high = (acc >> 32) as i32;
+    let low = acc as u32;
+    let fitted = high.clamp(-HIGH_MAX - 1, HIGH_MAX);
+    if fitted != high {
+        // Out of range: i32::MAX for a positive accumulator, i32::MIN for a negative one.
+        (high >> 31) ^ i32::MAX
+    } else {
+        (high << HIGH_BITS) | (low >> GAIN_FRAC_BITS) as i32
+    }
+}
+
 /// Saturates an `i64` to the `i32` range.
 #[inline(always)]
 pub fn saturate_i64(x: i64) -> i32 {
@@ -125,6 +148,38 @@ pub fn clamp_full_scale(signal: i32) -> i32 {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn floor_conversion_is_the_shift_saturated() {
+        let cases = [
+            0i64,
+            1,
+            -1,
+            (1 << 24) - 1,
+            -(1 << 24),
+            (SIGNAL_ONE as i64) << 24,
+            ((SIGNAL_ONE as i64) << 24) + 12345,
+            -((SIGNAL_ONE as i64) << 25),
+            ((i32::MAX as i64) << 24) + ((1 << 24) - 1),
+            (i32::MAX as i64 + 1) << 24,
+            (i32::MIN as i64) << 24,
+            ((i32::MIN as i64) << 24) - 1,
+            i64::MAX,
+            i64::MIN,
+        ];
+        for acc in cases {
+            let expected = saturate_i64(acc >> GAIN_FRAC_BITS);
+            assert_eq!(q54_to_signal_floor(acc), expected, "acc = {acc:#x}");
+        }
+    }
+
+    proptest::proptest! {
+        #[test]
+        fn floor_conversion_matches_the_i64_shift(acc in proptest::num::i64::ANY, shift in 0u32..40) {
+            let acc = acc >> shift; // spread over magnitudes, in and out of range
+            proptest::prop_assert_eq!(q54_to_signal_floor(acc), saturate_i64(acc >> GAIN_FRAC_BITS));
+        }
+    }
 
     #[test]
     fn conversions_round_trip_within_half_an_lsb() {

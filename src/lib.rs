@@ -11,9 +11,12 @@
 //! * [`duhem`] — Duhem forward observer and inverse Duhem compensator.
 //! * [`params`] — physical (`f64`) parameter sets and their validation ([`ParamError`]).
 //! * [`param_store`] — the CRC-protected parameter record in flash and the board settings.
-//! * [`status_report`] — the minimal UART status query (until the protocol issue's frames).
 //! * `hardware` (firmware build only) — STM32F405 registers behind the [`board`] traits.
 //! * [`reference`] — `f64` reference implementations the fixed-point code is checked against.
+//! * [`control_loop`] — the tick side of the board: setpoint queue and stream or waveform,
+//!   the control tick, the data recorder; [`recorder`] — the recorder itself.
+//! * [`protocol`] — the UART protocol: frames, messages, and the board's command handler.
+//! * [`golden`] — golden vectors: recorded ticks the board must reproduce bit for bit.
 //! * [`converters`] — SPI drivers of the external DAC (DAC8562/3) and sensor ADC (ADS8689).
 //! * [`dual_stage`] — the dual-actuated stage: ball-screw coarse stage + piezo fine stage under
 //!   one controller (setpoint split, trapezoidal moves, centring, hand-over); [`coarse_axis`] —
@@ -31,12 +34,14 @@
 pub mod board;
 pub mod coarse_axis;
 pub mod control;
+pub mod control_loop;
 pub mod converters;
 pub mod default_config;
 pub mod drive;
 pub mod dual_stage;
 pub mod duhem;
 pub mod fixed_point;
+pub mod golden;
 #[cfg(target_os = "none")]
 pub mod hardware;
 pub mod param_store;
@@ -44,12 +49,15 @@ pub mod params;
 pub mod play_operator;
 pub mod prandtl_ishlinskii;
 pub mod protocol;
+pub mod recorder;
 pub mod reference;
 pub mod scaling;
 pub mod setpoint_stream;
 pub mod settings;
-pub mod status_report;
 pub mod waveform;
 
+/// The `heapless` the protocol's messages are built from (`Vec` of setpoints, chunks), so
+/// host code builds them without naming the crate itself.
+pub use heapless;
 pub use params::{DuhemParams, ParamError, PiParams, Thresholds, MAX_OPERATORS};
 pub use scaling::Scaling;

@@ -343,10 +343,93 @@ impl ParamSource {
     }
 }
 
+/// Payload layout version of a record that also holds a parameter set (written by the
+/// protocol's `StoreParams`): the 5 bytes of [`BoardSettings`], then the parameter set,
+/// `postcard`-encoded (`protocol::messages::ParamSet`).
+pub const PARAMS_VERSION: u16 = 2;
+
+/// The record's payload, of either layout: ([`BoardSettings`] bytes, parameter-set bytes —
+/// empty for a version-1 record).
+pub fn decode_payload(record: &[u8]) -> Result<(&[u8], &[u8]), StoreError> {
+    match decode(record, BoardSettings::VERSION) {
+        Ok(payload) => Ok((payload, &[])),
+        Err(StoreError::UnsupportedVersion { found, .. }) if found == PARAMS_VERSION => {
+            let payload = decode(record, PARAMS_VERSION)?;
+            Ok(payload.split_at(payload.len().min(BoardSettings::PAYLOAD_LEN)))
+        }
+        Err(e) => Err(e),
+    }
+}
+
+/// Where the parameter record lives: a flash sector on the board, RAM in the simulator.
+pub trait RecordStorage {
+    /// The stored bytes (the record, possibly followed by anything; all `0xFF` when erased).
+    fn read(&self) -> &[u8];
+    /// Replaces the record with `record` (erase, program, read back).
+    fn write(&mut self, record: &[u8]) -> Result<(), StorageError>;
+}
+
+/// Why a record could not be written.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub enum StorageError {
+    /// This board has no writable parameter storage.
+    Unavailable,
+    /// The erase or the programming failed, or the read-back differs.
+    WriteFailed,
+}
+
+/// Parameter storage in RAM (the simulated board; tests): starts erased.
+#[derive(Clone, Debug)]
+pub struct RamStorage {
+    bytes: [u8; MAX_RECORD],
+}
+
+impl Default for RamStorage {
+    fn default() -> Self {
+        Self {
+            bytes: [0xFF; MAX_RECORD],
+        }
+    }
+}
+
+impl RecordStorage for RamStorage {
+    fn read(&self) -> &[u8] {
+        &self.bytes
+    }
+
+    fn write(&mut self, record: &[u8]) -> Result<(), StorageError> {
+        let slot = self
+            .bytes
+            .get_mut(..record.len())
+            .ok_or(StorageError::WriteFailed)?;
+        slot.copy_from_slice(record);
+        if let Some(rest) = self.bytes.get_mut(record.len()..) {
+            rest.fill(0xFF);
+        }
+        Ok(())
+    }
+}
+
+/// No writable storage: reads as erased (or as the given read-only bytes), refuses writes.
+#[derive(Clone, Copy, Debug)]
+pub struct ReadOnlyStorage<'a>(pub &'a [u8]);
+
+impl RecordStorage for ReadOnlyStorage<'_> {
+    fn read(&self) -> &[u8] {
+        self.0
+    }
+
+    fn write(&mut self, _record: &[u8]) -> Result<(), StorageError> {
+        Err(StorageError::Unavailable)
+    }
+}
+
 /// Reads the settings from a record (the bytes of the parameter sector): the stored settings
-/// when the record is sound, otherwise [`BoardSettings::DEFAULT`] and the reason.
+/// when the record is sound, otherwise [`BoardSettings::DEFAULT`] and the reason. Records of
+/// both layouts ([`BoardSettings::VERSION`], [`PARAMS_VERSION`]) are read.
 pub fn load_settings(sector: &[u8]) -> (BoardSettings, ParamSource) {
-    match decode(sector, BoardSettings::VERSION) {
+    match decode_payload(sector).map(|(settings, _)| settings) {
         Err(e) => (
             BoardSettings::DEFAULT,
             ParamSource::Defaults(LoadFailure::Record(e)),

@@ -14,77 +14,164 @@
 //! weights Q8.24 normalised (output span per input span); accumulation Q10.54 in `i64`.
 
 use crate::fixed_point::{
-    clamp_full_scale, gain_from_f64, limit, saturate_q54_to_signal, signal_from_f64, GAIN_FRAC_BITS,
+    clamp_full_scale, gain_from_f64, limit, q54_to_signal_floor, saturate_q54_to_signal,
+    signal_from_f64, GAIN_FRAC_BITS,
 };
 use crate::params::{CanonicalPi, ParamError, PiParams, MAX_CANONICAL_OPERATORS};
 use crate::play_operator::play;
 use crate::scaling::Scaling;
 
-/// The states of a bank's play operators. Index `i` is operator `i + 1`.
+/// Most frozen segments a [`PiState`]'s memory holds: every segment holds at least one
+/// operator, so a bank of `N` operators never needs more than `N`.
+const MAX_SEGMENTS: usize = MAX_CANONICAL_OPERATORS;
+
+/// [`Segment::direction`] of a segment whose operator outputs are stored one by one.
+const EXPLICIT: i32 = 0;
+
+/// Operators that were left together: a run that reversed, or the stored outputs of a state
+/// built from arbitrary operator outputs.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+struct Segment {
+    /// One past the segment's last operator. Its first operator is the end of the segment
+    /// above it on the stack, or the end of the current run for the top one.
+    end: usize,
+    /// The input at which the run reversed (a past extremum), Q2.30.
+    extremum: i32,
+    /// +1: the run was rising, outputs `extremum − r_i`; −1: falling, `extremum + r_i`;
+    /// [`EXPLICIT`]: the outputs are in [`PiState::explicit`].
+    direction: i32,
+}
+
+/// The memory of a bank of play operators.
 ///
-/// Besides the operator outputs it keeps the last input and the running sum `Σ w_i p_i`, so
-/// that a step only touches the operators that move (see [`PlayOperatorBank`]). The fields are
-/// private: every state comes from a constructor that establishes the bank's invariant.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+/// A play operator bank remembers the input's past extrema (the wiping-out property): at any
+/// time the operators form runs. The first `following` operators follow the input in its
+/// present direction `d` (`p_i = x − d·r_i`); the rest are frozen in segments, each left by a
+/// run that reversed at an extremum `e` (`p_i = e ∓ r_i`), below the oldest of which lie the
+/// outputs of the state the bank started from, stored one by one. The state keeps that stack
+/// of segments and `base`, chosen so that the bank's sum is `base + W_following · x` with
+/// `W_k = Σ_{i<k} w_i` — one multiply-accumulate per step however many operators follow. See
+/// [`PlayOperatorBank`] for the step.
+///
+/// The fields are private: every state comes from a constructor that establishes the bank's
+/// invariant. Equality compares the live memory (the run, the segments in use and the stored
+/// outputs still in use), not slots left over from earlier steps; two states reached by
+/// different paths can still hold the same outputs and compare unequal — compare
+/// [`PlayOperatorBank::outputs`] for the operators' values.
+#[derive(Clone, Copy, Debug)]
 pub struct PiState {
-    /// Operator outputs `p_i`, Q2.30; only the first `operators()` entries are used.
-    operators: [i32; MAX_CANONICAL_OPERATORS],
     /// Last input `x`, Q2.30.
     input: i32,
-    /// `Σ w_i p_i`, Q10.54.
-    sum: i64,
+    /// Direction of the current run: +1 rising, −1 falling, 0 before the first move.
+    direction: i32,
+    /// Operators `[0, following)` follow the input.
+    following: usize,
+    /// `W_following`, Q8.24.
+    run_weight: i32,
+    /// The input beyond which (in the run's direction) the next frozen operator moves, Q2.30.
+    trigger: i32,
+    /// The bank's sum less `run_weight · input`, Q10.54.
+    base: i64,
+    /// Segments in use: `segments[depth − 1]` lies next to the current run.
+    depth: usize,
+    /// Frozen segments, oldest (highest operators) first.
+    segments: [Segment; MAX_SEGMENTS],
+    /// Stored operator outputs, Q2.30; they hold for the operators of an [`EXPLICIT`] segment.
+    explicit: [i32; MAX_CANONICAL_OPERATORS],
 }
 
 impl PiState {
-    /// Operator outputs `p_i`, Q2.30 (all slots; the bank uses its first `operators()`).
-    pub fn operators(&self) -> &[i32; MAX_CANONICAL_OPERATORS] {
-        &self.operators
+    /// The parts of the state in use (see the type's equality).
+    #[allow(clippy::type_complexity)]
+    fn live(&self) -> ((i32, i32, usize, i32, i32, i64), &[Segment], &[i32]) {
+        let s = self;
+        {
+            let depth = s.depth.min(MAX_SEGMENTS);
+            // The stored outputs in use: those of the bottom segment, if it is explicit.
+            let stored = match s.segments[..depth].first() {
+                Some(bottom) if bottom.direction == EXPLICIT => {
+                    let start = s.segments[..depth]
+                        .get(1)
+                        .map_or(s.following, |above| above.end);
+                    s.explicit.get(start..bottom.end).unwrap_or(&[])
+                }
+                _ => &[],
+            };
+            (
+                (
+                    s.input,
+                    s.direction,
+                    s.following,
+                    s.run_weight,
+                    s.trigger,
+                    s.base,
+                ),
+                &s.segments[..depth],
+                stored,
+            )
+        }
     }
 }
 
-/// One play operator's configuration, side by side so the tick loads it in one go.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
-struct WeightedOperator {
-    /// Threshold `r_i`, Q2.30 normalised.
-    threshold: i32,
-    /// Weight `w_i`, Q8.24 normalised.
-    weight: i32,
-    /// `−w_i`, Q8.24: the sum's update `w·p_new + (−w)·p_old` is then two `SMLAL`s on the
-    /// Cortex-M4, where `w·(p_new − p_old)` would need a 33-bit difference and a 64-bit multiply.
-    neg_weight: i32,
+impl PartialEq for PiState {
+    fn eq(&self, other: &Self) -> bool {
+        self.live() == other.live()
+    }
+}
+
+impl Eq for PiState {}
+
+impl PiState {
+    /// The last input, Q2.30.
+    pub fn input(&self) -> i32 {
+        self.input
+    }
 }
 
 /// A bank of play operators and their weights: `Σ_i w_i · P_{r_i}[x]`.
 ///
-/// **Only the operators that move are touched.** With thresholds increasing, the states of a
-/// bank that started relaxed satisfy `|p_{i+1} − p_i| ≤ r_{i+1} − r_i` (a play update is a
-/// clamp, which keeps that Lipschitz bound exactly, in integers too). So when the input rises,
-/// operator `i + 1` can only be pushed if operator `i` was (`p_i ≥ x − r_i` implies
-/// `p_{i+1} ≥ x − r_{i+1}`), and likewise downwards: the operators that move form a prefix.
-/// A step walks that prefix, stops at the first operator that holds, and updates the running
-/// sum by `w_i (p_new − p_old)` — exactly the full sum, in integers, at a fraction of the cost
-/// on a slowly varying input (and none at all when the input holds).
+/// **A step costs one multiply-accumulate, plus a little for each operator that starts to
+/// move.** With thresholds increasing, the states of a bank satisfy
+/// `|p_{i+1} − p_i| ≤ r_{i+1} − r_i` (a play update is a clamp, which keeps that bound
+/// exactly, in integers too), so the operators that move on a step form a prefix. While the
+/// input keeps its direction `d`, the operators it has engaged follow it (`p_i = x − d·r_i`),
+/// so their part of the sum is `W_k x` plus a constant, with the prefix sums
+/// `W_k = Σ_{i<k} w_i` precomputed here. A step therefore only compares the input with the
+/// trigger of the next frozen operator — usually it holds — and evaluates `base + W_k x`
+/// ([`PiState`]). When the input reverses, the run freezes as a segment at that extremum
+/// (constant time); a later run that passes the extremum takes the whole segment back at once
+/// (the wiping-out property), and one that reaches into a segment left by a run the other way
+/// takes its operators one by one. In exact integers the sum equals, bit for bit, updating
+/// every operator and summing every product (property tests check it); no operator that
+/// moves can saturate, since it moves toward the input.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct PlayOperatorBank {
     len: usize,
-    operators: [WeightedOperator; MAX_CANONICAL_OPERATORS],
+    /// Thresholds `r_i`, Q2.30 normalised, increasing.
+    thresholds: [i32; MAX_CANONICAL_OPERATORS],
+    /// Weights `w_i`, Q8.24 normalised.
+    weights: [i32; MAX_CANONICAL_OPERATORS],
+    /// `W_k = Σ_{i<k} w_i`, Q8.24, `k = 0 ..= len` (|W_k| ≤ Σ|w_i| ≤ 64 by validation).
+    weight_prefix: [i32; MAX_CANONICAL_OPERATORS + 1],
 }
 
 impl PlayOperatorBank {
     fn from_canonical(c: &CanonicalPi) -> Result<Self, ParamError> {
         c.check_fixed_point_range()?;
         let mut bank = Self {
-            len: c.thresholds.len(),
-            operators: [WeightedOperator::default(); MAX_CANONICAL_OPERATORS],
+            len: c.thresholds.len().min(MAX_CANONICAL_OPERATORS),
+            thresholds: [0; MAX_CANONICAL_OPERATORS],
+            weights: [0; MAX_CANONICAL_OPERATORS],
+            weight_prefix: [0; MAX_CANONICAL_OPERATORS + 1],
         };
-        for (op, (&r, &w)) in bank
-            .operators
-            .iter_mut()
-            .zip(c.thresholds.iter().zip(c.weights.iter()))
-        {
-            op.threshold = signal_from_f64(r);
-            op.weight = gain_from_f64(w);
-            op.neg_weight = -op.weight; // |w| < 128 in Q8.24: no overflow
+        let mut w_sum = 0i32;
+        for (i, (&r, &w)) in c.thresholds.iter().zip(c.weights.iter()).enumerate() {
+            let (r, w) = (signal_from_f64(r), gain_from_f64(w));
+            bank.thresholds[i] = r;
+            bank.weights[i] = w;
+            // Σ|w| ≤ 64 (validated): the partial sums fit Q8.24.
+            w_sum = w_sum.saturating_add(w);
+            bank.weight_prefix[i + 1] = w_sum;
         }
         Ok(bank)
     }
@@ -96,80 +183,237 @@ impl PlayOperatorBank {
 
     /// Threshold of operator `i + 1`, Q2.30 normalised (0 past the end).
     pub fn threshold(&self, i: usize) -> i32 {
-        self.operators.get(i).map_or(0, |op| op.threshold)
+        self.thresholds.get(i).copied().unwrap_or(0)
     }
 
     /// Weight of operator `i + 1`, Q8.24 normalised (0 past the end).
     pub fn weight(&self, i: usize) -> i32 {
-        self.operators.get(i).map_or(0, |op| op.weight)
+        self.weights.get(i).copied().unwrap_or(0)
+    }
+
+    /// The operators' outputs `p_i` in `state`, Q2.30 (slots past [`Self::operators`] are 0).
+    pub fn outputs(&self, state: &PiState) -> [i32; MAX_CANONICAL_OPERATORS] {
+        let mut p = [0; MAX_CANONICAL_OPERATORS];
+        let n = self.len;
+        p[..n].copy_from_slice(&state.explicit[..n]);
+        let mut start = state.following.min(n);
+        for (out, &r) in p.iter_mut().zip(&self.thresholds).take(start) {
+            *out = moved(state.input, state.direction, r);
+        }
+        for seg in state.segments[..state.depth.min(MAX_SEGMENTS)].iter().rev() {
+            let end = seg.end.clamp(start, n);
+            if seg.direction != EXPLICIT {
+                for (out, &r) in p[start..end].iter_mut().zip(&self.thresholds[start..end]) {
+                    *out = moved(seg.extremum, seg.direction, r);
+                }
+            }
+            start = end;
+        }
+        p
     }
 
     /// Advances the bank by input `x` (Q2.30) and returns `Σ w_i p_i` as a Q10.54 accumulator.
-    /// Validation bounds `Σ|w_i| · 2` below `2^63 / 2^54`, so the sum cannot overflow;
-    /// iteration is bounded by the array length (no panic path).
+    /// Validation bounds `Σ|w_i| · 2` below `2^63 / 2^54`, so the sum cannot overflow.
+    ///
+    /// The common step — the input moves on in its direction and the next frozen operator
+    /// holds — is two compares against the state's trigger and one multiply-accumulate; the
+    /// rest is in [`Self::reverse`] and [`Self::engage`], kept out of line.
     #[inline(always)]
-    fn step(&self, state: &mut PiState, x: i32) -> i64 {
-        let mut sum = state.sum;
-        let n = self.len;
-        let (Some(config), Some(outputs)) = (self.operators.get(..n), state.operators.get_mut(..n))
-        else {
-            return sum; // unreachable: len ≤ capacity by construction
-        };
-        let ops = config.iter().zip(outputs.iter_mut());
-        if x > state.input {
-            for (op, p) in ops {
-                let lower = x.saturating_sub(op.threshold);
-                if *p >= lower {
-                    break;
-                }
-                sum += op.weight as i64 * lower as i64 + op.neg_weight as i64 * *p as i64;
-                *p = lower;
+    fn step(&self, s: &mut PiState, x: i32) -> i64 {
+        if x > s.input {
+            if s.direction <= 0 {
+                self.reverse::<true>(s, x);
+            } else if x > s.trigger {
+                self.engage::<true>(s, x);
             }
-        } else if x < state.input {
-            for (op, p) in ops {
-                let upper = x.saturating_add(op.threshold);
-                if *p <= upper {
-                    break;
-                }
-                sum += op.weight as i64 * upper as i64 + op.neg_weight as i64 * *p as i64;
-                *p = upper;
+        } else if x < s.input {
+            if s.direction >= 0 {
+                self.reverse::<false>(s, x);
+            } else if x < s.trigger {
+                self.engage::<false>(s, x);
             }
         }
-        state.input = x;
-        state.sum = sum;
-        sum
+        s.input = x;
+        s.base + s.run_weight as i64 * x as i64
+    }
+
+    /// The input reversed (or made its first move) toward `x`, now rising if `UP`: the run
+    /// that followed it stays at the last input, as a segment; then the operators `x` pushes
+    /// are taken.
+    #[inline(never)]
+    fn reverse<const UP: bool>(&self, s: &mut PiState, x: i32) {
+        if s.following > 0 {
+            // The run's part of the sum, W_k x − d R_k, becomes frozen: base' = base + W_k x.
+            s.base += s.run_weight as i64 * s.input as i64;
+            // Every segment holds an operator, so the stack has room (depth < len ≤ capacity).
+            if let Some(slot) = s.segments.get_mut(s.depth) {
+                *slot = Segment {
+                    end: s.following,
+                    extremum: s.input,
+                    direction: s.direction,
+                };
+                s.depth += 1;
+            }
+            s.following = 0;
+            s.run_weight = 0;
+            s.direction = if UP { 1 } else { -1 };
+            // The first operator of the run just frozen has threshold 0 in every canonical
+            // bank (P–I's `a0` term, the inverse's `r'_1`), so its trigger is the extremum
+            // itself, which `x` has just left: it moves. If the second holds — the common
+            // case — the reversal is done without the general walk.
+            let e = s.input;
+            if let (Some(&0), Some(&w), Some(&r), Some(true)) = (
+                self.thresholds.first(),
+                self.weights.first(),
+                self.thresholds.get(1),
+                s.segments
+                    .get(s.depth.wrapping_sub(1))
+                    .map(|seg| seg.end > 1),
+            ) {
+                let t = if UP {
+                    e.wrapping_add(r).saturating_add(r)
+                } else {
+                    e.wrapping_sub(r).saturating_sub(r)
+                };
+                let holds = if UP { x <= t } else { x >= t };
+                if holds {
+                    s.base -= w as i64 * e as i64;
+                    s.following = 1;
+                    s.run_weight = w;
+                    s.trigger = t;
+                    return;
+                }
+            }
+        }
+        s.direction = if UP { 1 } else { -1 };
+        self.engage::<UP>(s, x);
+    }
+
+    /// Takes into the run every frozen operator that input `x` (rising if `UP`) pushes, and
+    /// sets the trigger for the next one.
+    ///
+    /// Operator `k` with output `p` moves iff `x − d·r_k` is beyond `p`, i.e. `x` is beyond
+    /// its trigger `t_k = p + d·r_k`; it then joins the run (`p' = x − d·r_k`) and the sum's
+    /// `base` loses `w_k p + d w_k r_k = w_k t_k` (see [`PiState`]). A trigger that is passed
+    /// lies in the input's range, so `t_k` is exact there. Bounded: one pass per segment, and
+    /// within a segment one per operator.
+    #[inline(never)]
+    fn engage<const UP: bool>(&self, s: &mut PiState, x: i32) {
+        let d = if UP { 1 } else { -1 };
+        let beyond = |t: i32| if UP { x > t } else { x < t };
+        let never = if UP { i32::MAX } else { i32::MIN };
+        // Work on locals; the state is written once, at the end.
+        let (mut base, mut k, mut depth) = (s.base, s.following, s.depth);
+        let trigger = 'walk: {
+            for _ in 0..=MAX_SEGMENTS {
+                let Some(seg) = depth.checked_sub(1).and_then(|top| s.segments.get(top)) else {
+                    break 'walk never; // every operator follows: nothing left to trigger
+                };
+                let end = seg.end.min(self.len);
+                let e = seg.extremum;
+                if seg.direction == d {
+                    // Left at `e − d·r` by a run in this direction: all move once x passes e.
+                    if !beyond(e) {
+                        break 'walk e;
+                    }
+                    let (Some(&w0), Some(&w1)) =
+                        (self.weight_prefix.get(k), self.weight_prefix.get(end))
+                    else {
+                        break 'walk never; // unreachable: k ≤ end ≤ len ≤ capacity
+                    };
+                    base -= (w1 - w0) as i64 * e as i64; // |Σ w| ≤ 64
+                    k = end;
+                    depth -= 1;
+                    continue;
+                }
+                let (Some(thresholds), Some(weights), Some(stored)) = (
+                    self.thresholds.get(k..end),
+                    self.weights.get(k..end),
+                    s.explicit.get(k..end),
+                ) else {
+                    break 'walk never; // unreachable: k ≤ end ≤ len ≤ capacity
+                };
+                let explicit = seg.direction == EXPLICIT;
+                for ((&r, &w), &p) in thresholds.iter().zip(weights).zip(stored) {
+                    // Output `p` stored, or `e + d·r` left by a run the other way (a value
+                    // the operator held: no overflow); the trigger is one more `d·r` on.
+                    let t = match (explicit, UP) {
+                        (true, true) => p.saturating_add(r),
+                        (true, false) => p.saturating_sub(r),
+                        (false, true) => e.wrapping_add(r).saturating_add(r),
+                        (false, false) => e.wrapping_sub(r).saturating_sub(r),
+                    };
+                    if !beyond(t) {
+                        break 'walk t;
+                    }
+                    base -= w as i64 * t as i64;
+                    k += 1;
+                }
+                depth -= 1;
+            }
+            never // unreachable: the loop runs out only after every segment is taken
+        };
+        s.base = base;
+        s.following = k;
+        s.depth = depth;
+        s.run_weight = self.weight_prefix.get(k).copied().unwrap_or(0);
+        s.trigger = trigger;
     }
 
     /// A state from operator outputs: projected onto the bank's invariant
-    /// (`p_1 = x`, `|p_{i+1} − p_i| ≤ r_{i+1} − r_i`, `|p_i − x| ≤ r_i`) and with its sum.
+    /// (`p_1 = x`, `|p_{i+1} − p_i| ≤ r_{i+1} − r_i`, `|p_i − x| ≤ r_i`), stored one by one.
     fn state_from(&self, mut operators: [i32; MAX_CANONICAL_OPERATORS], x: i32) -> PiState {
         let mut previous: Option<(i32, i32)> = None; // (p, r) of the operator before
         let mut sum = 0i64;
-        for (op, p) in self
-            .operators
+        for ((&r, &w), p) in self
+            .thresholds
             .iter()
+            .zip(&self.weights)
             .zip(operators.iter_mut())
             .take(self.len)
         {
-            let mut v = play(x, op.threshold, *p);
+            let mut v = play(x, r, *p);
             if let Some((pp, pr)) = previous {
-                let d = op.threshold.saturating_sub(pr);
+                let d = r.saturating_sub(pr);
                 v = limit(v, pp.saturating_sub(d), pp.saturating_add(d));
             }
             *p = v;
-            previous = Some((v, op.threshold));
-            sum += op.weight as i64 * v as i64;
+            previous = Some((v, r));
+            sum += w as i64 * v as i64;
         }
+        let mut segments = [Segment::default(); MAX_SEGMENTS];
+        segments[0] = Segment {
+            end: self.len,
+            extremum: 0,
+            direction: EXPLICIT,
+        };
         PiState {
-            operators,
             input: x,
-            sum,
+            direction: 0,
+            following: 0,
+            run_weight: 0,
+            trigger: x,
+            base: sum,
+            depth: 1,
+            segments,
+            explicit: operators,
         }
     }
 
     /// State with every operator at `x` (the relaxed state after resting at input `x`).
     fn state_at(&self, x: i32) -> PiState {
         self.state_from([x; MAX_CANONICAL_OPERATORS], x)
+    }
+}
+
+/// Output of an operator with threshold `r` pushed by input `x` in direction `d`:
+/// `x − d·r` (and `x` itself before any move, `d = 0`).
+#[inline(always)]
+fn moved(x: i32, d: i32, r: i32) -> i32 {
+    match d.signum() {
+        1 => x.saturating_sub(r),
+        -1 => x.saturating_add(r),
+        _ => x,
     }
 }
 
@@ -212,7 +456,7 @@ impl PrandtlIshlinskii {
     #[inline]
     pub fn step(&self, state: &mut PiState, u: i32) -> i32 {
         let acc = self.bank.step(state, clamp_full_scale(u));
-        saturate_q54_to_signal(acc + ((self.offset as i64) << GAIN_FRAC_BITS))
+        q54_to_signal_floor(acc + ((self.offset as i64) << GAIN_FRAC_BITS))
     }
 }
 
@@ -257,16 +501,17 @@ impl InversePrandtlIshlinskii {
         &self.bank
     }
 
-    /// The inverse's state matching a forward state (DESIGN §2):
+    /// The inverse's state matching the forward model's operator outputs `p` (DESIGN §2,
+    /// from [`PlayOperatorBank::outputs`] of the observer's bank):
     /// `p'_i = S_i p_i + Σ_{j>i} w_j p_j`, so that switching the compensator on mid-run
     /// continues from where the stage is. Off the tick path (O(N²)).
-    pub fn state_from_forward(&self, forward: &PiState) -> PiState {
+    pub fn state_from_forward(&self, p: &[i32; MAX_CANONICAL_OPERATORS]) -> PiState {
         let n = self.bank.operators();
         let mut operators = [0; MAX_CANONICAL_OPERATORS];
         for (i, out) in operators.iter_mut().enumerate().take(n) {
-            let mut acc = self.partial_sums[i] as i64 * forward.operators[i] as i64;
-            for j in (i + 1)..n {
-                acc += self.forward_weights[j] as i64 * forward.operators[j] as i64;
+            let mut acc = self.partial_sums[i] as i64 * p[i] as i64;
+            for (&w, &pj) in self.forward_weights[i + 1..n].iter().zip(&p[i + 1..n]) {
+                acc += w as i64 * pj as i64;
             }
             *out = saturate_q54_to_signal(acc);
         }
@@ -285,7 +530,7 @@ impl InversePrandtlIshlinskii {
     #[inline]
     pub fn step(&self, state: &mut PiState, y: i32) -> i32 {
         let x = clamp_full_scale(y).saturating_sub(self.offset);
-        saturate_q54_to_signal(self.bank.step(state, x))
+        q54_to_signal_floor(self.bank.step(state, x))
     }
 }
 
@@ -302,39 +547,106 @@ mod tests {
         x: i32,
     ) -> i64 {
         let mut sum = 0;
-        for (op, p) in bank.operators.iter().zip(p.iter_mut()).take(bank.len) {
-            *p = play(x, op.threshold, *p);
-            sum += op.weight as i64 * *p as i64;
+        let n = bank.len;
+        for ((p, &r), &w) in p[..n].iter_mut().zip(&bank.thresholds).zip(&bank.weights) {
+            *p = play(x, r, *p);
+            sum += w as i64 * *p as i64;
         }
         sum
     }
 
+    fn bank(n: usize, weights: &[f64], geometric: bool) -> PlayOperatorBank {
+        let spacing = if geometric {
+            Thresholds::Geometric { ratio: 1.3 }
+        } else {
+            Thresholds::Uniform
+        };
+        let r = spacing.generate(n, 2.0).unwrap();
+        let c = CanonicalPi {
+            thresholds: heapless::Vec::from_slice(&r).unwrap(),
+            weights: heapless::Vec::from_slice(&weights[..n]).unwrap(),
+            offset: 0.0,
+        };
+        PlayOperatorBank::from_canonical(&c).unwrap()
+    }
+
+    /// Runs `inputs` through the bank and the plain definition side by side.
+    fn check_against_exhaustive(
+        bank: &PlayOperatorBank,
+        mut state: PiState,
+        inputs: impl Iterator<Item = i32>,
+    ) -> Result<(), TestCaseError> {
+        let n = bank.len;
+        let mut plain = bank.outputs(&state);
+        for x in inputs {
+            let fast = bank.step(&mut state, x);
+            let slow = exhaustive_step(bank, &mut plain, x);
+            prop_assert_eq!(fast, slow, "sum at x = {}", x);
+            prop_assert_eq!(&bank.outputs(&state)[..n], &plain[..n]);
+            prop_assert!(
+                state.depth <= n.max(1),
+                "depth {} for {} operators",
+                state.depth,
+                n
+            );
+        }
+        Ok(())
+    }
+
     proptest! {
-        /// Walking only the moving prefix gives, bit for bit, the states and the sum of
-        /// updating every operator — over random banks and random inputs, jumps included.
+        /// The memory stack gives, bit for bit, the states and the sum of updating every
+        /// operator — over random banks and random inputs, jumps included.
         #[test]
-        fn prefix_walk_equals_the_exhaustive_update(
+        fn memory_stack_equals_the_exhaustive_update_on_jumps(
             n in 1usize..=32,
             weights in prop::collection::vec(-1.0f64..1.0, 32),
+            geometric in any::<bool>(),
             inputs in prop::collection::vec(-1.0f64..=1.0, 1..300),
             start in -1.0f64..=1.0,
         ) {
-            let r = Thresholds::Uniform.generate(n, 2.0).unwrap();
-            let c = CanonicalPi {
-                thresholds: heapless::Vec::from_slice(&r).unwrap(),
-                weights: heapless::Vec::from_slice(&weights[..n]).unwrap(),
-                offset: 0.0,
-            };
-            let bank = PlayOperatorBank::from_canonical(&c).unwrap();
-            let mut state = bank.state_at(signal_from_f64(start));
-            let mut plain = state.operators;
-            for &u in &inputs {
-                let x = signal_from_f64(u);
-                let fast = bank.step(&mut state, x);
-                let slow = exhaustive_step(&bank, &mut plain, x);
-                prop_assert_eq!(fast, slow);
-                prop_assert_eq!(&state.operators[..n], &plain[..n]);
+            let bank = bank(n, &weights, geometric);
+            let state = bank.state_at(signal_from_f64(start));
+            check_against_exhaustive(&bank, state, inputs.iter().map(|&u| signal_from_f64(u)))?;
+        }
+
+        /// The same over random walks: small steps that reverse often, so that runs reach
+        /// part-way into segments left by runs the other way (nested minor loops), and an
+        /// input that may leave [-1, 1] as the inverse's does (`y − c`).
+        #[test]
+        fn memory_stack_equals_the_exhaustive_update_on_minor_loops(
+            n in 1usize..=32,
+            weights in prop::collection::vec(-1.0f64..1.0, 32),
+            geometric in any::<bool>(),
+            steps in prop::collection::vec(-0.2f64..0.2, 1..600),
+            start in -1.5f64..=1.5,
+        ) {
+            let bank = bank(n, &weights, geometric);
+            let state = bank.state_at(signal_from_f64(start));
+            let mut x = start;
+            let inputs = steps.iter().map(move |&dx| {
+                x = (x + dx).clamp(-1.9, 1.9);
+                signal_from_f64(x)
+            });
+            check_against_exhaustive(&bank, state, inputs)?;
+        }
+
+        /// Starting from arbitrary operator outputs (projected onto the invariant), as a
+        /// state derived from another model's is.
+        #[test]
+        fn memory_stack_equals_the_exhaustive_update_from_stored_outputs(
+            n in 1usize..=32,
+            weights in prop::collection::vec(-1.0f64..1.0, 32),
+            outputs in prop::collection::vec(-1.0f64..=1.0, 33),
+            inputs in prop::collection::vec(-1.0f64..=1.0, 1..100),
+            start in -1.0f64..=1.0,
+        ) {
+            let bank = bank(n, &weights, false);
+            let mut p = [0; MAX_CANONICAL_OPERATORS];
+            for (q, &v) in p.iter_mut().zip(&outputs) {
+                *q = signal_from_f64(v);
             }
+            let state = bank.state_from(p, signal_from_f64(start));
+            check_against_exhaustive(&bank, state, inputs.iter().map(|&u| signal_from_f64(u)))?;
         }
     }
 }

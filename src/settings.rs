@@ -140,7 +140,9 @@ impl Settings {
         })
     }
 
-    fn feedback_config(&self, fb: &FeedbackSettings) -> Result<Feedback, SettingsError> {
+    /// The fixed-point feedback (sensor calibration and PI gains) for `fb` under these
+    /// settings' scaling and control rate, validated.
+    pub fn feedback_config(&self, fb: &FeedbackSettings) -> Result<Feedback, SettingsError> {
         let s = &fb.sensor;
         let at_zero = self.scaling.output_to_norm(s.displacement_at_zero);
         let at_full = self.scaling.output_to_norm(s.displacement_at_full_scale);

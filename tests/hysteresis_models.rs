@@ -166,7 +166,7 @@ proptest! {
     }
 
     /// Wiping-out: an inner minor loop that returns to its starting turning point leaves no
-    /// trace — the operator states equal those before the loop, bit for bit.
+    /// trace — the operator outputs equal those before the loop, bit for bit.
     #[test]
     fn inner_minor_loops_are_wiped_out(
         (params, scaling) in pi_model(),
@@ -186,7 +186,13 @@ proptest! {
         let peak = low + inner * (high - low);
         ramp(&mut s, low, peak);
         ramp(&mut s, peak, low);
-        prop_assert_eq!(before, s);
+        prop_assert_eq!(model.bank().outputs(&before), model.bank().outputs(&s));
+        // …and the two states behave the same from here on.
+        let mut before = before;
+        for k in 0..=50 {
+            let u = q(low + (1.0 - low) * k as f64 / 50.0);
+            prop_assert_eq!(model.step(&mut before, u), model.step(&mut s, u));
+        }
     }
 
     /// Inverse Duhem then Duhem returns the setpoint. Setpoints are made reachable by
@@ -334,7 +340,7 @@ fn inverse_state_from_forward_state_continues_without_a_jump() {
         fwd.step(&mut s, q(u));
     }
     let y = fwd.step(&mut s, q(u));
-    let mut inv_state = inv.state_from_forward(&s);
+    let mut inv_state = inv.state_from_forward(&fwd.bank().outputs(&s));
     let drive = f(inv.step(&mut inv_state, y));
     assert!(
         (drive - u).abs() < 4.0 * LSB16,

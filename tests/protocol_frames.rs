@@ -225,3 +225,25 @@ fn message_variant_counts_match_the_enums() {
     assert_eq!(decode_body::<Response>(&body), Ok(resp));
     assert_eq!(body[1] as u32 + 1, Response::VARIANTS);
 }
+
+/// The example frames in the README's protocol chapter are what the encoder writes.
+#[test]
+fn the_readme_example_frames_are_what_the_encoder_writes() {
+    let hex = |s: &str| -> Vec<u8> {
+        s.split(' ')
+            .map(|b| u8::from_str_radix(b, 16).unwrap())
+            .collect()
+    };
+    assert_eq!(PROTOCOL_VERSION, 2);
+    assert_eq!(frame_of(&Request::Status), hex("02 02 05 7d 70 ef 73 00"));
+    assert_eq!(
+        frame_of(&Request::Setpoints(SetpointBatch {
+            seq: 1,
+            samples: heapless::Vec::from_slice(&[100, -100]).unwrap(),
+        })),
+        hex("0d 02 01 01 02 c8 01 c7 01 a4 8e 6b 71 00")
+    );
+    let mut out = [0u8; MAX_ENCODED + 1];
+    let n = encode(&Response::Ack { credits: 511 }, &mut out).unwrap();
+    assert_eq!(&out[..n], &hex("02 02 07 ff 03 5f bb 60 81 00")[..]);
+}

@@ -203,6 +203,7 @@ fn tick_cost_table_and_image_size() {
             "drive-split",
             "duhem-observer-step",
             "inverse-pi-16-step",
+            "inverse-pi-16-full-steps",
             "dac-write"
         ],
         "the bench must report every part"

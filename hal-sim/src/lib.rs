@@ -5,12 +5,15 @@
 //! * [`converters`] — emulated DACs, amplifiers, sensor and ADCs, including the external SPI
 //!   chips (DAC8562/3, ADS8689) at the wire level.
 //! * [`sim_board`] — [`sim_board::SimBoard`]: all of it behind the library's board traits.
+//! * [`sim_device`] — [`sim_device::SimDevice`]: the board, the library's control loop and
+//!   command handler in-process, on a modelled UART, behind [`link::Transport`].
 //! * [`identification`], [`measured_data`], [`param_file`] — fitting models to measured data,
 //!   the CSV reader and the versioned parameter file.
 //! * [`stage_model`] — an identified model as the board runs it (scaling, sensor sign and
 //!   lag), run over whole records in fixed point and in the `f64` reference; [`plot`] — the
 //!   identification figure; [`output_file`] — outputs written only when complete.
 //! * [`accuracy`] — the fixed-point vs `f64` error table.
+//! * [`golden`] — golden vectors: generating them, and checking them against the `f64` tick.
 //! * [`link`] — the host end of the board link: [`link::Transport`] and the protocol client.
 //! * [`dual_stage_sim`] — the piezo stage on a ball-screw coarse stage ([`plant::ball_screw`]),
 //!   with the emulated step/dir output and encoders ([`coarse_stage`]): the dual-stage controller
@@ -23,6 +26,7 @@ pub mod coarse_stage;
 pub mod converters;
 pub mod demo;
 pub mod dual_stage_sim;
+pub mod golden;
 pub mod identification;
 pub mod link;
 pub mod measured_data;
@@ -30,5 +34,7 @@ pub mod output_file;
 pub mod param_file;
 pub mod plant;
 pub mod plot;
+pub mod setpoint_file;
 pub mod sim_board;
+pub mod sim_device;
 pub mod stage_model;

@@ -23,6 +23,21 @@ enum Command {
     Predict(cli::predict::Args),
     /// Run the fixed-point inverse model on a desired-output record.
     Compensate(cli::compensate::Args),
+    /// Stream a setpoint CSV to the board (within its credits) and play it.
+    Stream(cli::stream::Args),
+    /// Load a parameter file onto the board (optionally storing it to flash).
+    Load(cli::load::Args),
+    /// Print the board's status and telemetry.
+    Status(cli::status::Args),
+    /// Start the board's waveform generator.
+    Waveform(cli::waveform::Args),
+    /// Stop the stream or the waveform generator (the output holds).
+    Stop(cli::stop::Args),
+    /// Capture a signal with the board's recorder into a CSV.
+    Record(cli::record::Args),
+    /// Generate the golden vectors (the tick's recorded runs the board must reproduce) and
+    /// check them against the stored file and the f64 reference, or write them (--write).
+    Golden(cli::golden::Args),
     /// The dual-actuated stage (ball screw + piezo) in simulation: a 5 mm move and a
     /// trajectory larger than the piezo's stroke (coarse only / dual).
     DualStage(cli::dual_stage::Args),
@@ -57,6 +72,13 @@ fn main() -> std::process::ExitCode {
         Command::Identify(a) => cli::identify::run(a),
         Command::Predict(a) => cli::predict::run(a),
         Command::Compensate(a) => cli::compensate::run(a),
+        Command::Stream(a) => cli::stream::run(a),
+        Command::Load(a) => cli::load::run(a),
+        Command::Status(a) => cli::status::run(a),
+        Command::Waveform(a) => cli::waveform::run(a),
+        Command::Stop(a) => cli::stop::run(a),
+        Command::Record(a) => cli::record::run(a),
+        Command::Golden(a) => cli::golden::run(a),
         Command::DualStage(a) => cli::dual_stage::run(a),
     };
     match result {

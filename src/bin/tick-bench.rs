@@ -228,10 +228,28 @@ fn main() -> ! {
             }
         }
     }
+    // The inverse P–I's worst case: full-range steps (±0.95, alternating every tick), which
+    // move every operator on every tick — the bound a setpoint jump can cost.
+    let mut jump_n = [0u64; 2];
+    for k in 0..2 * TICKS {
+        let sp = if k % 2 == 0 {
+            -setpoint(0)
+        } else {
+            setpoint(0)
+        };
+        let t0 = now(&tim);
+        black_box(pi_part(&inverse, &mut pi_state, sp));
+        let t1 = now(&tim);
+        if k >= TICKS {
+            jump_n[0] += t1.wrapping_sub(t0) as u64;
+            jump_n[1] = jump_n[1].max(t1.wrapping_sub(t0) as u64);
+        }
+    }
     for (name, acc) in [
         ("drive-split", split_n),
         ("duhem-observer-step", duhem_n),
         ("inverse-pi-16-step", pi_n),
+        ("inverse-pi-16-full-steps", jump_n),
         ("dac-write", dac_n),
     ] {
         hprintln!(

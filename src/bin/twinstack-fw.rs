@@ -1,25 +1,28 @@
 //! # twinstack-fw — the driver board's firmware (STM32F405RG, RTIC 2)
 //!
-//! A thin shell over [`twinstack::control::Controller::tick`]:
+//! A thin shell over the library's two halves of the board, [`twinstack::control_loop`]
+//! (tick side) and [`twinstack::protocol::handler`] (command side):
 //!
 //! * **Control tick** (highest priority, 3): TIM2's update event, at the rate stored in the
 //!   parameter record (10–100 kHz, default 50 kHz), starts the sensor ADC conversion and raises
-//!   the interrupt; the interrupt pops a setpoint, calls the library's tick (compensator,
-//!   feedback, limits, differential split, both DAC channels in one store), feeds the
-//!   watchdog and counts ticks and overruns (a tick still running when the next is due).
+//!   the interrupt; the interrupt runs `ControlLoop::tick` (pending configuration swapped in,
+//!   setpoint from the queue or the waveform generator, compensator, feedback, limits,
+//!   differential split, both DAC channels in one store, recorder), feeds the watchdog and
+//!   counts overruns (a tick still running when the next is due).
 //! * **USART1 receive** (priority 2): DMA into a ring, drained on idle line and half/full
-//!   transfer, bytes queued for the decoder.
-//! * **Frame decoder** (priority 1, EXTI0 as a software interrupt): the minimal status query
-//!   of [`twinstack::status_report`] (byte `?`).
-//! * **Telemetry** (priority 1, EXTI1): sends the status line.
+//!   transfer, bytes queued for the command handler.
+//! * **Command handler** (priority 1, EXTI0 as a software interrupt): `CommandHandler`
+//!   decodes frames, answers each request with one response frame (sent from this task with
+//!   blocking writes on USART1 TX), queues setpoint batches for the tick, and reaches the
+//!   tick's state through short RTIC locks. After each request it re-arms the safe-state codes
+//!   of the newest configuration.
 //! * **Coarse stage** (priority 2, TIM3 at 5 kHz): the dual-actuated stage's coarse tick
 //!   ([`twinstack::dual_stage::DualStage::coarse_tick`]): reads the motor and linear encoders,
 //!   runs the trajectory and emits a burst of step pulses on TIM1. It holds its power-up
-//!   position until a command moves it (the protocol's job); the piezo tick is untouched.
+//!   position until a command moves it; the piezo tick is untouched.
 //! * **Safety**: a panic or hard fault masks interrupts, drives both outputs to the safe state
-//!   (bias or zero, from the parameter record) and halts; the watchdog then resets the MCU.
-//!   A parameter record with a bad CRC (or none) means defaults and `params=<reason>` in the
-//!   status reply.
+//!   (bias or zero) and halts; the watchdog then resets the MCU. A parameter record with a
+//!   bad CRC (or none) means defaults and the `DEFAULTS` flag in the status report.
 //! * **Logging**: `defmt` over RTT.
 //!
 //! Feature `emulator` (QEMU `netduinoplus2`): HSI clock, SysTick instead of TIM2 for the tick,
@@ -40,30 +43,6 @@ fn main() {
 #[cfg(target_os = "none")]
 use defmt_rtt as _;
 
-/// Counters the tick writes (single writer) and the telemetry task reads.
-#[cfg(target_os = "none")]
-mod tick_counters {
-    use core::sync::atomic::{AtomicU32, Ordering};
-
-    /// Ticks run since boot.
-    pub static TICKS: AtomicU32 = AtomicU32::new(0);
-    /// Ticks that were still running when the next one became due.
-    pub static OVERRUNS: AtomicU32 = AtomicU32::new(0);
-    /// Ticks that found the setpoint queue empty.
-    pub static UNDERRUNS: AtomicU32 = AtomicU32::new(0);
-
-    /// Adds one to a counter only the tick writes (a load and a store, no LDREX/STREX loop).
-    #[inline(always)]
-    pub fn bump(c: &AtomicU32) {
-        c.store(c.load(Ordering::Relaxed).wrapping_add(1), Ordering::Relaxed);
-    }
-
-    /// Reads a counter.
-    pub fn read(c: &AtomicU32) -> u32 {
-        c.load(Ordering::Relaxed)
-    }
-}
-
 #[cfg(target_os = "none")]
 #[panic_handler]
 fn panic(info: &core::panic::PanicInfo) -> ! {
@@ -79,13 +58,11 @@ unsafe fn HardFault(_frame: &cortex_m_rt::ExceptionFrame) -> ! {
 #[cfg(target_os = "none")]
 #[rtic::app(device = stm32f4xx_hal::pac, peripherals = true)]
 mod app {
-    use core::sync::atomic::{AtomicBool, Ordering};
-
     use heapless::spsc::{Consumer, Producer, Queue};
     use stm32f4xx_hal::gpio::GpioExt;
     use stm32f4xx_hal::pac::{self, Interrupt};
 
-    use twinstack::control::Controller;
+    use twinstack::control_loop::{ControlLoop, SetpointQueue, SETPOINT_QUEUE_LEN};
     use twinstack::default_config;
     use twinstack::dual_stage::{DualStage, DualStageSettings};
     use twinstack::hardware::adc::SensorInput;
@@ -97,27 +74,27 @@ mod app {
     use twinstack::hardware::safe_state;
     use twinstack::hardware::usart::{self, UsartRx, UsartTx};
     use twinstack::hardware::watchdog::Watchdog;
-    use twinstack::param_store::{self, ParamSource};
-    use twinstack::status_report::{Request, RequestDecoder, StatusReport, MAX_LINE};
+    use twinstack::param_store::{self, BoardSettings, ParamSource, ReadOnlyStorage};
+    use twinstack::protocol::handler::CommandHandler;
+    use twinstack::recorder::RECORD_CAPACITY;
 
-    use crate::tick_counters::{self, OVERRUNS, TICKS, UNDERRUNS};
+    /// Received bytes waiting for the command handler: 5 ms at 2 Mbaud, more than the longest
+    /// response the handler sends (blocking) while bytes keep arriving.
+    const RX_QUEUE: usize = 1024;
 
-    /// Setpoints waiting for the tick (Q2.30 normalised displacement).
-    const SETPOINT_QUEUE: usize = 64;
-    /// Received bytes waiting for the decoder.
-    const RX_QUEUE: usize = 256;
-
-    /// Set by the decoder, taken by telemetry: a status reply is owed.
-    static STATUS_OWED: AtomicBool = AtomicBool::new(false);
+    /// The recorder's buffer (static RAM).
+    type RecordBuffer = &'static mut [i32; RECORD_CAPACITY];
+    /// The parameter storage: the flash sector, read-only for now (see README, Protocol).
+    type Storage = ReadOnlyStorage<'static>;
 
     /// Everything the control interrupt owns.
     pub struct ControlTick {
-        controller: Controller,
+        control: ControlLoop<RecordBuffer>,
         adc: SensorInput,
         dac: InternalDac,
         timer: ControlTimer,
         watchdog: Watchdog,
-        setpoints: Consumer<'static, i32, SETPOINT_QUEUE>,
+        setpoints: Consumer<'static, i16, SETPOINT_QUEUE_LEN>,
     }
 
     impl ControlTick {
@@ -125,20 +102,29 @@ mod app {
         #[inline(always)]
         fn run(&mut self) {
             self.timer.acknowledge();
-            let setpoint = self.setpoints.dequeue();
-            if setpoint.is_none() {
-                tick_counters::bump(&UNDERRUNS);
-            }
-            let _report = self.controller.tick(setpoint, &mut self.adc, &mut self.dac);
+            let _report = self
+                .control
+                .tick(&mut self.setpoints, &mut self.adc, &mut self.dac);
             self.watchdog.feed();
-            tick_counters::bump(&TICKS);
             if self.timer.next_tick_already_due() {
-                tick_counters::bump(&OVERRUNS);
+                self.control.count_overrun();
             }
         }
     }
 
-    /// The receive side of USART1 and the decoder's byte queue.
+    /// The command handler's lock on the control loop: RTIC's lock on the whole tick
+    /// resource, handing on only the loop.
+    struct LoopLock<M>(M);
+
+    impl<M: rtic::Mutex<T = ControlTick>> rtic::Mutex for LoopLock<M> {
+        type T = ControlLoop<RecordBuffer>;
+
+        fn lock<R>(&mut self, f: impl FnOnce(&mut Self::T) -> R) -> R {
+            self.0.lock(|t| f(&mut t.control))
+        }
+    }
+
+    /// The receive side of USART1 and the handler's byte queue.
     pub struct Receiver {
         rx: UsartRx,
         bytes: Producer<'static, u8, RX_QUEUE>,
@@ -147,7 +133,8 @@ mod app {
     impl Receiver {
         fn drain(&mut self) {
             let bytes = &mut self.bytes;
-            // A full queue drops the byte: the decoder is behind, the next request recovers.
+            // A full queue drops the byte: the frame it belongs to fails its CRC and is
+            // NACKed; the decoder resynchronises at the next delimiter.
             self.rx.drain(|b| {
                 let _ = bytes.enqueue(b);
             });
@@ -167,7 +154,8 @@ mod app {
 
     #[shared]
     struct Shared {
-        /// Shared by the TIM2 (board) and SysTick (emulator) bindings; only one ever fires.
+        /// Shared by the TIM2 (board) and SysTick (emulator) bindings (only one ever fires)
+        /// and, through [`LoopLock`], the command handler.
         tick: ControlTick,
         /// Shared by the USART1 and DMA2 stream 2 interrupts (same priority).
         receiver: Receiver,
@@ -175,29 +163,27 @@ mod app {
 
     #[local]
     struct Local {
-        decoder: RequestDecoder,
+        handler: CommandHandler<Storage>,
         bytes_in: Consumer<'static, u8, RX_QUEUE>,
-        /// For the protocol issue's setpoint frames.
-        _setpoints_in: Producer<'static, i32, SETPOINT_QUEUE>,
+        setpoints_in: Producer<'static, i16, SETPOINT_QUEUE_LEN>,
         tx: UsartTx,
-        tick_rate_hz: u32,
-        params: ParamSource,
         coarse: CoarseStage,
     }
 
     #[init(local = [
-        setpoint_queue: Queue<i32, SETPOINT_QUEUE> = Queue::new(),
+        setpoint_queue: SetpointQueue = Queue::new(),
         rx_queue: Queue<u8, RX_QUEUE> = Queue::new(),
+        record_buffer: [i32; RECORD_CAPACITY] = [0; RECORD_CAPACITY],
     ])]
     fn init(cx: init::Context) -> (Shared, Local) {
         let dp: pac::Peripherals = cx.device;
-        let (settings, params) = param_store::load_settings(param_flash::record_window());
-        match params {
-            ParamSource::Stored => defmt::info!("parameters loaded from flash"),
+        let (settings, source) = param_store::load_settings(param_flash::record_window());
+        match source {
+            ParamSource::Stored => defmt::info!("board settings loaded from flash"),
             ParamSource::Defaults(_) => {
                 defmt::warn!(
                     "parameter record refused ({=str}): defaults",
-                    params.as_str()
+                    source.as_str()
                 )
             }
         }
@@ -226,13 +212,28 @@ mod app {
         let timer = ControlTimer::start(cx.core.SYST, &bus, settings.tick_rate_hz);
         let rate = timer.rate_hz();
 
-        let config = match default_config::boot_config(rate as f64, settings.safe_state) {
-            Ok(c) => c,
-            // The compiled-in parameters are valid for every rate the settings allow.
-            Err(_) => panic!("compiled-in configuration refused"),
+        // The stored parameter set if the record holds a valid one, else the compiled-in set.
+        let board = BoardSettings {
+            tick_rate_hz: rate,
+            safe_state: settings.safe_state,
         };
-        let controller = Controller::new(config);
-        let (safe_left, safe_right) = controller.safe_codes();
+        let booted = default_config::boot_param_set(settings.safe_state)
+            .ok()
+            .and_then(|defaults| {
+                CommandHandler::boot(
+                    default_config::board_profile(rate as f64),
+                    board,
+                    ReadOnlyStorage(param_flash::record_window()),
+                    defaults,
+                )
+                .ok()
+            });
+        let Some((handler, tick_config)) = booted else {
+            // The compiled-in parameters are valid for every rate the settings allow.
+            panic!("compiled-in configuration refused");
+        };
+        let control = ControlLoop::new(tick_config, rate, cx.local.record_buffer);
+        let (safe_left, safe_right) = control.safe_codes();
         safe_state::arm(safe_left, safe_right);
 
         let dac = InternalDac::new(dp.DAC, &rcc, (safe_left, safe_right));
@@ -277,7 +278,7 @@ mod app {
         (
             Shared {
                 tick: ControlTick {
-                    controller,
+                    control,
                     adc,
                     dac,
                     timer,
@@ -287,12 +288,10 @@ mod app {
                 receiver: Receiver { rx, bytes },
             },
             Local {
-                decoder: RequestDecoder::new(),
+                handler,
                 bytes_in,
-                _setpoints_in: setpoints_in,
+                setpoints_in,
                 tx,
-                tick_rate_hz: rate,
-                params,
                 coarse: CoarseStage {
                     dual,
                     steps,
@@ -347,34 +346,20 @@ mod app {
         cx.shared.receiver.lock(|r| r.drain());
     }
 
-    /// The frame decoder: turns queued bytes into requests.
-    #[task(binds = EXTI0, priority = 1, local = [decoder, bytes_in])]
-    fn decode(cx: decode::Context) {
-        while let Some(b) = cx.local.bytes_in.dequeue() {
-            if let Some(Request::Status) = cx.local.decoder.push(b) {
-                STATUS_OWED.store(true, Ordering::Relaxed);
-                rtic::pend(Interrupt::EXTI1);
+    /// The command handler: queued bytes → frames → one response frame per request.
+    #[task(binds = EXTI0, priority = 1, shared = [tick], local = [handler, bytes_in, setpoints_in, tx])]
+    fn command(cx: command::Context) {
+        let mut control = LoopLock(cx.shared.tick);
+        let local = cx.local;
+        while let Some(b) = local.bytes_in.dequeue() {
+            let Some(frame) = local.handler.push_byte(b, local.setpoints_in, &mut control) else {
+                continue;
+            };
+            if local.tx.write_all(frame).is_err() {
+                defmt::warn!("USART1 transmit timed out");
             }
-        }
-    }
-
-    /// Telemetry: sends the status line when one is owed.
-    #[task(binds = EXTI1, priority = 1, local = [tx, tick_rate_hz, params])]
-    fn telemetry(cx: telemetry::Context) {
-        if !STATUS_OWED.swap(false, Ordering::Relaxed) {
-            return;
-        }
-        let report = StatusReport {
-            ticks: tick_counters::read(&TICKS),
-            overruns: tick_counters::read(&OVERRUNS),
-            underruns: tick_counters::read(&UNDERRUNS),
-            tick_rate_hz: *cx.local.tick_rate_hz,
-            params: *cx.local.params,
-        };
-        let mut line = [0u8; MAX_LINE];
-        let n = report.write_line(&mut line);
-        if cx.local.tx.write_all(&line[..n]).is_err() {
-            defmt::warn!("USART1 transmit timed out");
+            let (left, right) = rtic::Mutex::lock(&mut control, |c| c.safe_codes());
+            safe_state::arm(left, right);
         }
     }
 }

@@ -8,15 +8,17 @@
 //! **Receive, emulator:** QEMU does not model DMA, so each byte raises RXNE and
 //! [`UsartRx::drain`] reads the data register.
 //!
-//! **Transmit:** [`UsartTx::write_all`] polls TXE from the lowest-priority task (telemetry),
-//! with a bounded wait per byte.
+//! **Transmit:** [`UsartTx::write_all`] polls TXE from the lowest-priority task (the command
+//! handler), with a bounded wait per byte: 5 µs a byte at 2 Mbaud, so an `Ack` costs the task
+//! about 50 µs and the largest response (a recorder chunk) under 2 ms.
 
 use stm32f4xx_hal::pac::{RCC, USART1};
 
 use super::clocks::BusClocks;
 
-/// Baud rate of the host link.
-pub const BAUD: u32 = 115_200;
+/// Baud rate of the host link: 2 Mbaud, exact from the board's 84 MHz APB2 (BRR = 42). (The
+/// emulator's 16 MHz HSI cannot divide down to it; QEMU ignores the divider.)
+pub const BAUD: u32 = 2_000_000;
 /// Size of the DMA receive ring, bytes. Bursts longer than this between two drains lose data;
 /// the half-transfer interrupt drains at every half ring, so it would take
 /// `RX_BUFFER_LEN / 2` bytes inside one interrupt latency.

@@ -54,9 +54,16 @@ pub fn encode(src: &[u8], dst: &mut [u8]) -> Result<usize, CobsError> {
 
 /// Decodes an encoded frame (without its delimiter) in place, returning the body's length.
 pub fn decode_in_place(buf: &mut [u8]) -> Result<usize, CobsError> {
+    decode_in_place_counting(buf, &mut 0)
+}
+
+/// [`decode_in_place`], adding the number of loop iterations it ran to `steps` (at most one
+/// per byte of `buf`: the fuzz tests check the decoder's work per byte with it).
+pub fn decode_in_place_counting(buf: &mut [u8], steps: &mut u32) -> Result<usize, CobsError> {
     let mut read = 0usize;
     let mut write = 0usize;
     while read < buf.len() {
+        *steps = steps.wrapping_add(1);
         let code = buf[read];
         if code == 0 {
             return Err(CobsError::Malformed);
@@ -67,6 +74,7 @@ pub fn decode_in_place(buf: &mut [u8]) -> Result<usize, CobsError> {
             return Err(CobsError::Malformed);
         }
         while read < end {
+            *steps = steps.wrapping_add(1);
             let b = buf[read];
             if b == 0 {
                 return Err(CobsError::Malformed);

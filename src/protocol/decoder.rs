@@ -14,6 +14,7 @@ pub struct FrameDecoder {
     buf: [u8; MAX_ENCODED],
     len: usize,
     overflowed: bool,
+    steps: u32,
 }
 
 impl Default for FrameDecoder {
@@ -29,6 +30,7 @@ impl FrameDecoder {
             buf: [0; MAX_ENCODED],
             len: 0,
             overflowed: false,
+            steps: 0,
         }
     }
 
@@ -36,6 +38,7 @@ impl FrameDecoder {
     /// checked by [`super::frame::decode_body`]), or why it was refused. Empty frames (two
     /// delimiters in a row, used to resynchronise) return `None`.
     pub fn push(&mut self, byte: u8) -> Option<Result<&[u8], FrameError>> {
+        self.steps = self.steps.wrapping_add(1);
         if byte != 0 {
             if self.len < self.buf.len() {
                 self.buf[self.len] = byte;
@@ -53,9 +56,15 @@ impl FrameDecoder {
             return None;
         }
         let frame = self.buf.get_mut(..len)?;
-        match cobs::decode_in_place(frame) {
+        match cobs::decode_in_place_counting(frame, &mut self.steps) {
             Ok(n) => frame.get(..n).map(Ok),
             Err(_) => Some(Err(FrameError::BadStuffing)),
         }
+    }
+
+    /// Work done so far, in loop iterations (one per byte pushed, plus one per byte
+    /// un-stuffed at a delimiter; wraps): a deterministic measure of the time per byte.
+    pub fn steps(&self) -> u32 {
+        self.steps
     }
 }

@@ -13,8 +13,10 @@ use super::cobs;
 use crc::{Crc, CRC_32_ISO_HDLC};
 use serde::{Deserialize, Serialize};
 
-/// Version byte every frame starts with.
-pub const PROTOCOL_VERSION: u8 = 1;
+/// Version byte every frame starts with. Version 2 (this one): the status report carries
+/// `frame_errors`, `next_seq`, `tick_rate_hz` and `recorded`; NACK reasons `Busy`,
+/// `NothingStored` and `StoreFailed` were added.
+pub const PROTOCOL_VERSION: u8 = 2;
 /// Largest frame body (version + message + CRC), bytes.
 pub const MAX_BODY: usize = 400;
 /// Largest frame on the wire, delimiter excluded.

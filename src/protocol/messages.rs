@@ -87,16 +87,10 @@ pub enum UnderrunPolicy {
     RampToBias,
 }
 
-/// Control mode.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
-pub enum Mode {
-    /// No compensation: the drive follows the setpoint linearly.
-    Bypass,
-    /// Inverse-model feedforward.
-    OpenLoop,
-    /// Feedforward plus sensor feedback.
-    ClosedLoop,
-}
+/// Control mode (the settings' own enum, so a mode on the wire is a mode in the settings):
+/// `Bypass` (the drive follows the setpoint linearly), `OpenLoop` (inverse-model feedforward),
+/// `ClosedLoop` (feedforward plus sensor feedback).
+pub use crate::settings::Mode;
 
 /// A hysteresis model in physical units (`f32` on the wire).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -138,13 +132,16 @@ pub struct ParamSet {
     pub configuration: Configuration,
     /// Bias ū, volts.
     pub bias: f32,
-    /// Stack voltage limits, volts.
+    /// Stack voltage limits `[min, max]`, volts (unidirectional: the right stack idles at
+    /// `min`).
     pub voltage_limits: [f32; 2],
     /// Slew limit, volts per second.
     pub slew_rate: f32,
     /// Safe state on a fault.
     pub safe_state: SafeState,
-    /// PI feedback gains `[kp, ki per tick]` and correction limit (normalised drive).
+    /// PI feedback `[kp, ki, limit]`: `kp` normalised drive per normalised displacement error,
+    /// `ki` the same per tick, `limit` the largest correction as a fraction of the drive range,
+    /// (0, 1]. The sensor's calibration is the board's, not the load's.
     pub feedback: Option<[f32; 3]>,
     /// Mode to enter once loaded.
     pub mode: Mode,
@@ -239,11 +236,19 @@ pub enum NackReason {
     InvalidParams(crate::params::ParamError),
     /// The drive settings were refused.
     InvalidDrive(crate::drive::DriveError),
-    /// The request needs something the board lacks (closed loop without a sensor, …).
+    /// The request needs something the board lacks (closed loop without a sensor, a model
+    /// mode without a model, a store on a board without parameter storage, …).
     Unsupported,
+    /// Not now: storing to flash stalls the tick, so it is refused while the stream or the
+    /// waveform runs.
+    Busy,
+    /// Recall found no valid parameter set in flash (erased, damaged, or an older record).
+    NothingStored,
+    /// Writing the flash record failed (erase or program error, or the read-back differs).
+    StoreFailed,
 }
 
-/// Status and telemetry.
+/// Status and telemetry. Counters count since start-up and wrap after 2^32 events.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
 pub struct StatusReport {
     /// Ticks since start-up.
@@ -252,16 +257,53 @@ pub struct StatusReport {
     pub queue_fill: u16,
     /// Free queue slots.
     pub credits: u16,
-    /// Ticks without a setpoint.
+    /// Ticks the running stream found the queue empty (held or ramped, as the policy says).
     pub underruns: u32,
     /// Ticks that did not finish before the next.
     pub overruns: u32,
     /// Frames refused for their CRC.
     pub crc_errors: u32,
-    /// Ticks a limit clipped the drive.
+    /// Frames refused for any other frame error (stuffing, size, version, type, fields).
+    pub frame_errors: u32,
+    /// Ticks a limit (range or slew) clipped the drive.
     pub limit_hits: u32,
-    /// The observer's estimate, Q2.30.
+    /// The observer's estimate, Q2.30 normalised displacement.
     pub estimate: i32,
-    /// Flags: bit 0 parameters from defaults (flash record bad or absent).
+    /// The sequence number the next setpoint batch must carry.
+    pub next_seq: u16,
+    /// Control rate, Hz.
+    pub tick_rate_hz: u32,
+    /// Values the recorder holds (of the count armed).
+    pub recorded: u32,
+    /// Flags, see [`StatusReport::DEFAULTS`] and the other `StatusReport` constants.
     pub flags: u16,
+}
+
+impl StatusReport {
+    /// Flag: the parameters in use are the compiled-in defaults (flash record bad or absent).
+    pub const DEFAULTS: u16 = 1 << 0;
+    /// Flag: the setpoint stream is running (consuming the queue).
+    pub const STREAMING: u16 = 1 << 1;
+    /// Flag: the waveform generator is running.
+    pub const WAVEFORM: u16 = 1 << 2;
+    /// Flag: the recorder is capturing.
+    pub const RECORDING: u16 = 1 << 3;
+    /// Flag: a parameter load is waiting for the next tick.
+    pub const CONFIG_PENDING: u16 = 1 << 4;
+    /// Flags bits 8–9: the mode (0 bypass, 1 open loop, 2 closed loop).
+    pub const MODE_SHIFT: u16 = 8;
+
+    /// The mode the flags carry.
+    pub fn mode(&self) -> Mode {
+        match (self.flags >> Self::MODE_SHIFT) & 0b11 {
+            0 => Mode::Bypass,
+            1 => Mode::OpenLoop,
+            _ => Mode::ClosedLoop,
+        }
+    }
+
+    /// Whether `flag` is set.
+    pub fn has(&self, flag: u16) -> bool {
+        self.flags & flag != 0
+    }
 }

@@ -3,12 +3,16 @@
 //! * [`cobs`] — byte stuffing, so `0x00` delimits frames;
 //! * [`frame`] — the frame layout (version, message, CRC-32) and its errors;
 //! * [`decoder`] — the receiver's byte-at-a-time frame decoder;
-//! * [`messages`] — requests, responses and NACK reasons.
+//! * [`messages`] — requests, responses and NACK reasons;
+//! * [`handler`] — the board's command handler (bytes in, one response frame per request);
+//! * [`param_load`] — parameter sets onto the board's settings and into the flash record.
 
 pub mod cobs;
 pub mod decoder;
 pub mod frame;
+pub mod handler;
 // Message enums are sized by their largest variant on purpose: there is no heap on the board,
 // and a message lives in one stack slot while it is handled.
 #[allow(clippy::large_enum_variant)]
 pub mod messages;
+pub mod param_load;

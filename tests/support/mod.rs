@@ -14,9 +14,15 @@ pub const TARGET: &str = "thumbv7em-none-eabihf";
 /// QEMU's STM32F405 board.
 pub const MACHINE: &str = "netduinoplus2";
 
-/// The workspace root (where `Cargo.toml` and `.cargo/config.toml` are).
+/// The workspace root (where `Cargo.toml` and `.cargo/config.toml` are). `hal-sim`'s tests
+/// include this file too (`#[path]`): from there the root is the parent directory.
 pub fn workspace_root() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+    let dir = PathBuf::from(env!("CARGO_MANIFEST_DIR"));
+    if dir.join("memory.x").is_file() {
+        dir
+    } else {
+        dir.parent().map(Path::to_path_buf).unwrap_or(dir)
+    }
 }
 
 /// Separate target directory for the firmware images.

@@ -3,7 +3,21 @@
 //!
 //! [`Transport`] is the one seam: the client speaks frames over any transport, so the same
 //! host code streams to the real board, the emulator image and the in-process twin.
+//!
+//! * [`serial`], [`socket`] — transports; [`port`] — `--port` values and opening them;
+//! * [`client`] — [`client::Client`]: requests, responses, timeouts, NACKs as errors,
+//!   recorder read-back;
+//! * [`streamer`] — [`streamer::stream_setpoints`]: batches within credits, sequence numbers,
+//!   go-back-N after a refusal;
+//! * [`param_set`] — the parameter file `identify` writes → a `LoadParams` request.
 
+pub mod client;
+pub mod param_set;
+pub mod port;
+pub mod serial;
+pub mod socket;
+pub mod streamer;
 pub mod transport;
 
+pub use client::{Client, LinkError};
 pub use transport::Transport;

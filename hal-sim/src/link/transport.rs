@@ -14,3 +14,13 @@ pub trait Transport {
     /// nothing received (not end of stream).
     fn receive(&mut self, buf: &mut [u8], timeout: Duration) -> io::Result<usize>;
 }
+
+impl<T: Transport + ?Sized> Transport for Box<T> {
+    fn send(&mut self, bytes: &[u8]) -> io::Result<()> {
+        (**self).send(bytes)
+    }
+
+    fn receive(&mut self, buf: &mut [u8], timeout: Duration) -> io::Result<usize> {
+        (**self).receive(buf, timeout)
+    }
+}

@@ -1,0 +1,253 @@
+//! Sustained setpoint throughput of the host streamer (`hal_sim::link::streamer`).
+//!
+//! ```text
+//! cargo run --release -p hal-sim --example stream_throughput                 # in-process
+//! cargo run --release -p hal-sim --example stream_throughput -- --emulator ELF [--seconds S]
+//! cargo run --release -p hal-sim --example stream_throughput -- --port PORT   # a real board
+//! ```
+//!
+//! **In-process** (`SimDevice`: the library's command handler and control loop on a UART
+//! modelled at 2 Mbaud, 10 bits a byte, simulated time): streams 10 s of setpoints at one per
+//! tick — a ±0.95 sine, and a worst case where every sample takes 3 bytes on the wire — at
+//! 50 kHz, then at higher tick rates to find where 2 Mbaud runs out. Reports setpoints per
+//! second of board time, underruns counted by the board while the stream still had setpoints
+//! to deliver, refusals, wire bytes per setpoint and the line's utilisation.
+//!
+//! **Emulator** (`--emulator ELF`: the firmware's emulator image, `cargo build-emu`): boots
+//! QEMU's netduinoplus2 with USART1 on a Unix socket and streams the same sine (default
+//! 10 s). QEMU's UART is not paced at a baud rate, so this measures how fast the emulated
+//! firmware takes setpoints, not the link. Needs `qemu-system-arm` on the PATH.
+
+use hal_sim::link::client::Client;
+use hal_sim::link::port::{self, PortSpec};
+use hal_sim::link::streamer::{stream_setpoints, StreamOptions, StreamReport};
+use hal_sim::link::Transport;
+use hal_sim::sim_device::{SimDevice, SimDeviceConfig};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+use twinstack::protocol::messages::UnderrunPolicy;
+
+fn sine(n: usize, rate: f64) -> Vec<i16> {
+    (0..n)
+        .map(|i| {
+            let t = i as f64 / rate;
+            (0.95 * (std::f64::consts::TAU * 37.0 * t).sin() * 32768.0).round() as i16
+        })
+        .collect()
+}
+
+/// Every sample ≥ 2^13 in magnitude (3 bytes as a postcard zigzag varint).
+fn worst_case(n: usize) -> Vec<i16> {
+    (0..n)
+        .map(|i| {
+            let v = 9000 + ((i * 7919) % 22_000) as i16;
+            if i % 2 == 0 {
+                v
+            } else {
+                -v
+            }
+        })
+        .collect()
+}
+
+fn stream<T: Transport>(
+    client: &mut Client<T>,
+    samples: &[i16],
+) -> Result<(StreamReport, f64), String> {
+    let options = StreamOptions {
+        underrun: Some(UnderrunPolicy::Hold),
+        ..StreamOptions::default()
+    };
+    let wall = Instant::now();
+    let r = stream_setpoints(client, samples, &options, |_| {}).map_err(|e| e.to_string())?;
+    Ok((r, wall.elapsed().as_secs_f64()))
+}
+
+fn print_report(label: &str, r: &StreamReport, tick_rate: f64, baud: Option<f64>, wall: f64) {
+    let end = r.drained.unwrap_or(r.after_last_batch);
+    // Board time from the first status to the one right after the last ACK, plus the queue
+    // it still held (played at one setpoint per tick).
+    let ticks = r.after_last_batch.ticks.wrapping_sub(r.before.ticks) as f64
+        + r.after_last_batch.queue_fill as f64;
+    let seconds = ticks / tick_rate;
+    let per_setpoint = r.link.bytes_sent as f64 / r.accepted.max(1) as f64;
+    let utilisation = baud
+        .map(|b| {
+            format!(
+                "{:5.1} %",
+                100.0 * r.link.bytes_sent as f64 * 10.0 / b / seconds
+            )
+        })
+        .unwrap_or_else(|| "   -   ".into());
+    println!(
+        "{label:<34} {:>8} {:>8.3} {:>9.0} {:>9} {:>5} {:>6.3} {:>6.3} {utilisation} {:>7.2}",
+        r.accepted,
+        seconds,
+        r.accepted as f64 / seconds,
+        r.underruns_during_stream()
+            .map(|u| u.to_string())
+            .unwrap_or_else(|| "?".into()),
+        r.nacks.len(),
+        per_setpoint,
+        r.link.bytes_received as f64 / r.accepted.max(1) as f64,
+        wall
+    );
+    if end.overruns.wrapping_sub(r.before.overruns) != 0 {
+        println!(
+            "    ({} overruns)",
+            end.overruns.wrapping_sub(r.before.overruns)
+        );
+    }
+}
+
+fn header() {
+    println!(
+        "{:<34} {:>8} {:>8} {:>9} {:>9} {:>5} {:>6} {:>6} {:>7} {:>7}",
+        "", "setpts", "board s", "setpt/s", "underrun", "nacks", "B/sp↑", "B/sp↓", "line", "wall s"
+    );
+}
+
+fn in_process(seconds: f64) -> Result<(), String> {
+    println!("in-process SimDevice, 2 Mbaud (10 bits/byte), divider 1, hold on underrun:");
+    header();
+    for rate in [50_000.0, 60_000.0, 65_000.0, 70_000.0, 80_000.0] {
+        let n = (seconds * rate) as usize;
+        for (name, samples) in [
+            ("sine ±0.95", sine(n, rate)),
+            ("worst case (3 B/sample)", worst_case(n)),
+        ] {
+            let mut config = SimDeviceConfig::paper();
+            config.board.plant.dt = 1.0 / rate;
+            let dev = SimDevice::new(config).map_err(|e| e.to_string())?;
+            let mut client = Client::new(dev);
+            let label = format!("{name} @ {} kHz", rate / 1000.0);
+            match stream(&mut client, &samples) {
+                Ok((r, wall)) => print_report(&label, &r, rate, Some(2_000_000.0), wall),
+                Err(e) => println!("{label:<34} failed: {e}"),
+            }
+        }
+    }
+    Ok(())
+}
+
+struct Qemu {
+    child: Child,
+    dir: std::path::PathBuf,
+}
+
+impl Drop for Qemu {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+        let _ = std::fs::remove_dir_all(&self.dir);
+    }
+}
+
+fn emulator(elf: &str, seconds: f64) -> Result<(), String> {
+    let dir = std::env::temp_dir().join(format!("stream-throughput-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).map_err(|e| e.to_string())?;
+    let sock = dir.join("uart.sock");
+    let child = Command::new("qemu-system-arm")
+        .args([
+            "-machine",
+            "netduinoplus2",
+            "-cpu",
+            "cortex-m4",
+            "-nographic",
+        ])
+        .args([
+            "-monitor",
+            "none",
+            "-semihosting-config",
+            "enable=on,target=native",
+        ])
+        .arg("-chardev")
+        .arg(format!(
+            "socket,id=u1,path={},server=on,wait=on",
+            sock.display()
+        ))
+        .args(["-serial", "chardev:u1", "-kernel", elf])
+        .stdin(Stdio::null())
+        .stdout(Stdio::null())
+        .spawn()
+        .map_err(|e| format!("qemu-system-arm: {e}"))?;
+    let _qemu = Qemu { child, dir };
+    let spec = PortSpec::Unix(sock.clone());
+    let start = Instant::now();
+    let transport = loop {
+        match port::open(&spec, 0) {
+            Ok(t) => break t,
+            Err(e) if start.elapsed() > Duration::from_secs(20) => return Err(e.to_string()),
+            Err(_) => std::thread::sleep(Duration::from_millis(50)),
+        }
+    };
+    let mut client = Client::new(transport);
+    // The firmware enables USART1 a moment after boot: ask until it answers.
+    client.set_timeout(Duration::from_millis(300));
+    let mut status = None;
+    while start.elapsed() < Duration::from_secs(20) {
+        client
+            .resync(Duration::from_millis(20))
+            .map_err(|e| e.to_string())?;
+        if let Ok(s) = client.status() {
+            status = Some(s);
+            break;
+        }
+    }
+    let status = status.ok_or("the emulator never answered a status request")?;
+    client.set_timeout(Duration::from_secs(5));
+    let rate = status.tick_rate_hz as f64;
+    println!("emulator ({elf}), QEMU netduinoplus2, USART1 on a Unix socket (not baud-paced), tick {rate} Hz:");
+    header();
+    let samples = sine((seconds * rate) as usize, rate);
+    let (r, wall) = stream(&mut client, &samples)?;
+    print_report("sine ±0.95", &r, rate, None, wall);
+    let board_s = r.after_last_batch.ticks.wrapping_sub(r.before.ticks) as f64 / rate;
+    println!(
+        "    guest time {board_s:.2} s in {wall:.2} s wall ({:.2}× real time); {} credit probes",
+        board_s / wall,
+        r.credit_probes
+    );
+    Ok(())
+}
+
+fn main() {
+    let args: Vec<String> = std::env::args().skip(1).collect();
+    let value = |flag: &str| {
+        args.iter()
+            .position(|a| a == flag)
+            .and_then(|i| args.get(i + 1).cloned())
+    };
+    let seconds = match value("--seconds").map(|s| s.parse::<f64>()) {
+        None => 10.0,
+        Some(Ok(s)) if s > 0.0 && s.is_finite() => s,
+        Some(_) => {
+            eprintln!("--seconds needs a positive number");
+            std::process::exit(2);
+        }
+    };
+    let result = if let Some(elf) = value("--emulator") {
+        emulator(&elf, seconds)
+    } else if let Some(p) = value("--port") {
+        p.parse::<PortSpec>()
+            .map_err(|e| e.to_string())
+            .and_then(|spec| port::open(&spec, port::DEFAULT_BAUD).map_err(|e| e.to_string()))
+            .and_then(|t| {
+                let mut client = Client::new(t);
+                client
+                    .resync(Duration::from_millis(20))
+                    .map_err(|e| e.to_string())?;
+                let rate = client.status().map_err(|e| e.to_string())?.tick_rate_hz as f64;
+                header();
+                let (r, wall) = stream(&mut client, &sine((seconds * rate) as usize, rate))?;
+                print_report(&format!("sine ±0.95 on {p}"), &r, rate, None, wall);
+                Ok(())
+            })
+    } else {
+        in_process(seconds)
+    };
+    if let Err(e) = result {
+        eprintln!("error: {e}");
+        std::process::exit(1);
+    }
+}

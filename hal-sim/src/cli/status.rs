@@ -1,0 +1,54 @@
+//! `hal-sim status --port PORT`: the board's status and telemetry, one `name value` per line.
+
+use super::board_link::{connect, PortArgs};
+use twinstack::protocol::messages::StatusReport;
+
+/// Arguments of `status`.
+#[derive(Debug, clap::Args)]
+pub struct Args {
+    /// The board.
+    #[command(flatten)]
+    pub port: PortArgs,
+}
+
+/// The report as `name value` lines.
+pub fn format_status(s: &StatusReport) -> String {
+    let mut flags = Vec::new();
+    for (bit, name) in [
+        (StatusReport::DEFAULTS, "defaults"),
+        (StatusReport::STREAMING, "streaming"),
+        (StatusReport::WAVEFORM, "waveform"),
+        (StatusReport::RECORDING, "recording"),
+        (StatusReport::CONFIG_PENDING, "config-pending"),
+    ] {
+        if s.has(bit) {
+            flags.push(name);
+        }
+    }
+    format!(
+        "ticks {}\ntick_rate_hz {}\nmode {:?}\nflags {}\nqueue_fill {}\ncredits {}\nnext_seq {}\nunderruns {}\noverruns {}\ncrc_errors {}\nframe_errors {}\nlimit_hits {}\nestimate {:.6} (Q2.30 {})\nrecorded {}\n",
+        s.ticks,
+        s.tick_rate_hz,
+        s.mode(),
+        if flags.is_empty() { "-".to_string() } else { flags.join(",") },
+        s.queue_fill,
+        s.credits,
+        s.next_seq,
+        s.underruns,
+        s.overruns,
+        s.crc_errors,
+        s.frame_errors,
+        s.limit_hits,
+        s.estimate as f64 / (1u64 << 30) as f64,
+        s.estimate,
+        s.recorded,
+    )
+}
+
+/// Runs `status`.
+pub fn run(args: &Args) -> anyhow::Result<()> {
+    let mut client = connect(&args.port)?;
+    let s = client.status()?;
+    print!("{}", format_status(&s));
+    Ok(())
+}

@@ -1,0 +1,147 @@
+//! `hal-sim stream --port PORT --data SETPOINTS.csv [--params PARAMS.json] [--divider D]`:
+//! streams a setpoint record to the board (format: [`crate::setpoint_file`]), within the
+//! credits it grants, starts it once the queue is primed, waits until it has played and stops
+//! (the output holds the last setpoint). The whole file is checked before anything is sent.
+
+use super::board_link::{connect, PortArgs};
+use crate::link::streamer::{stream_setpoints, StreamOptions};
+use crate::param_file::ParamFile;
+use crate::setpoint_file::{self, SetpointUnits};
+use std::path::PathBuf;
+use twinstack::protocol::messages::UnderrunPolicy;
+
+/// Arguments of `stream`.
+#[derive(Debug, clap::Args)]
+pub struct Args {
+    /// The board.
+    #[command(flatten)]
+    pub port: PortArgs,
+    /// Setpoint CSV: a `setpoint` column (normalised, −1…1), or an `x` column in the model's
+    /// output units with --params.
+    #[arg(long)]
+    pub data: PathBuf,
+    /// Parameter file whose output range maps an `x` column onto −1…1.
+    #[arg(long)]
+    pub params: Option<PathBuf>,
+    /// Ticks per setpoint (the board interpolates linearly in between) [default: from the t
+    /// column, else 1].
+    #[arg(long)]
+    pub divider: Option<u16>,
+    /// The board's control rate, Hz, that the t column is checked against (the board's
+    /// status must agree).
+    #[arg(long, default_value_t = 50_000.0)]
+    pub tick_rate: f64,
+    /// What the board does if the queue runs dry.
+    #[arg(long, value_enum)]
+    pub underrun: Option<UnderrunArg>,
+    /// Return once everything is queued, without waiting for it to play (the stream keeps
+    /// running).
+    #[arg(long)]
+    pub no_wait: bool,
+}
+
+/// `--underrun` values.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum UnderrunArg {
+    /// Hold the last setpoint.
+    Hold,
+    /// Ramp to the rest position within the slew limit.
+    RampToBias,
+}
+
+/// Runs `stream`.
+pub fn run(args: &Args) -> anyhow::Result<()> {
+    if !(args.tick_rate.is_finite() && args.tick_rate > 0.0) {
+        anyhow::bail!(
+            "--tick-rate {}: must be a positive number of Hz",
+            args.tick_rate
+        );
+    }
+    if args.divider == Some(0) {
+        anyhow::bail!("--divider must be at least 1");
+    }
+    let model = match &args.params {
+        Some(p) => Some(ParamFile::load(p)?.1),
+        None => None,
+    };
+    let units = match &model {
+        Some(m) => SetpointUnits::Output(&m.scaling),
+        None => SetpointUnits::Normalised,
+    };
+    let sp = setpoint_file::read(&args.data, units, args.tick_rate, args.divider)?;
+    let options = StreamOptions {
+        divider: args.divider.or(sp.divider_from_t).unwrap_or(1),
+        underrun: args.underrun.map(|u| match u {
+            UnderrunArg::Hold => UnderrunPolicy::Hold,
+            UnderrunArg::RampToBias => UnderrunPolicy::RampToBias,
+        }),
+        tick_rate_hz: args.tick_rate,
+        drain: !args.no_wait,
+        ..StreamOptions::default()
+    };
+    let mut client = connect(&args.port)?;
+    let board_rate = client.status()?.tick_rate_hz;
+    if sp.divider_from_t.is_some() && board_rate > 0 && board_rate as f64 != args.tick_rate {
+        anyhow::bail!(
+            "the board ticks at {board_rate} Hz but the t column of {} was checked against --tick-rate {}: pass --tick-rate {board_rate}; nothing was sent",
+            args.data.display(),
+            args.tick_rate
+        );
+    }
+    let tick_rate = if board_rate > 0 {
+        board_rate as f64
+    } else {
+        args.tick_rate
+    };
+    let r = stream_setpoints(&mut client, &sp.samples, &options, |_| {})?;
+    if r.before.queue_fill > 0 {
+        eprintln!(
+            "note: the board's queue held {} setpoints from before; they played first",
+            r.before.queue_fill
+        );
+    }
+    let end = r.drained.unwrap_or(r.after_last_batch);
+    let seconds = end.ticks.wrapping_sub(r.before.ticks) as f64 / tick_rate;
+    println!(
+        "streamed {} setpoints from {} at divider {} ({} batches, {} resent, {} refused and retried, {} credit probes)",
+        r.accepted,
+        args.data.display(),
+        options.divider,
+        r.batches,
+        r.resent_batches,
+        r.nacks.len(),
+        r.credit_probes
+    );
+    match r.underruns_during_stream() {
+        Some(u) => println!("underruns during the stream: {u}"),
+        None => println!(
+            "underruns during the stream: unknown (the queue had drained before the last status)"
+        ),
+    }
+    println!(
+        "board: {:.3} s of ticks, {} setpoints/s; overruns {}, CRC errors {}, limit hits {}",
+        seconds,
+        if seconds > 0.0 {
+            format!("{:.0}", r.accepted as f64 / seconds)
+        } else {
+            "-".into()
+        },
+        end.overruns.wrapping_sub(r.before.overruns),
+        end.crc_errors.wrapping_sub(r.before.crc_errors),
+        end.limit_hits.wrapping_sub(r.before.limit_hits)
+    );
+    println!(
+        "link: {} bytes in {} frames sent ({:.2} bytes per setpoint), {} bytes received, {} corrupt frames",
+        r.link.bytes_sent,
+        r.link.frames_sent,
+        r.link.bytes_sent as f64 / r.accepted.max(1) as f64,
+        r.link.bytes_received,
+        r.link.corrupt_frames
+    );
+    if r.drained.is_some() {
+        println!("queue played out; stream stopped (output holds the last setpoint)");
+    } else {
+        println!("queued; the stream keeps playing");
+    }
+    Ok(())
+}

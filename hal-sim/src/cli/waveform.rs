@@ -1,0 +1,78 @@
+//! `hal-sim waveform --port PORT --shape sine|triangle --offset O --amplitude A --frequency HZ`:
+//! starts the board's waveform generator (normalised units, −1…1 over the model's output
+//! range; `offset ± amplitude` must stay inside it). `hal-sim stop` stops it.
+
+use super::board_link::{connect, PortArgs};
+use anyhow::bail;
+use twinstack::protocol::messages::{WaveShape, Waveform};
+
+/// Arguments of `waveform`.
+#[derive(Debug, clap::Args)]
+pub struct Args {
+    /// The board.
+    #[command(flatten)]
+    pub port: PortArgs,
+    /// Shape.
+    #[arg(long, value_enum)]
+    pub shape: Shape,
+    /// Centre, normalised (−1…1).
+    #[arg(long, default_value_t = 0.0, allow_negative_numbers = true)]
+    pub offset: f64,
+    /// Amplitude, normalised (0…1; offset ± amplitude within −1…1).
+    #[arg(long)]
+    pub amplitude: f64,
+    /// Frequency, Hz (resolution 1 mHz).
+    #[arg(long)]
+    pub frequency: f64,
+}
+
+/// `--shape` values.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum Shape {
+    /// Sine.
+    Sine,
+    /// Symmetric triangle.
+    Triangle,
+}
+
+/// The request for `args`, or why the values cannot be sent.
+pub fn waveform_of(args: &Args) -> anyhow::Result<Waveform> {
+    let (o, a, f) = (args.offset, args.amplitude, args.frequency);
+    if !(o.is_finite() && a.is_finite() && f.is_finite()) {
+        bail!("--offset, --amplitude and --frequency must be finite numbers");
+    }
+    if !(0.0..=1.0).contains(&a) {
+        bail!("--amplitude {a}: must lie in 0…1 (normalised)");
+    }
+    if o - a < -1.0 || o + a > 1.0 {
+        bail!("--offset {o} ± --amplitude {a} leaves the normalised range -1…1");
+    }
+    let mhz = (f * 1000.0).round();
+    if !(1.0..=u32::MAX as f64).contains(&mhz) {
+        bail!("--frequency {f} Hz: must be at least 0.001 Hz");
+    }
+    Ok(Waveform {
+        shape: match args.shape {
+            Shape::Sine => WaveShape::Sine,
+            Shape::Triangle => WaveShape::Triangle,
+        },
+        offset: crate::setpoint_file::q1_15(o),
+        amplitude: crate::setpoint_file::q1_15(a),
+        frequency_mhz: mhz as u32,
+    })
+}
+
+/// Runs `waveform`.
+pub fn run(args: &Args) -> anyhow::Result<()> {
+    let w = waveform_of(args)?;
+    let mut client = connect(&args.port)?;
+    client.waveform(w)?;
+    println!(
+        "waveform running: {:?}, offset {}, amplitude {}, {} Hz (stop with hal-sim stop)",
+        w.shape,
+        args.offset,
+        args.amplitude,
+        w.frequency_mhz as f64 / 1000.0
+    );
+    Ok(())
+}

@@ -1,0 +1,137 @@
+//! Generating the vectors: the library's tick in closed loop on a sensor model, recorded.
+//!
+//! Each tick reads the sensor ADC code the previous tick's drive produced (the board's one
+//! sample of ADC latency), so the feedback and the observer see a stage that responds. The
+//! stage is the set's [`Truth`] model (the `f64` reference, in physical units) on the left
+//! stack's voltage as the DAC code puts it out, its displacement mapped onto the ADC's codes
+//! by the set's sensor calibration, plus a deterministic ±2-code dither. Those codes are then
+//! just recorded inputs: the replay on the board does not need the stage.
+
+use super::scenario;
+use super::sets::{SetDefinition, Truth};
+use anyhow::{anyhow, Context};
+use twinstack::golden::{
+    config_fingerprint, format::encode_record, run_tick, Recipe, TickInput, TickOutput,
+};
+use twinstack::{reference, Scaling};
+
+/// One generated set.
+#[derive(Clone, Debug)]
+pub struct GeneratedSet {
+    /// The definition it came from.
+    pub name: &'static str,
+    /// Inputs per tick (ADC codes filled in).
+    pub inputs: Vec<TickInput>,
+    /// Outputs per tick.
+    pub outputs: Vec<TickOutput>,
+    /// The encoded record.
+    pub record: Vec<u8>,
+}
+
+/// The stage as the sensor sees it.
+enum Stage {
+    Pi(Box<reference::PrandtlIshlinskii>),
+    Duhem(reference::Duhem),
+}
+
+impl Stage {
+    fn at_rest(truth: &Truth, scaling: &Scaling, volts: f64) -> anyhow::Result<Self> {
+        Ok(match truth {
+            Truth::Pi(p) => Stage::Pi(Box::new(reference::PrandtlIshlinskii::new(
+                p, scaling, volts,
+            )?)),
+            Truth::Duhem(d) => Stage::Duhem(reference::Duhem::new(
+                d,
+                scaling,
+                volts,
+                d.beta * volts + d.offset,
+            )?),
+        })
+    }
+    fn step(&mut self, volts: f64) -> f64 {
+        match self {
+            Stage::Pi(m) => m.step(volts),
+            Stage::Duhem(m) => m.step(volts),
+        }
+    }
+}
+
+/// The sensor ADC: displacement → code, clamped to the converter's range.
+fn adc_code(recipe: &Recipe, displacement: f64, dither: i64) -> u16 {
+    let Some(fb) = &recipe.feedback else {
+        // Without feedback the tick never reads the ADC; record a steady mid-scale code.
+        return 0x8000;
+    };
+    let s = &fb.sensor;
+    let full = (1u64 << s.adc_bits) as f64;
+    let fraction = (displacement - s.displacement_at_zero)
+        / (s.displacement_at_full_scale - s.displacement_at_zero);
+    let code = (fraction * full).round() as i64 + dither;
+    code.clamp(0, (full as i64 - 1).min(u16::MAX as i64)) as u16
+}
+
+/// A small deterministic generator (SplitMix64) for the ADC dither.
+struct Dither(u64);
+impl Dither {
+    fn next(&mut self) -> i64 {
+        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
+        let mut z = self.0;
+        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+        z ^= z >> 31;
+        (z % 5) as i64 - 2
+    }
+}
+
+/// Runs the scenario on `def` in closed loop and encodes the record.
+pub fn generate(def: &SetDefinition) -> anyhow::Result<GeneratedSet> {
+    let recipe = &def.recipe;
+    let config = recipe
+        .build()
+        .map_err(|e| anyhow!("set {}: configuration refused: {e:?}", def.name))?;
+    let mut controller = twinstack::control::Controller::new(config);
+    let d = &recipe.drive;
+    let volts_per_code = d.amplifier_full_scale / d.dac_full_scale as f64;
+    let mut stage = Stage::at_rest(&def.truth, &recipe.scaling, d.bias)
+        .with_context(|| format!("set {}: stage model", def.name))?;
+    let mut displacement = stage.step(d.bias);
+    let mut dither = Dither(0x0060_1DE2);
+    let mut inputs = scenario::timeline();
+    let mut outputs = Vec::with_capacity(inputs.len());
+    for input in inputs.iter_mut() {
+        input.adc_code = adc_code(recipe, displacement, dither.next());
+        let out = run_tick(&mut controller, input);
+        displacement = stage.step(out.left as f64 * volts_per_code);
+        outputs.push(out);
+    }
+    let mut recipe_bytes = heapless::Vec::new();
+    recipe
+        .encode(&mut recipe_bytes)
+        .map_err(|e| anyhow!("set {}: {e:?}", def.name))?;
+    let mut record = Vec::new();
+    encode_record(
+        def.name,
+        config_fingerprint(&config),
+        &recipe_bytes,
+        &inputs,
+        &outputs,
+        &mut record,
+    )
+    .ok_or_else(|| anyhow!("set {}: does not fit the vector format", def.name))?;
+    Ok(GeneratedSet {
+        name: def.name,
+        inputs,
+        outputs,
+        record,
+    })
+}
+
+/// Every set, generated, and the file that holds them all.
+pub fn generate_all(defs: &[SetDefinition]) -> anyhow::Result<(Vec<GeneratedSet>, Vec<u8>)> {
+    let sets = defs
+        .iter()
+        .map(generate)
+        .collect::<anyhow::Result<Vec<_>>>()?;
+    let file = sets.iter().flat_map(|s| s.record.iter().copied()).collect();
+    Ok((sets, file))
+}

@@ -1,0 +1,409 @@
+//! [`Client`]: the host's protocol engine over any [`Transport`]. It encodes requests into
+//! frames, decodes the board's frames (skipping and counting corrupt ones, resynchronising at
+//! the next delimiter), matches each response to its request in order, and turns a NACK into
+//! a typed [`LinkError::Nack`].
+//!
+//! Every request is answered by exactly one response, in order, so a caller may keep several
+//! requests in flight ([`Client::send`] then [`Client::receive`]); [`Client::request`] is the
+//! one-at-a-time form.
+
+use super::Transport;
+use std::io;
+use std::time::{Duration, Instant};
+use twinstack::protocol::decoder::FrameDecoder;
+use twinstack::protocol::frame::{self, FrameError, MAX_ENCODED};
+use twinstack::protocol::messages::{
+    Mode, NackReason, ParamSet, RecordRequest, Request, Response, StatusReport, StreamControl,
+    Waveform, MAX_CHUNK,
+};
+
+/// How long a request waits for its response by default.
+pub const DEFAULT_TIMEOUT: Duration = Duration::from_secs(2);
+
+/// What went wrong talking to the board.
+#[derive(Debug, thiserror::Error)]
+pub enum LinkError {
+    /// The transport failed (port closed, device unplugged, emulator exited).
+    #[error("link: {0}")]
+    Io(#[from] io::Error),
+    /// No response within the timeout.
+    #[error("no response to {request} within {timeout:?} ({corrupt} corrupt frames received meanwhile): is the board connected, powered and at the same baud rate?")]
+    Timeout {
+        /// The request waiting.
+        request: &'static str,
+        /// How long it waited.
+        timeout: Duration,
+        /// Corrupt frames skipped while waiting.
+        corrupt: u32,
+    },
+    /// The board refused the request; nothing was applied.
+    #[error("the board refused {request}: {}", nack_text(reason))]
+    Nack {
+        /// The request refused.
+        request: &'static str,
+        /// The board's reason.
+        reason: NackReason,
+    },
+    /// A response of the wrong kind (a protocol mismatch between host and firmware).
+    #[error("unexpected response to {request}: {got}")]
+    Unexpected {
+        /// The request.
+        request: &'static str,
+        /// What arrived.
+        got: String,
+    },
+    /// The request could not be encoded (too large for a frame).
+    #[error("cannot encode {request}: {reason:?}")]
+    Encode {
+        /// The request.
+        request: &'static str,
+        /// Why.
+        reason: FrameError,
+    },
+}
+
+/// A short name for a request, for messages.
+pub fn request_name(request: &Request) -> &'static str {
+    match request {
+        Request::Status => "Status",
+        Request::Setpoints(_) => "Setpoints",
+        Request::Stream(_) => "Stream",
+        Request::Mode(_) => "Mode",
+        Request::LoadParams(_) => "LoadParams",
+        Request::StoreParams => "StoreParams",
+        Request::RecallParams => "RecallParams",
+        Request::Waveform(_) => "Waveform",
+        Request::Record(_) => "Record",
+        Request::ReadRecord { .. } => "ReadRecord",
+    }
+}
+
+/// A NACK reason in words.
+pub fn nack_text(reason: &NackReason) -> String {
+    match reason {
+        NackReason::Frame(e) => format!(
+            "bad frame ({}); nothing was applied",
+            match e {
+                FrameError::Oversize => "oversize".to_string(),
+                FrameError::Truncated => "truncated".to_string(),
+                FrameError::BadStuffing => "broken COBS stuffing".to_string(),
+                FrameError::BadCrc => "CRC mismatch".to_string(),
+                FrameError::BadVersion { got } => format!(
+                    "protocol version {got}, the board speaks {}",
+                    frame::PROTOCOL_VERSION
+                ),
+                FrameError::UnknownType => "unknown message type".to_string(),
+                FrameError::Malformed => "malformed message".to_string(),
+                FrameError::TooLarge => "too large".to_string(),
+            }
+        ),
+        NackReason::QueueFull => "setpoint queue full (more setpoints than credits)".into(),
+        NackReason::OutOfSequence { expected } => {
+            format!("batch out of sequence (the board expected sequence number {expected})")
+        }
+        NackReason::OutOfRange => "a value is out of its range".into(),
+        NackReason::InvalidParams(e) => format!("parameters refused: {e}"),
+        NackReason::InvalidDrive(e) => format!("drive settings refused: {e:?}"),
+        NackReason::Unsupported => "not supported by this board".into(),
+        NackReason::Busy => {
+            "busy: not while the stream or the waveform runs (stop it first)".into()
+        }
+        NackReason::NothingStored => "no valid parameter set is stored in flash".into(),
+        NackReason::StoreFailed => "writing the flash record failed".into(),
+    }
+}
+
+/// Link counters since the client was made.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct LinkCounters {
+    /// Frames sent.
+    pub frames_sent: u64,
+    /// Bytes sent (delimiters included).
+    pub bytes_sent: u64,
+    /// Bytes received.
+    pub bytes_received: u64,
+    /// Good frames received.
+    pub frames_received: u64,
+    /// Corrupt frames received and skipped.
+    pub corrupt_frames: u64,
+}
+
+/// The protocol engine over a transport.
+pub struct Client<T> {
+    transport: T,
+    decoder: FrameDecoder,
+    rx: Box<[u8; 4096]>,
+    rx_pos: usize,
+    rx_len: usize,
+    timeout: Duration,
+    counters: LinkCounters,
+}
+
+impl<T: Transport> Client<T> {
+    /// A client over `transport`, with [`DEFAULT_TIMEOUT`].
+    pub fn new(transport: T) -> Self {
+        Self {
+            transport,
+            decoder: FrameDecoder::new(),
+            rx: Box::new([0; 4096]),
+            rx_pos: 0,
+            rx_len: 0,
+            timeout: DEFAULT_TIMEOUT,
+            counters: LinkCounters::default(),
+        }
+    }
+
+    /// Sets how long [`Client::request`] waits for a response.
+    pub fn set_timeout(&mut self, timeout: Duration) {
+        self.timeout = timeout;
+    }
+
+    /// The response timeout.
+    pub fn timeout(&self) -> Duration {
+        self.timeout
+    }
+
+    /// The transport.
+    pub fn transport(&self) -> &T {
+        &self.transport
+    }
+
+    /// The transport, mutably.
+    pub fn transport_mut(&mut self) -> &mut T {
+        &mut self.transport
+    }
+
+    /// Link counters so far.
+    pub fn counters(&self) -> LinkCounters {
+        self.counters
+    }
+
+    /// Sends a lone delimiter (the board's decoder drops whatever partial frame it holds),
+    /// then discards whatever arrives within `quiet`: a clean start after noise or after
+    /// another program used the port.
+    pub fn resync(&mut self, quiet: Duration) -> Result<(), LinkError> {
+        self.send_raw(&[0])?;
+        let mut sink = [0u8; 256];
+        while self.transport.receive(&mut sink, quiet)? > 0 {}
+        self.decoder = FrameDecoder::new();
+        self.rx_pos = 0;
+        self.rx_len = 0;
+        Ok(())
+    }
+
+    /// Sends raw bytes (tests use it to send deliberately broken frames).
+    pub fn send_raw(&mut self, bytes: &[u8]) -> Result<(), LinkError> {
+        self.transport.send(bytes)?;
+        self.counters.bytes_sent += bytes.len() as u64;
+        Ok(())
+    }
+
+    /// Encodes and sends `request` without waiting for its response.
+    pub fn send(&mut self, request: &Request) -> Result<(), LinkError> {
+        let mut buf = [0u8; MAX_ENCODED + 1];
+        let n = frame::encode(request, &mut buf).map_err(|reason| LinkError::Encode {
+            request: request_name(request),
+            reason,
+        })?;
+        self.send_raw(&buf[..n])?;
+        self.counters.frames_sent += 1;
+        Ok(())
+    }
+
+    /// The next response, waiting at most `timeout` for it; `Ok(None)` when none came.
+    /// Corrupt frames are skipped (and counted); the decoder resynchronises at the next
+    /// delimiter.
+    pub fn receive(&mut self, timeout: Duration) -> Result<Option<Response>, LinkError> {
+        let start = Instant::now();
+        loop {
+            while self.rx_pos < self.rx_len {
+                let byte = self.rx[self.rx_pos];
+                self.rx_pos += 1;
+                match self.decoder.push(byte) {
+                    None => {}
+                    Some(Ok(body)) => match frame::decode_body::<Response>(body) {
+                        Ok(r) => {
+                            self.counters.frames_received += 1;
+                            return Ok(Some(r));
+                        }
+                        Err(_) => self.counters.corrupt_frames += 1,
+                    },
+                    Some(Err(_)) => self.counters.corrupt_frames += 1,
+                }
+            }
+            // Wall-clock time left; an in-process board advances its own clock inside
+            // `receive` and reports the timeout by returning 0.
+            let left = timeout.saturating_sub(start.elapsed());
+            if left.is_zero() {
+                return Ok(None);
+            }
+            let n = self.transport.receive(&mut self.rx[..], left)?;
+            if n == 0 {
+                return Ok(None);
+            }
+            self.counters.bytes_received += n as u64;
+            self.rx_pos = 0;
+            self.rx_len = n;
+        }
+    }
+
+    /// Lets `duration` pass on the link with no request outstanding (an in-process board
+    /// runs its ticks meanwhile); a response arriving now is a protocol error.
+    pub fn wait(&mut self, duration: Duration) -> Result<(), LinkError> {
+        match self.receive(duration)? {
+            None => Ok(()),
+            Some(r) => Err(LinkError::Unexpected {
+                request: "(none)",
+                got: format!("{r:?} while no request was outstanding"),
+            }),
+        }
+    }
+
+    /// Sends `request` and waits for its response (a NACK is returned as a response here;
+    /// see [`Client::expect_ack`]).
+    pub fn request(&mut self, request: &Request) -> Result<Response, LinkError> {
+        let corrupt_before = self.counters.corrupt_frames;
+        self.send(request)?;
+        self.receive(self.timeout)?
+            .ok_or_else(|| LinkError::Timeout {
+                request: request_name(request),
+                timeout: self.timeout,
+                corrupt: (self.counters.corrupt_frames - corrupt_before) as u32,
+            })
+    }
+
+    /// Sends `request`, expects an ACK and returns its credits; a NACK is an error.
+    pub fn expect_ack(&mut self, request: &Request) -> Result<u16, LinkError> {
+        let name = request_name(request);
+        match self.request(request)? {
+            Response::Ack { credits } => Ok(credits),
+            Response::Nack { reason } => Err(LinkError::Nack {
+                request: name,
+                reason,
+            }),
+            other => Err(LinkError::Unexpected {
+                request: name,
+                got: format!("{other:?}"),
+            }),
+        }
+    }
+
+    /// Reads status and telemetry.
+    pub fn status(&mut self) -> Result<StatusReport, LinkError> {
+        match self.request(&Request::Status)? {
+            Response::Status(s) => Ok(s),
+            Response::Nack { reason } => Err(LinkError::Nack {
+                request: "Status",
+                reason,
+            }),
+            other => Err(LinkError::Unexpected {
+                request: "Status",
+                got: format!("{other:?}"),
+            }),
+        }
+    }
+
+    /// Selects the control mode.
+    pub fn set_mode(&mut self, mode: Mode) -> Result<(), LinkError> {
+        self.expect_ack(&Request::Mode(mode)).map(drop)
+    }
+
+    /// Starts, stops or configures the setpoint stream.
+    pub fn stream(&mut self, control: StreamControl) -> Result<(), LinkError> {
+        self.expect_ack(&Request::Stream(control)).map(drop)
+    }
+
+    /// Loads a parameter set (the board validates it whole, then swaps it in between ticks).
+    pub fn load_params(&mut self, params: &ParamSet) -> Result<(), LinkError> {
+        self.expect_ack(&Request::LoadParams(params.clone()))
+            .map(drop)
+    }
+
+    /// Writes the active parameters to the board's flash.
+    pub fn store_params(&mut self) -> Result<(), LinkError> {
+        self.expect_ack(&Request::StoreParams).map(drop)
+    }
+
+    /// Reloads the parameters stored in flash.
+    pub fn recall_params(&mut self) -> Result<(), LinkError> {
+        self.expect_ack(&Request::RecallParams).map(drop)
+    }
+
+    /// Starts the waveform generator.
+    pub fn waveform(&mut self, waveform: Waveform) -> Result<(), LinkError> {
+        self.expect_ack(&Request::Waveform(waveform)).map(drop)
+    }
+
+    /// Arms the data recorder.
+    pub fn arm_recorder(&mut self, record: RecordRequest) -> Result<(), LinkError> {
+        self.expect_ack(&Request::Record(record)).map(drop)
+    }
+
+    /// Reads one chunk of recorded values from `offset`.
+    pub fn read_record(&mut self, offset: u32) -> Result<Vec<i32>, LinkError> {
+        match self.request(&Request::ReadRecord { offset })? {
+            Response::RecordChunk { offset: o, values } if o == offset => Ok(values.to_vec()),
+            Response::Nack { reason } => Err(LinkError::Nack {
+                request: "ReadRecord",
+                reason,
+            }),
+            other => Err(LinkError::Unexpected {
+                request: "ReadRecord",
+                got: format!("{other:?}"),
+            }),
+        }
+    }
+
+    /// Reads `count` recorded values, chunk by chunk from offset 0, resuming at the next
+    /// offset after each chunk; a chunk lost to a timeout or a corrupt frame is asked for
+    /// again (up to 3 times). Fails unless exactly `count` values arrive.
+    pub fn read_recording(
+        &mut self,
+        count: u32,
+        mut progress: impl FnMut(u32),
+    ) -> Result<Vec<i32>, LinkError> {
+        let mut values = Vec::with_capacity(count as usize);
+        let mut retries = 0;
+        while (values.len() as u32) < count {
+            let offset = values.len() as u32;
+            match self.read_record(offset) {
+                Ok(chunk) if chunk.is_empty() => {
+                    return Err(LinkError::Unexpected {
+                        request: "ReadRecord",
+                        got: format!(
+                            "an empty chunk at offset {offset}: the board holds {offset} values, {count} were asked for"
+                        ),
+                    })
+                }
+                Ok(chunk) => {
+                    if chunk.len() > MAX_CHUNK {
+                        return Err(LinkError::Unexpected {
+                            request: "ReadRecord",
+                            got: format!("a chunk of {} values", chunk.len()),
+                        });
+                    }
+                    let take = chunk.len().min(count as usize - values.len());
+                    values.extend_from_slice(&chunk[..take]);
+                    retries = 0;
+                    progress(values.len() as u32);
+                }
+                Err(LinkError::Timeout { .. }) if retries < 3 => {
+                    retries += 1;
+                    // A late answer would be taken for the next request's: drain first.
+                    self.resync(Duration::from_millis(50))?;
+                }
+                Err(e) => return Err(e),
+            }
+        }
+        Ok(values)
+    }
+}
+
+impl<T> std::fmt::Debug for Client<T> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Client")
+            .field("timeout", &self.timeout)
+            .field("counters", &self.counters)
+            .finish()
+    }
+}

@@ -1,0 +1,365 @@
+//! [`stream_setpoints`]: sends a setpoint record to the board's queue in batches, within the
+//! credits the board grants, keeping several batches in flight.
+//!
+//! Rules it keeps (each checked by the tests with a scripted board):
+//! * **credits**: every ACK (and every status report) carries the queue's free slots at the
+//!   moment the board handled that request; the host subtracts what it has sent since, and
+//!   never sends a batch larger than what is left. With nothing in flight and too few credits
+//!   it waits for the board to play some samples, then asks ([`Request::Status`]);
+//! * **sequence numbers**: batches are numbered consecutively (wrapping `u16`) from the
+//!   `next_seq` the board reports; the first batch goes alone, and if the board expects another
+//!   number (`OutOfSequence { expected }`) the stream continues from that number;
+//! * **refusals**: a NACKed batch was not queued, and neither is any batch sent after it (they
+//!   are out of sequence), so the streamer waits for their answers, asks for the credits and
+//!   resends from the refused batch (go-back-N). Line damage (`Frame(..)`), `QueueFull` and
+//!   `OutOfSequence` are retried up to [`StreamOptions::max_retries`] times in a row; any other
+//!   reason ends the stream with an error that says how many setpoints were accepted.
+//!
+//! Setpoints are Q1.15 normalised displacement (the wire format,
+//! [`twinstack::protocol::messages`]).
+
+use super::client::{request_name, Client, LinkCounters, LinkError};
+use super::Transport;
+use std::collections::VecDeque;
+use std::time::Duration;
+use twinstack::protocol::messages::{
+    NackReason, Request, Response, SetpointBatch, StatusReport, StreamControl, UnderrunPolicy,
+    MAX_BATCH,
+};
+
+/// How a record is streamed.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct StreamOptions {
+    /// Ticks per streamed setpoint (the board interpolates linearly in between), ≥ 1.
+    pub divider: u16,
+    /// Underrun policy to set first (`None`: leave the board's).
+    pub underrun: Option<UnderrunPolicy>,
+    /// The board's control rate, Hz, if its status does not report one: paces the waits for
+    /// credits.
+    pub tick_rate_hz: f64,
+    /// Largest batch, ≤ [`MAX_BATCH`].
+    pub batch: usize,
+    /// After the last batch, wait until the board has played the queue, then stop the stream
+    /// (the output holds the last setpoint).
+    pub drain: bool,
+    /// Refused batches in a row before giving up.
+    pub max_retries: u32,
+}
+
+impl Default for StreamOptions {
+    fn default() -> Self {
+        Self {
+            divider: 1,
+            underrun: None,
+            tick_rate_hz: 50_000.0,
+            batch: MAX_BATCH,
+            drain: true,
+            max_retries: 8,
+        }
+    }
+}
+
+/// What a stream did.
+#[derive(Clone, Debug, PartialEq)]
+pub struct StreamReport {
+    /// Setpoints accepted by the board (all of them, on success).
+    pub accepted: usize,
+    /// Batches accepted.
+    pub batches: u64,
+    /// Batches sent again after a refusal.
+    pub resent_batches: u64,
+    /// Refusals met (each retried).
+    pub nacks: Vec<NackReason>,
+    /// Status requests sent to learn the credits.
+    pub credit_probes: u64,
+    /// Most setpoints sent but not yet acknowledged at any time.
+    pub max_unacked: usize,
+    /// Queue capacity (fill + credits at the start).
+    pub capacity: usize,
+    /// Status before streaming.
+    pub before: StatusReport,
+    /// Status right after the last batch was acknowledged.
+    pub after_last_batch: StatusReport,
+    /// Status once the queue had drained (with [`StreamOptions::drain`]).
+    pub drained: Option<StatusReport>,
+    /// Link counters during the stream.
+    pub link: LinkCounters,
+}
+
+impl StreamReport {
+    /// Underruns counted by the board while the stream still had setpoints to deliver: up to
+    /// the status taken right after the last batch's ACK (from then on the queue only
+    /// drains, so none can happen before it is empty). `None` if the queue was already empty
+    /// at that status (then the count may include ticks after the end).
+    pub fn underruns_during_stream(&self) -> Option<u32> {
+        (self.after_last_batch.queue_fill > 0 || self.accepted == 0).then(|| {
+            self.after_last_batch
+                .underruns
+                .wrapping_sub(self.before.underruns)
+        })
+    }
+}
+
+/// Why a stream stopped.
+#[derive(Debug, thiserror::Error)]
+#[error(
+    "{source} (stream stopped after {accepted} of {total} setpoints were accepted by the board)"
+)]
+pub struct StreamError {
+    /// The cause.
+    #[source]
+    pub source: LinkError,
+    /// Setpoints the board accepted before the failure (they stay queued).
+    pub accepted: usize,
+    /// Setpoints in the record.
+    pub total: usize,
+}
+
+enum InFlight {
+    Batch { first: usize, len: usize, seq: u16 },
+    Probe,
+}
+
+fn retryable(reason: &NackReason) -> bool {
+    matches!(
+        reason,
+        NackReason::Frame(_) | NackReason::QueueFull | NackReason::OutOfSequence { .. }
+    )
+}
+
+/// Streams `samples` (Q1.15) to the board behind `client`: sets the rate divider and the
+/// underrun policy, fills the queue, starts the stream, keeps the queue topped up within the
+/// credits, and (with [`StreamOptions::drain`]) waits for it to play out and stops.
+/// `progress` is called with the number of setpoints accepted so far.
+pub fn stream_setpoints<T: Transport>(
+    client: &mut Client<T>,
+    samples: &[i16],
+    options: &StreamOptions,
+    mut progress: impl FnMut(usize),
+) -> Result<StreamReport, StreamError> {
+    let mut accepted = 0usize;
+    let total = samples.len();
+    run(client, samples, options, &mut accepted, &mut progress).map_err(|source| StreamError {
+        source,
+        accepted,
+        total,
+    })
+}
+
+fn run<T: Transport>(
+    client: &mut Client<T>,
+    samples: &[i16],
+    options: &StreamOptions,
+    accepted: &mut usize,
+    progress: &mut impl FnMut(usize),
+) -> Result<StreamReport, LinkError> {
+    let link_before = client.counters();
+    let before = client.status()?;
+    let capacity = before.queue_fill as usize + before.credits as usize;
+    if capacity == 0 {
+        return Err(LinkError::Unexpected {
+            request: "Status",
+            got: "a setpoint queue of capacity 0".into(),
+        });
+    }
+    client.stream(StreamControl::Rate {
+        divider: options.divider,
+    })?;
+    if let Some(policy) = options.underrun {
+        client.stream(StreamControl::Underrun(policy))?;
+    }
+    let batch_max = options.batch.clamp(1, MAX_BATCH).min(capacity);
+    // The board's own rate when it reports one.
+    let tick_rate = if before.tick_rate_hz > 0 {
+        before.tick_rate_hz as f64
+    } else {
+        options.tick_rate_hz
+    };
+    let tick = 1.0 / tick_rate.max(1.0);
+    let mut report = StreamReport {
+        accepted: 0,
+        batches: 0,
+        resent_batches: 0,
+        nacks: Vec::new(),
+        credit_probes: 0,
+        max_unacked: 0,
+        capacity,
+        before,
+        after_last_batch: before,
+        drained: None,
+        link: LinkCounters::default(),
+    };
+
+    let mut granted = before.credits as usize;
+    let mut in_flight: VecDeque<InFlight> = VecDeque::new();
+    let mut unacked = 0usize; // samples in in-flight batches
+    let mut next = 0usize; // next sample to send
+    let mut seq: u16 = before.next_seq;
+    let mut handshaken = false; // a batch has been accepted: the sequence number is agreed
+    let mut rewinding = false; // a batch was refused: waiting out the ones sent after it
+    let mut retries = 0u32;
+    let mut started = false;
+    // Waiting for room without a batch accepted: bounded by the response timeout plus twice
+    // the time the board needs to play a full queue.
+    let mut stalled = Duration::ZERO;
+    let stall_limit = client.timeout()
+        + Duration::from_secs_f64(2.0 * capacity as f64 * options.divider as f64 * tick);
+    let mut sent_ever = vec![false; samples.len().div_ceil(batch_max.max(1)) + 1];
+
+    loop {
+        if next == samples.len() && in_flight.is_empty() {
+            break;
+        }
+        // Send what the credits allow.
+        let mut blocked = false;
+        while !rewinding && next < samples.len() && (handshaken || in_flight.is_empty()) {
+            let want = batch_max.min(samples.len() - next);
+            if granted.saturating_sub(unacked) < want {
+                blocked = true;
+                break;
+            }
+            let batch = SetpointBatch {
+                seq,
+                samples: heapless::Vec::from_slice(&samples[next..next + want]).map_err(|_| {
+                    LinkError::Encode {
+                        request: "Setpoints",
+                        reason: twinstack::protocol::frame::FrameError::TooLarge,
+                    }
+                })?,
+            };
+            client.send(&Request::Setpoints(batch))?;
+            let slot = next / batch_max;
+            if sent_ever.get(slot).copied().unwrap_or(false) {
+                report.resent_batches += 1;
+            }
+            if let Some(s) = sent_ever.get_mut(slot) {
+                *s = true;
+            }
+            in_flight.push_back(InFlight::Batch {
+                first: next,
+                len: want,
+                seq,
+            });
+            unacked += want;
+            report.max_unacked = report.max_unacked.max(unacked);
+            next += want;
+            seq = seq.wrapping_add(1);
+        }
+        // The queue is primed (full, or the whole record is in it): start playing.
+        if !started && in_flight.is_empty() && !rewinding && (blocked || next == samples.len()) {
+            client.stream(StreamControl::Start)?;
+            started = true;
+            continue;
+        }
+        if in_flight.is_empty() {
+            // Out of credits with nothing to wait for: let the board play a batch's worth,
+            // then ask how much room there is.
+            let wait = Duration::from_secs_f64(batch_max as f64 * options.divider as f64 * tick);
+            if stalled > stall_limit {
+                return Err(LinkError::Unexpected {
+                    request: "Status",
+                    got: format!(
+                        "no room in the queue for {stalled:?}: the board is not playing the stream"
+                    ),
+                });
+            }
+            client.wait(wait)?;
+            stalled += wait;
+            client.send(&Request::Status)?;
+            report.credit_probes += 1;
+            in_flight.push_back(InFlight::Probe);
+        }
+        let head = in_flight.pop_front().expect("not empty");
+        let name = match head {
+            InFlight::Batch { .. } => "Setpoints",
+            InFlight::Probe => request_name(&Request::Status),
+        };
+        let response = client
+            .receive(client.timeout())?
+            .ok_or(LinkError::Timeout {
+                request: name,
+                timeout: client.timeout(),
+                corrupt: 0,
+            })?;
+        match (head, response) {
+            (InFlight::Batch { len, .. }, Response::Ack { credits }) if !rewinding => {
+                unacked -= len;
+                granted = credits as usize;
+                *accepted += len;
+                report.batches += 1;
+                handshaken = true;
+                retries = 0;
+                stalled = Duration::ZERO;
+                progress(*accepted);
+            }
+            (InFlight::Batch { first, len, seq: s }, Response::Nack { reason }) => {
+                unacked -= len;
+                if !rewinding {
+                    if !retryable(&reason) || retries >= options.max_retries {
+                        return Err(LinkError::Nack {
+                            request: "Setpoints",
+                            reason,
+                        });
+                    }
+                    report.nacks.push(reason);
+                    retries += 1;
+                    rewinding = true;
+                    next = first;
+                    seq = match reason {
+                        NackReason::OutOfSequence { expected } => expected,
+                        _ => s,
+                    };
+                }
+            }
+            (InFlight::Probe, Response::Status(s)) => granted = s.credits as usize,
+            (_, other) => {
+                return Err(LinkError::Unexpected {
+                    request: name,
+                    got: format!("{other:?}"),
+                })
+            }
+        }
+        if rewinding && in_flight.is_empty() {
+            // Everything after the refused batch has been answered: learn the credits afresh.
+            rewinding = false;
+            client.send(&Request::Status)?;
+            report.credit_probes += 1;
+            in_flight.push_back(InFlight::Probe);
+        }
+    }
+    report.accepted = *accepted;
+    report.after_last_batch = client.status()?;
+    if options.drain {
+        // Bounded wait: the queue plays in fill × divider ticks; allow twice that plus a
+        // second before deciding the board is not playing it.
+        let mut status = report.after_last_batch;
+        let budget = status.queue_fill as f64 * options.divider as f64 * tick * 2.0 + 1.0;
+        let step = (batch_max as f64 * options.divider as f64 * tick).max(1e-3);
+        let mut waited = 0.0;
+        while status.queue_fill > 0 {
+            if waited > budget {
+                return Err(LinkError::Unexpected {
+                    request: "Status",
+                    got: format!(
+                        "{} setpoints still queued after {waited:.1} s: the stream is not playing",
+                        status.queue_fill
+                    ),
+                });
+            }
+            client.wait(Duration::from_secs_f64(step))?;
+            waited += step;
+            status = client.status()?;
+        }
+        client.stream(StreamControl::Stop)?;
+        report.drained = Some(status);
+    }
+    let after = client.counters();
+    report.link = LinkCounters {
+        frames_sent: after.frames_sent - link_before.frames_sent,
+        bytes_sent: after.bytes_sent - link_before.bytes_sent,
+        bytes_received: after.bytes_received - link_before.bytes_received,
+        frames_received: after.frames_received - link_before.frames_received,
+        corrupt_frames: after.corrupt_frames - link_before.corrupt_frames,
+    };
+    Ok(report)
+}

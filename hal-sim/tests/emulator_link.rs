@@ -1,0 +1,250 @@
+//! The host tools drive the firmware's emulator image in QEMU over its UART: the same
+//! `Client`, streamer, parameter load and recorder read-back as with a real board (USART1 on a
+//! Unix socket, `--port unix:SOCK`): status, a parameter load from an `identify` file, a
+//! deliberately corrupted frame NACKed with nothing lost, a streamed record played in full,
+//! and a recorder capture that holds what was streamed; then the `hal-sim` binary itself.
+//!
+//! Builds the `emulator` image into `target/firmware` and installs the Rust target and
+//! `qemu-system-arm` if they are missing (the root crate's `tests/support`).
+
+#[path = "../../tests/support/mod.rs"]
+mod support;
+
+use hal_sim::link::client::{Client, LinkError};
+use hal_sim::link::param_set::{param_set, DriveOptions};
+use hal_sim::link::port::{self, PortSpec};
+use hal_sim::link::streamer::{stream_setpoints, StreamOptions};
+use hal_sim::link::Transport;
+use hal_sim::param_file::ParamFile;
+use hal_sim::stage_model::{Hysteresis, StageModel};
+use std::path::PathBuf;
+use std::process::Child;
+use std::time::{Duration, Instant};
+use twinstack::protocol::frame::{self, FrameError, MAX_ENCODED};
+use twinstack::protocol::messages::{
+    Mode, NackReason, RecordRequest, Request, Response, SetpointBatch, Signal, UnderrunPolicy,
+};
+
+/// QEMU running the emulator image with USART1 on a Unix socket; killed on drop.
+struct Qemu {
+    child: Child,
+    scratch: PathBuf,
+    socket: PathBuf,
+}
+
+impl Drop for Qemu {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+        let _ = std::fs::remove_dir_all(&self.scratch);
+    }
+}
+
+fn boot() -> Qemu {
+    let elf = support::build_image("twinstack-fw", &["emulator"]);
+    let scratch = std::env::temp_dir().join(format!("twinstack-host-link-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&scratch);
+    std::fs::create_dir_all(&scratch).expect("scratch directory");
+    let socket = scratch.join("uart.sock");
+    let mut cmd = support::qemu_command(&elf);
+    cmd.arg("-chardev")
+        .arg(format!(
+            "socket,id=u1,path={},server=on,wait=on",
+            socket.display()
+        ))
+        .args(["-serial", "chardev:u1"]);
+    let child = cmd.spawn().expect("qemu-system-arm starts");
+    Qemu {
+        child,
+        scratch,
+        socket,
+    }
+}
+
+/// Connects to the socket and asks for the status until the firmware answers (it enables
+/// USART1 a moment after boot; bytes before that are lost).
+fn connect(qemu: &Qemu) -> Client<Box<dyn Transport>> {
+    let spec = PortSpec::Unix(qemu.socket.clone());
+    let start = Instant::now();
+    let transport = loop {
+        match port::open(&spec, 0) {
+            Ok(t) => break t,
+            Err(e) if start.elapsed() > Duration::from_secs(20) => {
+                panic!("QEMU's UART socket never accepted: {e}")
+            }
+            Err(_) => std::thread::sleep(Duration::from_millis(50)),
+        }
+    };
+    let mut client = Client::new(transport);
+    client.set_timeout(Duration::from_millis(300));
+    loop {
+        client.resync(Duration::from_millis(50)).expect("resync");
+        if client.status().is_ok() {
+            break;
+        }
+        assert!(
+            start.elapsed() < Duration::from_secs(20),
+            "the firmware never answered a status request"
+        );
+    }
+    client.set_timeout(Duration::from_secs(5));
+    client
+}
+
+fn sine(n: usize, hz: f64, rate: f64) -> Vec<i16> {
+    (0..n)
+        .map(|i| {
+            let t = i as f64 / rate;
+            (0.9 * (std::f64::consts::TAU * hz * t).sin() * 32768.0).round() as i16
+        })
+        .collect()
+}
+
+#[test]
+fn the_host_tools_drive_the_emulated_firmware_over_its_uart() {
+    let t0 = Instant::now();
+    let qemu = boot();
+    let mut client = connect(&qemu);
+    eprintln!("booted in {:?}", t0.elapsed());
+
+    // Status: the tick runs.
+    let a = client.status().expect("status");
+    client.wait(Duration::from_millis(200)).unwrap();
+    let b = client.status().expect("status");
+    assert!(
+        b.ticks > a.ticks,
+        "tick counter did not advance: {a:?} {b:?}"
+    );
+    assert!(b.tick_rate_hz > 0);
+    let rate = b.tick_rate_hz as f64;
+
+    // A parameter load from the file `identify` writes (a representative P–I model on the
+    // firmware's default ranges), open loop.
+    let model = StageModel {
+        hysteresis: Hysteresis::Pi(twinstack::default_config::pi_params(16).unwrap()),
+        scaling: twinstack::default_config::scaling(),
+        output_sign: 1.0,
+        sensor_lag_s: 0.0,
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("params.json");
+    std::fs::write(
+        &path,
+        ParamFile::from_model(&model, "um", None).unwrap().to_json(),
+    )
+    .unwrap();
+    let (_, loaded) = ParamFile::load(&path).expect("the file reads back");
+    let set = param_set(&loaded, &DriveOptions::default()).expect("converts");
+    client
+        .load_params(&set)
+        .expect("the firmware takes the load");
+    client.wait(Duration::from_millis(20)).unwrap();
+    assert_eq!(client.status().unwrap().mode(), Mode::OpenLoop);
+
+    // A batch queued (the stream is stopped), then a corrupted frame: NACKed for its CRC,
+    // nothing applied, nothing queued lost, the next frame decodes.
+    let s = client.status().unwrap();
+    let queued = SetpointBatch {
+        seq: s.next_seq,
+        samples: (0..30).collect(),
+    };
+    assert!(matches!(
+        client.request(&Request::Setpoints(queued)).unwrap(),
+        Response::Ack { .. }
+    ));
+    let damaged = Request::Setpoints(SetpointBatch {
+        seq: s.next_seq.wrapping_add(1),
+        samples: (0..50).collect(),
+    });
+    let mut wire = [0u8; MAX_ENCODED + 1];
+    let n = frame::encode(&damaged, &mut wire).unwrap();
+    wire[n / 2] ^= 0x20;
+    client.send_raw(&wire[..n]).unwrap();
+    let nack = client
+        .receive(client.timeout())
+        .unwrap()
+        .expect("an answer");
+    assert_eq!(
+        nack,
+        Response::Nack {
+            reason: NackReason::Frame(FrameError::BadCrc)
+        }
+    );
+    let after = client.status().unwrap();
+    assert_eq!(after.queue_fill, s.queue_fill + 30);
+    assert_eq!(after.crc_errors, s.crc_errors + 1);
+    assert_eq!(after.next_seq, s.next_seq.wrapping_add(1));
+    // A load the firmware refuses (not invertible) changes nothing.
+    let mut bad = set.clone();
+    if let twinstack::protocol::messages::ModelParams::PrandtlIshlinskii { weights, .. } =
+        &mut bad.model
+    {
+        weights[0] = -1.0;
+    }
+    assert!(matches!(
+        client.load_params(&bad),
+        Err(LinkError::Nack {
+            reason: NackReason::InvalidParams(_),
+            ..
+        })
+    ));
+    assert_eq!(client.status().unwrap().queue_fill, after.queue_fill);
+
+    // Arm the recorder, then stream 0.05 s of a sine through the streamer (the 30 queued
+    // setpoints play first). Every setpoint is accepted and played; the capture holds them
+    // in order (an underrun would only repeat a value, so repeats are collapsed first —
+    // QEMU's speed is not the board's).
+    client
+        .arm_recorder(RecordRequest {
+            signal: Signal::Setpoint,
+            count: 16_000,
+            decimation: 1,
+        })
+        .unwrap();
+    let samples = sine((0.05 * rate) as usize, 100.0, rate);
+    let options = StreamOptions {
+        underrun: Some(UnderrunPolicy::Hold),
+        ..StreamOptions::default()
+    };
+    let r = stream_setpoints(&mut client, &samples, &options, |_| {}).expect("stream");
+    assert_eq!(r.accepted, samples.len());
+    assert!(r.nacks.is_empty(), "{:?}", r.nacks);
+    assert_eq!(r.drained.map(|s| s.queue_fill), Some(0));
+    let deadline = Instant::now() + Duration::from_secs(30);
+    while client.status().unwrap().recorded < 16_000 {
+        assert!(Instant::now() < deadline, "the capture never completed");
+        client.wait(Duration::from_millis(50)).unwrap();
+    }
+    let values = client.read_recording(16_000, |_| {}).expect("read back");
+    let mut played: Vec<i32> = Vec::new();
+    for v in values {
+        if played.last() != Some(&v) {
+            played.push(v);
+        }
+    }
+    let want: Vec<i32> = samples.iter().map(|&s| (s as i32) << 15).collect();
+    let first = played.iter().position(|&v| v == want[0]);
+    assert!(
+        played.windows(want.len()).any(|w| w == want.as_slice()),
+        "the streamed setpoints are not in the capture in order: {} distinct values captured, \
+         the first streamed one at {first:?}, last captured {:?}, last streamed {:?}; {r:?}",
+        played.len(),
+        played.last(),
+        want.last()
+    );
+    drop(client);
+
+    // The command-line tool on the same UART.
+    let port = format!("unix:{}", qemu.socket.display());
+    let o = std::process::Command::new(env!("CARGO_BIN_EXE_hal-sim"))
+        .args(["status", "--port", &port])
+        .output()
+        .expect("hal-sim runs");
+    let out = String::from_utf8_lossy(&o.stdout);
+    assert!(
+        o.status.success(),
+        "{out}{}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    assert!(out.contains("mode OpenLoop\n"), "{out}");
+}

@@ -1,0 +1,217 @@
+//! The host's client, streamer and parameter load against the board in-process
+//! ([`SimDevice`]: the library's command handler and control loop on a modelled 2 Mbaud
+//! UART): a 10-second stream at 50 kHz without underrun or loss, a parameter load from an
+//! `identify` file, a corrupted frame NACKed with nothing lost, and a recorder capture that
+//! matches what was streamed. Time is simulated: these are counts, not timings.
+
+use hal_sim::link::client::{Client, LinkError};
+use hal_sim::link::param_set::{param_set, DriveOptions};
+use hal_sim::link::streamer::{stream_setpoints, StreamOptions};
+use hal_sim::sim_device::{SimDevice, SimDeviceConfig};
+use hal_sim::stage_model::{Hysteresis, StageModel};
+use twinstack::default_config;
+use twinstack::protocol::frame::{self, FrameError, MAX_ENCODED};
+use twinstack::protocol::messages::{
+    Mode, ModelParams, NackReason, RecordRequest, Request, Response, SetpointBatch, Signal,
+    StatusReport, StreamControl, UnderrunPolicy,
+};
+
+fn device() -> Client<SimDevice> {
+    Client::new(SimDevice::new(SimDeviceConfig::paper()).expect("device"))
+}
+
+/// `n` setpoints of a ±0.95 sine at `hz` (50 kHz samples), Q1.15.
+fn sine(n: usize, hz: f64) -> Vec<i16> {
+    (0..n)
+        .map(|i| {
+            let t = i as f64 / 50_000.0;
+            (0.95 * (2.0 * std::f64::consts::PI * hz * t).sin() * 32768.0).round() as i16
+        })
+        .collect()
+}
+
+#[test]
+fn ten_seconds_at_50_khz_stream_without_underrun_or_loss() {
+    let mut client = device();
+    let samples = sine(500_000, 37.0);
+    let options = StreamOptions {
+        underrun: Some(UnderrunPolicy::Hold),
+        ..StreamOptions::default()
+    };
+    let r = stream_setpoints(&mut client, &samples, &options, |_| {}).expect("stream");
+    assert_eq!(r.accepted, samples.len());
+    assert!(r.nacks.is_empty(), "{:?}", r.nacks);
+    // The board's own counter, read while the queue still held the tail of the stream (so
+    // every tick of the stream so far is counted, and none after it).
+    assert!(
+        r.after_last_batch.queue_fill > 0,
+        "{:?}",
+        r.after_last_batch
+    );
+    assert_eq!(r.underruns_during_stream(), Some(0), "{r:?}");
+    assert_eq!(r.after_last_batch.overruns, 0);
+    assert_eq!(
+        r.after_last_batch.crc_errors + r.after_last_batch.frame_errors,
+        0
+    );
+    // Nothing lost: every setpoint was accepted once, the queue drained, and the stage holds
+    // the last one.
+    let drained = r.drained.expect("drained");
+    assert_eq!(drained.queue_fill, 0);
+    let dev = client.transport();
+    let t = dev.control().telemetry();
+    assert!(!t.streaming, "stopped after the drain");
+    // 500 000 setpoints at one per tick: the stream took ≥ 10 s of board time.
+    let ticks = drained.ticks.wrapping_sub(r.before.ticks) as usize;
+    assert!(ticks >= samples.len(), "{ticks} ticks");
+    // Every sequence number was used once.
+    assert_eq!(
+        dev.handler().next_seq() as usize,
+        (r.before.next_seq as usize + samples.len().div_ceil(96)) % 65_536
+    );
+}
+
+#[test]
+fn the_recorder_captures_what_was_streamed() {
+    let mut client = device();
+    let samples = sine(4000, 250.0);
+    client
+        .arm_recorder(RecordRequest {
+            signal: Signal::Setpoint,
+            count: 6000,
+            decimation: 1,
+        })
+        .expect("armed");
+    let r =
+        stream_setpoints(&mut client, &samples, &StreamOptions::default(), |_| {}).expect("stream");
+    assert_eq!(r.accepted, samples.len());
+    // Let the capture finish, then read it back in chunks.
+    while client.status().unwrap().recorded < 6000 {
+        client.wait(std::time::Duration::from_millis(5)).unwrap();
+    }
+    let values = client.read_recording(6000, |_| {}).expect("read back");
+    assert_eq!(values.len(), 6000);
+    let want: Vec<i32> = samples.iter().map(|&s| (s as i32) << 15).collect();
+    let start = values
+        .windows(want.len())
+        .position(|w| w == want.as_slice())
+        .unwrap_or_else(|| panic!("the streamed setpoints are not in the capture in order"));
+    // Before the stream started the setpoint held still; after the end it holds the last one.
+    assert!(values[..start].iter().all(|&v| v == values[0]));
+    assert!(values[start + want.len()..]
+        .iter()
+        .all(|&v| v == *want.last().unwrap()));
+    // Past the capture there is nothing to read: no values are made up.
+    match client.read_record(6000) {
+        Ok(v) => assert!(v.is_empty(), "{v:?}"),
+        Err(e) => assert!(matches!(
+            e,
+            LinkError::Nack {
+                reason: NackReason::OutOfRange,
+                ..
+            }
+        )),
+    }
+    assert!(client.read_recording(6001, |_| {}).is_err());
+}
+
+fn queue_without_playing(client: &mut Client<SimDevice>, n: usize) -> StatusReport {
+    let s = client.status().unwrap();
+    let batch = SetpointBatch {
+        seq: s.next_seq,
+        samples: (0..n as i16).collect(),
+    };
+    assert!(matches!(
+        client.request(&Request::Setpoints(batch)).unwrap(),
+        Response::Ack { .. }
+    ));
+    client.status().unwrap()
+}
+
+#[test]
+fn a_parameter_file_loads_and_a_non_invertible_one_is_refused_with_nothing_lost() {
+    let mut client = device();
+    let queued = queue_without_playing(&mut client, 50);
+    assert_eq!(queued.queue_fill, 50);
+    // What `hal-sim load` sends for an identified P–I model, open loop.
+    let model = StageModel {
+        hysteresis: Hysteresis::Pi(default_config::pi_params(16).unwrap()),
+        scaling: twinstack::Scaling::new(0.0, 140.0, -45.0, 45.0).unwrap(),
+        output_sign: 1.0,
+        sensor_lag_s: 0.0,
+    };
+    let mut good = param_set(&model, &DriveOptions::default()).expect("converts");
+    // The board's model offset places the loading curve inside its output range.
+    if let ModelParams::PrandtlIshlinskii { offset, .. } = &mut good.model {
+        *offset = -28.0;
+    }
+    client.load_params(&good).expect("loaded");
+    client.wait(std::time::Duration::from_millis(1)).unwrap();
+    let s = client.status().unwrap();
+    assert_eq!(s.mode(), Mode::OpenLoop);
+    assert_eq!(client.transport().handler().params(), &good);
+    assert_eq!(s.queue_fill, 50, "the load lost nothing queued");
+    client.store_params().expect("stored");
+
+    // A weight that makes the loading curve fall: not invertible, refused, nothing changes.
+    let mut bad = good.clone();
+    if let ModelParams::PrandtlIshlinskii { weights, .. } = &mut bad.model {
+        weights[0] = -0.5;
+    }
+    let err = client.load_params(&bad).expect_err("refused");
+    assert!(
+        matches!(
+            err,
+            LinkError::Nack {
+                reason: NackReason::InvalidParams(_),
+                ..
+            }
+        ),
+        "{err}"
+    );
+    assert_eq!(client.transport().handler().params(), &good);
+    let s = client.status().unwrap();
+    assert_eq!(s.queue_fill, 50);
+    assert_eq!(s.mode(), Mode::OpenLoop);
+    client.recall_params().expect("recalled");
+    assert_eq!(client.transport().handler().params(), &good);
+}
+
+#[test]
+fn a_corrupted_frame_is_nacked_and_the_next_one_is_taken() {
+    let mut client = device();
+    let before = queue_without_playing(&mut client, 20);
+    // A batch with one bit flipped inside: the CRC fails.
+    let batch = Request::Setpoints(SetpointBatch {
+        seq: before.next_seq,
+        samples: (0..40).collect(),
+    });
+    let mut wire = [0u8; MAX_ENCODED + 1];
+    let n = frame::encode(&batch, &mut wire).unwrap();
+    wire[n / 2] ^= 0x04;
+    client.send_raw(&wire[..n]).unwrap();
+    let r = client
+        .receive(client.timeout())
+        .unwrap()
+        .expect("an answer");
+    assert_eq!(
+        r,
+        Response::Nack {
+            reason: NackReason::Frame(FrameError::BadCrc)
+        }
+    );
+    let after = client.status().unwrap();
+    assert_eq!(
+        after.queue_fill, 20,
+        "nothing queued was lost, nothing added"
+    );
+    assert_eq!(after.crc_errors, before.crc_errors + 1);
+    assert_eq!(after.next_seq, before.next_seq);
+    // The same batch, intact, is accepted.
+    assert!(matches!(
+        client.request(&batch).unwrap(),
+        Response::Ack { credits } if credits as usize == 511 - 60
+    ));
+    // And a stream afterwards plays.
+    client.stream(StreamControl::Start).unwrap();
+}

@@ -1,0 +1,3 @@
+//! Shared by the link tests.
+
+pub mod fake_board;

@@ -1,0 +1,271 @@
+//! The tick side of the board: where each tick's setpoint comes from, the control tick itself,
+//! and the data recorder — everything the timer interrupt runs, in one struct.
+//!
+//! One [`ControlLoop::tick`] is:
+//!
+//! 1. a parameter load or mode change waiting since the last tick is swapped in whole
+//!    ([`Controller::reconfigure`]: the output does not jump, nothing is half-applied);
+//! 2. the setpoint: the built-in waveform generator, or the next streamed sample from the
+//!    setpoint queue through [`SetpointStream`] (rate divider with linear interpolation; on an
+//!    empty queue the underrun policy holds or ramps to the rest position, and counts);
+//! 3. [`Controller::tick`] (compensator, feedback, limits, both DACs);
+//! 4. the recorder captures the chosen signal.
+//!
+//! The command handler ([`crate::protocol::handler`]) runs at a lower priority. The two halves
+//! meet in exactly two places: the lock-free single-producer single-consumer setpoint queue
+//! ([`SetpointQueue`], `heapless::spsc`), and short critical sections in which the handler
+//! calls this struct's command methods ([`ControlLoop::post_config`], [`ControlLoop::start`],
+//! …, each a few stores or one copy) through an [`rtic_core::Mutex`] — RTIC's lock on the
+//! board, a plain `&mut` in the simulator. Nothing on the tick path allocates, panics or loops.
+
+use heapless::spsc::{Consumer, Queue};
+
+use crate::board::{DualDac, SensorAdc};
+use crate::control::{ControlConfig, Controller, Feedback, TickFlags, TickReport};
+use crate::protocol::messages::{Signal, UnderrunPolicy, MAX_CHUNK};
+use crate::recorder::{RecordError, Recorder};
+use crate::setpoint_stream::{SetpointStream, Underrun};
+use crate::waveform::WaveformGenerator;
+
+/// Slots of the setpoint queue (`heapless` keeps one free: [`SETPOINT_CAPACITY`] setpoints
+/// fit). 1 KiB of `i16`; at 50 kHz and divider 1 it holds 10 ms of setpoints.
+pub const SETPOINT_QUEUE_LEN: usize = 512;
+/// Setpoints the queue holds: the credits of an empty queue.
+pub const SETPOINT_CAPACITY: usize = SETPOINT_QUEUE_LEN - 1;
+/// The setpoint queue between the handler (producer) and the tick (consumer): Q1.15 wire
+/// samples.
+pub type SetpointQueue = Queue<i16, SETPOINT_QUEUE_LEN>;
+
+/// Under the ramp-to-bias underrun policy, a ramp over the full stroke (2.0 in normalised
+/// displacement) takes this many ticks (20 ms at 50 kHz); the drive's slew limit still holds.
+pub const RAMP_TICKS_FULL_STROKE: i32 = 1000;
+
+/// A validated configuration on its way to the tick.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct TickConfig {
+    /// What the controller runs.
+    pub control: ControlConfig,
+    /// The sensor's calibration, for recording the sensor when feedback is off (the
+    /// controller then does not read it); only `adc_bits`, `sensor_offset` and `sensor_gain`
+    /// are used. `None`: the board has no sensor.
+    pub sensor: Option<Feedback>,
+}
+
+/// Counters and state the status report carries, read in one short critical section.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct Telemetry {
+    /// Ticks run.
+    pub ticks: u32,
+    /// Ticks the running stream found the queue empty (held or ramped).
+    pub underruns: u32,
+    /// Ticks that did not finish before the next was due (counted by the board's timer).
+    pub overruns: u32,
+    /// Ticks a range or slew limit clipped the drive.
+    pub limit_hits: u32,
+    /// The observer's last estimate, Q2.30.
+    pub estimate: i32,
+    /// Values the recorder holds.
+    pub recorded: u32,
+    /// Whether the stream consumes the queue.
+    pub streaming: bool,
+    /// Whether the waveform generator runs.
+    pub waveform: bool,
+    /// Whether the recorder is capturing.
+    pub recording: bool,
+    /// Whether a configuration waits for the next tick.
+    pub config_pending: bool,
+}
+
+/// Everything the control interrupt owns. `B` is the recorder's buffer.
+#[derive(Debug)]
+pub struct ControlLoop<B> {
+    controller: Controller,
+    stream: SetpointStream,
+    recorder: Recorder<B>,
+    pending: Option<TickConfig>,
+    sensor: Option<Feedback>,
+    underrun: UnderrunPolicy,
+    waveform: bool,
+    overruns: u32,
+    limit_hits: u32,
+    estimate: i32,
+    control_rate_hz: u32,
+}
+
+impl<B: AsRef<[i32]> + AsMut<[i32]>> ControlLoop<B> {
+    /// The loop at rest on `config`: stream stopped (holding the rest setpoint), divider 1,
+    /// underrun policy hold, recorder idle over `record_buffer`.
+    pub fn new(config: TickConfig, control_rate_hz: u32, record_buffer: B) -> Self {
+        let controller = Controller::new(config.control);
+        let stream = SetpointStream::new(controller.setpoint());
+        Self {
+            controller,
+            stream,
+            recorder: Recorder::new(record_buffer),
+            pending: None,
+            sensor: config.sensor,
+            underrun: UnderrunPolicy::Hold,
+            waveform: false,
+            overruns: 0,
+            limit_hits: 0,
+            estimate: 0,
+            control_rate_hz,
+        }
+    }
+
+    /// One tick (see the module doc) with the DAC and the ADC as two handles.
+    #[inline]
+    pub fn tick<const N: usize, A: SensorAdc, D: DualDac>(
+        &mut self,
+        queue: &mut Consumer<'_, i16, N>,
+        adc: &mut A,
+        dac: &mut D,
+    ) -> TickReport {
+        if self.pending.is_some() {
+            self.swap_in_pending();
+        }
+        let setpoint = self.stream.next(queue);
+        // The controller reads the sensor only with feedback on; a capture of the sensor
+        // without it reads the ADC here (and only on the ticks that capture).
+        let mut sensor = None;
+        if let (Some(Signal::Sensor), Some(cal), None) = (
+            self.recorder.wants(),
+            &self.sensor,
+            &self.controller.config().feedback,
+        ) {
+            sensor = adc.read().ok().map(|code| cal.displacement(code));
+        }
+        let report = self.controller.tick(setpoint, adc, dac);
+        if report.flags.0 & (TickFlags::RANGE_LIMIT | TickFlags::SLEW_LIMIT) != 0 {
+            self.limit_hits = self.limit_hits.wrapping_add(1);
+        }
+        self.estimate = report.estimate;
+        let measured = sensor.unwrap_or(report.measured);
+        self.recorder
+            .capture(self.controller.setpoint(), measured, &report);
+        report
+    }
+
+    fn swap_in_pending(&mut self) {
+        if let Some(next) = self.pending.take() {
+            self.controller.reconfigure(next.control);
+            self.sensor = next.sensor;
+            // The rest position moves with the configuration.
+            self.set_underrun(self.underrun);
+        }
+    }
+
+    /// Counts a tick that overran (the board's timer sees the next one already due).
+    pub fn count_overrun(&mut self) {
+        self.overruns = self.overruns.wrapping_add(1);
+    }
+
+    /// Hands a validated configuration to the tick: it is swapped in whole at the start of
+    /// the next tick. A later post before that tick replaces it (the newer load wins).
+    pub fn post_config(&mut self, config: TickConfig) {
+        self.pending = Some(config);
+    }
+
+    /// Starts consuming the setpoint queue (stopping the waveform generator).
+    pub fn start(&mut self) {
+        self.waveform = false;
+        self.stream.start();
+    }
+
+    /// Stops the stream or the waveform: the setpoint holds; queued setpoints stay queued.
+    pub fn stop(&mut self) {
+        self.waveform = false;
+        self.stream.stop();
+    }
+
+    /// Ticks per streamed setpoint (interpolated in between); 0 is refused (`false`).
+    pub fn set_divider(&mut self, divider: u16) -> bool {
+        self.stream.set_divider(divider)
+    }
+
+    /// The underrun policy; ramp-to-bias ramps to the rest position of the configuration in
+    /// force at [`RAMP_TICKS_FULL_STROKE`].
+    pub fn set_underrun(&mut self, policy: UnderrunPolicy) {
+        self.underrun = policy;
+        let underrun = match policy {
+            UnderrunPolicy::Hold => Underrun::Hold,
+            UnderrunPolicy::RampToBias => Underrun::RampToRest {
+                rest: self.controller.rest_setpoint(),
+                step: ((2i64 << 30) / RAMP_TICKS_FULL_STROKE as i64) as i32,
+            },
+        };
+        // The step is a positive constant, so the stream accepts it.
+        let _ = self.stream.set_underrun(underrun);
+    }
+
+    /// Plays `waveform` instead of the queue, from the next tick.
+    pub fn play(&mut self, waveform: WaveformGenerator) {
+        self.waveform = true;
+        self.stream.play(waveform);
+    }
+
+    /// Arms the recorder (see [`Recorder::arm`]).
+    pub fn arm_recorder(
+        &mut self,
+        signal: Signal,
+        count: u32,
+        decimation: u16,
+    ) -> Result<(), RecordError> {
+        self.recorder.arm(signal, count, decimation)
+    }
+
+    /// Copies recorded values from `offset` (see [`Recorder::read`]).
+    pub fn read_record(
+        &self,
+        offset: u32,
+        out: &mut heapless::Vec<i32, MAX_CHUNK>,
+    ) -> Result<(), RecordError> {
+        self.recorder.read(offset, out)
+    }
+
+    /// Most values one capture holds.
+    pub fn record_capacity(&self) -> usize {
+        self.recorder.capacity()
+    }
+
+    /// Counters and state for the status report.
+    pub fn telemetry(&self) -> Telemetry {
+        let c = self.controller.counters();
+        Telemetry {
+            ticks: c.ticks,
+            underruns: c.underruns.wrapping_add(self.stream.ramp_underruns()),
+            overruns: self.overruns,
+            limit_hits: self.limit_hits,
+            estimate: self.estimate,
+            recorded: self.recorder.recorded(),
+            streaming: self.stream.is_running() && !self.waveform,
+            waveform: self.waveform,
+            recording: self.recorder.is_capturing(),
+            config_pending: self.pending.is_some(),
+        }
+    }
+
+    /// Whether the stream or the waveform generator is running.
+    pub fn is_running(&self) -> bool {
+        self.stream.is_running()
+    }
+
+    /// The controller (configuration in force, counters).
+    pub fn controller(&self) -> &Controller {
+        &self.controller
+    }
+
+    /// DAC codes of the safe state of the newest configuration (the pending one if a load
+    /// waits), for the fault handlers to arm.
+    pub fn safe_codes(&self) -> (crate::board::DacCode, crate::board::DacCode) {
+        match &self.pending {
+            Some(p) => p.control.drive.safe_codes(),
+            None => self.controller.safe_codes(),
+        }
+    }
+
+    /// Control rate, Hz.
+    pub fn control_rate_hz(&self) -> u32 {
+        self.control_rate_hz
+    }
+}

@@ -1,0 +1,275 @@
+//! Golden vectors: the tick computes, on the host and on the Cortex-M4, exactly the outputs
+//! stored in `tests/golden/vectors.bin`.
+//!
+//! * On the host: every set's stored inputs go through `twinstack::golden::replay` (the
+//!   library's `Controller::tick`); every output must equal the stored one. A difference means
+//!   the tick's behaviour changed: if that was intended, regenerate the vectors (the
+//!   `f64`-reference check in `hal-sim/tests/golden.rs` then shows the new ones are right).
+//! * On the target: `src/bin/golden-replay.rs` (feature `golden-replay`) runs the same replay
+//!   in QEMU's netduinoplus2 (STM32F405, Cortex-M4F) and reports, per set, the fingerprint of
+//!   the configuration it built, the CRC-32 of its outputs and the first differing tick; they
+//!   must equal the host's, bit for bit.
+
+mod support;
+
+use std::io::Read;
+use std::process::Stdio;
+use std::time::{Duration, Instant};
+use twinstack::golden::{
+    config_fingerprint, replay, CompensatorChoice, ObserverChoice, ReplayResult, VectorSet,
+    VectorSets,
+};
+
+const REGENERATE: &str = "cargo run --release -p hal-sim -- golden --write";
+
+fn vector_file() -> Vec<u8> {
+    let path = support::workspace_root().join("tests/golden/vectors.bin");
+    std::fs::read(&path).unwrap_or_else(|e| panic!("{}: {e}", path.display()))
+}
+
+fn sets(file: &[u8]) -> Vec<VectorSet<'_>> {
+    VectorSets::new(file)
+        .collect::<Result<Vec<_>, _>>()
+        .unwrap_or_else(|e| {
+            panic!("tests/golden/vectors.bin is malformed: {e:?}; regenerate with `{REGENERATE}`")
+        })
+}
+
+fn host_replay(set: &VectorSet<'_>) -> ReplayResult {
+    replay(set).unwrap_or_else(|e| {
+        panic!(
+            "set {}: the stored configuration no longer builds ({e:?}); regenerate with `{REGENERATE}`",
+            set.name()
+        )
+    })
+}
+
+#[test]
+fn the_vector_sets_cover_every_compensator_and_observer() {
+    let file = vector_file();
+    let sets = sets(&file);
+    let mut compensators = Vec::new();
+    let mut observers = Vec::new();
+    for set in &sets {
+        let r = set.recipe().expect("recipe decodes");
+        let n = r.pi.as_ref().map(|p| p.thresholds.len());
+        compensators.push(match r.compensator {
+            CompensatorChoice::InversePi => format!("inverse P–I N={}", n.unwrap_or(0)),
+            c => format!("{c:?}"),
+        });
+        observers.push(format!("{:?}", r.observer));
+        assert!(
+            set.ticks() >= 2000,
+            "set {}: {} ticks",
+            set.name(),
+            set.ticks()
+        );
+    }
+    for want in [
+        "None",
+        "inverse P–I N=8",
+        "inverse P–I N=16",
+        "inverse P–I N=32",
+        "InverseDuhem",
+    ] {
+        assert!(compensators.iter().any(|c| c == want), "no set with {want}");
+    }
+    for want in [
+        ObserverChoice::None,
+        ObserverChoice::Pi,
+        ObserverChoice::Duhem,
+    ] {
+        assert!(
+            observers.contains(&format!("{want:?}")),
+            "no set with observer {want:?}"
+        );
+    }
+}
+
+#[test]
+fn the_host_tick_reproduces_the_stored_vectors() {
+    let file = vector_file();
+    for set in sets(&file) {
+        let r = host_replay(&set);
+        let config = set.recipe().unwrap().build().unwrap();
+        assert_eq!(
+            config_fingerprint(&config),
+            set.config_fingerprint(),
+            "set {}: the configuration the library builds from the recipe changed (fixed-point \
+             conversion or model layout); if intended, regenerate with `{REGENERATE}`",
+            set.name()
+        );
+        if let Some(m) = r.first_mismatch {
+            panic!(
+                "set {}: tick {}: stored {:?}, the tick now gives {:?}.\nThe tick's behaviour \
+                 changed; if intended, regenerate with `{REGENERATE}` (its f64-reference check \
+                 shows whether the new outputs are right).",
+                set.name(),
+                m.tick,
+                m.expected,
+                m.actual
+            );
+        }
+        assert_eq!(r.ticks, set.ticks());
+        assert!(r.matches(&set), "set {}: {r:?}", set.name());
+    }
+}
+
+/// One `GOLDEN` line of the replay image.
+#[derive(Debug, PartialEq)]
+struct BoardResult {
+    set: String,
+    ticks: u32,
+    config: u32,
+    expected_config: u32,
+    outputs: u32,
+    expected: u32,
+    first_diff: Option<u32>,
+}
+
+fn parse_line(line: &str) -> Result<BoardResult, String> {
+    let rest = line
+        .strip_prefix("GOLDEN ")
+        .ok_or_else(|| format!("not a GOLDEN line: {line:?}"))?;
+    let field = |key: &str| -> Result<&str, String> {
+        rest.split(' ')
+            .find_map(|kv| kv.strip_prefix(key).and_then(|v| v.strip_prefix('=')))
+            .ok_or_else(|| format!("field {key} missing in {line:?}"))
+    };
+    let hex = |key: &str| -> Result<u32, String> {
+        u32::from_str_radix(field(key)?, 16).map_err(|e| format!("{key} in {line:?}: {e}"))
+    };
+    let first_diff = match field("first_diff")? {
+        "none" => None,
+        k => Some(
+            k.parse()
+                .map_err(|e| format!("first_diff in {line:?}: {e}"))?,
+        ),
+    };
+    Ok(BoardResult {
+        set: field("set")?.to_string(),
+        ticks: field("ticks")?
+            .parse()
+            .map_err(|e| format!("ticks in {line:?}: {e}"))?,
+        config: hex("config")?,
+        expected_config: hex("expected_config")?,
+        outputs: hex("outputs")?,
+        expected: hex("expected")?,
+        first_diff,
+    })
+}
+
+fn run_board() -> String {
+    let elf = support::build_image("golden-replay", &["golden-replay"]);
+    let mut child = support::qemu_command(&elf)
+        .args(["-serial", "null"])
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("qemu-system-arm starts");
+    let start = Instant::now();
+    let status = loop {
+        if let Some(s) = child.try_wait().expect("wait for qemu") {
+            break s;
+        }
+        if start.elapsed() > Duration::from_secs(300) {
+            let _ = child.kill();
+            let _ = child.wait();
+            panic!("the golden-replay image did not exit within 300 s");
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    };
+    let (mut out, mut err) = (String::new(), String::new());
+    child
+        .stdout
+        .take()
+        .unwrap()
+        .read_to_string(&mut out)
+        .unwrap();
+    child
+        .stderr
+        .take()
+        .unwrap()
+        .read_to_string(&mut err)
+        .unwrap();
+    assert!(
+        status.success(),
+        "golden-replay exited with {status}:\n{out}\n{err}"
+    );
+    out
+}
+
+#[test]
+fn the_board_computes_exactly_what_the_host_computes() {
+    let file = vector_file();
+    let sets = sets(&file);
+    let out = run_board();
+    assert!(
+        out.lines()
+            .any(|l| l == format!("GOLDEN-END sets={}", sets.len())),
+        "the replay image did not finish every set:\n{out}"
+    );
+    let board: Vec<BoardResult> = out
+        .lines()
+        .filter(|l| l.starts_with("GOLDEN "))
+        .map(|l| parse_line(l).unwrap_or_else(|e| panic!("{e}")))
+        .collect();
+    assert_eq!(board.len(), sets.len(), "one line per set:\n{out}");
+    for (set, b) in sets.iter().zip(&board) {
+        assert_eq!(b.set, set.name(), "sets out of order:\n{out}");
+        let host = host_replay(set);
+        let diff_line = out
+            .lines()
+            .find(|l| l.starts_with(&format!("GOLDEN-DIFF set={} ", set.name())))
+            .unwrap_or("");
+        // The core guarantee: the board's run equals the host's run.
+        assert_eq!(
+            b.config,
+            host.config_fingerprint,
+            "set {}: the board built a different configuration from the same recipe than the host",
+            set.name()
+        );
+        assert_eq!(
+            (b.ticks, b.outputs, b.first_diff),
+            (
+                host.ticks,
+                host.outputs_crc,
+                host.first_mismatch.map(|m| m.tick)
+            ),
+            "set {}: the board's outputs differ from the host's (board first differs from the \
+             stored vectors at {:?}, host at {:?}):\n{diff_line}",
+            set.name(),
+            b.first_diff,
+            host.first_mismatch
+        );
+        // And both equal the stored vectors.
+        assert_eq!(
+            (b.expected_config, b.expected),
+            (set.config_fingerprint(), set.outputs_crc()),
+            "set {}: the image embeds other vectors than tests/golden/vectors.bin",
+            set.name()
+        );
+        assert!(
+            b.first_diff.is_none() && b.outputs == b.expected && b.config == b.expected_config,
+            "set {}: the board's outputs differ from the stored vectors:\n{diff_line}\nIf the \
+             tick changed on purpose, regenerate with `{REGENERATE}`",
+            set.name()
+        );
+    }
+    println!("{out}");
+}
+
+#[test]
+fn board_lines_parse_and_malformed_ones_are_refused() {
+    let r = parse_line(
+        "GOLDEN set=a-1 ticks=5 config=0000000a expected_config=0000000a outputs=ff expected=fe first_diff=3",
+    )
+    .unwrap();
+    assert_eq!(
+        (r.set.as_str(), r.ticks, r.outputs, r.expected),
+        ("a-1", 5, 255, 254)
+    );
+    assert_eq!(r.first_diff, Some(3));
+    assert!(parse_line("GOLDEN set=a ticks=x").is_err());
+    assert!(parse_line("GOLDEN-END sets=1").is_err());
+}
