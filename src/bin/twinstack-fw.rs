@@ -16,8 +16,8 @@
 //!   blocking writes on USART1 TX), queues setpoint batches for the tick, and reaches the
 //!   tick's state through short RTIC locks. After each request it re-arms the safe-state codes
 //!   of the newest configuration.
-//! * **Coarse stage** (priority 2, TIM3 at 5 kHz): the dual-actuated stage's coarse tick
-//!   ([`twinstack::dual_stage::DualStage::coarse_tick`]): reads the motor and linear encoders,
+//! * **Coarse stage** (feature `dual-stage`; priority 2, TIM3 at 5 kHz): the dual-actuated
+//!   stage's coarse tick ([`twinstack::dual_stage::DualStage::coarse_tick`]): reads the motor and linear encoders,
 //!   runs the trajectory and emits a burst of step pulses on TIM1. It holds its power-up
 //!   position until a command moves it; the piezo tick is untouched.
 //! * **Safety**: a panic or hard fault masks interrupts, drives both outputs to the safe state
@@ -64,9 +64,11 @@ mod app {
 
     use twinstack::control_loop::{ControlLoop, SetpointQueue, SETPOINT_QUEUE_LEN};
     use twinstack::default_config;
+    #[cfg(feature = "dual-stage")]
     use twinstack::dual_stage::{DualStage, DualStageSettings};
     use twinstack::hardware::adc::SensorInput;
     use twinstack::hardware::clocks;
+    #[cfg(feature = "dual-stage")]
     use twinstack::hardware::coarse_stage::{CoarseTimer, LinearEncoder, MotorEncoder, StepOutput};
     use twinstack::hardware::control_timer::ControlTimer;
     use twinstack::hardware::dac::InternalDac;
@@ -143,6 +145,7 @@ mod app {
     }
 
     /// Everything the coarse-stage task owns.
+    #[cfg(feature = "dual-stage")]
     pub struct CoarseStage {
         /// `None` when the dual-stage settings are refused for this tick rate (logged at boot).
         dual: Option<DualStage>,
@@ -150,6 +153,28 @@ mod app {
         motor: MotorEncoder,
         linear: LinearEncoder,
         timer: CoarseTimer,
+    }
+
+    #[cfg(feature = "dual-stage")]
+    impl CoarseStage {
+        /// One coarse tick. A refused burst (the last one still running) keeps its steps for
+        /// the next tick.
+        fn run(&mut self) {
+            self.timer.acknowledge();
+            if let Some(dual) = self.dual.as_mut() {
+                let _report =
+                    dual.coarse_tick(&mut self.steps, &mut self.motor, &mut self.linear, None);
+            }
+        }
+    }
+
+    /// Without the `dual-stage` feature there is no coarse stage (TIM3 never starts).
+    #[cfg(not(feature = "dual-stage"))]
+    pub struct CoarseStage;
+
+    #[cfg(not(feature = "dual-stage"))]
+    impl CoarseStage {
+        fn run(&mut self) {}
     }
 
     #[shared]
@@ -195,14 +220,6 @@ mod app {
         let _sensor = gpioa.pa0.into_analog();
         let _tx_pin = gpioa.pa9.into_alternate::<7>();
         let _rx_pin = gpioa.pa10.into_alternate::<7>();
-        let gpiob = dp.GPIOB.split(&mut rcc);
-        let gpioc = dp.GPIOC.split(&mut rcc);
-        let _step_pin = gpioa.pa8.into_alternate::<1>();
-        let dir_pin = gpiob.pb0.into_push_pull_output();
-        let _linear_a = gpiob.pb6.into_alternate::<2>();
-        let _linear_b = gpiob.pb7.into_alternate::<2>();
-        let _motor_a = gpioc.pc6.into_alternate::<3>();
-        let _motor_b = gpioc.pc7.into_alternate::<3>();
 
         // The timer's rate is fixed before the controller is built, so the drive's slew limit
         // per tick matches the real period.
@@ -247,26 +264,46 @@ mod app {
         );
         let watchdog = Watchdog::start(dp.IWDG, &dp.DBGMCU);
 
-        // The coarse stage: settings refused for this tick rate leave it idle, not the board.
-        let dual_settings = DualStageSettings {
-            fine_rate_hz: rate as f64,
-            ..DualStageSettings::paper_stage()
-        };
-        let coarse_rate = dual_settings.coarse_rate_hz as u32;
-        let steps = StepOutput::new(dp.TIM1, dir_pin, &rcc, &bus, coarse_rate);
-        let mut motor = MotorEncoder::new(dp.TIM8, &rcc);
-        let mut linear = LinearEncoder::new(dp.TIM4, &rcc);
-        let dual = match dual_settings.build() {
-            Ok(config) => {
-                use twinstack::board::QuadratureEncoder;
-                Some(DualStage::new(config, 0, motor.count(), linear.count()))
+        // The coarse stage (feature `dual-stage`): settings refused for this tick rate leave it
+        // idle, not the board.
+        #[cfg(feature = "dual-stage")]
+        let coarse = {
+            let gpiob = dp.GPIOB.split(&mut rcc);
+            let gpioc = dp.GPIOC.split(&mut rcc);
+            let _step_pin = gpioa.pa8.into_alternate::<1>();
+            let dir_pin = gpiob.pb0.into_push_pull_output();
+            let _linear_a = gpiob.pb6.into_alternate::<2>();
+            let _linear_b = gpiob.pb7.into_alternate::<2>();
+            let _motor_a = gpioc.pc6.into_alternate::<3>();
+            let _motor_b = gpioc.pc7.into_alternate::<3>();
+            let dual_settings = DualStageSettings {
+                fine_rate_hz: rate as f64,
+                ..DualStageSettings::paper_stage()
+            };
+            let coarse_rate = dual_settings.coarse_rate_hz as u32;
+            let steps = StepOutput::new(dp.TIM1, dir_pin, &rcc, &bus, coarse_rate);
+            let mut motor = MotorEncoder::new(dp.TIM8, &rcc);
+            let mut linear = LinearEncoder::new(dp.TIM4, &rcc);
+            let dual = match dual_settings.build() {
+                Ok(config) => {
+                    use twinstack::board::QuadratureEncoder;
+                    Some(DualStage::new(config, 0, motor.count(), linear.count()))
+                }
+                Err(e) => {
+                    defmt::warn!("coarse stage idle: settings refused ({=str})", e.as_str());
+                    None
+                }
+            };
+            CoarseStage {
+                dual,
+                steps,
+                motor,
+                linear,
+                timer: CoarseTimer::start(dp.TIM3, &rcc, &bus, coarse_rate),
             }
-            Err(e) => {
-                defmt::warn!("coarse stage idle: settings refused ({=str})", e.as_str());
-                None
-            }
         };
-        let coarse_timer = CoarseTimer::start(dp.TIM3, &rcc, &bus, coarse_rate);
+        #[cfg(not(feature = "dual-stage"))]
+        let coarse = CoarseStage;
 
         let (setpoints_in, setpoints) = cx.local.setpoint_queue.split();
         let (bytes, bytes_in) = cx.local.rx_queue.split();
@@ -292,13 +329,7 @@ mod app {
                 bytes_in,
                 setpoints_in,
                 tx,
-                coarse: CoarseStage {
-                    dual,
-                    steps,
-                    motor,
-                    linear,
-                    timer: coarse_timer,
-                },
+                coarse,
             },
         )
     }
@@ -323,15 +354,10 @@ mod app {
         cx.shared.tick.lock(|t| t.run());
     }
 
-    /// The coarse stage's tick: TIM3 update. A refused burst (the last one still running)
-    /// keeps its steps for the next tick.
+    /// The coarse stage's tick: TIM3 update (started only with the `dual-stage` feature).
     #[task(binds = TIM3, priority = 2, local = [coarse])]
     fn coarse_tick(cx: coarse_tick::Context) {
-        let c = cx.local.coarse;
-        c.timer.acknowledge();
-        if let Some(dual) = c.dual.as_mut() {
-            let _report = dual.coarse_tick(&mut c.steps, &mut c.motor, &mut c.linear, None);
-        }
+        cx.local.coarse.run();
     }
 
     /// USART1: idle line (board) or a received byte (emulator).

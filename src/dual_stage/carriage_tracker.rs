@@ -76,7 +76,7 @@ impl CarriageTracker {
         let predicted = self.position.saturating_add(self.velocity);
         let e = measured
             .saturating_sub(predicted)
-            .clamp(-ERROR_LIMIT_PM, ERROR_LIMIT_PM);
+            .clamp(-ERROR_LIMIT_PM, ERROR_LIMIT_PM); // constant bounds: no panic path
         self.position = predicted.saturating_add(times_q24(e, alpha));
         self.velocity = self
             .velocity

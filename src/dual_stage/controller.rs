@@ -23,7 +23,14 @@ use super::trapezoid::TrapezoidalProfile;
 use super::DualStageConfig;
 use crate::board::{QuadratureEncoder, StepDir};
 use crate::coarse_axis::{EncoderCounter, StepGenerator};
-use crate::fixed_point::{saturate_i64, SIGNAL_FRAC_BITS};
+use crate::fixed_point::{limit_i64, saturate_i64, SIGNAL_FRAC_BITS};
+
+/// `a / b`, 0 when `b` is 0 (or the quotient overflows): no panic path. Every divisor here is
+/// a validated positive setting, so the fallback never applies in a built configuration.
+#[inline(always)]
+fn div(a: i64, b: i64) -> i64 {
+    a.checked_div(b).unwrap_or(0)
+}
 
 /// Who positions the stage.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -142,7 +149,7 @@ impl DualStage {
     /// piezo at mid-stroke, the motor at step 0, mode coarse only.
     pub fn new(config: DualStageConfig, position_pm: i64, motor_raw: u16, linear_raw: u16) -> Self {
         let carriage = position_pm.saturating_sub(config.fine_centre_pm);
-        let steps = carriage / config.step_pm;
+        let steps = div(carriage, config.step_pm);
         Self {
             config,
             mode: DualMode::CoarseOnly,
@@ -230,7 +237,7 @@ impl DualStage {
 
     fn clamp_travel(&mut self, x: i64) -> i64 {
         let (lo, hi) = self.config.travel_pm;
-        let c = x.clamp(lo, hi);
+        let c = limit_i64(x, lo, hi);
         if c != x {
             self.counters.travel_clamps = self.counters.travel_clamps.wrapping_add(1);
         }
@@ -240,8 +247,9 @@ impl DualStage {
     /// Piezo displacement (pm) → Q2.30 of the fine controller's range, saturated.
     fn to_q(config: &DualStageConfig, p: i64) -> i32 {
         let d = p.saturating_sub(config.fine_mid_pm);
-        let d = d.clamp(-2 * config.fine_half_span_pm, 2 * config.fine_half_span_pm);
-        saturate_i64((d << SIGNAL_FRAC_BITS) / config.fine_half_span_pm)
+        let span = config.fine_half_span_pm;
+        let d = limit_i64(d, -2 * span, 2 * span);
+        saturate_i64(div(d << SIGNAL_FRAC_BITS, span))
     }
 
     /// Q2.30 of the fine controller's range → piezo displacement, pm.
@@ -291,10 +299,13 @@ impl DualStage {
             DualMode::CoarseOnly => c.step_pm / 2,
         };
         let beyond = share.signum() * share.saturating_abs().saturating_sub(deadband).max(0);
-        let beyond = beyond.clamp(-c.fine_half_span_pm * 4, c.fine_half_span_pm * 4);
+        let beyond = limit_i64(beyond, -c.fine_half_span_pm * 4, c.fine_half_span_pm * 4);
         let limit = c.fine_half_span_pm * 8;
-        self.correction =
-            (self.correction + ((beyond * c.centring_gain) >> 24)).clamp(-limit, limit);
+        self.correction = limit_i64(
+            self.correction + ((beyond * c.centring_gain) >> 24),
+            -limit,
+            limit,
+        );
 
         // 4. The coarse stage: low-frequency part of the setpoint plus the correction, within
         // its trapezoidal limits, in whole steps.
@@ -306,13 +317,14 @@ impl DualStage {
             _ => self.split.step(carriage_setpoint),
         };
         let (lo, hi) = c.travel_pm;
-        let target = low.saturating_add(self.correction).clamp(lo, hi);
+        let target = limit_i64(low.saturating_add(self.correction), lo, hi);
         let command = self.follower.follow(target);
         let before = self.steps.motor_position();
-        if let Some(burst) = self
-            .steps
-            .plan((command + c.step_pm / 2).div_euclid(c.step_pm))
-        {
+        if let Some(burst) = self.steps.plan(
+            (command + c.step_pm / 2)
+                .checked_div_euclid(c.step_pm)
+                .unwrap_or(0),
+        ) {
             match step_dir.emit(burst) {
                 Ok(()) => self.steps.issued(burst),
                 Err(_) => {
@@ -342,7 +354,7 @@ impl DualStage {
             .saturating_sub(predicted)
             .saturating_sub(c.fine_centre_pm);
         let window = c.fine_window_pm;
-        let clamped = residual.clamp(-window, window);
+        let clamped = limit_i64(residual, -window, window);
         let fine_clamped = clamped != residual && self.mode == DualMode::Dual;
         if fine_clamped {
             self.counters.fine_clamps = self.counters.fine_clamps.wrapping_add(1);
@@ -351,9 +363,13 @@ impl DualStage {
             DualMode::Dual => (self.engaged + 1).min(c.handover_ticks),
             DualMode::CoarseOnly => self.engaged.saturating_sub(1),
         };
-        let share = clamped * self.engaged as i64 / c.handover_ticks as i64;
+        let share = div(clamped * self.engaged as i64, c.handover_ticks as i64);
         let wanted = c.fine_centre_pm + share;
-        let fine = wanted.clamp(self.fine_pm - c.fine_step_pm, self.fine_pm + c.fine_step_pm);
+        let fine = limit_i64(
+            wanted,
+            self.fine_pm - c.fine_step_pm,
+            self.fine_pm + c.fine_step_pm,
+        );
         if fine != wanted {
             self.counters.fine_slew_limits = self.counters.fine_slew_limits.wrapping_add(1);
         }

@@ -94,7 +94,7 @@ impl SplitFilter {
         let predicted = self.y.saturating_add(self.v);
         let e = r
             .saturating_sub(predicted)
-            .clamp(-ERROR_LIMIT_PM, ERROR_LIMIT_PM);
+            .clamp(-ERROR_LIMIT_PM, ERROR_LIMIT_PM); // constant bounds: no panic path
         self.v = self.v.saturating_add(times_q24(e, c.velocity_gain));
         self.y = predicted.saturating_add(times_q24(e, c.position_gain));
         self.y

@@ -13,6 +13,8 @@
 //! target that gives the trapezoid (or triangle, on a short move), ending exactly on the
 //! target; a target that moves is followed as closely as the limits allow.
 
+use crate::fixed_point::limit_i64;
+
 /// Velocity and acceleration limits of a profile.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct MotionLimits {
@@ -38,16 +40,19 @@ impl MotionLimits {
     /// braking from `v` covers `v + (v − a) + … ≈ v²/(2a) + v/2`, so
     /// `v ≈ (√(a² + 8a·d) − a) / 2` (then settled on the exact sum), capped at the velocity limit.
     fn stopping_speed(&self, distance: u64) -> i64 {
-        let (v, a) = (self.velocity as u64, self.acceleration as u64);
+        // Valid limits have 1 ≤ a ≤ v ≤ 1e9; anything else is forced into that range here so
+        // that no division or product below can panic or overflow.
+        let v = self.velocity.clamp(1, MAX_VELOCITY_PM_PER_TICK) as u64;
+        let a = (self.acceleration.max(1) as u64).min(v);
         // Beyond the braking distance from full speed the answer is the limit (and the square
         // root's argument would no longer be bounded).
         if distance >= braking_distance(v, a) {
-            return self.velocity;
+            return v as i64;
         }
         // Exactly: with `u = n·a + r` (0 ≤ r < a) braking covers `(n + 1)(n·a/2 + r)`. Find
         // the largest whole `n` with `(n + 1)·n·a/2 ≤ d` (the square root's estimate, settled
         // by at most a step or two either way), then the largest `r` that still fits.
-        let mut n = ((1 + 8 * (distance / a)).isqrt() - 1) / 2;
+        let mut n = ((1 + 8 * distance.checked_div(a).unwrap_or(0)).isqrt() - 1) / 2;
         for _ in 0..4 {
             if (n + 2) * (n + 1) * a / 2 <= distance {
                 n += 1;
@@ -57,15 +62,19 @@ impl MotionLimits {
                 break;
             }
         }
-        let r = ((2 * distance).saturating_sub((n + 1) * n * a) / (2 * (n + 1))).min(a - 1);
+        let r = (2 * distance)
+            .saturating_sub((n + 1) * n * a)
+            .checked_div(2 * (n + 1))
+            .unwrap_or(0)
+            .min(a - 1);
         let u = n * a + r;
-        (u as i64).min(self.velocity)
+        (u as i64).min(v as i64)
     }
 }
 
 /// Distance covered by `u + (u − a) + (u − 2a) + …` while the terms are positive.
 fn braking_distance(u: u64, a: u64) -> u64 {
-    let n = u / a;
+    let n = u.checked_div(a).unwrap_or(0);
     (n + 1) * u - a * n * (n + 1) / 2
 }
 
@@ -104,7 +113,7 @@ impl TrapezoidalProfile {
     /// relative to it, so a target moving at constant speed is followed without lag.
     pub fn follow(&mut self, target: i64) -> i64 {
         let v = self.limits.velocity;
-        let target_velocity = target.saturating_sub(self.last_target).clamp(-v, v);
+        let target_velocity = limit_i64(target.saturating_sub(self.last_target), -v, v);
         self.last_target = target;
         self.advance(target, target_velocity)
     }
@@ -123,8 +132,8 @@ impl TrapezoidalProfile {
             .min(distance.saturating_abs());
         let closing = if distance >= 0 { speed } else { -speed };
         let v = self.limits.velocity;
-        let wanted = target_velocity.saturating_add(closing).clamp(-v, v);
-        self.velocity = wanted.clamp(self.velocity - a, self.velocity + a);
+        let wanted = limit_i64(target_velocity.saturating_add(closing), -v, v);
+        self.velocity = limit_i64(wanted, self.velocity - a, self.velocity + a);
         self.position = self.position.saturating_add(self.velocity);
         self.position
     }
