@@ -316,3 +316,75 @@ fn backlash_after_a_reversal_is_taken_up_and_the_dual_stage_removes_the_rest() {
     let dual = error_after_return(DualMode::Dual, 2.0).1.abs();
     assert!(dual * 1e3 < 5.0, "dual: {} nm", dual * 1e3);
 }
+
+/// Step output and encoders that return whatever the test says.
+struct Fuzzed {
+    refuse: bool,
+    burst_steps: Vec<u16>,
+}
+impl StepDir for Fuzzed {
+    type Error = ();
+    fn max_steps_per_burst(&self) -> u16 {
+        255
+    }
+    fn emit(&mut self, burst: StepBurst) -> Result<(), ()> {
+        self.burst_steps.push(burst.steps);
+        if self.refuse {
+            Err(())
+        } else {
+            Ok(())
+        }
+    }
+}
+struct Raw(u16);
+impl QuadratureEncoder for Raw {
+    fn count(&mut self) -> u16 {
+        self.0
+    }
+}
+
+proptest::proptest! {
+    #![proptest_config(proptest::prelude::ProptestConfig::with_cases(64))]
+
+    /// Whatever arrives — setpoints anywhere (beyond the travel too), any encoder readings,
+    /// any piezo reading, refused bursts, mode switches — the piezo's setpoint stays inside its
+    /// window around mid-stroke, moves by at most its slope limit per coarse tick, continues
+    /// where the last period ended, and no burst exceeds the output's limit.
+    #[test]
+    fn limits_hold_whatever_arrives(
+        inputs in proptest::collection::vec(
+            (proptest::num::i64::ANY, proptest::num::u16::ANY, proptest::num::u16::ANY,
+             proptest::option::of(proptest::num::i32::ANY), 0u8..6),
+            1..300,
+        )
+    ) {
+        let settings = twinstack::dual_stage::DualStageSettings::paper_stage();
+        let config = settings.build().unwrap();
+        let mut dual = twinstack::dual_stage::DualStage::new(config, 0, 0, 0);
+        let mut out = Fuzzed { refuse: false, burst_steps: Vec::new() };
+        let mut last_to = None;
+        let mut last_pm = config.fine_centre_pm;
+        for (setpoint, motor, linear, piezo, action) in inputs {
+            match action {
+                0 => dual.follow(setpoint),
+                1 => dual.move_to(setpoint),
+                2 => dual.set_mode(DualMode::Dual),
+                3 => dual.set_mode(DualMode::CoarseOnly),
+                4 => out.refuse = !out.refuse,
+                _ => dual.hold(),
+            }
+            let r = dual.coarse_tick(&mut out, &mut Raw(motor), &mut Raw(linear), piezo);
+            if let Some(to) = last_to {
+                proptest::prop_assert_eq!(r.fine.from, to);
+            }
+            last_to = Some(r.fine.to);
+            let p = dual.fine_to_pm(r.fine.to);
+            proptest::prop_assert!((p - config.fine_centre_pm).abs() <= config.fine_window_pm + 1);
+            proptest::prop_assert!((p - last_pm).abs() <= config.fine_step_pm + 2);
+            last_pm = p;
+            let (lo, hi) = config.travel_pm;
+            proptest::prop_assert!(r.setpoint_pm >= lo && r.setpoint_pm <= hi);
+        }
+        proptest::prop_assert!(out.burst_steps.iter().all(|&s| (1..=255).contains(&s)));
+    }
+}
