@@ -130,6 +130,80 @@ fn in_process(seconds: f64) -> Result<(), String> {
     Ok(())
 }
 
+/// A host → board line that damages one bit in every `every`-th frame sent.
+struct LossyLine<T> {
+    inner: T,
+    every: u64,
+    frames: u64,
+    damaged: u64,
+}
+
+impl<T: Transport> Transport for LossyLine<T> {
+    fn send(&mut self, bytes: &[u8]) -> std::io::Result<()> {
+        self.frames += 1;
+        if self.frames.is_multiple_of(self.every) && bytes.len() > 4 {
+            let mut copy = bytes.to_vec();
+            let mid = copy.len() / 2;
+            copy[mid] ^= 0x08;
+            self.damaged += 1;
+            return self.inner.send(&copy);
+        }
+        self.inner.send(bytes)
+    }
+
+    fn receive(&mut self, buf: &mut [u8], timeout: Duration) -> std::io::Result<usize> {
+        self.inner.receive(buf, timeout)
+    }
+}
+
+fn lossy(seconds: f64) -> Result<(), String> {
+    println!();
+    println!("in-process, 50 kHz, 2 Mbaud, one bit flipped in every N-th host → board frame:");
+    println!(
+        "{:<34} {:>8} {:>9} {:>8} {:>7} {:>9} {:>8} {:>10}",
+        "", "setpts", "damaged", "nacks", "resent", "underrun", "crc err", "batches"
+    );
+    for every in [1000u64, 100, 20] {
+        let dev = SimDevice::new(SimDeviceConfig::paper()).map_err(|e| e.to_string())?;
+        let mut client = Client::new(LossyLine {
+            inner: dev,
+            every,
+            frames: 0,
+            damaged: 0,
+        });
+        let samples = sine((seconds * 50_000.0) as usize, 50_000.0);
+        let (r, _) = stream(&mut client, &samples)?;
+        let line = client.transport();
+        let end = r.drained.unwrap_or(r.after_last_batch);
+        println!(
+            "{:<34} {:>8} {:>9} {:>8} {:>7} {:>9} {:>8} {:>10}",
+            format!("every {every}th frame damaged"),
+            r.accepted,
+            line.damaged,
+            r.nacks.len(),
+            r.resent_batches,
+            r.underruns_during_stream()
+                .map(|u| u.to_string())
+                .unwrap_or_else(|| "?".into()),
+            end.crc_errors.wrapping_sub(r.before.crc_errors),
+            // Each batch taken exactly once: the board's sequence number moved by the count.
+            if r.accepted == samples.len()
+                && line
+                    .inner
+                    .handler()
+                    .next_seq()
+                    .wrapping_sub(r.before.next_seq) as usize
+                    == samples.len().div_ceil(96) % 65_536
+            {
+                "each once"
+            } else {
+                "WRONG"
+            }
+        );
+    }
+    Ok(())
+}
+
 struct Qemu {
     child: Child,
     dir: std::path::PathBuf,
@@ -169,6 +243,7 @@ fn emulator(elf: &str, seconds: f64) -> Result<(), String> {
         .args(["-serial", "chardev:u1", "-kernel", elf])
         .stdin(Stdio::null())
         .stdout(Stdio::null())
+        .stderr(Stdio::null())
         .spawn()
         .map_err(|e| format!("qemu-system-arm: {e}"))?;
     let _qemu = Qemu { child, dir };
@@ -244,7 +319,7 @@ fn main() {
                 Ok(())
             })
     } else {
-        in_process(seconds)
+        in_process(seconds).and_then(|_| lossy(seconds))
     };
     if let Err(e) = result {
         eprintln!("error: {e}");

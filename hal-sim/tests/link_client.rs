@@ -244,3 +244,33 @@ fn the_stream_numbers_its_batches_from_the_board_s_next_sequence_number() {
     assert!(report.nacks.is_empty(), "{:?}", report.nacks);
     assert_eq!(client.transport().batches[0].0, 1234);
 }
+
+#[test]
+fn a_request_damaged_on_the_line_is_sent_again_but_not_forever() {
+    let mut board = FakeBoard::new(100, 1000.0);
+    board.refuse_status = 2;
+    let mut client = Client::new(board);
+    assert!(client.status().is_ok(), "two damaged, the third arrives");
+    client.transport_mut().refuse_status = 3;
+    let err = client.status().expect_err("gives up");
+    assert!(err.to_string().contains("CRC mismatch"), "{err}");
+}
+
+#[test]
+fn a_credit_probe_damaged_on_the_line_is_asked_again() {
+    // A small queue forces credit probes (status requests 1, 2, …; 0 is the one before the
+    // stream); some of them arrive damaged.
+    let mut board = FakeBoard::new(150, 50_000.0);
+    board.refuse_status_at = vec![1, 3, 4, 9];
+    let mut client = Client::new(board);
+    let samples = ramp(3000);
+    let r =
+        stream_setpoints(&mut client, &samples, &StreamOptions::default(), |_| {}).expect("stream");
+    assert_eq!(r.accepted, 3000);
+    assert_eq!(client.transport().played, samples);
+    assert_eq!(
+        r.nacks,
+        vec![NackReason::Frame(FrameError::BadCrc); 4],
+        "each damaged probe seen and asked again"
+    );
+}

@@ -15,11 +15,12 @@
 //!   decodes frames, answers each request with one response frame (sent from this task with
 //!   blocking writes on USART1 TX), queues setpoint batches for the tick, and reaches the
 //!   tick's state through short RTIC locks. After each request it re-arms the safe-state codes
-//!   of the newest configuration.
+//!   of the newest configuration. `StoreParams` writes flash sector 11 (board image; the
+//!   tick stalls for the erase, the watchdog is stretched meanwhile).
 //! * **Coarse stage** (feature `dual-stage`; priority 2, TIM3 at 5 kHz): the dual-actuated
-//!   stage's coarse tick ([`twinstack::dual_stage::DualStage::coarse_tick`]): reads the motor and linear encoders,
-//!   runs the trajectory and emits a burst of step pulses on TIM1. It holds its power-up
-//!   position until a command moves it; the piezo tick is untouched.
+//!   stage's coarse tick ([`twinstack::dual_stage::DualStage::coarse_tick`]): reads the motor
+//!   and linear encoders, runs the trajectory and emits a burst of step pulses on TIM1. It
+//!   holds its power-up position until a command moves it; the piezo tick is untouched.
 //! * **Safety**: a panic or hard fault masks interrupts, drives both outputs to the safe state
 //!   (bias or zero) and halts; the watchdog then resets the MCU. A parameter record with a
 //!   bad CRC (or none) means defaults and the `DEFAULTS` flag in the status report.
@@ -76,7 +77,9 @@ mod app {
     use twinstack::hardware::safe_state;
     use twinstack::hardware::usart::{self, UsartRx, UsartTx};
     use twinstack::hardware::watchdog::Watchdog;
-    use twinstack::param_store::{self, BoardSettings, ParamSource, ReadOnlyStorage};
+    #[cfg(feature = "emulator")]
+    use twinstack::param_store::ReadOnlyStorage;
+    use twinstack::param_store::{self, BoardSettings, ParamSource};
     use twinstack::protocol::handler::CommandHandler;
     use twinstack::recorder::RECORD_CAPACITY;
 
@@ -86,7 +89,11 @@ mod app {
 
     /// The recorder's buffer (static RAM).
     type RecordBuffer = &'static mut [i32; RECORD_CAPACITY];
-    /// The parameter storage: the flash sector, read-only for now (see README, Protocol).
+    /// The parameter storage: flash sector 11 on the board; read-only in the emulator (QEMU
+    /// does not model the flash interface).
+    #[cfg(not(feature = "emulator"))]
+    type Storage = param_flash::FlashStorage;
+    #[cfg(feature = "emulator")]
     type Storage = ReadOnlyStorage<'static>;
 
     /// Everything the control interrupt owns.
@@ -240,6 +247,9 @@ mod app {
                 CommandHandler::boot(
                     default_config::board_profile(rate as f64),
                     board,
+                    #[cfg(not(feature = "emulator"))]
+                    param_flash::FlashStorage::new(),
+                    #[cfg(feature = "emulator")]
                     ReadOnlyStorage(param_flash::record_window()),
                     defaults,
                 )

@@ -198,7 +198,6 @@ impl<S: RecordStorage> CommandHandler<S> {
         }
     }
 
-    #[inline(never)] // rare and large: one copy, not one per caller
     fn status<const N: usize, B, L>(
         &self,
         queue: &Producer<'_, i16, N>,
@@ -242,7 +241,6 @@ impl<S: RecordStorage> CommandHandler<S> {
         }
     }
 
-    #[inline(never)] // rare and large: one copy, not one per caller
     fn setpoints<const N: usize>(
         &mut self,
         batch: SetpointBatch,

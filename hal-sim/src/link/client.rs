@@ -17,6 +17,9 @@ use twinstack::protocol::messages::{
     Waveform, MAX_CHUNK,
 };
 
+/// Times [`Client::request`] resends a request the board NACKed as a damaged frame.
+pub const FRAME_RETRIES: u32 = 2;
+
 /// How long a request waits for its response by default.
 pub const DEFAULT_TIMEOUT: Duration = Duration::from_secs(2);
 
@@ -261,15 +264,28 @@ impl<T: Transport> Client<T> {
 
     /// Sends `request` and waits for its response (a NACK is returned as a response here;
     /// see [`Client::expect_ack`]).
+    ///
+    /// A `Frame(..)` NACK means the request was damaged on the line and nothing was applied,
+    /// so it is sent again, up to [`FRAME_RETRIES`] times.
     pub fn request(&mut self, request: &Request) -> Result<Response, LinkError> {
         let corrupt_before = self.counters.corrupt_frames;
-        self.send(request)?;
-        self.receive(self.timeout)?
-            .ok_or_else(|| LinkError::Timeout {
-                request: request_name(request),
-                timeout: self.timeout,
-                corrupt: (self.counters.corrupt_frames - corrupt_before) as u32,
-            })
+        let mut attempts = 0;
+        loop {
+            self.send(request)?;
+            let response = self
+                .receive(self.timeout)?
+                .ok_or_else(|| LinkError::Timeout {
+                    request: request_name(request),
+                    timeout: self.timeout,
+                    corrupt: (self.counters.corrupt_frames - corrupt_before) as u32,
+                })?;
+            match response {
+                Response::Nack {
+                    reason: NackReason::Frame(_),
+                } if attempts < FRAME_RETRIES => attempts += 1,
+                other => return Ok(other),
+            }
+        }
     }
 
     /// Sends `request`, expects an ACK and returns its credits; a NACK is an error.

@@ -312,6 +312,19 @@ fn run<T: Transport>(
                 }
             }
             (InFlight::Probe, Response::Status(s)) => granted = s.credits as usize,
+            // A status request damaged on the line: nothing happened, ask again.
+            (
+                InFlight::Probe,
+                Response::Nack {
+                    reason: NackReason::Frame(e),
+                },
+            ) if retries < options.max_retries => {
+                report.nacks.push(NackReason::Frame(e));
+                retries += 1;
+                client.send(&Request::Status)?;
+                report.credit_probes += 1;
+                in_flight.push_back(InFlight::Probe);
+            }
             (_, other) => {
                 return Err(LinkError::Unexpected {
                     request: name,

@@ -40,6 +40,13 @@ pub struct FakeBoard {
     pub garbage: Option<Vec<u8>>,
     /// What the status reports as the next sequence number, if not the truth.
     pub status_seq: Option<u16>,
+    /// Answer this many status requests with a `Frame(BadCrc)` NACK (damaged on the line).
+    pub refuse_status: u32,
+    /// Status requests seen (those not refused by `refuse_status`), and which of them
+    /// (0-based) to answer with a `Frame(BadCrc)` NACK.
+    pub status_requests: usize,
+    /// See `status_requests`.
+    pub refuse_status_at: Vec<usize>,
     /// Answer nothing.
     pub mute: bool,
     /// Recorder contents.
@@ -68,6 +75,9 @@ impl FakeBoard {
             setpoint_requests: 0,
             garbage: None,
             status_seq: None,
+            refuse_status: 0,
+            status_requests: 0,
+            refuse_status_at: Vec::new(),
             mute: false,
             recording: Vec::new(),
             log: Vec::new(),
@@ -92,6 +102,17 @@ impl FakeBoard {
 
     fn handle(&mut self, request: Request) -> Response {
         match request {
+            Request::Status
+                if self.refuse_status > 0 || {
+                    self.status_requests += 1;
+                    self.refuse_status_at.contains(&(self.status_requests - 1))
+                } =>
+            {
+                self.refuse_status = self.refuse_status.saturating_sub(1);
+                Response::Nack {
+                    reason: NackReason::Frame(twinstack::protocol::frame::FrameError::BadCrc),
+                }
+            }
             Request::Status => Response::Status(StatusReport {
                 ticks: self.ticks as u32,
                 queue_fill: self.queue.len() as u16,
