@@ -428,7 +428,7 @@ impl Controller {
                     flags |= TickFlags::ADC_ERROR;
                     counters.adc_errors = counters.adc_errors.wrapping_add(1);
                     if closed {
-                        command = feedforward.saturating_add(fb.held_correction(fs));
+                        command = feedforward.saturating_add(fb.held_correction(fs, target));
                     }
                 }
             }

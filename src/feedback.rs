@@ -139,9 +139,7 @@ impl Feedback {
     /// module doc. Returns a Q2.30 normalised drive within ±`limit`.
     #[inline(always)]
     pub fn correction(&self, s: &mut FeedbackState, target: i32, measured: i32) -> i32 {
-        let reference = s.targets[SENSOR_DELAY_TICKS - 1];
-        s.targets.copy_within(0..SENSOR_DELAY_TICKS - 1, 1);
-        s.targets[0] = target;
+        let reference = s.delayed_target(target);
         let mut error = reference.saturating_sub(measured);
         if let Some(n) = &self.notch {
             error = n.step(&mut s.notch, error);
@@ -163,8 +161,12 @@ impl Feedback {
     }
 
     /// The correction when the sensor could not be read: the integrator alone, held.
+    /// `target` (Q2.30) still enters the history: the next reading is as old as ever (the
+    /// delay is the converter's), so it must meet the target of [`SENSOR_DELAY_TICKS`] ticks
+    /// ago, not one from before the failed read.
     #[inline(always)]
-    pub fn held_correction(&self, s: &FeedbackState) -> i32 {
+    pub fn held_correction(&self, s: &mut FeedbackState, target: i32) -> i32 {
+        s.delayed_target(target);
         s.integrator
     }
 
@@ -225,6 +227,16 @@ impl Derivative {
 }
 
 impl FeedbackState {
+    /// Puts this tick's `target` into the history and returns the one of
+    /// [`SENSOR_DELAY_TICKS`] ticks ago (what the present reading is to be compared with).
+    #[inline(always)]
+    fn delayed_target(&mut self, target: i32) -> i32 {
+        let reference = self.targets[SENSOR_DELAY_TICKS - 1];
+        self.targets.copy_within(0..SENSOR_DELAY_TICKS - 1, 1);
+        self.targets[0] = target;
+        reference
+    }
+
     /// The state at rest: integrator empty, the stage where the observer puts it.
     pub fn at_rest(estimate: i32) -> Self {
         Self {
@@ -374,6 +386,24 @@ mod tests {
         for k in 0..100i32 {
             let measured = (k - SENSOR_DELAY_TICKS as i32).max(0) * step;
             assert_eq!(fb.correction(&mut s, k * step, measured), 0, "tick {k}");
+        }
+    }
+
+    #[test]
+    fn after_a_failed_read_the_reading_still_meets_the_target_of_its_own_instant() {
+        let fb = feedback(1.0, 0.0);
+        let mut s = FeedbackState::at_rest(0);
+        // The same exactly-followed ramp, with reads failing on ticks 20…29: the targets of
+        // those ticks still enter the history, so the first readings after the gap see no
+        // error (a history frozen at tick 19 would see the ramp's ten ticks of travel).
+        let step = signal_from_f64(0.001);
+        for k in 0..60i32 {
+            let measured = (k - SENSOR_DELAY_TICKS as i32).max(0) * step;
+            if (20..30).contains(&k) {
+                assert_eq!(fb.held_correction(&mut s, k * step), 0, "tick {k}");
+            } else {
+                assert_eq!(fb.correction(&mut s, k * step, measured), 0, "tick {k}");
+            }
         }
     }
 
