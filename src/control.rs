@@ -4,7 +4,9 @@
 //!
 //! 1. the next setpoint (Q2.30 normalised displacement; on underrun the last one is held);
 //! 2. the compensator (inverse P–I, inverse Duhem, or none) turns it into a drive command;
-//! 3. with a sensor, a PI controller on the measured error adds its correction;
+//! 3. with a sensor, the reading is checked against the observer (drift flag) and, in closed
+//!    loop, the PI(D) controller on the measured error adds its correction
+//!    ([`crate::feedback`]); a mode switch's fading offset is added ([`crate::mode_switch`]);
 //! 4. the differential drive clamps the command to the stacks' range and slew limits and splits
 //!    it into both stacks' DAC codes (`u_l = ū + v`, `u_r = ū − v`), written at once;
 //! 5. the forward observer, fed the drive actually applied, gives the estimated displacement.
@@ -15,10 +17,12 @@
 use crate::board::{AdcCode, DacCode, DualDac, SensorAdc};
 use crate::drive::DifferentialDrive;
 use crate::duhem::{Duhem, DuhemState, InverseDuhem};
-use crate::fixed_point::{
-    clamp_full_scale, limit, limit_i64, saturate_i64, GAIN_FRAC_BITS, SIGNAL_FRAC_BITS,
-};
+use crate::feedback::FeedbackState;
+pub use crate::feedback::{Derivative, Feedback};
+use crate::fixed_point::{clamp_full_scale, limit};
+use crate::mode_switch::{BumplessTransfer, ModeError};
 use crate::prandtl_ishlinskii::{InversePrandtlIshlinskii, PiState, PrandtlIshlinskii};
+pub use crate::settings::Mode;
 
 /// The feedforward compensator: desired displacement → drive.
 // The variants differ in size by design: there is no heap on the board, and the configuration
@@ -46,23 +50,6 @@ pub enum Observer {
     Duhem(Duhem),
 }
 
-/// The position sensor and the PI controller on its error.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub struct Feedback {
-    /// ADC resolution, bits (≤ 30): the code is read as a fraction of full scale.
-    pub adc_bits: u32,
-    /// Displacement at ADC code 0, Q2.30 normalised displacement.
-    pub sensor_offset: i32,
-    /// Normalised displacement per ADC full scale, Q8.24 (negative for an inverted sensor).
-    pub sensor_gain: i32,
-    /// Proportional gain, Q8.24 (normalised drive per normalised displacement error).
-    pub kp: i32,
-    /// Integral gain per tick, Q8.24.
-    pub ki: i32,
-    /// Largest correction (and integrator) magnitude, Q2.30 normalised drive.
-    pub limit: i32,
-}
-
 /// Everything the tick needs, validated and in fixed point.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct ControlConfig {
@@ -74,6 +61,8 @@ pub struct ControlConfig {
     pub feedback: Option<Feedback>,
     /// The differential drive and its limits.
     pub drive: DifferentialDrive,
+    /// The mode the controller starts in (switch later with [`Controller::set_mode`]).
+    pub mode: Mode,
 }
 
 impl ControlConfig {
@@ -84,6 +73,7 @@ impl ControlConfig {
             observer: Observer::None,
             feedback: None,
             drive,
+            mode: Mode::Bypass,
         }
     }
 }
@@ -104,6 +94,9 @@ impl TickFlags {
     pub const ADC_ERROR: u8 = 1 << 3;
     /// The DAC write failed.
     pub const DAC_ERROR: u8 = 1 << 4;
+    /// The sensor and the observer disagree by more than the drift limit: the model has
+    /// drifted from the stage.
+    pub const DRIFT: u8 = 1 << 5;
 
     /// Whether `flag` is set.
     pub fn contains(self, flag: u8) -> bool {
@@ -120,7 +113,8 @@ pub struct TickReport {
     pub right: DacCode,
     /// Observer's estimated displacement, Q2.30 normalised.
     pub estimate: i32,
-    /// Measured displacement, Q2.30 normalised (0 without feedback).
+    /// Measured displacement, Q2.30 normalised (0 without a sensor); it is
+    /// [`crate::feedback::SENSOR_DELAY_TICKS`] ticks older than `estimate`.
     pub measured: i32,
     /// Model-normalised drive applied, Q2.30.
     pub drive: i32,
@@ -144,6 +138,8 @@ pub struct ControlCounters {
     pub adc_errors: u32,
     /// Failed DAC writes.
     pub dac_errors: u32,
+    /// Ticks the drift check flagged.
+    pub drifts: u32,
 }
 
 /// The controller: configuration plus every piece of state the tick keeps.
@@ -154,7 +150,8 @@ pub struct Controller {
     observer_state: ModelState,
     setpoint: i32,
     drive: i32,
-    integrator: i32,
+    feedback_state: FeedbackState,
+    transfer: BumplessTransfer,
     counters: ControlCounters,
 }
 
@@ -177,7 +174,8 @@ impl Controller {
             observer_state: ModelState::None,
             setpoint: 0,
             drive: 0,
-            integrator: 0,
+            feedback_state: FeedbackState::default(),
+            transfer: BumplessTransfer::default(),
             counters: ControlCounters::default(),
         };
         c.reset_to_rest();
@@ -195,7 +193,7 @@ impl Controller {
         let (lo, hi) = self.config.drive.drive_range();
         let drive = limit(drive, lo, hi);
         self.drive = drive;
-        self.integrator = 0;
+        self.transfer = BumplessTransfer::default();
         let (observer_state, y) = match &self.config.observer {
             Observer::None => (ModelState::None, drive),
             Observer::Pi(m) => {
@@ -209,6 +207,8 @@ impl Controller {
             }
         };
         self.compensator_state = match (&self.config.compensator, &observer_state) {
+            // Bypass runs no compensator: an empty state slot skips it in the tick.
+            _ if self.config.mode == Mode::Bypass => ModelState::None,
             (Compensator::None, _) => ModelState::None,
             (Compensator::InversePi(m), ModelState::Pi(fs)) => match &self.config.observer {
                 Observer::Pi(observer) => {
@@ -224,14 +224,102 @@ impl Controller {
         };
         self.observer_state = observer_state;
         self.setpoint = y;
+        self.feedback_state = FeedbackState::at_rest(y);
     }
 
     /// Swaps in a new configuration whole, between two ticks. The drive stays where it is
     /// (within the new limits) and the models are relaxed there, so the output does not jump
     /// to the rest position; counters carry on.
+    /// In closed loop the integrator takes over whatever separates the new feedforward from
+    /// the drive, as on a mode switch.
     pub fn reconfigure(&mut self, config: ControlConfig) {
+        let measured = self.feedback_state.measured();
         self.config = config;
         self.relax_at(self.drive);
+        self.feedback_state = self.feedback_state.with_measurement(measured);
+        self.begin_transfer();
+    }
+
+    /// Switches between bypass, open loop (compensated) and closed loop between two ticks,
+    /// without a bump in the drive (see [`crate::mode_switch`]). Refused, changing nothing,
+    /// when the configuration lacks what the mode needs.
+    pub fn set_mode(&mut self, mode: Mode) -> Result<(), ModeError> {
+        match mode {
+            Mode::OpenLoop if matches!(self.config.compensator, Compensator::None) => {
+                return Err(ModeError::NoCompensator)
+            }
+            Mode::ClosedLoop if self.config.feedback.is_none() => return Err(ModeError::NoSensor),
+            _ => {}
+        }
+        if mode == self.config.mode {
+            return Ok(());
+        }
+        self.config.mode = mode;
+        if mode == Mode::Bypass {
+            self.compensator_state = ModelState::None;
+        } else if self.compensator_state == ModelState::None {
+            self.compensator_state = self.compensator_state_from_observer();
+        }
+        self.begin_transfer();
+        Ok(())
+    }
+
+    /// The mode in effect.
+    pub fn mode(&self) -> Mode {
+        self.config.mode
+    }
+
+    /// The feedback's memory (integrator, drift filter, last measurement).
+    pub fn feedback_state(&self) -> &FeedbackState {
+        &self.feedback_state
+    }
+
+    /// The compensator state that continues from where the observer says the stage is.
+    fn compensator_state_from_observer(&self) -> ModelState {
+        match (&self.config.compensator, &self.observer_state) {
+            (Compensator::None, _) => ModelState::None,
+            (Compensator::InversePi(m), ModelState::Pi(fs)) => {
+                match &self.config.observer {
+                    Observer::Pi(observer) => {
+                        ModelState::Pi(m.state_from_forward(&observer.bank().outputs(fs)))
+                    }
+                    _ => ModelState::Pi(m.state_at_rest(self.setpoint)), // unreachable
+                }
+            }
+            (Compensator::InversePi(m), _) => ModelState::Pi(m.state_at_rest(self.setpoint)),
+            (Compensator::InverseDuhem(m), ModelState::Duhem(os))
+                if self.config.observer == Observer::Duhem(*m.model()) =>
+            {
+                ModelState::Duhem(*os)
+            }
+            (Compensator::InverseDuhem(m), _) => {
+                let model = m.model();
+                ModelState::Duhem(model.state_at(self.drive, model.anhysteretic(self.drive)))
+            }
+        }
+    }
+
+    /// What the feedforward would be for the present setpoint (the state is not advanced).
+    fn peek_feedforward(&self) -> i32 {
+        let target = self.setpoint;
+        match (&self.config.compensator, self.compensator_state) {
+            (Compensator::InversePi(m), ModelState::Pi(mut s)) => m.step(&mut s, target),
+            (Compensator::InverseDuhem(m), ModelState::Duhem(mut s)) => m.step(&mut s, target),
+            _ => target,
+        }
+    }
+
+    /// Makes the next command continue from the present drive: the integrator (closed loop)
+    /// or the fading transfer offset takes up the difference.
+    fn begin_transfer(&mut self) {
+        let wanted = self.drive.saturating_sub(self.peek_feedforward());
+        let rest = match (&self.config.feedback, self.config.mode) {
+            (Some(fb), Mode::ClosedLoop) => {
+                fb.hand_over(&mut self.feedback_state, self.setpoint, wanted)
+            }
+            _ => wanted,
+        };
+        self.transfer.start(rest);
     }
 
     /// The setpoint in force (the last one given, or held), Q2.30 normalised displacement.
@@ -273,7 +361,7 @@ impl Controller {
     /// One control tick (see the module doc). `setpoint` is the next desired displacement
     /// (Q2.30 normalised), `None` on underrun. Reads the sensor (when feedback is on), writes
     /// both DAC channels at once, and reports what it did.
-    #[inline]
+    #[inline(always)]
     pub fn tick<D: DualDac, A: SensorAdc>(
         &mut self,
         setpoint: Option<i32>,
@@ -285,7 +373,7 @@ impl Controller {
 
     /// [`Controller::tick`] for a board that is both the DAC and the ADC (the simulated
     /// board): same code, one borrow.
-    #[inline]
+    #[inline(always)]
     pub fn tick_board<B: DualDac + SensorAdc>(
         &mut self,
         setpoint: Option<i32>,
@@ -319,31 +407,33 @@ impl Controller {
             _ => target,
         };
 
-        // 3. Feedback.
+        // 3. Sensor: drift check, and in closed loop the feedback correction.
         let mut measured = 0;
         let mut command = feedforward;
         if let Some(fb) = &self.config.feedback {
+            let fs = &mut self.feedback_state;
+            let closed = self.config.mode == Mode::ClosedLoop;
             match io.read() {
                 Ok(code) => {
                     measured = fb.displacement(code);
-                    let (low, high) = self.config.drive.drive_range();
-                    let correction = fb.correction(
-                        target,
-                        measured,
-                        &mut self.integrator,
-                        self.drive,
-                        low,
-                        high,
-                    );
-                    command = feedforward.saturating_add(correction);
+                    if fb.drifted(fs, measured) {
+                        flags |= TickFlags::DRIFT;
+                        counters.drifts = counters.drifts.wrapping_add(1);
+                    }
+                    if closed {
+                        command = feedforward.saturating_add(fb.correction(fs, target, measured));
+                    }
                 }
                 Err(_) => {
                     flags |= TickFlags::ADC_ERROR;
                     counters.adc_errors = counters.adc_errors.wrapping_add(1);
-                    command = feedforward.saturating_add(self.integrator);
+                    if closed {
+                        command = feedforward.saturating_add(fb.held_correction(fs, target));
+                    }
                 }
             }
         }
+        let command = self.transfer.apply(command);
 
         // 4. Limits, split, both DACs at once.
         let out = self.config.drive.split(command, self.drive);
@@ -367,6 +457,7 @@ impl Controller {
             (Observer::Duhem(m), ModelState::Duhem(s)) => m.step(s, out.applied),
             _ => 0,
         };
+        self.feedback_state.end_tick(command, out.applied, estimate);
 
         TickReport {
             left: out.left,
@@ -411,45 +502,6 @@ impl<B: SensorAdc + DualDac> TickIo for JointIo<'_, B> {
     #[inline(always)]
     fn write(&mut self, left: DacCode, right: DacCode) -> Result<(), ()> {
         self.0.write_both(left, right).map_err(|_| ())
-    }
-}
-
-impl Feedback {
-    /// ADC code → normalised displacement: `offset + gain · code / 2^bits` (Q2.30, saturated).
-    /// The code is masked to `adc_bits` and shifted up to a Q2.30 fraction in 32 bits.
-    #[inline(always)]
-    pub fn displacement(&self, code: AdcCode) -> i32 {
-        let bits = self.adc_bits.min(SIGNAL_FRAC_BITS);
-        let mask = (1u32 << bits).wrapping_sub(1);
-        let fraction = ((code.0 & mask) << (SIGNAL_FRAC_BITS - bits)) as i32; // [0, 1)
-        saturate_i64(
-            self.sensor_offset as i64
-                + ((self.sensor_gain as i64 * fraction as i64) >> GAIN_FRAC_BITS),
-        )
-    }
-
-    /// The PI correction for `target` against `measured`, with the integrator clamped to the
-    /// correction limit and held (anti-windup) while the drive sits at a limit in the direction
-    /// the error pushes.
-    #[inline(always)]
-    fn correction(
-        &self,
-        target: i32,
-        measured: i32,
-        integrator: &mut i32,
-        drive: i32,
-        drive_low: i32,
-        drive_high: i32,
-    ) -> i32 {
-        let error = target.saturating_sub(measured);
-        let bound = self.limit as i64;
-        let held = (drive >= drive_high && error > 0) || (drive <= drive_low && error < 0);
-        if !held {
-            let i = *integrator as i64 + ((self.ki as i64 * error as i64) >> GAIN_FRAC_BITS);
-            *integrator = limit_i64(i, -bound, bound) as i32;
-        }
-        let p = (self.kp as i64 * error as i64) >> GAIN_FRAC_BITS;
-        limit_i64(p + *integrator as i64, -bound, bound) as i32
     }
 }
 
@@ -556,50 +608,5 @@ mod tests {
             DifferentialDrive::new(&s, &scaling).unwrap(),
         ));
         assert_eq!(c.safe_codes(), (DacCode(0), DacCode(0)));
-    }
-
-    fn feedback() -> Feedback {
-        use crate::fixed_point::gain_from_f64;
-        Feedback {
-            adc_bits: 16,
-            sensor_offset: signal_from_f64(-1.0),
-            sensor_gain: gain_from_f64(2.0),
-            kp: gain_from_f64(0.5),
-            ki: gain_from_f64(0.1),
-            limit: signal_from_f64(0.2),
-        }
-    }
-
-    #[test]
-    fn sensor_codes_map_onto_the_output_range_and_stray_bits_are_masked() {
-        let fb = feedback();
-        assert_eq!(fb.displacement(AdcCode(0)), signal_from_f64(-1.0));
-        assert_eq!(fb.displacement(AdcCode(32768)), 0);
-        // A code with bits above the ADC's 16 reads as its low 16 bits, never beyond range.
-        assert_eq!(fb.displacement(AdcCode(0x1_8000)), 0);
-    }
-
-    #[test]
-    fn integrator_is_clamped_and_held_while_the_drive_sits_at_a_limit() {
-        let fb = feedback();
-        let (lo, hi) = (signal_from_f64(-0.9), signal_from_f64(0.9));
-        let mut integrator = 0;
-        // Drive free: a persistent error winds the integrator up to its limit, no further.
-        for _ in 0..1000 {
-            fb.correction(signal_from_f64(0.5), 0, &mut integrator, 0, lo, hi);
-        }
-        assert_eq!(integrator, signal_from_f64(0.2));
-        // Drive held at the top with the error still pushing up: the integrator holds...
-        let mut integrator = signal_from_f64(0.05);
-        for _ in 0..100 {
-            fb.correction(signal_from_f64(0.5), 0, &mut integrator, hi, lo, hi);
-        }
-        assert_eq!(integrator, signal_from_f64(0.05));
-        // ...but unwinds at once when the error reverses.
-        fb.correction(signal_from_f64(-0.5), 0, &mut integrator, hi, lo, hi);
-        assert!(integrator < signal_from_f64(0.05));
-        // The correction never exceeds the limit, whatever the error.
-        let c = fb.correction(i32::MAX, i32::MIN, &mut integrator, 0, lo, hi);
-        assert_eq!(c, signal_from_f64(0.2));
     }
 }

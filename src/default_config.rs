@@ -8,13 +8,15 @@
 //! decaying geometrically, every partial sum positive, so the analytic inverse exists) and a
 //! Duhem model of similar slope. Replace them with the identification tool's output.
 
-use crate::control::{Compensator, ControlConfig, Feedback, Observer};
+use crate::control::{Compensator, ControlConfig, Observer};
 use crate::drive::{Configuration, DifferentialDrive, DriveError, DriveSettings, SafeState};
 use crate::duhem::{Duhem, InverseDuhem};
-use crate::fixed_point::{gain_from_f64, signal_from_f64};
+use crate::feedback::{Derivative, Feedback};
+use crate::fixed_point::{q1_31_from_f64, q4_28_from_f64, signal_from_f64};
+use crate::notch::{Notch, NotchDesign, NotchError};
 use crate::params::{DuhemParams, ParamError, PiParams, Thresholds, MAX_OPERATORS};
 use crate::prandtl_ishlinskii::InversePrandtlIshlinskii;
-use crate::protocol::messages::{ModelParams, ParamSet, MAX_PARAM_OPERATORS};
+use crate::protocol::messages::{FeedbackParams, ModelParams, ParamSet, MAX_PARAM_OPERATORS};
 use crate::protocol::param_load::BoardProfile;
 use crate::scaling::Scaling;
 use crate::settings::{Mode, SensorSettings};
@@ -45,6 +47,14 @@ pub enum ConfigError {
     Model(ParamError),
     /// The drive settings were refused.
     Drive(DriveError),
+    /// The notch cannot be designed at this control rate.
+    Notch(NotchError),
+}
+
+impl From<NotchError> for ConfigError {
+    fn from(e: NotchError) -> Self {
+        ConfigError::Notch(e)
+    }
 }
 
 impl From<ParamError> for ConfigError {
@@ -125,16 +135,45 @@ pub fn duhem_params() -> DuhemParams {
 }
 
 /// Sensor feedback: a 12-bit ADC spanning the stroke, `kp = 0.2`, `ki = 0.01` per tick,
-/// correction limited to ±0.2 of the drive range.
+/// correction limited to ±0.2 (normalised drive), drift flagged beyond 2 % of the stroke; no
+/// notch, no derivative.
 pub fn feedback() -> Feedback {
+    let limit = signal_from_f64(0.2);
+    let kp = q4_28_from_f64(0.2);
     Feedback {
         adc_bits: 12,
-        sensor_offset: signal_from_f64(-1.0),
-        sensor_gain: gain_from_f64(2.0),
-        kp: gain_from_f64(0.2),
-        ki: gain_from_f64(0.01),
-        limit: signal_from_f64(0.2),
+        sensor_offset: q4_28_from_f64(-1.0),
+        sensor_gain: q4_28_from_f64(2.0),
+        kp,
+        error_bound: Feedback::error_bound(limit, kp),
+        ki: q1_31_from_f64(0.01),
+        derivative: None,
+        limit,
+        notch: None,
+        drift_limit: signal_from_f64(0.04) as u32,
     }
+}
+
+/// The differential stage's first resonance as a notch: 21.8 kHz, Q = 2, full depth.
+pub fn stage_notch() -> NotchDesign {
+    NotchDesign {
+        frequency_hz: 21_800.0,
+        q: 2.0,
+        depth: 0.0,
+    }
+}
+
+/// [`feedback`] plus the [`stage_notch`] designed for `control_rate_hz` and a derivative term
+/// (`kd = 0.05` per tick, low pass at a tenth of the rate).
+pub fn feedback_with_notch(control_rate_hz: f64) -> Result<Feedback, ConfigError> {
+    Ok(Feedback {
+        notch: Some(Notch::new(&stage_notch(), control_rate_hz)?),
+        derivative: Some(Derivative {
+            kd: q4_28_from_f64(0.05),
+            smoothing: q1_31_from_f64(1.0 - libm::exp(-2.0 * core::f64::consts::PI / 10.0)),
+        }),
+        ..feedback()
+    })
 }
 
 /// A complete configuration: `compensator`, the Duhem observer, feedback on, the default drive.
@@ -158,6 +197,7 @@ pub fn control_config(
         observer: Observer::Duhem(Duhem::new(&duhem_params(), &s)?),
         feedback: Some(feedback()),
         drive: DifferentialDrive::new(&drive_settings(control_rate_hz, safe_state), &s)?,
+        mode: Mode::ClosedLoop,
     })
 }
 
@@ -200,9 +240,17 @@ pub fn boot_param_set(safe_state: SafeState) -> Result<ParamSet, ParamError> {
         voltage_limits: [d.min_voltage as f32, d.max_voltage as f32],
         slew_rate: d.slew_rate as f32,
         safe_state,
-        // kp 0.2, ki 0.01 per tick, correction within ±0.2 of the normalised drive (a tenth
-        // of its range): as `feedback()`.
-        feedback: Some([0.2, 0.01, 0.1]),
+        // kp 0.2, ki 0.01 per tick at the default 50 kHz (500 per second), correction within
+        // ±0.2 of the normalised drive (a tenth of its range): as `feedback()`.
+        feedback: Some(FeedbackParams {
+            kp: 0.2,
+            ki: 500.0,
+            kd: 0.0,
+            derivative_cutoff_hz: 1.0,
+            limit: 0.1,
+            notch: None,
+            drift_limit: Some(0.02),
+        }),
         mode: Mode::ClosedLoop,
     })
 }
@@ -264,7 +312,9 @@ mod tests {
             (fa.sensor_offset, fa.sensor_gain),
             (fb.sensor_offset, fb.sensor_gain)
         );
-        assert_eq!((fa.kp, fa.ki), (fb.kp, fb.ki));
+        // kp crosses the wire as f32 (0.2 is not exact there): within an LSB of Q4.28.
+        assert!((fa.kp - fb.kp).abs() <= 1, "{fa:?} vs {fb:?}");
+        assert_eq!(fa.ki, fb.ki);
         assert!((fa.limit - fb.limit).abs() < 16, "{fa:?} vs {fb:?}"); // f32 on the wire
         assert_eq!(c.drive.safe_codes(), want.drive.safe_codes());
         assert_eq!(c.drive.drive_range(), want.drive.drive_range());

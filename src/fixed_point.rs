@@ -60,6 +60,19 @@ pub fn gain_to_f64(q: i32) -> f64 {
     q as f64 / GAIN_ONE as f64
 }
 
+/// Converts a real number to Q4.28 (range [-8, 8)) with rounding to nearest, saturating.
+/// Used by the feedback's proportional and derivative gains and its sensor calibration.
+pub fn q4_28_from_f64(x: f64) -> i32 {
+    to_fixed(x, 28)
+}
+
+/// Converts a real number to Q1.31 (range [-1, 1)) with rounding to nearest, saturating.
+/// Used by per-tick coefficients below 1 (integral gain, filter poles): a product with a
+/// Q2.30 signal shifted right by 31 is again Q2.30 and cannot overflow.
+pub fn q1_31_from_f64(x: f64) -> i32 {
+    to_fixed(x, 31)
+}
+
 fn to_fixed(x: f64, frac_bits: u32) -> i32 {
     if x.is_nan() {
         return 0;

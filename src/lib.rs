@@ -9,6 +9,9 @@
 //! * [`play_operator`] — the play (backlash) operator, the building block of P–I.
 //! * [`prandtl_ishlinskii`] — forward and analytic-inverse Prandtl–Ishlinskii models.
 //! * [`duhem`] — Duhem forward observer and inverse Duhem compensator.
+//! * [`feedback`] — sensor feedback: PI(D) with anti-windup, the drift check; [`notch`] — the
+//!   resonance notch (fixed-point biquad designed for the control rate); [`mode_switch`] —
+//!   bumpless switching between bypass, open loop and closed loop.
 //! * [`params`] — physical (`f64`) parameter sets and their validation ([`ParamError`]).
 //! * [`param_store`] — the CRC-protected parameter record in flash and the board settings.
 //! * `hardware` (firmware build only) — STM32F405 registers behind the [`board`] traits.
@@ -18,6 +21,9 @@
 //! * [`protocol`] — the UART protocol: frames, messages, and the board's command handler.
 //! * [`golden`] — golden vectors: recorded ticks the board must reproduce bit for bit.
 //! * [`converters`] — SPI drivers of the external DAC (DAC8562/3) and sensor ADC (ADS8689).
+//! * [`dual_stage`] — the dual-actuated stage: ball-screw coarse stage + piezo fine stage under
+//!   one controller (setpoint split, trapezoidal moves, centring, hand-over); [`coarse_axis`] —
+//!   its step generation and quadrature counting.
 //!
 //! Everything here is allocation-free; the per-sample `step` functions have no panic path
 //! and no unbounded loop.
@@ -29,16 +35,21 @@
 #![warn(missing_docs)]
 
 pub mod board;
+pub mod coarse_axis;
 pub mod control;
 pub mod control_loop;
 pub mod converters;
 pub mod default_config;
 pub mod drive;
+pub mod dual_stage;
 pub mod duhem;
+pub mod feedback;
 pub mod fixed_point;
 pub mod golden;
 #[cfg(target_os = "none")]
 pub mod hardware;
+pub mod mode_switch;
+pub mod notch;
 pub mod param_store;
 pub mod params;
 pub mod play_operator;

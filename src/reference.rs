@@ -210,3 +210,35 @@ impl InverseDuhem {
         &self.model
     }
 }
+
+/// A biquad in `f64`, direct form I (`a₀ = 1`): the reference the fixed-point
+/// [`crate::notch::Notch`] is checked against.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Biquad {
+    b: [f64; 3],
+    a: [f64; 2],
+    x: [f64; 2],
+    y: [f64; 2],
+}
+
+impl Biquad {
+    /// A biquad at rest with feedforward `b` and feedback `a` (`a₁, a₂`) coefficients.
+    pub fn new(b: [f64; 3], a: [f64; 2]) -> Self {
+        Self {
+            b,
+            a,
+            x: [0.0; 2],
+            y: [0.0; 2],
+        }
+    }
+
+    /// One sample.
+    pub fn step(&mut self, x: f64) -> f64 {
+        let y = self.b[0] * x + self.b[1] * self.x[0] + self.b[2] * self.x[1]
+            - self.a[0] * self.y[0]
+            - self.a[1] * self.y[1];
+        self.x = [x, self.x[0]];
+        self.y = [y, self.y[0]];
+        y
+    }
+}

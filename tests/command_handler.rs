@@ -275,15 +275,14 @@ fn a_parameter_load_is_validated_whole_and_swapped_in_between_two_ticks() {
     ));
     // Posted, not yet applied: the tick in force still runs the old configuration.
     assert!(b.control.telemetry().config_pending);
-    assert!(b.control.controller().config().feedback.is_some());
+    assert_eq!(b.control.controller().mode(), Mode::ClosedLoop);
     let s = b.status();
     assert!(s.has(StatusReport::CONFIG_PENDING) && s.mode() == Mode::OpenLoop);
     b.ticks(1);
     assert!(!b.control.telemetry().config_pending);
-    assert!(
-        b.control.controller().config().feedback.is_none(),
-        "open loop now"
-    );
+    // Open loop now (the feedback stays configured, idle, so a later mode switch needs no
+    // new parameters).
+    assert_eq!(b.control.controller().mode(), Mode::OpenLoop);
     assert_eq!(
         b.control.safe_codes(),
         (DacCode(0), DacCode(0)),
@@ -327,7 +326,10 @@ fn refused_parameter_loads_name_their_reason_and_apply_nothing() {
         nack(NackReason::InvalidParams(ParamError::EmptyInputRange))
     );
     let mut gains = good.clone();
-    gains.feedback = Some([f32::INFINITY, 0.0, 0.1]);
+    gains.feedback = gains.feedback.map(|f| FeedbackParams {
+        kp: f32::INFINITY,
+        ..f
+    });
     assert_eq!(
         b.handle(Request::LoadParams(gains)),
         nack(NackReason::OutOfRange)

@@ -62,7 +62,19 @@ fn request() -> impl Strategy<Value = Request> {
                 voltage_limits: [0.0, 140.0],
                 slew_rate: 1e6,
                 safe_state: twinstack::drive::SafeState::Bias,
-                feedback: Some([0.1, 0.01, 0.2]),
+                feedback: Some(twinstack::protocol::messages::FeedbackParams {
+                    kp: 0.1,
+                    ki: 500.0,
+                    kd: 0.0,
+                    derivative_cutoff_hz: 5000.0,
+                    limit: 0.2,
+                    notch: Some(twinstack::protocol::messages::NotchParams {
+                        frequency_hz: 21_800.0,
+                        q: 2.0,
+                        depth: 0.0,
+                    }),
+                    drift_limit: Some(0.02),
+                }),
                 mode: Mode::OpenLoop,
             })
         }),

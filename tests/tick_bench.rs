@@ -148,6 +148,8 @@ fn tick_cost_table_and_image_size() {
         "inverse-pi-16",
         "inverse-pi-32",
         "inverse-duhem",
+        "none-sensor-drift",
+        "none-pid-notch",
     ];
     let names: Vec<&str> = rows.iter().map(|r| r.name.as_str()).collect();
     assert_eq!(names, expected, "the bench must report every configuration");
@@ -174,7 +176,10 @@ fn tick_cost_table_and_image_size() {
             "inverse-pi-8" => ("inverse P–I, N = 8", "Duhem", "PI"),
             "inverse-pi-16" => ("inverse P–I, N = 16", "Duhem", "PI"),
             "inverse-pi-32" => ("inverse P–I, N = 32", "Duhem", "PI"),
-            _ => ("inverse Duhem", "Duhem", "PI"),
+            "none-sensor-drift" => ("none", "Duhem", "sensor + drift check, open loop"),
+            "none-pid-notch" => ("none", "Duhem", "PID + notch"),
+            "inverse-duhem" => ("inverse Duhem", "Duhem", "PI"),
+            other => panic!("unknown bench row {other}"),
         };
         println!(
             "| {comp} | {obs} | {fb} | {:.1} | {} | {} |",

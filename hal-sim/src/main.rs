@@ -23,6 +23,9 @@ enum Command {
     Predict(cli::predict::Args),
     /// Run the fixed-point inverse model on a desired-output record.
     Compensate(cli::compensate::Args),
+    /// Sensor feedback around the compensator on the simulated stage: the tracking table
+    /// (none / feedforward / feedback / both) and the step with and without the notch.
+    ClosedLoop(cli::closed_loop::Args),
     /// Stream a setpoint CSV to the board (within its credits) and play it.
     Stream(cli::stream::Args),
     /// Load a parameter file onto the board (optionally storing it to flash).
@@ -38,6 +41,9 @@ enum Command {
     /// Generate the golden vectors (the tick's recorded runs the board must reproduce) and
     /// check them against the stored file and the f64 reference, or write them (--write).
     Golden(cli::golden::Args),
+    /// The dual-actuated stage (ball screw + piezo) in simulation: a 5 mm move and a
+    /// trajectory larger than the piezo's stroke (coarse only / dual).
+    DualStage(cli::dual_stage::Args),
 }
 
 fn main() -> std::process::ExitCode {
@@ -69,6 +75,7 @@ fn main() -> std::process::ExitCode {
         Command::Identify(a) => cli::identify::run(a),
         Command::Predict(a) => cli::predict::run(a),
         Command::Compensate(a) => cli::compensate::run(a),
+        Command::ClosedLoop(a) => cli::closed_loop::run(a),
         Command::Stream(a) => cli::stream::run(a),
         Command::Load(a) => cli::load::run(a),
         Command::Status(a) => cli::status::run(a),
@@ -76,6 +83,7 @@ fn main() -> std::process::ExitCode {
         Command::Stop(a) => cli::stop::run(a),
         Command::Record(a) => cli::record::run(a),
         Command::Golden(a) => cli::golden::run(a),
+        Command::DualStage(a) => cli::dual_stage::run(a),
     };
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,

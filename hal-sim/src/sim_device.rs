@@ -109,7 +109,15 @@ impl SimDeviceConfig {
             voltage_limits: [0.0, 140.0],
             slew_rate: 0.9e6,
             safe_state: SafeState::Bias,
-            feedback: Some([0.2, 0.01, 0.1]),
+            feedback: Some(twinstack::protocol::messages::FeedbackParams {
+                kp: 0.2,
+                ki: 500.0,
+                kd: 0.0,
+                derivative_cutoff_hz: 1.0,
+                limit: 0.1,
+                notch: None,
+                drift_limit: None,
+            }),
             mode,
         }
     }

@@ -7,8 +7,10 @@
 //! every run.
 //!
 //! For each compensator (none, inverse P–I N = 8/16/32, inverse Duhem), with the Duhem
-//! observer and sensor feedback on (plus two breakdown rows: `bypass` = split, limits and DAC
-//! write only; `none-observer-only` = that plus the Duhem observer), it runs [`Controller::tick`] on the firmware's own DAC and
+//! observer and sensor feedback on (plus breakdown rows: `bypass` = split, limits and DAC
+//! write only; `none-observer-only` = that plus the Duhem observer; `none-sensor-drift` = that
+//! plus the sensor read and drift check, open loop; `none-pid-notch` = closed loop with the
+//! derivative and the resonance notch), it runs [`Controller::tick`] on the firmware's own DAC and
 //! ADC drivers (the DAC write is the real `DHR12RD` store) for a triangle setpoint (±0.95) that
 //! reverses every 100 ticks, and prints one line per configuration over semihosting:
 //!
@@ -33,9 +35,10 @@ use stm32f4xx_hal::pac;
 
 use twinstack::board::DacCode;
 use twinstack::board::{DualDac, SensorAdc};
+use twinstack::control::Mode;
 use twinstack::control::{ControlConfig, Controller, TickReport};
 use twinstack::default_config::{
-    control_config, duhem_params, pi_params, scaling, CompensatorKind,
+    control_config, duhem_params, feedback_with_notch, pi_params, scaling, CompensatorKind,
 };
 use twinstack::drive::SafeState;
 use twinstack::drive::{DifferentialDrive, DriveOutput};
@@ -142,7 +145,11 @@ fn main() -> ! {
         }
     };
     let base = full(CompensatorKind::None);
-    let cases: [(&str, ControlConfig); 7] = [
+    let with_notch = match feedback_with_notch(RATE_HZ) {
+        Ok(f) => f,
+        Err(_) => panic!("notch refused"),
+    };
+    let cases: [(&str, ControlConfig); 9] = [
         // Breakdown of the fixed part: split + limits + DAC alone, then + the Duhem observer.
         ("bypass", ControlConfig::bypass(base.drive)),
         (
@@ -158,6 +165,22 @@ fn main() -> ! {
         ("inverse-pi-16", full(CompensatorKind::InversePi(16))),
         ("inverse-pi-32", full(CompensatorKind::InversePi(32))),
         ("inverse-duhem", full(CompensatorKind::InverseDuhem)),
+        // Breakdown of the feedback: the sensor read and drift check alone (open loop), then
+        // PID with the resonance notch.
+        (
+            "none-sensor-drift",
+            ControlConfig {
+                mode: Mode::OpenLoop,
+                ..base
+            },
+        ),
+        (
+            "none-pid-notch",
+            ControlConfig {
+                feedback: Some(with_notch),
+                ..base
+            },
+        ),
     ];
     for (name, config) in cases {
         let mut c = Controller::new(config);

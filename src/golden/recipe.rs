@@ -139,11 +139,18 @@ impl Recipe {
                 settings.build().map_err(RecipeError::Settings)?.feedback
             }
         };
+        // Closed loop with a sensor, else compensated open loop, else bypass.
+        let mode = match (&feedback, &compensator) {
+            (Some(_), _) => Mode::ClosedLoop,
+            (None, Compensator::None) => Mode::Bypass,
+            (None, _) => Mode::OpenLoop,
+        };
         Ok(ControlConfig {
             compensator,
             observer,
             feedback,
             drive: DifferentialDrive::new(&self.drive, s)?,
+            mode,
         })
     }
 
@@ -292,16 +299,14 @@ impl Recipe {
         };
         let feedback = if r.tag(2)? == 1 {
             let adc_bits = r.u8()? as u32;
-            Some(FeedbackSettings {
-                sensor: SensorSettings {
-                    adc_bits,
-                    displacement_at_zero: r.f64()?,
-                    displacement_at_full_scale: r.f64()?,
-                },
-                kp: r.f64()?,
-                ki: r.f64()?,
-                limit: r.f64()?,
-            })
+            let sensor = SensorSettings {
+                adc_bits,
+                displacement_at_zero: r.f64()?,
+                displacement_at_full_scale: r.f64()?,
+            };
+            let (kp, ki, limit) = (r.f64()?, r.f64()?, r.f64()?);
+            // PI feedback only: the golden sets carry no derivative, notch or drift limit.
+            Some(FeedbackSettings::pi(sensor, kp, ki, limit))
         } else {
             None
         };
@@ -393,16 +398,16 @@ mod tests {
             duhem: Some(default_config::duhem_params()),
             scaling: default_config::scaling(),
             drive: default_config::drive_settings(50_000.0, SafeState::Bias),
-            feedback: Some(FeedbackSettings {
-                sensor: SensorSettings {
+            feedback: Some(FeedbackSettings::pi(
+                SensorSettings {
                     adc_bits: 12,
                     displacement_at_zero: -1.0,
                     displacement_at_full_scale: 71.0,
                 },
-                kp: 0.2,
-                ki: 500.0,
-                limit: 0.1,
-            }),
+                0.2,
+                500.0,
+                0.1,
+            )),
         }
     }
 

@@ -139,12 +139,42 @@ pub struct ParamSet {
     pub slew_rate: f32,
     /// Safe state on a fault.
     pub safe_state: SafeState,
-    /// PI feedback `[kp, ki, limit]`: `kp` normalised drive per normalised displacement error,
-    /// `ki` the same per tick, `limit` the largest correction as a fraction of the drive range,
-    /// (0, 1]. The sensor's calibration is the board's, not the load's.
-    pub feedback: Option<[f32; 3]>,
+    /// Sensor feedback: PI(D) gains, correction limit, notch and drift limit.
+    pub feedback: Option<FeedbackParams>,
     /// Mode to enter once loaded.
     pub mode: Mode,
+}
+
+/// Sensor feedback on the wire (see `settings::FeedbackSettings`, which it becomes with the
+/// board's sensor calibration). Gains in normalised units (drive fraction per displacement
+/// fraction).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct FeedbackParams {
+    /// Proportional gain, 0 ≤ kp < 7.5.
+    pub kp: f32,
+    /// Integral gain, per second (below the control rate).
+    pub ki: f32,
+    /// Derivative gain, seconds (0: none).
+    pub kd: f32,
+    /// Corner of the derivative's low pass, Hz.
+    pub derivative_cutoff_hz: f32,
+    /// Largest correction, fraction of the drive range (0…1].
+    pub limit: f32,
+    /// Notch on the error at the stage resonance, if any.
+    pub notch: Option<NotchParams>,
+    /// Drift limit, fraction of the output range (0…1], if the drift check is wanted.
+    pub drift_limit: Option<f32>,
+}
+
+/// The resonance notch on the wire (see `notch::NotchDesign`).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct NotchParams {
+    /// Centre frequency, Hz.
+    pub frequency_hz: f32,
+    /// Quality factor (centre over −3 dB width).
+    pub q: f32,
+    /// Gain at the centre, 0…1.
+    pub depth: f32,
 }
 
 /// The built-in waveform generator.

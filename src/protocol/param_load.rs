@@ -37,7 +37,7 @@ pub fn nack_reason(e: SettingsError) -> NackReason {
         SettingsError::ModeNeedsModel | SettingsError::ClosedLoopNeedsSensor => {
             NackReason::Unsupported
         }
-        SettingsError::BadFeedback => NackReason::OutOfRange,
+        SettingsError::BadFeedback | SettingsError::Notch(_) => NackReason::OutOfRange,
     }
 }
 
@@ -108,14 +108,9 @@ pub fn settings_from_params(p: &ParamSet, board: &BoardProfile) -> Result<Settin
     }
     // With a sensor on board the feedback settings are always present (the recorder uses
     // the calibration); the gains only act in closed loop.
-    let feedback = board.sensor.map(|sensor| {
-        let [kp, ki_per_tick, limit] = p.feedback.unwrap_or([0.0, 0.0, 1.0]);
-        FeedbackSettings {
-            sensor,
-            kp: f(kp),
-            ki: f(ki_per_tick) * board.control_rate_hz,
-            limit: f(limit),
-        }
+    let feedback = board.sensor.map(|sensor| match &p.feedback {
+        Some(params) => FeedbackSettings::from_wire(params, sensor),
+        None => FeedbackSettings::pi(sensor, 0.0, 0.0, 1.0),
     });
     Ok(Settings {
         model: Some(model),
@@ -132,7 +127,7 @@ pub fn sensor_calibration(settings: &Settings) -> Option<Feedback> {
     settings
         .feedback
         .as_ref()
-        .and_then(|fb| settings.feedback_config(fb).ok())
+        .and_then(|fb| settings.feedback_config(fb, false).ok())
 }
 
 /// Encodes the flash record holding `board` and `params` (layout [`PARAMS_VERSION`]) into

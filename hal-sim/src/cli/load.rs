@@ -49,7 +49,7 @@ pub struct Args {
     /// PI feedback proportional gain [default: 0.2].
     #[arg(long)]
     pub kp: Option<f64>,
-    /// PI feedback integral gain per tick [default: 0.01].
+    /// PI feedback integral gain per second [default: 500, i.e. 0.01 per tick at 50 kHz].
     #[arg(long)]
     pub ki: Option<f64>,
     /// Largest feedback correction, fraction of the drive range [default: 0.2].

@@ -4,8 +4,10 @@
 //! [`board_link`]'s `--port` / `--baud` / `--timeout-ms`.
 
 pub mod board_link;
+pub mod closed_loop;
 pub mod compensate;
 pub mod demo;
+pub mod dual_stage;
 pub mod golden;
 pub mod identify;
 pub mod load;

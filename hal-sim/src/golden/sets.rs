@@ -122,16 +122,12 @@ fn drive(configuration: Configuration, dac_full_scale: u16) -> DriveSettings {
 /// PI feedback on a sensor ADC of `adc_bits` spanning the output range plus 5 % each side.
 fn feedback(scaling: &Scaling, adc_bits: u32) -> FeedbackSettings {
     let margin = 0.05 * (scaling.output_max - scaling.output_min);
-    FeedbackSettings {
-        sensor: SensorSettings {
-            adc_bits,
-            displacement_at_zero: scaling.output_min - margin,
-            displacement_at_full_scale: scaling.output_max + margin,
-        },
-        kp: 0.1,
-        ki: 1000.0,
-        limit: 0.1,
-    }
+    let sensor = SensorSettings {
+        adc_bits,
+        displacement_at_zero: scaling.output_min - margin,
+        displacement_at_full_scale: scaling.output_max + margin,
+    };
+    FeedbackSettings::pi(sensor, 0.1, 1000.0, 0.1)
 }
 
 /// Every set, from the parameter files in `dir` (the golden directory).

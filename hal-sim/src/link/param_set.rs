@@ -17,7 +17,9 @@ use twinstack::default_config;
 use twinstack::drive::{Configuration, DifferentialDrive, DriveError, SafeState};
 use twinstack::duhem::{Duhem, InverseDuhem};
 use twinstack::prandtl_ishlinskii::{InversePrandtlIshlinskii, PrandtlIshlinskii};
-use twinstack::protocol::messages::{Mode, ModelParams, ParamSet, MAX_PARAM_OPERATORS};
+use twinstack::protocol::messages::{
+    FeedbackParams, Mode, ModelParams, ParamSet, MAX_PARAM_OPERATORS,
+};
 use twinstack::{DuhemParams, ParamError, PiParams, Scaling};
 
 /// What a parameter load sets besides the model: the drive, the feedback and the mode.
@@ -33,7 +35,7 @@ pub struct DriveOptions {
     pub slew_rate: f64,
     /// Where the outputs go on a fault.
     pub safe_state: SafeState,
-    /// PI feedback `[kp, ki per tick, correction limit (fraction of the drive range)]`, or
+    /// PI feedback `[kp, ki per second, correction limit (fraction of the drive range)]`, or
     /// none.
     pub feedback: Option<[f64; 3]>,
     /// Mode to enter once loaded.
@@ -42,7 +44,8 @@ pub struct DriveOptions {
 
 impl Default for DriveOptions {
     /// The firmware's compiled-in drive (differential, bias 70 V, 0…140 V, 2 V/µs, safe state
-    /// bias), its feedback gains (kp 0.2, ki 0.01 per tick, limit 0.2) and open loop.
+    /// bias), its feedback gains (kp 0.2, ki 500 per second — 0.01 per tick at 50 kHz —,
+    /// limit 0.2) and open loop.
     fn default() -> Self {
         let d = default_config::drive_settings(50_000.0, SafeState::Bias);
         Self {
@@ -51,7 +54,7 @@ impl Default for DriveOptions {
             voltage_limits: [d.min_voltage, d.max_voltage],
             slew_rate: d.slew_rate,
             safe_state: d.safe_state,
-            feedback: Some([0.2, 0.01, 0.2]),
+            feedback: Some([0.2, 500.0, 0.2]),
             mode: Mode::OpenLoop,
         }
     }
@@ -193,11 +196,15 @@ pub fn param_set(model: &StageModel, drive: &DriveOptions) -> Result<ParamSet, P
             if !ok {
                 return Err(ParamSetError::Feedback(g));
             }
-            Some([
-                f32_of("kp", g[0])?,
-                f32_of("ki", g[1])?,
-                f32_of("limit", g[2])?,
-            ])
+            Some(FeedbackParams {
+                kp: f32_of("kp", g[0])?,
+                ki: f32_of("ki", g[1])?,
+                kd: 0.0,
+                derivative_cutoff_hz: 1.0,
+                limit: f32_of("limit", g[2])?,
+                notch: None,
+                drift_limit: None,
+            })
         }
     };
     if drive.mode == Mode::ClosedLoop {
