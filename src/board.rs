@@ -2,6 +2,9 @@
 //! sensor ADC. `embedded-hal` 1.0 has no DAC or ADC trait, so these are ours; the firmware
 //! implements them over the STM32's registers (or the external SPI converters), and `hal-sim`
 //! over its emulated converters.
+//!
+//! The coarse stage of a dual-actuated axis adds two more: a step/direction output
+//! ([`StepDir`]) and quadrature encoder inputs ([`QuadratureEncoder`]).
 
 /// A DAC output code, right-aligned (0…4095 for the 12-bit internal DAC, 0…65535 for a
 /// 16-bit external one).
@@ -33,6 +36,46 @@ pub trait SensorAdc {
     fn full_scale(&self) -> AdcCode;
     /// The most recent conversion (started by the control timer's trigger).
     fn read(&mut self) -> Result<AdcCode, Self::Error>;
+}
+
+/// Direction of travel of the coarse stage's motor (the step/dir driver's DIR line).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub enum StepDirection {
+    /// Towards increasing position (DIR high).
+    Forward,
+    /// Towards decreasing position (DIR low).
+    Reverse,
+}
+
+/// A burst of step pulses for the coarse stage's motor driver, spread evenly over the next
+/// coarse period.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct StepBurst {
+    /// DIR level for the whole burst.
+    pub direction: StepDirection,
+    /// Number of STEP pulses (microsteps), at most the output's `max_steps_per_burst`.
+    pub steps: u16,
+}
+
+/// The coarse stage's step/direction output (a timer generating the STEP pulses, a GPIO for
+/// DIR).
+pub trait StepDir {
+    /// Why a burst was refused (e.g. the previous one is still running).
+    type Error;
+    /// Most pulses one burst may hold.
+    fn max_steps_per_burst(&self) -> u16;
+    /// Sets DIR and starts the burst; its pulses are spread evenly over the coarse period.
+    /// On error nothing was emitted.
+    fn emit(&mut self, burst: StepBurst) -> Result<(), Self::Error>;
+}
+
+/// A quadrature encoder input (a timer in encoder mode, ×4 counting): the raw 16-bit counter,
+/// which wraps; [`crate::coarse_axis::EncoderCounter`] extends it.
+pub trait QuadratureEncoder {
+    /// The counter now.
+    fn count(&mut self) -> u16;
 }
 
 /// Test doubles of the board, shared by the library's unit tests.

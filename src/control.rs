@@ -361,7 +361,7 @@ impl Controller {
     /// One control tick (see the module doc). `setpoint` is the next desired displacement
     /// (Q2.30 normalised), `None` on underrun. Reads the sensor (when feedback is on), writes
     /// both DAC channels at once, and reports what it did.
-    #[inline]
+    #[inline(always)]
     pub fn tick<D: DualDac, A: SensorAdc>(
         &mut self,
         setpoint: Option<i32>,
@@ -373,7 +373,7 @@ impl Controller {
 
     /// [`Controller::tick`] for a board that is both the DAC and the ADC (the simulated
     /// board): same code, one borrow.
-    #[inline]
+    #[inline(always)]
     pub fn tick_board<B: DualDac + SensorAdc>(
         &mut self,
         setpoint: Option<i32>,

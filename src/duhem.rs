@@ -58,6 +58,7 @@ pub struct Duhem {
 impl Duhem {
     /// Validates `params` (physical units) and converts them, normalised by `scaling`, into the
     /// fixed-point form the tick runs.
+    #[inline(never)] // configuration, off the tick path: one copy in flash
     pub fn new(params: &DuhemParams, scaling: &Scaling) -> Result<Self, ParamError> {
         let n = params.normalized(scaling)?;
         let alpha = gain_from_f64(n.alpha);
@@ -106,7 +107,7 @@ impl Duhem {
     /// shifted down by 6; `γ·Δu` is Q8.24 × Q2.30) and brought back to Q2.30 once, rounding
     /// toward −∞ and saturating ([`q54_to_signal_floor`]): one rounding per step instead of
     /// one per term, and a multiply-accumulate instead of two shifts and a 64-bit add.
-    #[inline]
+    #[inline(always)]
     pub fn step(&self, state: &mut DuhemState, u: i32) -> i32 {
         let u = clamp_full_scale(u);
         // |Δu| ≤ 2; a full-range jump saturates 2^-30 short of 2 (QSUB).
@@ -146,6 +147,7 @@ pub struct InverseDuhem {
 
 impl InverseDuhem {
     /// Validates `params` and builds the compensator for them, normalised by `scaling`.
+    #[inline(never)] // configuration, off the tick path: one copy in flash
     pub fn new(params: &DuhemParams, scaling: &Scaling) -> Result<Self, ParamError> {
         let model = Duhem::new(params, scaling)?;
         let min_slope = (model.beta.min(model.gamma) / MIN_SLOPE_DIVISOR).max(1);
@@ -163,7 +165,7 @@ impl InverseDuhem {
 
     /// One sample: desired displacement `y_d` (Q2.30 normalised, clamped to [-1, 1]) → drive
     /// (Q2.30 normalised, within [-1, 1]). `state` is the compensator's own forward model.
-    #[inline]
+    #[inline(always)]
     pub fn step(&self, state: &mut DuhemState, y_desired: i32) -> i32 {
         let dy = clamp_full_scale(y_desired) as i64 - state.y as i64;
         if dy == 0 {

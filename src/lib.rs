@@ -21,6 +21,9 @@
 //! * [`protocol`] — the UART protocol: frames, messages, and the board's command handler.
 //! * [`golden`] — golden vectors: recorded ticks the board must reproduce bit for bit.
 //! * [`converters`] — SPI drivers of the external DAC (DAC8562/3) and sensor ADC (ADS8689).
+//! * [`dual_stage`] — the dual-actuated stage: ball-screw coarse stage + piezo fine stage under
+//!   one controller (setpoint split, trapezoidal moves, centring, hand-over); [`coarse_axis`] —
+//!   its step generation and quadrature counting.
 //!
 //! Everything here is allocation-free; the per-sample `step` functions have no panic path
 //! and no unbounded loop.
@@ -32,11 +35,13 @@
 #![warn(missing_docs)]
 
 pub mod board;
+pub mod coarse_axis;
 pub mod control;
 pub mod control_loop;
 pub mod converters;
 pub mod default_config;
 pub mod drive;
+pub mod dual_stage;
 pub mod duhem;
 pub mod feedback;
 pub mod fixed_point;

@@ -362,6 +362,7 @@ impl PlayOperatorBank {
 
     /// A state from operator outputs: projected onto the bank's invariant
     /// (`p_1 = x`, `|p_{i+1} − p_i| ≤ r_{i+1} − r_i`, `|p_i − x| ≤ r_i`), stored one by one.
+    #[inline(never)] // configuration, off the tick path: one copy in flash
     fn state_from(&self, mut operators: [i32; MAX_CANONICAL_OPERATORS], x: i32) -> PiState {
         let mut previous: Option<(i32, i32)> = None; // (p, r) of the operator before
         let mut sum = 0i64;
@@ -428,6 +429,7 @@ pub struct PrandtlIshlinskii {
 impl PrandtlIshlinskii {
     /// Validates `params` (physical units) and converts them, normalised by `scaling`, into
     /// the fixed-point form the tick runs.
+    #[inline(never)] // configuration, off the tick path: one copy in flash
     pub fn new(params: &PiParams, scaling: &Scaling) -> Result<Self, ParamError> {
         let canonical = params.normalized(scaling)?.canonical()?;
         Ok(Self {
@@ -453,7 +455,7 @@ impl PrandtlIshlinskii {
 
     /// One sample: input `u` (Q2.30 normalised drive, clamped to [-1, 1]) → output `y`
     /// (Q2.30 normalised displacement, saturated).
-    #[inline]
+    #[inline(always)]
     pub fn step(&self, state: &mut PiState, u: i32) -> i32 {
         let acc = self.bank.step(state, clamp_full_scale(u));
         q54_to_signal_floor(acc + ((self.offset as i64) << GAIN_FRAC_BITS))
@@ -476,6 +478,7 @@ impl InversePrandtlIshlinskii {
     /// Builds the inverse of the forward model `params` (physical units), normalised by
     /// `scaling`. Refuses non-invertible models (`w_1 ≤ 0`, a partial sum `S_i ≤ 0`) with the
     /// first failing operator, and inverses whose weights do not fit Q8.24.
+    #[inline(never)] // configuration, off the tick path: one copy in flash
     pub fn new(params: &PiParams, scaling: &Scaling) -> Result<Self, ParamError> {
         let forward = params.normalized(scaling)?.canonical()?;
         let inverse = forward.inverse()?;
@@ -505,6 +508,7 @@ impl InversePrandtlIshlinskii {
     /// from [`PlayOperatorBank::outputs`] of the observer's bank):
     /// `p'_i = S_i p_i + Σ_{j>i} w_j p_j`, so that switching the compensator on mid-run
     /// continues from where the stage is. Off the tick path (O(N²)).
+    #[inline(never)] // configuration, off the tick path: one copy in flash
     pub fn state_from_forward(&self, p: &[i32; MAX_CANONICAL_OPERATORS]) -> PiState {
         let n = self.bank.operators();
         let mut operators = [0; MAX_CANONICAL_OPERATORS];
@@ -527,7 +531,7 @@ impl InversePrandtlIshlinskii {
 
     /// One sample: desired displacement `y` (Q2.30 normalised, clamped to [-1, 1]) → drive `u`
     /// (Q2.30 normalised, saturated; the caller clamps it to the drive's limits).
-    #[inline]
+    #[inline(always)]
     pub fn step(&self, state: &mut PiState, y: i32) -> i32 {
         let x = clamp_full_scale(y).saturating_sub(self.offset);
         q54_to_signal_floor(self.bank.step(state, x))

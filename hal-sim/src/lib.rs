@@ -17,13 +17,18 @@
 //!   notch's step.
 //! * [`golden`] — golden vectors: generating them, and checking them against the `f64` tick.
 //! * [`link`] — the host end of the board link: [`link::Transport`] and the protocol client.
+//! * [`dual_stage_sim`] — the piezo stage on a ball-screw coarse stage ([`plant::ball_screw`]),
+//!   with the emulated step/dir output and encoders ([`coarse_stage`]): the dual-stage controller
+//!   end to end.
 //! * [`cli`] — the `hal-sim` subcommands.
 
 pub mod accuracy;
 pub mod cli;
 pub mod closed_loop;
+pub mod coarse_stage;
 pub mod converters;
 pub mod demo;
+pub mod dual_stage_sim;
 pub mod golden;
 pub mod identification;
 pub mod link;

@@ -41,6 +41,9 @@ enum Command {
     /// Generate the golden vectors (the tick's recorded runs the board must reproduce) and
     /// check them against the stored file and the f64 reference, or write them (--write).
     Golden(cli::golden::Args),
+    /// The dual-actuated stage (ball screw + piezo) in simulation: a 5 mm move and a
+    /// trajectory larger than the piezo's stroke (coarse only / dual).
+    DualStage(cli::dual_stage::Args),
 }
 
 fn main() -> std::process::ExitCode {
@@ -80,6 +83,7 @@ fn main() -> std::process::ExitCode {
         Command::Stop(a) => cli::stop::run(a),
         Command::Record(a) => cli::record::run(a),
         Command::Golden(a) => cli::golden::run(a),
+        Command::DualStage(a) => cli::dual_stage::run(a),
     };
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,

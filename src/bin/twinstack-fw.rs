@@ -17,6 +17,10 @@
 //!   tick's state through short RTIC locks. After each request it re-arms the safe-state codes
 //!   of the newest configuration. `StoreParams` writes flash sector 11 (board image; the
 //!   tick stalls for the erase, the watchdog is stretched meanwhile).
+//! * **Coarse stage** (feature `dual-stage`; priority 2, TIM3 at 5 kHz): the dual-actuated
+//!   stage's coarse tick ([`twinstack::dual_stage::DualStage::coarse_tick`]): reads the motor
+//!   and linear encoders, runs the trajectory and emits a burst of step pulses on TIM1. It
+//!   holds its power-up position until a command moves it; the piezo tick is untouched.
 //! * **Safety**: a panic or hard fault masks interrupts, drives both outputs to the safe state
 //!   (bias or zero) and halts; the watchdog then resets the MCU. A parameter record with a
 //!   bad CRC (or none) means defaults and the `DEFAULTS` flag in the status report.
@@ -61,8 +65,12 @@ mod app {
 
     use twinstack::control_loop::{ControlLoop, SetpointQueue, SETPOINT_QUEUE_LEN};
     use twinstack::default_config;
+    #[cfg(feature = "dual-stage")]
+    use twinstack::dual_stage::{DualStage, DualStageSettings};
     use twinstack::hardware::adc::SensorInput;
     use twinstack::hardware::clocks;
+    #[cfg(feature = "dual-stage")]
+    use twinstack::hardware::coarse_stage::{CoarseTimer, LinearEncoder, MotorEncoder, StepOutput};
     use twinstack::hardware::control_timer::ControlTimer;
     use twinstack::hardware::dac::InternalDac;
     use twinstack::hardware::param_flash;
@@ -143,6 +151,39 @@ mod app {
         }
     }
 
+    /// Everything the coarse-stage task owns.
+    #[cfg(feature = "dual-stage")]
+    pub struct CoarseStage {
+        /// `None` when the dual-stage settings are refused for this tick rate (logged at boot).
+        dual: Option<DualStage>,
+        steps: StepOutput,
+        motor: MotorEncoder,
+        linear: LinearEncoder,
+        timer: CoarseTimer,
+    }
+
+    #[cfg(feature = "dual-stage")]
+    impl CoarseStage {
+        /// One coarse tick. A refused burst (the last one still running) keeps its steps for
+        /// the next tick.
+        fn run(&mut self) {
+            self.timer.acknowledge();
+            if let Some(dual) = self.dual.as_mut() {
+                let _report =
+                    dual.coarse_tick(&mut self.steps, &mut self.motor, &mut self.linear, None);
+            }
+        }
+    }
+
+    /// Without the `dual-stage` feature there is no coarse stage (TIM3 never starts).
+    #[cfg(not(feature = "dual-stage"))]
+    pub struct CoarseStage;
+
+    #[cfg(not(feature = "dual-stage"))]
+    impl CoarseStage {
+        fn run(&mut self) {}
+    }
+
     #[shared]
     struct Shared {
         /// Shared by the TIM2 (board) and SysTick (emulator) bindings (only one ever fires)
@@ -158,6 +199,7 @@ mod app {
         bytes_in: Consumer<'static, u8, RX_QUEUE>,
         setpoints_in: Producer<'static, i16, SETPOINT_QUEUE_LEN>,
         tx: UsartTx,
+        coarse: CoarseStage,
     }
 
     #[init(local = [
@@ -232,6 +274,47 @@ mod app {
         );
         let watchdog = Watchdog::start(dp.IWDG, &dp.DBGMCU);
 
+        // The coarse stage (feature `dual-stage`): settings refused for this tick rate leave it
+        // idle, not the board.
+        #[cfg(feature = "dual-stage")]
+        let coarse = {
+            let gpiob = dp.GPIOB.split(&mut rcc);
+            let gpioc = dp.GPIOC.split(&mut rcc);
+            let _step_pin = gpioa.pa8.into_alternate::<1>();
+            let dir_pin = gpiob.pb0.into_push_pull_output();
+            let _linear_a = gpiob.pb6.into_alternate::<2>();
+            let _linear_b = gpiob.pb7.into_alternate::<2>();
+            let _motor_a = gpioc.pc6.into_alternate::<3>();
+            let _motor_b = gpioc.pc7.into_alternate::<3>();
+            let dual_settings = DualStageSettings {
+                fine_rate_hz: rate as f64,
+                ..DualStageSettings::paper_stage()
+            };
+            let coarse_rate = dual_settings.coarse_rate_hz as u32;
+            let steps = StepOutput::new(dp.TIM1, dir_pin, &rcc, &bus, coarse_rate);
+            let mut motor = MotorEncoder::new(dp.TIM8, &rcc);
+            let mut linear = LinearEncoder::new(dp.TIM4, &rcc);
+            let dual = match dual_settings.build() {
+                Ok(config) => {
+                    use twinstack::board::QuadratureEncoder;
+                    Some(DualStage::new(config, 0, motor.count(), linear.count()))
+                }
+                Err(e) => {
+                    defmt::warn!("coarse stage idle: settings refused ({=str})", e.as_str());
+                    None
+                }
+            };
+            CoarseStage {
+                dual,
+                steps,
+                motor,
+                linear,
+                timer: CoarseTimer::start(dp.TIM3, &rcc, &bus, coarse_rate),
+            }
+        };
+        #[cfg(not(feature = "dual-stage"))]
+        let coarse = CoarseStage;
+
         let (setpoints_in, setpoints) = cx.local.setpoint_queue.split();
         let (bytes, bytes_in) = cx.local.rx_queue.split();
         defmt::info!(
@@ -256,6 +339,7 @@ mod app {
                 bytes_in,
                 setpoints_in,
                 tx,
+                coarse,
             },
         )
     }
@@ -268,16 +352,25 @@ mod app {
         }
     }
 
-    /// The control tick on the board: TIM2 update.
+    /// The control tick on the board: TIM2 update. (One tick handler per image, so the
+    /// inlined tick is in flash once.)
+    #[cfg(not(feature = "emulator"))]
     #[task(binds = TIM2, priority = 3, shared = [tick])]
     fn tim2_tick(mut cx: tim2_tick::Context) {
         cx.shared.tick.lock(|t| t.run());
     }
 
     /// The control tick in the emulator: SysTick.
+    #[cfg(feature = "emulator")]
     #[task(binds = SysTick, priority = 3, shared = [tick])]
     fn systick_tick(mut cx: systick_tick::Context) {
         cx.shared.tick.lock(|t| t.run());
+    }
+
+    /// The coarse stage's tick: TIM3 update (started only with the `dual-stage` feature).
+    #[task(binds = TIM3, priority = 2, local = [coarse])]
+    fn coarse_tick(cx: coarse_tick::Context) {
+        cx.local.coarse.run();
     }
 
     /// USART1: idle line (board) or a received byte (emulator).

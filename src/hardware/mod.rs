@@ -11,6 +11,9 @@
 //! | position sensor | PA0 | ADC1 channel 0, triggered by TIM2 TRGO |
 //! | host link TX / RX | PA9 / PA10 | USART1 (AF7), RX by DMA2 stream 2 channel 4 |
 //! | SWD | PA13 / PA14 | debug probe |
+//! | coarse stage STEP / DIR | PA8 / PB0 | TIM1 CH1 (AF1) / GPIO ([`coarse_stage`]) |
+//! | motor encoder A / B | PC6 / PC7 | TIM8 CH1 / CH2 (AF3), encoder mode |
+//! | linear encoder A / B | PB6 / PB7 | TIM4 CH1 / CH2 (AF2), encoder mode |
 //!
 //! The `emulator` feature swaps exactly three things for QEMU's `netduinoplus2`, which models
 //! neither RCC, DMA, the DAC nor TIM2's update interrupt: the clock stays on HSI
@@ -20,6 +23,7 @@
 
 pub mod adc;
 pub mod clocks;
+pub mod coarse_stage;
 pub mod control_timer;
 pub mod dac;
 pub mod param_flash;

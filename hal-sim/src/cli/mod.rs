@@ -7,6 +7,7 @@ pub mod board_link;
 pub mod closed_loop;
 pub mod compensate;
 pub mod demo;
+pub mod dual_stage;
 pub mod golden;
 pub mod identify;
 pub mod load;

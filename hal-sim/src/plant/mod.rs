@@ -5,12 +5,15 @@
 //! * [`reduced`] — its `K_0 → ∞` 1-DOF reduction.
 //! * [`hysteresis`] — Duhem or P–I hysteresis per stack, with a skew option.
 //! * [`zero_order_hold`] — the exact discretisation both mechanical models are advanced with.
+//! * [`ball_screw`] — the coarse stage of a dual-actuated axis (stepper, screw, backlash,
+//!   friction, encoder) that carries the piezo stage.
 //!
 //! [`Plant`] puts them together: each control period it takes the two amplifier output
 //! voltages, passes each through its stack's hysteresis (`e = u − v^h`), holds the effective
 //! voltages for one period `dt` through the exact zero-order hold of the linear part, and
 //! returns the stage displacement in µm.
 
+pub mod ball_screw;
 pub mod coupled;
 pub mod hysteresis;
 pub mod reduced;

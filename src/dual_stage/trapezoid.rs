@@ -1,0 +1,257 @@
+//! Trapezoidal velocity profile, generated online one coarse tick at a time.
+//!
+//! Units: position in **picometres** (`i64`: ±9.2e6 m, so no travel wraps and a nanometre is
+//! exact), velocity in **picometres per coarse tick**, acceleration in **picometres per coarse
+//! tick²** (at 1 kHz, 1 pm/tick = 1 nm/s and 1 pm/tick² = 1 µm/s²). Integers rather than
+//! `f32`: a 5 mm move resolved to a nanometre needs 23 bits of position *plus* the fraction
+//! the profile accumulates, more than `f32`'s 24-bit mantissa; `i64` is exact and gives the
+//! host and the target the same trajectory bit for bit.
+//!
+//! Each tick the profile picks the fastest velocity from which it can still stop at the target
+//! by braking at the acceleration limit, limited by the velocity limit and by the acceleration
+//! limit from its present velocity; it never steps past the target. From rest to a fixed
+//! target that gives the trapezoid (or triangle, on a short move), ending exactly on the
+//! target; a target that moves is followed as closely as the limits allow.
+
+use crate::fixed_point::limit_i64;
+
+/// Velocity and acceleration limits of a profile.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct MotionLimits {
+    /// Largest speed, picometres per coarse tick (≥ 1).
+    pub velocity: i64,
+    /// Largest acceleration, picometres per coarse tick² (1 ≤ acceleration ≤ velocity).
+    pub acceleration: i64,
+}
+
+/// Largest speed a profile accepts, pm per tick (1 m/s at 1 kHz); it keeps the braking
+/// distance's arithmetic inside `u64`.
+pub const MAX_VELOCITY_PM_PER_TICK: i64 = 1_000_000_000;
+
+impl MotionLimits {
+    /// Whether the limits are usable: `1 ≤ acceleration ≤ velocity ≤` [`MAX_VELOCITY_PM_PER_TICK`].
+    pub fn is_valid(&self) -> bool {
+        self.acceleration >= 1
+            && self.acceleration <= self.velocity
+            && self.velocity <= MAX_VELOCITY_PM_PER_TICK
+    }
+
+    /// The fastest speed from which braking at `acceleration` per tick stops within `distance`:
+    /// braking from `v` covers `v + (v − a) + … ≈ v²/(2a) + v/2`, so
+    /// `v ≈ (√(a² + 8a·d) − a) / 2` (then settled on the exact sum), capped at the velocity limit.
+    fn stopping_speed(&self, distance: u64) -> i64 {
+        // Valid limits have 1 ≤ a ≤ v ≤ 1e9; anything else is forced into that range here so
+        // that no division or product below can panic or overflow.
+        let v = self.velocity.clamp(1, MAX_VELOCITY_PM_PER_TICK) as u64;
+        let a = (self.acceleration.max(1) as u64).min(v);
+        // Beyond the braking distance from full speed the answer is the limit (and the square
+        // root's argument would no longer be bounded).
+        if distance >= braking_distance(v, a) {
+            return v as i64;
+        }
+        // Exactly: with `u = n·a + r` (0 ≤ r < a) braking covers `(n + 1)(n·a/2 + r)`. Find
+        // the largest whole `n` with `(n + 1)·n·a/2 ≤ d` (the square root's estimate, settled
+        // by at most a step or two either way), then the largest `r` that still fits.
+        let mut n = ((1 + 8 * distance.checked_div(a).unwrap_or(0)).isqrt() - 1) / 2;
+        for _ in 0..4 {
+            if (n + 2) * (n + 1) * a / 2 <= distance {
+                n += 1;
+            } else if n > 0 && (n + 1) * n * a / 2 > distance {
+                n -= 1;
+            } else {
+                break;
+            }
+        }
+        let r = (2 * distance)
+            .saturating_sub((n + 1) * n * a)
+            .checked_div(2 * (n + 1))
+            .unwrap_or(0)
+            .min(a - 1);
+        let u = n * a + r;
+        (u as i64).min(v as i64)
+    }
+}
+
+/// Distance covered by `u + (u − a) + (u − 2a) + …` while the terms are positive.
+fn braking_distance(u: u64, a: u64) -> u64 {
+    let n = u.checked_div(a).unwrap_or(0);
+    (n + 1) * u - a * n * (n + 1) / 2
+}
+
+/// The profile's state: where it is and how fast it goes.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct TrapezoidalProfile {
+    limits: MotionLimits,
+    /// Position, pm.
+    position: i64,
+    /// Velocity of the last tick, pm per tick.
+    velocity: i64,
+    /// Target of the last tick, pm.
+    last_target: i64,
+}
+
+impl TrapezoidalProfile {
+    /// At rest at `position` (pm). `limits` must be valid ([`MotionLimits::is_valid`]; the
+    /// settings check them).
+    pub fn new(position: i64, limits: MotionLimits) -> Self {
+        Self {
+            limits,
+            position,
+            velocity: 0,
+            last_target: position,
+        }
+    }
+
+    /// Advances one tick toward a fixed `target` (pm); returns the new position.
+    pub fn step(&mut self, target: i64) -> i64 {
+        self.last_target = target;
+        self.advance(target, 0)
+    }
+
+    /// Advances one tick toward a `target` (pm) that moves: its velocity (the change since the
+    /// last call, limited to the velocity limit) is fed forward and the profile closes the gap
+    /// relative to it, so a target moving at constant speed is followed without lag.
+    pub fn follow(&mut self, target: i64) -> i64 {
+        let v = self.limits.velocity;
+        let target_velocity = limit_i64(target.saturating_sub(self.last_target), -v, v);
+        self.last_target = target;
+        self.advance(target, target_velocity)
+    }
+
+    fn advance(&mut self, target: i64, target_velocity: i64) -> i64 {
+        // In the frame moving with the target (`v = target_velocity + w`), the gap left after
+        // this tick, if we only kept pace, is `d = target − position − target_velocity`, and it
+        // evolves as `d ← d − w`: a profile toward a fixed target at distance `d`.
+        let distance = target
+            .saturating_sub(self.position)
+            .saturating_sub(target_velocity);
+        let a = self.limits.acceleration;
+        let speed = self
+            .limits
+            .stopping_speed(distance.unsigned_abs())
+            .min(distance.saturating_abs());
+        let closing = if distance >= 0 { speed } else { -speed };
+        let v = self.limits.velocity;
+        let wanted = limit_i64(target_velocity.saturating_add(closing), -v, v);
+        self.velocity = limit_i64(wanted, self.velocity - a, self.velocity + a);
+        self.position = self.position.saturating_add(self.velocity);
+        self.position
+    }
+
+    /// Position, pm.
+    pub fn position(&self) -> i64 {
+        self.position
+    }
+
+    /// Velocity of the last tick, pm per tick.
+    pub fn velocity(&self) -> i64 {
+        self.velocity
+    }
+
+    /// The limits.
+    pub fn limits(&self) -> MotionLimits {
+        self.limits
+    }
+
+    /// Stops the profile where it is (velocity 0), e.g. when a new move is planned from rest.
+    pub fn reset_to(&mut self, position: i64) {
+        self.position = position;
+        self.velocity = 0;
+        self.last_target = position;
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    extern crate std;
+    use super::*;
+    use std::vec;
+    use std::vec::Vec;
+
+    fn run(limits: MotionLimits, from: i64, to: i64) -> Vec<(i64, i64)> {
+        let mut p = TrapezoidalProfile::new(from, limits);
+        let mut out = vec![];
+        for _ in 0..1_000_000 {
+            p.step(to);
+            out.push((p.position(), p.velocity()));
+            if p.position() == to && p.velocity() == 0 {
+                break;
+            }
+        }
+        out
+    }
+
+    #[test]
+    fn move_from_rest_is_a_trapezoid_that_ends_exactly_on_target() {
+        let limits = MotionLimits {
+            velocity: 10_000_000,
+            acceleration: 200_000,
+        };
+        for (from, to) in [(0, 5_000_000_000), (3, -123_456_789), (0, 7), (0, 150_000)] {
+            let path = run(limits, from, to);
+            let (mut prev_v, mut prev_x) = (0i64, from);
+            let mut peak = 0i64;
+            for &(x, v) in &path {
+                assert!(v.abs() <= limits.velocity);
+                assert!((v - prev_v).abs() <= limits.acceleration);
+                // Monotone, never past the target.
+                assert!((x - prev_x) * (to - from).signum() >= 0);
+                assert!((x - from).abs() <= (to - from).abs());
+                prev_v = v;
+                prev_x = x;
+                peak = peak.max(v.abs());
+            }
+            assert_eq!(*path.last().unwrap(), (to, 0));
+            if (to - from).abs() > 1_000_000_000 {
+                assert_eq!(peak, limits.velocity, "a long move cruises at the limit");
+            }
+        }
+    }
+
+    #[test]
+    fn long_move_takes_the_time_optimal_duration_within_a_few_ticks() {
+        let limits = MotionLimits {
+            velocity: 10_000_000,
+            acceleration: 100_000,
+        };
+        let d = 5_000_000_000i64;
+        let ideal = d as f64 / limits.velocity as f64 + limits.velocity as f64 / 100_000.0;
+        let ticks = run(limits, 0, d).len() as f64;
+        assert!((ticks - ideal).abs() < 3.0, "{ticks} ticks vs {ideal}");
+    }
+
+    #[test]
+    fn a_target_moving_at_constant_speed_is_followed_without_lag() {
+        let limits = MotionLimits {
+            velocity: 15_000,
+            acceleration: 400,
+        };
+        let mut p = TrapezoidalProfile::new(0, limits);
+        let mut prev = 0;
+        for k in 1..=2000i64 {
+            p.follow(10_000 * k);
+            assert!((p.velocity() - prev).abs() <= 400 && p.velocity().abs() <= 15_000);
+            prev = p.velocity();
+        }
+        assert_eq!(p.position(), 10_000 * 2000);
+    }
+
+    #[test]
+    fn a_target_reversed_mid_move_is_reached_within_the_limits() {
+        let limits = MotionLimits {
+            velocity: 1000,
+            acceleration: 10,
+        };
+        let mut p = TrapezoidalProfile::new(0, limits);
+        for _ in 0..200 {
+            p.step(1_000_000);
+        }
+        let mut prev = p.velocity();
+        for _ in 0..10_000 {
+            p.step(-500);
+            assert!((p.velocity() - prev).abs() <= 10 && p.velocity().abs() <= 1000);
+            prev = p.velocity();
+        }
+        assert_eq!((p.position(), p.velocity()), (-500, 0));
+    }
+}
