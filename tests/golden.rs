@@ -12,9 +12,7 @@
 
 mod support;
 
-use std::io::Read;
-use std::process::Stdio;
-use std::time::{Duration, Instant};
+use std::time::Duration;
 use twinstack::golden::{
     config_fingerprint, replay, CompensatorChoice, ObserverChoice, ReplayResult, VectorSet,
     VectorSets,
@@ -178,42 +176,12 @@ fn parse_line(line: &str) -> Result<BoardResult, String> {
 
 fn run_board() -> String {
     let elf = support::build_image("golden-replay", &["golden-replay"]);
-    let mut child = support::qemu_command(&elf)
-        .args(["-serial", "null"])
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .expect("qemu-system-arm starts");
-    let start = Instant::now();
-    let status = loop {
-        if let Some(s) = child.try_wait().expect("wait for qemu") {
-            break s;
-        }
-        if start.elapsed() > Duration::from_secs(300) {
-            let _ = child.kill();
-            let _ = child.wait();
-            panic!("the golden-replay image did not exit within 300 s");
-        }
-        std::thread::sleep(Duration::from_millis(50));
-    };
-    let (mut out, mut err) = (String::new(), String::new());
-    child
-        .stdout
-        .take()
-        .unwrap()
-        .read_to_string(&mut out)
-        .unwrap();
-    child
-        .stderr
-        .take()
-        .unwrap()
-        .read_to_string(&mut err)
-        .unwrap();
-    assert!(
-        status.success(),
-        "golden-replay exited with {status}:\n{out}\n{err}"
-    );
-    out
+    support::run_to_exit(
+        &elf,
+        &["-serial", "null"],
+        "the golden-replay image",
+        Duration::from_secs(300),
+    )
 }
 
 #[test]

@@ -11,9 +11,7 @@
 
 mod support;
 
-use std::io::Read;
-use std::process::Stdio;
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 /// Flash budget of the board image, bytes.
 const FLASH_BUDGET: u64 = 64 * 1024;
@@ -88,41 +86,11 @@ fn parse_part(line: &str) -> Result<Part, String> {
 
 fn run_bench() -> (Vec<Row>, Vec<Part>) {
     let elf = support::build_image("tick-bench", &["tick-bench"]);
-    let mut child = support::qemu_command(&elf)
-        .args(["-icount", "shift=0", "-serial", "null"])
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .expect("qemu-system-arm starts");
-    let start = Instant::now();
-    let status = loop {
-        if let Some(s) = child.try_wait().expect("wait for qemu") {
-            break s;
-        }
-        if start.elapsed() > Duration::from_secs(300) {
-            let _ = child.kill();
-            let _ = child.wait();
-            panic!("the bench image did not exit within 300 s");
-        }
-        std::thread::sleep(Duration::from_millis(100));
-    };
-    let mut out = String::new();
-    let mut err = String::new();
-    child
-        .stdout
-        .take()
-        .unwrap()
-        .read_to_string(&mut out)
-        .unwrap();
-    child
-        .stderr
-        .take()
-        .unwrap()
-        .read_to_string(&mut err)
-        .unwrap();
-    assert!(
-        status.success(),
-        "bench exited with {status}:\n{out}\n{err}"
+    let out = support::run_to_exit(
+        &elf,
+        &["-icount", "shift=0", "-serial", "null"],
+        "the bench image",
+        Duration::from_secs(300),
     );
     let rows = out
         .lines()

@@ -233,3 +233,41 @@ pub fn qemu_command(elf: &Path) -> Command {
     .stdin(Stdio::null());
     cmd
 }
+
+/// Boots `elf` in QEMU with `extra` arguments, waits for it to exit through semihosting
+/// (at most `limit`), and returns its stdout; panics, naming `what`, if it does not exit in
+/// time or exits with a failure. For the images that print a report and quit (tick bench,
+/// golden replay).
+pub fn run_to_exit(elf: &Path, extra: &[&str], what: &str, limit: std::time::Duration) -> String {
+    use std::io::Read;
+    let mut child = qemu_command(elf)
+        .args(extra)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("qemu-system-arm starts");
+    let start = std::time::Instant::now();
+    let status = loop {
+        if let Some(s) = child.try_wait().expect("wait for qemu") {
+            break s;
+        }
+        if start.elapsed() > limit {
+            let _ = child.kill();
+            let _ = child.wait();
+            panic!("{what} did not exit within {limit:?}");
+        }
+        std::thread::sleep(std::time::Duration::from_millis(50));
+    };
+    let (mut out, mut err) = (String::new(), String::new());
+    if let Some(mut o) = child.stdout.take() {
+        o.read_to_string(&mut out).expect("read qemu's stdout");
+    }
+    if let Some(mut e) = child.stderr.take() {
+        e.read_to_string(&mut err).expect("read qemu's stderr");
+    }
+    assert!(
+        status.success(),
+        "{what} exited with {status}:\n{out}\n{err}"
+    );
+    out
+}
