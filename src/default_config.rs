@@ -12,7 +12,7 @@ use crate::control::{Compensator, ControlConfig, Observer};
 use crate::drive::{Configuration, DifferentialDrive, DriveError, DriveSettings, SafeState};
 use crate::duhem::{Duhem, InverseDuhem};
 use crate::feedback::{Derivative, Feedback};
-use crate::fixed_point::{q1_31_from_f64, q4_28_from_f64, signal_from_f64};
+use crate::fixed_point::{q0_32_from_f64, q1_31_from_f64, q4_28_from_f64, signal_from_f64};
 use crate::notch::{Notch, NotchDesign, NotchError};
 use crate::params::{DuhemParams, ParamError, PiParams, Thresholds, MAX_OPERATORS};
 use crate::prandtl_ishlinskii::InversePrandtlIshlinskii;
@@ -146,7 +146,7 @@ pub fn feedback() -> Feedback {
         sensor_gain: q4_28_from_f64(2.0),
         kp,
         error_bound: Feedback::error_bound(limit, kp),
-        ki: q1_31_from_f64(0.01),
+        ki: q0_32_from_f64(0.01),
         derivative: None,
         limit,
         notch: None,

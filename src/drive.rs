@@ -12,7 +12,7 @@
 //! (one `SMULL`) and the right stack's its mirror about `2ū`, all in 32 bits.
 
 use crate::board::DacCode;
-use crate::fixed_point::{limit, signal_from_f64};
+use crate::fixed_point::{limit, signal_from_f64, signal_to_f64, FULL_SCALE_MAX};
 use crate::scaling::Scaling;
 
 /// How the two stacks are driven.
@@ -79,9 +79,23 @@ pub enum DriveError {
     EmptyDriveRange,
     /// The model's input range reaches far beyond the amplifier's output range.
     ModelRangeBeyondAmplifier,
+    /// An end of the drive range lands outside `0 ..= dac_full_scale` (the voltage range
+    /// reaches past the amplifier's full scale by rounding).
+    CodesBeyondDac,
 }
 
 /// The drive, converted once into the fixed-point form the tick uses.
+///
+/// A stack's DAC code is an affine function of the applied drive `a` (Q2.30), evaluated as one
+/// multiply-accumulate into a Q19.45 accumulator (2^-45 of a code) and one shift:
+/// `code = (base + per_drive · a) >> 45`, where `base` already holds the half code that makes
+/// the shift round to nearest. The left stack rises with the drive (`per_drive > 0`), the
+/// right one mirrors it (`−per_drive`, differential) or stays put (`0`, unidirectional), so
+/// each code is monotonic in `a`: [`DifferentialDrive::new`] evaluates both codes at both ends
+/// of the drive range and refuses a drive whose codes leave `0 ..= dac_full_scale` there,
+/// which proves every drive the range limit lets through lands on a valid code — the tick
+/// needs no clamp of its own after the range limit (the DAC driver still clamps to its
+/// hardware width).
 // Fields in the order the split reads them, so neighbours load in pairs (`LDRD`).
 #[repr(C)]
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -90,24 +104,23 @@ pub struct DifferentialDrive {
     drive_min: i32,
     /// Highest model-normalised drive, Q2.30.
     drive_max: i32,
+    /// Left stack's code at drive 0 plus half a code, Q19.45 (2^-45 of a code).
+    left_base: i64,
     /// Largest change of the model-normalised drive per tick, Q2.30.
     slew_per_tick: i32,
-    /// Left stack's code at drive 0, in 2^-15 of a code (Q17.15), so the tick's split is one
-    /// `SMULL` and 32-bit adds: `left = code0 + (per_drive · u) >> 30`.
-    left_code0: i32,
-    /// Left stack's codes per unit of model-normalised drive, 2^-15 of a code (≤ fs · 2^15).
-    left_code_per_drive: i32,
-    /// Right stack: `right = right_code0 − (left & right_mask)`; differential: `2ū` in codes and
-    /// mask −1 (mirror), unidirectional: the idle voltage and mask 0. 2^-15 of a code.
-    right_code0: i32,
-    /// −1 (differential) or 0 (unidirectional).
-    right_mask: i32,
+    /// Left stack's codes per unit of model-normalised drive, Q17.15 (> 0).
+    left_per_drive: i32,
+    /// Right stack's code at drive 0 plus half a code, Q19.45.
+    right_base: i64,
+    /// Right stack's codes per unit of drive, Q17.15: `−left_per_drive` (differential: it
+    /// mirrors the left one about the bias) or 0 (unidirectional: it idles).
+    right_per_drive: i32,
     /// DAC full-scale code.
     dac_full_scale: u16,
+    /// The safe state's code for both stacks when it is the bias.
+    bias_code: DacCode,
     configuration: Configuration,
     safe_state: SafeState,
-    /// Bias `ū` in 2^-15 of a DAC code (the safe state's code).
-    bias_code_q15: i32,
     /// Model-normalised drive that puts the left stack at the bias, Q2.30 (the rest position).
     rest_drive: i32,
 }
@@ -174,41 +187,70 @@ impl DifferentialDrive {
             Configuration::Unidirectional => (s.min_voltage, s.max_voltage),
         };
         let drive_min = scaling.input_to_norm(lo).max(-1.0);
-        let drive_max = scaling.input_to_norm(hi).min(1.0);
+        // The top of the full-scale range is 1 − 2^-30 (`clamp_full_scale`).
+        let drive_max = scaling.input_to_norm(hi).min(signal_to_f64(FULL_SCALE_MAX));
         if drive_min > drive_max {
             return Err(DriveError::EmptyDriveRange);
         }
         let fs = s.amplifier_full_scale;
         let slew = s.slew_rate / s.control_rate / scaling.input_half_span();
         // Volts → 2^-15 of a DAC code. The model's input range must lie within the
-        // amplifier's (so the left stack's code, and the per-drive slope, fit 32 bits).
+        // amplifier's (so the left stack's per-drive slope fits 32 bits and every Q19.45
+        // accumulation fits 64).
         let q15 = s.dac_full_scale as f64 * 32768.0 / fs;
         let per_drive = scaling.input_half_span() * q15;
         let code0 = scaling.input_mid() * q15;
         if !(per_drive < i32::MAX as f64 && code0.abs() < i32::MAX as f64 / 2.0) {
             return Err(DriveError::ModelRangeBeyondAmplifier);
         }
-        let (right_code0, right_mask) = match s.configuration {
-            Configuration::Differential => (2.0 * s.bias * q15, -1),
-            Configuration::Unidirectional => (s.right_idle * q15, 0),
+        let left_per_drive = (libm::round(per_drive) as i32).max(1);
+        // Q17.15 → Q19.45, plus half a code (2^44) so that the tick's floor rounds to nearest.
+        let q45 = |q15: f64| libm::round(q15 * (1u64 << 30) as f64) as i64 + (1 << 44);
+        let (right_base, right_per_drive) = match s.configuration {
+            // u_r = 2ū − u_l: the same slope, mirrored.
+            Configuration::Differential => (q45(2.0 * s.bias * q15 - code0), -left_per_drive),
+            Configuration::Unidirectional => (q45(s.right_idle * q15), 0),
         };
-        Ok(Self {
+        let bias_code = libm::round(s.bias * q15 / 32768.0)
+            .max(0.0)
+            .min(s.dac_full_scale as f64);
+        let drive = Self {
             configuration: s.configuration,
             drive_min: signal_from_f64(drive_min),
             drive_max: signal_from_f64(drive_max),
             slew_per_tick: signal_from_f64(slew.min(2.0)).max(1),
-            bias_code_q15: libm::round(s.bias * q15) as i32,
+            bias_code: DacCode(bias_code as u16),
             // max/min, not f64::clamp: its panic message would pull float formatting into flash.
             rest_drive: signal_from_f64(
                 scaling.input_to_norm(s.bias).max(drive_min).min(drive_max),
             ),
             dac_full_scale: s.dac_full_scale,
             safe_state: s.safe_state,
-            left_code0: libm::round(code0) as i32,
-            left_code_per_drive: libm::round(per_drive) as i32,
-            right_code0: libm::round(right_code0) as i32,
-            right_mask,
-        })
+            left_base: q45(code0),
+            left_per_drive,
+            right_base,
+            right_per_drive,
+        };
+        // The codes are monotonic in the drive: in range at both ends means in range
+        // everywhere in between (see the type's doc).
+        let fits = |code: i32| (0..=s.dac_full_scale as i32).contains(&code);
+        for applied in [drive.drive_min, drive.drive_max] {
+            let (left, right) = drive.codes(applied);
+            if !(fits(left) && fits(right)) {
+                return Err(DriveError::CodesBeyondDac);
+            }
+        }
+        Ok(drive)
+    }
+
+    /// Both stacks' DAC codes for an applied drive (Q2.30): one `SMLAL` and one shift each.
+    /// Within `[drive_min, drive_max]` they lie in `0 ..= dac_full_scale` (checked by
+    /// [`Self::new`] at the ends, monotonic in between).
+    #[inline(always)]
+    fn codes(&self, applied: i32) -> (i32, i32) {
+        let left = self.left_base + self.left_per_drive as i64 * applied as i64;
+        let right = self.right_base + self.right_per_drive as i64 * applied as i64;
+        ((left >> 45) as i32, (right >> 45) as i32)
     }
 
     /// Applies range and slew limits to the command `drive` (model-normalised, Q2.30), given
@@ -219,33 +261,21 @@ impl DifferentialDrive {
         let step_min = previous.saturating_sub(self.slew_per_tick);
         let step_max = previous.saturating_add(self.slew_per_tick);
         let applied = limit(ranged, step_min, step_max);
-        let left = self
-            .left_code0
-            .wrapping_add(((self.left_code_per_drive as i64 * applied as i64) >> 30) as i32);
-        let right = self.right_code0.wrapping_sub(left & self.right_mask);
+        let (left, right) = self.codes(applied);
         DriveOutput {
-            left: self.code_q15(left),
-            right: self.code_q15(right),
+            // In `0 ..= dac_full_scale` (see `codes`): the casts are exact.
+            left: DacCode(left as u16),
+            right: DacCode(right as u16),
             applied,
             range_limited: ranged != drive,
             slew_limited: applied != ranged,
         }
     }
 
-    /// 2^-15 of a code → DAC code, rounded and clamped to `0 ..= full scale`.
-    #[inline(always)]
-    fn code_q15(&self, q15: i32) -> DacCode {
-        let c = (q15.saturating_add(1 << 14) >> 15).max(0);
-        DacCode(c.min(self.dac_full_scale as i32) as u16)
-    }
-
     /// The codes of the safe state (both stacks at the bias, or both at zero).
     pub fn safe_codes(&self) -> (DacCode, DacCode) {
         match self.safe_state {
-            SafeState::Bias => {
-                let c = self.code_q15(self.bias_code_q15);
-                (c, c)
-            }
+            SafeState::Bias => (self.bias_code, self.bias_code),
             SafeState::Zero => (DacCode(0), DacCode(0)),
         }
     }

@@ -22,8 +22,8 @@
 //! shortfall in one sample is made up in the next.
 
 use crate::fixed_point::{
-    clamp_full_scale, gain_from_f64, q54_to_signal_floor, saturate_i64, signal_from_f64,
-    GAIN_FRAC_BITS, Q54_FRAC_BITS, SIGNAL_FRAC_BITS, SIGNAL_ONE,
+    clamp_full_scale, gain_from_f64, q60_to_signal_floor, saturate_i64, signal_from_f64,
+    GAIN_FRAC_BITS, SIGNAL_FRAC_BITS, SIGNAL_ONE,
 };
 use crate::params::{DuhemParams, ParamError};
 use crate::scaling::Scaling;
@@ -47,8 +47,11 @@ pub struct Duhem {
     alpha: i32,
     /// `β`, Q8.24 normalised (output span per input span).
     beta: i32,
-    /// `γ`, Q8.24 normalised.
+    /// `γ`, Q8.24 normalised (the inverse's slope).
     gamma: i32,
+    /// `γ` again, Q2.30 (`gamma << 6`, exact; validation keeps `γ < 2`): the step's
+    /// `γ·Δu` is then a Q2.30 × Q2.30 product like `a·e`, and both accumulate in Q4.60.
+    gamma_q30: i32,
     /// `δ`, offset of the anhysteretic curve, Q2.30 normalised output.
     offset: i32,
     /// `1/α`, Q2.30 (saturated just below 2): the input step at which `a = α|Δu|` reaches 1.
@@ -67,10 +70,13 @@ impl Duhem {
             .checked_div(alpha as i64)
             .unwrap_or(i64::MAX)
             .clamp(1, i32::MAX as i64) as i32;
+        let gamma = gain_from_f64(n.gamma);
         Ok(Self {
             alpha,
             beta: gain_from_f64(n.beta),
-            gamma: gain_from_f64(n.gamma),
+            gamma,
+            // γ < 2 (validated): the Q8.24 value is below 2^25, so the shift is exact.
+            gamma_q30: gamma.saturating_mul(1 << (SIGNAL_FRAC_BITS - GAIN_FRAC_BITS)),
             offset: signal_from_f64(n.offset),
             inverse_alpha,
         })
@@ -103,10 +109,11 @@ impl Duhem {
     /// One sample: input `u` (Q2.30 normalised drive, clamped to [-1, 1]) → estimated
     /// displacement (Q2.30 normalised, saturated).
     ///
-    /// The update `y + a·e + γ·Δu` is summed in one Q10.54 accumulator (`a·e` is Q4.60,
-    /// shifted down by 6; `γ·Δu` is Q8.24 × Q2.30) and brought back to Q2.30 once, rounding
-    /// toward −∞ and saturating ([`q54_to_signal_floor`]): one rounding per step instead of
-    /// one per term, and a multiply-accumulate instead of two shifts and a 64-bit add.
+    /// The update `y + a·e + γ·Δu` is summed in one Q4.60 accumulator (`y` shifted up by 30,
+    /// `a·e` and `γ·Δu` Q2.30 × Q2.30 products, one `SMLAL` each) and brought back to Q2.30
+    /// once, rounding toward −∞ and saturating ([`q60_to_signal_floor`]): one rounding per
+    /// step. This is bit for bit the Q10.54 sum `(y << 24) + (a·e >> 6) + γ₂₄·Δu` shifted
+    /// down by 24 (`⌊(64X + ae)/2^30⌋ = ⌊(X + ⌊ae/64⌋)/2^24⌋`), without the shift of `a·e`.
     #[inline(always)]
     pub fn step(&self, state: &mut DuhemState, u: i32) -> i32 {
         let u = clamp_full_scale(u);
@@ -121,10 +128,12 @@ impl Duhem {
             ((self.alpha as i64 * magnitude as i32 as i64) >> GAIN_FRAC_BITS) as i32
         };
         let e = self.anhysteretic_error(state);
-        let hysteretic = (a as i64 * e as i64) >> (2 * SIGNAL_FRAC_BITS - Q54_FRAC_BITS);
-        let acc = ((state.y as i64) << GAIN_FRAC_BITS) + hysteretic + self.gamma as i64 * du as i64;
+        // |y·2^30| ≤ 2^61, |a·e| ≤ 2^61, |γ·Δu| < 2^62: the sum fits i64.
+        let acc = ((state.y as i64) << SIGNAL_FRAC_BITS)
+            + a as i64 * e as i64
+            + self.gamma_q30 as i64 * du as i64;
         state.u = u;
-        state.y = q54_to_signal_floor(acc);
+        state.y = q60_to_signal_floor(acc);
         state.y
     }
 }

@@ -11,7 +11,7 @@
 //!    feedforward acts on the present target; the feedback corrects what the model got wrong;
 //! 2. with a notch, `e` passes through it ([`crate::notch`]): the loop no longer sees the
 //!    resonance, so it can neither excite nor sustain it;
-//! 3. integral: `i += ki · e` (Q1.31 gain, one `SMULL`), limited to ±`limit` — and **held**
+//! 3. integral: `i += ki · e` (Q0.32 gain, one `SMMUL`), limited to ±`limit` — and **held**
 //!    (anti-windup by conditional integration) while the previous tick's command was cut by the
 //!    drive's range or slew limit in the direction `e` pushes;
 //! 4. proportional: `kp · e` with `e` first limited to ±`limit / kp`, so the Q4.28 product
@@ -28,7 +28,7 @@
 //! allocates, panics or loops.
 
 use crate::board::AdcCode;
-use crate::fixed_point::{limit, saturate_i64, SIGNAL_ONE};
+use crate::fixed_point::{limit, mul_high, saturate_i64, SIGNAL_ONE};
 use crate::notch::{Notch, NotchState};
 
 /// How many ticks old the sensor reading is, relative to the observer's estimate of the same
@@ -55,7 +55,8 @@ pub struct Feedback {
     pub kp: i32,
     /// Error limit of the proportional term, Q2.30: `⌊limit / kp⌋`, so `|kp · e| ≤ limit`.
     pub error_bound: i32,
-    /// Integral gain per tick, Q1.31 (in [0, 1)).
+    /// Integral gain per tick, Q0.32 in a signed word (in [0, 0.5)): `ki · e` is the high word
+    /// of the product, one `SMMUL`.
     pub ki: i32,
     /// Derivative term, if any.
     pub derivative: Option<Derivative>,
@@ -124,10 +125,12 @@ impl Feedback {
     /// product and sum fit 32 bits, and the final ×4 to Q2.30 saturates.
     #[inline(always)]
     pub fn displacement(&self, code: AdcCode) -> i32 {
-        let bits = self.adc_bits.clamp(1, 30);
-        let mask = (1u32 << bits) - 1;
-        let fraction = ((code.0 & mask) << (31 - bits)) as i32; // Q1.31, [0, 1)
-                                                                // Q4.28 × Q1.31 >> 31 = Q4.28; |gain| < 8 and fraction < 1, so it fits.
+        // Shifting the code's top bit to bit 31 drops the stray bits above `adc_bits`; one
+        // more shift back down makes it a Q1.31 fraction in [0, 1). Two shifts, no mask.
+        // `adc_bits` is validated to 1…30; out of that range the shift amounts wrap (no
+        // panic) and the reading is still a fraction in [0, 1).
+        let fraction = (code.0.wrapping_shl(32u32.wrapping_sub(self.adc_bits)) >> 1) as i32;
+        // Q4.28 × Q1.31 >> 31 = Q4.28; |gain| < 8 and fraction < 1, so it fits.
         let x = self
             .sensor_offset
             .saturating_add(mul_shift(self.sensor_gain, fraction, 31));
@@ -147,8 +150,8 @@ impl Feedback {
         // Anti-windup: hold while the last command was cut in the direction the error pushes
         // (the clip and the error have the same sign).
         if s.clip == 0 || (s.clip ^ error) < 0 {
-            // Q1.31 × Q2.30 >> 31 = Q2.30; |ki| < 1, so it fits.
-            let i = s.integrator.saturating_add(mul_shift(self.ki, error, 31));
+            // Q0.32 × Q2.30 >> 32 = Q2.30; |ki| < 1/2, so it fits.
+            let i = s.integrator.saturating_add(mul_high(self.ki, error));
             s.integrator = limit(i, -self.limit, self.limit);
         }
         // Q4.28 × Q2.30 >> 28 = Q2.30; |e| ≤ limit / kp, so |kp · e| ≤ limit fits.
@@ -203,7 +206,7 @@ impl Feedback {
         let e = limit(error, -self.error_bound, self.error_bound);
         let p = mul_shift(self.kp, e, 28);
         // The first tick will add its own integral step: leave room for it.
-        let step = mul_shift(self.ki, error, 31);
+        let step = mul_high(self.ki, error);
         let i = wanted.saturating_sub(p).saturating_sub(step);
         s.integrator = limit(i, -self.limit, self.limit);
         wanted.saturating_sub(p.saturating_add(s.integrator).saturating_add(step))
@@ -282,7 +285,7 @@ impl FeedbackState {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::fixed_point::{q1_31_from_f64, q4_28_from_f64, signal_from_f64, signal_to_f64};
+    use crate::fixed_point::{q0_32_from_f64, q4_28_from_f64, signal_from_f64, signal_to_f64};
 
     fn feedback(kp: f64, ki: f64) -> Feedback {
         let limit = signal_from_f64(0.2);
@@ -293,7 +296,7 @@ mod tests {
             sensor_gain: q4_28_from_f64(2.0),
             kp,
             error_bound: Feedback::error_bound(limit, kp),
-            ki: q1_31_from_f64(ki),
+            ki: q0_32_from_f64(ki),
             derivative: None,
             limit,
             notch: None,

@@ -73,6 +73,20 @@ pub fn q1_31_from_f64(x: f64) -> i32 {
     to_fixed(x, 31)
 }
 
+/// Converts a real number to Q0.32 in a signed word (range [-0.5, 0.5)) with rounding to
+/// nearest, saturating. Used by per-tick gains below one half (the integral gain): the
+/// product with a Q2.30 signal is then the high word of the 64-bit product, one `SMMUL`.
+pub fn q0_32_from_f64(x: f64) -> i32 {
+    to_fixed(x, 32)
+}
+
+/// `(a · b) >> 32`: the high word of the 64-bit product (`SMMUL` on the Cortex-M4). A Q0.32
+/// gain times a Q2.30 signal is a Q2.30 signal; it cannot overflow.
+#[inline(always)]
+pub fn mul_high(a: i32, b: i32) -> i32 {
+    ((a as i64 * b as i64) >> 32) as i32
+}
+
 fn to_fixed(x: f64, frac_bits: u32) -> i32 {
     if x.is_nan() {
         return 0;
@@ -121,6 +135,29 @@ pub fn q54_to_signal_floor(acc: i64) -> i32 {
     }
 }
 
+/// Fractional bits of a product of two Q2.30 signals (Q4.60 in `i64`).
+pub const Q60_FRAC_BITS: u32 = 2 * SIGNAL_FRAC_BITS;
+
+/// Converts a Q4.60 accumulator (a sum of signal × signal products) to a Q2.30 signal,
+/// rounding toward −∞ and saturating exactly to the `i32` range: as
+/// [`q54_to_signal_floor`], with 30 bits dropped instead of 24. `acc >> 30` is the high word
+/// shifted up by 2 with the low word's top 2 bits below it, and it fits iff the high word
+/// fits 30 signed bits.
+#[inline(always)]
+pub fn q60_to_signal_floor(acc: i64) -> i32 {
+    const DROPPED: u32 = Q60_FRAC_BITS - SIGNAL_FRAC_BITS; // 30
+    const HIGH_MAX: i32 = (1 << (DROPPED - 1)) - 1;
+    let high = (acc >> 32) as i32;
+    let low = acc as u32;
+    let fitted = high.clamp(-HIGH_MAX - 1, HIGH_MAX);
+    if fitted != high {
+        // Out of range: i32::MAX for a positive accumulator, i32::MIN for a negative one.
+        (high >> 31) ^ i32::MAX
+    } else {
+        (high << (32 - DROPPED)) | (low >> DROPPED) as i32
+    }
+}
+
 /// Saturates an `i64` to the `i32` range.
 #[inline(always)]
 pub fn saturate_i64(x: i64) -> i32 {
@@ -152,10 +189,17 @@ pub fn limit_i64(x: i64, lo: i64, hi: i64) -> i64 {
     x.max(lo).min(hi)
 }
 
-/// Clamps a Q2.30 signal to the normalised full-scale range [-1, 1].
+/// Largest full-scale signal, `1 − 2^-30` (Q2.30): the top of [`clamp_full_scale`]'s range.
+pub const FULL_SCALE_MAX: i32 = SIGNAL_ONE - 1;
+
+/// Clamps a Q2.30 signal to the normalised full-scale range `[-1, 1 − 2^-30]`.
+///
+/// The range is that of a 31-bit two's-complement number, as in Q1.31 (where +1 is one LSB
+/// out of reach too), so the Cortex-M4 does it in one `SSAT #31` instead of two compares and
+/// two conditional moves; the top is short of +1 by 2^-30 (1.6e-5 of a 16-bit LSB).
 #[inline(always)]
 pub fn clamp_full_scale(signal: i32) -> i32 {
-    signal.clamp(-SIGNAL_ONE, SIGNAL_ONE)
+    signal.clamp(-SIGNAL_ONE, FULL_SCALE_MAX)
 }
 
 #[cfg(test)]
@@ -191,6 +235,36 @@ mod tests {
         fn floor_conversion_matches_the_i64_shift(acc in proptest::num::i64::ANY, shift in 0u32..40) {
             let acc = acc >> shift; // spread over magnitudes, in and out of range
             proptest::prop_assert_eq!(q54_to_signal_floor(acc), saturate_i64(acc >> GAIN_FRAC_BITS));
+        }
+
+        #[test]
+        fn q60_floor_conversion_matches_the_i64_shift(acc in proptest::num::i64::ANY, shift in 0u32..40) {
+            let acc = acc >> shift;
+            proptest::prop_assert_eq!(q60_to_signal_floor(acc), saturate_i64(acc >> SIGNAL_FRAC_BITS));
+        }
+    }
+
+    #[test]
+    fn q60_floor_conversion_is_the_shift_saturated_at_the_edges() {
+        let edge = (i32::MAX as i64) << 30;
+        for acc in [
+            0,
+            -1,
+            1 << 30,
+            (1 << 30) - 1,
+            edge,
+            edge + (1 << 30) - 1,
+            edge + (1 << 30),
+            (i32::MIN as i64) << 30,
+            ((i32::MIN as i64) << 30) - 1,
+            i64::MAX,
+            i64::MIN,
+        ] {
+            assert_eq!(
+                q60_to_signal_floor(acc),
+                saturate_i64(acc >> 30),
+                "acc = {acc:#x}"
+            );
         }
     }
 

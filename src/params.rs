@@ -468,12 +468,14 @@ impl DuhemParams {
                 / scaling.output_half_span(),
         };
         // β + |δ| < 2 keeps the anhysteretic curve βu + δ inside Q2.30 for |u| ≤ 1 (the tick
-        // relies on it); an output range that narrow against the model is a scaling error.
+        // relies on it), and γ < 2 lets the tick hold γ as a Q2.30 signal; an output range
+        // that narrow against the model is a scaling error.
         let fits = [n.alpha, n.beta, n.gamma]
             .iter()
             .all(|v| *v <= MAX_NORM_WEIGHT)
             && n.offset.abs() <= 1.5
-            && n.beta + n.offset.abs() < 1.99;
+            && n.beta + n.offset.abs() < 1.99
+            && n.gamma < 1.99;
         if !fits {
             return Err(ParamError::DuhemCoefficientOutOfRange);
         }

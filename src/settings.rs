@@ -8,7 +8,7 @@ use crate::control::{Compensator, ControlConfig, Observer};
 use crate::drive::{DifferentialDrive, DriveError, DriveSettings};
 use crate::duhem::{Duhem, InverseDuhem};
 use crate::feedback::{Derivative, Feedback};
-use crate::fixed_point::{q1_31_from_f64, q4_28_from_f64, signal_from_f64};
+use crate::fixed_point::{q0_32_from_f64, q1_31_from_f64, q4_28_from_f64, signal_from_f64};
 use crate::notch::{Notch, NotchDesign, NotchError};
 use crate::params::{DuhemParams, ParamError, PiParams};
 use crate::prandtl_ishlinskii::{InversePrandtlIshlinskii, PrandtlIshlinskii};
@@ -58,7 +58,7 @@ pub struct FeedbackSettings {
     pub sensor: SensorSettings,
     /// Proportional gain, 0 ≤ kp < 8.
     pub kp: f64,
-    /// Integral gain, per second; per tick (`ki / control rate`) it must be below 1.
+    /// Integral gain, per second; per tick (`ki / control rate`) it must be below 1/2.
     pub ki: f64,
     /// Derivative gain, seconds (0: no derivative term); per tick (`kd · control rate`) below 8.
     pub kd: f64,
@@ -224,7 +224,7 @@ impl Settings {
             && at_full.abs() < 7.5
             && gain.abs() < 7.5
             && (0.0..7.5).contains(&fb.kp)
-            && (0.0..1.0).contains(&ki_per_tick)
+            && (0.0..0.5).contains(&ki_per_tick)
             && (0.0..7.5).contains(&kd_per_tick)
             && (fb.kd == 0.0
                 || (fb.derivative_cutoff_hz > 0.0 && fb.derivative_cutoff_hz < rate / 2.0))
@@ -259,7 +259,7 @@ impl Settings {
             sensor_gain: q4_28_from_f64(gain),
             kp,
             error_bound,
-            ki: q1_31_from_f64(ki_per_tick),
+            ki: q0_32_from_f64(ki_per_tick),
             derivative,
             limit,
             notch,
@@ -387,7 +387,7 @@ mod tests {
         s.feedback.as_mut().unwrap().kp = f64::NAN;
         assert_eq!(s.build(), Err(SettingsError::BadFeedback));
         for bad in [
-            |f: &mut FeedbackSettings| f.ki = 60_000.0, // ≥ 1 per tick
+            |f: &mut FeedbackSettings| f.ki = 30_000.0, // ≥ 1/2 per tick
             |f: &mut FeedbackSettings| f.kp = 9.0,
             |f: &mut FeedbackSettings| f.limit = 0.0,
             |f: &mut FeedbackSettings| f.drift_limit = Some(-0.1),

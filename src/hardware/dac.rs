@@ -22,7 +22,9 @@ pub struct InternalDac {
 /// Packs two codes (clamped to 12 bits) into the `DHR12RD` layout.
 #[inline(always)]
 fn dual_word(left: DacCode, right: DacCode) -> u32 {
-    (right.0.min(FULL_SCALE) as u32) << 16 | left.0.min(FULL_SCALE) as u32
+    // As `i32` clamps to `0 ..= 2^12 − 1`, each is one `USAT #12`.
+    let clamp = |c: DacCode| (c.0 as i32).clamp(0, FULL_SCALE as i32) as u32;
+    clamp(right) << 16 | clamp(left)
 }
 
 impl InternalDac {
