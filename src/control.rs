@@ -145,9 +145,12 @@ pub struct ControlCounters {
 /// The controller: configuration plus every piece of state the tick keeps.
 #[derive(Clone, Debug)]
 pub struct Controller {
-    config: ControlConfig,
-    compensator_state: ModelState,
-    observer_state: ModelState,
+    compensator: CompensatorRun,
+    observer: ObserverRun,
+    /// Sensor feedback, if any (its use depends on `mode`).
+    feedback: Option<Feedback>,
+    drive_limits: DifferentialDrive,
+    mode: Mode,
     setpoint: i32,
     drive: i32,
     feedback_state: FeedbackState,
@@ -155,13 +158,47 @@ pub struct Controller {
     counters: ControlCounters,
 }
 
-/// State of whichever model a slot holds.
+/// The compensator as the tick runs it: model and state in one enum, so that one tag says
+/// which model runs (the tick pays one compare, not one for the configuration and another for
+/// the state).
 #[allow(clippy::large_enum_variant)] // as for `Compensator`: no heap, the state is in a static
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-enum ModelState {
-    Pi(PiState),
-    Duhem(DuhemState),
+enum CompensatorRun {
+    InversePi(InversePrandtlIshlinskii, PiState),
+    InverseDuhem(InverseDuhem, DuhemState),
+    /// Not running: none configured, or parked while in bypass (kept for the way back).
+    Off(Compensator),
+}
+
+/// The observer as the tick runs it (see [`CompensatorRun`]).
+#[allow(clippy::large_enum_variant)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum ObserverRun {
+    Duhem(Duhem, DuhemState),
+    Pi(PrandtlIshlinskii, PiState),
     None,
+}
+
+impl CompensatorRun {
+    /// The configured compensator (running or parked).
+    fn model(&self) -> Compensator {
+        match self {
+            Self::InversePi(m, _) => Compensator::InversePi(*m),
+            Self::InverseDuhem(m, _) => Compensator::InverseDuhem(*m),
+            Self::Off(c) => *c,
+        }
+    }
+}
+
+impl ObserverRun {
+    /// The configured observer.
+    fn model(&self) -> Observer {
+        match self {
+            Self::Duhem(m, _) => Observer::Duhem(*m),
+            Self::Pi(m, _) => Observer::Pi(*m),
+            Self::None => Observer::None,
+        }
+    }
 }
 
 impl Controller {
@@ -169,61 +206,50 @@ impl Controller {
     /// observer puts the stage.
     pub fn new(config: ControlConfig) -> Self {
         let mut c = Self {
-            config,
-            compensator_state: ModelState::None,
-            observer_state: ModelState::None,
+            compensator: CompensatorRun::Off(config.compensator),
+            observer: ObserverRun::None,
+            feedback: config.feedback,
+            drive_limits: config.drive,
+            mode: config.mode,
             setpoint: 0,
             drive: 0,
             feedback_state: FeedbackState::default(),
             transfer: BumplessTransfer::default(),
             counters: ControlCounters::default(),
         };
-        c.reset_to_rest();
+        c.relax_at(config.observer, c.drive_limits.rest_drive());
         c
-    }
-
-    fn reset_to_rest(&mut self) {
-        self.relax_at(self.config.drive.rest_drive());
     }
 
     /// Puts the models in the relaxed state at `drive` (clamped to the drive's limits): the
     /// observer's estimate there becomes the setpoint, and the compensator's state is derived
     /// from the observer's, so the compensator starts out agreeing with the stage.
-    fn relax_at(&mut self, drive: i32) {
-        let (lo, hi) = self.config.drive.drive_range();
+    fn relax_at(&mut self, observer: Observer, drive: i32) {
+        let (lo, hi) = self.drive_limits.drive_range();
         let drive = limit(drive, lo, hi);
         self.drive = drive;
         self.transfer = BumplessTransfer::default();
-        let (observer_state, y) = match &self.config.observer {
-            Observer::None => (ModelState::None, drive),
+        let (run, y) = match observer {
+            Observer::None => (ObserverRun::None, drive),
             Observer::Pi(m) => {
                 let mut s = m.state_at_rest(drive);
                 let y = m.step(&mut s, drive);
-                (ModelState::Pi(s), y)
+                (ObserverRun::Pi(m, s), y)
             }
             Observer::Duhem(m) => {
                 let y = m.anhysteretic(drive);
-                (ModelState::Duhem(m.state_at(drive, y)), y)
+                (ObserverRun::Duhem(m, m.state_at(drive, y)), y)
             }
         };
-        self.compensator_state = match (&self.config.compensator, &observer_state) {
-            // Bypass runs no compensator: an empty state slot skips it in the tick.
-            _ if self.config.mode == Mode::Bypass => ModelState::None,
-            (Compensator::None, _) => ModelState::None,
-            (Compensator::InversePi(m), ModelState::Pi(fs)) => match &self.config.observer {
-                Observer::Pi(observer) => {
-                    ModelState::Pi(m.state_from_forward(&observer.bank().outputs(fs)))
-                }
-                _ => ModelState::Pi(m.state_at_rest(y)), // unreachable: the state is the observer's
-            },
-            (Compensator::InversePi(m), _) => ModelState::Pi(m.state_at_rest(y)),
-            (Compensator::InverseDuhem(m), _) => {
-                let model = m.model();
-                ModelState::Duhem(model.state_at(drive, model.anhysteretic(drive)))
-            }
-        };
-        self.observer_state = observer_state;
+        self.observer = run;
         self.setpoint = y;
+        let compensator = self.compensator.model();
+        // Bypass runs no compensator: it stays parked.
+        self.compensator = if self.mode == Mode::Bypass {
+            CompensatorRun::Off(compensator)
+        } else {
+            self.compensator_from_observer(compensator)
+        };
         self.feedback_state = FeedbackState::at_rest(y);
     }
 
@@ -234,8 +260,11 @@ impl Controller {
     /// the drive, as on a mode switch.
     pub fn reconfigure(&mut self, config: ControlConfig) {
         let measured = self.feedback_state.measured();
-        self.config = config;
-        self.relax_at(self.drive);
+        self.compensator = CompensatorRun::Off(config.compensator);
+        self.feedback = config.feedback;
+        self.drive_limits = config.drive;
+        self.mode = config.mode;
+        self.relax_at(config.observer, self.drive);
         self.feedback_state = self.feedback_state.with_measurement(measured);
         self.begin_transfer();
     }
@@ -244,21 +273,22 @@ impl Controller {
     /// without a bump in the drive (see [`crate::mode_switch`]). Refused, changing nothing,
     /// when the configuration lacks what the mode needs.
     pub fn set_mode(&mut self, mode: Mode) -> Result<(), ModeError> {
+        let compensator = self.compensator.model();
         match mode {
-            Mode::OpenLoop if matches!(self.config.compensator, Compensator::None) => {
+            Mode::OpenLoop if matches!(compensator, Compensator::None) => {
                 return Err(ModeError::NoCompensator)
             }
-            Mode::ClosedLoop if self.config.feedback.is_none() => return Err(ModeError::NoSensor),
+            Mode::ClosedLoop if self.feedback.is_none() => return Err(ModeError::NoSensor),
             _ => {}
         }
-        if mode == self.config.mode {
+        if mode == self.mode {
             return Ok(());
         }
-        self.config.mode = mode;
+        self.mode = mode;
         if mode == Mode::Bypass {
-            self.compensator_state = ModelState::None;
-        } else if self.compensator_state == ModelState::None {
-            self.compensator_state = self.compensator_state_from_observer();
+            self.compensator = CompensatorRun::Off(compensator);
+        } else if matches!(self.compensator, CompensatorRun::Off(_)) {
+            self.compensator = self.compensator_from_observer(compensator);
         }
         self.begin_transfer();
         Ok(())
@@ -266,7 +296,7 @@ impl Controller {
 
     /// The mode in effect.
     pub fn mode(&self) -> Mode {
-        self.config.mode
+        self.mode
     }
 
     /// The feedback's memory (integrator, drift filter, last measurement).
@@ -274,27 +304,23 @@ impl Controller {
         &self.feedback_state
     }
 
-    /// The compensator state that continues from where the observer says the stage is.
-    fn compensator_state_from_observer(&self) -> ModelState {
-        match (&self.config.compensator, &self.observer_state) {
-            (Compensator::None, _) => ModelState::None,
-            (Compensator::InversePi(m), ModelState::Pi(fs)) => {
-                match &self.config.observer {
-                    Observer::Pi(observer) => {
-                        ModelState::Pi(m.state_from_forward(&observer.bank().outputs(fs)))
-                    }
-                    _ => ModelState::Pi(m.state_at_rest(self.setpoint)), // unreachable
-                }
+    /// `compensator`, running, from where the observer says the stage is.
+    fn compensator_from_observer(&self, compensator: Compensator) -> CompensatorRun {
+        match (compensator, &self.observer) {
+            (Compensator::None, _) => CompensatorRun::Off(Compensator::None),
+            (Compensator::InversePi(m), ObserverRun::Pi(observer, fs)) => {
+                CompensatorRun::InversePi(m, m.state_from_forward(&observer.bank().outputs(fs)))
             }
-            (Compensator::InversePi(m), _) => ModelState::Pi(m.state_at_rest(self.setpoint)),
-            (Compensator::InverseDuhem(m), ModelState::Duhem(os))
-                if self.config.observer == Observer::Duhem(*m.model()) =>
-            {
-                ModelState::Duhem(*os)
+            (Compensator::InversePi(m), _) => {
+                CompensatorRun::InversePi(m, m.state_at_rest(self.setpoint))
+            }
+            (Compensator::InverseDuhem(m), ObserverRun::Duhem(o, os)) if o == m.model() => {
+                CompensatorRun::InverseDuhem(m, *os)
             }
             (Compensator::InverseDuhem(m), _) => {
                 let model = m.model();
-                ModelState::Duhem(model.state_at(self.drive, model.anhysteretic(self.drive)))
+                let state = model.state_at(self.drive, model.anhysteretic(self.drive));
+                CompensatorRun::InverseDuhem(m, state)
             }
         }
     }
@@ -302,10 +328,10 @@ impl Controller {
     /// What the feedforward would be for the present setpoint (the state is not advanced).
     fn peek_feedforward(&self) -> i32 {
         let target = self.setpoint;
-        match (&self.config.compensator, self.compensator_state) {
-            (Compensator::InversePi(m), ModelState::Pi(mut s)) => m.step(&mut s, target),
-            (Compensator::InverseDuhem(m), ModelState::Duhem(mut s)) => m.step(&mut s, target),
-            _ => target,
+        match self.compensator {
+            CompensatorRun::InversePi(m, mut s) => m.step(&mut s, target),
+            CompensatorRun::InverseDuhem(m, mut s) => m.step(&mut s, target),
+            CompensatorRun::Off(_) => target,
         }
     }
 
@@ -313,7 +339,7 @@ impl Controller {
     /// or the fading transfer offset takes up the difference.
     fn begin_transfer(&mut self) {
         let wanted = self.drive.saturating_sub(self.peek_feedforward());
-        let rest = match (&self.config.feedback, self.config.mode) {
+        let rest = match (&self.feedback, self.mode) {
             (Some(fb), Mode::ClosedLoop) => {
                 fb.hand_over(&mut self.feedback_state, self.setpoint, wanted)
             }
@@ -331,21 +357,39 @@ impl Controller {
     /// Q2.30 normalised (the drive itself without an observer). Computed from the configuration
     /// alone; the controller's state is not touched.
     pub fn rest_setpoint(&self) -> i32 {
-        let (lo, hi) = self.config.drive.drive_range();
-        let drive = limit(self.config.drive.rest_drive(), lo, hi);
-        match &self.config.observer {
-            Observer::None => drive,
-            Observer::Pi(m) => {
+        let (lo, hi) = self.drive_limits.drive_range();
+        let drive = limit(self.drive_limits.rest_drive(), lo, hi);
+        match &self.observer {
+            ObserverRun::None => drive,
+            ObserverRun::Pi(m, _) => {
                 let mut s = m.state_at_rest(drive);
                 m.step(&mut s, drive)
             }
-            Observer::Duhem(m) => m.anhysteretic(drive),
+            ObserverRun::Duhem(m, _) => m.anhysteretic(drive),
         }
     }
 
-    /// The active configuration.
-    pub fn config(&self) -> &ControlConfig {
-        &self.config
+    /// The active configuration (the models as configured, the mode in effect), rebuilt from
+    /// the parts the controller runs; it is large (the models' tables), so prefer the
+    /// accessors for single parts.
+    pub fn config(&self) -> ControlConfig {
+        ControlConfig {
+            compensator: self.compensator.model(),
+            observer: self.observer.model(),
+            feedback: self.feedback,
+            drive: self.drive_limits,
+            mode: self.mode,
+        }
+    }
+
+    /// The sensor feedback's configuration, if there is a sensor.
+    pub fn feedback_config(&self) -> Option<&Feedback> {
+        self.feedback.as_ref()
+    }
+
+    /// The drive and its limits.
+    pub fn drive_config(&self) -> &DifferentialDrive {
+        &self.drive_limits
     }
 
     /// Counters since start-up.
@@ -355,7 +399,7 @@ impl Controller {
 
     /// DAC codes of the safe state, for the fault handlers.
     pub fn safe_codes(&self) -> (DacCode, DacCode) {
-        self.config.drive.safe_codes()
+        self.drive_limits.safe_codes()
     }
 
     /// One control tick (see the module doc). `setpoint` is the next desired displacement
@@ -401,18 +445,18 @@ impl Controller {
         let target = self.setpoint;
 
         // 2. Feedforward.
-        let feedforward = match (&self.config.compensator, &mut self.compensator_state) {
-            (Compensator::InversePi(m), ModelState::Pi(s)) => m.step(s, target),
-            (Compensator::InverseDuhem(m), ModelState::Duhem(s)) => m.step(s, target),
-            _ => target,
+        let feedforward = match &mut self.compensator {
+            CompensatorRun::InversePi(m, s) => m.step(s, target),
+            CompensatorRun::InverseDuhem(m, s) => m.step(s, target),
+            CompensatorRun::Off(_) => target,
         };
 
         // 3. Sensor: drift check, and in closed loop the feedback correction.
         let mut measured = 0;
         let mut command = feedforward;
-        if let Some(fb) = &self.config.feedback {
+        if let Some(fb) = &self.feedback {
             let fs = &mut self.feedback_state;
-            let closed = self.config.mode == Mode::ClosedLoop;
+            let closed = self.mode == Mode::ClosedLoop;
             match io.read() {
                 Ok(code) => {
                     measured = fb.displacement(code);
@@ -436,7 +480,7 @@ impl Controller {
         let command = self.transfer.apply(command);
 
         // 4. Limits, split, both DACs at once.
-        let out = self.config.drive.split(command, self.drive);
+        let out = self.drive_limits.split(command, self.drive);
         self.drive = out.applied;
         if out.range_limited {
             flags |= TickFlags::RANGE_LIMIT;
@@ -452,10 +496,10 @@ impl Controller {
         }
 
         // 5. Observer on the applied drive.
-        let estimate = match (&self.config.observer, &mut self.observer_state) {
-            (Observer::Pi(m), ModelState::Pi(s)) => m.step(s, out.applied),
-            (Observer::Duhem(m), ModelState::Duhem(s)) => m.step(s, out.applied),
-            _ => 0,
+        let estimate = match &mut self.observer {
+            ObserverRun::Duhem(m, s) => m.step(s, out.applied),
+            ObserverRun::Pi(m, s) => m.step(s, out.applied),
+            ObserverRun::None => 0,
         };
         self.feedback_state.end_tick(command, out.applied, estimate);
 

@@ -131,7 +131,7 @@ impl<B: AsRef<[i32]> + AsMut<[i32]>> ControlLoop<B> {
         if let (Some(Signal::Sensor), Some(cal), None) = (
             self.recorder.wants(),
             &self.sensor,
-            &self.controller.config().feedback,
+            self.controller.feedback_config(),
         ) {
             sensor = adc.read().ok().map(|code| cal.displacement(code));
         }

@@ -236,21 +236,25 @@ impl DifferentialDrive {
         let fits = |code: i32| (0..=s.dac_full_scale as i32).contains(&code);
         for applied in [drive.drive_min, drive.drive_max] {
             let (left, right) = drive.codes(applied);
-            if !(fits(left) && fits(right)) {
+            if !(fits(left as i32)
+                && fits(right as i32)
+                && left == left as i32 as i64
+                && right == right as i32 as i64)
+            {
                 return Err(DriveError::CodesBeyondDac);
             }
         }
         Ok(drive)
     }
 
-    /// Both stacks' DAC codes for an applied drive (Q2.30): one `SMLAL` and one shift each.
-    /// Within `[drive_min, drive_max]` they lie in `0 ..= dac_full_scale` (checked by
-    /// [`Self::new`] at the ends, monotonic in between).
+    /// Both stacks' DAC codes for an applied drive (Q2.30), before they are narrowed to 16
+    /// bits: one `SMLAL` and one shift each. Within `[drive_min, drive_max]` they lie in
+    /// `0 ..= dac_full_scale` (checked by [`Self::new`] at the ends, monotonic in between).
     #[inline(always)]
-    fn codes(&self, applied: i32) -> (i32, i32) {
+    fn codes(&self, applied: i32) -> (i64, i64) {
         let left = self.left_base + self.left_per_drive as i64 * applied as i64;
         let right = self.right_base + self.right_per_drive as i64 * applied as i64;
-        ((left >> 45) as i32, (right >> 45) as i32)
+        (left >> 45, right >> 45)
     }
 
     /// Applies range and slew limits to the command `drive` (model-normalised, Q2.30), given
@@ -263,7 +267,7 @@ impl DifferentialDrive {
         let applied = limit(ranged, step_min, step_max);
         let (left, right) = self.codes(applied);
         DriveOutput {
-            // In `0 ..= dac_full_scale` (see `codes`): the casts are exact.
+            // In `0 ..= dac_full_scale` (see `codes`): the narrowing is exact, one `UBFX`.
             left: DacCode(left as u16),
             right: DacCode(right as u16),
             applied,

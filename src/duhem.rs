@@ -119,7 +119,10 @@ impl Duhem {
         let u = clamp_full_scale(u);
         // |Δu| ≤ 2; a full-range jump saturates 2^-30 short of 2 (QSUB).
         let du = u.saturating_sub(state.u);
-        let magnitude = du.unsigned_abs();
+        // |Δu| as `EOR` and `SUB` with the sign (the compiler's abs is a compare, a move and
+        // a conditional negate).
+        let sign = du >> 31;
+        let magnitude = (du ^ sign).wrapping_sub(sign) as u32;
         // a = min(α|Δu|, 1), Q2.30: below 1/α the product is < 2^54 and fits after the shift;
         // there |Δu| < 1/α < 2, so it is a non-negative i32 and a signed multiply serves.
         let a = if magnitude >= self.inverse_alpha as u32 {

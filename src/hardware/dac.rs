@@ -22,9 +22,25 @@ pub struct InternalDac {
 /// Packs two codes (clamped to 12 bits) into the `DHR12RD` layout.
 #[inline(always)]
 fn dual_word(left: DacCode, right: DacCode) -> u32 {
-    // As `i32` clamps to `0 ..= 2^12 − 1`, each is one `USAT #12`.
-    let clamp = |c: DacCode| (c.0 as i32).clamp(0, FULL_SCALE as i32) as u32;
-    clamp(right) << 16 | clamp(left)
+    clamp_12_bits(right) << 16 | clamp_12_bits(left)
+}
+
+/// A code clamped to 12 bits (`min(code, 4095)`) in one `USAT #12`, where the compiler,
+/// knowing a `u16` is never negative, would emit a compare and a conditional move.
+#[inline(always)]
+fn clamp_12_bits(code: DacCode) -> u32 {
+    const _: () = assert!(FULL_SCALE == (1 << 12) - 1);
+    let clamped: u32;
+    // SAFETY: one data-processing instruction on registers: no memory, no stack.
+    unsafe {
+        core::arch::asm!(
+            "usat {out}, #12, {code}",
+            out = lateout(reg) clamped,
+            code = in(reg) code.0 as u32,
+            options(pure, nomem, nostack),
+        )
+    };
+    clamped
 }
 
 impl InternalDac {
