@@ -147,8 +147,8 @@ pub struct ControlCounters {
 pub struct Controller {
     compensator: CompensatorRun,
     observer: ObserverRun,
-    /// Sensor feedback, if any (its use depends on `mode`).
-    feedback: Option<Feedback>,
+    /// Sensor feedback, if any, as the mode uses it.
+    feedback: FeedbackRun,
     drive_limits: DifferentialDrive,
     mode: Mode,
     setpoint: i32,
@@ -177,6 +177,41 @@ enum ObserverRun {
     Duhem(Duhem, DuhemState),
     Pi(PrandtlIshlinskii, PiState),
     None,
+}
+
+/// The sensor feedback as the tick runs it: the configuration and what the mode makes of it
+/// in one tag, so the tick pays one compare for "is there a sensor, is the loop closed, does it
+/// have a derivative or a notch".
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum FeedbackRun {
+    /// Closed loop, PI only (no derivative, no notch): the common case, without their checks.
+    ClosedPi(Feedback),
+    /// Closed loop with a derivative or a notch.
+    Closed(Feedback),
+    /// Open loop or bypass with a sensor: read for the drift check only.
+    Monitor(Feedback),
+    /// No sensor.
+    Off,
+}
+
+impl FeedbackRun {
+    fn new(feedback: Option<Feedback>, mode: Mode) -> Self {
+        match (feedback, mode) {
+            (None, _) => Self::Off,
+            (Some(fb), Mode::ClosedLoop) if fb.notch.is_none() && fb.derivative.is_none() => {
+                Self::ClosedPi(fb)
+            }
+            (Some(fb), Mode::ClosedLoop) => Self::Closed(fb),
+            (Some(fb), _) => Self::Monitor(fb),
+        }
+    }
+
+    fn config(&self) -> Option<&Feedback> {
+        match self {
+            Self::ClosedPi(fb) | Self::Closed(fb) | Self::Monitor(fb) => Some(fb),
+            Self::Off => None,
+        }
+    }
 }
 
 impl CompensatorRun {
@@ -208,7 +243,7 @@ impl Controller {
         let mut c = Self {
             compensator: CompensatorRun::Off(config.compensator),
             observer: ObserverRun::None,
-            feedback: config.feedback,
+            feedback: FeedbackRun::new(config.feedback, config.mode),
             drive_limits: config.drive,
             mode: config.mode,
             setpoint: 0,
@@ -261,7 +296,7 @@ impl Controller {
     pub fn reconfigure(&mut self, config: ControlConfig) {
         let measured = self.feedback_state.measured();
         self.compensator = CompensatorRun::Off(config.compensator);
-        self.feedback = config.feedback;
+        self.feedback = FeedbackRun::new(config.feedback, config.mode);
         self.drive_limits = config.drive;
         self.mode = config.mode;
         self.relax_at(config.observer, self.drive);
@@ -278,13 +313,16 @@ impl Controller {
             Mode::OpenLoop if matches!(compensator, Compensator::None) => {
                 return Err(ModeError::NoCompensator)
             }
-            Mode::ClosedLoop if self.feedback.is_none() => return Err(ModeError::NoSensor),
+            Mode::ClosedLoop if self.feedback.config().is_none() => {
+                return Err(ModeError::NoSensor)
+            }
             _ => {}
         }
         if mode == self.mode {
             return Ok(());
         }
         self.mode = mode;
+        self.feedback = FeedbackRun::new(self.feedback.config().copied(), mode);
         if mode == Mode::Bypass {
             self.compensator = CompensatorRun::Off(compensator);
         } else if matches!(self.compensator, CompensatorRun::Off(_)) {
@@ -339,11 +377,11 @@ impl Controller {
     /// or the fading transfer offset takes up the difference.
     fn begin_transfer(&mut self) {
         let wanted = self.drive.saturating_sub(self.peek_feedforward());
-        let rest = match (&self.feedback, self.mode) {
-            (Some(fb), Mode::ClosedLoop) => {
+        let rest = match &self.feedback {
+            FeedbackRun::ClosedPi(fb) | FeedbackRun::Closed(fb) => {
                 fb.hand_over(&mut self.feedback_state, self.setpoint, wanted)
             }
-            _ => wanted,
+            FeedbackRun::Monitor(_) | FeedbackRun::Off => wanted,
         };
         self.transfer.start(rest);
     }
@@ -376,7 +414,7 @@ impl Controller {
         ControlConfig {
             compensator: self.compensator.model(),
             observer: self.observer.model(),
-            feedback: self.feedback,
+            feedback: self.feedback.config().copied(),
             drive: self.drive_limits,
             mode: self.mode,
         }
@@ -384,7 +422,7 @@ impl Controller {
 
     /// The sensor feedback's configuration, if there is a sensor.
     pub fn feedback_config(&self) -> Option<&Feedback> {
-        self.feedback.as_ref()
+        self.feedback.config()
     }
 
     /// The drive and its limits.
@@ -452,31 +490,19 @@ impl Controller {
         };
 
         // 3. Sensor: drift check, and in closed loop the feedback correction.
-        let mut measured = 0;
-        let mut command = feedforward;
-        if let Some(fb) = &self.feedback {
-            let fs = &mut self.feedback_state;
-            let closed = self.mode == Mode::ClosedLoop;
-            match io.read() {
-                Ok(code) => {
-                    measured = fb.displacement(code);
-                    if fb.drifted(fs, measured) {
-                        flags |= TickFlags::DRIFT;
-                        counters.drifts = counters.drifts.wrapping_add(1);
-                    }
-                    if closed {
-                        command = feedforward.saturating_add(fb.correction(fs, target, measured));
-                    }
-                }
-                Err(_) => {
-                    flags |= TickFlags::ADC_ERROR;
-                    counters.adc_errors = counters.adc_errors.wrapping_add(1);
-                    if closed {
-                        command = feedforward.saturating_add(fb.held_correction(fs, target));
-                    }
-                }
+        let fs = &mut self.feedback_state;
+        let (command, measured) = match &self.feedback {
+            FeedbackRun::ClosedPi(fb) => {
+                sense::<_, true, false>(fb, fs, io, target, feedforward, &mut flags, counters)
             }
-        }
+            FeedbackRun::Closed(fb) => {
+                sense::<_, true, true>(fb, fs, io, target, feedforward, &mut flags, counters)
+            }
+            FeedbackRun::Monitor(fb) => {
+                sense::<_, false, true>(fb, fs, io, target, feedforward, &mut flags, counters)
+            }
+            FeedbackRun::Off => (feedforward, 0),
+        };
         let command = self.transfer.apply(command);
 
         // 4. Limits, split, both DACs at once.
@@ -494,22 +520,64 @@ impl Controller {
             flags |= TickFlags::DAC_ERROR;
             counters.dac_errors = counters.dac_errors.wrapping_add(1);
         }
+        // What the limits cut, kept now: the command need not live on through the observer.
+        self.feedback_state.limited(command, out.applied);
+        let mut report = TickReport {
+            left: out.left,
+            right: out.right,
+            estimate: 0,
+            measured,
+            drive: out.applied,
+            flags: TickFlags(flags),
+        };
 
         // 5. Observer on the applied drive.
-        let estimate = match &mut self.observer {
+        report.estimate = match &mut self.observer {
             ObserverRun::Duhem(m, s) => m.step(s, out.applied),
             ObserverRun::Pi(m, s) => m.step(s, out.applied),
             ObserverRun::None => 0,
         };
-        self.feedback_state.end_tick(command, out.applied, estimate);
+        self.feedback_state.observed(report.estimate);
+        report
+    }
+}
 
-        TickReport {
-            left: out.left,
-            right: out.right,
-            estimate,
-            measured,
-            drive: out.applied,
-            flags: TickFlags(flags),
+/// The tick's sensor step: reads the sensor, runs the drift check and, when `CLOSED`, adds
+/// the feedback correction to `feedforward` (with the derivative and notch when `FULL`, else
+/// the PI alone). Returns the command and the measurement.
+#[inline(always)]
+fn sense<IO: TickIo, const CLOSED: bool, const FULL: bool>(
+    fb: &Feedback,
+    fs: &mut FeedbackState,
+    io: &mut IO,
+    target: i32,
+    feedforward: i32,
+    flags: &mut u8,
+    counters: &mut ControlCounters,
+) -> (i32, i32) {
+    match io.read() {
+        Ok(code) => {
+            let measured = fb.displacement(code);
+            if fb.drifted(fs, measured) {
+                *flags |= TickFlags::DRIFT;
+                counters.drifts = counters.drifts.wrapping_add(1);
+            }
+            let command = if CLOSED {
+                feedforward.saturating_add(fb.correction_with::<FULL>(fs, target, measured))
+            } else {
+                feedforward
+            };
+            (command, measured)
+        }
+        Err(_) => {
+            *flags |= TickFlags::ADC_ERROR;
+            counters.adc_errors = counters.adc_errors.wrapping_add(1);
+            let command = if CLOSED {
+                feedforward.saturating_add(fb.held_correction(fs, target))
+            } else {
+                feedforward
+            };
+            (command, 0)
         }
     }
 }

@@ -268,8 +268,8 @@ impl DifferentialDrive {
         let (left, right) = self.codes(applied);
         DriveOutput {
             // In `0 ..= dac_full_scale` (see `codes`): the narrowing is exact, one `UBFX`.
-            left: DacCode(left as u16),
-            right: DacCode(right as u16),
+            left: DacCode((left as u32 & 0xFFFF) as u16),
+            right: DacCode((right as u32 & 0xFFFF) as u16),
             applied,
             range_limited: ranged != drive,
             slew_limited: applied != ranged,

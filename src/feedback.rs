@@ -142,9 +142,22 @@ impl Feedback {
     /// module doc. Returns a Q2.30 normalised drive within ±`limit`.
     #[inline(always)]
     pub fn correction(&self, s: &mut FeedbackState, target: i32, measured: i32) -> i32 {
+        self.correction_with::<true>(s, target, measured)
+    }
+
+    /// [`Feedback::correction`], with the notch and the derivative looked at only when `FULL`:
+    /// the tick runs a PI-only feedback (neither configured) with `FULL = false`, without
+    /// their checks. With `FULL = false` and either configured, it would be left out.
+    #[inline(always)]
+    pub fn correction_with<const FULL: bool>(
+        &self,
+        s: &mut FeedbackState,
+        target: i32,
+        measured: i32,
+    ) -> i32 {
         let reference = s.delayed_target(target);
         let mut error = reference.saturating_sub(measured);
-        if let Some(n) = &self.notch {
+        if let (true, Some(n)) = (FULL, &self.notch) {
             error = n.step(&mut s.notch, error);
         }
         // Anti-windup: hold while the last command was cut in the direction the error pushes
@@ -157,7 +170,7 @@ impl Feedback {
         // Q4.28 × Q2.30 >> 28 = Q2.30; |e| ≤ limit / kp, so |kp · e| ≤ limit fits.
         let e = limit(error, -self.error_bound, self.error_bound);
         let mut c = mul_shift(self.kp, e, 28).saturating_add(s.integrator);
-        if let Some(d) = &self.derivative {
+        if let (true, Some(d)) = (FULL, &self.derivative) {
             c = c.saturating_add(d.step(s, error));
         }
         limit(c, -self.limit, self.limit)
@@ -259,9 +272,22 @@ impl FeedbackState {
 
     /// End of a tick: what the limits cut from the command (for anti-windup) and the
     /// observer's estimate (for the drift check of a later tick).
+    /// The same as [`Self::limited`] and then [`Self::observed`].
     #[inline(always)]
     pub fn end_tick(&mut self, command: i32, applied: i32, estimate: i32) {
+        self.limited(command, applied);
+        self.observed(estimate);
+    }
+
+    /// What the limits cut from this tick's command (for the next tick's anti-windup).
+    #[inline(always)]
+    pub fn limited(&mut self, command: i32, applied: i32) {
         self.clip = command.saturating_sub(applied);
+    }
+
+    /// This tick's observer estimate (for the drift check [`SENSOR_DELAY_TICKS`] ticks on).
+    #[inline(always)]
+    pub fn observed(&mut self, estimate: i32) {
         self.estimates.copy_within(0..SENSOR_DELAY_TICKS - 1, 1);
         self.estimates[0] = estimate;
     }
