@@ -532,10 +532,13 @@ impl Controller {
         };
 
         // 5. Observer on the applied drive.
-        report.estimate = match &mut self.observer {
-            ObserverRun::Duhem(m, s) => m.step(s, out.applied),
-            ObserverRun::Pi(m, s) => m.step(s, out.applied),
-            ObserverRun::None => 0,
+        // The Duhem observer is tested first: the configuration the tick is tuned for.
+        report.estimate = if let ObserverRun::Duhem(m, s) = &mut self.observer {
+            m.step(s, out.applied)
+        } else if let ObserverRun::Pi(m, s) = &mut self.observer {
+            m.step(s, out.applied)
+        } else {
+            0
         };
         self.feedback_state.observed(report.estimate);
         report

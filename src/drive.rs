@@ -294,3 +294,103 @@ impl DifferentialDrive {
         (self.drive_min, self.drive_max)
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::fixed_point::signal_to_f64;
+
+    fn settings(
+        configuration: Configuration,
+        fs: f64,
+        min: f64,
+        max: f64,
+        bias: f64,
+    ) -> DriveSettings {
+        DriveSettings {
+            configuration,
+            amplifier_full_scale: fs,
+            bias,
+            right_idle: min,
+            min_voltage: min,
+            max_voltage: max,
+            slew_rate: 1.0e6,
+            control_rate: 50_000.0,
+            dac_full_scale: 65535,
+            safe_state: SafeState::Bias,
+        }
+    }
+
+    /// The exact code of a stack voltage, before rounding.
+    fn exact_code(volts: f64, s: &DriveSettings) -> f64 {
+        volts / s.amplifier_full_scale * s.dac_full_scale as f64
+    }
+
+    #[test]
+    fn codes_round_the_exact_voltage_to_nearest_and_mirror_about_the_bias() {
+        let s = settings(Configuration::Differential, 150.0, 0.0, 140.0, 70.0);
+        let scaling = Scaling::new(0.0, 140.0, 0.0, 10.0).unwrap();
+        let d = DifferentialDrive::new(&s, &scaling).unwrap();
+        let (lo, hi) = d.drive_range();
+        for k in 0..=1000 {
+            let applied = lo + ((hi as i64 - lo as i64) * k / 1000) as i32;
+            let out = d.split(applied, applied);
+            let ul = scaling.norm_to_input(signal_to_f64(applied));
+            let (l, r) = (exact_code(ul, &s), exact_code(140.0 - ul, &s));
+            assert!(
+                (out.left.0 as f64 - l).abs() <= 0.5 + 1e-6,
+                "{applied}: {} vs {l}",
+                out.left.0
+            );
+            assert!(
+                (out.right.0 as f64 - r).abs() <= 0.5 + 1e-6,
+                "{applied}: {} vs {r}",
+                out.right.0
+            );
+        }
+    }
+
+    proptest::proptest! {
+        /// Every drive the constructor accepts maps its whole range onto valid codes: the
+        /// tick's split has no clamp of its own, so this is what keeps a code from wrapping.
+        #[test]
+        fn accepted_drives_keep_every_code_within_the_dac(
+            fs in 10.0f64..200.0,
+            lo_frac in 0.0f64..0.5,
+            hi_frac in 0.5f64..=1.0,
+            bias_frac in 0.0f64..=1.0,
+            in_lo_frac in 0.0f64..0.5,
+            in_hi_frac in 0.5f64..=1.0,
+            twelve_bit in proptest::bool::ANY,
+            differential in proptest::bool::ANY,
+            picks in proptest::array::uniform32(0.0f64..=1.0),
+        ) {
+            let (min, max) = (fs * lo_frac, fs * hi_frac);
+            let mut s = settings(
+                if differential { Configuration::Differential } else { Configuration::Unidirectional },
+                fs, min, max, min + (max - min) * bias_frac,
+            );
+            s.right_idle = s.bias;
+            s.dac_full_scale = if twelve_bit { 4095 } else { 65535 };
+            let scaling = Scaling::new(fs * in_lo_frac, fs * in_hi_frac, 0.0, 10.0).unwrap();
+            let Ok(d) = DifferentialDrive::new(&s, &scaling) else {
+                return Ok(()); // refused: nothing to hold
+            };
+            let (lo, hi) = d.drive_range();
+            let picked = picks.map(|p| lo + ((hi as f64 - lo as f64) * p) as i32);
+            let ends = [lo, hi, i32::MIN, i32::MAX, 0];
+            for command in picked.into_iter().chain(ends) {
+                // From any previous drive in range; the slew limit keeps it in range too.
+                let out = d.split(command, lo.max(hi.min(command)));
+                proptest::prop_assert!(out.applied >= lo && out.applied <= hi);
+                proptest::prop_assert!(out.left.0 <= s.dac_full_scale);
+                proptest::prop_assert!(out.right.0 <= s.dac_full_scale);
+                let ul = scaling.norm_to_input(signal_to_f64(out.applied));
+                proptest::prop_assert!(
+                    (out.left.0 as f64 - exact_code(ul, &s)).abs() <= 0.5 + 1e-6,
+                    "left {} for {} V", out.left.0, ul
+                );
+            }
+        }
+    }
+}

@@ -132,9 +132,11 @@ impl Duhem {
         };
         let e = self.anhysteretic_error(state);
         // |y·2^30| ≤ 2^61, |a·e| ≤ 2^61, |γ·Δu| < 2^62: the sum fits i64.
-        let acc = ((state.y as i64) << SIGNAL_FRAC_BITS)
-            + a as i64 * e as i64
-            + self.gamma_q30 as i64 * du as i64;
+        // Products first, `y` last: the shifted `y` then folds into an `ADDS`/`ADC` pair with
+        // shifted operands.
+        let acc = a as i64 * e as i64
+            + self.gamma_q30 as i64 * du as i64
+            + ((state.y as i64) << SIGNAL_FRAC_BITS);
         state.u = u;
         state.y = q60_to_signal_floor(acc);
         state.y
