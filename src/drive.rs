@@ -233,14 +233,10 @@ impl DifferentialDrive {
         };
         // The codes are monotonic in the drive: in range at both ends means in range
         // everywhere in between (see the type's doc).
-        let fits = |code: i32| (0..=s.dac_full_scale as i32).contains(&code);
+        let fits = |code: i64| (0..=s.dac_full_scale as i64).contains(&code);
         for applied in [drive.drive_min, drive.drive_max] {
             let (left, right) = drive.codes(applied);
-            if !(fits(left as i32)
-                && fits(right as i32)
-                && left == left as i32 as i64
-                && right == right as i32 as i64)
-            {
+            if !(fits(left) && fits(right)) {
                 return Err(DriveError::CodesBeyondDac);
             }
         }

@@ -106,7 +106,7 @@ impl Duhem {
         beta_u.wrapping_add(self.offset).saturating_sub(state.y)
     }
 
-    /// One sample: input `u` (Q2.30 normalised drive, clamped to [-1, 1]) → estimated
+    /// One sample: input `u` (Q2.30 normalised drive, clamped to full scale) → estimated
     /// displacement (Q2.30 normalised, saturated).
     ///
     /// The update `y + a·e + γ·Δu` is summed in one Q4.60 accumulator (`y` shifted up by 30,
@@ -119,10 +119,7 @@ impl Duhem {
         let u = clamp_full_scale(u);
         // |Δu| ≤ 2; a full-range jump saturates 2^-30 short of 2 (QSUB).
         let du = u.saturating_sub(state.u);
-        // |Δu| as `EOR` and `SUB` with the sign (the compiler's abs is a compare, a move and
-        // a conditional negate).
-        let sign = du >> 31;
-        let magnitude = (du ^ sign).wrapping_sub(sign) as u32;
+        let magnitude = du.unsigned_abs();
         // a = min(α|Δu|, 1), Q2.30: below 1/α the product is < 2^54 and fits after the shift;
         // there |Δu| < 1/α < 2, so it is a non-negative i32 and a signed multiply serves.
         let a = if magnitude >= self.inverse_alpha as u32 {
@@ -132,11 +129,9 @@ impl Duhem {
         };
         let e = self.anhysteretic_error(state);
         // |y·2^30| ≤ 2^61, |a·e| ≤ 2^61, |γ·Δu| < 2^62: the sum fits i64.
-        // Products first, `y` last: the shifted `y` then folds into an `ADDS`/`ADC` pair with
-        // shifted operands.
-        let acc = a as i64 * e as i64
-            + self.gamma_q30 as i64 * du as i64
-            + ((state.y as i64) << SIGNAL_FRAC_BITS);
+        let acc = ((state.y as i64) << SIGNAL_FRAC_BITS)
+            + a as i64 * e as i64
+            + self.gamma_q30 as i64 * du as i64;
         state.u = u;
         state.y = q60_to_signal_floor(acc);
         state.y
