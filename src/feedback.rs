@@ -270,15 +270,6 @@ impl FeedbackState {
         self
     }
 
-    /// End of a tick: what the limits cut from the command (for anti-windup) and the
-    /// observer's estimate (for the drift check of a later tick).
-    /// The same as [`Self::limited`] and then [`Self::observed`].
-    #[inline(always)]
-    pub fn end_tick(&mut self, command: i32, applied: i32, estimate: i32) {
-        self.limited(command, applied);
-        self.observed(estimate);
-    }
-
     /// What the limits cut from this tick's command (for the next tick's anti-windup).
     #[inline(always)]
     pub fn limited(&mut self, command: i32, applied: i32) {
@@ -385,16 +376,19 @@ mod tests {
         // Drive free: a persistent error winds the integrator up to its limit, no further.
         for _ in 0..1000 {
             fb.correction(&mut s, signal_from_f64(0.5), 0);
-            s.end_tick(0, 0, 0);
+            s.limited(0, 0);
+            s.observed(0);
         }
         assert_eq!(s.integrator(), signal_from_f64(0.2));
         // The command is cut from above while the error still pushes up: the integrator holds...
         let mut s = FeedbackState::at_rest(0);
         s.integrator = signal_from_f64(0.05);
-        s.end_tick(signal_from_f64(1.2), signal_from_f64(1.0), 0);
+        s.limited(signal_from_f64(1.2), signal_from_f64(1.0));
+        s.observed(0);
         for _ in 0..100 {
             fb.correction(&mut s, signal_from_f64(0.5), 0);
-            s.end_tick(signal_from_f64(1.2), signal_from_f64(1.0), 0);
+            s.limited(signal_from_f64(1.2), signal_from_f64(1.0));
+            s.observed(0);
         }
         assert_eq!(s.integrator(), signal_from_f64(0.05));
         // ...but unwinds as soon as the error reverses (the reference is the target of
@@ -446,27 +440,32 @@ mod tests {
             seed = seed.wrapping_mul(1_664_525).wrapping_add(1_013_904_223);
             let noise = ((seed >> 16) as i32 - 32768) * 256; // ±0.8 % of full scale
             assert!(!fb.drifted(&mut s, signal_from_f64(0.3) + noise));
-            s.end_tick(0, 0, signal_from_f64(0.3));
+            s.limited(0, 0);
+            s.observed(signal_from_f64(0.3));
         }
         // The stage sits 2 % away from the model: flagged within a few filter time constants.
         let flagged = (0..100).position(|_| {
             let d = fb.drifted(&mut s, signal_from_f64(0.32));
-            s.end_tick(0, 0, signal_from_f64(0.3));
+            s.limited(0, 0);
+            s.observed(signal_from_f64(0.3));
             d
         });
         assert!(matches!(flagged, Some(k) if k < 40), "{flagged:?}");
         // Back in agreement: the flag clears.
         let cleared = (0..200).position(|_| {
             let d = fb.drifted(&mut s, signal_from_f64(0.3));
-            s.end_tick(0, 0, signal_from_f64(0.3));
+            s.limited(0, 0);
+            s.observed(signal_from_f64(0.3));
             !d
         });
         assert!(cleared.is_some());
         // The measurement is compared with the estimate from SENSOR_DELAY_TICKS ago.
         let mut s = FeedbackState::at_rest(0);
-        s.end_tick(0, 0, signal_from_f64(0.5));
+        s.limited(0, 0);
+        s.observed(signal_from_f64(0.5));
         for _ in 1..SENSOR_DELAY_TICKS {
-            s.end_tick(0, 0, 0);
+            s.limited(0, 0);
+            s.observed(0);
         }
         let _ = fb.drifted(&mut s, 0);
         assert!(

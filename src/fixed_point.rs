@@ -116,23 +116,12 @@ pub fn saturate_q54_to_signal(acc: i64) -> i32 {
 
 /// Converts a Q10.54 accumulator to a Q2.30 signal, rounding toward −∞ (truncation of the
 /// 24 dropped bits, at most 2^-30 low) and saturating exactly to the `i32` range — the tick's
-/// conversion. The value fits iff the accumulator's high word fits 24 signed bits; the result
-/// is then that word shifted up by 8 with the low word's top byte below it. On the Cortex-M4
-/// that is an `SSAT`, a compare and two data instructions, where [`saturate_q54_to_signal`]
+/// conversion ([`floor_shift_saturated`] with 24 bits dropped). On the Cortex-M4 that is a
+/// range check of the high word and two data instructions, where [`saturate_q54_to_signal`]
 /// needs a 64-bit add and two 64-bit compares.
 #[inline(always)]
 pub fn q54_to_signal_floor(acc: i64) -> i32 {
-    const HIGH_BITS: u32 = 32 - GAIN_FRAC_BITS; // 8
-    const HIGH_MAX: i32 = (1 << (31 - HIGH_BITS)) - 1;
-    let high = (acc >> 32) as i32;
-    let low = acc as u32;
-    let fitted = high.clamp(-HIGH_MAX - 1, HIGH_MAX);
-    if fitted != high {
-        // Out of range: i32::MAX for a positive accumulator, i32::MIN for a negative one.
-        (high >> 31) ^ i32::MAX
-    } else {
-        (high << HIGH_BITS) | (low >> GAIN_FRAC_BITS) as i32
-    }
+    floor_shift_saturated::<GAIN_FRAC_BITS>(acc)
 }
 
 /// Fractional bits of a product of two Q2.30 signals (Q4.60 in `i64`).
@@ -140,16 +129,23 @@ pub const Q60_FRAC_BITS: u32 = 2 * SIGNAL_FRAC_BITS;
 
 /// Converts a Q4.60 accumulator (a sum of signal × signal products) to a Q2.30 signal,
 /// rounding toward −∞ and saturating exactly to the `i32` range: as
-/// [`q54_to_signal_floor`], with 30 bits dropped instead of 24. `acc >> 30` is the high word
-/// shifted up by 2 with the low word's top 2 bits below it, and it fits iff the high word
-/// fits 30 signed bits.
+/// [`q54_to_signal_floor`], with 30 bits dropped instead of 24.
 #[inline(always)]
 pub fn q60_to_signal_floor(acc: i64) -> i32 {
-    const DROPPED: u32 = Q60_FRAC_BITS - SIGNAL_FRAC_BITS; // 30
-    const HIGH_MAX: i32 = (1 << (DROPPED - 1)) - 1;
+    floor_shift_saturated::<{ Q60_FRAC_BITS - SIGNAL_FRAC_BITS }>(acc)
+}
+
+/// `acc >> DROPPED` (rounding toward −∞) saturated to `i32`, for `1 ≤ DROPPED ≤ 31`, on
+/// 32-bit words: the result is the high word shifted up by `32 − DROPPED` with the low
+/// word's top `DROPPED` bits below it, and it fits iff the high word fits `DROPPED` signed
+/// bits.
+#[inline(always)]
+fn floor_shift_saturated<const DROPPED: u32>(acc: i64) -> i32 {
+    const { assert!(DROPPED >= 1 && DROPPED <= 31) };
+    let high_max: i32 = (1 << (DROPPED - 1)) - 1;
     let high = (acc >> 32) as i32;
     let low = acc as u32;
-    let fitted = high.clamp(-HIGH_MAX - 1, HIGH_MAX);
+    let fitted = high.clamp(-high_max - 1, high_max);
     if fitted != high {
         // Out of range: i32::MAX for a positive accumulator, i32::MIN for a negative one.
         (high >> 31) ^ i32::MAX
