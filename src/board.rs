@@ -6,6 +6,47 @@
 //! The coarse stage of a dual-actuated axis adds two more: a step/direction output
 //! ([`StepDir`]) and quadrature encoder inputs ([`QuadratureEncoder`]).
 
+/// What the board's hardware fixes, whatever the settings say: the amplifier, the DAC, the
+/// sensor's ADC and the control rate. One value per board, in one place
+/// ([`Hardware::driver_board`] for the STM32F405 driver board); settings are validated
+/// against it.
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct Hardware {
+    /// Amplifier output at DAC full scale, volts (the amplifier's gain times the DAC's span).
+    pub amplifier_full_scale: f64,
+    /// Full-scale DAC code (4095 for the STM32's 12-bit DAC, 65535 for a 16-bit one).
+    pub dac_full_scale: u16,
+    /// The position sensor's ADC resolution in bits (1…30), or `None`: no sensor input.
+    pub sensor_adc_bits: Option<u8>,
+    /// Control (tick) rate, Hz.
+    pub control_rate_hz: f64,
+}
+
+impl Hardware {
+    /// Slowest control rate the board runs, Hz.
+    pub const MIN_CONTROL_RATE_HZ: u32 = 10_000;
+    /// Fastest control rate the board runs, Hz.
+    pub const MAX_CONTROL_RATE_HZ: u32 = 100_000;
+    /// The default control rate, Hz.
+    pub const DEFAULT_CONTROL_RATE_HZ: u32 = 50_000;
+
+    /// The STM32F405 driver board at `control_rate_hz`: a 150 V amplifier on the 12-bit DAC,
+    /// the sensor on a 12-bit ADC input.
+    ///
+    /// ```
+    /// let hw = twinstack::board::Hardware::driver_board(50_000.0);
+    /// assert_eq!(hw.dac_full_scale, 4095);
+    /// ```
+    pub const fn driver_board(control_rate_hz: f64) -> Self {
+        Self {
+            amplifier_full_scale: 150.0,
+            dac_full_scale: 4095,
+            sensor_adc_bits: Some(12),
+            control_rate_hz,
+        }
+    }
+}
+
 /// A DAC output code, right-aligned (0…4095 for the 12-bit internal DAC, 0…65535 for a
 /// 16-bit external one).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, PartialOrd, Ord, Hash)]
@@ -78,16 +119,20 @@ pub trait QuadratureEncoder {
     fn count(&mut self) -> u16;
 }
 
-/// Test doubles of the board, shared by the library's unit tests.
-#[cfg(test)]
-pub(crate) mod fakes {
+/// Test doubles of the board, shared by the library's unit tests and (feature `fakes`) by
+/// the host crates' tests.
+#[cfg(any(test, feature = "fakes"))]
+pub mod fakes {
     use super::*;
 
     /// A DAC that remembers the last pair written and counts the writes.
     #[derive(Debug, Default)]
     pub struct RecordingDac {
+        /// The last left code written.
         pub left: DacCode,
+        /// The last right code written.
         pub right: DacCode,
+        /// Writes so far.
         pub writes: u32,
     }
 

@@ -11,16 +11,19 @@
 //!    it into both stacks' DAC codes (`u_l = ū + v`, `u_r = ū − v`), written at once;
 //! 5. the forward observer, fed the drive actually applied, gives the estimated displacement.
 //!
-//! Configuration ([`ControlConfig`]) is built and validated off the tick path and swapped in
-//! whole; state lives in [`Controller`]. Nothing here allocates, panics or loops without bound.
+//! Configuration ([`ControlConfig`]) is built and validated off the tick path
+//! ([`crate::settings::Settings::build`]) and prepared there ([`Controller::prepare`]); the tick
+//! swaps it in O(1) ([`Controller::take_over`]). Nothing here allocates, panics or loops
+//! without bound.
 
 use crate::board::{AdcCode, DacCode, DualDac, SensorAdc};
-use crate::drive::DifferentialDrive;
+use crate::drive::{DifferentialDrive, StackVoltages};
 use crate::duhem::{Duhem, DuhemState, InverseDuhem};
 use crate::feedback::FeedbackState;
 pub use crate::feedback::{Derivative, Feedback};
-use crate::fixed_point::{clamp_full_scale, limit};
+use crate::fixed_point::clamp_full_scale;
 use crate::mode_switch::{BumplessTransfer, ModeError};
+pub use crate::sensor::Sensor;
 use crate::prandtl_ishlinskii::{InversePrandtlIshlinskii, PiState, PrandtlIshlinskii};
 pub use crate::settings::Mode;
 
@@ -50,32 +53,22 @@ pub enum Observer {
     Duhem(Duhem),
 }
 
-/// Everything the tick needs, validated and in fixed point.
+/// Everything the tick needs, validated and in fixed point (built by
+/// [`crate::settings::Settings::build`]).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct ControlConfig {
     /// Feedforward compensator.
     pub compensator: Compensator,
     /// Forward observer.
     pub observer: Observer,
-    /// Sensor feedback, if the stage has a sensor and closed loop is wanted.
+    /// The position sensor, if the stage has one: read once per tick in every mode.
+    pub sensor: Option<Sensor>,
+    /// Feedback on the sensor's error (closed loop).
     pub feedback: Option<Feedback>,
     /// The differential drive and its limits.
     pub drive: DifferentialDrive,
-    /// The mode the controller starts in (switch later with [`Controller::set_mode`]).
+    /// The mode to run in (switch later with [`Controller::set_mode`]).
     pub mode: Mode,
-}
-
-impl ControlConfig {
-    /// Bypass: no compensator, no observer, no feedback — the drive follows the setpoint.
-    pub fn bypass(drive: DifferentialDrive) -> Self {
-        Self {
-            compensator: Compensator::None,
-            observer: Observer::None,
-            feedback: None,
-            drive,
-            mode: Mode::Bypass,
-        }
-    }
 }
 
 /// Bit flags of what happened in one tick.
@@ -143,31 +136,46 @@ pub struct ControlCounters {
 }
 
 /// The controller: configuration plus every piece of state the tick keeps.
+///
+/// Its lifecycle keeps all heavy work off the tick: a new configuration is **prepared**
+/// ([`Controller::prepare`]: models relaxed at the stacks' present voltages, their states
+/// derived) in a spare controller by the low-priority task, then **swapped** in by the tick
+/// in O(1) ([`Controller::take_over`]: the stacks' voltages, counters and slew limit carry
+/// over). The stacks' voltages are remembered in board units, so the drive is continuous across
+/// any reload; the first tick after a swap or a mode switch hands the difference between the
+/// new command and the present drive to a fading offset ([`crate::mode_switch`]), and until
+/// that has faded the slew limit is the stricter of the old and the new one.
 #[derive(Clone, Debug)]
 pub struct Controller {
     compensator: CompensatorRun,
     observer: ObserverRun,
-    /// Sensor feedback, if any, as the mode uses it.
-    feedback: FeedbackRun,
+    sensor: Option<Sensor>,
+    feedback: Option<Feedback>,
+    /// What the tick runs, from the mode and the parts present: one tag, one compare.
+    run: Run,
     drive_limits: DifferentialDrive,
     mode: Mode,
     setpoint: i32,
-    drive: i32,
+    /// Where the stacks are, board units (the slew limiter's memory).
+    stacks: StackVoltages,
+    /// The slew step in force (stricter while a reload or mode switch settles).
+    slew: i32,
+    /// The next tick starts a transfer from the present drive to the new command.
+    rebase: bool,
+    /// The observer's displacement with the drive at rest (the underrun ramp's target).
+    rest_setpoint: i32,
     feedback_state: FeedbackState,
     transfer: BumplessTransfer,
     counters: ControlCounters,
 }
 
-/// The compensator as the tick runs it: model and state in one enum, so that one tag says
-/// which model runs (the tick pays one compare, not one for the configuration and another for
-/// the state).
-#[allow(clippy::large_enum_variant)] // as for `Compensator`: no heap, the state is in a static
+/// The compensator as the tick runs it: model and state in one enum (one tag per tick).
+#[allow(clippy::large_enum_variant)] // no heap: the controllers live in statics
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 enum CompensatorRun {
     InversePi(InversePrandtlIshlinskii, PiState),
     InverseDuhem(InverseDuhem, DuhemState),
-    /// Not running: none configured, or parked while in bypass (kept for the way back).
-    Off(Compensator),
+    None,
 }
 
 /// The observer as the tick runs it (see [`CompensatorRun`]).
@@ -179,92 +187,78 @@ enum ObserverRun {
     None,
 }
 
-/// The sensor feedback as the tick runs it: the configuration and what the mode makes of it
-/// in one tag, so the tick pays one compare for "is there a sensor, is the loop closed, does it
-/// have a derivative or a notch".
+/// What the sensor step does this mode.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-enum FeedbackRun {
-    /// Closed loop, PI only (no derivative, no notch): the common case, without their checks.
-    ClosedPi(Feedback),
+enum Run {
+    /// Closed loop, PI only (no derivative, no notch).
+    ClosedPi,
     /// Closed loop with a derivative or a notch.
-    Closed(Feedback),
-    /// Open loop or bypass with a sensor: read for the drift check only.
-    Monitor(Feedback),
+    Closed,
+    /// A sensor, read for the recorder and the drift check only.
+    Monitor,
     /// No sensor.
-    Off,
+    Blind,
 }
 
-impl FeedbackRun {
-    fn new(feedback: Option<Feedback>, mode: Mode) -> Self {
-        match (feedback, mode) {
-            (None, _) => Self::Off,
-            (Some(fb), Mode::ClosedLoop) if fb.notch.is_none() && fb.derivative.is_none() => {
-                Self::ClosedPi(fb)
+impl Run {
+    fn of(mode: Mode, sensor: &Option<Sensor>, feedback: &Option<Feedback>) -> Self {
+        match (sensor, feedback, mode) {
+            (None, _, _) => Run::Blind,
+            (Some(_), Some(fb), Mode::ClosedLoop)
+                if fb.notch.is_none() && fb.derivative.is_none() =>
+            {
+                Run::ClosedPi
             }
-            (Some(fb), Mode::ClosedLoop) => Self::Closed(fb),
-            (Some(fb), _) => Self::Monitor(fb),
-        }
-    }
-
-    fn config(&self) -> Option<&Feedback> {
-        match self {
-            Self::ClosedPi(fb) | Self::Closed(fb) | Self::Monitor(fb) => Some(fb),
-            Self::Off => None,
-        }
-    }
-}
-
-impl CompensatorRun {
-    /// The configured compensator (running or parked).
-    fn model(&self) -> Compensator {
-        match self {
-            Self::InversePi(m, _) => Compensator::InversePi(*m),
-            Self::InverseDuhem(m, _) => Compensator::InverseDuhem(*m),
-            Self::Off(c) => *c,
-        }
-    }
-}
-
-impl ObserverRun {
-    /// The configured observer.
-    fn model(&self) -> Observer {
-        match self {
-            Self::Duhem(m, _) => Observer::Duhem(*m),
-            Self::Pi(m, _) => Observer::Pi(*m),
-            Self::None => Observer::None,
+            (Some(_), Some(_), Mode::ClosedLoop) => Run::Closed,
+            (Some(_), _, _) => Run::Monitor,
         }
     }
 }
 
 impl Controller {
-    /// A controller at rest: drive at the bias, models relaxed there, setpoint where the
-    /// observer puts the stage.
+    /// A controller on `config`, with the stacks in the configuration's safe state (where the
+    /// board's DAC starts): the models relaxed there, the setpoint where the observer puts the
+    /// stage.
+    ///
+    /// ```
+    /// use twinstack::control::Controller;
+    /// use twinstack::settings::{Hardware, Settings};
+    /// let config = Settings::default().build(&Hardware::driver_board(50_000.0)).unwrap();
+    /// let c = Controller::new(config);
+    /// assert_eq!(c.stacks(), config.drive.safe_stacks());
+    /// ```
     pub fn new(config: ControlConfig) -> Self {
         let mut c = Self {
-            compensator: CompensatorRun::Off(config.compensator),
+            compensator: CompensatorRun::None,
             observer: ObserverRun::None,
-            feedback: FeedbackRun::new(config.feedback, config.mode),
+            sensor: None,
+            feedback: None,
+            run: Run::Blind,
             drive_limits: config.drive,
-            mode: config.mode,
+            mode: Mode::Bypass,
             setpoint: 0,
-            drive: 0,
+            stacks: StackVoltages::default(),
+            slew: 1,
+            rebase: false,
+            rest_setpoint: 0,
             feedback_state: FeedbackState::default(),
             transfer: BumplessTransfer::default(),
             counters: ControlCounters::default(),
         };
-        c.relax_at(config.observer, c.drive_limits.rest_drive());
+        c.prepare(config, config.drive.safe_stacks());
         c
     }
 
-    /// Puts the models in the relaxed state at `drive` (clamped to the drive's limits): the
-    /// observer's estimate there becomes the setpoint, and the compensator's state is derived
-    /// from the observer's, so the compensator starts out agreeing with the stage.
-    fn relax_at(&mut self, observer: Observer, drive: i32) {
-        let (lo, hi) = self.drive_limits.drive_range();
-        let drive = limit(drive, lo, hi);
-        self.drive = drive;
-        self.transfer = BumplessTransfer::default();
-        let (run, y) = match observer {
+    /// Prepares this controller to take over on `config` with the stacks at `stacks` (board
+    /// units; the running controller's [`Controller::stacks`]): the models relaxed at the
+    /// drive those voltages amount to (within the new limits), the compensator's state derived
+    /// from the observer's, the setpoint where the observer puts the stage. This is the heavy
+    /// part of a reload (thousands of instructions for a large P–I): it runs in the
+    /// low-priority task, never in the tick.
+    pub fn prepare(&mut self, config: ControlConfig, stacks: StackVoltages) {
+        let d = &config.drive;
+        let drive = d.drive_of(stacks.left);
+        let (observer, y) = match config.observer {
             Observer::None => (ObserverRun::None, drive),
             Observer::Pi(m) => {
                 let mut s = m.state_at_rest(drive);
@@ -276,44 +270,68 @@ impl Controller {
                 (ObserverRun::Duhem(m, m.state_at(drive, y)), y)
             }
         };
-        self.observer = run;
-        self.setpoint = y;
-        let compensator = self.compensator.model();
-        // Bypass runs no compensator: it stays parked.
-        self.compensator = if self.mode == Mode::Bypass {
-            CompensatorRun::Off(compensator)
-        } else {
-            self.compensator_from_observer(compensator)
+        let compensator = match (config.compensator, &observer) {
+            (Compensator::None, _) => CompensatorRun::None,
+            (Compensator::InversePi(m), ObserverRun::Pi(o, s)) => {
+                CompensatorRun::InversePi(m, m.state_from_forward(&o.bank().outputs(s)))
+            }
+            (Compensator::InversePi(m), _) => CompensatorRun::InversePi(m, m.state_at_rest(y)),
+            (Compensator::InverseDuhem(m), ObserverRun::Duhem(o, s)) if o == m.model() => {
+                CompensatorRun::InverseDuhem(m, *s)
+            }
+            (Compensator::InverseDuhem(m), _) => {
+                let model = m.model();
+                CompensatorRun::InverseDuhem(m, model.state_at(drive, model.anhysteretic(drive)))
+            }
         };
-        self.feedback_state = FeedbackState::at_rest(y);
+        let rest = d.rest_drive();
+        let rest_setpoint = match &observer {
+            ObserverRun::None => rest,
+            ObserverRun::Pi(m, _) => {
+                let mut s = m.state_at_rest(rest);
+                m.step(&mut s, rest)
+            }
+            ObserverRun::Duhem(m, _) => m.anhysteretic(rest),
+        };
+        *self = Self {
+            compensator,
+            observer,
+            sensor: config.sensor,
+            feedback: config.feedback,
+            run: Run::of(config.mode, &config.sensor, &config.feedback),
+            drive_limits: config.drive,
+            mode: config.mode,
+            setpoint: y,
+            stacks,
+            slew: d.slew(),
+            rebase: false,
+            rest_setpoint,
+            feedback_state: FeedbackState::at_rest(y),
+            transfer: BumplessTransfer::default(),
+            counters: self.counters,
+        };
     }
 
-    /// Swaps in a new configuration whole, between two ticks. The drive stays where it is
-    /// (within the new limits) and the models are relaxed there, so the output does not jump
-    /// to the rest position; counters carry on.
-    /// In closed loop the integrator takes over whatever separates the new feedforward from
-    /// the drive, as on a mode switch.
-    pub fn reconfigure(&mut self, config: ControlConfig) {
-        let measured = self.feedback_state.measured();
-        self.compensator = CompensatorRun::Off(config.compensator);
-        self.feedback = FeedbackRun::new(config.feedback, config.mode);
-        self.drive_limits = config.drive;
-        self.mode = config.mode;
-        self.relax_at(config.observer, self.drive);
-        self.feedback_state = self.feedback_state.with_measurement(measured);
-        self.begin_transfer();
+    /// Takes over from `old` between two ticks, in O(1): the stacks' voltages, the counters
+    /// and the stricter of the two slew limits carry over, and the next tick starts from the
+    /// drive the stacks hold.
+    #[inline(always)]
+    pub fn take_over(&mut self, old: &Controller) {
+        self.stacks = old.stacks;
+        self.slew = self.drive_limits.slew().min(old.slew);
+        self.counters = old.counters;
+        self.rebase = true;
     }
 
-    /// Switches between bypass, open loop (compensated) and closed loop between two ticks,
+    /// Switches between bypass, open loop and closed loop between two ticks, in O(1) and
     /// without a bump in the drive (see [`crate::mode_switch`]). Refused, changing nothing,
     /// when the configuration lacks what the mode needs.
     pub fn set_mode(&mut self, mode: Mode) -> Result<(), ModeError> {
-        let compensator = self.compensator.model();
         match mode {
-            Mode::OpenLoop if matches!(compensator, Compensator::None) => {
+            Mode::OpenLoop if matches!(self.compensator, CompensatorRun::None) => {
                 return Err(ModeError::NoCompensator)
             }
-            Mode::ClosedLoop if self.feedback.config().is_none() => {
+            Mode::ClosedLoop if self.sensor.is_none() || self.feedback.is_none() => {
                 return Err(ModeError::NoSensor)
             }
             _ => {}
@@ -321,14 +339,12 @@ impl Controller {
         if mode == self.mode {
             return Ok(());
         }
-        self.mode = mode;
-        self.feedback = FeedbackRun::new(self.feedback.config().copied(), mode);
-        if mode == Mode::Bypass {
-            self.compensator = CompensatorRun::Off(compensator);
-        } else if matches!(self.compensator, CompensatorRun::Off(_)) {
-            self.compensator = self.compensator_from_observer(compensator);
+        if mode == Mode::ClosedLoop {
+            self.feedback_state.enter_closed_loop(self.setpoint);
         }
-        self.begin_transfer();
+        self.mode = mode;
+        self.run = Run::of(mode, &self.sensor, &self.feedback);
+        self.rebase = true;
         Ok(())
     }
 
@@ -342,87 +358,36 @@ impl Controller {
         &self.feedback_state
     }
 
-    /// `compensator`, running, from where the observer says the stage is.
-    fn compensator_from_observer(&self, compensator: Compensator) -> CompensatorRun {
-        match (compensator, &self.observer) {
-            (Compensator::None, _) => CompensatorRun::Off(Compensator::None),
-            (Compensator::InversePi(m), ObserverRun::Pi(observer, fs)) => {
-                CompensatorRun::InversePi(m, m.state_from_forward(&observer.bank().outputs(fs)))
-            }
-            (Compensator::InversePi(m), _) => {
-                CompensatorRun::InversePi(m, m.state_at_rest(self.setpoint))
-            }
-            (Compensator::InverseDuhem(m), ObserverRun::Duhem(o, os)) if o == m.model() => {
-                CompensatorRun::InverseDuhem(m, *os)
-            }
-            (Compensator::InverseDuhem(m), _) => {
-                let model = m.model();
-                let state = model.state_at(self.drive, model.anhysteretic(self.drive));
-                CompensatorRun::InverseDuhem(m, state)
-            }
-        }
-    }
-
-    /// What the feedforward would be for the present setpoint (the state is not advanced).
-    fn peek_feedforward(&self) -> i32 {
-        let target = self.setpoint;
-        match self.compensator {
-            CompensatorRun::InversePi(m, mut s) => m.step(&mut s, target),
-            CompensatorRun::InverseDuhem(m, mut s) => m.step(&mut s, target),
-            CompensatorRun::Off(_) => target,
-        }
-    }
-
-    /// Makes the next command continue from the present drive: the integrator (closed loop)
-    /// or the fading transfer offset takes up the difference.
-    fn begin_transfer(&mut self) {
-        let wanted = self.drive.saturating_sub(self.peek_feedforward());
-        let rest = match &self.feedback {
-            FeedbackRun::ClosedPi(fb) | FeedbackRun::Closed(fb) => {
-                fb.hand_over(&mut self.feedback_state, self.setpoint, wanted)
-            }
-            FeedbackRun::Monitor(_) | FeedbackRun::Off => wanted,
-        };
-        self.transfer.start(rest);
-    }
-
     /// The setpoint in force (the last one given, or held), Q2.30 normalised displacement.
     pub fn setpoint(&self) -> i32 {
         self.setpoint
     }
 
     /// The rest position: the observer's displacement with the drive at rest (the bias),
-    /// Q2.30 normalised (the drive itself without an observer). Computed from the configuration
-    /// alone; the controller's state is not touched.
+    /// Q2.30 normalised (the drive itself without an observer). Computed when the
+    /// configuration was prepared.
     pub fn rest_setpoint(&self) -> i32 {
-        let (lo, hi) = self.drive_limits.drive_range();
-        let drive = limit(self.drive_limits.rest_drive(), lo, hi);
-        match &self.observer {
-            ObserverRun::None => drive,
-            ObserverRun::Pi(m, _) => {
-                let mut s = m.state_at_rest(drive);
-                m.step(&mut s, drive)
-            }
-            ObserverRun::Duhem(m, _) => m.anhysteretic(drive),
-        }
+        self.rest_setpoint
     }
 
-    /// The active configuration (the models as configured, the mode in effect), rebuilt from
-    /// the parts the controller runs; it is large (the models' tables), so prefer the
-    /// accessors for single parts.
-    pub fn config(&self) -> ControlConfig {
-        ControlConfig {
-            compensator: self.compensator.model(),
-            observer: self.observer.model(),
-            feedback: self.feedback.config().copied(),
-            drive: self.drive_limits,
-            mode: self.mode,
-        }
+    /// Where the stacks are now, board units.
+    pub fn stacks(&self) -> StackVoltages {
+        self.stacks
     }
 
-    /// The sensor feedback's configuration, if there is a sensor.
+    /// The slew step in force, Q17.15 codes per tick.
+    pub fn slew(&self) -> i32 {
+        self.slew
+    }
+
+    /// The sensor's configuration, if there is a sensor.
+    pub fn sensor_config(&self) -> Option<&Sensor> {
+        self.sensor.as_ref()
+    }
+
+    /// The feedback's configuration, if any.
     pub fn feedback_config(&self) -> Option<&Feedback> {
-        self.feedback.config()
+        self.feedback.as_ref()
     }
 
     /// The drive and its limits.
@@ -441,7 +406,7 @@ impl Controller {
     }
 
     /// One control tick (see the module doc). `setpoint` is the next desired displacement
-    /// (Q2.30 normalised), `None` on underrun. Reads the sensor (when feedback is on), writes
+    /// (Q2.30 normalised), `None` on underrun. Reads the sensor (when there is one), writes
     /// both DAC channels at once, and reports what it did.
     #[inline(always)]
     pub fn tick<D: DualDac, A: SensorAdc>(
@@ -482,32 +447,54 @@ impl Controller {
         }
         let target = self.setpoint;
 
-        // 2. Feedforward.
-        let feedforward = match &mut self.compensator {
+        // 2. Feedforward. The compensator runs in every mode (in bypass on the setpoint, its
+        // output unused), so that a switch into open loop finds its state current.
+        let compensated = match &mut self.compensator {
             CompensatorRun::InversePi(m, s) => m.step(s, target),
             CompensatorRun::InverseDuhem(m, s) => m.step(s, target),
-            CompensatorRun::Off(_) => target,
+            CompensatorRun::None => target,
+        };
+        let feedforward = if self.mode == Mode::Bypass {
+            target
+        } else {
+            compensated
         };
 
         // 3. Sensor: drift check, and in closed loop the feedback correction.
         let fs = &mut self.feedback_state;
-        let (command, measured) = match &self.feedback {
-            FeedbackRun::ClosedPi(fb) => {
-                sense::<_, true, false>(fb, fs, io, target, feedforward, &mut flags, counters)
+        let (command, measured) = match (&self.run, &self.sensor, &self.feedback) {
+            (Run::ClosedPi, Some(sn), Some(fb)) => {
+                sense::<_, true, false>(sn, Some(fb), fs, io, target, feedforward, &mut flags, counters)
             }
-            FeedbackRun::Closed(fb) => {
-                sense::<_, true, true>(fb, fs, io, target, feedforward, &mut flags, counters)
+            (Run::Closed, Some(sn), Some(fb)) => {
+                sense::<_, true, true>(sn, Some(fb), fs, io, target, feedforward, &mut flags, counters)
             }
-            FeedbackRun::Monitor(fb) => {
-                sense::<_, false, true>(fb, fs, io, target, feedforward, &mut flags, counters)
+            (Run::Monitor, Some(sn), _) => {
+                sense::<_, false, false>(sn, None, fs, io, target, feedforward, &mut flags, counters)
             }
-            FeedbackRun::Off => (feedforward, 0),
+            _ => (feedforward, 0),
         };
-        let command = self.transfer.apply(command);
 
-        // 4. Limits, split, both DACs at once.
-        let out = self.drive_limits.split(command, self.drive);
-        self.drive = out.applied;
+        // 4. After a swap or a mode switch: continue from the drive the stacks hold.
+        if self.rebase {
+            self.rebase = false;
+            let held = self.drive_limits.drive_of(self.stacks.left);
+            self.transfer.start(held.saturating_sub(command));
+        }
+        let command = if self.transfer.remaining() != 0 {
+            let c = self.transfer.apply(command);
+            if self.transfer.remaining() == 0 {
+                // Settled: the configured slew limit again.
+                self.slew = self.drive_limits.slew();
+            }
+            c
+        } else {
+            command
+        };
+
+        // 5. Limits, split, both DACs at once.
+        let out = self.drive_limits.split(command, self.stacks, self.slew);
+        self.stacks = out.stacks;
         if out.range_limited {
             flags |= TickFlags::RANGE_LIMIT;
             counters.range_limits = counters.range_limits.wrapping_add(1);
@@ -531,14 +518,11 @@ impl Controller {
             flags: TickFlags(flags),
         };
 
-        // 5. Observer on the applied drive.
-        // The Duhem observer is tested first: the configuration the tick is tuned for.
-        report.estimate = if let ObserverRun::Duhem(m, s) = &mut self.observer {
-            m.step(s, out.applied)
-        } else if let ObserverRun::Pi(m, s) = &mut self.observer {
-            m.step(s, out.applied)
-        } else {
-            0
+        // 6. Observer on the applied drive.
+        report.estimate = match &mut self.observer {
+            ObserverRun::Duhem(m, s) => m.step(s, out.applied),
+            ObserverRun::Pi(m, s) => m.step(s, out.applied),
+            ObserverRun::None => 0,
         };
         self.feedback_state.observed(report.estimate);
         report
@@ -548,9 +532,11 @@ impl Controller {
 /// The tick's sensor step: reads the sensor, runs the drift check and, when `CLOSED`, adds
 /// the feedback correction to `feedforward` (with the derivative and notch when `FULL`, else
 /// the PI alone). Returns the command and the measurement.
+#[allow(clippy::too_many_arguments)] // inlined into the tick: the arguments are registers
 #[inline(always)]
 fn sense<IO: TickIo, const CLOSED: bool, const FULL: bool>(
-    fb: &Feedback,
+    sensor: &Sensor,
+    fb: Option<&Feedback>,
     fs: &mut FeedbackState,
     io: &mut IO,
     target: i32,
@@ -560,25 +546,25 @@ fn sense<IO: TickIo, const CLOSED: bool, const FULL: bool>(
 ) -> (i32, i32) {
     match io.read() {
         Ok(code) => {
-            let measured = fb.displacement(code);
-            if fb.drifted(fs, measured) {
+            let measured = sensor.displacement(code);
+            if sensor.drifted(fs, measured) {
                 *flags |= TickFlags::DRIFT;
                 counters.drifts = counters.drifts.wrapping_add(1);
             }
-            let command = if CLOSED {
-                feedforward.saturating_add(fb.correction_with::<FULL>(fs, target, measured))
-            } else {
-                feedforward
+            let command = match (CLOSED, fb) {
+                (true, Some(fb)) => {
+                    feedforward.saturating_add(fb.correction_with::<FULL>(fs, target, measured))
+                }
+                _ => feedforward,
             };
             (command, measured)
         }
         Err(_) => {
             *flags |= TickFlags::ADC_ERROR;
             counters.adc_errors = counters.adc_errors.wrapping_add(1);
-            let command = if CLOSED {
-                feedforward.saturating_add(fb.held_correction(fs, target))
-            } else {
-                feedforward
+            let command = match (CLOSED, fb) {
+                (true, Some(fb)) => feedforward.saturating_add(fb.held_correction(fs, target)),
+                _ => feedforward,
             };
             (command, 0)
         }
@@ -623,31 +609,26 @@ impl<B: SensorAdc + DualDac> TickIo for JointIo<'_, B> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::drive::{Configuration, DriveSettings, SafeState};
-    use crate::fixed_point::signal_from_f64;
-    use crate::scaling::Scaling;
-
     use crate::board::fakes::{FixedAdc, RecordingDac};
+    use crate::board::Hardware;
+    use crate::fixed_point::signal_from_f64;
+    use crate::settings::{representative_duhem, representative_pi, FeedbackSettings, Settings};
 
-    pub(crate) fn paper_drive() -> DriveSettings {
-        DriveSettings {
-            configuration: Configuration::Differential,
-            amplifier_full_scale: 150.0,
-            bias: 70.0,
-            right_idle: 0.0,
-            min_voltage: 0.0,
-            max_voltage: 140.0,
-            slew_rate: 1.0e6,
-            control_rate: 50_000.0,
+    fn hw() -> Hardware {
+        Hardware {
             dac_full_scale: 65535,
-            safe_state: SafeState::Bias,
+            sensor_adc_bits: Some(16),
+            ..Hardware::driver_board(50_000.0)
         }
     }
 
     fn bypass() -> Controller {
-        let scaling = Scaling::new(0.0, 140.0, 0.0, 10.0).unwrap();
-        let drive = DifferentialDrive::new(&paper_drive(), &scaling).unwrap();
-        Controller::new(ControlConfig::bypass(drive))
+        let s = Settings {
+            ranges: crate::Scaling::new(0.0, 140.0, 0.0, 10.0).unwrap(),
+            sensor: None,
+            ..Settings::default()
+        };
+        Controller::new(s.build(&hw()).unwrap())
     }
 
     fn volts(code: DacCode) -> f64 {
@@ -659,7 +640,7 @@ mod tests {
         let mut c = bypass();
         let mut dac = RecordingDac::default();
         for &y in &[-0.5, 0.0, 0.3, 0.9] {
-            // Slew allows 20 V per tick: enough ticks to arrive.
+            // Slew allows 40 V per tick: enough ticks to arrive.
             for _ in 0..20 {
                 c.tick(Some(signal_from_f64(y)), &mut FixedAdc(None), &mut dac);
             }
@@ -687,13 +668,15 @@ mod tests {
 
     #[test]
     fn range_and_slew_limits_hold_whatever_arrives() {
-        let scaling = Scaling::new(0.0, 140.0, 0.0, 10.0).unwrap();
-        let mut settings = paper_drive();
-        settings.min_voltage = 10.0;
-        settings.max_voltage = 130.0;
-        settings.slew_rate = 50_000.0; // 1 V per tick
-        let drive = DifferentialDrive::new(&settings, &scaling).unwrap();
-        let mut c = Controller::new(ControlConfig::bypass(drive));
+        let mut s = Settings {
+            ranges: crate::Scaling::new(0.0, 140.0, 0.0, 10.0).unwrap(),
+            sensor: None,
+            ..Settings::default()
+        };
+        s.drive.min_voltage = 10.0;
+        s.drive.max_voltage = 130.0;
+        s.drive.slew_rate = 50_000.0; // 1 V per tick
+        let mut c = Controller::new(s.build(&hw()).unwrap());
         let mut dac = RecordingDac::default();
         let mut prev = (70.0, 70.0);
         let mut seed = 12345u32;
@@ -712,16 +695,88 @@ mod tests {
     }
 
     #[test]
-    fn safe_state_is_bias_or_zero() {
+    fn a_fresh_controller_holds_the_safe_state() {
         let c = bypass();
         let (l, r) = c.safe_codes();
         assert!((volts(l) - 70.0).abs() < 0.01 && l == r);
-        let scaling = Scaling::new(0.0, 140.0, 0.0, 10.0).unwrap();
-        let mut s = paper_drive();
-        s.safe_state = SafeState::Zero;
-        let c = Controller::new(ControlConfig::bypass(
-            DifferentialDrive::new(&s, &scaling).unwrap(),
-        ));
+        let mut s = Settings {
+            sensor: None,
+            ..Settings::default()
+        };
+        s.drive.safe_state = crate::drive::SafeState::Zero;
+        let mut c = Controller::new(s.build(&hw()).unwrap());
         assert_eq!(c.safe_codes(), (DacCode(0), DacCode(0)));
+        // It starts where the DAC starts (the safe state): the left stack stays at 0 V, the
+        // right one moves to its mirror (140 V) at the slew limit, never in one step.
+        assert_eq!(c.stacks(), crate::drive::StackVoltages::default());
+        let mut dac = RecordingDac::default();
+        let mut last = 0.0;
+        for _ in 0..10 {
+            c.tick(None, &mut FixedAdc(None), &mut dac);
+            assert_eq!(dac.left, DacCode(0));
+            assert!(volts(dac.right) - last <= 40.01, "{last} → {}", volts(dac.right));
+            last = volts(dac.right);
+        }
+        assert!((last - 140.0).abs() < 0.01);
+    }
+
+    /// A mode switch and a reload each cost the tick O(1) work and move neither stack by
+    /// more than the slew limit; the drive continues from where the stacks are.
+    #[test]
+    fn mode_switches_and_swaps_continue_from_the_present_drive() {
+        let mut s = Settings {
+            compensator: Some(representative_pi(16).unwrap()),
+            observer: Some(representative_duhem()),
+            feedback: Some(FeedbackSettings::pi(0.2, 500.0, 0.1)),
+            ..Settings::default()
+        };
+        s.drive.slew_rate = 1.0e5; // 2 V per tick
+        let config = s.build(&hw()).unwrap();
+        let mut c = Controller::new(config);
+        let mut adc = FixedAdc(Some(crate::board::AdcCode(30000)));
+        let mut dac = RecordingDac::default();
+        let mut last = (dac.left, dac.right);
+        let step_ok = |a: (DacCode, DacCode), b: (DacCode, DacCode)| {
+            (volts(a.0) - volts(b.0)).abs() <= 2.01 && (volts(a.1) - volts(b.1)).abs() <= 2.01
+        };
+        for k in 0..3000 {
+            if k == 500 {
+                c.set_mode(Mode::OpenLoop).unwrap();
+            }
+            if k == 1000 {
+                c.set_mode(Mode::ClosedLoop).unwrap();
+            }
+            if k == 1500 {
+                // A reload onto other ranges and a lower bias.
+                let mut t = s.clone();
+                t.ranges = crate::Scaling::new(0.0, 150.0, -5.0, 80.0).unwrap();
+                t.drive.bias = 50.0;
+                t.drive.max_voltage = 100.0;
+                t.mode = Mode::ClosedLoop;
+                let mut next = Controller::new(t.build(&hw()).unwrap());
+                next.prepare(t.build(&hw()).unwrap(), c.stacks());
+                next.take_over(&c);
+                c = next;
+            }
+            let sp = signal_from_f64(0.6 * libm::sin(k as f64 * 0.01));
+            c.tick(Some(sp), &mut adc, &mut dac);
+            let now = (dac.left, dac.right);
+            if k > 0 {
+                assert!(step_ok(last, now), "tick {k}: {last:?} → {now:?}");
+            }
+            last = now;
+        }
+        assert_eq!(c.mode(), Mode::ClosedLoop);
+        assert_eq!(c.counters().ticks, 3000, "counters carry over a swap");
+        let top = volts(dac.left).max(volts(dac.right));
+        assert!(top <= 100.01, "within the new limits once settled: {top}");
+    }
+
+    #[test]
+    fn set_mode_refuses_what_the_configuration_lacks() {
+        let mut c = bypass();
+        assert_eq!(c.set_mode(Mode::OpenLoop), Err(ModeError::NoCompensator));
+        assert_eq!(c.set_mode(Mode::ClosedLoop), Err(ModeError::NoSensor));
+        assert_eq!(c.mode(), Mode::Bypass);
     }
 }

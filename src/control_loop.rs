@@ -3,25 +3,34 @@
 //!
 //! One [`ControlLoop::tick`] is:
 //!
-//! 1. a parameter load or mode change waiting since the last tick is swapped in whole
-//!    ([`Controller::reconfigure`]: the output does not jump, nothing is half-applied);
+//! 1. a configuration prepared by the command handler since the last tick is swapped in, in
+//!    O(1): the loop holds its controllers by pointer, so the swap moves a pointer, and
+//!    [`Controller::take_over`] carries the stacks' voltages and counters over (the output does
+//!    not jump; nothing is half-applied);
 //! 2. the setpoint: the built-in waveform generator, or the next streamed sample from the
 //!    setpoint queue through [`SetpointStream`] (rate divider with linear interpolation; on an
 //!    empty queue the underrun policy holds or ramps to the rest position, and counts);
-//! 3. [`Controller::tick`] (compensator, feedback, limits, both DACs);
+//! 3. [`Controller::tick`] (compensator, sensor, feedback, limits, both DACs);
 //! 4. the recorder captures the chosen signal.
 //!
 //! The command handler ([`crate::protocol::handler`]) runs at a lower priority. The two halves
 //! meet in exactly two places: the lock-free single-producer single-consumer setpoint queue
 //! ([`SetpointQueue`], `heapless::spsc`), and short critical sections in which the handler
-//! calls this struct's command methods ([`ControlLoop::post_config`], [`ControlLoop::start`],
-//! …, each a few stores or one copy) through an [`rtic_core::Mutex`] — RTIC's lock on the
-//! board, a plain `&mut` in the simulator. Nothing on the tick path allocates, panics or loops.
+//! calls this struct's command methods ([`ControlLoop::post`], [`ControlLoop::start`], …,
+//! each a few stores) through an [`rtic_core::Mutex`] — RTIC's lock on the board, a plain
+//! `&mut` in the simulator. A reload's heavy work ([`Controller::prepare`]) happens in the
+//! handler, on a spare controller the tick does not touch ([`ControlLoop::spare`]). Nothing on
+//! the tick path allocates, panics or loops.
 
 use heapless::spsc::{Consumer, Queue};
 
+use core::ops::DerefMut;
+
 use crate::board::{DualDac, SensorAdc};
-use crate::control::{ControlConfig, Controller, Feedback, TickFlags, TickReport};
+use crate::control::{Controller, TickFlags, TickReport};
+use crate::drive::StackVoltages;
+use crate::mode_switch::ModeError;
+use crate::settings::Mode;
 use crate::protocol::messages::{Signal, UnderrunPolicy, MAX_CHUNK};
 use crate::recorder::{RecordError, Recorder};
 use crate::setpoint_stream::{SetpointStream, Underrun};
@@ -39,17 +48,6 @@ pub type SetpointQueue = Queue<i16, SETPOINT_QUEUE_LEN>;
 /// Under the ramp-to-bias underrun policy, a ramp over the full stroke (2.0 in normalised
 /// displacement) takes this many ticks (20 ms at 50 kHz); the drive's slew limit still holds.
 pub const RAMP_TICKS_FULL_STROKE: i32 = 1000;
-
-/// A validated configuration on its way to the tick.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub struct TickConfig {
-    /// What the controller runs.
-    pub control: ControlConfig,
-    /// The sensor's calibration, for recording the sensor when feedback is off (the
-    /// controller then does not read it); only `adc_bits`, `sensor_offset` and `sensor_gain`
-    /// are used. `None`: the board has no sensor.
-    pub sensor: Option<Feedback>,
-}
 
 /// Counters and state the status report carries, read in one short critical section.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
@@ -76,14 +74,18 @@ pub struct Telemetry {
     pub config_pending: bool,
 }
 
-/// Everything the control interrupt owns. `B` is the recorder's buffer.
+/// Everything the control interrupt owns. `B` is the recorder's buffer; `C` a handle on a
+/// [`Controller`] (`&'static mut Controller` on the board, `Box<Controller>` on the host): the
+/// loop runs one, and passes a second back and forth with the command handler.
 #[derive(Debug)]
-pub struct ControlLoop<B> {
-    controller: Controller,
+pub struct ControlLoop<B, C> {
+    controller: C,
+    /// Prepared by the handler, swapped in at the start of the next tick.
+    pending: Option<C>,
+    /// The controller a swap retired (or the one the handler has not taken yet): the spare.
+    spare: Option<C>,
     stream: SetpointStream,
     recorder: Recorder<B>,
-    pending: Option<TickConfig>,
-    sensor: Option<Feedback>,
     underrun: UnderrunPolicy,
     waveform: bool,
     overruns: u32,
@@ -92,18 +94,22 @@ pub struct ControlLoop<B> {
     control_rate_hz: u32,
 }
 
-impl<B: AsRef<[i32]> + AsMut<[i32]>> ControlLoop<B> {
-    /// The loop at rest on `config`: stream stopped (holding the rest setpoint), divider 1,
-    /// underrun policy hold, recorder idle over `record_buffer`.
-    pub fn new(config: TickConfig, control_rate_hz: u32, record_buffer: B) -> Self {
-        let controller = Controller::new(config.control);
+impl<B, C> ControlLoop<B, C>
+where
+    B: AsRef<[i32]> + AsMut<[i32]>,
+    C: DerefMut<Target = Controller>,
+{
+    /// The loop at rest on `controller`, with `spare` for the handler's reloads: stream
+    /// stopped (holding the setpoint), divider 1, underrun policy hold, recorder idle over
+    /// `record_buffer`.
+    pub fn new(controller: C, spare: C, control_rate_hz: u32, record_buffer: B) -> Self {
         let stream = SetpointStream::new(controller.setpoint());
         Self {
             controller,
+            pending: None,
+            spare: Some(spare),
             stream,
             recorder: Recorder::new(record_buffer),
-            pending: None,
-            sensor: config.sensor,
             underrun: UnderrunPolicy::Hold,
             waveform: false,
             overruns: 0,
@@ -125,45 +131,57 @@ impl<B: AsRef<[i32]> + AsMut<[i32]>> ControlLoop<B> {
             self.swap_in_pending();
         }
         let setpoint = self.stream.next(queue);
-        // The controller reads the sensor only with feedback on; a capture of the sensor
-        // without it reads the ADC here (and only on the ticks that capture).
-        let mut sensor = None;
-        if let (Some(Signal::Sensor), Some(cal), None) = (
-            self.recorder.wants(),
-            &self.sensor,
-            self.controller.feedback_config(),
-        ) {
-            sensor = adc.read().ok().map(|code| cal.displacement(code));
-        }
         let report = self.controller.tick(setpoint, adc, dac);
         if report.flags.0 & (TickFlags::RANGE_LIMIT | TickFlags::SLEW_LIMIT) != 0 {
             self.limit_hits = self.limit_hits.wrapping_add(1);
         }
         self.estimate = report.estimate;
-        let measured = sensor.unwrap_or(report.measured);
         self.recorder
-            .capture(self.controller.setpoint(), measured, &report);
+            .capture(self.controller.setpoint(), report.measured, &report);
         report
     }
 
+    /// The swap: O(1), a pointer and a few words.
+    #[inline(never)]
     fn swap_in_pending(&mut self) {
-        if let Some(next) = self.pending.take() {
-            self.controller.reconfigure(next.control);
-            self.sensor = next.sensor;
-            // The rest position moves with the configuration.
+        if let Some(mut next) = self.pending.take() {
+            next.take_over(&self.controller);
+            let old = core::mem::replace(&mut self.controller, next);
+            self.spare = Some(old);
+            // The rest position moves with the configuration (prepared with it).
             self.set_underrun(self.underrun);
         }
+    }
+
+    /// The spare controller, for the handler to prepare a reload in (outside any lock):
+    /// the one the last swap retired, or — if a reload is still waiting — the waiting one,
+    /// which a newer reload replaces. `None` only while the handler already holds it.
+    pub fn spare(&mut self) -> Option<C> {
+        self.spare.take().or_else(|| self.pending.take())
+    }
+
+    /// Hands a prepared controller to the tick: it takes over at the start of the next tick.
+    pub fn post(&mut self, prepared: C) {
+        self.pending = Some(prepared);
+    }
+
+    /// Gives a spare back unused (a reload refused after [`ControlLoop::spare`]).
+    pub fn give_back(&mut self, spare: C) {
+        self.spare = Some(spare);
+    }
+
+    /// Switches the mode between two ticks (O(1), see [`Controller::set_mode`]); a reload
+    /// still waiting is switched too.
+    pub fn set_mode(&mut self, mode: Mode) -> Result<(), ModeError> {
+        if let Some(p) = self.pending.as_mut() {
+            p.set_mode(mode)?;
+        }
+        self.controller.set_mode(mode)
     }
 
     /// Counts a tick that overran (the board's timer sees the next one already due).
     pub fn count_overrun(&mut self) {
         self.overruns = self.overruns.wrapping_add(1);
-    }
-
-    /// Hands a validated configuration to the tick: it is swapped in whole at the start of
-    /// the next tick. A later post before that tick replaces it (the newer load wins).
-    pub fn post_config(&mut self, config: TickConfig) {
-        self.pending = Some(config);
     }
 
     /// Starts consuming the setpoint queue (stopping the waveform generator).
@@ -259,9 +277,14 @@ impl<B: AsRef<[i32]> + AsMut<[i32]>> ControlLoop<B> {
     /// waits), for the fault handlers to arm.
     pub fn safe_codes(&self) -> (crate::board::DacCode, crate::board::DacCode) {
         match &self.pending {
-            Some(p) => p.control.drive.safe_codes(),
+            Some(p) => p.safe_codes(),
             None => self.controller.safe_codes(),
         }
+    }
+
+    /// Where the stacks are now (board units): what a reload is prepared at.
+    pub fn stacks(&self) -> StackVoltages {
+        self.controller.stacks()
     }
 
     /// Control rate, Hz.

@@ -19,7 +19,7 @@
 //! 5. derivative (optional): `kd · d` on the low-passed change of `e` per tick;
 //! 6. the sum, limited to ±`limit`, is the correction added to the feedforward.
 //!
-//! The drift check ([`Feedback::drifted`]) compares the measurement with the observer's
+//! The drift check ([`crate::sensor::Sensor::drifted`]) compares the measurement with the observer's
 //! estimate of the same instant (the sensor reading is [`SENSOR_DELAY_TICKS`] ticks old), low
 //! passes the difference over 2^[`DRIFT_FILTER_SHIFT`] ticks and flags it when it exceeds the
 //! drift limit: the model no longer describes the stage.
@@ -27,9 +27,136 @@
 //! Configuration ([`Feedback`]) and memory ([`FeedbackState`]) are kept apart; nothing here
 //! allocates, panics or loops.
 
-use crate::board::AdcCode;
-use crate::fixed_point::{limit, mul_high, saturate_i64, SIGNAL_ONE};
-use crate::notch::{Notch, NotchState};
+use crate::fixed_point::{
+    limit, mul_high, q0_32_from_f64, q1_31_from_f64, q4_28_from_f64, saturate_i64,
+    signal_from_f64, SIGNAL_ONE,
+};
+use crate::notch::{Notch, NotchDesign, NotchError, NotchState};
+use crate::refusal::{finite, Field, Refusal, Rule};
+
+/// PI(D) feedback on the sensor's error and the resonance notch, in physical terms. Gains are
+/// normalised: drive as a fraction of the model's input range per displacement error as a
+/// fraction of its output range (kp = 1: an error of the whole stroke asks for the whole
+/// drive range).
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct FeedbackSettings {
+    /// Proportional gain, 0 ≤ kp < 7.5.
+    pub kp: f64,
+    /// Integral gain, per second; per tick (`ki / control rate`) it must be below 1/2.
+    pub ki: f64,
+    /// Derivative gain, seconds (0: no derivative term); per tick (`kd · control rate`)
+    /// below 7.5.
+    pub kd: f64,
+    /// Corner of the derivative's low pass, Hz (0 < f < control rate / 2; unused when kd = 0,
+    /// but it must still be a finite number).
+    pub derivative_cutoff_hz: f64,
+    /// Largest correction, as a fraction of the drive range (0…1]: 0.1 lets the feedback
+    /// move the drive by a tenth of the model's input range either way.
+    pub limit: f64,
+    /// Notch on the error at the stage's resonance, if any.
+    pub notch: Option<NotchDesign>,
+}
+
+impl FeedbackSettings {
+    /// PI feedback with the given gains (`ki` per second) and limit; no derivative or notch.
+    pub fn pi(kp: f64, ki: f64, limit: f64) -> Self {
+        Self {
+            kp,
+            ki,
+            kd: 0.0,
+            derivative_cutoff_hz: 1.0,
+            limit,
+            notch: None,
+        }
+    }
+
+    /// Validates the gains at `control_rate` (Hz) and builds the tick's feedback.
+    ///
+    /// ```
+    /// use twinstack::feedback::FeedbackSettings;
+    /// let fb = FeedbackSettings::pi(0.2, 500.0, 0.1).build(50_000.0).unwrap();
+    /// assert!(fb.derivative.is_none() && fb.notch.is_none());
+    /// assert!(FeedbackSettings::pi(0.2, 30_000.0, 0.1).build(50_000.0).is_err()); // ki ≥ rate/2
+    /// ```
+    pub fn build(&self, control_rate: f64) -> Result<Feedback, Refusal> {
+        finite(Field::Kp, self.kp)?;
+        finite(Field::Ki, self.ki)?;
+        finite(Field::Kd, self.kd)?;
+        finite(Field::DerivativeCutoff, self.derivative_cutoff_hz)?;
+        finite(Field::FeedbackLimit, self.limit)?;
+        let below = |field, x: f64, lo: f64, hi: f64| {
+            if x < lo {
+                Err(Refusal::new(field, Rule::AtLeast(lo)))
+            } else if x >= hi {
+                Err(Refusal::new(field, Rule::Below(hi)))
+            } else {
+                Ok(())
+            }
+        };
+        below(Field::Kp, self.kp, 0.0, 7.5)?;
+        below(Field::Ki, self.ki, 0.0, 0.5 * control_rate)?;
+        below(Field::Kd, self.kd, 0.0, 7.5 / control_rate)?;
+        if self.kd > 0.0 {
+            if self.derivative_cutoff_hz <= 0.0 {
+                return Err(Refusal::new(Field::DerivativeCutoff, Rule::Above(0.0)));
+            }
+            below(
+                Field::DerivativeCutoff,
+                self.derivative_cutoff_hz,
+                0.0,
+                control_rate / 2.0,
+            )?;
+        }
+        if self.limit <= 0.0 {
+            return Err(Refusal::new(Field::FeedbackLimit, Rule::Above(0.0)));
+        }
+        if self.limit > 1.0 {
+            return Err(Refusal::new(Field::FeedbackLimit, Rule::AtMost(1.0)));
+        }
+        let notch = match &self.notch {
+            Some(d) => Some(Notch::new(d, control_rate).map_err(|e| notch_refusal(d, e))?),
+            None => None,
+        };
+        let derivative = (self.kd > 0.0).then(|| Derivative {
+            kd: q4_28_from_f64(self.kd * control_rate),
+            smoothing: q1_31_from_f64(
+                1.0 - libm::exp(
+                    -2.0 * core::f64::consts::PI * self.derivative_cutoff_hz / control_rate,
+                ),
+            ),
+        });
+        // Q2.30; the whole drive range is 2 normalised units (saturates just below 2).
+        let limit = signal_from_f64(self.limit * 2.0);
+        let kp = q4_28_from_f64(self.kp);
+        Ok(Feedback {
+            kp,
+            error_bound: Feedback::error_bound(limit, kp),
+            ki: q0_32_from_f64(self.ki / control_rate),
+            derivative,
+            limit,
+            notch,
+        })
+    }
+}
+
+/// The notch's refusal, on the field it names.
+fn notch_refusal(d: &NotchDesign, e: NotchError) -> Refusal {
+    match e {
+        NotchError::NotFinite => {
+            let field = if !d.frequency_hz.is_finite() {
+                Field::NotchFrequency
+            } else if !d.q.is_finite() {
+                Field::NotchQ
+            } else {
+                Field::NotchDepth
+            };
+            Refusal::new(field, Rule::NotFinite)
+        }
+        NotchError::FrequencyOutOfRange => Refusal::new(Field::NotchFrequency, Rule::Unreachable),
+        NotchError::QOutOfRange => Refusal::new(Field::NotchQ, Rule::AtMost(50.0)),
+        NotchError::DepthOutOfRange => Refusal::new(Field::NotchDepth, Rule::AtMost(1.0)),
+    }
+}
 
 /// How many ticks old the sensor reading is, relative to the observer's estimate of the same
 /// tick: the conversion starts at the tick's trigger (the stage after the previous tick's
@@ -41,16 +168,9 @@ pub const SENSOR_DELAY_TICKS: usize = 2;
 /// ticks, so sensor noise and the stage's own fast dynamics do not trip it.
 pub const DRIFT_FILTER_SHIFT: u32 = 4;
 
-/// The position sensor and the controller on its error (fixed point, validated by
-/// [`crate::settings::Settings::build`]).
+/// The controller on the sensor's error, in fixed point (built by [`FeedbackSettings::build`]).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct Feedback {
-    /// ADC resolution, bits (1…30): the code is read as a fraction of full scale.
-    pub adc_bits: u32,
-    /// Displacement at ADC code 0, Q4.28 normalised displacement.
-    pub sensor_offset: i32,
-    /// Displacement per ADC full scale, Q4.28 normalised (negative for an inverted sensor).
-    pub sensor_gain: i32,
     /// Proportional gain, Q4.28 (normalised drive per normalised displacement error).
     pub kp: i32,
     /// Error limit of the proportional term, Q2.30: `⌊limit / kp⌋`, so `|kp · e| ≤ limit`.
@@ -64,9 +184,6 @@ pub struct Feedback {
     pub limit: i32,
     /// Notch on the error, if any.
     pub notch: Option<Notch>,
-    /// Largest low-passed |measured − estimate| before the drift flag, Q2.30 normalised
-    /// displacement (`u32::MAX`: no check).
-    pub drift_limit: u32,
 }
 
 /// The derivative term: `kd · d`, `d` the change of the error per tick, low-passed.
@@ -93,13 +210,13 @@ pub struct FeedbackState {
     /// The notch's memory.
     notch: NotchState,
     /// The observer's last estimates, newest first, Q2.30.
-    estimates: [i32; SENSOR_DELAY_TICKS],
+    pub(crate) estimates: [i32; SENSOR_DELAY_TICKS],
     /// The last targets, newest first, Q2.30.
     targets: [i32; SENSOR_DELAY_TICKS],
     /// Low-passed measured − estimate, Q2.30.
-    drift: i32,
+    pub(crate) drift: i32,
     /// The last measurement, Q2.30.
-    measured: i32,
+    pub(crate) measured: i32,
 }
 
 /// `(a · b) >> shift` with a 64-bit product, for products that provably fit 32 bits.
@@ -118,24 +235,6 @@ impl Feedback {
         } else {
             i32::MAX
         }
-    }
-
-    /// ADC code → normalised displacement (Q2.30, saturated): `offset + gain · code / 2^bits`.
-    /// The code is masked to `adc_bits` and read as a Q1.31 fraction in [0, 1); the Q4.28
-    /// product and sum fit 32 bits, and the final ×4 to Q2.30 saturates.
-    #[inline(always)]
-    pub fn displacement(&self, code: AdcCode) -> i32 {
-        // Shifting the code's top bit to bit 31 drops the stray bits above `adc_bits`; one
-        // more shift back down makes it a Q1.31 fraction in [0, 1). Two shifts, no mask.
-        // `adc_bits` is validated to 1…30; out of that range the shift amounts wrap (no
-        // panic) and the reading is still a fraction in [0, 1).
-        let fraction = (code.0.wrapping_shl(32u32.wrapping_sub(self.adc_bits)) >> 1) as i32;
-        // Q4.28 × Q1.31 >> 31 = Q4.28; |gain| < 8 and fraction < 1, so it fits.
-        let x = self
-            .sensor_offset
-            .saturating_add(mul_shift(self.sensor_gain, fraction, 31));
-        let x = x.saturating_add(x);
-        x.saturating_add(x)
     }
 
     /// The closed-loop correction for `target` against `measured` (both Q2.30): see the
@@ -185,45 +284,6 @@ impl Feedback {
         s.delayed_target(target);
         s.integrator
     }
-
-    /// The drift check on this tick's measurement: updates the low-passed difference from the
-    /// observer's estimate of the same instant and says whether it exceeds the limit.
-    /// It runs on every tick with a reading, in every mode, and keeps the reading for a later
-    /// hand-over into closed loop.
-    #[inline(always)]
-    pub fn drifted(&self, s: &mut FeedbackState, measured: i32) -> bool {
-        s.measured = measured;
-        let difference = measured.saturating_sub(s.estimates[SENSOR_DELAY_TICKS - 1]);
-        let step = difference.saturating_sub(s.drift) >> DRIFT_FILTER_SHIFT;
-        s.drift = s.drift.saturating_add(step);
-        s.drift.unsigned_abs() > self.drift_limit
-    }
-
-    /// Prepares a bumpless entry into closed loop: the integrator is preloaded so that the
-    /// first correction equals `wanted` (the drive now minus the feedforward), as far as the
-    /// limit allows, and the notch and the derivative start settled at the present error.
-    /// Returns what the integrator could not take (the caller fades it out).
-    pub fn hand_over(&self, s: &mut FeedbackState, target: i32, wanted: i32) -> i32 {
-        s.targets = [target; SENSOR_DELAY_TICKS];
-        let error = target.saturating_sub(s.measured);
-        let notch_error = limit(error, -SIGNAL_ONE, SIGNAL_ONE);
-        s.notch = Notch::state_at(notch_error);
-        let error = if self.notch.is_some() {
-            notch_error
-        } else {
-            error
-        };
-        s.previous_error = error;
-        s.derivative = 0;
-        s.clip = 0;
-        let e = limit(error, -self.error_bound, self.error_bound);
-        let p = mul_shift(self.kp, e, 28);
-        // The first tick will add its own integral step: leave room for it.
-        let step = mul_high(self.ki, error);
-        let i = wanted.saturating_sub(p).saturating_sub(step);
-        s.integrator = limit(i, -self.limit, self.limit);
-        wanted.saturating_sub(p.saturating_add(s.integrator).saturating_add(step))
-    }
 }
 
 impl Derivative {
@@ -263,11 +323,19 @@ impl FeedbackState {
         }
     }
 
-    /// The same state with `measured` as the last measurement (kept across a reconfiguration,
-    /// so the hand-over sees where the stage was).
-    pub fn with_measurement(mut self, measured: i32) -> Self {
-        self.measured = measured;
-        self
+    /// Prepares a bumpless entry into closed loop at `target` (O(1), between two ticks): the
+    /// target history restarts at `target`, the integrator, the anti-windup clip and the
+    /// derivative are empty, and the notch starts settled at the present error, so the first
+    /// correction is the proportional term alone; the tick's transfer offset takes up the
+    /// rest (see [`crate::mode_switch`]).
+    pub fn enter_closed_loop(&mut self, target: i32) {
+        self.targets = [target; SENSOR_DELAY_TICKS];
+        let error = limit(target.saturating_sub(self.measured), -SIGNAL_ONE, SIGNAL_ONE);
+        self.notch = Notch::state_at(error);
+        self.previous_error = error;
+        self.derivative = 0;
+        self.clip = 0;
+        self.integrator = 0;
     }
 
     /// What the limits cut from this tick's command (for the next tick's anti-windup).
@@ -308,40 +376,13 @@ mod tests {
         let limit = signal_from_f64(0.2);
         let kp = q4_28_from_f64(kp);
         Feedback {
-            adc_bits: 16,
-            sensor_offset: q4_28_from_f64(-1.0),
-            sensor_gain: q4_28_from_f64(2.0),
             kp,
             error_bound: Feedback::error_bound(limit, kp),
             ki: q0_32_from_f64(ki),
             derivative: None,
             limit,
             notch: None,
-            drift_limit: signal_from_f64(0.01) as u32,
         }
-    }
-
-    #[test]
-    fn sensor_codes_map_onto_the_output_range_and_stray_bits_are_masked() {
-        let fb = feedback(0.5, 0.1);
-        assert_eq!(fb.displacement(AdcCode(0)), signal_from_f64(-1.0));
-        assert_eq!(fb.displacement(AdcCode(32768)), 0);
-        let top = signal_to_f64(fb.displacement(AdcCode(65535)));
-        assert!((top - (1.0 - 2.0 / 65536.0)).abs() < 1e-8, "{top}");
-        // A code with bits above the ADC's 16 reads as its low 16 bits, never beyond range.
-        assert_eq!(fb.displacement(AdcCode(0x1_8000)), 0);
-        // A sensor spanning beyond ±2 saturates instead of wrapping.
-        let wide = Feedback {
-            sensor_offset: q4_28_from_f64(-7.0),
-            sensor_gain: q4_28_from_f64(7.9),
-            ..fb
-        };
-        assert_eq!(wide.displacement(AdcCode(0)), i32::MIN);
-        let top = signal_to_f64(wide.displacement(AdcCode(65535)));
-        assert!(
-            (top - (-7.0 + 7.9 * 65535.0 / 65536.0)).abs() < 1e-7,
-            "{top}"
-        );
     }
 
     #[test]
@@ -428,71 +469,5 @@ mod tests {
                 assert_eq!(fb.correction(&mut s, k * step, measured), 0, "tick {k}");
             }
         }
-    }
-
-    #[test]
-    fn drift_is_flagged_when_the_sensor_leaves_the_estimate_and_cleared_when_it_returns() {
-        let fb = feedback(0.5, 0.1);
-        let mut s = FeedbackState::at_rest(signal_from_f64(0.3));
-        // The estimate and the (delayed) measurement agree, with sensor noise: no flag.
-        let mut seed = 3u32;
-        for _ in 0..500 {
-            seed = seed.wrapping_mul(1_664_525).wrapping_add(1_013_904_223);
-            let noise = ((seed >> 16) as i32 - 32768) * 256; // ±0.8 % of full scale
-            assert!(!fb.drifted(&mut s, signal_from_f64(0.3) + noise));
-            s.limited(0, 0);
-            s.observed(signal_from_f64(0.3));
-        }
-        // The stage sits 2 % away from the model: flagged within a few filter time constants.
-        let flagged = (0..100).position(|_| {
-            let d = fb.drifted(&mut s, signal_from_f64(0.32));
-            s.limited(0, 0);
-            s.observed(signal_from_f64(0.3));
-            d
-        });
-        assert!(matches!(flagged, Some(k) if k < 40), "{flagged:?}");
-        // Back in agreement: the flag clears.
-        let cleared = (0..200).position(|_| {
-            let d = fb.drifted(&mut s, signal_from_f64(0.3));
-            s.limited(0, 0);
-            s.observed(signal_from_f64(0.3));
-            !d
-        });
-        assert!(cleared.is_some());
-        // The measurement is compared with the estimate from SENSOR_DELAY_TICKS ago.
-        let mut s = FeedbackState::at_rest(0);
-        s.limited(0, 0);
-        s.observed(signal_from_f64(0.5));
-        for _ in 1..SENSOR_DELAY_TICKS {
-            s.limited(0, 0);
-            s.observed(0);
-        }
-        let _ = fb.drifted(&mut s, 0);
-        assert!(
-            s.drift() < 0,
-            "the old estimate (0.5) is what the reading is compared to"
-        );
-    }
-
-    #[test]
-    fn hand_over_makes_the_first_correction_what_the_drive_needs() {
-        let fb = feedback(0.5, 0.01);
-        let mut s = FeedbackState::at_rest(0);
-        s.measured = signal_from_f64(0.1);
-        let wanted = signal_from_f64(0.07);
-        let rest = fb.hand_over(&mut s, signal_from_f64(0.12), wanted);
-        assert_eq!(rest, 0);
-        let c = fb.correction(&mut s, signal_from_f64(0.12), signal_from_f64(0.1));
-        // The first tick's integral step was allowed for: they agree to rounding.
-        assert!((c - wanted).abs() <= 2, "{c} vs {wanted}");
-        // Beyond the limit, the rest is handed back: error 0 − 0.1 gives p = −0.05 and an
-        // integral step of −0.001, the integrator takes 0.2 of the remaining 0.551, 0.351 is
-        // left.
-        let rest = fb.hand_over(&mut s, 0, signal_from_f64(0.5));
-        assert!(
-            (signal_to_f64(rest) - 0.351).abs() < 1e-6,
-            "{}",
-            signal_to_f64(rest)
-        );
     }
 }

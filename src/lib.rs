@@ -12,8 +12,11 @@
 //! * [`feedback`] — sensor feedback: PI(D) with anti-windup, the drift check; [`notch`] — the
 //!   resonance notch (fixed-point biquad designed for the control rate); [`mode_switch`] —
 //!   bumpless switching between bypass, open loop and closed loop.
-//! * [`params`] — physical (`f64`) parameter sets and their validation ([`ParamError`]).
-//! * [`param_store`] — the CRC-protected parameter record in flash and the board settings.
+//! * [`settings`] — the one settings type (physical units, serde): what the wire, the flash
+//!   record, parameter files and golden vectors carry; [`refusal`] — why a setting was refused
+//!   (field and rule), as the wire reports it; [`sensor`] — the position sensor.
+//! * [`params`] — the models' physical (`f64`) parameters and their own checks ([`ParamError`]).
+//! * [`param_store`] — the CRC-protected settings record in flash.
 //! * `hardware` (firmware build only) — STM32F405 registers behind the [`board`] traits.
 //! * [`reference`] — `f64` reference implementations the fixed-point code is checked against.
 //! * [`control_loop`] — the tick side of the board: setpoint queue and stream or waveform,
@@ -39,7 +42,6 @@ pub mod coarse_axis;
 pub mod control;
 pub mod control_loop;
 pub mod converters;
-pub mod default_config;
 pub mod drive;
 pub mod dual_stage;
 pub mod duhem;
@@ -57,7 +59,9 @@ pub mod prandtl_ishlinskii;
 pub mod protocol;
 pub mod recorder;
 pub mod reference;
+pub mod refusal;
 pub mod scaling;
+pub mod sensor;
 pub mod setpoint_stream;
 pub mod settings;
 pub mod waveform;

@@ -6,20 +6,22 @@
 //! | offset | size | field | meaning |
 //! |--------|------|-------|---------|
 //! | 0 | 4 | magic | [`MAGIC`], `b"TWST"` |
-//! | 4 | 2 | version | layout version of the payload ([`BoardSettings::VERSION`] for ours) |
+//! | 4 | 2 | version | layout version of the payload ([`RECORD_VERSION`] for ours) |
 //! | 6 | 2 | length | payload length in bytes, at most [`MAX_PAYLOAD`] |
-//! | 8 | length | payload | the settings |
+//! | 8 | length | payload | the [`StoredRecord`], `postcard`-encoded |
 //! | 8 + length | 4 | crc | CRC-32 (IEEE 802.3, reflected, as in zlib) of bytes `0 .. 8 + length` |
 //!
-//! The firmware reads the record at boot ([`load_settings`]); anything wrong with it (erased
-//! sector, wrong magic, unknown version, truncated, bad CRC, a setting out of range) gives the
-//! compiled-in defaults and a [`ParamSource::Defaults`] flag that the status reply shows, never
-//! a half-read configuration. Everything here is host-testable; only reading the sector's bytes
+//! The firmware reads the record at boot ([`load_record`]); anything wrong with it (erased
+//! sector, wrong magic, unknown version, truncated, bad CRC, undecodable or refused settings)
+//! gives the compiled-in defaults — bypass, no model — and a [`ParamSource::Defaults`] flag
+//! that the status reply shows, never a half-read configuration. Everything here is host-testable; only reading the sector's bytes
 //! is board code (`hardware::param_flash`).
 
 use core::fmt;
 
-pub use crate::drive::SafeState;
+use crate::board::Hardware;
+use crate::refusal::Refusal;
+use crate::settings::Settings;
 
 /// First four bytes of a record.
 pub const MAGIC: [u8; 4] = *b"TWST";
@@ -29,7 +31,7 @@ pub const HEADER_LEN: usize = 8;
 pub const CRC_LEN: usize = 4;
 /// Largest payload a record may carry (keeps a record well inside one flash sector and lets
 /// the loader read a bounded window).
-pub const MAX_PAYLOAD: usize = 1024;
+pub const MAX_PAYLOAD: usize = 2048;
 /// Largest encoded record.
 pub const MAX_RECORD: usize = HEADER_LEN + MAX_PAYLOAD + CRC_LEN;
 
@@ -191,119 +193,101 @@ pub fn decode(record: &[u8], expected_version: u16) -> Result<&[u8], StoreError>
     Ok(&record[HEADER_LEN..body_end])
 }
 
-/// The board settings the parameter record holds (payload layout [`BoardSettings::VERSION`]).
-///
-/// Payload: `tick_rate_hz: u32 LE`, `safe_state: u8` (0 = zero, 1 = bias).
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-#[cfg_attr(feature = "defmt", derive(defmt::Format))]
-pub struct BoardSettings {
-    /// Control interrupt rate, Hz, within [`BoardSettings::MIN_TICK_RATE_HZ`] ..=
-    /// [`BoardSettings::MAX_TICK_RATE_HZ`].
-    pub tick_rate_hz: u32,
-    /// Output state on panic or hard fault.
-    pub safe_state: SafeState,
+/// Payload layout version of the record (version 3: the control rate and the one
+/// [`Settings`] type; versions 1 and 2, with a separate board payload and a wire parameter
+/// set, are no longer read: such a board boots on the defaults and says so).
+pub const RECORD_VERSION: u16 = 3;
+
+/// What the parameter record holds: the control rate (fixed at boot) and the settings.
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct StoredRecord {
+    /// Control (tick) rate, Hz, within [`Hardware::MIN_CONTROL_RATE_HZ`] ..=
+    /// [`Hardware::MAX_CONTROL_RATE_HZ`].
+    pub control_rate_hz: u32,
+    /// The settings, in the mode the user stored them to boot in.
+    pub settings: Settings,
 }
 
-/// Why a settings payload was refused.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+/// Why a sound record's contents were refused.
+#[derive(Clone, Copy, Debug, PartialEq)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub enum SettingsError {
-    /// The payload is not [`BoardSettings::PAYLOAD_LEN`] bytes long.
-    WrongLength {
-        /// Bytes in the payload.
-        length: usize,
-    },
-    /// `tick_rate_hz` is outside 10–100 kHz.
-    TickRateOutOfRange {
+    /// The payload is not a `postcard`-encoded [`StoredRecord`].
+    Undecodable,
+    /// The control rate is outside what the board runs.
+    ControlRateOutOfRange {
         /// The stored rate, Hz.
-        tick_rate_hz: u32,
+        control_rate_hz: u32,
     },
-    /// `safe_state` is neither 0 (zero) nor 1 (bias).
-    UnknownSafeState {
-        /// The stored byte.
-        code: u8,
-    },
+    /// The settings were refused on this board.
+    Refused(Refusal),
 }
 
 impl fmt::Display for SettingsError {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         match *self {
-            SettingsError::WrongLength { length } => write!(
+            SettingsError::Undecodable => write!(f, "record payload is not a settings record"),
+            SettingsError::ControlRateOutOfRange { control_rate_hz } => write!(
                 f,
-                "settings payload is {length} bytes, expected {}",
-                BoardSettings::PAYLOAD_LEN
+                "control rate {control_rate_hz} Hz is outside {}..={}",
+                Hardware::MIN_CONTROL_RATE_HZ,
+                Hardware::MAX_CONTROL_RATE_HZ
             ),
-            SettingsError::TickRateOutOfRange { tick_rate_hz } => write!(
-                f,
-                "tick_rate_hz = {tick_rate_hz} is outside {}..={}",
-                BoardSettings::MIN_TICK_RATE_HZ,
-                BoardSettings::MAX_TICK_RATE_HZ
-            ),
-            SettingsError::UnknownSafeState { code } => {
-                write!(f, "safe_state = {code}: expected 0 (zero) or 1 (bias)")
-            }
+            SettingsError::Refused(r) => write!(f, "stored settings refused: {r}"),
         }
     }
 }
 
-impl BoardSettings {
-    /// Payload layout version written into the record.
-    pub const VERSION: u16 = 1;
-    /// Encoded payload length.
-    pub const PAYLOAD_LEN: usize = 5;
-    /// Slowest control rate, Hz.
-    pub const MIN_TICK_RATE_HZ: u32 = 10_000;
-    /// Fastest control rate, Hz.
-    pub const MAX_TICK_RATE_HZ: u32 = 100_000;
-    /// The compiled-in defaults: 50 kHz, safe state = bias.
-    pub const DEFAULT: BoardSettings = BoardSettings {
-        tick_rate_hz: 50_000,
-        safe_state: SafeState::Bias,
-    };
-
-    /// Checks the settings are within range.
-    pub fn validate(&self) -> Result<(), SettingsError> {
-        if !(Self::MIN_TICK_RATE_HZ..=Self::MAX_TICK_RATE_HZ).contains(&self.tick_rate_hz) {
-            return Err(SettingsError::TickRateOutOfRange {
-                tick_rate_hz: self.tick_rate_hz,
-            });
+impl Default for StoredRecord {
+    /// The compiled-in defaults: 50 kHz, [`Settings::default`] (bypass, no model).
+    fn default() -> Self {
+        Self {
+            control_rate_hz: Hardware::DEFAULT_CONTROL_RATE_HZ,
+            settings: Settings::default(),
         }
-        Ok(())
+    }
+}
+
+impl StoredRecord {
+    /// Encodes the record (envelope included) into `out`; returns its length.
+    pub fn encode(&self, out: &mut [u8; MAX_RECORD]) -> Result<usize, StoreError> {
+        let mut payload = [0u8; MAX_PAYLOAD];
+        let used = postcard::to_slice(self, &mut payload)
+            .map_err(|_| StoreError::PayloadTooLong {
+                length: MAX_PAYLOAD + 1,
+            })?
+            .len();
+        encode(RECORD_VERSION, &payload[..used], out)
     }
 
-    /// The payload bytes.
-    pub fn to_payload(&self) -> [u8; Self::PAYLOAD_LEN] {
-        let r = self.tick_rate_hz.to_le_bytes();
-        let s = match self.safe_state {
-            SafeState::Zero => 0,
-            SafeState::Bias => 1,
+    /// Decodes and checks a record: the envelope, the payload, the control rate, and the
+    /// settings on `hardware` at the stored rate (`hardware`'s own rate is ignored).
+    pub fn decode(record: &[u8], hardware: &Hardware) -> Result<Self, LoadFailure> {
+        let payload = decode(record, RECORD_VERSION).map_err(LoadFailure::Record)?;
+        let stored = match postcard::take_from_bytes::<StoredRecord>(payload) {
+            Ok((r, [])) => r,
+            _ => return Err(LoadFailure::Settings(SettingsError::Undecodable)),
         };
-        [r[0], r[1], r[2], r[3], s]
-    }
-
-    /// Parses and validates a payload.
-    pub fn from_payload(payload: &[u8]) -> Result<Self, SettingsError> {
-        let &[r0, r1, r2, r3, s] = payload else {
-            return Err(SettingsError::WrongLength {
-                length: payload.len(),
-            });
+        let rate = stored.control_rate_hz;
+        if !(Hardware::MIN_CONTROL_RATE_HZ..=Hardware::MAX_CONTROL_RATE_HZ).contains(&rate) {
+            return Err(LoadFailure::Settings(SettingsError::ControlRateOutOfRange {
+                control_rate_hz: rate,
+            }));
+        }
+        let hw = Hardware {
+            control_rate_hz: rate as f64,
+            ..*hardware
         };
-        let safe_state = match s {
-            0 => SafeState::Zero,
-            1 => SafeState::Bias,
-            code => return Err(SettingsError::UnknownSafeState { code }),
-        };
-        let settings = Self {
-            tick_rate_hz: u32::from_le_bytes([r0, r1, r2, r3]),
-            safe_state,
-        };
-        settings.validate()?;
-        Ok(settings)
+        stored
+            .settings
+            .build(&hw)
+            .map_err(|r| LoadFailure::Settings(SettingsError::Refused(r)))?;
+        Ok(stored)
     }
 }
 
 /// Where the running settings came from (shown in the status reply).
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, PartialEq)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub enum ParamSource {
     /// A valid record was loaded from flash.
@@ -313,7 +297,7 @@ pub enum ParamSource {
 }
 
 /// Why the stored record was not used.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, PartialEq)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub enum LoadFailure {
     /// The envelope was refused (erased, magic, version, length, CRC).
@@ -340,24 +324,6 @@ impl ParamSource {
             },
             ParamSource::Defaults(LoadFailure::Settings(_)) => "bad-settings",
         }
-    }
-}
-
-/// Payload layout version of a record that also holds a parameter set (written by the
-/// protocol's `StoreParams`): the 5 bytes of [`BoardSettings`], then the parameter set,
-/// `postcard`-encoded (`protocol::messages::ParamSet`).
-pub const PARAMS_VERSION: u16 = 2;
-
-/// The record's payload, of either layout: ([`BoardSettings`] bytes, parameter-set bytes —
-/// empty for a version-1 record).
-pub fn decode_payload(record: &[u8]) -> Result<(&[u8], &[u8]), StoreError> {
-    match decode(record, BoardSettings::VERSION) {
-        Ok(payload) => Ok((payload, &[])),
-        Err(StoreError::UnsupportedVersion { found, .. }) if found == PARAMS_VERSION => {
-            let payload = decode(record, PARAMS_VERSION)?;
-            Ok(payload.split_at(payload.len().min(BoardSettings::PAYLOAD_LEN)))
-        }
-        Err(e) => Err(e),
     }
 }
 
@@ -425,22 +391,13 @@ impl RecordStorage for ReadOnlyStorage<'_> {
     }
 }
 
-/// Reads the settings from a record (the bytes of the parameter sector): the stored settings
-/// when the record is sound, otherwise [`BoardSettings::DEFAULT`] and the reason. Records of
-/// both layouts ([`BoardSettings::VERSION`], [`PARAMS_VERSION`]) are read.
-pub fn load_settings(sector: &[u8]) -> (BoardSettings, ParamSource) {
-    match decode_payload(sector).map(|(settings, _)| settings) {
-        Err(e) => (
-            BoardSettings::DEFAULT,
-            ParamSource::Defaults(LoadFailure::Record(e)),
-        ),
-        Ok(payload) => match BoardSettings::from_payload(payload) {
-            Ok(s) => (s, ParamSource::Stored),
-            Err(e) => (
-                BoardSettings::DEFAULT,
-                ParamSource::Defaults(LoadFailure::Settings(e)),
-            ),
-        },
+/// Reads the record from the bytes of the parameter sector: the stored record when it is
+/// sound and its settings are accepted on `hardware`, otherwise [`StoredRecord::default`]
+/// (bypass, no model, 50 kHz) and the reason.
+pub fn load_record(sector: &[u8], hardware: &Hardware) -> (StoredRecord, ParamSource) {
+    match StoredRecord::decode(sector, hardware) {
+        Ok(r) => (r, ParamSource::Stored),
+        Err(e) => (StoredRecord::default(), ParamSource::Defaults(e)),
     }
 }
 
@@ -449,10 +406,21 @@ mod tests {
     use super::*;
     use proptest::prelude::*;
 
-    fn record_of(settings: &BoardSettings) -> ([u8; MAX_RECORD], usize) {
+    const HW: Hardware = Hardware::driver_board(50_000.0);
+
+    fn record_of(record: &StoredRecord) -> ([u8; MAX_RECORD], usize) {
         let mut buf = [0u8; MAX_RECORD];
-        let n = encode(BoardSettings::VERSION, &settings.to_payload(), &mut buf).unwrap();
+        let n = record.encode(&mut buf).unwrap();
         (buf, n)
+    }
+
+    fn stored(rate: u32) -> StoredRecord {
+        let mut settings = Settings::default();
+        settings.drive.safe_state = crate::drive::SafeState::Zero;
+        StoredRecord {
+            control_rate_hz: rate,
+            settings,
+        }
     }
 
     #[test]
@@ -464,25 +432,19 @@ mod tests {
 
     #[test]
     fn a_stored_record_loads_its_settings() {
-        let s = BoardSettings {
-            tick_rate_hz: 100_000,
-            safe_state: SafeState::Zero,
-        };
+        let s = stored(100_000);
         let (buf, n) = record_of(&s);
-        assert_eq!(load_settings(&buf[..n]), (s, ParamSource::Stored));
+        assert_eq!(load_record(&buf[..n], &HW), (s.clone(), ParamSource::Stored));
         // Trailing sector bytes after the record are ignored.
-        assert_eq!(load_settings(&buf), (s, ParamSource::Stored));
+        assert_eq!(load_record(&buf, &HW), (s, ParamSource::Stored));
     }
 
     #[test]
     fn bad_crc_gives_defaults_and_says_so() {
-        let (mut buf, n) = record_of(&BoardSettings {
-            tick_rate_hz: 20_000,
-            safe_state: SafeState::Zero,
-        });
+        let (mut buf, n) = record_of(&stored(20_000));
         buf[HEADER_LEN] ^= 0x01;
-        let (settings, source) = load_settings(&buf[..n]);
-        assert_eq!(settings, BoardSettings::DEFAULT);
+        let (record, source) = load_record(&buf[..n], &HW);
+        assert_eq!(record, StoredRecord::default());
         assert!(matches!(
             source,
             ParamSource::Defaults(LoadFailure::Record(StoreError::BadCrc { .. }))
@@ -493,22 +455,22 @@ mod tests {
     #[test]
     fn bad_version_is_refused_before_the_payload_is_read() {
         let mut buf = [0u8; MAX_RECORD];
-        let n = encode(7, &BoardSettings::DEFAULT.to_payload(), &mut buf).unwrap();
+        let n = encode(7, &[1, 2, 3], &mut buf).unwrap();
         assert_eq!(
-            decode(&buf[..n], BoardSettings::VERSION),
+            decode(&buf[..n], RECORD_VERSION),
             Err(StoreError::UnsupportedVersion {
                 found: 7,
-                expected: 1
+                expected: RECORD_VERSION
             })
         );
-        assert_eq!(load_settings(&buf[..n]).1.as_str(), "bad-version");
+        assert_eq!(load_record(&buf[..n], &HW).1.as_str(), "bad-version");
     }
 
     #[test]
     fn truncation_at_every_length_is_refused() {
-        let (buf, n) = record_of(&BoardSettings::DEFAULT);
+        let (buf, n) = record_of(&StoredRecord::default());
         for cut in 0..n {
-            let r = decode(&buf[..cut], BoardSettings::VERSION);
+            let r = decode(&buf[..cut], RECORD_VERSION);
             assert!(
                 matches!(r, Err(StoreError::Truncated { available, .. }) if available == cut),
                 "cut at {cut}: {r:?}"
@@ -520,7 +482,7 @@ mod tests {
     fn erased_flash_and_foreign_bytes_are_told_apart() {
         assert_eq!(decode(&[0xFF; 64], 1), Err(StoreError::Erased));
         assert_eq!(decode(&[0x00; 64], 1), Err(StoreError::BadMagic));
-        assert_eq!(load_settings(&[0xFF; 64]).1.as_str(), "erased");
+        assert_eq!(load_record(&[0xFF; 64], &HW).1.as_str(), "erased");
     }
 
     #[test]
@@ -559,26 +521,37 @@ mod tests {
 
     #[test]
     fn out_of_range_settings_in_a_sound_record_give_defaults() {
-        let mut payload = BoardSettings::DEFAULT.to_payload();
-        payload[..4].copy_from_slice(&5_000u32.to_le_bytes());
-        let mut buf = [0u8; MAX_RECORD];
-        let n = encode(BoardSettings::VERSION, &payload, &mut buf).unwrap();
+        let (buf, n) = record_of(&stored(5_000));
         assert_eq!(
-            load_settings(&buf[..n]),
+            load_record(&buf[..n], &HW),
             (
-                BoardSettings::DEFAULT,
-                ParamSource::Defaults(LoadFailure::Settings(SettingsError::TickRateOutOfRange {
-                    tick_rate_hz: 5_000
-                }))
+                StoredRecord::default(),
+                ParamSource::Defaults(LoadFailure::Settings(
+                    SettingsError::ControlRateOutOfRange {
+                        control_rate_hz: 5_000
+                    }
+                ))
             )
         );
+        let mut bad = stored(50_000);
+        bad.settings.drive.bias = f64::NAN;
+        let (buf, n) = record_of(&bad);
+        let (record, source) = load_record(&buf[..n], &HW);
+        assert_eq!(record, StoredRecord::default());
+        assert_eq!(source.as_str(), "bad-settings");
+        let mut buf = [0u8; MAX_RECORD];
+        let n = encode(RECORD_VERSION, &[1, 2, 3], &mut buf).unwrap();
         assert_eq!(
-            BoardSettings::from_payload(&[0x50, 0xC3, 0, 0, 9]),
-            Err(SettingsError::UnknownSafeState { code: 9 })
+            load_record(&buf[..n], &HW).1,
+            ParamSource::Defaults(LoadFailure::Settings(SettingsError::Undecodable))
         );
+    }
+
+    #[test]
+    fn the_defaults_boot_in_bypass() {
         assert_eq!(
-            BoardSettings::from_payload(&[1, 2, 3]),
-            Err(SettingsError::WrongLength { length: 3 })
+            StoredRecord::default().settings.mode,
+            crate::settings::Mode::Bypass
         );
     }
 
@@ -603,13 +576,7 @@ mod tests {
         #[test]
         fn decode_never_panics_on_arbitrary_bytes(bytes in proptest::collection::vec(any::<u8>(), 0..2048), version: u16) {
             let _ = decode(&bytes, version);
-            let _ = load_settings(&bytes);
-        }
-
-        #[test]
-        fn valid_settings_round_trip(rate in BoardSettings::MIN_TICK_RATE_HZ..=BoardSettings::MAX_TICK_RATE_HZ, bias: bool) {
-            let s = BoardSettings { tick_rate_hz: rate, safe_state: if bias { SafeState::Bias } else { SafeState::Zero } };
-            prop_assert_eq!(BoardSettings::from_payload(&s.to_payload()), Ok(s));
+            let _ = load_record(&bytes, &HW);
         }
     }
 }

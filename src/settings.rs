@@ -1,22 +1,35 @@
-//! Settings: everything the controller is configured with, in physical units, validated and
-//! turned into the fixed-point [`ControlConfig`] in one place, off the tick path.
+//! The one settings type: everything a user configures, in physical units.
 //!
-//! The firmware builds one from a parameter-load message or the flash record, `hal-sim` from a
-//! parameter file; both then swap the result in whole between two ticks.
+//! [`Settings`] is at once what a `LoadParams` request carries on the wire, what the flash
+//! record holds, what a parameter file (`PARAMS.json`) carries and what a golden vector set
+//! is built from: one serde type, encoded with `postcard` on the board and JSON on the host.
+//! What the hardware fixes (amplifier, DAC, sensor ADC, control rate) is not a setting but a
+//! [`Hardware`] fact that settings are validated against.
+//!
+//! [`Settings::build`] validates everything and turns it into the tick's fixed-point
+//! [`ControlConfig`] with each part's own builder, next to its type:
+//! [`DriveSettings::build`], [`SensorSettings::build`], [`FeedbackSettings::build`], and the
+//! models' constructors. Every refusal names the field and the rule it broke ([`Refusal`]);
+//! every float is checked for NaN and infinity before anything else.
 
+use heapless::Vec;
+use serde::{Deserialize, Serialize};
+
+pub use crate::board::Hardware;
 use crate::control::{Compensator, ControlConfig, Observer};
-use crate::drive::{DifferentialDrive, DriveError, DriveSettings};
+pub use crate::drive::{Configuration, DriveSettings, SafeState};
 use crate::duhem::{Duhem, InverseDuhem};
-use crate::feedback::{Derivative, Feedback};
-use crate::fixed_point::{q0_32_from_f64, q1_31_from_f64, q4_28_from_f64, signal_from_f64};
-use crate::notch::{Notch, NotchDesign, NotchError};
-use crate::params::{DuhemParams, ParamError, PiParams};
+pub use crate::feedback::FeedbackSettings;
+pub use crate::notch::NotchDesign;
+use crate::params::{DuhemParams, ParamError, PiParams, MAX_OPERATORS};
 use crate::prandtl_ishlinskii::{InversePrandtlIshlinskii, PrandtlIshlinskii};
+use crate::refusal::{finite, Field, ModelField, Refusal, Rule};
 use crate::scaling::Scaling;
+pub use crate::sensor::SensorSettings;
 
-/// The hysteresis model (the compensator inverts it; the observer runs it forward).
-#[allow(clippy::large_enum_variant)] // no heap on the board; settings live in one static
-#[derive(Clone, Debug, PartialEq)]
+/// A hysteresis model in physical units (volts in, output units out).
+#[allow(clippy::large_enum_variant)] // no heap on the board; settings live in one place
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub enum Model {
     /// Prandtl–Ishlinskii.
     PrandtlIshlinskii(PiParams),
@@ -24,395 +37,393 @@ pub enum Model {
     Duhem(DuhemParams),
 }
 
-/// Control mode. Settings name the mode to start in; [`crate::control::Controller::set_mode`]
-/// switches between them later, between two ticks and without a bump.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+/// Control mode.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub enum Mode {
-    /// No compensation: the drive follows the setpoint linearly (observer still runs).
+    /// No compensation: the drive follows the setpoint linearly, range onto range.
     Bypass,
     /// Inverse-model feedforward.
     OpenLoop,
-    /// Feedforward plus PI(D) feedback on the sensor.
+    /// Feedforward (inverse model, or the setpoint itself without a compensator) plus PI(D)
+    /// feedback on the sensor.
     ClosedLoop,
 }
 
-/// The position sensor: ADC code → displacement.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct SensorSettings {
-    /// ADC resolution, bits (1…30).
-    pub adc_bits: u32,
-    /// Displacement at code 0, output units.
-    pub displacement_at_zero: f64,
-    /// Displacement at full-scale code, output units (below `displacement_at_zero` for an
-    /// inverted sensor).
-    pub displacement_at_full_scale: f64,
-}
-
-/// PI(D) feedback on the sensor error, the resonance notch and the drift check
-/// (see [`crate::feedback`]). Gains are in normalised units: drive as a fraction of the model's
-/// input half-range per displacement error as a fraction of its output half-range.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct FeedbackSettings {
-    /// The sensor.
-    pub sensor: SensorSettings,
-    /// Proportional gain, 0 ≤ kp < 8.
-    pub kp: f64,
-    /// Integral gain, per second; per tick (`ki / control rate`) it must be below 1/2.
-    pub ki: f64,
-    /// Derivative gain, seconds (0: no derivative term); per tick (`kd · control rate`) below 8.
-    pub kd: f64,
-    /// Corner of the derivative's low pass, Hz (0 < f < control rate / 2; unused when kd = 0).
-    pub derivative_cutoff_hz: f64,
-    /// Largest correction, as a fraction of the normalised drive range (0…1].
-    pub limit: f64,
-    /// Notch on the error at the stage's resonance, if any.
-    pub notch: Option<NotchDesign>,
-    /// Drift limit: largest low-passed |measured − observer estimate| as a fraction of the
-    /// output range (0…1], or `None` for no drift check.
-    pub drift_limit: Option<f64>,
-}
-
-impl FeedbackSettings {
-    /// PI feedback with the given gains and limit; no derivative, notch or drift check.
-    pub fn pi(sensor: SensorSettings, kp: f64, ki: f64, limit: f64) -> Self {
-        Self {
-            sensor,
-            kp,
-            ki,
-            kd: 0.0,
-            derivative_cutoff_hz: 1.0,
-            limit,
-            notch: None,
-            drift_limit: None,
-        }
-    }
-}
-
-impl FeedbackSettings {
-    /// The feedback a parameter load carries, with the board's `sensor` calibration.
-    pub fn from_wire(
-        p: &crate::protocol::messages::FeedbackParams,
-        sensor: SensorSettings,
-    ) -> Self {
-        Self {
-            sensor,
-            kp: p.kp as f64,
-            ki: p.ki as f64,
-            kd: p.kd as f64,
-            derivative_cutoff_hz: p.derivative_cutoff_hz as f64,
-            limit: p.limit as f64,
-            notch: p.notch.map(|n| NotchDesign {
-                frequency_hz: n.frequency_hz as f64,
-                q: n.q as f64,
-                depth: n.depth as f64,
-            }),
-            drift_limit: p.drift_limit.map(|d| d as f64),
-        }
-    }
-}
-
-/// Everything the controller is configured with.
-#[derive(Clone, Debug, PartialEq)]
+/// Everything a user configures, in physical units (see the module doc).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Settings {
-    /// The model, if any (bypass needs none).
-    pub model: Option<Model>,
-    /// Model input (left-stack volts) and output (displacement) ranges.
-    pub scaling: Scaling,
+    /// The models' input range (left-stack volts) and output range (displacement): both map
+    /// onto the normalised ±1 of the tick's signals; setpoints are fractions of the output
+    /// range.
+    pub ranges: Scaling,
+    /// The feedforward compensator: the analytic inverse of this model. `None`: the drive
+    /// follows the setpoint (only bypass and closed loop).
+    pub compensator: Option<Model>,
+    /// The forward observer: this model, fed the applied drive, estimates the displacement.
+    /// `None`: no estimate and no drift check. Any model may pair with any compensator.
+    pub observer: Option<Model>,
     /// The drive and its limits.
     pub drive: DriveSettings,
-    /// Sensor feedback, where the stage has a sensor.
+    /// The position sensor's calibration, if the stage has a sensor.
+    pub sensor: Option<SensorSettings>,
+    /// PI(D) feedback on the sensor, used in closed loop.
     pub feedback: Option<FeedbackSettings>,
-    /// Mode.
+    /// The mode to run in: entered once loaded, and at boot for a stored record.
     pub mode: Mode,
 }
 
-/// Why settings were refused.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
-#[cfg_attr(feature = "defmt", derive(defmt::Format))]
-pub enum SettingsError {
-    /// The model's parameters were refused.
-    Params(ParamError),
-    /// The drive settings were refused.
-    Drive(DriveError),
-    /// Open or closed loop asked for without a model.
-    ModeNeedsModel,
-    /// Closed loop asked for without feedback settings.
-    ClosedLoopNeedsSensor,
-    /// Feedback gains, limit, drift limit or sensor calibration out of range.
-    BadFeedback,
-    /// The notch design was refused.
-    Notch(NotchError),
-}
-
-impl From<ParamError> for SettingsError {
-    fn from(e: ParamError) -> Self {
-        SettingsError::Params(e)
-    }
-}
-
-impl From<DriveError> for SettingsError {
-    fn from(e: DriveError) -> Self {
-        SettingsError::Drive(e)
+impl Default for Settings {
+    /// The board's compiled-in settings: bypass (no model, no loop closed), the default drive
+    /// (differential, bias 70 V, 0…140 V), 0…140 V onto 0…70 µm, the sensor spanning the
+    /// stroke without a drift check.
+    fn default() -> Self {
+        Self {
+            ranges: Scaling {
+                input_min: 0.0,
+                input_max: 140.0,
+                output_min: 0.0,
+                output_max: 70.0,
+            },
+            compensator: None,
+            observer: None,
+            drive: DriveSettings::DEFAULT,
+            sensor: Some(SensorSettings {
+                displacement_at_zero: 0.0,
+                displacement_at_full_scale: 70.0,
+                drift_limit: None,
+            }),
+            feedback: None,
+            mode: Mode::Bypass,
+        }
     }
 }
 
 impl Settings {
-    /// Validates everything and builds the fixed-point configuration.
-    pub fn build(&self) -> Result<ControlConfig, SettingsError> {
-        let drive = DifferentialDrive::new(&self.drive, &self.scaling)?;
-        // Every part the configuration has is built, whatever the mode, so that
-        // `Controller::set_mode` can switch later; the mode says what the tick runs now.
-        let (compensator, observer) = match &self.model {
-            None if self.mode != Mode::Bypass => return Err(SettingsError::ModeNeedsModel),
-            None => (Compensator::None, Observer::None),
-            // The compensator first: "not invertible" says more than a range error would.
-            Some(Model::PrandtlIshlinskii(p)) => (
-                Compensator::InversePi(InversePrandtlIshlinskii::new(p, &self.scaling)?),
-                Observer::Pi(PrandtlIshlinskii::new(p, &self.scaling)?),
+    /// Validates everything on `hw` and builds the tick's fixed-point configuration. Nothing
+    /// is partly accepted: the first refusal is returned, naming its field.
+    ///
+    /// ```
+    /// use twinstack::settings::{Hardware, Mode, Settings};
+    /// let config = Settings::default().build(&Hardware::driver_board(50_000.0)).unwrap();
+    /// assert_eq!(config.mode, Mode::Bypass);
+    /// let mut s = Settings::default();
+    /// s.drive.bias = f64::NAN;
+    /// assert_eq!(s.build(&Hardware::driver_board(50_000.0)).unwrap_err().to_string(),
+    ///            "drive.bias is NaN or infinite");
+    /// ```
+    pub fn build(&self, hw: &Hardware) -> Result<ControlConfig, Refusal> {
+        self.check_finite()?;
+        let ranges = Scaling::new(
+            self.ranges.input_min,
+            self.ranges.input_max,
+            self.ranges.output_min,
+            self.ranges.output_max,
+        )
+        .map_err(|e| model_refusal(Field::Compensator, e))?;
+        // The compensator first: "not invertible" says more than a range error would.
+        let compensator = match &self.compensator {
+            None => Compensator::None,
+            Some(Model::PrandtlIshlinskii(p)) => Compensator::InversePi(
+                InversePrandtlIshlinskii::new(p, &ranges)
+                    .map_err(|e| model_refusal(Field::Compensator, e))?,
             ),
-            Some(Model::Duhem(p)) => (
-                Compensator::InverseDuhem(InverseDuhem::new(p, &self.scaling)?),
-                Observer::Duhem(Duhem::new(p, &self.scaling)?),
+            Some(Model::Duhem(p)) => Compensator::InverseDuhem(
+                InverseDuhem::new(p, &ranges).map_err(|e| model_refusal(Field::Compensator, e))?,
             ),
         };
-        let feedback = match (self.mode, &self.feedback) {
-            (Mode::ClosedLoop, None) => return Err(SettingsError::ClosedLoopNeedsSensor),
-            (_, Some(fb)) => Some(self.feedback_config(fb, self.model.is_some())?),
-            (_, None) => None,
+        let observer = match &self.observer {
+            None => Observer::None,
+            Some(Model::PrandtlIshlinskii(p)) => Observer::Pi(
+                PrandtlIshlinskii::new(p, &ranges)
+                    .map_err(|e| model_refusal(Field::Observer, e))?,
+            ),
+            Some(Model::Duhem(p)) => Observer::Duhem(
+                Duhem::new(p, &ranges).map_err(|e| model_refusal(Field::Observer, e))?,
+            ),
         };
+        let drive = self.drive.build(hw, &ranges)?;
+        let sensor = match &self.sensor {
+            Some(s) => Some(s.build(hw.sensor_adc_bits, &ranges, self.observer.is_some())?),
+            None => None,
+        };
+        let feedback = match &self.feedback {
+            Some(f) => Some(f.build(hw.control_rate_hz)?),
+            None => None,
+        };
+        match self.mode {
+            Mode::Bypass => {}
+            Mode::OpenLoop if self.compensator.is_none() => {
+                return Err(Refusal::new(
+                    Field::Compensator(ModelField::Model),
+                    Rule::Required,
+                ))
+            }
+            Mode::OpenLoop => {}
+            Mode::ClosedLoop if self.sensor.is_none() => {
+                return Err(Refusal::new(Field::Sensor, Rule::Required))
+            }
+            Mode::ClosedLoop if self.feedback.is_none() => {
+                return Err(Refusal::new(Field::Feedback, Rule::Required))
+            }
+            Mode::ClosedLoop => {}
+        }
         Ok(ControlConfig {
             compensator,
             observer,
+            sensor,
             feedback,
             drive,
             mode: self.mode,
         })
     }
 
-    /// The fixed-point feedback; `observed` says whether an observer runs (the drift check
-    /// needs one).
-    pub fn feedback_config(
-        &self,
-        fb: &FeedbackSettings,
-        observed: bool,
-    ) -> Result<Feedback, SettingsError> {
-        let s = &fb.sensor;
-        let rate = self.drive.control_rate;
-        let at_zero = self.scaling.output_to_norm(s.displacement_at_zero);
-        let at_full = self.scaling.output_to_norm(s.displacement_at_full_scale);
-        let gain = at_full - at_zero;
-        let ki_per_tick = fb.ki / rate;
-        let kd_per_tick = fb.kd * rate;
-        let drift = fb.drift_limit.unwrap_or(0.5);
-        let finite = [
-            at_zero,
-            at_full,
-            fb.kp,
-            ki_per_tick,
-            kd_per_tick,
-            fb.limit,
-            drift,
-        ]
-        .iter()
-        .all(|v| v.is_finite());
-        // The sensor's reading is formed in Q4.28 (|x| < 8) before it saturates to Q2.30.
-        let ok = finite
-            && (1..=30).contains(&s.adc_bits)
-            && gain != 0.0
-            && at_zero.abs() < 7.5
-            && at_full.abs() < 7.5
-            && gain.abs() < 7.5
-            && (0.0..7.5).contains(&fb.kp)
-            && (0.0..0.5).contains(&ki_per_tick)
-            && (0.0..7.5).contains(&kd_per_tick)
-            && (fb.kd == 0.0
-                || (fb.derivative_cutoff_hz > 0.0 && fb.derivative_cutoff_hz < rate / 2.0))
-            && fb.limit > 0.0
-            && fb.limit <= 1.0
-            && drift > 0.0
-            && drift <= 1.0;
-        if !ok {
-            return Err(SettingsError::BadFeedback);
+    /// Whether `mode` can run on these settings (the same checks as [`Settings::build`]).
+    pub fn check_mode(&self, mode: Mode) -> Result<(), Refusal> {
+        match mode {
+            Mode::OpenLoop if self.compensator.is_none() => Err(Refusal::new(
+                Field::Compensator(ModelField::Model),
+                Rule::Required,
+            )),
+            Mode::ClosedLoop if self.sensor.is_none() => {
+                Err(Refusal::new(Field::Sensor, Rule::Required))
+            }
+            Mode::ClosedLoop if self.feedback.is_none() => {
+                Err(Refusal::new(Field::Feedback, Rule::Required))
+            }
+            _ => Ok(()),
         }
-        let notch = match &fb.notch {
-            Some(d) => Some(Notch::new(d, rate).map_err(SettingsError::Notch)?),
-            None => None,
-        };
-        let derivative = (fb.kd > 0.0).then(|| Derivative {
-            kd: q4_28_from_f64(kd_per_tick),
-            smoothing: q1_31_from_f64(
-                1.0 - libm::exp(-2.0 * core::f64::consts::PI * fb.derivative_cutoff_hz / rate),
-            ),
-        });
-        // Q2.30; 1.0 of the drive range is 2 normalised units (saturates just below 2).
-        let limit = signal_from_f64(fb.limit * 2.0);
-        let kp = q4_28_from_f64(fb.kp);
-        let error_bound = Feedback::error_bound(limit, kp);
-        let drift_limit = match fb.drift_limit {
-            Some(d) if observed => signal_from_f64(d * 2.0) as u32,
-            _ => u32::MAX,
-        };
-        Ok(Feedback {
-            adc_bits: s.adc_bits,
-            sensor_offset: q4_28_from_f64(at_zero),
-            sensor_gain: q4_28_from_f64(gain),
-            kp,
-            error_bound,
-            ki: q0_32_from_f64(ki_per_tick),
-            derivative,
-            limit,
-            notch,
-            drift_limit,
-        })
     }
+
+    /// Every float of the settings is finite, or the first that is not is named.
+    fn check_finite(&self) -> Result<(), Refusal> {
+        let r = &self.ranges;
+        for x in [r.input_min, r.input_max] {
+            finite(Field::InputRange, x)?;
+        }
+        for x in [r.output_min, r.output_max] {
+            finite(Field::OutputRange, x)?;
+        }
+        for (model, field) in [
+            (&self.compensator, Field::Compensator as fn(ModelField) -> Field),
+            (&self.observer, Field::Observer),
+        ] {
+            match model {
+                Some(Model::PrandtlIshlinskii(p)) => {
+                    finite(field(ModelField::A0), p.a0)?;
+                    finite(field(ModelField::Offset), p.offset)?;
+                    for (i, &x) in p.thresholds.iter().enumerate() {
+                        finite(field(ModelField::Threshold(i as u8 + 1)), x)?;
+                    }
+                    for (i, &x) in p.weights.iter().enumerate() {
+                        finite(field(ModelField::Weight(i as u8 + 1)), x)?;
+                    }
+                }
+                Some(Model::Duhem(p)) => {
+                    finite(field(ModelField::Alpha), p.alpha)?;
+                    finite(field(ModelField::Beta), p.beta)?;
+                    finite(field(ModelField::Gamma), p.gamma)?;
+                    finite(field(ModelField::Offset), p.offset)?;
+                }
+                None => {}
+            }
+        }
+        let d = &self.drive;
+        finite(Field::Bias, d.bias)?;
+        finite(Field::VoltageLimits, d.min_voltage)?;
+        finite(Field::VoltageLimits, d.max_voltage)?;
+        finite(Field::SlewRate, d.slew_rate)?;
+        if let Some(s) = &self.sensor {
+            finite(Field::SensorCalibration, s.displacement_at_zero)?;
+            finite(Field::SensorCalibration, s.displacement_at_full_scale)?;
+            if let Some(x) = s.drift_limit {
+                finite(Field::DriftLimit, x)?;
+            }
+        }
+        if let Some(f) = &self.feedback {
+            finite(Field::Kp, f.kp)?;
+            finite(Field::Ki, f.ki)?;
+            finite(Field::Kd, f.kd)?;
+            finite(Field::DerivativeCutoff, f.derivative_cutoff_hz)?;
+            finite(Field::FeedbackLimit, f.limit)?;
+            if let Some(n) = &f.notch {
+                finite(Field::NotchFrequency, n.frequency_hz)?;
+                finite(Field::NotchQ, n.q)?;
+                finite(Field::NotchDepth, n.depth)?;
+            }
+        }
+        Ok(())
+    }
+}
+
+/// A P–I model from thresholds and weights (volts, output units per volt), as a [`Model`].
+pub fn pi_model(
+    a0: f64,
+    offset: f64,
+    thresholds: &[f64],
+    weights: &[f64],
+) -> Result<Model, ParamError> {
+    PiParams::new(a0, offset, thresholds, weights).map(Model::PrandtlIshlinskii)
+}
+
+/// The refusal a model's own error amounts to, on the compensator's or the observer's fields.
+fn model_refusal(model: fn(ModelField) -> Field, e: ParamError) -> Refusal {
+    use ParamError as E;
+    let op = |i: usize| i.min(u8::MAX as usize) as u8;
+    let (field, rule) = match e {
+        E::EmptyInputRange => return Refusal::new(Field::InputRange, Rule::Empty),
+        E::EmptyOutputRange => return Refusal::new(Field::OutputRange, Rule::Empty),
+        E::NoOperators => (ModelField::Operators, Rule::Required),
+        E::TooManyOperators { .. } => (ModelField::Operators, Rule::TooMany(MAX_OPERATORS as u32)),
+        E::LengthMismatch { .. } => (ModelField::Operators, Rule::LengthMismatch),
+        E::NotFinite => (ModelField::Model, Rule::NotFinite),
+        E::NegativeThreshold { operator } => (ModelField::Threshold(op(operator)), Rule::AtLeast(0.0)),
+        E::ThresholdsNotIncreasing { operator } => {
+            (ModelField::Threshold(op(operator)), Rule::NotIncreasing)
+        }
+        E::ThresholdOutOfRange { operator } => {
+            (ModelField::Threshold(op(operator)), Rule::BeyondFixedPoint)
+        }
+        E::FirstThresholdNotZero => (ModelField::Threshold(1), Rule::NotInvertible),
+        E::FirstWeightNotPositive => (ModelField::Weight(1), Rule::NotInvertible),
+        E::PartialSumNotPositive { operator } => {
+            (ModelField::Weight(op(operator)), Rule::NotInvertible)
+        }
+        E::WeightOutOfRange { operator } => (ModelField::Weight(op(operator)), Rule::BeyondFixedPoint),
+        E::GainSumTooLarge => (ModelField::Operators, Rule::BeyondFixedPoint),
+        E::OffsetOutOfRange => (ModelField::Offset, Rule::BeyondFixedPoint),
+        E::DuhemAlphaNotPositive => (ModelField::Alpha, Rule::Above(0.0)),
+        E::DuhemBetaNotPositive => (ModelField::Beta, Rule::Above(0.0)),
+        E::DuhemGammaNotPositive => (ModelField::Gamma, Rule::Above(0.0)),
+        E::DuhemCoefficientOutOfRange => (ModelField::Model, Rule::BeyondFixedPoint),
+    };
+    Refusal::new(model(field), rule)
+}
+
+/// The representative (not identified) P–I model the examples, benches and tests use: `n`
+/// operators (1…32) with uniform thresholds over 0…140 V, total slope 0.5 µm/V, `w_1 =
+/// 0.3 µm/V`, the other 0.2 µm/V decaying by 0.8 per operator. Replace it with the
+/// identification tool's output for a real stage.
+pub fn representative_pi(n: usize) -> Result<Model, ParamError> {
+    let thresholds = crate::params::Thresholds::Uniform.generate(n, 140.0)?;
+    let mut weights: Vec<f64, MAX_OPERATORS> = Vec::new();
+    let mut decay = 1.0;
+    let mut tail = 0.0;
+    for _ in 1..n {
+        decay *= 0.8;
+        tail += decay;
+    }
+    let mut d = 1.0;
+    for i in 0..n {
+        let w = if i == 0 {
+            0.3
+        } else {
+            d *= 0.8;
+            0.2 * d / tail
+        };
+        let _ = weights.push(w);
+    }
+    let a0 = if n == 1 { 0.2 } else { 0.0 };
+    pi_model(a0, 0.0, &thresholds, &weights)
+}
+
+/// The representative Duhem model: anhysteretic slope 0.5 µm/V through the origin, slope after
+/// a reversal 0.35 µm/V, `α = 0.02 /V`.
+pub fn representative_duhem() -> Model {
+    Model::Duhem(DuhemParams {
+        alpha: 0.02,
+        beta: 0.5,
+        gamma: 0.35,
+        offset: 0.0,
+    })
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::drive::{Configuration, SafeState};
-    use crate::fixed_point::signal_from_f64;
-    use crate::params::Thresholds;
 
-    fn settings(mode: Mode) -> Settings {
-        let r = Thresholds::Uniform.generate(9, 140.0).unwrap();
-        let w = [0.06, 0.01, 0.008, 0.006, 0.004, 0.003, 0.002, 0.001, 0.001];
+    fn hw() -> Hardware {
+        Hardware::driver_board(50_000.0)
+    }
+
+    fn closed() -> Settings {
         Settings {
-            model: Some(Model::PrandtlIshlinskii(
-                PiParams::new(0.0, 0.0, &r, &w).unwrap(),
-            )),
-            scaling: Scaling::new(0.0, 140.0, 0.0, 13.0).unwrap(),
-            drive: DriveSettings {
-                configuration: Configuration::Differential,
-                amplifier_full_scale: 150.0,
-                bias: 70.0,
-                right_idle: 0.0,
-                min_voltage: 0.0,
-                max_voltage: 140.0,
-                slew_rate: 1.0e6,
-                control_rate: 50_000.0,
-                dac_full_scale: 4095,
-                safe_state: SafeState::Bias,
-            },
-            feedback: Some(FeedbackSettings::pi(
-                SensorSettings {
-                    adc_bits: 16,
-                    displacement_at_zero: 0.0,
-                    displacement_at_full_scale: 13.0,
-                },
-                0.2,
-                2000.0,
-                0.2,
-            )),
-            mode,
+            compensator: Some(representative_pi(16).unwrap()),
+            observer: Some(representative_duhem()),
+            feedback: Some(FeedbackSettings::pi(0.2, 500.0, 0.1)),
+            mode: Mode::ClosedLoop,
+            ..Settings::default()
         }
     }
 
     #[test]
-    fn every_mode_builds_every_part_and_starts_in_its_mode() {
-        for mode in [Mode::Bypass, Mode::OpenLoop, Mode::ClosedLoop] {
-            let c = settings(mode).build().unwrap();
-            assert_eq!(c.mode, mode);
-            assert!(matches!(c.compensator, Compensator::InversePi(_)));
-            assert!(matches!(c.observer, Observer::Pi(_)));
-            assert!(c.feedback.is_some());
-        }
-        let mut s = settings(Mode::Bypass);
-        s.model = None;
-        let c = s.build().unwrap();
+    fn the_default_is_bypass_without_a_model_and_builds() {
+        let c = Settings::default().build(&hw()).unwrap();
+        assert_eq!(c.mode, Mode::Bypass);
         assert!(matches!(c.compensator, Compensator::None));
-        assert_eq!(
-            c.feedback.unwrap().drift_limit,
-            u32::MAX,
-            "no observer, no drift check"
-        );
+        assert!(c.feedback.is_none() && c.sensor.is_some());
     }
 
     #[test]
-    fn notch_derivative_and_drift_limit_are_built_for_the_control_rate() {
-        let mut s = settings(Mode::ClosedLoop);
-        let fb = s.feedback.as_mut().unwrap();
-        fb.notch = Some(NotchDesign {
-            frequency_hz: 21_800.0,
-            q: 2.0,
-            depth: 0.0,
-        });
-        fb.kd = 1e-6;
-        fb.derivative_cutoff_hz = 5_000.0;
-        fb.drift_limit = Some(0.02);
-        let design = fb.notch.unwrap();
-        let c = s.build().unwrap().feedback.unwrap();
-        assert_eq!(c.notch, Some(Notch::new(&design, 50_000.0).unwrap()));
-        assert_eq!(c.derivative.unwrap().kd, q4_28_from_f64(0.05));
-        assert_eq!(c.drift_limit, signal_from_f64(0.04) as u32);
-        // The same notch is refused at a rate whose Nyquist frequency is below it.
-        s.drive.control_rate = 40_000.0;
-        assert_eq!(
-            s.build(),
-            Err(SettingsError::Notch(NotchError::FrequencyOutOfRange))
-        );
-    }
-
-    /// Swapping configurations mid-run keeps the output where it is: the new models are
-    /// relaxed at the present drive and the compensator starts out agreeing with them.
-    #[test]
-    fn reconfigure_mid_run_does_not_move_the_output() {
-        use crate::board::fakes::{FixedAdc, RecordingDac};
-        use crate::board::{AdcCode, DacCode};
-        use crate::control::Controller;
-        let mut adc = FixedAdc(Some(AdcCode(30000)));
-        let mut c = Controller::new(settings(Mode::Bypass).build().unwrap());
-        let mut dac = RecordingDac::default();
-        for k in 0..500 {
-            let sp = signal_from_f64(0.6 * libm::sin(k as f64 * 0.01));
-            c.tick(Some(sp), &mut adc, &mut dac);
+    fn any_compensator_pairs_with_any_observer() {
+        for comp in [None, Some(representative_pi(8).unwrap()), Some(representative_duhem())] {
+            for obs in [None, Some(representative_pi(16).unwrap()), Some(representative_duhem())] {
+                let s = Settings {
+                    compensator: comp.clone(),
+                    observer: obs.clone(),
+                    ..closed()
+                };
+                assert!(s.build(&hw()).is_ok(), "{comp:?} / {obs:?}");
+            }
         }
-        let before = (dac.left, dac.right);
-        c.reconfigure(settings(Mode::OpenLoop).build().unwrap());
-        c.tick(None, &mut adc, &mut dac);
-        let moved = |a: DacCode, b: DacCode| (a.0 as i32 - b.0 as i32).abs();
-        assert!(moved(dac.left, before.0) <= 1 && moved(dac.right, before.1) <= 1);
     }
 
     #[test]
-    fn refusals_say_what_is_wrong() {
-        let mut s = settings(Mode::ClosedLoop);
+    fn modes_need_what_they_run() {
+        let mut s = closed();
         s.feedback = None;
-        assert_eq!(s.build(), Err(SettingsError::ClosedLoopNeedsSensor));
-        let mut s = settings(Mode::OpenLoop);
-        s.model = None;
-        assert_eq!(s.build(), Err(SettingsError::ModeNeedsModel));
-        let mut s = settings(Mode::ClosedLoop);
-        s.feedback.as_mut().unwrap().kp = f64::NAN;
-        assert_eq!(s.build(), Err(SettingsError::BadFeedback));
-        for bad in [
-            |f: &mut FeedbackSettings| f.ki = 30_000.0, // ≥ 1/2 per tick
-            |f: &mut FeedbackSettings| f.kp = 9.0,
-            |f: &mut FeedbackSettings| f.limit = 0.0,
-            |f: &mut FeedbackSettings| f.drift_limit = Some(-0.1),
-            |f: &mut FeedbackSettings| {
-                f.kd = 1e-6;
-                f.derivative_cutoff_hz = 30_000.0
-            },
-        ] {
-            let mut s = settings(Mode::Bypass);
-            bad(s.feedback.as_mut().unwrap());
-            assert_eq!(s.build(), Err(SettingsError::BadFeedback));
-        }
-        let mut s = settings(Mode::OpenLoop);
-        s.drive.bias = 145.0;
+        assert_eq!(s.build(&hw()).unwrap_err(), Refusal::new(Field::Feedback, Rule::Required));
+        let mut s = closed();
+        s.sensor = None;
+        assert_eq!(s.build(&hw()).unwrap_err(), Refusal::new(Field::Sensor, Rule::Required));
+        let mut s = closed();
+        s.mode = Mode::OpenLoop;
+        s.compensator = None;
         assert_eq!(
-            s.build(),
-            Err(SettingsError::Drive(DriveError::BiasOutsideRange))
+            s.build(&hw()).unwrap_err(),
+            Refusal::new(Field::Compensator(ModelField::Model), Rule::Required)
         );
-        let mut s = settings(Mode::OpenLoop);
-        if let Some(Model::PrandtlIshlinskii(p)) = s.model.as_mut() {
+        let mut board = hw();
+        board.sensor_adc_bits = None;
+        assert_eq!(closed().build(&board).unwrap_err(), Refusal::new(Field::Sensor, Rule::NoHardware));
+    }
+
+    #[test]
+    fn model_refusals_name_the_operator() {
+        let mut s = closed();
+        if let Some(Model::PrandtlIshlinskii(p)) = s.compensator.as_mut() {
             p.weights[0] = -0.1;
         }
         assert_eq!(
-            s.build(),
-            Err(SettingsError::Params(ParamError::FirstWeightNotPositive))
+            s.build(&hw()).unwrap_err(),
+            Refusal::new(Field::Compensator(ModelField::Weight(1)), Rule::NotInvertible)
         );
+        let mut s = closed();
+        if let Some(Model::PrandtlIshlinskii(p)) = s.compensator.as_mut() {
+            p.thresholds[3] = p.thresholds[2];
+        }
+        assert_eq!(
+            s.build(&hw()).unwrap_err(),
+            Refusal::new(Field::Compensator(ModelField::Threshold(4)), Rule::NotIncreasing)
+        );
+    }
+
+    #[test]
+    fn settings_round_trip_through_postcard() {
+        let s = closed();
+        let mut buf = [0u8; 2048];
+        let bytes = postcard::to_slice(&s, &mut buf).unwrap();
+        let back: Settings = postcard::from_bytes(bytes).unwrap();
+        assert_eq!(back, s);
     }
 }

@@ -15,13 +15,17 @@
 //!   decodes frames, answers each request with one response frame (sent from this task with
 //!   blocking writes on USART1 TX), queues setpoint batches for the tick, and reaches the
 //!   tick's state through short RTIC locks. After each request it re-arms the safe-state codes
-//!   of the newest configuration. `StoreParams` writes flash sector 11 (board image; the
-//!   tick stalls for the erase, the watchdog is stretched meanwhile).
+//!   of the newest configuration. A parameter load is validated and *prepared* here (the
+//!   models relaxed at the stacks' present voltages, in the spare controller); the tick swaps
+//!   it in by moving a pointer. `StoreParams` writes flash sector 11 (board image; the tick
+//!   stalls for the erase, the watchdog is stretched meanwhile).
 //! * **Coarse stage** (feature `dual-stage`; priority 2, TIM3 at 5 kHz): the dual-actuated
 //!   stage's coarse tick ([`twinstack::dual_stage::DualStage::coarse_tick`]): reads the motor
 //!   and linear encoders, runs the trajectory and emits a burst of step pulses on TIM1. It
 //!   holds its power-up position until a command moves it; the piezo tick is untouched.
-//! * **Safety**: a panic or hard fault masks interrupts, drives both outputs to the safe state
+//! * **Safety**: the board boots in the safe state and in bypass (the compiled-in settings
+//!   have no model and close no loop; a stored record boots in the mode the user stored it
+//!   with). A panic or hard fault masks interrupts, drives both outputs to the safe state
 //!   (bias or zero) and halts; the watchdog then resets the MCU. A parameter record with a
 //!   bad CRC (or none) means defaults and the `DEFAULTS` flag in the status report.
 //! * **Logging**: `defmt` over RTT.
@@ -63,8 +67,9 @@ mod app {
     use stm32f4xx_hal::gpio::GpioExt;
     use stm32f4xx_hal::pac::{self, Interrupt};
 
+    use twinstack::board::Hardware;
+    use twinstack::control::Controller;
     use twinstack::control_loop::{ControlLoop, SetpointQueue, SETPOINT_QUEUE_LEN};
-    use twinstack::default_config;
     #[cfg(feature = "dual-stage")]
     use twinstack::dual_stage::{DualStage, DualStageSettings};
     use twinstack::hardware::adc::SensorInput;
@@ -79,7 +84,8 @@ mod app {
     use twinstack::hardware::watchdog::Watchdog;
     #[cfg(feature = "emulator")]
     use twinstack::param_store::ReadOnlyStorage;
-    use twinstack::param_store::{self, BoardSettings, ParamSource};
+    use twinstack::param_store::{self, ParamSource};
+    use twinstack::settings::Settings;
     use twinstack::protocol::handler::CommandHandler;
     use twinstack::recorder::RECORD_CAPACITY;
 
@@ -89,6 +95,9 @@ mod app {
 
     /// The recorder's buffer (static RAM).
     type RecordBuffer = &'static mut [i32; RECORD_CAPACITY];
+    /// The tick's loop: two controllers in statics, passed by pointer between the tick and
+    /// the command handler.
+    type Loop = ControlLoop<RecordBuffer, &'static mut Controller>;
     /// The parameter storage: flash sector 11 on the board; read-only in the emulator (QEMU
     /// does not model the flash interface).
     #[cfg(not(feature = "emulator"))]
@@ -98,7 +107,7 @@ mod app {
 
     /// Everything the control interrupt owns.
     pub struct ControlTick {
-        control: ControlLoop<RecordBuffer>,
+        control: Loop,
         adc: SensorInput,
         dac: InternalDac,
         timer: ControlTimer,
@@ -126,7 +135,7 @@ mod app {
     struct LoopLock<M>(M);
 
     impl<M: rtic::Mutex<T = ControlTick>> rtic::Mutex for LoopLock<M> {
-        type T = ControlLoop<RecordBuffer>;
+        type T = Loop;
 
         fn lock<R>(&mut self, f: impl FnOnce(&mut Self::T) -> R) -> R {
             self.0.lock(|t| f(&mut t.control))
@@ -209,12 +218,15 @@ mod app {
     ])]
     fn init(cx: init::Context) -> (Shared, Local) {
         let dp: pac::Peripherals = cx.device;
-        let (settings, source) = param_store::load_settings(param_flash::record_window());
+        let (record, source) = param_store::load_record(
+            param_flash::record_window(),
+            &Hardware::driver_board(Hardware::DEFAULT_CONTROL_RATE_HZ as f64),
+        );
         match source {
-            ParamSource::Stored => defmt::info!("board settings loaded from flash"),
+            ParamSource::Stored => defmt::info!("settings loaded from flash"),
             ParamSource::Defaults(_) => {
                 defmt::warn!(
-                    "parameter record refused ({=str}): defaults",
+                    "parameter record refused ({=str}): defaults, bypass",
                     source.as_str()
                 )
             }
@@ -231,35 +243,40 @@ mod app {
         // The timer's rate is fixed before the controller is built, so the drive's slew limit
         // per tick matches the real period.
         #[cfg(not(feature = "emulator"))]
-        let timer = ControlTimer::start(dp.TIM2, &rcc, &bus, settings.tick_rate_hz);
+        let timer = ControlTimer::start(dp.TIM2, &rcc, &bus, record.control_rate_hz);
         #[cfg(feature = "emulator")]
-        let timer = ControlTimer::start(cx.core.SYST, &bus, settings.tick_rate_hz);
+        let timer = ControlTimer::start(cx.core.SYST, &bus, record.control_rate_hz);
         let rate = timer.rate_hz();
+        let hardware = Hardware::driver_board(rate as f64);
 
-        // The stored parameter set if the record holds a valid one, else the compiled-in set.
-        let board = BoardSettings {
-            tick_rate_hz: rate,
-            safe_state: settings.safe_state,
+        // The stored settings if they hold at the rate the timer runs, else the compiled-in
+        // ones (bypass, no model), which hold at every rate the board runs.
+        let stored = (source == ParamSource::Stored)
+            .then(|| record.settings.build(&hardware).ok().map(|c| (record.settings, c)))
+            .flatten();
+        let defaults = stored.is_none();
+        let Some((settings, config)) = stored.or_else(|| {
+            let s = Settings::default();
+            s.build(&hardware).ok().map(|c| (s, c))
+        }) else {
+            panic!("compiled-in settings refused");
         };
-        let booted = default_config::boot_param_set(settings.safe_state)
-            .ok()
-            .and_then(|defaults| {
-                CommandHandler::boot(
-                    default_config::board_profile(rate as f64),
-                    board,
-                    #[cfg(not(feature = "emulator"))]
-                    param_flash::FlashStorage::new(),
-                    #[cfg(feature = "emulator")]
-                    ReadOnlyStorage(param_flash::record_window()),
-                    defaults,
-                )
-                .ok()
-            });
-        let Some((handler, tick_config)) = booted else {
-            // The compiled-in parameters are valid for every rate the settings allow.
-            panic!("compiled-in configuration refused");
+        let (Some(active), Some(spare)) = (
+            cortex_m::singleton!(ACTIVE: Controller = Controller::new(config)),
+            cortex_m::singleton!(SPARE: Controller = Controller::new(config)),
+        ) else {
+            panic!("controllers already taken");
         };
-        let control = ControlLoop::new(tick_config, rate, cx.local.record_buffer);
+        let control = ControlLoop::new(active, spare, rate, cx.local.record_buffer);
+        let handler = CommandHandler::new(
+            hardware,
+            settings,
+            defaults,
+            #[cfg(not(feature = "emulator"))]
+            param_flash::FlashStorage::new(),
+            #[cfg(feature = "emulator")]
+            ReadOnlyStorage(param_flash::record_window()),
+        );
         let (safe_left, safe_right) = control.safe_codes();
         safe_state::arm(safe_left, safe_right);
 

@@ -16,7 +16,7 @@ pub mod format;
 pub mod recipe;
 
 pub use format::{FormatError, VectorSet, VectorSets};
-pub use recipe::{CompensatorChoice, ObserverChoice, Recipe, RecipeError};
+pub use recipe::{Recipe, RecipeError, MAX_RECIPE};
 
 use crate::board::{AdcCode, DacCode, DualDac, SensorAdc};
 use crate::control::{ControlConfig, Controller};

@@ -18,7 +18,7 @@ use serde::{Deserialize, Serialize};
 /// `NothingStored` and `StoreFailed` were added.
 pub const PROTOCOL_VERSION: u8 = 2;
 /// Largest frame body (version + message + CRC), bytes.
-pub const MAX_BODY: usize = 400;
+pub const MAX_BODY: usize = 1536;
 /// Largest frame on the wire, delimiter excluded.
 pub const MAX_ENCODED: usize = cobs::max_encoded_len(MAX_BODY);
 /// The CRC used by frames.

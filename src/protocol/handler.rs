@@ -1,39 +1,42 @@
 //! The board's command handler: received bytes in, one response frame out per request.
 //!
 //! It runs in the low-priority task (the firmware's decoder task; the simulator's receive
-//! path) and owns everything that is not the tick's: the frame decoder, the active settings
-//! in physical units, the parameter storage, the batch sequence number and the frame-error
-//! counters. It reaches the tick side ([`ControlLoop`]) in two ways only:
+//! path) and owns everything that is not the tick's: the frame decoder, the settings in force
+//! (physical units), the hardware facts, the parameter storage, the batch sequence number and
+//! the frame-error counters. It reaches the tick side ([`ControlLoop`]) in two ways only:
 //!
 //! * setpoint batches go into the lock-free setpoint queue (`heapless::spsc` producer); the
 //!   credits in every `Ack` are that queue's free slots;
 //! * everything else is one short critical section through an [`rtic_core::Mutex`] (RTIC's
 //!   resource lock on the board, `rtic_core::Exclusive` in the simulator): a few stores, a
-//!   chunk copy, or the copy of a configuration that was validated *before* the lock.
+//!   chunk copy, or moving a pointer.
 //!
-//! Rules (see the README's protocol chapter): every request gets exactly one response; a
-//! refused request changes nothing and loses nothing already queued; a batch must carry the
-//! next sequence number and fit the credits; parameter loads are built and validated whole
-//! ([`Settings::build`]) and swapped in by the tick between two ticks.
+//! A load is validated whole ([`Settings::build`]) and *prepared* here, outside any lock, in the
+//! spare controller ([`ControlLoop::spare`], [`Controller::prepare`]: models relaxed at the
+//! stacks' present voltages); the tick swaps it in, in O(1). A mode switch is O(1) in the tick
+//! itself ([`Controller::set_mode`]). Rules (see the book's protocol chapter): every request
+//! gets exactly one response; a refused request changes nothing and loses nothing already
+//! queued, and its NACK names the field and the rule it broke.
+
+use core::ops::DerefMut;
 
 use heapless::spsc::Producer;
 use rtic_core::Mutex;
 
-use crate::control_loop::{ControlLoop, TickConfig};
-use crate::param_store::{BoardSettings, RecordStorage, StorageError, MAX_RECORD};
+use crate::board::Hardware;
+use crate::control::Controller;
+use crate::control_loop::ControlLoop;
+use crate::param_store::{RecordStorage, StorageError, StoredRecord, MAX_RECORD};
+use crate::refusal::{Field, Refusal, Rule};
 use crate::setpoint_stream::setpoint_from_wire;
 use crate::settings::{Mode, Settings};
-use crate::waveform::{Shape, WaveformGenerator};
+use crate::waveform::{Shape, WaveformError, WaveformGenerator};
 
 use super::decoder::FrameDecoder;
 use super::frame::{self, FrameError, MAX_ENCODED};
 use super::messages::{
-    NackReason, ParamSet, RecordRequest, Request, Response, SetpointBatch, StatusReport,
-    StreamControl, WaveShape, Waveform,
-};
-use super::param_load::{
-    decode_record, encode_record, nack_reason, sensor_calibration, settings_from_params,
-    BoardProfile,
+    NackReason, RecordRequest, Request, Response, SetpointBatch, StatusReport, StreamControl,
+    WaveShape, Waveform,
 };
 
 /// Largest response frame, delimiter included.
@@ -43,13 +46,10 @@ pub const MAX_RESPONSE: usize = MAX_ENCODED + 1;
 #[derive(Debug)]
 pub struct CommandHandler<S> {
     decoder: FrameDecoder,
-    profile: BoardProfile,
-    board: BoardSettings,
-    /// The settings in force (or pending), physical units.
+    hardware: Hardware,
+    /// The settings in force (or waiting for the next tick), physical units.
     settings: Settings,
-    /// The parameter set they came from: what `StoreParams` writes.
-    params: ParamSet,
-    /// The parameters are the compiled-in defaults (no valid stored set).
+    /// The settings are the compiled-in defaults (no valid stored record).
     defaults: bool,
     storage: S,
     next_seq: u16,
@@ -59,61 +59,25 @@ pub struct CommandHandler<S> {
 }
 
 impl<S: RecordStorage> CommandHandler<S> {
-    /// A handler on `params`, with the configuration the tick starts on; refused if `params`
-    /// does not validate on this board.
-    pub fn new(
-        profile: BoardProfile,
-        board: BoardSettings,
-        params: ParamSet,
-        storage: S,
-    ) -> Result<(Self, TickConfig), NackReason> {
-        let settings = settings_from_params(&params, &profile)?;
-        let control = settings.build().map_err(nack_reason)?;
-        let tick = TickConfig {
-            control,
-            sensor: sensor_calibration(&settings),
-        };
-        let handler = Self {
+    /// A handler whose settings in force are `settings` (already running in the tick, built
+    /// on `hardware`); `defaults` says they are the compiled-in ones.
+    pub fn new(hardware: Hardware, settings: Settings, defaults: bool, storage: S) -> Self {
+        Self {
             decoder: FrameDecoder::new(),
-            profile,
-            board,
+            hardware,
             settings,
-            params,
-            defaults: false,
+            defaults,
             storage,
             next_seq: 0,
             crc_errors: 0,
             frame_errors: 0,
             tx: [0; MAX_RESPONSE],
-        };
-        Ok((handler, tick))
-    }
-
-    /// Start-up: the parameter set stored in `storage` if there is a valid one, otherwise
-    /// `defaults` (and the status flag [`StatusReport::DEFAULTS`]). Fails only if `defaults`
-    /// itself does not validate on this board.
-    pub fn boot(
-        profile: BoardProfile,
-        board: BoardSettings,
-        storage: S,
-        defaults: ParamSet,
-    ) -> Result<(Self, TickConfig), NackReason> {
-        let stored = decode_record(storage.read())
-            .and_then(|p| settings_from_params(&p, &profile).ok().map(|s| (p, s)))
-            .and_then(|(p, s)| s.build().ok().map(|_| p));
-        match stored {
-            Some(p) => Self::new(profile, board, p, storage),
-            None => {
-                let (mut h, tick) = Self::new(profile, board, defaults, storage)?;
-                h.defaults = true;
-                Ok((h, tick))
-            }
         }
     }
 
     /// Feeds one received byte. When it completes a frame, the request is handled and the
     /// response frame (delimiter included) is returned, to be sent as it is.
-    pub fn push_byte<const N: usize, B, L>(
+    pub fn push_byte<const N: usize, B, C, L>(
         &mut self,
         byte: u8,
         queue: &mut Producer<'_, i16, N>,
@@ -121,7 +85,8 @@ impl<S: RecordStorage> CommandHandler<S> {
     ) -> Option<&[u8]>
     where
         B: AsRef<[i32]> + AsMut<[i32]>,
-        L: Mutex<T = ControlLoop<B>>,
+        C: DerefMut<Target = Controller>,
+        L: Mutex<T = ControlLoop<B, C>>,
     {
         let decoded = match self.decoder.push(byte)? {
             Ok(body) => frame::decode_body::<Request>(body),
@@ -144,7 +109,7 @@ impl<S: RecordStorage> CommandHandler<S> {
     }
 
     /// Feeds received bytes, passing each response frame to `send`.
-    pub fn receive<const N: usize, B, L>(
+    pub fn receive<const N: usize, B, C, L>(
         &mut self,
         bytes: &[u8],
         queue: &mut Producer<'_, i16, N>,
@@ -152,7 +117,8 @@ impl<S: RecordStorage> CommandHandler<S> {
         mut send: impl FnMut(&[u8]),
     ) where
         B: AsRef<[i32]> + AsMut<[i32]>,
-        L: Mutex<T = ControlLoop<B>>,
+        C: DerefMut<Target = Controller>,
+        L: Mutex<T = ControlLoop<B, C>>,
     {
         for &b in bytes {
             if let Some(frame) = self.push_byte(b, queue, control) {
@@ -162,7 +128,7 @@ impl<S: RecordStorage> CommandHandler<S> {
     }
 
     /// Answers one request (already decoded).
-    pub fn handle<const N: usize, B, L>(
+    pub fn handle<const N: usize, B, C, L>(
         &mut self,
         request: Request,
         queue: &mut Producer<'_, i16, N>,
@@ -170,7 +136,8 @@ impl<S: RecordStorage> CommandHandler<S> {
     ) -> Response
     where
         B: AsRef<[i32]> + AsMut<[i32]>,
-        L: Mutex<T = ControlLoop<B>>,
+        C: DerefMut<Target = Controller>,
+        L: Mutex<T = ControlLoop<B, C>>,
     {
         let done = match request {
             Request::Status => return Response::Status(self.status(queue, control)),
@@ -178,7 +145,7 @@ impl<S: RecordStorage> CommandHandler<S> {
             Request::Stream(c) => stream(c, control),
             Request::Mode(mode) => self.mode(mode, control),
             Request::LoadParams(p) => self.load(p, control),
-            Request::StoreParams => self.store(control),
+            Request::StoreParams { boot_mode } => self.store(boot_mode, control),
             Request::RecallParams => self.recall(control),
             Request::Waveform(w) => self.waveform(w, control),
             Request::Record(r) => record(r, control),
@@ -186,9 +153,10 @@ impl<S: RecordStorage> CommandHandler<S> {
                 let mut values = heapless::Vec::new();
                 return match control.lock(|c| c.read_record(offset, &mut values)) {
                     Ok(()) => Response::RecordChunk { offset, values },
-                    Err(_) => nack(NackReason::OutOfRange),
+                    Err(_) => nack(refused(Field::RecordOffset, Rule::AtMost(0.0))),
                 };
             }
+            Request::ReadParams => return Response::Params(self.settings.clone()),
         };
         match done {
             Ok(()) => Response::Ack {
@@ -198,14 +166,15 @@ impl<S: RecordStorage> CommandHandler<S> {
         }
     }
 
-    fn status<const N: usize, B, L>(
+    fn status<const N: usize, B, C, L>(
         &self,
         queue: &Producer<'_, i16, N>,
         control: &mut L,
     ) -> StatusReport
     where
         B: AsRef<[i32]> + AsMut<[i32]>,
-        L: Mutex<T = ControlLoop<B>>,
+        C: DerefMut<Target = Controller>,
+        L: Mutex<T = ControlLoop<B, C>>,
     {
         let t = control.lock(|c| c.telemetry());
         let mut flags = match self.settings.mode {
@@ -235,7 +204,7 @@ impl<S: RecordStorage> CommandHandler<S> {
             limit_hits: t.limit_hits,
             estimate: t.estimate,
             next_seq: self.next_seq,
-            tick_rate_hz: self.board.tick_rate_hz,
+            tick_rate_hz: self.hardware.control_rate_hz as u32,
             recorded: t.recorded,
             flags,
         }
@@ -262,91 +231,97 @@ impl<S: RecordStorage> CommandHandler<S> {
         Ok(())
     }
 
-    /// Validates `settings` whole and posts the result to the tick.
-    #[inline(never)]
-    fn post<B, L>(settings: &Settings, control: &mut L) -> Result<(), NackReason>
+    /// Validates `settings` whole, prepares them in the spare controller at the stacks'
+    /// present voltages (outside any lock) and posts it to the tick.
+    #[inline(never)] // rare and large: one copy, not one per caller
+    fn load<B, C, L>(&mut self, settings: Settings, control: &mut L) -> Result<(), NackReason>
     where
         B: AsRef<[i32]> + AsMut<[i32]>,
-        L: Mutex<T = ControlLoop<B>>,
+        C: DerefMut<Target = Controller>,
+        L: Mutex<T = ControlLoop<B, C>>,
     {
-        let config = TickConfig {
-            control: settings.build().map_err(nack_reason)?,
-            sensor: sensor_calibration(settings),
+        let config = settings.build(&self.hardware).map_err(NackReason::Refused)?;
+        let (spare, stacks) = control.lock(|c| (c.spare(), c.stacks()));
+        // Two controllers cycle between the tick and this task: the spare is always there
+        // (a waiting reload is taken back and replaced).
+        let Some(mut spare) = spare else {
+            return Err(NackReason::Busy);
         };
-        control.lock(|c| c.post_config(config));
-        Ok(())
-    }
-
-    #[inline(never)] // rare and large: one copy, not one per caller
-    fn mode<B, L>(&mut self, mode: Mode, control: &mut L) -> Result<(), NackReason>
-    where
-        B: AsRef<[i32]> + AsMut<[i32]>,
-        L: Mutex<T = ControlLoop<B>>,
-    {
-        if mode == Mode::ClosedLoop && self.params.feedback.is_none() {
-            return Err(NackReason::Unsupported);
-        }
-        // The settings change in place (no copy of the models), and back if refused.
-        let old = core::mem::replace(&mut self.settings.mode, mode);
-        match Self::post(&self.settings, control) {
-            Ok(()) => {
-                self.params.mode = mode;
-                Ok(())
-            }
-            Err(e) => {
-                self.settings.mode = old;
-                Err(e)
-            }
-        }
-    }
-
-    #[inline(never)] // rare and large: one copy, not one per caller
-    fn load<B, L>(&mut self, params: ParamSet, control: &mut L) -> Result<(), NackReason>
-    where
-        B: AsRef<[i32]> + AsMut<[i32]>,
-        L: Mutex<T = ControlLoop<B>>,
-    {
-        let settings = settings_from_params(&params, &self.profile)?;
-        Self::post(&settings, control)?;
+        spare.prepare(config, stacks);
+        control.lock(|c| c.post(spare));
         self.settings = settings;
-        self.params = params;
         self.defaults = false;
         Ok(())
     }
 
-    #[inline(never)] // rare and large: one copy, not one per caller
-    fn store<B, L>(&mut self, control: &mut L) -> Result<(), NackReason>
+    #[inline(never)]
+    fn mode<B, C, L>(&mut self, mode: Mode, control: &mut L) -> Result<(), NackReason>
     where
         B: AsRef<[i32]> + AsMut<[i32]>,
-        L: Mutex<T = ControlLoop<B>>,
+        C: DerefMut<Target = Controller>,
+        L: Mutex<T = ControlLoop<B, C>>,
     {
+        self.settings.check_mode(mode).map_err(NackReason::Refused)?;
+        control
+            .lock(|c| c.set_mode(mode))
+            .map_err(|_| refused(Field::Mode, Rule::Required))?;
+        self.settings.mode = mode;
+        Ok(())
+    }
+
+    #[inline(never)] // rare and large: one copy, not one per caller
+    fn store<B, C, L>(&mut self, boot_mode: Mode, control: &mut L) -> Result<(), NackReason>
+    where
+        B: AsRef<[i32]> + AsMut<[i32]>,
+        C: DerefMut<Target = Controller>,
+        L: Mutex<T = ControlLoop<B, C>>,
+    {
+        self.settings
+            .check_mode(boot_mode)
+            .map_err(NackReason::Refused)?;
         if control.lock(|c| c.is_running()) {
             return Err(NackReason::Busy);
         }
-        let mut record = [0u8; MAX_RECORD];
-        let n = encode_record(&self.board, &self.params, &mut record)?;
-        let bytes = record.get(..n).ok_or(NackReason::StoreFailed)?;
+        let record = StoredRecord {
+            control_rate_hz: self.hardware.control_rate_hz as u32,
+            settings: Settings {
+                mode: boot_mode,
+                ..self.settings.clone()
+            },
+        };
+        let mut bytes = [0u8; MAX_RECORD];
+        let n = record
+            .encode(&mut bytes)
+            .map_err(|_| NackReason::StoreFailed)?;
+        let bytes = bytes.get(..n).ok_or(NackReason::StoreFailed)?;
         self.storage.write(bytes).map_err(|e| match e {
-            StorageError::Unavailable => NackReason::Unsupported,
+            StorageError::Unavailable => NackReason::NoStorage,
             StorageError::WriteFailed => NackReason::StoreFailed,
         })
     }
 
     #[inline(never)] // rare and large: one copy, not one per caller
-    fn recall<B, L>(&mut self, control: &mut L) -> Result<(), NackReason>
+    fn recall<B, C, L>(&mut self, control: &mut L) -> Result<(), NackReason>
     where
         B: AsRef<[i32]> + AsMut<[i32]>,
-        L: Mutex<T = ControlLoop<B>>,
+        C: DerefMut<Target = Controller>,
+        L: Mutex<T = ControlLoop<B, C>>,
     {
-        let params = decode_record(self.storage.read()).ok_or(NackReason::NothingStored)?;
-        self.load(params, control)
+        let record = StoredRecord::decode(self.storage.read(), &self.hardware)
+            .map_err(|_| NackReason::NothingStored)?;
+        if record.control_rate_hz as f64 != self.hardware.control_rate_hz {
+            // The rate is fixed at boot: the record's settings may not hold at this one.
+            return Err(NackReason::NothingStored);
+        }
+        self.load(record.settings, control)
     }
 
     #[inline(never)] // rare and large: one copy, not one per caller
-    fn waveform<B, L>(&mut self, w: Waveform, control: &mut L) -> Result<(), NackReason>
+    fn waveform<B, C, L>(&mut self, w: Waveform, control: &mut L) -> Result<(), NackReason>
     where
         B: AsRef<[i32]> + AsMut<[i32]>,
-        L: Mutex<T = ControlLoop<B>>,
+        C: DerefMut<Target = Controller>,
+        L: Mutex<T = ControlLoop<B, C>>,
     {
         let shape = match w.shape {
             WaveShape::Sine => Shape::Sine,
@@ -357,21 +332,29 @@ impl<S: RecordStorage> CommandHandler<S> {
             setpoint_from_wire(w.offset),
             setpoint_from_wire(w.amplitude),
             w.frequency_mhz as f64 / 1000.0,
-            self.profile.control_rate_hz,
+            self.hardware.control_rate_hz,
         )
-        .map_err(|_| NackReason::OutOfRange)?;
+        .map_err(|e| match e {
+            WaveformError::FrequencyOutOfRange => refused(
+                Field::WaveformFrequency,
+                Rule::Below(self.hardware.control_rate_hz / 2.0),
+            ),
+            WaveformError::AmplitudeOutOfRange => {
+                refused(Field::WaveformAmplitude, Rule::AtMost(1.0))
+            }
+        })?;
         control.lock(|c| c.play(generator));
         Ok(())
     }
 
-    /// The settings in force (or pending).
+    /// The settings in force (or waiting for the next tick).
     pub fn settings(&self) -> &Settings {
         &self.settings
     }
 
-    /// The parameter set in force (what `StoreParams` writes).
-    pub fn params(&self) -> &ParamSet {
-        &self.params
+    /// The hardware the settings are validated against.
+    pub fn hardware(&self) -> &Hardware {
+        &self.hardware
     }
 
     /// The sequence number the next batch must carry.
@@ -399,21 +382,26 @@ fn nack(reason: NackReason) -> Response {
     Response::Nack { reason }
 }
 
+fn refused(field: Field, rule: Rule) -> NackReason {
+    NackReason::Refused(Refusal::new(field, rule))
+}
+
 fn credits<const N: usize>(queue: &Producer<'_, i16, N>) -> u16 {
     queue.capacity().saturating_sub(queue.len()) as u16
 }
 
-fn stream<B, L>(c: StreamControl, control: &mut L) -> Result<(), NackReason>
+fn stream<B, C, L>(c: StreamControl, control: &mut L) -> Result<(), NackReason>
 where
     B: AsRef<[i32]> + AsMut<[i32]>,
-    L: Mutex<T = ControlLoop<B>>,
+    C: DerefMut<Target = Controller>,
+    L: Mutex<T = ControlLoop<B, C>>,
 {
     match c {
         StreamControl::Start => control.lock(|c| c.start()),
         StreamControl::Stop => control.lock(|c| c.stop()),
         StreamControl::Rate { divider } => {
             if !control.lock(|c| c.set_divider(divider)) {
-                return Err(NackReason::OutOfRange);
+                return Err(refused(Field::Divider, Rule::AtLeast(1.0)));
             }
         }
         StreamControl::Underrun(policy) => control.lock(|c| c.set_underrun(policy)),
@@ -421,12 +409,20 @@ where
     Ok(())
 }
 
-fn record<B, L>(r: RecordRequest, control: &mut L) -> Result<(), NackReason>
+fn record<B, C, L>(r: RecordRequest, control: &mut L) -> Result<(), NackReason>
 where
     B: AsRef<[i32]> + AsMut<[i32]>,
-    L: Mutex<T = ControlLoop<B>>,
+    C: DerefMut<Target = Controller>,
+    L: Mutex<T = ControlLoop<B, C>>,
 {
+    let capacity = control.lock(|c| c.record_capacity());
+    if r.decimation == 0 {
+        return Err(refused(Field::RecordDecimation, Rule::AtLeast(1.0)));
+    }
+    if r.count == 0 || r.count as usize > capacity {
+        return Err(refused(Field::RecordCount, Rule::AtMost(capacity as f64)));
+    }
     control
         .lock(|c| c.arm_recorder(r.signal, r.count, r.decimation))
-        .map_err(|_| NackReason::OutOfRange)
+        .map_err(|_| refused(Field::RecordCount, Rule::AtMost(capacity as f64)))
 }

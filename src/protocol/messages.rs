@@ -5,25 +5,24 @@
 //! That halves the bytes per sample, so that 2 Mbaud carries 50 000 setpoints/s with room for
 //! framing and acknowledgements.
 
-use crate::drive::{Configuration, SafeState};
+use crate::refusal::Refusal;
+use crate::settings::Settings;
 use serde::{Deserialize, Serialize};
 
 use super::frame::{FrameError, Message};
 
 impl Message for Request {
-    const VARIANTS: u32 = 10;
+    const VARIANTS: u32 = 11;
 }
 
 impl Message for Response {
-    const VARIANTS: u32 = 4;
+    const VARIANTS: u32 = 5;
 }
 
 /// Most setpoints one batch carries.
 pub const MAX_BATCH: usize = 96;
 /// Most recorder values one chunk carries.
 pub const MAX_CHUNK: usize = 64;
-/// Most P–I operators a parameter message carries.
-pub const MAX_PARAM_OPERATORS: usize = 32;
 
 /// Host → board.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -36,11 +35,16 @@ pub enum Request {
     Stream(StreamControl),
     /// Select the control mode.
     Mode(Mode),
-    /// Load a parameter set: validated whole, then swapped in between two ticks.
-    LoadParams(ParamSet),
-    /// Write the active parameters to flash.
-    StoreParams,
-    /// Reload the parameters stored in flash.
+    /// Load settings: validated whole, prepared off the tick, swapped in between two ticks
+    /// with the drive continuous.
+    LoadParams(Settings),
+    /// Write the settings in force to flash, to boot in `boot_mode` (bypass unless the user
+    /// asks for more).
+    StoreParams {
+        /// The mode the board boots into with this record.
+        boot_mode: Mode,
+    },
+    /// Reload the settings stored in flash (in the mode stored with them).
     RecallParams,
     /// Run the built-in waveform generator instead of the stream.
     Waveform(Waveform),
@@ -51,6 +55,8 @@ pub enum Request {
         /// First value to read.
         offset: u32,
     },
+    /// Read the settings in force (answered with [`Response::Params`]).
+    ReadParams,
 }
 
 /// A batch of setpoints with its sequence number (wrapping), so the board can spot a lost batch.
@@ -91,91 +97,6 @@ pub enum UnderrunPolicy {
 /// `Bypass` (the drive follows the setpoint linearly), `OpenLoop` (inverse-model feedforward),
 /// `ClosedLoop` (feedforward plus sensor feedback).
 pub use crate::settings::Mode;
-
-/// A hysteresis model in physical units (`f32` on the wire).
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub enum ModelParams {
-    /// Prandtl–Ishlinskii: `y = a0 u + Σ w_i P_{r_i}[u] + offset`.
-    PrandtlIshlinskii {
-        /// Linear term, output units per volt.
-        a0: f32,
-        /// Output offset.
-        offset: f32,
-        /// Thresholds, volts.
-        thresholds: heapless::Vec<f32, MAX_PARAM_OPERATORS>,
-        /// Weights, output units per volt.
-        weights: heapless::Vec<f32, MAX_PARAM_OPERATORS>,
-    },
-    /// Duhem: `ẏ = α|u̇|(βu + offset − y) + γu̇`.
-    Duhem {
-        /// α, per volt.
-        alpha: f32,
-        /// β, output units per volt.
-        beta: f32,
-        /// γ, output units per volt.
-        gamma: f32,
-        /// Offset, output units.
-        offset: f32,
-    },
-}
-
-/// Everything a parameter load sets.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub struct ParamSet {
-    /// The model (compensator and observer).
-    pub model: ModelParams,
-    /// Model input range, volts (left stack).
-    pub input_range: [f32; 2],
-    /// Model output range, output units.
-    pub output_range: [f32; 2],
-    /// Differential or unidirectional.
-    pub configuration: Configuration,
-    /// Bias ū, volts.
-    pub bias: f32,
-    /// Stack voltage limits `[min, max]`, volts (unidirectional: the right stack idles at
-    /// `min`).
-    pub voltage_limits: [f32; 2],
-    /// Slew limit, volts per second.
-    pub slew_rate: f32,
-    /// Safe state on a fault.
-    pub safe_state: SafeState,
-    /// Sensor feedback: PI(D) gains, correction limit, notch and drift limit.
-    pub feedback: Option<FeedbackParams>,
-    /// Mode to enter once loaded.
-    pub mode: Mode,
-}
-
-/// Sensor feedback on the wire (see `settings::FeedbackSettings`, which it becomes with the
-/// board's sensor calibration). Gains in normalised units (drive fraction per displacement
-/// fraction).
-#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
-pub struct FeedbackParams {
-    /// Proportional gain, 0 ≤ kp < 7.5.
-    pub kp: f32,
-    /// Integral gain, per second (below the control rate).
-    pub ki: f32,
-    /// Derivative gain, seconds (0: none).
-    pub kd: f32,
-    /// Corner of the derivative's low pass, Hz.
-    pub derivative_cutoff_hz: f32,
-    /// Largest correction, fraction of the drive range (0…1].
-    pub limit: f32,
-    /// Notch on the error at the stage resonance, if any.
-    pub notch: Option<NotchParams>,
-    /// Drift limit, fraction of the output range (0…1], if the drift check is wanted.
-    pub drift_limit: Option<f32>,
-}
-
-/// The resonance notch on the wire (see `notch::NotchDesign`).
-#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
-pub struct NotchParams {
-    /// Centre frequency, Hz.
-    pub frequency_hz: f32,
-    /// Quality factor (centre over −3 dB width).
-    pub q: f32,
-    /// Gain at the centre, 0…1.
-    pub depth: f32,
-}
 
 /// The built-in waveform generator.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
@@ -245,10 +166,12 @@ pub enum Response {
         /// Values, Q2.30.
         values: heapless::Vec<i32, MAX_CHUNK>,
     },
+    /// The settings in force (the answer to [`Request::ReadParams`]).
+    Params(Settings),
 }
 
-/// Why a request was refused.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+/// Why a request was refused. Wire-stable: variants are only appended.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub enum NackReason {
     /// The frame itself was bad.
@@ -260,19 +183,14 @@ pub enum NackReason {
         /// The sequence number the board expected.
         expected: u16,
     },
-    /// A value is out of its range (rate divider 0, frequency too high, …).
-    OutOfRange,
-    /// The parameters were refused by validation.
-    InvalidParams(crate::params::ParamError),
-    /// The drive settings were refused.
-    InvalidDrive(crate::drive::DriveError),
-    /// The request needs something the board lacks (closed loop without a sensor, a model
-    /// mode without a model, a store on a board without parameter storage, …).
-    Unsupported,
+    /// A field of the request was refused: which, and the rule (with its limit) it broke.
+    Refused(Refusal),
+    /// The board has no parameter storage.
+    NoStorage,
     /// Not now: storing to flash stalls the tick, so it is refused while the stream or the
     /// waveform runs.
     Busy,
-    /// Recall found no valid parameter set in flash (erased, damaged, or an older record).
+    /// Recall found no valid settings in flash (erased, damaged, or an older record).
     NothingStored,
     /// Writing the flash record failed (erase or program error, or the read-back differs).
     StoreFailed,

@@ -4,8 +4,7 @@
 //! * [`frame`] — the frame layout (version, message, CRC-32) and its errors;
 //! * [`decoder`] — the receiver's byte-at-a-time frame decoder;
 //! * [`messages`] — requests, responses and NACK reasons;
-//! * [`handler`] — the board's command handler (bytes in, one response frame per request);
-//! * [`param_load`] — parameter sets onto the board's settings and into the flash record.
+//! * [`handler`] — the board's command handler (bytes in, one response frame per request).
 
 pub mod cobs;
 pub mod decoder;
@@ -15,4 +14,3 @@ pub mod handler;
 // and a message lives in one stack slot while it is handled.
 #[allow(clippy::large_enum_variant)]
 pub mod messages;
-pub mod param_load;

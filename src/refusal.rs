@@ -1,0 +1,248 @@
+//! Why a setting or a request was refused: the field and the rule (with its limit) it broke.
+//!
+//! A [`Refusal`] is what validation returns and what the wire carries in a NACK, so the host
+//! can say "`feedback.ki` = 3e4: must be below 2.5e4" without knowing how the board validates.
+//! [`Field`] and [`Rule`] are **wire-stable**: `postcard` encodes an enum by its variant index,
+//! so variants are only ever appended, never reordered or removed (the protocol chapter of the
+//! book lists their codes). Internal error types (the models' `ParamError`, the notch's
+//! `NotchError`) never reach the wire; the builders map them onto a field here.
+
+use serde::{Deserialize, Serialize};
+
+/// A field of a hysteresis model (the compensator's or the observer's).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub enum ModelField {
+    /// The model as a whole (its kind, or a property of all its parameters together).
+    Model,
+    /// P–I linear term `a0`.
+    A0,
+    /// Output offset.
+    Offset,
+    /// P–I threshold of this operator (1-based).
+    Threshold(u8),
+    /// P–I weight of this operator (1-based).
+    Weight(u8),
+    /// The P–I operator list (count, lengths).
+    Operators,
+    /// Duhem `α`.
+    Alpha,
+    /// Duhem `β`.
+    Beta,
+    /// Duhem `γ`.
+    Gamma,
+}
+
+/// A field of the settings or of a request. Wire-stable: append only.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub enum Field {
+    /// `ranges.input_min` / `ranges.input_max` (volts).
+    InputRange,
+    /// `ranges.output_min` / `ranges.output_max` (output units).
+    OutputRange,
+    /// A field of the compensator's model.
+    Compensator(ModelField),
+    /// A field of the observer's model.
+    Observer(ModelField),
+    /// `drive.bias`.
+    Bias,
+    /// `drive.min_voltage` / `drive.max_voltage`.
+    VoltageLimits,
+    /// `drive.slew_rate`.
+    SlewRate,
+    /// The sensor's calibration (`sensor.displacement_at_zero` / `_at_full_scale`).
+    SensorCalibration,
+    /// `sensor.drift_limit`.
+    DriftLimit,
+    /// `feedback.kp`.
+    Kp,
+    /// `feedback.ki`.
+    Ki,
+    /// `feedback.kd`.
+    Kd,
+    /// `feedback.derivative_cutoff_hz`.
+    DerivativeCutoff,
+    /// `feedback.limit`.
+    FeedbackLimit,
+    /// `feedback.notch.frequency_hz`.
+    NotchFrequency,
+    /// `feedback.notch.q`.
+    NotchQ,
+    /// `feedback.notch.depth`.
+    NotchDepth,
+    /// `mode`.
+    Mode,
+    /// The sensor as a whole (present or not).
+    Sensor,
+    /// The feedback as a whole (present or not).
+    Feedback,
+    /// The stream's rate divider.
+    Divider,
+    /// The waveform's frequency.
+    WaveformFrequency,
+    /// The waveform's offset and amplitude.
+    WaveformAmplitude,
+    /// The recorder's sample count.
+    RecordCount,
+    /// The recorder's decimation.
+    RecordDecimation,
+    /// A record read's offset.
+    RecordOffset,
+    /// The recorder's signal list.
+    RecordSignals,
+}
+
+/// The rule a field broke, with its limit where it has one (in the field's own units).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub enum Rule {
+    /// NaN or infinite.
+    NotFinite,
+    /// Must be at least this.
+    AtLeast(f64),
+    /// Must be above this.
+    Above(f64),
+    /// Must be at most this.
+    AtMost(f64),
+    /// Must be below this.
+    Below(f64),
+    /// The range is empty (`max ≤ min`).
+    Empty,
+    /// Must exceed the value before it (thresholds).
+    NotIncreasing,
+    /// The model has no inverse (a weight sum that does not rise).
+    NotInvertible,
+    /// More than this many items.
+    TooMany(u32),
+    /// Two lists that go together differ in length.
+    LengthMismatch,
+    /// Needed by another setting (closed loop needs the sensor and the feedback, open loop a
+    /// compensator) and absent.
+    Required,
+    /// The board has no hardware for it (a sensor setting on a board without a sensor ADC).
+    NoHardware,
+    /// Outside what the fixed-point formats hold, once normalised.
+    BeyondFixedPoint,
+    /// The voltage limits and the model's input range leave no drive, or the codes would
+    /// leave the DAC's range.
+    Unreachable,
+}
+
+/// A refusal: the field and the rule it broke. Nothing was applied.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct Refusal {
+    /// What was refused.
+    pub field: Field,
+    /// Why.
+    pub rule: Rule,
+}
+
+impl Refusal {
+    /// A refusal of `field` for `rule`.
+    pub const fn new(field: Field, rule: Rule) -> Self {
+        Self { field, rule }
+    }
+}
+
+/// `Ok(())` if `x` is finite, else a [`Rule::NotFinite`] refusal of `field`.
+pub fn finite(field: Field, x: f64) -> Result<(), Refusal> {
+    if x.is_finite() {
+        Ok(())
+    } else {
+        Err(Refusal::new(field, Rule::NotFinite))
+    }
+}
+
+/// `Ok(())` if `lo ≤ x ≤ hi` (`x` finite), else the bound it broke.
+pub fn within(field: Field, x: f64, lo: f64, hi: f64) -> Result<(), Refusal> {
+    finite(field, x)?;
+    if x < lo {
+        return Err(Refusal::new(field, Rule::AtLeast(lo)));
+    }
+    if x > hi {
+        return Err(Refusal::new(field, Rule::AtMost(hi)));
+    }
+    Ok(())
+}
+
+impl core::fmt::Display for ModelField {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        match self {
+            ModelField::Model => write!(f, "model"),
+            ModelField::A0 => write!(f, "a0"),
+            ModelField::Offset => write!(f, "offset"),
+            ModelField::Threshold(i) => write!(f, "thresholds[{}]", *i as usize - 1),
+            ModelField::Weight(i) => write!(f, "weights[{}]", *i as usize - 1),
+            ModelField::Operators => write!(f, "operators"),
+            ModelField::Alpha => write!(f, "alpha"),
+            ModelField::Beta => write!(f, "beta"),
+            ModelField::Gamma => write!(f, "gamma"),
+        }
+    }
+}
+
+impl core::fmt::Display for Field {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        let name = match self {
+            Field::Compensator(m) => return write!(f, "compensator.{m}"),
+            Field::Observer(m) => return write!(f, "observer.{m}"),
+            Field::InputRange => "ranges.input",
+            Field::OutputRange => "ranges.output",
+            Field::Bias => "drive.bias",
+            Field::VoltageLimits => "drive.min_voltage/max_voltage",
+            Field::SlewRate => "drive.slew_rate",
+            Field::SensorCalibration => "sensor.displacement_at_zero/at_full_scale",
+            Field::DriftLimit => "sensor.drift_limit",
+            Field::Kp => "feedback.kp",
+            Field::Ki => "feedback.ki",
+            Field::Kd => "feedback.kd",
+            Field::DerivativeCutoff => "feedback.derivative_cutoff_hz",
+            Field::FeedbackLimit => "feedback.limit",
+            Field::NotchFrequency => "feedback.notch.frequency_hz",
+            Field::NotchQ => "feedback.notch.q",
+            Field::NotchDepth => "feedback.notch.depth",
+            Field::Mode => "mode",
+            Field::Sensor => "sensor",
+            Field::Feedback => "feedback",
+            Field::Divider => "stream divider",
+            Field::WaveformFrequency => "waveform frequency",
+            Field::WaveformAmplitude => "waveform offset/amplitude",
+            Field::RecordCount => "record count",
+            Field::RecordDecimation => "record decimation",
+            Field::RecordOffset => "record offset",
+            Field::RecordSignals => "record signals",
+        };
+        f.write_str(name)
+    }
+}
+
+impl core::fmt::Display for Rule {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        match self {
+            Rule::NotFinite => write!(f, "is NaN or infinite"),
+            Rule::AtLeast(x) => write!(f, "must be at least {x}"),
+            Rule::Above(x) => write!(f, "must be above {x}"),
+            Rule::AtMost(x) => write!(f, "must be at most {x}"),
+            Rule::Below(x) => write!(f, "must be below {x}"),
+            Rule::Empty => write!(f, "is empty (max must exceed min)"),
+            Rule::NotIncreasing => write!(f, "must exceed the value before it"),
+            Rule::NotInvertible => write!(f, "makes the model non-invertible"),
+            Rule::TooMany(n) => write!(f, "has more than {n} items"),
+            Rule::LengthMismatch => write!(f, "lists differ in length"),
+            Rule::Required => write!(f, "is required by the mode or another setting"),
+            Rule::NoHardware => write!(f, "needs hardware this board lacks"),
+            Rule::BeyondFixedPoint => write!(f, "does not fit the fixed-point format"),
+            Rule::Unreachable => write!(f, "leaves no drive the stacks and DAC can reach"),
+        }
+    }
+}
+
+impl core::fmt::Display for Refusal {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        write!(f, "{} {}", self.field, self.rule)
+    }
+}
+
+impl core::error::Error for Refusal {}
