@@ -11,6 +11,7 @@
 /// ([`Hardware::driver_board`] for the STM32F405 driver board); settings are validated
 /// against it.
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
 pub struct Hardware {
     /// Amplifier output at DAC full scale, volts (the amplifier's gain times the DAC's span).
     pub amplifier_full_scale: f64,

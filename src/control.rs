@@ -23,8 +23,8 @@ use crate::feedback::FeedbackState;
 pub use crate::feedback::{Derivative, Feedback};
 use crate::fixed_point::clamp_full_scale;
 use crate::mode_switch::{BumplessTransfer, ModeError};
-pub use crate::sensor::Sensor;
 use crate::prandtl_ishlinskii::{InversePrandtlIshlinskii, PiState, PrandtlIshlinskii};
+pub use crate::sensor::Sensor;
 pub use crate::settings::Mode;
 
 /// The feedforward compensator: desired displacement → drive.
@@ -463,15 +463,36 @@ impl Controller {
         // 3. Sensor: drift check, and in closed loop the feedback correction.
         let fs = &mut self.feedback_state;
         let (command, measured) = match (&self.run, &self.sensor, &self.feedback) {
-            (Run::ClosedPi, Some(sn), Some(fb)) => {
-                sense::<_, true, false>(sn, Some(fb), fs, io, target, feedforward, &mut flags, counters)
-            }
-            (Run::Closed, Some(sn), Some(fb)) => {
-                sense::<_, true, true>(sn, Some(fb), fs, io, target, feedforward, &mut flags, counters)
-            }
-            (Run::Monitor, Some(sn), _) => {
-                sense::<_, false, false>(sn, None, fs, io, target, feedforward, &mut flags, counters)
-            }
+            (Run::ClosedPi, Some(sn), Some(fb)) => sense::<_, true, false>(
+                sn,
+                Some(fb),
+                fs,
+                io,
+                target,
+                feedforward,
+                &mut flags,
+                counters,
+            ),
+            (Run::Closed, Some(sn), Some(fb)) => sense::<_, true, true>(
+                sn,
+                Some(fb),
+                fs,
+                io,
+                target,
+                feedforward,
+                &mut flags,
+                counters,
+            ),
+            (Run::Monitor, Some(sn), _) => sense::<_, false, false>(
+                sn,
+                None,
+                fs,
+                io,
+                target,
+                feedforward,
+                &mut flags,
+                counters,
+            ),
             _ => (feedforward, 0),
         };
 
@@ -714,7 +735,11 @@ mod tests {
         for _ in 0..10 {
             c.tick(None, &mut FixedAdc(None), &mut dac);
             assert_eq!(dac.left, DacCode(0));
-            assert!(volts(dac.right) - last <= 40.01, "{last} → {}", volts(dac.right));
+            assert!(
+                volts(dac.right) - last <= 40.01,
+                "{last} → {}",
+                volts(dac.right)
+            );
             last = volts(dac.right);
         }
         assert!((last - 140.0).abs() < 0.01);

@@ -30,10 +30,10 @@ use crate::board::{DualDac, SensorAdc};
 use crate::control::{Controller, TickFlags, TickReport};
 use crate::drive::StackVoltages;
 use crate::mode_switch::ModeError;
-use crate::settings::Mode;
 use crate::protocol::messages::{Signal, UnderrunPolicy, MAX_CHUNK};
 use crate::recorder::{RecordError, Recorder};
 use crate::setpoint_stream::{SetpointStream, Underrun};
+use crate::settings::Mode;
 use crate::waveform::WaveformGenerator;
 
 /// Slots of the setpoint queue (`heapless` keeps one free: [`SETPOINT_CAPACITY`] setpoints

@@ -38,6 +38,7 @@ pub enum SafeState {
 /// The drive's settings, in volts: what a user sets (the amplifier and the DAC are
 /// [`Hardware`] facts). Built into the tick's [`DifferentialDrive`] by [`DriveSettings::build`].
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
 pub struct DriveSettings {
     /// Stacks driven.
     pub configuration: Configuration,
@@ -232,8 +233,7 @@ impl DriveSettings {
             // Q17.15 → Q17.45, plus half an LSB of Q17.15 so the shift rounds to nearest.
             left_base: ((libm::round(code0) as i64) << 30) + (1 << 29),
             left_per_drive,
-            slew: (libm::round(s.slew_rate / hw.control_rate_hz * q15).min(i32::MAX as f64)
-                as i32)
+            slew: (libm::round(s.slew_rate / hw.control_rate_hz * q15).min(i32::MAX as f64) as i32)
                 .max(1),
             right_base,
             right_mask,
@@ -247,7 +247,9 @@ impl DriveSettings {
             safe_state: s.safe_state,
             safe,
             // max/min, not f64::clamp: its panic message would pull float formatting into flash.
-            rest_drive: signal_from_f64(scaling.input_to_norm(s.bias).max(drive_min).min(drive_max)),
+            rest_drive: signal_from_f64(
+                scaling.input_to_norm(s.bias).max(drive_min).min(drive_max),
+            ),
         };
         // Every voltage the limits allow must have a code: the stack limits lie within the
         // amplifier's range, so this holds unless rounding pushes an end past full scale.
@@ -420,8 +422,16 @@ mod tests {
             assert_eq!(out.applied, applied, "unlimited: the command itself");
             let ul = scaling.norm_to_input(signal_to_f64(applied));
             let (l, r) = (exact_code(ul, &h), exact_code(140.0 - ul, &h));
-            assert!((out.left.0 as f64 - l).abs() <= 0.5 + 1e-3, "{applied}: {} vs {l}", out.left.0);
-            assert!((out.right.0 as f64 - r).abs() <= 0.5 + 1e-3, "{applied}: {} vs {r}", out.right.0);
+            assert!(
+                (out.left.0 as f64 - l).abs() <= 0.5 + 1e-3,
+                "{applied}: {} vs {l}",
+                out.left.0
+            );
+            assert!(
+                (out.right.0 as f64 - r).abs() <= 0.5 + 1e-3,
+                "{applied}: {} vs {r}",
+                out.right.0
+            );
         }
     }
 
@@ -431,9 +441,15 @@ mod tests {
         let scaling = Scaling::new(0.0, 140.0, 0.0, 10.0).unwrap();
         let mut s = settings(Configuration::Differential, 0.0, 140.0, 70.0);
         s.bias = f64::NAN;
-        assert_eq!(s.build(&h, &scaling).unwrap_err(), Refusal::new(Field::Bias, Rule::NotFinite));
+        assert_eq!(
+            s.build(&h, &scaling).unwrap_err(),
+            Refusal::new(Field::Bias, Rule::NotFinite)
+        );
         s.bias = 145.0;
-        assert_eq!(s.build(&h, &scaling).unwrap_err(), Refusal::new(Field::Bias, Rule::AtMost(140.0)));
+        assert_eq!(
+            s.build(&h, &scaling).unwrap_err(),
+            Refusal::new(Field::Bias, Rule::AtMost(140.0))
+        );
         s.bias = 70.0;
         s.max_voltage = 160.0;
         assert_eq!(

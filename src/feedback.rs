@@ -28,8 +28,8 @@
 //! allocates, panics or loops.
 
 use crate::fixed_point::{
-    limit, mul_high, q0_32_from_f64, q1_31_from_f64, q4_28_from_f64, saturate_i64,
-    signal_from_f64, SIGNAL_ONE,
+    limit, mul_high, q0_32_from_f64, q1_31_from_f64, q4_28_from_f64, saturate_i64, signal_from_f64,
+    SIGNAL_ONE,
 };
 use crate::notch::{Notch, NotchDesign, NotchError, NotchState};
 use crate::refusal::{finite, Field, Refusal, Rule};
@@ -39,6 +39,7 @@ use crate::refusal::{finite, Field, Refusal, Rule};
 /// fraction of its output range (kp = 1: an error of the whole stroke asks for the whole
 /// drive range).
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
 pub struct FeedbackSettings {
     /// Proportional gain, 0 ≤ kp < 7.5.
     pub kp: f64,
@@ -330,7 +331,11 @@ impl FeedbackState {
     /// rest (see [`crate::mode_switch`]).
     pub fn enter_closed_loop(&mut self, target: i32) {
         self.targets = [target; SENSOR_DELAY_TICKS];
-        let error = limit(target.saturating_sub(self.measured), -SIGNAL_ONE, SIGNAL_ONE);
+        let error = limit(
+            target.saturating_sub(self.measured),
+            -SIGNAL_ONE,
+            SIGNAL_ONE,
+        );
         self.notch = Notch::state_at(error);
         self.previous_error = error;
         self.derivative = 0;

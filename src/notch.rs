@@ -26,6 +26,7 @@ use crate::fixed_point::{limit, saturate_i64, SIGNAL_FRAC_BITS, SIGNAL_ONE};
 
 /// What the notch is to remove, in physical units.
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
 pub struct NotchDesign {
     /// Centre frequency, Hz (the stage's resonance).
     pub frequency_hz: f64,

@@ -20,6 +20,7 @@
 use core::fmt;
 
 use crate::board::Hardware;
+use crate::control::ControlConfig;
 use crate::refusal::Refusal;
 use crate::settings::Settings;
 
@@ -270,9 +271,11 @@ impl StoredRecord {
         };
         let rate = stored.control_rate_hz;
         if !(Hardware::MIN_CONTROL_RATE_HZ..=Hardware::MAX_CONTROL_RATE_HZ).contains(&rate) {
-            return Err(LoadFailure::Settings(SettingsError::ControlRateOutOfRange {
-                control_rate_hz: rate,
-            }));
+            return Err(LoadFailure::Settings(
+                SettingsError::ControlRateOutOfRange {
+                    control_rate_hz: rate,
+                },
+            ));
         }
         let hw = Hardware {
             control_rate_hz: rate as f64,
@@ -401,6 +404,25 @@ pub fn load_record(sector: &[u8], hardware: &Hardware) -> (StoredRecord, ParamSo
     }
 }
 
+/// The settings the board starts on, given what [`load_record`] found and the hardware at the
+/// rate the control timer actually runs: the stored settings if they build there, else
+/// [`Settings::default`] (bypass, no model). Returns the settings, their build, and whether
+/// they are the defaults; `Err` only if even the defaults are refused on `hardware`.
+pub fn boot(
+    record: StoredRecord,
+    source: ParamSource,
+    hardware: &Hardware,
+) -> Result<(Settings, ControlConfig, bool), Refusal> {
+    if source == ParamSource::Stored {
+        if let Ok(config) = record.settings.build(hardware) {
+            return Ok((record.settings, config, false));
+        }
+    }
+    let settings = Settings::default();
+    let config = settings.build(hardware)?;
+    Ok((settings, config, true))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -434,7 +456,10 @@ mod tests {
     fn a_stored_record_loads_its_settings() {
         let s = stored(100_000);
         let (buf, n) = record_of(&s);
-        assert_eq!(load_record(&buf[..n], &HW), (s.clone(), ParamSource::Stored));
+        assert_eq!(
+            load_record(&buf[..n], &HW),
+            (s.clone(), ParamSource::Stored)
+        );
         // Trailing sector bytes after the record are ignored.
         assert_eq!(load_record(&buf, &HW), (s, ParamSource::Stored));
     }

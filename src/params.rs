@@ -206,6 +206,7 @@ impl Thresholds {
 /// A Prandtl–Ishlinskii model in physical units:
 /// `y = a0·u + Σ_i w_i · P_{r_i}[u] + offset` (volts in, output units out).
 #[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
 pub struct PiParams {
     /// Linear term `a0`, output units per volt.
     pub a0: f64,
@@ -423,6 +424,7 @@ impl CanonicalPi {
 /// (volts in, output units out). The discrete form per sample is
 /// `y_k = y_{k−1} + α |Δu| (β u_{k−1} + offset − y_{k−1}) + γ Δu` (DESIGN §2).
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
 pub struct DuhemParams {
     /// `α > 0`, per volt.
     pub alpha: f64,

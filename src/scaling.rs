@@ -8,6 +8,7 @@ use crate::params::ParamError;
 
 /// Physical ranges of a model's input (drive voltage) and output (displacement).
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
 pub struct Scaling {
     /// Lowest drive voltage, volts (maps to −1).
     pub input_min: f64,

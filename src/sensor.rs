@@ -14,6 +14,7 @@ use crate::scaling::Scaling;
 
 /// The sensor's calibration: ADC code → displacement, in the output range's units.
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
 pub struct SensorSettings {
     /// Displacement at ADC code 0, output units.
     pub displacement_at_zero: f64,
@@ -72,7 +73,10 @@ impl SensorSettings {
             return Err(Refusal::new(Field::SensorCalibration, Rule::Empty));
         }
         if !(at_zero.abs() < 7.5 && at_full.abs() < 7.5 && gain.abs() < 7.5) {
-            return Err(Refusal::new(Field::SensorCalibration, Rule::BeyondFixedPoint));
+            return Err(Refusal::new(
+                Field::SensorCalibration,
+                Rule::BeyondFixedPoint,
+            ));
         }
         let drift_limit = match self.drift_limit {
             Some(d) => {
@@ -169,7 +173,10 @@ mod tests {
         };
         assert_eq!(wide.displacement(AdcCode(0)), i32::MIN);
         let top = signal_to_f64(wide.displacement(AdcCode(65535)));
-        assert!((top - (-7.0 + 7.9 * 65535.0 / 65536.0)).abs() < 1e-7, "{top}");
+        assert!(
+            (top - (-7.0 + 7.9 * 65535.0 / 65536.0)).abs() < 1e-7,
+            "{top}"
+        );
     }
 
     #[test]
@@ -229,6 +236,9 @@ mod tests {
             s.observed(0);
         }
         let _ = sensor.drifted(&mut s, 0);
-        assert!(s.drift() < 0, "the old estimate (0.5) is what the reading is compared to");
+        assert!(
+            s.drift() < 0,
+            "the old estimate (0.5) is what the reading is compared to"
+        );
     }
 }

@@ -52,6 +52,7 @@ pub enum Mode {
 
 /// Everything a user configures, in physical units (see the module doc).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
 pub struct Settings {
     /// The models' input range (left-stack volts) and output range (displacement): both map
     /// onto the normalised ±1 of the tick's signals; setpoints are fractions of the output
@@ -205,7 +206,10 @@ impl Settings {
             finite(Field::OutputRange, x)?;
         }
         for (model, field) in [
-            (&self.compensator, Field::Compensator as fn(ModelField) -> Field),
+            (
+                &self.compensator,
+                Field::Compensator as fn(ModelField) -> Field,
+            ),
             (&self.observer, Field::Observer),
         ] {
             match model {
@@ -277,7 +281,9 @@ fn model_refusal(model: fn(ModelField) -> Field, e: ParamError) -> Refusal {
         E::TooManyOperators { .. } => (ModelField::Operators, Rule::TooMany(MAX_OPERATORS as u32)),
         E::LengthMismatch { .. } => (ModelField::Operators, Rule::LengthMismatch),
         E::NotFinite => (ModelField::Model, Rule::NotFinite),
-        E::NegativeThreshold { operator } => (ModelField::Threshold(op(operator)), Rule::AtLeast(0.0)),
+        E::NegativeThreshold { operator } => {
+            (ModelField::Threshold(op(operator)), Rule::AtLeast(0.0))
+        }
         E::ThresholdsNotIncreasing { operator } => {
             (ModelField::Threshold(op(operator)), Rule::NotIncreasing)
         }
@@ -289,7 +295,9 @@ fn model_refusal(model: fn(ModelField) -> Field, e: ParamError) -> Refusal {
         E::PartialSumNotPositive { operator } => {
             (ModelField::Weight(op(operator)), Rule::NotInvertible)
         }
-        E::WeightOutOfRange { operator } => (ModelField::Weight(op(operator)), Rule::BeyondFixedPoint),
+        E::WeightOutOfRange { operator } => {
+            (ModelField::Weight(op(operator)), Rule::BeyondFixedPoint)
+        }
         E::GainSumTooLarge => (ModelField::Operators, Rule::BeyondFixedPoint),
         E::OffsetOutOfRange => (ModelField::Offset, Rule::BeyondFixedPoint),
         E::DuhemAlphaNotPositive => (ModelField::Alpha, Rule::Above(0.0)),
@@ -366,8 +374,16 @@ mod tests {
 
     #[test]
     fn any_compensator_pairs_with_any_observer() {
-        for comp in [None, Some(representative_pi(8).unwrap()), Some(representative_duhem())] {
-            for obs in [None, Some(representative_pi(16).unwrap()), Some(representative_duhem())] {
+        for comp in [
+            None,
+            Some(representative_pi(8).unwrap()),
+            Some(representative_duhem()),
+        ] {
+            for obs in [
+                None,
+                Some(representative_pi(16).unwrap()),
+                Some(representative_duhem()),
+            ] {
                 let s = Settings {
                     compensator: comp.clone(),
                     observer: obs.clone(),
@@ -382,10 +398,16 @@ mod tests {
     fn modes_need_what_they_run() {
         let mut s = closed();
         s.feedback = None;
-        assert_eq!(s.build(&hw()).unwrap_err(), Refusal::new(Field::Feedback, Rule::Required));
+        assert_eq!(
+            s.build(&hw()).unwrap_err(),
+            Refusal::new(Field::Feedback, Rule::Required)
+        );
         let mut s = closed();
         s.sensor = None;
-        assert_eq!(s.build(&hw()).unwrap_err(), Refusal::new(Field::Sensor, Rule::Required));
+        assert_eq!(
+            s.build(&hw()).unwrap_err(),
+            Refusal::new(Field::Sensor, Rule::Required)
+        );
         let mut s = closed();
         s.mode = Mode::OpenLoop;
         s.compensator = None;
@@ -395,7 +417,10 @@ mod tests {
         );
         let mut board = hw();
         board.sensor_adc_bits = None;
-        assert_eq!(closed().build(&board).unwrap_err(), Refusal::new(Field::Sensor, Rule::NoHardware));
+        assert_eq!(
+            closed().build(&board).unwrap_err(),
+            Refusal::new(Field::Sensor, Rule::NoHardware)
+        );
     }
 
     #[test]
@@ -406,7 +431,10 @@ mod tests {
         }
         assert_eq!(
             s.build(&hw()).unwrap_err(),
-            Refusal::new(Field::Compensator(ModelField::Weight(1)), Rule::NotInvertible)
+            Refusal::new(
+                Field::Compensator(ModelField::Weight(1)),
+                Rule::NotInvertible
+            )
         );
         let mut s = closed();
         if let Some(Model::PrandtlIshlinskii(p)) = s.compensator.as_mut() {
@@ -414,7 +442,10 @@ mod tests {
         }
         assert_eq!(
             s.build(&hw()).unwrap_err(),
-            Refusal::new(Field::Compensator(ModelField::Threshold(4)), Rule::NotIncreasing)
+            Refusal::new(
+                Field::Compensator(ModelField::Threshold(4)),
+                Rule::NotIncreasing
+            )
         );
     }
 

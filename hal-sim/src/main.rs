@@ -30,6 +30,12 @@ enum Command {
     Stream(cli::stream::Args),
     /// Load a parameter file onto the board (optionally storing it to flash).
     Load(cli::load::Args),
+    /// Read back the settings in force on the board (JSON, physical units).
+    Params(cli::params::Args),
+    /// Switch the board's mode (bypass, open-loop, closed-loop), bumpless.
+    Mode(cli::params::ModeArgs),
+    /// Reload the settings stored in the board's flash.
+    Recall(cli::params::RecallArgs),
     /// Print the board's status and telemetry.
     Status(cli::status::Args),
     /// Start the board's waveform generator.
@@ -78,6 +84,9 @@ fn main() -> std::process::ExitCode {
         Command::ClosedLoop(a) => cli::closed_loop::run(a),
         Command::Stream(a) => cli::stream::run(a),
         Command::Load(a) => cli::load::run(a),
+        Command::Params(a) => cli::params::run(a),
+        Command::Mode(a) => cli::params::run_mode(a),
+        Command::Recall(a) => cli::params::run_recall(a),
         Command::Status(a) => cli::status::run(a),
         Command::Waveform(a) => cli::waveform::run(a),
         Command::Stop(a) => cli::stop::run(a),

@@ -1,46 +1,38 @@
-//! The versioned parameter file (`PARAMS.json`) that `identify` writes and `predict`,
-//! `compensate` and the board loader read.
+//! The versioned parameter file (`PARAMS.json`) that `identify` writes, `load` sends, and
+//! `predict` and `compensate` read. It carries the board's one settings type
+//! ([`twinstack::settings::Settings`]) as it is, so what a file says is exactly what a
+//! parameter load carries, what the board stores, and what `params` reads back.
 //!
 //! ```json
-//! { "format": "twinstack-params", "version": 1, "model": "pi",
+//! { "format": "twinstack-params", "version": 2,
 //!   "units": { "time": "s", "input": "V", "output": "units of the x column" },
-//!   "input_range": { "min": -153.0, "max": 153.0 },       // volts, maps to Q2.30 -1 … 1
-//!   "output_range": { "min": -19.9, "max": 21.8 },        // sign-corrected output units
 //!   "output_sign": 1, "sensor_lag_s": 0.0,
-//!   "pi": { "a0": 0.0, "offset": …, "thresholds": [...], "weights": [...] },
-//!   "fixed_point": { "signal_format": "Q2.30", "gain_format": "Q8.24", "pi_forward": {...}, "pi_inverse": {...} },
+//!   "settings": { "ranges": { "input_min": -153.0, "input_max": 153.0,
+//!                             "output_min": -19.9, "output_max": 21.8 },
+//!                 "compensator": { "PrandtlIshlinskii": { "a0": 0.0, "offset": …,
+//!                                  "thresholds": [...], "weights": [...] } },
+//!                 "observer": { … }, "drive": { … }, "sensor": null, "feedback": null,
+//!                 "mode": "OpenLoop" },
 //!   "identification": { ... how it was fitted and scored; informative only ... } }
 //! ```
 //!
 //! Loading checks, in order: JSON syntax, `format`, `version` (only [`VERSION`] is known),
-//! the fields (unknown ones are refused), the model section matching `model`, the ranges,
-//! sign and lag, that the library accepts the model for observer and compensator, and that
-//! the `fixed_point` section is exactly what the library computes from the physical
-//! parameters (so a hand-edited file cannot disagree with itself).
+//! the fields (unknown ones are refused, at any depth), `output_sign` and `sensor_lag_s`,
+//! that the file has a model, and the settings as the driver board validates them (at
+//! 50 kHz or 100 kHz; the board checks again at its own rate): every refusal names its field.
 
 use crate::identification::score::ErrorFigures;
 use crate::stage_model::{Hysteresis, StageModel};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
-use twinstack::duhem::Duhem;
-use twinstack::fixed_point::{gain_from_f64, signal_from_f64};
-use twinstack::prandtl_ishlinskii::{InversePrandtlIshlinskii, PrandtlIshlinskii};
-use twinstack::{DuhemParams, ParamError, PiParams, Scaling};
+use twinstack::board::Hardware;
+use twinstack::drive::DriveSettings;
+use twinstack::settings::{Mode, Model, Settings};
 
 /// The `format` tag of a parameter file.
 pub const FORMAT: &str = "twinstack-params";
-/// The one version this build reads and writes.
-pub const VERSION: u64 = 1;
-
-/// A closed range.
-#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct Range {
-    /// Lower end.
-    pub min: f64,
-    /// Upper end.
-    pub max: f64,
-}
+/// The one version this build reads and writes (2: the board's settings type).
+pub const VERSION: u64 = 2;
 
 /// Units of the quantities in the file.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -52,79 +44,6 @@ pub struct Units {
     pub input: String,
     /// Output (as in the identified record's `x` column).
     pub output: String,
-}
-
-/// P–I section: `y = a0·u + Σ w_i P_{r_i}[u] + offset` (volts, output units per volt).
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct PiSection {
-    /// Linear term, output units per volt.
-    pub a0: f64,
-    /// Offset, output units.
-    pub offset: f64,
-    /// Thresholds, volts.
-    pub thresholds: Vec<f64>,
-    /// Weights, output units per volt.
-    pub weights: Vec<f64>,
-}
-
-/// Duhem section: `ẏ = α|u̇|(βu + offset − y) + γu̇`.
-#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct DuhemSection {
-    /// α, per volt.
-    pub alpha: f64,
-    /// β, output units per volt.
-    pub beta: f64,
-    /// γ, output units per volt.
-    pub gamma: f64,
-    /// Offset of the anhysteretic curve, output units.
-    pub offset: f64,
-}
-
-/// A P–I operator bank as the firmware holds it.
-#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct FixedBank {
-    /// Thresholds, Q2.30 normalised input (forward) or output (inverse).
-    pub thresholds_q2_30: Vec<i32>,
-    /// Weights, Q8.24 normalised.
-    pub weights_q8_24: Vec<i32>,
-    /// Offset, Q2.30 normalised output.
-    pub offset_q2_30: i32,
-}
-
-/// Duhem coefficients as the firmware holds them.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct FixedDuhem {
-    /// α, Q8.24 normalised.
-    pub alpha_q8_24: i32,
-    /// β, Q8.24 normalised.
-    pub beta_q8_24: i32,
-    /// γ, Q8.24 normalised.
-    pub gamma_q8_24: i32,
-    /// Offset δ, Q2.30 normalised output.
-    pub offset_q2_30: i32,
-}
-
-/// The fixed-point image of the model (derived; checked on load).
-#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct FixedPoint {
-    /// Signal format.
-    pub signal_format: String,
-    /// Gain format.
-    pub gain_format: String,
-    /// Forward P–I bank (observer).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub pi_forward: Option<FixedBank>,
-    /// Inverse P–I bank (compensator).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub pi_inverse: Option<FixedBank>,
-    /// Duhem coefficients.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub duhem: Option<FixedDuhem>,
 }
 
 /// How the model was identified and how it scored (informative; not read back).
@@ -168,26 +87,14 @@ pub struct ParamFile {
     pub format: String,
     /// Always [`VERSION`].
     pub version: u64,
-    /// `"pi"` or `"duhem"`.
-    pub model: String,
     /// Units.
     pub units: Units,
-    /// Drive range, volts (maps to −1 … 1).
-    pub input_range: Range,
-    /// Sign-corrected output range (maps to −1 … 1).
-    pub output_range: Range,
     /// `1` or `−1`: sensor reading = `output_sign` × model output.
     pub output_sign: f64,
     /// Sensor lag behind the drive, seconds.
     pub sensor_lag_s: f64,
-    /// P–I parameters (when `model` is `"pi"`).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub pi: Option<PiSection>,
-    /// Duhem parameters (when `model` is `"duhem"`).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub duhem: Option<DuhemSection>,
-    /// Fixed-point image.
-    pub fixed_point: FixedPoint,
+    /// The settings, as a parameter load carries them.
+    pub settings: Settings,
     /// How it was identified.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub identification: Option<IdentificationRecord>,
@@ -237,114 +144,61 @@ pub enum ParamFileError {
     Field {
         /// The file.
         path: PathBuf,
-        /// The field.
-        field: &'static str,
+        /// The field (its path in the file, e.g. `settings.compensator.weights[0]`).
+        field: String,
         /// Why.
         reason: String,
     },
 }
 
-fn fixed_bank(bank: &twinstack::prandtl_ishlinskii::PlayOperatorBank, offset: i32) -> FixedBank {
-    let n = bank.operators();
-    FixedBank {
-        thresholds_q2_30: (0..n).map(|i| bank.threshold(i)).collect(),
-        weights_q8_24: (0..n).map(|i| bank.weight(i)).collect(),
-        offset_q2_30: offset,
-    }
-}
-
-/// The fixed-point image of `model`, as the library computes it.
-pub fn fixed_point_image(model: &StageModel) -> Result<FixedPoint, ParamError> {
-    let s = &model.scaling;
-    let mut fp = FixedPoint {
-        signal_format: "Q2.30".into(),
-        gain_format: "Q8.24".into(),
-        pi_forward: None,
-        pi_inverse: None,
-        duhem: None,
-    };
-    match &model.hysteresis {
-        Hysteresis::Pi(p) => {
-            let fwd = PrandtlIshlinskii::new(p, s)?;
-            let inv = InversePrandtlIshlinskii::new(p, s)?;
-            fp.pi_forward = Some(fixed_bank(fwd.bank(), fwd.offset()));
-            // The inverse subtracts the forward offset from the desired output.
-            fp.pi_inverse = Some(fixed_bank(inv.bank(), fwd.offset()));
-        }
-        Hysteresis::Duhem(p) => {
-            Duhem::new(p, s)?;
-            let n = p.normalized(s)?;
-            fp.duhem = Some(FixedDuhem {
-                alpha_q8_24: gain_from_f64(n.alpha),
-                beta_q8_24: gain_from_f64(n.beta),
-                gamma_q8_24: gain_from_f64(n.gamma),
-                offset_q2_30: signal_from_f64(n.offset),
-            });
-        }
-    }
-    Ok(fp)
-}
-
 impl ParamFile {
-    /// The file for `model`, with `identification` recorded.
+    /// The file for an identified `model`: the model as compensator and observer over its
+    /// ranges, the board's default drive, no sensor calibration and no feedback (`load`
+    /// keeps the board's own unless the file or the command line gives them), open loop.
     pub fn from_model(
         model: &StageModel,
         output_units: &str,
         identification: Option<IdentificationRecord>,
-    ) -> Result<Self, ParamError> {
-        let s = &model.scaling;
-        let (name, pi, duhem) = match &model.hysteresis {
-            Hysteresis::Pi(p) => (
-                "pi",
-                Some(PiSection {
-                    a0: p.a0,
-                    offset: p.offset,
-                    thresholds: p.thresholds.to_vec(),
-                    weights: p.weights.to_vec(),
-                }),
-                None,
-            ),
-            Hysteresis::Duhem(p) => (
-                "duhem",
-                None,
-                Some(DuhemSection {
-                    alpha: p.alpha,
-                    beta: p.beta,
-                    gamma: p.gamma,
-                    offset: p.offset,
-                }),
-            ),
+    ) -> Self {
+        let m = match &model.hysteresis {
+            Hysteresis::Pi(p) => Model::PrandtlIshlinskii(p.clone()),
+            Hysteresis::Duhem(p) => Model::Duhem(*p),
         };
-        Ok(Self {
+        Self {
             format: FORMAT.into(),
             version: VERSION,
-            model: name.into(),
             units: Units {
                 time: "s".into(),
                 input: "V".into(),
                 output: output_units.into(),
             },
-            input_range: Range {
-                min: s.input_min,
-                max: s.input_max,
-            },
-            output_range: Range {
-                min: s.output_min,
-                max: s.output_max,
-            },
             output_sign: model.output_sign,
             sensor_lag_s: model.sensor_lag_s,
-            pi,
-            duhem,
-            fixed_point: fixed_point_image(model)?,
+            settings: Settings {
+                ranges: model.scaling,
+                compensator: Some(m.clone()),
+                observer: Some(m),
+                drive: DriveSettings::DEFAULT,
+                sensor: None,
+                feedback: None,
+                mode: Mode::OpenLoop,
+            },
             identification,
-        })
+        }
     }
 
     /// The JSON text.
     pub fn to_json(&self) -> String {
         // Serialising plain data with finite numbers cannot fail.
         serde_json::to_string_pretty(self).unwrap_or_default() + "\n"
+    }
+
+    /// Writes the file.
+    pub fn save(&self, path: &Path) -> Result<(), ParamFileError> {
+        std::fs::write(path, self.to_json()).map_err(|source| ParamFileError::Io {
+            path: path.to_path_buf(),
+            source,
+        })
     }
 
     /// Reads and validates `path`.
@@ -390,87 +244,60 @@ impl ParamFile {
             }
         }
         let file: ParamFile = serde_json::from_str(text).map_err(json_err)?;
-        let field = |field: &'static str, reason: String| ParamFileError::Field {
+        let field = |field: String, reason: String| ParamFileError::Field {
             path: p(),
             field,
             reason,
         };
-        let hysteresis = match (file.model.as_str(), &file.pi, &file.duhem) {
-            ("pi", Some(s), None) => Hysteresis::Pi(
-                PiParams::new(s.a0, s.offset, &s.thresholds, &s.weights)
-                    .and_then(|p| p.validate().map(|_| p))
-                    .map_err(|e| field("pi", e.to_string()))?,
-            ),
-            ("duhem", None, Some(s)) => {
-                let d = DuhemParams {
-                    alpha: s.alpha,
-                    beta: s.beta,
-                    gamma: s.gamma,
-                    offset: s.offset,
-                };
-                d.validate().map_err(|e| field("duhem", e.to_string()))?;
-                Hysteresis::Duhem(d)
-            }
-            ("pi", None, _) => return Err(field("pi", "missing (model is \"pi\")".into())),
-            ("duhem", _, None) => {
-                return Err(field("duhem", "missing (model is \"duhem\")".into()))
-            }
-            ("pi", _, Some(_)) | ("duhem", Some(_), _) => {
-                return Err(field(
-                    "model",
-                    format!(
-                        "is \"{}\" but the file has both a pi and a duhem section",
-                        file.model
-                    ),
-                ))
-            }
-            (other, _, _) => {
-                return Err(field(
-                    "model",
-                    format!("\"{other}\" is not \"pi\" or \"duhem\""),
-                ))
-            }
-        };
-        let scaling = Scaling::new(
-            file.input_range.min,
-            file.input_range.max,
-            file.output_range.min,
-            file.output_range.max,
-        )
-        .map_err(|e| match e {
-            ParamError::EmptyInputRange => {
-                field("input_range", "must be finite with min < max".into())
-            }
-            _ => field("output_range", "must be finite with min < max".into()),
-        })?;
         if file.output_sign != 1.0 && file.output_sign != -1.0 {
             return Err(field(
-                "output_sign",
+                "output_sign".into(),
                 format!("{} is not 1 or -1", file.output_sign),
             ));
         }
         if !(file.sensor_lag_s.is_finite() && file.sensor_lag_s >= 0.0) {
-            return Err(field("sensor_lag_s", "must be a finite number >= 0".into()));
+            return Err(field(
+                "sensor_lag_s".into(),
+                "must be a finite number >= 0".into(),
+            ));
         }
+        let s = &file.settings;
+        // The board's own validation, at either end of its rates: a file is refused only
+        // if no rate the board runs would take it.
+        let rates = [50_000.0, 100_000.0];
+        if let Some(refusal) = rates
+            .iter()
+            .map(|&r| s.build(&Hardware::driver_board(r)))
+            .collect::<Vec<_>>()
+            .into_iter()
+            .find_map(|r| r.err())
+            .filter(|_| {
+                rates
+                    .iter()
+                    .all(|&r| s.build(&Hardware::driver_board(r)).is_err())
+            })
+        {
+            return Err(field(
+                format!("settings.{}", refusal.field),
+                refusal.rule.to_string(),
+            ));
+        }
+        let hysteresis = match s.compensator.as_ref().or(s.observer.as_ref()) {
+            Some(Model::PrandtlIshlinskii(p)) => Hysteresis::Pi(p.clone()),
+            Some(Model::Duhem(p)) => Hysteresis::Duhem(*p),
+            None => {
+                return Err(field(
+                    "settings.compensator".into(),
+                    "the file has no model (neither compensator nor observer)".into(),
+                ))
+            }
+        };
         let model = StageModel {
             hysteresis,
-            scaling,
+            scaling: s.ranges,
             output_sign: file.output_sign,
             sensor_lag_s: file.sensor_lag_s,
         };
-        model.check().map_err(|e| {
-            field(
-                if file.model == "pi" { "pi" } else { "duhem" },
-                e.to_string(),
-            )
-        })?;
-        let image = fixed_point_image(&model).map_err(|e| field("fixed_point", e.to_string()))?;
-        if image != file.fixed_point {
-            return Err(field(
-                "fixed_point",
-                "does not match the physical parameters and ranges (edited by hand? re-run identify)".into(),
-            ));
-        }
         Ok((file, model))
     }
 }
@@ -478,13 +305,14 @@ impl ParamFile {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use twinstack::{DuhemParams, PiParams, Scaling};
 
     fn model() -> StageModel {
         StageModel {
             hysteresis: Hysteresis::Pi(
                 PiParams::new(0.0, 0.5, &[0.0, 30.0, 60.0], &[0.08, 0.03, 0.02]).unwrap(),
             ),
-            scaling: Scaling::new(-150.0, 150.0, -20.0, 21.0).unwrap(),
+            scaling: Scaling::new(0.0, 140.0, -20.0, 21.0).unwrap(),
             output_sign: -1.0,
             sensor_lag_s: 0.005,
         }
@@ -508,7 +336,7 @@ mod tests {
                 ..model()
             },
         ] {
-            let f = ParamFile::from_model(&m, "um", None).unwrap();
+            let f = ParamFile::from_model(&m, "um", None);
             let (back, loaded) = parse(&f.to_json()).unwrap();
             assert_eq!(back, f);
             assert_eq!(loaded, m);
@@ -516,69 +344,50 @@ mod tests {
     }
 
     fn edited(f: impl Fn(&mut serde_json::Value)) -> ParamFileError {
-        let mut v: serde_json::Value = serde_json::from_str(
-            &ParamFile::from_model(&model(), "um", None)
-                .unwrap()
-                .to_json(),
-        )
-        .unwrap();
+        let mut v: serde_json::Value =
+            serde_json::from_str(&ParamFile::from_model(&model(), "um", None).to_json()).unwrap();
         f(&mut v);
         parse(&v.to_string()).unwrap_err()
     }
 
+    fn field_of(e: &ParamFileError) -> &str {
+        match e {
+            ParamFileError::Field { field, .. } => field,
+            _ => "",
+        }
+    }
+
     #[test]
     fn each_bad_field_is_named() {
-        let e = edited(|v| v["version"] = 2.into());
+        let e = edited(|v| v["version"] = 1.into());
         assert!(matches!(e, ParamFileError::Version { .. }), "{e}");
         let e = edited(|v| v["format"] = "other".into());
         assert!(matches!(e, ParamFileError::Format { .. }), "{e}");
         let e = edited(|v| v["output_sign"] = 0.5.into());
-        assert!(
-            matches!(
-                e,
-                ParamFileError::Field {
-                    field: "output_sign",
-                    ..
-                }
-            ),
-            "{e}"
-        );
-        let e = edited(|v| v["input_range"]["max"] = (-200.0).into());
-        assert!(
-            matches!(
-                e,
-                ParamFileError::Field {
-                    field: "input_range",
-                    ..
-                }
-            ),
-            "{e}"
-        );
-        let e = edited(|v| v["pi"]["weights"][0] = (-0.5).into());
-        assert!(
-            matches!(e, ParamFileError::Field { field: "pi", .. }),
-            "{e}"
-        );
-        assert!(e.to_string().contains("operator 1"), "{e}");
-        let e = edited(|v| v["fixed_point"]["pi_forward"]["offset_q2_30"] = 7.into());
-        assert!(
-            matches!(
-                e,
-                ParamFileError::Field {
-                    field: "fixed_point",
-                    ..
-                }
-            ),
-            "{e}"
-        );
-        let e = edited(|v| v["model"] = "duhem".into());
-        assert!(
-            matches!(e, ParamFileError::Field { field: "duhem", .. }),
-            "{e}"
-        );
+        assert_eq!(field_of(&e), "output_sign", "{e}");
+        let e = edited(|v| v["settings"]["ranges"]["input_max"] = (-200.0).into());
+        assert_eq!(field_of(&e), "settings.ranges.input", "{e}");
+        let e = edited(|v| {
+            v["settings"]["compensator"]["PrandtlIshlinskii"]["weights"][0] = (-0.5).into()
+        });
+        assert_eq!(field_of(&e), "settings.compensator.weights[0]", "{e}");
+        assert!(e.to_string().contains("non-invertible"), "{e}");
+        let e = edited(|v| v["settings"]["drive"]["bias"] = 200.0.into());
+        assert_eq!(field_of(&e), "settings.drive.bias", "{e}");
+        let e = edited(|v| {
+            v["settings"]["compensator"] = serde_json::Value::Null;
+            v["settings"]["observer"] = serde_json::Value::Null;
+            v["settings"]["mode"] = "Bypass".into();
+        });
+        assert_eq!(field_of(&e), "settings.compensator", "{e}");
         let e = edited(|v| v["surprise"] = 1.into());
         assert!(matches!(e, ParamFileError::Json { .. }), "{e}");
         assert!(e.to_string().contains("surprise"), "{e}");
+        let e = edited(|v| v["settings"]["drive"]["surprise"] = 1.into());
+        assert!(
+            e.to_string().contains("surprise"),
+            "unknown fields at any depth: {e}"
+        );
         let e = parse("{ not json").unwrap_err();
         assert!(matches!(e, ParamFileError::Json { line: 1, .. }), "{e}");
     }

@@ -44,15 +44,15 @@ use std::io;
 use std::time::Duration;
 
 use rtic_core::Exclusive;
-use twinstack::control::TickReport;
+use twinstack::board::Hardware;
+use twinstack::control::{Controller, TickReport};
 use twinstack::control_loop::{ControlLoop, SetpointQueue};
-use twinstack::drive::{Configuration as DriveConfiguration, SafeState};
-use twinstack::param_store::{BoardSettings, RamStorage};
+use twinstack::param_store::{self, RamStorage, RecordStorage, StoredRecord, MAX_RECORD};
 use twinstack::protocol::handler::CommandHandler;
-use twinstack::protocol::messages::{ModelParams, NackReason, ParamSet};
-use twinstack::protocol::param_load::BoardProfile;
 use twinstack::recorder::RECORD_CAPACITY;
-use twinstack::settings::{Mode, SensorSettings};
+use twinstack::refusal::Refusal;
+use twinstack::settings::{pi_model, FeedbackSettings, Mode, SensorSettings, Settings};
+use twinstack::Scaling;
 
 use crate::link::Transport;
 use crate::plant::Configuration;
@@ -65,59 +65,57 @@ pub struct SimDeviceConfig {
     pub board: BoardConfig,
     /// UART baud rate, both directions (10 bits per byte).
     pub baud: u32,
-    /// The parameter set the device boots on (the "flash" starts erased).
-    pub params: ParamSet,
-    /// Safe state written into a stored record.
-    pub safe_state: SafeState,
+    /// What the "flash" holds at power-up: `None` (erased: the board boots on the compiled-in
+    /// defaults, bypass, no model) or settings stored as the board would store them (it boots
+    /// in their mode).
+    pub stored: Option<Settings>,
 }
 
 impl SimDeviceConfig {
     /// The paper's differential stage on the STM32's internal converters (12-bit DAC, 12-bit
-    /// sensor ADC spanning ±45 µm), 50 kHz, 2 Mbaud, booting in bypass on
-    /// [`SimDeviceConfig::paper_params`].
+    /// sensor ADC spanning ±45 µm), 50 kHz, 2 Mbaud, with [`SimDeviceConfig::paper_settings`]
+    /// stored to boot in bypass.
     pub fn paper() -> Self {
         Self {
             board: BoardConfig::paper(Configuration::Differential),
             baud: 2_000_000,
-            params: Self::paper_params(Mode::Bypass),
-            safe_state: SafeState::Bias,
+            stored: Some(Self::paper_settings(Mode::Bypass)),
         }
     }
 
-    /// A parameter set for the paper's differential stage in `mode`: 0…140 V on the left stack
-    /// onto the sensor's ±45 µm, bias 70 V, 0…140 V limits, 0.9 V/µs slew, a representative
-    /// 8-operator P–I model (not identified: load the identification's set for accuracy),
-    /// PI gains kp 0.2, ki 0.01 per tick, correction within a tenth of the drive range.
-    pub fn paper_params(mode: Mode) -> ParamSet {
-        let n = 8usize;
-        let thresholds = (0..n).map(|i| i as f32 * 140.0 / n as f32).collect();
+    /// Settings for the paper's differential stage in `mode`: 0…140 V on the left stack onto
+    /// the sensor's ±45 µm (its calibration), bias 70 V, 0…140 V limits, 0.9 V/µs slew, a
+    /// representative 8-operator P–I model (total slope ≈ 0.4 µm/V) as compensator and
+    /// observer (not identified: load
+    /// the identification's settings for accuracy), PI gains kp 0.2, ki 500 /s, correction
+    /// within a tenth of the drive range.
+    pub fn paper_settings(mode: Mode) -> Settings {
+        let n = 8;
+        let thresholds: Vec<f64> = (0..n).map(|i| i as f64 * 140.0 / n as f64).collect();
         // Total slope ≈ 0.4 µm/V, the first operator carrying most of it.
-        let weights = (0..n)
-            .map(|i| if i == 0 { 0.25 } else { 0.15 / (n - 1) as f32 })
+        let weights: Vec<f64> = (0..n)
+            .map(|i| if i == 0 { 0.25 } else { 0.15 / (n - 1) as f64 })
             .collect();
-        ParamSet {
-            model: ModelParams::PrandtlIshlinskii {
-                a0: 0.0,
-                offset: -28.0,
-                thresholds,
-                weights,
+        let model = pi_model(0.0, -28.0, &thresholds, &weights)
+            .expect("8 increasing thresholds and positive weights form a model");
+        let mut drive = twinstack::drive::DriveSettings::DEFAULT;
+        drive.slew_rate = 0.9e6;
+        Settings {
+            ranges: Scaling {
+                input_min: 0.0,
+                input_max: 140.0,
+                output_min: -45.0,
+                output_max: 45.0,
             },
-            input_range: [0.0, 140.0],
-            output_range: [-45.0, 45.0],
-            configuration: DriveConfiguration::Differential,
-            bias: 70.0,
-            voltage_limits: [0.0, 140.0],
-            slew_rate: 0.9e6,
-            safe_state: SafeState::Bias,
-            feedback: Some(twinstack::protocol::messages::FeedbackParams {
-                kp: 0.2,
-                ki: 500.0,
-                kd: 0.0,
-                derivative_cutoff_hz: 1.0,
-                limit: 0.1,
-                notch: None,
+            compensator: Some(model.clone()),
+            observer: Some(model),
+            drive,
+            sensor: Some(SensorSettings {
+                displacement_at_zero: -45.0,
+                displacement_at_full_scale: 45.0,
                 drift_limit: None,
             }),
+            feedback: Some(FeedbackSettings::pi(0.2, 500.0, 0.1)),
             mode,
         }
     }
@@ -128,8 +126,10 @@ impl SimDeviceConfig {
 pub enum SimDeviceError {
     /// The board.
     Board(BoardError),
-    /// The boot parameter set was refused (the reason a load would get).
-    Params(NackReason),
+    /// The stored settings could not be written (too large for the record).
+    Stored,
+    /// The compiled-in settings were refused on this board (its rate or converters).
+    Defaults(Refusal),
     /// Baud rate zero.
     Baud,
 }
@@ -138,7 +138,8 @@ impl std::fmt::Display for SimDeviceError {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         match self {
             Self::Board(e) => write!(f, "simulated board: {e}"),
-            Self::Params(r) => write!(f, "boot parameters refused: {r:?}"),
+            Self::Stored => write!(f, "the stored settings do not fit a flash record"),
+            Self::Defaults(r) => write!(f, "compiled-in settings refused: {r}"),
             Self::Baud => write!(f, "baud rate must be positive"),
         }
     }
@@ -146,11 +147,17 @@ impl std::fmt::Display for SimDeviceError {
 
 impl std::error::Error for SimDeviceError {}
 
+/// The simulated board's hardware facts at `rate_hz`: the driver board's 150 V amplifier, 12-bit
+/// DAC and 12-bit sensor ADC.
+pub fn hardware(rate_hz: f64) -> Hardware {
+    Hardware::driver_board(rate_hz)
+}
+
 /// The board in-process: [`SimBoard`] + the library's [`ControlLoop`] and
 /// [`CommandHandler`], on a modelled UART. See the module doc for the time model.
 pub struct SimDevice {
     board: InternalBoard,
-    control: ControlLoop<Vec<i32>>,
+    control: ControlLoop<Vec<i32>, Box<Controller>>,
     handler: CommandHandler<RamStorage>,
     queue: Box<SetpointQueue>,
     /// Simulated time, ns.
@@ -175,33 +182,33 @@ impl SimDevice {
         }
         let board = SimBoard::internal(&config.board).map_err(SimDeviceError::Board)?;
         let rate_hz = 1.0 / board.plant().dt();
-        let (lo, hi) = config.board.sensor_range_um;
-        let profile = BoardProfile {
-            amplifier_full_scale: 150.0,
-            dac_full_scale: 4095,
-            control_rate_hz: rate_hz,
-            sensor: Some(SensorSettings {
-                adc_bits: 12,
-                displacement_at_zero: lo,
-                displacement_at_full_scale: hi,
-            }),
-        };
-        let board_settings = BoardSettings {
-            tick_rate_hz: rate_hz.round() as u32,
-            safe_state: config.safe_state,
-        };
-        let (handler, tick_config) = CommandHandler::boot(
-            profile,
-            board_settings,
-            RamStorage::default(),
-            config.params,
-        )
-        .map_err(SimDeviceError::Params)?;
+        let hw = hardware(rate_hz);
+        // The "flash": erased, or holding the stored settings at this rate; the board boots
+        // from it exactly as the firmware does.
+        let mut storage = RamStorage::default();
+        if let Some(settings) = config.stored {
+            let record = StoredRecord {
+                control_rate_hz: rate_hz.round() as u32,
+                settings,
+            };
+            let mut bytes = [0u8; MAX_RECORD];
+            let n = record
+                .encode(&mut bytes)
+                .map_err(|_| SimDeviceError::Stored)?;
+            storage
+                .write(&bytes[..n])
+                .map_err(|_| SimDeviceError::Stored)?;
+        }
+        let (record, source) = param_store::load_record(storage.read(), &hw);
+        let (settings, boot, defaults) =
+            param_store::boot(record, source, &hw).map_err(SimDeviceError::Defaults)?;
         let control = ControlLoop::new(
-            tick_config,
-            board_settings.tick_rate_hz,
+            Box::new(Controller::new(boot)),
+            Box::new(Controller::new(boot)),
+            rate_hz.round() as u32,
             vec![0; RECORD_CAPACITY],
         );
+        let handler = CommandHandler::new(hw, settings, defaults, storage);
         Ok(Self {
             board,
             control,
@@ -269,7 +276,7 @@ impl SimDevice {
     }
 
     /// The tick side (controller, counters, recorder).
-    pub fn control(&self) -> &ControlLoop<Vec<i32>> {
+    pub fn control(&self) -> &ControlLoop<Vec<i32>, Box<Controller>> {
         &self.control
     }
 

@@ -85,7 +85,6 @@ mod app {
     #[cfg(feature = "emulator")]
     use twinstack::param_store::ReadOnlyStorage;
     use twinstack::param_store::{self, ParamSource};
-    use twinstack::settings::Settings;
     use twinstack::protocol::handler::CommandHandler;
     use twinstack::recorder::RECORD_CAPACITY;
 
@@ -251,14 +250,7 @@ mod app {
 
         // The stored settings if they hold at the rate the timer runs, else the compiled-in
         // ones (bypass, no model), which hold at every rate the board runs.
-        let stored = (source == ParamSource::Stored)
-            .then(|| record.settings.build(&hardware).ok().map(|c| (record.settings, c)))
-            .flatten();
-        let defaults = stored.is_none();
-        let Some((settings, config)) = stored.or_else(|| {
-            let s = Settings::default();
-            s.build(&hardware).ok().map(|c| (s, c))
-        }) else {
+        let Ok((settings, config, defaults)) = param_store::boot(record, source, &hardware) else {
             panic!("compiled-in settings refused");
         };
         let (Some(active), Some(spare)) = (

@@ -240,7 +240,9 @@ impl<S: RecordStorage> CommandHandler<S> {
         C: DerefMut<Target = Controller>,
         L: Mutex<T = ControlLoop<B, C>>,
     {
-        let config = settings.build(&self.hardware).map_err(NackReason::Refused)?;
+        let config = settings
+            .build(&self.hardware)
+            .map_err(NackReason::Refused)?;
         let (spare, stacks) = control.lock(|c| (c.spare(), c.stacks()));
         // Two controllers cycle between the tick and this task: the spare is always there
         // (a waiting reload is taken back and replaced).
@@ -261,7 +263,9 @@ impl<S: RecordStorage> CommandHandler<S> {
         C: DerefMut<Target = Controller>,
         L: Mutex<T = ControlLoop<B, C>>,
     {
-        self.settings.check_mode(mode).map_err(NackReason::Refused)?;
+        self.settings
+            .check_mode(mode)
+            .map_err(NackReason::Refused)?;
         control
             .lock(|c| c.set_mode(mode))
             .map_err(|_| refused(Field::Mode, Rule::Required))?;

@@ -169,7 +169,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         inverse_fixed_vs_reference_max_pct: inverse_fixed_vs_reference.max_pct,
         notes: id.notes.clone(),
     };
-    let file = ParamFile::from_model(model, &args.output_unit, Some(record)).map_err(lib)?;
+    let file = ParamFile::from_model(model, &args.output_unit, Some(record));
 
     let figure_path = args.out.with_extension("png");
     let mut out = Staged::new();

@@ -1,17 +1,19 @@
-//! `hal-sim load --port PORT --params PARAMS.json [--mode …] [--store] [drive options]`: sends
-//! the parameter file `identify` writes as one parameter load (the board validates it whole
-//! and swaps it in between two ticks), optionally storing it to flash.
+//! `hal-sim load --port PORT --params PARAMS.json [--mode …] [--store] [overrides]`: sends the
+//! settings a parameter file carries as one parameter load (the board validates them whole,
+//! prepares them off the tick and swaps them in with the drive continuous), optionally
+//! storing them to flash.
 //!
-//! The drive settings, feedback gains and mode are not in the file; they default to the
-//! firmware's compiled-in drive (see [`DriveOptions`]) and can be set here. Everything is
-//! checked before anything is sent (see [`crate::link::param_set`]).
+//! What the file leaves out is kept from the board: a file from `identify` has no sensor
+//! calibration and no feedback gains, so the board's present ones are read back
+//! (`ReadParams`) and kept. The command line overrides any of them. Every gain has one unit
+//! everywhere: `ki` per second, `limit` a fraction of the drive range.
 
 use super::board_link::{connect, PortArgs};
-use crate::link::param_set::{param_set, DriveOptions};
+use super::params::ModeArg;
 use crate::param_file::ParamFile;
 use std::path::PathBuf;
 use twinstack::drive::{Configuration, SafeState};
-use twinstack::protocol::messages::{Mode, ModelParams};
+use twinstack::settings::{FeedbackSettings, Model, Settings};
 
 /// Arguments of `load`.
 #[derive(Debug, clap::Args)]
@@ -19,66 +21,45 @@ pub struct Args {
     /// The board.
     #[command(flatten)]
     pub port: PortArgs,
-    /// Parameter file written by `identify`.
+    /// Parameter file written by `identify` (or by hand).
     #[arg(long)]
     pub params: PathBuf,
-    /// Mode to enter once loaded.
-    #[arg(long, value_enum, default_value_t = ModeArg::OpenLoop)]
-    pub mode: ModeArg,
-    /// Also write the parameters to the board's flash.
-    #[arg(long)]
-    pub store: bool,
-    /// Drive only the left stack (the right one idles at the bias).
+    /// Mode to enter once loaded [default: the file's].
+    #[arg(long, value_enum)]
+    pub mode: Option<ModeArg>,
+    /// Also write the settings to the board's flash, to boot in this mode.
+    #[arg(long, value_enum)]
+    pub store: Option<ModeArg>,
+    /// Drive only the left stack (the right one idles at the minimum voltage).
     #[arg(long)]
     pub unidirectional: bool,
-    /// Bias ū, volts [default: 70].
+    /// Bias ū, volts.
     #[arg(long)]
     pub bias: Option<f64>,
-    /// Lowest stack voltage, volts [default: 0].
+    /// Lowest stack voltage, volts.
     #[arg(long, allow_negative_numbers = true)]
     pub min_voltage: Option<f64>,
-    /// Highest stack voltage, volts [default: 140].
+    /// Highest stack voltage, volts.
     #[arg(long)]
     pub max_voltage: Option<f64>,
-    /// Slew limit, volts per second [default: 2e6].
+    /// Slew limit, volts per second.
     #[arg(long)]
     pub slew_rate: Option<f64>,
     /// Where the outputs go on a fault.
-    #[arg(long, value_enum, default_value_t = SafeArg::Bias)]
-    pub safe_state: SafeArg,
-    /// PI feedback proportional gain [default: 0.2].
+    #[arg(long, value_enum)]
+    pub safe_state: Option<SafeArg>,
+    /// PI feedback: proportional gain (drive fraction per displacement fraction).
     #[arg(long)]
     pub kp: Option<f64>,
-    /// PI feedback integral gain per second [default: 500, i.e. 0.01 per tick at 50 kHz].
+    /// PI feedback: integral gain, per second.
     #[arg(long)]
     pub ki: Option<f64>,
-    /// Largest feedback correction, fraction of the drive range [default: 0.2].
+    /// Largest feedback correction, fraction of the drive range (0…1].
     #[arg(long)]
     pub correction_limit: Option<f64>,
     /// No sensor feedback (open loop and bypass only).
     #[arg(long, conflicts_with_all = ["kp", "ki", "correction_limit"])]
     pub no_feedback: bool,
-}
-
-/// `--mode` values.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
-pub enum ModeArg {
-    /// No compensation.
-    Bypass,
-    /// Inverse-model feedforward.
-    OpenLoop,
-    /// Feedforward plus sensor feedback.
-    ClosedLoop,
-}
-
-impl From<ModeArg> for Mode {
-    fn from(m: ModeArg) -> Self {
-        match m {
-            ModeArg::Bypass => Mode::Bypass,
-            ModeArg::OpenLoop => Mode::OpenLoop,
-            ModeArg::ClosedLoop => Mode::ClosedLoop,
-        }
-    }
 }
 
 /// `--safe-state` values.
@@ -90,62 +71,82 @@ pub enum SafeArg {
     Zero,
 }
 
-/// The drive options `args` ask for.
-pub fn drive_options(args: &Args) -> DriveOptions {
-    let mut d = DriveOptions::default();
-    if args.unidirectional {
-        d.configuration = Configuration::Unidirectional;
+/// The settings `args` ask for: the file's, with what it leaves out taken from `board` (the
+/// settings in force on the board) and the command line's overrides on top.
+pub fn settings_for(args: &Args, file: &Settings, board: Option<&Settings>) -> Settings {
+    let mut s = file.clone();
+    if s.sensor.is_none() {
+        s.sensor = board.and_then(|b| b.sensor);
     }
-    d.bias = args.bias.unwrap_or(d.bias);
-    d.voltage_limits = [
-        args.min_voltage.unwrap_or(d.voltage_limits[0]),
-        args.max_voltage.unwrap_or(d.voltage_limits[1]),
-    ];
-    d.slew_rate = args.slew_rate.unwrap_or(d.slew_rate);
-    d.safe_state = match args.safe_state {
-        SafeArg::Bias => SafeState::Bias,
-        SafeArg::Zero => SafeState::Zero,
-    };
-    d.feedback = if args.no_feedback {
-        None
-    } else {
-        d.feedback.map(|[kp, ki, limit]| {
-            [
-                args.kp.unwrap_or(kp),
-                args.ki.unwrap_or(ki),
-                args.correction_limit.unwrap_or(limit),
-            ]
-        })
-    };
-    d.mode = args.mode.into();
-    d
+    if s.feedback.is_none() {
+        s.feedback = board.and_then(|b| b.feedback);
+    }
+    if args.unidirectional {
+        s.drive.configuration = Configuration::Unidirectional;
+    }
+    s.drive.bias = args.bias.unwrap_or(s.drive.bias);
+    s.drive.min_voltage = args.min_voltage.unwrap_or(s.drive.min_voltage);
+    s.drive.max_voltage = args.max_voltage.unwrap_or(s.drive.max_voltage);
+    s.drive.slew_rate = args.slew_rate.unwrap_or(s.drive.slew_rate);
+    if let Some(safe) = args.safe_state {
+        s.drive.safe_state = match safe {
+            SafeArg::Bias => SafeState::Bias,
+            SafeArg::Zero => SafeState::Zero,
+        };
+    }
+    if args.no_feedback {
+        s.feedback = None;
+    } else if args.kp.is_some() || args.ki.is_some() || args.correction_limit.is_some() {
+        let base = s.feedback.unwrap_or(FeedbackSettings::pi(0.2, 500.0, 0.1));
+        s.feedback = Some(FeedbackSettings {
+            kp: args.kp.unwrap_or(base.kp),
+            ki: args.ki.unwrap_or(base.ki),
+            limit: args.correction_limit.unwrap_or(base.limit),
+            ..base
+        });
+    }
+    if let Some(m) = args.mode {
+        s.mode = m.into();
+    }
+    s
 }
 
 /// Runs `load`.
 pub fn run(args: &Args) -> anyhow::Result<()> {
-    let (_, model) = ParamFile::load(&args.params)?;
-    let set = param_set(&model, &drive_options(args))
-        .map_err(|e| anyhow::anyhow!("{}: {e}; nothing was sent", args.params.display()))?;
+    let (file, model) = ParamFile::load(&args.params)?;
     let mut client = connect(&args.port)?;
-    client.load_params(&set)?;
-    let what = match &set.model {
-        ModelParams::PrandtlIshlinskii { thresholds, .. } => {
-            format!("P–I, {} operators", thresholds.len())
-        }
-        ModelParams::Duhem { .. } => "Duhem".to_string(),
+    let board = client.read_params().ok();
+    let settings = settings_for(args, &file.settings, board.as_ref());
+    if settings.mode == twinstack::settings::Mode::ClosedLoop && model.output_sign < 0.0 {
+        anyhow::bail!(
+            "{}: the file's sensor is inverted (output_sign = -1): closed loop would feed back \
+             with the wrong sign; use open loop, or give the board a sensor calibration that \
+             reads the model's output; nothing was sent",
+            args.params.display()
+        );
+    }
+    client.load_params(&settings)?;
+    let what = match &settings.compensator {
+        Some(Model::PrandtlIshlinskii(p)) => format!("P–I, {} operators", p.thresholds.len()),
+        Some(Model::Duhem(_)) => "Duhem".to_string(),
+        None => "no compensator".to_string(),
     };
+    let d = &settings.drive;
     println!(
         "loaded {} ({what}), mode {:?}, drive {:?} {}…{} V bias {} V",
         args.params.display(),
-        set.mode,
-        set.configuration,
-        set.voltage_limits[0],
-        set.voltage_limits[1],
-        set.bias
+        settings.mode,
+        d.configuration,
+        d.min_voltage,
+        d.max_voltage,
+        d.bias
     );
-    if args.store {
-        client.store_params()?;
-        println!("stored to flash");
+    if let Some(boot) = args.store {
+        client.store_params(boot.into())?;
+        println!(
+            "stored to flash (boots in {:?})",
+            twinstack::settings::Mode::from(boot)
+        );
     }
     Ok(())
 }

@@ -1,6 +1,7 @@
 //! The `hal-sim` subcommands, one module each: `run(&Args) -> anyhow::Result<()>`.
 //!
-//! Board commands (`stream`, `load`, `status`, `waveform`, `stop`, `record`) share
+//! Board commands (`stream`, `load`, `params`, `mode`, `recall`, `status`, `waveform`, `stop`,
+//! `record`) share
 //! [`board_link`]'s `--port` / `--baud` / `--timeout-ms`.
 
 pub mod board_link;
@@ -11,6 +12,7 @@ pub mod dual_stage;
 pub mod golden;
 pub mod identify;
 pub mod load;
+pub mod params;
 pub mod predict;
 pub mod record;
 pub mod status;

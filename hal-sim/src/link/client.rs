@@ -13,9 +13,10 @@ use std::time::{Duration, Instant};
 use twinstack::protocol::decoder::FrameDecoder;
 use twinstack::protocol::frame::{self, FrameError, MAX_ENCODED};
 use twinstack::protocol::messages::{
-    Mode, NackReason, ParamSet, RecordRequest, Request, Response, StatusReport, StreamControl,
-    Waveform, MAX_CHUNK,
+    Mode, NackReason, RecordRequest, Request, Response, StatusReport, StreamControl, Waveform,
+    MAX_CHUNK,
 };
+use twinstack::settings::Settings;
 
 /// Times [`Client::request`] resends a request the board NACKed as a damaged frame.
 pub const FRAME_RETRIES: u32 = 2;
@@ -73,11 +74,12 @@ pub fn request_name(request: &Request) -> &'static str {
         Request::Stream(_) => "Stream",
         Request::Mode(_) => "Mode",
         Request::LoadParams(_) => "LoadParams",
-        Request::StoreParams => "StoreParams",
+        Request::StoreParams { .. } => "StoreParams",
         Request::RecallParams => "RecallParams",
         Request::Waveform(_) => "Waveform",
         Request::Record(_) => "Record",
         Request::ReadRecord { .. } => "ReadRecord",
+        Request::ReadParams => "ReadParams",
     }
 }
 
@@ -104,14 +106,12 @@ pub fn nack_text(reason: &NackReason) -> String {
         NackReason::OutOfSequence { expected } => {
             format!("batch out of sequence (the board expected sequence number {expected})")
         }
-        NackReason::OutOfRange => "a value is out of its range".into(),
-        NackReason::InvalidParams(e) => format!("parameters refused: {e}"),
-        NackReason::InvalidDrive(e) => format!("drive settings refused: {e:?}"),
-        NackReason::Unsupported => "not supported by this board".into(),
+        NackReason::Refused(r) => format!("refused: {r}; nothing was applied"),
+        NackReason::NoStorage => "this board has no parameter storage".into(),
         NackReason::Busy => {
             "busy: not while the stream or the waveform runs (stop it first)".into()
         }
-        NackReason::NothingStored => "no valid parameter set is stored in flash".into(),
+        NackReason::NothingStored => "no valid settings are stored in flash".into(),
         NackReason::StoreFailed => "writing the flash record failed".into(),
     }
 }
@@ -329,15 +329,32 @@ impl<T: Transport> Client<T> {
         self.expect_ack(&Request::Stream(control)).map(drop)
     }
 
-    /// Loads a parameter set (the board validates it whole, then swaps it in between ticks).
-    pub fn load_params(&mut self, params: &ParamSet) -> Result<(), LinkError> {
-        self.expect_ack(&Request::LoadParams(params.clone()))
+    /// Loads settings (the board validates them whole, prepares them off the tick and swaps
+    /// them in between two ticks, the drive continuous).
+    pub fn load_params(&mut self, settings: &Settings) -> Result<(), LinkError> {
+        self.expect_ack(&Request::LoadParams(settings.clone()))
             .map(drop)
     }
 
-    /// Writes the active parameters to the board's flash.
-    pub fn store_params(&mut self) -> Result<(), LinkError> {
-        self.expect_ack(&Request::StoreParams).map(drop)
+    /// Writes the settings in force to the board's flash, to boot in `boot_mode`.
+    pub fn store_params(&mut self, boot_mode: Mode) -> Result<(), LinkError> {
+        self.expect_ack(&Request::StoreParams { boot_mode })
+            .map(drop)
+    }
+
+    /// Reads the settings in force.
+    pub fn read_params(&mut self) -> Result<Settings, LinkError> {
+        match self.request(&Request::ReadParams)? {
+            Response::Params(s) => Ok(s),
+            Response::Nack { reason } => Err(LinkError::Nack {
+                request: "ReadParams",
+                reason,
+            }),
+            other => Err(LinkError::Unexpected {
+                request: "ReadParams",
+                got: format!("{other:?}"),
+            }),
+        }
     }
 
     /// Reloads the parameters stored in flash.

@@ -9,10 +9,8 @@
 //!   recorder read-back;
 //! * [`streamer`] — [`streamer::stream_setpoints`]: batches within credits, sequence numbers,
 //!   go-back-N after a refusal;
-//! * [`param_set`] — the parameter file `identify` writes → a `LoadParams` request.
 
 pub mod client;
-pub mod param_set;
 pub mod port;
 pub mod serial;
 pub mod socket;
