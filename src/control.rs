@@ -90,6 +90,9 @@ impl TickFlags {
     /// The sensor and the observer disagree by more than the drift limit: the model has
     /// drifted from the stage.
     pub const DRIFT: u8 = 1 << 5;
+    /// A reload is settling: the drive is gliding from where the stacks were to the new
+    /// command (a fading offset) under the stricter of the old and the new slew limit.
+    pub const SETTLING: u8 = 1 << 6;
 
     /// Whether `flag` is set.
     pub fn contains(self, flag: u8) -> bool {
@@ -162,6 +165,8 @@ pub struct Controller {
     slew: i32,
     /// The next tick starts a transfer from the present drive to the new command.
     rebase: bool,
+    /// A reload is settling: the stricter slew limit is in force until the transfer fades.
+    reloading: bool,
     /// The observer's displacement with the drive at rest (the underrun ramp's target).
     rest_setpoint: i32,
     feedback_state: FeedbackState,
@@ -240,6 +245,7 @@ impl Controller {
             stacks: StackVoltages::default(),
             slew: 1,
             rebase: false,
+            reloading: false,
             rest_setpoint: 0,
             feedback_state: FeedbackState::default(),
             transfer: BumplessTransfer::default(),
@@ -305,6 +311,7 @@ impl Controller {
             stacks,
             slew: d.slew(),
             rebase: false,
+            reloading: false,
             rest_setpoint,
             feedback_state: FeedbackState::at_rest(y),
             transfer: BumplessTransfer::default(),
@@ -321,6 +328,7 @@ impl Controller {
         self.slew = self.drive_limits.slew().min(old.slew);
         self.counters = old.counters;
         self.rebase = true;
+        self.reloading = true;
     }
 
     /// Switches between bypass, open loop and closed loop between two ticks, in O(1) and
@@ -496,19 +504,20 @@ impl Controller {
             _ => (feedforward, 0),
         };
 
-        // 4. After a swap or a mode switch: continue from the drive the stacks hold.
+        // 4. After a swap or a mode switch: continue from the drive the stacks hold, and glide
+        // to the new command under the stricter slew limit until the offset has faded.
+        let mut settling = self.transfer.remaining() != 0;
         if self.rebase {
             self.rebase = false;
+            settling = true;
             let held = self.drive_limits.drive_of(self.stacks.left);
             self.transfer.start(held.saturating_sub(command));
         }
-        let command = if self.transfer.remaining() != 0 {
-            let c = self.transfer.apply(command);
-            if self.transfer.remaining() == 0 {
-                // Settled: the configured slew limit again.
-                self.slew = self.drive_limits.slew();
+        let command = if settling {
+            if self.reloading {
+                flags |= TickFlags::SETTLING;
             }
-            c
+            self.transfer.apply(command)
         } else {
             command
         };
@@ -516,6 +525,11 @@ impl Controller {
         // 5. Limits, split, both DACs at once.
         let out = self.drive_limits.split(command, self.stacks, self.slew);
         self.stacks = out.stacks;
+        if settling && self.transfer.remaining() == 0 {
+            // Settled: the configured slew limit from the next tick on.
+            self.slew = self.drive_limits.slew();
+            self.reloading = false;
+        }
         if out.range_limited {
             flags |= TickFlags::RANGE_LIMIT;
             counters.range_limits = counters.range_limits.wrapping_add(1);

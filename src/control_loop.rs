@@ -170,13 +170,14 @@ where
         self.spare = Some(spare);
     }
 
-    /// Switches the mode between two ticks (O(1), see [`Controller::set_mode`]); a reload
-    /// still waiting is switched too.
+    /// Switches the mode between two ticks (O(1), see [`Controller::set_mode`]). With a
+    /// reload waiting, it is the waiting configuration that switches (it takes over at the
+    /// next tick).
     pub fn set_mode(&mut self, mode: Mode) -> Result<(), ModeError> {
-        if let Some(p) = self.pending.as_mut() {
-            p.set_mode(mode)?;
+        match self.pending.as_mut() {
+            Some(p) => p.set_mode(mode),
+            None => self.controller.set_mode(mode),
         }
-        self.controller.set_mode(mode)
     }
 
     /// Counts a tick that overran (the board's timer sees the next one already due).

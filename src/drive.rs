@@ -197,7 +197,7 @@ impl DriveSettings {
         let drive_min = scaling.input_to_norm(lo).max(-1.0);
         // The top of the full-scale range is 1 − 2^-30 (`clamp_full_scale`).
         let drive_max = scaling.input_to_norm(hi).min(signal_to_f64(FULL_SCALE_MAX));
-        if !(drive_min <= drive_max) {
+        if drive_min.is_nan() || drive_max.is_nan() || drive_min > drive_max {
             return Err(Refusal::new(Field::InputRange, Rule::Unreachable));
         }
         // Volts → 2^-15 of a DAC code.
