@@ -17,7 +17,6 @@
 //! | Q0.32 `i32` ([`q0_32_from_f64`], [`mul_high`]) | [-0.5, 0.5) | the integral gain per tick: `ki · e` is one `SMMUL` |
 //! | Q10.54 `i64` ([`Q54_FRAC_BITS`]) | | gain × signal products and their sums (P–I) |
 //! | Q4.60 `i64` ([`Q60_FRAC_BITS`]) | | signal × signal products and their sums (the Duhem update) |
-
 //!
 //! The differential split forms its DAC codes in a Q19.45 `i64` of its own (see
 //! [`crate::drive`]).
