@@ -1,7 +1,7 @@
 //! Duhem hysteresis in fixed point: the forward observer and the inverse compensator.
 //!
 //! Model (normalised by [`Scaling`]): `ẏ = α |u̇| (β u + δ − y) + γ u̇`, discretised per sample
-//! as in DESIGN §2:
+//! as in the book (docs/src/reference/models.md):
 //!
 //! `y_k = y_{k−1} + a_k (β u_{k−1} + δ − y_{k−1}) + γ Δu_k`, with `a_k = min(α |Δu_k|, 1)`.
 //!

@@ -1,11 +1,25 @@
 //! Fixed-point formats of the control tick.
 //!
-//! Two formats, both in `i32`, cover every signal and coefficient:
+//! Two `i32` formats carry every signal and model coefficient:
 //!
 //! | name | format | 1.0 is | range | resolution | used for |
 //! |------|--------|--------|-------|------------|----------|
 //! | signal | Q2.30 | `1 << 30` | [-2, 2) | 9.3e-10 | normalised drive, displacement, play states, thresholds |
 //! | gain | Q8.24 | `1 << 24` | [-128, 128) | 6.0e-8 | P–I weights (forward and inverse), Duhem α β γ |
+//!
+//! Three more `i32` formats hold the feedback's coefficients, and two `i64` formats hold the
+//! accumulators inside a step:
+//!
+//! | format | range | used for |
+//! |--------|-------|----------|
+//! | Q4.28 `i32` ([`q4_28_from_f64`]) | [-8, 8) | feedback `kp` and `kd`, sensor calibration |
+//! | Q1.31 `i32` ([`q1_31_from_f64`]) | [-1, 1) | per-tick coefficients below 1 (filter poles) |
+//! | Q0.32 `i32` ([`q0_32_from_f64`], [`mul_high`]) | [-0.5, 0.5) | the integral gain per tick: `ki · e` is one `SMMUL` |
+//! | Q10.54 `i64` ([`Q54_FRAC_BITS`]) | | gain × signal products and their sums (P–I) |
+//! | Q4.60 `i64` ([`Q60_FRAC_BITS`]) | | signal × signal products and their sums (the Duhem update) |
+//!
+//! The differential split forms its DAC codes in a Q19.45 `i64` of its own (see
+//! [`crate::drive`]).
 //!
 //! Signals are *normalised*: the physical range of a quantity (e.g. 0…150 V of drive, or the
 //! stage's stroke in µm) maps to [-1, 1] (see [`crate::scaling::Scaling`]). The extra integer bit
@@ -16,10 +30,11 @@
 //! Q8.24 holds ±128 and still resolves 6e-8, i.e. 1/500 of a 16-bit LSB per unit signal.
 //! Products of a gain and a signal are formed in `i64` (Q10.54) and summed there; parameter
 //! validation bounds `Σ|w|` so that the sum provably fits (see [`MAX_GAIN_SUM`]), and only the
-//! final result is saturated back to Q2.30.
+//! final result is brought back to Q2.30 ([`q54_to_signal_floor`]; [`q60_to_signal_floor`] for
+//! Q4.60), saturating.
 //!
-//! **Why our own Q types rather than the `fixed` crate.** The tick needs exactly two formats,
-//! one widening multiply-accumulate and saturation at a few chosen points. Writing those as
+//! **Why our own Q types rather than the `fixed` crate.** The tick needs a handful of formats,
+//! widening multiply-accumulates and saturation at a few chosen points. Writing those as
 //! plain `i32`/`i64` operations keeps the generated code obvious (one `SMLAL` per operator on
 //! the Cortex-M4, `QADD`/`QSUB` for saturating adds), makes the rounding explicit, so host and
 //! target are bit-identical by construction, and adds no dependency to the firmware.

@@ -1,7 +1,7 @@
 //! Notch filter at the stage resonance: a fixed-point biquad designed in the library from the
 //! resonance frequency, its width and depth, and the control rate in use.
 //!
-//! The stage's first resonance (21.8 kHz differential, ζ ≈ 0.017, DESIGN §1) sits close to the
+//! The stage's first resonance (21.8 kHz differential, ζ ≈ 0.017, see the book, docs/src/reference/physics.md) sits close to the
 //! Nyquist frequency of a 50 kHz tick. The feedback loop sees it amplified some 30 times; a
 //! notch on the feedback error removes it from the loop, so the controller neither excites nor
 //! sustains the ringing and its gains can go higher.

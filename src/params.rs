@@ -4,7 +4,7 @@
 //! configurations of [`crate::prandtl_ishlinskii`] and [`crate::duhem`]; anything that would make
 //! the tick misbehave (a non-invertible P–I, a gain the Q-formats cannot hold, NaN) is refused
 //! here with a [`ParamError`] that says what and where. Operator numbers in errors are 1-based,
-//! as in the equations of DESIGN §2.
+//! as in the equations of the book's docs/src/reference/models.md.
 
 use crate::fixed_point::MAX_GAIN_SUM;
 use crate::scaling::Scaling;
@@ -152,7 +152,7 @@ impl core::fmt::Display for ParamError {
 
 impl core::error::Error for ParamError {}
 
-/// How P–I thresholds are spread over the input amplitude (DESIGN §2).
+/// How P–I thresholds are spread over the input amplitude (see the book, docs/src/reference/models.md).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub enum Thresholds {
     /// `r_i = (i − 1)/N · A` (the first paper; N = 9 was its best fit).
@@ -350,7 +350,7 @@ impl PiParams {
 }
 
 impl CanonicalPi {
-    /// The analytic inverse (DESIGN §2): `r'_i = Σ_{j≤i} w_j (r_i − r_j)`, `w'_1 = 1/w_1`,
+    /// The analytic inverse (see the book, docs/src/reference/models.md): `r'_i = Σ_{j≤i} w_j (r_i − r_j)`, `w'_1 = 1/w_1`,
     /// `w'_i = −w_i / (S_i S_{i−1})`; its offset is the forward offset, subtracted from the
     /// desired output before the play operators. Refuses non-invertible models with the first
     /// failing operator.
@@ -422,7 +422,8 @@ impl CanonicalPi {
 
 /// A Duhem model in physical units: `ẏ = α |u̇| (β u + offset − y) + γ u̇`
 /// (volts in, output units out). The discrete form per sample is
-/// `y_k = y_{k−1} + α |Δu| (β u_{k−1} + offset − y_{k−1}) + γ Δu` (DESIGN §2).
+/// `y_k = y_{k−1} + α |Δu| (β u_{k−1} + offset − y_{k−1}) + γ Δu` (see the book,
+/// docs/src/reference/models.md).
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct DuhemParams {

@@ -1,6 +1,6 @@
 //! The play (backlash) operator, in fixed point.
 //!
-//! `p_k = max(u_k − r, min(u_k + r, p_{k−1}))` (DESIGN §2): the output follows the input with
+//! `p_k = max(u_k − r, min(u_k + r, p_{k−1}))` (see the book, docs/src/reference/models.md): the output follows the input with
 //! a dead band of half-width `r`. It is rate independent (only the order of input values
 //! matters, not their timing) and wipes out inner minor loops, which is what makes
 //! Prandtl–Ishlinskii models invertible in closed form.

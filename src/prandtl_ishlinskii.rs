@@ -504,7 +504,7 @@ impl InversePrandtlIshlinskii {
         &self.bank
     }
 
-    /// The inverse's state matching the forward model's operator outputs `p` (DESIGN §2,
+    /// The inverse's state matching the forward model's operator outputs `p` (see the book, docs/src/reference/models.md,
     /// from [`PlayOperatorBank::outputs`] of the observer's bank):
     /// `p'_i = S_i p_i + Σ_{j>i} w_j p_j`, so that switching the compensator on mid-run
     /// continues from where the stage is. Off the tick path (O(N²)).

@@ -1,5 +1,5 @@
 //! Host checks of the fixed-point hysteresis models against their `f64` reference and against
-//! the properties the theory promises (DESIGN §2).
+//! the properties the theory promises (see the book, docs/src/reference/models.md).
 //!
 //! Bounds are stated in LSB of a 16-bit output spanning the configured output range
 //! (`LSB16 = 2 / 65536` in normalised units).

@@ -33,7 +33,7 @@ use twinstack::settings::{FeedbackSettings, Mode, Model, SensorSettings, Setting
 use twinstack::waveform::{Shape, WaveformGenerator};
 use twinstack::Scaling;
 
-/// The differential stage's first resonance (DESIGN §1), Hz: where the notch sits.
+/// The differential stage's first resonance (see the book, docs/src/reference/physics.md), Hz: where the notch sits.
 pub const RESONANCE_HZ: f64 = 21_800.0;
 
 /// What the closed-loop study runs.

@@ -1,6 +1,6 @@
 //! Measured records: the CSV a user exports from their stage, read into columns.
 //!
-//! Format (DESIGN §3): any number of `#` comment lines (and blank lines), then a header that
+//! Format (see the book, docs/src/reference/parameter-files.md): any number of `#` comment lines (and blank lines), then a header that
 //! names the columns `t`, `u`, `x` in any order (other columns are ignored), then one sample
 //! per line. `t` is time in seconds, `u` the drive in volts, `x` the measured output
 //! (displacement or sensor units). Every cell read must be a finite number and `t` must

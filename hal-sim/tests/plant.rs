@@ -1,4 +1,4 @@
-//! Physics checks of the simulated plant against the paper's identified figures (DESIGN §1),
+//! Physics checks of the simulated plant against the paper's identified figures (see the book, docs/src/reference/physics.md),
 //! all at the 50 kHz control rate the firmware runs.
 //!
 //! Resonance and damping are read from the sampled step response: a sampled second-order mode
@@ -300,7 +300,7 @@ fn skewed_stacks_bend_the_unidirectional_loop_but_not_the_differential_one() {
 }
 
 /// At rest the charges follow `Q_l = C e_l + T x_l`, `Q_r = C e_r − T x_r` with the tips where
-/// the static equations of DESIGN §1 put them (solved here independently of the simulator).
+/// the static equations of the book's docs/src/reference/physics.md put them (solved here independently of the simulator).
 #[test]
 fn charges_at_rest_follow_the_constitutive_equations() {
     let s = StageParams::paper();

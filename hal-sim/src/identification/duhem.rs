@@ -1,4 +1,4 @@
-//! Duhem identification: the integrated least squares of DESIGN §2, a stability check by
+//! Duhem identification: the integrated least squares of the book's docs/src/reference/models.md, a stability check by
 //! simulation, and a refinement on the simulated error.
 //!
 //! 1. **Integrated least squares.** Summing the discrete model over the samples from `τ0`

@@ -4,7 +4,7 @@
 //! weights and the offset, so the fit is one least-squares problem over the play operators'
 //! outputs. The weights are kept non-negative (NNLS): then every partial sum `S_i` is
 //! positive as soon as `w_1 > 0`, and the analytic inverse the compensator runs exists
-//! (DESIGN §2). A lower bound on `w_1` keeps the inverse's first weight `1/w_1` inside the
+//! (see the book, docs/src/reference/models.md). A lower bound on `w_1` keeps the inverse's first weight `1/w_1` inside the
 //! fixed-point format when the data alone would let it shrink towards zero.
 //!
 //! The operators start relaxed at the record's first drive value and run over the whole

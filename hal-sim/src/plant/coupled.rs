@@ -1,4 +1,4 @@
-//! The coupled electromechanical model of DESIGN §1: left stack tip, stage, right stack tip,
+//! The coupled electromechanical model of the book's docs/src/reference/physics.md: left stack tip, stage, right stack tip,
 //! joined by contacts of stiffness `K_0`.
 //!
 //! ```text
@@ -22,9 +22,9 @@
 //! Default `K_0` = [`DEFAULT_CONTACT_STIFFNESS`]: a stiff, preloaded ceramic–steel contact,
 //! about 100 `K_I`, which keeps the first resonance within 0.1 % of the `K_0 → ∞` value.
 //!
-//! **Contact damping (an addition to DESIGN §1).** Each contact also has a dashpot `b_0` in
+//! **Contact damping (an addition to the book's docs/src/reference/physics.md).** Each contact also has a dashpot `b_0` in
 //! parallel with `K_0`, acting on the relative velocity `ẋ_l − ẋ_s` (resp. `ẋ_s − ẋ_r`).
-//! DESIGN's equations are the case `b_0 = 0`; there the MHz tip modes have almost no damping
+//! The book's equations are the case `b_0 = 0`; there the MHz tip modes have almost no damping
 //! (only through the stage's `b`) and ring for seconds after every step, which shows up in the
 //! stack charges. The default [`DEFAULT_CONTACT_DAMPING_RATIO`] damps them at 5 % of critical;
 //! in the first mode tips and stage move together, so `b_0` leaves it untouched.

@@ -1,7 +1,7 @@
 //! The "truth" hysteresis of each stack: a Duhem or P–I model from [`twinstack::reference`],
 //! in volts, with an optional skew.
 //!
-//! Hysteresis sits in series with the stack's electrical port (DESIGN §1): the stack moves as
+//! Hysteresis sits in series with the stack's electrical port (see the book, docs/src/reference/physics.md): the stack moves as
 //! if driven by the effective voltage `e = u − v^h`. The model here produces `e` directly,
 //! `e = f(H[u])`, where `H` is a Duhem or P–I operator from volts to volts (slope near 1) and
 //! `f` the skew below; `v^h = u − e`.

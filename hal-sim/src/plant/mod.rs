@@ -1,4 +1,4 @@
-//! The plant: a dual-stack piezo stage (DESIGN §1) with "truth" hysteresis per stack.
+//! The plant: a dual-stack piezo stage (see the book, docs/src/reference/physics.md) with "truth" hysteresis per stack.
 //!
 //! * [`stage`] — the paper's figures and the physical constants derived from them.
 //! * [`coupled`] — the 3-DOF coupled model (stack tips, stage, contact `K_0`).

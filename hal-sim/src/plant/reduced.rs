@@ -1,4 +1,4 @@
-//! The `K_0 → ∞` reduction of the coupled model (DESIGN §1): stack tips and stage move as one.
+//! The `K_0 → ∞` reduction of the coupled model (see the book, docs/src/reference/physics.md): stack tips and stage move as one.
 //!
 //! ```text
 //! unidirectional: (Ms + Mp)  ẍ_s + b ẋ_s + (K_I + Ks)  x_s = T e_l

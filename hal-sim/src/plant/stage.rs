@@ -1,5 +1,5 @@
 //! Stage and stack parameters: the paper's identified figures, and the physical constants of
-//! the electromechanical model (DESIGN §1) derived from them.
+//! the electromechanical model (see the book, docs/src/reference/physics.md) derived from them.
 //!
 //! ## What the paper gives
 //! Small-signal fits `G(s) = a0 / (1 + 2ζ s/ωn + (s/ωn)²)`, drive volts → stage µm:
@@ -11,7 +11,7 @@
 //!
 //! and `K_I + Ks = 31.17 N/µm`, `Mp + Ms = 2.68 g`, `b = 12.72 N·s/m`.
 //!
-//! ## Derivation (`K_0 → ∞` models of DESIGN §1)
+//! ## Derivation (`K_0 → ∞` models of the book's docs/src/reference/physics.md)
 //! *Unidirectional*: `(Ms + Mp) ẍ + b ẋ + (K_I + Ks) x = T u_l`, so
 //! `ωn = √(31.17e6 / 2.68e-3) = 1.0785e5` rad/s and `ζ = b / (2√(K M)) = 0.0220`: both agree with
 //! the fit, and `T = a0 (K_I + Ks) = 0.43e-6 · 31.17e6 = 13.40 N/V`.
