@@ -3,8 +3,9 @@
 //!
 //! Streamed samples are Q1.15 normalised displacement (the wire format, see
 //! [`crate::protocol::messages`]); setpoints leave as Q2.30. With a rate divider `D`, sample
-//! `s_k` is reached `D` ticks after `s_{k−1}`, in equal steps (one `SDIV` per sample, not per
-//! tick), and the segment ends exactly on `s_k`.
+//! `s_k` is reached `D` ticks after `s_{k−1}`, in equal steps (one multiply by the divider's
+//! reciprocal, prepared when the divider is set: no division on the tick), and the segment
+//! ends exactly on `s_k`.
 //!
 //! When the queue runs dry the policy decides: **hold** returns `None`, so the control tick holds
 //! the last setpoint and counts an underrun; **ramp to bias** walks the setpoint to the rest
@@ -45,6 +46,9 @@ pub enum Underrun {
 pub struct SetpointStream {
     running: bool,
     divider: u16,
+    /// `2^32 / divider`, rounded (0 for divider 1, which needs no increment): the step of a segment
+    /// is `(span · reciprocal) >> 32`, rounded, one `SMULL`-class multiply instead of a 64-bit division.
+    reciprocal: i64,
     /// Ticks left in the current segment.
     remaining: u16,
     /// Current setpoint, Q2.30.
@@ -64,6 +68,7 @@ impl SetpointStream {
         Self {
             running: false,
             divider: 1,
+            reciprocal: 0,
             remaining: 0,
             current: initial,
             target: initial,
@@ -94,6 +99,11 @@ impl SetpointStream {
             return false;
         }
         self.divider = divider;
+        self.reciprocal = if divider == 1 {
+            0
+        } else {
+            ((1i64 << 32) + divider as i64 / 2) / divider as i64
+        };
         true
     }
 
@@ -125,7 +135,7 @@ impl SetpointStream {
     }
 
     /// The next setpoint (Q2.30), or `None` on an underrun under the hold policy.
-    /// Bounded work: at most one queue pop and one division.
+    /// Bounded work: at most one queue pop and one multiply; no division.
     #[inline]
     pub fn next<const N: usize>(&mut self, queue: &mut Consumer<'_, i16, N>) -> Option<i32> {
         if let Some(w) = self.waveform.as_mut() {
@@ -141,8 +151,10 @@ impl SetpointStream {
                     self.target = setpoint_from_wire(sample);
                     self.remaining = self.divider;
                     let span = self.target as i64 - self.current as i64;
-                    // |span| < 2^32 and divider ≥ 1: the quotient fits i32.
-                    self.increment = (span / self.divider.max(1) as i64) as i32;
+                    // |span| < 2^32 and the reciprocal < 2^31: the product fits i64, and the
+                    // step (at most span / 2) fits i32. The last tick lands on the target
+                    // exactly, whatever the step's rounding.
+                    self.increment = ((span * self.reciprocal + (1 << 31)) >> 32) as i32;
                 }
                 None => return self.underrun(),
             }
@@ -228,5 +240,34 @@ mod tests {
             assert_eq!(setpoint_to_wire(setpoint_from_wire(x)), x);
         }
         assert_eq!(setpoint_to_wire(i32::MAX), i16::MAX);
+    }
+
+    proptest::proptest! {
+        /// With any divider, a segment moves in steps within one LSB of `span / D`, never
+        /// overshoots, and lands exactly on the sample after `D` ticks.
+        #[test]
+        fn interpolation_lands_exactly_in_near_equal_steps(
+            divider in 1u16..=2000, a: i16, b: i16,
+        ) {
+            let mut q: Queue<i16, 4> = Queue::new();
+            let (mut p, mut c) = q.split();
+            let mut s = SetpointStream::new(setpoint_from_wire(a));
+            proptest::prop_assert!(s.set_divider(divider));
+            s.start();
+            p.enqueue(b).unwrap();
+            let (from, to) = (setpoint_from_wire(a) as i64, setpoint_from_wire(b) as i64);
+            let ideal = (to - from) as f64 / divider as f64;
+            let mut last = from;
+            for k in 1..=divider as i64 {
+                let now = s.next(&mut c).unwrap() as i64;
+                if k < divider as i64 {
+                    proptest::prop_assert!(((now - last) as f64 - ideal).abs() <= 1.0);
+                    proptest::prop_assert!((now - from).abs() <= (to - from).abs());
+                } else {
+                    proptest::prop_assert_eq!(now, to);
+                }
+                last = now;
+            }
+        }
     }
 }
