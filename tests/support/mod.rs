@@ -97,11 +97,17 @@ pub fn ensure_qemu() {
     );
 }
 
-/// Builds firmware binary `bin` with `features` (release, for the target) into
-/// [`firmware_target_dir`] and returns the ELF's path. Each (bin, features) is built at most
-/// once per test process; concurrent callers wait for it (and cargo's own lock on the target
-/// directory serialises separate test processes).
-pub fn build_image(bin: &str, features: &[&str]) -> PathBuf {
+/// The package of the firmware itself (`twinstack-fw`).
+pub const FIRMWARE: &str = "twinstack";
+/// The package of the test-only images (`qemu-images/`: tick bench, safe-state probe,
+/// golden replay).
+pub const QEMU_IMAGES: &str = "twinstack-qemu-images";
+
+/// Builds binary `bin` of `package` ([`FIRMWARE`] or [`QEMU_IMAGES`]) with `features`
+/// (release, for the target) into [`firmware_target_dir`] and returns the ELF's path. Each
+/// (bin, features) is built at most once per test process; concurrent callers wait for it (and
+/// cargo's own lock on the target directory serialises separate test processes).
+pub fn build_image(package: &str, bin: &str, features: &[&str]) -> PathBuf {
     static BUILT: OnceLock<Mutex<HashMap<String, PathBuf>>> = OnceLock::new();
     ensure_target();
     let key = format!("{bin}|{}", features.join(","));
@@ -115,7 +121,8 @@ pub fn build_image(bin: &str, features: &[&str]) -> PathBuf {
     let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".to_string());
     let mut cmd = Command::new(cargo);
     cmd.current_dir(workspace_root())
-        .args(["build", "--release", "--target", TARGET, "--bin", bin])
+        .args(["build", "--release", "--target", TARGET])
+        .args(["-p", package, "--bin", bin])
         .arg("--target-dir")
         .arg(firmware_target_dir())
         // RUSTFLAGS from the environment would replace the target's link arguments in

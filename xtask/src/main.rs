@@ -20,8 +20,8 @@ const TARGET: &str = "thumbv7em-none-eabihf";
 /// The mdbook `setup` installs when none is on the PATH (builds with Rust 1.85 and later).
 const MDBOOK_VERSION: &str = "0.4.52";
 
-/// Clippy on the target, one run per firmware image and feature set (`--bin`, `--features`
-/// arguments), each with warnings denied.
+/// Clippy on the target, one run per firmware image and feature set (package, `--bin`,
+/// `--features` arguments), each with warnings denied.
 const TARGET_CLIPPY: &[(&str, &[&str])] = &[
     ("twinstack-fw (board)", &["--bin", "twinstack-fw"]),
     (
@@ -33,21 +33,8 @@ const TARGET_CLIPPY: &[(&str, &[&str])] = &[
         &["--bin", "twinstack-fw", "--features", "dual-stage"],
     ),
     (
-        "tick-bench",
-        &["--bin", "tick-bench", "--features", "tick-bench"],
-    ),
-    (
-        "safe-state-probe",
-        &[
-            "--bin",
-            "safe-state-probe",
-            "--features",
-            "safe-state-probe",
-        ],
-    ),
-    (
-        "golden-replay",
-        &["--bin", "golden-replay", "--features", "golden-replay"],
+        "QEMU test images (tick-bench, safe-state-probe, golden-replay)",
+        &["-p", "twinstack-qemu-images", "--bins"],
     ),
 ];
 
