@@ -15,7 +15,6 @@
 //! * [`params`] — physical (`f64`) parameter sets and their validation ([`ParamError`]).
 //! * [`param_store`] — the CRC-protected parameter record in flash and the board settings.
 //! * `hardware` (firmware build only) — STM32F405 registers behind the [`board`] traits.
-//! * [`mod@reference`] — `f64` reference implementations the fixed-point code is checked against.
 //! * [`control_loop`] — the tick side of the board: setpoint queue and stream or waveform,
 //!   the control tick, the data recorder; [`recorder`] — the recorder itself.
 //! * [`protocol`] — the UART protocol: frames, messages, and the board's command handler.
@@ -56,7 +55,6 @@ pub mod play_operator;
 pub mod prandtl_ishlinskii;
 pub mod protocol;
 pub mod recorder;
-pub mod reference;
 pub mod scaling;
 pub mod setpoint_stream;
 pub mod settings;
