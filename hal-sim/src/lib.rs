@@ -12,7 +12,7 @@
 //! * [`stage_model`] — an identified model as the board runs it (scaling, sensor sign and
 //!   lag), run over whole records in fixed point and in the `f64` reference; [`plot`] — the
 //!   identification figure; [`output_file`] — outputs written only when complete.
-//! * [`reference`] — the `f64` reference of every model, the specification the library's
+//! * [`mod@reference`] — the `f64` reference of every model, the specification the library's
 //!   fixed-point code is checked against; [`accuracy`] — the fixed-point vs `f64` error table.
 //! * [`closed_loop`] — sensor feedback around the compensator: the tracking table and the
 //!   notch's step.
