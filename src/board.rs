@@ -120,20 +120,36 @@ pub trait QuadratureEncoder {
     fn count(&mut self) -> u16;
 }
 
-/// Test doubles of the board, shared by the library's unit tests and (feature `fakes`) by
-/// the host crates' tests.
+/// Test doubles of the board traits, for tests of code that drives converters: the library's
+/// unit tests, and — with the cargo feature `fakes` — any crate's tests (hal-sim's enable it
+/// with `twinstack = { path = "..", features = ["fakes"] }` under `[dev-dependencies]`).
+///
+/// Not built into the firmware: the module exists only under `cfg(test)` or the `fakes`
+/// feature.
+///
+/// ```
+/// use twinstack::board::fakes::{FixedAdc, RecordingDac};
+/// use twinstack::board::{AdcCode, DacCode, DualDac, SensorAdc};
+///
+/// let mut dac = RecordingDac::default();
+/// dac.write_both(DacCode(1), DacCode(2)).unwrap();
+/// assert_eq!((dac.left, dac.right, dac.writes), (DacCode(1), DacCode(2), 1));
+///
+/// assert_eq!(FixedAdc(Some(AdcCode(7))).read(), Ok(AdcCode(7)));
+/// assert!(FixedAdc(None).read().is_err());
+/// ```
 #[cfg(any(test, feature = "fakes"))]
 pub mod fakes {
     use super::*;
 
-    /// A DAC that remembers the last pair written and counts the writes.
+    /// A 16-bit DAC that remembers the last pair written and counts the writes; it never fails.
     #[derive(Debug, Default)]
     pub struct RecordingDac {
-        /// The last left code written.
+        /// The last left-channel code written.
         pub left: DacCode,
-        /// The last right code written.
+        /// The last right-channel code written.
         pub right: DacCode,
-        /// Writes so far.
+        /// How many pairs were written.
         pub writes: u32,
     }
 
@@ -150,7 +166,7 @@ pub mod fakes {
         }
     }
 
-    /// An ADC that always returns the same result (`None`: the read fails).
+    /// A 16-bit ADC that always returns the same result (`None`: the read fails).
     #[derive(Debug)]
     pub struct FixedAdc(pub Option<AdcCode>);
 
@@ -161,6 +177,16 @@ pub mod fakes {
         }
         fn read(&mut self) -> Result<AdcCode, ()> {
             self.0.ok_or(())
+        }
+    }
+
+    /// A quadrature encoder whose counter reads the value the test puts in it.
+    #[derive(Debug)]
+    pub struct FixedEncoder(pub u16);
+
+    impl QuadratureEncoder for FixedEncoder {
+        fn count(&mut self) -> u16 {
+            self.0
         }
     }
 }

@@ -131,7 +131,7 @@ pub fn saturate_q54_to_signal(acc: i64) -> i32 {
 
 /// Converts a Q10.54 accumulator to a Q2.30 signal, rounding toward −∞ (truncation of the
 /// 24 dropped bits, at most 2^-30 low) and saturating exactly to the `i32` range — the tick's
-/// conversion ([`floor_shift_saturated`] with 24 bits dropped). On the Cortex-M4 that is a
+/// conversion (`floor_shift_saturated` with 24 bits dropped). On the Cortex-M4 that is a
 /// range check of the high word and two data instructions, where [`saturate_q54_to_signal`]
 /// needs a 64-bit add and two 64-bit compares.
 #[inline(always)]

@@ -18,7 +18,6 @@
 //! * [`params`] — the models' physical (`f64`) parameters and their own checks ([`ParamError`]).
 //! * [`param_store`] — the CRC-protected settings record in flash.
 //! * `hardware` (firmware build only) — STM32F405 registers behind the [`board`] traits.
-//! * [`reference`] — `f64` reference implementations the fixed-point code is checked against.
 //! * [`control_loop`] — the tick side of the board: setpoint queue and stream or waveform,
 //!   the control tick, the data recorder; [`recorder`] — the recorder itself.
 //! * [`protocol`] — the UART protocol: frames, messages, and the board's command handler.
@@ -58,7 +57,6 @@ pub mod play_operator;
 pub mod prandtl_ishlinskii;
 pub mod protocol;
 pub mod recorder;
-pub mod reference;
 pub mod refusal;
 pub mod scaling;
 pub mod sensor;

@@ -23,6 +23,18 @@ pub struct Scaling {
 impl Scaling {
     /// A scaling from an input range `[input_min, input_max]` (volts) and an output range
     /// `[output_min, output_max]` (µm or sensor units). Each range must be finite and non-empty.
+    ///
+    /// ```
+    /// use twinstack::Scaling;
+    ///
+    /// // 0…150 V drive, 0…30 µm travel: the middle of each range is 0, the ends are ±1.
+    /// let s = Scaling::new(0.0, 150.0, 0.0, 30.0).unwrap();
+    /// assert_eq!(s.input_to_norm(75.0), 0.0);
+    /// assert_eq!(s.input_to_norm(150.0), 1.0);
+    /// assert_eq!(s.norm_to_output(-1.0), 0.0);
+    /// // An empty or reversed range is refused.
+    /// assert!(Scaling::new(0.0, 150.0, 30.0, 30.0).is_err());
+    /// ```
     pub fn new(
         input_min: f64,
         input_max: f64,

@@ -2,10 +2,9 @@
 //! control loop the firmware runs (fake converters): each request gets one response; a
 //! refused one applies nothing and loses nothing queued; a load is swapped in between ticks.
 
-use core::convert::Infallible;
-
 use rtic_core::Exclusive;
-use twinstack::board::{AdcCode, DacCode, DualDac, SensorAdc};
+use twinstack::board::fakes::{FixedAdc, RecordingDac};
+use twinstack::board::{AdcCode, DacCode};
 use twinstack::control_loop::{ControlLoop, SetpointQueue, SETPOINT_CAPACITY};
 use twinstack::default_config::{board_profile, boot_param_set};
 use twinstack::drive::{DriveError, SafeState};
@@ -19,28 +18,6 @@ use twinstack::protocol::handler::CommandHandler;
 use twinstack::protocol::messages::*;
 use twinstack::protocol::param_load::BoardProfile;
 use twinstack::settings::Mode;
-
-struct Dac(DacCode, DacCode);
-impl DualDac for Dac {
-    type Error = Infallible;
-    fn full_scale(&self) -> DacCode {
-        DacCode(4095)
-    }
-    fn write_both(&mut self, l: DacCode, r: DacCode) -> Result<(), Infallible> {
-        (self.0, self.1) = (l, r);
-        Ok(())
-    }
-}
-struct Adc(u32);
-impl SensorAdc for Adc {
-    type Error = Infallible;
-    fn full_scale(&self) -> AdcCode {
-        AdcCode(4095)
-    }
-    fn read(&mut self) -> Result<AdcCode, Infallible> {
-        Ok(AdcCode(self.0))
-    }
-}
 
 /// Storage whose writes always fail (a flash that does not program).
 struct BrokenFlash([u8; 16]);
@@ -60,8 +37,8 @@ struct Board<S> {
     handler: CommandHandler<S>,
     control: ControlLoop<Vec<i32>>,
     queue: &'static mut SetpointQueue,
-    dac: Dac,
-    adc: Adc,
+    dac: RecordingDac,
+    adc: FixedAdc,
 }
 
 fn board_with<S: RecordStorage>(storage: S, profile: BoardProfile) -> Board<S> {
@@ -80,8 +57,8 @@ fn board_with<S: RecordStorage>(storage: S, profile: BoardProfile) -> Board<S> {
         handler,
         control: ControlLoop::new(tick, RATE, vec![0; 4096]),
         queue: Box::leak(Box::new(SetpointQueue::new())),
-        dac: Dac(DacCode(0), DacCode(0)),
-        adc: Adc(2048),
+        dac: RecordingDac::default(),
+        adc: FixedAdc(Some(AdcCode(2048))),
     }
 }
 
@@ -377,8 +354,8 @@ fn mode_changes_rebuild_the_configuration_and_closed_loop_needs_a_sensor() {
         handler,
         control: ControlLoop::new(tick, RATE, vec![0; 16]),
         queue: Box::leak(Box::new(SetpointQueue::new())),
-        dac: Dac(DacCode(0), DacCode(0)),
-        adc: Adc(0),
+        dac: RecordingDac::default(),
+        adc: FixedAdc(Some(AdcCode(0))),
     };
     assert_eq!(
         b.handle(Request::Mode(Mode::ClosedLoop)),

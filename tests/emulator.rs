@@ -41,7 +41,7 @@ impl Drop for Emulator {
 impl Emulator {
     /// Boots the emulator image; `record`, if given, is loaded at the parameter sector.
     fn boot(name: &str, record: Option<&[u8]>) -> Self {
-        let elf = support::build_image("twinstack-fw", &["emulator"]);
+        let elf = support::build_image(support::FIRMWARE, "twinstack-fw", &["emulator"]);
         let scratch =
             std::env::temp_dir().join(format!("twinstack-emu-{}-{name}", std::process::id()));
         let _ = std::fs::remove_dir_all(&scratch);

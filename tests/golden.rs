@@ -5,8 +5,8 @@
 //!   library's `Controller::tick`); every output must equal the stored one. A difference means
 //!   the tick's behaviour changed: if that was intended, regenerate the vectors (the
 //!   `f64`-reference check in `hal-sim/tests/golden.rs` then shows the new ones are right).
-//! * On the target: `src/bin/golden-replay.rs` (feature `golden-replay`) runs the same replay
-//!   in QEMU's netduinoplus2 (STM32F405, Cortex-M4F) and reports, per set, the fingerprint of
+//! * On the target: the `golden-replay` image (`qemu-images/src/bin/golden-replay/`) runs the
+//!   same replay in QEMU's netduinoplus2 (STM32F405, Cortex-M4F) and reports, per set, the fingerprint of
 //!   the configuration it built, the CRC-32 of its outputs and the first differing tick; they
 //!   must equal the host's, bit for bit.
 
@@ -175,7 +175,7 @@ fn parse_line(line: &str) -> Result<BoardResult, String> {
 }
 
 fn run_board() -> String {
-    let elf = support::build_image("golden-replay", &["golden-replay"]);
+    let elf = support::build_image(support::QEMU_IMAGES, "golden-replay", &[]);
     support::run_to_exit(
         &elf,
         &["-serial", "null"],

@@ -1,10 +1,10 @@
 //! The safe state: a panic or a hard fault must leave both DAC channels at the armed safe
 //! codes, written after everything else, before the core halts.
 //!
-//! Runs `src/bin/safe-state-probe.rs` (the firmware's own panic and hard-fault handler bodies)
-//! in QEMU with `-d unimp`: QEMU does not model the DAC but logs every write to it, so the
-//! sequence of `DHR12RD` values is visible. The probe arms left `0x123` / right `0x456`,
-//! writes a working pair `0x700` / `0x300`, then fails.
+//! Runs the `safe-state-probe` image (`qemu-images/src/bin/safe-state-probe/`: the firmware's
+//! own panic and hard-fault handler bodies) in QEMU with `-d unimp`: QEMU does not model the
+//! DAC but logs every write to it, so the sequence of `DHR12RD` values is visible. The probe
+//! arms left `0x123` / right `0x456`, writes a working pair `0x700` / `0x300`, then fails.
 
 mod support;
 
@@ -34,7 +34,7 @@ fn value_of(line: &str) -> Option<u32> {
 /// makes the probe fault instead of panicking. The probe halts for good, so QEMU is stopped
 /// once the safe write has been logged (or after 20 s).
 fn run_probe(hard_fault: bool) -> Log {
-    let elf = support::build_image("safe-state-probe", &["safe-state-probe"]);
+    let elf = support::build_image(support::QEMU_IMAGES, "safe-state-probe", &[]);
     let mut cmd = support::qemu_command(&elf);
     cmd.args(["-serial", "null", "-d", "unimp"]);
     let scratch = std::env::temp_dir().join(format!(

@@ -1,6 +1,6 @@
 //! Tick-cost bench: instructions per control tick in QEMU, and the firmware image's size.
 //!
-//! `cargo test --test tick_bench -- --nocapture` builds the `tick-bench` image and the board
+//! `cargo test --test tick_bench -- --nocapture` builds the `tick-bench` image (`qemu-images/`) and the board
 //! and emulator firmware images (into `target/firmware`), runs the bench in
 //! `qemu-system-arm -machine netduinoplus2 -icount shift=0` (one guest instruction per
 //! virtual nanosecond, TIM2 counting at 1 GHz, so counts are exact and repeatable) and prints
@@ -104,7 +104,7 @@ fn parse_part(line: &str) -> Result<Part, String> {
 }
 
 fn run_bench() -> (Vec<Row>, Vec<Part>) {
-    let elf = support::build_image("tick-bench", &["tick-bench"]);
+    let elf = support::build_image(support::QEMU_IMAGES, "tick-bench", &[]);
     let out = support::run_to_exit(
         &elf,
         &["-icount", "shift=0", "-serial", "null"],
@@ -222,9 +222,9 @@ fn tick_cost_table_and_image_size() {
 
     println!("\n| image | flash (bytes) | static RAM (bytes) |");
     println!("|---|---:|---:|");
-    let board = support::build_image("twinstack-fw", &[]);
-    let emu = support::build_image("twinstack-fw", &["emulator"]);
-    let bench = support::build_image("tick-bench", &["tick-bench"]);
+    let board = support::build_image(support::FIRMWARE, "twinstack-fw", &[]);
+    let emu = support::build_image(support::FIRMWARE, "twinstack-fw", &["emulator"]);
+    let bench = support::build_image(support::QEMU_IMAGES, "tick-bench", &[]);
     let mut board_size = None;
     for (label, path) in [
         ("twinstack-fw (board)", &board),

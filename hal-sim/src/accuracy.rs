@@ -4,10 +4,11 @@
 //! Errors are reported in LSB of a 16-bit output over the configured output range (forward
 //! models) or input range (inverse models): `LSB16 = span / 65536`.
 
+use crate::reference;
 use twinstack::duhem::{Duhem, InverseDuhem};
 use twinstack::fixed_point::{signal_from_f64 as q, signal_to_f64 as f};
 use twinstack::prandtl_ishlinskii::{InversePrandtlIshlinskii, PrandtlIshlinskii};
-use twinstack::{reference, DuhemParams, PiParams, Scaling, Thresholds};
+use twinstack::{DuhemParams, PiParams, Scaling, Thresholds};
 
 /// One LSB of a 16-bit converter over the normalised range [-1, 1].
 pub const LSB16: f64 = 2.0 / 65536.0;

@@ -12,7 +12,8 @@
 //! * [`stage_model`] — an identified model as the board runs it (scaling, sensor sign and
 //!   lag), run over whole records in fixed point and in the `f64` reference; [`plot`] — the
 //!   identification figure; [`output_file`] — outputs written only when complete.
-//! * [`accuracy`] — the fixed-point vs `f64` error table.
+//! * [`mod@reference`] — the `f64` reference of every model, the specification the library's
+//!   fixed-point code is checked against; [`accuracy`] — the fixed-point vs `f64` error table.
 //! * [`closed_loop`] — sensor feedback around the compensator: the tracking table and the
 //!   notch's step.
 //! * [`golden`] — golden vectors: generating them, and checking them against the `f64` tick.
@@ -37,6 +38,7 @@ pub mod output_file;
 pub mod param_file;
 pub mod plant;
 pub mod plot;
+pub mod reference;
 pub mod setpoint_file;
 pub mod sim_board;
 pub mod sim_device;

@@ -11,10 +11,11 @@
 //!   on the anhysteretic curve, `y0 = β u0 + δ`); inverse runs start relaxed at the first
 //!   desired output.
 
+use crate::reference;
 use twinstack::duhem::{Duhem, InverseDuhem};
 use twinstack::fixed_point::{signal_from_f64, signal_to_f64};
 use twinstack::prandtl_ishlinskii::{InversePrandtlIshlinskii, PrandtlIshlinskii};
-use twinstack::{reference, DuhemParams, ParamError, PiParams, Scaling};
+use twinstack::{DuhemParams, ParamError, PiParams, Scaling};
 
 /// The hysteresis model of a stage, in physical units. (Built once per command, so the
 /// size difference between the variants does not matter.)

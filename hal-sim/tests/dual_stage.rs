@@ -8,6 +8,7 @@ use hal_sim::dual_stage_sim::{
     Sample, Trajectory,
 };
 use hal_sim::plant::ball_screw::{BallScrew, BallScrewParams};
+use twinstack::board::fakes::FixedEncoder;
 use twinstack::board::{QuadratureEncoder, StepBurst, StepDir, StepDirection};
 use twinstack::dual_stage::{DualMode, PM_PER_UM};
 
@@ -317,7 +318,7 @@ fn backlash_after_a_reversal_is_taken_up_and_the_dual_stage_removes_the_rest() {
     assert!(dual * 1e3 < 5.0, "dual: {} nm", dual * 1e3);
 }
 
-/// Step output and encoders that return whatever the test says.
+/// A step output that records the bursts asked of it and refuses them when told to.
 struct Fuzzed {
     refuse: bool,
     burst_steps: Vec<u16>,
@@ -334,12 +335,6 @@ impl StepDir for Fuzzed {
         } else {
             Ok(())
         }
-    }
-}
-struct Raw(u16);
-impl QuadratureEncoder for Raw {
-    fn count(&mut self) -> u16 {
-        self.0
     }
 }
 
@@ -373,7 +368,7 @@ proptest::proptest! {
                 4 => out.refuse = !out.refuse,
                 _ => dual.hold(),
             }
-            let r = dual.coarse_tick(&mut out, &mut Raw(motor), &mut Raw(linear), piezo);
+            let r = dual.coarse_tick(&mut out, &mut FixedEncoder(motor), &mut FixedEncoder(linear), piezo);
             if let Some(to) = last_to {
                 proptest::prop_assert_eq!(r.fine.from, to);
             }

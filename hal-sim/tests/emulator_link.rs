@@ -41,7 +41,7 @@ impl Drop for Qemu {
 }
 
 fn boot() -> Qemu {
-    let elf = support::build_image("twinstack-fw", &["emulator"]);
+    let elf = support::build_image(support::FIRMWARE, "twinstack-fw", &["emulator"]);
     let scratch = std::env::temp_dir().join(format!("twinstack-host-link-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&scratch);
     std::fs::create_dir_all(&scratch).expect("scratch directory");

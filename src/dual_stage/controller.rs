@@ -400,6 +400,7 @@ mod tests {
     extern crate std;
     use super::super::DualStageSettings;
     use super::*;
+    use crate::board::fakes::FixedEncoder;
     use crate::board::{StepBurst, StepDirection};
     use std::vec;
     use std::vec::Vec;
@@ -425,12 +426,6 @@ mod tests {
             Ok(())
         }
     }
-    struct Counter(u16);
-    impl QuadratureEncoder for Counter {
-        fn count(&mut self) -> u16 {
-            self.0
-        }
-    }
 
     fn stage() -> DualStage {
         let mut s = DualStageSettings::paper_stage();
@@ -445,8 +440,8 @@ mod tests {
         let mut piezo_q = DualStage::to_q(&c, c.fine_centre_pm);
         for _ in 0..ticks {
             let x = axis.steps * c.step_pm + d.fine_to_pm(piezo_q);
-            let mut lin = Counter((x / c.linear_count_pm) as u16);
-            let r = d.coarse_tick(axis, &mut Counter(0), &mut lin, Some(piezo_q));
+            let mut lin = FixedEncoder((x / c.linear_count_pm) as u16);
+            let r = d.coarse_tick(axis, &mut FixedEncoder(0), &mut lin, Some(piezo_q));
             piezo_q = r.fine.to;
             out.push(r);
         }

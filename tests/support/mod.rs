@@ -1,7 +1,8 @@
 //! Shared by the tests that run the firmware in QEMU (`tests/emulator.rs`,
-//! `tests/tick_bench.rs`): make sure the prerequisites are installed, build firmware images
-//! (once per test run, serialised, into `target/firmware` so they never fight the host build
-//! for its lock), read an image's flash and RAM size, and run QEMU.
+//! `tests/tick_bench.rs`): check that the prerequisites are installed (`cargo xtask setup`
+//! installs them), build firmware images (once per test run, serialised, into
+//! `target/firmware` so they never fight the host build for its lock), read an image's flash
+//! and RAM size, and run QEMU.
 #![allow(dead_code)] // each test binary uses its own subset
 
 use std::collections::HashMap;
@@ -47,57 +48,29 @@ fn run_quiet(cmd: &mut Command) -> Result<(), String> {
     }
 }
 
-/// `rustup target add thumbv7em-none-eabihf` (idempotent), once per process.
+/// What to tell the user when a tool the QEMU tests need is missing.
+const SETUP_HINT: &str =
+    "run `cargo xtask setup` (it installs what the tests need), then the tests again";
+
+/// Checks that the firmware target's standard library is installed (in the sysroot of the
+/// `rustc` on the PATH); panics telling the user to run `cargo xtask setup` otherwise.
 pub fn ensure_target() {
-    static DONE: OnceLock<Result<(), String>> = OnceLock::new();
-    let r = DONE.get_or_init(|| {
-        run_quiet(Command::new("rustup").args(["target", "add", TARGET]))
-            .map_err(|e| format!("the firmware target is missing and could not be installed: {e}"))
-    });
-    if let Err(e) = r {
-        panic!("{e}");
-    }
-}
-
-fn qemu_works() -> bool {
-    Command::new("qemu-system-arm")
-        .arg("--version")
-        .stdin(Stdio::null())
-        .stdout(Stdio::null())
-        .stderr(Stdio::null())
-        .status()
-        .map(|s| s.success())
-        .unwrap_or(false)
-}
-
-/// Makes sure `qemu-system-arm` runs: if it is missing, installs Debian's package
-/// (`apt-get update && apt-get install -y qemu-system-arm`, non-interactive). Panics with what
-/// failed and how to install it by hand otherwise.
-pub fn ensure_qemu() {
-    static DONE: OnceLock<Result<(), String>> = OnceLock::new();
-    let r = DONE.get_or_init(|| {
-        if qemu_works() {
-            return Ok(());
-        }
-        let apt = |args: &[&str]| {
-            run_quiet(
-                Command::new("apt-get")
-                    .args(args)
-                    .env("DEBIAN_FRONTEND", "noninteractive"),
-            )
-        };
-        apt(&["update"])
-            .and_then(|_| apt(&["install", "-y", "qemu-system-arm"]))
-            .map_err(|e| {
-                format!(
-                    "qemu-system-arm is not installed and installing it failed \
-                     (install it with `apt-get install -y qemu-system-arm`, as root):\n{e}"
-                )
-            })?;
-        if qemu_works() {
+    static FOUND: OnceLock<Result<(), String>> = OnceLock::new();
+    let r = FOUND.get_or_init(|| {
+        let out = Command::new("rustc")
+            .args(["--print", "sysroot"])
+            .stdin(Stdio::null())
+            .output()
+            .map_err(|e| format!("cannot run rustc: {e}"))?;
+        let sysroot = PathBuf::from(String::from_utf8_lossy(&out.stdout).trim());
+        let lib = sysroot.join("lib").join("rustlib").join(TARGET);
+        if lib.is_dir() {
             Ok(())
         } else {
-            Err("qemu-system-arm was installed but does not run".to_string())
+            Err(format!(
+                "the firmware target {TARGET} is not installed (no {}): {SETUP_HINT}",
+                lib.display()
+            ))
         }
     });
     if let Err(e) = r {
@@ -105,11 +78,36 @@ pub fn ensure_qemu() {
     }
 }
 
-/// Builds firmware binary `bin` with `features` (release, for the target) into
-/// [`firmware_target_dir`] and returns the ELF's path. Each (bin, features) is built at most
-/// once per test process; concurrent callers wait for it (and cargo's own lock on the target
-/// directory serialises separate test processes).
-pub fn build_image(bin: &str, features: &[&str]) -> PathBuf {
+/// Checks that `qemu-system-arm` runs; panics telling the user to run `cargo xtask setup`
+/// otherwise.
+pub fn ensure_qemu() {
+    static FOUND: OnceLock<bool> = OnceLock::new();
+    let runs = *FOUND.get_or_init(|| {
+        Command::new("qemu-system-arm")
+            .arg("--version")
+            .stdin(Stdio::null())
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .status()
+            .is_ok_and(|s| s.success())
+    });
+    assert!(
+        runs,
+        "qemu-system-arm is not installed (or does not run): {SETUP_HINT}"
+    );
+}
+
+/// The package of the firmware itself (`twinstack-fw`).
+pub const FIRMWARE: &str = "twinstack";
+/// The package of the test-only images (`qemu-images/`: tick bench, safe-state probe,
+/// golden replay).
+pub const QEMU_IMAGES: &str = "twinstack-qemu-images";
+
+/// Builds binary `bin` of `package` ([`FIRMWARE`] or [`QEMU_IMAGES`]) with `features`
+/// (release, for the target) into [`firmware_target_dir`] and returns the ELF's path. Each
+/// (bin, features) is built at most once per test process; concurrent callers wait for it (and
+/// cargo's own lock on the target directory serialises separate test processes).
+pub fn build_image(package: &str, bin: &str, features: &[&str]) -> PathBuf {
     static BUILT: OnceLock<Mutex<HashMap<String, PathBuf>>> = OnceLock::new();
     ensure_target();
     let key = format!("{bin}|{}", features.join(","));
@@ -123,7 +121,8 @@ pub fn build_image(bin: &str, features: &[&str]) -> PathBuf {
     let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".to_string());
     let mut cmd = Command::new(cargo);
     cmd.current_dir(workspace_root())
-        .args(["build", "--release", "--target", TARGET, "--bin", bin])
+        .args(["build", "--release", "--target", TARGET])
+        .args(["-p", package, "--bin", bin])
         .arg("--target-dir")
         .arg(firmware_target_dir())
         // RUSTFLAGS from the environment would replace the target's link arguments in

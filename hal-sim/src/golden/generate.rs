@@ -11,11 +11,12 @@
 
 use super::scenario;
 use super::sets::{SetDefinition, Truth};
+use crate::reference;
 use anyhow::{anyhow, Context};
 use twinstack::golden::{
     config_fingerprint, format::encode_record, run_tick, Recipe, TickInput, TickOutput,
 };
-use twinstack::{reference, Scaling};
+use twinstack::Scaling;
 
 /// One generated set.
 #[derive(Clone, Debug)]

@@ -3,7 +3,7 @@
 //!
 //! * [`sets`] — the vector sets: each compensator (none, inverse P–I N = 8/16/32, inverse
 //!   Duhem) and each observer (none, P–I, Duhem), open and closed loop, on models identified
-//!   from `data/` (parameter files committed in `tests/golden/params/`).
+//!   from the repository's `data/` (parameter files committed in `tests/golden/params/`).
 //! * [`scenario`] — the setpoint and fault timeline every set runs.
 //! * [`generate`] — runs the library's tick in closed loop on a sensor model and records
 //!   inputs and outputs ([`twinstack::golden`] holds the file format and the replay).

@@ -1,6 +1,6 @@
 //! The whole tick in `f64`, and the check that stored vectors agree with it.
 //!
-//! The reference composes the library's `f64` models (`twinstack::reference`) with the tick's
+//! The reference composes the `f64` models (`crate::reference`) with the tick's
 //! other steps written out in real arithmetic from their documented semantics (`src/control.rs`,
 //! `src/feedback.rs`, `src/drive.rs`, the README's "Closed loop"): setpoint clamp and hold,
 //! feedforward, the sensor reading, the drift check, the PI feedback, range and slew limits,
@@ -38,12 +38,13 @@
 //! LSB16 = one LSB of a 16-bit converter over the normalised range: `2 / 65536`.
 
 use crate::accuracy::LSB16;
+use crate::reference;
 use twinstack::control::TickFlags;
 use twinstack::drive::Configuration;
 use twinstack::feedback::{DRIFT_FILTER_SHIFT, SENSOR_DELAY_TICKS};
 use twinstack::fixed_point::signal_to_f64;
 use twinstack::golden::{CompensatorChoice, ObserverChoice, Recipe, VectorSet};
-use twinstack::{reference, Scaling};
+use twinstack::Scaling;
 
 /// Largest |stored drive − reference drive|, LSB16.
 pub const DRIVE_BOUND_LSB16: f64 = 0.5;

@@ -422,9 +422,9 @@ pub fn identify(
 mod tests {
     use super::*;
     use crate::identification::score::score;
+    use crate::reference;
     use std::path::PathBuf;
     use twinstack::params::{PiParams, Thresholds};
-    use twinstack::reference;
 
     /// At rest for 50 samples, then a drive that steps to −80 V and follows a ±100 V sine;
     /// the reading is a known P–I plus an offset, with ringing after the step and one spike.

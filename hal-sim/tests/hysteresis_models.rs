@@ -4,11 +4,11 @@
 //! Bounds are stated in LSB of a 16-bit output spanning the configured output range
 //! (`LSB16 = 2 / 65536` in normalised units).
 
+use hal_sim::reference;
 use proptest::prelude::*;
 use twinstack::duhem::{Duhem, InverseDuhem};
 use twinstack::fixed_point::{signal_from_f64 as q, signal_to_f64 as f};
 use twinstack::prandtl_ishlinskii::{InversePrandtlIshlinskii, PrandtlIshlinskii};
-use twinstack::reference;
 use twinstack::{DuhemParams, ParamError, PiParams, Scaling, Thresholds};
 
 /// One LSB of a 16-bit converter over the normalised range [-1, 1].

@@ -1,9 +1,10 @@
 //! `f64` reference implementations of every model, in physical units (volts in, output units
 //! out). They are the specification the fixed-point code is checked against: same equations,
-//! same clamps, no quantisation. They allocate nothing, but are not meant for the tick.
+//! same clamps, no quantisation. They allocate nothing, but are not meant for the tick: they
+//! live here, on the host, and not in the firmware's library.
 
-use crate::params::{CanonicalPi, DuhemParams, ParamError, PiParams};
-use crate::scaling::Scaling;
+use twinstack::params::{CanonicalPi, DuhemParams, ParamError, PiParams};
+use twinstack::scaling::Scaling;
 
 /// Play operator: `max(u − r, min(u + r, p))`.
 pub fn play(u: f64, r: f64, p: f64) -> f64 {
@@ -18,7 +19,7 @@ fn clamp(x: f64, lo: f64, hi: f64) -> f64 {
 #[derive(Clone, Debug, PartialEq)]
 pub struct PlaySum {
     model: CanonicalPi,
-    states: heapless::Vec<f64, { crate::params::MAX_CANONICAL_OPERATORS }>,
+    states: heapless::Vec<f64, { twinstack::params::MAX_CANONICAL_OPERATORS }>,
 }
 
 impl PlaySum {
@@ -212,7 +213,7 @@ impl InverseDuhem {
 }
 
 /// A biquad in `f64`, direct form I (`a₀ = 1`): the reference the fixed-point
-/// [`crate::notch::Notch`] is checked against.
+/// [`twinstack::notch::Notch`] is checked against.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Biquad {
     b: [f64; 3],

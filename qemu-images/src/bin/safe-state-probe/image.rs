@@ -1,18 +1,4 @@
-//! # safe-state-probe — drives the firmware's panic and hard-fault paths in QEMU
-//!
-//! A test image for `tests/safe_state.rs`. It sets the DAC up the way the firmware does,
-//! arms the safe codes (left `0x123`, right `0x456`), writes a working pair (`0x700`,
-//! `0x300`) as a tick would, and then fails: with a panic, or — when the first byte of the
-//! parameter sector is `1` (QEMU `-device loader,file=<one byte 0x01>,addr=0x080e0000`) — with a
-//! hard fault (an undefined instruction, escalated because UsageFault is not enabled). Its
-//! panic and hard-fault handlers are the firmware's own
-//! ([`safe_state::stop_on_panic`], [`safe_state::stop_on_fault`]).
-//!
-//! QEMU ignores DAC writes but logs them with `-d unimp`, so the test reads the sequence of
-//! `DHR12RD` values (`right << 16 | left`) and expects the safe pair last; each handler first
-//! writes a marker to GPIOA's ODR (also logged) so the test knows which path ran.
-#![no_std]
-#![no_main]
+//! The image itself (built for the target only; see the crate docs in `main.rs`).
 
 use cortex_m_rt::{entry, exception, ExceptionFrame};
 use defmt_rtt as _;
