@@ -81,6 +81,7 @@ mod app {
     use twinstack::hardware::param_flash;
     use twinstack::hardware::safe_state;
     use twinstack::hardware::usart::{self, UsartRx, UsartTx};
+    use twinstack::hardware::tick::{BoardLoop, ControlTick};
     use twinstack::hardware::watchdog::Watchdog;
     #[cfg(feature = "emulator")]
     use twinstack::param_store::ReadOnlyStorage;
@@ -92,11 +93,6 @@ mod app {
     /// response the handler sends (blocking) while bytes keep arriving.
     const RX_QUEUE: usize = 1024;
 
-    /// The recorder's buffer (static RAM).
-    type RecordBuffer = &'static mut [i32; RECORD_CAPACITY];
-    /// The tick's loop: two controllers in statics, passed by pointer between the tick and
-    /// the command handler.
-    type Loop = ControlLoop<RecordBuffer, &'static mut Controller>;
     /// The parameter storage: flash sector 11 on the board; read-only in the emulator (QEMU
     /// does not model the flash interface).
     #[cfg(not(feature = "emulator"))]
@@ -104,37 +100,12 @@ mod app {
     #[cfg(feature = "emulator")]
     type Storage = ReadOnlyStorage<'static>;
 
-    /// Everything the control interrupt owns.
-    pub struct ControlTick {
-        control: Loop,
-        adc: SensorInput,
-        dac: InternalDac,
-        timer: ControlTimer,
-        watchdog: Watchdog,
-        setpoints: Consumer<'static, i16, SETPOINT_QUEUE_LEN>,
-    }
-
-    impl ControlTick {
-        /// One tick; see the file header. No allocation, no panic path, no loop.
-        #[inline(always)]
-        fn run(&mut self) {
-            self.timer.acknowledge();
-            let _report = self
-                .control
-                .tick(&mut self.setpoints, &mut self.adc, &mut self.dac);
-            self.watchdog.feed();
-            if self.timer.next_tick_already_due() {
-                self.control.count_overrun();
-            }
-        }
-    }
-
     /// The command handler's lock on the control loop: RTIC's lock on the whole tick
     /// resource, handing on only the loop.
     struct LoopLock<M>(M);
 
     impl<M: rtic::Mutex<T = ControlTick>> rtic::Mutex for LoopLock<M> {
-        type T = Loop;
+        type T = BoardLoop;
 
         fn lock<R>(&mut self, f: impl FnOnce(&mut Self::T) -> R) -> R {
             self.0.lock(|t| f(&mut t.control))

@@ -28,5 +28,6 @@ pub mod control_timer;
 pub mod dac;
 pub mod param_flash;
 pub mod safe_state;
+pub mod tick;
 pub mod usart;
 pub mod watchdog;

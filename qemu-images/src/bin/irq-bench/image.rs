@@ -1,0 +1,359 @@
+//! The image itself (built for the target only; see the crate docs in `main.rs`).
+
+use cortex_m_semihosting::{debug, hprintln};
+use defmt_rtt as _;
+
+#[panic_handler]
+fn panic(info: &core::panic::PanicInfo) -> ! {
+    hprintln!("BENCH-PANIC {}", info);
+    debug::exit(debug::EXIT_FAILURE);
+    loop {
+        cortex_m::asm::wfi();
+    }
+}
+
+/// Called between scenarios: its name in QEMU's exec trace splits the trace.
+#[inline(never)]
+#[no_mangle]
+pub extern "C" fn irq_bench_marker(n: u32) -> u32 {
+    core::hint::black_box(n)
+}
+
+/// The scenarios' setpoints, Q1.15, one per tick (divider 1).
+pub mod scenarios {
+    /// Ticks each scenario streams.
+    pub const TICKS: u32 = 1500;
+
+    /// A scenario: its name and the setpoint for tick `k`.
+    pub struct Scenario {
+        /// Printed before it runs.
+        pub name: &'static str,
+        /// Setpoint of tick `k`, Q1.15.
+        pub setpoint: fn(u32) -> i16,
+        /// Settings changes mid-stream: reload at tick 500, open loop at 800, closed loop at
+        /// 1100.
+        pub lifecycle: bool,
+    }
+
+    const FULL: i32 = 32767;
+
+    fn triangle(k: u32) -> i16 {
+        // ±0.95, reversing every 100 ticks.
+        let a = (FULL * 95 / 100) as i64;
+        let phase = (k % 200) as i64;
+        let v = if phase < 100 {
+            -a + 2 * a * phase / 100
+        } else {
+            a - 2 * a * (phase - 100) / 100
+        };
+        v as i16
+    }
+
+    fn sine_750hz(k: u32) -> i16 {
+        // 750 Hz at 50 kHz: a period of 66.67 ticks; a parabolic sine (no libm needed).
+        let period = 50_000.0f32 / 750.0;
+        let x = (k as f32 / period) % 1.0; // 0…1
+        let s = if x < 0.5 {
+            16.0 * x * (0.5 - x)
+        } else {
+            -16.0 * (x - 0.5) * (1.0 - x)
+        };
+        (s * 0.95 * FULL as f32) as i16
+    }
+
+    fn steps(k: u32) -> i16 {
+        if k % 2 == 0 {
+            FULL as i16
+        } else {
+            -(FULL as i16)
+        }
+    }
+
+    fn random(k: u32) -> i16 {
+        let mut x = k.wrapping_mul(2_654_435_761).wrapping_add(0x9E37_79B9);
+        x ^= x >> 15;
+        x = x.wrapping_mul(0x2C1B_3C6D);
+        x ^= x >> 12;
+        (x >> 16) as i16
+    }
+
+    fn nested_loops(k: u32) -> i16 {
+        // Reversals of shrinking amplitude about 0 (20 ticks apart), every 200 ticks ended by
+        // a full-range jump: the P–I memory fills up and is wiped out at once.
+        let cycle = k % 200;
+        if cycle == 199 {
+            return if (k / 200) % 2 == 0 { FULL as i16 } else { -(FULL as i16) };
+        }
+        let level = (cycle / 20) as i32;
+        let amplitude = FULL - level * (FULL / 10);
+        if level % 2 == 0 {
+            amplitude as i16
+        } else {
+            -amplitude as i16
+        }
+    }
+
+    /// Every scenario, in the order they run.
+    pub const ALL: [Scenario; 6] = [
+        Scenario { name: "triangle", setpoint: triangle, lifecycle: false },
+        Scenario { name: "sine-750Hz", setpoint: sine_750hz, lifecycle: false },
+        Scenario { name: "full-range-steps", setpoint: steps, lifecycle: false },
+        Scenario { name: "random", setpoint: random, lifecycle: false },
+        Scenario { name: "nested-loops", setpoint: nested_loops, lifecycle: false },
+        Scenario { name: "reload-and-mode-switches", setpoint: triangle, lifecycle: true },
+    ];
+}
+
+/// The configurations a user can load, as the bench measures them.
+pub mod configs {
+    use twinstack::settings::{
+        representative_duhem, representative_pi, FeedbackSettings, Mode, SensorSettings,
+        Settings,
+    };
+
+    /// A named configuration.
+    pub struct Config {
+        /// Printed with the scenario.
+        pub name: &'static str,
+        /// The settings.
+        pub settings: Settings,
+    }
+
+    fn closed(compensator: twinstack::settings::Model, observer: twinstack::settings::Model) -> Settings {
+        Settings {
+            compensator: Some(compensator),
+            observer: Some(observer),
+            sensor: Some(SensorSettings {
+                displacement_at_zero: 0.0,
+                displacement_at_full_scale: 70.0,
+                drift_limit: Some(0.02),
+            }),
+            feedback: Some(FeedbackSettings::pi(0.2, 500.0, 0.1)),
+            mode: Mode::ClosedLoop,
+            ..Settings::default()
+        }
+    }
+
+    /// The configurations, in the order they run. `None` if a representative model is
+    /// refused (it is not: the tests check it).
+    pub fn all() -> Option<[Config; 2]> {
+        let pi = representative_pi(16).ok()?;
+        Some([
+            Config {
+                name: "inverse-pi16+pi16-observer+pi+drift",
+                settings: closed(pi.clone(), pi),
+            },
+            Config {
+                name: "inverse-duhem+duhem-observer+pi+drift",
+                settings: closed(representative_duhem(), representative_duhem()),
+            },
+        ])
+    }
+}
+
+#[rtic::app(device = stm32f4xx_hal::pac, peripherals = true)]
+mod app {
+    use heapless::spsc::{Producer, Queue};
+    use stm32f4xx_hal::gpio::GpioExt;
+
+    use twinstack::board::Hardware;
+    use twinstack::control::Controller;
+    use twinstack::control_loop::{SetpointQueue, SETPOINT_QUEUE_LEN};
+    use twinstack::control_loop::ControlLoop;
+    use twinstack::hardware::adc::SensorInput;
+    use twinstack::hardware::clocks;
+    use twinstack::hardware::control_timer::ControlTimer;
+    use twinstack::hardware::dac::InternalDac;
+    use twinstack::hardware::tick::{BoardLoop, ControlTick};
+    use twinstack::hardware::watchdog::Watchdog;
+    use twinstack::param_store::ReadOnlyStorage;
+    use twinstack::protocol::handler::CommandHandler;
+    use twinstack::protocol::messages::{
+        RecordRequest, Request, Response, SetpointBatch, Signal, StreamControl, MAX_BATCH,
+    };
+    use twinstack::recorder::RECORD_CAPACITY;
+    use twinstack::settings::{Mode, Settings};
+
+    use cortex_m_semihosting::{debug, hprintln};
+
+    use super::{configs, irq_bench_marker, scenarios};
+
+    /// The control rate the bench runs at, Hz.
+    const RATE_HZ: u32 = 50_000;
+
+    /// The command handler's lock on the control loop (as the firmware's).
+    struct LoopLock<M>(M);
+
+    impl<M: rtic::Mutex<T = ControlTick>> rtic::Mutex for LoopLock<M> {
+        type T = BoardLoop;
+
+        fn lock<R>(&mut self, f: impl FnOnce(&mut Self::T) -> R) -> R {
+            self.0.lock(|t| f(&mut t.control))
+        }
+    }
+
+    #[shared]
+    struct Shared {
+        tick: ControlTick,
+    }
+
+    #[local]
+    struct Local {
+        handler: CommandHandler<ReadOnlyStorage<'static>>,
+        setpoints_in: Producer<'static, i16, SETPOINT_QUEUE_LEN>,
+    }
+
+    #[init(local = [
+        setpoint_queue: SetpointQueue = Queue::new(),
+        record_buffer: [i32; RECORD_CAPACITY] = [0; RECORD_CAPACITY],
+    ])]
+    fn init(cx: init::Context) -> (Shared, Local) {
+        let dp = cx.device;
+        let (mut rcc, bus) = clocks::configure(dp.RCC);
+        let gpioa = dp.GPIOA.split(&mut rcc);
+        let _dac_left = gpioa.pa4.into_analog();
+        let _dac_right = gpioa.pa5.into_analog();
+        let _sensor = gpioa.pa0.into_analog();
+        let timer = ControlTimer::start(cx.core.SYST, &bus, RATE_HZ);
+        let hardware = Hardware::driver_board(timer.rate_hz() as f64);
+        let settings = Settings::default();
+        let Ok(config) = settings.build(&hardware) else {
+            panic!("defaults refused");
+        };
+        let (Some(active), Some(spare)) = (
+            cortex_m::singleton!(ACTIVE: Controller = Controller::new(config)),
+            cortex_m::singleton!(SPARE: Controller = Controller::new(config)),
+        ) else {
+            panic!("controllers already taken");
+        };
+        let control = ControlLoop::new(active, spare, timer.rate_hz(), cx.local.record_buffer);
+        let (safe_left, safe_right) = control.safe_codes();
+        let dac = InternalDac::new(dp.DAC, &rcc, (safe_left, safe_right));
+        let adc = SensorInput::new(dp.ADC1, &dp.ADC_COMMON, &rcc);
+        let watchdog = Watchdog::start(dp.IWDG, &dp.DBGMCU);
+        let handler = CommandHandler::new(hardware, settings, true, ReadOnlyStorage(&[]));
+        let (setpoints_in, setpoints) = cx.local.setpoint_queue.split();
+        (
+            Shared {
+                tick: ControlTick {
+                    control,
+                    adc,
+                    dac,
+                    timer,
+                    watchdog,
+                    setpoints,
+                },
+            },
+            Local {
+                handler,
+                setpoints_in,
+            },
+        )
+    }
+
+    /// The control tick: exactly the firmware's emulator binding.
+    #[task(binds = SysTick, priority = 3, shared = [tick])]
+    fn systick_tick(mut cx: systick_tick::Context) {
+        cx.shared.tick.lock(|t| t.run());
+    }
+
+    /// The host: requests through the command handler, one scenario after another.
+    #[idle(shared = [tick], local = [handler, setpoints_in])]
+    fn idle(cx: idle::Context) -> ! {
+        let handler = cx.local.handler;
+        let producer = cx.local.setpoints_in;
+        let mut lock = LoopLock(cx.shared.tick);
+        let mut ask = |request: Request| -> Response {
+            handler.handle(request, producer, &mut lock)
+        };
+        let Some(configs) = configs::all() else {
+            panic!("configuration refused");
+        };
+        let mut seq = 0u16;
+        let mut marker = 0u32;
+        for config in &configs {
+            expect_ack(ask(Request::LoadParams(config.settings.clone())), "load");
+            for scenario in &scenarios::ALL {
+                // A fresh capture per scenario: the recorder runs throughout.
+                expect_ack(
+                    ask(Request::Record(RecordRequest {
+                        signal: Signal::Drive,
+                        count: RECORD_CAPACITY as u32,
+                        decimation: 1,
+                    })),
+                    "record",
+                );
+                marker += 1;
+                irq_bench_marker(marker);
+                hprintln!("SCENARIO {}/{}", config.name, scenario.name);
+                let mut k = 0u32;
+                let mut started = false;
+                let mut changed = 0u8;
+                loop {
+                    // Fill the queue as far as the credits go.
+                    if k < scenarios::TICKS {
+                        let credits = match ask(Request::Status) {
+                            Response::Status(s) => s.credits as u32,
+                            _ => 0,
+                        };
+                        let n = credits.min(MAX_BATCH as u32).min(scenarios::TICKS - k);
+                        if n >= 32 || (n > 0 && k + n == scenarios::TICKS) {
+                            let samples = (k..k + n).map(scenario.setpoint).collect();
+                            expect_ack(
+                                ask(Request::Setpoints(SetpointBatch { seq, samples })),
+                                "setpoints",
+                            );
+                            seq = seq.wrapping_add(1);
+                            k += n;
+                        }
+                    }
+                    if !started {
+                        expect_ack(ask(Request::Stream(StreamControl::Start)), "start");
+                        started = true;
+                    }
+                    let (fill, ticks_played) = match ask(Request::Status) {
+                        Response::Status(s) => (s.queue_fill as u32, k - s.queue_fill as u32),
+                        _ => (0, 0),
+                    };
+                    if scenario.lifecycle {
+                        let reload = configs.iter().rev().find(|c| c.name != config.name);
+                        if changed == 0 && ticks_played >= 500 {
+                            if let Some(other) = reload {
+                                expect_ack(ask(Request::LoadParams(other.settings.clone())), "reload");
+                            }
+                            changed = 1;
+                        } else if changed == 1 && ticks_played >= 800 {
+                            expect_ack(ask(Request::Mode(Mode::OpenLoop)), "open loop");
+                            changed = 2;
+                        } else if changed == 2 && ticks_played >= 1100 {
+                            expect_ack(ask(Request::Mode(Mode::ClosedLoop)), "closed loop");
+                            changed = 3;
+                        }
+                    }
+                    if k >= scenarios::TICKS && fill == 0 {
+                        break;
+                    }
+                    cortex_m::asm::wfi();
+                }
+                expect_ack(ask(Request::Stream(StreamControl::Stop)), "stop");
+                if scenario.lifecycle {
+                    // Back to this configuration for the next scenario.
+                    expect_ack(ask(Request::LoadParams(config.settings.clone())), "load");
+                }
+            }
+        }
+        irq_bench_marker(u32::MAX);
+        hprintln!("DONE");
+        debug::exit(debug::EXIT_SUCCESS);
+        loop {
+            cortex_m::asm::wfi();
+        }
+    }
+
+    fn expect_ack(r: Response, what: &str) {
+        if !matches!(r, Response::Ack { .. }) {
+            hprintln!("BENCH-REFUSED {} {:?}", what, r);
+            debug::exit(debug::EXIT_FAILURE);
+        }
+    }
+}

@@ -1,0 +1,53 @@
+//! The control interrupt's body, shared by the firmware (`src/bin/twinstack-fw.rs`) and the
+//! whole-interrupt bench image (`qemu-images`, `irq-bench`), so that the bench measures the
+//! very code the board runs: acknowledge the timer, [`ControlLoop::tick`] on the board's
+//! converters, feed the watchdog, count an overrun.
+
+use heapless::spsc::Consumer;
+
+use crate::control::Controller;
+use crate::control_loop::{ControlLoop, SETPOINT_QUEUE_LEN};
+use crate::recorder::RECORD_CAPACITY;
+
+use super::adc::SensorInput;
+use super::control_timer::ControlTimer;
+use super::dac::InternalDac;
+use super::watchdog::Watchdog;
+
+/// The recorder's buffer (static RAM).
+pub type RecordBuffer = &'static mut [i32; RECORD_CAPACITY];
+
+/// The tick's loop on the board: two controllers in statics, passed by pointer between the
+/// tick and the command handler.
+pub type BoardLoop = ControlLoop<RecordBuffer, &'static mut Controller>;
+
+/// Everything the control interrupt owns.
+pub struct ControlTick {
+    /// The loop: setpoint stream, controller, recorder.
+    pub control: BoardLoop,
+    /// The sensor's ADC.
+    pub adc: SensorInput,
+    /// Both stacks' DAC channels.
+    pub dac: InternalDac,
+    /// The control timer (TIM2 on the board, SysTick in the emulator).
+    pub timer: ControlTimer,
+    /// The independent watchdog.
+    pub watchdog: Watchdog,
+    /// The setpoint queue's consumer end.
+    pub setpoints: Consumer<'static, i16, SETPOINT_QUEUE_LEN>,
+}
+
+impl ControlTick {
+    /// One tick. No allocation, no panic path, no loop.
+    #[inline(always)]
+    pub fn run(&mut self) {
+        self.timer.acknowledge();
+        let _report = self
+            .control
+            .tick(&mut self.setpoints, &mut self.adc, &mut self.dac);
+        self.watchdog.feed();
+        if self.timer.next_tick_already_due() {
+            self.control.count_overrun();
+        }
+    }
+}
