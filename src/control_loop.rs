@@ -170,13 +170,14 @@ where
         self.spare = Some(spare);
     }
 
-    /// Switches the mode between two ticks (O(1), see [`Controller::set_mode`]); a reload
-    /// still waiting is switched too.
+    /// Switches the mode between two ticks (O(1), see [`Controller::set_mode`]). While a
+    /// reload waits, it is the reload that is switched (and checked): it takes over at the
+    /// next tick, and the controller it replaces may lack what the mode needs.
     pub fn set_mode(&mut self, mode: Mode) -> Result<(), ModeError> {
-        if let Some(p) = self.pending.as_mut() {
-            p.set_mode(mode)?;
+        match self.pending.as_mut() {
+            Some(p) => p.set_mode(mode),
+            None => self.controller.set_mode(mode),
         }
-        self.controller.set_mode(mode)
     }
 
     /// Counts a tick that overran (the board's timer sees the next one already due).
@@ -239,6 +240,11 @@ where
         out: &mut heapless::Vec<i32, MAX_CHUNK>,
     ) -> Result<(), RecordError> {
         self.recorder.read(offset, out)
+    }
+
+    /// Values the recorder holds (what a read may reach).
+    pub fn recorded(&self) -> u32 {
+        self.recorder.recorded()
     }
 
     /// Most values one capture holds.
