@@ -628,7 +628,8 @@ fn every_refusal_names_its_field_and_its_limit() {
         edit(&mut s);
         b.handle(Request::LoadParams(s))
     };
-    let cases: Vec<(&str, Box<dyn Fn(&mut Settings)>, Response)> = vec![
+    type Edit = Box<dyn Fn(&mut Settings)>;
+    let cases: Vec<(&str, Edit, Response)> = vec![
         (
             "ki above rate/2",
             Box::new(|s| s.feedback.as_mut().unwrap().ki = 30_000.0),
