@@ -170,9 +170,9 @@ where
         self.spare = Some(spare);
     }
 
-    /// Switches the mode between two ticks (O(1), see [`Controller::set_mode`]). With a
-    /// reload waiting, it is the waiting configuration that switches (it takes over at the
-    /// next tick).
+    /// Switches the mode between two ticks (O(1), see [`Controller::set_mode`]). While a
+    /// reload waits, it is the reload that is switched (and checked): it takes over at the
+    /// next tick, and the controller it replaces may lack what the mode needs.
     pub fn set_mode(&mut self, mode: Mode) -> Result<(), ModeError> {
         match self.pending.as_mut() {
             Some(p) => p.set_mode(mode),
@@ -240,6 +240,11 @@ where
         out: &mut heapless::Vec<i32, MAX_CHUNK>,
     ) -> Result<(), RecordError> {
         self.recorder.read(offset, out)
+    }
+
+    /// Values the recorder holds (what a read may reach).
+    pub fn recorded(&self) -> u32 {
+        self.recorder.recorded()
     }
 
     /// Most values one capture holds.

@@ -1,23 +1,50 @@
 //! The board's command handler against every request and every NACK reason, on the same
 //! control loop the firmware runs (fake converters): each request gets one response; a
-//! refused one applies nothing and loses nothing queued; a load is swapped in between ticks.
+//! refused one applies nothing and loses nothing queued, and its NACK names the field and
+//! the rule (with its limit) it broke; a load is prepared off the tick and swapped in between
+//! two ticks; the board boots as the firmware does (`param_store::load_record` + `boot`).
+
+use core::convert::Infallible;
 
 use rtic_core::Exclusive;
-use twinstack::board::fakes::{FixedAdc, RecordingDac};
-use twinstack::board::{AdcCode, DacCode};
+use twinstack::board::{AdcCode, DacCode, DualDac, Hardware, SensorAdc};
+use twinstack::control::Controller;
 use twinstack::control_loop::{ControlLoop, SetpointQueue, SETPOINT_CAPACITY};
-use twinstack::default_config::{board_profile, boot_param_set};
-use twinstack::drive::{DriveError, SafeState};
+use twinstack::drive::SafeState;
 use twinstack::param_store::{
-    BoardSettings, RamStorage, ReadOnlyStorage, RecordStorage, StorageError,
+    self, RamStorage, ReadOnlyStorage, RecordStorage, StorageError, StoredRecord, MAX_RECORD,
 };
-use twinstack::params::ParamError;
 use twinstack::protocol::decoder::FrameDecoder;
 use twinstack::protocol::frame::{self, FrameError, MAX_ENCODED, PROTOCOL_VERSION};
 use twinstack::protocol::handler::CommandHandler;
 use twinstack::protocol::messages::*;
-use twinstack::protocol::param_load::BoardProfile;
-use twinstack::settings::Mode;
+use twinstack::refusal::{Field, ModelField, Refusal, Rule};
+use twinstack::settings::{
+    representative_duhem, representative_pi, FeedbackSettings, Mode, Model, NotchDesign,
+    SensorSettings, Settings,
+};
+
+struct Dac(DacCode, DacCode);
+impl DualDac for Dac {
+    type Error = Infallible;
+    fn full_scale(&self) -> DacCode {
+        DacCode(4095)
+    }
+    fn write_both(&mut self, l: DacCode, r: DacCode) -> Result<(), Infallible> {
+        (self.0, self.1) = (l, r);
+        Ok(())
+    }
+}
+struct Adc(u32);
+impl SensorAdc for Adc {
+    type Error = Infallible;
+    fn full_scale(&self) -> AdcCode {
+        AdcCode(4095)
+    }
+    fn read(&mut self) -> Result<AdcCode, Infallible> {
+        Ok(AdcCode(self.0))
+    }
+}
 
 /// Storage whose writes always fail (a flash that does not program).
 struct BrokenFlash([u8; 16]);
@@ -31,39 +58,86 @@ impl RecordStorage for BrokenFlash {
 }
 
 const RATE: u32 = 50_000;
+/// Values the recorder's buffer holds.
+const RECORD_LEN: usize = 4096;
+
+fn hardware() -> Hardware {
+    Hardware::driver_board(RATE as f64)
+}
 
 /// A board: handler, control loop, queue, converters.
 struct Board<S> {
     handler: CommandHandler<S>,
-    control: ControlLoop<Vec<i32>>,
+    control: ControlLoop<Vec<i32>, Box<Controller>>,
     queue: &'static mut SetpointQueue,
-    dac: RecordingDac,
-    adc: FixedAdc,
+    dac: Dac,
+    adc: Adc,
 }
 
-fn board_with<S: RecordStorage>(storage: S, profile: BoardProfile) -> Board<S> {
-    let settings = BoardSettings {
-        tick_rate_hz: RATE,
-        safe_state: SafeState::Bias,
-    };
-    let (handler, tick) = CommandHandler::boot(
-        profile,
-        settings,
-        storage,
-        boot_param_set(SafeState::Bias).unwrap(),
-    )
-    .expect("boot parameters valid");
+/// A board booted from `storage` on `hw` exactly as the firmware boots: the stored record if
+/// it is sound and holds here, else the compiled-in defaults (bypass, no model).
+fn board_on<S: RecordStorage>(storage: S, hw: Hardware) -> Board<S> {
+    let (record, source) = param_store::load_record(storage.read(), &hw);
+    let (settings, config, defaults) =
+        param_store::boot(record, source, &hw).expect("the defaults hold on the driver board");
     Board {
-        handler,
-        control: ControlLoop::new(tick, RATE, vec![0; 4096]),
+        handler: CommandHandler::new(hw, settings, defaults, storage),
+        control: ControlLoop::new(
+            Box::new(Controller::new(config)),
+            Box::new(Controller::new(config)),
+            RATE,
+            vec![0; RECORD_LEN],
+        ),
         queue: Box::leak(Box::new(SetpointQueue::new())),
-        dac: RecordingDac::default(),
-        adc: FixedAdc(Some(AdcCode(2048))),
+        dac: Dac(DacCode(0), DacCode(0)),
+        adc: Adc(2048),
     }
 }
 
+fn board_with<S: RecordStorage>(storage: S) -> Board<S> {
+    board_on(storage, hardware())
+}
+
+/// A fresh board: erased flash, so bypass on the defaults.
 fn board() -> Board<RamStorage> {
-    board_with(RamStorage::default(), board_profile(RATE as f64))
+    board_with(RamStorage::default())
+}
+
+/// A fresh board with [`closed`] loaded and swapped in.
+fn closed_board() -> Board<RamStorage> {
+    let mut b = board();
+    assert!(matches!(
+        b.handle(Request::LoadParams(closed())),
+        Response::Ack { .. }
+    ));
+    b.ticks(1);
+    b
+}
+
+/// Valid closed-loop settings with every optional float present: a 16-operator P–I
+/// compensator, a Duhem observer, a drift limit, PID feedback with a notch.
+fn closed() -> Settings {
+    let mut s = Settings {
+        compensator: Some(representative_pi(16).unwrap()),
+        observer: Some(representative_duhem()),
+        feedback: Some(FeedbackSettings {
+            kd: 1e-6,
+            derivative_cutoff_hz: 5_000.0,
+            notch: Some(NotchDesign {
+                frequency_hz: 2_000.0,
+                q: 2.0,
+                depth: 0.1,
+            }),
+            ..FeedbackSettings::pi(0.2, 500.0, 0.1)
+        }),
+        mode: Mode::ClosedLoop,
+        ..Settings::default()
+    };
+    s.sensor = Some(SensorSettings {
+        drift_limit: Some(0.2),
+        ..s.sensor.unwrap()
+    });
+    s
 }
 
 impl<S: RecordStorage> Board<S> {
@@ -98,8 +172,19 @@ impl<S: RecordStorage> Board<S> {
         }
     }
 
+    fn read_params(&mut self) -> Settings {
+        match self.handle(Request::ReadParams) {
+            Response::Params(s) => s,
+            r => panic!("{r:?}"),
+        }
+    }
+
     fn queued(&mut self) -> Vec<i16> {
         self.queue.iter().copied().collect()
+    }
+
+    fn outputs(&self) -> (DacCode, DacCode) {
+        (self.dac.0, self.dac.1)
     }
 }
 
@@ -131,10 +216,16 @@ fn nack(reason: NackReason) -> Response {
     Response::Nack { reason }
 }
 
-/// Refused requests leave everything as it was: the queue, the settings, the sequence.
-fn assert_nothing_changed<S: RecordStorage>(b: &mut Board<S>, queued: &[i16], params: &ParamSet) {
+fn refused(field: Field, rule: Rule) -> Response {
+    nack(NackReason::Refused(Refusal::new(field, rule)))
+}
+
+/// Refused requests leave everything as it was: the queue, the settings (as the handler holds
+/// them and as `ReadParams` reports them), the sequence; nothing was posted to the tick.
+fn assert_nothing_changed<S: RecordStorage>(b: &mut Board<S>, queued: &[i16], settings: &Settings) {
     assert_eq!(b.queued(), queued, "queued setpoints lost or added");
-    assert_eq!(b.handler.params(), params, "parameters changed");
+    assert_eq!(b.handler.settings(), settings, "settings changed");
+    assert_eq!(&b.read_params(), settings, "settings read back changed");
     assert!(
         !b.control.telemetry().config_pending,
         "a configuration was posted"
@@ -150,7 +241,7 @@ fn setpoint_batches_need_the_next_sequence_number_and_room() {
             credits: SETPOINT_CAPACITY as u16 - 3
         }
     );
-    let params = b.handler.params().clone();
+    let params = b.handler.settings().clone();
     // Out of sequence: refused, nothing queued.
     assert_eq!(
         b.handle(batch(7, &[9; 10])),
@@ -195,7 +286,7 @@ fn stream_control_starts_stops_sets_the_rate_and_the_underrun_policy() {
     ));
     assert_eq!(
         b.handle(Request::Stream(StreamControl::Rate { divider: 0 })),
-        nack(NackReason::OutOfRange)
+        refused(Field::Divider, Rule::AtLeast(1.0))
     );
     assert!(matches!(
         b.handle(Request::Stream(StreamControl::Rate { divider: 2 })),
@@ -244,80 +335,393 @@ fn stream_control_starts_stops_sets_the_rate_and_the_underrun_policy() {
 fn a_parameter_load_is_validated_whole_and_swapped_in_between_two_ticks() {
     let mut b = board();
     b.ticks(10);
-    let mut p = boot_param_set(SafeState::Zero).unwrap();
+    let mut p = closed();
+    p.drive.safe_state = SafeState::Zero;
     p.mode = Mode::OpenLoop;
     assert!(matches!(
         b.handle(Request::LoadParams(p.clone())),
         Response::Ack { .. }
     ));
-    // Posted, not yet applied: the tick in force still runs the old configuration.
+    // Prepared and posted, not yet applied: the tick in force still runs the boot settings.
     assert!(b.control.telemetry().config_pending);
-    assert_eq!(b.control.controller().mode(), Mode::ClosedLoop);
+    assert_eq!(b.control.controller().mode(), Mode::Bypass);
     let s = b.status();
     assert!(s.has(StatusReport::CONFIG_PENDING) && s.mode() == Mode::OpenLoop);
+    assert!(
+        !s.has(StatusReport::DEFAULTS),
+        "loaded settings are not the defaults"
+    );
     b.ticks(1);
     assert!(!b.control.telemetry().config_pending);
     // Open loop now (the feedback stays configured, idle, so a later mode switch needs no
-    // new parameters).
+    // new settings).
     assert_eq!(b.control.controller().mode(), Mode::OpenLoop);
+    assert!(b.control.controller().feedback_config().is_some());
     assert_eq!(
         b.control.safe_codes(),
         (DacCode(0), DacCode(0)),
         "safe state: zero"
     );
-    assert_eq!(b.handler.params(), &p);
+    assert_eq!(b.handler.settings(), &p);
+    assert_eq!(b.read_params(), p, "ReadParams returns the settings loaded");
+    assert!(matches!(
+        b.handle(Request::Mode(Mode::ClosedLoop)),
+        Response::Ack { .. }
+    ));
+    b.ticks(1);
+    assert_eq!(b.control.controller().mode(), Mode::ClosedLoop);
+}
+
+/// A setter of one `f64` field of the settings, and the field a refusal of it must name.
+type FloatField = (String, Field, Box<dyn Fn(&mut Settings, f64)>);
+
+fn model_fields(which: &str, model: &Model, field: fn(ModelField) -> Field) -> Vec<FloatField> {
+    fn model_of<'a>(s: &'a mut Settings, which: &str) -> &'a mut Model {
+        match which {
+            "compensator" => s.compensator.as_mut().unwrap(),
+            _ => s.observer.as_mut().unwrap(),
+        }
+    }
+    let w = which.to_string();
+    let mut out: Vec<FloatField> = Vec::new();
+    match model {
+        Model::PrandtlIshlinskii(p) => {
+            let m = w.clone();
+            out.push((
+                format!("{w}.a0"),
+                field(ModelField::A0),
+                Box::new(move |s, x| {
+                    if let Model::PrandtlIshlinskii(p) = model_of(s, &m) {
+                        p.a0 = x
+                    }
+                }),
+            ));
+            let m = w.clone();
+            out.push((
+                format!("{w}.offset"),
+                field(ModelField::Offset),
+                Box::new(move |s, x| {
+                    if let Model::PrandtlIshlinskii(p) = model_of(s, &m) {
+                        p.offset = x
+                    }
+                }),
+            ));
+            for i in 0..p.thresholds.len() {
+                let m = w.clone();
+                out.push((
+                    format!("{w}.thresholds[{i}]"),
+                    field(ModelField::Threshold(i as u8 + 1)),
+                    Box::new(move |s, x| {
+                        if let Model::PrandtlIshlinskii(p) = model_of(s, &m) {
+                            p.thresholds[i] = x
+                        }
+                    }),
+                ));
+            }
+            for i in 0..p.weights.len() {
+                let m = w.clone();
+                out.push((
+                    format!("{w}.weights[{i}]"),
+                    field(ModelField::Weight(i as u8 + 1)),
+                    Box::new(move |s, x| {
+                        if let Model::PrandtlIshlinskii(p) = model_of(s, &m) {
+                            p.weights[i] = x
+                        }
+                    }),
+                ));
+            }
+        }
+        Model::Duhem(_) => {
+            type Set = fn(&mut twinstack::DuhemParams, f64);
+            let parts: [(&str, ModelField, Set); 4] = [
+                ("alpha", ModelField::Alpha, |p, x| p.alpha = x),
+                ("beta", ModelField::Beta, |p, x| p.beta = x),
+                ("gamma", ModelField::Gamma, |p, x| p.gamma = x),
+                ("offset", ModelField::Offset, |p, x| p.offset = x),
+            ];
+            for (name, f, set) in parts {
+                let m = w.clone();
+                out.push((
+                    format!("{w}.{name}"),
+                    field(f),
+                    Box::new(move |s, x| {
+                        if let Model::Duhem(p) = model_of(s, &m) {
+                            set(p, x)
+                        }
+                    }),
+                ));
+            }
+        }
+    }
+    out
+}
+
+/// Every `f64` of `s` (which has every optional part present), with the field it is.
+fn float_fields(s: &Settings) -> Vec<FloatField> {
+    type Set = fn(&mut Settings, f64);
+    let plain: [(&str, Field, Set); 17] = [
+        ("ranges.input_min", Field::InputRange, |s, x| {
+            s.ranges.input_min = x
+        }),
+        ("ranges.input_max", Field::InputRange, |s, x| {
+            s.ranges.input_max = x
+        }),
+        ("ranges.output_min", Field::OutputRange, |s, x| {
+            s.ranges.output_min = x
+        }),
+        ("ranges.output_max", Field::OutputRange, |s, x| {
+            s.ranges.output_max = x
+        }),
+        ("drive.bias", Field::Bias, |s, x| s.drive.bias = x),
+        ("drive.min_voltage", Field::VoltageLimits, |s, x| {
+            s.drive.min_voltage = x
+        }),
+        ("drive.max_voltage", Field::VoltageLimits, |s, x| {
+            s.drive.max_voltage = x
+        }),
+        ("drive.slew_rate", Field::SlewRate, |s, x| {
+            s.drive.slew_rate = x
+        }),
+        (
+            "sensor.displacement_at_zero",
+            Field::SensorCalibration,
+            |s, x| s.sensor.as_mut().unwrap().displacement_at_zero = x,
+        ),
+        (
+            "sensor.displacement_at_full_scale",
+            Field::SensorCalibration,
+            |s, x| s.sensor.as_mut().unwrap().displacement_at_full_scale = x,
+        ),
+        ("sensor.drift_limit", Field::DriftLimit, |s, x| {
+            s.sensor.as_mut().unwrap().drift_limit = Some(x)
+        }),
+        ("feedback.kp", Field::Kp, |s, x| {
+            s.feedback.as_mut().unwrap().kp = x
+        }),
+        ("feedback.ki", Field::Ki, |s, x| {
+            s.feedback.as_mut().unwrap().ki = x
+        }),
+        ("feedback.kd", Field::Kd, |s, x| {
+            s.feedback.as_mut().unwrap().kd = x
+        }),
+        (
+            "feedback.derivative_cutoff_hz",
+            Field::DerivativeCutoff,
+            |s, x| s.feedback.as_mut().unwrap().derivative_cutoff_hz = x,
+        ),
+        ("feedback.limit", Field::FeedbackLimit, |s, x| {
+            s.feedback.as_mut().unwrap().limit = x
+        }),
+        (
+            "feedback.notch.frequency_hz",
+            Field::NotchFrequency,
+            |s, x| {
+                s.feedback
+                    .as_mut()
+                    .unwrap()
+                    .notch
+                    .as_mut()
+                    .unwrap()
+                    .frequency_hz = x
+            },
+        ),
+    ];
+    let notch: [(&str, Field, Set); 2] = [
+        ("feedback.notch.q", Field::NotchQ, |s, x| {
+            s.feedback.as_mut().unwrap().notch.as_mut().unwrap().q = x
+        }),
+        ("feedback.notch.depth", Field::NotchDepth, |s, x| {
+            s.feedback.as_mut().unwrap().notch.as_mut().unwrap().depth = x
+        }),
+    ];
+    let mut out: Vec<FloatField> = plain
+        .into_iter()
+        .chain(notch)
+        .map(|(name, field, set)| (name.to_string(), field, Box::new(set) as Box<_>))
+        .collect();
+    out.extend(model_fields(
+        "compensator",
+        s.compensator.as_ref().unwrap(),
+        Field::Compensator,
+    ));
+    out.extend(model_fields(
+        "observer",
+        s.observer.as_ref().unwrap(),
+        Field::Observer,
+    ));
+    out
 }
 
 #[test]
-fn refused_parameter_loads_name_their_reason_and_apply_nothing() {
-    let mut b = board();
+fn nan_or_infinity_in_any_float_of_a_load_is_refused_naming_that_field_and_changes_nothing() {
+    let pi_duhem = closed();
+    let duhem_pi = Settings {
+        compensator: pi_duhem.observer.clone(),
+        observer: pi_duhem.compensator.clone(),
+        ..pi_duhem.clone()
+    };
+    for base in [pi_duhem, duhem_pi] {
+        let hw = hardware();
+        assert!(base.build(&hw).is_ok(), "the base settings are valid");
+        // Two boards on the same settings, one refused everything, the other left alone:
+        // after every refusal both must tick out the same codes and report the same status.
+        let mut b = closed_board();
+        let mut twin = closed_board();
+        assert!(matches!(b.handle(base_load(&base)), Response::Ack { .. }));
+        assert!(matches!(
+            twin.handle(base_load(&base)),
+            Response::Ack { .. }
+        ));
+        assert!(matches!(b.handle(batch(0, &[5; 12])), Response::Ack { .. }));
+        assert!(matches!(
+            twin.handle(batch(0, &[5; 12])),
+            Response::Ack { .. }
+        ));
+        b.ticks(3);
+        twin.ticks(3);
+        let queued = b.queued();
+        let fields = float_fields(&base);
+        assert!(fields.len() >= 17 + 6, "{} fields", fields.len());
+        let mut checked = 0;
+        for (name, field, set) in &fields {
+            for x in [f64::NAN, f64::INFINITY, f64::NEG_INFINITY] {
+                let mut s = base.clone();
+                set(&mut s, x);
+                let want = refused(*field, Rule::NotFinite);
+                let request = Request::LoadParams(s);
+                assert_eq!(b.handle(request.clone()), want, "{name} = {x}");
+                assert_nothing_changed(&mut b, &queued, &base);
+                // The same through the wire: encoded, received byte by byte.
+                assert_eq!(
+                    b.bytes(&encoded(&request)),
+                    vec![want],
+                    "{name} = {x} (wire)"
+                );
+                assert_nothing_changed(&mut b, &queued, &base);
+                b.ticks(2);
+                twin.ticks(2);
+                assert_eq!(b.outputs(), twin.outputs(), "{name} = {x}: outputs moved");
+                assert_eq!(b.status(), twin.status(), "{name} = {x}: status differs");
+                assert_eq!(
+                    b.control.controller().setpoint(),
+                    twin.control.controller().setpoint()
+                );
+                checked += 1;
+            }
+        }
+        assert_eq!(checked, 3 * fields.len());
+    }
+}
+
+fn base_load(s: &Settings) -> Request {
+    Request::LoadParams(s.clone())
+}
+
+#[test]
+fn every_refusal_names_its_field_and_its_limit() {
+    let mut b = closed_board();
     assert!(matches!(b.handle(batch(0, &[7; 20])), Response::Ack { .. }));
     let queued = b.queued();
-    let params = b.handler.params().clone();
-    let good = boot_param_set(SafeState::Bias).unwrap();
-
-    let mut not_invertible = good.clone();
-    if let ModelParams::PrandtlIshlinskii { weights, .. } = &mut not_invertible.model {
-        weights[0] = -0.5;
+    let settings = b.handler.settings().clone();
+    let load = |b: &mut Board<RamStorage>, edit: &dyn Fn(&mut Settings)| {
+        let mut s = closed();
+        edit(&mut s);
+        b.handle(Request::LoadParams(s))
+    };
+    type Edit = Box<dyn Fn(&mut Settings)>;
+    let cases: Vec<(&str, Edit, Response)> = vec![
+        (
+            "ki above rate/2",
+            Box::new(|s| s.feedback.as_mut().unwrap().ki = 30_000.0),
+            refused(Field::Ki, Rule::Below(25_000.0)),
+        ),
+        (
+            "kp negative",
+            Box::new(|s| s.feedback.as_mut().unwrap().kp = -0.1),
+            refused(Field::Kp, Rule::AtLeast(0.0)),
+        ),
+        (
+            "bias above the upper voltage limit",
+            Box::new(|s| s.drive.bias = 145.0),
+            refused(Field::Bias, Rule::AtMost(140.0)),
+        ),
+        (
+            "closed loop without a sensor",
+            Box::new(|s| s.sensor = None),
+            refused(Field::Sensor, Rule::Required),
+        ),
+        (
+            "closed loop without feedback",
+            Box::new(|s| s.feedback = None),
+            refused(Field::Feedback, Rule::Required),
+        ),
+        (
+            "open loop without a compensator",
+            Box::new(|s| {
+                s.mode = Mode::OpenLoop;
+                s.compensator = None
+            }),
+            refused(Field::Compensator(ModelField::Model), Rule::Required),
+        ),
+        (
+            "a compensator that cannot be inverted",
+            Box::new(|s| {
+                if let Some(Model::PrandtlIshlinskii(p)) = &mut s.compensator {
+                    p.weights[0] = -0.5;
+                }
+            }),
+            refused(
+                Field::Compensator(ModelField::Weight(1)),
+                Rule::NotInvertible,
+            ),
+        ),
+        (
+            "an empty input range",
+            Box::new(|s| s.ranges.input_max = s.ranges.input_min),
+            refused(Field::InputRange, Rule::Empty),
+        ),
+        (
+            "a drift limit above 1",
+            Box::new(|s| s.sensor.as_mut().unwrap().drift_limit = Some(1.5)),
+            refused(Field::DriftLimit, Rule::AtMost(1.0)),
+        ),
+    ];
+    for (what, edit, want) in cases {
+        assert_eq!(load(&mut b, &*edit), want, "{what}");
+        assert_nothing_changed(&mut b, &queued, &settings);
     }
-    assert!(matches!(
-        b.handle(Request::LoadParams(not_invertible)),
-        Response::Nack {
-            reason: NackReason::InvalidParams(ParamError::FirstWeightNotPositive)
-        }
-    ));
-    assert_nothing_changed(&mut b, &queued, &params);
-
-    let mut bias_outside = good.clone();
-    bias_outside.bias = 145.0;
     assert_eq!(
-        b.handle(Request::LoadParams(bias_outside)),
-        nack(NackReason::InvalidDrive(DriveError::BiasOutsideRange))
+        load(&mut b, &|s| {
+            s.drive.min_voltage = 80.0;
+        }),
+        refused(Field::Bias, Rule::AtLeast(80.0)),
+        "bias below the lower voltage limit"
     );
-    assert_nothing_changed(&mut b, &queued, &params);
-
-    let mut nan = good.clone();
-    nan.input_range[1] = f32::NAN;
+    assert_nothing_changed(&mut b, &queued, &settings);
+    // Not settings, but refused the same way.
     assert_eq!(
-        b.handle(Request::LoadParams(nan)),
-        nack(NackReason::InvalidParams(ParamError::EmptyInputRange))
+        b.handle(Request::Stream(StreamControl::Rate { divider: 0 })),
+        refused(Field::Divider, Rule::AtLeast(1.0))
     );
-    let mut gains = good.clone();
-    gains.feedback = gains.feedback.map(|f| FeedbackParams {
-        kp: f32::INFINITY,
-        ..f
-    });
     assert_eq!(
-        b.handle(Request::LoadParams(gains)),
-        nack(NackReason::OutOfRange)
+        b.handle(Request::Record(RecordRequest {
+            signal: Signal::Drive,
+            count: RECORD_LEN as u32 + 1,
+            decimation: 1,
+        })),
+        refused(Field::RecordCount, Rule::AtMost(RECORD_LEN as f64))
     );
-    let mut no_gains = good.clone();
-    no_gains.feedback = None; // closed loop without gains
     assert_eq!(
-        b.handle(Request::LoadParams(no_gains)),
-        nack(NackReason::Unsupported)
+        b.handle(Request::Waveform(Waveform {
+            shape: WaveShape::Sine,
+            offset: 0,
+            amplitude: 1000,
+            frequency_mhz: 25_000_000, // exactly Nyquist at 50 kHz
+        })),
+        refused(Field::WaveformFrequency, Rule::Below(25_000.0))
     );
-    assert_nothing_changed(&mut b, &queued, &params);
+    assert_nothing_changed(&mut b, &queued, &settings);
+    assert!(!b.status().has(StatusReport::WAVEFORM));
     b.ticks(1);
     assert_eq!(
         b.queued().len(),
@@ -327,41 +731,116 @@ fn refused_parameter_loads_name_their_reason_and_apply_nothing() {
 }
 
 #[test]
-fn mode_changes_rebuild_the_configuration_and_closed_loop_needs_a_sensor() {
-    let mut b = board();
+fn mode_changes_are_checked_against_the_settings_and_switch_between_two_ticks() {
+    let mut b = closed_board();
     for mode in [Mode::Bypass, Mode::OpenLoop, Mode::ClosedLoop] {
         assert!(matches!(
             b.handle(Request::Mode(mode)),
             Response::Ack { .. }
         ));
-        b.ticks(1);
         assert_eq!(b.status().mode(), mode);
-        assert_eq!(b.handler.params().mode, mode);
+        assert_eq!(b.handler.settings().mode, mode);
+        assert_eq!(b.read_params().mode, mode);
+        b.ticks(1);
+        assert_eq!(b.control.controller().mode(), mode);
     }
-    // A board without a sensor boots open loop and refuses closed loop.
-    let mut profile = board_profile(RATE as f64);
-    profile.sensor = None;
-    let mut open = boot_param_set(SafeState::Bias).unwrap();
-    open.mode = Mode::OpenLoop;
-    let (handler, tick) = CommandHandler::new(
-        profile,
-        BoardSettings::DEFAULT,
-        open.clone(),
-        RamStorage::default(),
-    )
-    .unwrap();
+    // The defaults have no model and no feedback: only bypass.
+    let mut d = board();
+    let defaults = d.handler.settings().clone();
+    assert_eq!(
+        d.handle(Request::Mode(Mode::OpenLoop)),
+        refused(Field::Compensator(ModelField::Model), Rule::Required)
+    );
+    assert_eq!(
+        d.handle(Request::Mode(Mode::ClosedLoop)),
+        refused(Field::Feedback, Rule::Required)
+    );
+    assert_nothing_changed(&mut d, &[], &defaults);
+    assert_eq!(d.control.controller().mode(), Mode::Bypass);
+    // A board without a sensor input runs open loop and refuses closed loop.
+    let hw = Hardware {
+        sensor_adc_bits: None,
+        ..hardware()
+    };
+    let open = Settings {
+        sensor: None,
+        mode: Mode::OpenLoop,
+        ..closed()
+    };
+    let config = open.build(&hw).unwrap();
     let mut b = Board {
-        handler,
-        control: ControlLoop::new(tick, RATE, vec![0; 16]),
+        handler: CommandHandler::new(hw, open.clone(), false, RamStorage::default()),
+        control: ControlLoop::new(
+            Box::new(Controller::new(config)),
+            Box::new(Controller::new(config)),
+            RATE,
+            vec![0; 16],
+        ),
         queue: Box::leak(Box::new(SetpointQueue::new())),
-        dac: RecordingDac::default(),
-        adc: FixedAdc(Some(AdcCode(0))),
+        dac: Dac(DacCode(0), DacCode(0)),
+        adc: Adc(0),
     };
     assert_eq!(
         b.handle(Request::Mode(Mode::ClosedLoop)),
-        nack(NackReason::Unsupported)
+        refused(Field::Sensor, Rule::Required)
     );
     assert_nothing_changed(&mut b, &[], &open);
+    // Sensor settings on a board without the input: refused as such.
+    assert_eq!(
+        b.handle(Request::LoadParams(Settings {
+            mode: Mode::OpenLoop,
+            ..closed()
+        })),
+        refused(Field::Sensor, Rule::NoHardware)
+    );
+    assert_nothing_changed(&mut b, &[], &open);
+}
+
+#[test]
+fn a_mode_switch_while_a_load_waits_is_checked_against_and_applied_to_the_load() {
+    // The defaults run (no compensator, no feedback); the load brings both.
+    let mut b = board();
+    let p = Settings {
+        mode: Mode::Bypass,
+        ..closed()
+    };
+    assert!(matches!(
+        b.handle(Request::LoadParams(p.clone())),
+        Response::Ack { .. }
+    ));
+    assert!(b.control.telemetry().config_pending);
+    assert!(matches!(
+        b.handle(Request::Mode(Mode::ClosedLoop)),
+        Response::Ack { .. }
+    ));
+    assert_eq!(b.status().mode(), Mode::ClosedLoop);
+    b.ticks(1);
+    assert_eq!(b.control.controller().mode(), Mode::ClosedLoop);
+    assert_eq!(
+        b.read_params(),
+        Settings {
+            mode: Mode::ClosedLoop,
+            ..p
+        }
+    );
+    // A switch the waiting load cannot run is refused and leaves it as it was.
+    let mut b = closed_board();
+    let open = Settings {
+        feedback: None,
+        mode: Mode::OpenLoop,
+        ..closed()
+    };
+    assert!(matches!(
+        b.handle(Request::LoadParams(open.clone())),
+        Response::Ack { .. }
+    ));
+    assert_eq!(
+        b.handle(Request::Mode(Mode::ClosedLoop)),
+        refused(Field::Feedback, Rule::Required)
+    );
+    b.ticks(1);
+    assert_eq!(b.control.controller().mode(), Mode::OpenLoop);
+    assert_eq!(b.read_params(), open);
 }
 
 #[test]
@@ -371,15 +850,17 @@ fn store_and_recall_round_trip_through_the_storage_and_refuse_when_they_cannot()
         b.handle(Request::RecallParams),
         nack(NackReason::NothingStored)
     );
-    let mut p = boot_param_set(SafeState::Bias).unwrap();
-    p.bias = 60.0;
+    let mut p = closed();
+    p.drive.bias = 60.0;
     p.mode = Mode::Bypass;
     assert!(matches!(
         b.handle(Request::LoadParams(p.clone())),
         Response::Ack { .. }
     ));
     assert!(matches!(
-        b.handle(Request::StoreParams),
+        b.handle(Request::StoreParams {
+            boot_mode: Mode::Bypass
+        }),
         Response::Ack { .. }
     ));
     assert!(matches!(
@@ -390,11 +871,12 @@ fn store_and_recall_round_trip_through_the_storage_and_refuse_when_they_cannot()
         b.handle(Request::RecallParams),
         Response::Ack { .. }
     ));
-    assert_eq!(b.handler.params(), &p);
-    // A board booting on that storage starts on the stored set, not the defaults.
+    assert_eq!(b.handler.settings(), &p);
+    assert_eq!(b.read_params(), p);
+    // A board booting on that storage starts on the stored settings, not the defaults.
     let storage = b.handler.storage().clone();
-    let mut again = board_with(storage, board_profile(RATE as f64));
-    assert_eq!(again.handler.params(), &p);
+    let mut again = board_with(storage);
+    assert_eq!(again.handler.settings(), &p);
     assert!(!again.status().has(StatusReport::DEFAULTS));
     assert!(board().status().has(StatusReport::DEFAULTS));
     // Storing while the stream runs would stall the tick: refused.
@@ -402,17 +884,113 @@ fn store_and_recall_round_trip_through_the_storage_and_refuse_when_they_cannot()
         b.handle(Request::Stream(StreamControl::Start)),
         Response::Ack { .. }
     ));
-    assert_eq!(b.handle(Request::StoreParams), nack(NackReason::Busy));
-    // Read-only and failing storage.
-    let mut ro = board_with(ReadOnlyStorage(&[0xFF; 64]), board_profile(RATE as f64));
     assert_eq!(
-        ro.handle(Request::StoreParams),
-        nack(NackReason::Unsupported)
+        b.handle(Request::StoreParams {
+            boot_mode: Mode::Bypass
+        }),
+        nack(NackReason::Busy)
     );
-    let mut broken = board_with(BrokenFlash([0xFF; 16]), board_profile(RATE as f64));
+    // Read-only and failing storage.
+    let mut ro = board_with(ReadOnlyStorage(&[0xFF; 64]));
     assert_eq!(
-        broken.handle(Request::StoreParams),
+        ro.handle(Request::StoreParams {
+            boot_mode: Mode::Bypass
+        }),
+        nack(NackReason::NoStorage)
+    );
+    let mut broken = board_with(BrokenFlash([0xFF; 16]));
+    assert_eq!(
+        broken.handle(Request::StoreParams {
+            boot_mode: Mode::Bypass
+        }),
         nack(NackReason::StoreFailed)
+    );
+}
+
+#[test]
+fn a_board_on_erased_storage_boots_in_bypass_on_the_defaults_and_says_so() {
+    let mut b = board();
+    let s = b.status();
+    assert_eq!(s.mode(), Mode::Bypass, "{s:?}");
+    assert!(s.has(StatusReport::DEFAULTS), "{s:?}");
+    assert!(!s.has(StatusReport::CONFIG_PENDING), "{s:?}");
+    assert_eq!(s.tick_rate_hz, RATE);
+    assert_eq!(b.read_params(), Settings::default());
+    assert_eq!(b.control.controller().mode(), Mode::Bypass);
+    // The defaults start at their safe state (the bias) and hold it.
+    b.ticks(5);
+    assert_eq!(b.outputs(), b.control.safe_codes());
+    // Damaged records boot the same way.
+    let mut sector = [0u8; MAX_RECORD];
+    let n = StoredRecord {
+        control_rate_hz: RATE,
+        settings: closed(),
+    }
+    .encode(&mut sector)
+    .unwrap();
+    sector[param_store::HEADER_LEN + 3] ^= 0x10;
+    let mut bad = board_with(ReadOnlyStorage(&sector[..n]));
+    let s = bad.status();
+    assert_eq!(s.mode(), Mode::Bypass, "{s:?}");
+    assert!(s.has(StatusReport::DEFAULTS), "{s:?}");
+}
+
+#[test]
+fn a_stored_record_boots_in_its_stored_mode() {
+    for boot_mode in [Mode::Bypass, Mode::OpenLoop, Mode::ClosedLoop] {
+        let mut b = closed_board();
+        assert!(matches!(
+            b.handle(Request::StoreParams { boot_mode }),
+            Response::Ack { .. }
+        ));
+        // Storing does not switch the running board.
+        assert_eq!(b.status().mode(), Mode::ClosedLoop);
+        let mut again = board_with(b.handler.storage().clone());
+        let s = again.status();
+        assert_eq!(s.mode(), boot_mode, "{s:?}");
+        assert!(!s.has(StatusReport::DEFAULTS), "{s:?}");
+        assert_eq!(again.control.controller().mode(), boot_mode);
+        assert_eq!(
+            again.read_params(),
+            Settings {
+                mode: boot_mode,
+                ..closed()
+            }
+        );
+    }
+}
+
+#[test]
+fn storing_a_boot_mode_the_settings_cannot_run_is_refused() {
+    let mut p = closed();
+    p.feedback = None;
+    p.mode = Mode::OpenLoop;
+    let mut b = board();
+    assert!(matches!(
+        b.handle(Request::LoadParams(p.clone())),
+        Response::Ack { .. }
+    ));
+    assert_eq!(
+        b.handle(Request::StoreParams {
+            boot_mode: Mode::ClosedLoop
+        }),
+        refused(Field::Feedback, Rule::Required)
+    );
+    assert!(
+        b.handler.storage().read().iter().all(|&x| x == 0xFF),
+        "nothing was written"
+    );
+    assert_eq!(
+        b.handle(Request::RecallParams),
+        nack(NackReason::NothingStored)
+    );
+    // The defaults cannot boot open loop either (no compensator).
+    let mut d = board();
+    assert_eq!(
+        d.handle(Request::StoreParams {
+            boot_mode: Mode::OpenLoop
+        }),
+        refused(Field::Compensator(ModelField::Model), Rule::Required)
     );
 }
 
@@ -427,8 +1005,25 @@ fn the_waveform_generator_runs_and_out_of_range_waveforms_are_refused() {
             frequency_mhz,
         })
     };
-    assert_eq!(b.handle(w(30_000_000, 1000)), nack(NackReason::OutOfRange)); // 30 kHz ≥ Nyquist
-    assert_eq!(b.handle(w(0, 1000)), nack(NackReason::OutOfRange));
+    // 30 kHz ≥ Nyquist.
+    assert_eq!(
+        b.handle(w(30_000_000, 1000)),
+        refused(Field::WaveformFrequency, Rule::Below(25_000.0))
+    );
+    assert_eq!(
+        b.handle(w(0, 1000)),
+        refused(Field::WaveformFrequency, Rule::Above(0.0))
+    );
+    let beyond = Waveform {
+        shape: WaveShape::Sine,
+        offset: 20_000,
+        amplitude: 20_000,
+        frequency_mhz: 1_000,
+    };
+    assert_eq!(
+        b.handle(Request::Waveform(beyond)),
+        refused(Field::WaveformAmplitude, Rule::AtMost(1.0))
+    );
     assert!(!b.status().has(StatusReport::WAVEFORM));
     assert!(matches!(b.handle(w(750_000, 16384)), Response::Ack { .. }));
     assert!(b.status().has(StatusReport::WAVEFORM));
@@ -461,25 +1056,22 @@ fn the_recorder_captures_the_chosen_signal_and_reads_back_in_chunks() {
     };
     assert_eq!(
         b.handle(arm(Signal::Drive, 0, 1)),
-        nack(NackReason::OutOfRange)
+        refused(Field::RecordCount, Rule::AtLeast(1.0))
     );
     assert_eq!(
         b.handle(arm(Signal::Drive, 10, 0)),
-        nack(NackReason::OutOfRange)
+        refused(Field::RecordDecimation, Rule::AtLeast(1.0))
     );
     assert_eq!(
-        b.handle(arm(Signal::Drive, 5000, 1)),
-        nack(NackReason::OutOfRange)
+        b.handle(arm(Signal::Drive, RECORD_LEN as u32 + 1, 1)),
+        refused(Field::RecordCount, Rule::AtMost(RECORD_LEN as f64))
     );
     assert_eq!(
         b.handle(Request::ReadRecord { offset: 1 }),
-        nack(NackReason::OutOfRange)
+        refused(Field::RecordOffset, Rule::AtMost(0.0))
     );
-    // Bypass, so the sensor is read for the recorder only.
-    assert!(matches!(
-        b.handle(Request::Mode(Mode::Bypass)),
-        Response::Ack { .. }
-    ));
+    // The board boots in bypass, so the sensor is read for the recorder only.
+    assert_eq!(b.status().mode(), Mode::Bypass);
     assert!(matches!(
         b.handle(arm(Signal::Sensor, 100, 3)),
         Response::Ack { .. }
@@ -512,13 +1104,18 @@ fn the_recorder_captures_the_chosen_signal_and_reads_back_in_chunks() {
             values: heapless::Vec::new()
         }
     );
+    // Past the end: the limit is what the recorder holds.
+    assert_eq!(
+        b.handle(Request::ReadRecord { offset: 101 }),
+        refused(Field::RecordOffset, Rule::AtMost(100.0))
+    );
 }
 
 #[test]
 fn every_frame_error_is_nacked_with_its_reason_and_counted() {
     let mut b = board();
     assert!(matches!(b.handle(batch(0, &[3; 4])), Response::Ack { .. }));
-    let params = b.handler.params().clone();
+    let params = b.handler.settings().clone();
     let raw = |body: &[u8]| {
         use twinstack::protocol::{cobs, frame::FRAME_CRC};
         let mut v = body.to_vec();
@@ -606,15 +1203,21 @@ fn any_request() -> impl Strategy<Value = Request> {
             })
         }),
         any::<u32>().prop_map(|o| Request::ReadRecord { offset: o % 200 }),
-        (-10.0f32..160.0, -1.0f32..1.0).prop_map(|(bias, w)| {
-            let mut p = boot_param_set(SafeState::Bias).unwrap();
-            p.bias = bias;
-            if let ModelParams::PrandtlIshlinskii { weights, .. } = &mut p.model {
-                weights[1] = w;
+        (-10.0f64..160.0, -1.0f64..1.0).prop_map(|(bias, w)| {
+            let mut p = closed();
+            p.drive.bias = bias;
+            if let Some(Model::PrandtlIshlinskii(m)) = &mut p.compensator {
+                m.weights[1] = w;
             }
             Request::LoadParams(p)
         }),
-        Just(Request::StoreParams),
+        prop_oneof![
+            Just(Mode::Bypass),
+            Just(Mode::OpenLoop),
+            Just(Mode::ClosedLoop)
+        ]
+        .prop_map(|boot_mode| Request::StoreParams { boot_mode }),
+        Just(Request::ReadParams),
         Just(Request::RecallParams),
     ]
 }

@@ -1,7 +1,8 @@
 //! The firmware image itself, booted in QEMU's `netduinoplus2` (an STM32F405): it must answer
 //! protocol frames on USART1 (status, setpoint batches, stream control, a parameter load, the
-//! recorder; a corrupted frame NACKed), its control tick must run, and the parameter record in
-//! flash must be honoured (or refused with defaults and a flag).
+//! recorder; a corrupted frame NACKed), its control tick must run, it must boot in bypass on
+//! the compiled-in settings, read back what it was loaded with bit for bit, and the parameter
+//! record in flash must be honoured (or refused with defaults and a flag).
 //!
 //! Builds the `emulator` image (`cargo build-emu`) into `target/firmware`, installing the
 //! Rust target and `qemu-system-arm` first if they are missing (see `tests/support`).
@@ -14,10 +15,16 @@ use std::path::{Path, PathBuf};
 use std::process::Child;
 use std::time::{Duration, Instant};
 
-use twinstack::param_store::{self, BoardSettings, SafeState, HEADER_LEN, MAX_RECORD};
+use twinstack::board::Hardware;
+use twinstack::drive::SafeState;
+use twinstack::param_store::{StoredRecord, HEADER_LEN, MAX_RECORD};
 use twinstack::protocol::decoder::FrameDecoder;
 use twinstack::protocol::frame::{self, FrameError, MAX_ENCODED};
 use twinstack::protocol::messages::*;
+use twinstack::refusal::{Field, ModelField, Refusal, Rule};
+use twinstack::settings::{
+    representative_duhem, representative_pi, FeedbackSettings, Model, Settings,
+};
 
 /// Address of the parameter sector (flash sector 11).
 const PARAM_SECTOR: u32 = 0x080E_0000;
@@ -165,11 +172,31 @@ fn connect(socket: &Path, within: Duration) -> UnixStream {
     }
 }
 
-fn record_of(settings: &BoardSettings) -> Vec<u8> {
+fn record_of(record: &StoredRecord) -> Vec<u8> {
     let mut buf = [0u8; MAX_RECORD];
-    let n = param_store::encode(BoardSettings::VERSION, &settings.to_payload(), &mut buf)
-        .expect("record fits");
+    let n = record.encode(&mut buf).expect("record fits");
     buf[..n].to_vec()
+}
+
+/// Open-loop settings whose floats do not round-trip through anything narrower than f64.
+fn awkward_settings() -> Settings {
+    let mut s = Settings {
+        compensator: Some(representative_pi(16).unwrap()),
+        observer: Some(representative_duhem()),
+        feedback: Some(FeedbackSettings::pi(0.1 + 0.2, 1000.0 / 3.0, 0.1)),
+        mode: Mode::OpenLoop,
+        ..Settings::default()
+    };
+    s.drive.bias = 70.0 + 1e-12;
+    s.drive.slew_rate = 1.0e6 / 3.0;
+    s.ranges.output_max = 70.0 - f64::EPSILON * 64.0;
+    s
+}
+
+/// The settings' postcard bytes: f64s as their 8 raw bytes, so equal bytes are equal bits.
+fn bits(s: &Settings) -> Vec<u8> {
+    let mut buf = [0u8; 4096];
+    postcard::to_slice(s, &mut buf).expect("fits").to_vec()
 }
 
 #[test]
@@ -182,16 +209,65 @@ fn emulator_answers_a_status_query_and_its_tick_counter_advances() {
         b.ticks > a.ticks,
         "tick counter did not advance: {a:?} then {b:?}"
     );
-    assert_eq!(a.tick_rate_hz, BoardSettings::DEFAULT.tick_rate_hz);
+    assert_eq!(a.tick_rate_hz, Hardware::DEFAULT_CONTROL_RATE_HZ);
     // Nothing streams: no underruns; the whole queue is free.
     assert_eq!((b.underruns, b.queue_fill), (0, 0), "{b:?}");
     assert_eq!(
         b.credits as usize,
         twinstack::control_loop::SETPOINT_CAPACITY
     );
-    // Nothing was stored in the emulated flash: the compiled-in parameters, flagged.
+    // Nothing was stored in the emulated flash: the compiled-in settings, flagged.
     assert!(b.has(StatusReport::DEFAULTS), "{b:?}");
-    assert_eq!(b.mode(), twinstack::settings::Mode::ClosedLoop);
+    assert_eq!(b.mode(), Mode::Bypass);
+}
+
+#[test]
+fn a_fresh_emulator_reports_bypass_on_its_first_status_query_and_reads_back_the_defaults() {
+    let mut emu = Emulator::boot("fresh", None);
+    let first = emu.status();
+    assert_eq!(first.mode(), Mode::Bypass, "{first:?}");
+    assert!(first.has(StatusReport::DEFAULTS), "{first:?}");
+    assert!(!first.has(StatusReport::CONFIG_PENDING), "{first:?}");
+    assert_eq!(
+        emu.request(&Request::ReadParams),
+        Response::Params(Settings::default())
+    );
+}
+
+#[test]
+fn a_load_over_the_uart_reads_back_bit_for_bit() {
+    let mut emu = Emulator::boot("readback", None);
+    let sent = awkward_settings();
+    assert!(matches!(
+        emu.request(&Request::LoadParams(sent.clone())),
+        Response::Ack { .. }
+    ));
+    let back = match emu.request(&Request::ReadParams) {
+        Response::Params(s) => s,
+        other => panic!("not the settings: {other:?}"),
+    };
+    assert_eq!(back, sent);
+    assert_eq!(
+        bits(&back),
+        bits(&sent),
+        "an f64 changed its bits on the way"
+    );
+    let s = emu.status();
+    assert_eq!(s.mode(), Mode::OpenLoop, "{s:?}");
+    assert!(!s.has(StatusReport::DEFAULTS), "{s:?}");
+    // A refused load (NaN) names its field and leaves the settings read back as they were.
+    let mut nan = sent.clone();
+    nan.drive.slew_rate = f64::NAN;
+    assert_eq!(
+        emu.request(&Request::LoadParams(nan)),
+        Response::Nack {
+            reason: NackReason::Refused(Refusal::new(Field::SlewRate, Rule::NotFinite))
+        }
+    );
+    match emu.request(&Request::ReadParams) {
+        Response::Params(s) => assert_eq!(bits(&s), bits(&sent)),
+        other => panic!("not the settings: {other:?}"),
+    }
 }
 
 #[test]
@@ -277,7 +353,9 @@ fn emulator_streams_setpoints_loads_parameters_records_and_nacks_a_bad_frame() {
         }
     }
     // Every streamed setpoint was reached, in order, exactly 10 ticks after the one before.
-    let at: Vec<usize> = ramp
+    // (The first, 0, is also where the board rests in bypass on the defaults, before the
+    // stream starts: it is checked 10 ticks before the second.)
+    let at: Vec<usize> = ramp[1..]
         .iter()
         .map(|&x| {
             values
@@ -287,50 +365,65 @@ fn emulator_streams_setpoints_loads_parameters_records_and_nacks_a_bad_frame() {
         })
         .collect();
     assert!(at.windows(2).all(|w| w[1] == w[0] + 10), "{at:?}");
+    assert!(
+        at[0] >= 10 && values[at[0] - 10] == (ramp[0] as i32) << 15,
+        "{at:?}"
+    );
     // A parameter load: validated, swapped in, reported.
-    let mut params = twinstack::default_config::boot_param_set(SafeState::Bias).unwrap();
-    params.mode = twinstack::settings::Mode::OpenLoop;
+    let mut params = awkward_settings();
     assert!(matches!(
         emu.request(&Request::LoadParams(params.clone())),
         Response::Ack { .. }
     ));
     let s = emu.status();
-    assert_eq!(s.mode(), twinstack::settings::Mode::OpenLoop);
+    assert_eq!(s.mode(), Mode::OpenLoop);
     assert!(!s.has(StatusReport::DEFAULTS));
     // One that cannot be inverted is refused with its reason; the mode stays.
-    if let ModelParams::PrandtlIshlinskii { weights, .. } = &mut params.model {
-        weights[0] = -1.0;
+    if let Some(Model::PrandtlIshlinskii(p)) = &mut params.compensator {
+        p.weights[0] = -1.0;
     }
-    assert!(matches!(
+    assert_eq!(
         emu.request(&Request::LoadParams(params)),
         Response::Nack {
-            reason: NackReason::InvalidParams(_)
+            reason: NackReason::Refused(Refusal::new(
+                Field::Compensator(ModelField::Weight(1)),
+                Rule::NotInvertible
+            ))
         }
-    ));
-    assert_eq!(emu.status().mode(), twinstack::settings::Mode::OpenLoop);
+    );
+    assert_eq!(emu.status().mode(), Mode::OpenLoop);
 }
 
 #[test]
-fn a_stored_parameter_record_sets_the_tick_rate() {
-    let stored = BoardSettings {
-        tick_rate_hz: 20_000,
-        safe_state: SafeState::Zero,
+fn a_stored_parameter_record_sets_the_tick_rate_and_boots_in_its_mode() {
+    let mut settings = awkward_settings();
+    settings.drive.safe_state = SafeState::Zero;
+    let stored = StoredRecord {
+        control_rate_hz: 20_000,
+        settings: settings.clone(),
     };
     let mut emu = Emulator::boot("stored", Some(&record_of(&stored)));
     let s = emu.status();
     assert_eq!(s.tick_rate_hz, 20_000, "{s:?}");
+    assert_eq!(s.mode(), Mode::OpenLoop, "{s:?}");
+    assert!(!s.has(StatusReport::DEFAULTS), "{s:?}");
+    match emu.request(&Request::ReadParams) {
+        Response::Params(back) => assert_eq!(bits(&back), bits(&settings)),
+        other => panic!("not the settings: {other:?}"),
+    }
 }
 
 #[test]
 fn a_record_with_a_bad_crc_boots_on_defaults_and_says_so() {
-    let mut record = record_of(&BoardSettings {
-        tick_rate_hz: 20_000,
-        safe_state: SafeState::Zero,
+    let mut record = record_of(&StoredRecord {
+        control_rate_hz: 20_000,
+        settings: awkward_settings(),
     });
     record[HEADER_LEN] ^= 0x40; // corrupt the stored rate; the CRC no longer matches
     let mut emu = Emulator::boot("bad-crc", Some(&record));
     let s = emu.status();
-    assert_eq!(s.tick_rate_hz, BoardSettings::DEFAULT.tick_rate_hz, "{s:?}");
+    assert_eq!(s.tick_rate_hz, Hardware::DEFAULT_CONTROL_RATE_HZ, "{s:?}");
     assert!(s.has(StatusReport::DEFAULTS), "{s:?}");
+    assert_eq!(s.mode(), Mode::Bypass, "{s:?}");
     assert!(s.ticks > 0, "the tick runs on defaults: {s:?}");
 }

@@ -5,6 +5,11 @@ use proptest::prelude::*;
 use twinstack::protocol::decoder::FrameDecoder;
 use twinstack::protocol::frame::{decode_body, encode, FrameError, MAX_ENCODED, PROTOCOL_VERSION};
 use twinstack::protocol::messages::*;
+use twinstack::settings::{
+    representative_duhem, DriveSettings, FeedbackSettings, Model, NotchDesign, SensorSettings,
+    Settings,
+};
+use twinstack::PiParams;
 
 fn frame_of(req: &Request) -> Vec<u8> {
     let mut out = vec![0u8; MAX_ENCODED + 1];
@@ -46,38 +51,46 @@ fn request() -> impl Strategy<Value = Request> {
                 frequency_mhz: f,
             })
         }),
-        (prop::collection::vec(0.0f32..150.0, 0..=32), -1.0f32..1.0).prop_map(|(r, a0)| {
+        (prop::collection::vec(0.0f64..150.0, 0..=32), -1.0f64..1.0).prop_map(|(r, a0)| {
             let n = r.len();
-            Request::LoadParams(ParamSet {
-                model: ModelParams::PrandtlIshlinskii {
+            // Any f64 the wire carries, valid or not: the frame layer does not validate.
+            Request::LoadParams(Settings {
+                ranges: twinstack::Scaling {
+                    input_min: 0.0,
+                    input_max: 140.0,
+                    output_min: -1.0,
+                    output_max: 20.0,
+                },
+                compensator: Some(Model::PrandtlIshlinskii(PiParams {
                     a0,
                     offset: 0.5,
                     thresholds: heapless::Vec::from_slice(&r).unwrap(),
                     weights: heapless::Vec::from_slice(&vec![0.01; n]).unwrap(),
-                },
-                input_range: [0.0, 140.0],
-                output_range: [-1.0, 20.0],
-                configuration: twinstack::drive::Configuration::Differential,
-                bias: 70.0,
-                voltage_limits: [0.0, 140.0],
-                slew_rate: 1e6,
-                safe_state: twinstack::drive::SafeState::Bias,
-                feedback: Some(twinstack::protocol::messages::FeedbackParams {
-                    kp: 0.1,
-                    ki: 500.0,
-                    kd: 0.0,
-                    derivative_cutoff_hz: 5000.0,
-                    limit: 0.2,
-                    notch: Some(twinstack::protocol::messages::NotchParams {
+                })),
+                observer: Some(representative_duhem()),
+                drive: DriveSettings::DEFAULT,
+                sensor: Some(SensorSettings {
+                    displacement_at_zero: -1.0,
+                    displacement_at_full_scale: 20.0,
+                    drift_limit: Some(0.02),
+                }),
+                feedback: Some(FeedbackSettings {
+                    notch: Some(NotchDesign {
                         frequency_hz: 21_800.0,
                         q: 2.0,
                         depth: 0.0,
                     }),
-                    drift_limit: Some(0.02),
+                    ..FeedbackSettings::pi(0.1, 500.0, 0.2)
                 }),
                 mode: Mode::OpenLoop,
             })
         }),
+        prop_oneof![
+            Just(Mode::Bypass),
+            Just(Mode::OpenLoop),
+            Just(Mode::ClosedLoop)
+        ]
+        .prop_map(|boot_mode| Request::StoreParams { boot_mode }),
         any::<u32>().prop_map(|offset| Request::ReadRecord { offset }),
     ]
 }
@@ -117,9 +130,16 @@ proptest! {
         let mut d = FrameDecoder::new();
         let _ = feed(&mut d, &junk);
         let mut tail = vec![0u8];
-        tail.extend(frame_of(&Request::StoreParams));
+        tail.extend(frame_of(&Request::StoreParams {
+            boot_mode: Mode::Bypass,
+        }));
         let got = feed(&mut d, &tail);
-        prop_assert_eq!(got.last(), Some(&Ok(Request::StoreParams)));
+        prop_assert_eq!(
+            got.last(),
+            Some(&Ok(Request::StoreParams {
+                boot_mode: Mode::Bypass
+            }))
+        );
     }
 }
 
@@ -213,7 +233,7 @@ fn a_full_batch_fits_one_frame() {
 #[test]
 fn message_variant_counts_match_the_enums() {
     use twinstack::protocol::frame::Message;
-    let last = Request::ReadRecord { offset: 1 };
+    let last = Request::ReadParams;
     let mut d = FrameDecoder::new();
     assert_eq!(feed(&mut d, &frame_of(&last)), vec![Ok(last)]);
     let tag = Request::VARIANTS as u8;
@@ -221,10 +241,7 @@ fn message_variant_counts_match_the_enums() {
         feed(&mut d, &raw_frame(&[PROTOCOL_VERSION, tag])),
         vec![Err(FrameError::UnknownType)]
     );
-    let resp = Response::RecordChunk {
-        offset: 0,
-        values: heapless::Vec::new(),
-    };
+    let resp = Response::Params(Settings::default());
     let mut buf = [0u8; MAX_ENCODED + 1];
     let n = encode(&resp, &mut buf).unwrap();
     let mut d = FrameDecoder::new();

@@ -181,7 +181,9 @@ impl SimDevice {
             return Err(SimDeviceError::Baud);
         }
         let board = SimBoard::internal(&config.board).map_err(SimDeviceError::Board)?;
-        let rate_hz = 1.0 / board.plant().dt();
+        // The control rate is a whole number of hertz, as the firmware's timer runs it (and
+        // as the status report and the stored record carry it); `1 / dt` is not exactly one.
+        let rate_hz = (1.0 / board.plant().dt()).round();
         let hw = hardware(rate_hz);
         // The "flash": erased, or holding the stored settings at this rate; the board boots
         // from it exactly as the firmware does.

@@ -290,21 +290,52 @@ fn every_command_runs_against_the_simulated_board() {
 
     let model = hal_sim::stage_model::StageModel {
         hysteresis: hal_sim::stage_model::Hysteresis::Pi(
-            twinstack::default_config::pi_params(16).unwrap(),
+            match twinstack::settings::representative_pi(16).unwrap() {
+                twinstack::settings::Model::PrandtlIshlinskii(p) => p,
+                other => panic!("{other:?}"),
+            },
         ),
         scaling: twinstack::Scaling::new(0.0, 140.0, -10.0, 80.0).unwrap(),
         output_sign: 1.0,
         sensor_lag_s: 0.0,
     };
-    let file = hal_sim::param_file::ParamFile::from_model(&model, "um", None).unwrap();
+    let file = hal_sim::param_file::ParamFile::from_model(&model, "um", None);
     let params = write(dir.path(), "p.json", &file.to_json());
-    let o = hal_sim(&["load", "--port", "sim", "--params", &params, "--store"]);
+    let o = hal_sim(&[
+        "load",
+        "--port",
+        "sim",
+        "--params",
+        &params,
+        "--store",
+        "open-loop",
+    ]);
     let (out, err) = text(&o);
     assert!(o.status.success(), "{out}{err}");
     assert!(
-        out.contains("(P–I, 16 operators), mode OpenLoop") && out.contains("stored to flash"),
+        out.contains("(P–I, 16 operators), mode OpenLoop")
+            && out.contains("stored to flash (boots in OpenLoop)"),
         "{out}"
     );
+
+    // `params` reads back the settings in force: the simulated board's, as JSON.
+    let o = hal_sim(&["params", "--port", "sim"]);
+    let (out, err) = text(&o);
+    assert!(o.status.success(), "{out}{err}");
+    let read: twinstack::settings::Settings = serde_json::from_str(&out).expect("JSON settings");
+    assert_eq!(
+        read,
+        hal_sim::sim_device::SimDeviceConfig::paper_settings(twinstack::settings::Mode::Bypass)
+    );
+    // `mode` switches; `recall` reloads the stored settings.
+    let o = hal_sim(&["mode", "--port", "sim", "open-loop"]);
+    let (out, err) = text(&o);
+    assert!(o.status.success(), "{out}{err}");
+    assert!(out.contains("mode OpenLoop"), "{out}");
+    let o = hal_sim(&["recall", "--port", "sim"]);
+    let (out, err) = text(&o);
+    assert!(o.status.success(), "{out}{err}");
+    assert!(out.contains("recalled the stored settings"), "{out}");
 
     let rec = dir.path().join("rec.csv");
     let o = hal_sim(&[

@@ -11,7 +11,6 @@
 mod support;
 
 use hal_sim::link::client::{Client, LinkError};
-use hal_sim::link::param_set::{param_set, DriveOptions};
 use hal_sim::link::port::{self, PortSpec};
 use hal_sim::link::streamer::{stream_setpoints, StreamOptions};
 use hal_sim::link::Transport;
@@ -91,6 +90,19 @@ fn connect(qemu: &Qemu) -> Client<Box<dyn Transport>> {
     client
 }
 
+/// `hal-sim load`'s arguments with nothing overridden.
+fn load_args() -> hal_sim::cli::load::Args {
+    use clap::Parser;
+    #[derive(Parser)]
+    struct Cli {
+        #[command(flatten)]
+        load: hal_sim::cli::load::Args,
+    }
+    Cli::try_parse_from(["load", "--port", "unused", "--params", "p.json"])
+        .expect("arguments parse")
+        .load
+}
+
 fn sine(n: usize, hz: f64, rate: f64) -> Vec<i16> {
     (0..n)
         .map(|i| {
@@ -120,26 +132,30 @@ fn the_host_tools_drive_the_emulated_firmware_over_its_uart() {
 
     // A parameter load from the file `identify` writes (a representative P–I model on the
     // firmware's default ranges), open loop.
+    let twinstack::settings::Model::PrandtlIshlinskii(pi) =
+        twinstack::settings::representative_pi(16).unwrap()
+    else {
+        unreachable!()
+    };
     let model = StageModel {
-        hysteresis: Hysteresis::Pi(twinstack::default_config::pi_params(16).unwrap()),
-        scaling: twinstack::default_config::scaling(),
+        hysteresis: Hysteresis::Pi(pi),
+        scaling: twinstack::settings::Settings::default().ranges,
         output_sign: 1.0,
         sensor_lag_s: 0.0,
     };
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("params.json");
-    std::fs::write(
-        &path,
-        ParamFile::from_model(&model, "um", None).unwrap().to_json(),
-    )
-    .unwrap();
-    let (_, loaded) = ParamFile::load(&path).expect("the file reads back");
-    let set = param_set(&loaded, &DriveOptions::default()).expect("converts");
+    std::fs::write(&path, ParamFile::from_model(&model, "um", None).to_json()).unwrap();
+    let (file, _) = ParamFile::load(&path).expect("the file reads back");
+    // As `hal-sim load` sends it: the file's settings, the board's sensor and gains kept.
+    let board = client.read_params().expect("the firmware's settings");
+    let set = hal_sim::cli::load::settings_for(&load_args(), &file.settings, Some(&board));
     client
         .load_params(&set)
         .expect("the firmware takes the load");
     client.wait(Duration::from_millis(20)).unwrap();
     assert_eq!(client.status().unwrap().mode(), Mode::OpenLoop);
+    assert_eq!(client.read_params().unwrap(), set, "read back as sent");
 
     // A batch queued (the stream is stopped), then a corrupted frame: NACKed for its CRC,
     // nothing applied, nothing queued lost, the next frame decodes.
@@ -176,18 +192,22 @@ fn the_host_tools_drive_the_emulated_firmware_over_its_uart() {
     assert_eq!(after.next_seq, s.next_seq.wrapping_add(1));
     // A load the firmware refuses (not invertible) changes nothing.
     let mut bad = set.clone();
-    if let twinstack::protocol::messages::ModelParams::PrandtlIshlinskii { weights, .. } =
-        &mut bad.model
-    {
-        weights[0] = -1.0;
+    if let Some(twinstack::settings::Model::PrandtlIshlinskii(p)) = &mut bad.compensator {
+        p.weights[0] = -1.0;
     }
     assert!(matches!(
         client.load_params(&bad),
         Err(LinkError::Nack {
-            reason: NackReason::InvalidParams(_),
+            reason: NackReason::Refused(twinstack::refusal::Refusal {
+                field: twinstack::refusal::Field::Compensator(
+                    twinstack::refusal::ModelField::Weight(1)
+                ),
+                rule: twinstack::refusal::Rule::NotInvertible,
+            }),
             ..
         })
     ));
+    assert_eq!(client.read_params().unwrap(), set, "nothing changed");
     assert_eq!(client.status().unwrap().queue_fill, after.queue_fill);
 
     // Arm the recorder, then stream 0.05 s of a sine through the streamer (the 30 queued

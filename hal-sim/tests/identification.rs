@@ -357,12 +357,13 @@ fn a_bad_parameter_file_is_refused_by_name_and_nothing_is_written() {
     let result = d.join("result.csv");
     let cases = [
         (
-            text.replace("\"version\": 1", "\"version\": 7"),
+            text.replace("\"version\": 2", "\"version\": 7"),
             "`version` is 7",
         ),
         (
-            text.replace("\"model\": \"duhem\"", "\"model\": \"pi\""),
-            "field `pi`: missing",
+            // A Duhem model's fields under the P–I kind.
+            text.replace("\"Duhem\": {", "\"PrandtlIshlinskii\": {"),
+            "unknown field `alpha`",
         ),
         (
             text.replace("\"output_sign\": 1.0", "\"output_sign\": 2.0"),

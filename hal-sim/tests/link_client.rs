@@ -7,9 +7,9 @@ use hal_sim::link::client::{Client, LinkError};
 use hal_sim::link::streamer::{stream_setpoints, StreamOptions};
 use std::time::Duration;
 use support::fake_board::FakeBoard;
-use twinstack::params::ParamError;
 use twinstack::protocol::frame::{self, FrameError, MAX_ENCODED};
 use twinstack::protocol::messages::{NackReason, Request, Response, StreamControl, UnderrunPolicy};
+use twinstack::refusal::{Field, ModelField, Refusal, Rule};
 
 mod support;
 
@@ -101,16 +101,17 @@ fn a_batch_damaged_on_the_line_is_resent_with_those_after_it_and_nothing_is_lost
 #[test]
 fn a_refusal_that_cannot_be_retried_ends_the_stream_with_what_was_accepted() {
     let mut board = FakeBoard::new(300, 50_000.0);
-    board.refuse.insert(3, NackReason::OutOfRange);
+    let refusal = Refusal::new(Field::Divider, Rule::AtLeast(1.0));
+    board.refuse.insert(3, NackReason::Refused(refusal));
     let mut client = Client::new(board);
     let err = stream_setpoints(&mut client, &ramp(2000), &StreamOptions::default(), |_| {})
         .expect_err("refused");
     assert!(matches!(
         err.source,
         LinkError::Nack {
-            reason: NackReason::OutOfRange,
+            reason: NackReason::Refused(r),
             ..
-        }
+        } if r == refusal
     ));
     assert_eq!(err.accepted, 3 * 96);
     let text = err.to_string();
@@ -138,36 +139,35 @@ fn endless_refusals_give_up_after_the_retry_limit() {
 #[test]
 fn a_nack_is_a_typed_error_that_names_the_request_and_the_reason() {
     let mut client = Client::new(FakeBoard::new(100, 1000.0));
-    let set = twinstack::protocol::messages::ParamSet {
-        model: twinstack::protocol::messages::ModelParams::Duhem {
-            alpha: 1.0,
-            beta: 1.0,
-            gamma: 1.0,
-            offset: 0.0,
-        },
-        input_range: [0.0, 1.0],
-        output_range: [0.0, 1.0],
-        configuration: twinstack::drive::Configuration::Differential,
-        bias: 0.5,
-        voltage_limits: [0.0, 1.0],
-        slew_rate: 1.0,
-        safe_state: twinstack::drive::SafeState::Bias,
-        feedback: None,
-        mode: twinstack::protocol::messages::Mode::OpenLoop,
+    let set = twinstack::settings::Settings {
+        compensator: Some(twinstack::settings::representative_duhem()),
+        mode: twinstack::settings::Mode::OpenLoop,
+        ..twinstack::settings::Settings::default()
     };
     let err = client.load_params(&set).expect_err("refused");
     assert!(matches!(
         err,
         LinkError::Nack {
             request: "LoadParams",
-            reason: NackReason::InvalidParams(ParamError::FirstWeightNotPositive)
+            reason: NackReason::Refused(Refusal {
+                field: Field::Compensator(ModelField::Weight(1)),
+                rule: Rule::NotInvertible,
+            })
         }
     ));
-    assert!(err.to_string().contains("not invertible"), "{err}");
+    // The message names the field and the rule.
+    let text = err.to_string();
+    assert!(text.contains("LoadParams"), "{text}");
+    assert!(text.contains("compensator.weights[0]"), "{text}");
+    assert!(text.contains("non-invertible"), "{text}");
     let err = client
         .stream(StreamControl::Rate { divider: 0 })
         .expect_err("refused");
-    assert!(err.to_string().contains("out of its range"), "{err}");
+    assert!(
+        err.to_string()
+            .contains("stream divider must be at least 1"),
+        "{err}"
+    );
 }
 
 #[test]

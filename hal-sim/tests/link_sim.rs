@@ -5,16 +5,17 @@
 //! matches what was streamed. Time is simulated: these are counts, not timings.
 
 use hal_sim::link::client::{Client, LinkError};
-use hal_sim::link::param_set::{param_set, DriveOptions};
 use hal_sim::link::streamer::{stream_setpoints, StreamOptions};
+use hal_sim::param_file::ParamFile;
 use hal_sim::sim_device::{SimDevice, SimDeviceConfig};
 use hal_sim::stage_model::{Hysteresis, StageModel};
-use twinstack::default_config;
 use twinstack::protocol::frame::{self, FrameError, MAX_ENCODED};
 use twinstack::protocol::messages::{
-    Mode, ModelParams, NackReason, RecordRequest, Request, Response, SetpointBatch, Signal,
-    StatusReport, StreamControl, UnderrunPolicy,
+    Mode, NackReason, RecordRequest, Request, Response, SetpointBatch, Signal, StatusReport,
+    StreamControl, UnderrunPolicy,
 };
+use twinstack::refusal::{Field, ModelField, Refusal, Rule};
+use twinstack::settings::{representative_pi, Model};
 
 fn device() -> Client<SimDevice> {
     Client::new(SimDevice::new(SimDeviceConfig::paper()).expect("device"))
@@ -107,7 +108,10 @@ fn the_recorder_captures_what_was_streamed() {
         Err(e) => assert!(matches!(
             e,
             LinkError::Nack {
-                reason: NackReason::OutOfRange,
+                reason: NackReason::Refused(Refusal {
+                    field: Field::RecordOffset,
+                    ..
+                }),
                 ..
             }
         )),
@@ -134,47 +138,56 @@ fn a_parameter_file_loads_and_a_non_invertible_one_is_refused_with_nothing_lost(
     let queued = queue_without_playing(&mut client, 50);
     assert_eq!(queued.queue_fill, 50);
     // What `hal-sim load` sends for an identified P–I model, open loop.
+    let Model::PrandtlIshlinskii(mut p) = representative_pi(16).unwrap() else {
+        unreachable!()
+    };
+    // The model's offset places the loading curve inside the board's output range.
+    p.offset = -28.0;
     let model = StageModel {
-        hysteresis: Hysteresis::Pi(default_config::pi_params(16).unwrap()),
+        hysteresis: Hysteresis::Pi(p),
         scaling: twinstack::Scaling::new(0.0, 140.0, -45.0, 45.0).unwrap(),
         output_sign: 1.0,
         sensor_lag_s: 0.0,
     };
-    let mut good = param_set(&model, &DriveOptions::default()).expect("converts");
-    // The board's model offset places the loading curve inside its output range.
-    if let ModelParams::PrandtlIshlinskii { offset, .. } = &mut good.model {
-        *offset = -28.0;
-    }
+    let mut good = ParamFile::from_model(&model, "um", None).settings;
+    // As `hal-sim load` does: the board's sensor and gains, which the file does not carry.
+    let board = client.read_params().unwrap();
+    good.sensor = board.sensor;
+    good.feedback = board.feedback;
     client.load_params(&good).expect("loaded");
     client.wait(std::time::Duration::from_millis(1)).unwrap();
     let s = client.status().unwrap();
     assert_eq!(s.mode(), Mode::OpenLoop);
-    assert_eq!(client.transport().handler().params(), &good);
+    assert_eq!(client.transport().handler().settings(), &good);
+    assert_eq!(client.read_params().unwrap(), good);
     assert_eq!(s.queue_fill, 50, "the load lost nothing queued");
-    client.store_params().expect("stored");
+    client.store_params(Mode::OpenLoop).expect("stored");
 
     // A weight that makes the loading curve fall: not invertible, refused, nothing changes.
     let mut bad = good.clone();
-    if let ModelParams::PrandtlIshlinskii { weights, .. } = &mut bad.model {
-        weights[0] = -0.5;
+    if let Some(Model::PrandtlIshlinskii(p)) = &mut bad.compensator {
+        p.weights[0] = -0.5;
     }
     let err = client.load_params(&bad).expect_err("refused");
     assert!(
         matches!(
             err,
             LinkError::Nack {
-                reason: NackReason::InvalidParams(_),
+                reason: NackReason::Refused(Refusal {
+                    field: Field::Compensator(ModelField::Weight(1)),
+                    rule: Rule::NotInvertible
+                }),
                 ..
             }
         ),
         "{err}"
     );
-    assert_eq!(client.transport().handler().params(), &good);
+    assert_eq!(client.transport().handler().settings(), &good);
     let s = client.status().unwrap();
     assert_eq!(s.queue_fill, 50);
     assert_eq!(s.mode(), Mode::OpenLoop);
     client.recall_params().expect("recalled");
-    assert_eq!(client.transport().handler().params(), &good);
+    assert_eq!(client.transport().handler().settings(), &good);
 }
 
 #[test]

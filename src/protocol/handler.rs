@@ -151,9 +151,12 @@ impl<S: RecordStorage> CommandHandler<S> {
             Request::Record(r) => record(r, control),
             Request::ReadRecord { offset } => {
                 let mut values = heapless::Vec::new();
-                return match control.lock(|c| c.read_record(offset, &mut values)) {
+                let (read, recorded) =
+                    control.lock(|c| (c.read_record(offset, &mut values), c.recorded()));
+                return match read {
                     Ok(()) => Response::RecordChunk { offset, values },
-                    Err(_) => nack(refused(Field::RecordOffset, Rule::AtMost(0.0))),
+                    // The limit is what the recorder holds now.
+                    Err(_) => nack(refused(Field::RecordOffset, Rule::AtMost(recorded as f64))),
                 };
             }
             Request::ReadParams => return Response::Params(self.settings.clone()),
@@ -339,6 +342,9 @@ impl<S: RecordStorage> CommandHandler<S> {
             self.hardware.control_rate_hz,
         )
         .map_err(|e| match e {
+            WaveformError::FrequencyOutOfRange if w.frequency_mhz == 0 => {
+                refused(Field::WaveformFrequency, Rule::Above(0.0))
+            }
             WaveformError::FrequencyOutOfRange => refused(
                 Field::WaveformFrequency,
                 Rule::Below(self.hardware.control_rate_hz / 2.0),
@@ -423,7 +429,10 @@ where
     if r.decimation == 0 {
         return Err(refused(Field::RecordDecimation, Rule::AtLeast(1.0)));
     }
-    if r.count == 0 || r.count as usize > capacity {
+    if r.count == 0 {
+        return Err(refused(Field::RecordCount, Rule::AtLeast(1.0)));
+    }
+    if r.count as usize > capacity {
         return Err(refused(Field::RecordCount, Rule::AtMost(capacity as f64)));
     }
     control

@@ -7,12 +7,12 @@ pub use hal_sim::link::Transport;
 use std::collections::{HashMap, VecDeque};
 use std::io;
 use std::time::Duration;
-use twinstack::params::ParamError;
 use twinstack::protocol::decoder::FrameDecoder;
 use twinstack::protocol::frame::{self, MAX_ENCODED};
 use twinstack::protocol::messages::{
     NackReason, Request, Response, StatusReport, StreamControl, MAX_CHUNK,
 };
+use twinstack::refusal::{Field, ModelField, Refusal, Rule};
 
 /// A board reduced to its protocol behaviour: a setpoint queue of `capacity` played at
 /// `rate` samples per second of (simulated) waiting, a sequence check, scripted refusals.
@@ -155,7 +155,10 @@ impl FakeBoard {
                     StreamControl::Stop => self.running = false,
                     StreamControl::Rate { divider: 0 } => {
                         return Response::Nack {
-                            reason: NackReason::OutOfRange,
+                            reason: NackReason::Refused(Refusal::new(
+                                Field::Divider,
+                                Rule::AtLeast(1.0),
+                            )),
                         }
                     }
                     _ => {}
@@ -166,7 +169,10 @@ impl FakeBoard {
                 }
             }
             Request::LoadParams(_) => Response::Nack {
-                reason: NackReason::InvalidParams(ParamError::FirstWeightNotPositive),
+                reason: NackReason::Refused(Refusal::new(
+                    Field::Compensator(ModelField::Weight(1)),
+                    Rule::NotInvertible,
+                )),
             },
             Request::ReadRecord { offset } => {
                 let start = (offset as usize).min(self.recording.len());
