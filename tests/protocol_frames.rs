@@ -255,24 +255,36 @@ fn message_variant_counts_match_the_enums() {
     assert_eq!(body[1] as u32 + 1, Response::VARIANTS);
 }
 
-/// The example frames in the README's protocol chapter are what the encoder writes.
+/// The example frames in the book's protocol chapter (docs/src/reference/protocol.md) are what
+/// the encoder writes.
 #[test]
-fn the_readme_example_frames_are_what_the_encoder_writes() {
+fn the_book_s_example_frames_are_what_the_encoder_writes() {
     let hex = |s: &str| -> Vec<u8> {
         s.split(' ')
             .map(|b| u8::from_str_radix(b, 16).unwrap())
             .collect()
     };
-    assert_eq!(PROTOCOL_VERSION, 2);
-    assert_eq!(frame_of(&Request::Status), hex("02 02 05 7d 70 ef 73 00"));
+    assert_eq!(PROTOCOL_VERSION, 3);
+    assert_eq!(frame_of(&Request::Status), hex("02 03 05 3c 41 f4 6a 00"));
     assert_eq!(
         frame_of(&Request::Setpoints(SetpointBatch {
             seq: 1,
             samples: heapless::Vec::from_slice(&[100, -100]).unwrap(),
         })),
-        hex("0d 02 01 01 02 c8 01 c7 01 a4 8e 6b 71 00")
+        hex("0d 03 01 01 02 c8 01 c7 01 3a 8e c1 bd 00")
     );
     let mut out = [0u8; MAX_ENCODED + 1];
     let n = encode(&Response::Ack { credits: 511 }, &mut out).unwrap();
-    assert_eq!(&out[..n], &hex("02 02 07 ff 03 5f bb 60 81 00")[..]);
+    assert_eq!(&out[..n], &hex("02 03 07 ff 03 3a dc dc 39 00")[..]);
+    let refused = Response::Nack {
+        reason: NackReason::Refused(twinstack::refusal::Refusal::new(
+            twinstack::refusal::Field::Ki,
+            twinstack::refusal::Rule::Below(25_000.0),
+        )),
+    };
+    let n = encode(&refused, &mut out).unwrap();
+    assert_eq!(
+        &out[..n],
+        &hex("06 03 01 03 0a 04 01 01 01 01 08 6a d8 40 96 81 4a 80 00")[..]
+    );
 }
