@@ -459,10 +459,8 @@ pub fn check(set: &VectorSet<'_>) -> anyhow::Result<Agreement> {
         // target lies exactly one slew step from its previous voltage: close, but the left
         // stack decides the flag.)
         let (left_near, right_near) = (near_slew(left_target, left), near_slew(r_target, right));
-        if (left_near || right_near)
-            && !(left_slewed && !left_near)
-            && !(right_slewed && !right_near)
-        {
+        let clearly_slewed = (left_slewed && !left_near) || (right_slewed && !right_near);
+        if (left_near || right_near) && !clearly_slewed {
             loose |= TickFlags::SLEW_LIMIT;
         }
         let applied = if new_left != left_target {
