@@ -13,10 +13,8 @@
 mod support;
 
 use std::time::Duration;
-use twinstack::golden::{
-    config_fingerprint, replay, CompensatorChoice, ObserverChoice, ReplayResult, VectorSet,
-    VectorSets,
-};
+use twinstack::golden::{config_fingerprint, replay, ReplayResult, VectorSet, VectorSets};
+use twinstack::settings::{Mode, Model};
 
 const REGENERATE: &str = "cargo run --release -p hal-sim -- golden --write";
 
@@ -42,20 +40,31 @@ fn host_replay(set: &VectorSet<'_>) -> ReplayResult {
     })
 }
 
+/// A model as the coverage lists name it.
+fn model_name(model: &Option<Model>) -> String {
+    match model {
+        None => "none".into(),
+        Some(Model::PrandtlIshlinskii(p)) => format!("P–I N={}", p.thresholds.len()),
+        Some(Model::Duhem(_)) => "Duhem".into(),
+    }
+}
+
 #[test]
-fn the_vector_sets_cover_every_compensator_and_observer() {
+fn the_vector_sets_cover_every_compensator_observer_and_mode() {
     let file = vector_file();
     let sets = sets(&file);
     let mut compensators = Vec::new();
     let mut observers = Vec::new();
+    let mut modes = Vec::new();
+    let mut drift_limit_closed = false;
     for set in &sets {
-        let r = set.recipe().expect("recipe decodes");
-        let n = r.pi.as_ref().map(|p| p.thresholds.len());
-        compensators.push(match r.compensator {
-            CompensatorChoice::InversePi => format!("inverse P–I N={}", n.unwrap_or(0)),
-            c => format!("{c:?}"),
-        });
-        observers.push(format!("{:?}", r.observer));
+        let s = set.recipe().expect("recipe decodes").settings;
+        compensators.push(model_name(&s.compensator));
+        observers.push(model_name(&s.observer));
+        modes.push(s.mode);
+        drift_limit_closed |= s.mode == Mode::ClosedLoop
+            && s.observer.is_some()
+            && s.sensor.as_ref().is_some_and(|x| x.drift_limit.is_some());
         assert!(
             set.ticks() >= 2000,
             "set {}: {} ticks",
@@ -63,25 +72,22 @@ fn the_vector_sets_cover_every_compensator_and_observer() {
             set.ticks()
         );
     }
-    for want in [
-        "None",
-        "inverse P–I N=8",
-        "inverse P–I N=16",
-        "inverse P–I N=32",
-        "InverseDuhem",
-    ] {
-        assert!(compensators.iter().any(|c| c == want), "no set with {want}");
-    }
-    for want in [
-        ObserverChoice::None,
-        ObserverChoice::Pi,
-        ObserverChoice::Duhem,
-    ] {
+    for want in ["none", "P–I N=8", "P–I N=16", "P–I N=32", "Duhem"] {
         assert!(
-            observers.contains(&format!("{want:?}")),
-            "no set with observer {want:?}"
+            compensators.iter().any(|c| c == want),
+            "no set with compensator {want}"
         );
     }
+    for want in ["none", "P–I N=8", "P–I N=16", "Duhem"] {
+        assert!(
+            observers.iter().any(|c| c == want),
+            "no set with observer {want}"
+        );
+    }
+    for want in [Mode::Bypass, Mode::OpenLoop, Mode::ClosedLoop] {
+        assert!(modes.contains(&want), "no set in {want:?}");
+    }
+    assert!(drift_limit_closed, "no closed-loop set with a drift limit");
     // Every flag the tick can raise is raised somewhere (the drift flag by the set with a
     // drift limit).
     use twinstack::control::TickFlags as F;

@@ -232,7 +232,7 @@ fn the_whole_interrupt_in_every_scenario() {
     let _ = std::fs::remove_file(&fifo);
     let made = Command::new("mkfifo").arg(&fifo).status().expect("mkfifo runs");
     assert!(made.success(), "mkfifo {}", fifo.display());
-    let mut child = support::qemu_command(&elf)
+    let child = support::qemu_command(&elf)
         .args(["-serial", "null", "-icount", "shift=0", "-singlestep"])
         .args(["-d", "exec,nochain,int", "-D"])
         .arg(&fifo)

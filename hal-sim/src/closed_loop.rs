@@ -25,7 +25,8 @@ use crate::stage_model::{Hysteresis, StageModel};
 use anyhow::{anyhow, Context, Result};
 use plotters::style::{BLUE, RED};
 use std::path::PathBuf;
-use twinstack::control::{Compensator, ControlConfig, Controller, TickFlags};
+use twinstack::board::Hardware;
+use twinstack::control::{ControlConfig, Controller, TickFlags};
 use twinstack::drive::{Configuration, DriveSettings, SafeState};
 use twinstack::fixed_point::{signal_from_f64, signal_to_f64};
 use twinstack::notch::NotchDesign;
@@ -168,50 +169,90 @@ pub fn board(rate: f64, sensor_noise_um: f64) -> Result<ExternalBoard> {
     SimBoard::external(&config).map_err(|e| anyhow!("simulated board: {e}"))
 }
 
-/// The drive settings of the study at `rate`.
-pub fn drive_settings(rate: f64) -> DriveSettings {
+/// The board the study runs on at `rate`: the 150 V amplifiers on the 16-bit DAC8562, the
+/// sensor on the 16-bit ADS8689.
+pub fn hardware(rate: f64) -> Hardware {
+    Hardware {
+        amplifier_full_scale: 150.0,
+        dac_full_scale: 65535,
+        sensor_adc_bits: Some(16),
+        control_rate_hz: rate,
+    }
+}
+
+/// The drive settings of the study.
+pub fn drive_settings() -> DriveSettings {
     DriveSettings {
         configuration: Configuration::Differential,
-        amplifier_full_scale: 150.0,
         bias: 70.0,
-        right_idle: 0.0,
         min_voltage: 0.0,
         max_voltage: 140.0,
         // The amplifier's own limit is 1 V/µs; the controller's sits just below it.
         slew_rate: 0.9e6,
-        control_rate: rate,
-        dac_full_scale: 65535,
         safe_state: SafeState::Bias,
     }
 }
 
-/// The sensor as the board reads it: the ADS8689's ±10.24 V over 16 bits, in µm.
+/// The sensor as the board reads it: the ADS8689's ±10.24 V over 16 bits, in µm; drift
+/// flagged beyond 3 % of the output range.
 pub fn sensor_settings(board: &ExternalBoard) -> SensorSettings {
     let s = board.sensor();
     let um_at = |volts: f64| (volts - s.offset_volts()) / s.volts_per_um();
     SensorSettings {
-        adc_bits: 16,
         displacement_at_zero: um_at(-10.24),
         displacement_at_full_scale: um_at(10.24),
+        drift_limit: Some(0.03),
     }
 }
 
 /// The feedback of the study: PI on the notched error, the same at both rates per tick
 /// (`kp = 0.1`, `ki = 0.2` per tick, i.e. 10 000 /s at 50 kHz), correction within ±25 % of the
-/// drive range, drift flagged beyond 3 % of the output range.
-pub fn feedback_settings(rate: f64, sensor: SensorSettings, notch: bool) -> FeedbackSettings {
+/// drive range.
+pub fn feedback_settings(rate: f64, notch: bool) -> FeedbackSettings {
     FeedbackSettings {
         notch: notch.then_some(NotchDesign {
             frequency_hz: RESONANCE_HZ,
             q: 2.0,
             depth: 0.0,
         }),
-        drift_limit: Some(0.03),
-        ..FeedbackSettings::pi(sensor, 0.1, 0.2 * rate, 0.25)
+        ..FeedbackSettings::pi(0.1, 0.2 * rate, 0.25)
     }
 }
 
-/// The controller configuration for `c` with `model`'s compensator and observer.
+/// The model as the settings carry it.
+pub fn model_of(model: &StageModel) -> Model {
+    match &model.hysteresis {
+        Hysteresis::Pi(p) => Model::PrandtlIshlinskii(p.clone()),
+        Hysteresis::Duhem(p) => Model::Duhem(*p),
+    }
+}
+
+/// The settings for `c` with `model` as the compensator (except feedback only) and as the
+/// observer (always: the drift check runs in every configuration).
+pub fn settings(
+    rate: f64,
+    model: &StageModel,
+    sensor: SensorSettings,
+    c: Configuration4,
+    notch: bool,
+) -> Settings {
+    let m = model_of(model);
+    Settings {
+        ranges: model.scaling,
+        compensator: (c != Configuration4::Feedback).then(|| m.clone()),
+        observer: Some(m),
+        drive: drive_settings(),
+        sensor: Some(sensor),
+        feedback: Some(feedback_settings(rate, notch)),
+        mode: match c {
+            Configuration4::None => Mode::Bypass,
+            Configuration4::Feedforward => Mode::OpenLoop,
+            Configuration4::Feedback | Configuration4::Both => Mode::ClosedLoop,
+        },
+    }
+}
+
+/// The controller configuration for `c` ([`settings`], built on [`hardware`]).
 pub fn configuration(
     rate: f64,
     model: &StageModel,
@@ -219,28 +260,9 @@ pub fn configuration(
     c: Configuration4,
     notch: bool,
 ) -> Result<ControlConfig> {
-    let hysteresis = match &model.hysteresis {
-        Hysteresis::Pi(p) => Model::PrandtlIshlinskii(p.clone()),
-        Hysteresis::Duhem(p) => Model::Duhem(*p),
-    };
-    let settings = Settings {
-        model: Some(hysteresis),
-        scaling: model.scaling,
-        drive: drive_settings(rate),
-        feedback: Some(feedback_settings(rate, sensor, notch)),
-        mode: match c {
-            Configuration4::None => Mode::Bypass,
-            Configuration4::Feedforward => Mode::OpenLoop,
-            Configuration4::Feedback | Configuration4::Both => Mode::ClosedLoop,
-        },
-    };
-    let mut config = settings
-        .build()
-        .map_err(|e| anyhow!("settings refused: {e:?}"))?;
-    if c == Configuration4::Feedback {
-        config.compensator = Compensator::None;
-    }
-    Ok(config)
+    settings(rate, model, sensor, c, notch)
+        .build(&hardware(rate))
+        .map_err(|e| anyhow!("settings refused: {e}"))
 }
 
 /// A run: setpoint (µm), stage (µm), drift ticks.
@@ -283,14 +305,19 @@ fn simulate(
 pub fn identify_model(rate: f64, options: &ClosedLoopOptions) -> Result<StageModel> {
     let cycles = 20;
     let ticks = (rate / 750.0).round() as usize * cycles;
+    // Bypass over 0…140 V, no model and no sensor: setpoint ±1 is u_l = 70 ± 70 V.
     let settings = Settings {
-        model: None,
-        scaling: Scaling::new(0.0, 140.0, -1.0, 1.0)?,
-        drive: drive_settings(rate),
+        ranges: Scaling::new(0.0, 140.0, -1.0, 1.0)?,
+        compensator: None,
+        observer: None,
+        drive: drive_settings(),
+        sensor: None,
         feedback: None,
         mode: Mode::Bypass,
     };
-    let config = settings.build().map_err(|e| anyhow!("{e:?}"))?;
+    let config = settings
+        .build(&hardware(rate))
+        .map_err(|e| anyhow!("{e}"))?;
     let mut wave = WaveformGenerator::new(Shape::Sine, 0, signal_from_f64(1.0), 750.0, rate)
         .map_err(|e| anyhow!("{e:?}"))?;
     let mut board = board(rate, options.sensor_noise_um)?;

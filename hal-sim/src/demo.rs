@@ -24,6 +24,7 @@ use anyhow::{anyhow, Context, Result};
 use indicatif::{ProgressBar, ProgressStyle};
 use plotters::style::{RGBColor, BLACK, BLUE, RED};
 use std::path::PathBuf;
+use twinstack::board::Hardware;
 use twinstack::control::{ControlConfig, Controller};
 use twinstack::drive::{Configuration, DriveSettings, SafeState};
 use twinstack::fixed_point::{signal_from_f64, signal_to_f64};
@@ -119,21 +120,29 @@ fn name(c: StageConfiguration) -> &'static str {
     }
 }
 
-fn drive_settings(c: StageConfiguration, control_rate: f64, dac: u16) -> DriveSettings {
+/// The paper's board at `control_rate`: 150 V amplifiers on the 16-bit DACs, the sensor on
+/// the 16-bit ADC.
+fn hardware(control_rate: f64) -> Hardware {
+    Hardware {
+        amplifier_full_scale: 150.0,
+        dac_full_scale: 65535,
+        sensor_adc_bits: Some(16),
+        control_rate_hz: control_rate,
+    }
+}
+
+fn drive_settings(c: StageConfiguration) -> DriveSettings {
     DriveSettings {
         configuration: match c {
             StageConfiguration::Differential => Configuration::Differential,
             StageConfiguration::Unidirectional => Configuration::Unidirectional,
         },
-        amplifier_full_scale: 150.0,
         bias: 70.0,
-        right_idle: 0.0,
+        // The right stack idles here in the unidirectional configuration.
         min_voltage: 0.0,
         max_voltage: 140.0,
         // The amplifier's own limit is 1 V/µs; the controller's sits just below it.
         slew_rate: 0.9e6,
-        control_rate,
-        dac_full_scale: dac,
         safe_state: SafeState::Bias,
     }
 }
@@ -193,13 +202,17 @@ fn excite(options: &DemoOptions, stage: StageConfiguration, ticks: usize) -> Res
     // Bypass over the input range 0…140 V: setpoint ±1 is u_l = 70 ± 70 V.
     let scaling = Scaling::new(0.0, 140.0, -1.0, 1.0)?;
     let settings = Settings {
-        model: None,
-        scaling,
-        drive: drive_settings(stage, options.control_rate, 65535),
+        ranges: scaling,
+        compensator: None,
+        observer: None,
+        drive: drive_settings(stage),
+        sensor: None,
         feedback: None,
         mode: Mode::Bypass,
     };
-    let config = settings.build().map_err(|e| anyhow!("{e:?}"))?;
+    let config = settings
+        .build(&hardware(options.control_rate))
+        .map_err(|e| anyhow!("{e}"))?;
     let mut wave = WaveformGenerator::new(
         Shape::Sine,
         0,
@@ -250,10 +263,15 @@ fn track(
         Hysteresis::Pi(p) => Model::PrandtlIshlinskii(p.clone()),
         Hysteresis::Duhem(p) => Model::Duhem(*p),
     };
+    // Open loop runs the inverse of the model, the observer the model itself (so the
+    // compensator starts consistent with where the observer puts the stage); the bypassed run
+    // carries the same models (the compensator steps in every mode, its output unused).
     let settings = Settings {
-        model: Some(hysteresis),
-        scaling: model.scaling,
-        drive: drive_settings(stage, options.control_rate, 65535),
+        ranges: model.scaling,
+        compensator: Some(hysteresis.clone()),
+        observer: Some(hysteresis),
+        drive: drive_settings(stage),
+        sensor: None,
         feedback: None,
         mode: if compensate {
             Mode::OpenLoop
@@ -261,7 +279,9 @@ fn track(
             Mode::Bypass
         },
     };
-    let config = settings.build().map_err(|e| anyhow!("{e:?}"))?;
+    let config = settings
+        .build(&hardware(options.control_rate))
+        .map_err(|e| anyhow!("{e}"))?;
     let s = model.scaling;
     let (lo, hi) = stroke;
     let centre = s.output_to_norm(0.5 * (lo + hi));

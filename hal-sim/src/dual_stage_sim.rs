@@ -14,11 +14,12 @@ use crate::plant::ball_screw::{BallScrew, BallScrewError, BallScrewParams};
 use crate::plant::{Configuration as PlantConfiguration, StageParams};
 use crate::sim_board::{BoardConfig, BoardError, ExternalBoard};
 use std::f64::consts::PI;
-use twinstack::board::DualDac;
+use twinstack::board::{DualDac, Hardware};
 use twinstack::control::{Controller, TickFlags};
 use twinstack::drive::{Configuration, DriveSettings, SafeState};
 use twinstack::dual_stage::{DualMode, DualStage, DualStageError, DualStageSettings, PM_PER_UM};
-use twinstack::settings::{FeedbackSettings, Mode, Model, SensorSettings, Settings, SettingsError};
+use twinstack::refusal::Refusal;
+use twinstack::settings::{FeedbackSettings, Mode, Model, SensorSettings, Settings};
 use twinstack::{DuhemParams, Scaling};
 
 /// The piezo controller's output range, µm (its Q2.30 ±1).
@@ -63,8 +64,8 @@ pub enum DualStageSimError {
     #[error("piezo board: {0}")]
     Board(BoardError),
     /// The piezo controller's settings.
-    #[error("piezo controller settings: {0:?}")]
-    Settings(SettingsError),
+    #[error("piezo controller settings: {0}")]
+    Settings(Refusal),
     /// The ball screw.
     #[error("{0}")]
     Screw(BallScrewError),
@@ -115,49 +116,54 @@ pub struct DualStageSim {
     periods: u64,
 }
 
-/// The piezo controller: inverse Duhem with PI feedback on the piezo sensor (as in
-/// `tests/closed_loop.rs`), output range [`FINE_RANGE_UM`].
-fn piezo_settings(board: &ExternalBoard, ki: f64, rate: f64) -> Settings {
+/// The piezo board at `rate`: 150 V amplifiers on the board's DAC, the sensor on the 16-bit
+/// ADS8689.
+fn piezo_hardware(board: &ExternalBoard, rate: f64) -> Hardware {
+    Hardware {
+        amplifier_full_scale: 150.0,
+        dac_full_scale: DualDac::full_scale(board).0,
+        sensor_adc_bits: Some(16),
+        control_rate_hz: rate,
+    }
+}
+
+/// The piezo controller: inverse Duhem (and the Duhem observer) with PI feedback on the piezo
+/// sensor (as in `tests/closed_loop.rs`), output range [`FINE_RANGE_UM`].
+fn piezo_settings(board: &ExternalBoard, ki: f64) -> Settings {
     let gain = StageParams::paper()
         .second_order(PlantConfiguration::Differential)
         .a0_um_per_volt;
     let sensor = board.sensor();
     let um_at = |volts: f64| (volts - sensor.offset_volts()) / sensor.volts_per_um();
+    let model = Model::Duhem(DuhemParams {
+        alpha: 0.03,
+        beta: gain,
+        gamma: 0.75 * gain,
+        offset: -70.0 * gain,
+    });
     Settings {
-        model: Some(Model::Duhem(DuhemParams {
-            alpha: 0.03,
-            beta: gain,
-            gamma: 0.75 * gain,
-            offset: -70.0 * gain,
-        })),
-        scaling: Scaling {
+        ranges: Scaling {
             input_min: 0.0,
             input_max: 140.0,
             output_min: FINE_RANGE_UM.0,
             output_max: FINE_RANGE_UM.1,
         },
+        compensator: Some(model.clone()),
+        observer: Some(model),
         drive: DriveSettings {
             configuration: Configuration::Differential,
-            amplifier_full_scale: 150.0,
             bias: 70.0,
-            right_idle: 0.0,
             min_voltage: 0.0,
             max_voltage: 140.0,
             slew_rate: 1.0e6,
-            control_rate: rate,
-            dac_full_scale: DualDac::full_scale(board).0,
             safe_state: SafeState::Bias,
         },
-        feedback: Some(FeedbackSettings::pi(
-            SensorSettings {
-                adc_bits: 16,
-                displacement_at_zero: um_at(-10.24),
-                displacement_at_full_scale: um_at(10.24),
-            },
-            0.0,
-            ki,
-            1.0,
-        )),
+        sensor: Some(SensorSettings {
+            displacement_at_zero: um_at(-10.24),
+            displacement_at_full_scale: um_at(10.24),
+            drift_limit: None,
+        }),
+        feedback: Some(FeedbackSettings::pi(0.0, ki, 1.0)),
         mode: Mode::ClosedLoop,
     }
 }
@@ -167,8 +173,8 @@ impl DualStageSim {
     pub fn new(config: &DualStageSimConfig) -> Result<Self, DualStageSimError> {
         let board = ExternalBoard::external(&config.board).map_err(DualStageSimError::Board)?;
         let dt = config.board.plant.dt;
-        let piezo = piezo_settings(&board, config.fine_ki, 1.0 / dt)
-            .build()
+        let piezo = piezo_settings(&board, config.fine_ki)
+            .build(&piezo_hardware(&board, 1.0 / dt))
             .map_err(DualStageSimError::Settings)?;
         let dual_settings = DualStageSettings {
             fine_rate_hz: 1.0 / dt,

@@ -9,8 +9,8 @@ use core::fmt::Debug;
 use hal_sim::converters::{AnalogDualDac, AnalogSensorAdc};
 use hal_sim::plant::{Configuration as PlantConfiguration, StageParams};
 use hal_sim::sim_board::{BoardConfig, ExternalBoard, InternalBoard, SimBoard};
-use twinstack::board::DualDac;
-use twinstack::control::Controller;
+use twinstack::board::{DualDac, Hardware};
+use twinstack::control::{ControlConfig, Controller};
 use twinstack::drive::{Configuration, DriveSettings, SafeState};
 use twinstack::fixed_point::signal_from_f64;
 use twinstack::settings::{FeedbackSettings, Mode, Model, SensorSettings, Settings};
@@ -19,50 +19,57 @@ use twinstack::{DuhemParams, Scaling};
 /// Output range of the controller's model, µm (normalised setpoint 1.0 = 40 µm).
 const OUTPUT_UM: (f64, f64) = (-40.0, 40.0);
 
-/// Closed-loop settings for a board whose ADC spans `adc_volts` with `adc_bits`.
+/// The board as the settings are validated against: 150 V amplifiers on the board's DAC, the
+/// sensor on an ADC of `adc_bits`, 50 kHz.
+fn hardware<D: AnalogDualDac, A: AnalogSensorAdc>(
+    board: &SimBoard<D, A>,
+    adc_bits: u8,
+) -> Hardware {
+    Hardware {
+        amplifier_full_scale: 150.0,
+        dac_full_scale: DualDac::full_scale(board).0,
+        sensor_adc_bits: Some(adc_bits),
+        control_rate_hz: 50_000.0,
+    }
+}
+
+/// Closed-loop settings for a board whose ADC spans `adc_volts`.
 fn settings<D: AnalogDualDac, A: AnalogSensorAdc>(
     board: &SimBoard<D, A>,
     adc_volts: (f64, f64),
-    adc_bits: u32,
 ) -> Settings {
     // The controller's model: the stage's differential gain on u_l = ū + v, with the default
-    // truth hysteresis's Duhem shape (β the gain, γ = 0.75 β, α = 0.03 /V).
+    // truth hysteresis's Duhem shape (β the gain, γ = 0.75 β, α = 0.03 /V); the compensator
+    // inverts it, the observer runs it.
     let gain = StageParams::paper()
         .second_order(PlantConfiguration::Differential)
         .a0_um_per_volt;
-    let model = DuhemParams {
+    let model = Model::Duhem(DuhemParams {
         alpha: 0.03,
         beta: gain,
         gamma: 0.75 * gain,
         offset: -70.0 * gain,
-    };
+    });
     let sensor = board.sensor();
     let um_at = |volts: f64| (volts - sensor.offset_volts()) / sensor.volts_per_um();
     Settings {
-        model: Some(Model::Duhem(model)),
-        scaling: Scaling::new(0.0, 140.0, OUTPUT_UM.0, OUTPUT_UM.1).unwrap(),
+        ranges: Scaling::new(0.0, 140.0, OUTPUT_UM.0, OUTPUT_UM.1).unwrap(),
+        compensator: Some(model.clone()),
+        observer: Some(model),
         drive: DriveSettings {
             configuration: Configuration::Differential,
-            amplifier_full_scale: 150.0,
             bias: 70.0,
-            right_idle: 0.0,
             min_voltage: 0.0,
             max_voltage: 140.0,
             slew_rate: 1.0e6,
-            control_rate: 50_000.0,
-            dac_full_scale: DualDac::full_scale(board).0,
             safe_state: SafeState::Bias,
         },
-        feedback: Some(FeedbackSettings::pi(
-            SensorSettings {
-                adc_bits,
-                displacement_at_zero: um_at(adc_volts.0),
-                displacement_at_full_scale: um_at(adc_volts.1),
-            },
-            0.0,
-            500.0,
-            1.0,
-        )),
+        sensor: Some(SensorSettings {
+            displacement_at_zero: um_at(adc_volts.0),
+            displacement_at_full_scale: um_at(adc_volts.1),
+            drift_limit: None,
+        }),
+        feedback: Some(FeedbackSettings::pi(0.0, 500.0, 1.0)),
         mode: Mode::ClosedLoop,
     }
 }
@@ -89,12 +96,14 @@ where
     board.plant().stage_um()
 }
 
-fn track<D, A>(mut board: SimBoard<D, A>, adc_volts: (f64, f64), adc_bits: u32, tol_um: f64)
+fn track<D, A>(mut board: SimBoard<D, A>, adc_volts: (f64, f64), adc_bits: u8, tol_um: f64)
 where
     D: AnalogDualDac<Error: Debug>,
     A: AnalogSensorAdc<Error: Debug>,
 {
-    let config = settings(&board, adc_volts, adc_bits).build().unwrap();
+    let config = settings(&board, adc_volts)
+        .build(&hardware(&board, adc_bits))
+        .unwrap();
     let mut controller = Controller::new(config);
     let mut from = 0.0;
     for (target, ramp) in [(20.0, 500), (-12.0, 1), (3.5, 500)] {
@@ -130,9 +139,9 @@ fn control_tick_holds_setpoints_on_the_board_with_spi_converters() {
 // ---- Issue #7: the closed-loop study, anti-windup, bumpless mode switch, notch, drift. ----
 
 use hal_sim::closed_loop::{
-    self, feedback_settings, identify_model, sensor_settings, ClosedLoopOptions, Configuration4,
+    self, identify_model, sensor_settings, ClosedLoopOptions, Configuration4,
 };
-use hal_sim::stage_model::{Hysteresis, StageModel};
+use hal_sim::stage_model::StageModel;
 use twinstack::control::TickFlags;
 
 fn study_options() -> ClosedLoopOptions {
@@ -183,29 +192,43 @@ fn the_notch_keeps_the_resonance_from_ringing() {
     assert!(with.ringing_pct < 5.0, "{}", with.ringing_pct);
 }
 
-/// Closed-loop settings of the study at 50 kHz with `model`, a slow integrator and the upper
-/// stack limit lowered to `max_voltage`.
+/// The study's control rate in these tests, Hz.
+const RATE: f64 = 50_000.0;
+
+/// Closed-loop settings of the study at 50 kHz with `model` (compensator and observer), a
+/// slow integrator and the upper stack limit lowered to `max_voltage`.
 fn study_settings(
     model: &StageModel,
     board: &ExternalBoard,
     ki_per_tick: f64,
     max_voltage: f64,
 ) -> Settings {
-    let rate = 50_000.0;
-    let mut drive = closed_loop::drive_settings(rate);
-    drive.max_voltage = max_voltage;
-    let mut feedback = feedback_settings(rate, sensor_settings(board), true);
-    feedback.ki = ki_per_tick * rate;
-    Settings {
-        model: Some(match &model.hysteresis {
-            Hysteresis::Pi(p) => Model::PrandtlIshlinskii(p.clone()),
-            Hysteresis::Duhem(p) => Model::Duhem(*p),
-        }),
-        scaling: model.scaling,
-        drive,
-        feedback: Some(feedback),
-        mode: Mode::ClosedLoop,
+    let mut s = closed_loop::settings(
+        RATE,
+        model,
+        sensor_settings(board),
+        Configuration4::Both,
+        true,
+    );
+    s.drive.max_voltage = max_voltage;
+    if let Some(f) = s.feedback.as_mut() {
+        f.ki = ki_per_tick * RATE;
     }
+    s
+}
+
+/// [`study_settings`] built on the study's board.
+fn build(settings: &Settings) -> ControlConfig {
+    settings.build(&closed_loop::hardware(RATE)).unwrap()
+}
+
+/// Reloads `config` into `c` as the board does: prepared at the stacks' present voltages in a
+/// spare controller, which then takes over.
+fn reload(c: &mut Controller, config: ControlConfig) {
+    let mut next = c.clone();
+    next.prepare(config, c.stacks());
+    next.take_over(c);
+    *c = next;
 }
 
 /// Holds a setpoint the lowered stack limit cannot reach for 20 ms (the drive sits at the
@@ -219,8 +242,8 @@ fn a_saturated_drive_does_not_wind_the_integrator_up() {
     let model = identify_model(50_000.0, &options).unwrap();
     let mut board = closed_loop::board(50_000.0, options.sensor_noise_um).unwrap();
     let settings = study_settings(&model, &board, 0.005, 110.0);
-    let s = settings.scaling;
-    let config = settings.build().unwrap();
+    let s = settings.ranges;
+    let config = build(&settings);
     let limit = config.feedback.unwrap().limit;
     let mut c = Controller::new(config);
     let (lo, hi) = (s.output_min, s.output_max);
@@ -269,8 +292,8 @@ fn mode_switches_are_bumpless() {
         mode: Mode::Bypass,
         ..study_settings(&model, &board, 0.2, 140.0)
     };
-    let s = settings.scaling;
-    let mut c = Controller::new(settings.build().unwrap());
+    let s = settings.ranges;
+    let mut c = Controller::new(build(&settings));
     let mid = 0.5 * (s.output_min + s.output_max);
     let amp = 0.4 * (s.output_max - s.output_min);
     for k in 0..2000 {
@@ -329,22 +352,24 @@ fn drift_is_flagged_for_a_wrong_model_and_clears_for_the_right_one() {
         ..study_settings(&model, &board, 0.2, 140.0)
     };
     let mut wrong = right.clone();
-    if let Some(Model::PrandtlIshlinskii(p)) = wrong.model.as_mut() {
-        for w in p.weights.iter_mut() {
-            *w *= 1.1;
+    for m in [wrong.compensator.as_mut(), wrong.observer.as_mut()] {
+        if let Some(Model::PrandtlIshlinskii(p)) = m {
+            for w in p.weights.iter_mut() {
+                *w *= 1.1;
+            }
+            p.a0 *= 1.1;
+        } else {
+            panic!("the study identifies P–I");
         }
-        p.a0 *= 1.1;
-    } else {
-        panic!("the study identifies P–I");
     }
-    let s = right.scaling;
+    let s = right.ranges;
     let sp = |k: usize| {
         let mid = 0.5 * (s.output_min + s.output_max);
         let amp = 0.3 * (s.output_max - s.output_min);
         let um = mid + amp * (2.0 * std::f64::consts::PI * 100.0 * k as f64 / 50_000.0).sin();
         signal_from_f64(s.output_to_norm(um))
     };
-    let mut c = Controller::new(right.build().unwrap());
+    let mut c = Controller::new(build(&right));
     let mut flags = 0;
     for k in 0..5000 {
         flags += c
@@ -353,7 +378,7 @@ fn drift_is_flagged_for_a_wrong_model_and_clears_for_the_right_one() {
             .contains(TickFlags::DRIFT) as u32;
     }
     assert_eq!(flags, 0, "the right model is not flagged");
-    c.reconfigure(wrong.build().unwrap());
+    reload(&mut c, build(&wrong));
     let mut flags = 0;
     for k in 5000..10_000 {
         flags += c
@@ -365,7 +390,7 @@ fn drift_is_flagged_for_a_wrong_model_and_clears_for_the_right_one() {
         flags > 1000,
         "the wrong model is flagged ({flags} of 5000 ticks)"
     );
-    c.reconfigure(right.build().unwrap());
+    reload(&mut c, build(&right));
     let mut last_flag = 0;
     for k in 10_000..15_000 {
         if c.tick_board(Some(sp(k)), &mut board)

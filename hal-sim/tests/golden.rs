@@ -7,7 +7,8 @@
 use hal_sim::golden::reference_tick::{check, CODE_BOUND, DRIVE_BOUND_LSB16, ESTIMATE_BOUND_LSB16};
 use hal_sim::golden::{default_dir, generate, sets, REGENERATE, VECTOR_FILE};
 use twinstack::golden::format::encode_record;
-use twinstack::golden::{TickInput, TickOutput, VectorSet, VectorSets};
+use twinstack::golden::{TickInput, TickOutput, VectorSet, VectorSets, MAX_RECIPE};
+use twinstack::settings::Mode;
 
 fn stored() -> Vec<u8> {
     let path = default_dir().join(VECTOR_FILE);
@@ -39,7 +40,8 @@ fn stored_outputs_agree_with_the_f64_reference_tick() {
         // Ambiguous range/slew decisions are rare; many would mean the check is too lax.
         assert!(a.ambiguous < 20, "set {}: {a:?}", set.name());
         // Every closed-loop set drives the feedback into its anti-windup hold.
-        if set.recipe().unwrap().feedback.is_some() {
+        let settings = set.recipe().unwrap().settings;
+        if settings.feedback.is_some() && settings.mode == Mode::ClosedLoop {
             assert!(a.integrator_holds > 10, "set {}: {a:?}", set.name());
         }
     }
@@ -83,11 +85,9 @@ fn a_wrong_output_fails_the_reference_check() {
         .find(|s| s.name() == "ipi16-pi-closed")
         .expect("set ipi16-pi-closed");
     let inputs: Vec<TickInput> = set.inputs().collect();
-    let recipe = {
-        let mut b = heapless::Vec::<u8, 1024>::new();
-        set.recipe().unwrap().encode(&mut b).unwrap();
-        b
-    };
+    let mut buf = [0u8; MAX_RECIPE];
+    let recipe = set.recipe().unwrap();
+    let recipe = recipe.encode(&mut buf).unwrap();
     let tamper = |k: usize, f: &dyn Fn(&mut TickOutput)| {
         let mut outputs: Vec<TickOutput> = set.outputs().collect();
         f(&mut outputs[k]);
@@ -95,7 +95,7 @@ fn a_wrong_output_fails_the_reference_check() {
         encode_record(
             set.name(),
             set.config_fingerprint(),
-            &recipe,
+            recipe,
             &inputs,
             &outputs,
             &mut bytes,
@@ -116,8 +116,8 @@ fn a_wrong_output_fails_the_reference_check() {
     assert!(untouched.holds());
 }
 
-/// The check follows the feedback's settings: the same stored outputs against the recipe with
-/// another proportional or integral gain, or without the drift limit, fail it.
+/// The check follows the feedback's and the sensor's settings: the same stored outputs against
+/// the recipe with another proportional or integral gain, or without the drift limit, fail it.
 #[test]
 fn the_reference_check_depends_on_the_feedback_settings() {
     let file = stored();
@@ -127,16 +127,16 @@ fn the_reference_check_depends_on_the_feedback_settings() {
         .expect("set ipi16-pi-closed");
     let inputs: Vec<TickInput> = set.inputs().collect();
     let outputs: Vec<TickOutput> = set.outputs().collect();
-    let recheck = |f: &dyn Fn(&mut twinstack::settings::FeedbackSettings)| {
+    let recheck = |f: &dyn Fn(&mut twinstack::settings::Settings)| {
         let mut recipe = set.recipe().unwrap();
-        f(recipe.feedback.as_mut().unwrap());
-        let mut b = heapless::Vec::<u8, 1024>::new();
-        recipe.encode(&mut b).unwrap();
+        f(&mut recipe.settings);
+        let mut b = [0u8; MAX_RECIPE];
+        let b = recipe.encode(&mut b).unwrap();
         let mut bytes = Vec::new();
         encode_record(
             set.name(),
             set.config_fingerprint(),
-            &b,
+            b,
             &inputs,
             &outputs,
             &mut bytes,
@@ -146,10 +146,47 @@ fn the_reference_check_depends_on_the_feedback_settings() {
         check(&s).unwrap()
     };
     assert!(recheck(&|_| {}).holds());
-    let a = recheck(&|f| f.kp *= 1.1);
+    let a = recheck(&|s| s.feedback.as_mut().unwrap().kp *= 1.1);
     assert!(a.first_violation.is_some(), "kp: {a:?}");
-    let a = recheck(&|f| f.ki *= 1.1);
+    let a = recheck(&|s| s.feedback.as_mut().unwrap().ki *= 1.1);
     assert!(a.first_violation.is_some(), "ki: {a:?}");
-    let a = recheck(&|f| f.drift_limit = None);
+    let a = recheck(&|s| s.sensor.as_mut().unwrap().drift_limit = None);
     assert!(a.flag_mismatches > 100, "drift limit: {a:?}");
+}
+
+/// The check follows the mode and the start: the bypassed set with a compensator, rechecked as
+/// if it ran open loop, or as if it had started from the bias rather than its zero safe state,
+/// fails it.
+#[test]
+fn the_reference_check_depends_on_the_mode_and_the_safe_state() {
+    let file = stored();
+    let set = parse(&file)
+        .into_iter()
+        .find(|s| s.name() == "ipi16-duhem-bypass")
+        .expect("set ipi16-duhem-bypass");
+    let inputs: Vec<TickInput> = set.inputs().collect();
+    let outputs: Vec<TickOutput> = set.outputs().collect();
+    let recheck = |f: &dyn Fn(&mut twinstack::settings::Settings)| {
+        let mut recipe = set.recipe().unwrap();
+        f(&mut recipe.settings);
+        let mut b = [0u8; MAX_RECIPE];
+        let b = recipe.encode(&mut b).unwrap();
+        let mut bytes = Vec::new();
+        encode_record(
+            set.name(),
+            set.config_fingerprint(),
+            b,
+            &inputs,
+            &outputs,
+            &mut bytes,
+        )
+        .unwrap();
+        let s = VectorSets::new(&bytes).next().unwrap().unwrap();
+        check(&s).unwrap()
+    };
+    assert!(recheck(&|_| {}).holds());
+    let a = recheck(&|s| s.mode = Mode::OpenLoop);
+    assert!(a.first_violation.is_some(), "open loop: {a:?}");
+    let a = recheck(&|s| s.drive.safe_state = twinstack::drive::SafeState::Bias);
+    assert_eq!(a.first_violation, Some(0), "safe state: {a:?}");
 }

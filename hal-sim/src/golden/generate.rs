@@ -7,14 +7,15 @@
 //! stage is the set's [`Truth`] model (the `f64` reference, in physical units) on the left
 //! stack's voltage as the DAC code puts it out, its displacement mapped onto the ADC's codes
 //! by the set's sensor calibration, plus a deterministic ±2-code dither. Those codes are then
-//! just recorded inputs: the replay on the board does not need the stage.
+//! just recorded inputs: the replay on the board does not need the stage. The stage starts at
+//! rest where the controller starts the stacks: the safe state's left-stack voltage.
 
 use super::scenario;
 use super::sets::{SetDefinition, Truth};
 use crate::reference;
 use anyhow::{anyhow, Context};
 use twinstack::golden::{
-    config_fingerprint, format::encode_record, run_tick, Recipe, TickInput, TickOutput,
+    config_fingerprint, format::encode_record, run_tick, Recipe, TickInput, TickOutput, MAX_RECIPE,
 };
 use twinstack::Scaling;
 
@@ -61,12 +62,11 @@ impl Stage {
 
 /// The sensor ADC: displacement → code, clamped to the converter's range.
 fn adc_code(recipe: &Recipe, displacement: f64, dither: i64) -> u16 {
-    let Some(fb) = &recipe.feedback else {
-        // Without feedback the tick never reads the ADC; record a steady mid-scale code.
+    let (Some(s), Some(bits)) = (&recipe.settings.sensor, recipe.hardware.sensor_adc_bits) else {
+        // Without a sensor the tick never reads the ADC; record a steady mid-scale code.
         return 0x8000;
     };
-    let s = &fb.sensor;
-    let full = (1u64 << s.adc_bits) as f64;
+    let full = (1u64 << bits) as f64;
     let fraction = (displacement - s.displacement_at_zero)
         / (s.displacement_at_full_scale - s.displacement_at_zero);
     let code = (fraction * full).round() as i64 + dither;
@@ -93,11 +93,15 @@ pub fn generate(def: &SetDefinition) -> anyhow::Result<GeneratedSet> {
         .build()
         .map_err(|e| anyhow!("set {}: configuration refused: {e:?}", def.name))?;
     let mut controller = twinstack::control::Controller::new(config);
-    let d = &recipe.drive;
-    let volts_per_code = d.amplifier_full_scale / d.dac_full_scale as f64;
-    let mut stage = Stage::at_rest(&def.truth, &recipe.scaling, d.bias)
+    let hw = &recipe.hardware;
+    let volts_per_code = hw.amplifier_full_scale / hw.dac_full_scale as f64;
+    // The controller starts with the stacks in the safe state, where the DAC starts: the stage
+    // rests at the left stack's voltage there.
+    let (left, _) = controller.safe_codes();
+    let start = left.0 as f64 * volts_per_code;
+    let mut stage = Stage::at_rest(&def.truth, &recipe.settings.ranges, start)
         .with_context(|| format!("set {}: stage model", def.name))?;
-    let mut displacement = stage.step(d.bias);
+    let mut displacement = stage.step(start);
     // The conversion in the ADC's pipeline: a read returns the one started at the previous
     // tick's trigger, i.e. the stage after the write of two ticks ago.
     let mut converting = displacement;
@@ -112,15 +116,15 @@ pub fn generate(def: &SetDefinition) -> anyhow::Result<GeneratedSet> {
         displacement = stage.step(out.left as f64 * volts_per_code);
         outputs.push(out);
     }
-    let mut recipe_bytes = heapless::Vec::new();
-    recipe
-        .encode(&mut recipe_bytes)
+    let mut buf = [0u8; MAX_RECIPE];
+    let recipe_bytes = recipe
+        .encode(&mut buf)
         .map_err(|e| anyhow!("set {}: {e:?}", def.name))?;
     let mut record = Vec::new();
     encode_record(
         def.name,
         config_fingerprint(&config),
-        &recipe_bytes,
+        recipe_bytes,
         &inputs,
         &outputs,
         &mut record,

@@ -2,36 +2,61 @@
 //!
 //! The reference composes the `f64` models (`crate::reference`) with the tick's
 //! other steps written out in real arithmetic from their documented semantics (`src/control.rs`,
-//! `src/feedback.rs`, `src/drive.rs`, the README's "Closed loop"): setpoint clamp and hold,
-//! feedforward, the sensor reading, the drift check, the PI feedback, range and slew limits,
-//! the differential split, the observer. It runs on the stored inputs alone, so it checks the
-//! stored outputs independently of the fixed-point code. The feedback, per tick with a reading:
+//! `src/sensor.rs`, `src/feedback.rs`, `src/drive.rs`, the README's "Closed loop"): setpoint
+//! clamp and hold, the compensator (stepped in every mode; in bypass its output is unused and
+//! the drive follows the setpoint), the sensor reading and the drift check (whenever a sensor
+//! is configured, in every mode), the PI feedback (closed loop only), range and slew limits per
+//! stack, the differential split, the observer. It runs on the stored inputs alone, so it
+//! checks the stored outputs independently of the fixed-point code.
 //!
-//! * the reading `measured = at_zero + gain · code / 2^bits` (code masked to the ADC's bits) is
-//!   [`SENSOR_DELAY_TICKS`] ticks old, so it is compared with the **target of as many ticks
-//!   ago** — whether or not the reads in between succeeded (the delay is the converter's);
+//! The start: the controller starts with both stacks at the configuration's **safe state**
+//! voltages (both at the bias, or both at 0 V), the models relaxed at the drive the left stack's
+//! voltage amounts to (within the drive window), the setpoint where the observer puts the stage
+//! (the drive itself without an observer).
+//!
+//! The drive, per tick: the command is limited to the drive window (model-normalised), turned
+//! into the left stack's voltage `u_l`, and `u_l` is slew-limited against the left stack's
+//! previous voltage (`slew_rate / control rate` volts per tick); the right stack's target is
+//! `2ū − u_l` clamped to the voltage limits (differential) or `min_voltage` (unidirectional),
+//! slew-limited against the right stack's own previous voltage. The applied drive is the
+//! ranged command when the left stack was not slew-limited, else the drive of the left stack's
+//! voltage; the slew flag is set when either stack was slew-limited.
+//!
+//! The sensor, per tick with a sensor configured:
+//!
+//! * the reading `measured = at_zero + gain · code / 2^bits` (code masked to the ADC's bits)
+//!   is [`SENSOR_DELAY_TICKS`] ticks old; a failed read raises the ADC flag in every mode;
+//! * drift: `δ ← δ + (measured − estimate of SENSOR_DELAY_TICKS ago − δ) / 2^DRIFT_FILTER_SHIFT`,
+//!   flagged when `|δ|` exceeds the drift limit (only with an observer and a drift limit).
+//!
+//! The feedback, per closed-loop tick:
+//!
+//! * the reading is compared with the **target of [`SENSOR_DELAY_TICKS`] ticks ago** — whether
+//!   or not the reads in between succeeded (the delay is the converter's);
 //! * integral: `i ← clamp(i + ki/f_s · e, ±limit)`, **held** while the previous tick's command
 //!   (feedforward + correction) was cut by the range or slew limit in the direction `e`
 //!   pushes (`clip = command − applied` of that tick, `clip · e > 0`);
 //! * proportional: `kp · clamp(e, ±limit / kp)` — the P term alone is limited to ±limit;
 //! * correction `clamp(P + i, ±limit)`, added to the feedforward; on a failed read the
-//!   integrator alone (held);
-//! * drift: `δ ← δ + (measured − estimate of SENSOR_DELAY_TICKS ago − δ) / 2^DRIFT_FILTER_SHIFT`,
-//!   flagged when `|δ|` exceeds the drift limit.
+//!   integrator alone (held).
 //!
 //! Signals that the tick holds in Q2.30 (error, reading, command) saturate at ±2 here too.
-//! The golden sets have no derivative or notch (the recipe carries neither) and start in their
-//! mode with no mode switch, so the bumpless-transfer offset is always 0 in them: the check
-//! refuses a recipe with a derivative or a notch rather than ignore it. Bounds:
+//! The golden sets have no derivative or notch and start in their mode with no mode switch or
+//! reload, so the bumpless-transfer offset is always 0 in them: the check refuses a closed-loop
+//! recipe with a derivative or a notch rather than ignore it. Bounds:
 //!
 //! * **drive** (applied, model-normalised): within [`DRIVE_BOUND_LSB16`] of the reference
 //!   chain — the inverse models' documented bound (README, "Fixed point");
 //! * **estimate**: within [`ESTIMATE_BOUND_LSB16`] of the reference observer fed the stored
 //!   drive — the forward models' documented bound;
-//! * **DAC codes**: each the stored drive's exact code rounded to nearest (within
-//!   [`CODE_BOUND`] code, clamped to the converter's range);
-//! * **flags**: equal to the reference's, except a range or slew flag where the reference's
-//!   command lies within the drive bound of the limit, or a drift flag where the reference's
+//! * **DAC codes**: the left code is the stored drive's exact code rounded to nearest (the left
+//!   stack stays within the drive window, so the stored drive is its voltage); the right code
+//!   is that of the right stack as the split makes it from the stored left voltage (mirror or
+//!   idle, limits, its own slew limit); each within [`CODE_BOUND`] code, clamped to the
+//!   converter's range;
+//! * **flags**: equal to the reference's, except a range flag where the reference's command
+//!   lies within the drive bound of the window, a slew flag where a stack's target lies within
+//!   the drive bound (in volts) of its slew limit, or a drift flag where the reference's
 //!   low-passed difference lies within [`DRIFT_BOUND_LSB16`] of the drift limit (counted as
 //!   ambiguous).
 //!
@@ -40,10 +65,11 @@
 use crate::accuracy::LSB16;
 use crate::reference;
 use twinstack::control::TickFlags;
-use twinstack::drive::Configuration;
+use twinstack::drive::{Configuration, DriveSettings, SafeState};
 use twinstack::feedback::{DRIFT_FILTER_SHIFT, SENSOR_DELAY_TICKS};
 use twinstack::fixed_point::signal_to_f64;
-use twinstack::golden::{CompensatorChoice, ObserverChoice, Recipe, VectorSet};
+use twinstack::golden::{Recipe, VectorSet};
+use twinstack::settings::{Mode, Model};
 use twinstack::Scaling;
 
 /// Largest |stored drive − reference drive|, LSB16.
@@ -51,7 +77,8 @@ pub const DRIVE_BOUND_LSB16: f64 = 0.5;
 /// Largest |stored estimate − reference observer|, LSB16.
 pub const ESTIMATE_BOUND_LSB16: f64 = 0.1;
 /// Largest |stored code − exact code|, codes (half a code for rounding, plus the split's
-/// Q17.15 arithmetic).
+/// Q17.15 arithmetic: the voltage is rounded to 2^-15 code before it is rounded to a code,
+/// and the slew step and the bias are held to 2^-15 code).
 pub const CODE_BOUND: f64 = 0.5 + 1e-3;
 /// How far the stored drift filter may be from the reference's, LSB16: the estimate's bound
 /// (the filter has gain 1) plus the sensor scaling's and the filter's rounding (< 0.01).
@@ -102,96 +129,61 @@ enum Estimator {
     Duhem(reference::Duhem),
 }
 
-/// The sensor feedback in real arithmetic (see the module doc), with its memory.
-struct ReferenceFeedback {
+/// The position sensor in real arithmetic (see the module doc), with the drift check's memory.
+struct ReferenceSensor {
     /// Displacement at code 0 and per ADC full scale, normalised.
     at_zero: f64,
     gain: f64,
     /// ADC bits.
     bits: u32,
-    /// Proportional gain; integral gain per tick; correction (and integrator) limit,
-    /// normalised drive.
-    kp: f64,
-    ki: f64,
-    limit: f64,
     /// Drift limit, normalised displacement (`None`: no check).
     drift_limit: Option<f64>,
-    /// Integrator.
-    integrator: f64,
-    /// The previous tick's command minus the drive applied.
-    clip: f64,
-    /// Targets and the observer's estimates of the last ticks, newest first.
-    targets: [f64; SENSOR_DELAY_TICKS],
+    /// The observer's estimates of the last ticks, newest first.
     estimates: [f64; SENSOR_DELAY_TICKS],
     /// Low-passed measured − estimate.
     drift: f64,
 }
 
-/// What the reference feedback gave one tick.
-struct FeedbackTick {
-    /// The correction added to the feedforward.
-    correction: f64,
-    /// The integrator was held against a non-zero error.
-    held: bool,
+/// What the sensor gave one tick.
+struct Reading {
+    /// The measurement, normalised.
+    measured: f64,
     /// The drift flag, and whether the reference's filter lies within the drift bound of the
     /// limit (the stored flag may go either way).
     drift: bool,
     drift_ambiguous: bool,
 }
 
-impl ReferenceFeedback {
+impl ReferenceSensor {
     fn new(recipe: &Recipe, at_rest: f64) -> anyhow::Result<Option<Self>> {
-        let Some(fb) = recipe.feedback else {
+        let st = &recipe.settings;
+        let Some(sensor) = &st.sensor else {
             return Ok(None);
         };
-        if fb.kd != 0.0 || fb.notch.is_some() {
-            anyhow::bail!("the reference tick models PI feedback without derivative or notch");
-        }
-        let s = &recipe.scaling;
-        let at_zero = s.output_to_norm(fb.sensor.displacement_at_zero);
+        let bits = recipe
+            .hardware
+            .sensor_adc_bits
+            .ok_or_else(|| anyhow::anyhow!("a sensor on a board without a sensor ADC"))?;
+        let s = &st.ranges;
+        let at_zero = s.output_to_norm(sensor.displacement_at_zero);
         // The drift check compares the sensor with the observer: none without one.
-        let observed = recipe.observer != ObserverChoice::None;
+        let observed = st.observer.is_some();
         Ok(Some(Self {
             at_zero,
-            gain: s.output_to_norm(fb.sensor.displacement_at_full_scale) - at_zero,
-            bits: fb.sensor.adc_bits.min(30),
-            kp: fb.kp,
-            ki: fb.ki / recipe.drive.control_rate,
+            gain: s.output_to_norm(sensor.displacement_at_full_scale) - at_zero,
+            bits: u32::from(bits).min(30),
             // Fractions of the range; the normalised range is 2 wide.
-            limit: 2.0 * fb.limit,
-            drift_limit: fb.drift_limit.filter(|_| observed).map(|d| 2.0 * d),
-            integrator: 0.0,
-            clip: 0.0,
-            targets: [at_rest; SENSOR_DELAY_TICKS],
+            drift_limit: sensor.drift_limit.filter(|_| observed).map(|d| 2.0 * d),
             estimates: [at_rest; SENSOR_DELAY_TICKS],
             drift: 0.0,
         }))
     }
 
-    /// One tick: `code` the sensor's reading (`None`: the read failed), `target` this tick's.
-    fn tick(
-        &mut self,
-        target: f64,
-        code: Option<u16>,
-        closed: bool,
-        drift_tol: f64,
-    ) -> FeedbackTick {
-        // The target of SENSOR_DELAY_TICKS ago, then this tick's into the history.
-        let reference = self.targets[SENSOR_DELAY_TICKS - 1];
-        self.targets.rotate_right(1);
-        self.targets[0] = target;
-        let Some(code) = code else {
-            return FeedbackTick {
-                correction: if closed { self.integrator } else { 0.0 },
-                held: false,
-                drift: false,
-                drift_ambiguous: false,
-            };
-        };
+    /// Reads `code` and runs the drift check.
+    fn read(&mut self, code: u16, drift_tol: f64) -> Reading {
         let mask = (1u32 << self.bits) - 1;
         let fraction = (code as u32 & mask) as f64 / (1u64 << self.bits) as f64;
         let measured = saturate(self.at_zero + self.gain * fraction);
-
         let difference = saturate(measured - self.estimates[SENSOR_DELAY_TICKS - 1]);
         self.drift += (difference - self.drift) / (1u32 << DRIFT_FILTER_SHIFT) as f64;
         let (drift, drift_ambiguous) = match self.drift_limit {
@@ -201,36 +193,77 @@ impl ReferenceFeedback {
             ),
             None => (false, false),
         };
-
-        let mut correction = 0.0;
-        let mut held = false;
-        if closed {
-            let error = saturate(reference - measured);
-            held = self.clip * error > 0.0;
-            if !held {
-                self.integrator =
-                    (self.integrator + self.ki * error).clamp(-self.limit, self.limit);
-            }
-            let p = if self.kp > 0.0 {
-                self.kp * error.clamp(-self.limit / self.kp, self.limit / self.kp)
-            } else {
-                0.0
-            };
-            correction = (p + self.integrator).clamp(-self.limit, self.limit);
-        }
-        FeedbackTick {
-            correction,
-            held,
+        Reading {
+            measured,
             drift,
             drift_ambiguous,
         }
     }
 
-    /// End of a tick: what the limits cut from the command, and the observer's estimate.
-    fn end_tick(&mut self, command: f64, applied: f64, estimate: f64) {
-        self.clip = command - applied;
+    /// End of a tick: the observer's estimate.
+    fn observed(&mut self, estimate: f64) {
         self.estimates.rotate_right(1);
         self.estimates[0] = estimate;
+    }
+}
+
+/// The PI feedback in real arithmetic (see the module doc), with its memory.
+struct ReferenceFeedback {
+    /// Proportional gain; integral gain per tick; correction (and integrator) limit,
+    /// normalised drive.
+    kp: f64,
+    ki: f64,
+    limit: f64,
+    /// Integrator.
+    integrator: f64,
+    /// The previous tick's command minus the drive applied.
+    clip: f64,
+    /// Targets of the last ticks, newest first.
+    targets: [f64; SENSOR_DELAY_TICKS],
+}
+
+impl ReferenceFeedback {
+    /// The feedback of a closed-loop recipe (`None` in the other modes: it does not run).
+    fn new(recipe: &Recipe, at_rest: f64) -> anyhow::Result<Option<Self>> {
+        let st = &recipe.settings;
+        let Some(fb) = st.feedback.filter(|_| st.mode == Mode::ClosedLoop) else {
+            return Ok(None);
+        };
+        if fb.kd != 0.0 || fb.notch.is_some() {
+            anyhow::bail!("the reference tick models PI feedback without derivative or notch");
+        }
+        Ok(Some(Self {
+            kp: fb.kp,
+            ki: fb.ki / recipe.hardware.control_rate_hz,
+            // Fractions of the drive range; the normalised range is 2 wide.
+            limit: 2.0 * fb.limit,
+            integrator: 0.0,
+            clip: 0.0,
+            targets: [at_rest; SENSOR_DELAY_TICKS],
+        }))
+    }
+
+    /// One tick's correction: `measured` the reading (`None`: the read failed), `target`
+    /// this tick's. Also says whether the integrator was held against a non-zero error.
+    fn correction(&mut self, target: f64, measured: Option<f64>) -> (f64, bool) {
+        // The target of SENSOR_DELAY_TICKS ago, then this tick's into the history.
+        let reference = self.targets[SENSOR_DELAY_TICKS - 1];
+        self.targets.rotate_right(1);
+        self.targets[0] = target;
+        let Some(measured) = measured else {
+            return (self.integrator, false);
+        };
+        let error = saturate(reference - measured);
+        let held = self.clip * error > 0.0;
+        if !held {
+            self.integrator = (self.integrator + self.ki * error).clamp(-self.limit, self.limit);
+        }
+        let p = if self.kp > 0.0 {
+            self.kp * error.clamp(-self.limit / self.kp, self.limit / self.kp)
+        } else {
+            0.0
+        };
+        ((p + self.integrator).clamp(-self.limit, self.limit), held)
     }
 }
 
@@ -239,25 +272,18 @@ fn saturate(x: f64) -> f64 {
     x.clamp(-2.0, 2.0)
 }
 
-/// Initial output of the reference observer at rest at `u0` volts (the controller's start).
+/// The reference observer at rest at `u0` volts and its output there (output units), or
+/// `None` without an observer.
 fn observer_at_rest(recipe: &Recipe, u0: f64) -> anyhow::Result<(Estimator, Option<f64>)> {
-    let s = &recipe.scaling;
-    Ok(match recipe.observer {
-        ObserverChoice::None => (Estimator::None, None),
-        ObserverChoice::Pi => {
-            let p = recipe
-                .pi
-                .as_ref()
-                .ok_or_else(|| anyhow::anyhow!("no P–I model"))?;
+    let s = &recipe.settings.ranges;
+    Ok(match &recipe.settings.observer {
+        None => (Estimator::None, None),
+        Some(Model::PrandtlIshlinskii(p)) => {
             let m = reference::PrandtlIshlinskii::new(p, s, u0)?;
             let y = m.clone().step(u0);
             (Estimator::Pi(Box::new(m)), Some(y))
         }
-        ObserverChoice::Duhem => {
-            let d = recipe
-                .duhem
-                .as_ref()
-                .ok_or_else(|| anyhow::anyhow!("no Duhem model"))?;
+        Some(Model::Duhem(d)) => {
             let y = d.beta * u0 + d.offset;
             (
                 Estimator::Duhem(reference::Duhem::new(d, s, u0, y)?),
@@ -267,11 +293,32 @@ fn observer_at_rest(recipe: &Recipe, u0: f64) -> anyhow::Result<(Estimator, Opti
     })
 }
 
-/// The reference drive window (model-normalised) and slew per tick, from the drive settings
-/// as `DifferentialDrive::new` specifies them.
-fn limits(recipe: &Recipe) -> (f64, f64, f64) {
-    let d = &recipe.drive;
-    let s = &recipe.scaling;
+/// The reference compensator relaxed for the start: at desired output `y0` (normalised) for
+/// an inverse P–I, at `(u0, β u0 + δ)` of its own model for an inverse Duhem.
+fn compensator_at_rest(recipe: &Recipe, u0: f64, y0: f64) -> anyhow::Result<Feedforward> {
+    let s = &recipe.settings.ranges;
+    Ok(match &recipe.settings.compensator {
+        None => Feedforward::None,
+        Some(Model::PrandtlIshlinskii(p)) => {
+            // Relaxed at the desired output the start gives: the forward model at rest at u
+            // outputs c + Σw·u, so u = (y − c) / Σw.
+            let c = p.canonical()?;
+            let total: f64 = c.weights.iter().sum();
+            let u = (s.norm_to_output(y0) - c.offset) / total;
+            Feedforward::InversePi(Box::new(reference::InversePrandtlIshlinskii::new(p, s, u)?))
+        }
+        Some(Model::Duhem(m)) => Feedforward::InverseDuhem(reference::InverseDuhem::new(
+            m,
+            s,
+            u0,
+            m.beta * u0 + m.offset,
+        )?),
+    })
+}
+
+/// The drive window (model-normalised, within ±1) from the left stack's voltage window, as
+/// `DriveSettings::build` specifies it.
+fn window(d: &DriveSettings, s: &Scaling) -> (f64, f64) {
     let (lo, hi) = match d.configuration {
         Configuration::Differential => (
             d.min_voltage.max(2.0 * d.bias - d.max_voltage),
@@ -279,12 +326,21 @@ fn limits(recipe: &Recipe) -> (f64, f64, f64) {
         ),
         Configuration::Unidirectional => (d.min_voltage, d.max_voltage),
     };
-    let slew = (d.slew_rate / d.control_rate / s.input_half_span()).min(2.0);
-    (
-        s.input_to_norm(lo).max(-1.0),
-        s.input_to_norm(hi).min(1.0),
-        slew,
-    )
+    (s.input_to_norm(lo).max(-1.0), s.input_to_norm(hi).min(1.0))
+}
+
+/// The right stack's target for the left stack at `left` volts: the mirror about the bias
+/// within the voltage limits, or the idle voltage (`min_voltage`).
+fn right_target(d: &DriveSettings, left: f64) -> f64 {
+    match d.configuration {
+        Configuration::Differential => (2.0 * d.bias - left).clamp(d.min_voltage, d.max_voltage),
+        Configuration::Unidirectional => d.min_voltage,
+    }
+}
+
+/// `x` limited to `previous ± step`.
+fn slewed(x: f64, previous: f64, step: f64) -> f64 {
+    x.clamp(previous - step, previous + step)
 }
 
 fn exact_code(volts: f64, full_scale_volts: f64, full_scale_code: u16) -> f64 {
@@ -300,52 +356,37 @@ pub fn check(set: &VectorSet<'_>) -> anyhow::Result<Agreement> {
     let recipe = set
         .recipe()
         .map_err(|e| anyhow::anyhow!("set {}: {e:?}", set.name()))?;
-    let s = recipe.scaling;
-    let d = recipe.drive;
-    let (dmin, dmax, slew) = limits(&recipe);
-    let rest = s.input_to_norm(d.bias).max(dmin).min(dmax);
-    let u_rest = s.norm_to_input(rest);
+    let hw = recipe.hardware;
+    let st = &recipe.settings;
+    let s = st.ranges;
+    let d = st.drive;
+    let (dmin, dmax) = window(&d, &s);
+    // Slew step per stack, volts per tick.
+    let slew = d.slew_rate / hw.control_rate_hz;
 
-    // The controller's start: models relaxed at the rest drive, setpoint at the estimate.
-    let (mut estimator, y_rest) = observer_at_rest(&recipe, u_rest)?;
-    let y_rest_norm = y_rest.map(|y| norm(&s, y)).unwrap_or(rest);
-    let mut feedforward = match recipe.compensator {
-        CompensatorChoice::None => Feedforward::None,
-        CompensatorChoice::InversePi => {
-            let p = recipe
-                .pi
-                .as_ref()
-                .ok_or_else(|| anyhow::anyhow!("no P–I model"))?;
-            // Relaxed at the desired output the observer gives: the forward model at rest at
-            // u0 outputs c + Σw·u0, so u0 = (y − c) / Σw.
-            let c = p.canonical()?;
-            let total: f64 = c.weights.iter().sum();
-            let u0 = (s.norm_to_output(y_rest_norm) - c.offset) / total;
-            Feedforward::InversePi(Box::new(reference::InversePrandtlIshlinskii::new(
-                p, &s, u0,
-            )?))
-        }
-        CompensatorChoice::InverseDuhem => {
-            let m = recipe
-                .duhem
-                .as_ref()
-                .ok_or_else(|| anyhow::anyhow!("no Duhem model"))?;
-            Feedforward::InverseDuhem(reference::InverseDuhem::new(
-                m,
-                &s,
-                u_rest,
-                m.beta * u_rest + m.offset,
-            )?)
-        }
+    // The controller's start: both stacks at the safe state's voltages, the models relaxed at
+    // the drive of the left stack's voltage, the setpoint at the observer's estimate there.
+    let safe = match d.safe_state {
+        SafeState::Bias => d.bias,
+        SafeState::Zero => 0.0,
     };
-    let mut feedback = ReferenceFeedback::new(&recipe, y_rest_norm)?;
-    // The golden recipes start closed loop whenever they have feedback (`Recipe::build`).
-    let closed = feedback.is_some();
+    let d0 = s.input_to_norm(safe).clamp(dmin, dmax);
+    let u0 = s.norm_to_input(d0);
+    let (mut estimator, y0) = observer_at_rest(&recipe, u0)?;
+    let y0 = y0.map(|y| norm(&s, y)).unwrap_or(d0);
+    let mut feedforward = compensator_at_rest(&recipe, u0, y0)?;
+    let mut sensor = ReferenceSensor::new(&recipe, y0)?;
+    let mut feedback = ReferenceFeedback::new(&recipe, y0)?;
+    let bypass = st.mode == Mode::Bypass;
     let drift_tol = DRIFT_BOUND_LSB16 * LSB16;
 
-    let mut target = y_rest_norm;
-    let mut previous = rest;
+    let mut target = y0;
+    // The reference chain's stacks, volts.
+    let (mut left, mut right) = (safe, safe);
+    // The right stack as the split makes it from the stored left voltage (for its code).
+    let mut right_stored = safe;
     let drive_tol = DRIVE_BOUND_LSB16 * LSB16;
+    let volts_tol = drive_tol * s.input_half_span();
     let mut a = Agreement {
         name: set.name().to_string(),
         ticks: 0,
@@ -364,50 +405,74 @@ pub fn check(set: &VectorSet<'_>) -> anyhow::Result<Agreement> {
             Some(sp) => target = signal_to_f64(sp).clamp(-1.0, 1.0),
             None => flags |= TickFlags::UNDERRUN,
         }
-        let ff = match &mut feedforward {
+        // The compensator steps in every mode; in bypass the drive follows the setpoint.
+        let compensated = match &mut feedforward {
             Feedforward::None => target,
             Feedforward::InversePi(m) => s.input_to_norm(m.step(s.norm_to_output(target))),
             Feedforward::InverseDuhem(m) => s.input_to_norm(m.step(s.norm_to_output(target))),
         };
+        let ff = if bypass { target } else { compensated };
         let mut command = ff;
         // Flags the stored tick may set either way (its decision lies within its bound).
         let mut loose = 0u8;
-        if let Some(fb) = &mut feedback {
-            if input.adc_fails {
+        if let Some(sn) = &mut sensor {
+            let measured = if input.adc_fails {
                 flags |= TickFlags::ADC_ERROR;
+                None
+            } else {
+                let r = sn.read(input.adc_code, drift_tol);
+                if r.drift {
+                    flags |= TickFlags::DRIFT;
+                }
+                if r.drift_ambiguous {
+                    loose |= TickFlags::DRIFT;
+                }
+                Some(r.measured)
+            };
+            if let Some(fb) = &mut feedback {
+                let (correction, held) = fb.correction(target, measured);
+                a.integrator_holds += usize::from(held);
+                command = saturate(ff + correction);
             }
-            let code = (!input.adc_fails).then_some(input.adc_code);
-            let t = fb.tick(target, code, closed, drift_tol);
-            if t.drift {
-                flags |= TickFlags::DRIFT;
-            }
-            a.integrator_holds += usize::from(t.held);
-            if t.drift_ambiguous {
-                loose |= TickFlags::DRIFT;
-            }
-            command = saturate(ff + t.correction);
         }
+
+        // Range limit (model-normalised), then each stack's slew limit (volts).
         let ranged = command.clamp(dmin, dmax);
-        let applied = ranged.clamp(previous - slew, previous + slew);
         if ranged != command {
             flags |= TickFlags::RANGE_LIMIT;
         }
-        let limit_bits = TickFlags::RANGE_LIMIT | TickFlags::SLEW_LIMIT;
         if (command - dmin).abs() < drive_tol || (command - dmax).abs() < drive_tol {
-            loose |= limit_bits;
+            loose |= TickFlags::RANGE_LIMIT | TickFlags::SLEW_LIMIT;
         }
-        if applied != ranged {
+        let left_target = s.norm_to_input(ranged);
+        let new_left = slewed(left_target, left, slew);
+        let near_slew = |t: f64, previous: f64| {
+            (t - (previous - slew)).abs() < volts_tol || (t - (previous + slew)).abs() < volts_tol
+        };
+        let r_target = right_target(&d, new_left);
+        let new_right = slewed(r_target, right, slew);
+        let (left_slewed, right_slewed) = (new_left != left_target, new_right != r_target);
+        if left_slewed || right_slewed {
             flags |= TickFlags::SLEW_LIMIT;
         }
-        if (ranged - (previous - slew)).abs() < drive_tol
-            || (ranged - (previous + slew)).abs() < drive_tol
-        {
-            loose |= limit_bits;
+        // The flag is either stack's: ambiguous when a stack's decision is close and neither
+        // stack is clearly slew-limited. (While the left stack slews, the right one's mirror
+        // target lies exactly one slew step from its previous voltage: close, but the left
+        // stack decides the flag.)
+        let (left_near, right_near) = (near_slew(left_target, left), near_slew(r_target, right));
+        let clearly_slewed = (left_slewed && !left_near) || (right_slewed && !right_near);
+        if (left_near || right_near) && !clearly_slewed {
+            loose |= TickFlags::SLEW_LIMIT;
         }
+        let applied = if new_left != left_target {
+            s.input_to_norm(new_left).clamp(dmin, dmax)
+        } else {
+            ranged
+        };
+        (left, right) = (new_left, new_right);
         if input.dac_fails {
             flags |= TickFlags::DAC_ERROR;
         }
-        previous = applied;
 
         // Drive against the reference chain.
         let stored_drive = signal_to_f64(out.drive);
@@ -419,18 +484,20 @@ pub fn check(set: &VectorSet<'_>) -> anyhow::Result<Agreement> {
             Estimator::Pi(m) => norm(&s, m.step(u_volts)),
             Estimator::Duhem(m) => norm(&s, m.step(u_volts)),
         };
+        if let Some(sn) = &mut sensor {
+            sn.observed(estimate_ref);
+        }
         if let Some(fb) = &mut feedback {
-            fb.end_tick(command, applied, estimate_ref);
+            fb.clip = command - applied;
         }
         let estimate_err = (signal_to_f64(out.estimate) - estimate_ref).abs() / LSB16;
-        let right_volts = match d.configuration {
-            Configuration::Differential => 2.0 * d.bias - u_volts,
-            Configuration::Unidirectional => d.right_idle,
-        };
-        let code_err = [(out.left, u_volts), (out.right, right_volts)]
+        // The left stack stays within the drive window (it starts there and moves towards
+        // ranged commands), so the stored drive is its voltage.
+        right_stored = slewed(right_target(&d, u_volts), right_stored, slew);
+        let code_err = [(out.left, u_volts), (out.right, right_stored)]
             .iter()
             .map(|&(code, v)| {
-                (code as f64 - exact_code(v, d.amplifier_full_scale, d.dac_full_scale)).abs()
+                (code as f64 - exact_code(v, hw.amplifier_full_scale, hw.dac_full_scale)).abs()
             })
             .fold(0.0, f64::max);
 

@@ -1,28 +1,36 @@
-//! The vector sets: which compensator, observer, feedback and drive each one runs.
+//! The vector sets: which compensator, observer, sensor, feedback, drive and mode each one runs.
 //!
 //! The models are the micromanipulator record's (`data/micromanipulator-unipolar-
 //! 3v6-1hz.csv`, 0…3.6 V, sensor units), identified by `hal-sim identify` and committed in
 //! `tests/golden/params/` (see the README's "Golden vectors" for the commands), so the vectors
 //! do not depend on refitting. Every set shares one scaling: the models' common input range and
-//! the union of their output ranges.
+//! the union of their output ranges. Each set is a [`Recipe`]: the board's [`Hardware`] and the
+//! [`Settings`] a parameter load would carry, so every pairing here is one the wire can carry
+//! (any compensator with any observer).
 //!
-//! | set | compensator | observer | feedback | drive |
-//! |---|---|---|---|---|
-//! | `bypass` | none | none | off | differential, 16-bit DAC |
-//! | `none-duhem-closed` | none | Duhem | PI, 12-bit ADC | differential, 12-bit DAC |
-//! | `ipi8-pi-open` | inverse P–I, N = 8 | P–I, N = 8 | off | differential, 16-bit DAC |
-//! | `ipi16-pi-closed` | inverse P–I, N = 16 | P–I, N = 16 | PI, 16-bit ADC, drift limit 2 % | differential, 16-bit DAC |
-//! | `ipi32-duhem-closed` | inverse P–I, N = 32 | Duhem | PI, 16-bit ADC | unidirectional, 12-bit DAC |
-//! | `iduhem-duhem-closed` | inverse Duhem | Duhem | PI, 16-bit ADC | differential, 16-bit DAC |
-//! | `iduhem-pi-open` | inverse Duhem | P–I, N = 16 | off | unidirectional, 16-bit DAC |
+//! | set | compensator | observer | sensor | feedback | mode | drive, safe state | DAC, ADC |
+//! |---|---|---|---|---|---|---|---|
+//! | `bypass` | none | none | none | none | bypass | differential, bias | 16-bit, none |
+//! | `ipi16-duhem-bypass` | inverse P–I, N = 16 | Duhem | drift limit 2 % | PI (unused) | bypass | differential, **zero** | 16-bit, 16-bit |
+//! | `none-duhem-closed` | none | Duhem | no drift limit | PI | closed loop | differential, bias | 12-bit, 12-bit |
+//! | `ipi8-pi-open` | inverse P–I, N = 8 | P–I, N = 8 | drift limit 2 % | none | open loop | differential, bias | 16-bit, 16-bit |
+//! | `ipi16-pi-closed` | inverse P–I, N = 16 | P–I, N = 16 | drift limit 2 % | PI | closed loop | differential, bias | 16-bit, 16-bit |
+//! | `ipi32-duhem-closed` | inverse P–I, N = 32 | Duhem | no drift limit | PI | closed loop | unidirectional, bias | 12-bit, 16-bit |
+//! | `iduhem-duhem-closed` | inverse Duhem | Duhem | no drift limit | PI | closed loop | differential, bias | 16-bit, 16-bit |
+//! | `iduhem-pi-open` | inverse Duhem | P–I, N = 16 | none | none | open loop | unidirectional, bias | 16-bit, none |
+//!
+//! The bypass set with models runs the compensator on every tick without using it, reads the
+//! sensor and checks drift (a bypassed tick still monitors the stage), and starts from the
+//! zero safe state, so the right stack slews up to its mirror from 0 V.
 
 use crate::param_file::ParamFile;
 use crate::stage_model::Hysteresis;
 use anyhow::{bail, Context};
 use std::path::Path;
+use twinstack::board::Hardware;
 use twinstack::drive::{Configuration, DriveSettings, SafeState};
-use twinstack::golden::{CompensatorChoice, ObserverChoice, Recipe};
-use twinstack::settings::{FeedbackSettings, SensorSettings};
+use twinstack::golden::Recipe;
+use twinstack::settings::{FeedbackSettings, Mode, Model, SensorSettings, Settings};
 use twinstack::{DuhemParams, PiParams, Scaling};
 
 /// The parameter files, relative to the golden directory.
@@ -102,132 +110,176 @@ fn load_models(dir: &Path) -> anyhow::Result<Models> {
     Ok(Models { pi, duhem, scaling })
 }
 
-/// The drive: 0…3.6 V per stack on a 5 V full-scale output, rest at 1.8 V, 4 kV/s slew
-/// (0.08 V per tick at 50 kHz: a full-range step takes 45 ticks).
-fn drive(configuration: Configuration, dac_full_scale: u16) -> DriveSettings {
+/// The board: a 5 V full-scale output on a DAC of `dac_full_scale`, the sensor on an ADC of
+/// `adc_bits` (`None`: no sensor input), 50 kHz.
+fn hardware(dac_full_scale: u16, adc_bits: Option<u8>) -> Hardware {
+    Hardware {
+        amplifier_full_scale: 5.0,
+        dac_full_scale,
+        sensor_adc_bits: adc_bits,
+        control_rate_hz: 50_000.0,
+    }
+}
+
+/// The drive: 0…3.6 V per stack, rest at 1.8 V, 4 kV/s slew (0.08 V per tick at 50 kHz: a
+/// full-range step takes 45 ticks).
+fn drive(configuration: Configuration, safe_state: SafeState) -> DriveSettings {
     DriveSettings {
         configuration,
-        amplifier_full_scale: 5.0,
         bias: 1.8,
-        right_idle: 0.0,
         min_voltage: 0.0,
         max_voltage: 3.6,
         slew_rate: 4000.0,
-        control_rate: 50_000.0,
-        dac_full_scale,
-        safe_state: SafeState::Bias,
+        safe_state,
     }
 }
 
-/// PI feedback on a sensor ADC of `adc_bits` spanning the output range plus 5 % each side.
-fn feedback(scaling: &Scaling, adc_bits: u32) -> FeedbackSettings {
+/// The sensor calibration: the ADC spans the output range plus 5 % each side; the drift check
+/// at `drift_limit` (fraction of the output range), if any.
+fn sensor(scaling: &Scaling, drift_limit: Option<f64>) -> SensorSettings {
     let margin = 0.05 * (scaling.output_max - scaling.output_min);
-    let sensor = SensorSettings {
-        adc_bits,
+    SensorSettings {
         displacement_at_zero: scaling.output_min - margin,
         displacement_at_full_scale: scaling.output_max + margin,
-    };
-    FeedbackSettings::pi(sensor, 0.1, 1000.0, 0.1)
+        drift_limit,
+    }
 }
 
-/// [`feedback`] with the drift check at `limit` (fraction of the output range).
-fn with_drift_limit(fb: FeedbackSettings, limit: f64) -> FeedbackSettings {
-    FeedbackSettings {
-        drift_limit: Some(limit),
-        ..fb
-    }
+/// The feedback of every set that has one: PI, `kp = 0.1`, `ki = 1000 /s`, within ±10 % of
+/// the drive range.
+fn feedback() -> FeedbackSettings {
+    FeedbackSettings::pi(0.1, 1000.0, 0.1)
 }
 
 /// Every set, from the parameter files in `dir` (the golden directory).
 pub fn definitions(dir: &Path) -> anyhow::Result<Vec<SetDefinition>> {
     let m = load_models(dir)?;
     let s = m.scaling;
-    let [pi8, pi16, pi32] = m.pi.clone();
-    let duhem = m.duhem;
-    use CompensatorChoice as C;
+    let [pi8, pi16, pi32] = m.pi.clone().map(Model::PrandtlIshlinskii);
+    let duhem = Model::Duhem(m.duhem);
     use Configuration::{Differential, Unidirectional};
-    use ObserverChoice as O;
-    let set =
-        |name, compensator, observer, pi: Option<&PiParams>, fb, drive, truth| SetDefinition {
-            name,
-            recipe: Recipe {
-                compensator,
-                observer,
-                pi: pi.cloned(),
-                duhem: Some(duhem),
-                scaling: s,
-                drive,
-                feedback: fb,
+    use SafeState::{Bias, Zero};
+    struct Set {
+        name: &'static str,
+        compensator: Option<Model>,
+        observer: Option<Model>,
+        sensor: Option<SensorSettings>,
+        feedback: Option<FeedbackSettings>,
+        mode: Mode,
+        drive: DriveSettings,
+        hardware: Hardware,
+        truth: Truth,
+    }
+    let def = |set: Set| SetDefinition {
+        name: set.name,
+        recipe: Recipe {
+            hardware: set.hardware,
+            settings: Settings {
+                ranges: s,
+                compensator: set.compensator,
+                observer: set.observer,
+                drive: set.drive,
+                sensor: set.sensor,
+                feedback: set.feedback,
+                mode: set.mode,
             },
-            truth,
-        };
-    let t_duhem = Truth::Duhem(duhem);
-    let t_pi = Truth::Pi(pi16.clone());
+        },
+        truth: set.truth,
+    };
+    let t_duhem = Truth::Duhem(m.duhem);
+    let t_pi = Truth::Pi(m.pi[1].clone());
     Ok(vec![
-        set(
-            "bypass",
-            C::None,
-            O::None,
-            None,
-            None,
-            drive(Differential, 65535),
-            t_duhem.clone(),
-        ),
-        set(
-            "none-duhem-closed",
-            C::None,
-            O::Duhem,
-            None,
-            Some(feedback(&s, 12)),
-            drive(Differential, 4095),
-            t_pi.clone(),
-        ),
-        set(
-            "ipi8-pi-open",
-            C::InversePi,
-            O::Pi,
-            Some(&pi8),
-            None,
-            drive(Differential, 65535),
-            t_duhem.clone(),
-        ),
-        set(
-            "ipi16-pi-closed",
-            C::InversePi,
-            O::Pi,
-            Some(&pi16),
+        def(Set {
+            name: "bypass",
+            compensator: None,
+            observer: None,
+            sensor: None,
+            feedback: None,
+            mode: Mode::Bypass,
+            drive: drive(Differential, Bias),
+            hardware: hardware(65535, None),
+            truth: t_duhem.clone(),
+        }),
+        def(Set {
+            name: "ipi16-duhem-bypass",
+            compensator: Some(pi16.clone()),
+            observer: Some(duhem.clone()),
+            // The observer (Duhem) and the stage (P–I) differ by a few % of the range: the
+            // drift check flags in bypass too.
+            sensor: Some(sensor(&s, Some(0.02))),
+            feedback: Some(feedback()),
+            mode: Mode::Bypass,
+            drive: drive(Differential, Zero),
+            hardware: hardware(65535, Some(16)),
+            truth: t_pi.clone(),
+        }),
+        def(Set {
+            name: "none-duhem-closed",
+            compensator: None,
+            observer: Some(duhem.clone()),
+            sensor: Some(sensor(&s, None)),
+            feedback: Some(feedback()),
+            mode: Mode::ClosedLoop,
+            drive: drive(Differential, Bias),
+            hardware: hardware(4095, Some(12)),
+            truth: t_pi.clone(),
+        }),
+        def(Set {
+            name: "ipi8-pi-open",
+            compensator: Some(pi8.clone()),
+            observer: Some(pi8),
+            sensor: Some(sensor(&s, Some(0.02))),
+            feedback: None,
+            mode: Mode::OpenLoop,
+            drive: drive(Differential, Bias),
+            hardware: hardware(65535, Some(16)),
+            truth: t_duhem.clone(),
+        }),
+        def(Set {
+            name: "ipi16-pi-closed",
+            compensator: Some(pi16.clone()),
+            observer: Some(pi16.clone()),
             // The observer (P–I) and the stage (Duhem) differ by up to 3.6 % of the range
             // (low-passed): a 2 % drift limit flags the worst stretches.
-            Some(with_drift_limit(feedback(&s, 16), 0.02)),
-            drive(Differential, 65535),
-            t_duhem.clone(),
-        ),
-        set(
-            "ipi32-duhem-closed",
-            C::InversePi,
-            O::Duhem,
-            Some(&pi32),
-            Some(feedback(&s, 16)),
-            drive(Unidirectional, 4095),
-            t_duhem,
-        ),
-        set(
-            "iduhem-duhem-closed",
-            C::InverseDuhem,
-            O::Duhem,
-            None,
-            Some(feedback(&s, 16)),
-            drive(Differential, 65535),
-            t_pi.clone(),
-        ),
-        set(
-            "iduhem-pi-open",
-            C::InverseDuhem,
-            O::Pi,
-            Some(&pi16),
-            None,
-            drive(Unidirectional, 65535),
-            t_pi,
-        ),
+            sensor: Some(sensor(&s, Some(0.02))),
+            feedback: Some(feedback()),
+            mode: Mode::ClosedLoop,
+            drive: drive(Differential, Bias),
+            hardware: hardware(65535, Some(16)),
+            truth: t_duhem.clone(),
+        }),
+        def(Set {
+            name: "ipi32-duhem-closed",
+            compensator: Some(pi32),
+            observer: Some(duhem.clone()),
+            sensor: Some(sensor(&s, None)),
+            feedback: Some(feedback()),
+            mode: Mode::ClosedLoop,
+            drive: drive(Unidirectional, Bias),
+            hardware: hardware(4095, Some(16)),
+            truth: t_duhem,
+        }),
+        def(Set {
+            name: "iduhem-duhem-closed",
+            compensator: Some(duhem.clone()),
+            observer: Some(duhem.clone()),
+            sensor: Some(sensor(&s, None)),
+            feedback: Some(feedback()),
+            mode: Mode::ClosedLoop,
+            drive: drive(Differential, Bias),
+            hardware: hardware(65535, Some(16)),
+            truth: t_pi.clone(),
+        }),
+        def(Set {
+            name: "iduhem-pi-open",
+            compensator: Some(duhem),
+            observer: Some(pi16),
+            sensor: None,
+            feedback: None,
+            mode: Mode::OpenLoop,
+            drive: drive(Unidirectional, Bias),
+            hardware: hardware(65535, None),
+            truth: t_pi,
+        }),
     ])
 }

@@ -7,20 +7,19 @@ use cortex_m_semihosting::{debug, hprintln};
 use defmt_rtt as _;
 use stm32f4xx_hal::pac;
 
-use twinstack::board::DacCode;
-use twinstack::board::{DualDac, SensorAdc};
-use twinstack::control::Mode;
-use twinstack::control::{ControlConfig, Controller, TickReport};
-use twinstack::default_config::{
-    control_config, duhem_params, feedback_with_notch, pi_params, scaling, CompensatorKind,
-};
-use twinstack::drive::SafeState;
-use twinstack::drive::{DifferentialDrive, DriveOutput};
+use twinstack::board::{DacCode, DualDac, Hardware, SensorAdc};
+use twinstack::control::{Compensator, ControlConfig, Controller, Observer, TickReport};
+use twinstack::drive::{DifferentialDrive, DriveOutput, StackVoltages};
 use twinstack::duhem::{Duhem, DuhemState};
 use twinstack::fixed_point::SIGNAL_ONE;
 use twinstack::hardware::adc::SensorInput;
 use twinstack::hardware::dac::InternalDac;
+use twinstack::notch::NotchDesign;
 use twinstack::prandtl_ishlinskii::{InversePrandtlIshlinskii, PiState};
+use twinstack::settings::{
+    representative_duhem, representative_pi, FeedbackSettings, Mode, Model, SensorSettings,
+    Settings,
+};
 
 /// Ticks measured per configuration (after as many warm-up ticks).
 const TICKS: u32 = 1000;
@@ -57,8 +56,8 @@ fn one_tick<D: DualDac, A: SensorAdc>(
 
 /// [`DifferentialDrive::split`] alone.
 #[inline(never)]
-fn split_part(d: &DifferentialDrive, command: i32, previous: i32) -> DriveOutput {
-    d.split(command, previous)
+fn split_part(d: &DifferentialDrive, command: i32, previous: StackVoltages) -> DriveOutput {
+    d.split(command, previous, d.slew())
 }
 
 /// [`Duhem::step`] alone.
@@ -77,6 +76,23 @@ fn pi_part(m: &InversePrandtlIshlinskii, s: &mut PiState, y: i32) -> i32 {
 #[inline(never)]
 fn dac_part(d: &mut InternalDac, l: DacCode, r: DacCode) {
     let _ = d.write_both(l, r);
+}
+
+/// The bench's settings: `compensator`, the Duhem observer, the sensor spanning the stroke
+/// (drift limit 2 %), PI feedback, closed loop, over the defaults (ranges, drive).
+fn closed(compensator: Option<Model>) -> Settings {
+    Settings {
+        compensator,
+        observer: Some(representative_duhem()),
+        sensor: Some(SensorSettings {
+            displacement_at_zero: 0.0,
+            displacement_at_full_scale: 70.0,
+            drift_limit: Some(0.02),
+        }),
+        feedback: Some(FeedbackSettings::pi(0.2, 500.0, 0.1)),
+        mode: Mode::ClosedLoop,
+        ..Settings::default()
+    }
 }
 
 /// Triangle setpoint: ±0.95 of full scale (nearly the whole stroke, so that every play operator moves), reversing every [`HALF_PERIOD`] ticks.
@@ -105,52 +121,72 @@ fn main() -> ! {
     let mut dac = InternalDac::new(dp.DAC, &dp.RCC, (Default::default(), Default::default()));
     let mut adc = SensorInput::new(dp.ADC1, &dp.ADC_COMMON, &dp.RCC);
 
-    let full = |kind: CompensatorKind| -> ControlConfig {
-        match control_config(kind, RATE_HZ, SafeState::Bias) {
+    let hw = Hardware::driver_board(RATE_HZ);
+    let build = |name: &str, s: Settings| -> ControlConfig {
+        match s.build(&hw) {
             Ok(c) => c,
-            Err(_) => panic!("configuration {:?} refused", kind),
+            Err(e) => panic!("configuration {} refused: {}", name, e),
         }
     };
-    let base = full(CompensatorKind::None);
-    let with_notch = match feedback_with_notch(RATE_HZ) {
-        Ok(f) => f,
-        Err(_) => panic!("notch refused"),
+    let pi = |n: usize| match representative_pi(n) {
+        Ok(m) => Some(m),
+        Err(_) => panic!("representative P–I N = {}", n),
     };
-    let cases: [(&str, ControlConfig); 9] = [
+    let base = closed(None);
+    let cases: [(&str, Settings); 9] = [
         // Breakdown of the fixed part: split + limits + DAC alone, then + the Duhem observer.
-        ("bypass", ControlConfig::bypass(base.drive)),
+        (
+            "bypass",
+            Settings {
+                sensor: None,
+                ..Settings::default()
+            },
+        ),
         (
             "none-observer-only",
-            ControlConfig {
-                feedback: None,
-                ..base
+            Settings {
+                observer: Some(representative_duhem()),
+                sensor: None,
+                ..Settings::default()
             },
         ),
         // The table: every compensator with the Duhem observer and sensor feedback on.
-        ("none", base),
-        ("inverse-pi-8", full(CompensatorKind::InversePi(8))),
-        ("inverse-pi-16", full(CompensatorKind::InversePi(16))),
-        ("inverse-pi-32", full(CompensatorKind::InversePi(32))),
-        ("inverse-duhem", full(CompensatorKind::InverseDuhem)),
-        // Breakdown of the feedback: the sensor read and drift check alone (open loop), then
-        // PID with the resonance notch.
+        ("none", base.clone()),
+        ("inverse-pi-8", closed(pi(8))),
+        ("inverse-pi-16", closed(pi(16))),
+        ("inverse-pi-32", closed(pi(32))),
+        ("inverse-duhem", closed(Some(representative_duhem()))),
+        // Breakdown of the feedback: the sensor read and drift check alone (bypass), then
+        // PID with the resonance notch (kd 0.05 per tick, low pass at a tenth of the rate).
         (
             "none-sensor-drift",
-            ControlConfig {
-                mode: Mode::OpenLoop,
-                ..base
+            Settings {
+                feedback: None,
+                mode: Mode::Bypass,
+                ..base.clone()
             },
         ),
         (
             "none-pid-notch",
-            ControlConfig {
-                feedback: Some(with_notch),
-                ..base
+            Settings {
+                feedback: Some(FeedbackSettings {
+                    kd: 0.05 / RATE_HZ,
+                    derivative_cutoff_hz: RATE_HZ / 10.0,
+                    notch: Some(NotchDesign {
+                        frequency_hz: 21_800.0,
+                        q: 2.0,
+                        depth: 0.0,
+                    }),
+                    ..FeedbackSettings::pi(0.2, 500.0, 0.1)
+                }),
+                ..base.clone()
             },
         ),
     ];
-    for (name, config) in cases {
-        let mut c = Controller::new(config);
+    // The parts below run the inverse P–I N = 16 row's models and drive.
+    let parts = build("inverse-pi-16", closed(pi(16)));
+    for (name, settings) in cases {
+        let mut c = Controller::new(build(name, settings));
         // Overhead: the bracket itself, two timer reads with nothing between. What is left of
         // a measured call is the tick's own instructions plus the call (`BL`) and its argument
         // moves, a few instructions the firmware, which inlines the tick, does not have: the
@@ -191,13 +227,15 @@ fn main() -> ! {
         );
     }
     // The tick's parts alone, on the same triangle: where the instructions go.
-    let drive = base.drive;
-    let mut previous = drive.rest_drive();
-    let duhem = Duhem::new(&duhem_params(), &scaling()).unwrap_or_else(|_| panic!("duhem"));
+    let drive = parts.drive;
+    let mut previous = drive.stacks_at(drive.rest_drive());
+    let Observer::Duhem(duhem) = parts.observer else {
+        panic!("the Duhem observer");
+    };
     let mut duhem_state = duhem.state_at(0, 0);
-    let inverse =
-        InversePrandtlIshlinskii::new(&pi_params(16).unwrap_or_else(|_| panic!("pi")), &scaling())
-            .unwrap_or_else(|_| panic!("inverse pi"));
+    let Compensator::InversePi(inverse) = parts.compensator else {
+        panic!("the inverse P–I");
+    };
     let mut pi_state = inverse.state_at_rest(0);
     let (mut split_n, mut duhem_n, mut pi_n, mut dac_n) =
         ([0u64; 2], [0u64; 2], [0u64; 2], [0u64; 2]);
@@ -212,7 +250,7 @@ fn main() -> ! {
         let t3 = now(&tim);
         dac_part(&mut dac, out.left, out.right);
         let t4 = now(&tim);
-        previous = out.applied;
+        previous = out.stacks;
         if k >= TICKS {
             for (acc, n) in [
                 (&mut split_n, t1.wrapping_sub(t0)),
