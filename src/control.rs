@@ -118,7 +118,8 @@ pub struct TickReport {
     pub flags: TickFlags,
 }
 
-/// Counters since start-up; they wrap after 2^32 events.
+/// Counters of one controller since it was prepared (the control loop adds those of the
+/// controllers before it); they wrap after 2^32 events.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub struct ControlCounters {
@@ -136,6 +137,21 @@ pub struct ControlCounters {
     pub dac_errors: u32,
     /// Ticks the drift check flagged.
     pub drifts: u32,
+}
+
+impl ControlCounters {
+    /// Both counts added (wrapping).
+    pub fn plus(self, o: Self) -> Self {
+        Self {
+            ticks: self.ticks.wrapping_add(o.ticks),
+            underruns: self.underruns.wrapping_add(o.underruns),
+            range_limits: self.range_limits.wrapping_add(o.range_limits),
+            slew_limits: self.slew_limits.wrapping_add(o.slew_limits),
+            adc_errors: self.adc_errors.wrapping_add(o.adc_errors),
+            dac_errors: self.dac_errors.wrapping_add(o.dac_errors),
+            drifts: self.drifts.wrapping_add(o.drifts),
+        }
+    }
 }
 
 /// The controller: configuration plus every piece of state the tick keeps.
@@ -167,6 +183,9 @@ pub struct Controller {
     rebase: bool,
     /// A reload is settling: the stricter slew limit is in force until the transfer fades.
     reloading: bool,
+    /// The drive the stacks held at the swap, in this configuration's normalisation (the
+    /// transfer's starting point; computed by [`Controller::take_over`], off the tick).
+    held: i32,
     /// The observer's displacement with the drive at rest (the underrun ramp's target).
     rest_setpoint: i32,
     feedback_state: FeedbackState,
@@ -246,6 +265,7 @@ impl Controller {
             slew: 1,
             rebase: false,
             reloading: false,
+            held: 0,
             rest_setpoint: 0,
             feedback_state: FeedbackState::default(),
             transfer: BumplessTransfer::default(),
@@ -278,7 +298,9 @@ impl Controller {
         };
         let compensator = match (config.compensator, &observer) {
             (Compensator::None, _) => CompensatorRun::None,
-            (Compensator::InversePi(m), ObserverRun::Pi(o, s)) => {
+            // The compensator's operators from the observer's, where the observer is the
+            // model the compensator inverts; otherwise relaxed where the observer puts the stage.
+            (Compensator::InversePi(m), ObserverRun::Pi(o, s)) if m.inverts(o) => {
                 CompensatorRun::InversePi(m, m.state_from_forward(&o.bank().outputs(s)))
             }
             (Compensator::InversePi(m), _) => CompensatorRun::InversePi(m, m.state_at_rest(y)),
@@ -312,21 +334,22 @@ impl Controller {
             slew: d.slew(),
             rebase: false,
             reloading: false,
+            held: drive,
             rest_setpoint,
             feedback_state: FeedbackState::at_rest(y),
             transfer: BumplessTransfer::default(),
-            counters: self.counters,
+            counters: ControlCounters::default(),
         };
     }
 
-    /// Takes over from `old` between two ticks, in O(1): the stacks' voltages, the counters
-    /// and the stricter of the two slew limits carry over, and the next tick starts from the
-    /// drive the stacks hold.
+    /// Takes over from `old` between two ticks, in O(1): the stacks' voltages and the stricter
+    /// of the two slew limits carry over, and the next tick starts from the drive the stacks
+    /// hold. (Counters stay with each controller; the control loop adds them up off the tick.)
     #[inline(always)]
     pub fn take_over(&mut self, old: &Controller) {
         self.stacks = old.stacks;
+        self.held = self.drive_limits.drive_of(old.stacks.left);
         self.slew = self.drive_limits.slew().min(old.slew);
-        self.counters = old.counters;
         self.rebase = true;
         self.reloading = true;
     }
@@ -350,6 +373,7 @@ impl Controller {
         if mode == Mode::ClosedLoop {
             self.feedback_state.enter_closed_loop(self.setpoint);
         }
+        self.held = self.drive_limits.drive_of(self.stacks.left);
         self.mode = mode;
         self.run = Run::of(mode, &self.sensor, &self.feedback);
         self.rebase = true;
@@ -403,9 +427,14 @@ impl Controller {
         &self.drive_limits
     }
 
-    /// Counters since start-up.
+    /// Counters since this controller was prepared.
     pub fn counters(&self) -> ControlCounters {
         self.counters
+    }
+
+    /// Hands the counters over (for the control loop's totals) and starts them again at zero.
+    pub fn take_counters(&mut self) -> ControlCounters {
+        core::mem::take(&mut self.counters)
     }
 
     /// DAC codes of the safe state, for the fault handlers.
@@ -510,8 +539,7 @@ impl Controller {
         if self.rebase {
             self.rebase = false;
             settling = true;
-            let held = self.drive_limits.drive_of(self.stacks.left);
-            self.transfer.start(held.saturating_sub(command));
+            self.transfer.start(self.held.saturating_sub(command));
         }
         let command = if settling {
             if self.reloading {
@@ -806,7 +834,11 @@ mod tests {
             last = now;
         }
         assert_eq!(c.mode(), Mode::ClosedLoop);
-        assert_eq!(c.counters().ticks, 3000, "counters carry over a swap");
+        assert_eq!(
+            c.counters().ticks,
+            1500,
+            "each controller counts its own ticks"
+        );
         let top = volts(dac.left).max(volts(dac.right));
         assert!(top <= 100.01, "within the new limits once settled: {top}");
     }

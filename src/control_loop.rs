@@ -3,15 +3,19 @@
 //!
 //! One [`ControlLoop::tick`] is:
 //!
-//! 1. a configuration prepared by the command handler since the last tick is swapped in, in
-//!    O(1): the loop holds its controllers by pointer, so the swap moves a pointer, and
-//!    [`Controller::take_over`] carries the stacks' voltages and counters over (the output does
-//!    not jump; nothing is half-applied);
-//! 2. the setpoint: the built-in waveform generator, or the next streamed sample from the
+//! 1. the setpoint: the built-in waveform generator, or the next streamed sample from the
 //!    setpoint queue through [`SetpointStream`] (rate divider with linear interpolation; on an
 //!    empty queue the underrun policy holds or ramps to the rest position, and counts);
-//! 3. [`Controller::tick`] (compensator, sensor, feedback, limits, both DACs);
-//! 4. the recorder captures the chosen signal.
+//! 2. [`Controller::tick`] (compensator, sensor, feedback, limits, both DACs);
+//! 3. the recorder captures the chosen signal.
+//!
+//! A configuration prepared by the command handler ([`Controller::prepare`], on the spare
+//! controller, outside any lock) is swapped in by [`ControlLoop::post`] inside the handler's
+//! short critical section, in O(1): the loop holds its controllers by pointer, so the swap
+//! moves a pointer, and [`Controller::take_over`] carries the stacks' voltages over (the
+//! output does not jump; nothing is half-applied). The tick itself does no reconfiguring: the
+//! first tick after a swap only starts the fading transfer from the drive the stacks hold.
+//! The retired controller's counters are added to the totals when the handler takes it back.
 //!
 //! The command handler ([`crate::protocol::handler`]) runs at a lower priority. The two halves
 //! meet in exactly two places: the lock-free single-producer single-consumer setpoint queue
@@ -27,7 +31,7 @@ use heapless::spsc::{Consumer, Queue};
 use core::ops::DerefMut;
 
 use crate::board::{DualDac, SensorAdc};
-use crate::control::{Controller, TickFlags, TickReport};
+use crate::control::{ControlCounters, Controller, TickFlags, TickReport};
 use crate::drive::StackVoltages;
 use crate::mode_switch::ModeError;
 use crate::protocol::messages::{Signal, UnderrunPolicy, MAX_CHUNK};
@@ -70,8 +74,6 @@ pub struct Telemetry {
     pub waveform: bool,
     /// Whether the recorder is capturing.
     pub recording: bool,
-    /// Whether a configuration waits for the next tick.
-    pub config_pending: bool,
 }
 
 /// Everything the control interrupt owns. `B` is the recorder's buffer; `C` a handle on a
@@ -80,10 +82,13 @@ pub struct Telemetry {
 #[derive(Debug)]
 pub struct ControlLoop<B, C> {
     controller: C,
-    /// Prepared by the handler, swapped in at the start of the next tick.
-    pending: Option<C>,
     /// The controller a swap retired (or the one the handler has not taken yet): the spare.
     spare: Option<C>,
+    /// Counts of the controllers retired and taken back (the totals less the running one's and
+    /// the spare's).
+    counted: ControlCounters,
+    /// Configurations swapped in since start-up.
+    swaps: u32,
     stream: SetpointStream,
     recorder: Recorder<B>,
     underrun: UnderrunPolicy,
@@ -106,8 +111,9 @@ where
         let stream = SetpointStream::new(controller.setpoint());
         Self {
             controller,
-            pending: None,
             spare: Some(spare),
+            counted: ControlCounters::default(),
+            swaps: 0,
             stream,
             recorder: Recorder::new(record_buffer),
             underrun: UnderrunPolicy::Hold,
@@ -127,9 +133,6 @@ where
         adc: &mut A,
         dac: &mut D,
     ) -> TickReport {
-        if self.pending.is_some() {
-            self.swap_in_pending();
-        }
         let setpoint = self.stream.next(queue);
         let report = self.controller.tick(setpoint, adc, dac);
         if report.flags.0 & (TickFlags::RANGE_LIMIT | TickFlags::SLEW_LIMIT) != 0 {
@@ -141,28 +144,42 @@ where
         report
     }
 
-    /// The swap: O(1), a pointer and a few words.
-    #[inline(never)]
-    fn swap_in_pending(&mut self) {
-        if let Some(mut next) = self.pending.take() {
-            next.take_over(&self.controller);
-            let old = core::mem::replace(&mut self.controller, next);
-            self.spare = Some(old);
-            // The rest position moves with the configuration (prepared with it).
-            self.set_underrun(self.underrun);
-        }
-    }
-
-    /// The spare controller, for the handler to prepare a reload in (outside any lock):
-    /// the one the last swap retired, or — if a reload is still waiting — the waiting one,
-    /// which a newer reload replaces. `None` only while the handler already holds it.
+    /// The spare controller, for the handler to prepare a reload in (outside any lock): the
+    /// one the last swap retired. `None` only while the handler already holds it.
     pub fn spare(&mut self) -> Option<C> {
-        self.spare.take().or_else(|| self.pending.take())
+        let mut spare = self.spare.take()?;
+        self.counted = self.counted.plus(spare.take_counters());
+        Some(spare)
     }
 
-    /// Hands a prepared controller to the tick: it takes over at the start of the next tick.
-    pub fn post(&mut self, prepared: C) {
-        self.pending = Some(prepared);
+    /// Configurations swapped in since start-up (loads and recalls that took effect).
+    pub fn swaps(&self) -> u32 {
+        self.swaps
+    }
+
+    /// The counters since start-up: the running controller's, the spare's, and those of the
+    /// controllers before them.
+    pub fn counters(&self) -> ControlCounters {
+        let spare = self
+            .spare
+            .as_ref()
+            .map(|s| s.counters())
+            .unwrap_or_default();
+        self.counted.plus(self.controller.counters()).plus(spare)
+    }
+
+    /// Swaps a prepared controller in, between two ticks (the caller holds the lock that
+    /// keeps the tick out): O(1), a pointer and a few words ([`Controller::take_over`]). The
+    /// controller it replaces becomes the spare.
+    pub fn post(&mut self, mut prepared: C) {
+        prepared.take_over(&self.controller);
+        let old = core::mem::replace(&mut self.controller, prepared);
+        self.spare = Some(old);
+        self.swaps = self.swaps.wrapping_add(1);
+        // The rest position moves with the configuration (prepared with it), and a stopped
+        // stream holds where the new configuration puts the stage.
+        self.stream.move_rest(self.controller.rest_setpoint());
+        self.stream.hold_at_if_stopped(self.controller.setpoint());
     }
 
     /// Gives a spare back unused (a reload refused after [`ControlLoop::spare`]).
@@ -170,14 +187,9 @@ where
         self.spare = Some(spare);
     }
 
-    /// Switches the mode between two ticks (O(1), see [`Controller::set_mode`]). While a
-    /// reload waits, it is the reload that is switched (and checked): it takes over at the
-    /// next tick, and the controller it replaces may lack what the mode needs.
+    /// Switches the mode between two ticks (O(1), see [`Controller::set_mode`]).
     pub fn set_mode(&mut self, mode: Mode) -> Result<(), ModeError> {
-        match self.pending.as_mut() {
-            Some(p) => p.set_mode(mode),
-            None => self.controller.set_mode(mode),
-        }
+        self.controller.set_mode(mode)
     }
 
     /// Counts a tick that overran (the board's timer sees the next one already due).
@@ -254,7 +266,7 @@ where
 
     /// Counters and state for the status report.
     pub fn telemetry(&self) -> Telemetry {
-        let c = self.controller.counters();
+        let c = self.counters();
         Telemetry {
             ticks: c.ticks,
             underruns: c.underruns.wrapping_add(self.stream.ramp_underruns()),
@@ -265,7 +277,6 @@ where
             streaming: self.stream.is_running() && !self.waveform,
             waveform: self.waveform,
             recording: self.recorder.is_capturing(),
-            config_pending: self.pending.is_some(),
         }
     }
 
@@ -279,13 +290,10 @@ where
         &self.controller
     }
 
-    /// DAC codes of the safe state of the newest configuration (the pending one if a load
-    /// waits), for the fault handlers to arm.
+    /// DAC codes of the safe state of the configuration in force, for the fault handlers to
+    /// arm.
     pub fn safe_codes(&self) -> (crate::board::DacCode, crate::board::DacCode) {
-        match &self.pending {
-            Some(p) => p.safe_codes(),
-            None => self.controller.safe_codes(),
-        }
+        self.controller.safe_codes()
     }
 
     /// Where the stacks are now (board units): what a reload is prepared at.

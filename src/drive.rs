@@ -90,7 +90,10 @@ pub struct DifferentialDrive {
     stack_min: i32,
     stack_max: i32,
     /// Back from the left stack's voltage to the model-normalised drive:
-    /// `((left − left_zero) · from_stack) >> from_stack_shift`.
+    /// `((left − left_zero) · from_stack) >> from_stack_shift`, for `left` within
+    /// `[left_min, left_max]` (the drive range's voltages, Q17.15), so it fits 32 bits.
+    left_min: i32,
+    left_max: i32,
     left_zero: i32,
     from_stack: i32,
     from_stack_shift: u32,
@@ -239,6 +242,8 @@ impl DriveSettings {
             right_mask,
             stack_min: q15_of(s.min_voltage),
             stack_max: q15_of(s.max_voltage),
+            left_min: 0,
+            left_max: 0,
             left_zero: libm::round(code0) as i32,
             from_stack,
             from_stack_shift: shift,
@@ -251,6 +256,9 @@ impl DriveSettings {
                 scaling.input_to_norm(s.bias).max(drive_min).min(drive_max),
             ),
         };
+        let mut drive = drive;
+        drive.left_min = drive.left_of(drive.drive_min);
+        drive.left_max = drive.left_of(drive.drive_max);
         // Every voltage the limits allow must have a code: the stack limits lie within the
         // amplifier's range, so this holds unless rounding pushes an end past full scale.
         let top = (hw.dac_full_scale as i64) << 15;
@@ -269,12 +277,16 @@ impl DifferentialDrive {
         crate::fixed_point::saturate_i64(v)
     }
 
-    /// The model-normalised drive of a left-stack voltage (Q17.15), within the drive range.
+    /// The model-normalised drive of a left-stack voltage (Q17.15), within the drive range to
+    /// rounding (a few LSB): the voltage is first limited to the drive range's voltages, so the
+    /// product and the result fit 32 bits (one `SMULL` and a shift; no 64-bit compares). Where
+    /// it is used — the observer's input on a slew-limited tick, a transfer's starting point —
+    /// the models clamp their inputs to full scale, which lies beyond the drive range.
     #[inline(always)]
     pub fn drive_of(&self, left: i32) -> i32 {
-        let d = ((left as i64 - self.left_zero as i64) * self.from_stack as i64)
-            >> self.from_stack_shift;
-        crate::fixed_point::limit_i64(d, self.drive_min as i64, self.drive_max as i64) as i32
+        let left = limit(left, self.left_min, self.left_max);
+        (((left.wrapping_sub(self.left_zero)) as i64 * self.from_stack as i64)
+            >> self.from_stack_shift) as i32
     }
 
     /// Both stacks' voltages for a drive at rest in `drive` (no slew limit): where the stacks
@@ -324,7 +336,7 @@ impl DifferentialDrive {
             // Unlimited, the observer gets the command itself, bit for bit; slewed, the drive
             // of the voltage the left stack actually has.
             applied: if left_limited {
-                self.drive_of(left)
+                limit(self.drive_of(left), self.drive_min, self.drive_max)
             } else {
                 ranged
             },
@@ -479,6 +491,37 @@ mod tests {
         prev.right = 0;
         let out = d.split(d.rest_drive(), prev, d.slew());
         assert!((volts(out.stacks.right) - 1.0).abs() < 1e-3 && out.slew_limited);
+    }
+
+    #[test]
+    fn the_drive_of_a_voltage_inverts_the_voltage_of_a_drive_and_stays_in_range() {
+        let h = hw(150.0, 4095);
+        for (lo, hi) in [(0.0, 140.0), (-156.0, 156.0), (0.0, 3.6), (100.0, 110.0)] {
+            let scaling = Scaling::new(lo, hi, 0.0, 10.0).unwrap();
+            let mut s = settings(Configuration::Unidirectional, 0.0, 140.0, 0.0);
+            s.min_voltage = lo.max(0.0);
+            s.max_voltage = hi.min(140.0);
+            s.bias = s.min_voltage;
+            let d = s.build(&h, &scaling).unwrap();
+            let (dmin, dmax) = d.drive_range();
+            for k in 0..=100i64 {
+                let drive = (dmin as i64 + (dmax as i64 - dmin as i64) * k / 100) as i32;
+                let back = d.drive_of(d.stacks_at(drive).left);
+                // One Q17.15 step of voltage is this many drive LSBs (plus rounding).
+                let tolerance = (d.from_stack as i64 >> d.from_stack_shift).max(0) + 2;
+                assert!(
+                    ((back - drive) as i64).abs() <= tolerance,
+                    "{lo}…{hi}: {drive} → {back}"
+                );
+            }
+            for far in [i32::MIN, -1, 0, i32::MAX] {
+                let back = d.drive_of(far);
+                assert!(
+                    back >= dmin - 4 && back <= dmax.saturating_add(4),
+                    "{far} → {back}"
+                );
+            }
+        }
     }
 
     proptest::proptest! {

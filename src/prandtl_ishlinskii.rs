@@ -472,6 +472,8 @@ pub struct InversePrandtlIshlinskii {
     partial_sums: [i32; MAX_CANONICAL_OPERATORS],
     /// Forward weights `w_i`, Q8.24, for [`Self::state_from_forward`].
     forward_weights: [i32; MAX_CANONICAL_OPERATORS],
+    /// Forward thresholds `r_i`, Q2.30, to recognise the forward model ([`Self::inverts`]).
+    forward_thresholds: [i32; MAX_CANONICAL_OPERATORS],
 }
 
 impl InversePrandtlIshlinskii {
@@ -484,11 +486,13 @@ impl InversePrandtlIshlinskii {
         let inverse = forward.inverse()?;
         let mut partial_sums = [0; MAX_CANONICAL_OPERATORS];
         let mut forward_weights = [0; MAX_CANONICAL_OPERATORS];
+        let mut forward_thresholds = [0; MAX_CANONICAL_OPERATORS];
         let mut s = 0.0;
-        for (i, &w) in forward.weights.iter().enumerate() {
+        for (i, (&w, &r)) in forward.weights.iter().zip(&forward.thresholds).enumerate() {
             s += w;
             partial_sums[i] = gain_from_f64(s);
             forward_weights[i] = gain_from_f64(w);
+            forward_thresholds[i] = signal_from_f64(r);
         }
         forward.check_fixed_point_range()?;
         Ok(Self {
@@ -496,7 +500,21 @@ impl InversePrandtlIshlinskii {
             offset: signal_from_f64(inverse.offset),
             partial_sums,
             forward_weights,
+            forward_thresholds,
         })
+    }
+
+    /// Whether this is the inverse of `forward` (the same model, operator for operator): only
+    /// then does [`Self::state_from_forward`] of `forward`'s state describe this compensator.
+    pub fn inverts(&self, forward: &PrandtlIshlinskii) -> bool {
+        let n = self.bank.operators();
+        let b = forward.bank();
+        b.operators() == n
+            && forward.offset() == self.offset
+            && (0..n).all(|i| {
+                b.weight(i) == self.forward_weights[i]
+                    && b.threshold(i) == self.forward_thresholds[i]
+            })
     }
 
     /// The operator bank (inverse thresholds `r'_i` and weights `w'_i`).
@@ -652,5 +670,20 @@ mod tests {
             let state = bank.state_from(p, signal_from_f64(start));
             check_against_exhaustive(&bank, state, inputs.iter().map(|&u| signal_from_f64(u)))?;
         }
+    }
+
+    #[test]
+    fn an_inverse_recognises_its_own_forward_model_only() {
+        let scaling = Scaling::new(0.0, 140.0, 0.0, 70.0).unwrap();
+        let pi = |n: usize, w1: f64| {
+            let r = Thresholds::Uniform.generate(n, 140.0).unwrap();
+            let w: heapless::Vec<f64, 32> =
+                (0..n).map(|i| if i == 0 { w1 } else { 0.01 }).collect();
+            PiParams::new(0.0, 0.0, &r, &w).unwrap()
+        };
+        let inverse = InversePrandtlIshlinskii::new(&pi(16, 0.3), &scaling).unwrap();
+        assert!(inverse.inverts(&PrandtlIshlinskii::new(&pi(16, 0.3), &scaling).unwrap()));
+        assert!(!inverse.inverts(&PrandtlIshlinskii::new(&pi(8, 0.3), &scaling).unwrap()));
+        assert!(!inverse.inverts(&PrandtlIshlinskii::new(&pi(16, 0.31), &scaling).unwrap()));
     }
 }

@@ -118,6 +118,26 @@ impl SetpointStream {
         true
     }
 
+    /// A stopped stream holds `setpoint` (Q2.30) from now on: after a reload, where the new
+    /// configuration puts the stage (a stopped stream's old value is in the old output range's
+    /// units). A running stream or waveform is left alone.
+    pub fn hold_at_if_stopped(&mut self, setpoint: i32) {
+        if !self.running {
+            self.current = setpoint;
+            self.target = setpoint;
+            self.remaining = 0;
+        }
+    }
+
+    /// Moves the ramp-to-rest policy's rest position to `rest` (Q2.30): a reload changes the
+    /// rest position; the hold policy has none.
+    #[inline(always)]
+    pub fn move_rest(&mut self, rest: i32) {
+        if let Underrun::RampToRest { rest: r, .. } = &mut self.underrun {
+            *r = rest;
+        }
+    }
+
     /// Runs the waveform generator instead of the queue.
     pub fn play(&mut self, waveform: WaveformGenerator) {
         self.waveform = Some(waveform);

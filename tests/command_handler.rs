@@ -72,6 +72,8 @@ struct Board<S> {
     queue: &'static mut SetpointQueue,
     dac: Dac,
     adc: Adc,
+    /// The loop's swap count before the last request.
+    swaps_before: u32,
 }
 
 /// A board booted from `storage` on `hw` exactly as the firmware boots: the stored record if
@@ -91,6 +93,7 @@ fn board_on<S: RecordStorage>(storage: S, hw: Hardware) -> Board<S> {
         queue: Box::leak(Box::new(SetpointQueue::new())),
         dac: Dac(DacCode(0), DacCode(0)),
         adc: Adc(2048),
+        swaps_before: 0,
     }
 }
 
@@ -142,6 +145,7 @@ fn closed() -> Settings {
 
 impl<S: RecordStorage> Board<S> {
     fn handle(&mut self, request: Request) -> Response {
+        self.swaps_before = self.control.swaps();
         let (mut p, _) = self.queue.split();
         self.handler
             .handle(request, &mut p, &mut Exclusive(&mut self.control))
@@ -149,6 +153,7 @@ impl<S: RecordStorage> Board<S> {
 
     /// Bytes in, response frames out (decoded).
     fn bytes(&mut self, bytes: &[u8]) -> Vec<Response> {
+        self.swaps_before = self.control.swaps();
         let (mut p, _) = self.queue.split();
         let mut frames = Vec::new();
         self.handler
@@ -226,9 +231,10 @@ fn assert_nothing_changed<S: RecordStorage>(b: &mut Board<S>, queued: &[i16], se
     assert_eq!(b.queued(), queued, "queued setpoints lost or added");
     assert_eq!(b.handler.settings(), settings, "settings changed");
     assert_eq!(&b.read_params(), settings, "settings read back changed");
-    assert!(
-        !b.control.telemetry().config_pending,
-        "a configuration was posted"
+    assert_eq!(
+        b.control.swaps(),
+        b.swaps_before,
+        "a configuration was swapped in"
     );
 }
 
@@ -342,17 +348,17 @@ fn a_parameter_load_is_validated_whole_and_swapped_in_between_two_ticks() {
         b.handle(Request::LoadParams(p.clone())),
         Response::Ack { .. }
     ));
-    // Prepared and posted, not yet applied: the tick in force still runs the boot settings.
-    assert!(b.control.telemetry().config_pending);
-    assert_eq!(b.control.controller().mode(), Mode::Bypass);
+    // Prepared off the tick and swapped in, in O(1), when the load is acknowledged: the next
+    // tick runs it.
+    assert_eq!(b.control.swaps(), b.swaps_before + 1);
+    assert_eq!(b.control.controller().mode(), Mode::OpenLoop);
     let s = b.status();
-    assert!(s.has(StatusReport::CONFIG_PENDING) && s.mode() == Mode::OpenLoop);
+    assert_eq!(s.mode(), Mode::OpenLoop);
     assert!(
         !s.has(StatusReport::DEFAULTS),
         "loaded settings are not the defaults"
     );
     b.ticks(1);
-    assert!(!b.control.telemetry().config_pending);
     // Open loop now (the feedback stays configured, idle, so a later mode switch needs no
     // new settings).
     assert_eq!(b.control.controller().mode(), Mode::OpenLoop);
@@ -779,6 +785,7 @@ fn mode_changes_are_checked_against_the_settings_and_switch_between_two_ticks() 
         queue: Box::leak(Box::new(SetpointQueue::new())),
         dac: Dac(DacCode(0), DacCode(0)),
         adc: Adc(0),
+        swaps_before: 0,
     };
     assert_eq!(
         b.handle(Request::Mode(Mode::ClosedLoop)),
@@ -797,7 +804,7 @@ fn mode_changes_are_checked_against_the_settings_and_switch_between_two_ticks() 
 }
 
 #[test]
-fn a_mode_switch_while_a_load_waits_is_checked_against_and_applied_to_the_load() {
+fn a_mode_switch_right_after_a_load_is_checked_against_and_applied_to_the_load() {
     // The defaults run (no compensator, no feedback); the load brings both.
     let mut b = board();
     let p = Settings {
@@ -808,7 +815,7 @@ fn a_mode_switch_while_a_load_waits_is_checked_against_and_applied_to_the_load()
         b.handle(Request::LoadParams(p.clone())),
         Response::Ack { .. }
     ));
-    assert!(b.control.telemetry().config_pending);
+    // No tick between the load and the switch: the load is in force already.
     assert!(matches!(
         b.handle(Request::Mode(Mode::ClosedLoop)),
         Response::Ack { .. }
@@ -913,7 +920,6 @@ fn a_board_on_erased_storage_boots_in_bypass_on_the_defaults_and_says_so() {
     let s = b.status();
     assert_eq!(s.mode(), Mode::Bypass, "{s:?}");
     assert!(s.has(StatusReport::DEFAULTS), "{s:?}");
-    assert!(!s.has(StatusReport::CONFIG_PENDING), "{s:?}");
     assert_eq!(s.tick_rate_hz, RATE);
     assert_eq!(b.read_params(), Settings::default());
     assert_eq!(b.control.controller().mode(), Mode::Bypass);

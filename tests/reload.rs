@@ -306,4 +306,15 @@ fn a_load_with_another_input_range_does_not_step_the_outputs() {
         "swap tick moved the outputs: {held:?} → {:?}",
         (dac.0, dac.1)
     );
+    assert_eq!(
+        control.telemetry().ticks,
+        101,
+        "the tick count goes on across the swap"
+    );
+    let _spare = control.spare();
+    assert_eq!(
+        control.telemetry().ticks,
+        101,
+        "and when the handler takes the spare back"
+    );
 }

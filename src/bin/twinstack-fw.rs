@@ -80,8 +80,8 @@ mod app {
     use twinstack::hardware::dac::InternalDac;
     use twinstack::hardware::param_flash;
     use twinstack::hardware::safe_state;
-    use twinstack::hardware::usart::{self, UsartRx, UsartTx};
     use twinstack::hardware::tick::{BoardLoop, ControlTick};
+    use twinstack::hardware::usart::{self, UsartRx, UsartTx};
     use twinstack::hardware::watchdog::Watchdog;
     #[cfg(feature = "emulator")]
     use twinstack::param_store::ReadOnlyStorage;

@@ -190,7 +190,6 @@ impl<S: RecordStorage> CommandHandler<S> {
             (t.streaming, StatusReport::STREAMING),
             (t.waveform, StatusReport::WAVEFORM),
             (t.recording, StatusReport::RECORDING),
-            (t.config_pending, StatusReport::CONFIG_PENDING),
         ] {
             if on {
                 flags |= flag;
@@ -247,12 +246,13 @@ impl<S: RecordStorage> CommandHandler<S> {
             .build(&self.hardware)
             .map_err(NackReason::Refused)?;
         let (spare, stacks) = control.lock(|c| (c.spare(), c.stacks()));
-        // Two controllers cycle between the tick and this task: the spare is always there
-        // (a waiting reload is taken back and replaced).
+        // Two controllers cycle between the tick and this task: the spare is always there.
         let Some(mut spare) = spare else {
             return Err(NackReason::Busy);
         };
+        // The heavy part, outside any lock: the tick runs meanwhile.
         spare.prepare(config, stacks);
+        // O(1) under the lock: the stacks' voltages as they are now carry over.
         control.lock(|c| c.post(spare));
         self.settings = settings;
         self.defaults = false;

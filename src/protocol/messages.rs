@@ -236,8 +236,8 @@ impl StatusReport {
     pub const WAVEFORM: u16 = 1 << 2;
     /// Flag: the recorder is capturing.
     pub const RECORDING: u16 = 1 << 3;
-    /// Flag: a parameter load is waiting for the next tick.
-    pub const CONFIG_PENDING: u16 = 1 << 4;
+    // Bit 4 is reserved (protocol v2's "load waiting for the next tick": since v3 a load is
+    // in force when it is acknowledged).
     /// Flags bits 8–9: the mode (0 bypass, 1 open loop, 2 closed loop).
     pub const MODE_SHIFT: u16 = 8;
 

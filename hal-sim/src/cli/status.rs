@@ -19,7 +19,6 @@ pub fn format_status(s: &StatusReport) -> String {
         (StatusReport::STREAMING, "streaming"),
         (StatusReport::WAVEFORM, "waveform"),
         (StatusReport::RECORDING, "recording"),
-        (StatusReport::CONFIG_PENDING, "config-pending"),
     ] {
         if s.has(bit) {
             flags.push(name);

@@ -82,7 +82,11 @@ pub mod scenarios {
         // a full-range jump: the P–I memory fills up and is wiped out at once.
         let cycle = k % 200;
         if cycle == 199 {
-            return if (k / 200) % 2 == 0 { FULL as i16 } else { -(FULL as i16) };
+            return if (k / 200) % 2 == 0 {
+                FULL as i16
+            } else {
+                -(FULL as i16)
+            };
         }
         let level = (cycle / 20) as i32;
         let amplitude = FULL - level * (FULL / 10);
@@ -95,20 +99,43 @@ pub mod scenarios {
 
     /// Every scenario, in the order they run.
     pub const ALL: [Scenario; 6] = [
-        Scenario { name: "triangle", setpoint: triangle, lifecycle: false },
-        Scenario { name: "sine-750Hz", setpoint: sine_750hz, lifecycle: false },
-        Scenario { name: "full-range-steps", setpoint: steps, lifecycle: false },
-        Scenario { name: "random", setpoint: random, lifecycle: false },
-        Scenario { name: "nested-loops", setpoint: nested_loops, lifecycle: false },
-        Scenario { name: "reload-and-mode-switches", setpoint: triangle, lifecycle: true },
+        Scenario {
+            name: "triangle",
+            setpoint: triangle,
+            lifecycle: false,
+        },
+        Scenario {
+            name: "sine-750Hz",
+            setpoint: sine_750hz,
+            lifecycle: false,
+        },
+        Scenario {
+            name: "full-range-steps",
+            setpoint: steps,
+            lifecycle: false,
+        },
+        Scenario {
+            name: "random",
+            setpoint: random,
+            lifecycle: false,
+        },
+        Scenario {
+            name: "nested-loops",
+            setpoint: nested_loops,
+            lifecycle: false,
+        },
+        Scenario {
+            name: "reload-and-mode-switches",
+            setpoint: triangle,
+            lifecycle: true,
+        },
     ];
 }
 
 /// The configurations a user can load, as the bench measures them.
 pub mod configs {
     use twinstack::settings::{
-        representative_duhem, representative_pi, FeedbackSettings, Mode, SensorSettings,
-        Settings,
+        representative_duhem, representative_pi, FeedbackSettings, Mode, SensorSettings, Settings,
     };
 
     /// A named configuration.
@@ -119,7 +146,10 @@ pub mod configs {
         pub settings: Settings,
     }
 
-    fn closed(compensator: twinstack::settings::Model, observer: twinstack::settings::Model) -> Settings {
+    fn closed(
+        compensator: twinstack::settings::Model,
+        observer: twinstack::settings::Model,
+    ) -> Settings {
         Settings {
             compensator: Some(compensator),
             observer: Some(observer),
@@ -158,8 +188,8 @@ mod app {
 
     use twinstack::board::Hardware;
     use twinstack::control::Controller;
-    use twinstack::control_loop::{SetpointQueue, SETPOINT_QUEUE_LEN};
     use twinstack::control_loop::ControlLoop;
+    use twinstack::control_loop::{SetpointQueue, SETPOINT_QUEUE_LEN};
     use twinstack::hardware::adc::SensorInput;
     use twinstack::hardware::clocks;
     use twinstack::hardware::control_timer::ControlTimer;
@@ -263,9 +293,8 @@ mod app {
         let handler = cx.local.handler;
         let producer = cx.local.setpoints_in;
         let mut lock = LoopLock(cx.shared.tick);
-        let mut ask = |request: Request| -> Response {
-            handler.handle(request, producer, &mut lock)
-        };
+        let mut ask =
+            |request: Request| -> Response { handler.handle(request, producer, &mut lock) };
         let Some(configs) = configs::all() else {
             panic!("configuration refused");
         };
@@ -319,7 +348,10 @@ mod app {
                         let reload = configs.iter().rev().find(|c| c.name != config.name);
                         if changed == 0 && ticks_played >= 500 {
                             if let Some(other) = reload {
-                                expect_ack(ask(Request::LoadParams(other.settings.clone())), "reload");
+                                expect_ack(
+                                    ask(Request::LoadParams(other.settings.clone())),
+                                    "reload",
+                                );
                             }
                             changed = 1;
                         } else if changed == 1 && ticks_played >= 800 {
@@ -335,11 +367,9 @@ mod app {
                     }
                     cortex_m::asm::wfi();
                 }
+                // (The lifecycle scenario is each configuration's last; the next configuration
+                // starts with its own load.)
                 expect_ack(ask(Request::Stream(StreamControl::Stop)), "stop");
-                if scenario.lifecycle {
-                    // Back to this configuration for the next scenario.
-                    expect_ack(ask(Request::LoadParams(config.settings.clone())), "load");
-                }
             }
         }
         irq_bench_marker(u32::MAX);
