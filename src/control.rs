@@ -22,10 +22,10 @@ use crate::duhem::{Duhem, DuhemState, InverseDuhem};
 use crate::feedback::FeedbackState;
 pub use crate::feedback::{Derivative, Feedback};
 use crate::fixed_point::clamp_full_scale;
+pub use crate::mode_switch::Mode;
 use crate::mode_switch::{BumplessTransfer, ModeError};
 use crate::prandtl_ishlinskii::{InversePrandtlIshlinskii, PiState, PrandtlIshlinskii};
 pub use crate::sensor::Sensor;
-pub use crate::settings::Mode;
 
 /// The feedforward compensator: desired displacement → drive.
 // The variants differ in size by design: there is no heap on the board, and the configuration
@@ -140,6 +140,19 @@ pub struct ControlCounters {
 }
 
 impl ControlCounters {
+    /// Counts what one tick's `flags` say happened (every counter but `ticks` is one flag's).
+    #[inline(always)]
+    pub fn count(&mut self, flags: TickFlags) {
+        let f = flags.0;
+        let add = |c: &mut u32, bit: u8| *c = c.wrapping_add(((f & bit) != 0) as u32);
+        add(&mut self.underruns, TickFlags::UNDERRUN);
+        add(&mut self.range_limits, TickFlags::RANGE_LIMIT);
+        add(&mut self.slew_limits, TickFlags::SLEW_LIMIT);
+        add(&mut self.adc_errors, TickFlags::ADC_ERROR);
+        add(&mut self.dac_errors, TickFlags::DAC_ERROR);
+        add(&mut self.drifts, TickFlags::DRIFT);
+    }
+
     /// Both counts added (wrapping).
     pub fn plus(self, o: Self) -> Self {
         Self {
@@ -471,16 +484,12 @@ impl Controller {
         // Flags and counters are touched only on the paths where something happened: the
         // common tick pays for none of them.
         let mut flags = 0u8;
-        let counters = &mut self.counters;
-        counters.ticks = counters.ticks.wrapping_add(1);
+        self.counters.ticks = self.counters.ticks.wrapping_add(1);
 
         // 1. Setpoint.
         match setpoint {
             Some(s) => self.setpoint = clamp_full_scale(s),
-            None => {
-                flags |= TickFlags::UNDERRUN;
-                counters.underruns = counters.underruns.wrapping_add(1);
-            }
+            None => flags |= TickFlags::UNDERRUN,
         }
         let target = self.setpoint;
 
@@ -500,36 +509,15 @@ impl Controller {
         // 3. Sensor: drift check, and in closed loop the feedback correction.
         let fs = &mut self.feedback_state;
         let (command, measured) = match (&self.run, &self.sensor, &self.feedback) {
-            (Run::ClosedPi, Some(sn), Some(fb)) => sense::<_, true, false>(
-                sn,
-                Some(fb),
-                fs,
-                io,
-                target,
-                feedforward,
-                &mut flags,
-                counters,
-            ),
-            (Run::Closed, Some(sn), Some(fb)) => sense::<_, true, true>(
-                sn,
-                Some(fb),
-                fs,
-                io,
-                target,
-                feedforward,
-                &mut flags,
-                counters,
-            ),
-            (Run::Monitor, Some(sn), _) => sense::<_, false, false>(
-                sn,
-                None,
-                fs,
-                io,
-                target,
-                feedforward,
-                &mut flags,
-                counters,
-            ),
+            (Run::ClosedPi, Some(sn), Some(fb)) => {
+                sense::<_, true, false>(sn, Some(fb), fs, io, target, feedforward, &mut flags)
+            }
+            (Run::Closed, Some(sn), Some(fb)) => {
+                sense::<_, true, true>(sn, Some(fb), fs, io, target, feedforward, &mut flags)
+            }
+            (Run::Monitor, Some(sn), _) => {
+                sense::<_, false, false>(sn, None, fs, io, target, feedforward, &mut flags)
+            }
             _ => (feedforward, 0),
         };
 
@@ -560,15 +548,17 @@ impl Controller {
         }
         if out.range_limited {
             flags |= TickFlags::RANGE_LIMIT;
-            counters.range_limits = counters.range_limits.wrapping_add(1);
         }
         if out.slew_limited {
             flags |= TickFlags::SLEW_LIMIT;
-            counters.slew_limits = counters.slew_limits.wrapping_add(1);
         }
         if io.write(out.left, out.right).is_err() {
             flags |= TickFlags::DAC_ERROR;
-            counters.dac_errors = counters.dac_errors.wrapping_add(1);
+        }
+        // The counters, from the flags, in one place (a tick with nothing to count pays one
+        // compare).
+        if flags & !TickFlags::SETTLING != 0 {
+            self.counters.count(TickFlags(flags));
         }
         // What the limits cut, kept now: the command need not live on through the observer.
         self.feedback_state.limited(command, out.applied);
@@ -595,7 +585,6 @@ impl Controller {
 /// The tick's sensor step: reads the sensor, runs the drift check and, when `CLOSED`, adds
 /// the feedback correction to `feedforward` (with the derivative and notch when `FULL`, else
 /// the PI alone). Returns the command and the measurement.
-#[allow(clippy::too_many_arguments)] // inlined into the tick: the arguments are registers
 #[inline(always)]
 fn sense<IO: TickIo, const CLOSED: bool, const FULL: bool>(
     sensor: &Sensor,
@@ -605,14 +594,12 @@ fn sense<IO: TickIo, const CLOSED: bool, const FULL: bool>(
     target: i32,
     feedforward: i32,
     flags: &mut u8,
-    counters: &mut ControlCounters,
 ) -> (i32, i32) {
     match io.read() {
         Ok(code) => {
             let measured = sensor.displacement(code);
             if sensor.drifted(fs, measured) {
                 *flags |= TickFlags::DRIFT;
-                counters.drifts = counters.drifts.wrapping_add(1);
             }
             let command = match (CLOSED, fb) {
                 (true, Some(fb)) => {
@@ -624,7 +611,6 @@ fn sense<IO: TickIo, const CLOSED: bool, const FULL: bool>(
         }
         Err(_) => {
             *flags |= TickFlags::ADC_ERROR;
-            counters.adc_errors = counters.adc_errors.wrapping_add(1);
             let command = match (CLOSED, fb) {
                 (true, Some(fb)) => feedforward.saturating_add(fb.held_correction(fs, target)),
                 _ => feedforward,
@@ -841,6 +827,50 @@ mod tests {
         );
         let top = volts(dac.left).max(volts(dac.right));
         assert!(top <= 100.01, "within the new limits once settled: {top}");
+    }
+
+    /// Every counter is the number of ticks whose report carried its flag.
+    #[test]
+    fn the_counters_are_the_flags_counted() {
+        let mut s = Settings {
+            compensator: Some(representative_pi(8).unwrap()),
+            observer: Some(representative_duhem()),
+            feedback: Some(FeedbackSettings::pi(0.5, 2000.0, 0.3)),
+            mode: Mode::ClosedLoop,
+            ..Settings::default()
+        };
+        s.sensor.as_mut().unwrap().drift_limit = Some(0.01);
+        s.drive.slew_rate = 2.0e5;
+        let mut c = Controller::new(s.build(&hw()).unwrap());
+        let mut dac = RecordingDac::default();
+        let mut seen = [0u32; 8];
+        let mut seed = 7u32;
+        for k in 0..4000 {
+            seed = seed.wrapping_mul(1_664_525).wrapping_add(1_013_904_223);
+            let sp = (k % 5 != 0).then_some(seed as i32 >> 1);
+            let mut adc = FixedAdc((k % 11 != 0).then_some(crate::board::AdcCode(seed >> 16)));
+            let r = c.tick(sp, &mut adc, &mut dac);
+            for (bit, n) in seen.iter_mut().enumerate() {
+                *n += (r.flags.0 >> bit) as u32 & 1;
+            }
+        }
+        let k = c.counters();
+        assert_eq!(k.ticks, 4000);
+        assert_eq!(
+            [
+                k.underruns,
+                k.range_limits,
+                k.slew_limits,
+                k.adc_errors,
+                k.dac_errors,
+                k.drifts
+            ],
+            [seen[0], seen[1], seen[2], seen[3], seen[4], seen[5]]
+        );
+        assert!(
+            seen[..6].iter().filter(|&&n| n > 0).count() >= 4,
+            "{seen:?}"
+        );
     }
 
     #[test]

@@ -33,11 +33,12 @@ use core::ops::DerefMut;
 use crate::board::{DualDac, SensorAdc};
 use crate::control::{ControlCounters, Controller, TickFlags, TickReport};
 use crate::drive::StackVoltages;
+use crate::mode_switch::Mode;
 use crate::mode_switch::ModeError;
-use crate::protocol::messages::{Signal, UnderrunPolicy, MAX_CHUNK};
 use crate::recorder::{RecordError, Recorder};
+use crate::recorder::{Signal, MAX_CHUNK};
+use crate::setpoint_stream::UnderrunPolicy;
 use crate::setpoint_stream::{SetpointStream, Underrun};
-use crate::settings::Mode;
 use crate::waveform::WaveformGenerator;
 
 /// Slots of the setpoint queue (`heapless` keeps one free: [`SETPOINT_CAPACITY`] setpoints

@@ -13,6 +13,19 @@
 //!   [`BumplessTransfer`]: an offset added to the command that fades out over about
 //!   2^[`TRANSFER_SHIFT`] ticks (5 ms at 50 kHz), so the drive glides to the new mode's value.
 
+/// Control mode.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub enum Mode {
+    /// No compensation: the drive follows the setpoint linearly, range onto range.
+    Bypass,
+    /// Inverse-model feedforward.
+    OpenLoop,
+    /// Feedforward (inverse model, or the setpoint itself without a compensator) plus PI(D)
+    /// feedback on the sensor.
+    ClosedLoop,
+}
+
 /// Why a mode switch was refused (nothing changed).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]

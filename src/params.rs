@@ -7,7 +7,7 @@
 //! as in the equations of the book's docs/src/reference/models.md.
 
 use crate::fixed_point::MAX_GAIN_SUM;
-use crate::scaling::Scaling;
+use crate::scaling::{RangeError, Scaling};
 use heapless::Vec;
 
 /// Most play operators a P–I model may have (not counting its linear term `a0`).
@@ -151,6 +151,15 @@ impl core::fmt::Display for ParamError {
 }
 
 impl core::error::Error for ParamError {}
+
+impl From<RangeError> for ParamError {
+    fn from(e: RangeError) -> Self {
+        match e {
+            RangeError::EmptyInput => ParamError::EmptyInputRange,
+            RangeError::EmptyOutput => ParamError::EmptyOutputRange,
+        }
+    }
+}
 
 /// How P–I thresholds are spread over the input amplitude (see the book, docs/src/reference/models.md).
 #[derive(Clone, Copy, Debug, PartialEq)]

@@ -15,7 +15,22 @@
 //! `&'static mut [i32; RECORD_CAPACITY]` in static RAM, the simulator a `Vec<i32>`.
 
 use crate::control::TickReport;
-use crate::protocol::messages::{Signal, MAX_CHUNK};
+
+/// Most recorder values one read returns (one response chunk).
+pub const MAX_CHUNK: usize = 64;
+
+/// Signals the recorder can capture.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+pub enum Signal {
+    /// The setpoint, Q2.30.
+    Setpoint,
+    /// The applied drive, Q2.30 model-normalised.
+    Drive,
+    /// The sensor reading, Q2.30.
+    Sensor,
+    /// The observer's estimate, Q2.30.
+    Estimate,
+}
 
 /// Values the board's recorder holds: 16384 × 4 bytes = 64 KiB, half of the STM32F405's
 /// 128 KiB of SRAM (the rest of the firmware needs under 16 KiB of static RAM and stack). At

@@ -4,7 +4,26 @@
 //! input range (drive volts) and output range (displacement, µm or sensor units) each map onto
 //! [-1, 1]. `Scaling` holds those two ranges and converts both ways.
 
-use crate::params::ParamError;
+/// Why ranges were refused.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub enum RangeError {
+    /// The input (drive) range is empty or not finite.
+    EmptyInput,
+    /// The output (displacement) range is empty or not finite.
+    EmptyOutput,
+}
+
+impl core::fmt::Display for RangeError {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        match self {
+            RangeError::EmptyInput => write!(f, "input range is empty or not finite"),
+            RangeError::EmptyOutput => write!(f, "output range is empty or not finite"),
+        }
+    }
+}
+
+impl core::error::Error for RangeError {}
 
 /// Physical ranges of a model's input (drive voltage) and output (displacement).
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -40,13 +59,13 @@ impl Scaling {
         input_max: f64,
         output_min: f64,
         output_max: f64,
-    ) -> Result<Self, ParamError> {
+    ) -> Result<Self, RangeError> {
         let ok = |lo: f64, hi: f64| lo.is_finite() && hi.is_finite() && hi > lo;
         if !ok(input_min, input_max) {
-            return Err(ParamError::EmptyInputRange);
+            return Err(RangeError::EmptyInput);
         }
         if !ok(output_min, output_max) {
-            return Err(ParamError::EmptyOutputRange);
+            return Err(RangeError::EmptyOutput);
         }
         Ok(Self {
             input_min,
@@ -111,11 +130,11 @@ mod tests {
     fn empty_or_non_finite_ranges_are_refused() {
         assert_eq!(
             Scaling::new(1.0, 1.0, 0.0, 1.0),
-            Err(ParamError::EmptyInputRange)
+            Err(RangeError::EmptyInput)
         );
         assert_eq!(
             Scaling::new(0.0, 1.0, f64::NAN, 1.0),
-            Err(ParamError::EmptyOutputRange)
+            Err(RangeError::EmptyOutput)
         );
     }
 }

@@ -26,6 +26,15 @@ pub fn setpoint_to_wire(setpoint: i32) -> i16 {
     rounded.clamp(i16::MIN as i64, i16::MAX as i64) as i16
 }
 
+/// What the board does when the setpoint queue runs dry.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+pub enum UnderrunPolicy {
+    /// Hold the last setpoint.
+    Hold,
+    /// Ramp to the rest position (the bias), within the slew limit.
+    RampToBias,
+}
+
 /// What to do when the queue runs dry.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]

@@ -20,6 +20,7 @@ use crate::control::{Compensator, ControlConfig, Observer};
 pub use crate::drive::{Configuration, DriveSettings, SafeState};
 use crate::duhem::{Duhem, InverseDuhem};
 pub use crate::feedback::FeedbackSettings;
+pub use crate::mode_switch::Mode;
 pub use crate::notch::NotchDesign;
 use crate::params::{DuhemParams, ParamError, PiParams, MAX_OPERATORS};
 use crate::prandtl_ishlinskii::{InversePrandtlIshlinskii, PrandtlIshlinskii};
@@ -35,19 +36,6 @@ pub enum Model {
     PrandtlIshlinskii(PiParams),
     /// Duhem.
     Duhem(DuhemParams),
-}
-
-/// Control mode.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
-#[cfg_attr(feature = "defmt", derive(defmt::Format))]
-pub enum Mode {
-    /// No compensation: the drive follows the setpoint linearly, range onto range.
-    Bypass,
-    /// Inverse-model feedforward.
-    OpenLoop,
-    /// Feedforward (inverse model, or the setpoint itself without a compensator) plus PI(D)
-    /// feedback on the sensor.
-    ClosedLoop,
 }
 
 /// Everything a user configures, in physical units (see the module doc).
@@ -121,7 +109,7 @@ impl Settings {
             self.ranges.output_min,
             self.ranges.output_max,
         )
-        .map_err(|e| model_refusal(Field::Compensator, e))?;
+        .map_err(|e| model_refusal(Field::Compensator, e.into()))?;
         // The compensator first: "not invertible" says more than a range error would.
         let compensator = match &self.compensator {
             None => Compensator::None,

@@ -5,7 +5,9 @@
 //! That halves the bytes per sample, so that 2 Mbaud carries 50 000 setpoints/s with room for
 //! framing and acknowledgements.
 
+pub use crate::recorder::{Signal, MAX_CHUNK};
 use crate::refusal::Refusal;
+pub use crate::setpoint_stream::UnderrunPolicy;
 use crate::settings::Settings;
 use serde::{Deserialize, Serialize};
 
@@ -21,8 +23,6 @@ impl Message for Response {
 
 /// Most setpoints one batch carries.
 pub const MAX_BATCH: usize = 96;
-/// Most recorder values one chunk carries.
-pub const MAX_CHUNK: usize = 64;
 
 /// Host → board.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -84,15 +84,6 @@ pub enum StreamControl {
     Underrun(UnderrunPolicy),
 }
 
-/// What the board does when the setpoint queue runs dry.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
-pub enum UnderrunPolicy {
-    /// Hold the last setpoint.
-    Hold,
-    /// Ramp to the rest position (the bias), within the slew limit.
-    RampToBias,
-}
-
 /// Control mode (the settings' own enum, so a mode on the wire is a mode in the settings):
 /// `Bypass` (the drive follows the setpoint linearly), `OpenLoop` (inverse-model feedforward),
 /// `ClosedLoop` (feedforward plus sensor feedback).
@@ -118,19 +109,6 @@ pub enum WaveShape {
     Sine,
     /// Symmetric triangle.
     Triangle,
-}
-
-/// Signals the recorder can capture.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
-pub enum Signal {
-    /// The setpoint, Q2.30.
-    Setpoint,
-    /// The applied drive, Q2.30 model-normalised.
-    Drive,
-    /// The sensor reading, Q2.30.
-    Sensor,
-    /// The observer's estimate, Q2.30.
-    Estimate,
 }
 
 /// Arm the recorder: capture `ticks` ticks of `signal`, one value every `decimation` ticks.

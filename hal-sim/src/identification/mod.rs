@@ -323,8 +323,8 @@ pub fn identify(
         let half = (0.5 + OUTPUT_MARGIN) * (hi - lo);
         let half = half.max(min_half_span);
         let mid = 0.5 * (lo + hi);
-        let scaling =
-            Scaling::new(in_lo, in_hi, mid - half, mid + half).map_err(IdentifyError::Params)?;
+        let scaling = Scaling::new(in_lo, in_hi, mid - half, mid + half)
+            .map_err(|e| IdentifyError::Params(e.into()))?;
         Ok::<_, IdentifyError>(StageModel {
             hysteresis,
             scaling,
@@ -362,7 +362,7 @@ pub fn identify(
         ModelKind::Duhem => {
             let (y_lo, y_hi) = min_max(y.iter().copied());
             let provisional = Scaling::new(in_lo, in_hi, y_lo, y_hi.max(y_lo + 1e-9))
-                .map_err(IdentifyError::Params)?;
+                .map_err(|e| IdentifyError::Params(e.into()))?;
             let steady_from = motion::both_extremes_reached(&u_fit[first..]) + first;
             let f = duhem::fit(u_fit, &y, &rows, &provisional, options.refine, steady_from)?;
             let span = rows.target_span(&y);
