@@ -21,7 +21,6 @@
 //! * [`control_loop`] — the tick side of the board: setpoint queue and stream or waveform,
 //!   the control tick, the data recorder; [`recorder`] — the recorder itself.
 //! * [`protocol`] — the UART protocol: frames, messages, and the board's command handler.
-//! * [`golden`] — golden vectors: recorded ticks the board must reproduce bit for bit.
 //! * [`converters`] — SPI drivers of the external DAC (DAC8562/3) and sensor ADC (ADS8689).
 //! * [`dual_stage`] — the dual-actuated stage: ball-screw coarse stage + piezo fine stage under
 //!   one controller (setpoint split, trapezoidal moves, centring, hand-over); [`coarse_axis`] —
@@ -46,7 +45,6 @@ pub mod dual_stage;
 pub mod duhem;
 pub mod feedback;
 pub mod fixed_point;
-pub mod golden;
 #[cfg(target_os = "none")]
 pub mod hardware;
 pub mod mode_switch;

@@ -1,7 +1,7 @@
 //! Golden vectors: the tick computes, on the host and on the Cortex-M4, exactly the outputs
 //! stored in `tests/golden/vectors.bin`.
 //!
-//! * On the host: every set's stored inputs go through `twinstack::golden::replay` (the
+//! * On the host: every set's stored inputs go through `twinstack_golden::replay` (the
 //!   library's `Controller::tick`); every output must equal the stored one. A difference means
 //!   the tick's behaviour changed: if that was intended, regenerate the vectors (the
 //!   `f64`-reference check in `hal-sim/tests/golden.rs` then shows the new ones are right).
@@ -13,8 +13,8 @@
 mod support;
 
 use std::time::Duration;
-use twinstack::golden::{config_fingerprint, replay, ReplayResult, VectorSet, VectorSets};
 use twinstack::settings::{Mode, Model};
+use twinstack_golden::{config_fingerprint, replay, ReplayResult, VectorSet, VectorSets};
 
 const REGENERATE: &str = "cargo run --release -p hal-sim -- golden --write";
 

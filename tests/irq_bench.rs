@@ -299,11 +299,7 @@ fn the_whole_interrupt_in_every_scenario() {
         .collect();
     assert_eq!(names.len(), 12, "every scenario ran: {stdout}");
     // Segment 0 is the boot (defaults: bypass, no model); the last follows the final marker.
-    assert!(
-        segments.len() > names.len(),
-        "{} segments",
-        segments.len()
-    );
+    assert!(segments.len() > names.len(), "{} segments", segments.len());
 
     println!();
     println!("Whole control interrupt (SysTick entry to exception return), QEMU netduinoplus2, -icount shift=0");

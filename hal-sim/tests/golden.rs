@@ -6,9 +6,9 @@
 
 use hal_sim::golden::reference_tick::{check, CODE_BOUND, DRIVE_BOUND_LSB16, ESTIMATE_BOUND_LSB16};
 use hal_sim::golden::{default_dir, generate, sets, REGENERATE, VECTOR_FILE};
-use twinstack::golden::format::encode_record;
-use twinstack::golden::{TickInput, TickOutput, VectorSet, VectorSets, MAX_RECIPE};
 use twinstack::settings::Mode;
+use twinstack_golden::format::encode_record;
+use twinstack_golden::{TickInput, TickOutput, VectorSet, VectorSets, MAX_RECIPE};
 
 fn stored() -> Vec<u8> {
     let path = default_dir().join(VECTOR_FILE);

@@ -9,7 +9,7 @@ use crate::output_file::Staged;
 use anyhow::{anyhow, bail};
 use std::path::PathBuf;
 use twinstack::control::TickFlags;
-use twinstack::golden::{VectorSet, VectorSets};
+use twinstack_golden::{VectorSet, VectorSets};
 
 /// Arguments of `golden`.
 #[derive(Debug, clap::Args)]

@@ -14,10 +14,10 @@ use super::scenario;
 use super::sets::{SetDefinition, Truth};
 use crate::reference;
 use anyhow::{anyhow, Context};
-use twinstack::golden::{
+use twinstack::Scaling;
+use twinstack_golden::{
     config_fingerprint, format::encode_record, run_tick, Recipe, TickInput, TickOutput, MAX_RECIPE,
 };
-use twinstack::Scaling;
 
 /// One generated set.
 #[derive(Clone, Debug)]

@@ -3,12 +3,12 @@
 //!
 //! * [`sets`] — the vector sets: each compensator (none, inverse P–I N = 8/16/32, inverse
 //!   Duhem) and each observer (none, P–I, Duhem), in bypass, open and closed loop, each a
-//!   [`twinstack::golden::Recipe`] (the board's hardware and the settings a parameter load
+//!   [`twinstack_golden::Recipe`] (the board's hardware and the settings a parameter load
 //!   carries), on models identified from the repository's `data/` (parameter files committed in
 //!   `tests/golden/params/`).
 //! * [`scenario`] — the setpoint and fault timeline every set runs.
 //! * [`generate`] — runs the library's tick in closed loop on a sensor model and records
-//!   inputs and outputs ([`twinstack::golden`] holds the file format and the replay).
+//!   inputs and outputs ([`twinstack_golden`] holds the file format and the replay).
 //! * [`reference_tick`] — the `f64` reference of the whole tick and the check of stored
 //!   outputs against it.
 //!

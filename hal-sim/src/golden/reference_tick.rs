@@ -68,9 +68,9 @@ use twinstack::control::TickFlags;
 use twinstack::drive::{Configuration, DriveSettings, SafeState};
 use twinstack::feedback::{DRIFT_FILTER_SHIFT, SENSOR_DELAY_TICKS};
 use twinstack::fixed_point::signal_to_f64;
-use twinstack::golden::{Recipe, VectorSet};
 use twinstack::settings::{Mode, Model};
 use twinstack::Scaling;
+use twinstack_golden::{Recipe, VectorSet};
 
 /// Largest |stored drive − reference drive|, LSB16.
 pub const DRIVE_BOUND_LSB16: f64 = 0.5;

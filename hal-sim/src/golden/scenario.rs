@@ -14,8 +14,8 @@
 
 use std::f64::consts::PI;
 use twinstack::fixed_point::signal_from_f64 as q;
-use twinstack::golden::TickInput;
 use twinstack::setpoint_stream::{setpoint_to_wire, SetpointStream, Underrun};
+use twinstack_golden::TickInput;
 
 /// Ticks per segment.
 pub const SEGMENT: usize = 400;

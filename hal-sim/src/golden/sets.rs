@@ -29,9 +29,9 @@ use anyhow::{bail, Context};
 use std::path::Path;
 use twinstack::board::Hardware;
 use twinstack::drive::{Configuration, DriveSettings, SafeState};
-use twinstack::golden::Recipe;
 use twinstack::settings::{FeedbackSettings, Mode, Model, SensorSettings, Settings};
 use twinstack::{DuhemParams, PiParams, Scaling};
+use twinstack_golden::Recipe;
 
 /// The parameter files, relative to the golden directory.
 pub const PARAM_FILES: [&str; 4] = [

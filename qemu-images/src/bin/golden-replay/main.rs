@@ -2,7 +2,7 @@
 //!
 //! Run under `qemu-system-arm -machine netduinoplus2 …` with semihosting (see
 //! `tests/golden.rs`, which builds and runs it). The image embeds `tests/golden/vectors.bin`
-//! and, for every vector set in it, runs `twinstack::golden::replay`: it builds the set's
+//! and, for every vector set in it, runs `twinstack_golden::replay`: it builds the set's
 //! configuration from its recipe with the library's constructors, runs each stored input
 //! through `Controller::tick` (the code the firmware's interrupt runs) and compares each output
 //! with the stored one. Per set it prints over semihosting

@@ -5,10 +5,10 @@
 
 use serde::{Deserialize, Serialize};
 
-use crate::board::Hardware;
-use crate::control::ControlConfig;
-use crate::refusal::Refusal;
-use crate::settings::Settings;
+use twinstack::board::Hardware;
+use twinstack::control::ControlConfig;
+use twinstack::refusal::Refusal;
+use twinstack::settings::Settings;
 
 /// Longest encoded recipe, bytes (two 32-operator P–I models and everything else fit).
 pub const MAX_RECIPE: usize = 1536;

@@ -11,6 +11,11 @@
 //!
 //! The byte layout is in [`format`]; the configuration's encoding and build in [`recipe`].
 //! Nothing here allocates; a malformed file is refused with a [`FormatError`], never a panic.
+//! It is its own `no_std` crate, apart from the firmware library: only the tests use it (the
+//! host generator in `hal-sim`, the replay image in `qemu-images`).
+#![no_std]
+#![forbid(unsafe_code)]
+#![warn(missing_docs)]
 
 pub mod format;
 pub mod recipe;
@@ -18,9 +23,9 @@ pub mod recipe;
 pub use format::{FormatError, VectorSet, VectorSets};
 pub use recipe::{Recipe, RecipeError, MAX_RECIPE};
 
-use crate::board::{AdcCode, DacCode, DualDac, SensorAdc};
-use crate::control::{ControlConfig, Controller};
 use crc::{Crc, Digest, CRC_32_ISO_HDLC};
+use twinstack::board::{AdcCode, DacCode, DualDac, SensorAdc};
+use twinstack::control::{ControlConfig, Controller};
 
 /// The CRC every digest of this module uses: CRC-32/ISO-HDLC (as zlib).
 pub const CRC32: Crc<u32> = Crc::<u32>::new(&CRC_32_ISO_HDLC);
@@ -50,7 +55,7 @@ pub struct TickOutput {
     pub estimate: i32,
     /// Applied drive, Q2.30 model-normalised.
     pub drive: i32,
-    /// [`crate::control::TickFlags`] bits.
+    /// [`twinstack::control::TickFlags`] bits.
     pub flags: u8,
 }
 
