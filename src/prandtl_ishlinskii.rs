@@ -346,8 +346,8 @@ mod tests {
             raw[..32].copy_from_slice(&outputs.map(|v| v >> 1));
             let s = b.state_from(raw, x >> 1);
             let p = b.outputs(&s);
-            for i in 0..n {
-                prop_assert!((p[i] as i64 - (x >> 1) as i64).abs() <= b.threshold(i) as i64);
+            for (i, &pi) in p.iter().enumerate().take(n) {
+                prop_assert!((pi as i64 - (x >> 1) as i64).abs() <= b.threshold(i) as i64);
             }
             prop_assert_eq!(b.state_from(p, x >> 1), s);
         }
