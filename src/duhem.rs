@@ -61,6 +61,16 @@ pub struct Duhem {
 impl Duhem {
     /// Validates `params` (physical units) and converts them, normalised by `scaling`, into the
     /// fixed-point form the tick runs.
+    ///
+    /// ```
+    /// use twinstack::duhem::Duhem;
+    /// use twinstack::{DuhemParams, Scaling};
+    /// let params = DuhemParams { alpha: 0.02, beta: 0.5, gamma: 0.35, offset: 0.0 };
+    /// let model = Duhem::new(&params, &Scaling::new(0.0, 140.0, 0.0, 70.0).unwrap()).unwrap();
+    /// // On the anhysteretic curve β·u: 70 V (mid-range) puts the stage at 35 µm (mid-range).
+    /// assert_eq!(model.anhysteretic(0), 0);
+    /// assert!(Duhem::new(&DuhemParams { alpha: -1.0, ..params }, &Scaling::new(0.0, 140.0, 0.0, 70.0).unwrap()).is_err());
+    /// ```
     #[inline(never)] // configuration, off the tick path: one copy in flash
     pub fn new(params: &DuhemParams, scaling: &Scaling) -> Result<Self, ParamError> {
         let n = params.normalized(scaling)?;

@@ -1,17 +1,17 @@
-//! Bumpless mode switching: bypass ↔ open loop (compensated) ↔ closed loop, between two ticks,
-//! without a jump in the drive.
+//! Bumpless mode switching and reloads: bypass ↔ open loop (compensated) ↔ closed loop, and
+//! one configuration to another, between two ticks, without a jump in the drive.
 //!
 //! A switch changes what the tick computes — the feedforward becomes the setpoint or the
-//! inverse model's output, a correction appears or vanishes — so the first command of the new
-//! mode would differ from the drive the stacks hold. [`crate::control::Controller::set_mode`]
-//! computes the new mode's command for the present setpoint and:
-//!
-//! * into **closed loop**, preloads the integrator with the difference (as far as the
-//!   correction limit allows; [`crate::feedback::Feedback::hand_over`]): the loop takes over
-//!   from exactly where the drive is and then corrects at its own pace;
-//! * otherwise (and for what the integrator cannot take), hands the difference to a
-//!   [`BumplessTransfer`]: an offset added to the command that fades out over about
-//!   2^[`TRANSFER_SHIFT`] ticks (5 ms at 50 kHz), so the drive glides to the new mode's value.
+//! inverse model's output, a correction appears or vanishes, a reload brings other models and
+//! ranges — so the first command after it would differ from the drive the stacks hold.
+//! [`crate::control::Controller::set_mode`] and [`crate::control::Controller::take_over`]
+//! (both O(1), under the command handler's lock) note the drive the stacks hold; the first tick
+//! after hands the difference between its command and that drive to a [`BumplessTransfer`]:
+//! an offset added to the command that fades out over about 2^[`TRANSFER_SHIFT`] ticks (5 ms at
+//! 50 kHz), so the drive glides from where it was to the new mode's command. Entering closed
+//! loop also restarts the feedback's history at the present setpoint
+//! ([`crate::feedback::FeedbackState::enter_closed_loop`]): the integrator takes up what the
+//! fading offset leaves.
 
 /// Control mode.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]

@@ -153,6 +153,18 @@ pub struct PrandtlIshlinskii {
 impl PrandtlIshlinskii {
     /// Validates `params` (physical units) and converts them, normalised by `scaling`, into
     /// the fixed-point form the tick runs.
+    ///
+    /// ```
+    /// use twinstack::prandtl_ishlinskii::PrandtlIshlinskii;
+    /// use twinstack::{PiParams, Scaling};
+    /// // Play operators at 0 and 70 V (0.3 and 0.2 µm/V): 0…140 V onto 0…70 µm.
+    /// let params = PiParams::new(0.0, 0.0, &[0.0, 70.0], &[0.3, 0.2]).unwrap();
+    /// let model = PrandtlIshlinskii::new(&params, &Scaling::new(0.0, 140.0, 0.0, 70.0).unwrap()).unwrap();
+    /// let mut rest = model.state_at_rest(-(1 << 30)); // relaxed at 0 V
+    /// // Up to 140 V: 0.3·140 + 0.2·70 = 56 µm, i.e. 0.6 of the normalised range.
+    /// let y = model.step(&mut rest, (1 << 30) - 1);
+    /// assert!((y as f64 / (1 << 30) as f64 - 0.6).abs() < 1e-6);
+    /// ```
     #[inline(never)] // configuration, off the tick path: one copy in flash
     pub fn new(params: &PiParams, scaling: &Scaling) -> Result<Self, ParamError> {
         let canonical = params.normalized(scaling)?.canonical()?;
@@ -204,6 +216,23 @@ impl InversePrandtlIshlinskii {
     /// Builds the inverse of the forward model `params` (physical units), normalised by
     /// `scaling`. Refuses non-invertible models (`w_1 ≤ 0`, a partial sum `S_i ≤ 0`) with the
     /// first failing operator, and inverses whose weights do not fit Q8.24.
+    ///
+    /// ```
+    /// use twinstack::prandtl_ishlinskii::{InversePrandtlIshlinskii, PrandtlIshlinskii};
+    /// use twinstack::{PiParams, Scaling};
+    /// let params = PiParams::new(0.0, 0.0, &[0.0, 70.0], &[0.3, 0.2]).unwrap();
+    /// let ranges = Scaling::new(0.0, 140.0, 0.0, 70.0).unwrap();
+    /// let (forward, inverse) = (
+    ///     PrandtlIshlinskii::new(&params, &ranges).unwrap(),
+    ///     InversePrandtlIshlinskii::new(&params, &ranges).unwrap(),
+    /// );
+    /// // The drive the inverse asks for makes the forward model reach the target.
+    /// let (mut f, mut i) = (forward.state_at_rest(-(1 << 30)), inverse.state_at_rest(-(1 << 30)));
+    /// let target = 1 << 28; // 0.25 of the normalised range
+    /// let drive = inverse.step(&mut i, target);
+    /// assert!((forward.step(&mut f, drive) - target).abs() < 64);
+    /// assert!(PiParams::new(0.0, 0.0, &[0.0], &[-0.1]).map(|p| InversePrandtlIshlinskii::new(&p, &ranges)).unwrap().is_err());
+    /// ```
     #[inline(never)] // configuration, off the tick path: one copy in flash
     pub fn new(params: &PiParams, scaling: &Scaling) -> Result<Self, ParamError> {
         let forward = params.normalized(scaling)?.canonical()?;

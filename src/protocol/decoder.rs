@@ -1,7 +1,7 @@
 //! The receiver's side of framing: bytes in, one decoded body per delimiter out.
 //!
 //! Constant work per byte except at a delimiter, where the frame (at most
-//! [`MAX_ENCODED`](super::frame::MAX_ENCODED) bytes) is un-stuffed in place: bounded time per
+//! [`super::frame::MAX_ENCODED`] bytes) is un-stuffed in place: bounded time per
 //! byte, no allocation, no panic path. An oversize frame is dropped and reported once, and the
 //! decoder picks up again at the next delimiter.
 
