@@ -270,11 +270,12 @@ impl DriveSettings {
 }
 
 impl DifferentialDrive {
-    /// The left stack's voltage for a model-normalised drive, Q17.15 (saturating).
+    /// The left stack's voltage for a model-normalised drive within the drive range, Q17.15.
     #[inline(always)]
     fn left_of(&self, drive: i32) -> i32 {
-        let v = (self.left_base + self.left_per_drive as i64 * drive as i64) >> 30;
-        crate::fixed_point::saturate_i64(v)
+        // Only ever called with a drive within the drive range, whose voltages lie within
+        // the amplifier's (checked by `DriveSettings::build`): the value fits 32 bits.
+        ((self.left_base + self.left_per_drive as i64 * drive as i64) >> 30) as i32
     }
 
     /// The model-normalised drive of a left-stack voltage (Q17.15), within the drive range to
