@@ -166,7 +166,7 @@ fn tick_cost_table_and_image_size() {
             "inverse-pi-8" => ("inverse P–I, N = 8", "Duhem", "PI"),
             "inverse-pi-16" => ("inverse P–I, N = 16", "Duhem", "PI"),
             "inverse-pi-32" => ("inverse P–I, N = 32", "Duhem", "PI"),
-            "none-sensor-drift" => ("none", "Duhem", "sensor + drift check, open loop"),
+            "none-sensor-drift" => ("none", "Duhem", "sensor + drift check (bypass)"),
             "none-pid-notch" => ("none", "Duhem", "PID + notch"),
             "inverse-duhem" => ("inverse Duhem", "Duhem", "PI"),
             other => panic!("unknown bench row {other}"),
