@@ -5,11 +5,10 @@
 //! volts (the stricter of the old and the new one while a reload or switch settles), and each
 //! stack moves only towards the new voltage limits until it is inside them, then stays there.
 
-use core::convert::Infallible;
-
 use proptest::prelude::*;
 use rtic_core::Exclusive;
-use twinstack::board::{AdcCode, DacCode, DualDac, Hardware, SensorAdc};
+use twinstack::board::fakes::{FixedAdc, RecordingDac};
+use twinstack::board::{AdcCode, DacCode, Hardware};
 use twinstack::control::{Controller, TickFlags};
 use twinstack::control_loop::{ControlLoop, SetpointQueue};
 use twinstack::drive::{Configuration, DriveSettings, SafeState};
@@ -23,30 +22,6 @@ use twinstack::Scaling;
 const RATE: f64 = 50_000.0;
 const HW: Hardware = Hardware::driver_board(RATE);
 const VOLTS_PER_CODE: f64 = 150.0 / 4095.0;
-
-struct Dac(DacCode, DacCode);
-impl DualDac for Dac {
-    type Error = Infallible;
-    fn full_scale(&self) -> DacCode {
-        DacCode(4095)
-    }
-    fn write_both(&mut self, l: DacCode, r: DacCode) -> Result<(), Infallible> {
-        (self.0, self.1) = (l, r);
-        Ok(())
-    }
-}
-
-/// The sensor: a code, or a failed read.
-struct Adc(Option<u32>);
-impl SensorAdc for Adc {
-    type Error = ();
-    fn full_scale(&self) -> AdcCode {
-        AdcCode(4095)
-    }
-    fn read(&mut self) -> Result<AdcCode, ()> {
-        self.0.map(AdcCode).ok_or(())
-    }
-}
 
 /// A P–I model spread over `span` volts: `n` operators, weights decaying from `w1`.
 fn pi_over(span: f64, n: usize, w1: f64, offset: f64) -> Model {
@@ -171,7 +146,7 @@ proptest! {
         let mut handler = CommandHandler::new(HW, boot.clone(), false, RamStorage::default());
         let queue: &'static mut SetpointQueue = Box::leak(Box::new(SetpointQueue::new()));
         let (mut producer, mut consumer) = queue.split();
-        let mut dac = Dac(DacCode(0), DacCode(0));
+        let mut dac = RecordingDac::default();
         let (l0, r0) = config.drive.safe_codes();
         let mut last = (l0.0 as f64 * VOLTS_PER_CODE, r0.0 as f64 * VOLTS_PER_CODE);
         let mut seq = 0u16;
@@ -181,19 +156,19 @@ proptest! {
         let mut now = boot;
         let mut before = now.clone();
         let mut pending: Option<Settings> = None;
-        let mut adc = Adc(Some(2048));
+        let mut adc = FixedAdc(Some(AdcCode(2048)));
         let mut settled_inside = [false, false];
         for event in events {
             match event {
                 Event::Run { ticks, adc: code } => {
-                    adc.0 = code.map(u32::from);
+                    adc.0 = code.map(|c| AdcCode(c as u32));
                     for _ in 0..ticks {
                         if let Some(next) = pending.take() {
                             before = core::mem::replace(&mut now, next);
                             settled_inside = [false, false];
                         }
                         let report = control.tick(&mut consumer, &mut adc, &mut dac);
-                        let volts = (dac.0 .0 as f64 * VOLTS_PER_CODE, dac.1 .0 as f64 * VOLTS_PER_CODE);
+                        let volts = (dac.left.0 as f64 * VOLTS_PER_CODE, dac.right.0 as f64 * VOLTS_PER_CODE);
                         let slew = |s: &Settings| s.drive.slew_rate / RATE;
                         let allowed = if report.flags.contains(TickFlags::SETTLING) {
                             slew(&now).min(slew(&before))
@@ -273,8 +248,8 @@ fn a_load_with_another_input_range_does_not_step_the_outputs() {
     let mut handler = CommandHandler::new(HW, first, false, RamStorage::default());
     let queue: &'static mut SetpointQueue = Box::leak(Box::new(SetpointQueue::new()));
     let (mut producer, mut consumer) = queue.split();
-    let mut dac = Dac(DacCode(0), DacCode(0));
-    let mut adc = Adc(Some(2048));
+    let mut dac = RecordingDac::default();
+    let mut adc = FixedAdc(Some(AdcCode(2048)));
     // Somewhere off-centre: stream a held setpoint of 0.3.
     handler.handle(
         Request::Setpoints(SetpointBatch {
@@ -292,7 +267,7 @@ fn a_load_with_another_input_range_does_not_step_the_outputs() {
     for _ in 0..100 {
         control.tick(&mut consumer, &mut adc, &mut dac);
     }
-    let held = (dac.0, dac.1);
+    let held = (dac.left, dac.right);
     let r = handler.handle(
         Request::LoadParams(second),
         &mut producer,
@@ -302,9 +277,9 @@ fn a_load_with_another_input_range_does_not_step_the_outputs() {
     control.tick(&mut consumer, &mut adc, &mut dac);
     let step = |a: DacCode, b: DacCode| (a.0 as i32 - b.0 as i32).abs();
     assert!(
-        step(held.0, dac.0) <= 1 && step(held.1, dac.1) <= 1,
+        step(held.0, dac.left) <= 1 && step(held.1, dac.right) <= 1,
         "swap tick moved the outputs: {held:?} → {:?}",
-        (dac.0, dac.1)
+        (dac.left, dac.right)
     );
     assert_eq!(
         control.telemetry().ticks,

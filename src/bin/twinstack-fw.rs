@@ -80,7 +80,7 @@ mod app {
     use twinstack::hardware::dac::InternalDac;
     use twinstack::hardware::param_flash;
     use twinstack::hardware::safe_state;
-    use twinstack::hardware::tick::{BoardLoop, ControlTick};
+    use twinstack::hardware::tick::{ControlTick, LoopLock};
     use twinstack::hardware::usart::{self, UsartRx, UsartTx};
     use twinstack::hardware::watchdog::Watchdog;
     #[cfg(feature = "emulator")]
@@ -99,18 +99,6 @@ mod app {
     type Storage = param_flash::FlashStorage;
     #[cfg(feature = "emulator")]
     type Storage = ReadOnlyStorage<'static>;
-
-    /// The command handler's lock on the control loop: RTIC's lock on the whole tick
-    /// resource, handing on only the loop.
-    struct LoopLock<M>(M);
-
-    impl<M: rtic::Mutex<T = ControlTick>> rtic::Mutex for LoopLock<M> {
-        type T = BoardLoop;
-
-        fn lock<R>(&mut self, f: impl FnOnce(&mut Self::T) -> R) -> R {
-            self.0.lock(|t| f(&mut t.control))
-        }
-    }
 
     /// The receive side of USART1 and the handler's byte queue.
     pub struct Receiver {

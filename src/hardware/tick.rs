@@ -51,3 +51,15 @@ impl ControlTick {
         }
     }
 }
+
+/// The command handler's lock on the control loop: the RTIC lock on the whole tick resource
+/// (`M`), handing on only the loop — what [`crate::protocol::handler::CommandHandler`] takes.
+pub struct LoopLock<M>(pub M);
+
+impl<M: rtic_core::Mutex<T = ControlTick>> rtic_core::Mutex for LoopLock<M> {
+    type T = BoardLoop;
+
+    fn lock<R>(&mut self, f: impl FnOnce(&mut Self::T) -> R) -> R {
+        self.0.lock(|t| f(&mut t.control))
+    }
+}

@@ -194,7 +194,7 @@ mod app {
     use twinstack::hardware::clocks;
     use twinstack::hardware::control_timer::ControlTimer;
     use twinstack::hardware::dac::InternalDac;
-    use twinstack::hardware::tick::{BoardLoop, ControlTick};
+    use twinstack::hardware::tick::{ControlTick, LoopLock};
     use twinstack::hardware::watchdog::Watchdog;
     use twinstack::param_store::ReadOnlyStorage;
     use twinstack::protocol::handler::CommandHandler;
@@ -210,17 +210,6 @@ mod app {
 
     /// The control rate the bench runs at, Hz.
     const RATE_HZ: u32 = 50_000;
-
-    /// The command handler's lock on the control loop (as the firmware's).
-    struct LoopLock<M>(M);
-
-    impl<M: rtic::Mutex<T = ControlTick>> rtic::Mutex for LoopLock<M> {
-        type T = BoardLoop;
-
-        fn lock<R>(&mut self, f: impl FnOnce(&mut Self::T) -> R) -> R {
-            self.0.lock(|t| f(&mut t.control))
-        }
-    }
 
     #[shared]
     struct Shared {
