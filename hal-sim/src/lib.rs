@@ -28,6 +28,7 @@ pub mod cli;
 pub mod closed_loop;
 pub mod coarse_stage;
 pub mod converters;
+pub mod csv_table;
 pub mod demo;
 pub mod dual_stage_sim;
 pub mod golden;

@@ -27,6 +27,7 @@ enum Command {
     /// (none / feedforward / feedback / both) and the step with and without the notch.
     ClosedLoop(cli::closed_loop::Args),
     /// Stream a setpoint CSV to the board (within its credits) and play it.
+    #[command(after_help = cli::stream::EXIT_CODES)]
     Stream(cli::stream::Args),
     /// Load a parameter file onto the board (optionally storing it to flash).
     Load(cli::load::Args),
@@ -96,6 +97,10 @@ fn main() -> std::process::ExitCode {
     };
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,
+        Err(e) if e.downcast_ref::<cli::stream::Underran>().is_some() => {
+            eprintln!("warning: {e}");
+            std::process::ExitCode::from(cli::stream::EXIT_UNDERRUN)
+        }
         Err(e) => {
             // Each error's message already includes its cause.
             eprintln!("error: {e}");

@@ -2,11 +2,15 @@
 //!
 //! Format (see the book, docs/src/reference/parameter-files.md): any number of `#` comment lines (and blank lines), then a header that
 //! names the columns `t`, `u`, `x` in any order (other columns are ignored), then one sample
-//! per line. `t` is time in seconds, `u` the drive in volts, `x` the measured output
+//! per line. The reader ([`crate::csv_table`]) also takes `;` or tab as the delimiter, quoted
+//! cells, a byte-order mark, unit suffixes (`t [s]`, `u (V)`) and any case in the header, and
+//! other names for the three columns through [`ColumnNames`] (`--columns`). `t` is time in seconds, `u` the drive in volts, `x` the measured output
 //! (displacement or sensor units). Every cell read must be a finite number and `t` must
 //! increase strictly; any failure is a [`DataError`] naming the file and the 1-based line.
 
+use crate::csv_table::Table;
 use std::path::{Path, PathBuf};
+use std::str::FromStr;
 
 /// Fewest samples a record must hold to be of any use.
 pub const MIN_SAMPLES: usize = 10;
@@ -28,6 +32,57 @@ impl Columns {
     }
     fn needs_output(self) -> bool {
         matches!(self, Columns::TimeDriveOutput | Columns::TimeOutput)
+    }
+}
+
+/// The names the `t`, `u`, `x` columns go by in a file, when they are called something else
+/// (`--columns t=time,u=drive,x=sensor`; any of the three, matched like the header's names:
+/// without a unit suffix, in any case).
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct ColumnNames {
+    /// Name of the time column.
+    pub t: Option<String>,
+    /// Name of the drive column.
+    pub u: Option<String>,
+    /// Name of the output column.
+    pub x: Option<String>,
+}
+
+impl ColumnNames {
+    /// The name `column` (`t`, `u` or `x`) goes by, if it was given one.
+    pub fn get(&self, column: &str) -> Option<&str> {
+        match column {
+            "t" => self.t.as_deref(),
+            "u" => self.u.as_deref(),
+            "x" => self.x.as_deref(),
+            _ => None,
+        }
+    }
+}
+
+impl FromStr for ColumnNames {
+    type Err = String;
+
+    /// `t=NAME,u=NAME,x=NAME`, any subset, in any order.
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        let mut names = ColumnNames::default();
+        for pair in s.split(',').map(str::trim).filter(|p| !p.is_empty()) {
+            let (key, name) = pair
+                .split_once('=')
+                .map(|(k, n)| (k.trim(), n.trim()))
+                .filter(|(_, n)| !n.is_empty())
+                .ok_or_else(|| format!("`{pair}`: expected t=NAME, u=NAME or x=NAME"))?;
+            let slot = match key {
+                "t" => &mut names.t,
+                "u" => &mut names.u,
+                "x" => &mut names.x,
+                _ => return Err(format!("`{pair}`: the columns are t, u and x")),
+            };
+            if slot.replace(name.to_string()).is_some() {
+                return Err(format!("`{key}` is named twice"));
+            }
+        }
+        Ok(names)
     }
 }
 
@@ -61,8 +116,18 @@ pub enum DataError {
         /// The file.
         path: PathBuf,
     },
+    /// The CSV is malformed (e.g. an unterminated quote).
+    #[error("{}:{line}: {message}", path.display())]
+    Malformed {
+        /// The file.
+        path: PathBuf,
+        /// Line, 1-based.
+        line: usize,
+        /// What the CSV reader said.
+        message: String,
+    },
     /// The header does not name a required column.
-    #[error("{}:{line}: header has no column `{column}`", path.display())]
+    #[error("{}:{line}: header has no column `{column}`{hint}", path.display())]
     MissingColumn {
         /// The file.
         path: PathBuf,
@@ -70,6 +135,8 @@ pub enum DataError {
         line: usize,
         /// The missing column.
         column: &'static str,
+        /// The name it was looked for under, and the names the header has.
+        hint: String,
     },
     /// The header names a column twice.
     #[error("{}:{line}: header names column `{column}` twice", path.display())]
@@ -94,7 +161,7 @@ pub enum DataError {
         column: &'static str,
     },
     /// A cell is not a number.
-    #[error("{}:{line}: column `{column}`: `{text}` is not a number", path.display())]
+    #[error("{}:{line}: column `{header}`: `{text}` is not a number", path.display())]
     NotNumeric {
         /// The file.
         path: PathBuf,
@@ -102,6 +169,8 @@ pub enum DataError {
         line: usize,
         /// Column name.
         column: &'static str,
+        /// The column as the header names it (`u (V)`, or a name given with `--columns`).
+        header: String,
         /// The offending text.
         text: String,
     },
@@ -151,42 +220,70 @@ impl MeasuredData {
         Self::parse(path, &text, columns)
     }
 
+    /// Reads `path`, requiring the columns in `columns`, found under the names in `names`.
+    pub fn read_with(
+        path: &Path,
+        columns: Columns,
+        names: &ColumnNames,
+    ) -> Result<Self, DataError> {
+        let text = std::fs::read_to_string(path).map_err(|source| DataError::Io {
+            path: path.to_path_buf(),
+            source,
+        })?;
+        Self::parse_with(path, &text, columns, names)
+    }
+
     /// Parses CSV `text` (as read from `path`, which is only used in errors).
     pub fn parse(path: &Path, text: &str, columns: Columns) -> Result<Self, DataError> {
+        Self::parse_with(path, text, columns, &ColumnNames::default())
+    }
+
+    /// [`Self::parse`] with the columns found under the names in `names`.
+    pub fn parse_with(
+        path: &Path,
+        text: &str,
+        columns: Columns,
+        names: &ColumnNames,
+    ) -> Result<Self, DataError> {
         let p = || path.to_path_buf();
-        let mut lines = text
-            .lines()
-            .enumerate()
-            .map(|(i, l)| (i + 1, l.trim()))
-            .filter(|(_, l)| !l.is_empty() && !l.starts_with('#'));
-        let (header_line, header) = lines
-            .next()
+        let table = Table::parse(text)
+            .map_err(|(line, message)| DataError::Malformed {
+                path: p(),
+                line,
+                message,
+            })?
             .ok_or_else(|| DataError::NoHeader { path: p() })?;
-        let find = |name: &'static str| -> Result<Option<usize>, DataError> {
-            let mut hits = header
-                .split(',')
-                .enumerate()
-                .filter(|(_, c)| c.trim().eq_ignore_ascii_case(name));
-            let first = hits.next().map(|(i, _)| i);
-            if hits.next().is_some() {
-                return Err(DataError::DuplicateColumn {
+        let header_line = table.header_line;
+        let require = |column: &'static str, needed: bool| -> Result<Option<usize>, DataError> {
+            if !needed {
+                return Ok(None);
+            }
+            let name = names.get(column).unwrap_or(column);
+            let hits = table.find(name);
+            match hits.as_slice() {
+                [at] => Ok(Some(*at)),
+                [] => Err(DataError::MissingColumn {
                     path: p(),
                     line: header_line,
-                    column: name,
-                });
-            }
-            Ok(first)
-        };
-        let require = |name: &'static str, needed: bool| -> Result<Option<usize>, DataError> {
-            let at = find(name)?;
-            if needed && at.is_none() {
-                return Err(DataError::MissingColumn {
+                    column,
+                    hint: if name == column {
+                        format!(
+                            " (the header has {}; name other columns with --columns {column}=NAME)",
+                            table.listed()
+                        )
+                    } else {
+                        format!(
+                            " named `{name}` (from --columns; the header has {})",
+                            table.listed()
+                        )
+                    },
+                }),
+                _ => Err(DataError::DuplicateColumn {
                     path: p(),
                     line: header_line,
-                    column: name,
-                });
+                    column,
+                }),
             }
-            Ok(if needed { at } else { None })
         };
         let t_col = require("t", true)?.unwrap_or(0);
         let u_col = require("u", columns.needs_drive())?;
@@ -196,9 +293,10 @@ impl MeasuredData {
         let mut u = Vec::new();
         let mut x = Vec::new();
         let mut last_line = header_line;
-        for (line, l) in lines {
+        for row in &table.rows {
+            let line = row.line;
             last_line = line;
-            let cells: Vec<&str> = l.split(',').collect();
+            let cells = &row.cells;
             let cell = |col: usize, name: &'static str| -> Result<f64, DataError> {
                 let text = cells.get(col).ok_or(DataError::ShortLine {
                     path: p(),
@@ -206,11 +304,11 @@ impl MeasuredData {
                     found: cells.len(),
                     column: name,
                 })?;
-                let text = text.trim();
-                let v: f64 = text.parse().map_err(|_| DataError::NotNumeric {
+                let v = table.number(text).ok_or_else(|| DataError::NotNumeric {
                     path: p(),
                     line,
                     column: name,
+                    header: table.raw_names[col].clone(),
                     text: text.to_string(),
                 })?;
                 if !v.is_finite() {

@@ -7,11 +7,15 @@
 //! * `x` — displacement in the model's output units; needs the parameter file, whose
 //!   `output_range` maps it onto −1…1 (`x = min` → −1, `x = max` → +1).
 //!
+//! The reader ([`crate::csv_table`]) also takes `;` or tab as the delimiter, quoted cells, a
+//! byte-order mark, unit suffixes (`t [s]`, `x [um]`) and any case in the header.
+//!
 //! An optional `t` column (seconds) is checked, not used to pace: it must step uniformly by
 //! `divider / tick rate` (within 1 %), so a file sampled at another rate is refused instead of
 //! being played at the wrong speed. Every failure names the file and the 1-based line; a
 //! value outside the range is an error, never clamped.
 
+use crate::csv_table::Table;
 use std::path::{Path, PathBuf};
 use twinstack::Scaling;
 
@@ -95,28 +99,25 @@ pub fn parse(
         SetpointUnits::Normalised => "setpoint",
         SetpointUnits::Output(_) => "x",
     };
-    let mut lines = text
-        .lines()
-        .enumerate()
-        .map(|(i, l)| (i + 1, l.trim()))
-        .filter(|(_, l)| !l.is_empty() && !l.starts_with('#'));
-    let (header_line, header) = lines.next().ok_or_else(|| {
-        err(
-            1,
-            format!("no header line (expected a column named `{wanted}`)"),
-        )
-    })?;
-    let names: Vec<&str> = header.split(',').map(str::trim).collect();
-    let find = |name: &str| names.iter().position(|n| *n == name);
+    let table = Table::parse(text)
+        .map_err(|(line, message)| err(line, message))?
+        .ok_or_else(|| {
+            err(
+                1,
+                format!("no header line (expected a column named `{wanted}`)"),
+            )
+        })?;
+    let header_line = table.header_line;
+    let find = |name: &str| table.find(name).first().copied();
     let col = find(wanted).ok_or_else(|| {
         let other = match units {
             SetpointUnits::Normalised if find("x").is_some() => {
-                " (an `x` column in output units needs --params)"
+                " (an `x` column in output units needs --params)".to_string()
             }
             SetpointUnits::Output(_) if find("setpoint").is_some() => {
-                " (a `setpoint` column is normalised: leave out --params)"
+                " (a `setpoint` column is normalised: leave out --params)".to_string()
             }
-            _ => "",
+            _ => format!(" (the header has {})", table.listed()),
         };
         err(
             header_line,
@@ -126,8 +127,8 @@ pub fn parse(
     let t_col = find("t");
     let mut samples = Vec::new();
     let mut times: Vec<(usize, f64)> = Vec::new();
-    for (line, l) in lines {
-        let cells: Vec<&str> = l.split(',').map(str::trim).collect();
+    for row in &table.rows {
+        let (line, cells) = (row.line, &row.cells);
         let cell = |c: usize, name: &str| -> Result<f64, SetpointFileError> {
             let text = cells.get(c).ok_or_else(|| {
                 err(
@@ -135,9 +136,12 @@ pub fn parse(
                     format!("only {} cells, column `{name}` is missing", cells.len()),
                 )
             })?;
-            let v: f64 = text
-                .parse()
-                .map_err(|_| err(line, format!("column `{name}`: `{text}` is not a number")))?;
+            let v = table.number(text).ok_or_else(|| {
+                err(
+                    line,
+                    format!("column `{}`: `{text}` is not a number", table.raw_names[c]),
+                )
+            })?;
             if v.is_finite() {
                 Ok(v)
             } else {

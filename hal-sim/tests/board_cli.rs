@@ -114,7 +114,9 @@ fn write(dir: &Path, name: &str, contents: &str) -> String {
 
 #[test]
 fn status_and_stream_over_a_pty() {
-    let pty = PtyBoard::start(FakeBoard::new(300, 50_000.0));
+    // 5 kHz: 300 queued setpoints are 60 ms of play, ample for a pty's round trips on a
+    // loaded machine (a stream that runs dry exits with 3, tested below).
+    let pty = PtyBoard::start(FakeBoard::new(300, 5_000.0));
     let o = hal_sim(&["status", "--port", &pty.path]);
     let (out, err) = text(&o);
     assert!(o.status.success(), "{out}{err}");
@@ -126,17 +128,66 @@ fn status_and_stream_over_a_pty() {
     let mut want = Vec::new();
     for i in 0..n {
         let v = (i as f64 / n as f64) * 1.8 - 0.9;
-        csv.push_str(&format!("{},{v}\n", i as f64 * 2e-5));
+        csv.push_str(&format!("{},{v}\n", i as f64 * 2e-4));
         want.push((v * 32768.0).round() as i16);
     }
     let data = write(dir.path(), "sp.csv", &csv);
-    let o = hal_sim(&["stream", "--port", &pty.path, "--data", &data]);
+    let o = hal_sim(&[
+        "stream",
+        "--port",
+        &pty.path,
+        "--data",
+        &data,
+        "--tick-rate",
+        "5000",
+    ]);
     let (out, err) = text(&o);
-    assert!(o.status.success(), "{out}{err}");
+    assert_eq!(o.status.code(), Some(0), "{out}{err}");
+    assert!(out.contains("underruns during the stream: 0\n"), "{out}");
     assert!(out.contains("streamed 2000 setpoints"), "{out}");
     let board = pty.board.lock().unwrap();
     assert_eq!(board.played, want, "the board played the file, in order");
     assert_eq!(board.over_credit, 0);
+}
+
+/// A board that plays far faster than the pty can feed it: the stream completes (every
+/// setpoint played, in order) but its queue runs dry on the way, and the exit code says so
+/// (3, not 0), as `hal-sim stream --help` documents.
+#[test]
+fn a_stream_that_underran_exits_with_code_3() {
+    // 2 MHz ticks with room for 100 setpoints: 50 µs of buffer, far less than a round trip.
+    let pty = PtyBoard::start(FakeBoard::new(100, 2_000_000.0));
+    let dir = tempfile::tempdir().unwrap();
+    let n = 3000;
+    let mut csv = String::from("setpoint\n");
+    let mut want = Vec::new();
+    for i in 0..n {
+        let v = (i as f64 / n as f64) * 1.8 - 0.9;
+        csv.push_str(&format!("{v}\n"));
+        want.push((v * 32768.0).round() as i16);
+    }
+    let data = write(dir.path(), "fast.csv", &csv);
+    let o = hal_sim(&["stream", "--port", &pty.path, "--data", &data]);
+    let (out, err) = text(&o);
+    assert_eq!(o.status.code(), Some(3), "{out}{err}");
+    assert!(out.contains("streamed 3000 setpoints"), "{out}");
+    assert!(!out.contains("underruns during the stream: 0\n"), "{out}");
+    assert!(err.starts_with("warning: the stream completed"), "{err}");
+    assert!(err.contains("underrun"), "{err}");
+    assert_eq!(pty.board.lock().unwrap().played, want);
+
+    let o = hal_sim(&["stream", "--help"]);
+    let (out, _) = text(&o);
+    assert!(o.status.success());
+    for line in [
+        "Exit codes:",
+        "  0  ",
+        "  1  error",
+        "  2  usage",
+        "  3  completed with underruns",
+    ] {
+        assert!(out.contains(line), "{line:?} missing from\n{out}");
+    }
 }
 
 #[test]

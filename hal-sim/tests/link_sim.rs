@@ -228,3 +228,99 @@ fn a_corrupted_frame_is_nacked_and_the_next_one_is_taken() {
     // And a stream afterwards plays.
     client.stream(StreamControl::Start).unwrap();
 }
+
+/// `n` distinct setpoints (a ramp from 1000 in steps of 50), none equal to the rest value.
+fn ramp(n: usize, from: i16) -> Vec<i16> {
+    (0..n).map(|i| from + 50 * i as i16).collect()
+}
+
+/// Streams `samples` with the recorder capturing the setpoint, waits for the capture and
+/// returns it (Q2.30) with the stream's report.
+fn stream_and_capture(
+    client: &mut Client<SimDevice>,
+    samples: &[i16],
+    drain: bool,
+) -> (hal_sim::link::streamer::StreamReport, Vec<i32>) {
+    let count = samples.len() as u32 + 1000;
+    client
+        .arm_recorder(RecordRequest {
+            signal: Signal::Setpoint,
+            count,
+            decimation: 1,
+        })
+        .expect("armed");
+    let options = StreamOptions {
+        drain,
+        ..StreamOptions::default()
+    };
+    let r = stream_setpoints(client, samples, &options, |_| {}).expect("stream");
+    while client.status().unwrap().recorded < count {
+        client.wait(std::time::Duration::from_millis(5)).unwrap();
+    }
+    let values = client.read_recording(count, |_| {}).expect("read back");
+    (r, values)
+}
+
+/// Asserts that `values` holds still, plays `samples` in order once, then holds the last.
+fn played_in_order(values: &[i32], samples: &[i16], what: &str) {
+    let want: Vec<i32> = samples.iter().map(|&s| (s as i32) << 15).collect();
+    let start = values
+        .windows(want.len())
+        .position(|w| w == want.as_slice())
+        .unwrap_or_else(|| panic!("{what}: the streamed setpoints are not in the capture"));
+    assert!(
+        values[..start].iter().all(|&v| v == values[0]),
+        "{what}: something else played before the stream: {:?}",
+        &values[..start.min(20)]
+    );
+    assert!(
+        values[start + want.len()..]
+            .iter()
+            .all(|&v| v == *want.last().unwrap()),
+        "{what}: the output did not hold the last setpoint"
+    );
+}
+
+/// A record no longer than the free queue (≤ 511 setpoints on the simulated board, whose
+/// queue holds 511; 512 is the first length that must wait for room) is acknowledged in full before the streamer is ever short of credits:
+/// it must still be started and played, and leave nothing queued for the next stream.
+#[test]
+fn records_shorter_than_the_queue_are_started_and_played_in_full() {
+    for n in [1usize, 100, 511, 512] {
+        let mut client = device();
+        let capacity = {
+            let s = client.status().unwrap();
+            s.queue_fill as usize + s.credits as usize
+        };
+        assert_eq!(capacity, 511, "the lengths below straddle the queue");
+        let first = ramp(n, 1000);
+        let (r, values) = stream_and_capture(&mut client, &first, true);
+        assert_eq!(r.accepted, n, "{n}");
+        let drained = r.drained.expect("drained");
+        assert_eq!(drained.queue_fill, 0, "{n}: leftovers queued");
+        assert_eq!(r.underruns_during_stream(), Some(0), "{n}: {r:?}");
+        assert!(!r.underran(), "{n}");
+        played_in_order(&values, &first, &format!("{n} setpoints"));
+        assert!(
+            !client.transport().control().telemetry().streaming,
+            "{n}: stopped after the drain"
+        );
+        // The next stream plays only its own setpoints: nothing was left over.
+        let second = ramp(n.min(50), -1000);
+        let (_, values) = stream_and_capture(&mut client, &second, true);
+        assert_eq!(values[0], (*first.last().unwrap() as i32) << 15, "{n}");
+        played_in_order(&values, &second, &format!("after {n} setpoints"));
+    }
+}
+
+/// Without the drain (`hal-sim stream --no-wait`) a short record is started and plays on
+/// its own after the streamer returns.
+#[test]
+fn a_short_record_streamed_without_waiting_still_plays() {
+    let mut client = device();
+    let samples = ramp(100, 2000);
+    let (r, values) = stream_and_capture(&mut client, &samples, false);
+    assert!(r.drained.is_none());
+    assert_eq!(client.status().unwrap().queue_fill, 0);
+    played_in_order(&values, &samples, "--no-wait");
+}

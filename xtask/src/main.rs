@@ -1,12 +1,13 @@
 //! `cargo xtask` — the project's one setup step and its full set of test gates.
 //!
 //! * `cargo xtask setup` installs what the tests need, each only if it is missing: the
-//!   `thumbv7em-none-eabihf` standard library (rustup), `qemu-system-arm` (apt-get, as root on
+//!   `thumbv7em-none-eabihf` and `x86_64-pc-windows-gnu` standard libraries (rustup), `qemu-system-arm` (apt-get, as root on
 //!   Debian/Ubuntu; elsewhere it prints the command and fails) and `mdbook` (cargo install).
 //!   Running it again changes nothing.
 //! * `cargo xtask test` runs `setup`, then every gate CI holds the project to, in order,
 //!   stopping at the first that fails: host tests (with doc tests), rustfmt, clippy on the host,
-//!   clippy and builds of each firmware image on the target, rustdoc with warnings denied, and
+//!   clippy and builds of each firmware image on the target, `cargo check` of the host tool
+//!   for Windows, rustdoc with warnings denied, and
 //!   the docs book when there is one (`docs/book.toml`).
 //!
 //! `.ci/run` is `cargo xtask test`; the alias is in `.cargo/config.toml`.
@@ -17,6 +18,10 @@ use std::time::Instant;
 
 /// The firmware's target triple.
 const TARGET: &str = "thumbv7em-none-eabihf";
+/// A Windows target the host tool (`hal-sim`) must keep compiling for: `cargo check` only
+/// (no linker or C toolchain needed; serialport's Windows backend is plain Rust on
+/// `windows-sys`).
+const WINDOWS_TARGET: &str = "x86_64-pc-windows-gnu";
 /// The mdbook `setup` installs when none is on the PATH (builds with Rust 1.85 and later).
 const MDBOOK_VERSION: &str = "0.4.52";
 
@@ -45,9 +50,11 @@ const RUSTDOCFLAGS: &str = "-D warnings";
 const USAGE: &str = "usage: cargo xtask <command>
 
 commands:
-  setup   install what the tests need (thumbv7em target, qemu-system-arm, mdbook), each only if missing
+  setup   install what the tests need (thumbv7em and x86_64-pc-windows-gnu targets,
+          qemu-system-arm, mdbook), each only if missing
   test    setup, then every gate in order: tests, fmt, clippy (host and target), firmware builds,
-          rustdoc, the docs book and its links; stops at the first failure
+          hal-sim checked for Windows, rustdoc, the docs book and its links; stops at the first
+          failure
   links   check that every relative link in README.md and docs/src names a file that exists";
 
 fn main() -> ExitCode {
@@ -128,7 +135,8 @@ fn version(program: &str) -> Option<String> {
 
 fn setup() -> Result<(), String> {
     println!("== setup");
-    ensure_target()?;
+    ensure_target(TARGET)?;
+    ensure_target(WINDOWS_TARGET)?;
     ensure_qemu()?;
     ensure_mdbook()?;
     ensure_objdump()?;
@@ -210,8 +218,8 @@ fn check_links() -> Result<(), String> {
     }
 }
 
-/// `rustup target add thumbv7em-none-eabihf`, unless it is installed.
-fn ensure_target() -> Result<(), String> {
+/// `rustup target add TARGET`, unless it is installed.
+fn ensure_target(target: &str) -> Result<(), String> {
     let installed = Command::new("rustup")
         .args(["target", "list", "--installed"])
         .current_dir(root())
@@ -219,21 +227,21 @@ fn ensure_target() -> Result<(), String> {
         .output()
         .map_err(|e| {
             format!(
-                "cannot run rustup ({e}): install the {TARGET} standard library for your \
-                 toolchain (https://rustup.rs, then `rustup target add {TARGET}`)"
+                "cannot run rustup ({e}): install the {target} standard library for your \
+                 toolchain (https://rustup.rs, then `rustup target add {target}`)"
             )
         })?;
     if String::from_utf8_lossy(&installed.stdout)
         .lines()
-        .any(|l| l.trim() == TARGET)
+        .any(|l| l.trim() == target)
     {
-        println!("   {TARGET}: already installed");
+        println!("   {target}: already installed");
         return Ok(());
     }
     run(Command::new("rustup")
-        .args(["target", "add", TARGET])
+        .args(["target", "add", target])
         .current_dir(root()))?;
-    println!("   {TARGET}: installed (rustup target add {TARGET})");
+    println!("   {target}: installed (rustup target add {target})");
     Ok(())
 }
 
@@ -349,6 +357,12 @@ fn gates() -> Vec<Gate> {
     gates.push(gate(
         "board image (cargo build-fw)",
         target_cargo(&["build-fw"]),
+    ));
+    // The host tool on Windows: the Unix-socket transport is `cfg(unix)`; everything else
+    // (serial ports, TCP to an emulator, the simulated board) must compile there.
+    gates.push(gate(
+        format!("hal-sim for Windows (cargo check -p hal-sim --target {WINDOWS_TARGET})"),
+        target_cargo(&["check", "-p", "hal-sim", "--target", WINDOWS_TARGET]),
     ));
     let mut doc = cargo(&["doc", "--workspace", "--no-deps"]);
     doc.env("RUSTDOCFLAGS", RUSTDOCFLAGS);

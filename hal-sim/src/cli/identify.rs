@@ -4,7 +4,7 @@
 
 use crate::identification::score::{score, ErrorFigures};
 use crate::identification::{identify, IdentifyOptions, ModelKind, ThresholdSpread};
-use crate::measured_data::{Columns, MeasuredData};
+use crate::measured_data::{ColumnNames, Columns, MeasuredData};
 use crate::output_file::Staged;
 use crate::param_file::{IdentificationRecord, ParamFile};
 use crate::plot::{draw, IdentificationFigure};
@@ -20,6 +20,10 @@ pub struct Args {
     /// Measured CSV (t,u,x).
     #[arg(long)]
     pub data: PathBuf,
+    /// Names of the t, u, x columns in the CSV when it calls them something else (matched
+    /// without unit suffix and case, like the header): `--columns t=time,u=drive,x=sensor`.
+    #[arg(long, value_name = "t=NAME,u=NAME,x=NAME")]
+    pub columns: Option<ColumnNames>,
     /// Fit on samples with t < SECONDS, score on the rest.
     #[arg(long, value_name = "SECONDS")]
     pub fit_until: f64,
@@ -74,7 +78,11 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
             args.out.display()
         );
     }
-    let data = MeasuredData::read(&args.data, Columns::TimeDriveOutput)?;
+    let data = MeasuredData::read_with(
+        &args.data,
+        Columns::TimeDriveOutput,
+        &args.columns.clone().unwrap_or_default(),
+    )?;
     let mut options = IdentifyOptions::new(args.model, args.fit_until);
     options.operators = args.operators;
     options.thresholds = match args.thresholds {

@@ -2,7 +2,7 @@
 //! (the library's fixed-point observer) on IN's `t,u`; writes `t,u,x` with `x` the model's
 //! predicted reading.
 
-use crate::measured_data::{Columns, MeasuredData};
+use crate::measured_data::{ColumnNames, Columns, MeasuredData};
 use crate::output_file::{csv_t_u_x, Staged};
 use crate::param_file::ParamFile;
 use std::path::PathBuf;
@@ -16,6 +16,10 @@ pub struct Args {
     /// Input CSV with columns t and u.
     #[arg(long)]
     pub data: PathBuf,
+    /// Names of the t, u, x columns in the CSV when it calls them something else (matched
+    /// without unit suffix and case, like the header): `--columns t=time,u=drive,x=sensor`.
+    #[arg(long, value_name = "t=NAME,u=NAME,x=NAME")]
+    pub columns: Option<ColumnNames>,
     /// Output CSV (t,u,x).
     #[arg(long)]
     pub out: PathBuf,
@@ -24,7 +28,11 @@ pub struct Args {
 /// Runs `predict`.
 pub fn run(args: &Args) -> anyhow::Result<()> {
     let (_, model) = ParamFile::load(&args.params)?;
-    let data = MeasuredData::read(&args.data, Columns::TimeDrive)?;
+    let data = MeasuredData::read_with(
+        &args.data,
+        Columns::TimeDrive,
+        &args.columns.clone().unwrap_or_default(),
+    )?;
     let u = data.u.as_deref().unwrap_or_default();
     let x = model
         .predict(&data.t, u)

@@ -2,6 +2,9 @@
 //! streams a setpoint record to the board (format: [`crate::setpoint_file`]), within the
 //! credits it grants, starts it once the queue is primed, waits until it has played and stops
 //! (the output holds the last setpoint). The whole file is checked before anything is sent.
+//!
+//! Exit codes: [`EXIT_CODES`] (0 played without underrun, 1 error, 2 usage, 3 completed with
+//! underruns: [`Underran`]).
 
 use super::board_link::{connect, PortArgs};
 use crate::link::streamer::{stream_setpoints, StreamOptions};
@@ -9,6 +12,31 @@ use crate::param_file::ParamFile;
 use crate::setpoint_file::{self, SetpointUnits};
 use std::path::PathBuf;
 use twinstack::protocol::messages::UnderrunPolicy;
+
+/// The exit codes of `hal-sim stream`, as `hal-sim stream --help` lists them.
+pub const EXIT_CODES: &str = "\
+Exit codes:
+  0  every setpoint was accepted and played without an underrun
+  1  error (bad file, link failure, refusal, the stream did not play); the message says which
+  2  usage (a bad or missing argument)
+  3  completed with underruns: every setpoint was accepted, but the board's queue ran dry
+     while setpoints were still to come (or that could not be ruled out), so the output held
+     or ramped in between: raise --divider or the baud rate, or shorten the link";
+
+/// Exit code of a stream that completed with underruns (see [`EXIT_CODES`]).
+pub const EXIT_UNDERRUN: u8 = 3;
+
+/// A stream that completed, but ran dry on the way: `main` reports it and exits with
+/// [`EXIT_UNDERRUN`] rather than 0.
+#[derive(Debug, thiserror::Error)]
+#[error("{}", match .underruns {
+    Some(n) => format!("the stream completed with {n} underruns (the board's queue ran dry while setpoints were still to come)"),
+    None => "the stream completed, but underruns cannot be ruled out (the board's queue was empty at the status after the last batch)".to_string(),
+})]
+pub struct Underran {
+    /// Underruns counted during the stream, if known.
+    pub underruns: Option<u32>,
+}
 
 /// Arguments of `stream`.
 #[derive(Debug, clap::Args)]
@@ -49,7 +77,7 @@ pub enum UnderrunArg {
     RampToBias,
 }
 
-/// Runs `stream`.
+/// Runs `stream`. A stream that underran returns [`Underran`] after its report is printed.
 pub fn run(args: &Args) -> anyhow::Result<()> {
     if !(args.tick_rate.is_finite() && args.tick_rate > 0.0) {
         anyhow::bail!(
@@ -142,6 +170,12 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         println!("queue played out; stream stopped (output holds the last setpoint)");
     } else {
         println!("queued; the stream keeps playing");
+    }
+    if r.underran() {
+        return Err(Underran {
+            underruns: r.underruns_during_stream(),
+        }
+        .into());
     }
     Ok(())
 }

@@ -1,6 +1,8 @@
 //! `--port` values and opening them: a serial device path (or a pty such as `/dev/pts/3`),
 //! `unix:PATH` (QEMU's `-chardev socket,path=PATH,server=on`), `tcp:HOST:PORT` (QEMU's
-//! `-serial tcp::PORT,server`), or `sim` (the simulated board in-process).
+//! `-serial tcp::PORT,server`), or `sim` (the simulated board in-process). `unix:` needs a
+//! Unix host; elsewhere (Windows) it is refused with [`PortError::UnixSocketUnsupported`] and
+//! `tcp:` is the way to an emulator.
 
 use super::serial::{SerialError, SerialTransport};
 use super::socket::SocketTransport;
@@ -18,7 +20,7 @@ pub enum PortSpec {
     Sim,
     /// A serial device or pty.
     Serial(String),
-    /// A Unix socket.
+    /// A Unix socket (refused when opened on a host without them).
     Unix(PathBuf),
     /// A TCP address `host:port`.
     Tcp(String),
@@ -36,6 +38,14 @@ pub enum PortError {
     /// The socket could not be connected.
     #[error("cannot connect: {0}")]
     Socket(std::io::Error),
+    /// `unix:PATH` on a host without Unix-domain sockets.
+    #[error("unix:{}: Unix-domain sockets are not available on {platform}: use tcp:HOST:PORT (QEMU's -serial tcp::PORT,server)", path.display())]
+    UnixSocketUnsupported {
+        /// The socket path asked for.
+        path: PathBuf,
+        /// The host platform (`std::env::consts::OS`).
+        platform: &'static str,
+    },
     /// The in-process board could not be made.
     #[error("the simulated board: {0}")]
     Sim(String),
@@ -69,8 +79,23 @@ pub fn open(spec: &PortSpec, baud: u32) -> Result<Box<dyn Transport>, PortError>
     Ok(match spec {
         PortSpec::Sim => open_sim(baud)?,
         PortSpec::Serial(path) => Box::new(SerialTransport::open(path, baud)?),
-        PortSpec::Unix(path) => Box::new(SocketTransport::unix(path).map_err(PortError::Socket)?),
+        PortSpec::Unix(path) => open_unix(path)?,
         PortSpec::Tcp(addr) => Box::new(SocketTransport::tcp(addr).map_err(PortError::Socket)?),
+    })
+}
+
+#[cfg(unix)]
+fn open_unix(path: &std::path::Path) -> Result<Box<dyn Transport>, PortError> {
+    Ok(Box::new(
+        SocketTransport::unix(path).map_err(PortError::Socket)?,
+    ))
+}
+
+#[cfg(not(unix))]
+fn open_unix(path: &std::path::Path) -> Result<Box<dyn Transport>, PortError> {
+    Err(PortError::UnixSocketUnsupported {
+        path: path.to_path_buf(),
+        platform: std::env::consts::OS,
     })
 }
 
@@ -81,4 +106,32 @@ fn open_sim(baud: u32) -> Result<Box<dyn Transport>, PortError> {
     };
     let device = SimDevice::new(config).map_err(|e| PortError::Sim(e.to_string()))?;
     Ok(Box::new(device))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn unix_sockets_are_a_unix_only_port() {
+        let spec: PortSpec = "unix:/tmp/uart.sock".parse().unwrap();
+        assert_eq!(spec, PortSpec::Unix(PathBuf::from("/tmp/uart.sock")));
+        let e = PortError::UnixSocketUnsupported {
+            path: PathBuf::from("/tmp/uart.sock"),
+            platform: "windows",
+        };
+        assert_eq!(
+            e.to_string(),
+            "unix:/tmp/uart.sock: Unix-domain sockets are not available on windows: use tcp:HOST:PORT (QEMU's -serial tcp::PORT,server)"
+        );
+        match open(&spec, DEFAULT_BAUD) {
+            // On Unix a missing socket is a connection error; elsewhere the port is refused.
+            Err(PortError::Socket(_)) if cfg!(unix) => {}
+            Err(PortError::UnixSocketUnsupported { platform, .. }) if !cfg!(unix) => {
+                assert_eq!(platform, std::env::consts::OS)
+            }
+            Err(other) => panic!("{other}"),
+            Ok(_) => panic!("connected to a socket that does not exist"),
+        }
+    }
 }

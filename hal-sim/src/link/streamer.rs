@@ -76,6 +76,9 @@ pub struct StreamReport {
     pub max_unacked: usize,
     /// Queue capacity (fill + credits at the start).
     pub capacity: usize,
+    /// The whole record was in the board's queue before the stream was started (a record no
+    /// longer than the free queue): the queue cannot run dry until its last setpoint.
+    pub primed_whole: bool,
     /// Status before streaming.
     pub before: StatusReport,
     /// Status right after the last batch was acknowledged.
@@ -90,13 +93,26 @@ impl StreamReport {
     /// Underruns counted by the board while the stream still had setpoints to deliver: up to
     /// the status taken right after the last batch's ACK (from then on the queue only
     /// drains, so none can happen before it is empty). `None` if the queue was already empty
-    /// at that status (then the count may include ticks after the end).
+    /// at that status and the count is not zero (then it may include ticks after the end).
+    /// `Some(0)` when the whole record was queued before the start ([`Self::primed_whole`]):
+    /// the queue could not run dry before its end.
     pub fn underruns_during_stream(&self) -> Option<u32> {
-        (self.after_last_batch.queue_fill > 0 || self.accepted == 0).then(|| {
-            self.after_last_batch
-                .underruns
-                .wrapping_sub(self.before.underruns)
-        })
+        let counted = self
+            .after_last_batch
+            .underruns
+            .wrapping_sub(self.before.underruns);
+        if self.primed_whole {
+            Some(0)
+        } else {
+            (self.after_last_batch.queue_fill > 0 || self.accepted == 0 || counted == 0)
+                .then_some(counted)
+        }
+    }
+
+    /// The stream ran dry while it still had setpoints to deliver, or that cannot be ruled
+    /// out ([`Self::underruns_during_stream`] is `None`).
+    pub fn underran(&self) -> bool {
+        self.underruns_during_stream() != Some(0)
     }
 }
 
@@ -184,6 +200,7 @@ fn run<T: Transport>(
         credit_probes: 0,
         max_unacked: 0,
         capacity,
+        primed_whole: false,
         before,
         after_last_batch: before,
         drained: None,
@@ -207,7 +224,10 @@ fn run<T: Transport>(
     let mut sent_ever = vec![false; samples.len().div_ceil(batch_max.max(1)) + 1];
 
     loop {
-        if next == samples.len() && in_flight.is_empty() {
+        // Done once everything is acknowledged *and* the stream has been started: a record
+        // no longer than the free queue is acknowledged in full before it is ever blocked,
+        // and must still be started (the `Start` below) rather than left queued.
+        if next == samples.len() && in_flight.is_empty() && (started || samples.is_empty()) {
             break;
         }
         // Send what the credits allow.
@@ -246,9 +266,15 @@ fn run<T: Transport>(
             seq = seq.wrapping_add(1);
         }
         // The queue is primed (full, or the whole record is in it): start playing.
-        if !started && in_flight.is_empty() && !rewinding && (blocked || next == samples.len()) {
+        if !started
+            && !samples.is_empty()
+            && in_flight.is_empty()
+            && !rewinding
+            && (blocked || next == samples.len())
+        {
             client.stream(StreamControl::Start)?;
             started = true;
+            report.primed_whole = next == samples.len();
             continue;
         }
         if in_flight.is_empty() {
