@@ -140,23 +140,7 @@ impl Settings {
             Some(f) => Some(f.build(hw.control_rate_hz)?),
             None => None,
         };
-        match self.mode {
-            Mode::Bypass => {}
-            Mode::OpenLoop if self.compensator.is_none() => {
-                return Err(Refusal::new(
-                    Field::Compensator(ModelField::Model),
-                    Rule::Required,
-                ))
-            }
-            Mode::OpenLoop => {}
-            Mode::ClosedLoop if self.sensor.is_none() => {
-                return Err(Refusal::new(Field::Sensor, Rule::Required))
-            }
-            Mode::ClosedLoop if self.feedback.is_none() => {
-                return Err(Refusal::new(Field::Feedback, Rule::Required))
-            }
-            Mode::ClosedLoop => {}
-        }
+        self.check_mode(self.mode)?;
         Ok(ControlConfig {
             compensator,
             observer,
@@ -167,7 +151,8 @@ impl Settings {
         })
     }
 
-    /// Whether `mode` can run on these settings (the same checks as [`Settings::build`]).
+    /// Whether `mode` can run on these settings: open loop needs a compensator, closed loop a
+    /// sensor and feedback gains ([`Settings::build`] checks its own mode so).
     pub fn check_mode(&self, mode: Mode) -> Result<(), Refusal> {
         match mode {
             Mode::OpenLoop if self.compensator.is_none() => Err(Refusal::new(
