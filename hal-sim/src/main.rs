@@ -51,6 +51,9 @@ enum Command {
     /// The dual-actuated stage (ball screw + piezo) in simulation: a 5 mm move and a
     /// trajectory larger than the piezo's stroke (coarse only / dual).
     DualStage(cli::dual_stage::Args),
+    /// Serve the simulated board over TCP (tcp:HOST:PORT), paced in real time, keeping its
+    /// state from one command to the next (--port tcp:HOST:PORT), until killed.
+    VirtualBoard(cli::virtual_board::Args),
 }
 
 fn main() -> std::process::ExitCode {
@@ -94,6 +97,7 @@ fn main() -> std::process::ExitCode {
         Command::Record(a) => cli::record::run(a),
         Command::Golden(a) => cli::golden::run(a),
         Command::DualStage(a) => cli::dual_stage::run(a),
+        Command::VirtualBoard(a) => cli::virtual_board::run(a),
     };
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,

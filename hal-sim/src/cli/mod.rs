@@ -18,4 +18,5 @@ pub mod record;
 pub mod status;
 pub mod stop;
 pub mod stream;
+pub mod virtual_board;
 pub mod waveform;

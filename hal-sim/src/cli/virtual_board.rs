@@ -1,0 +1,72 @@
+//! `hal-sim virtual-board --listen tcp:HOST:PORT [--speed X] [--tick-rate HZ]`: the simulated
+//! board and stage ([`crate::virtual_board`]) as a long-running server on a TCP port, paced
+//! in real time, keeping its state from one client (`hal-sim load/stream/record/status
+//! --port tcp:HOST:PORT`) to the next. Runs until killed (Ctrl-C).
+
+use crate::link::port::{PortSpec, DEFAULT_BAUD};
+use crate::sim_device::SimDeviceConfig;
+use crate::virtual_board;
+use std::io::Write;
+use std::net::TcpListener;
+use std::sync::atomic::AtomicBool;
+
+/// Arguments of `virtual-board`.
+#[derive(Debug, clap::Args)]
+pub struct Args {
+    /// Where to listen: tcp:HOST:PORT (port 0: the OS picks one; the address is printed).
+    #[arg(long)]
+    pub listen: String,
+    /// Simulated seconds per wall-clock second (0: as fast as possible).
+    #[arg(long, default_value_t = 1.0)]
+    pub speed: f64,
+    /// The board's control rate, Hz.
+    #[arg(long, default_value_t = 50_000.0, value_name = "HZ")]
+    pub tick_rate: f64,
+    /// Baud rate of the board's modelled UART (the pace of its bytes in simulated time).
+    #[arg(long, default_value_t = DEFAULT_BAUD)]
+    pub baud: u32,
+}
+
+/// Runs `virtual-board`.
+pub fn run(args: &Args) -> anyhow::Result<()> {
+    let address = match args.listen.parse::<PortSpec>()? {
+        PortSpec::Tcp(address) => address,
+        _ => anyhow::bail!(
+            "--listen {}: give tcp:HOST:PORT (e.g. tcp:127.0.0.1:4000)",
+            args.listen
+        ),
+    };
+    if !(args.speed.is_finite() && args.speed >= 0.0) {
+        anyhow::bail!(
+            "--speed {}: must be a number ≥ 0 (0: as fast as possible)",
+            args.speed
+        );
+    }
+    if !(args.tick_rate.is_finite() && args.tick_rate > 0.0) {
+        anyhow::bail!(
+            "--tick-rate {}: must be a positive number of Hz",
+            args.tick_rate
+        );
+    }
+    if args.baud == 0 {
+        anyhow::bail!("--baud must be positive");
+    }
+    let mut config = SimDeviceConfig {
+        baud: args.baud,
+        ..SimDeviceConfig::paper()
+    };
+    config.board.plant.dt = 1.0 / args.tick_rate;
+    let listener = TcpListener::bind(&address)
+        .map_err(|e| anyhow::anyhow!("cannot listen on {address}: {e}"))?;
+    let local = listener.local_addr()?;
+    let speed = if args.speed == 0.0 {
+        "as fast as possible".to_string()
+    } else {
+        format!("{}× real time", args.speed)
+    };
+    println!("virtual board listening on tcp:{local} ({speed}; Ctrl-C stops it)");
+    std::io::stdout().flush()?;
+    let stop = AtomicBool::new(false);
+    virtual_board::serve(listener, config, args.speed, &stop)?;
+    Ok(())
+}

@@ -1,0 +1,255 @@
+//! The virtual board: one [`SimDevice`] — the simulated stage, the library's control loop and
+//! command handler, exactly as `--port sim` runs them — kept alive as a server, its UART served
+//! over TCP, its simulated time paced by the wall clock.
+//!
+//! Unlike `--port sim` (a fresh board for every command), the board outlives its clients: one
+//! client at a time talks to it; when that client disconnects the board keeps running with its
+//! state (settings loaded, stream position, recorder) and the next client finds it as the last
+//! one left it. So `hal-sim load`, `hal-sim stream`, `hal-sim record` can rehearse a workflow on
+//! one board, as they would on the real one.
+//!
+//! **Pacing.** Each turn of the loop forwards what the client sent to the device's UART, runs
+//! the device forward by the wall-clock time elapsed × `speed` (at most [`MAX_STEP`] of
+//! simulated time per turn, so a slow host never stalls the socket: the board then runs slower
+//! than real time rather than in bursts), and writes the response bytes that have arrived to
+//! the client. `speed` 0 runs as fast as possible ([`MAX_STEP`] per turn). The board runs while
+//! no client is connected, too.
+
+use std::io::{self, Read, Write};
+use std::net::{TcpListener, TcpStream};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::{Duration, Instant};
+
+use crate::link::Transport;
+use crate::sim_device::{SimDevice, SimDeviceConfig};
+
+/// Most simulated time run per turn of the loop.
+pub const MAX_STEP: Duration = Duration::from_millis(10);
+
+/// How long a turn waits for the client's bytes (or for a client) before running the board.
+const POLL: Duration = Duration::from_micros(500);
+
+/// How long a write to the client may block before the client is dropped.
+const WRITE_TIMEOUT: Duration = Duration::from_secs(2);
+
+/// Why the server could not run.
+#[derive(Debug, thiserror::Error)]
+pub enum ServeError {
+    /// The simulated device could not be built.
+    #[error("the simulated board: {0}")]
+    Device(#[from] crate::sim_device::SimDeviceError),
+    /// `speed` is negative or not finite.
+    #[error("speed {0}: must be a finite number ≥ 0 (0: as fast as possible)")]
+    Speed(f64),
+    /// The listening socket failed.
+    #[error("listening socket: {0}")]
+    Io(#[from] io::Error),
+}
+
+/// What [`serve`] did, returned when it stops.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct ServeReport {
+    /// Clients served (connections accepted while the board was free).
+    pub clients: u64,
+    /// Connections refused because another client was connected.
+    pub refused: u64,
+    /// Ticks the board ran.
+    pub ticks: u64,
+}
+
+/// Builds a [`SimDevice`] from `config` and serves it on `listener` (see the module doc) until
+/// `stop` is set. `speed`: simulated seconds per wall-clock second (0: as fast as possible).
+pub fn serve(
+    listener: TcpListener,
+    config: SimDeviceConfig,
+    speed: f64,
+    stop: &AtomicBool,
+) -> Result<ServeReport, ServeError> {
+    if !(speed.is_finite() && speed >= 0.0) {
+        return Err(ServeError::Speed(speed));
+    }
+    let device = SimDevice::new(config)?;
+    serve_device(listener, device, speed, stop)
+}
+
+/// [`serve`] with a device already built (any state).
+pub fn serve_device(
+    listener: TcpListener,
+    mut device: SimDevice,
+    speed: f64,
+    stop: &AtomicBool,
+) -> Result<ServeReport, ServeError> {
+    if !(speed.is_finite() && speed >= 0.0) {
+        return Err(ServeError::Speed(speed));
+    }
+    listener.set_nonblocking(true)?;
+    let mut report = ServeReport::default();
+    let mut client: Option<TcpStream> = None;
+    let mut clock = Pacer::new(speed);
+    let mut buf = [0u8; 4096];
+    while !stop.load(Ordering::Relaxed) {
+        // New connections: the first is served, the rest are closed while it is connected.
+        loop {
+            match listener.accept() {
+                Ok((stream, _)) => {
+                    if client.is_some() {
+                        report.refused += 1;
+                        drop(stream);
+                    } else if let Ok(stream) = prepare(stream) {
+                        // What the board sent while nobody listened is lost, as on a UART.
+                        discard_output(&mut device);
+                        report.clients += 1;
+                        client = Some(stream);
+                    }
+                }
+                Err(e) if e.kind() == io::ErrorKind::WouldBlock => break,
+                Err(e) if e.kind() == io::ErrorKind::Interrupted => continue,
+                // A connection that failed before it was accepted: not the server's problem.
+                Err(e) if is_connection_error(&e) => continue,
+                Err(e) => return Err(e.into()),
+            }
+        }
+        // The client's bytes onto the board's UART (waiting up to `POLL` for them).
+        let mut connected = true;
+        match client.as_mut() {
+            Some(stream) => match stream.read(&mut buf) {
+                Ok(0) => connected = false,
+                Ok(n) => device.send(&buf[..n])?,
+                Err(e)
+                    if matches!(
+                        e.kind(),
+                        io::ErrorKind::WouldBlock | io::ErrorKind::TimedOut
+                    ) => {}
+                Err(e) if e.kind() == io::ErrorKind::Interrupted => {}
+                Err(_) => connected = false,
+            },
+            None => std::thread::sleep(POLL),
+        }
+        // The board runs.
+        device.run_for(clock.step(device.now()));
+        // Its responses to the client.
+        if connected {
+            if let Some(stream) = client.as_mut() {
+                connected = forward_output(&mut device, stream, &mut buf).is_ok();
+            }
+        }
+        if !connected {
+            client = None;
+        }
+    }
+    report.ticks = device.ticks();
+    Ok(report)
+}
+
+fn prepare(stream: TcpStream) -> io::Result<TcpStream> {
+    stream.set_nonblocking(false)?;
+    stream.set_nodelay(true)?;
+    stream.set_read_timeout(Some(POLL))?;
+    stream.set_write_timeout(Some(WRITE_TIMEOUT))?;
+    Ok(stream)
+}
+
+fn is_connection_error(e: &io::Error) -> bool {
+    matches!(
+        e.kind(),
+        io::ErrorKind::ConnectionAborted
+            | io::ErrorKind::ConnectionReset
+            | io::ErrorKind::ConnectionRefused
+    )
+}
+
+/// Bytes that have arrived from the board by now (does not advance simulated time: a zero
+/// timeout on [`SimDevice`]'s `receive`).
+fn forward_output(
+    device: &mut SimDevice,
+    stream: &mut TcpStream,
+    buf: &mut [u8],
+) -> io::Result<()> {
+    loop {
+        let n = device.receive(buf, Duration::ZERO)?;
+        if n == 0 {
+            return Ok(());
+        }
+        stream.write_all(&buf[..n])?;
+    }
+}
+
+fn discard_output(device: &mut SimDevice) {
+    let mut buf = [0u8; 512];
+    while matches!(device.receive(&mut buf, Duration::ZERO), Ok(n) if n > 0) {}
+}
+
+/// Simulated time to run per turn: wall-clock time × speed, carried over between turns (so
+/// fractions of a tick are not lost), at most [`MAX_STEP`] (the excess is dropped: a host too
+/// slow for real time runs the board slower, not in bursts).
+struct Pacer {
+    speed: f64,
+    start: Instant,
+    /// Simulated time (device clock) the wall clock says the board should have reached.
+    target: Duration,
+    /// Wall-clock time accounted for.
+    wall: Duration,
+}
+
+impl Pacer {
+    fn new(speed: f64) -> Self {
+        Self {
+            speed,
+            start: Instant::now(),
+            target: Duration::ZERO,
+            wall: Duration::ZERO,
+        }
+    }
+
+    fn step(&mut self, now: Duration) -> Duration {
+        if self.speed == 0.0 {
+            return MAX_STEP;
+        }
+        let wall = self.start.elapsed();
+        let elapsed = wall.saturating_sub(self.wall);
+        self.wall = wall;
+        self.target = self.target.max(now) + elapsed.mul_f64(self.speed);
+        let owed = self.target.saturating_sub(now);
+        if owed > MAX_STEP {
+            self.target = now + MAX_STEP;
+            MAX_STEP
+        } else {
+            owed
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_pacer_caps_each_step_and_keeps_fractions() {
+        let mut p = Pacer::new(0.0);
+        assert_eq!(p.step(Duration::ZERO), MAX_STEP);
+        let mut p = Pacer::new(1.0);
+        p.start -= Duration::from_secs(1);
+        // A second behind: one capped step, the rest dropped.
+        assert_eq!(p.step(Duration::ZERO), MAX_STEP);
+        // The board ran 9 ms of the 10 (whole ticks): the 1 ms left is still owed.
+        let owed = p.step(Duration::from_millis(9));
+        assert!(owed >= Duration::from_millis(1), "{owed:?}");
+        assert!(owed < Duration::from_millis(3), "{owed:?}");
+    }
+
+    #[test]
+    fn a_bad_speed_is_refused() {
+        let listener = TcpListener::bind("127.0.0.1:0").unwrap();
+        let stop = AtomicBool::new(false);
+        for speed in [-1.0, f64::NAN, f64::INFINITY] {
+            let e = serve(
+                listener.try_clone().unwrap(),
+                SimDeviceConfig::paper(),
+                speed,
+                &stop,
+            )
+            .unwrap_err();
+            assert!(matches!(e, ServeError::Speed(_)), "{e}");
+        }
+    }
+}
