@@ -92,6 +92,11 @@ pub fn serve_device(
         loop {
             match listener.accept() {
                 Ok((stream, _)) => {
+                    // The client may have left without the server noticing yet (`hal-sim
+                    // load` then at once `hal-sim stream`): check before refusing.
+                    if client.as_ref().is_some_and(|c| !is_open(c)) {
+                        client = None;
+                    }
                     if client.is_some() {
                         report.refused += 1;
                         drop(stream);
@@ -147,6 +152,18 @@ fn prepare(stream: TcpStream) -> io::Result<TcpStream> {
     stream.set_read_timeout(Some(POLL))?;
     stream.set_write_timeout(Some(WRITE_TIMEOUT))?;
     Ok(stream)
+}
+
+/// The client has not closed its end (nor reset it).
+fn is_open(stream: &TcpStream) -> bool {
+    let mut byte = [0u8; 1];
+    match stream.peek(&mut byte) {
+        Ok(n) => n > 0,
+        Err(e) => matches!(
+            e.kind(),
+            io::ErrorKind::WouldBlock | io::ErrorKind::TimedOut | io::ErrorKind::Interrupted
+        ),
+    }
 }
 
 fn is_connection_error(e: &io::Error) -> bool {

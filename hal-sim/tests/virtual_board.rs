@@ -1,0 +1,306 @@
+//! `hal-sim virtual-board`: one simulated board served over TCP on 127.0.0.1, its state kept
+//! from one client to the next — through the library's `serve` on a thread, and through the
+//! binary as a user runs it. Every wait is bounded.
+
+use hal_sim::link::client::Client;
+use hal_sim::link::socket::SocketTransport;
+use hal_sim::link::streamer::{stream_setpoints, StreamOptions};
+use hal_sim::sim_device::SimDeviceConfig;
+use hal_sim::virtual_board::{serve, ServeReport};
+use std::io::{BufRead, BufReader};
+use std::net::{SocketAddr, TcpListener};
+use std::process::{Child, Command, Stdio};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+use std::thread::JoinHandle;
+use std::time::{Duration, Instant};
+use twinstack::protocol::messages::{
+    RecordRequest, Request, Response, SetpointBatch, Signal, StatusReport, StreamControl,
+    UnderrunPolicy, MAX_BATCH,
+};
+use twinstack::settings::Mode;
+
+/// `serve` on a thread, on an OS-picked port of 127.0.0.1.
+struct Server {
+    address: SocketAddr,
+    stop: Arc<AtomicBool>,
+    thread: Option<JoinHandle<ServeReport>>,
+}
+
+impl Server {
+    fn start(speed: f64) -> Self {
+        let listener = TcpListener::bind("127.0.0.1:0").expect("bind 127.0.0.1:0");
+        let address = listener.local_addr().unwrap();
+        let stop = Arc::new(AtomicBool::new(false));
+        let flag = stop.clone();
+        let thread = std::thread::spawn(move || {
+            serve(listener, SimDeviceConfig::paper(), speed, &flag).expect("serve")
+        });
+        Self {
+            address,
+            stop,
+            thread: Some(thread),
+        }
+    }
+
+    fn client(&self) -> Client<SocketTransport> {
+        let transport = SocketTransport::tcp(&self.address.to_string()).expect("connect");
+        let mut client = Client::new(transport);
+        client.set_timeout(Duration::from_secs(5));
+        client.resync(Duration::from_millis(20)).expect("resync");
+        client
+    }
+
+    /// Stops the server (bounded: it checks the flag every turn) and returns its report.
+    fn stop(mut self) -> ServeReport {
+        self.stop.store(true, Ordering::Relaxed);
+        let thread = self.thread.take().unwrap();
+        let deadline = Instant::now() + Duration::from_secs(10);
+        while !thread.is_finished() {
+            assert!(Instant::now() < deadline, "the server did not stop");
+            std::thread::sleep(Duration::from_millis(5));
+        }
+        thread.join().expect("the server thread")
+    }
+}
+
+impl Drop for Server {
+    fn drop(&mut self) {
+        self.stop.store(true, Ordering::Relaxed);
+    }
+}
+
+/// Values captured by the recorder in the first test (ticks, 50 kHz).
+const CAPTURE: u32 = 8000;
+
+/// `n` setpoints of a ±0.9 sine, Q1.15.
+fn sine(n: usize) -> Vec<i16> {
+    (0..n)
+        .map(|i| {
+            let phase = 2.0 * std::f64::consts::PI * i as f64 / 100.0;
+            (0.9 * phase.sin() * 32768.0).round() as i16
+        })
+        .collect()
+}
+
+#[test]
+fn the_board_keeps_its_state_from_one_client_to_the_next() {
+    let server = Server::start(0.0);
+
+    // First client: loads open-loop settings, then leaves.
+    let loaded = SimDeviceConfig::paper_settings(Mode::OpenLoop);
+    let (first, read_back) = {
+        let mut client = server.client();
+        let first = client.status().expect("status");
+        assert_eq!(first.tick_rate_hz, 50_000);
+        assert_eq!(first.mode(), Mode::Bypass, "the board boots in bypass");
+        client.load_params(&loaded).expect("loaded");
+        let read_back = client.read_params().expect("read back");
+        assert_eq!(read_back.mode, Mode::OpenLoop);
+        (first, read_back)
+    };
+
+    // Second client: the same board, the settings still loaded, its clock still running.
+    let mut client = server.client();
+    assert_eq!(client.read_params().expect("read"), read_back);
+    assert_eq!(read_back, loaded, "read back as loaded");
+    let second = client.status().expect("status");
+    assert_eq!(second.mode(), Mode::OpenLoop);
+    assert!(
+        second.ticks.wrapping_sub(first.ticks) > 0,
+        "{} → {}",
+        first.ticks,
+        second.ticks
+    );
+
+    // While it is connected, a second connection is closed at once (one client at a time).
+    {
+        let mut other =
+            Client::new(SocketTransport::tcp(&server.address.to_string()).expect("connect"));
+        other.set_timeout(Duration::from_secs(5));
+        assert!(other.status().is_err(), "two clients at once");
+    }
+
+    // A short record queued while the stream is stopped, the recorder armed, the stream
+    // started: the capture holds every setpoint, in order. (At `--speed 0` the board runs
+    // 10 ms per turn: the capture is long enough to cover a few turns between the requests.)
+    let samples = sine(400);
+    let s = client.status().unwrap();
+    assert_eq!(s.queue_fill, 0);
+    let mut seq = s.next_seq;
+    for chunk in samples.chunks(MAX_BATCH) {
+        let batch = SetpointBatch {
+            seq,
+            samples: chunk.iter().copied().collect(),
+        };
+        assert!(matches!(
+            client.request(&Request::Setpoints(batch)).unwrap(),
+            Response::Ack { .. }
+        ));
+        seq = seq.wrapping_add(1);
+    }
+    assert_eq!(client.status().unwrap().queue_fill as usize, samples.len());
+    client
+        .stream(StreamControl::Underrun(UnderrunPolicy::Hold))
+        .unwrap();
+    client
+        .arm_recorder(RecordRequest {
+            signal: Signal::Setpoint,
+            count: CAPTURE,
+            decimation: 1,
+        })
+        .expect("armed");
+    client.stream(StreamControl::Start).expect("started");
+    let deadline = Instant::now() + Duration::from_secs(20);
+    while client.status().unwrap().recorded < CAPTURE {
+        assert!(Instant::now() < deadline, "the capture did not finish");
+        client.wait(Duration::from_millis(5)).unwrap();
+    }
+    client.stream(StreamControl::Stop).unwrap();
+    assert_eq!(client.status().unwrap().queue_fill, 0, "played out");
+
+    // The streamer, through credits (a record longer than the queue).
+    let long = sine(3000);
+    let options = StreamOptions {
+        underrun: Some(UnderrunPolicy::Hold),
+        ..StreamOptions::default()
+    };
+    let r = stream_setpoints(&mut client, &long, &options, |_| {}).expect("stream");
+    assert_eq!(r.accepted, long.len());
+    assert!(r.nacks.is_empty(), "{:?}", r.nacks);
+    assert!(r.capacity < long.len(), "{r:?}");
+    assert_eq!(r.drained.expect("drained").queue_fill, 0);
+    drop(client);
+
+    // Third client: reads the capture the second one made.
+    let mut client = server.client();
+    let values = client.read_recording(CAPTURE, |_| {}).expect("read back");
+    let want: Vec<i32> = samples.iter().map(|&s| (s as i32) << 15).collect();
+    assert!(
+        values.windows(want.len()).any(|w| w == want.as_slice()),
+        "the streamed setpoints are not in the capture in order"
+    );
+    let last = client.status().unwrap();
+    assert!(!last.has(StatusReport::STREAMING));
+    drop(client);
+
+    let report = server.stop();
+    assert_eq!(report.clients, 3, "{report:?}");
+    assert_eq!(report.refused, 1, "{report:?}");
+    assert!(report.ticks >= last.ticks as u64, "{report:?}");
+}
+
+#[test]
+fn real_time_pacing_runs_the_board_at_the_wall_clock() {
+    let server = Server::start(1.0);
+    let mut client = server.client();
+    let a = client.status().unwrap();
+    let t0 = Instant::now();
+    std::thread::sleep(Duration::from_millis(300));
+    let b = client.status().unwrap();
+    let wall = t0.elapsed().as_secs_f64();
+    drop(client);
+    server.stop();
+    let board = b.ticks.wrapping_sub(a.ticks) as f64 / 50_000.0;
+    // Never faster than the wall clock (+ one step and a status round trip); not stalled.
+    assert!(board <= wall + 0.05, "board {board} s in {wall} s");
+    assert!(board >= 0.05, "board {board} s in {wall} s");
+}
+
+/// The binary: prints the address it listens on; killed when dropped.
+struct Binary(Child);
+
+impl Drop for Binary {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+fn hal_sim(args: &[&str]) -> std::process::Output {
+    Command::new(env!("CARGO_BIN_EXE_hal-sim"))
+        .args(args)
+        .output()
+        .expect("hal-sim runs")
+}
+
+fn status_field(out: &str, name: &str) -> String {
+    out.lines()
+        .find_map(|l| l.strip_prefix(&format!("{name} ")))
+        .unwrap_or_else(|| panic!("no {name} in {out}"))
+        .to_string()
+}
+
+#[test]
+fn the_cli_serves_one_board_to_successive_commands() {
+    let mut child = Command::new(env!("CARGO_BIN_EXE_hal-sim"))
+        .args([
+            "virtual-board",
+            "--listen",
+            "tcp:127.0.0.1:0",
+            "--speed",
+            "0",
+        ])
+        .stdout(Stdio::piped())
+        .stderr(Stdio::null())
+        .spawn()
+        .expect("hal-sim virtual-board starts");
+    let stdout = child.stdout.take().unwrap();
+    let _server = Binary(child);
+    // The first line names the address (read on a thread: the wait is bounded).
+    let (tx, rx) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        let mut line = String::new();
+        let _ = BufReader::new(stdout).read_line(&mut line);
+        let _ = tx.send(line);
+    });
+    let line = rx
+        .recv_timeout(Duration::from_secs(20))
+        .expect("the server printed its address");
+    let port = line
+        .split_whitespace()
+        .find(|w| w.starts_with("tcp:127.0.0.1:"))
+        .unwrap_or_else(|| panic!("no address in {line:?}"));
+    assert!(!port.ends_with(":0"), "{line}");
+
+    let o = hal_sim(&["status", "--port", port]);
+    let out = String::from_utf8_lossy(&o.stdout).into_owned();
+    assert!(
+        o.status.success(),
+        "{out}{}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    assert_eq!(status_field(&out, "mode"), "Bypass");
+    let ticks: u64 = status_field(&out, "ticks").parse().unwrap();
+
+    let o = hal_sim(&["mode", "open-loop", "--port", port]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+
+    // The next command finds the mode the last one set, on a board that kept running.
+    let o = hal_sim(&["status", "--port", port]);
+    let out = String::from_utf8_lossy(&o.stdout).into_owned();
+    assert!(
+        o.status.success(),
+        "{out}{}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    assert_eq!(status_field(&out, "mode"), "OpenLoop");
+    let later: u64 = status_field(&out, "ticks").parse().unwrap();
+    assert!(later > ticks, "{ticks} → {later}");
+}
+
+#[test]
+fn the_cli_refuses_a_listen_address_that_is_not_tcp() {
+    for (args, needle) in [
+        (&["virtual-board", "--listen", "sim"][..], "tcp:HOST:PORT"),
+        (
+            &["virtual-board", "--listen", "tcp:127.0.0.1:0", "--speed=-1"][..],
+            "--speed",
+        ),
+    ] {
+        let o = hal_sim(args);
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(1), "{args:?}: {err}");
+        assert!(err.contains(needle), "{args:?}: {err}");
+    }
+}
