@@ -26,8 +26,11 @@ use crate::sim_device::{SimDevice, SimDeviceConfig};
 /// Most simulated time run per turn of the loop.
 pub const MAX_STEP: Duration = Duration::from_millis(10);
 
-/// How long a turn waits for the client's bytes (or for a client) before running the board.
-const POLL: Duration = Duration::from_micros(500);
+/// How long a turn waits for the client's bytes before running the board.
+const POLL: Duration = Duration::from_micros(100);
+
+/// How long a turn sleeps while no client is connected.
+const IDLE: Duration = Duration::from_millis(1);
 
 /// How long a write to the client may block before the client is dropped.
 const WRITE_TIMEOUT: Duration = Duration::from_secs(2);
@@ -128,7 +131,7 @@ pub fn serve_device(
                 Err(e) if e.kind() == io::ErrorKind::Interrupted => {}
                 Err(_) => connected = false,
             },
-            None => std::thread::sleep(POLL),
+            None => std::thread::sleep(IDLE),
         }
         // The board runs.
         device.run_for(clock.step(device.now()));
