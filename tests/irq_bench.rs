@@ -275,7 +275,13 @@ fn the_whole_interrupt_in_every_scenario() {
         .expect("mkfifo runs");
     assert!(made.success(), "mkfifo {}", fifo.display());
     let child = support::qemu_command(&elf)
-        .args(["-serial", "null", "-icount", "shift=0,sleep=off", "-singlestep"])
+        .args([
+            "-serial",
+            "null",
+            "-icount",
+            "shift=0,sleep=off",
+            "-singlestep",
+        ])
         .args(["-d", "exec,nochain,int", "-D"])
         .arg(&fifo)
         .stdout(Stdio::piped())
