@@ -4,7 +4,9 @@
 //! (`tests/golden.rs` at the repository root checks that the tick, on the host and on the
 //! board, reproduces the outputs bit for bit.)
 
-use hal_sim::golden::reference_tick::{check, CODE_BOUND, DRIVE_BOUND_LSB16, ESTIMATE_BOUND_LSB16};
+use hal_sim::golden::reference_tick::{
+    check, Agreement, CODE_BOUND, DRIVE_BOUND_LSB16, ESTIMATE_BOUND_LSB16,
+};
 use hal_sim::golden::{default_dir, generate, sets, REGENERATE, VECTOR_FILE};
 use twinstack::settings::Mode;
 use twinstack_golden::format::encode_record;
@@ -116,35 +118,44 @@ fn a_wrong_output_fails_the_reference_check() {
     assert!(untouched.holds());
 }
 
+/// Set `name`'s stored inputs and outputs, against its recipe changed by `f`, through the
+/// reference check.
+fn recheck_with(
+    file: &[u8],
+    name: &str,
+    f: &dyn Fn(&mut twinstack::settings::Settings),
+) -> Agreement {
+    let set = parse(file)
+        .into_iter()
+        .find(|s| s.name() == name)
+        .unwrap_or_else(|| panic!("set {name}"));
+    let inputs: Vec<TickInput> = set.inputs().collect();
+    let outputs: Vec<TickOutput> = set.outputs().collect();
+    let mut recipe = set.recipe().unwrap();
+    f(&mut recipe.settings);
+    let mut b = [0u8; MAX_RECIPE];
+    let b = recipe.encode(&mut b).unwrap();
+    let mut bytes = Vec::new();
+    encode_record(
+        set.name(),
+        set.config_fingerprint(),
+        b,
+        &inputs,
+        &outputs,
+        &mut bytes,
+    )
+    .unwrap();
+    let s = VectorSets::new(&bytes).next().unwrap().unwrap();
+    check(&s).unwrap()
+}
+
 /// The check follows the feedback's and the sensor's settings: the same stored outputs against
 /// the recipe with another proportional or integral gain, or without the drift limit, fail it.
 #[test]
 fn the_reference_check_depends_on_the_feedback_settings() {
     let file = stored();
-    let set = parse(&file)
-        .into_iter()
-        .find(|s| s.name() == "ipi16-pi-closed")
-        .expect("set ipi16-pi-closed");
-    let inputs: Vec<TickInput> = set.inputs().collect();
-    let outputs: Vec<TickOutput> = set.outputs().collect();
-    let recheck = |f: &dyn Fn(&mut twinstack::settings::Settings)| {
-        let mut recipe = set.recipe().unwrap();
-        f(&mut recipe.settings);
-        let mut b = [0u8; MAX_RECIPE];
-        let b = recipe.encode(&mut b).unwrap();
-        let mut bytes = Vec::new();
-        encode_record(
-            set.name(),
-            set.config_fingerprint(),
-            b,
-            &inputs,
-            &outputs,
-            &mut bytes,
-        )
-        .unwrap();
-        let s = VectorSets::new(&bytes).next().unwrap().unwrap();
-        check(&s).unwrap()
-    };
+    let recheck =
+        |f: &dyn Fn(&mut twinstack::settings::Settings)| recheck_with(&file, "ipi16-pi-closed", f);
     assert!(recheck(&|_| {}).holds());
     let a = recheck(&|s| s.feedback.as_mut().unwrap().kp *= 1.1);
     assert!(a.first_violation.is_some(), "kp: {a:?}");
@@ -160,29 +171,8 @@ fn the_reference_check_depends_on_the_feedback_settings() {
 #[test]
 fn the_reference_check_depends_on_the_mode_and_the_safe_state() {
     let file = stored();
-    let set = parse(&file)
-        .into_iter()
-        .find(|s| s.name() == "ipi16-duhem-bypass")
-        .expect("set ipi16-duhem-bypass");
-    let inputs: Vec<TickInput> = set.inputs().collect();
-    let outputs: Vec<TickOutput> = set.outputs().collect();
     let recheck = |f: &dyn Fn(&mut twinstack::settings::Settings)| {
-        let mut recipe = set.recipe().unwrap();
-        f(&mut recipe.settings);
-        let mut b = [0u8; MAX_RECIPE];
-        let b = recipe.encode(&mut b).unwrap();
-        let mut bytes = Vec::new();
-        encode_record(
-            set.name(),
-            set.config_fingerprint(),
-            b,
-            &inputs,
-            &outputs,
-            &mut bytes,
-        )
-        .unwrap();
-        let s = VectorSets::new(&bytes).next().unwrap().unwrap();
-        check(&s).unwrap()
+        recheck_with(&file, "ipi16-duhem-bypass", f)
     };
     assert!(recheck(&|_| {}).holds());
     let a = recheck(&|s| s.mode = Mode::OpenLoop);
