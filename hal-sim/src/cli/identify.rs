@@ -1,9 +1,10 @@
-//! `hal-sim identify --model pi|duhem --data FILE.csv --fit-until SECONDS --out PARAMS.json
+//! `hal-sim identify [--model auto|pi|duhem|…] --data FILE.csv --fit-until SECONDS --out PARAMS.json
 //! [--operators N] [--thresholds uniform|geometric] [--lag N]`: fits on `t < SECONDS`, scores
 //! on the rest, writes the parameter file and a PNG beside it (`PARAMS.png`).
 
+use crate::identification::auto::identify_auto;
 use crate::identification::score::{score, ErrorFigures};
-use crate::identification::{identify, IdentifyOptions, ModelKind, ThresholdSpread};
+use crate::identification::{identify, IdentifyError, IdentifyOptions, ModelKind, ThresholdSpread};
 use crate::measured_data::{ColumnNames, Columns, MeasuredData};
 use crate::output_file::Staged;
 use crate::param_file::{IdentificationRecord, ParamFile};
@@ -14,9 +15,11 @@ use std::path::PathBuf;
 /// Arguments of `identify`.
 #[derive(Debug, clap::Args)]
 pub struct Args {
-    /// Model to fit.
-    #[arg(long, value_enum)]
-    pub model: ModelKind,
+    /// Model to fit: `auto` (the default) fits every model on the first part of the fit
+    /// window, ranks them on its last part and keeps the best; or one model by name.
+    #[arg(long, default_value = "auto", value_parser = parse_model,
+          value_name = "auto|pi|duhem|…")]
+    pub model: ModelChoice,
     /// Measured CSV (t,u,x).
     #[arg(long)]
     pub data: PathBuf,
@@ -42,6 +45,31 @@ pub struct Args {
     /// Unit of the x column, recorded in the parameter file.
     #[arg(long, default_value = "units of the x column")]
     pub output_unit: String,
+}
+
+/// `--model`: every candidate, or one.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum ModelChoice {
+    /// Rank every model on held-back data and keep the best.
+    Auto,
+    /// This model only.
+    Only(ModelKind),
+}
+
+fn parse_model(s: &str) -> Result<ModelChoice, String> {
+    use clap::ValueEnum;
+    if s.eq_ignore_ascii_case("auto") {
+        return Ok(ModelChoice::Auto);
+    }
+    ModelKind::from_str(s, true)
+        .map(ModelChoice::Only)
+        .map_err(|_| {
+            let names: Vec<String> = ModelKind::value_variants()
+                .iter()
+                .filter_map(|v| v.to_possible_value().map(|p| p.get_name().to_string()))
+                .collect();
+            format!("unknown model '{s}': expected auto, {}", names.join(", "))
+        })
 }
 
 /// `--thresholds` values.
@@ -83,14 +111,41 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         Columns::TimeDriveOutput,
         &args.columns.clone().unwrap_or_default(),
     )?;
-    let mut options = IdentifyOptions::new(args.model, args.fit_until);
+    let first_kind = match args.model {
+        ModelChoice::Only(kind) => kind,
+        ModelChoice::Auto => ModelKind::Pi,
+    };
+    let mut options = IdentifyOptions::new(first_kind, args.fit_until);
     options.operators = args.operators;
     options.thresholds = match args.thresholds {
         Spread::Uniform => ThresholdSpread::Uniform,
         Spread::Geometric => ThresholdSpread::Geometric,
     };
     options.lag = args.lag;
-    let id = identify(&data, &options).map_err(|e| anyhow!("{}: {e}", args.data.display()))?;
+    let in_file = |e: IdentifyError| anyhow!("{}: {e}", args.data.display());
+    let id = match args.model {
+        ModelChoice::Only(_) => identify(&data, &options).map_err(in_file)?,
+        ModelChoice::Auto => {
+            let auto = identify_auto(&data, &options.candidates()).map_err(in_file)?;
+            println!(
+                "ranking (fitted on t < {:.4} s, scored on {:.4} <= t < {} s):",
+                auto.validation_from_s, auto.validation_from_s, args.fit_until
+            );
+            for (i, r) in auto.ranking.iter().enumerate() {
+                match &r.validation {
+                    Ok(f) => println!("  {}. {:<32} {}", i + 1, r.label, show(f)),
+                    Err(e) => println!("  -. {:<32} not fitted: {e}", r.label),
+                }
+            }
+            println!("picked: {}", auto.reason);
+            options = auto
+                .ranking
+                .iter()
+                .find(|r| r.validation.is_ok())
+                .map_or(options, |r| r.options.clone());
+            auto.identification
+        }
+    };
 
     let (t, u, x) = (
         &data.t,
@@ -122,12 +177,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     let inverse_fixed_vs_reference =
         score(&drive_reference, &drive, fit_from..n).ok_or_else(no_score)?;
 
-    let model_name = match args.model {
-        ModelKind::Pi => {
-            format!("P-I, {} {:?} operators", args.operators, options.thresholds).to_lowercase()
-        }
-        ModelKind::Duhem => "Duhem".into(),
-    };
+    let model_name = options.model_label();
     println!("identified {model_name} from {}", args.data.display());
     println!(
         "  fitted t = {:.4} .. {} s ({} rows, {} outliers dropped), scored t >= {} s",

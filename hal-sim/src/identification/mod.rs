@@ -8,8 +8,11 @@
 //!    the settling samples are left out.
 //! 2. **Sign**: a sensor whose reading falls as the drive rises is fitted on the negated
 //!    reading, and the model records `output_sign = −1`.
-//! 3. **Lag**: the sensor may lag the drive by a few samples. Unless given, the lag is the one
-//!    (0 … `max_lag` samples) whose P–I fit leaves the smallest residual.
+//! 3. **Lag**: the sensor may lag the drive by a few samples. Unless given, a lag is estimated
+//!    only where the data supports one: the P–I fit is repeated for 0 … `max_lag` samples, and a
+//!    lag is kept only if it lowers the residual RMS by at least [`LAG_EVIDENCE`] of the
+//!    no-lag fit's (noise, resonance or creep shave a little off at any lag; a real delay
+//!    takes off much more); then the smallest lag within [`LAG_TOLERANCE`] of the best.
 //! 4. **Outliers**: rows whose P–I residual exceeds [`OUTLIER_FACTOR`] × its RMS (spikes,
 //!    leftover ringing) are dropped and the model refitted.
 //! 5. **Model**: P–I weights by NNLS ([`pi`]), or Duhem by integrated least squares with a
@@ -25,6 +28,7 @@
 //! Every row is fitted against the model run over the whole record from rest, the way
 //! `predict` runs it, so the fitted and the checked model see the same operator states.
 
+pub mod auto;
 pub mod duhem;
 pub mod least_squares;
 pub mod motion;
@@ -44,6 +48,28 @@ pub const OUTLIER_FACTOR: f64 = 5.0;
 pub const INPUT_MARGIN: f64 = 0.02;
 /// The output range is the model's output range widened by this fraction each side.
 pub const OUTPUT_MARGIN: f64 = 0.05;
+/// A lag is estimated only if it lowers the P–I residual RMS by at least this fraction of the
+/// no-lag fit's.
+pub const LAG_EVIDENCE: f64 = 0.10;
+/// Among the lags that do, the smallest whose RMS is within this fraction of the best.
+pub const LAG_TOLERANCE: f64 = 0.01;
+
+/// The lag the residuals `(lag, rms)` (increasing lags from 0) support: 0 unless one lowers
+/// the RMS by [`LAG_EVIDENCE`], else the smallest within [`LAG_TOLERANCE`] of the best.
+pub fn supported_lag(fits: &[(usize, f64)]) -> usize {
+    let Some(&(_, at_zero)) = fits.first() else {
+        return 0;
+    };
+    let best = fits.iter().map(|f| f.1).fold(f64::INFINITY, f64::min);
+    let evident = best < (1.0 - LAG_EVIDENCE) * at_zero;
+    if !evident {
+        return 0;
+    }
+    fits.iter()
+        .find(|f| f.1 <= best * (1.0 + LAG_TOLERANCE))
+        .map_or(0, |f| f.0)
+}
+
 /// Fewest samples to fit on.
 pub const MIN_FIT_SAMPLES: usize = 50;
 /// Smallest normalised first weight a P–I model gets when its inverse would otherwise not
@@ -128,6 +154,32 @@ impl IdentifyOptions {
     }
 }
 
+impl IdentifyOptions {
+    /// The model these options fit, in words (the ranking's and the report's label).
+    pub fn model_label(&self) -> String {
+        match self.model {
+            ModelKind::Pi => format!(
+                "P-I ({} {} operators)",
+                self.operators,
+                format!("{:?}", self.thresholds).to_lowercase()
+            ),
+            ModelKind::Duhem => "Duhem".into(),
+        }
+    }
+
+    /// `--model auto`'s candidates: every model kind, each with these options otherwise.
+    pub fn candidates(&self) -> Vec<IdentifyOptions> {
+        use clap::ValueEnum;
+        ModelKind::value_variants()
+            .iter()
+            .map(|&model| IdentifyOptions {
+                model,
+                ..self.clone()
+            })
+            .collect()
+    }
+}
+
 /// The result of an identification.
 #[derive(Clone, Debug)]
 pub struct Identification {
@@ -192,6 +244,9 @@ pub enum IdentifyError {
     /// The least-squares problem failed.
     #[error("fit failed: {0}")]
     Fit(#[from] LeastSquaresError),
+    /// `--model auto` was given no candidate to try.
+    #[error("no candidate model to try")]
+    NoCandidates,
     /// The fitted model is refused by the library.
     #[error("the fitted model cannot run on the board: {0}")]
     Params(ParamError),
@@ -290,18 +345,15 @@ pub fn identify(
     let (lag, lag_estimated) = match options.lag {
         Some(l) => (l, false),
         None => {
-            let mut best = (0, f64::INFINITY);
+            let mut fits = Vec::new();
             for l in 0..=options.max_lag {
                 let rows = rows_for(l);
                 if rows.index.len() < MIN_FIT_SAMPLES {
                     break;
                 }
-                let r = pi_rms(&rows)?;
-                if r < best.1 {
-                    best = (l, r);
-                }
+                fits.push((l, pi_rms(&rows)?));
             }
-            (best.0, true)
+            (supported_lag(&fits), true)
         }
     };
     let mut rows = rows_for(lag);
@@ -478,6 +530,21 @@ mod tests {
         let held = score(x, &predicted, 2000..3000).unwrap();
         // The spike at 1500 is in the fitted part; the held-out part is clean.
         assert!(held.max_pct < 0.2 && held.rms_pct < 0.05, "{held:?}");
+    }
+
+    #[test]
+    fn a_lag_needs_evidence_and_the_smallest_good_one_wins() {
+        // No fit, or lags that shave off less than LAG_EVIDENCE: no lag.
+        assert_eq!(supported_lag(&[]), 0);
+        assert_eq!(supported_lag(&[(0, 1.0), (1, 0.95), (2, 0.92)]), 0);
+        // A real delay: the smallest lag within LAG_TOLERANCE of the best.
+        assert_eq!(
+            supported_lag(&[(0, 1.0), (1, 0.6), (2, 0.3), (3, 0.299), (4, 0.31)]),
+            2
+        );
+        assert_eq!(supported_lag(&[(0, 1.0), (1, 0.6), (2, 0.5), (3, 0.3)]), 3);
+        // NaN residuals never count as evidence.
+        assert_eq!(supported_lag(&[(0, f64::NAN), (1, 0.5)]), 0);
     }
 
     #[test]

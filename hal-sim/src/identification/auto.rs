@@ -1,0 +1,151 @@
+//! `--model auto`: pick the model family member that predicts best on data it was not fitted
+//! on, then fit it on the whole window.
+//!
+//! The fit window (samples with `t < fit_until`) is split once more: every candidate is fitted
+//! on its first part (from the start of motion up to [`VALIDATION_FRACTION`] before its end)
+//! and scored, with the library's fixed-point `predict`, on the last part. The samples after
+//! `fit_until` — the user's held-out part — are never looked at, so the held-out figure the
+//! user is shown afterwards stays honest. Candidates are ranked by their validation max
+//! error, then RMS (the figures the book and the papers quote); the best is refitted on the
+//! whole window with the same options.
+//!
+//! A candidate that cannot be fitted (too few samples, a model the board refuses) is kept in
+//! the ranking with its reason, last.
+
+use super::score::{score, ErrorFigures};
+use super::{identify, motion, Identification, IdentifyError, IdentifyOptions};
+use crate::measured_data::MeasuredData;
+
+/// Fraction of the fit window (after the start of motion) kept back to rank the candidates.
+pub const VALIDATION_FRACTION: f64 = 0.3;
+
+/// One candidate's result on the validation part.
+#[derive(Clone, Debug)]
+pub struct Ranked {
+    /// What was fitted (the options' model and creep, in words).
+    pub label: String,
+    /// The candidate's options (with the full window's `fit_until`).
+    pub options: IdentifyOptions,
+    /// Its validation figures, or why it could not be fitted.
+    pub validation: Result<ErrorFigures, String>,
+}
+
+/// The outcome of `--model auto`.
+#[derive(Clone, Debug)]
+pub struct AutoIdentification {
+    /// Every candidate, best first.
+    pub ranking: Vec<Ranked>,
+    /// The time the validation part starts, seconds.
+    pub validation_from_s: f64,
+    /// The winner, refitted on the whole window.
+    pub identification: Identification,
+    /// Why the winner was picked, for the user.
+    pub reason: String,
+}
+
+/// A candidate's name for the ranking table.
+pub fn label(options: &IdentifyOptions) -> String {
+    options.model_label()
+}
+
+fn rank_key(r: &Ranked) -> (f64, f64) {
+    match &r.validation {
+        Ok(f) => (f.max_pct, f.rms_pct),
+        Err(_) => (f64::INFINITY, f64::INFINITY),
+    }
+}
+
+/// Fits every candidate in `candidates` (each with `fit_until_s` of the whole window) on the
+/// first part of the window, ranks them on the rest, and refits the best on the whole window.
+/// Fails only if no candidate can be fitted, with the first candidate's error.
+pub fn identify_auto(
+    data: &MeasuredData,
+    candidates: &[IdentifyOptions],
+) -> Result<AutoIdentification, IdentifyError> {
+    let first = candidates.first().ok_or(IdentifyError::NoCandidates)?;
+    let fit_until_s = first.fit_until_s;
+    let n_fit = data.t.iter().take_while(|&&t| t < fit_until_s).count();
+    let u = data
+        .u
+        .as_deref()
+        .ok_or_else(|| IdentifyError::MissingColumns(data.path.display().to_string()))?;
+    let x = data
+        .x
+        .as_deref()
+        .ok_or_else(|| IdentifyError::MissingColumns(data.path.display().to_string()))?;
+    let start = motion::find(&u[..n_fit.min(u.len())])
+        .map(|m| m.first_fitted)
+        .ok_or(IdentifyError::NoMotion(fit_until_s))?;
+    let split = start + ((n_fit - start) as f64 * (1.0 - VALIDATION_FRACTION)) as usize;
+    let split = split.min(n_fit.saturating_sub(1));
+    let validation_from_s = data.t[split];
+    // The candidates see only the fit window: the held-out part stays unseen.
+    let window = MeasuredData {
+        path: data.path.clone(),
+        t: data.t[..n_fit].to_vec(),
+        u: Some(u[..n_fit].to_vec()),
+        x: Some(x[..n_fit].to_vec()),
+    };
+    let mut ranking: Vec<Ranked> = candidates
+        .iter()
+        .map(|c| {
+            let mut inner = c.clone();
+            inner.fit_until_s = validation_from_s;
+            let validation = identify(&window, &inner)
+                .map_err(|e| e.to_string())
+                .and_then(|id| {
+                    let predicted = id
+                        .model
+                        .predict(&window.t, &u[..n_fit])
+                        .map_err(|e| e.to_string())?;
+                    score(&x[..n_fit], &predicted, split..n_fit)
+                        .ok_or_else(|| "the measured output is flat on the validation part".into())
+                });
+            Ranked {
+                label: label(c),
+                options: c.clone(),
+                validation,
+            }
+        })
+        .collect();
+    ranking.sort_by(|a, b| {
+        let (a, b) = (rank_key(a), rank_key(b));
+        a.0.total_cmp(&b.0).then(a.1.total_cmp(&b.1))
+    });
+    let Some(best) = ranking.iter().find(|r| r.validation.is_ok()).cloned() else {
+        // No candidate could be ranked (the validation part too short for every one):
+        // the first candidate on the whole window, or its error.
+        let identification = identify(data, first)?;
+        return Ok(AutoIdentification {
+            reason: format!(
+                "no candidate could be fitted on the first part of the window alone; {} was fitted on the whole window without a ranking",
+                label(first)
+            ),
+            ranking,
+            validation_from_s,
+            identification,
+        });
+    };
+    let identification = identify(data, &best.options)?;
+    let runner_up = ranking
+        .iter()
+        .filter(|r| r.label != best.label)
+        .find_map(|r| r.validation.as_ref().ok().map(|f| (r.label.clone(), *f)));
+    let reason = match (&best.validation, runner_up) {
+        (Ok(b), Some((next, n))) => format!(
+            "{} predicts the validation part (t >= {:.4} s) best: max {:.2} % / RMS {:.2} % of span, against {:.2} % / {:.2} % for the next ({next})",
+            best.label, validation_from_s, b.max_pct, b.rms_pct, n.max_pct, n.rms_pct
+        ),
+        (Ok(b), None) => format!(
+            "{} is the only candidate that could be fitted: validation max {:.2} % / RMS {:.2} %",
+            best.label, b.max_pct, b.rms_pct
+        ),
+        (Err(e), _) => e.clone(),
+    };
+    Ok(AutoIdentification {
+        ranking,
+        validation_from_s,
+        identification,
+        reason,
+    })
+}
