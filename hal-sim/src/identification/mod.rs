@@ -9,7 +9,8 @@
 //! 2. **Sign**: a sensor whose reading falls as the drive rises is fitted on the negated
 //!    reading, and the model records `output_sign = −1`.
 //! 3. **Lag**: the sensor may lag the drive by a few samples. Unless given, a lag is estimated
-//!    only where the data supports one: the P–I fit is repeated for 0 … `max_lag` samples, and a
+//!    only where the data supports one: the P–I fit is repeated for 0 … `max_lag` samples (its
+//!    residual screened for outliers as in step 4), and a
 //!    lag is kept only if it lowers the residual RMS by at least [`LAG_EVIDENCE`] of the
 //!    no-lag fit's (noise, resonance or creep shave a little off at any lag; a real delay
 //!    takes off much more); then the smallest lag within [`LAG_TOLERANCE`] of the best.
@@ -50,7 +51,7 @@ pub const INPUT_MARGIN: f64 = 0.02;
 pub const OUTPUT_MARGIN: f64 = 0.05;
 /// A lag is estimated only if it lowers the P–I residual RMS by at least this fraction of the
 /// no-lag fit's.
-pub const LAG_EVIDENCE: f64 = 0.10;
+pub const LAG_EVIDENCE: f64 = 0.05;
 /// Among the lags that do, the smallest whose RMS is within this fraction of the best.
 pub const LAG_TOLERANCE: f64 = 0.01;
 
@@ -339,7 +340,14 @@ pub fn identify(
     };
     let pi_rms = |rows: &FitRows| -> Result<f64, IdentifyError> {
         let f = pi::fit(&columns, &thresholds, u_mid, &y, rows, 0.0)?;
-        Ok(rms(rows.index.iter().map(|&k| f.residuals[k])))
+        // Screened as the outliers will be: a start-up transient's few large residuals
+        // would otherwise drown the difference a lag makes.
+        let all = rms(rows.index.iter().map(|&k| f.residuals[k]));
+        Ok(rms(rows
+            .index
+            .iter()
+            .map(|&k| f.residuals[k])
+            .filter(|r| r.abs() <= OUTLIER_FACTOR * all)))
     };
 
     let (lag, lag_estimated) = match options.lag {
@@ -536,7 +544,7 @@ mod tests {
     fn a_lag_needs_evidence_and_the_smallest_good_one_wins() {
         // No fit, or lags that shave off less than LAG_EVIDENCE: no lag.
         assert_eq!(supported_lag(&[]), 0);
-        assert_eq!(supported_lag(&[(0, 1.0), (1, 0.95), (2, 0.92)]), 0);
+        assert_eq!(supported_lag(&[(0, 1.0), (1, 0.98), (2, 0.96)]), 0);
         // A real delay: the smallest lag within LAG_TOLERANCE of the best.
         assert_eq!(
             supported_lag(&[(0, 1.0), (1, 0.6), (2, 0.3), (3, 0.299), (4, 0.31)]),
