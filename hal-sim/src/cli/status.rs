@@ -25,7 +25,8 @@ pub fn format_status(s: &StatusReport) -> String {
         }
     }
     format!(
-        "ticks {}\ntick_rate_hz {}\nmode {:?}\nflags {}\nqueue_fill {}\ncredits {}\nnext_seq {}\nunderruns {}\noverruns {}\ncrc_errors {}\nframe_errors {}\nlimit_hits {}\nestimate {:.6} (Q2.30 {})\nrecorded {}\n",
+        "image {}\nticks {}\ntick_rate_hz {}\nmode {:?}\nflags {}\nqueue_fill {}\ncredits {}\nnext_seq {}\nunderruns {}\noverruns {}\ncrc_errors {}\nframe_errors {}\nlimit_hits {}\nestimate {:.6} (Q2.30 {})\nrecorded {}\n",
+        s.image().name(),
         s.ticks,
         s.tick_rate_hz,
         s.mode(),
