@@ -252,6 +252,46 @@ fn the_virtual_board_on_a_pty_keeps_its_state_from_one_command_to_the_next() {
     assert!(v["ticks"].as_u64().unwrap() > 0);
 }
 
+/// Each command releases its exclusive hold on the pty when it exits (`serialport` clears
+/// `TIOCEXCL` on close): the kernel keeps the flag on a pty whose master stays open, so a hold
+/// left behind would refuse every later open by an ordinary user (root is exempt, so as root
+/// the commands run as `nobody` through `setpriv`).
+#[cfg(target_os = "linux")]
+#[test]
+fn an_ordinary_user_can_open_the_virtual_boards_pty_again_and_again() {
+    use std::os::unix::fs::PermissionsExt;
+    let root = Command::new("id")
+        .arg("-u")
+        .output()
+        .map(|o| String::from_utf8_lossy(&o.stdout).trim() == "0")
+        .unwrap_or(false);
+    let setpriv = Command::new("setpriv").arg("--version").output().is_ok();
+    if root && !setpriv {
+        eprintln!("skipped: running as root without setpriv, cannot test as an ordinary user");
+        return;
+    }
+    let board = pty_board();
+    std::fs::set_permissions(&board.path, std::fs::Permissions::from_mode(0o666)).unwrap();
+    for i in 0..3 {
+        let mut c = if root {
+            let mut c = Command::new("setpriv");
+            c.args(["--reuid=65534", "--regid=65534", "--clear-groups"])
+                .arg(env!("CARGO_BIN_EXE_hal-sim"));
+            c
+        } else {
+            hal_sim()
+        };
+        let o = c
+            .args(["status", "--port", &board.path])
+            .env_remove("TWINSTACK_PORT")
+            .output()
+            .unwrap();
+        let (out, err) = text(&o);
+        assert!(o.status.success(), "open {i}: {out}{err}");
+        assert!(out.starts_with("image simulator\n"), "open {i}: {out}");
+    }
+}
+
 #[test]
 fn a_pty_listener_is_refused_only_where_there_are_no_ptys() {
     // Not a valid listener anywhere.

@@ -27,7 +27,7 @@ pub struct PortArgs {
     pub timeout_ms: u64,
 }
 
-/// A command-line mistake found after parsing (a missing `--port`, a bad `--columns`): `main`
+/// A command-line mistake found after parsing (no `--port` and no `TWINSTACK_PORT`): `main`
 /// exits with 2, as for clap's own usage errors.
 #[derive(Debug, thiserror::Error)]
 #[error("{0}")]

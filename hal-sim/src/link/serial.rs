@@ -2,8 +2,6 @@
 //! such as the one QEMU's `-serial pty` prints) through the `serialport` crate, raw 8N1.
 
 use super::Transport;
-#[cfg(unix)]
-use serialport::SerialPort as _;
 use std::io::{self, Read, Write};
 use std::time::Duration;
 
@@ -35,23 +33,10 @@ pub enum SerialError {
     },
 }
 
-/// A serial device, raw 8N1, no flow control, opened exclusively. On Unix the exclusive flag
-/// (`TIOCEXCL`) is cleared again when the transport is dropped: the kernel keeps it on a tty
-/// that stays open elsewhere (a pty whose master a virtual board holds), and would refuse the
-/// next program that opens it.
+/// A serial device, raw 8N1, no flow control, opened exclusively.
 pub struct SerialTransport {
-    #[cfg(unix)]
-    port: serialport::TTYPort,
-    #[cfg(not(unix))]
     port: Box<dyn serialport::SerialPort>,
     timeout: Duration,
-}
-
-#[cfg(unix)]
-impl Drop for SerialTransport {
-    fn drop(&mut self) {
-        let _ = self.port.set_exclusive(false);
-    }
 }
 
 impl std::fmt::Debug for SerialTransport {
@@ -73,20 +58,17 @@ impl SerialTransport {
             return Err(SerialError::Missing { path: path.into() });
         }
         let timeout = Duration::from_millis(100);
-        let builder = serialport::new(path, baud)
+        let port = serialport::new(path, baud)
             .data_bits(serialport::DataBits::Eight)
             .parity(serialport::Parity::None)
             .stop_bits(serialport::StopBits::One)
             .flow_control(serialport::FlowControl::None)
-            .timeout(timeout);
-        #[cfg(unix)]
-        let port = builder.open_native();
-        #[cfg(not(unix))]
-        let port = builder.open();
-        let port = port.map_err(|e| SerialError::Open {
-            path: path.into(),
-            reason: e.description,
-        })?;
+            .timeout(timeout)
+            .open()
+            .map_err(|e| SerialError::Open {
+                path: path.into(),
+                reason: e.description,
+            })?;
         Ok(Self { port, timeout })
     }
 }
