@@ -144,6 +144,25 @@ pub struct DriveOutput {
 }
 
 impl DriveSettings {
+    /// The left stack's voltage window `(lowest, highest)`, volts: the voltage limits, and in
+    /// the differential configuration also where the right stack (`2ū − u_l`) stays within
+    /// them. The model's input range beyond it cannot be driven (the limit clips it).
+    ///
+    /// ```
+    /// use twinstack::drive::DriveSettings;
+    /// let d = DriveSettings { bias: 50.0, ..DriveSettings::DEFAULT }; // 0…140 V, differential
+    /// assert_eq!(d.left_window(), (0.0, 100.0));
+    /// ```
+    pub fn left_window(&self) -> (f64, f64) {
+        match self.configuration {
+            Configuration::Differential => (
+                self.min_voltage.max(2.0 * self.bias - self.max_voltage),
+                self.max_voltage.min(2.0 * self.bias - self.min_voltage),
+            ),
+            Configuration::Unidirectional => (self.min_voltage, self.max_voltage),
+        }
+    }
+
     /// The board's default drive: differential, bias 70 V, each stack within 0…140 V,
     /// 2 V/µs, safe state at the bias.
     pub const DEFAULT: DriveSettings = DriveSettings {
@@ -188,15 +207,7 @@ impl DriveSettings {
         if s.slew_rate <= 0.0 {
             return Err(Refusal::new(Field::SlewRate, Rule::Above(0.0)));
         }
-        // Left-stack voltage window: in the differential configuration the right stack
-        // (2ū − u_l) must stay in range too.
-        let (lo, hi) = match s.configuration {
-            Configuration::Differential => (
-                s.min_voltage.max(2.0 * s.bias - s.max_voltage),
-                s.max_voltage.min(2.0 * s.bias - s.min_voltage),
-            ),
-            Configuration::Unidirectional => (s.min_voltage, s.max_voltage),
-        };
+        let (lo, hi) = s.left_window();
         let drive_min = scaling.input_to_norm(lo).max(-1.0);
         // The top of the full-scale range is 1 − 2^-30 (`clamp_full_scale`).
         let drive_max = scaling.input_to_norm(hi).min(signal_to_f64(FULL_SCALE_MAX));

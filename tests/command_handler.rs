@@ -358,6 +358,8 @@ fn a_parameter_load_is_validated_whole_and_swapped_in_between_two_ticks() {
         !s.has(StatusReport::DEFAULTS),
         "loaded settings are not the defaults"
     );
+    // The mode bits sit beside the image's: a host build of the handler is the simulator.
+    assert_eq!(s.image(), Image::Simulator, "{s:?}");
     b.ticks(1);
     // Open loop now (the feedback stays configured, idle, so a later mode switch needs no
     // new settings).

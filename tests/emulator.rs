@@ -48,7 +48,7 @@ impl Drop for Emulator {
 impl Emulator {
     /// Boots the emulator image; `record`, if given, is loaded at the parameter sector.
     fn boot(name: &str, record: Option<&[u8]>) -> Self {
-        let elf = support::build_image(support::FIRMWARE, "twinstack-fw", &["emulator"]);
+        let elf = support::build_image(support::FIRMWARE, "twinstack-emu", &["emulator"]);
         let scratch =
             std::env::temp_dir().join(format!("twinstack-emu-{}-{name}", std::process::id()));
         let _ = std::fs::remove_dir_all(&scratch);
@@ -219,6 +219,8 @@ fn emulator_answers_a_status_query_and_its_tick_counter_advances() {
     // Nothing was stored in the emulated flash: the compiled-in settings, flagged.
     assert!(b.has(StatusReport::DEFAULTS), "{b:?}");
     assert_eq!(b.mode(), Mode::Bypass);
+    // The image says which it is: the emulator, not the board image.
+    assert_eq!(b.image(), Image::Emulator, "{b:?}");
 }
 
 #[test]

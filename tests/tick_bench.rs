@@ -223,12 +223,12 @@ fn tick_cost_table_and_image_size() {
     println!("\n| image | flash (bytes) | static RAM (bytes) |");
     println!("|---|---:|---:|");
     let board = support::build_image(support::FIRMWARE, "twinstack-fw", &[]);
-    let emu = support::build_image(support::FIRMWARE, "twinstack-fw", &["emulator"]);
+    let emu = support::build_image(support::FIRMWARE, "twinstack-emu", &["emulator"]);
     let bench = support::build_image(support::QEMU_IMAGES, "tick-bench", &[]);
     let mut board_size = None;
     for (label, path) in [
         ("twinstack-fw (board)", &board),
-        ("twinstack-fw (emulator)", &emu),
+        ("twinstack-emu", &emu),
         ("tick-bench", &bench),
     ] {
         let s = support::image_size(path).unwrap_or_else(|e| panic!("{e}"));

@@ -13,7 +13,8 @@
 //! second of board time, underruns counted by the board while the stream still had setpoints
 //! to deliver, refusals, wire bytes per setpoint and the line's utilisation.
 //!
-//! **Emulator** (`--emulator ELF`: the firmware's emulator image, `cargo build-emu`): boots
+//! **Emulator** (`--emulator ELF`: the firmware's emulator image `twinstack-emu`, `cargo
+//! build-emu`): boots
 //! QEMU's netduinoplus2 with USART1 on a Unix socket and streams the same sine (default
 //! 10 s). QEMU's UART is not paced at a baud rate, so this measures how fast the emulated
 //! firmware takes setpoints, not the link. Needs `qemu-system-arm` on the PATH.

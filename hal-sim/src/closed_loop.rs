@@ -205,9 +205,9 @@ pub fn sensor_settings(board: &ExternalBoard) -> SensorSettings {
     }
 }
 
-/// The feedback of the study: PI on the notched error, the same at both rates per tick
-/// (`kp = 0.1`, `ki = 0.2` per tick, i.e. 10 000 /s at 50 kHz), correction within ±25 % of the
-/// drive range.
+/// The feedback of the study: PI on the notched error, `kp = 0.1` and `ki` = 10 000 /s at
+/// 50 kHz (20 000 /s at 100 kHz: the same integral step at both rates), correction within
+/// ±25 % of the drive range.
 pub fn feedback_settings(rate: f64, notch: bool) -> FeedbackSettings {
     FeedbackSettings {
         notch: notch.then_some(NotchDesign {

@@ -5,7 +5,7 @@ use hal_sim::cli;
 
 /// Host tools for the twinstack piezo front-end.
 #[derive(Debug, Parser)]
-#[command(name = "hal-sim", version, about)]
+#[command(name = "hal-sim", version, about, after_help = cli::EXIT_CODES)]
 struct Cli {
     #[command(subcommand)]
     command: Command,
@@ -77,7 +77,7 @@ fn main() -> std::process::ExitCode {
                 .map(str::trim)
                 .collect();
             eprintln!("{} (see hal-sim --help)", first.join(" "));
-            return std::process::ExitCode::from(2);
+            return std::process::ExitCode::from(cli::EXIT_USAGE);
         }
     };
     let result = match &cli.command {
@@ -105,10 +105,14 @@ fn main() -> std::process::ExitCode {
             eprintln!("warning: {e}");
             std::process::ExitCode::from(cli::stream::EXIT_UNDERRUN)
         }
+        Err(e) if e.downcast_ref::<cli::board_link::UsageError>().is_some() => {
+            eprintln!("error: {e} (see hal-sim --help)");
+            std::process::ExitCode::from(cli::EXIT_USAGE)
+        }
         Err(e) => {
             // Each error's message already includes its cause.
             eprintln!("error: {e}");
-            std::process::ExitCode::FAILURE
+            std::process::ExitCode::from(cli::EXIT_ERROR)
         }
     }
 }

@@ -14,6 +14,11 @@
 //! than real time rather than in bursts), and writes the response bytes that have arrived to
 //! the client. `speed` 0 runs as fast as possible ([`MAX_STEP`] per turn). The board runs while
 //! no client is connected, too.
+//!
+//! **Pseudo-terminal** (Unix, [`serve_pty`]): the board's UART is the master side of a pty; a
+//! client opens the slave's path (`/dev/pts/N`) as it would a USB–UART adapter. A client is
+//! connected while the slave is open (the master's reads fail with no slave open), one at a
+//! time as the client's exclusive open enforces.
 
 use std::io::{self, Read, Write};
 use std::net::{TcpListener, TcpStream};
@@ -149,6 +154,60 @@ pub fn serve_device(
     Ok(report)
 }
 
+/// [`serve`] on a pseudo-terminal: `master` is the master side of a pty pair (its slave closed:
+/// clients open the slave's path). Runs until `stop` is set.
+#[cfg(unix)]
+pub fn serve_pty(
+    mut master: serialport::TTYPort,
+    config: SimDeviceConfig,
+    speed: f64,
+    stop: &AtomicBool,
+) -> Result<ServeReport, ServeError> {
+    use serialport::SerialPort as _;
+    if !(speed.is_finite() && speed >= 0.0) {
+        return Err(ServeError::Speed(speed));
+    }
+    let mut device = SimDevice::new(config)?;
+    master.set_timeout(POLL).map_err(io::Error::from)?;
+    let mut report = ServeReport::default();
+    let mut clock = Pacer::new(speed);
+    let mut buf = [0u8; 4096];
+    let mut connected = false;
+    while !stop.load(Ordering::Relaxed) {
+        match master.read(&mut buf) {
+            Ok(n) if n > 0 => {
+                if !connected {
+                    // What the board sent while nobody listened is lost, as on a UART.
+                    discard_output(&mut device);
+                    report.clients += 1;
+                    connected = true;
+                }
+                device.send(&buf[..n])?;
+            }
+            Err(e)
+                if matches!(
+                    e.kind(),
+                    io::ErrorKind::WouldBlock
+                        | io::ErrorKind::TimedOut
+                        | io::ErrorKind::Interrupted
+                ) => {}
+            // No slave open (EIO on Linux, a hang-up elsewhere): nobody is connected.
+            _ => {
+                connected = false;
+                std::thread::sleep(IDLE);
+            }
+        }
+        device.run_for(clock.step(device.now()));
+        if connected {
+            connected = forward_output(&mut device, &mut master, &mut buf).is_ok();
+        } else {
+            discard_output(&mut device);
+        }
+    }
+    report.ticks = device.ticks();
+    Ok(report)
+}
+
 fn prepare(stream: TcpStream) -> io::Result<TcpStream> {
     stream.set_nonblocking(false)?;
     stream.set_nodelay(true)?;
@@ -182,7 +241,7 @@ fn is_connection_error(e: &io::Error) -> bool {
 /// timeout on [`SimDevice`]'s `receive`).
 fn forward_output(
     device: &mut SimDevice,
-    stream: &mut TcpStream,
+    stream: &mut impl Write,
     buf: &mut [u8],
 ) -> io::Result<()> {
     loop {

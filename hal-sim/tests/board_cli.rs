@@ -319,6 +319,8 @@ fn every_command_runs_against_the_simulated_board() {
     let (out, err) = text(&o);
     assert!(o.status.success(), "{out}{err}");
     assert!(out.contains("tick_rate_hz 50000\nmode Bypass\n"), "{out}");
+    // The simulated board says it is the simulator (a board says board, QEMU emulator).
+    assert!(out.starts_with("image simulator\n"), "{out}");
 
     // 0.2 s of a 20 Hz sine, every 2nd tick (t steps by 40 µs).
     let mut csv = String::from("t,setpoint\n");

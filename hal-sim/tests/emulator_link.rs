@@ -21,12 +21,14 @@ use std::process::Child;
 use std::time::{Duration, Instant};
 use twinstack::protocol::frame::{self, FrameError, MAX_ENCODED};
 use twinstack::protocol::messages::{
-    Mode, NackReason, RecordRequest, Request, Response, SetpointBatch, Signal, UnderrunPolicy,
+    Image, Mode, NackReason, RecordRequest, Request, Response, SetpointBatch, Signal,
+    UnderrunPolicy,
 };
 
 /// QEMU running the emulator image with USART1 on a Unix socket; killed on drop.
 struct Qemu {
     child: Child,
+    elf: PathBuf,
     scratch: PathBuf,
     socket: PathBuf,
 }
@@ -40,7 +42,14 @@ impl Drop for Qemu {
 }
 
 fn boot() -> Qemu {
-    let elf = support::build_image(support::FIRMWARE, "twinstack-fw", &["emulator"]);
+    boot_image(support::build_image(
+        support::FIRMWARE,
+        "twinstack-emu",
+        &["emulator"],
+    ))
+}
+
+fn boot_image(elf: PathBuf) -> Qemu {
     let scratch = std::env::temp_dir().join(format!("twinstack-host-link-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&scratch);
     std::fs::create_dir_all(&scratch).expect("scratch directory");
@@ -55,6 +64,7 @@ fn boot() -> Qemu {
     let child = cmd.spawn().expect("qemu-system-arm starts");
     Qemu {
         child,
+        elf,
         scratch,
         socket,
     }
@@ -78,12 +88,25 @@ fn connect(qemu: &Qemu) -> Client<Box<dyn Transport>> {
     client.set_timeout(Duration::from_millis(300));
     loop {
         client.resync(Duration::from_millis(50)).expect("resync");
-        if client.status().is_ok() {
+        if let Ok(s) = client.status() {
+            // The wrong image answers too (the emulator image on a board would): it says
+            // which it is.
+            assert_eq!(
+                s.image(),
+                Image::Emulator,
+                "QEMU runs {}, which reports itself as the {} image, not the emulator image \
+                 (twinstack-emu, `cargo build-emu`)",
+                qemu.elf.display(),
+                s.image().name()
+            );
             break;
         }
         assert!(
             start.elapsed() < Duration::from_secs(20),
-            "the firmware never answered a status request"
+            "{} never answered a status request in 20 s: a board image (twinstack-fw) booted \
+             in QEMU never does (it waits for a crystal QEMU does not model); QEMU needs the \
+             emulator image (twinstack-emu, `cargo build-emu`)",
+            qemu.elf.display()
         );
     }
     client.set_timeout(Duration::from_secs(5));
@@ -267,4 +290,35 @@ fn the_host_tools_drive_the_emulated_firmware_over_its_uart() {
         String::from_utf8_lossy(&o.stderr)
     );
     assert!(out.contains("mode OpenLoop\n"), "{out}");
+    assert!(out.contains("image emulator\n"), "{out}");
+}
+
+/// The wrong image in QEMU (issue #18: it hung silently): the board image waits for a crystal
+/// QEMU does not model and never answers; the host's error names the emulator image.
+#[test]
+fn the_board_image_in_qemu_is_named_in_the_no_response_error() {
+    let qemu = boot_image(support::build_image(support::FIRMWARE, "twinstack-fw", &[]));
+    let spec = PortSpec::Unix(qemu.socket.clone());
+    let start = Instant::now();
+    let transport = loop {
+        match port::open(&spec, 0) {
+            Ok(t) => break t,
+            Err(e) if start.elapsed() > Duration::from_secs(20) => {
+                panic!("QEMU's UART socket never accepted: {e}")
+            }
+            Err(_) => std::thread::sleep(Duration::from_millis(50)),
+        }
+    };
+    let mut client = Client::new(transport);
+    // Longer than the emulator image takes to answer on a loaded machine.
+    client.set_timeout(Duration::from_secs(3));
+    let e = client
+        .status()
+        .expect_err("the board image answered in QEMU");
+    assert!(matches!(e, LinkError::Timeout { .. }), "{e}");
+    let text = e.to_string();
+    assert!(
+        text.contains("twinstack-emu") && text.contains("cargo build-emu"),
+        "{text}"
+    );
 }

@@ -35,8 +35,8 @@ use crate::waveform::{Shape, WaveformError, WaveformGenerator};
 use super::decoder::FrameDecoder;
 use super::frame::{self, FrameError, MAX_ENCODED};
 use super::messages::{
-    NackReason, RecordRequest, Request, Response, SetpointBatch, StatusReport, StreamControl,
-    WaveShape, Waveform,
+    Image, NackReason, RecordRequest, Request, Response, SetpointBatch, StatusReport,
+    StreamControl, WaveShape, Waveform,
 };
 
 /// Largest response frame, delimiter included.
@@ -184,7 +184,8 @@ impl<S: RecordStorage> CommandHandler<S> {
             Mode::Bypass => 0,
             Mode::OpenLoop => 1,
             Mode::ClosedLoop => 2,
-        } << StatusReport::MODE_SHIFT;
+        } << StatusReport::MODE_SHIFT
+            | Image::THIS.code() << StatusReport::IMAGE_SHIFT;
         for (on, flag) in [
             (self.defaults, StatusReport::DEFAULTS),
             (t.streaming, StatusReport::STREAMING),

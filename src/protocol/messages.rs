@@ -218,6 +218,8 @@ impl StatusReport {
     // in force when it is acknowledged).
     /// Flags bits 8–9: the mode (0 bypass, 1 open loop, 2 closed loop).
     pub const MODE_SHIFT: u16 = 8;
+    /// Flags bits 12–13: which build answers ([`Image`]; 0 from images older than the field).
+    pub const IMAGE_SHIFT: u16 = 12;
 
     /// The mode the flags carry.
     pub fn mode(&self) -> Mode {
@@ -231,5 +233,77 @@ impl StatusReport {
     /// Whether `flag` is set.
     pub fn has(&self, flag: u16) -> bool {
         self.flags & flag != 0
+    }
+
+    /// The build that sent the report (flags bits 12–13).
+    pub fn image(&self) -> Image {
+        Image::from_code(self.flags >> Self::IMAGE_SHIFT)
+    }
+}
+
+/// Which build of the board's code answers: the board image (`twinstack-fw`), the QEMU
+/// emulator image (`twinstack-emu`) or the host's simulated board (`hal-sim`). Carried in
+/// [`StatusReport::flags`] (bits 12–13, [`StatusReport::IMAGE_SHIFT`]) so that the host can
+/// tell an emulator image flashed onto a board, or a board image booted in QEMU, from the
+/// right one.
+///
+/// ```
+/// use twinstack::protocol::messages::{Image, StatusReport};
+/// let report = StatusReport { flags: Image::Emulator.code() << StatusReport::IMAGE_SHIFT, ..Default::default() };
+/// assert_eq!(report.image(), Image::Emulator);
+/// assert_eq!(Image::THIS, Image::Simulator); // doc tests run on the host
+/// ```
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub enum Image {
+    /// Not said: an image from before the field (its bits read 0).
+    Unknown,
+    /// The driver board's image (`cargo build-fw`).
+    Board,
+    /// The QEMU `netduinoplus2` image (`cargo build-emu`).
+    Emulator,
+    /// The simulated board on the host (`hal-sim`, `--port sim`, `virtual-board`).
+    Simulator,
+}
+
+impl Image {
+    /// The build this code is compiled into: the simulator on a host, else the emulator image
+    /// with the `emulator` feature, else the board image.
+    pub const THIS: Image = if cfg!(not(target_os = "none")) {
+        Image::Simulator
+    } else if cfg!(feature = "emulator") {
+        Image::Emulator
+    } else {
+        Image::Board
+    };
+
+    /// The 2-bit code in the status flags.
+    pub const fn code(self) -> u16 {
+        match self {
+            Image::Unknown => 0,
+            Image::Board => 1,
+            Image::Emulator => 2,
+            Image::Simulator => 3,
+        }
+    }
+
+    /// The image of a 2-bit code (higher bits ignored).
+    pub const fn from_code(code: u16) -> Image {
+        match code & 0b11 {
+            1 => Image::Board,
+            2 => Image::Emulator,
+            3 => Image::Simulator,
+            _ => Image::Unknown,
+        }
+    }
+
+    /// The name the host prints (`board`, `emulator`, `simulator`, `unknown`).
+    pub const fn name(self) -> &'static str {
+        match self {
+            Image::Unknown => "unknown",
+            Image::Board => "board",
+            Image::Emulator => "emulator",
+            Image::Simulator => "simulator",
+        }
     }
 }

@@ -30,8 +30,8 @@ const MDBOOK_VERSION: &str = "0.4.52";
 const TARGET_CLIPPY: &[(&str, &[&str])] = &[
     ("twinstack-fw (board)", &["--bin", "twinstack-fw"]),
     (
-        "twinstack-fw (emulator)",
-        &["--bin", "twinstack-fw", "--features", "emulator"],
+        "twinstack-emu (emulator)",
+        &["--bin", "twinstack-emu", "--features", "emulator"],
     ),
     (
         "twinstack-fw (board, dual-stage)",

@@ -1,16 +1,24 @@
-//! What every board command shares: `--port`, `--baud`, `--timeout-ms`, and connecting.
+//! What every board command shares: `--port` (or `TWINSTACK_PORT`), `--baud`, `--timeout-ms`,
+//! and connecting. When no port is given, or a serial device cannot be opened, the error lists
+//! the serial ports the system has ([`available_ports`]).
 
-use crate::link::port::{self, PortSpec, DEFAULT_BAUD};
+use crate::link::port::{self, PortError, PortSpec, DEFAULT_BAUD};
+use crate::link::serial::SerialError;
 use crate::link::{Client, Transport};
 use std::time::Duration;
+
+/// The environment variable `--port` falls back to.
+pub const PORT_ENV: &str = "TWINSTACK_PORT";
 
 /// Where the board is and how to talk to it.
 #[derive(Debug, clap::Args)]
 pub struct PortArgs {
-    /// Serial device or pty (/dev/ttyUSB0, /dev/pts/3), unix:SOCKET or tcp:HOST:PORT (QEMU's
-    /// UART), or `sim` for the simulated board in-process.
-    #[arg(long)]
-    pub port: String,
+    /// Serial device or pty (/dev/ttyUSB0, COM3, /dev/pts/3), unix:SOCKET or tcp:HOST:PORT
+    /// (QEMU's UART, `hal-sim virtual-board`), or `sim` for the simulated board in-process.
+    /// Without it, the environment variable TWINSTACK_PORT; with neither, the error lists the
+    /// serial ports found.
+    #[arg(long, env = PORT_ENV, hide_env_values = true)]
+    pub port: Option<String>,
     /// Baud rate of a serial device (and of the simulated board's modelled UART).
     #[arg(long, default_value_t = DEFAULT_BAUD)]
     pub baud: u32,
@@ -19,16 +27,57 @@ pub struct PortArgs {
     pub timeout_ms: u64,
 }
 
+/// A command-line mistake found after parsing (no `--port` and no `TWINSTACK_PORT`): `main`
+/// exits with 2, as for clap's own usage errors.
+#[derive(Debug, thiserror::Error)]
+#[error("{0}")]
+pub struct UsageError(pub String);
+
 /// The board behind `--port`, through a client with a clean line.
 pub type BoardClient = Client<Box<dyn Transport>>;
 
-/// Opens the port and resynchronises the line.
+/// The serial ports the system reports (`serialport::available_ports`), as
+/// `"available serial ports: /dev/ttyUSB0, /dev/ttyACM0"` or `"no serial ports found"`, each
+/// followed by the other kinds of port.
+pub fn available_ports() -> String {
+    let names: Vec<String> = serialport::available_ports()
+        .map(|ports| ports.into_iter().map(|p| p.port_name).collect())
+        .unwrap_or_default();
+    let serial = if names.is_empty() {
+        "no serial ports found".to_string()
+    } else {
+        format!("available serial ports: {}", names.join(", "))
+    };
+    format!("{serial} (other ports: tcp:HOST:PORT, unix:SOCKET, sim)")
+}
+
+/// The port `args` name (`--port`, else `TWINSTACK_PORT`, which clap has already read into
+/// `--port`). No port at all is a [`UsageError`] that lists the ports found.
+pub fn port_spec(args: &PortArgs) -> anyhow::Result<PortSpec> {
+    let Some(port) = &args.port else {
+        return Err(UsageError(format!(
+            "no board port: give --port PORT or set {PORT_ENV}; {}",
+            available_ports()
+        ))
+        .into());
+    };
+    Ok(port.parse()?)
+}
+
+/// Opens the port and resynchronises the line. A serial device that is missing or cannot be
+/// opened is reported with the ports that are there.
 pub fn connect(args: &PortArgs) -> anyhow::Result<BoardClient> {
     if args.timeout_ms == 0 {
         anyhow::bail!("--timeout-ms must be at least 1");
     }
-    let spec: PortSpec = args.port.parse()?;
-    let transport = port::open(&spec, args.baud)?;
+    let spec = port_spec(args)?;
+    let transport = match port::open(&spec, args.baud) {
+        Ok(t) => t,
+        Err(e @ PortError::Serial(SerialError::Missing { .. } | SerialError::Open { .. })) => {
+            anyhow::bail!("{e}; {}", available_ports())
+        }
+        Err(e) => return Err(e.into()),
+    };
     let mut client = Client::new(transport);
     client.set_timeout(Duration::from_millis(args.timeout_ms));
     client.resync(Duration::from_millis(20))?;

@@ -7,6 +7,10 @@
 //! calibration and no feedback gains, so the board's present ones are read back
 //! (`ReadParams`) and kept. The command line overrides any of them. Every gain has one unit
 //! everywhere: `ki` per second, `limit` a fraction of the drive range.
+//!
+//! A model whose input range reaches beyond what the drive can apply (a ±150 V model onto a
+//! 0…140 V drive: the limit would clip every excursion past it) is refused before anything is
+//! sent ([`unreachable_input`]), unless `--clamp` accepts it with a warning.
 
 use super::board_link::{connect, PortArgs};
 use super::params::ModeArg;
@@ -60,6 +64,20 @@ pub struct Args {
     /// No sensor feedback (open loop and bypass only).
     #[arg(long, conflicts_with_all = ["kp", "ki", "correction_limit"])]
     pub no_feedback: bool,
+    /// Load a model whose input range the drive cannot reach in full (the drive is then
+    /// clipped at its limits), with a warning, instead of refusing it.
+    #[arg(long)]
+    pub clamp: bool,
+}
+
+/// Part of a model's input range the drive cannot reach, if any beyond a tolerance of 1 % of
+/// the drive's window: `(model range, drive window)`, volts on the left stack.
+pub fn unreachable_input(settings: &Settings) -> Option<((f64, f64), (f64, f64))> {
+    let (lo, hi) = settings.drive.left_window();
+    let r = &settings.ranges;
+    let tolerance = 0.01 * (hi - lo).abs();
+    (r.input_min < lo - tolerance || r.input_max > hi + tolerance)
+        .then_some(((r.input_min, r.input_max), (lo, hi)))
 }
 
 /// `--safe-state` values.
@@ -124,6 +142,25 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
              reads the model's output; nothing was sent",
             args.params.display()
         );
+    }
+    if let Some(((m_lo, m_hi), (lo, hi))) = unreachable_input(&settings) {
+        let what = format!(
+            "{}: the model's input range {m_lo}…{m_hi} V reaches beyond what the drive can apply \
+             ({lo}…{hi} V on the left stack: {:?}, {}…{} V, bias {} V), so the drive limit \
+             would clip it",
+            args.params.display(),
+            settings.drive.configuration,
+            settings.drive.min_voltage,
+            settings.drive.max_voltage,
+            settings.drive.bias
+        );
+        if !args.clamp {
+            anyhow::bail!(
+                "{what}; identify the model within the drive's range, or pass --clamp to load \
+                 it anyway; nothing was loaded"
+            );
+        }
+        eprintln!("warning: {what} (--clamp: loading it anyway)");
     }
     client.load_params(&settings)?;
     let what = match &settings.compensator {

@@ -4,6 +4,24 @@
 //! `record`) share
 //! [`board_link`]'s `--port` / `--baud` / `--timeout-ms`.
 
+/// The exit codes of every `hal-sim` command, as `hal-sim --help` lists them.
+pub const EXIT_CODES: &str = "\
+Exit codes:
+  0  done
+  1  error: a bad file, a link failure, a refusal by the board (the message names the field and
+     its limit), a failed check; the message says which
+  2  usage: a bad or missing argument (including no --port and no TWINSTACK_PORT)
+  3  `stream` completed with underruns: every setpoint was accepted, but the board's queue ran
+     dry while setpoints were still to come
+
+Environment:
+  TWINSTACK_PORT  the board's port when --port is not given (e.g. /dev/ttyUSB0, tcp:127.0.0.1:4000)";
+
+/// Exit code of an error.
+pub const EXIT_ERROR: u8 = 1;
+/// Exit code of a usage error (clap's, and [`board_link::UsageError`]).
+pub const EXIT_USAGE: u8 = 2;
+
 pub mod board_link;
 pub mod closed_loop;
 pub mod compensate;
@@ -14,6 +32,7 @@ pub mod identify;
 pub mod load;
 pub mod params;
 pub mod predict;
+pub mod progress;
 pub mod record;
 pub mod status;
 pub mod stop;

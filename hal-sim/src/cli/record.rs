@@ -98,8 +98,10 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     let step = (capture / 20.0).clamp(0.001, 0.25);
     let budget = capture * 2.0 + client.timeout().as_secs_f64();
     let mut waited = 0.0;
+    let bar = super::progress::bar(args.count as u64, "recording", "values");
     loop {
         let s = client.status()?;
+        bar.set_position(s.recorded.min(args.count) as u64);
         if s.recorded >= args.count {
             break;
         }
@@ -113,7 +115,11 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         client.wait(Duration::from_secs_f64(step))?;
         waited += step;
     }
-    let values = client.read_recording(args.count, |_| {})?;
+    bar.finish_and_clear();
+    let bar = super::progress::bar(args.count as u64, "reading", "values");
+    let values = client.read_recording(args.count, |n| bar.set_position(n as u64));
+    bar.finish_and_clear();
+    let values = values?;
     let mut out = Staged::new();
     out.write(
         &args.out,

@@ -121,7 +121,12 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     } else {
         args.tick_rate
     };
-    let r = stream_setpoints(&mut client, &sp.samples, &options, |_| {})?;
+    let bar = super::progress::bar(sp.samples.len() as u64, "streaming", "setpoints");
+    let r = stream_setpoints(&mut client, &sp.samples, &options, |n| {
+        bar.set_position(n as u64)
+    });
+    bar.finish_and_clear();
+    let r = r?;
     if r.before.queue_fill > 0 {
         eprintln!(
             "note: the board's queue held {} setpoints from before; they played first",

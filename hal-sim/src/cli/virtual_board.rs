@@ -1,7 +1,8 @@
-//! `hal-sim virtual-board --listen tcp:HOST:PORT [--speed X] [--tick-rate HZ]`: the simulated
-//! board and stage ([`crate::virtual_board`]) as a long-running server on a TCP port, paced
-//! in real time, keeping its state from one client (`hal-sim load/stream/record/status
-//! --port tcp:HOST:PORT`) to the next. Runs until killed (Ctrl-C).
+//! `hal-sim virtual-board --listen tcp:HOST:PORT|pty [--speed X] [--tick-rate HZ]`: the
+//! simulated board and stage ([`crate::virtual_board`]) as a long-running server on a TCP port
+//! or (Unix) a pseudo-terminal, paced in real time, keeping its state from one client (`hal-sim
+//! load/stream/record/status --port tcp:HOST:PORT` or `--port /dev/pts/N`) to the next. Runs
+//! until killed (Ctrl-C). The first line on stdout says where it listens.
 
 use crate::link::port::{PortSpec, DEFAULT_BAUD};
 use crate::sim_device::SimDeviceConfig;
@@ -13,7 +14,9 @@ use std::sync::atomic::AtomicBool;
 /// Arguments of `virtual-board`.
 #[derive(Debug, clap::Args)]
 pub struct Args {
-    /// Where to listen: tcp:HOST:PORT (port 0: the OS picks one; the address is printed).
+    /// Where to listen: tcp:HOST:PORT (port 0: the OS picks one; the address is printed), or
+    /// `pty` (Unix: a pseudo-terminal, its path printed, for programs that want a serial
+    /// device).
     #[arg(long)]
     pub listen: String,
     /// Simulated seconds per wall-clock second (0: as fast as possible).
@@ -30,9 +33,10 @@ pub struct Args {
 /// Runs `virtual-board`.
 pub fn run(args: &Args) -> anyhow::Result<()> {
     let address = match args.listen.parse::<PortSpec>()? {
-        PortSpec::Tcp(address) => address,
+        PortSpec::Tcp(address) => Some(address),
+        PortSpec::Serial(p) if p == "pty" => None,
         _ => anyhow::bail!(
-            "--listen {}: give tcp:HOST:PORT (e.g. tcp:127.0.0.1:4000)",
+            "--listen {}: give tcp:HOST:PORT (e.g. tcp:127.0.0.1:4000) or pty",
             args.listen
         ),
     };
@@ -56,17 +60,47 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         ..SimDeviceConfig::paper()
     };
     config.board.plant.dt = 1.0 / args.tick_rate;
-    let listener = TcpListener::bind(&address)
-        .map_err(|e| anyhow::anyhow!("cannot listen on {address}: {e}"))?;
-    let local = listener.local_addr()?;
     let speed = if args.speed == 0.0 {
         "as fast as possible".to_string()
     } else {
         format!("{}× real time", args.speed)
     };
+    let Some(address) = address else {
+        return serve_pty(config, args.speed, &speed);
+    };
+    let listener = TcpListener::bind(&address)
+        .map_err(|e| anyhow::anyhow!("cannot listen on {address}: {e}"))?;
+    let local = listener.local_addr()?;
     println!("virtual board listening on tcp:{local} ({speed}; Ctrl-C stops it)");
     std::io::stdout().flush()?;
     let stop = AtomicBool::new(false);
     virtual_board::serve(listener, config, args.speed, &stop)?;
     Ok(())
+}
+
+/// `--listen pty`: a pty pair, its slave closed so that clients open its path.
+#[cfg(unix)]
+fn serve_pty(config: SimDeviceConfig, speed: f64, pace: &str) -> anyhow::Result<()> {
+    use serialport::SerialPort as _;
+    let (master, slave) = serialport::TTYPort::pair()
+        .map_err(|e| anyhow::anyhow!("cannot open a pseudo-terminal: {e}"))?;
+    let Some(path) = slave.name() else {
+        anyhow::bail!("the pseudo-terminal has no path");
+    };
+    drop(slave);
+    println!("virtual board on pty {path} ({pace}; Ctrl-C stops it)");
+    std::io::stdout().flush()?;
+    let stop = AtomicBool::new(false);
+    virtual_board::serve_pty(master, config, speed, &stop)?;
+    Ok(())
+}
+
+/// `--listen pty` where there are no pseudo-terminals.
+#[cfg(not(unix))]
+fn serve_pty(_: SimDeviceConfig, _: f64, _: &str) -> anyhow::Result<()> {
+    anyhow::bail!(
+        "--listen pty: pseudo-terminals are a Unix facility, not available on {}: use \
+         --listen tcp:127.0.0.1:PORT and --port tcp:127.0.0.1:PORT",
+        std::env::consts::OS
+    )
 }

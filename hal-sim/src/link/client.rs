@@ -31,7 +31,7 @@ pub enum LinkError {
     #[error("link: {0}")]
     Io(#[from] io::Error),
     /// No response within the timeout.
-    #[error("no response to {request} within {timeout:?} ({corrupt} corrupt frames received meanwhile): is the board connected, powered and at the same baud rate?")]
+    #[error("no response to {request} within {timeout:?} ({corrupt} corrupt frames received meanwhile): is the board connected, powered and at the same baud rate? (In QEMU, boot the emulator image twinstack-emu, `cargo build-emu`: the board image twinstack-fw waits for a crystal QEMU does not model and never answers.)")]
     Timeout {
         /// The request waiting.
         request: &'static str,

@@ -1,0 +1,65 @@
+//! The board image and the emulator image are two binaries with two names (issue #18: `cargo
+//! build-fw` and `cargo build-emu` wrote the same file, and booting the wrong one hung
+//! silently). Checked where the names are decided: the cargo aliases and the `[[bin]]`
+//! targets. (That each image reports which it is, is checked by `tests/emulator.rs` and
+//! `hal-sim/tests/emulator_link.rs` in QEMU, and by the handler's status test here.)
+
+use std::path::Path;
+
+fn read(path: &str) -> String {
+    let p = Path::new(env!("CARGO_MANIFEST_DIR")).join(path);
+    std::fs::read_to_string(&p).unwrap_or_else(|e| panic!("{}: {e}", p.display()))
+}
+
+/// The command line of the cargo alias `name` in `.cargo/config.toml`.
+fn alias(name: &str) -> String {
+    let config = read(".cargo/config.toml");
+    let line = config
+        .lines()
+        .find(|l| l.trim_start().starts_with(&format!("{name} =")))
+        .unwrap_or_else(|| panic!("no alias {name} in .cargo/config.toml"));
+    line.split_once('=')
+        .unwrap()
+        .1
+        .trim()
+        .trim_matches('"')
+        .to_string()
+}
+
+/// The value of `--bin` in a command line.
+fn bin(command: &str) -> &str {
+    let mut words = command.split_whitespace();
+    words.by_ref().find(|w| *w == "--bin");
+    words
+        .next()
+        .unwrap_or_else(|| panic!("no --bin in {command}"))
+}
+
+#[test]
+fn build_fw_and_build_emu_write_different_files() {
+    let fw = alias("build-fw");
+    let emu = alias("build-emu");
+    assert_eq!(bin(&fw), "twinstack-fw", "{fw}");
+    assert_eq!(bin(&emu), "twinstack-emu", "{emu}");
+    assert!(emu.contains("--features emulator"), "{emu}");
+    assert!(!fw.contains("emulator"), "{fw}");
+    // Flashing runs the board image.
+    assert_eq!(bin(&alias("flash-fw")), "twinstack-fw");
+}
+
+#[test]
+fn the_emulator_binary_exists_only_with_the_emulator_feature() {
+    let manifest = read("Cargo.toml");
+    let targets: Vec<&str> = manifest.split("[[bin]]").skip(1).collect();
+    let emu = targets
+        .iter()
+        .find(|t| t.contains("name = \"twinstack-emu\""))
+        .expect("a [[bin]] twinstack-emu in Cargo.toml");
+    assert!(emu.contains("required-features = [\"emulator\"]"), "{emu}");
+    // The board binary refuses to build as an emulator image under its own name.
+    let fw = read("src/bin/twinstack-fw.rs");
+    assert!(
+        fw.contains("#[cfg(all(target_os = \"none\", feature = \"emulator\"))]\ncompile_error!"),
+        "src/bin/twinstack-fw.rs no longer refuses the emulator feature"
+    );
+}
