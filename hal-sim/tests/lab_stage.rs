@@ -251,3 +251,45 @@ fn tracking_table_compensated_pi_beats_no_compensation_on_every_trajectory() {
     let again = evaluate(&config, &options[..1]).unwrap();
     assert_eq!(again.rows[..], table.rows[..2]);
 }
+
+#[test]
+fn the_cli_prints_the_table_as_json_and_refuses_bad_flags() {
+    let dir = tempfile::tempdir().unwrap();
+    let csv = dir.path().join("excitation.csv");
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_hal-sim"))
+        .args([
+            "lab-stage",
+            "--model",
+            "pi",
+            "--seed",
+            "5",
+            "--rate",
+            "2000",
+            "--json",
+        ])
+        .arg("--write-excitation")
+        .arg(&csv)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let table: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(table["seed"], 5);
+    let rows = table["rows"].as_array().unwrap();
+    let methods: Vec<&str> = rows.iter().map(|r| r["method"].as_str().unwrap()).collect();
+    assert_eq!(methods, ["none", "pi"]);
+    assert_eq!(rows[1]["scores"].as_array().unwrap().len(), 3);
+    let text = std::fs::read_to_string(&csv).unwrap();
+    assert!(text.starts_with("t,u,x\n"));
+    assert_eq!(text.lines().count(), 1 + 4000, "2 s at 2 kHz");
+
+    let bad = std::process::Command::new(env!("CARGO_BIN_EXE_hal-sim"))
+        .args(["lab-stage", "--fit-until", "3"])
+        .output()
+        .unwrap();
+    assert!(!bad.status.success());
+    assert!(String::from_utf8_lossy(&bad.stderr).contains("--fit-until"));
+}
