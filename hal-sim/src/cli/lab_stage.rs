@@ -1,4 +1,4 @@
-//! `hal-sim lab-stage [--model pi,duhem] [--seed N] [--json]`: the tracking table on the
+//! `hal-sim lab-stage [--model pi,duhem] [--seed N] [--json] [--without creep,…]`: the tracking table on the
 //! simulated laboratory stage ([`crate::plant::lab_stage`], outside the model family) —
 //! identified from 2 s of 10 Hz excitation, then a triangle, nested minor loops and a
 //! multisine tracked open loop with each model's compensator and with none
@@ -34,6 +34,39 @@ pub struct Args {
     /// Also write the excitation record (t,u,x) to this CSV, for `hal-sim identify`.
     #[arg(long)]
     pub write_excitation: Option<PathBuf>,
+    /// Take non-idealities out of the stage, comma-separated, to see what each costs.
+    #[arg(long, value_enum, value_delimiter = ',')]
+    pub without: Vec<NonIdeality>,
+}
+
+/// A non-ideality of the lab stage that `--without` removes.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum NonIdeality {
+    /// The creep (`creep_per_decade = 0`).
+    Creep,
+    /// The flexure's nonlinearity (a linear flexure).
+    Flexure,
+    /// The Preisach density's asymmetry (bottom saturation made equal to the top's).
+    Asymmetry,
+    /// The sensor noise and rounding.
+    Noise,
+}
+
+impl NonIdeality {
+    /// Removes it from `config`.
+    pub fn remove(self, config: &mut LabStageConfig) {
+        match self {
+            Self::Creep => config.creep_per_decade = 0.0,
+            Self::Flexure => config.flexure_saturation_um = f64::INFINITY,
+            Self::Asymmetry => {
+                config.preisach.bottom_saturation = config.preisach.top_saturation;
+            }
+            Self::Noise => {
+                config.noise_rms_nm = 0.0;
+                config.sensor_lsb_nm = 0.0;
+            }
+        }
+    }
 }
 
 /// Runs the evaluation and prints the table.
@@ -57,7 +90,10 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     if args.model.is_empty() {
         anyhow::bail!("--model: name at least one model");
     }
-    let config = LabStageConfig::new(args.rate, args.seed);
+    let mut config = LabStageConfig::new(args.rate, args.seed);
+    for n in &args.without {
+        n.remove(&mut config);
+    }
     let options: Vec<IdentifyOptions> = args
         .model
         .iter()
@@ -83,4 +119,35 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         table.print(&mut stdout)?;
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn each_non_ideality_is_removed_from_the_stage() {
+        let base = LabStageConfig::new(SAMPLE_RATE_HZ, 1);
+        let without = |n: NonIdeality| {
+            let mut c = base.clone();
+            n.remove(&mut c);
+            c
+        };
+        assert_eq!(without(NonIdeality::Creep).creep_per_decade, 0.0);
+        assert!(without(NonIdeality::Flexure)
+            .flexure_saturation_um
+            .is_infinite());
+        let sym = without(NonIdeality::Asymmetry).preisach;
+        assert_eq!(sym.bottom_saturation, sym.top_saturation);
+        assert_ne!(
+            base.preisach.bottom_saturation,
+            base.preisach.top_saturation
+        );
+        let quiet = without(NonIdeality::Noise);
+        assert_eq!((quiet.noise_rms_nm, quiet.sensor_lsb_nm), (0.0, 0.0));
+        // Each leaves a stage that builds.
+        for c in [quiet, without(NonIdeality::Flexure)] {
+            LabStage::new(&c).unwrap();
+        }
+    }
 }
