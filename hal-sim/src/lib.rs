@@ -21,6 +21,8 @@
 //! * [`dual_stage_sim`] — the piezo stage on a ball-screw coarse stage ([`plant::ball_screw`]),
 //!   with the emulated step/dir output and encoders ([`coarse_stage`]): the dual-stage controller
 //!   end to end.
+//! * [`tracking`] — open-loop tracking on [`plant::lab_stage`], a stage outside the model
+//!   family: excite, identify, compensate, score (`hal-sim lab-stage`).
 //! * [`virtual_board`] — a [`sim_device::SimDevice`] served over TCP in real time, keeping its
 //!   state from one client to the next (`hal-sim virtual-board`).
 //! * [`cli`] — the `hal-sim` subcommands.
@@ -46,4 +48,5 @@ pub mod setpoint_file;
 pub mod sim_board;
 pub mod sim_device;
 pub mod stage_model;
+pub mod tracking;
 pub mod virtual_board;

@@ -51,6 +51,10 @@ enum Command {
     /// The dual-actuated stage (ball screw + piezo) in simulation: a 5 mm move and a
     /// trajectory larger than the piezo's stroke (coarse only / dual).
     DualStage(cli::dual_stage::Args),
+    /// The tracking table on a simulated lab stage outside the model family: identify from
+    /// 2 s of 10 Hz excitation, then track a triangle, nested minor loops and a multisine open
+    /// loop with each model's compensator and with none.
+    LabStage(cli::lab_stage::Args),
     /// Serve the simulated board over TCP (tcp:HOST:PORT), paced in real time, keeping its
     /// state from one command to the next (--port tcp:HOST:PORT), until killed.
     VirtualBoard(cli::virtual_board::Args),
@@ -97,6 +101,7 @@ fn main() -> std::process::ExitCode {
         Command::Record(a) => cli::record::run(a),
         Command::Golden(a) => cli::golden::run(a),
         Command::DualStage(a) => cli::dual_stage::run(a),
+        Command::LabStage(a) => cli::lab_stage::run(a),
         Command::VirtualBoard(a) => cli::virtual_board::run(a),
     };
     match result {

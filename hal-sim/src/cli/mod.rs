@@ -29,6 +29,7 @@ pub mod demo;
 pub mod dual_stage;
 pub mod golden;
 pub mod identify;
+pub mod lab_stage;
 pub mod load;
 pub mod params;
 pub mod predict;

@@ -5,6 +5,9 @@
 //! * [`reduced`] — its `K_0 → ∞` 1-DOF reduction.
 //! * [`hysteresis`] — Duhem or P–I hysteresis per stack, with a skew option.
 //! * [`zero_order_hold`] — the exact discretisation both mechanical models are advanced with.
+//! * [`lab_stage`] — a single-input laboratory stage built *outside* the project's model family
+//!   (asymmetric Preisach hysteresis, logarithmic creep, flexure nonlinearity, resonance,
+//!   sensor noise): the plant the tracking harness ([`crate::tracking`]) evaluates models on.
 //! * [`ball_screw`] — the coarse stage of a dual-actuated axis (stepper, screw, backlash,
 //!   friction, encoder) that carries the piezo stage.
 //!
@@ -16,12 +19,14 @@
 pub mod ball_screw;
 pub mod coupled;
 pub mod hysteresis;
+pub mod lab_stage;
 pub mod reduced;
 pub mod stage;
 pub mod zero_order_hold;
 
 pub use coupled::{CoupledModel, DEFAULT_CONTACT_STIFFNESS};
 pub use hysteresis::{HysteresisConfig, HysteresisError, HysteresisModel, StackHysteresis};
+pub use lab_stage::{LabStage, LabStageConfig, LabStageError, PreisachDensity};
 pub use reduced::ReducedModel;
 pub use stage::{Configuration, SecondOrder, StageParams};
 

@@ -1,0 +1,546 @@
+//! Open-loop tracking on the laboratory stage ([`crate::plant::lab_stage`]), evaluated the way a
+//! user evaluates a model on their own stage:
+//!
+//! 1. **Excite** ([`excite`]): from rest at 0 V, drive the stage for [`EXCITATION_S`] with a
+//!    [`EXCITATION_HZ`] sine — [`FULL_RANGE_CYCLES`] cycles over the whole drive range, then
+//!    amplitudes decaying around mid-range to [`FINAL_AMPLITUDE`] of it, so the record holds
+//!    minor loops — and record `t, u, x` as a [`MeasuredData`].
+//! 2. **Identify** ([`identify`]) with the caller's [`IdentifyOptions`] (fitted on
+//!    `t < fit_until_s`, by default [`FIT_UNTIL_S`]: the last cycle is held out and scored).
+//! 3. **Track** three desired trajectories ([`trajectories`]), placed inside the measured output
+//!    range with a [`TRAJECTORY_MARGIN`] each side: a triangle, nested minor loops and a
+//!    three-frequency multisine. The drive is the model's inverse ([`StageModel::compensate`],
+//!    the library's fixed point), or for the *no compensation* row the least-squares line
+//!    `u = a x + b` fitted to the excitation ([`LinearMap`]). The stage runs open loop from rest
+//!    at 0 V, as for the excitation, through an unscored [`LEAD_IN_S`] ramp to the
+//!    trajectory's start ([`Trajectory::with_lead_in`]); the error is the reading minus the
+//!    desired displacement, in % of the trajectory's span ([`TrackingScore`]).
+//!
+//! [`evaluate`] runs all of it and returns the table (`hal-sim lab-stage`).
+//!
+//! **Sample rate.** [`SAMPLE_RATE_HZ`] = 10 kHz: 1 000 samples per 10 Hz cycle (the drive
+//! moves at most 0.5 V between samples, far finer than the P–I thresholds), above twice the
+//! stage's 3.5 kHz resonance so the record does not alias it, and 20 000 rows keep the
+//! least-squares fits to seconds. The hysteresis models are rate-independent, so the
+//! compensator run at 10 kHz gives the drive the board's 50–100 kHz tick would, sampled.
+
+use crate::identification::score::{score, ErrorFigures};
+use crate::identification::{identify, IdentifyOptions, ModelKind};
+use crate::measured_data::MeasuredData;
+use crate::plant::{LabStage, LabStageConfig, LabStageError};
+use crate::stage_model::StageModel;
+use std::f64::consts::TAU;
+use std::path::PathBuf;
+use twinstack::ParamError;
+
+/// The default sample rate of the excitation and of tracking, Hz (see the module docs).
+pub const SAMPLE_RATE_HZ: f64 = 10_000.0;
+/// Length of the identification record, seconds.
+pub const EXCITATION_S: f64 = 2.0;
+/// Frequency of the excitation, Hz.
+pub const EXCITATION_HZ: f64 = 10.0;
+/// Full-range cycles at the start of the excitation.
+pub const FULL_RANGE_CYCLES: usize = 6;
+/// Amplitude the excitation has decayed to at its end, fraction of the full range.
+pub const FINAL_AMPLITUDE: f64 = 0.15;
+/// The default `fit_until_s`: everything but the last excitation cycle is fitted.
+pub const FIT_UNTIL_S: f64 = EXCITATION_S - 1.0 / EXCITATION_HZ;
+/// Trajectories stay this fraction of the measured output span inside it, each side.
+pub const TRAJECTORY_MARGIN: f64 = 0.1;
+
+/// The excitation drive at `sample_rate_hz` for a stage whose drive range is `0 … drive_max`
+/// volts: `u = (U/2)(1 − A(t) cos 2πft)`, `A = 1` for the first [`FULL_RANGE_CYCLES`], then
+/// decaying geometrically to [`FINAL_AMPLITUDE`] at [`EXCITATION_S`]. Returns `(t, u)`.
+pub fn excitation_drive(sample_rate_hz: f64, drive_max: f64) -> (Vec<f64>, Vec<f64>) {
+    let n = (EXCITATION_S * sample_rate_hz).round() as usize;
+    let full = FULL_RANGE_CYCLES as f64 / EXCITATION_HZ;
+    let t: Vec<f64> = (0..n).map(|k| k as f64 / sample_rate_hz).collect();
+    let u = t
+        .iter()
+        .map(|&t| {
+            let a = if t < full {
+                1.0
+            } else {
+                FINAL_AMPLITUDE.powf((t - full) / (EXCITATION_S - full))
+            };
+            0.5 * drive_max * (1.0 - a * (TAU * EXCITATION_HZ * t).cos())
+        })
+        .collect();
+    (t, u)
+}
+
+/// Runs `stage` open loop from rest at 0 V on the drive `u`; returns the readings.
+pub fn run_open_loop(stage: &mut LabStage, u: &[f64]) -> Vec<f64> {
+    stage.reset();
+    u.iter().map(|&v| stage.step(v)).collect()
+}
+
+/// The identification record: the [`excitation_drive`] played on `stage` from rest, at the
+/// stage's sample rate.
+pub fn excite(stage: &mut LabStage) -> MeasuredData {
+    let rate = 1.0 / stage.sample_period_s();
+    let (t, u) = excitation_drive(rate, stage.config().drive_max_volts);
+    let x = run_open_loop(stage, &u);
+    MeasuredData {
+        path: PathBuf::from("lab-stage-excitation"),
+        t,
+        u: Some(u),
+        x: Some(x),
+    }
+}
+
+/// A desired displacement record.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Trajectory {
+    /// Its name in the table.
+    pub name: &'static str,
+    /// Time, seconds.
+    pub t: Vec<f64>,
+    /// Desired reading, µm.
+    pub x: Vec<f64>,
+}
+
+/// Length of the unscored lead-in before each trajectory, seconds.
+pub const LEAD_IN_S: f64 = 0.1;
+
+impl Trajectory {
+    /// The record actually played: a [`LEAD_IN_S`] ramp from `x_rest` (the reading at rest at
+    /// 0 V, where the stage starts) to the trajectory's first value, then the trajectory.
+    /// Returns `(t, x, first)`, `first` being the index of the trajectory's first sample.
+    ///
+    /// The lead-in is what a user does (move to the start, then run), and it starts the
+    /// stage and the compensator in the states the model was identified in: the excitation
+    /// also started from rest at 0 V, and the model is run from rest at its first value.
+    pub fn with_lead_in(&self, x_rest: f64, sample_rate_hz: f64) -> (Vec<f64>, Vec<f64>, usize) {
+        let first = (LEAD_IN_S * sample_rate_hz).round() as usize;
+        let x0 = self.x.first().copied().unwrap_or(x_rest);
+        let mut x: Vec<f64> = (0..first)
+            .map(|k| x_rest + (x0 - x_rest) * k as f64 / first as f64)
+            .collect();
+        x.extend_from_slice(&self.x);
+        let t = (0..x.len()).map(|k| k as f64 / sample_rate_hz).collect();
+        (t, x, first)
+    }
+}
+
+/// Piecewise-linear through `points` (fractions) at `speed` fractions per second.
+fn piecewise(points: &[f64], speed: f64, rate: f64) -> Vec<f64> {
+    let mut out = Vec::new();
+    for w in points.windows(2) {
+        let steps = ((w[1] - w[0]).abs() / speed * rate).round().max(1.0) as usize;
+        out.extend((0..steps).map(|k| w[0] + (w[1] - w[0]) * k as f64 / steps as f64));
+    }
+    out.push(points.last().copied().unwrap_or(0.0));
+    out
+}
+
+/// Sweep speed of the triangle and the minor loops, fractions of the span per second.
+pub const SWEEP_SPEED: f64 = 4.0;
+
+/// The three trajectories over `lo … hi` µm (their full span) at `sample_rate_hz`, each
+/// starting at `lo`:
+/// * `triangle`: 2 Hz, 4 cycles (2 s);
+/// * `minor loops`: reversals at 1, 0.2, 0.8, 0.35, 0.65, 0.45, 0.55, then out to 0.3, 0.9
+///   and back to 0, at [`SWEEP_SPEED`] (≈ 1.4 s);
+/// * `multisine`: `lo + span (0.5 − 0.25 cos 2π·1t − 0.15 cos 2π·3t − 0.1 cos 2π·7t)`, 2 s.
+pub fn trajectories(lo: f64, hi: f64, sample_rate_hz: f64) -> [Trajectory; 3] {
+    let span = hi - lo;
+    let make = |name, frac: Vec<f64>| Trajectory {
+        name,
+        t: (0..frac.len()).map(|k| k as f64 / sample_rate_hz).collect(),
+        x: frac.iter().map(|f| lo + span * f).collect(),
+    };
+    let triangle = piecewise(
+        &[0.0, 1.0, 0.0, 1.0, 0.0, 1.0, 0.0, 1.0, 0.0],
+        SWEEP_SPEED,
+        sample_rate_hz,
+    );
+    let loops = piecewise(
+        &[0.0, 1.0, 0.2, 0.8, 0.35, 0.65, 0.45, 0.55, 0.3, 0.9, 0.0],
+        SWEEP_SPEED,
+        sample_rate_hz,
+    );
+    let n = (2.0 * sample_rate_hz).round() as usize;
+    let multisine = (0..n)
+        .map(|k| {
+            let t = k as f64 / sample_rate_hz;
+            0.5 - 0.25 * (TAU * t).cos()
+                - 0.15 * (TAU * 3.0 * t).cos()
+                - 0.1 * (TAU * 7.0 * t).cos()
+        })
+        .collect();
+    [
+        make("triangle", triangle),
+        make("minor loops", loops),
+        make("multisine", multisine),
+    ]
+}
+
+/// The user's linear calibration `u = a x + b`, least squares over the fitted part of the
+/// excitation: the "no compensation" drive.
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize)]
+pub struct LinearMap {
+    /// `a`, volts per µm.
+    pub volts_per_um: f64,
+    /// `b`, volts.
+    pub offset_volts: f64,
+}
+
+impl LinearMap {
+    /// Fits `u = a x + b` on the samples of `data` with `t < fit_until_s`; `None` without
+    /// `u`/`x` columns or when `x` does not vary there.
+    pub fn fit(data: &MeasuredData, fit_until_s: f64) -> Option<Self> {
+        let (u, x) = (data.u.as_ref()?, data.x.as_ref()?);
+        let n = data.t.iter().take_while(|&&t| t < fit_until_s).count();
+        if n < 2 {
+            return None;
+        }
+        let nf = n as f64;
+        let (mx, mu) = (
+            x[..n].iter().sum::<f64>() / nf,
+            u[..n].iter().sum::<f64>() / nf,
+        );
+        let sxx: f64 = x[..n].iter().map(|v| (v - mx) * (v - mx)).sum();
+        let sxu: f64 = x[..n]
+            .iter()
+            .zip(&u[..n])
+            .map(|(a, b)| (a - mx) * (b - mu))
+            .sum();
+        if sxx.is_nan() || sxx <= 0.0 {
+            return None;
+        }
+        let a = sxu / sxx;
+        Some(Self {
+            volts_per_um: a,
+            offset_volts: mu - a * mx,
+        })
+    }
+
+    /// The drive for the desired readings `x`.
+    pub fn drive(&self, x: &[f64]) -> Vec<f64> {
+        x.iter()
+            .map(|v| self.volts_per_um * v + self.offset_volts)
+            .collect()
+    }
+}
+
+/// How well a run tracked its trajectory.
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize)]
+pub struct TrackingScore {
+    /// Largest `|reading − desired|`, % of the trajectory's span.
+    pub max_pct: f64,
+    /// RMS of `reading − desired`, % of the trajectory's span.
+    pub rms_pct: f64,
+    /// Scored drive samples outside the stage's `0 … drive_max` (clamped by the amplifier).
+    pub clipped: usize,
+}
+
+/// Plays `drive` (lead-in and trajectory, see [`Trajectory::with_lead_in`]) on `stage` from
+/// rest at 0 V and scores the readings from sample `first` on against `trajectory`.
+pub fn track_drive(
+    stage: &mut LabStage,
+    trajectory: &Trajectory,
+    drive: &[f64],
+    first: usize,
+) -> TrackingScore {
+    let max = stage.config().drive_max_volts;
+    let clipped = drive
+        .get(first..)
+        .unwrap_or_default()
+        .iter()
+        .filter(|&&u| !(0.0..=max).contains(&u))
+        .count();
+    let x = run_open_loop(stage, drive);
+    let x = x.get(first..).unwrap_or_default();
+    let n = trajectory.x.len().min(x.len());
+    let figures = score(&trajectory.x[..n], &x[..n], 0..n).unwrap_or(ErrorFigures {
+        max_pct: f64::NAN,
+        rms_pct: f64::NAN,
+        samples: 0,
+    });
+    TrackingScore {
+        max_pct: figures.max_pct,
+        rms_pct: figures.rms_pct,
+        clipped,
+    }
+}
+
+/// Compensated open-loop tracking: `model`'s fixed-point inverse turns the trajectory, after
+/// its lead-in from `x_rest` (the reading at rest at 0 V), into a drive, played on `stage`
+/// from rest at 0 V. Fails only if the library refuses the model.
+pub fn track(
+    stage: &mut LabStage,
+    model: &StageModel,
+    trajectory: &Trajectory,
+    x_rest: f64,
+) -> Result<TrackingScore, ParamError> {
+    let (t, x, first) = trajectory.with_lead_in(x_rest, 1.0 / stage.sample_period_s());
+    let drive = model.compensate(&t, &x)?;
+    Ok(track_drive(stage, trajectory, &drive, first))
+}
+
+/// Uncompensated tracking: the linear map turns the trajectory (after its lead-in) into a
+/// drive.
+pub fn track_linear(
+    stage: &mut LabStage,
+    map: &LinearMap,
+    trajectory: &Trajectory,
+    x_rest: f64,
+) -> TrackingScore {
+    let (_, x, first) = trajectory.with_lead_in(x_rest, 1.0 / stage.sample_period_s());
+    track_drive(stage, trajectory, &map.drive(&x), first)
+}
+
+/// One row of the table: a way of computing the drive and its score on each trajectory.
+#[derive(Clone, Debug, PartialEq, serde::Serialize)]
+pub struct TrackingRow {
+    /// `none` (the linear map) or the model's name as `--model` spells it.
+    pub method: String,
+    /// The identified model's held-out error on the excitation's last cycle (`None` for
+    /// `none`, or when identification failed).
+    pub held_out: Option<ErrorFigures>,
+    /// One score per trajectory, in the table's order (empty when `error` is set).
+    pub scores: Vec<TrackingScore>,
+    /// Why this row has no scores (identification or the library refused the model).
+    pub error: Option<String>,
+}
+
+impl TrackingRow {
+    /// The worst max error over the trajectories, % (`None` without scores).
+    pub fn worst_max_pct(&self) -> Option<f64> {
+        self.scores.iter().map(|s| s.max_pct).reduce(f64::max)
+    }
+}
+
+/// The whole evaluation.
+#[derive(Clone, Debug, PartialEq, serde::Serialize)]
+pub struct TrackingTable {
+    /// The noise seed of the stage.
+    pub seed: u64,
+    /// Sample rate, Hz.
+    pub sample_rate_hz: f64,
+    /// The trajectories' names, the columns' order.
+    pub trajectories: Vec<&'static str>,
+    /// The measured output range of the excitation, µm.
+    pub excitation_range_um: (f64, f64),
+    /// The range the trajectories span, µm.
+    pub trajectory_range_um: (f64, f64),
+    /// The linear map behind the `none` row.
+    pub linear_map: Option<LinearMap>,
+    /// `none` first, then one row per model.
+    pub rows: Vec<TrackingRow>,
+}
+
+impl TrackingTable {
+    /// The row of `method`.
+    pub fn row(&self, method: &str) -> Option<&TrackingRow> {
+        self.rows.iter().find(|r| r.method == method)
+    }
+
+    /// Prints the table as text.
+    pub fn print(&self, out: &mut impl std::io::Write) -> std::io::Result<()> {
+        writeln!(
+            out,
+            "Lab stage (seed {}, {} Hz): identified from {} s of {} Hz, tracked open loop over {:.2} … {:.2} µm",
+            self.seed,
+            self.sample_rate_hz,
+            EXCITATION_S,
+            EXCITATION_HZ,
+            self.trajectory_range_um.0,
+            self.trajectory_range_um.1
+        )?;
+        write!(out, "{:<10} {:>16}", "method", "held-out max/rms")?;
+        for name in &self.trajectories {
+            write!(out, " {:>16}", name)?;
+        }
+        writeln!(out, " {:>10}", "worst max")?;
+        for row in &self.rows {
+            let held = row
+                .held_out
+                .map(|h| format!("{:.2}/{:.2}", h.max_pct, h.rms_pct))
+                .unwrap_or_else(|| "-".into());
+            write!(out, "{:<10} {:>16}", row.method, held)?;
+            if let Some(e) = &row.error {
+                writeln!(out, " failed: {e}")?;
+                continue;
+            }
+            for s in &row.scores {
+                let clip = if s.clipped > 0 { "*" } else { " " };
+                write!(
+                    out,
+                    " {:>15}{clip}",
+                    format!("{:.2}/{:.2}", s.max_pct, s.rms_pct)
+                )?;
+            }
+            writeln!(
+                out,
+                " {:>10}",
+                row.worst_max_pct()
+                    .map(|w| format!("{w:.2}"))
+                    .unwrap_or_default()
+            )?;
+        }
+        writeln!(
+            out,
+            "(max/rms error in % of each trajectory's span; * = drive clipped at the rails)"
+        )
+    }
+}
+
+/// The name `--model` gives `kind`.
+pub fn model_name(kind: ModelKind) -> String {
+    use clap::ValueEnum;
+    kind.to_possible_value()
+        .map(|v| v.get_name().to_string())
+        .unwrap_or_else(|| format!("{kind:?}").to_lowercase())
+}
+
+/// Excites the stage built from `config`, identifies a model with each of `options`, and
+/// tracks the three trajectories with each model and without compensation.
+///
+/// ```no_run
+/// use hal_sim::identification::{IdentifyOptions, ModelKind};
+/// use hal_sim::plant::LabStageConfig;
+/// use hal_sim::tracking::{evaluate, FIT_UNTIL_S, SAMPLE_RATE_HZ};
+/// let table = evaluate(
+///     &LabStageConfig::new(SAMPLE_RATE_HZ, 1),
+///     &[IdentifyOptions::new(ModelKind::Pi, FIT_UNTIL_S)],
+/// )
+/// .unwrap();
+/// table.print(&mut std::io::stdout()).unwrap();
+/// ```
+pub fn evaluate(
+    config: &LabStageConfig,
+    options: &[IdentifyOptions],
+) -> Result<TrackingTable, LabStageError> {
+    let mut stage = LabStage::new(config)?;
+    let data = excite(&mut stage);
+    let x = data.x.as_deref().unwrap_or_default();
+    let (lo, hi) = x
+        .iter()
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(l, h), &v| {
+            (l.min(v), h.max(v))
+        });
+    let margin = TRAJECTORY_MARGIN * (hi - lo);
+    let rate = 1.0 / config.sample_period_s;
+    let trajectories = trajectories(lo + margin, hi - margin, rate);
+    let x_rest = x.first().copied().unwrap_or(0.0);
+
+    let fit_until = options.first().map_or(FIT_UNTIL_S, |o| o.fit_until_s);
+    let linear_map = LinearMap::fit(&data, fit_until);
+    let mut rows = vec![match linear_map {
+        Some(map) => TrackingRow {
+            method: "none".into(),
+            held_out: None,
+            scores: trajectories
+                .iter()
+                .map(|tr| track_linear(&mut stage, &map, tr, x_rest))
+                .collect(),
+            error: None,
+        },
+        None => TrackingRow {
+            method: "none".into(),
+            held_out: None,
+            scores: Vec::new(),
+            error: Some("the excitation's reading does not vary".into()),
+        },
+    }];
+    for o in options {
+        let method = model_name(o.model);
+        let outcome = identify(&data, o)
+            .map_err(|e| e.to_string())
+            .and_then(|id| {
+                let u = data.u.as_deref().unwrap_or_default();
+                let predicted = id.model.predict(&data.t, u).map_err(|e| e.to_string())?;
+                let held_out = score(x, &predicted, id.held_out_from..x.len());
+                let scores = trajectories
+                    .iter()
+                    .map(|tr| track(&mut stage, &id.model, tr, x_rest))
+                    .collect::<Result<Vec<_>, _>>()
+                    .map_err(|e| e.to_string())?;
+                Ok((held_out, scores))
+            });
+        rows.push(match outcome {
+            Ok((held_out, scores)) => TrackingRow {
+                method,
+                held_out,
+                scores,
+                error: None,
+            },
+            Err(e) => TrackingRow {
+                method,
+                held_out: None,
+                scores: Vec::new(),
+                error: Some(e),
+            },
+        });
+    }
+    Ok(TrackingTable {
+        seed: config.seed,
+        sample_rate_hz: rate,
+        trajectories: trajectories.iter().map(|t| t.name).collect(),
+        excitation_range_um: (lo, hi),
+        trajectory_range_um: (lo + margin, hi - margin),
+        linear_map,
+        rows,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_excitation_starts_at_rest_covers_the_range_and_decays() {
+        let (t, u) = excitation_drive(SAMPLE_RATE_HZ, 150.0);
+        assert_eq!(t.len(), 20_000);
+        assert!(u[0].abs() < 1e-12);
+        let first = u[..6000].iter().copied().fold(0.0, f64::max);
+        assert!((first - 150.0).abs() < 1e-6);
+        let last_cycle = &u[19_000..];
+        let (lo, hi) = last_cycle
+            .iter()
+            .fold((f64::INFINITY, f64::NEG_INFINITY), |(l, h), &v| {
+                (l.min(v), h.max(v))
+            });
+        assert!(
+            hi - lo < 0.2 * 150.0 && hi - lo > 0.1 * 150.0,
+            "{lo} … {hi}"
+        );
+    }
+
+    #[test]
+    fn trajectories_start_low_and_stay_within_their_range() {
+        for tr in trajectories(10.0, 70.0, 1000.0) {
+            assert!((tr.x[0] - 10.0).abs() < 1e-9, "{}", tr.name);
+            let (lo, hi) =
+                tr.x.iter()
+                    .fold((f64::INFINITY, f64::NEG_INFINITY), |(l, h), &v| {
+                        (l.min(v), h.max(v))
+                    });
+            assert!(lo >= 10.0 - 1e-9 && hi <= 70.0 + 1e-9, "{}", tr.name);
+            assert!(hi - lo > 59.0, "{} spans the range", tr.name);
+            assert_eq!(tr.t.len(), tr.x.len());
+        }
+    }
+
+    #[test]
+    fn the_linear_map_recovers_a_line() {
+        let t: Vec<f64> = (0..100).map(|k| k as f64 * 0.01).collect();
+        let x: Vec<f64> = t.iter().map(|t| 5.0 * (7.0 * t).sin()).collect();
+        let u: Vec<f64> = x.iter().map(|x| 2.0 * x + 3.0).collect();
+        let data = MeasuredData {
+            path: "line".into(),
+            t,
+            u: Some(u),
+            x: Some(x),
+        };
+        let m = LinearMap::fit(&data, 0.5).unwrap();
+        assert!((m.volts_per_um - 2.0).abs() < 1e-12 && (m.offset_volts - 3.0).abs() < 1e-12);
+        let flat = MeasuredData {
+            x: Some(vec![1.0; 100]),
+            ..data
+        };
+        assert!(LinearMap::fit(&flat, 0.5).is_none());
+    }
+}
