@@ -421,3 +421,35 @@ fn the_readme_says_how_to_install_the_tool() {
     let readme = repo_file("README.md");
     assert!(readme.contains("cargo install --path hal-sim"), "README");
 }
+
+/// `hal-sim identify … | head -1`: the reader goes away after one line; the tool stops
+/// quietly (SIGPIPE), it does not panic on the closed pipe.
+#[cfg(unix)]
+#[test]
+fn a_closed_pipe_on_stdout_ends_the_tool_quietly() {
+    let mut child = hal_sim()
+        .args([
+            "identify",
+            "--data",
+            Path::new(env!("CARGO_MANIFEST_DIR"))
+                .join("../data/micromanipulator-unipolar-3v6-1hz.csv")
+                .to_str()
+                .unwrap(),
+            "--fit-until",
+            "16",
+            "--out",
+            std::env::temp_dir()
+                .join(format!("closed-pipe-{}.json", std::process::id()))
+                .to_str()
+                .unwrap(),
+        ])
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut first = [0u8; 8];
+    child.stdout.take().unwrap().read_exact(&mut first).unwrap(); // then dropped: closed
+    let out = child.wait_with_output().unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(!stderr.contains("panicked"), "{stderr}");
+}

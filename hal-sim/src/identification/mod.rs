@@ -71,6 +71,10 @@ pub fn supported_lag(fits: &[(usize, f64)]) -> usize {
         .map_or(0, |f| f.0)
 }
 
+/// A fitted model whose RMS error over the rows it was fitted to exceeds this (% of span) is
+/// refused: it does not describe the data.
+pub const MAX_FIT_RMS_PCT: f64 = 10.0;
+
 /// Fewest samples to fit on.
 pub const MIN_FIT_SAMPLES: usize = 50;
 /// Smallest normalised first weight a P–I model gets when its inverse would otherwise not
@@ -245,6 +249,14 @@ pub enum IdentifyError {
     /// The least-squares problem failed.
     #[error("fit failed: {0}")]
     Fit(#[from] LeastSquaresError),
+    /// The fitted model does not describe the data it was fitted to.
+    #[error("{model} does not fit this record: RMS error {rms_pct:.1} % of span over the fitted part (more than {MAX_FIT_RMS_PCT} %); try another model")]
+    DoesNotFit {
+        /// The model tried.
+        model: String,
+        /// Its RMS error over the fitted rows, % of span.
+        rms_pct: f64,
+    },
     /// `--model auto` was given no candidate to try.
     #[error("no candidate model to try")]
     NoCandidates,
@@ -466,6 +478,18 @@ pub fn identify(
         }
     };
     model.check().map_err(IdentifyError::Params)?;
+    // A model the library accepts can still be useless (a fit that ran off on data its
+    // family cannot describe): judge it, run as `predict` runs it, on the rows it was fitted to.
+    let predicted = model
+        .predict(&data.t[..n_fit], u_fit)
+        .map_err(IdentifyError::Params)?;
+    let fitted = score::score(&x[..n_fit], &predicted, first..n_fit);
+    if let Some(f) = fitted.filter(|f| !(f.rms_pct <= MAX_FIT_RMS_PCT)) {
+        return Err(IdentifyError::DoesNotFit {
+            model: options.model_label(),
+            rms_pct: f.rms_pct,
+        });
+    }
     Ok(Identification {
         model,
         motion,
