@@ -484,7 +484,7 @@ pub fn identify(
         .predict(&data.t[..n_fit], u_fit)
         .map_err(IdentifyError::Params)?;
     let fitted = score::score(&x[..n_fit], &predicted, first..n_fit);
-    if let Some(f) = fitted.filter(|f| !(f.rms_pct <= MAX_FIT_RMS_PCT)) {
+    if let Some(f) = fitted.filter(|f| f.rms_pct.is_nan() || f.rms_pct > MAX_FIT_RMS_PCT) {
         return Err(IdentifyError::DoesNotFit {
             model: options.model_label(),
             rms_pct: f.rms_pct,
