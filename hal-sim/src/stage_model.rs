@@ -14,6 +14,7 @@
 use crate::reference;
 use twinstack::duhem::{Duhem, InverseDuhem};
 use twinstack::fixed_point::{signal_from_f64, signal_to_f64};
+use twinstack::generalised_pi::{GeneralisedPi, GpiParams, InverseGeneralisedPi};
 use twinstack::prandtl_ishlinskii::{InversePrandtlIshlinskii, PrandtlIshlinskii};
 use twinstack::{DuhemParams, ParamError, PiParams, Scaling};
 
@@ -26,6 +27,8 @@ pub enum Hysteresis {
     Pi(PiParams),
     /// Duhem.
     Duhem(DuhemParams),
+    /// Generalised (asymmetric) P–I: a P–I followed by a dead-zone map.
+    GeneralisedPi(GpiParams),
 }
 
 /// Everything needed to run a stage's model on a record.
@@ -80,6 +83,10 @@ impl StageModel {
             Hysteresis::Duhem(p) => {
                 InverseDuhem::new(p, &self.scaling)?;
             }
+            Hysteresis::GeneralisedPi(p) => {
+                GeneralisedPi::new(p, &self.scaling)?;
+                InverseGeneralisedPi::new(p, &self.scaling)?;
+            }
         }
         Ok(())
     }
@@ -123,6 +130,13 @@ impl StageModel {
                     .map(|&v| y_phys(m.step(&mut st, u_norm(v))))
                     .collect()
             }
+            Hysteresis::GeneralisedPi(p) => {
+                let m = GeneralisedPi::new(p, s)?;
+                let mut st = m.state_at_rest(u_norm(u0));
+                u.iter()
+                    .map(|&v| y_phys(m.step(&mut st, u_norm(v))))
+                    .collect()
+            }
         };
         Ok(self.delay(t, y))
     }
@@ -139,6 +153,10 @@ impl StageModel {
             Hysteresis::Duhem(p) => {
                 let u0 = u0.clamp(s.input_min, s.input_max);
                 let mut m = reference::Duhem::new(p, s, u0, p.beta * u0 + p.offset)?;
+                u.iter().map(|&v| m.step(v)).collect()
+            }
+            Hysteresis::GeneralisedPi(p) => {
+                let mut m = reference::GeneralisedPi::new(p, s, u0)?;
                 u.iter().map(|&v| m.step(v)).collect()
             }
         };
@@ -174,6 +192,14 @@ impl StageModel {
                     .map(|&v| u_phys(m.step(&mut st, y_norm(v))))
                     .collect()
             }
+            Hysteresis::GeneralisedPi(p) => {
+                let m = InverseGeneralisedPi::new(p, s)?;
+                let mut st = m.state_at_rest(y_norm(y0));
+                desired
+                    .iter()
+                    .map(|&v| u_phys(m.step(&mut st, y_norm(v))))
+                    .collect()
+            }
         })
     }
 
@@ -197,6 +223,15 @@ impl StageModel {
             Hysteresis::Duhem(p) => {
                 let u0 = ((y0 - p.offset) / p.beta).clamp(s.input_min, s.input_max);
                 let mut m = reference::InverseDuhem::new(p, s, u0, y0)?;
+                desired.iter().map(|&v| m.step(v)).collect()
+            }
+            Hysteresis::GeneralisedPi(p) => {
+                // Relaxed where the P–I part's output is S⁻¹[y0], as for the P–I.
+                let c = p.pi.canonical()?;
+                let total: f64 = c.weights.iter().sum();
+                let mut m = reference::InverseGeneralisedPi::new(p, s, 0.0)?;
+                let z0 = m.map_inverse(y0);
+                m = reference::InverseGeneralisedPi::new(p, s, (z0 - c.offset) / total)?;
                 desired.iter().map(|&v| m.step(v)).collect()
             }
         })

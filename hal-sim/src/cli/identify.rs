@@ -1,4 +1,4 @@
-//! `hal-sim identify --model pi|duhem --data FILE.csv --fit-until SECONDS --out PARAMS.json
+//! `hal-sim identify --model pi|duhem|gpi --data FILE.csv --fit-until SECONDS --out PARAMS.json
 //! [--operators N] [--thresholds uniform|geometric] [--lag N]`: fits on `t < SECONDS`, scores
 //! on the rest, writes the parameter file and a PNG beside it (`PARAMS.png`).
 
@@ -127,6 +127,13 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
             format!("P-I, {} {:?} operators", args.operators, options.thresholds).to_lowercase()
         }
         ModelKind::Duhem => "Duhem".into(),
+        ModelKind::Gpi => format!(
+            "generalised P-I, {} {:?} operators, {} dead zones",
+            args.operators,
+            options.thresholds,
+            2 * crate::identification::gpi::DEAD_ZONES_PER_SIDE
+        )
+        .to_lowercase(),
     };
     println!("identified {model_name} from {}", args.data.display());
     println!(

@@ -81,6 +81,10 @@ fn load_models(dir: &Path) -> anyhow::Result<Models> {
         match model.hysteresis {
             Hysteresis::Pi(p) => pi.push(p),
             Hysteresis::Duhem(d) => duhem = Some(d),
+            Hysteresis::GeneralisedPi(_) => bail!(
+                "{}: a generalised P–I is not expected here yet",
+                path.display()
+            ),
         }
         let s = model.scaling;
         ranges = Some(match ranges {

@@ -13,7 +13,8 @@
 //! 4. **Outliers**: rows whose P–I residual exceeds [`OUTLIER_FACTOR`] × its RMS (spikes,
 //!    leftover ringing) are dropped and the model refitted.
 //! 5. **Model**: P–I weights by NNLS ([`pi`]), or Duhem by integrated least squares with a
-//!    stability check and a simulated-error refinement ([`duhem`]).
+//!    stability check and a simulated-error refinement ([`duhem`]), or a generalised
+//!    (asymmetric) P–I by Kuhnen's linear equation-error fit ([`gpi`]).
 //! 6. **Scaling**: the input range is the fitted drive range widened by [`INPUT_MARGIN`], the
 //!    output range the model's output range widened by [`OUTPUT_MARGIN`] — for Duhem, wider
 //!    still if needed so that the distance to the anhysteretic curve stays within
@@ -26,6 +27,7 @@
 //! `predict` runs it, so the fitted and the checked model see the same operator states.
 
 pub mod duhem;
+pub mod gpi;
 pub mod least_squares;
 pub mod motion;
 pub mod pi;
@@ -61,6 +63,8 @@ pub enum ModelKind {
     Pi,
     /// Duhem.
     Duhem,
+    /// Generalised (asymmetric) P–I: a P–I followed by a dead-zone map.
+    Gpi,
 }
 
 /// The rows a fit uses: row `k` pairs the drive history up to sample `k` with the reading at
@@ -108,7 +112,7 @@ pub struct IdentifyOptions {
     pub lag: Option<usize>,
     /// Largest lag tried when estimating, samples.
     pub max_lag: usize,
-    /// Refine a Duhem fit on its simulated error.
+    /// Refine a Duhem or generalised P–I fit on its simulated error.
     pub refine: bool,
 }
 
@@ -404,6 +408,16 @@ pub fn identify(
             }
             model
         }
+        ModelKind::Gpi => gpi_model(
+            &columns,
+            &thresholds,
+            u_mid,
+            &y,
+            &rows,
+            options.refine,
+            &mut notes,
+            with_output_range,
+        )?,
     };
     model.check().map_err(IdentifyError::Params)?;
     Ok(Identification {
@@ -416,6 +430,62 @@ pub fn identify(
         outliers,
         notes,
     })
+}
+
+/// The generalised P–I branch of [`identify`]: the fit ([`gpi::fit`]) on the P–I's rows, its
+/// output range wide enough for both the model's output and its P–I part's (the inverse P–I
+/// clamps its input to the range), refitted with `w_1` floored when the inverse P–I would not
+/// fit the fixed point, as for the P–I.
+#[allow(clippy::too_many_arguments)]
+fn gpi_model(
+    columns: &[Vec<f64>],
+    thresholds: &[f64],
+    u_mid: f64,
+    y: &[f64],
+    rows: &FitRows,
+    refine: bool,
+    notes: &mut Vec<String>,
+    with_output_range: impl Fn(Hysteresis, &[f64], f64) -> Result<StageModel, IdentifyError>,
+) -> Result<StageModel, IdentifyError> {
+    let span = rows.target_span(y);
+    let fit_gpi = |min_first: f64, notes: &mut Vec<String>| {
+        let f = gpi::fit(columns, thresholds, u_mid, y, rows, min_first, refine)?;
+        if f.dropped > 0 {
+            notes.push(format!(
+                "{} dead zone(s) dropped: they made the inverse map fall",
+                f.dropped
+            ));
+        }
+        notes.push(format!(
+            "generalised P–I equation-error fit: simulated RMS {:.3} % of span over the fit{}",
+            100.0 * f.least_squares_rms / span,
+            if f.refined {
+                format!(
+                    "; refined on the simulated error: {:.3} %",
+                    100.0 * f.rms / span
+                )
+            } else {
+                String::new()
+            }
+        ));
+        let both: Vec<f64> = f.pi_output.iter().chain(&f.output).copied().collect();
+        with_output_range(Hysteresis::GeneralisedPi(f.params), &both, 0.0)
+    };
+    let model = fit_gpi(0.0, notes)?;
+    match model.check() {
+        Err(
+            e @ (ParamError::WeightOutOfRange { .. }
+            | ParamError::GainSumTooLarge
+            | ParamError::FirstWeightNotPositive),
+        ) => {
+            let floor = MIN_NORM_FIRST_WEIGHT / model.scaling.gain_to_norm();
+            notes.push(format!(
+                "the inverse could not be built ({e}): refitted with w_1 >= {floor:.4e}"
+            ));
+            fit_gpi(floor, notes)
+        }
+        _ => Ok(model),
+    }
 }
 
 #[cfg(test)]
