@@ -318,6 +318,44 @@ mod tests {
         }
     }
 
+    /// The generalised P–I: fixed point tracks the `f64` reference (forward and inverse), and
+    /// the compensator fed the prediction gives the drive back.
+    #[test]
+    fn generalised_pi_tracks_its_reference_and_inverts() {
+        use twinstack::generalised_pi::DeadZoneParams;
+        let Hysteresis::Pi(pi) = pi_model(1.0, 0.0).hysteresis else {
+            unreachable!()
+        };
+        let m = StageModel {
+            hysteresis: Hysteresis::GeneralisedPi(GpiParams {
+                pi,
+                dead_zones: DeadZoneParams::new(1.0, 0.9, &[-6.0, 4.0], &[-0.3, 0.4]).unwrap(),
+            }),
+            scaling: Scaling::new(-100.0, 100.0, -18.0, 20.0).unwrap(),
+            output_sign: -1.0,
+            sensor_lag_s: 0.02,
+        };
+        m.check().unwrap();
+        let (t, u) = record();
+        let worst = |a: &[f64], b: &[f64]| {
+            a.iter()
+                .zip(b)
+                .map(|(a, b)| (a - b).abs())
+                .fold(0.0, f64::max)
+        };
+        let x = m.predict(&t, &u).unwrap();
+        assert!(worst(&x, &m.predict_reference(&t, &u).unwrap()) < 1e-5);
+        let back = m.compensate(&t, &x).unwrap();
+        let back_ref = m.compensate_reference(&t, &x).unwrap();
+        assert!(worst(&back, &back_ref) < 1e-3);
+        let n = t.len() - 2;
+        assert!(
+            worst(&back[..n], &u[..n]) < 1e-3,
+            "{}",
+            worst(&back[..n], &u[..n])
+        );
+    }
+
     #[test]
     fn compensating_the_prediction_returns_the_drive() {
         for sign in [1.0, -1.0] {

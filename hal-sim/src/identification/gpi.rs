@@ -238,7 +238,7 @@ mod tests {
         let u: Vec<f64> = (0..4000)
             .map(|k| 60.0 + 55.0 * (k as f64 * 0.006).sin() * (1.0 - k as f64 / 8000.0))
             .collect();
-        let r = [0.0, 20.0, 40.0, 60.0];
+        let r = [0.0, 15.0, 30.0, 45.0];
         let w = [0.3, 0.1, 0.05, 0.05];
         let cols = operator_outputs(&u, &r, 60.0);
         let truth_pi = pi_output(&cols, &w, 60.0, 1.0);

@@ -550,6 +550,72 @@ mod tests {
         assert!(held.max_pct < 0.2 && held.rms_pct < 0.05, "{held:?}");
     }
 
+    /// A record from a known asymmetric model (a generalised P–I: the P–I of
+    /// [`glitchy_record`] through a map flatter below its centre, steeper above), with the
+    /// sine's amplitude decaying so the held-out part has inner loops.
+    #[test]
+    fn a_known_generalised_pi_is_recovered_and_beats_the_symmetric_pi() {
+        use twinstack::generalised_pi::{DeadZoneParams, GpiParams};
+        let n = 4000;
+        let t: Vec<f64> = (0..n).map(|k| k as f64 * 1e-3).collect();
+        let u: Vec<f64> = (0..n)
+            .map(|k| {
+                let a = 100.0 * (1.0 - 0.4 * k as f64 / n as f64);
+                a * (2.0 * std::f64::consts::PI * k as f64 / 500.0).sin()
+            })
+            .collect();
+        let thresholds = Thresholds::Uniform.generate(17, 100.0).unwrap();
+        let weights: Vec<f64> = (0..17).map(|i| 0.04 / (1.0 + 0.5 * i as f64)).collect();
+        let truth = GpiParams {
+            pi: PiParams::new(0.0, 2.0, &thresholds, &weights).unwrap(),
+            dead_zones: DeadZoneParams::new(
+                2.0,
+                1.0,
+                &[-10.0, -5.0, 5.0, 10.0],
+                &[-0.2, -0.1, 0.15, 0.3],
+            )
+            .unwrap(),
+        };
+        let s = Scaling::new(-100.0, 100.0, -30.0, 30.0).unwrap();
+        let mut m = reference::GeneralisedPi::new(&truth, &s, u[0]).unwrap();
+        let x: Vec<f64> = u.iter().map(|&v| m.step(v)).collect();
+        let data = MeasuredData {
+            path: PathBuf::from("asymmetric.csv"),
+            t,
+            u: Some(u),
+            x: Some(x),
+        };
+        let held_out = |kind| {
+            let id = identify(&data, &IdentifyOptions::new(kind, 2.5)).unwrap();
+            let (u, x) = (data.u.as_ref().unwrap(), data.x.as_ref().unwrap());
+            let predicted = id.model.predict(&data.t, u).unwrap();
+            (id, score(x, &predicted, 2500..n).unwrap())
+        };
+        let (pi, pi_err) = held_out(ModelKind::Pi);
+        let (gpi, gpi_err) = held_out(ModelKind::Gpi);
+        assert!(matches!(pi.model.hysteresis, Hysteresis::Pi(_)));
+        let Hysteresis::GeneralisedPi(fitted) = &gpi.model.hysteresis else {
+            panic!("a generalised P–I was asked for");
+        };
+        eprintln!("held out: generalised P–I {gpi_err:?}, P–I {pi_err:?}");
+        assert!(
+            gpi_err.max_pct < 1.0 && gpi_err.max_pct < 0.25 * pi_err.max_pct,
+            "generalised P–I {gpi_err:?} vs P–I {pi_err:?}"
+        );
+        // The fitted map bends the same way: flatter below the centre, steeper above.
+        let d = &fitted.dead_zones;
+        let slope = |a: f64, b: f64| (d.apply(b) - d.apply(a)) / (b - a);
+        assert!(
+            slope(d.centre - 9.0, d.centre - 7.0) < 0.8 * slope(d.centre + 7.0, d.centre + 9.0),
+            "{d:?}"
+        );
+        // The compensator inverts the stage on the held-out part too.
+        let (u, x) = (data.u.as_ref().unwrap(), data.x.as_ref().unwrap());
+        let drive = gpi.model.compensate(&data.t, x).unwrap();
+        let inverse = score(u, &drive, 2500..n).unwrap();
+        assert!(inverse.max_pct < 1.0, "{inverse:?}");
+    }
+
     #[test]
     fn bad_options_and_splits_have_their_own_errors() {
         let (data, _) = glitchy_record();
