@@ -709,7 +709,7 @@ mod tests {
         let (mut a, mut b) = (f.state_at_rest(0), pf.state_at_rest(0));
         let (mut c, mut d) = (i.state_at_rest(0), pinv.state_at_rest(0));
         for k in 0..2000 {
-            let x = ((k * 7919) % 2001) as i32 - 1000;
+            let x: i32 = (k * 7919) % 2001 - 1000;
             let x = x * (SIGNAL_ONE / 1000);
             assert_eq!(f.step(&mut a, x), pf.step(&mut b, x));
             assert_eq!(i.step(&mut c, x), pinv.step(&mut d, x));
