@@ -22,6 +22,7 @@ use crate::duhem::{Duhem, DuhemState, InverseDuhem};
 use crate::feedback::FeedbackState;
 pub use crate::feedback::{Derivative, Feedback};
 use crate::fixed_point::clamp_full_scale;
+use crate::generalised_pi::{GeneralisedPi, InverseGeneralisedPi};
 pub use crate::mode_switch::Mode;
 use crate::mode_switch::{BumplessTransfer, ModeError};
 use crate::prandtl_ishlinskii::{InversePrandtlIshlinskii, PiState, PrandtlIshlinskii};
@@ -39,6 +40,8 @@ pub enum Compensator {
     InversePi(InversePrandtlIshlinskii),
     /// Inverse Duhem.
     InverseDuhem(InverseDuhem),
+    /// Analytic inverse of the generalised (asymmetric) P–I.
+    InverseGeneralisedPi(InverseGeneralisedPi),
 }
 
 /// The forward observer: applied drive → estimated displacement.
@@ -51,6 +54,8 @@ pub enum Observer {
     Pi(PrandtlIshlinskii),
     /// Forward Duhem.
     Duhem(Duhem),
+    /// Forward generalised (asymmetric) P–I.
+    GeneralisedPi(GeneralisedPi),
 }
 
 /// Everything the tick needs, validated and in fixed point (built by
@@ -213,6 +218,7 @@ enum CompensatorRun {
     InversePi(InversePrandtlIshlinskii, PiState),
     InverseDuhem(InverseDuhem, DuhemState),
     None,
+    InverseGpi(InverseGeneralisedPi, PiState),
 }
 
 /// The observer as the tick runs it (see [`CompensatorRun`]).
@@ -222,6 +228,7 @@ enum ObserverRun {
     Duhem(Duhem, DuhemState),
     Pi(PrandtlIshlinskii, PiState),
     None,
+    Gpi(GeneralisedPi, PiState),
 }
 
 /// What the sensor step does this mode.
@@ -308,6 +315,11 @@ impl Controller {
                 let y = m.anhysteretic(drive);
                 (ObserverRun::Duhem(m, m.state_at(drive, y)), y)
             }
+            Observer::GeneralisedPi(m) => {
+                let mut s = m.state_at_rest(drive);
+                let y = m.step(&mut s, drive);
+                (ObserverRun::Gpi(m, s), y)
+            }
         };
         let compensator = match (config.compensator, &observer) {
             (Compensator::None, _) => CompensatorRun::None,
@@ -324,6 +336,13 @@ impl Controller {
                 let model = m.model();
                 CompensatorRun::InverseDuhem(m, model.state_at(drive, model.anhysteretic(drive)))
             }
+            // As for the P–I: the map is static, so only the P–I part's operators carry over.
+            (Compensator::InverseGeneralisedPi(m), ObserverRun::Gpi(o, s)) if m.inverts(o) => {
+                CompensatorRun::InverseGpi(m, m.state_from_forward(&o.pi().bank().outputs(s)))
+            }
+            (Compensator::InverseGeneralisedPi(m), _) => {
+                CompensatorRun::InverseGpi(m, m.state_at_rest(y))
+            }
         };
         let rest = d.rest_drive();
         let rest_setpoint = match &observer {
@@ -333,6 +352,10 @@ impl Controller {
                 m.step(&mut s, rest)
             }
             ObserverRun::Duhem(m, _) => m.anhysteretic(rest),
+            ObserverRun::Gpi(m, _) => {
+                let mut s = m.state_at_rest(rest);
+                m.step(&mut s, rest)
+            }
         };
         *self = Self {
             compensator,
@@ -499,6 +522,7 @@ impl Controller {
             CompensatorRun::InversePi(m, s) => m.step(s, target),
             CompensatorRun::InverseDuhem(m, s) => m.step(s, target),
             CompensatorRun::None => target,
+            CompensatorRun::InverseGpi(m, s) => m.step(s, target),
         };
         let feedforward = if self.mode == Mode::Bypass {
             target
@@ -576,6 +600,7 @@ impl Controller {
             ObserverRun::Duhem(m, s) => m.step(s, out.applied),
             ObserverRun::Pi(m, s) => m.step(s, out.applied),
             ObserverRun::None => 0,
+            ObserverRun::Gpi(m, s) => m.step(s, out.applied),
         };
         self.feedback_state.observed(report.estimate);
         report

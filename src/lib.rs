@@ -9,6 +9,8 @@
 //! * [`play_operator`] — the play (backlash) operator, the building block of P–I.
 //! * [`prandtl_ishlinskii`] — forward and analytic-inverse Prandtl–Ishlinskii models.
 //! * [`duhem`] — Duhem forward observer and inverse Duhem compensator.
+//! * [`generalised_pi`] — the generalised (asymmetric) P–I: a P–I followed by a monotone
+//!   dead-zone map, and its analytic inverse.
 //! * [`feedback`] — sensor feedback: PI(D) with anti-windup, the drift check; [`notch`] — the
 //!   resonance notch (fixed-point biquad designed for the control rate); [`mode_switch`] —
 //!   bumpless switching between bypass, open loop and closed loop.
@@ -45,6 +47,7 @@ pub mod dual_stage;
 pub mod duhem;
 pub mod feedback;
 pub mod fixed_point;
+pub mod generalised_pi;
 #[cfg(target_os = "none")]
 pub mod hardware;
 pub mod mode_switch;

@@ -87,6 +87,49 @@ pub enum ParamError {
     DuhemGammaNotPositive,
     /// A Duhem coefficient, once normalised, does not fit the Q8.24 gain format.
     DuhemCoefficientOutOfRange,
+    /// More than [`crate::generalised_pi::MAX_DEAD_ZONES`] dead-zone operators.
+    TooManyDeadZones {
+        /// How many were given.
+        count: usize,
+    },
+    /// Dead-zone thresholds and weights have different lengths.
+    DeadZoneLengthMismatch {
+        /// Number of thresholds.
+        thresholds: usize,
+        /// Number of weights.
+        weights: usize,
+    },
+    /// A dead-zone threshold is zero (the `d = 0` operator is the linear gain) or does not
+    /// exceed the one before it (1-based dead-zone number).
+    DeadZoneThresholdsNotIncreasing {
+        /// Dead-zone number, 1-based.
+        dead_zone: usize,
+    },
+    /// A dead-zone threshold (or its inverse's), normalised, lies beyond the span of the output
+    /// range (1-based dead-zone number).
+    DeadZoneThresholdOutOfRange {
+        /// Dead-zone number, 1-based.
+        dead_zone: usize,
+    },
+    /// The dead-zone map's linear gain `g_0` is not positive: the map does not rise at its centre.
+    DeadZoneLinearNotPositive,
+    /// The dead-zone map's slope beyond this dead zone (`g_0` plus the weights of the dead
+    /// zones between the centre and here) is not positive: the map is not invertible.
+    DeadZoneSlopeNotPositive {
+        /// Dead-zone number, 1-based.
+        dead_zone: usize,
+    },
+    /// A dead-zone weight (forward or inverse), once normalised, does not fit Q8.24
+    /// (1-based dead-zone number; 0 is the linear gain).
+    DeadZoneWeightOutOfRange {
+        /// Dead-zone number, 1-based (0: the linear gain).
+        dead_zone: usize,
+    },
+    /// The dead-zone map's `Σ|g|` (forward or inverse, plus its centre) exceeds
+    /// [`MAX_GAIN_SUM`], so the tick's accumulator could overflow.
+    DeadZoneGainSumTooLarge,
+    /// The dead-zone map's centre lies outside the output range.
+    DeadZoneCentreOutOfRange,
 }
 
 impl core::fmt::Display for ParamError {
@@ -145,6 +188,46 @@ impl core::fmt::Display for ParamError {
             DuhemCoefficientOutOfRange => write!(
                 f,
                 "a Duhem coefficient, normalised, does not fit the Q8.24 format"
+            ),
+            TooManyDeadZones { count } => write!(
+                f,
+                "{count} dead zones given, at most {} supported",
+                crate::generalised_pi::MAX_DEAD_ZONES
+            ),
+            DeadZoneLengthMismatch {
+                thresholds,
+                weights,
+            } => write!(
+                f,
+                "{thresholds} dead-zone thresholds but {weights} weights"
+            ),
+            DeadZoneThresholdsNotIncreasing { dead_zone } => write!(
+                f,
+                "threshold of dead zone {dead_zone} is zero or does not exceed the one before it"
+            ),
+            DeadZoneThresholdOutOfRange { dead_zone } => write!(
+                f,
+                "threshold of dead zone {dead_zone} (or of its inverse) exceeds the span of the output range"
+            ),
+            DeadZoneLinearNotPositive => write!(
+                f,
+                "not invertible: the dead-zone map's linear gain is not positive"
+            ),
+            DeadZoneSlopeNotPositive { dead_zone } => write!(
+                f,
+                "not invertible: the dead-zone map's slope beyond dead zone {dead_zone} is not positive"
+            ),
+            DeadZoneWeightOutOfRange { dead_zone } => write!(
+                f,
+                "weight of dead zone {dead_zone} (or of its inverse) does not fit the Q8.24 format"
+            ),
+            DeadZoneGainSumTooLarge => write!(
+                f,
+                "the dead-zone map's sum of |weights| exceeds {MAX_GAIN_SUM} (normalised)"
+            ),
+            DeadZoneCentreOutOfRange => write!(
+                f,
+                "the dead-zone map's centre lies outside the output range: check the ranges"
             ),
         }
     }

@@ -31,6 +31,16 @@ pub enum ModelField {
     Beta,
     /// Duhem `γ`.
     Gamma,
+    /// Generalised P–I: the dead-zone map's centre (`dead_zones.centre`).
+    DeadZoneCentre,
+    /// Generalised P–I: the dead-zone map's linear gain (`dead_zones.linear`).
+    DeadZoneLinear,
+    /// Generalised P–I: threshold of this dead zone (1-based).
+    DeadZoneThreshold(u8),
+    /// Generalised P–I: weight of this dead zone (1-based).
+    DeadZoneWeight(u8),
+    /// Generalised P–I: the dead-zone list (count, lengths, the sum of its weights).
+    DeadZones,
 }
 
 /// A field of the settings or of a request. Wire-stable: append only.
@@ -179,6 +189,19 @@ impl core::fmt::Display for ModelField {
             ModelField::Alpha => write!(f, "alpha"),
             ModelField::Beta => write!(f, "beta"),
             ModelField::Gamma => write!(f, "gamma"),
+            ModelField::DeadZoneCentre => write!(f, "dead_zones.centre"),
+            ModelField::DeadZoneLinear => write!(f, "dead_zones.linear"),
+            ModelField::DeadZoneThreshold(i) => {
+                write!(
+                    f,
+                    "dead_zones.thresholds[{}]",
+                    (*i as usize).saturating_sub(1)
+                )
+            }
+            ModelField::DeadZoneWeight(i) => {
+                write!(f, "dead_zones.weights[{}]", (*i as usize).saturating_sub(1))
+            }
+            ModelField::DeadZones => write!(f, "dead_zones"),
         }
     }
 }

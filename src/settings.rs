@@ -20,6 +20,7 @@ use crate::control::{Compensator, ControlConfig, Observer};
 pub use crate::drive::{Configuration, DriveSettings, SafeState};
 use crate::duhem::{Duhem, InverseDuhem};
 pub use crate::feedback::FeedbackSettings;
+use crate::generalised_pi::{GeneralisedPi, GpiParams, InverseGeneralisedPi, MAX_DEAD_ZONES};
 pub use crate::mode_switch::Mode;
 pub use crate::notch::NotchDesign;
 use crate::params::{DuhemParams, ParamError, PiParams, MAX_OPERATORS};
@@ -36,6 +37,9 @@ pub enum Model {
     PrandtlIshlinskii(PiParams),
     /// Duhem.
     Duhem(DuhemParams),
+    /// Generalised (asymmetric) Prandtl–Ishlinskii: a P–I followed by a dead-zone map
+    /// ([`crate::generalised_pi`]).
+    GeneralisedPi(GpiParams),
 }
 
 /// Everything a user configures, in physical units (see the module doc).
@@ -120,6 +124,10 @@ impl Settings {
             Some(Model::Duhem(p)) => Compensator::InverseDuhem(
                 InverseDuhem::new(p, &ranges).map_err(|e| model_refusal(Field::Compensator, e))?,
             ),
+            Some(Model::GeneralisedPi(p)) => Compensator::InverseGeneralisedPi(
+                InverseGeneralisedPi::new(p, &ranges)
+                    .map_err(|e| model_refusal(Field::Compensator, e))?,
+            ),
         };
         let observer = match &self.observer {
             None => Observer::None,
@@ -129,6 +137,9 @@ impl Settings {
             ),
             Some(Model::Duhem(p)) => Observer::Duhem(
                 Duhem::new(p, &ranges).map_err(|e| model_refusal(Field::Observer, e))?,
+            ),
+            Some(Model::GeneralisedPi(p)) => Observer::GeneralisedPi(
+                GeneralisedPi::new(p, &ranges).map_err(|e| model_refusal(Field::Observer, e))?,
             ),
         };
         let drive = self.drive.build(hw, &ranges)?;
@@ -186,21 +197,24 @@ impl Settings {
             (&self.observer, Field::Observer),
         ] {
             match model {
-                Some(Model::PrandtlIshlinskii(p)) => {
-                    finite(field(ModelField::A0), p.a0)?;
-                    finite(field(ModelField::Offset), p.offset)?;
-                    for (i, &x) in p.thresholds.iter().enumerate() {
-                        finite(field(ModelField::Threshold(i as u8 + 1)), x)?;
-                    }
-                    for (i, &x) in p.weights.iter().enumerate() {
-                        finite(field(ModelField::Weight(i as u8 + 1)), x)?;
-                    }
-                }
+                Some(Model::PrandtlIshlinskii(p)) => check_pi_finite(field, p)?,
                 Some(Model::Duhem(p)) => {
                     finite(field(ModelField::Alpha), p.alpha)?;
                     finite(field(ModelField::Beta), p.beta)?;
                     finite(field(ModelField::Gamma), p.gamma)?;
                     finite(field(ModelField::Offset), p.offset)?;
+                }
+                Some(Model::GeneralisedPi(p)) => {
+                    check_pi_finite(field, &p.pi)?;
+                    let d = &p.dead_zones;
+                    finite(field(ModelField::DeadZoneCentre), d.centre)?;
+                    finite(field(ModelField::DeadZoneLinear), d.linear)?;
+                    for (i, &x) in d.thresholds.iter().enumerate() {
+                        finite(field(ModelField::DeadZoneThreshold(i as u8 + 1)), x)?;
+                    }
+                    for (i, &x) in d.weights.iter().enumerate() {
+                        finite(field(ModelField::DeadZoneWeight(i as u8 + 1)), x)?;
+                    }
                 }
                 None => {}
             }
@@ -231,6 +245,19 @@ impl Settings {
         }
         Ok(())
     }
+}
+
+/// Every float of a P–I model is finite, or the first that is not is named.
+fn check_pi_finite(field: fn(ModelField) -> Field, p: &PiParams) -> Result<(), Refusal> {
+    finite(field(ModelField::A0), p.a0)?;
+    finite(field(ModelField::Offset), p.offset)?;
+    for (i, &x) in p.thresholds.iter().enumerate() {
+        finite(field(ModelField::Threshold(i as u8 + 1)), x)?;
+    }
+    for (i, &x) in p.weights.iter().enumerate() {
+        finite(field(ModelField::Weight(i as u8 + 1)), x)?;
+    }
+    Ok(())
 }
 
 /// A P–I model from thresholds and weights (volts, output units per volt), as a [`Model`].
@@ -277,6 +304,30 @@ fn model_refusal(model: fn(ModelField) -> Field, e: ParamError) -> Refusal {
         E::DuhemBetaNotPositive => (ModelField::Beta, Rule::Above(0.0)),
         E::DuhemGammaNotPositive => (ModelField::Gamma, Rule::Above(0.0)),
         E::DuhemCoefficientOutOfRange => (ModelField::Model, Rule::BeyondFixedPoint),
+        E::TooManyDeadZones { .. } => (ModelField::DeadZones, Rule::TooMany(MAX_DEAD_ZONES as u32)),
+        E::DeadZoneLengthMismatch { .. } => (ModelField::DeadZones, Rule::LengthMismatch),
+        E::DeadZoneThresholdsNotIncreasing { dead_zone } => (
+            ModelField::DeadZoneThreshold(op(dead_zone)),
+            Rule::NotIncreasing,
+        ),
+        E::DeadZoneThresholdOutOfRange { dead_zone } => (
+            ModelField::DeadZoneThreshold(op(dead_zone)),
+            Rule::BeyondFixedPoint,
+        ),
+        E::DeadZoneLinearNotPositive => (ModelField::DeadZoneLinear, Rule::NotInvertible),
+        E::DeadZoneSlopeNotPositive { dead_zone } => (
+            ModelField::DeadZoneWeight(op(dead_zone)),
+            Rule::NotInvertible,
+        ),
+        E::DeadZoneWeightOutOfRange { dead_zone: 0 } => {
+            (ModelField::DeadZoneLinear, Rule::BeyondFixedPoint)
+        }
+        E::DeadZoneWeightOutOfRange { dead_zone } => (
+            ModelField::DeadZoneWeight(op(dead_zone)),
+            Rule::BeyondFixedPoint,
+        ),
+        E::DeadZoneGainSumTooLarge => (ModelField::DeadZones, Rule::BeyondFixedPoint),
+        E::DeadZoneCentreOutOfRange => (ModelField::DeadZoneCentre, Rule::BeyondFixedPoint),
     };
     Refusal::new(model(field), rule)
 }
@@ -306,6 +357,23 @@ pub fn representative_pi(n: usize) -> Result<Model, ParamError> {
     }
     let a0 = if n == 1 { 0.2 } else { 0.0 };
     pi_model(a0, 0.0, &thresholds, &weights)
+}
+
+/// The representative (not identified) generalised P–I: [`representative_pi`]`(n)` followed
+/// by a map of six dead zones around 35 µm, flatter below the centre (slopes 0.95, 0.85, 0.75
+/// beyond −8, −16, −24 µm) and steeper above it (1.05, 1.15, 1.3 beyond 8, 16, 24 µm): an
+/// asymmetric loop over 0…140 V onto 0…70 µm.
+pub fn representative_gpi(n: usize) -> Result<Model, ParamError> {
+    let Model::PrandtlIshlinskii(pi) = representative_pi(n)? else {
+        return Err(ParamError::NoOperators);
+    };
+    let dead_zones = crate::generalised_pi::DeadZoneParams::new(
+        35.0,
+        1.0,
+        &[-24.0, -16.0, -8.0, 8.0, 16.0, 24.0],
+        &[-0.1, -0.1, -0.05, 0.05, 0.1, 0.15],
+    )?;
+    Ok(Model::GeneralisedPi(GpiParams { pi, dead_zones }))
 }
 
 /// The representative Duhem model: anhysteretic slope 0.5 µm/V through the origin, slope after
@@ -351,11 +419,13 @@ mod tests {
             None,
             Some(representative_pi(8).unwrap()),
             Some(representative_duhem()),
+            Some(representative_gpi(8).unwrap()),
         ] {
             for obs in [
                 None,
                 Some(representative_pi(16).unwrap()),
                 Some(representative_duhem()),
+                Some(representative_gpi(16).unwrap()),
             ] {
                 let s = Settings {
                     compensator: comp.clone(),
@@ -422,9 +492,122 @@ mod tests {
         );
     }
 
+    fn gpi(s: &mut Settings) -> &mut GpiParams {
+        match s.compensator.as_mut() {
+            Some(Model::GeneralisedPi(p)) => p,
+            _ => unreachable!("a generalised P–I compensator"),
+        }
+    }
+
+    #[test]
+    fn generalised_pi_refusals_name_the_dead_zone() {
+        let base = || Settings {
+            compensator: Some(representative_gpi(16).unwrap()),
+            observer: Some(representative_gpi(16).unwrap()),
+            ..closed()
+        };
+        let refused = |f: fn(&mut GpiParams)| {
+            let mut s = base();
+            f(gpi(&mut s));
+            s.build(&hw()).unwrap_err()
+        };
+        let comp = |m| Field::Compensator(m);
+        assert_eq!(
+            refused(|p| p.dead_zones.weights[2] = f64::NAN),
+            Refusal::new(comp(ModelField::DeadZoneWeight(3)), Rule::NotFinite)
+        );
+        assert_eq!(
+            refused(|p| p.dead_zones.centre = f64::INFINITY),
+            Refusal::new(comp(ModelField::DeadZoneCentre), Rule::NotFinite)
+        );
+        assert_eq!(
+            refused(|p| p.dead_zones.thresholds[4] = p.dead_zones.thresholds[3]),
+            Refusal::new(comp(ModelField::DeadZoneThreshold(5)), Rule::NotIncreasing)
+        );
+        assert_eq!(
+            refused(|p| p.dead_zones.weights[4] = -1.2),
+            Refusal::new(comp(ModelField::DeadZoneWeight(5)), Rule::NotInvertible)
+        );
+        assert_eq!(
+            refused(|p| p.dead_zones.linear = 0.0),
+            Refusal::new(comp(ModelField::DeadZoneLinear), Rule::NotInvertible)
+        );
+        assert_eq!(
+            refused(|p| p.dead_zones.thresholds[5] = 100.0),
+            Refusal::new(
+                comp(ModelField::DeadZoneThreshold(6)),
+                Rule::BeyondFixedPoint
+            )
+        );
+        assert_eq!(
+            refused(|p| p.dead_zones.centre = 80.0),
+            Refusal::new(comp(ModelField::DeadZoneCentre), Rule::BeyondFixedPoint)
+        );
+        assert_eq!(
+            refused(|p| p.dead_zones.weights.truncate(5)),
+            Refusal::new(comp(ModelField::DeadZones), Rule::LengthMismatch)
+        );
+        // The P–I part keeps its own fields.
+        assert_eq!(
+            refused(|p| p.pi.weights[0] = -0.5),
+            Refusal::new(comp(ModelField::Weight(1)), Rule::NotInvertible)
+        );
+        // The observer's are the observer's.
+        let mut s = base();
+        if let Some(Model::GeneralisedPi(p)) = s.observer.as_mut() {
+            p.dead_zones.weights[0] = f64::NAN;
+        }
+        let r = s.build(&hw()).unwrap_err();
+        assert_eq!(
+            r,
+            Refusal::new(
+                Field::Observer(ModelField::DeadZoneWeight(1)),
+                Rule::NotFinite
+            )
+        );
+        let mut text = heapless::String::<64>::new();
+        core::fmt::write(&mut text, format_args!("{r}")).unwrap();
+        assert_eq!(text, "observer.dead_zones.weights[0] is NaN or infinite");
+    }
+
+    /// The largest settings the wire carries (two generalised P–I models of 32 operators and
+    /// 8 dead zones, a notch) still fit one frame's body and the flash record.
+    #[test]
+    fn the_largest_generalised_pi_settings_fit_a_frame() {
+        let Model::GeneralisedPi(mut g) = representative_gpi(32).unwrap() else {
+            unreachable!()
+        };
+        g.dead_zones = crate::generalised_pi::DeadZoneParams::new(
+            35.0,
+            1.0,
+            &[-32.0, -24.0, -16.0, -8.0, 8.0, 16.0, 24.0, 32.0],
+            &[-0.1, -0.1, -0.1, -0.05, 0.05, 0.1, 0.15, 0.1],
+        )
+        .unwrap();
+        let mut s = closed();
+        s.compensator = Some(Model::GeneralisedPi(g.clone()));
+        s.observer = Some(Model::GeneralisedPi(g));
+        s.feedback.as_mut().unwrap().notch = Some(NotchDesign {
+            frequency_hz: 1000.0,
+            q: 2.0,
+            depth: 0.1,
+        });
+        s.sensor.as_mut().unwrap().drift_limit = Some(0.1);
+        assert!(s.build(&hw()).is_ok());
+        let mut buf = [0u8; 4096];
+        let n = postcard::to_slice(&s, &mut buf).unwrap().len();
+        // Version byte, message tag and CRC around it.
+        assert!(
+            n + 1 + 1 + 4 <= crate::protocol::frame::MAX_BODY,
+            "{n} bytes of settings"
+        );
+        assert!(n + 5 <= crate::param_store::MAX_PAYLOAD);
+    }
+
     #[test]
     fn settings_round_trip_through_postcard() {
-        let s = closed();
+        let mut s = closed();
+        s.observer = Some(representative_gpi(8).unwrap());
         let mut buf = [0u8; 2048];
         let bytes = postcard::to_slice(&s, &mut buf).unwrap();
         let back: Settings = postcard::from_bytes(bytes).unwrap();

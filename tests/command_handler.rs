@@ -460,6 +460,71 @@ fn model_fields(which: &str, model: &Model, field: fn(ModelField) -> Field) -> V
                 ));
             }
         }
+        Model::GeneralisedPi(g) => {
+            // The P–I part's fields keep the P–I's names; then the dead-zone map's.
+            type Get = fn(&mut twinstack::generalised_pi::GpiParams, usize) -> &mut f64;
+            let mut parts: Vec<(String, ModelField, Get, usize)> = vec![
+                ("a0".into(), ModelField::A0, |p, _| &mut p.pi.a0, 0),
+                (
+                    "offset".into(),
+                    ModelField::Offset,
+                    |p, _| &mut p.pi.offset,
+                    0,
+                ),
+                (
+                    "dead_zones.centre".into(),
+                    ModelField::DeadZoneCentre,
+                    |p, _| &mut p.dead_zones.centre,
+                    0,
+                ),
+                (
+                    "dead_zones.linear".into(),
+                    ModelField::DeadZoneLinear,
+                    |p, _| &mut p.dead_zones.linear,
+                    0,
+                ),
+            ];
+            for i in 0..g.pi.thresholds.len() {
+                parts.push((
+                    format!("thresholds[{i}]"),
+                    ModelField::Threshold(i as u8 + 1),
+                    |p, i| &mut p.pi.thresholds[i],
+                    i,
+                ));
+                parts.push((
+                    format!("weights[{i}]"),
+                    ModelField::Weight(i as u8 + 1),
+                    |p, i| &mut p.pi.weights[i],
+                    i,
+                ));
+            }
+            for i in 0..g.dead_zones.thresholds.len() {
+                parts.push((
+                    format!("dead_zones.thresholds[{i}]"),
+                    ModelField::DeadZoneThreshold(i as u8 + 1),
+                    |p, i| &mut p.dead_zones.thresholds[i],
+                    i,
+                ));
+                parts.push((
+                    format!("dead_zones.weights[{i}]"),
+                    ModelField::DeadZoneWeight(i as u8 + 1),
+                    |p, i| &mut p.dead_zones.weights[i],
+                    i,
+                ));
+            }
+            for (name, f, get, i) in parts {
+                let m = w.clone();
+                out.push((
+                    format!("{w}.{name}"),
+                    field(f),
+                    Box::new(move |s, x| {
+                        if let Model::GeneralisedPi(p) = model_of(s, &m) {
+                            *get(p, i) = x
+                        }
+                    }),
+                ));
+            }
+        }
     }
     out
 }
@@ -568,7 +633,12 @@ fn nan_or_infinity_in_any_float_of_a_load_is_refused_naming_that_field_and_chang
         observer: pi_duhem.compensator.clone(),
         ..pi_duhem.clone()
     };
-    for base in [pi_duhem, duhem_pi] {
+    let gpi_gpi = Settings {
+        compensator: Some(twinstack::settings::representative_gpi(8).unwrap()),
+        observer: Some(twinstack::settings::representative_gpi(4).unwrap()),
+        ..pi_duhem.clone()
+    };
+    for base in [pi_duhem, duhem_pi, gpi_gpi] {
         let hw = hardware();
         assert!(base.build(&hw).is_ok(), "the base settings are valid");
         // Two boards on the same settings, one refused everything, the other left alone:

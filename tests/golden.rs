@@ -46,6 +46,11 @@ fn model_name(model: &Option<Model>) -> String {
         None => "none".into(),
         Some(Model::PrandtlIshlinskii(p)) => format!("P–I N={}", p.thresholds.len()),
         Some(Model::Duhem(_)) => "Duhem".into(),
+        Some(Model::GeneralisedPi(g)) => format!(
+            "GPI N={} D={}",
+            g.pi.thresholds.len(),
+            g.dead_zones.thresholds.len()
+        ),
     }
 }
 
@@ -72,13 +77,20 @@ fn the_vector_sets_cover_every_compensator_observer_and_mode() {
             set.ticks()
         );
     }
-    for want in ["none", "P–I N=8", "P–I N=16", "P–I N=32", "Duhem"] {
+    for want in [
+        "none",
+        "P–I N=8",
+        "P–I N=16",
+        "P–I N=32",
+        "Duhem",
+        "GPI N=16 D=6",
+    ] {
         assert!(
             compensators.iter().any(|c| c == want),
             "no set with compensator {want}"
         );
     }
-    for want in ["none", "P–I N=8", "P–I N=16", "Duhem"] {
+    for want in ["none", "P–I N=8", "P–I N=16", "Duhem", "GPI N=16 D=6"] {
         assert!(
             observers.iter().any(|c| c == want),
             "no set with observer {want}"

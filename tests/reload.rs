@@ -12,6 +12,7 @@ use twinstack::board::{AdcCode, DacCode, Hardware};
 use twinstack::control::{Controller, TickFlags};
 use twinstack::control_loop::{ControlLoop, SetpointQueue};
 use twinstack::drive::{Configuration, DriveSettings, SafeState};
+use twinstack::generalised_pi::{DeadZoneParams, GpiParams};
 use twinstack::param_store::RamStorage;
 use twinstack::params::DuhemParams;
 use twinstack::protocol::handler::CommandHandler;
@@ -38,13 +39,45 @@ fn pi_over(span: f64, n: usize, w1: f64, offset: f64) -> Model {
     pi_model(0.0, offset, &thresholds, &weights).unwrap()
 }
 
+/// A generalised P–I: [`pi_over`] through a map of four dead zones centred on the output
+/// range (at ±0.15 and ±0.3 of its span), each slope `slopes[j]`.
+fn gpi_over(
+    span: f64,
+    n: usize,
+    w1: f64,
+    offset: f64,
+    centre: f64,
+    out_span: f64,
+    slopes: [f64; 4],
+) -> Model {
+    let Model::PrandtlIshlinskii(pi) = pi_over(span, n, w1, offset) else {
+        unreachable!("pi_over builds a P–I")
+    };
+    // Slopes outward: below the centre slopes[1] then slopes[0], above slopes[2] then slopes[3].
+    let weights = [
+        slopes[0] - slopes[1],
+        slopes[1] - 1.0,
+        slopes[2] - 1.0,
+        slopes[3] - slopes[2],
+    ];
+    let dead_zones = DeadZoneParams::new(
+        centre,
+        1.0,
+        &[-0.3, -0.15, 0.15, 0.3].map(|f| f * out_span),
+        &weights,
+    )
+    .unwrap();
+    Model::GeneralisedPi(GpiParams { pi, dead_zones })
+}
+
 prop_compose! {
-    fn any_model(span: f64, out_span: f64)(kind in 0..3u8, n in 1..=32usize, w in 0.2f64..1.5, alpha in 0.001f64..0.1, gamma in 0.2f64..0.9, off in -0.3f64..0.3) -> Option<Model> {
+    fn any_model(span: f64, out_lo: f64, out_span: f64)(kind in 0..4u8, n in 1..=32usize, w in 0.2f64..1.5, alpha in 0.001f64..0.1, gamma in 0.2f64..0.9, off in -0.3f64..0.3, slopes in proptest::array::uniform4(0.4f64..1.8)) -> Option<Model> {
         let slope = out_span / span;
         match kind {
             0 => None,
             1 => Some(pi_over(span, n, w * slope, off * out_span)),
-            _ => Some(Model::Duhem(DuhemParams { alpha, beta: w * slope, gamma: gamma * w * slope, offset: off * out_span })),
+            2 => Some(Model::Duhem(DuhemParams { alpha, beta: w * slope, gamma: gamma * w * slope, offset: off * out_span })),
+            _ => Some(gpi_over(span, n, w * slope, off * out_span, out_lo + 0.5 * out_span, out_span, slopes)),
         }
     }
 }
@@ -55,8 +88,8 @@ prop_compose! {
         out_lo in -50.0f64..10.0, out_span in 5.0f64..100.0,
     )(
         ranges in Just((lo, (lo + span).min(150.0), out_lo, out_lo + out_span)),
-        compensator in any_model((lo + span).min(150.0) - lo, out_span),
-        observer in any_model((lo + span).min(150.0) - lo, out_span),
+        compensator in any_model((lo + span).min(150.0) - lo, out_lo, out_span),
+        observer in any_model((lo + span).min(150.0) - lo, out_lo, out_span),
         differential in any::<bool>(),
         vmin in 0.0f64..40.0, vspan in 20.0f64..150.0, bias_frac in 0.0f64..=1.0,
         slew in 1.0e4f64..5.0e6,

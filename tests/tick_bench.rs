@@ -137,6 +137,7 @@ fn tick_cost_table_and_image_size() {
         "inverse-duhem",
         "none-sensor-drift",
         "none-pid-notch",
+        "inverse-gpi-16",
     ];
     let names: Vec<&str> = rows.iter().map(|r| r.name.as_str()).collect();
     assert_eq!(names, expected, "the bench must report every configuration");
@@ -169,6 +170,11 @@ fn tick_cost_table_and_image_size() {
             "none-sensor-drift" => ("none", "Duhem", "sensor + drift check (bypass)"),
             "none-pid-notch" => ("none", "Duhem", "PID + notch"),
             "inverse-duhem" => ("inverse Duhem", "Duhem", "PI"),
+            "inverse-gpi-16" => (
+                "inverse generalised P–I, N = 16, 6 dead zones",
+                "Duhem",
+                "PI",
+            ),
             other => panic!("unknown bench row {other}"),
         };
         println!(
@@ -204,7 +210,9 @@ fn tick_cost_table_and_image_size() {
             "duhem-observer-step",
             "inverse-pi-16-step",
             "inverse-pi-16-full-steps",
-            "dac-write"
+            "dac-write",
+            "gpi-16-6-observer-step",
+            "inverse-gpi-16-6-step"
         ],
         "the bench must report every part"
     );

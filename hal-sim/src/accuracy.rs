@@ -7,6 +7,7 @@
 use crate::reference;
 use twinstack::duhem::{Duhem, InverseDuhem};
 use twinstack::fixed_point::{signal_from_f64 as q, signal_to_f64 as f};
+use twinstack::generalised_pi::{DeadZoneParams, GeneralisedPi, GpiParams, InverseGeneralisedPi};
 use twinstack::prandtl_ishlinskii::{InversePrandtlIshlinskii, PrandtlIshlinskii};
 use twinstack::{DuhemParams, PiParams, Scaling, Thresholds};
 
@@ -64,6 +65,35 @@ fn random_pi(rng: &mut Rng, n: usize) -> (PiParams, Scaling) {
     )
 }
 
+/// A random generalised P–I over 0…150 V: [`random_pi`] with `n` operators, then a map
+/// centred on the P–I's output range with three dead zones each side, at ±0.2, 0.4, 0.6 of
+/// its reach, every slope between 0.3 and 1.8 (so the output stays within twice the reach,
+/// the output range).
+fn random_gpi(rng: &mut Rng, n: usize) -> (GpiParams, Scaling) {
+    let (pi, s) = random_pi(rng, n);
+    let reach = s.output_max;
+    let thresholds = [-0.6, -0.4, -0.2, 0.2, 0.4, 0.6].map(|f| f * reach);
+    let linear = rng.range(0.6, 1.2);
+    let mut weights = [0.0; 6];
+    // Outward from the centre on each side, each slope kept within [0.3, 1.8].
+    for side in [[2usize, 1, 0], [3, 4, 5]] {
+        let mut slope = linear;
+        for j in side {
+            let target = rng.range(0.3, 1.8);
+            weights[j] = target - slope;
+            slope = target;
+        }
+    }
+    let map = DeadZoneParams::new(0.0, linear, &thresholds, &weights).expect("six dead zones");
+    (
+        GpiParams {
+            pi,
+            dead_zones: map,
+        },
+        Scaling::new(0.0, 150.0, -2.0 * reach, 2.0 * reach).expect("non-empty"),
+    )
+}
+
 /// A random piecewise-linear drive (normalised) with full-range steps mixed in.
 fn random_drive(rng: &mut Rng, samples: usize) -> Vec<f64> {
     let mut out = Vec::with_capacity(samples);
@@ -117,8 +147,9 @@ impl Stats {
     }
 }
 
-/// Measures fixed point against `f64` for forward and inverse P–I at N = 8, 16, 32 and for
-/// the Duhem observer and compensator: `models` random models × `samples` samples each.
+/// Measures fixed point against `f64` for forward and inverse P–I at N = 8, 16, 32, for
+/// the Duhem observer and compensator and for the forward and inverse generalised P–I
+/// (N = 16, 6 dead zones): `models` random models × `samples` samples each.
 pub fn measure(seed: u64, models: usize, samples: usize) -> Vec<AccuracyRow> {
     let mut rng = Rng(seed.max(1));
     let mut rows = Vec::new();
@@ -180,5 +211,30 @@ pub fn measure(seed: u64, models: usize, samples: usize) -> Vec<AccuracyRow> {
     }
     rows.push(obs.row("Duhem observer".into()));
     rows.push(comp.row("inverse Duhem".into()));
+    let mut fwd_stats = Stats::new();
+    let mut inv_stats = Stats::new();
+    for _ in 0..models {
+        let (p, s) = random_gpi(&mut rng, 16);
+        let drive = random_drive(&mut rng, samples);
+        let fwd = GeneralisedPi::new(&p, &s).expect("valid");
+        let mut fs = fwd.state_at_rest(q(-1.0));
+        let mut fr = reference::GeneralisedPi::new(&p, &s, 0.0).expect("valid");
+        // A random model whose inverse needs gains beyond Q8.24 is refused: skip it.
+        let inv = InverseGeneralisedPi::new(&p, &s).ok();
+        let y0 = fr.clone().step(0.0);
+        let mut ir = reference::InverseGeneralisedPi::new(&p, &s, 0.0).expect("valid");
+        let mut is = inv.map(|i| i.state_at_rest(q(s.output_to_norm(y0))));
+        for &u in &drive {
+            let y_ref = fr.step(s.norm_to_input(u));
+            fwd_stats.add(f(fwd.step(&mut fs, q(u))) - s.output_to_norm(y_ref));
+            if let (Some(inv), Some(st)) = (inv.as_ref(), is.as_mut()) {
+                let u_ref = s.input_to_norm(ir.step(y_ref));
+                let u_fix = f(inv.step(st, q(s.output_to_norm(y_ref))));
+                inv_stats.add(u_fix - u_ref);
+            }
+        }
+    }
+    rows.push(fwd_stats.row("forward generalised P–I, N = 16, 6 dead zones".into()));
+    rows.push(inv_stats.row("inverse generalised P–I, N = 16, 6 dead zones".into()));
     rows
 }

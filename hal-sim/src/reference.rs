@@ -3,6 +3,7 @@
 //! same clamps, no quantisation. They allocate nothing, but are not meant for the tick: they
 //! live here, on the host, and not in the firmware's library.
 
+use twinstack::generalised_pi::{DeadZoneParams, GpiParams};
 use twinstack::params::{CanonicalPi, DuhemParams, ParamError, PiParams};
 use twinstack::scaling::Scaling;
 
@@ -112,6 +113,108 @@ impl InversePrandtlIshlinskii {
     /// Operators and their states.
     pub fn operators(&self) -> &PlaySum {
         &self.sum
+    }
+}
+
+/// The one-sided dead-zone map, `f64`, written out from its definition:
+/// `c + g_0 (z − c) + Σ g_j S_{d_j}(z − c)`, `S_d(x) = max(x − d, 0)` (`d > 0`), `min(x − d, 0)`
+/// (`d < 0`).
+pub fn dead_zone_map(m: &DeadZoneParams, z: f64) -> f64 {
+    let x = z - m.centre;
+    let mut y = m.centre + m.linear * x;
+    for (&d, &g) in m.thresholds.iter().zip(m.weights.iter()) {
+        y += g * if d > 0.0 {
+            (x - d).max(0.0)
+        } else {
+            (x - d).min(0.0)
+        };
+    }
+    y
+}
+
+/// The inverse of [`dead_zone_map`] found numerically (bisection to the last bit of an `f64`),
+/// independent of the library's closed form. The map must be increasing (validated).
+pub fn dead_zone_map_inverse(m: &DeadZoneParams, y: f64) -> f64 {
+    // The map's slopes are positive, so it leaves every bracket; widen until y is inside.
+    let (mut lo, mut hi) = (m.centre - 1.0, m.centre + 1.0);
+    let mut width = 1.0;
+    while dead_zone_map(m, lo) > y && width < 1e300 {
+        width *= 2.0;
+        lo = m.centre - width;
+    }
+    width = 1.0;
+    while dead_zone_map(m, hi) < y && width < 1e300 {
+        width *= 2.0;
+        hi = m.centre + width;
+    }
+    for _ in 0..200 {
+        let mid = 0.5 * (lo + hi);
+        if mid == lo || mid == hi {
+            break;
+        }
+        if dead_zone_map(m, mid) < y {
+            lo = mid;
+        } else {
+            hi = mid;
+        }
+    }
+    0.5 * (lo + hi)
+}
+
+/// Forward generalised P–I, `f64`: `y = S[PI[u]]` (the P–I reference, then [`dead_zone_map`]).
+#[derive(Clone, Debug, PartialEq)]
+pub struct GeneralisedPi {
+    pi: PrandtlIshlinskii,
+    map: DeadZoneParams,
+}
+
+impl GeneralisedPi {
+    /// The model `params`, at rest at input `u0` (volts).
+    pub fn new(params: &GpiParams, scaling: &Scaling, u0: f64) -> Result<Self, ParamError> {
+        params.validate()?;
+        Ok(Self {
+            pi: PrandtlIshlinskii::new(&params.pi, scaling, u0)?,
+            map: params.dead_zones.clone(),
+        })
+    }
+
+    /// One sample: drive `u` (volts) → displacement (output units).
+    pub fn step(&mut self, u: f64) -> f64 {
+        dead_zone_map(&self.map, self.pi.step(u))
+    }
+}
+
+/// Inverse generalised P–I, `f64`: `u = PI⁻¹[S⁻¹[y_d]]`, the map inverted numerically
+/// ([`dead_zone_map_inverse`]), the desired output clamped to the output range (as the
+/// fixed-point compensator clamps it to ±1), and so is the P–I's desired output.
+#[derive(Clone, Debug, PartialEq)]
+pub struct InverseGeneralisedPi {
+    pi: InversePrandtlIshlinskii,
+    map: DeadZoneParams,
+    scaling: Scaling,
+}
+
+impl InverseGeneralisedPi {
+    /// The inverse of `params`, its P–I part at rest as [`InversePrandtlIshlinskii::new`] puts it.
+    pub fn new(params: &GpiParams, scaling: &Scaling, u0: f64) -> Result<Self, ParamError> {
+        params.validate()?;
+        Ok(Self {
+            pi: InversePrandtlIshlinskii::new(&params.pi, scaling, u0)?,
+            map: params.dead_zones.clone(),
+            scaling: *scaling,
+        })
+    }
+
+    /// The P–I part's input `z = S⁻¹[y]` for a desired output `y` (output units, clamped).
+    pub fn map_inverse(&self, y: f64) -> f64 {
+        let y = clamp(y, self.scaling.output_min, self.scaling.output_max);
+        dead_zone_map_inverse(&self.map, y)
+    }
+
+    /// One sample: desired displacement (output units) → drive (volts, not clamped).
+    pub fn step(&mut self, y: f64) -> f64 {
+        let z = self.map_inverse(y);
+        self.pi.step(z)
     }
 }
 

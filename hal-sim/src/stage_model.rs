@@ -16,6 +16,7 @@ use twinstack::duhem::{Duhem, InverseDuhem};
 use twinstack::fixed_point::{
     clamp_full_scale, gain_from_f64, saturate_i64, signal_from_f64, signal_to_f64, GAIN_FRAC_BITS,
 };
+use twinstack::generalised_pi::{GeneralisedPi, GpiParams, InverseGeneralisedPi};
 use twinstack::play_operator::play;
 use twinstack::prandtl_ishlinskii::{InversePrandtlIshlinskii, PrandtlIshlinskii};
 use twinstack::{DuhemParams, ParamError, PiParams, Scaling};
@@ -29,6 +30,8 @@ pub enum Hysteresis {
     Pi(PiParams),
     /// Duhem.
     Duhem(DuhemParams),
+    /// Generalised (asymmetric) P–I: a P–I followed by a dead-zone map.
+    GeneralisedPi(GpiParams),
 }
 
 /// Everything needed to run a stage's model on a record.
@@ -83,6 +86,10 @@ impl StageModel {
             Hysteresis::Duhem(p) => {
                 InverseDuhem::new(p, &self.scaling)?;
             }
+            Hysteresis::GeneralisedPi(p) => {
+                GeneralisedPi::new(p, &self.scaling)?;
+                InverseGeneralisedPi::new(p, &self.scaling)?;
+            }
         }
         Ok(())
     }
@@ -126,6 +133,13 @@ impl StageModel {
                     .map(|&v| y_phys(m.step(&mut st, u_norm(v))))
                     .collect()
             }
+            Hysteresis::GeneralisedPi(p) => {
+                let m = GeneralisedPi::new(p, s)?;
+                let mut st = m.state_at_rest(u_norm(u0));
+                u.iter()
+                    .map(|&v| y_phys(m.step(&mut st, u_norm(v))))
+                    .collect()
+            }
         };
         Ok(self.delay(t, y))
     }
@@ -142,6 +156,10 @@ impl StageModel {
             Hysteresis::Duhem(p) => {
                 let u0 = u0.clamp(s.input_min, s.input_max);
                 let mut m = reference::Duhem::new(p, s, u0, p.beta * u0 + p.offset)?;
+                u.iter().map(|&v| m.step(v)).collect()
+            }
+            Hysteresis::GeneralisedPi(p) => {
+                let mut m = reference::GeneralisedPi::new(p, s, u0)?;
                 u.iter().map(|&v| m.step(v)).collect()
             }
         };
@@ -189,6 +207,14 @@ impl StageModel {
                     })
                     .collect()
             }
+            Hysteresis::GeneralisedPi(p) => {
+                let m = InverseGeneralisedPi::new(p, s)?;
+                let mut st = m.state_at_rest(y_norm(y0));
+                desired
+                    .iter()
+                    .map(|&v| u_phys(m.step(&mut st, y_norm(v))))
+                    .collect()
+            }
         })
     }
 
@@ -223,6 +249,15 @@ impl StageModel {
                         u.clamp(s.input_min, s.input_max)
                     })
                     .collect()
+            }
+            Hysteresis::GeneralisedPi(p) => {
+                // Relaxed where the P–I part's output is S⁻¹[y0], as for the P–I.
+                let c = p.pi.canonical()?;
+                let total: f64 = c.weights.iter().sum();
+                let mut m = reference::InverseGeneralisedPi::new(p, s, 0.0)?;
+                let z0 = m.map_inverse(y0);
+                m = reference::InverseGeneralisedPi::new(p, s, (z0 - c.offset) / total)?;
+                desired.iter().map(|&v| m.step(v)).collect()
             }
         })
     }
@@ -475,6 +510,44 @@ mod tests {
                 proptest::prop_assert!((back[k] - drive[k]).abs() < 1e-3, "k {}: {} vs {}", k, back[k], drive[k]);
             }
         }
+    }
+
+    /// The generalised P–I: fixed point tracks the `f64` reference (forward and inverse), and
+    /// the compensator fed the prediction gives the drive back.
+    #[test]
+    fn generalised_pi_tracks_its_reference_and_inverts() {
+        use twinstack::generalised_pi::DeadZoneParams;
+        let Hysteresis::Pi(pi) = pi_model(1.0, 0.0).hysteresis else {
+            unreachable!()
+        };
+        let m = StageModel {
+            hysteresis: Hysteresis::GeneralisedPi(GpiParams {
+                pi,
+                dead_zones: DeadZoneParams::new(1.0, 0.9, &[-6.0, 4.0], &[-0.3, 0.4]).unwrap(),
+            }),
+            scaling: Scaling::new(-100.0, 100.0, -18.0, 20.0).unwrap(),
+            output_sign: -1.0,
+            sensor_lag_s: 0.02,
+        };
+        m.check().unwrap();
+        let (t, u) = record();
+        let worst = |a: &[f64], b: &[f64]| {
+            a.iter()
+                .zip(b)
+                .map(|(a, b)| (a - b).abs())
+                .fold(0.0, f64::max)
+        };
+        let x = m.predict(&t, &u).unwrap();
+        assert!(worst(&x, &m.predict_reference(&t, &u).unwrap()) < 1e-5);
+        let back = m.compensate(&t, &x).unwrap();
+        let back_ref = m.compensate_reference(&t, &x).unwrap();
+        assert!(worst(&back, &back_ref) < 1e-3);
+        let n = t.len() - 2;
+        assert!(
+            worst(&back[..n], &u[..n]) < 1e-3,
+            "{}",
+            worst(&back[..n], &u[..n])
+        );
     }
 
     #[test]

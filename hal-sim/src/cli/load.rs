@@ -166,6 +166,11 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     let what = match &settings.compensator {
         Some(Model::PrandtlIshlinskii(p)) => format!("P–I, {} operators", p.thresholds.len()),
         Some(Model::Duhem(_)) => "Duhem".to_string(),
+        Some(Model::GeneralisedPi(p)) => format!(
+            "generalised P–I, {} operators, {} dead zones",
+            p.pi.thresholds.len(),
+            p.dead_zones.thresholds.len()
+        ),
         None => "no compensator".to_string(),
     };
     let d = &settings.drive;

@@ -121,12 +121,14 @@ enum Feedforward {
     None,
     InversePi(Box<reference::InversePrandtlIshlinskii>),
     InverseDuhem(reference::InverseDuhem),
+    InverseGpi(Box<reference::InverseGeneralisedPi>),
 }
 
 enum Estimator {
     None,
     Pi(Box<reference::PrandtlIshlinskii>),
     Duhem(reference::Duhem),
+    Gpi(Box<reference::GeneralisedPi>),
 }
 
 /// The position sensor in real arithmetic (see the module doc), with the drift check's memory.
@@ -290,6 +292,11 @@ fn observer_at_rest(recipe: &Recipe, u0: f64) -> anyhow::Result<(Estimator, Opti
                 Some(y),
             )
         }
+        Some(Model::GeneralisedPi(p)) => {
+            let m = reference::GeneralisedPi::new(p, s, u0)?;
+            let y = m.clone().step(u0);
+            (Estimator::Gpi(Box::new(m)), Some(y))
+        }
     })
 }
 
@@ -313,6 +320,18 @@ fn compensator_at_rest(recipe: &Recipe, u0: f64, y0: f64) -> anyhow::Result<Feed
             u0,
             m.beta * u0 + m.offset,
         )?),
+        Some(Model::GeneralisedPi(p)) => {
+            // As the P–I, with the P–I part relaxed at z = S⁻¹[y].
+            let c = p.pi.canonical()?;
+            let total: f64 = c.weights.iter().sum();
+            let z =
+                reference::InverseGeneralisedPi::new(p, s, 0.0)?.map_inverse(s.norm_to_output(y0));
+            Feedforward::InverseGpi(Box::new(reference::InverseGeneralisedPi::new(
+                p,
+                s,
+                (z - c.offset) / total,
+            )?))
+        }
     })
 }
 
@@ -410,6 +429,7 @@ pub fn check(set: &VectorSet<'_>) -> anyhow::Result<Agreement> {
             Feedforward::None => target,
             Feedforward::InversePi(m) => s.input_to_norm(m.step(s.norm_to_output(target))),
             Feedforward::InverseDuhem(m) => s.input_to_norm(m.step(s.norm_to_output(target))),
+            Feedforward::InverseGpi(m) => s.input_to_norm(m.step(s.norm_to_output(target))),
         };
         let ff = if bypass { target } else { compensated };
         let mut command = ff;
@@ -483,6 +503,7 @@ pub fn check(set: &VectorSet<'_>) -> anyhow::Result<Agreement> {
             Estimator::None => 0.0,
             Estimator::Pi(m) => norm(&s, m.step(u_volts)),
             Estimator::Duhem(m) => norm(&s, m.step(u_volts)),
+            Estimator::Gpi(m) => norm(&s, m.step(u_volts)),
         };
         if let Some(sn) = &mut sensor {
             sn.observed(estimate_ref);

@@ -18,6 +18,12 @@
 //! | `ipi32-duhem-closed` | inverse P–I, N = 32 | Duhem | no drift limit | PI | closed loop | unidirectional, bias | 12-bit, 16-bit |
 //! | `iduhem-duhem-closed` | inverse Duhem | Duhem | no drift limit | PI | closed loop | differential, bias | 16-bit, 16-bit |
 //! | `iduhem-pi-open` | inverse Duhem | P–I, N = 16 | none | none | open loop | unidirectional, bias | 16-bit, none |
+//! | `igpi16-gpi-closed` | inverse generalised P–I, N = 16, 6 dead zones | the same | drift limit 2 % | PI | closed loop | differential, bias | 16-bit, 16-bit |
+//!
+//! The generalised P–I's file widens its output range a little beyond the others' (for its
+//! P–I part's output); the shared scaling is the union of the other files' ranges only, so the
+//! sets before it keep their vectors bit for bit (its P–I part's input is clamped to that
+//! range at the very bottom of the stroke, by the fixed point and the reference alike).
 //!
 //! The bypass set with models runs the compensator on every tick without using it, reads the
 //! sensor and checks drift (a bypassed tick still monitors the stage), and starts from the
@@ -29,16 +35,18 @@ use anyhow::{bail, Context};
 use std::path::Path;
 use twinstack::board::Hardware;
 use twinstack::drive::{Configuration, DriveSettings, SafeState};
+use twinstack::generalised_pi::GpiParams;
 use twinstack::settings::{FeedbackSettings, Mode, Model, SensorSettings, Settings};
 use twinstack::{DuhemParams, PiParams, Scaling};
 use twinstack_golden::Recipe;
 
 /// The parameter files, relative to the golden directory.
-pub const PARAM_FILES: [&str; 4] = [
+pub const PARAM_FILES: [&str; 5] = [
     "params/micromanipulator-pi8.json",
     "params/micromanipulator-pi16.json",
     "params/micromanipulator-pi32.json",
     "params/micromanipulator-duhem.json",
+    "params/micromanipulator-gpi16.json",
 ];
 
 /// Which model the sensor model ("the stage") follows while a set is generated: deliberately
@@ -68,12 +76,14 @@ pub struct SetDefinition {
 struct Models {
     pi: [PiParams; 3],
     duhem: DuhemParams,
+    gpi: GpiParams,
     scaling: Scaling,
 }
 
 fn load_models(dir: &Path) -> anyhow::Result<Models> {
     let mut pi = Vec::new();
     let mut duhem = None;
+    let mut gpi = None;
     let mut ranges: Option<Scaling> = None;
     for file in PARAM_FILES {
         let path = dir.join(file);
@@ -81,6 +91,18 @@ fn load_models(dir: &Path) -> anyhow::Result<Models> {
         match model.hysteresis {
             Hysteresis::Pi(p) => pi.push(p),
             Hysteresis::Duhem(d) => duhem = Some(d),
+            Hysteresis::GeneralisedPi(g) => {
+                // Not in the union (see the module doc), but on the same input range.
+                let (s, r) = (model.scaling, ranges.unwrap_or(model.scaling));
+                if r.input_min != s.input_min || r.input_max != s.input_max {
+                    bail!(
+                        "{}: input range differs from the other models'",
+                        path.display()
+                    );
+                }
+                gpi = Some(g);
+                continue;
+            }
         }
         let s = model.scaling;
         ranges = Some(match ranges {
@@ -100,14 +122,20 @@ fn load_models(dir: &Path) -> anyhow::Result<Models> {
             }
         });
     }
-    let (Ok(pi), Some(duhem), Some(scaling)) = (<[PiParams; 3]>::try_from(pi), duhem, ranges)
+    let (Ok(pi), Some(duhem), Some(gpi), Some(scaling)) =
+        (<[PiParams; 3]>::try_from(pi), duhem, gpi, ranges)
     else {
         bail!(
-            "{}: expected three P–I files and one Duhem file",
+            "{}: expected three P–I files, one Duhem file and one generalised P–I file",
             dir.display()
         );
     };
-    Ok(Models { pi, duhem, scaling })
+    Ok(Models {
+        pi,
+        duhem,
+        gpi,
+        scaling,
+    })
 }
 
 /// The board: a 5 V full-scale output on a DAC of `dac_full_scale`, the sensor on an ADC of
@@ -157,6 +185,7 @@ pub fn definitions(dir: &Path) -> anyhow::Result<Vec<SetDefinition>> {
     let s = m.scaling;
     let [pi8, pi16, pi32] = m.pi.clone().map(Model::PrandtlIshlinskii);
     let duhem = Model::Duhem(m.duhem);
+    let gpi16 = Model::GeneralisedPi(m.gpi.clone());
     use Configuration::{Differential, Unidirectional};
     use SafeState::{Bias, Zero};
     struct Set {
@@ -280,6 +309,17 @@ pub fn definitions(dir: &Path) -> anyhow::Result<Vec<SetDefinition>> {
             drive: drive(Unidirectional, Bias),
             hardware: hardware(65535, None),
             truth: t_pi,
+        }),
+        def(Set {
+            name: "igpi16-gpi-closed",
+            compensator: Some(gpi16.clone()),
+            observer: Some(gpi16),
+            sensor: Some(sensor(&s, Some(0.02))),
+            feedback: Some(feedback()),
+            mode: Mode::ClosedLoop,
+            drive: drive(Differential, Bias),
+            hardware: hardware(65535, Some(16)),
+            truth: Truth::Duhem(m.duhem),
         }),
     ])
 }

@@ -17,7 +17,8 @@
 //! 4. **Outliers**: rows whose P–I residual exceeds [`OUTLIER_FACTOR`] × its RMS (spikes,
 //!    leftover ringing) are dropped and the model refitted.
 //! 5. **Model**: P–I weights by NNLS ([`pi`]), or Duhem by integrated least squares with a
-//!    stability check and a simulated-error refinement ([`duhem`]).
+//!    stability check and a simulated-error refinement ([`duhem`]), or a generalised
+//!    (asymmetric) P–I by Kuhnen's linear equation-error fit ([`gpi`]).
 //! 6. **Scaling**: the input range is the fitted drive range widened by [`INPUT_MARGIN`], the
 //!    output range the model's output range widened by [`OUTPUT_MARGIN`] — for Duhem, wider
 //!    still if needed so that the distance to the anhysteretic curve stays within
@@ -31,6 +32,7 @@
 
 pub mod auto;
 pub mod duhem;
+pub mod gpi;
 pub mod least_squares;
 pub mod motion;
 pub mod pi;
@@ -92,6 +94,8 @@ pub enum ModelKind {
     Pi,
     /// Duhem.
     Duhem,
+    /// Generalised (asymmetric) P–I: a P–I followed by a dead-zone map.
+    Gpi,
 }
 
 /// The rows a fit uses: row `k` pairs the drive history up to sample `k` with the reading at
@@ -139,7 +143,7 @@ pub struct IdentifyOptions {
     pub lag: Option<usize>,
     /// Largest lag tried when estimating, samples.
     pub max_lag: usize,
-    /// Refine a Duhem fit on its simulated error.
+    /// Refine a Duhem or generalised P–I fit on its simulated error.
     pub refine: bool,
 }
 
@@ -169,6 +173,12 @@ impl IdentifyOptions {
                 format!("{:?}", self.thresholds).to_lowercase()
             ),
             ModelKind::Duhem => "Duhem".into(),
+            ModelKind::Gpi => format!(
+                "generalised P-I ({} {} operators, {} dead zones)",
+                self.operators,
+                format!("{:?}", self.thresholds).to_lowercase(),
+                2 * gpi::DEAD_ZONES_PER_SIDE
+            ),
         }
     }
 
@@ -476,6 +486,16 @@ pub fn identify(
             }
             model
         }
+        ModelKind::Gpi => gpi_model(
+            &columns,
+            &thresholds,
+            u_mid,
+            &y,
+            &rows,
+            options.refine,
+            &mut notes,
+            with_output_range,
+        )?,
     };
     model.check().map_err(IdentifyError::Params)?;
     // A model the library accepts can still be useless (a fit that ran off on data its
@@ -500,6 +520,62 @@ pub fn identify(
         outliers,
         notes,
     })
+}
+
+/// The generalised P–I branch of [`identify`]: the fit ([`gpi::fit`]) on the P–I's rows, its
+/// output range wide enough for both the model's output and its P–I part's (the inverse P–I
+/// clamps its input to the range), refitted with `w_1` floored when the inverse P–I would not
+/// fit the fixed point, as for the P–I.
+#[allow(clippy::too_many_arguments)]
+fn gpi_model(
+    columns: &[Vec<f64>],
+    thresholds: &[f64],
+    u_mid: f64,
+    y: &[f64],
+    rows: &FitRows,
+    refine: bool,
+    notes: &mut Vec<String>,
+    with_output_range: impl Fn(Hysteresis, &[f64], f64) -> Result<StageModel, IdentifyError>,
+) -> Result<StageModel, IdentifyError> {
+    let span = rows.target_span(y);
+    let fit_gpi = |min_first: f64, notes: &mut Vec<String>| {
+        let f = gpi::fit(columns, thresholds, u_mid, y, rows, min_first, refine)?;
+        if f.dropped > 0 {
+            notes.push(format!(
+                "{} dead zone(s) dropped: they made the inverse map fall",
+                f.dropped
+            ));
+        }
+        notes.push(format!(
+            "generalised P–I equation-error fit: simulated RMS {:.3} % of span over the fit{}",
+            100.0 * f.least_squares_rms / span,
+            if f.refined {
+                format!(
+                    "; refined on the simulated error: {:.3} %",
+                    100.0 * f.rms / span
+                )
+            } else {
+                String::new()
+            }
+        ));
+        let both: Vec<f64> = f.pi_output.iter().chain(&f.output).copied().collect();
+        with_output_range(Hysteresis::GeneralisedPi(f.params), &both, 0.0)
+    };
+    let model = fit_gpi(0.0, notes)?;
+    match model.check() {
+        Err(
+            e @ (ParamError::WeightOutOfRange { .. }
+            | ParamError::GainSumTooLarge
+            | ParamError::FirstWeightNotPositive),
+        ) => {
+            let floor = MIN_NORM_FIRST_WEIGHT / model.scaling.gain_to_norm();
+            notes.push(format!(
+                "the inverse could not be built ({e}): refitted with w_1 >= {floor:.4e}"
+            ));
+            fit_gpi(floor, notes)
+        }
+        _ => Ok(model),
+    }
 }
 
 #[cfg(test)]
@@ -562,6 +638,72 @@ mod tests {
         let held = score(x, &predicted, 2000..3000).unwrap();
         // The spike at 1500 is in the fitted part; the held-out part is clean.
         assert!(held.max_pct < 0.2 && held.rms_pct < 0.05, "{held:?}");
+    }
+
+    /// A record from a known asymmetric model (a generalised P–I: the P–I of
+    /// [`glitchy_record`] through a map flatter below its centre, steeper above), with the
+    /// sine's amplitude decaying so the held-out part has inner loops.
+    #[test]
+    fn a_known_generalised_pi_is_recovered_and_beats_the_symmetric_pi() {
+        use twinstack::generalised_pi::{DeadZoneParams, GpiParams};
+        let n = 4000;
+        let t: Vec<f64> = (0..n).map(|k| k as f64 * 1e-3).collect();
+        let u: Vec<f64> = (0..n)
+            .map(|k| {
+                let a = 100.0 * (1.0 - 0.4 * k as f64 / n as f64);
+                a * (2.0 * std::f64::consts::PI * k as f64 / 500.0).sin()
+            })
+            .collect();
+        let thresholds = Thresholds::Uniform.generate(17, 100.0).unwrap();
+        let weights: Vec<f64> = (0..17).map(|i| 0.04 / (1.0 + 0.5 * i as f64)).collect();
+        let truth = GpiParams {
+            pi: PiParams::new(0.0, 2.0, &thresholds, &weights).unwrap(),
+            dead_zones: DeadZoneParams::new(
+                2.0,
+                1.0,
+                &[-10.0, -5.0, 5.0, 10.0],
+                &[-0.2, -0.1, 0.15, 0.3],
+            )
+            .unwrap(),
+        };
+        let s = Scaling::new(-100.0, 100.0, -30.0, 30.0).unwrap();
+        let mut m = reference::GeneralisedPi::new(&truth, &s, u[0]).unwrap();
+        let x: Vec<f64> = u.iter().map(|&v| m.step(v)).collect();
+        let data = MeasuredData {
+            path: PathBuf::from("asymmetric.csv"),
+            t,
+            u: Some(u),
+            x: Some(x),
+        };
+        let held_out = |kind| {
+            let id = identify(&data, &IdentifyOptions::new(kind, 2.5)).unwrap();
+            let (u, x) = (data.u.as_ref().unwrap(), data.x.as_ref().unwrap());
+            let predicted = id.model.predict(&data.t, u).unwrap();
+            (id, score(x, &predicted, 2500..n).unwrap())
+        };
+        let (pi, pi_err) = held_out(ModelKind::Pi);
+        let (gpi, gpi_err) = held_out(ModelKind::Gpi);
+        assert!(matches!(pi.model.hysteresis, Hysteresis::Pi(_)));
+        let Hysteresis::GeneralisedPi(fitted) = &gpi.model.hysteresis else {
+            panic!("a generalised P–I was asked for");
+        };
+        eprintln!("held out: generalised P–I {gpi_err:?}, P–I {pi_err:?}");
+        assert!(
+            gpi_err.max_pct < 1.0 && gpi_err.max_pct < 0.25 * pi_err.max_pct,
+            "generalised P–I {gpi_err:?} vs P–I {pi_err:?}"
+        );
+        // The fitted map bends the same way: flatter below the centre, steeper above.
+        let d = &fitted.dead_zones;
+        let slope = |a: f64, b: f64| (d.apply(b) - d.apply(a)) / (b - a);
+        assert!(
+            slope(d.centre - 9.0, d.centre - 7.0) < 0.8 * slope(d.centre + 7.0, d.centre + 9.0),
+            "{d:?}"
+        );
+        // The compensator inverts the stage on the held-out part too.
+        let (u, x) = (data.u.as_ref().unwrap(), data.x.as_ref().unwrap());
+        let drive = gpi.model.compensate(&data.t, x).unwrap();
+        let inverse = score(u, &drive, 2500..n).unwrap();
+        assert!(inverse.max_pct < 1.0, "{inverse:?}");
     }
 
     #[test]

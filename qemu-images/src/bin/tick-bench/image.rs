@@ -12,13 +12,14 @@ use twinstack::control::{Compensator, ControlConfig, Controller, Observer, TickR
 use twinstack::drive::{DifferentialDrive, DriveOutput, StackVoltages};
 use twinstack::duhem::{Duhem, DuhemState};
 use twinstack::fixed_point::SIGNAL_ONE;
+use twinstack::generalised_pi::{GeneralisedPi, InverseGeneralisedPi};
 use twinstack::hardware::adc::SensorInput;
 use twinstack::hardware::dac::InternalDac;
 use twinstack::notch::NotchDesign;
 use twinstack::prandtl_ishlinskii::{InversePrandtlIshlinskii, PiState};
 use twinstack::settings::{
-    representative_duhem, representative_pi, FeedbackSettings, Mode, Model, SensorSettings,
-    Settings,
+    representative_duhem, representative_gpi, representative_pi, FeedbackSettings, Mode, Model,
+    SensorSettings, Settings,
 };
 
 /// Ticks measured per configuration (after as many warm-up ticks).
@@ -69,6 +70,18 @@ fn duhem_part(m: &Duhem, s: &mut DuhemState, u: i32) -> i32 {
 /// [`InversePrandtlIshlinskii::step`] alone.
 #[inline(never)]
 fn pi_part(m: &InversePrandtlIshlinskii, s: &mut PiState, y: i32) -> i32 {
+    m.step(s, y)
+}
+
+/// [`GeneralisedPi::step`] alone.
+#[inline(never)]
+fn gpi_part(m: &GeneralisedPi, s: &mut PiState, u: i32) -> i32 {
+    m.step(s, u)
+}
+
+/// [`InverseGeneralisedPi::step`] alone.
+#[inline(never)]
+fn inverse_gpi_part(m: &InverseGeneralisedPi, s: &mut PiState, y: i32) -> i32 {
     m.step(s, y)
 }
 
@@ -132,8 +145,12 @@ fn main() -> ! {
         Ok(m) => Some(m),
         Err(_) => panic!("representative P–I N = {}", n),
     };
+    let gpi = |n: usize| match representative_gpi(n) {
+        Ok(m) => Some(m),
+        Err(_) => panic!("representative generalised P–I N = {}", n),
+    };
     let base = closed(None);
-    let cases: [(&str, Settings); 9] = [
+    let cases: [(&str, Settings); 10] = [
         // Breakdown of the fixed part: split + limits + DAC alone, then + the Duhem observer.
         (
             "bypass",
@@ -182,6 +199,9 @@ fn main() -> ! {
                 ..base.clone()
             },
         ),
+        // The generalised P–I (N = 16, 6 dead zones) as compensator, last so that the rows
+        // above run the code they ran before it existed.
+        ("inverse-gpi-16", closed(gpi(16))),
     ];
     // The parts below run the inverse P–I N = 16 row's models and drive.
     let parts = build("inverse-pi-16", closed(pi(16)));
@@ -280,12 +300,50 @@ fn main() -> ! {
             jump_n[1] = jump_n[1].max(t1.wrapping_sub(t0) as u64);
         }
     }
+    // The generalised P–I (N = 16, 6 dead zones) alone, forward on the triangle as a drive,
+    // inverse on it as a setpoint.
+    let gpi_parts = build("gpi-16", closed(gpi(16)));
+    let Compensator::InverseGeneralisedPi(inverse_gpi) = gpi_parts.compensator else {
+        panic!("the inverse generalised P–I");
+    };
+    let forward_gpi = match representative_gpi(16).map(|m| {
+        let s = Settings {
+            observer: Some(m),
+            ..closed(None)
+        };
+        s.build(&hw).map(|c| c.observer)
+    }) {
+        Ok(Ok(Observer::GeneralisedPi(m))) => m,
+        _ => panic!("the generalised P–I observer"),
+    };
+    let (mut fwd_state, mut inv_state) =
+        (forward_gpi.state_at_rest(0), inverse_gpi.state_at_rest(0));
+    let (mut gpi_fwd_n, mut gpi_inv_n) = ([0u64; 2], [0u64; 2]);
+    for k in 0..2 * TICKS {
+        let sp = setpoint(k);
+        let t0 = now(&tim);
+        black_box(gpi_part(&forward_gpi, &mut fwd_state, sp));
+        let t1 = now(&tim);
+        black_box(inverse_gpi_part(&inverse_gpi, &mut inv_state, sp));
+        let t2 = now(&tim);
+        if k >= TICKS {
+            for (acc, n) in [
+                (&mut gpi_fwd_n, t1.wrapping_sub(t0)),
+                (&mut gpi_inv_n, t2.wrapping_sub(t1)),
+            ] {
+                acc[0] += n as u64;
+                acc[1] = acc[1].max(n as u64);
+            }
+        }
+    }
     for (name, acc) in [
         ("drive-split", split_n),
         ("duhem-observer-step", duhem_n),
         ("inverse-pi-16-step", pi_n),
         ("inverse-pi-16-full-steps", jump_n),
         ("dac-write", dac_n),
+        ("gpi-16-6-observer-step", gpi_fwd_n),
+        ("inverse-gpi-16-6-step", gpi_inv_n),
     ] {
         hprintln!(
             "PART name={} ticks={} total={} max={}",
