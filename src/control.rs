@@ -3,13 +3,15 @@
 //! Read top to bottom, one tick is:
 //!
 //! 1. the next setpoint (Q2.30 normalised displacement; on underrun the last one is held);
-//! 2. the compensator (inverse P–I, inverse Duhem, or none) turns it into a drive command;
+//! 2. the compensator (inverse P–I, inverse Duhem, or none) turns it into a drive command
+//!    (after the inverse creep, when the stage has creep: [`crate::creep`]);
 //! 3. with a sensor, the reading is checked against the observer (drift flag) and, in closed
 //!    loop, the PI(D) controller on the measured error adds its correction
 //!    ([`crate::feedback`]); a mode switch's fading offset is added ([`crate::mode_switch`]);
 //! 4. the differential drive clamps the command to the stacks' range and slew limits and splits
 //!    it into both stacks' DAC codes (`u_l = ū + v`, `u_r = ū − v`), written at once;
-//! 5. the forward observer, fed the drive actually applied, gives the estimated displacement.
+//! 5. the forward observer, fed the drive actually applied, gives the estimated displacement
+//!    (followed by the creep, when the stage has creep).
 //!
 //! Configuration ([`ControlConfig`]) is built and validated off the tick path
 //! ([`crate::settings::Settings::build`]) and prepared there ([`Controller::prepare`]); the tick
@@ -17,6 +19,7 @@
 //! without bound.
 
 use crate::board::{AdcCode, DacCode, DualDac, SensorAdc};
+use crate::creep::{Creep, CreepState};
 use crate::drive::{DifferentialDrive, StackVoltages};
 use crate::duhem::{Duhem, DuhemState, InverseDuhem};
 use crate::feedback::FeedbackState;
@@ -69,6 +72,9 @@ pub struct ControlConfig {
     pub drive: DifferentialDrive,
     /// The mode to run in (switch later with [`Controller::set_mode`]).
     pub mode: Mode,
+    /// The stage's creep, in series after the hysteresis: inverted before the compensator's
+    /// model, run after the observer's (not applied where there is no model).
+    pub creep: Option<Creep>,
 }
 
 /// Bit flags of what happened in one tick.
@@ -181,6 +187,10 @@ impl ControlCounters {
 pub struct Controller {
     compensator: CompensatorRun,
     observer: ObserverRun,
+    /// The compensator's inverse creep and its modes (only with creep and a compensator).
+    compensator_creep: Option<(Creep, CreepState)>,
+    /// The observer's creep and its modes (only with creep and an observer).
+    observer_creep: Option<(Creep, CreepState)>,
     sensor: Option<Sensor>,
     feedback: Option<Feedback>,
     /// What the tick runs, from the mode and the parts present: one tag, one compare.
@@ -268,6 +278,8 @@ impl Controller {
         let mut c = Self {
             compensator: CompensatorRun::None,
             observer: ObserverRun::None,
+            compensator_creep: None,
+            observer_creep: None,
             sensor: None,
             feedback: None,
             run: Run::Blind,
@@ -334,9 +346,21 @@ impl Controller {
             }
             ObserverRun::Duhem(m, _) => m.anhysteretic(rest),
         };
+        // The creep's modes settled where the models are relaxed: at the observer's output
+        // (which is also the setpoint), so both pass it through unchanged.
+        let creep_at_rest = |present: bool| {
+            config
+                .creep
+                .filter(|_| present)
+                .map(|c| (c, c.state_at_rest(y)))
+        };
+        let compensator_creep = creep_at_rest(!matches!(compensator, CompensatorRun::None));
+        let observer_creep = creep_at_rest(!matches!(observer, ObserverRun::None));
         *self = Self {
             compensator,
             observer,
+            compensator_creep,
+            observer_creep,
             sensor: config.sensor,
             feedback: config.feedback,
             run: Run::of(config.mode, &config.sensor, &config.feedback),
@@ -494,10 +518,15 @@ impl Controller {
         let target = self.setpoint;
 
         // 2. Feedforward. The compensator runs in every mode (in bypass on the setpoint, its
-        // output unused), so that a switch into open loop finds its state current.
+        // output unused), so that a switch into open loop finds its state current; with creep,
+        // the inverse creep first (setpoint → C⁻¹ → H⁻¹).
+        let desired = match &mut self.compensator_creep {
+            Some((c, s)) => c.inverse_step(s, target),
+            None => target,
+        };
         let compensated = match &mut self.compensator {
-            CompensatorRun::InversePi(m, s) => m.step(s, target),
-            CompensatorRun::InverseDuhem(m, s) => m.step(s, target),
+            CompensatorRun::InversePi(m, s) => m.step(s, desired),
+            CompensatorRun::InverseDuhem(m, s) => m.step(s, desired),
             CompensatorRun::None => target,
         };
         let feedforward = if self.mode == Mode::Bypass {
@@ -577,6 +606,9 @@ impl Controller {
             ObserverRun::Pi(m, s) => m.step(s, out.applied),
             ObserverRun::None => 0,
         };
+        if let Some((c, s)) = &mut self.observer_creep {
+            report.estimate = c.forward_step(s, report.estimate);
+        }
         self.feedback_state.observed(report.estimate);
         report
     }
@@ -660,7 +692,7 @@ mod tests {
     use super::*;
     use crate::board::fakes::{FixedAdc, RecordingDac};
     use crate::board::Hardware;
-    use crate::fixed_point::signal_from_f64;
+    use crate::fixed_point::{signal_from_f64, signal_to_f64};
     use crate::settings::{representative_duhem, representative_pi, FeedbackSettings, Settings};
 
     fn hw() -> Hardware {
@@ -871,6 +903,89 @@ mod tests {
             seen[..6].iter().filter(|&&n| n > 0).count() >= 4,
             "{seen:?}"
         );
+    }
+
+    fn creep_open_loop(creep: bool) -> Settings {
+        let mut s = Settings {
+            compensator: Some(representative_pi(8).unwrap()),
+            observer: Some(representative_pi(8).unwrap()),
+            sensor: None,
+            mode: Mode::OpenLoop,
+            creep: creep
+                .then(|| crate::creep::CreepParams::new(&[1e-3, 1e-2], &[0.05, 0.05]).unwrap()),
+            ..Settings::default()
+        };
+        s.drive.slew_rate = 1.0e7; // 200 V per tick: never limits
+        s
+    }
+
+    /// With creep, the compensator runs the inverse creep before the inverse model and the
+    /// observer the creep after the model: on a step the drive overshoots and relaxes (the
+    /// late part of the stage's response is pre-empted), while the estimate follows the
+    /// setpoint. Without creep the drive steps once and stays.
+    #[test]
+    fn creep_runs_in_series_with_the_compensator_and_the_observer() {
+        for creep in [false, true] {
+            let mut c = Controller::new(creep_open_loop(creep).build(&hw()).unwrap());
+            let mut dac = RecordingDac::default();
+            let sp = signal_from_f64(0.4);
+            let mut drives = [0i32; 3000];
+            for (k, d) in drives.iter_mut().enumerate() {
+                let r = c.tick(Some(sp), &mut FixedAdc(None), &mut dac);
+                *d = r.drive;
+                if k > 2 {
+                    assert!(
+                        (r.estimate - sp).abs() < 1 << 12,
+                        "creep {creep}, tick {k}: estimate {} vs {sp}",
+                        r.estimate
+                    );
+                }
+            }
+            let settled = drives[2999];
+            let overshoot = signal_to_f64(drives[3]) - signal_to_f64(settled);
+            if creep {
+                // 10 % arrives late: the first drive is about 10 % of the step further.
+                assert!(overshoot > 0.02, "{overshoot}");
+                assert!(drives[3..].windows(2).all(|w| w[1] <= w[0]));
+            } else {
+                assert_eq!(drives[3], settled);
+            }
+        }
+    }
+
+    /// A reload re-prepares the creep at rest where the models are relaxed (at the setpoint
+    /// the new controller starts from): holding that setpoint, the new controller does what
+    /// the same configuration without creep, prepared at the same stacks, does (the creep adds
+    /// no transient of its own), and the drive glides on from where it was.
+    #[test]
+    fn a_reload_with_creep_continues_where_the_stage_is() {
+        let sp = signal_from_f64(-0.3);
+        let with = creep_open_loop(true).build(&hw()).unwrap();
+        let without = creep_open_loop(false).build(&hw()).unwrap();
+        let mut c = Controller::new(with);
+        let mut dac = RecordingDac::default();
+        let mut before = c.tick(Some(sp), &mut FixedAdc(None), &mut dac);
+        for _ in 0..20_000 {
+            before = c.tick(Some(sp), &mut FixedAdc(None), &mut dac);
+        }
+        let after = |config: ControlConfig| -> [TickReport; 50] {
+            let mut next = Controller::new(config);
+            next.prepare(config, c.stacks());
+            next.take_over(&c);
+            let mut dac = RecordingDac::default();
+            // No new setpoint: the one prepared (where the observer puts the stage) is held.
+            core::array::from_fn(|_| next.tick(None, &mut FixedAdc(None), &mut dac))
+        };
+        for (w, n) in after(with).iter().zip(&after(without)) {
+            // The drive glides from where the stacks were (the relaxed models want another
+            // drive for the same setpoint), within the slew limit as any reload.
+            assert!(
+                w.left.0.abs_diff(before.left.0) <= 64,
+                "{w:?} vs {before:?}"
+            );
+            assert!((w.drive - n.drive).abs() <= 8, "{w:?} vs {n:?}");
+            assert!((w.estimate - n.estimate).abs() <= 8, "{w:?} vs {n:?}");
+        }
     }
 
     #[test]

@@ -9,6 +9,8 @@
 //! * [`play_operator`] — the play (backlash) operator, the building block of P–I.
 //! * [`prandtl_ishlinskii`] — forward and analytic-inverse Prandtl–Ishlinskii models.
 //! * [`duhem`] — Duhem forward observer and inverse Duhem compensator.
+//! * [`creep`] — the creep operator (log-spaced first-order modes) in series with a
+//!   hysteresis model, and its exact inverse.
 //! * [`feedback`] — sensor feedback: PI(D) with anti-windup, the drift check; [`notch`] — the
 //!   resonance notch (fixed-point biquad designed for the control rate); [`mode_switch`] —
 //!   bumpless switching between bypass, open loop and closed loop.
@@ -40,6 +42,7 @@ pub mod coarse_axis;
 pub mod control;
 pub mod control_loop;
 pub mod converters;
+pub mod creep;
 pub mod drive;
 pub mod dual_stage;
 pub mod duhem;

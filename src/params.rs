@@ -87,6 +87,9 @@ pub enum ParamError {
     DuhemGammaNotPositive,
     /// A Duhem coefficient, once normalised, does not fit the Q8.24 gain format.
     DuhemCoefficientOutOfRange,
+    /// The creep operator in series with the model was refused (see
+    /// [`crate::creep::CreepError`]).
+    Creep(crate::creep::CreepError),
 }
 
 impl core::fmt::Display for ParamError {
@@ -146,11 +149,18 @@ impl core::fmt::Display for ParamError {
                 f,
                 "a Duhem coefficient, normalised, does not fit the Q8.24 format"
             ),
+            Creep(e) => write!(f, "{e}"),
         }
     }
 }
 
 impl core::error::Error for ParamError {}
+
+impl From<crate::creep::CreepError> for ParamError {
+    fn from(e: crate::creep::CreepError) -> Self {
+        ParamError::Creep(e)
+    }
+}
 
 impl From<RangeError> for ParamError {
     fn from(e: RangeError) -> Self {

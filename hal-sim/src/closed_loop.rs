@@ -249,6 +249,7 @@ pub fn settings(
             Configuration4::Feedforward => Mode::OpenLoop,
             Configuration4::Feedback | Configuration4::Both => Mode::ClosedLoop,
         },
+        creep: model.creep.clone(),
     }
 }
 
@@ -314,6 +315,7 @@ pub fn identify_model(rate: f64, options: &ClosedLoopOptions) -> Result<StageMod
         sensor: None,
         feedback: None,
         mode: Mode::Bypass,
+        creep: None,
     };
     let config = settings
         .build(&hardware(rate))

@@ -29,7 +29,7 @@ use anyhow::{bail, Context};
 use std::path::Path;
 use twinstack::board::Hardware;
 use twinstack::drive::{Configuration, DriveSettings, SafeState};
-use twinstack::settings::{FeedbackSettings, Mode, Model, SensorSettings, Settings};
+use twinstack::settings::{CreepParams, FeedbackSettings, Mode, Model, SensorSettings, Settings};
 use twinstack::{DuhemParams, PiParams, Scaling};
 use twinstack_golden::Recipe;
 
@@ -169,6 +169,7 @@ pub fn definitions(dir: &Path) -> anyhow::Result<Vec<SetDefinition>> {
         drive: DriveSettings,
         hardware: Hardware,
         truth: Truth,
+        creep: Option<CreepParams>,
     }
     let def = |set: Set| SetDefinition {
         name: set.name,
@@ -182,6 +183,7 @@ pub fn definitions(dir: &Path) -> anyhow::Result<Vec<SetDefinition>> {
                 sensor: set.sensor,
                 feedback: set.feedback,
                 mode: set.mode,
+                creep: set.creep,
             },
         },
         truth: set.truth,
@@ -199,6 +201,7 @@ pub fn definitions(dir: &Path) -> anyhow::Result<Vec<SetDefinition>> {
             drive: drive(Differential, Bias),
             hardware: hardware(65535, None),
             truth: t_duhem.clone(),
+            creep: None,
         }),
         def(Set {
             name: "ipi16-duhem-bypass",
@@ -212,6 +215,7 @@ pub fn definitions(dir: &Path) -> anyhow::Result<Vec<SetDefinition>> {
             drive: drive(Differential, Zero),
             hardware: hardware(65535, Some(16)),
             truth: t_pi.clone(),
+            creep: None,
         }),
         def(Set {
             name: "none-duhem-closed",
@@ -223,6 +227,7 @@ pub fn definitions(dir: &Path) -> anyhow::Result<Vec<SetDefinition>> {
             drive: drive(Differential, Bias),
             hardware: hardware(4095, Some(12)),
             truth: t_pi.clone(),
+            creep: None,
         }),
         def(Set {
             name: "ipi8-pi-open",
@@ -234,6 +239,7 @@ pub fn definitions(dir: &Path) -> anyhow::Result<Vec<SetDefinition>> {
             drive: drive(Differential, Bias),
             hardware: hardware(65535, Some(16)),
             truth: t_duhem.clone(),
+            creep: None,
         }),
         def(Set {
             name: "ipi16-pi-closed",
@@ -247,6 +253,7 @@ pub fn definitions(dir: &Path) -> anyhow::Result<Vec<SetDefinition>> {
             drive: drive(Differential, Bias),
             hardware: hardware(65535, Some(16)),
             truth: t_duhem.clone(),
+            creep: None,
         }),
         def(Set {
             name: "ipi32-duhem-closed",
@@ -258,6 +265,7 @@ pub fn definitions(dir: &Path) -> anyhow::Result<Vec<SetDefinition>> {
             drive: drive(Unidirectional, Bias),
             hardware: hardware(4095, Some(16)),
             truth: t_duhem,
+            creep: None,
         }),
         def(Set {
             name: "iduhem-duhem-closed",
@@ -269,6 +277,7 @@ pub fn definitions(dir: &Path) -> anyhow::Result<Vec<SetDefinition>> {
             drive: drive(Differential, Bias),
             hardware: hardware(65535, Some(16)),
             truth: t_pi.clone(),
+            creep: None,
         }),
         def(Set {
             name: "iduhem-pi-open",
@@ -280,6 +289,7 @@ pub fn definitions(dir: &Path) -> anyhow::Result<Vec<SetDefinition>> {
             drive: drive(Unidirectional, Bias),
             hardware: hardware(65535, None),
             truth: t_pi,
+            creep: None,
         }),
     ])
 }

@@ -330,6 +330,7 @@ pub fn identify(
             scaling,
             output_sign,
             sensor_lag_s,
+            creep: None,
         })
     };
 
