@@ -137,6 +137,7 @@ fn tick_cost_table_and_image_size() {
         "inverse-duhem",
         "none-sensor-drift",
         "none-pid-notch",
+        "inverse-pi-16-creep-4",
     ];
     let names: Vec<&str> = rows.iter().map(|r| r.name.as_str()).collect();
     assert_eq!(names, expected, "the bench must report every configuration");
@@ -169,6 +170,11 @@ fn tick_cost_table_and_image_size() {
             "none-sensor-drift" => ("none", "Duhem", "sensor + drift check (bypass)"),
             "none-pid-notch" => ("none", "Duhem", "PID + notch"),
             "inverse-duhem" => ("inverse Duhem", "Duhem", "PI"),
+            "inverse-pi-16-creep-4" => (
+                "inverse P–I, N = 16, + inverse creep (4 modes)",
+                "Duhem + creep",
+                "PI",
+            ),
             other => panic!("unknown bench row {other}"),
         };
         println!(

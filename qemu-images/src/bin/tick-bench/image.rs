@@ -133,7 +133,15 @@ fn main() -> ! {
         Err(_) => panic!("representative P–I N = {}", n),
     };
     let base = closed(None);
-    let cases: [(&str, Settings); 9] = [
+    // Four creep modes, 0.1 ms … 100 ms, 2 % each, in series with both models.
+    let creep = match twinstack::creep::CreepParams::new(
+        &[1e-4, 1e-3, 1e-2, 1e-1],
+        &[0.02, 0.02, 0.02, 0.02],
+    ) {
+        Ok(c) => Some(c),
+        Err(_) => panic!("creep parameters"),
+    };
+    let cases: [(&str, Settings); 10] = [
         // Breakdown of the fixed part: split + limits + DAC alone, then + the Duhem observer.
         (
             "bypass",
@@ -180,6 +188,15 @@ fn main() -> ! {
                     ..FeedbackSettings::pi(0.2, 500.0, 0.1)
                 }),
                 ..base.clone()
+            },
+        ),
+        // The inverse P–I N = 16 row with creep (inverse creep before the compensator,
+        // creep after the observer).
+        (
+            "inverse-pi-16-creep-4",
+            Settings {
+                creep,
+                ..closed(pi(16))
             },
         ),
     ];
