@@ -187,10 +187,6 @@ impl ControlCounters {
 pub struct Controller {
     compensator: CompensatorRun,
     observer: ObserverRun,
-    /// The compensator's inverse creep and its modes (only with creep and a compensator).
-    compensator_creep: Option<(Creep, CreepState)>,
-    /// The observer's creep and its modes (only with creep and an observer).
-    observer_creep: Option<(Creep, CreepState)>,
     sensor: Option<Sensor>,
     feedback: Option<Feedback>,
     /// What the tick runs, from the mode and the parts present: one tag, one compare.
@@ -214,6 +210,11 @@ pub struct Controller {
     feedback_state: FeedbackState,
     transfer: BumplessTransfer,
     counters: ControlCounters,
+    // Last, and 4-byte aligned: the creep does not move the tick's other state.
+    /// The compensator's inverse creep and its modes (only with creep and a compensator).
+    compensator_creep: Option<(Creep, CreepState)>,
+    /// The observer's creep and its modes (only with creep and an observer).
+    observer_creep: Option<(Creep, CreepState)>,
 }
 
 /// The compensator as the tick runs it: model and state in one enum (one tag per tick).

@@ -248,22 +248,38 @@ impl CreepParams {
 }
 
 /// The states of a creep operator's modes, `z_k`, Q4.60 (see the module doc).
+///
+/// Each `i64` is held as its two 32-bit words (low, high), so the state is 4-byte aligned
+/// like the rest of the controller: an 8-byte-aligned field would be laid out ahead of the
+/// tick's other state and move it, which costs the tick without creep instructions.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct CreepState {
-    z: [i64; MAX_CREEP_MODES],
+    z: [[u32; 2]; MAX_CREEP_MODES],
+}
+
+/// A Q4.60 state from its words.
+#[inline(always)]
+fn load(w: &[u32; 2]) -> i64 {
+    ((w[1] as i64) << 32) | w[0] as i64
+}
+
+/// A Q4.60 state as its words.
+#[inline(always)]
+fn store(z: i64) -> [u32; 2] {
+    [z as u32, (z >> 32) as u32]
 }
 
 impl CreepState {
     /// Every mode settled at `y` (Q2.30): the operator's output is then `y`.
     pub fn at_rest(y: i32) -> Self {
         Self {
-            z: [(y as i64) << SIGNAL_FRAC_BITS; MAX_CREEP_MODES],
+            z: [store((y as i64) << SIGNAL_FRAC_BITS); MAX_CREEP_MODES],
         }
     }
 
     /// The mode states as Q2.30 signals (rounded toward −∞).
     pub fn modes(&self) -> [i32; MAX_CREEP_MODES] {
-        self.z.map(q60_to_signal_floor)
+        self.z.map(|w| q60_to_signal_floor(load(&w)))
     }
 }
 
@@ -352,9 +368,10 @@ impl Creep {
     #[inline(always)]
     pub fn forward_step(&self, state: &mut CreepState, y: i32) -> i32 {
         let mut acc = (y as i64) << SIGNAL_FRAC_BITS; // Q4.60
-        for ((z, &b), &c) in state.z.iter_mut().zip(&self.b).zip(&self.c).take(self.len) {
-            relax(z, b, y);
-            acc -= c as i64 * lag(*z, y) as i64;
+        for ((w, &b), &c) in state.z.iter_mut().zip(&self.b).zip(&self.c).take(self.len) {
+            let z = relax(load(w), b, y);
+            *w = store(z);
+            acc -= c as i64 * lag(z, y) as i64;
         }
         q60_to_signal_floor(acc)
     }
@@ -366,13 +383,13 @@ impl Creep {
     pub fn inverse_step(&self, state: &mut CreepState, x: i32) -> i32 {
         // Q3.61: |x| ≤ 2 and Σ c_k a_k |z_k| ≤ 0.9 · 2 keep it below 2^63.
         let mut acc = (x as i64) << WEIGHT_FRAC_BITS;
-        for (z, &ca) in state.z.iter().zip(&self.ca).take(self.len) {
-            acc -= ca as i64 * q60_to_signal_floor(*z) as i64;
+        for (w, &ca) in state.z.iter().zip(&self.ca).take(self.len) {
+            acc -= ca as i64 * q60_to_signal_floor(load(w)) as i64;
         }
         let rest = floor_shift_to_signal::<WEIGHT_FRAC_BITS>(acc);
         let y = floor_shift_to_signal::<INVERSE_D_FRAC_BITS>(self.inverse_d as i64 * rest as i64);
-        for (z, &b) in state.z.iter_mut().zip(&self.b).take(self.len) {
-            relax(z, b, y);
+        for (w, &b) in state.z.iter_mut().zip(&self.b).take(self.len) {
+            *w = store(relax(load(w), b, y));
         }
         y
     }
@@ -388,8 +405,8 @@ fn lag(z: i64, y: i32) -> i32 {
 /// One mode's update `z ← z + b·(y − z)`: `z` Q4.60, `b` Q0.32, `y` Q2.30; the product
 /// `b·(y − z)` (Q0.32 × Q3.29 = Q3.61) is exact in `i64`, then shifted to Q4.60.
 #[inline(always)]
-fn relax(z: &mut i64, b: i32, y: i32) {
-    *z = z.saturating_add((b as i64 * lag(*z, y) as i64) >> 1);
+fn relax(z: i64, b: i32, y: i32) -> i64 {
+    z.saturating_add((b as i64 * lag(z, y) as i64) >> 1)
 }
 
 /// `acc >> BITS` (rounding toward −∞) saturated to `i32`: a product with `BITS + 30`
@@ -467,7 +484,7 @@ mod tests {
         for _ in 0..1000 {
             c.forward_step(&mut s, SIGNAL_ONE);
         }
-        let moved = s.z[0] as f64 / (1u64 << 60) as f64;
+        let moved = load(&s.z[0]) as f64 / (1u64 << 60) as f64;
         let want = 1000.0 / MAX_TIME_CONSTANT_TICKS;
         assert!((moved / want - 1.0).abs() < 0.01, "{moved} vs {want}");
     }
