@@ -1,5 +1,5 @@
 //! `hal-sim identify --model pi|duhem --data FILE.csv --fit-until SECONDS --out PARAMS.json
-//! [--operators N] [--thresholds uniform|geometric] [--lag N]`: fits on `t < SECONDS`, scores
+//! [--operators N] [--thresholds uniform|geometric] [--lag N] [--creep]`: fits on `t < SECONDS`, scores
 //! on the rest, writes the parameter file and a PNG beside it (`PARAMS.png`).
 
 use crate::identification::score::{score, ErrorFigures};
@@ -39,6 +39,10 @@ pub struct Args {
     /// Sensor lag in samples (estimated over 0 to 10 samples when not given).
     #[arg(long)]
     pub lag: Option<usize>,
+    /// Fit a creep operator (4 log-spaced first-order modes, 10 samples to the fit window,
+    /// at most 100 s) in series with the model.
+    #[arg(long)]
+    pub creep: bool,
     /// Unit of the x column, recorded in the parameter file.
     #[arg(long, default_value = "units of the x column")]
     pub output_unit: String,
@@ -90,6 +94,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         Spread::Geometric => ThresholdSpread::Geometric,
     };
     options.lag = args.lag;
+    options.creep = args.creep;
     let id = identify(&data, &options).map_err(|e| anyhow!("{}: {e}", args.data.display()))?;
 
     let (t, u, x) = (
@@ -127,6 +132,11 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
             format!("P-I, {} {:?} operators", args.operators, options.thresholds).to_lowercase()
         }
         ModelKind::Duhem => "Duhem".into(),
+    };
+    let model_name = if model.creep.is_some() {
+        format!("{model_name} + creep")
+    } else {
+        model_name
     };
     println!("identified {model_name} from {}", args.data.display());
     println!(
