@@ -17,6 +17,7 @@
 //! | `ipi16-pi-closed` | inverse P–I, N = 16 | P–I, N = 16 | drift limit 2 % | PI | closed loop | differential, bias | 16-bit, 16-bit |
 //! | `ipi32-duhem-closed` | inverse P–I, N = 32 | Duhem | no drift limit | PI | closed loop | unidirectional, bias | 12-bit, 16-bit |
 //! | `iduhem-duhem-closed` | inverse Duhem | Duhem | no drift limit | PI | closed loop | differential, bias | 16-bit, 16-bit |
+//! | `ipi16-pi-creep-closed` | inverse P–I, N = 16, + inverse creep (4 modes) | P–I, N = 16, + creep | drift limit 2 % | PI | closed loop | differential, bias | 16-bit, 16-bit |
 //! | `iduhem-pi-open` | inverse Duhem | P–I, N = 16 | none | none | open loop | unidirectional, bias | 16-bit, none |
 //!
 //! The bypass set with models runs the compensator on every tick without using it, reads the
@@ -264,7 +265,7 @@ pub fn definitions(dir: &Path) -> anyhow::Result<Vec<SetDefinition>> {
             mode: Mode::ClosedLoop,
             drive: drive(Unidirectional, Bias),
             hardware: hardware(4095, Some(16)),
-            truth: t_duhem,
+            truth: t_duhem.clone(),
             creep: None,
         }),
         def(Set {
@@ -278,6 +279,23 @@ pub fn definitions(dir: &Path) -> anyhow::Result<Vec<SetDefinition>> {
             hardware: hardware(65535, Some(16)),
             truth: t_pi.clone(),
             creep: None,
+        }),
+        // The inverse P–I N = 16 set with four creep modes (0.1 ms … 100 ms) in series with
+        // both models.
+        def(Set {
+            name: "ipi16-pi-creep-closed",
+            compensator: Some(pi16.clone()),
+            observer: Some(pi16.clone()),
+            sensor: Some(sensor(&s, Some(0.02))),
+            feedback: Some(feedback()),
+            mode: Mode::ClosedLoop,
+            drive: drive(Differential, Bias),
+            hardware: hardware(65535, Some(16)),
+            truth: t_duhem,
+            creep: Some(CreepParams::new(
+                &[1e-4, 1e-3, 1e-2, 1e-1],
+                &[0.02, 0.02, 0.02, 0.03],
+            )?),
         }),
         def(Set {
             name: "iduhem-pi-open",
