@@ -210,20 +210,47 @@ pub struct Controller {
     feedback_state: FeedbackState,
     transfer: BumplessTransfer,
     counters: ControlCounters,
-    // Last, and 4-byte aligned: the creep does not move the tick's other state.
-    /// The compensator's inverse creep and its modes (only with creep and a compensator).
-    compensator_creep: Option<(Creep, CreepState)>,
-    /// The observer's creep and its modes (only with creep and an observer).
-    observer_creep: Option<(Creep, CreepState)>,
+}
+
+/// A creep operator and its modes, as the tick runs it in series with a model.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+struct CreepRun {
+    creep: Creep,
+    state: CreepState,
+}
+
+impl CreepRun {
+    /// Every mode at rest at `y`.
+    fn at_rest(creep: Creep, y: i32) -> Self {
+        Self {
+            creep,
+            state: creep.state_at_rest(y),
+        }
+    }
+
+    #[inline(always)]
+    fn forward(&mut self, y: i32) -> i32 {
+        self.creep.forward_step(&mut self.state, y)
+    }
+
+    #[inline(always)]
+    fn inverse(&mut self, x: i32) -> i32 {
+        self.creep.inverse_step(&mut self.state, x)
+    }
 }
 
 /// The compensator as the tick runs it: model and state in one enum (one tag per tick).
 #[allow(clippy::large_enum_variant)] // no heap: the controllers live in statics
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
+///
+/// With creep, the inverse creep is part of the compensator's variant (`…Creep`), so a tick
+/// without creep dispatches exactly as before: no check of its own.
 enum CompensatorRun {
     InversePi(InversePrandtlIshlinskii, PiState),
     InverseDuhem(InverseDuhem, DuhemState),
     None,
+    InversePiCreep(InversePrandtlIshlinskii, PiState, CreepRun),
+    InverseDuhemCreep(InverseDuhem, DuhemState, CreepRun),
 }
 
 /// The observer as the tick runs it (see [`CompensatorRun`]).
@@ -233,6 +260,8 @@ enum ObserverRun {
     Duhem(Duhem, DuhemState),
     Pi(PrandtlIshlinskii, PiState),
     None,
+    DuhemCreep(Duhem, DuhemState, CreepRun),
+    PiCreep(PrandtlIshlinskii, PiState, CreepRun),
 }
 
 /// What the sensor step does this mode.
@@ -279,8 +308,6 @@ impl Controller {
         let mut c = Self {
             compensator: CompensatorRun::None,
             observer: ObserverRun::None,
-            compensator_creep: None,
-            observer_creep: None,
             sensor: None,
             feedback: None,
             run: Run::Blind,
@@ -341,27 +368,39 @@ impl Controller {
         let rest = d.rest_drive();
         let rest_setpoint = match &observer {
             ObserverRun::None => rest,
-            ObserverRun::Pi(m, _) => {
+            // (The creep is wrapped in below; at rest it passes the output through.)
+            ObserverRun::Pi(m, _) | ObserverRun::PiCreep(m, _, _) => {
                 let mut s = m.state_at_rest(rest);
                 m.step(&mut s, rest)
             }
-            ObserverRun::Duhem(m, _) => m.anhysteretic(rest),
+            ObserverRun::Duhem(m, _) | ObserverRun::DuhemCreep(m, _, _) => m.anhysteretic(rest),
         };
-        // The creep's modes settled where the models are relaxed: at the observer's output
+        // With creep, its modes settled where the models are relaxed: at the observer's output
         // (which is also the setpoint), so both pass it through unchanged.
-        let creep_at_rest = |present: bool| {
-            config
-                .creep
-                .filter(|_| present)
-                .map(|c| (c, c.state_at_rest(y)))
+        let (compensator, observer) = match config.creep {
+            None => (compensator, observer),
+            Some(c) => (
+                match compensator {
+                    CompensatorRun::InversePi(m, s) => {
+                        CompensatorRun::InversePiCreep(m, s, CreepRun::at_rest(c, y))
+                    }
+                    CompensatorRun::InverseDuhem(m, s) => {
+                        CompensatorRun::InverseDuhemCreep(m, s, CreepRun::at_rest(c, y))
+                    }
+                    other => other,
+                },
+                match observer {
+                    ObserverRun::Pi(m, s) => ObserverRun::PiCreep(m, s, CreepRun::at_rest(c, y)),
+                    ObserverRun::Duhem(m, s) => {
+                        ObserverRun::DuhemCreep(m, s, CreepRun::at_rest(c, y))
+                    }
+                    other => other,
+                },
+            ),
         };
-        let compensator_creep = creep_at_rest(!matches!(compensator, CompensatorRun::None));
-        let observer_creep = creep_at_rest(!matches!(observer, ObserverRun::None));
         *self = Self {
             compensator,
             observer,
-            compensator_creep,
-            observer_creep,
             sensor: config.sensor,
             feedback: config.feedback,
             run: Run::of(config.mode, &config.sensor, &config.feedback),
@@ -521,14 +560,12 @@ impl Controller {
         // 2. Feedforward. The compensator runs in every mode (in bypass on the setpoint, its
         // output unused), so that a switch into open loop finds its state current; with creep,
         // the inverse creep first (setpoint → C⁻¹ → H⁻¹).
-        let desired = match &mut self.compensator_creep {
-            Some((c, s)) => c.inverse_step(s, target),
-            None => target,
-        };
         let compensated = match &mut self.compensator {
-            CompensatorRun::InversePi(m, s) => m.step(s, desired),
-            CompensatorRun::InverseDuhem(m, s) => m.step(s, desired),
+            CompensatorRun::InversePi(m, s) => m.step(s, target),
+            CompensatorRun::InverseDuhem(m, s) => m.step(s, target),
             CompensatorRun::None => target,
+            CompensatorRun::InversePiCreep(m, s, c) => m.step(s, c.inverse(target)),
+            CompensatorRun::InverseDuhemCreep(m, s, c) => m.step(s, c.inverse(target)),
         };
         let feedforward = if self.mode == Mode::Bypass {
             target
@@ -606,10 +643,9 @@ impl Controller {
             ObserverRun::Duhem(m, s) => m.step(s, out.applied),
             ObserverRun::Pi(m, s) => m.step(s, out.applied),
             ObserverRun::None => 0,
+            ObserverRun::DuhemCreep(m, s, c) => c.forward(m.step(s, out.applied)),
+            ObserverRun::PiCreep(m, s, c) => c.forward(m.step(s, out.applied)),
         };
-        if let Some((c, s)) = &mut self.observer_creep {
-            report.estimate = c.forward_step(s, report.estimate);
-        }
         self.feedback_state.observed(report.estimate);
         report
     }
