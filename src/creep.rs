@@ -403,10 +403,12 @@ fn lag(z: i64, y: i32) -> i32 {
 }
 
 /// One mode's update `z ← z + b·(y − z)`: `z` Q4.60, `b` Q0.32, `y` Q2.30; the product
-/// `b·(y − z)` (Q0.32 × Q3.29 = Q3.61) is exact in `i64`, then shifted to Q4.60.
+/// `b·(y − z)` (Q0.32 × Q3.29 = Q3.61) is exact in `i64`, then shifted to Q4.60. The sum
+/// cannot overflow (a plain add, not a 64-bit saturation): `|z| < 2^61 + 2^31` (a state stays
+/// between its inputs, `|y| ≤ 2`, give or take the rounding) and `|b·(y − z)| >> 1 < 2^61`.
 #[inline(always)]
 fn relax(z: i64, b: i32, y: i32) -> i64 {
-    z.saturating_add((b as i64 * lag(z, y) as i64) >> 1)
+    z.wrapping_add((b as i64 * lag(z, y) as i64) >> 1)
 }
 
 /// `acc >> BITS` (rounding toward −∞) saturated to `i32`: a product with `BITS + 30`
