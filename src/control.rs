@@ -3,13 +3,15 @@
 //! Read top to bottom, one tick is:
 //!
 //! 1. the next setpoint (Q2.30 normalised displacement; on underrun the last one is held);
-//! 2. the compensator (inverse P–I, inverse Duhem, or none) turns it into a drive command;
+//! 2. the compensator (inverse P–I, inverse Duhem, or none) turns it into a drive command
+//!    (after the inverse creep, when the stage has creep: [`crate::creep`]);
 //! 3. with a sensor, the reading is checked against the observer (drift flag) and, in closed
 //!    loop, the PI(D) controller on the measured error adds its correction
 //!    ([`crate::feedback`]); a mode switch's fading offset is added ([`crate::mode_switch`]);
 //! 4. the differential drive clamps the command to the stacks' range and slew limits and splits
 //!    it into both stacks' DAC codes (`u_l = ū + v`, `u_r = ū − v`), written at once;
-//! 5. the forward observer, fed the drive actually applied, gives the estimated displacement.
+//! 5. the forward observer, fed the drive actually applied, gives the estimated displacement
+//!    (followed by the creep, when the stage has creep).
 //!
 //! Configuration ([`ControlConfig`]) is built and validated off the tick path
 //! ([`crate::settings::Settings::build`]) and prepared there ([`Controller::prepare`]); the tick
@@ -17,6 +19,7 @@
 //! without bound.
 
 use crate::board::{AdcCode, DacCode, DualDac, SensorAdc};
+use crate::creep::{Creep, CreepState};
 use crate::drive::{DifferentialDrive, StackVoltages};
 use crate::duhem::{Duhem, DuhemState, InverseDuhem};
 use crate::feedback::FeedbackState;
@@ -74,6 +77,9 @@ pub struct ControlConfig {
     pub drive: DifferentialDrive,
     /// The mode to run in (switch later with [`Controller::set_mode`]).
     pub mode: Mode,
+    /// The stage's creep, in series after the hysteresis: inverted before the compensator's
+    /// model, run after the observer's (not applied where there is no model).
+    pub creep: Option<Creep>,
 }
 
 /// Bit flags of what happened in one tick.
@@ -211,14 +217,47 @@ pub struct Controller {
     counters: ControlCounters,
 }
 
+/// A creep operator and its modes, as the tick runs it in series with a model.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+struct CreepRun {
+    creep: Creep,
+    state: CreepState,
+}
+
+impl CreepRun {
+    /// Every mode at rest at `y`.
+    fn at_rest(creep: Creep, y: i32) -> Self {
+        Self {
+            creep,
+            state: creep.state_at_rest(y),
+        }
+    }
+
+    #[inline(always)]
+    fn forward(&mut self, y: i32) -> i32 {
+        self.creep.forward_step(&mut self.state, y)
+    }
+
+    #[inline(always)]
+    fn inverse(&mut self, x: i32) -> i32 {
+        self.creep.inverse_step(&mut self.state, x)
+    }
+}
+
 /// The compensator as the tick runs it: model and state in one enum (one tag per tick).
 #[allow(clippy::large_enum_variant)] // no heap: the controllers live in statics
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
+///
+/// With creep, the inverse creep is part of the compensator's variant (`…Creep`), so a tick
+/// without creep dispatches exactly as before: no check of its own.
 enum CompensatorRun {
     InversePi(InversePrandtlIshlinskii, PiState),
     InverseDuhem(InverseDuhem, DuhemState),
     None,
     InverseGpi(InverseGeneralisedPi, PiState),
+    InversePiCreep(InversePrandtlIshlinskii, PiState, CreepRun),
+    InverseDuhemCreep(InverseDuhem, DuhemState, CreepRun),
+    InverseGpiCreep(InverseGeneralisedPi, PiState, CreepRun),
 }
 
 /// The observer as the tick runs it (see [`CompensatorRun`]).
@@ -229,6 +268,9 @@ enum ObserverRun {
     Pi(PrandtlIshlinskii, PiState),
     None,
     Gpi(GeneralisedPi, PiState),
+    DuhemCreep(Duhem, DuhemState, CreepRun),
+    PiCreep(PrandtlIshlinskii, PiState, CreepRun),
+    GpiCreep(GeneralisedPi, PiState, CreepRun),
 }
 
 /// What the sensor step does this mode.
@@ -347,15 +389,43 @@ impl Controller {
         let rest = d.rest_drive();
         let rest_setpoint = match &observer {
             ObserverRun::None => rest,
-            ObserverRun::Pi(m, _) => {
+            // (The creep is wrapped in below; at rest it passes the output through.)
+            ObserverRun::Pi(m, _) | ObserverRun::PiCreep(m, _, _) => {
                 let mut s = m.state_at_rest(rest);
                 m.step(&mut s, rest)
             }
-            ObserverRun::Duhem(m, _) => m.anhysteretic(rest),
-            ObserverRun::Gpi(m, _) => {
+            ObserverRun::Duhem(m, _) | ObserverRun::DuhemCreep(m, _, _) => m.anhysteretic(rest),
+            ObserverRun::Gpi(m, _) | ObserverRun::GpiCreep(m, _, _) => {
                 let mut s = m.state_at_rest(rest);
                 m.step(&mut s, rest)
             }
+        };
+        // With creep, its modes settled where the models are relaxed: at the observer's output
+        // (which is also the setpoint), so both pass it through unchanged.
+        let (compensator, observer) = match config.creep {
+            None => (compensator, observer),
+            Some(c) => (
+                match compensator {
+                    CompensatorRun::InversePi(m, s) => {
+                        CompensatorRun::InversePiCreep(m, s, CreepRun::at_rest(c, y))
+                    }
+                    CompensatorRun::InverseDuhem(m, s) => {
+                        CompensatorRun::InverseDuhemCreep(m, s, CreepRun::at_rest(c, y))
+                    }
+                    CompensatorRun::InverseGpi(m, s) => {
+                        CompensatorRun::InverseGpiCreep(m, s, CreepRun::at_rest(c, y))
+                    }
+                    other => other,
+                },
+                match observer {
+                    ObserverRun::Pi(m, s) => ObserverRun::PiCreep(m, s, CreepRun::at_rest(c, y)),
+                    ObserverRun::Duhem(m, s) => {
+                        ObserverRun::DuhemCreep(m, s, CreepRun::at_rest(c, y))
+                    }
+                    ObserverRun::Gpi(m, s) => ObserverRun::GpiCreep(m, s, CreepRun::at_rest(c, y)),
+                    other => other,
+                },
+            ),
         };
         *self = Self {
             compensator,
@@ -517,12 +587,16 @@ impl Controller {
         let target = self.setpoint;
 
         // 2. Feedforward. The compensator runs in every mode (in bypass on the setpoint, its
-        // output unused), so that a switch into open loop finds its state current.
+        // output unused), so that a switch into open loop finds its state current; with creep,
+        // the inverse creep first (setpoint → C⁻¹ → H⁻¹).
         let compensated = match &mut self.compensator {
             CompensatorRun::InversePi(m, s) => m.step(s, target),
             CompensatorRun::InverseDuhem(m, s) => m.step(s, target),
             CompensatorRun::None => target,
             CompensatorRun::InverseGpi(m, s) => m.step(s, target),
+            CompensatorRun::InversePiCreep(m, s, c) => m.step(s, c.inverse(target)),
+            CompensatorRun::InverseDuhemCreep(m, s, c) => m.step(s, c.inverse(target)),
+            CompensatorRun::InverseGpiCreep(m, s, c) => m.step(s, c.inverse(target)),
         };
         let feedforward = if self.mode == Mode::Bypass {
             target
@@ -601,6 +675,9 @@ impl Controller {
             ObserverRun::Pi(m, s) => m.step(s, out.applied),
             ObserverRun::None => 0,
             ObserverRun::Gpi(m, s) => m.step(s, out.applied),
+            ObserverRun::DuhemCreep(m, s, c) => c.forward(m.step(s, out.applied)),
+            ObserverRun::PiCreep(m, s, c) => c.forward(m.step(s, out.applied)),
+            ObserverRun::GpiCreep(m, s, c) => c.forward(m.step(s, out.applied)),
         };
         self.feedback_state.observed(report.estimate);
         report
@@ -685,7 +762,7 @@ mod tests {
     use super::*;
     use crate::board::fakes::{FixedAdc, RecordingDac};
     use crate::board::Hardware;
-    use crate::fixed_point::signal_from_f64;
+    use crate::fixed_point::{signal_from_f64, signal_to_f64};
     use crate::settings::{representative_duhem, representative_pi, FeedbackSettings, Settings};
 
     fn hw() -> Hardware {
@@ -896,6 +973,89 @@ mod tests {
             seen[..6].iter().filter(|&&n| n > 0).count() >= 4,
             "{seen:?}"
         );
+    }
+
+    fn creep_open_loop(creep: bool) -> Settings {
+        let mut s = Settings {
+            compensator: Some(representative_pi(8).unwrap()),
+            observer: Some(representative_pi(8).unwrap()),
+            sensor: None,
+            mode: Mode::OpenLoop,
+            creep: creep
+                .then(|| crate::creep::CreepParams::new(&[1e-3, 1e-2], &[0.05, 0.05]).unwrap()),
+            ..Settings::default()
+        };
+        s.drive.slew_rate = 1.0e7; // 200 V per tick: never limits
+        s
+    }
+
+    /// With creep, the compensator runs the inverse creep before the inverse model and the
+    /// observer the creep after the model: on a step the drive overshoots and relaxes (the
+    /// late part of the stage's response is pre-empted), while the estimate follows the
+    /// setpoint. Without creep the drive steps once and stays.
+    #[test]
+    fn creep_runs_in_series_with_the_compensator_and_the_observer() {
+        for creep in [false, true] {
+            let mut c = Controller::new(creep_open_loop(creep).build(&hw()).unwrap());
+            let mut dac = RecordingDac::default();
+            let sp = signal_from_f64(0.4);
+            let mut drives = [0i32; 3000];
+            for (k, d) in drives.iter_mut().enumerate() {
+                let r = c.tick(Some(sp), &mut FixedAdc(None), &mut dac);
+                *d = r.drive;
+                if k > 2 {
+                    assert!(
+                        (r.estimate - sp).abs() < 1 << 12,
+                        "creep {creep}, tick {k}: estimate {} vs {sp}",
+                        r.estimate
+                    );
+                }
+            }
+            let settled = drives[2999];
+            let overshoot = signal_to_f64(drives[3]) - signal_to_f64(settled);
+            if creep {
+                // 10 % arrives late: the first drive is about 10 % of the step further.
+                assert!(overshoot > 0.02, "{overshoot}");
+                assert!(drives[3..].windows(2).all(|w| w[1] <= w[0]));
+            } else {
+                assert_eq!(drives[3], settled);
+            }
+        }
+    }
+
+    /// A reload re-prepares the creep at rest where the models are relaxed (at the setpoint
+    /// the new controller starts from): holding that setpoint, the new controller does what
+    /// the same configuration without creep, prepared at the same stacks, does (the creep adds
+    /// no transient of its own), and the drive glides on from where it was.
+    #[test]
+    fn a_reload_with_creep_continues_where_the_stage_is() {
+        let sp = signal_from_f64(-0.3);
+        let with = creep_open_loop(true).build(&hw()).unwrap();
+        let without = creep_open_loop(false).build(&hw()).unwrap();
+        let mut c = Controller::new(with);
+        let mut dac = RecordingDac::default();
+        let mut before = c.tick(Some(sp), &mut FixedAdc(None), &mut dac);
+        for _ in 0..20_000 {
+            before = c.tick(Some(sp), &mut FixedAdc(None), &mut dac);
+        }
+        let after = |config: ControlConfig| -> [TickReport; 50] {
+            let mut next = Controller::new(config);
+            next.prepare(config, c.stacks());
+            next.take_over(&c);
+            let mut dac = RecordingDac::default();
+            // No new setpoint: the one prepared (where the observer puts the stage) is held.
+            core::array::from_fn(|_| next.tick(None, &mut FixedAdc(None), &mut dac))
+        };
+        for (w, n) in after(with).iter().zip(&after(without)) {
+            // The drive glides from where the stacks were (the relaxed models want another
+            // drive for the same setpoint), within the slew limit as any reload.
+            assert!(
+                w.left.0.abs_diff(before.left.0) <= 64,
+                "{w:?} vs {before:?}"
+            );
+            assert!((w.drive - n.drive).abs() <= 8, "{w:?} vs {n:?}");
+            assert!((w.estimate - n.estimate).abs() <= 8, "{w:?} vs {n:?}");
+        }
     }
 
     #[test]

@@ -11,6 +11,8 @@
 //! * [`duhem`] — Duhem forward observer and inverse Duhem compensator.
 //! * [`generalised_pi`] — the generalised (asymmetric) P–I: a P–I followed by a monotone
 //!   dead-zone map, and its analytic inverse.
+//! * [`creep`] — the creep operator (log-spaced first-order modes) in series with a
+//!   hysteresis model, and its exact inverse.
 //! * [`feedback`] — sensor feedback: PI(D) with anti-windup, the drift check; [`notch`] — the
 //!   resonance notch (fixed-point biquad designed for the control rate); [`mode_switch`] —
 //!   bumpless switching between bypass, open loop and closed loop.
@@ -42,6 +44,7 @@ pub mod coarse_axis;
 pub mod control;
 pub mod control_loop;
 pub mod converters;
+pub mod creep;
 pub mod drive;
 pub mod dual_stage;
 pub mod duhem;

@@ -130,6 +130,9 @@ pub enum ParamError {
     DeadZoneGainSumTooLarge,
     /// The dead-zone map's centre lies outside the output range.
     DeadZoneCentreOutOfRange,
+    /// The creep operator in series with the model was refused (see
+    /// [`crate::creep::CreepError`]).
+    Creep(crate::creep::CreepError),
 }
 
 impl core::fmt::Display for ParamError {
@@ -229,11 +232,18 @@ impl core::fmt::Display for ParamError {
                 f,
                 "the dead-zone map's centre lies outside the output range: check the ranges"
             ),
+            Creep(e) => write!(f, "{e}"),
         }
     }
 }
 
 impl core::error::Error for ParamError {}
+
+impl From<crate::creep::CreepError> for ParamError {
+    fn from(e: crate::creep::CreepError) -> Self {
+        ParamError::Creep(e)
+    }
+}
 
 impl From<RangeError> for ParamError {
     fn from(e: RangeError) -> Self {

@@ -43,6 +43,18 @@ pub enum ModelField {
     DeadZones,
 }
 
+/// A field of the creep operator (`creep`). Wire-stable: append only.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub enum CreepField {
+    /// The mode list as a whole (count, lengths, the weights' sum).
+    Modes,
+    /// The time constant of this mode (1-based), `creep.time_constants_s`.
+    TimeConstant(u8),
+    /// The weight of this mode (1-based), `creep.weights`.
+    Weight(u8),
+}
+
 /// A field of the settings or of a request. Wire-stable: append only.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
@@ -101,6 +113,8 @@ pub enum Field {
     RecordOffset,
     /// The recorder's signal list.
     RecordSignals,
+    /// A field of the creep operator.
+    Creep(CreepField),
 }
 
 /// The rule a field broke, with its limit where it has one (in the field's own units).
@@ -206,11 +220,24 @@ impl core::fmt::Display for ModelField {
     }
 }
 
+impl core::fmt::Display for CreepField {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        match self {
+            CreepField::Modes => write!(f, "creep"),
+            CreepField::TimeConstant(i) => {
+                write!(f, "creep.time_constants_s[{}]", (*i as usize).max(1) - 1)
+            }
+            CreepField::Weight(i) => write!(f, "creep.weights[{}]", (*i as usize).max(1) - 1),
+        }
+    }
+}
+
 impl core::fmt::Display for Field {
     fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
         let name = match self {
             Field::Compensator(m) => return write!(f, "compensator.{m}"),
             Field::Observer(m) => return write!(f, "observer.{m}"),
+            Field::Creep(c) => return write!(f, "{c}"),
             Field::InputRange => "ranges.input",
             Field::OutputRange => "ranges.output",
             Field::Bias => "drive.bias",

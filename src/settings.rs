@@ -17,6 +17,11 @@ use serde::{Deserialize, Serialize};
 
 pub use crate::board::Hardware;
 use crate::control::{Compensator, ControlConfig, Observer};
+pub use crate::creep::CreepParams;
+use crate::creep::{
+    Creep, CreepError, MAX_CREEP_MODES, MAX_TIME_CONSTANT_TICKS, MAX_WEIGHT_SUM,
+    MIN_TIME_CONSTANT_TICKS,
+};
 pub use crate::drive::{Configuration, DriveSettings, SafeState};
 use crate::duhem::{Duhem, InverseDuhem};
 pub use crate::feedback::FeedbackSettings;
@@ -25,7 +30,7 @@ pub use crate::mode_switch::Mode;
 pub use crate::notch::NotchDesign;
 use crate::params::{DuhemParams, ParamError, PiParams, MAX_OPERATORS};
 use crate::prandtl_ishlinskii::{InversePrandtlIshlinskii, PrandtlIshlinskii};
-use crate::refusal::{finite, Field, ModelField, Refusal, Rule};
+use crate::refusal::{finite, CreepField, Field, ModelField, Refusal, Rule};
 use crate::scaling::Scaling;
 pub use crate::sensor::SensorSettings;
 
@@ -64,6 +69,12 @@ pub struct Settings {
     pub feedback: Option<FeedbackSettings>,
     /// The mode to run in: entered once loaded, and at boot for a stored record.
     pub mode: Mode,
+    /// The stage's creep, in series after the hysteresis model ([`crate::creep`]): the
+    /// compensator runs its inverse before the inverse model (`setpoint → C⁻¹ → H⁻¹ →
+    /// drive`), the observer runs it after the model (`drive → H → C → estimate`). `None`
+    /// (and absent from older parameter files): no creep.
+    #[serde(default)]
+    pub creep: Option<CreepParams>,
 }
 
 impl Default for Settings {
@@ -88,6 +99,7 @@ impl Default for Settings {
             }),
             feedback: None,
             mode: Mode::Bypass,
+            creep: None,
         }
     }
 }
@@ -151,6 +163,13 @@ impl Settings {
             Some(f) => Some(f.build(hw.control_rate_hz)?),
             None => None,
         };
+        let creep = match &self.creep {
+            Some(c) => Some(
+                Creep::new(c, hw.control_rate_hz)
+                    .map_err(|e| creep_refusal(e, Some(hw.control_rate_hz)))?,
+            ),
+            None => None,
+        };
         self.check_mode(self.mode)?;
         Ok(ControlConfig {
             compensator,
@@ -159,6 +178,7 @@ impl Settings {
             feedback,
             drive,
             mode: self.mode,
+            creep,
         })
     }
 
@@ -241,6 +261,14 @@ impl Settings {
                 finite(Field::NotchFrequency, n.frequency_hz)?;
                 finite(Field::NotchQ, n.q)?;
                 finite(Field::NotchDepth, n.depth)?;
+            }
+        }
+        if let Some(c) = &self.creep {
+            for (i, &x) in c.time_constants_s.iter().enumerate() {
+                finite(Field::Creep(CreepField::TimeConstant(i as u8 + 1)), x)?;
+            }
+            for (i, &x) in c.weights.iter().enumerate() {
+                finite(Field::Creep(CreepField::Weight(i as u8 + 1)), x)?;
             }
         }
         Ok(())
@@ -328,8 +356,43 @@ fn model_refusal(model: fn(ModelField) -> Field, e: ParamError) -> Refusal {
         ),
         E::DeadZoneGainSumTooLarge => (ModelField::DeadZones, Rule::BeyondFixedPoint),
         E::DeadZoneCentreOutOfRange => (ModelField::DeadZoneCentre, Rule::BeyondFixedPoint),
+        // The models' constructors do not return it; should one, its limits in seconds
+        // cannot be given without the rate.
+        E::Creep(e) => return creep_refusal(e, None),
     };
     Refusal::new(model(field), rule)
+}
+
+/// The refusal a creep error amounts to, on the `creep` fields; the time constants' limits
+/// in seconds at `control_rate_hz` (without a rate: [`Rule::BeyondFixedPoint`]).
+fn creep_refusal(e: CreepError, control_rate_hz: Option<f64>) -> Refusal {
+    use CreepError as E;
+    let mode = |i: usize| i.clamp(1, u8::MAX as usize) as u8;
+    let seconds = |ticks: f64, rule: fn(f64) -> Rule| match control_rate_hz {
+        Some(rate) => rule(ticks / rate),
+        None => Rule::BeyondFixedPoint,
+    };
+    let (field, rule) = match e {
+        E::NoModes => (CreepField::Modes, Rule::Required),
+        E::TooManyModes { .. } => (CreepField::Modes, Rule::TooMany(MAX_CREEP_MODES as u32)),
+        E::LengthMismatch { .. } => (CreepField::Modes, Rule::LengthMismatch),
+        E::NotFinite { mode: 0 } => (CreepField::Modes, Rule::NotFinite),
+        E::NotFinite { mode: i } => (CreepField::TimeConstant(mode(i)), Rule::NotFinite),
+        E::TimeConstantTooShort { mode: i } => (
+            CreepField::TimeConstant(mode(i)),
+            seconds(MIN_TIME_CONSTANT_TICKS, Rule::AtLeast),
+        ),
+        E::TimeConstantTooLong { mode: i } => (
+            CreepField::TimeConstant(mode(i)),
+            seconds(MAX_TIME_CONSTANT_TICKS, Rule::AtMost),
+        ),
+        E::TimeConstantsNotIncreasing { mode: i } => {
+            (CreepField::TimeConstant(mode(i)), Rule::NotIncreasing)
+        }
+        E::NegativeWeight { mode: i } => (CreepField::Weight(mode(i)), Rule::AtLeast(0.0)),
+        E::WeightSumTooLarge => (CreepField::Modes, Rule::AtMost(MAX_WEIGHT_SUM)),
+    };
+    Refusal::new(Field::Creep(field), rule)
 }
 
 /// The representative (not identified) P–I model the examples, benches and tests use: `n`
@@ -605,9 +668,66 @@ mod tests {
     }
 
     #[test]
+    fn creep_refusals_name_the_field_and_the_limit() {
+        let with = |t: &[f64], w: &[f64]| {
+            Settings {
+                creep: Some(CreepParams {
+                    time_constants_s: Vec::from_slice(t).unwrap(),
+                    weights: Vec::from_slice(w).unwrap(),
+                }),
+                ..closed()
+            }
+            .build(&hw())
+        };
+        let refused = |field, rule| Err(Refusal::new(Field::Creep(field), rule));
+        assert!(with(&[1e-3, 0.1], &[0.02, 0.03]).unwrap().creep.is_some());
+        assert!(closed().build(&hw()).unwrap().creep.is_none());
+        use CreepField::{Modes, TimeConstant, Weight};
+        assert_eq!(
+            with(&[1e-3, f64::NAN], &[0.1, 0.1]),
+            refused(TimeConstant(2), Rule::NotFinite)
+        );
+        assert_eq!(
+            with(&[1e-3], &[f64::INFINITY]),
+            refused(Weight(1), Rule::NotFinite)
+        );
+        // 2 ticks at 50 kHz.
+        let e = with(&[1e-5, 0.1], &[0.1, 0.1]).unwrap_err();
+        assert_eq!(
+            e,
+            Refusal::new(Field::Creep(TimeConstant(1)), Rule::AtLeast(4e-5))
+        );
+        assert_eq!(
+            with(&[1e-3, 2e3], &[0.1, 0.1]),
+            refused(
+                TimeConstant(2),
+                Rule::AtMost((1u64 << 26) as f64 / 50_000.0)
+            )
+        );
+        assert_eq!(
+            with(&[0.1, 0.1], &[0.1, 0.1]),
+            refused(TimeConstant(2), Rule::NotIncreasing)
+        );
+        assert_eq!(
+            with(&[0.1, 1.0], &[0.1, -0.1]),
+            refused(Weight(2), Rule::AtLeast(0.0))
+        );
+        assert_eq!(
+            with(&[0.1, 1.0], &[0.5, 0.5]),
+            refused(Modes, Rule::AtMost(0.9))
+        );
+        assert_eq!(
+            with(&[0.1, 1.0], &[0.5]),
+            refused(Modes, Rule::LengthMismatch)
+        );
+        assert_eq!(with(&[], &[]), refused(Modes, Rule::Required));
+    }
+
+    #[test]
     fn settings_round_trip_through_postcard() {
         let mut s = closed();
         s.observer = Some(representative_gpi(8).unwrap());
+        s.creep = Some(CreepParams::new(&[1e-3, 0.1], &[0.02, 0.03]).unwrap());
         let mut buf = [0u8; 2048];
         let bytes = postcard::to_slice(&s, &mut buf).unwrap();
         let back: Settings = postcard::from_bytes(bytes).unwrap();

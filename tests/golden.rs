@@ -62,8 +62,12 @@ fn the_vector_sets_cover_every_compensator_observer_and_mode() {
     let mut observers = Vec::new();
     let mut modes = Vec::new();
     let mut drift_limit_closed = false;
+    let mut creep_modes = 0;
     for set in &sets {
         let s = set.recipe().expect("recipe decodes").settings;
+        if s.compensator.is_some() && s.observer.is_some() {
+            creep_modes = creep_modes.max(s.creep.as_ref().map_or(0, |c| c.weights.len()));
+        }
         compensators.push(model_name(&s.compensator));
         observers.push(model_name(&s.observer));
         modes.push(s.mode);
@@ -100,6 +104,10 @@ fn the_vector_sets_cover_every_compensator_observer_and_mode() {
         assert!(modes.contains(&want), "no set in {want:?}");
     }
     assert!(drift_limit_closed, "no closed-loop set with a drift limit");
+    assert!(
+        creep_modes >= 4,
+        "no set with a compensator, an observer and 4 creep modes"
+    );
     // Every flag the tick can raise is raised somewhere (the drift flag by the set with a
     // drift limit).
     use twinstack::control::TickFlags as F;

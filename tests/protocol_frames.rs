@@ -83,6 +83,7 @@ fn request() -> impl Strategy<Value = Request> {
                     ..FeedbackSettings::pi(0.1, 500.0, 0.2)
                 }),
                 mode: Mode::OpenLoop,
+                creep: None,
             })
         }),
         prop_oneof![

@@ -119,6 +119,7 @@ prop_compose! {
             }),
             feedback: feedback.map(|(kp, ki, limit)| FeedbackSettings::pi(kp, ki, limit)),
             mode: [Mode::Bypass, Mode::OpenLoop, Mode::ClosedLoop][mode as usize],
+            creep: None,
         }
     }
 }

@@ -138,6 +138,7 @@ fn tick_cost_table_and_image_size() {
         "none-sensor-drift",
         "none-pid-notch",
         "inverse-gpi-16",
+        "inverse-pi-16-creep-4",
     ];
     let names: Vec<&str> = rows.iter().map(|r| r.name.as_str()).collect();
     assert_eq!(names, expected, "the bench must report every configuration");
@@ -173,6 +174,11 @@ fn tick_cost_table_and_image_size() {
             "inverse-gpi-16" => (
                 "inverse generalised P–I, N = 16, 6 dead zones",
                 "Duhem",
+                "PI",
+            ),
+            "inverse-pi-16-creep-4" => (
+                "inverse P–I, N = 16, + inverse creep (4 modes)",
+                "Duhem + creep",
                 "PI",
             ),
             other => panic!("unknown bench row {other}"),

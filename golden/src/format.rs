@@ -25,8 +25,8 @@ use super::{TickInput, TickOutput, CRC32};
 /// Record magic.
 pub const MAGIC: [u8; 4] = *b"TSGV";
 /// Version of the layout above and of the recipe's encoding ([`super::recipe`]): 2 since the
-/// feedback carries a drift limit.
-pub const FORMAT_VERSION: u16 = 2;
+/// feedback carries a drift limit, 3 since the settings end with the optional creep.
+pub const FORMAT_VERSION: u16 = 3;
 /// Bytes per tick of inputs.
 pub const INPUT_BYTES: usize = 7;
 /// Bytes per tick of outputs.

@@ -5,6 +5,7 @@
 //! models) or input range (inverse models): `LSB16 = span / 65536`.
 
 use crate::reference;
+use twinstack::creep::{Creep, CreepParams};
 use twinstack::duhem::{Duhem, InverseDuhem};
 use twinstack::fixed_point::{signal_from_f64 as q, signal_to_f64 as f};
 use twinstack::generalised_pi::{DeadZoneParams, GeneralisedPi, GpiParams, InverseGeneralisedPi};
@@ -150,6 +151,8 @@ impl Stats {
 /// Measures fixed point against `f64` for forward and inverse P–I at N = 8, 16, 32, for
 /// the Duhem observer and compensator and for the forward and inverse generalised P–I
 /// (N = 16, 6 dead zones): `models` random models × `samples` samples each.
+/// the Duhem observer and compensator and for the creep operator and its inverse: `models`
+/// random models × `samples` samples each.
 pub fn measure(seed: u64, models: usize, samples: usize) -> Vec<AccuracyRow> {
     let mut rng = Rng(seed.max(1));
     let mut rows = Vec::new();
@@ -236,5 +239,44 @@ pub fn measure(seed: u64, models: usize, samples: usize) -> Vec<AccuracyRow> {
     }
     rows.push(fwd_stats.row("forward generalised P–I, N = 16, 6 dead zones".into()));
     rows.push(inv_stats.row("inverse generalised P–I, N = 16, 6 dead zones".into()));
+    let (fwd, inv) = measure_creep(&mut rng, models, samples);
+    rows.push(fwd);
+    rows.push(inv);
     rows
+}
+
+/// The creep operator (4 random modes, 2 ticks … 2^20 ticks, weights summing to up to 0.9)
+/// forward, and its inverse fed the `f64` forward output, against the `f64` reference.
+fn measure_creep(rng: &mut Rng, models: usize, samples: usize) -> (AccuracyRow, AccuracyRow) {
+    let rate = 50_000.0;
+    let mut fwd_stats = Stats::new();
+    let mut inv_stats = Stats::new();
+    for _ in 0..models {
+        let mut taus = Vec::new();
+        let mut ticks = rng.range(2.0, 20.0);
+        for _ in 0..4 {
+            taus.push(ticks / rate);
+            ticks *= rng.range(4.0, 60.0);
+        }
+        let raw: Vec<f64> = (0..4).map(|_| rng.uniform()).collect();
+        let total = rng.range(0.05, 0.9) / raw.iter().sum::<f64>();
+        let weights: Vec<f64> = raw.iter().map(|w| w * total * 0.999).collect();
+        let p = CreepParams::new(&taus, &weights).expect("4 modes");
+        let fixed = Creep::new(&p, rate).expect("valid");
+        let drive = random_drive(rng, samples);
+        let y0 = drive.first().copied().unwrap_or(0.0);
+        let (mut fs, mut is) = (fixed.state_at_rest(q(y0)), fixed.state_at_rest(q(y0)));
+        let mut fr = reference::Creep::new(&p, rate, y0).expect("valid");
+        let mut ir = reference::Creep::new(&p, rate, y0).expect("valid");
+        for &y in &drive {
+            let x_ref = fr.step(y);
+            fwd_stats.add(f(fixed.forward_step(&mut fs, q(y))) - x_ref);
+            let y_ref = ir.inverse_step(x_ref);
+            inv_stats.add(f(fixed.inverse_step(&mut is, q(x_ref))) - y_ref);
+        }
+    }
+    (
+        fwd_stats.row("creep, 4 modes".into()),
+        inv_stats.row("inverse creep, 4 modes".into()),
+    )
 }

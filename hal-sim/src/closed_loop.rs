@@ -250,6 +250,7 @@ pub fn settings(
             Configuration4::Feedforward => Mode::OpenLoop,
             Configuration4::Feedback | Configuration4::Both => Mode::ClosedLoop,
         },
+        creep: model.creep.clone(),
     }
 }
 
@@ -315,6 +316,7 @@ pub fn identify_model(rate: f64, options: &ClosedLoopOptions) -> Result<StageMod
         sensor: None,
         feedback: None,
         mode: Mode::Bypass,
+        creep: None,
     };
     let config = settings
         .build(&hardware(rate))

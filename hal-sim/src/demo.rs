@@ -209,6 +209,7 @@ fn excite(options: &DemoOptions, stage: StageConfiguration, ticks: usize) -> Res
         sensor: None,
         feedback: None,
         mode: Mode::Bypass,
+        creep: None,
     };
     let config = settings
         .build(&hardware(options.control_rate))
@@ -279,6 +280,7 @@ fn track(
         } else {
             Mode::Bypass
         },
+        creep: model.creep.clone(),
     };
     let config = settings
         .build(&hardware(options.control_rate))

@@ -165,6 +165,7 @@ fn piezo_settings(board: &ExternalBoard, ki: f64) -> Settings {
         }),
         feedback: Some(FeedbackSettings::pi(0.0, ki, 1.0)),
         mode: Mode::ClosedLoop,
+        creep: None,
     }
 }
 

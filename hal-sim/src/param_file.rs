@@ -183,6 +183,7 @@ impl ParamFile {
                 sensor: None,
                 feedback: None,
                 mode: Mode::OpenLoop,
+                creep: model.creep.clone(),
             },
             identification,
         }
@@ -299,6 +300,7 @@ impl ParamFile {
             scaling: s.ranges,
             output_sign: file.output_sign,
             sensor_lag_s: file.sensor_lag_s,
+            creep: s.creep.clone(),
         };
         Ok((file, model))
     }
@@ -317,6 +319,7 @@ mod tests {
             scaling: Scaling::new(0.0, 140.0, -20.0, 21.0).unwrap(),
             output_sign: -1.0,
             sensor_lag_s: 0.005,
+            creep: None,
         }
     }
 
@@ -343,6 +346,30 @@ mod tests {
             assert_eq!(back, f);
             assert_eq!(loaded, m);
         }
+    }
+
+    #[test]
+    fn creep_round_trips_and_a_file_without_it_still_loads() {
+        let m = StageModel {
+            creep: Some(
+                twinstack::creep::CreepParams::new(&[0.01, 0.1, 1.0], &[0.02, 0.01, 0.03]).unwrap(),
+            ),
+            ..model()
+        };
+        let f = ParamFile::from_model(&m, "um", None);
+        let (_, loaded) = parse(&f.to_json()).unwrap();
+        assert_eq!(loaded, m);
+        // A file written before the creep field existed: no `creep` key at all.
+        let mut v: serde_json::Value =
+            serde_json::from_str(&ParamFile::from_model(&model(), "um", None).to_json()).unwrap();
+        v["settings"].as_object_mut().unwrap().remove("creep");
+        let (_, loaded) = parse(&v.to_string()).unwrap();
+        assert_eq!(loaded.creep, None);
+        // A bad creep is refused naming the field.
+        let mut v: serde_json::Value = serde_json::from_str(&f.to_json()).unwrap();
+        v["settings"]["creep"]["weights"][1] = (-0.5).into();
+        let e = parse(&v.to_string()).unwrap_err();
+        assert_eq!(field_of(&e), "settings.creep.weights[1]", "{e}");
     }
 
     fn edited(f: impl Fn(&mut serde_json::Value)) -> ParamFileError {

@@ -3,6 +3,7 @@
 //! same clamps, no quantisation. They allocate nothing, but are not meant for the tick: they
 //! live here, on the host, and not in the firmware's library.
 
+use twinstack::creep::CreepParams;
 use twinstack::generalised_pi::{DeadZoneParams, GpiParams};
 use twinstack::params::{CanonicalPi, DuhemParams, ParamError, PiParams};
 use twinstack::scaling::Scaling;
@@ -312,6 +313,56 @@ impl InverseDuhem {
     /// The compensator's internal forward model.
     pub fn model(&self) -> &Duhem {
         &self.model
+    }
+}
+
+/// Creep operator, `f64`: `z_k ← a_k z_k + b_k y`, `x = c0·y + Σ c_k z_k` (see
+/// `twinstack::creep`), in any units (the static gain is 1, so an affine change of units
+/// commutes with it).
+#[derive(Clone, Debug, PartialEq)]
+pub struct Creep {
+    /// `(a_k, b_k, c_k)` per mode.
+    modes: Vec<(f64, f64, f64)>,
+    /// The modes' states `z_k`.
+    z: Vec<f64>,
+}
+
+impl Creep {
+    /// The operator `params` at `rate_hz` (ticks or samples per second), at rest at `y0`.
+    pub fn new(params: &CreepParams, rate_hz: f64, y0: f64) -> Result<Self, ParamError> {
+        params.check(rate_hz)?;
+        let modes: Vec<(f64, f64, f64)> = params
+            .poles(rate_hz)
+            .zip(&params.weights)
+            .map(|((a, b), &c)| (a, b, c))
+            .collect();
+        let z = vec![y0; modes.len()];
+        Ok(Self { modes, z })
+    }
+
+    /// One sample forward: `y` → `x` (modes updated first).
+    pub fn step(&mut self, y: f64) -> f64 {
+        let mut x = y;
+        for (&(a, b, c), z) in self.modes.iter().zip(self.z.iter_mut()) {
+            *z = a * *z + b * y;
+            x += c * (*z - y);
+        }
+        x
+    }
+
+    /// One sample of the exact inverse: `x` → the `y` that [`Creep::step`] turns into `x`,
+    /// `y = (x − Σ c_k a_k z_k) / (1 − Σ c_k a_k)`; the modes are then updated with it.
+    pub fn inverse_step(&mut self, x: f64) -> f64 {
+        let (mut rest, mut d) = (x, 1.0);
+        for (&(a, _, c), &z) in self.modes.iter().zip(&self.z) {
+            rest -= c * a * z;
+            d -= c * a;
+        }
+        let y = rest / d;
+        for (&(a, b, _), z) in self.modes.iter().zip(self.z.iter_mut()) {
+            *z = a * *z + b * y;
+        }
+        y
     }
 }
 

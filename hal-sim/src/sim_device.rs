@@ -117,6 +117,7 @@ impl SimDeviceConfig {
             }),
             feedback: Some(FeedbackSettings::pi(0.2, 500.0, 0.1)),
             mode,
+            creep: None,
         }
     }
 }

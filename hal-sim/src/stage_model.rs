@@ -9,9 +9,13 @@
 //!   output at sample `k − L` (`L` = lag in samples of the record being run);
 //! * forward runs start relaxed at the first drive value (P–I: every operator there; Duhem:
 //!   on the anhysteretic curve, `y0 = β u0 + δ`); inverse runs start relaxed at the first
-//!   desired output.
+//!   desired output;
+//! * with creep, the creep operator runs after the hysteresis model (`predict`) and its
+//!   inverse before the inverse model (`compensate`), discretised at the record's sample
+//!   period (the median interval), its modes at rest at the first value they see.
 
 use crate::reference;
+use twinstack::creep::{Creep, CreepParams, CreepState};
 use twinstack::duhem::{Duhem, InverseDuhem};
 use twinstack::fixed_point::{
     clamp_full_scale, gain_from_f64, saturate_i64, signal_from_f64, signal_to_f64, GAIN_FRAC_BITS,
@@ -45,9 +49,88 @@ pub struct StageModel {
     pub output_sign: f64,
     /// Sensor lag behind the drive, seconds (`≥ 0`).
     pub sensor_lag_s: f64,
+    /// The stage's creep, in series after the hysteresis model (`None`: no creep).
+    pub creep: Option<CreepParams>,
+}
+
+/// The sample rate of a record with times `t`: one over the median interval (`None` for fewer
+/// than two samples or a non-increasing median).
+pub fn sample_rate(t: &[f64]) -> Option<f64> {
+    let mut dt: Vec<f64> = t.windows(2).map(|w| w[1] - w[0]).collect();
+    dt.sort_by(f64::total_cmp);
+    match dt.get(dt.len() / 2) {
+        Some(&d) if d > 0.0 && d.is_finite() => Some(1.0 / d),
+        _ => None,
+    }
+}
+
+/// A creep operator run over a record in fixed point, its modes at rest at the first value.
+struct CreepRun {
+    creep: Creep,
+    state: Option<CreepState>,
+}
+
+impl CreepRun {
+    fn forward(&mut self, y: i32) -> i32 {
+        let s = self.state.get_or_insert_with(|| CreepState::at_rest(y));
+        self.creep.forward_step(s, y)
+    }
+
+    fn inverse(&mut self, x: i32) -> i32 {
+        let s = self.state.get_or_insert_with(|| CreepState::at_rest(x));
+        self.creep.inverse_step(s, x)
+    }
+}
+
+/// A creep operator run over a record in `f64`, its modes at rest at the first value.
+struct CreepReference {
+    params: CreepParams,
+    rate_hz: f64,
+    run: Option<reference::Creep>,
+}
+
+impl CreepReference {
+    fn run(&mut self, v: f64) -> Result<&mut reference::Creep, ParamError> {
+        if self.run.is_none() {
+            self.run = Some(reference::Creep::new(&self.params, self.rate_hz, v)?);
+        }
+        self.run.as_mut().ok_or(ParamError::NotFinite)
+    }
 }
 
 impl StageModel {
+    /// The fixed-point creep for a record with times `t` (at its sample rate), if any.
+    fn creep_run(&self, t: &[f64]) -> Result<Option<CreepRun>, ParamError> {
+        let Some(p) = &self.creep else {
+            return Ok(None);
+        };
+        let rate =
+            sample_rate(t).ok_or(ParamError::Creep(twinstack::creep::CreepError::NotFinite {
+                mode: 0,
+            }))?;
+        Ok(Some(CreepRun {
+            creep: Creep::new(p, rate)?,
+            state: None,
+        }))
+    }
+
+    /// The `f64` creep for a record with times `t`, if any.
+    fn creep_reference(&self, t: &[f64]) -> Result<Option<CreepReference>, ParamError> {
+        let Some(p) = &self.creep else {
+            return Ok(None);
+        };
+        let rate_hz =
+            sample_rate(t).ok_or(ParamError::Creep(twinstack::creep::CreepError::NotFinite {
+                mode: 0,
+            }))?;
+        p.check(rate_hz)?;
+        Ok(Some(CreepReference {
+            params: p.clone(),
+            rate_hz,
+            run: None,
+        }))
+    }
+
     /// The lag in samples for a record with times `t` (rounded to the median interval).
     pub fn lag_samples(&self, t: &[f64]) -> usize {
         let mut dt: Vec<f64> = t.windows(2).map(|w| w[1] - w[0]).collect();
@@ -116,12 +199,17 @@ impl StageModel {
         let u_norm = |v: f64| signal_from_f64(s.input_to_norm(v));
         let y_phys = |q: i32| s.norm_to_output(signal_to_f64(q));
         let u0 = u.first().copied().unwrap_or(0.0);
+        let mut creep = self.creep_run(t)?;
+        let mut creep = |q: i32| match creep.as_mut() {
+            Some(c) => c.forward(q),
+            None => q,
+        };
         let y: Vec<f64> = match &self.hysteresis {
             Hysteresis::Pi(p) => {
                 let m = PrandtlIshlinskii::new(p, s)?;
                 let mut st = m.state_at_rest(u_norm(u0));
                 u.iter()
-                    .map(|&v| y_phys(m.step(&mut st, u_norm(v))))
+                    .map(|&v| y_phys(creep(m.step(&mut st, u_norm(v)))))
                     .collect()
             }
             Hysteresis::Duhem(p) => {
@@ -130,7 +218,7 @@ impl StageModel {
                 let y0 = signal_from_f64(s.output_to_norm(p.beta * u0 + p.offset));
                 let mut st = m.state_at(u_norm(u0), y0);
                 u.iter()
-                    .map(|&v| y_phys(m.step(&mut st, u_norm(v))))
+                    .map(|&v| y_phys(creep(m.step(&mut st, u_norm(v)))))
                     .collect()
             }
             Hysteresis::GeneralisedPi(p) => {
@@ -148,7 +236,7 @@ impl StageModel {
     pub fn predict_reference(&self, t: &[f64], u: &[f64]) -> Result<Vec<f64>, ParamError> {
         let s = &self.scaling;
         let u0 = u.first().copied().unwrap_or(0.0);
-        let y: Vec<f64> = match &self.hysteresis {
+        let mut y: Vec<f64> = match &self.hysteresis {
             Hysteresis::Pi(p) => {
                 let mut m = reference::PrandtlIshlinskii::new(p, s, u0)?;
                 u.iter().map(|&v| m.step(v)).collect()
@@ -163,6 +251,11 @@ impl StageModel {
                 u.iter().map(|&v| m.step(v)).collect()
             }
         };
+        if let Some(mut c) = self.creep_reference(t)? {
+            for v in y.iter_mut() {
+                *v = c.run(*v)?.step(*v);
+            }
+        }
         Ok(self.delay(t, y))
     }
 
@@ -174,10 +267,15 @@ impl StageModel {
         let u_phys = |q: i32| s.norm_to_input(signal_to_f64(q));
         let desired = self.advance(t, x);
         let y0 = desired.first().copied().unwrap_or(0.0);
+        let mut creep = self.creep_run(t)?;
+        let mut y_norm = |v: f64| match creep.as_mut() {
+            Some(c) => c.inverse(y_norm(v)),
+            None => y_norm(v),
+        };
         Ok(match &self.hysteresis {
             Hysteresis::Pi(p) => {
                 let m = InversePrandtlIshlinskii::new(p, s)?;
-                let mut st = m.state_at_rest(y_norm(y0));
+                let mut st = m.state_at_rest(signal_from_f64(s.output_to_norm(y0)));
                 desired
                     .iter()
                     .map(|&v| u_phys(m.step(&mut st, y_norm(v))))
@@ -187,15 +285,16 @@ impl StageModel {
                 let m = InverseDuhem::new(p, s)?;
                 let y0 = y0.clamp(s.output_min, s.output_max);
                 let u0 = ((y0 - p.offset) / p.beta).clamp(s.input_min, s.input_max);
+                let y0_norm = signal_from_f64(s.output_to_norm(y0));
                 let mut st = m
                     .model()
-                    .state_at(signal_from_f64(s.input_to_norm(u0)), y_norm(y0));
+                    .state_at(signal_from_f64(s.input_to_norm(u0)), y0_norm);
                 // The noise band (see `NoiseBand`): the inverse's memory follows the
                 // band-filtered trajectory, the rest passes through the anhysteretic slope.
                 let band = NoiseBand::of(&desired, p, s)?;
                 let width = signal_from_f64(band.width_norm);
                 let through = gain_from_f64(band.inverse_slope_norm);
-                let mut filtered = y_norm(y0);
+                let mut filtered = y0_norm;
                 desired
                     .iter()
                     .map(|&v| {
@@ -209,7 +308,7 @@ impl StageModel {
             }
             Hysteresis::GeneralisedPi(p) => {
                 let m = InverseGeneralisedPi::new(p, s)?;
-                let mut st = m.state_at_rest(y_norm(y0));
+                let mut st = m.state_at_rest(signal_from_f64(s.output_to_norm(y0)));
                 desired
                     .iter()
                     .map(|&v| u_phys(m.step(&mut st, y_norm(v))))
@@ -221,7 +320,13 @@ impl StageModel {
     /// [`Self::compensate`] computed by the `f64` reference models.
     pub fn compensate_reference(&self, t: &[f64], x: &[f64]) -> Result<Vec<f64>, ParamError> {
         let s = &self.scaling;
-        let desired = self.advance(t, x);
+        let trajectory = self.advance(t, x);
+        let mut desired = trajectory.clone();
+        if let Some(mut c) = self.creep_reference(t)? {
+            for v in desired.iter_mut() {
+                *v = c.run(*v)?.inverse_step(*v);
+            }
+        }
         let y0 = desired
             .first()
             .copied()
@@ -238,7 +343,9 @@ impl StageModel {
             Hysteresis::Duhem(p) => {
                 let u0 = ((y0 - p.offset) / p.beta).clamp(s.input_min, s.input_max);
                 let mut m = reference::InverseDuhem::new(p, s, u0, y0)?;
-                let band = NoiseBand::of(&desired, p, s)?;
+                // The band from the trajectory as given (before the inverse creep), as the
+                // fixed-point `compensate` takes it.
+                let band = NoiseBand::of(&trajectory, p, s)?;
                 let width = band.width_norm * s.output_half_span();
                 let mut filtered = y0;
                 desired
@@ -329,6 +436,7 @@ mod tests {
             scaling: Scaling::new(-100.0, 100.0, -15.0, 17.0).unwrap(),
             output_sign: sign,
             sensor_lag_s: lag_s,
+            creep: None,
         }
     }
 
@@ -500,6 +608,7 @@ mod tests {
                 scaling: Scaling::new(-100.0, 100.0, -reach, reach).unwrap(),
                 output_sign: if negative { -1.0 } else { 1.0 },
                 sensor_lag_s: lag as f64 * 0.01,
+                creep: None,
             };
             // Models whose inverse does not fit Q8.24 are refused (tested elsewhere).
             proptest::prop_assume!(m.check().is_ok());

@@ -351,6 +351,7 @@ fn every_command_runs_against_the_simulated_board() {
         scaling: twinstack::Scaling::new(0.0, 140.0, -10.0, 80.0).unwrap(),
         output_sign: 1.0,
         sensor_lag_s: 0.0,
+        creep: None,
     };
     let file = hal_sim::param_file::ParamFile::from_model(&model, "um", None);
     let params = write(dir.path(), "p.json", &file.to_json());

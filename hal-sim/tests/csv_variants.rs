@@ -217,6 +217,7 @@ fn predict_reads_an_export_through_the_cli() {
         scaling: twinstack::Scaling::new(0.0, 140.0, -10.0, 80.0).unwrap(),
         output_sign: 1.0,
         sensor_lag_s: 0.0,
+        creep: None,
     };
     let params = dir.path().join("p.json");
     std::fs::write(

@@ -165,6 +165,7 @@ fn the_host_tools_drive_the_emulated_firmware_over_its_uart() {
         scaling: twinstack::settings::Settings::default().ranges,
         output_sign: 1.0,
         sensor_lag_s: 0.0,
+        creep: None,
     };
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("params.json");

@@ -180,3 +180,18 @@ fn the_reference_check_depends_on_the_mode_and_the_safe_state() {
     let a = recheck(&|s| s.drive.safe_state = twinstack::drive::SafeState::Bias);
     assert_eq!(a.first_violation, Some(0), "safe state: {a:?}");
 }
+
+/// The check runs the creep: the creep set rechecked without its creep, or with one mode's
+/// weight changed, fails it.
+#[test]
+fn the_reference_check_depends_on_the_creep() {
+    let file = stored();
+    let recheck = |f: &dyn Fn(&mut twinstack::settings::Settings)| {
+        recheck_with(&file, "ipi16-pi-creep-closed", f)
+    };
+    assert!(recheck(&|_| {}).holds());
+    let a = recheck(&|s| s.creep = None);
+    assert!(a.first_violation.is_some(), "no creep: {a:?}");
+    let a = recheck(&|s| s.creep.as_mut().unwrap().weights[0] += 0.01);
+    assert!(a.first_violation.is_some(), "weight: {a:?}");
+}

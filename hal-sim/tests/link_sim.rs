@@ -148,6 +148,7 @@ fn a_parameter_file_loads_and_a_non_invertible_one_is_refused_with_nothing_lost(
         scaling: twinstack::Scaling::new(0.0, 140.0, -45.0, 45.0).unwrap(),
         output_sign: 1.0,
         sensor_lag_s: 0.0,
+        creep: None,
     };
     let mut good = ParamFile::from_model(&model, "um", None).settings;
     // As `hal-sim load` does: the board's sensor and gains, which the file does not carry.

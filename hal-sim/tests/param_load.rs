@@ -24,6 +24,7 @@ fn pi_model() -> StageModel {
         scaling: Scaling::new(0.0, 140.0, 0.0, 70.0).unwrap(),
         output_sign: 1.0,
         sensor_lag_s: 0.0,
+        creep: None,
     }
 }
 

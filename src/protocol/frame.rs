@@ -13,9 +13,11 @@ use super::cobs;
 use crc::{Crc, CRC_32_ISO_HDLC};
 use serde::{Deserialize, Serialize};
 
-/// Version byte every frame starts with. Version 2 (this one): the status report carries
+/// Version byte every frame starts with. Version 2: the status report carries
 /// `frame_errors`, `next_seq`, `tick_rate_hz` and `recorded`; NACK reasons `Busy`,
-/// `NothingStored` and `StoreFailed` were added.
+/// `NothingStored` and `StoreFailed` were added. Version 4 (this one): the settings end with
+/// the optional creep operator (`creep`), `Field::Creep` was appended, and `Model` gained the
+/// generalised P–I (`Model::GeneralisedPi`, with its `ModelField`s appended).
 pub const PROTOCOL_VERSION: u8 = 4;
 /// Largest frame body (version + message + CRC), bytes.
 pub const MAX_BODY: usize = 1536;

@@ -1,5 +1,6 @@
-//! `hal-sim identify [--model auto|pi|duhem|…] --data FILE.csv --fit-until SECONDS --out PARAMS.json
-//! [--operators N] [--thresholds uniform|geometric] [--lag N]`: fits on `t < SECONDS`, scores
+//! `hal-sim identify [--model auto|pi|duhem|gpi|…] [--creep] --data FILE.csv --fit-until SECONDS
+//! --out PARAMS.json [--operators N] [--thresholds uniform|geometric] [--lag N]`: fits on
+//! `t < SECONDS`, scores
 //! on the rest, writes the parameter file and a PNG beside it (`PARAMS.png`).
 
 use crate::identification::auto::identify_auto;
@@ -42,6 +43,10 @@ pub struct Args {
     /// Sensor lag in samples (estimated over 0 to 10 samples when not given).
     #[arg(long)]
     pub lag: Option<usize>,
+    /// Fit a creep operator (4 log-spaced first-order modes, 10 samples to the fit window,
+    /// at most 100 s) in series with the model.
+    #[arg(long)]
+    pub creep: bool,
     /// Unit of the x column, recorded in the parameter file.
     #[arg(long, default_value = "units of the x column")]
     pub output_unit: String,
@@ -122,6 +127,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         Spread::Geometric => ThresholdSpread::Geometric,
     };
     options.lag = args.lag;
+    options.creep = args.creep;
     let in_file = |e: IdentifyError| anyhow!("{}: {e}", args.data.display());
     let id = match args.model {
         ModelChoice::Only(_) => identify(&data, &options).map_err(in_file)?,

@@ -4,7 +4,8 @@
 //! other steps written out in real arithmetic from their documented semantics (`src/control.rs`,
 //! `src/sensor.rs`, `src/feedback.rs`, `src/drive.rs`, the README's "Closed loop"): setpoint
 //! clamp and hold, the compensator (stepped in every mode; in bypass its output is unused and
-//! the drive follows the setpoint), the sensor reading and the drift check (whenever a sensor
+//! the drive follows the setpoint; with creep, the inverse creep before it), the observer
+//! (with creep, the creep after it), the creep's modes at rest at the start's setpoint, the sensor reading and the drift check (whenever a sensor
 //! is configured, in every mode), the PI feedback (closed loop only), range and slew limits per
 //! stack, the differential split, the observer. It runs on the stored inputs alone, so it
 //! checks the stored outputs independently of the fixed-point code.
@@ -394,6 +395,16 @@ pub fn check(set: &VectorSet<'_>) -> anyhow::Result<Agreement> {
     let (mut estimator, y0) = observer_at_rest(&recipe, u0)?;
     let y0 = y0.map(|y| norm(&s, y)).unwrap_or(d0);
     let mut feedforward = compensator_at_rest(&recipe, u0, y0)?;
+    // The creep (normalised signals, at the tick's rate), at rest where the models are: its
+    // inverse before the compensator's model, itself after the observer's.
+    let creep_at_rest = |present: bool| -> anyhow::Result<Option<reference::Creep>> {
+        match (&st.creep, present) {
+            (Some(c), true) => Ok(Some(reference::Creep::new(c, hw.control_rate_hz, y0)?)),
+            _ => Ok(None),
+        }
+    };
+    let mut compensator_creep = creep_at_rest(st.compensator.is_some())?;
+    let mut observer_creep = creep_at_rest(st.observer.is_some())?;
     let mut sensor = ReferenceSensor::new(&recipe, y0)?;
     let mut feedback = ReferenceFeedback::new(&recipe, y0)?;
     let bypass = st.mode == Mode::Bypass;
@@ -425,11 +436,15 @@ pub fn check(set: &VectorSet<'_>) -> anyhow::Result<Agreement> {
             None => flags |= TickFlags::UNDERRUN,
         }
         // The compensator steps in every mode; in bypass the drive follows the setpoint.
+        let desired = match &mut compensator_creep {
+            Some(c) => c.inverse_step(target),
+            None => target,
+        };
         let compensated = match &mut feedforward {
             Feedforward::None => target,
-            Feedforward::InversePi(m) => s.input_to_norm(m.step(s.norm_to_output(target))),
-            Feedforward::InverseDuhem(m) => s.input_to_norm(m.step(s.norm_to_output(target))),
-            Feedforward::InverseGpi(m) => s.input_to_norm(m.step(s.norm_to_output(target))),
+            Feedforward::InversePi(m) => s.input_to_norm(m.step(s.norm_to_output(desired))),
+            Feedforward::InverseDuhem(m) => s.input_to_norm(m.step(s.norm_to_output(desired))),
+            Feedforward::InverseGpi(m) => s.input_to_norm(m.step(s.norm_to_output(desired))),
         };
         let ff = if bypass { target } else { compensated };
         let mut command = ff;
@@ -504,6 +519,10 @@ pub fn check(set: &VectorSet<'_>) -> anyhow::Result<Agreement> {
             Estimator::Pi(m) => norm(&s, m.step(u_volts)),
             Estimator::Duhem(m) => norm(&s, m.step(u_volts)),
             Estimator::Gpi(m) => norm(&s, m.step(u_volts)),
+        };
+        let estimate_ref = match &mut observer_creep {
+            Some(c) => c.step(estimate_ref),
+            None => estimate_ref,
         };
         if let Some(sn) = &mut sensor {
             sn.observed(estimate_ref);

@@ -17,6 +17,7 @@
 //! | `ipi16-pi-closed` | inverse P–I, N = 16 | P–I, N = 16 | drift limit 2 % | PI | closed loop | differential, bias | 16-bit, 16-bit |
 //! | `ipi32-duhem-closed` | inverse P–I, N = 32 | Duhem | no drift limit | PI | closed loop | unidirectional, bias | 12-bit, 16-bit |
 //! | `iduhem-duhem-closed` | inverse Duhem | Duhem | no drift limit | PI | closed loop | differential, bias | 16-bit, 16-bit |
+//! | `ipi16-pi-creep-closed` | inverse P–I, N = 16, + inverse creep (4 modes) | P–I, N = 16, + creep | drift limit 2 % | PI | closed loop | differential, bias | 16-bit, 16-bit |
 //! | `iduhem-pi-open` | inverse Duhem | P–I, N = 16 | none | none | open loop | unidirectional, bias | 16-bit, none |
 //! | `igpi16-gpi-closed` | inverse generalised P–I, N = 16, 6 dead zones | the same | drift limit 2 % | PI | closed loop | differential, bias | 16-bit, 16-bit |
 //!
@@ -36,7 +37,7 @@ use std::path::Path;
 use twinstack::board::Hardware;
 use twinstack::drive::{Configuration, DriveSettings, SafeState};
 use twinstack::generalised_pi::GpiParams;
-use twinstack::settings::{FeedbackSettings, Mode, Model, SensorSettings, Settings};
+use twinstack::settings::{CreepParams, FeedbackSettings, Mode, Model, SensorSettings, Settings};
 use twinstack::{DuhemParams, PiParams, Scaling};
 use twinstack_golden::Recipe;
 
@@ -198,6 +199,7 @@ pub fn definitions(dir: &Path) -> anyhow::Result<Vec<SetDefinition>> {
         drive: DriveSettings,
         hardware: Hardware,
         truth: Truth,
+        creep: Option<CreepParams>,
     }
     let def = |set: Set| SetDefinition {
         name: set.name,
@@ -211,6 +213,7 @@ pub fn definitions(dir: &Path) -> anyhow::Result<Vec<SetDefinition>> {
                 sensor: set.sensor,
                 feedback: set.feedback,
                 mode: set.mode,
+                creep: set.creep,
             },
         },
         truth: set.truth,
@@ -228,6 +231,7 @@ pub fn definitions(dir: &Path) -> anyhow::Result<Vec<SetDefinition>> {
             drive: drive(Differential, Bias),
             hardware: hardware(65535, None),
             truth: t_duhem.clone(),
+            creep: None,
         }),
         def(Set {
             name: "ipi16-duhem-bypass",
@@ -241,6 +245,7 @@ pub fn definitions(dir: &Path) -> anyhow::Result<Vec<SetDefinition>> {
             drive: drive(Differential, Zero),
             hardware: hardware(65535, Some(16)),
             truth: t_pi.clone(),
+            creep: None,
         }),
         def(Set {
             name: "none-duhem-closed",
@@ -252,6 +257,7 @@ pub fn definitions(dir: &Path) -> anyhow::Result<Vec<SetDefinition>> {
             drive: drive(Differential, Bias),
             hardware: hardware(4095, Some(12)),
             truth: t_pi.clone(),
+            creep: None,
         }),
         def(Set {
             name: "ipi8-pi-open",
@@ -263,6 +269,7 @@ pub fn definitions(dir: &Path) -> anyhow::Result<Vec<SetDefinition>> {
             drive: drive(Differential, Bias),
             hardware: hardware(65535, Some(16)),
             truth: t_duhem.clone(),
+            creep: None,
         }),
         def(Set {
             name: "ipi16-pi-closed",
@@ -276,6 +283,7 @@ pub fn definitions(dir: &Path) -> anyhow::Result<Vec<SetDefinition>> {
             drive: drive(Differential, Bias),
             hardware: hardware(65535, Some(16)),
             truth: t_duhem.clone(),
+            creep: None,
         }),
         def(Set {
             name: "ipi32-duhem-closed",
@@ -286,7 +294,8 @@ pub fn definitions(dir: &Path) -> anyhow::Result<Vec<SetDefinition>> {
             mode: Mode::ClosedLoop,
             drive: drive(Unidirectional, Bias),
             hardware: hardware(4095, Some(16)),
-            truth: t_duhem,
+            truth: t_duhem.clone(),
+            creep: None,
         }),
         def(Set {
             name: "iduhem-duhem-closed",
@@ -298,6 +307,24 @@ pub fn definitions(dir: &Path) -> anyhow::Result<Vec<SetDefinition>> {
             drive: drive(Differential, Bias),
             hardware: hardware(65535, Some(16)),
             truth: t_pi.clone(),
+            creep: None,
+        }),
+        // The inverse P–I N = 16 set with four creep modes (0.1 ms … 100 ms) in series with
+        // both models.
+        def(Set {
+            name: "ipi16-pi-creep-closed",
+            compensator: Some(pi16.clone()),
+            observer: Some(pi16.clone()),
+            sensor: Some(sensor(&s, Some(0.02))),
+            feedback: Some(feedback()),
+            mode: Mode::ClosedLoop,
+            drive: drive(Differential, Bias),
+            hardware: hardware(65535, Some(16)),
+            truth: t_duhem,
+            creep: Some(CreepParams::new(
+                &[1e-4, 1e-3, 1e-2, 1e-1],
+                &[0.02, 0.02, 0.02, 0.03],
+            )?),
         }),
         def(Set {
             name: "iduhem-pi-open",
@@ -309,6 +336,7 @@ pub fn definitions(dir: &Path) -> anyhow::Result<Vec<SetDefinition>> {
             drive: drive(Unidirectional, Bias),
             hardware: hardware(65535, None),
             truth: t_pi,
+            creep: None,
         }),
         def(Set {
             name: "igpi16-gpi-closed",
@@ -320,6 +348,7 @@ pub fn definitions(dir: &Path) -> anyhow::Result<Vec<SetDefinition>> {
             drive: drive(Differential, Bias),
             hardware: hardware(65535, Some(16)),
             truth: Truth::Duhem(m.duhem),
+            creep: None,
         }),
     ])
 }

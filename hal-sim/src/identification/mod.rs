@@ -31,6 +31,7 @@
 //! `predict` runs it, so the fitted and the checked model see the same operator states.
 
 pub mod auto;
+pub mod creep;
 pub mod duhem;
 pub mod gpi;
 pub mod least_squares;
@@ -145,6 +146,9 @@ pub struct IdentifyOptions {
     pub max_lag: usize,
     /// Refine a Duhem or generalised P–I fit on its simulated error.
     pub refine: bool,
+    /// Fit a creep operator in series with the model ([`creep`]), alternating with the
+    /// hysteresis fit.
+    pub creep: bool,
 }
 
 impl IdentifyOptions {
@@ -159,6 +163,7 @@ impl IdentifyOptions {
             lag: None,
             max_lag: 10,
             refine: true,
+            creep: false,
         }
     }
 }
@@ -166,7 +171,7 @@ impl IdentifyOptions {
 impl IdentifyOptions {
     /// The model these options fit, in words (the ranking's and the report's label).
     pub fn model_label(&self) -> String {
-        match self.model {
+        let model = match self.model {
             ModelKind::Pi => format!(
                 "P-I ({} {} operators)",
                 self.operators,
@@ -179,17 +184,27 @@ impl IdentifyOptions {
                 format!("{:?}", self.thresholds).to_lowercase(),
                 2 * gpi::DEAD_ZONES_PER_SIDE
             ),
+        };
+        if self.creep {
+            format!("{model} + creep")
+        } else {
+            model
         }
     }
 
-    /// `--model auto`'s candidates: every model kind, each with these options otherwise.
+    /// `--model auto`'s candidates: every model kind, each without and with creep (only with
+    /// creep when these options ask for it), with these options otherwise.
     pub fn candidates(&self) -> Vec<IdentifyOptions> {
         use clap::ValueEnum;
+        let creep: &[bool] = if self.creep { &[true] } else { &[false, true] };
         ModelKind::value_variants()
             .iter()
-            .map(|&model| IdentifyOptions {
-                model,
-                ..self.clone()
+            .flat_map(|&model| {
+                creep.iter().map(move |&creep| IdentifyOptions {
+                    model,
+                    creep,
+                    ..self.clone()
+                })
             })
             .collect()
     }
@@ -273,6 +288,104 @@ pub enum IdentifyError {
     /// The fitted model is refused by the library.
     #[error("the fitted model cannot run on the board: {0}")]
     Params(ParamError),
+}
+
+/// A hysteresis fit of a (sign-corrected) target, adding its notes.
+type FitModel<'a> = dyn Fn(&[f64], &mut Vec<String>) -> Result<StageModel, IdentifyError> + 'a;
+
+/// Most alternations of the creep fit with the hysteresis fit.
+pub const CREEP_ITERATIONS: usize = 20;
+/// The alternation stops once an iterate's fit RMS changes by less than this fraction.
+pub const CREEP_CONVERGED: f64 = 0.01;
+
+/// The creep fit alternated with the hysteresis fit: the creep weights on the hysteresis
+/// model's output, then the hysteresis refitted on the target with the creep undone (its
+/// exact inverse applied to `y`), until the fit RMS settles (changes by less than
+/// [`CREEP_CONVERGED`]) or [`CREEP_ITERATIONS`] times; the iterate whose prediction scores the
+/// lowest RMS on the fitted rows is kept. (The split of a slow mode between the model's gain
+/// and the creep converges slowly — about ten iterates on a synthetic record.)
+fn with_creep(
+    first: StageModel,
+    data: &MeasuredData,
+    y: &[f64],
+    rows: &FitRows,
+    n_fit: usize,
+    fit_model: &FitModel<'_>,
+    notes: &mut Vec<String>,
+) -> Result<StageModel, IdentifyError> {
+    let t = &data.t[..n_fit];
+    let u = data.u.as_deref().unwrap_or_default();
+    let u = &u[..n_fit.min(u.len())];
+    let period = data.sample_period();
+    let rate = 1.0 / period;
+    let taus = creep::time_constants(period, t.last().unwrap_or(&0.0) - t[0], creep::MODES);
+    let score = |m: &StageModel| -> Result<f64, IdentifyError> {
+        let x = m.predict(t, u).map_err(IdentifyError::Params)?;
+        // `predict` applies the sign and the lag: compare with the reading at k + lag.
+        Ok(rms(rows.index.iter().map(|&k| {
+            m.output_sign * x[k + rows.lag] - y[k + rows.lag]
+        })))
+    };
+    let mut hysteresis = first;
+    let mut best: Option<(f64, StageModel)> = None;
+    let mut history = Vec::new();
+    for _ in 0..CREEP_ITERATIONS {
+        // The hysteresis output itself: no sign, no lag, no creep.
+        let bare = StageModel {
+            output_sign: 1.0,
+            sensor_lag_s: 0.0,
+            creep: None,
+            ..hysteresis.clone()
+        };
+        let h = bare
+            .predict_reference(t, u)
+            .map_err(IdentifyError::Params)?;
+        let c = creep::fit(&h, y, rows, &taus, rate)?;
+        let candidate = StageModel {
+            creep: Some(c.clone()),
+            ..hysteresis
+        };
+        let r = score(&candidate)?;
+        let settled = history
+            .last()
+            .is_some_and(|&p: &f64| (p - r).abs() <= CREEP_CONVERGED * p);
+        history.push(r);
+        if best.as_ref().is_none_or(|(b, _)| r < *b) {
+            best = Some((r, candidate));
+        }
+        if settled {
+            break;
+        }
+        // The target with the creep undone, for the next hysteresis fit.
+        let mut inverse =
+            crate::reference::Creep::new(&c, rate, y[0]).map_err(IdentifyError::Params)?;
+        let corrected: Vec<f64> = y.iter().map(|&v| inverse.inverse_step(v)).collect();
+        hysteresis = fit_model(&corrected, &mut Vec::new())?;
+    }
+    let (rms_best, model) = best.ok_or(IdentifyError::Fit(LeastSquaresError::NoRows))?;
+    let span = rows.target_span(y);
+    if let Some(c) = &model.creep {
+        notes.push(format!(
+            "creep: tau {} s, weights {} (fit RMS per iterate {} % of span, kept {:.3} %)",
+            c.time_constants_s
+                .iter()
+                .map(|v| format!("{v:.3e}"))
+                .collect::<Vec<_>>()
+                .join(", "),
+            c.weights
+                .iter()
+                .map(|v| format!("{v:.4}"))
+                .collect::<Vec<_>>()
+                .join(", "),
+            history
+                .iter()
+                .map(|r| format!("{:.3}", 100.0 * r / span))
+                .collect::<Vec<_>>()
+                .join(" / "),
+            100.0 * rms_best / span
+        ));
+    }
+    Ok(model)
 }
 
 fn min_max(v: impl Iterator<Item = f64>) -> (f64, f64) {
@@ -412,91 +525,99 @@ pub fn identify(
             scaling,
             output_sign,
             sensor_lag_s,
+            creep: None,
         })
     };
 
-    let model = match options.model {
-        ModelKind::Pi => {
-            let fit_pi = |min_first: f64| -> Result<StageModel, IdentifyError> {
-                let f = pi::fit(&columns, &thresholds, u_mid, &y, &rows, min_first)?;
-                let output: Vec<f64> = (0..n_fit - lag)
-                    .map(|k| y[k + lag] - f.residuals[k])
-                    .collect();
-                with_output_range(Hysteresis::Pi(f.params), &output, 0.0)
-            };
-            let model = fit_pi(0.0)?;
-            match model.check() {
-                Ok(()) => model,
-                Err(
-                    e @ (ParamError::WeightOutOfRange { .. }
-                    | ParamError::GainSumTooLarge
-                    | ParamError::FirstWeightNotPositive),
-                ) => {
-                    let floor = MIN_NORM_FIRST_WEIGHT / model.scaling.gain_to_norm();
+    // The hysteresis model fitted to the (sign-corrected) target `y`.
+    let fit_model = |y: &[f64], notes: &mut Vec<String>| -> Result<StageModel, IdentifyError> {
+        Ok(match options.model {
+            ModelKind::Pi => {
+                let fit_pi = |min_first: f64| -> Result<StageModel, IdentifyError> {
+                    let f = pi::fit(&columns, &thresholds, u_mid, y, &rows, min_first)?;
+                    let output: Vec<f64> = (0..n_fit - lag)
+                        .map(|k| y[k + lag] - f.residuals[k])
+                        .collect();
+                    with_output_range(Hysteresis::Pi(f.params), &output, 0.0)
+                };
+                let model = fit_pi(0.0)?;
+                match model.check() {
+                    Ok(()) => model,
+                    Err(
+                        e @ (ParamError::WeightOutOfRange { .. }
+                        | ParamError::GainSumTooLarge
+                        | ParamError::FirstWeightNotPositive),
+                    ) => {
+                        let floor = MIN_NORM_FIRST_WEIGHT / model.scaling.gain_to_norm();
+                        notes.push(format!(
+                            "the inverse could not be built ({e}): refitted with w_1 >= {floor:.4e}"
+                        ));
+                        fit_pi(floor)?
+                    }
+                    Err(e) => return Err(IdentifyError::Params(e)),
+                }
+            }
+            ModelKind::Duhem => {
+                let (y_lo, y_hi) = min_max(y.iter().copied());
+                let provisional = Scaling::new(in_lo, in_hi, y_lo, y_hi.max(y_lo + 1e-9))
+                    .map_err(|e| IdentifyError::Params(e.into()))?;
+                let steady_from = motion::both_extremes_reached(&u_fit[first..]) + first;
+                let f = duhem::fit(u_fit, y, &rows, &provisional, options.refine, steady_from)?;
+                let span = rows.target_span(y);
+                notes.push(format!(
+                    "Duhem integrated least squares: simulated RMS {:.3} % of span{}",
+                    100.0 * f.least_squares_rms / span,
+                    match f.path {
+                        duhem::DuhemFitPath::Plain => String::new(),
+                        duhem::DuhemFitPath::ConstrainedNotPositive =>
+                            " (plain fit had a non-positive coefficient: refitted with alpha, beta, gamma >= 0)".into(),
+                        duhem::DuhemFitPath::ConstrainedDiverged =>
+                            " (plain fit diverged when simulated: refitted with alpha, beta, gamma >= 0)".into(),
+                    }
+                ));
+                if f.params != f.least_squares {
                     notes.push(format!(
-                        "the inverse could not be built ({e}): refitted with w_1 >= {floor:.4e}"
+                        "Duhem refined on the simulated error from t = {:.4} s (drive has seen both extremes): RMS {:.3} % of span over the fit",
+                        data.t[steady_from.min(n_fit - 1)],
+                        100.0 * f.rms / span
                     ));
-                    fit_pi(floor)?
                 }
-                Err(e) => return Err(IdentifyError::Params(e)),
-            }
-        }
-        ModelKind::Duhem => {
-            let (y_lo, y_hi) = min_max(y.iter().copied());
-            let provisional = Scaling::new(in_lo, in_hi, y_lo, y_hi.max(y_lo + 1e-9))
-                .map_err(|e| IdentifyError::Params(e.into()))?;
-            let steady_from = motion::both_extremes_reached(&u_fit[first..]) + first;
-            let f = duhem::fit(u_fit, &y, &rows, &provisional, options.refine, steady_from)?;
-            let span = rows.target_span(&y);
-            notes.push(format!(
-                "Duhem integrated least squares: simulated RMS {:.3} % of span{}",
-                100.0 * f.least_squares_rms / span,
-                match f.path {
-                    duhem::DuhemFitPath::Plain => String::new(),
-                    duhem::DuhemFitPath::ConstrainedNotPositive =>
-                        " (plain fit had a non-positive coefficient: refitted with alpha, beta, gamma >= 0)".into(),
-                    duhem::DuhemFitPath::ConstrainedDiverged =>
-                        " (plain fit diverged when simulated: refitted with alpha, beta, gamma >= 0)".into(),
+                // The fixed-point Duhem saturates the distance to the anhysteretic curve,
+                // e = βu + δ − y, at ±2 normalised: widen the output range until |e| stays
+                // within DUHEM_MAX_NORM_DISTANCE of it on the data.
+                let p = f.params;
+                let max_distance = u_fit
+                    .iter()
+                    .zip(&f.simulated)
+                    .map(|(&u, &y)| (p.beta * u + p.offset - y).abs())
+                    .fold(0.0, f64::max);
+                let needed = max_distance / DUHEM_MAX_NORM_DISTANCE;
+                let model = with_output_range(Hysteresis::Duhem(p), &f.simulated, needed)?;
+                let (lo, hi) = min_max(f.simulated.iter().copied());
+                if needed > (0.5 + OUTPUT_MARGIN) * (hi - lo) {
+                    notes.push(format!(
+                        "output range widened to +/-{:.4} around the model's centre so that the distance to the anhysteretic curve fits the fixed point",
+                        needed
+                    ));
                 }
-            ));
-            if f.params != f.least_squares {
-                notes.push(format!(
-                    "Duhem refined on the simulated error from t = {:.4} s (drive has seen both extremes): RMS {:.3} % of span over the fit",
-                    data.t[steady_from.min(n_fit - 1)],
-                    100.0 * f.rms / span
-                ));
+                model
             }
-            // The fixed-point Duhem saturates the distance to the anhysteretic curve,
-            // e = βu + δ − y, at ±2 normalised: widen the output range until |e| stays
-            // within DUHEM_MAX_NORM_DISTANCE of it on the data.
-            let p = f.params;
-            let max_distance = u_fit
-                .iter()
-                .zip(&f.simulated)
-                .map(|(&u, &y)| (p.beta * u + p.offset - y).abs())
-                .fold(0.0, f64::max);
-            let needed = max_distance / DUHEM_MAX_NORM_DISTANCE;
-            let model = with_output_range(Hysteresis::Duhem(p), &f.simulated, needed)?;
-            let (lo, hi) = min_max(f.simulated.iter().copied());
-            if needed > (0.5 + OUTPUT_MARGIN) * (hi - lo) {
-                notes.push(format!(
-                    "output range widened to +/-{:.4} around the model's centre so that the distance to the anhysteretic curve fits the fixed point",
-                    needed
-                ));
-            }
-            model
-        }
-        ModelKind::Gpi => gpi_model(
-            &columns,
-            &thresholds,
-            u_mid,
-            &y,
-            &rows,
-            options.refine,
-            &mut notes,
-            with_output_range,
-        )?,
+            ModelKind::Gpi => gpi_model(
+                &columns,
+                &thresholds,
+                u_mid,
+                y,
+                &rows,
+                options.refine,
+                notes,
+                &with_output_range,
+            )?,
+        })
     };
+    let mut model = fit_model(&y, &mut notes)?;
+    if options.creep {
+        model = with_creep(model, data, &y, &rows, n_fit, &fit_model, &mut notes)?;
+    }
     model.check().map_err(IdentifyError::Params)?;
     // A model the library accepts can still be useless (a fit that ran off on data its
     // family cannot describe): judge it, run as `predict` runs it, on the rows it was fitted to.
@@ -640,6 +761,126 @@ mod tests {
         assert!(held.max_pct < 0.2 && held.rms_pct < 0.05, "{held:?}");
     }
 
+    /// A staircase of ramps and holds (1 kHz, 6 s) through a known P–I and a known creep
+    /// whose time constants are those [`creep::time_constants`] picks for the fit window.
+    fn creeping_record() -> (MeasuredData, Vec<f64>) {
+        let n = 6000;
+        let rate = 1000.0;
+        let t: Vec<f64> = (0..n).map(|k| k as f64 / rate).collect();
+        let levels = [
+            100.0, -100.0, 40.0, -60.0, 80.0, -20.0, 60.0, -90.0, 10.0, 90.0, -40.0, 30.0,
+        ];
+        let mut u = Vec::with_capacity(n);
+        let mut from = 0.0;
+        for (i, &to) in levels.iter().cycle().enumerate() {
+            if u.len() >= n {
+                break;
+            }
+            let (ramp, hold) = (100, 300 + 100 * (i % 3));
+            for k in 1..=ramp {
+                u.push(from + (to - from) * k as f64 / ramp as f64);
+            }
+            u.extend(std::iter::repeat_n(to, hold));
+            from = to;
+        }
+        u.truncate(n);
+        let thresholds = Thresholds::Uniform.generate(17, 100.0).unwrap();
+        let weights: Vec<f64> = (0..17).map(|i| 0.04 / (1.0 + 0.5 * i as f64)).collect();
+        let truth = PiParams::new(0.0, 2.0, &thresholds, &weights).unwrap();
+        let s = Scaling::new(-100.0, 100.0, -20.0, 20.0).unwrap();
+        let mut m = reference::PrandtlIshlinskii::new(&truth, &s, u[0]).unwrap();
+        let h: Vec<f64> = u.iter().map(|&v| m.step(v)).collect();
+        // The fit window: the record's start up to t < 4 s.
+        let taus = creep::time_constants(1.0 / rate, t[3999] - t[0], creep::MODES);
+        let creep_weights = vec![0.03, 0.02, 0.0, 0.04];
+        let c = twinstack::creep::CreepParams::new(&taus, &creep_weights).unwrap();
+        let mut op = reference::Creep::new(&c, rate, h[0]).unwrap();
+        let x: Vec<f64> = h.iter().map(|&v| op.step(v)).collect();
+        let data = MeasuredData {
+            path: PathBuf::from("creeping.csv"),
+            t,
+            u: Some(u),
+            x: Some(x),
+        };
+        (data, creep_weights)
+    }
+
+    #[test]
+    fn creep_weights_are_recovered_and_the_held_out_error_falls() {
+        let (data, truth) = creeping_record();
+        let (u, x) = (data.u.as_ref().unwrap(), data.x.as_ref().unwrap());
+        let held = |creep: bool| {
+            let mut o = IdentifyOptions::new(ModelKind::Pi, 4.0);
+            o.creep = creep;
+            o.lag = Some(0);
+            let id = identify(&data, &o).unwrap();
+            let predicted = id.model.predict(&data.t, u).unwrap();
+            (id, score(x, &predicted, 4000..6000).unwrap())
+        };
+        let (plain, without) = held(false);
+        let (id, with) = held(true);
+        assert!(plain.model.creep.is_none());
+        let c = id.model.creep.as_ref().expect("a creep was fitted");
+        for (got, want) in c.weights.iter().zip(&truth) {
+            assert!((got - want).abs() < 0.005, "{:?} vs {truth:?}", c.weights);
+        }
+        assert!(
+            with.rms_pct < 0.75 * without.rms_pct && with.max_pct < 0.5 * without.max_pct,
+            "with creep {with:?}, without {without:?}"
+        );
+        assert!(
+            id.notes.iter().any(|n| n.starts_with("creep:")),
+            "{:?}",
+            id.notes
+        );
+    }
+
+    #[test]
+    fn bad_options_and_splits_have_their_own_errors() {
+        let (data, _) = glitchy_record();
+        let mut o = IdentifyOptions::new(ModelKind::Pi, 2.0);
+        o.operators = 0;
+        assert!(matches!(
+            identify(&data, &o),
+            Err(IdentifyError::BadOperatorCount(0))
+        ));
+        o.operators = 33;
+        assert!(matches!(
+            identify(&data, &o),
+            Err(IdentifyError::BadOperatorCount(33))
+        ));
+        let o = IdentifyOptions::new(ModelKind::Duhem, 0.01);
+        assert!(matches!(
+            identify(&data, &o),
+            Err(IdentifyError::TooFewFitSamples { .. })
+        ));
+        let mut still = data.clone();
+        if let Some(u) = still.u.as_mut() {
+            u[..200].fill(0.0);
+        }
+        let o = IdentifyOptions::new(ModelKind::Duhem, 0.15);
+        assert!(matches!(
+            identify(&still, &o),
+            Err(IdentifyError::NoMotion(_))
+        ));
+        let o = IdentifyOptions::new(ModelKind::Pi, 2.995);
+        assert!(matches!(
+            identify(&data, &o),
+            Err(IdentifyError::NothingToScore { .. })
+        ));
+        let mut o = IdentifyOptions::new(ModelKind::Pi, 2.0);
+        o.lag = Some(5000);
+        assert!(matches!(
+            identify(&data, &o),
+            Err(IdentifyError::LagTooLong { lag: 5000 })
+        ));
+        let no_x = MeasuredData { x: None, ..data };
+        assert!(matches!(
+            identify(&no_x, &IdentifyOptions::new(ModelKind::Pi, 2.0)),
+            Err(IdentifyError::MissingColumns(_))
+        ));
+    }
+
     /// A record from a known asymmetric model (a generalised P–I: the P–I of
     /// [`glitchy_record`] through a map flatter below its centre, steeper above), with the
     /// sine's amplitude decaying so the held-out part has inner loops.
@@ -704,66 +945,5 @@ mod tests {
         let drive = gpi.model.compensate(&data.t, x).unwrap();
         let inverse = score(u, &drive, 2500..n).unwrap();
         assert!(inverse.max_pct < 1.0, "{inverse:?}");
-    }
-
-    #[test]
-    fn a_lag_needs_evidence_and_the_smallest_good_one_wins() {
-        // No fit, or lags that shave off less than LAG_EVIDENCE: no lag.
-        assert_eq!(supported_lag(&[]), 0);
-        assert_eq!(supported_lag(&[(0, 1.0), (1, 0.98), (2, 0.96)]), 0);
-        // A real delay: the smallest lag within LAG_TOLERANCE of the best.
-        assert_eq!(
-            supported_lag(&[(0, 1.0), (1, 0.6), (2, 0.3), (3, 0.299), (4, 0.31)]),
-            2
-        );
-        assert_eq!(supported_lag(&[(0, 1.0), (1, 0.6), (2, 0.5), (3, 0.3)]), 3);
-        // NaN residuals never count as evidence.
-        assert_eq!(supported_lag(&[(0, f64::NAN), (1, 0.5)]), 0);
-    }
-
-    #[test]
-    fn bad_options_and_splits_have_their_own_errors() {
-        let (data, _) = glitchy_record();
-        let mut o = IdentifyOptions::new(ModelKind::Pi, 2.0);
-        o.operators = 0;
-        assert!(matches!(
-            identify(&data, &o),
-            Err(IdentifyError::BadOperatorCount(0))
-        ));
-        o.operators = 33;
-        assert!(matches!(
-            identify(&data, &o),
-            Err(IdentifyError::BadOperatorCount(33))
-        ));
-        let o = IdentifyOptions::new(ModelKind::Duhem, 0.01);
-        assert!(matches!(
-            identify(&data, &o),
-            Err(IdentifyError::TooFewFitSamples { .. })
-        ));
-        let mut still = data.clone();
-        if let Some(u) = still.u.as_mut() {
-            u[..200].fill(0.0);
-        }
-        let o = IdentifyOptions::new(ModelKind::Duhem, 0.15);
-        assert!(matches!(
-            identify(&still, &o),
-            Err(IdentifyError::NoMotion(_))
-        ));
-        let o = IdentifyOptions::new(ModelKind::Pi, 2.995);
-        assert!(matches!(
-            identify(&data, &o),
-            Err(IdentifyError::NothingToScore { .. })
-        ));
-        let mut o = IdentifyOptions::new(ModelKind::Pi, 2.0);
-        o.lag = Some(5000);
-        assert!(matches!(
-            identify(&data, &o),
-            Err(IdentifyError::LagTooLong { lag: 5000 })
-        ));
-        let no_x = MeasuredData { x: None, ..data };
-        assert!(matches!(
-            identify(&no_x, &IdentifyOptions::new(ModelKind::Pi, 2.0)),
-            Err(IdentifyError::MissingColumns(_))
-        ));
     }
 }

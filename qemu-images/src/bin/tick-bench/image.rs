@@ -150,6 +150,14 @@ fn main() -> ! {
         Err(_) => panic!("representative generalised P–I N = {}", n),
     };
     let base = closed(None);
+    // Four creep modes, 0.1 ms … 100 ms, 2 % each, in series with both models.
+    let creep = match twinstack::creep::CreepParams::new(
+        &[1e-4, 1e-3, 1e-2, 1e-1],
+        &[0.02, 0.02, 0.02, 0.02],
+    ) {
+        Ok(c) => Some(c),
+        Err(_) => panic!("creep parameters"),
+    };
     let cases: [(&str, Settings); 10] = [
         // Breakdown of the fixed part: split + limits + DAC alone, then + the Duhem observer.
         (
@@ -202,6 +210,15 @@ fn main() -> ! {
         // The generalised P–I (N = 16, 6 dead zones) as compensator, last so that the rows
         // above run the code they ran before it existed.
         ("inverse-gpi-16", closed(gpi(16))),
+        // The inverse P–I N = 16 row with creep (inverse creep before the compensator,
+        // creep after the observer).
+        (
+            "inverse-pi-16-creep-4",
+            Settings {
+                creep,
+                ..closed(pi(16))
+            },
+        ),
     ];
     // The parts below run the inverse P–I N = 16 row's models and drive.
     let parts = build("inverse-pi-16", closed(pi(16)));
