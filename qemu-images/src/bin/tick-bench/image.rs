@@ -158,7 +158,7 @@ fn main() -> ! {
         Ok(c) => Some(c),
         Err(_) => panic!("creep parameters"),
     };
-    let cases: [(&str, Settings); 10] = [
+    let cases: [(&str, Settings); 11] = [
         // Breakdown of the fixed part: split + limits + DAC alone, then + the Duhem observer.
         (
             "bypass",
