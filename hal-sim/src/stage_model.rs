@@ -471,6 +471,7 @@ mod tests {
             scaling: Scaling::new(-100.0, 100.0, -25.0, 25.0).unwrap(),
             output_sign: 1.0,
             sensor_lag_s: 0.0,
+            creep: None,
         }
     }
 

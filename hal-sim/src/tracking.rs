@@ -24,6 +24,7 @@
 //! least-squares fits to seconds. The hysteresis models are rate-independent, so the
 //! compensator run at 10 kHz gives the drive the board's 50–100 kHz tick would, sampled.
 
+use crate::identification::auto::identify_auto;
 use crate::identification::score::{score, ErrorFigures};
 use crate::identification::{identify, IdentifyOptions, ModelKind};
 use crate::measured_data::MeasuredData;
@@ -395,7 +396,37 @@ pub fn model_name(kind: ModelKind) -> String {
         .unwrap_or_else(|| format!("{kind:?}").to_lowercase())
 }
 
-/// Excites the stage built from `config`, identifies a model with each of `options`, and
+/// How a row's model is identified.
+#[derive(Clone, Debug)]
+pub enum Method {
+    /// One model, these options.
+    One(IdentifyOptions),
+    /// `--model auto`: every candidate ranked on the last part of the fit window, the best kept.
+    Auto(Vec<IdentifyOptions>),
+}
+
+impl Method {
+    /// The row's name: the model (`+creep` with creep), or `auto: ` and what auto picked.
+    fn name(o: &IdentifyOptions) -> String {
+        let kind = model_name(o.model);
+        if o.creep {
+            format!("{kind}+creep")
+        } else {
+            kind
+        }
+    }
+}
+
+/// [`evaluate_methods`] with one model per row.
+pub fn evaluate(
+    config: &LabStageConfig,
+    options: &[IdentifyOptions],
+) -> Result<TrackingTable, LabStageError> {
+    let methods: Vec<Method> = options.iter().cloned().map(Method::One).collect();
+    evaluate_methods(config, &methods)
+}
+
+/// Excites the stage built from `config`, identifies a model with each of `methods`, and
 /// tracks the three trajectories with each model and without compensation.
 ///
 /// ```no_run
@@ -409,9 +440,9 @@ pub fn model_name(kind: ModelKind) -> String {
 /// .unwrap();
 /// table.print(&mut std::io::stdout()).unwrap();
 /// ```
-pub fn evaluate(
+pub fn evaluate_methods(
     config: &LabStageConfig,
-    options: &[IdentifyOptions],
+    methods: &[Method],
 ) -> Result<TrackingTable, LabStageError> {
     let mut stage = LabStage::new(config)?;
     let data = excite(&mut stage);
@@ -426,7 +457,13 @@ pub fn evaluate(
     let trajectories = trajectories(lo + margin, hi - margin, rate);
     let x_rest = x.first().copied().unwrap_or(0.0);
 
-    let fit_until = options.first().map_or(FIT_UNTIL_S, |o| o.fit_until_s);
+    let fit_until = methods
+        .iter()
+        .find_map(|m| match m {
+            Method::One(o) => Some(o.fit_until_s),
+            Method::Auto(c) => c.first().map(|o| o.fit_until_s),
+        })
+        .unwrap_or(FIT_UNTIL_S);
     let linear_map = LinearMap::fit(&data, fit_until);
     let mut rows = vec![match linear_map {
         Some(map) => TrackingRow {
@@ -445,21 +482,32 @@ pub fn evaluate(
             error: Some("the excitation's reading does not vary".into()),
         },
     }];
-    for o in options {
-        let method = model_name(o.model);
-        let outcome = identify(&data, o)
-            .map_err(|e| e.to_string())
-            .and_then(|id| {
-                let u = data.u.as_deref().unwrap_or_default();
-                let predicted = id.model.predict(&data.t, u).map_err(|e| e.to_string())?;
-                let held_out = score(x, &predicted, id.held_out_from..x.len());
-                let scores = trajectories
-                    .iter()
-                    .map(|tr| track(&mut stage, &id.model, tr, x_rest))
-                    .collect::<Result<Vec<_>, _>>()
-                    .map_err(|e| e.to_string())?;
-                Ok((held_out, scores))
-            });
+    for m in methods {
+        let (method, identified) = match m {
+            Method::One(o) => (Method::name(o), identify(&data, o)),
+            Method::Auto(candidates) => match identify_auto(&data, candidates) {
+                Ok(a) => {
+                    let picked = a
+                        .ranking
+                        .iter()
+                        .find(|r| r.validation.is_ok())
+                        .map_or_else(|| "?".into(), |r| Method::name(&r.options));
+                    (format!("auto: {picked}"), Ok(a.identification))
+                }
+                Err(e) => ("auto".into(), Err(e)),
+            },
+        };
+        let outcome = identified.map_err(|e| e.to_string()).and_then(|id| {
+            let u = data.u.as_deref().unwrap_or_default();
+            let predicted = id.model.predict(&data.t, u).map_err(|e| e.to_string())?;
+            let held_out = score(x, &predicted, id.held_out_from..x.len());
+            let scores = trajectories
+                .iter()
+                .map(|tr| track(&mut stage, &id.model, tr, x_rest))
+                .collect::<Result<Vec<_>, _>>()
+                .map_err(|e| e.to_string())?;
+            Ok((held_out, scores))
+        });
         rows.push(match outcome {
             Ok((held_out, scores)) => TrackingRow {
                 method,

@@ -61,7 +61,8 @@ pub enum ModelChoice {
     Only(ModelKind),
 }
 
-fn parse_model(s: &str) -> Result<ModelChoice, String> {
+/// Parses `--model`: `auto` or a model kind's name.
+pub fn parse_model(s: &str) -> Result<ModelChoice, String> {
     use clap::ValueEnum;
     if s.eq_ignore_ascii_case("auto") {
         return Ok(ModelChoice::Auto);

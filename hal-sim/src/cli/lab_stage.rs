@@ -4,18 +4,25 @@
 //! multisine tracked open loop with each model's compensator and with none
 //! ([`crate::tracking`]).
 
+use crate::cli::identify::{parse_model, ModelChoice};
 use crate::identification::{IdentifyOptions, ModelKind};
 use crate::output_file::{csv_t_u_x, Staged};
 use crate::plant::{LabStage, LabStageConfig};
-use crate::tracking::{evaluate, excite, EXCITATION_S, FIT_UNTIL_S, SAMPLE_RATE_HZ};
+use crate::tracking::{
+    evaluate_methods, excite, Method, EXCITATION_S, FIT_UNTIL_S, SAMPLE_RATE_HZ,
+};
 use std::path::PathBuf;
 
 /// Arguments of `hal-sim lab-stage`.
 #[derive(clap::Args, Debug)]
 pub struct Args {
-    /// Models to identify and compensate with, comma-separated (one row each).
-    #[arg(long, value_enum, value_delimiter = ',', default_values_t = [ModelKind::Pi, ModelKind::Duhem])]
-    pub model: Vec<ModelKind>,
+    /// Models to identify and compensate with, comma-separated (one row each); `auto` ranks
+    /// them all as `identify` does and keeps the best.
+    #[arg(long, value_delimiter = ',', default_value = "auto,pi,gpi", value_parser = parse_model)]
+    pub model: Vec<ModelChoice>,
+    /// Fit each model with a creep operator in series (for `auto`: only candidates with creep).
+    #[arg(long)]
+    pub creep: bool,
     /// Seed of the stage's sensor noise.
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
@@ -94,12 +101,17 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     for n in &args.without {
         n.remove(&mut config);
     }
-    let options: Vec<IdentifyOptions> = args
+    let options = |kind: ModelKind| IdentifyOptions {
+        operators: args.operators,
+        creep: args.creep,
+        ..IdentifyOptions::new(kind, args.fit_until)
+    };
+    let methods: Vec<Method> = args
         .model
         .iter()
-        .map(|&m| IdentifyOptions {
-            operators: args.operators,
-            ..IdentifyOptions::new(m, args.fit_until)
+        .map(|&m| match m {
+            ModelChoice::Only(kind) => Method::One(options(kind)),
+            ModelChoice::Auto => Method::Auto(options(ModelKind::Pi).candidates()),
         })
         .collect();
     if let Some(path) = &args.write_excitation {
@@ -109,7 +121,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         out.write(path, csv_t_u_x(&data.t, &u, &x).as_bytes())?;
         out.commit()?;
     }
-    let table = evaluate(&config, &options)?;
+    let table = evaluate_methods(&config, &methods)?;
     let mut stdout = std::io::stdout().lock();
     if args.json {
         use std::io::Write;

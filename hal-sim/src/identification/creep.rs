@@ -24,16 +24,20 @@ use twinstack::creep::{CreepParams, MAX_WEIGHT_SUM};
 
 /// Modes fitted by default.
 pub const MODES: usize = 4;
-/// The shortest time constant, in sample periods of the record.
+/// The shortest time constant, in sample periods of the record …
 pub const FIRST_TAU_SAMPLES: f64 = 10.0;
+/// … and at least this, seconds: faster modes fit sensor lag, amplifier dynamics or a
+/// resonance rather than creep, and their inverse amplifies the sensor's noise.
+pub const FIRST_TAU_MIN_S: f64 = 0.01;
 /// The longest time constant picked, seconds.
 pub const MAX_TAU_S: f64 = 100.0;
 
 /// `modes` log-spaced time constants (s) for a record sampled every `sample_period` seconds
-/// whose fit window lasts `window_s` seconds: from [`FIRST_TAU_SAMPLES`] periods up to
+/// whose fit window lasts `window_s` seconds: from [`FIRST_TAU_SAMPLES`] periods (at least
+/// [`FIRST_TAU_MIN_S`]) up to
 /// `min(window_s, MAX_TAU_S)` (at least a decade above the first).
 pub fn time_constants(sample_period: f64, window_s: f64, modes: usize) -> Vec<f64> {
-    let first = FIRST_TAU_SAMPLES * sample_period;
+    let first = (FIRST_TAU_SAMPLES * sample_period).max(FIRST_TAU_MIN_S);
     let last = window_s.min(MAX_TAU_S).max(10.0 * first);
     let n = modes.max(1);
     if n == 1 {
