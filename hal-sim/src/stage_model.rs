@@ -638,6 +638,7 @@ mod tests {
             scaling: Scaling::new(-100.0, 100.0, -18.0, 20.0).unwrap(),
             output_sign: -1.0,
             sensor_lag_s: 0.02,
+            creep: None,
         };
         m.check().unwrap();
         let (t, u) = record();

@@ -139,6 +139,7 @@ fn param_file(dir: &Path, name: &str, lo: f64, hi: f64) -> PathBuf {
         scaling: twinstack::Scaling::new(lo, hi, -10.0, 80.0).unwrap(),
         output_sign: 1.0,
         sensor_lag_s: 0.0,
+        creep: None,
     };
     let path = dir.join(name);
     std::fs::write(

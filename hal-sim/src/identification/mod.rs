@@ -610,7 +610,7 @@ pub fn identify(
                 &rows,
                 options.refine,
                 notes,
-                &with_output_range,
+                with_output_range,
             )?,
         })
     };
