@@ -50,7 +50,12 @@ fn boot() -> Qemu {
 }
 
 fn boot_image(elf: PathBuf) -> Qemu {
-    let scratch = std::env::temp_dir().join(format!("twinstack-host-link-{}", std::process::id()));
+    // One directory per boot: the tests of this file run in parallel threads of one process,
+    // and a directory named after the process alone was removed under the other's QEMU.
+    static BOOTS: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
+    let boot = BOOTS.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+    let scratch =
+        std::env::temp_dir().join(format!("twinstack-host-link-{}-{boot}", std::process::id()));
     let _ = std::fs::remove_dir_all(&scratch);
     std::fs::create_dir_all(&scratch).expect("scratch directory");
     let socket = scratch.join("uart.sock");
