@@ -134,8 +134,10 @@ pub mod scenarios {
 
 /// The configurations a user can load, as the bench measures them.
 pub mod configs {
+    use twinstack::creep::CreepParams;
     use twinstack::settings::{
-        representative_duhem, representative_pi, FeedbackSettings, Mode, SensorSettings, Settings,
+        representative_duhem, representative_gpi, representative_pi, FeedbackSettings, Mode,
+        SensorSettings, Settings,
     };
 
     /// A named configuration.
@@ -166,8 +168,11 @@ pub mod configs {
 
     /// The configurations, in the order they run. `None` if a representative model is
     /// refused (it is not: the tests check it).
-    pub fn all() -> Option<[Config; 2]> {
+    pub fn all() -> Option<[Config; 3]> {
         let pi = representative_pi(16).ok()?;
+        let gpi = representative_gpi(16).ok()?;
+        // Four creep modes, 10 ms … 10 s, in series with both models.
+        let creep = CreepParams::new(&[0.01, 0.1, 1.0, 10.0], &[0.02, 0.02, 0.02, 0.02]).ok()?;
         Some([
             Config {
                 name: "inverse-pi16+pi16-observer+pi+drift",
@@ -176,6 +181,15 @@ pub mod configs {
             Config {
                 name: "inverse-duhem+duhem-observer+pi+drift",
                 settings: closed(representative_duhem(), representative_duhem()),
+            },
+            // The model family's dearest member: the generalised P–I (N = 16, 6 dead zones)
+            // as compensator and observer, with four creep modes in series with both.
+            Config {
+                name: "inverse-gpi16+creep4+gpi16-observer+pi+drift",
+                settings: Settings {
+                    creep: Some(creep),
+                    ..closed(gpi.clone(), gpi)
+                },
             },
         ])
     }
@@ -334,7 +348,9 @@ mod app {
                         _ => (0, 0),
                     };
                     if scenario.lifecycle {
-                        let reload = configs.iter().rev().find(|c| c.name != config.name);
+                        // The first other configuration: the P–I and Duhem ones reload each other, so
+                        // their rows hold their own ticks only (the family's is measured apart).
+                        let reload = configs.iter().find(|c| c.name != config.name);
                         if changed == 0 && ticks_played >= 500 {
                             if let Some(other) = reload {
                                 expect_ack(
