@@ -91,6 +91,8 @@ pub enum Field {
     RecordOffset,
     /// The recorder's signal list.
     RecordSignals,
+    /// A capture's pre-trigger count.
+    RecordPreTrigger,
 }
 
 /// The rule a field broke, with its limit where it has one (in the field's own units).
@@ -213,6 +215,7 @@ impl core::fmt::Display for Field {
             Field::RecordDecimation => "record decimation",
             Field::RecordOffset => "record offset",
             Field::RecordSignals => "record signals",
+            Field::RecordPreTrigger => "record pre-trigger",
         };
         f.write_str(name)
     }

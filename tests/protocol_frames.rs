@@ -92,6 +92,29 @@ fn request() -> impl Strategy<Value = Request> {
         ]
         .prop_map(|boot_mode| Request::StoreParams { boot_mode }),
         any::<u32>().prop_map(|offset| Request::ReadRecord { offset }),
+        (
+            any::<u8>(),
+            any::<u32>(),
+            any::<u32>(),
+            prop_oneof![
+                Just(Trigger::Now),
+                Just(Trigger::StreamStart),
+                Just(Trigger::WaveformStart)
+            ],
+            any::<u16>()
+        )
+            .prop_map(|(signals, samples, pre_trigger, trigger, decimation)| {
+                Request::Capture(CaptureRequest {
+                    signals,
+                    samples,
+                    pre_trigger,
+                    trigger,
+                    decimation,
+                })
+            }),
+        Just(Request::CaptureStatus),
+        (any::<u32>(), any::<u16>())
+            .prop_map(|(offset, count)| Request::ReadCapture { offset, count }),
     ]
 }
 
@@ -233,7 +256,10 @@ fn a_full_batch_fits_one_frame() {
 #[test]
 fn message_variant_counts_match_the_enums() {
     use twinstack::protocol::frame::Message;
-    let last = Request::ReadParams;
+    let last = Request::ReadCapture {
+        offset: 7,
+        count: 256,
+    };
     let mut d = FrameDecoder::new();
     assert_eq!(feed(&mut d, &frame_of(&last)), vec![Ok(last)]);
     let tag = Request::VARIANTS as u8;
@@ -241,7 +267,10 @@ fn message_variant_counts_match_the_enums() {
         feed(&mut d, &raw_frame(&[PROTOCOL_VERSION, tag])),
         vec![Err(FrameError::UnknownType)]
     );
-    let resp = Response::Params(Settings::default());
+    let resp = Response::CaptureChunk {
+        offset: 3,
+        values: heapless::Vec::from_slice(&[i16::MIN, -1, 0, i16::MAX]).unwrap(),
+    };
     let mut buf = [0u8; MAX_ENCODED + 1];
     let n = encode(&resp, &mut buf).unwrap();
     let mut d = FrameDecoder::new();
@@ -264,18 +293,18 @@ fn the_book_s_example_frames_are_what_the_encoder_writes() {
             .map(|b| u8::from_str_radix(b, 16).unwrap())
             .collect()
     };
-    assert_eq!(PROTOCOL_VERSION, 3);
-    assert_eq!(frame_of(&Request::Status), hex("02 03 05 3c 41 f4 6a 00"));
+    assert_eq!(PROTOCOL_VERSION, 4);
+    assert_eq!(frame_of(&Request::Status), hex("02 04 05 fb d7 b5 25 00"));
     assert_eq!(
         frame_of(&Request::Setpoints(SetpointBatch {
             seq: 1,
             samples: heapless::Vec::from_slice(&[100, -100]).unwrap(),
         })),
-        hex("0d 03 01 01 02 c8 01 c7 01 3a 8e c1 bd 00")
+        hex("0d 04 01 01 02 c8 01 c7 01 23 87 04 b7 00")
     );
     let mut out = [0u8; MAX_ENCODED + 1];
     let n = encode(&Response::Ack { credits: 511 }, &mut out).unwrap();
-    assert_eq!(&out[..n], &hex("02 03 07 ff 03 3a dc dc 39 00")[..]);
+    assert_eq!(&out[..n], &hex("02 04 07 ff 03 83 e4 0b a4 00")[..]);
     let refused = Response::Nack {
         reason: NackReason::Refused(twinstack::refusal::Refusal::new(
             twinstack::refusal::Field::Ki,
@@ -285,6 +314,45 @@ fn the_book_s_example_frames_are_what_the_encoder_writes() {
     let n = encode(&refused, &mut out).unwrap();
     assert_eq!(
         &out[..n],
-        &hex("06 03 01 03 0a 04 01 01 01 01 08 6a d8 40 96 81 4a 80 00")[..]
+        &hex("06 04 01 03 0a 04 01 01 01 01 08 6a d8 40 ce 87 39 fd 00")[..]
     );
+    // Protocol v4's capture: arm, read, a chunk.
+    assert_eq!(
+        frame_of(&Request::Capture(CaptureRequest {
+            signals: 0b1_1011,
+            samples: 150,
+            pre_trigger: 10,
+            trigger: Trigger::StreamStart,
+            decimation: 1,
+        })),
+        hex("0d 04 0b 1b 96 01 0a 01 01 e5 46 0f 0f 00")
+    );
+    assert_eq!(
+        frame_of(&Request::ReadCapture {
+            offset: 0,
+            count: 256
+        }),
+        hex("03 04 0d 07 80 02 67 70 45 14 00")
+    );
+    let chunk = Response::CaptureChunk {
+        offset: 0,
+        values: heapless::Vec::from_slice(&[100, -100, 4095]).unwrap(),
+    };
+    let n = encode(&chunk, &mut out).unwrap();
+    assert_eq!(
+        &out[..n],
+        &hex("03 04 06 0c 03 c8 01 c7 01 fe 3f f4 43 49 be 00")[..]
+    );
+}
+
+/// The largest capture chunk (every value at the widest varint) fits a frame.
+#[test]
+fn a_full_capture_chunk_fits_a_frame() {
+    let chunk = Response::CaptureChunk {
+        offset: u32::MAX,
+        values: core::iter::repeat_n(i16::MIN, MAX_CAPTURE_CHUNK).collect(),
+    };
+    let mut out = [0u8; MAX_ENCODED + 1];
+    let n = encode(&chunk, &mut out).expect("fits");
+    assert!(n > 3 * MAX_CAPTURE_CHUNK, "{n} bytes");
 }
