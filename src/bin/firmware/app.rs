@@ -46,6 +46,7 @@ mod app {
     use twinstack::param_store::ReadOnlyStorage;
     use twinstack::param_store::{self, ParamSource};
     use twinstack::protocol::handler::CommandHandler;
+    #[cfg(not(feature = "emulator"))]
     use twinstack::hardware::ccm;
     use twinstack::hardware::tick::HALF_SLOTS;
     use twinstack::recorder::SplitStore;
@@ -179,11 +180,15 @@ mod app {
         ) else {
             panic!("controllers already taken");
         };
-        // The capture buffer: 64 KiB of SRAM, then the 64 KiB of CCM RAM.
-        let Some(ccm_half) = ccm::capture_half() else {
+        // The capture buffer: 64 KiB of SRAM, then the 64 KiB of CCM RAM (QEMU 7.2's
+        // netduinoplus2 models no CCM: the emulator has the SRAM half only).
+        #[cfg(not(feature = "emulator"))]
+        let Some(second_half) = ccm::capture_half() else {
             panic!("CCM buffer already taken");
         };
-        let capture_buffer = SplitStore::new(cx.local.record_buffer, ccm_half);
+        #[cfg(feature = "emulator")]
+        let second_half: &'static mut [i16; 0] = &mut [];
+        let capture_buffer = SplitStore::new(cx.local.record_buffer, second_half as &mut [i16]);
         let control = ControlLoop::new(active, spare, rate, capture_buffer);
         let handler = CommandHandler::new(
             hardware,
