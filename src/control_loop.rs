@@ -268,9 +268,14 @@ where
         self.recorder.record_capacity()
     }
 
-    /// Slots of the capture buffer (`signals × samples` at most).
+    /// Slots of the capture buffer.
     pub fn capture_capacity(&self) -> usize {
         self.recorder.capacity()
+    }
+
+    /// Most frames a capture of `signals` signals holds (see [`Recorder::max_frames`]).
+    pub fn capture_max_frames(&self, signals: u32) -> u32 {
+        self.recorder.max_frames(signals)
     }
 
     /// Arms a multi-signal capture (see [`Recorder::arm_capture`]).

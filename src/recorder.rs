@@ -4,7 +4,7 @@
 //!
 //! * **Capture** ([`Recorder::arm_capture`], protocol `Capture`): a SET of signals per
 //!   captured tick ([`Channel`], a bitmask), one 16-bit value each, frame after frame in one
-//!   ring buffer (`signals × samples ≤` [`Recorder::capacity`] slots), with a pre-trigger
+//!   ring buffer (`samples ≤` [`Recorder::max_frames`], about capacity / signals), with a pre-trigger
 //!   count and a trigger: now, on stream start, on waveform start ([`Trigger`]). While armed
 //!   the ring keeps the latest frames; at the trigger, the capture keeps `pre` frames from
 //!   before it (fewer if the trigger came sooner) and records `samples − pre` more, then stops
@@ -23,12 +23,14 @@
 //!
 //! # Cost on the tick
 //!
-//! [`Recorder::capture`] does, on a capture tick, one store per selected signal (at most
-//! [`CHANNELS`], a loop over the set bits of the mask), one wrap check of the write index and
-//! one countdown; on other ticks a countdown, and when idle one compare. No division, no
-//! allocation, no panic path (every store is a checked `get_mut`). Triggers are not checked
-//! on the tick: [`Recorder::trigger`] is called where the stream or the waveform is started
-//! (the command handler's critical section).
+//! [`Recorder::capture`] does, on a capture tick: the six values (three saturating shifts, a
+//! difference, two loads), one compare to find the frame's segment (a frame never straddles
+//! the two: each segment holds whole frames), one store per selected signal (at most
+//! [`CHANNELS`]), one wrap compare of the write index and one countdown; on other ticks a
+//! countdown, and when idle one compare. No division (the one at arming, off the tick), no
+//! allocation, no panic path (the frame is a checked sub-slice). Triggers are not checked on
+//! the tick: [`Recorder::trigger`] is called where the stream or the waveform is started (the
+//! command handler's critical section).
 //!
 //! The buffer is whatever the board gives it ([`SampleStore`]): the firmware hands it two
 //! 64 KiB halves, one in SRAM and one in the F405's CCM RAM ([`SplitStore`]); the simulator a
@@ -165,28 +167,33 @@ pub enum RecordError {
     NotDone,
 }
 
-/// The recorder's buffer: 16-bit slots. Implemented for any `AsRef<[i16]> + AsMut<[i16]>`
-/// (an array, a `Vec`) and for two of them end to end ([`SplitStore`]).
+/// The recorder's buffer: 16-bit slots in one or two segments (the board's SRAM and CCM RAM
+/// are not contiguous). A frame (one capture tick's values) is always written within one
+/// segment, so the tick finds its place with one compare per frame, not per value.
+/// Implemented for any `AsRef<[i16]> + AsMut<[i16]>` (an array, a `Vec`: one segment) and for
+/// two of them end to end ([`SplitStore`]).
 pub trait SampleStore {
-    /// Slots.
-    fn slots(&self) -> usize;
-    /// Stores `value` in slot `index` (ignored past the end).
-    fn put(&mut self, index: usize, value: i16);
-    /// Slot `index` (0 past the end).
+    /// Slots of the first and of the second segment.
+    fn segments(&self) -> (usize, usize);
+    /// The slots from `offset` to the end of the first segment (or the second, if `second`);
+    /// empty past its end. The tick writes one frame at its start.
+    fn tail_mut(&mut self, second: bool, offset: usize) -> &mut [i16];
+    /// Slot `index`, counting the first segment's then the second's (0 past the end).
     fn get(&self, index: usize) -> i16;
 }
 
 impl<T: AsRef<[i16]> + AsMut<[i16]>> SampleStore for T {
     #[inline(always)]
-    fn slots(&self) -> usize {
-        self.as_ref().len()
+    fn segments(&self) -> (usize, usize) {
+        (self.as_ref().len(), 0)
     }
 
     #[inline(always)]
-    fn put(&mut self, index: usize, value: i16) {
-        if let Some(slot) = self.as_mut().get_mut(index) {
-            *slot = value;
+    fn tail_mut(&mut self, second: bool, offset: usize) -> &mut [i16] {
+        if second {
+            return &mut [];
         }
+        self.as_mut().get_mut(offset..).unwrap_or(&mut [])
     }
 
     #[inline(always)]
@@ -196,13 +203,13 @@ impl<T: AsRef<[i16]> + AsMut<[i16]>> SampleStore for T {
 }
 
 /// Two buffers end to end: slots `0..first.len()` in `first`, the rest in `second` (on the
-/// board, SRAM then CCM RAM: the two are not contiguous). A store costs one compare more.
+/// board, SRAM then CCM RAM).
 ///
 /// ```
 /// use twinstack::recorder::{SampleStore, SplitStore};
 /// let mut s = SplitStore::new([0i16; 2], [0i16; 3]);
-/// s.put(3, 7);
-/// assert_eq!((s.slots(), s.get(3), s.second[1]), (5, 7, 7));
+/// s.tail_mut(true, 1).copy_from_slice(&[7, 8]);
+/// assert_eq!((s.segments(), s.get(3), s.second), ((2, 3), 7, [0, 7, 8]));
 /// ```
 #[derive(Debug)]
 pub struct SplitStore<A, B> {
@@ -225,21 +232,18 @@ where
     B: AsRef<[i16]> + AsMut<[i16]>,
 {
     #[inline(always)]
-    fn slots(&self) -> usize {
-        self.first.as_ref().len() + self.second.as_ref().len()
+    fn segments(&self) -> (usize, usize) {
+        (self.first.as_ref().len(), self.second.as_ref().len())
     }
 
     #[inline(always)]
-    fn put(&mut self, index: usize, value: i16) {
-        let split = self.first.as_ref().len();
-        let slot = if index < split {
-            self.first.as_mut().get_mut(index)
+    fn tail_mut(&mut self, second: bool, offset: usize) -> &mut [i16] {
+        let segment = if second {
+            self.second.as_mut()
         } else {
-            self.second.as_mut().get_mut(index - split)
+            self.first.as_mut()
         };
-        if let Some(slot) = slot {
-            *slot = value;
-        }
+        segment.get_mut(offset..).unwrap_or(&mut [])
     }
 
     #[inline(always)]
@@ -305,6 +309,12 @@ pub struct Recorder<B> {
     frames: u32,
     /// The ring's length in slots (`frames × per_frame`).
     ring: u32,
+    /// Ring slots in the first segment: whole frames only, so no frame straddles the two.
+    first_slots: u32,
+    /// Slot of the second segment where the ring continues (the first segment's length).
+    split: u32,
+    /// `decimation − 1`: the countdown after a capture tick.
+    reload: u16,
     pre: u32,
     /// The next slot written.
     pos: u32,
@@ -340,6 +350,9 @@ impl<B: SampleStore> Recorder<B> {
             per_frame: 2,
             frames: 0,
             ring: 0,
+            first_slots: 0,
+            split: 0,
+            reload: 0,
             pre: 0,
             pos: 0,
             before: 0,
@@ -353,14 +366,23 @@ impl<B: SampleStore> Recorder<B> {
         }
     }
 
-    /// Slots the buffer holds: a capture's `signals × samples` at most.
+    /// Slots the buffer holds.
     pub fn capacity(&self) -> usize {
-        self.buffer.slots()
+        let (a, b) = self.buffer.segments();
+        a + b
     }
 
-    /// Most values a v3 `Record` can hold: [`RECORD_CAPACITY`], or half the slots if fewer.
+    /// Most frames of `signals` values each a capture can hold: whole frames in each segment
+    /// (`⌊first / signals⌋ + ⌊second / signals⌋`; 10 922 of six signals in 65 536 slots).
+    pub fn max_frames(&self, signals: u32) -> u32 {
+        let (a, b) = self.buffer.segments();
+        let n = signals.max(1) as usize;
+        (a / n + b / n).min(u32::MAX as usize) as u32
+    }
+
+    /// Most values a v3 `Record` can hold: [`RECORD_CAPACITY`], or what fits two slots each.
     pub fn record_capacity(&self) -> usize {
-        RECORD_CAPACITY.min(self.capacity() / 2)
+        RECORD_CAPACITY.min(self.max_frames(2) as usize)
     }
 
     /// Arms a v3 `Record`: `count` values of `signal`, one every `decimation` ticks, starting
@@ -393,7 +415,7 @@ impl<B: SampleStore> Recorder<B> {
             return Err(RecordError::BadSignals);
         }
         let per_frame = mask.count_ones();
-        if samples == 0 || samples as u64 * per_frame as u64 > self.capacity() as u64 {
+        if samples == 0 || samples > self.max_frames(per_frame) {
             return Err(RecordError::TooManySamples);
         }
         if pre >= samples || (trigger == Trigger::Now && pre != 0) {
@@ -422,6 +444,11 @@ impl<B: SampleStore> Recorder<B> {
         self.per_frame = per_frame;
         self.frames = frames;
         self.ring = frames * per_frame;
+        let (first, _) = self.buffer.segments();
+        // Off the tick: the one division, whole frames in the first segment.
+        self.first_slots = ((first as u32 / per_frame) * per_frame).min(self.ring);
+        self.split = first as u32;
+        self.reload = dec.saturating_sub(1);
         self.pre = pre;
         self.pos = 0;
         self.before = 0;
@@ -512,44 +539,59 @@ impl<B: SampleStore> Recorder<B> {
             self.countdown -= 1;
             return;
         }
-        self.countdown = self.decimation - 1;
-        let pos = self.pos as usize;
-        match self.kind {
-            Kind::Record(signal) => {
-                let value = match signal {
-                    Signal::Setpoint => setpoint,
-                    Signal::Drive => report.drive,
-                    Signal::Sensor => sensor,
-                    Signal::Estimate => report.estimate,
-                };
-                self.buffer.put(pos, (value >> 16) as i16);
-                self.buffer.put(pos + 1, value as i16);
+        self.countdown = self.reload;
+        // One compare for the segment, then one store per value of the frame (at most
+        // CHANNELS), straight-line: a bit test and a store for each channel.
+        let (second, offset) = if self.pos < self.first_slots {
+            (false, self.pos)
+        } else {
+            (true, self.pos - self.first_slots)
+        };
+        // The frame is at the start of the segment's tail: at most `per_frame` values are
+        // written, and each segment holds whole frames, so they stay in the frame.
+        let mut slots = self.buffer.tail_mut(second, offset as usize).iter_mut();
+        let mut put = |value: i16| {
+            if let Some(slot) = slots.next() {
+                *slot = value;
             }
-            Kind::Capture(_) => {
-                let mut mask = self.mask;
-                let mut slot = pos;
-                // At most CHANNELS iterations: one per set bit of a 6-bit mask.
-                while mask != 0 {
-                    let channel = mask.trailing_zeros();
-                    mask &= mask - 1;
-                    let value = match channel {
-                        0 => q1_15(setpoint),
-                        1 => report.left.0 as i16,
-                        2 => report.right.0 as i16,
-                        3 => q1_15(sensor),
-                        4 => q1_15(report.estimate),
-                        _ => (setpoint.saturating_sub(sensor) >> 16) as i16,
-                    };
-                    self.buffer.put(slot, value);
-                    slot += 1;
-                }
+        };
+        if let Kind::Record(signal) = self.kind {
+            let value = match signal {
+                Signal::Setpoint => setpoint,
+                Signal::Drive => report.drive,
+                Signal::Sensor => sensor,
+                Signal::Estimate => report.estimate,
+            };
+            put((value >> 16) as i16);
+            put(value as i16);
+        } else {
+            let mask = self.mask;
+            if mask & Channel::Setpoint.bit() != 0 {
+                put(q1_15(setpoint));
+            }
+            if mask & Channel::Left.bit() != 0 {
+                put(report.left.0 as i16);
+            }
+            if mask & Channel::Right.bit() != 0 {
+                put(report.right.0 as i16);
+            }
+            if mask & Channel::Sensor.bit() != 0 {
+                put(q1_15(sensor));
+            }
+            if mask & Channel::Estimate.bit() != 0 {
+                put(q1_15(report.estimate));
+            }
+            if mask & Channel::Error.bit() != 0 {
+                put((setpoint.saturating_sub(sensor) >> 16) as i16);
             }
         }
         let next = self.pos + self.per_frame;
         self.pos = if next >= self.ring { 0 } else { next };
         if self.triggered {
-            self.post_left -= 1;
-            if self.post_left == 0 {
+            if self.post_left > 1 {
+                self.post_left -= 1;
+            } else {
+                self.post_left = 0;
                 self.active = false;
             }
         } else if self.before < self.frames {
@@ -572,9 +614,9 @@ impl<B: SampleStore> Recorder<B> {
         }
         let end = recorded.min(offset.saturating_add(MAX_CHUNK as u32));
         for i in offset..end {
-            let at = 2 * i as usize;
-            let hi = self.buffer.get(at) as i32;
-            let lo = self.buffer.get(at + 1) as u16 as i32;
+            let at = 2 * i;
+            let hi = self.buffer.get(self.physical(at)) as i32;
+            let lo = self.buffer.get(self.physical(at + 1)) as u16 as i32;
             // At most MAX_CHUNK values: this cannot fail.
             let _ = out.push(hi << 16 | lo);
         }
@@ -613,9 +655,19 @@ impl<B: SampleStore> Recorder<B> {
             if at >= self.ring {
                 at -= self.ring;
             }
-            let _ = out.push(self.buffer.get(at as usize));
+            let _ = out.push(self.buffer.get(self.physical(at)));
         }
         Ok(())
+    }
+
+    /// The buffer's index of ring slot `at`: the first segment's whole frames, then the
+    /// second segment from its start.
+    fn physical(&self, at: u32) -> usize {
+        if at < self.first_slots {
+            at as usize
+        } else {
+            (self.split + at - self.first_slots) as usize
+        }
     }
 }
 
@@ -826,6 +878,25 @@ mod tests {
         run(&mut r, 1..7);
         assert_eq!(window(&r), [1, 2, 3, 4, 5, 6]);
         assert_eq!(r.buffer.second, [4, 5, 6]);
+    }
+
+    #[test]
+    fn no_frame_straddles_the_two_segments_and_the_ring_wraps_across_them() {
+        // Two signals in 3 + 5 slots: one frame in the first segment, two in the second.
+        let mut r = Recorder::new(SplitStore::new([0i16; 3], [0i16; 5]));
+        assert_eq!(r.max_frames(2), 3);
+        assert_eq!(
+            r.arm_capture(0b11, 4, 0, Trigger::Now, 1),
+            Err(RecordError::TooManySamples)
+        );
+        r.arm_capture(0b11, 3, 1, Trigger::StreamStart, 1).unwrap();
+        run(&mut r, 1..6); // frames 1..5 go round the 3-frame ring
+        r.trigger(Trigger::StreamStart);
+        run(&mut r, 6..9);
+        assert_eq!(r.buffer.first, [7, 7, 0]);
+        assert_eq!(r.buffer.second, [5, 5, 6, 6, 0]);
+        // One frame from before the trigger (5), then 6 and 7.
+        assert_eq!(window(&r), [5, 5, 6, 6, 7, 7]);
     }
 
     #[test]

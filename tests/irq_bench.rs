@@ -23,8 +23,10 @@ use std::process::{Command, Stdio};
 
 /// The worst instruction count of any tick, asserted (deterministic under `-icount`): the
 /// figure the bench measured when it was last changed, rounded up. Lower it when the tick
-/// gets cheaper; raising it needs a reason in the commit.
-const WORST_INSTRUCTIONS: u64 = 950;
+/// gets cheaper; raising it needs a reason in the commit. 970: the image captures all six
+/// recorder signals every tick (issue #18's multi-signal capture, its worst case), measured
+/// at 961; with the one-signal v3 record of protocol v3 it was 894.
+const WORST_INSTRUCTIONS: u64 = 970;
 /// Most instructions a reload's swap tick may cost beyond the tick after it.
 const SWAP_OVERHEAD: i64 = 50;
 /// The goal: the whole handler's worst case in cycles (0 wait states).

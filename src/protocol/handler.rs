@@ -487,8 +487,8 @@ where
     C: DerefMut<Target = Controller>,
     L: Mutex<T = ControlLoop<B, C>>,
 {
-    let capacity = control.lock(|c| c.capture_capacity());
     let signals = r.signals.count_ones();
+    let max_frames = control.lock(|c| c.capture_max_frames(signals));
     if r.signals == 0 {
         return Err(refused(Field::RecordSignals, Rule::AtLeast(1.0)));
     }
@@ -499,12 +499,9 @@ where
     if r.samples == 0 {
         return Err(refused(Field::RecordCount, Rule::AtLeast(1.0)));
     }
-    if r.samples as u64 * signals as u64 > capacity as u64 {
+    if r.samples > max_frames {
         // The limit in samples per signal for this many signals.
-        return Err(refused(
-            Field::RecordCount,
-            Rule::AtMost((capacity / signals as usize) as f64),
-        ));
+        return Err(refused(Field::RecordCount, Rule::AtMost(max_frames as f64)));
     }
     if r.trigger == crate::recorder::Trigger::Now && r.pre_trigger != 0 {
         return Err(refused(Field::RecordPreTrigger, Rule::AtMost(0.0)));
@@ -520,5 +517,5 @@ where
     }
     control
         .lock(|c| c.arm_capture(r.signals, r.samples, r.pre_trigger, r.trigger, r.decimation))
-        .map_err(|_| refused(Field::RecordCount, Rule::AtMost(capacity as f64)))
+        .map_err(|_| refused(Field::RecordCount, Rule::AtMost(max_frames as f64)))
 }

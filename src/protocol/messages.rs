@@ -270,7 +270,8 @@ pub struct StatusReport {
     pub next_seq: u16,
     /// Control rate, Hz.
     pub tick_rate_hz: u32,
-    /// Values the recorder holds (of the count armed).
+    /// Values a v3 `Record` holds (of the count armed); 0 while the buffer holds a v4
+    /// capture, whose progress is in [`CaptureStatus`].
     pub recorded: u32,
     /// Flags, see [`StatusReport::DEFAULTS`] and the other `StatusReport` constants.
     pub flags: u16,
@@ -283,7 +284,7 @@ impl StatusReport {
     pub const STREAMING: u16 = 1 << 1;
     /// Flag: the waveform generator is running.
     pub const WAVEFORM: u16 = 1 << 2;
-    /// Flag: the recorder is capturing.
+    /// Flag: the recorder is capturing (a v3 record or a v4 capture, armed or triggered).
     pub const RECORDING: u16 = 1 << 3;
     // Bit 4 is reserved (protocol v2's "load waiting for the next tick": since v3 a load is
     // in force when it is acknowledged).
