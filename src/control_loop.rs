@@ -7,7 +7,8 @@
 //!    setpoint queue through [`SetpointStream`] (rate divider with linear interpolation; on an
 //!    empty queue the underrun policy holds or ramps to the rest position, and counts);
 //! 2. [`Controller::tick`] (compensator, sensor, feedback, limits, both DACs);
-//! 3. the recorder captures the chosen signal.
+//! 3. the recorder captures the chosen signals (a capture armed on a stream or waveform start
+//!    is triggered where that start is commanded, in [`ControlLoop::start`] / [`ControlLoop::play`]).
 //!
 //! A configuration prepared by the command handler ([`Controller::prepare`], on the spare
 //! controller, outside any lock) is swapped in by [`ControlLoop::post`] inside the handler's
@@ -35,8 +36,8 @@ use crate::control::{ControlCounters, Controller, TickFlags, TickReport};
 use crate::drive::StackVoltages;
 use crate::mode_switch::Mode;
 use crate::mode_switch::ModeError;
-use crate::recorder::{RecordError, Recorder};
-use crate::recorder::{Signal, MAX_CHUNK};
+use crate::recorder::{CaptureInfo, RecordError, Recorder, SampleStore, Trigger};
+use crate::recorder::{Signal, MAX_CAPTURE_CHUNK, MAX_CHUNK};
 use crate::setpoint_stream::UnderrunPolicy;
 use crate::setpoint_stream::{SetpointStream, Underrun};
 use crate::waveform::WaveformGenerator;
@@ -102,7 +103,7 @@ pub struct ControlLoop<B, C> {
 
 impl<B, C> ControlLoop<B, C>
 where
-    B: AsRef<[i32]> + AsMut<[i32]>,
+    B: SampleStore,
     C: DerefMut<Target = Controller>,
 {
     /// The loop at rest on `controller`, with `spare` for the handler's reloads: stream
@@ -202,6 +203,7 @@ where
     pub fn start(&mut self) {
         self.waveform = false;
         self.stream.start();
+        self.recorder.trigger(Trigger::StreamStart);
     }
 
     /// Stops the stream or the waveform: the setpoint holds; queued setpoints stay queued.
@@ -234,6 +236,7 @@ where
     pub fn play(&mut self, waveform: WaveformGenerator) {
         self.waveform = true;
         self.stream.play(waveform);
+        self.recorder.trigger(Trigger::WaveformStart);
     }
 
     /// Arms the recorder (see [`Recorder::arm`]).
@@ -260,9 +263,47 @@ where
         self.recorder.recorded()
     }
 
-    /// Most values one capture holds.
+    /// Most values one v3 `Record` holds.
     pub fn record_capacity(&self) -> usize {
+        self.recorder.record_capacity()
+    }
+
+    /// Slots of the capture buffer.
+    pub fn capture_capacity(&self) -> usize {
         self.recorder.capacity()
+    }
+
+    /// Most frames a capture of `signals` signals holds (see [`Recorder::max_frames`]).
+    pub fn capture_max_frames(&self, signals: u32) -> u32 {
+        self.recorder.max_frames(signals)
+    }
+
+    /// Arms a multi-signal capture (see [`Recorder::arm_capture`]).
+    pub fn arm_capture(
+        &mut self,
+        mask: u8,
+        samples: u32,
+        pre: u32,
+        trigger: Trigger,
+        decimation: u16,
+    ) -> Result<(), RecordError> {
+        self.recorder
+            .arm_capture(mask, samples, pre, trigger, decimation)
+    }
+
+    /// The capture's settings and progress (see [`Recorder::capture_info`]).
+    pub fn capture_info(&self) -> CaptureInfo {
+        self.recorder.capture_info()
+    }
+
+    /// Copies slots of a complete capture's window (see [`Recorder::read_capture`]).
+    pub fn read_capture(
+        &self,
+        offset: u32,
+        count: u16,
+        out: &mut heapless::Vec<i16, MAX_CAPTURE_CHUNK>,
+    ) -> Result<(), RecordError> {
+        self.recorder.read_capture(offset, count, out)
     }
 
     /// Counters and state for the status report.

@@ -115,6 +115,8 @@ pub enum Field {
     RecordSignals,
     /// A field of the creep operator.
     Creep(CreepField),
+    /// A capture's pre-trigger count.
+    RecordPreTrigger,
 }
 
 /// The rule a field broke, with its limit where it has one (in the field's own units).
@@ -263,6 +265,7 @@ impl core::fmt::Display for Field {
             Field::RecordDecimation => "record decimation",
             Field::RecordOffset => "record offset",
             Field::RecordSignals => "record signals",
+            Field::RecordPreTrigger => "record pre-trigger",
         };
         f.write_str(name)
     }

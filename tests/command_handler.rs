@@ -18,6 +18,7 @@ use twinstack::protocol::decoder::FrameDecoder;
 use twinstack::protocol::frame::{self, FrameError, MAX_ENCODED, PROTOCOL_VERSION};
 use twinstack::protocol::handler::CommandHandler;
 use twinstack::protocol::messages::*;
+use twinstack::recorder::Channel;
 use twinstack::refusal::{Field, ModelField, Refusal, Rule};
 use twinstack::settings::{
     representative_duhem, representative_pi, FeedbackSettings, Mode, Model, NotchDesign,
@@ -58,7 +59,7 @@ impl RecordStorage for BrokenFlash {
 }
 
 const RATE: u32 = 50_000;
-/// Values the recorder's buffer holds.
+/// Values a v3 record holds (the buffer: two 16-bit slots each).
 const RECORD_LEN: usize = 4096;
 
 fn hardware() -> Hardware {
@@ -68,7 +69,7 @@ fn hardware() -> Hardware {
 /// A board: handler, control loop, queue, converters.
 struct Board<S> {
     handler: CommandHandler<S>,
-    control: ControlLoop<Vec<i32>, Box<Controller>>,
+    control: ControlLoop<Vec<i16>, Box<Controller>>,
     queue: &'static mut SetpointQueue,
     dac: Dac,
     adc: Adc,
@@ -88,7 +89,7 @@ fn board_on<S: RecordStorage>(storage: S, hw: Hardware) -> Board<S> {
             Box::new(Controller::new(config)),
             Box::new(Controller::new(config)),
             RATE,
-            vec![0; RECORD_LEN],
+            vec![0i16; 2 * RECORD_LEN],
         ),
         queue: Box::leak(Box::new(SetpointQueue::new())),
         dac: Dac(DacCode(0), DacCode(0)),
@@ -852,7 +853,7 @@ fn mode_changes_are_checked_against_the_settings_and_switch_between_two_ticks() 
             Box::new(Controller::new(config)),
             Box::new(Controller::new(config)),
             RATE,
-            vec![0; 16],
+            vec![0i16; 32],
         ),
         queue: Box::leak(Box::new(SetpointQueue::new())),
         dac: Dac(DacCode(0), DacCode(0)),
@@ -1186,6 +1187,140 @@ fn the_recorder_captures_the_chosen_signal_and_reads_back_in_chunks() {
     assert_eq!(
         b.handle(Request::ReadRecord { offset: 101 }),
         refused(Field::RecordOffset, Rule::AtMost(100.0))
+    );
+}
+
+/// A multi-signal capture through the handler: each bad field refused by name with its limit;
+/// armed on the stream's start with pre-trigger frames, it holds the setpoints queued, the
+/// DAC codes the tick wrote, and the frames from before the start.
+#[test]
+fn a_capture_triggered_by_the_stream_holds_its_setpoints_and_the_dac_codes() {
+    let mut b = board();
+    let capture = |signals, samples, pre_trigger, trigger, decimation| {
+        Request::Capture(CaptureRequest {
+            signals,
+            samples,
+            pre_trigger,
+            trigger,
+            decimation,
+        })
+    };
+    let slots = 2 * RECORD_LEN as u32;
+    for (request, field, rule) in [
+        (
+            capture(0, 10, 0, Trigger::Now, 1),
+            Field::RecordSignals,
+            Rule::AtLeast(1.0),
+        ),
+        (
+            capture(0x41, 10, 0, Trigger::Now, 1),
+            Field::RecordSignals,
+            Rule::AtMost(63.0),
+        ),
+        (
+            capture(1, 0, 0, Trigger::Now, 1),
+            Field::RecordCount,
+            Rule::AtLeast(1.0),
+        ),
+        (
+            capture(0b111, slots / 3 + 1, 0, Trigger::Now, 1),
+            Field::RecordCount,
+            Rule::AtMost((slots / 3) as f64),
+        ),
+        (
+            capture(1, 10, 1, Trigger::Now, 1),
+            Field::RecordPreTrigger,
+            Rule::AtMost(0.0),
+        ),
+        (
+            capture(1, 10, 10, Trigger::StreamStart, 1),
+            Field::RecordPreTrigger,
+            Rule::Below(10.0),
+        ),
+        (
+            capture(1, 10, 0, Trigger::Now, 0),
+            Field::RecordDecimation,
+            Rule::AtLeast(1.0),
+        ),
+    ] {
+        assert_eq!(b.handle(request), refused(field, rule));
+    }
+    let status = |b: &mut Board<RamStorage>| match b.handle(Request::CaptureStatus) {
+        Response::Capture(s) => s,
+        r => panic!("{r:?}"),
+    };
+    assert_eq!(status(&mut b).state, CaptureState::Idle);
+    // Reading before the capture is complete is refused as busy.
+    assert_eq!(
+        b.handle(Request::ReadCapture {
+            offset: 0,
+            count: 1
+        }),
+        nack(NackReason::Busy)
+    );
+
+    let samples: Vec<i16> = (0..40).map(|i| i * 500 - 10_000).collect();
+    assert!(matches!(b.handle(batch(0, &samples)), Response::Ack { .. }));
+    let mask = Channel::Setpoint.bit() | Channel::Left.bit() | Channel::Right.bit();
+    assert!(matches!(
+        b.handle(capture(mask, 50, 5, Trigger::StreamStart, 1)),
+        Response::Ack { .. }
+    ));
+    b.ticks(20); // before the start: the ring keeps the latest 5
+    let s = status(&mut b);
+    assert_eq!((s.state, s.captured), (CaptureState::Armed, 5));
+    assert!(b.status().has(StatusReport::RECORDING));
+    let held = b.outputs();
+    assert!(matches!(
+        b.handle(Request::Stream(StreamControl::Start)),
+        Response::Ack { .. }
+    ));
+    assert_eq!(status(&mut b).state, CaptureState::Triggered);
+    let mut codes = Vec::new();
+    for _ in 0..60 {
+        b.ticks(1);
+        codes.push(b.outputs());
+    }
+    let s = status(&mut b);
+    assert_eq!(
+        (s.state, s.pre_available, s.captured, s.window_slots),
+        (CaptureState::Done, 5, 50, 150)
+    );
+    assert_eq!((s.dac_full_scale, s.amplifier_full_scale), (4095, 150.0));
+    let mut window = Vec::new();
+    loop {
+        match b.handle(Request::ReadCapture {
+            offset: window.len() as u32,
+            count: 64,
+        }) {
+            Response::CaptureChunk { offset, values } => {
+                assert_eq!(offset as usize, window.len());
+                assert!(values.len() <= 64);
+                if values.is_empty() {
+                    break;
+                }
+                window.extend(values);
+            }
+            r => panic!("{r:?}"),
+        }
+    }
+    assert_eq!(window.len(), 150);
+    let frames: Vec<&[i16]> = window.chunks(3).collect();
+    // Five frames at the held output, then the 40 setpoints as queued, then the hold.
+    for f in &frames[..5] {
+        assert_eq!((f[1] as u16, f[2] as u16), (held.0 .0, held.1 .0));
+    }
+    let setpoints: Vec<i16> = frames[5..45].iter().map(|f| f[0]).collect();
+    assert_eq!(setpoints, samples);
+    for (f, (l, r)) in frames[5..].iter().zip(&codes) {
+        assert_eq!((f[1] as u16, f[2] as u16), (l.0, r.0));
+    }
+    assert_eq!(
+        b.handle(Request::ReadCapture {
+            offset: 151,
+            count: 1
+        }),
+        refused(Field::RecordOffset, Rule::AtMost(150.0))
     );
 }
 

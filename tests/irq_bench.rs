@@ -23,8 +23,10 @@ use std::process::{Command, Stdio};
 
 /// The worst instruction count of any tick, asserted (deterministic under `-icount`): the
 /// figure the bench measured when it was last changed, rounded up. Lower it when the tick
-/// gets cheaper; raising it needs a reason in the commit.
-const WORST_INSTRUCTIONS: u64 = 950;
+/// gets cheaper; raising it needs a reason in the commit. 970: the image captures all six
+/// recorder signals every tick (issue #18's multi-signal capture, its worst case), measured
+/// at 961; with the one-signal v3 record of protocol v3 it was 894.
+const WORST_INSTRUCTIONS: u64 = 970;
 /// The configuration of the model family measured on its own: the generalised P–I (N = 16,
 /// 6 dead zones) as compensator and observer with four creep modes in series.
 const FAMILY_CONFIG: &str = "inverse-gpi16+creep4";

@@ -93,6 +93,29 @@ fn request() -> impl Strategy<Value = Request> {
         ]
         .prop_map(|boot_mode| Request::StoreParams { boot_mode }),
         any::<u32>().prop_map(|offset| Request::ReadRecord { offset }),
+        (
+            any::<u8>(),
+            any::<u32>(),
+            any::<u32>(),
+            prop_oneof![
+                Just(Trigger::Now),
+                Just(Trigger::StreamStart),
+                Just(Trigger::WaveformStart)
+            ],
+            any::<u16>()
+        )
+            .prop_map(|(signals, samples, pre_trigger, trigger, decimation)| {
+                Request::Capture(CaptureRequest {
+                    signals,
+                    samples,
+                    pre_trigger,
+                    trigger,
+                    decimation,
+                })
+            }),
+        Just(Request::CaptureStatus),
+        (any::<u32>(), any::<u16>())
+            .prop_map(|(offset, count)| Request::ReadCapture { offset, count }),
     ]
 }
 
@@ -234,7 +257,10 @@ fn a_full_batch_fits_one_frame() {
 #[test]
 fn message_variant_counts_match_the_enums() {
     use twinstack::protocol::frame::Message;
-    let last = Request::ReadParams;
+    let last = Request::ReadCapture {
+        offset: 7,
+        count: 256,
+    };
     let mut d = FrameDecoder::new();
     assert_eq!(feed(&mut d, &frame_of(&last)), vec![Ok(last)]);
     let tag = Request::VARIANTS as u8;
@@ -242,7 +268,10 @@ fn message_variant_counts_match_the_enums() {
         feed(&mut d, &raw_frame(&[PROTOCOL_VERSION, tag])),
         vec![Err(FrameError::UnknownType)]
     );
-    let resp = Response::Params(Settings::default());
+    let resp = Response::CaptureChunk {
+        offset: 3,
+        values: heapless::Vec::from_slice(&[i16::MIN, -1, 0, i16::MAX]).unwrap(),
+    };
     let mut buf = [0u8; MAX_ENCODED + 1];
     let n = encode(&resp, &mut buf).unwrap();
     let mut d = FrameDecoder::new();
@@ -288,4 +317,43 @@ fn the_book_s_example_frames_are_what_the_encoder_writes() {
         &out[..n],
         &hex("06 04 01 03 0a 04 01 01 01 01 08 6a d8 40 ce 87 39 fd 00")[..]
     );
+    // Protocol v4's capture: arm, read, a chunk.
+    assert_eq!(
+        frame_of(&Request::Capture(CaptureRequest {
+            signals: 0b1_1011,
+            samples: 150,
+            pre_trigger: 10,
+            trigger: Trigger::StreamStart,
+            decimation: 1,
+        })),
+        hex("0d 04 0b 1b 96 01 0a 01 01 e5 46 0f 0f 00")
+    );
+    assert_eq!(
+        frame_of(&Request::ReadCapture {
+            offset: 0,
+            count: 256
+        }),
+        hex("03 04 0d 07 80 02 67 70 45 14 00")
+    );
+    let chunk = Response::CaptureChunk {
+        offset: 0,
+        values: heapless::Vec::from_slice(&[100, -100, 4095]).unwrap(),
+    };
+    let n = encode(&chunk, &mut out).unwrap();
+    assert_eq!(
+        &out[..n],
+        &hex("03 04 06 0c 03 c8 01 c7 01 fe 3f f4 43 49 be 00")[..]
+    );
+}
+
+/// The largest capture chunk (every value at the widest varint) fits a frame.
+#[test]
+fn a_full_capture_chunk_fits_a_frame() {
+    let chunk = Response::CaptureChunk {
+        offset: u32::MAX,
+        values: core::iter::repeat_n(i16::MIN, MAX_CAPTURE_CHUNK).collect(),
+    };
+    let mut out = [0u8; MAX_ENCODED + 1];
+    let n = encode(&chunk, &mut out).expect("fits");
+    assert!(n > 3 * MAX_CAPTURE_CHUNK, "{n} bytes");
 }

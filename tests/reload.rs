@@ -175,7 +175,7 @@ proptest! {
             Box::new(Controller::new(config)),
             Box::new(Controller::new(config)),
             RATE as u32,
-            vec![0i32; 1024],
+            vec![0i16; 2048],
         );
         let mut handler = CommandHandler::new(HW, boot.clone(), false, RamStorage::default());
         let queue: &'static mut SetpointQueue = Box::leak(Box::new(SetpointQueue::new()));
@@ -277,7 +277,7 @@ fn a_load_with_another_input_range_does_not_step_the_outputs() {
         Box::new(Controller::new(config)),
         Box::new(Controller::new(config)),
         RATE as u32,
-        vec![0i32; 16],
+        vec![0i16; 32],
     );
     let mut handler = CommandHandler::new(HW, first, false, RamStorage::default());
     let queue: &'static mut SetpointQueue = Box::leak(Box::new(SetpointQueue::new()));

@@ -28,6 +28,7 @@
 //! * [`cli`] — the `hal-sim` subcommands.
 
 pub mod accuracy;
+pub mod capture;
 pub mod cli;
 pub mod closed_loop;
 pub mod coarse_stage;

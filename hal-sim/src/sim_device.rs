@@ -49,7 +49,7 @@ use twinstack::control::{Controller, TickReport};
 use twinstack::control_loop::{ControlLoop, SetpointQueue};
 use twinstack::param_store::{self, RamStorage, RecordStorage, StoredRecord, MAX_RECORD};
 use twinstack::protocol::handler::CommandHandler;
-use twinstack::recorder::RECORD_CAPACITY;
+use twinstack::recorder::CAPTURE_SLOTS;
 use twinstack::refusal::Refusal;
 use twinstack::settings::{pi_model, FeedbackSettings, Mode, SensorSettings, Settings};
 use twinstack::Scaling;
@@ -158,7 +158,7 @@ pub fn hardware(rate_hz: f64) -> Hardware {
 /// [`CommandHandler`], on a modelled UART. See the module doc for the time model.
 pub struct SimDevice {
     board: InternalBoard,
-    control: ControlLoop<Vec<i32>, Box<Controller>>,
+    control: ControlLoop<Vec<i16>, Box<Controller>>,
     handler: CommandHandler<RamStorage>,
     queue: Box<SetpointQueue>,
     /// Simulated time, ns.
@@ -209,7 +209,7 @@ impl SimDevice {
             Box::new(Controller::new(boot)),
             Box::new(Controller::new(boot)),
             rate_hz.round() as u32,
-            vec![0; RECORD_CAPACITY],
+            vec![0; CAPTURE_SLOTS],
         );
         let handler = CommandHandler::new(hw, settings, defaults, storage);
         Ok(Self {
@@ -279,7 +279,7 @@ impl SimDevice {
     }
 
     /// The tick side (controller, counters, recorder).
-    pub fn control(&self) -> &ControlLoop<Vec<i32>, Box<Controller>> {
+    pub fn control(&self) -> &ControlLoop<Vec<i16>, Box<Controller>> {
         &self.control
     }
 

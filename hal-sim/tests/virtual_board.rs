@@ -305,3 +305,274 @@ fn the_cli_refuses_a_listen_address_that_is_not_tcp() {
         assert!(err.contains(needle), "{args:?}: {err}");
     }
 }
+
+/// Starts `hal-sim virtual-board` as fast as it runs; returns it and its address.
+fn start_virtual_board() -> (Binary, String) {
+    let mut child = Command::new(env!("CARGO_BIN_EXE_hal-sim"))
+        .args([
+            "virtual-board",
+            "--listen",
+            "tcp:127.0.0.1:0",
+            "--speed",
+            "0",
+        ])
+        .stdout(Stdio::piped())
+        .stderr(Stdio::null())
+        .spawn()
+        .expect("hal-sim virtual-board starts");
+    let stdout = child.stdout.take().unwrap();
+    let server = Binary(child);
+    let (tx, rx) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        let mut line = String::new();
+        let _ = BufReader::new(stdout).read_line(&mut line);
+        let _ = tx.send(line);
+    });
+    let line = rx
+        .recv_timeout(Duration::from_secs(20))
+        .expect("the server printed its address");
+    let port = line
+        .split_whitespace()
+        .find(|w| w.starts_with("tcp:127.0.0.1:"))
+        .unwrap_or_else(|| panic!("no address in {line:?}"))
+        .to_string();
+    (server, port)
+}
+
+/// Issue #18's "done when": stream a 100-sample file and record the streamed run with four
+/// signals over the same connection (`stream --record`); the CSV's setpoint is the file, in
+/// µm through the board's settings, and the drive and the sensor are in volts and µm
+/// consistent with them.
+#[test]
+fn a_streamed_run_is_recorded_with_four_signals_in_physical_units() {
+    let (_server, port) = start_virtual_board();
+    let dir = tempfile::tempdir().unwrap();
+    // 100 setpoints of a ±0.5 sine, each an exact Q1.15 value.
+    let q: Vec<i16> = (0..100)
+        .map(|i| {
+            (0.5 * (2.0 * std::f64::consts::PI * i as f64 / 100.0).sin() * 32768.0).round() as i16
+        })
+        .collect();
+    let mut text = String::from("setpoint\n");
+    for &v in &q {
+        text.push_str(&format!("{}\n", v as f64 / 32768.0));
+    }
+    let data = dir.path().join("sine.csv");
+    std::fs::write(&data, text).unwrap();
+    let out = dir.path().join("run.csv");
+    let o = hal_sim(&[
+        "stream",
+        "--port",
+        &port,
+        "--data",
+        data.to_str().unwrap(),
+        "--record",
+        "setpoint,left,sensor,estimate",
+        "--record-out",
+        out.to_str().unwrap(),
+        "--record-samples",
+        "150",
+        "--record-pre",
+        "10",
+    ]);
+    let stdout = String::from_utf8_lossy(&o.stdout);
+    assert!(
+        o.status.success(),
+        "{stdout}{}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    assert!(
+        stdout.contains("150 frames of setpoint, left, sensor, estimate"),
+        "{stdout}"
+    );
+    let png = std::fs::read(dir.path().join("run.png")).expect("the PNG is written");
+    assert_eq!(&png[..8], b"\x89PNG\r\n\x1a\n");
+
+    // The settings the board converts with.
+    let settings = {
+        let transport = SocketTransport::tcp(&port["tcp:".len()..]).expect("connect");
+        let mut client = Client::new(transport);
+        client.set_timeout(Duration::from_secs(5));
+        client.resync(Duration::from_millis(20)).expect("resync");
+        client.read_params().expect("params")
+    };
+    let r = &settings.ranges;
+
+    let csv = std::fs::read_to_string(&out).unwrap();
+    let mut lines = csv.lines();
+    assert_eq!(
+        lines.next(),
+        Some("t [s],setpoint [um],left [V],sensor [um],estimate [um]")
+    );
+    let rows: Vec<Vec<f64>> = lines
+        .map(|l| l.split(',').map(|c| c.parse().unwrap()).collect())
+        .collect();
+    assert_eq!(rows.len(), 150);
+    // 10 frames before the stream's start, one per tick at 50 kHz.
+    assert!((rows[10][0]).abs() < 1e-12 && (rows[9][0] + 20e-6).abs() < 1e-12);
+    for (row, &v) in rows[10..110].iter().zip(&q) {
+        let want = r.norm_to_output(v as f64 / 32768.0);
+        assert!(
+            (row[1] - want).abs() < 1e-9,
+            "setpoint {} µm, file {want} µm",
+            row[1]
+        );
+    }
+    // After the file, the output holds its last setpoint.
+    let last = r.norm_to_output(q[99] as f64 / 32768.0);
+    assert!(rows[110..].iter().all(|row| (row[1] - last).abs() < 1e-9));
+    // Bypass: the left stack follows the setpoint across the input range (volts), within a
+    // DAC step (150 V / 4095).
+    let lsb = 150.0 / 4095.0;
+    for row in &rows[10..] {
+        let norm = r.output_to_norm(row[1]);
+        let want = r.norm_to_input(norm);
+        assert!(
+            (row[2] - want).abs() <= lsb,
+            "left {} V, want {want} V",
+            row[2]
+        );
+    }
+    // The sensor and the estimate: in µm on the output range, Q1.15 steps of it, following
+    // the drive (correlation with the left stack's volts).
+    let corr = |a: &[f64], b: &[f64]| {
+        let (ma, mb) = (
+            a.iter().sum::<f64>() / a.len() as f64,
+            b.iter().sum::<f64>() / b.len() as f64,
+        );
+        let cov: f64 = a.iter().zip(b).map(|(x, y)| (x - ma) * (y - mb)).sum();
+        let va: f64 = a.iter().map(|x| (x - ma).powi(2)).sum();
+        let vb: f64 = b.iter().map(|y| (y - mb).powi(2)).sum();
+        cov / (va * vb).sqrt()
+    };
+    let left: Vec<f64> = rows[10..110].iter().map(|row| row[2]).collect();
+    for col in [3, 4] {
+        let x: Vec<f64> = rows[10..110].iter().map(|row| row[col]).collect();
+        for &v in &x {
+            assert!(
+                v >= r.output_min - 1e-9 && v <= r.output_max + 1e-9,
+                "{v} µm"
+            );
+            let steps = r.output_to_norm(v) * 32768.0;
+            assert!(
+                (steps - steps.round()).abs() < 1e-6,
+                "{v} µm is no Q1.15 step"
+            );
+        }
+        let c = corr(&left, &x);
+        assert!(c > 0.9, "column {col}: correlation {c} with the drive");
+    }
+}
+
+/// `record --arm-only` leaves the port free for the command that triggers the capture (here
+/// the waveform generator), and `record --fetch` reads it back with its pre-trigger frames;
+/// bad capture requests are refused with what is wrong.
+#[test]
+fn a_capture_armed_on_the_waveform_start_is_fetched_by_a_later_command() {
+    let (_server, port) = start_virtual_board();
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("wave.csv");
+    let ok = |o: std::process::Output| {
+        let stdout = String::from_utf8_lossy(&o.stdout).into_owned();
+        assert!(
+            o.status.success(),
+            "{stdout}{}",
+            String::from_utf8_lossy(&o.stderr)
+        );
+        stdout
+    };
+    let armed = ok(hal_sim(&[
+        "record",
+        "--port",
+        &port,
+        "--signals",
+        "setpoint,right",
+        "--samples",
+        "200",
+        "--pre",
+        "50",
+        "--trigger",
+        "waveform",
+        "--arm-only",
+    ]));
+    assert!(armed.contains("--fetch"), "{armed}");
+    ok(hal_sim(&[
+        "waveform",
+        "--port",
+        &port,
+        "--shape",
+        "sine",
+        "--offset",
+        "0",
+        "--amplitude",
+        "0.5",
+        "--frequency",
+        "1000",
+    ]));
+    let fetched = ok(hal_sim(&[
+        "record",
+        "--port",
+        &port,
+        "--fetch",
+        "--out",
+        out.to_str().unwrap(),
+    ]));
+    assert!(
+        fetched.contains("200 frames of setpoint, right, 50 before the trigger"),
+        "{fetched}"
+    );
+    let csv = std::fs::read_to_string(&out).unwrap();
+    let mut lines = csv.lines();
+    assert_eq!(lines.next(), Some("t [s],setpoint [um],right [V]"));
+    let rows: Vec<Vec<f64>> = lines
+        .map(|l| l.split(',').map(|c| c.parse().unwrap()).collect())
+        .collect();
+    assert_eq!(rows.len(), 200);
+    assert!(rows[50][0].abs() < 1e-12);
+    // Before the start the output held still; after it, three periods of the sine (0.5 of
+    // the half range: ±22.5 µm about the middle of ±45 µm) — the right stack in antiphase.
+    assert!(rows[..50]
+        .windows(2)
+        .all(|w| w[0][1] == w[1][1] && w[0][2] == w[1][2]));
+    let after: Vec<f64> = rows[50..].iter().map(|r| r[1]).collect();
+    let (lo, hi) = after
+        .iter()
+        .fold((f64::MAX, f64::MIN), |(lo, hi), &x| (lo.min(x), hi.max(x)));
+    assert!(
+        (hi - 22.5).abs() < 0.1 && (lo + 22.5).abs() < 0.1,
+        "{lo} … {hi}"
+    );
+    let i_hi = after.iter().position(|&x| x == hi).unwrap();
+    let right_hi = rows[50 + i_hi][2];
+    assert!(
+        right_hi < 40.0,
+        "right stack at the setpoint's peak: {right_hi} V"
+    );
+
+    for (args, needle) in [
+        (
+            &["--signals", "setpoint,volts", "--samples", "10"][..],
+            "unknown signal \"volts\"",
+        ),
+        (
+            &["--signals", "setpoint", "--samples", "10", "--pre", "3"][..],
+            "--trigger now",
+        ),
+        (
+            &[
+                "--signals",
+                "setpoint,left,right,sensor,estimate,error",
+                "--samples",
+                "20000",
+            ][..],
+            "at most 10922",
+        ),
+    ] {
+        let mut all = vec!["record", "--port", &port, "--out", out.to_str().unwrap()];
+        all.extend_from_slice(args);
+        let o = hal_sim(&all);
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(1), "{args:?}: {err}");
+        assert!(err.contains(needle), "{args:?}: {err}");
+    }
+}

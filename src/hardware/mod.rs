@@ -22,6 +22,7 @@
 #![allow(unsafe_code)]
 
 pub mod adc;
+pub mod ccm;
 pub mod clocks;
 pub mod coarse_stage;
 pub mod control_timer;

@@ -7,15 +7,20 @@ use heapless::spsc::Consumer;
 
 use crate::control::Controller;
 use crate::control_loop::{ControlLoop, SETPOINT_QUEUE_LEN};
-use crate::recorder::RECORD_CAPACITY;
+use crate::recorder::{SplitStore, CAPTURE_SLOTS};
 
 use super::adc::SensorInput;
 use super::control_timer::ControlTimer;
 use super::dac::InternalDac;
 use super::watchdog::Watchdog;
 
-/// The recorder's buffer (static RAM).
-pub type RecordBuffer = &'static mut [i32; RECORD_CAPACITY];
+/// Each half of the recorder's buffer: 32 768 slots, 64 KiB.
+pub const HALF_SLOTS: usize = CAPTURE_SLOTS / 2;
+
+/// The recorder's buffer: 64 KiB of SRAM, then the 64 KiB of CCM RAM on the board
+/// ([`super::ccm::capture_half`]); QEMU 7.2's `netduinoplus2` models no CCM, so the emulator
+/// images pass an empty second half (32 768 slots in all).
+pub type RecordBuffer = SplitStore<&'static mut [i16; HALF_SLOTS], &'static mut [i16]>;
 
 /// The tick's loop on the board: two controllers in statics, passed by pointer between the
 /// tick and the command handler.

@@ -27,6 +27,7 @@ use crate::board::Hardware;
 use crate::control::Controller;
 use crate::control_loop::ControlLoop;
 use crate::param_store::{RecordStorage, StorageError, StoredRecord, MAX_RECORD};
+use crate::recorder::{RecordError, SampleStore};
 use crate::refusal::{Field, Refusal, Rule};
 use crate::setpoint_stream::setpoint_from_wire;
 use crate::settings::{Mode, Settings};
@@ -35,8 +36,8 @@ use crate::waveform::{Shape, WaveformError, WaveformGenerator};
 use super::decoder::FrameDecoder;
 use super::frame::{self, FrameError, MAX_ENCODED};
 use super::messages::{
-    Image, NackReason, RecordRequest, Request, Response, SetpointBatch, StatusReport,
-    StreamControl, WaveShape, Waveform,
+    CaptureRequest, CaptureStatus, Image, NackReason, RecordRequest, Request, Response,
+    SetpointBatch, StatusReport, StreamControl, WaveShape, Waveform,
 };
 
 /// Largest response frame, delimiter included.
@@ -84,7 +85,7 @@ impl<S: RecordStorage> CommandHandler<S> {
         control: &mut L,
     ) -> Option<&[u8]>
     where
-        B: AsRef<[i32]> + AsMut<[i32]>,
+        B: SampleStore,
         C: DerefMut<Target = Controller>,
         L: Mutex<T = ControlLoop<B, C>>,
     {
@@ -116,7 +117,7 @@ impl<S: RecordStorage> CommandHandler<S> {
         control: &mut L,
         mut send: impl FnMut(&[u8]),
     ) where
-        B: AsRef<[i32]> + AsMut<[i32]>,
+        B: SampleStore,
         C: DerefMut<Target = Controller>,
         L: Mutex<T = ControlLoop<B, C>>,
     {
@@ -135,7 +136,7 @@ impl<S: RecordStorage> CommandHandler<S> {
         control: &mut L,
     ) -> Response
     where
-        B: AsRef<[i32]> + AsMut<[i32]>,
+        B: SampleStore,
         C: DerefMut<Target = Controller>,
         L: Mutex<T = ControlLoop<B, C>>,
     {
@@ -160,6 +161,21 @@ impl<S: RecordStorage> CommandHandler<S> {
                 };
             }
             Request::ReadParams => return Response::Params(self.settings.clone()),
+            Request::Capture(r) => capture(r, control),
+            Request::CaptureStatus => return Response::Capture(self.capture_status(control)),
+            Request::ReadCapture { offset, count } => {
+                let mut values = heapless::Vec::new();
+                let (read, info) = control
+                    .lock(|c| (c.read_capture(offset, count, &mut values), c.capture_info()));
+                return match read {
+                    Ok(()) => Response::CaptureChunk { offset, values },
+                    Err(RecordError::NotDone) => nack(NackReason::Busy),
+                    Err(_) => nack(refused(
+                        Field::RecordOffset,
+                        Rule::AtMost(info.window_slots() as f64),
+                    )),
+                };
+            }
         };
         match done {
             Ok(()) => Response::Ack {
@@ -175,7 +191,7 @@ impl<S: RecordStorage> CommandHandler<S> {
         control: &mut L,
     ) -> StatusReport
     where
-        B: AsRef<[i32]> + AsMut<[i32]>,
+        B: SampleStore,
         C: DerefMut<Target = Controller>,
         L: Mutex<T = ControlLoop<B, C>>,
     {
@@ -239,7 +255,7 @@ impl<S: RecordStorage> CommandHandler<S> {
     #[inline(never)] // rare and large: one copy, not one per caller
     fn load<B, C, L>(&mut self, settings: Settings, control: &mut L) -> Result<(), NackReason>
     where
-        B: AsRef<[i32]> + AsMut<[i32]>,
+        B: SampleStore,
         C: DerefMut<Target = Controller>,
         L: Mutex<T = ControlLoop<B, C>>,
     {
@@ -263,7 +279,7 @@ impl<S: RecordStorage> CommandHandler<S> {
     #[inline(never)]
     fn mode<B, C, L>(&mut self, mode: Mode, control: &mut L) -> Result<(), NackReason>
     where
-        B: AsRef<[i32]> + AsMut<[i32]>,
+        B: SampleStore,
         C: DerefMut<Target = Controller>,
         L: Mutex<T = ControlLoop<B, C>>,
     {
@@ -280,7 +296,7 @@ impl<S: RecordStorage> CommandHandler<S> {
     #[inline(never)] // rare and large: one copy, not one per caller
     fn store<B, C, L>(&mut self, boot_mode: Mode, control: &mut L) -> Result<(), NackReason>
     where
-        B: AsRef<[i32]> + AsMut<[i32]>,
+        B: SampleStore,
         C: DerefMut<Target = Controller>,
         L: Mutex<T = ControlLoop<B, C>>,
     {
@@ -311,7 +327,7 @@ impl<S: RecordStorage> CommandHandler<S> {
     #[inline(never)] // rare and large: one copy, not one per caller
     fn recall<B, C, L>(&mut self, control: &mut L) -> Result<(), NackReason>
     where
-        B: AsRef<[i32]> + AsMut<[i32]>,
+        B: SampleStore,
         C: DerefMut<Target = Controller>,
         L: Mutex<T = ControlLoop<B, C>>,
     {
@@ -327,7 +343,7 @@ impl<S: RecordStorage> CommandHandler<S> {
     #[inline(never)] // rare and large: one copy, not one per caller
     fn waveform<B, C, L>(&mut self, w: Waveform, control: &mut L) -> Result<(), NackReason>
     where
-        B: AsRef<[i32]> + AsMut<[i32]>,
+        B: SampleStore,
         C: DerefMut<Target = Controller>,
         L: Mutex<T = ControlLoop<B, C>>,
     {
@@ -356,6 +372,29 @@ impl<S: RecordStorage> CommandHandler<S> {
         })?;
         control.lock(|c| c.play(generator));
         Ok(())
+    }
+
+    fn capture_status<B, C, L>(&self, control: &mut L) -> CaptureStatus
+    where
+        B: SampleStore,
+        C: DerefMut<Target = Controller>,
+        L: Mutex<T = ControlLoop<B, C>>,
+    {
+        let (info, capacity) = control.lock(|c| (c.capture_info(), c.capture_capacity()));
+        CaptureStatus {
+            state: info.state,
+            signals: info.signals,
+            samples: info.samples,
+            pre_trigger: info.pre_trigger,
+            pre_available: info.pre_available,
+            captured: info.captured,
+            window_slots: info.window_slots(),
+            decimation: info.decimation,
+            capacity: capacity as u32,
+            tick_rate_hz: self.hardware.control_rate_hz as u32,
+            dac_full_scale: self.hardware.dac_full_scale,
+            amplifier_full_scale: self.hardware.amplifier_full_scale as f32,
+        }
     }
 
     /// The settings in force (or waiting for the next tick).
@@ -403,7 +442,7 @@ fn credits<const N: usize>(queue: &Producer<'_, i16, N>) -> u16 {
 
 fn stream<B, C, L>(c: StreamControl, control: &mut L) -> Result<(), NackReason>
 where
-    B: AsRef<[i32]> + AsMut<[i32]>,
+    B: SampleStore,
     C: DerefMut<Target = Controller>,
     L: Mutex<T = ControlLoop<B, C>>,
 {
@@ -422,7 +461,7 @@ where
 
 fn record<B, C, L>(r: RecordRequest, control: &mut L) -> Result<(), NackReason>
 where
-    B: AsRef<[i32]> + AsMut<[i32]>,
+    B: SampleStore,
     C: DerefMut<Target = Controller>,
     L: Mutex<T = ControlLoop<B, C>>,
 {
@@ -439,4 +478,44 @@ where
     control
         .lock(|c| c.arm_recorder(r.signal, r.count, r.decimation))
         .map_err(|_| refused(Field::RecordCount, Rule::AtMost(capacity as f64)))
+}
+
+#[inline(never)] // rare: one copy, not one per caller
+fn capture<B, C, L>(r: CaptureRequest, control: &mut L) -> Result<(), NackReason>
+where
+    B: SampleStore,
+    C: DerefMut<Target = Controller>,
+    L: Mutex<T = ControlLoop<B, C>>,
+{
+    let signals = r.signals.count_ones();
+    let max_frames = control.lock(|c| c.capture_max_frames(signals));
+    if r.signals == 0 {
+        return Err(refused(Field::RecordSignals, Rule::AtLeast(1.0)));
+    }
+    if r.signals >> crate::recorder::CHANNELS != 0 {
+        // Bits 6–7 name no signal: the mask is at most 0b11_1111.
+        return Err(refused(Field::RecordSignals, Rule::AtMost(63.0)));
+    }
+    if r.samples == 0 {
+        return Err(refused(Field::RecordCount, Rule::AtLeast(1.0)));
+    }
+    if r.samples > max_frames {
+        // The limit in samples per signal for this many signals.
+        return Err(refused(Field::RecordCount, Rule::AtMost(max_frames as f64)));
+    }
+    if r.trigger == crate::recorder::Trigger::Now && r.pre_trigger != 0 {
+        return Err(refused(Field::RecordPreTrigger, Rule::AtMost(0.0)));
+    }
+    if r.pre_trigger >= r.samples {
+        return Err(refused(
+            Field::RecordPreTrigger,
+            Rule::Below(r.samples as f64),
+        ));
+    }
+    if r.decimation == 0 {
+        return Err(refused(Field::RecordDecimation, Rule::AtLeast(1.0)));
+    }
+    control
+        .lock(|c| c.arm_capture(r.signals, r.samples, r.pre_trigger, r.trigger, r.decimation))
+        .map_err(|_| refused(Field::RecordCount, Rule::AtMost(max_frames as f64)))
 }

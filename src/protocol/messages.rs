@@ -5,7 +5,7 @@
 //! That halves the bytes per sample, so that 2 Mbaud carries 50 000 setpoints/s with room for
 //! framing and acknowledgements.
 
-pub use crate::recorder::{Signal, MAX_CHUNK};
+pub use crate::recorder::{CaptureState, Signal, Trigger, MAX_CAPTURE_CHUNK, MAX_CHUNK};
 use crate::refusal::Refusal;
 pub use crate::setpoint_stream::UnderrunPolicy;
 use crate::settings::Settings;
@@ -14,11 +14,11 @@ use serde::{Deserialize, Serialize};
 use super::frame::{FrameError, Message};
 
 impl Message for Request {
-    const VARIANTS: u32 = 11;
+    const VARIANTS: u32 = 14;
 }
 
 impl Message for Response {
-    const VARIANTS: u32 = 5;
+    const VARIANTS: u32 = 7;
 }
 
 /// Most setpoints one batch carries.
@@ -57,6 +57,68 @@ pub enum Request {
     },
     /// Read the settings in force (answered with [`Response::Params`]).
     ReadParams,
+    /// Arm a multi-signal capture (protocol v4); the previous capture or record is discarded.
+    Capture(CaptureRequest),
+    /// Read the capture's state (answered with [`Response::Capture`]).
+    CaptureStatus,
+    /// Read up to `count` slots of a complete capture's window from `offset` (answered with
+    /// [`Response::CaptureChunk`]).
+    ReadCapture {
+        /// First slot (frames × signals from the window's start).
+        offset: u32,
+        /// Most slots wanted; the board sends at most [`MAX_CAPTURE_CHUNK`].
+        count: u16,
+    },
+}
+
+/// Arm a multi-signal capture: `samples` frames of the signals in `signals`, `pre_trigger` of
+/// them from before the trigger, one frame every `decimation` ticks.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct CaptureRequest {
+    /// Signal mask: bit 0 setpoint, 1 left stack, 2 right stack, 3 sensor, 4 estimate,
+    /// 5 error ([`crate::recorder::Channel`]).
+    pub signals: u8,
+    /// Frames (values per signal), pre-trigger included; `signals × samples` ≤ the board's
+    /// capture slots.
+    pub samples: u32,
+    /// Frames kept from before the trigger (< `samples`; 0 with [`Trigger::Now`]).
+    pub pre_trigger: u32,
+    /// What triggers it.
+    pub trigger: Trigger,
+    /// Ticks per frame, ≥ 1.
+    pub decimation: u16,
+}
+
+/// A capture's state, and what the host needs to put its values in physical units.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct CaptureStatus {
+    /// Idle (nothing armed), armed, triggered, done.
+    pub state: CaptureState,
+    /// Signal mask armed.
+    pub signals: u8,
+    /// Frames armed for, pre-trigger included.
+    pub samples: u32,
+    /// Pre-trigger frames armed for.
+    pub pre_trigger: u32,
+    /// Pre-trigger frames the window holds (≤ `pre_trigger`: fewer if the trigger came
+    /// before that many frames).
+    pub pre_available: u32,
+    /// Frames of the window captured so far.
+    pub captured: u32,
+    /// Slots the complete window holds (`(pre_available + samples − pre_trigger) ×
+    /// signals`); what `ReadCapture` reaches once done.
+    pub window_slots: u32,
+    /// Ticks per frame.
+    pub decimation: u16,
+    /// Slots the board's capture buffer holds.
+    pub capacity: u32,
+    /// Control rate, Hz.
+    pub tick_rate_hz: u32,
+    /// Full-scale DAC code (a stack's volts are `code × amplifier_full_scale /
+    /// dac_full_scale`).
+    pub dac_full_scale: u16,
+    /// Amplifier output at DAC full scale, volts.
+    pub amplifier_full_scale: f32,
 }
 
 /// A batch of setpoints with its sequence number (wrapping), so the board can spot a lost batch.
@@ -146,6 +208,15 @@ pub enum Response {
     },
     /// The settings in force (the answer to [`Request::ReadParams`]).
     Params(Settings),
+    /// The capture's state (the answer to [`Request::CaptureStatus`]).
+    Capture(CaptureStatus),
+    /// Slots of a capture's window (the answer to [`Request::ReadCapture`]).
+    CaptureChunk {
+        /// Index of the first slot.
+        offset: u32,
+        /// Slots, each in its signal's format (see [`crate::recorder`]).
+        values: heapless::Vec<i16, MAX_CAPTURE_CHUNK>,
+    },
 }
 
 /// Why a request was refused. Wire-stable: variants are only appended.
@@ -199,7 +270,8 @@ pub struct StatusReport {
     pub next_seq: u16,
     /// Control rate, Hz.
     pub tick_rate_hz: u32,
-    /// Values the recorder holds (of the count armed).
+    /// Values a v3 `Record` holds (of the count armed); 0 while the buffer holds a v4
+    /// capture, whose progress is in [`CaptureStatus`].
     pub recorded: u32,
     /// Flags, see [`StatusReport::DEFAULTS`] and the other `StatusReport` constants.
     pub flags: u16,
@@ -212,7 +284,7 @@ impl StatusReport {
     pub const STREAMING: u16 = 1 << 1;
     /// Flag: the waveform generator is running.
     pub const WAVEFORM: u16 = 1 << 2;
-    /// Flag: the recorder is capturing.
+    /// Flag: the recorder is capturing (a v3 record or a v4 capture, armed or triggered).
     pub const RECORDING: u16 = 1 << 3;
     // Bit 4 is reserved (protocol v2's "load waiting for the next tick": since v3 a load is
     // in force when it is acknowledged).

@@ -3,15 +3,23 @@
 //! credits it grants, starts it once the queue is primed, waits until it has played and stops
 //! (the output holds the last setpoint). The whole file is checked before anything is sent.
 //!
+//! `--record setpoint,left,sensor,estimate --record-out run.csv` records the streamed run over
+//! the same connection (the port is exclusive): before anything is streamed it arms a
+//! multi-signal capture triggered by the stream's start, and once the stream has played it
+//! reads the capture back and writes it in physical units, as `hal-sim record --signals`
+//! does (CSV and PNG). By default the capture spans the whole run (setpoints × divider
+//! ticks, less if the board's buffer holds fewer).
+//!
 //! Exit codes: [`EXIT_CODES`] (0 played without underrun, 1 error, 2 usage, 3 completed with
 //! underruns: [`Underran`]).
 
 use super::board_link::{connect, PortArgs};
+use crate::capture::signal_mask;
 use crate::link::streamer::{stream_setpoints, StreamOptions};
 use crate::param_file::ParamFile;
 use crate::setpoint_file::{self, SetpointUnits};
 use std::path::PathBuf;
-use twinstack::protocol::messages::UnderrunPolicy;
+use twinstack::protocol::messages::{Trigger, UnderrunPolicy};
 
 /// The exit codes of `hal-sim stream`, as `hal-sim stream --help` lists them.
 pub const EXIT_CODES: &str = "\
@@ -66,6 +74,23 @@ pub struct Args {
     /// running).
     #[arg(long)]
     pub no_wait: bool,
+    /// Record the streamed run over this connection: signals, comma-separated (setpoint,
+    /// left, right, sensor, estimate, error), captured from the stream's start.
+    #[arg(long, requires = "record_out")]
+    pub record: Option<String>,
+    /// CSV of the recorded run (physical units); a PNG is written next to it.
+    #[arg(long, requires = "record")]
+    pub record_out: Option<PathBuf>,
+    /// Frames of the recorded run [default: setpoints × divider / decimation, at most what
+    /// the board's buffer holds].
+    #[arg(long, requires = "record")]
+    pub record_samples: Option<u32>,
+    /// Frames recorded from before the stream's start.
+    #[arg(long, default_value_t = 0, requires = "record")]
+    pub record_pre: u32,
+    /// Ticks per recorded frame.
+    #[arg(long, default_value_t = 1, requires = "record")]
+    pub record_decimation: u16,
 }
 
 /// `--underrun` values.
@@ -121,6 +146,34 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     } else {
         args.tick_rate
     };
+    // Arm the capture before the stream starts: its start is the trigger.
+    let recording = match (&args.record, &args.record_out) {
+        (Some(signals), Some(out)) => {
+            let n = signal_mask(signals)
+                .map_err(|e| anyhow::anyhow!("--record {signals:?}: {e}"))?
+                .count_ones();
+            let capacity = client.capture_status()?.capacity / n.max(1);
+            let decimation = args.record_decimation.max(1) as u64;
+            let samples = match args.record_samples {
+                Some(s) => s,
+                None => {
+                    let ticks = sp.samples.len() as u64 * options.divider as u64;
+                    (ticks.div_ceil(decimation) + args.record_pre as u64).min(capacity as u64)
+                        as u32
+                }
+            };
+            let request = super::record::arm_capture(
+                &mut client,
+                signals,
+                samples,
+                args.record_pre,
+                Trigger::StreamStart,
+                args.record_decimation,
+            )?;
+            Some((request, out.clone()))
+        }
+        _ => None,
+    };
     let bar = super::progress::bar(sp.samples.len() as u64, "streaming", "setpoints");
     let r = stream_setpoints(&mut client, &sp.samples, &options, |n| {
         bar.set_position(n as u64)
@@ -175,6 +228,18 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         println!("queue played out; stream stopped (output holds the last setpoint)");
     } else {
         println!("queued; the stream keeps playing");
+    }
+    if let Some((request, out)) = recording {
+        // The capture ends by itself `samples − pre` frames after the stream's start: wait
+        // that long twice over, plus a margin for the link.
+        let seconds =
+            (request.samples - request.pre_trigger) as f64 * request.decimation as f64 / tick_rate;
+        let wait = std::time::Duration::from_secs_f64(2.0 * seconds + 5.0);
+        let png = out.with_extension("png");
+        println!(
+            "{}",
+            super::record::finish_capture(&mut client, wait, &out, &png)?
+        );
     }
     if r.underran() {
         return Err(Underran {

@@ -13,8 +13,8 @@ use std::time::{Duration, Instant};
 use twinstack::protocol::decoder::FrameDecoder;
 use twinstack::protocol::frame::{self, FrameError, MAX_ENCODED};
 use twinstack::protocol::messages::{
-    Mode, NackReason, RecordRequest, Request, Response, StatusReport, StreamControl, Waveform,
-    MAX_CHUNK,
+    CaptureRequest, CaptureStatus, Mode, NackReason, RecordRequest, Request, Response,
+    StatusReport, StreamControl, Waveform, MAX_CAPTURE_CHUNK, MAX_CHUNK,
 };
 use twinstack::settings::Settings;
 
@@ -80,6 +80,9 @@ pub fn request_name(request: &Request) -> &'static str {
         Request::Record(_) => "Record",
         Request::ReadRecord { .. } => "ReadRecord",
         Request::ReadParams => "ReadParams",
+        Request::Capture(_) => "Capture",
+        Request::CaptureStatus => "CaptureStatus",
+        Request::ReadCapture { .. } => "ReadCapture",
     }
 }
 
@@ -423,6 +426,79 @@ impl<T: Transport> Client<T> {
                 Err(LinkError::Timeout { .. }) if retries < 3 => {
                     retries += 1;
                     // A late answer would be taken for the next request's: drain first.
+                    self.resync(Duration::from_millis(50))?;
+                }
+                Err(e) => return Err(e),
+            }
+        }
+        Ok(values)
+    }
+    /// Arms a multi-signal capture (protocol v4).
+    pub fn arm_capture(&mut self, capture: CaptureRequest) -> Result<(), LinkError> {
+        self.expect_ack(&Request::Capture(capture)).map(drop)
+    }
+
+    /// Reads the capture's state and the board's conversion facts.
+    pub fn capture_status(&mut self) -> Result<CaptureStatus, LinkError> {
+        match self.request(&Request::CaptureStatus)? {
+            Response::Capture(s) => Ok(s),
+            Response::Nack { reason } => Err(LinkError::Nack {
+                request: "CaptureStatus",
+                reason,
+            }),
+            other => Err(LinkError::Unexpected {
+                request: "CaptureStatus",
+                got: format!("{other:?}"),
+            }),
+        }
+    }
+
+    /// Reads one chunk of a complete capture's window from `offset`.
+    pub fn read_capture(&mut self, offset: u32) -> Result<Vec<i16>, LinkError> {
+        let count = MAX_CAPTURE_CHUNK as u16;
+        match self.request(&Request::ReadCapture { offset, count })? {
+            Response::CaptureChunk { offset: o, values } if o == offset => Ok(values.to_vec()),
+            Response::Nack { reason } => Err(LinkError::Nack {
+                request: "ReadCapture",
+                reason,
+            }),
+            other => Err(LinkError::Unexpected {
+                request: "ReadCapture",
+                got: format!("{other:?}"),
+            }),
+        }
+    }
+
+    /// Reads a complete capture's whole window (`slots` values), chunk by chunk; a chunk lost
+    /// to a timeout is asked for again (up to 3 times). Fails unless exactly `slots` values
+    /// arrive.
+    pub fn read_capture_window(
+        &mut self,
+        slots: u32,
+        mut progress: impl FnMut(u32),
+    ) -> Result<Vec<i16>, LinkError> {
+        let mut values: Vec<i16> = Vec::with_capacity(slots as usize);
+        let mut retries = 0;
+        while (values.len() as u32) < slots {
+            let offset = values.len() as u32;
+            match self.read_capture(offset) {
+                Ok(chunk) if chunk.is_empty() || chunk.len() > MAX_CAPTURE_CHUNK => {
+                    return Err(LinkError::Unexpected {
+                        request: "ReadCapture",
+                        got: format!(
+                            "a chunk of {} values at offset {offset} of a {slots}-value window",
+                            chunk.len()
+                        ),
+                    })
+                }
+                Ok(chunk) => {
+                    let take = chunk.len().min(slots as usize - values.len());
+                    values.extend_from_slice(&chunk[..take]);
+                    retries = 0;
+                    progress(values.len() as u32);
+                }
+                Err(LinkError::Timeout { .. }) if retries < 3 => {
+                    retries += 1;
                     self.resync(Duration::from_millis(50))?;
                 }
                 Err(e) => return Err(e),

@@ -46,7 +46,10 @@ mod app {
     use twinstack::param_store::ReadOnlyStorage;
     use twinstack::param_store::{self, ParamSource};
     use twinstack::protocol::handler::CommandHandler;
-    use twinstack::recorder::RECORD_CAPACITY;
+    #[cfg(not(feature = "emulator"))]
+    use twinstack::hardware::ccm;
+    use twinstack::hardware::tick::HALF_SLOTS;
+    use twinstack::recorder::SplitStore;
 
     /// Received bytes waiting for the command handler: 5 ms at 2 Mbaud, more than the longest
     /// response the handler sends (blocking) while bytes keep arriving.
@@ -131,7 +134,7 @@ mod app {
     #[init(local = [
         setpoint_queue: SetpointQueue = Queue::new(),
         rx_queue: Queue<u8, RX_QUEUE> = Queue::new(),
-        record_buffer: [i32; RECORD_CAPACITY] = [0; RECORD_CAPACITY],
+        record_buffer: [i16; HALF_SLOTS] = [0; HALF_SLOTS],
     ])]
     fn init(cx: init::Context) -> (Shared, Local) {
         let dp: pac::Peripherals = cx.device;
@@ -177,7 +180,16 @@ mod app {
         ) else {
             panic!("controllers already taken");
         };
-        let control = ControlLoop::new(active, spare, rate, cx.local.record_buffer);
+        // The capture buffer: 64 KiB of SRAM, then the 64 KiB of CCM RAM (QEMU 7.2's
+        // netduinoplus2 models no CCM: the emulator has the SRAM half only).
+        #[cfg(not(feature = "emulator"))]
+        let Some(second_half) = ccm::capture_half() else {
+            panic!("CCM buffer already taken");
+        };
+        #[cfg(feature = "emulator")]
+        let second_half: &'static mut [i16; 0] = &mut [];
+        let capture_buffer = SplitStore::new(cx.local.record_buffer, second_half as &mut [i16]);
+        let control = ControlLoop::new(active, spare, rate, capture_buffer);
         let handler = CommandHandler::new(
             hardware,
             settings,

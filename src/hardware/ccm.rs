@@ -1,0 +1,33 @@
+//! The STM32F405's 64 KiB of core-coupled memory (CCM RAM, 0x1000_0000): reachable by the core
+//! only (no DMA), zero wait states, and otherwise unused by the image. It holds the second half
+//! of the recorder's capture buffer ([`capture_half`]).
+//!
+//! `memory.x` places the `.ccmram` input sections there as a NOLOAD output section: the
+//! start-up code neither copies nor zeroes it, so the buffer is zeroed here, once, when it is
+//! taken.
+
+use core::mem::MaybeUninit;
+use core::sync::atomic::{AtomicBool, Ordering};
+
+use super::tick::HALF_SLOTS;
+
+#[link_section = ".ccmram"]
+static mut CAPTURE_HALF: MaybeUninit<[i16; HALF_SLOTS]> = MaybeUninit::uninit();
+
+/// Whether [`capture_half`] has handed the buffer out (in `.bss`: zeroed at start-up).
+static TAKEN: AtomicBool = AtomicBool::new(false);
+
+/// The CCM half of the capture buffer, zeroed: `Some` the first time, `None` after.
+pub fn capture_half() -> Option<&'static mut [i16; HALF_SLOTS]> {
+    if TAKEN.swap(true, Ordering::AcqRel) {
+        return None;
+    }
+    // SAFETY: `TAKEN` lets exactly one caller through, so this is the only reference to the
+    // static ever made; every byte is written before it is read as `[i16; _]` (all bit
+    // patterns are valid `i16`s).
+    let buffer = unsafe { &mut *core::ptr::addr_of_mut!(CAPTURE_HALF) };
+    unsafe {
+        core::ptr::write_bytes(buffer.as_mut_ptr(), 0, 1);
+        Some(buffer.assume_init_mut())
+    }
+}
