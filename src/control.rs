@@ -3,7 +3,8 @@
 //! Read top to bottom, one tick is:
 //!
 //! 1. the next setpoint (Q2.30 normalised displacement; on underrun the last one is held);
-//! 2. the compensator (inverse P–I, inverse Duhem, or none) turns it into a drive command;
+//! 2. the compensator (inverse P–I, inverse Duhem, inverse-multiplicative Bouc–Wen, or none)
+//!    turns it into a drive command;
 //! 3. with a sensor, the reading is checked against the observer (drift flag) and, in closed
 //!    loop, the PI(D) controller on the measured error adds its correction
 //!    ([`crate::feedback`]); a mode switch's fading offset is added ([`crate::mode_switch`]);
@@ -17,6 +18,7 @@
 //! without bound.
 
 use crate::board::{AdcCode, DacCode, DualDac, SensorAdc};
+use crate::bouc_wen::{BoucWen, BoucWenState, InverseBoucWen};
 use crate::drive::{DifferentialDrive, StackVoltages};
 use crate::duhem::{Duhem, DuhemState, InverseDuhem};
 use crate::feedback::FeedbackState;
@@ -39,6 +41,8 @@ pub enum Compensator {
     InversePi(InversePrandtlIshlinskii),
     /// Inverse Duhem.
     InverseDuhem(InverseDuhem),
+    /// Inverse-multiplicative Bouc–Wen.
+    InverseBoucWen(InverseBoucWen),
 }
 
 /// The forward observer: applied drive → estimated displacement.
@@ -51,6 +55,8 @@ pub enum Observer {
     Pi(PrandtlIshlinskii),
     /// Forward Duhem.
     Duhem(Duhem),
+    /// Forward Bouc–Wen.
+    BoucWen(BoucWen),
 }
 
 /// Everything the tick needs, validated and in fixed point (built by
@@ -213,6 +219,7 @@ enum CompensatorRun {
     InversePi(InversePrandtlIshlinskii, PiState),
     InverseDuhem(InverseDuhem, DuhemState),
     None,
+    InverseBoucWen(InverseBoucWen, BoucWenState),
 }
 
 /// The observer as the tick runs it (see [`CompensatorRun`]).
@@ -222,6 +229,7 @@ enum ObserverRun {
     Duhem(Duhem, DuhemState),
     Pi(PrandtlIshlinskii, PiState),
     None,
+    BoucWen(BoucWen, BoucWenState),
 }
 
 /// What the sensor step does this mode.
@@ -308,6 +316,10 @@ impl Controller {
                 let y = m.anhysteretic(drive);
                 (ObserverRun::Duhem(m, m.state_at(drive, y)), y)
             }
+            Observer::BoucWen(m) => {
+                let s = m.relaxed(drive);
+                (ObserverRun::BoucWen(m, s), m.output(&s))
+            }
         };
         let compensator = match (config.compensator, &observer) {
             (Compensator::None, _) => CompensatorRun::None,
@@ -324,6 +336,14 @@ impl Controller {
                 let model = m.model();
                 CompensatorRun::InverseDuhem(m, model.state_at(drive, model.anhysteretic(drive)))
             }
+            // Bouc–Wen as Duhem: the observer's state where it is the compensator's model,
+            // otherwise relaxed (h = 0) at the present drive.
+            (Compensator::InverseBoucWen(m), ObserverRun::BoucWen(o, s)) if o == m.model() => {
+                CompensatorRun::InverseBoucWen(m, *s)
+            }
+            (Compensator::InverseBoucWen(m), _) => {
+                CompensatorRun::InverseBoucWen(m, m.model().relaxed(drive))
+            }
         };
         let rest = d.rest_drive();
         let rest_setpoint = match &observer {
@@ -333,6 +353,7 @@ impl Controller {
                 m.step(&mut s, rest)
             }
             ObserverRun::Duhem(m, _) => m.anhysteretic(rest),
+            ObserverRun::BoucWen(m, _) => m.output(&m.relaxed(rest)),
         };
         *self = Self {
             compensator,
@@ -499,6 +520,7 @@ impl Controller {
             CompensatorRun::InversePi(m, s) => m.step(s, target),
             CompensatorRun::InverseDuhem(m, s) => m.step(s, target),
             CompensatorRun::None => target,
+            CompensatorRun::InverseBoucWen(m, s) => m.step(s, target),
         };
         let feedforward = if self.mode == Mode::Bypass {
             target
@@ -576,6 +598,7 @@ impl Controller {
             ObserverRun::Duhem(m, s) => m.step(s, out.applied),
             ObserverRun::Pi(m, s) => m.step(s, out.applied),
             ObserverRun::None => 0,
+            ObserverRun::BoucWen(m, s) => m.step(s, out.applied),
         };
         self.feedback_state.observed(report.estimate);
         report

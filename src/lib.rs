@@ -9,6 +9,8 @@
 //! * [`play_operator`] — the play (backlash) operator, the building block of P–I.
 //! * [`prandtl_ishlinskii`] — forward and analytic-inverse Prandtl–Ishlinskii models.
 //! * [`duhem`] — Duhem forward observer and inverse Duhem compensator.
+//! * [`bouc_wen`] — generalised (asymmetric) Bouc–Wen observer and its inverse-multiplicative
+//!   compensator.
 //! * [`feedback`] — sensor feedback: PI(D) with anti-windup, the drift check; [`notch`] — the
 //!   resonance notch (fixed-point biquad designed for the control rate); [`mode_switch`] —
 //!   bumpless switching between bypass, open loop and closed loop.
@@ -36,6 +38,7 @@
 #![warn(missing_docs)]
 
 pub mod board;
+pub mod bouc_wen;
 pub mod coarse_axis;
 pub mod control;
 pub mod control_loop;
@@ -65,5 +68,5 @@ pub mod waveform;
 /// The `heapless` the protocol's messages are built from (`Vec` of setpoints, chunks), so
 /// host code builds them without naming the crate itself.
 pub use heapless;
-pub use params::{DuhemParams, ParamError, PiParams, Thresholds, MAX_OPERATORS};
+pub use params::{BoucWenParams, DuhemParams, ParamError, PiParams, Thresholds, MAX_OPERATORS};
 pub use scaling::Scaling;

@@ -194,10 +194,11 @@ pub fn decode(record: &[u8], expected_version: u16) -> Result<&[u8], StoreError>
     Ok(&record[HEADER_LEN..body_end])
 }
 
-/// Payload layout version of the record (version 3: the control rate and the one
+/// Payload layout version of the record (version 4: `Model::BoucWen` appended to the
+/// settings; version 3: the control rate and the one
 /// [`Settings`] type; versions 1 and 2, with a separate board payload and a wire parameter
 /// set, are no longer read: such a board boots on the defaults and says so).
-pub const RECORD_VERSION: u16 = 3;
+pub const RECORD_VERSION: u16 = 4;
 
 /// What the parameter record holds: the control rate (fixed at boot) and the settings.
 #[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]

@@ -27,10 +27,16 @@ pub enum ModelField {
     Operators,
     /// Duhem `α`.
     Alpha,
-    /// Duhem `β`.
+    /// Duhem or Bouc–Wen `β`.
     Beta,
-    /// Duhem `γ`.
+    /// Duhem or Bouc–Wen `γ`.
     Gamma,
+    /// Bouc–Wen `k` (linear slope).
+    K,
+    /// Bouc–Wen `A` (the hysteretic state's gain).
+    A,
+    /// Bouc–Wen `ψ` (asymmetric term).
+    Psi,
 }
 
 /// A field of the settings or of a request. Wire-stable: append only.
@@ -127,6 +133,8 @@ pub enum Rule {
     /// The voltage limits and the model's input range leave no drive, or the codes would
     /// leave the DAC's range.
     Unreachable,
+    /// The model's state could grow without bound (Bouc–Wen: `|γ| < β`, `|ψ| < β − |γ|`).
+    Unbounded,
 }
 
 /// A refusal: the field and the rule it broke. Nothing was applied.
@@ -179,6 +187,9 @@ impl core::fmt::Display for ModelField {
             ModelField::Alpha => write!(f, "alpha"),
             ModelField::Beta => write!(f, "beta"),
             ModelField::Gamma => write!(f, "gamma"),
+            ModelField::K => write!(f, "k"),
+            ModelField::A => write!(f, "a"),
+            ModelField::Psi => write!(f, "psi"),
         }
     }
 }
@@ -235,6 +246,7 @@ impl core::fmt::Display for Rule {
             Rule::NoHardware => write!(f, "needs hardware this board lacks"),
             Rule::BeyondFixedPoint => write!(f, "does not fit the fixed-point format"),
             Rule::Unreachable => write!(f, "leaves no drive the stacks and DAC can reach"),
+            Rule::Unbounded => write!(f, "lets the model's state grow without bound"),
         }
     }
 }

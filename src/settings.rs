@@ -16,13 +16,16 @@ use heapless::Vec;
 use serde::{Deserialize, Serialize};
 
 pub use crate::board::Hardware;
+use crate::bouc_wen::{BoucWen, InverseBoucWen};
 use crate::control::{Compensator, ControlConfig, Observer};
 pub use crate::drive::{Configuration, DriveSettings, SafeState};
 use crate::duhem::{Duhem, InverseDuhem};
 pub use crate::feedback::FeedbackSettings;
 pub use crate::mode_switch::Mode;
 pub use crate::notch::NotchDesign;
-use crate::params::{DuhemParams, ParamError, PiParams, MAX_OPERATORS};
+use crate::params::{
+    BoucWenCoefficient, BoucWenParams, DuhemParams, ParamError, PiParams, MAX_OPERATORS,
+};
 use crate::prandtl_ishlinskii::{InversePrandtlIshlinskii, PrandtlIshlinskii};
 use crate::refusal::{finite, Field, ModelField, Refusal, Rule};
 use crate::scaling::Scaling;
@@ -36,6 +39,8 @@ pub enum Model {
     PrandtlIshlinskii(PiParams),
     /// Duhem.
     Duhem(DuhemParams),
+    /// Generalised (asymmetric) Bouc–Wen; compensated inverse-multiplicatively.
+    BoucWen(BoucWenParams),
 }
 
 /// Everything a user configures, in physical units (see the module doc).
@@ -120,6 +125,10 @@ impl Settings {
             Some(Model::Duhem(p)) => Compensator::InverseDuhem(
                 InverseDuhem::new(p, &ranges).map_err(|e| model_refusal(Field::Compensator, e))?,
             ),
+            Some(Model::BoucWen(p)) => Compensator::InverseBoucWen(
+                InverseBoucWen::new(p, &ranges)
+                    .map_err(|e| model_refusal(Field::Compensator, e))?,
+            ),
         };
         let observer = match &self.observer {
             None => Observer::None,
@@ -129,6 +138,9 @@ impl Settings {
             ),
             Some(Model::Duhem(p)) => Observer::Duhem(
                 Duhem::new(p, &ranges).map_err(|e| model_refusal(Field::Observer, e))?,
+            ),
+            Some(Model::BoucWen(p)) => Observer::BoucWen(
+                BoucWen::new(p, &ranges).map_err(|e| model_refusal(Field::Observer, e))?,
             ),
         };
         let drive = self.drive.build(hw, &ranges)?;
@@ -201,6 +213,14 @@ impl Settings {
                     finite(field(ModelField::Beta), p.beta)?;
                     finite(field(ModelField::Gamma), p.gamma)?;
                     finite(field(ModelField::Offset), p.offset)?;
+                }
+                Some(Model::BoucWen(p)) => {
+                    finite(field(ModelField::K), p.k)?;
+                    finite(field(ModelField::Offset), p.offset)?;
+                    finite(field(ModelField::A), p.a)?;
+                    finite(field(ModelField::Beta), p.beta)?;
+                    finite(field(ModelField::Gamma), p.gamma)?;
+                    finite(field(ModelField::Psi), p.psi)?;
                 }
                 None => {}
             }
@@ -277,8 +297,24 @@ fn model_refusal(model: fn(ModelField) -> Field, e: ParamError) -> Refusal {
         E::DuhemBetaNotPositive => (ModelField::Beta, Rule::Above(0.0)),
         E::DuhemGammaNotPositive => (ModelField::Gamma, Rule::Above(0.0)),
         E::DuhemCoefficientOutOfRange => (ModelField::Model, Rule::BeyondFixedPoint),
+        E::BoucWenNotPositive(c) => (bouc_wen_field(c), Rule::Above(0.0)),
+        E::BoucWenUnbounded(c) => (bouc_wen_field(c), Rule::Unbounded),
+        E::BoucWenOutOfRange(c) => (bouc_wen_field(c), Rule::BeyondFixedPoint),
+        E::BoucWenNotInvertible(c) => (bouc_wen_field(c), Rule::NotInvertible),
     };
     Refusal::new(model(field), rule)
+}
+
+/// The settings field a Bouc–Wen coefficient is.
+fn bouc_wen_field(c: BoucWenCoefficient) -> ModelField {
+    match c {
+        BoucWenCoefficient::K => ModelField::K,
+        BoucWenCoefficient::Offset => ModelField::Offset,
+        BoucWenCoefficient::A => ModelField::A,
+        BoucWenCoefficient::Beta => ModelField::Beta,
+        BoucWenCoefficient::Gamma => ModelField::Gamma,
+        BoucWenCoefficient::Psi => ModelField::Psi,
+    }
 }
 
 /// The representative (not identified) P–I model the examples, benches and tests use: `n`
@@ -319,6 +355,19 @@ pub fn representative_duhem() -> Model {
     })
 }
 
+/// The representative Bouc–Wen model: slope 0.42 µm/V, `A = 0.1 µm/V`, `β = 0.04 /V`,
+/// `γ = 0.008 /V` and an asymmetric `ψ = 0.006 /V` (compensator loop gain 0.73).
+pub fn representative_bouc_wen() -> Model {
+    Model::BoucWen(BoucWenParams {
+        k: 0.42,
+        offset: 0.0,
+        a: 0.1,
+        beta: 0.04,
+        gamma: 0.008,
+        psi: 0.006,
+    })
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -351,11 +400,13 @@ mod tests {
             None,
             Some(representative_pi(8).unwrap()),
             Some(representative_duhem()),
+            Some(representative_bouc_wen()),
         ] {
             for obs in [
                 None,
                 Some(representative_pi(16).unwrap()),
                 Some(representative_duhem()),
+                Some(representative_bouc_wen()),
             ] {
                 let s = Settings {
                     compensator: comp.clone(),
@@ -419,6 +470,64 @@ mod tests {
                 Field::Compensator(ModelField::Threshold(4)),
                 Rule::NotIncreasing
             )
+        );
+    }
+
+    #[test]
+    fn bouc_wen_refusals_name_the_coefficient() {
+        let with = |f: fn(&mut BoucWenParams)| {
+            let mut s = closed();
+            let Model::BoucWen(mut p) = representative_bouc_wen() else {
+                unreachable!()
+            };
+            f(&mut p);
+            s.observer = Some(Model::BoucWen(p));
+            s.compensator = Some(Model::BoucWen(p));
+            s.build(&hw()).unwrap_err()
+        };
+        let c = |m| Field::Compensator(m);
+        assert_eq!(
+            with(|p| p.k = -0.1),
+            Refusal::new(c(ModelField::K), Rule::Above(0.0))
+        );
+        assert_eq!(
+            with(|p| p.beta = 0.0),
+            Refusal::new(c(ModelField::Beta), Rule::Above(0.0))
+        );
+        assert_eq!(
+            with(|p| p.gamma = -0.05),
+            Refusal::new(c(ModelField::Gamma), Rule::Unbounded)
+        );
+        assert_eq!(
+            with(|p| p.psi = 0.035),
+            Refusal::new(c(ModelField::Psi), Rule::Unbounded)
+        );
+        assert_eq!(
+            with(|p| p.a = 1.0),
+            Refusal::new(c(ModelField::A), Rule::BeyondFixedPoint)
+        );
+        // Within range but a compensator loop gain of 0.2·3.08/0.42 = 1.47.
+        assert_eq!(
+            with(|p| p.a = 0.2),
+            Refusal::new(c(ModelField::A), Rule::NotInvertible)
+        );
+        assert_eq!(
+            with(|p| p.psi = f64::NAN),
+            Refusal::new(c(ModelField::Psi), Rule::NotFinite)
+        );
+        // The observer's own refusal names the observer.
+        let mut s = closed();
+        s.observer = Some(Model::BoucWen(BoucWenParams {
+            k: 0.0001,
+            offset: 0.0,
+            a: 0.1,
+            beta: 0.04,
+            gamma: 0.0,
+            psi: 0.0,
+        }));
+        assert_eq!(
+            s.build(&hw()).unwrap_err(),
+            Refusal::new(Field::Observer(ModelField::K), Rule::BeyondFixedPoint)
         );
     }
 

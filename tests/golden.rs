@@ -46,6 +46,7 @@ fn model_name(model: &Option<Model>) -> String {
         None => "none".into(),
         Some(Model::PrandtlIshlinskii(p)) => format!("P–I N={}", p.thresholds.len()),
         Some(Model::Duhem(_)) => "Duhem".into(),
+        Some(Model::BoucWen(_)) => "Bouc-Wen".into(),
     }
 }
 

@@ -264,18 +264,18 @@ fn the_book_s_example_frames_are_what_the_encoder_writes() {
             .map(|b| u8::from_str_radix(b, 16).unwrap())
             .collect()
     };
-    assert_eq!(PROTOCOL_VERSION, 3);
-    assert_eq!(frame_of(&Request::Status), hex("02 03 05 3c 41 f4 6a 00"));
+    assert_eq!(PROTOCOL_VERSION, 4);
+    assert_eq!(frame_of(&Request::Status), hex("02 04 05 fb d7 b5 25 00"));
     assert_eq!(
         frame_of(&Request::Setpoints(SetpointBatch {
             seq: 1,
             samples: heapless::Vec::from_slice(&[100, -100]).unwrap(),
         })),
-        hex("0d 03 01 01 02 c8 01 c7 01 3a 8e c1 bd 00")
+        hex("0d 04 01 01 02 c8 01 c7 01 23 87 04 b7 00")
     );
     let mut out = [0u8; MAX_ENCODED + 1];
     let n = encode(&Response::Ack { credits: 511 }, &mut out).unwrap();
-    assert_eq!(&out[..n], &hex("02 03 07 ff 03 3a dc dc 39 00")[..]);
+    assert_eq!(&out[..n], &hex("02 04 07 ff 03 83 e4 0b a4 00")[..]);
     let refused = Response::Nack {
         reason: NackReason::Refused(twinstack::refusal::Refusal::new(
             twinstack::refusal::Field::Ki,
@@ -285,6 +285,6 @@ fn the_book_s_example_frames_are_what_the_encoder_writes() {
     let n = encode(&refused, &mut out).unwrap();
     assert_eq!(
         &out[..n],
-        &hex("06 03 01 03 0a 04 01 01 01 01 08 6a d8 40 96 81 4a 80 00")[..]
+        &hex("06 04 01 03 0a 04 01 01 01 01 08 6a d8 40 ce 87 39 fd 00")[..]
     );
 }

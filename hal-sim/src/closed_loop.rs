@@ -224,6 +224,7 @@ pub fn model_of(model: &StageModel) -> Model {
     match &model.hysteresis {
         Hysteresis::Pi(p) => Model::PrandtlIshlinskii(p.clone()),
         Hysteresis::Duhem(p) => Model::Duhem(*p),
+        Hysteresis::BoucWen(p) => Model::BoucWen(*p),
     }
 }
 

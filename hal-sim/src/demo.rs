@@ -262,6 +262,7 @@ fn track(
     let hysteresis = match &model.hysteresis {
         Hysteresis::Pi(p) => Model::PrandtlIshlinskii(p.clone()),
         Hysteresis::Duhem(p) => Model::Duhem(*p),
+        Hysteresis::BoucWen(p) => Model::BoucWen(*p),
     };
     // Open loop runs the inverse of the model, the observer the model itself (so the
     // compensator starts consistent with where the observer puts the stage); the bypassed run

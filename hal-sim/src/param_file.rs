@@ -163,6 +163,7 @@ impl ParamFile {
         let m = match &model.hysteresis {
             Hysteresis::Pi(p) => Model::PrandtlIshlinskii(p.clone()),
             Hysteresis::Duhem(p) => Model::Duhem(*p),
+            Hysteresis::BoucWen(p) => Model::BoucWen(*p),
         };
         Self {
             format: FORMAT.into(),
@@ -285,6 +286,7 @@ impl ParamFile {
         let hysteresis = match s.compensator.as_ref().or(s.observer.as_ref()) {
             Some(Model::PrandtlIshlinskii(p)) => Hysteresis::Pi(p.clone()),
             Some(Model::Duhem(p)) => Hysteresis::Duhem(*p),
+            Some(Model::BoucWen(p)) => Hysteresis::BoucWen(*p),
             None => {
                 return Err(field(
                     "settings.compensator".into(),

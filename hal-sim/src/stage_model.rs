@@ -8,14 +8,15 @@
 //! * the sensor lags the drive by `sensor_lag_s`: the reading at sample `k` is the model's
 //!   output at sample `k − L` (`L` = lag in samples of the record being run);
 //! * forward runs start relaxed at the first drive value (P–I: every operator there; Duhem:
-//!   on the anhysteretic curve, `y0 = β u0 + δ`); inverse runs start relaxed at the first
-//!   desired output.
+//!   on the anhysteretic curve, `y0 = β u0 + δ`; Bouc–Wen: `h = 0`); inverse runs start
+//!   relaxed at the first desired output.
 
 use crate::reference;
+use twinstack::bouc_wen::{BoucWen, InverseBoucWen};
 use twinstack::duhem::{Duhem, InverseDuhem};
 use twinstack::fixed_point::{signal_from_f64, signal_to_f64};
 use twinstack::prandtl_ishlinskii::{InversePrandtlIshlinskii, PrandtlIshlinskii};
-use twinstack::{DuhemParams, ParamError, PiParams, Scaling};
+use twinstack::{BoucWenParams, DuhemParams, ParamError, PiParams, Scaling};
 
 /// The hysteresis model of a stage, in physical units. (Built once per command, so the
 /// size difference between the variants does not matter.)
@@ -26,6 +27,8 @@ pub enum Hysteresis {
     Pi(PiParams),
     /// Duhem.
     Duhem(DuhemParams),
+    /// Generalised (asymmetric) Bouc–Wen.
+    BoucWen(BoucWenParams),
 }
 
 /// Everything needed to run a stage's model on a record.
@@ -80,6 +83,9 @@ impl StageModel {
             Hysteresis::Duhem(p) => {
                 InverseDuhem::new(p, &self.scaling)?;
             }
+            Hysteresis::BoucWen(p) => {
+                InverseBoucWen::new(p, &self.scaling)?;
+            }
         }
         Ok(())
     }
@@ -123,6 +129,13 @@ impl StageModel {
                     .map(|&v| y_phys(m.step(&mut st, u_norm(v))))
                     .collect()
             }
+            Hysteresis::BoucWen(p) => {
+                let m = BoucWen::new(p, s)?;
+                let mut st = m.relaxed(u_norm(u0));
+                u.iter()
+                    .map(|&v| y_phys(m.step(&mut st, u_norm(v))))
+                    .collect()
+            }
         };
         Ok(self.delay(t, y))
     }
@@ -139,6 +152,10 @@ impl StageModel {
             Hysteresis::Duhem(p) => {
                 let u0 = u0.clamp(s.input_min, s.input_max);
                 let mut m = reference::Duhem::new(p, s, u0, p.beta * u0 + p.offset)?;
+                u.iter().map(|&v| m.step(v)).collect()
+            }
+            Hysteresis::BoucWen(p) => {
+                let mut m = reference::BoucWen::new(p, s, u0)?;
                 u.iter().map(|&v| m.step(v)).collect()
             }
         };
@@ -174,6 +191,16 @@ impl StageModel {
                     .map(|&v| u_phys(m.step(&mut st, y_norm(v))))
                     .collect()
             }
+            Hysteresis::BoucWen(p) => {
+                let m = InverseBoucWen::new(p, s)?;
+                let y0 = y0.clamp(s.output_min, s.output_max);
+                let u0 = ((y0 - p.offset) / p.k).clamp(s.input_min, s.input_max);
+                let mut st = m.model().relaxed(signal_from_f64(s.input_to_norm(u0)));
+                desired
+                    .iter()
+                    .map(|&v| u_phys(m.step(&mut st, y_norm(v))))
+                    .collect()
+            }
         })
     }
 
@@ -197,6 +224,11 @@ impl StageModel {
             Hysteresis::Duhem(p) => {
                 let u0 = ((y0 - p.offset) / p.beta).clamp(s.input_min, s.input_max);
                 let mut m = reference::InverseDuhem::new(p, s, u0, y0)?;
+                desired.iter().map(|&v| m.step(v)).collect()
+            }
+            Hysteresis::BoucWen(p) => {
+                let u0 = ((y0 - p.offset) / p.k).clamp(s.input_min, s.input_max);
+                let mut m = reference::InverseBoucWen::new(p, s, u0)?;
                 desired.iter().map(|&v| m.step(v)).collect()
             }
         })

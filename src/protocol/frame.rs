@@ -13,10 +13,11 @@ use super::cobs;
 use crc::{Crc, CRC_32_ISO_HDLC};
 use serde::{Deserialize, Serialize};
 
-/// Version byte every frame starts with. Version 2 (this one): the status report carries
+/// Version byte every frame starts with. Version 4 (this one): `Model::BoucWen`, the
+/// `ModelField`s `K`, `A`, `Psi` and the rule `Unbounded` were appended. Version 2: the status report carries
 /// `frame_errors`, `next_seq`, `tick_rate_hz` and `recorded`; NACK reasons `Busy`,
 /// `NothingStored` and `StoreFailed` were added.
-pub const PROTOCOL_VERSION: u8 = 3;
+pub const PROTOCOL_VERSION: u8 = 4;
 /// Largest frame body (version + message + CRC), bytes.
 pub const MAX_BODY: usize = 1536;
 /// Largest frame on the wire, delimiter excluded.

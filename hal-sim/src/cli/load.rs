@@ -129,6 +129,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     let what = match &settings.compensator {
         Some(Model::PrandtlIshlinskii(p)) => format!("P–I, {} operators", p.thresholds.len()),
         Some(Model::Duhem(_)) => "Duhem".to_string(),
+        Some(Model::BoucWen(_)) => "Bouc-Wen".to_string(),
         None => "no compensator".to_string(),
     };
     let d = &settings.drive;

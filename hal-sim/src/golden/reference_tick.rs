@@ -121,12 +121,14 @@ enum Feedforward {
     None,
     InversePi(Box<reference::InversePrandtlIshlinskii>),
     InverseDuhem(reference::InverseDuhem),
+    InverseBoucWen(reference::InverseBoucWen),
 }
 
 enum Estimator {
     None,
     Pi(Box<reference::PrandtlIshlinskii>),
     Duhem(reference::Duhem),
+    BoucWen(reference::BoucWen),
 }
 
 /// The position sensor in real arithmetic (see the module doc), with the drift check's memory.
@@ -290,6 +292,11 @@ fn observer_at_rest(recipe: &Recipe, u0: f64) -> anyhow::Result<(Estimator, Opti
                 Some(y),
             )
         }
+        Some(Model::BoucWen(p)) => {
+            let m = reference::BoucWen::new(p, s, u0)?;
+            let y = m.output();
+            (Estimator::BoucWen(m), Some(y))
+        }
     })
 }
 
@@ -313,6 +320,10 @@ fn compensator_at_rest(recipe: &Recipe, u0: f64, y0: f64) -> anyhow::Result<Feed
             u0,
             m.beta * u0 + m.offset,
         )?),
+        // Relaxed (h = 0) at the present drive, as `Controller::prepare` relaxes it.
+        Some(Model::BoucWen(m)) => {
+            Feedforward::InverseBoucWen(reference::InverseBoucWen::new(m, s, u0)?)
+        }
     })
 }
 
@@ -410,6 +421,7 @@ pub fn check(set: &VectorSet<'_>) -> anyhow::Result<Agreement> {
             Feedforward::None => target,
             Feedforward::InversePi(m) => s.input_to_norm(m.step(s.norm_to_output(target))),
             Feedforward::InverseDuhem(m) => s.input_to_norm(m.step(s.norm_to_output(target))),
+            Feedforward::InverseBoucWen(m) => s.input_to_norm(m.step(s.norm_to_output(target))),
         };
         let ff = if bypass { target } else { compensated };
         let mut command = ff;
@@ -483,6 +495,7 @@ pub fn check(set: &VectorSet<'_>) -> anyhow::Result<Agreement> {
             Estimator::None => 0.0,
             Estimator::Pi(m) => norm(&s, m.step(u_volts)),
             Estimator::Duhem(m) => norm(&s, m.step(u_volts)),
+            Estimator::BoucWen(m) => norm(&s, m.step(u_volts)),
         };
         if let Some(sn) = &mut sensor {
             sn.observed(estimate_ref);

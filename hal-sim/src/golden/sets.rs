@@ -81,6 +81,7 @@ fn load_models(dir: &Path) -> anyhow::Result<Models> {
         match model.hysteresis {
             Hysteresis::Pi(p) => pi.push(p),
             Hysteresis::Duhem(d) => duhem = Some(d),
+            Hysteresis::BoucWen(_) => bail!("{}: no set uses a Bouc-Wen model", path.display()),
         }
         let s = model.scaling;
         ranges = Some(match ranges {
