@@ -137,6 +137,8 @@ fn tick_cost_table_and_image_size() {
         "inverse-duhem",
         "none-sensor-drift",
         "none-pid-notch",
+        "inverse-bouc-wen",
+        "inverse-bouc-wen-bouc-wen",
     ];
     let names: Vec<&str> = rows.iter().map(|r| r.name.as_str()).collect();
     assert_eq!(names, expected, "the bench must report every configuration");
@@ -169,6 +171,8 @@ fn tick_cost_table_and_image_size() {
             "none-sensor-drift" => ("none", "Duhem", "sensor + drift check (bypass)"),
             "none-pid-notch" => ("none", "Duhem", "PID + notch"),
             "inverse-duhem" => ("inverse Duhem", "Duhem", "PI"),
+            "inverse-bouc-wen" => ("inverse-multiplicative Bouc–Wen", "Duhem", "PI"),
+            "inverse-bouc-wen-bouc-wen" => ("inverse-multiplicative Bouc–Wen", "Bouc–Wen", "PI"),
             other => panic!("unknown bench row {other}"),
         };
         println!(

@@ -17,8 +17,8 @@ use twinstack::hardware::dac::InternalDac;
 use twinstack::notch::NotchDesign;
 use twinstack::prandtl_ishlinskii::{InversePrandtlIshlinskii, PiState};
 use twinstack::settings::{
-    representative_duhem, representative_pi, FeedbackSettings, Mode, Model, SensorSettings,
-    Settings,
+    representative_bouc_wen, representative_duhem, representative_pi, FeedbackSettings, Mode,
+    Model, SensorSettings, Settings,
 };
 
 /// Ticks measured per configuration (after as many warm-up ticks).
@@ -133,7 +133,7 @@ fn main() -> ! {
         Err(_) => panic!("representative P–I N = {}", n),
     };
     let base = closed(None);
-    let cases: [(&str, Settings); 9] = [
+    let cases: [(&str, Settings); 11] = [
         // Breakdown of the fixed part: split + limits + DAC alone, then + the Duhem observer.
         (
             "bypass",
@@ -180,6 +180,16 @@ fn main() -> ! {
                     ..FeedbackSettings::pi(0.2, 500.0, 0.1)
                 }),
                 ..base.clone()
+            },
+        ),
+        // Bouc–Wen: the inverse-multiplicative compensator with the Duhem observer, then
+        // with its own model as the observer.
+        ("inverse-bouc-wen", closed(Some(representative_bouc_wen()))),
+        (
+            "inverse-bouc-wen-bouc-wen",
+            Settings {
+                observer: Some(representative_bouc_wen()),
+                ..closed(Some(representative_bouc_wen()))
             },
         ),
     ];
