@@ -3,8 +3,9 @@
 //! Read top to bottom, one tick is:
 //!
 //! 1. the next setpoint (Q2.30 normalised displacement; on underrun the last one is held);
-//! 2. the compensator (inverse P–I, inverse Duhem, or none) turns it into a drive command
-//!    (after the inverse creep, when the stage has creep: [`crate::creep`]);
+//! 2. the compensator (inverse P–I, inverse Duhem, inverse-multiplicative Bouc–Wen, or none)
+//!    turns it into a drive command (after the inverse creep, when the stage has creep:
+//!    [`crate::creep`]);
 //! 3. with a sensor, the reading is checked against the observer (drift flag) and, in closed
 //!    loop, the PI(D) controller on the measured error adds its correction
 //!    ([`crate::feedback`]); a mode switch's fading offset is added ([`crate::mode_switch`]);
@@ -19,6 +20,7 @@
 //! without bound.
 
 use crate::board::{AdcCode, DacCode, DualDac, SensorAdc};
+use crate::bouc_wen::{BoucWen, BoucWenState, InverseBoucWen};
 use crate::creep::{Creep, CreepState};
 use crate::drive::{DifferentialDrive, StackVoltages};
 use crate::duhem::{Duhem, DuhemState, InverseDuhem};
@@ -45,6 +47,8 @@ pub enum Compensator {
     InverseDuhem(InverseDuhem),
     /// Analytic inverse of the generalised (asymmetric) P–I.
     InverseGeneralisedPi(InverseGeneralisedPi),
+    /// Inverse-multiplicative Bouc–Wen.
+    InverseBoucWen(InverseBoucWen),
 }
 
 /// The forward observer: applied drive → estimated displacement.
@@ -59,6 +63,8 @@ pub enum Observer {
     Duhem(Duhem),
     /// Forward generalised (asymmetric) P–I.
     GeneralisedPi(GeneralisedPi),
+    /// Forward Bouc–Wen.
+    BoucWen(BoucWen),
 }
 
 /// Everything the tick needs, validated and in fixed point (built by
@@ -258,6 +264,8 @@ enum CompensatorRun {
     InversePiCreep(InversePrandtlIshlinskii, PiState, CreepRun),
     InverseDuhemCreep(InverseDuhem, DuhemState, CreepRun),
     InverseGpiCreep(InverseGeneralisedPi, PiState, CreepRun),
+    InverseBoucWen(InverseBoucWen, BoucWenState),
+    InverseBoucWenCreep(InverseBoucWen, BoucWenState, CreepRun),
 }
 
 /// The observer as the tick runs it (see [`CompensatorRun`]).
@@ -271,6 +279,8 @@ enum ObserverRun {
     DuhemCreep(Duhem, DuhemState, CreepRun),
     PiCreep(PrandtlIshlinskii, PiState, CreepRun),
     GpiCreep(GeneralisedPi, PiState, CreepRun),
+    BoucWen(BoucWen, BoucWenState),
+    BoucWenCreep(BoucWen, BoucWenState, CreepRun),
 }
 
 /// What the sensor step does this mode.
@@ -362,6 +372,10 @@ impl Controller {
                 let y = m.step(&mut s, drive);
                 (ObserverRun::Gpi(m, s), y)
             }
+            Observer::BoucWen(m) => {
+                let s = m.relaxed(drive);
+                (ObserverRun::BoucWen(m, s), m.output(&s))
+            }
         };
         let compensator = match (config.compensator, &observer) {
             (Compensator::None, _) => CompensatorRun::None,
@@ -385,6 +399,14 @@ impl Controller {
             (Compensator::InverseGeneralisedPi(m), _) => {
                 CompensatorRun::InverseGpi(m, m.state_at_rest(y))
             }
+            // Bouc–Wen as Duhem: the observer's state where it is the compensator's model,
+            // otherwise relaxed (h = 0) at the present drive.
+            (Compensator::InverseBoucWen(m), ObserverRun::BoucWen(o, s)) if o == m.model() => {
+                CompensatorRun::InverseBoucWen(m, *s)
+            }
+            (Compensator::InverseBoucWen(m), _) => {
+                CompensatorRun::InverseBoucWen(m, m.model().relaxed(drive))
+            }
         };
         let rest = d.rest_drive();
         let rest_setpoint = match &observer {
@@ -398,6 +420,9 @@ impl Controller {
             ObserverRun::Gpi(m, _) | ObserverRun::GpiCreep(m, _, _) => {
                 let mut s = m.state_at_rest(rest);
                 m.step(&mut s, rest)
+            }
+            ObserverRun::BoucWen(m, _) | ObserverRun::BoucWenCreep(m, _, _) => {
+                m.output(&m.relaxed(rest))
             }
         };
         // With creep, its modes settled where the models are relaxed: at the observer's output
@@ -415,6 +440,9 @@ impl Controller {
                     CompensatorRun::InverseGpi(m, s) => {
                         CompensatorRun::InverseGpiCreep(m, s, CreepRun::at_rest(c, y))
                     }
+                    CompensatorRun::InverseBoucWen(m, s) => {
+                        CompensatorRun::InverseBoucWenCreep(m, s, CreepRun::at_rest(c, y))
+                    }
                     other => other,
                 },
                 match observer {
@@ -423,6 +451,9 @@ impl Controller {
                         ObserverRun::DuhemCreep(m, s, CreepRun::at_rest(c, y))
                     }
                     ObserverRun::Gpi(m, s) => ObserverRun::GpiCreep(m, s, CreepRun::at_rest(c, y)),
+                    ObserverRun::BoucWen(m, s) => {
+                        ObserverRun::BoucWenCreep(m, s, CreepRun::at_rest(c, y))
+                    }
                     other => other,
                 },
             ),
@@ -597,6 +628,8 @@ impl Controller {
             CompensatorRun::InversePiCreep(m, s, c) => m.step(s, c.inverse(target)),
             CompensatorRun::InverseDuhemCreep(m, s, c) => m.step(s, c.inverse(target)),
             CompensatorRun::InverseGpiCreep(m, s, c) => m.step(s, c.inverse(target)),
+            CompensatorRun::InverseBoucWen(m, s) => m.step(s, target),
+            CompensatorRun::InverseBoucWenCreep(m, s, c) => m.step(s, c.inverse(target)),
         };
         let feedforward = if self.mode == Mode::Bypass {
             target
@@ -678,6 +711,8 @@ impl Controller {
             ObserverRun::DuhemCreep(m, s, c) => c.forward(m.step(s, out.applied)),
             ObserverRun::PiCreep(m, s, c) => c.forward(m.step(s, out.applied)),
             ObserverRun::GpiCreep(m, s, c) => c.forward(m.step(s, out.applied)),
+            ObserverRun::BoucWen(m, s) => m.step(s, out.applied),
+            ObserverRun::BoucWenCreep(m, s, c) => c.forward(m.step(s, out.applied)),
         };
         self.feedback_state.observed(report.estimate);
         report

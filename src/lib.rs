@@ -13,6 +13,8 @@
 //!   dead-zone map, and its analytic inverse.
 //! * [`creep`] — the creep operator (log-spaced first-order modes) in series with a
 //!   hysteresis model, and its exact inverse.
+//! * [`bouc_wen`] — generalised (asymmetric) Bouc–Wen observer and its inverse-multiplicative
+//!   compensator.
 //! * [`feedback`] — sensor feedback: PI(D) with anti-windup, the drift check; [`notch`] — the
 //!   resonance notch (fixed-point biquad designed for the control rate); [`mode_switch`] —
 //!   bumpless switching between bypass, open loop and closed loop.
@@ -40,6 +42,7 @@
 #![warn(missing_docs)]
 
 pub mod board;
+pub mod bouc_wen;
 pub mod coarse_axis;
 pub mod control;
 pub mod control_loop;
@@ -71,5 +74,5 @@ pub mod waveform;
 /// The `heapless` the protocol's messages are built from (`Vec` of setpoints, chunks), so
 /// host code builds them without naming the crate itself.
 pub use heapless;
-pub use params::{DuhemParams, ParamError, PiParams, Thresholds, MAX_OPERATORS};
+pub use params::{BoucWenParams, DuhemParams, ParamError, PiParams, Thresholds, MAX_OPERATORS};
 pub use scaling::Scaling;

@@ -195,10 +195,10 @@ pub fn decode(record: &[u8], expected_version: u16) -> Result<&[u8], StoreError>
 }
 
 /// Payload layout version of the record (version 4: the control rate and the one
-/// [`Settings`] type, whose `Model` gained the generalised P–I and which ends with the
-/// optional creep operator; version 3 lacked both, and versions 1 and 2 had a separate board
-/// payload and a wire parameter set: none of them is read any more, such a board boots on the
-/// defaults and says so).
+/// [`Settings`] type, whose `Model` gained the generalised P–I and Bouc–Wen (appended in that
+/// order) and which ends with the optional creep operator; version 3 lacked all three, and
+/// versions 1 and 2 had a separate board payload and a wire parameter set: none of them is
+/// read any more, such a board boots on the defaults and says so).
 pub const RECORD_VERSION: u16 = 4;
 
 /// What the parameter record holds: the control rate (fixed at boot) and the settings.

@@ -133,6 +133,50 @@ pub enum ParamError {
     /// The creep operator in series with the model was refused (see
     /// [`crate::creep::CreepError`]).
     Creep(crate::creep::CreepError),
+    /// A Bouc–Wen coefficient that must be positive (`k`, `β`) is not.
+    BoucWenNotPositive(BoucWenCoefficient),
+    /// A Bouc–Wen coefficient lets the hysteretic state grow without bound: `|γ| < β` and
+    /// `|ψ| < β − |γ|` are needed (every factor `β ± γ ± ψ` multiplying `h` positive).
+    BoucWenUnbounded(BoucWenCoefficient),
+    /// A Bouc–Wen coefficient, once normalised, does not fit its fixed-point format (or the
+    /// bound on the hysteretic state it implies does not fit Q2.30).
+    BoucWenOutOfRange(BoucWenCoefficient),
+    /// The inverse-multiplicative Bouc–Wen compensator would oscillate: the hysteretic slope
+    /// `|A|·(1 + c_max/c_min)` reaches [`BOUC_WEN_MAX_INVERSE_LOOP_GAIN`] of `k` (see
+    /// [`BoucWenParams::inverse_loop_gain`]).
+    BoucWenNotInvertible(BoucWenCoefficient),
+}
+
+/// A coefficient of a Bouc–Wen model ([`BoucWenParams`]), as errors name it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub enum BoucWenCoefficient {
+    /// `k`, the linear slope.
+    K,
+    /// `offset`, `δ`.
+    Offset,
+    /// `a`, `A`: the hysteretic state's gain on the input step.
+    A,
+    /// `beta`, `β`.
+    Beta,
+    /// `gamma`, `γ`.
+    Gamma,
+    /// `psi`, `ψ` (the asymmetric term).
+    Psi,
+}
+
+impl BoucWenCoefficient {
+    /// The coefficient's name as the settings spell it (`k`, `offset`, `a`, `beta`, …).
+    pub fn name(self) -> &'static str {
+        match self {
+            BoucWenCoefficient::K => "k",
+            BoucWenCoefficient::Offset => "offset",
+            BoucWenCoefficient::A => "a",
+            BoucWenCoefficient::Beta => "beta",
+            BoucWenCoefficient::Gamma => "gamma",
+            BoucWenCoefficient::Psi => "psi",
+        }
+    }
 }
 
 impl core::fmt::Display for ParamError {
@@ -233,6 +277,22 @@ impl core::fmt::Display for ParamError {
                 "the dead-zone map's centre lies outside the output range: check the ranges"
             ),
             Creep(e) => write!(f, "{e}"),
+            BoucWenNotPositive(c) => write!(f, "Bouc-Wen {} must be positive", c.name()),
+            BoucWenUnbounded(c) => write!(
+                f,
+                "Bouc-Wen {} lets the hysteretic state grow without bound (need |gamma| < beta, |psi| < beta - |gamma|)",
+                c.name()
+            ),
+            BoucWenOutOfRange(c) => write!(
+                f,
+                "Bouc-Wen {}, normalised, does not fit the fixed-point format",
+                c.name()
+            ),
+            BoucWenNotInvertible(c) => write!(
+                f,
+                "Bouc-Wen {}: the hysteretic slope |a|(1 + c_max/c_min) must stay below {BOUC_WEN_MAX_INVERSE_LOOP_GAIN} k for the inverse-multiplicative compensator",
+                c.name()
+            ),
         }
     }
 }
@@ -588,6 +648,158 @@ impl DuhemParams {
     }
 }
 
+/// Largest bound on the normalised Bouc–Wen hysteretic state `|h|` a model may have: `h` is
+/// held in Q2.30 (saturating at ±2), with a margin.
+pub const BOUC_WEN_MAX_NORM_STATE: f64 = 1.9;
+/// Smallest normalised Bouc–Wen slope `k`: the compensator multiplies by `1/k` held in Q8.24,
+/// and `1/k ≤ 64` keeps its product with the residual (`|y_d − δ − h| < 4.5`) inside `i64`.
+pub const BOUC_WEN_MIN_NORM_SLOPE: f64 = 1.0 / 64.0;
+/// Largest normalised Bouc–Wen `β` (so that `β + |γ| + |ψ| < 2β` fits Q8.24).
+pub const BOUC_WEN_MAX_NORM_BETA: f64 = 40.0;
+/// Largest loop gain of the inverse-multiplicative Bouc–Wen compensator
+/// ([`BoucWenParams::inverse_loop_gain`]): at 1 its internal loop oscillates for ever.
+pub const BOUC_WEN_MAX_INVERSE_LOOP_GAIN: f64 = 0.9;
+
+/// A generalised Bouc–Wen model in physical units (volts in, output units out):
+/// `y = k·u + offset + h`, with the hysteretic state, per sample,
+/// `Δh = a·Δu − β·|Δu|·h − γ·Δu·|h| − ψ·Δu·h` (exponent `n = 1`; the factor multiplying `h`
+/// clamped to `[0, 1]`).
+///
+/// `β, γ` are the classical Bouc–Wen terms; `ψ` is the asymmetric one: it makes the rising
+/// and the falling branches differ. The Duhem model of [`DuhemParams`] is the special case
+/// `γ = ψ = 0`, `k = β_D`, `a = γ_D − β_D`, `β = α_D` (see the book,
+/// docs/src/reference/models.md).
+///
+/// ```
+/// use twinstack::params::{BoucWenCoefficient, BoucWenParams};
+/// use twinstack::ParamError;
+/// let p = BoucWenParams { k: 0.4, offset: 0.0, a: 0.15, beta: 0.03, gamma: 0.01, psi: 0.005 };
+/// assert_eq!(p.validate(), Ok(()));
+/// let unbounded = BoucWenParams { psi: 0.025, ..p };
+/// assert_eq!(unbounded.validate(), Err(ParamError::BoucWenUnbounded(BoucWenCoefficient::Psi)));
+/// ```
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct BoucWenParams {
+    /// `k > 0`, output units per volt: the linear slope.
+    pub k: f64,
+    /// `δ`, output units: the output at zero input with `h = 0`.
+    pub offset: f64,
+    /// `A`, output units per volt: the hysteretic state's gain on the input step (any sign:
+    /// `k + A` is the slope just after a reversal).
+    pub a: f64,
+    /// `β > 0`, per volt: the classical decay of `h` with `|Δu|`.
+    pub beta: f64,
+    /// `γ`, per volt, `|γ| < β`: the classical `Δu·|h|` term.
+    pub gamma: f64,
+    /// `ψ`, per volt, `|ψ| < β − |γ|`: the asymmetric `Δu·h` term.
+    pub psi: f64,
+}
+
+impl BoucWenParams {
+    /// Checks the model is finite, `k > 0`, and bounded: `β > 0`, `|γ| < β`,
+    /// `|ψ| < β − |γ|` (so that every factor `β ± γ ± ψ` multiplying `h` is positive).
+    pub fn validate(&self) -> Result<(), ParamError> {
+        use BoucWenCoefficient as C;
+        let all = [self.k, self.offset, self.a, self.beta, self.gamma, self.psi];
+        if !all.iter().all(|v| v.is_finite()) {
+            return Err(ParamError::NotFinite);
+        }
+        if self.k <= 0.0 {
+            return Err(ParamError::BoucWenNotPositive(C::K));
+        }
+        if self.beta <= 0.0 {
+            return Err(ParamError::BoucWenNotPositive(C::Beta));
+        }
+        if self.gamma.abs() >= self.beta {
+            return Err(ParamError::BoucWenUnbounded(C::Gamma));
+        }
+        if self.psi.abs() >= self.beta - self.gamma.abs() {
+            return Err(ParamError::BoucWenUnbounded(C::Psi));
+        }
+        Ok(())
+    }
+
+    /// The smallest factor multiplying `h` per unit `|Δu|`: `β − |γ| − |ψ|` (positive for a
+    /// valid model).
+    pub fn min_factor(&self) -> f64 {
+        self.beta - self.gamma.abs() - self.psi.abs()
+    }
+
+    /// The largest factor multiplying `h` per unit `|Δu|`: `β + |γ| + |ψ|`.
+    pub fn max_factor(&self) -> f64 {
+        self.beta + self.gamma.abs() + self.psi.abs()
+    }
+
+    /// The loop gain of the inverse-multiplicative compensator, `|A|·(1 + c_max/c_min) / k`
+    /// (scale-free). The compensator sets `u_k = (y_d − δ − h_{k−1})/k`; a perturbation of
+    /// `h` moves `u` by `−δh/k`, which moves `h` by the local hysteretic slope
+    /// `∂h/∂u = A − c·s·h` times it, at most `|A| + c_max·|A|/c_min` in magnitude (just after
+    /// a reversal from the other branch's saturation `|h| = |A|/c_min`). Below 1 the loop
+    /// settles; at or above 1 the drive chatters from sample to sample (within its bound).
+    pub fn inverse_loop_gain(&self) -> f64 {
+        self.a.abs() * (1.0 + self.max_factor() / self.min_factor()) / self.k
+    }
+
+    /// The bound on the hysteretic state from rest (`h = 0`):
+    /// `|h| ≤ |A| · max(1 / (β − |γ| − |ψ|), 2)`, the second term for a step whose factor
+    /// clamps at 1 (then `h = A·Δu`, `|Δu| ≤ 2` normalised). Meaningful in normalised units.
+    pub fn state_bound(&self) -> f64 {
+        self.a.abs() * (1.0 / self.min_factor()).max(2.0)
+    }
+
+    /// The model in the normalised coordinates of `scaling`: `k, A → (k, A)·U/Y`,
+    /// `β, γ, ψ → (β, γ, ψ)·U`, `offset → (k·u_mid + offset − y_mid)/Y` (`h` scales by `1/Y`).
+    /// Refuses, naming it, a coefficient that does not fit the fixed point.
+    pub fn normalized(&self, scaling: &Scaling) -> Result<BoucWenParams, ParamError> {
+        use BoucWenCoefficient as C;
+        self.validate()?;
+        let g = scaling.gain_to_norm();
+        let u_half = scaling.input_half_span();
+        let n = BoucWenParams {
+            k: self.k * g,
+            offset: (self.k * scaling.input_mid() + self.offset - scaling.output_mid())
+                / scaling.output_half_span(),
+            a: self.a * g,
+            beta: self.beta * u_half,
+            gamma: self.gamma * u_half,
+            psi: self.psi * u_half,
+        };
+        let out = |c| Err(ParamError::BoucWenOutOfRange(c));
+        // k·u fits Q2.30 for k < 2; 1/k ≤ 64 (see BOUC_WEN_MIN_NORM_SLOPE).
+        if !(BOUC_WEN_MIN_NORM_SLOPE..1.99).contains(&n.k) {
+            return out(C::K);
+        }
+        if n.offset.abs() > 1.5 {
+            return out(C::Offset);
+        }
+        // A is held in Q2.30.
+        if n.a.abs() >= 1.99 {
+            return out(C::A);
+        }
+        if n.beta > BOUC_WEN_MAX_NORM_BETA {
+            return out(C::Beta);
+        }
+        if n.state_bound() > BOUC_WEN_MAX_NORM_STATE {
+            return out(C::A);
+        }
+        Ok(n)
+    }
+
+    /// The Bouc–Wen form of a Duhem model (the same discrete model, sample for sample):
+    /// `k = β_D`, `offset = δ_D`, `A = γ_D − β_D`, `β = α_D`, `γ = ψ = 0`.
+    pub fn from_duhem(d: &DuhemParams) -> Self {
+        Self {
+            k: d.beta,
+            offset: d.offset,
+            a: d.gamma - d.beta,
+            beta: d.alpha,
+            gamma: 0.0,
+            psi: 0.0,
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -714,6 +926,71 @@ mod tests {
         assert_eq!(
             DuhemParams { beta: 0.014, ..ok }.normalized(&s),
             Err(ParamError::DuhemCoefficientOutOfRange)
+        );
+    }
+
+    #[test]
+    fn bouc_wen_refusals_name_the_coefficient() {
+        use BoucWenCoefficient as C;
+        let ok = BoucWenParams {
+            k: 0.4,
+            offset: 1.0,
+            a: -0.1,
+            beta: 0.03,
+            gamma: 0.01,
+            psi: -0.005,
+        };
+        assert_eq!(ok.validate(), Ok(()));
+        let bad = |f: fn(&mut BoucWenParams)| {
+            let mut p = ok;
+            f(&mut p);
+            p.validate()
+        };
+        assert_eq!(
+            bad(|p| p.k = 0.0),
+            Err(ParamError::BoucWenNotPositive(C::K))
+        );
+        assert_eq!(
+            bad(|p| p.beta = -0.1),
+            Err(ParamError::BoucWenNotPositive(C::Beta))
+        );
+        assert_eq!(
+            bad(|p| p.gamma = -0.03),
+            Err(ParamError::BoucWenUnbounded(C::Gamma))
+        );
+        assert_eq!(
+            bad(|p| p.psi = 0.02),
+            Err(ParamError::BoucWenUnbounded(C::Psi))
+        );
+        assert_eq!(bad(|p| p.a = f64::NAN), Err(ParamError::NotFinite));
+        // |A|(1 + c_max/c_min)/k: 0.1·(1 + 0.045/0.015)/0.4 = 1.0.
+        assert!((ok.inverse_loop_gain() - 1.0).abs() < 1e-12);
+        let s = Scaling::new(0.0, 150.0, 0.0, 60.0).unwrap();
+        assert!(ok.normalized(&s).is_ok());
+        let range = |p: BoucWenParams| p.normalized(&s);
+        assert_eq!(
+            range(BoucWenParams { k: 0.002, ..ok }),
+            Err(ParamError::BoucWenOutOfRange(C::K))
+        );
+        assert_eq!(
+            range(BoucWenParams {
+                offset: 200.0,
+                ..ok
+            }),
+            Err(ParamError::BoucWenOutOfRange(C::Offset))
+        );
+        assert_eq!(
+            range(BoucWenParams { a: 0.9, ..ok }),
+            Err(ParamError::BoucWenOutOfRange(C::A))
+        );
+        assert_eq!(
+            range(BoucWenParams { beta: 0.6, ..ok }),
+            Err(ParamError::BoucWenOutOfRange(C::Beta))
+        );
+        // A β barely above |γ| + |ψ| lets h reach |A|/(β − |γ| − |ψ|) ≈ 33 normalised.
+        assert_eq!(
+            range(BoucWenParams { beta: 0.0151, ..ok }),
+            Err(ParamError::BoucWenOutOfRange(C::A))
         );
     }
 

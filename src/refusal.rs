@@ -27,9 +27,9 @@ pub enum ModelField {
     Operators,
     /// Duhem `α`.
     Alpha,
-    /// Duhem `β`.
+    /// Duhem or Bouc–Wen `β`.
     Beta,
-    /// Duhem `γ`.
+    /// Duhem or Bouc–Wen `γ`.
     Gamma,
     /// Generalised P–I: the dead-zone map's centre (`dead_zones.centre`).
     DeadZoneCentre,
@@ -41,6 +41,12 @@ pub enum ModelField {
     DeadZoneWeight(u8),
     /// Generalised P–I: the dead-zone list (count, lengths, the sum of its weights).
     DeadZones,
+    /// Bouc–Wen `k` (linear slope).
+    K,
+    /// Bouc–Wen `A` (the hysteretic state's gain).
+    A,
+    /// Bouc–Wen `ψ` (asymmetric term).
+    Psi,
 }
 
 /// A field of the creep operator (`creep`). Wire-stable: append only.
@@ -153,6 +159,8 @@ pub enum Rule {
     /// The voltage limits and the model's input range leave no drive, or the codes would
     /// leave the DAC's range.
     Unreachable,
+    /// The model's state could grow without bound (Bouc–Wen: `|γ| < β`, `|ψ| < β − |γ|`).
+    Unbounded,
 }
 
 /// A refusal: the field and the rule it broke. Nothing was applied.
@@ -218,6 +226,9 @@ impl core::fmt::Display for ModelField {
                 write!(f, "dead_zones.weights[{}]", (*i as usize).saturating_sub(1))
             }
             ModelField::DeadZones => write!(f, "dead_zones"),
+            ModelField::K => write!(f, "k"),
+            ModelField::A => write!(f, "a"),
+            ModelField::Psi => write!(f, "psi"),
         }
     }
 }
@@ -288,6 +299,7 @@ impl core::fmt::Display for Rule {
             Rule::NoHardware => write!(f, "needs hardware this board lacks"),
             Rule::BeyondFixedPoint => write!(f, "does not fit the fixed-point format"),
             Rule::Unreachable => write!(f, "leaves no drive the stacks and DAC can reach"),
+            Rule::Unbounded => write!(f, "lets the model's state grow without bound"),
         }
     }
 }

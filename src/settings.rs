@@ -16,6 +16,7 @@ use heapless::Vec;
 use serde::{Deserialize, Serialize};
 
 pub use crate::board::Hardware;
+use crate::bouc_wen::{BoucWen, InverseBoucWen};
 use crate::control::{Compensator, ControlConfig, Observer};
 pub use crate::creep::CreepParams;
 use crate::creep::{
@@ -28,7 +29,9 @@ pub use crate::feedback::FeedbackSettings;
 use crate::generalised_pi::{GeneralisedPi, GpiParams, InverseGeneralisedPi, MAX_DEAD_ZONES};
 pub use crate::mode_switch::Mode;
 pub use crate::notch::NotchDesign;
-use crate::params::{DuhemParams, ParamError, PiParams, MAX_OPERATORS};
+use crate::params::{
+    BoucWenCoefficient, BoucWenParams, DuhemParams, ParamError, PiParams, MAX_OPERATORS,
+};
 use crate::prandtl_ishlinskii::{InversePrandtlIshlinskii, PrandtlIshlinskii};
 use crate::refusal::{finite, CreepField, Field, ModelField, Refusal, Rule};
 use crate::scaling::Scaling;
@@ -45,6 +48,8 @@ pub enum Model {
     /// Generalised (asymmetric) Prandtl–Ishlinskii: a P–I followed by a dead-zone map
     /// ([`crate::generalised_pi`]).
     GeneralisedPi(GpiParams),
+    /// Generalised (asymmetric) Bouc–Wen; compensated inverse-multiplicatively.
+    BoucWen(BoucWenParams),
 }
 
 /// Everything a user configures, in physical units (see the module doc).
@@ -140,6 +145,10 @@ impl Settings {
                 InverseGeneralisedPi::new(p, &ranges)
                     .map_err(|e| model_refusal(Field::Compensator, e))?,
             ),
+            Some(Model::BoucWen(p)) => Compensator::InverseBoucWen(
+                InverseBoucWen::new(p, &ranges)
+                    .map_err(|e| model_refusal(Field::Compensator, e))?,
+            ),
         };
         let observer = match &self.observer {
             None => Observer::None,
@@ -152,6 +161,9 @@ impl Settings {
             ),
             Some(Model::GeneralisedPi(p)) => Observer::GeneralisedPi(
                 GeneralisedPi::new(p, &ranges).map_err(|e| model_refusal(Field::Observer, e))?,
+            ),
+            Some(Model::BoucWen(p)) => Observer::BoucWen(
+                BoucWen::new(p, &ranges).map_err(|e| model_refusal(Field::Observer, e))?,
             ),
         };
         let drive = self.drive.build(hw, &ranges)?;
@@ -235,6 +247,14 @@ impl Settings {
                     for (i, &x) in d.weights.iter().enumerate() {
                         finite(field(ModelField::DeadZoneWeight(i as u8 + 1)), x)?;
                     }
+                }
+                Some(Model::BoucWen(p)) => {
+                    finite(field(ModelField::K), p.k)?;
+                    finite(field(ModelField::Offset), p.offset)?;
+                    finite(field(ModelField::A), p.a)?;
+                    finite(field(ModelField::Beta), p.beta)?;
+                    finite(field(ModelField::Gamma), p.gamma)?;
+                    finite(field(ModelField::Psi), p.psi)?;
                 }
                 None => {}
             }
@@ -359,6 +379,10 @@ fn model_refusal(model: fn(ModelField) -> Field, e: ParamError) -> Refusal {
         // The models' constructors do not return it; should one, its limits in seconds
         // cannot be given without the rate.
         E::Creep(e) => return creep_refusal(e, None),
+        E::BoucWenNotPositive(c) => (bouc_wen_field(c), Rule::Above(0.0)),
+        E::BoucWenUnbounded(c) => (bouc_wen_field(c), Rule::Unbounded),
+        E::BoucWenOutOfRange(c) => (bouc_wen_field(c), Rule::BeyondFixedPoint),
+        E::BoucWenNotInvertible(c) => (bouc_wen_field(c), Rule::NotInvertible),
     };
     Refusal::new(model(field), rule)
 }
@@ -393,6 +417,18 @@ fn creep_refusal(e: CreepError, control_rate_hz: Option<f64>) -> Refusal {
         E::WeightSumTooLarge => (CreepField::Modes, Rule::AtMost(MAX_WEIGHT_SUM)),
     };
     Refusal::new(Field::Creep(field), rule)
+}
+
+/// The settings field a Bouc–Wen coefficient is.
+fn bouc_wen_field(c: BoucWenCoefficient) -> ModelField {
+    match c {
+        BoucWenCoefficient::K => ModelField::K,
+        BoucWenCoefficient::Offset => ModelField::Offset,
+        BoucWenCoefficient::A => ModelField::A,
+        BoucWenCoefficient::Beta => ModelField::Beta,
+        BoucWenCoefficient::Gamma => ModelField::Gamma,
+        BoucWenCoefficient::Psi => ModelField::Psi,
+    }
 }
 
 /// The representative (not identified) P–I model the examples, benches and tests use: `n`
@@ -450,6 +486,19 @@ pub fn representative_duhem() -> Model {
     })
 }
 
+/// The representative Bouc–Wen model: slope 0.42 µm/V, `A = 0.1 µm/V`, `β = 0.04 /V`,
+/// `γ = 0.008 /V` and an asymmetric `ψ = 0.006 /V` (compensator loop gain 0.73).
+pub fn representative_bouc_wen() -> Model {
+    Model::BoucWen(BoucWenParams {
+        k: 0.42,
+        offset: 0.0,
+        a: 0.1,
+        beta: 0.04,
+        gamma: 0.008,
+        psi: 0.006,
+    })
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -483,12 +532,14 @@ mod tests {
             Some(representative_pi(8).unwrap()),
             Some(representative_duhem()),
             Some(representative_gpi(8).unwrap()),
+            Some(representative_bouc_wen()),
         ] {
             for obs in [
                 None,
                 Some(representative_pi(16).unwrap()),
                 Some(representative_duhem()),
                 Some(representative_gpi(16).unwrap()),
+                Some(representative_bouc_wen()),
             ] {
                 let s = Settings {
                     compensator: comp.clone(),
@@ -721,6 +772,64 @@ mod tests {
             refused(Modes, Rule::LengthMismatch)
         );
         assert_eq!(with(&[], &[]), refused(Modes, Rule::Required));
+    }
+
+    #[test]
+    fn bouc_wen_refusals_name_the_coefficient() {
+        let with = |f: fn(&mut BoucWenParams)| {
+            let mut s = closed();
+            let Model::BoucWen(mut p) = representative_bouc_wen() else {
+                unreachable!()
+            };
+            f(&mut p);
+            s.observer = Some(Model::BoucWen(p));
+            s.compensator = Some(Model::BoucWen(p));
+            s.build(&hw()).unwrap_err()
+        };
+        let c = |m| Field::Compensator(m);
+        assert_eq!(
+            with(|p| p.k = -0.1),
+            Refusal::new(c(ModelField::K), Rule::Above(0.0))
+        );
+        assert_eq!(
+            with(|p| p.beta = 0.0),
+            Refusal::new(c(ModelField::Beta), Rule::Above(0.0))
+        );
+        assert_eq!(
+            with(|p| p.gamma = -0.05),
+            Refusal::new(c(ModelField::Gamma), Rule::Unbounded)
+        );
+        assert_eq!(
+            with(|p| p.psi = 0.035),
+            Refusal::new(c(ModelField::Psi), Rule::Unbounded)
+        );
+        assert_eq!(
+            with(|p| p.a = 1.0),
+            Refusal::new(c(ModelField::A), Rule::BeyondFixedPoint)
+        );
+        // Within range but a compensator loop gain of 0.2·3.08/0.42 = 1.47.
+        assert_eq!(
+            with(|p| p.a = 0.2),
+            Refusal::new(c(ModelField::A), Rule::NotInvertible)
+        );
+        assert_eq!(
+            with(|p| p.psi = f64::NAN),
+            Refusal::new(c(ModelField::Psi), Rule::NotFinite)
+        );
+        // The observer's own refusal names the observer.
+        let mut s = closed();
+        s.observer = Some(Model::BoucWen(BoucWenParams {
+            k: 0.0001,
+            offset: 0.0,
+            a: 0.1,
+            beta: 0.04,
+            gamma: 0.0,
+            psi: 0.0,
+        }));
+        assert_eq!(
+            s.build(&hw()).unwrap_err(),
+            Refusal::new(Field::Observer(ModelField::K), Rule::BeyondFixedPoint)
+        );
     }
 
     #[test]

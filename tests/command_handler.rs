@@ -21,8 +21,8 @@ use twinstack::protocol::messages::*;
 use twinstack::recorder::Channel;
 use twinstack::refusal::{Field, ModelField, Refusal, Rule};
 use twinstack::settings::{
-    representative_duhem, representative_pi, FeedbackSettings, Mode, Model, NotchDesign,
-    SensorSettings, Settings,
+    representative_bouc_wen, representative_duhem, representative_pi, FeedbackSettings, Mode,
+    Model, NotchDesign, SensorSettings, Settings,
 };
 
 struct Dac(DacCode, DacCode);
@@ -526,6 +526,29 @@ fn model_fields(which: &str, model: &Model, field: fn(ModelField) -> Field) -> V
                 ));
             }
         }
+        Model::BoucWen(_) => {
+            type Set = fn(&mut twinstack::BoucWenParams, f64);
+            let parts: [(&str, ModelField, Set); 6] = [
+                ("k", ModelField::K, |p, x| p.k = x),
+                ("offset", ModelField::Offset, |p, x| p.offset = x),
+                ("a", ModelField::A, |p, x| p.a = x),
+                ("beta", ModelField::Beta, |p, x| p.beta = x),
+                ("gamma", ModelField::Gamma, |p, x| p.gamma = x),
+                ("psi", ModelField::Psi, |p, x| p.psi = x),
+            ];
+            for (name, f, set) in parts {
+                let m = w.clone();
+                out.push((
+                    format!("{w}.{name}"),
+                    field(f),
+                    Box::new(move |s, x| {
+                        if let Model::BoucWen(p) = model_of(s, &m) {
+                            set(p, x)
+                        }
+                    }),
+                ));
+            }
+        }
     }
     out
 }
@@ -639,7 +662,12 @@ fn nan_or_infinity_in_any_float_of_a_load_is_refused_naming_that_field_and_chang
         observer: Some(twinstack::settings::representative_gpi(4).unwrap()),
         ..pi_duhem.clone()
     };
-    for base in [pi_duhem, duhem_pi, gpi_gpi] {
+    let bouc_wen = Settings {
+        compensator: Some(representative_bouc_wen()),
+        observer: Some(representative_bouc_wen()),
+        ..pi_duhem.clone()
+    };
+    for base in [pi_duhem, duhem_pi, gpi_gpi, bouc_wen] {
         let hw = hardware();
         assert!(base.build(&hw).is_ok(), "the base settings are valid");
         // Two boards on the same settings, one refused everything, the other left alone:

@@ -51,6 +51,7 @@ fn model_name(model: &Option<Model>) -> String {
             g.pi.thresholds.len(),
             g.dead_zones.thresholds.len()
         ),
+        Some(Model::BoucWen(_)) => "Bouc-Wen".into(),
     }
 }
 

@@ -142,6 +142,8 @@ fn tick_cost_table_and_image_size() {
         "none-pid-notch",
         "inverse-gpi-16",
         "inverse-pi-16-creep-4",
+        "inverse-bouc-wen",
+        "inverse-bouc-wen-bouc-wen",
     ];
     let names: Vec<&str> = rows.iter().map(|r| r.name.as_str()).collect();
     assert_eq!(names, expected, "the bench must report every configuration");
@@ -184,6 +186,8 @@ fn tick_cost_table_and_image_size() {
                 "Duhem + creep",
                 "PI",
             ),
+            "inverse-bouc-wen" => ("inverse-multiplicative Bouc–Wen", "Duhem", "PI"),
+            "inverse-bouc-wen-bouc-wen" => ("inverse-multiplicative Bouc–Wen", "Bouc–Wen", "PI"),
             other => panic!("unknown bench row {other}"),
         };
         println!(

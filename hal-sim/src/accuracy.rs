@@ -5,12 +5,13 @@
 //! models) or input range (inverse models): `LSB16 = span / 65536`.
 
 use crate::reference;
+use twinstack::bouc_wen::{BoucWen, InverseBoucWen};
 use twinstack::creep::{Creep, CreepParams};
 use twinstack::duhem::{Duhem, InverseDuhem};
 use twinstack::fixed_point::{signal_from_f64 as q, signal_to_f64 as f};
 use twinstack::generalised_pi::{DeadZoneParams, GeneralisedPi, GpiParams, InverseGeneralisedPi};
 use twinstack::prandtl_ishlinskii::{InversePrandtlIshlinskii, PrandtlIshlinskii};
-use twinstack::{DuhemParams, PiParams, Scaling, Thresholds};
+use twinstack::{BoucWenParams, DuhemParams, PiParams, Scaling, Thresholds};
 
 /// One LSB of a 16-bit converter over the normalised range [-1, 1].
 pub const LSB16: f64 = 2.0 / 65536.0;
@@ -149,10 +150,9 @@ impl Stats {
 }
 
 /// Measures fixed point against `f64` for forward and inverse P–I at N = 8, 16, 32, for
-/// the Duhem observer and compensator and for the forward and inverse generalised P–I
-/// (N = 16, 6 dead zones): `models` random models × `samples` samples each.
-/// the Duhem observer and compensator and for the creep operator and its inverse: `models`
-/// random models × `samples` samples each.
+/// the Duhem and Bouc–Wen observers and compensators, for the forward and inverse
+/// generalised P–I (N = 16, 6 dead zones) and for the creep operator and its inverse:
+/// `models` random models × `samples` samples each.
 pub fn measure(seed: u64, models: usize, samples: usize) -> Vec<AccuracyRow> {
     let mut rng = Rng(seed.max(1));
     let mut rows = Vec::new();
@@ -242,6 +242,9 @@ pub fn measure(seed: u64, models: usize, samples: usize) -> Vec<AccuracyRow> {
     let (fwd, inv) = measure_creep(&mut rng, models, samples);
     rows.push(fwd);
     rows.push(inv);
+    let (obs, comp) = bouc_wen(&mut rng, models, samples);
+    rows.push(obs.row("Bouc-Wen observer".into()));
+    rows.push(comp.row("inverse Bouc-Wen".into()));
     rows
 }
 
@@ -279,4 +282,56 @@ fn measure_creep(rng: &mut Rng, models: usize, samples: usize) -> (AccuracyRow, 
         fwd_stats.row("creep, 4 modes".into()),
         inv_stats.row("inverse creep, 4 modes".into()),
     )
+}
+
+/// A random bounded Bouc–Wen over 0…150 V (`|γ| ≤ 0.4 β`, `|ψ| ≤ 0.7 (β − |γ|)`, either sign of
+/// `A`, the compensator's loop gain below 0.85), with an output range holding `k·u + δ` and
+/// the state bound.
+fn random_bouc_wen(rng: &mut Rng) -> (BoucWenParams, Scaling) {
+    let k = rng.range(0.05, 0.15);
+    let beta = rng.range(0.005, 0.05);
+    let gamma = rng.range(-0.4, 0.4) * beta;
+    let mut p = BoucWenParams {
+        k,
+        offset: 0.0,
+        a: 0.0,
+        beta,
+        gamma,
+        psi: rng.range(-0.7, 0.7) * (beta - gamma.abs()),
+    };
+    p.a = rng.range(-0.85, 0.85) * k / (1.0 + p.max_factor() / p.min_factor());
+    // |h| ≤ |A|·max(1/(β − |γ| − |ψ|), 2U) in output units (U = 75 V).
+    let h = p.a.abs() * (1.0 / p.min_factor()).max(150.0);
+    let reach = k * 150.0 + h + 1.0;
+    (
+        p,
+        Scaling::new(0.0, 150.0, -reach, reach).expect("non-empty"),
+    )
+}
+
+/// The Bouc–Wen observer and inverse-multiplicative compensator against their `f64`
+/// reference, as for Duhem: the compensator is fed the reference model's output on a random
+/// drive (reachable setpoints).
+fn bouc_wen(rng: &mut Rng, models: usize, samples: usize) -> (Stats, Stats) {
+    let mut obs = Stats::new();
+    let mut comp = Stats::new();
+    for _ in 0..models {
+        let (p, s) = random_bouc_wen(rng);
+        let fwd = BoucWen::new(&p, &s).expect("valid");
+        let inv = InverseBoucWen::new(&p, &s).expect("valid");
+        let mut fs = fwd.relaxed(q(-1.0));
+        let mut fr = reference::BoucWen::new(&p, &s, 0.0).expect("valid");
+        let mut is = fwd.relaxed(q(-1.0));
+        let mut ir = reference::InverseBoucWen::new(&p, &s, 0.0).expect("valid");
+        let mut truth = reference::BoucWen::new(&p, &s, 0.0).expect("valid");
+        for &u in &random_drive(rng, samples) {
+            let y_ref = fr.step(s.norm_to_input(u));
+            obs.add(f(fwd.step(&mut fs, q(u))) - s.output_to_norm(y_ref));
+            let y_d = truth.step(s.norm_to_input(u));
+            let u_ref = s.input_to_norm(ir.step(y_d));
+            let u_fix = f(inv.step(&mut is, q(s.output_to_norm(y_d))));
+            comp.add(u_fix - u_ref);
+        }
+    }
+    (obs, comp)
 }

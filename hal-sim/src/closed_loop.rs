@@ -225,6 +225,7 @@ pub fn model_of(model: &StageModel) -> Model {
         Hysteresis::Pi(p) => Model::PrandtlIshlinskii(p.clone()),
         Hysteresis::Duhem(p) => Model::Duhem(*p),
         Hysteresis::GeneralisedPi(p) => Model::GeneralisedPi(p.clone()),
+        Hysteresis::BoucWen(p) => Model::BoucWen(*p),
     }
 }
 

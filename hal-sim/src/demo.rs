@@ -264,6 +264,7 @@ fn track(
         Hysteresis::Pi(p) => Model::PrandtlIshlinskii(p.clone()),
         Hysteresis::Duhem(p) => Model::Duhem(*p),
         Hysteresis::GeneralisedPi(p) => Model::GeneralisedPi(p.clone()),
+        Hysteresis::BoucWen(p) => Model::BoucWen(*p),
     };
     // Open loop runs the inverse of the model, the observer the model itself (so the
     // compensator starts consistent with where the observer puts the stage); the bypassed run

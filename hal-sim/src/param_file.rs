@@ -164,6 +164,7 @@ impl ParamFile {
             Hysteresis::Pi(p) => Model::PrandtlIshlinskii(p.clone()),
             Hysteresis::Duhem(p) => Model::Duhem(*p),
             Hysteresis::GeneralisedPi(p) => Model::GeneralisedPi(p.clone()),
+            Hysteresis::BoucWen(p) => Model::BoucWen(*p),
         };
         Self {
             format: FORMAT.into(),
@@ -288,6 +289,7 @@ impl ParamFile {
             Some(Model::PrandtlIshlinskii(p)) => Hysteresis::Pi(p.clone()),
             Some(Model::Duhem(p)) => Hysteresis::Duhem(*p),
             Some(Model::GeneralisedPi(p)) => Hysteresis::GeneralisedPi(p.clone()),
+            Some(Model::BoucWen(p)) => Hysteresis::BoucWen(*p),
             None => {
                 return Err(field(
                     "settings.compensator".into(),

@@ -5,7 +5,7 @@
 
 use twinstack::creep::CreepParams;
 use twinstack::generalised_pi::{DeadZoneParams, GpiParams};
-use twinstack::params::{CanonicalPi, DuhemParams, ParamError, PiParams};
+use twinstack::params::{BoucWenParams, CanonicalPi, DuhemParams, ParamError, PiParams};
 use twinstack::scaling::Scaling;
 
 /// Play operator: `max(u − r, min(u + r, p))`.
@@ -363,6 +363,86 @@ impl Creep {
             *z = a * *z + b * y;
         }
         y
+    }
+}
+/// Forward generalised Bouc–Wen, `f64`: `y = k·u + δ + h`,
+/// `h_k = (1 − f)·h_{k−1} + A·Δu` with `f = clamp((β + s·sgn(h)·γ + s·ψ)·|Δu|, 0, 1)` (`s` the
+/// sign of `Δu`), i.e. `Δh = A·Δu − β|Δu|h − γΔu|h| − ψΔu·h` with the factor on `h` clamped.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct BoucWen {
+    params: BoucWenParams,
+    scaling: Scaling,
+    /// Previous input, volts.
+    pub u: f64,
+    /// Hysteretic state, output units.
+    pub h: f64,
+}
+
+impl BoucWen {
+    /// The model `params` relaxed (`h = 0`) at input `u0` (volts, clamped to the range).
+    pub fn new(params: &BoucWenParams, scaling: &Scaling, u0: f64) -> Result<Self, ParamError> {
+        params.validate()?;
+        Ok(Self {
+            params: *params,
+            scaling: *scaling,
+            u: clamp(u0, scaling.input_min, scaling.input_max),
+            h: 0.0,
+        })
+    }
+
+    /// The output in the present state: `k·u + δ + h`.
+    pub fn output(&self) -> f64 {
+        self.params.k * self.u + self.params.offset + self.h
+    }
+
+    /// One sample: drive (volts) → displacement (output units).
+    pub fn step(&mut self, u: f64) -> f64 {
+        let u = clamp(u, self.scaling.input_min, self.scaling.input_max);
+        let du = u - self.u;
+        let p = &self.params;
+        let s = if du < 0.0 { -1.0 } else { 1.0 };
+        let sh = if self.h < 0.0 { -1.0 } else { 1.0 };
+        let c = p.beta + s * sh * p.gamma + s * p.psi;
+        let f = clamp(c * du.abs(), 0.0, 1.0);
+        self.h = (1.0 - f) * self.h + p.a * du;
+        self.u = u;
+        self.output()
+    }
+}
+
+/// Inverse-multiplicative Bouc–Wen, `f64`: `u = (y_d − δ − h)/k` clamped to the input range,
+/// then the internal model advanced on that `u` (as the fixed-point compensator).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct InverseBoucWen {
+    model: BoucWen,
+}
+
+impl InverseBoucWen {
+    /// The compensator for `params`, its model relaxed at drive `u0` (volts).
+    pub fn new(params: &BoucWenParams, scaling: &Scaling, u0: f64) -> Result<Self, ParamError> {
+        Ok(Self {
+            model: BoucWen::new(params, scaling, u0)?,
+        })
+    }
+
+    /// One sample: desired displacement (output units, clamped to the output range) → drive
+    /// (volts).
+    pub fn step(&mut self, y_desired: f64) -> f64 {
+        let s = self.model.scaling;
+        let p = self.model.params;
+        let y = clamp(y_desired, s.output_min, s.output_max);
+        let u = clamp(
+            (y - p.offset - self.model.h) / p.k,
+            s.input_min,
+            s.input_max,
+        );
+        self.model.step(u);
+        u
+    }
+
+    /// The compensator's internal forward model.
+    pub fn model(&self) -> &BoucWen {
+        &self.model
     }
 }
 

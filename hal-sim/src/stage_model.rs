@@ -8,13 +8,14 @@
 //! * the sensor lags the drive by `sensor_lag_s`: the reading at sample `k` is the model's
 //!   output at sample `k − L` (`L` = lag in samples of the record being run);
 //! * forward runs start relaxed at the first drive value (P–I: every operator there; Duhem:
-//!   on the anhysteretic curve, `y0 = β u0 + δ`); inverse runs start relaxed at the first
-//!   desired output;
+//!   on the anhysteretic curve, `y0 = β u0 + δ`; Bouc–Wen: `h = 0`); inverse runs start
+//!   relaxed at the first desired output;
 //! * with creep, the creep operator runs after the hysteresis model (`predict`) and its
 //!   inverse before the inverse model (`compensate`), discretised at the record's sample
 //!   period (the median interval), its modes at rest at the first value they see.
 
 use crate::reference;
+use twinstack::bouc_wen::{BoucWen, InverseBoucWen};
 use twinstack::creep::{Creep, CreepParams, CreepState};
 use twinstack::duhem::{Duhem, InverseDuhem};
 use twinstack::fixed_point::{
@@ -23,7 +24,7 @@ use twinstack::fixed_point::{
 use twinstack::generalised_pi::{GeneralisedPi, GpiParams, InverseGeneralisedPi};
 use twinstack::play_operator::play;
 use twinstack::prandtl_ishlinskii::{InversePrandtlIshlinskii, PrandtlIshlinskii};
-use twinstack::{DuhemParams, ParamError, PiParams, Scaling};
+use twinstack::{BoucWenParams, DuhemParams, ParamError, PiParams, Scaling};
 
 /// The hysteresis model of a stage, in physical units. (Built once per command, so the
 /// size difference between the variants does not matter.)
@@ -36,6 +37,8 @@ pub enum Hysteresis {
     Duhem(DuhemParams),
     /// Generalised (asymmetric) P–I: a P–I followed by a dead-zone map.
     GeneralisedPi(GpiParams),
+    /// Generalised (asymmetric) Bouc–Wen.
+    BoucWen(BoucWenParams),
 }
 
 /// Everything needed to run a stage's model on a record.
@@ -173,6 +176,9 @@ impl StageModel {
                 GeneralisedPi::new(p, &self.scaling)?;
                 InverseGeneralisedPi::new(p, &self.scaling)?;
             }
+            Hysteresis::BoucWen(p) => {
+                InverseBoucWen::new(p, &self.scaling)?;
+            }
         }
         Ok(())
     }
@@ -225,7 +231,14 @@ impl StageModel {
                 let m = GeneralisedPi::new(p, s)?;
                 let mut st = m.state_at_rest(u_norm(u0));
                 u.iter()
-                    .map(|&v| y_phys(m.step(&mut st, u_norm(v))))
+                    .map(|&v| y_phys(creep(m.step(&mut st, u_norm(v)))))
+                    .collect()
+            }
+            Hysteresis::BoucWen(p) => {
+                let m = BoucWen::new(p, s)?;
+                let mut st = m.relaxed(u_norm(u0));
+                u.iter()
+                    .map(|&v| y_phys(creep(m.step(&mut st, u_norm(v)))))
                     .collect()
             }
         };
@@ -248,6 +261,10 @@ impl StageModel {
             }
             Hysteresis::GeneralisedPi(p) => {
                 let mut m = reference::GeneralisedPi::new(p, s, u0)?;
+                u.iter().map(|&v| m.step(v)).collect()
+            }
+            Hysteresis::BoucWen(p) => {
+                let mut m = reference::BoucWen::new(p, s, u0)?;
                 u.iter().map(|&v| m.step(v)).collect()
             }
         };
@@ -314,6 +331,16 @@ impl StageModel {
                     .map(|&v| u_phys(m.step(&mut st, y_norm(v))))
                     .collect()
             }
+            Hysteresis::BoucWen(p) => {
+                let m = InverseBoucWen::new(p, s)?;
+                let y0 = y0.clamp(s.output_min, s.output_max);
+                let u0 = ((y0 - p.offset) / p.k).clamp(s.input_min, s.input_max);
+                let mut st = m.model().relaxed(signal_from_f64(s.input_to_norm(u0)));
+                desired
+                    .iter()
+                    .map(|&v| u_phys(m.step(&mut st, y_norm(v))))
+                    .collect()
+            }
         })
     }
 
@@ -364,6 +391,11 @@ impl StageModel {
                 let mut m = reference::InverseGeneralisedPi::new(p, s, 0.0)?;
                 let z0 = m.map_inverse(y0);
                 m = reference::InverseGeneralisedPi::new(p, s, (z0 - c.offset) / total)?;
+                desired.iter().map(|&v| m.step(v)).collect()
+            }
+            Hysteresis::BoucWen(p) => {
+                let u0 = ((y0 - p.offset) / p.k).clamp(s.input_min, s.input_max);
+                let mut m = reference::InverseBoucWen::new(p, s, u0)?;
                 desired.iter().map(|&v| m.step(v)).collect()
             }
         })

@@ -17,9 +17,10 @@ use serde::{Deserialize, Serialize};
 /// `frame_errors`, `next_seq`, `tick_rate_hz` and `recorded`; NACK reasons `Busy`,
 /// `NothingStored` and `StoreFailed` were added. Version 4 (this one): the settings end with
 /// the optional creep operator (`creep`), `Field::Creep` was appended, and `Model` gained the
-/// generalised P–I (`Model::GeneralisedPi`, with its `ModelField`s appended); the multi-signal
-/// capture (`Capture`, `CaptureStatus`, `ReadCapture`, `CaptureChunk`,
-/// `Field::RecordPreTrigger`) was added.
+/// generalised P–I (`Model::GeneralisedPi`, with its `ModelField`s appended) and then
+/// Bouc–Wen (`Model::BoucWen`, with the `ModelField`s `K`, `A`, `Psi` and the rule
+/// `Unbounded` appended after them); the multi-signal capture (`Capture`, `CaptureStatus`,
+/// `ReadCapture`, `CaptureChunk`, `Field::RecordPreTrigger`) was added.
 pub const PROTOCOL_VERSION: u8 = 4;
 /// Largest frame body (version + message + CRC), bytes.
 pub const MAX_BODY: usize = 1536;

@@ -171,6 +171,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
             p.pi.thresholds.len(),
             p.dead_zones.thresholds.len()
         ),
+        Some(Model::BoucWen(_)) => "Bouc-Wen".to_string(),
         None => "no compensator".to_string(),
     };
     let d = &settings.drive;

@@ -123,6 +123,7 @@ enum Feedforward {
     InversePi(Box<reference::InversePrandtlIshlinskii>),
     InverseDuhem(reference::InverseDuhem),
     InverseGpi(Box<reference::InverseGeneralisedPi>),
+    InverseBoucWen(reference::InverseBoucWen),
 }
 
 enum Estimator {
@@ -130,6 +131,7 @@ enum Estimator {
     Pi(Box<reference::PrandtlIshlinskii>),
     Duhem(reference::Duhem),
     Gpi(Box<reference::GeneralisedPi>),
+    BoucWen(reference::BoucWen),
 }
 
 /// The position sensor in real arithmetic (see the module doc), with the drift check's memory.
@@ -298,6 +300,11 @@ fn observer_at_rest(recipe: &Recipe, u0: f64) -> anyhow::Result<(Estimator, Opti
             let y = m.clone().step(u0);
             (Estimator::Gpi(Box::new(m)), Some(y))
         }
+        Some(Model::BoucWen(p)) => {
+            let m = reference::BoucWen::new(p, s, u0)?;
+            let y = m.output();
+            (Estimator::BoucWen(m), Some(y))
+        }
     })
 }
 
@@ -332,6 +339,10 @@ fn compensator_at_rest(recipe: &Recipe, u0: f64, y0: f64) -> anyhow::Result<Feed
                 s,
                 (z - c.offset) / total,
             )?))
+        }
+        // Relaxed (h = 0) at the present drive, as `Controller::prepare` relaxes it.
+        Some(Model::BoucWen(m)) => {
+            Feedforward::InverseBoucWen(reference::InverseBoucWen::new(m, s, u0)?)
         }
     })
 }
@@ -445,6 +456,7 @@ pub fn check(set: &VectorSet<'_>) -> anyhow::Result<Agreement> {
             Feedforward::InversePi(m) => s.input_to_norm(m.step(s.norm_to_output(desired))),
             Feedforward::InverseDuhem(m) => s.input_to_norm(m.step(s.norm_to_output(desired))),
             Feedforward::InverseGpi(m) => s.input_to_norm(m.step(s.norm_to_output(desired))),
+            Feedforward::InverseBoucWen(m) => s.input_to_norm(m.step(s.norm_to_output(desired))),
         };
         let ff = if bypass { target } else { compensated };
         let mut command = ff;
@@ -519,6 +531,7 @@ pub fn check(set: &VectorSet<'_>) -> anyhow::Result<Agreement> {
             Estimator::Pi(m) => norm(&s, m.step(u_volts)),
             Estimator::Duhem(m) => norm(&s, m.step(u_volts)),
             Estimator::Gpi(m) => norm(&s, m.step(u_volts)),
+            Estimator::BoucWen(m) => norm(&s, m.step(u_volts)),
         };
         let estimate_ref = match &mut observer_creep {
             Some(c) => c.step(estimate_ref),

@@ -4,8 +4,9 @@
 //! 3v6-1hz.csv`, 0…3.6 V, sensor units), identified by `hal-sim identify` and committed in
 //! `tests/golden/params/` (see the README's "Golden vectors" for the commands), so the vectors
 //! do not depend on refitting. Every set shares one scaling: the models' common input range and
-//! the union of their output ranges. Each set is a [`Recipe`]: the board's [`Hardware`] and the
-//! [`Settings`] a parameter load would carry, so every pairing here is one the wire can carry
+//! the union of their output ranges (the Bouc–Wen file's left out, see `load_models`). Each
+//! set is a [`Recipe`]: the board's [`Hardware`] and the [`Settings`] a parameter load would
+//! carry, so every pairing here is one the wire can carry
 //! (any compensator with any observer).
 //!
 //! | set | compensator | observer | sensor | feedback | mode | drive, safe state | DAC, ADC |
@@ -20,11 +21,14 @@
 //! | `ipi16-pi-creep-closed` | inverse P–I, N = 16, + inverse creep (4 modes) | P–I, N = 16, + creep | drift limit 2 % | PI | closed loop | differential, bias | 16-bit, 16-bit |
 //! | `iduhem-pi-open` | inverse Duhem | P–I, N = 16 | none | none | open loop | unidirectional, bias | 16-bit, none |
 //! | `igpi16-gpi-closed` | inverse generalised P–I, N = 16, 6 dead zones | the same | drift limit 2 % | PI | closed loop | differential, bias | 16-bit, 16-bit |
+//! | `ibw-bw-closed` | inverse-multiplicative Bouc–Wen | Bouc–Wen | drift limit 2 % | PI | closed loop | differential, bias | 16-bit, 16-bit |
 //!
-//! The generalised P–I's file widens its output range a little beyond the others' (for its
-//! P–I part's output); the shared scaling is the union of the other files' ranges only, so the
-//! sets before it keep their vectors bit for bit (its P–I part's input is clamped to that
-//! range at the very bottom of the stroke, by the fixed point and the reference alike).
+//! The generalised P–I's and the Bouc–Wen's files widen their output ranges a little beyond
+//! the others' (for the P–I part's output; 5 % beyond its own simulated output); the shared
+//! scaling is the union of the other files' ranges only, so the sets before them keep their
+//! vectors bit for bit (the generalised P–I part's input is clamped to that range at the very
+//! bottom of the stroke, by the fixed point and the reference alike; the Bouc–Wen's simulated
+//! output lies within the union of the others').
 //!
 //! The bypass set with models runs the compensator on every tick without using it, reads the
 //! sensor and checks drift (a bypassed tick still monitors the stage), and starts from the
@@ -38,16 +42,17 @@ use twinstack::board::Hardware;
 use twinstack::drive::{Configuration, DriveSettings, SafeState};
 use twinstack::generalised_pi::GpiParams;
 use twinstack::settings::{CreepParams, FeedbackSettings, Mode, Model, SensorSettings, Settings};
-use twinstack::{DuhemParams, PiParams, Scaling};
+use twinstack::{BoucWenParams, DuhemParams, PiParams, Scaling};
 use twinstack_golden::Recipe;
 
 /// The parameter files, relative to the golden directory.
-pub const PARAM_FILES: [&str; 5] = [
+pub const PARAM_FILES: [&str; 6] = [
     "params/micromanipulator-pi8.json",
     "params/micromanipulator-pi16.json",
     "params/micromanipulator-pi32.json",
     "params/micromanipulator-duhem.json",
     "params/micromanipulator-gpi16.json",
+    "params/micromanipulator-bouc-wen.json",
 ];
 
 /// Which model the sensor model ("the stage") follows while a set is generated: deliberately
@@ -78,6 +83,7 @@ struct Models {
     pi: [PiParams; 3],
     duhem: DuhemParams,
     gpi: GpiParams,
+    bouc_wen: BoucWenParams,
     scaling: Scaling,
 }
 
@@ -85,10 +91,12 @@ fn load_models(dir: &Path) -> anyhow::Result<Models> {
     let mut pi = Vec::new();
     let mut duhem = None;
     let mut gpi = None;
+    let mut bouc_wen = None;
     let mut ranges: Option<Scaling> = None;
     for file in PARAM_FILES {
         let path = dir.join(file);
         let (_, model) = ParamFile::load(&path).with_context(|| path.display().to_string())?;
+        let s = model.scaling;
         match model.hysteresis {
             Hysteresis::Pi(p) => pi.push(p),
             Hysteresis::Duhem(d) => duhem = Some(d),
@@ -104,8 +112,21 @@ fn load_models(dir: &Path) -> anyhow::Result<Models> {
                 gpi = Some(g);
                 continue;
             }
+            Hysteresis::BoucWen(b) => {
+                // Its output range (5 % beyond its own simulated output) is left out of the
+                // union, so that the sets before it keep their scaling and their vectors; its
+                // simulated output lies within the union of the others'.
+                if ranges.is_some_and(|r| r.input_min != s.input_min || r.input_max != s.input_max)
+                {
+                    bail!(
+                        "{}: input range differs from the other models'",
+                        path.display()
+                    );
+                }
+                bouc_wen = Some(b);
+                continue;
+            }
         }
-        let s = model.scaling;
         ranges = Some(match ranges {
             None => s,
             Some(r) => {
@@ -123,11 +144,11 @@ fn load_models(dir: &Path) -> anyhow::Result<Models> {
             }
         });
     }
-    let (Ok(pi), Some(duhem), Some(gpi), Some(scaling)) =
-        (<[PiParams; 3]>::try_from(pi), duhem, gpi, ranges)
+    let (Ok(pi), Some(duhem), Some(gpi), Some(bouc_wen), Some(scaling)) =
+        (<[PiParams; 3]>::try_from(pi), duhem, gpi, bouc_wen, ranges)
     else {
         bail!(
-            "{}: expected three P–I files, one Duhem file and one generalised P–I file",
+            "{}: expected three P–I files, one Duhem file, one generalised P–I file and one Bouc–Wen file",
             dir.display()
         );
     };
@@ -135,6 +156,7 @@ fn load_models(dir: &Path) -> anyhow::Result<Models> {
         pi,
         duhem,
         gpi,
+        bouc_wen,
         scaling,
     })
 }
@@ -187,6 +209,7 @@ pub fn definitions(dir: &Path) -> anyhow::Result<Vec<SetDefinition>> {
     let [pi8, pi16, pi32] = m.pi.clone().map(Model::PrandtlIshlinskii);
     let duhem = Model::Duhem(m.duhem);
     let gpi16 = Model::GeneralisedPi(m.gpi.clone());
+    let bouc_wen = Model::BoucWen(m.bouc_wen);
     use Configuration::{Differential, Unidirectional};
     use SafeState::{Bias, Zero};
     struct Set {
@@ -335,7 +358,7 @@ pub fn definitions(dir: &Path) -> anyhow::Result<Vec<SetDefinition>> {
             mode: Mode::OpenLoop,
             drive: drive(Unidirectional, Bias),
             hardware: hardware(65535, None),
-            truth: t_pi,
+            truth: t_pi.clone(),
             creep: None,
         }),
         def(Set {
@@ -348,6 +371,19 @@ pub fn definitions(dir: &Path) -> anyhow::Result<Vec<SetDefinition>> {
             drive: drive(Differential, Bias),
             hardware: hardware(65535, Some(16)),
             truth: Truth::Duhem(m.duhem),
+            creep: None,
+        }),
+        def(Set {
+            name: "ibw-bw-closed",
+            compensator: Some(bouc_wen.clone()),
+            observer: Some(bouc_wen),
+            // The observer (Bouc–Wen) and the stage (P–I) differ: the drift check flags.
+            sensor: Some(sensor(&s, Some(0.02))),
+            feedback: Some(feedback()),
+            mode: Mode::ClosedLoop,
+            drive: drive(Differential, Bias),
+            hardware: hardware(65535, Some(16)),
+            truth: t_pi,
             creep: None,
         }),
     ])

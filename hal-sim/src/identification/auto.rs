@@ -11,6 +11,12 @@
 //!
 //! A candidate that cannot be fitted (too few samples, a model the board refuses) is kept in
 //! the ranking with its reason, last.
+//!
+//! Parsimony: a model that generalises another (Bouc–Wen generalises Duhem,
+//! [`super::ModelKind::special_case`]; with creep, Bouc–Wen + creep generalises Duhem + creep)
+//! can always fit at least as well, so it wins only if its
+//! validation max error beats its special case's by [`PARSIMONY_MARGIN`] (relative);
+//! otherwise the special case is picked.
 
 use super::score::{score, ErrorFigures};
 use super::{identify, motion, Identification, IdentifyError, IdentifyOptions};
@@ -18,6 +24,9 @@ use crate::measured_data::MeasuredData;
 
 /// Fraction of the fit window (after the start of motion) kept back to rank the candidates.
 pub const VALIDATION_FRACTION: f64 = 0.3;
+/// How much better (relative, on the validation max error) a generalisation must predict than
+/// its special case to be picked over it.
+pub const PARSIMONY_MARGIN: f64 = 0.05;
 
 /// One candidate's result on the validation part.
 #[derive(Clone, Debug)]
@@ -33,7 +42,8 @@ pub struct Ranked {
 /// The outcome of `--model auto`.
 #[derive(Clone, Debug)]
 pub struct AutoIdentification {
-    /// Every candidate, best first.
+    /// Every candidate, best first (a special case picked for parsimony ahead of its
+    /// generalisation).
     pub ranking: Vec<Ranked>,
     /// The time the validation part starts, seconds.
     pub validation_from_s: f64,
@@ -112,7 +122,31 @@ pub fn identify_auto(
         let (a, b) = (rank_key(a), rank_key(b));
         a.0.total_cmp(&b.0).then(a.1.total_cmp(&b.1))
     });
-    let Some(best) = ranking.iter().find(|r| r.validation.is_ok()).cloned() else {
+    let best = ranking.iter().find(|r| r.validation.is_ok()).cloned();
+    // Parsimony: the special case wins unless the generalisation beats it by the margin.
+    let simpler = best.as_ref().and_then(|b| {
+        let special = b.options.model.special_case()?;
+        let best_max = b.validation.as_ref().ok()?.max_pct;
+        ranking
+            .iter()
+            // Its special case with the same creep (Bouc–Wen + creep against Duhem + creep).
+            .find(|r| r.options.model == special && r.options.creep == b.options.creep)
+            .filter(|r| {
+                r.validation
+                    .as_ref()
+                    .is_ok_and(|f| f.max_pct <= best_max * (1.0 + PARSIMONY_MARGIN))
+            })
+            .cloned()
+    });
+    let parsimony = simpler.is_some();
+    if let Some(s) = &simpler {
+        // Best first: the picked special case heads the ranking.
+        if let Some(i) = ranking.iter().position(|r| r.label == s.label) {
+            let picked = ranking.remove(i);
+            ranking.insert(0, picked);
+        }
+    }
+    let Some(best) = simpler.or(best) else {
         // No candidate could be ranked (the validation part too short for every one):
         // the first candidate on the whole window, or its error.
         let identification = identify(data, first)?;
@@ -132,6 +166,10 @@ pub fn identify_auto(
         .filter(|r| r.label != best.label)
         .find_map(|r| r.validation.as_ref().ok().map(|f| (r.label.clone(), *f)));
     let reason = match (&best.validation, runner_up) {
+        (Ok(b), Some((next, n))) if parsimony => format!(
+            "{} predicts the validation part (t >= {:.4} s) within {:.0} % of the best ({next}: max {:.2} % / RMS {:.2} %) with fewer parameters: max {:.2} % / RMS {:.2} % of span",
+            best.label, validation_from_s, 100.0 * PARSIMONY_MARGIN, n.max_pct, n.rms_pct, b.max_pct, b.rms_pct
+        ),
         (Ok(b), Some((next, n))) => format!(
             "{} predicts the validation part (t >= {:.4} s) best: max {:.2} % / RMS {:.2} % of span, against {:.2} % / {:.2} % for the next ({next})",
             best.label, validation_from_s, b.max_pct, b.rms_pct, n.max_pct, n.rms_pct

@@ -18,7 +18,8 @@
 //!    leftover ringing) are dropped and the model refitted.
 //! 5. **Model**: P–I weights by NNLS ([`pi`]), or Duhem by integrated least squares with a
 //!    stability check and a simulated-error refinement ([`duhem`]), or a generalised
-//!    (asymmetric) P–I by Kuhnen's linear equation-error fit ([`gpi`]).
+//!    (asymmetric) P–I by Kuhnen's linear equation-error fit ([`gpi`]), or the generalised
+//!    Bouc–Wen from that Duhem fit refined on the simulated error ([`bouc_wen`]).
 //! 6. **Scaling**: the input range is the fitted drive range widened by [`INPUT_MARGIN`], the
 //!    output range the model's output range widened by [`OUTPUT_MARGIN`] — for Duhem, wider
 //!    still if needed so that the distance to the anhysteretic curve stays within
@@ -31,6 +32,7 @@
 //! `predict` runs it, so the fitted and the checked model see the same operator states.
 
 pub mod auto;
+pub mod bouc_wen;
 pub mod creep;
 pub mod duhem;
 pub mod gpi;
@@ -97,6 +99,19 @@ pub enum ModelKind {
     Duhem,
     /// Generalised (asymmetric) P–I: a P–I followed by a dead-zone map.
     Gpi,
+    /// Generalised (asymmetric) Bouc–Wen (`--model bouc-wen`).
+    BoucWen,
+}
+
+impl ModelKind {
+    /// The model this one generalises, if any (Duhem is Bouc–Wen with `γ = ψ = 0`): `--model
+    /// auto` prefers it when it predicts as well (see [`auto::PARSIMONY_MARGIN`]).
+    pub fn special_case(self) -> Option<ModelKind> {
+        match self {
+            ModelKind::BoucWen => Some(ModelKind::Duhem),
+            ModelKind::Pi | ModelKind::Duhem | ModelKind::Gpi => None,
+        }
+    }
 }
 
 /// The rows a fit uses: row `k` pairs the drive history up to sample `k` with the reading at
@@ -184,6 +199,7 @@ impl IdentifyOptions {
                 format!("{:?}", self.thresholds).to_lowercase(),
                 2 * gpi::DEAD_ZONES_PER_SIDE
             ),
+            ModelKind::BoucWen => "Bouc-Wen".into(),
         };
         if self.creep {
             format!("{model} + creep")
@@ -612,6 +628,50 @@ pub fn identify(
                 notes,
                 with_output_range,
             )?,
+            ModelKind::BoucWen => {
+                let (y_lo, y_hi) = min_max(y.iter().copied());
+                let provisional = Scaling::new(in_lo, in_hi, y_lo, y_hi.max(y_lo + 1e-9))
+                    .map_err(|e| IdentifyError::Params(e.into()))?;
+                let steady_from = motion::both_extremes_reached(&u_fit[first..]) + first;
+                let f = bouc_wen::fit(u_fit, y, &rows, &provisional, options.refine, steady_from)?;
+                let span = rows.target_span(y);
+                notes.push(format!(
+                    "Bouc-Wen started from the Duhem fit (gamma = psi = 0): RMS {:.3} % of span from t = {:.4} s{}",
+                    100.0 * f.start_rms / span,
+                    data.t[steady_from.min(n_fit - 1)],
+                    if f.start_scaled {
+                        " (A scaled down: the inverse-multiplicative compensator's loop gain was too high)"
+                    } else {
+                        ""
+                    }
+                ));
+                if f.refined {
+                    notes.push(format!(
+                        "Bouc-Wen refined on the simulated error: RMS {:.3} % of span (gamma = {:.4e}, psi = {:.4e})",
+                        100.0 * f.rms / span,
+                        f.params.gamma,
+                        f.params.psi
+                    ));
+                } else {
+                    notes.push(
+                        "Bouc-Wen refinement did not improve on the Duhem start: kept it".into(),
+                    );
+                }
+                // The fixed-point state is Q2.30: widen the output range until the state bound
+                // |A|·max(1/(β − |γ| − |ψ|), 2U) is within DUHEM_MAX_NORM_DISTANCE of it.
+                let p = f.params;
+                let bound =
+                    p.a.abs() * (1.0 / p.min_factor()).max(2.0 * provisional.input_half_span());
+                let needed = bound / DUHEM_MAX_NORM_DISTANCE;
+                let model = with_output_range(Hysteresis::BoucWen(p), &f.simulated, needed)?;
+                let (lo, hi) = min_max(f.simulated.iter().copied());
+                if needed > (0.5 + OUTPUT_MARGIN) * (hi - lo) {
+                    notes.push(format!(
+                        "output range widened to +/-{needed:.4} around the model's centre so that the hysteretic state fits the fixed point"
+                    ));
+                }
+                model
+            }
         })
     };
     let mut model = fit_model(&y, &mut notes)?;

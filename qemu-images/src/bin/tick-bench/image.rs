@@ -18,8 +18,8 @@ use twinstack::hardware::dac::InternalDac;
 use twinstack::notch::NotchDesign;
 use twinstack::prandtl_ishlinskii::{InversePrandtlIshlinskii, PiState};
 use twinstack::settings::{
-    representative_duhem, representative_gpi, representative_pi, FeedbackSettings, Mode, Model,
-    SensorSettings, Settings,
+    representative_bouc_wen, representative_duhem, representative_gpi, representative_pi,
+    FeedbackSettings, Mode, Model, SensorSettings, Settings,
 };
 
 /// Ticks measured per configuration (after as many warm-up ticks).
@@ -158,7 +158,7 @@ fn main() -> ! {
         Ok(c) => Some(c),
         Err(_) => panic!("creep parameters"),
     };
-    let cases: [(&str, Settings); 11] = [
+    let cases: [(&str, Settings); 13] = [
         // Breakdown of the fixed part: split + limits + DAC alone, then + the Duhem observer.
         (
             "bypass",
@@ -217,6 +217,16 @@ fn main() -> ! {
             Settings {
                 creep,
                 ..closed(pi(16))
+            },
+        ),
+        // Bouc–Wen: the inverse-multiplicative compensator with the Duhem observer, then
+        // with its own model as the observer.
+        ("inverse-bouc-wen", closed(Some(representative_bouc_wen()))),
+        (
+            "inverse-bouc-wen-bouc-wen",
+            Settings {
+                observer: Some(representative_bouc_wen()),
+                ..closed(Some(representative_bouc_wen()))
             },
         ),
     ];
