@@ -8,8 +8,9 @@
 //! Each test holds the figure reached (see the book, results/identification.md and
 //! results/lab-stage.md) and fails when the pick is replaced by the textbook P–I. Of the
 //! issue's goals (held-out ≤ 1 % max on both records, tracking ≤ 1 % on the lab stage) the
-//! bipolar record's is met and held (0.94 %); the micromanipulator's (1.49 %) and the lab
-//! stage's (1.70 %) are not: their bounds are the figures reached, with a small margin.
+//! bipolar record's is met and held (0.71 %, Bouc–Wen + creep); the micromanipulator's
+//! (1.49 %, generalised P–I) and the lab stage's (1.58 %, generalised P–I + creep) are not:
+//! their bounds are the figures reached, with a margin.
 
 use hal_sim::identification::auto::identify_auto;
 use hal_sim::identification::score::score;
