@@ -556,22 +556,7 @@ pub fn identify(
                         .collect();
                     with_output_range(Hysteresis::Pi(f.params), &output, 0.0)
                 };
-                let model = fit_pi(0.0)?;
-                match model.check() {
-                    Ok(()) => model,
-                    Err(
-                        e @ (ParamError::WeightOutOfRange { .. }
-                        | ParamError::GainSumTooLarge
-                        | ParamError::FirstWeightNotPositive),
-                    ) => {
-                        let floor = MIN_NORM_FIRST_WEIGHT / model.scaling.gain_to_norm();
-                        notes.push(format!(
-                            "the inverse could not be built ({e}): refitted with w_1 >= {floor:.4e}"
-                        ));
-                        fit_pi(floor)?
-                    }
-                    Err(e) => return Err(IdentifyError::Params(e)),
-                }
+                with_first_weight_floor(fit_pi(0.0)?, notes, |floor, _| fit_pi(floor))?
             }
             ModelKind::Duhem => {
                 let (y_lo, y_hi) = min_max(y.iter().copied());
@@ -743,7 +728,19 @@ fn gpi_model(
         with_output_range(Hysteresis::GeneralisedPi(f.params), &both, 0.0)
     };
     let model = fit_gpi(0.0, notes)?;
+    with_first_weight_floor(model, notes, fit_gpi)
+}
+
+/// A P–I-based `model` as it is if the library builds its inverse, or — where the inverse P–I
+/// is refused for its first weight (`w_1 = 0`, or inverse weights beyond Q8.24) — `refit` with
+/// `w_1` floored at [`MIN_NORM_FIRST_WEIGHT`] (normalised), which the notes say.
+fn with_first_weight_floor(
+    model: StageModel,
+    notes: &mut Vec<String>,
+    refit: impl FnOnce(f64, &mut Vec<String>) -> Result<StageModel, IdentifyError>,
+) -> Result<StageModel, IdentifyError> {
     match model.check() {
+        Ok(()) => Ok(model),
         Err(
             e @ (ParamError::WeightOutOfRange { .. }
             | ParamError::GainSumTooLarge
@@ -753,9 +750,9 @@ fn gpi_model(
             notes.push(format!(
                 "the inverse could not be built ({e}): refitted with w_1 >= {floor:.4e}"
             ));
-            fit_gpi(floor, notes)
+            refit(floor, notes)
         }
-        _ => Ok(model),
+        Err(e) => Err(IdentifyError::Params(e)),
     }
 }
 
