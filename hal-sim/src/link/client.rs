@@ -396,42 +396,9 @@ impl<T: Transport> Client<T> {
     pub fn read_recording(
         &mut self,
         count: u32,
-        mut progress: impl FnMut(u32),
+        progress: impl FnMut(u32),
     ) -> Result<Vec<i32>, LinkError> {
-        let mut values = Vec::with_capacity(count as usize);
-        let mut retries = 0;
-        while (values.len() as u32) < count {
-            let offset = values.len() as u32;
-            match self.read_record(offset) {
-                Ok(chunk) if chunk.is_empty() => {
-                    return Err(LinkError::Unexpected {
-                        request: "ReadRecord",
-                        got: format!(
-                            "an empty chunk at offset {offset}: the board holds {offset} values, {count} were asked for"
-                        ),
-                    })
-                }
-                Ok(chunk) => {
-                    if chunk.len() > MAX_CHUNK {
-                        return Err(LinkError::Unexpected {
-                            request: "ReadRecord",
-                            got: format!("a chunk of {} values", chunk.len()),
-                        });
-                    }
-                    let take = chunk.len().min(count as usize - values.len());
-                    values.extend_from_slice(&chunk[..take]);
-                    retries = 0;
-                    progress(values.len() as u32);
-                }
-                Err(LinkError::Timeout { .. }) if retries < 3 => {
-                    retries += 1;
-                    // A late answer would be taken for the next request's: drain first.
-                    self.resync(Duration::from_millis(50))?;
-                }
-                Err(e) => return Err(e),
-            }
-        }
-        Ok(values)
+        self.read_chunks("ReadRecord", count, MAX_CHUNK, Self::read_record, progress)
     }
     /// Arms a multi-signal capture (protocol v4).
     pub fn arm_capture(&mut self, capture: CaptureRequest) -> Result<(), LinkError> {
@@ -475,24 +442,54 @@ impl<T: Transport> Client<T> {
     pub fn read_capture_window(
         &mut self,
         slots: u32,
-        mut progress: impl FnMut(u32),
+        progress: impl FnMut(u32),
     ) -> Result<Vec<i16>, LinkError> {
-        let mut values: Vec<i16> = Vec::with_capacity(slots as usize);
+        self.read_chunks(
+            "ReadCapture",
+            slots,
+            MAX_CAPTURE_CHUNK,
+            Self::read_capture,
+            progress,
+        )
+    }
+
+    /// Reads `count` values chunk by chunk with `read` (one request from an offset), resuming
+    /// at the next offset after each chunk; a chunk lost to a timeout or a corrupt frame is
+    /// asked for again (up to 3 times, draining the line first: a late answer would be taken
+    /// for the next request's). An empty chunk, or one over `max_chunk` values, fails the
+    /// read: the board holds fewer values than asked for, or does not speak this protocol.
+    fn read_chunks<V: Copy>(
+        &mut self,
+        request: &'static str,
+        count: u32,
+        max_chunk: usize,
+        mut read: impl FnMut(&mut Self, u32) -> Result<Vec<V>, LinkError>,
+        mut progress: impl FnMut(u32),
+    ) -> Result<Vec<V>, LinkError> {
+        let mut values = Vec::with_capacity(count as usize);
         let mut retries = 0;
-        while (values.len() as u32) < slots {
+        while (values.len() as u32) < count {
             let offset = values.len() as u32;
-            match self.read_capture(offset) {
-                Ok(chunk) if chunk.is_empty() || chunk.len() > MAX_CAPTURE_CHUNK => {
+            match read(self, offset) {
+                Ok(chunk) if chunk.is_empty() => {
                     return Err(LinkError::Unexpected {
-                        request: "ReadCapture",
+                        request,
                         got: format!(
-                            "a chunk of {} values at offset {offset} of a {slots}-value window",
+                            "an empty chunk at offset {offset}: the board holds {offset} values, {count} were asked for"
+                        ),
+                    })
+                }
+                Ok(chunk) if chunk.len() > max_chunk => {
+                    return Err(LinkError::Unexpected {
+                        request,
+                        got: format!(
+                            "a chunk of {} values at offset {offset} (at most {max_chunk})",
                             chunk.len()
                         ),
                     })
                 }
                 Ok(chunk) => {
-                    let take = chunk.len().min(slots as usize - values.len());
+                    let take = chunk.len().min(count as usize - values.len());
                     values.extend_from_slice(&chunk[..take]);
                     retries = 0;
                     progress(values.len() as u32);
