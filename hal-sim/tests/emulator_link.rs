@@ -75,9 +75,8 @@ fn boot_image(elf: PathBuf) -> Qemu {
     }
 }
 
-/// Connects to the socket and asks for the status until the firmware answers (it enables
-/// USART1 a moment after boot; bytes before that are lost).
-fn connect(qemu: &Qemu) -> Client<Box<dyn Transport>> {
+/// Opens QEMU's UART socket, waiting up to 20 s for QEMU to create it.
+fn open_socket(qemu: &Qemu) -> Box<dyn Transport> {
     let spec = PortSpec::Unix(qemu.socket.clone());
     let start = Instant::now();
     let transport = loop {
@@ -89,6 +88,14 @@ fn connect(qemu: &Qemu) -> Client<Box<dyn Transport>> {
             Err(_) => std::thread::sleep(Duration::from_millis(50)),
         }
     };
+    transport
+}
+
+/// Connects to the socket and asks for the status until the firmware answers (it enables
+/// USART1 a moment after boot; bytes before that are lost).
+fn connect(qemu: &Qemu) -> Client<Box<dyn Transport>> {
+    let start = Instant::now();
+    let transport = open_socket(qemu);
     let mut client = Client::new(transport);
     client.set_timeout(Duration::from_millis(300));
     loop {
@@ -304,17 +311,7 @@ fn the_host_tools_drive_the_emulated_firmware_over_its_uart() {
 #[test]
 fn the_board_image_in_qemu_is_named_in_the_no_response_error() {
     let qemu = boot_image(support::build_image(support::FIRMWARE, "twinstack-fw", &[]));
-    let spec = PortSpec::Unix(qemu.socket.clone());
-    let start = Instant::now();
-    let transport = loop {
-        match port::open(&spec, 0) {
-            Ok(t) => break t,
-            Err(e) if start.elapsed() > Duration::from_secs(20) => {
-                panic!("QEMU's UART socket never accepted: {e}")
-            }
-            Err(_) => std::thread::sleep(Duration::from_millis(50)),
-        }
-    };
+    let transport = open_socket(&qemu);
     let mut client = Client::new(transport);
     // Longer than the emulator image takes to answer on a loaded machine.
     client.set_timeout(Duration::from_secs(3));
