@@ -5,7 +5,9 @@
 
 use twinstack::creep::CreepParams;
 use twinstack::generalised_pi::{DeadZoneParams, GpiParams};
-use twinstack::params::{BoucWenParams, CanonicalPi, DuhemParams, ParamError, PiParams};
+use twinstack::params::{
+    BoucWenParams, CanonicalPi, DuhemParams, ParamError, PiParams, MAX_CANONICAL_OPERATORS,
+};
 use twinstack::scaling::Scaling;
 
 /// Play operator: `max(u − r, min(u + r, p))`.
@@ -21,13 +23,26 @@ fn clamp(x: f64, lo: f64, hi: f64) -> f64 {
 #[derive(Clone, Debug, PartialEq)]
 pub struct PlaySum {
     model: CanonicalPi,
-    states: heapless::Vec<f64, { twinstack::params::MAX_CANONICAL_OPERATORS }>,
+    states: heapless::Vec<f64, { MAX_CANONICAL_OPERATORS }>,
 }
 
 impl PlaySum {
-    fn new(model: CanonicalPi, at: f64) -> Self {
-        let states = model.thresholds.iter().map(|_| at).collect();
+    fn with_states(
+        model: CanonicalPi,
+        states: heapless::Vec<f64, { MAX_CANONICAL_OPERATORS }>,
+    ) -> Self {
         Self { model, states }
+    }
+
+    /// At rest at `u0` on the ascending branch of the input range `lo … hi` (the library's
+    /// `state_at_rest`): the input went to `hi`, down to `lo`, then up to `u0`.
+    fn at_rest(model: CanonicalPi, lo: f64, hi: f64, u0: f64) -> Self {
+        let states = model
+            .thresholds
+            .iter()
+            .map(|&r| play(u0, r, (lo + r).min((hi - r).max(lo))))
+            .collect();
+        Self::with_states(model, states)
     }
 
     fn step(&mut self, x: f64) -> f64 {
@@ -64,11 +79,17 @@ pub struct PrandtlIshlinskii {
 }
 
 impl PrandtlIshlinskii {
-    /// The model `params`, at rest at input `u0` (volts).
+    /// The model `params`, at rest at input `u0` (volts) on the ascending branch: the drive
+    /// went to the top of the input range, down to its bottom, then up to `u0`.
     pub fn new(params: &PiParams, scaling: &Scaling, u0: f64) -> Result<Self, ParamError> {
         let u0 = clamp(u0, scaling.input_min, scaling.input_max);
         Ok(Self {
-            sum: PlaySum::new(params.canonical()?, u0),
+            sum: PlaySum::at_rest(
+                params.canonical()?,
+                scaling.input_min,
+                scaling.input_max,
+                u0,
+            ),
             scaling: *scaling,
         })
     }
@@ -93,14 +114,29 @@ pub struct InversePrandtlIshlinskii {
 }
 
 impl InversePrandtlIshlinskii {
-    /// The inverse of `params`, at rest at drive `u0` (volts): states `p'_i = y(u0) − c`.
+    /// The inverse of `params`, at rest at drive `u0` (volts): the state matching the forward
+    /// model at rest at `u0` ([`PrandtlIshlinskii::new`]), `p'_i = S_i p_i + Σ_{j>i} w_j p_j`
+    /// with `S_i = Σ_{j≤i} w_j` (the library reaches the same state another way: the
+    /// forward's major-loop bottom mapped, then raised to the desired output).
     pub fn new(params: &PiParams, scaling: &Scaling, u0: f64) -> Result<Self, ParamError> {
         let forward = params.canonical()?;
         let inverse = forward.inverse()?;
         let u0 = clamp(u0, scaling.input_min, scaling.input_max);
-        let y0_minus_c: f64 = forward.weights.iter().sum::<f64>() * u0;
+        let p = PlaySum::at_rest(forward.clone(), scaling.input_min, scaling.input_max, u0);
+        let (w, p) = (&forward.weights, p.states());
+        let states = (0..w.len())
+            .map(|i| {
+                let s_i: f64 = w[..=i].iter().sum();
+                s_i * p[i]
+                    + w[i + 1..]
+                        .iter()
+                        .zip(&p[i + 1..])
+                        .map(|(a, b)| a * b)
+                        .sum::<f64>()
+            })
+            .collect();
         Ok(Self {
-            sum: PlaySum::new(inverse, y0_minus_c),
+            sum: PlaySum::with_states(inverse, states),
             scaling: *scaling,
         })
     }

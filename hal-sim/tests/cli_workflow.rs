@@ -123,7 +123,14 @@ fn status_json_is_one_object() {
     assert_eq!(v["tick_rate_hz"], 50_000);
     assert_eq!(v["queue_fill"], 0);
     assert!(v["flags"].is_array(), "{out}");
-    assert_eq!(v["estimate"], 0.0);
+    // The estimate at rest (the observer on its ascending branch at the boot drive), in
+    // both forms: normalised and raw Q2.30, the same number.
+    let (e, raw) = (
+        v["estimate"].as_f64().unwrap(),
+        v["estimate_q2_30"].as_i64().unwrap(),
+    );
+    assert!(e.abs() <= 1.0, "{out}");
+    assert_eq!(e, raw as f64 / (1u64 << 30) as f64, "{out}");
     assert!(v["ticks"].as_u64().is_some());
 }
 

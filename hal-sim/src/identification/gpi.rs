@@ -240,7 +240,7 @@ mod tests {
             .collect();
         let r = [0.0, 15.0, 30.0, 45.0];
         let w = [0.3, 0.1, 0.05, 0.05];
-        let cols = operator_outputs(&u, &r, 60.0);
+        let cols = operator_outputs(&u, &r, 60.0, (0.0, 120.0));
         let truth_pi = pi_output(&cols, &w, 60.0, 1.0);
         let (lo, hi) = truth_pi
             .iter()

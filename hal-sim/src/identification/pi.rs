@@ -41,13 +41,22 @@ impl ThresholdSpread {
 }
 
 /// Outputs of the play operators over a record: `columns[i][k] = P_{r_i}[u](k)`, the
-/// operators relaxed at `u[0]`; volts, shifted by `centre` (the play operator commutes with
-/// shifts, and centred columns make the normal equations better conditioned).
-pub fn operator_outputs(u: &[f64], thresholds: &[f64], centre: f64) -> Vec<Vec<f64>> {
+/// operators at rest at `u[0]` on the ascending branch of the model's input range
+/// `range = (lo, hi)` (volts; the drive went to `hi`, down to `lo`, then up to `u[0]`: the
+/// library's `state_at_rest`); shifted by `centre` (the play operator commutes with shifts,
+/// and centred columns make the normal equations better conditioned).
+pub fn operator_outputs(
+    u: &[f64],
+    thresholds: &[f64],
+    centre: f64,
+    range: (f64, f64),
+) -> Vec<Vec<f64>> {
+    let (lo, hi) = (range.0 - centre, range.1 - centre);
+    let u0 = u.first().copied().unwrap_or(0.0) - centre;
     thresholds
         .iter()
         .map(|&r| {
-            let mut p = u.first().copied().unwrap_or(0.0) - centre;
+            let mut p = play(u0, r, (lo + r).min((hi - r).max(lo)));
             u.iter()
                 .map(|&v| {
                     p = play(v - centre, r, p);
@@ -125,9 +134,20 @@ mod tests {
     use super::*;
 
     #[test]
-    fn operator_outputs_start_relaxed_and_follow_the_play_rule() {
+    fn operator_outputs_start_on_the_ascending_branch_of_the_range() {
+        // At the bottom of the range (0 V, centred −1) the operator r = 1 sits r above the
+        // input (the drive came down to it); raised to 3 V (centred 2) it sits r below.
+        let cols = operator_outputs(&[0.0], &[0.0, 1.0], 1.0, (0.0, 4.0));
+        assert_eq!((cols[0][0], cols[1][0]), (-1.0, 0.0));
+        let cols = operator_outputs(&[3.0], &[0.0, 1.0], 1.0, (0.0, 4.0));
+        assert_eq!((cols[0][0], cols[1][0]), (2.0, 1.0));
+        // The virgin start (every operator at the input) would give 2.0 there.
+    }
+
+    #[test]
+    fn operator_outputs_follow_the_play_rule() {
         let u = [1.0, 3.0, 2.0, 0.0];
-        let cols = operator_outputs(&u, &[0.0, 1.0], 1.0);
+        let cols = operator_outputs(&u, &[0.0, 1.0], 1.0, (0.0, 2.0));
         assert_eq!(cols[0], vec![0.0, 2.0, 1.0, -1.0]);
         // r = 1: held at 0 until pushed to 3−1−1 = 1, held, then dragged to 0−1+1 = 0.
         assert_eq!(cols[1], vec![0.0, 1.0, 1.0, 0.0]);
@@ -140,7 +160,7 @@ mod tests {
             .collect();
         let r = [0.0, 20.0, 40.0, 60.0];
         let w_true = [0.05, 0.02, 0.0, 0.01];
-        let cols = operator_outputs(&u, &r, 0.0);
+        let cols = operator_outputs(&u, &r, 0.0, (-1.0, 1.0));
         let y: Vec<f64> = (0..u.len())
             .map(|k| 3.0 + (0..4).map(|i| w_true[i] * cols[i][k]).sum::<f64>())
             .collect();
