@@ -114,6 +114,14 @@ pub struct TelemetryTap {
 
 impl TelemetryTap {
     /// A tap that takes nothing.
+    ///
+    /// ```
+    /// use twinstack::telemetry::TelemetryTap;
+    /// let mut tap = TelemetryTap::new();
+    /// assert!(!tap.is_running());
+    /// assert_eq!(tap.start(0b1001, 5), Some(0)); // setpoint and sensor, every 5th tick
+    /// assert_eq!(tap.start(0, 5), None); // no signal: refused
+    /// ```
     pub const fn new() -> Self {
         Self {
             enabled: false,
@@ -255,6 +263,19 @@ pub struct TelemetryPacker {
 
 impl TelemetryPacker {
     /// A packer with nothing to send.
+    ///
+    /// ```
+    /// use twinstack::telemetry::{TelemetryPacker, TelemetryQueue};
+    /// let mut queue = TelemetryQueue::new();
+    /// let (_, mut samples) = queue.split();
+    /// let mut packer = TelemetryPacker::new();
+    /// assert!(!packer.is_active() && packer.next_frame(&mut samples).is_none());
+    /// packer.start(0b11, 5, 0, 50_000); // 2 signals at 10 kHz: 5 ms is 50 samples
+    /// assert_eq!(packer.target_samples(), 50);
+    /// packer.stop(0); // stopped before any sample: the end frame says 0 were taken
+    /// let end = packer.next_frame(&mut samples).unwrap();
+    /// assert!(end.end && end.first == 0 && end.lost == 0);
+    /// ```
     pub const fn new() -> Self {
         Self {
             running: false,

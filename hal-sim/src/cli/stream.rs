@@ -97,7 +97,7 @@ pub struct Args {
     /// Ticks per recorded frame.
     #[arg(long, default_value_t = 1, requires = "record")]
     pub record_decimation: u16,
-    /// Watch the streamed run with continuous telemetry: SIGNALS[:RATE], the signals
+    /// Watch the streamed run with continuous telemetry: `SIGNALS[:RATE]`, the signals
     /// comma-separated (setpoint, left, right, sensor, estimate, error), RATE samples per
     /// second of each (default 10000).
     #[arg(long, requires = "telemetry_out", value_name = "SIGNALS[:RATE]")]
