@@ -183,15 +183,33 @@ impl TelemetryTap {
             return;
         }
         self.countdown = self.reload;
+        // Straight-line, as the recorder's capture: a bit test and a store per channel (the
+        // library is built for size, so a loop over the channels would stay a loop).
         let mut values = [0i16; CHANNELS];
-        let mut n = 0usize;
-        for channel in Channel::ALL {
-            if self.mask & channel.bit() != 0 {
-                if let Some(v) = values.get_mut(n) {
-                    *v = channel.slot(setpoint, sensor, report);
-                }
-                n += 1;
+        let mut slots = values.iter_mut();
+        let mut put = |channel: Channel| {
+            if let Some(slot) = slots.next() {
+                *slot = channel.slot(setpoint, sensor, report);
             }
+        };
+        let mask = self.mask;
+        if mask & Channel::Setpoint.bit() != 0 {
+            put(Channel::Setpoint);
+        }
+        if mask & Channel::Left.bit() != 0 {
+            put(Channel::Left);
+        }
+        if mask & Channel::Right.bit() != 0 {
+            put(Channel::Right);
+        }
+        if mask & Channel::Sensor.bit() != 0 {
+            put(Channel::Sensor);
+        }
+        if mask & Channel::Estimate.bit() != 0 {
+            put(Channel::Estimate);
+        }
+        if mask & Channel::Error.bit() != 0 {
+            put(Channel::Error);
         }
         let sample = TelemetrySample {
             index: self.next,
