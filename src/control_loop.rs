@@ -27,7 +27,7 @@
 //! handler, on a spare controller the tick does not touch ([`ControlLoop::spare`]). Nothing on
 //! the tick path allocates, panics or loops.
 
-use heapless::spsc::{Consumer, Queue};
+use heapless::spsc::{Consumer, Producer, Queue};
 
 use core::ops::DerefMut;
 
@@ -40,6 +40,7 @@ use crate::recorder::{CaptureInfo, RecordError, Recorder, SampleStore, Trigger};
 use crate::recorder::{Signal, MAX_CAPTURE_CHUNK, MAX_CHUNK};
 use crate::setpoint_stream::UnderrunPolicy;
 use crate::setpoint_stream::{SetpointStream, Underrun};
+use crate::telemetry::{TelemetrySample, TelemetryTap};
 use crate::waveform::WaveformGenerator;
 
 /// Slots of the setpoint queue (`heapless` keeps one free: [`SETPOINT_CAPACITY`] setpoints
@@ -99,6 +100,8 @@ pub struct ControlLoop<B, C> {
     limit_hits: u32,
     estimate: i32,
     control_rate_hz: u32,
+    /// Continuous telemetry's tick side (off until started).
+    telemetry: TelemetryTap,
 }
 
 impl<B, C> ControlLoop<B, C>
@@ -124,6 +127,7 @@ where
             limit_hits: 0,
             estimate: 0,
             control_rate_hz,
+            telemetry: TelemetryTap::new(),
         }
     }
 
@@ -144,6 +148,35 @@ where
         self.recorder
             .capture(self.controller.setpoint(), report.measured, &report);
         report
+    }
+
+    /// Telemetry's part of a tick, right after [`ControlLoop::tick`] (same interrupt): on a
+    /// sample tick, the selected signals of that tick onto the telemetry queue (or counted as
+    /// an overflow). O(1); see [`TelemetryTap::push`].
+    #[inline(always)]
+    pub fn tap_telemetry<const N: usize>(
+        &mut self,
+        report: &TickReport,
+        queue: &mut Producer<'_, TelemetrySample, N>,
+    ) {
+        self.telemetry
+            .push(queue, self.controller.setpoint(), report.measured, report);
+    }
+
+    /// Starts telemetry of `mask` every `decimation` ticks (see [`TelemetryTap::start`]);
+    /// the index of its first sample, or `None` for a bad mask or decimation.
+    pub fn start_telemetry(&mut self, mask: u8, decimation: u16) -> Option<u32> {
+        self.telemetry.start(mask, decimation)
+    }
+
+    /// Stops telemetry; the index its next sample would have carried.
+    pub fn stop_telemetry(&mut self) -> u32 {
+        self.telemetry.stop()
+    }
+
+    /// Telemetry samples dropped on a full queue since power-up.
+    pub fn telemetry_overflows(&self) -> u32 {
+        self.telemetry.overflows()
     }
 
     /// The spare controller, for the handler to prepare a reload in (outside any lock): the

@@ -25,7 +25,8 @@
 //! * [`param_store`] — the CRC-protected settings record in flash.
 //! * `hardware` (firmware build only) — STM32F405 registers behind the [`board`] traits.
 //! * [`control_loop`] — the tick side of the board: setpoint queue and stream or waveform,
-//!   the control tick, the data recorder; [`recorder`] — the recorder itself.
+//!   the control tick, the data recorder; [`recorder`] — the recorder itself;
+//!   [`telemetry`] — continuous telemetry (the tick's tap, the queue, the frame packer).
 //! * [`protocol`] — the UART protocol: frames, messages, and the board's command handler.
 //! * [`converters`] — SPI drivers of the external DAC (DAC8562/3) and sensor ADC (ADS8689).
 //! * [`dual_stage`] — the dual-actuated stage: ball-screw coarse stage + piezo fine stage under
@@ -69,6 +70,7 @@ pub mod scaling;
 pub mod sensor;
 pub mod setpoint_stream;
 pub mod settings;
+pub mod telemetry;
 pub mod waveform;
 
 /// The `heapless` the protocol's messages are built from (`Vec` of setpoints, chunks), so

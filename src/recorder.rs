@@ -114,6 +114,22 @@ impl Channel {
         }
     }
 
+    /// The channel's value on a tick, in its slot format (the table in the module doc):
+    /// `setpoint` is the setpoint in force and `sensor` the measured displacement, both
+    /// Q2.30. The recorder's capture stores exactly these; telemetry
+    /// ([`crate::telemetry`]) sends them.
+    #[inline(always)]
+    pub fn slot(self, setpoint: i32, sensor: i32, report: &TickReport) -> i16 {
+        match self {
+            Channel::Setpoint => q1_15(setpoint),
+            Channel::Left => report.left.0 as i16,
+            Channel::Right => report.right.0 as i16,
+            Channel::Sensor => q1_15(sensor),
+            Channel::Estimate => q1_15(report.estimate),
+            Channel::Error => (setpoint.saturating_sub(sensor) >> 16) as i16,
+        }
+    }
+
     /// The channels of `mask`, in frame order.
     pub fn of_mask(mask: u8) -> impl Iterator<Item = Channel> {
         Channel::ALL

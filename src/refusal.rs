@@ -123,6 +123,11 @@ pub enum Field {
     Creep(CreepField),
     /// A capture's pre-trigger count.
     RecordPreTrigger,
+    /// Telemetry's signal list (protocol v5).
+    TelemetrySignals,
+    /// Telemetry's decimation (protocol v5): at least 1, and at least what keeps the values
+    /// per second within what the link carries.
+    TelemetryDecimation,
 }
 
 /// The rule a field broke, with its limit where it has one (in the field's own units).
@@ -277,6 +282,8 @@ impl core::fmt::Display for Field {
             Field::RecordOffset => "record offset",
             Field::RecordSignals => "record signals",
             Field::RecordPreTrigger => "record pre-trigger",
+            Field::TelemetrySignals => "telemetry signals",
+            Field::TelemetryDecimation => "telemetry decimation",
         };
         f.write_str(name)
     }

@@ -518,3 +518,87 @@ fn emulator_captures_a_streamed_run_with_several_signals() {
     );
     assert!(left[95] > left[0] + 500, "{left:?}");
 }
+
+/// Sends `request` and returns its response, with the telemetry frames that came before it.
+fn answer_amid_telemetry(emu: &mut Emulator, request: &Request) -> (Response, Vec<TelemetryFrame>) {
+    emu.uart
+        .write_all(&encoded(request))
+        .expect("write to USART1");
+    let mut frames = Vec::new();
+    loop {
+        match emu.response() {
+            Response::Telemetry(f) => frames.push(f),
+            other => return (other, frames),
+        }
+    }
+}
+
+#[test]
+fn emulator_sends_telemetry_between_its_responses() {
+    let mut emu = Emulator::boot("telemetry", None);
+    // Both stacks every 50 ticks; the emulator sends the frames through the polled TX, as the
+    // board sends them by DMA.
+    let start = Request::Telemetry(TelemetryRequest::Start {
+        signals: 0b110,
+        decimation: 50,
+    });
+    assert!(matches!(
+        answer_amid_telemetry(&mut emu, &start).0,
+        Response::Ack { .. }
+    ));
+    let mut frames = Vec::new();
+    // Requests keep their answers while telemetry flows, and a rate beyond the line is refused
+    // with the decimation it needs (the running telemetry goes on).
+    for _ in 0..10 {
+        let (r, f) = answer_amid_telemetry(&mut emu, &Request::Status);
+        frames.extend(f);
+        let Response::Status(s) = r else {
+            panic!("{r:?}")
+        };
+        assert!(s.has(StatusReport::TELEMETRY), "{s:?}");
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    let too_fast = Request::Telemetry(TelemetryRequest::Start {
+        signals: 0b11_1111,
+        decimation: 1,
+    });
+    let (r, f) = answer_amid_telemetry(&mut emu, &too_fast);
+    frames.extend(f);
+    assert_eq!(
+        r,
+        Response::Nack {
+            reason: NackReason::Refused(Refusal::new(
+                Field::TelemetryDecimation,
+                Rule::AtLeast(6.0)
+            ))
+        }
+    );
+    let (r, f) = answer_amid_telemetry(&mut emu, &Request::Telemetry(TelemetryRequest::Stop));
+    frames.extend(f);
+    assert!(matches!(r, Response::Ack { .. }), "{r:?}");
+    // After the stop: what was queued, then the end frame.
+    while !frames.last().is_some_and(|f| f.end) {
+        match emu.response() {
+            Response::Telemetry(f) => frames.push(f),
+            other => panic!("{other:?} after the stop's answer"),
+        }
+    }
+    assert!(frames.len() >= 3, "{} frames", frames.len());
+    let mut next = 0u32;
+    for (i, f) in frames.iter().enumerate() {
+        assert_eq!(
+            (f.seq as usize, f.first, f.lost, f.signals),
+            (i, next, 0, 0b110)
+        );
+        // Differential drive about the 70 V bias, 150 V / 4095: left + right ≈ 2 × 1911.
+        for pair in f.values.chunks(2) {
+            let sum = pair[0] as u16 as i32 + pair[1] as u16 as i32;
+            assert!((sum - 3822).abs() <= 2, "{pair:?}");
+        }
+        next += f.values.len() as u32 / 2;
+    }
+    let end = frames.last().unwrap();
+    assert!(end.end && end.values.is_empty() && end.first == next && next > 10);
+    let s = emu.status();
+    assert!(!s.has(StatusReport::TELEMETRY), "{s:?}");
+}

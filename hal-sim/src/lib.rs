@@ -49,5 +49,6 @@ pub mod setpoint_file;
 pub mod sim_board;
 pub mod sim_device;
 pub mod stage_model;
+pub mod telemetry;
 pub mod tracking;
 pub mod virtual_board;

@@ -45,6 +45,9 @@ enum Command {
     Stop(cli::stop::Args),
     /// Capture a signal with the board's recorder into a CSV.
     Record(cli::record::Args),
+    /// Continuous telemetry: stream signals off the board while it runs, into a CSV and a PNG
+    /// (exits 1 if any sample did not arrive).
+    Telemetry(cli::telemetry::Args),
     /// Generate the golden vectors (the tick's recorded runs the board must reproduce) and
     /// check them against the stored file and the f64 reference, or write them (--write).
     Golden(cli::golden::Args),
@@ -107,6 +110,7 @@ fn main() -> std::process::ExitCode {
         Command::Waveform(a) => cli::waveform::run(a),
         Command::Stop(a) => cli::stop::run(a),
         Command::Record(a) => cli::record::run(a),
+        Command::Telemetry(a) => cli::telemetry::run(a),
         Command::Golden(a) => cli::golden::run(a),
         Command::DualStage(a) => cli::dual_stage::run(a),
         Command::LabStage(a) => cli::lab_stage::run(a),

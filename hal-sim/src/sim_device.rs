@@ -13,6 +13,14 @@
 //! up to the buffer's size), or `Ok(0)` once `timeout` has passed. So a client's throughput,
 //! credits and underruns are those of a board on a UART at that baud rate.
 //!
+//! **Telemetry** runs as on the board: after each tick the control loop's tap puts the
+//! selected signals on the telemetry queue, and the sending side hands the command
+//! handler's packed frames to the board → host line whenever one of the board's two
+//! transmit buffers is free (a frame occupies a buffer until its last byte has left: one on
+//! the line, one waiting, as the firmware's double-buffered DMA). Responses go first, in the
+//! same line. [`SimDevice::line`] counts the bytes each way, so a test can check telemetry
+//! and a 50 k/s setpoint stream against the line's byte budget.
+//!
 //! ```
 //! use std::time::Duration;
 //! use hal_sim::link::Transport;
@@ -52,6 +60,7 @@ use twinstack::protocol::handler::CommandHandler;
 use twinstack::recorder::CAPTURE_SLOTS;
 use twinstack::refusal::Refusal;
 use twinstack::settings::{pi_model, FeedbackSettings, Mode, SensorSettings, Settings};
+use twinstack::telemetry::TelemetryQueue;
 use twinstack::Scaling;
 
 use crate::link::Transport;
@@ -154,6 +163,55 @@ pub fn hardware(rate_hz: f64) -> Hardware {
     Hardware::driver_board(rate_hz)
 }
 
+/// Bytes the modelled UART carried, each way.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct LineCounters {
+    /// Host → board bytes (sent to the board, arrived or not).
+    pub bytes_in: u64,
+    /// Board → host bytes put on the line (responses and telemetry).
+    pub bytes_out: u64,
+    /// Of them, telemetry frames' bytes.
+    pub telemetry_bytes_out: u64,
+    /// Telemetry frames put on the line.
+    pub telemetry_frames: u64,
+}
+
+/// The board → host line: bytes with their arrival times, and the board's two transmit
+/// buffers (a frame holds one until its last byte has left).
+struct TxLine {
+    bytes: VecDeque<(u64, u8)>,
+    free_ns: u64,
+    /// When each frame still holding a buffer has left.
+    frame_ends: VecDeque<u64>,
+    byte_ns: u64,
+    counters: LineCounters,
+}
+
+/// The board's transmit buffers (the firmware's DMA double buffer).
+const TX_BUFFERS: usize = 2;
+
+impl TxLine {
+    /// Puts `frame` on the line after what is there, not before `at`.
+    fn transmit(&mut self, frame: &[u8], at: u64) {
+        let start = self.free_ns.max(at);
+        for (i, &b) in frame.iter().enumerate() {
+            self.bytes
+                .push_back((start + (i as u64 + 1) * self.byte_ns, b));
+        }
+        self.free_ns = start + frame.len() as u64 * self.byte_ns;
+        self.frame_ends.push_back(self.free_ns);
+        self.counters.bytes_out += frame.len() as u64;
+    }
+
+    /// Whether a transmit buffer is free at `now`.
+    fn buffer_free(&mut self, now: u64) -> bool {
+        while self.frame_ends.front().is_some_and(|&end| end <= now) {
+            self.frame_ends.pop_front();
+        }
+        self.frame_ends.len() < TX_BUFFERS
+    }
+}
+
 /// The board in-process: [`SimBoard`] + the library's [`ControlLoop`] and
 /// [`CommandHandler`], on a modelled UART. See the module doc for the time model.
 pub struct SimDevice {
@@ -161,6 +219,7 @@ pub struct SimDevice {
     control: ControlLoop<Vec<i16>, Box<Controller>>,
     handler: CommandHandler<RamStorage>,
     queue: Box<SetpointQueue>,
+    telemetry: Box<TelemetryQueue>,
     /// Simulated time, ns.
     now_ns: u64,
     tick_ns: u64,
@@ -170,8 +229,7 @@ pub struct SimDevice {
     rx: VecDeque<(u64, u8)>,
     rx_line_free_ns: u64,
     /// Board → host bytes and their arrival times (ns).
-    tx: VecDeque<(u64, u8)>,
-    tx_line_free_ns: u64,
+    tx: TxLine,
     last_report: Option<TickReport>,
 }
 
@@ -217,14 +275,20 @@ impl SimDevice {
             control,
             handler,
             queue: Box::new(SetpointQueue::new()),
+            telemetry: Box::new(TelemetryQueue::new()),
             now_ns: 0,
             tick_ns: (board_dt_ns(rate_hz)).max(1),
             byte_ns: (10_000_000_000 / config.baud as u64).max(1),
             ticks: 0,
             rx: VecDeque::new(),
             rx_line_free_ns: 0,
-            tx: VecDeque::new(),
-            tx_line_free_ns: 0,
+            tx: TxLine {
+                bytes: VecDeque::new(),
+                free_ns: 0,
+                frame_ends: VecDeque::new(),
+                byte_ns: (10_000_000_000 / config.baud as u64).max(1),
+                counters: LineCounters::default(),
+            },
             last_report: None,
         })
     }
@@ -238,7 +302,8 @@ impl SimDevice {
         }
     }
 
-    /// One tick period: feed the bytes that have arrived to the handler, then tick.
+    /// One tick period: feed the bytes that have arrived to the handler, then tick, then
+    /// hand due telemetry frames to the line while a transmit buffer is free.
     fn step(&mut self) {
         self.now_ns += self.tick_ns;
         let (mut producer, _) = self.queue.split();
@@ -249,18 +314,30 @@ impl SimDevice {
             self.rx.pop_front();
             let mut control = Exclusive(&mut self.control);
             if let Some(frame) = self.handler.push_byte(byte, &mut producer, &mut control) {
-                let start = self.tx_line_free_ns.max(at);
-                for (i, &b) in frame.iter().enumerate() {
-                    self.tx
-                        .push_back((start + (i as u64 + 1) * self.byte_ns, b));
-                }
-                self.tx_line_free_ns = start + frame.len() as u64 * self.byte_ns;
+                self.tx.transmit(frame, at);
             }
         }
         let (_, mut consumer) = self.queue.split();
         let (mut dac, mut adc) = self.board.split();
-        self.last_report = Some(self.control.tick(&mut consumer, &mut adc, &mut dac));
+        let report = self.control.tick(&mut consumer, &mut adc, &mut dac);
+        let (mut samples_in, mut samples_out) = self.telemetry.split();
+        self.control.tap_telemetry(&report, &mut samples_in);
+        self.last_report = Some(report);
         self.ticks += 1;
+        // The sending side, after the tick (the firmware's command task, woken between ticks).
+        while self.handler.telemetry_due(&samples_out) && self.tx.buffer_free(self.now_ns) {
+            let Some(frame) = self.handler.pack_telemetry(&mut samples_out) else {
+                break;
+            };
+            self.tx.counters.telemetry_bytes_out += frame.len() as u64;
+            self.tx.counters.telemetry_frames += 1;
+            self.tx.transmit(frame, self.now_ns);
+        }
+    }
+
+    /// Bytes the modelled UART carried each way so far.
+    pub fn line(&self) -> LineCounters {
+        self.tx.counters
     }
 
     /// Simulated time since the device was built.
@@ -307,6 +384,7 @@ impl Transport for SimDevice {
     /// Queues `bytes` on the host → board line (returns at once; simulated time does not move).
     fn send(&mut self, bytes: &[u8]) -> io::Result<()> {
         let mut t = self.rx_line_free_ns.max(self.now_ns);
+        self.tx.counters.bytes_in += bytes.len() as u64;
         for &b in bytes {
             t += self.byte_ns;
             self.rx.push_back((t, b));
@@ -323,15 +401,19 @@ impl Transport for SimDevice {
         }
         let end = self.now_ns.saturating_add(timeout.as_nanos() as u64);
         loop {
-            let arrived = self.tx.front().is_some_and(|&(at, _)| at <= self.now_ns);
+            let arrived = self
+                .tx
+                .bytes
+                .front()
+                .is_some_and(|&(at, _)| at <= self.now_ns);
             if arrived {
                 let mut n = 0;
                 while n < buf.len() {
-                    match self.tx.front() {
+                    match self.tx.bytes.front() {
                         Some(&(at, b)) if at <= self.now_ns => {
                             buf[n] = b;
                             n += 1;
-                            self.tx.pop_front();
+                            self.tx.bytes.pop_front();
                         }
                         _ => break,
                     }
@@ -343,5 +425,10 @@ impl Transport for SimDevice {
             }
             self.step();
         }
+    }
+
+    /// Simulated time: the client's timeouts run on it.
+    fn clock(&self) -> Option<Duration> {
+        Some(self.now())
     }
 }

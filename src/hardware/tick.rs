@@ -1,13 +1,15 @@
 //! The control interrupt's body, shared by the firmware (`src/bin/twinstack-fw.rs`) and the
 //! whole-interrupt bench image (`qemu-images`, `irq-bench`), so that the bench measures the
 //! very code the board runs: acknowledge the timer, [`ControlLoop::tick`] on the board's
-//! converters, feed the watchdog, count an overrun.
+//! converters, telemetry's tap ([`ControlLoop::tap_telemetry`]), feed the watchdog, count an
+//! overrun.
 
-use heapless::spsc::Consumer;
+use heapless::spsc::{Consumer, Producer};
 
 use crate::control::Controller;
 use crate::control_loop::{ControlLoop, SETPOINT_QUEUE_LEN};
 use crate::recorder::{SplitStore, CAPTURE_SLOTS};
+use crate::telemetry::{TelemetrySample, TELEMETRY_QUEUE_LEN};
 
 use super::adc::SensorInput;
 use super::control_timer::ControlTimer;
@@ -40,6 +42,8 @@ pub struct ControlTick {
     pub watchdog: Watchdog,
     /// The setpoint queue's consumer end.
     pub setpoints: Consumer<'static, i16, SETPOINT_QUEUE_LEN>,
+    /// The telemetry queue's producer end (the tap's samples, for the command task's packer).
+    pub telemetry: Producer<'static, TelemetrySample, TELEMETRY_QUEUE_LEN>,
 }
 
 impl ControlTick {
@@ -47,9 +51,10 @@ impl ControlTick {
     #[inline(always)]
     pub fn run(&mut self) {
         self.timer.acknowledge();
-        let _report = self
+        let report = self
             .control
             .tick(&mut self.setpoints, &mut self.adc, &mut self.dac);
+        self.control.tap_telemetry(&report, &mut self.telemetry);
         self.watchdog.feed();
         if self.timer.next_tick_already_due() {
             self.control.count_overrun();

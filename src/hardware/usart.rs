@@ -8,9 +8,15 @@
 //! **Receive, emulator:** QEMU does not model DMA, so each byte raises RXNE and
 //! [`UsartRx::drain`] reads the data register.
 //!
-//! **Transmit:** [`UsartTx::write_all`] polls TXE from the lowest-priority task (the command
-//! handler), with a bounded wait per byte: 5 µs a byte at 2 Mbaud, so an `Ack` costs the task
-//! about 50 µs and the largest response (a recorder chunk) under 2 ms.
+//! **Transmit, board:** [`DmaTx`], USART1_TX on DMA2 stream 7 (channel 4), two frame buffers:
+//! one on the line, one waiting. The command handler's task hands it whole frames (responses
+//! first, telemetry in between: [`crate::telemetry::FrameLink`]); the stream's
+//! transfer-complete interrupt ([`DmaTx::on_complete`]) starts the waiting buffer at once, so
+//! the line does not idle between frames and no byte costs the CPU anything.
+//!
+//! **Transmit, emulator:** QEMU does not model DMA, so [`UsartTx`] sends the same frames
+//! through the same trait by polling TXE from the command task, with a bounded wait per byte
+//! (5 µs a byte at 2 Mbaud on a board).
 
 use stm32f4xx_hal::pac::{RCC, USART1};
 
@@ -34,7 +40,7 @@ fn regs() -> &'static stm32f4xx_hal::pac::usart1::RegisterBlock {
     unsafe { &*USART1::ptr() }
 }
 
-/// The transmit half.
+/// The transmit half, polled (the emulator's: QEMU models no DMA).
 pub struct UsartTx {
     _private: (),
 }
@@ -58,6 +64,20 @@ impl UsartTx {
             u.dr().write(|w| unsafe { w.bits(b as u16) });
         }
         Ok(())
+    }
+}
+
+impl crate::telemetry::FrameLink for UsartTx {
+    /// Always: the frame is written out before `send_frame` returns.
+    fn ready(&mut self) -> bool {
+        true
+    }
+
+    /// Writes the frame out, polling TXE; a transmitter that stops taking bytes (never on
+    /// working hardware) loses the rest of the frame, which the host sees as a bad frame.
+    fn send_frame(&mut self, frame: &[u8]) -> bool {
+        let _ = self.write_all(frame);
+        true
     }
 }
 
@@ -95,6 +115,151 @@ pub fn configure(
 
 #[cfg(not(feature = "emulator"))]
 pub use dma_rx::UsartRx;
+#[cfg(not(feature = "emulator"))]
+pub use dma_tx::DmaTx;
+
+#[cfg(not(feature = "emulator"))]
+mod dma_tx {
+    use core::cell::UnsafeCell;
+
+    use stm32f4xx_hal::pac::{DMA2, RCC};
+
+    use super::{regs, UsartTx};
+    use crate::protocol::handler::MAX_RESPONSE;
+
+    /// DMA2 stream carrying USART1_TX.
+    const STREAM: usize = 7;
+    /// Its channel selection.
+    const CHANNEL: u8 = 4;
+    /// Bytes of one frame buffer: the largest response frame.
+    const TX_BUFFER_LEN: usize = MAX_RESPONSE;
+
+    /// The two frame buffers, in SRAM (DMA2 cannot reach CCM RAM). The DMA reads the buffer on
+    /// the line; only [`DmaTx::send_frame`] writes, and only the other one.
+    struct TxBuffers(UnsafeCell<[[u8; TX_BUFFER_LEN]; 2]>);
+    // SAFETY: written only through `DmaTx` (one owner, behind the RTIC resource lock), into
+    // the buffer the DMA is not reading; the DMA only reads.
+    unsafe impl Sync for TxBuffers {}
+    static TX_BUFFERS: TxBuffers = TxBuffers(UnsafeCell::new([[0; TX_BUFFER_LEN]; 2]));
+
+    fn dma() -> &'static stm32f4xx_hal::pac::dma2::RegisterBlock {
+        // SAFETY: this module touches only stream 7's registers and its flags in HIFCR
+        // (bits 22–27); the receive side ([`super::UsartRx`]) owns stream 2 and LIFCR.
+        unsafe { &*DMA2::ptr() }
+    }
+
+    /// USART1 TX by DMA, double-buffered: one frame on the line, one waiting.
+    pub struct DmaTx {
+        /// The buffer on the line.
+        sending: Option<usize>,
+        /// A buffer filled and waiting for the line, with its length.
+        waiting: Option<(usize, usize)>,
+    }
+
+    impl DmaTx {
+        /// Takes over the transmit half (USART1's CR3.DMAT is set by `configure`); DMA2's
+        /// clock is enabled here too.
+        pub fn new(_tx: UsartTx, rcc: &RCC) -> Self {
+            rcc.ahb1enr().modify(|_, w| w.dma2en().set_bit());
+            dma().st(STREAM).cr().write(|w| w.en().clear_bit());
+            Self {
+                sending: None,
+                waiting: None,
+            }
+        }
+
+        /// The transfer-complete interrupt (`DMA2_STREAM7`): the buffer on the line is free;
+        /// the waiting one, if any, goes on the line at once.
+        pub fn on_complete(&mut self) {
+            clear_flags();
+            if dma().st(STREAM).cr().read().en().bit_is_set() {
+                return; // not done yet (a spurious call)
+            }
+            self.sending = None;
+            if let Some((buffer, len)) = self.waiting.take() {
+                self.start(buffer, len);
+            }
+        }
+
+        fn start(&mut self, buffer: usize, len: usize) {
+            let st = dma().st(STREAM);
+            clear_flags();
+            let base = TX_BUFFERS.0.get() as *const u8;
+            // SAFETY: `buffer` is 0 or 1: the offset stays inside the static.
+            let address = unsafe { base.add(buffer.min(1) * TX_BUFFER_LEN) } as u32;
+            st.par()
+                .write(|w| unsafe { w.bits(regs().dr().as_ptr() as u32) });
+            st.m0ar().write(|w| unsafe { w.bits(address) });
+            st.ndtr()
+                .write(|w| unsafe { w.bits(len.min(TX_BUFFER_LEN) as u32) });
+            // Memory → peripheral, bytes, memory increment, transfer-complete interrupt.
+            st.cr().write(|w| unsafe {
+                w.chsel()
+                    .bits(CHANNEL)
+                    .dir()
+                    .memory_to_peripheral()
+                    .minc()
+                    .set_bit()
+                    .tcie()
+                    .set_bit()
+                    .en()
+                    .set_bit()
+            });
+            self.sending = Some(buffer);
+        }
+    }
+
+    impl crate::telemetry::FrameLink for DmaTx {
+        /// A buffer is free: none is waiting for the line.
+        fn ready(&mut self) -> bool {
+            self.waiting.is_none()
+        }
+
+        /// Copies the frame into the free buffer and puts it on the line, or behind the one
+        /// there; `false` while both are taken.
+        fn send_frame(&mut self, frame: &[u8]) -> bool {
+            if self.waiting.is_some() {
+                return false;
+            }
+            let buffer = match self.sending {
+                None => 0,
+                Some(b) => 1 - b.min(1),
+            };
+            let len = frame.len().min(TX_BUFFER_LEN);
+            let base = TX_BUFFERS.0.get() as *mut u8;
+            // SAFETY: the buffer is not the one the DMA reads (`sending`), and `len` fits it.
+            unsafe {
+                core::ptr::copy_nonoverlapping(
+                    frame.as_ptr(),
+                    base.add(buffer * TX_BUFFER_LEN),
+                    len,
+                );
+            }
+            if self.sending.is_none() {
+                self.start(buffer, len);
+            } else {
+                self.waiting = Some((buffer, len));
+            }
+            true
+        }
+    }
+
+    /// Clears stream 7's flags (HIFCR bits 22–27).
+    fn clear_flags() {
+        dma().hifcr().write(|w| {
+            w.cfeif7()
+                .clear()
+                .cdmeif7()
+                .clear()
+                .cteif7()
+                .clear()
+                .chtif7()
+                .clear()
+                .ctcif7()
+                .clear()
+        });
+    }
+}
 
 #[cfg(not(feature = "emulator"))]
 mod dma_rx {
@@ -148,7 +313,8 @@ mod dma_rx {
                     .en()
                     .set_bit()
             });
-            usart.cr3().write(|w| w.dmar().set_bit());
+            // DMA for receive (stream 2) and transmit (stream 7, [`super::DmaTx`]).
+            usart.cr3().write(|w| w.dmar().set_bit().dmat().set_bit());
             usart.cr1().write(|w| {
                 w.ue()
                     .set_bit()

@@ -31,14 +31,16 @@ use crate::recorder::{RecordError, SampleStore};
 use crate::refusal::{Field, Refusal, Rule};
 use crate::setpoint_stream::setpoint_from_wire;
 use crate::settings::{Mode, Settings};
+use crate::telemetry::{self, TelemetryPacker, TelemetrySample};
 use crate::waveform::{Shape, WaveformError, WaveformGenerator};
 
 use super::decoder::FrameDecoder;
 use super::frame::{self, FrameError, MAX_ENCODED};
 use super::messages::{
     CaptureRequest, CaptureStatus, Image, NackReason, RecordRequest, Request, Response,
-    SetpointBatch, StatusReport, StreamControl, WaveShape, Waveform,
+    SetpointBatch, StatusReport, StreamControl, TelemetryRequest, WaveShape, Waveform,
 };
+use heapless::spsc::Consumer;
 
 /// Largest response frame, delimiter included.
 pub const MAX_RESPONSE: usize = MAX_ENCODED + 1;
@@ -57,6 +59,8 @@ pub struct CommandHandler<S> {
     crc_errors: u32,
     frame_errors: u32,
     tx: [u8; MAX_RESPONSE],
+    /// Continuous telemetry's packer (the tick's tap is in the control loop).
+    telemetry: TelemetryPacker,
 }
 
 impl<S: RecordStorage> CommandHandler<S> {
@@ -73,6 +77,7 @@ impl<S: RecordStorage> CommandHandler<S> {
             crc_errors: 0,
             frame_errors: 0,
             tx: [0; MAX_RESPONSE],
+            telemetry: TelemetryPacker::new(),
         }
     }
 
@@ -176,6 +181,7 @@ impl<S: RecordStorage> CommandHandler<S> {
                     )),
                 };
             }
+            Request::Telemetry(t) => self.telemetry(t, control),
         };
         match done {
             Ok(()) => Response::Ack {
@@ -207,6 +213,7 @@ impl<S: RecordStorage> CommandHandler<S> {
             (t.streaming, StatusReport::STREAMING),
             (t.waveform, StatusReport::WAVEFORM),
             (t.recording, StatusReport::RECORDING),
+            (self.telemetry.is_active(), StatusReport::TELEMETRY),
         ] {
             if on {
                 flags |= flag;
@@ -395,6 +402,57 @@ impl<S: RecordStorage> CommandHandler<S> {
             dac_full_scale: self.hardware.dac_full_scale,
             amplifier_full_scale: self.hardware.amplifier_full_scale as f32,
         }
+    }
+
+    /// Starts or stops telemetry: validated against the control rate (refusals name the
+    /// field and its limit), then the tick's tap and the packer start (or stop) together.
+    #[inline(never)] // rare: one copy, not one per caller
+    fn telemetry<B, C, L>(&mut self, t: TelemetryRequest, control: &mut L) -> Result<(), NackReason>
+    where
+        B: SampleStore,
+        C: DerefMut<Target = Controller>,
+        L: Mutex<T = ControlLoop<B, C>>,
+    {
+        let rate = self.hardware.control_rate_hz as u32;
+        match t {
+            TelemetryRequest::Start {
+                signals,
+                decimation,
+            } => {
+                telemetry::check_request(signals, decimation, rate).map_err(NackReason::Refused)?;
+                let first = control
+                    .lock(|c| c.start_telemetry(signals, decimation))
+                    .ok_or(refused(Field::TelemetrySignals, Rule::AtMost(63.0)))?;
+                self.telemetry.start(signals, decimation, first, rate);
+            }
+            TelemetryRequest::Stop => {
+                let end = control.lock(|c| c.stop_telemetry());
+                self.telemetry.stop(end);
+            }
+        }
+        Ok(())
+    }
+
+    /// Whether a telemetry frame is due (see [`TelemetryPacker::due`]): the board's sending
+    /// side asks after the responses, whenever a frame would fit on the line.
+    pub fn telemetry_due<const N: usize>(&self, queue: &Consumer<'_, TelemetrySample, N>) -> bool {
+        self.telemetry.due(queue)
+    }
+
+    /// The next telemetry frame (delimiter included), packed from `queue`, or `None` when
+    /// there is nothing to send (see [`TelemetryPacker::pack`]). Uses the response buffer:
+    /// send the frame before the next byte is pushed.
+    pub fn pack_telemetry<const N: usize>(
+        &mut self,
+        queue: &mut Consumer<'_, TelemetrySample, N>,
+    ) -> Option<&[u8]> {
+        let n = self.telemetry.pack(queue, &mut self.tx)?;
+        self.tx.get(..n)
+    }
+
+    /// Continuous telemetry's packer (its state: running, samples lost).
+    pub fn telemetry_packer(&self) -> &TelemetryPacker {
+        &self.telemetry
     }
 
     /// The settings in force (or waiting for the next tick).

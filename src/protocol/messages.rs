@@ -14,11 +14,11 @@ use serde::{Deserialize, Serialize};
 use super::frame::{FrameError, Message};
 
 impl Message for Request {
-    const VARIANTS: u32 = 14;
+    const VARIANTS: u32 = 15;
 }
 
 impl Message for Response {
-    const VARIANTS: u32 = 7;
+    const VARIANTS: u32 = 8;
 }
 
 /// Most setpoints one batch carries.
@@ -69,6 +69,52 @@ pub enum Request {
         /// Most slots wanted; the board sends at most [`MAX_CAPTURE_CHUNK`].
         count: u16,
     },
+    /// Start or stop continuous telemetry (protocol v5): the board then sends
+    /// [`Response::Telemetry`] frames, unsolicited, between its responses.
+    Telemetry(TelemetryRequest),
+}
+
+/// Start or stop continuous telemetry.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub enum TelemetryRequest {
+    /// Stream the signals of `signals` (a [`crate::recorder::Channel`] mask, as a capture's),
+    /// one sample every `decimation` ticks, until stopped; a running telemetry is restarted.
+    Start {
+        /// Signal mask: bit 0 setpoint, 1 left stack, 2 right stack, 3 sensor, 4 estimate,
+        /// 5 error.
+        signals: u8,
+        /// Ticks per sample, ≥ 1 (and at least what keeps `signals × rate` within
+        /// [`crate::telemetry::MAX_VALUES_PER_SECOND`]).
+        decimation: u16,
+    },
+    /// Stop: the samples queued are still sent, then a frame with `end` set.
+    Stop,
+}
+
+/// Most values (samples × signals) one telemetry frame carries: at most 3 bytes each on the
+/// wire, about 2 ms of the line at 2 Mbaud.
+pub const MAX_TELEMETRY_VALUES: usize = 120;
+
+/// One unsolicited telemetry frame (the board → host, between responses): consecutive
+/// samples from `first`, each its signals in [`crate::recorder::Channel`] order and format
+/// (as a capture's slots). Samples lost to a full queue on the board are never silent: the
+/// next frame's `first` skips them and `lost` counts them.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct TelemetryFrame {
+    /// Frame number since the start (wrapping): a gap means a frame was lost on the line.
+    pub seq: u16,
+    /// Index of the first sample, counted from 0 at the start (sample `i` is the tick
+    /// `i × decimation` after the first sample's).
+    pub first: u32,
+    /// The signal mask of the samples.
+    pub signals: u8,
+    /// Samples lost on the board (queue full) since the start, up to `first`.
+    pub lost: u32,
+    /// The last frame of the telemetry (it was stopped): `first` is then the number of
+    /// samples the session produced, and `values` is empty.
+    pub end: bool,
+    /// The samples' values, frame-interleaved (one per signal per sample).
+    pub values: heapless::Vec<i16, MAX_TELEMETRY_VALUES>,
 }
 
 /// Arm a multi-signal capture: `samples` frames of the signals in `signals`, `pre_trigger` of
@@ -217,6 +263,9 @@ pub enum Response {
         /// Slots, each in its signal's format (see [`crate::recorder`]).
         values: heapless::Vec<i16, MAX_CAPTURE_CHUNK>,
     },
+    /// Unsolicited (protocol v5): telemetry samples, sent between responses while telemetry
+    /// runs. It answers no request: a host matching responses to requests sets it aside.
+    Telemetry(TelemetryFrame),
 }
 
 /// Why a request was refused. Wire-stable: variants are only appended.
@@ -286,6 +335,8 @@ impl StatusReport {
     pub const WAVEFORM: u16 = 1 << 2;
     /// Flag: the recorder is capturing (a v3 record or a v4 capture, armed or triggered).
     pub const RECORDING: u16 = 1 << 3;
+    /// Flag (protocol v5): telemetry is running (or sending its last frames).
+    pub const TELEMETRY: u16 = 1 << 5;
     // Bit 4 is reserved (protocol v2's "load waiting for the next tick": since v3 a load is
     // in force when it is acknowledged).
     /// Flags bits 8–9: the mode (0 bypass, 1 open loop, 2 closed loop).

@@ -23,6 +23,7 @@ fn flag_names(s: &StatusReport) -> Vec<&'static str> {
         (StatusReport::STREAMING, "streaming"),
         (StatusReport::WAVEFORM, "waveform"),
         (StatusReport::RECORDING, "recording"),
+        (StatusReport::TELEMETRY, "telemetry"),
     ]
     .into_iter()
     .filter(|&(bit, _)| s.has(bit))

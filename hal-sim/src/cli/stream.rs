@@ -10,6 +10,12 @@
 //! does (CSV and PNG). By default the capture spans the whole run (setpoints × divider
 //! ticks, less if the board's buffer holds fewer).
 //!
+//! `--telemetry sensor,setpoint:10000 --telemetry-out t.csv` watches the streamed run live over
+//! the same connection: telemetry of the listed signals at that rate (samples per second,
+//! default 10 000) starts before the first setpoint is sent and stops once the stream has
+//! played; its samples are written as `hal-sim telemetry` writes them (CSV and PNG, physical
+//! units), and a sample that did not arrive is an error ([`super::telemetry::finish`]).
+//!
 //! Exit codes: [`EXIT_CODES`] (0 played without underrun, 1 error, 2 usage, 3 completed with
 //! underruns: [`Underran`]).
 
@@ -91,6 +97,14 @@ pub struct Args {
     /// Ticks per recorded frame.
     #[arg(long, default_value_t = 1, requires = "record")]
     pub record_decimation: u16,
+    /// Watch the streamed run with continuous telemetry: `SIGNALS[:RATE]`, the signals
+    /// comma-separated (setpoint, left, right, sensor, estimate, error), RATE samples per
+    /// second of each (default 10000).
+    #[arg(long, requires = "telemetry_out", value_name = "SIGNALS[:RATE]")]
+    pub telemetry: Option<String>,
+    /// CSV of the telemetry (physical units); a PNG is written next to it.
+    #[arg(long, requires = "telemetry")]
+    pub telemetry_out: Option<PathBuf>,
 }
 
 /// `--underrun` values.
@@ -174,6 +188,17 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         }
         _ => None,
     };
+    // Telemetry watches the run from before its first setpoint.
+    let telemetry = match (&args.telemetry, &args.telemetry_out) {
+        (Some(spec), Some(out)) => {
+            let (signals, rate) = super::telemetry::parse_spec(spec)?;
+            Some((
+                super::telemetry::start(&mut client, &signals, rate)?,
+                out.clone(),
+            ))
+        }
+        _ => None,
+    };
     let bar = super::progress::bar(sp.samples.len() as u64, "streaming", "setpoints");
     let r = stream_setpoints(&mut client, &sp.samples, &options, |n| {
         bar.set_position(n as u64)
@@ -239,6 +264,13 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         println!(
             "{}",
             super::record::finish_capture(&mut client, wait, &out, &png)?
+        );
+    }
+    if let Some((session, out)) = telemetry {
+        let png = out.with_extension("png");
+        println!(
+            "{}",
+            super::telemetry::finish(&mut client, session, &out, &png)?
         );
     }
     if r.underran() {

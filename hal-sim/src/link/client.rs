@@ -6,15 +6,24 @@
 //! Every request is answered by exactly one response, in order, so a caller may keep several
 //! requests in flight ([`Client::send`] then [`Client::receive`]); [`Client::request`] is the
 //! one-at-a-time form.
+//!
+//! **Telemetry** (protocol v5): while it runs, the board sends unsolicited
+//! [`Response::Telemetry`] frames between its responses. [`Client::receive`] sets them aside
+//! (they answer no request) and returns the next response, so every request works as before
+//! while telemetry flows; [`Client::take_telemetry`] hands the frames set aside over, in the
+//! order they came, and [`Client::collect_telemetry`] receives for a while with no request
+//! outstanding.
 
 use super::Transport;
+use std::collections::VecDeque;
 use std::io;
 use std::time::{Duration, Instant};
 use twinstack::protocol::decoder::FrameDecoder;
 use twinstack::protocol::frame::{self, FrameError, MAX_ENCODED};
 use twinstack::protocol::messages::{
     CaptureRequest, CaptureStatus, Mode, NackReason, RecordRequest, Request, Response,
-    StatusReport, StreamControl, Waveform, MAX_CAPTURE_CHUNK, MAX_CHUNK,
+    StatusReport, StreamControl, TelemetryFrame, TelemetryRequest, Waveform, MAX_CAPTURE_CHUNK,
+    MAX_CHUNK,
 };
 use twinstack::settings::Settings;
 
@@ -83,6 +92,7 @@ pub fn request_name(request: &Request) -> &'static str {
         Request::Capture(_) => "Capture",
         Request::CaptureStatus => "CaptureStatus",
         Request::ReadCapture { .. } => "ReadCapture",
+        Request::Telemetry(_) => "Telemetry",
     }
 }
 
@@ -132,6 +142,8 @@ pub struct LinkCounters {
     pub frames_received: u64,
     /// Corrupt frames received and skipped.
     pub corrupt_frames: u64,
+    /// Telemetry frames received (set aside for [`Client::take_telemetry`]).
+    pub telemetry_frames: u64,
 }
 
 /// The protocol engine over a transport.
@@ -143,6 +155,10 @@ pub struct Client<T> {
     rx_len: usize,
     timeout: Duration,
     counters: LinkCounters,
+    /// Telemetry frames received and not yet taken.
+    telemetry: VecDeque<TelemetryFrame>,
+    /// Wall-clock origin for transports without a clock of their own.
+    born: Instant,
 }
 
 impl<T: Transport> Client<T> {
@@ -156,6 +172,8 @@ impl<T: Transport> Client<T> {
             rx_len: 0,
             timeout: DEFAULT_TIMEOUT,
             counters: LinkCounters::default(),
+            telemetry: VecDeque::new(),
+            born: Instant::now(),
         }
     }
 
@@ -186,11 +204,16 @@ impl<T: Transport> Client<T> {
 
     /// Sends a lone delimiter (the board's decoder drops whatever partial frame it holds),
     /// then discards whatever arrives within `quiet`: a clean start after noise or after
-    /// another program used the port.
+    /// another program used the port. A line that never falls quiet (telemetry left
+    /// running) is discarded for at most 20 × `quiet` (at least 200 ms).
     pub fn resync(&mut self, quiet: Duration) -> Result<(), LinkError> {
         self.send_raw(&[0])?;
         let mut sink = [0u8; 256];
-        while self.transport.receive(&mut sink, quiet)? > 0 {}
+        let start = self.now();
+        let limit = (quiet * 20).max(Duration::from_millis(200));
+        while self.transport.receive(&mut sink, quiet)? > 0
+            && self.now().saturating_sub(start) < limit
+        {}
         self.decoder = FrameDecoder::new();
         self.rx_pos = 0;
         self.rx_len = 0;
@@ -216,11 +239,54 @@ impl<T: Transport> Client<T> {
         Ok(())
     }
 
+    /// Time on the transport's clock (simulated time for the in-process board), else
+    /// wall-clock time since the client was made.
+    fn now(&self) -> Duration {
+        self.transport
+            .clock()
+            .unwrap_or_else(|| self.born.elapsed())
+    }
+
+    /// Telemetry frames received so far (set aside by [`Client::receive`]), oldest first;
+    /// they are handed over once.
+    pub fn take_telemetry(&mut self) -> Vec<TelemetryFrame> {
+        self.telemetry.drain(..).collect()
+    }
+
+    /// Receives for `duration` with no request outstanding, setting telemetry frames aside
+    /// (as [`Client::wait`]); returns those received so far, oldest first.
+    pub fn collect_telemetry(
+        &mut self,
+        duration: Duration,
+    ) -> Result<Vec<TelemetryFrame>, LinkError> {
+        self.wait(duration)?;
+        Ok(self.take_telemetry())
+    }
+
+    /// Starts telemetry of `signals` (a [`twinstack::recorder::Channel`] mask), one sample
+    /// every `decimation` ticks; frames set aside before are dropped (they belong to an
+    /// earlier session).
+    pub fn start_telemetry(&mut self, signals: u8, decimation: u16) -> Result<(), LinkError> {
+        self.expect_ack(&Request::Telemetry(TelemetryRequest::Start {
+            signals,
+            decimation,
+        }))?;
+        self.telemetry.clear();
+        Ok(())
+    }
+
+    /// Stops telemetry; the board still sends what it holds, then the end frame.
+    pub fn stop_telemetry(&mut self) -> Result<(), LinkError> {
+        self.expect_ack(&Request::Telemetry(TelemetryRequest::Stop))
+            .map(drop)
+    }
+
     /// The next response, waiting at most `timeout` for it; `Ok(None)` when none came.
     /// Corrupt frames are skipped (and counted); the decoder resynchronises at the next
-    /// delimiter.
+    /// delimiter. Telemetry frames are set aside ([`Client::take_telemetry`]): they answer
+    /// no request.
     pub fn receive(&mut self, timeout: Duration) -> Result<Option<Response>, LinkError> {
-        let start = Instant::now();
+        let start = self.now();
         loop {
             while self.rx_pos < self.rx_len {
                 let byte = self.rx[self.rx_pos];
@@ -228,6 +294,10 @@ impl<T: Transport> Client<T> {
                 match self.decoder.push(byte) {
                     None => {}
                     Some(Ok(body)) => match frame::decode_body::<Response>(body) {
+                        Ok(Response::Telemetry(f)) => {
+                            self.counters.telemetry_frames += 1;
+                            self.telemetry.push_back(f);
+                        }
                         Ok(r) => {
                             self.counters.frames_received += 1;
                             return Ok(Some(r));
@@ -239,7 +309,7 @@ impl<T: Transport> Client<T> {
             }
             // Wall-clock time left; an in-process board advances its own clock inside
             // `receive` and reports the timeout by returning 0.
-            let left = timeout.saturating_sub(start.elapsed());
+            let left = timeout.saturating_sub(self.now().saturating_sub(start));
             if left.is_zero() {
                 return Ok(None);
             }

@@ -399,6 +399,7 @@ fn run<T: Transport>(
         bytes_received: after.bytes_received - link_before.bytes_received,
         frames_received: after.frames_received - link_before.frames_received,
         corrupt_frames: after.corrupt_frames - link_before.corrupt_frames,
+        telemetry_frames: after.telemetry_frames - link_before.telemetry_frames,
     };
     Ok(report)
 }

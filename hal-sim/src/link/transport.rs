@@ -13,6 +13,13 @@ pub trait Transport {
     /// first byte. Returns the number of bytes read; `Ok(0)` means the timeout passed with
     /// nothing received (not end of stream).
     fn receive(&mut self, buf: &mut [u8], timeout: Duration) -> io::Result<usize>;
+
+    /// The transport's own clock, if it simulates time (the in-process board: simulated time
+    /// since it was built); `None` for a real link, whose waits are wall-clock time. A client
+    /// that keeps receiving (telemetry frames between responses) measures its timeouts on it.
+    fn clock(&self) -> Option<Duration> {
+        None
+    }
 }
 
 impl<T: Transport + ?Sized> Transport for Box<T> {
@@ -22,5 +29,9 @@ impl<T: Transport + ?Sized> Transport for Box<T> {
 
     fn receive(&mut self, buf: &mut [u8], timeout: Duration) -> io::Result<usize> {
         (**self).receive(buf, timeout)
+    }
+
+    fn clock(&self) -> Option<Duration> {
+        (**self).clock()
     }
 }

@@ -40,7 +40,11 @@ mod app {
     use twinstack::hardware::param_flash;
     use twinstack::hardware::safe_state;
     use twinstack::hardware::tick::{ControlTick, LoopLock};
-    use twinstack::hardware::usart::{self, UsartRx, UsartTx};
+    #[cfg(not(feature = "emulator"))]
+    use twinstack::hardware::usart::DmaTx;
+    #[cfg(feature = "emulator")]
+    use twinstack::hardware::usart::UsartTx;
+    use twinstack::hardware::usart::{self, UsartRx};
     use twinstack::hardware::watchdog::Watchdog;
     #[cfg(feature = "emulator")]
     use twinstack::param_store::ReadOnlyStorage;
@@ -50,6 +54,10 @@ mod app {
     use twinstack::hardware::ccm;
     use twinstack::hardware::tick::HALF_SLOTS;
     use twinstack::recorder::SplitStore;
+    use twinstack::telemetry::{
+        FrameLink, TelemetryQueue, TelemetrySample, TELEMETRY_QUEUE_LEN,
+    };
+    use core::sync::atomic::{AtomicBool, Ordering};
 
     /// Received bytes waiting for the command handler: 5 ms at 2 Mbaud, more than the longest
     /// response the handler sends (blocking) while bytes keep arriving.
@@ -61,6 +69,21 @@ mod app {
     type Storage = param_flash::FlashStorage;
     #[cfg(feature = "emulator")]
     type Storage = ReadOnlyStorage<'static>;
+
+    /// Where outgoing frames go: USART1 TX by DMA, double-buffered, on the board; polled TX
+    /// in the emulator (QEMU models no DMA). Responses and telemetry alike.
+    #[cfg(not(feature = "emulator"))]
+    type Uplink = DmaTx;
+    #[cfg(feature = "emulator")]
+    type Uplink = UsartTx;
+
+    /// Attempts to hand a frame to the uplink before giving up (each one a short lock; a
+    /// buffer frees within one frame's time, under 8 ms at 2 Mbaud).
+    const SEND_ATTEMPTS: u32 = 1_000_000;
+
+    /// Telemetry runs (or has frames still to send): the idle loop then wakes the command
+    /// task after every interrupt, so the packer keeps up without a timer.
+    static TELEMETRY_ACTIVE: AtomicBool = AtomicBool::new(false);
 
     /// The receive side of USART1 and the handler's byte queue.
     pub struct Receiver {
@@ -120,6 +143,9 @@ mod app {
         tick: ControlTick,
         /// Shared by the USART1 and DMA2 stream 2 interrupts (same priority).
         receiver: Receiver,
+        /// Shared by the command task (frames in) and, on the board, the DMA2 stream 7
+        /// interrupt (the next buffer on the line).
+        uplink: Uplink,
     }
 
     #[local]
@@ -127,13 +153,14 @@ mod app {
         handler: CommandHandler<Storage>,
         bytes_in: Consumer<'static, u8, RX_QUEUE>,
         setpoints_in: Producer<'static, i16, SETPOINT_QUEUE_LEN>,
-        tx: UsartTx,
+        telemetry_out: Consumer<'static, TelemetrySample, TELEMETRY_QUEUE_LEN>,
         coarse: CoarseStage,
     }
 
     #[init(local = [
         setpoint_queue: SetpointQueue = Queue::new(),
         rx_queue: Queue<u8, RX_QUEUE> = Queue::new(),
+        telemetry_queue: TelemetryQueue = Queue::new(),
         record_buffer: [i16; HALF_SLOTS] = [0; HALF_SLOTS],
     ])]
     fn init(cx: init::Context) -> (Shared, Local) {
@@ -212,6 +239,10 @@ mod app {
             &bus,
         );
         let watchdog = Watchdog::start(dp.IWDG, &dp.DBGMCU);
+        #[cfg(not(feature = "emulator"))]
+        let uplink = DmaTx::new(tx, &rcc);
+        #[cfg(feature = "emulator")]
+        let uplink = tx;
 
         // The coarse stage (feature `dual-stage`): settings refused for this tick rate leave it
         // idle, not the board.
@@ -256,6 +287,7 @@ mod app {
 
         let (setpoints_in, setpoints) = cx.local.setpoint_queue.split();
         let (bytes, bytes_in) = cx.local.rx_queue.split();
+        let (telemetry, telemetry_out) = cx.local.telemetry_queue.split();
         defmt::info!(
             "{=str} up: sysclk {=u32} Hz, tick {=u32} Hz",
             super::IMAGE_NAME,
@@ -271,24 +303,30 @@ mod app {
                     timer,
                     watchdog,
                     setpoints,
+                    telemetry,
                 },
                 receiver: Receiver { rx, bytes },
+                uplink,
             },
             Local {
                 handler,
                 bytes_in,
                 setpoints_in,
-                tx,
+                telemetry_out,
                 coarse,
             },
         )
     }
 
-    /// Sleeps between interrupts.
+    /// Sleeps between interrupts; while telemetry runs, wakes the command task after each
+    /// one (the packer sends a frame when enough samples are queued).
     #[idle]
     fn idle(_: idle::Context) -> ! {
         loop {
             cortex_m::asm::wfi();
+            if TELEMETRY_ACTIVE.load(Ordering::Relaxed) {
+                rtic::pend(Interrupt::EXTI0);
+            }
         }
     }
 
@@ -325,20 +363,51 @@ mod app {
         cx.shared.receiver.lock(|r| r.drain());
     }
 
-    /// The command handler: queued bytes → frames → one response frame per request.
-    #[task(binds = EXTI0, priority = 1, shared = [tick], local = [handler, bytes_in, setpoints_in, tx])]
+    /// DMA2 stream 7 (USART1 TX): a frame has left; the waiting one goes on the line, and the
+    /// command task may fill the free buffer.
+    #[cfg(not(feature = "emulator"))]
+    #[task(binds = DMA2_STREAM7, priority = 2, shared = [uplink])]
+    fn dma_tx(mut cx: dma_tx::Context) {
+        cx.shared.uplink.lock(|u| u.on_complete());
+        rtic::pend(Interrupt::EXTI0);
+    }
+
+    /// The command handler: queued bytes → frames → one response frame per request; then,
+    /// while a transmit buffer is free, the telemetry frames that are due.
+    #[task(binds = EXTI0, priority = 1, shared = [tick, uplink], local = [handler, bytes_in, setpoints_in, telemetry_out])]
     fn command(cx: command::Context) {
         let mut control = LoopLock(cx.shared.tick);
+        let mut uplink = cx.shared.uplink;
         let local = cx.local;
         while let Some(b) = local.bytes_in.dequeue() {
             let Some(frame) = local.handler.push_byte(b, local.setpoints_in, &mut control) else {
                 continue;
             };
-            if local.tx.write_all(frame).is_err() {
-                defmt::warn!("USART1 transmit timed out");
-            }
+            send(&mut uplink, frame);
             let (left, right) = rtic::Mutex::lock(&mut control, |c| c.safe_codes());
             safe_state::arm(left, right);
         }
+        // Telemetry fills the line between responses; at most one frame waits for it.
+        while local.handler.telemetry_due(local.telemetry_out) && uplink.lock(|u| u.ready()) {
+            let Some(frame) = local.handler.pack_telemetry(local.telemetry_out) else {
+                break;
+            };
+            send(&mut uplink, frame);
+        }
+        TELEMETRY_ACTIVE.store(
+            local.handler.telemetry_packer().is_active(),
+            Ordering::Relaxed,
+        );
+    }
+
+    /// Hands `frame` to the uplink, waiting (outside the lock, so the transfer-complete
+    /// interrupt runs) while both buffers are taken; bounded.
+    fn send(uplink: &mut impl rtic::Mutex<T = Uplink>, frame: &[u8]) {
+        for _ in 0..SEND_ATTEMPTS {
+            if uplink.lock(|u| u.send_frame(frame)) {
+                return;
+            }
+        }
+        defmt::warn!("USART1 transmit timed out");
     }
 }

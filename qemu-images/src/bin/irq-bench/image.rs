@@ -213,11 +213,15 @@ mod app {
     use twinstack::hardware::watchdog::Watchdog;
     use twinstack::param_store::ReadOnlyStorage;
     use twinstack::protocol::handler::CommandHandler;
+    use twinstack::protocol::handler::MAX_RESPONSE;
     use twinstack::protocol::messages::{
         CaptureRequest, Request, Response, SetpointBatch, StreamControl, Trigger, MAX_BATCH,
     };
     use twinstack::recorder::{SplitStore, CHANNELS};
     use twinstack::settings::{Mode, Settings};
+    use twinstack::telemetry::{
+        TelemetryPacker, TelemetryQueue, TelemetrySample, TELEMETRY_QUEUE_LEN,
+    };
 
     use cortex_m_semihosting::{debug, hprintln};
 
@@ -235,10 +239,12 @@ mod app {
     struct Local {
         handler: CommandHandler<ReadOnlyStorage<'static>>,
         setpoints_in: Producer<'static, i16, SETPOINT_QUEUE_LEN>,
+        telemetry_out: heapless::spsc::Consumer<'static, TelemetrySample, TELEMETRY_QUEUE_LEN>,
     }
 
     #[init(local = [
         setpoint_queue: SetpointQueue = Queue::new(),
+        telemetry_queue: TelemetryQueue = Queue::new(),
         record_buffer: [i16; HALF_SLOTS] = [0; HALF_SLOTS],
     ])]
     fn init(cx: init::Context) -> (Shared, Local) {
@@ -270,6 +276,7 @@ mod app {
         let watchdog = Watchdog::start(dp.IWDG, &dp.DBGMCU);
         let handler = CommandHandler::new(hardware, settings, true, ReadOnlyStorage(&[]));
         let (setpoints_in, setpoints) = cx.local.setpoint_queue.split();
+        let (telemetry, telemetry_out) = cx.local.telemetry_queue.split();
         (
             Shared {
                 tick: ControlTick {
@@ -279,11 +286,13 @@ mod app {
                     timer,
                     watchdog,
                     setpoints,
+                    telemetry,
                 },
             },
             Local {
                 handler,
                 setpoints_in,
+                telemetry_out,
             },
         )
     }
@@ -295,11 +304,21 @@ mod app {
     }
 
     /// The host: requests through the command handler, one scenario after another.
-    #[idle(shared = [tick], local = [handler, setpoints_in])]
+    #[idle(shared = [tick], local = [handler, setpoints_in, telemetry_out, frame: [u8; MAX_RESPONSE] = [0; MAX_RESPONSE]])]
     fn idle(cx: idle::Context) -> ! {
         let handler = cx.local.handler;
         let producer = cx.local.setpoints_in;
+        let samples = cx.local.telemetry_out;
+        let frame = cx.local.frame;
         let mut lock = LoopLock(cx.shared.tick);
+        // Telemetry at the tick's worst: all six signals on every tick (the tap's dearest
+        // sample; the handler would refuse this rate for the 2 Mbaud line, but the tick's
+        // cost per sample is what is measured), packed into frames here between ticks.
+        let mut packer = TelemetryPacker::new();
+        let Some(first) = rtic::Mutex::lock(&mut lock, |c| c.start_telemetry(0b11_1111, 1)) else {
+            panic!("telemetry refused");
+        };
+        packer.start(0b11_1111, 1, first, RATE_HZ);
         let mut ask =
             |request: Request| -> Response { handler.handle(request, producer, &mut lock) };
         let Some(configs) = configs::all() else {
@@ -378,6 +397,11 @@ mod app {
                         break;
                     }
                     cortex_m::asm::wfi();
+                    while packer.due(samples) {
+                        if packer.pack(samples, frame).is_none() {
+                            break;
+                        }
+                    }
                 }
                 // (The lifecycle scenario is each configuration's last; the next configuration
                 // starts with its own load.)

@@ -2,7 +2,8 @@
 //!
 //! An RTIC application with the firmware's control interrupt exactly as the emulator image
 //! has it — SysTick at priority 3 running [`twinstack::hardware::tick::ControlTick::run`]
-//! (timer, setpoint stream, controller, recorder, watchdog) — whose idle task plays the host:
+//! (timer, setpoint stream, controller, recorder, telemetry's tap, watchdog) — whose idle
+//! task plays the host (and packs the telemetry: all six signals every tick, the tap's worst):
 //! it loads settings, arms the recorder and streams setpoints through the library's
 //! [`twinstack::protocol::handler::CommandHandler`], as requests from the UART would.
 //!

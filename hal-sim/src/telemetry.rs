@@ -1,0 +1,291 @@
+//! Continuous telemetry on the host (protocol v5): the board's unsolicited frames, as the
+//! client sets them aside ([`crate::link::Client::take_telemetry`]), put back together into
+//! one record, with everything that did not arrive accounted for.
+//!
+//! Two ways a sample can be missing, both announced: the board's queue was full (the frame
+//! after the gap starts later and its `lost` says how many), or a frame was damaged on the
+//! line (its sequence number is missing). The end frame, sent once telemetry is stopped,
+//! gives the number of samples the session produced, so samples lost at the tail are counted
+//! too: [`TelemetryRecord::missing`] is exactly what the host did not get.
+//!
+//! ```
+//! use hal_sim::telemetry::TelemetryRecord;
+//! use twinstack::protocol::messages::TelemetryFrame;
+//! let frame = |seq, first, lost, end, values: &[i16]| TelemetryFrame {
+//!     seq, first, signals: 0b1001, lost, end, values: twinstack::heapless::Vec::from_slice(values).unwrap(),
+//! };
+//! let mut r = TelemetryRecord::new(0b1001, 5);
+//! r.add(&frame(0, 0, 0, false, &[1, 2, 3, 4])).unwrap(); // samples 0, 1
+//! r.add(&frame(1, 5, 3, false, &[5, 6])).unwrap();       // 2, 3, 4 dropped on the board
+//! r.add(&frame(2, 6, 3, true, &[])).unwrap();            // stopped after 6 samples
+//! assert_eq!((r.samples(), r.produced(), r.lost_on_board(), r.missing()), (3, Some(6), 3, 3));
+//! ```
+
+use crate::capture::{self, ConvertError, Recording};
+use crate::link::client::{Client, LinkError};
+use crate::link::Transport;
+use std::time::Duration;
+use twinstack::protocol::messages::{CaptureState, CaptureStatus, TelemetryFrame};
+use twinstack::settings::Settings;
+
+/// Why a frame does not belong to the record.
+#[derive(Debug, thiserror::Error, PartialEq, Eq)]
+pub enum TelemetryError {
+    /// A frame of other signals (another session's).
+    #[error("a telemetry frame of signal mask {got:#04b}, the session's is {want:#04b}")]
+    Signals {
+        /// The frame's mask.
+        got: u8,
+        /// The record's.
+        want: u8,
+    },
+    /// Values that are not whole samples.
+    #[error("a telemetry frame of {values} values for {signals} signals")]
+    Partial {
+        /// Values in the frame.
+        values: usize,
+        /// Signals per sample.
+        signals: usize,
+    },
+    /// A frame that goes back in time (a restarted session).
+    #[error("a telemetry frame starting at sample {first}, after sample {after} was received")]
+    Backwards {
+        /// The frame's first sample.
+        first: u32,
+        /// The next sample expected.
+        after: u32,
+    },
+}
+
+/// One telemetry session's samples as received, and what is missing.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct TelemetryRecord {
+    signals: u8,
+    per_sample: usize,
+    decimation: u16,
+    /// Index of each received sample.
+    indices: Vec<u32>,
+    /// Their values, sample after sample.
+    values: Vec<i16>,
+    next_seq: u16,
+    frames: u64,
+    /// Frames whose sequence number never arrived.
+    frames_missing: u64,
+    /// The next sample index expected.
+    expected: u32,
+    lost_on_board: u32,
+    end: Option<u32>,
+}
+
+impl TelemetryRecord {
+    /// An empty record of the signals of `signals` (mask), one sample every `decimation`
+    /// ticks.
+    pub fn new(signals: u8, decimation: u16) -> Self {
+        Self {
+            signals,
+            per_sample: (signals.count_ones() as usize).max(1),
+            decimation,
+            indices: Vec::new(),
+            values: Vec::new(),
+            next_seq: 0,
+            frames: 0,
+            frames_missing: 0,
+            expected: 0,
+            lost_on_board: 0,
+            end: None,
+        }
+    }
+
+    /// Adds a frame (in the order received).
+    pub fn add(&mut self, frame: &TelemetryFrame) -> Result<(), TelemetryError> {
+        if frame.signals != self.signals {
+            return Err(TelemetryError::Signals {
+                got: frame.signals,
+                want: self.signals,
+            });
+        }
+        if !frame.values.len().is_multiple_of(self.per_sample) {
+            return Err(TelemetryError::Partial {
+                values: frame.values.len(),
+                signals: self.per_sample,
+            });
+        }
+        if frame.first < self.expected {
+            return Err(TelemetryError::Backwards {
+                first: frame.first,
+                after: self.expected,
+            });
+        }
+        self.frames_missing += frame.seq.wrapping_sub(self.next_seq) as u64;
+        self.next_seq = frame.seq.wrapping_add(1);
+        self.frames += 1;
+        self.lost_on_board = self.lost_on_board.max(frame.lost);
+        let n = (frame.values.len() / self.per_sample) as u32;
+        self.indices.extend(frame.first..frame.first + n);
+        self.values.extend_from_slice(&frame.values);
+        self.expected = frame.first + n;
+        if frame.end {
+            self.end = Some(frame.first);
+        }
+        Ok(())
+    }
+
+    /// Adds frames in order; stops at the first that does not belong.
+    pub fn add_all<'a>(
+        &mut self,
+        frames: impl IntoIterator<Item = &'a TelemetryFrame>,
+    ) -> Result<(), TelemetryError> {
+        frames.into_iter().try_for_each(|f| self.add(f))
+    }
+
+    /// Samples received.
+    pub fn samples(&self) -> usize {
+        self.indices.len()
+    }
+
+    /// Frames received.
+    pub fn frames(&self) -> u64 {
+        self.frames
+    }
+
+    /// Frames that never arrived (sequence numbers skipped): damaged on the line.
+    pub fn frames_missing(&self) -> u64 {
+        self.frames_missing
+    }
+
+    /// The samples the session produced, once its end frame has arrived.
+    pub fn produced(&self) -> Option<u32> {
+        self.end
+    }
+
+    /// Whether the end frame has arrived.
+    pub fn is_complete(&self) -> bool {
+        self.end.is_some()
+    }
+
+    /// Samples the board dropped on a full queue, as the latest frame announced.
+    pub fn lost_on_board(&self) -> u32 {
+        self.lost_on_board
+    }
+
+    /// Samples not received: up to the end frame if it came, else up to the last sample
+    /// received (gaps only).
+    pub fn missing(&self) -> u64 {
+        let produced = self.end.unwrap_or(self.expected) as u64;
+        produced - self.indices.len() as u64
+    }
+
+    /// Each received sample's index (from 0 at the start).
+    pub fn indices(&self) -> &[u32] {
+        &self.indices
+    }
+
+    /// The values, sample after sample, each its signals in mask order.
+    pub fn values(&self) -> &[i16] {
+        &self.values
+    }
+
+    /// The signal mask.
+    pub fn signals(&self) -> u8 {
+        self.signals
+    }
+
+    /// The record in physical units (as a capture's: [`capture::convert`]) with `facts`, a
+    /// capture status of the board (its DAC and amplifier full scale and tick rate), and
+    /// the settings in force; `t` is seconds from the first sample of the session (a gap
+    /// shows as a jump in `t`).
+    pub fn recording(
+        &self,
+        facts: &CaptureStatus,
+        settings: &Settings,
+    ) -> Result<Recording, ConvertError> {
+        let status = CaptureStatus {
+            state: CaptureState::Done,
+            signals: self.signals,
+            samples: self.indices.len() as u32,
+            pre_trigger: 0,
+            pre_available: 0,
+            captured: self.indices.len() as u32,
+            window_slots: self.values.len() as u32,
+            decimation: self.decimation,
+            ..*facts
+        };
+        let mut recording = capture::convert(&status, settings, &self.values)?;
+        let dt = self.decimation.max(1) as f64 / facts.tick_rate_hz.max(1) as f64;
+        recording.t = self.indices.iter().map(|&i| i as f64 * dt).collect();
+        Ok(recording)
+    }
+}
+
+/// Receives until the end frame of the session in `record` has arrived (after
+/// [`Client::stop_telemetry`]), for at most `budget`; frames set aside before are taken
+/// first. `false` if the end never came.
+pub fn wait_for_end<T: Transport>(
+    client: &mut Client<T>,
+    record: &mut TelemetryRecord,
+    budget: Duration,
+) -> Result<bool, WaitError> {
+    let step = Duration::from_millis(10);
+    let mut waited = Duration::ZERO;
+    loop {
+        record.add_all(&client.take_telemetry())?;
+        if record.is_complete() {
+            return Ok(true);
+        }
+        if waited >= budget {
+            return Ok(false);
+        }
+        client.wait(step)?;
+        waited += step;
+    }
+}
+
+/// Why waiting for telemetry failed.
+#[derive(Debug, thiserror::Error)]
+pub enum WaitError {
+    /// The link.
+    #[error(transparent)]
+    Link(#[from] LinkError),
+    /// A frame that does not belong to the session.
+    #[error(transparent)]
+    Frame(#[from] TelemetryError),
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn frame(seq: u16, first: u32, lost: u32, end: bool, values: &[i16]) -> TelemetryFrame {
+        TelemetryFrame {
+            seq,
+            first,
+            signals: 0b11,
+            lost,
+            end,
+            values: heapless::Vec::from_slice(values).unwrap(),
+        }
+    }
+
+    #[test]
+    fn a_frame_lost_on_the_line_and_samples_lost_on_the_board_are_both_counted() {
+        let mut r = TelemetryRecord::new(0b11, 1);
+        r.add(&frame(0, 0, 0, false, &[1, 1, 2, 2])).unwrap();
+        // Frame 1 (samples 2, 3) damaged on the line; 4 dropped on the board.
+        r.add(&frame(2, 5, 1, false, &[5, 5])).unwrap();
+        assert_eq!(
+            (r.frames_missing(), r.missing(), r.produced()),
+            (1, 3, None)
+        );
+        r.add(&frame(3, 9, 4, true, &[])).unwrap();
+        assert_eq!(r.indices(), [0, 1, 5]);
+        assert_eq!(
+            (r.missing(), r.lost_on_board(), r.produced()),
+            (6, 4, Some(9))
+        );
+        assert!(r.add(&frame(4, 0, 0, false, &[1, 1])).is_err());
+        assert!(r.add(&frame(4, 9, 4, false, &[1])).is_err());
+        let mut other = frame(4, 9, 4, false, &[]);
+        other.signals = 1;
+        assert!(r.add(&other).is_err());
+    }
+}
