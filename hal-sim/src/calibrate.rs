@@ -407,104 +407,32 @@ pub fn calibrate<T: Transport>(
         .set_mode(Mode::Bypass)
         .map_err(link("switching to bypass"))?;
 
-    // 2. Excite and record.
-    progress(Progress::Step("exciting the stage"));
-    let facts = client
-        .capture_status()
-        .map_err(link("the recorder's capacity"))?;
-    let rate = facts.tick_rate_hz.max(1) as f64;
-    let mask = Channel::Left.bit() | Channel::Sensor.bit();
-    let ticks = (options.excitation_s() * rate).ceil() as u64;
-    let (decimation, frames) = decimation_for(ticks, rate, options.sample_rate_hz, &facts, 2);
-    client
-        .arm_capture(CaptureRequest {
-            signals: mask,
-            samples: frames,
-            pre_trigger: 0,
-            trigger: Trigger::WaveformStart,
-            decimation,
-        })
-        .map_err(link("arming the recorder"))?;
-    client
-        .waveform(options.waveform())
-        .map_err(link("starting the excitation"))?;
-    let budget = Duration::from_secs_f64(2.0 * options.excitation_s() + 10.0);
-    let read = capture::wait_and_read(client, budget, |what, n| {
-        progress(Progress::Count {
-            what,
-            done: n as u64,
-        })
-    });
-    // Stop the generator whatever happened (the output holds near the middle).
-    let stopped = client.stream(StreamControl::Stop);
-    let (cap, window) = read.map_err(|source| CalibrateError::Capture {
-        step: "recording the excitation",
-        source,
-    })?;
-    stopped.map_err(link("stopping the excitation"))?;
-    let recording =
-        capture::convert(&cap, &board, &window).map_err(|source| CalibrateError::Convert {
-            step: "the excitation",
-            source,
-        })?;
-    let excitation = excitation_record(&recording, &board, &options.output_unit)?;
-
-    // 3. Identify.
-    progress(Progress::Step("identifying"));
-    let fit_until = options.excitation_s() - 1.0 / options.excitation_hz;
-    let mut id_options = IdentifyOptions::new(options.model.unwrap_or(ModelKind::Pi), fit_until);
-    id_options.operators = options.operators;
-    id_options.lag = options.lag;
-    let (id, label, reason, ranking) = match options.model {
-        Some(_) => {
-            let id = identify(&excitation, &id_options)?;
-            let label = id_options.model_label();
-            (
-                id,
-                label.clone(),
-                format!("{label} (asked for)"),
-                Vec::new(),
-            )
-        }
-        None => {
-            let auto = identify_auto(&excitation, &id_options.candidates())?;
-            let picked = auto
-                .ranking
-                .iter()
-                .find(|r| r.validation.is_ok())
-                .map_or_else(|| id_options.model_label(), |r| r.label.clone());
-            let ranking = auto.ranking.iter().map(candidate).collect();
-            (auto.identification, picked, auto.reason, ranking)
+    // Steps 2 and 3, and the checks before a load: a failure there leaves the board's settings
+    // as they were, and its mode is restored.
+    let previous = status.mode();
+    let Measured {
+        excitation,
+        predicted,
+        id,
+        label,
+        reason,
+        ranking,
+        file,
+        held_out,
+        decimation,
+        tick_rate_hz,
+        clamped,
+    } = match measure(client, options, &board, &mut progress) {
+        Ok(m) => m,
+        Err(e) => {
+            // Best effort: the error at hand says more than a failure to restore the mode.
+            let _ = client.set_mode(previous);
+            return Err(e);
         }
     };
-    let (record, predicted) = identification_record(&excitation, &id, fit_until, options)?;
-    if record.held_out.max_pct > options.max_held_out_pct {
-        return Err(CalibrateError::DoesNotFit {
-            model: label,
-            max_pct: record.held_out.max_pct,
-            limit: options.max_held_out_pct,
-        });
-    }
-    let held_out = record.held_out;
-    let mut file = ParamFile::from_model(&id.model, &options.output_unit, Some(record));
-
-    // 4. Load (the board's drive, sensor and gains kept), first in bypass for the "before".
+    let rate = tick_rate_hz.max(1) as f64;
+    // 4. Load, first in bypass for the "before".
     progress(Progress::Step("loading"));
-    file.settings.drive = board.drive;
-    file.settings.sensor = board.sensor;
-    file.settings.feedback = board.feedback;
-    let clamped = match crate::cli::load::unreachable_input(&file.settings) {
-        Some(((model_lo, model_hi), (drive_lo, drive_hi))) if !options.clamp => {
-            return Err(CalibrateError::Unreachable {
-                model_lo,
-                model_hi,
-                drive_lo,
-                drive_hi,
-            })
-        }
-        Some(_) => true,
-        None => false,
-    };
     let settings = Settings {
         mode: Mode::Bypass,
         ..file.settings.clone()
@@ -554,13 +482,148 @@ pub fn calibrate<T: Transport>(
         held_out_from: id.held_out_from,
         fit_from: id.motion.first_fitted,
         held_out,
-        decimation: cap.decimation,
-        tick_rate_hz: facts.tick_rate_hz,
+        decimation,
+        tick_rate_hz,
         trajectory_range,
         before,
         after,
         runs: [run_before, run_after],
         stored: options.store,
+        clamped,
+    })
+}
+
+/// What steps 2 and 3 measured and identified, checked for loading.
+struct Measured {
+    excitation: MeasuredData,
+    predicted: Vec<f64>,
+    id: Identification,
+    label: String,
+    reason: String,
+    ranking: Vec<Candidate>,
+    file: ParamFile,
+    held_out: ErrorFigures,
+    decimation: u16,
+    tick_rate_hz: u32,
+    clamped: bool,
+}
+
+/// Steps 2 and 3: excite and record, identify, and the checks before a load (the fit, the
+/// drive's reach). Loads nothing.
+fn measure<T: Transport>(
+    client: &mut Client<T>,
+    options: &CalibrateOptions,
+    board: &Settings,
+    progress: &mut impl FnMut(Progress),
+) -> Result<Measured, CalibrateError> {
+    // 2. Excite and record.
+    progress(Progress::Step("exciting the stage"));
+    let facts = client
+        .capture_status()
+        .map_err(link("the recorder's capacity"))?;
+    let rate = facts.tick_rate_hz.max(1) as f64;
+    let mask = Channel::Left.bit() | Channel::Sensor.bit();
+    let ticks = (options.excitation_s() * rate).ceil() as u64;
+    let (decimation, frames) = decimation_for(ticks, rate, options.sample_rate_hz, &facts, 2);
+    client
+        .arm_capture(CaptureRequest {
+            signals: mask,
+            samples: frames,
+            pre_trigger: 0,
+            trigger: Trigger::WaveformStart,
+            decimation,
+        })
+        .map_err(link("arming the recorder"))?;
+    client
+        .waveform(options.waveform())
+        .map_err(link("starting the excitation"))?;
+    let budget = Duration::from_secs_f64(2.0 * options.excitation_s() + 10.0);
+    let read = capture::wait_and_read(client, budget, |what, n| {
+        progress(Progress::Count {
+            what,
+            done: n as u64,
+        })
+    });
+    // Stop the generator whatever happened (the output holds near the middle).
+    let stopped = client.stream(StreamControl::Stop);
+    let (cap, window) = read.map_err(|source| CalibrateError::Capture {
+        step: "recording the excitation",
+        source,
+    })?;
+    stopped.map_err(link("stopping the excitation"))?;
+    let recording =
+        capture::convert(&cap, board, &window).map_err(|source| CalibrateError::Convert {
+            step: "the excitation",
+            source,
+        })?;
+    let excitation = excitation_record(&recording, board, &options.output_unit)?;
+
+    // 3. Identify.
+    progress(Progress::Step("identifying"));
+    let fit_until = options.excitation_s() - 1.0 / options.excitation_hz;
+    let mut id_options = IdentifyOptions::new(options.model.unwrap_or(ModelKind::Pi), fit_until);
+    id_options.operators = options.operators;
+    id_options.lag = options.lag;
+    let (id, label, reason, ranking) = match options.model {
+        Some(_) => {
+            let id = identify(&excitation, &id_options)?;
+            let label = id_options.model_label();
+            (
+                id,
+                label.clone(),
+                format!("{label} (asked for)"),
+                Vec::new(),
+            )
+        }
+        None => {
+            let auto = identify_auto(&excitation, &id_options.candidates())?;
+            let picked = auto
+                .ranking
+                .iter()
+                .find(|r| r.validation.is_ok())
+                .map_or_else(|| id_options.model_label(), |r| r.label.clone());
+            let ranking = auto.ranking.iter().map(candidate).collect();
+            (auto.identification, picked, auto.reason, ranking)
+        }
+    };
+    let (record, predicted) = identification_record(&excitation, &id, fit_until, options)?;
+    if record.held_out.max_pct > options.max_held_out_pct {
+        return Err(CalibrateError::DoesNotFit {
+            model: label,
+            max_pct: record.held_out.max_pct,
+            limit: options.max_held_out_pct,
+        });
+    }
+    let held_out = record.held_out;
+    let mut file = ParamFile::from_model(&id.model, &options.output_unit, Some(record));
+
+    // The settings to load: the board's drive, sensor and gains kept.
+    file.settings.drive = board.drive;
+    file.settings.sensor = board.sensor;
+    file.settings.feedback = board.feedback;
+    let clamped = match crate::cli::load::unreachable_input(&file.settings) {
+        Some(((model_lo, model_hi), (drive_lo, drive_hi))) if !options.clamp => {
+            return Err(CalibrateError::Unreachable {
+                model_lo,
+                model_hi,
+                drive_lo,
+                drive_hi,
+            })
+        }
+        Some(_) => true,
+        None => false,
+    };
+    Ok(Measured {
+        excitation,
+        predicted,
+        id,
+        label,
+        reason,
+        ranking,
+        file,
+        held_out,
+        decimation: cap.decimation,
+        tick_rate_hz: facts.tick_rate_hz,
         clamped,
     })
 }
