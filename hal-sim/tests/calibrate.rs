@@ -348,3 +348,65 @@ fn bad_options_are_refused_naming_the_option() {
     assert_eq!(o.status.code(), Some(1));
     assert!(String::from_utf8_lossy(&o.stderr).contains("must not end in .png"));
 }
+
+/// The board's generator decays as the request says (protocol v5): full cycles, then each
+/// cycle's peak the previous one's × keep / 65536, bit for bit as the library's generator.
+#[test]
+fn the_board_plays_the_decaying_excitation_it_is_asked_for() {
+    use twinstack::protocol::messages::{CaptureRequest, Trigger};
+    use twinstack::recorder::Channel;
+    let mut client = sim_client(SimDeviceConfig::paper());
+    let options = quick();
+    let w = options.waveform();
+    // 6 cycles of 20 Hz at 50 kHz: 2 500 ticks a cycle, every 5th captured.
+    client
+        .arm_capture(CaptureRequest {
+            signals: Channel::Setpoint.bit(),
+            samples: 3000,
+            pre_trigger: 0,
+            trigger: Trigger::WaveformStart,
+            decimation: 5,
+        })
+        .unwrap();
+    client.waveform(w).unwrap();
+    let (status, window) =
+        hal_sim::capture::wait_and_read(&mut client, Duration::from_secs(5), |_, _| {})
+            .expect("the capture completes");
+    assert_eq!(status.samples, 3000);
+    let peaks: Vec<i16> = window
+        .chunks(500)
+        .map(|c| *c.iter().max().unwrap())
+        .collect();
+    // The library's generator, fed the same request, gives the same peaks.
+    let decay = w.decay.unwrap();
+    let mut g = twinstack::waveform::WaveformGenerator::new(
+        twinstack::waveform::Shape::Sine,
+        0,
+        (w.amplitude as i32) << 15,
+        w.frequency_mhz as f64 / 1000.0,
+        50_000.0,
+    )
+    .unwrap()
+    .with_decay(decay.hold_cycles, decay.keep);
+    let want: Vec<i16> = (0..6)
+        .map(|_| {
+            (0..2500)
+                .map(|k| {
+                    let v = g.next_sample();
+                    if k % 5 == 0 {
+                        (v >> 15).clamp(-32768, 32767) as i16
+                    } else {
+                        i16::MIN
+                    }
+                })
+                .max()
+                .unwrap()
+        })
+        .collect();
+    assert_eq!(peaks, want);
+    // Two full cycles, then four shrinking ones down to the final amplitude.
+    assert_eq!(peaks[0], peaks[1]);
+    assert!(peaks.windows(2).skip(1).all(|p| p[1] < p[0]), "{peaks:?}");
+    let last = peaks[5] as f64 / peaks[0] as f64;
+    assert!((last - options.final_amplitude).abs() < 0.01, "{last}");
+}
