@@ -669,7 +669,8 @@ fn excitation_record(
         })
     };
     let (q_lo, q_hi) = range(&sensor.raw);
-    let lsb = q_hi - q_lo;
+    // (Saturating: an empty capture reads as the widest negative span, i.e. flat.)
+    let lsb = q_hi.saturating_sub(q_lo);
     // Fewer than 64 steps of the reading (0.2 % of the output range): no stage to identify.
     if lsb < 64 {
         let (d_lo, d_hi) = left

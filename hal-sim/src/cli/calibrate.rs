@@ -12,7 +12,6 @@
 use super::board_link::{connect, PortArgs};
 use super::params::ModeArg;
 use crate::calibrate::{calibrate, CalibrateOptions, CalibrationReport, Progress};
-use crate::identification::ModelKind;
 use crate::output_file::Staged;
 use crate::plot::{draw_panels, Panel, Series};
 use anyhow::bail;
@@ -140,9 +139,6 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     }
     let options = args.options();
     options.check()?;
-    if matches!(options.model, Some(ModelKind::Duhem)) && args.operators != 17 {
-        eprintln!("note: --operators applies to P–I models only");
-    }
     let mut client = connect(&args.port)?;
     let bar = super::progress::bar(0, "calibrating", "");
     let quiet = args.json || !super::progress::enabled();
