@@ -179,7 +179,11 @@ impl WaveformGenerator {
     }
 
     /// The next sample (Q2.30 normalised displacement); advances the phase by one tick.
-    #[inline]
+    ///
+    /// Not inlined: the tick calls it only while the generator plays, and inlined its cycle
+    /// bookkeeping cost the tick's other paths registers (the whole-interrupt bench's worst
+    /// tick, which never plays a waveform, went from 980 to 1 002 instructions).
+    #[inline(never)]
     pub fn next_sample(&mut self) -> i32 {
         let unit = self.unit(self.phase);
         let sample =
