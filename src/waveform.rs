@@ -1,6 +1,14 @@
 //! The built-in waveform generator: sine or triangle, with offset, amplitude and frequency, in
 //! fixed point. The identification runs of the first paper (750 Hz, 70 ± 70 V) come from here.
 //!
+//! **Decay** ([`WaveformGenerator::with_decay`]): the amplitude may shrink by a constant factor
+//! per cycle after a number of full-amplitude cycles — full-range cycles, then nested minor
+//! loops about the offset, the excitation `hal-sim calibrate` identifies a stage from. The
+//! factor is Q0.16 (`keep / 65536`, below 1 by construction) and is applied where the phase
+//! wraps, i.e. where both shapes cross the offset, so the output stays continuous. Integer
+//! arithmetic only (one multiply and shift per cycle), so the board and the host generate the
+//! same samples bit for bit.
+//!
 //! Phase is a `u32` accumulator (2^32 = one cycle) advanced by `f / f_ctrl · 2^32` per tick, so
 //! the frequency error is below `f_ctrl / 2^32` (12 µHz at 50 kHz) and the phase never drifts.
 //! The sine comes from a quarter-wave table of 256 segments, interpolated linearly (error
@@ -59,6 +67,11 @@ pub struct WaveformGenerator {
     step: u32,
     /// Phase, 2^32 per cycle.
     phase: u32,
+    /// Amplitude kept per cycle once decaying, Q0.16 (65 536: no decay).
+    keep: u32,
+    /// Cycles still to play at full amplitude before each wrap decays it (see
+    /// [`WaveformGenerator::with_decay`]).
+    hold: u16,
     /// `sin(i · π/2 / 256)`, Q2.30, `i = 0 ..= 256`.
     table: [i32; QUARTER + 1],
 }
@@ -93,8 +106,37 @@ impl WaveformGenerator {
             amplitude,
             step,
             phase: 0,
+            keep: 1 << 16,
+            hold: 0,
             table,
         })
+    }
+
+    /// The same generator with a decaying amplitude: the first `hold_cycles` cycles (at least
+    /// one) at the full amplitude, then each cycle's amplitude is the previous one's ×
+    /// `keep / 65536` (Q0.16, so always below 1: the amplitude of cycle `n` is
+    /// `A · (keep/65536)^max(0, n + 1 − hold_cycles)`, rounded down once per cycle). Applied
+    /// where the phase wraps, where the output crosses the offset.
+    ///
+    /// ```
+    /// use twinstack::fixed_point::{signal_from_f64 as q, signal_to_f64 as f};
+    /// use twinstack::waveform::{Shape, WaveformGenerator};
+    /// // 1 kHz at 4 kHz: four samples a cycle; two full cycles, then halved each cycle.
+    /// let mut g = WaveformGenerator::new(Shape::Triangle, 0, q(0.5), 1000.0, 4000.0)
+    ///     .unwrap()
+    ///     .with_decay(2, 32768);
+    /// let peaks: Vec<f64> = (0..16).map(|_| f(g.next_sample())).skip(1).step_by(4).collect();
+    /// assert_eq!(peaks, [0.5, 0.5, 0.25, 0.125]);
+    /// ```
+    pub fn with_decay(mut self, hold_cycles: u16, keep: u16) -> Self {
+        self.keep = keep as u32;
+        self.hold = hold_cycles;
+        self
+    }
+
+    /// The amplitude in force (Q2.30), after the decay so far.
+    pub fn amplitude(&self) -> i32 {
+        self.amplitude
     }
 
     /// The unit waveform (Q2.30, ±1) at `phase`.
@@ -137,11 +179,25 @@ impl WaveformGenerator {
     }
 
     /// The next sample (Q2.30 normalised displacement); advances the phase by one tick.
-    #[inline]
+    ///
+    /// Not inlined: the tick calls it only while the generator plays, and inlined its cycle
+    /// bookkeeping cost the tick's other paths registers (the whole-interrupt bench's worst
+    /// tick, which never plays a waveform, went from 980 to 1 002 instructions).
+    #[inline(never)]
     pub fn next_sample(&mut self) -> i32 {
         let unit = self.unit(self.phase);
-        self.phase = self.phase.wrapping_add(self.step);
-        saturate_i64(self.offset as i64 + ((self.amplitude as i64 * unit as i64) >> 30))
+        let sample =
+            saturate_i64(self.offset as i64 + ((self.amplitude as i64 * unit as i64) >> 30));
+        let (phase, wrapped) = self.phase.overflowing_add(self.step);
+        self.phase = phase;
+        if wrapped {
+            // A cycle ended: one multiply and shift (a no-op without decay, keep = 2^16).
+            self.hold = self.hold.saturating_sub(1);
+            if self.hold == 0 {
+                self.amplitude = ((self.amplitude as i64 * self.keep as i64) >> 16) as i32;
+            }
+        }
+        sample
     }
 }
 
@@ -181,6 +237,44 @@ mod tests {
         let s: [f64; 400] = core::array::from_fn(|_| f(g.next_sample()));
         assert!((s[100] - 0.5).abs() < 1e-6 && (s[300] + 0.5).abs() < 1e-6);
         assert!((s[50] - 0.25).abs() < 1e-6 && (s[200]).abs() < 1e-6);
+    }
+
+    #[test]
+    fn the_decay_shrinks_each_cycle_after_the_held_ones_as_the_f64_law_says() {
+        // 10 Hz at 1 kHz: 100 samples a cycle; 3 full cycles, then 0.8 kept per cycle.
+        let keep = (0.8f64 * 65536.0).round() as u16;
+        let mut g = WaveformGenerator::new(Shape::Sine, q(0.05), q(0.9), 10.0, 1000.0)
+            .unwrap()
+            .with_decay(3, keep);
+        for cycle in 0..12i32 {
+            let s: [f64; 100] = core::array::from_fn(|_| f(g.next_sample()));
+            let peak = s.iter().copied().fold(f64::MIN, f64::max) - 0.05;
+            let want = 0.9 * (keep as f64 / 65536.0).powi((cycle - 2).max(0));
+            // One rounding down per cycle (2^-30 each) and the table's interpolation.
+            assert!(
+                (peak - want).abs() < 1e-6,
+                "cycle {cycle}: {peak} vs {want}"
+            );
+            // Each cycle starts at the offset (the amplitude changes there).
+            assert!(
+                (s[0] - 0.05).abs() < 1e-6,
+                "cycle {cycle} starts at {}",
+                s[0]
+            );
+        }
+        // Without decay the amplitude never changes, over many cycles.
+        let mut g = WaveformGenerator::new(Shape::Triangle, 0, q(0.5), 10.0, 1000.0).unwrap();
+        for _ in 0..10_000 {
+            g.next_sample();
+        }
+        assert_eq!(g.amplitude(), q(0.5));
+        // A keep of 0: silent after the held cycle, at the offset.
+        let mut g = WaveformGenerator::new(Shape::Sine, q(0.1), q(0.5), 10.0, 1000.0)
+            .unwrap()
+            .with_decay(1, 0);
+        let s: [f64; 300] = core::array::from_fn(|_| f(g.next_sample()));
+        assert!(s[..100].iter().any(|&v| v > 0.5));
+        assert!(s[100..].iter().all(|&v| (v - 0.1).abs() < 1e-9));
     }
 
     #[test]

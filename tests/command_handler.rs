@@ -824,6 +824,7 @@ fn every_refusal_names_its_field_and_its_limit() {
             offset: 0,
             amplitude: 1000,
             frequency_mhz: 25_000_000, // exactly Nyquist at 50 kHz
+            decay: None,
         })),
         refused(Field::WaveformFrequency, Rule::Below(25_000.0))
     );
@@ -1110,6 +1111,7 @@ fn the_waveform_generator_runs_and_out_of_range_waveforms_are_refused() {
             offset: 0,
             amplitude,
             frequency_mhz,
+            decay: None,
         })
     };
     // 30 kHz ≥ Nyquist.
@@ -1126,6 +1128,7 @@ fn the_waveform_generator_runs_and_out_of_range_waveforms_are_refused() {
         offset: 20_000,
         amplitude: 20_000,
         frequency_mhz: 1_000,
+        decay: None,
     };
     assert_eq!(
         b.handle(Request::Waveform(beyond)),
@@ -1434,6 +1437,7 @@ fn any_request() -> impl Strategy<Value = Request> {
                 offset,
                 amplitude,
                 frequency_mhz: f,
+                decay: None,
             })
         }),
         (any::<u32>(), any::<u16>()).prop_map(|(count, decimation)| {

@@ -43,14 +43,21 @@ fn request() -> impl Strategy<Value = Request> {
                 })
             }),
         any::<u16>().prop_map(|divider| Request::Stream(StreamControl::Rate { divider })),
-        (any::<i16>(), any::<i16>(), any::<u32>()).prop_map(|(offset, amplitude, f)| {
-            Request::Waveform(Waveform {
-                shape: WaveShape::Sine,
-                offset,
-                amplitude,
-                frequency_mhz: f,
-            })
-        }),
+        (
+            any::<i16>(),
+            any::<i16>(),
+            any::<u32>(),
+            proptest::option::of((any::<u16>(), any::<u16>()))
+        )
+            .prop_map(|(offset, amplitude, f, decay)| {
+                Request::Waveform(Waveform {
+                    shape: WaveShape::Sine,
+                    offset,
+                    amplitude,
+                    frequency_mhz: f,
+                    decay: decay.map(|(hold_cycles, keep)| WaveDecay { hold_cycles, keep }),
+                })
+            }),
         (prop::collection::vec(0.0f64..150.0, 0..=32), -1.0f64..1.0).prop_map(|(r, a0)| {
             let n = r.len();
             // Any f64 the wire carries, valid or not: the frame layer does not validate.
@@ -391,6 +398,21 @@ fn the_book_s_example_frames_are_what_the_encoder_writes() {
     assert_eq!(
         &out[..n],
         &hex("06 05 01 03 1e 01 01 01 01 01 01 07 18 40 2e a3 c7 ca 00")[..]
+    );
+    // Protocol v5's waveform with a decay: 10 Hz, amplitude 0.97, six full cycles, then
+    // 57 000 / 65 536 kept per cycle.
+    assert_eq!(
+        frame_of(&Request::Waveform(Waveform {
+            shape: WaveShape::Sine,
+            offset: 0,
+            amplitude: 31_785,
+            frequency_mhz: 10_000,
+            decay: Some(WaveDecay {
+                hold_cycles: 6,
+                keep: 57_000
+            }),
+        })),
+        hex("03 05 07 01 0f d2 f0 03 90 4e 01 06 a8 bd 03 24 6c 6e b6 00")
     );
 }
 

@@ -25,9 +25,12 @@
 //!   family: excite, identify, compensate, score (`hal-sim lab-stage`).
 //! * [`virtual_board`] — a [`sim_device::SimDevice`] served over TCP in real time, keeping its
 //!   state from one client to the next (`hal-sim virtual-board`).
+//! * [`calibrate`] — one-command calibration over the board link: excite with the board's
+//!   waveform generator, record, identify, load, store, verify (`hal-sim calibrate`).
 //! * [`cli`] — the `hal-sim` subcommands.
 
 pub mod accuracy;
+pub mod calibrate;
 pub mod capture;
 pub mod cli;
 pub mod closed_loop;

@@ -19,6 +19,10 @@ enum Command {
     Demo(cli::demo::Args),
     /// Fit a P–I or Duhem model to a measured CSV and write a parameter file and a figure.
     Identify(cli::identify::Args),
+    /// Calibrate the stage in one command: excite it with the board's waveform generator,
+    /// record drive and sensor, identify the best model, write the parameter file and a PNG,
+    /// load and store the settings, and report the tracking error before and after.
+    Calibrate(cli::calibrate::Args),
     /// Run the fixed-point forward model on a drive record.
     Predict(cli::predict::Args),
     /// Run the fixed-point inverse model on a desired-output record.
@@ -98,6 +102,7 @@ fn main() -> std::process::ExitCode {
     let result = match &cli.command {
         Command::Demo(a) => cli::demo::run(a),
         Command::Identify(a) => cli::identify::run(a),
+        Command::Calibrate(a) => cli::calibrate::run(a),
         Command::Predict(a) => cli::predict::run(a),
         Command::Compensate(a) => cli::compensate::run(a),
         Command::ClosedLoop(a) => cli::closed_loop::run(a),

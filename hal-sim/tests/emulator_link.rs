@@ -325,3 +325,159 @@ fn the_board_image_in_qemu_is_named_in_the_no_response_error() {
         "{text}"
     );
 }
+
+/// Runs the `hal-sim` binary with `args`; returns its exit code, stdout and stderr.
+fn hal_sim(args: &[&str]) -> (Option<i32>, String, String) {
+    let o = std::process::Command::new(env!("CARGO_BIN_EXE_hal-sim"))
+        .env_remove("TWINSTACK_PORT")
+        .args(args)
+        .output()
+        .expect("hal-sim runs");
+    (
+        o.status.code(),
+        String::from_utf8_lossy(&o.stdout).into_owned(),
+        String::from_utf8_lossy(&o.stderr).into_owned(),
+    )
+}
+
+/// Issue #18's workflow over the real firmware in QEMU, command by command as a user types it
+/// (each a new connection to the UART): load → stream (recorded with four signals) → record →
+/// params → status, then calibrate. QEMU's ADC is not a stage, so calibrate cannot succeed on
+/// it; it must stop cleanly (exit 1, no panic) and say why, with the settings left as loaded.
+#[test]
+fn the_lab_workflow_runs_command_by_command_on_the_emulated_firmware() {
+    let qemu = boot();
+    drop(connect(&qemu)); // the firmware answers
+    let port = format!("unix:{}", qemu.socket.display());
+    let dir = tempfile::tempdir().unwrap();
+    let ok = |args: &[&str]| {
+        let (code, out, err) = hal_sim(args);
+        assert_eq!(code, Some(0), "hal-sim {args:?}:\n{out}{err}");
+        out
+    };
+
+    // load: a P–I model on the firmware's default ranges (0…140 V onto 0…70 µm), open loop.
+    let twinstack::settings::Model::PrandtlIshlinskii(pi) =
+        twinstack::settings::representative_pi(16).unwrap()
+    else {
+        unreachable!()
+    };
+    let model = StageModel {
+        hysteresis: Hysteresis::Pi(pi),
+        scaling: twinstack::settings::Settings::default().ranges,
+        output_sign: 1.0,
+        sensor_lag_s: 0.0,
+        creep: None,
+    };
+    let params = dir.path().join("stage.json");
+    std::fs::write(&params, ParamFile::from_model(&model, "um", None).to_json()).unwrap();
+    let params = params.to_str().unwrap();
+    let out = ok(&["load", "--port", &port, "--params", params]);
+    assert!(out.starts_with("loaded "), "{out}");
+
+    // stream 100 setpoints, recorded over the same connection with four signals.
+    let mut text = String::from("setpoint\n");
+    for i in 0..100 {
+        text.push_str(&format!(
+            "{}\n",
+            0.5 * (std::f64::consts::TAU * i as f64 / 100.0).sin()
+        ));
+    }
+    let data = dir.path().join("sine.csv");
+    std::fs::write(&data, text).unwrap();
+    let run = dir.path().join("run.csv");
+    let out = ok(&[
+        "stream",
+        "--port",
+        &port,
+        "--data",
+        data.to_str().unwrap(),
+        "--record",
+        "setpoint,left,sensor,estimate",
+        "--record-out",
+        run.to_str().unwrap(),
+    ]);
+    assert!(out.contains("streamed 100 setpoints"), "{out}");
+    let csv = std::fs::read_to_string(&run).unwrap();
+    assert!(
+        csv.starts_with("t [s],setpoint [um],left [V],sensor [um],estimate [um]\n"),
+        "{csv}"
+    );
+    assert_eq!(csv.lines().count(), 101, "100 frames and the header");
+
+    // record: four signals now.
+    let now = dir.path().join("now.csv");
+    let out = ok(&[
+        "record",
+        "--port",
+        &port,
+        "--signals",
+        "setpoint,left,right,sensor",
+        "--samples",
+        "500",
+        "--out",
+        now.to_str().unwrap(),
+    ]);
+    assert!(
+        out.contains("500 frames of setpoint, left, right, sensor"),
+        "{out}"
+    );
+
+    // params: what was loaded; status: the emulator image, open loop.
+    let loaded: twinstack::settings::Settings =
+        serde_json::from_str(&ok(&["params", "--port", &port])).expect("params JSON");
+    assert_eq!(loaded.mode, Mode::OpenLoop);
+    assert_eq!(
+        loaded.compensator,
+        ParamFile::load(std::path::Path::new(params))
+            .unwrap()
+            .0
+            .settings
+            .compensator
+    );
+    let status: serde_json::Value =
+        serde_json::from_str(&ok(&["status", "--port", &port, "--json"])).unwrap();
+    assert_eq!(status["image"], "emulator");
+    assert_eq!(status["mode"], "open-loop");
+
+    // calibrate: a short excitation; QEMU's ADC does not measure a stage.
+    let out_file = dir.path().join("calibrated.json");
+    let (code, out, err) = hal_sim(&[
+        "calibrate",
+        "--port",
+        &port,
+        "--out",
+        out_file.to_str().unwrap(),
+        "--model",
+        "duhem",
+        "--frequency",
+        "20",
+        "--full-cycles",
+        "2",
+        "--decay-cycles",
+        "4",
+        "--no-store",
+        "--json",
+    ]);
+    eprintln!("calibrate on the emulator: exit {code:?}\n{out}{err}");
+    assert!(!err.contains("panicked"), "{err}");
+    match code {
+        Some(1) => {
+            assert!(
+                err.starts_with("error: ")
+                    && (err.contains("sensor") || err.contains("does not fit")),
+                "the error says why: {err}"
+            );
+            assert!(!out_file.exists(), "no parameter file after a failure");
+            // Nothing was loaded, and the mode calibrate switched to bypass is restored.
+            let after: twinstack::settings::Settings =
+                serde_json::from_str(&ok(&["params", "--port", &port])).unwrap();
+            assert_eq!(after, loaded);
+        }
+        Some(0) => {
+            let v: serde_json::Value = serde_json::from_str(&out).expect("JSON");
+            assert!(v["tracking_after"]["max_pct"].as_f64().is_some(), "{v}");
+        }
+        other => panic!("calibrate exited {other:?}: {err}"),
+    }
+}

@@ -377,6 +377,10 @@ impl<S: RecordStorage> CommandHandler<S> {
                 refused(Field::WaveformAmplitude, Rule::AtMost(1.0))
             }
         })?;
+        let generator = match w.decay {
+            Some(d) => generator.with_decay(d.hold_cycles, d.keep),
+            None => generator,
+        };
         control.lock(|c| c.play(generator));
         Ok(())
     }

@@ -208,6 +208,19 @@ pub struct Waveform {
     pub amplitude: i16,
     /// Frequency, millihertz.
     pub frequency_mhz: u32,
+    /// Amplitude decay per cycle (protocol v5); `None`: constant amplitude.
+    pub decay: Option<WaveDecay>,
+}
+
+/// A waveform's amplitude decay ([`crate::waveform::WaveformGenerator::with_decay`]): the first
+/// `hold_cycles` cycles (at least one) at the full amplitude, then each cycle's amplitude is
+/// the previous one's × `keep / 65536` — full-range cycles, then nested minor loops.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct WaveDecay {
+    /// Cycles at full amplitude (0 counts as 1).
+    pub hold_cycles: u16,
+    /// Amplitude kept per cycle after them, Q0.16 (`keep / 65536`, below 1).
+    pub keep: u16,
 }
 
 /// Waveform shape.

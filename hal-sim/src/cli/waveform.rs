@@ -1,10 +1,12 @@
 //! `hal-sim waveform --port PORT --shape sine|triangle --offset O --amplitude A --frequency HZ`:
 //! starts the board's waveform generator (normalised units, −1…1 over the model's output
-//! range; `offset ± amplitude` must stay inside it). `hal-sim stop` stops it.
+//! range; `offset ± amplitude` must stay inside it). `hal-sim stop` stops it. `--decay F
+//! [--hold-cycles N]` shrinks the amplitude by the factor `F` per cycle after `N` full ones
+//! (nested minor loops about the offset).
 
 use super::board_link::{connect, PortArgs};
 use anyhow::bail;
-use twinstack::protocol::messages::{WaveShape, Waveform};
+use twinstack::protocol::messages::{WaveDecay, WaveShape, Waveform};
 
 /// Arguments of `waveform`.
 #[derive(Debug, clap::Args)]
@@ -24,6 +26,12 @@ pub struct Args {
     /// Frequency, Hz (resolution 1 mHz).
     #[arg(long)]
     pub frequency: f64,
+    /// Amplitude kept per cycle once decaying (0…1, resolution 1/65536) [default: no decay].
+    #[arg(long)]
+    pub decay: Option<f64>,
+    /// Cycles at full amplitude before the decay starts.
+    #[arg(long, default_value_t = 1, requires = "decay")]
+    pub hold_cycles: u16,
 }
 
 /// `--shape` values.
@@ -47,6 +55,14 @@ pub fn waveform_of(args: &Args) -> anyhow::Result<Waveform> {
     if o - a < -1.0 || o + a > 1.0 {
         bail!("--offset {o} ± --amplitude {a} leaves the normalised range -1…1");
     }
+    let decay = match args.decay {
+        None => None,
+        Some(d) if d.is_finite() && (0.0..1.0).contains(&d) => Some(WaveDecay {
+            hold_cycles: args.hold_cycles,
+            keep: (d * 65536.0).round().min(65535.0) as u16,
+        }),
+        Some(d) => bail!("--decay {d}: the amplitude kept per cycle must lie in 0…1 (below 1)"),
+    };
     let mhz = (f * 1000.0).round();
     if !(1.0..=u32::MAX as f64).contains(&mhz) {
         bail!("--frequency {f} Hz: must be at least 0.001 Hz");
@@ -59,6 +75,7 @@ pub fn waveform_of(args: &Args) -> anyhow::Result<Waveform> {
         offset: crate::setpoint_file::q1_15(o),
         amplitude: crate::setpoint_file::q1_15(a),
         frequency_mhz: mhz as u32,
+        decay,
     })
 }
 
