@@ -99,6 +99,10 @@ pub struct ControlLoop<B, C> {
     limit_hits: u32,
     estimate: i32,
     control_rate_hz: u32,
+    /// The coarse axis's mailbox (feature `dual-stage`): once the coarse task has posted a
+    /// ramp, the piezo's setpoint comes from it instead of the stream.
+    #[cfg(feature = "dual-stage")]
+    coarse: crate::dual_stage::CoarseLink,
 }
 
 impl<B, C> ControlLoop<B, C>
@@ -124,6 +128,8 @@ where
             limit_hits: 0,
             estimate: 0,
             control_rate_hz,
+            #[cfg(feature = "dual-stage")]
+            coarse: crate::dual_stage::CoarseLink::new(),
         }
     }
 
@@ -135,8 +141,16 @@ where
         adc: &mut A,
         dac: &mut D,
     ) -> TickReport {
+        #[cfg(not(feature = "dual-stage"))]
         let setpoint = self.stream.next(queue);
+        #[cfg(feature = "dual-stage")]
+        let setpoint = match self.coarse.next_setpoint() {
+            Some(fine) => Some(fine),
+            None => self.stream.next(queue),
+        };
         let report = self.controller.tick(setpoint, adc, dac);
+        #[cfg(feature = "dual-stage")]
+        self.coarse.record_measured(report.measured);
         if report.flags.0 & (TickFlags::RANGE_LIMIT | TickFlags::SLEW_LIMIT) != 0 {
             self.limit_hits = self.limit_hits.wrapping_add(1);
         }
@@ -144,6 +158,26 @@ where
         self.recorder
             .capture(self.controller.setpoint(), report.measured, &report);
         report
+    }
+
+    /// The coarse axis's mailbox (feature `dual-stage`), for the handler's short lock.
+    #[cfg(feature = "dual-stage")]
+    pub fn coarse(&mut self) -> &mut crate::dual_stage::CoarseLink {
+        &mut self.coarse
+    }
+
+    /// The coarse task's exchange (feature `dual-stage`, once per coarse period, under the
+    /// tick's lock): posts the period's fine setpoints (ramping from the setpoint the tick
+    /// uses now) and the status; returns the handler's pending command and the piezo's last
+    /// measurement. See [`crate::dual_stage::link`].
+    #[cfg(feature = "dual-stage")]
+    pub fn exchange_coarse(
+        &mut self,
+        fine: &crate::dual_stage::FineSetpoints,
+        status: crate::dual_stage::CoarseStatus,
+    ) -> (Option<crate::dual_stage::CoarseCommand>, Option<i32>) {
+        let current = self.controller.setpoint();
+        self.coarse.exchange(current, fine, status)
     }
 
     /// The spare controller, for the handler to prepare a reload in (outside any lock): the

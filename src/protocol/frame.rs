@@ -20,8 +20,11 @@ use serde::{Deserialize, Serialize};
 /// generalised P–I (`Model::GeneralisedPi`, with its `ModelField`s appended) and then
 /// Bouc–Wen (`Model::BoucWen`, with the `ModelField`s `K`, `A`, `Psi` and the rule
 /// `Unbounded` appended after them); the multi-signal capture (`Capture`, `CaptureStatus`,
-/// `ReadCapture`, `CaptureChunk`, `Field::RecordPreTrigger`) was added.
-pub const PROTOCOL_VERSION: u8 = 4;
+/// `ReadCapture`, `CaptureChunk`, `Field::RecordPreTrigger`) was added. Version 5: the
+/// dual-actuated stage's coarse axis (`CoarseHome`, `CoarseMove`, `CoarseJog`, `CoarseStop`,
+/// `CoarseStatus` → `Response::Coarse`; `Field::CoarseAxis` … `CoarseAcceleration`,
+/// `Rule::NotHomed`, `Rule::LimitSwitch`).
+pub const PROTOCOL_VERSION: u8 = 5;
 /// Largest frame body (version + message + CRC), bytes.
 pub const MAX_BODY: usize = 1536;
 /// Largest frame on the wire, delimiter excluded.

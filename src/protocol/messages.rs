@@ -5,6 +5,7 @@
 //! That halves the bytes per sample, so that 2 Mbaud carries 50 000 setpoints/s with room for
 //! framing and acknowledgements.
 
+pub use crate::dual_stage::{CoarseState, CoarseStatus};
 pub use crate::recorder::{CaptureState, Signal, Trigger, MAX_CAPTURE_CHUNK, MAX_CHUNK};
 use crate::refusal::Refusal;
 pub use crate::setpoint_stream::UnderrunPolicy;
@@ -14,11 +15,11 @@ use serde::{Deserialize, Serialize};
 use super::frame::{FrameError, Message};
 
 impl Message for Request {
-    const VARIANTS: u32 = 14;
+    const VARIANTS: u32 = 19;
 }
 
 impl Message for Response {
-    const VARIANTS: u32 = 7;
+    const VARIANTS: u32 = 8;
 }
 
 /// Most setpoints one batch carries.
@@ -69,6 +70,31 @@ pub enum Request {
         /// Most slots wanted; the board sends at most [`MAX_CAPTURE_CHUNK`].
         count: u16,
     },
+    /// Home the dual-actuated stage's coarse axis (protocol v5; clears a latched fault).
+    /// Acknowledged when the homing starts; [`Request::CoarseStatus`] shows its progress.
+    CoarseHome,
+    /// Move the coarse axis to a position (homed axis, target within the travel).
+    CoarseMove(CoarseMove),
+    /// Jog the coarse axis toward a soft travel limit until [`Request::CoarseStop`].
+    CoarseJog {
+        /// Speed, mm/s; positive toward the upper limit.
+        velocity_mm_s: f64,
+    },
+    /// Controlled stop of the coarse axis (it brakes at the move's acceleration).
+    CoarseStop,
+    /// Read the coarse axis's status (answered with [`Response::Coarse`]).
+    CoarseStatus,
+}
+
+/// A coarse move: target and trapezoid, in millimetres.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct CoarseMove {
+    /// Target position (user coordinates, relative to the home reference), mm.
+    pub target_mm: f64,
+    /// Cruise speed, mm/s (> 0, at most the coarse stage's limit).
+    pub velocity_mm_s: f64,
+    /// Acceleration, mm/s² (> 0, at most the coarse stage's limit).
+    pub acceleration_mm_s2: f64,
 }
 
 /// Arm a multi-signal capture: `samples` frames of the signals in `signals`, `pre_trigger` of
@@ -217,6 +243,8 @@ pub enum Response {
         /// Slots, each in its signal's format (see [`crate::recorder`]).
         values: heapless::Vec<i16, MAX_CAPTURE_CHUNK>,
     },
+    /// The coarse axis's status (the answer to [`Request::CoarseStatus`]).
+    Coarse(CoarseStatus),
 }
 
 /// Why a request was refused. Wire-stable: variants are only appended.
