@@ -34,6 +34,7 @@
 
 pub mod carriage_tracker;
 pub mod controller;
+pub mod ideal_axis;
 pub mod link;
 pub mod split_filter;
 pub mod supervisor;
