@@ -166,18 +166,17 @@ where
         &mut self.coarse
     }
 
-    /// The coarse task's exchange (feature `dual-stage`, once per coarse period, under the
-    /// tick's lock): posts the period's fine setpoints (ramping from the setpoint the tick
-    /// uses now) and the status; returns the handler's pending command and the piezo's last
-    /// measurement. See [`crate::dual_stage::link`].
+    /// The coarse task's post (feature `dual-stage`, once per coarse period, under the tick's
+    /// lock): the period's fine setpoints (ramping from the setpoint the tick uses now) and
+    /// the status. See [`crate::dual_stage::link`].
     #[cfg(feature = "dual-stage")]
-    pub fn exchange_coarse(
+    pub fn post_coarse(
         &mut self,
         fine: &crate::dual_stage::FineSetpoints,
         status: crate::dual_stage::CoarseStatus,
-    ) -> (Option<crate::dual_stage::CoarseCommand>, Option<i32>) {
+    ) {
         let current = self.controller.setpoint();
-        self.coarse.exchange(current, fine, status)
+        self.coarse.post(current, fine, status);
     }
 
     /// The spare controller, for the handler to prepare a reload in (outside any lock): the

@@ -240,7 +240,17 @@ impl DualStage {
     pub fn restart(&mut self, position_pm: i64, motor_raw: u16, linear_raw: u16) {
         let (fine_pm, fine_q, counters, engaged) =
             (self.fine_pm, self.fine_q, self.counters, self.engaged);
-        *self = Self::new(self.config, position_pm, motor_raw, linear_raw);
+        // The carriage is where the total position less the piezo's share puts it (not at
+        // `position − centre`, as `new` assumes of a piezo at mid-stroke): the setpoint starts
+        // there plus mid-stroke, so the coarse command and the carriage agree.
+        let share = fine_pm.saturating_sub(self.config.fine_centre_pm);
+        *self = Self::new(
+            self.config,
+            position_pm.saturating_sub(share),
+            motor_raw,
+            linear_raw,
+        );
+        self.origin = position_pm;
         self.fine_pm = fine_pm;
         self.fine_q = fine_q;
         self.counters = counters;

@@ -2,10 +2,10 @@
 //! [`CoarseLink`] inside the control loop (feature `dual-stage`), reached by each through the
 //! tick's lock, a few stores at a time.
 //!
-//! * The **coarse task** (once per coarse period) [`CoarseLink::exchange`]s: it posts the
-//!   piezo's setpoints for the coming period (a [`FineRamp`], prepared here — the one
-//!   division is off the tick) and its status, and takes the piezo's last measurement and the
-//!   handler's pending command.
+//! * The **coarse task** (once per coarse period) first [`CoarseLink::take`]s the handler's
+//!   pending command and the piezo's last measurement, runs its tick, then
+//!   [`CoarseLink::post`]s the piezo's setpoints for the coming period (a [`FineRamp`],
+//!   prepared here — the one division is off the tick) and its status.
 //! * The **piezo tick** takes its setpoint from the ramp ([`FineRamp::next_setpoint`]: an add and a
 //!   compare, no division) instead of the setpoint stream once the coarse task has posted one,
 //!   and leaves its measurement for the coarse task.
@@ -134,18 +134,17 @@ impl CoarseLink {
         self.command = Some(command);
     }
 
-    /// The coarse task's side, once per period: posts the period's fine setpoints (ramping
-    /// from `current`, the tick's setpoint now) and the status; returns the pending command
-    /// and the piezo's last measurement.
-    pub fn exchange(
-        &mut self,
-        current: i32,
-        fine: &FineSetpoints,
-        status: CoarseStatus,
-    ) -> (Option<CoarseCommand>, Option<i32>) {
+    /// The coarse task's side, first, once per period: the handler's pending command (taken)
+    /// and the piezo's last measurement, so the tick that follows acts on both.
+    pub fn take(&mut self) -> (Option<CoarseCommand>, Option<i32>) {
+        (self.command.take(), self.measured)
+    }
+
+    /// The coarse task's side, second: posts the period's fine setpoints (ramping from
+    /// `current`, the tick's setpoint now) and the status after its tick.
+    pub fn post(&mut self, current: i32, fine: &FineSetpoints, status: CoarseStatus) {
         self.ramp.post(current, fine);
         self.status = status;
-        (self.command.take(), self.measured)
     }
 
     /// The tick's side: this tick's setpoint from the ramp, `None` when the coarse task has

@@ -360,8 +360,10 @@ pub struct SupervisorSettings {
 impl SupervisorSettings {
     /// Homing toward the lower end at 5 mm/s (100 mm/s²), the reference 24 mm below the
     /// travel's centre (1 mm inside the paper stage's −25 mm soft limit), 30 s to find it;
-    /// following error 30 µm (the stepper's lag at full speed is a few µm, the backlash 2 µm);
-    /// an encoder is lost after 20 µm of steps without a count.
+    /// following error 12 µm (the carriage's lag behind the command is about 4 µm at 10 mm/s
+    /// on the simulated screw, the backlash 2 µm; a fault must be seen before the piezo, which
+    /// takes the residual at up to 30 mm/s, has run far into its ±25 µm window); an encoder is
+    /// lost after 8 µm of steps without a count.
     pub fn paper_stage() -> Self {
         Self {
             home_velocity_um_s: 5_000.0,
@@ -369,8 +371,8 @@ impl SupervisorSettings {
             home_forward: false,
             home_position_um: -24_000.0,
             home_timeout_s: 30.0,
-            following_limit_um: 30.0,
-            lost_encoder_um: 20.0,
+            following_limit_um: 12.0,
+            lost_encoder_um: 8.0,
         }
     }
 

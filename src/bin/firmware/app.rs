@@ -111,18 +111,16 @@ mod app {
         /// `None` when the dual-stage settings are refused for this tick rate (logged at boot).
         axis: Option<CoarseSupervisor>,
         io: CoarsePeripherals,
-        /// The piezo's measurement the tick left at the last exchange.
-        measured: Option<i32>,
         #[cfg(not(feature = "emulator"))]
         timer: CoarseTimer,
     }
 
     #[cfg(feature = "dual-stage")]
     impl CoarseStage {
-        /// One coarse tick: the supervisor runs (a refused burst keeps its steps for the next
-        /// tick), then, in one short lock of the control tick, its fine setpoints and status go
-        /// to the tick's ramp and the handler's pending command and the piezo's measurement
-        /// come back.
+        /// One coarse tick: the handler's pending command and the piezo's last measurement are
+        /// taken in one short lock of the control tick, the supervisor runs (a refused burst
+        /// keeps its steps for the next tick), then, in a second short lock, its fine setpoints
+        /// and status go to the tick's ramp.
         fn run(&mut self, tick: &mut impl rtic::Mutex<T = ControlTick>) {
             #[cfg(not(feature = "emulator"))]
             self.timer.acknowledge();
@@ -130,15 +128,17 @@ mod app {
                 return;
             };
             let (steps, motor, linear, switches) = &mut self.io;
-            let fine = axis.tick(steps, motor, linear, switches, self.measured);
-            let status = axis.status();
-            let (command, measured) = tick.lock(|t| t.control.exchange_coarse(&fine, status));
-            self.measured = measured;
+            // The handler's command and the piezo's measurement of the last fine tick (the
+            // carriage estimate subtracts it from the linear encoder's).
+            let (command, measured) = tick.lock(|t| t.control.coarse().take());
             if let Some(command) = command {
                 // Refused now (the state changed since the handler's check): the status says
                 // what the axis does instead.
                 let _ = axis.command(command);
             }
+            let fine = axis.tick(steps, motor, linear, switches, measured);
+            let status = axis.status();
+            tick.lock(|t| t.control.post_coarse(&fine, status));
         }
     }
 
@@ -329,7 +329,6 @@ mod app {
             CoarseStage {
                 axis: supervisor,
                 io,
-                measured: None,
                 #[cfg(not(feature = "emulator"))]
                 timer,
             }
