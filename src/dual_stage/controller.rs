@@ -277,9 +277,10 @@ impl DualStage {
     }
 
     /// Whether the coarse stage is still moving: a planned move not done, or the coarse
-    /// follower not at rest.
+    /// follower still moving by more than a microstep per coarse tick (at rest it may hunt by
+    /// one step as the centring trims the last fraction of a step: that is not motion).
     pub fn is_moving(&self) -> bool {
-        !self.move_done() || self.follower.velocity() != 0
+        !self.move_done() || self.follower.velocity().abs() > self.config.step_pm
     }
 
     /// Streams the total setpoint: `setpoint_pm` is where the stage should be at the end of the

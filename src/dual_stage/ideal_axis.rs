@@ -4,8 +4,10 @@
 //! runs through the firmware's real coarse task and supervisor.
 //!
 //! The carriage follows the accepted step pulses at once (a stiff screw, no backlash); the
-//! encoders count its position (the linear one adds nothing for the piezo: the emulator has no
-//! plant); the switches are active beyond fixed carriage positions. One model, four handles
+//! motor encoder counts its position, the linear one the total position, carriage plus the
+//! piezo's setpoint (the emulator has no piezo plant: [`IdealAxis::set_piezo_pm`] says where
+//! it would be, and the coarse tick is told it has no measurement); the switches are active
+//! beyond fixed carriage positions. One model, four handles
 //! ([`IdealAxis::step_dir`], [`IdealAxis::motor`], [`IdealAxis::linear`],
 //! [`IdealAxis::switches`]) that share it through atomics (one task owns them all; atomics
 //! rather than `Cell`s so the model can sit in a `static` the firmware's task reaches).
@@ -29,6 +31,8 @@ pub struct IdealAxis {
     /// Microsteps (±2^31: ±670 m of travel at 0.3 µm).
     steps: AtomicI32,
     pulses: AtomicU32,
+    /// The piezo's displacement, pm (±2.1 mm).
+    piezo_pm: AtomicI32,
 }
 
 impl IdealAxis {
@@ -59,12 +63,20 @@ impl IdealAxis {
             upper_pm: switches_pm.2,
             steps: AtomicI32::new(0),
             pulses: AtomicU32::new(0),
+            piezo_pm: AtomicI32::new(0),
         }
     }
 
     /// Carriage position, pm.
     pub fn carriage_pm(&self) -> i64 {
         (self.steps.load(Relaxed) as i64).saturating_mul(self.step_pm)
+    }
+
+    /// Where the piezo is, pm (saturated to ±2.1 mm): the linear encoder sees the carriage
+    /// plus this.
+    pub fn set_piezo_pm(&self, pm: i64) {
+        self.piezo_pm
+            .store(pm.clamp(i32::MIN as i64, i32::MAX as i64) as i32, Relaxed);
     }
 
     /// Pulses accepted so far.
@@ -79,12 +91,12 @@ impl IdealAxis {
 
     /// The motor encoder.
     pub fn motor(&self) -> AxisEncoder<'_> {
-        AxisEncoder(self, self.motor_count_pm)
+        AxisEncoder(self, self.motor_count_pm, false)
     }
 
     /// The linear encoder.
     pub fn linear(&self) -> AxisEncoder<'_> {
-        AxisEncoder(self, self.linear_count_pm)
+        AxisEncoder(self, self.linear_count_pm, true)
     }
 
     /// The switches.
@@ -126,14 +138,23 @@ impl StepDir for AxisSteps<'_> {
     }
 }
 
-/// One of the model's encoders (its resolution, pm per count): the 16-bit counter of a timer
-/// in encoder mode.
+/// One of the model's encoders (its resolution, pm per count; whether it sees the piezo too):
+/// the 16-bit counter of a timer in encoder mode.
 #[derive(Debug)]
-pub struct AxisEncoder<'a>(&'a IdealAxis, i64);
+pub struct AxisEncoder<'a>(&'a IdealAxis, i64, bool);
 
 impl QuadratureEncoder for AxisEncoder<'_> {
     fn count(&mut self) -> u16 {
-        self.0.carriage_pm().checked_div_euclid(self.1).unwrap_or(0) as u16
+        let piezo = if self.2 {
+            self.0.piezo_pm.load(Relaxed) as i64
+        } else {
+            0
+        };
+        self.0
+            .carriage_pm()
+            .saturating_add(piezo)
+            .checked_div_euclid(self.1)
+            .unwrap_or(0) as u16
     }
 }
 

@@ -111,6 +111,9 @@ mod app {
         /// `None` when the dual-stage settings are refused for this tick rate (logged at boot).
         axis: Option<CoarseSupervisor>,
         io: CoarsePeripherals,
+        /// The model behind `io` (emulator).
+        #[cfg(feature = "emulator")]
+        model: &'static IdealAxis,
         #[cfg(not(feature = "emulator"))]
         timer: CoarseTimer,
     }
@@ -136,7 +139,16 @@ mod app {
                 // what the axis does instead.
                 let _ = axis.command(command);
             }
+            // The emulator has no piezo (QEMU's ADC reads 0): no measurement; the model's
+            // piezo sits where its setpoint is.
+            #[cfg(feature = "emulator")]
+            let measured = {
+                let _ = measured;
+                None
+            };
             let fine = axis.tick(steps, motor, linear, switches, measured);
+            #[cfg(feature = "emulator")]
+            self.model.set_piezo_pm(axis.dual().fine_to_pm(fine.to));
             let status = axis.status();
             tick.lock(|t| t.control.post_coarse(&fine, status));
         }
@@ -285,6 +297,8 @@ mod app {
                 ((steps, motor, linear, switches), timer)
             };
             #[cfg(feature = "emulator")]
+            let model: &'static IdealAxis;
+            #[cfg(feature = "emulator")]
             let mut io = {
                 // The paper stage's screw: 0.3125 µm per microstep, 0.25 µm per motor count,
                 // 5 nm per linear count; home switch 1 mm below the power-up position, limit
@@ -298,6 +312,7 @@ mod app {
                     panic!("coarse model already taken");
                 };
                 let axis: &'static IdealAxis = axis;
+                model = axis;
                 (axis.step_dir(), axis.motor(), axis.linear(), axis.switches())
             };
             let supervisor = match dual_settings.build() {
@@ -329,6 +344,8 @@ mod app {
             CoarseStage {
                 axis: supervisor,
                 io,
+                #[cfg(feature = "emulator")]
+                model,
                 #[cfg(not(feature = "emulator"))]
                 timer,
             }
