@@ -33,6 +33,14 @@ pub struct FineRamp {
 
 impl FineRamp {
     /// Not engaged: the tick takes its setpoint from the stream.
+    ///
+    /// ```
+    /// use twinstack::dual_stage::{FineRamp, FineSetpoints};
+    /// let mut ramp = FineRamp::new();
+    /// assert_eq!(ramp.next_setpoint(), None);
+    /// ramp.post(0, &FineSetpoints { from: 0, to: 1000, ticks: 10 });
+    /// assert_eq!(ramp.next_setpoint(), Some(100));
+    /// ```
     pub const fn new() -> Self {
         Self {
             engaged: false,
@@ -93,6 +101,13 @@ pub struct CoarseLink {
 impl CoarseLink {
     /// No coarse axis yet (the handler refuses coarse requests until the coarse task
     /// [`CoarseLink::attach`]es).
+    ///
+    /// ```
+    /// use twinstack::dual_stage::CoarseLink;
+    /// let mut link = CoarseLink::new();
+    /// assert!(link.limits().is_none() && !link.is_engaged());
+    /// assert_eq!(link.next_setpoint(), None);
+    /// ```
     pub const fn new() -> Self {
         Self {
             ramp: FineRamp::new(),
