@@ -118,6 +118,32 @@ pub trait StepDir {
 pub trait QuadratureEncoder {
     /// The counter now.
     fn count(&mut self) -> u16;
+
+    /// Whether the input saw an edge it could not count (both lines changing at once, or the
+    /// encoder's own error output) since the last call. Inputs that cannot tell answer `false`
+    /// (the default); the coarse supervisor treats `true` as a lost encoder.
+    fn missed_edges(&mut self) -> bool {
+        false
+    }
+}
+
+/// The coarse stage's switches, as read at one coarse tick (`true`: active).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct Switches {
+    /// The limit switch at the low end of the travel.
+    pub lower: bool,
+    /// The limit switch at the high end of the travel.
+    pub upper: bool,
+    /// The home reference: a switch, or the encoder's index pulse latched by the input until
+    /// it is read.
+    pub home: bool,
+}
+
+/// The coarse stage's limit and home switch inputs (GPIOs on the board).
+pub trait LimitSwitches {
+    /// The switches now (the home input's latched index pulse is cleared by the read).
+    fn read(&mut self) -> Switches;
 }
 
 /// Test doubles of the board traits, for tests of code that drives converters: the library's
@@ -177,6 +203,16 @@ pub mod fakes {
         }
         fn read(&mut self) -> Result<AdcCode, ()> {
             self.0.ok_or(())
+        }
+    }
+
+    /// Switches that read what the test puts in them.
+    #[derive(Debug, Default)]
+    pub struct FixedSwitches(pub Switches);
+
+    impl LimitSwitches for FixedSwitches {
+        fn read(&mut self) -> Switches {
+            self.0
         }
     }
 

@@ -102,6 +102,10 @@ pub struct ControlLoop<B, C> {
     control_rate_hz: u32,
     /// Continuous telemetry's tick side (off until started).
     telemetry: TelemetryTap,
+    /// The coarse axis's mailbox (feature `dual-stage`): once the coarse task has posted a
+    /// ramp, the piezo's setpoint comes from it instead of the stream.
+    #[cfg(feature = "dual-stage")]
+    coarse: crate::dual_stage::CoarseLink,
 }
 
 impl<B, C> ControlLoop<B, C>
@@ -128,6 +132,8 @@ where
             estimate: 0,
             control_rate_hz,
             telemetry: TelemetryTap::new(),
+            #[cfg(feature = "dual-stage")]
+            coarse: crate::dual_stage::CoarseLink::new(),
         }
     }
 
@@ -139,8 +145,16 @@ where
         adc: &mut A,
         dac: &mut D,
     ) -> TickReport {
+        #[cfg(not(feature = "dual-stage"))]
         let setpoint = self.stream.next(queue);
+        #[cfg(feature = "dual-stage")]
+        let setpoint = match self.coarse.next_setpoint() {
+            Some(fine) => Some(fine),
+            None => self.stream.next(queue),
+        };
         let report = self.controller.tick(setpoint, adc, dac);
+        #[cfg(feature = "dual-stage")]
+        self.coarse.record_measured(report.measured);
         if report.flags.0 & (TickFlags::RANGE_LIMIT | TickFlags::SLEW_LIMIT) != 0 {
             self.limit_hits = self.limit_hits.wrapping_add(1);
         }
@@ -177,6 +191,25 @@ where
     /// Telemetry samples dropped on a full queue since power-up.
     pub fn telemetry_overflows(&self) -> u32 {
         self.telemetry.overflows()
+    }
+
+    /// The coarse axis's mailbox (feature `dual-stage`), for the handler's short lock.
+    #[cfg(feature = "dual-stage")]
+    pub fn coarse(&mut self) -> &mut crate::dual_stage::CoarseLink {
+        &mut self.coarse
+    }
+
+    /// The coarse task's post (feature `dual-stage`, once per coarse period, under the tick's
+    /// lock): the period's fine setpoints (ramping from the setpoint the tick uses now) and
+    /// the status. See [`crate::dual_stage::link`].
+    #[cfg(feature = "dual-stage")]
+    pub fn post_coarse(
+        &mut self,
+        fine: &crate::dual_stage::FineSetpoints,
+        status: crate::dual_stage::CoarseStatus,
+    ) {
+        let current = self.controller.setpoint();
+        self.coarse.post(current, fine, status);
     }
 
     /// The spare controller, for the handler to prepare a reload in (outside any lock): the

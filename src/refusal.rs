@@ -128,6 +128,14 @@ pub enum Field {
     /// Telemetry's decimation (protocol v5): at least 1, and at least what keeps the values
     /// per second within what the link carries.
     TelemetryDecimation,
+    /// The coarse axis of the dual-actuated stage as a whole (absent, not homed, faulted).
+    CoarseAxis,
+    /// A coarse move's target position, mm.
+    CoarseTarget,
+    /// A coarse move's or jog's speed, mm/s.
+    CoarseVelocity,
+    /// A coarse move's acceleration, mm/s².
+    CoarseAcceleration,
 }
 
 /// The rule a field broke, with its limit where it has one (in the field's own units).
@@ -166,6 +174,10 @@ pub enum Rule {
     Unreachable,
     /// The model's state could grow without bound (Bouc–Wen: `|γ| < β`, `|ψ| < β − |γ|`).
     Unbounded,
+    /// The coarse axis must be homed first (after power-up or a fault).
+    NotHomed,
+    /// The move runs into a limit switch that is active.
+    LimitSwitch,
 }
 
 /// A refusal: the field and the rule it broke. Nothing was applied.
@@ -284,6 +296,10 @@ impl core::fmt::Display for Field {
             Field::RecordPreTrigger => "record pre-trigger",
             Field::TelemetrySignals => "telemetry signals",
             Field::TelemetryDecimation => "telemetry decimation",
+            Field::CoarseAxis => "coarse axis",
+            Field::CoarseTarget => "coarse target (mm)",
+            Field::CoarseVelocity => "coarse speed (mm/s)",
+            Field::CoarseAcceleration => "coarse acceleration (mm/s²)",
         };
         f.write_str(name)
     }
@@ -307,6 +323,11 @@ impl core::fmt::Display for Rule {
             Rule::BeyondFixedPoint => write!(f, "does not fit the fixed-point format"),
             Rule::Unreachable => write!(f, "leaves no drive the stacks and DAC can reach"),
             Rule::Unbounded => write!(f, "lets the model's state grow without bound"),
+            Rule::NotHomed => write!(
+                f,
+                "is not homed (home it first: power-up and faults unhome it)"
+            ),
+            Rule::LimitSwitch => write!(f, "would run into an active limit switch"),
         }
     }
 }

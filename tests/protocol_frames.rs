@@ -271,10 +271,7 @@ fn a_full_batch_fits_one_frame() {
 #[test]
 fn message_variant_counts_match_the_enums() {
     use twinstack::protocol::frame::Message;
-    let last = Request::Telemetry(TelemetryRequest::Start {
-        signals: 0b11,
-        decimation: 7,
-    });
+    let last = Request::CoarseStatus;
     let mut d = FrameDecoder::new();
     assert_eq!(feed(&mut d, &frame_of(&last)), vec![Ok(last)]);
     let tag = Request::VARIANTS as u8;
@@ -282,13 +279,11 @@ fn message_variant_counts_match_the_enums() {
         feed(&mut d, &raw_frame(&[PROTOCOL_VERSION, tag])),
         vec![Err(FrameError::UnknownType)]
     );
-    let resp = Response::Telemetry(TelemetryFrame {
-        seq: u16::MAX,
-        first: u32::MAX,
-        signals: 0b11_1111,
-        lost: 7,
-        end: true,
-        values: heapless::Vec::from_slice(&[i16::MIN, -1, 0, i16::MAX]).unwrap(),
+    let resp = Response::Coarse(twinstack::dual_stage::CoarseStatus {
+        state: twinstack::dual_stage::CoarseState::Moving,
+        homed: true,
+        position_pm: -5_000_000_000,
+        ..Default::default()
     });
     let mut buf = [0u8; MAX_ENCODED + 1];
     let n = encode(&resp, &mut buf).unwrap();

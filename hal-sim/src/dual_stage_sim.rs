@@ -118,7 +118,7 @@ pub struct DualStageSim {
 
 /// The piezo board at `rate`: 150 V amplifiers on the board's DAC, the sensor on the 16-bit
 /// ADS8689.
-fn piezo_hardware(board: &ExternalBoard, rate: f64) -> Hardware {
+pub(crate) fn piezo_hardware(board: &ExternalBoard, rate: f64) -> Hardware {
     Hardware {
         amplifier_full_scale: 150.0,
         dac_full_scale: DualDac::full_scale(board).0,
@@ -129,7 +129,7 @@ fn piezo_hardware(board: &ExternalBoard, rate: f64) -> Hardware {
 
 /// The piezo controller: inverse Duhem (and the Duhem observer) with PI feedback on the piezo
 /// sensor (as in `tests/closed_loop.rs`), output range [`FINE_RANGE_UM`].
-fn piezo_settings(board: &ExternalBoard, ki: f64) -> Settings {
+pub(crate) fn piezo_settings(board: &ExternalBoard, ki: f64) -> Settings {
     let gain = StageParams::paper()
         .second_order(PlantConfiguration::Differential)
         .a0_um_per_volt;

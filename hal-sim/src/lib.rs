@@ -20,7 +20,8 @@
 //! * [`link`] — the host end of the board link: [`link::Transport`] and the protocol client.
 //! * [`dual_stage_sim`] — the piezo stage on a ball-screw coarse stage ([`plant::ball_screw`]),
 //!   with the emulated step/dir output and encoders ([`coarse_stage`]): the dual-stage controller
-//!   end to end.
+//!   end to end; [`coarse_rig`] — the same stage as a board on the wire (a [`sim_device::SimDevice`]
+//!   whose coarse axis runs the library's supervisor, with fault injection).
 //! * [`tracking`] — open-loop tracking on [`plant::lab_stage`], a stage outside the model
 //!   family: excite, identify, compensate, score (`hal-sim lab-stage`).
 //! * [`virtual_board`] — a [`sim_device::SimDevice`] served over TCP in real time, keeping its
@@ -34,6 +35,7 @@ pub mod calibrate;
 pub mod capture;
 pub mod cli;
 pub mod closed_loop;
+pub mod coarse_rig;
 pub mod coarse_stage;
 pub mod converters;
 pub mod csv_table;

@@ -62,6 +62,10 @@ enum Command {
     /// 2 s of 10 Hz excitation, then track a triangle, nested minor loops and a multisine open
     /// loop with each model's compensator and with none.
     LabStage(cli::lab_stage::Args),
+    /// The dual-actuated stage's coarse axis: home, move --to-mm X, jog, stop, status (a
+    /// dual-stage board; `--port sim` is the simulated dual-stage board).
+    #[command(subcommand_required = true)]
+    Coarse(cli::coarse::Args),
     /// Serve the simulated board over TCP (tcp:HOST:PORT), paced in real time, keeping its
     /// state from one command to the next (--port tcp:HOST:PORT), until killed.
     VirtualBoard(cli::virtual_board::Args),
@@ -120,6 +124,7 @@ fn main() -> std::process::ExitCode {
         Command::DualStage(a) => cli::dual_stage::run(a),
         Command::LabStage(a) => cli::lab_stage::run(a),
         Command::VirtualBoard(a) => cli::virtual_board::run(a),
+        Command::Coarse(a) => cli::coarse::run(a),
     };
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,

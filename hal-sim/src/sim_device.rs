@@ -63,9 +63,11 @@ use twinstack::settings::{pi_model, FeedbackSettings, Mode, SensorSettings, Sett
 use twinstack::telemetry::TelemetryQueue;
 use twinstack::Scaling;
 
+use crate::coarse_rig::CoarseRig;
+use crate::converters::{AnalogDualDac, AnalogSensorAdc, InternalAdc, InternalDac};
 use crate::link::Transport;
 use crate::plant::Configuration;
-use crate::sim_board::{BoardConfig, BoardError, InternalBoard, SimBoard};
+use crate::sim_board::{BoardConfig, BoardError, SimBoard};
 
 /// Everything a simulated device is built from.
 #[derive(Clone, Debug)]
@@ -142,6 +144,8 @@ pub enum SimDeviceError {
     Defaults(Refusal),
     /// Baud rate zero.
     Baud,
+    /// The coarse axis of the dual-stage board could not be built (which setting, why).
+    Coarse(String),
 }
 
 impl std::fmt::Display for SimDeviceError {
@@ -151,6 +155,7 @@ impl std::fmt::Display for SimDeviceError {
             Self::Stored => write!(f, "the stored settings do not fit a flash record"),
             Self::Defaults(r) => write!(f, "compiled-in settings refused: {r}"),
             Self::Baud => write!(f, "baud rate must be positive"),
+            Self::Coarse(e) => write!(f, "coarse axis: {e}"),
         }
     }
 }
@@ -214,8 +219,15 @@ impl TxLine {
 
 /// The board in-process: [`SimBoard`] + the library's [`ControlLoop`] and
 /// [`CommandHandler`], on a modelled UART. See the module doc for the time model.
-pub struct SimDevice {
-    board: InternalBoard,
+///
+/// The converters are the STM32's by default ([`SimDevice::new`]); the dual-stage board
+/// ([`SimDevice::dual_stage`], [`crate::coarse_rig`]) has the external SPI converters and a
+/// coarse axis on a simulated ball screw.
+pub struct SimDevice<D = InternalDac, A = InternalAdc> {
+    board: SimBoard<D, A>,
+    /// The coarse axis (dual-stage board), run between the ticks as the firmware's coarse
+    /// task runs between them.
+    coarse: Option<Box<CoarseRig>>,
     control: ControlLoop<Vec<i16>, Box<Controller>>,
     handler: CommandHandler<RamStorage>,
     queue: Box<SetpointQueue>,
@@ -243,11 +255,28 @@ impl SimDevice {
         // The control rate is a whole number of hertz, as the firmware's timer runs it (and
         // as the status report and the stored record carry it); `1 / dt` is not exactly one.
         let rate_hz = (1.0 / board.plant().dt()).round();
-        let hw = hardware(rate_hz);
+        SimDevice::build(board, hardware(rate_hz), config.stored, config.baud, None)
+    }
+}
+
+impl<D: AnalogDualDac, A: AnalogSensorAdc> SimDevice<D, A> {
+    /// A device on `board` (its hardware facts `hw`), booting from `stored` as the firmware
+    /// boots from flash, with an optional coarse axis.
+    pub(crate) fn build(
+        board: SimBoard<D, A>,
+        hw: Hardware,
+        stored: Option<Settings>,
+        baud: u32,
+        coarse: Option<Box<CoarseRig>>,
+    ) -> Result<Self, SimDeviceError> {
+        if baud == 0 {
+            return Err(SimDeviceError::Baud);
+        }
+        let rate_hz = hw.control_rate_hz;
         // The "flash": erased, or holding the stored settings at this rate; the board boots
         // from it exactly as the firmware does.
         let mut storage = RamStorage::default();
-        if let Some(settings) = config.stored {
+        if let Some(settings) = stored {
             let record = StoredRecord {
                 control_rate_hz: rate_hz.round() as u32,
                 settings,
@@ -263,22 +292,26 @@ impl SimDevice {
         let (record, source) = param_store::load_record(storage.read(), &hw);
         let (settings, boot, defaults) =
             param_store::boot(record, source, &hw).map_err(SimDeviceError::Defaults)?;
-        let control = ControlLoop::new(
+        let mut control = ControlLoop::new(
             Box::new(Controller::new(boot)),
             Box::new(Controller::new(boot)),
             rate_hz.round() as u32,
             vec![0; CAPTURE_SLOTS],
         );
+        if let Some(rig) = &coarse {
+            control.coarse().attach(rig.limits(), rig.status());
+        }
         let handler = CommandHandler::new(hw, settings, defaults, storage);
         Ok(Self {
             board,
+            coarse,
             control,
             handler,
             queue: Box::new(SetpointQueue::new()),
             telemetry: Box::new(TelemetryQueue::new()),
             now_ns: 0,
             tick_ns: (board_dt_ns(rate_hz)).max(1),
-            byte_ns: (10_000_000_000 / config.baud as u64).max(1),
+            byte_ns: (10_000_000_000 / baud as u64).max(1),
             ticks: 0,
             rx: VecDeque::new(),
             rx_line_free_ns: 0,
@@ -286,7 +319,7 @@ impl SimDevice {
                 bytes: VecDeque::new(),
                 free_ns: 0,
                 frame_ends: VecDeque::new(),
-                byte_ns: (10_000_000_000 / config.baud as u64).max(1),
+                byte_ns: (10_000_000_000 / baud as u64).max(1),
                 counters: LineCounters::default(),
             },
             last_report: None,
@@ -317,11 +350,17 @@ impl SimDevice {
                 self.tx.transmit(frame, at);
             }
         }
+        if let Some(rig) = self.coarse.as_mut() {
+            rig.before_tick(&mut self.control);
+        }
         let (_, mut consumer) = self.queue.split();
         let (mut dac, mut adc) = self.board.split();
         let report = self.control.tick(&mut consumer, &mut adc, &mut dac);
         let (mut samples_in, mut samples_out) = self.telemetry.split();
         self.control.tap_telemetry(&report, &mut samples_in);
+        if let Some(rig) = self.coarse.as_mut() {
+            rig.after_tick(self.board.plant().stage_um(), &report);
+        }
         self.last_report = Some(report);
         self.ticks += 1;
         // The sending side, after the tick (the firmware's command task, woken between ticks).
@@ -340,6 +379,16 @@ impl SimDevice {
         self.tx.counters
     }
 
+    /// The coarse axis (dual-stage board).
+    pub fn coarse_rig(&self) -> Option<&CoarseRig> {
+        self.coarse.as_deref()
+    }
+
+    /// The coarse axis, to inject faults (dual-stage board).
+    pub fn coarse_rig_mut(&mut self) -> Option<&mut CoarseRig> {
+        self.coarse.as_deref_mut()
+    }
+
     /// Simulated time since the device was built.
     pub fn now(&self) -> Duration {
         Duration::from_nanos(self.now_ns)
@@ -351,7 +400,7 @@ impl SimDevice {
     }
 
     /// The simulated board (stage displacement, amplifier outputs, …).
-    pub fn board(&self) -> &InternalBoard {
+    pub fn board(&self) -> &SimBoard<D, A> {
         &self.board
     }
 
@@ -380,7 +429,7 @@ fn board_dt_ns(rate_hz: f64) -> u64 {
     (1e9 / rate_hz).round() as u64
 }
 
-impl Transport for SimDevice {
+impl<D: AnalogDualDac, A: AnalogSensorAdc> Transport for SimDevice<D, A> {
     /// Queues `bytes` on the host → board line (returns at once; simulated time does not move).
     fn send(&mut self, bytes: &[u8]) -> io::Result<()> {
         let mut t = self.rx_line_free_ns.max(self.now_ns);

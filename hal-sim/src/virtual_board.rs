@@ -25,6 +25,7 @@ use std::net::{TcpListener, TcpStream};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
 
+use crate::converters::{AnalogDualDac, AnalogSensorAdc};
 use crate::link::Transport;
 use crate::sim_device::{SimDevice, SimDeviceConfig};
 
@@ -80,10 +81,11 @@ pub fn serve(
     serve_device(listener, device, speed, stop)
 }
 
-/// [`serve`] with a device already built (any state).
-pub fn serve_device(
+/// [`serve`] with a device already built (any state, either board: the default or the
+/// dual-stage one, [`crate::coarse_rig::DualStageDevice`]).
+pub fn serve_device<D: AnalogDualDac, A: AnalogSensorAdc>(
     listener: TcpListener,
-    mut device: SimDevice,
+    mut device: SimDevice<D, A>,
     speed: f64,
     stop: &AtomicBool,
 ) -> Result<ServeReport, ServeError> {
@@ -239,8 +241,8 @@ fn is_connection_error(e: &io::Error) -> bool {
 
 /// Bytes that have arrived from the board by now (does not advance simulated time: a zero
 /// timeout on [`SimDevice`]'s `receive`).
-fn forward_output(
-    device: &mut SimDevice,
+fn forward_output<D: AnalogDualDac, A: AnalogSensorAdc>(
+    device: &mut SimDevice<D, A>,
     stream: &mut impl Write,
     buf: &mut [u8],
 ) -> io::Result<()> {
@@ -253,7 +255,7 @@ fn forward_output(
     }
 }
 
-fn discard_output(device: &mut SimDevice) {
+fn discard_output<D: AnalogDualDac, A: AnalogSensorAdc>(device: &mut SimDevice<D, A>) {
     let mut buf = [0u8; 512];
     while matches!(device.receive(&mut buf, Duration::ZERO), Ok(n) if n > 0) {}
 }

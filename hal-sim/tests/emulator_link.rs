@@ -481,3 +481,109 @@ fn the_lab_workflow_runs_command_by_command_on_the_emulated_firmware() {
         other => panic!("calibrate exited {other:?}: {err}"),
     }
 }
+
+/// The dual-stage emulator image (`cargo build-emu-dual`: the firmware's coarse task and
+/// supervisor on the library's model of step/dir, encoders and switches, QEMU modelling
+/// none of them): home, move, status and the refusals over the UART, then `hal-sim coarse`.
+#[test]
+fn the_coarse_axis_of_the_emulated_firmware_homes_and_moves_over_its_uart() {
+    use twinstack::dual_stage::{CoarseState, CoarseStatus};
+    use twinstack::protocol::messages::CoarseMove;
+    use twinstack::refusal::{Field, Refusal, Rule};
+    let qemu = boot_image(support::build_image(
+        support::FIRMWARE,
+        "twinstack-emu",
+        &["emulator", "dual-stage"],
+    ));
+    let mut client = connect(&qemu);
+    let refused = |e: LinkError| match e {
+        LinkError::Nack {
+            reason: NackReason::Refused(r),
+            ..
+        } => r,
+        e => panic!("not a refusal: {e}"),
+    };
+    let move_to = |mm: f64| {
+        Request::CoarseMove(CoarseMove {
+            target_mm: mm,
+            velocity_mm_s: 10.0,
+            acceleration_mm_s2: 200.0,
+        })
+    };
+    let s = client.coarse_status().expect("coarse status");
+    assert_eq!((s.state, s.homed), (CoarseState::Unhomed, false), "{s:?}");
+    assert_eq!(
+        refused(client.coarse(&move_to(-20.0)).unwrap_err()),
+        Refusal::new(Field::CoarseAxis, Rule::NotHomed)
+    );
+    let settle = |client: &mut Client<Box<dyn Transport>>| -> CoarseStatus {
+        let deadline = Instant::now() + Duration::from_secs(60);
+        client.wait(Duration::from_millis(20)).unwrap();
+        loop {
+            let s = client.coarse_status().unwrap();
+            if !matches!(
+                s.state,
+                CoarseState::Homing | CoarseState::Moving | CoarseState::Stopping
+            ) {
+                return s;
+            }
+            assert!(Instant::now() < deadline, "still {s:?}");
+            client.wait(Duration::from_millis(50)).unwrap();
+        }
+    };
+    client.coarse(&Request::CoarseHome).expect("home");
+    let s = settle(&mut client);
+    eprintln!("homed: {s:?}");
+    assert_eq!(
+        (s.state, s.homed, s.faults),
+        (CoarseState::Idle, true, 0),
+        "{s:?}"
+    );
+    // The model's home switch is at carriage −1 mm, the reference −24 mm: the axis braked a
+    // little past it (5 mm/s at 100 mm/s²: 125 µm).
+    assert!(
+        (s.position_pm - -24_125_000_000).abs() < 20_000_000,
+        "{s:?}"
+    );
+    assert!(s.switches & CoarseStatus::HOME != 0);
+    assert_eq!(
+        refused(client.coarse(&move_to(26.0)).unwrap_err()),
+        Refusal::new(Field::CoarseTarget, Rule::AtMost(25.0))
+    );
+    assert_eq!(
+        refused(
+            client
+                .coarse(&Request::CoarseMove(CoarseMove {
+                    target_mm: -20.0,
+                    velocity_mm_s: 100.0,
+                    acceleration_mm_s2: 200.0,
+                }))
+                .unwrap_err()
+        ),
+        Refusal::new(Field::CoarseVelocity, Rule::AtMost(15.0))
+    );
+    client.coarse(&move_to(-20.0)).expect("move");
+    let s = settle(&mut client);
+    eprintln!("moved: {s:?}");
+    assert_eq!((s.state, s.faults), (CoarseState::Idle, 0), "{s:?}");
+    // The model's carriage moves in whole microsteps (0.3125 µm) and nothing else moves it.
+    assert!((s.position_pm - -20_000_000_000).abs() <= 320_000, "{s:?}");
+    drop(client);
+
+    // The command-line tool on the same UART.
+    let port = format!("unix:{}", qemu.socket.display());
+    let o = std::process::Command::new(env!("CARGO_BIN_EXE_hal-sim"))
+        .args([
+            "coarse", "move", "--to-mm", "-22.5", "--wait", "--port", &port,
+        ])
+        .output()
+        .expect("hal-sim runs");
+    let out = String::from_utf8_lossy(&o.stdout);
+    assert!(
+        o.status.success(),
+        "{out}{}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    assert!(out.contains("state idle\nhomed yes\n"), "{out}");
+    assert!(out.contains("position_mm -22.5"), "{out}");
+}

@@ -204,6 +204,85 @@ impl DualStage {
         self.reference = Reference::Move { profile, target };
     }
 
+    /// Plans a trapezoidal move to `target_pm` (clamped to the travel) with its own speed and
+    /// acceleration (`limits`, pm per coarse tick (²), valid and within the coarse stage's: the
+    /// caller checks). A move already under way is re-targeted from its present velocity.
+    pub fn move_to_with(&mut self, target_pm: i64, limits: super::MotionLimits) {
+        self.move_to(target_pm);
+        if let Reference::Move { profile, .. } = &mut self.reference {
+            profile.set_limits(limits);
+        }
+    }
+
+    /// A controlled stop: a planned move brakes at its acceleration to where it comes to rest
+    /// (no step is lost); a streamed setpoint holds where it is.
+    pub fn stop(&mut self) {
+        match &mut self.reference {
+            Reference::Move { profile, target } => *target = profile.stopping_point(),
+            _ => self.reference = Reference::Hold,
+        }
+    }
+
+    /// Moves the travel limits of the total position (pm, `lo < hi`; an empty range is
+    /// ignored): the coarse supervisor widens them while homing and sets the homed travel in
+    /// this controller's coordinates afterwards.
+    pub fn set_travel(&mut self, travel_pm: (i64, i64)) {
+        if travel_pm.0 < travel_pm.1 {
+            self.config.travel_pm = travel_pm;
+        }
+    }
+
+    /// Starts again at rest at total position `position_pm` with the encoders' present
+    /// readings (as [`DualStage::new`], coarse only), but keeps the piezo's setpoint where it
+    /// is (the hand-over ramp walks it back to mid-stroke, slope-limited: no jump), the travel
+    /// limits and the counters. Used after a fault, whose stop left the follower's and the
+    /// step generator's state behind the stage's.
+    pub fn restart(&mut self, position_pm: i64, motor_raw: u16, linear_raw: u16) {
+        let (fine_pm, fine_q, counters, engaged) =
+            (self.fine_pm, self.fine_q, self.counters, self.engaged);
+        // The carriage is where the total position less the piezo's share puts it (not at
+        // `position − centre`, as `new` assumes of a piezo at mid-stroke): the setpoint starts
+        // there plus mid-stroke, so the coarse command and the carriage agree.
+        let share = fine_pm.saturating_sub(self.config.fine_centre_pm);
+        *self = Self::new(
+            self.config,
+            position_pm.saturating_sub(share),
+            motor_raw,
+            linear_raw,
+        );
+        self.origin = position_pm;
+        self.fine_pm = fine_pm;
+        self.fine_q = fine_q;
+        self.counters = counters;
+        self.engaged = engaged;
+    }
+
+    /// Reads the linear encoder only (the total position, pm), without moving anything: for a
+    /// stopped axis whose coarse tick does not run.
+    pub fn read_position<L: QuadratureEncoder>(&mut self, linear_encoder: &mut L) -> i64 {
+        let linear = self.linear.update(linear_encoder.count());
+        self.origin
+            .saturating_add(linear.saturating_mul(self.config.linear_count_pm))
+    }
+
+    /// The last fine setpoint handed out (Q2.30 of the piezo controller's range): where the
+    /// piezo holds when the coarse tick stops.
+    pub fn fine_setpoint(&self) -> i32 {
+        self.fine_q
+    }
+
+    /// The total setpoint at the start of the coming period, pm.
+    pub fn setpoint_pm(&self) -> i64 {
+        self.setpoint
+    }
+
+    /// Whether the coarse stage is still moving: a planned move not done, or the coarse
+    /// follower still moving by more than a microstep per coarse tick (at rest it may hunt by
+    /// one step as the centring trims the last fraction of a step: that is not motion).
+    pub fn is_moving(&self) -> bool {
+        !self.move_done() || self.follower.velocity().abs() > self.config.step_pm
+    }
+
     /// Streams the total setpoint: `setpoint_pm` is where the stage should be at the end of the
     /// next coarse period (clamped to the travel).
     pub fn follow(&mut self, setpoint_pm: i64) {

@@ -16,6 +16,9 @@
 //! * [`controller`] — [`DualStage`]: one coarse tick (e.g. 1 kHz) reads both encoders, moves
 //!   the coarse stage, and hands the piezo's [`crate::control::Controller`] the residual as a
 //!   ramp of fine setpoints ([`FineSetpoints`]) for the fine ticks of the next coarse period.
+//! * [`supervisor`] — [`CoarseSupervisor`]: the coarse axis's state machine (homing, moves,
+//!   jogs, stops, faults) around the [`DualStage`]; [`link`] — where the coarse task, the piezo
+//!   tick and the command handler meet on the board.
 //! * [`DualStageSettings`] — everything in physical units, validated and turned into the
 //!   integer [`DualStageConfig`] off the tick path.
 //!
@@ -31,12 +34,20 @@
 
 pub mod carriage_tracker;
 pub mod controller;
+pub mod ideal_axis;
+pub mod link;
 pub mod split_filter;
+pub mod supervisor;
 pub mod trapezoid;
 
 use carriage_tracker::CarriageTracker;
 pub use controller::{CoarseReport, DualMode, DualStage, DualStageCounters, FineSetpoints};
+pub use link::{CoarseLink, FineRamp};
 pub use split_filter::{SplitCoefficients, SplitFilter};
+pub use supervisor::{
+    CoarseCommand, CoarseLimits, CoarseRefusal, CoarseState, CoarseStatus, CoarseSupervisor,
+    SupervisorConfig, SupervisorSettings,
+};
 pub use trapezoid::{MotionLimits, TrapezoidalProfile};
 
 /// Picometres per micrometre.
@@ -118,6 +129,11 @@ pub enum DualStageError {
     Timing,
     /// Backlash negative or more than 1000 steps.
     Backlash,
+    /// Homing speed or acceleration not valid or beyond the coarse stage's, the home position
+    /// outside the travel, or the timeout not a positive number of coarse ticks.
+    Homing,
+    /// Following-error limit not positive, or the lost-encoder travel below one step.
+    FaultLimits,
 }
 
 impl DualStageError {
@@ -133,6 +149,8 @@ impl DualStageError {
             Self::FineRange => "fine-range",
             Self::Timing => "timing",
             Self::Backlash => "backlash",
+            Self::Homing => "homing",
+            Self::FaultLimits => "fault-limits",
         }
     }
 }

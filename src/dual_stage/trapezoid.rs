@@ -153,6 +153,27 @@ impl TrapezoidalProfile {
         self.limits
     }
 
+    /// Changes the limits (a new move's speed and acceleration); the present velocity is kept
+    /// and brought within the new limits at the new acceleration, tick by tick.
+    pub fn set_limits(&mut self, limits: MotionLimits) {
+        self.limits = limits;
+    }
+
+    /// Where the profile comes to rest if it brakes now at its acceleration limit, pm (the
+    /// target of a controlled stop).
+    pub fn stopping_point(&self) -> i64 {
+        let v = self.velocity.unsigned_abs();
+        let a = (self.limits.acceleration.max(1) as u64).min(v.max(1));
+        // Braking covers `v − a + v − 2a + …`: the distance from the tick after this one.
+        let d = braking_distance(v, a).saturating_sub(v);
+        let d = d.min(i64::MAX as u64) as i64;
+        if self.velocity >= 0 {
+            self.position.saturating_add(d)
+        } else {
+            self.position.saturating_sub(d)
+        }
+    }
+
     /// Stops the profile where it is (velocity 0), e.g. when a new move is planned from rest.
     pub fn reset_to(&mut self, position: i64) {
         self.position = position;
@@ -234,6 +255,32 @@ mod tests {
             prev = p.velocity();
         }
         assert_eq!(p.position(), 10_000 * 2000);
+    }
+
+    #[test]
+    fn braking_toward_the_stopping_point_never_reverses() {
+        let limits = MotionLimits {
+            velocity: 10_000,
+            acceleration: 300,
+        };
+        let mut p = TrapezoidalProfile::new(0, limits);
+        for _ in 0..100 {
+            p.step(1_000_000_000);
+        }
+        assert_eq!(p.velocity(), 10_000);
+        let stop = p.stopping_point();
+        assert!(stop > p.position());
+        let mut prev = p.velocity();
+        let mut ticks = 0;
+        while p.velocity() != 0 {
+            p.step(stop);
+            assert!(p.velocity() >= 0 && prev - p.velocity() <= 300, "{p:?}");
+            prev = p.velocity();
+            ticks += 1;
+        }
+        assert_eq!(p.position(), stop);
+        // About v / a ticks: braking at the limit, not crawling.
+        assert!(ticks <= 10_000 / 300 + 3, "{ticks}");
     }
 
     #[test]

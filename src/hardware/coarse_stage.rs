@@ -8,6 +8,7 @@
 //! | motor encoder A / B | PC6 / PC7 | TIM8 CH1 / CH2 (AF3), encoder mode 3 (×4) |
 //! | linear encoder A / B | PB6 / PB7 | TIM4 CH1 / CH2 (AF2), encoder mode 3 (×4) |
 //! | coarse tick | – | TIM3 update interrupt (default 5 kHz) |
+//! | lower limit / upper limit / home | PC0 / PC1 / PC2 | GPIO inputs, pull-up, active low (switch to GND) |
 //!
 //! **Step bursts without an interrupt per step.** TIM1 is an advanced timer with a repetition
 //! counter: in one-pulse mode its update event — which stops the counter — comes only after
@@ -26,11 +27,11 @@
 //! unreliable there (`EMULATOR.md`): in the emulator image the coarse stage is configured but
 //! its task may never run.
 
-use stm32f4xx_hal::gpio::{Output, Pin, PushPull};
+use stm32f4xx_hal::gpio::{Input, Output, Pin, PushPull};
 use stm32f4xx_hal::pac::{RCC, TIM1, TIM3, TIM4, TIM8};
 
 use super::clocks::BusClocks;
-use crate::board::{QuadratureEncoder, StepBurst, StepDir, StepDirection};
+use crate::board::{LimitSwitches, QuadratureEncoder, StepBurst, StepDir, StepDirection, Switches};
 use crate::coarse_axis::StepTiming;
 
 /// Shortest STEP high time the driver needs, ns.
@@ -234,5 +235,35 @@ impl CoarseTimer {
     /// The coarse rate actually running, Hz.
     pub fn rate_hz(&self) -> u32 {
         self.rate_hz
+    }
+}
+
+/// The limit and home switches: PC0 (lower), PC1 (upper), PC2 (home), inputs with pull-ups,
+/// a switch closing to ground is active. (An encoder index pulse on the home input would need
+/// an EXTI latch to be seen at 5 kHz: not wired yet.)
+pub struct BoardSwitches {
+    lower: Pin<'C', 0, Input>,
+    upper: Pin<'C', 1, Input>,
+    home: Pin<'C', 2, Input>,
+}
+
+impl BoardSwitches {
+    /// The three inputs, already configured as pull-up inputs.
+    pub fn new(
+        lower: Pin<'C', 0, Input>,
+        upper: Pin<'C', 1, Input>,
+        home: Pin<'C', 2, Input>,
+    ) -> Self {
+        Self { lower, upper, home }
+    }
+}
+
+impl LimitSwitches for BoardSwitches {
+    fn read(&mut self) -> Switches {
+        Switches {
+            lower: self.lower.is_low(),
+            upper: self.upper.is_low(),
+            home: self.home.is_low(),
+        }
     }
 }

@@ -23,8 +23,10 @@ use serde::{Deserialize, Serialize};
 /// `ReadCapture`, `CaptureChunk`, `Field::RecordPreTrigger`) was added. Version 5:
 /// continuous telemetry (`Request::Telemetry`, the unsolicited `Response::Telemetry` frames
 /// between responses, `Field::TelemetrySignals` / `TelemetryDecimation`, the status flag
-/// `TELEMETRY`), and
-/// `Waveform` ends with an optional amplitude decay (`decay: Option<WaveDecay>`).
+/// `TELEMETRY`); `Waveform` ends with an optional amplitude decay (`decay:
+/// Option<WaveDecay>`); the dual-actuated stage's coarse axis (`CoarseHome`, `CoarseMove`,
+/// `CoarseJog`, `CoarseStop`, `CoarseStatus` → `Response::Coarse`; `Field::CoarseAxis` …
+/// `CoarseAcceleration`, `Rule::NotHomed`, `Rule::LimitSwitch`).
 pub const PROTOCOL_VERSION: u8 = 5;
 /// Largest frame body (version + message + CRC), bytes.
 pub const MAX_BODY: usize = 1536;

@@ -26,6 +26,7 @@ use rtic_core::Mutex;
 use crate::board::Hardware;
 use crate::control::Controller;
 use crate::control_loop::ControlLoop;
+use crate::dual_stage::{CoarseCommand, CoarseLimits, CoarseRefusal, CoarseStatus};
 use crate::param_store::{RecordStorage, StorageError, StoredRecord, MAX_RECORD};
 use crate::recorder::{RecordError, SampleStore};
 use crate::refusal::{Field, Refusal, Rule};
@@ -182,6 +183,20 @@ impl<S: RecordStorage> CommandHandler<S> {
                 };
             }
             Request::Telemetry(t) => self.telemetry(t, control),
+            Request::CoarseHome => coarse(control, |_, s| CoarseLimits::check_home(s)),
+            Request::CoarseMove(m) => coarse(control, |l, s| {
+                l.check_move(s, m.target_mm, m.velocity_mm_s, m.acceleration_mm_s2)
+            }),
+            Request::CoarseJog { velocity_mm_s } => {
+                coarse(control, |l, s| l.check_jog(s, velocity_mm_s))
+            }
+            Request::CoarseStop => coarse(control, |_, _| Ok(CoarseCommand::Stop)),
+            Request::CoarseStatus => {
+                return match coarse_snapshot(control) {
+                    Ok((_, status)) => Response::Coarse(status),
+                    Err(reason) => nack(reason),
+                }
+            }
         };
         match done {
             Ok(()) => Response::Ack {
@@ -580,4 +595,51 @@ where
     control
         .lock(|c| c.arm_capture(r.signals, r.samples, r.pre_trigger, r.trigger, r.decimation))
         .map_err(|_| refused(Field::RecordCount, Rule::AtMost(max_frames as f64)))
+}
+
+/// The coarse axis's limits and latest status, read in one short lock; refused when the image
+/// has no coarse axis (built without `dual-stage`, or its settings refused at boot).
+fn coarse_snapshot<B, C, L>(control: &mut L) -> Result<(CoarseLimits, CoarseStatus), NackReason>
+where
+    B: SampleStore,
+    C: DerefMut<Target = Controller>,
+    L: Mutex<T = ControlLoop<B, C>>,
+{
+    #[cfg(feature = "dual-stage")]
+    {
+        let (limits, status) = control.lock(|c| (c.coarse().limits(), c.coarse().status()));
+        limits
+            .map(|l| (l, status))
+            .ok_or(refused(Field::CoarseAxis, Rule::NoHardware))
+    }
+    #[cfg(not(feature = "dual-stage"))]
+    {
+        let _ = control;
+        Err(refused(Field::CoarseAxis, Rule::NoHardware))
+    }
+}
+
+/// A coarse request: validated (outside any lock: it is floating-point work) against the
+/// axis's latest status, then left for the coarse task in one short lock. The coarse task
+/// checks it again against the state it is in when it takes it.
+#[inline(never)] // rare: one copy, not one per caller
+fn coarse<B, C, L>(
+    control: &mut L,
+    check: impl FnOnce(&CoarseLimits, &CoarseStatus) -> Result<CoarseCommand, CoarseRefusal>,
+) -> Result<(), NackReason>
+where
+    B: SampleStore,
+    C: DerefMut<Target = Controller>,
+    L: Mutex<T = ControlLoop<B, C>>,
+{
+    let (limits, status) = coarse_snapshot(control)?;
+    let command = check(&limits, &status).map_err(|r| match r {
+        CoarseRefusal::Busy => NackReason::Busy,
+        CoarseRefusal::Refused(r) => NackReason::Refused(r),
+    })?;
+    #[cfg(feature = "dual-stage")]
+    control.lock(|c| c.coarse().request(command));
+    #[cfg(not(feature = "dual-stage"))]
+    let _ = command;
+    Ok(())
 }

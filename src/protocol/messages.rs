@@ -5,6 +5,7 @@
 //! That halves the bytes per sample, so that 2 Mbaud carries 50 000 setpoints/s with room for
 //! framing and acknowledgements.
 
+pub use crate::dual_stage::{CoarseState, CoarseStatus};
 pub use crate::recorder::{CaptureState, Signal, Trigger, MAX_CAPTURE_CHUNK, MAX_CHUNK};
 use crate::refusal::Refusal;
 pub use crate::setpoint_stream::UnderrunPolicy;
@@ -14,11 +15,11 @@ use serde::{Deserialize, Serialize};
 use super::frame::{FrameError, Message};
 
 impl Message for Request {
-    const VARIANTS: u32 = 15;
+    const VARIANTS: u32 = 20;
 }
 
 impl Message for Response {
-    const VARIANTS: u32 = 8;
+    const VARIANTS: u32 = 9;
 }
 
 /// Most setpoints one batch carries.
@@ -72,6 +73,20 @@ pub enum Request {
     /// Start or stop continuous telemetry (protocol v5): the board then sends
     /// [`Response::Telemetry`] frames, unsolicited, between its responses.
     Telemetry(TelemetryRequest),
+    /// Home the dual-actuated stage's coarse axis (protocol v5; clears a latched fault).
+    /// Acknowledged when the homing starts; [`Request::CoarseStatus`] shows its progress.
+    CoarseHome,
+    /// Move the coarse axis to a position (homed axis, target within the travel).
+    CoarseMove(CoarseMove),
+    /// Jog the coarse axis toward a soft travel limit until [`Request::CoarseStop`].
+    CoarseJog {
+        /// Speed, mm/s; positive toward the upper limit.
+        velocity_mm_s: f64,
+    },
+    /// Controlled stop of the coarse axis (it brakes at the move's acceleration).
+    CoarseStop,
+    /// Read the coarse axis's status (answered with [`Response::Coarse`]).
+    CoarseStatus,
 }
 
 /// Start or stop continuous telemetry.
@@ -115,6 +130,17 @@ pub struct TelemetryFrame {
     pub end: bool,
     /// The samples' values, frame-interleaved (one per signal per sample).
     pub values: heapless::Vec<i16, MAX_TELEMETRY_VALUES>,
+}
+
+/// A coarse move: target and trapezoid, in millimetres.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct CoarseMove {
+    /// Target position (user coordinates, relative to the home reference), mm.
+    pub target_mm: f64,
+    /// Cruise speed, mm/s (> 0, at most the coarse stage's limit).
+    pub velocity_mm_s: f64,
+    /// Acceleration, mm/s² (> 0, at most the coarse stage's limit).
+    pub acceleration_mm_s2: f64,
 }
 
 /// Arm a multi-signal capture: `samples` frames of the signals in `signals`, `pre_trigger` of
@@ -279,6 +305,8 @@ pub enum Response {
     /// Unsolicited (protocol v5): telemetry samples, sent between responses while telemetry
     /// runs. It answers no request: a host matching responses to requests sets it aside.
     Telemetry(TelemetryFrame),
+    /// The coarse axis's status (the answer to [`Request::CoarseStatus`]).
+    Coarse(CoarseStatus),
 }
 
 /// Why a request was refused. Wire-stable: variants are only appended.

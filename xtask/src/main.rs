@@ -38,6 +38,15 @@ const TARGET_CLIPPY: &[(&str, &[&str])] = &[
         &["--bin", "twinstack-fw", "--features", "dual-stage"],
     ),
     (
+        "twinstack-emu (emulator, dual-stage)",
+        &[
+            "--bin",
+            "twinstack-emu",
+            "--features",
+            "emulator,dual-stage",
+        ],
+    ),
+    (
         "QEMU test images (tick-bench, irq-bench, safe-state-probe, golden-replay)",
         &["-p", "twinstack-qemu-images", "--bins"],
     ),

@@ -1,7 +1,7 @@
 //! The `hal-sim` subcommands, one module each: `run(&Args) -> anyhow::Result<()>`.
 //!
 //! Board commands (`calibrate`, `stream`, `load`, `params`, `mode`, `recall`, `status`,
-//! `waveform`, `stop`, `record`, `telemetry`) share
+//! `waveform`, `stop`, `record`, `telemetry`, `coarse`) share
 //! [`board_link`]'s `--port` / `--baud` / `--timeout-ms`.
 
 /// The exit codes of every `hal-sim` command, as `hal-sim --help` lists them.
@@ -25,6 +25,7 @@ pub const EXIT_USAGE: u8 = 2;
 pub mod board_link;
 pub mod calibrate;
 pub mod closed_loop;
+pub mod coarse;
 pub mod compensate;
 pub mod demo;
 pub mod dual_stage;

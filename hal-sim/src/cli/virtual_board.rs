@@ -28,6 +28,10 @@ pub struct Args {
     /// Baud rate of the board's modelled UART (the pace of its bytes in simulated time).
     #[arg(long, default_value_t = DEFAULT_BAUD)]
     pub baud: u32,
+    /// Serve the dual-stage board (the piezo stage on the ball screw, its coarse axis behind
+    /// `hal-sim coarse`) instead of the default one; TCP only, 50 kHz.
+    #[arg(long)]
+    pub dual_stage: bool,
 }
 
 /// Runs `virtual-board`.
@@ -66,14 +70,30 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         format!("{}× real time", args.speed)
     };
     let Some(address) = address else {
+        if args.dual_stage {
+            anyhow::bail!(
+                "--dual-stage: serve it on tcp:HOST:PORT (the pty server runs the default board)"
+            );
+        }
         return serve_pty(config, args.speed, &speed);
     };
     let listener = TcpListener::bind(&address)
         .map_err(|e| anyhow::anyhow!("cannot listen on {address}: {e}"))?;
     let local = listener.local_addr()?;
-    println!("virtual board listening on tcp:{local} ({speed}; Ctrl-C stops it)");
+    let which = if args.dual_stage { "dual-stage " } else { "" };
+    println!("virtual {which}board listening on tcp:{local} ({speed}; Ctrl-C stops it)");
     std::io::stdout().flush()?;
     let stop = AtomicBool::new(false);
+    if args.dual_stage {
+        let device = crate::coarse_rig::DualStageDevice::dual_stage(
+            &crate::coarse_rig::DualStageDeviceConfig {
+                baud: args.baud,
+                ..crate::coarse_rig::DualStageDeviceConfig::paper()
+            },
+        )?;
+        virtual_board::serve_device(listener, device, args.speed, &stop)?;
+        return Ok(());
+    }
     virtual_board::serve(listener, config, args.speed, &stop)?;
     Ok(())
 }

@@ -21,9 +21,9 @@ use std::time::{Duration, Instant};
 use twinstack::protocol::decoder::FrameDecoder;
 use twinstack::protocol::frame::{self, FrameError, MAX_ENCODED};
 use twinstack::protocol::messages::{
-    CaptureRequest, CaptureStatus, Mode, NackReason, RecordRequest, Request, Response,
-    StatusReport, StreamControl, TelemetryFrame, TelemetryRequest, Waveform, MAX_CAPTURE_CHUNK,
-    MAX_CHUNK,
+    CaptureRequest, CaptureStatus, CoarseStatus, Mode, NackReason, RecordRequest, Request,
+    Response, StatusReport, StreamControl, TelemetryFrame, TelemetryRequest, Waveform,
+    MAX_CAPTURE_CHUNK, MAX_CHUNK,
 };
 use twinstack::settings::Settings;
 
@@ -93,6 +93,11 @@ pub fn request_name(request: &Request) -> &'static str {
         Request::CaptureStatus => "CaptureStatus",
         Request::ReadCapture { .. } => "ReadCapture",
         Request::Telemetry(_) => "Telemetry",
+        Request::CoarseHome => "CoarseHome",
+        Request::CoarseMove(_) => "CoarseMove",
+        Request::CoarseJog { .. } => "CoarseJog",
+        Request::CoarseStop => "CoarseStop",
+        Request::CoarseStatus => "CoarseStatus",
     }
 }
 
@@ -122,7 +127,9 @@ pub fn nack_text(reason: &NackReason) -> String {
         NackReason::Refused(r) => format!("refused: {r}; nothing was applied"),
         NackReason::NoStorage => "this board has no parameter storage".into(),
         NackReason::Busy => {
-            "busy: not while the stream or the waveform runs (stop it first)".into()
+            "busy: not now (the stream or the waveform runs: stop it first; or the coarse axis is \
+             homing or braking: wait for it)"
+                .into()
         }
         NackReason::NothingStored => "no valid settings are stored in flash".into(),
         NackReason::StoreFailed => "writing the flash record failed".into(),
@@ -488,6 +495,26 @@ impl<T: Transport> Client<T> {
                 got: format!("{other:?}"),
             }),
         }
+    }
+
+    /// The coarse axis's status (dual-stage boards).
+    pub fn coarse_status(&mut self) -> Result<CoarseStatus, LinkError> {
+        match self.request(&Request::CoarseStatus)? {
+            Response::Coarse(s) => Ok(s),
+            Response::Nack { reason } => Err(LinkError::Nack {
+                request: "CoarseStatus",
+                reason,
+            }),
+            other => Err(LinkError::Unexpected {
+                request: "CoarseStatus",
+                got: format!("{other:?}"),
+            }),
+        }
+    }
+
+    /// Sends a coarse-axis command (home, move, jog, stop); `Ok` once acknowledged.
+    pub fn coarse(&mut self, request: &Request) -> Result<(), LinkError> {
+        self.expect_ack(request).map(|_| ())
     }
 
     /// Reads one chunk of a complete capture's window from `offset`.

@@ -30,11 +30,17 @@ mod app {
     use twinstack::control::Controller;
     use twinstack::control_loop::{ControlLoop, SetpointQueue, SETPOINT_QUEUE_LEN};
     #[cfg(feature = "dual-stage")]
-    use twinstack::dual_stage::{DualStage, DualStageSettings};
+    use twinstack::dual_stage::{
+        CoarseSupervisor, DualStage, DualStageSettings, SupervisorSettings,
+    };
     use twinstack::hardware::adc::SensorInput;
     use twinstack::hardware::clocks;
-    #[cfg(feature = "dual-stage")]
-    use twinstack::hardware::coarse_stage::{CoarseTimer, LinearEncoder, MotorEncoder, StepOutput};
+    #[cfg(all(feature = "dual-stage", not(feature = "emulator")))]
+    use twinstack::hardware::coarse_stage::{
+        BoardSwitches, CoarseTimer, LinearEncoder, MotorEncoder, StepOutput,
+    };
+    #[cfg(all(feature = "dual-stage", feature = "emulator"))]
+    use twinstack::dual_stage::ideal_axis::{AxisEncoder, AxisSteps, AxisSwitches, IdealAxis};
     use twinstack::hardware::control_timer::ControlTimer;
     use twinstack::hardware::dac::InternalDac;
     use twinstack::hardware::param_flash;
@@ -103,27 +109,71 @@ mod app {
         }
     }
 
+    /// The coarse stage's peripherals on the board: TIM1 step bursts, TIM8 / TIM4 encoders,
+    /// GPIO switches.
+    #[cfg(all(feature = "dual-stage", not(feature = "emulator")))]
+    type CoarsePeripherals = (StepOutput, MotorEncoder, LinearEncoder, BoardSwitches);
+    /// In the emulator (QEMU models neither TIM1, TIM8 nor the GPIOs): the library's model of
+    /// them behind the same traits ([`IdealAxis`]).
+    #[cfg(all(feature = "dual-stage", feature = "emulator"))]
+    type CoarsePeripherals = (
+        AxisSteps<'static>,
+        AxisEncoder<'static>,
+        AxisEncoder<'static>,
+        AxisSwitches<'static>,
+    );
+
+    /// Every how many control ticks the emulator pends the coarse task (QEMU's TIM3 update
+    /// interrupt is unreliable, so the SysTick tick paces it); 0: never.
+    #[cfg(all(feature = "dual-stage", feature = "emulator"))]
+    static COARSE_EVERY: core::sync::atomic::AtomicU32 = core::sync::atomic::AtomicU32::new(0);
+
     /// Everything the coarse-stage task owns.
     #[cfg(feature = "dual-stage")]
     pub struct CoarseStage {
         /// `None` when the dual-stage settings are refused for this tick rate (logged at boot).
-        dual: Option<DualStage>,
-        steps: StepOutput,
-        motor: MotorEncoder,
-        linear: LinearEncoder,
+        axis: Option<CoarseSupervisor>,
+        io: CoarsePeripherals,
+        /// The model behind `io` (emulator).
+        #[cfg(feature = "emulator")]
+        model: &'static IdealAxis,
+        #[cfg(not(feature = "emulator"))]
         timer: CoarseTimer,
     }
 
     #[cfg(feature = "dual-stage")]
     impl CoarseStage {
-        /// One coarse tick. A refused burst (the last one still running) keeps its steps for
-        /// the next tick.
-        fn run(&mut self) {
+        /// One coarse tick: the handler's pending command and the piezo's last measurement are
+        /// taken in one short lock of the control tick, the supervisor runs (a refused burst
+        /// keeps its steps for the next tick), then, in a second short lock, its fine setpoints
+        /// and status go to the tick's ramp.
+        fn run(&mut self, tick: &mut impl rtic::Mutex<T = ControlTick>) {
+            #[cfg(not(feature = "emulator"))]
             self.timer.acknowledge();
-            if let Some(dual) = self.dual.as_mut() {
-                let _report =
-                    dual.coarse_tick(&mut self.steps, &mut self.motor, &mut self.linear, None);
+            let Some(axis) = self.axis.as_mut() else {
+                return;
+            };
+            let (steps, motor, linear, switches) = &mut self.io;
+            // The handler's command and the piezo's measurement of the last fine tick (the
+            // carriage estimate subtracts it from the linear encoder's).
+            let (command, measured) = tick.lock(|t| t.control.coarse().take());
+            if let Some(command) = command {
+                // Refused now (the state changed since the handler's check): the status says
+                // what the axis does instead.
+                let _ = axis.command(command);
             }
+            // The emulator has no piezo (QEMU's ADC reads 0): no measurement; the model's
+            // piezo sits where its setpoint is.
+            #[cfg(feature = "emulator")]
+            let measured = {
+                let _ = measured;
+                None
+            };
+            let fine = axis.tick(steps, motor, linear, switches, measured);
+            #[cfg(feature = "emulator")]
+            self.model.set_piezo_pm(axis.dual().fine_to_pm(fine.to));
+            let status = axis.status();
+            tick.lock(|t| t.control.post_coarse(&fine, status));
         }
     }
 
@@ -133,7 +183,7 @@ mod app {
 
     #[cfg(not(feature = "dual-stage"))]
     impl CoarseStage {
-        fn run(&mut self) {}
+        fn run(&mut self, _tick: &mut impl rtic::Mutex<T = ControlTick>) {}
     }
 
     #[shared]
@@ -146,6 +196,10 @@ mod app {
         /// Shared by the command task (frames in) and, on the board, the DMA2 stream 7
         /// interrupt (the next buffer on the line).
         uplink: Uplink,
+        /// The coarse task's state: one task runs it (TIM3 on the board, EXTI1 in the
+        /// emulator; both bindings exist for RTIC, only one ever fires), so no lock.
+        #[lock_free]
+        coarse: CoarseStage,
     }
 
     #[local]
@@ -154,7 +208,6 @@ mod app {
         bytes_in: Consumer<'static, u8, RX_QUEUE>,
         setpoints_in: Producer<'static, i16, SETPOINT_QUEUE_LEN>,
         telemetry_out: Consumer<'static, TelemetrySample, TELEMETRY_QUEUE_LEN>,
-        coarse: CoarseStage,
     }
 
     #[init(local = [
@@ -247,44 +300,98 @@ mod app {
         // The coarse stage (feature `dual-stage`): settings refused for this tick rate leave it
         // idle, not the board.
         #[cfg(feature = "dual-stage")]
-        let coarse = {
-            let gpiob = dp.GPIOB.split(&mut rcc);
-            let gpioc = dp.GPIOC.split(&mut rcc);
-            let _step_pin = gpioa.pa8.into_alternate::<1>();
-            let dir_pin = gpiob.pb0.into_push_pull_output();
-            let _linear_a = gpiob.pb6.into_alternate::<2>();
-            let _linear_b = gpiob.pb7.into_alternate::<2>();
-            let _motor_a = gpioc.pc6.into_alternate::<3>();
-            let _motor_b = gpioc.pc7.into_alternate::<3>();
+        let mut coarse = {
             let dual_settings = DualStageSettings {
                 fine_rate_hz: rate as f64,
                 ..DualStageSettings::paper_stage()
             };
-            let coarse_rate = dual_settings.coarse_rate_hz as u32;
-            let steps = StepOutput::new(dp.TIM1, dir_pin, &rcc, &bus, coarse_rate);
-            let mut motor = MotorEncoder::new(dp.TIM8, &rcc);
-            let mut linear = LinearEncoder::new(dp.TIM4, &rcc);
-            let dual = match dual_settings.build() {
+            #[cfg(not(feature = "emulator"))]
+            let (mut io, timer) = {
+                let coarse_rate = dual_settings.coarse_rate_hz as u32;
+                let gpiob = dp.GPIOB.split(&mut rcc);
+                let gpioc = dp.GPIOC.split(&mut rcc);
+                let _step_pin = gpioa.pa8.into_alternate::<1>();
+                let dir_pin = gpiob.pb0.into_push_pull_output();
+                let _linear_a = gpiob.pb6.into_alternate::<2>();
+                let _linear_b = gpiob.pb7.into_alternate::<2>();
+                let _motor_a = gpioc.pc6.into_alternate::<3>();
+                let _motor_b = gpioc.pc7.into_alternate::<3>();
+                let switches = BoardSwitches::new(
+                    gpioc.pc0.into_pull_up_input(),
+                    gpioc.pc1.into_pull_up_input(),
+                    gpioc.pc2.into_pull_up_input(),
+                );
+                let steps = StepOutput::new(dp.TIM1, dir_pin, &rcc, &bus, coarse_rate);
+                let motor = MotorEncoder::new(dp.TIM8, &rcc);
+                let linear = LinearEncoder::new(dp.TIM4, &rcc);
+                let timer = CoarseTimer::start(dp.TIM3, &rcc, &bus, coarse_rate);
+                ((steps, motor, linear, switches), timer)
+            };
+            #[cfg(feature = "emulator")]
+            let model: &'static IdealAxis;
+            #[cfg(feature = "emulator")]
+            let mut io = {
+                // The paper stage's screw: 0.3125 µm per microstep, 0.25 µm per motor count,
+                // 5 nm per linear count; home switch 1 mm below the power-up position, limit
+                // switches 2 mm below and 49 mm above (the travel is 50 mm from the home's −24).
+                let Some(axis) = cortex_m::singleton!(AXIS: IdealAxis = IdealAxis::new(
+                    312_500,
+                    250_000,
+                    5_000,
+                    (-2_000_000_000, -1_000_000_000, 49_000_000_000),
+                )) else {
+                    panic!("coarse model already taken");
+                };
+                let axis: &'static IdealAxis = axis;
+                model = axis;
+                (axis.step_dir(), axis.motor(), axis.linear(), axis.switches())
+            };
+            let supervisor = match dual_settings.build() {
                 Ok(config) => {
                     use twinstack::board::QuadratureEncoder;
-                    Some(DualStage::new(config, 0, motor.count(), linear.count()))
+                    let dual = DualStage::new(config, 0, io.1.count(), io.2.count());
+                    match SupervisorSettings::paper_stage()
+                        .build(dual.config(), dual_settings.coarse_rate_hz)
+                    {
+                        Ok(c) => Some(CoarseSupervisor::new(dual, c)),
+                        Err(e) => {
+                            defmt::warn!("coarse stage idle: settings refused ({=str})", e.as_str());
+                            None
+                        }
+                    }
                 }
                 Err(e) => {
                     defmt::warn!("coarse stage idle: settings refused ({=str})", e.as_str());
                     None
                 }
             };
+            #[cfg(feature = "emulator")]
+            if let Some(s) = &supervisor {
+                COARSE_EVERY.store(
+                    s.dual().config().fine_ticks,
+                    core::sync::atomic::Ordering::Relaxed,
+                );
+            }
             CoarseStage {
-                dual,
-                steps,
-                motor,
-                linear,
-                timer: CoarseTimer::start(dp.TIM3, &rcc, &bus, coarse_rate),
+                axis: supervisor,
+                io,
+                #[cfg(feature = "emulator")]
+                model,
+                #[cfg(not(feature = "emulator"))]
+                timer,
             }
         };
         #[cfg(not(feature = "dual-stage"))]
         let coarse = CoarseStage;
 
+        #[cfg(feature = "dual-stage")]
+        let mut control = control;
+        #[cfg(feature = "dual-stage")]
+        if let Some(axis) = coarse.axis.as_mut() {
+            control.coarse().attach(axis.limits(), axis.status());
+        }
+        #[cfg(feature = "dual-stage")]
+        let coarse = coarse;
         let (setpoints_in, setpoints) = cx.local.setpoint_queue.split();
         let (bytes, bytes_in) = cx.local.rx_queue.split();
         let (telemetry, telemetry_out) = cx.local.telemetry_queue.split();
@@ -307,13 +414,13 @@ mod app {
                 },
                 receiver: Receiver { rx, bytes },
                 uplink,
+                coarse,
             },
             Local {
                 handler,
                 bytes_in,
                 setpoints_in,
                 telemetry_out,
-                coarse,
             },
         )
     }
@@ -338,17 +445,42 @@ mod app {
         cx.shared.tick.lock(|t| t.run());
     }
 
-    /// The control tick in the emulator: SysTick.
+    /// The control tick in the emulator: SysTick. With the coarse axis, every `fine_ticks`
+    /// ticks it also pends the coarse task (EXTI1).
     #[cfg(feature = "emulator")]
-    #[task(binds = SysTick, priority = 3, shared = [tick])]
+    #[task(binds = SysTick, priority = 3, shared = [tick], local = [since_coarse: u32 = 0])]
     fn systick_tick(mut cx: systick_tick::Context) {
         cx.shared.tick.lock(|t| t.run());
+        #[cfg(feature = "dual-stage")]
+        {
+            let every = COARSE_EVERY.load(core::sync::atomic::Ordering::Relaxed);
+            *cx.local.since_coarse += 1;
+            if every != 0 && *cx.local.since_coarse >= every {
+                *cx.local.since_coarse = 0;
+                rtic::pend(Interrupt::EXTI1);
+            }
+        }
+        #[cfg(not(feature = "dual-stage"))]
+        let _ = cx.local.since_coarse;
     }
 
-    /// The coarse stage's tick: TIM3 update (started only with the `dual-stage` feature).
-    #[task(binds = TIM3, priority = 2, local = [coarse])]
+    /// The coarse stage's tick on the board: TIM3 update (started only with the `dual-stage`
+    /// feature).
+    #[cfg(not(feature = "emulator"))]
+    #[task(binds = TIM3, priority = 2, shared = [coarse, tick])]
     fn coarse_tick(cx: coarse_tick::Context) {
-        cx.local.coarse.run();
+        let shared = cx.shared;
+        let mut tick = shared.tick;
+        shared.coarse.run(&mut tick);
+    }
+
+    /// The coarse stage's tick in the emulator: EXTI1, pended by the SysTick tick.
+    #[cfg(feature = "emulator")]
+    #[task(binds = EXTI1, priority = 2, shared = [coarse, tick])]
+    fn coarse_pended(cx: coarse_pended::Context) {
+        let shared = cx.shared;
+        let mut tick = shared.tick;
+        shared.coarse.run(&mut tick);
     }
 
     /// USART1: idle line (board) or a received byte (emulator).

@@ -1,0 +1,235 @@
+//! Where the coarse task, the piezo tick and the command handler meet on the board: a
+//! [`CoarseLink`] inside the control loop (feature `dual-stage`), reached by each through the
+//! tick's lock, a few stores at a time.
+//!
+//! * The **coarse task** (once per coarse period) first [`CoarseLink::take`]s the handler's
+//!   pending command and the piezo's last measurement, runs its tick, then
+//!   [`CoarseLink::post`]s the piezo's setpoints for the coming period (a [`FineRamp`],
+//!   prepared here — the one division is off the tick) and its status.
+//! * The **piezo tick** takes its setpoint from the ramp ([`FineRamp::next_setpoint`]: an add and a
+//!   compare, no division) instead of the setpoint stream once the coarse task has posted one,
+//!   and leaves its measurement for the coarse task.
+//! * The **command handler** validates a request against the latest status and the limits
+//!   ([`super::CoarseLimits`]), answers at once, and leaves the command for the coarse task.
+
+use super::controller::FineSetpoints;
+use super::supervisor::{CoarseCommand, CoarseLimits, CoarseStatus};
+
+/// The piezo's setpoint over one coarse period: a linear ramp from where the tick is to the
+/// period's end value, one step per fine tick; it holds the end value if the next period's
+/// ramp is late.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct FineRamp {
+    engaged: bool,
+    /// Setpoint of the last tick, Q2.30.
+    current: i32,
+    /// End of the ramp, Q2.30.
+    to: i32,
+    /// Change per tick, Q2.30.
+    step: i32,
+    /// Ticks left.
+    remaining: u32,
+}
+
+impl FineRamp {
+    /// Not engaged: the tick takes its setpoint from the stream.
+    ///
+    /// ```
+    /// use twinstack::dual_stage::{FineRamp, FineSetpoints};
+    /// let mut ramp = FineRamp::new();
+    /// assert_eq!(ramp.next_setpoint(), None);
+    /// ramp.post(0, &FineSetpoints { from: 0, to: 1000, ticks: 10 });
+    /// assert_eq!(ramp.next_setpoint(), Some(100));
+    /// ```
+    pub const fn new() -> Self {
+        Self {
+            engaged: false,
+            current: 0,
+            to: 0,
+            step: 0,
+            remaining: 0,
+        }
+    }
+
+    /// A new period's ramp, from the setpoint the tick uses now (`current`, Q2.30: the last
+    /// ramp's, or the stream's before the first) to `fine.to` over `fine.ticks` ticks. Off the
+    /// tick (it divides).
+    pub fn post(&mut self, current: i32, fine: &FineSetpoints) {
+        let from = if self.engaged { self.current } else { current };
+        let ticks = fine.ticks.max(1);
+        let span = fine.to as i64 - from as i64;
+        self.step = span.checked_div(ticks as i64).unwrap_or(0) as i32;
+        self.current = from;
+        self.to = fine.to;
+        self.remaining = ticks;
+        self.engaged = true;
+    }
+
+    /// The setpoint of this tick (Q2.30), or `None` when not engaged. The last tick of a
+    /// ramp lands on its end exactly.
+    #[inline(always)]
+    pub fn next_setpoint(&mut self) -> Option<i32> {
+        if !self.engaged {
+            return None;
+        }
+        if self.remaining > 1 {
+            self.remaining -= 1;
+            self.current = self.current.saturating_add(self.step);
+        } else {
+            self.remaining = 0;
+            self.current = self.to;
+        }
+        Some(self.current)
+    }
+
+    /// Whether the coarse task owns the piezo's setpoint.
+    pub fn is_engaged(&self) -> bool {
+        self.engaged
+    }
+}
+
+/// The coarse axis's mailbox in the control loop (see the module doc).
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct CoarseLink {
+    ramp: FineRamp,
+    measured: Option<i32>,
+    command: Option<CoarseCommand>,
+    status: CoarseStatus,
+    limits: Option<CoarseLimits>,
+}
+
+impl CoarseLink {
+    /// No coarse axis yet (the handler refuses coarse requests until the coarse task
+    /// [`CoarseLink::attach`]es).
+    ///
+    /// ```
+    /// use twinstack::dual_stage::CoarseLink;
+    /// let mut link = CoarseLink::new();
+    /// assert!(link.limits().is_none() && !link.is_engaged());
+    /// assert_eq!(link.next_setpoint(), None);
+    /// ```
+    pub const fn new() -> Self {
+        Self {
+            ramp: FineRamp::new(),
+            measured: None,
+            command: None,
+            status: CoarseStatus {
+                state: super::CoarseState::Unhomed,
+                homed: false,
+                faults: 0,
+                switches: 0,
+                position_pm: 0,
+                setpoint_pm: 0,
+                following_error_pm: 0,
+                fine_setpoint: 0,
+                ticks: 0,
+            },
+            limits: None,
+        }
+    }
+
+    /// The coarse task is there, with these limits and this status.
+    pub fn attach(&mut self, limits: CoarseLimits, status: CoarseStatus) {
+        self.limits = Some(limits);
+        self.status = status;
+    }
+
+    /// The limits requests are validated against, `None` without a coarse axis.
+    pub fn limits(&self) -> Option<CoarseLimits> {
+        self.limits
+    }
+
+    /// The latest status (at most one coarse period old).
+    pub fn status(&self) -> CoarseStatus {
+        self.status
+    }
+
+    /// Leaves a validated command for the coarse task (replacing one it has not taken yet).
+    pub fn request(&mut self, command: CoarseCommand) {
+        self.command = Some(command);
+    }
+
+    /// The coarse task's side, first, once per period: the handler's pending command (taken)
+    /// and the piezo's last measurement, so the tick that follows acts on both.
+    pub fn take(&mut self) -> (Option<CoarseCommand>, Option<i32>) {
+        (self.command.take(), self.measured)
+    }
+
+    /// The coarse task's side, second: posts the period's fine setpoints (ramping from
+    /// `current`, the tick's setpoint now) and the status after its tick.
+    pub fn post(&mut self, current: i32, fine: &FineSetpoints, status: CoarseStatus) {
+        self.ramp.post(current, fine);
+        self.status = status;
+    }
+
+    /// The tick's side: this tick's setpoint from the ramp, `None` when the coarse task has
+    /// not engaged it.
+    #[inline(always)]
+    pub fn next_setpoint(&mut self) -> Option<i32> {
+        self.ramp.next_setpoint()
+    }
+
+    /// The tick's side: the piezo's measurement (Q2.30), for the next coarse tick.
+    #[inline(always)]
+    pub fn record_measured(&mut self, measured: i32) {
+        self.measured = Some(measured);
+    }
+
+    /// Whether the coarse task owns the piezo's setpoint.
+    pub fn is_engaged(&self) -> bool {
+        self.ramp.is_engaged()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_ramp_starts_where_the_tick_is_and_lands_on_the_end() {
+        let mut r = FineRamp::new();
+        assert_eq!(r.next_setpoint(), None);
+        r.post(
+            1000,
+            &FineSetpoints {
+                from: 0,
+                to: 2003,
+                ticks: 10,
+            },
+        );
+        let v: [i32; 12] = core::array::from_fn(|_| r.next_setpoint().unwrap());
+        assert_eq!(v[0], 1100);
+        assert_eq!(v[9], 2003);
+        assert_eq!(v[11], 2003, "holds when the next ramp is late");
+        for w in v.windows(2) {
+            assert!((w[1] - w[0]).abs() <= 104);
+        }
+        // The next ramp starts from where this one is, not from the stream's setpoint.
+        r.post(
+            -5,
+            &FineSetpoints {
+                from: 0,
+                to: 2003,
+                ticks: 10,
+            },
+        );
+        assert_eq!(r.next_setpoint(), Some(2003));
+    }
+
+    #[test]
+    fn a_late_post_continues_from_the_held_value() {
+        let mut r = FineRamp::new();
+        let f = |to| FineSetpoints {
+            from: 0,
+            to,
+            ticks: 4,
+        };
+        r.post(0, &f(400));
+        for _ in 0..2 {
+            r.next_setpoint();
+        }
+        // Posted early (the coarse period ran short): from 200, not from 400.
+        r.post(0, &f(0));
+        assert_eq!(r.next_setpoint(), Some(150));
+    }
+}
