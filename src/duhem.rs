@@ -204,7 +204,18 @@ impl InverseDuhem {
         // the largest step the cap allows); IEEE division and conversion round the same on
         // the host and the M4, so host and board still agree bit for bit (golden vectors).
         // The slope is at least min_slope ≥ 1 (no division by zero); `as i32` saturates.
-        let m = (((dy.abs() as f32) / (slope as f32)) * (1u32 << GAIN_FRAC_BITS) as f32) as i32;
+        // |Δy| < 2^32 (two Q2.30 values) and a slope below 2^32 convert from `u32` with one
+        // `VCVT` each (from `i64`, the same value rounds the same, but it is a library call,
+        // `__aeabi_l2f`, ~35 instructions); a larger slope (not reached by validated models)
+        // keeps the `i64` conversion.
+        let to_f32 = |v: i64| {
+            if (0..1 << 32).contains(&v) {
+                v as u32 as f32
+            } else {
+                v as f32
+            }
+        };
+        let m = ((to_f32(dy.abs()) / to_f32(slope)) * (1u32 << GAIN_FRAC_BITS) as f32) as i32;
         let m = (m as i64).min(self.max_step as i64);
         let du = if dy > 0 { m } else { -m };
         let u = clamp_full_scale(saturate_i64(state.u as i64 + du));

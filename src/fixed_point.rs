@@ -150,6 +150,18 @@ pub fn q60_to_signal_floor(acc: i64) -> i32 {
     floor_shift_saturated::<{ Q60_FRAC_BITS - SIGNAL_FRAC_BITS }>(acc)
 }
 
+/// Fractional bits of the packed play-operator bank's sum (Q25.39 in `i64`): Q8.24 weights
+/// times Q1.15 operator outputs (see [`crate::play_operator`]).
+pub const Q39_FRAC_BITS: u32 = GAIN_FRAC_BITS + 15;
+
+/// Converts a Q25.39 accumulator (the packed bank's sum) to a Q2.30 signal, rounding toward
+/// −∞ and saturating exactly to the `i32` range: as [`q54_to_signal_floor`], with 9 bits
+/// dropped.
+#[inline(always)]
+pub fn q39_to_signal_floor(acc: i64) -> i32 {
+    floor_shift_saturated::<{ Q39_FRAC_BITS - SIGNAL_FRAC_BITS }>(acc)
+}
+
 /// `acc >> DROPPED` (rounding toward −∞) saturated to `i32`, for `1 ≤ DROPPED ≤ 31`, on
 /// 32-bit words: the result is the high word shifted up by `32 − DROPPED` with the low
 /// word's top `DROPPED` bits below it, and it fits iff the high word fits `DROPPED` signed
@@ -252,6 +264,12 @@ mod tests {
         fn q60_floor_conversion_matches_the_i64_shift(acc in proptest::num::i64::ANY, shift in 0u32..40) {
             let acc = acc >> shift;
             proptest::prop_assert_eq!(q60_to_signal_floor(acc), saturate_i64(acc >> SIGNAL_FRAC_BITS));
+        }
+
+        #[test]
+        fn q39_floor_conversion_matches_the_i64_shift(acc in proptest::num::i64::ANY, shift in 0u32..40) {
+            let acc = acc >> shift;
+            proptest::prop_assert_eq!(q39_to_signal_floor(acc), saturate_i64(acc >> 9));
         }
     }
 

@@ -37,7 +37,8 @@
 //! and no unbounded loop.
 #![no_std]
 // Host builds forbid `unsafe` outright; the firmware build only denies it, so that the
-// register-level `hardware` module (and nothing else) can opt in with `#[allow(unsafe_code)]`.
+// register-level `hardware` module can opt in with `#[allow(unsafe_code)]`, and so can the
+// five dual-16-bit DSP instructions of `play_operator` (one `asm!` each, registers only).
 #![cfg_attr(not(target_os = "none"), forbid(unsafe_code))]
 #![cfg_attr(target_os = "none", deny(unsafe_code))]
 #![warn(missing_docs)]

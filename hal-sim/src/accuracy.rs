@@ -3,6 +3,17 @@
 //!
 //! Errors are reported in LSB of a 16-bit output over the configured output range (forward
 //! models) or input range (inverse models): `LSB16 = span / 65536`.
+//!
+//! Each row also carries the bound its arithmetic guarantees ([`AccuracyRow::bound_lsb16`]).
+//! For the models built on a play-operator bank (P–I, generalised P–I), whose operators run on
+//! a Q1.15 grid (one grid step is 1 LSB16): each operator's output is within 1.5 LSB16 of the
+//! `f64` operator's — half a step for the rounded input (and the rounded initial state; a
+//! whole step at +1, which the lane's top `1 − 2^-15` misses), half a step for the rounded
+//! threshold; the play operator is 1-Lipschitz in both — so the sum is within `1.5·Σ|w_i|`
+//! LSB16 (`Σ|w_i|` the bank's gain, from its Q8.24 weights), times the forward map's
+//! largest slope for the generalised P–I observer, plus 0.05 LSB16 for the weights' and the
+//! map's rounding. For the other models the fixed bounds of their scalar arithmetic: 0.1
+//! LSB16 forward, 0.5 inverse.
 
 use crate::reference;
 use twinstack::bouc_wen::{BoucWen, InverseBoucWen};
@@ -27,6 +38,9 @@ pub struct AccuracyRow {
     pub rms_lsb16: f64,
     /// Samples compared.
     pub samples: usize,
+    /// The largest error the arithmetic allows for the models measured, in LSB16 (see the
+    /// module doc).
+    pub bound_lsb16: f64,
 }
 
 /// A small deterministic generator (xorshift64*), so the figures are reproducible.
@@ -96,6 +110,17 @@ fn random_gpi(rng: &mut Rng, n: usize) -> (GpiParams, Scaling) {
     )
 }
 
+/// A bank's bound in LSB16: its gain `Σ|w_i|` (its Q8.24 weights) times 1.5 LSB16, how far
+/// each operator may be from the `f64` one (see the module doc).
+fn gain(bank: &twinstack::prandtl_ishlinskii::PlayOperatorBank) -> f64 {
+    1.5 * (0..bank.operators())
+        .map(|i| (bank.weight(i) as f64).abs() / (1u64 << 24) as f64)
+        .sum::<f64>()
+}
+
+/// Slack for the weights' (Q8.24) and the dead-zone maps' rounding, LSB16.
+const ROUNDING_SLACK: f64 = 0.05;
+
 /// A random piecewise-linear drive (normalised) with full-range steps mixed in.
 fn random_drive(rng: &mut Rng, samples: usize) -> Vec<f64> {
     let mut out = Vec::with_capacity(samples);
@@ -124,6 +149,7 @@ struct Stats {
     max: f64,
     sum_sq: f64,
     n: usize,
+    bound: f64,
 }
 impl Stats {
     fn new() -> Self {
@@ -131,7 +157,17 @@ impl Stats {
             max: 0.0,
             sum_sq: 0.0,
             n: 0,
+            bound: 0.0,
         }
+    }
+    /// A model measured into this row allows `bound` LSB16.
+    fn allow(&mut self, bound: f64) {
+        self.bound = self.bound.max(bound);
+    }
+    /// The fixed bound of a row of scalar arithmetic.
+    fn fixed(mut self, bound: f64) -> Self {
+        self.bound = bound;
+        self
     }
     fn add(&mut self, err_norm: f64) {
         let e = err_norm.abs() / LSB16;
@@ -145,6 +181,7 @@ impl Stats {
             max_lsb16: self.max,
             rms_lsb16: (self.sum_sq / self.n.max(1) as f64).sqrt(),
             samples: self.n,
+            bound_lsb16: self.bound,
         }
     }
 }
@@ -163,10 +200,14 @@ pub fn measure(seed: u64, models: usize, samples: usize) -> Vec<AccuracyRow> {
             let (p, s) = random_pi(&mut rng, n);
             let drive = random_drive(&mut rng, samples);
             let fwd = PrandtlIshlinskii::new(&p, &s).expect("valid");
+            fwd_stats.allow(gain(fwd.bank()) + ROUNDING_SLACK);
             let mut fs = fwd.state_at_rest(q(-1.0));
             let mut fr = reference::PrandtlIshlinskii::new(&p, &s, 0.0).expect("valid");
             // A random model whose inverse needs gains beyond Q8.24 is refused: skip it.
             let inv = InversePrandtlIshlinskii::new(&p, &s).ok();
+            if let Some(i) = &inv {
+                inv_stats.allow(gain(i.bank()) + ROUNDING_SLACK);
+            }
             let y0 = fr.clone().step(0.0);
             let mut ir = reference::InversePrandtlIshlinskii::new(&p, &s, 0.0).expect("valid");
             let mut is = inv.map(|i| i.state_at_rest(q(s.output_to_norm(y0))));
@@ -212,18 +253,24 @@ pub fn measure(seed: u64, models: usize, samples: usize) -> Vec<AccuracyRow> {
             comp.add(u_fix - u_ref);
         }
     }
-    rows.push(obs.row("Duhem observer".into()));
-    rows.push(comp.row("inverse Duhem".into()));
+    rows.push(obs.fixed(0.1).row("Duhem observer".into()));
+    rows.push(comp.fixed(0.5).row("inverse Duhem".into()));
     let mut fwd_stats = Stats::new();
     let mut inv_stats = Stats::new();
     for _ in 0..models {
         let (p, s) = random_gpi(&mut rng, 16);
         let drive = random_drive(&mut rng, samples);
         let fwd = GeneralisedPi::new(&p, &s).expect("valid");
+        let steepest =
+            p.dead_zones.linear + p.dead_zones.weights.iter().map(|g| g.abs()).sum::<f64>();
+        fwd_stats.allow(gain(fwd.pi().bank()) * steepest + ROUNDING_SLACK);
         let mut fs = fwd.state_at_rest(q(-1.0));
         let mut fr = reference::GeneralisedPi::new(&p, &s, 0.0).expect("valid");
         // A random model whose inverse needs gains beyond Q8.24 is refused: skip it.
         let inv = InverseGeneralisedPi::new(&p, &s).ok();
+        if let Some(i) = &inv {
+            inv_stats.allow(gain(i.pi().bank()) + ROUNDING_SLACK);
+        }
         let y0 = fr.clone().step(0.0);
         let mut ir = reference::InverseGeneralisedPi::new(&p, &s, 0.0).expect("valid");
         let mut is = inv.map(|i| i.state_at_rest(q(s.output_to_norm(y0))));
@@ -243,8 +290,8 @@ pub fn measure(seed: u64, models: usize, samples: usize) -> Vec<AccuracyRow> {
     rows.push(fwd);
     rows.push(inv);
     let (obs, comp) = bouc_wen(&mut rng, models, samples);
-    rows.push(obs.row("Bouc-Wen observer".into()));
-    rows.push(comp.row("inverse Bouc-Wen".into()));
+    rows.push(obs.fixed(0.1).row("Bouc-Wen observer".into()));
+    rows.push(comp.fixed(0.5).row("inverse Bouc-Wen".into()));
     rows
 }
 
@@ -279,8 +326,8 @@ fn measure_creep(rng: &mut Rng, models: usize, samples: usize) -> (AccuracyRow, 
         }
     }
     (
-        fwd_stats.row("creep, 4 modes".into()),
-        inv_stats.row("inverse creep, 4 modes".into()),
+        fwd_stats.fixed(0.1).row("creep, 4 modes".into()),
+        inv_stats.fixed(0.5).row("inverse creep, 4 modes".into()),
     )
 }
 

@@ -73,10 +73,16 @@ use twinstack::settings::{Mode, Model};
 use twinstack::Scaling;
 use twinstack_golden::{Recipe, VectorSet};
 
-/// Largest |stored drive − reference drive|, LSB16.
-pub const DRIVE_BOUND_LSB16: f64 = 0.5;
-/// Largest |stored estimate − reference observer|, LSB16.
-pub const ESTIMATE_BOUND_LSB16: f64 = 0.1;
+/// Largest |stored drive − reference drive|, LSB16. The P–I banks run their operators on a
+/// Q1.15 grid (1 LSB16 a step; see `hal_sim::accuracy`): an inverse's error is up to its
+/// gain `Σ|w'|` LSB16 in the worst case; on the sets' identified models it measures 1.07
+/// (`cargo run --release -p hal-sim -- golden`), and 1.5 leaves a margin. The scalar models
+/// (Duhem, Bouc–Wen, creep) stay below 0.03.
+pub const DRIVE_BOUND_LSB16: f64 = 1.5;
+/// Largest |stored estimate − reference observer|, LSB16: the P–I observers' Q1.15 grid (half
+/// a step of the drive and of each threshold, times the model's slope): 0.57 measured, 0.75
+/// allowed; the scalar observers stay below 0.003.
+pub const ESTIMATE_BOUND_LSB16: f64 = 0.75;
 /// Largest |stored code − exact code|, codes (half a code for rounding, plus the split's
 /// Q17.15 arithmetic: the voltage is rounded to 2^-15 code before it is rounded to a code,
 /// and the slew step and the bias are held to 2^-15 code).
