@@ -25,6 +25,8 @@
 //!   family: excite, identify, compensate, score (`hal-sim lab-stage`).
 //! * [`virtual_board`] — a [`sim_device::SimDevice`] served over TCP in real time, keeping its
 //!   state from one client to the next (`hal-sim virtual-board`).
+//! * [`session`] — what the board commands and the Python package share: the settings a load
+//!   sends and its checks, waveform and capture requests, the status as JSON.
 //! * [`cli`] — the `hal-sim` subcommands.
 
 pub mod accuracy;
@@ -45,6 +47,7 @@ pub mod param_file;
 pub mod plant;
 pub mod plot;
 pub mod reference;
+pub mod session;
 pub mod setpoint_file;
 pub mod sim_board;
 pub mod sim_device;

@@ -3,7 +3,6 @@
 //! range; `offset ± amplitude` must stay inside it). `hal-sim stop` stops it.
 
 use super::board_link::{connect, PortArgs};
-use anyhow::bail;
 use twinstack::protocol::messages::{WaveShape, Waveform};
 
 /// Arguments of `waveform`.
@@ -37,29 +36,16 @@ pub enum Shape {
 
 /// The request for `args`, or why the values cannot be sent.
 pub fn waveform_of(args: &Args) -> anyhow::Result<Waveform> {
-    let (o, a, f) = (args.offset, args.amplitude, args.frequency);
-    if !(o.is_finite() && a.is_finite() && f.is_finite()) {
-        bail!("--offset, --amplitude and --frequency must be finite numbers");
-    }
-    if !(0.0..=1.0).contains(&a) {
-        bail!("--amplitude {a}: must lie in 0…1 (normalised)");
-    }
-    if o - a < -1.0 || o + a > 1.0 {
-        bail!("--offset {o} ± --amplitude {a} leaves the normalised range -1…1");
-    }
-    let mhz = (f * 1000.0).round();
-    if !(1.0..=u32::MAX as f64).contains(&mhz) {
-        bail!("--frequency {f} Hz: must be at least 0.001 Hz");
-    }
-    Ok(Waveform {
-        shape: match args.shape {
-            Shape::Sine => WaveShape::Sine,
-            Shape::Triangle => WaveShape::Triangle,
-        },
-        offset: crate::setpoint_file::q1_15(o),
-        amplitude: crate::setpoint_file::q1_15(a),
-        frequency_mhz: mhz as u32,
-    })
+    let shape = match args.shape {
+        Shape::Sine => WaveShape::Sine,
+        Shape::Triangle => WaveShape::Triangle,
+    };
+    Ok(crate::session::waveform(
+        shape,
+        args.offset,
+        args.amplitude,
+        args.frequency,
+    )?)
 }
 
 /// Runs `waveform`.
