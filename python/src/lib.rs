@@ -45,6 +45,9 @@ pyo3::create_exception!(
     "A request the board refused (its NACK), or a parameter load refused before sending."
 );
 
+// The default baud in `Board`'s signature (a literal, so Python shows it) is the CLI's.
+const _: () = assert!(DEFAULT_BAUD == 2_000_000);
+
 /// How often a stream asks the interpreter whether Ctrl-C was pressed.
 const SIGNAL_CHECK: Duration = Duration::from_millis(50);
 
@@ -407,6 +410,7 @@ impl Params {
         Ok(Some(list))
     }
 
+    /// The model's kind, creep, ranges and output unit.
     fn __repr__(&self) -> String {
         let s = &self.model.scaling;
         format!(
@@ -545,7 +549,7 @@ impl Board {
         py: Python<'_>,
         f: impl FnOnce(&mut BoardClient) -> Result<T, LinkError> + Send,
     ) -> PyResult<T> {
-        self.with_py(py, |client, _| {
+        self.with_py(py, |client| {
             f(client).map_err(|e| Python::attach(|py| link_error(py, e)))
         })
     }
@@ -554,7 +558,7 @@ impl Board {
     fn with_py<T: Send>(
         &self,
         py: Python<'_>,
-        f: impl FnOnce(&mut BoardClient, ()) -> PyResult<T> + Send,
+        f: impl FnOnce(&mut BoardClient) -> PyResult<T> + Send,
     ) -> PyResult<T> {
         let mut guard = self.client.try_lock().map_err(|_| {
             PyRuntimeError::new_err(
@@ -564,20 +568,18 @@ impl Board {
         let client: &mut BoardClient = guard.as_mut().ok_or_else(|| {
             PyRuntimeError::new_err(format!("{}: the board is closed", self.port))
         })?;
-        py.detach(|| f(client, ()))
+        py.detach(|| f(client))
     }
 
-    fn convert_capture(
-        py: Python<'_>,
-        client: &mut BoardClient,
-        timeout: Duration,
-    ) -> PyResult<Vec<(String, Vec<f64>)>> {
-        let r: Result<_, PyErr> = py.detach(|| {
+    /// Waits for the capture armed on the board and reads it back in physical units: `t`,
+    /// then one column per signal.
+    fn read_capture(&self, py: Python<'_>, timeout: Duration) -> PyResult<Vec<(String, Vec<f64>)>> {
+        self.with_py(py, |client| {
             let err = |e: LinkError| Python::attach(|py| link_error(py, e));
             let settings = client.read_params().map_err(err)?;
             let (status, window) =
                 capture::wait_and_read(client, timeout, |_, _| {}).map_err(|e| match e {
-                    CaptureError::Link(l) => Python::attach(|py| link_error(py, l)),
+                    CaptureError::Link(l) => err(l),
                     e @ CaptureError::NotDone { .. } => PyTimeoutError::new_err(e.to_string()),
                 })?;
             let recording = capture::convert(&status, &settings, &window)
@@ -587,22 +589,11 @@ impl Board {
                 out.push((c.channel.name().to_string(), c.values));
             }
             Ok(out)
-        });
-        r
+        })
     }
 
     fn fetch_dict<'py>(&self, py: Python<'py>, timeout: f64) -> PyResult<Bound<'py, PyDict>> {
-        let wait = seconds(timeout, "timeout")?;
-        let columns = {
-            let mut guard = self
-                .client
-                .try_lock()
-                .map_err(|_| PyRuntimeError::new_err("the board is in use by another thread"))?;
-            let client = guard.as_mut().ok_or_else(|| {
-                PyRuntimeError::new_err(format!("{}: the board is closed", self.port))
-            })?;
-            Self::convert_capture(py, client, wait)?
-        };
+        let columns = self.read_capture(py, seconds(timeout, "timeout")?)?;
         let d = PyDict::new(py);
         for (name, values) in columns {
             d.set_item(name, array(py, values))?;
@@ -625,7 +616,7 @@ fn seconds(s: f64, name: &str) -> PyResult<Duration> {
 impl Board {
     /// Connects to the board at `port` and cleans the line.
     #[new]
-    #[pyo3(signature = (port, baud=DEFAULT_BAUD, timeout=2.0))]
+    #[pyo3(signature = (port, baud=2_000_000, timeout=2.0))]
     fn new(py: Python<'_>, port: &str, baud: u32, timeout: f64) -> PyResult<Self> {
         let timeout = seconds(timeout, "timeout")?;
         let spec: PortSpec = port.parse().map_err(port_error)?;
@@ -780,7 +771,7 @@ impl Board {
             drain: wait,
             ..StreamOptions::default()
         };
-        let report = self.with_py(py, |client, ()| {
+        let report = self.with_py(py, |client| {
             // Ctrl-C: asked of the interpreter every SIGNAL_CHECK, with its lock taken back
             // for the question only.
             let mut interrupt: Option<PyErr> = None;
@@ -939,16 +930,19 @@ impl Board {
         Ok(())
     }
 
+    /// The board itself (`with Board(port) as board:`).
     fn __enter__(slf: Py<Self>) -> Py<Self> {
         slf
     }
 
+    /// Closes the board at the end of a `with` block.
     #[pyo3(signature = (*_args))]
     fn __exit__(&self, _args: &Bound<'_, pyo3::types::PyTuple>) -> PyResult<bool> {
         self.close()?;
         Ok(false)
     }
 
+    /// `Board("port")`.
     fn __repr__(&self) -> String {
         format!("Board({:?})", self.port)
     }

@@ -6,13 +6,15 @@ empty array ``ValueError``. Arrays out are ``numpy.ndarray`` of float64.
 """
 
 from os import PathLike
-from typing import Any, Dict, List, Optional, Sequence, Tuple, Union
+from typing import Any, Dict, List, Optional, Sequence, Tuple, Union, final
 
 import numpy as np
 import numpy.typing as npt
 
-ArrayLike = Union[npt.ArrayLike, Sequence[float]]
-Signals = Union[str, Sequence[str]]
+__all__ = ["Board", "BoardError", "Params", "identify", "load_params"]
+
+_ArrayLike = Union[npt.ArrayLike, Sequence[float]]
+_Signals = Union[str, Sequence[str]]
 
 class BoardError(Exception):
     """A request the board refused (its NACK), or a parameter load refused before sending.
@@ -35,13 +37,14 @@ class BoardError(Exception):
     accepted: int
     """(A refused stream only.) Setpoints the board accepted before the refusal."""
 
+@final
 class Params:
     """An identified model and its parameter file: what ``hal-sim identify`` writes and
     ``hal-sim load`` sends. Made by :func:`identify`, :func:`load_params` or
     :meth:`Params.from_json`."""
 
     def predict(
-        self, u: ArrayLike, t: Optional[ArrayLike] = None, rate: Optional[float] = None
+        self, u: _ArrayLike, t: Optional[_ArrayLike] = None, rate: Optional[float] = None
     ) -> np.ndarray:
         """The model's predicted sensor reading (output unit) for the drive ``u`` (volts),
         run in the board's fixed point from rest at ``u[0]``.
@@ -50,7 +53,7 @@ class Params:
         period a creep operator and a sensor lag run at; a model with neither needs neither.
         """
     def compensate(
-        self, x: ArrayLike, t: Optional[ArrayLike] = None, rate: Optional[float] = None
+        self, x: _ArrayLike, t: Optional[_ArrayLike] = None, rate: Optional[float] = None
     ) -> np.ndarray:
         """The drive (volts) the board's compensator gives for the desired reading ``x``
         (output unit), in its fixed point; ``t``/``rate`` as in :meth:`predict`."""
@@ -96,9 +99,9 @@ class Params:
         ``rms_pct`` on the validation part, or ``error``. ``None`` otherwise."""
 
 def identify(
-    t: ArrayLike,
-    u: ArrayLike,
-    x: ArrayLike,
+    t: _ArrayLike,
+    u: _ArrayLike,
+    x: _ArrayLike,
     model: str = "auto",
     creep: Optional[bool] = None,
     fit_until: Optional[float] = None,
@@ -125,6 +128,7 @@ def load_params(path: Union[str, "PathLike[str]"]) -> Params:
     """Reads and checks a parameter file (``hal-sim identify``'s, or :meth:`Params.save`'s);
     ``ValueError`` names the field refused, ``FileNotFoundError`` a missing file."""
 
+@final
 class Board:
     """A twinstack board.
 
@@ -139,7 +143,7 @@ class Board:
     as a context manager, or call :meth:`close`.
     """
 
-    def __init__(self, port: str, baud: int = 2000000, timeout: float = 2.0) -> None:
+    def __new__(cls, port: str, baud: int = 2000000, timeout: float = 2.0) -> "Board":
         """Opens ``port`` and cleans the line."""
     @property
     def port(self) -> str:
@@ -170,7 +174,7 @@ class Board:
         """Switches to ``"bypass"``, ``"open-loop"`` or ``"closed-loop"`` (bumpless)."""
     def stream(
         self,
-        setpoints: ArrayLike,
+        setpoints: _ArrayLike,
         rate: Optional[float] = None,
         normalised: bool = False,
         underrun: Optional[str] = None,
@@ -196,7 +200,7 @@ class Board:
         (resolution 1 mHz). :meth:`stop` stops it."""
     def arm(
         self,
-        signals: Signals,
+        signals: _Signals,
         samples: int,
         trigger: str = "now",
         pre: int = 0,
@@ -210,7 +214,7 @@ class Board:
         before, and reads it back as :meth:`record` returns it."""
     def record(
         self,
-        signals: Signals,
+        signals: _Signals,
         samples: int,
         trigger: str = "now",
         pre: int = 0,
