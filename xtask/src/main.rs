@@ -10,7 +10,7 @@
 //!   stopping at the first that fails: host tests (with doc tests), rustfmt, clippy on the host,
 //!   clippy and builds of each firmware image on the target, `cargo check` of the host tool
 //!   for Windows, the Python package (`pip install ./python` into the virtual environment —
-//!   maturin, numpy, pytest and matplotlib from PyPI — its own rustfmt and clippy, then
+//!   maturin, numpy, pytest, matplotlib and mypy from PyPI — its own rustfmt and clippy, then
 //!   pytest), rustdoc with warnings denied, and
 //!   the docs book when there is one (`docs/book.toml`).
 //!
@@ -48,8 +48,9 @@ const TARGET_CLIPPY: &[(&str, &[&str])] = &[
 ];
 
 /// What the Python gate installs into the virtual environment besides the package (maturin
-/// comes with `pip install ./python`, as its build backend).
-const PYTHON_TEST_PACKAGES: &[&str] = &["numpy", "pytest", "matplotlib"];
+/// comes with `pip install ./python`, as its build backend): the tests' runner, the example's
+/// plotting, and mypy, whose stubtest checks the shipped stubs against the module.
+const PYTHON_TEST_PACKAGES: &[&str] = &["numpy", "pytest", "matplotlib", "mypy"];
 
 /// rustdoc's flags for the documentation gate: every warning (broken or redundant links
 /// included) fails it.
