@@ -1,6 +1,6 @@
 """The lab workflow from Python: identify a model from a measured record, compensate a
-trajectory with it, stream a trajectory to a (virtual) board, record what the stage did, and
-plot it all to a PNG.
+trajectory with it, then on a (virtual) board identify its own stage from a recording, load
+the model, stream a trajectory, record what the stage did, and plot it all to a PNG.
 
     python python/examples/workflow.py [--port PORT] [--out workflow.png]
 
@@ -80,31 +80,48 @@ def main():
     model_err = 100 * np.max(np.abs(achieved[20:] - desired[20:])) / np.ptp(desired)
     print(f"compensated trajectory through the model: max error {model_err:.2f} % of span")
 
-    # 3. A board: stream a trajectory (µm on the board's output range) with its own
-    # compensator in open loop, recording four signals from the stream's start.
+    # 3. A board. The CSV's stage is not the board's, so the board's own model is identified
+    # the same way, from a recording of its drive and sensor (in bypass, the drive follows the
+    # setpoint), loaded, and a trajectory in µm is streamed and recorded: with the compensator
+    # alone (open loop), then with sensor feedback (closed loop).
     proc = None
     port = args.port
     if port is None:
         if not args.hal_sim:
             sys.exit("no --port and no hal-sim binary (--hal-sim, $TWINSTACK_HAL_SIM, PATH)")
         proc, port = start_virtual_board(args.hal_sim)
+    runs = {}
     try:
         with twinstack.Board(port) as board:
             status = board.status()
-            print(f"board on {port}: {status['image']}, {status['tick_rate_hz']} Hz, mode {status['mode']}")
-            board.mode("open-loop")
-            n, divider = 2000, 10  # 2 000 setpoints at 5 kHz: 0.4 s
-            ts = np.arange(n) * divider / status["tick_rate_hz"]
-            setpoints = 25.0 * np.exp(-ts / 0.3) * np.sin(2 * np.pi * 10.0 * ts)
-            board.arm(["setpoint", "left", "sensor", "estimate"], samples=n * divider // 5,
-                      trigger="stream", decimation=5)
-            report = board.stream(setpoints, rate=status["tick_rate_hz"] / divider)
-            run = board.fetch()
+            tick = status["tick_rate_hz"]
+            print(f"board on {port}: {status['image']}, {tick} Hz, mode {status['mode']}")
             board.mode("bypass")
-        print(f"streamed {report['accepted']} setpoints, underruns {report['underruns']}")
-        err = run["sensor"] - run["setpoint"]
-        print(f"recorded {len(run['t'])} frames: tracking error max {np.max(np.abs(err)):.3f} um "
-              f"({100 * np.max(np.abs(err)) / np.ptp(run['setpoint']):.2f} % of span)")
+            n, divider = 10000, 10  # 2 s at 5 000 setpoints/s
+            ts = np.arange(n) * divider / tick
+            excite = 0.9 * np.exp(-ts / 1.0) * np.sin(2 * np.pi * 5.0 * ts)
+            board.arm(["left", "sensor"], samples=n * divider // 10, trigger="stream", decimation=10)
+            board.stream(excite, rate=tick / divider, normalised=True)
+            cal = board.fetch()
+            stage = twinstack.identify(cal["t"], cal["left"], cal["sensor"])
+            held = stage.identification["held_out"]
+            print(f"the board's stage: {stage.model}, held-out max {held['max_pct']:.2f} % of span")
+            board.load(stage)
+            n, divider = 2000, 10  # 0.4 s
+            ts = np.arange(n) * divider / tick
+            lo, hi = stage.output_range
+            setpoints = (lo + hi) / 2 + 0.35 * (hi - lo) * np.exp(-ts / 0.3) * np.sin(2 * np.pi * 10.0 * ts)
+            for mode in ("open-loop", "closed-loop"):
+                board.mode(mode)
+                board.arm(["setpoint", "left", "sensor", "estimate"], samples=n * divider // 5,
+                          trigger="stream", decimation=5)
+                report = board.stream(setpoints, rate=tick / divider)
+                run = runs[mode] = board.fetch()
+                err = np.max(np.abs(run["sensor"] - run["setpoint"]))
+                print(f"{mode}: streamed {report['accepted']} setpoints (underruns "
+                      f"{report['underruns']}), recorded {len(run['t'])} frames: tracking error "
+                      f"max {err:.3f} um ({100 * err / np.ptp(run['setpoint']):.2f} % of span)")
+            board.mode("bypass")
     finally:
         if proc is not None:
             proc.kill()
@@ -122,10 +139,13 @@ def main():
     ax[1].set(title="Compensated trajectory (through the identified model)", xlabel="t [s]",
               ylabel="x [sensor units]")
     ax[1].legend(fontsize=8)
-    for name in ("setpoint", "sensor", "estimate"):
-        ax[2].plot(run["t"], run[name], lw=0.8, label=name)
-    ax[2].set(title=f"Streamed and recorded on the board ({port})", xlabel="t from the stream's start [s]",
-              ylabel="displacement [um]")
+    run = runs["open-loop"]
+    ax[2].plot(run["t"], run["setpoint"], lw=0.8, label="setpoint")
+    for mode, r in runs.items():
+        ax[2].plot(r["t"], r["sensor"], lw=0.8, label=f"sensor, {mode}")
+    ax[2].plot(run["t"], run["estimate"], lw=0.8, ls=":", label="estimate (observer), open loop")
+    ax[2].set(title=f"Streamed and recorded on the board ({port})",
+              xlabel="t from the stream's start [s]", ylabel="displacement [um]")
     ax[2].legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(args.out, dpi=100)

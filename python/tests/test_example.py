@@ -14,6 +14,6 @@ def test_the_workflow_example_runs(virtual_board, tmp_path):
         capture_output=True, text=True, timeout=300,
     )
     assert out.returncode == 0, out.stdout + out.stderr
-    assert "streamed 2000 setpoints" in out.stdout, out.stdout
+    assert out.stdout.count("streamed 2000 setpoints") == 2, out.stdout
     assert png.stat().st_size > 10_000
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
