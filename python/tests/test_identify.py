@@ -54,7 +54,8 @@ def test_the_cli_and_python_identify_the_same_model_and_read_each_others_files(
     # Python writes, the CLI reads and runs it: its prediction is Python's.
     py_file = tmp_path / "py.json"
     ours.save(py_file)
-    assert twinstack.load_params(py_file).to_json() == ours.to_json()
+    assert json.loads(py_file.read_text()) == json.loads(ours.to_json())
+    assert twinstack.load_params(py_file).model == "pi"
     pred = tmp_path / "pred.csv"
     run(hal_sim, "predict", "--params", py_file, "--data", MICRO, "--out", pred)
     _, _, cli_x = np.loadtxt(pred, delimiter=",", skiprows=1).T
