@@ -604,7 +604,10 @@ mod tests {
                 let target = f.step(&mut fs, x);
                 let drive = inv.step(&mut is, target);
                 // 8 LSB16: the inverse's error bound for these weights (see hal_sim::accuracy).
-                assert!((drive - x).abs() < 8 << 14, "u0 {u0} step {k}: {drive} vs {x}");
+                assert!(
+                    (drive - x).abs() < 8 << 14,
+                    "u0 {u0} step {k}: {drive} vs {x}"
+                );
             }
         }
     }

@@ -28,6 +28,8 @@
 //!   state from one client to the next (`hal-sim virtual-board`).
 //! * [`calibrate`] — one-command calibration over the board link: excite with the board's
 //!   waveform generator, record, identify, load, store, verify (`hal-sim calibrate`).
+//! * [`session`] — what the board commands and the Python package share: the settings a load
+//!   sends and its checks, waveform and capture requests, the status as JSON.
 //! * [`cli`] — the `hal-sim` subcommands.
 
 pub mod accuracy;
@@ -50,6 +52,7 @@ pub mod param_file;
 pub mod plant;
 pub mod plot;
 pub mod reference;
+pub mod session;
 pub mod setpoint_file;
 pub mod sim_board;
 pub mod sim_device;

@@ -210,7 +210,109 @@ pub enum DataError {
     },
 }
 
+/// Why columns handed over as arrays (the Python package's `identify(t, u, x)`) were refused:
+/// the same rules as a file's, with positions instead of lines.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum ColumnsError {
+    /// A column's length differs from `t`'s.
+    #[error("`{column}` has {found} samples, `t` has {expected}")]
+    Length {
+        /// The column.
+        column: &'static str,
+        /// Its length.
+        found: usize,
+        /// `t`'s length.
+        expected: usize,
+    },
+    /// A value is NaN or infinite.
+    #[error("`{column}`[{index}] is not finite (NaN or infinity)")]
+    NotFinite {
+        /// The column.
+        column: &'static str,
+        /// Its 0-based position.
+        index: usize,
+    },
+    /// Time does not increase strictly.
+    #[error("t[{index}] = {t} s does not increase (the sample before is at {previous} s)")]
+    TimeNotIncreasing {
+        /// 0-based position.
+        index: usize,
+        /// Its time.
+        t: f64,
+        /// The time before it.
+        previous: f64,
+    },
+    /// Fewer than [`MIN_SAMPLES`] samples.
+    #[error("only {found} samples, at least {MIN_SAMPLES} needed")]
+    TooFewSamples {
+        /// Samples given.
+        found: usize,
+    },
+}
+
 impl MeasuredData {
+    /// A record from columns already in memory (`label` stands in for the file name in
+    /// messages), checked as a file is: every value finite, `t` strictly increasing, the
+    /// columns of one length, at least [`MIN_SAMPLES`] samples.
+    ///
+    /// ```
+    /// use hal_sim::measured_data::MeasuredData;
+    /// let t: Vec<f64> = (0..20).map(|k| k as f64 * 1e-3).collect();
+    /// let d = MeasuredData::from_columns("arrays", t.clone(), Some(t.clone()), None).unwrap();
+    /// assert_eq!(d.len(), 20);
+    /// assert!(MeasuredData::from_columns("arrays", t.clone(), Some(vec![0.0; 3]), None).is_err());
+    /// ```
+    pub fn from_columns(
+        label: &str,
+        t: Vec<f64>,
+        u: Option<Vec<f64>>,
+        x: Option<Vec<f64>>,
+    ) -> Result<Self, ColumnsError> {
+        let mut others: Vec<(&'static str, &[f64])> = Vec::new();
+        if let Some(u) = &u {
+            others.push(("u", u));
+        }
+        if let Some(x) = &x {
+            others.push(("x", x));
+        }
+        Self::check_columns(&t, &others)?;
+        if t.len() < MIN_SAMPLES {
+            return Err(ColumnsError::TooFewSamples { found: t.len() });
+        }
+        Ok(Self {
+            path: PathBuf::from(label),
+            t,
+            u,
+            x,
+        })
+    }
+
+    /// Checks columns of any length as [`Self::from_columns`] does, short of the sample count:
+    /// `t` finite and strictly increasing, each of `others` (name, values) as long as `t` and
+    /// finite.
+    pub fn check_columns(t: &[f64], others: &[(&'static str, &[f64])]) -> Result<(), ColumnsError> {
+        for &(column, values) in std::iter::once(&("t", t)).chain(others) {
+            if values.len() != t.len() {
+                return Err(ColumnsError::Length {
+                    column,
+                    found: values.len(),
+                    expected: t.len(),
+                });
+            }
+            if let Some(index) = values.iter().position(|v| !v.is_finite()) {
+                return Err(ColumnsError::NotFinite { column, index });
+            }
+        }
+        if let Some(k) = t.windows(2).position(|w| w[1] <= w[0]) {
+            return Err(ColumnsError::TimeNotIncreasing {
+                index: k + 1,
+                t: t[k + 1],
+                previous: t[k],
+            });
+        }
+        Ok(())
+    }
+
     /// Reads `path`, requiring the columns in `columns`.
     pub fn read(path: &Path, columns: Columns) -> Result<Self, DataError> {
         let text = std::fs::read_to_string(path).map_err(|source| DataError::Io {

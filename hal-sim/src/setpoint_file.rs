@@ -67,6 +67,57 @@ pub fn q1_15(normalised: f64) -> i16 {
         .clamp(i16::MIN as f64, i16::MAX as f64) as i16
 }
 
+/// One setpoint `v` in `units` as the wire's Q1.15, or why it cannot be sent (not finite, or
+/// outside −1…1 once normalised: refused, never clamped).
+pub fn to_wire(v: f64, units: SetpointUnits<'_>) -> Result<i16, String> {
+    let n = match units {
+        SetpointUnits::Normalised => v,
+        SetpointUnits::Output(s) => s.output_to_norm(v),
+    };
+    if !v.is_finite() {
+        return Err(format!("setpoint {v} is not finite"));
+    }
+    if !(-1.0..=1.0).contains(&n) {
+        return Err(match units {
+            SetpointUnits::Normalised => {
+                format!("setpoint {v} is outside -1…1 (normalised units)")
+            }
+            SetpointUnits::Output(s) => format!(
+                "x = {v} is outside the model's output range {}…{}",
+                s.output_min, s.output_max
+            ),
+        });
+    }
+    Ok(q1_15(n))
+}
+
+/// The rate divider that plays setpoints at `rate_hz` on a board ticking at `tick_rate_hz`:
+/// the tick rate over the setpoint rate, which must be a whole number of ticks (within 1 %,
+/// as a `t` column is checked) from 1 to 65 535.
+///
+/// ```
+/// use hal_sim::setpoint_file::divider_for_rate;
+/// assert_eq!(divider_for_rate(50_000.0, 10_000.0), Ok(5));
+/// assert!(divider_for_rate(50_000.0, 30_000.0).is_err());
+/// ```
+pub fn divider_for_rate(tick_rate_hz: f64, rate_hz: f64) -> Result<u16, String> {
+    if !(rate_hz.is_finite() && rate_hz > 0.0) {
+        return Err(format!(
+            "rate {rate_hz}: must be a positive number of setpoints per second"
+        ));
+    }
+    let ticks = tick_rate_hz / rate_hz;
+    let divider = ticks.round();
+    if !(1.0..=u16::MAX as f64).contains(&divider) || (ticks - divider).abs() > 0.01 * divider {
+        return Err(format!(
+            "rate {rate_hz} setpoints/s: the board ticks at {tick_rate_hz} Hz, so the rate must be {tick_rate_hz} Hz divided by a whole number from 1 to 65535 (e.g. {tick_rate_hz}, {}, {})",
+            tick_rate_hz / 2.0,
+            tick_rate_hz / 5.0
+        ));
+    }
+    Ok(divider as u16)
+}
+
 /// Reads `path`. `tick_rate_hz` and `divider` are what the board will play it at (checked
 /// against a `t` column if there is one; `divider = None` takes it from `t`).
 pub fn read(
@@ -149,25 +200,7 @@ pub fn parse(
             }
         };
         let v = cell(col, wanted)?;
-        let n = match units {
-            SetpointUnits::Normalised => v,
-            SetpointUnits::Output(s) => s.output_to_norm(v),
-        };
-        if !(-1.0..=1.0).contains(&n) {
-            return Err(err(
-                line,
-                match units {
-                    SetpointUnits::Normalised => {
-                        format!("setpoint {v} is outside -1…1 (normalised units)")
-                    }
-                    SetpointUnits::Output(s) => format!(
-                        "x = {v} is outside the model's output range {}…{}",
-                        s.output_min, s.output_max
-                    ),
-                },
-            ));
-        }
-        samples.push(q1_15(n));
+        samples.push(to_wire(v, units).map_err(|m| err(line, m))?);
         if let Some(tc) = t_col {
             times.push((line, cell(tc, "t")?));
         }

@@ -2,12 +2,16 @@
 //!
 //! * `cargo xtask setup` installs what the tests need, each only if it is missing: the
 //!   `thumbv7em-none-eabihf` and `x86_64-pc-windows-gnu` standard libraries (rustup), `qemu-system-arm` (apt-get, as root on
-//!   Debian/Ubuntu; elsewhere it prints the command and fails) and `mdbook` (cargo install).
+//!   Debian/Ubuntu; elsewhere it prints the command and fails), `mdbook` (cargo install) and a
+//!   Python virtual environment for the Python package's tests (`python3 -m venv` into
+//!   `TARGET/py-venv`; `python3-venv` with apt-get where Debian lacks it).
 //!   Running it again changes nothing.
 //! * `cargo xtask test` runs `setup`, then every gate CI holds the project to, in order,
 //!   stopping at the first that fails: host tests (with doc tests), rustfmt, clippy on the host,
 //!   clippy and builds of each firmware image on the target, `cargo check` of the host tool
-//!   for Windows, rustdoc with warnings denied, and
+//!   for Windows, the Python package (`pip install ./python` into the virtual environment —
+//!   maturin, numpy, pytest, matplotlib and mypy from PyPI — its own rustfmt and clippy, then
+//!   pytest), rustdoc with warnings denied, and
 //!   the docs book when there is one (`docs/book.toml`).
 //!
 //! `.ci/run` is `cargo xtask test`; the alias is in `.cargo/config.toml`.
@@ -52,6 +56,11 @@ const TARGET_CLIPPY: &[(&str, &[&str])] = &[
     ),
 ];
 
+/// What the Python gate installs into the virtual environment besides the package (maturin
+/// comes with `pip install ./python`, as its build backend): the tests' runner, the example's
+/// plotting, and mypy, whose stubtest checks the shipped stubs against the module.
+const PYTHON_TEST_PACKAGES: &[&str] = &["numpy", "pytest", "matplotlib", "mypy"];
+
 /// rustdoc's flags for the documentation gate: every warning (broken or redundant links
 /// included) fails it.
 const RUSTDOCFLAGS: &str = "-D warnings";
@@ -60,10 +69,12 @@ const USAGE: &str = "usage: cargo xtask <command>
 
 commands:
   setup   install what the tests need (thumbv7em and x86_64-pc-windows-gnu targets,
-          qemu-system-arm, mdbook), each only if missing
+          qemu-system-arm, mdbook, a Python virtual environment), each only if missing
   test    setup, then every gate in order: tests, fmt, clippy (host and target), firmware builds,
-          hal-sim checked for Windows, rustdoc, the docs book and its links; stops at the first
-          failure
+          hal-sim checked for Windows, the Python package (pip install ./python, pytest),
+          rustdoc, the docs book and its links; stops at the first failure
+  python  the Python package's gates alone (virtual environment, pip install ./python,
+          rustfmt and clippy of python/, pytest)
   links   check that every relative link in README.md and docs/src names a file that exists";
 
 fn main() -> ExitCode {
@@ -71,6 +82,7 @@ fn main() -> ExitCode {
     let result = match command.as_deref() {
         Some("setup") => setup(),
         Some("test") => setup().and_then(|()| test()),
+        Some("python") => ensure_python_venv().and_then(|()| run_gates(python_gates())),
         Some("links") => check_links(),
         Some("help" | "-h" | "--help") => {
             println!("{USAGE}");
@@ -149,6 +161,113 @@ fn setup() -> Result<(), String> {
     ensure_qemu()?;
     ensure_mdbook()?;
     ensure_objdump()?;
+    ensure_python_venv()?;
+    Ok(())
+}
+
+/// The build directory: `$CARGO_TARGET_DIR`, else `target/` at the root.
+fn target_dir() -> PathBuf {
+    match std::env::var_os("CARGO_TARGET_DIR") {
+        Some(dir) if Path::new(&dir).is_absolute() => PathBuf::from(dir),
+        Some(dir) => root().join(dir),
+        None => root().join("target"),
+    }
+}
+
+/// The virtual environment the Python package is tested in.
+fn python_venv() -> PathBuf {
+    target_dir().join("py-venv")
+}
+
+/// The virtual environment's interpreter.
+fn venv_python() -> PathBuf {
+    if cfg!(windows) {
+        python_venv().join("Scripts").join("python.exe")
+    } else {
+        python_venv().join("bin").join("python")
+    }
+}
+
+/// A Python 3.8 or later on the PATH (`python3`, else `python`).
+fn system_python() -> Option<String> {
+    ["python3", "python"].into_iter().find_map(|p| {
+        let out = Command::new(p)
+            .args(["-c", "import sys; print(sys.version_info >= (3, 8))"])
+            .stdin(Stdio::null())
+            .stderr(Stdio::null())
+            .output()
+            .ok()?;
+        (out.status.success() && String::from_utf8_lossy(&out.stdout).trim() == "True")
+            .then(|| p.to_string())
+    })
+}
+
+/// `python3 -m venv TARGET/py-venv`, unless it exists and runs. Where the venv module is
+/// missing (Debian splits it into `python3-venv`), installs it with apt-get as root on
+/// Debian/Ubuntu; otherwise prints what to install and fails.
+fn ensure_python_venv() -> Result<(), String> {
+    let venv = python_venv();
+    if let Some(v) = version(&venv_python().to_string_lossy()) {
+        println!(
+            "   Python virtual environment: already there ({v}, {})",
+            venv.display()
+        );
+        return Ok(());
+    }
+    let debian = Path::new("/etc/debian_version").is_file();
+    let create = |python: &str| {
+        Command::new(python)
+            .args(["-m", "venv", "--clear"])
+            .arg(&venv)
+            .stdin(Stdio::null())
+            .status()
+            .is_ok_and(|s| s.success())
+    };
+    let python = match system_python() {
+        Some(p) => p,
+        None if debian && is_root() => {
+            apt_install(&["python3", "python3-venv"])?;
+            system_python().ok_or("apt-get installed python3, but it does not run")?
+        }
+        None => {
+            return Err(
+                "Python 3.8 or later is missing: install it (python3 on the PATH) and run \
+                 `cargo xtask setup` again"
+                    .into(),
+            )
+        }
+    };
+    if !create(&python) {
+        if !(debian && is_root()) {
+            return Err(format!(
+                "`{python} -m venv {}` failed: install Python's venv module (Debian/Ubuntu: \
+                 `sudo apt-get install python3-venv`) and run `cargo xtask setup` again",
+                venv.display()
+            ));
+        }
+        apt_install(&["python3-venv"])?;
+        if !create(&python) {
+            return Err(format!("`{python} -m venv {}` failed", venv.display()));
+        }
+    }
+    let v = version(&venv_python().to_string_lossy())
+        .ok_or("the virtual environment was made, but its python does not run")?;
+    println!(
+        "   Python virtual environment: created ({v}, {})",
+        venv.display()
+    );
+    Ok(())
+}
+
+/// `apt-get update && apt-get install -y PACKAGES` (as root on Debian/Ubuntu).
+fn apt_install(packages: &[&str]) -> Result<(), String> {
+    let mut install = vec!["install", "-y"];
+    install.extend_from_slice(packages);
+    for args in [&["update"][..], &install] {
+        run(Command::new("apt-get")
+            .args(args)
+            .env("DEBIAN_FRONTEND", "noninteractive"))?;
+    }
     Ok(())
 }
 
@@ -373,6 +492,7 @@ fn gates() -> Vec<Gate> {
         format!("hal-sim for Windows (cargo check -p hal-sim --target {WINDOWS_TARGET})"),
         target_cargo(&["check", "-p", "hal-sim", "--target", WINDOWS_TARGET]),
     ));
+    gates.extend(python_gates());
     let mut doc = cargo(&["doc", "--workspace", "--no-deps"]);
     doc.env("RUSTDOCFLAGS", RUSTDOCFLAGS);
     gates.push(gate("rustdoc, warnings denied", doc));
@@ -388,8 +508,78 @@ fn gates() -> Vec<Gate> {
     gates
 }
 
+/// The Python package (`python/`, its own cargo workspace): its Rust formatted and clippy-clean,
+/// installed with pip into the virtual environment `setup` made (maturin builds it from PyPI's
+/// wheel; the build goes to `TARGET/python`), then its pytest suite against the in-process board
+/// and a `hal-sim virtual-board` process (the debug `hal-sim` the host tests built).
+fn python_gates() -> Vec<Gate> {
+    let manifest = root().join("python").join("Cargo.toml");
+    let manifest = manifest.to_string_lossy().into_owned();
+    let build = target_dir().join("python");
+    let python = venv_python();
+    let pip = |args: &[&str]| {
+        let mut cmd = Command::new(&python);
+        cmd.args([
+            "-m",
+            "pip",
+            "install",
+            "--disable-pip-version-check",
+            "--quiet",
+        ])
+        .args(args)
+        .current_dir(root())
+        .env("CARGO_TARGET_DIR", &build);
+        cmd
+    };
+    let mut fmt = cargo(&["fmt", "--manifest-path", &manifest, "--", "--check"]);
+    fmt.env("CARGO_TARGET_DIR", &build);
+    let mut clippy = cargo(&[
+        "clippy",
+        "--manifest-path",
+        &manifest,
+        "--",
+        "-D",
+        "warnings",
+    ]);
+    clippy.env("CARGO_TARGET_DIR", &build);
+    let mut pytest = Command::new(&python);
+    pytest
+        .args(["-m", "pytest", "-q", "python/tests"])
+        .current_dir(root())
+        .env(
+            "TWINSTACK_HAL_SIM",
+            target_dir()
+                .join("debug")
+                .join(format!("hal-sim{}", std::env::consts::EXE_SUFFIX)),
+        );
+    vec![
+        gate(
+            format!(
+                "Python: test packages in the virtual environment ({})",
+                PYTHON_TEST_PACKAGES.join(", ")
+            ),
+            pip(PYTHON_TEST_PACKAGES),
+        ),
+        gate("Python: rustfmt of python/", fmt),
+        gate("Python: clippy of python/", clippy),
+        gate(
+            "Python: the package (pip install ./python)",
+            pip(&["--force-reinstall", "--no-deps", "./python"]),
+        ),
+        gate(
+            "Python: the hal-sim binary the tests start (cargo build -p hal-sim)",
+            cargo(&["build", "-p", "hal-sim", "--bin", "hal-sim"]),
+        ),
+        gate("Python: pytest python/tests", pytest),
+    ]
+}
+
 fn test() -> Result<(), String> {
-    let mut gates = gates();
+    run_gates(gates())
+}
+
+/// Runs `gates` in order, stopping at the first that fails, with each one's time.
+fn run_gates(mut gates: Vec<Gate>) -> Result<(), String> {
     let total = gates.len();
     let start = Instant::now();
     for (i, g) in gates.iter_mut().enumerate() {

@@ -3,12 +3,11 @@
 //! `t < SECONDS`, scores
 //! on the rest, writes the parameter file and a PNG beside it (`PARAMS.png`).
 
-use crate::identification::auto::identify_auto;
-use crate::identification::score::{score, ErrorFigures};
-use crate::identification::{identify, IdentifyError, IdentifyOptions, ModelKind, ThresholdSpread};
+use crate::identification::run::{identify_and_score, RunError};
+use crate::identification::score::ErrorFigures;
+use crate::identification::{IdentifyOptions, ModelKind, ThresholdSpread};
 use crate::measured_data::{ColumnNames, Columns, MeasuredData};
 use crate::output_file::Staged;
-use crate::param_file::{IdentificationRecord, ParamFile};
 use crate::plot::{draw, IdentificationFigure};
 use anyhow::{anyhow, bail};
 use std::path::PathBuf;
@@ -52,31 +51,7 @@ pub struct Args {
     pub output_unit: String,
 }
 
-/// `--model`: every candidate, or one.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum ModelChoice {
-    /// Rank every model on held-back data and keep the best.
-    Auto,
-    /// This model only.
-    Only(ModelKind),
-}
-
-/// Parses `--model`: `auto` or a model kind's name.
-pub fn parse_model(s: &str) -> Result<ModelChoice, String> {
-    use clap::ValueEnum;
-    if s.eq_ignore_ascii_case("auto") {
-        return Ok(ModelChoice::Auto);
-    }
-    ModelKind::from_str(s, true)
-        .map(ModelChoice::Only)
-        .map_err(|_| {
-            let names: Vec<String> = ModelKind::value_variants()
-                .iter()
-                .filter_map(|v| v.to_possible_value().map(|p| p.get_name().to_string()))
-                .collect();
-            format!("unknown model '{s}': expected auto, {}", names.join(", "))
-        })
-}
+pub use crate::identification::run::{parse_model, ModelChoice};
 
 /// `--thresholds` values.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
@@ -117,73 +92,46 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         Columns::TimeDriveOutput,
         &args.columns.clone().unwrap_or_default(),
     )?;
-    let first_kind = match args.model {
-        ModelChoice::Only(kind) => kind,
-        ModelChoice::Auto => ModelKind::Pi,
-    };
-    let mut options = IdentifyOptions::new(first_kind, args.fit_until);
+    let mut options = IdentifyOptions::new(ModelKind::Pi, args.fit_until);
     options.operators = args.operators;
     options.thresholds = match args.thresholds {
         Spread::Uniform => ThresholdSpread::Uniform,
         Spread::Geometric => ThresholdSpread::Geometric,
     };
     options.lag = args.lag;
-    options.creep = args.creep;
-    let in_file = |e: IdentifyError| anyhow!("{}: {e}", args.data.display());
-    let id = match args.model {
-        ModelChoice::Only(_) => identify(&data, &options).map_err(in_file)?,
-        ModelChoice::Auto => {
-            let auto = identify_auto(&data, &options.candidates()).map_err(in_file)?;
-            println!(
-                "ranking (fitted on t < {:.4} s, scored on {:.4} <= t < {} s):",
-                auto.validation_from_s, auto.validation_from_s, args.fit_until
-            );
-            for (i, r) in auto.ranking.iter().enumerate() {
-                match &r.validation {
-                    Ok(f) => println!("  {}. {:<32} {}", i + 1, r.label, show(f)),
-                    Err(e) => println!("  -. {:<32} not fitted: {e}", r.label),
-                }
-            }
-            println!("picked: {}", auto.reason);
-            options = auto
-                .ranking
-                .iter()
-                .find(|r| r.validation.is_ok())
-                .map_or(options, |r| r.options.clone());
-            auto.identification
-        }
+    let in_file = |e: RunError| match e {
+        RunError::Params(e) => anyhow!("{e}"),
+        e => anyhow!("{}: {e}", args.data.display()),
     };
-
-    let (t, u, x) = (
-        &data.t,
-        data.u.as_deref().unwrap_or_default(),
-        data.x.as_deref().unwrap_or_default(),
-    );
-    let n = t.len();
+    let run = identify_and_score(
+        &data,
+        args.model,
+        &options,
+        args.creep.then_some(true),
+        &args.output_unit,
+    )
+    .map_err(in_file)?;
+    if let Some(auto) = &run.auto {
+        println!(
+            "ranking (fitted on t < {:.4} s, scored on {:.4} <= t < {} s):",
+            auto.validation_from_s, auto.validation_from_s, args.fit_until
+        );
+        for (i, r) in auto.ranking.iter().enumerate() {
+            match &r.validation {
+                Ok(f) => println!("  {}. {:<32} {}", i + 1, r.label, show(f)),
+                Err(e) => println!("  -. {:<32} not fitted: {e}", r.label),
+            }
+        }
+        println!("picked: {}", auto.reason);
+    }
+    let (options, id, record) = (&run.options, &run.identification, &run.record);
+    let t = &data.t;
+    let u = data.u.as_deref().unwrap_or_default();
+    let x = data.x.as_deref().unwrap_or_default();
     let model = &id.model;
-    let lib = |e: twinstack::ParamError| anyhow!("{e}");
-    let predicted = model.predict(t, u).map_err(lib)?;
-    let reference = model.predict_reference(t, u).map_err(lib)?;
-    let drive = model.compensate(t, x).map_err(lib)?;
-    let drive_reference = model.compensate_reference(t, x).map_err(lib)?;
+    let (fit, held_out, inverse) = (record.fit, record.held_out, record.inverse_held_out);
     let fit_from = id.motion.first_fitted;
     let held = id.held_out_from;
-    let no_score = || {
-        anyhow!(
-            "{}: the measured output is flat, cannot score",
-            args.data.display()
-        )
-    };
-    let fit = score(x, &predicted, fit_from..held).ok_or_else(no_score)?;
-    let held_out = score(x, &predicted, held..n).ok_or_else(no_score)?;
-    // The last `lag` samples have no later reading to aim the drive at: not scored.
-    let aimed = n - model.lag_samples(t).min(n - held - 1);
-    let inverse = score(u, &drive, held..aimed).ok_or_else(no_score)?;
-    let fixed_vs_reference = score(&reference, &predicted, fit_from..n).ok_or_else(no_score)?;
-    let inverse_reference = score(u, &drive_reference, held..aimed).ok_or_else(no_score)?;
-    let inverse_fixed_vs_reference =
-        score(&drive_reference, &drive, fit_from..n).ok_or_else(no_score)?;
-
     let model_name = options.model_label();
     println!("identified {model_name} from {}", args.data.display());
     println!(
@@ -211,30 +159,14 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     );
     println!(
         "  inverse held-out, f64 reference: {}",
-        show(&inverse_reference)
+        show(&run.inverse_reference)
     );
     println!(
         "  fixed point vs f64 reference: predict max {:.2e} %, compensate max {:.2e} % of span",
-        fixed_vs_reference.max_pct, inverse_fixed_vs_reference.max_pct
+        record.fixed_vs_reference_max_pct, record.inverse_fixed_vs_reference_max_pct
     );
 
-    let record = IdentificationRecord {
-        data: args.data.display().to_string(),
-        fit_until_s: args.fit_until,
-        fit_from_s: t[fit_from],
-        operators: args.operators,
-        thresholds: format!("{:?}", options.thresholds).to_lowercase(),
-        lag_samples: id.lag_samples,
-        lag_estimated: id.lag_estimated,
-        outliers: id.outliers,
-        fit,
-        held_out,
-        inverse_held_out: inverse,
-        fixed_vs_reference_max_pct: fixed_vs_reference.max_pct,
-        inverse_fixed_vs_reference_max_pct: inverse_fixed_vs_reference.max_pct,
-        notes: id.notes.clone(),
-    };
-    let file = ParamFile::from_model(model, &args.output_unit, Some(record));
+    let file = &run.file;
 
     let figure_path = args.out.with_extension("png");
     let mut out = Staged::new();
@@ -255,7 +187,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
             t,
             u,
             measured: x,
-            model: &predicted,
+            model: &run.predicted,
             held_out_from: held,
             fit_from,
             output_unit: &args.output_unit,

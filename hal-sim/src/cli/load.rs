@@ -15,6 +15,7 @@
 use super::board_link::{connect, PortArgs};
 use super::params::ModeArg;
 use crate::param_file::ParamFile;
+use crate::session::{check_load, keep_from_board, LoadRefused};
 use std::path::PathBuf;
 use twinstack::drive::{Configuration, SafeState};
 use twinstack::settings::{FeedbackSettings, Model, Settings};
@@ -70,15 +71,7 @@ pub struct Args {
     pub clamp: bool,
 }
 
-/// Part of a model's input range the drive cannot reach, if any beyond a tolerance of 1 % of
-/// the drive's window: `(model range, drive window)`, volts on the left stack.
-pub fn unreachable_input(settings: &Settings) -> Option<((f64, f64), (f64, f64))> {
-    let (lo, hi) = settings.drive.left_window();
-    let r = &settings.ranges;
-    let tolerance = 0.01 * (hi - lo).abs();
-    (r.input_min < lo - tolerance || r.input_max > hi + tolerance)
-        .then_some(((r.input_min, r.input_max), (lo, hi)))
-}
+pub use crate::session::unreachable_input;
 
 /// `--safe-state` values.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
@@ -92,13 +85,7 @@ pub enum SafeArg {
 /// The settings `args` ask for: the file's, with what it leaves out taken from `board` (the
 /// settings in force on the board) and the command line's overrides on top.
 pub fn settings_for(args: &Args, file: &Settings, board: Option<&Settings>) -> Settings {
-    let mut s = file.clone();
-    if s.sensor.is_none() {
-        s.sensor = board.and_then(|b| b.sensor);
-    }
-    if s.feedback.is_none() {
-        s.feedback = board.and_then(|b| b.feedback);
-    }
+    let mut s = keep_from_board(file, board);
     if args.unidirectional {
         s.drive.configuration = Configuration::Unidirectional;
     }
@@ -135,32 +122,20 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     let mut client = connect(&args.port)?;
     let board = client.read_params().ok();
     let settings = settings_for(args, &file.settings, board.as_ref());
-    if settings.mode == twinstack::settings::Mode::ClosedLoop && model.output_sign < 0.0 {
-        anyhow::bail!(
-            "{}: the file's sensor is inverted (output_sign = -1): closed loop would feed back \
-             with the wrong sign; use open loop, or give the board a sensor calibration that \
-             reads the model's output; nothing was sent",
+    match check_load(&settings, model.output_sign, args.clamp) {
+        Ok(None) => {}
+        Ok(Some(warning)) => eprintln!(
+            "warning: {}: {warning} (--clamp: loading it anyway)",
             args.params.display()
-        );
-    }
-    if let Some(((m_lo, m_hi), (lo, hi))) = unreachable_input(&settings) {
-        let what = format!(
-            "{}: the model's input range {m_lo}…{m_hi} V reaches beyond what the drive can apply \
-             ({lo}…{hi} V on the left stack: {:?}, {}…{} V, bias {} V), so the drive limit \
-             would clip it",
-            args.params.display(),
-            settings.drive.configuration,
-            settings.drive.min_voltage,
-            settings.drive.max_voltage,
-            settings.drive.bias
-        );
-        if !args.clamp {
-            anyhow::bail!(
-                "{what}; identify the model within the drive's range, or pass --clamp to load \
-                 it anyway; nothing was loaded"
-            );
+        ),
+        Err(e @ LoadRefused::InvertedSensor) => {
+            anyhow::bail!("{}: {e}; nothing was sent", args.params.display())
         }
-        eprintln!("warning: {what} (--clamp: loading it anyway)");
+        Err(e) => anyhow::bail!(
+            "{}: {e}; identify the model within the drive's range, or pass --clamp to load \
+             it anyway; nothing was loaded",
+            args.params.display()
+        ),
     }
     client.load_params(&settings)?;
     let what = match &settings.compensator {

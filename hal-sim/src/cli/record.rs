@@ -17,7 +17,7 @@
 //! Files are written only if the whole capture arrived.
 
 use super::board_link::{connect, BoardClient, PortArgs};
-use crate::capture::{self, signal_mask};
+use crate::capture;
 use crate::output_file::Staged;
 use anyhow::bail;
 use std::path::{Path, PathBuf};
@@ -148,26 +148,19 @@ pub fn arm_capture(
     trigger: Trigger,
     decimation: u16,
 ) -> anyhow::Result<CaptureRequest> {
-    let mask = signal_mask(signals).map_err(|e| anyhow::anyhow!("--signals {signals:?}: {e}"))?;
-    if samples == 0 {
-        bail!("--samples must be at least 1");
-    }
-    if decimation == 0 {
-        bail!("--decimation must be at least 1");
-    }
-    if pre >= samples {
-        bail!("--pre {pre}: must be below --samples {samples}");
-    }
-    if trigger == Trigger::Now && pre != 0 {
-        bail!("--pre {pre} with --trigger now: nothing comes before an immediate trigger; use --pre 0");
-    }
-    let request = CaptureRequest {
-        signals: mask,
-        samples,
-        pre_trigger: pre,
-        trigger,
-        decimation,
-    };
+    use crate::session::CaptureRequestError as E;
+    let request = crate::session::capture_request(signals, samples, pre, trigger, decimation)
+        .map_err(|e| match e {
+            E::Signals { list, error } => anyhow::anyhow!("--signals {list:?}: {error}"),
+            E::NoSamples => anyhow::anyhow!("--samples must be at least 1"),
+            E::NoDecimation => anyhow::anyhow!("--decimation must be at least 1"),
+            E::PreNotBelowSamples { pre, samples } => {
+                anyhow::anyhow!("--pre {pre}: must be below --samples {samples}")
+            }
+            E::PreWithNow(pre) => anyhow::anyhow!(
+                "--pre {pre} with --trigger now: nothing comes before an immediate trigger; use --pre 0"
+            ),
+        })?;
     client.arm_capture(request)?;
     Ok(request)
 }

@@ -16,49 +16,7 @@ pub struct Args {
     pub json: bool,
 }
 
-/// The names of the flags set in `s`.
-fn flag_names(s: &StatusReport) -> Vec<&'static str> {
-    [
-        (StatusReport::DEFAULTS, "defaults"),
-        (StatusReport::STREAMING, "streaming"),
-        (StatusReport::WAVEFORM, "waveform"),
-        (StatusReport::RECORDING, "recording"),
-        (StatusReport::TELEMETRY, "telemetry"),
-    ]
-    .into_iter()
-    .filter(|&(bit, _)| s.has(bit))
-    .map(|(_, name)| name)
-    .collect()
-}
-
-/// The report as one JSON object: the fields of [`format_status`] under the same names, `mode`
-/// as `bypass`/`open-loop`/`closed-loop`, `flags` a list, `estimate` normalised (±1 of the
-/// output range) and `estimate_q2_30` raw.
-pub fn status_json(s: &StatusReport) -> serde_json::Value {
-    use twinstack::settings::Mode;
-    serde_json::json!({
-        "image": s.image().name(),
-        "ticks": s.ticks,
-        "tick_rate_hz": s.tick_rate_hz,
-        "mode": match s.mode() {
-            Mode::Bypass => "bypass",
-            Mode::OpenLoop => "open-loop",
-            Mode::ClosedLoop => "closed-loop",
-        },
-        "flags": flag_names(s),
-        "queue_fill": s.queue_fill,
-        "credits": s.credits,
-        "next_seq": s.next_seq,
-        "underruns": s.underruns,
-        "overruns": s.overruns,
-        "crc_errors": s.crc_errors,
-        "frame_errors": s.frame_errors,
-        "limit_hits": s.limit_hits,
-        "estimate": s.estimate as f64 / (1u64 << 30) as f64,
-        "estimate_q2_30": s.estimate,
-        "recorded": s.recorded,
-    })
-}
+pub use crate::session::{flag_names, status_json};
 
 /// The report as `name value` lines.
 pub fn format_status(s: &StatusReport) -> String {

@@ -5,8 +5,7 @@
 //! (nested minor loops about the offset).
 
 use super::board_link::{connect, PortArgs};
-use anyhow::bail;
-use twinstack::protocol::messages::{WaveDecay, WaveShape, Waveform};
+use twinstack::protocol::messages::{WaveShape, Waveform};
 
 /// Arguments of `waveform`.
 #[derive(Debug, clap::Args)]
@@ -45,38 +44,17 @@ pub enum Shape {
 
 /// The request for `args`, or why the values cannot be sent.
 pub fn waveform_of(args: &Args) -> anyhow::Result<Waveform> {
-    let (o, a, f) = (args.offset, args.amplitude, args.frequency);
-    if !(o.is_finite() && a.is_finite() && f.is_finite()) {
-        bail!("--offset, --amplitude and --frequency must be finite numbers");
-    }
-    if !(0.0..=1.0).contains(&a) {
-        bail!("--amplitude {a}: must lie in 0…1 (normalised)");
-    }
-    if o - a < -1.0 || o + a > 1.0 {
-        bail!("--offset {o} ± --amplitude {a} leaves the normalised range -1…1");
-    }
-    let decay = match args.decay {
-        None => None,
-        Some(d) if d.is_finite() && (0.0..1.0).contains(&d) => Some(WaveDecay {
-            hold_cycles: args.hold_cycles,
-            keep: (d * 65536.0).round().min(65535.0) as u16,
-        }),
-        Some(d) => bail!("--decay {d}: the amplitude kept per cycle must lie in 0…1 (below 1)"),
+    let shape = match args.shape {
+        Shape::Sine => WaveShape::Sine,
+        Shape::Triangle => WaveShape::Triangle,
     };
-    let mhz = (f * 1000.0).round();
-    if !(1.0..=u32::MAX as f64).contains(&mhz) {
-        bail!("--frequency {f} Hz: must be at least 0.001 Hz");
-    }
-    Ok(Waveform {
-        shape: match args.shape {
-            Shape::Sine => WaveShape::Sine,
-            Shape::Triangle => WaveShape::Triangle,
-        },
-        offset: crate::setpoint_file::q1_15(o),
-        amplitude: crate::setpoint_file::q1_15(a),
-        frequency_mhz: mhz as u32,
-        decay,
-    })
+    Ok(crate::session::waveform(
+        shape,
+        args.offset,
+        args.amplitude,
+        args.frequency,
+        args.decay.map(|d| (d, args.hold_cycles)),
+    )?)
 }
 
 /// Runs `waveform`.

@@ -41,6 +41,7 @@ pub mod gpi;
 pub mod least_squares;
 pub mod motion;
 pub mod pi;
+pub mod run;
 pub mod score;
 pub mod simplex;
 

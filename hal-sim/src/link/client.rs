@@ -65,6 +65,12 @@ pub enum LinkError {
         /// What arrived.
         got: String,
     },
+    /// The caller stopped the operation (the Python package's Ctrl-C during a stream).
+    #[error("stopped by the caller during {request}")]
+    Stopped {
+        /// What was under way.
+        request: &'static str,
+    },
     /// The request could not be encoded (too large for a frame).
     #[error("cannot encode {request}: {reason:?}")]
     Encode {

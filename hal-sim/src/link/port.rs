@@ -76,6 +76,13 @@ impl std::str::FromStr for PortSpec {
 /// [`SimDeviceConfig::paper`]) living as long as the returned transport: it starts from boot
 /// every time it is opened.
 pub fn open(spec: &PortSpec, baud: u32) -> Result<Box<dyn Transport>, PortError> {
+    let transport: Box<dyn Transport> = open_send(spec, baud)?;
+    Ok(transport)
+}
+
+/// [`open`] for a caller that moves the link between threads (the Python package releases
+/// the interpreter's lock while it waits on the board): every transport is `Send`.
+pub fn open_send(spec: &PortSpec, baud: u32) -> Result<Box<dyn Transport + Send>, PortError> {
     Ok(match spec {
         PortSpec::Sim => open_sim(baud)?,
         PortSpec::Serial(path) => Box::new(SerialTransport::open(path, baud)?),
@@ -85,21 +92,21 @@ pub fn open(spec: &PortSpec, baud: u32) -> Result<Box<dyn Transport>, PortError>
 }
 
 #[cfg(unix)]
-fn open_unix(path: &std::path::Path) -> Result<Box<dyn Transport>, PortError> {
+fn open_unix(path: &std::path::Path) -> Result<Box<dyn Transport + Send>, PortError> {
     Ok(Box::new(
         SocketTransport::unix(path).map_err(PortError::Socket)?,
     ))
 }
 
 #[cfg(not(unix))]
-fn open_unix(path: &std::path::Path) -> Result<Box<dyn Transport>, PortError> {
+fn open_unix(path: &std::path::Path) -> Result<Box<dyn Transport + Send>, PortError> {
     Err(PortError::UnixSocketUnsupported {
         path: path.to_path_buf(),
         platform: std::env::consts::OS,
     })
 }
 
-fn open_sim(baud: u32) -> Result<Box<dyn Transport>, PortError> {
+fn open_sim(baud: u32) -> Result<Box<dyn Transport + Send>, PortError> {
     let config = SimDeviceConfig {
         baud,
         ..SimDeviceConfig::paper()

@@ -151,15 +151,47 @@ pub fn stream_setpoints<T: Transport>(
     client: &mut Client<T>,
     samples: &[i16],
     options: &StreamOptions,
+    progress: impl FnMut(usize),
+) -> Result<StreamReport, StreamError> {
+    stream_setpoints_until(client, samples, options, progress, || false)
+}
+
+/// [`stream_setpoints`] that asks `stop` between two steps (each batch answered, each wait
+/// for credits or for the queue to drain) whether to give up: when it returns `true` the
+/// stream ends with [`LinkError::Stopped`] at once, with the board's stream left as it is
+/// (the caller tells it to stop: `StreamControl::Stop`). The Python package's Ctrl-C.
+pub fn stream_setpoints_until<T: Transport>(
+    client: &mut Client<T>,
+    samples: &[i16],
+    options: &StreamOptions,
     mut progress: impl FnMut(usize),
+    mut stop: impl FnMut() -> bool,
 ) -> Result<StreamReport, StreamError> {
     let mut accepted = 0usize;
     let total = samples.len();
-    run(client, samples, options, &mut accepted, &mut progress).map_err(|source| StreamError {
+    run(
+        client,
+        samples,
+        options,
+        &mut accepted,
+        &mut progress,
+        &mut stop,
+    )
+    .map_err(|source| StreamError {
         source,
         accepted,
         total,
     })
+}
+
+fn stopped(stop: &mut impl FnMut() -> bool) -> Result<(), LinkError> {
+    if stop() {
+        Err(LinkError::Stopped {
+            request: "Setpoints",
+        })
+    } else {
+        Ok(())
+    }
 }
 
 fn run<T: Transport>(
@@ -168,6 +200,7 @@ fn run<T: Transport>(
     options: &StreamOptions,
     accepted: &mut usize,
     progress: &mut impl FnMut(usize),
+    stop: &mut impl FnMut() -> bool,
 ) -> Result<StreamReport, LinkError> {
     let link_before = client.counters();
     let before = client.status()?;
@@ -224,6 +257,14 @@ fn run<T: Transport>(
     let mut sent_ever = vec![false; samples.len().div_ceil(batch_max.max(1)) + 1];
 
     loop {
+        if stop() {
+            // The answers to the batches in flight, so that the line is clean for the
+            // caller's next request (its `Stop`).
+            for _ in 0..in_flight.len() {
+                client.receive(client.timeout())?;
+            }
+            stopped(&mut || true)?;
+        }
         // Done once everything is acknowledged *and* the stream has been started: a record
         // no longer than the free queue is acknowledged in full before it is ever blocked,
         // and must still be started (the `Start` below) rather than left queued.
@@ -376,6 +417,7 @@ fn run<T: Transport>(
         let step = (batch_max as f64 * options.divider as f64 * tick).max(1e-3);
         let mut waited = 0.0;
         while status.queue_fill > 0 {
+            stopped(stop)?;
             if waited > budget {
                 return Err(LinkError::Unexpected {
                     request: "Status",

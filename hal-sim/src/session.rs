@@ -1,0 +1,316 @@
+//! What the host does with a board beyond single requests, shared by the `hal-sim` board
+//! commands and the Python package (`python/`), so that both send the same thing and refuse the
+//! same thing:
+//!
+//! * the settings a parameter load sends ([`keep_from_board`]: the file's, with the sensor
+//!   calibration and feedback gains it leaves out kept from the board) and the checks before
+//!   sending them ([`check_load`]: closed loop on an inverted sensor, a model whose input range
+//!   the drive cannot reach);
+//! * a waveform request from physical numbers ([`waveform`]);
+//! * a multi-signal capture request, checked before it is sent ([`capture_request`]);
+//! * the status report as one JSON object ([`status_json`]).
+
+use crate::capture::signal_mask;
+use twinstack::drive::Configuration;
+use twinstack::protocol::messages::{CaptureRequest, StatusReport, Trigger, WaveShape, Waveform};
+use twinstack::settings::{Mode, Settings};
+
+/// The settings a parameter load sends for a file's `file` settings: the file's, with the
+/// sensor calibration and the feedback gains it leaves out (a file from `identify` has
+/// neither) taken from `board`, the settings in force on the board.
+pub fn keep_from_board(file: &Settings, board: Option<&Settings>) -> Settings {
+    let mut s = file.clone();
+    if s.sensor.is_none() {
+        s.sensor = board.and_then(|b| b.sensor);
+    }
+    if s.feedback.is_none() {
+        s.feedback = board.and_then(|b| b.feedback);
+    }
+    s
+}
+
+/// Part of a model's input range the drive cannot reach, if any beyond a tolerance of 1 % of
+/// the drive's window: `(model range, drive window)`, volts on the left stack.
+pub fn unreachable_input(settings: &Settings) -> Option<((f64, f64), (f64, f64))> {
+    let (lo, hi) = settings.drive.left_window();
+    let r = &settings.ranges;
+    let tolerance = 0.01 * (hi - lo).abs();
+    (r.input_min < lo - tolerance || r.input_max > hi + tolerance)
+        .then_some(((r.input_min, r.input_max), (lo, hi)))
+}
+
+/// Why a parameter load is not sent (or, with `clamp`, sent with a warning).
+#[derive(Clone, Debug, PartialEq, thiserror::Error)]
+pub enum LoadRefused {
+    /// Closed loop with a sensor that reads the model's output negated.
+    #[error("the file's sensor is inverted (output_sign = -1): closed loop would feed back with the wrong sign; use open loop, or give the board a sensor calibration that reads the model's output")]
+    InvertedSensor,
+    /// The model's input range reaches beyond the drive's window.
+    #[error("the model's input range {}…{} V reaches beyond what the drive can apply ({}…{} V on the left stack: {configuration:?}, {min_voltage}…{max_voltage} V, bias {bias} V), so the drive limit would clip it", model.0, model.1, drive.0, drive.1)]
+    Unreachable {
+        /// The model's input range, volts.
+        model: (f64, f64),
+        /// The left stack's window, volts.
+        drive: (f64, f64),
+        /// The drive's configuration.
+        configuration: Configuration,
+        /// Lowest stack voltage.
+        min_voltage: f64,
+        /// Highest stack voltage.
+        max_voltage: f64,
+        /// Bias.
+        bias: f64,
+    },
+}
+
+/// The checks before `settings` (of a model whose sensor reads `output_sign` × its output)
+/// are sent: `Err` refuses the load; `Ok(Some(warning))` is a model the drive cannot reach in
+/// full, accepted because of `clamp`.
+///
+/// ```
+/// use hal_sim::session::{check_load, LoadRefused};
+/// use hal_sim::sim_device::SimDeviceConfig;
+/// use twinstack::settings::Mode;
+/// let mut s = SimDeviceConfig::paper_settings(Mode::OpenLoop);
+/// assert_eq!(check_load(&s, 1.0, false), Ok(None));
+/// s.ranges.input_min = -150.0;
+/// assert!(matches!(check_load(&s, 1.0, false), Err(LoadRefused::Unreachable { .. })));
+/// assert!(matches!(check_load(&s, 1.0, true), Ok(Some(LoadRefused::Unreachable { .. }))));
+/// ```
+pub fn check_load(
+    settings: &Settings,
+    output_sign: f64,
+    clamp: bool,
+) -> Result<Option<LoadRefused>, LoadRefused> {
+    if settings.mode == Mode::ClosedLoop && output_sign < 0.0 {
+        return Err(LoadRefused::InvertedSensor);
+    }
+    let Some((model, drive)) = unreachable_input(settings) else {
+        return Ok(None);
+    };
+    let d = &settings.drive;
+    let e = LoadRefused::Unreachable {
+        model,
+        drive,
+        configuration: d.configuration,
+        min_voltage: d.min_voltage,
+        max_voltage: d.max_voltage,
+        bias: d.bias,
+    };
+    if clamp {
+        Ok(Some(e))
+    } else {
+        Err(e)
+    }
+}
+
+/// Why a waveform cannot be sent.
+#[derive(Clone, Debug, PartialEq, thiserror::Error)]
+pub enum WaveformError {
+    /// NaN or infinite.
+    #[error("offset, amplitude and frequency must be finite numbers")]
+    NotFinite,
+    /// Amplitude outside 0…1.
+    #[error("amplitude {0}: must lie in 0…1 (normalised)")]
+    Amplitude(f64),
+    /// Offset ± amplitude beyond −1…1.
+    #[error("offset {offset} ± amplitude {amplitude} leaves the normalised range -1…1")]
+    Range {
+        /// Offset.
+        offset: f64,
+        /// Amplitude.
+        amplitude: f64,
+    },
+    /// Below 1 mHz (or beyond the wire's range).
+    #[error("frequency {0} Hz: must be at least 0.001 Hz")]
+    Frequency(f64),
+    /// A decay (amplitude kept per cycle) outside 0…1 (below 1).
+    #[error("decay {0}: the amplitude kept per cycle must lie in 0…1 (below 1)")]
+    Decay(f64),
+}
+
+/// The waveform request for `shape` around `offset` with `amplitude` (normalised, −1…1 over
+/// the model's output range) at `frequency_hz` (resolution 1 mHz).
+///
+/// ```
+/// use hal_sim::session::waveform;
+/// use twinstack::protocol::messages::WaveShape;
+/// let w = waveform(WaveShape::Sine, 0.0, 0.5, 2.5, None).unwrap();
+/// assert_eq!((w.amplitude, w.frequency_mhz), (16384, 2500));
+/// assert!(waveform(WaveShape::Sine, 0.6, 0.5, 1.0, None).is_err());
+/// ```
+pub fn waveform(
+    shape: WaveShape,
+    offset: f64,
+    amplitude: f64,
+    frequency_hz: f64,
+    decay: Option<(f64, u16)>,
+) -> Result<Waveform, WaveformError> {
+    let (o, a, f) = (offset, amplitude, frequency_hz);
+    if !(o.is_finite() && a.is_finite() && f.is_finite()) {
+        return Err(WaveformError::NotFinite);
+    }
+    if !(0.0..=1.0).contains(&a) {
+        return Err(WaveformError::Amplitude(a));
+    }
+    if o - a < -1.0 || o + a > 1.0 {
+        return Err(WaveformError::Range {
+            offset: o,
+            amplitude: a,
+        });
+    }
+    let decay = match decay {
+        None => None,
+        Some((d, hold_cycles)) if d.is_finite() && (0.0..1.0).contains(&d) => {
+            Some(twinstack::protocol::messages::WaveDecay {
+                hold_cycles,
+                keep: (d * 65536.0).round().min(65535.0) as u16,
+            })
+        }
+        Some((d, _)) => return Err(WaveformError::Decay(d)),
+    };
+    let mhz = (f * 1000.0).round();
+    if !(1.0..=u32::MAX as f64).contains(&mhz) {
+        return Err(WaveformError::Frequency(f));
+    }
+    Ok(Waveform {
+        shape,
+        offset: crate::setpoint_file::q1_15(o),
+        amplitude: crate::setpoint_file::q1_15(a),
+        frequency_mhz: mhz as u32,
+        decay,
+    })
+}
+
+/// Why a capture request cannot be armed.
+#[derive(Debug, PartialEq, Eq, thiserror::Error)]
+pub enum CaptureRequestError {
+    /// The signal list.
+    #[error("signals {list:?}: {error}")]
+    Signals {
+        /// The list as given.
+        list: String,
+        /// What is wrong with it.
+        error: crate::capture::SignalListError,
+    },
+    /// No frames.
+    #[error("samples must be at least 1")]
+    NoSamples,
+    /// Decimation 0.
+    #[error("decimation must be at least 1")]
+    NoDecimation,
+    /// Pre-trigger frames not below the frames.
+    #[error("pre-trigger {pre}: must be below the samples ({samples})")]
+    PreNotBelowSamples {
+        /// Pre-trigger frames.
+        pre: u32,
+        /// Frames.
+        samples: u32,
+    },
+    /// Pre-trigger frames with an immediate trigger.
+    #[error(
+        "pre-trigger {0} with the trigger `now`: nothing comes before an immediate trigger; use 0"
+    )]
+    PreWithNow(u32),
+}
+
+/// The capture request for `signals` (comma-separated names: setpoint, left, right, sensor,
+/// estimate, error), `samples` frames of which `pre` from before the `trigger`, one every
+/// `decimation` ticks, or why it cannot be armed.
+///
+/// ```
+/// use hal_sim::session::capture_request;
+/// use twinstack::protocol::messages::Trigger;
+/// let r = capture_request("setpoint,sensor", 1000, 0, Trigger::Now, 1).unwrap();
+/// assert_eq!((r.signals.count_ones(), r.samples), (2, 1000));
+/// assert!(capture_request("setpoint", 1000, 10, Trigger::Now, 1).is_err());
+/// ```
+pub fn capture_request(
+    signals: &str,
+    samples: u32,
+    pre: u32,
+    trigger: Trigger,
+    decimation: u16,
+) -> Result<CaptureRequest, CaptureRequestError> {
+    let mask = signal_mask(signals).map_err(|error| CaptureRequestError::Signals {
+        list: signals.to_string(),
+        error,
+    })?;
+    if samples == 0 {
+        return Err(CaptureRequestError::NoSamples);
+    }
+    if decimation == 0 {
+        return Err(CaptureRequestError::NoDecimation);
+    }
+    if pre >= samples {
+        return Err(CaptureRequestError::PreNotBelowSamples { pre, samples });
+    }
+    if trigger == Trigger::Now && pre != 0 {
+        return Err(CaptureRequestError::PreWithNow(pre));
+    }
+    Ok(CaptureRequest {
+        signals: mask,
+        samples,
+        pre_trigger: pre,
+        trigger,
+        decimation,
+    })
+}
+
+/// The names of the flags set in `s`.
+pub fn flag_names(s: &StatusReport) -> Vec<&'static str> {
+    [
+        (StatusReport::DEFAULTS, "defaults"),
+        (StatusReport::STREAMING, "streaming"),
+        (StatusReport::WAVEFORM, "waveform"),
+        (StatusReport::RECORDING, "recording"),
+        (StatusReport::TELEMETRY, "telemetry"),
+    ]
+    .into_iter()
+    .filter(|&(bit, _)| s.has(bit))
+    .map(|(_, name)| name)
+    .collect()
+}
+
+/// The report as one JSON object: every field under its own name, `image` as `board`,
+/// `emulator` or `simulator`, `mode` as `bypass`/`open-loop`/`closed-loop`, `flags` a list,
+/// `estimate` normalised (±1 of the output range) and `estimate_q2_30` raw.
+pub fn status_json(s: &StatusReport) -> serde_json::Value {
+    serde_json::json!({
+        "image": s.image().name(),
+        "ticks": s.ticks,
+        "tick_rate_hz": s.tick_rate_hz,
+        "mode": mode_name(s.mode()),
+        "flags": flag_names(s),
+        "queue_fill": s.queue_fill,
+        "credits": s.credits,
+        "next_seq": s.next_seq,
+        "underruns": s.underruns,
+        "overruns": s.overruns,
+        "crc_errors": s.crc_errors,
+        "frame_errors": s.frame_errors,
+        "limit_hits": s.limit_hits,
+        "estimate": s.estimate as f64 / (1u64 << 30) as f64,
+        "estimate_q2_30": s.estimate,
+        "recorded": s.recorded,
+    })
+}
+
+/// A mode's name on the command line and in JSON: `bypass`, `open-loop`, `closed-loop`.
+pub fn mode_name(mode: Mode) -> &'static str {
+    match mode {
+        Mode::Bypass => "bypass",
+        Mode::OpenLoop => "open-loop",
+        Mode::ClosedLoop => "closed-loop",
+    }
+}
+
+/// The mode named `name` ([`mode_name`]'s names; `_` for `-` and any case accepted).
+pub fn parse_mode(name: &str) -> Option<Mode> {
+    match name.to_ascii_lowercase().replace('_', "-").as_str() {
+        "bypass" => Some(Mode::Bypass),
+        "open-loop" => Some(Mode::OpenLoop),
+        "closed-loop" => Some(Mode::ClosedLoop),
+        _ => None,
+    }
+}

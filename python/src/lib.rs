@@ -1,0 +1,1018 @@
+//! `twinstack._native`: the Python package's extension module, a thin layer over the `hal-sim`
+//! library — the same protocol client, in-process board, identification and parameter file as
+//! the `hal-sim` command line. Nothing here speaks the wire protocol or runs a model itself:
+//! it converts Python values (numpy arrays, strings, dicts) to the library's types and back,
+//! maps the library's errors onto Python exceptions, and lets go of the interpreter's lock
+//! (`Python::detach`) while it waits on a board or fits a model.
+//!
+//! The Python-facing documentation is in `twinstack/_native.pyi` and the book's Python
+//! chapter (`docs/src/guide/python.md`).
+
+use hal_sim::capture::{self, CaptureError};
+use hal_sim::identification::run::{
+    default_fit_until, identify_and_score, parse_model, Identified, RunError,
+};
+use hal_sim::identification::{IdentifyOptions, ModelKind, ThresholdSpread};
+use hal_sim::link::client::{nack_text, Client, LinkError};
+use hal_sim::link::port::{open_send, PortError, PortSpec, DEFAULT_BAUD};
+use hal_sim::link::streamer::{stream_setpoints_until, StreamOptions};
+use hal_sim::link::Transport;
+use hal_sim::measured_data::{ColumnsError, MeasuredData};
+use hal_sim::param_file::{ParamFile, ParamFileError};
+use hal_sim::session::{self, LoadRefused};
+use hal_sim::setpoint_file::{divider_for_rate, to_wire, SetpointUnits};
+use hal_sim::stage_model::{Hysteresis, StageModel};
+use numpy::{PyArray1, PyArrayMethods};
+use pyo3::exceptions::{
+    PyConnectionError, PyException, PyFileNotFoundError, PyOSError, PyRuntimeError, PyTimeoutError,
+    PyTypeError, PyValueError,
+};
+use pyo3::prelude::*;
+use pyo3::types::{PyDict, PyList};
+use std::path::{Path, PathBuf};
+use std::sync::Mutex;
+use std::time::{Duration, Instant};
+use twinstack::protocol::messages::{
+    NackReason, StreamControl, Trigger, UnderrunPolicy, WaveShape,
+};
+use twinstack::refusal::Rule;
+use twinstack::settings::Mode;
+
+pyo3::create_exception!(
+    twinstack,
+    BoardError,
+    PyException,
+    "A request the board refused (its NACK), or a parameter load refused before sending."
+);
+
+// The default baud in `Board`'s signature (a literal, so Python shows it) is the CLI's.
+const _: () = assert!(DEFAULT_BAUD == 2_000_000);
+
+/// How often a stream asks the interpreter whether Ctrl-C was pressed.
+const SIGNAL_CHECK: Duration = Duration::from_millis(50);
+
+type BoardClient = Client<Box<dyn Transport + Send>>;
+
+// ---------------------------------------------------------------------------------------
+// Errors
+
+/// The rule's limit, where it has one, in the field's own units.
+fn rule_limit(rule: &Rule) -> Option<f64> {
+    match *rule {
+        Rule::AtLeast(x) | Rule::Above(x) | Rule::AtMost(x) | Rule::Below(x) => Some(x),
+        Rule::TooMany(n) => Some(n as f64),
+        _ => None,
+    }
+}
+
+/// The rule's name without its limit (`AtMost`, `NotFinite`, …).
+fn rule_name(rule: &Rule) -> String {
+    let debug = format!("{rule:?}");
+    debug.split('(').next().unwrap_or("").to_string()
+}
+
+/// A `BoardError` with its attributes set.
+fn board_error(
+    py: Python<'_>,
+    message: String,
+    request: &str,
+    field: Option<String>,
+    reason: String,
+    rule: Option<String>,
+    limit: Option<f64>,
+) -> PyErr {
+    let err = BoardError::new_err(message);
+    let value = err.value(py);
+    let set = || -> PyResult<()> {
+        value.setattr("request", request)?;
+        value.setattr("field", field)?;
+        value.setattr("reason", reason)?;
+        value.setattr("rule", rule)?;
+        value.setattr("limit", limit)?;
+        Ok(())
+    };
+    match set() {
+        Ok(()) => err,
+        Err(e) => e,
+    }
+}
+
+/// A link error as a Python exception: a NACK is a `BoardError` carrying the field, the
+/// reason and the limit; a timeout a `TimeoutError`; a failed link a `ConnectionError`.
+fn link_error(py: Python<'_>, e: LinkError) -> PyErr {
+    match e {
+        LinkError::Nack { request, reason } => {
+            let message = e.to_string();
+            match reason {
+                NackReason::Refused(r) => board_error(
+                    py,
+                    message,
+                    request,
+                    Some(r.field.to_string()),
+                    r.rule.to_string(),
+                    Some(rule_name(&r.rule)),
+                    rule_limit(&r.rule),
+                ),
+                other => board_error(py, message, request, None, nack_text(&other), None, None),
+            }
+        }
+        LinkError::Timeout { .. } => PyTimeoutError::new_err(e.to_string()),
+        LinkError::Io(_) => PyConnectionError::new_err(e.to_string()),
+        LinkError::Stopped { .. } => pyo3::exceptions::PyKeyboardInterrupt::new_err(e.to_string()),
+        other => PyRuntimeError::new_err(other.to_string()),
+    }
+}
+
+fn port_error(e: PortError) -> PyErr {
+    match e {
+        PortError::Empty => PyValueError::new_err(e.to_string()),
+        PortError::Serial(hal_sim::link::serial::SerialError::Missing { .. }) => {
+            PyFileNotFoundError::new_err(format!(
+                "{e}; {}",
+                hal_sim::cli::board_link::available_ports()
+            ))
+        }
+        PortError::Serial(hal_sim::link::serial::SerialError::BadBaud(_)) => {
+            PyValueError::new_err(e.to_string())
+        }
+        PortError::Socket(_) => PyConnectionError::new_err(e.to_string()),
+        other => PyOSError::new_err(other.to_string()),
+    }
+}
+
+fn param_file_error(e: ParamFileError) -> PyErr {
+    match e {
+        ParamFileError::Io { ref source, .. } if source.kind() == std::io::ErrorKind::NotFound => {
+            PyFileNotFoundError::new_err(e.to_string())
+        }
+        ParamFileError::Io { .. } => PyOSError::new_err(e.to_string()),
+        other => PyValueError::new_err(other.to_string()),
+    }
+}
+
+// ---------------------------------------------------------------------------------------
+// numpy in and out
+
+/// `obj` as a one-dimensional array of `f64`: any numpy array or sequence of real numbers
+/// (float or integer dtypes, converted to float64). Another dtype is a `TypeError`, another
+/// shape or an empty array a `ValueError`, both naming `name`.
+fn vector(py: Python<'_>, obj: &Bound<'_, PyAny>, name: &str) -> PyResult<Vec<f64>> {
+    let np = py.import("numpy")?;
+    let arr = np.call_method1("asarray", (obj,)).map_err(|e| {
+        PyTypeError::new_err(format!(
+            "{name}: cannot be read as an array of numbers ({})",
+            e.value(py)
+        ))
+    })?;
+    let dtype = arr.getattr("dtype")?;
+    let kind: String = dtype.getattr("kind")?.extract()?;
+    if !matches!(kind.as_str(), "f" | "i" | "u") {
+        return Err(PyTypeError::new_err(format!(
+            "{name}: dtype {} is not a real number type (give a float or integer array, e.g. float64)",
+            dtype.str()?
+        )));
+    }
+    let ndim: usize = arr.getattr("ndim")?.extract()?;
+    if ndim != 1 {
+        return Err(PyValueError::new_err(format!(
+            "{name} must be one-dimensional, got shape {}",
+            arr.getattr("shape")?.repr()?
+        )));
+    }
+    let arr = np.call_method1("ascontiguousarray", (arr, np.getattr("float64")?))?;
+    let arr = arr.cast::<PyArray1<f64>>().map_err(PyErr::from)?;
+    let values = arr.readonly().as_slice()?.to_vec();
+    if values.is_empty() {
+        return Err(PyValueError::new_err(format!("{name} is empty")));
+    }
+    Ok(values)
+}
+
+fn array<'py>(py: Python<'py>, values: Vec<f64>) -> Bound<'py, PyArray1<f64>> {
+    PyArray1::from_vec(py, values)
+}
+
+/// A JSON value as the Python object `json.loads` makes of it.
+fn json_to_py<'py>(py: Python<'py>, value: &serde_json::Value) -> PyResult<Bound<'py, PyAny>> {
+    py.import("json")?
+        .call_method1("loads", (value.to_string(),))
+}
+
+// ---------------------------------------------------------------------------------------
+// Parameters
+
+/// The record's times: `t` as given, or `k / rate`, or (for a model with neither creep nor a
+/// sensor lag, which need the sample period) any uniform spacing.
+fn times(
+    py: Python<'_>,
+    model: &StageModel,
+    n: usize,
+    t: Option<&Bound<'_, PyAny>>,
+    rate: Option<f64>,
+) -> PyResult<Vec<f64>> {
+    match (t, rate) {
+        (Some(_), Some(_)) => Err(PyValueError::new_err("give t or rate, not both")),
+        (Some(t), None) => {
+            let t = vector(py, t, "t")?;
+            if t.len() != n {
+                return Err(PyValueError::new_err(format!(
+                    "t has {} samples, the signal {n}",
+                    t.len()
+                )));
+            }
+            MeasuredData::check_columns(&t, &[]).map_err(|e| PyValueError::new_err(e.to_string()))?;
+            Ok(t)
+        }
+        (None, Some(rate)) => {
+            if !(rate.is_finite() && rate > 0.0) {
+                return Err(PyValueError::new_err(format!(
+                    "rate {rate}: must be a positive number of samples per second"
+                )));
+            }
+            Ok((0..n).map(|k| k as f64 / rate).collect())
+        }
+        (None, None) if model.creep.is_none() && model.sensor_lag_s == 0.0 => {
+            Ok((0..n).map(|k| k as f64).collect())
+        }
+        (None, None) => Err(PyValueError::new_err(
+            "this model has a creep operator or a sensor lag, which run at the record's sample period: give t (seconds) or rate (samples per second)",
+        )),
+    }
+}
+
+/// An identified or loaded model with its parameter file: what `hal-sim identify` writes and
+/// `hal-sim load` sends.
+#[pyclass(module = "twinstack", frozen)]
+struct Params {
+    file: ParamFile,
+    model: StageModel,
+    ranking: Option<Vec<Ranked>>,
+}
+
+/// One of `auto`'s candidates: its label, and its validation (max %, RMS %) or why it could not
+/// be fitted.
+type Ranked = (String, Result<(f64, f64), String>);
+
+impl Params {
+    fn from_file(file: ParamFile, model: StageModel) -> Self {
+        Self {
+            file,
+            model,
+            ranking: None,
+        }
+    }
+}
+
+#[pymethods]
+impl Params {
+    /// The model's predicted sensor reading for the drive `u` (volts).
+    #[pyo3(signature = (u, t=None, rate=None))]
+    fn predict<'py>(
+        &self,
+        py: Python<'py>,
+        u: &Bound<'py, PyAny>,
+        t: Option<&Bound<'py, PyAny>>,
+        rate: Option<f64>,
+    ) -> PyResult<Bound<'py, PyArray1<f64>>> {
+        let u = vector(py, u, "u")?;
+        let t = times(py, &self.model, u.len(), t, rate)?;
+        let model = &self.model;
+        let x = py
+            .detach(|| model.predict(&t, &u))
+            .map_err(|e| PyValueError::new_err(e.to_string()))?;
+        Ok(array(py, x))
+    }
+
+    /// The drive (volts) the compensator gives for the desired reading `x`.
+    #[pyo3(signature = (x, t=None, rate=None))]
+    fn compensate<'py>(
+        &self,
+        py: Python<'py>,
+        x: &Bound<'py, PyAny>,
+        t: Option<&Bound<'py, PyAny>>,
+        rate: Option<f64>,
+    ) -> PyResult<Bound<'py, PyArray1<f64>>> {
+        let x = vector(py, x, "x")?;
+        let t = times(py, &self.model, x.len(), t, rate)?;
+        let model = &self.model;
+        let u = py
+            .detach(|| model.compensate(&t, &x))
+            .map_err(|e| PyValueError::new_err(e.to_string()))?;
+        Ok(array(py, u))
+    }
+
+    /// Writes the parameter file (the JSON `hal-sim identify` writes).
+    fn save(&self, path: PathBuf) -> PyResult<()> {
+        self.file.save(&path).map_err(param_file_error)
+    }
+
+    /// The parameter file's JSON text.
+    fn to_json(&self) -> String {
+        self.file.to_json()
+    }
+
+    /// A parameter file's JSON text, checked as `load_params` checks a file.
+    #[staticmethod]
+    fn from_json(text: &str) -> PyResult<Self> {
+        let (file, model) =
+            ParamFile::parse(Path::new("<json>"), text).map_err(param_file_error)?;
+        Ok(Self::from_file(file, model))
+    }
+
+    /// The model's kind: `pi`, `duhem`, `gpi` or `bouc-wen`.
+    #[getter]
+    fn model(&self) -> &'static str {
+        match self.model.hysteresis {
+            Hysteresis::Pi(_) => "pi",
+            Hysteresis::Duhem(_) => "duhem",
+            Hysteresis::GeneralisedPi(_) => "gpi",
+            Hysteresis::BoucWen(_) => "bouc-wen",
+        }
+    }
+
+    /// Whether a creep operator runs in series with the model.
+    #[getter]
+    fn creep(&self) -> bool {
+        self.model.creep.is_some()
+    }
+
+    /// The model's input range, volts.
+    #[getter]
+    fn input_range(&self) -> (f64, f64) {
+        (self.model.scaling.input_min, self.model.scaling.input_max)
+    }
+
+    /// The model's (sign-corrected) output range, in its output unit.
+    #[getter]
+    fn output_range(&self) -> (f64, f64) {
+        (self.model.scaling.output_min, self.model.scaling.output_max)
+    }
+
+    /// `1.0`, or `-1.0` for a sensor that reads the model's output negated.
+    #[getter]
+    fn output_sign(&self) -> f64 {
+        self.model.output_sign
+    }
+
+    /// The sensor's lag behind the drive, seconds.
+    #[getter]
+    fn sensor_lag_s(&self) -> f64 {
+        self.model.sensor_lag_s
+    }
+
+    /// The unit of the model's output (the identified record's `x`).
+    #[getter]
+    fn output_unit(&self) -> &str {
+        &self.file.units.output
+    }
+
+    /// The board settings the file carries, as a dict (the JSON's `settings`).
+    #[getter]
+    fn settings<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
+        let v = serde_json::to_value(&self.file.settings)
+            .map_err(|e| PyRuntimeError::new_err(e.to_string()))?;
+        json_to_py(py, &v)
+    }
+
+    /// How the model was fitted and scored (the file's `identification`), or `None`.
+    #[getter]
+    fn identification<'py>(&self, py: Python<'py>) -> PyResult<Option<Bound<'py, PyAny>>> {
+        match &self.file.identification {
+            None => Ok(None),
+            Some(r) => {
+                let v =
+                    serde_json::to_value(r).map_err(|e| PyRuntimeError::new_err(e.to_string()))?;
+                json_to_py(py, &v).map(Some)
+            }
+        }
+    }
+
+    /// `model="auto"`'s ranking, best first: dicts with `label`, `max_pct`, `rms_pct` (or
+    /// `error`); `None` when one model was asked for or the file was loaded.
+    #[getter]
+    fn ranking<'py>(&self, py: Python<'py>) -> PyResult<Option<Bound<'py, PyList>>> {
+        let Some(ranking) = &self.ranking else {
+            return Ok(None);
+        };
+        let list = PyList::empty(py);
+        for (label, result) in ranking {
+            let d = PyDict::new(py);
+            d.set_item("label", label)?;
+            match result {
+                Ok((max, rms)) => {
+                    d.set_item("max_pct", max)?;
+                    d.set_item("rms_pct", rms)?;
+                }
+                Err(e) => d.set_item("error", e)?,
+            }
+            list.append(d)?;
+        }
+        Ok(Some(list))
+    }
+
+    /// The model's kind, creep, ranges and output unit.
+    fn __repr__(&self) -> String {
+        let s = &self.model.scaling;
+        format!(
+            "Params(model={:?}, creep={}, input_range=({}, {}), output_range=({}, {}), output_unit={:?})",
+            self.model(),
+            self.creep(),
+            s.input_min,
+            s.input_max,
+            s.output_min,
+            s.output_max,
+            self.file.units.output
+        )
+    }
+}
+
+/// Reads and checks a parameter file (`hal-sim identify`'s output, or `Params.save`'s).
+#[pyfunction]
+fn load_params(path: PathBuf) -> PyResult<Params> {
+    let (file, model) = ParamFile::load(&path).map_err(param_file_error)?;
+    Ok(Params::from_file(file, model))
+}
+
+/// Identifies a model from a measured record (`t` seconds, `u` drive volts, `x` reading).
+#[pyfunction]
+#[pyo3(signature = (t, u, x, model="auto", creep=None, fit_until=None, operators=17, thresholds="uniform", lag=None, output_unit="um"))]
+#[allow(clippy::too_many_arguments)]
+fn identify(
+    py: Python<'_>,
+    t: &Bound<'_, PyAny>,
+    u: &Bound<'_, PyAny>,
+    x: &Bound<'_, PyAny>,
+    model: &str,
+    creep: Option<bool>,
+    fit_until: Option<f64>,
+    operators: usize,
+    thresholds: &str,
+    lag: Option<usize>,
+    output_unit: &str,
+) -> PyResult<Params> {
+    let choice = parse_model(model).map_err(PyValueError::new_err)?;
+    let spread = match thresholds.to_ascii_lowercase().as_str() {
+        "uniform" => ThresholdSpread::Uniform,
+        "geometric" => ThresholdSpread::Geometric,
+        other => {
+            return Err(PyValueError::new_err(format!(
+                "thresholds {other:?}: expected \"uniform\" or \"geometric\""
+            )))
+        }
+    };
+    let (t, u, x) = (
+        vector(py, t, "t")?,
+        vector(py, u, "u")?,
+        vector(py, x, "x")?,
+    );
+    let data = MeasuredData::from_columns("<arrays>", t, Some(u), Some(x))
+        .map_err(|e: ColumnsError| PyValueError::new_err(e.to_string()))?;
+    let fit_until = fit_until.unwrap_or_else(|| default_fit_until(&data.t));
+    if !fit_until.is_finite() {
+        return Err(PyValueError::new_err(format!(
+            "fit_until {fit_until}: not a finite number of seconds"
+        )));
+    }
+    let mut options = IdentifyOptions::new(ModelKind::Pi, fit_until);
+    options.operators = operators;
+    options.thresholds = spread;
+    options.lag = lag;
+    let run: Result<Identified, RunError> =
+        py.detach(|| identify_and_score(&data, choice, &options, creep, output_unit));
+    let run = run.map_err(|e| PyValueError::new_err(e.to_string()))?;
+    let ranking = run.auto.as_ref().map(|a| {
+        a.ranking
+            .iter()
+            .map(|r| {
+                (
+                    r.label.clone(),
+                    r.validation
+                        .as_ref()
+                        .map(|f| (f.max_pct, f.rms_pct))
+                        .map_err(Clone::clone),
+                )
+            })
+            .collect()
+    });
+    Ok(Params {
+        model: run.identification.model,
+        file: run.file,
+        ranking,
+    })
+}
+
+// ---------------------------------------------------------------------------------------
+// The board
+
+fn parse_mode(name: &str) -> PyResult<Mode> {
+    session::parse_mode(name).ok_or_else(|| {
+        PyValueError::new_err(format!(
+            "mode {name:?}: expected \"bypass\", \"open-loop\" or \"closed-loop\""
+        ))
+    })
+}
+
+fn parse_trigger(name: &str) -> PyResult<Trigger> {
+    match name.to_ascii_lowercase().as_str() {
+        "now" => Ok(Trigger::Now),
+        "stream" => Ok(Trigger::StreamStart),
+        "waveform" => Ok(Trigger::WaveformStart),
+        _ => Err(PyValueError::new_err(format!(
+            "trigger {name:?}: expected \"now\", \"stream\" or \"waveform\""
+        ))),
+    }
+}
+
+fn signal_list(signals: &Bound<'_, PyAny>) -> PyResult<String> {
+    if let Ok(s) = signals.extract::<String>() {
+        return Ok(s);
+    }
+    let names: Vec<String> = signals.extract().map_err(|_| {
+        PyTypeError::new_err(
+            "signals: give a list of names (setpoint, left, right, sensor, estimate, error) or one comma-separated string",
+        )
+    })?;
+    Ok(names.join(","))
+}
+
+/// A board: a serial device, `tcp:HOST:PORT` (a virtual board, QEMU), `unix:PATH`, or `"sim"`.
+#[pyclass(module = "twinstack")]
+struct Board {
+    port: String,
+    client: Mutex<Option<BoardClient>>,
+}
+
+impl Board {
+    /// Runs `f` on the client without the interpreter's lock.
+    fn with<T: Send>(
+        &self,
+        py: Python<'_>,
+        f: impl FnOnce(&mut BoardClient) -> Result<T, LinkError> + Send,
+    ) -> PyResult<T> {
+        self.with_py(py, |client| {
+            f(client).map_err(|e| Python::attach(|py| link_error(py, e)))
+        })
+    }
+
+    /// Runs `f` on the client (without the interpreter's lock unless `f` takes it back).
+    fn with_py<T: Send>(
+        &self,
+        py: Python<'_>,
+        f: impl FnOnce(&mut BoardClient) -> PyResult<T> + Send,
+    ) -> PyResult<T> {
+        let mut guard = self.client.try_lock().map_err(|_| {
+            PyRuntimeError::new_err(
+                "the board is in use by another thread (one call at a time per Board)",
+            )
+        })?;
+        let client: &mut BoardClient = guard.as_mut().ok_or_else(|| {
+            PyRuntimeError::new_err(format!("{}: the board is closed", self.port))
+        })?;
+        py.detach(|| f(client))
+    }
+
+    /// Waits for the capture armed on the board and reads it back in physical units: `t`,
+    /// then one column per signal.
+    fn read_capture(&self, py: Python<'_>, timeout: Duration) -> PyResult<Vec<(String, Vec<f64>)>> {
+        self.with_py(py, |client| {
+            let err = |e: LinkError| Python::attach(|py| link_error(py, e));
+            let settings = client.read_params().map_err(err)?;
+            let (status, window) =
+                capture::wait_and_read(client, timeout, |_, _| {}).map_err(|e| match e {
+                    CaptureError::Link(l) => err(l),
+                    e @ CaptureError::NotDone { .. } => PyTimeoutError::new_err(e.to_string()),
+                })?;
+            let recording = capture::convert(&status, &settings, &window)
+                .map_err(|e| PyRuntimeError::new_err(e.to_string()))?;
+            let mut out = vec![("t".to_string(), recording.t)];
+            for c in recording.columns {
+                out.push((c.channel.name().to_string(), c.values));
+            }
+            Ok(out)
+        })
+    }
+
+    fn fetch_dict<'py>(&self, py: Python<'py>, timeout: f64) -> PyResult<Bound<'py, PyDict>> {
+        let columns = self.read_capture(py, seconds(timeout, "timeout")?)?;
+        let d = PyDict::new(py);
+        for (name, values) in columns {
+            d.set_item(name, array(py, values))?;
+        }
+        Ok(d)
+    }
+}
+
+fn seconds(s: f64, name: &str) -> PyResult<Duration> {
+    if s.is_finite() && s > 0.0 && s < 1e9 {
+        Ok(Duration::from_secs_f64(s))
+    } else {
+        Err(PyValueError::new_err(format!(
+            "{name} {s}: must be a positive number of seconds"
+        )))
+    }
+}
+
+#[pymethods]
+impl Board {
+    /// Connects to the board at `port` and cleans the line.
+    #[new]
+    #[pyo3(signature = (port, baud=2_000_000, timeout=2.0))]
+    fn new(py: Python<'_>, port: &str, baud: u32, timeout: f64) -> PyResult<Self> {
+        let timeout = seconds(timeout, "timeout")?;
+        let spec: PortSpec = port.parse().map_err(port_error)?;
+        let client = py.detach(|| -> Result<BoardClient, Result<PortError, LinkError>> {
+            let transport = open_send(&spec, baud).map_err(Ok)?;
+            let mut client = Client::new(transport);
+            client.set_timeout(timeout);
+            client.resync(Duration::from_millis(20)).map_err(Err)?;
+            Ok(client)
+        });
+        let client = client.map_err(|e| match e {
+            Ok(p) => port_error(p),
+            Err(l) => link_error(py, l),
+        })?;
+        Ok(Self {
+            port: port.to_string(),
+            client: Mutex::new(Some(client)),
+        })
+    }
+
+    /// The port this board was opened on.
+    #[getter]
+    fn port(&self) -> &str {
+        &self.port
+    }
+
+    /// Status and telemetry, as a dict.
+    fn status<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
+        let s = self.with(py, |c| c.status())?;
+        json_to_py(py, &session::status_json(&s))
+    }
+
+    /// Loads a parameter file's settings.
+    #[pyo3(signature = (params, clamp=false, mode=None, store=None))]
+    fn load(
+        &self,
+        py: Python<'_>,
+        params: &Params,
+        clamp: bool,
+        mode: Option<&str>,
+        store: Option<&str>,
+    ) -> PyResult<()> {
+        let mode = mode.map(parse_mode).transpose()?;
+        let store = store.map(parse_mode).transpose()?;
+        let board = self.with(py, |c| Ok(c.read_params().ok()))?;
+        let mut settings = session::keep_from_board(&params.file.settings, board.as_ref());
+        if let Some(m) = mode {
+            settings.mode = m;
+        }
+        match session::check_load(&settings, params.model.output_sign, clamp) {
+            Ok(None) => {}
+            Ok(Some(warning)) => {
+                let warnings = py.import("warnings")?;
+                let category = py.get_type::<pyo3::exceptions::PyRuntimeWarning>();
+                warnings.call_method1(
+                    "warn",
+                    (
+                        format!("{warning} (clamp=True: loading it anyway)"),
+                        category,
+                        2,
+                    ),
+                )?;
+            }
+            Err(e) => {
+                let field = match e {
+                    LoadRefused::InvertedSensor => "output_sign",
+                    LoadRefused::Unreachable { .. } => "ranges.input",
+                };
+                let hint = match e {
+                    LoadRefused::InvertedSensor => "nothing was sent",
+                    LoadRefused::Unreachable { .. } => {
+                        "identify the model within the drive's range, or pass clamp=True to load it anyway; nothing was loaded"
+                    }
+                };
+                return Err(board_error(
+                    py,
+                    format!("{e}; {hint}"),
+                    "LoadParams",
+                    Some(field.to_string()),
+                    e.to_string(),
+                    None,
+                    None,
+                ));
+            }
+        }
+        self.with(py, |c| {
+            c.load_params(&settings)?;
+            if let Some(boot) = store {
+                c.store_params(boot)?;
+            }
+            Ok(())
+        })
+    }
+
+    /// The settings in force on the board, as a dict (physical units).
+    fn params<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
+        let s = self.with(py, |c| c.read_params())?;
+        let v = serde_json::to_value(&s).map_err(|e| PyRuntimeError::new_err(e.to_string()))?;
+        json_to_py(py, &v)
+    }
+
+    /// Switches the control mode (bumpless).
+    fn mode(&self, py: Python<'_>, mode: &str) -> PyResult<()> {
+        let m = parse_mode(mode)?;
+        self.with(py, |c| c.set_mode(m))
+    }
+
+    /// Streams setpoints and waits until they have played.
+    #[pyo3(signature = (setpoints, rate=None, normalised=false, underrun=None, wait=true))]
+    fn stream<'py>(
+        &self,
+        py: Python<'py>,
+        setpoints: &Bound<'py, PyAny>,
+        rate: Option<f64>,
+        normalised: bool,
+        underrun: Option<&str>,
+        wait: bool,
+    ) -> PyResult<Bound<'py, PyDict>> {
+        let values = vector(py, setpoints, "setpoints")?;
+        let underrun = match underrun {
+            None => None,
+            Some("hold") => Some(UnderrunPolicy::Hold),
+            Some("ramp-to-bias") | Some("ramp_to_bias") => Some(UnderrunPolicy::RampToBias),
+            Some(other) => {
+                return Err(PyValueError::new_err(format!(
+                    "underrun {other:?}: expected \"hold\" or \"ramp-to-bias\""
+                )))
+            }
+        };
+        let (status, settings) = self.with(py, |c| Ok((c.status()?, c.read_params()?)))?;
+        let tick_rate = status.tick_rate_hz.max(1) as f64;
+        let units = if normalised {
+            SetpointUnits::Normalised
+        } else {
+            SetpointUnits::Output(&settings.ranges)
+        };
+        let samples = values
+            .iter()
+            .enumerate()
+            .map(|(k, &v)| {
+                to_wire(v, units).map_err(|m| PyValueError::new_err(format!("setpoints[{k}]: {m}")))
+            })
+            .collect::<PyResult<Vec<i16>>>()?;
+        let divider = match rate {
+            None => 1,
+            Some(r) => divider_for_rate(tick_rate, r).map_err(PyValueError::new_err)?,
+        };
+        let options = StreamOptions {
+            divider,
+            underrun,
+            tick_rate_hz: tick_rate,
+            drain: wait,
+            ..StreamOptions::default()
+        };
+        let report = self.with_py(py, |client| {
+            // Ctrl-C: asked of the interpreter every SIGNAL_CHECK, with its lock taken back
+            // for the question only.
+            let mut interrupt: Option<PyErr> = None;
+            let mut last = Instant::now();
+            let r = stream_setpoints_until(
+                client,
+                &samples,
+                &options,
+                |_| {},
+                || {
+                    if last.elapsed() < SIGNAL_CHECK {
+                        return false;
+                    }
+                    last = Instant::now();
+                    match Python::attach(|py| py.check_signals()) {
+                        Ok(()) => false,
+                        Err(e) => {
+                            interrupt = Some(e);
+                            true
+                        }
+                    }
+                },
+            );
+            match r {
+                Ok(report) => Ok(report),
+                Err(e) => {
+                    if let Some(signal) = interrupt {
+                        // Tell the board to stop; the signal's exception goes up.
+                        let _ = client.stream(StreamControl::Stop);
+                        return Err(signal);
+                    }
+                    Err(Python::attach(|py| {
+                        let message = e.to_string();
+                        match e.source {
+                            LinkError::Nack { .. } => {
+                                let err = link_error(py, e.source);
+                                let _ = err.value(py).setattr("accepted", e.accepted);
+                                err
+                            }
+                            LinkError::Timeout { .. } => PyTimeoutError::new_err(message),
+                            LinkError::Io(_) => PyConnectionError::new_err(message),
+                            _ => PyRuntimeError::new_err(message),
+                        }
+                    }))
+                }
+            }
+        })?;
+        let end = report.drained.unwrap_or(report.after_last_batch);
+        let d = PyDict::new(py);
+        d.set_item("accepted", report.accepted)?;
+        d.set_item("divider", divider)?;
+        d.set_item("batches", report.batches)?;
+        d.set_item("resent_batches", report.resent_batches)?;
+        d.set_item("refused_and_retried", report.nacks.len())?;
+        d.set_item("underruns", report.underruns_during_stream())?;
+        d.set_item("underran", report.underran())?;
+        d.set_item(
+            "seconds",
+            end.ticks.wrapping_sub(report.before.ticks) as f64 / tick_rate,
+        )?;
+        d.set_item("drained", report.drained.is_some())?;
+        d.set_item("bytes_sent", report.link.bytes_sent)?;
+        Ok(d)
+    }
+
+    /// Stops the setpoint stream or the waveform; the output holds where it is.
+    fn stop(&self, py: Python<'_>) -> PyResult<()> {
+        self.with(py, |c| c.stream(StreamControl::Stop))
+    }
+
+    /// Starts the board's waveform generator (normalised units).
+    #[pyo3(signature = (amplitude, frequency, shape="sine", offset=0.0))]
+    fn waveform(
+        &self,
+        py: Python<'_>,
+        amplitude: f64,
+        frequency: f64,
+        shape: &str,
+        offset: f64,
+    ) -> PyResult<()> {
+        let shape = match shape.to_ascii_lowercase().as_str() {
+            "sine" => WaveShape::Sine,
+            "triangle" => WaveShape::Triangle,
+            other => {
+                return Err(PyValueError::new_err(format!(
+                    "shape {other:?}: expected \"sine\" or \"triangle\""
+                )))
+            }
+        };
+        let w = session::waveform(shape, offset, amplitude, frequency, None)
+            .map_err(|e| PyValueError::new_err(e.to_string()))?;
+        self.with(py, |c| c.waveform(w))
+    }
+
+    /// Arms a multi-signal capture without waiting for it (see `fetch`).
+    #[pyo3(signature = (signals, samples, trigger="now", pre=0, decimation=1))]
+    fn arm(
+        &self,
+        py: Python<'_>,
+        signals: &Bound<'_, PyAny>,
+        samples: u32,
+        trigger: &str,
+        pre: u32,
+        decimation: u16,
+    ) -> PyResult<()> {
+        let signals = signal_list(signals)?;
+        let trigger = parse_trigger(trigger)?;
+        let request = session::capture_request(&signals, samples, pre, trigger, decimation)
+            .map_err(|e| PyValueError::new_err(e.to_string()))?;
+        self.with(py, |c| c.arm_capture(request))
+    }
+
+    /// Waits for the capture armed before and reads it back in physical units.
+    #[pyo3(signature = (timeout=30.0))]
+    fn fetch<'py>(&self, py: Python<'py>, timeout: f64) -> PyResult<Bound<'py, PyDict>> {
+        self.fetch_dict(py, timeout)
+    }
+
+    /// Records several signals at once and returns them in physical units.
+    #[pyo3(signature = (signals, samples, trigger="now", pre=0, decimation=1, timeout=30.0))]
+    #[allow(clippy::too_many_arguments)]
+    fn record<'py>(
+        &self,
+        py: Python<'py>,
+        signals: &Bound<'py, PyAny>,
+        samples: u32,
+        trigger: &str,
+        pre: u32,
+        decimation: u16,
+        timeout: f64,
+    ) -> PyResult<Bound<'py, PyDict>> {
+        seconds(timeout, "timeout")?;
+        self.arm(py, signals, samples, trigger, pre, decimation)?;
+        self.fetch_dict(py, timeout)
+    }
+
+    /// Calibrates the stage behind the board in one call (`hal-sim calibrate`): excites it
+    /// with the board's waveform generator (full-range cycles, then decaying minor loops),
+    /// records drive and sensor, identifies the best model of the family (or `model`), loads
+    /// it, verifies by tracking a test trajectory before (bypass) and after (open loop), and
+    /// stores it to flash unless `store` is false. Returns a dict: `params` (a `Params`, the
+    /// file `hal-sim calibrate` writes), `model`, `reason`, `held_out` / `before` / `after`
+    /// (`max_pct`, `rms_pct`), `stored`, `clamped`. Board refusals raise `BoardError`; a stage
+    /// that cannot be calibrated (no sensor, a sensor that does not follow the drive, a fit
+    /// that does not fit) raises `RuntimeError` saying which.
+    #[pyo3(signature = (store=true, clamp=false, model=None))]
+    fn calibrate<'py>(
+        &self,
+        py: Python<'py>,
+        store: bool,
+        clamp: bool,
+        model: Option<&str>,
+    ) -> PyResult<Bound<'py, PyAny>> {
+        use hal_sim::calibrate::{calibrate, CalibrateError, CalibrateOptions};
+        use hal_sim::identification::run::{parse_model, ModelChoice};
+        let model = match model
+            .map(parse_model)
+            .transpose()
+            .map_err(PyValueError::new_err)?
+        {
+            None | Some(ModelChoice::Auto) => None,
+            Some(ModelChoice::Only(kind)) => Some(kind),
+        };
+        let options = CalibrateOptions {
+            model,
+            clamp,
+            store: store.then_some(twinstack::settings::Mode::Bypass),
+            ..CalibrateOptions::default()
+        };
+        let report = self.with_py(py, |client| {
+            calibrate(client, &options, |_| {}).map_err(|e| match e {
+                CalibrateError::Link { source, .. } => Python::attach(|py| link_error(py, source)),
+                other => PyRuntimeError::new_err(other.to_string()),
+            })
+        })?;
+        let (file, stage) = ParamFile::parse(Path::new("<calibrate>"), &report.file.to_json())
+            .map_err(param_file_error)?;
+        let figures = |max: f64, rms: f64| serde_json::json!({"max_pct": max, "rms_pct": rms});
+        let out = json_to_py(
+            py,
+            &serde_json::json!({
+                "model": report.model,
+                "reason": report.reason,
+                "held_out": figures(report.held_out.max_pct, report.held_out.rms_pct),
+                "before": figures(report.before.max_pct, report.before.rms_pct),
+                "after": figures(report.after.max_pct, report.after.rms_pct),
+                "stored": report.stored.is_some(),
+                "clamped": report.clamped,
+            }),
+        )?;
+        out.set_item("params", Params::from_file(file, stage))?;
+        Ok(out)
+    }
+
+    /// Writes the settings in force to the board's flash, to boot in `boot_mode`.
+    #[pyo3(signature = (boot_mode="bypass"))]
+    fn store(&self, py: Python<'_>, boot_mode: &str) -> PyResult<()> {
+        let m = parse_mode(boot_mode)?;
+        self.with(py, |c| c.store_params(m))
+    }
+
+    /// Reloads the settings stored in the board's flash.
+    fn recall(&self, py: Python<'_>) -> PyResult<()> {
+        self.with(py, |c| c.recall_params())
+    }
+
+    /// Closes the link (a `"sim"` board is gone with it). Further calls raise.
+    fn close(&self) -> PyResult<()> {
+        let mut guard = self
+            .client
+            .try_lock()
+            .map_err(|_| PyRuntimeError::new_err("the board is in use by another thread"))?;
+        guard.take();
+        Ok(())
+    }
+
+    /// The board itself (`with Board(port) as board:`).
+    fn __enter__(slf: Py<Self>) -> Py<Self> {
+        slf
+    }
+
+    /// Closes the board at the end of a `with` block.
+    #[pyo3(signature = (*_args))]
+    fn __exit__(&self, _args: &Bound<'_, pyo3::types::PyTuple>) -> PyResult<bool> {
+        self.close()?;
+        Ok(false)
+    }
+
+    /// `Board("port")`.
+    fn __repr__(&self) -> String {
+        format!("Board({:?})", self.port)
+    }
+}
+
+/// The extension module.
+#[pymodule]
+fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    m.add("BoardError", m.py().get_type::<BoardError>())?;
+    m.add_class::<Board>()?;
+    m.add_class::<Params>()?;
+    m.add_function(wrap_pyfunction!(identify, m)?)?;
+    m.add_function(wrap_pyfunction!(load_params, m)?)?;
+    Ok(())
+}

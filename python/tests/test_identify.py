@@ -1,0 +1,118 @@
+"""Identification from Python, and the parameter file's round trip with the `hal-sim` CLI."""
+
+import json
+import subprocess
+
+import numpy as np
+import pytest
+
+import twinstack
+from conftest import REPO, param_json
+
+MICRO = REPO / "data" / "micromanipulator-unipolar-3v6-1hz.csv"
+
+
+def read_csv(path):
+    """The repository's t,u,x records: `#` comments, a header, then numbers."""
+    return np.loadtxt(path, delimiter=",", comments="#", skiprows=1 + sum(
+        1 for line in open(path) if line.startswith("#")
+    )).T
+
+
+@pytest.fixture(scope="module")
+def micro():
+    t, u, x = read_csv(MICRO)
+    return t, u, x
+
+
+def run(hal_sim, *args):
+    out = subprocess.run(
+        [hal_sim, *map(str, args)], cwd=REPO, capture_output=True, text=True, timeout=300
+    )
+    assert out.returncode == 0, out.stdout + out.stderr
+    return out.stdout
+
+
+def test_the_cli_and_python_identify_the_same_model_and_read_each_others_files(
+    hal_sim, micro, tmp_path
+):
+    t, u, x = micro
+    cli_file = tmp_path / "cli.json"
+    run(hal_sim, "identify", "--model", "pi", "--data", MICRO, "--fit-until", 16,
+        "--output-unit", "um", "--out", cli_file)
+    from_cli = twinstack.load_params(cli_file)
+    ours = twinstack.identify(t, u, x, model="pi", fit_until=16.0)
+    # The same library on the same numbers: the same model, bit for bit (the file as the CLI
+    # wrote it, read by Python's correctly rounded parser).
+    a, b = json.loads(cli_file.read_text()), json.loads(ours.to_json())
+    assert a["settings"] == b["settings"]
+    assert from_cli.model == "pi" and from_cli.output_range == pytest.approx(ours.output_range)
+    assert (a["output_sign"], a["sensor_lag_s"]) == (b["output_sign"], b["sensor_lag_s"])
+    assert a["identification"]["held_out"] == b["identification"]["held_out"]
+    assert b["identification"]["fit_until_s"] == 16.0
+    assert ours.identification["held_out"]["max_pct"] < 3.0
+    # Python writes, the CLI reads and runs it: its prediction is Python's.
+    py_file = tmp_path / "py.json"
+    ours.save(py_file)
+    assert json.loads(py_file.read_text()) == json.loads(ours.to_json())
+    assert twinstack.load_params(py_file).model == "pi"
+    pred = tmp_path / "pred.csv"
+    run(hal_sim, "predict", "--params", py_file, "--data", MICRO, "--out", pred)
+    _, _, cli_x = np.loadtxt(pred, delimiter=",", skiprows=1).T
+    # serde_json's default float parser can read a parameter back one unit in the last place
+    # off, so the CLI's run of the file may differ by as much in the fixed point: 1e-6 of span.
+    span = np.ptp(x)
+    assert np.max(np.abs(cli_x - ours.predict(u, t=t))) <= 1e-6 * span
+    comp = tmp_path / "comp.csv"
+    run(hal_sim, "compensate", "--params", py_file, "--data", MICRO, "--out", comp)
+    _, cli_u, _ = np.loadtxt(comp, delimiter=",", skiprows=1).T
+    assert np.max(np.abs(cli_u - ours.compensate(x, t=t))) <= 1e-6 * np.ptp(u)
+    # And the CLI loads Python's file onto a board.
+    assert "loaded" in run(hal_sim, "load", "--port", "sim", "--params", py_file)
+
+
+def test_a_bad_file_is_refused_naming_the_field(tmp_path):
+    with twinstack.Board("sim") as b:
+        settings = b.params()
+    text = json.loads(param_json(settings))
+    text["settings"]["drive"]["bias"] = 200.0
+    with pytest.raises(ValueError, match="field `settings.drive.bias`"):
+        twinstack.Params.from_json(json.dumps(text))
+    path = tmp_path / "bad.json"
+    path.write_text(json.dumps(text))
+    with pytest.raises(ValueError, match="bad.json: field `settings.drive.bias`"):
+        twinstack.load_params(path)
+    with pytest.raises(FileNotFoundError):
+        twinstack.load_params(tmp_path / "missing.json")
+
+
+def test_a_known_model_is_recovered():
+    # The simulated board's P-I (8 operators over 0...140 V) as the "stage".
+    with twinstack.Board("sim") as b:
+        truth = twinstack.Params.from_json(param_json(b.params()))
+    t = np.arange(4000) * 1e-3
+    u = 70.0 + 65.0 * (1.0 - 0.5 * t / t[-1]) * np.sin(2 * np.pi * 2.0 * t)
+    x = truth.predict(u, t=t)
+    p = twinstack.identify(t, u, x, model="pi", fit_until=2.8, lag=0)
+    assert p.model == "pi" and not p.creep and p.ranking is None
+    held = p.identification["held_out"]
+    assert held["max_pct"] < 0.5, held
+    # The inverse undoes the forward model on the record.
+    back = p.predict(p.compensate(x, t=t), t=t)
+    span = np.ptp(x)
+    assert np.max(np.abs(back[10:] - x[10:])) < 0.02 * span
+
+
+def test_auto_ranks_every_model_and_creep_selects_the_candidates(micro):
+    t, u, x = micro
+    p = twinstack.identify(t, u, x, fit_until=16.0)
+    labels = [r["label"] for r in p.ranking]
+    assert len(labels) == 8 and sum("+ creep" in l for l in labels) == 4
+    assert p.model == {"P-I": "pi", "Duhem": "duhem", "generalised": "gpi", "Bouc-Wen": "bouc-wen"}[
+        labels[0].split(" (")[0].split(" +")[0].replace("generalised P-I", "generalised")
+    ]
+    only = twinstack.identify(t, u, x, fit_until=16.0, creep=True)
+    assert all("+ creep" in r["label"] for r in only.ranking) and len(only.ranking) == 4
+    assert only.creep
+    none = twinstack.identify(t, u, x, fit_until=16.0, creep=False)
+    assert not any("+ creep" in r["label"] for r in none.ranking) and len(none.ranking) == 4

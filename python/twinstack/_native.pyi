@@ -1,0 +1,254 @@
+"""Type stubs of twinstack's extension module (``twinstack._native``).
+
+Arrays in are anything numpy reads as a one-dimensional array of real numbers (float or
+integer dtypes, converted to float64); another dtype raises ``TypeError``, another shape or an
+empty array ``ValueError``. Arrays out are ``numpy.ndarray`` of float64.
+"""
+
+from os import PathLike
+from typing import Any, Dict, List, Optional, Sequence, Tuple, Union, final
+
+import numpy as np
+import numpy.typing as npt
+
+__all__ = ["Board", "BoardError", "Params", "identify", "load_params"]
+
+_ArrayLike = Union[npt.ArrayLike, Sequence[float]]
+_Signals = Union[str, Sequence[str]]
+
+class BoardError(Exception):
+    """A request the board refused (its NACK), or a parameter load refused before sending.
+
+    Nothing was applied. The attributes say what was refused and why.
+    """
+
+    request: str
+    """The request refused (``"LoadParams"``, ``"Capture"``, ``"Waveform"``, ...)."""
+    field: Optional[str]
+    """The setting or request field refused (``"drive.bias"``, ``"record count"``,
+    ``"ranges.input"``), or ``None`` for a refusal of the request as a whole (busy, no
+    storage)."""
+    reason: str
+    """Why, in words (``"must be at most 140"``)."""
+    rule: Optional[str]
+    """The rule broken (``"AtMost"``, ``"NotFinite"``, ``"TooMany"``, ...), or ``None``."""
+    limit: Optional[float]
+    """The rule's limit in the field's units (``140.0``), where it has one."""
+    accepted: int
+    """(A refused stream only.) Setpoints the board accepted before the refusal."""
+
+@final
+class Params:
+    """An identified model and its parameter file: what ``hal-sim identify`` writes and
+    ``hal-sim load`` sends. Made by :func:`identify`, :func:`load_params` or
+    :meth:`Params.from_json`."""
+
+    def predict(
+        self, u: _ArrayLike, t: Optional[_ArrayLike] = None, rate: Optional[float] = None
+    ) -> np.ndarray:
+        """The model's predicted sensor reading (output unit) for the drive ``u`` (volts),
+        run in the board's fixed point from rest at ``u[0]``.
+
+        ``t`` (seconds, strictly increasing) or ``rate`` (samples per second) gives the sample
+        period a creep operator and a sensor lag run at; a model with neither needs neither.
+        """
+    def compensate(
+        self, x: _ArrayLike, t: Optional[_ArrayLike] = None, rate: Optional[float] = None
+    ) -> np.ndarray:
+        """The drive (volts) the board's compensator gives for the desired reading ``x``
+        (output unit), in its fixed point; ``t``/``rate`` as in :meth:`predict`."""
+    def save(self, path: Union[str, "PathLike[str]"]) -> None:
+        """Writes the parameter file (the same JSON ``hal-sim identify`` writes)."""
+    def to_json(self) -> str:
+        """The parameter file's JSON text."""
+    @staticmethod
+    def from_json(text: str) -> "Params":
+        """A parameter file's JSON text, checked as :func:`load_params` checks a file
+        (``ValueError`` naming the field otherwise)."""
+    @property
+    def model(self) -> str:
+        """The hysteresis model: ``"pi"``, ``"duhem"``, ``"gpi"`` or ``"bouc-wen"``."""
+    @property
+    def creep(self) -> bool:
+        """Whether a creep operator runs in series with the model."""
+    @property
+    def input_range(self) -> Tuple[float, float]:
+        """The model's input range, volts."""
+    @property
+    def output_range(self) -> Tuple[float, float]:
+        """The model's (sign-corrected) output range, in :attr:`output_unit`."""
+    @property
+    def output_sign(self) -> float:
+        """``1.0``, or ``-1.0`` when the sensor reads the model's output negated."""
+    @property
+    def sensor_lag_s(self) -> float:
+        """The sensor's lag behind the drive, seconds."""
+    @property
+    def output_unit(self) -> str:
+        """The unit of the model's output (the identified record's ``x``)."""
+    @property
+    def settings(self) -> Dict[str, Any]:
+        """The board settings the file carries (its ``settings`` object) as a dict."""
+    @property
+    def identification(self) -> Optional[Dict[str, Any]]:
+        """How the model was fitted and scored (the file's ``identification``): fit and
+        held-out error figures, lag, notes; ``None`` for a file without it."""
+    @property
+    def ranking(self) -> Optional[List[Dict[str, Any]]]:
+        """``model="auto"``'s ranking, best first: dicts with ``label`` and ``max_pct`` /
+        ``rms_pct`` on the validation part, or ``error``. ``None`` otherwise."""
+
+def identify(
+    t: _ArrayLike,
+    u: _ArrayLike,
+    x: _ArrayLike,
+    model: str = "auto",
+    creep: Optional[bool] = None,
+    fit_until: Optional[float] = None,
+    operators: int = 17,
+    thresholds: str = "uniform",
+    lag: Optional[int] = None,
+    output_unit: str = "um",
+) -> Params:
+    """Identifies a hysteresis model from a measured record: ``t`` seconds (strictly
+    increasing), ``u`` the drive in volts, ``x`` the measured output.
+
+    Samples with ``t < fit_until`` are fitted, the rest held out to score the model
+    (default: the first 70 % of the record's duration). ``model``: ``"auto"`` fits every
+    model (P-I, Duhem, generalised P-I, Bouc-Wen) on the first part of the fit window, ranks
+    them on its last part and keeps the best, as ``hal-sim identify`` does; or one of
+    ``"pi"``, ``"duhem"``, ``"gpi"``, ``"bouc-wen"``. ``creep``: ``None`` lets ``auto`` try
+    each model with and without a creep operator (one model: without), ``True`` fits one,
+    ``False`` none. ``operators``/``thresholds``: the P-I's play operators (1 to 32, spread
+    ``"uniform"`` or ``"geometric"``); ``lag``: the sensor lag in samples (estimated when
+    ``None``). Runs without the interpreter's lock. ``ValueError`` says why a record cannot be
+    fitted."""
+
+def load_params(path: Union[str, "PathLike[str]"]) -> Params:
+    """Reads and checks a parameter file (``hal-sim identify``'s, or :meth:`Params.save`'s);
+    ``ValueError`` names the field refused, ``FileNotFoundError`` a missing file."""
+
+@final
+class Board:
+    """A twinstack board.
+
+    ``port``: a serial device (``"/dev/ttyUSB0"``, ``"COM3"``, a pty), ``"tcp:HOST:PORT"``
+    (``hal-sim virtual-board``, QEMU's UART), ``"unix:PATH"``, or ``"sim"``: a simulated board
+    in-process, fresh at each ``Board("sim")``, whose time runs only while a call waits on it.
+    ``baud`` sets a serial device's rate; ``timeout`` (seconds) how long each request waits
+    for its response.
+
+    Every call that waits on the board lets go of the interpreter's lock. A refusal raises
+    :class:`BoardError`; no answer ``TimeoutError``; a broken link ``ConnectionError``. Use it
+    as a context manager, or call :meth:`close`.
+    """
+
+    def __new__(cls, port: str, baud: int = 2000000, timeout: float = 2.0) -> "Board":
+        """Opens ``port`` and cleans the line."""
+    @property
+    def port(self) -> str:
+        """The port this board was opened on."""
+    def status(self) -> Dict[str, Any]:
+        """Status and telemetry: ``image`` (board/emulator/simulator), ``ticks``,
+        ``tick_rate_hz``, ``mode``, ``flags`` (streaming, waveform, recording, defaults),
+        queue and link counters, ``estimate`` (normalised), ``recorded``."""
+    def load(
+        self,
+        params: Params,
+        clamp: bool = False,
+        mode: Optional[str] = None,
+        store: Optional[str] = None,
+    ) -> None:
+        """Loads the settings of ``params`` (validated whole by the board, prepared off the
+        control tick and swapped in with the drive continuous); the sensor calibration and
+        feedback gains the file leaves out are kept from the board.
+
+        ``mode`` (``"bypass"``, ``"open-loop"``, ``"closed-loop"``) overrides the file's;
+        ``store`` also writes the settings to flash, to boot in that mode. A model whose input
+        range the drive cannot reach raises :class:`BoardError` (``field="ranges.input"``)
+        unless ``clamp=True``, which loads it with a ``RuntimeWarning``."""
+    def params(self) -> Dict[str, Any]:
+        """The settings in force on the board, physical units (a parameter file's
+        ``settings``)."""
+    def mode(self, mode: str) -> None:
+        """Switches to ``"bypass"``, ``"open-loop"`` or ``"closed-loop"`` (bumpless)."""
+    def stream(
+        self,
+        setpoints: _ArrayLike,
+        rate: Optional[float] = None,
+        normalised: bool = False,
+        underrun: Optional[str] = None,
+        wait: bool = True,
+    ) -> Dict[str, Any]:
+        """Streams ``setpoints`` to the board: in the output unit of the settings in force
+        (or -1...1 with ``normalised=True``; a value outside the range raises ``ValueError``,
+        nothing is sent), ``rate`` setpoints per second (the tick rate divided by a whole
+        number; default: one per tick), within the credits the board grants. Starts the
+        stream once the queue is primed and, with ``wait``, waits until it has played and
+        stops it. ``underrun``: ``"hold"`` or ``"ramp-to-bias"`` when the queue runs dry.
+
+        Ctrl-C stops the stream, tells the board to stop, and raises ``KeyboardInterrupt``.
+        Returns a report: ``accepted``, ``divider``, ``batches``, ``underruns`` (``None`` when
+        they cannot be ruled out), ``underran``, ``seconds`` and link counters."""
+    def stop(self) -> None:
+        """Stops the setpoint stream or the waveform; the output holds where it is."""
+    def waveform(
+        self, amplitude: float, frequency: float, shape: str = "sine", offset: float = 0.0
+    ) -> None:
+        """Starts the board's waveform generator: ``"sine"`` or ``"triangle"``, ``offset`` and
+        ``amplitude`` normalised (``offset +- amplitude`` within -1...1), ``frequency`` in Hz
+        (resolution 1 mHz). :meth:`stop` stops it."""
+    def arm(
+        self,
+        signals: _Signals,
+        samples: int,
+        trigger: str = "now",
+        pre: int = 0,
+        decimation: int = 1,
+    ) -> None:
+        """Arms a multi-signal capture and returns at once; :meth:`fetch` reads it. For a
+        capture triggered by this connection's own :meth:`stream` (``trigger="stream"``) or
+        :meth:`waveform` (``"waveform"``). Arguments as for :meth:`record`."""
+    def fetch(self, timeout: float = 30.0) -> Dict[str, np.ndarray]:
+        """Waits (at most ``timeout`` seconds, ``TimeoutError`` after) for the capture armed
+        before, and reads it back as :meth:`record` returns it."""
+    def record(
+        self,
+        signals: _Signals,
+        samples: int,
+        trigger: str = "now",
+        pre: int = 0,
+        decimation: int = 1,
+        timeout: float = 30.0,
+    ) -> Dict[str, np.ndarray]:
+        """Records ``signals`` (any of ``"setpoint"``, ``"left"``, ``"right"``, ``"sensor"``,
+        ``"estimate"``, ``"error"``; a list or one comma-separated string) at once:
+        ``samples`` frames, ``pre`` of them from before the trigger (``"now"``, ``"stream"``,
+        ``"waveform"``), one every ``decimation`` ticks; waits for it (at most ``timeout``
+        seconds) and reads it back.
+
+        Returns a dict of float64 arrays in physical units: ``"t"`` seconds from the trigger
+        (negative before it), the stacks ``"left"``/``"right"`` in volts, the displacements
+        (setpoint, sensor, estimate, error) in the output unit of the settings in force. A
+        request beyond the board's buffer raises :class:`BoardError` with its ``limit``."""
+    def calibrate(
+        self, store: bool = True, clamp: bool = False, model: Optional[str] = None
+    ) -> Dict[str, Any]:
+        """One-command calibration (``hal-sim calibrate``): excites the stage with the board's
+        waveform generator, records drive and sensor, identifies the best model of the family
+        (or ``model``), loads it, tracks a test trajectory before (bypass) and after (open
+        loop), and stores it unless ``store`` is false. Returns ``params`` (a
+        :class:`Params`), ``model``, ``reason``, ``held_out`` / ``before`` / ``after``
+        (``max_pct``, ``rms_pct``), ``stored``, ``clamped``. Board refusals raise
+        :class:`BoardError`; a stage that cannot be calibrated raises ``RuntimeError``."""
+    def store(self, boot_mode: str = "bypass") -> None:
+        """Writes the settings in force to the board's flash, to boot in ``boot_mode``."""
+    def recall(self) -> None:
+        """Reloads the settings stored in flash (:class:`BoardError` when none are)."""
+    def close(self) -> None:
+        """Closes the link; a ``"sim"`` board is gone with it. Later calls raise
+        ``RuntimeError``."""
+    def __enter__(self) -> "Board":
+        """The board itself."""
+    def __exit__(self, *args: object) -> bool:
+        """Closes the board."""
