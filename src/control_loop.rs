@@ -34,6 +34,7 @@ use core::ops::DerefMut;
 use crate::board::{DualDac, SensorAdc};
 use crate::control::{ControlCounters, Controller, TickFlags, TickReport};
 use crate::drive::StackVoltages;
+use crate::learning::{LearnState, LearnTick};
 use crate::mode_switch::Mode;
 use crate::mode_switch::ModeError;
 use crate::recorder::{CaptureInfo, RecordError, Recorder, SampleStore, Trigger};
@@ -99,6 +100,9 @@ pub struct ControlLoop<B, C> {
     limit_hits: u32,
     estimate: i32,
     control_rate_hz: u32,
+    /// The learning's tick half: the correction table it plays, the errors it stores
+    /// ([`crate::learning`]).
+    learning: LearnTick,
 }
 
 impl<B, C> ControlLoop<B, C>
@@ -124,6 +128,7 @@ where
             limit_hits: 0,
             estimate: 0,
             control_rate_hz,
+            learning: LearnTick::new(),
         }
     }
 
@@ -136,7 +141,13 @@ where
         dac: &mut D,
     ) -> TickReport {
         let setpoint = self.stream.next(queue);
+        self.controller.set_learned(self.learning.correction());
         let report = self.controller.tick(setpoint, adc, dac);
+        // The error the learning stores: only a reading of a sensor the configuration has.
+        let measured = (self.controller.sensor_config().is_some()
+            && !report.flags.contains(TickFlags::ADC_ERROR))
+        .then_some(report.measured);
+        self.learning.observe(self.controller.setpoint(), measured);
         if report.flags.0 & (TickFlags::RANGE_LIMIT | TickFlags::SLEW_LIMIT) != 0 {
             self.limit_hits = self.limit_hits.wrapping_add(1);
         }
@@ -203,6 +214,7 @@ where
     pub fn start(&mut self) {
         self.waveform = false;
         self.stream.start();
+        self.learning.restart();
         self.recorder.trigger(Trigger::StreamStart);
     }
 
@@ -236,6 +248,7 @@ where
     pub fn play(&mut self, waveform: WaveformGenerator) {
         self.waveform = true;
         self.stream.play(waveform);
+        self.learning.restart();
         self.recorder.trigger(Trigger::WaveformStart);
     }
 
@@ -346,5 +359,22 @@ where
     /// Control rate, Hz.
     pub fn control_rate_hz(&self) -> u32 {
         self.control_rate_hz
+    }
+
+    /// The learning's tick half (state, period, tables, errors).
+    pub fn learning(&self) -> &LearnTick {
+        &self.learning
+    }
+
+    /// The learning's tick half, to configure it or move a table in or errors out (O(1) or one
+    /// [`crate::learning::CHUNK`] per call: see [`crate::learning::service`]).
+    pub fn learning_mut(&mut self) -> &mut LearnTick {
+        &mut self.learning
+    }
+
+    /// Sets the learning's state (off, learning, frozen) between two ticks, in O(1).
+    pub fn set_learning(&mut self, state: LearnState) {
+        let target = self.controller.setpoint();
+        self.learning.set_state(state, target);
     }
 }

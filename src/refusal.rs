@@ -123,6 +123,16 @@ pub enum Field {
     Creep(CreepField),
     /// A capture's pre-trigger count.
     RecordPreTrigger,
+    /// `learning.period_ticks`.
+    LearnPeriod,
+    /// `learning.gain`.
+    LearnGain,
+    /// `learning.cutoff_hz`.
+    LearnCutoff,
+    /// `learning.lead_ticks`.
+    LearnLead,
+    /// `learning.limit`.
+    LearnLimit,
 }
 
 /// The rule a field broke, with its limit where it has one (in the field's own units).
@@ -277,6 +287,11 @@ impl core::fmt::Display for Field {
             Field::RecordOffset => "record offset",
             Field::RecordSignals => "record signals",
             Field::RecordPreTrigger => "record pre-trigger",
+            Field::LearnPeriod => "learning.period_ticks",
+            Field::LearnGain => "learning.gain",
+            Field::LearnCutoff => "learning.cutoff_hz",
+            Field::LearnLead => "learning.lead_ticks",
+            Field::LearnLimit => "learning.limit",
         };
         f.write_str(name)
     }
