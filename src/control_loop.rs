@@ -141,13 +141,21 @@ where
         dac: &mut D,
     ) -> TickReport {
         let setpoint = self.stream.next(queue);
-        self.controller.set_learned(self.learning.correction());
+        // Learning off (the common case) costs one compare here and one below; the
+        // controller's correction was zeroed when it was turned off (and a prepared controller
+        // starts at zero).
+        let learning = self.learning.is_on();
+        if learning {
+            self.controller.set_learned(self.learning.correction());
+        }
         let report = self.controller.tick(setpoint, adc, dac);
-        // The error the learning stores: only a reading of a sensor the configuration has.
-        let measured = (self.controller.sensor_config().is_some()
-            && !report.flags.contains(TickFlags::ADC_ERROR))
-        .then_some(report.measured);
-        self.learning.observe(self.controller.setpoint(), measured);
+        if learning {
+            // The error the learning stores: only a reading of a sensor the configuration has.
+            let measured = (self.controller.sensor_config().is_some()
+                && !report.flags.contains(TickFlags::ADC_ERROR))
+            .then_some(report.measured);
+            self.learning.observe(self.controller.setpoint(), measured);
+        }
         if report.flags.0 & (TickFlags::RANGE_LIMIT | TickFlags::SLEW_LIMIT) != 0 {
             self.limit_hits = self.limit_hits.wrapping_add(1);
         }
@@ -376,5 +384,8 @@ where
     pub fn set_learning(&mut self, state: LearnState) {
         let target = self.controller.setpoint();
         self.learning.set_state(state, target);
+        if state == LearnState::Off {
+            self.controller.set_learned(0);
+        }
     }
 }

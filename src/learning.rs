@@ -308,6 +308,12 @@ impl LearnTick {
         true
     }
 
+    /// Whether the table plays (learning or frozen).
+    #[inline(always)]
+    pub fn is_on(&self) -> bool {
+        self.state != LearnState::Off
+    }
+
     /// The state.
     pub fn state(&self) -> LearnState {
         self.state
