@@ -478,6 +478,18 @@ impl LearnTask {
         }
     }
 
+    /// Writes `values` into the table from bin `offset` (each limited to the configured limit
+    /// when there is one); what does not fit is dropped. Returns the count written.
+    pub fn write_entries(&mut self, offset: usize, values: &[i32]) -> usize {
+        let lim = self.config.map(|c| c.limit).unwrap_or(i32::MAX);
+        let to = self.table.get_mut(offset..).unwrap_or(&mut []);
+        let n = values.len().min(to.len());
+        for (u, &v) in to.iter_mut().zip(&values[..n]) {
+            *u = limit(v, -lim, lim);
+        }
+        n
+    }
+
     /// Updates posted.
     pub fn updates(&self) -> u32 {
         self.updates

@@ -257,6 +257,9 @@ impl SimDevice {
                 self.tx_line_free_ns = start + frame.len() as u64 * self.byte_ns;
             }
         }
+        // The learning's work at period boundaries, in the same low-priority context.
+        self.handler
+            .service_learning(&mut Exclusive(&mut self.control));
         let (_, mut consumer) = self.queue.split();
         let (mut dac, mut adc) = self.board.split();
         self.last_report = Some(self.control.tick(&mut consumer, &mut adc, &mut dac));

@@ -15,13 +15,15 @@ use serde::{Deserialize, Serialize};
 
 /// Version byte every frame starts with. Version 2: the status report carries
 /// `frame_errors`, `next_seq`, `tick_rate_hz` and `recorded`; NACK reasons `Busy`,
-/// `NothingStored` and `StoreFailed` were added. Version 4 (this one): the settings end with
+/// `NothingStored` and `StoreFailed` were added. Version 4: the settings end with
 /// the optional creep operator (`creep`), `Field::Creep` was appended, and `Model` gained the
 /// generalised P–I (`Model::GeneralisedPi`, with its `ModelField`s appended) and then
 /// Bouc–Wen (`Model::BoucWen`, with the `ModelField`s `K`, `A`, `Psi` and the rule
 /// `Unbounded` appended after them); the multi-signal capture (`Capture`, `CaptureStatus`,
-/// `ReadCapture`, `CaptureChunk`, `Field::RecordPreTrigger`) was added.
-pub const PROTOCOL_VERSION: u8 = 4;
+/// `ReadCapture`, `CaptureChunk`, `Field::RecordPreTrigger`) was added. Version 5: learning
+/// feedforward (`Request::Learn`, `Response::Learn`, the `Field`s `LearnPeriod` …
+/// `LearnLimit`).
+pub const PROTOCOL_VERSION: u8 = 5;
 /// Largest frame body (version + message + CRC), bytes.
 pub const MAX_BODY: usize = 1536;
 /// Largest frame on the wire, delimiter excluded.

@@ -30,6 +30,7 @@ pub mod dual_stage;
 pub mod golden;
 pub mod identify;
 pub mod lab_stage;
+pub mod learn;
 pub mod load;
 pub mod params;
 pub mod predict;

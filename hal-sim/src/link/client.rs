@@ -83,6 +83,7 @@ pub fn request_name(request: &Request) -> &'static str {
         Request::Capture(_) => "Capture",
         Request::CaptureStatus => "CaptureStatus",
         Request::ReadCapture { .. } => "ReadCapture",
+        Request::Learn(_) => "Learn",
     }
 }
 

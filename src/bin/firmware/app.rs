@@ -297,14 +297,20 @@ mod app {
     #[cfg(not(feature = "emulator"))]
     #[task(binds = TIM2, priority = 3, shared = [tick])]
     fn tim2_tick(mut cx: tim2_tick::Context) {
-        cx.shared.tick.lock(|t| t.run());
+        if cx.shared.tick.lock(|t| t.run()) {
+            // A learning period ended: the command task takes its errors.
+            rtic::pend(Interrupt::EXTI0);
+        }
     }
 
     /// The control tick in the emulator: SysTick.
     #[cfg(feature = "emulator")]
     #[task(binds = SysTick, priority = 3, shared = [tick])]
     fn systick_tick(mut cx: systick_tick::Context) {
-        cx.shared.tick.lock(|t| t.run());
+        if cx.shared.tick.lock(|t| t.run()) {
+            // A learning period ended: the command task takes its errors.
+            rtic::pend(Interrupt::EXTI0);
+        }
     }
 
     /// The coarse stage's tick: TIM3 update (started only with the `dual-stage` feature).
@@ -340,5 +346,7 @@ mod app {
             let (left, right) = rtic::Mutex::lock(&mut control, |c| c.safe_codes());
             safe_state::arm(left, right);
         }
+        // The learning's work at a period boundary (returns at once when there is none).
+        let _ = local.handler.service_learning(&mut control);
     }
 }
