@@ -94,3 +94,66 @@ fn what_is_left_is_the_resonance_band() {
         );
     }
 }
+
+fn sim_port() -> hal_sim::cli::board_link::PortArgs {
+    hal_sim::cli::board_link::PortArgs {
+        port: Some("sim".into()),
+        baud: 2_000_000,
+        timeout_ms: 2000,
+    }
+}
+
+/// Over the protocol, on the simulated board (its representative, not identified, model and
+/// 12-bit converters): the board learns from its own sensor, and the frozen table keeps
+/// what was learned.
+#[test]
+fn a_board_learns_over_the_protocol() {
+    let mut o = LearnOptions::new("sine:750".parse().unwrap());
+    o.out_dir = None;
+    o.periods = 40;
+    let r = hal_sim::learn_link::run(&sim_port(), &o, 0.5).unwrap();
+    assert_eq!(r.image, "simulator");
+    assert_eq!(r.period_ticks, 200);
+    assert_eq!(r.curve.len(), 40);
+    let ff = r.feedforward.iter().map(|p| p.rms_pct).fold(0.0, f64::max);
+    let learned = r.curve[35..].iter().map(|p| p.rms_pct).fold(0.0, f64::max);
+    let replay = r.replay.iter().map(|p| p.rms_pct).fold(0.0, f64::max);
+    assert!(learned < ff / 20.0, "{ff} → {learned}");
+    assert!(replay < 1.5 * learned, "{learned} → replay {replay}");
+}
+
+/// A refused learning request names the field and its limit, and changes nothing.
+#[test]
+fn the_board_refuses_what_it_cannot_learn() {
+    use twinstack::learning::{LearnSettings, LearnState};
+    use twinstack::protocol::messages::{LearnRequest, NackReason, Request, Response};
+    use twinstack::refusal::{Field, Refusal, Rule};
+    let mut client = hal_sim::cli::board_link::connect(&sim_port()).unwrap();
+    let mut ask = |r: LearnRequest| client.request(&Request::Learn(r)).unwrap();
+    let refused = |field, rule| Response::Nack {
+        reason: NackReason::Refused(Refusal::new(field, rule)),
+    };
+    assert_eq!(
+        ask(LearnRequest::State(LearnState::Learning)),
+        refused(Field::LearnPeriod, Rule::Required)
+    );
+    let mut s = LearnSettings::for_period(200);
+    s.gain = 3.0;
+    assert_eq!(
+        ask(LearnRequest::Configure(s)),
+        refused(Field::LearnGain, Rule::AtMost(1.5))
+    );
+    s.gain = 0.3;
+    s.cutoff_hz = 40_000.0;
+    assert_eq!(
+        ask(LearnRequest::Configure(s)),
+        refused(Field::LearnCutoff, Rule::Below(25_000.0))
+    );
+    match ask(LearnRequest::Status) {
+        Response::Learn(st) => {
+            assert_eq!(st.state, LearnState::Off);
+            assert_eq!(st.period_ticks, 0, "nothing was configured");
+        }
+        other => panic!("{other:?}"),
+    }
+}
