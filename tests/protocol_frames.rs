@@ -257,10 +257,7 @@ fn a_full_batch_fits_one_frame() {
 #[test]
 fn message_variant_counts_match_the_enums() {
     use twinstack::protocol::frame::Message;
-    let last = Request::ReadCapture {
-        offset: 7,
-        count: 256,
-    };
+    let last = Request::Learn(twinstack::protocol::messages::LearnRequest::Status);
     let mut d = FrameDecoder::new();
     assert_eq!(feed(&mut d, &frame_of(&last)), vec![Ok(last)]);
     let tag = Request::VARIANTS as u8;
@@ -268,10 +265,7 @@ fn message_variant_counts_match_the_enums() {
         feed(&mut d, &raw_frame(&[PROTOCOL_VERSION, tag])),
         vec![Err(FrameError::UnknownType)]
     );
-    let resp = Response::CaptureChunk {
-        offset: 3,
-        values: heapless::Vec::from_slice(&[i16::MIN, -1, 0, i16::MAX]).unwrap(),
-    };
+    let resp = Response::Learn(twinstack::protocol::messages::LearnStatus::default());
     let mut buf = [0u8; MAX_ENCODED + 1];
     let n = encode(&resp, &mut buf).unwrap();
     let mut d = FrameDecoder::new();
@@ -294,18 +288,18 @@ fn the_book_s_example_frames_are_what_the_encoder_writes() {
             .map(|b| u8::from_str_radix(b, 16).unwrap())
             .collect()
     };
-    assert_eq!(PROTOCOL_VERSION, 4);
-    assert_eq!(frame_of(&Request::Status), hex("02 04 05 fb d7 b5 25 00"));
+    assert_eq!(PROTOCOL_VERSION, 5);
+    assert_eq!(frame_of(&Request::Status), hex("02 05 05 ba e6 ae 3c 00"));
     assert_eq!(
         frame_of(&Request::Setpoints(SetpointBatch {
             seq: 1,
             samples: heapless::Vec::from_slice(&[100, -100]).unwrap(),
         })),
-        hex("0d 04 01 01 02 c8 01 c7 01 23 87 04 b7 00")
+        hex("0d 05 01 01 02 c8 01 c7 01 bd 87 ae 7b 00")
     );
     let mut out = [0u8; MAX_ENCODED + 1];
     let n = encode(&Response::Ack { credits: 511 }, &mut out).unwrap();
-    assert_eq!(&out[..n], &hex("02 04 07 ff 03 83 e4 0b a4 00")[..]);
+    assert_eq!(&out[..n], &hex("02 05 07 ff 03 e6 83 b7 1c 00")[..]);
     let refused = Response::Nack {
         reason: NackReason::Refused(twinstack::refusal::Refusal::new(
             twinstack::refusal::Field::Ki,
@@ -315,7 +309,14 @@ fn the_book_s_example_frames_are_what_the_encoder_writes() {
     let n = encode(&refused, &mut out).unwrap();
     assert_eq!(
         &out[..n],
-        &hex("06 04 01 03 0a 04 01 01 01 01 08 6a d8 40 ce 87 39 fd 00")[..]
+        &hex("06 05 01 03 0a 04 01 01 01 01 08 6a d8 40 4b 5e af 20 00")[..]
+    );
+    // Protocol v5's learning status request.
+    assert_eq!(
+        frame_of(&Request::Learn(
+            twinstack::protocol::messages::LearnRequest::Status
+        )),
+        hex("06 05 0e 03 cd 67 02 fe 00")
     );
     // Protocol v4's capture: arm, read, a chunk.
     assert_eq!(
@@ -326,14 +327,14 @@ fn the_book_s_example_frames_are_what_the_encoder_writes() {
             trigger: Trigger::StreamStart,
             decimation: 1,
         })),
-        hex("0d 04 0b 1b 96 01 0a 01 01 e5 46 0f 0f 00")
+        hex("0d 05 0b 1b 96 01 0a 01 01 7b 46 a5 c3 00")
     );
     assert_eq!(
         frame_of(&Request::ReadCapture {
             offset: 0,
             count: 256
         }),
-        hex("03 04 0d 07 80 02 67 70 45 14 00")
+        hex("03 05 0d 07 80 02 d7 59 25 29 00")
     );
     let chunk = Response::CaptureChunk {
         offset: 0,
@@ -342,7 +343,7 @@ fn the_book_s_example_frames_are_what_the_encoder_writes() {
     let n = encode(&chunk, &mut out).unwrap();
     assert_eq!(
         &out[..n],
-        &hex("03 04 06 0c 03 c8 01 c7 01 fe 3f f4 43 49 be 00")[..]
+        &hex("03 05 06 0c 03 c8 01 c7 01 fe 3f ca 28 8b 51 00")[..]
     );
 }
 
