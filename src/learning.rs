@@ -201,20 +201,20 @@ impl LearnConfig {
 }
 
 /// The tick's half: the tables it plays, the errors it stores (see the module doc).
+///
+/// `repr(C)`, the small fields first and the tables last, so that the tick reaches the
+/// former with one-instruction offsets.
 #[derive(Clone, Debug)]
+#[repr(C)]
 pub struct LearnTick {
     state: LearnState,
+    /// The task has written `tables[1 − active]`: swap at the next boundary.
+    posted: bool,
     /// Period, ticks (1 … [`MAX_BINS`]).
     period: usize,
     /// This tick's bin, `0 … period − 1`.
     bin: usize,
-    /// The two tables, Q2.30 normalised drive: `tables[active]` plays.
-    tables: [[i32; MAX_BINS]; 2],
     active: usize,
-    /// The task has written `tables[1 − active]`: swap at the next boundary.
-    posted: bool,
-    /// The two error buffers, Q2.30: the tick fills `errors[fill]`.
-    errors: [[i32; MAX_BINS]; 2],
     fill: usize,
     /// The last targets, newest first, Q2.30 (the sensor is `SENSOR_DELAY_TICKS` late).
     targets: [i32; SENSOR_DELAY_TICKS],
@@ -222,6 +222,10 @@ pub struct LearnTick {
     periods: u32,
     /// Ticks whose error could not be measured (ADC error or no sensor) while storing.
     missing: u32,
+    /// The two tables, Q2.30 normalised drive: `tables[active]` plays.
+    tables: [[i32; MAX_BINS]; 2],
+    /// The two error buffers, Q2.30: the tick fills `errors[fill]`.
+    errors: [[i32; MAX_BINS]; 2],
 }
 
 impl Default for LearnTick {
