@@ -1,7 +1,7 @@
 //! The `hal-sim` subcommands, one module each: `run(&Args) -> anyhow::Result<()>`.
 //!
 //! Board commands (`stream`, `load`, `params`, `mode`, `recall`, `status`, `waveform`, `stop`,
-//! `record`) share
+//! `record`, and `learn` with `--port`) share
 //! [`board_link`]'s `--port` / `--baud` / `--timeout-ms`.
 
 /// The exit codes of every `hal-sim` command, as `hal-sim --help` lists them.
