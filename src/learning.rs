@@ -58,10 +58,12 @@ use crate::refusal::{finite, Field, Refusal, Rule};
 use core::ops::DerefMut;
 use serde::{Deserialize, Serialize};
 
-/// Most bins (ticks) of a learning period: 1 024 (≥ 48.9 Hz at 50 kHz, ≥ 97.7 Hz at
-/// 100 kHz; one bin per tick). Fixed at compile time: the tables take
-/// `4 × MAX_BINS × 4` bytes on the tick's side and `2 × MAX_BINS × 4` on the task's.
-pub const MAX_BINS: usize = 1024;
+/// Most bins (ticks) of a learning period: 512 (≥ 97.7 Hz at 50 kHz, ≥ 195.3 Hz at
+/// 100 kHz, for one cycle; one bin per tick). Fixed at compile time: the tables take
+/// `4 × MAX_BINS × 4` bytes on the tick's side and `2 × MAX_BINS × 4` on the task's (12 KiB
+/// in all; with 1 024 bins the emulator image stopped answering: its 128 KiB of SRAM left
+/// too little stack).
+pub const MAX_BINS: usize = 512;
 
 /// Words one locked copy moves between the task and the tick (a short critical section).
 pub const CHUNK: usize = 64;
@@ -852,8 +854,8 @@ mod tests {
             Refusal::new(Field::LearnPeriod, Rule::AtLeast(2.0))
         );
         assert_eq!(
-            r(|t| t.period_ticks = 2000),
-            Refusal::new(Field::LearnPeriod, Rule::AtMost(1024.0))
+            r(|t| t.period_ticks = 600),
+            Refusal::new(Field::LearnPeriod, Rule::AtMost(512.0))
         );
         assert_eq!(
             r(|t| t.gain = f64::NAN),

@@ -22,7 +22,7 @@ pub struct Args {
     /// simulated stage.
     #[command(flatten)]
     pub port: PortArgs,
-    /// The motion: sine:HZ or triangle:HZ (a whole number of cycles must fit 1024 ticks).
+    /// The motion: sine:HZ or triangle:HZ (a whole number of cycles must fit 512 ticks).
     #[arg(long, default_value = "sine:750")]
     pub waveform: Motion,
     /// Learning periods (1 … 10 000).
