@@ -104,7 +104,6 @@ pub fn request_name(request: &Request) -> &'static str {
         Request::CoarseJog { .. } => "CoarseJog",
         Request::CoarseStop => "CoarseStop",
         Request::CoarseStatus => "CoarseStatus",
-        Request::Learn(_) => "Learn",
     }
 }
 
