@@ -28,14 +28,14 @@ use std::process::{Command, Stdio};
 /// recorder signals every tick and dispatches over the model family's variants (980 measured).
 /// 1 070: the image also runs continuous telemetry's tap at its worst, all six signals on every
 /// tick (+73: 1 062 measured). Then the P–I banks run two operators per word with the M4's
-/// dual-16-bit instructions (980 → 817 measured without telemetry): MEASURED_AFTER_MERGE.
+/// dual-16-bit instructions (980 → 817 measured without telemetry; 886 with it, session 6).
 const WORST_INSTRUCTIONS: u64 = 900;
 /// The configuration of the model family measured on its own: the generalised P–I (N = 16,
 /// 6 dead zones) as compensator and observer with four creep modes in series.
 const FAMILY_CONFIG: &str = "inverse-gpi16+creep4";
 /// Its bound, instructions (the worst measured, with a margin of a few %): 1 524 before
 /// telemetry's tap, 1 595 with it at its worst, 1 323 with the packed banks and no telemetry;
-/// FAMILY_AFTER_MERGE with both.
+/// 1 394 with both (session 6).
 const FAMILY_WORST_INSTRUCTIONS: u64 = 1420;
 /// Most instructions a reload's swap tick may cost beyond the tick after it.
 const SWAP_OVERHEAD: i64 = 50;

@@ -489,7 +489,10 @@ mod tests {
             .zip(&rf)
             .map(|(a, b)| (a - b).abs())
             .fold(0.0, f64::max);
-        assert!(worst < 1e-5, "{worst}");
+        // The packed bank's Q1.15 grid: within 1 LSB16 of the output span (see
+        // docs/src/reference/fixed-point.md).
+        let lsb = (m.scaling.output_max - m.scaling.output_min) / 65536.0;
+        assert!(worst < lsb, "{worst} against 1 LSB16 = {lsb}");
     }
 
     fn duhem_model() -> StageModel {
@@ -648,8 +651,11 @@ mod tests {
             let t: Vec<f64> = (0..drive.len()).map(|k| k as f64 * 0.01).collect();
             let x = m.predict(&t, &drive).unwrap();
             let back = m.compensate(&t, &x).unwrap();
+            // 16 LSB16 of the input span: the packed banks' grid, through an inverse whose
+            // gain may be steep (see hal_sim::accuracy's bounds); a wrong inverse is volts off.
+            let lsb = 200.0 / 65536.0;
             for k in 0..drive.len() - lag {
-                proptest::prop_assert!((back[k] - drive[k]).abs() < 1e-3, "k {}: {} vs {}", k, back[k], drive[k]);
+                proptest::prop_assert!((back[k] - drive[k]).abs() < 16.0 * lsb, "k {}: {} vs {}", k, back[k], drive[k]);
             }
         }
     }
@@ -680,14 +686,17 @@ mod tests {
                 .map(|(a, b)| (a - b).abs())
                 .fold(0.0, f64::max)
         };
+        // Tolerances in LSB16 of the spans: the packed banks' Q1.15 grid.
+        let lsb_out = (m.scaling.output_max - m.scaling.output_min) / 65536.0;
+        let lsb_in = (m.scaling.input_max - m.scaling.input_min) / 65536.0;
         let x = m.predict(&t, &u).unwrap();
-        assert!(worst(&x, &m.predict_reference(&t, &u).unwrap()) < 1e-5);
+        assert!(worst(&x, &m.predict_reference(&t, &u).unwrap()) < 2.0 * lsb_out);
         let back = m.compensate(&t, &x).unwrap();
         let back_ref = m.compensate_reference(&t, &x).unwrap();
-        assert!(worst(&back, &back_ref) < 1e-3);
+        assert!(worst(&back, &back_ref) < 16.0 * lsb_in);
         let n = t.len() - 2;
         assert!(
-            worst(&back[..n], &u[..n]) < 1e-3,
+            worst(&back[..n], &u[..n]) < 16.0 * lsb_in,
             "{}",
             worst(&back[..n], &u[..n])
         );
@@ -701,9 +710,11 @@ mod tests {
             let x = m.predict(&t, &u).unwrap();
             let back = m.compensate(&t, &x).unwrap();
             // The last `lag` samples have no future reading to aim at.
+            // 4 LSB16 of the input span (the packed banks' Q1.15 grid).
+            let lsb = (m.scaling.input_max - m.scaling.input_min) / 65536.0;
             for k in 0..t.len() - 2 {
                 assert!(
-                    (back[k] - u[k]).abs() < 1e-3,
+                    (back[k] - u[k]).abs() < 4.0 * lsb,
                     "k {k}: {} vs {}",
                     back[k],
                     u[k]

@@ -853,7 +853,9 @@ mod tests {
         let id = identify(&data, &o).unwrap();
         let predicted = id.model.predict(&t, &u).unwrap();
         let all = score(&x, &predicted, 0..n).unwrap();
-        assert!(all.max_pct < 1e-3, "{all:?}");
+        // Within a few LSB16 (1.5e-3 % of span each: the packed bank's grid); a virgin start
+        // on one side is off by up to a threshold times its weight, whole % of span.
+        assert!(all.max_pct < 0.01, "{all:?}");
     }
 
     #[test]
