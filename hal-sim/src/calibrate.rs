@@ -60,9 +60,9 @@ use twinstack::settings::Settings;
 pub struct CalibrateOptions {
     /// Frequency of the excitation, Hz.
     pub excitation_hz: f64,
-    /// Amplitude of the full cycles, normalised (fraction of the half range about its middle):
-    /// below 1 so that the identified input range, widened by
-    /// [`crate::identification::INPUT_MARGIN`], stays within the drive's reach.
+    /// Amplitude of the full cycles, normalised (fraction of the half range about its middle);
+    /// the identified input range is the range swept (see
+    /// [`crate::identification::INPUT_MARGIN`]).
     pub amplitude: f64,
     /// Cycles at full amplitude.
     pub full_cycles: u16,
