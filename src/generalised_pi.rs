@@ -430,7 +430,10 @@ impl InverseGeneralisedPi {
     ///     InverseGeneralisedPi::new(&params, &ranges).unwrap(),
     /// );
     /// // The drive the inverse asks for makes the forward model reach the target.
-    /// let (mut f, mut i) = (forward.state_at_rest(-(1 << 30)), inverse.state_at_rest(-(1 << 30)));
+    /// // Both at rest at 0 V: the inverse at the forward's output there.
+    /// let mut f = forward.state_at_rest(-(1 << 30));
+    /// let y0 = forward.step(&mut f, -(1 << 30));
+    /// let mut i = inverse.state_at_rest(y0);
     /// for target in [1 << 28, -(1 << 29), 3 << 27] {
     ///     let drive = inverse.step(&mut i, target);
     ///     assert!((forward.step(&mut f, drive) - target).abs() < 1 << 15); // one LSB16

@@ -356,7 +356,10 @@ impl InversePrandtlIshlinskii {
     ///     InversePrandtlIshlinskii::new(&params, &ranges).unwrap(),
     /// );
     /// // The drive the inverse asks for makes the forward model reach the target.
-    /// let (mut f, mut i) = (forward.state_at_rest(-(1 << 30)), inverse.state_at_rest(-(1 << 30)));
+    /// // Both at rest at 0 V: the inverse at the forward's output there.
+    /// let mut f = forward.state_at_rest(-(1 << 30));
+    /// let y0 = forward.step(&mut f, -(1 << 30));
+    /// let mut i = inverse.state_at_rest(y0);
     /// let target = 1 << 28; // 0.25 of the normalised range
     /// let drive = inverse.step(&mut i, target);
     /// assert!((forward.step(&mut f, drive) - target).abs() < 1 << 15); // one LSB16
