@@ -113,6 +113,8 @@ def test_auto_ranks_every_model_and_creep_selects_the_candidates(micro):
     ]
     only = twinstack.identify(t, u, x, fit_until=16.0, creep=True)
     assert all("+ creep" in r["label"] for r in only.ranking) and len(only.ranking) == 4
-    assert only.creep
+    # On this record no creep mode lowers the fit RMS, so identify leaves the creep out of the
+    # model it returns (it keeps one only where it helps).
+    assert not only.creep
     none = twinstack.identify(t, u, x, fit_until=16.0, creep=False)
     assert not any("+ creep" in r["label"] for r in none.ranking) and len(none.ranking) == 4
