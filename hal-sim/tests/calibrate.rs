@@ -8,20 +8,12 @@ use hal_sim::calibrate::{calibrate, CalibrateError, CalibrateOptions};
 use hal_sim::identification::ModelKind;
 use hal_sim::link::client::Client;
 use hal_sim::sim_device::{SimDevice, SimDeviceConfig};
-use std::io::{BufRead, BufReader};
-use std::process::{Child, Command, Output, Stdio};
+use std::process::{Command, Output};
 use std::time::Duration;
 use twinstack::settings::{Mode, Settings};
 
-/// The binary: killed when dropped.
-struct Binary(Child);
-
-impl Drop for Binary {
-    fn drop(&mut self) {
-        let _ = self.0.kill();
-        let _ = self.0.wait();
-    }
-}
+#[path = "support/virtual_board_process.rs"]
+mod virtual_board_process;
 
 fn hal_sim(args: &[&str]) -> Output {
     Command::new(env!("CARGO_BIN_EXE_hal-sim"))
@@ -43,36 +35,8 @@ fn ok(o: Output) -> String {
 }
 
 /// `hal-sim virtual-board` as fast as it runs; returns it and its `--port`.
-fn start_virtual_board() -> (Binary, String) {
-    let mut child = Command::new(env!("CARGO_BIN_EXE_hal-sim"))
-        .args([
-            "virtual-board",
-            "--listen",
-            "tcp:127.0.0.1:0",
-            "--speed",
-            "0",
-        ])
-        .stdout(Stdio::piped())
-        .stderr(Stdio::null())
-        .spawn()
-        .expect("hal-sim virtual-board starts");
-    let stdout = child.stdout.take().unwrap();
-    let server = Binary(child);
-    let (tx, rx) = std::sync::mpsc::channel();
-    std::thread::spawn(move || {
-        let mut line = String::new();
-        let _ = BufReader::new(stdout).read_line(&mut line);
-        let _ = tx.send(line);
-    });
-    let line = rx
-        .recv_timeout(Duration::from_secs(20))
-        .expect("the server printed its address");
-    let port = line
-        .split_whitespace()
-        .find(|w| w.starts_with("tcp:127.0.0.1:"))
-        .unwrap_or_else(|| panic!("no address in {line:?}"))
-        .to_string();
-    (server, port)
+fn start_virtual_board() -> (virtual_board_process::VirtualBoard, String) {
+    virtual_board_process::start(&["--speed", "0"])
 }
 
 #[test]

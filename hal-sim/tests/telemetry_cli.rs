@@ -2,10 +2,11 @@
 //! virtual board over TCP (paced in real time), and on a line too slow for the rate asked,
 //! where samples are lost and the command must say so and exit 1. Every wait is bounded.
 
-use std::io::{BufRead, BufReader};
 use std::path::Path;
-use std::process::{Child, Command, Output, Stdio};
-use std::time::Duration;
+use std::process::{Command, Output};
+
+#[path = "support/virtual_board_process.rs"]
+mod virtual_board_process;
 
 fn hal_sim(args: &[&str]) -> Output {
     Command::new(env!("CARGO_BIN_EXE_hal-sim"))
@@ -23,41 +24,9 @@ fn text(o: &Output) -> String {
     )
 }
 
-/// The virtual board, killed when dropped.
-struct Board(Child);
-
-impl Drop for Board {
-    fn drop(&mut self) {
-        let _ = self.0.kill();
-        let _ = self.0.wait();
-    }
-}
-
 /// Starts `hal-sim virtual-board` on an OS-picked port; returns it and its `tcp:` address.
-fn virtual_board() -> (Board, String) {
-    let mut child = Command::new(env!("CARGO_BIN_EXE_hal-sim"))
-        .args(["virtual-board", "--listen", "tcp:127.0.0.1:0"])
-        .stdout(Stdio::piped())
-        .stderr(Stdio::null())
-        .spawn()
-        .expect("hal-sim virtual-board starts");
-    let stdout = child.stdout.take().unwrap();
-    let board = Board(child);
-    let (tx, rx) = std::sync::mpsc::channel();
-    std::thread::spawn(move || {
-        let mut line = String::new();
-        let _ = BufReader::new(stdout).read_line(&mut line);
-        let _ = tx.send(line);
-    });
-    let line = rx
-        .recv_timeout(Duration::from_secs(20))
-        .expect("the server printed its address");
-    let port = line
-        .split_whitespace()
-        .find(|w| w.starts_with("tcp:127.0.0.1:"))
-        .unwrap_or_else(|| panic!("no address in {line:?}"))
-        .to_string();
-    (board, port)
+fn virtual_board() -> (virtual_board_process::VirtualBoard, String) {
+    virtual_board_process::start(&[])
 }
 
 /// The CSV's rows (header first), each split at the commas.

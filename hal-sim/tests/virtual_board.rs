@@ -20,6 +20,9 @@ use twinstack::protocol::messages::{
 };
 use twinstack::settings::Mode;
 
+#[path = "support/virtual_board_process.rs"]
+mod virtual_board_process;
+
 /// `serve` on a thread, on an OS-picked port of 127.0.0.1.
 struct Server {
     address: SocketAddr,
@@ -307,36 +310,8 @@ fn the_cli_refuses_a_listen_address_that_is_not_tcp() {
 }
 
 /// Starts `hal-sim virtual-board` as fast as it runs; returns it and its address.
-fn start_virtual_board() -> (Binary, String) {
-    let mut child = Command::new(env!("CARGO_BIN_EXE_hal-sim"))
-        .args([
-            "virtual-board",
-            "--listen",
-            "tcp:127.0.0.1:0",
-            "--speed",
-            "0",
-        ])
-        .stdout(Stdio::piped())
-        .stderr(Stdio::null())
-        .spawn()
-        .expect("hal-sim virtual-board starts");
-    let stdout = child.stdout.take().unwrap();
-    let server = Binary(child);
-    let (tx, rx) = std::sync::mpsc::channel();
-    std::thread::spawn(move || {
-        let mut line = String::new();
-        let _ = BufReader::new(stdout).read_line(&mut line);
-        let _ = tx.send(line);
-    });
-    let line = rx
-        .recv_timeout(Duration::from_secs(20))
-        .expect("the server printed its address");
-    let port = line
-        .split_whitespace()
-        .find(|w| w.starts_with("tcp:127.0.0.1:"))
-        .unwrap_or_else(|| panic!("no address in {line:?}"))
-        .to_string();
-    (server, port)
+fn start_virtual_board() -> (virtual_board_process::VirtualBoard, String) {
+    virtual_board_process::start(&["--speed", "0"])
 }
 
 /// Issue #18's "done when": stream a 100-sample file and record the streamed run with four
