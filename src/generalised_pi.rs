@@ -349,6 +349,11 @@ pub struct GeneralisedPi {
 }
 
 impl GeneralisedPi {
+    /// Play operators and dead zones the tick runs (the size that sets its cost).
+    pub fn size(&self) -> (usize, usize) {
+        (self.pi.operators(), self.map.dead_zones())
+    }
+
     /// Validates `params` (physical units) and converts them, normalised by `scaling`, into
     /// the fixed-point form the tick runs.
     ///
@@ -413,6 +418,11 @@ pub struct InverseGeneralisedPi {
 }
 
 impl InverseGeneralisedPi {
+    /// Play operators and dead zones the tick runs (the size that sets its cost).
+    pub fn size(&self) -> (usize, usize) {
+        (self.pi.operators(), self.map.dead_zones())
+    }
+
     /// Builds the inverse of the forward model `params` (physical units), normalised by
     /// `scaling`. Refuses a non-invertible P–I or map, naming the operator or dead zone, and
     /// inverses that do not fit the fixed-point formats.

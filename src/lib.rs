@@ -72,6 +72,7 @@ pub mod sensor;
 pub mod setpoint_stream;
 pub mod settings;
 pub mod telemetry;
+pub mod tick_budget;
 pub mod waveform;
 
 /// The `heapless` the protocol's messages are built from (`Vec` of setpoints, chunks), so

@@ -275,6 +275,11 @@ pub struct PrandtlIshlinskii {
 }
 
 impl PrandtlIshlinskii {
+    /// Play operators the tick runs (the canonical count: `a0` is operator 0).
+    pub fn operators(&self) -> usize {
+        self.bank.operators()
+    }
+
     /// Validates `params` (physical units) and converts them, normalised by `scaling`, into
     /// the fixed-point form the tick runs.
     ///
@@ -342,6 +347,11 @@ pub struct InversePrandtlIshlinskii {
 }
 
 impl InversePrandtlIshlinskii {
+    /// Play operators the tick runs (the canonical count).
+    pub fn operators(&self) -> usize {
+        self.bank.operators()
+    }
+
     /// Builds the inverse of the forward model `params` (physical units), normalised by
     /// `scaling`. Refuses non-invertible models (`w_1 ≤ 0`, a partial sum `S_i ≤ 0`) with the
     /// first failing operator, and inverses whose weights do not fit Q8.24.

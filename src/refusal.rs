@@ -136,6 +136,9 @@ pub enum Field {
     CoarseVelocity,
     /// A coarse move's acceleration, mm/s².
     CoarseAcceleration,
+    /// The tick's work as a whole at the board's control rate: the models, their creep and
+    /// the feedback together ([`crate::tick_budget`]).
+    Workload,
 }
 
 /// The rule a field broke, with its limit where it has one (in the field's own units).
@@ -178,6 +181,15 @@ pub enum Rule {
     NotHomed,
     /// The move runs into a limit switch that is active.
     LimitSwitch,
+    /// The tick would need more cycles than the control period leaves it
+    /// ([`crate::tick_budget`]): its predicted worst case and the cycles available, both at 5
+    /// flash wait states.
+    TickOverrun {
+        /// Predicted worst case of the whole interrupt, cycles.
+        needs: u32,
+        /// Cycles the control rate leaves the tick.
+        available: u32,
+    },
 }
 
 /// A refusal: the field and the rule it broke. Nothing was applied.
@@ -300,6 +312,7 @@ impl core::fmt::Display for Field {
             Field::CoarseTarget => "coarse target (mm)",
             Field::CoarseVelocity => "coarse speed (mm/s)",
             Field::CoarseAcceleration => "coarse acceleration (mm/s²)",
+            Field::Workload => "the models, creep and feedback together",
         };
         f.write_str(name)
     }
@@ -328,6 +341,11 @@ impl core::fmt::Display for Rule {
                 "is not homed (home it first: power-up and faults unhome it)"
             ),
             Rule::LimitSwitch => write!(f, "would run into an active limit switch"),
+            Rule::TickOverrun { needs, available } => write!(
+                f,
+                "need {needs} cycles per tick, more than the {available} the control rate leaves \
+                 (use fewer operators, dead zones or creep modes, or a lower rate)"
+            ),
         }
     }
 }

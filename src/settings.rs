@@ -183,7 +183,7 @@ impl Settings {
             None => None,
         };
         self.check_mode(self.mode)?;
-        Ok(ControlConfig {
+        let config = ControlConfig {
             compensator,
             observer,
             sensor,
@@ -191,7 +191,10 @@ impl Settings {
             drive,
             mode: self.mode,
             creep,
-        })
+        };
+        // Last: what the tick runs must fit its period at this rate.
+        crate::tick_budget::check(&config, hw.control_rate_hz)?;
+        Ok(config)
     }
 
     /// Whether `mode` can run on these settings: open loop needs a compensator, closed loop a

@@ -32,11 +32,19 @@ use std::process::{Command, Stdio};
 const WORST_INSTRUCTIONS: u64 = 900;
 /// The configuration of the model family measured on its own: the generalised P–I (N = 16,
 /// 6 dead zones) as compensator and observer with four creep modes in series.
-const FAMILY_CONFIG: &str = "inverse-gpi16+creep4";
+const FAMILY_CONFIG: &str = "inverse-gpi16+creep4+gpi16-observer+pi+drift";
 /// Its bound, instructions (the worst measured, with a margin of a few %): 1 524 before
 /// telemetry's tap, 1 595 with it at its worst, 1 323 with the packed banks and no telemetry;
 /// 1 394 with both (session 6).
 const FAMILY_WORST_INSTRUCTIONS: u64 = 1420;
+/// The configurations [`WORST_INSTRUCTIONS`] bounds: the shipped P–I and Duhem ones.
+const SHIPPED_CONFIGS: [&str; 2] = [
+    "inverse-pi16+pi16-observer+pi+drift",
+    "inverse-duhem+duhem-observer+pi+drift",
+];
+/// The most the tick budget's prediction may exceed a configuration's measured worst tick,
+/// as a factor: a prediction looser than this refuses configurations that would fit.
+const LOOSEST_PREDICTION: f64 = 1.25;
 /// Most instructions a reload's swap tick may cost beyond the tick after it.
 const SWAP_OVERHEAD: i64 = 50;
 /// The goal: the whole handler's worst case in cycles (0 wait states).
@@ -54,6 +62,52 @@ struct Insn {
     operands: String,
     /// Inlined from the tick's rebase (the first tick after a swap or a mode switch).
     swap: bool,
+    /// Which part of the tick its source line belongs to.
+    part: Part,
+}
+
+/// The parts of the tick the bench attributes cycles to, by the source file an instruction's
+/// line (inlined or not) comes from: the parts [`twinstack::tick_budget`] costs apart.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Part {
+    /// Everything else: RTIC, stream, sensor, drive, recorder, telemetry, DAC, watchdog.
+    Fixed = 0,
+    /// P–I banks (`prandtl_ishlinskii.rs`, `play_operator.rs`).
+    PlayOperators,
+    /// The generalised P–I's dead-zone maps.
+    DeadZones,
+    /// Creep, both sides.
+    Creep,
+    /// Duhem, both directions.
+    Duhem,
+    /// Bouc–Wen, both directions.
+    BoucWen,
+    /// Feedback (PI(D)) and the notch.
+    Feedback,
+}
+
+const PARTS: usize = 7;
+const PART_NAMES: [&str; PARTS] = [
+    "fixed",
+    "P–I banks",
+    "dead zones",
+    "creep",
+    "Duhem",
+    "Bouc–Wen",
+    "feedback+notch",
+];
+
+fn part_of(file: &str) -> Part {
+    let name = file.rsplit('/').next().unwrap_or(file);
+    match name {
+        "prandtl_ishlinskii.rs" | "play_operator.rs" => Part::PlayOperators,
+        "generalised_pi.rs" => Part::DeadZones,
+        "creep.rs" => Part::Creep,
+        "duhem.rs" => Part::Duhem,
+        "bouc_wen.rs" => Part::BoucWen,
+        "feedback.rs" | "notch.rs" => Part::Feedback,
+        _ => Part::Fixed,
+    }
 }
 
 /// The lines of the tick's rebase block in `src/control.rs` (`if self.rebase { … }`, inlined
@@ -117,14 +171,16 @@ fn disassemble(elf: &Path) -> HashMap<u32, Insn> {
     assert!(out.status.success(), "llvm-objdump failed");
     let swap_lines = rebase_lines();
     let mut in_swap = false;
+    let mut part = Part::Fixed;
     let mut map = HashMap::new();
     for line in String::from_utf8_lossy(&out.stdout).lines() {
         if let Some(source) = line.strip_prefix("; ") {
             // `; /path/src/control.rs:123`: the source line of the instructions that follow.
-            in_swap = source.rsplit_once(':').is_some_and(|(file, n)| {
-                file.ends_with("/src/control.rs")
-                    && n.parse::<u32>().is_ok_and(|n| swap_lines.contains(&n))
-            });
+            if let Some((file, n)) = source.rsplit_once(':') {
+                in_swap = file.ends_with("/src/control.rs")
+                    && n.parse::<u32>().is_ok_and(|n| swap_lines.contains(&n));
+                part = part_of(file);
+            }
             continue;
         }
         let Some((addr, rest)) = line.trim_start().split_once(": ") else {
@@ -148,6 +204,7 @@ fn disassemble(elf: &Path) -> HashMap<u32, Insn> {
                 mnemonic: mnemonic.trim().to_string(),
                 operands: parts.next().unwrap_or("").trim().to_string(),
                 swap: in_swap,
+                part,
             },
         );
     }
@@ -201,6 +258,8 @@ struct Tick {
     cycles: u64,
     cycles_ws5: u64,
     swap: bool,
+    /// `cycles_ws5` by [`Part`].
+    parts: [u64; PARTS],
 }
 
 /// Reads the trace: the ticks, grouped by the segments between `irq_bench_marker` calls.
@@ -216,7 +275,9 @@ fn parse_trace(reader: impl BufRead, code: &HashMap<u32, Insn>) -> Vec<Vec<Tick>
             t.cycles += c;
             // 5 wait states, prefetch on, ART cache off: a taken branch's target misses the
             // prefetch buffer and waits the full 5.
-            t.cycles_ws5 += c + if taken { 5 } else { 0 };
+            let c5 = c + if taken { 5 } else { 0 };
+            t.cycles_ws5 += c5;
+            t.parts[insn.part as usize] += c5;
         }
     };
     for line in reader.lines() {
@@ -234,6 +295,7 @@ fn parse_trace(reader: impl BufRead, code: &HashMap<u32, Insn>) -> Vec<Vec<Tick>
                 t.cycles_ws5 += 3 + 5;
                 t.cycles += ENTRY_EXIT_CYCLES;
                 t.cycles_ws5 += ENTRY_EXIT_CYCLES;
+                t.parts[Part::Fixed as usize] += 3 + 5 + ENTRY_EXIT_CYCLES;
                 if let Some(seg) = segments.last_mut() {
                     seg.push(t);
                 }
@@ -315,9 +377,21 @@ fn the_whole_interrupt_in_every_scenario() {
         .lines()
         .filter_map(|l| l.strip_prefix("SCENARIO "))
         .collect();
-    assert_eq!(names.len(), 18, "every scenario ran: {stdout}");
+    assert_eq!(names.len(), 36, "every scenario ran: {stdout}");
     // Segment 0 is the boot (defaults: bypass, no model); the last follows the final marker.
     assert!(segments.len() > names.len(), "{} segments", segments.len());
+    // The tick budget's prediction for each configuration, computed on the target.
+    let budgets: HashMap<&str, u64> = stdout
+        .lines()
+        .filter_map(|l| l.strip_prefix("BUDGET "))
+        .filter_map(|l| l.rsplit_once(' '))
+        .map(|(name, c)| (name, c.parse().expect("BUDGET <name> <cycles>")))
+        .collect();
+    assert!(
+        !stdout.contains("BUDGET-REFUSED"),
+        "the budget refused a benched configuration at the bench's 40 kHz: {stdout}"
+    );
+    assert_eq!(budgets.len(), 6, "every configuration has a prediction");
 
     println!();
     println!("Whole control interrupt (SysTick entry to exception return), QEMU netduinoplus2, -icount shift=0");
@@ -327,7 +401,7 @@ fn the_whole_interrupt_in_every_scenario() {
     );
     println!("|---|---:|---:|---:|---:|---:|---:|---:|---:|");
     let mut worst = Tick::default();
-    // The model family's dearest configuration (generalised P–I + creep) has its own bound.
+    // The model family's generalised P–I + creep has its own instruction bound.
     let mut family_worst = 0u64;
     let mut rows = vec![(
         "boot (defaults: bypass, no model)".to_string(),
@@ -336,6 +410,10 @@ fn the_whole_interrupt_in_every_scenario() {
     for (name, seg) in names.iter().zip(&segments[1..]) {
         rows.push((name.to_string(), seg));
     }
+    // What broke the tick budget's contract, reported together after the table.
+    let mut failures: Vec<String> = Vec::new();
+    // Per configuration: its worst tick (5 WS) outside the lifecycle scenario, with its parts.
+    let mut by_config: Vec<(String, Tick)> = Vec::new();
     for (name, ticks) in &rows {
         assert!(!ticks.is_empty(), "{name}: no ticks traced");
         let n = ticks.len() as f64;
@@ -351,20 +429,79 @@ fn the_whole_interrupt_in_every_scenario() {
             cpu(100e3),
             cpu(200e3)
         );
-        if name.starts_with(FAMILY_CONFIG) {
-            family_worst = family_worst.max(max_i);
-            continue;
-        }
-        for t in ticks.iter() {
-            if t.instructions > worst.instructions {
-                worst.instructions = t.instructions;
+        let config = name.split('/').next().unwrap_or(name);
+        if let Some(&predicted) = budgets.get(config) {
+            // Every tick of the configuration's own scenarios stays within its prediction; in
+            // the lifecycle scenario (a reload to another configuration and two mode
+            // switches) within the larger of the two predictions.
+            let bound = if name.contains("reload") {
+                let other = if config.starts_with("inverse-pi16") {
+                    "inverse-duhem+duhem-observer+pi+drift"
+                } else {
+                    "inverse-pi16+pi16-observer+pi+drift"
+                };
+                predicted.max(budgets.get(other).copied().unwrap_or(0))
+            } else {
+                let heaviest = ticks
+                    .iter()
+                    .max_by_key(|t| t.cycles_ws5)
+                    .copied()
+                    .unwrap_or_default();
+                match by_config.iter_mut().find(|(c, _)| c == config) {
+                    Some((_, t)) if t.cycles_ws5 >= heaviest.cycles_ws5 => {}
+                    Some((_, t)) => *t = heaviest,
+                    None => by_config.push((config.to_string(), heaviest)),
+                }
+                predicted
+            };
+            if max_c5 > bound {
+                failures.push(format!(
+                    "{name}: the worst tick takes {max_c5} cycles (5 WS), more than the tick budget's {bound}: raise src/tick_budget.rs's coefficients"
+                ));
             }
-            worst.cycles = worst.cycles.max(t.cycles);
-            worst.cycles_ws5 = worst.cycles_ws5.max(t.cycles_ws5);
+        }
+        if config == FAMILY_CONFIG {
+            family_worst = family_worst.max(max_i);
+        } else if SHIPPED_CONFIGS.contains(&config) {
+            for t in ticks.iter() {
+                worst.instructions = worst.instructions.max(t.instructions);
+                worst.cycles = worst.cycles.max(t.cycles);
+                worst.cycles_ws5 = worst.cycles_ws5.max(t.cycles_ws5);
+            }
         }
     }
+    println!();
     println!(
-        "worst: {} instructions, {} cycles at 0 WS ({} at 5 WS); goal {GOAL_CYCLES} cycles: {}",
+        "Worst tick of each configuration (5 WS cycles) by part, and the tick budget's prediction:"
+    );
+    println!(
+        "| configuration | {} | total | predicted | predicted / measured |",
+        PART_NAMES.join(" | ")
+    );
+    println!("|---|{}---:|---:|---:|", "---:|".repeat(PARTS));
+    for (config, t) in &by_config {
+        let predicted = budgets[config.as_str()];
+        let ratio = predicted as f64 / t.cycles_ws5 as f64;
+        println!(
+            "| {config} | {} | {} | {predicted} | {ratio:.2} |",
+            t.parts.map(|c| c.to_string()).join(" | "),
+            t.cycles_ws5
+        );
+        if ratio > LOOSEST_PREDICTION {
+            failures.push(format!(
+                "{config}: the tick budget predicts {predicted} cycles for a worst tick of {}: looser than {LOOSEST_PREDICTION}× (lower src/tick_budget.rs's coefficients)",
+                t.cycles_ws5
+            ));
+        }
+    }
+    assert!(failures.is_empty(), "{}", failures.join("\n"));
+    assert_eq!(
+        by_config.len(),
+        6,
+        "every configuration was checked against its prediction"
+    );
+    println!(
+        "worst of the shipped P–I and Duhem configurations: {} instructions, {} cycles at 0 WS ({} at 5 WS); goal {GOAL_CYCLES} cycles: {}",
         worst.instructions,
         worst.cycles,
         worst.cycles_ws5,

@@ -19,6 +19,11 @@ pub extern "C" fn irq_bench_marker(n: u32) -> u32 {
     core::hint::black_box(n)
 }
 
+/// The control rate the bench runs at, Hz: 40 kHz, so that the tick budget admits the dearest
+/// configuration (it needs about 3 250 cycles, over 90 % of a 50 kHz period). The cycles a tick
+/// takes do not depend on the rate.
+pub const RATE_HZ: u32 = 40_000;
+
 /// The scenarios' setpoints, Q1.15, one per tick (divider 1).
 pub mod scenarios {
     /// Ticks each scenario streams.
@@ -50,8 +55,8 @@ pub mod scenarios {
     }
 
     fn sine_750hz(k: u32) -> i16 {
-        // 750 Hz at 50 kHz: a period of 66.67 ticks; a parabolic sine (no libm needed).
-        let period = 50_000.0f32 / 750.0;
+        // 750 Hz at the bench's rate (53.3 ticks a period); a parabolic sine (no libm needed).
+        let period = super::RATE_HZ as f32 / 750.0;
         let x = (k as f32 / period) % 1.0; // 0…1
         let s = if x < 0.5 {
             16.0 * x * (0.5 - x)
@@ -132,13 +137,19 @@ pub mod scenarios {
     ];
 }
 
-/// The configurations a user can load, as the bench measures them.
+/// The configurations a user can load, as the bench measures them: the shipped sizes of each
+/// model, and the largest of every part the tick budget ([`twinstack::tick_budget`]) counts, so
+/// that its prediction is checked at both ends of each size.
 pub mod configs {
     use twinstack::creep::CreepParams;
+    use twinstack::generalised_pi::{DeadZoneParams, GpiParams};
     use twinstack::settings::{
-        representative_duhem, representative_gpi, representative_pi, FeedbackSettings, Mode,
-        SensorSettings, Settings,
+        representative_bouc_wen, representative_duhem, representative_gpi, representative_pi,
+        FeedbackSettings, Mode, Model, NotchDesign, SensorSettings, Settings,
     };
+
+    /// How many configurations run.
+    pub const COUNT: usize = 6;
 
     /// A named configuration.
     pub struct Config {
@@ -148,10 +159,7 @@ pub mod configs {
         pub settings: Settings,
     }
 
-    fn closed(
-        compensator: twinstack::settings::Model,
-        observer: twinstack::settings::Model,
-    ) -> Settings {
+    fn closed(compensator: Model, observer: Model) -> Settings {
         Settings {
             compensator: Some(compensator),
             observer: Some(observer),
@@ -166,32 +174,91 @@ pub mod configs {
         }
     }
 
-    /// The configurations, in the order they run. `None` if a representative model is
-    /// refused (it is not: the tests check it).
-    pub fn all() -> Option<[Config; 3]> {
-        let pi = representative_pi(16).ok()?;
-        let gpi = representative_gpi(16).ok()?;
-        // Four creep modes, 10 ms … 10 s, in series with both models.
-        let creep = CreepParams::new(&[0.01, 0.1, 1.0, 10.0], &[0.02, 0.02, 0.02, 0.02]).ok()?;
-        Some([
-            Config {
-                name: "inverse-pi16+pi16-observer+pi+drift",
-                settings: closed(pi.clone(), pi),
-            },
-            Config {
+    /// The largest generalised P–I: 32 operators and all 8 dead zones.
+    fn largest_gpi() -> Option<Model> {
+        let Model::PrandtlIshlinskii(pi) = representative_pi(32).ok()? else {
+            return None;
+        };
+        let dead_zones = DeadZoneParams::new(
+            35.0,
+            1.0,
+            &[-28.0, -21.0, -14.0, -7.0, 7.0, 14.0, 21.0, 28.0],
+            &[-0.05, -0.05, -0.05, -0.05, 0.05, 0.05, 0.1, 0.1],
+        )
+        .ok()?;
+        Some(Model::GeneralisedPi(GpiParams { pi, dead_zones }))
+    }
+
+    /// Configuration `i` (`0 … COUNT`), built when it is needed (one at a time on the
+    /// stack). `None` past the end or if a model is refused (it is not: the tests check the
+    /// representative models).
+    pub fn get(i: usize) -> Option<Config> {
+        let creep4 = || CreepParams::new(&[0.01, 0.1, 1.0, 10.0], &[0.02; 4]).ok();
+        let creep6 = || CreepParams::new(&[0.01, 0.1, 1.0, 10.0, 30.0, 100.0], &[0.01; 6]).ok();
+        Some(match i {
+            0 => {
+                let pi = representative_pi(16).ok()?;
+                Config {
+                    name: "inverse-pi16+pi16-observer+pi+drift",
+                    settings: closed(pi.clone(), pi),
+                }
+            }
+            1 => Config {
                 name: "inverse-duhem+duhem-observer+pi+drift",
                 settings: closed(representative_duhem(), representative_duhem()),
             },
-            // The model family's dearest member: the generalised P–I (N = 16, 6 dead zones)
-            // as compensator and observer, with four creep modes in series with both.
-            Config {
-                name: "inverse-gpi16+creep4+gpi16-observer+pi+drift",
-                settings: Settings {
-                    creep: Some(creep),
-                    ..closed(gpi.clone(), gpi)
-                },
+            // The model family's shipped generalised P–I (N = 16, 6 dead zones) as
+            // compensator and observer, with four creep modes in series with both.
+            2 => {
+                let gpi = representative_gpi(16).ok()?;
+                Config {
+                    name: "inverse-gpi16+creep4+gpi16-observer+pi+drift",
+                    settings: Settings {
+                        creep: Some(creep4()?),
+                        ..closed(gpi.clone(), gpi)
+                    },
+                }
+            }
+            3 => Config {
+                name: "inverse-bouc-wen+bouc-wen-observer+pi+drift",
+                settings: closed(representative_bouc_wen(), representative_bouc_wen()),
             },
-        ])
+            // The largest P–I with the most creep modes.
+            4 => {
+                let pi = representative_pi(32).ok()?;
+                Config {
+                    name: "inverse-pi32+creep6+pi32-observer+pi+drift",
+                    settings: Settings {
+                        creep: Some(creep6()?),
+                        ..closed(pi.clone(), pi)
+                    },
+                }
+            }
+            // The dearest configuration a user can load: the largest generalised P–I both
+            // ways, six creep modes, PID feedback with the notch.
+            5 => {
+                let gpi = largest_gpi()?;
+                let mut settings = Settings {
+                    creep: Some(creep6()?),
+                    ..closed(gpi.clone(), gpi)
+                };
+                settings.feedback = Some(FeedbackSettings {
+                    kd: 1e-5,
+                    derivative_cutoff_hz: 5_000.0,
+                    notch: Some(NotchDesign {
+                        frequency_hz: 8_000.0,
+                        q: 2.0,
+                        depth: 0.05,
+                    }),
+                    ..FeedbackSettings::pi(0.2, 500.0, 0.1)
+                });
+                Config {
+                    name: "inverse-gpi32x8+creep6+gpi32x8-observer+pid+notch+drift",
+                    settings,
+                }
+            }
+            _ => return None,
+        })
     }
 }
 
@@ -222,13 +289,11 @@ mod app {
     use twinstack::telemetry::{
         TelemetryPacker, TelemetryQueue, TelemetrySample, TELEMETRY_QUEUE_LEN,
     };
+    use twinstack::tick_budget::worst_case_cycles;
 
     use cortex_m_semihosting::{debug, hprintln};
 
-    use super::{configs, irq_bench_marker, scenarios};
-
-    /// The control rate the bench runs at, Hz.
-    const RATE_HZ: u32 = 50_000;
+    use super::{configs, irq_bench_marker, scenarios, RATE_HZ};
 
     #[shared]
     struct Shared {
@@ -321,12 +386,18 @@ mod app {
         packer.start(0b11_1111, 1, first, RATE_HZ);
         let mut ask =
             |request: Request| -> Response { handler.handle(request, producer, &mut lock) };
-        let Some(configs) = configs::all() else {
-            panic!("configuration refused");
-        };
+        let hardware = Hardware::driver_board(RATE_HZ as f64);
         let mut seq = 0u16;
         let mut marker = 0u32;
-        for config in &configs {
+        for i in 0..configs::COUNT {
+            let Some(config) = configs::get(i) else {
+                panic!("configuration refused");
+            };
+            // The budget's prediction for it, computed by the library on the target.
+            match config.settings.build(&hardware) {
+                Ok(c) => hprintln!("BUDGET {} {}", config.name, worst_case_cycles(&c)),
+                Err(e) => hprintln!("BUDGET-REFUSED {} {}", config.name, e),
+            }
             expect_ack(ask(Request::LoadParams(config.settings.clone())), "load");
             for scenario in &scenarios::ALL {
                 // A fresh capture per scenario: the recorder runs throughout, taking all six
@@ -374,15 +445,12 @@ mod app {
                         _ => (0, 0),
                     };
                     if scenario.lifecycle {
-                        // The first other configuration: the P–I and Duhem ones reload each other, so
-                        // their rows hold their own ticks only (the family's is measured apart).
-                        let reload = configs.iter().find(|c| c.name != config.name);
+                        // The reload loads the first other configuration (the P–I and the
+                        // Duhem ones reload each other; the rest reload the P–I one), so a
+                        // lifecycle row holds ticks of two configurations.
                         if changed == 0 && ticks_played >= 500 {
-                            if let Some(other) = reload {
-                                expect_ack(
-                                    ask(Request::LoadParams(other.settings.clone())),
-                                    "reload",
-                                );
+                            if let Some(other) = configs::get(usize::from(i == 0)) {
+                                expect_ack(ask(Request::LoadParams(other.settings)), "reload");
                             }
                             changed = 1;
                         } else if changed == 1 && ticks_played >= 800 {

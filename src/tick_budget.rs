@@ -1,0 +1,241 @@
+//! The whole control interrupt's worst case, predicted from what a configuration runs, and the
+//! refusal of a configuration that would not fit the control period.
+//!
+//! The tick's cost is set by what it runs: the fixed part (RTIC's entry and exit, the setpoint
+//! stream, the sensor, the feedback, the drift check, the drive stage, the recorder, telemetry's
+//! tap, the DAC write, the watchdog) and the models, whose banks grow with their operators, dead
+//! zones and creep modes. [`worst_case_cycles`] adds these up from a built
+//! [`ControlConfig`]; [`Settings::build`](crate::settings::Settings::build) refuses
+//! ([`Field::Workload`], [`Rule::TickOverrun`]) a configuration whose prediction exceeds
+//! [`TICK_SHARE_PERCENT`] of the control period, so that no loaded configuration overruns the
+//! interrupt at the board's rate, and the link, the command handler and the coarse axis keep the
+//! rest of the CPU.
+//!
+//! The coefficients are **cycles at 5 flash wait states** (the ART cache assumed cold: every
+//! taken branch waits the full 5), measured on the real image: the whole-interrupt bench
+//! (`tests/irq_bench.rs`) traces every tick of six configurations in QEMU — the smallest and the
+//! largest of each model, every creep mode, the notch and the derivative — and asserts, for each,
+//! that its worst tick stays under this prediction and that the prediction is not loose by more
+//! than a stated factor. Between the measured sizes the prediction is linear in operators, dead
+//! zones and modes, as the banks' loops are. A change that makes the tick dearer fails that
+//! bench until the coefficients here are raised.
+//!
+//! ```
+//! use twinstack::board::Hardware;
+//! use twinstack::settings::{representative_gpi, Settings};
+//! use twinstack::tick_budget::{available_cycles, worst_case_cycles};
+//!
+//! let s = Settings { compensator: Some(representative_gpi(16).unwrap()), ..Settings::default() };
+//! let config = s.build(&Hardware::driver_board(50_000.0)).unwrap();
+//! assert!(worst_case_cycles(&config) < available_cycles(50_000.0));
+//! ```
+
+use crate::control::{Compensator, ControlConfig, Observer};
+use crate::refusal::{Field, Refusal, Rule};
+
+/// The core clock the board runs at, Hz.
+pub const SYSCLK_HZ: u32 = 168_000_000;
+
+/// The share of the control period the tick may take, percent: the rest is for the link's
+/// DMA interrupts, the command handler and the coarse axis, which run below it.
+pub const TICK_SHARE_PERCENT: u32 = 90;
+
+/// Everything that does not grow with a model: RTIC's entry and exit, the stream, the sensor
+/// read and its drift check, PI feedback, the drive stage, the recorder taking six signals,
+/// telemetry's tap at its worst, the DAC write and the watchdog.
+pub const FIXED_CYCLES: u32 = 920;
+/// A P–I bank's cost beyond its operators (the inverse's and the forward's alike).
+pub const PI_BASE_CYCLES: u32 = 54;
+/// Each pair of play operators (one packed word) of a P–I bank.
+pub const PI_PAIR_CYCLES: u32 = 30;
+/// A generalised P–I's dead-zone map beyond its dead zones.
+pub const DEAD_ZONE_BASE_CYCLES: u32 = 62;
+/// Each dead zone of a generalised P–I's map.
+pub const DEAD_ZONE_CYCLES: u32 = 15;
+/// A Duhem model (either direction).
+pub const DUHEM_CYCLES: u32 = 150;
+/// A Bouc–Wen model (either direction).
+pub const BOUC_WEN_CYCLES: u32 = 65;
+/// A creep operator beyond its modes (per side it runs on: the compensator's inverse, the
+/// observer's forward).
+pub const CREEP_BASE_CYCLES: u32 = 64;
+/// Each creep mode, per side.
+pub const CREEP_MODE_CYCLES: u32 = 50;
+/// The feedback's derivative term.
+pub const DERIVATIVE_CYCLES: u32 = 90;
+/// The feedback's notch (one biquad).
+pub const NOTCH_CYCLES: u32 = 100;
+
+/// Cycles the tick may take at `control_rate_hz`: [`TICK_SHARE_PERCENT`] of the period.
+/// A rate that is not positive and finite leaves none.
+pub fn available_cycles(control_rate_hz: f64) -> u32 {
+    if !(control_rate_hz.is_finite() && control_rate_hz > 0.0) {
+        return 0;
+    }
+    let period = SYSCLK_HZ as f64 / control_rate_hz;
+    (period * TICK_SHARE_PERCENT as f64 / 100.0) as u32
+}
+
+fn pi_cycles(operators: usize) -> u32 {
+    PI_BASE_CYCLES + PI_PAIR_CYCLES * operators.div_ceil(2) as u32
+}
+
+fn dead_zone_cycles(dead_zones: usize) -> u32 {
+    DEAD_ZONE_BASE_CYCLES + DEAD_ZONE_CYCLES * dead_zones as u32
+}
+
+/// The compensator's own cost (without creep).
+fn compensator_cycles(c: &Compensator) -> u32 {
+    match c {
+        Compensator::None => 0,
+        Compensator::InversePi(m) => pi_cycles(m.operators()),
+        Compensator::InverseDuhem(_) => DUHEM_CYCLES,
+        Compensator::InverseGeneralisedPi(m) => {
+            let (operators, dead_zones) = m.size();
+            pi_cycles(operators) + dead_zone_cycles(dead_zones)
+        }
+        Compensator::InverseBoucWen(_) => BOUC_WEN_CYCLES,
+    }
+}
+
+/// The observer's own cost (without creep).
+fn observer_cycles(o: &Observer) -> u32 {
+    match o {
+        Observer::None => 0,
+        Observer::Pi(m) => pi_cycles(m.operators()),
+        Observer::Duhem(_) => DUHEM_CYCLES,
+        Observer::GeneralisedPi(m) => {
+            let (operators, dead_zones) = m.size();
+            pi_cycles(operators) + dead_zone_cycles(dead_zones)
+        }
+        Observer::BoucWen(_) => BOUC_WEN_CYCLES,
+    }
+}
+
+/// The predicted worst case of the whole interrupt running `config`, cycles at 5 flash wait
+/// states (see the module doc for what it covers and how it is checked).
+pub fn worst_case_cycles(config: &ControlConfig) -> u32 {
+    let mut cycles =
+        FIXED_CYCLES + compensator_cycles(&config.compensator) + observer_cycles(&config.observer);
+    if let Some(creep) = &config.creep {
+        let side = CREEP_BASE_CYCLES + CREEP_MODE_CYCLES * creep.modes() as u32;
+        // Creep runs on each side that has a model.
+        let sides = u32::from(!matches!(config.compensator, Compensator::None))
+            + u32::from(!matches!(config.observer, Observer::None));
+        cycles += side * sides;
+    }
+    if let Some(feedback) = &config.feedback {
+        if feedback.derivative.is_some() {
+            cycles += DERIVATIVE_CYCLES;
+        }
+        if feedback.notch.is_some() {
+            cycles += NOTCH_CYCLES;
+        }
+    }
+    cycles
+}
+
+/// `Ok(())` if `config` fits the tick at `control_rate_hz`, else a [`Rule::TickOverrun`]
+/// refusal of [`Field::Workload`] with the cycles it needs and the cycles the rate leaves.
+pub fn check(config: &ControlConfig, control_rate_hz: f64) -> Result<(), Refusal> {
+    let needs = worst_case_cycles(config);
+    let available = available_cycles(control_rate_hz);
+    if needs > available {
+        return Err(Refusal::new(
+            Field::Workload,
+            Rule::TickOverrun { needs, available },
+        ));
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::board::Hardware;
+    use crate::creep::CreepParams;
+    use crate::settings::{representative_gpi, representative_pi, Settings};
+
+    fn build(s: &Settings) -> ControlConfig {
+        s.build(&Hardware::driver_board(10_000.0)).unwrap()
+    }
+
+    #[test]
+    fn the_prediction_grows_with_every_part_a_configuration_runs() {
+        let bare = worst_case_cycles(&build(&Settings::default()));
+        assert_eq!(bare, FIXED_CYCLES);
+        let pi8 = Settings {
+            compensator: Some(representative_pi(8).unwrap()),
+            ..Settings::default()
+        };
+        let pi32 = Settings {
+            compensator: Some(representative_pi(32).unwrap()),
+            ..Settings::default()
+        };
+        let (c8, c32) = (
+            worst_case_cycles(&build(&pi8)),
+            worst_case_cycles(&build(&pi32)),
+        );
+        assert!(bare < c8 && c8 < c32, "{bare} {c8} {c32}");
+        let with_observer = Settings {
+            observer: Some(representative_pi(32).unwrap()),
+            ..pi32.clone()
+        };
+        let both = worst_case_cycles(&build(&with_observer));
+        assert_eq!(
+            both - c32,
+            c32 - bare,
+            "the observer's bank costs what the inverse's does"
+        );
+        let creep = CreepParams::new(&[0.01, 0.1], &[0.02, 0.02]).unwrap();
+        let crept = Settings {
+            creep: Some(creep),
+            ..with_observer.clone()
+        };
+        assert_eq!(
+            worst_case_cycles(&build(&crept)) - both,
+            2 * (CREEP_BASE_CYCLES + 2 * CREEP_MODE_CYCLES),
+            "creep runs on both sides"
+        );
+        let gpi = Settings {
+            compensator: Some(representative_gpi(32).unwrap()),
+            ..pi32
+        };
+        assert_eq!(
+            worst_case_cycles(&build(&gpi)) - c32,
+            DEAD_ZONE_BASE_CYCLES + 6 * DEAD_ZONE_CYCLES
+        );
+    }
+
+    #[test]
+    fn a_configuration_too_dear_for_the_rate_is_refused_with_what_it_needs() {
+        let creep = CreepParams::new(&[0.01, 0.1, 1.0, 10.0, 30.0, 100.0], &[0.01; 6]).unwrap();
+        let dear = Settings {
+            compensator: Some(representative_gpi(32).unwrap()),
+            observer: Some(representative_gpi(32).unwrap()),
+            creep: Some(creep),
+            ..Settings::default()
+        };
+        let config = build(&dear);
+        let needs = worst_case_cycles(&config);
+        assert!(check(&config, 10_000.0).is_ok());
+        let refusal = check(&config, 100_000.0).unwrap_err();
+        assert_eq!(
+            refusal,
+            Refusal::new(
+                Field::Workload,
+                Rule::TickOverrun {
+                    needs,
+                    available: 1512
+                }
+            )
+        );
+        // The settings' own validation refuses it the same way.
+        assert_eq!(
+            dear.build(&Hardware::driver_board(100_000.0)).unwrap_err(),
+            refusal
+        );
+        assert_eq!(available_cycles(f64::NAN), 0);
+        assert_eq!(available_cycles(-1.0), 0);
+    }
+}
