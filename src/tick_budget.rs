@@ -38,33 +38,33 @@ pub const SYSCLK_HZ: u32 = 168_000_000;
 
 /// The share of the control period the tick may take, percent: the rest is for the link's
 /// DMA interrupts, the command handler and the coarse axis, which run below it.
-pub const TICK_SHARE_PERCENT: u32 = 90;
+pub const TICK_SHARE_PERCENT: u32 = 95;
 
 /// Everything that does not grow with a model: RTIC's entry and exit, the stream, the sensor
 /// read and its drift check, PI feedback, the drive stage, the recorder taking six signals,
 /// telemetry's tap at its worst, the DAC write and the watchdog.
-pub const FIXED_CYCLES: u32 = 920;
+pub const FIXED_CYCLES: u32 = 870;
 /// A P–I bank's cost beyond its operators (the inverse's and the forward's alike).
-pub const PI_BASE_CYCLES: u32 = 54;
+pub const PI_BASE_CYCLES: u32 = 41;
 /// Each pair of play operators (one packed word) of a P–I bank.
-pub const PI_PAIR_CYCLES: u32 = 30;
+pub const PI_PAIR_CYCLES: u32 = 34;
 /// A generalised P–I's dead-zone map beyond its dead zones.
-pub const DEAD_ZONE_BASE_CYCLES: u32 = 62;
+pub const DEAD_ZONE_BASE_CYCLES: u32 = 49;
 /// Each dead zone of a generalised P–I's map.
-pub const DEAD_ZONE_CYCLES: u32 = 15;
+pub const DEAD_ZONE_CYCLES: u32 = 20;
 /// A Duhem model (either direction).
-pub const DUHEM_CYCLES: u32 = 150;
+pub const DUHEM_CYCLES: u32 = 170;
 /// A Bouc–Wen model (either direction).
-pub const BOUC_WEN_CYCLES: u32 = 65;
+pub const BOUC_WEN_CYCLES: u32 = 88;
 /// A creep operator beyond its modes (per side it runs on: the compensator's inverse, the
 /// observer's forward).
-pub const CREEP_BASE_CYCLES: u32 = 64;
+pub const CREEP_BASE_CYCLES: u32 = 92;
 /// Each creep mode, per side.
-pub const CREEP_MODE_CYCLES: u32 = 50;
+pub const CREEP_MODE_CYCLES: u32 = 40;
 /// The feedback's derivative term.
-pub const DERIVATIVE_CYCLES: u32 = 90;
+pub const DERIVATIVE_CYCLES: u32 = 50;
 /// The feedback's notch (one biquad).
-pub const NOTCH_CYCLES: u32 = 100;
+pub const NOTCH_CYCLES: u32 = 95;
 
 /// Cycles the tick may take at `control_rate_hz`: [`TICK_SHARE_PERCENT`] of the period.
 /// A rate that is not positive and finite leaves none.
@@ -226,7 +226,7 @@ mod tests {
                 Field::Workload,
                 Rule::TickOverrun {
                     needs,
-                    available: 1512
+                    available: 1596
                 }
             )
         );
