@@ -385,9 +385,14 @@ fn with_creep(
         if settled {
             break;
         }
-        // The target with the creep undone, for the next hysteresis fit.
+        // The target with the creep undone, for the next hysteresis fit. The inverse starts
+        // where the forward creep starts when the model runs (`predict`: its modes at rest at
+        // the hysteresis output of the first sample), not at the first reading: a record that
+        // begins with the stage still settling reads far from that, and a slow mode's inverse
+        // would carry the difference through the whole window.
+        let start = h.first().copied().unwrap_or(y[0]);
         let mut inverse =
-            crate::reference::Creep::new(&c, rate, y[0]).map_err(IdentifyError::Params)?;
+            crate::reference::Creep::new(&c, rate, start).map_err(IdentifyError::Params)?;
         let corrected: Vec<f64> = y.iter().map(|&v| inverse.inverse_step(v)).collect();
         hysteresis = fit_model(&corrected, &mut Vec::new())?;
     }
