@@ -113,8 +113,8 @@ def test_auto_ranks_every_model_and_creep_selects_the_candidates(micro):
     ]
     only = twinstack.identify(t, u, x, fit_until=16.0, creep=True)
     assert all("+ creep" in r["label"] for r in only.ranking) and len(only.ranking) == 4
-    # On this record no creep mode lowers the fit RMS, so identify leaves the creep out of the
-    # model it returns (it keeps one only where it helps).
-    assert not only.creep
+    # The record starts with the stage still settling from before it; the creep follows that
+    # drift (identify keeps a creep only where it lowers the fit RMS, as it does here).
+    assert only.creep
     none = twinstack.identify(t, u, x, fit_until=16.0, creep=False)
     assert not any("+ creep" in r["label"] for r in none.ranking) and len(none.ranking) == 4

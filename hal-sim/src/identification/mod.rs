@@ -328,12 +328,23 @@ pub const CREEP_CONVERGED: f64 = 0.01;
 /// [`CREEP_CONVERGED`]) or [`CREEP_ITERATIONS`] times; the iterate whose prediction scores the
 /// lowest RMS on the fitted rows is kept. (The split of a slow mode between the model's gain
 /// and the creep converges slowly — about ten iterates on a synthetic record.)
+///
+/// Where the inverse creep starts: a record that starts at rest (`started_at_rest`) has its
+/// stage settled at its first reading, so the inverse's modes start at rest at `y[0]`. A
+/// record that starts in the middle of its motion says nothing there about where the stage
+/// had settled (the micromanipulator record's first reading is 24 units below the model's
+/// output at its first drive value: the stage was still settling from a long rest at 0 V),
+/// so the inverse starts where `predict` starts the forward creep, at the hysteresis output
+/// of the first sample. Started at the reading instead, a slow mode's inverse carries the
+/// difference through the whole window and the hysteresis refit follows it.
+#[allow(clippy::too_many_arguments)]
 fn with_creep(
     first: StageModel,
     data: &MeasuredData,
     y: &[f64],
     rows: &FitRows,
     n_fit: usize,
+    started_at_rest: bool,
     fit_model: &FitModel<'_>,
     notes: &mut Vec<String>,
 ) -> Result<StageModel, IdentifyError> {
@@ -385,9 +396,15 @@ fn with_creep(
         if settled {
             break;
         }
-        // The target with the creep undone, for the next hysteresis fit.
+        // The target with the creep undone, for the next hysteresis fit (the inverse's start:
+        // see above).
+        let start = if started_at_rest {
+            y[0]
+        } else {
+            h.first().copied().unwrap_or(y[0])
+        };
         let mut inverse =
-            crate::reference::Creep::new(&c, rate, y[0]).map_err(IdentifyError::Params)?;
+            crate::reference::Creep::new(&c, rate, start).map_err(IdentifyError::Params)?;
         let corrected: Vec<f64> = y.iter().map(|&v| inverse.inverse_step(v)).collect();
         hysteresis = fit_model(&corrected, &mut Vec::new())?;
     }
@@ -686,7 +703,16 @@ pub fn identify(
     };
     let mut model = fit_model(&y, &mut notes)?;
     if options.creep {
-        model = with_creep(model, data, &y, &rows, n_fit, &fit_model, &mut notes)?;
+        model = with_creep(
+            model,
+            data,
+            &y,
+            &rows,
+            n_fit,
+            motion.started_at_rest,
+            &fit_model,
+            &mut notes,
+        )?;
     }
     model.check().map_err(IdentifyError::Params)?;
     // A model the library accepts can still be useless (a fit that ran off on data its
@@ -949,6 +975,69 @@ mod tests {
             id.notes.iter().any(|n| n.starts_with("creep:")),
             "{:?}",
             id.notes
+        );
+    }
+
+    /// A record that does not start at rest, like the micromanipulator's: a stage that had
+    /// settled at 0 V (its creep at rest at the P–I's output there) is driven, from the first
+    /// sample on, by a 1 Hz sine over 0 … 3.6 V starting mid-range (200 Hz, 40 s), read by a
+    /// sensor 3 samples late. Its readings creep upward over the whole record. Undone from
+    /// the first reading (the stage before the record, far below the model's output at the
+    /// first drive value), a slow mode's inverse
+    /// spoiled the alternation's hysteresis refit and the creep was left out; undone from
+    /// where `predict` starts the creep, it is kept and follows the drift.
+    #[test]
+    fn a_record_still_creeping_from_before_it_gets_a_creep_that_follows_the_drift() {
+        let rate = 200.0;
+        let n = 8000;
+        let t: Vec<f64> = (0..n).map(|k| k as f64 / rate).collect();
+        let u: Vec<f64> = t
+            .iter()
+            .map(|&t| 1.8 + 1.8 * (2.0 * std::f64::consts::PI * t).sin())
+            .collect();
+        let thresholds = Thresholds::Uniform.generate(17, 1.8).unwrap();
+        let weights: Vec<f64> = (0..17).map(|i| 8.0 / (1.0 + 0.7 * i as f64)).collect();
+        let truth = PiParams::new(0.0, -120.0, &thresholds, &weights).unwrap();
+        let s = Scaling::new(0.0, 3.6, -130.0, -60.0).unwrap();
+        let mut m = reference::PrandtlIshlinskii::new(&truth, &s, u[0]).unwrap();
+        let h: Vec<f64> = u.iter().map(|&v| m.step(v)).collect();
+        // Settled at 0 V before the record: the P–I's output at the bottom of its range.
+        let settled = reference::PrandtlIshlinskii::new(&truth, &s, 0.0)
+            .unwrap()
+            .step(0.0);
+        let c = twinstack::creep::CreepParams::new(&[0.3, 3.0, 30.0], &[0.02, 0.04, 0.12]).unwrap();
+        let mut op = reference::Creep::new(&c, rate, settled).unwrap();
+        let stage: Vec<f64> = h.iter().map(|&v| op.step(v)).collect();
+        // The sensor lags 3 samples: its first readings are the stage at rest before the
+        // record.
+        let x: Vec<f64> = (0..n)
+            .map(|k| if k < 3 { settled } else { stage[k - 3] })
+            .collect();
+        let data = MeasuredData {
+            path: PathBuf::from("still-creeping.csv"),
+            t,
+            u: Some(u),
+            x: Some(x.clone()),
+        };
+        let held = |creep: bool| {
+            let mut o = IdentifyOptions::new(ModelKind::Pi, 16.0);
+            o.creep = creep;
+            o.lag = Some(3);
+            let id = identify(&data, &o).unwrap();
+            let predicted = id.model.predict(&data.t, data.u.as_ref().unwrap()).unwrap();
+            (id, score(&x, &predicted, 3200..n).unwrap())
+        };
+        let (_, without) = held(false);
+        let (id, with) = held(true);
+        eprintln!(
+            "held out: with creep {with:?}, without {without:?}; {:?}",
+            id.notes
+        );
+        assert!(!id.motion.started_at_rest);
+        assert!(id.model.creep.is_some(), "{:?}", id.notes);
+        assert!(
+            with.max_pct < 0.5 * without.max_pct && with.rms_pct < 0.5 * without.rms_pct,
+            "with creep {with:?}, without {without:?}"
         );
     }
 
