@@ -136,6 +136,16 @@ pub enum Field {
     CoarseVelocity,
     /// A coarse move's acceleration, mm/s².
     CoarseAcceleration,
+    /// `learning.period_ticks`.
+    LearnPeriod,
+    /// `learning.gain`.
+    LearnGain,
+    /// `learning.cutoff_hz`.
+    LearnCutoff,
+    /// `learning.lead_ticks`.
+    LearnLead,
+    /// `learning.limit`.
+    LearnLimit,
 }
 
 /// The rule a field broke, with its limit where it has one (in the field's own units).
@@ -300,6 +310,11 @@ impl core::fmt::Display for Field {
             Field::CoarseTarget => "coarse target (mm)",
             Field::CoarseVelocity => "coarse speed (mm/s)",
             Field::CoarseAcceleration => "coarse acceleration (mm/s²)",
+            Field::LearnPeriod => "learning.period_ticks",
+            Field::LearnGain => "learning.gain",
+            Field::LearnCutoff => "learning.cutoff_hz",
+            Field::LearnLead => "learning.lead_ticks",
+            Field::LearnLimit => "learning.limit",
         };
         f.write_str(name)
     }

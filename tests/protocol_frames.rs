@@ -271,7 +271,7 @@ fn a_full_batch_fits_one_frame() {
 #[test]
 fn message_variant_counts_match_the_enums() {
     use twinstack::protocol::frame::Message;
-    let last = Request::CoarseStatus;
+    let last = Request::Learn(twinstack::protocol::messages::LearnRequest::Status);
     let mut d = FrameDecoder::new();
     assert_eq!(feed(&mut d, &frame_of(&last)), vec![Ok(last)]);
     let tag = Request::VARIANTS as u8;
@@ -279,12 +279,7 @@ fn message_variant_counts_match_the_enums() {
         feed(&mut d, &raw_frame(&[PROTOCOL_VERSION, tag])),
         vec![Err(FrameError::UnknownType)]
     );
-    let resp = Response::Coarse(twinstack::dual_stage::CoarseStatus {
-        state: twinstack::dual_stage::CoarseState::Moving,
-        homed: true,
-        position_pm: -5_000_000_000,
-        ..Default::default()
-    });
+    let resp = Response::Learn(twinstack::protocol::messages::LearnStatus::default());
     let mut buf = [0u8; MAX_ENCODED + 1];
     let n = encode(&resp, &mut buf).unwrap();
     let mut d = FrameDecoder::new();
@@ -329,6 +324,13 @@ fn the_book_s_example_frames_are_what_the_encoder_writes() {
     assert_eq!(
         &out[..n],
         &hex("06 05 01 03 0a 04 01 01 01 01 08 6a d8 40 4b 5e af 20 00")[..]
+    );
+    // Protocol v5's learning status request.
+    assert_eq!(
+        frame_of(&Request::Learn(
+            twinstack::protocol::messages::LearnRequest::Status
+        )),
+        hex("08 05 14 03 16 9d 2d 4e 00")
     );
     // Protocol v4's capture: arm, read, a chunk.
     assert_eq!(

@@ -47,9 +47,10 @@ pub struct ControlTick {
 }
 
 impl ControlTick {
-    /// One tick. No allocation, no panic path, no loop.
+    /// One tick. No allocation, no panic path, no loop. Returns whether a learning period
+    /// ended (the caller pends the low-priority task that runs [`crate::learning::service`]).
     #[inline(always)]
-    pub fn run(&mut self) {
+    pub fn run(&mut self) -> bool {
         self.timer.acknowledge();
         let report = self
             .control
@@ -59,6 +60,8 @@ impl ControlTick {
         if self.timer.next_tick_already_due() {
             self.control.count_overrun();
         }
+        let learning = self.control.learning();
+        learning.is_on() && learning.bin() == 0
     }
 }
 

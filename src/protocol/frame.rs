@@ -26,7 +26,8 @@ use serde::{Deserialize, Serialize};
 /// `TELEMETRY`); `Waveform` ends with an optional amplitude decay (`decay:
 /// Option<WaveDecay>`); the dual-actuated stage's coarse axis (`CoarseHome`, `CoarseMove`,
 /// `CoarseJog`, `CoarseStop`, `CoarseStatus` → `Response::Coarse`; `Field::CoarseAxis` …
-/// `CoarseAcceleration`, `Rule::NotHomed`, `Rule::LimitSwitch`).
+/// `CoarseAcceleration`, `Rule::NotHomed`, `Rule::LimitSwitch`); learning feedforward (`Request::Learn`,
+/// `Response::Learn`, the `Field`s `LearnPeriod` … `LearnLimit`).
 pub const PROTOCOL_VERSION: u8 = 5;
 /// Largest frame body (version + message + CRC), bytes.
 pub const MAX_BODY: usize = 1536;

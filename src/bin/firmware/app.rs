@@ -442,7 +442,10 @@ mod app {
     #[cfg(not(feature = "emulator"))]
     #[task(binds = TIM2, priority = 3, shared = [tick])]
     fn tim2_tick(mut cx: tim2_tick::Context) {
-        cx.shared.tick.lock(|t| t.run());
+        if cx.shared.tick.lock(|t| t.run()) {
+            // A learning period ended: the command task takes its errors.
+            rtic::pend(Interrupt::EXTI0);
+        }
     }
 
     /// The control tick in the emulator: SysTick. With the coarse axis, every `fine_ticks`
@@ -450,7 +453,10 @@ mod app {
     #[cfg(feature = "emulator")]
     #[task(binds = SysTick, priority = 3, shared = [tick], local = [since_coarse: u32 = 0])]
     fn systick_tick(mut cx: systick_tick::Context) {
-        cx.shared.tick.lock(|t| t.run());
+        if cx.shared.tick.lock(|t| t.run()) {
+            // A learning period ended: the command task takes its errors.
+            rtic::pend(Interrupt::EXTI0);
+        }
         #[cfg(feature = "dual-stage")]
         {
             let every = COARSE_EVERY.load(core::sync::atomic::Ordering::Relaxed);
@@ -530,6 +536,8 @@ mod app {
             local.handler.telemetry_packer().is_active(),
             Ordering::Relaxed,
         );
+        // The learning's work at a period boundary (returns at once when there is none).
+        let _ = local.handler.service_learning(&mut control);
     }
 
     /// Hands `frame` to the uplink, waiting (outside the lock, so the transfer-complete
