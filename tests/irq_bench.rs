@@ -316,6 +316,27 @@ fn the_whole_interrupt_in_every_scenario() {
         .filter_map(|l| l.strip_prefix("SCENARIO "))
         .collect();
     assert_eq!(names.len(), 18, "every scenario ran: {stdout}");
+    // The stack's high-water mark over the whole run (painted at reset, read back by the image
+    // before it exits): within three quarters of the reserve memory.x keeps for it.
+    let reserve = support::elf_symbol(&elf, "_stack_reserve")
+        .unwrap_or_else(|e| panic!("{e}"))
+        .expect("memory.x defines _stack_reserve");
+    let (used, room) = stdout
+        .lines()
+        .find_map(|l| {
+            let mut w = l.strip_prefix("STACK used ")?.split(" room ");
+            Some((
+                w.next()?.parse::<u32>().ok()?,
+                w.next()?.parse::<u32>().ok()?,
+            ))
+        })
+        .unwrap_or_else(|| panic!("no STACK line: {stdout}"));
+    println!("stack: {used} bytes used of the {room} the static RAM leaves (reserve {reserve})");
+    assert!(room >= reserve, "static RAM leaves {room} < {reserve}");
+    assert!(
+        used <= reserve / 4 * 3,
+        "the stack reached {used} bytes: more than 3/4 of its {reserve}-byte reserve"
+    );
     // Segment 0 is the boot (defaults: bypass, no model); the last follows the final marker.
     assert!(segments.len() > names.len(), "{} segments", segments.len());
 

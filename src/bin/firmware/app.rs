@@ -58,7 +58,7 @@ mod app {
     use twinstack::protocol::handler::CommandHandler;
     #[cfg(not(feature = "emulator"))]
     use twinstack::hardware::ccm;
-    use twinstack::hardware::tick::HALF_SLOTS;
+    use twinstack::hardware::tick::SRAM_SLOTS;
     use twinstack::recorder::SplitStore;
     use twinstack::telemetry::{
         FrameLink, TelemetryQueue, TelemetrySample, TELEMETRY_QUEUE_LEN,
@@ -214,7 +214,7 @@ mod app {
         setpoint_queue: SetpointQueue = Queue::new(),
         rx_queue: Queue<u8, RX_QUEUE> = Queue::new(),
         telemetry_queue: TelemetryQueue = Queue::new(),
-        record_buffer: [i16; HALF_SLOTS] = [0; HALF_SLOTS],
+        record_buffer: [i16; SRAM_SLOTS] = [0; SRAM_SLOTS],
     ])]
     fn init(cx: init::Context) -> (Shared, Local) {
         let dp: pac::Peripherals = cx.device;
@@ -260,8 +260,8 @@ mod app {
         ) else {
             panic!("controllers already taken");
         };
-        // The capture buffer: 64 KiB of SRAM, then the 64 KiB of CCM RAM (QEMU 7.2's
-        // netduinoplus2 models no CCM: the emulator has the SRAM half only).
+        // The capture buffer: 48 KiB of SRAM, then the 64 KiB of CCM RAM (QEMU 7.2's
+        // netduinoplus2 models no CCM: the emulator has the SRAM part only).
         #[cfg(not(feature = "emulator"))]
         let Some(second_half) = ccm::capture_half() else {
             panic!("CCM buffer already taken");

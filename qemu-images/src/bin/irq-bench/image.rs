@@ -208,7 +208,7 @@ mod app {
     use twinstack::hardware::clocks;
     use twinstack::hardware::control_timer::ControlTimer;
     use twinstack::hardware::dac::InternalDac;
-    use twinstack::hardware::tick::HALF_SLOTS;
+    use twinstack::hardware::tick::SRAM_SLOTS;
     use twinstack::hardware::tick::{ControlTick, LoopLock};
     use twinstack::hardware::watchdog::Watchdog;
     use twinstack::param_store::ReadOnlyStorage;
@@ -245,7 +245,7 @@ mod app {
     #[init(local = [
         setpoint_queue: SetpointQueue = Queue::new(),
         telemetry_queue: TelemetryQueue = Queue::new(),
-        record_buffer: [i16; HALF_SLOTS] = [0; HALF_SLOTS],
+        record_buffer: [i16; SRAM_SLOTS] = [0; SRAM_SLOTS],
     ])]
     fn init(cx: init::Context) -> (Shared, Local) {
         let dp = cx.device;
@@ -334,7 +334,7 @@ mod app {
                 expect_ack(
                     ask(Request::Capture(CaptureRequest {
                         signals: 0b11_1111,
-                        samples: (HALF_SLOTS / CHANNELS) as u32,
+                        samples: (SRAM_SLOTS / CHANNELS) as u32,
                         pre_trigger: 0,
                         trigger: Trigger::Now,
                         decimation: 1,
@@ -409,6 +409,8 @@ mod app {
             }
         }
         irq_bench_marker(u32::MAX);
+        let (used, room) = super::stack_high_water();
+        hprintln!("STACK used {} room {}", used, room);
         hprintln!("DONE");
         debug::exit(debug::EXIT_SUCCESS);
         loop {
@@ -422,4 +424,30 @@ mod app {
             debug::exit(debug::EXIT_FAILURE);
         }
     }
+}
+
+/// The stack this run used and the room the static RAM leaves it, bytes: cortex-m-rt's
+/// `paint-stack` filled `_stack_end .. _stack_start` with `0xCCCC_CCCC` at reset; the lowest
+/// word changed since is the high-water mark.
+#[cfg(target_os = "none")]
+fn stack_high_water() -> (u32, u32) {
+    extern "C" {
+        static _stack_start: u32;
+        static _stack_end: u32;
+    }
+    let top = core::ptr::addr_of!(_stack_start) as usize;
+    let bottom = core::ptr::addr_of!(_stack_end) as usize;
+    let mut low = top;
+    let mut a = bottom;
+    while a < top {
+        // SAFETY: `_stack_end .. _stack_start` is RAM the linker gave the stack; reading a
+        // word of it (volatile: below the stack pointer, the compiler knows nothing of it)
+        // is sound.
+        if unsafe { core::ptr::read_volatile(a as *const u32) } != 0xCCCC_CCCC {
+            low = a;
+            break;
+        }
+        a += 4;
+    }
+    ((top - low) as u32, (top - bottom) as u32)
 }
