@@ -1,5 +1,5 @@
 //! `hal-sim learn --port P`: learning feedforward on a board (the simulated one, a virtual
-//! board, the emulator or a real one) over the protocol (`Request::Learn`, v5). The board
+//! board, the emulator or a real one) over the protocol (`Request::Learn`, v6). The board
 //! learns from its own sensor; the host only configures, switches and reads.
 //!
 //! 1. Configure the learning (period from the waveform's frequency and the board's rate),
@@ -85,7 +85,7 @@ fn learn_status(client: &mut BoardClient) -> Result<LearnStatus> {
     match learn(client, LearnRequest::Status)? {
         Response::Learn(s) => Ok(s),
         other => {
-            bail!("unexpected answer to Learn(Status): {other:?} (a board older than protocol v5?)")
+            bail!("unexpected answer to Learn(Status): {other:?} (a board older than protocol v6?)")
         }
     }
 }

@@ -88,7 +88,7 @@ pub enum Request {
     CoarseStop,
     /// Read the coarse axis's status (answered with [`Response::Coarse`]).
     CoarseStatus,
-    /// Learning feedforward (protocol v5, [`crate::learning`]): configure, switch, reset,
+    /// Learning feedforward (protocol v6, [`crate::learning`]): configure, switch, reset,
     /// read its status, read or write its table.
     Learn(LearnRequest),
 }
