@@ -30,6 +30,9 @@ use std::process::{Command, Stdio};
 /// tick (+73: 1 062 measured). Then the P–I banks run two operators per word with the M4's
 /// dual-16-bit instructions (980 → 817 measured without telemetry; 886 with it, session 6).
 const WORST_INSTRUCTIONS: u64 = 900;
+/// Most instructions the learning feedforward, on, adds to a configuration's worst tick (its
+/// table read, its error store and, at a period's end, the flips).
+const LEARNING_EXTRA: u64 = 120;
 /// The configuration of the model family measured on its own: the generalised P–I (N = 16,
 /// 6 dead zones) as compensator and observer with four creep modes in series.
 const FAMILY_CONFIG: &str = "inverse-gpi16+creep4";
@@ -315,7 +318,7 @@ fn the_whole_interrupt_in_every_scenario() {
         .lines()
         .filter_map(|l| l.strip_prefix("SCENARIO "))
         .collect();
-    assert_eq!(names.len(), 18, "every scenario ran: {stdout}");
+    assert_eq!(names.len(), 21, "every scenario ran: {stdout}");
     // The stack's high-water mark over the whole run (painted at reset, read back by the image
     // before it exits): within three quarters of the reserve memory.x keeps for it.
     let reserve = support::elf_symbol(&elf, "_stack_reserve")
@@ -395,6 +398,41 @@ fn the_whole_interrupt_in_every_scenario() {
             "NOT met"
         }
     );
+
+    // The learning feedforward on (each tick reads one table entry and stores one error; the
+    // period's end flips two indices): the same sine with and without it, per configuration.
+    // Constant time: its worst tick (a period boundary among them) costs at most
+    // LEARNING_EXTRA instructions more than the sine's worst without it.
+    let row = |name: &str| rows.iter().find(|(n, _)| n == name).map(|(_, t)| *t);
+    for config in names
+        .iter()
+        .filter_map(|n| n.strip_suffix("/sine-750Hz-learning"))
+    {
+        let (Some(on), Some(off)) = (
+            row(&format!("{config}/sine-750Hz-learning")),
+            row(&format!("{config}/sine-750Hz")),
+        ) else {
+            panic!("{config}: the learning rows are missing");
+        };
+        let stat = |t: &[Tick]| {
+            let n = t.len() as f64;
+            (
+                t.iter().map(|t| t.instructions).sum::<u64>() as f64 / n,
+                t.iter().map(|t| t.instructions).max().unwrap_or(0),
+            )
+        };
+        let ((mean_on, max_on), (mean_off, max_off)) = (stat(&on[..]), stat(&off[..]));
+        println!(
+            "learning on, {config}: mean {mean_on:.1} (+{:.1}), max {max_on} (+{})",
+            mean_on - mean_off,
+            max_on as i64 - max_off as i64
+        );
+        assert!(
+            max_on <= max_off + LEARNING_EXTRA,
+            "{config}: learning adds {} instructions to the worst tick (asserted ≤ {LEARNING_EXTRA})",
+            max_on as i64 - max_off as i64
+        );
+    }
 
     // The swap itself happens under the command handler's lock, not in the tick; the first tick
     // after a swap (or a mode switch) starts the fading transfer. In the lifecycle scenarios

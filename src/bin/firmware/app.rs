@@ -260,7 +260,7 @@ mod app {
         ) else {
             panic!("controllers already taken");
         };
-        // The capture buffer: 48 KiB of SRAM, then the 64 KiB of CCM RAM (QEMU 7.2's
+        // The capture buffer: 40 KiB of SRAM, then the 64 KiB of CCM RAM (QEMU 7.2's
         // netduinoplus2 models no CCM: the emulator has the SRAM part only).
         #[cfg(not(feature = "emulator"))]
         let Some(second_half) = ccm::capture_half() else {

@@ -33,6 +33,10 @@ pub mod scenarios {
         /// Settings changes mid-stream: reload at tick 500, open loop at 800, closed loop at
         /// 1100.
         pub lifecycle: bool,
+        /// The learning feedforward learns throughout (period 200 ticks, three cycles of the
+        /// 750 Hz sine; the idle task runs its period-boundary service as the firmware's
+        /// command task does): each tick reads a table entry and stores an error.
+        pub learning: bool,
     }
 
     const FULL: i32 = 32767;
@@ -98,36 +102,48 @@ pub mod scenarios {
     }
 
     /// Every scenario, in the order they run.
-    pub const ALL: [Scenario; 6] = [
+    pub const ALL: [Scenario; 7] = [
         Scenario {
             name: "triangle",
             setpoint: triangle,
             lifecycle: false,
+            learning: false,
         },
         Scenario {
             name: "sine-750Hz",
             setpoint: sine_750hz,
             lifecycle: false,
+            learning: false,
         },
         Scenario {
             name: "full-range-steps",
             setpoint: steps,
             lifecycle: false,
+            learning: false,
         },
         Scenario {
             name: "random",
             setpoint: random,
             lifecycle: false,
+            learning: false,
         },
         Scenario {
             name: "nested-loops",
             setpoint: nested_loops,
             lifecycle: false,
+            learning: false,
+        },
+        Scenario {
+            name: "sine-750Hz-learning",
+            setpoint: sine_750hz,
+            lifecycle: false,
+            learning: true,
         },
         Scenario {
             name: "reload-and-mode-switches",
             setpoint: triangle,
             lifecycle: true,
+            learning: false,
         },
     ];
 }
@@ -211,11 +227,13 @@ mod app {
     use twinstack::hardware::tick::SRAM_SLOTS;
     use twinstack::hardware::tick::{ControlTick, LoopLock};
     use twinstack::hardware::watchdog::Watchdog;
+    use twinstack::learning::{LearnSettings, LearnState};
     use twinstack::param_store::ReadOnlyStorage;
     use twinstack::protocol::handler::CommandHandler;
     use twinstack::protocol::handler::MAX_RESPONSE;
     use twinstack::protocol::messages::{
-        CaptureRequest, Request, Response, SetpointBatch, StreamControl, Trigger, MAX_BATCH,
+        CaptureRequest, LearnRequest, Request, Response, SetpointBatch, StreamControl, Trigger,
+        MAX_BATCH,
     };
     use twinstack::recorder::{SplitStore, CHANNELS};
     use twinstack::settings::{Mode, Settings};
@@ -319,20 +337,24 @@ mod app {
             panic!("telemetry refused");
         };
         packer.start(0b11_1111, 1, first, RATE_HZ);
-        let mut ask =
-            |request: Request| -> Response { handler.handle(request, producer, &mut lock) };
+        // A macro, not a closure: the learning's service borrows the handler and the lock too.
+        macro_rules! ask {
+            ($request:expr) => {
+                handler.handle($request, producer, &mut lock)
+            };
+        }
         let Some(configs) = configs::all() else {
             panic!("configuration refused");
         };
         let mut seq = 0u16;
         let mut marker = 0u32;
         for config in &configs {
-            expect_ack(ask(Request::LoadParams(config.settings.clone())), "load");
+            expect_ack(ask!(Request::LoadParams(config.settings.clone())), "load");
             for scenario in &scenarios::ALL {
                 // A fresh capture per scenario: the recorder runs throughout, taking all six
                 // signals every tick (its worst case: six stores per tick).
                 expect_ack(
-                    ask(Request::Capture(CaptureRequest {
+                    ask!(Request::Capture(CaptureRequest {
                         signals: 0b11_1111,
                         samples: (SRAM_SLOTS / CHANNELS) as u32,
                         pre_trigger: 0,
@@ -341,6 +363,17 @@ mod app {
                     })),
                     "capture",
                 );
+                if scenario.learning {
+                    let learn = LearnSettings::for_period(200);
+                    expect_ack(
+                        ask!(Request::Learn(LearnRequest::Configure(learn))),
+                        "learn configure",
+                    );
+                    expect_ack(
+                        ask!(Request::Learn(LearnRequest::State(LearnState::Learning))),
+                        "learn on",
+                    );
+                }
                 marker += 1;
                 irq_bench_marker(marker);
                 hprintln!("SCENARIO {}/{}", config.name, scenario.name);
@@ -350,7 +383,7 @@ mod app {
                 loop {
                     // Fill the queue as far as the credits go.
                     if k < scenarios::TICKS {
-                        let credits = match ask(Request::Status) {
+                        let credits = match ask!(Request::Status) {
                             Response::Status(s) => s.credits as u32,
                             _ => 0,
                         };
@@ -358,7 +391,7 @@ mod app {
                         if n >= 32 || (n > 0 && k + n == scenarios::TICKS) {
                             let samples = (k..k + n).map(scenario.setpoint).collect();
                             expect_ack(
-                                ask(Request::Setpoints(SetpointBatch { seq, samples })),
+                                ask!(Request::Setpoints(SetpointBatch { seq, samples })),
                                 "setpoints",
                             );
                             seq = seq.wrapping_add(1);
@@ -366,10 +399,10 @@ mod app {
                         }
                     }
                     if !started {
-                        expect_ack(ask(Request::Stream(StreamControl::Start)), "start");
+                        expect_ack(ask!(Request::Stream(StreamControl::Start)), "start");
                         started = true;
                     }
-                    let (fill, ticks_played) = match ask(Request::Status) {
+                    let (fill, ticks_played) = match ask!(Request::Status) {
                         Response::Status(s) => (s.queue_fill as u32, k - s.queue_fill as u32),
                         _ => (0, 0),
                     };
@@ -380,16 +413,16 @@ mod app {
                         if changed == 0 && ticks_played >= 500 {
                             if let Some(other) = reload {
                                 expect_ack(
-                                    ask(Request::LoadParams(other.settings.clone())),
+                                    ask!(Request::LoadParams(other.settings.clone())),
                                     "reload",
                                 );
                             }
                             changed = 1;
                         } else if changed == 1 && ticks_played >= 800 {
-                            expect_ack(ask(Request::Mode(Mode::OpenLoop)), "open loop");
+                            expect_ack(ask!(Request::Mode(Mode::OpenLoop)), "open loop");
                             changed = 2;
                         } else if changed == 2 && ticks_played >= 1100 {
-                            expect_ack(ask(Request::Mode(Mode::ClosedLoop)), "closed loop");
+                            expect_ack(ask!(Request::Mode(Mode::ClosedLoop)), "closed loop");
                             changed = 3;
                         }
                     }
@@ -397,6 +430,9 @@ mod app {
                         break;
                     }
                     cortex_m::asm::wfi();
+                    if scenario.learning {
+                        let _ = handler.service_learning(&mut lock);
+                    }
                     while packer.due(samples) {
                         if packer.pack(samples, frame).is_none() {
                             break;
@@ -405,7 +441,13 @@ mod app {
                 }
                 // (The lifecycle scenario is each configuration's last; the next configuration
                 // starts with its own load.)
-                expect_ack(ask(Request::Stream(StreamControl::Stop)), "stop");
+                expect_ack(ask!(Request::Stream(StreamControl::Stop)), "stop");
+                if scenario.learning {
+                    expect_ack(
+                        ask!(Request::Learn(LearnRequest::State(LearnState::Off))),
+                        "learn off",
+                    );
+                }
             }
         }
         irq_bench_marker(u32::MAX);
