@@ -221,6 +221,9 @@ pub struct Controller {
     feedback_state: FeedbackState,
     transfer: BumplessTransfer,
     counters: ControlCounters,
+    /// The learned correction for this tick, Q2.30 normalised drive, added to the feedforward
+    /// ([`crate::learning`]; set by the control loop before each tick, 0 without learning).
+    learned: i32,
 }
 
 /// A creep operator and its modes, as the tick runs it in series with a model.
@@ -342,6 +345,7 @@ impl Controller {
             feedback_state: FeedbackState::default(),
             transfer: BumplessTransfer::default(),
             counters: ControlCounters::default(),
+            learned: 0,
         };
         c.prepare(config, config.drive.safe_stacks());
         c
@@ -476,6 +480,7 @@ impl Controller {
             feedback_state: FeedbackState::at_rest(y),
             transfer: BumplessTransfer::default(),
             counters: ControlCounters::default(),
+            learned: 0,
         };
     }
 
@@ -574,6 +579,14 @@ impl Controller {
         core::mem::take(&mut self.counters)
     }
 
+    /// Sets the learned correction the next ticks add to the feedforward (Q2.30 normalised
+    /// drive; [`crate::learning`]): it goes through the same range and slew limits as the
+    /// rest of the command. O(1).
+    #[inline(always)]
+    pub fn set_learned(&mut self, correction: i32) {
+        self.learned = correction;
+    }
+
     /// DAC codes of the safe state, for the fault handlers.
     pub fn safe_codes(&self) -> (DacCode, DacCode) {
         self.drive_limits.safe_codes()
@@ -635,7 +648,8 @@ impl Controller {
             target
         } else {
             compensated
-        };
+        }
+        .saturating_add(self.learned);
 
         // 3. Sensor: drift check, and in closed loop the feedback correction.
         let fs = &mut self.feedback_state;

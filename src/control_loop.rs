@@ -34,6 +34,7 @@ use core::ops::DerefMut;
 use crate::board::{DualDac, SensorAdc};
 use crate::control::{ControlCounters, Controller, TickFlags, TickReport};
 use crate::drive::StackVoltages;
+use crate::learning::{LearnState, LearnTick};
 use crate::mode_switch::Mode;
 use crate::mode_switch::ModeError;
 use crate::recorder::{CaptureInfo, RecordError, Recorder, SampleStore, Trigger};
@@ -82,7 +83,12 @@ pub struct Telemetry {
 /// Everything the control interrupt owns. `B` is the recorder's buffer; `C` a handle on a
 /// [`Controller`] (`&'static mut Controller` on the board, `Box<Controller>` on the host): the
 /// loop runs one, and passes a second back and forth with the command handler.
+///
+/// `repr(C)` with the learning's 16 KiB of tables **last**: left to itself the compiler may
+/// place them first, and every other field's offset then exceeds the 4 095 bytes a Thumb-2
+/// load reaches in one instruction (the whole-interrupt bench saw +27 instructions a tick).
 #[derive(Debug)]
+#[repr(C)]
 pub struct ControlLoop<B, C> {
     controller: C,
     /// The controller a swap retired (or the one the handler has not taken yet): the spare.
@@ -106,6 +112,9 @@ pub struct ControlLoop<B, C> {
     /// ramp, the piezo's setpoint comes from it instead of the stream.
     #[cfg(feature = "dual-stage")]
     coarse: crate::dual_stage::CoarseLink,
+    /// The learning's tick half: the correction table it plays, the errors it stores
+    /// ([`crate::learning`]).
+    learning: LearnTick,
 }
 
 impl<B, C> ControlLoop<B, C>
@@ -134,6 +143,7 @@ where
             telemetry: TelemetryTap::new(),
             #[cfg(feature = "dual-stage")]
             coarse: crate::dual_stage::CoarseLink::new(),
+            learning: LearnTick::new(),
         }
     }
 
@@ -152,9 +162,23 @@ where
             Some(fine) => Some(fine),
             None => self.stream.next(queue),
         };
+        // Learning off (the common case) costs one compare here and one below; the
+        // controller's correction was zeroed when it was turned off (and a prepared controller
+        // starts at zero).
+        let learning = self.learning.is_on();
+        if learning {
+            self.controller.set_learned(self.learning.correction());
+        }
         let report = self.controller.tick(setpoint, adc, dac);
         #[cfg(feature = "dual-stage")]
         self.coarse.record_measured(report.measured);
+        if learning {
+            // The error the learning stores: only a reading of a sensor the configuration has.
+            let measured = (self.controller.sensor_config().is_some()
+                && !report.flags.contains(TickFlags::ADC_ERROR))
+            .then_some(report.measured);
+            self.learning.observe(self.controller.setpoint(), measured);
+        }
         if report.flags.0 & (TickFlags::RANGE_LIMIT | TickFlags::SLEW_LIMIT) != 0 {
             self.limit_hits = self.limit_hits.wrapping_add(1);
         }
@@ -269,6 +293,7 @@ where
     pub fn start(&mut self) {
         self.waveform = false;
         self.stream.start();
+        self.learning.restart();
         self.recorder.trigger(Trigger::StreamStart);
     }
 
@@ -302,6 +327,7 @@ where
     pub fn play(&mut self, waveform: WaveformGenerator) {
         self.waveform = true;
         self.stream.play(waveform);
+        self.learning.restart();
         self.recorder.trigger(Trigger::WaveformStart);
     }
 
@@ -412,5 +438,25 @@ where
     /// Control rate, Hz.
     pub fn control_rate_hz(&self) -> u32 {
         self.control_rate_hz
+    }
+
+    /// The learning's tick half (state, period, tables, errors).
+    pub fn learning(&self) -> &LearnTick {
+        &self.learning
+    }
+
+    /// The learning's tick half, to configure it or move a table in or errors out (O(1) or one
+    /// [`crate::learning::CHUNK`] per call: see [`crate::learning::service`]).
+    pub fn learning_mut(&mut self) -> &mut LearnTick {
+        &mut self.learning
+    }
+
+    /// Sets the learning's state (off, learning, frozen) between two ticks, in O(1).
+    pub fn set_learning(&mut self, state: LearnState) {
+        let target = self.controller.setpoint();
+        self.learning.set_state(state, target);
+        if state == LearnState::Off {
+            self.controller.set_learned(0);
+        }
     }
 }

@@ -58,6 +58,7 @@ pub mod fixed_point;
 pub mod generalised_pi;
 #[cfg(target_os = "none")]
 pub mod hardware;
+pub mod learning;
 pub mod mode_switch;
 pub mod notch;
 pub mod param_store;

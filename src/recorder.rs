@@ -33,7 +33,7 @@
 //! command handler's critical section).
 //!
 //! The buffer is whatever the board gives it ([`SampleStore`]): the firmware hands it two
-//! 64 KiB halves, one in SRAM and one in the F405's CCM RAM ([`SplitStore`]); the simulator a
+//! parts, 40 KiB in SRAM and 64 KiB in the F405's CCM RAM ([`SplitStore`]); the simulator a
 //! `Vec<i16>`.
 
 use crate::control::TickReport;
@@ -45,9 +45,11 @@ pub const MAX_CHUNK: usize = 64;
 /// the wire, well under a frame's body.
 pub const MAX_CAPTURE_CHUNK: usize = 256;
 
-/// Slots of the board's capture buffer: 65 536 16-bit values (128 KiB: 64 KiB of SRAM and the
-/// 64 KiB of CCM RAM). At 50 kHz that is 1.3 s of one signal, or 0.33 s of four.
-pub const CAPTURE_SLOTS: usize = 64 * 1024;
+/// Slots of the board's capture buffer: 53 248 16-bit values (104 KiB: 40 KiB of SRAM and the
+/// 64 KiB of CCM RAM). At 50 kHz that is 1.06 s of one signal, or 0.27 s of four. The SRAM
+/// part was 64 KiB until the learning's tables and telemetry's queue joined it: the stack
+/// needs its reserve (`memory.x`, `_stack_reserve`).
+pub const CAPTURE_SLOTS: usize = 52 * 1024;
 
 /// Values of one signal a `Record` holds at most (the v3 limit; each takes two slots).
 pub const RECORD_CAPACITY: usize = 16 * 1024;

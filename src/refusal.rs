@@ -136,6 +136,16 @@ pub enum Field {
     CoarseVelocity,
     /// A coarse move's acceleration, mm/s².
     CoarseAcceleration,
+    /// `learning.period_ticks`.
+    LearnPeriod,
+    /// `learning.gain`.
+    LearnGain,
+    /// `learning.cutoff_hz`.
+    LearnCutoff,
+    /// `learning.lead_ticks`.
+    LearnLead,
+    /// `learning.limit`.
+    LearnLimit,
     /// The tick's work as a whole at the board's control rate: the models, their creep and
     /// the feedback together ([`crate::tick_budget`]).
     Workload,
@@ -312,6 +322,11 @@ impl core::fmt::Display for Field {
             Field::CoarseTarget => "coarse target (mm)",
             Field::CoarseVelocity => "coarse speed (mm/s)",
             Field::CoarseAcceleration => "coarse acceleration (mm/s²)",
+            Field::LearnPeriod => "learning.period_ticks",
+            Field::LearnGain => "learning.gain",
+            Field::LearnCutoff => "learning.cutoff_hz",
+            Field::LearnLead => "learning.lead_ticks",
+            Field::LearnLimit => "learning.limit",
             Field::Workload => "the models, creep and feedback together",
         };
         f.write_str(name)

@@ -66,6 +66,11 @@ pub const DERIVATIVE_CYCLES: u32 = 50;
 /// The feedback's notch (one biquad).
 pub const NOTCH_CYCLES: u32 = 95;
 
+/// The learning feedforward while it plays or learns ([`crate::learning`]): one table read,
+/// one error store, the index flips at a period's end. Counted when the learning is switched
+/// on, and at every load while it is on (the command handler checks both).
+pub const LEARNING_CYCLES: u32 = 90;
+
 /// Cycles the tick may take at `control_rate_hz`: [`TICK_SHARE_PERCENT`] of the period.
 /// A rate that is not positive and finite leaves none.
 pub fn available_cycles(control_rate_hz: f64) -> u32 {
@@ -138,7 +143,16 @@ pub fn worst_case_cycles(config: &ControlConfig) -> u32 {
 /// `Ok(())` if `config` fits the tick at `control_rate_hz`, else a [`Rule::TickOverrun`]
 /// refusal of [`Field::Workload`] with the cycles it needs and the cycles the rate leaves.
 pub fn check(config: &ControlConfig, control_rate_hz: f64) -> Result<(), Refusal> {
-    let needs = worst_case_cycles(config);
+    check_with(config, control_rate_hz, false)
+}
+
+/// [`check`], with the learning feedforward's cost added when `learning` is on.
+pub fn check_with(
+    config: &ControlConfig,
+    control_rate_hz: f64,
+    learning: bool,
+) -> Result<(), Refusal> {
+    let needs = worst_case_cycles(config) + if learning { LEARNING_CYCLES } else { 0 };
     let available = available_cycles(control_rate_hz);
     if needs > available {
         return Err(Refusal::new(

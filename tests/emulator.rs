@@ -35,6 +35,8 @@ struct Emulator {
     uart: UnixStream,
     scratch: PathBuf,
     decoder: FrameDecoder,
+    /// The image booted (for its symbols).
+    elf: PathBuf,
 }
 
 impl Drop for Emulator {
@@ -60,7 +62,12 @@ impl Emulator {
                 "socket,id=u1,path={},server=on,wait=on",
                 socket.display()
             ))
-            .args(["-serial", "chardev:u1"]);
+            .args(["-serial", "chardev:u1"])
+            .arg("-monitor")
+            .arg(format!(
+                "unix:{},server=on,wait=off",
+                scratch.join("monitor.sock").display()
+            ));
         if let Some(bytes) = record {
             let file = scratch.join("record.bin");
             std::fs::write(&file, bytes).expect("record file");
@@ -76,6 +83,7 @@ impl Emulator {
             uart,
             scratch,
             decoder: FrameDecoder::new(),
+            elf,
         };
         emu.wait_until_listening();
         emu
@@ -139,6 +147,32 @@ impl Emulator {
             .write_all(&encoded(request))
             .expect("write to USART1");
         self.response()
+    }
+
+    /// The stack the run has used so far and the room the image leaves it, bytes: QEMU's
+    /// monitor dumps the SRAM (`pmemsave`) and [`support::stack_used`] finds the lowest word
+    /// the run changed in the stack painted at reset.
+    fn stack_used(&mut self) -> (u32, u32) {
+        let dump = self.scratch.join("sram.bin");
+        let mut monitor = connect(&self.scratch.join("monitor.sock"), Duration::from_secs(5));
+        // The file name quoted: unquoted, the monitor reads its `/` as a division.
+        writeln!(
+            monitor,
+            "pmemsave 0x20000000 0x20000 \"{}\"",
+            dump.display()
+        )
+        .expect("monitor");
+        let start = Instant::now();
+        loop {
+            if std::fs::metadata(&dump).is_ok_and(|m| m.len() == 0x20000) {
+                break;
+            }
+            assert!(start.elapsed() < Duration::from_secs(10), "no SRAM dump");
+            std::thread::sleep(Duration::from_millis(50));
+        }
+        std::thread::sleep(Duration::from_millis(100));
+        let ram = std::fs::read(&dump).expect("SRAM dump");
+        support::stack_used(&self.elf, &ram).unwrap_or_else(|e| panic!("{e}"))
     }
 
     fn status(&mut self) -> StatusReport {
@@ -460,7 +494,12 @@ fn emulator_captures_a_streamed_run_with_several_signals() {
         other => panic!("{other:?}"),
     };
     let first = status(&mut emu);
-    assert_eq!(first.capacity, 32_768, "{first:?}");
+    assert_eq!(
+        first.capacity,
+        // The SRAM part only: QEMU models no CCM RAM (the board's other 32 768 slots).
+        (twinstack::recorder::CAPTURE_SLOTS - 32 * 1024) as u32,
+        "{first:?}"
+    );
     assert_eq!(first.state, CaptureState::Armed);
     // Let the ring fill its pre-trigger frames before the start.
     let start = Instant::now();
@@ -601,4 +640,90 @@ fn emulator_sends_telemetry_between_its_responses() {
     assert!(end.end && end.values.is_empty() && end.first == next && next > 10);
     let s = emu.status();
     assert!(!s.has(StatusReport::TELEMETRY), "{s:?}");
+}
+
+/// The stack's high-water mark after the image's deepest paths: boot (the resources built in
+/// `init`), parameter loads of each model family (validation and `Controller::prepare` off
+/// the tick), a store refused by the read-only flash, a recall, the learning configured and
+/// learning on a waveform (its `service` at every period boundary), a capture and telemetry.
+/// `memory.x` reserves `_stack_reserve` for the stack and the link fails if the static RAM
+/// leaves less; this holds the measured use to at most three quarters of that reserve.
+#[test]
+fn the_stack_stays_within_its_reserve_on_the_deepest_paths() {
+    let mut emu = Emulator::boot("stack", None);
+    let reserve = support::elf_symbol(&emu.elf, "_stack_reserve")
+        .unwrap_or_else(|e| panic!("{e}"))
+        .expect("memory.x defines _stack_reserve");
+    let (boot, room) = emu.stack_used();
+    let mut settings = awkward_settings();
+    settings.mode = Mode::ClosedLoop;
+    for model in [
+        representative_pi(16).unwrap(),
+        twinstack::settings::representative_gpi(16).unwrap(),
+        representative_duhem(),
+        twinstack::settings::representative_bouc_wen(),
+    ] {
+        settings.compensator = Some(model);
+        let r = emu.request(&Request::LoadParams(settings.clone()));
+        assert!(matches!(r, Response::Ack { .. }), "{r:?}");
+    }
+    settings.compensator = Some(representative_pi(16).unwrap());
+    assert!(matches!(
+        emu.request(&Request::LoadParams(settings.clone())),
+        Response::Ack { .. }
+    ));
+    let _ = emu.request(&Request::StoreParams {
+        boot_mode: Mode::Bypass,
+    });
+    let _ = emu.request(&Request::RecallParams);
+    let _ = emu.request(&Request::ReadParams);
+    let learn = twinstack::learning::LearnSettings::for_period(200);
+    assert!(matches!(
+        emu.request(&Request::Learn(LearnRequest::Configure(learn))),
+        Response::Ack { .. }
+    ));
+    assert!(matches!(
+        emu.request(&Request::Waveform(Waveform {
+            shape: WaveShape::Sine,
+            offset: 0,
+            amplitude: 8000,
+            frequency_mhz: 750_000,
+            decay: None,
+        })),
+        Response::Ack { .. }
+    ));
+    let r = emu.request(&Request::Learn(LearnRequest::State(LearnState::Learning)));
+    assert!(matches!(r, Response::Ack { .. }), "{r:?}");
+    assert!(matches!(
+        emu.request(&Request::Capture(CaptureRequest {
+            signals: 0b11_1111,
+            samples: 1000,
+            pre_trigger: 0,
+            trigger: Trigger::Now,
+            decimation: 1,
+        })),
+        Response::Ack { .. }
+    ));
+    let start = Instant::now();
+    let updates = loop {
+        let Response::Learn(s) = emu.request(&Request::Learn(LearnRequest::Status)) else {
+            panic!("no learning status");
+        };
+        if s.updates >= 5 {
+            break s.updates;
+        }
+        assert!(start.elapsed() < Duration::from_secs(30), "{s:?}");
+        std::thread::sleep(Duration::from_millis(100));
+    };
+    let (used, room_after) = emu.stack_used();
+    assert_eq!(room, room_after);
+    println!(
+        "stack: {boot} bytes after boot, {used} after loads, store, recall, {updates} learning \
+         updates and a capture; reserve {reserve}, room left by the static RAM {room}"
+    );
+    assert!(room >= reserve, "static RAM leaves {room} < {reserve}");
+    assert!(
+        used <= reserve / 4 * 3,
+        "the stack reached {used} bytes: more than 3/4 of its {reserve}-byte reserve"
+    );
 }

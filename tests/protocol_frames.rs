@@ -271,7 +271,7 @@ fn a_full_batch_fits_one_frame() {
 #[test]
 fn message_variant_counts_match_the_enums() {
     use twinstack::protocol::frame::Message;
-    let last = Request::CoarseStatus;
+    let last = Request::Learn(twinstack::protocol::messages::LearnRequest::Status);
     let mut d = FrameDecoder::new();
     assert_eq!(feed(&mut d, &frame_of(&last)), vec![Ok(last)]);
     let tag = Request::VARIANTS as u8;
@@ -279,12 +279,7 @@ fn message_variant_counts_match_the_enums() {
         feed(&mut d, &raw_frame(&[PROTOCOL_VERSION, tag])),
         vec![Err(FrameError::UnknownType)]
     );
-    let resp = Response::Coarse(twinstack::dual_stage::CoarseStatus {
-        state: twinstack::dual_stage::CoarseState::Moving,
-        homed: true,
-        position_pm: -5_000_000_000,
-        ..Default::default()
-    });
+    let resp = Response::Learn(twinstack::protocol::messages::LearnStatus::default());
     let mut buf = [0u8; MAX_ENCODED + 1];
     let n = encode(&resp, &mut buf).unwrap();
     let mut d = FrameDecoder::new();
@@ -307,18 +302,18 @@ fn the_book_s_example_frames_are_what_the_encoder_writes() {
             .map(|b| u8::from_str_radix(b, 16).unwrap())
             .collect()
     };
-    assert_eq!(PROTOCOL_VERSION, 5);
-    assert_eq!(frame_of(&Request::Status), hex("02 05 05 ba e6 ae 3c 00"));
+    assert_eq!(PROTOCOL_VERSION, 6);
+    assert_eq!(frame_of(&Request::Status), hex("02 06 05 79 b5 83 17 00"));
     assert_eq!(
         frame_of(&Request::Setpoints(SetpointBatch {
             seq: 1,
             samples: heapless::Vec::from_slice(&[100, -100]).unwrap(),
         })),
-        hex("0d 05 01 01 02 c8 01 c7 01 bd 87 ae 7b 00")
+        hex("0d 06 01 01 02 c8 01 c7 01 5e 80 21 f5 00")
     );
     let mut out = [0u8; MAX_ENCODED + 1];
     let n = encode(&Response::Ack { credits: 511 }, &mut out).unwrap();
-    assert_eq!(&out[..n], &hex("02 05 07 ff 03 e6 83 b7 1c 00")[..]);
+    assert_eq!(&out[..n], &hex("02 06 07 ff 03 08 2c 02 0e 00")[..]);
     let refused = Response::Nack {
         reason: NackReason::Refused(twinstack::refusal::Refusal::new(
             twinstack::refusal::Field::Ki,
@@ -328,7 +323,14 @@ fn the_book_s_example_frames_are_what_the_encoder_writes() {
     let n = encode(&refused, &mut out).unwrap();
     assert_eq!(
         &out[..n],
-        &hex("06 05 01 03 0a 04 01 01 01 01 08 6a d8 40 4b 5e af 20 00")[..]
+        &hex("06 06 01 03 0a 04 01 01 01 01 08 6a d8 40 85 32 65 9d 00")[..]
+    );
+    // Protocol v6's learning status request.
+    assert_eq!(
+        frame_of(&Request::Learn(
+            twinstack::protocol::messages::LearnRequest::Status
+        )),
+        hex("08 06 14 03 4f 23 6b 4c 00")
     );
     // Protocol v4's capture: arm, read, a chunk.
     assert_eq!(
@@ -339,14 +341,14 @@ fn the_book_s_example_frames_are_what_the_encoder_writes() {
             trigger: Trigger::StreamStart,
             decimation: 1,
         })),
-        hex("0d 05 0b 1b 96 01 0a 01 01 7b 46 a5 c3 00")
+        hex("0d 06 0b 1b 96 01 0a 01 01 98 41 2a 4d 00")
     );
     assert_eq!(
         frame_of(&Request::ReadCapture {
             offset: 0,
             count: 256
         }),
-        hex("03 05 0d 07 80 02 d7 59 25 29 00")
+        hex("03 06 0d 07 80 02 07 23 85 6e 00")
     );
     let chunk = Response::CaptureChunk {
         offset: 0,
@@ -355,7 +357,7 @@ fn the_book_s_example_frames_are_what_the_encoder_writes() {
     let n = encode(&chunk, &mut out).unwrap();
     assert_eq!(
         &out[..n],
-        &hex("03 05 06 0c 03 c8 01 c7 01 fe 3f ca 28 8b 51 00")[..]
+        &hex("03 06 06 0c 03 c8 01 c7 01 fe 3f c9 93 bc ba 00")[..]
     );
     // Protocol v5's telemetry: start (setpoint and sensor every 5 ticks), stop, a frame, and
     // a refused rate.
@@ -364,11 +366,11 @@ fn the_book_s_example_frames_are_what_the_encoder_writes() {
             signals: 0b1001,
             decimation: 5,
         })),
-        hex("03 05 0e 07 09 05 98 40 b5 4f 00")
+        hex("03 06 0e 07 09 05 48 3a 15 08 00")
     );
     assert_eq!(
         frame_of(&Request::Telemetry(TelemetryRequest::Stop)),
-        hex("08 05 0e 01 e1 06 0e 10 00")
+        hex("08 06 0e 01 b8 b8 48 12 00")
     );
     let telemetry = Response::Telemetry(TelemetryFrame {
         seq: 3,
@@ -381,7 +383,7 @@ fn the_book_s_example_frames_are_what_the_encoder_writes() {
     let n = encode(&telemetry, &mut out).unwrap();
     assert_eq!(
         &out[..n],
-        &hex("06 05 07 03 78 09 01 10 04 c8 01 c7 01 80 80 02 80 fa 01 96 ad d8 8a 00")[..]
+        &hex("06 06 07 03 78 09 01 10 04 c8 01 c7 01 80 80 02 80 fa 01 f4 70 5e 60 00")[..]
     );
     let too_fast = Response::Nack {
         reason: NackReason::Refused(twinstack::refusal::Refusal::new(
@@ -392,7 +394,7 @@ fn the_book_s_example_frames_are_what_the_encoder_writes() {
     let n = encode(&too_fast, &mut out).unwrap();
     assert_eq!(
         &out[..n],
-        &hex("06 05 01 03 1e 01 01 01 01 01 01 07 18 40 2e a3 c7 ca 00")[..]
+        &hex("06 06 01 03 1e 01 01 01 01 01 01 07 18 40 e0 cf 0d 77 00")[..]
     );
     // Protocol v5's waveform with a decay: 10 Hz, amplitude 0.97, six full cycles, then
     // 57 000 / 65 536 kept per cycle.
@@ -407,7 +409,7 @@ fn the_book_s_example_frames_are_what_the_encoder_writes() {
                 keep: 57_000
             }),
         })),
-        hex("03 05 07 01 0f d2 f0 03 90 4e 01 06 a8 bd 03 24 6c 6e b6 00")
+        hex("03 06 07 01 0f d2 f0 03 90 4e 01 06 a8 bd 03 ff 49 0f ca 00")
     );
 }
 

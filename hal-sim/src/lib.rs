@@ -45,6 +45,8 @@ pub mod demo;
 pub mod dual_stage_sim;
 pub mod golden;
 pub mod identification;
+pub mod learn;
+pub mod learn_link;
 pub mod link;
 pub mod measured_data;
 pub mod output_file;

@@ -30,6 +30,10 @@ enum Command {
     /// Sensor feedback around the compensator on the simulated stage: the tracking table
     /// (none / feedforward / feedback / both) and the step with and without the notch.
     ClosedLoop(cli::closed_loop::Args),
+    /// Learning feedforward for periodic motion (iterative learning control): the learning
+    /// curve, the table against the feedforward alone, the frozen replay; in process on the
+    /// simulated stage, or on a board with --port.
+    Learn(cli::learn::Args),
     /// Stream a setpoint CSV to the board (within its credits) and play it.
     #[command(after_help = cli::stream::EXIT_CODES)]
     Stream(cli::stream::Args),
@@ -110,6 +114,7 @@ fn main() -> std::process::ExitCode {
         Command::Predict(a) => cli::predict::run(a),
         Command::Compensate(a) => cli::compensate::run(a),
         Command::ClosedLoop(a) => cli::closed_loop::run(a),
+        Command::Learn(a) => cli::learn::run(a),
         Command::Stream(a) => cli::stream::run(a),
         Command::Load(a) => cli::load::run(a),
         Command::Params(a) => cli::params::run(a),

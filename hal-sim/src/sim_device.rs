@@ -353,6 +353,9 @@ impl<D: AnalogDualDac, A: AnalogSensorAdc> SimDevice<D, A> {
         if let Some(rig) = self.coarse.as_mut() {
             rig.before_tick(&mut self.control);
         }
+        // The learning's work at period boundaries, in the same low-priority context.
+        self.handler
+            .service_learning(&mut Exclusive(&mut self.control));
         let (_, mut consumer) = self.queue.split();
         let (mut dac, mut adc) = self.board.split();
         let report = self.control.tick(&mut consumer, &mut adc, &mut dac);

@@ -19,6 +19,10 @@ use hal_sim::stage_model::{Hysteresis, StageModel};
 use std::path::PathBuf;
 use std::process::Child;
 use std::time::{Duration, Instant};
+
+/// Values the stream's capture records: the emulator's whole recorder (its 20 480 SRAM slots,
+/// two per value; QEMU models no CCM RAM, the board's other 32 768).
+const RECORD_VALUES: u32 = 10_240;
 use twinstack::protocol::frame::{self, FrameError, MAX_ENCODED};
 use twinstack::protocol::messages::{
     Image, Mode, NackReason, RecordRequest, Request, Response, SetpointBatch, Signal,
@@ -246,18 +250,20 @@ fn the_host_tools_drive_the_emulated_firmware_over_its_uart() {
     assert_eq!(client.read_params().unwrap(), set, "nothing changed");
     assert_eq!(client.status().unwrap().queue_fill, after.queue_fill);
 
-    // Arm the recorder, then stream 0.05 s of a sine through the streamer (the 30 queued
+    // Arm the recorder, then stream 0.03 s of a sine through the streamer (the 30 queued
     // setpoints play first). Every setpoint is accepted and played; the capture holds them
     // in order (an underrun would only repeat a value, so repeats are collapsed first —
     // QEMU's speed is not the board's).
     client
         .arm_recorder(RecordRequest {
             signal: Signal::Setpoint,
-            count: 16_000,
+            count: RECORD_VALUES,
             decimation: 1,
         })
         .unwrap();
-    let samples = sine((0.05 * rate) as usize, 100.0, rate);
+    // 0.03 s (1 500 setpoints, three times the queue): with QEMU's underruns it fits the
+    // emulator's recorder.
+    let samples = sine((0.03 * rate) as usize, 100.0, rate);
     let options = StreamOptions {
         underrun: Some(UnderrunPolicy::Hold),
         ..StreamOptions::default()
@@ -267,11 +273,13 @@ fn the_host_tools_drive_the_emulated_firmware_over_its_uart() {
     assert!(r.nacks.is_empty(), "{:?}", r.nacks);
     assert_eq!(r.drained.map(|s| s.queue_fill), Some(0));
     let deadline = Instant::now() + Duration::from_secs(30);
-    while client.status().unwrap().recorded < 16_000 {
+    while client.status().unwrap().recorded < RECORD_VALUES {
         assert!(Instant::now() < deadline, "the capture never completed");
         client.wait(Duration::from_millis(50)).unwrap();
     }
-    let values = client.read_recording(16_000, |_| {}).expect("read back");
+    let values = client
+        .read_recording(RECORD_VALUES, |_| {})
+        .expect("read back");
     let mut played: Vec<i32> = Vec::new();
     for v in values {
         if played.last() != Some(&v) {

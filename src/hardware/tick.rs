@@ -16,13 +16,18 @@ use super::control_timer::ControlTimer;
 use super::dac::InternalDac;
 use super::watchdog::Watchdog;
 
-/// Each half of the recorder's buffer: 32 768 slots, 64 KiB.
-pub const HALF_SLOTS: usize = CAPTURE_SLOTS / 2;
+/// The CCM part of the recorder's buffer: 32 768 slots, the whole 64 KiB of CCM RAM.
+pub const HALF_SLOTS: usize = 32 * 1024;
 
-/// The recorder's buffer: 64 KiB of SRAM, then the 64 KiB of CCM RAM on the board
+/// The SRAM part of the recorder's buffer: 20 480 slots, 40 KiB (the rest of
+/// [`CAPTURE_SLOTS`]); 24 KiB less than it was, so that with the learning's tables and
+/// telemetry's queue every image's static RAM leaves the stack its reserve (`memory.x`).
+pub const SRAM_SLOTS: usize = CAPTURE_SLOTS - HALF_SLOTS;
+
+/// The recorder's buffer: 40 KiB of SRAM, then the 64 KiB of CCM RAM on the board
 /// ([`super::ccm::capture_half`]); QEMU 7.2's `netduinoplus2` models no CCM, so the emulator
-/// images pass an empty second half (32 768 slots in all).
-pub type RecordBuffer = SplitStore<&'static mut [i16; HALF_SLOTS], &'static mut [i16]>;
+/// images pass an empty second part (20 480 slots in all).
+pub type RecordBuffer = SplitStore<&'static mut [i16; SRAM_SLOTS], &'static mut [i16]>;
 
 /// The tick's loop on the board: two controllers in statics, passed by pointer between the
 /// tick and the command handler.
@@ -47,9 +52,10 @@ pub struct ControlTick {
 }
 
 impl ControlTick {
-    /// One tick. No allocation, no panic path, no loop.
+    /// One tick. No allocation, no panic path, no loop. Returns whether a learning period
+    /// ended (the caller pends the low-priority task that runs [`crate::learning::service`]).
     #[inline(always)]
-    pub fn run(&mut self) {
+    pub fn run(&mut self) -> bool {
         self.timer.acknowledge();
         let report = self
             .control
@@ -59,6 +65,8 @@ impl ControlTick {
         if self.timer.next_tick_already_due() {
             self.control.count_overrun();
         }
+        let learning = self.control.learning();
+        learning.is_on() && learning.bin() == 0
     }
 }
 

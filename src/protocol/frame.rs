@@ -26,8 +26,10 @@ use serde::{Deserialize, Serialize};
 /// `TELEMETRY`); `Waveform` ends with an optional amplitude decay (`decay:
 /// Option<WaveDecay>`); the dual-actuated stage's coarse axis (`CoarseHome`, `CoarseMove`,
 /// `CoarseJog`, `CoarseStop`, `CoarseStatus` → `Response::Coarse`; `Field::CoarseAxis` …
-/// `CoarseAcceleration`, `Rule::NotHomed`, `Rule::LimitSwitch`).
-pub const PROTOCOL_VERSION: u8 = 5;
+/// `CoarseAcceleration`, `Rule::NotHomed`, `Rule::LimitSwitch`). Version 6: learning
+/// feedforward (`Request::Learn`, `Response::Learn`, the `Field`s `LearnPeriod` …
+/// `LearnLimit`); main's version 5 shipped without it.
+pub const PROTOCOL_VERSION: u8 = 6;
 /// Largest frame body (version + message + CRC), bytes.
 pub const MAX_BODY: usize = 1536;
 /// Largest frame on the wire, delimiter excluded.

@@ -27,6 +27,7 @@ use crate::board::Hardware;
 use crate::control::Controller;
 use crate::control_loop::ControlLoop;
 use crate::dual_stage::{CoarseCommand, CoarseLimits, CoarseRefusal, CoarseStatus};
+use crate::learning::{self, LearnState, LearnTask, Service};
 use crate::param_store::{RecordStorage, StorageError, StoredRecord, MAX_RECORD};
 use crate::recorder::{RecordError, SampleStore};
 use crate::refusal::{Field, Refusal, Rule};
@@ -38,8 +39,9 @@ use crate::waveform::{Shape, WaveformError, WaveformGenerator};
 use super::decoder::FrameDecoder;
 use super::frame::{self, FrameError, MAX_ENCODED};
 use super::messages::{
-    CaptureRequest, CaptureStatus, Image, NackReason, RecordRequest, Request, Response,
-    SetpointBatch, StatusReport, StreamControl, TelemetryRequest, WaveShape, Waveform,
+    CaptureRequest, CaptureStatus, Image, LearnRequest, LearnStatus, NackReason, RecordRequest,
+    Request, Response, SetpointBatch, StatusReport, StreamControl, TelemetryRequest, WaveShape,
+    Waveform,
 };
 use heapless::spsc::Consumer;
 
@@ -62,6 +64,8 @@ pub struct CommandHandler<S> {
     tx: [u8; MAX_RESPONSE],
     /// Continuous telemetry's packer (the tick's tap is in the control loop).
     telemetry: TelemetryPacker,
+    /// The learning's task half ([`crate::learning`]): its table and the ILC law.
+    learn: LearnTask,
 }
 
 impl<S: RecordStorage> CommandHandler<S> {
@@ -79,6 +83,7 @@ impl<S: RecordStorage> CommandHandler<S> {
             frame_errors: 0,
             tx: [0; MAX_RESPONSE],
             telemetry: TelemetryPacker::new(),
+            learn: LearnTask::new(),
         }
     }
 
@@ -169,6 +174,11 @@ impl<S: RecordStorage> CommandHandler<S> {
             Request::ReadParams => return Response::Params(self.settings.clone()),
             Request::Capture(r) => capture(r, control),
             Request::CaptureStatus => return Response::Capture(self.capture_status(control)),
+            Request::Learn(r) => match self.learn(r, control) {
+                Ok(Some(response)) => return response,
+                Ok(None) => Ok(()),
+                Err(reason) => Err(reason),
+            },
             Request::ReadCapture { offset, count } => {
                 let mut values = heapless::Vec::new();
                 let (read, info) = control
@@ -283,6 +293,10 @@ impl<S: RecordStorage> CommandHandler<S> {
     {
         let config = settings
             .build(&self.hardware)
+            .map_err(NackReason::Refused)?;
+        // While the learning plays, the tick runs it beside the new configuration.
+        let learning = control.lock(|c| c.learning().state()) != LearnState::Off;
+        crate::tick_budget::check_with(&config, self.hardware.control_rate_hz, learning)
             .map_err(NackReason::Refused)?;
         let (spare, stacks) = control.lock(|c| (c.spare(), c.stacks()));
         // Two controllers cycle between the tick and this task: the spare is always there.
@@ -472,6 +486,115 @@ impl<S: RecordStorage> CommandHandler<S> {
     /// Continuous telemetry's packer (its state: running, samples lost).
     pub fn telemetry_packer(&self) -> &TelemetryPacker {
         &self.telemetry
+    }
+
+    /// The learning's work at period boundaries ([`learning::service`]): call it whenever the
+    /// low-priority task runs (the tick pends it at each boundary); it returns at once when no
+    /// period has completed.
+    pub fn service_learning<B, C, L>(&mut self, control: &mut L) -> Service
+    where
+        B: SampleStore,
+        C: DerefMut<Target = Controller>,
+        L: Mutex<T = ControlLoop<B, C>>,
+    {
+        learning::service(&mut self.learn, control)
+    }
+
+    /// The learning's task half (its table, counters, last period).
+    pub fn learning(&self) -> &LearnTask {
+        &self.learn
+    }
+
+    /// Whether switching the learning to `state` would take the tick over its budget with
+    /// the loaded settings (built again here, off the tick).
+    fn learning_over_budget(&self, state: LearnState) -> Option<crate::refusal::Refusal> {
+        if state == LearnState::Off {
+            return None;
+        }
+        let config = self.settings.build(&self.hardware).ok()?;
+        crate::tick_budget::check_with(&config, self.hardware.control_rate_hz, true).err()
+    }
+
+    #[inline(never)] // rare and large: one copy, not one per caller
+    fn learn<B, C, L>(
+        &mut self,
+        r: LearnRequest,
+        control: &mut L,
+    ) -> Result<Option<Response>, NackReason>
+    where
+        B: SampleStore,
+        C: DerefMut<Target = Controller>,
+        L: Mutex<T = ControlLoop<B, C>>,
+    {
+        let period = self.learn.config().map_or(0, |c| c.period());
+        match r {
+            LearnRequest::Configure(s) => match s.build(self.hardware.control_rate_hz) {
+                Ok(config) => {
+                    learning::configure(&mut self.learn, config, control);
+                    Ok(())
+                }
+                Err(refusal) => Err(NackReason::Refused(refusal)),
+            },
+            LearnRequest::State(state) => {
+                if state != LearnState::Off && self.learn.config().is_none() {
+                    Err(refused(Field::LearnPeriod, Rule::Required))
+                } else if state == LearnState::Learning && self.settings.sensor.is_none() {
+                    Err(refused(Field::Sensor, Rule::Required))
+                } else if let Some(refusal) = self.learning_over_budget(state) {
+                    Err(NackReason::Refused(refusal))
+                } else {
+                    control.lock(|c| c.set_learning(state));
+                    Ok(())
+                }
+            }
+            LearnRequest::Reset => {
+                self.learn.set_table(&[]);
+                learning::post_table(&self.learn, control);
+                Ok(())
+            }
+            LearnRequest::Status => {
+                let (state, periods) =
+                    control.lock(|c| (c.learning().state(), c.learning().periods()));
+                return Ok(Some(Response::Learn(LearnStatus {
+                    state,
+                    period_ticks: period as u16,
+                    periods,
+                    updates: self.learn.updates(),
+                    missed: self.learn.missed(),
+                    last: self.learn.last_error(),
+                })));
+            }
+            LearnRequest::ReadTable { offset } => {
+                let from = offset as usize;
+                if from > period {
+                    Err(refused(Field::RecordOffset, Rule::AtMost(period as f64)))
+                } else {
+                    let end = (from + crate::recorder::MAX_CHUNK).min(period);
+                    let mut values = heapless::Vec::new();
+                    for &v in self.learn.table().get(from..end).unwrap_or(&[]) {
+                        let _ = values.push(v);
+                    }
+                    return Ok(Some(Response::RecordChunk { offset, values }));
+                }
+            }
+            LearnRequest::WriteTable { offset, values } => {
+                let from = offset as usize;
+                if from + values.len() > learning::MAX_BINS {
+                    Err(refused(
+                        Field::RecordOffset,
+                        Rule::AtMost((learning::MAX_BINS - values.len()) as f64),
+                    ))
+                } else {
+                    self.learn.write_entries(from, &values);
+                    Ok(())
+                }
+            }
+            LearnRequest::PostTable => {
+                learning::post_table(&self.learn, control);
+                Ok(())
+            }
+        }
+        .map(|()| None)
     }
 
     /// The settings in force (or waiting for the next tick).

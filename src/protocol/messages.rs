@@ -6,6 +6,7 @@
 //! framing and acknowledgements.
 
 pub use crate::dual_stage::{CoarseState, CoarseStatus};
+pub use crate::learning::{LearnSettings, LearnState, PeriodError};
 pub use crate::recorder::{CaptureState, Signal, Trigger, MAX_CAPTURE_CHUNK, MAX_CHUNK};
 use crate::refusal::Refusal;
 pub use crate::setpoint_stream::UnderrunPolicy;
@@ -15,11 +16,11 @@ use serde::{Deserialize, Serialize};
 use super::frame::{FrameError, Message};
 
 impl Message for Request {
-    const VARIANTS: u32 = 20;
+    const VARIANTS: u32 = 21;
 }
 
 impl Message for Response {
-    const VARIANTS: u32 = 9;
+    const VARIANTS: u32 = 10;
 }
 
 /// Most setpoints one batch carries.
@@ -87,6 +88,9 @@ pub enum Request {
     CoarseStop,
     /// Read the coarse axis's status (answered with [`Response::Coarse`]).
     CoarseStatus,
+    /// Learning feedforward (protocol v6, [`crate::learning`]): configure, switch, reset,
+    /// read its status, read or write its table.
+    Learn(LearnRequest),
 }
 
 /// Start or stop continuous telemetry.
@@ -141,6 +145,54 @@ pub struct CoarseMove {
     pub velocity_mm_s: f64,
     /// Acceleration, mm/s² (> 0, at most the coarse stage's limit).
     pub acceleration_mm_s2: f64,
+}
+
+/// What a [`Request::Learn`] asks.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub enum LearnRequest {
+    /// Validate and set the period, gain, robustness filter, lead and limit (the period
+    /// restarts at bin 0). Refused naming the `learning.*` field.
+    Configure(LearnSettings),
+    /// Off, learning (needs a sensor and a configuration) or frozen (needs a configuration).
+    State(LearnState),
+    /// Zero the table (it plays from the next period boundary).
+    Reset,
+    /// Answered with [`Response::Learn`].
+    Status,
+    /// Read the table (Q2.30 normalised drive) from `offset`: answered with
+    /// [`Response::RecordChunk`] (at most [`MAX_CHUNK`] values, up to the period's end).
+    ReadTable {
+        /// First bin.
+        offset: u32,
+    },
+    /// Write table values (Q2.30, each limited to the configured limit) from bin `offset`
+    /// into the task's table; [`LearnRequest::PostTable`] makes it play.
+    WriteTable {
+        /// First bin.
+        offset: u32,
+        /// Values.
+        values: heapless::Vec<i32, MAX_CHUNK>,
+    },
+    /// Post the task's table (a recalled one): it plays from the next period boundary.
+    PostTable,
+}
+
+/// The learning's state and its last period (the answer to `Learn(Status)`).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct LearnStatus {
+    /// Off, learning, frozen.
+    pub state: LearnState,
+    /// Period, ticks (0: not configured).
+    pub period_ticks: u16,
+    /// Periods the tick completed (wrapping).
+    pub periods: u32,
+    /// Tables the task posted.
+    pub updates: u32,
+    /// Periods the task could not copy in time.
+    pub missed: u32,
+    /// The last period the task took: its error (Q2.30 normalised displacement, as the
+    /// sensor saw it).
+    pub last: PeriodError,
 }
 
 /// Arm a multi-signal capture: `samples` frames of the signals in `signals`, `pre_trigger` of
@@ -307,6 +359,8 @@ pub enum Response {
     Telemetry(TelemetryFrame),
     /// The coarse axis's status (the answer to [`Request::CoarseStatus`]).
     Coarse(CoarseStatus),
+    /// The learning's state (the answer to `Learn(Status)`).
+    Learn(LearnStatus),
 }
 
 /// Why a request was refused. Wire-stable: variants are only appended.

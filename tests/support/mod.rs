@@ -270,3 +270,58 @@ pub fn run_to_exit(elf: &Path, extra: &[&str], what: &str, limit: std::time::Dur
     );
     out
 }
+
+/// The value of symbol `name` in an ELF32 little-endian image's symbol table, if it is there.
+pub fn elf_symbol(path: &Path, name: &str) -> Result<Option<u32>, String> {
+    let b = std::fs::read(path).map_err(|e| format!("{}: {e}", path.display()))?;
+    let shoff = u32_at(&b, 32)? as usize;
+    let shentsize = u16_at(&b, 46)? as usize;
+    let shnum = u16_at(&b, 48)? as usize;
+    for i in 0..shnum {
+        let sh = shoff + i * shentsize;
+        if u32_at(&b, sh + 4)? != 2 {
+            continue; // not SHT_SYMTAB
+        }
+        let (off, size) = (u32_at(&b, sh + 16)? as usize, u32_at(&b, sh + 20)? as usize);
+        let link = u32_at(&b, sh + 24)? as usize;
+        let strtab = u32_at(&b, shoff + link * shentsize + 16)? as usize;
+        for s in (off..off + size).step_by(16) {
+            let at = strtab + u32_at(&b, s)? as usize;
+            let end = b[at..]
+                .iter()
+                .position(|&c| c == 0)
+                .map_or(b.len(), |n| at + n);
+            if &b[at..end] == name.as_bytes() {
+                return Ok(Some(u32_at(&b, s + 4)?));
+            }
+        }
+    }
+    Ok(None)
+}
+
+/// The stack an image's run used, bytes, from a dump of its SRAM (`ram`, starting at
+/// 0x2000_0000): cortex-m-rt's `paint-stack` fills `_stack_end .. _stack_start` with
+/// `0xCCCC_CCCC` before `main`; the lowest word the run changed is its high-water mark.
+/// Returns `(used, room)`: the bytes below `_stack_start` written, and the room the
+/// image's static RAM leaves (`_stack_start − _stack_end`).
+pub fn stack_used(elf: &Path, ram: &[u8]) -> Result<(u32, u32), String> {
+    let sym =
+        |n: &str| elf_symbol(elf, n)?.ok_or_else(|| format!("{}: no symbol {n}", elf.display()));
+    let (top, bottom) = (sym("_stack_start")?, sym("_stack_end")?);
+    let base = 0x2000_0000u32;
+    let mut low = top;
+    let mut a = bottom;
+    while a < top {
+        let o = (a - base) as usize;
+        let w = ram
+            .get(o..o + 4)
+            .map(|s| u32::from_le_bytes([s[0], s[1], s[2], s[3]]))
+            .ok_or_else(|| format!("RAM dump too short for {a:#x}"))?;
+        if w != 0xCCCC_CCCC {
+            low = a;
+            break;
+        }
+        a += 4;
+    }
+    Ok((top - low, top - bottom))
+}

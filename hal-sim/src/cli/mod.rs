@@ -1,7 +1,7 @@
 //! The `hal-sim` subcommands, one module each: `run(&Args) -> anyhow::Result<()>`.
 //!
 //! Board commands (`calibrate`, `stream`, `load`, `params`, `mode`, `recall`, `status`,
-//! `waveform`, `stop`, `record`, `telemetry`, `coarse`) share
+//! `waveform`, `stop`, `record`, `telemetry`, `coarse`, and `learn` with `--port`) share
 //! [`board_link`]'s `--port` / `--baud` / `--timeout-ms`.
 
 /// The exit codes of every `hal-sim` command, as `hal-sim --help` lists them.
@@ -32,6 +32,7 @@ pub mod dual_stage;
 pub mod golden;
 pub mod identify;
 pub mod lab_stage;
+pub mod learn;
 pub mod load;
 pub mod params;
 pub mod predict;

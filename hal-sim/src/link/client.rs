@@ -104,6 +104,7 @@ pub fn request_name(request: &Request) -> &'static str {
         Request::CoarseJog { .. } => "CoarseJog",
         Request::CoarseStop => "CoarseStop",
         Request::CoarseStatus => "CoarseStatus",
+        Request::Learn(_) => "Learn",
     }
 }
 

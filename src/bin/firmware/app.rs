@@ -58,7 +58,7 @@ mod app {
     use twinstack::protocol::handler::CommandHandler;
     #[cfg(not(feature = "emulator"))]
     use twinstack::hardware::ccm;
-    use twinstack::hardware::tick::HALF_SLOTS;
+    use twinstack::hardware::tick::SRAM_SLOTS;
     use twinstack::recorder::SplitStore;
     use twinstack::telemetry::{
         FrameLink, TelemetryQueue, TelemetrySample, TELEMETRY_QUEUE_LEN,
@@ -214,7 +214,7 @@ mod app {
         setpoint_queue: SetpointQueue = Queue::new(),
         rx_queue: Queue<u8, RX_QUEUE> = Queue::new(),
         telemetry_queue: TelemetryQueue = Queue::new(),
-        record_buffer: [i16; HALF_SLOTS] = [0; HALF_SLOTS],
+        record_buffer: [i16; SRAM_SLOTS] = [0; SRAM_SLOTS],
     ])]
     fn init(cx: init::Context) -> (Shared, Local) {
         let dp: pac::Peripherals = cx.device;
@@ -260,8 +260,8 @@ mod app {
         ) else {
             panic!("controllers already taken");
         };
-        // The capture buffer: 64 KiB of SRAM, then the 64 KiB of CCM RAM (QEMU 7.2's
-        // netduinoplus2 models no CCM: the emulator has the SRAM half only).
+        // The capture buffer: 40 KiB of SRAM, then the 64 KiB of CCM RAM (QEMU 7.2's
+        // netduinoplus2 models no CCM: the emulator has the SRAM part only).
         #[cfg(not(feature = "emulator"))]
         let Some(second_half) = ccm::capture_half() else {
             panic!("CCM buffer already taken");
@@ -442,7 +442,10 @@ mod app {
     #[cfg(not(feature = "emulator"))]
     #[task(binds = TIM2, priority = 3, shared = [tick])]
     fn tim2_tick(mut cx: tim2_tick::Context) {
-        cx.shared.tick.lock(|t| t.run());
+        if cx.shared.tick.lock(|t| t.run()) {
+            // A learning period ended: the command task takes its errors.
+            rtic::pend(Interrupt::EXTI0);
+        }
     }
 
     /// The control tick in the emulator: SysTick. With the coarse axis, every `fine_ticks`
@@ -450,7 +453,10 @@ mod app {
     #[cfg(feature = "emulator")]
     #[task(binds = SysTick, priority = 3, shared = [tick], local = [since_coarse: u32 = 0])]
     fn systick_tick(mut cx: systick_tick::Context) {
-        cx.shared.tick.lock(|t| t.run());
+        if cx.shared.tick.lock(|t| t.run()) {
+            // A learning period ended: the command task takes its errors.
+            rtic::pend(Interrupt::EXTI0);
+        }
         #[cfg(feature = "dual-stage")]
         {
             let every = COARSE_EVERY.load(core::sync::atomic::Ordering::Relaxed);
@@ -530,6 +536,8 @@ mod app {
             local.handler.telemetry_packer().is_active(),
             Ordering::Relaxed,
         );
+        // The learning's work at a period boundary (returns at once when there is none).
+        let _ = local.handler.service_learning(&mut control);
     }
 
     /// Hands `frame` to the uplink, waiting (outside the lock, so the transfer-complete

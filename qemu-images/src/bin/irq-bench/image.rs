@@ -38,6 +38,10 @@ pub mod scenarios {
         /// Settings changes mid-stream: reload at tick 500, open loop at 800, closed loop at
         /// 1100.
         pub lifecycle: bool,
+        /// The learning feedforward learns throughout (period 200 ticks, three cycles of the
+        /// 750 Hz sine; the idle task runs its period-boundary service as the firmware's
+        /// command task does): each tick reads a table entry and stores an error.
+        pub learning: bool,
     }
 
     const FULL: i32 = 32767;
@@ -103,36 +107,48 @@ pub mod scenarios {
     }
 
     /// Every scenario, in the order they run.
-    pub const ALL: [Scenario; 6] = [
+    pub const ALL: [Scenario; 7] = [
         Scenario {
             name: "triangle",
             setpoint: triangle,
             lifecycle: false,
+            learning: false,
         },
         Scenario {
             name: "sine-750Hz",
             setpoint: sine_750hz,
             lifecycle: false,
+            learning: false,
         },
         Scenario {
             name: "full-range-steps",
             setpoint: steps,
             lifecycle: false,
+            learning: false,
         },
         Scenario {
             name: "random",
             setpoint: random,
             lifecycle: false,
+            learning: false,
         },
         Scenario {
             name: "nested-loops",
             setpoint: nested_loops,
             lifecycle: false,
+            learning: false,
+        },
+        Scenario {
+            name: "sine-750Hz-learning",
+            setpoint: sine_750hz,
+            lifecycle: false,
+            learning: true,
         },
         Scenario {
             name: "reload-and-mode-switches",
             setpoint: triangle,
             lifecycle: true,
+            learning: false,
         },
     ];
 }
@@ -275,14 +291,16 @@ mod app {
     use twinstack::hardware::clocks;
     use twinstack::hardware::control_timer::ControlTimer;
     use twinstack::hardware::dac::InternalDac;
-    use twinstack::hardware::tick::HALF_SLOTS;
+    use twinstack::hardware::tick::SRAM_SLOTS;
     use twinstack::hardware::tick::{ControlTick, LoopLock};
     use twinstack::hardware::watchdog::Watchdog;
+    use twinstack::learning::{LearnSettings, LearnState};
     use twinstack::param_store::ReadOnlyStorage;
     use twinstack::protocol::handler::CommandHandler;
     use twinstack::protocol::handler::MAX_RESPONSE;
     use twinstack::protocol::messages::{
-        CaptureRequest, Request, Response, SetpointBatch, StreamControl, Trigger, MAX_BATCH,
+        CaptureRequest, LearnRequest, Request, Response, SetpointBatch, StreamControl, Trigger,
+        MAX_BATCH,
     };
     use twinstack::recorder::{SplitStore, CHANNELS};
     use twinstack::settings::{Mode, Settings};
@@ -310,7 +328,7 @@ mod app {
     #[init(local = [
         setpoint_queue: SetpointQueue = Queue::new(),
         telemetry_queue: TelemetryQueue = Queue::new(),
-        record_buffer: [i16; HALF_SLOTS] = [0; HALF_SLOTS],
+        record_buffer: [i16; SRAM_SLOTS] = [0; SRAM_SLOTS],
     ])]
     fn init(cx: init::Context) -> (Shared, Local) {
         let dp = cx.device;
@@ -384,8 +402,12 @@ mod app {
             panic!("telemetry refused");
         };
         packer.start(0b11_1111, 1, first, RATE_HZ);
-        let mut ask =
-            |request: Request| -> Response { handler.handle(request, producer, &mut lock) };
+        // A macro, not a closure: the learning's service borrows the handler and the lock too.
+        macro_rules! ask {
+            ($request:expr) => {
+                handler.handle($request, producer, &mut lock)
+            };
+        }
         let hardware = Hardware::driver_board(RATE_HZ as f64);
         let mut seq = 0u16;
         let mut marker = 0u32;
@@ -398,20 +420,36 @@ mod app {
                 Ok(c) => hprintln!("BUDGET {} {}", config.name, worst_case_cycles(&c)),
                 Err(e) => hprintln!("BUDGET-REFUSED {} {}", config.name, e),
             }
-            expect_ack(ask(Request::LoadParams(config.settings.clone())), "load");
+            // The load's own row: the ticks between it and the first scenario (the previous
+            // configuration's last ticks, then this one's, the stream stopped).
+            marker += 1;
+            irq_bench_marker(marker);
+            hprintln!("SCENARIO {}/load", config.name);
+            expect_ack(ask!(Request::LoadParams(config.settings.clone())), "load");
             for scenario in &scenarios::ALL {
                 // A fresh capture per scenario: the recorder runs throughout, taking all six
                 // signals every tick (its worst case: six stores per tick).
                 expect_ack(
-                    ask(Request::Capture(CaptureRequest {
+                    ask!(Request::Capture(CaptureRequest {
                         signals: 0b11_1111,
-                        samples: (HALF_SLOTS / CHANNELS) as u32,
+                        samples: (SRAM_SLOTS / CHANNELS) as u32,
                         pre_trigger: 0,
                         trigger: Trigger::Now,
                         decimation: 1,
                     })),
                     "capture",
                 );
+                if scenario.learning {
+                    let learn = LearnSettings::for_period(200);
+                    expect_ack(
+                        ask!(Request::Learn(LearnRequest::Configure(learn))),
+                        "learn configure",
+                    );
+                    expect_ack(
+                        ask!(Request::Learn(LearnRequest::State(LearnState::Learning))),
+                        "learn on",
+                    );
+                }
                 marker += 1;
                 irq_bench_marker(marker);
                 hprintln!("SCENARIO {}/{}", config.name, scenario.name);
@@ -421,7 +459,7 @@ mod app {
                 loop {
                     // Fill the queue as far as the credits go.
                     if k < scenarios::TICKS {
-                        let credits = match ask(Request::Status) {
+                        let credits = match ask!(Request::Status) {
                             Response::Status(s) => s.credits as u32,
                             _ => 0,
                         };
@@ -429,7 +467,7 @@ mod app {
                         if n >= 32 || (n > 0 && k + n == scenarios::TICKS) {
                             let samples = (k..k + n).map(scenario.setpoint).collect();
                             expect_ack(
-                                ask(Request::Setpoints(SetpointBatch { seq, samples })),
+                                ask!(Request::Setpoints(SetpointBatch { seq, samples })),
                                 "setpoints",
                             );
                             seq = seq.wrapping_add(1);
@@ -437,10 +475,10 @@ mod app {
                         }
                     }
                     if !started {
-                        expect_ack(ask(Request::Stream(StreamControl::Start)), "start");
+                        expect_ack(ask!(Request::Stream(StreamControl::Start)), "start");
                         started = true;
                     }
-                    let (fill, ticks_played) = match ask(Request::Status) {
+                    let (fill, ticks_played) = match ask!(Request::Status) {
                         Response::Status(s) => (s.queue_fill as u32, k - s.queue_fill as u32),
                         _ => (0, 0),
                     };
@@ -450,14 +488,14 @@ mod app {
                         // lifecycle row holds ticks of two configurations.
                         if changed == 0 && ticks_played >= 500 {
                             if let Some(other) = configs::get(usize::from(i == 0)) {
-                                expect_ack(ask(Request::LoadParams(other.settings)), "reload");
+                                expect_ack(ask!(Request::LoadParams(other.settings)), "reload");
                             }
                             changed = 1;
                         } else if changed == 1 && ticks_played >= 800 {
-                            expect_ack(ask(Request::Mode(Mode::OpenLoop)), "open loop");
+                            expect_ack(ask!(Request::Mode(Mode::OpenLoop)), "open loop");
                             changed = 2;
                         } else if changed == 2 && ticks_played >= 1100 {
-                            expect_ack(ask(Request::Mode(Mode::ClosedLoop)), "closed loop");
+                            expect_ack(ask!(Request::Mode(Mode::ClosedLoop)), "closed loop");
                             changed = 3;
                         }
                     }
@@ -465,6 +503,9 @@ mod app {
                         break;
                     }
                     cortex_m::asm::wfi();
+                    if scenario.learning {
+                        let _ = handler.service_learning(&mut lock);
+                    }
                     while packer.due(samples) {
                         if packer.pack(samples, frame).is_none() {
                             break;
@@ -473,10 +514,18 @@ mod app {
                 }
                 // (The lifecycle scenario is each configuration's last; the next configuration
                 // starts with its own load.)
-                expect_ack(ask(Request::Stream(StreamControl::Stop)), "stop");
+                expect_ack(ask!(Request::Stream(StreamControl::Stop)), "stop");
+                if scenario.learning {
+                    expect_ack(
+                        ask!(Request::Learn(LearnRequest::State(LearnState::Off))),
+                        "learn off",
+                    );
+                }
             }
         }
         irq_bench_marker(u32::MAX);
+        let (used, room) = super::stack_high_water();
+        hprintln!("STACK used {} room {}", used, room);
         hprintln!("DONE");
         debug::exit(debug::EXIT_SUCCESS);
         loop {
@@ -490,4 +539,30 @@ mod app {
             debug::exit(debug::EXIT_FAILURE);
         }
     }
+}
+
+/// The stack this run used and the room the static RAM leaves it, bytes: cortex-m-rt's
+/// `paint-stack` filled `_stack_end .. _stack_start` with `0xCCCC_CCCC` at reset; the lowest
+/// word changed since is the high-water mark.
+#[cfg(target_os = "none")]
+fn stack_high_water() -> (u32, u32) {
+    extern "C" {
+        static _stack_start: u32;
+        static _stack_end: u32;
+    }
+    let top = core::ptr::addr_of!(_stack_start) as usize;
+    let bottom = core::ptr::addr_of!(_stack_end) as usize;
+    let mut low = top;
+    let mut a = bottom;
+    while a < top {
+        // SAFETY: `_stack_end .. _stack_start` is RAM the linker gave the stack; reading a
+        // word of it (volatile: below the stack pointer, the compiler knows nothing of it)
+        // is sound.
+        if unsafe { core::ptr::read_volatile(a as *const u32) } != 0xCCCC_CCCC {
+            low = a;
+            break;
+        }
+        a += 4;
+    }
+    ((top - low) as u32, (top - bottom) as u32)
 }

@@ -1,0 +1,195 @@
+//! Learning feedforward on the simulated differential stage (issue #20, part 1): the goals
+//! it meets are held, and for those it does not, the figures it reaches (so a regression
+//! fails) and the reason (the 21.8 kHz resonance band, which the learning does not act on).
+//! Deterministic: seeded noise, simulated time.
+
+use hal_sim::closed_loop::{identify_model, ClosedLoopOptions};
+use hal_sim::learn::{run_with, LearnOptions, LearnReport};
+use std::sync::OnceLock;
+
+/// Both runs at 50 kHz with the command's defaults (50 periods, gain 0.3, corner 18 kHz, no
+/// lead), on the P–I model identified on the same board.
+fn reports() -> &'static [LearnReport; 2] {
+    static REPORTS: OnceLock<[LearnReport; 2]> = OnceLock::new();
+    REPORTS.get_or_init(|| runs(["sine:750", "triangle:200"]))
+}
+
+/// The P–I model identified on the simulated board at 50 kHz (once per test process).
+fn model() -> &'static hal_sim::stage_model::StageModel {
+    static MODEL: OnceLock<hal_sim::stage_model::StageModel> = OnceLock::new();
+    MODEL.get_or_init(|| identify_model(50_000.0, &ClosedLoopOptions::default()).unwrap())
+}
+
+fn runs(waveforms: [&str; 2]) -> [LearnReport; 2] {
+    waveforms.map(|w| {
+        let mut o = LearnOptions::new(w.parse().unwrap());
+        o.out_dir = None;
+        run_with(&o, model()).unwrap()
+    })
+}
+
+/// A second frequency of each shape, with the same settings (not tuned to them): a 500 Hz
+/// sine (100 ticks a cycle, period 200) and a 100 Hz triangle (500 ticks). What they meet is
+/// held — the sine's max ≤ 0.1 % and its replay ≤ 0.2 %, the triangle's RMS ≥ 20× — and what
+/// they do not is bounded near what they reach (sine RMS 17.2×; triangle max 0.29 %, replay
+/// 0.30 %), left, as at the first frequencies, by the resonance band.
+#[test]
+fn a_second_frequency_of_each_shape() {
+    let [sine, triangle] = runs(["sine:500", "triangle:100"]);
+    assert!(sine.learned.max_pct <= 0.1, "{:?}", sine.learned);
+    assert!(sine.replay.max_pct <= 0.2, "{:?}", sine.replay);
+    assert!(sine.rms_reduction >= 15.0, "{}", sine.rms_reduction);
+    assert!(triangle.rms_reduction >= 20.0, "{}", triangle.rms_reduction);
+    assert!(triangle.learned.max_pct <= 0.35, "{:?}", triangle.learned);
+    assert!(triangle.replay.max_pct <= 0.35, "{:?}", triangle.replay);
+    for r in [&sine, &triangle] {
+        let (ff, l) = (r.feedforward, r.learned);
+        assert!(
+            l.below_band_rms_pct < ff.below_band_rms_pct / 20.0,
+            "{}: {l:?}",
+            r.waveform
+        );
+        assert!(
+            l.band_rms_pct > l.below_band_rms_pct,
+            "{}: {l:?}",
+            r.waveform
+        );
+    }
+}
+
+#[test]
+fn the_learning_curve_falls_and_stays_down() {
+    for r in reports() {
+        assert_eq!(r.curve.len(), 50);
+        assert_eq!(r.missed, 0, "{}", r.waveform);
+        assert!(r.updates >= 48, "{}: {} updates", r.waveform, r.updates);
+        // The first period plays the empty table: the feedforward's own error.
+        assert!(
+            r.curve[0].rms_pct > 0.9 * r.feedforward.rms_pct,
+            "{}",
+            r.waveform
+        );
+        // Down by 5× within 10 periods, and no period after 20 is worse than 1.5× the last.
+        assert!(
+            r.curve[9].rms_pct < r.feedforward.rms_pct / 5.0,
+            "{}: {:?}",
+            r.waveform,
+            r.curve[9]
+        );
+        let last = r.learned.rms_pct;
+        assert!(
+            r.curve[20..].iter().all(|p| p.rms_pct < 1.5 * last),
+            "{}",
+            r.waveform
+        );
+    }
+}
+
+/// The goals met: the triangle's RMS ≥ 20× lower than the feedforward alone; the sine's max
+/// ≤ 0.1 %; both replays with the sensor off ≤ 0.2 % max.
+#[test]
+fn the_goals_met_hold() {
+    let [sine, triangle] = reports();
+    assert!(triangle.rms_reduction >= 20.0, "{}", triangle.rms_reduction);
+    assert!(sine.learned.max_pct <= 0.1, "{:?}", sine.learned);
+    for r in reports() {
+        assert!(r.replay.max_pct <= 0.2, "{}: {:?}", r.waveform, r.replay);
+        // The replay (a fresh board, no sensor) plays what was learned.
+        assert!(r.replay.rms_pct < 1.2 * r.learned.rms_pct, "{}", r.waveform);
+    }
+}
+
+/// The goals not met — the sine's RMS reduction (≥ 20× asked), the triangle's max (≤ 0.1 %
+/// asked) — and why: what is left is the resonance band's ringing, which the feedforward
+/// alone has too; below it the learning reduces the error by more than 20× on both.
+#[test]
+fn what_is_left_is_the_resonance_band() {
+    let [sine, triangle] = reports();
+    assert!(sine.rms_reduction >= 9.0, "{}", sine.rms_reduction);
+    assert!(triangle.learned.max_pct <= 0.16, "{:?}", triangle.learned);
+    for r in reports() {
+        let ff = r.feedforward;
+        let l = r.learned;
+        assert!(
+            l.below_band_rms_pct < ff.below_band_rms_pct / 20.0,
+            "{}: below the band {} → {}",
+            r.waveform,
+            ff.below_band_rms_pct,
+            l.below_band_rms_pct
+        );
+        // The band's ringing is what is left, and the feedforward alone has as much of it.
+        assert!(
+            l.band_rms_pct > l.below_band_rms_pct,
+            "{}: {l:?}",
+            r.waveform
+        );
+        assert!(
+            l.band_rms_pct > 0.5 * ff.band_rms_pct,
+            "{}: {l:?} vs {ff:?}",
+            r.waveform
+        );
+    }
+}
+
+fn sim_port() -> hal_sim::cli::board_link::PortArgs {
+    hal_sim::cli::board_link::PortArgs {
+        port: Some("sim".into()),
+        baud: 2_000_000,
+        timeout_ms: 2000,
+    }
+}
+
+/// Over the protocol, on the simulated board (its representative, not identified, model and
+/// 12-bit converters): the board learns from its own sensor, and the frozen table keeps
+/// what was learned.
+#[test]
+fn a_board_learns_over_the_protocol() {
+    let mut o = LearnOptions::new("sine:750".parse().unwrap());
+    o.out_dir = None;
+    o.periods = 40;
+    let r = hal_sim::learn_link::run(&sim_port(), &o, 0.5).unwrap();
+    assert_eq!(r.image, "simulator");
+    assert_eq!(r.period_ticks, 200);
+    assert_eq!(r.curve.len(), 40);
+    let ff = r.feedforward.iter().map(|p| p.rms_pct).fold(0.0, f64::max);
+    let learned = r.curve[35..].iter().map(|p| p.rms_pct).fold(0.0, f64::max);
+    let replay = r.replay.iter().map(|p| p.rms_pct).fold(0.0, f64::max);
+    assert!(learned < ff / 20.0, "{ff} → {learned}");
+    assert!(replay < 1.5 * learned, "{learned} → replay {replay}");
+}
+
+/// A refused learning request names the field and its limit, and changes nothing.
+#[test]
+fn the_board_refuses_what_it_cannot_learn() {
+    use twinstack::learning::{LearnSettings, LearnState};
+    use twinstack::protocol::messages::{LearnRequest, NackReason, Request, Response};
+    use twinstack::refusal::{Field, Refusal, Rule};
+    let mut client = hal_sim::cli::board_link::connect(&sim_port()).unwrap();
+    let mut ask = |r: LearnRequest| client.request(&Request::Learn(r)).unwrap();
+    let refused = |field, rule| Response::Nack {
+        reason: NackReason::Refused(Refusal::new(field, rule)),
+    };
+    assert_eq!(
+        ask(LearnRequest::State(LearnState::Learning)),
+        refused(Field::LearnPeriod, Rule::Required)
+    );
+    let mut s = LearnSettings::for_period(200);
+    s.gain = 3.0;
+    assert_eq!(
+        ask(LearnRequest::Configure(s)),
+        refused(Field::LearnGain, Rule::AtMost(1.5))
+    );
+    s.gain = 0.3;
+    s.cutoff_hz = 40_000.0;
+    assert_eq!(
+        ask(LearnRequest::Configure(s)),
+        refused(Field::LearnCutoff, Rule::Below(25_000.0))
+    );
+    match ask(LearnRequest::Status) {
+        Response::Learn(st) => {
+            assert_eq!(st.state, LearnState::Off);
+            assert_eq!(st.period_ticks, 0, "nothing was configured");
+        }
+        other => panic!("{other:?}"),
+    }
+}
