@@ -136,6 +136,25 @@ pub enum Field {
     CoarseVelocity,
     /// A coarse move's acceleration, mm/s².
     CoarseAcceleration,
+    /// A scan's lines per frame (raster) or turns (spiral), protocol v6.
+    ScanLines,
+    /// A raster's pixels per line.
+    ScanPixels,
+    /// A scan's ticks per pixel (the pixel clock's period; longer than the trigger pulse).
+    ScanTicksPerPixel,
+    /// A raster's turnaround ticks (its overshoot must stay within the range).
+    ScanTurnaround,
+    /// A scan's rate: the raster's line rate, the Lissajous frame rate, the spiral's turn
+    /// rate (Nyquist and the slew limit).
+    ScanFrequency,
+    /// A Lissajous figure's x or y cycles per frame.
+    ScanCycles,
+    /// A scan's amplitude (offset ± amplitude within −1…1).
+    ScanAmplitude,
+    /// A scan's offset (centre).
+    ScanOffset,
+    /// The trigger outputs' pulse width, ticks.
+    TriggerPulse,
 }
 
 /// The rule a field broke, with its limit where it has one (in the field's own units).
@@ -300,6 +319,15 @@ impl core::fmt::Display for Field {
             Field::CoarseTarget => "coarse target (mm)",
             Field::CoarseVelocity => "coarse speed (mm/s)",
             Field::CoarseAcceleration => "coarse acceleration (mm/s²)",
+            Field::ScanLines => "scan lines (raster) / turns (spiral)",
+            Field::ScanPixels => "scan pixels per line",
+            Field::ScanTicksPerPixel => "scan ticks per pixel",
+            Field::ScanTurnaround => "scan turnaround ticks",
+            Field::ScanFrequency => "scan rate (Hz: line, frame or turn rate)",
+            Field::ScanCycles => "scan Lissajous cycles",
+            Field::ScanAmplitude => "scan amplitude",
+            Field::ScanOffset => "scan offset",
+            Field::TriggerPulse => "trigger pulse ticks",
         };
         f.write_str(name)
     }
