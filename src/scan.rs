@@ -16,8 +16,8 @@
 //!   `v · turn_ticks / 4`, `v` the trace's speed per tick). `turn_ticks = 0` is the plain
 //!   triangle. Pixel clocks only on the trace; y steps from `y_offset − y_amplitude` to
 //!   `y_offset + y_amplitude` in `lines − 1` equal steps, at each line's start.
-//! * **Lissajous**: `x = offset + amplitude · sin(2π · x_cycles · f · t + π/2)`, `y = y_offset
-//!   + y_amplitude · sin(2π · y_cycles · f · t + φ_y)`, one frame per `1/f` (the pattern
+//! * **Lissajous**: `x = offset + amplitude · sin(2π · x_cycles · f · t + π/2)`,
+//!   `y = y_offset + y_amplitude · sin(2π · y_cycles · f · t + φ_y)`, one frame per `1/f` (the pattern
 //!   repeats exactly: both phases are integer multiples of one `u32` accumulator). A line is
 //!   one period of x. x starts at its peak, where its velocity is zero.
 //! * **Spiral** (Archimedean, out and back in): `x = offset + r · sin θ`, `y = y_offset + r ·
@@ -30,7 +30,7 @@
 //! (`i64`) and its deceleration Q2.30 · 2^16 per tick²: one or two `i64` multiplies a tick.
 //! Lissajous and spiral phases are `u32` accumulators (2^32 per cycle), their sines the
 //! waveform generator's interpolated quarter-wave table ([`WaveformGenerator::unit_sine`]).
-//! [`ScanGenerator::next`] is O(1): no loop, no division, no allocation, no panic path;
+//! [`ScanGenerator::next_sample`] is O(1): no loop, no division, no allocation, no panic path;
 //! every division is in [`ScanGenerator::new`] (off the tick, where the request is
 //! validated). Host and board run this same code: bit for bit the same samples.
 //!
@@ -67,6 +67,30 @@ pub const LINE: u8 = 1 << 1;
 pub const FRAME: u8 = 1 << 2;
 /// The trigger input's level, in the capture's trigger channel (bit 3).
 pub const INPUT: u8 = 1 << 3;
+
+/// GPIOA pin of the pixel clock output (PA1).
+pub const PIXEL_PIN: u32 = 1;
+/// GPIOA pin of the line clock output (PA2).
+pub const LINE_PIN: u32 = 2;
+/// GPIOA pin of the frame clock output (PA3).
+pub const FRAME_PIN: u32 = 3;
+/// GPIOA pin of the external trigger input (PA6).
+pub const INPUT_PIN: u32 = 6;
+
+/// The GPIOA `BSRR` word that puts the three outputs at `levels` ([`PIXEL`], [`LINE`],
+/// [`FRAME`] bits): a set bit for each high output, a reset bit (bit + 16) for each low one,
+/// so one store writes all three whatever they were. Three shifts and masks.
+///
+/// ```
+/// use twinstack::scan::{bsrr_word, LINE};
+/// assert_eq!(bsrr_word(LINE), 1 << 2 | (1 << 1 | 1 << 3) << 16);
+/// ```
+#[inline(always)]
+pub const fn bsrr_word(levels: u8) -> u32 {
+    let high = (levels & 0b111) as u32;
+    let low = !high & 0b111;
+    (high << PIXEL_PIN) | (low << (PIXEL_PIN + 16))
+}
 
 /// Most ticks one raster trace may take (`pixels × ticks_per_pixel`): 2^20, 21 s at 50 kHz.
 pub const MAX_TRACE_TICKS: u32 = 1 << 20;
@@ -275,7 +299,7 @@ enum Motion {
 }
 
 /// A validated scan and its progress. Build with [`ScanGenerator::new`] (off the tick), start
-/// with [`ScanGenerator::start`], then one [`ScanGenerator::next`] per tick.
+/// with [`ScanGenerator::start`], then one [`ScanGenerator::next_sample`] per tick.
 #[derive(Clone, Debug)]
 pub struct ScanGenerator {
     motion: Motion,
@@ -331,7 +355,7 @@ impl ScanGenerator {
     /// let mut scan = ScanGenerator::new(&request, 50_000.0, 1 << 26, 1).unwrap();
     /// scan.start(0);
     /// // The approach, then 8 lines of 64 + 20 ticks: the first line clock comes with a frame clock.
-    /// let first = (0..1000).map(|_| scan.next()).find(|s| s.events & LINE != 0).unwrap();
+    /// let first = (0..1000).map(|_| scan.next_sample()).find(|s| s.events & LINE != 0).unwrap();
     /// assert_eq!(first.events & FRAME, FRAME);
     /// assert_eq!(scan.line_ticks(), 84.0);
     /// ```
@@ -581,7 +605,7 @@ impl ScanGenerator {
 
     /// The next tick's sample. O(1): no loop, no division, no panic path.
     #[inline]
-    pub fn next(&mut self) -> ScanSample {
+    pub fn next_sample(&mut self) -> ScanSample {
         match self.phase {
             Phase::Done => ScanSample {
                 x: self.x,
@@ -961,11 +985,11 @@ mod tests {
     fn pattern_samples(g: &mut ScanGenerator, from: i32, most: usize) -> Vec<ScanSample> {
         g.start(from);
         while !g.is_scanning() {
-            g.next();
+            g.next_sample();
         }
         let mut out = Vec::new();
         while !g.is_done() && out.len() < most {
-            out.push(g.next());
+            out.push(g.next_sample());
         }
         out
     }
@@ -1054,7 +1078,7 @@ mod tests {
             let mut k = 0;
             let mut worst_dv = 0i64;
             while !g.is_done() && k < 1_000_000 {
-                let x = g.next().x as i64;
+                let x = g.next_sample().x as i64;
                 assert!((x - last).abs() <= FAST as i64, "step {} at {k}", x - last);
                 if g.is_scanning() {
                     worst_dv = worst_dv.max((x - last - v_last).abs());
@@ -1065,7 +1089,7 @@ mod tests {
             }
             assert!(g.is_done());
             // The end holds: no further motion.
-            assert_eq!(g.next().x as i64, last);
+            assert_eq!(g.next_sample().x as i64, last);
             // Velocity continuity: small against the trace speeds (≥ 0.001 per tick here)
             // except the approach's end (start of the pattern at zero speed from a walk).
             assert!(worst_dv < (FAST / 4) as i64 + 2, "dv {worst_dv}");

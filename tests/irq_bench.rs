@@ -315,7 +315,7 @@ fn the_whole_interrupt_in_every_scenario() {
         .lines()
         .filter_map(|l| l.strip_prefix("SCENARIO "))
         .collect();
-    assert_eq!(names.len(), 18, "every scenario ran: {stdout}");
+    assert_eq!(names.len(), 21, "every scenario ran: {stdout}");
     // Segment 0 is the boot (defaults: bypass, no model); the last follows the final marker.
     assert!(segments.len() > names.len(), "{} segments", segments.len());
 

@@ -107,7 +107,9 @@ fn request() -> impl Strategy<Value = Request> {
             prop_oneof![
                 Just(Trigger::Now),
                 Just(Trigger::StreamStart),
-                Just(Trigger::WaveformStart)
+                Just(Trigger::WaveformStart),
+                Just(Trigger::ScanStart),
+                Just(Trigger::External)
             ],
             any::<u16>()
         )
@@ -130,6 +132,76 @@ fn request() -> impl Strategy<Value = Request> {
             })
         }),
         Just(Request::Telemetry(TelemetryRequest::Stop)),
+        (
+            any::<u16>(),
+            any::<u16>(),
+            any::<u16>(),
+            -2.0f64..2.0,
+            any::<u16>(),
+            any::<bool>()
+        )
+            .prop_map(
+                |(lines, pixels, turn_ticks, amplitude, frames, on_trigger)| {
+                    // Any values the wire carries: the frame layer does not validate.
+                    Request::Scan(ScanRequest {
+                        pattern: ScanPattern::Raster(RasterScan {
+                            lines,
+                            pixels,
+                            turn_ticks,
+                            offset: 0.1,
+                            amplitude,
+                            y_offset: -0.2,
+                            y_amplitude: amplitude,
+                        }),
+                        ticks_per_pixel: pixels / 3,
+                        frames,
+                        on_trigger,
+                    })
+                }
+            ),
+        (0.0f64..1e4, any::<u16>(), any::<u16>()).prop_map(|(f, nx, turns)| {
+            Request::Scan(ScanRequest {
+                pattern: if nx % 2 == 0 {
+                    ScanPattern::Lissajous(LissajousScan {
+                        frame_hz: f,
+                        x_cycles: nx,
+                        y_cycles: turns,
+                        y_phase_deg: 90.0,
+                        offset: 0.0,
+                        amplitude: 0.5,
+                        y_offset: 0.0,
+                        y_amplitude: 0.5,
+                    })
+                } else {
+                    ScanPattern::Spiral(SpiralScan {
+                        turn_hz: f,
+                        turns,
+                        offset: 0.0,
+                        amplitude: 0.5,
+                        y_offset: 0.0,
+                    })
+                },
+                ticks_per_pixel: 4,
+                frames: 0,
+                on_trigger: false,
+            })
+        }),
+        (
+            any::<u16>(),
+            prop_oneof![
+                Just(TriggerEdge::Off),
+                Just(TriggerEdge::Rising),
+                Just(TriggerEdge::Falling)
+            ],
+            any::<bool>()
+        )
+            .prop_map(|(pulse_ticks, input, start_stream)| {
+                Request::Trigger(TriggerConfig {
+                    pulse_ticks,
+                    input,
+                    start_stream,
+                })
+            }),
     ]
 }
 
@@ -271,7 +343,11 @@ fn a_full_batch_fits_one_frame() {
 #[test]
 fn message_variant_counts_match_the_enums() {
     use twinstack::protocol::frame::Message;
-    let last = Request::CoarseStatus;
+    let last = Request::Trigger(TriggerConfig {
+        pulse_ticks: 2,
+        input: TriggerEdge::Rising,
+        start_stream: false,
+    });
     let mut d = FrameDecoder::new();
     assert_eq!(feed(&mut d, &frame_of(&last)), vec![Ok(last)]);
     let tag = Request::VARIANTS as u8;
@@ -307,18 +383,18 @@ fn the_book_s_example_frames_are_what_the_encoder_writes() {
             .map(|b| u8::from_str_radix(b, 16).unwrap())
             .collect()
     };
-    assert_eq!(PROTOCOL_VERSION, 5);
-    assert_eq!(frame_of(&Request::Status), hex("02 05 05 ba e6 ae 3c 00"));
+    assert_eq!(PROTOCOL_VERSION, 6);
+    assert_eq!(frame_of(&Request::Status), hex("02 06 05 79 b5 83 17 00"));
     assert_eq!(
         frame_of(&Request::Setpoints(SetpointBatch {
             seq: 1,
             samples: heapless::Vec::from_slice(&[100, -100]).unwrap(),
         })),
-        hex("0d 05 01 01 02 c8 01 c7 01 bd 87 ae 7b 00")
+        hex("0d 06 01 01 02 c8 01 c7 01 5e 80 21 f5 00")
     );
     let mut out = [0u8; MAX_ENCODED + 1];
     let n = encode(&Response::Ack { credits: 511 }, &mut out).unwrap();
-    assert_eq!(&out[..n], &hex("02 05 07 ff 03 e6 83 b7 1c 00")[..]);
+    assert_eq!(&out[..n], &hex("02 06 07 ff 03 08 2c 02 0e 00")[..]);
     let refused = Response::Nack {
         reason: NackReason::Refused(twinstack::refusal::Refusal::new(
             twinstack::refusal::Field::Ki,
@@ -328,7 +404,7 @@ fn the_book_s_example_frames_are_what_the_encoder_writes() {
     let n = encode(&refused, &mut out).unwrap();
     assert_eq!(
         &out[..n],
-        &hex("06 05 01 03 0a 04 01 01 01 01 08 6a d8 40 4b 5e af 20 00")[..]
+        &hex("06 06 01 03 0a 04 01 01 01 01 08 6a d8 40 85 32 65 9d 00")[..]
     );
     // Protocol v4's capture: arm, read, a chunk.
     assert_eq!(
@@ -339,14 +415,14 @@ fn the_book_s_example_frames_are_what_the_encoder_writes() {
             trigger: Trigger::StreamStart,
             decimation: 1,
         })),
-        hex("0d 05 0b 1b 96 01 0a 01 01 7b 46 a5 c3 00")
+        hex("0d 06 0b 1b 96 01 0a 01 01 98 41 2a 4d 00")
     );
     assert_eq!(
         frame_of(&Request::ReadCapture {
             offset: 0,
             count: 256
         }),
-        hex("03 05 0d 07 80 02 d7 59 25 29 00")
+        hex("03 06 0d 07 80 02 07 23 85 6e 00")
     );
     let chunk = Response::CaptureChunk {
         offset: 0,
@@ -355,7 +431,7 @@ fn the_book_s_example_frames_are_what_the_encoder_writes() {
     let n = encode(&chunk, &mut out).unwrap();
     assert_eq!(
         &out[..n],
-        &hex("03 05 06 0c 03 c8 01 c7 01 fe 3f ca 28 8b 51 00")[..]
+        &hex("03 06 06 0c 03 c8 01 c7 01 fe 3f c9 93 bc ba 00")[..]
     );
     // Protocol v5's telemetry: start (setpoint and sensor every 5 ticks), stop, a frame, and
     // a refused rate.
@@ -364,11 +440,11 @@ fn the_book_s_example_frames_are_what_the_encoder_writes() {
             signals: 0b1001,
             decimation: 5,
         })),
-        hex("03 05 0e 07 09 05 98 40 b5 4f 00")
+        hex("03 06 0e 07 09 05 48 3a 15 08 00")
     );
     assert_eq!(
         frame_of(&Request::Telemetry(TelemetryRequest::Stop)),
-        hex("08 05 0e 01 e1 06 0e 10 00")
+        hex("08 06 0e 01 b8 b8 48 12 00")
     );
     let telemetry = Response::Telemetry(TelemetryFrame {
         seq: 3,
@@ -381,7 +457,7 @@ fn the_book_s_example_frames_are_what_the_encoder_writes() {
     let n = encode(&telemetry, &mut out).unwrap();
     assert_eq!(
         &out[..n],
-        &hex("06 05 07 03 78 09 01 10 04 c8 01 c7 01 80 80 02 80 fa 01 96 ad d8 8a 00")[..]
+        &hex("06 06 07 03 78 09 01 10 04 c8 01 c7 01 80 80 02 80 fa 01 f4 70 5e 60 00")[..]
     );
     let too_fast = Response::Nack {
         reason: NackReason::Refused(twinstack::refusal::Refusal::new(
@@ -392,7 +468,7 @@ fn the_book_s_example_frames_are_what_the_encoder_writes() {
     let n = encode(&too_fast, &mut out).unwrap();
     assert_eq!(
         &out[..n],
-        &hex("06 05 01 03 1e 01 01 01 01 01 01 07 18 40 2e a3 c7 ca 00")[..]
+        &hex("06 06 01 03 1e 01 01 01 01 01 01 07 18 40 e0 cf 0d 77 00")[..]
     );
     // Protocol v5's waveform with a decay: 10 Hz, amplitude 0.97, six full cycles, then
     // 57 000 / 65 536 kept per cycle.
@@ -407,7 +483,35 @@ fn the_book_s_example_frames_are_what_the_encoder_writes() {
                 keep: 57_000
             }),
         })),
-        hex("03 05 07 01 0f d2 f0 03 90 4e 01 06 a8 bd 03 24 6c 6e b6 00")
+        hex("03 06 07 01 0f d2 f0 03 90 4e 01 06 a8 bd 03 ff 49 0f ca 00")
+    );
+    // Protocol v6's scan and trigger I/O: a 64-line raster of 100 pixels, 4 ticks each, with
+    // 40-tick turnarounds, ±0.5 about 0, y ±0.5, one frame, now; pulses of 2 ticks and the
+    // input armed for a rising edge that also starts the stream.
+    assert_eq!(
+        frame_of(&Request::Scan(ScanRequest {
+            pattern: ScanPattern::Raster(RasterScan {
+                lines: 64,
+                pixels: 100,
+                turn_ticks: 40,
+                offset: 0.0,
+                amplitude: 0.5,
+                y_offset: 0.0,
+                y_amplitude: 0.5,
+            }),
+            ticks_per_pixel: 4,
+            frames: 1,
+            on_trigger: false,
+        })),
+        hex("03 06 14 04 40 64 28 01 01 01 01 01 01 01 01 01 01 01 01 01 03 e0 3f 01 01 01 01 01 01 01 01 01 01 01 01 01 05 e0 3f 04 01 05 6e 4e 18 35 00")
+    );
+    assert_eq!(
+        frame_of(&Request::Trigger(TriggerConfig {
+            pulse_ticks: 2,
+            input: TriggerEdge::Rising,
+            start_stream: true,
+        })),
+        hex("0a 06 15 02 01 01 a9 70 3d 43 00")
     );
 }
 

@@ -27,7 +27,7 @@ use serde::{Deserialize, Serialize};
 /// Option<WaveDecay>`); the dual-actuated stage's coarse axis (`CoarseHome`, `CoarseMove`,
 /// `CoarseJog`, `CoarseStop`, `CoarseStatus` → `Response::Coarse`; `Field::CoarseAxis` …
 /// `CoarseAcceleration`, `Rule::NotHomed`, `Rule::LimitSwitch`).
-pub const PROTOCOL_VERSION: u8 = 5;
+pub const PROTOCOL_VERSION: u8 = 6;
 /// Largest frame body (version + message + CRC), bytes.
 pub const MAX_BODY: usize = 1536;
 /// Largest frame on the wire, delimiter excluded.
