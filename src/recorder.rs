@@ -611,6 +611,9 @@ impl<B: SampleStore> Recorder<B> {
             if mask & Channel::Error.bit() != 0 {
                 put((setpoint.saturating_sub(sensor) >> 16) as i16);
             }
+            if mask & Channel::Triggers.bit() != 0 {
+                put(report.triggers as i16);
+            }
         }
         let next = self.pos + self.per_frame;
         self.pos = if next >= self.ring { 0 } else { next };
@@ -698,9 +701,10 @@ impl<B: SampleStore> Recorder<B> {
     }
 }
 
-/// Q2.30 → Q1.15, saturated at ±1.
+/// Q2.30 → Q1.15 (the top 16 bits, truncated), saturated at ±1: the capture's and
+/// telemetry's format of the setpoint, sensor and estimate.
 #[inline(always)]
-fn q1_15(v: i32) -> i16 {
+pub fn q1_15(v: i32) -> i16 {
     (v >> 15).clamp(i16::MIN as i32, i16::MAX as i32) as i16
 }
 

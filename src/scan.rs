@@ -22,7 +22,9 @@
 //!   one period of x. x starts at its peak, where its velocity is zero.
 //! * **Spiral** (Archimedean, out and back in): `x = offset + r · sin θ`, `y = y_offset + r ·
 //!   cos θ`, θ turning at `turn_hz`, `r` rising linearly from 0 to `amplitude` over `turns`
-//!   turns and back to 0 over as many. A line is one turn; a frame one spiral out and in.
+//!   turns and back to 0 over as many. A line is one turn; a frame one spiral out and in,
+//!   `2 · turns` turns counted (the envelope's step is rounded down and saturates, and
+//!   restarts at each frame, so frames and lines never drift apart).
 //!
 //! # Fixed point, cost
 //!
@@ -90,6 +92,22 @@ pub const fn bsrr_word(levels: u8) -> u32 {
     let high = (levels & 0b111) as u32;
     let low = !high & 0b111;
     (high << PIXEL_PIN) | (low << (PIXEL_PIN + 16))
+}
+
+/// The largest setpoint step per tick (Q2.30 normalised) a drive slewing at `slew_rate`
+/// (V/s) over `min_voltage … max_voltage` follows at `rate_hz`, taking the normalised stroke
+/// (2.0) to span the voltage range, as in bypass: the `max_step` a board validates scans
+/// with (the host computes it the same way to replay a scan).
+///
+/// ```
+/// // 1 V/µs over 0–140 V at 50 kHz: 20 V a tick, 2 · 20 / 140 of the stroke.
+/// let step = twinstack::scan::slew_step(1e6, 0.0, 140.0, 50_000.0);
+/// assert_eq!(step, twinstack::fixed_point::signal_from_f64(40.0 / 140.0));
+/// ```
+pub fn slew_step(slew_rate: f64, min_voltage: f64, max_voltage: f64, rate_hz: f64) -> i32 {
+    let step = 2.0 * slew_rate / (rate_hz * (max_voltage - min_voltage));
+    // NaN (a zero span, refused by the settings anyway) maps to 0, then 1 LSB in `new`.
+    signal_from_f64(step.min(2.0))
 }
 
 /// Most ticks one raster trace may take (`pixels × ticks_per_pixel`): 2^20, 21 s at 50 kHz.
@@ -287,8 +305,12 @@ struct Spiral {
     step: u32,
     /// Envelope phase, 2^32 per frame (out and in).
     e: u32,
-    /// Envelope step per tick (`step / (2 · turns)`).
+    /// Envelope step per tick (`step / (2 · turns)`, rounded down).
     e_step: u32,
+    /// Turns since the frame started.
+    turns_done: u32,
+    /// Turns per frame (`2 · turns`: out and back in).
+    turns_per_frame: u32,
 }
 
 #[derive(Clone, Copy, Debug)]
@@ -468,6 +490,8 @@ impl ScanGenerator {
                     step,
                     e: 0,
                     e_step,
+                    turns_done: 0,
+                    turns_per_frame: 2 * s.turns as u32,
                 };
                 let line = rate_hz / s.turn_hz;
                 (Motion::Spiral(m), m.offset, m.y_offset, line)
@@ -657,9 +681,19 @@ impl ScanGenerator {
                 let (x, y) = m.at(&self.table);
                 let events = self.pending;
                 let (theta, line) = m.theta.overflowing_add(m.step);
-                let (e, wrapped) = m.e.overflowing_add(m.e_step);
                 m.theta = theta;
-                m.e = e;
+                // The envelope saturates rather than wrap (its step is rounded down): the
+                // frame ends on the turn count, where the envelope restarts from 0.
+                m.e = m.e.saturating_add(m.e_step);
+                let mut wrapped = false;
+                if line {
+                    m.turns_done += 1;
+                    if m.turns_done >= m.turns_per_frame {
+                        m.turns_done = 0;
+                        m.e = 0;
+                        wrapped = true;
+                    }
+                }
                 let (events, done) = frame_end(
                     events,
                     self.last,
@@ -1173,12 +1207,17 @@ mod tests {
         let mut g = ScanGenerator::new(&spiral(5, 1), RATE, FAST, 1).unwrap();
         let s = pattern_samples(&mut g, 0, 1_000_000);
         let tau = core::f64::consts::TAU;
-        let frame = 2.0 * 5.0 * RATE / 200.0; // 2500 ticks
+        // A frame is ten turns of the accumulator (2500.0003 ticks); the envelope restarts
+        // on the tick the tenth turn completes (the end sample's).
+        let frame = 10.0 * 4_294_967_296.0 / libm::round(200.0 / RATE * 4_294_967_296.0);
         let mut worst: f64 = 0.0;
         for (k, smp) in s.iter().enumerate() {
             let t = k as f64;
-            // The envelope is periodic: the end sample is just past the frame's wrap.
-            let u = t % frame;
+            let u = if t >= libm::ceil(frame) {
+                t - libm::ceil(frame)
+            } else {
+                t
+            };
             let env = if u < frame / 2.0 {
                 u / (frame / 2.0)
             } else {
@@ -1190,10 +1229,10 @@ mod tests {
             worst = worst.max((f(smp.x) - x).abs()).max((f(smp.y) - y).abs());
         }
         assert!(worst < 1e-4, "worst {worst}");
-        // Ends on the tick after the envelope's wrap; a line clock at each turn before it.
+        // Ends on the tick after the tenth turn (5 out, 5 in); a line clock at each turn
+        // before it.
         let step = libm::round(200.0 / RATE * 4_294_967_296.0) as u64;
-        let e_step = step / 10;
-        let end = ((1u64 << 32) + e_step - 1) / e_step;
+        let end = ((10u64 << 32) + step - 1) / step;
         assert_eq!(s.len() as u64, end + 1);
         let lines: Vec<u64> = (0..s.len())
             .filter(|&k| s[k].events & LINE != 0)

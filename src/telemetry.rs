@@ -211,6 +211,9 @@ impl TelemetryTap {
         if mask & Channel::Error.bit() != 0 {
             put(Channel::Error);
         }
+        if mask & Channel::Triggers.bit() != 0 {
+            put(Channel::Triggers);
+        }
         let sample = TelemetrySample {
             index: self.next,
             values,

@@ -430,9 +430,12 @@ impl<S: RecordStorage> CommandHandler<S> {
     /// normalised stroke (2.0) spans the voltage range, as in bypass.
     fn max_scan_step(&self) -> i32 {
         let d = &self.settings.drive;
-        let span = d.max_voltage - d.min_voltage;
-        let step = 2.0 * d.slew_rate / (self.hardware.control_rate_hz * span);
-        crate::fixed_point::signal_from_f64(step.min(2.0))
+        crate::scan::slew_step(
+            d.slew_rate,
+            d.min_voltage,
+            d.max_voltage,
+            self.hardware.control_rate_hz,
+        )
     }
 
     fn capture_status<B, C, L>(&self, control: &mut L) -> CaptureStatus

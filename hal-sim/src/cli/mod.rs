@@ -1,7 +1,7 @@
 //! The `hal-sim` subcommands, one module each: `run(&Args) -> anyhow::Result<()>`.
 //!
 //! Board commands (`calibrate`, `stream`, `load`, `params`, `mode`, `recall`, `status`,
-//! `waveform`, `stop`, `record`, `telemetry`, `coarse`) share
+//! `waveform`, `stop`, `record`, `telemetry`, `coarse`, `scan`) share
 //! [`board_link`]'s `--port` / `--baud` / `--timeout-ms`.
 
 /// The exit codes of every `hal-sim` command, as `hal-sim --help` lists them.
@@ -37,6 +37,7 @@ pub mod params;
 pub mod predict;
 pub mod progress;
 pub mod record;
+pub mod scan;
 pub mod status;
 pub mod stop;
 pub mod stream;

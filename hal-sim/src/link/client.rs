@@ -104,6 +104,8 @@ pub fn request_name(request: &Request) -> &'static str {
         Request::CoarseJog { .. } => "CoarseJog",
         Request::CoarseStop => "CoarseStop",
         Request::CoarseStatus => "CoarseStatus",
+        Request::Scan(_) => "Scan",
+        Request::Trigger(_) => "Trigger",
     }
 }
 

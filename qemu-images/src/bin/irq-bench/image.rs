@@ -39,14 +39,14 @@ pub mod scenarios {
     }
 
     /// The scan scenario's raster: 8 lines of 30 pixels, 4 ticks each, 40-tick turnarounds
-    /// (160 ticks a line), ±0.9, until stopped.
+    /// (160 ticks a line), ±0.8, until stopped.
     pub const RASTER: twinstack::scan::ScanRequest = twinstack::scan::ScanRequest {
         pattern: twinstack::scan::ScanPattern::Raster(twinstack::scan::RasterScan {
             lines: 8,
             pixels: 30,
             turn_ticks: 40,
             offset: 0.0,
-            amplitude: 0.9,
+            amplitude: 0.8,
             y_offset: 0.0,
             y_amplitude: 0.5,
         }),
