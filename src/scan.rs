@@ -1181,7 +1181,7 @@ mod tests {
         // (step = 50 Hz / 50 kHz · 2^32, rounded): frames every 2^32 / step ticks, lines every
         // a third of that; the scan ends on the tick after the second frame's wrap.
         let step = libm::round(50.0 / RATE * 4_294_967_296.0) as u64;
-        let wrap = |m: u64, per: u64| ((m << 32) + per - 1) / per;
+        let wrap = |m: u64, per: u64| (m << 32).div_ceil(per);
         assert_eq!(s.len() as u64, wrap(2, step) + 1);
         let frames: Vec<u64> = (0..s.len())
             .filter(|&k| s[k].events & FRAME != 0)
@@ -1232,7 +1232,7 @@ mod tests {
         // Ends on the tick after the tenth turn (5 out, 5 in); a line clock at each turn
         // before it.
         let step = libm::round(200.0 / RATE * 4_294_967_296.0) as u64;
-        let end = ((10u64 << 32) + step - 1) / step;
+        let end = (10u64 << 32).div_ceil(step);
         assert_eq!(s.len() as u64, end + 1);
         let lines: Vec<u64> = (0..s.len())
             .filter(|&k| s[k].events & LINE != 0)
@@ -1241,7 +1241,7 @@ mod tests {
         let want: Vec<u64> = core::iter::once(0)
             .chain(
                 (1..)
-                    .map(|m: u64| ((m << 32) + step - 1) / step)
+                    .map(|m: u64| (m << 32).div_ceil(step))
                     .take_while(|&k| k < end),
             )
             .collect();

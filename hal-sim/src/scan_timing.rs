@@ -386,9 +386,8 @@ pub fn analyse(
     }
     // Before the alignment point the replay has no levels: take the capture's so that those
     // ticks do not count as errors (they are the approach: no pulses).
-    for k in 0..c0.saturating_sub(h0) {
-        replay_levels[k] = levels[k];
-    }
+    let before = c0.saturating_sub(h0);
+    replay_levels[..before].copy_from_slice(&levels[..before]);
     let line_ticks = g.line_ticks();
     let tpp = request.ticks_per_pixel;
     let (frame_ideal, centre) = match request.pattern {
