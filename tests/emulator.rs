@@ -710,23 +710,35 @@ fn emulator_scan_pulses_the_gpio_outputs_at_the_pattern_s_ticks() {
         &replay[r0..r0 + n],
         "the board's capture vs the replay"
     );
-    // The GPIO writes QEMU logged: `GPIOA: unimplemented device write (size 4, offset 0x18,
-    // value 0x…)`. Each is one tick's outputs.
+    // The GPIO writes QEMU logged: `GPIOA: unimplemented device write (size 4, offset 0x018,
+    // value 0x…)`. Each BSRR word is one tick's outputs.
     // (QEMU keeps logging every tick, so the scan's lines are long written out.)
     let log = std::fs::read_to_string(emu.scratch.join("unimp.log")).expect("the unimp log");
     let words: Vec<u32> = log
         .lines()
-        .filter(|l| l.contains("GPIOA") && l.contains("write") && l.contains("offset 0x18,"))
+        .filter(|l| l.starts_with("GPIOA") && l.contains("device write"))
         .filter_map(|l| {
-            let v = l.rsplit("value ").next()?.trim_end_matches(')');
-            u32::from_str_radix(v.trim_start_matches("0x"), 16).ok()
+            let hex = |s: &str| u32::from_str_radix(s.trim().trim_start_matches("0x"), 16).ok();
+            let offset = hex(l.split("offset ").nth(1)?.split(',').next()?)?;
+            let value = hex(l.rsplit("value ").next()?.trim_end_matches(')'))?;
+            (offset == 0x18).then_some(value)
         })
         .collect();
     assert!(words.len() > 1000, "{} BSRR writes logged", words.len());
-    // Every word writes all three outputs (a set or a reset bit for each).
+    // From the first tick on (the HAL's pin set-up writes a few single-pin words first),
+    // every word writes all three outputs: a set or a reset bit for each.
+    let full = |w: u32| bsrr_word(((w >> 1) & 7) as u8) == w;
+    let first = words.iter().position(|&w| full(w)).unwrap();
+    assert!(first < 8, "{:x?}", &words[..first]);
+    let words = &words[first..];
     assert!(
-        words.iter().all(|&w| bsrr_word(((w >> 1) & 7) as u8) == w),
-        "partial BSRR words"
+        words.iter().all(|&w| full(w)),
+        "partial BSRR words: {:x?}",
+        words
+            .iter()
+            .filter(|&&w| !full(w))
+            .take(5)
+            .collect::<Vec<_>>()
     );
     let levels: Vec<u8> = words.iter().map(|&w| ((w >> 1) & 7) as u8).collect();
     // The pattern's stretch of the register trace is the replay's, tick for tick.
