@@ -260,7 +260,7 @@ where
     /// Applies trigger I/O settings: the pulse width, and arms (or disarms) the input.
     pub fn set_trigger(&mut self, config: TriggerConfig) {
         self.outputs.set_width(config.pulse_ticks);
-        self.external.arm(config.input);
+        self.external.arm(config.input, self.input);
         self.stream_on_trigger = config.start_stream;
     }
 

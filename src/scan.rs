@@ -910,20 +910,33 @@ impl TriggerOutputs {
     /// [`LINE`], [`FRAME`] bits). Straight-line, three compare-and-decrements.
     #[inline(always)]
     pub fn tick(&mut self, events: u8) -> u8 {
-        let mut levels = 0;
         let [p, l, f] = &mut self.left;
-        for (bit, left) in [(PIXEL, p), (LINE, l), (FRAME, f)] {
-            if events & bit != 0 {
-                *left = self.width;
-            }
-            if *left > 0 {
-                levels |= bit;
-                *left -= 1;
-            }
+        // The common tick (no event, no pulse under way): one test.
+        if events == 0 && (*p | *l | *f) == 0 {
+            return 0;
         }
-        levels
+        stretch(events, PIXEL, self.width, p)
+            | stretch(events, LINE, self.width, l)
+            | stretch(events, FRAME, self.width, f)
     }
 }
+
+/// One output of [`TriggerOutputs::tick`]: restarts its pulse on its event, returns `bit`
+/// while the pulse lasts.
+#[inline(always)]
+fn stretch(events: u8, bit: u8, width: u16, left: &mut u16) -> u8 {
+    if events & bit != 0 {
+        *left = width;
+    }
+    if *left > 0 {
+        *left -= 1;
+        bit
+    } else {
+        0
+    }
+}
+
+impl TriggerOutputs {}
 
 /// The external trigger input: one shot, armed for an edge, fired by it.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -951,11 +964,12 @@ impl ExternalTrigger {
         }
     }
 
-    /// Arms for `edge` (`Off` disarms). The level seen last is kept: an edge is a change
-    /// from it.
-    pub fn arm(&mut self, edge: TriggerEdge) {
+    /// Arms for `edge` (`Off` disarms), with the input now at `level` (the level the tick
+    /// saw last): an edge is a change from it.
+    pub fn arm(&mut self, edge: TriggerEdge, level: bool) {
         self.edge = edge;
         self.armed = edge != TriggerEdge::Off;
+        self.last = level;
     }
 
     /// Whether it waits for its edge.
@@ -972,18 +986,21 @@ impl ExternalTrigger {
     /// disarmed). O(1).
     #[inline(always)]
     pub fn poll(&mut self, level: bool) -> bool {
+        // Disarmed (the common tick): one test; the level is taken again at the arming.
+        if !self.armed {
+            return false;
+        }
         let edge = match self.edge {
             TriggerEdge::Off => false,
             TriggerEdge::Rising => level && !self.last,
             TriggerEdge::Falling => !level && self.last,
         };
         self.last = level;
-        let fire = self.armed && edge;
-        if fire {
+        if edge {
             self.armed = false;
             self.fired = self.fired.wrapping_add(1);
         }
-        fire
+        edge
     }
 }
 
@@ -1337,13 +1354,13 @@ mod tests {
 
         let mut t = ExternalTrigger::new();
         assert!(!t.poll(true)); // not armed
-        t.arm(TriggerEdge::Rising);
+        t.arm(TriggerEdge::Rising, true);
         assert!(!t.poll(true)); // high already: no edge
         assert!(!t.poll(false));
         assert!(t.poll(true));
         assert!(!t.is_armed());
         assert!(!t.poll(false) && !t.poll(true)); // one shot
-        t.arm(TriggerEdge::Falling);
+        t.arm(TriggerEdge::Falling, true);
         assert!(t.poll(false));
         assert_eq!(t.fired(), 2);
     }

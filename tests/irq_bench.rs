@@ -329,6 +329,7 @@ fn the_whole_interrupt_in_every_scenario() {
     let mut worst = Tick::default();
     // The model family's dearest configuration (generalised P–I + creep) has its own bound.
     let mut family_worst = 0u64;
+    let mut worst_at = Vec::new();
     let mut rows = vec![(
         "boot (defaults: bypass, no model)".to_string(),
         &segments[0],
@@ -341,6 +342,10 @@ fn the_whole_interrupt_in_every_scenario() {
         let n = ticks.len() as f64;
         let mean = ticks.iter().map(|t| t.instructions).sum::<u64>() as f64 / n;
         let max_i = ticks.iter().map(|t| t.instructions).max().unwrap_or(0);
+        let at = ticks
+            .iter()
+            .position(|t| t.instructions == max_i)
+            .unwrap_or(0);
         let max_c = ticks.iter().map(|t| t.cycles).max().unwrap_or(0);
         let max_c5 = ticks.iter().map(|t| t.cycles_ws5).max().unwrap_or(0);
         let cpu = |rate: f64| 100.0 * max_c as f64 / (SYSCLK_HZ / rate);
@@ -351,6 +356,7 @@ fn the_whole_interrupt_in_every_scenario() {
             cpu(100e3),
             cpu(200e3)
         );
+        worst_at.push(format!("{name}: worst at tick {at} of {}", ticks.len()));
         if name.starts_with(FAMILY_CONFIG) {
             family_worst = family_worst.max(max_i);
             continue;
@@ -362,6 +368,9 @@ fn the_whole_interrupt_in_every_scenario() {
             worst.cycles = worst.cycles.max(t.cycles);
             worst.cycles_ws5 = worst.cycles_ws5.max(t.cycles_ws5);
         }
+    }
+    for line in &worst_at {
+        println!("{line}");
     }
     println!(
         "worst: {} instructions, {} cycles at 0 WS ({} at 5 WS); goal {GOAL_CYCLES} cycles: {}",
