@@ -220,3 +220,60 @@ fn the_external_trigger_starts_a_capture_and_a_waiting_scan_on_its_edge() {
     let s = client.status().unwrap();
     assert!(!s.has(StatusReport::TRIGGER_ARMED));
 }
+
+#[test]
+fn the_board_refuses_a_bad_scan_by_field_and_keeps_what_it_was_doing() {
+    use twinstack::protocol::messages::{NackReason, Response};
+    use twinstack::refusal::{Field, Refusal, Rule};
+    let mut client = board();
+    let good = ScanRequest {
+        pattern: parse_pattern("raster:lines=4,pixels=20,turn=10").unwrap(),
+        ticks_per_pixel: 4,
+        frames: 0,
+        on_trigger: false,
+    };
+    client.expect_ack(&Request::Scan(good)).unwrap();
+    client.wait(Duration::from_millis(2)).unwrap();
+    assert!(client.status().unwrap().has(StatusReport::SCANNING));
+    for (spec, tpp, refusal) in [
+        (
+            "raster:lines=0",
+            4,
+            Refusal::new(Field::ScanLines, Rule::AtLeast(1.0)),
+        ),
+        (
+            "raster:pixels=100",
+            1,
+            // The pulse is 1 tick (the default): a pixel must last longer.
+            Refusal::new(Field::ScanTicksPerPixel, Rule::AtLeast(2.0)),
+        ),
+        (
+            "lissajous:hz=9000,x=3",
+            4,
+            Refusal::new(Field::ScanFrequency, Rule::Below(25_000.0 / 3.0)),
+        ),
+        (
+            "spiral:amplitude=1.2",
+            4,
+            Refusal::new(Field::ScanAmplitude, Rule::AtMost(1.0)),
+        ),
+    ] {
+        let bad = ScanRequest {
+            pattern: parse_pattern(spec).unwrap(),
+            ticks_per_pixel: tpp,
+            frames: 1,
+            on_trigger: false,
+        };
+        match client.request(&Request::Scan(bad)).unwrap() {
+            Response::Nack {
+                reason: NackReason::Refused(r),
+            } => assert_eq!(r, refusal, "{spec}"),
+            other => panic!("{spec}: {other:?}"),
+        }
+        // The running scan goes on.
+        assert!(
+            client.status().unwrap().has(StatusReport::SCANNING),
+            "{spec}"
+        );
+    }
+}
