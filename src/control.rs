@@ -133,6 +133,9 @@ pub struct TickReport {
     pub drive: i32,
     /// What happened.
     pub flags: TickFlags,
+    /// The trigger outputs' levels and the trigger input's ([`crate::scan`]: bit 0 pixel,
+    /// 1 line, 2 frame, 3 input); 0 from the controller, set by the control loop.
+    pub triggers: u8,
 }
 
 /// Counters of one controller since it was prepared (the control loop adds those of the
@@ -714,6 +717,7 @@ impl Controller {
             measured,
             drive: out.applied,
             flags: TickFlags(flags),
+            triggers: 0,
         };
 
         // 6. Observer on the applied drive.

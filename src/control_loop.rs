@@ -10,6 +10,14 @@
 //! 3. the recorder captures the chosen signals (a capture armed on a stream or waveform start
 //!    is triggered where that start is commanded, in [`ControlLoop::start`] / [`ControlLoop::play`]).
 //!
+//! With a scan ([`crate::scan`], protocol v6) the setpoint comes from the scan generator
+//! instead (step 1), and around it the tick samples the external trigger input (set by the
+//! board with [`ControlLoop::set_trigger_input`] before the tick: an armed edge starts a scan
+//! waiting for it, the stream if asked, and fires a capture armed on
+//! [`Trigger::External`]) and, after the controller, turns the scan's pixel / line / frame
+//! events into the trigger outputs' levels ([`ControlLoop::trigger_levels`], for the board to
+//! write to its pins, and in the capture's `triggers` channel). All O(1).
+//!
 //! A configuration prepared by the command handler ([`Controller::prepare`], on the spare
 //! controller, outside any lock) is swapped in by [`ControlLoop::post`] inside the handler's
 //! short critical section, in O(1): the loop holds its controllers by pointer, so the swap
@@ -39,6 +47,7 @@ use crate::mode_switch::Mode;
 use crate::mode_switch::ModeError;
 use crate::recorder::{CaptureInfo, RecordError, Recorder, SampleStore, Trigger};
 use crate::recorder::{Signal, MAX_CAPTURE_CHUNK, MAX_CHUNK};
+use crate::scan::{ExternalTrigger, ScanGenerator, TriggerConfig, TriggerOutputs, INPUT};
 use crate::setpoint_stream::UnderrunPolicy;
 use crate::setpoint_stream::{SetpointStream, Underrun};
 use crate::telemetry::{TelemetrySample, TelemetryTap};
@@ -78,6 +87,10 @@ pub struct Telemetry {
     pub waveform: bool,
     /// Whether the recorder is capturing.
     pub recording: bool,
+    /// Whether a scan runs (its approach or its pattern; not once its last frame is done).
+    pub scanning: bool,
+    /// Whether the external trigger input is armed.
+    pub trigger_armed: bool,
 }
 
 /// Everything the control interrupt owns. `B` is the recorder's buffer; `C` a handle on a
@@ -115,6 +128,20 @@ pub struct ControlLoop<B, C> {
     /// The learning's tick half: the correction table it plays, the errors it stores
     /// ([`crate::learning`]).
     learning: LearnTick,
+    /// The scan (protocol v6), running or waiting for the external trigger.
+    scan: Option<ScanGenerator>,
+    /// The scan waits for the external trigger.
+    scan_pending: bool,
+    /// The pixel, line and frame outputs' pulse stretcher.
+    outputs: TriggerOutputs,
+    /// The external trigger input's edge detector.
+    external: ExternalTrigger,
+    /// The trigger input's level, as the board last sampled it.
+    input: bool,
+    /// The external trigger also starts the stream.
+    stream_on_trigger: bool,
+    /// The trigger outputs' levels the last tick left (bit 0 pixel, 1 line, 2 frame).
+    levels: u8,
 }
 
 impl<B, C> ControlLoop<B, C>
@@ -144,6 +171,13 @@ where
             #[cfg(feature = "dual-stage")]
             coarse: crate::dual_stage::CoarseLink::new(),
             learning: LearnTick::new(),
+            scan: None,
+            scan_pending: false,
+            outputs: TriggerOutputs::new(1),
+            external: ExternalTrigger::new(),
+            input: false,
+            stream_on_trigger: false,
+            levels: 0,
         }
     }
 
@@ -155,12 +189,22 @@ where
         adc: &mut A,
         dac: &mut D,
     ) -> TickReport {
+        if self.external.poll(self.input) {
+            self.fire_external();
+        }
+        let (scanned, events) = self.scan_tick();
         #[cfg(not(feature = "dual-stage"))]
-        let setpoint = self.stream.next(queue);
+        let setpoint = match scanned {
+            Some(x) => Some(x),
+            None => self.stream.next(queue),
+        };
         #[cfg(feature = "dual-stage")]
         let setpoint = match self.coarse.next_setpoint() {
             Some(fine) => Some(fine),
-            None => self.stream.next(queue),
+            None => match scanned {
+                Some(x) => Some(x),
+                None => self.stream.next(queue),
+            },
         };
         // Learning off (the common case) costs one compare here and one below; the
         // controller's correction was zeroed when it was turned off (and a prepared controller
@@ -169,7 +213,9 @@ where
         if learning {
             self.controller.set_learned(self.learning.correction());
         }
-        let report = self.controller.tick(setpoint, adc, dac);
+        let mut report = self.controller.tick(setpoint, adc, dac);
+        self.levels = self.outputs.tick(events);
+        report.triggers = self.levels | if self.input { INPUT } else { 0 };
         #[cfg(feature = "dual-stage")]
         self.coarse.record_measured(report.measured);
         if learning {
@@ -186,6 +232,104 @@ where
         self.recorder
             .capture(self.controller.setpoint(), report.measured, &report);
         report
+    }
+
+    /// The scan's setpoint and events this tick (`None` without a running scan).
+    #[inline(always)]
+    fn scan_tick(&mut self) -> (Option<i32>, u8) {
+        if self.scan_pending {
+            return (None, 0);
+        }
+        match self.scan.as_mut() {
+            Some(g) => {
+                let s = g.next_sample();
+                (Some(s.x), s.events)
+            }
+            None => (None, 0),
+        }
+    }
+
+    /// The external trigger's armed edge came (on the tick): starts the scan waiting for it
+    /// (from the setpoint in force: no step), the stream if asked, and fires a capture armed
+    /// on it. O(1).
+    #[inline(never)] // rare: kept out of the tick's common path
+    fn fire_external(&mut self) {
+        if self.scan_pending {
+            self.scan_pending = false;
+            let from = self.controller.setpoint();
+            if let Some(g) = self.scan.as_mut() {
+                g.start(from);
+            }
+            self.recorder.trigger(Trigger::ScanStart);
+        } else if self.stream_on_trigger {
+            self.start();
+        }
+        self.recorder.trigger(Trigger::External);
+    }
+
+    /// The board's trigger input level, sampled before each tick (the tick looks for the
+    /// armed edge in it).
+    #[inline(always)]
+    pub fn set_trigger_input(&mut self, level: bool) {
+        self.input = level;
+    }
+
+    /// The trigger outputs' levels after the last tick (bit 0 pixel, 1 line, 2 frame: see
+    /// [`crate::scan`]), for the board to write to its pins.
+    #[inline(always)]
+    pub fn trigger_levels(&self) -> u8 {
+        self.levels
+    }
+
+    /// Applies trigger I/O settings: the pulse width, and arms (or disarms) the input.
+    pub fn set_trigger(&mut self, config: TriggerConfig) {
+        self.outputs.set_width(config.pulse_ticks);
+        self.external.arm(config.input, self.input);
+        self.stream_on_trigger = config.start_stream;
+    }
+
+    /// The trigger outputs' pulse width, ticks (what a scan's pixel clock must exceed).
+    pub fn trigger_pulse_ticks(&self) -> u16 {
+        self.outputs.width()
+    }
+
+    /// Times the external trigger fired since power-up.
+    pub fn trigger_fired(&self) -> u32 {
+        self.external.fired()
+    }
+
+    /// Runs `scan` (validated, [`ScanGenerator::new`]) instead of the stream or the
+    /// waveform: now, from the setpoint in force (its approach walks from there), or, with
+    /// `on_trigger`, when the armed external trigger fires (the setpoint holds meanwhile).
+    pub fn scan(&mut self, mut scan: ScanGenerator, on_trigger: bool) {
+        self.waveform = false;
+        self.stream.stop();
+        self.stream.hold_at_if_stopped(self.controller.setpoint());
+        if !on_trigger {
+            scan.start(self.controller.setpoint());
+            self.recorder.trigger(Trigger::ScanStart);
+        }
+        self.scan = Some(scan);
+        self.scan_pending = on_trigger;
+    }
+
+    /// Ends a scan (running, done or waiting): the stream holds where the scan left the
+    /// setpoint.
+    fn end_scan(&mut self) {
+        self.scan_pending = false;
+        if self.scan.take().is_some() {
+            self.stream.hold_at_if_stopped(self.controller.setpoint());
+        }
+    }
+
+    /// Whether a scan runs (its approach or its pattern, not yet done).
+    pub fn is_scanning(&self) -> bool {
+        !self.scan_pending && self.scan.as_ref().is_some_and(|g| !g.is_done())
+    }
+
+    /// The scan (running, done or waiting), for the host's simulated board to inspect.
+    pub fn scan_generator(&self) -> Option<&ScanGenerator> {
+        self.scan.as_ref()
     }
 
     /// Telemetry's part of a tick, right after [`ControlLoop::tick`] (same interrupt): on a
@@ -292,6 +436,7 @@ where
     /// Starts consuming the setpoint queue (stopping the waveform generator).
     pub fn start(&mut self) {
         self.waveform = false;
+        self.end_scan();
         self.stream.start();
         self.learning.restart();
         self.recorder.trigger(Trigger::StreamStart);
@@ -301,6 +446,7 @@ where
     pub fn stop(&mut self) {
         self.waveform = false;
         self.stream.stop();
+        self.end_scan();
     }
 
     /// Ticks per streamed setpoint (interpolated in between); 0 is refused (`false`).
@@ -325,6 +471,7 @@ where
 
     /// Plays `waveform` instead of the queue, from the next tick.
     pub fn play(&mut self, waveform: WaveformGenerator) {
+        self.end_scan();
         self.waveform = true;
         self.stream.play(waveform);
         self.learning.restart();
@@ -411,12 +558,14 @@ where
             streaming: self.stream.is_running() && !self.waveform,
             waveform: self.waveform,
             recording: self.recorder.is_capturing(),
+            scanning: self.is_scanning(),
+            trigger_armed: self.external.is_armed(),
         }
     }
 
-    /// Whether the stream or the waveform generator is running.
+    /// Whether the stream, the waveform generator or a scan is running.
     pub fn is_running(&self) -> bool {
-        self.stream.is_running()
+        self.stream.is_running() || self.is_scanning()
     }
 
     /// The controller (configuration in force, counters).

@@ -69,6 +69,7 @@ pub mod protocol;
 pub mod recorder;
 pub mod refusal;
 pub mod scaling;
+pub mod scan;
 pub mod sensor;
 pub mod setpoint_stream;
 pub mod settings;

@@ -20,6 +20,7 @@
 //! | setpoint, sensor, estimate | Q1.15 normalised displacement (the top 16 bits of the Q2.30 signal, saturated at ±1: outside the model's output range it reads −32768 or 32767), the setpoint's wire format |
 //! | left, right | the stack's DAC code (u16 bits) |
 //! | error | setpoint − sensor, Q2.14 (the top 16 bits of the Q2.30 difference; never saturates) |
+//! | triggers | bit 0 pixel, bit 1 line, bit 2 frame output, bit 3 the trigger input ([`crate::scan`]) |
 //!
 //! # Cost on the tick
 //!
@@ -83,10 +84,13 @@ pub enum Channel {
     Estimate = 4,
     /// Setpoint − sensor, Q2.14 normalised displacement.
     Error = 5,
+    /// The trigger outputs' levels (bit 0 pixel, 1 line, 2 frame) and the trigger input's
+    /// (bit 3), protocol v6 ([`crate::scan`]).
+    Triggers = 6,
 }
 
 /// Number of [`Channel`]s (the mask's bits).
-pub const CHANNELS: usize = 6;
+pub const CHANNELS: usize = 7;
 
 impl Channel {
     /// Every channel, in frame order.
@@ -97,6 +101,7 @@ impl Channel {
         Channel::Sensor,
         Channel::Estimate,
         Channel::Error,
+        Channel::Triggers,
     ];
 
     /// The channel's bit in a capture mask.
@@ -113,6 +118,7 @@ impl Channel {
             Channel::Sensor => "sensor",
             Channel::Estimate => "estimate",
             Channel::Error => "error",
+            Channel::Triggers => "triggers",
         }
     }
 
@@ -129,6 +135,7 @@ impl Channel {
             Channel::Sensor => q1_15(sensor),
             Channel::Estimate => q1_15(report.estimate),
             Channel::Error => (setpoint.saturating_sub(sensor) >> 16) as i16,
+            Channel::Triggers => report.triggers as i16,
         }
     }
 
@@ -150,6 +157,10 @@ pub enum Trigger {
     StreamStart,
     /// The next start of the waveform generator.
     WaveformStart,
+    /// The next start of a scan (protocol v6; at its approach's first tick).
+    ScanStart,
+    /// The external trigger input's armed edge (protocol v6, [`crate::scan::ExternalTrigger`]).
+    External,
 }
 
 /// Where a capture is.
@@ -602,6 +613,9 @@ impl<B: SampleStore> Recorder<B> {
             if mask & Channel::Error.bit() != 0 {
                 put((setpoint.saturating_sub(sensor) >> 16) as i16);
             }
+            if mask & Channel::Triggers.bit() != 0 {
+                put(report.triggers as i16);
+            }
         }
         let next = self.pos + self.per_frame;
         self.pos = if next >= self.ring { 0 } else { next };
@@ -689,9 +703,10 @@ impl<B: SampleStore> Recorder<B> {
     }
 }
 
-/// Q2.30 → Q1.15, saturated at ±1.
+/// Q2.30 → Q1.15 (the top 16 bits, truncated), saturated at ±1: the capture's and
+/// telemetry's format of the setpoint, sensor and estimate.
 #[inline(always)]
-fn q1_15(v: i32) -> i16 {
+pub fn q1_15(v: i32) -> i16 {
     (v >> 15).clamp(i16::MIN as i32, i16::MAX as i32) as i16
 }
 
@@ -712,6 +727,7 @@ mod tests {
             measured: 0,
             drive: 100 * k,
             flags: TickFlags(0),
+            triggers: 0,
         }
     }
 
@@ -783,7 +799,7 @@ mod tests {
         }
         for (mask, samples, pre, trigger, dec, e) in [
             (0, 2, 0, Trigger::Now, 1, RecordError::BadSignals),
-            (0x40, 2, 0, Trigger::Now, 1, RecordError::BadSignals),
+            (0x80, 2, 0, Trigger::Now, 1, RecordError::BadSignals),
             (0b11, 5, 0, Trigger::Now, 1, RecordError::TooManySamples),
             (0b11, 0, 0, Trigger::Now, 1, RecordError::TooManySamples),
             (

@@ -149,6 +149,25 @@ pub enum Field {
     /// The tick's work as a whole at the board's control rate: the models, their creep and
     /// the feedback together ([`crate::tick_budget`]).
     Workload,
+    /// A scan's lines per frame (raster) or turns (spiral), protocol v6.
+    ScanLines,
+    /// A raster's pixels per line.
+    ScanPixels,
+    /// A scan's ticks per pixel (the pixel clock's period; longer than the trigger pulse).
+    ScanTicksPerPixel,
+    /// A raster's turnaround ticks (its overshoot must stay within the range).
+    ScanTurnaround,
+    /// A scan's rate: the raster's line rate, the Lissajous frame rate, the spiral's turn
+    /// rate (Nyquist and the slew limit).
+    ScanFrequency,
+    /// A Lissajous figure's x or y cycles per frame.
+    ScanCycles,
+    /// A scan's amplitude (offset ± amplitude within −1…1).
+    ScanAmplitude,
+    /// A scan's offset (centre).
+    ScanOffset,
+    /// The trigger outputs' pulse width, ticks.
+    TriggerPulse,
 }
 
 /// The rule a field broke, with its limit where it has one (in the field's own units).
@@ -328,6 +347,15 @@ impl core::fmt::Display for Field {
             Field::LearnLead => "learning.lead_ticks",
             Field::LearnLimit => "learning.limit",
             Field::Workload => "the models, creep and feedback together",
+            Field::ScanLines => "scan lines (raster) / turns (spiral)",
+            Field::ScanPixels => "scan pixels per line",
+            Field::ScanTicksPerPixel => "scan ticks per pixel",
+            Field::ScanTurnaround => "scan turnaround ticks",
+            Field::ScanFrequency => "scan rate (Hz: line, frame or turn rate)",
+            Field::ScanCycles => "scan Lissajous cycles",
+            Field::ScanAmplitude => "scan amplitude",
+            Field::ScanOffset => "scan offset",
+            Field::TriggerPulse => "trigger pulse ticks",
         };
         f.write_str(name)
     }

@@ -47,7 +47,7 @@
 //! let first = tap.start(mask, 5).unwrap(); // one sample every 5 ticks
 //! packer.start(mask, 5, first, 50_000);
 //! let report = TickReport {
-//!     left: DacCode(1234), right: DacCode(0), estimate: 0, measured: 0, drive: 0, flags: TickFlags(0),
+//!     left: DacCode(1234), right: DacCode(0), estimate: 0, measured: 0, drive: 0, flags: TickFlags(0), triggers: 0,
 //! };
 //! for _ in 0..500 {
 //!     tap.push(&mut producer, 1 << 29, 0, &report); // setpoint 0.5 (Q2.30)
@@ -211,6 +211,9 @@ impl TelemetryTap {
         if mask & Channel::Error.bit() != 0 {
             put(Channel::Error);
         }
+        if mask & Channel::Triggers.bit() != 0 {
+            put(Channel::Triggers);
+        }
         let sample = TelemetrySample {
             index: self.next,
             values,
@@ -239,8 +242,8 @@ pub fn check_request(signals: u8, decimation: u16, tick_rate_hz: u32) -> Result<
         return Err(Refusal::new(Field::TelemetrySignals, Rule::AtLeast(1.0)));
     }
     if signals >> CHANNELS != 0 {
-        // Bits 6–7 name no signal: the mask is at most 0b11_1111.
-        return Err(Refusal::new(Field::TelemetrySignals, Rule::AtMost(63.0)));
+        // Bit 7 names no signal: the mask is at most 0b111_1111.
+        return Err(Refusal::new(Field::TelemetrySignals, Rule::AtMost(127.0)));
     }
     if decimation == 0 {
         return Err(Refusal::new(Field::TelemetryDecimation, Rule::AtLeast(1.0)));
@@ -461,6 +464,7 @@ mod tests {
             measured: 0,
             drive: 0,
             flags: TickFlags(0),
+            triggers: 0,
         }
     }
 
@@ -501,10 +505,10 @@ mod tests {
         assert_eq!(
             got,
             [
-                (0, [0, 0, 0, 0, 0, 0]),
-                (1, [3, -3, 0, 0, 0, 0]),
-                (2, [6, -6, 0, 0, 0, 0]),
-                (3, [9, -9, 0, 0, 0, 0]),
+                (0, [0, 0, 0, 0, 0, 0, 0]),
+                (1, [3, -3, 0, 0, 0, 0, 0]),
+                (2, [6, -6, 0, 0, 0, 0, 0]),
+                (3, [9, -9, 0, 0, 0, 0, 0]),
             ]
         );
         assert_eq!(tap.stop(), 4);
@@ -515,7 +519,7 @@ mod tests {
     #[test]
     fn bad_starts_are_refused_and_change_nothing() {
         let mut tap = TelemetryTap::new();
-        for (mask, dec) in [(0, 1), (0x40, 1), (1, 0)] {
+        for (mask, dec) in [(0, 1), (0x80, 1), (1, 0)] {
             assert_eq!(tap.start(mask, dec), None);
         }
         assert!(!tap.is_running());
@@ -526,7 +530,7 @@ mod tests {
         );
         assert_eq!(
             refusal(0x81, 1, 50_000),
-            Err((Field::TelemetrySignals, Rule::AtMost(63.0)))
+            Err((Field::TelemetrySignals, Rule::AtMost(127.0)))
         );
         assert_eq!(
             refusal(1, 0, 50_000),
@@ -548,13 +552,13 @@ mod tests {
 
     #[test]
     fn the_tap_sends_what_the_recorder_records() {
-        // One quantity in one form: all six channels agree with a capture of the same ticks.
+        // One quantity in one form: all seven channels agree with a capture of the same ticks.
         let mut rec = Recorder::new(vec![0i16; 64]);
-        rec.arm_capture(0b11_1111, 4, 0, Trigger::Now, 1).unwrap();
+        rec.arm_capture(0b111_1111, 4, 0, Trigger::Now, 1).unwrap();
         let mut q: Queue<TelemetrySample, 8> = Queue::new();
         let (mut p, mut c) = q.split();
         let mut tap = TelemetryTap::new();
-        tap.start(0b11_1111, 1).unwrap();
+        tap.start(0b111_1111, 1).unwrap();
         for (k, (sp, sensor)) in [
             (-(1 << 30), 1 << 29),
             (1 << 29, -(1 << 30)),
@@ -566,11 +570,12 @@ mod tests {
         {
             let mut rep = report(k as i32 * 1000);
             rep.estimate = sp / 3;
+            rep.triggers = (k as u8 * 5) & 0b1111;
             rec.capture(sp, sensor, &rep);
             tap.push(&mut p, sp, sensor, &rep);
         }
         let mut window = heapless::Vec::new();
-        rec.read_capture(0, 24, &mut window).unwrap();
+        rec.read_capture(0, 28, &mut window).unwrap();
         let sent: Vec<i16> = core::iter::from_fn(|| c.dequeue())
             .flat_map(|s| s.values)
             .collect();

@@ -139,10 +139,24 @@ impl WaveformGenerator {
         self.amplitude
     }
 
+    /// The unit sine (Q2.30, ±1) at `phase` (2^32 per cycle), from this generator's table
+    /// whatever its shape: the scan patterns ([`crate::scan`]) share one table this way. O(1),
+    /// no division, no panic path.
+    #[inline(always)]
+    pub fn unit_sine(&self, phase: u32) -> i32 {
+        self.unit_of(Shape::Sine, phase)
+    }
+
     /// The unit waveform (Q2.30, ±1) at `phase`.
     #[inline(always)]
     fn unit(&self, phase: u32) -> i32 {
-        match self.shape {
+        self.unit_of(self.shape, phase)
+    }
+
+    /// The unit waveform of `shape` (Q2.30, ±1) at `phase`.
+    #[inline(always)]
+    fn unit_of(&self, shape: Shape, phase: u32) -> i32 {
+        match shape {
             Shape::Sine => {
                 let quadrant = phase >> 30;
                 let within = phase & 0x3FFF_FFFF; // position in the quadrant, 2^30 per quadrant

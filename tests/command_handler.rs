@@ -1244,9 +1244,9 @@ fn a_capture_triggered_by_the_stream_holds_its_setpoints_and_the_dac_codes() {
             Rule::AtLeast(1.0),
         ),
         (
-            capture(0x41, 10, 0, Trigger::Now, 1),
+            capture(0x81, 10, 0, Trigger::Now, 1),
             Field::RecordSignals,
-            Rule::AtMost(63.0),
+            Rule::AtMost(127.0),
         ),
         (
             capture(1, 0, 0, Trigger::Now, 1),

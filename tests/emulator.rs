@@ -50,6 +50,12 @@ impl Drop for Emulator {
 impl Emulator {
     /// Boots the emulator image; `record`, if given, is loaded at the parameter sector.
     fn boot(name: &str, record: Option<&[u8]>) -> Self {
+        Self::boot_with(name, record, &[])
+    }
+
+    /// [`Emulator::boot`] with `extra` arguments for QEMU (`{scratch}` in them is replaced
+    /// by the scratch directory).
+    fn boot_with(name: &str, record: Option<&[u8]>, extra: &[&str]) -> Self {
         let elf = support::build_image(support::FIRMWARE, "twinstack-emu", &["emulator"]);
         let scratch =
             std::env::temp_dir().join(format!("twinstack-emu-{}-{name}", std::process::id()));
@@ -68,6 +74,9 @@ impl Emulator {
                 "unix:{},server=on,wait=off",
                 scratch.join("monitor.sock").display()
             ));
+        for a in extra {
+            cmd.arg(a.replace("{scratch}", &scratch.display().to_string()));
+        }
         if let Some(bytes) = record {
             let file = scratch.join("record.bin");
             std::fs::write(&file, bytes).expect("record file");
@@ -726,4 +735,160 @@ fn the_stack_stays_within_its_reserve_on_the_deepest_paths() {
         used <= reserve / 4 * 3,
         "the stack reached {used} bytes: more than 3/4 of its {reserve}-byte reserve"
     );
+}
+
+/// The scan's trigger outputs on the GPIO registers: QEMU's `netduinoplus2` models no GPIO, so
+/// GPIOA is an unimplemented-device region whose writes `-d unimp` logs, each with its offset
+/// and value. The tick writes BSRR (offset 0x18) once per tick, so the logged BSRR words are
+/// the outputs tick by tick: their rising edges must fall exactly where the library's replay
+/// of the pattern puts them (the line clock every 60 ticks, the pixel clock every 4 ticks of
+/// each trace), and the board's own capture of the trigger levels must be that same sequence.
+#[test]
+fn emulator_scan_pulses_the_gpio_outputs_at_the_pattern_s_ticks() {
+    use twinstack::scan::{
+        bsrr_word, RasterScan, ScanGenerator, ScanPattern, TriggerOutputs, FRAME, LINE, PIXEL,
+    };
+    let mut emu = Emulator::boot_with("scan", None, &["-d", "unimp", "-D", "{scratch}/unimp.log"]);
+    let request = ScanRequest {
+        pattern: ScanPattern::Raster(RasterScan {
+            lines: 4,
+            pixels: 10,
+            turn_ticks: 20,
+            offset: 0.0,
+            amplitude: 0.5,
+            y_offset: 0.0,
+            y_amplitude: 0.5,
+        }),
+        ticks_per_pixel: 4,
+        frames: 1,
+        on_trigger: false,
+    };
+    let pulse = 2;
+    assert!(matches!(
+        emu.request(&Request::Trigger(TriggerConfig {
+            pulse_ticks: pulse,
+            input: TriggerEdge::Off,
+            start_stream: false,
+        })),
+        Response::Ack { .. }
+    ));
+    let samples = 400u32;
+    assert!(matches!(
+        emu.request(&Request::Capture(CaptureRequest {
+            signals: 1 | 1 << 6, // setpoint, triggers
+            samples,
+            pre_trigger: 0,
+            trigger: Trigger::ScanStart,
+            decimation: 1,
+        })),
+        Response::Ack { .. }
+    ));
+    assert!(
+        matches!(emu.request(&Request::Scan(request)), Response::Ack { .. }),
+        "the emulator refused the scan"
+    );
+    let start = Instant::now();
+    let status = loop {
+        let s = match emu.request(&Request::CaptureStatus) {
+            Response::Capture(s) => s,
+            other => panic!("{other:?}"),
+        };
+        if s.state == CaptureState::Done {
+            break s;
+        }
+        assert!(
+            start.elapsed() < Duration::from_secs(40),
+            "capture stuck: {s:?}"
+        );
+        std::thread::sleep(Duration::from_millis(100));
+    };
+    let mut window = Vec::new();
+    while window.len() < status.window_slots as usize {
+        match emu.request(&Request::ReadCapture {
+            offset: window.len() as u32,
+            count: 256,
+        }) {
+            Response::CaptureChunk { values, .. } => window.extend_from_slice(&values),
+            other => panic!("{other:?}"),
+        }
+    }
+    let captured: Vec<u8> = window
+        .iter()
+        .skip(1)
+        .step_by(2)
+        .map(|&t| (t & 7) as u8)
+        .collect();
+    // The replay: the library's generator and pulse stretcher, from the first frame clock.
+    let rate = status.tick_rate_hz as f64;
+    let mut g = ScanGenerator::new(&request, rate, 1 << 28, pulse).unwrap();
+    g.start(g.start_point().0);
+    let mut out = TriggerOutputs::new(pulse);
+    let replay: Vec<u8> = (0..1000)
+        .map(|_| out.tick(g.next_sample().events))
+        .collect();
+    let from = |v: &[u8]| v.iter().position(|&l| l & FRAME != 0).unwrap();
+    let (c0, r0) = (from(&captured), from(&replay));
+    let n = (captured.len() - c0).min(replay.len() - r0);
+    assert!(n > 300, "{n}");
+    assert_eq!(
+        &captured[c0..c0 + n],
+        &replay[r0..r0 + n],
+        "the board's capture vs the replay"
+    );
+    // The GPIO writes QEMU logged: `GPIOA: unimplemented device write (size 4, offset 0x018,
+    // value 0x…)`. Each BSRR word is one tick's outputs.
+    // (QEMU keeps logging every tick, so the scan's lines are long written out.)
+    let log = std::fs::read_to_string(emu.scratch.join("unimp.log")).expect("the unimp log");
+    let words: Vec<u32> = log
+        .lines()
+        .filter(|l| l.starts_with("GPIOA") && l.contains("device write"))
+        .filter_map(|l| {
+            let hex = |s: &str| u32::from_str_radix(s.trim().trim_start_matches("0x"), 16).ok();
+            let offset = hex(l.split("offset ").nth(1)?.split(',').next()?)?;
+            let value = hex(l.rsplit("value ").next()?.trim_end_matches(')'))?;
+            (offset == 0x18).then_some(value)
+        })
+        .collect();
+    assert!(words.len() > 1000, "{} BSRR writes logged", words.len());
+    // From the first tick on (the HAL's pin set-up writes a few single-pin words first),
+    // every word writes all three outputs: a set or a reset bit for each.
+    let full = |w: u32| bsrr_word(((w >> 1) & 7) as u8) == w;
+    let first = words.iter().position(|&w| full(w)).unwrap();
+    assert!(first < 8, "{:x?}", &words[..first]);
+    let words = &words[first..];
+    assert!(
+        words.iter().all(|&w| full(w)),
+        "partial BSRR words: {:x?}",
+        words
+            .iter()
+            .filter(|&&w| !full(w))
+            .take(5)
+            .collect::<Vec<_>>()
+    );
+    let levels: Vec<u8> = words.iter().map(|&w| ((w >> 1) & 7) as u8).collect();
+    // The pattern's stretch of the register trace is the replay's, tick for tick.
+    let want = &replay[r0..r0 + n];
+    let at = levels
+        .windows(want.len())
+        .position(|w| w == want)
+        .expect("the replayed trigger levels in the BSRR writes");
+    let edges = |bit: u8| -> Vec<usize> {
+        (at + 1..at + n)
+            .filter(|&k| levels[k] & bit != 0 && levels[k - 1] & bit == 0)
+            .map(|k| k - at)
+            .collect()
+    };
+    // Line clock: ticks 0, 60, 120, 180 from the first frame clock (10 × 4 + 20 per line);
+    // frame clock once; the pixel clock every 4 ticks within each 40-tick trace.
+    assert_eq!(edges(LINE), vec![60, 120, 180]);
+    assert!(levels[at] & (LINE | FRAME) == LINE | FRAME);
+    assert!(edges(FRAME).is_empty());
+    let pixels = edges(PIXEL);
+    let want_pixels: Vec<usize> = (0..4)
+        .flat_map(|line| (0..10).map(move |p| line * 60 + p * 4))
+        .filter(|&k| k > 0)
+        .collect();
+    assert_eq!(pixels, want_pixels);
+    // And the register sequence around it: outputs low before the scan.
+    assert!(levels[..at].iter().rev().take(20).all(|&l| l == 0));
 }

@@ -107,7 +107,9 @@ fn request() -> impl Strategy<Value = Request> {
             prop_oneof![
                 Just(Trigger::Now),
                 Just(Trigger::StreamStart),
-                Just(Trigger::WaveformStart)
+                Just(Trigger::WaveformStart),
+                Just(Trigger::ScanStart),
+                Just(Trigger::External)
             ],
             any::<u16>()
         )
@@ -130,6 +132,76 @@ fn request() -> impl Strategy<Value = Request> {
             })
         }),
         Just(Request::Telemetry(TelemetryRequest::Stop)),
+        (
+            any::<u16>(),
+            any::<u16>(),
+            any::<u16>(),
+            -2.0f64..2.0,
+            any::<u16>(),
+            any::<bool>()
+        )
+            .prop_map(
+                |(lines, pixels, turn_ticks, amplitude, frames, on_trigger)| {
+                    // Any values the wire carries: the frame layer does not validate.
+                    Request::Scan(ScanRequest {
+                        pattern: ScanPattern::Raster(RasterScan {
+                            lines,
+                            pixels,
+                            turn_ticks,
+                            offset: 0.1,
+                            amplitude,
+                            y_offset: -0.2,
+                            y_amplitude: amplitude,
+                        }),
+                        ticks_per_pixel: pixels / 3,
+                        frames,
+                        on_trigger,
+                    })
+                }
+            ),
+        (0.0f64..1e4, any::<u16>(), any::<u16>()).prop_map(|(f, nx, turns)| {
+            Request::Scan(ScanRequest {
+                pattern: if nx % 2 == 0 {
+                    ScanPattern::Lissajous(LissajousScan {
+                        frame_hz: f,
+                        x_cycles: nx,
+                        y_cycles: turns,
+                        y_phase_deg: 90.0,
+                        offset: 0.0,
+                        amplitude: 0.5,
+                        y_offset: 0.0,
+                        y_amplitude: 0.5,
+                    })
+                } else {
+                    ScanPattern::Spiral(SpiralScan {
+                        turn_hz: f,
+                        turns,
+                        offset: 0.0,
+                        amplitude: 0.5,
+                        y_offset: 0.0,
+                    })
+                },
+                ticks_per_pixel: 4,
+                frames: 0,
+                on_trigger: false,
+            })
+        }),
+        (
+            any::<u16>(),
+            prop_oneof![
+                Just(TriggerEdge::Off),
+                Just(TriggerEdge::Rising),
+                Just(TriggerEdge::Falling)
+            ],
+            any::<bool>()
+        )
+            .prop_map(|(pulse_ticks, input, start_stream)| {
+                Request::Trigger(TriggerConfig {
+                    pulse_ticks,
+                    input,
+                    start_stream,
+                })
+            }),
     ]
 }
 
@@ -271,7 +343,11 @@ fn a_full_batch_fits_one_frame() {
 #[test]
 fn message_variant_counts_match_the_enums() {
     use twinstack::protocol::frame::Message;
-    let last = Request::Learn(twinstack::protocol::messages::LearnRequest::Status);
+    let last = Request::Trigger(TriggerConfig {
+        pulse_ticks: 2,
+        input: TriggerEdge::Rising,
+        start_stream: false,
+    });
     let mut d = FrameDecoder::new();
     assert_eq!(feed(&mut d, &frame_of(&last)), vec![Ok(last)]);
     let tag = Request::VARIANTS as u8;
@@ -410,6 +486,34 @@ fn the_book_s_example_frames_are_what_the_encoder_writes() {
             }),
         })),
         hex("03 06 07 01 0f d2 f0 03 90 4e 01 06 a8 bd 03 ff 49 0f ca 00")
+    );
+    // Protocol v6's scan and trigger I/O: a 64-line raster of 100 pixels, 4 ticks each, with
+    // 40-tick turnarounds, ±0.5 about 0, y ±0.5, one frame, now; pulses of 2 ticks and the
+    // input armed for a rising edge that also starts the stream.
+    assert_eq!(
+        frame_of(&Request::Scan(ScanRequest {
+            pattern: ScanPattern::Raster(RasterScan {
+                lines: 64,
+                pixels: 100,
+                turn_ticks: 40,
+                offset: 0.0,
+                amplitude: 0.5,
+                y_offset: 0.0,
+                y_amplitude: 0.5,
+            }),
+            ticks_per_pixel: 4,
+            frames: 1,
+            on_trigger: false,
+        })),
+        hex("03 06 15 04 40 64 28 01 01 01 01 01 01 01 01 01 01 01 01 01 03 e0 3f 01 01 01 01 01 01 01 01 01 01 01 01 01 05 e0 3f 04 01 05 29 dc 5c 9a 00")
+    );
+    assert_eq!(
+        frame_of(&Request::Trigger(TriggerConfig {
+            pulse_ticks: 2,
+            input: TriggerEdge::Rising,
+            start_stream: true,
+        })),
+        hex("0a 06 16 02 01 01 47 df 88 51 00")
     );
 }
 

@@ -21,13 +21,15 @@ use twinstack::settings::Settings;
 #[derive(Debug, thiserror::Error, PartialEq, Eq)]
 pub enum SignalListError {
     /// A name that is no signal.
-    #[error("unknown signal {0:?} (signals: setpoint, left, right, sensor, estimate, error)")]
+    #[error(
+        "unknown signal {0:?} (signals: setpoint, left, right, sensor, estimate, error, triggers)"
+    )]
     Unknown(String),
     /// A signal named twice.
     #[error("signal {0:?} is listed twice")]
     Twice(String),
     /// No signal at all.
-    #[error("the signal list is empty (signals: setpoint, left, right, sensor, estimate, error)")]
+    #[error("the signal list is empty (signals: setpoint, left, right, sensor, estimate, error, triggers)")]
     Empty,
 }
 
@@ -150,10 +152,13 @@ pub fn convert(
                     }
                     Channel::Left | Channel::Right => q as u16 as f64 * volts_per_code,
                     Channel::Error => q as f64 / 16384.0 * ranges.output_half_span(),
+                    // Bits, not a quantity: the levels as they are.
+                    Channel::Triggers => q as f64,
                 })
                 .collect();
             let unit = match channel {
                 Channel::Left | Channel::Right => "V",
+                Channel::Triggers => "bits",
                 _ => "um",
             };
             Column {

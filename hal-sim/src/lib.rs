@@ -54,6 +54,7 @@ pub mod param_file;
 pub mod plant;
 pub mod plot;
 pub mod reference;
+pub mod scan_timing;
 pub mod session;
 pub mod setpoint_file;
 pub mod sim_board;

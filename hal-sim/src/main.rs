@@ -49,6 +49,9 @@ enum Command {
     Status(cli::status::Args),
     /// Start the board's waveform generator.
     Waveform(cli::waveform::Args),
+    /// Run a scan pattern (raster, Lissajous, spiral) on the board with its trigger outputs,
+    /// and report the trigger timing.
+    Scan(cli::scan::Args),
     /// Stop the stream or the waveform generator (the output holds).
     Stop(cli::stop::Args),
     /// Capture a signal with the board's recorder into a CSV.
@@ -122,6 +125,7 @@ fn main() -> std::process::ExitCode {
         Command::Recall(a) => cli::params::run_recall(a),
         Command::Status(a) => cli::status::run(a),
         Command::Waveform(a) => cli::waveform::run(a),
+        Command::Scan(a) => cli::scan::run(a),
         Command::Stop(a) => cli::stop::run(a),
         Command::Record(a) => cli::record::run(a),
         Command::Telemetry(a) => cli::telemetry::run(a),

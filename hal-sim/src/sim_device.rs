@@ -243,6 +243,8 @@ pub struct SimDevice<D = InternalDac, A = InternalAdc> {
     /// Board → host bytes and their arrival times (ns).
     tx: TxLine,
     last_report: Option<TickReport>,
+    /// The external trigger input's level (protocol v6 trigger I/O).
+    trigger_input: bool,
 }
 
 impl SimDevice {
@@ -323,6 +325,7 @@ impl<D: AnalogDualDac, A: AnalogSensorAdc> SimDevice<D, A> {
                 counters: LineCounters::default(),
             },
             last_report: None,
+            trigger_input: false,
         })
     }
 
@@ -358,6 +361,7 @@ impl<D: AnalogDualDac, A: AnalogSensorAdc> SimDevice<D, A> {
             .service_learning(&mut Exclusive(&mut self.control));
         let (_, mut consumer) = self.queue.split();
         let (mut dac, mut adc) = self.board.split();
+        self.control.set_trigger_input(self.trigger_input);
         let report = self.control.tick(&mut consumer, &mut adc, &mut dac);
         let (mut samples_in, mut samples_out) = self.telemetry.split();
         self.control.tap_telemetry(&report, &mut samples_in);
@@ -375,6 +379,12 @@ impl<D: AnalogDualDac, A: AnalogSensorAdc> SimDevice<D, A> {
             self.tx.counters.telemetry_frames += 1;
             self.tx.transmit(frame, self.now_ns);
         }
+    }
+
+    /// Drives the board's external trigger input (PA6 on the board) to `level` from the next
+    /// tick on: what a lab's camera or function generator does to the pin.
+    pub fn set_trigger_input(&mut self, level: bool) {
+        self.trigger_input = level;
     }
 
     /// Bytes the modelled UART carried each way so far.

@@ -14,6 +14,8 @@
 //! | coarse stage STEP / DIR | PA8 / PB0 | TIM1 CH1 (AF1) / GPIO ([`coarse_stage`]) |
 //! | motor encoder A / B | PC6 / PC7 | TIM8 CH1 / CH2 (AF3), encoder mode |
 //! | linear encoder A / B | PB6 / PB7 | TIM4 CH1 / CH2 (AF2), encoder mode |
+//! | pixel / line / frame clock out | PA1 / PA2 / PA3 | GPIO push-pull ([`trigger_pins`]) |
+//! | external trigger in | PA6 | GPIO input, pull-down ([`trigger_pins`]) |
 //!
 //! The `emulator` feature swaps exactly three things for QEMU's `netduinoplus2`, which models
 //! neither RCC, DMA, the DAC nor TIM2's update interrupt: the clock stays on HSI
@@ -30,5 +32,6 @@ pub mod dac;
 pub mod param_flash;
 pub mod safe_state;
 pub mod tick;
+pub mod trigger_pins;
 pub mod usart;
 pub mod watchdog;

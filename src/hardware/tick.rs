@@ -1,7 +1,8 @@
 //! The control interrupt's body, shared by the firmware (`src/bin/twinstack-fw.rs`) and the
 //! whole-interrupt bench image (`qemu-images`, `irq-bench`), so that the bench measures the
-//! very code the board runs: acknowledge the timer, [`ControlLoop::tick`] on the board's
-//! converters, telemetry's tap ([`ControlLoop::tap_telemetry`]), feed the watchdog, count an
+//! very code the board runs: acknowledge the timer, sample the trigger input,
+//! [`ControlLoop::tick`] on the board's converters, write the trigger outputs (one `BSRR`
+//! store), telemetry's tap ([`ControlLoop::tap_telemetry`]), feed the watchdog, count an
 //! overrun.
 
 use heapless::spsc::{Consumer, Producer};
@@ -14,6 +15,7 @@ use crate::telemetry::{TelemetrySample, TELEMETRY_QUEUE_LEN};
 use super::adc::SensorInput;
 use super::control_timer::ControlTimer;
 use super::dac::InternalDac;
+use super::trigger_pins::TriggerPins;
 use super::watchdog::Watchdog;
 
 /// The CCM part of the recorder's buffer: 32 768 slots, the whole 64 KiB of CCM RAM.
@@ -49,6 +51,8 @@ pub struct ControlTick {
     pub setpoints: Consumer<'static, i16, SETPOINT_QUEUE_LEN>,
     /// The telemetry queue's producer end (the tap's samples, for the command task's packer).
     pub telemetry: Producer<'static, TelemetrySample, TELEMETRY_QUEUE_LEN>,
+    /// The trigger I/O pins (pixel, line, frame outputs; the external trigger input).
+    pub triggers: TriggerPins,
 }
 
 impl ControlTick {
@@ -57,9 +61,11 @@ impl ControlTick {
     #[inline(always)]
     pub fn run(&mut self) -> bool {
         self.timer.acknowledge();
+        self.control.set_trigger_input(self.triggers.input());
         let report = self
             .control
             .tick(&mut self.setpoints, &mut self.adc, &mut self.dac);
+        self.triggers.write(self.control.trigger_levels());
         self.control.tap_telemetry(&report, &mut self.telemetry);
         self.watchdog.feed();
         if self.timer.next_tick_already_due() {

@@ -28,7 +28,9 @@ use serde::{Deserialize, Serialize};
 /// `CoarseJog`, `CoarseStop`, `CoarseStatus` → `Response::Coarse`; `Field::CoarseAxis` …
 /// `CoarseAcceleration`, `Rule::NotHomed`, `Rule::LimitSwitch`). Version 6: learning
 /// feedforward (`Request::Learn`, `Response::Learn`, the `Field`s `LearnPeriod` …
-/// `LearnLimit`); main's version 5 shipped without it.
+/// `LearnLimit`), the tick budget (`Field::Workload`, `Rule::TickOverrun`), scan patterns and
+/// triggers (`Request::Scan`, `Request::Trigger`, the `Field`s `ScanLines` … `TriggerPulse`);
+/// main's version 5 shipped without them.
 pub const PROTOCOL_VERSION: u8 = 6;
 /// Largest frame body (version + message + CRC), bytes.
 pub const MAX_BODY: usize = 1536;

@@ -31,6 +31,7 @@ use crate::learning::{self, LearnState, LearnTask, Service};
 use crate::param_store::{RecordStorage, StorageError, StoredRecord, MAX_RECORD};
 use crate::recorder::{RecordError, SampleStore};
 use crate::refusal::{Field, Refusal, Rule};
+use crate::scan::{ScanGenerator, ScanRequest};
 use crate::setpoint_stream::setpoint_from_wire;
 use crate::settings::{Mode, Settings};
 use crate::telemetry::{self, TelemetryPacker, TelemetrySample};
@@ -207,6 +208,11 @@ impl<S: RecordStorage> CommandHandler<S> {
                     Err(reason) => nack(reason),
                 }
             }
+            Request::Scan(r) => self.scan(r, control),
+            Request::Trigger(t) => {
+                control.lock(|c| c.set_trigger(t));
+                Ok(())
+            }
         };
         match done {
             Ok(()) => Response::Ack {
@@ -239,6 +245,8 @@ impl<S: RecordStorage> CommandHandler<S> {
             (t.waveform, StatusReport::WAVEFORM),
             (t.recording, StatusReport::RECORDING),
             (self.telemetry.is_active(), StatusReport::TELEMETRY),
+            (t.scanning, StatusReport::SCANNING),
+            (t.trigger_armed, StatusReport::TRIGGER_ARMED),
         ] {
             if on {
                 flags |= flag;
@@ -414,6 +422,36 @@ impl<S: RecordStorage> CommandHandler<S> {
         Ok(())
     }
 
+    /// Validates a scan (outside any lock) against the control rate, the drive's slew limit
+    /// and the trigger pulse width, then starts it (or leaves it waiting for the trigger) in
+    /// one short lock.
+    #[inline(never)] // rare and large: one copy, not one per caller
+    fn scan<B, C, L>(&mut self, r: ScanRequest, control: &mut L) -> Result<(), NackReason>
+    where
+        B: SampleStore,
+        C: DerefMut<Target = Controller>,
+        L: Mutex<T = ControlLoop<B, C>>,
+    {
+        let rate = self.hardware.control_rate_hz;
+        let pulse = control.lock(|c| c.trigger_pulse_ticks());
+        let generator = ScanGenerator::new(&r, rate, self.max_scan_step(), pulse)
+            .map_err(NackReason::Refused)?;
+        control.lock(|c| c.scan(generator, r.on_trigger));
+        Ok(())
+    }
+
+    /// The largest setpoint step per tick (Q2.30) the drive's slew limit follows: the
+    /// normalised stroke (2.0) spans the voltage range, as in bypass.
+    fn max_scan_step(&self) -> i32 {
+        let d = &self.settings.drive;
+        crate::scan::slew_step(
+            d.slew_rate,
+            d.min_voltage,
+            d.max_voltage,
+            self.hardware.control_rate_hz,
+        )
+    }
+
     fn capture_status<B, C, L>(&self, control: &mut L) -> CaptureStatus
     where
         B: SampleStore,
@@ -455,7 +493,7 @@ impl<S: RecordStorage> CommandHandler<S> {
                 telemetry::check_request(signals, decimation, rate).map_err(NackReason::Refused)?;
                 let first = control
                     .lock(|c| c.start_telemetry(signals, decimation))
-                    .ok_or(refused(Field::TelemetrySignals, Rule::AtMost(63.0)))?;
+                    .ok_or(refused(Field::TelemetrySignals, Rule::AtMost(127.0)))?;
                 self.telemetry.start(signals, decimation, first, rate);
             }
             TelemetryRequest::Stop => {
@@ -693,8 +731,8 @@ where
         return Err(refused(Field::RecordSignals, Rule::AtLeast(1.0)));
     }
     if r.signals >> crate::recorder::CHANNELS != 0 {
-        // Bits 6–7 name no signal: the mask is at most 0b11_1111.
-        return Err(refused(Field::RecordSignals, Rule::AtMost(63.0)));
+        // Bit 7 names no signal: the mask is at most 0b111_1111.
+        return Err(refused(Field::RecordSignals, Rule::AtMost(127.0)));
     }
     if r.samples == 0 {
         return Err(refused(Field::RecordCount, Rule::AtLeast(1.0)));

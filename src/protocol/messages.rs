@@ -9,6 +9,9 @@ pub use crate::dual_stage::{CoarseState, CoarseStatus};
 pub use crate::learning::{LearnSettings, LearnState, PeriodError};
 pub use crate::recorder::{CaptureState, Signal, Trigger, MAX_CAPTURE_CHUNK, MAX_CHUNK};
 use crate::refusal::Refusal;
+pub use crate::scan::{
+    LissajousScan, RasterScan, ScanPattern, ScanRequest, SpiralScan, TriggerConfig, TriggerEdge,
+};
 pub use crate::setpoint_stream::UnderrunPolicy;
 use crate::settings::Settings;
 use serde::{Deserialize, Serialize};
@@ -16,7 +19,7 @@ use serde::{Deserialize, Serialize};
 use super::frame::{FrameError, Message};
 
 impl Message for Request {
-    const VARIANTS: u32 = 21;
+    const VARIANTS: u32 = 23;
 }
 
 impl Message for Response {
@@ -91,6 +94,12 @@ pub enum Request {
     /// Learning feedforward (protocol v6, [`crate::learning`]): configure, switch, reset,
     /// read its status, read or write its table.
     Learn(LearnRequest),
+    /// Run a scan pattern (protocol v6, [`crate::scan`]): now, or when the armed external
+    /// trigger fires; stopped by `Stream(Stop)`, replaced by a stream or waveform start.
+    Scan(ScanRequest),
+    /// Trigger I/O settings (protocol v6): the outputs' pulse width, and the external input's
+    /// edge (arming it, one shot) and whether it also starts the stream.
+    Trigger(TriggerConfig),
 }
 
 /// Start or stop continuous telemetry.
@@ -432,6 +441,11 @@ impl StatusReport {
     pub const RECORDING: u16 = 1 << 3;
     /// Flag (protocol v5): telemetry is running (or sending its last frames).
     pub const TELEMETRY: u16 = 1 << 5;
+    /// Flag (protocol v6): a scan runs (its approach or pattern; clear once its last frame
+    /// is done, or while it waits for the trigger).
+    pub const SCANNING: u16 = 1 << 6;
+    /// Flag (protocol v6): the external trigger input is armed.
+    pub const TRIGGER_ARMED: u16 = 1 << 7;
     // Bit 4 is reserved (protocol v2's "load waiting for the next tick": since v3 a load is
     // in force when it is acknowledged).
     /// Flags bits 8–9: the mode (0 bypass, 1 open loop, 2 closed loop).

@@ -1,7 +1,7 @@
 //! The `hal-sim` subcommands, one module each: `run(&Args) -> anyhow::Result<()>`.
 //!
 //! Board commands (`calibrate`, `stream`, `load`, `params`, `mode`, `recall`, `status`,
-//! `waveform`, `stop`, `record`, `telemetry`, `coarse`, and `learn` with `--port`) share
+//! `waveform`, `stop`, `record`, `telemetry`, `coarse`, `scan`, and `learn` with `--port`) share
 //! [`board_link`]'s `--port` / `--baud` / `--timeout-ms`.
 
 /// The exit codes of every `hal-sim` command, as `hal-sim --help` lists them.
@@ -38,6 +38,7 @@ pub mod params;
 pub mod predict;
 pub mod progress;
 pub mod record;
+pub mod scan;
 pub mod status;
 pub mod stop;
 pub mod stream;

@@ -79,6 +79,10 @@ pub enum TriggerArg {
     Stream,
     /// When the waveform generator starts.
     Waveform,
+    /// When a scan starts (`hal-sim scan`).
+    Scan,
+    /// On the external trigger input's armed edge.
+    External,
 }
 
 impl TriggerArg {
@@ -88,6 +92,8 @@ impl TriggerArg {
             TriggerArg::Now => Trigger::Now,
             TriggerArg::Stream => Trigger::StreamStart,
             TriggerArg::Waveform => Trigger::WaveformStart,
+            TriggerArg::Scan => Trigger::ScanStart,
+            TriggerArg::External => Trigger::External,
         }
     }
 }

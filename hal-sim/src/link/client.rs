@@ -105,6 +105,8 @@ pub fn request_name(request: &Request) -> &'static str {
         Request::CoarseStop => "CoarseStop",
         Request::CoarseStatus => "CoarseStatus",
         Request::Learn(_) => "Learn",
+        Request::Scan(_) => "Scan",
+        Request::Trigger(_) => "Trigger",
     }
 }
 

@@ -239,6 +239,12 @@ mod app {
         let _sensor = gpioa.pa0.into_analog();
         let _tx_pin = gpioa.pa9.into_alternate::<7>();
         let _rx_pin = gpioa.pa10.into_alternate::<7>();
+        let triggers = twinstack::hardware::trigger_pins::TriggerPins::new(
+            gpioa.pa1.into_push_pull_output(),
+            gpioa.pa2.into_push_pull_output(),
+            gpioa.pa3.into_push_pull_output(),
+            gpioa.pa6.into_pull_down_input(),
+        );
 
         // The timer's rate is fixed before the controller is built, so the drive's slew limit
         // per tick matches the real period.
@@ -411,6 +417,7 @@ mod app {
                     watchdog,
                     setpoints,
                     telemetry,
+                    triggers,
                 },
                 receiver: Receiver { rx, bytes },
                 uplink,

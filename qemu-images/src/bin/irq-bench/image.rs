@@ -42,7 +42,27 @@ pub mod scenarios {
         /// 750 Hz sine; the idle task runs its period-boundary service as the firmware's
         /// command task does): each tick reads a table entry and stores an error.
         pub learning: bool,
+        /// Instead of streaming: a raster scan generated on the board with its pixel, line and
+        /// frame outputs pulsing ([`RASTER`]), for `TICKS` ticks.
+        pub scan: bool,
     }
+
+    /// The scan scenario's raster: 8 lines of 30 pixels, 4 ticks each, 40-tick turnarounds
+    /// (160 ticks a line), ±0.8, until stopped.
+    pub const RASTER: twinstack::scan::ScanRequest = twinstack::scan::ScanRequest {
+        pattern: twinstack::scan::ScanPattern::Raster(twinstack::scan::RasterScan {
+            lines: 8,
+            pixels: 30,
+            turn_ticks: 40,
+            offset: 0.0,
+            amplitude: 0.8,
+            y_offset: 0.0,
+            y_amplitude: 0.5,
+        }),
+        ticks_per_pixel: 4,
+        frames: 0,
+        on_trigger: false,
+    };
 
     const FULL: i32 = 32767;
 
@@ -107,48 +127,62 @@ pub mod scenarios {
     }
 
     /// Every scenario, in the order they run.
-    pub const ALL: [Scenario; 7] = [
+    pub const ALL: [Scenario; 8] = [
         Scenario {
             name: "triangle",
             setpoint: triangle,
             lifecycle: false,
             learning: false,
+            scan: false,
         },
         Scenario {
             name: "sine-750Hz",
             setpoint: sine_750hz,
             lifecycle: false,
             learning: false,
+            scan: false,
         },
         Scenario {
             name: "full-range-steps",
             setpoint: steps,
             lifecycle: false,
             learning: false,
+            scan: false,
         },
         Scenario {
             name: "random",
             setpoint: random,
             lifecycle: false,
             learning: false,
+            scan: false,
         },
         Scenario {
             name: "nested-loops",
             setpoint: nested_loops,
             lifecycle: false,
             learning: false,
+            scan: false,
         },
         Scenario {
             name: "sine-750Hz-learning",
             setpoint: sine_750hz,
             lifecycle: false,
             learning: true,
+            scan: false,
+        },
+        Scenario {
+            name: "scan-raster-triggers",
+            setpoint: triangle,
+            lifecycle: false,
+            learning: false,
+            scan: true,
         },
         Scenario {
             name: "reload-and-mode-switches",
             setpoint: triangle,
             lifecycle: true,
             learning: false,
+            scan: false,
         },
     ];
 }
@@ -337,6 +371,12 @@ mod app {
         let _dac_left = gpioa.pa4.into_analog();
         let _dac_right = gpioa.pa5.into_analog();
         let _sensor = gpioa.pa0.into_analog();
+        let triggers = twinstack::hardware::trigger_pins::TriggerPins::new(
+            gpioa.pa1.into_push_pull_output(),
+            gpioa.pa2.into_push_pull_output(),
+            gpioa.pa3.into_push_pull_output(),
+            gpioa.pa6.into_pull_down_input(),
+        );
         let timer = ControlTimer::start(cx.core.SYST, &bus, RATE_HZ);
         let hardware = Hardware::driver_board(timer.rate_hz() as f64);
         let settings = Settings::default();
@@ -370,6 +410,7 @@ mod app {
                     watchdog,
                     setpoints,
                     telemetry,
+                    triggers,
                 },
             },
             Local {
@@ -394,14 +435,14 @@ mod app {
         let samples = cx.local.telemetry_out;
         let frame = cx.local.frame;
         let mut lock = LoopLock(cx.shared.tick);
-        // Telemetry at the tick's worst: all six signals on every tick (the tap's dearest
+        // Telemetry at the tick's worst: all seven signals on every tick (the tap's dearest
         // sample; the handler would refuse this rate for the 2 Mbaud line, but the tick's
         // cost per sample is what is measured), packed into frames here between ticks.
         let mut packer = TelemetryPacker::new();
-        let Some(first) = rtic::Mutex::lock(&mut lock, |c| c.start_telemetry(0b11_1111, 1)) else {
+        let Some(first) = rtic::Mutex::lock(&mut lock, |c| c.start_telemetry(0b111_1111, 1)) else {
             panic!("telemetry refused");
         };
-        packer.start(0b11_1111, 1, first, RATE_HZ);
+        packer.start(0b111_1111, 1, first, RATE_HZ);
         // A macro, not a closure: the learning's service borrows the handler and the lock too.
         macro_rules! ask {
             ($request:expr) => {
@@ -427,11 +468,11 @@ mod app {
             hprintln!("SCENARIO {}/load", config.name);
             expect_ack(ask!(Request::LoadParams(config.settings.clone())), "load");
             for scenario in &scenarios::ALL {
-                // A fresh capture per scenario: the recorder runs throughout, taking all six
-                // signals every tick (its worst case: six stores per tick).
+                // A fresh capture per scenario: the recorder runs throughout, taking all seven
+                // signals every tick (its worst case: seven stores per tick).
                 expect_ack(
                     ask!(Request::Capture(CaptureRequest {
-                        signals: 0b11_1111,
+                        signals: 0b111_1111,
                         samples: (SRAM_SLOTS / CHANNELS) as u32,
                         pre_trigger: 0,
                         trigger: Trigger::Now,
@@ -456,6 +497,39 @@ mod app {
                 let mut k = 0u32;
                 let mut started = false;
                 let mut changed = 0u8;
+                if scenario.scan {
+                    // Pulses of 2 ticks; the scan runs TICKS ticks (counted by the status).
+                    expect_ack(
+                        ask!(Request::Trigger(twinstack::scan::TriggerConfig {
+                            pulse_ticks: 2,
+                            input: twinstack::scan::TriggerEdge::Rising,
+                            start_stream: false,
+                        })),
+                        "trigger",
+                    );
+                    let t0 = match ask!(Request::Status) {
+                        Response::Status(s) => s.ticks,
+                        _ => 0,
+                    };
+                    expect_ack(ask!(Request::Scan(scenarios::RASTER)), "scan");
+                    loop {
+                        let now = match ask!(Request::Status) {
+                            Response::Status(s) => s.ticks,
+                            _ => 0,
+                        };
+                        if now.wrapping_sub(t0) >= scenarios::TICKS {
+                            break;
+                        }
+                        cortex_m::asm::wfi();
+                        while packer.due(samples) {
+                            if packer.pack(samples, frame).is_none() {
+                                break;
+                            }
+                        }
+                    }
+                    expect_ack(ask!(Request::Stream(StreamControl::Stop)), "stop");
+                    continue;
+                }
                 loop {
                     // Fill the queue as far as the credits go.
                     if k < scenarios::TICKS {
