@@ -426,9 +426,28 @@ pub fn step(
     model: &StageModel,
     notch: bool,
 ) -> Result<StepRow> {
+    let mut row = step_with(rate, options, model, &feedback_settings(rate, notch))?;
+    row.notch = notch;
+    Ok(row)
+}
+
+/// [`step`] with the feedback `feedback` (e.g. what `hal-sim tune` chose); the row's `notch`
+/// says whether it has one.
+pub fn step_with(
+    rate: f64,
+    options: &ClosedLoopOptions,
+    model: &StageModel,
+    feedback: &FeedbackSettings,
+) -> Result<StepRow> {
     let board0 = board(rate, options.sensor_noise_um)?;
     let sensor = sensor_settings(&board0);
-    let config = configuration(rate, model, sensor, Configuration4::Both, notch)?;
+    let notch = feedback.notch.is_some();
+    let config = Settings {
+        feedback: Some(*feedback),
+        ..settings(rate, model, sensor, Configuration4::Both, notch)
+    }
+    .build(&hardware(rate))
+    .map_err(|e| anyhow!("settings refused: {e}"))?;
     let s = model.scaling;
     let (lo, hi) = stroke(model);
     let (from_um, to_um) = (lo + 0.3 * (hi - lo), lo + 0.7 * (hi - lo));

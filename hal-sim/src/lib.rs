@@ -62,4 +62,5 @@ pub mod sim_device;
 pub mod stage_model;
 pub mod telemetry;
 pub mod tracking;
+pub mod tune;
 pub mod virtual_board;

@@ -73,6 +73,10 @@ enum Command {
     /// dual-stage board; `--port sim` is the simulated dual-stage board).
     #[command(subcommand_required = true)]
     Coarse(cli::coarse::Args),
+    /// Measure the stage's frequency response, fit its resonance, place the notch and choose
+    /// PI gains for the margins (or check given gains); print margins and bandwidth, write a
+    /// Bode PNG, and with --load load them.
+    Tune(cli::tune::Args),
     /// Serve the simulated board over TCP (tcp:HOST:PORT), paced in real time, keeping its
     /// state from one command to the next (--port tcp:HOST:PORT), until killed.
     VirtualBoard(cli::virtual_board::Args),
@@ -133,6 +137,7 @@ fn main() -> std::process::ExitCode {
         Command::DualStage(a) => cli::dual_stage::run(a),
         Command::LabStage(a) => cli::lab_stage::run(a),
         Command::VirtualBoard(a) => cli::virtual_board::run(a),
+        Command::Tune(a) => cli::tune::run(a),
         Command::Coarse(a) => cli::coarse::run(a),
     };
     match result {

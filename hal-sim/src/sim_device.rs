@@ -98,8 +98,9 @@ impl SimDeviceConfig {
     /// the sensor's ±45 µm (its calibration), bias 70 V, 0…140 V limits, 0.9 V/µs slew, a
     /// representative 8-operator P–I model (total slope ≈ 0.4 µm/V) as compensator and
     /// observer (not identified: load
-    /// the identification's settings for accuracy), PI gains kp 0.2, ki 500 /s, correction
-    /// within a tenth of the drive range.
+    /// the identification's settings for accuracy), and the shipped default feedback
+    /// ([`FeedbackSettings::DEFAULT`], stable at every allowed rate; `hal-sim tune` chooses
+    /// faster gains).
     pub fn paper_settings(mode: Mode) -> Settings {
         let n = 8;
         let thresholds: Vec<f64> = (0..n).map(|i| i as f64 * 140.0 / n as f64).collect();
@@ -126,7 +127,7 @@ impl SimDeviceConfig {
                 displacement_at_full_scale: 45.0,
                 drift_limit: None,
             }),
-            feedback: Some(FeedbackSettings::pi(0.2, 500.0, 0.1)),
+            feedback: Some(FeedbackSettings::DEFAULT),
             mode,
             creep: None,
         }

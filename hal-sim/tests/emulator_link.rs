@@ -595,3 +595,27 @@ fn the_coarse_axis_of_the_emulated_firmware_homes_and_moves_over_its_uart() {
     assert!(out.contains("state idle\nhomed yes\n"), "{out}");
     assert!(out.contains("position_mm -22.5"), "{out}");
 }
+
+/// `hal-sim tune` on the emulated firmware: the whole protocol path runs (bypass, a sine from
+/// the generator, a capture of drive and sensor armed on its start, read back), but QEMU's ADC
+/// does not measure a stage, so the sweep must stop at its first frequency with exit 1 saying
+/// the sensor did not move, nothing loaded and the board's mode restored.
+#[test]
+fn tune_runs_its_sweep_on_the_emulated_firmware_and_stops_cleanly_without_a_stage() {
+    let qemu = boot();
+    drop(connect(&qemu));
+    let port = format!("unix:{}", qemu.socket.display());
+    let (_, before, _) = hal_sim(&["params", "--port", &port]);
+    let (code, out, err) = hal_sim(&["tune", "--port", &port, "--load", "--json"]);
+    eprintln!("tune on the emulator: exit {code:?}\n{out}{err}");
+    assert_eq!(code, Some(1), "{out}{err}");
+    assert!(!err.contains("panicked"), "{err}");
+    assert!(
+        err.starts_with("error: ") && err.contains("sensor did not move"),
+        "the error says why: {err}"
+    );
+    let (_, after, _) = hal_sim(&["params", "--port", &port]);
+    assert_eq!(after, before, "nothing was loaded");
+    let (_, status, _) = hal_sim(&["status", "--port", &port, "--json"]);
+    assert!(status.contains("\"mode\":\"bypass\""), "{status}");
+}

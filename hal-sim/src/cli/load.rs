@@ -102,7 +102,7 @@ pub fn settings_for(args: &Args, file: &Settings, board: Option<&Settings>) -> S
     if args.no_feedback {
         s.feedback = None;
     } else if args.kp.is_some() || args.ki.is_some() || args.correction_limit.is_some() {
-        let base = s.feedback.unwrap_or(FeedbackSettings::pi(0.2, 500.0, 0.1));
+        let base = s.feedback.unwrap_or(FeedbackSettings::DEFAULT);
         s.feedback = Some(FeedbackSettings {
             kp: args.kp.unwrap_or(base.kp),
             ki: args.ki.unwrap_or(base.ki),

@@ -1,8 +1,8 @@
 //! The `hal-sim` subcommands, one module each: `run(&Args) -> anyhow::Result<()>`.
 //!
 //! Board commands (`calibrate`, `stream`, `load`, `params`, `mode`, `recall`, `status`,
-//! `waveform`, `stop`, `record`, `telemetry`, `coarse`, `scan`, and `learn` with `--port`) share
-//! [`board_link`]'s `--port` / `--baud` / `--timeout-ms`.
+//! `waveform`, `stop`, `record`, `telemetry`, `coarse`, `scan`, `tune`, and `learn` with
+//! `--port`) share [`board_link`]'s `--port` / `--baud` / `--timeout-ms`.
 
 /// The exit codes of every `hal-sim` command, as `hal-sim --help` lists them.
 pub const EXIT_CODES: &str = "\
@@ -43,5 +43,6 @@ pub mod status;
 pub mod stop;
 pub mod stream;
 pub mod telemetry;
+pub mod tune;
 pub mod virtual_board;
 pub mod waveform;
