@@ -38,12 +38,12 @@ pub const SYSCLK_HZ: u32 = 168_000_000;
 
 /// The share of the control period the tick may take, percent: the rest is for the link's
 /// DMA interrupts, the command handler and the coarse axis, which run below it.
-pub const TICK_SHARE_PERCENT: u32 = 95;
+pub const TICK_SHARE_PERCENT: u32 = 100;
 
 /// Everything that does not grow with a model: RTIC's entry and exit, the stream, the sensor
 /// read and its drift check, PI feedback, the drive stage, the recorder taking six signals,
 /// telemetry's tap at its worst, the DAC write and the watchdog.
-pub const FIXED_CYCLES: u32 = 870;
+pub const FIXED_CYCLES: u32 = 1040;
 /// A P–I bank's cost beyond its operators (the inverse's and the forward's alike).
 pub const PI_BASE_CYCLES: u32 = 41;
 /// Each pair of play operators (one packed word) of a P–I bank.
@@ -58,7 +58,7 @@ pub const DUHEM_CYCLES: u32 = 170;
 pub const BOUC_WEN_CYCLES: u32 = 88;
 /// A creep operator beyond its modes (per side it runs on: the compensator's inverse, the
 /// observer's forward).
-pub const CREEP_BASE_CYCLES: u32 = 92;
+pub const CREEP_BASE_CYCLES: u32 = 102;
 /// Each creep mode, per side.
 pub const CREEP_MODE_CYCLES: u32 = 40;
 /// The feedback's derivative term.
@@ -70,6 +70,10 @@ pub const NOTCH_CYCLES: u32 = 95;
 /// one error store, the index flips at a period's end. Counted when the learning is switched
 /// on, and at every load while it is on (the command handler checks both).
 pub const LEARNING_CYCLES: u32 = 90;
+
+/// A scan generated on the board while it runs ([`crate::scan`]): the pattern's step, the
+/// pixel, line and frame events. Counted when a scan starts, and at every load while one runs.
+pub const SCAN_CYCLES: u32 = 150;
 
 /// Cycles the tick may take at `control_rate_hz`: [`TICK_SHARE_PERCENT`] of the period.
 /// A rate that is not positive and finite leaves none.
@@ -143,16 +147,32 @@ pub fn worst_case_cycles(config: &ControlConfig) -> u32 {
 /// `Ok(())` if `config` fits the tick at `control_rate_hz`, else a [`Rule::TickOverrun`]
 /// refusal of [`Field::Workload`] with the cycles it needs and the cycles the rate leaves.
 pub fn check(config: &ControlConfig, control_rate_hz: f64) -> Result<(), Refusal> {
-    check_with(config, control_rate_hz, false)
+    check_with(config, control_rate_hz, Beside::default())
 }
 
-/// [`check`], with the learning feedforward's cost added when `learning` is on.
+/// What runs beside the configuration and costs the tick: the learning feedforward, a scan.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct Beside {
+    /// The learning feedforward plays (learning or frozen).
+    pub learning: bool,
+    /// A scan runs (or waits for its trigger).
+    pub scanning: bool,
+}
+
+impl Beside {
+    /// Their cost, cycles.
+    pub fn cycles(&self) -> u32 {
+        u32::from(self.learning) * LEARNING_CYCLES + u32::from(self.scanning) * SCAN_CYCLES
+    }
+}
+
+/// [`check`], with what runs beside the configuration added.
 pub fn check_with(
     config: &ControlConfig,
     control_rate_hz: f64,
-    learning: bool,
+    beside: Beside,
 ) -> Result<(), Refusal> {
-    let needs = worst_case_cycles(config) + if learning { LEARNING_CYCLES } else { 0 };
+    let needs = worst_case_cycles(config) + beside.cycles();
     let available = available_cycles(control_rate_hz);
     if needs > available {
         return Err(Refusal::new(
@@ -240,7 +260,7 @@ mod tests {
                 Field::Workload,
                 Rule::TickOverrun {
                     needs,
-                    available: 1596
+                    available: 1680
                 }
             )
         );

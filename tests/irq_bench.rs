@@ -476,6 +476,8 @@ fn the_whole_interrupt_in_every_scenario() {
                 budgets.values().copied().max().unwrap_or(0)
             } else if name.ends_with("-learning") {
                 predicted + u64::from(twinstack::tick_budget::LEARNING_CYCLES)
+            } else if name.ends_with("/scan-raster-triggers") {
+                predicted + u64::from(twinstack::tick_budget::SCAN_CYCLES)
             } else if name.contains("reload") {
                 let other = if config.starts_with("inverse-pi16") {
                     "inverse-duhem+duhem-observer+pi+drift"

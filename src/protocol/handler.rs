@@ -302,9 +302,12 @@ impl<S: RecordStorage> CommandHandler<S> {
         let config = settings
             .build(&self.hardware)
             .map_err(NackReason::Refused)?;
-        // While the learning plays, the tick runs it beside the new configuration.
-        let learning = control.lock(|c| c.learning().state()) != LearnState::Off;
-        crate::tick_budget::check_with(&config, self.hardware.control_rate_hz, learning)
+        // What the tick runs beside the new configuration: the learning, a scan.
+        let beside = control.lock(|c| crate::tick_budget::Beside {
+            learning: c.learning().state() != LearnState::Off,
+            scanning: c.is_scanning(),
+        });
+        crate::tick_budget::check_with(&config, self.hardware.control_rate_hz, beside)
             .map_err(NackReason::Refused)?;
         let (spare, stacks) = control.lock(|c| (c.spare(), c.stacks()));
         // Two controllers cycle between the tick and this task: the spare is always there.
@@ -436,6 +439,13 @@ impl<S: RecordStorage> CommandHandler<S> {
         let pulse = control.lock(|c| c.trigger_pulse_ticks());
         let generator = ScanGenerator::new(&r, rate, self.max_scan_step(), pulse)
             .map_err(NackReason::Refused)?;
+        let learning = control.lock(|c| c.learning().state()) != LearnState::Off;
+        if let Some(refusal) = self.over_budget(crate::tick_budget::Beside {
+            learning,
+            scanning: true,
+        }) {
+            return Err(NackReason::Refused(refusal));
+        }
         control.lock(|c| c.scan(generator, r.on_trigger));
         Ok(())
     }
@@ -543,14 +553,11 @@ impl<S: RecordStorage> CommandHandler<S> {
         &self.learn
     }
 
-    /// Whether switching the learning to `state` would take the tick over its budget with
-    /// the loaded settings (built again here, off the tick).
-    fn learning_over_budget(&self, state: LearnState) -> Option<crate::refusal::Refusal> {
-        if state == LearnState::Off {
-            return None;
-        }
+    /// Whether the loaded settings (built again here, off the tick) with `beside` would take
+    /// the tick over its budget: the refusal if so.
+    fn over_budget(&self, beside: crate::tick_budget::Beside) -> Option<crate::refusal::Refusal> {
         let config = self.settings.build(&self.hardware).ok()?;
-        crate::tick_budget::check_with(&config, self.hardware.control_rate_hz, true).err()
+        crate::tick_budget::check_with(&config, self.hardware.control_rate_hz, beside).err()
     }
 
     #[inline(never)] // rare and large: one copy, not one per caller
@@ -578,7 +585,16 @@ impl<S: RecordStorage> CommandHandler<S> {
                     Err(refused(Field::LearnPeriod, Rule::Required))
                 } else if state == LearnState::Learning && self.settings.sensor.is_none() {
                     Err(refused(Field::Sensor, Rule::Required))
-                } else if let Some(refusal) = self.learning_over_budget(state) {
+                } else if let Some(refusal) = (state != LearnState::Off)
+                    .then(|| {
+                        let scanning = control.lock(|c| c.is_scanning());
+                        self.over_budget(crate::tick_budget::Beside {
+                            learning: true,
+                            scanning,
+                        })
+                    })
+                    .flatten()
+                {
                     Err(NackReason::Refused(refusal))
                 } else {
                     control.lock(|c| c.set_learning(state));
