@@ -40,10 +40,11 @@ pub const SYSCLK_HZ: u32 = 168_000_000;
 /// DMA interrupts, the command handler and the coarse axis, which run below it.
 pub const TICK_SHARE_PERCENT: u32 = 100;
 
-/// Everything that does not grow with a model: RTIC's entry and exit, the stream, the sensor
-/// read and its drift check, PI feedback, the drive stage, the recorder taking six signals,
-/// telemetry's tap at its worst, the DAC write and the watchdog.
-pub const FIXED_CYCLES: u32 = 1040;
+/// Everything that does not grow with a model: RTIC's entry and exit, the stream, the trigger
+/// input and outputs, the sensor read and its drift check, PI feedback, the drive stage, the
+/// recorder taking all seven signals, telemetry's tap at its worst, the DAC write, the watchdog,
+/// and the first tick after a reload or a mode switch (its rebase, up to 50 instructions more).
+pub const FIXED_CYCLES: u32 = 1090;
 /// A P–I bank's cost beyond its operators (the inverse's and the forward's alike).
 pub const PI_BASE_CYCLES: u32 = 41;
 /// Each pair of play operators (one packed word) of a P–I bank.
