@@ -20,9 +20,9 @@ use std::path::PathBuf;
 use std::process::Child;
 use std::time::{Duration, Instant};
 
-/// Values the stream's capture records: the emulator's whole recorder (its 20 480 SRAM slots,
+/// Values the stream's capture records: the emulator's whole recorder (its 19 456 SRAM slots,
 /// two per value; QEMU models no CCM RAM, the board's other 32 768).
-const RECORD_VALUES: u32 = 10_240;
+const RECORD_VALUES: u32 = 9_728;
 use twinstack::protocol::frame::{self, FrameError, MAX_ENCODED};
 use twinstack::protocol::messages::{
     Image, Mode, NackReason, RecordRequest, Request, Response, SetpointBatch, Signal,

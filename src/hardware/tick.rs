@@ -21,14 +21,15 @@ use super::watchdog::Watchdog;
 /// The CCM part of the recorder's buffer: 32 768 slots, the whole 64 KiB of CCM RAM.
 pub const HALF_SLOTS: usize = 32 * 1024;
 
-/// The SRAM part of the recorder's buffer: 20 480 slots, 40 KiB (the rest of
-/// [`CAPTURE_SLOTS`]); 24 KiB less than it was, so that with the learning's tables and
-/// telemetry's queue every image's static RAM leaves the stack its reserve (`memory.x`).
+/// The SRAM part of the recorder's buffer: 19 456 slots, 38 KiB (the rest of
+/// [`CAPTURE_SLOTS`]); 26 KiB less than it was, so that with the learning's tables,
+/// telemetry's queue and the scan every image's static RAM leaves the stack its reserve
+/// (`memory.x`).
 pub const SRAM_SLOTS: usize = CAPTURE_SLOTS - HALF_SLOTS;
 
-/// The recorder's buffer: 40 KiB of SRAM, then the 64 KiB of CCM RAM on the board
+/// The recorder's buffer: 38 KiB of SRAM, then the 64 KiB of CCM RAM on the board
 /// ([`super::ccm::capture_half`]); QEMU 7.2's `netduinoplus2` models no CCM, so the emulator
-/// images pass an empty second part (20 480 slots in all).
+/// images pass an empty second part (19 456 slots in all).
 pub type RecordBuffer = SplitStore<&'static mut [i16; SRAM_SLOTS], &'static mut [i16]>;
 
 /// The tick's loop on the board: two controllers in statics, passed by pointer between the
