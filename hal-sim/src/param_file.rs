@@ -266,24 +266,22 @@ impl ParamFile {
         }
         let s = &file.settings;
         // The board's own validation, at either end of its rates: a file is refused only
-        // if no rate the board runs would take it.
+        // if no rate the board runs would take it. The tick budget is left to the board: what
+        // the tick can afford depends on the rate it runs and on what runs beside the settings,
+        // and the board refuses it at load (`Refused(Workload, TickOverrun)`).
         let rates = [50_000.0, 100_000.0];
-        if let Some(refusal) = rates
-            .iter()
-            .map(|&r| s.build(&Hardware::driver_board(r)))
-            .collect::<Vec<_>>()
-            .into_iter()
-            .find_map(|r| r.err())
-            .filter(|_| {
-                rates
-                    .iter()
-                    .all(|&r| s.build(&Hardware::driver_board(r)).is_err())
-            })
-        {
-            return Err(field(
-                format!("settings.{}", refusal.field),
-                refusal.rule.to_string(),
-            ));
+        let refused_at = |rate: f64| match s.build(&Hardware::driver_board(rate)) {
+            Err(r) if r.field != twinstack::refusal::Field::Workload => Some(r),
+            _ => None,
+        };
+        let refusals: Vec<_> = rates.iter().map(|&r| refused_at(r)).collect();
+        if refusals.iter().all(Option::is_some) {
+            if let Some(Some(refusal)) = refusals.into_iter().next() {
+                return Err(field(
+                    format!("settings.{}", refusal.field),
+                    refusal.rule.to_string(),
+                ));
+            }
         }
         let hysteresis = match s.compensator.as_ref().or(s.observer.as_ref()) {
             Some(Model::PrandtlIshlinskii(p)) => Hysteresis::Pi(p.clone()),
