@@ -51,7 +51,7 @@
 //! [`ScanSample::events`] marks the ticks a pixel, line or frame starts ([`PIXEL`], [`LINE`],
 //! [`FRAME`]); [`TriggerOutputs`] stretches them to pulses of `pulse_ticks` ticks (the output
 //! is high on the event's tick and the `pulse_ticks − 1` after it), whose levels the board
-//! writes to its GPIO pins in one BSRR store each tick ([`crate::hardware::trigger_pins`]).
+//! writes to its GPIO pins in one BSRR store each tick (`hardware::trigger_pins`, in the board build).
 //! [`ExternalTrigger`] watches the trigger input, sampled once a tick (latency at most one
 //! tick), for a chosen edge while armed.
 
