@@ -55,6 +55,8 @@ use heapless::Vec;
 
 /// Most creep modes (first-order lags) an operator may have.
 pub const MAX_CREEP_MODES: usize = 6;
+// The creep operator's steps write their modes out, 0 … 5.
+const _: () = assert!(MAX_CREEP_MODES == 6);
 /// Largest sum of the creep weights: the instant part `c0` stays at least `1 − 0.9 = 0.1`,
 /// so the inverse's gain `1/D` stays at most 10.
 pub const MAX_WEIGHT_SUM: f64 = 0.9;
@@ -365,32 +367,59 @@ impl Creep {
     /// (Q2.30, rounded toward −∞, saturated). Updates the modes first, then
     /// `x = c0·y + Σ c_k z_k`, computed as `y − Σ c_k (y − z_k)` (Q4.60 sum of Q1.31 ×
     /// Q3.29 products), so that the static gain is exactly 1.
-    #[inline(always)]
+    ///
+    /// One copy in flash (not inlined), as [`Self::inverse_step`]: written out into each of
+    /// the tick's model variants, the modes made the whole handler's other code dearer.
+    #[inline(never)]
     pub fn forward_step(&self, state: &mut CreepState, y: i32) -> i32 {
         let mut acc = (y as i64) << SIGNAL_FRAC_BITS; // Q4.60
-        for ((w, &b), &c) in state.z.iter_mut().zip(&self.b).zip(&self.c).take(self.len) {
-            let z = relax(load(w), b, y);
-            *w = store(z);
-            acc -= c as i64 * lag(z, y) as i64;
+        let n = self.len;
+        // Mode by mode, each behind a compare with the operator's size (a loop would pay its
+        // counter and a taken branch on every mode).
+        macro_rules! modes {
+            ($($k:literal)*) => {$(
+                if $k >= n {
+                    return q60_to_signal_floor(acc);
+                }
+                let z = relax(load(&state.z[$k]), self.b[$k], y);
+                state.z[$k] = store(z);
+                acc -= self.c[$k] as i64 * lag(z, y) as i64;
+            )*};
         }
+        modes!(0 1 2 3 4 5);
         q60_to_signal_floor(acc)
     }
 
     /// One tick of the exact inverse: desired displacement `x` (Q2.30) → the hysteresis
     /// output `y` (Q2.30) the forward step turns into `x`, `y = (x − Σ c_k a_k z_k)·(1/D)`
     /// on the states before the update; then the modes are updated with `y`.
-    #[inline(always)]
+    #[inline(never)]
     pub fn inverse_step(&self, state: &mut CreepState, x: i32) -> i32 {
         // Q3.61: |x| ≤ 2 and Σ c_k a_k |z_k| ≤ 0.9 · 2 keep it below 2^63.
         let mut acc = (x as i64) << WEIGHT_FRAC_BITS;
-        for (w, &ca) in state.z.iter().zip(&self.ca).take(self.len) {
-            acc -= ca as i64 * q60_to_signal_floor(load(w)) as i64;
+        let n = self.len;
+        // Written out as `forward_step`'s modes are: first the sum over the states before the
+        // update, then the update.
+        macro_rules! sum {
+            ($($k:literal)*) => {'sum: {$(
+                if $k >= n {
+                    break 'sum;
+                }
+                acc -= self.ca[$k] as i64 * q60_to_signal_floor(load(&state.z[$k])) as i64;
+            )*}};
         }
+        sum!(0 1 2 3 4 5);
         let rest = floor_shift_to_signal::<WEIGHT_FRAC_BITS>(acc);
         let y = floor_shift_to_signal::<INVERSE_D_FRAC_BITS>(self.inverse_d as i64 * rest as i64);
-        for (w, &b) in state.z.iter_mut().zip(&self.b).take(self.len) {
-            *w = store(relax(load(w), b, y));
+        macro_rules! update {
+            ($($k:literal)*) => {$(
+                if $k >= n {
+                    return y;
+                }
+                state.z[$k] = store(relax(load(&state.z[$k]), self.b[$k], y));
+            )*};
         }
+        update!(0 1 2 3 4 5);
         y
     }
 }

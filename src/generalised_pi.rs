@@ -54,6 +54,8 @@ use heapless::Vec;
 /// Most dead-zone operators a map may have besides its linear gain (e.g. 4 above and 4 below
 /// the centre).
 pub const MAX_DEAD_ZONES: usize = 8;
+// `DeadZoneMap::apply` writes its zones out, 0 … 7.
+const _: () = assert!(MAX_DEAD_ZONES == 8);
 
 /// The one-sided dead-zone operator in `f64`: `max(x − d, 0)` for `d > 0`, `min(x − d, 0)` for
 /// `d < 0`, `x` for `d = 0`.
@@ -324,19 +326,26 @@ impl DeadZoneBank {
     /// The map at `z` (Q2.30 normalised) → Q2.30, rounded toward −∞ and saturated. Constant
     /// time: every dead zone, every call (see the type's doc). The sum fits `i64` exactly:
     /// `|x|, |x − d| < 2` and `Σ|g| + |c| ≤ MAX_GAIN_SUM` are validated.
-    #[inline(always)]
+    ///
+    /// Written out zone by zone, each behind a compare with the map's size, as the P–I bank's
+    /// pairs are (a loop pays its counter and a taken branch on every zone). One copy in
+    /// flash (not inlined): written out into each of the tick's model variants, it made the
+    /// whole handler's other code dearer (more registers spilled), whatever the model.
+    #[inline(never)]
     pub fn apply(&self, z: i32) -> i32 {
         let x = z.saturating_sub(self.centre);
         let mut acc = self.linear as i64 * x as i64 + ((self.centre as i64) << GAIN_FRAC_BITS);
-        let n = self.len.min(MAX_DEAD_ZONES);
-        for (((&d, &lo), &hi), &g) in self.thresholds[..n]
-            .iter()
-            .zip(&self.lower[..n])
-            .zip(&self.upper[..n])
-            .zip(&self.weights[..n])
-        {
-            acc += g as i64 * limit(x.saturating_sub(d), lo, hi) as i64;
+        let n = self.len;
+        macro_rules! zones {
+            ($($k:literal)*) => {$(
+                if $k >= n {
+                    return q54_to_signal_floor(acc);
+                }
+                let zone = limit(x.saturating_sub(self.thresholds[$k]), self.lower[$k], self.upper[$k]);
+                acc += self.weights[$k] as i64 * zone as i64;
+            )*};
         }
+        zones!(0 1 2 3 4 5 6 7);
         q54_to_signal_floor(acc)
     }
 }

@@ -44,24 +44,26 @@ pub const TICK_SHARE_PERCENT: u32 = 100;
 /// input and outputs, the sensor read and its drift check, PI feedback, the drive stage, the
 /// recorder taking all seven signals, telemetry's tap at its worst, the DAC write, the watchdog,
 /// and the first tick after a reload or a mode switch (its rebase, up to 50 instructions more).
-pub const FIXED_CYCLES: u32 = 1090;
-/// A P–I bank's cost beyond its operators (the inverse's and the forward's alike).
-pub const PI_BASE_CYCLES: u32 = 41;
-/// Each pair of play operators (one packed word) of a P–I bank.
-pub const PI_PAIR_CYCLES: u32 = 34;
-/// A generalised P–I's dead-zone map beyond its dead zones.
+pub const FIXED_CYCLES: u32 = 1110;
+/// A P–I bank's cost beyond its operators (the inverse's and the forward's alike): the call
+/// to the bank's step, the input's conversion, the sum's.
+pub const PI_BASE_CYCLES: u32 = 92;
+/// Each pair of play operators (one packed word) of a P–I bank (written out pair by pair:
+/// 34 cycles as a loop).
+pub const PI_PAIR_CYCLES: u32 = 22;
+/// A generalised P–I's dead-zone map beyond its dead zones (the call to its one copy).
 pub const DEAD_ZONE_BASE_CYCLES: u32 = 49;
 /// Each dead zone of a generalised P–I's map.
-pub const DEAD_ZONE_CYCLES: u32 = 20;
+pub const DEAD_ZONE_CYCLES: u32 = 22;
 /// A Duhem model (either direction).
 pub const DUHEM_CYCLES: u32 = 170;
 /// A Bouc–Wen model (either direction).
 pub const BOUC_WEN_CYCLES: u32 = 88;
 /// A creep operator beyond its modes (per side it runs on: the compensator's inverse, the
 /// observer's forward).
-pub const CREEP_BASE_CYCLES: u32 = 102;
-/// Each creep mode, per side.
-pub const CREEP_MODE_CYCLES: u32 = 40;
+pub const CREEP_BASE_CYCLES: u32 = 95;
+/// Each creep mode, per side (written out mode by mode: 40 as a loop).
+pub const CREEP_MODE_CYCLES: u32 = 36;
 /// The feedback's derivative term.
 pub const DERIVATIVE_CYCLES: u32 = 50;
 /// The feedback's notch (one biquad).

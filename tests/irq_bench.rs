@@ -33,7 +33,8 @@ use std::process::{Command, Stdio};
 /// BSRR store) and a seventh capture and telemetry signal (`triggers`), all seven taken every
 /// tick here (streaming 886 → 940 measured), and the scan scenario (972 measured, branch scan).
 /// 1 040: with the learning feedforward merged too (its off path in every tick; session 7).
-const WORST_INSTRUCTIONS: u64 = 1040;
+/// 990: the P–I banks written out pair by pair instead of looping (981 measured, session 8).
+const WORST_INSTRUCTIONS: u64 = 990;
 /// Most instructions the learning feedforward, on, adds to a configuration's worst tick (its
 /// table read, its error store and, at a period's end, the flips).
 const LEARNING_EXTRA: u64 = 120;
@@ -45,7 +46,9 @@ const FAMILY_CONFIG: &str = "inverse-gpi16+creep4+gpi16-observer+pi+drift";
 /// 1 394 with both (session 6).
 /// 1 480: 1 467 with the learning feedforward merged; 1 500 with protocol v6's trigger I/O
 /// and the seventh signal (1 491, branch scan); 1 560 with both (session 7).
-const FAMILY_WORST_INSTRUCTIONS: u64 = 1560;
+/// 1 480: the P–I banks, the dead zones and the creep modes written out one by one instead
+/// of looping (1 466 measured, session 8).
+const FAMILY_WORST_INSTRUCTIONS: u64 = 1480;
 /// The configurations [`WORST_INSTRUCTIONS`] bounds: the shipped P–I and Duhem ones.
 const SHIPPED_CONFIGS: [&str; 2] = [
     "inverse-pi16+pi16-observer+pi+drift",
@@ -73,6 +76,15 @@ struct Insn {
     swap: bool,
     /// Which part of the tick its source line belongs to.
     part: Part,
+    /// Its source line (an index into the disassembly's [`Code::lines`]).
+    line: u32,
+}
+
+/// The image's instructions by address, and the source lines they come from.
+struct Code {
+    insns: HashMap<u32, Insn>,
+    /// `file:line`, by index; the file's path shortened to what follows `src/`.
+    lines: Vec<String>,
 }
 
 /// The parts of the tick the bench attributes cycles to, by the source file an instruction's
@@ -171,7 +183,7 @@ fn objdump() -> PathBuf {
 }
 
 /// Every instruction of the image by address.
-fn disassemble(elf: &Path) -> HashMap<u32, Insn> {
+fn disassemble(elf: &Path) -> Code {
     let out = Command::new(objdump())
         .args(["-d", "-l", "--triple=thumbv7em-none-eabihf"])
         .arg(elf)
@@ -182,13 +194,34 @@ fn disassemble(elf: &Path) -> HashMap<u32, Insn> {
     let mut in_swap = false;
     let mut part = Part::Fixed;
     let mut map = HashMap::new();
+    let mut lines: Vec<String> = vec!["(no line)".to_string()];
+    let mut index: HashMap<String, u32> = HashMap::new();
+    let mut at = 0u32;
+    let mut project = String::from("(no line)");
     for line in String::from_utf8_lossy(&out.stdout).lines() {
         if let Some(source) = line.strip_prefix("; ") {
             // `; /path/src/control.rs:123`: the source line of the instructions that follow.
             if let Some((file, n)) = source.rsplit_once(':') {
                 in_swap = file.ends_with("/src/control.rs")
                     && n.parse::<u32>().is_ok_and(|n| swap_lines.contains(&n));
-                part = part_of(file);
+                let short = match file.rfind("/src/") {
+                    Some(i) => &file[i + 5..],
+                    None => file.rsplit('/').next().unwrap_or(file),
+                };
+                // A line of Rust's library or of a dependency (an iterator's `next`, `min`, a
+                // volatile store) belongs to the project line whose code it was inlined into:
+                // the nearest one before it in the disassembly.
+                let key = if file.starts_with("/rustc/") || file.contains("/.cargo/registry/") {
+                    format!("{short}:{n} in {project}")
+                } else {
+                    part = part_of(file);
+                    project = format!("{short}:{n}");
+                    project.clone()
+                };
+                at = *index.entry(key.clone()).or_insert_with(|| {
+                    lines.push(key);
+                    (lines.len() - 1) as u32
+                });
             }
             continue;
         }
@@ -214,10 +247,11 @@ fn disassemble(elf: &Path) -> HashMap<u32, Insn> {
                 operands: parts.next().unwrap_or("").trim().to_string(),
                 swap: in_swap,
                 part,
+                line: at,
             },
         );
     }
-    map
+    Code { insns: map, lines }
 }
 
 /// Cycles of one executed instruction (Cortex-M4 TRM, table "Cortex-M4 instruction set
@@ -271,13 +305,25 @@ struct Tick {
     parts: [u64; PARTS],
 }
 
-/// Reads the trace: the ticks, grouped by the segments between `irq_bench_marker` calls.
-fn parse_trace(reader: impl BufRead, code: &HashMap<u32, Insn>) -> Vec<Vec<Tick>> {
+/// One segment's worst tick (5 WS) by source line: `(line index, cycles)`.
+type Breakdown = Vec<(u32, u64)>;
+
+/// Reads the trace: the ticks, grouped by the segments between `irq_bench_marker` calls, and
+/// each segment's worst tick (5 WS) by source line.
+fn parse_trace(
+    reader: impl BufRead,
+    code: &HashMap<u32, Insn>,
+) -> (Vec<Vec<Tick>>, Vec<Breakdown>) {
     let mut segments: Vec<Vec<Tick>> = vec![Vec::new()];
+    let mut worst: Vec<(u64, Breakdown)> = vec![(0, Vec::new())];
+    let mut by_line: HashMap<u32, u64> = HashMap::new();
     let mut current: Option<Tick> = None;
     let mut previous: Option<(u32, Insn)> = None;
     let mut in_marker = false;
-    let settle = |t: &mut Tick, prev: &Option<(u32, Insn)>, next_pc: Option<u32>| {
+    let settle = |t: &mut Tick,
+                  by_line: &mut HashMap<u32, u64>,
+                  prev: &Option<(u32, Insn)>,
+                  next_pc: Option<u32>| {
         if let Some((pc, insn)) = prev {
             let taken = is_branch(insn) && next_pc.is_some_and(|n| n != pc + insn.size);
             let c = cycles(insn, taken);
@@ -287,26 +333,37 @@ fn parse_trace(reader: impl BufRead, code: &HashMap<u32, Insn>) -> Vec<Vec<Tick>
             let c5 = c + if taken { 5 } else { 0 };
             t.cycles_ws5 += c5;
             t.parts[insn.part as usize] += c5;
+            *by_line.entry(insn.line).or_insert(0) += c5;
         }
     };
     for line in reader.lines() {
         let Ok(line) = line else { break };
         if line.contains("taking pending nonsecure exception 15") {
             current = Some(Tick::default());
+            by_line.clear();
             previous = None;
             continue;
         }
         if line.contains("successful exception return") {
             if let Some(mut t) = current.take() {
-                settle(&mut t, &previous, None);
+                settle(&mut t, &mut by_line, &previous, None);
                 // The last instruction (the return) refills the pipeline.
                 t.cycles += 3;
                 t.cycles_ws5 += 3 + 5;
                 t.cycles += ENTRY_EXIT_CYCLES;
                 t.cycles_ws5 += ENTRY_EXIT_CYCLES;
                 t.parts[Part::Fixed as usize] += 3 + 5 + ENTRY_EXIT_CYCLES;
+                *by_line.entry(0).or_insert(0) += 3 + 5 + ENTRY_EXIT_CYCLES;
                 if let Some(seg) = segments.last_mut() {
                     seg.push(t);
+                }
+                if let Some(w) = worst.last_mut() {
+                    if t.cycles_ws5 > w.0 {
+                        *w = (
+                            t.cycles_ws5,
+                            by_line.iter().map(|(&l, &c)| (l, c)).collect(),
+                        );
+                    }
                 }
             }
             previous = None;
@@ -326,7 +383,7 @@ fn parse_trace(reader: impl BufRead, code: &HashMap<u32, Insn>) -> Vec<Vec<Tick>
         match current.as_mut() {
             Some(t) => {
                 t.instructions += 1;
-                settle(t, &previous, Some(pc));
+                settle(t, &mut by_line, &previous, Some(pc));
                 previous = code.get(&pc).cloned().map(|i| (pc, i));
                 if previous.as_ref().is_some_and(|(_, i)| i.swap) {
                     t.swap = true;
@@ -336,18 +393,19 @@ fn parse_trace(reader: impl BufRead, code: &HashMap<u32, Insn>) -> Vec<Vec<Tick>
                 let marker = symbol.trim() == "irq_bench_marker";
                 if marker && !in_marker {
                     segments.push(Vec::new());
+                    worst.push((0, Vec::new()));
                 }
                 in_marker = marker;
             }
         }
     }
-    segments
+    (segments, worst.into_iter().map(|(_, b)| b).collect())
 }
 
 #[test]
 fn the_whole_interrupt_in_every_scenario() {
     let elf = support::build_image(support::QEMU_IMAGES, "irq-bench", &[]);
-    let code = disassemble(&elf);
+    let Code { insns: code, lines } = disassemble(&elf);
     assert!(code.len() > 1000, "the disassembly is the image's");
     let dir = support::firmware_target_dir();
     let fifo = dir.join("irq-bench.trace.fifo");
@@ -372,7 +430,7 @@ fn the_whole_interrupt_in_every_scenario() {
         .spawn()
         .expect("qemu-system-arm starts");
     let trace = std::fs::File::open(&fifo).expect("open the trace FIFO");
-    let segments = parse_trace(BufReader::with_capacity(1 << 20, trace), &code);
+    let (segments, breakdowns) = parse_trace(BufReader::with_capacity(1 << 20, trace), &code);
     let out = child.wait_with_output().expect("qemu exits");
     let _ = std::fs::remove_file(&fifo);
     let stdout = String::from_utf8_lossy(&out.stdout);
@@ -444,8 +502,8 @@ fn the_whole_interrupt_in_every_scenario() {
     // What broke the tick budget's contract, reported together after the table.
     let mut failures: Vec<String> = Vec::new();
     // Per configuration: its worst tick (5 WS) outside the lifecycle scenario, with its parts.
-    let mut by_config: Vec<(String, Tick)> = Vec::new();
-    for (name, ticks) in &rows {
+    let mut by_config: Vec<(String, Tick, usize)> = Vec::new();
+    for (row, (name, ticks)) in rows.iter().enumerate() {
         assert!(!ticks.is_empty(), "{name}: no ticks traced");
         let n = ticks.len() as f64;
         let mean = ticks.iter().map(|t| t.instructions).sum::<u64>() as f64 / n;
@@ -491,10 +549,10 @@ fn the_whole_interrupt_in_every_scenario() {
                     .max_by_key(|t| t.cycles_ws5)
                     .copied()
                     .unwrap_or_default();
-                match by_config.iter_mut().find(|(c, _)| c == config) {
-                    Some((_, t)) if t.cycles_ws5 >= heaviest.cycles_ws5 => {}
-                    Some((_, t)) => *t = heaviest,
-                    None => by_config.push((config.to_string(), heaviest)),
+                match by_config.iter_mut().find(|(c, _, _)| c == config) {
+                    Some((_, t, _)) if t.cycles_ws5 >= heaviest.cycles_ws5 => {}
+                    Some((_, t, r)) => (*t, *r) = (heaviest, row),
+                    None => by_config.push((config.to_string(), heaviest, row)),
                 }
                 predicted
             };
@@ -526,7 +584,7 @@ fn the_whole_interrupt_in_every_scenario() {
         PART_NAMES.join(" | ")
     );
     println!("|---|{}---:|---:|---:|", "---:|".repeat(PARTS));
-    for (config, t) in &by_config {
+    for (config, t, _) in &by_config {
         let predicted = budgets[config.as_str()];
         let ratio = predicted as f64 / t.cycles_ws5 as f64;
         println!(
@@ -539,6 +597,41 @@ fn the_whole_interrupt_in_every_scenario() {
                 "{config}: the tick budget predicts {predicted} cycles for a worst tick of {}: looser than {LOOSEST_PREDICTION}× (lower src/tick_budget.rs's coefficients)",
                 t.cycles_ws5
             ));
+        }
+    }
+    // Where each configuration's worst tick goes, by source file (5 WS cycles; "(no line)" is
+    // the exception entry and return and code without line information); with
+    // `IRQ_BENCH_LINES=N`, also its N dearest source lines.
+    let detail: usize = std::env::var("IRQ_BENCH_LINES")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(0);
+    for (config, t, row) in &by_config {
+        let Some(b) = breakdowns.get(*row) else {
+            continue;
+        };
+        let mut files: HashMap<&str, u64> = HashMap::new();
+        for &(l, c) in b {
+            // A library line counts for the project file it was inlined into.
+            let at = lines[l as usize].rsplit(" in ").next().unwrap_or("");
+            let file = at.rsplit_once(':').map_or("(no line)", |(f, _)| f);
+            *files.entry(file).or_insert(0) += c;
+        }
+        let mut files: Vec<_> = files.into_iter().collect();
+        files.sort_by(|a, b| b.1.cmp(&a.1).then(a.0.cmp(b.0)));
+        let listed: Vec<String> = files.iter().map(|(f, c)| format!("{f} {c}")).collect();
+        println!(
+            "{config}, worst tick ({} cycles at 5 WS, row {}) by file: {}",
+            t.cycles_ws5,
+            rows[*row].0,
+            listed.join(", ")
+        );
+        if detail > 0 {
+            let mut dear = b.clone();
+            dear.sort_by(|a, b| b.1.cmp(&a.1).then(a.0.cmp(&b.0)));
+            for &(l, c) in dear.iter().take(detail) {
+                println!("    {c:5}  {}", lines[l as usize]);
+            }
         }
     }
     assert!(failures.is_empty(), "{}", failures.join("\n"));
