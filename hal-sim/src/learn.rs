@@ -510,7 +510,10 @@ pub fn run_with(options: &LearnOptions, model: &StageModel) -> Result<LearnRepor
     };
     if let Some(dir) = &options.out_dir {
         std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
-        let name = options.motion.label().replace(':', "-");
+        let mut name = options.motion.label().replace(':', "-");
+        if options.shaping.is_some() {
+            name.push_str("-shaped");
+        }
         let png = dir.join(format!("learn-{name}.png"));
         draw_curve(&png, &report)?;
         report.figures.push(png);
@@ -564,9 +567,14 @@ pub fn draw_curve(path: &std::path::Path, report: &LearnReport) -> Result<()> {
     draw_panels(
         path,
         &format!(
-            "Learning feedforward, {} at {:.0} kHz",
+            "Learning {}, {} at {:.0} kHz",
+            if report.shaping.is_some() {
+                "+ shaping"
+            } else {
+                "feedforward"
+            },
             report.waveform,
-            report.rate_hz / 1e3
+            report.rate_hz / 1e3,
         ),
         &[Panel {
             caption: "tracking error per period".into(),
