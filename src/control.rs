@@ -5,7 +5,9 @@
 //! 1. the next setpoint (Q2.30 normalised displacement; on underrun the last one is held);
 //! 2. the compensator (inverse P–I, inverse Duhem, inverse-multiplicative Bouc–Wen, or none)
 //!    turns it into a drive command (after the inverse creep, when the stage has creep:
-//!    [`crate::creep`]);
+//!    [`crate::creep`]); the learned correction is added ([`crate::learning`]) and, with input
+//!    shaping, the sum goes through the feedforward's notch (not in bypass;
+//!    [`ControlConfig::shaping`]);
 //! 3. with a sensor, the reading is checked against the observer (drift flag) and, in closed
 //!    loop, the PI(D) controller on the measured error adds its correction
 //!    ([`crate::feedback`]); a mode switch's fading offset is added ([`crate::mode_switch`]);

@@ -154,6 +154,13 @@ impl LearnOptions {
     /// diverges, Q 0.7 is worse; 24 kHz does a little better with the notch exactly on the
     /// resonance but diverges with it 0.5 % off, 23 kHz stands ±0.5 %, 22 kHz ±2 % but leaves
     /// the 750 Hz sine at 19.5×).
+    ///
+    /// ```
+    /// use hal_sim::learn::LearnOptions;
+    /// let o = LearnOptions::shaped("sine:750".parse().unwrap());
+    /// assert_eq!(o.cutoff_hz, 23_000.0);
+    /// assert_eq!(o.shaping.unwrap().frequency_hz, 21_807.0);
+    /// ```
     pub fn shaped(motion: Motion) -> Self {
         Self {
             cutoff_hz: SHAPED_CUTOFF_HZ,
@@ -181,6 +188,11 @@ pub const SHAPED_CUTOFF_HZ: f64 = 23_000.0;
 /// tune` fits): a notch whose zeros are the resonance's poles (`depth = 2·Q·ζ`) and whose
 /// poles are critically damped (`Q = ½`). The shaped stage's response has the notch's poles
 /// where the resonance was.
+///
+/// ```
+/// let n = hal_sim::learn::shaping_for(21_807.0, 0.01729);
+/// assert_eq!((n.frequency_hz, n.q, n.depth), (21_807.0, 0.5, 0.01729));
+/// ```
 pub fn shaping_for(resonance_hz: f64, zeta: f64) -> NotchDesign {
     let q = 0.5;
     NotchDesign {
