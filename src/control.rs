@@ -5,7 +5,9 @@
 //! 1. the next setpoint (Q2.30 normalised displacement; on underrun the last one is held);
 //! 2. the compensator (inverse P–I, inverse Duhem, inverse-multiplicative Bouc–Wen, or none)
 //!    turns it into a drive command (after the inverse creep, when the stage has creep:
-//!    [`crate::creep`]);
+//!    [`crate::creep`]); the learned correction is added ([`crate::learning`]) and, with input
+//!    shaping, the sum goes through the feedforward's notch (not in bypass;
+//!    [`ControlConfig::shaping`]);
 //! 3. with a sensor, the reading is checked against the observer (drift flag) and, in closed
 //!    loop, the PI(D) controller on the measured error adds its correction
 //!    ([`crate::feedback`]); a mode switch's fading offset is added ([`crate::mode_switch`]);
@@ -30,6 +32,7 @@ use crate::fixed_point::clamp_full_scale;
 use crate::generalised_pi::{GeneralisedPi, InverseGeneralisedPi};
 pub use crate::mode_switch::Mode;
 use crate::mode_switch::{BumplessTransfer, ModeError};
+use crate::notch::{Notch, NotchState};
 use crate::prandtl_ishlinskii::{InversePrandtlIshlinskii, PiState, PrandtlIshlinskii};
 pub use crate::sensor::Sensor;
 
@@ -86,6 +89,10 @@ pub struct ControlConfig {
     /// The stage's creep, in series after the hysteresis: inverted before the compensator's
     /// model, run after the observer's (not applied where there is no model).
     pub creep: Option<Creep>,
+    /// Input shaping: a notch on the feedforward (the compensator's output plus the learned
+    /// correction), before the range and slew limits, in every mode but bypass, so that the
+    /// drive does not excite the stage's resonance ([`crate::settings::Settings::shaping`]).
+    pub shaping: Option<Notch>,
 }
 
 /// Bit flags of what happened in one tick.
@@ -227,6 +234,12 @@ pub struct Controller {
     /// The learned correction for this tick, Q2.30 normalised drive, added to the feedforward
     /// ([`crate::learning`]; set by the control loop before each tick, 0 without learning).
     learned: i32,
+    /// The feedforward's notch ([`ControlConfig::shaping`]).
+    shaping: Option<Notch>,
+    /// Its memory, Q2.30 normalised drive: settled at the drive the stacks hold when the
+    /// configuration is prepared, and at the feedforward of the first tick after a swap or a
+    /// mode switch (whose transfer then starts from the drive held, as without shaping).
+    shaping_state: NotchState,
 }
 
 /// A creep operator and its modes, as the tick runs it in series with a model.
@@ -349,6 +362,8 @@ impl Controller {
             transfer: BumplessTransfer::default(),
             counters: ControlCounters::default(),
             learned: 0,
+            shaping: None,
+            shaping_state: NotchState::default(),
         };
         c.prepare(config, config.drive.safe_stacks());
         c
@@ -484,6 +499,9 @@ impl Controller {
             transfer: BumplessTransfer::default(),
             counters: ControlCounters::default(),
             learned: 0,
+            shaping: config.shaping,
+            // Settled at the drive held: the shaped feedforward starts where the stacks are.
+            shaping_state: Notch::state_at(drive),
         };
     }
 
@@ -647,12 +665,25 @@ impl Controller {
             CompensatorRun::InverseBoucWen(m, s) => m.step(s, target),
             CompensatorRun::InverseBoucWenCreep(m, s, c) => m.step(s, c.inverse(target)),
         };
+        // With shaping, the feedforward (the compensator's output plus the learned
+        // correction) goes through the notch, in every mode but bypass: Q2.30 normalised drive.
         let feedforward = if self.mode == Mode::Bypass {
-            target
+            target.saturating_add(self.learned)
         } else {
-            compensated
-        }
-        .saturating_add(self.learned);
+            let ff = compensated.saturating_add(self.learned);
+            match &self.shaping {
+                Some(n) => {
+                    // The first tick after a swap or a mode switch starts the notch settled
+                    // at its input (four stores): the notch adds no transient of its own, and
+                    // the transfer below glides from the drive held exactly as without it.
+                    if self.rebase {
+                        self.shaping_state = Notch::state_at(ff);
+                    }
+                    n.step(&mut self.shaping_state, ff)
+                }
+                None => ff,
+            }
+        };
 
         // 3. Sensor: drift check, and in closed loop the feedback correction.
         let fs = &mut self.feedback_state;
@@ -1109,6 +1140,126 @@ mod tests {
             );
             assert!((w.drive - n.drive).abs() <= 8, "{w:?} vs {n:?}");
             assert!((w.estimate - n.estimate).abs() <= 8, "{w:?} vs {n:?}");
+        }
+    }
+
+    /// Open loop on a P–I model (compensator and observer), no sensor, with or without the
+    /// feedforward's notch at the differential stage's resonance.
+    fn shaped_open_loop(shaping: bool) -> Settings {
+        let mut s = Settings {
+            compensator: Some(representative_pi(16).unwrap()),
+            observer: Some(representative_pi(16).unwrap()),
+            sensor: None,
+            mode: Mode::OpenLoop,
+            shaping: shaping.then_some(crate::notch::NotchDesign {
+                frequency_hz: 21_807.0,
+                q: 0.5,
+                depth: 0.0173,
+            }),
+            ..Settings::default()
+        };
+        s.drive.slew_rate = 1.0e9; // no slew limiting: the drive is the command
+        s
+    }
+
+    /// The shaped drive is the unshaped feedforward through the `f64` biquad of the same
+    /// design, started settled at the drive the stacks held: within a few LSB over a sine.
+    #[test]
+    fn shaping_is_the_f64_notch_on_the_feedforward() {
+        let design = shaped_open_loop(true).shaping.unwrap();
+        let c64 = design.coefficients(50_000.0).unwrap();
+        let mut shaped = Controller::new(shaped_open_loop(true).build(&hw()).unwrap());
+        let mut plain = Controller::new(shaped_open_loop(false).build(&hw()).unwrap());
+        let held = signal_to_f64(shaped.drive_config().drive_of(shaped.stacks().left));
+        let (mut x, mut y) = ([held; 2], [held; 2]);
+        let mut dac = RecordingDac::default();
+        let mut worst = 0.0f64;
+        let mut moved = 0.0f64;
+        for k in 0..4000 {
+            let sp = signal_from_f64(0.5 * libm::sin(k as f64 * 0.094)); // 750 Hz
+            let ff = signal_to_f64(plain.tick(Some(sp), &mut FixedAdc(None), &mut dac).drive);
+            let out = shaped.tick(Some(sp), &mut FixedAdc(None), &mut dac).drive;
+            let reference = c64.b[0] * ff + c64.b[1] * x[0] + c64.b[2] * x[1]
+                - c64.a[0] * y[0]
+                - c64.a[1] * y[1];
+            (x, y) = ([ff, x[0]], [reference, y[0]]);
+            worst = worst.max((signal_to_f64(out) - reference).abs());
+            moved = moved.max((signal_to_f64(out) - ff).abs());
+        }
+        // Q2.30 coefficients and rounding: a few parts in 10⁸ of full scale.
+        assert!(worst < 1e-7, "fixed point vs f64: {worst}");
+        // And the notch does change the drive (the test would pass on no shaping otherwise).
+        assert!(moved > 1e-3, "{moved}");
+        // Bypass does not run it: the drive is the setpoint's, as without shaping.
+        shaped.set_mode(Mode::Bypass).unwrap();
+        plain.set_mode(Mode::Bypass).unwrap();
+        let sp = signal_from_f64(0.2);
+        for _ in 0..10_000 {
+            shaped.tick(Some(sp), &mut FixedAdc(None), &mut dac);
+            plain.tick(Some(sp), &mut FixedAdc(None), &mut dac);
+        }
+        // (Both glided from where their stacks were; now they hold the same drive.)
+        let a = shaped.tick(Some(sp), &mut FixedAdc(None), &mut dac).drive;
+        let b = plain.tick(Some(sp), &mut FixedAdc(None), &mut dac).drive;
+        assert_eq!(a, b);
+    }
+
+    /// A reload or a mode switch with shaping on: the notch starts settled at its input, so
+    /// the drive does what it does without shaping (the transfer glides from the drive held):
+    /// holding the setpoint across a reload, and across open loop → bypass → open loop with
+    /// the setpoint moved in bypass, the shaped and the unshaped drive agree to a few LSB, and
+    /// the glide back stays between the drive held and the command.
+    #[test]
+    fn shaping_steps_nothing_at_a_reload_or_a_mode_switch() {
+        let sp = signal_from_f64(-0.3);
+        let run = |shaping: bool| -> ([i32; 200], i32, [i32; 3000]) {
+            let config = shaped_open_loop(shaping).build(&hw()).unwrap();
+            let mut c = Controller::new(config);
+            let mut dac = RecordingDac::default();
+            for k in 0..5_000 {
+                let s = signal_from_f64(-0.3 + 0.2 * libm::sin(k as f64 * 0.094));
+                c.tick(
+                    Some(if k < 4_000 { s } else { sp }),
+                    &mut FixedAdc(None),
+                    &mut dac,
+                );
+            }
+            let mut next = Controller::new(config);
+            next.prepare(config, c.stacks());
+            next.take_over(&c);
+            let mut c = next;
+            // The prepared setpoint (where the observer puts the stage) is held.
+            let reload =
+                core::array::from_fn(|_| c.tick(None, &mut FixedAdc(None), &mut dac).drive);
+            c.set_mode(Mode::Bypass).unwrap();
+            for _ in 0..100 {
+                c.tick(Some(signal_from_f64(0.4)), &mut FixedAdc(None), &mut dac);
+            }
+            let held = c.tick(Some(sp), &mut FixedAdc(None), &mut dac).drive;
+            c.set_mode(Mode::OpenLoop).unwrap();
+            let back =
+                core::array::from_fn(|_| c.tick(Some(sp), &mut FixedAdc(None), &mut dac).drive);
+            (reload, held, back)
+        };
+        let (with, without) = (run(true), run(false));
+        for (k, (w, n)) in with.0.iter().zip(&without.0).enumerate() {
+            assert!((w - n).abs() <= 8, "reload, tick {k}: {w} vs {n}");
+        }
+        assert_eq!(with.1, without.1, "bypass drives the setpoint, unshaped");
+        let held = with.1;
+        let target = without.2[2999];
+        assert!((with.2[0] - held).abs() <= 8, "starts at the drive held");
+        assert!((with.2[2999] - target).abs() <= 8, "settles on the command");
+        let (lo, hi) = (held.min(target), held.max(target));
+        for (k, (w, n)) in with.2.iter().zip(&without.2).enumerate() {
+            assert!(
+                (w - n).abs() <= 8,
+                "back in open loop, tick {k}: {w} vs {n}"
+            );
+            assert!(
+                (lo - 8..=hi + 8).contains(w),
+                "tick {k}: {w} outside {lo}…{hi}"
+            );
         }
     }
 

@@ -166,21 +166,11 @@ impl FeedbackSettings {
 
 /// The notch's refusal, on the field it names.
 fn notch_refusal(d: &NotchDesign, e: NotchError) -> Refusal {
-    match e {
-        NotchError::NotFinite => {
-            let field = if !d.frequency_hz.is_finite() {
-                Field::NotchFrequency
-            } else if !d.q.is_finite() {
-                Field::NotchQ
-            } else {
-                Field::NotchDepth
-            };
-            Refusal::new(field, Rule::NotFinite)
-        }
-        NotchError::FrequencyOutOfRange => Refusal::new(Field::NotchFrequency, Rule::Unreachable),
-        NotchError::QOutOfRange => Refusal::new(Field::NotchQ, Rule::AtMost(50.0)),
-        NotchError::DepthOutOfRange => Refusal::new(Field::NotchDepth, Rule::AtMost(1.0)),
-    }
+    crate::notch::refusal(
+        d,
+        e,
+        [Field::NotchFrequency, Field::NotchQ, Field::NotchDepth],
+    )
 }
 
 /// How many ticks old the sensor reading is, relative to the observer's estimate of the same

@@ -4,7 +4,9 @@
 //! The stage's first resonance (21.8 kHz differential, ζ ≈ 0.017, see the book, docs/src/reference/physics.md) sits close to the
 //! Nyquist frequency of a 50 kHz tick. The feedback loop sees it amplified some 30 times; a
 //! notch on the feedback error removes it from the loop, so the controller neither excites nor
-//! sustains the ringing and its gains can go higher.
+//! sustains the ringing and its gains can go higher. The same notch on the feedforward (input
+//! shaping, [`crate::settings::Settings::shaping`]) keeps the drive from exciting it in open
+//! loop, where the learning feedforward runs ([`crate::learning`]).
 //!
 //! **Design.** The analog notch `H(s) = (s² + 2ζ_z ω₀ s + ω₀²) / (s² + 2ζ_p ω₀ s + ω₀²)` with
 //! `ζ_p = 1 / (2Q)` and `ζ_z = depth · ζ_p` is mapped to the tick's rate by the bilinear
@@ -23,6 +25,7 @@
 //! from rest it settles within a few LSB of it (no offset creeping into the integrator).
 
 use crate::fixed_point::{limit, saturate_i64, SIGNAL_FRAC_BITS, SIGNAL_ONE};
+use crate::refusal::{Field, Refusal, Rule};
 
 /// What the notch is to remove, in physical units.
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -94,6 +97,27 @@ impl NotchDesign {
             ],
             a: [2.0 * (k2 - 1.0) / a0, (1.0 - 2.0 * zeta_p * k + k2) / a0],
         })
+    }
+}
+
+/// A design's refusal on the settings' fields `[frequency, q, depth]` of the notch it
+/// configures (the feedback's, `feedback.notch`, or the feedforward's, `shaping`).
+pub fn refusal(d: &NotchDesign, e: NotchError, fields: [Field; 3]) -> Refusal {
+    let [frequency, q, depth] = fields;
+    match e {
+        NotchError::NotFinite => {
+            let field = if !d.frequency_hz.is_finite() {
+                frequency
+            } else if !d.q.is_finite() {
+                q
+            } else {
+                depth
+            };
+            Refusal::new(field, Rule::NotFinite)
+        }
+        NotchError::FrequencyOutOfRange => Refusal::new(frequency, Rule::Unreachable),
+        NotchError::QOutOfRange => Refusal::new(q, Rule::AtMost(50.0)),
+        NotchError::DepthOutOfRange => Refusal::new(depth, Rule::AtMost(1.0)),
     }
 }
 

@@ -194,12 +194,37 @@ pub fn decode(record: &[u8], expected_version: u16) -> Result<&[u8], StoreError>
     Ok(&record[HEADER_LEN..body_end])
 }
 
-/// Payload layout version of the record (version 4: the control rate and the one
-/// [`Settings`] type, whose `Model` gained the generalised P–I and Bouc–Wen (appended in that
-/// order) and which ends with the optional creep operator; version 3 lacked all three, and
-/// versions 1 and 2 had a separate board payload and a wire parameter set: none of them is
-/// read any more, such a board boots on the defaults and says so).
-pub const RECORD_VERSION: u16 = 4;
+/// Payload layout version of the record (version 5: the control rate and the one
+/// [`Settings`] type, which ends with the optional input shaping (`shaping`); version 4 lacked
+/// it and is still read, as settings without shaping ([`StoredRecord::decode`]); in version 4
+/// `Model` had gained the generalised P–I and Bouc–Wen (appended in that order) and the
+/// settings the optional creep operator; version 3 lacked all three, and versions 1 and 2 had
+/// a separate board payload and a wire parameter set: none of them is read any more, such a
+/// board boots on the defaults and says so).
+pub const RECORD_VERSION: u16 = 5;
+
+/// The last record version without input shaping, still read.
+pub const RECORD_VERSION_WITHOUT_SHAPING: u16 = 4;
+
+/// Version 4's payload: the settings without `shaping` (read only).
+#[derive(serde::Deserialize)]
+struct RecordV4 {
+    control_rate_hz: u32,
+    settings: crate::settings::SettingsWithoutShaping,
+}
+
+/// A version-4 payload as a record without shaping (out of line: its frame is only on the
+/// stack for such a record).
+#[inline(never)]
+fn decode_v4(payload: &[u8]) -> Option<StoredRecord> {
+    match postcard::take_from_bytes::<RecordV4>(payload) {
+        Ok((r, [])) => Some(StoredRecord {
+            control_rate_hz: r.control_rate_hz,
+            settings: r.settings.into(),
+        }),
+        _ => None,
+    }
+}
 
 /// What the parameter record holds: the control rate (fixed at boot) and the settings.
 #[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -264,12 +289,24 @@ impl StoredRecord {
     }
 
     /// Decodes and checks a record: the envelope, the payload, the control rate, and the
-    /// settings on `hardware` at the stored rate (`hardware`'s own rate is ignored).
+    /// settings on `hardware` at the stored rate (`hardware`'s own rate is ignored). A
+    /// version-4 record (before input shaping) is read as settings without shaping.
     pub fn decode(record: &[u8], hardware: &Hardware) -> Result<Self, LoadFailure> {
-        let payload = decode(record, RECORD_VERSION).map_err(LoadFailure::Record)?;
-        let stored = match postcard::take_from_bytes::<StoredRecord>(payload) {
-            Ok((r, [])) => r,
-            _ => return Err(LoadFailure::Settings(SettingsError::Undecodable)),
+        let stored = match decode(record, RECORD_VERSION) {
+            Ok(payload) => match postcard::take_from_bytes::<StoredRecord>(payload) {
+                Ok((r, [])) => Some(r),
+                _ => None,
+            },
+            Err(StoreError::UnsupportedVersion {
+                found: RECORD_VERSION_WITHOUT_SHAPING,
+                ..
+            }) => decode_v4(
+                decode(record, RECORD_VERSION_WITHOUT_SHAPING).map_err(LoadFailure::Record)?,
+            ),
+            Err(e) => return Err(LoadFailure::Record(e)),
+        };
+        let Some(stored) = stored else {
+            return Err(LoadFailure::Settings(SettingsError::Undecodable));
         };
         let rate = stored.control_rate_hz;
         if !(Hardware::MIN_CONTROL_RATE_HZ..=Hardware::MAX_CONTROL_RATE_HZ).contains(&rate) {
@@ -477,6 +514,40 @@ mod tests {
             ParamSource::Defaults(LoadFailure::Record(StoreError::BadCrc { .. }))
         ));
         assert_eq!(source.as_str(), "bad-crc");
+    }
+
+    /// A record stored before input shaping (version 4: the settings without `shaping`)
+    /// still loads, as settings without shaping; a record with shaping round-trips.
+    #[test]
+    fn a_version_4_record_loads_without_shaping() {
+        let mut s = stored(50_000);
+        s.settings.compensator = Some(crate::settings::representative_pi(8).unwrap());
+        s.settings.mode = crate::settings::Mode::OpenLoop;
+        // Version 4's payload is version 5's without the last byte (`shaping: None`).
+        let mut payload = [0u8; MAX_PAYLOAD];
+        let used = postcard::to_slice(&s, &mut payload).unwrap().len();
+        assert_eq!(payload[used - 1], 0, "the trailing None");
+        let mut buf = [0u8; MAX_RECORD];
+        let n = encode(
+            RECORD_VERSION_WITHOUT_SHAPING,
+            &payload[..used - 1],
+            &mut buf,
+        )
+        .unwrap();
+        assert_eq!(
+            load_record(&buf[..n], &HW),
+            (s.clone(), ParamSource::Stored)
+        );
+        // Version 5 with the byte left off is malformed, not silently shaped.
+        let n = encode(RECORD_VERSION, &payload[..used - 1], &mut buf).unwrap();
+        assert_eq!(load_record(&buf[..n], &HW).1.as_str(), "bad-settings");
+        s.settings.shaping = Some(crate::notch::NotchDesign {
+            frequency_hz: 21_807.0,
+            q: 0.5,
+            depth: 0.0173,
+        });
+        let (buf, n) = record_of(&s);
+        assert_eq!(load_record(&buf[..n], &HW), (s, ParamSource::Stored));
     }
 
     #[test]

@@ -168,6 +168,12 @@ pub enum Field {
     ScanOffset,
     /// The trigger outputs' pulse width, ticks.
     TriggerPulse,
+    /// `shaping.frequency_hz`: the feedforward notch's centre (protocol v7).
+    ShapingFrequency,
+    /// `shaping.q`: the feedforward notch's quality factor.
+    ShapingQ,
+    /// `shaping.depth`: the feedforward notch's gain at its centre.
+    ShapingDepth,
 }
 
 /// The rule a field broke, with its limit where it has one (in the field's own units).
@@ -356,6 +362,9 @@ impl core::fmt::Display for Field {
             Field::ScanAmplitude => "scan amplitude",
             Field::ScanOffset => "scan offset",
             Field::TriggerPulse => "trigger pulse ticks",
+            Field::ShapingFrequency => "shaping.frequency_hz",
+            Field::ShapingQ => "shaping.q",
+            Field::ShapingDepth => "shaping.depth",
         };
         f.write_str(name)
     }

@@ -28,6 +28,7 @@ use crate::duhem::{Duhem, InverseDuhem};
 pub use crate::feedback::FeedbackSettings;
 use crate::generalised_pi::{GeneralisedPi, GpiParams, InverseGeneralisedPi, MAX_DEAD_ZONES};
 pub use crate::mode_switch::Mode;
+use crate::notch::Notch;
 pub use crate::notch::NotchDesign;
 use crate::params::{
     BoucWenCoefficient, BoucWenParams, DuhemParams, ParamError, PiParams, MAX_OPERATORS,
@@ -80,6 +81,45 @@ pub struct Settings {
     /// (and absent from older parameter files): no creep.
     #[serde(default)]
     pub creep: Option<CreepParams>,
+    /// Input shaping: a notch on the feedforward (the compensator's output plus the learned
+    /// correction), at the stage's resonance, so that the drive does not excite it: the
+    /// tick runs it before the range and slew limits in every mode but bypass. Designed at the
+    /// control rate ([`NotchDesign::coefficients`]); `hal-sim tune` measures the resonance.
+    /// `None` (and absent from older parameter files): no shaping.
+    #[serde(default)]
+    pub shaping: Option<NotchDesign>,
+}
+
+/// [`Settings`] as it was laid out before input shaping (every field but the last,
+/// `shaping`): what flash records of version 4 and golden vector sets of format 3 hold. Read
+/// only, into [`Settings`] without shaping.
+#[derive(Clone, Debug, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SettingsWithoutShaping {
+    ranges: Scaling,
+    compensator: Option<Model>,
+    observer: Option<Model>,
+    drive: DriveSettings,
+    sensor: Option<SensorSettings>,
+    feedback: Option<FeedbackSettings>,
+    mode: Mode,
+    creep: Option<CreepParams>,
+}
+
+impl From<SettingsWithoutShaping> for Settings {
+    fn from(s: SettingsWithoutShaping) -> Self {
+        Self {
+            ranges: s.ranges,
+            compensator: s.compensator,
+            observer: s.observer,
+            drive: s.drive,
+            sensor: s.sensor,
+            feedback: s.feedback,
+            mode: s.mode,
+            creep: s.creep,
+            shaping: None,
+        }
+    }
 }
 
 impl Default for Settings {
@@ -105,6 +145,7 @@ impl Default for Settings {
             feedback: None,
             mode: Mode::Bypass,
             creep: None,
+            shaping: None,
         }
     }
 }
@@ -182,6 +223,20 @@ impl Settings {
             ),
             None => None,
         };
+        let shaping = match &self.shaping {
+            Some(d) => Some(Notch::new(d, hw.control_rate_hz).map_err(|e| {
+                crate::notch::refusal(
+                    d,
+                    e,
+                    [
+                        Field::ShapingFrequency,
+                        Field::ShapingQ,
+                        Field::ShapingDepth,
+                    ],
+                )
+            })?),
+            None => None,
+        };
         self.check_mode(self.mode)?;
         let config = ControlConfig {
             compensator,
@@ -191,6 +246,7 @@ impl Settings {
             drive,
             mode: self.mode,
             creep,
+            shaping,
         };
         // Last: what the tick runs must fit its period at this rate.
         crate::tick_budget::check(&config, hw.control_rate_hz)?;
@@ -285,6 +341,11 @@ impl Settings {
                 finite(Field::NotchQ, n.q)?;
                 finite(Field::NotchDepth, n.depth)?;
             }
+        }
+        if let Some(n) = &self.shaping {
+            finite(Field::ShapingFrequency, n.frequency_hz)?;
+            finite(Field::ShapingQ, n.q)?;
+            finite(Field::ShapingDepth, n.depth)?;
         }
         if let Some(c) = &self.creep {
             for (i, &x) in c.time_constants_s.iter().enumerate() {
@@ -710,6 +771,11 @@ mod tests {
             depth: 0.1,
         });
         s.sensor.as_mut().unwrap().drift_limit = Some(0.1);
+        s.shaping = Some(NotchDesign {
+            frequency_hz: 21_807.0,
+            q: 0.5,
+            depth: 0.0173,
+        });
         assert!(s.build(&hw()).is_ok());
         let mut buf = [0u8; 4096];
         let n = postcard::to_slice(&s, &mut buf).unwrap().len();
@@ -719,6 +785,59 @@ mod tests {
             "{n} bytes of settings"
         );
         assert!(n + 5 <= crate::param_store::MAX_PAYLOAD);
+    }
+
+    /// The feedforward's notch is designed at the board's rate; a design that cannot work
+    /// there is refused on its own fields (`shaping.…`), not the feedback notch's.
+    #[test]
+    fn shaping_is_built_at_the_rate_and_refused_on_its_fields() {
+        let design = NotchDesign {
+            frequency_hz: 21_807.0,
+            q: 0.5,
+            depth: 0.0173,
+        };
+        let s = Settings {
+            shaping: Some(design),
+            ..closed()
+        };
+        let c = s.build(&hw()).unwrap();
+        assert_eq!(
+            c.shaping,
+            Some(crate::notch::Notch::new(&design, 50_000.0).unwrap())
+        );
+        assert_eq!(closed().build(&hw()).unwrap().shaping, None);
+        let refused = |f: fn(&mut NotchDesign)| {
+            let mut d = design;
+            f(&mut d);
+            Settings {
+                shaping: Some(d),
+                ..closed()
+            }
+            .build(&hw())
+            .unwrap_err()
+        };
+        // 21.8 kHz is beyond what a 40 kHz tick can place (0.49 of the rate).
+        let slow = Settings {
+            shaping: Some(design),
+            ..closed()
+        };
+        assert_eq!(
+            slow.build(&Hardware::driver_board(40_000.0)).unwrap_err(),
+            Refusal::new(Field::ShapingFrequency, Rule::Unreachable)
+        );
+        assert_eq!(
+            refused(|d| d.q = 60.0),
+            Refusal::new(Field::ShapingQ, Rule::AtMost(50.0))
+        );
+        assert_eq!(
+            refused(|d| d.depth = -0.1),
+            Refusal::new(Field::ShapingDepth, Rule::AtMost(1.0))
+        );
+        let r = refused(|d| d.frequency_hz = f64::NAN);
+        assert_eq!(r, Refusal::new(Field::ShapingFrequency, Rule::NotFinite));
+        let mut text = heapless::String::<64>::new();
+        core::fmt::write(&mut text, format_args!("{r}")).unwrap();
+        assert_eq!(text, "shaping.frequency_hz is NaN or infinite");
     }
 
     #[test]

@@ -66,7 +66,8 @@ pub const CREEP_BASE_CYCLES: u32 = 95;
 pub const CREEP_MODE_CYCLES: u32 = 36;
 /// The feedback's derivative term.
 pub const DERIVATIVE_CYCLES: u32 = 50;
-/// The feedback's notch (one biquad).
+/// The feedback's notch (one biquad); the feedforward's notch (input shaping,
+/// [`ControlConfig::shaping`]) is charged the same.
 pub const NOTCH_CYCLES: u32 = 95;
 
 /// The learning feedforward while it plays or learns ([`crate::learning`]): one table read,
@@ -143,6 +144,10 @@ pub fn worst_case_cycles(config: &ControlConfig) -> u32 {
         if feedback.notch.is_some() {
             cycles += NOTCH_CYCLES;
         }
+    }
+    // The feedforward's notch (input shaping) is the same biquad as the feedback's.
+    if config.shaping.is_some() {
+        cycles += NOTCH_CYCLES;
     }
     cycles
 }
@@ -241,6 +246,19 @@ mod tests {
         assert_eq!(
             worst_case_cycles(&build(&gpi)) - c32,
             DEAD_ZONE_BASE_CYCLES + 6 * DEAD_ZONE_CYCLES
+        );
+        // The feedforward's notch is charged as the feedback's (the same biquad).
+        let shaped = Settings {
+            shaping: Some(crate::notch::NotchDesign {
+                frequency_hz: 2_000.0,
+                q: 0.5,
+                depth: 0.02,
+            }),
+            ..gpi.clone()
+        };
+        assert_eq!(
+            worst_case_cycles(&build(&shaped)) - worst_case_cycles(&build(&gpi)),
+            NOTCH_CYCLES
         );
     }
 

@@ -91,6 +91,7 @@ fn request() -> impl Strategy<Value = Request> {
                 }),
                 mode: Mode::OpenLoop,
                 creep: None,
+                shaping: None,
             })
         }),
         prop_oneof![
@@ -378,18 +379,18 @@ fn the_book_s_example_frames_are_what_the_encoder_writes() {
             .map(|b| u8::from_str_radix(b, 16).unwrap())
             .collect()
     };
-    assert_eq!(PROTOCOL_VERSION, 6);
-    assert_eq!(frame_of(&Request::Status), hex("02 06 05 79 b5 83 17 00"));
+    assert_eq!(PROTOCOL_VERSION, 7);
+    assert_eq!(frame_of(&Request::Status), hex("02 07 05 38 84 98 0e 00"));
     assert_eq!(
         frame_of(&Request::Setpoints(SetpointBatch {
             seq: 1,
             samples: heapless::Vec::from_slice(&[100, -100]).unwrap(),
         })),
-        hex("0d 06 01 01 02 c8 01 c7 01 5e 80 21 f5 00")
+        hex("0d 07 01 01 02 c8 01 c7 01 c0 80 8b 39 00")
     );
     let mut out = [0u8; MAX_ENCODED + 1];
     let n = encode(&Response::Ack { credits: 511 }, &mut out).unwrap();
-    assert_eq!(&out[..n], &hex("02 06 07 ff 03 08 2c 02 0e 00")[..]);
+    assert_eq!(&out[..n], &hex("02 07 07 ff 03 6d 4b be b6 00")[..]);
     let refused = Response::Nack {
         reason: NackReason::Refused(twinstack::refusal::Refusal::new(
             twinstack::refusal::Field::Ki,
@@ -399,14 +400,14 @@ fn the_book_s_example_frames_are_what_the_encoder_writes() {
     let n = encode(&refused, &mut out).unwrap();
     assert_eq!(
         &out[..n],
-        &hex("06 06 01 03 0a 04 01 01 01 01 08 6a d8 40 85 32 65 9d 00")[..]
+        &hex("06 07 01 03 0a 04 01 01 01 01 04 6a d8 40 04 eb f3 40 00")[..]
     );
     // Protocol v6's learning status request.
     assert_eq!(
         frame_of(&Request::Learn(
             twinstack::protocol::messages::LearnRequest::Status
         )),
-        hex("08 06 14 03 4f 23 6b 4c 00")
+        hex("08 07 14 03 78 49 a9 4d 00")
     );
     // Protocol v4's capture: arm, read, a chunk.
     assert_eq!(
@@ -417,14 +418,14 @@ fn the_book_s_example_frames_are_what_the_encoder_writes() {
             trigger: Trigger::StreamStart,
             decimation: 1,
         })),
-        hex("0d 06 0b 1b 96 01 0a 01 01 98 41 2a 4d 00")
+        hex("0d 07 0b 1b 96 01 0a 01 01 06 41 80 81 00")
     );
     assert_eq!(
         frame_of(&Request::ReadCapture {
             offset: 0,
             count: 256
         }),
-        hex("03 06 0d 07 80 02 07 23 85 6e 00")
+        hex("03 07 0d 07 80 02 b7 0a e5 53 00")
     );
     let chunk = Response::CaptureChunk {
         offset: 0,
@@ -433,7 +434,7 @@ fn the_book_s_example_frames_are_what_the_encoder_writes() {
     let n = encode(&chunk, &mut out).unwrap();
     assert_eq!(
         &out[..n],
-        &hex("03 06 06 0c 03 c8 01 c7 01 fe 3f c9 93 bc ba 00")[..]
+        &hex("03 07 06 0c 03 c8 01 c7 01 fe 3f f7 f8 7e 55 00")[..]
     );
     // Protocol v5's telemetry: start (setpoint and sensor every 5 ticks), stop, a frame, and
     // a refused rate.
@@ -442,11 +443,11 @@ fn the_book_s_example_frames_are_what_the_encoder_writes() {
             signals: 0b1001,
             decimation: 5,
         })),
-        hex("03 06 0e 07 09 05 48 3a 15 08 00")
+        hex("03 07 0e 07 09 05 f8 13 75 35 00")
     );
     assert_eq!(
         frame_of(&Request::Telemetry(TelemetryRequest::Stop)),
-        hex("08 06 0e 01 b8 b8 48 12 00")
+        hex("08 07 0e 01 8f d2 8a 13 00")
     );
     let telemetry = Response::Telemetry(TelemetryFrame {
         seq: 3,
@@ -459,7 +460,7 @@ fn the_book_s_example_frames_are_what_the_encoder_writes() {
     let n = encode(&telemetry, &mut out).unwrap();
     assert_eq!(
         &out[..n],
-        &hex("06 06 07 03 78 09 01 10 04 c8 01 c7 01 80 80 02 80 fa 01 f4 70 5e 60 00")[..]
+        &hex("06 07 07 03 78 09 01 10 04 c8 01 c7 01 80 80 02 80 fa 01 15 c6 0c 8f 00")[..]
     );
     let too_fast = Response::Nack {
         reason: NackReason::Refused(twinstack::refusal::Refusal::new(
@@ -470,7 +471,7 @@ fn the_book_s_example_frames_are_what_the_encoder_writes() {
     let n = encode(&too_fast, &mut out).unwrap();
     assert_eq!(
         &out[..n],
-        &hex("06 06 01 03 1e 01 01 01 01 01 01 07 18 40 e0 cf 0d 77 00")[..]
+        &hex("06 07 01 03 1e 01 01 01 01 01 01 07 18 40 65 16 9b aa 00")[..]
     );
     // Protocol v5's waveform with a decay: 10 Hz, amplitude 0.97, six full cycles, then
     // 57 000 / 65 536 kept per cycle.
@@ -485,7 +486,7 @@ fn the_book_s_example_frames_are_what_the_encoder_writes() {
                 keep: 57_000
             }),
         })),
-        hex("03 06 07 01 0f d2 f0 03 90 4e 01 06 a8 bd 03 ff 49 0f ca 00")
+        hex("03 07 07 01 0d d2 f0 03 90 4e 01 06 a8 bd 03 89 a8 02 57 00")
     );
     // Protocol v6's scan and trigger I/O: a 64-line raster of 100 pixels, 4 ticks each, with
     // 40-tick turnarounds, ±0.5 about 0, y ±0.5, one frame, now; pulses of 2 ticks and the
@@ -505,7 +506,7 @@ fn the_book_s_example_frames_are_what_the_encoder_writes() {
             frames: 1,
             on_trigger: false,
         })),
-        hex("03 06 15 04 40 64 28 01 01 01 01 01 01 01 01 01 01 01 01 01 03 e0 3f 01 01 01 01 01 01 01 01 01 01 01 01 01 05 e0 3f 04 01 05 29 dc 5c 9a 00")
+        hex("03 07 15 04 40 64 28 01 01 01 01 01 01 01 01 01 01 01 01 01 03 e0 3f 01 01 01 01 01 01 01 01 01 01 01 01 01 05 e0 3f 04 01 05 88 4c 4b 72 00")
     );
     assert_eq!(
         frame_of(&Request::Trigger(TriggerConfig {
@@ -513,7 +514,7 @@ fn the_book_s_example_frames_are_what_the_encoder_writes() {
             input: TriggerEdge::Rising,
             start_stream: true,
         })),
-        hex("0a 06 16 02 01 01 47 df 88 51 00")
+        hex("0a 07 16 02 01 01 f7 f6 e8 6c 00")
     );
 }
 

@@ -98,6 +98,7 @@ prop_compose! {
         drift in proptest::option::of(0.01f64..0.5),
         feedback in proptest::option::of((0.0f64..1.0, 0.0f64..5000.0, 0.01f64..0.5)),
         mode in 0..3u8,
+        shaping in proptest::option::of((500.0f64..20_000.0, 0.3f64..5.0, 0.0f64..1.0)),
     ) -> Settings {
         let vmax = (vmin + vspan).min(150.0);
         Settings {
@@ -120,6 +121,11 @@ prop_compose! {
             feedback: feedback.map(|(kp, ki, limit)| FeedbackSettings::pi(kp, ki, limit)),
             mode: [Mode::Bypass, Mode::OpenLoop, Mode::ClosedLoop][mode as usize],
             creep: None,
+            shaping: shaping.map(|(frequency_hz, q, depth)| twinstack::notch::NotchDesign {
+                frequency_hz,
+                q,
+                depth,
+            }),
         }
     }
 }

@@ -5,7 +5,7 @@
 //! | field | bytes | meaning |
 //! |---|---|---|
 //! | magic | 4 | `TSGV` |
-//! | version | 2 | [`FORMAT_VERSION`]; another version is refused |
+//! | version | 2 | [`FORMAT_VERSION`], or [`FORMAT_VERSION_WITHOUT_SHAPING`] (read); another version is refused |
 //! | length | 4 | bytes of the whole record, magic to CRC |
 //! | name length, name | 1 + n | ASCII `[a-z0-9-]`, 1…32 bytes |
 //! | ticks | 4 | tick count `T` (1…[`MAX_TICKS`]) |
@@ -25,8 +25,12 @@ use super::{TickInput, TickOutput, CRC32};
 /// Record magic.
 pub const MAGIC: [u8; 4] = *b"TSGV";
 /// Version of the layout above and of the recipe's encoding ([`super::recipe`]): 2 since the
-/// feedback carries a drift limit, 3 since the settings end with the optional creep.
-pub const FORMAT_VERSION: u16 = 3;
+/// feedback carries a drift limit, 3 since the settings end with the optional creep, 4 since
+/// they end with the optional input shaping.
+pub const FORMAT_VERSION: u16 = 4;
+/// The format before input shaping, still read: its recipes' settings end with `creep`
+/// ([`Recipe::decode_without_shaping`]); the same layout otherwise.
+pub const FORMAT_VERSION_WITHOUT_SHAPING: u16 = 3;
 /// Bytes per tick of inputs.
 pub const INPUT_BYTES: usize = 7;
 /// Bytes per tick of outputs.
@@ -154,6 +158,8 @@ pub struct VectorSet<'a> {
     name: &'a str,
     ticks: u32,
     config_fingerprint: u32,
+    /// The record's format version (the recipe's encoding).
+    version: u16,
     recipe: &'a [u8],
     inputs: &'a [u8],
     outputs: &'a [u8],
@@ -184,7 +190,11 @@ impl<'a> VectorSet<'a> {
     }
     /// The configuration, decoded.
     pub fn recipe(&self) -> Result<Recipe, RecipeError> {
-        Recipe::decode(self.recipe)
+        if self.version == FORMAT_VERSION_WITHOUT_SHAPING {
+            Recipe::decode_without_shaping(self.recipe)
+        } else {
+            Recipe::decode(self.recipe)
+        }
     }
     /// The stored inputs, tick by tick.
     pub fn inputs(&self) -> impl Iterator<Item = TickInput> + 'a {
@@ -215,7 +225,7 @@ impl<'a> VectorSet<'a> {
             return Err(FormatError::BadMagic { at });
         }
         let version = r.u16()?;
-        if version != FORMAT_VERSION {
+        if version != FORMAT_VERSION && version != FORMAT_VERSION_WITHOUT_SHAPING {
             return Err(FormatError::BadVersion { got: version });
         }
         let len = r.u32()? as usize;
@@ -274,6 +284,7 @@ impl<'a> VectorSet<'a> {
             name,
             ticks,
             config_fingerprint,
+            version,
             recipe,
             inputs,
             outputs,
@@ -514,7 +525,7 @@ mod tests {
     fn wrong_version_and_undefined_input_flags_say_so() {
         let buf = sample();
         // An older (or newer) version is refused, whatever else the record holds.
-        for other in [FORMAT_VERSION - 1, FORMAT_VERSION + 1] {
+        for other in [FORMAT_VERSION_WITHOUT_SHAPING - 1, FORMAT_VERSION + 1] {
             let mut bad = buf.b;
             bad[4..6].copy_from_slice(&other.to_le_bytes());
             assert!(matches!(

@@ -8,7 +8,7 @@ use serde::{Deserialize, Serialize};
 use twinstack::board::Hardware;
 use twinstack::control::ControlConfig;
 use twinstack::refusal::Refusal;
-use twinstack::settings::Settings;
+use twinstack::settings::{Settings, SettingsWithoutShaping};
 
 /// Longest encoded recipe, bytes (two 32-operator P–I models and everything else fit).
 pub const MAX_RECIPE: usize = 1536;
@@ -48,6 +48,22 @@ impl Recipe {
         }
     }
 
+    /// Decodes a recipe of format 3, whose settings end before `shaping` (read as none).
+    pub fn decode_without_shaping(bytes: &[u8]) -> Result<Self, RecipeError> {
+        #[derive(Deserialize)]
+        struct Old {
+            hardware: Hardware,
+            settings: SettingsWithoutShaping,
+        }
+        match postcard::take_from_bytes::<Old>(bytes) {
+            Ok((r, [])) => Ok(Self {
+                hardware: r.hardware,
+                settings: r.settings.into(),
+            }),
+            _ => Err(RecipeError::Malformed),
+        }
+    }
+
     /// Validates and builds the tick's configuration.
     pub fn build(&self) -> Result<ControlConfig, RecipeError> {
         self.settings
@@ -72,5 +88,12 @@ mod tests {
         assert_eq!(Recipe::decode(&buf[..n + 1]), Err(RecipeError::Malformed));
         assert_eq!(Recipe::decode(&buf[..n - 1]), Err(RecipeError::Malformed));
         assert!(r.build().is_ok());
+        // Format 3's recipe is the same without the trailing `shaping: None` byte.
+        assert_eq!(buf[n - 1], 0);
+        assert_eq!(Recipe::decode_without_shaping(&buf[..n - 1]), Ok(r.clone()));
+        assert_eq!(
+            Recipe::decode_without_shaping(&buf[..n]),
+            Err(RecipeError::Malformed)
+        );
     }
 }

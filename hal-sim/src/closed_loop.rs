@@ -260,6 +260,7 @@ pub fn settings(
             Configuration4::Feedback | Configuration4::Both => Mode::ClosedLoop,
         },
         creep: model.creep.clone(),
+        shaping: None,
     }
 }
 
@@ -332,6 +333,7 @@ pub fn identify_model(rate: f64, options: &ClosedLoopOptions) -> Result<StageMod
         feedback: None,
         mode: Mode::Bypass,
         creep: None,
+        shaping: None,
     };
     let config = settings
         .build(&hardware(rate))

@@ -210,6 +210,7 @@ fn excite(options: &DemoOptions, stage: StageConfiguration, ticks: usize) -> Res
         feedback: None,
         mode: Mode::Bypass,
         creep: None,
+        shaping: None,
     };
     let config = settings
         .build(&hardware(options.control_rate))
@@ -282,6 +283,7 @@ fn track(
             Mode::Bypass
         },
         creep: model.creep.clone(),
+        shaping: None,
     };
     let config = settings
         .build(&hardware(options.control_rate))

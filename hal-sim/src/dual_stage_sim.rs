@@ -166,6 +166,7 @@ pub(crate) fn piezo_settings(board: &ExternalBoard, ki: f64) -> Settings {
         feedback: Some(FeedbackSettings::pi(0.0, ki, 1.0)),
         mode: Mode::ClosedLoop,
         creep: None,
+        shaping: None,
     }
 }
 

@@ -32,7 +32,7 @@ use twinstack::learning::{
     configure, post_table, service, LearnSettings, LearnState, LearnTask, MAX_BINS,
 };
 use twinstack::recorder::CAPTURE_SLOTS;
-use twinstack::settings::Settings;
+use twinstack::settings::{NotchDesign, Settings};
 use twinstack::waveform::{Shape, WaveformGenerator};
 
 /// The waveform to learn: a shape and a frequency.
@@ -118,6 +118,9 @@ pub struct LearnOptions {
     pub cutoff_hz: f64,
     /// Phase lead, ticks.
     pub lead_ticks: u16,
+    /// Input shaping: the notch on the feedforward ([`Settings::shaping`]); `None`: none.
+    /// With it, the inverse P–I feedforward alone is also run without it: the baseline.
+    pub shaping: Option<NotchDesign>,
     /// Where the PNG goes (`None`: no figure).
     pub out_dir: Option<PathBuf>,
 }
@@ -138,7 +141,31 @@ impl LearnOptions {
             gain: 0.3,
             cutoff_hz: 18_000.0,
             lead_ticks: 0,
+            shaping: None,
             out_dir: Some(PathBuf::from("out")),
+        }
+    }
+
+    /// The defaults for `motion` with input shaping ([`shaped`]: the notch
+    /// [`shaping_for`] places on the resonance `hal-sim tune` fits on this stage, 21 807 Hz,
+    /// ζ = 0.01729) and the learning's corner raised to 23 kHz, above the resonance: the shaped
+    /// stage no longer rings there, and the learning then removes what is left in that band
+    /// too (chosen by a sweep of Q 0.3–0.7 × corner 20–24.5 kHz × gain 0.3, 0.5: gain 0.5
+    /// diverges, Q 0.7 is worse; 24 kHz does a little better with the notch exactly on the
+    /// resonance but diverges with it 0.5 % off, 23 kHz stands ±0.5 %, 22 kHz ±2 % but leaves
+    /// the 750 Hz sine at 19.5×).
+    ///
+    /// ```
+    /// use hal_sim::learn::LearnOptions;
+    /// let o = LearnOptions::shaped("sine:750".parse().unwrap());
+    /// assert_eq!(o.cutoff_hz, 23_000.0);
+    /// assert_eq!(o.shaping.unwrap().frequency_hz, 21_807.0);
+    /// ```
+    pub fn shaped(motion: Motion) -> Self {
+        Self {
+            cutoff_hz: SHAPED_CUTOFF_HZ,
+            shaping: Some(shaped()),
+            ..Self::new(motion)
         }
     }
 
@@ -152,6 +179,33 @@ impl LearnOptions {
             limit: 0.25,
         }
     }
+}
+
+/// The learning's robustness corner with input shaping, Hz.
+pub const SHAPED_CUTOFF_HZ: f64 = 23_000.0;
+
+/// The input shaping for a resonance at `resonance_hz` with damping `zeta` (what `hal-sim
+/// tune` fits): a notch whose zeros are the resonance's poles (`depth = 2·Q·ζ`) and whose
+/// poles are critically damped (`Q = ½`). The shaped stage's response has the notch's poles
+/// where the resonance was.
+///
+/// ```
+/// let n = hal_sim::learn::shaping_for(21_807.0, 0.01729);
+/// assert_eq!((n.frequency_hz, n.q, n.depth), (21_807.0, 0.5, 0.01729));
+/// ```
+pub fn shaping_for(resonance_hz: f64, zeta: f64) -> NotchDesign {
+    let q = 0.5;
+    NotchDesign {
+        frequency_hz: resonance_hz,
+        q,
+        depth: (2.0 * q * zeta).clamp(0.0, 1.0),
+    }
+}
+
+/// The simulated differential stage's shaping, from its tuned fit at 50 kHz (21 807 Hz,
+/// ζ = 0.01729; docs/src/results/tuning.md).
+pub fn shaped() -> NotchDesign {
+    shaping_for(21_807.0, 0.01729)
 }
 
 /// One period's tracking error, % of the commanded stroke.
@@ -208,8 +262,17 @@ pub struct LearnReport {
     pub rate_hz: f64,
     /// The learning period, ticks.
     pub period_ticks: u16,
-    /// The inverse-P–I feedforward alone (open loop), over its last periods.
+    /// The inverse-P–I feedforward alone (open loop, without shaping: the goal's baseline),
+    /// over its last periods.
     pub feedforward: PeriodFigures,
+    /// The input shaping, if any.
+    pub shaping: Option<NotchDesign>,
+    /// The learning's gain and robustness corner (Hz).
+    pub gain: f64,
+    /// The robustness filter's corner, Hz.
+    pub cutoff_hz: f64,
+    /// With shaping: the shaped feedforward alone (before learning), over its last periods.
+    pub shaped_feedforward: Option<PeriodFigures>,
     /// Each learning period, scored from the stage (the learning curve).
     pub curve: Vec<PeriodFigures>,
     /// The last learning period.
@@ -217,7 +280,7 @@ pub struct LearnReport {
     /// The frozen table replayed open loop with the sensor off (a fresh board), over its last
     /// periods.
     pub replay: PeriodFigures,
-    /// `feedforward.rms / learned.rms`.
+    /// `feedforward.rms / learned.rms` (against the unshaped feedforward alone).
     pub rms_reduction: f64,
     /// Tables posted by the task.
     pub updates: u32,
@@ -370,13 +433,16 @@ pub fn run_with(options: &LearnOptions, model: &StageModel) -> Result<LearnRepor
     let period = period_ticks(options.motion.frequency_hz, options.rate)?;
     let board0 = board(options.rate, options.sensor_noise_um)?;
     let sensor = sensor_settings(&board0);
-    let open = settings(
-        options.rate,
-        model,
-        sensor,
-        Configuration4::Feedforward,
-        false,
-    );
+    let open = Settings {
+        shaping: options.shaping,
+        ..settings(
+            options.rate,
+            model,
+            sensor,
+            Configuration4::Feedforward,
+            false,
+        )
+    };
 
     // 1 and 2: feedforward alone, then learning, on one board.
     let mut rig = Rig::new(options, &open, period)?;
@@ -388,6 +454,25 @@ pub fn run_with(options: &LearnOptions, model: &StageModel) -> Result<LearnRepor
             ff.push(f);
         }
     }
+    // With shaping, the baseline is the feedforward without it, on a board of its own.
+    let (ff, shaped_ff) = if options.shaping.is_some() {
+        let plain = Settings {
+            shaping: None,
+            ..open.clone()
+        };
+        let mut base = Rig::new(options, &plain, period)?;
+        base.play(options)?;
+        let mut plain_ff = Vec::new();
+        for k in 0..SETTLE + SCORED {
+            let f = base.period()?;
+            if k >= SETTLE {
+                plain_ff.push(f);
+            }
+        }
+        (plain_ff, Some(pooled(&ff)))
+    } else {
+        (ff, None)
+    };
     rig.control.set_learning(LearnState::Learning);
     let mut curve = Vec::new();
     for _ in 0..options.periods {
@@ -423,6 +508,10 @@ pub fn run_with(options: &LearnOptions, model: &StageModel) -> Result<LearnRepor
         rate_hz: options.rate,
         period_ticks: period,
         feedforward,
+        shaping: options.shaping,
+        gain: options.gain,
+        cutoff_hz: options.cutoff_hz,
+        shaped_feedforward: shaped_ff,
         curve,
         learned,
         replay,
@@ -433,7 +522,10 @@ pub fn run_with(options: &LearnOptions, model: &StageModel) -> Result<LearnRepor
     };
     if let Some(dir) = &options.out_dir {
         std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
-        let name = options.motion.label().replace(':', "-");
+        let mut name = options.motion.label().replace(':', "-");
+        if options.shaping.is_some() {
+            name.push_str("-shaped");
+        }
         let png = dir.join(format!("learn-{name}.png"));
         draw_curve(&png, &report)?;
         report.figures.push(png);
@@ -487,9 +579,14 @@ pub fn draw_curve(path: &std::path::Path, report: &LearnReport) -> Result<()> {
     draw_panels(
         path,
         &format!(
-            "Learning feedforward, {} at {:.0} kHz",
+            "Learning {}, {} at {:.0} kHz",
+            if report.shaping.is_some() {
+                "+ shaping"
+            } else {
+                "feedforward"
+            },
             report.waveform,
-            report.rate_hz / 1e3
+            report.rate_hz / 1e3,
         ),
         &[Panel {
             caption: "tracking error per period".into(),
@@ -511,6 +608,17 @@ pub fn print(report: &LearnReport, out: &mut impl std::io::Write) -> std::io::Re
         report.rate_hz / 1e3,
         report.period_ticks
     )?;
+    let shaping = report.shaping.map_or("none".to_string(), |n| {
+        format!(
+            "notch {:.0} Hz, Q {}, depth {:.4}",
+            n.frequency_hz, n.q, n.depth
+        )
+    });
+    writeln!(
+        out,
+        "learning gain {}, corner {:.0} Hz; input shaping: {shaping}",
+        report.gain, report.cutoff_hz
+    )?;
     writeln!(out, "| period | max % | RMS % |")?;
     writeln!(out, "|---:|---:|---:|")?;
     for (k, p) in report.curve.iter().enumerate() {
@@ -524,11 +632,13 @@ pub fn print(report: &LearnReport, out: &mut impl std::io::Write) -> std::io::Re
         RESONANCE_BAND_HZ / 1e3
     )?;
     writeln!(out, "|---|---:|---:|---:|---:|")?;
-    for (label, f) in [
-        ("inverse P–I feedforward alone", report.feedforward),
-        ("learned (last period)", report.learned),
-        ("replayed, sensor off", report.replay),
-    ] {
+    let mut rows = vec![("inverse P–I feedforward alone", report.feedforward)];
+    if let Some(f) = report.shaped_feedforward {
+        rows.push(("shaped feedforward alone", f));
+    }
+    rows.push(("learned (last period)", report.learned));
+    rows.push(("replayed, sensor off", report.replay));
+    for (label, f) in rows {
         writeln!(
             out,
             "| {label} | {:.4} | {:.4} | {:.4} | {:.4} |",

@@ -185,6 +185,7 @@ impl ParamFile {
                 feedback: None,
                 mode: Mode::OpenLoop,
                 creep: model.creep.clone(),
+                shaping: None,
             },
             identification,
         }

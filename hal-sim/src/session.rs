@@ -3,7 +3,7 @@
 //! same thing:
 //!
 //! * the settings a parameter load sends ([`keep_from_board`]: the file's, with the sensor
-//!   calibration and feedback gains it leaves out kept from the board) and the checks before
+//!   calibration, feedback gains and input shaping it leaves out kept from the board) and the checks before
 //!   sending them ([`check_load`]: closed loop on an inverted sensor, a model whose input range
 //!   the drive cannot reach);
 //! * a waveform request from physical numbers ([`waveform`]);
@@ -16,8 +16,9 @@ use twinstack::protocol::messages::{CaptureRequest, StatusReport, Trigger, WaveS
 use twinstack::settings::{Mode, Settings};
 
 /// The settings a parameter load sends for a file's `file` settings: the file's, with the
-/// sensor calibration and the feedback gains it leaves out (a file from `identify` has
-/// neither) taken from `board`, the settings in force on the board.
+/// sensor calibration, the feedback gains and the input shaping it leaves out (a file from
+/// `identify` has none of them: they are the stage's, not the model's) taken from `board`,
+/// the settings in force on the board.
 pub fn keep_from_board(file: &Settings, board: Option<&Settings>) -> Settings {
     let mut s = file.clone();
     if s.sensor.is_none() {
@@ -25,6 +26,9 @@ pub fn keep_from_board(file: &Settings, board: Option<&Settings>) -> Settings {
     }
     if s.feedback.is_none() {
         s.feedback = board.and_then(|b| b.feedback);
+    }
+    if s.shaping.is_none() {
+        s.shaping = board.and_then(|b| b.shaping);
     }
     s
 }
@@ -312,5 +316,36 @@ pub fn parse_mode(name: &str) -> Option<Mode> {
         "open-loop" => Some(Mode::OpenLoop),
         "closed-loop" => Some(Mode::ClosedLoop),
         _ => None,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use twinstack::settings::NotchDesign;
+
+    /// A file without shaping (as `identify` writes) keeps the board's; a file with its own
+    /// replaces it.
+    #[test]
+    fn the_board_s_shaping_is_kept_unless_the_file_has_its_own() {
+        let shaping = |f| {
+            Some(NotchDesign {
+                frequency_hz: f,
+                q: 0.5,
+                depth: 0.0173,
+            })
+        };
+        let board = Settings {
+            shaping: shaping(21_807.0),
+            ..Settings::default()
+        };
+        let file = Settings::default();
+        assert_eq!(keep_from_board(&file, Some(&board)).shaping, board.shaping);
+        assert_eq!(keep_from_board(&file, None).shaping, None);
+        let own = Settings {
+            shaping: shaping(16_312.0),
+            ..Settings::default()
+        };
+        assert_eq!(keep_from_board(&own, Some(&board)).shaping, own.shaping);
     }
 }

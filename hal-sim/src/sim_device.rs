@@ -130,6 +130,7 @@ impl SimDeviceConfig {
             feedback: Some(FeedbackSettings::DEFAULT),
             mode,
             creep: None,
+            shaping: None,
         }
     }
 }

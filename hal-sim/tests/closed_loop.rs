@@ -72,6 +72,7 @@ fn settings<D: AnalogDualDac, A: AnalogSensorAdc>(
         feedback: Some(FeedbackSettings::pi(0.0, 500.0, 1.0)),
         mode: Mode::ClosedLoop,
         creep: None,
+        shaping: None,
     }
 }
 

@@ -30,10 +30,14 @@ use serde::{Deserialize, Serialize};
 /// feedforward (`Request::Learn`, `Response::Learn`, the `Field`s `LearnPeriod` …
 /// `LearnLimit`), the tick budget (`Field::Workload`, `Rule::TickOverrun`), scan patterns and
 /// triggers (`Request::Scan`, `Request::Trigger`, the `Field`s `ScanLines` … `TriggerPulse`);
-/// main's version 5 shipped without them.
-pub const PROTOCOL_VERSION: u8 = 6;
-/// Largest frame body (version + message + CRC), bytes.
-pub const MAX_BODY: usize = 1536;
+/// main's version 5 shipped without them. Version 7: the settings end with the optional
+/// input shaping (`shaping: Option<NotchDesign>`, the feedforward's notch), the `Field`s
+/// `ShapingFrequency`, `ShapingQ`, `ShapingDepth` were appended, and a body may be 1 568
+/// bytes (the largest settings with shaping).
+pub const PROTOCOL_VERSION: u8 = 7;
+/// Largest frame body (version + message + CRC), bytes: a load of the largest settings (two
+/// generalised P–I models of 32 operators and 8 dead zones, both notches) fits.
+pub const MAX_BODY: usize = 1568;
 /// Largest frame on the wire, delimiter excluded.
 pub const MAX_ENCODED: usize = cobs::max_encoded_len(MAX_BODY);
 /// The CRC used by frames.

@@ -34,12 +34,25 @@ pub struct Args {
     /// Learning gain (0 < L ≤ 1.5).
     #[arg(long, default_value_t = 0.3)]
     pub gain: f64,
-    /// Corner of the robustness filter, Hz (below half the control rate).
-    #[arg(long, default_value_t = 18_000.0)]
-    pub cutoff_hz: f64,
+    /// Corner of the robustness filter, Hz (below half the control rate); default 18 000,
+    /// or 23 000 with input shaping (--shape-hz).
+    #[arg(long)]
+    pub cutoff_hz: Option<f64>,
     /// Phase lead, ticks (0 … 64).
     #[arg(long, default_value_t = 0)]
     pub lead: u16,
+    /// Input shaping: centre of a notch on the feedforward, Hz (the stage's resonance, as
+    /// `hal-sim tune` fits it and prints the shaping for; 21 807 on the simulated stage);
+    /// without it, no shaping.
+    #[arg(long)]
+    pub shape_hz: Option<f64>,
+    /// Quality factor of the shaping notch (0.1 … 50); ½ puts its poles at critical damping.
+    #[arg(long, default_value_t = 0.5, requires = "shape_hz")]
+    pub shape_q: f64,
+    /// Gain of the shaping notch at its centre (0 … 1): 2·Q·ζ of the resonance cancels its
+    /// poles with the notch's zeros (0.0173 on the simulated stage, ζ = 0.01729, Q = ½).
+    #[arg(long, default_value_t = 0.0173, requires = "shape_hz")]
+    pub shape_depth: f64,
     /// Amplitude of the waveform on a board (--port), normalised about the middle of the
     /// model's output range (0 < A ≤ 1; 0.8 is 10–90 % of it, more than the simulated
     /// board's stage reaches with its representative model). The in-process study always
@@ -79,13 +92,30 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         periods: args.periods,
         sensor_noise_um: args.sensor_noise_um,
         gain: args.gain,
-        cutoff_hz: args.cutoff_hz,
+        cutoff_hz: args.cutoff_hz.unwrap_or(if args.shape_hz.is_some() {
+            crate::learn::SHAPED_CUTOFF_HZ
+        } else {
+            18_000.0
+        }),
         lead_ticks: args.lead,
+        shaping: args
+            .shape_hz
+            .map(|frequency_hz| twinstack::notch::NotchDesign {
+                frequency_hz,
+                q: args.shape_q,
+                depth: args.shape_depth,
+            }),
         out_dir: (!args.no_plot).then(|| args.out.clone()),
         ..LearnOptions::new(args.waveform)
     };
     let stdout = &mut std::io::stdout().lock();
     if args.port.port.is_some() {
+        if args.shape_hz.is_some() {
+            anyhow::bail!(
+                "--shape-hz is for the in-process study; on a board the shaping is a setting: \
+                 load it with the parameters (`shaping` in the parameter file, `hal-sim load`)"
+            );
+        }
         let report = crate::learn_link::run(&args.port, &options, args.amplitude)?;
         if args.json {
             serde_json::to_writer_pretty(&mut *stdout, &report)?;

@@ -116,6 +116,7 @@ pub fn report_json(r: &TuneReport) -> serde_json::Value {
         },
         "goals": r.goals,
         "feedback": r.design.settings,
+        "shaping": crate::learn::shaping_for(p.resonance_hz, p.zeta),
         "figures": r.design.figures,
         "before": r.before.as_ref().map(|(s, f)| serde_json::json!({
             "feedback": s,
@@ -151,6 +152,12 @@ fn run_on<T: Transport>(args: &Args, client: &mut Client<T>) -> anyhow::Result<(
     println!(
         "fit: gain {:.3}, resonance {:.0} Hz, ζ = {:.4}, delay {} tick(s) (RMS error {:.2} dB, {:.1}°)",
         p.gain, p.resonance_hz, p.zeta, p.delay, report.fit.rms_db, report.fit.rms_deg
+    );
+    let shape = crate::learn::shaping_for(p.resonance_hz, p.zeta);
+    println!(
+        "input shaping (the feedforward's notch, for open loop and `learn`): --shape-hz {:.0} \
+         --shape-q {} --shape-depth {:.4}",
+        shape.frequency_hz, shape.q, shape.depth
     );
     let notch = s.notch.map_or("none".to_string(), |n| {
         format!("{:.0} Hz, Q {}, depth {}", n.frequency_hz, n.q, n.depth)

@@ -44,7 +44,8 @@
 //! Signals that the tick holds in Q2.30 (error, reading, command) saturate at ±2 here too.
 //! The golden sets have no derivative or notch and start in their mode with no mode switch or
 //! reload, so the bumpless-transfer offset is always 0 in them: the check refuses a closed-loop
-//! recipe with a derivative or a notch rather than ignore it. Bounds:
+//! recipe with a derivative or a notch, or input shaping outside bypass, rather than ignore
+//! it. Bounds:
 //!
 //! * **drive** (applied, model-normalised): within [`DRIVE_BOUND_LSB16`] of the reference
 //!   chain — the inverse models' documented bound (README, "Fixed point");
@@ -395,6 +396,13 @@ pub fn check(set: &VectorSet<'_>) -> anyhow::Result<Agreement> {
         .map_err(|e| anyhow::anyhow!("set {}: {e:?}", set.name()))?;
     let hw = recipe.hardware;
     let st = &recipe.settings;
+    if st.shaping.is_some() && st.mode != Mode::Bypass {
+        anyhow::bail!(
+            "set {}: the reference tick does not model input shaping (the feedforward's notch; \
+             its f64 reference is control::tests::shaping_is_the_f64_notch_on_the_feedforward)",
+            set.name()
+        );
+    }
     let s = st.ranges;
     let d = st.drive;
     let (dmin, dmax) = window(&d, &s);

@@ -237,6 +237,7 @@ pub fn definitions(dir: &Path) -> anyhow::Result<Vec<SetDefinition>> {
                 feedback: set.feedback,
                 mode: set.mode,
                 creep: set.creep,
+                shaping: None,
             },
         },
         truth: set.truth,
