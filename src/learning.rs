@@ -432,7 +432,31 @@ pub struct LearnTask {
     /// Periods missed (the tick completed another before the copy ended).
     missed: u32,
     last: PeriodError,
+    /// The lowest period RMS since the learning last started (`i32::MAX`: none yet), for the
+    /// divergence guard.
+    best: i32,
+    /// Whether the last period tripped the divergence guard.
+    diverged: bool,
+    /// Times the divergence guard stopped the learning.
+    stops: u32,
 }
+
+/// The divergence guard: the learning is switched off (the feedforward alone plays; the
+/// table is kept, as [`LearnState::Off`] keeps it) when a period's RMS error exceeds this many
+/// times the lowest since it started, plus [`DIVERGENCE_FLOOR`].
+///
+/// A learning that converges brings its error down period after period, to the sensor's
+/// noise; one that diverges (a robustness filter too wide for the stage: a resonance moved, a
+/// shaping notch off the resonance, a gain too high) grows it geometrically, and the ringing
+/// it has excited keeps growing for a few periods whatever table plays next (freezing the
+/// table measured 5× the best error on the simulated stage). Off, the stage is back to the
+/// feedforward alone: never worse than without learning. A motion changed while learning
+/// trips it too: configure the learning again (or recall a table) to relearn.
+pub const DIVERGENCE_FACTOR: i32 = 2;
+
+/// The guard's allowance over [`DIVERGENCE_FACTOR`] × the best, Q2.30 normalised
+/// displacement (2⁻¹⁶ of full scale): fluctuations at the noise floor do not trip it.
+pub const DIVERGENCE_FLOOR: i32 = 1 << 14;
 
 impl Default for LearnTask {
     fn default() -> Self {
@@ -457,6 +481,9 @@ impl LearnTask {
             updates: 0,
             missed: 0,
             last: PeriodError { max: 0, rms: 0 },
+            best: i32::MAX,
+            diverged: false,
+            stops: 0,
         }
     }
 
@@ -496,6 +523,11 @@ impl LearnTask {
         n
     }
 
+    /// Whether the last [`LearnTask::update`] tripped the divergence guard.
+    pub fn diverged(&self) -> bool {
+        self.diverged
+    }
+
     /// Updates posted.
     pub fn updates(&self) -> u32 {
         self.updates
@@ -511,11 +543,23 @@ impl LearnTask {
         self.last
     }
 
+    /// Times the divergence guard stopped the learning ([`DIVERGENCE_FACTOR`]).
+    pub fn guard_stops(&self) -> u32 {
+        self.stops
+    }
+
+    /// Forgets the best period (the learning starts again: the guard measures from there).
+    pub fn restart_guard(&mut self) {
+        self.best = i32::MAX;
+    }
+
     /// Takes the error of a completed period (in `errors`, `period` bins: its max and RMS
     /// become [`LearnTask::last_error`]) and, when `learn`, computes the next table by the ILC
-    /// law. Off the tick: `O(period)`, one 64-bit division for the RMS and two for the
-    /// circular filter's start.
+    /// law — unless the period's RMS trips the divergence guard ([`DIVERGENCE_FACTOR`]): then
+    /// the table is left as it is and [`LearnTask::diverged`] says so. Off the tick:
+    /// `O(period)`, one 64-bit division for the RMS and two for the circular filter's start.
     pub fn update(&mut self, period: usize, learn: bool) {
+        self.diverged = false;
         let p = period.min(MAX_BINS);
         let Some(c) = self.config else {
             return;
@@ -532,6 +576,20 @@ impl LearnTask {
             rms: isqrt(mean).min(i32::MAX as u128) as i32,
         };
         if !learn || p < 2 {
+            return;
+        }
+        let rms = self.last.rms;
+        if rms < self.best {
+            self.best = rms;
+        } else if rms
+            > self
+                .best
+                .saturating_mul(DIVERGENCE_FACTOR)
+                .saturating_add(DIVERGENCE_FLOOR)
+        {
+            self.diverged = true;
+            self.stops = self.stops.wrapping_add(1);
+            self.best = i32::MAX;
             return;
         }
         // e(n + d + λ) onto bin n.
@@ -704,6 +762,9 @@ pub enum Service {
     Took(PeriodError),
     /// The tick completed another period while the errors were copied: that one is skipped.
     Missed,
+    /// The period's error tripped the divergence guard ([`DIVERGENCE_FACTOR`]): the learning
+    /// is off, the feedforward alone plays.
+    Stopped(PeriodError),
 }
 
 /// The low-priority task's work at a period boundary (call it whenever the task runs; it
@@ -720,6 +781,9 @@ where
         let l = c.learning();
         (l.periods(), l.state(), l.period(), l.is_posted())
     });
+    if state != LearnState::Learning {
+        task.restart_guard();
+    }
     if periods == task.seen || state == LearnState::Off || task.config.is_none() {
         task.seen = periods;
         return Service::Idle;
@@ -743,6 +807,10 @@ where
     // it, as the law expects (see the module doc); a second post would only overwrite it.
     let learn = state == LearnState::Learning && !posted;
     task.update(p, learn);
+    if task.diverged() {
+        control.lock(|c| c.set_learning(LearnState::Off));
+        return Service::Stopped(task.last);
+    }
     if learn {
         post_table(task, control);
     }
@@ -933,6 +1001,33 @@ mod tests {
 
     /// The ILC law on a plant it can learn: `x(k) = g · u(k − 1)` (a gain and one tick of
     /// delay) behind the sensor's delay; the error shrinks period after period.
+    #[test]
+    fn the_guard_stops_a_learning_whose_error_grows_past_twice_its_best() {
+        let mut t = LearnTask::new();
+        t.set_config(LearnSettings::for_period(40).build(50_000.0).unwrap());
+        let period = |t: &mut LearnTask, e: i32| {
+            t.work[..40].fill(e);
+            t.update(40, true);
+            t.diverged()
+        };
+        // Falling, then a rise within twice the best (plus the floor): learning goes on.
+        for e in [1 << 24, 1 << 22, 1 << 20, (1 << 21) + DIVERGENCE_FLOOR] {
+            assert!(!period(&mut t, e), "{e}");
+        }
+        let updates = t.updates();
+        let table = *t.table();
+        // Past twice the best: stopped, the table as it was, counted.
+        assert!(period(&mut t, (1 << 21) + DIVERGENCE_FLOOR + 1));
+        assert_eq!((t.updates(), t.guard_stops()), (updates, 1));
+        assert_eq!(*t.table(), table);
+        // The guard starts again from the next period (as after a restart).
+        assert!(!period(&mut t, 1 << 24));
+        // Not learning (frozen): measured, never stopped.
+        t.work[..40].fill(i32::MAX);
+        t.update(40, false);
+        assert!(!t.diverged());
+    }
+
     #[test]
     fn the_law_converges_on_a_delayed_gain() {
         let p = 100;

@@ -286,6 +286,9 @@ pub struct LearnReport {
     pub updates: u32,
     /// Periods the task missed.
     pub missed: u32,
+    /// Times the divergence guard stopped the learning (`twinstack::learning::DIVERGENCE_FACTOR`:
+    /// switched off, the feedforward alone plays).
+    pub guard_stops: u32,
     /// Figures written.
     pub figures: Vec<PathBuf>,
 }
@@ -518,6 +521,7 @@ pub fn run_with(options: &LearnOptions, model: &StageModel) -> Result<LearnRepor
         rms_reduction: feedforward.rms_pct / learned.rms_pct.max(1e-12),
         updates: rig.task.updates(),
         missed: rig.task.missed(),
+        guard_stops: rig.task.guard_stops(),
         figures: Vec::new(),
     };
     if let Some(dir) = &options.out_dir {
@@ -647,8 +651,15 @@ pub fn print(report: &LearnReport, out: &mut impl std::io::Write) -> std::io::Re
     }
     writeln!(
         out,
-        "\nRMS reduction {:.1}×; {} tables posted, {} periods missed",
-        report.rms_reduction, report.updates, report.missed
+        "\nRMS reduction {:.1}×; {} tables posted, {} periods missed{}",
+        report.rms_reduction,
+        report.updates,
+        report.missed,
+        if report.guard_stops > 0 {
+            "; the learning diverged (its error grew past twice its best) and its guard switched it off: the feedforward alone plays"
+        } else {
+            ""
+        }
     )?;
     for (goal, met) in report.goals() {
         writeln!(out, "goal: {goal}: {}", if met { "met" } else { "NOT met" })?;

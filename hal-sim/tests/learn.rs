@@ -98,24 +98,40 @@ fn with_shaping_every_goal_is_met() {
 }
 
 /// The same learning settings without the notch (corner 23 kHz on the bare stage) diverge:
-/// it is the shaping that lets the learning act above the resonance.
+/// it is the shaping that lets the learning act above the resonance. The divergence guard
+/// switches that learning off once its error grows past twice its best: the stage is back to
+/// the feedforward alone (no worse than without learning); the shaped learning never trips it.
 #[test]
-fn without_the_shaping_the_shaped_learning_diverges() {
+fn without_the_shaping_the_shaped_learning_diverges_and_its_guard_stops_it() {
     let mut o = LearnOptions::shaped("sine:750".parse().unwrap());
     o.out_dir = None;
     o.shaping = None;
     let bare = run_with(&o, model()).unwrap();
     let shaped = &shaped_reports()[0];
     assert!(
-        bare.learned.rms_pct > 10.0 * shaped.learned.rms_pct,
-        "{:?} vs {:?}",
-        bare.learned,
-        shaped.learned
-    );
-    assert!(
         !bare.goals()[0].1 && !bare.goals()[1].1,
         "{:?}",
         bare.learned
+    );
+    assert_eq!(
+        bare.guard_stops, 1,
+        "the guard stopped the diverging learning"
+    );
+    assert_eq!(
+        shaped.guard_stops, 0,
+        "the converging learning never trips it"
+    );
+    let worst = bare.curve.iter().map(|p| p.rms_pct).fold(0.0, f64::max);
+    assert!(
+        worst > 2.0 * bare.feedforward.rms_pct,
+        "the learning diverged before the guard: {:?}",
+        bare.curve
+    );
+    assert!(
+        bare.learned.rms_pct <= 1.05 * bare.feedforward.rms_pct,
+        "stopped, the stage is back to the feedforward alone: {:?} vs {:?}",
+        bare.learned,
+        bare.feedforward
     );
 }
 

@@ -285,7 +285,7 @@ pub mod configs {
                 }
             }
             // The dearest configuration a user can load: the largest generalised P–I both
-            // ways, six creep modes, PID feedback with the notch.
+            // ways, six creep modes, PID feedback with the notch, input shaping.
             5 => {
                 let gpi = largest_gpi()?;
                 let mut settings = Settings {
@@ -302,8 +302,14 @@ pub mod configs {
                     }),
                     ..FeedbackSettings::pi(0.2, 500.0, 0.1)
                 });
+                // And input shaping: the notch on the feedforward too.
+                settings.shaping = Some(NotchDesign {
+                    frequency_hz: 12_000.0,
+                    q: 0.5,
+                    depth: 0.02,
+                });
                 Config {
-                    name: "inverse-gpi32x8+creep6+gpi32x8-observer+pid+notch+drift",
+                    name: "inverse-gpi32x8+creep6+gpi32x8-observer+pid+notch+shaping+drift",
                     settings,
                 }
             }
