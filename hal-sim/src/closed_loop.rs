@@ -357,7 +357,7 @@ pub fn identify_model(rate: f64, options: &ClosedLoopOptions) -> Result<StageMod
     };
     let mut opts = IdentifyOptions::new(ModelKind::Pi, t[t.len() / 2]);
     // 16 operators; 12 above 50 kHz, where the tick budget admits a P–I both ways beside the
-    // notch only up to 12 (twinstack::tick_budget: 16 needs 1 741 of the 1 680 cycles a
+    // notch only up to 12 (twinstack::tick_budget: 16 needs 1 761 of the 1 680 cycles a
     // 100 kHz period has).
     opts.operators = if rate > 50_000.0 { 12 } else { 16 };
     opts.thresholds = ThresholdSpread::Uniform;
