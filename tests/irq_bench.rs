@@ -133,23 +133,31 @@ fn part_of(file: &str) -> Part {
     }
 }
 
-/// The lines of the tick's rebase block in `src/control.rs` (`if self.rebase { … }`, inlined
-/// into the interrupt: its instructions mark the first tick after a swap or a mode switch).
-fn rebase_lines() -> std::ops::RangeInclusive<u32> {
+/// The lines of the tick's rebase blocks in `src/control.rs` (each `if self.rebase { … }`:
+/// the transfer's start and input shaping's settling, inlined into the interrupt: their
+/// instructions mark the first tick after a swap or a mode switch).
+fn rebase_lines() -> Vec<std::ops::RangeInclusive<u32>> {
     let src = std::fs::read_to_string(support::workspace_root().join("src/control.rs"))
         .expect("read src/control.rs");
     let lines: Vec<&str> = src.lines().collect();
-    let start = lines
-        .iter()
-        .position(|l| l.trim() == "if self.rebase {")
-        .expect("the tick's rebase block is in src/control.rs");
-    let indent = lines[start].len() - lines[start].trim_start().len();
-    let end = lines[start..]
-        .iter()
-        .position(|l| l.len() > indent && l.trim() == "}" && l.len() - 1 == indent)
-        .map(|n| start + n)
-        .expect("the rebase block ends");
-    (start as u32 + 2)..=(end as u32)
+    let mut blocks = Vec::new();
+    for (start, line) in lines.iter().enumerate() {
+        if line.trim() != "if self.rebase {" {
+            continue;
+        }
+        let indent = line.len() - line.trim_start().len();
+        let end = lines[start..]
+            .iter()
+            .position(|l| l.len() > indent && l.trim() == "}" && l.len() - 1 == indent)
+            .map(|n| start + n)
+            .expect("the rebase block ends");
+        blocks.push((start as u32 + 2)..=(end as u32));
+    }
+    assert!(
+        !blocks.is_empty(),
+        "the tick's rebase block is in src/control.rs"
+    );
+    blocks
 }
 
 fn objdump() -> PathBuf {
@@ -205,7 +213,8 @@ fn disassemble(elf: &Path) -> Code {
             // `; /path/src/control.rs:123`: the source line of the instructions that follow.
             if let Some((file, n)) = source.rsplit_once(':') {
                 in_swap = file.ends_with("/src/control.rs")
-                    && n.parse::<u32>().is_ok_and(|n| swap_lines.contains(&n));
+                    && n.parse::<u32>()
+                        .is_ok_and(|n| swap_lines.iter().any(|r| r.contains(&n)));
                 let short = match file.rfind("/src/") {
                     Some(i) => &file[i + 5..],
                     None => file.rsplit('/').next().unwrap_or(file),
