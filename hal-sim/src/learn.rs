@@ -371,6 +371,18 @@ impl Rig {
         Ok(())
     }
 
+    /// [`SETTLE`] periods run, then [`SCORED`] periods scored and pooled.
+    fn scored(&mut self) -> Result<PeriodFigures> {
+        let mut scored = Vec::new();
+        for k in 0..SETTLE + SCORED {
+            let f = self.period()?;
+            if k >= SETTLE {
+                scored.push(f);
+            }
+        }
+        Ok(pooled(&scored))
+    }
+
     /// Runs one period (the task serving the learning after each tick, as the board's
     /// low-priority task would between ticks) and scores it against the stage.
     fn period(&mut self) -> Result<PeriodFigures> {
@@ -450,13 +462,7 @@ pub fn run_with(options: &LearnOptions, model: &StageModel) -> Result<LearnRepor
     // 1 and 2: feedforward alone, then learning, on one board.
     let mut rig = Rig::new(options, &open, period)?;
     rig.play(options)?;
-    let mut ff = Vec::new();
-    for k in 0..SETTLE + SCORED {
-        let f = rig.period()?;
-        if k >= SETTLE {
-            ff.push(f);
-        }
-    }
+    let ff = rig.scored()?;
     // With shaping, the baseline is the feedforward without it, on a board of its own.
     let (ff, shaped_ff) = if options.shaping.is_some() {
         let plain = Settings {
@@ -465,14 +471,7 @@ pub fn run_with(options: &LearnOptions, model: &StageModel) -> Result<LearnRepor
         };
         let mut base = Rig::new(options, &plain, period)?;
         base.play(options)?;
-        let mut plain_ff = Vec::new();
-        for k in 0..SETTLE + SCORED {
-            let f = base.period()?;
-            if k >= SETTLE {
-                plain_ff.push(f);
-            }
-        }
-        (plain_ff, Some(pooled(&ff)))
+        (base.scored()?, Some(ff))
     } else {
         (ff, None)
     };
@@ -496,21 +495,12 @@ pub fn run_with(options: &LearnOptions, model: &StageModel) -> Result<LearnRepor
     post_table(&replay_rig.task, &mut Exclusive(&mut replay_rig.control));
     replay_rig.control.set_learning(LearnState::Frozen);
     replay_rig.play(options)?;
-    let mut replay = Vec::new();
-    for k in 0..SETTLE + SCORED {
-        let f = replay_rig.period()?;
-        if k >= SETTLE {
-            replay.push(f);
-        }
-    }
-
-    let feedforward = pooled(&ff);
-    let replay = pooled(&replay);
+    let replay = replay_rig.scored()?;
     let mut report = LearnReport {
         waveform: options.motion.label(),
         rate_hz: options.rate,
         period_ticks: period,
-        feedforward,
+        feedforward: ff,
         shaping: options.shaping,
         gain: options.gain,
         cutoff_hz: options.cutoff_hz,
@@ -518,7 +508,7 @@ pub fn run_with(options: &LearnOptions, model: &StageModel) -> Result<LearnRepor
         curve,
         learned,
         replay,
-        rms_reduction: feedforward.rms_pct / learned.rms_pct.max(1e-12),
+        rms_reduction: ff.rms_pct / learned.rms_pct.max(1e-12),
         updates: rig.task.updates(),
         missed: rig.task.missed(),
         guard_stops: rig.task.guard_stops(),
