@@ -488,13 +488,14 @@ where
         self.recorder.arm(signal, count, decimation)
     }
 
-    /// Copies recorded values from `offset` (see [`Recorder::read`]).
+    /// Appends the next piece of the recorded values' chunk from `offset` (see
+    /// [`Recorder::read_piece`]: a short copy, for one lock of the command handler's).
     pub fn read_record(
         &self,
         offset: u32,
         out: &mut heapless::Vec<i32, MAX_CHUNK>,
-    ) -> Result<(), RecordError> {
-        self.recorder.read(offset, out)
+    ) -> Result<usize, RecordError> {
+        self.recorder.read_piece(offset, out)
     }
 
     /// Values the recorder holds (what a read may reach).
@@ -535,14 +536,15 @@ where
         self.recorder.capture_info()
     }
 
-    /// Copies slots of a complete capture's window (see [`Recorder::read_capture`]).
+    /// Appends the next piece of a complete capture's chunk (see
+    /// [`Recorder::read_capture_piece`]: a short copy, for one lock of the command handler's).
     pub fn read_capture(
         &self,
         offset: u32,
         count: u16,
         out: &mut heapless::Vec<i16, MAX_CAPTURE_CHUNK>,
-    ) -> Result<(), RecordError> {
-        self.recorder.read_capture(offset, count, out)
+    ) -> Result<usize, RecordError> {
+        self.recorder.read_capture_piece(offset, count, out)
     }
 
     /// Counters and state for the status report.

@@ -56,7 +56,7 @@ pub const MAX_GAIN_SUM: f64 = 64.0;
 
 /// Converts a real number to Q2.30 with rounding to nearest, saturating at the range ends.
 /// NaN maps to 0 (callers validate parameters before conversion; this is a last guard).
-pub fn signal_from_f64(x: f64) -> i32 {
+pub const fn signal_from_f64(x: f64) -> i32 {
     to_fixed(x, SIGNAL_FRAC_BITS)
 }
 
@@ -102,7 +102,7 @@ pub fn mul_high(a: i32, b: i32) -> i32 {
     ((a as i64 * b as i64) >> 32) as i32
 }
 
-fn to_fixed(x: f64, frac_bits: u32) -> i32 {
+const fn to_fixed(x: f64, frac_bits: u32) -> i32 {
     if x.is_nan() {
         return 0;
     }

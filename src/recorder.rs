@@ -46,6 +46,47 @@ pub const MAX_CHUNK: usize = 64;
 /// the wire, well under a frame's body.
 pub const MAX_CAPTURE_CHUNK: usize = 256;
 
+/// Most slots one piece of a read copies ([`Recorder::read_piece`],
+/// [`Recorder::read_capture_piece`]). The command handler reads a chunk piece by piece, each
+/// under its own lock on the tick's resource ([`in_pieces`]), so that a tick falling due
+/// waits for one piece's copy (about 200 instructions), never a whole chunk's (a chunk of 256
+/// capture slots in one lock held the tick off for 8 000 instructions, 93 µs: nine ticks at
+/// 100 kHz).
+pub const PIECE_SLOTS: u32 = 16;
+
+/// Reads a whole chunk into `out` (cleared first) piece by piece: `piece` appends the next
+/// piece (the caller takes its lock around each) and says how many values it added; a piece
+/// of none, or a full `out`, ends the chunk. Bounded: every piece but the last adds a value,
+/// and `out` holds `N`.
+///
+/// ```
+/// use twinstack::recorder::{in_pieces, Recorder, Signal};
+/// # use twinstack::control::{TickFlags, TickReport};
+/// # use twinstack::board::DacCode;
+/// let mut r = Recorder::new(vec![0i16; 200]);
+/// r.arm(Signal::Setpoint, 40, 1).unwrap();
+/// # let report = TickReport { left: DacCode(0), right: DacCode(0), estimate: 0, measured: 0,
+/// #     drive: 0, flags: TickFlags(0), triggers: 0 };
+/// for k in 0..40 {
+///     r.capture(k, 0, &report);
+/// }
+/// let mut out = heapless::Vec::<i32, 64>::new();
+/// in_pieces(&mut out, |o| r.read_piece(2, o)).unwrap();
+/// assert_eq!((out.len(), out[0], out[37]), (38, 2, 39));
+/// ```
+pub fn in_pieces<T, const N: usize>(
+    out: &mut heapless::Vec<T, N>,
+    mut piece: impl FnMut(&mut heapless::Vec<T, N>) -> Result<usize, RecordError>,
+) -> Result<(), RecordError> {
+    out.clear();
+    for _ in 0..=N {
+        if piece(out)? == 0 || out.is_full() {
+            break;
+        }
+    }
+    Ok(())
+}
+
 /// Slots of the board's capture buffer: 52 224 16-bit values (102 KiB: 38 KiB of SRAM and the
 /// 64 KiB of CCM RAM). At 50 kHz that is 1.04 s of one signal, or 0.26 s of four. The SRAM
 /// part was 64 KiB until the learning's tables and telemetry's queue joined it, and 40 KiB
@@ -210,6 +251,9 @@ pub trait SampleStore {
     fn tail_mut(&mut self, second: bool, offset: usize) -> &mut [i16];
     /// Slot `index`, counting the first segment's then the second's (0 past the end).
     fn get(&self, index: usize) -> i16;
+    /// The slots from `index` (counted as in [`SampleStore::get`]) to the end of its
+    /// segment; empty past the end.
+    fn run(&self, index: usize) -> &[i16];
 }
 
 impl<T: AsRef<[i16]> + AsMut<[i16]>> SampleStore for T {
@@ -229,6 +273,10 @@ impl<T: AsRef<[i16]> + AsMut<[i16]>> SampleStore for T {
     #[inline(always)]
     fn get(&self, index: usize) -> i16 {
         self.as_ref().get(index).copied().unwrap_or(0)
+    }
+
+    fn run(&self, index: usize) -> &[i16] {
+        self.as_ref().get(index..).unwrap_or(&[])
     }
 }
 
@@ -285,6 +333,16 @@ where
             self.second.as_ref().get(index - split)
         };
         slot.copied().unwrap_or(0)
+    }
+
+    fn run(&self, index: usize) -> &[i16] {
+        let split = self.first.as_ref().len();
+        let run = if index < split {
+            self.first.as_ref().get(index..)
+        } else {
+            self.second.as_ref().get(index - split..)
+        };
+        run.unwrap_or(&[])
     }
 }
 
@@ -632,41 +690,67 @@ impl<B: SampleStore> Recorder<B> {
         }
     }
 
-    /// Copies up to `out`'s capacity of a v3 `Record`'s values from `offset` into `out`
-    /// (cleared first). An offset equal to the values recorded gives an empty chunk (nothing
-    /// more yet); one past it is refused.
+    /// Copies a v3 `Record`'s values from `offset`, up to [`MAX_CHUNK`], into `out` (cleared
+    /// first): [`Recorder::read_piece`] until the chunk is complete. An offset equal to the
+    /// values recorded gives an empty chunk (nothing more yet); one past it is refused.
     pub fn read(
         &self,
         offset: u32,
         out: &mut heapless::Vec<i32, MAX_CHUNK>,
     ) -> Result<(), RecordError> {
-        out.clear();
+        in_pieces(out, |o| self.read_piece(offset, o))
+    }
+
+    /// Appends the next piece of the chunk of a v3 `Record` that starts at `offset`: the
+    /// values from `offset + out.len()`, at most [`PIECE_SLOTS`] / 2 of them (two slots
+    /// each), up to what is recorded and `out`'s capacity. Returns how many it appended (0:
+    /// the chunk is complete). An offset past the values recorded is refused.
+    pub fn read_piece(
+        &self,
+        offset: u32,
+        out: &mut heapless::Vec<i32, MAX_CHUNK>,
+    ) -> Result<usize, RecordError> {
         let recorded = self.recorded();
         if offset > recorded {
             return Err(RecordError::OffsetPastEnd);
         }
-        let end = recorded.min(offset.saturating_add(MAX_CHUNK as u32));
-        for i in offset..end {
+        let from = offset.saturating_add(out.len() as u32);
+        let room = (MAX_CHUNK - out.len()) as u32;
+        let to = recorded.min(from.saturating_add(room.min(PIECE_SLOTS / 2)));
+        for i in from..to {
             let at = 2 * i;
             let hi = self.buffer.get(self.physical(at)) as i32;
             let lo = self.buffer.get(self.physical(at + 1)) as u16 as i32;
-            // At most MAX_CHUNK values: this cannot fail.
+            // At most the room `out` has: this cannot fail.
             let _ = out.push(hi << 16 | lo);
         }
-        Ok(())
+        Ok(to.saturating_sub(from) as usize)
     }
 
     /// Copies up to `count` (at most [`MAX_CAPTURE_CHUNK`]) slots of a complete capture's
-    /// window from `offset` into `out` (cleared first): the window is oldest frame first,
-    /// each frame its signals in [`Channel`] order. An offset at the window's end gives an
-    /// empty chunk; past it is refused, and so is a capture not complete.
+    /// window from `offset` into `out` (cleared first): [`Recorder::read_capture_piece`]
+    /// until the chunk is complete. The window is oldest frame first, each frame its signals
+    /// in [`Channel`] order. An offset at the window's end gives an empty chunk; past it is
+    /// refused, and so is a capture not complete.
     pub fn read_capture(
         &self,
         offset: u32,
         count: u16,
         out: &mut heapless::Vec<i16, MAX_CAPTURE_CHUNK>,
     ) -> Result<(), RecordError> {
-        out.clear();
+        in_pieces(out, |o| self.read_capture_piece(offset, count, o))
+    }
+
+    /// Appends the next piece of the chunk of a complete capture's window that starts at
+    /// `offset` and asks for `count` slots: the slots from `offset + out.len()`, at most
+    /// [`PIECE_SLOTS`], up to the chunk's end. Returns how many it appended (0: the chunk is
+    /// complete). An offset past the window is refused, and so is a capture not complete.
+    pub fn read_capture_piece(
+        &self,
+        offset: u32,
+        count: u16,
+        out: &mut heapless::Vec<i16, MAX_CAPTURE_CHUNK>,
+    ) -> Result<usize, RecordError> {
         let info = self.capture_info();
         if info.state != CaptureState::Done {
             return Err(RecordError::NotDone);
@@ -676,6 +760,8 @@ impl<B: SampleStore> Recorder<B> {
             return Err(RecordError::OffsetPastEnd);
         }
         let end = len.min(offset.saturating_add((count as u32).min(MAX_CAPTURE_CHUNK as u32)));
+        let from = offset.saturating_add(out.len() as u32);
+        let to = end.min(from.saturating_add(PIECE_SLOTS));
         // The window starts `pre_available` frames before the trigger frame, in the ring.
         let back = self.pre_available * self.per_frame;
         let start = if self.trigger_pos >= back {
@@ -683,14 +769,31 @@ impl<B: SampleStore> Recorder<B> {
         } else {
             self.trigger_pos + self.ring - back
         };
-        for i in offset..end {
+        // Slice copies of contiguous runs: at most three, as the ring wraps once and passes
+        // from the first segment's frames to the second segment once.
+        let mut i = from;
+        for _ in 0..4 {
+            if i >= to {
+                break;
+            }
             let mut at = start + i;
             if at >= self.ring {
                 at -= self.ring;
             }
-            let _ = out.push(self.buffer.get(self.physical(at)));
+            let contiguous = if at < self.first_slots {
+                self.first_slots - at
+            } else {
+                self.ring - at
+            };
+            let run = self.buffer.run(self.physical(at));
+            let n = ((to - i).min(contiguous) as usize).min(run.len());
+            // `to − from` fits what `out` has left: the copy cannot fail.
+            if n == 0 || out.extend_from_slice(&run[..n]).is_err() {
+                break;
+            }
+            i += n as u32;
         }
-        Ok(())
+        Ok(i.saturating_sub(from) as usize)
     }
 
     /// The buffer's index of ring slot `at`: the first segment's whole frames, then the
@@ -932,6 +1035,50 @@ mod tests {
         assert_eq!(r.buffer.second, [5, 5, 6, 6, 0]);
         // One frame from before the trigger (5), then 6 and 7.
         assert_eq!(window(&r), [5, 5, 6, 6, 7, 7]);
+    }
+
+    #[test]
+    fn a_piece_copies_at_most_piece_slots_and_the_pieces_make_the_chunk() {
+        let mut r = Recorder::new(vec![0i16; 1024]);
+        r.arm_capture(
+            Channel::Setpoint.bit() | Channel::Left.bit(),
+            300,
+            0,
+            Trigger::Now,
+            1,
+        )
+        .unwrap();
+        run(&mut r, 0..301);
+        let mut piecewise = heapless::Vec::new();
+        let mut pieces = 0;
+        loop {
+            let n = r.read_capture_piece(10, 200, &mut piecewise).unwrap();
+            assert!(n as u32 <= PIECE_SLOTS, "a piece of {n} slots");
+            if n == 0 {
+                break;
+            }
+            pieces += 1;
+        }
+        assert_eq!(
+            (piecewise.len(), pieces),
+            (200, 200usize.div_ceil(PIECE_SLOTS as usize))
+        );
+        let mut whole = heapless::Vec::new();
+        r.read_capture(10, 200, &mut whole).unwrap();
+        assert_eq!(piecewise, whole);
+        // Frame k holds setpoint k then left k: slot 10 is frame 5's setpoint.
+        assert_eq!((whole[0], whole[1], whole[199]), (5, 5, 104));
+        // A record's pieces: at most half as many values (two slots each).
+        r.arm(Signal::Setpoint, 100, 1).unwrap();
+        for k in 0..100 {
+            r.capture(k, 0, &report(k));
+        }
+        let mut values = heapless::Vec::new();
+        assert_eq!(r.read_piece(3, &mut values), Ok(PIECE_SLOTS as usize / 2));
+        assert_eq!(r.read_piece(3, &mut values), Ok(PIECE_SLOTS as usize / 2));
+        // Two pieces: the values 3 .. 3 + PIECE_SLOTS, in order.
+        let want: Vec<i32> = (3..3 + PIECE_SLOTS as i32).collect();
+        assert_eq!(&values[..], &want[..]);
     }
 
     #[test]

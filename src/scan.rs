@@ -31,7 +31,7 @@
 //! Positions are Q2.30 (`SIGNAL_ONE` = 1.0). The raster's speed is Q2.30 · 2^16 per tick
 //! (`i64`) and its deceleration Q2.30 · 2^16 per tick²: one or two `i64` multiplies a tick.
 //! Lissajous and spiral phases are `u32` accumulators (2^32 per cycle), their sines the
-//! waveform generator's interpolated quarter-wave table ([`WaveformGenerator::unit_sine`]).
+//! waveform generator's interpolated quarter-wave table ([`crate::waveform::unit_sine`]).
 //! [`ScanGenerator::next_sample`] is O(1): no loop, no division, no allocation, no panic path;
 //! every division is in [`ScanGenerator::new`] (off the tick, where the request is
 //! validated). Host and board run this same code: bit for bit the same samples.
@@ -59,7 +59,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::fixed_point::{saturate_i64, signal_from_f64, SIGNAL_ONE};
 use crate::refusal::{Field, Refusal, Rule};
-use crate::waveform::{Shape, WaveformGenerator};
+use crate::waveform::unit_sine;
 
 /// Event / output bit: a pixel starts (pixel clock).
 pub const PIXEL: u8 = 1 << 0;
@@ -347,8 +347,6 @@ pub struct ScanGenerator {
     pending: u8,
     /// Lissajous / spiral: the last frame wrapped; the next sample is the end point.
     last: bool,
-    /// The sine table (a unit sine generator).
-    table: WaveformGenerator,
     /// Ticks a line takes (the line clock's period), as the pattern defines it.
     line_ticks: f64,
 }
@@ -397,10 +395,6 @@ impl ScanGenerator {
         let max_step = max_step.max(1);
         let step_norm = max_step as f64 / SIGNAL_ONE as f64;
         let nyquist = 0.5 * rate_hz;
-        let table = match WaveformGenerator::new(Shape::Sine, 0, SIGNAL_ONE, 1.0, rate_hz) {
-            Ok(t) => t,
-            Err(_) => return Err(refuse(Field::ScanFrequency, Rule::Above(2.0))),
-        };
         let (motion, start_x, start_y, line_ticks) = match request.pattern {
             ScanPattern::Raster(r) => Self::raster(&r, tpp, rate_hz, step_norm)?,
             ScanPattern::Lissajous(l) => {
@@ -448,7 +442,7 @@ impl ScanGenerator {
                     x0: x0.wrapping_mul(l.x_cycles as u32),
                     y0: x0.wrapping_mul(l.y_cycles as u32).wrapping_add(phase),
                 };
-                let (sx, sy) = m.at(&table);
+                let (sx, sy) = m.at();
                 let line = rate_hz / (l.frame_hz * l.x_cycles as f64);
                 (Motion::Lissajous(m), sx, sy, line)
             }
@@ -511,7 +505,6 @@ impl ScanGenerator {
             endless: request.frames == 0,
             pending: LINE | FRAME,
             last: false,
-            table,
             line_ticks,
         })
     }
@@ -660,7 +653,7 @@ impl ScanGenerator {
         let (x, y, mut events, trace_start, in_trace, done) = match &mut self.motion {
             Motion::Raster(m) => m.next(&mut self.frames_left, self.endless),
             Motion::Lissajous(m) => {
-                let (x, y) = m.at(&self.table);
+                let (x, y) = m.at();
                 let events = self.pending;
                 let (r, wrapped) = m.r.overflowing_add(m.step);
                 let line = m.x_cycles.wrapping_mul(r) < m.x_cycles.wrapping_mul(m.r);
@@ -678,7 +671,7 @@ impl ScanGenerator {
                 (x, y, events, false, true, done)
             }
             Motion::Spiral(m) => {
-                let (x, y) = m.at(&self.table);
+                let (x, y) = m.at();
                 let events = self.pending;
                 let (theta, line) = m.theta.overflowing_add(m.step);
                 m.theta = theta;
@@ -842,12 +835,11 @@ impl Raster {
 impl Lissajous {
     /// (x, y) at the frame phase `r`.
     #[inline(always)]
-    fn at(&self, table: &WaveformGenerator) -> (i32, i32) {
+    fn at(&self) -> (i32, i32) {
         let px = self.x0.wrapping_add(self.x_cycles.wrapping_mul(self.r));
         let py = self.y0.wrapping_add(self.y_cycles.wrapping_mul(self.r));
-        let x = self.offset as i64 + ((self.amplitude as i64 * table.unit_sine(px) as i64) >> 30);
-        let y =
-            self.y_offset as i64 + ((self.y_amplitude as i64 * table.unit_sine(py) as i64) >> 30);
+        let x = self.offset as i64 + ((self.amplitude as i64 * unit_sine(px) as i64) >> 30);
+        let y = self.y_offset as i64 + ((self.y_amplitude as i64 * unit_sine(py) as i64) >> 30);
         (saturate_i64(x), saturate_i64(y))
     }
 }
@@ -855,7 +847,7 @@ impl Lissajous {
 impl Spiral {
     /// (x, y) at the angle θ and envelope phase `e`.
     #[inline(always)]
-    fn at(&self, table: &WaveformGenerator) -> (i32, i32) {
+    fn at(&self) -> (i32, i32) {
         // Triangle envelope, Q0.31: e / 2^31 rising, (2^32 − e) / 2^31 falling.
         let tri = if self.e < 1 << 31 {
             self.e as i64
@@ -863,9 +855,9 @@ impl Spiral {
             (0u32.wrapping_sub(self.e)) as i64
         };
         let r = (self.amplitude as i64 * tri) >> 31;
-        let x = self.offset as i64 + ((r * table.unit_sine(self.theta) as i64) >> 30);
-        let y = self.y_offset as i64
-            + ((r * table.unit_sine(self.theta.wrapping_add(1 << 30)) as i64) >> 30);
+        let x = self.offset as i64 + ((r * unit_sine(self.theta) as i64) >> 30);
+        let y =
+            self.y_offset as i64 + ((r * unit_sine(self.theta.wrapping_add(1 << 30)) as i64) >> 30);
         (saturate_i64(x), saturate_i64(y))
     }
 }

@@ -12,7 +12,8 @@
 //! Phase is a `u32` accumulator (2^32 = one cycle) advanced by `f / f_ctrl · 2^32` per tick, so
 //! the frequency error is below `f_ctrl / 2^32` (12 µHz at 50 kHz) and the phase never drifts.
 //! The sine comes from a quarter-wave table of 256 segments, interpolated linearly (error
-//! below 5e-6 of the amplitude, a sixth of a 16-bit LSB); the table is built once at start-up.
+//! below 5e-6 of the amplitude, a sixth of a 16-bit LSB); the table ([`unit_sine`]) is
+//! computed at compile time, one for every generator and scan pattern.
 
 use crate::fixed_point::{saturate_i64, SIGNAL_ONE};
 
@@ -39,11 +40,10 @@ pub enum WaveformError {
     AmplitudeOutOfRange,
 }
 
-/// `sin x` for `x` in [0, π/2], by its Taylor series to x^19 (error below 1e-13 there): a
-/// few hundred bytes of firmware, where `libm::sin` with its argument reduction costs
-/// several kilobytes. The table is built off the tick path.
-#[inline(never)]
-fn quarter_sine(x: f64) -> f64 {
+/// `sin x` for `x` in [0, π/2], by its Taylor series to x^19 (error below 1e-13 there), in
+/// IEEE arithmetic alone, so the compiler evaluates it (for [`SINE_TABLE`]) bit for bit as
+/// the board and the host would.
+const fn quarter_sine(x: f64) -> f64 {
     let x2 = x * x;
     // Horner over the odd terms, from x^19/19! down.
     let mut term = 1.0;
@@ -53,6 +53,54 @@ fn quarter_sine(x: f64) -> f64 {
         k -= 2.0;
     }
     x * term
+}
+
+/// `sin(i · π/2 / 256)`, Q2.30, `i = 0 ..= 256`: the quarter-wave table of [`unit_sine`],
+/// computed at compile time. One table for every waveform and scan pattern: each used to carry
+/// its own 1 KiB copy, moved under the tick's lock when it started (the tick waited 1 000
+/// instructions for a scan to start). On the board it is in RAM (`.data`, copied from flash
+/// at reset), so the tick reads it without flash wait states.
+// A section name only: cortex-m-rt's `.data`, which its reset handler copies from flash.
+#[cfg_attr(target_os = "none", allow(unsafe_code), link_section = ".data")]
+static SINE_TABLE: [i32; QUARTER + 1] = {
+    let mut table = [0i32; QUARTER + 1];
+    let mut i = 0;
+    while i <= QUARTER {
+        let x = i as f64 * core::f64::consts::FRAC_PI_2 / QUARTER as f64;
+        table[i] = crate::fixed_point::signal_from_f64(quarter_sine(x));
+        i += 1;
+    }
+    table
+};
+
+/// The unit sine (Q2.30, ±1) at `phase` (2^32 per cycle): [`SINE_TABLE`] interpolated
+/// linearly (22 fractional bits) by quadrant. O(1), no division, no panic path.
+///
+/// ```
+/// use twinstack::fixed_point::signal_to_f64 as f;
+/// use twinstack::waveform::unit_sine;
+/// assert_eq!(f(unit_sine(1 << 30)), 1.0);
+/// assert!((f(unit_sine(0x2AAA_AAAB)) - 0.866_025_4).abs() < 1e-6); // 60°
+/// ```
+#[inline(always)]
+pub fn unit_sine(phase: u32) -> i32 {
+    let quadrant = phase >> 30;
+    let within = phase & 0x3FFF_FFFF; // position in the quadrant, 2^30 per quadrant
+    let pos = if quadrant & 1 == 0 {
+        within
+    } else {
+        0x4000_0000 - within
+    };
+    let index = (pos >> 22) as usize; // 256 segments
+    let frac = (pos & 0x3F_FFFF) as i64; // 22 fractional bits
+    let a = SINE_TABLE.get(index).copied().unwrap_or(SIGNAL_ONE) as i64;
+    let b = SINE_TABLE.get(index + 1).copied().unwrap_or(SIGNAL_ONE) as i64;
+    let v = a + (((b - a) * frac) >> 22);
+    if quadrant >= 2 {
+        -(v as i32)
+    } else {
+        v as i32
+    }
 }
 
 /// A configured generator and its phase.
@@ -72,8 +120,6 @@ pub struct WaveformGenerator {
     /// Cycles still to play at full amplitude before each wrap decays it (see
     /// [`WaveformGenerator::with_decay`]).
     hold: u16,
-    /// `sin(i · π/2 / 256)`, Q2.30, `i = 0 ..= 256`.
-    table: [i32; QUARTER + 1],
 }
 
 impl WaveformGenerator {
@@ -94,11 +140,6 @@ impl WaveformGenerator {
         if reach_hi > SIGNAL_ONE as i64 || reach_lo < -(SIGNAL_ONE as i64) {
             return Err(WaveformError::AmplitudeOutOfRange);
         }
-        let mut table = [0i32; QUARTER + 1];
-        for (i, t) in table.iter_mut().enumerate() {
-            let x = i as f64 * core::f64::consts::FRAC_PI_2 / QUARTER as f64;
-            *t = crate::fixed_point::signal_from_f64(quarter_sine(x));
-        }
         let step = libm::round(frequency_hz / control_rate_hz * 4_294_967_296.0) as u32;
         Ok(Self {
             shape,
@@ -108,7 +149,6 @@ impl WaveformGenerator {
             phase: 0,
             keep: 1 << 16,
             hold: 0,
-            table,
         })
     }
 
@@ -139,43 +179,11 @@ impl WaveformGenerator {
         self.amplitude
     }
 
-    /// The unit sine (Q2.30, ±1) at `phase` (2^32 per cycle), from this generator's table
-    /// whatever its shape: the scan patterns ([`crate::scan`]) share one table this way. O(1),
-    /// no division, no panic path.
-    #[inline(always)]
-    pub fn unit_sine(&self, phase: u32) -> i32 {
-        self.unit_of(Shape::Sine, phase)
-    }
-
     /// The unit waveform (Q2.30, ±1) at `phase`.
     #[inline(always)]
     fn unit(&self, phase: u32) -> i32 {
-        self.unit_of(self.shape, phase)
-    }
-
-    /// The unit waveform of `shape` (Q2.30, ±1) at `phase`.
-    #[inline(always)]
-    fn unit_of(&self, shape: Shape, phase: u32) -> i32 {
-        match shape {
-            Shape::Sine => {
-                let quadrant = phase >> 30;
-                let within = phase & 0x3FFF_FFFF; // position in the quadrant, 2^30 per quadrant
-                let pos = if quadrant & 1 == 0 {
-                    within
-                } else {
-                    0x4000_0000 - within
-                };
-                let index = (pos >> 22) as usize; // 256 segments
-                let frac = (pos & 0x3F_FFFF) as i64; // 22 fractional bits
-                let a = self.table.get(index).copied().unwrap_or(SIGNAL_ONE) as i64;
-                let b = self.table.get(index + 1).copied().unwrap_or(SIGNAL_ONE) as i64;
-                let v = a + (((b - a) * frac) >> 22);
-                if quadrant >= 2 {
-                    -(v as i32)
-                } else {
-                    v as i32
-                }
-            }
+        match self.shape {
+            Shape::Sine => unit_sine(phase),
             Shape::Triangle => {
                 // 0 → 1 over the first quarter, 1 → −1 over the middle half, −1 → 0 last.
                 let p = phase as i64;
@@ -235,6 +243,18 @@ mod tests {
         // And the frequency the accumulator realises is within f_ctrl / 2^32 of the request.
         let realised = step as f64 / 4_294_967_296.0 * 50_000.0;
         assert!((realised - 750.0).abs() <= 50_000.0 / 4_294_967_296.0);
+    }
+
+    #[test]
+    fn the_compile_time_table_is_the_one_computed_at_run_time() {
+        // The compiler's IEEE arithmetic is the board's and the host's: the table is the one
+        // each generator used to build for itself, bit for bit (the golden vectors hold it).
+        let x = core::hint::black_box(core::f64::consts::FRAC_PI_2 / QUARTER as f64);
+        for (i, &t) in SINE_TABLE.iter().enumerate() {
+            let run = crate::fixed_point::signal_from_f64(quarter_sine(i as f64 * x));
+            assert_eq!(t, run, "entry {i}");
+        }
+        assert_eq!((SINE_TABLE[0], SINE_TABLE[QUARTER]), (0, SIGNAL_ONE));
     }
 
     #[test]

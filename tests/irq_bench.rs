@@ -36,6 +36,11 @@ use std::process::{Command, Stdio};
 /// 990: the P–I banks written out pair by pair instead of looping (981 measured, session 8).
 /// 1 010: with input shaping's test on every tick (999 measured, session 8).
 const WORST_INSTRUCTIONS: u64 = 1010;
+/// The longest critical section outside the tick (a lock on its resource, or interrupts
+/// off), instructions: how late a tick can start. 8 083 when the command handler copied a
+/// capture chunk of 256 slots in one lock (93 µs at 5 WS); 276 measured with the copy in
+/// pieces of 16 slots, a lock each (session 9).
+const HELD_OFF_INSTRUCTIONS: u64 = 290;
 /// Most instructions the learning feedforward, on, adds to a configuration's worst tick (its
 /// table read, its error store and, at a period's end, the flips).
 const LEARNING_EXTRA: u64 = 120;
@@ -319,18 +324,48 @@ struct Tick {
 /// One segment's worst tick (5 WS) by source line: `(line index, cycles)`.
 type Breakdown = Vec<(u32, u64)>;
 
+/// The longest critical section seen at one place outside the tick: from the instruction
+/// that masks the tick (`msr basepri_max`, RTIC's lock; or `cpsid i`) to the one that
+/// unmasks it. A tick due meanwhile waits for it, so the longest section is the tick's
+/// worst start latency.
+#[derive(Clone, Copy, Debug, Default)]
+struct Section {
+    instructions: u64,
+    cycles: u64,
+    cycles_ws5: u64,
+    /// Times a section started at this place.
+    count: u64,
+}
+
+/// Whether `i` masks the tick (RTIC's lock raising `BASEPRI`, or interrupts off).
+fn masks(i: &Insn) -> bool {
+    i.mnemonic == "msr" && i.operands.starts_with("basepri_max") || i.mnemonic == "cpsid"
+}
+
+/// Whether `i` lifts the mask [`masks`] set (the lock's restore, or interrupts on).
+fn unmasks(i: &Insn) -> bool {
+    i.mnemonic == "msr" && (i.operands.starts_with("basepri,") || i.operands.starts_with("primask"))
+        || i.mnemonic == "cpsie"
+}
+
 /// Reads the trace: the ticks, grouped by the segments between `irq_bench_marker` calls, and
 /// each segment's worst tick (5 WS) by source line.
 fn parse_trace(
     reader: impl BufRead,
     code: &HashMap<u32, Insn>,
-) -> (Vec<Vec<Tick>>, Vec<Breakdown>) {
+) -> (Vec<Vec<Tick>>, Vec<Breakdown>, HashMap<String, Section>) {
     let mut segments: Vec<Vec<Tick>> = vec![Vec::new()];
     let mut worst: Vec<(u64, Breakdown)> = vec![(0, Vec::new())];
     let mut by_line: HashMap<u32, u64> = HashMap::new();
     let mut current: Option<Tick> = None;
     let mut previous: Option<(u32, Insn)> = None;
     let mut in_marker = false;
+    // Critical sections outside the tick, by the symbol and source line where each started.
+    let mut sections: HashMap<String, Section> = HashMap::new();
+    let mut open: Option<(String, Section)> = None;
+    let mut idle_previous: Option<(u32, Insn)> = None;
+    // Sections count from the first tick on (RTIC's `init` runs with interrupts off before).
+    let mut ticked = false;
     let settle = |t: &mut Tick,
                   by_line: &mut HashMap<u32, u64>,
                   prev: &Option<(u32, Insn)>,
@@ -350,6 +385,11 @@ fn parse_trace(
     for line in reader.lines() {
         let Ok(line) = line else { break };
         if line.contains("taking pending nonsecure exception 15") {
+            // A tick that preempts a section was not held back by it (a lock of a resource
+            // the tick does not share).
+            open = None;
+            idle_previous = None;
+            ticked = true;
             current = Some(Tick::default());
             by_line.clear();
             previous = None;
@@ -401,6 +441,38 @@ fn parse_trace(
                 }
             }
             None => {
+                let insn = code.get(&pc).cloned();
+                if let Some((_, s)) = open.as_mut() {
+                    if let Some((ppc, p)) = &idle_previous {
+                        let taken = is_branch(p) && pc != ppc + p.size;
+                        let c = cycles(p, taken);
+                        s.instructions += 1;
+                        s.cycles += c;
+                        s.cycles_ws5 += c + if taken { 5 } else { 0 };
+                    }
+                }
+                match &insn {
+                    Some(i) if ticked && open.is_none() && masks(i) => {
+                        let site = format!("{} @ {}", symbol.trim(), pc_line(code, pc));
+                        open = Some((site, Section::default()));
+                    }
+                    Some(i) if unmasks(i) => {
+                        if let Some((site, mut s)) = open.take() {
+                            // The unmasking instruction itself.
+                            s.instructions += 1;
+                            s.cycles += cycles(i, false);
+                            s.cycles_ws5 += cycles(i, false);
+                            let e = sections.entry(site).or_default();
+                            e.count += 1;
+                            if s.instructions > e.instructions {
+                                (e.instructions, e.cycles, e.cycles_ws5) =
+                                    (s.instructions, s.cycles, s.cycles_ws5);
+                            }
+                        }
+                    }
+                    _ => {}
+                }
+                idle_previous = insn.map(|i| (pc, i));
                 let marker = symbol.trim() == "irq_bench_marker";
                 if marker && !in_marker {
                     segments.push(Vec::new());
@@ -410,7 +482,47 @@ fn parse_trace(
             }
         }
     }
-    (segments, worst.into_iter().map(|(_, b)| b).collect())
+    (
+        segments,
+        worst.into_iter().map(|(_, b)| b).collect(),
+        sections,
+    )
+}
+
+/// A legacy-mangled Rust symbol (`_ZN9twinstack8learning10post_table17h…E`) as its path
+/// without the hash (`twinstack::learning::post_table`); anything else as it is.
+fn demangled(symbol: &str) -> String {
+    let Some(mut rest) = symbol.strip_prefix("_ZN") else {
+        return symbol.to_string();
+    };
+    let mut parts = Vec::new();
+    while let Some(digits) = rest.find(|c: char| !c.is_ascii_digit()).filter(|&d| d > 0) {
+        let Ok(n) = rest[..digits].parse::<usize>() else {
+            break;
+        };
+        let Some(part) = rest.get(digits..digits + n) else {
+            break;
+        };
+        if !(part.starts_with('h') && part.len() == 17) {
+            parts.push(
+                part.replace("$LT$", "<")
+                    .replace("$GT$", ">")
+                    .replace("$u20$", " ")
+                    .replace("..", "::"),
+            );
+        }
+        rest = &rest[digits + n..];
+    }
+    if parts.is_empty() {
+        symbol.to_string()
+    } else {
+        parts.join("::")
+    }
+}
+
+/// The source line index of the instruction at `pc` (0, "(no line)", if unknown).
+fn pc_line(code: &HashMap<u32, Insn>, pc: u32) -> u32 {
+    code.get(&pc).map_or(0, |i| i.line)
 }
 
 #[test]
@@ -441,7 +553,8 @@ fn the_whole_interrupt_in_every_scenario() {
         .spawn()
         .expect("qemu-system-arm starts");
     let trace = std::fs::File::open(&fifo).expect("open the trace FIFO");
-    let (segments, breakdowns) = parse_trace(BufReader::with_capacity(1 << 20, trace), &code);
+    let (segments, breakdowns, sections) =
+        parse_trace(BufReader::with_capacity(1 << 20, trace), &code);
     let out = child.wait_with_output().expect("qemu exits");
     let _ = std::fs::remove_file(&fifo);
     let stdout = String::from_utf8_lossy(&out.stdout);
@@ -724,6 +837,53 @@ fn the_whole_interrupt_in_every_scenario() {
     assert!(
         swaps >= 6,
         "the lifecycle scenarios swap configurations and switch modes ({swaps} seen)"
+    );
+    // The tick's start latency: while the command handler, the learning's service or the
+    // scenario player holds a lock on the tick's resource (or has interrupts off), a tick that
+    // falls due waits. The image reads a capture back at the largest chunk and a record
+    // (`READBACK`), so the handler's longest copies are among the sections seen.
+    assert!(
+        stdout.contains("READBACK done"),
+        "the image read its capture and its record back: {stdout}"
+    );
+    let mut held: Vec<(String, Section)> = sections
+        .into_iter()
+        // The bench's own printing (semihosting, between scenarios) is not the firmware's.
+        .filter(|(site, _)| !site.contains("semihosting"))
+        .map(|(site, s)| {
+            let (symbol, line) = site.rsplit_once(" @ ").unwrap_or((&site, "0"));
+            let line = lines[line.parse::<usize>().unwrap_or(0)].clone();
+            let symbol = demangled(symbol);
+            (format!("{symbol}, {line}"), s)
+        })
+        .collect();
+    held.sort_by(|a, b| b.1.instructions.cmp(&a.1.instructions).then(a.0.cmp(&b.0)));
+    println!();
+    println!("Critical sections that hold the tick off (from masking it to unmasking it), longest first:");
+    println!("| where (function, source line) | times | instr max | cycles max (0 WS) | cycles max (5 WS) |");
+    println!("|---|---:|---:|---:|---:|");
+    for (site, s) in held.iter().take(12) {
+        println!(
+            "| {site} | {} | {} | {} | {} |",
+            s.count, s.instructions, s.cycles, s.cycles_ws5
+        );
+    }
+    let (longest_site, longest) = held.first().cloned().unwrap_or_default();
+    println!(
+        "longest: {} instructions, {} cycles at 5 WS ({:.1} µs at 168 MHz): {longest_site}",
+        longest.instructions,
+        longest.cycles_ws5,
+        longest.cycles_ws5 as f64 / SYSCLK_HZ * 1e6
+    );
+    assert!(
+        held.len() >= 5,
+        "the trace shows the handler's locks on the tick ({} places)",
+        held.len()
+    );
+    assert!(
+        longest.instructions <= HELD_OFF_INSTRUCTIONS,
+        "a critical section holds the tick off for {} instructions (asserted ≤ {HELD_OFF_INSTRUCTIONS}): {longest_site}",
+        longest.instructions
     );
     assert!(
         worst.instructions <= WORST_INSTRUCTIONS,

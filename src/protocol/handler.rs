@@ -29,7 +29,7 @@ use crate::control_loop::ControlLoop;
 use crate::dual_stage::{CoarseCommand, CoarseLimits, CoarseRefusal, CoarseStatus};
 use crate::learning::{self, LearnState, LearnTask, Service};
 use crate::param_store::{RecordStorage, StorageError, StoredRecord, MAX_RECORD};
-use crate::recorder::{RecordError, SampleStore};
+use crate::recorder::{in_pieces, RecordError, SampleStore};
 use crate::refusal::{Field, Refusal, Rule};
 use crate::scan::{ScanGenerator, ScanRequest};
 use crate::setpoint_stream::setpoint_from_wire;
@@ -163,13 +163,16 @@ impl<S: RecordStorage> CommandHandler<S> {
             Request::Waveform(w) => self.waveform(w, control),
             Request::Record(r) => record(r, control),
             Request::ReadRecord { offset } => {
+                // Piece by piece, a lock each: a tick falling due waits for one piece's copy.
                 let mut values = heapless::Vec::new();
-                let (read, recorded) =
-                    control.lock(|c| (c.read_record(offset, &mut values), c.recorded()));
+                let read = in_pieces(&mut values, |v| control.lock(|c| c.read_record(offset, v)));
                 return match read {
                     Ok(()) => Response::RecordChunk { offset, values },
                     // The limit is what the recorder holds now.
-                    Err(_) => nack(refused(Field::RecordOffset, Rule::AtMost(recorded as f64))),
+                    Err(_) => nack(refused(
+                        Field::RecordOffset,
+                        Rule::AtMost(control.lock(|c| c.recorded()) as f64),
+                    )),
                 };
             }
             Request::ReadParams => return Response::Params(self.settings.clone()),
@@ -181,15 +184,18 @@ impl<S: RecordStorage> CommandHandler<S> {
                 Err(reason) => Err(reason),
             },
             Request::ReadCapture { offset, count } => {
+                // Piece by piece, a lock each (a complete capture stays as it is until this
+                // handler arms another): a tick falling due waits for one piece's copy.
                 let mut values = heapless::Vec::new();
-                let (read, info) = control
-                    .lock(|c| (c.read_capture(offset, count, &mut values), c.capture_info()));
+                let read = in_pieces(&mut values, |v| {
+                    control.lock(|c| c.read_capture(offset, count, v))
+                });
                 return match read {
                     Ok(()) => Response::CaptureChunk { offset, values },
                     Err(RecordError::NotDone) => nack(NackReason::Busy),
                     Err(_) => nack(refused(
                         Field::RecordOffset,
-                        Rule::AtMost(info.window_slots() as f64),
+                        Rule::AtMost(control.lock(|c| c.capture_info()).window_slots() as f64),
                     )),
                 };
             }

@@ -339,8 +339,8 @@ mod app {
     use twinstack::protocol::handler::CommandHandler;
     use twinstack::protocol::handler::MAX_RESPONSE;
     use twinstack::protocol::messages::{
-        CaptureRequest, LearnRequest, Request, Response, SetpointBatch, StreamControl, Trigger,
-        MAX_BATCH,
+        CaptureRequest, CaptureState, LearnRequest, RecordRequest, Request, Response,
+        SetpointBatch, Signal, StreamControl, Trigger, MAX_BATCH, MAX_CAPTURE_CHUNK,
     };
     use twinstack::recorder::{SplitStore, CHANNELS};
     use twinstack::settings::{Mode, Settings};
@@ -603,6 +603,61 @@ mod app {
                 }
             }
         }
+        // The host reading back what the board took, while the tick runs: a capture of all
+        // seven signals at the largest chunk, then a v3 record. The bench measures every
+        // critical section that holds the tick off; these copies are the handler's longest.
+        hprintln!("READBACK");
+        expect_ack(
+            ask!(Request::Capture(CaptureRequest {
+                signals: 0b111_1111,
+                samples: 300,
+                pre_trigger: 0,
+                trigger: Trigger::Now,
+                decimation: 1,
+            })),
+            "readback capture",
+        );
+        let window = loop {
+            match ask!(Request::CaptureStatus) {
+                Response::Capture(c) if c.state == CaptureState::Done => break c.window_slots,
+                _ => cortex_m::asm::wfi(),
+            }
+        };
+        let mut offset = 0;
+        while offset < window {
+            match ask!(Request::ReadCapture {
+                offset,
+                count: MAX_CAPTURE_CHUNK as u16,
+            }) {
+                Response::CaptureChunk { values, .. } if !values.is_empty() => {
+                    offset += values.len() as u32;
+                }
+                r => {
+                    hprintln!("BENCH-REFUSED read capture {:?}", r);
+                    debug::exit(debug::EXIT_FAILURE);
+                }
+            }
+        }
+        expect_ack(
+            ask!(Request::Record(RecordRequest {
+                signal: Signal::Drive,
+                count: 256,
+                decimation: 1,
+            })),
+            "readback record",
+        );
+        let mut offset = 0;
+        while offset < 256 {
+            match ask!(Request::ReadRecord { offset }) {
+                Response::RecordChunk { values, .. } => offset += values.len() as u32,
+                r => {
+                    hprintln!("BENCH-REFUSED read record {:?}", r);
+                    debug::exit(debug::EXIT_FAILURE);
+                }
+            }
+            cortex_m::asm::wfi();
+        }
+        hprintln!("READBACK done");
         irq_bench_marker(u32::MAX);
         let (used, room) = super::stack_high_water();
         hprintln!("STACK used {} room {}", used, room);
