@@ -45,7 +45,7 @@ use crate::drive::StackVoltages;
 use crate::learning::{LearnState, LearnTick};
 use crate::mode_switch::Mode;
 use crate::mode_switch::ModeError;
-use crate::recorder::{CaptureInfo, RecordError, Recorder, SampleStore, Trigger};
+use crate::recorder::{CaptureInfo, RecordError, Recorder, SampleStore, TickSignals, Trigger};
 use crate::recorder::{Signal, MAX_CAPTURE_CHUNK, MAX_CHUNK};
 use crate::scan::{ExternalTrigger, ScanGenerator, TriggerConfig, TriggerOutputs, INPUT};
 use crate::setpoint_stream::UnderrunPolicy;
@@ -121,6 +121,9 @@ pub struct ControlLoop<B, C> {
     control_rate_hz: u32,
     /// Continuous telemetry's tick side (off until started).
     telemetry: TelemetryTap,
+    /// The last tick's signals in their slot formats (computed while a capture or telemetry
+    /// runs): what the capture stores and telemetry's tap sends.
+    signals: TickSignals,
     /// The coarse axis's mailbox (feature `dual-stage`): once the coarse task has posted a
     /// ramp, the piezo's setpoint comes from it instead of the stream.
     #[cfg(feature = "dual-stage")]
@@ -168,6 +171,7 @@ where
             estimate: 0,
             control_rate_hz,
             telemetry: TelemetryTap::new(),
+            signals: TickSignals::default(),
             #[cfg(feature = "dual-stage")]
             coarse: crate::dual_stage::CoarseLink::new(),
             learning: LearnTick::new(),
@@ -229,8 +233,14 @@ where
             self.limit_hits = self.limit_hits.wrapping_add(1);
         }
         self.estimate = report.estimate;
+        // The tick's signals in their slot formats, once, for the capture and telemetry's
+        // tap (taken after the tick, [`ControlLoop::tap_telemetry`]).
+        let setpoint = self.controller.setpoint();
+        if self.recorder.is_capturing() || self.telemetry.is_running() {
+            self.signals = TickSignals::of(setpoint, report.measured, &report);
+        }
         self.recorder
-            .capture(self.controller.setpoint(), report.measured, &report);
+            .capture(&self.signals, setpoint, report.measured, &report);
         report
     }
 
@@ -333,16 +343,11 @@ where
     }
 
     /// Telemetry's part of a tick, right after [`ControlLoop::tick`] (same interrupt): on a
-    /// sample tick, the selected signals of that tick onto the telemetry queue (or counted as
-    /// an overflow). O(1); see [`TelemetryTap::push`].
+    /// sample tick, that tick's signals onto the telemetry queue (or counted as an overflow).
+    /// O(1); see [`TelemetryTap::push`].
     #[inline(always)]
-    pub fn tap_telemetry<const N: usize>(
-        &mut self,
-        report: &TickReport,
-        queue: &mut Producer<'_, TelemetrySample, N>,
-    ) {
-        self.telemetry
-            .push(queue, self.controller.setpoint(), report.measured, report);
+    pub fn tap_telemetry<const N: usize>(&mut self, queue: &mut Producer<'_, TelemetrySample, N>) {
+        self.telemetry.push(queue, &self.signals);
     }
 
     /// Starts telemetry of `mask` every `decimation` ticks (see [`TelemetryTap::start`]);

@@ -60,7 +60,7 @@ pub const PIECE_SLOTS: u32 = 16;
 /// and `out` holds `N`.
 ///
 /// ```
-/// use twinstack::recorder::{in_pieces, Recorder, Signal};
+/// use twinstack::recorder::{in_pieces, Recorder, Signal, TickSignals};
 /// # use twinstack::control::{TickFlags, TickReport};
 /// # use twinstack::board::DacCode;
 /// let mut r = Recorder::new(vec![0i16; 200]);
@@ -68,7 +68,7 @@ pub const PIECE_SLOTS: u32 = 16;
 /// # let report = TickReport { left: DacCode(0), right: DacCode(0), estimate: 0, measured: 0,
 /// #     drive: 0, flags: TickFlags(0), triggers: 0 };
 /// for k in 0..40 {
-///     r.capture(k, 0, &report);
+///     r.capture(&TickSignals::of(k, 0, &report), k, 0, &report);
 /// }
 /// let mut out = heapless::Vec::<i32, 64>::new();
 /// in_pieces(&mut out, |o| r.read_piece(2, o)).unwrap();
@@ -164,28 +164,53 @@ impl Channel {
         }
     }
 
-    /// The channel's value on a tick, in its slot format (the table in the module doc):
-    /// `setpoint` is the setpoint in force and `sensor` the measured displacement, both
-    /// Q2.30. The recorder's capture stores exactly these; telemetry
-    /// ([`crate::telemetry`]) sends them.
-    #[inline(always)]
-    pub fn slot(self, setpoint: i32, sensor: i32, report: &TickReport) -> i16 {
-        match self {
-            Channel::Setpoint => q1_15(setpoint),
-            Channel::Left => report.left.0 as i16,
-            Channel::Right => report.right.0 as i16,
-            Channel::Sensor => q1_15(sensor),
-            Channel::Estimate => q1_15(report.estimate),
-            Channel::Error => (setpoint.saturating_sub(sensor) >> 16) as i16,
-            Channel::Triggers => report.triggers as i16,
-        }
-    }
-
     /// The channels of `mask`, in frame order.
     pub fn of_mask(mask: u8) -> impl Iterator<Item = Channel> {
         Channel::ALL
             .into_iter()
             .filter(move |c| mask & c.bit() != 0)
+    }
+}
+
+/// One tick's seven signals, each in its slot format (the table in the module doc), in
+/// [`Channel`] order: what the capture stores (its mask's channels) and what telemetry sends.
+/// Computed once a tick ([`TickSignals::of`]), for both.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct TickSignals(pub [i16; CHANNELS]);
+
+impl TickSignals {
+    /// The signals of a tick: `setpoint` is the setpoint in force and `sensor` the measured
+    /// displacement, both Q2.30; the rest from the tick's `report`. Straight-line, no branch.
+    ///
+    /// ```
+    /// use twinstack::board::DacCode;
+    /// use twinstack::control::{TickFlags, TickReport};
+    /// use twinstack::recorder::{Channel, TickSignals};
+    /// let report = TickReport { left: DacCode(1234), right: DacCode(99), estimate: 1 << 29,
+    ///     measured: 0, drive: 0, flags: TickFlags(0), triggers: 0b101 };
+    /// let s = TickSignals::of(-(1 << 30), 1 << 29, &report); // setpoint −1, sensor 0.5
+    /// assert_eq!(s.get(Channel::Setpoint), -32768);
+    /// assert_eq!(s.get(Channel::Left), 1234);
+    /// assert_eq!(s.get(Channel::Estimate), 16384);
+    /// assert_eq!(s.get(Channel::Error), -24576); // −1.5, Q2.14
+    /// assert_eq!(s.get(Channel::Triggers), 0b101);
+    /// ```
+    #[inline(always)]
+    pub fn of(setpoint: i32, sensor: i32, report: &TickReport) -> Self {
+        Self([
+            q1_15(setpoint),
+            report.left.0 as i16,
+            report.right.0 as i16,
+            q1_15(sensor),
+            q1_15(report.estimate),
+            (setpoint.saturating_sub(sensor) >> 16) as i16,
+            report.triggers as i16,
+        ])
+    }
+
+    /// The value of `channel`.
+    pub fn get(&self, channel: Channel) -> i16 {
+        self.0[channel as usize]
     }
 }
 
@@ -615,11 +640,18 @@ impl<B: SampleStore> Recorder<B> {
         }
     }
 
-    /// One tick: on a capture tick, stores the selected signals (or the `Record`'s one).
-    /// `setpoint` is the setpoint in force (Q2.30), `sensor` the measured displacement
-    /// (Q2.30). O(1): at most [`CHANNELS`] stores, no panic path.
+    /// One tick: on a capture tick, stores the mask's channels of `signals` (or the
+    /// `Record`'s signal, full width: `setpoint` is the setpoint in force and `sensor` the
+    /// measured displacement, Q2.30; the drive and the estimate from `report`). O(1): at most
+    /// [`CHANNELS`] stores, no panic path.
     #[inline(always)]
-    pub fn capture(&mut self, setpoint: i32, sensor: i32, report: &TickReport) {
+    pub fn capture(
+        &mut self,
+        signals: &TickSignals,
+        setpoint: i32,
+        sensor: i32,
+        report: &TickReport,
+    ) {
         if !self.active {
             return;
         }
@@ -654,26 +686,27 @@ impl<B: SampleStore> Recorder<B> {
             put(value as i16);
         } else {
             let mask = self.mask;
+            let [sp, left, right, sn, estimate, error, triggers] = signals.0;
             if mask & Channel::Setpoint.bit() != 0 {
-                put(q1_15(setpoint));
+                put(sp);
             }
             if mask & Channel::Left.bit() != 0 {
-                put(report.left.0 as i16);
+                put(left);
             }
             if mask & Channel::Right.bit() != 0 {
-                put(report.right.0 as i16);
+                put(right);
             }
             if mask & Channel::Sensor.bit() != 0 {
-                put(q1_15(sensor));
+                put(sn);
             }
             if mask & Channel::Estimate.bit() != 0 {
-                put(q1_15(report.estimate));
+                put(estimate);
             }
             if mask & Channel::Error.bit() != 0 {
-                put((setpoint.saturating_sub(sensor) >> 16) as i16);
+                put(error);
             }
             if mask & Channel::Triggers.bit() != 0 {
-                put(report.triggers as i16);
+                put(triggers);
             }
         }
         let next = self.pos + self.per_frame;
@@ -823,6 +856,16 @@ mod tests {
     use std::vec;
     use std::vec::Vec;
 
+    /// One tick of `r`: its signals from `setpoint`, `sensor` and `report`.
+    fn tick(r: &mut Recorder<impl SampleStore>, setpoint: i32, sensor: i32, report: &TickReport) {
+        r.capture(
+            &TickSignals::of(setpoint, sensor, report),
+            setpoint,
+            sensor,
+            report,
+        );
+    }
+
     fn report(k: i32) -> TickReport {
         TickReport {
             left: DacCode(k as u16),
@@ -838,7 +881,7 @@ mod tests {
     /// Ticks `k` in `range` through `r`: setpoint k (Q1.15), sensor −k.
     fn run(r: &mut Recorder<impl SampleStore>, range: std::ops::Range<i32>) {
         for k in range {
-            r.capture(k << 15, -k << 15, &report(k));
+            tick(r, k << 15, -k << 15, &report(k));
         }
     }
 
@@ -883,7 +926,7 @@ mod tests {
             let mut rep = report(0);
             rep.drive = 0x7654_3210;
             rep.estimate = i32::MIN;
-            r.capture(-0x1234_5679, -5, &rep);
+            tick(&mut r, -0x1234_5679, -5, &rep);
             let mut out = heapless::Vec::new();
             r.read(0, &mut out).unwrap();
             assert_eq!(&out[..], &[want], "{signal:?}");
@@ -894,7 +937,7 @@ mod tests {
     fn bad_arms_are_refused_and_change_nothing() {
         let mut r = Recorder::new(vec![0i16; 8]);
         r.arm(Signal::Setpoint, 2, 1).unwrap();
-        r.capture(1 << 16, 0, &report(1));
+        tick(&mut r, 1 << 16, 0, &report(1));
         for (count, decimation) in [(0, 1), (5, 1), (2, 0)] {
             assert_eq!(
                 r.arm(Signal::Drive, count, decimation),
@@ -929,9 +972,9 @@ mod tests {
         r.arm_capture(0b11_1111, 2, 0, Trigger::Now, 1).unwrap();
         let mut rep = report(7);
         rep.estimate = i32::MAX; // 2.0: saturates
-        r.capture(-(1 << 30), 1 << 29, &rep); // setpoint −1, sensor 0.5
+        tick(&mut r, -(1 << 30), 1 << 29, &rep); // setpoint −1, sensor 0.5
         rep.estimate = -(1 << 29);
-        r.capture(1 << 29, -(1 << 30), &rep);
+        tick(&mut r, 1 << 29, -(1 << 30), &rep);
         assert!(!r.is_capturing());
         let w = window(&r);
         assert_eq!(
@@ -1071,7 +1114,7 @@ mod tests {
         // A record's pieces: at most half as many values (two slots each).
         r.arm(Signal::Setpoint, 100, 1).unwrap();
         for k in 0..100 {
-            r.capture(k, 0, &report(k));
+            tick(&mut r, k, 0, &report(k));
         }
         let mut values = heapless::Vec::new();
         assert_eq!(r.read_piece(3, &mut values), Ok(PIECE_SLOTS as usize / 2));
@@ -1086,7 +1129,7 @@ mod tests {
         let mut r = Recorder::new(vec![0i16; 400]);
         r.arm(Signal::Setpoint, 200, 1).unwrap();
         for k in 0..200 {
-            r.capture(k, 0, &report(k));
+            tick(&mut r, k, 0, &report(k));
         }
         let mut out = heapless::Vec::new();
         r.read(100, &mut out).unwrap();

@@ -6,11 +6,11 @@
 //!
 //! * **On the tick**, [`TelemetryTap::push`] (called by
 //!   [`crate::control_loop::ControlLoop::tap_telemetry`] right after the control tick) takes
-//!   the signals of its mask — the recorder's six channels ([`Channel`]), each one quantity in
-//!   one form, the capture's slot format — into one [`TelemetrySample`] and puts it on a
-//!   bounded lock-free single-producer single-consumer queue ([`TelemetryQueue`],
-//!   `heapless::spsc`). Constant time: a countdown on the ticks between samples; on a sample
-//!   tick at most [`CHANNELS`] bit tests and stores, one enqueue. A full queue never blocks
+//!   the tick's seven signals ([`TickSignals`]: the recorder's channels, [`Channel`], each
+//!   one quantity in one form, the capture's slot format, computed once for both) into one
+//!   [`TelemetrySample`] and puts it on a bounded lock-free single-producer single-consumer
+//!   queue ([`TelemetryQueue`], `heapless::spsc`); the packer sends the mask's. Constant
+//!   time: a countdown on the ticks between samples; on a sample tick one enqueue. A full queue never blocks
 //!   the tick: the sample is dropped and counted ([`TelemetryTap::overflows`]). No
 //!   allocation, no division, no panic path.
 //! * **Off the tick**, [`TelemetryPacker`] (owned by the command handler, run where the board
@@ -36,7 +36,7 @@
 //! use twinstack::board::DacCode;
 //! use twinstack::protocol::frame;
 //! use twinstack::protocol::messages::Response;
-//! use twinstack::recorder::Channel;
+//! use twinstack::recorder::{Channel, TickSignals};
 //! use twinstack::telemetry::{TelemetryPacker, TelemetryQueue, TelemetryTap};
 //!
 //! let mut queue = TelemetryQueue::new();
@@ -50,7 +50,7 @@
 //!     left: DacCode(1234), right: DacCode(0), estimate: 0, measured: 0, drive: 0, flags: TickFlags(0), triggers: 0,
 //! };
 //! for _ in 0..500 {
-//!     tap.push(&mut producer, 1 << 29, 0, &report); // setpoint 0.5 (Q2.30)
+//!     tap.push(&mut producer, &TickSignals::of(1 << 29, 0, &report)); // setpoint 0.5 (Q2.30)
 //! }
 //! let mut out = [0u8; 600];
 //! let n = packer.pack(&mut consumer, &mut out).unwrap();
@@ -64,10 +64,9 @@
 
 use heapless::spsc::{Consumer, Producer, Queue};
 
-use crate::control::TickReport;
 use crate::protocol::frame;
 use crate::protocol::messages::{Response, TelemetryFrame, MAX_TELEMETRY_VALUES};
-use crate::recorder::{Channel, CHANNELS};
+use crate::recorder::{Channel, TickSignals, CHANNELS};
 use crate::refusal::{Field, Refusal, Rule};
 
 /// Slots of the telemetry queue (`heapless` keeps one free): 8 KiB of samples; at 10 kHz it
@@ -87,9 +86,9 @@ pub const MAX_VALUES_PER_SECOND: u32 = 50_000;
 /// (unless a full frame comes first).
 pub const FRAME_LATENCY_S: f64 = 0.005;
 
-/// One sample of the tick: the values of the mask's signals, in [`Channel`] order from
-/// `values[0]` (the rest 0), each in its slot format (Q1.15, DAC code, Q2.14: see
-/// [`crate::recorder`]).
+/// One sample of the tick: all seven signals ([`TickSignals`]), in [`Channel`] order, each in
+/// its slot format (Q1.15, DAC code, Q2.14: see [`crate::recorder`]); the packer sends the
+/// mask's.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct TelemetrySample {
     /// The sample's index: every sample the tap takes counts, sent or dropped.
@@ -164,16 +163,14 @@ impl TelemetryTap {
         self.overflows
     }
 
-    /// One tick: on a sample tick, the mask's signals (from the setpoint in force and the
-    /// measured displacement, Q2.30, and the tick's report) onto `queue`, or counted as an
-    /// overflow if it is full. O(1), no panic path.
+    /// One tick: on a sample tick, the tick's `signals` onto `queue` (all seven: the packer
+    /// takes the mask's), or counted as an overflow if it is full. O(1), no branch per
+    /// signal, no panic path.
     #[inline(always)]
     pub fn push<const N: usize>(
         &mut self,
         queue: &mut Producer<'_, TelemetrySample, N>,
-        setpoint: i32,
-        sensor: i32,
-        report: &TickReport,
+        signals: &TickSignals,
     ) {
         if !self.enabled {
             return;
@@ -183,40 +180,9 @@ impl TelemetryTap {
             return;
         }
         self.countdown = self.reload;
-        // Straight-line, as the recorder's capture: a bit test and a store per channel (the
-        // library is built for size, so a loop over the channels would stay a loop).
-        let mut values = [0i16; CHANNELS];
-        let mut slots = values.iter_mut();
-        let mut put = |channel: Channel| {
-            if let Some(slot) = slots.next() {
-                *slot = channel.slot(setpoint, sensor, report);
-            }
-        };
-        let mask = self.mask;
-        if mask & Channel::Setpoint.bit() != 0 {
-            put(Channel::Setpoint);
-        }
-        if mask & Channel::Left.bit() != 0 {
-            put(Channel::Left);
-        }
-        if mask & Channel::Right.bit() != 0 {
-            put(Channel::Right);
-        }
-        if mask & Channel::Sensor.bit() != 0 {
-            put(Channel::Sensor);
-        }
-        if mask & Channel::Estimate.bit() != 0 {
-            put(Channel::Estimate);
-        }
-        if mask & Channel::Error.bit() != 0 {
-            put(Channel::Error);
-        }
-        if mask & Channel::Triggers.bit() != 0 {
-            put(Channel::Triggers);
-        }
         let sample = TelemetrySample {
             index: self.next,
-            values,
+            values: signals.0,
         };
         if queue.enqueue(sample).is_err() {
             self.overflows = self.overflows.wrapping_add(1);
@@ -398,9 +364,9 @@ impl TelemetryPacker {
             } else if index != self.expected || count >= self.capacity {
                 break;
             }
-            for &v in sample.values.iter().take(self.per_sample) {
+            for channel in Channel::of_mask(self.mask) {
                 // capacity × per_sample ≤ MAX_TELEMETRY_VALUES: this cannot fail.
-                let _ = frame.values.push(v);
+                let _ = frame.values.push(sample.values[channel as usize]);
             }
             queue.dequeue();
             self.expected = self.expected.wrapping_add(1);
@@ -450,7 +416,7 @@ mod tests {
     extern crate std;
     use super::*;
     use crate::board::DacCode;
-    use crate::control::TickFlags;
+    use crate::control::{TickFlags, TickReport};
     use crate::protocol::decoder::FrameDecoder;
     use crate::recorder::{Recorder, Trigger};
     use std::vec;
@@ -475,7 +441,7 @@ mod tests {
         range: std::ops::Range<i32>,
     ) {
         for k in range {
-            tap.push(p, k << 15, -k << 15, &report(k));
+            tap.push(p, &TickSignals::of(k << 15, -k << 15, &report(k)));
         }
     }
 
@@ -499,18 +465,20 @@ mod tests {
         let mask = Channel::Sensor.bit() | Channel::Setpoint.bit();
         assert_eq!(tap.start(mask, 3), Some(0));
         run(&mut tap, &mut p, 0..10);
-        let got: Vec<(u32, [i16; CHANNELS])> = core::iter::from_fn(|| c.dequeue())
-            .map(|s| (s.index, s.values))
-            .collect();
+        // Each sample holds the tick's seven signals (ticks 0, 3, 6, 9)…
+        let mut packer = TelemetryPacker::new();
+        packer.start(mask, 3, 0, 50_000);
+        assert_eq!(c.len(), 4);
+        let s = c.peek().copied().unwrap_or_default();
         assert_eq!(
-            got,
-            [
-                (0, [0, 0, 0, 0, 0, 0, 0]),
-                (1, [3, -3, 0, 0, 0, 0, 0]),
-                (2, [6, -6, 0, 0, 0, 0, 0]),
-                (3, [9, -9, 0, 0, 0, 0, 0]),
-            ]
+            (s.index, s.values),
+            (0, TickSignals::of(0, 0, &report(0)).0)
         );
+        // …and the packer sends the mask's, in channel order: setpoint k, sensor −k.
+        packer.stop(4);
+        let f = packer.next_frame(&mut c).unwrap();
+        assert_eq!((f.first, f.lost), (0, 0));
+        assert_eq!(&f.values[..], &[0, 0, 3, -3, 6, -6, 9, -9]);
         assert_eq!(tap.stop(), 4);
         run(&mut tap, &mut p, 10..20);
         assert!(c.dequeue().is_none(), "a stopped tap takes nothing");
@@ -571,8 +539,9 @@ mod tests {
             let mut rep = report(k as i32 * 1000);
             rep.estimate = sp / 3;
             rep.triggers = (k as u8 * 5) & 0b1111;
-            rec.capture(sp, sensor, &rep);
-            tap.push(&mut p, sp, sensor, &rep);
+            let signals = TickSignals::of(sp, sensor, &rep);
+            rec.capture(&signals, sp, sensor, &rep);
+            tap.push(&mut p, &signals);
         }
         let mut window = heapless::Vec::new();
         rec.read_capture(0, 28, &mut window).unwrap();

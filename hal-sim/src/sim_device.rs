@@ -366,7 +366,7 @@ impl<D: AnalogDualDac, A: AnalogSensorAdc> SimDevice<D, A> {
         self.control.set_trigger_input(self.trigger_input);
         let report = self.control.tick(&mut consumer, &mut adc, &mut dac);
         let (mut samples_in, mut samples_out) = self.telemetry.split();
-        self.control.tap_telemetry(&report, &mut samples_in);
+        self.control.tap_telemetry(&mut samples_in);
         if let Some(rig) = self.coarse.as_mut() {
             rig.after_tick(self.board.plant().stage_um(), &report);
         }

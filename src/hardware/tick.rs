@@ -63,11 +63,10 @@ impl ControlTick {
     pub fn run(&mut self) -> bool {
         self.timer.acknowledge();
         self.control.set_trigger_input(self.triggers.input());
-        let report = self
-            .control
+        self.control
             .tick(&mut self.setpoints, &mut self.adc, &mut self.dac);
         self.triggers.write(self.control.trigger_levels());
-        self.control.tap_telemetry(&report, &mut self.telemetry);
+        self.control.tap_telemetry(&mut self.telemetry);
         self.watchdog.feed();
         if self.timer.next_tick_already_due() {
             self.control.count_overrun();
