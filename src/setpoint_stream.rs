@@ -183,7 +183,14 @@ impl SetpointStream {
                     // |span| < 2^32 and the reciprocal < 2^31: the product fits i64, and the
                     // step (at most span / 2) fits i32. The last tick lands on the target
                     // exactly, whatever the step's rounding.
-                    self.increment = ((span * self.reciprocal + (1 << 31)) >> 32) as i32;
+                    let mut step = ((span * self.reciprocal + (1 << 31)) >> 32) as i32;
+                    // Rounded up, D − 1 steps could pass the target (by up to (D − 1) / 2
+                    // LSB) and the last tick step back: then one LSB less, so the segment
+                    // never overshoots (one multiply, on a sample's first tick only).
+                    if (step as i64 * (self.divider as i64 - 1)).abs() > span.abs() {
+                        step -= step.signum();
+                    }
+                    self.increment = step;
                 }
                 None => return self.underrun(),
             }
@@ -215,8 +222,10 @@ impl SetpointStream {
 
 #[cfg(test)]
 mod tests {
+    extern crate std;
     use super::*;
     use heapless::spsc::Queue;
+    use std::vec::Vec;
 
     #[test]
     fn a_slow_stream_is_interpolated_linearly_and_lands_on_each_sample() {
@@ -269,6 +278,23 @@ mod tests {
             assert_eq!(setpoint_to_wire(setpoint_from_wire(x)), x);
         }
         assert_eq!(setpoint_to_wire(i32::MAX), i16::MAX);
+    }
+
+    #[test]
+    fn a_segment_whose_rounded_step_would_pass_the_target_does_not() {
+        // 2 wire LSB (65 536 Q2.30 LSB) in 722 ticks: the step rounds to 91, and 721 steps
+        // of 91 pass the target by 75. Each step is 90 here, the last 106.
+        let mut q: Queue<i16, 4> = Queue::new();
+        let (mut p, mut c) = q.split();
+        let mut s = SetpointStream::new(setpoint_from_wire(6883));
+        assert!(s.set_divider(722));
+        s.start();
+        p.enqueue(6881).unwrap();
+        let path: Vec<i32> = (0..722).filter_map(|_| s.next(&mut c)).collect();
+        let to = setpoint_from_wire(6881);
+        assert!(path.windows(2).all(|w| w[1] <= w[0]), "monotone");
+        assert!(path.iter().all(|&x| x >= to), "never below the target");
+        assert_eq!(path.last(), Some(&to));
     }
 
     proptest::proptest! {
