@@ -36,10 +36,11 @@ pub type RecordBuffer = SplitStore<&'static mut [i16; SRAM_SLOTS], &'static mut 
 /// tick and the command handler.
 pub type BoardLoop = ControlLoop<RecordBuffer, &'static mut Controller>;
 
-/// Everything the control interrupt owns.
+/// Everything the control interrupt owns. `repr(C)` with the loop (8 KiB, most of it the
+/// learning's tables at its end) last, so that the converters, the timer and the queues are
+/// within a one-instruction load's reach of the resource's address.
+#[repr(C)]
 pub struct ControlTick {
-    /// The loop: setpoint stream, controller, recorder.
-    pub control: BoardLoop,
     /// The sensor's ADC.
     pub adc: SensorInput,
     /// Both stacks' DAC channels.
@@ -54,6 +55,8 @@ pub struct ControlTick {
     pub telemetry: Producer<'static, TelemetrySample, TELEMETRY_QUEUE_LEN>,
     /// The trigger I/O pins (pixel, line, frame outputs; the external trigger input).
     pub triggers: TriggerPins,
+    /// The loop: setpoint stream, controller, recorder.
+    pub control: BoardLoop,
 }
 
 impl ControlTick {
