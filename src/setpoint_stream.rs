@@ -55,9 +55,10 @@ pub enum Underrun {
 pub struct SetpointStream {
     running: bool,
     divider: u16,
-    /// `2^32 / divider`, rounded (0 for divider 1, which needs no increment): the step of a segment
-    /// is `(span · reciprocal) >> 32`, rounded, one `SMULL`-class multiply instead of a 64-bit division.
-    reciprocal: i64,
+    /// `2^32 / divider`, rounded down (0 for divider 1, which needs no increment): a segment's
+    /// step is `(|span| · reciprocal) >> 32` with the span's sign, one `UMULL`-class multiply
+    /// instead of a 64-bit division, and never larger than `|span| / divider`.
+    reciprocal: u64,
     /// Ticks left in the current segment.
     remaining: u16,
     /// Current setpoint, Q2.30.
@@ -111,7 +112,7 @@ impl SetpointStream {
         self.reciprocal = if divider == 1 {
             0
         } else {
-            ((1i64 << 32) + divider as i64 / 2) / divider as i64
+            (1u64 << 32) / divider as u64
         };
         true
     }
@@ -180,16 +181,12 @@ impl SetpointStream {
                     self.target = setpoint_from_wire(sample);
                     self.remaining = self.divider;
                     let span = self.target as i64 - self.current as i64;
-                    // |span| < 2^32 and the reciprocal < 2^31: the product fits i64, and the
-                    // step (at most span / 2) fits i32. The last tick lands on the target
-                    // exactly, whatever the step's rounding.
-                    let mut step = ((span * self.reciprocal + (1 << 31)) >> 32) as i32;
-                    // Rounded up, D − 1 steps could pass the target (by up to (D − 1) / 2
-                    // LSB) and the last tick step back: then one LSB less, so the segment
-                    // never overshoots (one multiply, on a sample's first tick only).
-                    if (step as i64 * (self.divider as i64 - 1)).abs() > span.abs() {
-                        step -= step.signum();
-                    }
+                    // |span| < 2^32 and the reciprocal ≤ 2^31: the product fits u64, and the
+                    // step (at most |span| / 2) fits i32. Both the reciprocal and the product
+                    // round toward zero, so |step| ≤ |span| / D: D − 1 steps never pass the
+                    // target, and the last tick lands on it exactly.
+                    let magnitude = ((span.unsigned_abs() * self.reciprocal) >> 32) as i32;
+                    let step = if span < 0 { -magnitude } else { magnitude };
                     self.increment = step;
                 }
                 None => return self.underrun(),
@@ -282,8 +279,8 @@ mod tests {
 
     #[test]
     fn a_segment_whose_rounded_step_would_pass_the_target_does_not() {
-        // 2 wire LSB (65 536 Q2.30 LSB) in 722 ticks: the step rounds to 91, and 721 steps
-        // of 91 pass the target by 75. Each step is 90 here, the last 106.
+        // 2 wire LSB (65 536 Q2.30 LSB) in 722 ticks: a step rounded to nearest (91) would,
+        // 721 times, pass the target by 75. Rounded toward zero each step is 90, the last 106.
         let mut q: Queue<i16, 4> = Queue::new();
         let (mut p, mut c) = q.split();
         let mut s = SetpointStream::new(setpoint_from_wire(6883));
@@ -298,8 +295,9 @@ mod tests {
     }
 
     proptest::proptest! {
-        /// With any divider, a segment moves in steps within one LSB of `span / D`, never
-        /// overshoots, and lands exactly on the sample after `D` ticks.
+        /// With any divider, a segment moves in steps no larger than `span / D` and less than
+        /// two Q2.30 LSB short of it (a sixteen-thousandth of a wire LSB), never overshoots,
+        /// and lands exactly on the sample after `D` ticks.
         #[test]
         fn interpolation_lands_exactly_in_near_equal_steps(
             divider in 1u16..=2000, a: i16, b: i16,
@@ -316,7 +314,9 @@ mod tests {
             for k in 1..=divider as i64 {
                 let now = s.next(&mut c).unwrap() as i64;
                 if k < divider as i64 {
-                    proptest::prop_assert!(((now - last) as f64 - ideal).abs() <= 1.0);
+                    let step = (now - last) as f64;
+                    proptest::prop_assert!(step.abs() <= ideal.abs(), "{step} vs {ideal}");
+                    proptest::prop_assert!((step - ideal).abs() < 2.0, "{step} vs {ideal}");
                     proptest::prop_assert!((now - from).abs() <= (to - from).abs());
                 } else {
                     proptest::prop_assert_eq!(now, to);
