@@ -1,0 +1,374 @@
+//! The board under a protocol fuzzer that knows the frame format: frames of **every** request
+//! type with any field values (a valid request of each type, its encoded fields mutated and
+//! the CRC recomputed, so that the frame gets past the CRC to the handler), junk, cut and
+//! corrupted frames, sent at random moments to the in-process board (the firmware's command
+//! handler, tick, telemetry packer and learning service, over the modelled UART) while it
+//! runs whatever it was last told. Whatever arrives:
+//! - nothing panics, and every frame gets exactly one response (telemetry frames aside);
+//! - every tick keeps both stacks inside the voltage limits of some settings the board
+//!   accepted, and no DAC step exceeds the largest slew limit the board accepted;
+//! - the setpoint queue's fill and credits add up to its capacity.
+//!
+//! `tests/command_handler.rs` fuzzes the handler alone, with a fixed handful of request types.
+
+use std::time::Duration;
+
+use hal_sim::link::Transport;
+use hal_sim::sim_device::{SimDevice, SimDeviceConfig};
+use proptest::prelude::*;
+use twinstack::control_loop::SETPOINT_CAPACITY;
+use twinstack::learning::{LearnSettings, LearnState};
+use twinstack::protocol::decoder::FrameDecoder;
+use twinstack::protocol::frame::{self, FRAME_CRC, MAX_BODY, MAX_ENCODED, PROTOCOL_VERSION};
+use twinstack::protocol::messages::*;
+use twinstack::recorder::{Signal, Trigger};
+use twinstack::scan::{RasterScan, ScanPattern, ScanRequest, TriggerConfig, TriggerEdge};
+use twinstack::setpoint_stream::UnderrunPolicy;
+use twinstack::settings::{Mode, Settings};
+
+/// One valid request of every type (and of every variant of the nested requests), the
+/// seeds the mutations start from.
+fn seeds() -> Vec<Request> {
+    let open = SimDeviceConfig::paper_settings(Mode::OpenLoop);
+    let mut closed = SimDeviceConfig::paper_settings(Mode::ClosedLoop);
+    closed.drive.bias = 40.0;
+    vec![
+        Request::Status,
+        Request::Setpoints(SetpointBatch {
+            seq: 0,
+            samples: heapless::Vec::from_slice(&[0, 8000, -8000, 32767, -32768, 100]).unwrap(),
+        }),
+        Request::Stream(StreamControl::Start),
+        Request::Stream(StreamControl::Stop),
+        Request::Stream(StreamControl::Rate { divider: 7 }),
+        Request::Stream(StreamControl::Underrun(UnderrunPolicy::RampToBias)),
+        Request::Stream(StreamControl::Underrun(UnderrunPolicy::Hold)),
+        Request::Mode(Mode::Bypass),
+        Request::Mode(Mode::OpenLoop),
+        Request::Mode(Mode::ClosedLoop),
+        Request::LoadParams(open),
+        Request::LoadParams(closed),
+        Request::StoreParams {
+            boot_mode: Mode::OpenLoop,
+        },
+        Request::RecallParams,
+        Request::Waveform(Waveform {
+            shape: WaveShape::Sine,
+            offset: 0,
+            amplitude: 12_000,
+            frequency_mhz: 250_000,
+            decay: Some(WaveDecay {
+                hold_cycles: 2,
+                keep: 30_000,
+            }),
+        }),
+        Request::Record(RecordRequest {
+            signal: Signal::Drive,
+            count: 300,
+            decimation: 1,
+        }),
+        Request::ReadRecord { offset: 0 },
+        Request::ReadParams,
+        Request::Capture(CaptureRequest {
+            signals: 0x7f,
+            samples: 200,
+            pre_trigger: 20,
+            trigger: Trigger::StreamStart,
+            decimation: 2,
+        }),
+        Request::CaptureStatus,
+        Request::ReadCapture {
+            offset: 0,
+            count: 256,
+        },
+        Request::Telemetry(TelemetryRequest::Start {
+            signals: 0x0b,
+            decimation: 25,
+        }),
+        Request::Telemetry(TelemetryRequest::Stop),
+        Request::CoarseHome,
+        Request::CoarseMove(CoarseMove {
+            target_mm: 1.0,
+            velocity_mm_s: 2.0,
+            acceleration_mm_s2: 10.0,
+        }),
+        Request::CoarseJog { velocity_mm_s: 1.0 },
+        Request::CoarseStop,
+        Request::CoarseStatus,
+        Request::Learn(LearnRequest::Configure(LearnSettings::for_period(500))),
+        Request::Learn(LearnRequest::State(LearnState::Learning)),
+        Request::Learn(LearnRequest::State(LearnState::Frozen)),
+        Request::Learn(LearnRequest::Reset),
+        Request::Learn(LearnRequest::Status),
+        Request::Learn(LearnRequest::ReadTable { offset: 0 }),
+        Request::Learn(LearnRequest::WriteTable {
+            offset: 0,
+            values: heapless::Vec::from_slice(&[1 << 20, -(1 << 20), 0, i32::MAX]).unwrap(),
+        }),
+        Request::Learn(LearnRequest::PostTable),
+        Request::Scan(ScanRequest {
+            pattern: ScanPattern::Raster(RasterScan {
+                lines: 4,
+                pixels: 16,
+                turn_ticks: 20,
+                offset: 0.0,
+                amplitude: 0.5,
+                y_offset: 0.0,
+                y_amplitude: 0.5,
+            }),
+            ticks_per_pixel: 4,
+            frames: 1,
+            on_trigger: false,
+        }),
+        Request::Trigger(TriggerConfig {
+            pulse_ticks: 2,
+            input: TriggerEdge::Rising,
+            start_stream: true,
+        }),
+    ]
+}
+
+/// A frame around `message` (postcard bytes, tag first) with a correct CRC.
+fn framed(message: &[u8]) -> Vec<u8> {
+    let mut body = vec![PROTOCOL_VERSION];
+    body.extend_from_slice(&message[..message.len().min(MAX_BODY - 5)]);
+    body.extend_from_slice(&FRAME_CRC.checksum(&body).to_le_bytes());
+    let mut out = vec![0u8; MAX_ENCODED + 1];
+    let n = twinstack::protocol::cobs::encode(&body, &mut out).expect("a body fits a frame");
+    out.truncate(n);
+    out.push(0);
+    out
+}
+
+fn encoded(r: &Request) -> Vec<u8> {
+    let mut out = vec![0u8; MAX_ENCODED + 1];
+    let n = frame::encode(r, &mut out).expect("a seed fits a frame");
+    out.truncate(n);
+    out
+}
+
+/// The message bytes (tag first) inside a frame: un-stuffed, less the version and the CRC.
+fn message_of(frame: &[u8]) -> Vec<u8> {
+    let mut d = FrameDecoder::new();
+    let mut message = Vec::new();
+    for &b in frame {
+        if let Some(body) = d.push(b) {
+            let body = body.expect("a seed's frame is sound");
+            message = body[1..body.len() - 4].to_vec();
+        }
+    }
+    message
+}
+
+/// One change to a message's bytes.
+#[derive(Clone, Debug)]
+enum Mutation {
+    Set(prop::sample::Index, u8),
+    Insert(prop::sample::Index, u8),
+    Remove(prop::sample::Index),
+}
+
+fn any_mutation() -> impl Strategy<Value = Mutation> {
+    // Boundary bytes half the time: varint edges, bools and enum tags just out of range.
+    let byte = prop_oneof![
+        any::<u8>(),
+        prop::sample::select(vec![0u8, 1, 2, 3, 0x7f, 0x80, 0xfe, 0xff])
+    ];
+    prop_oneof![
+        3 => (any::<prop::sample::Index>(), byte.clone()).prop_map(|(i, b)| Mutation::Set(i, b)),
+        1 => (any::<prop::sample::Index>(), byte).prop_map(|(i, b)| Mutation::Insert(i, b)),
+        1 => any::<prop::sample::Index>().prop_map(Mutation::Remove),
+    ]
+}
+
+/// What the fuzzer sends next.
+#[derive(Clone, Debug)]
+enum Chunk {
+    /// A seed as it is.
+    Valid(usize),
+    /// A seed with its fields mutated, the CRC made to match.
+    Mutated(usize, Vec<Mutation>),
+    /// A seed's frame cut short (no delimiter: the next chunk's bytes run on into it).
+    Cut(usize, prop::sample::Index),
+    /// A seed's frame with one byte flipped after the CRC was taken.
+    Corrupt(usize, prop::sample::Index, u8),
+    /// Junk.
+    Junk(Vec<u8>),
+}
+
+fn any_chunk(n: usize) -> impl Strategy<Value = Chunk> {
+    prop_oneof![
+        2 => (0..n).prop_map(Chunk::Valid),
+        6 => (0..n, prop::collection::vec(any_mutation(), 1..4))
+            .prop_map(|(i, m)| Chunk::Mutated(i, m)),
+        1 => (0..n, any::<prop::sample::Index>()).prop_map(|(i, at)| Chunk::Cut(i, at)),
+        1 => (0..n, any::<prop::sample::Index>(), 1u8..=255)
+            .prop_map(|(i, at, x)| Chunk::Corrupt(i, at, x)),
+        1 => prop::collection::vec(any::<u8>(), 0..64).prop_map(Chunk::Junk),
+    ]
+}
+
+fn bytes_of(chunk: &Chunk, seeds: &[Request]) -> Vec<u8> {
+    let message = |i: usize| message_of(&encoded(&seeds[i]));
+    match chunk {
+        Chunk::Valid(i) => encoded(&seeds[*i]),
+        Chunk::Mutated(i, mutations) => {
+            let mut m = message(*i);
+            for mutation in mutations {
+                match mutation {
+                    Mutation::Set(at, b) if !m.is_empty() => {
+                        let k = at.index(m.len());
+                        m[k] = *b;
+                    }
+                    Mutation::Insert(at, b) => {
+                        let k = at.index(m.len() + 1);
+                        m.insert(k, *b);
+                    }
+                    Mutation::Remove(at) if m.len() > 1 => {
+                        m.remove(at.index(m.len()));
+                    }
+                    _ => {}
+                }
+            }
+            framed(&m)
+        }
+        Chunk::Cut(i, at) => {
+            let mut f = encoded(&seeds[*i]);
+            f.truncate(at.index(f.len()));
+            f
+        }
+        Chunk::Corrupt(i, at, x) => {
+            let mut f = encoded(&seeds[*i]);
+            let k = at.index(f.len() - 1); // never the delimiter
+            f[k] ^= x;
+            f
+        }
+        Chunk::Junk(b) => b.clone(),
+    }
+}
+
+/// Frames the board must answer in `bytes`: runs of non-zero bytes ended by a delimiter.
+fn frames_in(bytes: &[u8], run: &mut usize) -> usize {
+    let mut frames = 0;
+    for &b in bytes {
+        if b == 0 {
+            if *run > 0 {
+                frames += 1;
+            }
+            *run = 0;
+        } else {
+            *run += 1;
+        }
+    }
+    frames
+}
+
+/// The envelope of what the board may do: the union of the voltage limits of every settings
+/// it accepted, and the largest slew limit (volts per tick).
+struct Envelope {
+    min_voltage: f64,
+    max_voltage: f64,
+    slew_per_tick: f64,
+}
+
+impl Envelope {
+    fn widen(&mut self, s: &Settings, rate_hz: f64) {
+        self.min_voltage = self.min_voltage.min(s.drive.min_voltage);
+        self.max_voltage = self.max_voltage.max(s.drive.max_voltage);
+        self.slew_per_tick = self.slew_per_tick.max(s.drive.slew_rate / rate_hz);
+    }
+}
+
+proptest! {
+    // Deterministic work (simulated time), bounded so CI spends seconds here.
+    #![proptest_config(ProptestConfig { cases: 96, ..ProptestConfig::default() })]
+
+    #[test]
+    fn every_request_type_with_any_fields_keeps_the_board_answering_and_its_outputs_in_limits(
+        chunks in prop::collection::vec(
+            (any_chunk(seeds().len()), 0u32..400, prop::bool::weighted(0.05)), 1..40),
+    ) {
+        let seeds = seeds();
+        let mut dev = SimDevice::new(SimDeviceConfig::paper()).expect("device");
+        let hw = *dev.handler().hardware();
+        let rate_hz = hw.control_rate_hz;
+        let volts_per_code = hw.amplifier_full_scale / hw.dac_full_scale as f64;
+        let mut envelope = Envelope { min_voltage: f64::MAX, max_voltage: f64::MIN, slew_per_tick: 0.0 };
+        envelope.widen(dev.handler().settings(), rate_hz);
+        let tick = Duration::from_secs_f64(1.0 / rate_hz);
+        let (mut decoder, mut run) = (FrameDecoder::new(), 0usize);
+        let (mut sent, mut answered) = (0usize, 0usize);
+        let mut last: Option<(f64, f64)> = None;
+        let mut buf = [0u8; 4096];
+        // Runs `ticks` ticks, checking each; collects what the board sent.
+        let mut run_ticks = |dev: &mut SimDevice, ticks: u32, envelope: &mut Envelope,
+                             decoder: &mut FrameDecoder, answered: &mut usize,
+                             last: &mut Option<(f64, f64)>| -> Result<(), TestCaseError> {
+            for _ in 0..ticks {
+                dev.run_for(tick);
+                envelope.widen(dev.handler().settings(), rate_hz);
+                let Some(report) = dev.last_report() else { continue };
+                let v = (report.left.0 as f64 * volts_per_code, report.right.0 as f64 * volts_per_code);
+                let lsb = volts_per_code;
+                for x in [v.0, v.1] {
+                    prop_assert!(
+                        x >= envelope.min_voltage - lsb && x <= envelope.max_voltage + lsb,
+                        "{x} V outside every accepted range [{}, {}] at tick {}",
+                        envelope.min_voltage, envelope.max_voltage, dev.ticks()
+                    );
+                }
+                if let Some(p) = *last {
+                    let step = (v.0 - p.0).abs().max((v.1 - p.1).abs());
+                    prop_assert!(
+                        step <= envelope.slew_per_tick + 2.0 * lsb,
+                        "a {step} V step (slew limit {} V per tick) at tick {}",
+                        envelope.slew_per_tick, dev.ticks()
+                    );
+                }
+                *last = Some(v);
+                let n = dev.receive(&mut buf, Duration::ZERO).expect("the line reads");
+                for &b in &buf[..n] {
+                    if let Some(body) = decoder.push(b) {
+                        let body = body.map_err(|e| TestCaseError::fail(format!("the board sent a broken frame: {e:?}")))?;
+                        let response: Response = frame::decode_body(body)
+                            .map_err(|e| TestCaseError::fail(format!("a response does not decode: {e:?}")))?;
+                        if !matches!(response, Response::Telemetry(_)) {
+                            *answered += 1;
+                        }
+                    }
+                }
+            }
+            Ok(())
+        };
+        for (chunk, gap_ticks, long_run) in &chunks {
+            let bytes = bytes_of(chunk, &seeds);
+            sent += frames_in(&bytes, &mut run);
+            dev.send(&bytes).expect("the line takes bytes");
+            let ticks = if *long_run { 5_000 } else { *gap_ticks };
+            run_ticks(&mut dev, ticks, &mut envelope, &mut decoder, &mut answered, &mut last)?;
+        }
+        // A delimiter ends a cut frame left open; then the line drains and every frame has
+        // had its answer.
+        dev.send(&[0]).expect("the line takes bytes");
+        sent += frames_in(&[0], &mut run);
+        run_ticks(&mut dev, (rate_hz * 0.05) as u32, &mut envelope, &mut decoder, &mut answered, &mut last)?;
+        prop_assert_eq!(answered, sent, "responses for the frames sent");
+        // The queue's accounting, through the protocol as a host sees it.
+        let status = encoded(&Request::Status);
+        dev.send(&status).expect("the line takes bytes");
+        let mut report = None;
+        for _ in 0..(rate_hz * 0.01) as u32 {
+            dev.run_for(tick);
+            let n = dev.receive(&mut buf, Duration::ZERO).expect("the line reads");
+            for &b in &buf[..n] {
+                if let Some(Ok(body)) = decoder.push(b) {
+                    if let Ok(Response::Status(s)) = frame::decode_body(body) {
+                        report = Some(s);
+                    }
+                }
+            }
+        }
+        let s = report.expect("a status answer");
+        prop_assert_eq!(s.queue_fill as usize + s.credits as usize, SETPOINT_CAPACITY);
+    }
+}
