@@ -17,7 +17,8 @@ enum Command {
     /// The main job: the first paper's 750 Hz study on the simulated board and stage —
     /// identification tables, tracking with each compensator, PNG figures.
     Demo(cli::demo::Args),
-    /// Fit a P–I or Duhem model to a measured CSV and write a parameter file and a figure.
+    /// Fit a hysteresis model to a measured CSV (by default the best of the family on held-out
+    /// data: P–I, generalised P–I, Bouc–Wen, Duhem) and write a parameter file and a figure.
     Identify(cli::identify::Args),
     /// Calibrate the stage in one command: excite it with the board's waveform generator,
     /// record drive and sensor, identify the best model, write the parameter file and a PNG,

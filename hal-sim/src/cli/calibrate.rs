@@ -31,7 +31,7 @@ pub struct Args {
     /// Model to fit: `auto` (the default) ranks every model of the family and keeps the best;
     /// or one model by name.
     #[arg(long, default_value = "auto", value_parser = super::identify::parse_model,
-          value_name = "auto|pi|duhem|…")]
+          value_name = "auto|pi|gpi|bouc-wen|duhem")]
     pub model: super::identify::ModelChoice,
     /// Play operators of a P–I model (1 to 32).
     #[arg(long, default_value_t = 17)]

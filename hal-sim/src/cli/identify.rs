@@ -18,7 +18,7 @@ pub struct Args {
     /// Model to fit: `auto` (the default) fits every model on the first part of the fit
     /// window, ranks them on its last part and keeps the best; or one model by name.
     #[arg(long, default_value = "auto", value_parser = parse_model,
-          value_name = "auto|pi|duhem|…")]
+          value_name = "auto|pi|gpi|bouc-wen|duhem")]
     pub model: ModelChoice,
     /// Measured CSV (t,u,x).
     #[arg(long)]
