@@ -135,6 +135,28 @@ pub struct RasterScan {
     pub y_amplitude: f64,
 }
 
+impl RasterScan {
+    /// A square raster centred on the middle of the range: `lines` lines of `pixels` pixels
+    /// over ±`amplitude` (normalised) on both axes, `turn_ticks` per turnaround.
+    ///
+    /// ```
+    /// use twinstack::scan::RasterScan;
+    /// let r = RasterScan::centred(4, 16, 20, 0.5);
+    /// assert_eq!((r.offset, r.amplitude, r.y_offset, r.y_amplitude), (0.0, 0.5, 0.0, 0.5));
+    /// ```
+    pub const fn centred(lines: u16, pixels: u16, turn_ticks: u16, amplitude: f64) -> Self {
+        Self {
+            lines,
+            pixels,
+            turn_ticks,
+            offset: 0.0,
+            amplitude,
+            y_offset: 0.0,
+            y_amplitude: amplitude,
+        }
+    }
+}
+
 /// A Lissajous figure: x and y sines at `x_cycles` and `y_cycles` times `frame_hz`.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct LissajousScan {
@@ -927,8 +949,6 @@ fn stretch(events: u8, bit: u8, width: u16, left: &mut u16) -> u8 {
         0
     }
 }
-
-impl TriggerOutputs {}
 
 /// The external trigger input: one shot, armed for an edge, fired by it.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]

@@ -750,15 +750,7 @@ fn emulator_scan_pulses_the_gpio_outputs_at_the_pattern_s_ticks() {
     };
     let mut emu = Emulator::boot_with("scan", None, &["-d", "unimp", "-D", "{scratch}/unimp.log"]);
     let request = ScanRequest {
-        pattern: ScanPattern::Raster(RasterScan {
-            lines: 4,
-            pixels: 10,
-            turn_ticks: 20,
-            offset: 0.0,
-            amplitude: 0.5,
-            y_offset: 0.0,
-            y_amplitude: 0.5,
-        }),
+        pattern: ScanPattern::Raster(RasterScan::centred(4, 10, 20, 0.5)),
         ticks_per_pixel: 4,
         frames: 1,
         on_trigger: false,

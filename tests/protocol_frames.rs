@@ -493,15 +493,7 @@ fn the_book_s_example_frames_are_what_the_encoder_writes() {
     // input armed for a rising edge that also starts the stream.
     assert_eq!(
         frame_of(&Request::Scan(ScanRequest {
-            pattern: ScanPattern::Raster(RasterScan {
-                lines: 64,
-                pixels: 100,
-                turn_ticks: 40,
-                offset: 0.0,
-                amplitude: 0.5,
-                y_offset: 0.0,
-                y_amplitude: 0.5,
-            }),
+            pattern: ScanPattern::Raster(RasterScan::centred(64, 100, 40, 0.5)),
             ticks_per_pixel: 4,
             frames: 1,
             on_trigger: false,

@@ -107,15 +107,7 @@ fn seeds() -> Vec<Request> {
         }),
         Request::Learn(LearnRequest::PostTable),
         Request::Scan(ScanRequest {
-            pattern: ScanPattern::Raster(RasterScan {
-                lines: 4,
-                pixels: 16,
-                turn_ticks: 20,
-                offset: 0.0,
-                amplitude: 0.5,
-                y_offset: 0.0,
-                y_amplitude: 0.5,
-            }),
+            pattern: ScanPattern::Raster(RasterScan::centred(4, 16, 20, 0.5)),
             ticks_per_pixel: 4,
             frames: 1,
             on_trigger: false,
