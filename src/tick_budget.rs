@@ -41,9 +41,9 @@ pub const SYSCLK_HZ: u32 = 168_000_000;
 /// tick overruns even then; what a tick leaves of its period is for the link's DMA
 /// interrupts, the command handler and the coarse axis, which run below it. A configuration
 /// near the limit leaves them no *guaranteed* time: the P–I 16 configuration at 100 kHz,
-/// predicted at 99 % of the period, has its worst tick measured at 84 % at 0 wait states (the ART cache
-/// warm), and the command task lives on that difference. A user who needs guaranteed link
-/// time beside it runs at 50 kHz ([`available_cycles`] doubles).
+/// predicted at 99 % of the period, has its worst tick measured at 84 % at 0 wait states
+/// (the ART cache warm), and the command task lives on that difference. A user who needs
+/// guaranteed link time beside it runs at 50 kHz ([`available_cycles`] doubles).
 pub const TICK_SHARE_PERCENT: u32 = 100;
 
 /// Everything that does not grow with a model: RTIC's entry and exit, the stream, the trigger

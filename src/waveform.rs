@@ -73,8 +73,9 @@ static SINE_TABLE: [i32; QUARTER + 1] = {
     table
 };
 
-/// The unit sine (Q2.30, ±1) at `phase` (2^32 per cycle): [`SINE_TABLE`] interpolated
-/// linearly (22 fractional bits) by quadrant. O(1), no division, no panic path.
+/// The unit sine (Q2.30, ±1) at `phase` (2^32 per cycle): the quarter-wave sine table
+/// (computed at compile time) interpolated linearly (22 fractional bits) by quadrant. O(1),
+/// no division, no panic path.
 ///
 /// ```
 /// use twinstack::fixed_point::signal_to_f64 as f;
