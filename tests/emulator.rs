@@ -2,7 +2,8 @@
 //! protocol frames on USART1 (status, setpoint batches, stream control, a parameter load, the
 //! recorder; a corrupted frame NACKed), its control tick must run, it must boot in bypass on
 //! the compiled-in settings, read back what it was loaded with bit for bit, and the parameter
-//! record in flash must be honoured (or refused with defaults and a flag).
+//! record in flash must be honoured (or refused with defaults and a flag); a fuzzed session
+//! (mutated frames that pass the CRC, cut frames, junk) gets one response per frame.
 //!
 //! Builds the `emulator` image (`cargo build-emu`) into `target/firmware`, installing the
 //! Rust target and `qemu-system-arm` first if they are missing (see `tests/support`).
@@ -883,4 +884,178 @@ fn emulator_scan_pulses_the_gpio_outputs_at_the_pattern_s_ticks() {
     assert_eq!(pixels, want_pixels);
     // And the register sequence around it: outputs low before the scan.
     assert!(levels[..at].iter().rev().take(20).all(|&l| l == 0));
+}
+
+/// A frame around `message` (postcard bytes, tag first) with a correct CRC, so that a
+/// mutated message reaches the firmware's decoder rather than stopping at the CRC.
+fn framed(message: &[u8]) -> Vec<u8> {
+    let mut body = vec![frame::PROTOCOL_VERSION];
+    body.extend_from_slice(&message[..message.len().min(frame::MAX_BODY - 5)]);
+    body.extend_from_slice(&frame::FRAME_CRC.checksum(&body).to_le_bytes());
+    let mut out = vec![0u8; MAX_ENCODED + 1];
+    let n = twinstack::protocol::cobs::encode(&body, &mut out).expect("fits a frame");
+    out.truncate(n);
+    out.push(0);
+    out
+}
+
+/// The firmware itself under a protocol fuzzer, as a stop-and-wait host would meet it: 400
+/// chunks (valid frames of most request types, the same with their encoded fields mutated
+/// and the CRC made to match, frames cut short, junk), each answered before the next goes.
+/// Every frame gets exactly one response (telemetry frames aside), and afterwards the board
+/// still answers and its tick still runs. Deterministic (a fixed xorshift sequence).
+#[test]
+fn the_firmware_answers_every_frame_of_a_fuzzed_session_and_keeps_ticking() {
+    let mut emu = Emulator::boot("fuzz", None);
+    let seeds = [
+        Request::Status,
+        Request::Setpoints(SetpointBatch {
+            seq: 0,
+            samples: twinstack::heapless::Vec::from_slice(&[0, 9000, -9000, 100]).unwrap(),
+        }),
+        Request::Stream(StreamControl::Start),
+        Request::Stream(StreamControl::Stop),
+        Request::Stream(StreamControl::Rate { divider: 5 }),
+        Request::Mode(Mode::OpenLoop),
+        Request::Mode(Mode::Bypass),
+        Request::LoadParams(awkward_settings()),
+        Request::StoreParams {
+            boot_mode: Mode::Bypass,
+        },
+        Request::Waveform(Waveform {
+            shape: WaveShape::Sine,
+            offset: 0,
+            amplitude: 9000,
+            frequency_mhz: 100_000,
+            decay: None,
+        }),
+        Request::Record(RecordRequest {
+            signal: twinstack::recorder::Signal::Drive,
+            count: 100,
+            decimation: 1,
+        }),
+        Request::ReadRecord { offset: 0 },
+        Request::ReadParams,
+        Request::Capture(CaptureRequest {
+            signals: 0x7f,
+            samples: 50,
+            pre_trigger: 0,
+            trigger: twinstack::recorder::Trigger::Now,
+            decimation: 1,
+        }),
+        Request::CaptureStatus,
+        Request::ReadCapture {
+            offset: 0,
+            count: 64,
+        },
+        Request::Telemetry(TelemetryRequest::Start {
+            signals: 0b1,
+            decimation: 500,
+        }),
+        Request::Telemetry(TelemetryRequest::Stop),
+        Request::Learn(LearnRequest::Status),
+        Request::CoarseStatus,
+    ];
+    let mut state = 0x9e37_79b9_7f4a_7c15u64;
+    let mut next = move || {
+        state ^= state << 13;
+        state ^= state >> 7;
+        state ^= state << 17;
+        state
+    };
+    let (mut run, mut sent, mut answered, mut telemetry) = (0usize, 0usize, 0usize, 0usize);
+    let frames_in = |bytes: &[u8], run: &mut usize| {
+        let mut frames = 0;
+        for &b in bytes {
+            if b == 0 {
+                frames += usize::from(*run > 0);
+                *run = 0;
+            } else {
+                *run += 1;
+            }
+        }
+        frames
+    };
+    for _ in 0..400 {
+        let seed = encoded(&seeds[next() as usize % seeds.len()]);
+        let bytes = match next() % 8 {
+            0 | 1 => seed,
+            2..=5 => {
+                // The message inside the frame: un-stuffed, less the version and the CRC.
+                let mut d = FrameDecoder::new();
+                let mut message = Vec::new();
+                for &b in &seed {
+                    if let Some(Ok(body)) = d.push(b) {
+                        message = body[1..body.len() - 4].to_vec();
+                    }
+                }
+                for _ in 0..1 + next() % 3 {
+                    let at = next() as usize % message.len().max(1);
+                    let value = [0u8, 1, 0x7f, 0x80, 0xff, next() as u8][next() as usize % 6];
+                    match next() % 4 {
+                        0 if message.len() > 1 => {
+                            message.remove(at);
+                        }
+                        1 => message.insert(at, value),
+                        _ if !message.is_empty() => message[at] = value,
+                        _ => {}
+                    }
+                }
+                framed(&message)
+            }
+            6 => {
+                let mut cut = seed;
+                cut.truncate(next() as usize % cut.len());
+                cut
+            }
+            _ => (0..next() % 40).map(|_| next() as u8).collect(),
+        };
+        let frames = frames_in(&bytes, &mut run);
+        sent += frames;
+        emu.uart.write_all(&bytes).expect("write to USART1");
+        let mut due = frames;
+        while due > 0 {
+            match emu.response() {
+                Response::Telemetry(_) => telemetry += 1,
+                _ => {
+                    answered += 1;
+                    due -= 1;
+                }
+            }
+        }
+    }
+    assert_eq!(answered, sent, "one response per frame");
+    assert!(sent > 250, "the session sent {sent} frames");
+    // A delimiter closes a frame left open; then the board still answers and ticks.
+    emu.uart.write_all(&[0]).expect("write to USART1");
+    let (first, _) = answer_amid_telemetry(&mut emu, &Request::Telemetry(TelemetryRequest::Stop));
+    let first = if run > 0 {
+        answer_after_nack(&mut emu, first)
+    } else {
+        first
+    };
+    assert!(matches!(first, Response::Ack { .. }), "{first:?}");
+    let ticks = |emu: &mut Emulator| loop {
+        if let (Response::Status(s), _) = answer_amid_telemetry(emu, &Request::Status) {
+            break s.ticks;
+        }
+    };
+    let before = ticks(&mut emu);
+    std::thread::sleep(Duration::from_millis(50));
+    assert!(
+        ticks(&mut emu) > before,
+        "the tick runs ({telemetry} telemetry frames seen)"
+    );
+}
+
+/// The response after `nack` (the NACK of a frame the fuzz left open, closed by the
+/// delimiter sent after it).
+fn answer_after_nack(emu: &mut Emulator, nack: Response) -> Response {
+    assert!(matches!(nack, Response::Nack { .. }), "{nack:?}");
+    loop {
+        match emu.response() {
+            Response::Telemetry(_) => {}
+            other => return other,
+        }
+    }
 }
