@@ -127,7 +127,7 @@ pub mod scenarios {
     }
 
     /// Every scenario, in the order they run.
-    pub const ALL: [Scenario; 8] = [
+    pub const ALL: [Scenario; 9] = [
         Scenario {
             name: "triangle",
             setpoint: triangle,
@@ -175,6 +175,14 @@ pub mod scenarios {
             setpoint: triangle,
             lifecycle: false,
             learning: false,
+            scan: true,
+        },
+        // The learning's use case: a periodic scan with the learned feedforward on.
+        Scenario {
+            name: "scan-raster-learning",
+            setpoint: triangle,
+            lifecycle: false,
+            learning: true,
             scan: true,
         },
         Scenario {
@@ -527,6 +535,9 @@ mod app {
                             break;
                         }
                         cortex_m::asm::wfi();
+                        if scenario.learning {
+                            let _ = handler.service_learning(&mut lock);
+                        }
                         while packer.due(samples) {
                             if packer.pack(samples, frame).is_none() {
                                 break;
@@ -534,6 +545,12 @@ mod app {
                         }
                     }
                     expect_ack(ask!(Request::Stream(StreamControl::Stop)), "stop");
+                    if scenario.learning {
+                        expect_ack(
+                            ask!(Request::Learn(LearnRequest::State(LearnState::Off))),
+                            "learn off",
+                        );
+                    }
                     continue;
                 }
                 loop {
