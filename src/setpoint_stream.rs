@@ -186,8 +186,7 @@ impl SetpointStream {
                     // round toward zero, so |step| ≤ |span| / D: D − 1 steps never pass the
                     // target, and the last tick lands on it exactly.
                     let magnitude = ((span.unsigned_abs() * self.reciprocal) >> 32) as i32;
-                    let step = if span < 0 { -magnitude } else { magnitude };
-                    self.increment = step;
+                    self.increment = if span < 0 { -magnitude } else { magnitude };
                 }
                 None => return self.underrun(),
             }

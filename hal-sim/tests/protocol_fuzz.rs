@@ -19,12 +19,12 @@ use proptest::prelude::*;
 use twinstack::control_loop::SETPOINT_CAPACITY;
 use twinstack::learning::{LearnSettings, LearnState};
 use twinstack::protocol::decoder::FrameDecoder;
-use twinstack::protocol::frame::{self, FRAME_CRC, MAX_BODY, MAX_ENCODED, PROTOCOL_VERSION};
+use twinstack::protocol::frame::{self, MAX_ENCODED};
 use twinstack::protocol::messages::*;
 use twinstack::recorder::{Signal, Trigger};
 use twinstack::scan::{RasterScan, ScanPattern, ScanRequest, TriggerConfig, TriggerEdge};
 use twinstack::setpoint_stream::UnderrunPolicy;
-use twinstack::settings::{Mode, Settings};
+use twinstack::settings::Mode;
 
 /// One valid request of every type (and of every variant of the nested requests), the
 /// seeds the mutations start from.
@@ -122,13 +122,9 @@ fn seeds() -> Vec<Request> {
 
 /// A frame around `message` (postcard bytes, tag first) with a correct CRC.
 fn framed(message: &[u8]) -> Vec<u8> {
-    let mut body = vec![PROTOCOL_VERSION];
-    body.extend_from_slice(&message[..message.len().min(MAX_BODY - 5)]);
-    body.extend_from_slice(&FRAME_CRC.checksum(&body).to_le_bytes());
     let mut out = vec![0u8; MAX_ENCODED + 1];
-    let n = twinstack::protocol::cobs::encode(&body, &mut out).expect("a body fits a frame");
+    let n = frame::encode_message_bytes(message, &mut out).expect("a message fits a frame");
     out.truncate(n);
-    out.push(0);
     out
 }
 
@@ -139,17 +135,18 @@ fn encoded(r: &Request) -> Vec<u8> {
     out
 }
 
-/// The message bytes (tag first) inside a frame: un-stuffed, less the version and the CRC.
-fn message_of(frame: &[u8]) -> Vec<u8> {
+/// The message bytes (tag first) inside a seed's frame.
+fn message_of(seed: &[u8]) -> Vec<u8> {
     let mut d = FrameDecoder::new();
-    let mut message = Vec::new();
-    for &b in frame {
+    for &b in seed {
         if let Some(body) = d.push(b) {
             let body = body.expect("a seed's frame is sound");
-            message = body[1..body.len() - 4].to_vec();
+            return frame::message_bytes(body)
+                .expect("a seed's frame checks")
+                .to_vec();
         }
     }
-    message
+    panic!("a seed is one frame")
 }
 
 /// One change to a message's bytes.
@@ -255,19 +252,106 @@ fn frames_in(bytes: &[u8], run: &mut usize) -> usize {
     frames
 }
 
-/// The envelope of what the board may do: the union of the voltage limits of every settings
-/// it accepted, and the largest slew limit (volts per tick).
-struct Envelope {
+/// The board under test and what the test has seen of it: the envelope of what it may do
+/// (the union of the voltage limits of every settings it accepted, the largest slew limit in
+/// volts per tick), its last outputs, and the responses it sent.
+struct Watch {
+    dev: SimDevice,
+    rate_hz: f64,
+    volts_per_code: f64,
     min_voltage: f64,
     max_voltage: f64,
     slew_per_tick: f64,
+    last: Option<(f64, f64)>,
+    decoder: FrameDecoder,
+    /// Responses other than telemetry frames.
+    answered: usize,
+    /// The last status report among them.
+    status: Option<StatusReport>,
 }
 
-impl Envelope {
-    fn widen(&mut self, s: &Settings, rate_hz: f64) {
-        self.min_voltage = self.min_voltage.min(s.drive.min_voltage);
-        self.max_voltage = self.max_voltage.max(s.drive.max_voltage);
-        self.slew_per_tick = self.slew_per_tick.max(s.drive.slew_rate / rate_hz);
+impl Watch {
+    fn new() -> Self {
+        let dev = SimDevice::new(SimDeviceConfig::paper()).expect("device");
+        let hw = *dev.handler().hardware();
+        let mut w = Self {
+            dev,
+            rate_hz: hw.control_rate_hz,
+            volts_per_code: hw.amplifier_full_scale / hw.dac_full_scale as f64,
+            min_voltage: f64::MAX,
+            max_voltage: f64::MIN,
+            slew_per_tick: 0.0,
+            last: None,
+            decoder: FrameDecoder::new(),
+            answered: 0,
+            status: None,
+        };
+        w.widen();
+        w
+    }
+
+    /// Takes the settings in force into the envelope.
+    fn widen(&mut self) {
+        let d = &self.dev.handler().settings().drive;
+        self.min_voltage = self.min_voltage.min(d.min_voltage);
+        self.max_voltage = self.max_voltage.max(d.max_voltage);
+        self.slew_per_tick = self.slew_per_tick.max(d.slew_rate / self.rate_hz);
+    }
+
+    /// Runs `ticks` ticks, checking each tick's outputs and collecting what the board sent.
+    fn ticks(&mut self, ticks: u32) -> Result<(), TestCaseError> {
+        let tick = Duration::from_secs_f64(1.0 / self.rate_hz);
+        let lsb = self.volts_per_code;
+        let mut buf = [0u8; 4096];
+        for _ in 0..ticks {
+            self.dev.run_for(tick);
+            self.widen();
+            let Some(report) = self.dev.last_report() else {
+                continue;
+            };
+            let v = (report.left.0 as f64 * lsb, report.right.0 as f64 * lsb);
+            for x in [v.0, v.1] {
+                prop_assert!(
+                    x >= self.min_voltage - lsb && x <= self.max_voltage + lsb,
+                    "{x} V outside every accepted range [{}, {}] at tick {}",
+                    self.min_voltage,
+                    self.max_voltage,
+                    self.dev.ticks()
+                );
+            }
+            if let Some(p) = self.last {
+                let step = (v.0 - p.0).abs().max((v.1 - p.1).abs());
+                prop_assert!(
+                    step <= self.slew_per_tick + 2.0 * lsb,
+                    "a {step} V step (slew limit {} V per tick) at tick {}",
+                    self.slew_per_tick,
+                    self.dev.ticks()
+                );
+            }
+            self.last = Some(v);
+            let n = self
+                .dev
+                .receive(&mut buf, Duration::ZERO)
+                .expect("the line reads");
+            for &b in &buf[..n] {
+                let Some(body) = self.decoder.push(b) else {
+                    continue;
+                };
+                let body =
+                    body.map_err(|e| TestCaseError::fail(format!("a broken frame: {e:?}")))?;
+                match frame::decode_body(body) {
+                    Ok(Response::Telemetry(_)) => {}
+                    Ok(response) => {
+                        self.answered += 1;
+                        if let Response::Status(s) = response {
+                            self.status = Some(s);
+                        }
+                    }
+                    Err(e) => return Err(TestCaseError::fail(format!("undecodable: {e:?}"))),
+                }
+            }
+        }
+        Ok(())
     }
 }
 
@@ -281,86 +365,24 @@ proptest! {
             (any_chunk(seeds().len()), 0u32..400, prop::bool::weighted(0.05)), 1..40),
     ) {
         let seeds = seeds();
-        let mut dev = SimDevice::new(SimDeviceConfig::paper()).expect("device");
-        let hw = *dev.handler().hardware();
-        let rate_hz = hw.control_rate_hz;
-        let volts_per_code = hw.amplifier_full_scale / hw.dac_full_scale as f64;
-        let mut envelope = Envelope { min_voltage: f64::MAX, max_voltage: f64::MIN, slew_per_tick: 0.0 };
-        envelope.widen(dev.handler().settings(), rate_hz);
-        let tick = Duration::from_secs_f64(1.0 / rate_hz);
-        let (mut decoder, mut run) = (FrameDecoder::new(), 0usize);
-        let (mut sent, mut answered) = (0usize, 0usize);
-        let mut last: Option<(f64, f64)> = None;
-        let mut buf = [0u8; 4096];
-        // Runs `ticks` ticks, checking each; collects what the board sent.
-        let mut run_ticks = |dev: &mut SimDevice, ticks: u32, envelope: &mut Envelope,
-                             decoder: &mut FrameDecoder, answered: &mut usize,
-                             last: &mut Option<(f64, f64)>| -> Result<(), TestCaseError> {
-            for _ in 0..ticks {
-                dev.run_for(tick);
-                envelope.widen(dev.handler().settings(), rate_hz);
-                let Some(report) = dev.last_report() else { continue };
-                let v = (report.left.0 as f64 * volts_per_code, report.right.0 as f64 * volts_per_code);
-                let lsb = volts_per_code;
-                for x in [v.0, v.1] {
-                    prop_assert!(
-                        x >= envelope.min_voltage - lsb && x <= envelope.max_voltage + lsb,
-                        "{x} V outside every accepted range [{}, {}] at tick {}",
-                        envelope.min_voltage, envelope.max_voltage, dev.ticks()
-                    );
-                }
-                if let Some(p) = *last {
-                    let step = (v.0 - p.0).abs().max((v.1 - p.1).abs());
-                    prop_assert!(
-                        step <= envelope.slew_per_tick + 2.0 * lsb,
-                        "a {step} V step (slew limit {} V per tick) at tick {}",
-                        envelope.slew_per_tick, dev.ticks()
-                    );
-                }
-                *last = Some(v);
-                let n = dev.receive(&mut buf, Duration::ZERO).expect("the line reads");
-                for &b in &buf[..n] {
-                    if let Some(body) = decoder.push(b) {
-                        let body = body.map_err(|e| TestCaseError::fail(format!("the board sent a broken frame: {e:?}")))?;
-                        let response: Response = frame::decode_body(body)
-                            .map_err(|e| TestCaseError::fail(format!("a response does not decode: {e:?}")))?;
-                        if !matches!(response, Response::Telemetry(_)) {
-                            *answered += 1;
-                        }
-                    }
-                }
-            }
-            Ok(())
-        };
+        let mut w = Watch::new();
+        let (mut run, mut sent) = (0usize, 0usize);
         for (chunk, gap_ticks, long_run) in &chunks {
             let bytes = bytes_of(chunk, &seeds);
             sent += frames_in(&bytes, &mut run);
-            dev.send(&bytes).expect("the line takes bytes");
-            let ticks = if *long_run { 5_000 } else { *gap_ticks };
-            run_ticks(&mut dev, ticks, &mut envelope, &mut decoder, &mut answered, &mut last)?;
+            w.dev.send(&bytes).expect("the line takes bytes");
+            w.ticks(if *long_run { 5_000 } else { *gap_ticks })?;
         }
         // A delimiter ends a cut frame left open; then the line drains and every frame has
         // had its answer.
-        dev.send(&[0]).expect("the line takes bytes");
         sent += frames_in(&[0], &mut run);
-        run_ticks(&mut dev, (rate_hz * 0.05) as u32, &mut envelope, &mut decoder, &mut answered, &mut last)?;
-        prop_assert_eq!(answered, sent, "responses for the frames sent");
+        w.dev.send(&[0]).expect("the line takes bytes");
+        w.ticks((w.rate_hz * 0.05) as u32)?;
+        prop_assert_eq!(w.answered, sent, "responses for the frames sent");
         // The queue's accounting, through the protocol as a host sees it.
-        let status = encoded(&Request::Status);
-        dev.send(&status).expect("the line takes bytes");
-        let mut report = None;
-        for _ in 0..(rate_hz * 0.01) as u32 {
-            dev.run_for(tick);
-            let n = dev.receive(&mut buf, Duration::ZERO).expect("the line reads");
-            for &b in &buf[..n] {
-                if let Some(Ok(body)) = decoder.push(b) {
-                    if let Ok(Response::Status(s)) = frame::decode_body(body) {
-                        report = Some(s);
-                    }
-                }
-            }
-        }
-        let s = report.expect("a status answer");
+        w.dev.send(&encoded(&Request::Status)).expect("the line takes bytes");
+        w.ticks((w.rate_hz * 0.01) as u32)?;
+        let s = w.status.expect("a status answer");
         prop_assert_eq!(s.queue_fill as usize + s.credits as usize, SETPOINT_CAPACITY);
     }
 }

@@ -71,10 +71,35 @@ pub enum FrameError {
 /// Encodes `message` as a complete frame, delimiter included, into `out`; returns its length.
 pub fn encode<T: Serialize>(message: &T, out: &mut [u8]) -> Result<usize, FrameError> {
     let mut body = [0u8; MAX_BODY];
-    body[0] = PROTOCOL_VERSION;
     let used = postcard::to_slice(message, &mut body[1..MAX_BODY - 4])
         .map_err(|_| FrameError::TooLarge)?
         .len();
+    seal(&mut body, used, out)
+}
+
+/// Frames message bytes as they are (a tag, then its fields, postcard-encoded: nothing checks
+/// that they decode) into `out`, delimiter included; returns its length. What a test that
+/// mutates a message's fields sends, so that the frame passes the CRC and reaches the decoder.
+///
+/// ```
+/// use twinstack::protocol::frame::{encode_message_bytes, MAX_ENCODED};
+/// let mut out = [0u8; MAX_ENCODED + 1];
+/// let n = encode_message_bytes(&[0], &mut out).unwrap(); // tag 0: Status
+/// assert_eq!(out[n - 1], 0);
+/// ```
+pub fn encode_message_bytes(message: &[u8], out: &mut [u8]) -> Result<usize, FrameError> {
+    let mut body = [0u8; MAX_BODY];
+    let room = body.get_mut(1..MAX_BODY - 4).ok_or(FrameError::TooLarge)?;
+    room.get_mut(..message.len())
+        .ok_or(FrameError::TooLarge)?
+        .copy_from_slice(message);
+    seal(&mut body, message.len(), out)
+}
+
+/// Puts the version before the `used` message bytes at `body[1..]`, the CRC after them, and
+/// COBS-stuffs the whole into `out` with its delimiter; returns the frame's length.
+fn seal(body: &mut [u8; MAX_BODY], used: usize, out: &mut [u8]) -> Result<usize, FrameError> {
+    body[0] = PROTOCOL_VERSION;
     let end = 1 + used;
     let crc = FRAME_CRC.checksum(&body[..end]);
     body[end..end + 4].copy_from_slice(&crc.to_le_bytes());
@@ -89,8 +114,9 @@ pub trait Message {
     const VARIANTS: u32;
 }
 
-/// Checks a decoded (un-stuffed) body and decodes its message.
-pub fn decode_body<'a, T: Deserialize<'a> + Message>(body: &'a [u8]) -> Result<T, FrameError> {
+/// Checks a decoded (un-stuffed) body's length, CRC and version, and returns its message
+/// bytes (the tag, then the fields), undecoded.
+pub fn message_bytes(body: &[u8]) -> Result<&[u8], FrameError> {
     if body.len() < 5 {
         return Err(FrameError::Truncated);
     }
@@ -102,7 +128,12 @@ pub fn decode_body<'a, T: Deserialize<'a> + Message>(body: &'a [u8]) -> Result<T
     if payload[0] != PROTOCOL_VERSION {
         return Err(FrameError::BadVersion { got: payload[0] });
     }
-    let message = payload.get(1..).unwrap_or(&[]);
+    Ok(payload.get(1..).unwrap_or(&[]))
+}
+
+/// Checks a decoded (un-stuffed) body and decodes its message.
+pub fn decode_body<'a, T: Deserialize<'a> + Message>(body: &'a [u8]) -> Result<T, FrameError> {
+    let message = message_bytes(body)?;
     // The tag is the message's first varint: one byte below 0x80, more bytes above.
     match message.first() {
         None => return Err(FrameError::Truncated),
