@@ -5,9 +5,11 @@
 //! # Patterns
 //!
 //! Every pattern drives **x** (this board's axis: the setpoint of the tick, Q2.30 normalised
-//! displacement) and computes **y** (the second axis, Q2.30: not driven here — the board has
-//! one differential pair — but reported in [`ScanSample::y`], and for the raster stepped once
-//! per line, the line clock being its step signal).
+//! displacement) and defines **y** (the second axis, Q2.30: not driven here — the board has
+//! one differential pair — and for the raster stepped once per line, the line clock being its
+//! step signal). Since nothing on the board uses y, the tick does not compute it: it keeps
+//! what the sample's y is made from (the phase, for the Lissajous figure and the spiral, whose
+//! y costs a table sine and a multiply), and [`ScanGenerator::y`] computes it for the host.
 //!
 //! * **Raster**: `lines` lines per frame, each a trace of `pixels × ticks_per_pixel` ticks at
 //!   constant speed from `offset − amplitude` to `offset + amplitude` (or back: the raster is
@@ -241,15 +243,27 @@ pub struct TriggerConfig {
     pub start_stream: bool,
 }
 
-/// One tick of a scan.
+/// One tick of a scan. The second axis is not in it: the board does not drive y, so the tick
+/// does not compute it; [`ScanGenerator::y`] does, on demand, for the host.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct ScanSample {
     /// Fast axis, this board's setpoint, Q2.30 normalised displacement.
     pub x: i32,
-    /// Second axis, Q2.30 normalised (reported, not driven).
-    pub y: i32,
     /// [`PIXEL`], [`LINE`], [`FRAME`]: what starts on this tick.
     pub events: u8,
+}
+
+/// What the last sample's y is made from: the phase the sample was taken at for the two
+/// patterns whose y is a sine (one table sine and a multiply each, left out of the tick), y
+/// itself otherwise.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum LastY {
+    /// y itself, Q2.30 (the approach, the raster).
+    Held(i32),
+    /// The Lissajous figure's frame phase.
+    Lissajous(u32),
+    /// The spiral's angle and envelope phase.
+    Spiral(u32, u32),
 }
 
 /// Where the generator is.
@@ -350,8 +364,8 @@ pub struct ScanGenerator {
     phase: Phase,
     /// x now, Q2.30.
     x: i32,
-    /// y now, Q2.30.
-    y: i32,
+    /// The last sample's y, as the tick leaves it ([`ScanGenerator::y`] computes it).
+    last_y: LastY,
     /// The pattern's first point (x), Q2.30.
     start_x: i32,
     /// The pattern's first y, Q2.30.
@@ -464,7 +478,7 @@ impl ScanGenerator {
                     x0: x0.wrapping_mul(l.x_cycles as u32),
                     y0: x0.wrapping_mul(l.y_cycles as u32).wrapping_add(phase),
                 };
-                let (sx, sy) = m.at();
+                let (sx, sy) = (m.x_at(), m.y_at(0));
                 let line = rate_hz / (l.frame_hz * l.x_cycles as f64);
                 (Motion::Lissajous(m), sx, sy, line)
             }
@@ -517,7 +531,7 @@ impl ScanGenerator {
             motion,
             phase: Phase::Done,
             x: start_x,
-            y: start_y,
+            last_y: LastY::Held(start_y),
             start_x,
             start_y,
             approach_step: (max_step / 4).max(1),
@@ -616,8 +630,21 @@ impl ScanGenerator {
     /// first point, then the pattern runs. Restarts a generator already run. O(1).
     pub fn start(&mut self, from: i32) {
         self.x = from;
-        self.y = self.start_y;
+        self.last_y = LastY::Held(self.start_y);
         self.phase = Phase::Approach;
+    }
+
+    /// The second axis at the last sample (the pattern's first y before any), Q2.30. The
+    /// board does not drive y, so the tick keeps only what it is made from and this computes
+    /// it: the host's replay ([`ScanSample`] has no y) and the tests call it.
+    pub fn y(&self) -> i32 {
+        match (self.last_y, &self.motion) {
+            (LastY::Lissajous(r), Motion::Lissajous(m)) => m.y_at(r),
+            (LastY::Spiral(theta, e), Motion::Spiral(m)) => m.y_at(theta, e),
+            (LastY::Held(y), _) => y,
+            // A phase of another pattern cannot be stored: the motion never changes.
+            _ => self.start_y,
+        }
     }
 
     /// Whether the last frame is done (the generator holds its end point).
@@ -648,7 +675,6 @@ impl ScanGenerator {
         match self.phase {
             Phase::Done => ScanSample {
                 x: self.x,
-                y: self.y,
                 events: 0,
             },
             Phase::Approach => {
@@ -662,7 +688,6 @@ impl ScanGenerator {
                 }
                 ScanSample {
                     x: self.x,
-                    y: self.y,
                     events: 0,
                 }
             }
@@ -673,9 +698,13 @@ impl ScanGenerator {
     #[inline(always)]
     fn pattern(&mut self) -> ScanSample {
         let (x, y, mut events, trace_start, in_trace, done) = match &mut self.motion {
-            Motion::Raster(m) => m.next(&mut self.frames_left, self.endless),
+            Motion::Raster(m) => {
+                let (x, y, events, trace_start, in_trace, done) =
+                    m.next(&mut self.frames_left, self.endless);
+                (x, LastY::Held(y), events, trace_start, in_trace, done)
+            }
             Motion::Lissajous(m) => {
-                let (x, y) = m.at();
+                let (x, y) = (m.x_at(), LastY::Lissajous(m.r));
                 let events = self.pending;
                 let (r, wrapped) = m.r.overflowing_add(m.step);
                 let line = m.x_cycles.wrapping_mul(r) < m.x_cycles.wrapping_mul(m.r);
@@ -693,7 +722,7 @@ impl ScanGenerator {
                 (x, y, events, false, true, done)
             }
             Motion::Spiral(m) => {
-                let (x, y) = m.at();
+                let (x, y) = (m.x_at(), LastY::Spiral(m.theta, m.e));
                 let events = self.pending;
                 let (theta, line) = m.theta.overflowing_add(m.step);
                 m.theta = theta;
@@ -738,8 +767,8 @@ impl ScanGenerator {
             self.phase = Phase::Done;
         }
         self.x = x;
-        self.y = y;
-        ScanSample { x, y, events }
+        self.last_y = y;
+        ScanSample { x, events }
     }
 }
 
@@ -855,32 +884,48 @@ impl Raster {
 }
 
 impl Lissajous {
-    /// (x, y) at the frame phase `r`.
+    /// x at the frame phase `r` (the tick's).
     #[inline(always)]
-    fn at(&self) -> (i32, i32) {
+    fn x_at(&self) -> i32 {
         let px = self.x0.wrapping_add(self.x_cycles.wrapping_mul(self.r));
-        let py = self.y0.wrapping_add(self.y_cycles.wrapping_mul(self.r));
-        let x = self.offset as i64 + ((self.amplitude as i64 * unit_sine(px) as i64) >> 30);
-        let y = self.y_offset as i64 + ((self.y_amplitude as i64 * unit_sine(py) as i64) >> 30);
-        (saturate_i64(x), saturate_i64(y))
+        saturate_i64(self.offset as i64 + ((self.amplitude as i64 * unit_sine(px) as i64) >> 30))
+    }
+
+    /// y at the frame phase `r` (off the tick: [`ScanGenerator::y`]).
+    fn y_at(&self, r: u32) -> i32 {
+        let py = self.y0.wrapping_add(self.y_cycles.wrapping_mul(r));
+        saturate_i64(
+            self.y_offset as i64 + ((self.y_amplitude as i64 * unit_sine(py) as i64) >> 30),
+        )
     }
 }
 
 impl Spiral {
-    /// (x, y) at the angle θ and envelope phase `e`.
+    /// The radius at the envelope phase `e`, Q2.30: a triangle envelope, Q0.31 (e / 2^31
+    /// rising, (2^32 − e) / 2^31 falling), times the amplitude.
     #[inline(always)]
-    fn at(&self) -> (i32, i32) {
-        // Triangle envelope, Q0.31: e / 2^31 rising, (2^32 − e) / 2^31 falling.
-        let tri = if self.e < 1 << 31 {
-            self.e as i64
+    fn radius(&self, e: u32) -> i64 {
+        let tri = if e < 1 << 31 {
+            e as i64
         } else {
-            (0u32.wrapping_sub(self.e)) as i64
+            (0u32.wrapping_sub(e)) as i64
         };
-        let r = (self.amplitude as i64 * tri) >> 31;
-        let x = self.offset as i64 + ((r * unit_sine(self.theta) as i64) >> 30);
-        let y =
-            self.y_offset as i64 + ((r * unit_sine(self.theta.wrapping_add(1 << 30)) as i64) >> 30);
-        (saturate_i64(x), saturate_i64(y))
+        (self.amplitude as i64 * tri) >> 31
+    }
+
+    /// x at the angle θ and envelope phase `e` (the tick's).
+    #[inline(always)]
+    fn x_at(&self) -> i32 {
+        let r = self.radius(self.e);
+        saturate_i64(self.offset as i64 + ((r * unit_sine(self.theta) as i64) >> 30))
+    }
+
+    /// y at the angle `theta` and envelope phase `e` (off the tick: [`ScanGenerator::y`]).
+    fn y_at(&self, theta: u32, e: u32) -> i32 {
+        let r = self.radius(e);
+        saturate_i64(
+            self.y_offset as i64 + ((r * unit_sine(theta.wrapping_add(1 << 30)) as i64) >> 30),
+        )
     }
 }
 
@@ -1044,15 +1089,28 @@ mod tests {
         }
     }
 
+    /// A sample with its y ([`ScanGenerator::y`] right after it).
+    #[derive(Clone, Copy, Debug)]
+    struct Sampled {
+        x: i32,
+        y: i32,
+        events: u8,
+    }
+
     /// Runs to the end of the approach; returns the pattern's samples until done (or `most`).
-    fn pattern_samples(g: &mut ScanGenerator, from: i32, most: usize) -> Vec<ScanSample> {
+    fn pattern_samples(g: &mut ScanGenerator, from: i32, most: usize) -> Vec<Sampled> {
         g.start(from);
         while !g.is_scanning() {
             g.next_sample();
         }
         let mut out = Vec::new();
         while !g.is_done() && out.len() < most {
-            out.push(g.next_sample());
+            let ScanSample { x, events } = g.next_sample();
+            out.push(Sampled {
+                x,
+                y: g.y(),
+                events,
+            });
         }
         out
     }

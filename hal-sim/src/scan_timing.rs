@@ -346,7 +346,7 @@ pub fn analyse(
     for j in 0.. {
         let s = g.next_sample();
         let level = outputs.tick(s.events);
-        host.push((s.x, s.y, level));
+        host.push((s.x, g.y(), level));
         if found.is_none() && s.events & FRAME != 0 {
             found = Some(j);
         }
