@@ -42,7 +42,10 @@ use std::process::{Command, Stdio};
 /// (926 measured, session 10; a check-and-correct after rounding to nearest measured 943).
 /// 975: the scan with the learning feedforward on, the learning's use case, measured as a
 /// scenario of its own (963 measured, session 10; each alone 923 and 926).
-const WORST_INSTRUCTIONS: u64 = 975;
+/// 1 010: the Lissajous figure and the spiral measured too, the spiral with the learning on
+/// the dearest (996 measured, session 11; the raster's 974), its y no longer computed on the
+/// tick.
+const WORST_INSTRUCTIONS: u64 = 1010;
 /// The longest critical section outside the tick (a lock on its resource, or interrupts
 /// off), instructions: how late a tick can start. 8 083 when the command handler copied a
 /// capture chunk of 256 slots in one lock (93 µs at 5 WS); 276 measured with the copy in
@@ -64,8 +67,9 @@ const FAMILY_CONFIG: &str = "inverse-gpi16+creep4+gpi16-observer+pi+drift";
 /// (1 485 measured). 1 460 with the tick's signals computed once (1 442 measured, session 9);
 /// 1 420 with the learning's tables last in the loop (1 407 measured; the same with the
 /// stream's step rounded toward zero, session 10). 1 465 with the scan and the learning on
-/// together measured (1 447, session 10).
-const FAMILY_WORST_INSTRUCTIONS: u64 = 1465;
+/// together measured (1 447, session 10). 1 495 with the spiral and the learning, the dearest
+/// pattern (1 480 measured, session 11).
+const FAMILY_WORST_INSTRUCTIONS: u64 = 1495;
 /// The configurations [`WORST_INSTRUCTIONS`] bounds: the shipped P–I and Duhem ones.
 const SHIPPED_CONFIGS: [&str; 2] = [
     "inverse-pi16+pi16-observer+pi+drift",
@@ -578,7 +582,7 @@ fn the_whole_interrupt_in_every_scenario() {
         .lines()
         .filter_map(|l| l.strip_prefix("SCENARIO "))
         .collect();
-    assert_eq!(names.len(), 60, "every scenario and load ran: {stdout}");
+    assert_eq!(names.len(), 78, "every scenario and load ran: {stdout}");
     // The stack's high-water mark over the whole run (painted at reset, read back by the image
     // before it exits): within three quarters of the reserve memory.x keeps for it.
     let reserve = support::elf_symbol(&elf, "_stack_reserve")
@@ -666,13 +670,13 @@ fn the_whole_interrupt_in_every_scenario() {
                 // The previous configuration's last ticks and this one's first: no tick above
                 // the dearest prediction.
                 budgets.values().copied().max().unwrap_or(0)
-            } else if name.ends_with("/scan-raster-learning") {
+            } else if name.contains("/scan-") && name.ends_with("-learning") {
                 predicted
                     + u64::from(twinstack::tick_budget::LEARNING_CYCLES)
                     + u64::from(twinstack::tick_budget::SCAN_CYCLES)
             } else if name.ends_with("-learning") {
                 predicted + u64::from(twinstack::tick_budget::LEARNING_CYCLES)
-            } else if name.ends_with("/scan-raster-triggers") {
+            } else if name.contains("/scan-") {
                 predicted + u64::from(twinstack::tick_budget::SCAN_CYCLES)
             } else if name.contains("reload") {
                 let other = if config.starts_with("inverse-pi16") {

@@ -42,9 +42,9 @@ pub mod scenarios {
         /// 750 Hz sine; the idle task runs its period-boundary service as the firmware's
         /// command task does): each tick reads a table entry and stores an error.
         pub learning: bool,
-        /// Instead of streaming: a raster scan generated on the board with its pixel, line and
-        /// frame outputs pulsing ([`RASTER`]), for `TICKS` ticks.
-        pub scan: bool,
+        /// Instead of streaming: a scan generated on the board with its pixel, line and frame
+        /// outputs pulsing ([`RASTER`], [`LISSAJOUS`], [`SPIRAL`]), for `TICKS` ticks.
+        pub scan: Option<twinstack::scan::ScanRequest>,
     }
 
     /// The scan scenario's raster: 8 lines of 30 pixels, 4 ticks each, 40-tick turnarounds
@@ -58,6 +58,39 @@ pub mod scenarios {
             amplitude: 0.8,
             y_offset: 0.0,
             y_amplitude: 0.5,
+        }),
+        ticks_per_pixel: 4,
+        frames: 0,
+        on_trigger: false,
+    };
+
+    /// A Lissajous figure, 8 periods of x (200 Hz at the bench's 40 kHz) against 7 of y per
+    /// frame, ±0.8: its two phases and a table sine a tick.
+    pub const LISSAJOUS: twinstack::scan::ScanRequest = twinstack::scan::ScanRequest {
+        pattern: twinstack::scan::ScanPattern::Lissajous(twinstack::scan::LissajousScan {
+            frame_hz: 25.0,
+            x_cycles: 8,
+            y_cycles: 7,
+            y_phase_deg: 30.0,
+            offset: 0.0,
+            amplitude: 0.8,
+            y_offset: 0.0,
+            y_amplitude: 0.5,
+        }),
+        ticks_per_pixel: 4,
+        frames: 0,
+        on_trigger: false,
+    };
+
+    /// A spiral out and in over 3 turns each way at 200 Hz, radius 0.8: its envelope, its
+    /// phase and a table sine a tick.
+    pub const SPIRAL: twinstack::scan::ScanRequest = twinstack::scan::ScanRequest {
+        pattern: twinstack::scan::ScanPattern::Spiral(twinstack::scan::SpiralScan {
+            turn_hz: 200.0,
+            turns: 3,
+            offset: 0.0,
+            amplitude: 0.8,
+            y_offset: 0.0,
         }),
         ticks_per_pixel: 4,
         frames: 0,
@@ -127,55 +160,69 @@ pub mod scenarios {
     }
 
     /// Every scenario, in the order they run.
-    pub const ALL: [Scenario; 9] = [
+    pub const ALL: [Scenario; 12] = [
         Scenario {
             name: "triangle",
             setpoint: triangle,
             lifecycle: false,
             learning: false,
-            scan: false,
+            scan: None,
         },
         Scenario {
             name: "sine-750Hz",
             setpoint: sine_750hz,
             lifecycle: false,
             learning: false,
-            scan: false,
+            scan: None,
         },
         Scenario {
             name: "full-range-steps",
             setpoint: steps,
             lifecycle: false,
             learning: false,
-            scan: false,
+            scan: None,
         },
         Scenario {
             name: "random",
             setpoint: random,
             lifecycle: false,
             learning: false,
-            scan: false,
+            scan: None,
         },
         Scenario {
             name: "nested-loops",
             setpoint: nested_loops,
             lifecycle: false,
             learning: false,
-            scan: false,
+            scan: None,
         },
         Scenario {
             name: "sine-750Hz-learning",
             setpoint: sine_750hz,
             lifecycle: false,
             learning: true,
-            scan: false,
+            scan: None,
         },
         Scenario {
             name: "scan-raster-triggers",
             setpoint: triangle,
             lifecycle: false,
             learning: false,
-            scan: true,
+            scan: Some(RASTER),
+        },
+        Scenario {
+            name: "scan-lissajous-triggers",
+            setpoint: triangle,
+            lifecycle: false,
+            learning: false,
+            scan: Some(LISSAJOUS),
+        },
+        Scenario {
+            name: "scan-spiral-triggers",
+            setpoint: triangle,
+            lifecycle: false,
+            learning: false,
+            scan: Some(SPIRAL),
         },
         // The learning's use case: a periodic scan with the learned feedforward on.
         Scenario {
@@ -183,14 +230,21 @@ pub mod scenarios {
             setpoint: triangle,
             lifecycle: false,
             learning: true,
-            scan: true,
+            scan: Some(RASTER),
+        },
+        Scenario {
+            name: "scan-spiral-learning",
+            setpoint: triangle,
+            lifecycle: false,
+            learning: true,
+            scan: Some(SPIRAL),
         },
         Scenario {
             name: "reload-and-mode-switches",
             setpoint: triangle,
             lifecycle: true,
             learning: false,
-            scan: false,
+            scan: None,
         },
     ];
 }
@@ -511,7 +565,7 @@ mod app {
                 let mut k = 0u32;
                 let mut started = false;
                 let mut changed = 0u8;
-                if scenario.scan {
+                if let Some(scan) = scenario.scan {
                     // Pulses of 2 ticks; the scan runs TICKS ticks (counted by the status).
                     expect_ack(
                         ask!(Request::Trigger(twinstack::scan::TriggerConfig {
@@ -525,7 +579,7 @@ mod app {
                         Response::Status(s) => s.ticks,
                         _ => 0,
                     };
-                    expect_ack(ask!(Request::Scan(scenarios::RASTER)), "scan");
+                    expect_ack(ask!(Request::Scan(scan)), "scan");
                     loop {
                         let now = match ask!(Request::Status) {
                             Response::Status(s) => s.ticks,
