@@ -26,6 +26,8 @@ pub const RATE_HZ: u32 = 40_000;
 
 /// The scenarios' setpoints, Q1.15, one per tick (divider 1).
 pub mod scenarios {
+    use twinstack::scan::{LissajousScan, RasterScan, ScanPattern, ScanRequest, SpiralScan};
+
     /// Ticks each scenario streams.
     pub const TICKS: u32 = 1500;
 
@@ -44,58 +46,53 @@ pub mod scenarios {
         pub learning: bool,
         /// Instead of streaming: a scan generated on the board with its pixel, line and frame
         /// outputs pulsing ([`RASTER`], [`LISSAJOUS`], [`SPIRAL`]), for `TICKS` ticks.
-        pub scan: Option<twinstack::scan::ScanRequest>,
+        pub scan: Option<ScanRequest>,
+    }
+
+    /// `pattern` scanned until stopped, 4 ticks a pixel, started at once.
+    const fn endless(pattern: ScanPattern) -> ScanRequest {
+        ScanRequest {
+            pattern,
+            ticks_per_pixel: 4,
+            frames: 0,
+            on_trigger: false,
+        }
     }
 
     /// The scan scenario's raster: 8 lines of 30 pixels, 4 ticks each, 40-tick turnarounds
     /// (160 ticks a line), ±0.8, until stopped.
-    pub const RASTER: twinstack::scan::ScanRequest = twinstack::scan::ScanRequest {
-        pattern: twinstack::scan::ScanPattern::Raster(twinstack::scan::RasterScan {
-            lines: 8,
-            pixels: 30,
-            turn_ticks: 40,
-            offset: 0.0,
-            amplitude: 0.8,
-            y_offset: 0.0,
-            y_amplitude: 0.5,
-        }),
-        ticks_per_pixel: 4,
-        frames: 0,
-        on_trigger: false,
-    };
+    pub const RASTER: ScanRequest = endless(ScanPattern::Raster(RasterScan {
+        lines: 8,
+        pixels: 30,
+        turn_ticks: 40,
+        offset: 0.0,
+        amplitude: 0.8,
+        y_offset: 0.0,
+        y_amplitude: 0.5,
+    }));
 
     /// A Lissajous figure, 8 periods of x (200 Hz at the bench's 40 kHz) against 7 of y per
     /// frame, ±0.8: its two phases and a table sine a tick.
-    pub const LISSAJOUS: twinstack::scan::ScanRequest = twinstack::scan::ScanRequest {
-        pattern: twinstack::scan::ScanPattern::Lissajous(twinstack::scan::LissajousScan {
-            frame_hz: 25.0,
-            x_cycles: 8,
-            y_cycles: 7,
-            y_phase_deg: 30.0,
-            offset: 0.0,
-            amplitude: 0.8,
-            y_offset: 0.0,
-            y_amplitude: 0.5,
-        }),
-        ticks_per_pixel: 4,
-        frames: 0,
-        on_trigger: false,
-    };
+    pub const LISSAJOUS: ScanRequest = endless(ScanPattern::Lissajous(LissajousScan {
+        frame_hz: 25.0,
+        x_cycles: 8,
+        y_cycles: 7,
+        y_phase_deg: 30.0,
+        offset: 0.0,
+        amplitude: 0.8,
+        y_offset: 0.0,
+        y_amplitude: 0.5,
+    }));
 
     /// A spiral out and in over 3 turns each way at 200 Hz, radius 0.8: its envelope, its
     /// phase and a table sine a tick.
-    pub const SPIRAL: twinstack::scan::ScanRequest = twinstack::scan::ScanRequest {
-        pattern: twinstack::scan::ScanPattern::Spiral(twinstack::scan::SpiralScan {
-            turn_hz: 200.0,
-            turns: 3,
-            offset: 0.0,
-            amplitude: 0.8,
-            y_offset: 0.0,
-        }),
-        ticks_per_pixel: 4,
-        frames: 0,
-        on_trigger: false,
-    };
+    pub const SPIRAL: ScanRequest = endless(ScanPattern::Spiral(SpiralScan {
+        turn_hz: 200.0,
+        turns: 3,
+        offset: 0.0,
+        amplitude: 0.8,
+        y_offset: 0.0,
+    }));
 
     const FULL: i32 = 32767;
 
@@ -159,93 +156,48 @@ pub mod scenarios {
         }
     }
 
+    /// A streamed scenario.
+    const fn streamed(
+        name: &'static str,
+        setpoint: fn(u32) -> i16,
+        lifecycle: bool,
+        learning: bool,
+    ) -> Scenario {
+        Scenario {
+            name,
+            setpoint,
+            lifecycle,
+            learning,
+            scan: None,
+        }
+    }
+
+    /// A scan scenario (the stream's setpoint function unused).
+    const fn scanned(name: &'static str, scan: ScanRequest, learning: bool) -> Scenario {
+        Scenario {
+            name,
+            setpoint: triangle,
+            lifecycle: false,
+            learning,
+            scan: Some(scan),
+        }
+    }
+
     /// Every scenario, in the order they run.
     pub const ALL: [Scenario; 12] = [
-        Scenario {
-            name: "triangle",
-            setpoint: triangle,
-            lifecycle: false,
-            learning: false,
-            scan: None,
-        },
-        Scenario {
-            name: "sine-750Hz",
-            setpoint: sine_750hz,
-            lifecycle: false,
-            learning: false,
-            scan: None,
-        },
-        Scenario {
-            name: "full-range-steps",
-            setpoint: steps,
-            lifecycle: false,
-            learning: false,
-            scan: None,
-        },
-        Scenario {
-            name: "random",
-            setpoint: random,
-            lifecycle: false,
-            learning: false,
-            scan: None,
-        },
-        Scenario {
-            name: "nested-loops",
-            setpoint: nested_loops,
-            lifecycle: false,
-            learning: false,
-            scan: None,
-        },
-        Scenario {
-            name: "sine-750Hz-learning",
-            setpoint: sine_750hz,
-            lifecycle: false,
-            learning: true,
-            scan: None,
-        },
-        Scenario {
-            name: "scan-raster-triggers",
-            setpoint: triangle,
-            lifecycle: false,
-            learning: false,
-            scan: Some(RASTER),
-        },
-        Scenario {
-            name: "scan-lissajous-triggers",
-            setpoint: triangle,
-            lifecycle: false,
-            learning: false,
-            scan: Some(LISSAJOUS),
-        },
-        Scenario {
-            name: "scan-spiral-triggers",
-            setpoint: triangle,
-            lifecycle: false,
-            learning: false,
-            scan: Some(SPIRAL),
-        },
+        streamed("triangle", triangle, false, false),
+        streamed("sine-750Hz", sine_750hz, false, false),
+        streamed("full-range-steps", steps, false, false),
+        streamed("random", random, false, false),
+        streamed("nested-loops", nested_loops, false, false),
+        streamed("sine-750Hz-learning", sine_750hz, false, true),
+        scanned("scan-raster-triggers", RASTER, false),
+        scanned("scan-lissajous-triggers", LISSAJOUS, false),
+        scanned("scan-spiral-triggers", SPIRAL, false),
         // The learning's use case: a periodic scan with the learned feedforward on.
-        Scenario {
-            name: "scan-raster-learning",
-            setpoint: triangle,
-            lifecycle: false,
-            learning: true,
-            scan: Some(RASTER),
-        },
-        Scenario {
-            name: "scan-spiral-learning",
-            setpoint: triangle,
-            lifecycle: false,
-            learning: true,
-            scan: Some(SPIRAL),
-        },
-        Scenario {
-            name: "reload-and-mode-switches",
-            setpoint: triangle,
-            lifecycle: true,
-            learning: false,
-            scan: None,
-        },
+        scanned("scan-raster-learning", RASTER, true),
+        scanned("scan-spiral-learning", SPIRAL, true),
+        streamed("reload-and-mode-switches", triangle, true, false),
     ];
 }
 
