@@ -28,7 +28,7 @@ use crate::identification::auto::identify_auto;
 use crate::identification::score::{score, ErrorFigures};
 use crate::identification::{identify, IdentifyOptions, ModelKind};
 use crate::measured_data::MeasuredData;
-use crate::plant::{LabStage, LabStageConfig, LabStageError};
+use crate::plant::{LabStage, LabStageConfig, LabStageError, SetFieldError};
 use crate::stage_model::StageModel;
 use std::f64::consts::TAU;
 use std::path::PathBuf;
@@ -386,6 +386,206 @@ impl TrackingTable {
             "(max/rms error in % of each trajectory's span; * = drive clipped at the rails)"
         )
     }
+}
+
+/// A stage other than the default: a name and the fields ([`LabStageConfig::set`]) it changes.
+pub type StageVariant = (&'static str, &'static [(&'static str, f64)]);
+
+/// The stages `hal-sim lab-stage --variants` tracks on besides the default: each
+/// non-ideality of the default stage made stronger, weaker or turned around, and two
+/// combinations. The default stage is what the family was tuned on; these say how far that
+/// carries to a stage it was not (see the book, results/lab-stage.md, "Other stages").
+pub const STAGE_VARIANTS: [StageVariant; 21] = [
+    ("default", &[]),
+    (
+        "mirrored asymmetry",
+        &[
+            ("preisach.top_saturation", 0.2),
+            ("preisach.bottom_saturation", 0.6),
+        ],
+    ),
+    (
+        "strong top saturation",
+        &[
+            ("preisach.top_saturation", 0.9),
+            ("preisach.bottom_saturation", 0.0),
+        ],
+    ),
+    (
+        "symmetric density",
+        &[
+            ("preisach.top_saturation", 0.0),
+            ("preisach.bottom_saturation", 0.0),
+        ],
+    ),
+    ("wide loops", &[("preisach.width", 0.3)]),
+    ("narrow loops", &[("preisach.width", 0.06)]),
+    ("less reversible", &[("preisach.reversible", 0.2)]),
+    ("more reversible", &[("preisach.reversible", 0.7)]),
+    ("strong creep", &[("creep_per_decade", 0.04)]),
+    ("weak creep", &[("creep_per_decade", 0.005)]),
+    ("no creep", &[("creep_per_decade", 0.0)]),
+    (
+        "slower creep",
+        &[("creep_fastest_s", 1e-3), ("creep_slowest_s", 1e5)],
+    ),
+    ("stiff flexure", &[("flexure_saturation_um", 100.0)]),
+    (
+        "linear flexure",
+        &[("flexure_saturation_um", f64::INFINITY)],
+    ),
+    (
+        "low resonance",
+        &[("resonance_hz", 1200.0), ("damping_ratio", 0.01)],
+    ),
+    (
+        "high resonance",
+        &[("resonance_hz", 8000.0), ("damping_ratio", 0.1)],
+    ),
+    ("noisy sensor", &[("noise_rms_nm", 10.0)]),
+    (
+        "fine sensor",
+        &[("noise_rms_nm", 0.5), ("sensor_lsb_nm", 0.5)],
+    ),
+    ("short stroke", &[("stroke_um", 20.0)]),
+    (
+        "combined A",
+        &[
+            ("preisach.top_saturation", 0.3),
+            ("preisach.bottom_saturation", 0.7),
+            ("creep_per_decade", 0.03),
+            ("flexure_saturation_um", 120.0),
+            ("resonance_hz", 2000.0),
+            ("damping_ratio", 0.02),
+            ("noise_rms_nm", 5.0),
+        ],
+    ),
+    (
+        "combined B",
+        &[
+            ("preisach.width", 0.25),
+            ("preisach.reversible", 0.25),
+            ("creep_per_decade", 0.025),
+            ("flexure_saturation_um", 300.0),
+            ("noise_rms_nm", 3.0),
+        ],
+    ),
+];
+
+/// A variant's changes as `--set` spells them: `field=value,…` (`-` for none).
+pub fn variant_settings(changes: &[(&str, f64)]) -> String {
+    if changes.is_empty() {
+        return "-".into();
+    }
+    changes
+        .iter()
+        .map(|(f, v)| format!("{f}={v}"))
+        .collect::<Vec<_>>()
+        .join(",")
+}
+
+/// `base` with a variant's changes applied.
+pub fn variant_config(
+    base: &LabStageConfig,
+    changes: &[(&str, f64)],
+) -> Result<LabStageConfig, SetFieldError> {
+    let mut c = base.clone();
+    for &(field, value) in changes {
+        c.set(field, value)?;
+    }
+    Ok(c)
+}
+
+/// One stage's tracking table, for [`evaluate_variants`].
+#[derive(Clone, Debug, PartialEq, serde::Serialize)]
+pub struct VariantTable {
+    /// The variant's name.
+    pub variant: &'static str,
+    /// Its changes, as `--set` spells them.
+    pub settings: String,
+    /// The tracking table on it.
+    pub table: TrackingTable,
+}
+
+/// [`evaluate_methods`] on each of `variants` applied to `base`, the stages evaluated two at a
+/// time (each is independent and deterministic for its seed).
+pub fn evaluate_variants(
+    base: &LabStageConfig,
+    variants: &[StageVariant],
+    methods: &[Method],
+) -> Result<Vec<VariantTable>, VariantError> {
+    let configs = variants
+        .iter()
+        .map(|(_, changes)| variant_config(base, changes))
+        .collect::<Result<Vec<_>, _>>()?;
+    let mut out = Vec::with_capacity(variants.len());
+    for (pair, configs) in variants.chunks(2).zip(configs.chunks(2)) {
+        let tables: Vec<Result<TrackingTable, LabStageError>> = std::thread::scope(|s| {
+            let running: Vec<_> = configs
+                .iter()
+                .map(|c| s.spawn(move || evaluate_methods(c, methods)))
+                .collect();
+            running
+                .into_iter()
+                .map(|h| h.join().unwrap_or_else(|e| std::panic::resume_unwind(e)))
+                .collect()
+        });
+        for ((variant, changes), table) in pair.iter().zip(tables) {
+            out.push(VariantTable {
+                variant,
+                settings: variant_settings(changes),
+                table: table?,
+            });
+        }
+    }
+    Ok(out)
+}
+
+/// Why [`evaluate_variants`] could not run.
+#[derive(Debug, thiserror::Error)]
+pub enum VariantError {
+    /// A variant names a field the stage does not have.
+    #[error(transparent)]
+    Field(#[from] SetFieldError),
+    /// A variant's stage is out of range.
+    #[error(transparent)]
+    Stage(#[from] LabStageError),
+}
+
+/// Prints one line per variant: its name, the uncompensated worst max and each method's
+/// (`auto` with what it picked), % of span.
+pub fn print_variants(
+    tables: &[VariantTable],
+    out: &mut impl std::io::Write,
+) -> std::io::Result<()> {
+    writeln!(
+        out,
+        "Worst max tracking error (% of span) over the triangle, minor loops and multisine, per stage"
+    )?;
+    let Some(first) = tables.first() else {
+        return Ok(());
+    };
+    write!(out, "{:<22}", "stage")?;
+    for row in &first.table.rows {
+        let head = row.method.split(':').next().unwrap_or(&row.method);
+        write!(out, " {head:>8}")?;
+    }
+    writeln!(out, "  auto picked / settings")?;
+    for v in tables {
+        write!(out, "{:<22}", v.variant)?;
+        let mut picked = "";
+        for row in &v.table.rows {
+            if let Some(p) = row.method.strip_prefix("auto: ") {
+                picked = p;
+            }
+            match row.worst_max_pct() {
+                Some(w) => write!(out, " {w:>8.2}")?,
+                None => write!(out, " {:>8}", "failed")?,
+            }
+        }
+        writeln!(out, "  {picked} / {}", v.settings)?;
+    }
+    Ok(())
 }
 
 /// The name `--model` gives `kind`.

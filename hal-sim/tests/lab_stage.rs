@@ -292,4 +292,26 @@ fn the_cli_prints_the_table_as_json_and_refuses_bad_flags() {
         .unwrap();
     assert!(!bad.status.success());
     assert!(String::from_utf8_lossy(&bad.stderr).contains("--fit-until"));
+
+    // `--set`: an unknown field, a value out of range and a count that is not whole are
+    // refused naming the field, before anything runs.
+    for (set, names) in [
+        ("stiffness=3", "stiffness"),
+        ("preisach.width=-1", "preisach.width"),
+        ("preisach.levels=3.5", "preisach.levels"),
+        ("resonance_hz=fast", "fast"),
+    ] {
+        let bad = std::process::Command::new(env!("CARGO_BIN_EXE_hal-sim"))
+            .args(["lab-stage", "--model", "pi", "--set", set])
+            .output()
+            .unwrap();
+        assert_eq!(
+            bad.status.code(),
+            Some(if set.starts_with("preisach") { 1 } else { 2 }),
+            "{set}"
+        );
+        let err = String::from_utf8_lossy(&bad.stderr);
+        assert!(err.contains(names), "{set}: {err}");
+        assert!(bad.stdout.is_empty(), "{set}: nothing printed");
+    }
 }

@@ -70,9 +70,10 @@ const USAGE: &str = "usage: cargo xtask <command>
 commands:
   setup   install what the tests need (thumbv7em and x86_64-pc-windows-gnu targets,
           qemu-system-arm, mdbook, a Python virtual environment), each only if missing
-  test    setup, then every gate in order: tests, fmt, clippy (host and target), firmware builds,
-          hal-sim checked for Windows, the Python package (pip install ./python, pytest),
-          rustdoc, the docs book and its links; stops at the first failure
+  test    setup, then every gate in order: tests (and the lab stage's variants, optimised), fmt,
+          clippy (host and target), firmware builds, hal-sim checked for Windows, the Python
+          package (pip install ./python, pytest), rustdoc, the docs book and its links; stops at
+          the first failure
   python  the Python package's gates alone (virtual environment, pip install ./python,
           rustfmt and clippy of python/, pytest)
   links   check that every relative link in README.md and docs/src names a file that exists";
@@ -455,6 +456,18 @@ fn gates() -> Vec<Gate> {
         gate(
             "host tests and doc tests (cargo test --workspace)",
             cargo(&["test", "--workspace"]),
+        ),
+        gate(
+            "the lab stage's variants, optimised (cargo test --profile host-opt -p hal-sim --test stage_variants)",
+            cargo(&[
+                "test",
+                "--profile",
+                "host-opt",
+                "-p",
+                "hal-sim",
+                "--test",
+                "stage_variants",
+            ]),
         ),
         gate("rustfmt", cargo(&["fmt", "--all", "--", "--check"])),
         gate(

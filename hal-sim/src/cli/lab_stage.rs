@@ -1,15 +1,17 @@
-//! `hal-sim lab-stage [--model pi,duhem] [--seed N] [--json] [--without creep,…]`: the tracking table on the
-//! simulated laboratory stage ([`crate::plant::lab_stage`], outside the model family) —
-//! identified from 2 s of 10 Hz excitation, then a triangle, nested minor loops and a
-//! multisine tracked open loop with each model's compensator and with none
-//! ([`crate::tracking`]).
+//! `hal-sim lab-stage [--model pi,duhem] [--seed N] [--json] [--without creep,…] [--set field=value,…]
+//! [--variants]`: the tracking table on the simulated laboratory stage
+//! ([`crate::plant::lab_stage`], outside the model family) — identified from 2 s of 10 Hz
+//! excitation, then a triangle, nested minor loops and a multisine tracked open loop with each
+//! model's compensator and with none ([`crate::tracking`]); with `--variants`, the worst error
+//! on each of [`crate::tracking::STAGE_VARIANTS`] (stages the family was not tuned on).
 
 use crate::cli::identify::{parse_model, ModelChoice};
 use crate::identification::{IdentifyOptions, ModelKind};
 use crate::output_file::{csv_t_u_x, Staged};
 use crate::plant::{LabStage, LabStageConfig};
 use crate::tracking::{
-    evaluate_methods, excite, Method, EXCITATION_S, FIT_UNTIL_S, SAMPLE_RATE_HZ,
+    evaluate_methods, evaluate_variants, excite, print_variants, Method, EXCITATION_S, FIT_UNTIL_S,
+    SAMPLE_RATE_HZ, STAGE_VARIANTS,
 };
 use std::path::PathBuf;
 
@@ -44,6 +46,37 @@ pub struct Args {
     /// Take non-idealities out of the stage, comma-separated, to see what each costs.
     #[arg(long, value_enum, value_delimiter = ',')]
     pub without: Vec<NonIdeality>,
+    /// Change the stage's physics, comma-separated `field=value` (the fields: see
+    /// `hal_sim::plant::SETTABLE_FIELDS`, e.g. `preisach.bottom_saturation=0.6`,
+    /// `flexure_saturation_um=100`, `resonance_hz=1200`).
+    #[arg(long, value_delimiter = ',', value_parser = parse_setting)]
+    pub set: Vec<(String, f64)>,
+    /// Track on every stage of the built-in list of variants (the default stage made
+    /// otherwise, one non-ideality at a time and combined) and print each one's worst error.
+    #[arg(long, conflicts_with_all = ["set", "without", "write_excitation"])]
+    pub variants: bool,
+}
+
+/// One `--set` entry: `field=value`, the value a number (`inf` for an unbounded field).
+fn parse_setting(s: &str) -> Result<(String, f64), String> {
+    let (field, value) = s
+        .split_once('=')
+        .ok_or_else(|| format!("`{s}`: expected field=value"))?;
+    let field = field.trim();
+    if !crate::plant::SETTABLE_FIELDS.contains(&field) {
+        return Err(format!(
+            "`{field}`: no such field (the fields: {})",
+            crate::plant::SETTABLE_FIELDS.join(", ")
+        ));
+    }
+    let v: f64 = value
+        .trim()
+        .parse()
+        .map_err(|_| format!("`{s}`: `{}` is not a number", value.trim()))?;
+    if v.is_nan() {
+        return Err(format!("`{s}`: not a number"));
+    }
+    Ok((field.to_string(), v))
 }
 
 /// A non-ideality of the lab stage that `--without` removes.
@@ -101,6 +134,10 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     for n in &args.without {
         n.remove(&mut config);
     }
+    for (field, value) in &args.set {
+        config.set(field, *value)?;
+    }
+    config.validate()?;
     let options = |kind: ModelKind| IdentifyOptions {
         operators: args.operators,
         creep: args.creep,
@@ -121,8 +158,19 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         out.write(path, csv_t_u_x(&data.t, &u, &x).as_bytes())?;
         out.commit()?;
     }
-    let table = evaluate_methods(&config, &methods)?;
     let mut stdout = std::io::stdout().lock();
+    if args.variants {
+        let tables = evaluate_variants(&config, &STAGE_VARIANTS, &methods)?;
+        if args.json {
+            use std::io::Write;
+            serde_json::to_writer_pretty(&mut stdout, &tables)?;
+            writeln!(stdout)?;
+        } else {
+            print_variants(&tables, &mut stdout)?;
+        }
+        return Ok(());
+    }
+    let table = evaluate_methods(&config, &methods)?;
     if args.json {
         use std::io::Write;
         serde_json::to_writer_pretty(&mut stdout, &table)?;

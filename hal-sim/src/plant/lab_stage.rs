@@ -197,7 +197,91 @@ fn check(
     }
 }
 
+/// The fields [`LabStageConfig::set`] takes, by the names [`LabStageConfig::validate`] gives
+/// them (one name per quantity, in the units the field's doc gives).
+pub const SETTABLE_FIELDS: [&str; 16] = [
+    "drive_max_volts",
+    "stroke_um",
+    "preisach.levels",
+    "preisach.reversible",
+    "preisach.width",
+    "preisach.top_saturation",
+    "preisach.bottom_saturation",
+    "creep_per_decade",
+    "creep_fastest_s",
+    "creep_slowest_s",
+    "creep_modes_per_decade",
+    "flexure_saturation_um",
+    "resonance_hz",
+    "damping_ratio",
+    "noise_rms_nm",
+    "sensor_lsb_nm",
+];
+
+/// Why [`LabStageConfig::set`] refused a field.
+#[derive(Clone, Debug, PartialEq, thiserror::Error)]
+pub enum SetFieldError {
+    /// No field of that name.
+    #[error("lab stage: no field `{0}` (the fields: {fields})", fields = SETTABLE_FIELDS.join(", "))]
+    Unknown(String),
+    /// A count given a value that is not a whole number.
+    #[error("lab stage: `{field}` = {value}: a count, must be a whole number")]
+    NotWhole {
+        /// The field's name.
+        field: &'static str,
+        /// The value given.
+        value: f64,
+    },
+}
+
 impl LabStageConfig {
+    /// Sets one field by its name (one of [`SETTABLE_FIELDS`], as [`Self::validate`] names
+    /// it) to `value`: a stage other than the default, for checking that what was tuned on the
+    /// default also holds off it. The range is checked by [`Self::validate`] (and so by
+    /// [`LabStage::new`]), not here; a count (`preisach.levels`, `creep_modes_per_decade`)
+    /// must be a whole number.
+    ///
+    /// ```
+    /// use hal_sim::plant::LabStageConfig;
+    /// let mut c = LabStageConfig::new(10_000.0, 1);
+    /// c.set("preisach.bottom_saturation", 0.6).unwrap();
+    /// assert_eq!(c.preisach.bottom_saturation, 0.6);
+    /// assert!(c.set("preisach.levels", 2.5).is_err());
+    /// assert!(c.set("stiffness", 1.0).is_err());
+    /// ```
+    pub fn set(&mut self, field: &str, value: f64) -> Result<(), SetFieldError> {
+        let whole = |field: &'static str| {
+            if value.fract() == 0.0 && (0.0..=1e6).contains(&value) {
+                Ok(value as usize)
+            } else {
+                Err(SetFieldError::NotWhole { field, value })
+            }
+        };
+        let p = &mut self.preisach;
+        match field {
+            "drive_max_volts" => self.drive_max_volts = value,
+            "stroke_um" => self.stroke_um = value,
+            "preisach.levels" => p.levels = whole("preisach.levels")?,
+            "preisach.reversible" => p.reversible = value,
+            "preisach.width" => p.width = value,
+            "preisach.top_saturation" => p.top_saturation = value,
+            "preisach.bottom_saturation" => p.bottom_saturation = value,
+            "creep_per_decade" => self.creep_per_decade = value,
+            "creep_fastest_s" => self.creep_fastest_s = value,
+            "creep_slowest_s" => self.creep_slowest_s = value,
+            "creep_modes_per_decade" => {
+                self.creep_modes_per_decade = whole("creep_modes_per_decade")?
+            }
+            "flexure_saturation_um" => self.flexure_saturation_um = value,
+            "resonance_hz" => self.resonance_hz = value,
+            "damping_ratio" => self.damping_ratio = value,
+            "noise_rms_nm" => self.noise_rms_nm = value,
+            "sensor_lsb_nm" => self.sensor_lsb_nm = value,
+            other => return Err(SetFieldError::Unknown(other.to_string())),
+        }
+        Ok(())
+    }
+
     /// Checks every field; the first one out of range is named.
     pub fn validate(&self) -> Result<(), LabStageError> {
         let c = self;

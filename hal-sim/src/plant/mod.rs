@@ -26,7 +26,9 @@ pub mod zero_order_hold;
 
 pub use coupled::{CoupledModel, DEFAULT_CONTACT_STIFFNESS};
 pub use hysteresis::{HysteresisConfig, HysteresisError, HysteresisModel, StackHysteresis};
-pub use lab_stage::{LabStage, LabStageConfig, LabStageError, PreisachDensity};
+pub use lab_stage::{
+    LabStage, LabStageConfig, LabStageError, PreisachDensity, SetFieldError, SETTABLE_FIELDS,
+};
 pub use reduced::ReducedModel;
 pub use stage::{Configuration, SecondOrder, StageParams};
 
