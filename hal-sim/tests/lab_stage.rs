@@ -315,3 +315,21 @@ fn the_cli_prints_the_table_as_json_and_refuses_bad_flags() {
         assert!(bad.stdout.is_empty(), "{set}: nothing printed");
     }
 }
+
+/// `SETTABLE_FIELDS` (what `--set` offers) and `LabStageConfig::set` (what it applies) name the
+/// same fields: every listed field is taken, and one not listed is refused.
+#[test]
+fn every_settable_field_is_set() {
+    for field in hal_sim::plant::SETTABLE_FIELDS {
+        let mut c = LabStageConfig::new(SAMPLE_RATE_HZ, 1);
+        c.set(field, 7.0).unwrap_or_else(|e| panic!("{field}: {e}"));
+        assert_ne!(
+            c,
+            LabStageConfig::new(SAMPLE_RATE_HZ, 1),
+            "{field}: changed nothing"
+        );
+    }
+    assert!(LabStageConfig::new(SAMPLE_RATE_HZ, 1)
+        .set("sample_period_s", 1.0)
+        .is_err());
+}
