@@ -13,7 +13,7 @@
 //!
 //! The coefficients are **cycles at 5 flash wait states** (the ART cache assumed cold: every
 //! taken branch waits the full 5), measured on the real image: the whole-interrupt bench
-//! (`tests/irq_bench.rs`) traces every tick of six configurations in QEMU — the smallest and the
+//! (`tests/irq_bench.rs`) traces every tick of seven configurations in QEMU — the smallest and the
 //! largest of each model, every creep mode, the notch and the derivative — and asserts, for each,
 //! that its worst tick stays under this prediction and that the prediction is not loose by more
 //! than a stated factor. Between the measured sizes the prediction is linear in operators, dead

@@ -208,12 +208,12 @@ pub mod configs {
     use twinstack::creep::CreepParams;
     use twinstack::generalised_pi::{DeadZoneParams, GpiParams};
     use twinstack::settings::{
-        representative_bouc_wen, representative_duhem, representative_gpi, representative_pi,
-        FeedbackSettings, Mode, Model, NotchDesign, SensorSettings, Settings,
+        representative_bouc_wen, representative_duhem, representative_pi, FeedbackSettings, Mode,
+        Model, NotchDesign, SensorSettings, Settings,
     };
 
     /// How many configurations run.
-    pub const COUNT: usize = 6;
+    pub const COUNT: usize = 7;
 
     /// A named configuration.
     pub struct Config {
@@ -238,9 +238,11 @@ pub mod configs {
         }
     }
 
-    /// The largest generalised P–I: 32 operators and all 8 dead zones.
-    fn largest_gpi() -> Option<Model> {
-        let Model::PrandtlIshlinskii(pi) = representative_pi(32).ok()? else {
+    /// A generalised P–I of `n` operators with all 8 dead zones: with 17, the shape
+    /// `hal-sim calibrate` (and `identify --model auto`) fits by default (17 operators, four
+    /// dead zones a side); with 32, the largest.
+    fn gpi_with_eight_dead_zones(n: usize) -> Option<Model> {
+        let Model::PrandtlIshlinskii(pi) = representative_pi(n).ok()? else {
             return None;
         };
         let dead_zones = DeadZoneParams::new(
@@ -271,12 +273,13 @@ pub mod configs {
                 name: "inverse-duhem+duhem-observer+pi+drift",
                 settings: closed(representative_duhem(), representative_duhem()),
             },
-            // The model family's shipped generalised P–I (N = 16, 6 dead zones) as
-            // compensator and observer, with four creep modes in series with both.
+            // What `hal-sim calibrate` loads by default where the model family's generalised
+            // P–I wins (as on the simulated lab stage): 17 operators, 8 dead zones, four creep
+            // modes in series, as compensator and observer.
             2 => {
-                let gpi = representative_gpi(16).ok()?;
+                let gpi = gpi_with_eight_dead_zones(17)?;
                 Config {
-                    name: "inverse-gpi16+creep4+gpi16-observer+pi+drift",
+                    name: "inverse-gpi17x8+creep4+gpi17x8-observer+pi+drift",
                     settings: Settings {
                         creep: Some(creep4()?),
                         ..closed(gpi.clone(), gpi)
@@ -301,7 +304,7 @@ pub mod configs {
             // The dearest configuration a user can load: the largest generalised P–I both
             // ways, six creep modes, PID feedback with the notch, input shaping.
             5 => {
-                let gpi = largest_gpi()?;
+                let gpi = gpi_with_eight_dead_zones(32)?;
                 let mut settings = Settings {
                     creep: Some(creep6()?),
                     ..closed(gpi.clone(), gpi)
@@ -325,6 +328,14 @@ pub mod configs {
                 Config {
                     name: "inverse-gpi32x8+creep6+gpi32x8-observer+pid+notch+shaping+drift",
                     settings,
+                }
+            }
+            // What `hal-sim calibrate --model pi` loads by default: 17 operators.
+            6 => {
+                let pi = representative_pi(17).ok()?;
+                Config {
+                    name: "inverse-pi17+pi17-observer+pi+drift",
+                    settings: closed(pi.clone(), pi),
                 }
             }
             _ => return None,
