@@ -37,7 +37,7 @@
 //!    loop) to flash, to boot in the mode asked for.
 
 use crate::capture::{self, CaptureError, ConvertError, Recording};
-use crate::identification::auto::{identify_auto, Ranked};
+use crate::identification::auto::{identify_auto_admitting, Ranked};
 use crate::identification::score::{score, ErrorFigures};
 use crate::identification::{identify, Identification, IdentifyError, IdentifyOptions, ModelKind};
 use crate::link::client::{Client, LinkError};
@@ -48,11 +48,13 @@ use crate::param_file::{IdentificationRecord, ParamFile};
 use crate::setpoint_file::q1_15;
 use crate::tracking;
 use std::time::Duration;
+use twinstack::board::Hardware;
 use twinstack::protocol::messages::{
     CaptureRequest, CaptureStatus, Mode, StatusReport, StreamControl, Trigger, UnderrunPolicy,
     WaveDecay, WaveShape, Waveform,
 };
 use twinstack::recorder::Channel;
+use twinstack::refusal::Field;
 use twinstack::settings::Settings;
 
 /// How a calibration runs. [`CalibrateOptions::default`] is what `hal-sim calibrate` runs.
@@ -564,10 +566,28 @@ fn measure<T: Transport>(
     let mut id_options = IdentifyOptions::new(options.model.unwrap_or(ModelKind::Pi), fit_until);
     id_options.operators = options.operators;
     id_options.lag = options.lag;
+    // Only a model the board runs at its control rate with its drive, sensor and feedback:
+    // the tick budget the board applies at load ([`twinstack::tick_budget`]), applied here
+    // first, so that `auto` picks among what the board takes.
+    let runs_on_board = |id: &Identification| -> Result<(), String> {
+        let mut settings = ParamFile::from_model(&id.model, &options.output_unit, None).settings;
+        settings.drive = board.drive;
+        settings.sensor = board.sensor;
+        settings.feedback = board.feedback;
+        match settings.build(&Hardware::driver_board(rate)) {
+            Err(r) if r.field == Field::Workload => Err(format!(
+                "the board at {:.0} kHz would refuse it: {r}",
+                rate / 1e3
+            )),
+            _ => Ok(()),
+        }
+    };
     let (id, label, reason, ranking) = match options.model {
         Some(_) => {
             let id = identify(&excitation, &id_options)?;
             let label = id_options.model_label();
+            runs_on_board(&id)
+                .map_err(|why| IdentifyError::NoneAdmitted(format!("{label}: {why}")))?;
             (
                 id,
                 label.clone(),
@@ -576,7 +596,8 @@ fn measure<T: Transport>(
             )
         }
         None => {
-            let auto = identify_auto(&excitation, &id_options.candidates())?;
+            let auto =
+                identify_auto_admitting(&excitation, &id_options.candidates(), runs_on_board)?;
             let picked = auto
                 .ranking
                 .iter()

@@ -5,11 +5,13 @@
 //! that says why and nothing loaded.
 
 use hal_sim::calibrate::{calibrate, CalibrateError, CalibrateOptions};
-use hal_sim::identification::ModelKind;
+use hal_sim::identification::auto::{identify_auto_admitting, NOT_ADMITTED};
+use hal_sim::identification::{IdentifyError, IdentifyOptions, ModelKind};
 use hal_sim::link::client::Client;
 use hal_sim::sim_device::{SimDevice, SimDeviceConfig};
 use std::process::{Command, Output};
 use std::time::Duration;
+use twinstack::board::Hardware;
 use twinstack::settings::{Mode, Settings};
 
 #[path = "support/virtual_board_process.rs"]
@@ -286,6 +288,49 @@ fn a_fit_that_does_not_fit_is_refused_and_the_full_range_needs_no_clamp() {
     let r = calibrate(&mut client, &full, |_| {}).expect("full-range calibration");
     assert!(!r.clamped);
     assert_eq!(client.read_params().unwrap(), r.file.settings);
+}
+
+/// At 100 kHz the tick budget leaves room for fewer models than at 50 kHz (no 17-operator
+/// P–I, no generalised P–I, no creep beside a Duhem): `auto` ranks them all but picks only
+/// among those the board runs at its rate, so the calibration loads. (Before session 13 it
+/// picked one the board then refused, and `calibrate` failed at the load.)
+#[test]
+fn auto_picks_a_model_the_board_runs_at_its_rate() {
+    let rate = 100_000.0;
+    let mut config = SimDeviceConfig::paper();
+    config.board.plant.dt = 1.0 / rate;
+    let mut client = sim_client(config);
+    let options = CalibrateOptions {
+        model: None,
+        ..quick()
+    };
+    let r = calibrate(&mut client, &options, |_| {}).expect("calibration at 100 kHz");
+    assert_eq!(r.tick_rate_hz, 100_000);
+    // What was loaded runs at the board's rate.
+    let loaded = client.read_params().unwrap();
+    assert_eq!(loaded, r.file.settings);
+    assert!(loaded.build(&Hardware::driver_board(rate)).is_ok());
+    // Some candidates fitted but were left out for the budget, and say so.
+    let refused: Vec<_> = r
+        .ranking
+        .iter()
+        .filter_map(|c| c.validation.as_ref().err())
+        .filter(|e| e.starts_with(NOT_ADMITTED) && e.contains("100 kHz"))
+        .collect();
+    assert!(!refused.is_empty(), "{:?}", r.ranking);
+    assert!(r.ranking[0].validation.is_ok(), "{:?}", r.ranking);
+
+    // Admitting none: an error naming every candidate and why, not a pick.
+    let fit_until = options.excitation_s() - 1.0 / options.excitation_hz;
+    let candidates = IdentifyOptions::new(ModelKind::Pi, fit_until).candidates();
+    let e = identify_auto_admitting(&r.excitation, &candidates, |_| Err("too dear".into()))
+        .unwrap_err();
+    match &e {
+        IdentifyError::NoneAdmitted(why) => {
+            assert_eq!(why.matches("too dear").count(), candidates.len(), "{e}")
+        }
+        other => panic!("{other}"),
+    }
 }
 
 #[test]

@@ -188,7 +188,11 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
                     f.max_pct,
                     f.rms_pct
                 ),
-                Err(e) => println!("  -. {:<32} not fitted: {e}", c.label),
+                Err(e) => println!(
+                    "  -. {:<32} {}",
+                    c.label,
+                    crate::identification::auto::unranked_note(e)
+                ),
             }
         }
     }

@@ -119,7 +119,11 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         for (i, r) in auto.ranking.iter().enumerate() {
             match &r.validation {
                 Ok(f) => println!("  {}. {:<32} {}", i + 1, r.label, show(f)),
-                Err(e) => println!("  -. {:<32} not fitted: {e}", r.label),
+                Err(e) => println!(
+                    "  -. {:<32} {}",
+                    r.label,
+                    crate::identification::auto::unranked_note(e)
+                ),
             }
         }
         println!("picked: {}", auto.reason);

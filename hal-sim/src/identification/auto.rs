@@ -10,7 +10,9 @@
 //! whole window with the same options.
 //!
 //! A candidate that cannot be fitted (too few samples, a model the board refuses) is kept in
-//! the ranking with its reason, last.
+//! the ranking with its reason, last. So is one the caller does not admit
+//! ([`identify_auto_admitting`]): `hal-sim calibrate` admits only models the board's tick
+//! budget runs at the board's control rate, so that it never picks one the board refuses.
 //!
 //! Parsimony: a model that generalises another (Bouc–Wen generalises Duhem,
 //! [`super::ModelKind::special_case`]; with creep, Bouc–Wen + creep generalises Duhem + creep)
@@ -53,6 +55,19 @@ pub struct AutoIdentification {
     pub reason: String,
 }
 
+/// How the reason of a candidate [`identify_auto_admitting`]'s `admit` refused begins.
+pub const NOT_ADMITTED: &str = "not admitted";
+
+/// What the ranking table says of a candidate that was not ranked, given its reason: fitted
+/// but not admitted, or not fitted.
+pub fn unranked_note(reason: &str) -> String {
+    if reason.starts_with(NOT_ADMITTED) {
+        reason.to_string()
+    } else {
+        format!("not fitted: {reason}")
+    }
+}
+
 /// A candidate's name for the ranking table.
 pub fn label(options: &IdentifyOptions) -> String {
     options.model_label()
@@ -71,6 +86,19 @@ fn rank_key(r: &Ranked) -> (f64, f64) {
 pub fn identify_auto(
     data: &MeasuredData,
     candidates: &[IdentifyOptions],
+) -> Result<AutoIdentification, IdentifyError> {
+    identify_auto_admitting(data, candidates, |_| Ok(()))
+}
+
+/// [`identify_auto`], picking only among the candidates `admit` accepts (given each one's fit
+/// on the first part of the window; its model has the size the refit on the whole window
+/// has, up to a dead zone a generalised P–I's map may drop). A candidate it refuses stays in
+/// the ranking, last, with `admit`'s reason and its validation figures in words. Fails with
+/// [`IdentifyError::NoneAdmitted`] if every candidate that could be fitted was refused.
+pub fn identify_auto_admitting(
+    data: &MeasuredData,
+    candidates: &[IdentifyOptions],
+    admit: impl Fn(&Identification) -> Result<(), String>,
 ) -> Result<AutoIdentification, IdentifyError> {
     let first = candidates.first().ok_or(IdentifyError::NoCandidates)?;
     let fit_until_s = first.fit_until_s;
@@ -108,8 +136,17 @@ pub fn identify_auto(
                         .model
                         .predict(&window.t, &u[..n_fit])
                         .map_err(|e| e.to_string())?;
-                    score(&x[..n_fit], &predicted, split..n_fit)
-                        .ok_or_else(|| "the measured output is flat on the validation part".into())
+                    let figures =
+                        score(&x[..n_fit], &predicted, split..n_fit).ok_or_else(|| {
+                            String::from("the measured output is flat on the validation part")
+                        })?;
+                    admit(&id).map_err(|why| {
+                        format!(
+                            "{NOT_ADMITTED} ({why}); validation max {:.2} % / RMS {:.2} %",
+                            figures.max_pct, figures.rms_pct
+                        )
+                    })?;
+                    Ok(figures)
                 });
             Ranked {
                 label: label(c),
@@ -145,6 +182,18 @@ pub fn identify_auto(
             let picked = ranking.remove(i);
             ranking.insert(0, picked);
         }
+    }
+    let refused = |r: &Ranked| {
+        r.validation
+            .as_ref()
+            .is_err_and(|e| e.starts_with(NOT_ADMITTED))
+    };
+    if best.is_none() && ranking.iter().any(refused) {
+        let reasons: Vec<String> = ranking
+            .iter()
+            .filter_map(|r| Some(format!("{}: {}", r.label, r.validation.as_ref().err()?)))
+            .collect();
+        return Err(IdentifyError::NoneAdmitted(reasons.join("; ")));
     }
     let Some(best) = simpler.or(best) else {
         // No candidate could be ranked (the validation part too short for every one):

@@ -309,6 +309,10 @@ pub enum IdentifyError {
     /// `--model auto` was given no candidate to try.
     #[error("no candidate model to try")]
     NoCandidates,
+    /// `--model auto` fitted candidates, but the caller admitted none of them (for
+    /// `calibrate`: none runs within the board's tick budget at its control rate).
+    #[error("no candidate model can be used: {0}")]
+    NoneAdmitted(String),
     /// The fitted model is refused by the library.
     #[error("the fitted model cannot run on the board: {0}")]
     Params(ParamError),
