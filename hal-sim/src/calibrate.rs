@@ -17,8 +17,9 @@
 //!    geometrically (the generator's per-cycle decay, protocol v5) to
 //!    [`CalibrateOptions::final_amplitude`] of it: nested minor loops.
 //! 3. **Identify**: the window in physical units (left stack V, sensor in the output unit) is a
-//!    `t,u,x` record; the last cycle is held out; [`identify_auto`] ranks every model of the
-//!    family (or one model, [`CalibrateOptions::model`]) and keeps the best. A sensor that
+//!    `t,u,x` record; the last cycle is held out; [`identify_auto_admitting`] ranks every model
+//!    of the family (or one model, [`CalibrateOptions::model`]) and keeps the best among those
+//!    the board's tick budget runs at its control rate. A sensor that
 //!    does not move ([`CalibrateError::SensorFlat`]), that saturates
 //!    ([`CalibrateError::SensorSaturated`]), or a model that does not predict the held-out cycle
 //!    within [`CalibrateOptions::max_held_out_pct`] ([`CalibrateError::DoesNotFit`]) stops here,
