@@ -38,7 +38,7 @@
 //!    loop) to flash, to boot in the mode asked for.
 
 use crate::capture::{self, CaptureError, ConvertError, Recording};
-use crate::identification::auto::{identify_auto_admitting, Ranked};
+use crate::identification::auto::{identify_auto_admitting, Ranked, Validation};
 use crate::identification::score::{score, ErrorFigures};
 use crate::identification::{identify, Identification, IdentifyError, IdentifyOptions, ModelKind};
 use crate::link::client::{Client, LinkError};
@@ -207,8 +207,8 @@ pub struct Tracking {
 pub struct Candidate {
     /// The model, in words.
     pub label: String,
-    /// Its validation figures, or why it could not be fitted.
-    pub validation: Result<ErrorFigures, String>,
+    /// Where it stands after the validation part.
+    pub validation: Validation,
 }
 
 /// What [`calibrate`] did and measured.
@@ -602,7 +602,7 @@ fn measure<T: Transport>(
             let picked = auto
                 .ranking
                 .iter()
-                .find(|r| r.validation.is_ok())
+                .find(|r| r.validation.admitted().is_some())
                 .map_or_else(|| id_options.model_label(), |r| r.label.clone());
             let ranking = auto.ranking.iter().map(candidate).collect();
             (auto.identification, picked, auto.reason, ranking)

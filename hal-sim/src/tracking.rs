@@ -690,7 +690,7 @@ pub fn evaluate_methods(
                     let picked = a
                         .ranking
                         .iter()
-                        .find(|r| r.validation.is_ok())
+                        .find(|r| r.validation.admitted().is_some())
                         .map_or_else(|| "?".into(), |r| Method::name(&r.options));
                     (format!("auto: {picked}"), Ok(a.identification))
                 }

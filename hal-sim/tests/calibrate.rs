@@ -5,7 +5,7 @@
 //! that says why and nothing loaded.
 
 use hal_sim::calibrate::{calibrate, CalibrateError, CalibrateOptions};
-use hal_sim::identification::auto::{identify_auto_admitting, NOT_ADMITTED};
+use hal_sim::identification::auto::{identify_auto_admitting, Validation};
 use hal_sim::identification::{IdentifyError, IdentifyOptions, ModelKind};
 use hal_sim::link::client::Client;
 use hal_sim::sim_device::{SimDevice, SimDeviceConfig};
@@ -314,11 +314,27 @@ fn auto_picks_a_model_the_board_runs_at_its_rate() {
     let refused: Vec<_> = r
         .ranking
         .iter()
-        .filter_map(|c| c.validation.as_ref().err())
-        .filter(|e| e.starts_with(NOT_ADMITTED) && e.contains("100 kHz"))
+        .filter_map(|c| match &c.validation {
+            Validation::NotAdmitted { why, .. } => Some(why),
+            _ => None,
+        })
+        .filter(|why| why.contains("100 kHz"))
         .collect();
     assert!(!refused.is_empty(), "{:?}", r.ranking);
-    assert!(r.ranking[0].validation.is_ok(), "{:?}", r.ranking);
+    assert!(
+        r.ranking[0].validation.admitted().is_some(),
+        "{:?}",
+        r.ranking
+    );
+    // Admitted candidates rank ahead of refused ones, whatever their figures.
+    let first_refused = r
+        .ranking
+        .iter()
+        .position(|c| c.validation.admitted().is_none())
+        .unwrap();
+    assert!(r.ranking[first_refused..]
+        .iter()
+        .all(|c| c.validation.admitted().is_none()));
 
     // Admitting none: an error naming every candidate and why, not a pick.
     let fit_until = options.excitation_s() - 1.0 / options.excitation_hz;

@@ -40,7 +40,7 @@ fn held_out(data: &MeasuredData, fit_until: f64) -> ((String, f64, f64), (f64, f
     let picked = auto
         .ranking
         .iter()
-        .find(|r| r.validation.is_ok())
+        .find(|r| r.validation.admitted().is_some())
         .unwrap()
         .label
         .clone();

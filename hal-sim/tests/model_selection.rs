@@ -116,7 +116,7 @@ fn auto_picks_the_model_that_generated_the_data() {
     let keys: Vec<f64> = auto
         .ranking
         .iter()
-        .map(|r| r.validation.as_ref().unwrap().max_pct)
+        .map(|r| r.validation.admitted().unwrap().max_pct)
         .collect();
     assert!(keys.windows(2).all(|w| w[0] <= w[1]), "{keys:?}");
     assert_eq!(auto.ranking.len(), candidates().len());

@@ -486,10 +486,10 @@ fn identify(
             .map(|r| {
                 (
                     r.label.clone(),
-                    r.validation
-                        .as_ref()
-                        .map(|f| (f.max_pct, f.rms_pct))
-                        .map_err(Clone::clone),
+                    match (r.validation.admitted(), r.validation.note()) {
+                        (Some(f), _) => Ok((f.max_pct, f.rms_pct)),
+                        (None, note) => Err(note.unwrap_or_default()),
+                    },
                 )
             })
             .collect()

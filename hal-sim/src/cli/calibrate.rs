@@ -12,6 +12,7 @@
 use super::board_link::{connect, PortArgs};
 use super::params::ModeArg;
 use crate::calibrate::{calibrate, CalibrateOptions, CalibrationReport, Progress};
+use crate::identification::auto::Validation;
 use crate::output_file::Staged;
 use crate::plot::{draw_panels, Panel, Series};
 use anyhow::bail;
@@ -107,8 +108,9 @@ pub fn report_json(r: &CalibrationReport, out: &Path, png: &Path) -> serde_json:
         "model": r.model,
         "reason": r.reason,
         "ranking": r.ranking.iter().map(|c| match &c.validation {
-            Ok(f) => serde_json::json!({"model": c.label, "max_pct": f.max_pct, "rms_pct": f.rms_pct}),
-            Err(e) => serde_json::json!({"model": c.label, "error": e}),
+            Validation::Scored(f) => serde_json::json!({"model": c.label, "max_pct": f.max_pct, "rms_pct": f.rms_pct}),
+            Validation::NotAdmitted { figures: f, why } => serde_json::json!({"model": c.label, "max_pct": f.max_pct, "rms_pct": f.rms_pct, "not_admitted": why}),
+            Validation::NotFitted(e) => serde_json::json!({"model": c.label, "error": e}),
         }).collect::<Vec<_>>(),
         "held_out": r.held_out,
         "tracking_before": r.before,
@@ -180,19 +182,15 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     if !report.ranking.is_empty() {
         println!("ranking (validation part of the excitation):");
         for (i, c) in report.ranking.iter().enumerate() {
-            match &c.validation {
-                Ok(f) => println!(
+            match (c.validation.admitted(), c.validation.note()) {
+                (Some(f), _) => println!(
                     "  {}. {:<32} max {:.2} %  RMS {:.2} %",
                     i + 1,
                     c.label,
                     f.max_pct,
                     f.rms_pct
                 ),
-                Err(e) => println!(
-                    "  -. {:<32} {}",
-                    c.label,
-                    crate::identification::auto::unranked_note(e)
-                ),
+                (None, note) => println!("  -. {:<32} {}", c.label, note.unwrap_or_default()),
             }
         }
     }
@@ -285,7 +283,7 @@ fn plot(r: &CalibrationReport, path: &Path) -> anyhow::Result<()> {
         .iter()
         .enumerate()
         .filter_map(|(i, c)| {
-            let f = c.validation.as_ref().ok()?;
+            let f = c.validation.admitted()?;
             let at = i as f64 + 1.0;
             Some(Series {
                 label: format!("{}. {}: {:.2} %", i + 1, c.label, f.max_pct),

@@ -117,13 +117,9 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
             auto.validation_from_s, auto.validation_from_s, args.fit_until
         );
         for (i, r) in auto.ranking.iter().enumerate() {
-            match &r.validation {
-                Ok(f) => println!("  {}. {:<32} {}", i + 1, r.label, show(f)),
-                Err(e) => println!(
-                    "  -. {:<32} {}",
-                    r.label,
-                    crate::identification::auto::unranked_note(e)
-                ),
+            match (r.validation.admitted(), r.validation.note()) {
+                (Some(f), _) => println!("  {}. {:<32} {}", i + 1, r.label, show(f)),
+                (None, note) => println!("  -. {:<32} {}", r.label, note.unwrap_or_default()),
             }
         }
         println!("picked: {}", auto.reason);

@@ -37,8 +37,58 @@ pub struct Ranked {
     pub label: String,
     /// The candidate's options (with the full window's `fit_until`).
     pub options: IdentifyOptions,
-    /// Its validation figures, or why it could not be fitted.
-    pub validation: Result<ErrorFigures, String>,
+    /// Where it stands after the validation part.
+    pub validation: Validation,
+}
+
+/// Where a candidate stands after the validation part: scored and admitted (it can be picked),
+/// scored but refused by the caller, or not fitted.
+#[derive(Clone, Debug, PartialEq, serde::Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Validation {
+    /// Fitted, scored on the validation part and admitted: it can be picked.
+    Scored(ErrorFigures),
+    /// Fitted and scored, but the caller does not admit it
+    /// ([`identify_auto_admitting`]'s `admit`), for the reason given.
+    NotAdmitted {
+        /// Its validation figures.
+        figures: ErrorFigures,
+        /// Why the caller refused it.
+        why: String,
+    },
+    /// Could not be fitted or scored, for the reason given.
+    NotFitted(String),
+}
+
+impl Validation {
+    /// The figures of a candidate that can be picked (scored and admitted).
+    pub fn admitted(&self) -> Option<&ErrorFigures> {
+        match self {
+            Validation::Scored(f) => Some(f),
+            _ => None,
+        }
+    }
+
+    /// The figures of a candidate that was scored, admitted or not.
+    pub fn figures(&self) -> Option<&ErrorFigures> {
+        match self {
+            Validation::Scored(f) | Validation::NotAdmitted { figures: f, .. } => Some(f),
+            Validation::NotFitted(_) => None,
+        }
+    }
+
+    /// What the ranking table says of a candidate that cannot be picked (`None` for one that
+    /// can): refused with its reason and figures, or not fitted with its reason.
+    pub fn note(&self) -> Option<String> {
+        match self {
+            Validation::Scored(_) => None,
+            Validation::NotAdmitted { figures, why } => Some(format!(
+                "not admitted ({why}); validation max {:.2} % / RMS {:.2} %",
+                figures.max_pct, figures.rms_pct
+            )),
+            Validation::NotFitted(why) => Some(format!("not fitted: {why}")),
+        }
+    }
 }
 
 /// The outcome of `--model auto`.
@@ -55,28 +105,17 @@ pub struct AutoIdentification {
     pub reason: String,
 }
 
-/// How the reason of a candidate [`identify_auto_admitting`]'s `admit` refused begins.
-pub const NOT_ADMITTED: &str = "not admitted";
-
-/// What the ranking table says of a candidate that was not ranked, given its reason: fitted
-/// but not admitted, or not fitted.
-pub fn unranked_note(reason: &str) -> String {
-    if reason.starts_with(NOT_ADMITTED) {
-        reason.to_string()
-    } else {
-        format!("not fitted: {reason}")
-    }
-}
-
 /// A candidate's name for the ranking table.
 pub fn label(options: &IdentifyOptions) -> String {
     options.model_label()
 }
 
-fn rank_key(r: &Ranked) -> (f64, f64) {
+/// Admitted candidates by their figures, then refused ones by theirs, then those not fitted.
+fn rank_key(r: &Ranked) -> (u8, f64, f64) {
     match &r.validation {
-        Ok(f) => (f.max_pct, f.rms_pct),
-        Err(_) => (f64::INFINITY, f64::INFINITY),
+        Validation::Scored(f) => (0, f.max_pct, f.rms_pct),
+        Validation::NotAdmitted { figures: f, .. } => (1, f.max_pct, f.rms_pct),
+        Validation::NotFitted(_) => (2, 0.0, 0.0),
     }
 }
 
@@ -129,7 +168,7 @@ pub fn identify_auto_admitting(
         .map(|c| {
             let mut inner = c.clone();
             inner.fit_until_s = validation_from_s;
-            let validation = identify(&window, &inner)
+            let scored = identify(&window, &inner)
                 .map_err(|e| e.to_string())
                 .and_then(|id| {
                     let predicted = id
@@ -140,14 +179,15 @@ pub fn identify_auto_admitting(
                         score(&x[..n_fit], &predicted, split..n_fit).ok_or_else(|| {
                             String::from("the measured output is flat on the validation part")
                         })?;
-                    admit(&id).map_err(|why| {
-                        format!(
-                            "{NOT_ADMITTED} ({why}); validation max {:.2} % / RMS {:.2} %",
-                            figures.max_pct, figures.rms_pct
-                        )
-                    })?;
-                    Ok(figures)
+                    Ok((id, figures))
                 });
+            let validation = match scored {
+                Ok((id, figures)) => match admit(&id) {
+                    Ok(()) => Validation::Scored(figures),
+                    Err(why) => Validation::NotAdmitted { figures, why },
+                },
+                Err(why) => Validation::NotFitted(why),
+            };
             Ranked {
                 label: label(c),
                 options: c.clone(),
@@ -157,21 +197,26 @@ pub fn identify_auto_admitting(
         .collect();
     ranking.sort_by(|a, b| {
         let (a, b) = (rank_key(a), rank_key(b));
-        a.0.total_cmp(&b.0).then(a.1.total_cmp(&b.1))
+        a.0.cmp(&b.0)
+            .then(a.1.total_cmp(&b.1))
+            .then(a.2.total_cmp(&b.2))
     });
-    let best = ranking.iter().find(|r| r.validation.is_ok()).cloned();
+    let best = ranking
+        .iter()
+        .find(|r| r.validation.admitted().is_some())
+        .cloned();
     // Parsimony: the special case wins unless the generalisation beats it by the margin.
     let simpler = best.as_ref().and_then(|b| {
         let special = b.options.model.special_case()?;
-        let best_max = b.validation.as_ref().ok()?.max_pct;
+        let best_max = b.validation.admitted()?.max_pct;
         ranking
             .iter()
             // Its special case with the same creep (Bouc–Wen + creep against Duhem + creep).
             .find(|r| r.options.model == special && r.options.creep == b.options.creep)
             .filter(|r| {
                 r.validation
-                    .as_ref()
-                    .is_ok_and(|f| f.max_pct <= best_max * (1.0 + PARSIMONY_MARGIN))
+                    .admitted()
+                    .is_some_and(|f| f.max_pct <= best_max * (1.0 + PARSIMONY_MARGIN))
             })
             .cloned()
     });
@@ -183,15 +228,11 @@ pub fn identify_auto_admitting(
             ranking.insert(0, picked);
         }
     }
-    let refused = |r: &Ranked| {
-        r.validation
-            .as_ref()
-            .is_err_and(|e| e.starts_with(NOT_ADMITTED))
-    };
+    let refused = |r: &Ranked| matches!(r.validation, Validation::NotAdmitted { .. });
     if best.is_none() && ranking.iter().any(refused) {
         let reasons: Vec<String> = ranking
             .iter()
-            .filter_map(|r| Some(format!("{}: {}", r.label, r.validation.as_ref().err()?)))
+            .filter_map(|r| Some(format!("{}: {}", r.label, r.validation.note()?)))
             .collect();
         return Err(IdentifyError::NoneAdmitted(reasons.join("; ")));
     }
@@ -213,21 +254,22 @@ pub fn identify_auto_admitting(
     let runner_up = ranking
         .iter()
         .filter(|r| r.label != best.label)
-        .find_map(|r| r.validation.as_ref().ok().map(|f| (r.label.clone(), *f)));
-    let reason = match (&best.validation, runner_up) {
-        (Ok(b), Some((next, n))) if parsimony => format!(
+        .find_map(|r| r.validation.admitted().map(|f| (r.label.clone(), *f)));
+    let reason = match (best.validation.admitted(), runner_up) {
+        (Some(b), Some((next, n))) if parsimony => format!(
             "{} predicts the validation part (t >= {:.4} s) within {:.0} % of the best ({next}: max {:.2} % / RMS {:.2} %) with fewer parameters: max {:.2} % / RMS {:.2} % of span",
             best.label, validation_from_s, 100.0 * PARSIMONY_MARGIN, n.max_pct, n.rms_pct, b.max_pct, b.rms_pct
         ),
-        (Ok(b), Some((next, n))) => format!(
+        (Some(b), Some((next, n))) => format!(
             "{} predicts the validation part (t >= {:.4} s) best: max {:.2} % / RMS {:.2} % of span, against {:.2} % / {:.2} % for the next ({next})",
             best.label, validation_from_s, b.max_pct, b.rms_pct, n.max_pct, n.rms_pct
         ),
-        (Ok(b), None) => format!(
+        (Some(b), None) => format!(
             "{} is the only candidate that could be fitted: validation max {:.2} % / RMS {:.2} %",
             best.label, b.max_pct, b.rms_pct
         ),
-        (Err(e), _) => e.clone(),
+        // `best` is admitted by construction; its note, should that ever change.
+        (None, _) => best.validation.note().unwrap_or_default(),
     };
     Ok(AutoIdentification {
         ranking,

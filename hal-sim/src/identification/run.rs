@@ -128,7 +128,7 @@ pub fn identify_and_score(
             let kept = auto
                 .ranking
                 .iter()
-                .find(|r| r.validation.is_ok())
+                .find(|r| r.validation.admitted().is_some())
                 .map_or_else(|| options.clone(), |r| r.options.clone());
             let id = auto.identification.clone();
             (Some(auto), kept, id)
