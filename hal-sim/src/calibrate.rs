@@ -39,6 +39,7 @@
 
 use crate::capture::{self, CaptureError, ConvertError, Recording};
 use crate::identification::auto::{identify_auto_admitting, Ranked, Validation};
+use crate::identification::run::runs_at;
 use crate::identification::score::{score, ErrorFigures};
 use crate::identification::{identify, Identification, IdentifyError, IdentifyOptions, ModelKind};
 use crate::link::client::{Client, LinkError};
@@ -49,13 +50,11 @@ use crate::param_file::{IdentificationRecord, ParamFile};
 use crate::setpoint_file::q1_15;
 use crate::tracking;
 use std::time::Duration;
-use twinstack::board::Hardware;
 use twinstack::protocol::messages::{
     CaptureRequest, CaptureStatus, Mode, StatusReport, StreamControl, Trigger, UnderrunPolicy,
     WaveDecay, WaveShape, Waveform,
 };
 use twinstack::recorder::Channel;
-use twinstack::refusal::Field;
 use twinstack::settings::Settings;
 
 /// How a calibration runs. [`CalibrateOptions::default`] is what `hal-sim calibrate` runs.
@@ -575,13 +574,7 @@ fn measure<T: Transport>(
         settings.drive = board.drive;
         settings.sensor = board.sensor;
         settings.feedback = board.feedback;
-        match settings.build(&Hardware::driver_board(rate)) {
-            Err(r) if r.field == Field::Workload => Err(format!(
-                "the board at {:.0} kHz would refuse it: {r}",
-                rate / 1e3
-            )),
-            _ => Ok(()),
-        }
+        runs_at(&settings, rate)
     };
     let (id, label, reason, ranking) = match options.model {
         Some(_) => {

@@ -564,3 +564,66 @@ fn simulator_data_is_identified_better_than_the_first_paper_did_the_real_stage()
         );
     }
 }
+
+// ---------------------------------------------------------------------------------------
+// The board's rate.
+
+/// `identify --tick-rate` keeps only a model the board runs at that rate: on the bipolar set,
+/// `auto` alone picks a model a 100 kHz board refuses (P–I + creep); with `--tick-rate 100000`
+/// the file it writes loads there, and a model asked for by name that does not fit is an
+/// error naming its cycles, with nothing written.
+#[test]
+fn identify_at_a_tick_rate_keeps_a_model_the_board_runs() {
+    use hal_sim::identification::run::runs_at;
+    use hal_sim::param_file::ParamFile;
+    let dir = tempfile::tempdir().unwrap();
+    let data = measured_data(BIPOLAR);
+    let identify = |out: &Path, extra: &[&str]| {
+        let mut args = vec![
+            "identify",
+            "--data",
+            data.to_str().unwrap(),
+            "--fit-until",
+            "5.95",
+            "--out",
+            out.to_str().unwrap(),
+        ];
+        args.extend_from_slice(extra);
+        ok(&args)
+    };
+    let settings = |out: &Path| ParamFile::load(out).unwrap().0.settings;
+
+    let free = dir.path().join("free.json");
+    identify(&free, &[]);
+    assert!(runs_at(&settings(&free), 100_000.0).is_err());
+
+    let fast = dir.path().join("fast.json");
+    let stdout = identify(&fast, &["--tick-rate", "100000"]);
+    assert!(runs_at(&settings(&fast), 100_000.0).is_ok(), "{stdout}");
+    assert!(
+        stdout.contains("not admitted (the board at 100 kHz"),
+        "{stdout}"
+    );
+
+    let named = dir.path().join("named.json");
+    let err = fails(
+        &[
+            "identify",
+            "--model",
+            "gpi",
+            "--tick-rate",
+            "100000",
+            "--data",
+            data.to_str().unwrap(),
+            "--fit-until",
+            "5.95",
+            "--out",
+            named.to_str().unwrap(),
+        ],
+        &[&named],
+    );
+    assert!(
+        err.contains("generalised P-I") && err.contains("cycles per tick"),
+        "{err}"
+    );
+}

@@ -12,6 +12,7 @@ use hal_sim::capture::{self, CaptureError};
 use hal_sim::identification::run::{
     default_fit_until, identify_and_score, parse_model, Identified, RunError,
 };
+use hal_sim::identification::auto::Validation;
 use hal_sim::identification::{IdentifyOptions, ModelKind, ThresholdSpread};
 use hal_sim::link::client::{nack_text, Client, LinkError};
 use hal_sim::link::port::{open_send, PortError, PortSpec, DEFAULT_BAUD};
@@ -249,9 +250,8 @@ struct Params {
     ranking: Option<Vec<Ranked>>,
 }
 
-/// One of `auto`'s candidates: its label, and its validation (max %, RMS %) or why it could not
-/// be fitted.
-type Ranked = (String, Result<(f64, f64), String>);
+/// One of `auto`'s candidates: its label, and where it stands after the validation part.
+type Ranked = (String, Validation);
 
 impl Params {
     fn from_file(file: ParamFile, model: StageModel) -> Self {
@@ -387,23 +387,27 @@ impl Params {
         }
     }
 
-    /// `model="auto"`'s ranking, best first: dicts with `label`, `max_pct`, `rms_pct` (or
-    /// `error`); `None` when one model was asked for or the file was loaded.
+    /// `model="auto"`'s ranking, best first: dicts with `label`, `max_pct`, `rms_pct` (and
+    /// `not_admitted`, the reason, for a model the board would not run at `tick_rate`), or
+    /// `error` for one that could not be fitted; `None` when one model was asked for or the
+    /// file was loaded.
     #[getter]
     fn ranking<'py>(&self, py: Python<'py>) -> PyResult<Option<Bound<'py, PyList>>> {
         let Some(ranking) = &self.ranking else {
             return Ok(None);
         };
         let list = PyList::empty(py);
-        for (label, result) in ranking {
+        for (label, validation) in ranking {
             let d = PyDict::new(py);
             d.set_item("label", label)?;
-            match result {
-                Ok((max, rms)) => {
-                    d.set_item("max_pct", max)?;
-                    d.set_item("rms_pct", rms)?;
-                }
-                Err(e) => d.set_item("error", e)?,
+            if let Some(f) = validation.figures() {
+                d.set_item("max_pct", f.max_pct)?;
+                d.set_item("rms_pct", f.rms_pct)?;
+            }
+            match validation {
+                Validation::Scored(_) => {}
+                Validation::NotAdmitted { why, .. } => d.set_item("not_admitted", why)?,
+                Validation::NotFitted(why) => d.set_item("error", why)?,
             }
             list.append(d)?;
         }
@@ -435,7 +439,7 @@ fn load_params(path: PathBuf) -> PyResult<Params> {
 
 /// Identifies a model from a measured record (`t` seconds, `u` drive volts, `x` reading).
 #[pyfunction]
-#[pyo3(signature = (t, u, x, model="auto", creep=None, fit_until=None, operators=17, thresholds="uniform", lag=None, output_unit="um"))]
+#[pyo3(signature = (t, u, x, model="auto", creep=None, fit_until=None, operators=17, thresholds="uniform", lag=None, output_unit="um", tick_rate=None))]
 #[allow(clippy::too_many_arguments)]
 fn identify(
     py: Python<'_>,
@@ -449,8 +453,16 @@ fn identify(
     thresholds: &str,
     lag: Option<usize>,
     output_unit: &str,
+    tick_rate: Option<f64>,
 ) -> PyResult<Params> {
     let choice = parse_model(model).map_err(PyValueError::new_err)?;
+    if let Some(rate) = tick_rate {
+        if !(rate.is_finite() && rate > 0.0) {
+            return Err(PyValueError::new_err(format!(
+                "tick_rate {rate}: must be a positive number of Hz"
+            )));
+        }
+    }
     let spread = match thresholds.to_ascii_lowercase().as_str() {
         "uniform" => ThresholdSpread::Uniform,
         "geometric" => ThresholdSpread::Geometric,
@@ -478,19 +490,13 @@ fn identify(
     options.thresholds = spread;
     options.lag = lag;
     let run: Result<Identified, RunError> =
-        py.detach(|| identify_and_score(&data, choice, &options, creep, output_unit));
+        py.detach(|| identify_and_score(&data, choice, &options, creep, output_unit, tick_rate));
     let run = run.map_err(|e| PyValueError::new_err(e.to_string()))?;
     let ranking = run.auto.as_ref().map(|a| {
         a.ranking
             .iter()
             .map(|r| {
-                (
-                    r.label.clone(),
-                    match (r.validation.admitted(), r.validation.note()) {
-                        (Some(f), _) => Ok((f.max_pct, f.rms_pct)),
-                        (None, note) => Err(note.unwrap_or_default()),
-                    },
-                )
+                (r.label.clone(), r.validation.clone())
             })
             .collect()
     });

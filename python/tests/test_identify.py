@@ -118,3 +118,16 @@ def test_auto_ranks_every_model_and_creep_selects_the_candidates(micro):
     assert only.creep
     none = twinstack.identify(t, u, x, fit_until=16.0, creep=False)
     assert not any("+ creep" in r["label"] for r in none.ranking) and len(none.ranking) == 4
+
+
+def test_tick_rate_keeps_a_model_the_board_runs(micro):
+    t, u, x = micro
+    fast = twinstack.identify(t, u, x, fit_until=16.0, tick_rate=100_000.0)
+    # The ranking says which were left out for the rate; the kept one is admitted.
+    assert "not_admitted" not in fast.ranking[0] and "max_pct" in fast.ranking[0]
+    refused = [r for r in fast.ranking if "not_admitted" in r]
+    assert refused and all("100 kHz" in r["not_admitted"] and "max_pct" in r for r in refused)
+    with pytest.raises(ValueError, match="cycles per tick"):
+        twinstack.identify(t, u, x, model="gpi", fit_until=16.0, tick_rate=100_000.0)
+    with pytest.raises(ValueError, match="tick_rate"):
+        twinstack.identify(t, u, x, fit_until=16.0, tick_rate=-1.0)

@@ -96,7 +96,8 @@ class Params:
     @property
     def ranking(self) -> Optional[List[Dict[str, Any]]]:
         """``model="auto"``'s ranking, best first: dicts with ``label`` and ``max_pct`` /
-        ``rms_pct`` on the validation part, or ``error``. ``None`` otherwise."""
+        ``rms_pct`` on the validation part (and ``not_admitted``, the reason, for a model the
+        board would not run at ``tick_rate``), or ``error``. ``None`` otherwise."""
 
 def identify(
     t: _ArrayLike,
@@ -109,6 +110,7 @@ def identify(
     thresholds: str = "uniform",
     lag: Optional[int] = None,
     output_unit: str = "um",
+    tick_rate: Optional[float] = None,
 ) -> Params:
     """Identifies a hysteresis model from a measured record: ``t`` seconds (strictly
     increasing), ``u`` the drive in volts, ``x`` the measured output.
@@ -121,8 +123,10 @@ def identify(
     each model with and without a creep operator (one model: without), ``True`` fits one,
     ``False`` none. ``operators``/``thresholds``: the P-I's play operators (1 to 32, spread
     ``"uniform"`` or ``"geometric"``); ``lag``: the sensor lag in samples (estimated when
-    ``None``). Runs without the interpreter's lock. ``ValueError`` says why a record cannot be
-    fitted."""
+    ``None``). ``tick_rate`` (Hz): keep only a model the board runs at that control rate
+    (its tick budget, as the board applies it at load); ``auto`` picks among those, a model
+    asked for by name that does not fit raises ``ValueError``. Runs without the
+    interpreter's lock. ``ValueError`` says why a record cannot be fitted."""
 
 def load_params(path: Union[str, "PathLike[str]"]) -> Params:
     """Reads and checks a parameter file (``hal-sim identify``'s, or :meth:`Params.save`'s);

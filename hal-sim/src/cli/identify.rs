@@ -5,7 +5,7 @@
 
 use crate::identification::run::{identify_and_score, RunError};
 use crate::identification::score::ErrorFigures;
-use crate::identification::{IdentifyOptions, ModelKind, ThresholdSpread};
+use crate::identification::{IdentifyError, IdentifyOptions, ModelKind, ThresholdSpread};
 use crate::measured_data::{ColumnNames, Columns, MeasuredData};
 use crate::output_file::Staged;
 use crate::plot::{draw, IdentificationFigure};
@@ -46,6 +46,12 @@ pub struct Args {
     /// at most 100 s) in series with the model.
     #[arg(long)]
     pub creep: bool,
+    /// Keep only a model the board runs at this control rate, Hz (its tick budget, as the
+    /// board applies it at load, with the file's settings): `auto` picks among those, a model
+    /// asked for by name that does not fit is an error. Without it any model is kept, and a
+    /// fast board may refuse the file.
+    #[arg(long, value_name = "HZ")]
+    pub tick_rate: Option<f64>,
     /// Unit of the x column, recorded in the parameter file.
     #[arg(long, default_value = "units of the x column")]
     pub output_unit: String,
@@ -87,6 +93,11 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
             args.out.display()
         );
     }
+    if let Some(rate) = args.tick_rate {
+        if !(rate.is_finite() && rate > 0.0) {
+            bail!("--tick-rate {rate}: must be a positive number of Hz");
+        }
+    }
     let data = MeasuredData::read_with(
         &args.data,
         Columns::TimeDriveOutput,
@@ -101,6 +112,8 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     options.lag = args.lag;
     let in_file = |e: RunError| match e {
         RunError::Params(e) => anyhow!("{e}"),
+        // The rate refused the models, not the file.
+        RunError::Identify(e @ IdentifyError::NoneAdmitted(_)) => anyhow!("{e}"),
         e => anyhow!("{}: {e}", args.data.display()),
     };
     let run = identify_and_score(
@@ -109,6 +122,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         &options,
         args.creep.then_some(true),
         &args.output_unit,
+        args.tick_rate,
     )
     .map_err(in_file)?;
     if let Some(auto) = &run.auto {

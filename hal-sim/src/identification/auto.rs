@@ -232,9 +232,9 @@ pub fn identify_auto_admitting(
     if best.is_none() && ranking.iter().any(refused) {
         let reasons: Vec<String> = ranking
             .iter()
-            .filter_map(|r| Some(format!("{}: {}", r.label, r.validation.note()?)))
+            .filter_map(|r| Some(format!("\n  - {}: {}", r.label, r.validation.note()?)))
             .collect();
-        return Err(IdentifyError::NoneAdmitted(reasons.join("; ")));
+        return Err(IdentifyError::NoneAdmitted(reasons.concat()));
     }
     let Some(best) = simpler.or(best) else {
         // No candidate could be ranked (the validation part too short for every one):

@@ -3,11 +3,14 @@
 //! score it on the fitted and the held-out part, in fixed point and against the `f64`
 //! reference, and put it in a parameter file with that record.
 
-use super::auto::{identify_auto, AutoIdentification};
+use super::auto::{identify_auto_admitting, AutoIdentification};
 use super::score::{score, ErrorFigures};
 use super::{identify, Identification, IdentifyError, IdentifyOptions, ModelKind};
 use crate::measured_data::MeasuredData;
 use crate::param_file::{IdentificationRecord, ParamFile};
+use twinstack::board::Hardware;
+use twinstack::refusal::Field;
+use twinstack::settings::Settings;
 
 /// Which model to fit: every candidate, or one.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -103,16 +106,51 @@ pub fn candidates(options: &IdentifyOptions, creep: Option<bool>) -> Vec<Identif
         .collect()
 }
 
+/// `Ok(())` if the driver board's tick budget runs `settings` at `rate_hz`, the test the board
+/// applies when they are loaded ([`twinstack::tick_budget`]); else why not, with the cycles
+/// they need and the cycles the rate leaves.
+///
+/// ```
+/// use hal_sim::identification::run::runs_at;
+/// use twinstack::settings::{representative_gpi, Settings};
+/// let s = Settings { compensator: Some(representative_gpi(16).unwrap()), ..Settings::default() };
+/// assert!(runs_at(&s, 50_000.0).is_ok());
+/// assert!(runs_at(&s, 100_000.0).unwrap_err().contains("100 kHz"));
+/// ```
+pub fn runs_at(settings: &Settings, rate_hz: f64) -> Result<(), String> {
+    match settings.build(&Hardware::driver_board(rate_hz)) {
+        Err(r) if r.field == Field::Workload => Err(format!(
+            "the board at {:.0} kHz would refuse it: {r}",
+            rate_hz / 1e3
+        )),
+        _ => Ok(()),
+    }
+}
+
 /// Fits `data` (`t`, `u`, `x`) as `choice` says, with `options` (its `model` is ignored;
 /// `creep`: see [`candidates`]; for one model, `Some(true)` adds a creep operator), scores
 /// the model kept and writes its parameter file with `output_unit` as the unit of `x`.
+///
+/// With `tick_rate_hz`, only a model the board runs at that control rate is kept
+/// ([`runs_at`], with the parameter file's settings: the board's own sensor and feedback are
+/// not known here, and a derivative term or a notch there costs more): `auto` picks among
+/// those, and one model asked for by name that does not fit fails with
+/// [`IdentifyError::NoneAdmitted`].
 pub fn identify_and_score(
     data: &MeasuredData,
     choice: ModelChoice,
     options: &IdentifyOptions,
     creep: Option<bool>,
     output_unit: &str,
+    tick_rate_hz: Option<f64>,
 ) -> Result<Identified, RunError> {
+    let admit = |id: &Identification| match tick_rate_hz {
+        Some(rate) => runs_at(
+            &ParamFile::from_model(&id.model, output_unit, None).settings,
+            rate,
+        ),
+        None => Ok(()),
+    };
     let (auto, options, id) = match choice {
         ModelChoice::Only(kind) => {
             let o = IdentifyOptions {
@@ -121,10 +159,13 @@ pub fn identify_and_score(
                 ..options.clone()
             };
             let id = identify(data, &o)?;
+            admit(&id).map_err(|why| {
+                IdentifyError::NoneAdmitted(format!("{}: {why}", o.model_label()))
+            })?;
             (None, o, id)
         }
         ModelChoice::Auto => {
-            let auto = identify_auto(data, &candidates(options, creep))?;
+            let auto = identify_auto_admitting(data, &candidates(options, creep), admit)?;
             let kept = auto
                 .ranking
                 .iter()
