@@ -9,10 +9,10 @@
 //! chapter (`docs/src/guide/python.md`).
 
 use hal_sim::capture::{self, CaptureError};
+use hal_sim::identification::auto::Validation;
 use hal_sim::identification::run::{
     default_fit_until, identify_and_score, parse_model, Identified, RunError,
 };
-use hal_sim::identification::auto::Validation;
 use hal_sim::identification::{IdentifyOptions, ModelKind, ThresholdSpread};
 use hal_sim::link::client::{nack_text, Client, LinkError};
 use hal_sim::link::port::{open_send, PortError, PortSpec, DEFAULT_BAUD};
@@ -495,9 +495,7 @@ fn identify(
     let ranking = run.auto.as_ref().map(|a| {
         a.ranking
             .iter()
-            .map(|r| {
-                (r.label.clone(), r.validation.clone())
-            })
+            .map(|r| (r.label.clone(), r.validation.clone()))
             .collect()
     });
     Ok(Params {
