@@ -39,9 +39,11 @@
 
 use crate::capture::{self, CaptureError, ConvertError, Recording};
 use crate::identification::auto::{identify_auto_admitting, Ranked, Validation};
-use crate::identification::run::runs_at;
+use crate::identification::run::{admission_at, identify_admitted, BoardRate};
 use crate::identification::score::{score, ErrorFigures};
-use crate::identification::{identify, Identification, IdentifyError, IdentifyOptions, ModelKind};
+use crate::identification::{
+    Identification, IdentifyError, IdentifyOptions, ModelKind, DEFAULT_OPERATORS,
+};
 use crate::link::client::{Client, LinkError};
 use crate::link::streamer::{stream_setpoints, StreamError, StreamOptions};
 use crate::link::Transport;
@@ -77,8 +79,9 @@ pub struct CalibrateOptions {
     pub sample_rate_hz: f64,
     /// The model to fit; `None`: every model of the family, the best kept (`--model auto`).
     pub model: Option<ModelKind>,
-    /// Play operators of a P–I model.
-    pub operators: usize,
+    /// Play operators of a P–I model; `None`: 17, or as many as the board runs at its rate
+    /// where 17 are too many.
+    pub operators: Option<usize>,
     /// Sensor lag, samples of the recorded excitation; `None`: estimated as `identify` does.
     pub lag: Option<usize>,
     /// Largest held-out max error of the identified model, % of span, before the calibration
@@ -107,7 +110,7 @@ impl Default for CalibrateOptions {
             final_amplitude: 0.15,
             sample_rate_hz: 10_000.0,
             model: None,
-            operators: 17,
+            operators: None,
             lag: Some(0),
             max_held_out_pct: 5.0,
             clamp: false,
@@ -564,30 +567,33 @@ fn measure<T: Transport>(
     progress(Progress::Step("identifying"));
     let fit_until = options.excitation_s() - 1.0 / options.excitation_hz;
     let mut id_options = IdentifyOptions::new(options.model.unwrap_or(ModelKind::Pi), fit_until);
-    id_options.operators = options.operators;
+    id_options.operators = options.operators.unwrap_or(DEFAULT_OPERATORS);
+    let rate_limit = BoardRate {
+        hz: rate,
+        fewer_operators: options.operators.is_none(),
+    };
     id_options.lag = options.lag;
     // Only a model the board runs at its control rate with its drive, sensor and feedback:
     // the tick budget the board applies at load ([`twinstack::tick_budget`]), applied here
     // first, so that `auto` picks among what the board takes.
-    let runs_on_board = |id: &Identification| -> Result<(), String> {
+    let runs_on_board = |id: &Identification| {
         let mut settings = ParamFile::from_model(&id.model, &options.output_unit, None).settings;
         settings.drive = board.drive;
         settings.sensor = board.sensor;
         settings.feedback = board.feedback;
-        runs_at(&settings, rate)
+        admission_at(&settings, &rate_limit)
     };
-    let (id, label, reason, ranking) = match options.model {
+    let (id, operators, label, reason, ranking) = match options.model {
         Some(_) => {
-            let id = identify(&excitation, &id_options)?;
-            let label = id_options.model_label();
-            runs_on_board(&id)
-                .map_err(|why| IdentifyError::NoneAdmitted(format!("{label}: {why}")))?;
-            (
-                id,
-                label.clone(),
-                format!("{label} (asked for)"),
-                Vec::new(),
-            )
+            let asked = id_options.operators;
+            let (fitted, id) = identify_admitted(&excitation, id_options.clone(), runs_on_board)?;
+            let label = fitted.model_label();
+            let reason = if fitted.operators < asked {
+                format!("{label} (asked for; {} play operators instead of {asked}, the most the board runs at its rate)", fitted.operators)
+            } else {
+                format!("{label} (asked for)")
+            };
+            (id, fitted.operators, label, reason, Vec::new())
         }
         None => {
             let auto =
@@ -596,12 +602,18 @@ fn measure<T: Transport>(
                 .ranking
                 .iter()
                 .find(|r| r.validation.admitted().is_some())
-                .map_or_else(|| id_options.model_label(), |r| r.label.clone());
+                .map_or_else(|| id_options.clone(), |r| r.options.clone());
             let ranking = auto.ranking.iter().map(candidate).collect();
-            (auto.identification, picked, auto.reason, ranking)
+            (
+                auto.identification,
+                picked.operators,
+                picked.model_label(),
+                auto.reason,
+                ranking,
+            )
         }
     };
-    let (record, predicted) = identification_record(&excitation, &id, fit_until, options)?;
+    let (record, predicted) = identification_record(&excitation, &id, fit_until, operators)?;
     if record.held_out.max_pct > options.max_held_out_pct {
         return Err(CalibrateError::DoesNotFit {
             model: label,
@@ -733,7 +745,7 @@ fn identification_record(
     data: &MeasuredData,
     id: &Identification,
     fit_until: f64,
-    options: &CalibrateOptions,
+    operators: usize,
 ) -> Result<(IdentificationRecord, Vec<f64>), CalibrateError> {
     let (t, u, x) = (
         &data.t,
@@ -754,7 +766,7 @@ fn identification_record(
         data: data.path.display().to_string(),
         fit_until_s: fit_until,
         fit_from_s: t.get(fit_from).copied().unwrap_or(0.0),
-        operators: options.operators,
+        operators,
         thresholds: "uniform".into(),
         lag_samples: id.lag_samples,
         lag_estimated: id.lag_estimated,

@@ -5,7 +5,7 @@
 //! that says why and nothing loaded.
 
 use hal_sim::calibrate::{calibrate, CalibrateError, CalibrateOptions};
-use hal_sim::identification::auto::{identify_auto_admitting, Validation};
+use hal_sim::identification::auto::{identify_auto_admitting, Admission, Validation};
 use hal_sim::identification::{IdentifyError, IdentifyOptions, ModelKind};
 use hal_sim::link::client::Client;
 use hal_sim::sim_device::{SimDevice, SimDeviceConfig};
@@ -339,14 +339,50 @@ fn auto_picks_a_model_the_board_runs_at_its_rate() {
     // Admitting none: an error naming every candidate and why, not a pick.
     let fit_until = options.excitation_s() - 1.0 / options.excitation_hz;
     let candidates = IdentifyOptions::new(ModelKind::Pi, fit_until).candidates();
-    let e = identify_auto_admitting(&r.excitation, &candidates, |_| Err("too dear".into()))
-        .unwrap_err();
+    let e = identify_auto_admitting(&r.excitation, &candidates, |_| {
+        Admission::Refused("too dear".into())
+    })
+    .unwrap_err();
     match &e {
         IdentifyError::NoneAdmitted(why) => {
             assert_eq!(why.matches("too dear").count(), candidates.len(), "{e}")
         }
         other => panic!("{other}"),
     }
+}
+
+/// At 100 kHz a P–I of the default 17 operators is too dear by one pair of operators per
+/// bank: `calibrate --model pi` without `--operators` fits 16 and says so, where it used to
+/// refuse; with `--operators 17` asked for, it still refuses, before loading anything.
+#[test]
+fn a_pi_is_sized_to_the_boards_rate_unless_its_operators_are_asked_for() {
+    let rate = 100_000.0;
+    let mut config = SimDeviceConfig::paper();
+    config.board.plant.dt = 1.0 / rate;
+    let mut client = sim_client(config.clone());
+    let options = CalibrateOptions {
+        model: Some(ModelKind::Pi),
+        // The sizing is under test, not the fit: this stage creeps more than a P–I alone
+        // follows over the quick excitation (8 % held out).
+        max_held_out_pct: 20.0,
+        ..quick()
+    };
+    let r = calibrate(&mut client, &options, |_| {}).expect("P-I sized to 100 kHz");
+    assert_eq!(r.file.identification.as_ref().unwrap().operators, 16);
+    assert!(r.model.contains("16 uniform operators"), "{}", r.model);
+    assert!(r.reason.contains("instead of 17"), "{}", r.reason);
+    let loaded = client.read_params().unwrap();
+    assert!(loaded.build(&Hardware::driver_board(rate)).is_ok());
+
+    let mut client = sim_client(config);
+    let before = client.read_params().unwrap();
+    let asked = CalibrateOptions {
+        operators: Some(17),
+        ..options
+    };
+    let e = calibrate(&mut client, &asked, |_| {}).unwrap_err();
+    assert!(e.to_string().contains("cycles per tick"), "{e}");
+    assert_eq!(client.read_params().unwrap(), before);
 }
 
 #[test]

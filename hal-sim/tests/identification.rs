@@ -604,6 +604,19 @@ fn identify_at_a_tick_rate_keeps_a_model_the_board_runs() {
         stdout.contains("not admitted (the board at 100 kHz"),
         "{stdout}"
     );
+    // P–I 17 is one pair of operators too dear at 100 kHz: ranked, and picked, with 16.
+    assert!(
+        stdout.contains("picked: P-I (16 uniform operators)")
+            && stdout.contains("instead of the 17 asked for"),
+        "{stdout}"
+    );
+    // Unless 17 are asked for.
+    let seventeen = dir.path().join("seventeen.json");
+    let stdout = identify(&seventeen, &["--tick-rate", "100000", "--operators", "17"]);
+    assert!(
+        stdout.contains("P-I (17 uniform operators)       not admitted"),
+        "{stdout}"
+    );
 
     let named = dir.path().join("named.json");
     let err = fails(

@@ -11,9 +11,9 @@
 use hal_sim::capture::{self, CaptureError};
 use hal_sim::identification::auto::Validation;
 use hal_sim::identification::run::{
-    default_fit_until, identify_and_score, parse_model, Identified, RunError,
+    default_fit_until, identify_and_score, parse_model, BoardRate, Identified, RunError,
 };
-use hal_sim::identification::{IdentifyOptions, ModelKind, ThresholdSpread};
+use hal_sim::identification::{IdentifyOptions, ModelKind, ThresholdSpread, DEFAULT_OPERATORS};
 use hal_sim::link::client::{nack_text, Client, LinkError};
 use hal_sim::link::port::{open_send, PortError, PortSpec, DEFAULT_BAUD};
 use hal_sim::link::streamer::{stream_setpoints_until, StreamOptions};
@@ -439,7 +439,7 @@ fn load_params(path: PathBuf) -> PyResult<Params> {
 
 /// Identifies a model from a measured record (`t` seconds, `u` drive volts, `x` reading).
 #[pyfunction]
-#[pyo3(signature = (t, u, x, model="auto", creep=None, fit_until=None, operators=17, thresholds="uniform", lag=None, output_unit="um", tick_rate=None))]
+#[pyo3(signature = (t, u, x, model="auto", creep=None, fit_until=None, operators=None, thresholds="uniform", lag=None, output_unit="um", tick_rate=None))]
 #[allow(clippy::too_many_arguments)]
 fn identify(
     py: Python<'_>,
@@ -449,7 +449,7 @@ fn identify(
     model: &str,
     creep: Option<bool>,
     fit_until: Option<f64>,
-    operators: usize,
+    operators: Option<usize>,
     thresholds: &str,
     lag: Option<usize>,
     output_unit: &str,
@@ -463,6 +463,11 @@ fn identify(
             )));
         }
     }
+    // A P–I sized to the rate unless its operators were asked for.
+    let rate = tick_rate.map(|hz| BoardRate {
+        hz,
+        fewer_operators: operators.is_none(),
+    });
     let spread = match thresholds.to_ascii_lowercase().as_str() {
         "uniform" => ThresholdSpread::Uniform,
         "geometric" => ThresholdSpread::Geometric,
@@ -486,11 +491,11 @@ fn identify(
         )));
     }
     let mut options = IdentifyOptions::new(ModelKind::Pi, fit_until);
-    options.operators = operators;
+    options.operators = operators.unwrap_or(DEFAULT_OPERATORS);
     options.thresholds = spread;
     options.lag = lag;
     let run: Result<Identified, RunError> =
-        py.detach(|| identify_and_score(&data, choice, &options, creep, output_unit, tick_rate));
+        py.detach(|| identify_and_score(&data, choice, &options, creep, output_unit, rate));
     let run = run.map_err(|e| PyValueError::new_err(e.to_string()))?;
     let ranking = run.auto.as_ref().map(|a| {
         a.ranking

@@ -129,5 +129,10 @@ def test_tick_rate_keeps_a_model_the_board_runs(micro):
     assert refused and all("100 kHz" in r["not_admitted"] and "max_pct" in r for r in refused)
     with pytest.raises(ValueError, match="cycles per tick"):
         twinstack.identify(t, u, x, model="gpi", fit_until=16.0, tick_rate=100_000.0)
+    # A P-I of 17 operators is one pair too many at 100 kHz: 16 unless 17 are asked for.
+    pi = twinstack.identify(t, u, x, model="pi", fit_until=16.0, tick_rate=100_000.0)
+    assert pi.identification["operators"] == 16
+    with pytest.raises(ValueError, match="cycles per tick"):
+        twinstack.identify(t, u, x, model="pi", operators=17, fit_until=16.0, tick_rate=100_000.0)
     with pytest.raises(ValueError, match="tick_rate"):
         twinstack.identify(t, u, x, fit_until=16.0, tick_rate=-1.0)

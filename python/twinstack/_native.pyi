@@ -106,7 +106,7 @@ def identify(
     model: str = "auto",
     creep: Optional[bool] = None,
     fit_until: Optional[float] = None,
-    operators: int = 17,
+    operators: Optional[int] = None,
     thresholds: str = "uniform",
     lag: Optional[int] = None,
     output_unit: str = "um",
@@ -121,8 +121,9 @@ def identify(
     them on its last part and keeps the best, as ``hal-sim identify`` does; or one of
     ``"pi"``, ``"duhem"``, ``"gpi"``, ``"bouc-wen"``. ``creep``: ``None`` lets ``auto`` try
     each model with and without a creep operator (one model: without), ``True`` fits one,
-    ``False`` none. ``operators``/``thresholds``: the P-I's play operators (1 to 32, spread
-    ``"uniform"`` or ``"geometric"``); ``lag``: the sensor lag in samples (estimated when
+    ``False`` none. ``operators``/``thresholds``: the P-I's play operators (1 to 32; ``None``:
+    17, or fewer where ``tick_rate`` needs it) and their spread (``"uniform"`` or
+    ``"geometric"``); ``lag``: the sensor lag in samples (estimated when
     ``None``). ``tick_rate`` (Hz): keep only a model the board runs at that control rate
     (its tick budget, as the board applies it at load); ``auto`` picks among those, a model
     asked for by name that does not fit raises ``ValueError``. Runs without the

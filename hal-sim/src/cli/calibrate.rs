@@ -34,9 +34,10 @@ pub struct Args {
     #[arg(long, default_value = "auto", value_parser = super::identify::parse_model,
           value_name = "auto|pi|gpi|bouc-wen|duhem")]
     pub model: super::identify::ModelChoice,
-    /// Play operators of a P–I model (1 to 32).
-    #[arg(long, default_value_t = 17)]
-    pub operators: usize,
+    /// Play operators of a P–I model (1 to 32) [default: 17, or as many as the board runs at
+    /// its rate where 17 are too many].
+    #[arg(long)]
+    pub operators: Option<usize>,
     /// Sensor lag in samples of the recorded excitation [default: 0]; `--lag auto` estimates
     /// it as `identify` does.
     #[arg(long, default_value = "0", value_parser = parse_lag, value_name = "N|auto")]

@@ -3,9 +3,11 @@
 //! `t < SECONDS`, scores
 //! on the rest, writes the parameter file and a PNG beside it (`PARAMS.png`).
 
-use crate::identification::run::{identify_and_score, RunError};
+use crate::identification::run::{identify_and_score, BoardRate, RunError};
 use crate::identification::score::ErrorFigures;
-use crate::identification::{IdentifyError, IdentifyOptions, ModelKind, ThresholdSpread};
+use crate::identification::{
+    IdentifyError, IdentifyOptions, ModelKind, ThresholdSpread, DEFAULT_OPERATORS,
+};
 use crate::measured_data::{ColumnNames, Columns, MeasuredData};
 use crate::output_file::Staged;
 use crate::plot::{draw, IdentificationFigure};
@@ -33,9 +35,10 @@ pub struct Args {
     /// Parameter file to write (the figure goes beside it, extension .png).
     #[arg(long)]
     pub out: PathBuf,
-    /// Play operators of a P–I model (1 to 32).
-    #[arg(long, default_value_t = 17)]
-    pub operators: usize,
+    /// Play operators of a P–I model (1 to 32) [default: 17, or with `--tick-rate` as many as
+    /// the board runs at that rate where 17 are too many].
+    #[arg(long)]
+    pub operators: Option<usize>,
     /// Spread of the P–I thresholds.
     #[arg(long, value_enum, default_value_t = Spread::Uniform)]
     pub thresholds: Spread,
@@ -47,7 +50,8 @@ pub struct Args {
     #[arg(long)]
     pub creep: bool,
     /// Keep only a model the board runs at this control rate, Hz (its tick budget, as the
-    /// board applies it at load, with the file's settings): `auto` picks among those, a model
+    /// board applies it at load, with the file's settings): `auto` picks among those, a P–I
+    /// gets fewer operators where that makes it fit (unless `--operators` is given), a model
     /// asked for by name that does not fit is an error. Without it any model is kept, and a
     /// fast board may refuse the file.
     #[arg(long, value_name = "HZ")]
@@ -104,7 +108,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         &args.columns.clone().unwrap_or_default(),
     )?;
     let mut options = IdentifyOptions::new(ModelKind::Pi, args.fit_until);
-    options.operators = args.operators;
+    options.operators = args.operators.unwrap_or(DEFAULT_OPERATORS);
     options.thresholds = match args.thresholds {
         Spread::Uniform => ThresholdSpread::Uniform,
         Spread::Geometric => ThresholdSpread::Geometric,
@@ -122,7 +126,10 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         &options,
         args.creep.then_some(true),
         &args.output_unit,
-        args.tick_rate,
+        args.tick_rate.map(|hz| BoardRate {
+            hz,
+            fewer_operators: args.operators.is_none(),
+        }),
     )
     .map_err(in_file)?;
     if let Some(auto) = &run.auto {

@@ -35,10 +35,32 @@ pub const PARSIMONY_MARGIN: f64 = 0.05;
 pub struct Ranked {
     /// What was fitted (the options' model and creep, in words).
     pub label: String,
-    /// The candidate's options (with the full window's `fit_until`).
+    /// The candidate's options (with the full window's `fit_until`; its play operators
+    /// fewer than asked where `admit` sized it down, [`Admission::FewerOperators`]).
     pub options: IdentifyOptions,
     /// Where it stands after the validation part.
     pub validation: Validation,
+    /// The play operators asked for, where the candidate was sized down from them to be
+    /// admitted.
+    pub sized_down_from: Option<usize>,
+}
+
+/// What the caller of [`identify_auto_admitting`] says of a candidate's fit.
+#[derive(Clone, Debug, PartialEq)]
+pub enum Admission {
+    /// It can be picked.
+    Admitted,
+    /// It cannot, for the reason given.
+    Refused(String),
+    /// Not as fitted, for the reason given; fitted again with this many play operators
+    /// (fewer) it would be. The candidate is fitted and scored again with them and admitted
+    /// if `admit` then says [`Admission::Admitted`]; refused with the first reason otherwise.
+    FewerOperators {
+        /// The play operators to fit it with.
+        operators: usize,
+        /// Why it is not admitted as fitted.
+        why: String,
+    },
 }
 
 /// Where a candidate stands after the validation part: scored and admitted (it can be picked),
@@ -126,18 +148,20 @@ pub fn identify_auto(
     data: &MeasuredData,
     candidates: &[IdentifyOptions],
 ) -> Result<AutoIdentification, IdentifyError> {
-    identify_auto_admitting(data, candidates, |_| Ok(()))
+    identify_auto_admitting(data, candidates, |_| Admission::Admitted)
 }
 
 /// [`identify_auto`], picking only among the candidates `admit` accepts (given each one's fit
 /// on the first part of the window; its model has the size the refit on the whole window
-/// has, up to a dead zone a generalised P–I's map may drop). A candidate it refuses stays in
-/// the ranking, last, with `admit`'s reason and its validation figures in words. Fails with
-/// [`IdentifyError::NoneAdmitted`] if every candidate that could be fitted was refused.
+/// has, up to a dead zone a generalised P–I's map may drop). A candidate `admit` would take
+/// with fewer play operators ([`Admission::FewerOperators`]) is fitted and scored again with
+/// them. A candidate it refuses stays in the ranking, after the admitted ones, with `admit`'s
+/// reason and its validation figures. Fails with [`IdentifyError::NoneAdmitted`] if every
+/// candidate that could be fitted was refused.
 pub fn identify_auto_admitting(
     data: &MeasuredData,
     candidates: &[IdentifyOptions],
-    admit: impl Fn(&Identification) -> Result<(), String>,
+    admit: impl Fn(&Identification) -> Admission,
 ) -> Result<AutoIdentification, IdentifyError> {
     let first = candidates.first().ok_or(IdentifyError::NoCandidates)?;
     let fit_until_s = first.fit_until_s;
@@ -163,35 +187,56 @@ pub fn identify_auto_admitting(
         u: Some(u[..n_fit].to_vec()),
         x: Some(x[..n_fit].to_vec()),
     };
+    // Fitted on the first part of the window, scored on the rest.
+    let fit_and_score = |inner: &IdentifyOptions| {
+        identify(&window, inner)
+            .map_err(|e| e.to_string())
+            .and_then(|id| {
+                let predicted = id
+                    .model
+                    .predict(&window.t, &u[..n_fit])
+                    .map_err(|e| e.to_string())?;
+                let figures = score(&x[..n_fit], &predicted, split..n_fit).ok_or_else(|| {
+                    String::from("the measured output is flat on the validation part")
+                })?;
+                Ok((id, figures))
+            })
+    };
     let mut ranking: Vec<Ranked> = candidates
         .iter()
         .map(|c| {
+            let mut options = c.clone();
             let mut inner = c.clone();
             inner.fit_until_s = validation_from_s;
-            let scored = identify(&window, &inner)
-                .map_err(|e| e.to_string())
-                .and_then(|id| {
-                    let predicted = id
-                        .model
-                        .predict(&window.t, &u[..n_fit])
-                        .map_err(|e| e.to_string())?;
-                    let figures =
-                        score(&x[..n_fit], &predicted, split..n_fit).ok_or_else(|| {
-                            String::from("the measured output is flat on the validation part")
-                        })?;
-                    Ok((id, figures))
-                });
-            let validation = match scored {
-                Ok((id, figures)) => match admit(&id) {
-                    Ok(()) => Validation::Scored(figures),
-                    Err(why) => Validation::NotAdmitted { figures, why },
-                },
+            let mut sized_down_from = None;
+            let validation = match fit_and_score(&inner) {
                 Err(why) => Validation::NotFitted(why),
+                Ok((id, figures)) => match admit(&id) {
+                    Admission::Admitted => Validation::Scored(figures),
+                    Admission::Refused(why) => Validation::NotAdmitted { figures, why },
+                    Admission::FewerOperators { operators, why } => {
+                        let smaller = IdentifyOptions {
+                            operators,
+                            ..inner.clone()
+                        };
+                        match fit_and_score(&smaller) {
+                            Ok((id, smaller_figures))
+                                if operators < c.operators && admit(&id) == Admission::Admitted =>
+                            {
+                                sized_down_from = Some(c.operators);
+                                options.operators = operators;
+                                Validation::Scored(smaller_figures)
+                            }
+                            _ => Validation::NotAdmitted { figures, why },
+                        }
+                    }
+                },
             };
             Ranked {
-                label: label(c),
-                options: c.clone(),
+                label: label(&options),
+                options,
                 validation,
+                sized_down_from,
             }
         })
         .collect();
@@ -270,6 +315,13 @@ pub fn identify_auto_admitting(
         ),
         // `best` is admitted by construction; its note, should that ever change.
         (None, _) => best.validation.note().unwrap_or_default(),
+    };
+    let reason = match best.sized_down_from {
+        Some(asked) => format!(
+            "{reason}; {} play operators instead of the {asked} asked for, the most the board runs at its rate",
+            best.options.operators
+        ),
+        None => reason,
     };
     Ok(AutoIdentification {
         ranking,

@@ -152,6 +152,11 @@ impl FitRows {
     }
 }
 
+/// The play operators of a P–I (and of a generalised P–I's P–I part) when the user does not
+/// say: 17, uniform thresholds (the textbook fit the project measures itself against uses as
+/// many).
+pub const DEFAULT_OPERATORS: usize = 17;
+
 /// Settings of one identification (the CLI's flags).
 #[derive(Clone, Debug, PartialEq)]
 pub struct IdentifyOptions {
@@ -181,7 +186,7 @@ impl IdentifyOptions {
         Self {
             model,
             fit_until_s,
-            operators: 17,
+            operators: DEFAULT_OPERATORS,
             thresholds: ThresholdSpread::Uniform,
             lag: None,
             max_lag: 10,

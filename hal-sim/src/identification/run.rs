@@ -3,14 +3,15 @@
 //! score it on the fitted and the held-out part, in fixed point and against the `f64`
 //! reference, and put it in a parameter file with that record.
 
-use super::auto::{identify_auto_admitting, AutoIdentification};
+use super::auto::{identify_auto_admitting, Admission, AutoIdentification};
 use super::score::{score, ErrorFigures};
 use super::{identify, Identification, IdentifyError, IdentifyOptions, ModelKind};
 use crate::measured_data::MeasuredData;
 use crate::param_file::{IdentificationRecord, ParamFile};
 use twinstack::board::Hardware;
-use twinstack::refusal::Field;
-use twinstack::settings::Settings;
+use twinstack::refusal::{Field, Rule};
+use twinstack::settings::{Model, Settings};
+use twinstack::tick_budget::PI_PAIR_CYCLES;
 
 /// Which model to fit: every candidate, or one.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -93,6 +94,34 @@ pub enum RunError {
     Flat,
 }
 
+/// One model fitted as `options` say and admitted by `admit`, fitted again with fewer play
+/// operators where `admit` says so ([`Admission::FewerOperators`]); the options it was
+/// fitted with and the fit, or [`IdentifyError::NoneAdmitted`] with the reason.
+pub fn identify_admitted(
+    data: &MeasuredData,
+    options: IdentifyOptions,
+    admit: impl Fn(&Identification) -> Admission,
+) -> Result<(IdentifyOptions, Identification), IdentifyError> {
+    let id = identify(data, &options)?;
+    let refused =
+        |why: String| IdentifyError::NoneAdmitted(format!("{}: {why}", options.model_label()));
+    match admit(&id) {
+        Admission::Admitted => Ok((options, id)),
+        Admission::Refused(why) => Err(refused(why)),
+        Admission::FewerOperators { operators, why } => {
+            let smaller = IdentifyOptions {
+                operators,
+                ..options.clone()
+            };
+            let id = identify(data, &smaller)?;
+            match admit(&id) {
+                Admission::Admitted if operators < options.operators => Ok((smaller, id)),
+                _ => Err(refused(why)),
+            }
+        }
+    }
+}
+
 /// `auto`'s candidates for `options`: every model kind with and without creep (`creep =
 /// None`), or only with (`Some(true)`) or only without (`Some(false)`).
 pub fn candidates(options: &IdentifyOptions, creep: Option<bool>) -> Vec<IdentifyOptions> {
@@ -118,12 +147,68 @@ pub fn candidates(options: &IdentifyOptions, creep: Option<bool>) -> Vec<Identif
 /// assert!(runs_at(&s, 100_000.0).unwrap_err().contains("100 kHz"));
 /// ```
 pub fn runs_at(settings: &Settings, rate_hz: f64) -> Result<(), String> {
-    match settings.build(&Hardware::driver_board(rate_hz)) {
-        Err(r) if r.field == Field::Workload => Err(format!(
-            "the board at {:.0} kHz would refuse it: {r}",
-            rate_hz / 1e3
-        )),
-        _ => Ok(()),
+    match admission_at(settings, &BoardRate::exactly(rate_hz)) {
+        Admission::Admitted => Ok(()),
+        Admission::Refused(why) | Admission::FewerOperators { why, .. } => Err(why),
+    }
+}
+
+/// The control rate a model must run at, and whether a P–I's play operators may be fewer than
+/// asked so that it does.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct BoardRate {
+    /// The board's control rate, Hz.
+    pub hz: f64,
+    /// A P–I or generalised P–I too dear at this rate may be fitted with fewer play
+    /// operators (`false` when the user asked for a number of operators).
+    pub fewer_operators: bool,
+}
+
+impl BoardRate {
+    /// `hz`, the model kept as asked.
+    pub fn exactly(hz: f64) -> Self {
+        Self {
+            hz,
+            fewer_operators: false,
+        }
+    }
+}
+
+/// Whether the driver board's tick budget runs `settings` at `rate` ([`runs_at`]); where it
+/// does not only by the P–I banks' size and `rate.fewer_operators` allows, the play operators
+/// it would run: the banks (compensator and observer) lose a pair of operators per
+/// [`PI_PAIR_CYCLES`] each of the cycles over.
+pub fn admission_at(settings: &Settings, rate: &BoardRate) -> Admission {
+    let refusal = match settings.build(&Hardware::driver_board(rate.hz)) {
+        Err(r) if r.field == Field::Workload => r,
+        _ => return Admission::Admitted,
+    };
+    let why = format!(
+        "the board at {:.0} kHz would refuse it: {refusal}",
+        rate.hz / 1e3
+    );
+    let operators = |m: &Option<Model>| match m {
+        Some(Model::PrandtlIshlinskii(p)) => Some(p.thresholds.len()),
+        Some(Model::GeneralisedPi(g)) => Some(g.pi.thresholds.len()),
+        _ => None,
+    };
+    let banks = u32::from(operators(&settings.compensator).is_some())
+        + u32::from(operators(&settings.observer).is_some());
+    let asked = operators(&settings.compensator).or(operators(&settings.observer));
+    match (refusal.rule, asked) {
+        (Rule::TickOverrun { needs, available }, Some(n)) if rate.fewer_operators && banks > 0 => {
+            let over = needs.saturating_sub(available);
+            let drop = over.div_ceil(PI_PAIR_CYCLES * banks) as usize;
+            let pairs = n.div_ceil(2);
+            match pairs.checked_sub(drop) {
+                Some(left) if left > 0 && 2 * left < n => Admission::FewerOperators {
+                    operators: 2 * left,
+                    why,
+                },
+                _ => Admission::Refused(why),
+            }
+        }
+        _ => Admission::Refused(why),
     }
 }
 
@@ -131,25 +216,25 @@ pub fn runs_at(settings: &Settings, rate_hz: f64) -> Result<(), String> {
 /// `creep`: see [`candidates`]; for one model, `Some(true)` adds a creep operator), scores
 /// the model kept and writes its parameter file with `output_unit` as the unit of `x`.
 ///
-/// With `tick_rate_hz`, only a model the board runs at that control rate is kept
-/// ([`runs_at`], with the parameter file's settings: the board's own sensor and feedback are
-/// not known here, and a derivative term or a notch there costs more): `auto` picks among
-/// those, and one model asked for by name that does not fit fails with
-/// [`IdentifyError::NoneAdmitted`].
+/// With `rate`, only a model the board runs at that control rate is kept
+/// ([`admission_at`], with the parameter file's settings: the board's own sensor and feedback
+/// are not known here, and a derivative term or a notch there costs more), a P–I sized down
+/// to fewer operators where `rate` allows: `auto` picks among those, and one model asked for
+/// by name that does not fit fails with [`IdentifyError::NoneAdmitted`].
 pub fn identify_and_score(
     data: &MeasuredData,
     choice: ModelChoice,
     options: &IdentifyOptions,
     creep: Option<bool>,
     output_unit: &str,
-    tick_rate_hz: Option<f64>,
+    rate: Option<BoardRate>,
 ) -> Result<Identified, RunError> {
-    let admit = |id: &Identification| match tick_rate_hz {
-        Some(rate) => runs_at(
+    let admit = |id: &Identification| match &rate {
+        Some(rate) => admission_at(
             &ParamFile::from_model(&id.model, output_unit, None).settings,
             rate,
         ),
-        None => Ok(()),
+        None => Admission::Admitted,
     };
     let (auto, options, id) = match choice {
         ModelChoice::Only(kind) => {
@@ -158,10 +243,7 @@ pub fn identify_and_score(
                 creep: creep == Some(true),
                 ..options.clone()
             };
-            let id = identify(data, &o)?;
-            admit(&id).map_err(|why| {
-                IdentifyError::NoneAdmitted(format!("{}: {why}", o.model_label()))
-            })?;
+            let (o, id) = identify_admitted(data, o, admit)?;
             (None, o, id)
         }
         ModelChoice::Auto => {
