@@ -38,7 +38,7 @@
 //!    loop) to flash, to boot in the mode asked for.
 
 use crate::capture::{self, CaptureError, ConvertError, Recording};
-use crate::identification::auto::{identify_auto_admitting, Ranked, Validation};
+use crate::identification::auto::{identify_auto_admitting, Ranked, Size, Validation};
 use crate::identification::run::{admission_at, identify_admitted, BoardRate};
 use crate::identification::score::{score, ErrorFigures};
 use crate::identification::{
@@ -568,10 +568,7 @@ fn measure<T: Transport>(
     let fit_until = options.excitation_s() - 1.0 / options.excitation_hz;
     let mut id_options = IdentifyOptions::new(options.model.unwrap_or(ModelKind::Pi), fit_until);
     id_options.operators = options.operators.unwrap_or(DEFAULT_OPERATORS);
-    let rate_limit = BoardRate {
-        hz: rate,
-        fewer_operators: options.operators.is_none(),
-    };
+    let rate_limit = BoardRate::sizing(rate, options.operators.is_some());
     id_options.lag = options.lag;
     // Only a model the board runs at its control rate with its drive, sensor and feedback:
     // the tick budget the board applies at load ([`twinstack::tick_budget`]), applied here
@@ -585,13 +582,17 @@ fn measure<T: Transport>(
     };
     let (id, operators, label, reason, ranking) = match options.model {
         Some(_) => {
-            let asked = id_options.operators;
+            let asked = Size::of(&id_options);
             let (fitted, id) = identify_admitted(&excitation, id_options.clone(), runs_on_board)?;
             let label = fitted.model_label();
-            let reason = if fitted.operators < asked {
-                format!("{label} (asked for; {} play operators instead of {asked}, the most the board runs at its rate)", fitted.operators)
-            } else {
+            let sized = Size::of(&fitted);
+            let reason = if sized == asked {
                 format!("{label} (asked for)")
+            } else {
+                format!(
+                    "{label} (asked for; {} asked for, the most the board runs at its rate)",
+                    sized.change_from(&asked)
+                )
             };
             (id, fitted.operators, label, reason, Vec::new())
         }

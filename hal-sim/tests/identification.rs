@@ -604,12 +604,19 @@ fn identify_at_a_tick_rate_keeps_a_model_the_board_runs() {
         stdout.contains("not admitted (the board at 100 kHz"),
         "{stdout}"
     );
-    // P–I 17 is one pair of operators too dear at 100 kHz: ranked, and picked, with 16.
+    // Sized to the rate: P–I 17 is one pair of operators too dear at 100 kHz, ranked with 16;
+    // P–I 17 + creep ranked with one creep mode and fewer operators.
     assert!(
-        stdout.contains("picked: P-I (16 uniform operators)")
-            && stdout.contains("instead of the 17 asked for"),
+        stdout.contains("P-I (16 uniform operators)       max"),
         "{stdout}"
     );
+    assert!(
+        stdout
+            .lines()
+            .any(|l| l.contains("operators) + creep (1 mode)") && l.contains(" max ")),
+        "{stdout}"
+    );
+    assert!(stdout.contains("picked: Bouc-Wen + creep"), "{stdout}");
     // Unless 17 are asked for.
     let seventeen = dir.path().join("seventeen.json");
     let stdout = identify(&seventeen, &["--tick-rate", "100000", "--operators", "17"]);

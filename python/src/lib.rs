@@ -464,10 +464,7 @@ fn identify(
         }
     }
     // A P–I sized to the rate unless its operators were asked for.
-    let rate = tick_rate.map(|hz| BoardRate {
-        hz,
-        fewer_operators: operators.is_none(),
-    });
+    let rate = tick_rate.map(|hz| BoardRate::sizing(hz, operators.is_some()));
     let spread = match thresholds.to_ascii_lowercase().as_str() {
         "uniform" => ThresholdSpread::Uniform,
         "geometric" => ThresholdSpread::Geometric,

@@ -125,8 +125,9 @@ def identify(
     17, or fewer where ``tick_rate`` needs it) and their spread (``"uniform"`` or
     ``"geometric"``); ``lag``: the sensor lag in samples (estimated when
     ``None``). ``tick_rate`` (Hz): keep only a model the board runs at that control rate
-    (its tick budget, as the board applies it at load); ``auto`` picks among those, a model
-    asked for by name that does not fit raises ``ValueError``. Runs without the
+    (its tick budget, as the board applies it at load), made smaller where that makes it fit
+    (creep with fewer modes; fewer play operators unless ``operators`` is given); ``auto``
+    picks among those, a model asked for by name that does not fit raises ``ValueError``. Runs without the
     interpreter's lock. ``ValueError`` says why a record cannot be fitted."""
 
 def load_params(path: Union[str, "PathLike[str]"]) -> Params:

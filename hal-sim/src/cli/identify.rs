@@ -126,10 +126,8 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         &options,
         args.creep.then_some(true),
         &args.output_unit,
-        args.tick_rate.map(|hz| BoardRate {
-            hz,
-            fewer_operators: args.operators.is_none(),
-        }),
+        args.tick_rate
+            .map(|hz| BoardRate::sizing(hz, args.operators.is_some())),
     )
     .map_err(in_file)?;
     if let Some(auto) = &run.auto {

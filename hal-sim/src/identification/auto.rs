@@ -11,8 +11,10 @@
 //!
 //! A candidate that cannot be fitted (too few samples, a model the board refuses) is kept in
 //! the ranking with its reason, last. So is one the caller does not admit
-//! ([`identify_auto_admitting`]): `hal-sim calibrate` admits only models the board's tick
-//! budget runs at the board's control rate, so that it never picks one the board refuses.
+//! ([`identify_auto_admitting`]): `hal-sim calibrate` (and `identify --tick-rate`) admits
+//! only models the board's tick budget runs at the board's control rate, so that it never
+//! picks one the board refuses; a candidate too dear only by its size is fitted and scored
+//! again smaller ([`Admission::Smaller`]: fewer creep modes, fewer play operators).
 //!
 //! Parsimony: a model that generalises another (Bouc–Wen generalises Duhem,
 //! [`super::ModelKind::special_case`]; with creep, Bouc–Wen + creep generalises Duhem + creep)
@@ -35,14 +37,56 @@ pub const PARSIMONY_MARGIN: f64 = 0.05;
 pub struct Ranked {
     /// What was fitted (the options' model and creep, in words).
     pub label: String,
-    /// The candidate's options (with the full window's `fit_until`; its play operators
-    /// fewer than asked where `admit` sized it down, [`Admission::FewerOperators`]).
+    /// The candidate's options (with the full window's `fit_until`; its play operators or
+    /// creep modes fewer than asked where `admit` sized it down, [`Admission::Smaller`]).
     pub options: IdentifyOptions,
     /// Where it stands after the validation part.
     pub validation: Validation,
-    /// The play operators asked for, where the candidate was sized down from them to be
-    /// admitted.
-    pub sized_down_from: Option<usize>,
+    /// The size asked for, where the candidate was sized down from it to be admitted.
+    pub sized_down_from: Option<Size>,
+}
+
+/// The size of a candidate that grows the tick's cost: its P–I's play operators and its creep
+/// operator's modes.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Size {
+    /// Play operators (a P–I's, or a generalised P–I's P–I part).
+    pub operators: usize,
+    /// Creep modes (when the candidate has creep).
+    pub creep_modes: usize,
+}
+
+impl Size {
+    /// The size `options` ask for.
+    pub fn of(options: &IdentifyOptions) -> Self {
+        Self {
+            operators: options.operators,
+            creep_modes: options.creep_modes,
+        }
+    }
+
+    /// Whether it is smaller than `asked` in one count at least and larger in none.
+    pub fn is_smaller_than(&self, asked: &Size) -> bool {
+        self.operators <= asked.operators && self.creep_modes <= asked.creep_modes && self != asked
+    }
+
+    /// What changed from `asked`, in words ("16 play operators instead of 17").
+    pub fn change_from(&self, asked: &Size) -> String {
+        let mut parts = Vec::new();
+        if self.operators != asked.operators {
+            parts.push(format!(
+                "{} play operators instead of {}",
+                self.operators, asked.operators
+            ));
+        }
+        if self.creep_modes != asked.creep_modes {
+            parts.push(format!(
+                "{} creep modes instead of {}",
+                self.creep_modes, asked.creep_modes
+            ));
+        }
+        parts.join(" and ")
+    }
 }
 
 /// What the caller of [`identify_auto_admitting`] says of a candidate's fit.
@@ -52,15 +96,36 @@ pub enum Admission {
     Admitted,
     /// It cannot, for the reason given.
     Refused(String),
-    /// Not as fitted, for the reason given; fitted again with this many play operators
-    /// (fewer) it would be. The candidate is fitted and scored again with them and admitted
-    /// if `admit` then says [`Admission::Admitted`]; refused with the first reason otherwise.
-    FewerOperators {
-        /// The play operators to fit it with.
-        operators: usize,
+    /// Not as fitted, for the reason given; fitted again smaller it would be. The candidate
+    /// is fitted and scored again so and admitted if `admit` then says
+    /// [`Admission::Admitted`]; refused with the first reason otherwise.
+    Smaller {
+        /// What to fit it with.
+        resize: Resize,
         /// Why it is not admitted as fitted.
         why: String,
     },
+}
+
+/// Fewer play operators, fewer creep modes, or both: how [`Admission::Smaller`] makes a
+/// candidate smaller.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct Resize {
+    /// The play operators to fit with (`None`: as asked).
+    pub operators: Option<usize>,
+    /// The creep modes to fit with (`None`: as asked).
+    pub creep_modes: Option<usize>,
+}
+
+impl Resize {
+    /// `options` resized.
+    pub fn apply(&self, options: &IdentifyOptions) -> IdentifyOptions {
+        IdentifyOptions {
+            operators: self.operators.unwrap_or(options.operators),
+            creep_modes: self.creep_modes.unwrap_or(options.creep_modes),
+            ..options.clone()
+        }
+    }
 }
 
 /// Where a candidate stands after the validation part: scored and admitted (it can be picked),
@@ -154,8 +219,8 @@ pub fn identify_auto(
 /// [`identify_auto`], picking only among the candidates `admit` accepts (given each one's fit
 /// on the first part of the window; its model has the size the refit on the whole window
 /// has, up to a dead zone a generalised P–I's map may drop). A candidate `admit` would take
-/// with fewer play operators ([`Admission::FewerOperators`]) is fitted and scored again with
-/// them. A candidate it refuses stays in the ranking, after the admitted ones, with `admit`'s
+/// with fewer play operators or creep modes ([`Admission::Smaller`]) is fitted and scored
+/// again with them. A candidate it refuses stays in the ranking, after the admitted ones, with `admit`'s
 /// reason and its validation figures. Fails with [`IdentifyError::NoneAdmitted`] if every
 /// candidate that could be fitted was refused.
 pub fn identify_auto_admitting(
@@ -214,17 +279,16 @@ pub fn identify_auto_admitting(
                 Ok((id, figures)) => match admit(&id) {
                     Admission::Admitted => Validation::Scored(figures),
                     Admission::Refused(why) => Validation::NotAdmitted { figures, why },
-                    Admission::FewerOperators { operators, why } => {
-                        let smaller = IdentifyOptions {
-                            operators,
-                            ..inner.clone()
-                        };
+                    Admission::Smaller { resize, why } => {
+                        let asked = Size::of(c);
+                        let smaller = resize.apply(&inner);
                         match fit_and_score(&smaller) {
                             Ok((id, smaller_figures))
-                                if operators < c.operators && admit(&id) == Admission::Admitted =>
+                                if Size::of(&smaller).is_smaller_than(&asked)
+                                    && admit(&id) == Admission::Admitted =>
                             {
-                                sized_down_from = Some(c.operators);
-                                options.operators = operators;
+                                sized_down_from = Some(asked);
+                                options = resize.apply(&options);
                                 Validation::Scored(smaller_figures)
                             }
                             _ => Validation::NotAdmitted { figures, why },
@@ -318,8 +382,8 @@ pub fn identify_auto_admitting(
     };
     let reason = match best.sized_down_from {
         Some(asked) => format!(
-            "{reason}; {} play operators instead of the {asked} asked for, the most the board runs at its rate",
-            best.options.operators
+            "{reason}; {} asked for, the most the board runs at its rate",
+            Size::of(&best.options).change_from(&asked)
         ),
         None => reason,
     };

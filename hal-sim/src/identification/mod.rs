@@ -166,6 +166,8 @@ pub struct IdentifyOptions {
     pub fit_until_s: f64,
     /// Play operators of a P–I model (also used for the lag estimate).
     pub operators: usize,
+    /// Modes of the creep operator, when `creep` (1 to the library's maximum).
+    pub creep_modes: usize,
     /// Threshold spread of a P–I model.
     pub thresholds: ThresholdSpread,
     /// Sensor lag in samples; `None` to estimate it.
@@ -187,6 +189,7 @@ impl IdentifyOptions {
             model,
             fit_until_s,
             operators: DEFAULT_OPERATORS,
+            creep_modes: creep::MODES,
             thresholds: ThresholdSpread::Uniform,
             lag: None,
             max_lag: 10,
@@ -214,10 +217,11 @@ impl IdentifyOptions {
             ),
             ModelKind::BoucWen => "Bouc-Wen".into(),
         };
-        if self.creep {
-            format!("{model} + creep")
-        } else {
-            model
+        match (self.creep, self.creep_modes) {
+            (false, _) => model,
+            (true, creep::MODES) => format!("{model} + creep"),
+            (true, 1) => format!("{model} + creep (1 mode)"),
+            (true, n) => format!("{model} + creep ({n} modes)"),
         }
     }
 
@@ -300,6 +304,9 @@ pub enum IdentifyError {
     /// `--operators` out of range.
     #[error("--operators {0}: must be 1 to {max}", max = twinstack::MAX_OPERATORS)]
     BadOperatorCount(usize),
+    /// Creep modes out of range.
+    #[error("{0} creep modes: must be 1 to {max}", max = twinstack::creep::MAX_CREEP_MODES)]
+    BadCreepModes(usize),
     /// The least-squares problem failed.
     #[error("fit failed: {0}")]
     Fit(#[from] LeastSquaresError),
@@ -354,6 +361,7 @@ fn with_creep(
     rows: &FitRows,
     n_fit: usize,
     started_at_rest: bool,
+    modes: usize,
     fit_model: &FitModel<'_>,
     notes: &mut Vec<String>,
 ) -> Result<StageModel, IdentifyError> {
@@ -362,7 +370,7 @@ fn with_creep(
     let u = &u[..n_fit.min(u.len())];
     let period = data.sample_period();
     let rate = 1.0 / period;
-    let taus = creep::time_constants(period, t.last().unwrap_or(&0.0) - t[0], creep::MODES);
+    let taus = creep::time_constants(period, t.last().unwrap_or(&0.0) - t[0], modes);
     let score = |m: &StageModel| -> Result<f64, IdentifyError> {
         let x = m.predict(t, u).map_err(IdentifyError::Params)?;
         // `predict` applies the sign and the lag: compare with the reading at k + lag.
@@ -417,7 +425,34 @@ fn with_creep(
         let corrected: Vec<f64> = y.iter().map(|&v| inverse.inverse_step(v)).collect();
         hysteresis = fit_model(&corrected, &mut Vec::new())?;
     }
-    let (rms_best, model) = best.ok_or(IdentifyError::Fit(LeastSquaresError::NoRows))?;
+    let (rms_best, mut model) = best.ok_or(IdentifyError::Fit(LeastSquaresError::NoRows))?;
+    // A mode the fit gave no weight does nothing (forward and inverse alike) but costs the
+    // board's tick on each side: dropped.
+    if let Some(c) = model.creep.clone() {
+        let kept: Vec<(f64, f64)> = c
+            .time_constants_s
+            .iter()
+            .zip(&c.weights)
+            .filter(|(_, &w)| w != 0.0)
+            .map(|(&tau, &w)| (tau, w))
+            .collect();
+        let dropped = c.weights.len() - kept.len();
+        if dropped > 0 {
+            let (taus, weights): (Vec<f64>, Vec<f64>) = kept.into_iter().unzip();
+            model.creep = if weights.is_empty() {
+                None
+            } else {
+                Some(
+                    twinstack::creep::CreepParams::new(&taus, &weights)
+                        .map_err(|e| IdentifyError::Params(ParamError::Creep(e)))?,
+                )
+            };
+            notes.push(format!(
+                "creep: {dropped} of its {} modes fitted with no weight, dropped (they cost the board's tick and do nothing)",
+                c.weights.len()
+            ));
+        }
+    }
     let span = rows.target_span(y);
     if model.creep.is_none() {
         notes.push(format!(
@@ -482,6 +517,11 @@ pub fn identify(
     };
     if options.operators == 0 || options.operators > twinstack::MAX_OPERATORS {
         return Err(IdentifyError::BadOperatorCount(options.operators));
+    }
+    if options.creep
+        && (options.creep_modes == 0 || options.creep_modes > twinstack::creep::MAX_CREEP_MODES)
+    {
+        return Err(IdentifyError::BadCreepModes(options.creep_modes));
     }
     let fit_until_s = options.fit_until_s;
     let n_fit = data.t.iter().take_while(|&&t| t < fit_until_s).count();
@@ -719,6 +759,7 @@ pub fn identify(
             &rows,
             n_fit,
             motion.started_at_rest,
+            options.creep_modes,
             &fit_model,
             &mut notes,
         )?;

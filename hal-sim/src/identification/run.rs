@@ -3,7 +3,7 @@
 //! score it on the fitted and the held-out part, in fixed point and against the `f64`
 //! reference, and put it in a parameter file with that record.
 
-use super::auto::{identify_auto_admitting, Admission, AutoIdentification};
+use super::auto::{identify_auto_admitting, Admission, AutoIdentification, Resize, Size};
 use super::score::{score, ErrorFigures};
 use super::{identify, Identification, IdentifyError, IdentifyOptions, ModelKind};
 use crate::measured_data::MeasuredData;
@@ -11,7 +11,7 @@ use crate::param_file::{IdentificationRecord, ParamFile};
 use twinstack::board::Hardware;
 use twinstack::refusal::{Field, Rule};
 use twinstack::settings::{Model, Settings};
-use twinstack::tick_budget::PI_PAIR_CYCLES;
+use twinstack::tick_budget::{CREEP_MODE_CYCLES, PI_PAIR_CYCLES};
 
 /// Which model to fit: every candidate, or one.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -94,9 +94,9 @@ pub enum RunError {
     Flat,
 }
 
-/// One model fitted as `options` say and admitted by `admit`, fitted again with fewer play
-/// operators where `admit` says so ([`Admission::FewerOperators`]); the options it was
-/// fitted with and the fit, or [`IdentifyError::NoneAdmitted`] with the reason.
+/// One model fitted as `options` say and admitted by `admit`, fitted again smaller where
+/// `admit` says so ([`Admission::Smaller`]); the options it was fitted with and the fit, or
+/// [`IdentifyError::NoneAdmitted`] with the reason.
 pub fn identify_admitted(
     data: &MeasuredData,
     options: IdentifyOptions,
@@ -108,14 +108,13 @@ pub fn identify_admitted(
     match admit(&id) {
         Admission::Admitted => Ok((options, id)),
         Admission::Refused(why) => Err(refused(why)),
-        Admission::FewerOperators { operators, why } => {
-            let smaller = IdentifyOptions {
-                operators,
-                ..options.clone()
-            };
+        Admission::Smaller { resize, why } => {
+            let smaller = resize.apply(&options);
             let id = identify(data, &smaller)?;
             match admit(&id) {
-                Admission::Admitted if operators < options.operators => Ok((smaller, id)),
+                Admission::Admitted if Size::of(&smaller).is_smaller_than(&Size::of(&options)) => {
+                    Ok((smaller, id))
+                }
                 _ => Err(refused(why)),
             }
         }
@@ -142,19 +141,23 @@ pub fn candidates(options: &IdentifyOptions, creep: Option<bool>) -> Vec<Identif
 /// ```
 /// use hal_sim::identification::run::runs_at;
 /// use twinstack::settings::{representative_gpi, Settings};
-/// let s = Settings { compensator: Some(representative_gpi(16).unwrap()), ..Settings::default() };
+/// let gpi = representative_gpi(16).unwrap();
+/// let s = Settings {
+///     compensator: Some(gpi.clone()),
+///     observer: Some(gpi),
+///     ..Settings::default()
+/// };
 /// assert!(runs_at(&s, 50_000.0).is_ok());
 /// assert!(runs_at(&s, 100_000.0).unwrap_err().contains("100 kHz"));
 /// ```
 pub fn runs_at(settings: &Settings, rate_hz: f64) -> Result<(), String> {
     match admission_at(settings, &BoardRate::exactly(rate_hz)) {
         Admission::Admitted => Ok(()),
-        Admission::Refused(why) | Admission::FewerOperators { why, .. } => Err(why),
+        Admission::Refused(why) | Admission::Smaller { why, .. } => Err(why),
     }
 }
 
-/// The control rate a model must run at, and whether a P–I's play operators may be fewer than
-/// asked so that it does.
+/// The control rate a model must run at, and how it may be made smaller so that it does.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct BoardRate {
     /// The board's control rate, Hz.
@@ -162,6 +165,8 @@ pub struct BoardRate {
     /// A P–I or generalised P–I too dear at this rate may be fitted with fewer play
     /// operators (`false` when the user asked for a number of operators).
     pub fewer_operators: bool,
+    /// A creep operator too dear at this rate may be fitted with fewer modes (at least one).
+    pub fewer_creep_modes: bool,
 }
 
 impl BoardRate {
@@ -170,14 +175,61 @@ impl BoardRate {
         Self {
             hz,
             fewer_operators: false,
+            fewer_creep_modes: false,
+        }
+    }
+
+    /// `hz`, the creep's modes fewer where needed, and the play operators fewer where needed
+    /// unless the user asked for a number of them (`operators_asked`).
+    pub fn sizing(hz: f64, operators_asked: bool) -> Self {
+        Self {
+            hz,
+            fewer_operators: !operators_asked,
+            fewer_creep_modes: true,
         }
     }
 }
 
 /// Whether the driver board's tick budget runs `settings` at `rate` ([`runs_at`]); where it
-/// does not only by the P–I banks' size and `rate.fewer_operators` allows, the play operators
-/// it would run: the banks (compensator and observer) lose a pair of operators per
-/// [`PI_PAIR_CYCLES`] each of the cycles over.
+/// does not only by the size of the creep and of the P–I banks and `rate` allows them
+/// smaller, the size it would run ([`Admission::Smaller`]): the creep first loses modes (down
+/// to one; [`CREEP_MODE_CYCLES`] each, on each side that has a model), then the P–I banks
+/// (compensator and observer) a pair of operators each per [`PI_PAIR_CYCLES`] of the cycles
+/// still over.
+///
+/// ```
+/// use hal_sim::identification::auto::{Admission, Resize};
+/// use hal_sim::identification::run::{admission_at, BoardRate};
+/// use twinstack::settings::{representative_pi, Settings};
+/// let pi17 = representative_pi(17).unwrap();
+/// let s = Settings {
+///     compensator: Some(pi17.clone()),
+///     observer: Some(pi17),
+///     ..Settings::default()
+/// };
+/// let sized = admission_at(&s, &BoardRate::sizing(100_000.0, false));
+/// assert!(matches!(
+///     sized,
+///     Admission::Smaller { resize: Resize { operators: Some(16), creep_modes: None }, .. }
+/// ));
+/// assert!(matches!(admission_at(&s, &BoardRate::sizing(100_000.0, true)), Admission::Refused(_)));
+/// assert_eq!(admission_at(&s, &BoardRate::sizing(50_000.0, false)), Admission::Admitted);
+///
+/// // Bouc–Wen with four creep modes both ways: 1 784 cycles; with two, 1 640 of 1 680.
+/// use twinstack::creep::CreepParams;
+/// use twinstack::settings::representative_bouc_wen;
+/// let s = Settings {
+///     compensator: Some(representative_bouc_wen()),
+///     observer: Some(representative_bouc_wen()),
+///     creep: Some(CreepParams::new(&[0.01, 0.1, 1.0, 10.0], &[0.02; 4]).unwrap()),
+///     ..Settings::default()
+/// };
+/// let sized = admission_at(&s, &BoardRate::sizing(100_000.0, true));
+/// assert!(matches!(
+///     sized,
+///     Admission::Smaller { resize: Resize { operators: None, creep_modes: Some(2) }, .. }
+/// ));
+/// ```
 pub fn admission_at(settings: &Settings, rate: &BoardRate) -> Admission {
     let refusal = match settings.build(&Hardware::driver_board(rate.hz)) {
         Err(r) if r.field == Field::Workload => r,
@@ -187,28 +239,43 @@ pub fn admission_at(settings: &Settings, rate: &BoardRate) -> Admission {
         "the board at {:.0} kHz would refuse it: {refusal}",
         rate.hz / 1e3
     );
-    let operators = |m: &Option<Model>| match m {
+    let Rule::TickOverrun { needs, available } = refusal.rule else {
+        return Admission::Refused(why);
+    };
+    let operators_of = |m: &Option<Model>| match m {
         Some(Model::PrandtlIshlinskii(p)) => Some(p.thresholds.len()),
         Some(Model::GeneralisedPi(g)) => Some(g.pi.thresholds.len()),
         _ => None,
     };
-    let banks = u32::from(operators(&settings.compensator).is_some())
-        + u32::from(operators(&settings.observer).is_some());
-    let asked = operators(&settings.compensator).or(operators(&settings.observer));
-    match (refusal.rule, asked) {
-        (Rule::TickOverrun { needs, available }, Some(n)) if rate.fewer_operators && banks > 0 => {
-            let over = needs.saturating_sub(available);
-            let drop = over.div_ceil(PI_PAIR_CYCLES * banks) as usize;
-            let pairs = n.div_ceil(2);
-            match pairs.checked_sub(drop) {
-                Some(left) if left > 0 && 2 * left < n => Admission::FewerOperators {
-                    operators: 2 * left,
-                    why,
-                },
-                _ => Admission::Refused(why),
+    let banks = u32::from(operators_of(&settings.compensator).is_some())
+        + u32::from(operators_of(&settings.observer).is_some());
+    let sides = u32::from(settings.compensator.is_some()) + u32::from(settings.observer.is_some());
+    let operators = operators_of(&settings.compensator)
+        .or(operators_of(&settings.observer))
+        .unwrap_or(0);
+    let modes = settings.creep.as_ref().map_or(0, |c| c.weights.len());
+    let mut resize = Resize::default();
+    let mut over = needs.saturating_sub(available);
+    if rate.fewer_creep_modes && modes > 1 && sides > 0 {
+        let per_mode = CREEP_MODE_CYCLES * sides;
+        let drop = (over.div_ceil(per_mode) as usize).min(modes - 1);
+        resize.creep_modes = Some(modes - drop);
+        over = over.saturating_sub(drop as u32 * per_mode);
+    }
+    if over > 0 && rate.fewer_operators && banks > 0 && operators > 0 {
+        let drop = over.div_ceil(PI_PAIR_CYCLES * banks) as usize;
+        match operators.div_ceil(2).checked_sub(drop) {
+            Some(left) if left > 0 && 2 * left < operators => {
+                resize.operators = Some(2 * left);
+                over = 0;
             }
+            _ => return Admission::Refused(why),
         }
-        _ => Admission::Refused(why),
+    }
+    if over == 0 && resize != Resize::default() {
+        Admission::Smaller { resize, why }
+    } else {
+        Admission::Refused(why)
     }
 }
 
