@@ -38,8 +38,10 @@
 //!    loop) to flash, to boot in the mode asked for.
 
 use crate::capture::{self, CaptureError, ConvertError, Recording};
-use crate::identification::auto::{identify_auto_admitting, Ranked, Size, Validation};
-use crate::identification::run::{admission_at, identify_admitted, BoardRate};
+use crate::identification::auto::{
+    identify_admitted, identify_auto_admitting, Ranked, Size, Validation,
+};
+use crate::identification::run::{admission_at, BoardRate};
 use crate::identification::score::{score, ErrorFigures};
 use crate::identification::{
     Identification, IdentifyError, IdentifyOptions, ModelKind, DEFAULT_OPERATORS,
@@ -583,7 +585,7 @@ fn measure<T: Transport>(
     let (id, operators, label, reason, ranking) = match options.model {
         Some(_) => {
             let asked = Size::of(&id_options);
-            let (fitted, id) = identify_admitted(&excitation, id_options.clone(), runs_on_board)?;
+            let (fitted, id) = identify_admitted(&excitation, id_options.clone(), &runs_on_board)?;
             let label = fitted.model_label();
             let sized = Size::of(&fitted);
             let reason = if sized == asked {
@@ -599,11 +601,7 @@ fn measure<T: Transport>(
         None => {
             let auto =
                 identify_auto_admitting(&excitation, &id_options.candidates(), runs_on_board)?;
-            let picked = auto
-                .ranking
-                .iter()
-                .find(|r| r.validation.admitted().is_some())
-                .map_or_else(|| id_options.clone(), |r| r.options.clone());
+            let picked = auto.options.clone();
             let ranking = auto.ranking.iter().map(candidate).collect();
             (
                 auto.identification,

@@ -687,11 +687,7 @@ pub fn evaluate_methods(
             Method::One(o) => (Method::name(o), identify(&data, o)),
             Method::Auto(candidates) => match identify_auto(&data, candidates) {
                 Ok(a) => {
-                    let picked = a
-                        .ranking
-                        .iter()
-                        .find(|r| r.validation.admitted().is_some())
-                        .map_or_else(|| "?".into(), |r| Method::name(&r.options));
+                    let picked = Method::name(&a.options);
                     (format!("auto: {picked}"), Ok(a.identification))
                 }
                 Err(e) => ("auto".into(), Err(e)),

@@ -37,13 +37,7 @@ fn held_out(data: &MeasuredData, fit_until: f64) -> ((String, f64, f64), (f64, f
         (f.max_pct, f.rms_pct)
     };
     let auto = identify_auto(data, &base.candidates()).unwrap();
-    let picked = auto
-        .ranking
-        .iter()
-        .find(|r| r.validation.admitted().is_some())
-        .unwrap()
-        .label
-        .clone();
+    let picked = auto.options.model_label();
     let (a_max, a_rms) = figures(&auto.identification);
     let textbook = figures(&identify(data, &base).unwrap());
     ((picked, a_max, a_rms), textbook)

@@ -156,3 +156,30 @@ fn a_lag_is_estimated_only_where_the_data_has_one() {
     let id = identify(&pi_record(0.02, 3), &o).unwrap();
     assert_eq!(id.lag_samples, 3);
 }
+
+/// What `auto` returns is admitted as refitted on the whole window, not only as fitted on its
+/// first part: the two fits can differ in size (a creep mode one gives no weight, the other
+/// may). An `admit` that takes every fit on the first part and refuses every fit on the whole
+/// window leaves nothing to pick.
+#[test]
+fn auto_checks_the_refit_on_the_whole_window_too() {
+    use hal_sim::identification::auto::{identify_auto_admitting, Admission};
+    use hal_sim::identification::IdentifyError;
+    let data = duhem_record();
+    let candidates = candidates();
+    let fit_until = candidates[0].fit_until_s;
+    let whole = data.t.iter().take_while(|&&t| t < fit_until).count();
+    let admit = |id: &hal_sim::identification::Identification| {
+        if id.held_out_from >= whole {
+            Admission::Refused("refitted on the whole window".into())
+        } else {
+            Admission::Admitted
+        }
+    };
+    match identify_auto_admitting(&data, &candidates, admit) {
+        Err(IdentifyError::NoneAdmitted(why)) => {
+            assert!(why.contains("refitted on the whole window"), "{why}")
+        }
+        other => panic!("{other:?}"),
+    }
+}

@@ -186,10 +186,40 @@ pub struct AutoIdentification {
     pub ranking: Vec<Ranked>,
     /// The time the validation part starts, seconds.
     pub validation_from_s: f64,
+    /// The winner's options as refitted on the whole window (smaller than asked where
+    /// `admit` sized it down).
+    pub options: IdentifyOptions,
     /// The winner, refitted on the whole window.
     pub identification: Identification,
     /// Why the winner was picked, for the user.
     pub reason: String,
+}
+
+/// One model fitted as `options` say and admitted by `admit`, fitted again smaller where
+/// `admit` says so ([`Admission::Smaller`]); the options it was fitted with and the fit, or
+/// [`IdentifyError::NoneAdmitted`] with the reason.
+pub fn identify_admitted(
+    data: &MeasuredData,
+    options: IdentifyOptions,
+    admit: &impl Fn(&Identification) -> Admission,
+) -> Result<(IdentifyOptions, Identification), IdentifyError> {
+    let id = identify(data, &options)?;
+    let refused =
+        |why: String| IdentifyError::NoneAdmitted(format!("{}: {why}", options.model_label()));
+    match admit(&id) {
+        Admission::Admitted => Ok((options, id)),
+        Admission::Refused(why) => Err(refused(why)),
+        Admission::Smaller { resize, why } => {
+            let smaller = resize.apply(&options);
+            let id = identify(data, &smaller)?;
+            match admit(&id) {
+                Admission::Admitted if Size::of(&smaller).is_smaller_than(&Size::of(&options)) => {
+                    Ok((smaller, id))
+                }
+                _ => Err(refused(why)),
+            }
+        }
+    }
 }
 
 /// A candidate's name for the ranking table.
@@ -216,9 +246,9 @@ pub fn identify_auto(
     identify_auto_admitting(data, candidates, |_| Admission::Admitted)
 }
 
-/// [`identify_auto`], picking only among the candidates `admit` accepts (given each one's fit
-/// on the first part of the window; its model has the size the refit on the whole window
-/// has, up to a dead zone a generalised P–I's map may drop). A candidate `admit` would take
+/// [`identify_auto`], picking only among the candidates `admit` accepts, given each one's fit
+/// on the first part of the window; the winner's refit on the whole window is checked again
+/// ([`identify_admitted`]: the two fits can differ in size). A candidate `admit` would take
 /// with fewer play operators or creep modes ([`Admission::Smaller`]) is fitted and scored
 /// again with them. A candidate it refuses stays in the ranking, after the admitted ones, with `admit`'s
 /// reason and its validation figures. Fails with [`IdentifyError::NoneAdmitted`] if every
@@ -348,18 +378,21 @@ pub fn identify_auto_admitting(
     let Some(best) = simpler.or(best) else {
         // No candidate could be ranked (the validation part too short for every one):
         // the first candidate on the whole window, or its error.
-        let identification = identify(data, first)?;
+        let (options, identification) = identify_admitted(data, first.clone(), &admit)?;
         return Ok(AutoIdentification {
             reason: format!(
                 "no candidate could be fitted on the first part of the window alone; {} was fitted on the whole window without a ranking",
-                label(first)
+                label(&options)
             ),
             ranking,
             validation_from_s,
+            options,
             identification,
         });
     };
-    let identification = identify(data, &best.options)?;
+    // The refit on the whole window is checked again: its size can differ from the fit on
+    // the first part (a creep mode the one fit gave no weight, the other may).
+    let (options, identification) = identify_admitted(data, best.options.clone(), &admit)?;
     let runner_up = ranking
         .iter()
         .filter(|r| r.label != best.label)
@@ -380,16 +413,19 @@ pub fn identify_auto_admitting(
         // `best` is admitted by construction; its note, should that ever change.
         (None, _) => best.validation.note().unwrap_or_default(),
     };
-    let reason = match best.sized_down_from {
-        Some(asked) => format!(
+    let asked = best.sized_down_from.unwrap_or(Size::of(&best.options));
+    let reason = if Size::of(&options) == asked {
+        reason
+    } else {
+        format!(
             "{reason}; {} asked for, the most the board runs at its rate",
-            Size::of(&best.options).change_from(&asked)
-        ),
-        None => reason,
+            Size::of(&options).change_from(&asked)
+        )
     };
     Ok(AutoIdentification {
         ranking,
         validation_from_s,
+        options,
         identification,
         reason,
     })

@@ -3,9 +3,11 @@
 //! score it on the fitted and the held-out part, in fixed point and against the `f64`
 //! reference, and put it in a parameter file with that record.
 
-use super::auto::{identify_auto_admitting, Admission, AutoIdentification, Resize, Size};
+use super::auto::{
+    identify_admitted, identify_auto_admitting, Admission, AutoIdentification, Resize,
+};
 use super::score::{score, ErrorFigures};
-use super::{identify, Identification, IdentifyError, IdentifyOptions, ModelKind};
+use super::{Identification, IdentifyError, IdentifyOptions, ModelKind};
 use crate::measured_data::MeasuredData;
 use crate::param_file::{IdentificationRecord, ParamFile};
 use twinstack::board::Hardware;
@@ -92,33 +94,6 @@ pub enum RunError {
     /// The measured output does not move where the model is scored.
     #[error("the measured output is flat, cannot score")]
     Flat,
-}
-
-/// One model fitted as `options` say and admitted by `admit`, fitted again smaller where
-/// `admit` says so ([`Admission::Smaller`]); the options it was fitted with and the fit, or
-/// [`IdentifyError::NoneAdmitted`] with the reason.
-pub fn identify_admitted(
-    data: &MeasuredData,
-    options: IdentifyOptions,
-    admit: impl Fn(&Identification) -> Admission,
-) -> Result<(IdentifyOptions, Identification), IdentifyError> {
-    let id = identify(data, &options)?;
-    let refused =
-        |why: String| IdentifyError::NoneAdmitted(format!("{}: {why}", options.model_label()));
-    match admit(&id) {
-        Admission::Admitted => Ok((options, id)),
-        Admission::Refused(why) => Err(refused(why)),
-        Admission::Smaller { resize, why } => {
-            let smaller = resize.apply(&options);
-            let id = identify(data, &smaller)?;
-            match admit(&id) {
-                Admission::Admitted if Size::of(&smaller).is_smaller_than(&Size::of(&options)) => {
-                    Ok((smaller, id))
-                }
-                _ => Err(refused(why)),
-            }
-        }
-    }
 }
 
 /// `auto`'s candidates for `options`: every model kind with and without creep (`creep =
@@ -310,16 +285,12 @@ pub fn identify_and_score(
                 creep: creep == Some(true),
                 ..options.clone()
             };
-            let (o, id) = identify_admitted(data, o, admit)?;
+            let (o, id) = identify_admitted(data, o, &admit)?;
             (None, o, id)
         }
         ModelChoice::Auto => {
             let auto = identify_auto_admitting(data, &candidates(options, creep), admit)?;
-            let kept = auto
-                .ranking
-                .iter()
-                .find(|r| r.validation.admitted().is_some())
-                .map_or_else(|| options.clone(), |r| r.options.clone());
+            let kept = auto.options.clone();
             let id = auto.identification.clone();
             (Some(auto), kept, id)
         }
