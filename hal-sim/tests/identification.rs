@@ -646,4 +646,24 @@ fn identify_at_a_tick_rate_keeps_a_model_the_board_runs() {
         err.contains("generalised P-I") && err.contains("cycles per tick"),
         "{err}"
     );
+
+    // A rate the board does not run at is refused by name before anything is fitted.
+    let err = fails(
+        &[
+            "identify",
+            "--tick-rate",
+            "1e9",
+            "--data",
+            data.to_str().unwrap(),
+            "--fit-until",
+            "5.95",
+            "--out",
+            named.to_str().unwrap(),
+        ],
+        &[&named],
+    );
+    assert!(
+        err.contains("--tick-rate") && err.contains("100000 Hz"),
+        "{err}"
+    );
 }

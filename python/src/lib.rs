@@ -11,7 +11,8 @@
 use hal_sim::capture::{self, CaptureError};
 use hal_sim::identification::auto::Validation;
 use hal_sim::identification::run::{
-    default_fit_until, identify_and_score, parse_model, BoardRate, Identified, RunError,
+    check_tick_rate, default_fit_until, identify_and_score, parse_model, BoardRate, Identified,
+    RunError,
 };
 use hal_sim::identification::{IdentifyOptions, ModelKind, ThresholdSpread, DEFAULT_OPERATORS};
 use hal_sim::link::client::{nack_text, Client, LinkError};
@@ -457,11 +458,7 @@ fn identify(
 ) -> PyResult<Params> {
     let choice = parse_model(model).map_err(PyValueError::new_err)?;
     if let Some(rate) = tick_rate {
-        if !(rate.is_finite() && rate > 0.0) {
-            return Err(PyValueError::new_err(format!(
-                "tick_rate {rate}: must be a positive number of Hz"
-            )));
-        }
+        check_tick_rate(rate).map_err(|e| PyValueError::new_err(format!("tick_rate {e}")))?;
     }
     // A P–I sized to the rate unless its operators were asked for.
     let rate = tick_rate.map(|hz| BoardRate::sizing(hz, operators.is_some()));

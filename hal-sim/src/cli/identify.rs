@@ -3,7 +3,7 @@
 //! `t < SECONDS`, scores
 //! on the rest, writes the parameter file and a PNG beside it (`PARAMS.png`).
 
-use crate::identification::run::{identify_and_score, BoardRate, RunError};
+use crate::identification::run::{check_tick_rate, identify_and_score, BoardRate, RunError};
 use crate::identification::score::ErrorFigures;
 use crate::identification::{
     IdentifyError, IdentifyOptions, ModelKind, ThresholdSpread, DEFAULT_OPERATORS,
@@ -98,8 +98,11 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         );
     }
     if let Some(rate) = args.tick_rate {
-        if !(rate.is_finite() && rate > 0.0) {
-            bail!("--tick-rate {rate}: must be a positive number of Hz");
+        check_tick_rate(rate).map_err(|e| anyhow!("--tick-rate {e}"))?;
+    }
+    if let Some(n) = args.operators {
+        if !(1..=twinstack::MAX_OPERATORS).contains(&n) {
+            bail!("--operators {n}: must be 1 to {}", twinstack::MAX_OPERATORS);
         }
     }
     let data = MeasuredData::read_with(

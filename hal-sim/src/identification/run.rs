@@ -132,6 +132,29 @@ pub fn runs_at(settings: &Settings, rate_hz: f64) -> Result<(), String> {
     }
 }
 
+/// `Ok(())` if `hz` is a control rate the board runs at
+/// ([`Hardware::MIN_CONTROL_RATE_HZ`] to [`Hardware::MAX_CONTROL_RATE_HZ`]), else why not.
+///
+/// ```
+/// use hal_sim::identification::run::check_tick_rate;
+/// assert!(check_tick_rate(100_000.0).is_ok());
+/// assert!(check_tick_rate(1e9).unwrap_err().contains("10000 to 100000 Hz"));
+/// assert!(check_tick_rate(f64::NAN).is_err());
+/// ```
+pub fn check_tick_rate(hz: f64) -> Result<(), String> {
+    let (lo, hi) = (
+        Hardware::MIN_CONTROL_RATE_HZ as f64,
+        Hardware::MAX_CONTROL_RATE_HZ as f64,
+    );
+    if (lo..=hi).contains(&hz) {
+        Ok(())
+    } else {
+        Err(format!(
+            "{hz}: must be {lo} to {hi} Hz, the control rates the board runs at"
+        ))
+    }
+}
+
 /// The control rate a model must run at, and how it may be made smaller so that it does.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct BoardRate {
