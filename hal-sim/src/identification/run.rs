@@ -11,9 +11,9 @@ use super::{Identification, IdentifyError, IdentifyOptions, ModelKind};
 use crate::measured_data::MeasuredData;
 use crate::param_file::{IdentificationRecord, ParamFile};
 use twinstack::board::Hardware;
-use twinstack::refusal::{Field, Rule};
+use twinstack::params::PiParams;
+use twinstack::refusal::Field;
 use twinstack::settings::{Model, Settings};
-use twinstack::tick_budget::{CREEP_MODE_CYCLES, PI_PAIR_CYCLES};
 
 /// Which model to fit: every candidate, or one.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -189,11 +189,10 @@ impl BoardRate {
 }
 
 /// Whether the driver board's tick budget runs `settings` at `rate` ([`runs_at`]); where it
-/// does not only by the size of the creep and of the P–I banks and `rate` allows them
-/// smaller, the size it would run ([`Admission::Smaller`]): the creep first loses modes (down
-/// to one; [`CREEP_MODE_CYCLES`] each, on each side that has a model), then the P–I banks
-/// (compensator and observer) a pair of operators each per [`PI_PAIR_CYCLES`] of the cycles
-/// still over.
+/// does not, but would with a smaller creep or smaller P–I banks and `rate` allows them
+/// smaller, the largest such size ([`Admission::Smaller`]): the creep first loses modes
+/// (down to one), then the P–I banks pairs of operators. Each size is costed by the library's
+/// own tick budget, on `settings` with the model cut to that size.
 ///
 /// ```
 /// use hal_sim::identification::auto::{Admission, Resize};
@@ -229,52 +228,86 @@ impl BoardRate {
 /// ));
 /// ```
 pub fn admission_at(settings: &Settings, rate: &BoardRate) -> Admission {
-    let refusal = match settings.build(&Hardware::driver_board(rate.hz)) {
-        Err(r) if r.field == Field::Workload => r,
+    let hardware = Hardware::driver_board(rate.hz);
+    // Only the tick budget is judged here: what else the board would refuse (a sensor it
+    // lacks, …) it says at load.
+    let fits = |s: &Settings| !matches!(s.build(&hardware), Err(r) if r.field == Field::Workload);
+    let why = match settings.build(&hardware) {
+        Err(r) if r.field == Field::Workload => {
+            format!("the board at {:.0} kHz would refuse it: {r}", rate.hz / 1e3)
+        }
         _ => return Admission::Admitted,
     };
-    let why = format!(
-        "the board at {:.0} kHz would refuse it: {refusal}",
-        rate.hz / 1e3
-    );
-    let Rule::TickOverrun { needs, available } = refusal.rule else {
-        return Admission::Refused(why);
-    };
-    let operators_of = |m: &Option<Model>| match m {
-        Some(Model::PrandtlIshlinskii(p)) => Some(p.thresholds.len()),
-        Some(Model::GeneralisedPi(g)) => Some(g.pi.thresholds.len()),
-        _ => None,
-    };
-    let banks = u32::from(operators_of(&settings.compensator).is_some())
-        + u32::from(operators_of(&settings.observer).is_some());
-    let sides = u32::from(settings.compensator.is_some()) + u32::from(settings.observer.is_some());
-    let operators = operators_of(&settings.compensator)
-        .or(operators_of(&settings.observer))
+    let operators = [&settings.compensator, &settings.observer]
+        .into_iter()
+        .find_map(|m| pi_part(m.as_ref()?).map(|p| p.thresholds.len()))
         .unwrap_or(0);
     let modes = settings.creep.as_ref().map_or(0, |c| c.weights.len());
-    let mut resize = Resize::default();
-    let mut over = needs.saturating_sub(available);
-    if rate.fewer_creep_modes && modes > 1 && sides > 0 {
-        let per_mode = CREEP_MODE_CYCLES * sides;
-        let drop = (over.div_ceil(per_mode) as usize).min(modes - 1);
-        resize.creep_modes = Some(modes - drop);
-        over = over.saturating_sub(drop as u32 * per_mode);
-    }
-    if over > 0 && rate.fewer_operators && banks > 0 && operators > 0 {
-        let drop = over.div_ceil(PI_PAIR_CYCLES * banks) as usize;
-        match operators.div_ceil(2).checked_sub(drop) {
-            Some(left) if left > 0 && 2 * left < operators => {
-                resize.operators = Some(2 * left);
-                over = 0;
-            }
-            _ => return Admission::Refused(why),
+    let fewer_modes = rate.fewer_creep_modes && modes > 1;
+    // The creep alone, as many modes as fit …
+    if fewer_modes {
+        if let Some(m) = (1..modes)
+            .rev()
+            .find(|&m| fits(&cut(settings, None, Some(m))))
+        {
+            return Admission::Smaller {
+                resize: Resize {
+                    operators: None,
+                    creep_modes: Some(m),
+                },
+                why,
+            };
         }
     }
-    if over == 0 && resize != Resize::default() {
-        Admission::Smaller { resize, why }
-    } else {
-        Admission::Refused(why)
+    // … then one mode and the P–I banks, as many pairs of operators as fit.
+    let creep_modes = fewer_modes.then_some(1);
+    if rate.fewer_operators && operators > 0 {
+        let pairs = (1..operators.div_ceil(2))
+            .rev()
+            .find(|&p| fits(&cut(settings, Some(2 * p), creep_modes)));
+        if let Some(p) = pairs {
+            return Admission::Smaller {
+                resize: Resize {
+                    operators: Some(2 * p),
+                    creep_modes,
+                },
+                why,
+            };
+        }
     }
+    Admission::Refused(why)
+}
+
+/// The P–I part of a model (a P–I's, or a generalised P–I's).
+fn pi_part(model: &Model) -> Option<&PiParams> {
+    match model {
+        Model::PrandtlIshlinskii(p) => Some(p),
+        Model::GeneralisedPi(g) => Some(&g.pi),
+        _ => None,
+    }
+}
+
+/// `settings` with their P–I parts cut to their first `operators` and their creep to its first
+/// `creep_modes` (`None`: as they are): the shape a smaller fit would have, for the tick
+/// budget to cost.
+fn cut(settings: &Settings, operators: Option<usize>, creep_modes: Option<usize>) -> Settings {
+    let mut s = settings.clone();
+    if let Some(n) = operators {
+        for model in [&mut s.compensator, &mut s.observer].into_iter().flatten() {
+            let pi = match model {
+                Model::PrandtlIshlinskii(p) => p,
+                Model::GeneralisedPi(g) => &mut g.pi,
+                _ => continue,
+            };
+            pi.thresholds.truncate(n);
+            pi.weights.truncate(n);
+        }
+    }
+    if let (Some(m), Some(creep)) = (creep_modes, s.creep.as_mut()) {
+        creep.time_constants_s.truncate(m);
+        creep.weights.truncate(m);
+    }
+    s
 }
 
 /// Fits `data` (`t`, `u`, `x`) as `choice` says, with `options` (its `model` is ignored;
