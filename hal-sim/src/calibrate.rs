@@ -587,14 +587,9 @@ fn measure<T: Transport>(
             let asked = Size::of(&id_options);
             let (fitted, id) = identify_admitted(&excitation, id_options.clone(), &runs_on_board)?;
             let label = fitted.model_label();
-            let sized = Size::of(&fitted);
-            let reason = if sized == asked {
-                format!("{label} (asked for)")
-            } else {
-                format!(
-                    "{label} (asked for; {} asked for, the most the board runs at its rate)",
-                    sized.change_from(&asked)
-                )
+            let reason = match Size::of(&fitted).sized_down_note(&asked) {
+                Some(note) => format!("{label} (asked for; {note})"),
+                None => format!("{label} (asked for)"),
             };
             (id, fitted.operators, label, reason, Vec::new())
         }

@@ -578,18 +578,26 @@ fn identify_at_a_tick_rate_keeps_a_model_the_board_runs() {
     use hal_sim::param_file::ParamFile;
     let dir = tempfile::tempdir().unwrap();
     let data = measured_data(BIPOLAR);
-    let identify = |out: &Path, extra: &[&str]| {
+    let args = |out: &Path, extra: &[&str]| {
         let mut args = vec![
-            "identify",
-            "--data",
-            data.to_str().unwrap(),
-            "--fit-until",
-            "5.95",
-            "--out",
-            out.to_str().unwrap(),
+            "identify".to_string(),
+            "--data".into(),
+            data.display().to_string(),
+            "--fit-until".into(),
+            "5.95".into(),
+            "--out".into(),
+            out.display().to_string(),
         ];
-        args.extend_from_slice(extra);
-        ok(&args)
+        args.extend(extra.iter().map(|a| a.to_string()));
+        args
+    };
+    let identify = |out: &Path, extra: &[&str]| {
+        let args = args(out, extra);
+        ok(&args.iter().map(String::as_str).collect::<Vec<_>>())
+    };
+    let refused = |out: &Path, extra: &[&str]| {
+        let args = args(out, extra);
+        fails(&args.iter().map(String::as_str).collect::<Vec<_>>(), &[out])
     };
     let settings = |out: &Path| ParamFile::load(out).unwrap().0.settings;
 
@@ -626,42 +634,14 @@ fn identify_at_a_tick_rate_keeps_a_model_the_board_runs() {
     );
 
     let named = dir.path().join("named.json");
-    let err = fails(
-        &[
-            "identify",
-            "--model",
-            "gpi",
-            "--tick-rate",
-            "100000",
-            "--data",
-            data.to_str().unwrap(),
-            "--fit-until",
-            "5.95",
-            "--out",
-            named.to_str().unwrap(),
-        ],
-        &[&named],
-    );
+    let err = refused(&named, &["--model", "gpi", "--tick-rate", "100000"]);
     assert!(
         err.contains("generalised P-I") && err.contains("cycles per tick"),
         "{err}"
     );
 
     // A rate the board does not run at is refused by name before anything is fitted.
-    let err = fails(
-        &[
-            "identify",
-            "--tick-rate",
-            "1e9",
-            "--data",
-            data.to_str().unwrap(),
-            "--fit-until",
-            "5.95",
-            "--out",
-            named.to_str().unwrap(),
-        ],
-        &[&named],
-    );
+    let err = refused(&named, &["--tick-rate", "1e9"]);
     assert!(
         err.contains("--tick-rate") && err.contains("100000 Hz"),
         "{err}"

@@ -100,11 +100,6 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     if let Some(rate) = args.tick_rate {
         check_tick_rate(rate).map_err(|e| anyhow!("--tick-rate {e}"))?;
     }
-    if let Some(n) = args.operators {
-        if !(1..=twinstack::MAX_OPERATORS).contains(&n) {
-            bail!("--operators {n}: must be 1 to {}", twinstack::MAX_OPERATORS);
-        }
-    }
     let data = MeasuredData::read_with(
         &args.data,
         Columns::TimeDriveOutput,
@@ -119,8 +114,12 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     options.lag = args.lag;
     let in_file = |e: RunError| match e {
         RunError::Params(e) => anyhow!("{e}"),
-        // The rate refused the models, not the file.
-        RunError::Identify(e @ IdentifyError::NoneAdmitted(_)) => anyhow!("{e}"),
+        // The rate or an option refused the models, not the file.
+        RunError::Identify(
+            e @ (IdentifyError::NoneAdmitted(_)
+            | IdentifyError::BadOperatorCount(_)
+            | IdentifyError::BadCreepModes(_)),
+        ) => anyhow!("{e}"),
         e => anyhow!("{}: {e}", args.data.display()),
     };
     let run = identify_and_score(

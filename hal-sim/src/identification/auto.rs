@@ -70,8 +70,9 @@ impl Size {
         self.operators <= asked.operators && self.creep_modes <= asked.creep_modes && self != asked
     }
 
-    /// What changed from `asked`, in words ("16 play operators instead of 17").
-    pub fn change_from(&self, asked: &Size) -> String {
+    /// What was made smaller than `asked` for the board, in words ("16 play operators instead
+    /// of 17 asked for, the most the board runs at its rate"); `None` if nothing was.
+    pub fn sized_down_note(&self, asked: &Size) -> Option<String> {
         let mut parts = Vec::new();
         if self.operators != asked.operators {
             parts.push(format!(
@@ -85,7 +86,12 @@ impl Size {
                 self.creep_modes, asked.creep_modes
             ));
         }
-        parts.join(" and ")
+        (!parts.is_empty()).then(|| {
+            format!(
+                "{} asked for, the most the board runs at its rate",
+                parts.join(" and ")
+            )
+        })
     }
 }
 
@@ -414,13 +420,9 @@ pub fn identify_auto_admitting(
         (None, _) => best.validation.note().unwrap_or_default(),
     };
     let asked = best.sized_down_from.unwrap_or(Size::of(&best.options));
-    let reason = if Size::of(&options) == asked {
-        reason
-    } else {
-        format!(
-            "{reason}; {} asked for, the most the board runs at its rate",
-            Size::of(&options).change_from(&asked)
-        )
+    let reason = match Size::of(&options).sized_down_note(&asked) {
+        Some(note) => format!("{reason}; {note}"),
+        None => reason,
     };
     Ok(AutoIdentification {
         ranking,
