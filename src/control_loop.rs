@@ -148,8 +148,8 @@ pub struct ControlLoop<B, C> {
 }
 
 // The learning's tables stay the last field: every other field within a one-instruction
-// load's reach. (Session 7's scan and trigger fields went in after them, and every tick paid
-// an extra instruction for each of their accesses until session 9.)
+// load's reach (a field placed after them would cost every tick an extra instruction for
+// each of its accesses).
 const _: () = {
     type Board = ControlLoop<[i16; 1], &'static mut Controller>;
     let end = core::mem::offset_of!(Board, learning) + core::mem::size_of::<LearnTick>();

@@ -199,7 +199,7 @@ pub fn decode(record: &[u8], expected_version: u16) -> Result<&[u8], StoreError>
 /// it and is still read, as settings without shaping ([`StoredRecord::decode`]); in version 4
 /// `Model` had gained the generalised P–I and Bouc–Wen (appended in that order) and the
 /// settings the optional creep operator; version 3 lacked all three, and versions 1 and 2 had
-/// a separate board payload and a wire parameter set: none of them is read any more, such a
+/// a separate board payload and a wire parameter set: none of them is read, such a
 /// board boots on the defaults and says so).
 pub const RECORD_VERSION: u16 = 5;
 

@@ -89,9 +89,9 @@ pub fn in_pieces<T, const N: usize>(
 
 /// Slots of the board's capture buffer: 52 224 16-bit values (102 KiB: 38 KiB of SRAM and the
 /// 64 KiB of CCM RAM). At 50 kHz that is 1.04 s of one signal, or 0.26 s of four. The SRAM
-/// part was 64 KiB until the learning's tables and telemetry's queue joined it, and 40 KiB
-/// until the scan's state and trigger I/O: the stack needs its reserve (`memory.x`,
-/// `_stack_reserve`) in every image, the dual-stage board image the tightest.
+/// part is what the learning's tables, telemetry's queue, the scan's state and trigger I/O
+/// leave: the stack needs its reserve (`memory.x`, `_stack_reserve`) in every image, the
+/// dual-stage board image the tightest.
 pub const CAPTURE_SLOTS: usize = 51 * 1024;
 
 /// Values of one signal a `Record` holds at most (the v3 limit; each takes two slots).

@@ -56,9 +56,9 @@ const fn quarter_sine(x: f64) -> f64 {
 }
 
 /// `sin(i · π/2 / 256)`, Q2.30, `i = 0 ..= 256`: the quarter-wave table of [`unit_sine`],
-/// computed at compile time. One table for every waveform and scan pattern: each used to carry
-/// its own 1 KiB copy, moved under the tick's lock when it started (the tick waited 1 000
-/// instructions for a scan to start). On the board it is in RAM (`.data`, copied from flash
+/// computed at compile time. One table for every waveform and scan pattern, so a generator
+/// carries no 1 KiB copy of its own to be moved under the tick's lock when it starts (that
+/// would hold the tick off for about 1 000 instructions). On the board it is in RAM (`.data`, copied from flash
 /// at reset), so the tick reads it without flash wait states.
 // A section name only: cortex-m-rt's `.data`, which its reset handler copies from flash.
 #[cfg_attr(target_os = "none", allow(unsafe_code), link_section = ".data")]
@@ -249,7 +249,7 @@ mod tests {
     #[test]
     fn the_compile_time_table_is_the_one_computed_at_run_time() {
         // The compiler's IEEE arithmetic is the board's and the host's: the table is the one
-        // each generator used to build for itself, bit for bit (the golden vectors hold it).
+        // computed at run time, bit for bit (the golden vectors hold it).
         let x = core::hint::black_box(core::f64::consts::FRAC_PI_2 / QUARTER as f64);
         for (i, &t) in SINE_TABLE.iter().enumerate() {
             let run = crate::fixed_point::signal_from_f64(quarter_sine(i as f64 * x));

@@ -1,6 +1,6 @@
-//! The board image and the emulator image are two binaries with two names (issue #18: `cargo
-//! build-fw` and `cargo build-emu` wrote the same file, and booting the wrong one hung
-//! silently). Checked where the names are decided: the cargo aliases and the `[[bin]]`
+//! The board image and the emulator image are two binaries with two names (so `cargo
+//! build-fw` and `cargo build-emu` never write the same file, and the wrong one is never
+//! booted by mistake). Checked where the names are decided: the cargo aliases and the `[[bin]]`
 //! targets. (That each image reports which it is, is checked by `tests/emulator.rs` and
 //! `hal-sim/tests/emulator_link.rs` in QEMU, and by the handler's status test here.)
 

@@ -23,61 +23,34 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 
 /// The worst instruction count of any tick, asserted (deterministic under `-icount`): the
-/// figure the bench measured when it was last changed, rounded up. Lower it when the tick
-/// gets cheaper; raising it needs a reason in the commit. 1 000: the image captures all six
-/// recorder signals every tick and dispatches over the model family's variants (980 measured).
-/// 1 070: the image also runs continuous telemetry's tap at its worst, all six signals on every
-/// tick (+73: 1 062 measured). Then the P–I banks run two operators per word with the M4's
-/// dual-16-bit instructions (980 → 817 measured without telemetry; 886 with it, session 6).
-/// 1 000: protocol v6's trigger I/O on every tick (the input sampled, the pulse outputs, one
-/// BSRR store) and a seventh capture and telemetry signal (`triggers`), all seven taken every
-/// tick here (streaming 886 → 940 measured), and the scan scenario (972 measured, branch scan).
-/// 1 040: with the learning feedforward merged too (its off path in every tick; session 7).
-/// 990: the P–I banks written out pair by pair instead of looping (981 measured, session 8).
-/// 1 010: with input shaping's test on every tick (999 measured, session 8).
-/// 970: the capture and telemetry take one set of the tick's signals, computed once
-/// (`recorder::TickSignals`; 958 measured, session 9). 935: the learning's tables the loop's
-/// last field again, so that every other is one load away (923 measured, session 9).
-/// 940: the stream's step rounded toward zero, so that a segment never passes its target
-/// (926 measured, session 10; a check-and-correct after rounding to nearest measured 943).
-/// 975: the scan with the learning feedforward on, the learning's use case, measured as a
-/// scenario of its own (963 measured, session 10; each alone 923 and 926).
-/// 1 010: the Lissajous figure and the spiral measured too, the spiral with the learning on
-/// the dearest (996 measured, session 11; the raster's 974), its y no longer computed on the
-/// tick.
-/// 1 045: P–I 17 measured too, what `hal-sim calibrate --model pi` loads by default (its
-/// spiral with the learning 1 028, session 13; P–I 16's still 996).
+/// figure the bench measures, rounded up by a margin of about 5 %. Lower it when the tick
+/// gets cheaper; raising it needs a reason in the commit. It bounds the shipped
+/// configurations ([`SHIPPED_CONFIGS`]) in every scenario: the image captures all seven
+/// recorder signals and runs continuous telemetry's tap at its worst on every tick, samples
+/// the trigger input and drives the pulse outputs (one BSRR store), tests input shaping, and
+/// streams, scans (raster, Lissajous figure, spiral) and learns; the dearest scenario is the
+/// spiral with the learning feedforward on (P–I 17: 1 028 measured; P–I 16: 996).
 const WORST_INSTRUCTIONS: u64 = 1045;
 /// The longest critical section outside the tick (a lock on its resource, or interrupts
-/// off), instructions: how late a tick can start. 8 083 when the command handler copied a
-/// capture chunk of 256 slots in one lock (93 µs at 5 WS); 276 measured with the copy in
-/// pieces of 16 slots, a lock each (session 9).
+/// off), instructions: how late a tick can start. The command handler copies a capture chunk
+/// in pieces of 16 slots, a lock each (`recorder::PIECE_SLOTS`): 276 measured. One lock
+/// over a whole 256-slot chunk would hold the tick off for about 8 000 instructions (93 µs at
+/// 5 WS).
 const HELD_OFF_INSTRUCTIONS: u64 = 290;
 /// Most instructions the learning feedforward, on, adds to a configuration's worst tick (its
 /// table read, its error store and, at a period's end, the flips).
 const LEARNING_EXTRA: u64 = 120;
 /// The configuration of the model family measured on its own: what `hal-sim calibrate`
 /// loads by default where the generalised P–I wins, as on the simulated lab stage (N = 17,
-/// 8 dead zones, as compensator and observer, with four creep modes in series). Until
-/// session 13 it was N = 16 with 6 dead zones, a bench shape identification no longer
-/// produced.
+/// 8 dead zones, as compensator and observer, with four creep modes in series): the shape
+/// identification fits.
 const FAMILY_CONFIG: &str = "inverse-gpi17x8+creep4+gpi17x8-observer+pi+drift";
-/// Its bound, instructions (the worst measured, with a margin of a few %): 1 524 before
-/// telemetry's tap, 1 595 with it at its worst, 1 323 with the packed banks and no telemetry;
-/// 1 394 with both (session 6).
-/// 1 480: 1 467 with the learning feedforward merged; 1 500 with protocol v6's trigger I/O
-/// and the seventh signal (1 491, branch scan); 1 560 with both (session 7).
-/// 1 480: the P–I banks, the dead zones and the creep modes written out one by one instead
-/// of looping (1 466 measured, session 8); 1 500 with input shaping's test on every tick
-/// (1 485 measured). 1 460 with the tick's signals computed once (1 442 measured, session 9);
-/// 1 420 with the learning's tables last in the loop (1 407 measured; the same with the
-/// stream's step rounded toward zero, session 10). 1 465 with the scan and the learning on
-/// together measured (1 447, session 10). 1 495 with the spiral and the learning, the dearest
-/// pattern (1 480 measured, session 11). 1 575 for the shape identification fits since
-/// session 12, 17 operators and 8 dead zones (1 558 measured, session 13).
+/// Its bound, instructions (the worst measured, with a margin of a few %), over the same
+/// scenarios as [`WORST_INSTRUCTIONS`]: the dearest is the spiral with the learning
+/// feedforward on (1 558 measured).
 const FAMILY_WORST_INSTRUCTIONS: u64 = 1575;
 /// The configurations [`WORST_INSTRUCTIONS`] bounds: the P–I and Duhem ones (P–I 16, the
-/// whole-interrupt issue's reference, and P–I 17, what `hal-sim calibrate --model pi` loads
+/// reference configuration of the tick's cost, and P–I 17, what `hal-sim calibrate --model pi` loads
 /// by default).
 const SHIPPED_CONFIGS: [&str; 3] = [
     "inverse-pi16+pi16-observer+pi+drift",

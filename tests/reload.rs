@@ -265,9 +265,9 @@ proptest! {
     }
 }
 
-/// The round-1 failure, as a user met it: the board on a 0…140 V model, then a load whose
-/// input range is ±156 V. The outputs must not move in the swap tick (they stepped by up to
-/// 140 V before).
+/// A reload across input ranges, as a user meets it: the board on a 0…140 V model, then a
+/// load whose input range is ±156 V. The outputs must not move in the swap tick (re-deriving
+/// the drive from the new model's input range would step them by up to 140 V).
 #[test]
 fn a_load_with_another_input_range_does_not_step_the_outputs() {
     let first = Settings {

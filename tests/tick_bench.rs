@@ -14,9 +14,9 @@ mod support;
 use std::time::Duration;
 
 /// Flash budget of the board image, bytes: sectors 0–4 (the 16 KiB sectors and the 64 KiB
-/// one: 128 KiB), half of the 896 KiB the image may use. It was 64 KiB until the model family
-/// (generalised P–I, creep, Bouc–Wen) took the image past it; the budget still catches a
-/// configuration path inlined into every caller or a formatting machinery pulled in.
+/// one: 128 KiB), half of the 896 KiB the image may use: room for the model family
+/// (generalised P–I, creep, Bouc–Wen), tight enough to catch a configuration path inlined
+/// into every caller or a formatting machinery pulled in.
 const FLASH_BUDGET: u64 = 128 * 1024;
 /// Instruction budget of the N = 16 tick.
 const TICK_BUDGET: f64 = 250.0;

@@ -4,10 +4,10 @@
 //! [`DualStage::coarse_tick`] every coarse period on the emulated step/dir output and encoders.
 //!
 //! Sensors: the piezo's own sensor (ADS8689, ±45 µm, 2 nm rms) measures the piezo against the
-//! carriage, as before; a linear encoder (quadrature, 5 nm per count by default) measures the
+//! carriage; a linear encoder (quadrature, 5 nm per count by default) measures the
 //! total position `carriage + piezo`; the motor encoder measures the motor angle.
 //!
-//! Two scenarios are the figures: [`five_mm_move`] and [`track_large_trajectory`].
+//! Two scenarios give the dual stage's figures: [`five_mm_move`] and [`track_large_trajectory`].
 
 use crate::coarse_stage::{EmulatedEncoder, EmulatedStepDir};
 use crate::plant::ball_screw::{BallScrew, BallScrewError, BallScrewParams};

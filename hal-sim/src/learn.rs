@@ -294,7 +294,7 @@ pub struct LearnReport {
 }
 
 impl LearnReport {
-    /// The goal: RMS ≥ 20× lower than feedforward alone, max ≤ 0.1 %, replay
+    /// The learning's goals: RMS ≥ 20× lower than feedforward alone, max ≤ 0.1 %, replay
     /// max ≤ 0.2 %.
     pub fn goals(&self) -> [(&'static str, bool); 3] {
         [

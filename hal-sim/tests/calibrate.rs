@@ -1,4 +1,4 @@
-//! `hal-sim calibrate` (issue #18): the whole lab workflow against the virtual board run as a
+//! `hal-sim calibrate`: the whole lab workflow against the virtual board run as a
 //! process (calibrate → stream a 100-sample file → record the streamed run with four signals →
 //! read the parameters back), with the virtual stage's tracking error below 1 % max after
 //! calibration; and each way a calibration can fail, on the in-process board, with the error
@@ -292,8 +292,8 @@ fn a_fit_that_does_not_fit_is_refused_and_the_full_range_needs_no_clamp() {
 
 /// At 100 kHz the tick budget leaves room for fewer models than at 50 kHz (no 17-operator
 /// P–I, no generalised P–I, no creep beside a Duhem): `auto` ranks them all but picks only
-/// among those the board runs at its rate, so the calibration loads. (Before session 13 it
-/// picked one the board then refused, and `calibrate` failed at the load.)
+/// among those the board runs at its rate, so the calibration loads (a pick the board then
+/// refused would fail `calibrate` at the load).
 #[test]
 fn auto_picks_a_model_the_board_runs_at_its_rate() {
     let rate = 100_000.0;
@@ -361,8 +361,8 @@ fn auto_picks_a_model_the_board_runs_at_its_rate() {
 }
 
 /// At 100 kHz a P–I of the default 17 operators is too dear by one pair of operators per
-/// bank: `calibrate --model pi` without `--operators` fits 16 and says so, where it used to
-/// refuse; with `--operators 17` asked for, it still refuses, before loading anything.
+/// bank: `calibrate --model pi` without `--operators` fits 16 and says so rather
+/// than refuse; with `--operators 17` asked for, it still refuses, before loading anything.
 #[test]
 fn a_pi_is_sized_to_the_boards_rate_unless_its_operators_are_asked_for() {
     let rate = 100_000.0;

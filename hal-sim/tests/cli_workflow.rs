@@ -1,4 +1,4 @@
-//! The lab workflow's friction points (issue #18) on the command line, each with a test that
+//! The lab workflow's friction points on the command line, each with a test that
 //! fails if it comes back: the documented exit codes, `--port` from `TWINSTACK_PORT`, the ports
 //! listed when none is given or one cannot be opened, `status --json`, `load` refusing a model
 //! the drive cannot reach (unless `--clamp`), the virtual board on a pty keeping its state,

@@ -2,8 +2,8 @@
 //! drives the simulated board through `SimBoard::split`, with the internal converters and with
 //! the SPI drivers on the emulated chips, and closes the loop on the emulated sensor.
 //!
-//! The setpoint ramps over 10 ms to 20 µm, steps in one tick to −12 µm (the step that made the
-//! inverse Duhem limit-cycle before its drive step was capped at `1/α`), and ramps to 3.5 µm.
+//! The setpoint ramps over 10 ms to 20 µm, steps in one tick to −12 µm (a step that would make the
+//! inverse Duhem limit-cycle were its drive step not capped at `1/α`), and ramps to 3.5 µm.
 
 use core::fmt::Debug;
 use hal_sim::converters::{AnalogDualDac, AnalogSensorAdc};
@@ -138,7 +138,7 @@ fn control_tick_holds_setpoints_on_the_board_with_spi_converters() {
     track(board, (-10.24, 10.24), 16, 0.03);
 }
 
-// ---- Issue #7: the closed-loop study, anti-windup, bumpless mode switch, notch, drift. ----
+// ---- The closed-loop study, anti-windup, bumpless mode switch, notch, drift. ----
 
 use hal_sim::closed_loop::{
     self, identify_model, sensor_settings, ClosedLoopOptions, Configuration4,

@@ -1,4 +1,4 @@
-//! The dual-actuated stage as a board on the wire (issue #21): the simulated dual-stage board
+//! The dual-actuated stage as a board on the wire: the simulated dual-stage board
 //! ([`hal_sim::coarse_rig`]: the library's command handler, control loop and coarse
 //! supervisor on the piezo stage and the ball screw) driven through the host's protocol
 //! client — homing, a 5 mm move, refusals, and the three faults.

@@ -55,7 +55,7 @@ fn boot() -> Qemu {
 
 fn boot_image(elf: PathBuf) -> Qemu {
     // One directory per boot: the tests of this file run in parallel threads of one process,
-    // and a directory named after the process alone was removed under the other's QEMU.
+    // and a directory named after the process alone would be removed under the other's QEMU.
     static BOOTS: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
     let boot = BOOTS.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
     let scratch =
@@ -314,7 +314,7 @@ fn the_host_tools_drive_the_emulated_firmware_over_its_uart() {
     assert!(out.contains("image emulator\n"), "{out}");
 }
 
-/// The wrong image in QEMU (issue #18: it hung silently): the board image waits for a crystal
+/// The wrong image in QEMU must not hang silently: the board image waits for a crystal
 /// QEMU does not model and never answers; the host's error names the emulator image.
 #[test]
 fn the_board_image_in_qemu_is_named_in_the_no_response_error() {
@@ -348,7 +348,7 @@ fn hal_sim(args: &[&str]) -> (Option<i32>, String, String) {
     )
 }
 
-/// Issue #18's workflow over the real firmware in QEMU, command by command as a user types it
+/// The lab workflow over the real firmware in QEMU, command by command as a user types it
 /// (each a new connection to the UART): load → stream (recorded with four signals) → record →
 /// params → status, then calibrate. QEMU's ADC is not a stage, so calibrate cannot succeed on
 /// it; it must stop cleanly (exit 1, no panic) and say why, with the settings left as loaded.

@@ -1,4 +1,4 @@
-//! Learning feedforward on the simulated differential stage (issue #20, part 1). With input
+//! Learning feedforward on the simulated differential stage. With input
 //! shaping (the feedforward's notch on the resonance `hal-sim tune` fits, and the learning's
 //! corner raised above it) every goal is met on both waveforms, and at the second
 //! frequencies all but the 250 Hz triangle's max; without shaping, the goals it meets are

@@ -7,7 +7,7 @@
 //!
 //! Each test holds the figure reached (see the book, results/identification.md and
 //! results/lab-stage.md) and fails when the pick is replaced by the textbook P–I. The
-//! issue's goals (held-out ≤ 1 % max on both records, tracking ≤ 1 % on the lab stage) are
+//! family's goals (held-out ≤ 1 % max on both records, tracking ≤ 1 % on the lab stage) are
 //! met and held: the bipolar record 0.83 % (P–I + creep), the micromanipulator 0.87 % and the
 //! lab stage 0.66 % (the generalised P–I + creep; the textbook P–I: 1.10, 2.04 and 4.42 %).
 //! `stage_variants` holds `auto` on 21 other stages.

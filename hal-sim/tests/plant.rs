@@ -6,11 +6,11 @@
 //! `r = e^{−ζωn dt}`, `θ = ωd dt`; a least-squares fit of `c0, c1, c2` over the ringing gives
 //! `ωn` and `ζ` even with only 2.3 samples per period of the 21.8 kHz mode.
 //!
-//! Tolerances: `ωn` within 1 % (the figure). `a0` and `ζ`: the unidirectional figures
-//! are reproduced within 0.5 %; the differential ones within 1.5 %, because the paper's three
-//! differential figures are mutually inconsistent by 2.1 % and the derivation splits that
-//! between `a0` and `ζ` (see `hal_sim::plant::stage`). A tighter check against the model's own
-//! constants (0.2 %) separates integration error from that.
+//! Tolerances: `ωn` within 1 % (the accuracy the model is held to). `a0` and `ζ`: the
+//! unidirectional figures are reproduced within 0.5 %; the differential ones within 1.5 %,
+//! because the paper's three differential figures are mutually inconsistent by 2.1 % and the
+//! derivation splits that between `a0` and `ζ` (see `hal_sim::plant::stage`). A tighter check
+//! against the model's own constants (0.2 %) separates integration error from that.
 
 use hal_sim::plant::{
     Configuration, Mechanics, Plant, PlantConfig, SecondOrder, StageParams,

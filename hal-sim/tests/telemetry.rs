@@ -79,7 +79,7 @@ fn run(signals: u8, decimation: u16, seconds: f64) -> Figures {
     }
 }
 
-/// Issue #18: 2 signals at 10 kHz each while setpoints stream in at 50 k/s, for 2 s of
+/// 2 signals at 10 kHz each while setpoints stream in at 50 k/s, for 2 s of
 /// simulated time: every sample arrives (no gap, no frame missing, nothing dropped on the
 /// board), the setpoints stream without an underrun, and both directions stay within the
 /// 2 Mbaud line.

@@ -1,4 +1,4 @@
-//! `hal-sim tune` (issue #20, part 3): the measured response and its fit, the design's margins
+//! `hal-sim tune`: the measured response and its fit, the design's margins
 //! on the true plant, the step's ringing and the bandwidth at 50 and 100 kHz, the refusal of
 //! an unstable gain set, a second stage, the load, and the command over the link (simulated
 //! and virtual boards).
@@ -107,7 +107,7 @@ fn the_tuned_gains_meet_the_margins_on_the_true_plant() {
     }
 }
 
-/// The goals of the issue on the simulated stage (the closed-loop study's board: external
+/// The tuning's goals on the simulated stage (the closed-loop study's board: external
 /// converters, hysteresis, sensor and amplifier noise, slew limit): after tuning, a 30 → 70 %
 /// step rings at most 1 % of the step 1–3 ms after it, at 50 and at 100 kHz, where the study's
 /// gains without the notch ring at the correction limit at 100 kHz; and the closed-loop

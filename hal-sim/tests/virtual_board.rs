@@ -314,7 +314,7 @@ fn start_virtual_board() -> (virtual_board_process::VirtualBoard, String) {
     virtual_board_process::start(&["--speed", "0"])
 }
 
-/// Issue #18's "done when": stream a 100-sample file and record the streamed run with four
+/// The streamed run recorded: stream a 100-sample file and record the streamed run with four
 /// signals over the same connection (`stream --record`); the CSV's setpoint is the file, in
 /// µm through the board's settings, and the drive and the sensor are in volts and µm
 /// consistent with them.

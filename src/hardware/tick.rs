@@ -22,9 +22,8 @@ use super::watchdog::Watchdog;
 pub const HALF_SLOTS: usize = 32 * 1024;
 
 /// The SRAM part of the recorder's buffer: 19 456 slots, 38 KiB (the rest of
-/// [`CAPTURE_SLOTS`]); 26 KiB less than it was, so that with the learning's tables,
-/// telemetry's queue and the scan every image's static RAM leaves the stack its reserve
-/// (`memory.x`).
+/// [`CAPTURE_SLOTS`]), so that with the learning's tables, telemetry's queue and the scan
+/// every image's static RAM leaves the stack its reserve (`memory.x`).
 pub const SRAM_SLOTS: usize = CAPTURE_SLOTS - HALF_SLOTS;
 
 /// The recorder's buffer: 38 KiB of SRAM, then the 64 KiB of CCM RAM on the board

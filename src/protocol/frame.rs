@@ -29,8 +29,8 @@ use serde::{Deserialize, Serialize};
 /// `CoarseAcceleration`, `Rule::NotHomed`, `Rule::LimitSwitch`). Version 6: learning
 /// feedforward (`Request::Learn`, `Response::Learn`, the `Field`s `LearnPeriod` …
 /// `LearnLimit`), the tick budget (`Field::Workload`, `Rule::TickOverrun`), scan patterns and
-/// triggers (`Request::Scan`, `Request::Trigger`, the `Field`s `ScanLines` … `TriggerPulse`);
-/// main's version 5 shipped without them. Version 7: the settings end with the optional
+/// triggers (`Request::Scan`, `Request::Trigger`, the `Field`s `ScanLines` … `TriggerPulse`).
+/// Version 7: the settings end with the optional
 /// input shaping (`shaping: Option<NotchDesign>`, the feedforward's notch), the `Field`s
 /// `ShapingFrequency`, `ShapingQ`, `ShapingDepth` were appended, and a body may be 1 568
 /// bytes (the largest settings with shaping).
