@@ -274,7 +274,7 @@ impl CreepRun {
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 ///
 /// With creep, the inverse creep is part of the compensator's variant (`…Creep`), so a tick
-/// without creep dispatches exactly as before: no check of its own.
+/// without creep dispatches on the model alone: no creep check of its own.
 enum CompensatorRun {
     InversePi(InversePrandtlIshlinskii, PiState),
     InverseDuhem(InverseDuhem, DuhemState),

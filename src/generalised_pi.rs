@@ -7,7 +7,8 @@
 //! its output through a monotone piecewise-linear map bends the loops asymmetrically and keeps
 //! the model invertible:
 //!
-//! * forward (observer): `z = PI[u]` (today's P–I, offset included, output units), then
+//! * forward (observer): `z = PI[u]` (the P–I of [`crate::prandtl_ishlinskii`], offset
+//!   included, output units), then
 //!   `y = S[z] = c + g_0·(z − c) + Σ_j g_j · S_{d_j}(z − c)`
 //! * inverse (compensator): `u = PI⁻¹[S⁻¹[y]]`, with
 //!   `S⁻¹[y] = c + h_0·(y − c) + Σ_j h_j · S_{e_j}(y − c)`

@@ -605,7 +605,7 @@ mod tests {
             unbanded > 3.0 * banded,
             "the band made no difference: {unbanded} vs {banded}"
         );
-        // A clean trajectory is inverted as before: the band shrinks to nothing.
+        // A clean trajectory is inverted as without the band: the band shrinks to nothing.
         let back = m.compensate(&t, &clean).unwrap();
         let worst_clean = worst(&back);
         assert!(worst_clean < 1e-3, "{worst_clean}");
