@@ -23,7 +23,7 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 
 /// The worst instruction count of any tick, asserted (deterministic under `-icount`): the
-/// figure the bench measures, rounded up by a margin of about 5 %. Lower it when the tick
+/// figure the bench measures, rounded up by a margin of 1–2 %. Lower it when the tick
 /// gets cheaper; raising it needs a reason in the commit. It bounds the shipped
 /// configurations ([`SHIPPED_CONFIGS`]) in every scenario: the image captures all seven
 /// recorder signals and runs continuous telemetry's tap at its worst on every tick, samples
@@ -45,7 +45,7 @@ const LEARNING_EXTRA: u64 = 120;
 /// 8 dead zones, as compensator and observer, with four creep modes in series): the shape
 /// identification fits.
 const FAMILY_CONFIG: &str = "inverse-gpi17x8+creep4+gpi17x8-observer+pi+drift";
-/// Its bound, instructions (the worst measured, with a margin of a few %), over the same
+/// Its bound, instructions (the worst measured, rounded up by about 1 %), over the same
 /// scenarios as [`WORST_INSTRUCTIONS`]: the dearest is the spiral with the learning
 /// feedforward on (1 558 measured).
 const FAMILY_WORST_INSTRUCTIONS: u64 = 1575;
