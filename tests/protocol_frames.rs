@@ -3,7 +3,10 @@
 
 use proptest::prelude::*;
 use twinstack::protocol::decoder::FrameDecoder;
-use twinstack::protocol::frame::{decode_body, encode, FrameError, MAX_ENCODED, PROTOCOL_VERSION};
+use twinstack::protocol::frame::{
+    decode_body, encode, encode_body_bytes, FrameError, FRAME_CRC, MAX_BODY, MAX_ENCODED,
+    PROTOCOL_VERSION,
+};
 use twinstack::protocol::messages::*;
 use twinstack::settings::{
     representative_duhem, DriveSettings, FeedbackSettings, Model, NotchDesign, SensorSettings,
@@ -288,14 +291,56 @@ fn oversize_frame_is_refused_once_then_the_decoder_resyncs() {
 
 /// Builds a frame from a raw body (version + payload) with a correct CRC.
 fn raw_frame(body: &[u8]) -> Vec<u8> {
-    use twinstack::protocol::{cobs, frame::FRAME_CRC};
-    let mut b = body.to_vec();
-    b.extend(FRAME_CRC.checksum(body).to_le_bytes());
-    let mut out = vec![0u8; cobs::max_encoded_len(b.len()) + 1];
-    let n = cobs::encode(&b, &mut out).unwrap();
+    let mut out = vec![0u8; MAX_ENCODED + 1];
+    let n = encode_body_bytes(body, &mut out).unwrap();
     out.truncate(n);
-    out.push(0);
     out
+}
+
+/// The stuffed size of a body is at most `cobs::max_encoding_length` (the worst case: no zero
+/// at all, one code byte per started 254), the largest body fits the receiver, and a body past
+/// the largest is refused by the sender.
+#[test]
+fn stuffing_is_bounded_by_max_encoded_and_the_sender_refuses_what_the_receiver_would() {
+    for n in [1, 5, 253, 254, 255, 508, 509, 1000, MAX_BODY - 4] {
+        let body = vec![0x5Au8; n];
+        let mut out = vec![0u8; MAX_ENCODED + 1];
+        let len = encode_body_bytes(&body, &mut out).unwrap();
+        // Body, CRC (4 bytes, which may hold zeros), delimiter.
+        assert!(
+            len <= cobs::max_encoding_length(n + 4) + 1,
+            "{n} bytes stuffed into {len}"
+        );
+        assert_eq!(out[len - 1], 0);
+        assert!(!out[..len - 1].contains(&0));
+        let mut d = FrameDecoder::new();
+        let mut decoded = None;
+        for &b in &out[..len] {
+            if let Some(r) = d.push(b) {
+                decoded = Some(r.unwrap().to_vec());
+            }
+        }
+        let decoded = decoded.unwrap();
+        assert_eq!(&decoded[..n], &body[..]);
+    }
+    // 254 non-zero bytes (250 of body, a CRC without a zero): one full block, 255 stuffed bytes
+    // (no empty block after it), and the delimiter.
+    let fill = (1..=255u8)
+        .find(|&f| !FRAME_CRC.checksum(&[f; 250]).to_le_bytes().contains(&0))
+        .unwrap();
+    let mut out = vec![0u8; MAX_ENCODED + 1];
+    let len = encode_body_bytes(&[fill; 250], &mut out).unwrap();
+    assert_eq!(len, 255 + 1);
+    assert_eq!(out[0], 0xFF);
+    let mut out = vec![0u8; 4 * MAX_ENCODED];
+    assert_eq!(
+        encode_body_bytes(&vec![0x5Au8; MAX_ENCODED], &mut out),
+        Err(FrameError::TooLarge)
+    );
+    assert_eq!(
+        encode_body_bytes(&[1, 2, 3], &mut [0u8; 4]),
+        Err(FrameError::TooLarge)
+    );
 }
 
 #[test]

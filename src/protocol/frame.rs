@@ -9,7 +9,6 @@
 //! The whole is COBS-stuffed and ends with one `0x00`, so a receiver that lost bytes
 //! resynchronises at the next delimiter.
 
-use super::cobs;
 use crc::{Crc, CRC_32_ISO_HDLC};
 use serde::{Deserialize, Serialize};
 
@@ -38,8 +37,10 @@ pub const PROTOCOL_VERSION: u8 = 7;
 /// Largest frame body (version + message + CRC), bytes: a load of the largest settings (two
 /// generalised P–I models of 32 operators and 8 dead zones, both notches) fits.
 pub const MAX_BODY: usize = 1568;
-/// Largest frame on the wire, delimiter excluded.
-pub const MAX_ENCODED: usize = cobs::max_encoded_len(MAX_BODY);
+/// Largest frame on the wire, delimiter excluded: the stuffed [`MAX_BODY`]. The sender refuses
+/// a body longer than [`MAX_BODY`] ([`FrameError::TooLarge`]), the receiver a frame longer than
+/// this ([`FrameError::Oversize`]).
+pub const MAX_ENCODED: usize = cobs::max_encoding_length(MAX_BODY);
 /// The CRC used by frames.
 pub const FRAME_CRC: Crc<u32> = Crc::<u32>::new(&CRC_32_ISO_HDLC);
 
@@ -96,14 +97,37 @@ pub fn encode_message_bytes(message: &[u8], out: &mut [u8]) -> Result<usize, Fra
     seal(&mut body, message.len(), out)
 }
 
+/// Frames a body as it is (a version byte, then message bytes: nothing is checked), CRC and
+/// delimiter appended, into `out`; returns its length. For tests of the receiver's refusals
+/// (another version, an unknown tag), which need frames the encoder would not write.
+pub fn encode_body_bytes(body: &[u8], out: &mut [u8]) -> Result<usize, FrameError> {
+    let crc = FRAME_CRC.checksum(body).to_le_bytes();
+    let mut whole = [0u8; MAX_BODY];
+    let end = body.len() + 4;
+    let whole = whole.get_mut(..end).ok_or(FrameError::TooLarge)?;
+    whole[..body.len()].copy_from_slice(body);
+    whole[body.len()..].copy_from_slice(&crc);
+    stuff(whole, out)
+}
+
 /// Puts the version before the `used` message bytes at `body[1..]`, the CRC after them, and
-/// COBS-stuffs the whole into `out` with its delimiter; returns the frame's length.
+/// stuffs the whole into `out` with its delimiter; returns the frame's length.
 fn seal(body: &mut [u8; MAX_BODY], used: usize, out: &mut [u8]) -> Result<usize, FrameError> {
     body[0] = PROTOCOL_VERSION;
     let end = 1 + used;
     let crc = FRAME_CRC.checksum(&body[..end]);
     body[end..end + 4].copy_from_slice(&crc.to_le_bytes());
-    let n = cobs::encode(&body[..end + 4], out).map_err(|_| FrameError::TooLarge)?;
+    stuff(&body[..end + 4], out)
+}
+
+/// COBS-stuffs `body` into `out` (the `cobs` crate's encoder: postcard's COBS) and appends the
+/// delimiter; returns the frame's length.
+///
+/// Not postcard's `Cobs` and CRC serializer flavors (one pass, no body buffer): they are
+/// inlined into every field's serialization of every message type, which made the board image
+/// 2.4 KiB larger than one stuffing pass over a finished body.
+fn stuff(body: &[u8], out: &mut [u8]) -> Result<usize, FrameError> {
+    let n = cobs::try_encode(body, out).map_err(|_| FrameError::TooLarge)?;
     *out.get_mut(n).ok_or(FrameError::TooLarge)? = 0;
     Ok(n + 1)
 }

@@ -1,12 +1,11 @@
 //! The UART protocol: COBS-delimited, CRC-checked frames carrying `postcard` messages.
 //!
-//! * [`cobs`] — byte stuffing, so `0x00` delimits frames;
-//! * [`frame`] — the frame layout (version, message, CRC-32) and its errors;
+//! * [`frame`] — the frame layout (version, message, CRC-32, COBS-stuffed by the `cobs` crate so
+//!   that `0x00` delimits frames) and its errors;
 //! * [`decoder`] — the receiver's byte-at-a-time frame decoder;
 //! * [`messages`] — requests, responses and NACK reasons;
 //! * [`handler`] — the board's command handler (bytes in, one response frame per request).
 
-pub mod cobs;
 pub mod decoder;
 pub mod frame;
 pub mod handler;
