@@ -173,20 +173,23 @@ pub fn convert(
 }
 
 /// The CSV text: `t [s]`, then `<signal> [<unit>]` per signal, one row per frame.
-pub fn csv(recording: &Recording) -> String {
-    let mut s = String::from("t [s]");
-    for c in &recording.columns {
-        s.push_str(&format!(",{} [{}]", c.channel.name(), c.unit));
-    }
-    s.push('\n');
-    for (i, t) in recording.t.iter().enumerate() {
-        s.push_str(&format!("{t:.9}"));
-        for c in &recording.columns {
-            s.push_str(&format!(",{}", c.values[i]));
+pub fn csv(recording: &Recording) -> Result<Vec<u8>, csv::Error> {
+    crate::output_file::csv_bytes(|w| {
+        let mut header = vec!["t [s]".to_string()];
+        header.extend(
+            recording
+                .columns
+                .iter()
+                .map(|c| format!("{} [{}]", c.channel.name(), c.unit)),
+        );
+        w.write_record(&header)?;
+        for (i, t) in recording.t.iter().enumerate() {
+            let mut row = vec![format!("{t:.9}")];
+            row.extend(recording.columns.iter().map(|c| c.values[i].to_string()));
+            w.write_record(&row)?;
         }
-        s.push('\n');
-    }
-    s
+        Ok(())
+    })
 }
 
 /// Draws the recording into the PNG `path`: one panel for the displacements (µm), one for
@@ -342,7 +345,7 @@ mod tests {
         assert!((left.values[2] - 2048.0 * 150.0 / 4095.0).abs() < 1e-12);
         // Q2.14: 0.5 of the normalised range is a quarter of the stroke.
         assert_eq!(r.column(Channel::Error).unwrap().values, [0.0, 17.5, -35.0]);
-        let text = csv(&r);
+        let text = String::from_utf8(csv(&r).unwrap()).unwrap();
         assert!(text.starts_with("t [s],setpoint [um],left [V],error [um]\n"));
         assert_eq!(text.lines().count(), 4);
         assert!(convert(&status, &settings, &window[..8]).is_err());

@@ -25,7 +25,7 @@ enum Command {
     /// load and store the settings, and report the tracking error before and after.
     Calibrate(cli::calibrate::Args),
     /// Run the fixed-point forward model on a drive record.
-    Predict(cli::predict::Args),
+    Predict(cli::compensate::Args),
     /// Run the fixed-point inverse model on a desired-output record.
     Compensate(cli::compensate::Args),
     /// Sensor feedback around the compensator on the simulated stage: the tracking table
@@ -119,8 +119,8 @@ fn main() -> std::process::ExitCode {
         Command::Demo(a) => cli::demo::run(a),
         Command::Identify(a) => cli::identify::run(a),
         Command::Calibrate(a) => cli::calibrate::run(a),
-        Command::Predict(a) => cli::predict::run(a),
-        Command::Compensate(a) => cli::compensate::run(a),
+        Command::Predict(a) => cli::compensate::run(a, cli::compensate::Direction::Forward),
+        Command::Compensate(a) => cli::compensate::run(a, cli::compensate::Direction::Inverse),
         Command::ClosedLoop(a) => cli::closed_loop::run(a),
         Command::Learn(a) => cli::learn::run(a),
         Command::Stream(a) => cli::stream::run(a),

@@ -1,19 +1,25 @@
-//! `hal-sim compensate --params PARAMS.json --data IN.csv --out OUT.csv`: IN's `t,x` are the
-//! desired readings; writes `t,u,x` with `u` the drive from the library's fixed-point inverse
-//! (inverse P–I or inverse Duhem) and `x` copied.
+//! The parameter file's model run on a record, either way:
+//!
+//! * `hal-sim predict --params PARAMS.json --data IN.csv --out OUT.csv`: the forward model (the
+//!   library's fixed-point observer) on IN's `t,u`; writes `t,u,x` with `x` the predicted
+//!   reading;
+//! * `hal-sim compensate --params PARAMS.json --data IN.csv --out OUT.csv`: IN's `t,x` are the
+//!   desired readings; writes `t,u,x` with `u` the drive from the library's fixed-point inverse
+//!   and `x` copied.
 
 use crate::measured_data::{ColumnNames, Columns, MeasuredData};
 use crate::output_file::{csv_t_u_x, Staged};
 use crate::param_file::ParamFile;
 use std::path::PathBuf;
 
-/// Arguments of `compensate`.
+/// Arguments of `predict` and `compensate`.
 #[derive(Debug, clap::Args)]
 pub struct Args {
     /// Parameter file written by `identify`.
     #[arg(long)]
     pub params: PathBuf,
-    /// Input CSV with columns t and x (the desired reading).
+    /// Input CSV: columns t and u (the drive) for `predict`, t and x (the desired reading)
+    /// for `compensate`.
     #[arg(long)]
     pub data: PathBuf,
     /// Names of the t, u, x columns in the CSV when it calls them something else (matched
@@ -25,27 +31,60 @@ pub struct Args {
     pub out: PathBuf,
 }
 
-/// Runs `compensate`.
-pub fn run(args: &Args) -> anyhow::Result<()> {
+/// Which way the model runs.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Direction {
+    /// Drive in, predicted reading out (`predict`).
+    Forward,
+    /// Desired reading in, drive out (`compensate`).
+    Inverse,
+}
+
+/// Runs `predict` ([`Direction::Forward`]) or `compensate` ([`Direction::Inverse`]).
+pub fn run(args: &Args, direction: Direction) -> anyhow::Result<()> {
     let (_, model) = ParamFile::load(&args.params)?;
+    let columns = match direction {
+        Direction::Forward => Columns::TimeDrive,
+        Direction::Inverse => Columns::TimeOutput,
+    };
     let data = MeasuredData::read_with(
         &args.data,
-        Columns::TimeOutput,
+        columns,
         &args.columns.clone().unwrap_or_default(),
     )?;
-    let x = data.x.as_deref().unwrap_or_default();
-    let u = model
-        .compensate(&data.t, x)
-        .map_err(|e| anyhow::anyhow!("{}: {e}", args.params.display()))?;
-    let outside = model.reading_outside_range(x);
+    let model_error = |e| anyhow::anyhow!("{}: {e}", args.params.display());
+    let (u, x, outside, what) = match direction {
+        Direction::Forward => {
+            let u = data.u.clone().unwrap_or_default();
+            let x = model.predict(&data.t, &u).map_err(model_error)?;
+            let outside = model.drive_outside_range(&u);
+            (
+                u,
+                x,
+                outside,
+                "drive samples outside the model's input range",
+            )
+        }
+        Direction::Inverse => {
+            let x = data.x.clone().unwrap_or_default();
+            let u = model.compensate(&data.t, &x).map_err(model_error)?;
+            let outside = model.reading_outside_range(&x);
+            (
+                u,
+                x,
+                outside,
+                "desired readings outside the model's output range",
+            )
+        }
+    };
     if outside > 0 {
         eprintln!(
-            "warning: {}: {outside} desired readings outside the model's output range were clamped to it",
+            "warning: {}: {outside} {what} were clamped to it",
             args.data.display()
         );
     }
     let mut out = Staged::new();
-    out.write(&args.out, csv_t_u_x(&data.t, &u, x).as_bytes())?;
+    out.write(&args.out, &csv_t_u_x(&data.t, &u, &x)?)?;
     out.commit()?;
     println!("wrote {} ({} samples)", args.out.display(), data.len());
     Ok(())

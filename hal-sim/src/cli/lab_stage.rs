@@ -155,7 +155,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         let data = excite(&mut LabStage::new(&config)?);
         let (u, x) = (data.u.unwrap_or_default(), data.x.unwrap_or_default());
         let mut out = Staged::new();
-        out.write(path, csv_t_u_x(&data.t, &u, &x).as_bytes())?;
+        out.write(path, &csv_t_u_x(&data.t, &u, &x)?)?;
         out.commit()?;
     }
     let mut stdout = std::io::stdout().lock();

@@ -35,7 +35,6 @@ pub mod lab_stage;
 pub mod learn;
 pub mod load;
 pub mod params;
-pub mod predict;
 pub mod progress;
 pub mod record;
 pub mod scan;

@@ -131,17 +131,23 @@ impl SignalArg {
     }
 }
 
-/// The CSV text of a capture.
-pub fn recording_csv(name: &str, values: &[i32], seconds_per_value: f64) -> String {
-    let mut s = format!("t,{name},{name}_q2_30\n");
-    for (i, &v) in values.iter().enumerate() {
-        s.push_str(&format!(
-            "{},{},{v}\n",
-            i as f64 * seconds_per_value,
-            v as f64 / (1u64 << 30) as f64
-        ));
-    }
-    s
+/// The CSV of a single-signal record: `t,<name>,<name>_q2_30`, one row per value.
+pub fn recording_csv(
+    name: &str,
+    values: &[i32],
+    seconds_per_value: f64,
+) -> Result<Vec<u8>, csv::Error> {
+    crate::output_file::csv_bytes(|w| {
+        w.write_record(["t".to_string(), name.to_string(), format!("{name}_q2_30")])?;
+        for (i, &v) in values.iter().enumerate() {
+            w.write_record([
+                (i as f64 * seconds_per_value).to_string(),
+                (v as f64 / (1u64 << 30) as f64).to_string(),
+                v.to_string(),
+            ])?;
+        }
+        Ok(())
+    })
 }
 
 /// Arms a multi-signal capture of `signals` (a list of names) on `client`, checking the
@@ -189,7 +195,7 @@ pub fn finish_capture(
     let (status, window) = r?;
     let recording = capture::convert(&status, &settings, &window)?;
     let mut files = Staged::new();
-    files.write(out, capture::csv(&recording).as_bytes())?;
+    files.write(out, &capture::csv(&recording)?)?;
     let temp_png = files.temporary_for(png);
     let names: Vec<&str> = recording.columns.iter().map(|c| c.channel.name()).collect();
     capture::plot(
@@ -307,7 +313,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     let mut files = Staged::new();
     files.write(
         out,
-        recording_csv(signal.name(), &values, args.decimation as f64 / tick_rate).as_bytes(),
+        &recording_csv(signal.name(), &values, args.decimation as f64 / tick_rate)?,
     )?;
     files.commit()?;
     println!(

@@ -146,7 +146,7 @@ pub fn finish(
     let facts = client.capture_status()?;
     let recording = record.recording(&facts, &settings)?;
     let mut files = Staged::new();
-    files.write(out, capture::csv(&recording).as_bytes())?;
+    files.write(out, &capture::csv(&recording)?)?;
     let temp_png = files.temporary_for(png);
     capture::plot(
         &recording,
