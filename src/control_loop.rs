@@ -26,7 +26,7 @@
 //! first tick after a swap only starts the fading transfer from the drive the stacks hold.
 //! The retired controller's counters are added to the totals when the handler takes it back.
 //!
-//! The command handler ([`crate::protocol::handler`]) runs at a lower priority. The two halves
+//! The command handler ([`crate::command_handler`]) runs at a lower priority. The two halves
 //! meet in exactly two places: the lock-free single-producer single-consumer setpoint queue
 //! ([`SetpointQueue`], `heapless::spsc`), and short critical sections in which the handler
 //! calls this struct's command methods ([`ControlLoop::post`], [`ControlLoop::start`], …,
@@ -42,7 +42,7 @@ use core::ops::DerefMut;
 use crate::board::{DualDac, SensorAdc};
 use crate::control::{ControlCounters, Controller, TickFlags, TickReport};
 use crate::drive::StackVoltages;
-use crate::learning::{LearnState, LearnTick};
+use crate::learning::{LearnHost, LearnState, LearnTick};
 use crate::mode_switch::Mode;
 use crate::mode_switch::ModeError;
 use crate::recorder::{CaptureInfo, RecordError, Recorder, SampleStore, TickSignals, Trigger};
@@ -624,5 +624,21 @@ where
         if state == LearnState::Off {
             self.controller.set_learned(0);
         }
+    }
+}
+
+impl<B, C> LearnHost for ControlLoop<B, C>
+where
+    B: SampleStore,
+    C: DerefMut<Target = Controller>,
+{
+    fn learning(&self) -> &LearnTick {
+        ControlLoop::learning(self)
+    }
+    fn learning_mut(&mut self) -> &mut LearnTick {
+        ControlLoop::learning_mut(self)
+    }
+    fn set_learning(&mut self, state: LearnState) {
+        ControlLoop::set_learning(self, state)
     }
 }

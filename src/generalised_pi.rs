@@ -52,9 +52,8 @@ use crate::prandtl_ishlinskii::{InversePrandtlIshlinskii, PiState, PrandtlIshlin
 use crate::scaling::Scaling;
 use heapless::Vec;
 
-/// Most dead-zone operators a map may have besides its linear gain (e.g. 4 above and 4 below
-/// the centre).
-pub const MAX_DEAD_ZONES: usize = 8;
+// Defined with the parameters that are checked against it (params sits below this module).
+pub use crate::params::MAX_DEAD_ZONES;
 // `DeadZoneMap::apply` writes its zones out, 0 … 7.
 const _: () = assert!(MAX_DEAD_ZONES == 8);
 

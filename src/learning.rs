@@ -49,13 +49,9 @@
 //! Gain `L`: Q2.30 (0 < L ≤ 1.5). Filter coefficients: Q2.30; its state: Q2.46 in an `i64`;
 //! its products in `i128` (off the tick).
 
-use crate::control::Controller;
-use crate::control_loop::ControlLoop;
 use crate::feedback::SENSOR_DELAY_TICKS;
 use crate::fixed_point::{limit, saturate_i64, signal_from_f64};
-use crate::recorder::SampleStore;
 use crate::refusal::{finite, Field, Refusal, Rule};
-use core::ops::DerefMut;
 use serde::{Deserialize, Serialize};
 
 /// Most bins (ticks) of a learning period: 512 (≥ 97.7 Hz at 50 kHz, ≥ 195.3 Hz at
@@ -726,13 +722,23 @@ pub fn butterworth(fc: f64, fs: f64) -> [f64; 5] {
     ]
 }
 
+/// What the task's side needs of the tick's owner (the control loop, which holds the
+/// [`LearnTick`]): the locked calls below go through it, so this module sits below the loop.
+pub trait LearnHost {
+    /// The learning's tick half.
+    fn learning(&self) -> &LearnTick;
+    /// The learning's tick half, to configure it or move a table in or errors out.
+    fn learning_mut(&mut self) -> &mut LearnTick;
+    /// Sets the learning's state between two ticks.
+    fn set_learning(&mut self, state: LearnState);
+}
+
 /// Configures the learning on both halves: the task's gain, filter and limit, the tick's period
 /// (restarting at bin 0). O(1) under the lock.
-pub fn configure<B, C, L>(task: &mut LearnTask, config: LearnConfig, control: &mut L)
+pub fn configure<H, L>(task: &mut LearnTask, config: LearnConfig, control: &mut L)
 where
-    B: SampleStore,
-    C: DerefMut<Target = Controller>,
-    L: rtic_core::Mutex<T = ControlLoop<B, C>>,
+    H: LearnHost,
+    L: rtic_core::Mutex<T = H>,
 {
     task.set_config(config);
     let period = config.period();
@@ -742,11 +748,10 @@ where
 
 /// Writes the task's table into the tick's inactive table in [`CHUNK`]-word locked copies
 /// and posts it (it plays from the next period boundary).
-pub fn post_table<B, C, L>(task: &LearnTask, control: &mut L)
+pub fn post_table<H, L>(task: &LearnTask, control: &mut L)
 where
-    B: SampleStore,
-    C: DerefMut<Target = Controller>,
-    L: rtic_core::Mutex<T = ControlLoop<B, C>>,
+    H: LearnHost,
+    L: rtic_core::Mutex<T = H>,
 {
     for (i, chunk) in task.table.chunks(CHUNK).enumerate() {
         control.lock(|c| c.learning_mut().write_spare(i * CHUNK, chunk));
@@ -772,11 +777,10 @@ pub enum Service {
 /// returns at once when no period has completed): copies the completed period's errors out
 /// in [`CHUNK`]-word locked copies, runs the ILC law outside any lock ([`LearnTask::update`])
 /// and, learning, posts the new table ([`post_table`]).
-pub fn service<B, C, L>(task: &mut LearnTask, control: &mut L) -> Service
+pub fn service<H, L>(task: &mut LearnTask, control: &mut L) -> Service
 where
-    B: SampleStore,
-    C: DerefMut<Target = Controller>,
-    L: rtic_core::Mutex<T = ControlLoop<B, C>>,
+    H: LearnHost,
+    L: rtic_core::Mutex<T = H>,
 {
     let (periods, state, period, posted) = control.lock(|c| {
         let l = c.learning();

@@ -27,7 +27,8 @@
 //! * [`control_loop`] — the tick side of the board: setpoint queue and stream or waveform,
 //!   the control tick, the data recorder; [`recorder`] — the recorder itself;
 //!   [`telemetry`] — continuous telemetry (the tick's tap, the queue, the frame packer).
-//! * [`protocol`] — the UART protocol: frames, messages, and the board's command handler.
+//! * [`protocol`] — the UART protocol: frames and messages; [`command_handler`] — the board's
+//!   command handler (requests in, responses out, over the tick side).
 //! * [`converters`] — SPI drivers of the external DAC (DAC8562/3) and sensor ADC (ADS8689).
 //! * [`dual_stage`] — the dual-actuated stage: ball-screw coarse stage + piezo fine stage under
 //!   one controller (setpoint split, trapezoidal moves, centring, hand-over); [`coarse_axis`] —
@@ -46,6 +47,7 @@
 pub mod board;
 pub mod bouc_wen;
 pub mod coarse_axis;
+pub mod command_handler;
 pub mod control;
 pub mod control_loop;
 pub mod converters;

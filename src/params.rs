@@ -10,6 +10,9 @@ use crate::fixed_point::MAX_GAIN_SUM;
 use crate::scaling::{RangeError, Scaling};
 use heapless::Vec;
 
+/// Most dead-zone operators a generalised P–I map may have besides its linear gain (e.g. 4
+/// above and 4 below the centre).
+pub const MAX_DEAD_ZONES: usize = 8;
 /// Most play operators a P–I model may have (not counting its linear term `a0`).
 pub const MAX_OPERATORS: usize = 32;
 /// Operator slots in the canonical form: the linear term `a0` may need a slot of its own.
@@ -239,7 +242,7 @@ impl core::fmt::Display for ParamError {
             TooManyDeadZones { count } => write!(
                 f,
                 "{count} dead zones given, at most {} supported",
-                crate::generalised_pi::MAX_DEAD_ZONES
+                MAX_DEAD_ZONES
             ),
             DeadZoneLengthMismatch {
                 thresholds,

@@ -8,6 +8,7 @@ use core::convert::Infallible;
 
 use rtic_core::Exclusive;
 use twinstack::board::{AdcCode, DacCode, DualDac, Hardware, SensorAdc};
+use twinstack::command_handler::CommandHandler;
 use twinstack::control::Controller;
 use twinstack::control_loop::{ControlLoop, SetpointQueue, SETPOINT_CAPACITY};
 use twinstack::drive::SafeState;
@@ -16,7 +17,6 @@ use twinstack::param_store::{
 };
 use twinstack::protocol::decoder::FrameDecoder;
 use twinstack::protocol::frame::{self, FrameError, MAX_ENCODED, PROTOCOL_VERSION};
-use twinstack::protocol::handler::CommandHandler;
 use twinstack::protocol::messages::*;
 use twinstack::recorder::Channel;
 use twinstack::refusal::{Field, ModelField, Refusal, Rule};

@@ -20,9 +20,9 @@
 //! firmware takes setpoints, not the link. Needs `qemu-system-arm` on the PATH.
 
 use hal_sim::link::client::Client;
-use hal_sim::link::port::{self, PortSpec};
 use hal_sim::link::streamer::{stream_setpoints, StreamOptions, StreamReport};
 use hal_sim::link::Transport;
+use hal_sim::port::{self, PortSpec};
 use hal_sim::sim_device::{SimDevice, SimDeviceConfig};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};

@@ -387,7 +387,7 @@ fn link(step: &'static str) -> impl Fn(LinkError) -> CalibrateError {
 ///
 /// ```no_run
 /// use hal_sim::calibrate::{calibrate, CalibrateOptions};
-/// use hal_sim::link::{port, Client};
+/// use hal_sim::{link::Client, port};
 /// let transport = port::open(&"tcp:127.0.0.1:4000".parse().unwrap(), port::DEFAULT_BAUD).unwrap();
 /// let mut client = Client::new(transport);
 /// let report = calibrate(&mut client, &CalibrateOptions::default(), |_| {}).unwrap();

@@ -14,7 +14,7 @@ use crate::coarse_stage::{EmulatedEncoder, EmulatedStepDir};
 use crate::dual_stage_sim::{piezo_hardware, piezo_settings, DualStageSimConfig};
 use crate::plant::ball_screw::BallScrew;
 use crate::sim_board::{ExternalBoard, SimBoard};
-use crate::sim_device::{SimDevice, SimDeviceError};
+use crate::sim_device::{CoarseAxisSim, SimDevice, SimDeviceError};
 use twinstack::board::{LimitSwitches, QuadratureEncoder, Switches};
 use twinstack::control::{Controller, TickFlags, TickReport};
 use twinstack::control_loop::ControlLoop;
@@ -23,6 +23,39 @@ use twinstack::dual_stage::{
     PM_PER_UM,
 };
 use twinstack::recorder::SampleStore;
+
+impl CoarseAxisSim for CoarseRig {
+    fn limits(&self) -> CoarseLimits {
+        CoarseRig::limits(self)
+    }
+    fn status(&self) -> CoarseStatus {
+        CoarseRig::status(self)
+    }
+    fn before_tick(&mut self, control: &mut ControlLoop<Vec<i16>, Box<Controller>>) {
+        CoarseRig::before_tick(self, control)
+    }
+    fn after_tick(&mut self, piezo_um: f64, report: &TickReport) {
+        CoarseRig::after_tick(self, piezo_um, report)
+    }
+    fn as_any(&self) -> &dyn std::any::Any {
+        self
+    }
+    fn as_any_mut(&mut self) -> &mut dyn std::any::Any {
+        self
+    }
+}
+
+impl<D: crate::converters::AnalogDualDac, A: crate::converters::AnalogSensorAdc> SimDevice<D, A> {
+    /// The coarse axis (dual-stage board).
+    pub fn coarse_rig(&self) -> Option<&CoarseRig> {
+        self.coarse_axis()?.as_any().downcast_ref()
+    }
+
+    /// The coarse axis, to inject faults (dual-stage board).
+    pub fn coarse_rig_mut(&mut self) -> Option<&mut CoarseRig> {
+        self.coarse_axis_mut()?.as_any_mut().downcast_mut()
+    }
+}
 
 /// The external converters' device: what [`SimDevice::dual_stage`] builds.
 pub type DualStageDevice = SimDevice<
@@ -327,6 +360,12 @@ impl DualStageDevice {
             config.switches,
             board.plant().stage_um(),
         )?;
-        SimDevice::build(board, hw, Some(settings), config.baud, Some(Box::new(rig)))
+        SimDevice::build(
+            board,
+            hw,
+            Some(settings),
+            config.baud,
+            Some(Box::new(rig) as Box<dyn CoarseAxisSim>),
+        )
     }
 }

@@ -15,7 +15,7 @@
 //!
 //! Errors are in % of the commanded stroke as the **sensor** sees them (its noise included).
 
-use crate::cli::board_link::{connect, BoardClient, PortArgs};
+use crate::board_link::{connect, BoardClient, PortArgs};
 use crate::learn::{period_ticks, LearnOptions};
 use crate::plot::{draw_panels, Panel, Series};
 use anyhow::{anyhow, bail, Context, Result};

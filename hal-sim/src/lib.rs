@@ -17,7 +17,9 @@
 //! * [`closed_loop`] — sensor feedback around the compensator: the tracking table and the
 //!   notch's step.
 //! * [`golden`] — golden vectors: generating them, and checking them against the `f64` tick.
-//! * [`link`] — the host end of the board link: [`link::Transport`] and the protocol client.
+//! * [`link`] — the host end of the board link: [`link::Transport`] and the protocol client;
+//!   [`port`] — `--port` values and opening them (the simulated board too); [`board_link`] —
+//!   connecting to a board from `--port` / `--baud` / `--timeout-ms`.
 //! * [`dual_stage_sim`] — the piezo stage on a ball-screw coarse stage ([`plant::ball_screw`]),
 //!   with the emulated step/dir output and encoders ([`coarse_stage`]): the dual-stage controller
 //!   end to end; [`coarse_rig`] — the same stage as a board on the wire (a [`sim_device::SimDevice`]
@@ -33,6 +35,7 @@
 //! * [`cli`] — the `hal-sim` subcommands.
 
 pub mod accuracy;
+pub mod board_link;
 pub mod calibrate;
 pub mod capture;
 pub mod cli;
@@ -53,6 +56,7 @@ pub mod output_file;
 pub mod param_file;
 pub mod plant;
 pub mod plot;
+pub mod port;
 pub mod reference;
 pub mod scan_timing;
 pub mod session;

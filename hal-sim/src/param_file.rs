@@ -21,13 +21,24 @@
 //! that the file has a model, and the settings as the driver board validates them (at
 //! 50 kHz or 100 kHz; the board checks again at its own rate): every refusal names its field.
 
-use crate::identification::score::ErrorFigures;
 use crate::stage_model::{Hysteresis, StageModel};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 use twinstack::board::Hardware;
 use twinstack::drive::DriveSettings;
 use twinstack::settings::{Mode, Model, Settings};
+
+/// Max and RMS error, % of the measured span (what [`crate::identification::score::score`]
+/// computes, recorded in the file).
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct ErrorFigures {
+    /// Largest absolute error, % of span.
+    pub max_pct: f64,
+    /// Root-mean-square error, % of span.
+    pub rms_pct: f64,
+    /// Samples scored.
+    pub samples: usize,
+}
 
 /// The `format` tag of a parameter file.
 pub const FORMAT: &str = "twinstack-params";

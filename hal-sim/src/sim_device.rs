@@ -53,17 +53,17 @@ use std::time::Duration;
 
 use rtic_core::Exclusive;
 use twinstack::board::Hardware;
+use twinstack::command_handler::CommandHandler;
 use twinstack::control::{Controller, TickReport};
 use twinstack::control_loop::{ControlLoop, SetpointQueue};
+use twinstack::dual_stage::{CoarseLimits, CoarseStatus};
 use twinstack::param_store::{self, RamStorage, RecordStorage, StoredRecord, MAX_RECORD};
-use twinstack::protocol::handler::CommandHandler;
 use twinstack::recorder::CAPTURE_SLOTS;
 use twinstack::refusal::Refusal;
 use twinstack::settings::{pi_model, FeedbackSettings, Mode, SensorSettings, Settings};
 use twinstack::telemetry::TelemetryQueue;
 use twinstack::Scaling;
 
-use crate::coarse_rig::CoarseRig;
 use crate::converters::{AnalogDualDac, AnalogSensorAdc, InternalAdc, InternalDac};
 use crate::link::Transport;
 use crate::plant::Configuration;
@@ -219,6 +219,24 @@ impl TxLine {
     }
 }
 
+/// A coarse axis run between the ticks, as the firmware's coarse task runs between them (the
+/// dual-stage board's, [`crate::coarse_rig::CoarseRig`]). The device holds it by this trait,
+/// so that the rig, which builds devices, sits above this module.
+pub trait CoarseAxisSim: std::any::Any + Send {
+    /// The axis's travel limits, attached to the control loop at boot.
+    fn limits(&self) -> CoarseLimits;
+    /// The axis's status now.
+    fn status(&self) -> CoarseStatus;
+    /// Runs before a control tick (the coarse tick and its exchange with the loop).
+    fn before_tick(&mut self, control: &mut ControlLoop<Vec<i16>, Box<Controller>>);
+    /// Runs after a control tick: `piezo_um` the piezo's displacement now, `report` the tick's.
+    fn after_tick(&mut self, piezo_um: f64, report: &TickReport);
+    /// The axis as [`std::any::Any`], to reach its own type.
+    fn as_any(&self) -> &dyn std::any::Any;
+    /// The axis as [`std::any::Any`], mutably.
+    fn as_any_mut(&mut self) -> &mut dyn std::any::Any;
+}
+
 /// The board in-process: [`SimBoard`] + the library's [`ControlLoop`] and
 /// [`CommandHandler`], on a modelled UART. See the module doc for the time model.
 ///
@@ -229,7 +247,7 @@ pub struct SimDevice<D = InternalDac, A = InternalAdc> {
     board: SimBoard<D, A>,
     /// The coarse axis (dual-stage board), run between the ticks as the firmware's coarse
     /// task runs between them.
-    coarse: Option<Box<CoarseRig>>,
+    coarse: Option<Box<dyn CoarseAxisSim>>,
     control: ControlLoop<Vec<i16>, Box<Controller>>,
     handler: CommandHandler<RamStorage>,
     queue: Box<SetpointQueue>,
@@ -271,7 +289,7 @@ impl<D: AnalogDualDac, A: AnalogSensorAdc> SimDevice<D, A> {
         hw: Hardware,
         stored: Option<Settings>,
         baud: u32,
-        coarse: Option<Box<CoarseRig>>,
+        coarse: Option<Box<dyn CoarseAxisSim>>,
     ) -> Result<Self, SimDeviceError> {
         if baud == 0 {
             return Err(SimDeviceError::Baud);
@@ -394,13 +412,13 @@ impl<D: AnalogDualDac, A: AnalogSensorAdc> SimDevice<D, A> {
         self.tx.counters
     }
 
-    /// The coarse axis (dual-stage board).
-    pub fn coarse_rig(&self) -> Option<&CoarseRig> {
+    /// The coarse axis (dual-stage board; its own type: [`SimDevice::coarse_rig`]).
+    pub fn coarse_axis(&self) -> Option<&dyn CoarseAxisSim> {
         self.coarse.as_deref()
     }
 
-    /// The coarse axis, to inject faults (dual-stage board).
-    pub fn coarse_rig_mut(&mut self) -> Option<&mut CoarseRig> {
+    /// The coarse axis, mutably.
+    pub fn coarse_axis_mut(&mut self) -> Option<&mut dyn CoarseAxisSim> {
         self.coarse.as_deref_mut()
     }
 

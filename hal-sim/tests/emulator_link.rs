@@ -11,10 +11,10 @@
 mod support;
 
 use hal_sim::link::client::{Client, LinkError};
-use hal_sim::link::port::{self, PortSpec};
 use hal_sim::link::streamer::{stream_setpoints, StreamOptions};
 use hal_sim::link::Transport;
 use hal_sim::param_file::ParamFile;
+use hal_sim::port::{self, PortSpec};
 use hal_sim::stage_model::{Hysteresis, StageModel};
 use std::path::PathBuf;
 use std::process::Child;

@@ -16,7 +16,7 @@ use hal_sim::identification::run::{
 };
 use hal_sim::identification::{IdentifyOptions, ModelKind, ThresholdSpread, DEFAULT_OPERATORS};
 use hal_sim::link::client::{nack_text, Client, LinkError};
-use hal_sim::link::port::{open_send, PortError, PortSpec, DEFAULT_BAUD};
+use hal_sim::port::{open_send, PortError, PortSpec, DEFAULT_BAUD};
 use hal_sim::link::streamer::{stream_setpoints_until, StreamOptions};
 use hal_sim::link::Transport;
 use hal_sim::measured_data::{ColumnsError, MeasuredData};

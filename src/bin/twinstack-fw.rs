@@ -1,7 +1,7 @@
 //! # twinstack-fw — the driver board's firmware (STM32F405RG, RTIC 2)
 //!
 //! A thin shell over the library's two halves of the board, [`twinstack::control_loop`]
-//! (tick side) and [`twinstack::protocol::handler`] (command side):
+//! (tick side) and [`twinstack::command_handler`] (command side):
 //!
 //! * **Control tick** (highest priority, 3): TIM2's update event, at the rate stored in the
 //!   parameter record (10–100 kHz, default 50 kHz), starts the sensor ADC conversion and raises

@@ -79,7 +79,7 @@ impl ControlTick {
 }
 
 /// The command handler's lock on the control loop: the RTIC lock on the whole tick resource
-/// (`M`), handing on only the loop — what [`crate::protocol::handler::CommandHandler`] takes.
+/// (`M`), handing on only the loop — what [`crate::command_handler::CommandHandler`] takes.
 pub struct LoopLock<M>(pub M);
 
 impl<M: rtic_core::Mutex<T = ControlTick>> rtic_core::Mutex for LoopLock<M> {

@@ -125,7 +125,7 @@ mod dma_tx {
     use stm32f4xx_hal::pac::{DMA2, RCC};
 
     use super::{regs, UsartTx};
-    use crate::protocol::handler::MAX_RESPONSE;
+    use crate::command_handler::MAX_RESPONSE;
 
     /// DMA2 stream carrying USART1_TX.
     const STREAM: usize = 7;

@@ -7,7 +7,8 @@
 //!   `TARGET/py-venv`; `python3-venv` with apt-get where Debian lacks it).
 //!   Running it again changes nothing.
 //! * `cargo xtask test` runs `setup`, then every gate CI holds the project to, in order,
-//!   stopping at the first that fails: host tests (with doc tests), rustfmt, clippy on the host,
+//!   stopping at the first that fails: the module graph (no cycles, `cargo xtask graph`), host
+//!   tests (with doc tests), rustfmt, clippy on the host,
 //!   clippy and builds of each firmware image on the target, `cargo check` of the host tool
 //!   for Windows, the Python package (`pip install ./python` into the virtual environment —
 //!   maturin, numpy, pytest, matplotlib and mypy from PyPI — its own rustfmt and clippy, then
@@ -15,6 +16,8 @@
 //!   the docs book when there is one (`docs/book.toml`).
 //!
 //! `.ci/run` is `cargo xtask test`; the alias is in `.cargo/config.toml`.
+
+mod graph;
 
 use std::path::{Path, PathBuf};
 use std::process::{Command, ExitCode, Stdio};
@@ -76,7 +79,9 @@ commands:
           the first failure
   python  the Python package's gates alone (virtual environment, pip install ./python,
           rustfmt and clippy of python/, pytest)
-  links   check that every relative link in README.md and docs/src names a file that exists";
+  links   check that every relative link in README.md and docs/src names a file that exists
+  graph   [--quiet] print each crate's module graph (the layers, see xtask/src/graph.rs) and
+          fail on any cycle";
 
 fn main() -> ExitCode {
     let command = std::env::args().nth(1);
@@ -85,6 +90,7 @@ fn main() -> ExitCode {
         Some("test") => setup().and_then(|()| test()),
         Some("python") => ensure_python_venv().and_then(|()| run_gates(python_gates())),
         Some("links") => check_links(),
+        Some("graph") => graph::run(&root(), std::env::args().any(|a| a == "--quiet")),
         Some("help" | "-h" | "--help") => {
             println!("{USAGE}");
             Ok(())
@@ -453,6 +459,10 @@ fn gate(what: impl Into<String>, cmd: Command) -> Gate {
 fn gates() -> Vec<Gate> {
     // `cargo test` runs the library crates' doc tests too: no separate `--doc` run.
     let mut gates = vec![
+        gate(
+            "module graph: no cycles (cargo xtask graph)",
+            cargo(&["run", "--quiet", "-p", "xtask", "--", "graph", "--quiet"]),
+        ),
         gate(
             "host tests and doc tests (cargo test --workspace)",
             cargo(&["test", "--workspace"]),

@@ -13,8 +13,8 @@ use std::time::{Duration, Instant};
 
 use super::board_link::{connect, port_spec, BoardClient, PortArgs};
 use crate::coarse_rig::{DualStageDevice, DualStageDeviceConfig};
-use crate::link::port::PortSpec;
 use crate::link::Client;
+use crate::port::PortSpec;
 use twinstack::dual_stage::{CoarseState, CoarseStatus};
 use twinstack::protocol::messages::{CoarseMove, Request};
 

@@ -22,7 +22,9 @@ pub const EXIT_ERROR: u8 = 1;
 /// Exit code of a usage error (clap's, and [`board_link::UsageError`]).
 pub const EXIT_USAGE: u8 = 2;
 
-pub mod board_link;
+// The board connection is a library module (the learning over the link uses it too); the
+// commands reach it here as before.
+pub use crate::board_link;
 pub mod calibrate;
 pub mod closed_loop;
 pub mod coarse;

@@ -4,7 +4,7 @@
 //! load/stream/record/status --port tcp:HOST:PORT` or `--port /dev/pts/N`) to the next. Runs
 //! until killed (Ctrl-C). The first line on stdout says where it listens.
 
-use crate::link::port::{PortSpec, DEFAULT_BAUD};
+use crate::port::{PortSpec, DEFAULT_BAUD};
 use crate::sim_device::SimDeviceConfig;
 use crate::virtual_board;
 use std::io::Write;

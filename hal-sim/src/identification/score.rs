@@ -1,16 +1,8 @@
 //! Modelling error figures, as the papers report them: max and RMS of `model − measured`, in
 //! % of the measured signal's span over the scored samples.
 
-/// Max and RMS error, % of the measured span.
-#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
-pub struct ErrorFigures {
-    /// Largest absolute error, % of span.
-    pub max_pct: f64,
-    /// Root-mean-square error, % of span.
-    pub rms_pct: f64,
-    /// Samples scored.
-    pub samples: usize,
-}
+// Defined with the parameter file that records them (below identification).
+pub use crate::param_file::ErrorFigures;
 
 /// Scores `model` against `measured` over the samples `range` (indices into both).
 /// `None` if the range is empty or the measured signal is flat there.

@@ -4,14 +4,14 @@
 //! [`Transport`] is the one seam: the client speaks frames over any transport, so the same
 //! host code streams to the real board, the emulator image and the in-process twin.
 //!
-//! * [`serial`], [`socket`] — transports; [`port`] — `--port` values and opening them;
+//! * [`serial`], [`socket`] — transports (`--port` values and opening them, the simulated
+//!   board included, are [`crate::port`], above this module and the simulated board);
 //! * [`client`] — [`client::Client`]: requests, responses, timeouts, NACKs as errors,
 //!   recorder read-back;
 //! * [`streamer`] — [`streamer::stream_setpoints`]: batches within credits, sequence numbers,
 //!   go-back-N after a refusal;
 
 pub mod client;
-pub mod port;
 pub mod serial;
 pub mod socket;
 pub mod streamer;

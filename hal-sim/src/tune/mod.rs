@@ -154,7 +154,7 @@ pub fn analyse(
 ///
 /// ```no_run
 /// use hal_sim::tune::{tune, TuneOptions};
-/// use hal_sim::link::{port, Client};
+/// use hal_sim::{link::Client, port};
 /// let transport = port::open(&"sim".parse().unwrap(), port::DEFAULT_BAUD).unwrap();
 /// let mut client = Client::new(transport);
 /// let r = tune(&mut client, &TuneOptions::default(), |_| {}).unwrap();

@@ -55,7 +55,7 @@ mod app {
     #[cfg(feature = "emulator")]
     use twinstack::param_store::ReadOnlyStorage;
     use twinstack::param_store::{self, ParamSource};
-    use twinstack::protocol::handler::CommandHandler;
+    use twinstack::command_handler::CommandHandler;
     #[cfg(not(feature = "emulator"))]
     use twinstack::hardware::ccm;
     use twinstack::hardware::tick::SRAM_SLOTS;

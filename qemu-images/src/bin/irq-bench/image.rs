@@ -349,6 +349,8 @@ mod app {
     use stm32f4xx_hal::gpio::GpioExt;
 
     use twinstack::board::Hardware;
+    use twinstack::command_handler::CommandHandler;
+    use twinstack::command_handler::MAX_RESPONSE;
     use twinstack::control::Controller;
     use twinstack::control_loop::ControlLoop;
     use twinstack::control_loop::{SetpointQueue, SETPOINT_QUEUE_LEN};
@@ -361,8 +363,6 @@ mod app {
     use twinstack::hardware::watchdog::Watchdog;
     use twinstack::learning::{LearnSettings, LearnState};
     use twinstack::param_store::ReadOnlyStorage;
-    use twinstack::protocol::handler::CommandHandler;
-    use twinstack::protocol::handler::MAX_RESPONSE;
     use twinstack::protocol::messages::{
         CaptureRequest, CaptureState, LearnRequest, RecordRequest, Request, Response,
         SetpointBatch, Signal, StreamControl, Trigger, MAX_BATCH, MAX_CAPTURE_CHUNK,

@@ -5,7 +5,7 @@
 //! (timer, setpoint stream, controller, recorder, telemetry's tap, watchdog) — whose idle
 //! task plays the host (and packs the telemetry: all six signals every tick, the tap's worst):
 //! it loads settings, arms the recorder and streams setpoints through the library's
-//! [`twinstack::protocol::handler::CommandHandler`], as requests from the UART would.
+//! [`twinstack::command_handler::CommandHandler`], as requests from the UART would.
 //!
 //! `tests/irq_bench.rs` runs it under `qemu-system-arm -icount shift=0 -singlestep -d
 //! exec,nochain,int` and counts the instructions of every SysTick invocation from its first

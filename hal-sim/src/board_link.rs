@@ -2,9 +2,9 @@
 //! and connecting. When no port is given, or a serial device cannot be opened, the error lists
 //! the serial ports the system has ([`available_ports`]).
 
-use crate::link::port::{self, PortError, PortSpec, DEFAULT_BAUD};
 use crate::link::serial::SerialError;
 use crate::link::{Client, Transport};
+use crate::port::{self, PortError, PortSpec, DEFAULT_BAUD};
 use std::time::Duration;
 
 /// The environment variable `--port` falls back to.

@@ -37,9 +37,9 @@ use crate::settings::{Mode, Settings};
 use crate::telemetry::{self, TelemetryPacker, TelemetrySample};
 use crate::waveform::{Shape, WaveformError, WaveformGenerator};
 
-use super::decoder::FrameDecoder;
-use super::frame::{self, FrameError, MAX_ENCODED};
-use super::messages::{
+use crate::protocol::decoder::FrameDecoder;
+use crate::protocol::frame::{self, FrameError, MAX_ENCODED};
+use crate::protocol::messages::{
     CaptureRequest, CaptureStatus, Image, LearnRequest, LearnStatus, NackReason, RecordRequest,
     Request, Response, SetpointBatch, StatusReport, StreamControl, TelemetryRequest, WaveShape,
     Waveform,

@@ -4,9 +4,9 @@
 //! Unix host; elsewhere (Windows) it is refused with [`PortError::UnixSocketUnsupported`] and
 //! `tcp:` is the way to an emulator.
 
-use super::serial::{SerialError, SerialTransport};
-use super::socket::SocketTransport;
-use super::Transport;
+use crate::link::serial::{SerialError, SerialTransport};
+use crate::link::socket::SocketTransport;
+use crate::link::Transport;
 use crate::sim_device::{SimDevice, SimDeviceConfig};
 use std::path::PathBuf;
 
