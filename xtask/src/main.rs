@@ -8,7 +8,8 @@
 //!   Running it again changes nothing.
 //! * `cargo xtask test` runs `setup`, then every gate CI holds the project to, in order,
 //!   stopping at the first that fails: the module graph (no cycles, `cargo xtask graph`), host
-//!   tests (with doc tests), rustfmt, clippy on the host,
+//!   tests (with doc tests), the book's deterministic figures (`cargo xtask figures --check`),
+//!   rustfmt, clippy on the host,
 //!   clippy and builds of each firmware image on the target, `cargo check` of the host tool
 //!   for Windows, the Python package (`pip install ./python` into the virtual environment —
 //!   maturin, numpy, pytest, matplotlib and mypy from PyPI — its own rustfmt and clippy, then
@@ -17,6 +18,7 @@
 //!
 //! `.ci/run` is `cargo xtask test`; the alias is in `.cargo/config.toml`.
 
+mod figures;
 mod graph;
 
 use std::path::{Path, PathBuf};
@@ -80,8 +82,10 @@ commands:
   python  the Python package's gates alone (virtual environment, pip install ./python,
           rustfmt and clippy of python/, pytest)
   links   check that every relative link in README.md and docs/src names a file that exists
-  graph   [--quiet] print each crate's module graph (the layers, see xtask/src/graph.rs) and
-          fail on any cycle";
+  figures [--check] [NAME…] rewrite the book's generated figures from the commands' output
+          (`--check`: the deterministic ones, compared and not written)
+  graph   [--quiet] print each crate's module graph (the layers, see xtask/src/graph.rs) and fail on any
+          cycle";
 
 fn main() -> ExitCode {
     let command = std::env::args().nth(1);
@@ -90,6 +94,7 @@ fn main() -> ExitCode {
         Some("test") => setup().and_then(|()| test()),
         Some("python") => ensure_python_venv().and_then(|()| run_gates(python_gates())),
         Some("links") => check_links(),
+        Some("figures") => figures::run(&root(), &std::env::args().skip(2).collect::<Vec<_>>()),
         Some("graph") => graph::run(&root(), std::env::args().any(|a| a == "--quiet")),
         Some("help" | "-h" | "--help") => {
             println!("{USAGE}");
@@ -478,6 +483,10 @@ fn gates() -> Vec<Gate> {
                 "--test",
                 "stage_variants",
             ]),
+        ),
+        gate(
+            "the book's deterministic figures match the code (cargo xtask figures --check)",
+            cargo(&["run", "--quiet", "-p", "xtask", "--", "figures", "--check"]),
         ),
         gate("rustfmt", cargo(&["fmt", "--all", "--", "--check"])),
         gate(

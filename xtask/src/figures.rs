@@ -1,0 +1,210 @@
+//! `cargo xtask figures [--check] [NAME…]`: the book's figures, written by the commands that
+//! measure them.
+//!
+//! A figure is a block of a page between `<!-- figures:NAME -->` and `<!-- /figures -->`: the
+//! command that makes it, then what it prints, turned into a table. `cargo xtask figures` runs
+//! each command (the debug build of the host tool: `cargo run -p hal-sim`) and rewrites the
+//! block; with `--check` it writes nothing and fails when a page differs from what the code
+//! produces now. `cargo xtask test` runs the check for the figures marked deterministic and
+//! cheap (they depend on nothing but the code and the committed data), so a change that moves
+//! them has to update the page in the same commit.
+//!
+//! Figures that depend on the machine (timings) or take minutes (QEMU instruction counts,
+//! identification of whole records) are not in the registry yet: their pages say which command
+//! wrote them.
+
+use std::path::Path;
+use std::process::Command;
+
+/// What the host tool is called in the commands shown beside the figures.
+const TOOL: &str = "hal-sim";
+
+/// One figure: where it goes, what writes it, and how its output becomes the block.
+struct Figure {
+    /// The marker's name (`<!-- figures:NAME -->`).
+    name: &'static str,
+    /// The page, relative to the workspace root.
+    page: &'static str,
+    /// The host tool's arguments.
+    args: &'static [&'static str],
+    /// Checked by `cargo xtask test` (deterministic and cheap).
+    checked: bool,
+    /// The block's body from the command's standard output.
+    render: fn(&str) -> Result<String, String>,
+}
+
+const FIGURES: &[Figure] = &[Figure {
+    name: "golden-distances",
+    page: "docs/src/reference/golden-vectors.md",
+    args: &["golden"],
+    checked: true,
+    render: golden_distances,
+}];
+
+/// `hal-sim golden`'s per-set lines as the page's table: distances to the `f64` reference
+/// tick, the worst DAC-code error, ambiguous flag decisions and the flag counts.
+fn golden_distances(out: &str) -> Result<String, String> {
+    let mut table = String::from(
+        "| set | drive LSB16 | estimate LSB16 | code | ambiguous | underrun/range/slew/adc/dac/drift |\n\
+         |---|---:|---:|---:|---:|---|\n",
+    );
+    let mut sets = 0;
+    let mut total = None;
+    for line in out.lines() {
+        let cols: Vec<&str> = line.split_whitespace().collect();
+        if let ["total", bytes, "bytes", "in", n, "sets"] = cols[..] {
+            total = Some((bytes.to_string(), n.to_string()));
+            continue;
+        }
+        // set, ticks, bytes, CRC, drive, estimate, code, ambiguous, counts
+        let [set, ticks, _bytes, _crc, drive, estimate, code, ambiguous, counts] = cols[..] else {
+            continue;
+        };
+        if ticks.parse::<u32>().is_err() {
+            continue; // the header
+        }
+        table.push_str(&format!(
+            "| `{set}` | {drive} | {estimate} | {code} | {ambiguous} | {counts} |\n"
+        ));
+        sets += 1;
+    }
+    let Some((bytes, n)) = total else {
+        return Err("no `total … bytes in … sets` line".into());
+    };
+    if n.parse::<usize>() != Ok(sets) {
+        return Err(format!("{sets} set lines, but the total says {n}"));
+    }
+    table.push_str(&format!(
+        "\n{sets} sets, {bytes} bytes in `tests/golden/vectors.bin`.\n"
+    ));
+    Ok(table)
+}
+
+/// The block a figure's marker pair holds: the command, then its rendering.
+fn block(f: &Figure, body: &str) -> String {
+    format!(
+        "Written by `cargo xtask figures` from `{TOOL} {}`:\n\n{body}",
+        f.args.join(" ")
+    )
+}
+
+/// Replaces the body between `f`'s markers in `page`; an error if the markers are missing.
+fn replace_block(page: &str, name: &str, body: &str) -> Result<String, String> {
+    let open = format!("<!-- figures:{name} -->");
+    let close = "<!-- /figures -->";
+    let start = page
+        .find(&open)
+        .ok_or_else(|| format!("no `{open}` marker"))?
+        + open.len();
+    let end = page[start..]
+        .find(close)
+        .ok_or_else(|| format!("`{open}` has no `{close}` after it"))?
+        + start;
+    Ok(format!("{}\n{body}{}", &page[..start], &page[end..]))
+}
+
+/// Runs the host tool with `args` (debug build), returning its standard output.
+fn run_tool(root: &Path, args: &[&str]) -> Result<String, String> {
+    let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
+    let out = Command::new(cargo)
+        .args(["run", "--quiet", "-p", "hal-sim", "--"])
+        .args(args)
+        .current_dir(root)
+        .output()
+        .map_err(|e| format!("cannot run cargo: {e}"))?;
+    if !out.status.success() {
+        return Err(format!(
+            "`{TOOL} {}` failed ({}):\n{}",
+            args.join(" "),
+            out.status,
+            String::from_utf8_lossy(&out.stderr)
+        ));
+    }
+    String::from_utf8(out.stdout).map_err(|e| format!("`{TOOL} {}`: {e}", args.join(" ")))
+}
+
+/// `cargo xtask figures [--check] [NAME…]`: every figure (or those named), or with `--check`
+/// the deterministic ones, compared and not written.
+pub fn run(root: &Path, args: &[String]) -> Result<(), String> {
+    let check = args.iter().any(|a| a == "--check");
+    let names: Vec<&str> = args
+        .iter()
+        .filter(|a| !a.starts_with("--"))
+        .map(String::as_str)
+        .collect();
+    for n in &names {
+        if !FIGURES.iter().any(|f| f.name == *n) {
+            let known: Vec<&str> = FIGURES.iter().map(|f| f.name).collect();
+            return Err(format!("no figure `{n}` (known: {})", known.join(", ")));
+        }
+    }
+    let mut stale = Vec::new();
+    for f in FIGURES {
+        if (!names.is_empty() && !names.contains(&f.name)) || (check && !f.checked) {
+            continue;
+        }
+        let path = root.join(f.page);
+        let page = std::fs::read_to_string(&path)
+            .map_err(|e| format!("{}: cannot read: {e}", path.display()))?;
+        let out = run_tool(root, f.args)?;
+        let body = (f.render)(&out).map_err(|e| format!("{}: {e}", f.name))?;
+        let new = replace_block(&page, f.name, &block(f, &body))
+            .map_err(|e| format!("{}: {e}", f.page))?;
+        if new == page {
+            println!("{}: {} is current", f.page, f.name);
+        } else if check {
+            stale.push(format!("{} ({})", f.page, f.name));
+        } else {
+            std::fs::write(&path, new)
+                .map_err(|e| format!("{}: cannot write: {e}", path.display()))?;
+            println!("{}: wrote {}", f.page, f.name);
+        }
+    }
+    if stale.is_empty() {
+        Ok(())
+    } else {
+        Err(format!(
+            "figures differ from what the code produces now: {}; run `cargo xtask figures` and \
+             commit the pages",
+            stale.join(", ")
+        ))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const GOLDEN: &str = "set                   ticks    bytes  outputs CRC  drive LSB16  estimate LSB16  code    ambiguous  underrun/range/slew/adc/dac/drift
+bypass                 2400    48011  1234abcd       0.0001       0.0000    0.4997     13      50/338/746/0/7/0
+ipi8-pi-open           2400    48011  00ff00ff       1.0507       0.5686    0.4997      4      50/497/801/33/7/253
+total 96022 bytes in 2 sets
+tests/golden/vectors.bin is up to date
+";
+
+    #[test]
+    fn golden_lines_become_the_table() {
+        let t = golden_distances(GOLDEN).unwrap();
+        assert!(t.contains("| `bypass` | 0.0001 | 0.0000 | 0.4997 | 13 | 50/338/746/0/7/0 |\n"));
+        assert!(
+            t.contains("| `ipi8-pi-open` | 1.0507 | 0.5686 | 0.4997 | 4 | 50/497/801/33/7/253 |\n")
+        );
+        assert!(t.ends_with("\n2 sets, 96022 bytes in `tests/golden/vectors.bin`.\n"));
+        // A lost line is an error, not a shorter table.
+        let cut = GOLDEN.replace("bypass                 2400", "");
+        assert!(golden_distances(&cut).is_err());
+        assert!(golden_distances("").is_err());
+    }
+
+    #[test]
+    fn a_block_is_replaced_between_its_markers_only() {
+        let page = "a\n<!-- figures:x -->\nold\n<!-- /figures -->\nb\n<!-- figures:y -->\nkeep\n<!-- /figures -->\n";
+        let new = replace_block(page, "x", "new\n").unwrap();
+        assert_eq!(
+            new,
+            "a\n<!-- figures:x -->\nnew\n<!-- /figures -->\nb\n<!-- figures:y -->\nkeep\n<!-- /figures -->\n"
+        );
+        assert_eq!(replace_block(&new, "x", "new\n").unwrap(), new);
+        assert!(replace_block(page, "z", "").is_err());
+    }
+}
