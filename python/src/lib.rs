@@ -16,11 +16,11 @@ use hal_sim::identification::run::{
 };
 use hal_sim::identification::{IdentifyOptions, ModelKind, ThresholdSpread, DEFAULT_OPERATORS};
 use hal_sim::link::client::{nack_text, Client, LinkError};
-use hal_sim::port::{open_send, PortError, PortSpec, DEFAULT_BAUD};
 use hal_sim::link::streamer::{stream_setpoints_until, StreamOptions};
 use hal_sim::link::Transport;
 use hal_sim::measured_data::{ColumnsError, MeasuredData};
 use hal_sim::param_file::{ParamFile, ParamFileError};
+use hal_sim::port::{open_send, PortError, PortSpec, DEFAULT_BAUD};
 use hal_sim::session::{self, LoadRefused};
 use hal_sim::setpoint_file::{divider_for_rate, to_wire, SetpointUnits};
 use hal_sim::stage_model::{Hysteresis, StageModel};
@@ -129,10 +129,7 @@ fn port_error(e: PortError) -> PyErr {
     match e {
         PortError::Empty => PyValueError::new_err(e.to_string()),
         PortError::Serial(hal_sim::link::serial::SerialError::Missing { .. }) => {
-            PyFileNotFoundError::new_err(format!(
-                "{e}; {}",
-                hal_sim::cli::board_link::available_ports()
-            ))
+            PyFileNotFoundError::new_err(format!("{e}; {}", hal_sim::board_link::available_ports()))
         }
         PortError::Serial(hal_sim::link::serial::SerialError::BadBaud(_)) => {
             PyValueError::new_err(e.to_string())
