@@ -60,6 +60,9 @@ enum Command {
     /// Continuous telemetry: stream signals off the board while it runs, into a CSV and a PNG
     /// (exits 1 if any sample did not arrive).
     Telemetry(cli::telemetry::Args),
+    /// A live view of the board in the browser: telemetry plots, status, mode, waveform and
+    /// scan controls, the last tune's Bode plot and the calibration's ranking.
+    View(cli::view::Args),
     /// Generate the golden vectors (the tick's recorded runs the board must reproduce) and
     /// check them against the stored file and the f64 reference, or write them (--write).
     Golden(cli::golden::Args),
@@ -134,6 +137,7 @@ fn main() -> std::process::ExitCode {
         Command::Stop(a) => cli::stop::run(a),
         Command::Record(a) => cli::record::run(a),
         Command::Telemetry(a) => cli::telemetry::run(a),
+        Command::View(a) => cli::view::run(a),
         Command::Golden(a) => cli::golden::run(a),
         Command::DualStage(a) => cli::dual_stage::run(a),
         Command::LabStage(a) => cli::lab_stage::run(a),

@@ -198,11 +198,56 @@ pub struct Panel {
     pub series: Vec<Series>,
 }
 
+/// One bar of a [`BarPanel`].
+#[derive(Clone, Debug)]
+pub struct Bar {
+    /// The row's label, left of the axis.
+    pub label: String,
+    /// The bar's length, in the x axis' unit.
+    pub value: f64,
+    /// Text after the value at the bar's end (`""` for none).
+    pub note: String,
+    /// Colour.
+    pub color: RGBColor,
+}
+
+/// A horizontal bar chart: one row per bar, the first at the top, each labelled left of the
+/// axis with its value written at the bar's end, so no legend covers the bars.
+#[derive(Clone, Debug)]
+pub struct BarPanel {
+    /// Caption above the chart.
+    pub caption: String,
+    /// X axis label (the bars' unit).
+    pub x_label: String,
+    /// The bars, top to bottom.
+    pub bars: Vec<Bar>,
+}
+
+/// One chart of a figure: lines or bars.
+#[derive(Clone, Copy, Debug)]
+pub enum Chart<'a> {
+    /// Lines with a legend.
+    Lines(&'a Panel),
+    /// A horizontal bar chart.
+    Bars(&'a BarPanel),
+}
+
 /// Draws `panels` side by side, `columns` to a row, into the PNG `path`.
 pub fn draw_panels(
     path: &Path,
     title: &str,
     panels: &[Panel],
+    columns: usize,
+) -> Result<(), PlotError> {
+    let charts: Vec<Chart> = panels.iter().map(Chart::Lines).collect();
+    draw_charts(path, title, &charts, columns)
+}
+
+/// Draws `charts` (lines or bars) side by side, `columns` to a row, into the PNG `path`.
+pub fn draw_charts(
+    path: &Path,
+    title: &str,
+    charts: &[Chart],
     columns: usize,
 ) -> Result<(), PlotError> {
     let err = |m: String| PlotError {
@@ -212,61 +257,158 @@ pub fn draw_panels(
     register_font().map_err(err)?;
     let e = |x: &dyn std::fmt::Display| err(x.to_string());
     let columns = columns.max(1);
-    let rows = panels.len().div_ceil(columns).max(1);
+    let rows = charts.len().div_ceil(columns).max(1);
     let root = BitMapBackend::new(path, (600 * columns as u32, 480 * rows as u32 + 40))
         .into_drawing_area();
     root.fill(&WHITE).map_err(|x| e(&x))?;
     let root = root.titled(title, (FAMILY, 22)).map_err(|x| e(&x))?;
-    for (area, panel) in root.split_evenly((rows, columns)).iter().zip(panels) {
-        let (xlo, xhi) = bounds(
-            panel
-                .series
-                .iter()
-                .flat_map(|s| s.points.iter().map(|p| p.0)),
-        );
-        let (ylo, yhi) = bounds(
-            panel
-                .series
-                .iter()
-                .flat_map(|s| s.points.iter().map(|p| p.1)),
-        );
-        let mut chart = ChartBuilder::on(area)
-            .caption(&panel.caption, (FAMILY, 18))
-            .margin(10)
-            .x_label_area_size(40)
-            .y_label_area_size(70)
-            .build_cartesian_2d(xlo..xhi, ylo..yhi)
-            .map_err(|x| e(&x))?;
-        chart
-            .configure_mesh()
-            .x_desc(&panel.x_label)
-            .y_desc(&panel.y_label)
-            .label_style((FAMILY, 14))
-            .draw()
-            .map_err(|x| e(&x))?;
-        for s in &panel.series {
-            let color = s.color;
-            chart
-                .draw_series(LineSeries::new(
-                    s.points.iter().copied(),
-                    color.stroke_width(2),
-                ))
-                .map_err(|x| e(&x))?
-                .label(&s.label)
-                .legend(move |(x, y)| {
-                    PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(2))
-                });
+    for (area, chart) in root.split_evenly((rows, columns)).iter().zip(charts) {
+        match chart {
+            Chart::Lines(panel) => draw_lines(area, panel).map_err(|x| e(&x))?,
+            Chart::Bars(panel) => draw_bars(area, panel).map_err(|x| e(&x))?,
         }
-        chart
-            .configure_series_labels()
-            .position(SeriesLabelPosition::UpperLeft)
-            .label_font((FAMILY, 14))
-            .background_style(WHITE.mix(0.8))
-            .border_style(BLACK)
-            .draw()
-            .map_err(|x| e(&x))?;
     }
     root.present().map_err(|x| e(&x))?;
+    Ok(())
+}
+
+type Area<'a> = DrawingArea<BitMapBackend<'a>, plotters::coord::Shift>;
+type DrawResult<'a> =
+    Result<(), DrawingAreaErrorKind<<BitMapBackend<'a> as DrawingBackend>::ErrorType>>;
+
+fn draw_lines<'a>(area: &Area<'a>, panel: &Panel) -> DrawResult<'a> {
+    let (xlo, xhi) = bounds(
+        panel
+            .series
+            .iter()
+            .flat_map(|s| s.points.iter().map(|p| p.0)),
+    );
+    let (ylo, yhi) = bounds(
+        panel
+            .series
+            .iter()
+            .flat_map(|s| s.points.iter().map(|p| p.1)),
+    );
+    let mut chart = ChartBuilder::on(area)
+        .caption(&panel.caption, (FAMILY, 18))
+        .margin(10)
+        .x_label_area_size(40)
+        .y_label_area_size(70)
+        .build_cartesian_2d(xlo..xhi, ylo..yhi)?;
+    chart
+        .configure_mesh()
+        .x_desc(&panel.x_label)
+        .y_desc(&panel.y_label)
+        .label_style((FAMILY, 14))
+        .draw()?;
+    for s in &panel.series {
+        let color = s.color;
+        chart
+            .draw_series(LineSeries::new(
+                s.points.iter().copied(),
+                color.stroke_width(2),
+            ))?
+            .label(&s.label)
+            .legend(move |(x, y)| {
+                PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(2))
+            });
+    }
+    chart
+        .configure_series_labels()
+        .position(SeriesLabelPosition::UpperLeft)
+        .label_font((FAMILY, 14))
+        .background_style(WHITE.mix(0.8))
+        .border_style(BLACK)
+        .draw()?;
+    Ok(())
+}
+
+fn draw_bars<'a>(area: &Area<'a>, panel: &BarPanel) -> DrawResult<'a> {
+    let n = panel.bars.len().max(1);
+    let top = panel
+        .bars
+        .iter()
+        .map(|b| b.value)
+        .filter(|v| v.is_finite())
+        .fold(0.0, f64::max);
+    // Room right of the longest bar for its value.
+    let xmax = if top > 0.0 { top * 1.45 } else { 1.0 };
+    let widest = panel
+        .bars
+        .iter()
+        .map(|b| b.label.chars().count())
+        .max()
+        .unwrap_or(4);
+    let label_area = (widest as u32 * 9 + 16).clamp(60, 280);
+    // Row r from the bottom holds bar n - 1 - r: the first bar at the top.
+    let label_of = |r: i32| {
+        usize::try_from(r)
+            .ok()
+            .and_then(|r| n.checked_sub(1 + r))
+            .and_then(|i| panel.bars.get(i))
+            .map_or(String::new(), |b| b.label.clone())
+    };
+    let mut chart = ChartBuilder::on(area)
+        .caption(&panel.caption, (FAMILY, 18))
+        .margin(10)
+        .x_label_area_size(40)
+        .y_label_area_size(label_area)
+        .build_cartesian_2d(0f64..xmax, (0..n as i32).into_segmented())?;
+    chart
+        .configure_mesh()
+        .disable_y_mesh()
+        .x_desc(&panel.x_label)
+        .y_labels(n)
+        .y_label_formatter(&|v| match v {
+            SegmentValue::CenterOf(r) => label_of(*r),
+            _ => String::new(),
+        })
+        .label_style((FAMILY, 14))
+        .draw()?;
+    let rows: Vec<(i32, &Bar)> = panel
+        .bars
+        .iter()
+        .enumerate()
+        .map(|(i, b)| ((n - 1 - i) as i32, b))
+        .collect();
+    chart.draw_series(
+        rows.iter()
+            .filter(|(_, b)| b.value.is_finite())
+            .map(|(r, b)| {
+                let mut bar = Rectangle::new(
+                    [
+                        (0.0, SegmentValue::Exact(*r)),
+                        (b.value.max(0.0), SegmentValue::Exact(*r + 1)),
+                    ],
+                    b.color.filled(),
+                );
+                bar.set_margin(6, 6, 0, 0);
+                bar
+            }),
+    )?;
+    let text = TextStyle::from((FAMILY, 14).into_font()).color(&BLACK).pos(
+        plotters::style::text_anchor::Pos::new(
+            plotters::style::text_anchor::HPos::Left,
+            plotters::style::text_anchor::VPos::Center,
+        ),
+    );
+    chart.draw_series(rows.iter().map(|(r, b)| {
+        let value = if b.value.is_finite() {
+            format!(" {:.2}", b.value)
+        } else {
+            String::new()
+        };
+        let at = if b.value.is_finite() {
+            b.value.max(0.0)
+        } else {
+            0.0
+        };
+        Text::new(
+            format!("{value} {}", b.note).trim_end().to_string(),
+            (at, SegmentValue::CenterOf(*r)),
+            text.clone(),
+        )
+    }))?;
     Ok(())
 }
 

@@ -9,9 +9,16 @@ in-process simulated board, identification and parameter file as the ``hal-sim``
 * :func:`identify` -- a hysteresis model from a measured record, as a :class:`Params`
   (predict, compensate, save); :func:`load_params` reads a parameter file back.
 * :class:`BoardError` -- a refusal, with the field, the reason and the limit the board named.
+* :class:`AsyncBoard` (:mod:`twinstack.aio`) -- the same board from asyncio: every call
+  awaitable, none blocking the event loop; a stream leaves room for a status poll.
+* :mod:`twinstack.bluesky` -- an :class:`~twinstack.bluesky.Axis` (Movable, Readable) and a
+  :class:`~twinstack.bluesky.Flyer` (Flyable: a raster or any trajectory) for bluesky's
+  RunEngine.
 """
 
+from . import aio
 from ._native import Board, BoardError, Params, identify, load_params
+from .aio import AsyncBoard
 
-__all__ = ["Board", "BoardError", "Params", "identify", "load_params"]
+__all__ = ["AsyncBoard", "Board", "BoardError", "Params", "aio", "identify", "load_params"]
 __version__ = "0.1.0"

@@ -4,7 +4,8 @@
 //!   `thumbv7em-none-eabihf` and `x86_64-pc-windows-gnu` standard libraries (rustup), `qemu-system-arm` (apt-get, as root on
 //!   Debian/Ubuntu; elsewhere it prints the command and fails), `mdbook` (cargo install) and a
 //!   Python virtual environment for the Python package's tests (`python3 -m venv` into
-//!   `TARGET/py-venv`; `python3-venv` with apt-get where Debian lacks it).
+//!   `TARGET/py-venv`; `python3-venv` with apt-get where Debian lacks it), and Chromium with
+//!   its WebDriver for the live view's browser test (apt-get, as root on Debian/Ubuntu).
 //!   Running it again changes nothing.
 //! * `cargo xtask test` runs `setup`, then every gate CI holds the project to, in order,
 //!   stopping at the first that fails: the module graph (no cycles, `cargo xtask graph`), host
@@ -12,7 +13,8 @@
 //!   rustfmt, clippy on the host,
 //!   clippy and builds of each firmware image on the target, `cargo check` of the host tool
 //!   for Windows, the Python package (`pip install ./python` into the virtual environment —
-//!   maturin, numpy, pytest, matplotlib and mypy from PyPI — its own rustfmt and clippy, then
+//!   maturin, numpy, pytest, matplotlib, mypy, bluesky and selenium from PyPI — its own rustfmt
+//!   and clippy, then
 //!   pytest), rustdoc with warnings denied, and
 //!   the docs book when there is one (`docs/book.toml`).
 //!
@@ -63,8 +65,16 @@ const TARGET_CLIPPY: &[(&str, &[&str])] = &[
 
 /// What the Python gate installs into the virtual environment besides the package (maturin
 /// comes with `pip install ./python`, as its build backend): the tests' runner, the example's
-/// plotting, and mypy, whose stubtest checks the shipped stubs against the module.
-const PYTHON_TEST_PACKAGES: &[&str] = &["numpy", "pytest", "matplotlib", "mypy"];
+/// plotting, mypy, whose stubtest checks the shipped stubs against the module, bluesky, whose
+/// RunEngine runs the package's devices, and selenium, which drives Chromium for `view`'s test.
+const PYTHON_TEST_PACKAGES: &[&str] = &[
+    "numpy",
+    "pytest",
+    "matplotlib",
+    "mypy",
+    "bluesky",
+    "selenium",
+];
 
 /// rustdoc's flags for the documentation gate: every warning (broken or redundant links
 /// included) fails it.
@@ -174,6 +184,30 @@ fn setup() -> Result<(), String> {
     ensure_mdbook()?;
     ensure_objdump()?;
     ensure_python_venv()?;
+    ensure_chromium()?;
+    Ok(())
+}
+
+/// Chromium and its WebDriver (`view`'s browser test), with apt-get as root on Debian/Ubuntu
+/// when either is missing; elsewhere the test skips and this says how to install them.
+fn ensure_chromium() -> Result<(), String> {
+    let found = |names: &[&str]| names.iter().find_map(|n| version(n));
+    let browser = found(&["chromium", "chromium-browser"]);
+    let driver = found(&["chromedriver"]);
+    if let (Some(b), Some(d)) = (&browser, &driver) {
+        println!("   chromium: already installed ({b}; {d})");
+        return Ok(());
+    }
+    if !(Path::new("/etc/debian_version").is_file() && is_root()) {
+        println!(
+            "   chromium: missing; `view`'s browser test skips until Chromium and chromedriver \
+             are on the PATH (Debian/Ubuntu: sudo apt-get install chromium chromium-driver)"
+        );
+        return Ok(());
+    }
+    apt_install(&["chromium", "chromium-driver"])?;
+    let v = found(&["chromium"]).ok_or("apt-get installed chromium, but it does not run")?;
+    println!("   chromium: installed with apt-get ({v})");
     Ok(())
 }
 

@@ -14,7 +14,7 @@ use super::params::ModeArg;
 use crate::calibrate::{calibrate, CalibrateOptions, CalibrationReport, Progress};
 use crate::identification::auto::Validation;
 use crate::output_file::Staged;
-use crate::plot::{draw_panels, Panel, Series};
+use crate::plot::{draw_charts, Bar, BarPanel, Chart, Panel, Series};
 use anyhow::bail;
 use plotters::style::RGBColor;
 use std::path::{Path, PathBuf};
@@ -268,39 +268,37 @@ fn plot(r: &CalibrationReport, path: &Path) -> anyhow::Result<()> {
             ],
         },
     ];
-    // The ranking: one short bar per candidate at its validation max error.
-    let palette = [
-        RGBColor(31, 119, 180),
-        RGBColor(255, 127, 14),
-        RGBColor(44, 160, 44),
-        RGBColor(214, 39, 40),
-        RGBColor(148, 103, 189),
-        RGBColor(140, 86, 75),
-        RGBColor(227, 119, 194),
-        RGBColor(127, 127, 127),
-    ];
-    let bars: Vec<Series> = r
-        .ranking
-        .iter()
-        .enumerate()
-        .filter_map(|(i, c)| {
-            let f = c.validation.admitted()?;
-            let at = i as f64 + 1.0;
-            Some(Series {
-                label: format!("{}. {}: {:.2} %", i + 1, c.label, f.max_pct),
-                points: vec![(at - 0.3, f.max_pct), (at + 0.3, f.max_pct)],
-                color: palette[i % palette.len()],
+    // The ranking: one bar per candidate at its validation max error, best first; the
+    // model kept in blue, the others light, one the board would not run grey.
+    let ranking = BarPanel {
+        caption: "ranking: validation max error".into(),
+        x_label: "[% of span]".into(),
+        bars: r
+            .ranking
+            .iter()
+            .enumerate()
+            .map(|(i, c)| {
+                let kept = c.label == r.model;
+                let (value, note, color) = match &c.validation {
+                    Validation::Scored(f) => (
+                        f.max_pct,
+                        if kept { "kept" } else { "" },
+                        if kept { blue } else { RGBColor(158, 202, 225) },
+                    ),
+                    Validation::NotAdmitted { figures, .. } => {
+                        (figures.max_pct, "not admitted", RGBColor(190, 190, 190))
+                    }
+                    Validation::NotFitted(_) => (f64::NAN, "not fitted", RGBColor(190, 190, 190)),
+                };
+                Bar {
+                    label: format!("{}. {}", i + 1, c.label),
+                    value,
+                    note: note.to_string(),
+                    color,
+                }
             })
-        })
-        .collect();
-    if !bars.is_empty() {
-        panels.push(Panel {
-            caption: "ranking: validation max error".into(),
-            x_label: "rank".into(),
-            y_label: "[% of span]".into(),
-            series: bars,
-        });
-    }
+            .collect(),
+    };
     let error = |rec: &crate::capture::Recording, label: String, color| {
         let sp = rec.column(Channel::Setpoint).map(|c| &c.values[..]);
         let se = rec.column(Channel::Sensor).map(|c| &c.values[..]);
@@ -336,13 +334,18 @@ fn plot(r: &CalibrationReport, path: &Path) -> anyhow::Result<()> {
             ),
         ],
     });
-    draw_panels(
+    let mut charts: Vec<Chart> = panels[..2].iter().map(Chart::Lines).collect();
+    if !ranking.bars.is_empty() {
+        charts.push(Chart::Bars(&ranking));
+    }
+    charts.extend(panels[2..].iter().map(Chart::Lines));
+    draw_charts(
         path,
         &format!(
             "calibrate: {} (held-out max {:.2} %), tracking max {:.2} % -> {:.2} %",
             r.model, r.held_out.max_pct, r.before.max_pct, r.after.max_pct
         ),
-        &panels,
+        &charts,
         2,
     )?;
     Ok(())

@@ -1,7 +1,7 @@
 //! The `hal-sim` subcommands, one module each: `run(&Args) -> anyhow::Result<()>`.
 //!
 //! Board commands (`calibrate`, `stream`, `load`, `params`, `mode`, `recall`, `status`,
-//! `waveform`, `stop`, `record`, `telemetry`, `coarse`, `scan`, `tune`, and `learn` with
+//! `waveform`, `stop`, `record`, `telemetry`, `coarse`, `scan`, `tune`, `view`, and `learn` with
 //! `--port`) share [`board_link`]'s `--port` / `--baud` / `--timeout-ms`.
 
 /// The exit codes of every `hal-sim` command, as `hal-sim --help` lists them.
@@ -45,5 +45,6 @@ pub mod stop;
 pub mod stream;
 pub mod telemetry;
 pub mod tune;
+pub mod view;
 pub mod virtual_board;
 pub mod waveform;

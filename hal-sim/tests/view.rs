@@ -1,0 +1,239 @@
+//! `hal-sim view` over plain HTTP (the browser test is `python/tests/test_view.py`): the page
+//! and its script are served, telemetry arrives as Server-Sent Events with every sample
+//! counted, a mode switch reaches the board, and malformed or hostile requests are refused
+//! with a reason, never a crash.
+
+use std::io::{BufRead, BufReader, Read, Write};
+use std::net::TcpStream;
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+struct View {
+    child: Child,
+    addr: String,
+}
+
+impl Drop for View {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+fn start(extra: &[&str]) -> View {
+    let mut child = Command::new(env!("CARGO_BIN_EXE_hal-sim"))
+        .args(["view", "--port", "sim", "--listen", "127.0.0.1:0"])
+        .args(extra)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut line = String::new();
+    BufReader::new(child.stdout.take().unwrap())
+        .read_line(&mut line)
+        .unwrap();
+    let url = line
+        .split_whitespace()
+        .find(|w| w.starts_with("http://"))
+        .unwrap_or_else(|| panic!("no address in {line:?}"));
+    let addr = url
+        .trim_start_matches("http://")
+        .trim_end_matches('/')
+        .to_string();
+    View { child, addr }
+}
+
+/// One request on a fresh connection: (status, body).
+fn http(addr: &str, raw: &[u8]) -> (u16, String) {
+    let mut s = TcpStream::connect(addr).unwrap();
+    s.set_read_timeout(Some(Duration::from_secs(20))).unwrap();
+    s.write_all(raw).unwrap();
+    let mut reader = BufReader::new(s);
+    let mut status = String::new();
+    reader.read_line(&mut status).unwrap();
+    let code: u16 = status.split_whitespace().nth(1).unwrap().parse().unwrap();
+    let mut length = 0usize;
+    loop {
+        let mut h = String::new();
+        reader.read_line(&mut h).unwrap();
+        if h == "\r\n" {
+            break;
+        }
+        if let Some(v) = h.to_ascii_lowercase().strip_prefix("content-length:") {
+            length = v.trim().parse().unwrap();
+        }
+    }
+    let mut body = vec![0; length];
+    reader.read_exact(&mut body).unwrap();
+    (code, String::from_utf8(body).unwrap())
+}
+
+fn get(addr: &str, path: &str) -> (u16, String) {
+    http(
+        addr,
+        format!("GET {path} HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n").as_bytes(),
+    )
+}
+
+fn post(addr: &str, path: &str, body: &str) -> (u16, serde_json::Value) {
+    let (code, text) = http(
+        addr,
+        format!(
+            "POST {path} HTTP/1.1\r\nHost: x\r\nContent-Length: {}\r\n\r\n{body}",
+            body.len()
+        )
+        .as_bytes(),
+    );
+    (code, serde_json::from_str(&text).unwrap())
+}
+
+/// Reads Server-Sent Events until `done` says so: (event, data) pairs.
+fn events(
+    addr: &str,
+    mut done: impl FnMut(&str, &serde_json::Value) -> bool,
+) -> Vec<(String, serde_json::Value)> {
+    let mut s = TcpStream::connect(addr).unwrap();
+    s.set_read_timeout(Some(Duration::from_secs(20))).unwrap();
+    s.write_all(b"GET /events HTTP/1.1\r\nHost: x\r\n\r\n")
+        .unwrap();
+    let mut reader = BufReader::new(s);
+    let mut out = Vec::new();
+    let mut event = String::new();
+    let deadline = Instant::now() + Duration::from_secs(60);
+    loop {
+        assert!(Instant::now() < deadline, "no end to the events");
+        let mut line = String::new();
+        if reader.read_line(&mut line).unwrap() == 0 {
+            return out;
+        }
+        if let Some(e) = line.strip_prefix("event: ") {
+            event = e.trim().to_string();
+        } else if let Some(d) = line.strip_prefix("data: ") {
+            let v: serde_json::Value = serde_json::from_str(d.trim()).unwrap();
+            let stop = done(&event, &v);
+            out.push((event.clone(), v));
+            if stop {
+                return out;
+            }
+        }
+    }
+}
+
+#[test]
+fn the_page_telemetry_and_a_mode_switch_over_http() {
+    let view = start(&["--signals", "setpoint,sensor", "--rate", "1000"]);
+    let (code, html) = get(&view.addr, "/");
+    assert_eq!(code, 200);
+    assert!(html.contains("twinstack view") && html.contains("/view.js"));
+    let (code, js) = get(&view.addr, "/view.js");
+    assert_eq!(code, 200);
+    assert!(js.contains("EventSource"));
+    let (code, tune) = get(&view.addr, "/api/tune");
+    assert_eq!(code, 404);
+    assert!(tune.contains("--tune"));
+
+    // Some telemetry, then a mode switch, then pause: the samples counted against the end
+    // frame's count.
+    let mut received = 0u64;
+    let mut start: Option<u64> = None;
+    let mut switched = false;
+    let mut paused = false;
+    let addr = view.addr.clone();
+    let evs = events(&view.addr, |event, v| {
+        match event {
+            "samples" => {
+                // The first sample this connection saw: the session began before it.
+                start.get_or_insert(v["first"].as_u64().unwrap());
+                received += v["n"].as_u64().unwrap();
+                assert_eq!(
+                    v["signals"].as_object().unwrap().len(),
+                    2,
+                    "setpoint and sensor"
+                );
+            }
+            "status" if !switched && received > 200 => {
+                let (code, answer) = post(&addr, "/api/mode", r#"{"mode": "closed-loop"}"#);
+                assert_eq!(
+                    (code, answer["ok"].as_str()),
+                    (200, Some("mode closed-loop"))
+                );
+                switched = true;
+            }
+            "status" if switched && !paused && v["mode"] == "closed-loop" => {
+                let (code, answer) = post(&addr, "/api/telemetry", r#"{"run": false}"#);
+                assert_eq!(code, 200, "{answer}");
+                paused = true;
+            }
+            _ => {}
+        }
+        paused && v["counts"]["produced"].is_u64()
+    });
+    let (_, last) = evs.last().unwrap();
+    let produced = last["counts"]["produced"].as_u64().unwrap();
+    assert!(produced > 200);
+    let start = start.unwrap();
+    assert_eq!(
+        received,
+        produced - start,
+        "every sample the board produced from the first this client saw reached it"
+    );
+    assert_eq!(last["counts"]["missing"], 0);
+    assert!(evs
+        .iter()
+        .any(|(e, v)| e == "status" && v["mode"] == "closed-loop"));
+}
+
+#[test]
+fn bad_requests_are_refused_with_a_reason() {
+    let view = start(&["--signals", "sensor", "--rate", "500"]);
+    let (code, v) = post(&view.addr, "/api/mode", r#"{"mode": "feedback"}"#);
+    assert_eq!(code, 422);
+    assert!(v["error"].as_str().unwrap().contains("expected \"bypass\""));
+    let (code, v) = post(&view.addr, "/api/mode", "not json");
+    assert_eq!(code, 400);
+    assert!(v["error"].as_str().unwrap().contains("not JSON"));
+    let (code, v) = post(
+        &view.addr,
+        "/api/waveform",
+        r#"{"amplitude": 1.5, "frequency": 10}"#,
+    );
+    assert_eq!(code, 422);
+    assert!(v["error"].as_str().unwrap().contains("amplitude"), "{v}");
+    let (code, v) = post(&view.addr, "/api/scan", r#"{"pattern": "zigzag"}"#);
+    assert_eq!(code, 422);
+    assert!(v["error"].as_str().unwrap().starts_with("scan:"), "{v}");
+    let (code, _) = post(&view.addr, "/api/launch", "{}");
+    assert_eq!(code, 400);
+    let (code, _) = get(&view.addr, "/etc/passwd");
+    assert_eq!(code, 404);
+    // A body larger than the server reads, and a head that is not HTTP.
+    let (code, v) = http(
+        &view.addr,
+        b"POST /api/mode HTTP/1.1\r\nContent-Length: 100000000\r\n\r\n",
+    );
+    assert_eq!(code, 400, "{v}");
+    let (code, _) = http(&view.addr, b"\x00\x01garbage\r\n\r\n");
+    assert_eq!(code, 400);
+    // Still serving.
+    let (code, _) = get(&view.addr, "/");
+    assert_eq!(code, 200);
+}
+
+#[test]
+fn a_missing_or_wrong_figure_file_is_an_error_naming_it() {
+    let out = Command::new(env!("CARGO_BIN_EXE_hal-sim"))
+        .args([
+            "view",
+            "--port",
+            "sim",
+            "--listen",
+            "127.0.0.1:0",
+            "--tune",
+            "/nonexistent/tune.json",
+        ])
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("--tune /nonexistent/tune.json"), "{err}");
+}

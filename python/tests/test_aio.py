@@ -1,0 +1,150 @@
+"""The asyncio API: a stream and a status poll run concurrently in one event loop, against the
+in-process board and a virtual board process; calls on one board queue instead of failing;
+a cancelled stream stops the board and leaves its line clean."""
+
+import asyncio
+import time
+
+import numpy as np
+import pytest
+
+import twinstack
+from twinstack.aio import AsyncBoard
+
+
+@pytest.fixture(params=["sim", "virtual"])
+def port(request):
+    if request.param == "sim":
+        return "sim"
+    port = request.getfixturevalue("virtual_board")
+    with twinstack.Board(port) as b:
+        b.stop()
+        b.recall()
+        b.mode("bypass")
+    return port
+
+
+def test_a_stream_and_a_status_poll_run_concurrently(port):
+    async def main():
+        async with await AsyncBoard.open(port) as board:
+            # 1.2 s of setpoints at 5 kHz, in chunks of 0.1 s.
+            setpoints = 10.0 * np.sin(np.linspace(0.0, 12 * np.pi, 6000))
+            polls = []
+            ticks_of_polls = []
+            done = asyncio.Event()
+
+            async def poll():
+                while not done.is_set():
+                    s = await board.status()
+                    polls.append("streaming" in s["flags"])
+                    ticks_of_polls.append(s["ticks"])
+                    await asyncio.sleep(0)
+
+            async def run_stream():
+                try:
+                    return await board.stream(setpoints, rate=5000.0)
+                finally:
+                    done.set()
+
+            # A heartbeat proves the loop itself is never blocked for long.
+            beats = []
+
+            async def heartbeat():
+                while not done.is_set():
+                    beats.append(time.monotonic())
+                    await asyncio.sleep(0.01)
+
+            report, _, _ = await asyncio.gather(run_stream(), poll(), heartbeat())
+            return report, polls, ticks_of_polls, beats
+
+    report, polls, ticks, beats = asyncio.run(main())
+    assert report["accepted"] == 6000
+    assert report["chunks"] == 12
+    assert report["drained"]
+    assert not report["underran"], report
+    # Polls answered while the stream was playing, with the board's time running between them.
+    assert sum(polls) >= 3, polls
+    assert ticks == sorted(ticks) and ticks[-1] > ticks[0]
+    gaps = np.diff(beats)
+    assert len(beats) >= 5
+    # The loop ran throughout: no gap longer than a chunk's worth of native call plus slack.
+    assert gaps.max() < 1.0, gaps.max()
+
+
+def test_calls_on_one_board_queue_instead_of_failing():
+    async def main():
+        async with await AsyncBoard.open("sim") as board:
+            results = await asyncio.gather(*[board.status() for _ in range(8)])
+            modes = await asyncio.gather(board.mode("open-loop"), board.status())
+            return results, modes[1]
+
+    results, after = asyncio.run(main())
+    assert [r["image"] for r in results] == ["simulator"] * 8
+    ticks = [r["ticks"] for r in results]
+    assert ticks == sorted(ticks), "served in the order asked"
+    assert after["mode"] == "open-loop"
+
+
+def test_cancelling_a_stream_stops_the_board_and_leaves_the_line_clean():
+    async def main():
+        async with await AsyncBoard.open("sim") as board:
+            # 100 s of stream at 500/s.
+            setpoints = 20.0 * np.sin(np.linspace(0.0, 40.0 * np.pi, 50_000))
+            task = asyncio.create_task(board.stream(setpoints, rate=500.0))
+            await asyncio.sleep(0.3)
+            t0 = time.monotonic()
+            task.cancel()
+            with pytest.raises(asyncio.CancelledError):
+                await task
+            elapsed = time.monotonic() - t0
+            s = await board.status()
+            report = await board.stream(np.zeros(10))
+            return elapsed, s, report
+
+    elapsed, s, report = asyncio.run(main())
+    assert elapsed < 3.0, f"the stream ran on for {elapsed:.1f} s after the cancel"
+    assert "streaming" not in s["flags"], s
+    assert report["accepted"] == 10
+
+
+def test_numpy_in_and_out_and_errors_as_the_blocking_api():
+    async def main():
+        async with await AsyncBoard.open("sim") as board:
+            rec = await board.record(["setpoint", "sensor"], samples=100)
+            with pytest.raises(ValueError, match="expected \"bypass\""):
+                await board.mode("feedback")
+            with pytest.raises(twinstack.BoardError) as e:
+                await board.record(["sensor"], samples=10**7)
+            with pytest.raises(ValueError, match="one-dimensional"):
+                await board.stream(np.zeros((2, 2)))
+            return rec, e.value
+
+    rec, err = asyncio.run(main())
+    assert set(rec) == {"t", "setpoint", "sensor"}
+    assert rec["sensor"].dtype == np.float64 and rec["sensor"].shape == (100,)
+    assert err.field == "record count"
+
+
+def test_identify_runs_in_a_worker_thread(repo=None):
+    import pathlib
+
+    data = pathlib.Path(__file__).resolve().parents[2] / "data" / "micromanipulator-unipolar-3v6-1hz.csv"
+    t, u, x = np.loadtxt(data, delimiter=",", skiprows=5).T
+
+    async def main():
+        beats = 0
+
+        async def heartbeat():
+            nonlocal beats
+            while True:
+                beats += 1
+                await asyncio.sleep(0.005)
+
+        hb = asyncio.create_task(heartbeat())
+        params = await twinstack.aio.identify(t, u, x, model="pi", fit_until=16.0)
+        hb.cancel()
+        return params, beats
+
+    params, beats = asyncio.run(main())
+    assert params.model == "pi"
+    assert beats > 1, "the loop ran while the model was fitted"

@@ -1,0 +1,108 @@
+"""The bluesky devices under bluesky's own RunEngine, against the in-process board: a step scan
+of 21 points with every event's position within the settle window, and a fly scan of a
+32-line raster, every pixel's position within the window of its setpoint."""
+
+import numpy as np
+import pytest
+
+import twinstack
+from twinstack.bluesky import Axis, Flyer, SettleTimeout, Status
+
+bluesky = pytest.importorskip("bluesky")
+from bluesky import RunEngine  # noqa: E402
+from bluesky import plans as bp  # noqa: E402
+from bluesky.protocols import Flyable, Movable, Readable, check_supports  # noqa: E402
+
+WINDOW = 0.2  # µm: the settle window of the tests (0.2 % of the simulated stage's 90 µm span)
+
+
+@pytest.fixture
+def board():
+    b = twinstack.Board("sim")
+    b.mode("closed-loop")
+    yield b
+    b.close()
+
+
+@pytest.fixture
+def RE():
+    engine = RunEngine({})
+    docs = []
+    engine.subscribe(lambda name, doc: docs.append((name, doc)))
+    engine.docs = docs
+    yield engine
+    # RunEngine runs its loop in a thread of its own: stop it.
+    engine.loop.call_soon_threadsafe(engine.loop.stop)
+
+
+def events(docs, stream):
+    descriptors = {d["uid"] for n, d in docs if n == "descriptor" and d["name"] == stream}
+    return [d for n, d in docs if n == "event" and d["descriptor"] in descriptors]
+
+
+def test_the_axis_follows_bluesky_protocols(board):
+    x = Axis(board, name="x", window=WINDOW)
+    check_supports(x, Movable)
+    check_supports(x, Readable)
+    assert x.hints == {"fields": ["x"]}
+    assert set(x.describe()) == {"x", "x_setpoint", "x_error"}
+    assert set(x.read_configuration()) == set(x.describe_configuration())
+    assert x.parent is None
+    with pytest.raises(ValueError, match="outside the output range"):
+        x.set(1e6)
+
+
+def test_a_step_scan_of_21_points_settles_at_every_point(board, RE):
+    x = Axis(board, name="x", window=WINDOW)
+    uids = RE(bp.scan([x], x, -20.0, 20.0, 21))
+    assert len(uids) == 1
+    evs = events(RE.docs, "primary")
+    assert len(evs) == 21
+    targets = np.linspace(-20.0, 20.0, 21)
+    for ev, target in zip(evs, targets):
+        assert abs(ev["data"]["x"] - target) <= WINDOW, (target, ev["data"])
+        assert abs(ev["data"]["x_setpoint"] - target) <= 1e-2, (target, ev["data"])
+        assert ev["timestamps"]["x"] > 0
+    stop = [d for n, d in RE.docs if n == "stop"][0]
+    assert stop["exit_status"] == "success"
+
+
+def test_a_move_that_cannot_settle_fails_its_status(board):
+    board.mode("bypass")  # no feedback: hysteresis leaves the sensor off the target
+    x = Axis(board, name="x", window=1e-3, timeout=0.2)
+    st = x.set(10.0)
+    with pytest.raises(SettleTimeout, match="not settled at 10.0"):
+        st.wait(30.0)
+    assert st.done and not st.success
+    seen = []
+    st.add_callback(seen.append)
+    assert seen == [st], "a callback added after the end runs at once"
+
+
+def test_a_fly_scan_of_a_32_line_raster(board, RE):
+    fly = Flyer.raster(board, lines=32, pixels=32, amplitude=0.3, per_pixel=20, rate=5000.0)
+    check_supports(fly, Flyable)
+    RE(bp.fly([fly]))
+    evs = events(RE.docs, "raster")
+    assert len(evs) == 32 * 32
+    lines = [e["data"]["raster_line"] for e in evs]
+    assert lines == [k for k in range(32) for _ in range(32)]
+    pixels = [e["data"]["raster_pixel"] for e in evs]
+    assert pixels[:32] == list(range(32)) and pixels[32:64] == list(range(31, -1, -1))
+    err = [abs(e["data"]["raster"] - e["data"]["raster_setpoint"]) for e in evs]
+    assert max(err) <= WINDOW, max(err)
+    times = [e["time"] for e in evs]
+    assert times == sorted(times)
+    # One event every 20 setpoints at 5 kHz: 4 ms apart on the board's clock.
+    assert np.allclose(np.diff(times), 0.004, atol=1e-6)
+    assert fly.report["accepted"] == 32 * 32 * 20 and not fly.report["underran"]
+
+
+def test_status_callbacks_and_failure():
+    s = Status("x")
+    seen = []
+    s.add_callback(seen.append)
+    assert not s.done
+    s._finish(RuntimeError("boom"))
+    assert seen == [s] and s.done and not s.success
+    assert isinstance(s.exception(), RuntimeError)
