@@ -19,7 +19,8 @@ rather than failing.
 
 >>> import twinstack
 >>> from twinstack.bluesky import Axis
->>> board = twinstack.Board("sim"); board.mode("closed-loop")
+>>> board = twinstack.Board("sim")
+>>> board.load(board.calibrate(store=False)["params"], mode="closed-loop")
 >>> x = Axis(board, name="x", window=0.2)
 >>> x.set(10.0).wait(10.0)
 >>> abs(x.read()["x"]["value"] - 10.0) < 0.2
@@ -282,7 +283,9 @@ class Axis:
 class Flyer:
     """A trajectory played by the board as a bluesky ``Flyable``: `setpoints` (output unit)
     streamed at `rate` per second, recorded (setpoint, sensor, error) from the stream's
-    start, one event every `per_event` setpoints. :meth:`raster` builds a raster."""
+    start, one event every `per_event` setpoints. Before it, the stage is taken to the first
+    setpoint and held there for `approach` seconds (not recorded), so the first event is not
+    the jump from wherever it was. :meth:`raster` builds a raster."""
 
     def __init__(
         self,
@@ -295,8 +298,10 @@ class Flyer:
         lines: Optional[Sequence[int]] = None,
         pixels: Optional[Sequence[int]] = None,
         parent: Any = None,
+        approach: float = 0.05,
     ) -> None:
         self._board = board
+        self.approach = float(approach)
         self.name = name
         self.parent = parent
         self.units = units
@@ -368,7 +373,8 @@ class Flyer:
     # -- Flyable -------------------------------------------------------------------------
 
     def kickoff(self) -> Status:
-        """Arms the recorder on the stream's start and starts the stream: done once it plays."""
+        """Takes the stage to the first setpoint, arms the recorder on the stream's start and
+        starts the stream: done once it plays."""
         self._data = None
         started = Status(f"{self.name} kickoff")
         played = Status(f"{self.name} complete")
@@ -376,6 +382,8 @@ class Flyer:
 
         def fly() -> None:
             try:
+                n = max(1, int(round(self.approach * self.rate)))
+                self._board.stream(np.full(n, self.setpoints[0]), rate=self.rate)
                 self._board.arm(
                     ["setpoint", "sensor", "error"],
                     samples=self.events,
