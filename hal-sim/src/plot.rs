@@ -324,6 +324,7 @@ fn draw_lines<'a>(area: &Area<'a>, panel: &Panel) -> DrawResult<'a> {
 }
 
 fn draw_bars<'a>(area: &Area<'a>, panel: &BarPanel) -> DrawResult<'a> {
+    use plotters::style::text_anchor::{HPos, Pos, VPos};
     let n = panel.bars.len().max(1);
     let top = panel
         .bars
@@ -332,81 +333,57 @@ fn draw_bars<'a>(area: &Area<'a>, panel: &BarPanel) -> DrawResult<'a> {
         .filter(|v| v.is_finite())
         .fold(0.0, f64::max);
     // Room right of the longest bar for its value.
-    let xmax = if top > 0.0 { top * 1.45 } else { 1.0 };
-    let widest = panel
-        .bars
-        .iter()
-        .map(|b| b.label.chars().count())
-        .max()
-        .unwrap_or(4);
-    let label_area = (widest as u32 * 9 + 16).clamp(60, 280);
-    // Row r from the bottom holds bar n - 1 - r: the first bar at the top.
-    let label_of = |r: i32| {
-        usize::try_from(r)
-            .ok()
-            .and_then(|r| n.checked_sub(1 + r))
-            .and_then(|i| panel.bars.get(i))
-            .map_or(String::new(), |b| b.label.clone())
-    };
+    let xmax = if top > 0.0 { top * 1.25 } else { 1.0 };
+    // Row r (from the bottom) holds bar n - 1 - r: the first bar at the top. Each row: its
+    // label on top, left-aligned over the axis, the bar under it, the value at the bar's end.
     let mut chart = ChartBuilder::on(area)
         .caption(&panel.caption, (FAMILY, 18))
         .margin(10)
         .x_label_area_size(40)
-        .y_label_area_size(label_area)
-        .build_cartesian_2d(0f64..xmax, (0..n as i32).into_segmented())?;
+        .y_label_area_size(12)
+        .build_cartesian_2d(0f64..xmax, 0f64..n as f64)?;
     chart
         .configure_mesh()
         .disable_y_mesh()
+        .y_labels(0)
         .x_desc(&panel.x_label)
-        .y_labels(n)
-        .y_label_formatter(&|v| match v {
-            SegmentValue::CenterOf(r) => label_of(*r),
-            _ => String::new(),
-        })
         .label_style((FAMILY, 14))
         .draw()?;
-    let rows: Vec<(i32, &Bar)> = panel
+    let rows: Vec<(f64, &Bar)> = panel
         .bars
         .iter()
         .enumerate()
-        .map(|(i, b)| ((n - 1 - i) as i32, b))
+        .map(|(i, b)| ((n - 1 - i) as f64, b))
         .collect();
     chart.draw_series(
         rows.iter()
             .filter(|(_, b)| b.value.is_finite())
             .map(|(r, b)| {
-                let mut bar = Rectangle::new(
-                    [
-                        (0.0, SegmentValue::Exact(*r)),
-                        (b.value.max(0.0), SegmentValue::Exact(*r + 1)),
-                    ],
+                Rectangle::new(
+                    [(0.0, r + 0.12), (b.value.max(0.0), r + 0.52)],
                     b.color.filled(),
-                );
-                bar.set_margin(6, 6, 0, 0);
-                bar
+                )
             }),
     )?;
-    let text = TextStyle::from((FAMILY, 14).into_font()).color(&BLACK).pos(
-        plotters::style::text_anchor::Pos::new(
-            plotters::style::text_anchor::HPos::Left,
-            plotters::style::text_anchor::VPos::Center,
-        ),
-    );
+    let style = |h| {
+        TextStyle::from((FAMILY, 14).into_font())
+            .color(&BLACK)
+            .pos(Pos::new(h, VPos::Center))
+    };
+    chart.draw_series(
+        rows.iter()
+            .map(|(r, b)| Text::new(b.label.clone(), (0.0, r + 0.76), style(HPos::Left))),
+    )?;
     chart.draw_series(rows.iter().map(|(r, b)| {
-        let value = if b.value.is_finite() {
-            format!(" {:.2}", b.value)
+        let (at, text) = if b.value.is_finite() {
+            (b.value.max(0.0), format!(" {:.2} {}", b.value, b.note))
         } else {
-            String::new()
-        };
-        let at = if b.value.is_finite() {
-            b.value.max(0.0)
-        } else {
-            0.0
+            (0.0, b.note.clone())
         };
         Text::new(
-            format!("{value} {}", b.note).trim_end().to_string(),
-            (at, SegmentValue::CenterOf(*r)),
-            text.clone(),
+            text.trim_end().to_string(),
+            (at, r + 0.32),
+            style(HPos::Left),
         )
     }))?;
     Ok(())

@@ -44,7 +44,7 @@ def main() -> None:
         for flag in (
             "--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
             "--disable-component-update", "--disable-sync", "--no-first-run",
-            "--window-size=1400,1050", f"--user-data-dir={profile}",
+            "--window-size=1400,1150", f"--user-data-dir={profile}",
         ):
             options.add_argument(flag)
         driver = webdriver.Chrome(service=Service(shutil.which("chromedriver")), options=options)

@@ -26,7 +26,7 @@ let buffers = {};   // name -> {data: Float64Array, head, filled}
 let capacity = 4000;
 
 function resetBuffers() {
-  const seconds = Math.max(0.1, parseFloat(document.getElementById("window-s").value) || 2);
+  const seconds = Math.max(0.1, parseFloat(document.getElementById("window-s").value) || 1);
   capacity = Math.max(16, Math.round(seconds * (view.rateHz || 1000)));
   buffers = {};
   for (const name of view.signals) {
@@ -134,7 +134,7 @@ function showCounters() {
 
 function fit(canvas) {
   const ratio = window.devicePixelRatio || 1;
-  const w = canvas.clientWidth, h = canvas.clientHeight || canvas.height;
+  const w = canvas.clientWidth, h = canvas.clientHeight || 150;
   if (canvas.width !== Math.round(w * ratio)) {
     canvas.width = Math.round(w * ratio);
     canvas.height = Math.round(h * ratio);
@@ -154,6 +154,11 @@ function niceTicks(lo, hi, n) {
   return out;
 }
 
+// A tick's text: 4 significant digits, and 0 for a tick that is 0 up to rounding.
+function tickText(v, lo, hi) {
+  return Math.abs(v) < 1e-9 * (Math.abs(lo) + Math.abs(hi)) ? "0" : String(+v.toPrecision(4));
+}
+
 function axes(ctx, box, xlo, xhi, ylo, yhi, xlabel, ylabel, xfmt) {
   ctx.strokeStyle = "#ddd"; ctx.fillStyle = "#555"; ctx.lineWidth = 1;
   ctx.font = "11px sans-serif";
@@ -161,13 +166,13 @@ function axes(ctx, box, xlo, xhi, ylo, yhi, xlabel, ylabel, xfmt) {
   for (const v of niceTicks(ylo, yhi, 4)) {
     const y = box.y + box.h - ((v - ylo) / (yhi - ylo)) * box.h;
     ctx.beginPath(); ctx.moveTo(box.x, y); ctx.lineTo(box.x + box.w, y); ctx.stroke();
-    ctx.fillText(+v.toPrecision(4), box.x - 4, y);
+    ctx.fillText(tickText(v, ylo, yhi), box.x - 4, y);
   }
   ctx.textAlign = "center"; ctx.textBaseline = "top";
   for (const v of niceTicks(xlo, xhi, 6)) {
     const x = box.x + ((v - xlo) / (xhi - xlo)) * box.w;
     ctx.beginPath(); ctx.moveTo(x, box.y); ctx.lineTo(x, box.y + box.h); ctx.stroke();
-    ctx.fillText(xfmt ? xfmt(v) : +v.toPrecision(4), x, box.y + box.h + 3);
+    ctx.fillText(xfmt ? xfmt(v) : tickText(v, xlo, xhi), x, box.y + box.h + 3);
   }
   ctx.strokeStyle = "#888";
   ctx.strokeRect(box.x, box.y, box.w, box.h);
@@ -189,7 +194,7 @@ function drawGroup(group) {
     ctx.fillText(`${group.names.join(", ")}: not in this telemetry (--signals)`, 10, 20);
     return;
   }
-  const box = { x: 52, y: 6, w: w - 64, h: h - 30 };
+  const box = { x: 52, y: 6, w: w - 64, h: h - 34 };
   let lo = Infinity, hi = -Infinity;
   for (const n of names) {
     const b = buffers[n];
@@ -293,29 +298,31 @@ function drawRanking() {
   ctx.font = "12px sans-serif"; ctx.fillStyle = "#999";
   if (!c) { ctx.fillText("no calibration: start the view with --calibration cal.json (hal-sim calibrate --json)", 10, 20); return; }
   const rows = c.ranking;
-  const labelW = 150;
-  const box = { x: labelW, y: 8, w: w - labelW - 70, h: h - 36 };
-  const top = Math.max(...rows.map((r) => r.max_pct || 0), 1e-9) * 1.05;
+  const box = { x: 12, y: 8, w: w - 24, h: h - 36 };
+  const top = Math.max(...rows.map((r) => r.max_pct || 0), 1e-9) * 1.25;
   axes(ctx, box, 0, top, 0, 1, "validation max error [% of span]", "", null);
-  ctx.clearRect(0, 0, box.x - 1, box.y + box.h);  // no y ticks: rows are categories
+  ctx.clearRect(0, box.y + 1, box.x - 1, box.h);  // no y ticks: rows are categories
   const rowH = box.h / rows.length;
   rows.forEach((r, i) => {
-    const y = box.y + i * rowH + rowH * 0.15, bh = rowH * 0.7;
+    // Each row: the label on top, the bar under it, the figure at the bar's end.
+    const y0 = box.y + i * rowH;
     const picked = r.model === c.model;
-    ctx.textAlign = "right"; ctx.textBaseline = "middle";
-    ctx.fillStyle = picked ? "#000" : "#444";
+    ctx.textAlign = "left"; ctx.textBaseline = "middle";
+    ctx.fillStyle = "#222";
     ctx.font = picked ? "bold 11px sans-serif" : "11px sans-serif";
-    ctx.fillText(`${i + 1}. ${r.model}`, box.x - 6, y + bh / 2);
+    ctx.fillText(`${i + 1}. ${r.model}`, box.x + 3, y0 + rowH * 0.27);
+    const y = y0 + rowH * 0.48, bh = rowH * 0.4;
+    ctx.font = "11px sans-serif";
     if (r.max_pct === undefined) {
-      ctx.textAlign = "left"; ctx.fillStyle = "#999";
-      ctx.fillText(`not fitted: ${r.error || ""}`.slice(0, 60), box.x + 4, y + bh / 2);
+      ctx.fillStyle = "#999";
+      ctx.fillText(`not fitted: ${r.error || ""}`.slice(0, 80), box.x + 3, y + bh / 2);
       return;
     }
     const bw = (r.max_pct / top) * box.w;
     ctx.fillStyle = r.not_admitted ? "#bbb" : (picked ? "#1f77b4" : "#9ecae1");
     ctx.fillRect(box.x, y, bw, bh);
-    ctx.textAlign = "left"; ctx.fillStyle = "#222"; ctx.font = "11px sans-serif";
-    ctx.fillText(`${r.max_pct.toFixed(2)} %${r.not_admitted ? " (not admitted)" : ""}`, box.x + bw + 4, y + bh / 2);
+    ctx.fillStyle = "#222";
+    ctx.fillText(`${r.max_pct.toFixed(2)} %${picked ? " kept" : ""}${r.not_admitted ? " (not admitted)" : ""}`, box.x + bw + 4, y + bh / 2);
   });
 }
 
