@@ -629,7 +629,7 @@ impl<S: RecordStorage> CommandHandler<S> {
                 if from > period {
                     Err(refused(Field::RecordOffset, Rule::AtMost(period as f64)))
                 } else {
-                    let end = (from + crate::recorder::MAX_CHUNK).min(period);
+                    let end = from.saturating_add(crate::recorder::MAX_CHUNK).min(period);
                     let mut values = heapless::Vec::new();
                     for &v in self.learn.table().get(from..end).unwrap_or(&[]) {
                         let _ = values.push(v);
@@ -638,15 +638,15 @@ impl<S: RecordStorage> CommandHandler<S> {
                 }
             }
             LearnRequest::WriteTable { offset, values } => {
-                let from = offset as usize;
-                if from + values.len() > learning::MAX_BINS {
-                    Err(refused(
-                        Field::RecordOffset,
-                        Rule::AtMost((learning::MAX_BINS - values.len()) as f64),
-                    ))
-                } else {
-                    self.learn.write_entries(from, &values);
-                    Ok(())
+                // In u32 and checked, so that an offset near 2^32 cannot wrap past the bound on
+                // the 32-bit board (nor pass it on a 64-bit host): the same answer on both.
+                let last = learning::MAX_BINS - values.len(); // values: at most MAX_CHUNK
+                match offset.checked_add(values.len() as u32) {
+                    Some(end) if end as usize <= learning::MAX_BINS => {
+                        self.learn.write_entries(offset as usize, &values);
+                        Ok(())
+                    }
+                    _ => Err(refused(Field::RecordOffset, Rule::AtMost(last as f64))),
                 }
             }
             LearnRequest::PostTable => {

@@ -501,9 +501,25 @@ impl PiParams {
         let offset = (self.offset + total * scaling.input_mid() - scaling.output_mid()) / y_half;
         let mut thresholds = Vec::new();
         let mut weights = Vec::new();
-        for (&r, &w) in self.thresholds.iter().zip(self.weights.iter()) {
-            let _ = thresholds.push(r / u_half);
-            let _ = weights.push(w * g);
+        // A finite value that overflows on scaling is beyond fixed point for that value, as
+        // any other too large (1e300 and f64::MIN alike), not "not finite" for the model.
+        for (i, (&r, &w)) in self.thresholds.iter().zip(self.weights.iter()).enumerate() {
+            let (r, w) = (r / u_half, w * g);
+            if !r.is_finite() {
+                return Err(ParamError::ThresholdOutOfRange { operator: i + 1 });
+            }
+            if !w.is_finite() {
+                return Err(ParamError::WeightOutOfRange { operator: i + 1 });
+            }
+            let _ = thresholds.push(r);
+            let _ = weights.push(w);
+        }
+        // `a0` is the first operator's slope (folded into it by `canonical`).
+        if !(self.a0 * g).is_finite() {
+            return Err(ParamError::WeightOutOfRange { operator: 1 });
+        }
+        if !offset.is_finite() {
+            return Err(ParamError::OffsetOutOfRange);
         }
         Ok(PiParams {
             a0: self.a0 * g,
@@ -564,13 +580,14 @@ impl CanonicalPi {
     pub fn check_fixed_point_range(&self) -> Result<(), ParamError> {
         let mut sum = self.offset.abs();
         for (i, (&r, &w)) in self.thresholds.iter().zip(self.weights.iter()).enumerate() {
-            if !(r.is_finite() && w.is_finite()) {
-                return Err(ParamError::NotFinite);
-            }
-            if r > MAX_NORM_THRESHOLD {
+            // The physical parameters were checked finite (`PiParams::validate`): an infinite
+            // or NaN value here is a finite one that overflowed on the way (scaled, or `a0`
+            // folded in), so it is beyond fixed point like any other too large, not "not
+            // finite" for the whole model. `!(x <= max)` is true for NaN too.
+            if !(r <= MAX_NORM_THRESHOLD) {
                 return Err(ParamError::ThresholdOutOfRange { operator: i + 1 });
             }
-            if w.abs() > MAX_NORM_WEIGHT {
+            if !(w.abs() <= MAX_NORM_WEIGHT) {
                 return Err(ParamError::WeightOutOfRange { operator: i + 1 });
             }
             sum += w.abs();

@@ -94,8 +94,18 @@ pub fn in_pieces<T, const N: usize>(
 /// dual-stage board image the tightest.
 pub const CAPTURE_SLOTS: usize = 51 * 1024;
 
-/// Values of one signal a `Record` holds at most (the v3 limit; each takes two slots).
+/// Values of one signal a `Record` holds at most on the board (the v3 limit; each takes two
+/// slots). An image with a smaller buffer holds what it has room for, and its refusal names
+/// that figure: the QEMU image, [`EMULATOR_RECORD_CAPACITY`].
 pub const RECORD_CAPACITY: usize = 16 * 1024;
+
+/// The CCM RAM part of the board's capture buffer, slots (the whole 64 KiB).
+pub const CCM_SLOTS: usize = 32 * 1024;
+
+/// Values of one signal a `Record` holds at most in the QEMU image: 9 728. QEMU's
+/// `netduinoplus2` models no CCM RAM, so the image has the SRAM part of [`CAPTURE_SLOTS`]
+/// only, two slots a value.
+pub const EMULATOR_RECORD_CAPACITY: usize = (CAPTURE_SLOTS - CCM_SLOTS) / 2;
 
 /// Signals a v3 `Record` can capture (full Q2.30).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]

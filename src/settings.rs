@@ -670,6 +670,31 @@ mod tests {
         );
     }
 
+    #[test]
+    fn a_finite_weight_too_large_for_fixed_point_is_named_alike_whatever_its_size() {
+        // 1e300 and f64::MIN are both finite: each is beyond fixed point for its own weight
+        // (f64::MIN overflowed when scaled, and was "not finite" for the whole model).
+        for (i, w) in [(1, 1e300), (1, f64::MIN), (2, f64::MAX), (0, f64::MIN)] {
+            let mut s = closed();
+            if let Some(Model::PrandtlIshlinskii(p)) = s.compensator.as_mut() {
+                if i == 0 {
+                    p.a0 = w;
+                } else {
+                    p.weights[i] = w;
+                }
+            }
+            let operator = if i == 0 { 1 } else { i as u8 + 1 };
+            assert_eq!(
+                s.build(&hw()).unwrap_err(),
+                Refusal::new(
+                    Field::Compensator(ModelField::Weight(operator)),
+                    Rule::BeyondFixedPoint
+                ),
+                "weight {i} = {w:e}"
+            );
+        }
+    }
+
     fn gpi(s: &mut Settings) -> &mut GpiParams {
         match s.compensator.as_mut() {
             Some(Model::GeneralisedPi(p)) => p,

@@ -192,15 +192,17 @@ impl TelemetryTap {
 }
 
 /// Checks a telemetry request against the board's control rate: a mask of 1–6 signals
-/// (bits 0–5), a decimation ≥ 1 and at most [`MAX_VALUES_PER_SECOND`] values per second —
-/// refused, naming the field and its limit, otherwise (the decimation's limit is the
-/// smallest that fits).
+/// (bits 0–5) and a decimation of at least the least one whose values per second fit
+/// [`MAX_VALUES_PER_SECOND`] (and at least 1) — refused, naming the field and that least
+/// decimation, otherwise (a decimation of 0 included).
 ///
 /// ```
 /// use twinstack::refusal::{Field, Rule};
 /// use twinstack::telemetry::check_request;
 /// assert!(check_request(0b1001, 5, 50_000).is_ok()); // 2 signals at 10 kHz
 /// let r = check_request(0b11_1111, 1, 50_000).unwrap_err(); // 300 000 values/s
+/// assert_eq!((r.field, r.rule), (Field::TelemetryDecimation, Rule::AtLeast(6.0)));
+/// let r = check_request(0b11_1111, 0, 50_000).unwrap_err(); // 0: the same least decimation
 /// assert_eq!((r.field, r.rule), (Field::TelemetryDecimation, Rule::AtLeast(6.0)));
 /// ```
 pub fn check_request(signals: u8, decimation: u16, tick_rate_hz: u32) -> Result<(), Refusal> {
@@ -211,12 +213,11 @@ pub fn check_request(signals: u8, decimation: u16, tick_rate_hz: u32) -> Result<
         // Bit 7 names no signal: the mask is at most 0b111_1111.
         return Err(Refusal::new(Field::TelemetrySignals, Rule::AtMost(127.0)));
     }
-    if decimation == 0 {
-        return Err(Refusal::new(Field::TelemetryDecimation, Rule::AtLeast(1.0)));
-    }
+    // The least decimation whose values per second fit the link (at least 1): a decimation
+    // of 0 is refused with that same limit, as is any other below it.
     let per_tick = signals.count_ones() as u64 * tick_rate_hz as u64;
-    if per_tick > MAX_VALUES_PER_SECOND as u64 * decimation as u64 {
-        let least = per_tick.div_ceil(MAX_VALUES_PER_SECOND as u64);
+    let least = per_tick.div_ceil(MAX_VALUES_PER_SECOND as u64).max(1);
+    if (decimation as u64) < least {
         return Err(Refusal::new(
             Field::TelemetryDecimation,
             Rule::AtLeast(least as f64),
@@ -503,6 +504,11 @@ mod tests {
         assert_eq!(
             refusal(1, 0, 50_000),
             Err((Field::TelemetryDecimation, Rule::AtLeast(1.0)))
+        );
+        // A decimation of 0 is refused with the least decimation that fits, not with 1.
+        assert_eq!(
+            refusal(0b11_1111, 0, 50_000),
+            Err((Field::TelemetryDecimation, Rule::AtLeast(6.0)))
         );
         // 2 signals at 50 kHz: 100 000 values/s; decimation 2 is the least that fits.
         assert_eq!(

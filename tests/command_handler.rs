@@ -1524,3 +1524,86 @@ proptest! {
         prop_assert_eq!(s.queue_fill as usize, b.queued().len());
     }
 }
+
+#[test]
+fn a_learning_table_write_near_two_to_the_32_is_refused_not_wrapped() {
+    // The bound is checked in u32 with `checked_add`: an offset near 2^32 cannot wrap past it
+    // on the 32-bit board, and the host and the board give the same refusal (the emulator's
+    // test sends the fuzzer's frame itself).
+    let mut b = board();
+    let learn = twinstack::learning::LearnSettings::for_period(200);
+    assert!(matches!(
+        b.handle(Request::Learn(LearnRequest::Configure(learn))),
+        Response::Ack { .. }
+    ));
+    let last = (twinstack::learning::MAX_BINS - 2) as f64;
+    for offset in [u32::MAX, u32::MAX - 1, 1 << 31, 511] {
+        let values = heapless::Vec::from_slice(&[1, 2]).unwrap();
+        assert_eq!(
+            b.handle(Request::Learn(LearnRequest::WriteTable { offset, values })),
+            Response::Nack {
+                reason: NackReason::Refused(Refusal::new(Field::RecordOffset, Rule::AtMost(last)))
+            },
+            "offset {offset}"
+        );
+    }
+    let values = heapless::Vec::from_slice(&[1, 2]).unwrap();
+    assert!(matches!(
+        b.handle(Request::Learn(LearnRequest::WriteTable {
+            offset: 510,
+            values
+        })),
+        Response::Ack { .. }
+    ));
+}
+
+#[test]
+fn telemetry_at_decimation_zero_is_refused_with_the_least_decimation_that_fits() {
+    let mut b = board();
+    // Six signals at 50 kHz: 300 000 values/s, 6 the least decimation under 50 000.
+    assert_eq!(
+        b.handle(Request::Telemetry(TelemetryRequest::Start {
+            signals: 0b11_1111,
+            decimation: 0
+        })),
+        Response::Nack {
+            reason: NackReason::Refused(Refusal::new(
+                Field::TelemetryDecimation,
+                Rule::AtLeast(6.0)
+            ))
+        }
+    );
+}
+
+#[test]
+fn two_loads_between_two_ticks_swap_twice_and_the_newer_runs_from_the_drive_held() {
+    let mut b = closed_board();
+    b.ticks(200);
+    let held = b.outputs();
+    let swaps = b.control.swaps();
+    let mut first = closed();
+    first.mode = Mode::OpenLoop;
+    let mut newer = closed();
+    newer.mode = Mode::Bypass;
+    for s in [first, newer.clone()] {
+        assert!(matches!(
+            b.handle(Request::LoadParams(s)),
+            Response::Ack { .. }
+        ));
+    }
+    // Each load is swapped in when it is acknowledged (under the handler's lock, between two
+    // ticks): two swaps, the newer in force, the stacks untouched until the next tick.
+    assert_eq!(b.control.swaps(), swaps + 2);
+    assert_eq!(b.control.controller().mode(), Mode::Bypass);
+    assert_eq!(b.handler.settings(), &newer);
+    assert_eq!(b.outputs(), held);
+    // The next tick starts the fade from the drive the stacks hold: no step.
+    b.ticks(1);
+    let (l, r) = b.outputs();
+    let step = |a: DacCode, b: DacCode| (a.0 as i32 - b.0 as i32).abs();
+    assert!(
+        step(l, held.0) <= 2 && step(r, held.1) <= 2,
+        "{held:?} → {:?}",
+        (l, r)
+    );
+}

@@ -1052,3 +1052,63 @@ fn the_firmware_answers_every_frame_of_a_fuzzed_session_and_keeps_ticking() {
         "the tick runs ({telemetry} telemetry frames seen)"
     );
 }
+
+/// What an independent fuzzer found the 32-bit board answering differently from the host
+/// build, each now answered alike: a learning-table write whose offset wraps past its bound
+/// (the fuzzer's frame itself), telemetry at decimation 0, and a record longer than this
+/// image's buffer (its own figure, named).
+#[test]
+fn the_board_answers_the_fuzzer_s_findings_as_the_host_build_does() {
+    let mut emu = Emulator::boot("findings", None);
+    let last = (twinstack::learning::MAX_BINS - 2) as f64;
+    for offset in [u32::MAX, u32::MAX - 1, 1 << 31] {
+        assert_eq!(
+            emu.request(&Request::Learn(LearnRequest::WriteTable {
+                offset,
+                values: twinstack::heapless::Vec::from_slice(&[1, 2]).unwrap(),
+            })),
+            Response::Nack {
+                reason: NackReason::Refused(Refusal::new(Field::RecordOffset, Rule::AtMost(last)))
+            },
+            "offset {offset:#x}"
+        );
+    }
+    // The fuzzer's frame as it was sent (it was acknowledged, and nothing written).
+    emu.uart
+        .write_all(&[
+            0x0f, 0x07, 0x14, 0x05, 0xff, 0xff, 0xff, 0xff, 0x0f, 0x01, 0x02, 0xc7, 0x59, 0x40,
+            0x26, 0x00,
+        ])
+        .expect("write");
+    assert!(
+        matches!(emu.response(), Response::Nack { .. }),
+        "the fuzzer's frame is refused"
+    );
+    assert_eq!(
+        emu.request(&Request::Telemetry(TelemetryRequest::Start {
+            signals: 0b11_1111,
+            decimation: 0
+        })),
+        Response::Nack {
+            reason: NackReason::Refused(Refusal::new(
+                Field::TelemetryDecimation,
+                Rule::AtLeast(6.0)
+            ))
+        }
+    );
+    let cap = twinstack::recorder::EMULATOR_RECORD_CAPACITY as u32;
+    let record = |count| {
+        Request::Record(RecordRequest {
+            signal: twinstack::recorder::Signal::Drive,
+            count,
+            decimation: 1,
+        })
+    };
+    assert_eq!(
+        emu.request(&record(cap + 1)),
+        Response::Nack {
+            reason: NackReason::Refused(Refusal::new(Field::RecordCount, Rule::AtMost(cap as f64)))
+        }
+    );
+    assert!(matches!(emu.request(&record(cap)), Response::Ack { .. }));
+}

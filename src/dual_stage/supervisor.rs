@@ -231,6 +231,14 @@ impl CoarseLimits {
         Ok(libm::round(mm_s * 1e9 / per).clamp(1.0, max as f64) as i64)
     }
 
+    fn finite(field: Field, value: f64) -> Result<(), CoarseRefusal> {
+        if value.is_finite() {
+            Ok(())
+        } else {
+            Err(refuse(field, Rule::NotFinite))
+        }
+    }
+
     fn state_allows_motion(state: CoarseState) -> Result<(), CoarseRefusal> {
         match state {
             CoarseState::Idle | CoarseState::Moving | CoarseState::Jogging => Ok(()),
@@ -252,12 +260,14 @@ impl CoarseLimits {
         velocity_mm_s: f64,
         acceleration_mm_s2: f64,
     ) -> Result<CoarseCommand, CoarseRefusal> {
+        // A value that is no number is the request's fault whatever the axis's state: named
+        // first, before "not homed" or "busy".
+        Self::finite(Field::CoarseTarget, target_mm)?;
+        Self::finite(Field::CoarseVelocity, velocity_mm_s)?;
+        Self::finite(Field::CoarseAcceleration, acceleration_mm_s2)?;
         Self::state_allows_motion(status.state)?;
         let (lo, hi) = self.travel_pm;
         let (lo_mm, hi_mm) = (lo as f64 / 1e9, hi as f64 / 1e9);
-        if !target_mm.is_finite() {
-            return Err(refuse(Field::CoarseTarget, Rule::NotFinite));
-        }
         if target_mm < lo_mm {
             return Err(refuse(Field::CoarseTarget, Rule::AtLeast(lo_mm)));
         }
@@ -296,6 +306,7 @@ impl CoarseLimits {
         status: &CoarseStatus,
         velocity_mm_s: f64,
     ) -> Result<CoarseCommand, CoarseRefusal> {
+        Self::finite(Field::CoarseVelocity, velocity_mm_s)?;
         Self::state_allows_motion(status.state)?;
         let velocity = self.speed(
             Field::CoarseVelocity,
@@ -880,6 +891,19 @@ mod tests {
         assert_eq!(
             check_move(&sup, 0.0),
             Err(refuse(Field::CoarseAxis, Rule::NotHomed))
+        );
+        // A value that is no number is named first, before the axis's state.
+        assert_eq!(
+            check_move(&sup, f64::NAN),
+            Err(refuse(Field::CoarseTarget, Rule::NotFinite))
+        );
+        assert_eq!(
+            sup.limits().check_move(&sup.status(), 0.0, f64::NAN, 200.0),
+            Err(refuse(Field::CoarseVelocity, Rule::NotFinite))
+        );
+        assert_eq!(
+            sup.limits().check_jog(&sup.status(), f64::INFINITY),
+            Err(refuse(Field::CoarseVelocity, Rule::NotFinite))
         );
         home(&mut sup, &mut a);
         let s = sup.status();

@@ -19,7 +19,7 @@ use super::trigger_pins::TriggerPins;
 use super::watchdog::Watchdog;
 
 /// The CCM part of the recorder's buffer: 32 768 slots, the whole 64 KiB of CCM RAM.
-pub const HALF_SLOTS: usize = 32 * 1024;
+pub const HALF_SLOTS: usize = crate::recorder::CCM_SLOTS;
 
 /// The SRAM part of the recorder's buffer: 19 456 slots, 38 KiB (the rest of
 /// [`CAPTURE_SLOTS`]), so that with the learning's tables, telemetry's queue and the scan
