@@ -507,8 +507,9 @@ impl<S: RecordStorage> CommandHandler<S> {
                 decimation,
             } => {
                 telemetry::check_request(signals, decimation, rate).map_err(NackReason::Refused)?;
+                let wake = telemetry::frame_target(signals, decimation, rate) as u16;
                 let first = control
-                    .lock(|c| c.start_telemetry(signals, decimation))
+                    .lock(|c| c.start_telemetry(signals, decimation, wake))
                     .ok_or(refused(Field::TelemetrySignals, Rule::AtMost(127.0)))?;
                 self.telemetry.start(signals, decimation, first, rate);
             }

@@ -354,15 +354,21 @@ where
 
     /// Telemetry's part of a tick, right after [`ControlLoop::tick`] (same interrupt): on a
     /// sample tick, that tick's signals onto the telemetry queue (or counted as an overflow).
+    /// Returns whether to wake the packer (the queue reached a frame's worth, or overflowed).
     /// O(1); see [`TelemetryTap::push`].
     #[inline(always)]
-    pub fn tap_telemetry<const N: usize>(&mut self, queue: &mut Producer<'_, TelemetrySample, N>) {
-        self.telemetry.push(queue, &self.signals);
+    pub fn tap_telemetry<const N: usize>(
+        &mut self,
+        queue: &mut Producer<'_, TelemetrySample, N>,
+    ) -> bool {
+        self.telemetry.push(queue, &self.signals)
     }
 
     /// Starts telemetry of `mask` every `decimation` ticks (see [`TelemetryTap::start`]);
-    /// the index of its first sample, or `None` for a bad mask or decimation.
-    pub fn start_telemetry(&mut self, mask: u8, decimation: u16) -> Option<u32> {
+    /// the index of its first sample, or `None` for a bad mask or decimation. The tap wakes
+    /// the packer at `wake` queued samples (a frame's worth, [`crate::telemetry::frame_target`]).
+    pub fn start_telemetry(&mut self, mask: u8, decimation: u16, wake: u16) -> Option<u32> {
+        self.telemetry.wake_at(wake);
         self.telemetry.start(mask, decimation)
     }
 

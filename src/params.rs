@@ -583,11 +583,11 @@ impl CanonicalPi {
             // The physical parameters were checked finite (`PiParams::validate`): an infinite
             // or NaN value here is a finite one that overflowed on the way (scaled, or `a0`
             // folded in), so it is beyond fixed point like any other too large, not "not
-            // finite" for the whole model. `!(x <= max)` is true for NaN too.
-            if !(r <= MAX_NORM_THRESHOLD) {
+            // finite" for the whole model.
+            if !r.is_finite() || r > MAX_NORM_THRESHOLD {
                 return Err(ParamError::ThresholdOutOfRange { operator: i + 1 });
             }
-            if !(w.abs() <= MAX_NORM_WEIGHT) {
+            if !w.is_finite() || w.abs() > MAX_NORM_WEIGHT {
                 return Err(ParamError::WeightOutOfRange { operator: i + 1 });
             }
             sum += w.abs();

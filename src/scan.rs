@@ -684,7 +684,10 @@ impl ScanGenerator {
                     self.x = self.start_x;
                     self.phase = Phase::Pattern;
                 } else {
-                    self.x = (self.x as i64 + d.clamp(-s, s)) as i32;
+                    // |d| > s: a full step toward the start. (Not `d.clamp(-s, s)`, whose
+                    // check of its bounds links a panic path into the tick.)
+                    let step = if d > 0 { s } else { -s };
+                    self.x = (self.x as i64 + step) as i32;
                 }
                 ScanSample {
                     x: self.x,

@@ -109,6 +109,11 @@ pub struct TelemetryTap {
     /// The next sample's index (never reset: samples of an earlier start stay before it).
     next: u32,
     overflows: u32,
+    /// Samples between two wakes of the packer: the samples a frame waits for
+    /// ([`frame_target`]).
+    wake: u16,
+    /// Samples queued since the last wake.
+    since_wake: u16,
 }
 
 impl TelemetryTap {
@@ -129,7 +134,18 @@ impl TelemetryTap {
             countdown: 0,
             next: 0,
             overflows: 0,
+            wake: 1,
+            since_wake: 0,
         }
+    }
+
+    /// Wakes the packer every `samples` samples queued (at least 1): what a frame waits for
+    /// ([`frame_target`]), so that the packer runs once a frame, not once a tick. A packer
+    /// that keeps up empties the queue each time, so this is the queue's fill level at which
+    /// a frame is due; one that falls behind is woken again a frame later, whatever it left.
+    pub fn wake_at(&mut self, samples: u16) {
+        self.wake = samples.max(1);
+        self.since_wake = 0;
     }
 
     /// Takes the signals of `mask` from the next tick on, one sample every `decimation`
@@ -164,30 +180,38 @@ impl TelemetryTap {
     }
 
     /// One tick: on a sample tick, the tick's `signals` onto `queue` (all seven: the packer
-    /// takes the mask's), or counted as an overflow if it is full. O(1), no branch per
-    /// signal, no panic path.
+    /// takes the mask's), or counted as an overflow if it is full. Returns whether to wake
+    /// the packer: a frame's worth queued since the last wake ([`TelemetryTap::wake_at`]), or
+    /// a sample the full queue dropped. O(1), no branch per signal, no panic path.
     #[inline(always)]
     pub fn push<const N: usize>(
         &mut self,
         queue: &mut Producer<'_, TelemetrySample, N>,
         signals: &TickSignals,
-    ) {
+    ) -> bool {
         if !self.enabled {
-            return;
+            return false;
         }
         if self.countdown > 0 {
             self.countdown -= 1;
-            return;
+            return false;
         }
         self.countdown = self.reload;
         let sample = TelemetrySample {
             index: self.next,
             values: signals.0,
         };
+        self.next = self.next.wrapping_add(1);
         if queue.enqueue(sample).is_err() {
             self.overflows = self.overflows.wrapping_add(1);
+            return true;
         }
-        self.next = self.next.wrapping_add(1);
+        self.since_wake += 1;
+        let wake = self.since_wake >= self.wake;
+        if wake {
+            self.since_wake = 0;
+        }
+        wake
     }
 }
 
@@ -224,6 +248,23 @@ pub fn check_request(signals: u8, decimation: u16, tick_rate_hz: u32) -> Result<
         ));
     }
     Ok(())
+}
+
+/// Samples a telemetry frame of `mask` waits for at `decimation` and `tick_rate_hz`:
+/// [`FRAME_LATENCY_S`]'s worth, at least 1 and at most a full frame. The packer makes a frame
+/// at this fill level, and the tap wakes it there ([`TelemetryTap::wake_at`]).
+///
+/// ```
+/// use twinstack::telemetry::frame_target;
+/// assert_eq!(frame_target(0b11, 5, 50_000), 50); // 10 kHz: 5 ms is 50 samples
+/// assert_eq!(frame_target(0b11_1111, 6, 50_000), 20); // a full frame: 120 values
+/// ```
+pub fn frame_target(mask: u8, decimation: u16, tick_rate_hz: u32) -> usize {
+    let per_sample = (mask.count_ones() as usize).max(1);
+    let capacity = (MAX_TELEMETRY_VALUES / per_sample).max(1);
+    let samples_per_s = tick_rate_hz as f64 / decimation.max(1) as f64;
+    let target = (samples_per_s * FRAME_LATENCY_S) as usize;
+    target.clamp(1, capacity)
 }
 
 /// The packer's side: turns queued samples into frames (see the module doc). Runs off the
@@ -285,8 +326,7 @@ impl TelemetryPacker {
     pub fn start(&mut self, mask: u8, decimation: u16, first: u32, tick_rate_hz: u32) {
         let per_sample = (mask.count_ones() as usize).max(1);
         let capacity = (MAX_TELEMETRY_VALUES / per_sample).max(1);
-        let samples_per_s = tick_rate_hz as f64 / decimation.max(1) as f64;
-        let target = (samples_per_s * FRAME_LATENCY_S) as usize;
+        let target = frame_target(mask, decimation, tick_rate_hz);
         *self = Self {
             running: true,
             stopping: None,
@@ -296,7 +336,7 @@ impl TelemetryPacker {
             expected: first,
             lost: 0,
             seq: 0,
-            target: target.clamp(1, capacity),
+            target,
             capacity,
         };
     }
@@ -522,6 +562,37 @@ mod tests {
             refusal(0b11_1111, 5, 50_000),
             Err((Field::TelemetryDecimation, Rule::AtLeast(6.0)))
         );
+    }
+
+    #[test]
+    fn the_tap_wakes_the_packer_at_a_frame_s_worth_not_every_sample() {
+        let mut q: Queue<TelemetrySample, 16> = Queue::new();
+        let (mut p, mut c) = q.split();
+        let mut tap = TelemetryTap::new();
+        tap.wake_at(frame_target(0b11, 2, 2_000) as u16); // 1 kHz of samples: 5 ms is 5
+        tap.start(0b11, 2).unwrap();
+        let signals = TickSignals::default();
+        let wakes: Vec<bool> = (0..20).map(|_| tap.push(&mut p, &signals)).collect();
+        // Every other tick samples; the fifth sample (tick 8) is a frame's worth.
+        let at: Vec<usize> = (0..20).filter(|&i| wakes[i]).collect();
+        assert_eq!(at, [8, 18]);
+        // Five samples on (tick 18), once more: a frame's worth, whatever the packer left.
+        assert_eq!(
+            wakes.iter().filter(|&&w| w).count(),
+            1 + usize::from(wakes[18])
+        );
+        assert!(wakes[18]);
+        for _ in 0..5 {
+            c.dequeue().unwrap();
+        }
+        let at: Vec<usize> = (0..10).filter(|_| tap.push(&mut p, &signals)).collect();
+        assert_eq!(at.len(), 1);
+        // A full queue (the packer stalled) wakes it on every sample it drops.
+        for _ in 0..40 {
+            tap.push(&mut p, &signals);
+        }
+        assert!(p.len() == 15 && tap.overflows() > 0);
+        assert!((0..2).any(|_| tap.push(&mut p, &signals)));
     }
 
     #[test]

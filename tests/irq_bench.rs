@@ -521,6 +521,22 @@ fn pc_line(code: &HashMap<u32, Insn>, pc: u32) -> u32 {
     code.get(&pc).map_or(0, |i| i.line)
 }
 
+/// No panic path is linked into the tick: nothing the SysTick handler can branch or call to,
+/// directly or through what it calls, is one of `core::panicking`'s (an `i64::clamp` in the
+/// scan's approach used to link `panic_fmt`). Static, from the image's disassembly.
+#[test]
+fn the_tick_links_no_panic_path() {
+    let elf = support::build_image(support::QEMU_IMAGES, "irq-bench", &[]);
+    let reached = support::reachable_functions(&objdump(), &elf, "SysTick");
+    assert!(reached.len() > 1, "the handler calls out: {reached:?}");
+    let panics: Vec<&String> = reached
+        .iter()
+        .filter(|f| f.contains("panic") || f.contains("unwrap_failed"))
+        .collect();
+    println!("SysTick reaches {} functions, no panic path", reached.len());
+    assert!(panics.is_empty(), "the tick reaches {panics:?}");
+}
+
 #[test]
 fn the_whole_interrupt_in_every_scenario() {
     let elf = support::build_image(support::QEMU_IMAGES, "irq-bench", &[]);

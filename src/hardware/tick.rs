@@ -59,8 +59,10 @@ pub struct ControlTick {
 }
 
 impl ControlTick {
-    /// One tick. No allocation, no panic path, no loop. Returns whether a learning period
-    /// ended (the caller pends the low-priority task that runs [`crate::learning::service`]).
+    /// One tick. No allocation, no panic path, no loop. Returns whether the low-priority
+    /// command task has work: a learning period ended ([`crate::learning::service`]), or the
+    /// telemetry queue reached a frame's worth of samples (the packer is woken by that fill
+    /// level, not after every tick). The caller pends it.
     #[inline(always)]
     pub fn run(&mut self) -> bool {
         self.timer.acknowledge();
@@ -68,13 +70,13 @@ impl ControlTick {
         self.control
             .tick(&mut self.setpoints, &mut self.adc, &mut self.dac);
         self.triggers.write(self.control.trigger_levels());
-        self.control.tap_telemetry(&mut self.telemetry);
+        let frame_due = self.control.tap_telemetry(&mut self.telemetry);
         self.watchdog.feed();
         if self.timer.next_tick_already_due() {
             self.control.count_overrun();
         }
         let learning = self.control.learning();
-        learning.is_on() && learning.bin() == 0
+        frame_due | (learning.is_on() && learning.bin() == 0)
     }
 }
 

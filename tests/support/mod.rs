@@ -325,3 +325,62 @@ pub fn stack_used(elf: &Path, ram: &[u8]) -> Result<(u32, u32), String> {
     }
     Ok((top - low, top - bottom))
 }
+
+/// The functions of `elf` reachable from symbol `root` by direct branches and calls (from
+/// `llvm-objdump -d`: each branch's target address, mapped to the function holding it),
+/// their names as the symbol table spells them (mangled). Indirect calls (`blx rN`) are not
+/// followed: the tick makes none. `objdump` is the disassembler's path.
+pub fn reachable_functions(objdump: &Path, elf: &Path, root: &str) -> Vec<String> {
+    let out = Command::new(objdump)
+        .args(["-d", "--no-show-raw-insn", "--triple=thumbv7em-none-eabihf"])
+        .arg(elf)
+        .output()
+        .expect("llvm-objdump runs");
+    assert!(out.status.success(), "llvm-objdump failed");
+    // (start address, name, branch targets), in address order.
+    let mut funcs: Vec<(u32, String, Vec<u32>)> = Vec::new();
+    for line in String::from_utf8_lossy(&out.stdout).lines() {
+        if let Some(head) = line.strip_suffix(">:") {
+            if let Some((addr, name)) = head.split_once(" <") {
+                if let Ok(a) = u32::from_str_radix(addr.trim(), 16) {
+                    funcs.push((a, name.to_string(), Vec::new()));
+                    continue;
+                }
+            }
+        }
+        let Some((_, rest)) = line.trim_start().split_once(":\t") else {
+            continue;
+        };
+        let mut parts = rest.split('\t');
+        let (Some(mnemonic), Some(operands)) = (parts.next(), parts.next()) else {
+            continue;
+        };
+        if !(mnemonic.starts_with('b') || mnemonic.starts_with("cb")) {
+            continue;
+        }
+        let Some(hex) = operands.split("0x").nth(1) else {
+            continue;
+        };
+        let hex: String = hex.chars().take_while(|c| c.is_ascii_hexdigit()).collect();
+        if let (Ok(t), Some(f)) = (u32::from_str_radix(&hex, 16), funcs.last_mut()) {
+            f.2.push(t);
+        }
+    }
+    funcs.sort_by_key(|f| f.0);
+    let holder = |t: u32| funcs.partition_point(|f| f.0 <= t).checked_sub(1);
+    let mut seen = vec![false; funcs.len()];
+    let mut todo: Vec<usize> = funcs.iter().position(|f| f.1 == root).into_iter().collect();
+    assert!(!todo.is_empty(), "{root} is not in {}", elf.display());
+    while let Some(i) = todo.pop() {
+        if std::mem::replace(&mut seen[i], true) {
+            continue;
+        }
+        todo.extend(funcs[i].2.iter().filter_map(|&t| holder(t)));
+    }
+    funcs
+        .iter()
+        .zip(seen)
+        .filter(|(_, s)| *s)
+        .map(|(f, _)| f.1.clone())
+        .collect()
+}

@@ -55,7 +55,7 @@ mod app {
     #[cfg(feature = "emulator")]
     use twinstack::param_store::ReadOnlyStorage;
     use twinstack::param_store::{self, ParamSource};
-    use twinstack::command_handler::CommandHandler;
+    use twinstack::command_handler::{CommandHandler, MAX_RESPONSE};
     #[cfg(not(feature = "emulator"))]
     use twinstack::hardware::ccm;
     use twinstack::hardware::tick::SRAM_SLOTS;
@@ -63,7 +63,6 @@ mod app {
     use twinstack::telemetry::{
         FrameLink, TelemetryQueue, TelemetrySample, TELEMETRY_QUEUE_LEN,
     };
-    use core::sync::atomic::{AtomicBool, Ordering};
 
     /// Received bytes waiting for the command handler: 5 ms at 2 Mbaud, more than the longest
     /// response the handler sends (blocking) while bytes keep arriving.
@@ -83,13 +82,9 @@ mod app {
     #[cfg(feature = "emulator")]
     type Uplink = UsartTx;
 
-    /// Attempts to hand a frame to the uplink before giving up (each one a short lock; a
-    /// buffer frees within one frame's time, under 8 ms at 2 Mbaud).
-    const SEND_ATTEMPTS: u32 = 1_000_000;
-
-    /// Telemetry runs (or has frames still to send): the idle loop then wakes the command
-    /// task after every interrupt, so the packer keeps up without a timer.
-    static TELEMETRY_ACTIVE: AtomicBool = AtomicBool::new(false);
+    /// A response frame the uplink could not take yet (both transmit buffers on the line):
+    /// the command task keeps it here and reads no further request until it has gone.
+    type Outbox = heapless::Vec<u8, MAX_RESPONSE>;
 
     /// The receive side of USART1 and the handler's byte queue.
     pub struct Receiver {
@@ -432,15 +427,13 @@ mod app {
         )
     }
 
-    /// Sleeps between interrupts; while telemetry runs, wakes the command task after each
-    /// one (the packer sends a frame when enough samples are queued).
+    /// Sleeps between interrupts. The command task is woken by what gives it work: received
+    /// bytes, a transmit buffer freed, the tick (a learning period's end, or the telemetry
+    /// queue at a frame's worth of samples) — never once per tick.
     #[idle]
     fn idle(_: idle::Context) -> ! {
         loop {
             cortex_m::asm::wfi();
-            if TELEMETRY_ACTIVE.load(Ordering::Relaxed) {
-                rtic::pend(Interrupt::EXTI0);
-            }
         }
     }
 
@@ -450,7 +443,7 @@ mod app {
     #[task(binds = TIM2, priority = 3, shared = [tick])]
     fn tim2_tick(mut cx: tim2_tick::Context) {
         if cx.shared.tick.lock(|t| t.run()) {
-            // A learning period ended: the command task takes its errors.
+            // A learning period ended, or a telemetry frame's worth is queued.
             rtic::pend(Interrupt::EXTI0);
         }
     }
@@ -461,7 +454,7 @@ mod app {
     #[task(binds = SysTick, priority = 3, shared = [tick], local = [since_coarse: u32 = 0])]
     fn systick_tick(mut cx: systick_tick::Context) {
         if cx.shared.tick.lock(|t| t.run()) {
-            // A learning period ended: the command task takes its errors.
+            // A learning period ended, or a telemetry frame's worth is queued.
             rtic::pend(Interrupt::EXTI0);
         }
         #[cfg(feature = "dual-stage")]
@@ -519,42 +512,51 @@ mod app {
 
     /// The command handler: queued bytes → frames → one response frame per request; then,
     /// while a transmit buffer is free, the telemetry frames that are due.
-    #[task(binds = EXTI0, priority = 1, shared = [tick, uplink], local = [handler, bytes_in, setpoints_in, telemetry_out])]
+    /// A response waiting in the outbox goes first; while it cannot, no request is read
+    /// (the bytes stay queued) and the task returns: the transfer-complete interrupt wakes it
+    /// again. No spinning on the uplink.
+    #[task(binds = EXTI0, priority = 1, shared = [tick, uplink], local = [handler, bytes_in, setpoints_in, telemetry_out, outbox: Outbox = Outbox::new()])]
     fn command(cx: command::Context) {
         let mut control = LoopLock(cx.shared.tick);
         let mut uplink = cx.shared.uplink;
         let local = cx.local;
-        while let Some(b) = local.bytes_in.dequeue() {
+        let mut blocked = !send(&mut uplink, local.outbox);
+        while !blocked {
+            let Some(b) = local.bytes_in.dequeue() else {
+                break;
+            };
             let Some(frame) = local.handler.push_byte(b, local.setpoints_in, &mut control) else {
                 continue;
             };
-            send(&mut uplink, frame);
+            // Frames are at most MAX_RESPONSE bytes: the outbox holds one.
+            let _ = local.outbox.extend_from_slice(frame);
+            blocked = !send(&mut uplink, local.outbox);
             let (left, right) = rtic::Mutex::lock(&mut control, |c| c.safe_codes());
             safe_state::arm(left, right);
         }
         // Telemetry fills the line between responses; at most one frame waits for it.
-        while local.handler.telemetry_due(local.telemetry_out) && uplink.lock(|u| u.ready()) {
+        while !blocked
+            && local.handler.telemetry_due(local.telemetry_out)
+            && uplink.lock(|u| u.ready())
+        {
             let Some(frame) = local.handler.pack_telemetry(local.telemetry_out) else {
                 break;
             };
-            send(&mut uplink, frame);
+            let _ = local.outbox.extend_from_slice(frame);
+            blocked = !send(&mut uplink, local.outbox);
         }
-        TELEMETRY_ACTIVE.store(
-            local.handler.telemetry_packer().is_active(),
-            Ordering::Relaxed,
-        );
         // The learning's work at a period boundary (returns at once when there is none).
         let _ = local.handler.service_learning(&mut control);
     }
 
-    /// Hands `frame` to the uplink, waiting (outside the lock, so the transfer-complete
-    /// interrupt runs) while both buffers are taken; bounded.
-    fn send(uplink: &mut impl rtic::Mutex<T = Uplink>, frame: &[u8]) {
-        for _ in 0..SEND_ATTEMPTS {
-            if uplink.lock(|u| u.send_frame(frame)) {
-                return;
-            }
+    /// Hands the outbox's frame (if any) to the uplink in one short lock and empties it;
+    /// `false`, the frame kept, while both transmit buffers are taken.
+    fn send(uplink: &mut impl rtic::Mutex<T = Uplink>, outbox: &mut Outbox) -> bool {
+        if outbox.is_empty() || uplink.lock(|u| u.send_frame(outbox)) {
+            outbox.clear();
+            true
+        } else {
+            false
         }
-        defmt::warn!("USART1 transmit timed out");
     }
 }

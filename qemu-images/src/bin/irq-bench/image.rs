@@ -470,7 +470,8 @@ mod app {
         // sample; the handler would refuse this rate for the 2 Mbaud line, but the tick's
         // cost per sample is what is measured), packed into frames here between ticks.
         let mut packer = TelemetryPacker::new();
-        let Some(first) = rtic::Mutex::lock(&mut lock, |c| c.start_telemetry(0b111_1111, 1)) else {
+        let Some(first) = rtic::Mutex::lock(&mut lock, |c| c.start_telemetry(0b111_1111, 1, 1))
+        else {
             panic!("telemetry refused");
         };
         packer.start(0b111_1111, 1, first, RATE_HZ);
