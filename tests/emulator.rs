@@ -1112,3 +1112,18 @@ fn the_board_answers_the_fuzzer_s_findings_as_the_host_build_does() {
     );
     assert!(matches!(emu.request(&record(cap)), Response::Ack { .. }));
 }
+
+/// The firmware's own tick binding (the emulator image's SysTick handler) reaches no panic
+/// path: nothing it can branch or call to, directly or through what it calls, is one of
+/// `core::panicking`'s. Static, from the image's disassembly.
+#[test]
+fn the_firmware_tick_links_no_panic_path() {
+    let elf = support::build_image(support::FIRMWARE, "twinstack-emu", &["emulator"]);
+    let reached = support::reachable_functions(&support::objdump(), &elf, "SysTick");
+    assert!(reached.len() > 1, "the handler calls out: {reached:?}");
+    let panics: Vec<&String> = reached
+        .iter()
+        .filter(|f| f.contains("panic") || f.contains("unwrap_failed"))
+        .collect();
+    assert!(panics.is_empty(), "the tick reaches {panics:?}");
+}

@@ -162,35 +162,7 @@ fn rebase_lines() -> Vec<std::ops::RangeInclusive<u32>> {
 }
 
 fn objdump() -> PathBuf {
-    if Command::new("llvm-objdump")
-        .arg("--version")
-        .output()
-        .is_ok()
-    {
-        return PathBuf::from("llvm-objdump");
-    }
-    let sysroot = Command::new("rustc")
-        .args(["--print", "sysroot"])
-        .output()
-        .expect("rustc runs");
-    let sysroot = String::from_utf8_lossy(&sysroot.stdout).trim().to_string();
-    let host = Command::new("rustc")
-        .arg("-vV")
-        .output()
-        .expect("rustc runs");
-    let host = String::from_utf8_lossy(&host.stdout)
-        .lines()
-        .find_map(|l| l.strip_prefix("host: ").map(str::to_string))
-        .expect("rustc -vV names the host");
-    let p = Path::new(&sysroot)
-        .join("lib/rustlib")
-        .join(host)
-        .join("bin/llvm-objdump");
-    assert!(
-        p.is_file(),
-        "llvm-objdump is missing: run `cargo xtask setup` (it adds rustup's llvm-tools)"
-    );
-    p
+    support::objdump()
 }
 
 /// Every instruction of the image by address.

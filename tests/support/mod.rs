@@ -348,10 +348,11 @@ pub fn reachable_functions(objdump: &Path, elf: &Path, root: &str) -> Vec<String
                 }
             }
         }
-        let Some((_, rest)) = line.trim_start().split_once(":\t") else {
+        // `80007a0:      \tbl\t0x8001234 <…>`: address, colon, spaces, then tab-separated.
+        let Some((_, rest)) = line.trim_start().split_once(':') else {
             continue;
         };
-        let mut parts = rest.split('\t');
+        let mut parts = rest.split('\t').map(str::trim).filter(|p| !p.is_empty());
         let (Some(mnemonic), Some(operands)) = (parts.next(), parts.next()) else {
             continue;
         };
@@ -383,4 +384,37 @@ pub fn reachable_functions(objdump: &Path, elf: &Path, root: &str) -> Vec<String
         .filter(|(_, s)| *s)
         .map(|(f, _)| f.1.clone())
         .collect()
+}
+
+/// `llvm-objdump`: on the path, or rustup's llvm-tools in the toolchain's sysroot.
+pub fn objdump() -> PathBuf {
+    if Command::new("llvm-objdump")
+        .arg("--version")
+        .output()
+        .is_ok()
+    {
+        return PathBuf::from("llvm-objdump");
+    }
+    let sysroot = Command::new("rustc")
+        .args(["--print", "sysroot"])
+        .output()
+        .expect("rustc runs");
+    let sysroot = String::from_utf8_lossy(&sysroot.stdout).trim().to_string();
+    let host = Command::new("rustc")
+        .arg("-vV")
+        .output()
+        .expect("rustc runs");
+    let host = String::from_utf8_lossy(&host.stdout)
+        .lines()
+        .find_map(|l| l.strip_prefix("host: ").map(str::to_string))
+        .expect("rustc -vV names the host");
+    let p = Path::new(&sysroot)
+        .join("lib/rustlib")
+        .join(host)
+        .join("bin/llvm-objdump");
+    assert!(
+        p.is_file(),
+        "llvm-objdump is missing: run `cargo xtask setup` (it adds rustup's llvm-tools)"
+    );
+    p
 }
