@@ -60,12 +60,12 @@ pub struct FeedbackSettings {
 
 impl FeedbackSettings {
     /// The feedback the tools ship as a default (the simulated and virtual boards' settings,
-    /// `hal-sim load --kp/--ki` on a board without feedback): integral only, 1000 /s, within
+    /// `twinstack load --kp/--ki` on a board without feedback): integral only, 1000 /s, within
     /// ±10 % of the drive range, no notch. Stable with at least 45° and 6 dB of margin at
     /// every control rate the board allows (10–100 kHz), whatever the delay does to the
     /// resonance's phase: its gain at a resonance 30 times the stage's DC gain is under
     /// −14 dB. A notch cannot be a default: below 2.04 × the resonance the rate has no room
-    /// for it. Slow (about 140 Hz closed-loop bandwidth on the paper's stage): `hal-sim tune`
+    /// for it. Slow (about 140 Hz closed-loop bandwidth on the paper's stage): `twinstack tune`
     /// measures the stage and chooses faster gains for its rate.
     ///
     /// ```

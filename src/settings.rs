@@ -84,7 +84,7 @@ pub struct Settings {
     /// Input shaping: a notch on the feedforward (the compensator's output plus the learned
     /// correction), at the stage's resonance, so that the drive does not excite it: the
     /// tick runs it before the range and slew limits in every mode but bypass. Designed at the
-    /// control rate ([`NotchDesign::coefficients`]); `hal-sim tune` measures the resonance.
+    /// control rate ([`NotchDesign::coefficients`]); `twinstack tune` measures the resonance.
     /// `None` (and absent from older parameter files): no shaping.
     #[serde(default)]
     pub shaping: Option<NotchDesign>,

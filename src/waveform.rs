@@ -3,7 +3,7 @@
 //!
 //! **Decay** ([`WaveformGenerator::with_decay`]): the amplitude may shrink by a constant factor
 //! per cycle after a number of full-amplitude cycles — full-range cycles, then nested minor
-//! loops about the offset, the excitation `hal-sim calibrate` identifies a stage from. The
+//! loops about the offset, the excitation `twinstack calibrate` identifies a stage from. The
 //! factor is Q0.16 (`keep / 65536`, below 1 by construction) and is applied where the phase
 //! wraps, i.e. where both shapes cross the offset, so the output stays continuous. Integer
 //! arithmetic only (one multiply and shift per cycle), so the board and the host generate the

@@ -40,7 +40,7 @@ const HELD_OFF_INSTRUCTIONS: u64 = 290;
 /// Most instructions the learning feedforward, on, adds to a configuration's worst tick (its
 /// table read, its error store and, at a period's end, the flips).
 const LEARNING_EXTRA: u64 = 120;
-/// The configuration of the model family measured on its own: what `hal-sim calibrate`
+/// The configuration of the model family measured on its own: what `twinstack calibrate`
 /// loads by default where the generalised P–I wins, as on the simulated lab stage (N = 17,
 /// 8 dead zones, as compensator and observer, with four creep modes in series): the shape
 /// identification fits.
@@ -50,7 +50,7 @@ const FAMILY_CONFIG: &str = "inverse-gpi17x8+creep4+gpi17x8-observer+pi+drift";
 /// feedforward on (1 558 measured).
 const FAMILY_WORST_INSTRUCTIONS: u64 = 1575;
 /// The configurations [`WORST_INSTRUCTIONS`] bounds: the P–I and Duhem ones (P–I 16, the
-/// reference configuration of the tick's cost, and P–I 17, what `hal-sim calibrate --model pi` loads
+/// reference configuration of the tick's cost, and P–I 17, what `twinstack calibrate --model pi` loads
 /// by default).
 const SHIPPED_CONFIGS: [&str; 3] = [
     "inverse-pi16+pi16-observer+pi+drift",

@@ -5,7 +5,7 @@
 //! board) and a few thousand ticks of inputs ([`TickInput`]: the setpoint or an underrun, the
 //! sensor ADC code or a failed read, a failed DAC write) with the outputs the host's tick
 //! produced from them ([`TickOutput`]: both DAC codes, the observer's estimate, the applied
-//! drive, the flags). `hal-sim golden --write` generates them; the replay image
+//! drive, the flags). `twinstack golden --write` generates them; the replay image
 //! (`src/bin/golden-replay.rs`) runs [`replay`] on the Cortex-M4 in QEMU, and the host test
 //! runs the same [`replay`] on x86: both must give the stored outputs exactly.
 //!

@@ -14,7 +14,7 @@ pub const PORT_ENV: &str = "TWINSTACK_PORT";
 #[derive(Debug, clap::Args)]
 pub struct PortArgs {
     /// Serial device or pty (/dev/ttyUSB0, COM3, /dev/pts/3), unix:SOCKET or tcp:HOST:PORT
-    /// (QEMU's UART, `hal-sim virtual-board`), or `sim` for the simulated board in-process.
+    /// (QEMU's UART, `twinstack virtual-board`), or `sim` for the simulated board in-process.
     /// Without it, the environment variable TWINSTACK_PORT; with neither, the error lists the
     /// serial ports found.
     #[arg(long, env = PORT_ENV, hide_env_values = true)]

@@ -1,4 +1,4 @@
-//! One-command calibration (`hal-sim calibrate`): excite the stage with the board's own
+//! One-command calibration (`twinstack calibrate`): excite the stage with the board's own
 //! waveform generator, record drive and sensor with the board's recorder, identify the best
 //! model, load it (and store it), then verify it by tracking a test trajectory before and
 //! after compensation — over any [`Transport`], so the same function serves the command line,
@@ -61,7 +61,7 @@ use twinstack::protocol::messages::{
 use twinstack::recorder::Channel;
 use twinstack::settings::Settings;
 
-/// How a calibration runs. [`CalibrateOptions::default`] is what `hal-sim calibrate` runs.
+/// How a calibration runs. [`CalibrateOptions::default`] is what `twinstack calibrate` runs.
 #[derive(Clone, Debug, PartialEq)]
 pub struct CalibrateOptions {
     /// Frequency of the excitation, Hz.

@@ -436,7 +436,7 @@ pub fn step(
     Ok(row)
 }
 
-/// [`step`] with the feedback `feedback` (e.g. what `hal-sim tune` chose); the row's `notch`
+/// [`step`] with the feedback `feedback` (e.g. what `twinstack tune` chose); the row's `notch`
 /// says whether it has one.
 pub fn step_with(
     rate: f64,

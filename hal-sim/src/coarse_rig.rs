@@ -1,7 +1,7 @@
 //! The dual-stage board in simulation: [`CoarseRig`] is the coarse axis of a [`SimDevice`] —
 //! the library's [`CoarseSupervisor`] (the firmware's coarse task) on the simulated ball screw
 //! with its emulated step/dir output, encoders and switches, and fault injection — so that
-//! `hal-sim coarse … --port sim` and the virtual board drive the same code as the board, over
+//! `twinstack coarse … --port sim` and the virtual board drive the same code as the board, over
 //! the same command handler.
 //!
 //! Each control tick the device runs [`CoarseRig::before_tick`] (every `fine_ticks` ticks: the

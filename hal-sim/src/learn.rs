@@ -147,7 +147,7 @@ impl LearnOptions {
     }
 
     /// The defaults for `motion` with input shaping ([`shaped`]: the notch
-    /// [`shaping_for`] places on the resonance `hal-sim tune` fits on this stage, 21 807 Hz,
+    /// [`shaping_for`] places on the resonance `twinstack tune` fits on this stage, 21 807 Hz,
     /// ζ = 0.01729) and the learning's corner raised to 23 kHz, above the resonance: the shaped
     /// stage no longer rings there, and the learning then removes what is left in that band
     /// too (chosen by a sweep of Q 0.3–0.7 × corner 20–24.5 kHz × gain 0.3, 0.5: gain 0.5

@@ -1,4 +1,4 @@
-//! `hal-sim learn --port P`: learning feedforward on a board (the simulated one, a virtual
+//! `twinstack learn --port P`: learning feedforward on a board (the simulated one, a virtual
 //! board, the emulator or a real one) over the protocol (`Request::Learn`, v6). The board
 //! learns from its own sensor; the host only configures, switches and reads.
 //!
@@ -9,7 +9,7 @@
 //!    each period's error as its sensor sees it).
 //! 3. **Learning** for `periods` periods: each period's error as the board's task saw it.
 //! 4. **Frozen replay**: the table plays without updating; the sensor is read only for the
-//!    report. (The in-process study, `hal-sim learn` without a port, replays with the sensor
+//!    report. (The in-process study, `twinstack learn` without a port, replays with the sensor
 //!    removed from the settings.)
 //! 5. The table is read back and written to `learn-table-<waveform>.json` beside the figure.
 //!

@@ -25,11 +25,11 @@
 //!   end to end; [`coarse_rig`] — the same stage as a board on the wire (a [`sim_device::SimDevice`]
 //!   whose coarse axis runs the library's supervisor, with fault injection).
 //! * [`tracking`] — open-loop tracking on [`plant::lab_stage`], a stage outside the model
-//!   family: excite, identify, compensate, score (`hal-sim lab-stage`).
+//!   family: excite, identify, compensate, score (`twinstack lab-stage`).
 //! * [`virtual_board`] — a [`sim_device::SimDevice`] served over TCP in real time, keeping its
-//!   state from one client to the next (`hal-sim virtual-board`).
+//!   state from one client to the next (`twinstack virtual-board`).
 //! * [`calibrate`] — one-command calibration over the board link: excite with the board's
-//!   waveform generator, record, identify, load, store, verify (`hal-sim calibrate`).
+//!   waveform generator, record, identify, load, store, verify (`twinstack calibrate`).
 //! * [`session`] — what the board commands and the Python package share: the settings a load
 //!   sends and its checks, waveform and capture requests, the status as JSON.
 //! * [`cli`] — the `hal-sim` subcommands.

@@ -1,11 +1,12 @@
-//! `hal-sim`: the PC-side tools of the twinstack board (see `hal-sim --help`).
+//! `twinstack`, the command-line tool of the twinstack board (see `twinstack --help`): the
+//! binary of the `hal-sim` package.
 
 use clap::{Parser, Subcommand};
 use hal_sim::cli;
 
 /// Host tools for the twinstack piezo front-end.
 #[derive(Debug, Parser)]
-#[command(name = "hal-sim", version, about, after_help = cli::EXIT_CODES)]
+#[command(name = "twinstack", version, about, after_help = cli::EXIT_CODES)]
 struct Cli {
     #[command(subcommand)]
     command: Command,
@@ -87,7 +88,7 @@ enum Command {
 }
 
 fn main() -> std::process::ExitCode {
-    // Rust ignores SIGPIPE, so printing into a closed pipe (`hal-sim identify … | head`)
+    // Rust ignores SIGPIPE, so printing into a closed pipe (`twinstack identify … | head`)
     // panics; a command-line tool should just stop, as `cat` does.
     #[cfg(unix)]
     // SAFETY: called first thing in main, before any other thread exists; SIG_DFL is a
@@ -114,7 +115,7 @@ fn main() -> std::process::ExitCode {
                 .take_while(|l| !l.trim().is_empty())
                 .map(str::trim)
                 .collect();
-            eprintln!("{} (see hal-sim --help)", first.join(" "));
+            eprintln!("{} (see twinstack --help)", first.join(" "));
             return std::process::ExitCode::from(cli::EXIT_USAGE);
         }
     };
@@ -152,7 +153,7 @@ fn main() -> std::process::ExitCode {
             std::process::ExitCode::from(cli::stream::EXIT_UNDERRUN)
         }
         Err(e) if e.downcast_ref::<cli::board_link::UsageError>().is_some() => {
-            eprintln!("error: {e} (see hal-sim --help)");
+            eprintln!("error: {e} (see twinstack --help)");
             std::process::ExitCode::from(cli::EXIT_USAGE)
         }
         Err(e) => {

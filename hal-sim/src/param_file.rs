@@ -143,7 +143,7 @@ pub enum ParamFileError {
         found: String,
     },
     /// A version this build does not know.
-    #[error("{}: `version` is {found}, this hal-sim reads version {VERSION} only", path.display())]
+    #[error("{}: `version` is {found}, this twinstack reads version {VERSION} only", path.display())]
     Version {
         /// The file.
         path: PathBuf,

@@ -463,7 +463,7 @@ pub fn analyse(
     ))
 }
 
-/// The figures as the table `hal-sim scan` prints.
+/// The figures as the table `twinstack scan` prints.
 pub fn table(f: &ScanFigures) -> String {
     let mut out = String::new();
     let row = |out: &mut String, k: &str, v: String| out.push_str(&format!("{k:<28} {v}\n"));

@@ -1,4 +1,4 @@
-//! The setpoint CSV that `hal-sim stream` sends to the board.
+//! The setpoint CSV that `twinstack stream` sends to the board.
 //!
 //! Format: any `#` comment lines and blank lines, then a header naming the setpoint column,
 //! then one setpoint per line (other columns are ignored):

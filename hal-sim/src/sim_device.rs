@@ -99,7 +99,7 @@ impl SimDeviceConfig {
     /// representative 8-operator P–I model (total slope ≈ 0.4 µm/V) as compensator and
     /// observer (not identified: load
     /// the identification's settings for accuracy), and the shipped default feedback
-    /// ([`FeedbackSettings::DEFAULT`], stable at every allowed rate; `hal-sim tune` chooses
+    /// ([`FeedbackSettings::DEFAULT`], stable at every allowed rate; `twinstack tune` chooses
     /// faster gains).
     pub fn paper_settings(mode: Mode) -> Settings {
         let n = 8;

@@ -16,7 +16,7 @@
 //!    trajectory's start ([`Trajectory::with_lead_in`]); the error is the reading minus the
 //!    desired displacement, in % of the trajectory's span ([`TrackingScore`]).
 //!
-//! [`evaluate`] runs all of it and returns the table (`hal-sim lab-stage`).
+//! [`evaluate`] runs all of it and returns the table (`twinstack lab-stage`).
 //!
 //! **Sample rate.** [`SAMPLE_RATE_HZ`] = 10 kHz: 1 000 samples per 10 Hz cycle (the drive
 //! moves at most 0.5 V between samples, far finer than the P–I thresholds), above twice the
@@ -391,7 +391,7 @@ impl TrackingTable {
 /// A stage other than the default: a name and the fields ([`LabStageConfig::set`]) it changes.
 pub type StageVariant = (&'static str, &'static [(&'static str, f64)]);
 
-/// The stages `hal-sim lab-stage --variants` tracks on besides the default: each
+/// The stages `twinstack lab-stage --variants` tracks on besides the default: each
 /// non-ideality of the default stage made stronger, weaker or turned around, and two
 /// combinations. The default stage is what the family was tuned on; these say how far that
 /// carries to a stage it was not (see the book, results/lab-stage.md, "Other stages").

@@ -5,7 +5,7 @@
 //! Unlike `--port sim` (a fresh board for every command), the board outlives its clients: one
 //! client at a time talks to it; when that client disconnects the board keeps running with its
 //! state (settings loaded, stream position, recorder) and the next client finds it as the last
-//! one left it. So `hal-sim load`, `hal-sim stream`, `hal-sim record` can rehearse a workflow on
+//! one left it. So `twinstack load`, `twinstack stream`, `twinstack record` can rehearse a workflow on
 //! one board, as they would on the real one.
 //!
 //! **Pacing.** Each turn of the loop forwards what the client sent to the device's UART, runs
@@ -103,7 +103,7 @@ pub fn serve_device<D: AnalogDualDac, A: AnalogSensorAdc>(
             match listener.accept() {
                 Ok((stream, _)) => {
                     // The client may have left without the server noticing yet (`hal-sim
-                    // load` then at once `hal-sim stream`): check before refusing.
+                    // load` then at once `twinstack stream`): check before refusing.
                     if client.as_ref().is_some_and(|c| !is_open(c)) {
                         client = None;
                     }

@@ -15,10 +15,10 @@ use support::fake_board::FakeBoard;
 mod support;
 
 fn hal_sim(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_hal-sim"))
+    Command::new(env!("CARGO_BIN_EXE_twinstack"))
         .args(args)
         .output()
-        .expect("hal-sim runs")
+        .expect("twinstack runs")
 }
 
 fn text(o: &Output) -> (String, String) {
@@ -152,7 +152,7 @@ fn status_and_stream_over_a_pty() {
 
 /// A board that plays far faster than the pty can feed it: the stream completes (every
 /// setpoint played, in order) but its queue runs dry on the way, and the exit code says so
-/// (3, not 0), as `hal-sim stream --help` documents.
+/// (3, not 0), as `twinstack stream --help` documents.
 #[test]
 fn a_stream_that_underran_exits_with_code_3() {
     // 2 MHz ticks with room for 100 setpoints: 50 µs of buffer, far less than a round trip.
@@ -239,7 +239,7 @@ fn bad_ports_and_baud_rates_are_told_apart() {
 #[test]
 fn a_busy_port_is_refused() {
     let pty = PtyBoard::start(FakeBoard::new(300, 50_000.0));
-    // Another program holds the port (exclusively, as hal-sim opens it).
+    // Another program holds the port (exclusively, as twinstack opens it).
     let _holder =
         hal_sim::link::serial::SerialTransport::open(&pty.path, 115_200).expect("first open");
     refused(

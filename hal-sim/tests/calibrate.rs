@@ -1,4 +1,4 @@
-//! `hal-sim calibrate`: the whole lab workflow against the virtual board run as a
+//! `twinstack calibrate`: the whole lab workflow against the virtual board run as a
 //! process (calibrate → stream a 100-sample file → record the streamed run with four signals →
 //! read the parameters back), with the virtual stage's tracking error below 1 % max after
 //! calibration; and each way a calibration can fail, on the in-process board, with the error
@@ -18,11 +18,11 @@ use twinstack::settings::{Mode, Settings};
 mod virtual_board_process;
 
 fn hal_sim(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_hal-sim"))
+    Command::new(env!("CARGO_BIN_EXE_twinstack"))
         .env_remove("TWINSTACK_PORT")
         .args(args)
         .output()
-        .expect("hal-sim runs")
+        .expect("twinstack runs")
 }
 
 fn ok(o: Output) -> String {
@@ -36,7 +36,7 @@ fn ok(o: Output) -> String {
     out
 }
 
-/// `hal-sim virtual-board` as fast as it runs; returns it and its `--port`.
+/// `twinstack virtual-board` as fast as it runs; returns it and its `--port`.
 fn start_virtual_board() -> (virtual_board_process::VirtualBoard, String) {
     virtual_board_process::start(&["--speed", "0"])
 }

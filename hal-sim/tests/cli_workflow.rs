@@ -10,14 +10,14 @@ use std::process::{Command, Output, Stdio};
 use std::time::{Duration, Instant};
 
 fn hal_sim() -> Command {
-    let mut c = Command::new(env!("CARGO_BIN_EXE_hal-sim"));
+    let mut c = Command::new(env!("CARGO_BIN_EXE_twinstack"));
     // Tests choose their own port.
     c.env_remove("TWINSTACK_PORT");
     c
 }
 
 fn run(args: &[&str]) -> Output {
-    hal_sim().args(args).output().expect("hal-sim runs")
+    hal_sim().args(args).output().expect("twinstack runs")
 }
 
 fn text(o: &Output) -> (String, String) {
@@ -284,7 +284,7 @@ fn an_ordinary_user_can_open_the_virtual_boards_pty_again_and_again() {
         let mut c = if root {
             let mut c = Command::new("setpriv");
             c.args(["--reuid=65534", "--regid=65534", "--clear-groups"])
-                .arg(env!("CARGO_BIN_EXE_hal-sim"));
+                .arg(env!("CARGO_BIN_EXE_twinstack"));
             c
         } else {
             hal_sim()
@@ -428,9 +428,13 @@ fn ki_has_one_unit_in_the_user_docs() {
 fn the_readme_says_how_to_install_the_tool() {
     let readme = repo_file("README.md");
     assert!(readme.contains("cargo install --path hal-sim"), "README");
+    // What it installs is the `twinstack` command, and that is the name it answers to.
+    assert!(readme.contains("twinstack --help"), "README");
+    let (out, _) = text(&run(&["--help"]));
+    assert!(out.contains("Usage: twinstack "), "{out}");
 }
 
-/// `hal-sim identify … | head -1`: the reader goes away after one line; the tool stops
+/// `twinstack identify … | head -1`: the reader goes away after one line; the tool stops
 /// quietly (SIGPIPE), it does not panic on the closed pipe.
 #[cfg(unix)]
 #[test]

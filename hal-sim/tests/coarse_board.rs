@@ -243,10 +243,10 @@ fn a_limit_switch_mid_move_stops_the_axis_and_the_piezo_holds() {
 #[test]
 fn hal_sim_coarse_drives_the_simulated_board() {
     let run = |args: &[&str]| {
-        let o = std::process::Command::new(env!("CARGO_BIN_EXE_hal-sim"))
+        let o = std::process::Command::new(env!("CARGO_BIN_EXE_twinstack"))
             .args(args)
             .output()
-            .expect("hal-sim runs");
+            .expect("twinstack runs");
         (
             o.status.code(),
             String::from_utf8_lossy(&o.stdout).to_string() + &String::from_utf8_lossy(&o.stderr),

@@ -202,7 +202,7 @@ fn setpoint_files_read_the_same_in_every_variant() {
     assert_eq!(e, "sp.csv:3: column `setpoint`: `zero` is not a number");
 }
 
-/// `hal-sim predict --columns` on a tab-separated export with a BOM writes what the plain
+/// `twinstack predict --columns` on a tab-separated export with a BOM writes what the plain
 /// file gives; a bad `--columns` is a usage error.
 #[test]
 fn predict_reads_an_export_through_the_cli() {
@@ -238,7 +238,7 @@ fn predict_reads_an_export_through_the_cli() {
     .unwrap();
     let run = |data: &Path, out: &str, extra: &[&str]| {
         let out = dir.path().join(out);
-        let o = Command::new(env!("CARGO_BIN_EXE_hal-sim"))
+        let o = Command::new(env!("CARGO_BIN_EXE_twinstack"))
             .args(["predict", "--params"])
             .arg(&params)
             .arg("--data")

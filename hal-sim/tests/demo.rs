@@ -50,7 +50,7 @@ fn inverse_pi_cuts_the_differential_stages_tracking_error_at_least_fivefold() {
 
 #[test]
 fn demo_refuses_bad_flags_with_a_clear_error() {
-    let out = std::process::Command::new(env!("CARGO_BIN_EXE_hal-sim"))
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_twinstack"))
         .args(["demo", "--rate", "1000000", "--quiet"])
         .output()
         .unwrap();

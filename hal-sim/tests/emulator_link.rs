@@ -129,7 +129,7 @@ fn connect(qemu: &Qemu) -> Client<Box<dyn Transport>> {
     client
 }
 
-/// `hal-sim load`'s arguments with nothing overridden.
+/// `twinstack load`'s arguments with nothing overridden.
 fn load_args() -> hal_sim::cli::load::Args {
     use clap::Parser;
     #[derive(Parser)]
@@ -187,7 +187,7 @@ fn the_host_tools_drive_the_emulated_firmware_over_its_uart() {
     let path = dir.path().join("params.json");
     std::fs::write(&path, ParamFile::from_model(&model, "um", None).to_json()).unwrap();
     let (file, _) = ParamFile::load(&path).expect("the file reads back");
-    // As `hal-sim load` sends it: the file's settings, the board's sensor and gains kept.
+    // As `twinstack load` sends it: the file's settings, the board's sensor and gains kept.
     let board = client.read_params().expect("the firmware's settings");
     let set = hal_sim::cli::load::settings_for(&load_args(), &file.settings, Some(&board));
     client
@@ -300,10 +300,10 @@ fn the_host_tools_drive_the_emulated_firmware_over_its_uart() {
 
     // The command-line tool on the same UART.
     let port = format!("unix:{}", qemu.socket.display());
-    let o = std::process::Command::new(env!("CARGO_BIN_EXE_hal-sim"))
+    let o = std::process::Command::new(env!("CARGO_BIN_EXE_twinstack"))
         .args(["status", "--port", &port])
         .output()
-        .expect("hal-sim runs");
+        .expect("twinstack runs");
     let out = String::from_utf8_lossy(&o.stdout);
     assert!(
         o.status.success(),
@@ -336,11 +336,11 @@ fn the_board_image_in_qemu_is_named_in_the_no_response_error() {
 
 /// Runs the `hal-sim` binary with `args`; returns its exit code, stdout and stderr.
 fn hal_sim(args: &[&str]) -> (Option<i32>, String, String) {
-    let o = std::process::Command::new(env!("CARGO_BIN_EXE_hal-sim"))
+    let o = std::process::Command::new(env!("CARGO_BIN_EXE_twinstack"))
         .env_remove("TWINSTACK_PORT")
         .args(args)
         .output()
-        .expect("hal-sim runs");
+        .expect("twinstack runs");
     (
         o.status.code(),
         String::from_utf8_lossy(&o.stdout).into_owned(),
@@ -492,7 +492,7 @@ fn the_lab_workflow_runs_command_by_command_on_the_emulated_firmware() {
 
 /// The dual-stage emulator image (`cargo build-emu-dual`: the firmware's coarse task and
 /// supervisor on the library's model of step/dir, encoders and switches, QEMU modelling
-/// none of them): home, move, status and the refusals over the UART, then `hal-sim coarse`.
+/// none of them): home, move, status and the refusals over the UART, then `twinstack coarse`.
 #[test]
 fn the_coarse_axis_of_the_emulated_firmware_homes_and_moves_over_its_uart() {
     use twinstack::dual_stage::{CoarseState, CoarseStatus};
@@ -580,12 +580,12 @@ fn the_coarse_axis_of_the_emulated_firmware_homes_and_moves_over_its_uart() {
 
     // The command-line tool on the same UART.
     let port = format!("unix:{}", qemu.socket.display());
-    let o = std::process::Command::new(env!("CARGO_BIN_EXE_hal-sim"))
+    let o = std::process::Command::new(env!("CARGO_BIN_EXE_twinstack"))
         .args([
             "coarse", "move", "--to-mm", "-22.5", "--wait", "--port", &port,
         ])
         .output()
-        .expect("hal-sim runs");
+        .expect("twinstack runs");
     let out = String::from_utf8_lossy(&o.stdout);
     assert!(
         o.status.success(),
@@ -596,7 +596,7 @@ fn the_coarse_axis_of_the_emulated_firmware_homes_and_moves_over_its_uart() {
     assert!(out.contains("position_mm -22.5"), "{out}");
 }
 
-/// `hal-sim tune` on the emulated firmware: the whole protocol path runs (bypass, a sine from
+/// `twinstack tune` on the emulated firmware: the whole protocol path runs (bypass, a sine from
 /// the generator, a capture of drive and sensor armed on its start, read back), but QEMU's ADC
 /// does not measure a stage, so the sweep must stop at its first frequency with exit 1 saying
 /// the sensor did not move, nothing loaded and the board's mode restored.

@@ -1,4 +1,4 @@
-//! End-to-end tests of `hal-sim identify | predict | compensate`, running the real binary.
+//! End-to-end tests of `twinstack identify | predict | compensate`, running the real binary.
 //!
 //! * the measured data sets in the repository's `data/`: identify with the default settings, then score `predict`
 //!   on the held-out part ourselves and hold it to the figures the model family must beat;
@@ -13,7 +13,7 @@ use twinstack::params::{DuhemParams, PiParams, Thresholds};
 use twinstack::Scaling;
 
 fn bin() -> Command {
-    Command::new(env!("CARGO_BIN_EXE_hal-sim"))
+    Command::new(env!("CARGO_BIN_EXE_twinstack"))
 }
 
 /// A measured data set from the repository's `data/` folder (see `data/README.md`).
@@ -26,7 +26,7 @@ fn measured_data(name: &str) -> PathBuf {
 }
 
 fn run(args: &[&str]) -> Output {
-    bin().args(args).output().expect("hal-sim runs")
+    bin().args(args).output().expect("twinstack runs")
 }
 
 fn ok(args: &[&str]) -> String {

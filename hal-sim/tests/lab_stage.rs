@@ -256,7 +256,7 @@ fn tracking_table_compensated_pi_beats_no_compensation_on_every_trajectory() {
 fn the_cli_prints_the_table_as_json_and_refuses_bad_flags() {
     let dir = tempfile::tempdir().unwrap();
     let csv = dir.path().join("excitation.csv");
-    let out = std::process::Command::new(env!("CARGO_BIN_EXE_hal-sim"))
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_twinstack"))
         .args([
             "lab-stage",
             "--model",
@@ -286,7 +286,7 @@ fn the_cli_prints_the_table_as_json_and_refuses_bad_flags() {
     assert!(text.starts_with("t,u,x\n"));
     assert_eq!(text.lines().count(), 1 + 4000, "2 s at 2 kHz");
 
-    let bad = std::process::Command::new(env!("CARGO_BIN_EXE_hal-sim"))
+    let bad = std::process::Command::new(env!("CARGO_BIN_EXE_twinstack"))
         .args(["lab-stage", "--fit-until", "3"])
         .output()
         .unwrap();
@@ -301,7 +301,7 @@ fn the_cli_prints_the_table_as_json_and_refuses_bad_flags() {
         ("preisach.levels=3.5", "preisach.levels"),
         ("resonance_hz=fast", "fast"),
     ] {
-        let bad = std::process::Command::new(env!("CARGO_BIN_EXE_hal-sim"))
+        let bad = std::process::Command::new(env!("CARGO_BIN_EXE_twinstack"))
             .args(["lab-stage", "--model", "pi", "--set", set])
             .output()
             .unwrap();

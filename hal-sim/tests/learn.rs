@@ -1,5 +1,5 @@
 //! Learning feedforward on the simulated differential stage. With input
-//! shaping (the feedforward's notch on the resonance `hal-sim tune` fits, and the learning's
+//! shaping (the feedforward's notch on the resonance `twinstack tune` fits, and the learning's
 //! corner raised above it) every goal is met on both waveforms, and at the second
 //! frequencies all but the 250 Hz triangle's max; without shaping, the goals it meets are
 //! held and, for those it does not, the figures it reaches (so a regression fails) and the

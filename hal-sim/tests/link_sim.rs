@@ -137,7 +137,7 @@ fn a_parameter_file_loads_and_a_non_invertible_one_is_refused_with_nothing_lost(
     let mut client = device();
     let queued = queue_without_playing(&mut client, 50);
     assert_eq!(queued.queue_fill, 50);
-    // What `hal-sim load` sends for an identified P–I model, open loop.
+    // What `twinstack load` sends for an identified P–I model, open loop.
     let Model::PrandtlIshlinskii(mut p) = representative_pi(16).unwrap() else {
         unreachable!()
     };
@@ -151,7 +151,7 @@ fn a_parameter_file_loads_and_a_non_invertible_one_is_refused_with_nothing_lost(
         creep: None,
     };
     let mut good = ParamFile::from_model(&model, "um", None).settings;
-    // As `hal-sim load` does: the board's sensor and gains, which the file does not carry.
+    // As `twinstack load` does: the board's sensor and gains, which the file does not carry.
     let board = client.read_params().unwrap();
     good.sensor = board.sensor;
     good.feedback = board.feedback;
@@ -314,7 +314,7 @@ fn records_shorter_than_the_queue_are_started_and_played_in_full() {
     }
 }
 
-/// Without the drain (`hal-sim stream --no-wait`) a short record is started and plays on
+/// Without the drain (`twinstack stream --no-wait`) a short record is started and plays on
 /// its own after the streamer returns.
 #[test]
 fn a_short_record_streamed_without_waiting_still_plays() {

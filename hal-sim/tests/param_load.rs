@@ -1,4 +1,4 @@
-//! The parameter file `identify` writes → what `hal-sim load` sends: the file carries the
+//! The parameter file `identify` writes → what `twinstack load` sends: the file carries the
 //! board's own settings type, what the board could not run is refused (naming the field)
 //! before anything is sent, the board keeps its sensor and gains when the file has none, and
 //! a board's refusal reaches the user as one line.
@@ -28,7 +28,7 @@ fn pi_model() -> StageModel {
     }
 }
 
-/// `hal-sim load`'s arguments, parsed as the command line gives them.
+/// `twinstack load`'s arguments, parsed as the command line gives them.
 fn load_args(extra: &[&str]) -> Args {
     #[derive(Parser)]
     struct Cli {
@@ -123,7 +123,7 @@ fn closed_loop_on_an_inverted_sensor_is_refused_by_load_before_sending() {
     );
     let path = dir.path().join("p.json");
     std::fs::write(&path, file.to_json()).unwrap();
-    let o = std::process::Command::new(env!("CARGO_BIN_EXE_hal-sim"))
+    let o = std::process::Command::new(env!("CARGO_BIN_EXE_twinstack"))
         .args(["load", "--port", "sim", "--mode", "closed-loop", "--params"])
         .arg(&path)
         .output()
@@ -152,7 +152,7 @@ fn an_identified_file_loads_onto_the_board_and_reads_back_with_the_board_s_senso
     let (file, _) = ParamFile::load(&path).expect("the file loads");
     assert!(file.settings.sensor.is_none() && file.settings.feedback.is_none());
 
-    // `hal-sim load`'s path: the board's settings read back, the file's on top.
+    // `twinstack load`'s path: the board's settings read back, the file's on top.
     let mut client = Client::new(SimDevice::new(SimDeviceConfig::paper()).expect("device"));
     let board = client.read_params().expect("the board's settings");
     assert!(board.sensor.is_some() && board.feedback.is_some());
@@ -201,7 +201,7 @@ fn the_board_s_refusal_reaches_the_user_as_one_clear_line() {
     let path = dir.path().join("p.json");
     std::fs::write(&path, file.to_json()).unwrap();
     let board = hal_sim_fake::start();
-    let o = std::process::Command::new(env!("CARGO_BIN_EXE_hal-sim"))
+    let o = std::process::Command::new(env!("CARGO_BIN_EXE_twinstack"))
         .args(["load", "--port", &board.0, "--params"])
         .arg(&path)
         .output()

@@ -1,4 +1,4 @@
-//! `hal-sim telemetry` and `hal-sim stream --telemetry` as a user runs them: against the
+//! `twinstack telemetry` and `twinstack stream --telemetry` as a user runs them: against the
 //! virtual board over TCP (paced in real time), and on a line too slow for the rate asked,
 //! where samples are lost and the command must say so and exit 1. Every wait is bounded.
 
@@ -9,11 +9,11 @@ use std::process::{Command, Output};
 mod virtual_board_process;
 
 fn hal_sim(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_hal-sim"))
+    Command::new(env!("CARGO_BIN_EXE_twinstack"))
         .env_remove("TWINSTACK_PORT")
         .args(args)
         .output()
-        .expect("hal-sim runs")
+        .expect("twinstack runs")
 }
 
 fn text(o: &Output) -> String {
@@ -24,7 +24,7 @@ fn text(o: &Output) -> String {
     )
 }
 
-/// Starts `hal-sim virtual-board` on an OS-picked port; returns it and its `tcp:` address.
+/// Starts `twinstack virtual-board` on an OS-picked port; returns it and its `tcp:` address.
 fn virtual_board() -> (virtual_board_process::VirtualBoard, String) {
     virtual_board_process::start(&[])
 }

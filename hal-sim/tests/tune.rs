@@ -1,4 +1,4 @@
-//! `hal-sim tune`: the measured response and its fit, the design's margins
+//! `twinstack tune`: the measured response and its fit, the design's margins
 //! on the true plant, the step's ringing and the bandwidth at 50 and 100 kHz, the refusal of
 //! an unstable gain set, a second stage, the load, and the command over the link (simulated
 //! and virtual boards).
@@ -197,11 +197,11 @@ fn load_puts_the_tuned_feedback_on_the_board() {
 }
 
 fn hal_sim(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_hal-sim"))
+    Command::new(env!("CARGO_BIN_EXE_twinstack"))
         .env_remove("TWINSTACK_PORT")
         .args(args)
         .output()
-        .expect("hal-sim runs")
+        .expect("twinstack runs")
 }
 
 fn json(o: Output) -> serde_json::Value {

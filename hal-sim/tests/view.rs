@@ -1,4 +1,4 @@
-//! `hal-sim view` over plain HTTP (the browser test is `python/tests/test_view.py`): the page
+//! `twinstack view` over plain HTTP (the browser test is `python/tests/test_view.py`): the page
 //! and its script are served, telemetry arrives as Server-Sent Events with every sample
 //! counted, a mode switch reaches the board, and malformed or hostile requests are refused
 //! with a reason, never a crash.
@@ -21,7 +21,7 @@ impl Drop for View {
 }
 
 fn start(extra: &[&str]) -> View {
-    let mut child = Command::new(env!("CARGO_BIN_EXE_hal-sim"))
+    let mut child = Command::new(env!("CARGO_BIN_EXE_twinstack"))
         .args(["view", "--port", "sim", "--listen", "127.0.0.1:0"])
         .args(extra)
         .stdout(Stdio::piped())
@@ -221,7 +221,7 @@ fn bad_requests_are_refused_with_a_reason() {
 
 #[test]
 fn a_missing_or_wrong_figure_file_is_an_error_naming_it() {
-    let out = Command::new(env!("CARGO_BIN_EXE_hal-sim"))
+    let out = Command::new(env!("CARGO_BIN_EXE_twinstack"))
         .args([
             "view",
             "--port",

@@ -1,4 +1,4 @@
-//! `hal-sim virtual-board`: one simulated board served over TCP on 127.0.0.1, its state kept
+//! `twinstack virtual-board`: one simulated board served over TCP on 127.0.0.1, its state kept
 //! from one client to the next — through the library's `serve` on a thread, and through the
 //! binary as a user runs it. Every wait is bounded.
 
@@ -222,10 +222,10 @@ impl Drop for Binary {
 }
 
 fn hal_sim(args: &[&str]) -> std::process::Output {
-    Command::new(env!("CARGO_BIN_EXE_hal-sim"))
+    Command::new(env!("CARGO_BIN_EXE_twinstack"))
         .args(args)
         .output()
-        .expect("hal-sim runs")
+        .expect("twinstack runs")
 }
 
 fn status_field(out: &str, name: &str) -> String {
@@ -237,7 +237,7 @@ fn status_field(out: &str, name: &str) -> String {
 
 #[test]
 fn the_cli_serves_one_board_to_successive_commands() {
-    let mut child = Command::new(env!("CARGO_BIN_EXE_hal-sim"))
+    let mut child = Command::new(env!("CARGO_BIN_EXE_twinstack"))
         .args([
             "virtual-board",
             "--listen",
@@ -248,7 +248,7 @@ fn the_cli_serves_one_board_to_successive_commands() {
         .stdout(Stdio::piped())
         .stderr(Stdio::null())
         .spawn()
-        .expect("hal-sim virtual-board starts");
+        .expect("twinstack virtual-board starts");
     let stdout = child.stdout.take().unwrap();
     let _server = Binary(child);
     // The first line names the address (read on a thread: the wait is bounded).
@@ -309,7 +309,7 @@ fn the_cli_refuses_a_listen_address_that_is_not_tcp() {
     }
 }
 
-/// Starts `hal-sim virtual-board` as fast as it runs; returns it and its address.
+/// Starts `twinstack virtual-board` as fast as it runs; returns it and its address.
 fn start_virtual_board() -> (virtual_board_process::VirtualBoard, String) {
     virtual_board_process::start(&["--speed", "0"])
 }

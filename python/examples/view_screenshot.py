@@ -1,10 +1,10 @@
-"""Screenshot of `hal-sim view` in headless Chromium, for the book.
+"""Screenshot of `twinstack view` in headless Chromium, for the book.
 
-Starts `hal-sim view` on PORT (default: the simulated board in-process) with the given tune
+Starts `twinstack view` on PORT (default: the simulated board in-process) with the given tune
 and calibration figures, opens it in headless Chromium (selenium), switches to closed loop
 and starts the waveform from the page, waits, and saves a PNG of the page.
 
-    TWINSTACK_HAL_SIM=target/debug/hal-sim python python/examples/view_screenshot.py \\
+    TWINSTACK_HAL_SIM=target/debug/twinstack python python/examples/view_screenshot.py \\
         --tune tune.json --calibration cal.json --out docs/src/guide/view.png
 """
 
@@ -28,7 +28,7 @@ def main() -> None:
     ap.add_argument("--seconds", type=float, default=4.0)
     ap.add_argument("--out", default="view.png")
     args = ap.parse_args()
-    hal_sim = os.environ.get("TWINSTACK_HAL_SIM", "hal-sim")
+    hal_sim = os.environ.get("TWINSTACK_HAL_SIM", "twinstack")
     cmd = [hal_sim, "view", "--port", args.port, "--listen", "127.0.0.1:0"]
     if args.tune:
         cmd += ["--tune", args.tune]

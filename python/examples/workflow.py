@@ -4,9 +4,9 @@ the model, stream a trajectory, record what the stage did, and plot it all to a 
 
     python python/examples/workflow.py [--port PORT] [--out workflow.png]
 
-PORT is the board: a serial device, tcp:HOST:PORT (a running `hal-sim virtual-board`), or
+PORT is the board: a serial device, tcp:HOST:PORT (a running `twinstack virtual-board`), or
 `sim` (the simulated board in-process). Without --port the example starts a virtual board
-itself (`hal-sim virtual-board --listen tcp:127.0.0.1:0`, the binary from --hal-sim,
+itself (`twinstack virtual-board --listen tcp:127.0.0.1:0`, the binary from --hal-sim,
 $TWINSTACK_HAL_SIM or the PATH) and stops it at the end.
 """
 
@@ -37,7 +37,7 @@ def read_record(path):
 
 
 def start_virtual_board(hal_sim):
-    """A `hal-sim virtual-board` process on a free port: (process, port)."""
+    """A `twinstack virtual-board` process on a free port: (process, port)."""
     proc = subprocess.Popen(
         [hal_sim, "virtual-board", "--listen", "tcp:127.0.0.1:0"],
         stdout=subprocess.PIPE,
@@ -53,7 +53,7 @@ def start_virtual_board(hal_sim):
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--port", help="the board (default: start a virtual board)")
-    ap.add_argument("--hal-sim", default=os.environ.get("TWINSTACK_HAL_SIM") or shutil.which("hal-sim"))
+    ap.add_argument("--hal-sim", default=os.environ.get("TWINSTACK_HAL_SIM") or shutil.which("twinstack"))
     ap.add_argument("--out", default="workflow.png")
     args = ap.parse_args()
 
@@ -88,7 +88,7 @@ def main():
     port = args.port
     if port is None:
         if not args.hal_sim:
-            sys.exit("no --port and no hal-sim binary (--hal-sim, $TWINSTACK_HAL_SIM, PATH)")
+            sys.exit("no --port and no twinstack binary (--hal-sim, $TWINSTACK_HAL_SIM, PATH)")
         proc, port = start_virtual_board(args.hal_sim)
     runs = {}
     try:

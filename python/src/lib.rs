@@ -1,6 +1,6 @@
 //! `twinstack._native`: the Python package's extension module, a thin layer over the `hal-sim`
 //! library — the same protocol client, in-process board, identification and parameter file as
-//! the `hal-sim` command line. Nothing here speaks the wire protocol or runs a model itself:
+//! the `twinstack` command line. Nothing here speaks the wire protocol or runs a model itself:
 //! it converts Python values (numpy arrays, strings, dicts) to the library's types and back,
 //! maps the library's errors onto Python exceptions, and lets go of the interpreter's lock
 //! (`Python::detach`) while it waits on a board or fits a model.
@@ -239,8 +239,8 @@ fn times(
     }
 }
 
-/// An identified or loaded model with its parameter file: what `hal-sim identify` writes and
-/// `hal-sim load` sends.
+/// An identified or loaded model with its parameter file: what `twinstack identify` writes and
+/// `twinstack load` sends.
 #[pyclass(module = "twinstack", frozen)]
 struct Params {
     file: ParamFile,
@@ -299,7 +299,7 @@ impl Params {
         Ok(array(py, u))
     }
 
-    /// Writes the parameter file (the JSON `hal-sim identify` writes).
+    /// Writes the parameter file (the JSON `twinstack identify` writes).
     fn save(&self, path: PathBuf) -> PyResult<()> {
         self.file.save(&path).map_err(param_file_error)
     }
@@ -428,7 +428,7 @@ impl Params {
     }
 }
 
-/// Reads and checks a parameter file (`hal-sim identify`'s output, or `Params.save`'s).
+/// Reads and checks a parameter file (`twinstack identify`'s output, or `Params.save`'s).
 #[pyfunction]
 fn load_params(path: PathBuf) -> PyResult<Params> {
     let (file, model) = ParamFile::load(&path).map_err(param_file_error)?;
@@ -908,12 +908,12 @@ impl Board {
         self.fetch_dict(py, timeout)
     }
 
-    /// Calibrates the stage behind the board in one call (`hal-sim calibrate`): excites it
+    /// Calibrates the stage behind the board in one call (`twinstack calibrate`): excites it
     /// with the board's waveform generator (full-range cycles, then decaying minor loops),
     /// records drive and sensor, identifies the best model of the family (or `model`), loads
     /// it, verifies by tracking a test trajectory before (bypass) and after (open loop), and
     /// stores it to flash unless `store` is false. Returns a dict: `params` (a `Params`, the
-    /// file `hal-sim calibrate` writes), `model`, `reason`, `held_out` / `before` / `after`
+    /// file `twinstack calibrate` writes), `model`, `reason`, `held_out` / `before` / `after`
     /// (`max_pct`, `rms_pct`), `stored`, `clamped`. Board refusals raise `BoardError`; a stage
     /// that cannot be calibrated (no sensor, a sensor that does not follow the drive, a fit
     /// that does not fit) raises `RuntimeError` saying which.

@@ -1,6 +1,6 @@
-"""Fixtures: the repository, the `hal-sim` binary, a virtual board process, boards of both kinds.
+"""Fixtures: the repository, the `twinstack` binary, a virtual board process, boards of both kinds.
 
-The `hal-sim` binary is `$TWINSTACK_HAL_SIM` when set (`cargo xtask test` builds it and sets
+The `twinstack` binary is `$TWINSTACK_HAL_SIM` when set (`cargo xtask test` builds it and sets
 it), else built here with `cargo build -p hal-sim`.
 """
 
@@ -19,7 +19,7 @@ REPO = pathlib.Path(__file__).resolve().parents[2]
 
 def _build_hal_sim() -> str:
     out = subprocess.run(
-        ["cargo", "build", "-p", "hal-sim", "--bin", "hal-sim", "--message-format=json"],
+        ["cargo", "build", "-p", "hal-sim", "--bin", "twinstack", "--message-format=json"],
         cwd=REPO,
         check=True,
         stdout=subprocess.PIPE,
@@ -28,14 +28,14 @@ def _build_hal_sim() -> str:
     for line in out.splitlines():
         msg = json.loads(line)
         if msg.get("reason") == "compiler-artifact" and msg.get("executable"):
-            if msg["target"]["name"] == "hal-sim":
+            if msg["target"]["name"] == "twinstack":
                 return msg["executable"]
-    raise RuntimeError("cargo built no hal-sim executable")
+    raise RuntimeError("cargo built no twinstack executable")
 
 
 @pytest.fixture(scope="session")
 def hal_sim() -> str:
-    """Path of the `hal-sim` command-line tool."""
+    """Path of the `twinstack` command-line tool."""
     path = os.environ.get("TWINSTACK_HAL_SIM") or _build_hal_sim()
     assert os.access(path, os.X_OK), path
     return path
@@ -43,7 +43,7 @@ def hal_sim() -> str:
 
 @pytest.fixture(scope="session")
 def virtual_board(hal_sim):
-    """A `hal-sim virtual-board` process on a free TCP port, real-time paced: its port."""
+    """A `twinstack virtual-board` process on a free TCP port, real-time paced: its port."""
     proc = subprocess.Popen(
         [hal_sim, "virtual-board", "--listen", "tcp:127.0.0.1:0"],
         stdout=subprocess.PIPE,

@@ -1,4 +1,4 @@
-"""Identification from Python, and the parameter file's round trip with the `hal-sim` CLI."""
+"""Identification from Python, and the parameter file's round trip with the `twinstack` CLI."""
 
 import json
 import subprocess

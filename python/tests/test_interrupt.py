@@ -39,6 +39,6 @@ def test_ctrl_c_stops_a_stream_and_the_board(board, ctrl_c):
     fill = s["queue_fill"]
     time.sleep(0.05)
     assert board.status()["queue_fill"] == fill
-    # The board takes the next stream (what was queued plays first, as after `hal-sim stop`).
+    # The board takes the next stream (what was queued plays first, as after `twinstack stop`).
     report = board.stream(np.zeros(10))
     assert report["accepted"] == 10

@@ -1,4 +1,4 @@
-"""`hal-sim view` in a real headless browser (Debian's Chromium and its driver, via selenium):
+"""`twinstack view` in a real headless browser (Debian's Chromium and its driver, via selenium):
 the page loads, its plot receives telemetry, the page's own count of samples equals the
 board's count once telemetry is paused (nothing lost between the board and the page), and a
 mode switch clicked on the page reaches the board.

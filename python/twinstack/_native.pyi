@@ -39,8 +39,8 @@ class BoardError(Exception):
 
 @final
 class Params:
-    """An identified model and its parameter file: what ``hal-sim identify`` writes and
-    ``hal-sim load`` sends. Made by :func:`identify`, :func:`load_params` or
+    """An identified model and its parameter file: what ``twinstack identify`` writes and
+    ``twinstack load`` sends. Made by :func:`identify`, :func:`load_params` or
     :meth:`Params.from_json`."""
 
     def predict(
@@ -58,7 +58,7 @@ class Params:
         """The drive (volts) the board's compensator gives for the desired reading ``x``
         (output unit), in its fixed point; ``t``/``rate`` as in :meth:`predict`."""
     def save(self, path: Union[str, "PathLike[str]"]) -> None:
-        """Writes the parameter file (the same JSON ``hal-sim identify`` writes)."""
+        """Writes the parameter file (the same JSON ``twinstack identify`` writes)."""
     def to_json(self) -> str:
         """The parameter file's JSON text."""
     @staticmethod
@@ -118,7 +118,7 @@ def identify(
     Samples with ``t < fit_until`` are fitted, the rest held out to score the model
     (default: the first 70 % of the record's duration). ``model``: ``"auto"`` fits every
     model (P-I, Duhem, generalised P-I, Bouc-Wen) on the first part of the fit window, ranks
-    them on its last part and keeps the best, as ``hal-sim identify`` does; or one of
+    them on its last part and keeps the best, as ``twinstack identify`` does; or one of
     ``"pi"``, ``"duhem"``, ``"gpi"``, ``"bouc-wen"``. ``creep``: ``None`` lets ``auto`` try
     each model with and without a creep operator (one model: without), ``True`` fits one,
     ``False`` none. ``operators``/``thresholds``: the P-I's play operators (1 to 32; ``None``:
@@ -131,7 +131,7 @@ def identify(
     interpreter's lock. ``ValueError`` says why a record cannot be fitted."""
 
 def load_params(path: Union[str, "PathLike[str]"]) -> Params:
-    """Reads and checks a parameter file (``hal-sim identify``'s, or :meth:`Params.save`'s);
+    """Reads and checks a parameter file (``twinstack identify``'s, or :meth:`Params.save`'s);
     ``ValueError`` names the field refused, ``FileNotFoundError`` a missing file."""
 
 @final
@@ -139,7 +139,7 @@ class Board:
     """A twinstack board.
 
     ``port``: a serial device (``"/dev/ttyUSB0"``, ``"COM3"``, a pty), ``"tcp:HOST:PORT"``
-    (``hal-sim virtual-board``, QEMU's UART), ``"unix:PATH"``, or ``"sim"``: a simulated board
+    (``twinstack virtual-board``, QEMU's UART), ``"unix:PATH"``, or ``"sim"``: a simulated board
     in-process, fresh at each ``Board("sim")``, whose time runs only while a call waits on it.
     ``baud`` sets a serial device's rate; ``timeout`` (seconds) how long each request waits
     for its response.
@@ -240,7 +240,7 @@ class Board:
     def calibrate(
         self, store: bool = True, clamp: bool = False, model: Optional[str] = None
     ) -> Dict[str, Any]:
-        """One-command calibration (``hal-sim calibrate``): excites the stage with the board's
+        """One-command calibration (``twinstack calibrate``): excites the stage with the board's
         waveform generator, records drive and sensor, identifies the best model of the family
         (or ``model``), loads it, tracks a test trajectory before (bypass) and after (open
         loop), and stores it unless ``store`` is false. Returns ``params`` (a

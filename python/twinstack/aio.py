@@ -19,7 +19,7 @@ Semantics, which a caller can rely on:
   left mid-request), so a cancelled call waits for the call in flight to finish before the
   :class:`asyncio.CancelledError` goes up: the board is free and its line clean for the next
   call. A cancelled stream also tells the board to stop (what is queued stays queued, as
-  after ``hal-sim stop``), so it stops within one chunk.
+  after ``twinstack stop``), so it stops within one chunk.
 
 numpy in and out as the blocking API: the same arguments, the same dicts of float64 arrays,
 the same exceptions (:class:`~twinstack.BoardError`, ``TimeoutError``, ...).

@@ -17,7 +17,7 @@ use std::path::Path;
 use std::process::Command;
 
 /// What the host tool is called in the commands shown beside the figures.
-const TOOL: &str = "hal-sim";
+const TOOL: &str = "twinstack";
 
 /// One figure: where it goes, what writes it, and how its output becomes the block.
 struct Figure {
@@ -41,7 +41,7 @@ const FIGURES: &[Figure] = &[Figure {
     render: golden_distances,
 }];
 
-/// `hal-sim golden`'s per-set lines as the page's table: distances to the `f64` reference
+/// `twinstack golden`'s per-set lines as the page's table: distances to the `f64` reference
 /// tick, the worst DAC-code error, ambiguous flag decisions and the flag counts.
 fn golden_distances(out: &str) -> Result<String, String> {
     let mut table = String::from(

@@ -577,7 +577,7 @@ fn gates() -> Vec<Gate> {
 /// The Python package (`python/`, its own cargo workspace): its Rust formatted and clippy-clean,
 /// installed with pip into the virtual environment `setup` made (maturin builds it from PyPI's
 /// wheel; the build goes to `TARGET/python`), then its pytest suite against the in-process board
-/// and a `hal-sim virtual-board` process (the debug `hal-sim` the host tests built).
+/// and a `twinstack virtual-board` process (the debug `twinstack` the host tests built).
 fn python_gates() -> Vec<Gate> {
     let manifest = root().join("python").join("Cargo.toml");
     let manifest = manifest.to_string_lossy().into_owned();
@@ -616,7 +616,7 @@ fn python_gates() -> Vec<Gate> {
             "TWINSTACK_HAL_SIM",
             target_dir()
                 .join("debug")
-                .join(format!("hal-sim{}", std::env::consts::EXE_SUFFIX)),
+                .join(format!("twinstack{}", std::env::consts::EXE_SUFFIX)),
         );
     vec![
         gate(
@@ -634,7 +634,7 @@ fn python_gates() -> Vec<Gate> {
         ),
         gate(
             "Python: the hal-sim binary the tests start (cargo build -p hal-sim)",
-            cargo(&["build", "-p", "hal-sim", "--bin", "hal-sim"]),
+            cargo(&["build", "-p", "hal-sim", "--bin", "twinstack"]),
         ),
         gate("Python: pytest python/tests", pytest),
     ]

@@ -1,4 +1,4 @@
-//! `hal-sim calibrate --port PORT --out PARAMS.json [--model auto|…] [--no-store] [--json]`:
+//! `twinstack calibrate --port PORT --out PARAMS.json [--model auto|…] [--no-store] [--json]`:
 //! the whole calibration in one command ([`crate::calibrate`]): excites the stage with the
 //! board's waveform generator, records drive and sensor, identifies the best model, writes the
 //! parameter file (the format `identify` writes) and a PNG beside it (the fit, the ranking, the

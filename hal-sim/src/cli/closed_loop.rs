@@ -1,11 +1,11 @@
-//! `hal-sim closed-loop`: sensor feedback around the feedforward compensator on the simulated
+//! `twinstack closed-loop`: sensor feedback around the feedforward compensator on the simulated
 //! stage — the tracking table (4 configurations × 2 waveforms × each rate) and the step with and
 //! without the resonance notch.
 
 use crate::closed_loop::{print, run as run_study, ClosedLoopOptions};
 use std::path::PathBuf;
 
-/// Arguments of `hal-sim closed-loop`.
+/// Arguments of `twinstack closed-loop`.
 #[derive(clap::Args, Debug)]
 pub struct Args {
     /// Control rates, Hz, comma-separated (each 44 500 … 200 000, so the notch at the

@@ -1,4 +1,4 @@
-//! `hal-sim coarse home|move|jog|stop|status --port PORT`: the dual-actuated stage's coarse
+//! `twinstack coarse home|move|jog|stop|status --port PORT`: the dual-actuated stage's coarse
 //! axis on a board with it (`cargo build-fw-dual`, the emulator image `cargo build-emu-dual`,
 //! the virtual board `virtual-board --dual-stage`). With `--port sim` the in-process board is
 //! the simulated dual-stage board ([`crate::coarse_rig`]: the piezo stage on the ball screw),

@@ -1,9 +1,9 @@
 //! The parameter file's model run on a record, either way:
 //!
-//! * `hal-sim predict --params PARAMS.json --data IN.csv --out OUT.csv`: the forward model (the
+//! * `twinstack predict --params PARAMS.json --data IN.csv --out OUT.csv`: the forward model (the
 //!   library's fixed-point observer) on IN's `t,u`; writes `t,u,x` with `x` the predicted
 //!   reading;
-//! * `hal-sim compensate --params PARAMS.json --data IN.csv --out OUT.csv`: IN's `t,x` are the
+//! * `twinstack compensate --params PARAMS.json --data IN.csv --out OUT.csv`: IN's `t,x` are the
 //!   desired readings; writes `t,u,x` with `u` the drive from the library's fixed-point inverse
 //!   and `x` copied.
 

@@ -1,9 +1,9 @@
-//! `hal-sim demo`: the first paper's study on the simulated board and stage.
+//! `twinstack demo`: the first paper's study on the simulated board and stage.
 
 use crate::demo::{print, run as run_demo, DemoOptions};
 use std::path::PathBuf;
 
-/// Arguments of `hal-sim demo`.
+/// Arguments of `twinstack demo`.
 #[derive(clap::Args, Debug)]
 pub struct Args {
     /// Directory for the PNG figures.

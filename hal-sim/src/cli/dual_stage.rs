@@ -1,4 +1,4 @@
-//! `hal-sim dual-stage`: the dual-actuated stage (ball screw + piezo) in simulation — a 5 mm
+//! `twinstack dual-stage`: the dual-actuated stage (ball screw + piezo) in simulation — a 5 mm
 //! move (settling time, final error against the linear encoder's resolution, peak piezo
 //! stroke used) and a trajectory larger than the piezo's stroke tracked by the coarse stage
 //! alone and by both (error table).

@@ -1,4 +1,4 @@
-//! `hal-sim golden [--write] [--dir DIR]`: generates the golden vectors from the committed
+//! `twinstack golden [--write] [--dir DIR]`: generates the golden vectors from the committed
 //! parameter files and either compares them with `DIR/vectors.bin` (default) or writes them
 //! there (`--write`). Either way it prints each set's size and digest and how far its outputs
 //! are from the `f64` reference tick; it fails if a set exceeds the reference bounds, or (without

@@ -1,4 +1,4 @@
-//! `hal-sim identify [--model auto|pi|duhem|gpi|…] [--creep] --data FILE.csv --fit-until SECONDS
+//! `twinstack identify [--model auto|pi|duhem|gpi|…] [--creep] --data FILE.csv --fit-until SECONDS
 //! --out PARAMS.json [--operators N] [--thresholds uniform|geometric] [--lag N]`: fits on
 //! `t < SECONDS`, scores
 //! on the rest, writes the parameter file and a PNG beside it (`PARAMS.png`).

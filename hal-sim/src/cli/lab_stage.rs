@@ -1,4 +1,4 @@
-//! `hal-sim lab-stage [--model pi,duhem] [--seed N] [--json] [--without creep,…] [--set field=value,…]
+//! `twinstack lab-stage [--model pi,duhem] [--seed N] [--json] [--without creep,…] [--set field=value,…]
 //! [--variants]`: the tracking table on the simulated laboratory stage
 //! ([`crate::plant::lab_stage`], outside the model family) — identified from 2 s of 10 Hz
 //! excitation, then a triangle, nested minor loops and a multisine tracked open loop with each
@@ -15,7 +15,7 @@ use crate::tracking::{
 };
 use std::path::PathBuf;
 
-/// Arguments of `hal-sim lab-stage`.
+/// Arguments of `twinstack lab-stage`.
 #[derive(clap::Args, Debug)]
 pub struct Args {
     /// Models to identify and compensate with, comma-separated (one row each); `auto` ranks
@@ -40,7 +40,7 @@ pub struct Args {
     /// Print the table as JSON.
     #[arg(long)]
     pub json: bool,
-    /// Also write the excitation record (t,u,x) to this CSV, for `hal-sim identify`.
+    /// Also write the excitation record (t,u,x) to this CSV, for `twinstack identify`.
     #[arg(long)]
     pub write_excitation: Option<PathBuf>,
     /// Take non-idealities out of the stage, comma-separated, to see what each costs.

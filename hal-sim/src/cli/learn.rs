@@ -1,4 +1,4 @@
-//! `hal-sim learn --waveform sine:750|triangle:200 --periods 50`: learning feedforward
+//! `twinstack learn --waveform sine:750|triangle:200 --periods 50`: learning feedforward
 //! (iterative learning control) for periodic motion.
 //!
 //! Without `--port` (and without `TWINSTACK_PORT`) it runs the study in process on the
@@ -15,7 +15,7 @@ use super::board_link::PortArgs;
 use crate::learn::{LearnOptions, Motion};
 use std::path::PathBuf;
 
-/// Arguments of `hal-sim learn`.
+/// Arguments of `twinstack learn`.
 #[derive(clap::Args, Debug)]
 pub struct Args {
     /// The board; without it (and without TWINSTACK_PORT) the study runs in process on the
@@ -42,7 +42,7 @@ pub struct Args {
     #[arg(long, default_value_t = 0)]
     pub lead: u16,
     /// Input shaping: centre of a notch on the feedforward, Hz (the stage's resonance, as
-    /// `hal-sim tune` fits it and prints the shaping for; 21 807 on the simulated stage);
+    /// `twinstack tune` fits it and prints the shaping for; 21 807 on the simulated stage);
     /// without it, no shaping.
     #[arg(long)]
     pub shape_hz: Option<f64>,
@@ -113,7 +113,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         if args.shape_hz.is_some() {
             anyhow::bail!(
                 "--shape-hz is for the in-process study; on a board the shaping is a setting: \
-                 load it with the parameters (`shaping` in the parameter file, `hal-sim load`)"
+                 load it with the parameters (`shaping` in the parameter file, `twinstack load`)"
             );
         }
         let report = crate::learn_link::run(&args.port, &options, args.amplitude)?;

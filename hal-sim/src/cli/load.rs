@@ -1,4 +1,4 @@
-//! `hal-sim load --port PORT --params PARAMS.json [--mode …] [--store] [overrides]`: sends the
+//! `twinstack load --port PORT --params PARAMS.json [--mode …] [--store] [overrides]`: sends the
 //! settings a parameter file carries as one parameter load (the board validates them whole,
 //! prepares them off the tick and swaps them in with the drive continuous), optionally
 //! storing them to flash.

@@ -4,7 +4,7 @@
 //! `waveform`, `stop`, `record`, `telemetry`, `coarse`, `scan`, `tune`, `view`, and `learn` with
 //! `--port`) share [`board_link`]'s `--port` / `--baud` / `--timeout-ms`.
 
-/// The exit codes of every `hal-sim` command, as `hal-sim --help` lists them.
+/// The exit codes of every `hal-sim` command, as `twinstack --help` lists them.
 pub const EXIT_CODES: &str = "\
 Exit codes:
   0  done

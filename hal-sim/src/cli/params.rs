@@ -1,6 +1,6 @@
-//! `hal-sim params --port PORT [--out FILE]`: reads back the settings in force on the board
-//! (physical units, the same JSON a parameter file's `settings` holds); `hal-sim mode` and
-//! `hal-sim recall` switch the mode and reload the stored settings.
+//! `twinstack params --port PORT [--out FILE]`: reads back the settings in force on the board
+//! (physical units, the same JSON a parameter file's `settings` holds); `twinstack mode` and
+//! `twinstack recall` switch the mode and reload the stored settings.
 
 use super::board_link::{connect, PortArgs};
 use std::path::PathBuf;

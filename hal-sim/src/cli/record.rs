@@ -1,4 +1,4 @@
-//! `hal-sim record`, two forms:
+//! `twinstack record`, two forms:
 //!
 //! * `--signals setpoint,left,right,sensor,estimate,error --samples N [--pre P]
 //!   [--trigger now|stream|waveform] [--decimation D] --out run.csv [--png run.png]`: arms a
@@ -8,7 +8,7 @@
 //!   stacks in volts, displacements in the output unit of the settings read back from the
 //!   board), plus a PNG. With `--trigger stream` or `waveform` start the stream or the
 //!   waveform from another command while it waits (or record a streamed run over one
-//!   connection: `hal-sim stream --record`).
+//!   connection: `twinstack stream --record`).
 //! * `--signal S --count N [--decimation D] --out FILE.csv` (protocol v3's `Record`): `N`
 //!   values of one signal, full Q2.30; writes `t,<signal>,<signal>_q2_30` — `t` in seconds
 //!   from the arming, the value normalised (−1…1 of the model's range) and as the raw Q2.30
@@ -59,7 +59,7 @@ pub struct Args {
     #[arg(long, default_value_t = 1)]
     pub decimation: u16,
     /// Arm the multi-signal capture and return (the port is then free for the command that
-    /// triggers it: `hal-sim stream`, `hal-sim waveform`); read it later with --fetch.
+    /// triggers it: `twinstack stream`, `twinstack waveform`); read it later with --fetch.
     #[arg(long, requires = "signals")]
     pub arm_only: bool,
     /// Arm nothing: wait for the capture armed before (--arm-only) and read it back.
@@ -79,7 +79,7 @@ pub enum TriggerArg {
     Stream,
     /// When the waveform generator starts.
     Waveform,
-    /// When a scan starts (`hal-sim scan`).
+    /// When a scan starts (`twinstack scan`).
     Scan,
     /// On the external trigger input's armed edge.
     External,
@@ -255,7 +255,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         )?;
         let Some(out) = args.out.as_deref().filter(|_| !args.arm_only) else {
             println!(
-                "capture armed ({} frames, {} before the trigger, trigger {:?}): read it with `hal-sim record --fetch --out FILE.csv` once triggered",
+                "capture armed ({} frames, {} before the trigger, trigger {:?}): read it with `twinstack record --fetch --out FILE.csv` once triggered",
                 request.samples, request.pre_trigger, request.trigger
             );
             return Ok(());

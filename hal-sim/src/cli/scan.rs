@@ -1,4 +1,4 @@
-//! `hal-sim scan --port PORT --pattern raster:lines=64,… | lissajous:… | spiral:…`: runs a
+//! `twinstack scan --port PORT --pattern raster:lines=64,… | lissajous:… | spiral:…`: runs a
 //! scan pattern generated on the board with its pixel, line and frame trigger outputs,
 //! captures the setpoint and the trigger levels from the scan's start, and prints the timing
 //! table ([`crate::scan_timing`]: each line and frame pulse against the library's replay of
@@ -36,7 +36,7 @@ pub struct Args {
     /// Ticks per pixel (the pixel clock's period; more than `--pulse`).
     #[arg(long, default_value_t = 4)]
     pub ticks_per_pixel: u16,
-    /// Frames to scan (then the board holds the end point); 0 scans until `hal-sim stop`
+    /// Frames to scan (then the board holds the end point); 0 scans until `twinstack stop`
     /// (the capture then takes what fits).
     #[arg(long, default_value_t = 1)]
     pub frames: u16,
@@ -197,6 +197,6 @@ fn draw(
         },
     ];
     let _ = BLACK;
-    draw_panels(path, &format!("hal-sim scan: {}", f.pattern), &panels, 2)?;
+    draw_panels(path, &format!("twinstack scan: {}", f.pattern), &panels, 2)?;
     Ok(())
 }

@@ -1,4 +1,4 @@
-//! `hal-sim status --port PORT [--json]`: the board's status and telemetry, one `name value`
+//! `twinstack status --port PORT [--json]`: the board's status and telemetry, one `name value`
 //! per line, or one JSON object ([`status_json`]).
 
 use super::board_link::{connect, PortArgs};

@@ -1,4 +1,4 @@
-//! `hal-sim stop --port PORT`: stops the setpoint stream or the waveform generator; the
+//! `twinstack stop --port PORT`: stops the setpoint stream or the waveform generator; the
 //! output holds where it is (queued setpoints stay queued).
 
 use super::board_link::{connect, PortArgs};

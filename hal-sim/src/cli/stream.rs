@@ -1,4 +1,4 @@
-//! `hal-sim stream --port PORT --data SETPOINTS.csv [--params PARAMS.json] [--divider D]`:
+//! `twinstack stream --port PORT --data SETPOINTS.csv [--params PARAMS.json] [--divider D]`:
 //! streams a setpoint record to the board (format: [`crate::setpoint_file`]), within the
 //! credits it grants, starts it once the queue is primed, waits until it has played and stops
 //! (the output holds the last setpoint). The whole file is checked before anything is sent.
@@ -6,14 +6,14 @@
 //! `--record setpoint,left,sensor,estimate --record-out run.csv` records the streamed run over
 //! the same connection (the port is exclusive): before anything is streamed it arms a
 //! multi-signal capture triggered by the stream's start, and once the stream has played it
-//! reads the capture back and writes it in physical units, as `hal-sim record --signals`
+//! reads the capture back and writes it in physical units, as `twinstack record --signals`
 //! does (CSV and PNG). By default the capture spans the whole run (setpoints × divider
 //! ticks, less if the board's buffer holds fewer).
 //!
 //! `--telemetry sensor,setpoint:10000 --telemetry-out t.csv` watches the streamed run live over
 //! the same connection: telemetry of the listed signals at that rate (samples per second,
 //! default 10 000) starts before the first setpoint is sent and stops once the stream has
-//! played; its samples are written as `hal-sim telemetry` writes them (CSV and PNG, physical
+//! played; its samples are written as `twinstack telemetry` writes them (CSV and PNG, physical
 //! units), and a sample that did not arrive is an error ([`super::telemetry::finish`]).
 //!
 //! Exit codes: [`EXIT_CODES`] (0 played without underrun, 1 error, 2 usage, 3 completed with
@@ -27,7 +27,7 @@ use crate::setpoint_file::{self, SetpointUnits};
 use std::path::PathBuf;
 use twinstack::protocol::messages::{Trigger, UnderrunPolicy};
 
-/// The exit codes of `hal-sim stream`, as `hal-sim stream --help` lists them.
+/// The exit codes of `twinstack stream`, as `twinstack stream --help` lists them.
 pub const EXIT_CODES: &str = "\
 Exit codes:
   0  every setpoint was accepted and played without an underrun

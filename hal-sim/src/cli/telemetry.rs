@@ -1,4 +1,4 @@
-//! `hal-sim telemetry --port P --signals sensor,setpoint --rate 10000 --duration 2 --out t.csv`:
+//! `twinstack telemetry --port P --signals sensor,setpoint --rate 10000 --duration 2 --out t.csv`:
 //! continuous telemetry (protocol v5). Starts the board's telemetry of the listed signals
 //! (setpoint, left, right, sensor, estimate, error) at `--rate` samples per second (the
 //! board's tick rate divided by a whole number: the nearest is taken and said), receives its
@@ -13,7 +13,7 @@
 //! frame counts the tail; if any sample did not arrive, the files are still written (the
 //! gaps show in `t`) and the command exits 1 saying how many and why.
 //!
-//! `hal-sim stream --telemetry sensor,setpoint:10000 --telemetry-out t.csv` does the same
+//! `twinstack stream --telemetry sensor,setpoint:10000 --telemetry-out t.csv` does the same
 //! around a streamed run, over its one connection ([`start`], [`finish`]).
 
 use super::board_link::{connect, BoardClient, PortArgs};

@@ -1,4 +1,4 @@
-//! `hal-sim tune --port P [--rate 50k|100k] [--phase-margin 45] [--gain-margin 6] [--load]
+//! `twinstack tune --port P [--rate 50k|100k] [--phase-margin 45] [--gain-margin 6] [--load]
 //! [--json] [--png F] [--kp K --ki I [--notch-hz F --notch-q Q --notch-depth D]]`: measures
 //! the stage's frequency response with the board's generator and recorder, fits a resonance
 //! and the loop's delay, places the notch and chooses the PI gains for the margins

@@ -1,10 +1,10 @@
-//! `hal-sim view --port P [--listen 127.0.0.1:8080] [--signals …] [--rate 2000] [--tune
+//! `twinstack view --port P [--listen 127.0.0.1:8080] [--signals …] [--rate 2000] [--tune
 //! tune.json] [--calibration cal.json]`: a live view of the board in the browser. Serves a
 //! local web page (plain HTML and JavaScript drawn on `<canvas>`, nothing fetched from the
 //! internet) that plots the board's telemetry as it arrives — setpoint, sensor, error and
 //! both stacks by default — shows its status and the link's counters, switches the mode,
 //! starts and stops the waveform generator and a scan, and draws the last tune's Bode plot
-//! (`hal-sim tune --json > tune.json`) and the calibration's ranking (`hal-sim calibrate
+//! (`twinstack tune --json > tune.json`) and the calibration's ranking (`twinstack calibrate
 //! --json > cal.json`). Works against any `--port`: the simulated board (paced to the wall
 //! clock), a virtual board, the emulator, a real board.
 //!
@@ -68,10 +68,10 @@ pub struct Args {
     /// Samples per second of each signal (the board's tick rate / a whole number).
     #[arg(long, default_value_t = 2000.0)]
     pub rate: f64,
-    /// The last tune's figures (`hal-sim tune --json > FILE`), for the Bode plot.
+    /// The last tune's figures (`twinstack tune --json > FILE`), for the Bode plot.
     #[arg(long)]
     pub tune: Option<PathBuf>,
-    /// The calibration's figures (`hal-sim calibrate --json > FILE`), for the ranking.
+    /// The calibration's figures (`twinstack calibrate --json > FILE`), for the ranking.
     #[arg(long)]
     pub calibration: Option<PathBuf>,
     /// Serve for this many seconds, then stop telemetry and exit (default: until killed).
@@ -188,7 +188,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     if let Some(t) = &tune {
         if !t["points"].is_array() {
             bail!(
-                "--tune {}: no \"points\" (write it with `hal-sim tune --json`)",
+                "--tune {}: no \"points\" (write it with `twinstack tune --json`)",
                 args.tune
                     .as_ref()
                     .map(|p| p.display().to_string())
@@ -200,7 +200,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     if let Some(c) = &calibration {
         if !c["ranking"].is_array() {
             bail!(
-                "--calibration {}: no \"ranking\" (write it with `hal-sim calibrate --json`)",
+                "--calibration {}: no \"ranking\" (write it with `twinstack calibrate --json`)",
                 args.calibration
                     .as_ref()
                     .map(|p| p.display().to_string())

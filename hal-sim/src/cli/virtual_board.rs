@@ -1,4 +1,4 @@
-//! `hal-sim virtual-board --listen tcp:HOST:PORT|pty [--speed X] [--tick-rate HZ]`: the
+//! `twinstack virtual-board --listen tcp:HOST:PORT|pty [--speed X] [--tick-rate HZ]`: the
 //! simulated board and stage ([`crate::virtual_board`]) as a long-running server on a TCP port
 //! or (Unix) a pseudo-terminal, paced in real time, keeping its state from one client (`hal-sim
 //! load/stream/record/status --port tcp:HOST:PORT` or `--port /dev/pts/N`) to the next. Runs
@@ -29,7 +29,7 @@ pub struct Args {
     #[arg(long, default_value_t = DEFAULT_BAUD)]
     pub baud: u32,
     /// Serve the dual-stage board (the piezo stage on the ball screw, its coarse axis behind
-    /// `hal-sim coarse`) instead of the default one; TCP only, 50 kHz.
+    /// `twinstack coarse`) instead of the default one; TCP only, 50 kHz.
     #[arg(long)]
     pub dual_stage: bool,
 }

@@ -1,6 +1,6 @@
-//! `hal-sim waveform --port PORT --shape sine|triangle --offset O --amplitude A --frequency HZ`:
+//! `twinstack waveform --port PORT --shape sine|triangle --offset O --amplitude A --frequency HZ`:
 //! starts the board's waveform generator (normalised units, −1…1 over the model's output
-//! range; `offset ± amplitude` must stay inside it). `hal-sim stop` stops it. `--decay F
+//! range; `offset ± amplitude` must stay inside it). `twinstack stop` stops it. `--decay F
 //! [--hold-cycles N]` shrinks the amplitude by the factor `F` per cycle after `N` full ones
 //! (nested minor loops about the offset).
 
@@ -63,7 +63,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     let mut client = connect(&args.port)?;
     client.waveform(w)?;
     println!(
-        "waveform running: {:?}, offset {}, amplitude {}, {} Hz (stop with hal-sim stop)",
+        "waveform running: {:?}, offset {}, amplitude {}, {} Hz (stop with twinstack stop)",
         w.shape,
         args.offset,
         args.amplitude,

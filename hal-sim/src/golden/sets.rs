@@ -1,7 +1,7 @@
 //! The vector sets: which compensator, observer, sensor, feedback, drive and mode each one runs.
 //!
 //! The models are the micromanipulator record's (`data/micromanipulator-unipolar-
-//! 3v6-1hz.csv`, 0…3.6 V, sensor units), identified by `hal-sim identify` and committed in
+//! 3v6-1hz.csv`, 0…3.6 V, sensor units), identified by `twinstack identify` and committed in
 //! `tests/golden/params/` (see the README's "Golden vectors" for the commands), so the vectors
 //! do not depend on refitting. Every set shares one scaling: the models' common input range and
 //! the union of their output ranges (the Bouc–Wen file's left out, see `load_models`). Each

@@ -11,7 +11,7 @@
 //!
 //! A candidate that cannot be fitted (too few samples, a model the board refuses) is kept in
 //! the ranking with its reason, last. So is one the caller does not admit
-//! ([`identify_auto_admitting`]): `hal-sim calibrate` (and `identify --tick-rate`) admits
+//! ([`identify_auto_admitting`]): `twinstack calibrate` (and `identify --tick-rate`) admits
 //! only models the board's tick budget runs at the board's control rate, so that it never
 //! picks one the board refuses; a candidate too dear only by its size is fitted and scored
 //! again smaller ([`Admission::Smaller`]: fewer creep modes, fewer play operators).

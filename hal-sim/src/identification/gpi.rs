@@ -34,7 +34,7 @@ pub const DEAD_ZONES_PER_SIDE: usize = 4;
 /// Where the dead zones sit, as fractions of the measured output's half range from its centre:
 /// one within 15 % of each end, where branches saturate. Against three a side at 0.25, 0.5 and
 /// 0.75, the lab stage's worst tracking error fell on every one of its variants but one
-/// (`hal-sim lab-stage --variants`: 0.78 → 0.66 % on the default stage, 2.52 → 2.15 % with
+/// (`twinstack lab-stage --variants`: 0.78 → 0.66 % on the default stage, 2.52 → 2.15 % with
 /// a strong top saturation, 1.30 → 1.03 % with a stiff flexure; see the book,
 /// results/lab-stage.md).
 pub const DEAD_ZONE_FRACTIONS: [f64; DEAD_ZONES_PER_SIDE] = [0.15, 0.4, 0.65, 0.85];

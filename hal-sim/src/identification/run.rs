@@ -1,4 +1,4 @@
-//! `identify`'s whole job short of printing and drawing, shared by `hal-sim identify` and the
+//! `identify`'s whole job short of printing and drawing, shared by `twinstack identify` and the
 //! Python package's `twinstack.identify`: fit the model asked for (or rank every model, `auto`),
 //! score it on the fitted and the held-out part, in fixed point and against the `f64`
 //! reference, and put it in a parameter file with that record.

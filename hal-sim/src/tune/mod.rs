@@ -1,4 +1,4 @@
-//! Measured frequency response and automatic tuning (`hal-sim tune`), over any
+//! Measured frequency response and automatic tuning (`twinstack tune`), over any
 //! [`Transport`]: the simulated board, the virtual board, the emulator or a real board.
 //!
 //! 1. **Measure** ([`measure`]): stepped sines from the board's waveform generator in bypass,

@@ -1,4 +1,4 @@
-//! `hal-sim virtual-board` as a child process on an OS-picked TCP port, for the tests that
+//! `twinstack virtual-board` as a child process on an OS-picked TCP port, for the tests that
 //! drive the CLI against it (included with `#[path]` by those tests only).
 
 use std::io::{BufRead, BufReader};
@@ -15,16 +15,16 @@ impl Drop for VirtualBoard {
     }
 }
 
-/// Starts `hal-sim virtual-board --listen tcp:127.0.0.1:0` with `extra` arguments (`--speed
+/// Starts `twinstack virtual-board --listen tcp:127.0.0.1:0` with `extra` arguments (`--speed
 /// 0` runs it as fast as it goes); returns it and the `tcp:` address it printed.
 pub fn start(extra: &[&str]) -> (VirtualBoard, String) {
-    let mut child = Command::new(env!("CARGO_BIN_EXE_hal-sim"))
+    let mut child = Command::new(env!("CARGO_BIN_EXE_twinstack"))
         .args(["virtual-board", "--listen", "tcp:127.0.0.1:0"])
         .args(extra)
         .stdout(Stdio::piped())
         .stderr(Stdio::null())
         .spawn()
-        .expect("hal-sim virtual-board starts");
+        .expect("twinstack virtual-board starts");
     let stdout = child.stdout.take().expect("piped stdout");
     let board = VirtualBoard(child);
     let (tx, rx) = std::sync::mpsc::channel();

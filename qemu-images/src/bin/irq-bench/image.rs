@@ -239,7 +239,7 @@ pub mod configs {
     }
 
     /// A generalised P–I of `n` operators with all 8 dead zones: with 17, the shape
-    /// `hal-sim calibrate` (and `identify --model auto`) fits by default (17 operators, four
+    /// `twinstack calibrate` (and `identify --model auto`) fits by default (17 operators, four
     /// dead zones a side); with 32, the largest.
     fn gpi_with_eight_dead_zones(n: usize) -> Option<Model> {
         let Model::PrandtlIshlinskii(pi) = representative_pi(n).ok()? else {
@@ -273,7 +273,7 @@ pub mod configs {
                 name: "inverse-duhem+duhem-observer+pi+drift",
                 settings: closed(representative_duhem(), representative_duhem()),
             },
-            // What `hal-sim calibrate` loads by default where the model family's generalised
+            // What `twinstack calibrate` loads by default where the model family's generalised
             // P–I wins (as on the simulated lab stage): 17 operators, 8 dead zones, four creep
             // modes in series, as compensator and observer.
             2 => {
@@ -330,7 +330,7 @@ pub mod configs {
                     settings,
                 }
             }
-            // What `hal-sim calibrate --model pi` loads by default: 17 operators.
+            // What `twinstack calibrate --model pi` loads by default: 17 operators.
             6 => {
                 let pi = representative_pi(17).ok()?;
                 Config {
