@@ -155,6 +155,7 @@ impl<S: RecordStorage> CommandHandler<S> {
         let done = match request {
             Request::Status => return Response::Status(self.status(queue, control)),
             Request::Setpoints(batch) => self.setpoints(batch, queue),
+            Request::PackedSetpoints(batch) => self.setpoints(batch.into(), queue),
             Request::Stream(c) => stream(c, control),
             Request::Mode(mode) => self.mode(mode, control),
             Request::LoadParams(p) => self.load(p, control),
@@ -710,6 +711,7 @@ where
     match c {
         StreamControl::Start => control.lock(|c| c.start()),
         StreamControl::Stop => control.lock(|c| c.stop()),
+        StreamControl::Finish => control.lock(|c| c.finish()),
         StreamControl::Rate { divider } => {
             if !control.lock(|c| c.set_divider(divider)) {
                 return Err(refused(Field::Divider, Rule::AtLeast(1.0)));

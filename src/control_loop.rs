@@ -54,8 +54,16 @@ use crate::telemetry::{TelemetrySample, TelemetryTap};
 use crate::waveform::WaveformGenerator;
 
 /// Slots of the setpoint queue (`heapless` keeps one free: [`SETPOINT_CAPACITY`] setpoints
-/// fit). 1 KiB of `i16`; at 50 kHz and divider 1 it holds 10 ms of setpoints.
-pub const SETPOINT_QUEUE_LEN: usize = 512;
+/// fit). 20 000 slots, 40 008 bytes with the indices: 200 ms at 100 kHz (400 ms at 50 kHz),
+/// divider 1 — several round trips of a USB–serial adapter (whose latency timer holds bytes
+/// up to 16 ms each way) plus the host's scheduling. On the board it lives in CCM RAM
+/// ([`crate::hardware::ccm::setpoint_queue`]), taken from the recorder's CCM part. The
+/// emulator image (QEMU models no CCM) keeps 2 048 slots in SRAM: 20 ms at 100 kHz.
+pub const SETPOINT_QUEUE_LEN: usize = if cfg!(feature = "emulator") {
+    2048
+} else {
+    20_000
+};
 /// Setpoints the queue holds: the credits of an empty queue.
 pub const SETPOINT_CAPACITY: usize = SETPOINT_QUEUE_LEN - 1;
 /// The setpoint queue between the handler (producer) and the tick (consumer): Q1.15 wire
@@ -468,6 +476,11 @@ where
         self.waveform = false;
         self.stream.stop();
         self.end_scan();
+    }
+
+    /// Plays what is queued, then stops the stream (no underruns counted after its end).
+    pub fn finish(&mut self) {
+        self.stream.finish();
     }
 
     /// Ticks per streamed setpoint (interpolated in between); 0 is refused (`false`).

@@ -87,20 +87,22 @@ pub fn in_pieces<T, const N: usize>(
     Ok(())
 }
 
-/// Slots of the board's capture buffer: 52 224 16-bit values (102 KiB: 38 KiB of SRAM and the
-/// 64 KiB of CCM RAM). At 50 kHz that is 1.04 s of one signal, or 0.26 s of four. The SRAM
+/// Slots of the board's capture buffer: 31 744 16-bit values (62 KiB: 38 KiB of SRAM and 24
+/// KiB of CCM RAM; the setpoint queue has the other 40 KiB of CCM). At 50 kHz that is 0.63 s
+/// of one signal, or 0.16 s of four. The SRAM
 /// part is what the learning's tables, telemetry's queue, the scan's state and trigger I/O
 /// leave: the stack needs its reserve (`memory.x`, `_stack_reserve`) in every image, the
 /// dual-stage board image the tightest.
-pub const CAPTURE_SLOTS: usize = 51 * 1024;
+pub const CAPTURE_SLOTS: usize = 31 * 1024;
 
-/// Values of one signal a `Record` holds at most on the board (the v3 limit; each takes two
-/// slots). An image with a smaller buffer holds what it has room for, and its refusal names
-/// that figure: the QEMU image, [`EMULATOR_RECORD_CAPACITY`].
-pub const RECORD_CAPACITY: usize = 16 * 1024;
+/// Values of one signal a `Record` holds at most on the board: 15 872, the whole capture
+/// buffer at two slots a value. An image with a smaller buffer holds what it has room for,
+/// and its refusal names that figure: the QEMU image, [`EMULATOR_RECORD_CAPACITY`].
+pub const RECORD_CAPACITY: usize = CAPTURE_SLOTS / 2;
 
-/// The CCM RAM part of the board's capture buffer, slots (the whole 64 KiB).
-pub const CCM_SLOTS: usize = 32 * 1024;
+/// The CCM RAM part of the board's capture buffer, slots: 12 288, 24 KiB of the 64 KiB (the
+/// setpoint queue has the other 40 KiB).
+pub const CCM_SLOTS: usize = 12 * 1024;
 
 /// Values of one signal a `Record` holds at most in the QEMU image: 9 728. QEMU's
 /// `netduinoplus2` models no CCM RAM, so the image has the SRAM part of [`CAPTURE_SLOTS`]

@@ -70,6 +70,9 @@ pub struct SetpointStream {
     underrun: Underrun,
     waveform: Option<WaveformGenerator>,
     ramp_underruns: u32,
+    /// The host has sent its last setpoint ([`SetpointStream::finish`]): the stream stops
+    /// when the queue runs dry instead of counting underruns.
+    finishing: bool,
 }
 
 impl SetpointStream {
@@ -86,6 +89,7 @@ impl SetpointStream {
             underrun: Underrun::Hold,
             waveform: None,
             ramp_underruns: 0,
+            finishing: false,
         }
     }
 
@@ -95,9 +99,25 @@ impl SetpointStream {
         self.waveform = None;
     }
 
+    /// The queue holds the stream's last setpoints: play them, then stop (holding the last
+    /// one) when the queue runs dry, so that the ticks after the end are not underruns. Sent
+    /// before [`Self::start`] (a record queued whole), it holds for the stream that start
+    /// begins; [`Self::stop`] and the waveform cancel it.
+    pub fn finish(&mut self) {
+        if self.waveform.is_none() {
+            self.finishing = true;
+        }
+    }
+
+    /// Whether the stream stops by itself when the queue runs dry ([`Self::finish`]).
+    pub fn is_finishing(&self) -> bool {
+        self.finishing
+    }
+
     /// Stops: the setpoint holds where it is; queued samples stay queued.
     pub fn stop(&mut self) {
         self.running = false;
+        self.finishing = false;
         self.waveform = None;
         self.remaining = 0;
         self.target = self.current;
@@ -152,6 +172,7 @@ impl SetpointStream {
     pub fn play(&mut self, waveform: WaveformGenerator) {
         self.waveform = Some(waveform);
         self.running = true;
+        self.finishing = false;
     }
 
     /// Whether the stream is running.
@@ -187,6 +208,11 @@ impl SetpointStream {
                     // target, and the last tick lands on it exactly.
                     let magnitude = ((span.unsigned_abs() * self.reciprocal) >> 32) as i32;
                     self.increment = if span < 0 { -magnitude } else { magnitude };
+                }
+                None if self.finishing => {
+                    // The last setpoint has been played: the stream ends where it is.
+                    self.stop();
+                    return Some(self.current);
                 }
                 None => return self.underrun(),
             }
@@ -266,6 +292,41 @@ mod tests {
         assert_eq!(s.next(&mut c), Some(7));
         assert_eq!(c.len(), 1);
         assert!(!s.set_divider(0));
+    }
+
+    #[test]
+    fn a_finishing_stream_plays_the_queue_then_stops_without_underruns() {
+        let mut q: Queue<i16, 4> = Queue::new();
+        let (mut p, mut c) = q.split();
+        let mut s = SetpointStream::new(0);
+        s.start();
+        p.enqueue(3).unwrap();
+        p.enqueue(4).unwrap();
+        s.finish();
+        assert!(s.is_finishing());
+        assert_eq!(s.next(&mut c), Some(setpoint_from_wire(3)));
+        assert_eq!(s.next(&mut c), Some(setpoint_from_wire(4)));
+        // Dry: stopped, holding the last setpoint; never `None` (an underrun).
+        for _ in 0..3 {
+            assert_eq!(s.next(&mut c), Some(setpoint_from_wire(4)));
+        }
+        assert!(!s.is_running() && !s.is_finishing());
+        // A stream started again counts underruns as before.
+        s.start();
+        assert_eq!(s.next(&mut c), None);
+        // Finish before the start: it holds for the stream that start begins.
+        s.stop();
+        p.enqueue(5).unwrap();
+        s.finish();
+        s.start();
+        assert_eq!(s.next(&mut c), Some(setpoint_from_wire(5)));
+        assert_eq!(s.next(&mut c), Some(setpoint_from_wire(5)));
+        assert!(!s.is_running());
+        // Stop cancels it.
+        s.finish();
+        s.stop();
+        s.start();
+        assert_eq!(s.next(&mut c), None);
     }
 
     #[test]

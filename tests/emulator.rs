@@ -506,8 +506,8 @@ fn emulator_captures_a_streamed_run_with_several_signals() {
     let first = status(&mut emu);
     assert_eq!(
         first.capacity,
-        // The SRAM part only: QEMU models no CCM RAM (the board's other 32 768 slots).
-        (twinstack::recorder::CAPTURE_SLOTS - 32 * 1024) as u32,
+        // The SRAM part only: QEMU models no CCM RAM (the board's other 12 288 slots).
+        (twinstack::recorder::CAPTURE_SLOTS - 12 * 1024) as u32,
         "{first:?}"
     );
     assert_eq!(first.state, CaptureState::Armed);

@@ -85,9 +85,7 @@ fn print_report(label: &str, r: &StreamReport, tick_rate: f64, baud: Option<f64>
         r.accepted,
         seconds,
         r.accepted as f64 / seconds,
-        r.underruns_during_stream()
-            .map(|u| u.to_string())
-            .unwrap_or_else(|| "?".into()),
+        r.underruns_during_stream(),
         r.nacks.len(),
         per_setpoint,
         r.link.bytes_received as f64 / r.accepted.max(1) as f64,
@@ -183,9 +181,7 @@ fn lossy(seconds: f64) -> Result<(), String> {
             line.damaged,
             r.nacks.len(),
             r.resent_batches,
-            r.underruns_during_stream()
-                .map(|u| u.to_string())
-                .unwrap_or_else(|| "?".into()),
+            r.underruns_during_stream(),
             end.crc_errors.wrapping_sub(r.before.crc_errors),
             // Each batch taken exactly once: the board's sequence number moved by the count.
             if r.accepted == samples.len()

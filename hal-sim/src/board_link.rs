@@ -25,6 +25,55 @@ pub struct PortArgs {
     /// How long to wait for each response, milliseconds.
     #[arg(long, default_value_t = 2000, value_name = "MS")]
     pub timeout_ms: u64,
+    /// The simulated board's link (`--port sim`): the USB–serial adapter's latency each way.
+    #[command(flatten)]
+    pub link: LinkArgs,
+}
+
+/// The USB–serial adapter the simulated board is reached through (`--port sim`,
+/// `virtual-board`): every transfer, each way, is delayed by latency ± jitter (uniform). The
+/// default is an FTDI adapter's 16 ms latency timer.
+#[derive(Clone, Copy, Debug, clap::Args)]
+pub struct LinkArgs {
+    /// Latency of each transfer on the simulated board's link, each way, ms (0: ideal).
+    #[arg(long, default_value_t = 16.0, value_name = "MS")]
+    pub link_latency_ms: f64,
+    /// Jitter of that latency, ± ms (at most the latency).
+    #[arg(long, default_value_t = 4.0, value_name = "MS")]
+    pub link_jitter_ms: f64,
+}
+
+impl Default for LinkArgs {
+    /// The flags' defaults: 16 ms ± 4 ms.
+    fn default() -> Self {
+        LinkArgs {
+            link_latency_ms: 16.0,
+            link_jitter_ms: 4.0,
+        }
+    }
+}
+
+impl LinkArgs {
+    /// The delay model; a negative, non-finite or over-large value, or a jitter above the
+    /// latency, is an error naming the flag.
+    pub fn delay(&self) -> anyhow::Result<crate::sim_device::LinkDelay> {
+        let ms = |v: f64, flag: &str| -> anyhow::Result<Duration> {
+            if !(v.is_finite() && (0.0..=10_000.0).contains(&v)) {
+                anyhow::bail!("--{flag} {v}: must be a number of milliseconds from 0 to 10000");
+            }
+            Ok(Duration::from_secs_f64(v / 1e3))
+        };
+        let latency = ms(self.link_latency_ms, "link-latency-ms")?;
+        let jitter = ms(self.link_jitter_ms, "link-jitter-ms")?;
+        if jitter > latency {
+            anyhow::bail!(
+                "--link-jitter-ms {} exceeds --link-latency-ms {} (a delay cannot be negative)",
+                self.link_jitter_ms,
+                self.link_latency_ms
+            );
+        }
+        Ok(crate::sim_device::LinkDelay::new(latency, jitter)?)
+    }
 }
 
 /// A command-line mistake found after parsing (no `--port` and no `TWINSTACK_PORT`): `main`
@@ -71,8 +120,9 @@ pub fn connect(args: &PortArgs) -> anyhow::Result<BoardClient> {
         anyhow::bail!("--timeout-ms must be at least 1");
     }
     let spec = port_spec(args)?;
-    let transport = match port::open(&spec, args.baud) {
-        Ok(t) => t,
+    let link = args.link.delay()?;
+    let transport = match port::open_with_link(&spec, args.baud, link) {
+        Ok(t) => t as Box<dyn Transport>,
         Err(e @ PortError::Serial(SerialError::Missing { .. } | SerialError::Open { .. })) => {
             anyhow::bail!("{e}; {}", available_ports())
         }

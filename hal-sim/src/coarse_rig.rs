@@ -323,17 +323,20 @@ pub struct DualStageDeviceConfig {
     pub switches: SwitchPositions,
     /// UART baud rate.
     pub baud: u32,
+    /// The USB–serial adapter's delay each way.
+    pub link: crate::sim_device::LinkDelay,
 }
 
 impl DualStageDeviceConfig {
     /// The paper's stage ([`DualStageSimConfig::paper`]), the supervisor's and the switches'
-    /// defaults, 2 Mbaud.
+    /// defaults, 3 Mbaud, an ideal link.
     pub fn paper() -> Self {
         Self {
             sim: DualStageSimConfig::paper(),
             supervisor: SupervisorSettings::paper_stage(),
             switches: SwitchPositions::paper(),
-            baud: 2_000_000,
+            baud: crate::port::DEFAULT_BAUD,
+            link: crate::sim_device::LinkDelay::IDEAL,
         }
     }
 }
@@ -365,6 +368,7 @@ impl DualStageDevice {
             hw,
             Some(settings),
             config.baud,
+            config.link,
             Some(Box::new(rig) as Box<dyn CoarseAxisSim>),
         )
     }

@@ -7,11 +7,12 @@
 use crate::link::serial::{SerialError, SerialTransport};
 use crate::link::socket::SocketTransport;
 use crate::link::Transport;
-use crate::sim_device::{SimDevice, SimDeviceConfig};
+use crate::sim_device::{LinkDelay, SimDevice, SimDeviceConfig};
 use std::path::PathBuf;
 
-/// Default baud rate of the board link.
-pub const DEFAULT_BAUD: u32 = 2_000_000;
+/// Default baud rate of the board link: the board's (`twinstack::hardware::usart::BAUD`), 3
+/// Mbaud, which FT232R, CP2102N and FT232H adapters make exactly.
+pub const DEFAULT_BAUD: u32 = 3_000_000;
 
 /// Where the board is.
 #[derive(Clone, Debug, PartialEq, Eq)]
@@ -73,8 +74,8 @@ impl std::str::FromStr for PortSpec {
 
 /// Opens `spec`; `baud` sets a serial device's rate and the simulated board's modelled rate
 /// (sockets ignore it). `sim` is a fresh [`SimDevice`] (the paper's stage,
-/// [`SimDeviceConfig::paper`]) living as long as the returned transport: it starts from boot
-/// every time it is opened.
+/// [`SimDeviceConfig::paper`], on an ideal link: [`open_with_link`] puts an adapter's delay on
+/// it) living as long as the returned transport: it starts from boot every time it is opened.
 pub fn open(spec: &PortSpec, baud: u32) -> Result<Box<dyn Transport>, PortError> {
     let transport: Box<dyn Transport> = open_send(spec, baud)?;
     Ok(transport)
@@ -83,8 +84,18 @@ pub fn open(spec: &PortSpec, baud: u32) -> Result<Box<dyn Transport>, PortError>
 /// [`open`] for a caller that moves the link between threads (the Python package releases
 /// the interpreter's lock while it waits on the board): every transport is `Send`.
 pub fn open_send(spec: &PortSpec, baud: u32) -> Result<Box<dyn Transport + Send>, PortError> {
+    open_with_link(spec, baud, LinkDelay::IDEAL)
+}
+
+/// [`open_send`] with the simulated board's link behind an adapter delaying each transfer by
+/// `link` (other ports have their own).
+pub fn open_with_link(
+    spec: &PortSpec,
+    baud: u32,
+    link: LinkDelay,
+) -> Result<Box<dyn Transport + Send>, PortError> {
     Ok(match spec {
-        PortSpec::Sim => open_sim(baud)?,
+        PortSpec::Sim => open_sim(baud, link)?,
         PortSpec::Serial(path) => Box::new(SerialTransport::open(path, baud)?),
         PortSpec::Unix(path) => open_unix(path)?,
         PortSpec::Tcp(addr) => Box::new(SocketTransport::tcp(addr).map_err(PortError::Socket)?),
@@ -106,9 +117,10 @@ fn open_unix(path: &std::path::Path) -> Result<Box<dyn Transport + Send>, PortEr
     })
 }
 
-fn open_sim(baud: u32) -> Result<Box<dyn Transport + Send>, PortError> {
+fn open_sim(baud: u32, link: LinkDelay) -> Result<Box<dyn Transport + Send>, PortError> {
     let config = SimDeviceConfig {
         baud,
+        link,
         ..SimDeviceConfig::paper()
     };
     let device = SimDevice::new(config).map_err(|e| PortError::Sim(e.to_string()))?;

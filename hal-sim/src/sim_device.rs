@@ -76,6 +76,8 @@ pub struct SimDeviceConfig {
     pub board: BoardConfig,
     /// UART baud rate, both directions (10 bits per byte).
     pub baud: u32,
+    /// The USB–serial adapter between host and UART: each transfer's latency and jitter.
+    pub link: LinkDelay,
     /// What the "flash" holds at power-up: `None` (erased: the board boots on the compiled-in
     /// defaults, bypass, no model) or settings stored as the board would store them (it boots
     /// in their mode).
@@ -84,12 +86,13 @@ pub struct SimDeviceConfig {
 
 impl SimDeviceConfig {
     /// The paper's differential stage on the STM32's internal converters (12-bit DAC, 12-bit
-    /// sensor ADC spanning ±45 µm), 50 kHz, 2 Mbaud, with [`SimDeviceConfig::paper_settings`]
+    /// sensor ADC spanning ±45 µm), 50 kHz, 3 Mbaud, with [`SimDeviceConfig::paper_settings`]
     /// stored to boot in bypass.
     pub fn paper() -> Self {
         Self {
             board: BoardConfig::paper(Configuration::Differential),
-            baud: 2_000_000,
+            baud: crate::port::DEFAULT_BAUD,
+            link: LinkDelay::IDEAL,
             stored: Some(Self::paper_settings(Mode::Bypass)),
         }
     }
@@ -135,6 +138,87 @@ impl SimDeviceConfig {
     }
 }
 
+/// The delay a USB–serial adapter adds to each transfer, each way: the host's writes reach
+/// the UART, and the UART's bytes reach the host, `latency ± jitter` later (uniform, from a
+/// seeded generator: the same run every time), never out of order. An FTDI adapter's latency
+/// timer holds received bytes up to 16 ms by default; [`LinkDelay::ADAPTER`] models that
+/// bound both ways.
+///
+/// ```
+/// use std::time::Duration;
+/// use hal_sim::sim_device::LinkDelay;
+/// let link = LinkDelay::new(Duration::from_millis(16), Duration::from_millis(4)).unwrap();
+/// assert_eq!(link, LinkDelay::ADAPTER);
+/// assert!(LinkDelay::new(Duration::from_millis(1), Duration::from_millis(2)).is_err());
+/// ```
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct LinkDelay {
+    /// Mean delay of a transfer.
+    pub latency: Duration,
+    /// Largest departure from it, either way (≤ `latency`).
+    pub jitter: Duration,
+    /// Seed of the jitter's generator.
+    pub seed: u64,
+}
+
+impl LinkDelay {
+    /// No adapter: bytes take only their time on the line.
+    pub const IDEAL: LinkDelay = LinkDelay {
+        latency: Duration::ZERO,
+        jitter: Duration::ZERO,
+        seed: 1,
+    };
+    /// An FTDI-like adapter at its default latency timer: 16 ms ± 4 ms each way.
+    pub const ADAPTER: LinkDelay = LinkDelay {
+        latency: Duration::from_millis(16),
+        jitter: Duration::from_millis(4),
+        seed: 1,
+    };
+
+    /// `latency ± jitter`; a jitter larger than the latency (a negative delay) is refused.
+    pub fn new(latency: Duration, jitter: Duration) -> Result<Self, SimDeviceError> {
+        if jitter > latency {
+            return Err(SimDeviceError::Jitter { latency, jitter });
+        }
+        Ok(LinkDelay {
+            latency,
+            jitter,
+            seed: 1,
+        })
+    }
+}
+
+/// The adapter's delays: `latency ± jitter`, from xorshift64*.
+#[derive(Clone, Debug)]
+struct Delays {
+    latency_ns: u64,
+    jitter_ns: u64,
+    state: u64,
+}
+
+impl Delays {
+    fn new(link: LinkDelay) -> Self {
+        Self {
+            latency_ns: link.latency.as_nanos() as u64,
+            jitter_ns: link.jitter.as_nanos().min(link.latency.as_nanos()) as u64,
+            state: link.seed.max(1),
+        }
+    }
+
+    /// The next transfer's delay, ns.
+    fn next(&mut self) -> u64 {
+        if self.jitter_ns == 0 {
+            return self.latency_ns;
+        }
+        self.state ^= self.state >> 12;
+        self.state ^= self.state << 25;
+        self.state ^= self.state >> 27;
+        let r = self.state.wrapping_mul(0x2545_F491_4F6C_DD1D) >> 11; // 53 bits
+        let span = 2 * self.jitter_ns + 1;
+        self.latency_ns - self.jitter_ns + ((r as u128 * span as u128) >> 53) as u64
+    }
+}
+
 /// Why a simulated device could not be built.
 #[derive(Debug)]
 pub enum SimDeviceError {
@@ -148,6 +232,13 @@ pub enum SimDeviceError {
     Baud,
     /// The coarse axis of the dual-stage board could not be built (which setting, why).
     Coarse(String),
+    /// The link's jitter exceeds its latency.
+    Jitter {
+        /// The latency asked for.
+        latency: Duration,
+        /// The jitter asked for.
+        jitter: Duration,
+    },
 }
 
 impl std::fmt::Display for SimDeviceError {
@@ -158,6 +249,10 @@ impl std::fmt::Display for SimDeviceError {
             Self::Defaults(r) => write!(f, "compiled-in settings refused: {r}"),
             Self::Baud => write!(f, "baud rate must be positive"),
             Self::Coarse(e) => write!(f, "coarse axis: {e}"),
+            Self::Jitter { latency, jitter } => write!(
+                f,
+                "link jitter {jitter:?} exceeds its latency {latency:?} (a delay cannot be negative)"
+            ),
         }
     }
 }
@@ -186,8 +281,12 @@ pub struct LineCounters {
 /// The board → host line: bytes with their arrival times, and the board's two transmit
 /// buffers (a frame holds one until its last byte has left).
 struct TxLine {
+    /// Bytes with the time they reach the host (after the adapter's delay).
     bytes: VecDeque<(u64, u8)>,
     free_ns: u64,
+    /// When the last byte reaches the host: the adapter keeps the order.
+    delivered_ns: u64,
+    delays: Delays,
     /// When each frame still holding a buffer has left.
     frame_ends: VecDeque<u64>,
     byte_ns: u64,
@@ -201,9 +300,11 @@ impl TxLine {
     /// Puts `frame` on the line after what is there, not before `at`.
     fn transmit(&mut self, frame: &[u8], at: u64) {
         let start = self.free_ns.max(at);
+        let delay = self.delays.next();
         for (i, &b) in frame.iter().enumerate() {
-            self.bytes
-                .push_back((start + (i as u64 + 1) * self.byte_ns, b));
+            let arrives = (start + (i as u64 + 1) * self.byte_ns + delay).max(self.delivered_ns);
+            self.delivered_ns = arrives;
+            self.bytes.push_back((arrives, b));
         }
         self.free_ns = start + frame.len() as u64 * self.byte_ns;
         self.frame_ends.push_back(self.free_ns);
@@ -260,6 +361,8 @@ pub struct SimDevice<D = InternalDac, A = InternalAdc> {
     /// Host → board bytes and their arrival times (ns).
     rx: VecDeque<(u64, u8)>,
     rx_line_free_ns: u64,
+    /// The adapter's delays on the host → board way.
+    rx_delays: Delays,
     /// Board → host bytes and their arrival times (ns).
     tx: TxLine,
     last_report: Option<TickReport>,
@@ -277,7 +380,14 @@ impl SimDevice {
         // The control rate is a whole number of hertz, as the firmware's timer runs it (and
         // as the status report and the stored record carry it); `1 / dt` is not exactly one.
         let rate_hz = (1.0 / board.plant().dt()).round();
-        SimDevice::build(board, hardware(rate_hz), config.stored, config.baud, None)
+        SimDevice::build(
+            board,
+            hardware(rate_hz),
+            config.stored,
+            config.baud,
+            config.link,
+            None,
+        )
     }
 }
 
@@ -289,10 +399,17 @@ impl<D: AnalogDualDac, A: AnalogSensorAdc> SimDevice<D, A> {
         hw: Hardware,
         stored: Option<Settings>,
         baud: u32,
+        link: LinkDelay,
         coarse: Option<Box<dyn CoarseAxisSim>>,
     ) -> Result<Self, SimDeviceError> {
         if baud == 0 {
             return Err(SimDeviceError::Baud);
+        }
+        if link.jitter > link.latency {
+            return Err(SimDeviceError::Jitter {
+                latency: link.latency,
+                jitter: link.jitter,
+            });
         }
         let rate_hz = hw.control_rate_hz;
         // The "flash": erased, or holding the stored settings at this rate; the board boots
@@ -337,9 +454,16 @@ impl<D: AnalogDualDac, A: AnalogSensorAdc> SimDevice<D, A> {
             ticks: 0,
             rx: VecDeque::new(),
             rx_line_free_ns: 0,
+            rx_delays: Delays::new(link),
             tx: TxLine {
                 bytes: VecDeque::new(),
                 free_ns: 0,
+                delivered_ns: 0,
+                // Another stream of jitter than the other way's.
+                delays: Delays::new(LinkDelay {
+                    seed: link.seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) | 1,
+                    ..link
+                }),
                 frame_ends: VecDeque::new(),
                 byte_ns: (10_000_000_000 / baud as u64).max(1),
                 counters: LineCounters::default(),
@@ -463,9 +587,13 @@ fn board_dt_ns(rate_hz: f64) -> u64 {
 }
 
 impl<D: AnalogDualDac, A: AnalogSensorAdc> Transport for SimDevice<D, A> {
-    /// Queues `bytes` on the host → board line (returns at once; simulated time does not move).
+    /// Queues `bytes` on the host → board line, behind the adapter's delay (returns at once;
+    /// simulated time does not move).
     fn send(&mut self, bytes: &[u8]) -> io::Result<()> {
-        let mut t = self.rx_line_free_ns.max(self.now_ns);
+        // The adapter hands the write to the UART `delay` later; the UART then sends the
+        // bytes one after the other, after what it is still sending.
+        let delay = self.rx_delays.next();
+        let mut t = self.rx_line_free_ns.max(self.now_ns + delay);
         self.tx.counters.bytes_in += bytes.len() as u64;
         for &b in bytes {
             t += self.byte_ns;

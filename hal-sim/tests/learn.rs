@@ -263,8 +263,9 @@ fn what_is_left_is_the_resonance_band() {
 fn sim_port() -> hal_sim::cli::board_link::PortArgs {
     hal_sim::cli::board_link::PortArgs {
         port: Some("sim".into()),
-        baud: 2_000_000,
+        baud: 3_000_000,
         timeout_ms: 2000,
+        link: Default::default(),
     }
 }
 

@@ -131,7 +131,9 @@ fn a_stream_within_the_credits_runs_without_underrun_and_the_output_follows() {
     assert_eq!(s.next_seq, batches);
     assert_eq!(s.underruns, 0, "{s:?}");
     // Let the queue drain; then the stream runs dry and underruns are counted (hold).
-    c.dev.run_for(Duration::from_millis(30));
+    c.dev.run_for(
+        Duration::from_secs_f64(s.queue_fill as f64 / 50_000.0) + Duration::from_millis(30),
+    );
     let s = c.status();
     assert_eq!(s.queue_fill, 0);
     assert!(s.underruns > 0, "{s:?}");
@@ -197,24 +199,28 @@ fn out_of_sequence_and_over_credit_batches_are_refused_and_nothing_queued_is_los
             reason: NackReason::OutOfSequence { expected: 1 }
         }
     );
-    for seq in 1..5 {
+    // Full batches until less than one fits: 90 + k·96 queued, 37 free.
+    let k = ((SETPOINT_CAPACITY - 90) / 96) as u16;
+    assert_eq!((SETPOINT_CAPACITY - 90) % 96, 37);
+    for seq in 1..=k {
         assert!(matches!(
             c.request(&batch(seq, &[3; 96])),
             Response::Ack { .. }
         ));
     }
-    // 90 + 4·96 = 474 queued, 37 free: a full batch is refused, whole.
+    let queued = 90 + k * 96;
+    // A full batch is refused, whole.
     assert_eq!(
-        c.request(&batch(5, &[4; 96])),
+        c.request(&batch(k + 1, &[4; 96])),
         Response::Nack {
             reason: NackReason::QueueFull
         }
     );
     let s = c.status();
-    assert_eq!((s.queue_fill, s.credits, s.next_seq), (474, 37, 5));
+    assert_eq!((s.queue_fill, s.credits, s.next_seq), (queued, 37, k + 1));
     // A corrupted frame is NACKed and counted; the next one is handled.
     let mut out = [0u8; MAX_ENCODED + 1];
-    let n = frame::encode(&batch(5, &[5; 8]), &mut out).unwrap();
+    let n = frame::encode(&batch(k + 1, &[5; 8]), &mut out).unwrap();
     out[3] ^= 0x10;
     c.send_raw(&out[..n]);
     assert_eq!(
@@ -224,7 +230,7 @@ fn out_of_sequence_and_over_credit_batches_are_refused_and_nothing_queued_is_los
         }
     );
     assert!(matches!(
-        c.request(&batch(5, &[5; 8])),
+        c.request(&batch(k + 1, &[5; 8])),
         Response::Ack { credits: 29 }
     ));
     assert_eq!(c.status().crc_errors, 1);

@@ -48,7 +48,7 @@ pyo3::create_exception!(
 );
 
 // The default baud in `Board`'s signature (a literal, so Python shows it) is the CLI's.
-const _: () = assert!(DEFAULT_BAUD == 2_000_000);
+const _: () = assert!(DEFAULT_BAUD == 3_000_000);
 
 /// How often a stream asks the interpreter whether Ctrl-C was pressed.
 const SIGNAL_CHECK: Duration = Duration::from_millis(50);
@@ -616,7 +616,7 @@ fn seconds(s: f64, name: &str) -> PyResult<Duration> {
 impl Board {
     /// Connects to the board at `port` and cleans the line.
     #[new]
-    #[pyo3(signature = (port, baud=2_000_000, timeout=2.0))]
+    #[pyo3(signature = (port, baud=3_000_000, timeout=2.0))]
     fn new(py: Python<'_>, port: &str, baud: u32, timeout: f64) -> PyResult<Self> {
         let timeout = seconds(timeout, "timeout")?;
         let spec: PortSpec = port.parse().map_err(port_error)?;

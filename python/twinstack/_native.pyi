@@ -149,7 +149,7 @@ class Board:
     as a context manager, or call :meth:`close`.
     """
 
-    def __new__(cls, port: str, baud: int = 2000000, timeout: float = 2.0) -> "Board":
+    def __new__(cls, port: str, baud: int = 3000000, timeout: float = 2.0) -> "Board":
         """Opens ``port`` and cleans the line."""
     @property
     def port(self) -> str:

@@ -1,6 +1,7 @@
 //! The STM32F405's 64 KiB of core-coupled memory (CCM RAM, 0x1000_0000): reachable by the core
-//! only (no DMA), zero wait states, and otherwise unused by the image. It holds the second half
-//! of the recorder's capture buffer ([`capture_half`]).
+//! only (no DMA), zero wait states, and otherwise unused by the image. It holds the setpoint
+//! queue ([`setpoint_queue`]: 40 008 bytes, only the core touches it) and the second part of
+//! the recorder's capture buffer ([`capture_half`]: 24 KiB); 64 584 of its 65 536 bytes.
 //!
 //! `memory.x` places the `.ccmram` input sections there as a NOLOAD output section: the
 //! start-up code neither copies nor zeroes it, so the buffer is zeroed here, once, when it is
@@ -10,12 +11,30 @@ use core::mem::MaybeUninit;
 use core::sync::atomic::{AtomicBool, Ordering};
 
 use super::tick::HALF_SLOTS;
+use crate::control_loop::SetpointQueue;
 
 #[link_section = ".ccmram"]
 static mut CAPTURE_HALF: MaybeUninit<[i16; HALF_SLOTS]> = MaybeUninit::uninit();
 
+#[link_section = ".ccmram"]
+static mut SETPOINT_QUEUE: MaybeUninit<SetpointQueue> = MaybeUninit::uninit();
+
 /// Whether [`capture_half`] has handed the buffer out (in `.bss`: zeroed at start-up).
 static TAKEN: AtomicBool = AtomicBool::new(false);
+
+/// Whether [`setpoint_queue`] has handed the queue out.
+static QUEUE_TAKEN: AtomicBool = AtomicBool::new(false);
+
+/// The setpoint queue in CCM RAM, empty: `Some` the first time, `None` after.
+pub fn setpoint_queue() -> Option<&'static mut SetpointQueue> {
+    if QUEUE_TAKEN.swap(true, Ordering::AcqRel) {
+        return None;
+    }
+    // SAFETY: `QUEUE_TAKEN` lets exactly one caller through, so this is the only reference
+    // to the static ever made; it is initialised (an empty queue) before it is handed out.
+    let slot = unsafe { &mut *core::ptr::addr_of_mut!(SETPOINT_QUEUE) };
+    Some(slot.write(SetpointQueue::new()))
+}
 
 /// The CCM half of the capture buffer, zeroed: `Some` the first time, `None` after.
 pub fn capture_half() -> Option<&'static mut [i16; HALF_SLOTS]> {

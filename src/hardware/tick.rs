@@ -18,7 +18,8 @@ use super::dac::InternalDac;
 use super::trigger_pins::TriggerPins;
 use super::watchdog::Watchdog;
 
-/// The CCM part of the recorder's buffer: 32 768 slots, the whole 64 KiB of CCM RAM.
+/// The CCM part of the recorder's buffer: 12 288 slots, 24 KiB of CCM RAM (the setpoint
+/// queue takes the other 40 KiB, [`super::ccm::setpoint_queue`]).
 pub const HALF_SLOTS: usize = crate::recorder::CCM_SLOTS;
 
 /// The SRAM part of the recorder's buffer: 19 456 slots, 38 KiB (the rest of
@@ -26,7 +27,7 @@ pub const HALF_SLOTS: usize = crate::recorder::CCM_SLOTS;
 /// every image's static RAM leaves the stack its reserve (`memory.x`).
 pub const SRAM_SLOTS: usize = CAPTURE_SLOTS - HALF_SLOTS;
 
-/// The recorder's buffer: 38 KiB of SRAM, then the 64 KiB of CCM RAM on the board
+/// The recorder's buffer: 38 KiB of SRAM, then 24 KiB of CCM RAM on the board
 /// ([`super::ccm::capture_half`]); QEMU 7.2's `netduinoplus2` models no CCM, so the emulator
 /// images pass an empty second part (19 456 slots in all).
 pub type RecordBuffer = SplitStore<&'static mut [i16; SRAM_SLOTS], &'static mut [i16]>;

@@ -16,19 +16,23 @@
 //!
 //! **Transmit, emulator:** QEMU does not model DMA, so [`UsartTx`] sends the same frames
 //! through the same trait by polling TXE from the command task, with a bounded wait per byte
-//! (5 µs a byte at 2 Mbaud on a board).
+//! (3.3 µs a byte at 3 Mbaud on a board).
 
 use stm32f4xx_hal::pac::{RCC, USART1};
 
 use super::clocks::BusClocks;
 
-/// Baud rate of the host link: 2 Mbaud, exact from the board's 84 MHz APB2 (BRR = 42). (The
-/// emulator's 16 MHz HSI cannot divide down to it; QEMU ignores the divider.)
-pub const BAUD: u32 = 2_000_000;
+/// Baud rate of the host link: 3 Mbaud, exact from the board's 84 MHz APB2 (BRR = 28,
+/// USARTDIV 1.75 at 16× oversampling) and exact on the common USB–serial adapters (FT232R's and
+/// CP2102N's top rate; FT232H's 12 MHz ÷ 4): 300 000 bytes/s each way, of which 100 000
+/// setpoints/s in packed batches take 213 542 (docs: the streaming chapter). (The emulator's
+/// 16 MHz HSI cannot divide down to it; QEMU ignores the divider.)
+pub const BAUD: u32 = 3_000_000;
 /// Size of the DMA receive ring, bytes. Bursts longer than this between two drains lose data;
-/// the half-transfer interrupt drains at every half ring, so it would take
-/// `RX_BUFFER_LEN / 2` bytes inside one interrupt latency.
-pub const RX_BUFFER_LEN: usize = 256;
+/// the half-transfer and transfer-complete interrupts drain at every half ring, so a drain may
+/// start up to `RX_BUFFER_LEN / 2` byte times (512 bytes: 171 µs at 3 Mbaud, 17 ticks at
+/// 100 kHz) after its interrupt before the DMA overwrites an unread byte.
+pub const RX_BUFFER_LEN: usize = 1024;
 /// Polls of TXE per byte before [`UsartTx::write_all`] gives up (≈ 3 ms at 168 MHz, far more
 /// than one byte time at [`BAUD`]).
 const TX_SPIN_LIMIT: u32 = 100_000;

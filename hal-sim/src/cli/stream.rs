@@ -43,13 +43,10 @@ pub const EXIT_UNDERRUN: u8 = 3;
 /// A stream that completed, but ran dry on the way: `main` reports it and exits with
 /// [`EXIT_UNDERRUN`] rather than 0.
 #[derive(Debug, thiserror::Error)]
-#[error("{}", match .underruns {
-    Some(n) => format!("the stream completed with {n} underruns (the board's queue ran dry while setpoints were still to come)"),
-    None => "the stream completed, but underruns cannot be ruled out (the board's queue was empty at the status after the last batch)".to_string(),
-})]
+#[error("the stream completed with {underruns} underruns (the board's queue ran dry while setpoints were still to come)")]
 pub struct Underran {
-    /// Underruns counted during the stream, if known.
-    pub underruns: Option<u32>,
+    /// Underruns the board counted during the stream.
+    pub underruns: u32,
 }
 
 /// Arguments of `stream`.
@@ -223,12 +220,10 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         r.nacks.len(),
         r.credit_probes
     );
-    match r.underruns_during_stream() {
-        Some(u) => println!("underruns during the stream: {u}"),
-        None => println!(
-            "underruns during the stream: unknown (the queue had drained before the last status)"
-        ),
-    }
+    println!(
+        "underruns during the stream: {} (the board's counter)",
+        r.underruns_during_stream()
+    );
     println!(
         "board: {:.3} s of ticks, {} setpoints/s; overruns {}, CRC errors {}, limit hits {}",
         seconds,
@@ -249,6 +244,14 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         r.link.bytes_received,
         r.link.corrupt_frames
     );
+    if seconds > 0.0 {
+        println!(
+            "link share: host → board {:.0} bytes/s, board → host {:.0} bytes/s over the board's {:.3} s",
+            r.link.bytes_sent as f64 / seconds,
+            r.link.bytes_received as f64 / seconds,
+            seconds
+        );
+    }
     if r.drained.is_some() {
         println!("queue played out; stream stopped (output holds the last setpoint)");
     } else {

@@ -32,6 +32,9 @@ pub struct Args {
     /// `twinstack coarse`) instead of the default one; TCP only, 50 kHz.
     #[arg(long)]
     pub dual_stage: bool,
+    /// The USB–serial adapter the board is reached through (in simulated time).
+    #[command(flatten)]
+    pub link: crate::cli::board_link::LinkArgs,
 }
 
 /// Runs `virtual-board`.
@@ -59,8 +62,10 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     if args.baud == 0 {
         anyhow::bail!("--baud must be positive");
     }
+    let link = args.link.delay()?;
     let mut config = SimDeviceConfig {
         baud: args.baud,
+        link,
         ..SimDeviceConfig::paper()
     };
     config.board.plant.dt = 1.0 / args.tick_rate;
@@ -88,6 +93,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         let device = crate::coarse_rig::DualStageDevice::dual_stage(
             &crate::coarse_rig::DualStageDeviceConfig {
                 baud: args.baud,
+                link,
                 ..crate::coarse_rig::DualStageDeviceConfig::paper()
             },
         )?;

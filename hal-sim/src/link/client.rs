@@ -107,6 +107,7 @@ pub fn request_name(request: &Request) -> &'static str {
         Request::Learn(_) => "Learn",
         Request::Scan(_) => "Scan",
         Request::Trigger(_) => "Trigger",
+        Request::PackedSetpoints(_) => "Setpoints",
     }
 }
 
@@ -240,6 +241,23 @@ impl<T: Transport> Client<T> {
     pub fn send_raw(&mut self, bytes: &[u8]) -> Result<(), LinkError> {
         self.transport.send(bytes)?;
         self.counters.bytes_sent += bytes.len() as u64;
+        Ok(())
+    }
+
+    /// Encodes `requests` and sends them in one write (one transfer through a USB adapter,
+    /// so they reach the board back to back), without waiting for their responses.
+    pub fn send_together(&mut self, requests: &[Request]) -> Result<(), LinkError> {
+        let mut bytes = Vec::new();
+        let mut buf = [0u8; MAX_ENCODED + 1];
+        for request in requests {
+            let n = frame::encode(request, &mut buf).map_err(|reason| LinkError::Encode {
+                request: request_name(request),
+                reason,
+            })?;
+            bytes.extend_from_slice(&buf[..n]);
+        }
+        self.send_raw(&bytes)?;
+        self.counters.frames_sent += requests.len() as u64;
         Ok(())
     }
 

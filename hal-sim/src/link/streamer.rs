@@ -15,15 +15,21 @@
 //!   `OutOfSequence` are retried up to [`StreamOptions::max_retries`] times in a row; any other
 //!   reason ends the stream with an error that says how many setpoints were accepted.
 //!
+//! * **the end**: right behind the last batch goes `Stream(Finish)`: the board plays what is
+//!   queued and then stops by itself, so it counts no underrun after the last setpoint, and
+//!   the change of its underrun counter over the stream ([`StreamReport::underruns`]) is
+//!   exactly the stream's underruns.
+//!
 //! Setpoints are Q1.15 normalised displacement (the wire format,
-//! [`twinstack::protocol::messages`]).
+//! [`twinstack::protocol::messages`]), sent as [`Request::PackedSetpoints`]: two bytes a
+//! setpoint whatever its value.
 
 use super::client::{request_name, Client, LinkCounters, LinkError};
 use super::Transport;
 use std::collections::VecDeque;
 use std::time::Duration;
 use twinstack::protocol::messages::{
-    NackReason, Request, Response, SetpointBatch, StatusReport, StreamControl, UnderrunPolicy,
+    NackReason, PackedBatch, Request, Response, StatusReport, StreamControl, UnderrunPolicy,
     MAX_BATCH,
 };
 
@@ -90,29 +96,21 @@ pub struct StreamReport {
 }
 
 impl StreamReport {
-    /// Underruns counted by the board while the stream still had setpoints to deliver: up to
-    /// the status taken right after the last batch's ACK (from then on the queue only
-    /// drains, so none can happen before it is empty). `None` if the queue was already empty
-    /// at that status and the count is not zero (then it may include ticks after the end).
-    /// `Some(0)` when the whole record was queued before the start ([`Self::primed_whole`]):
-    /// the queue could not run dry before its end.
-    pub fn underruns_during_stream(&self) -> Option<u32> {
-        let counted = self
-            .after_last_batch
+    /// Underruns of the stream: the change of the board's underrun counter from the status
+    /// before the stream to the status after its last batch and its `Finish` were answered.
+    /// Exact: the stream was stopped when the first status was taken (nothing counted
+    /// before its start), and once `Finish` is in force the board stops at the end of the
+    /// queue instead of counting (nothing counted after the last setpoint), so every tick
+    /// counted between the two ran dry while setpoints were still to come.
+    pub fn underruns_during_stream(&self) -> u32 {
+        self.after_last_batch
             .underruns
-            .wrapping_sub(self.before.underruns);
-        if self.primed_whole {
-            Some(0)
-        } else {
-            (self.after_last_batch.queue_fill > 0 || self.accepted == 0 || counted == 0)
-                .then_some(counted)
-        }
+            .wrapping_sub(self.before.underruns)
     }
 
-    /// The stream ran dry while it still had setpoints to deliver, or that cannot be ruled
-    /// out ([`Self::underruns_during_stream`] is `None`).
+    /// The stream ran dry while it still had setpoints to deliver.
     pub fn underran(&self) -> bool {
-        self.underruns_during_stream() != Some(0)
+        self.underruns_during_stream() != 0
     }
 }
 
@@ -132,8 +130,14 @@ pub struct StreamError {
 }
 
 enum InFlight {
-    Batch { first: usize, len: usize, seq: u16 },
+    Batch {
+        first: usize,
+        len: usize,
+        seq: u16,
+    },
     Probe,
+    /// A `Stream` request, answered with an ACK.
+    Control,
 }
 
 fn retryable(reason: &NackReason) -> bool {
@@ -203,7 +207,13 @@ fn run<T: Transport>(
     stop: &mut impl FnMut() -> bool,
 ) -> Result<StreamReport, LinkError> {
     let link_before = client.counters();
-    let before = client.status()?;
+    let mut before = client.status()?;
+    if before.flags & StatusReport::STREAMING != 0 {
+        // A stream left running (one not finished): stop it, so that the board counts no
+        // underrun of it against this one.
+        client.stream(StreamControl::Stop)?;
+        before = client.status()?;
+    }
     let capacity = before.queue_fill as usize + before.credits as usize;
     if capacity == 0 {
         return Err(LinkError::Unexpected {
@@ -249,6 +259,8 @@ fn run<T: Transport>(
     let mut rewinding = false; // a batch was refused: waiting out the ones sent after it
     let mut retries = 0u32;
     let mut started = false;
+    // `Stream(Finish)` sent behind the last batch (sent again if that batch is resent).
+    let mut finish_sent = false;
     // Waiting for room without a batch accepted: bounded by the response timeout plus twice
     // the time the board needs to play a full queue.
     let mut stalled = Duration::ZERO;
@@ -268,7 +280,10 @@ fn run<T: Transport>(
         // Done once everything is acknowledged *and* the stream has been started: a record
         // no longer than the free queue is acknowledged in full before it is ever blocked,
         // and must still be started (the `Start` below) rather than left queued.
-        if next == samples.len() && in_flight.is_empty() && (started || samples.is_empty()) {
+        if next == samples.len()
+            && in_flight.is_empty()
+            && ((started && finish_sent) || samples.is_empty())
+        {
             break;
         }
         // Send what the credits allow.
@@ -279,7 +294,7 @@ fn run<T: Transport>(
                 blocked = true;
                 break;
             }
-            let batch = SetpointBatch {
+            let batch = PackedBatch {
                 seq,
                 samples: heapless::Vec::from_slice(&samples[next..next + want]).map_err(|_| {
                     LinkError::Encode {
@@ -288,7 +303,16 @@ fn run<T: Transport>(
                     }
                 })?,
             };
-            client.send(&Request::Setpoints(batch))?;
+            let last = next + want == samples.len();
+            if last && started && !finish_sent {
+                // The last batch and `Finish` in one write: they reach the board together.
+                client.send_together(&[
+                    Request::PackedSetpoints(batch),
+                    Request::Stream(StreamControl::Finish),
+                ])?;
+            } else {
+                client.send(&Request::PackedSetpoints(batch))?;
+            }
             let slot = next / batch_max;
             if sent_ever.get(slot).copied().unwrap_or(false) {
                 report.resent_batches += 1;
@@ -305,6 +329,10 @@ fn run<T: Transport>(
             report.max_unacked = report.max_unacked.max(unacked);
             next += want;
             seq = seq.wrapping_add(1);
+            if last && started && !finish_sent {
+                in_flight.push_back(InFlight::Control);
+                finish_sent = true;
+            }
         }
         // The queue is primed (full, or the whole record is in it): start playing.
         if !started
@@ -313,10 +341,29 @@ fn run<T: Transport>(
             && !rewinding
             && (blocked || next == samples.len())
         {
-            client.stream(StreamControl::Start)?;
-            started = true;
+            // Not waited for. With the whole record queued, `Finish` goes first, in the same
+            // write: it is in force before the stream starts.
             report.primed_whole = next == samples.len();
-            continue;
+            if report.primed_whole {
+                client.send_together(&[
+                    Request::Stream(StreamControl::Finish),
+                    Request::Stream(StreamControl::Start),
+                ])?;
+                in_flight.push_back(InFlight::Control);
+                in_flight.push_back(InFlight::Control);
+                finish_sent = true;
+            } else {
+                client.send(&Request::Stream(StreamControl::Start))?;
+                in_flight.push_back(InFlight::Control);
+            }
+            started = true;
+        }
+        // Everything is sent and the stream plays: the board is to stop at the end of the
+        // queue rather than count its empty ticks as underruns.
+        if started && !finish_sent && !rewinding && next == samples.len() {
+            client.send(&Request::Stream(StreamControl::Finish))?;
+            in_flight.push_back(InFlight::Control);
+            finish_sent = true;
         }
         if in_flight.is_empty() {
             // Out of credits with nothing to wait for: let the board play a batch's worth,
@@ -340,6 +387,7 @@ fn run<T: Transport>(
         let name = match head {
             InFlight::Batch { .. } => "Setpoints",
             InFlight::Probe => request_name(&Request::Status),
+            InFlight::Control => "Stream",
         };
         let response = client
             .receive(client.timeout())?
@@ -371,6 +419,9 @@ fn run<T: Transport>(
                     report.nacks.push(reason);
                     retries += 1;
                     rewinding = true;
+                    // The batches from the refused one are sent again, and `Finish` after
+                    // the last of them.
+                    finish_sent = false;
                     next = first;
                     seq = match reason {
                         NackReason::OutOfSequence { expected } => expected,
@@ -379,6 +430,13 @@ fn run<T: Transport>(
                 }
             }
             (InFlight::Probe, Response::Status(s)) => granted = s.credits as usize,
+            (InFlight::Control, Response::Ack { .. }) => {}
+            (InFlight::Control, Response::Nack { reason }) => {
+                return Err(LinkError::Nack {
+                    request: "Stream",
+                    reason,
+                })
+            }
             // A status request damaged on the line: nothing happened, ask again.
             (
                 InFlight::Probe,
@@ -409,6 +467,17 @@ fn run<T: Transport>(
     }
     report.accepted = *accepted;
     report.after_last_batch = client.status()?;
+    let end = report.after_last_batch;
+    if end.flags & StatusReport::STREAMING == 0 && end.queue_fill > 0 {
+        // A `Finish` in force while a refused batch was resent let the queue end early.
+        return Err(LinkError::Unexpected {
+            request: "Status",
+            got: format!(
+                "the stream stopped with {} setpoints still queued (its end came before a resent batch)",
+                end.queue_fill
+            ),
+        });
+    }
     if options.drain {
         // Bounded wait: the queue plays in fill × divider ticks; allow twice that plus a
         // second before deciding the board is not playing it.
@@ -416,7 +485,7 @@ fn run<T: Transport>(
         let budget = status.queue_fill as f64 * options.divider as f64 * tick * 2.0 + 1.0;
         let step = (batch_max as f64 * options.divider as f64 * tick).max(1e-3);
         let mut waited = 0.0;
-        while status.queue_fill > 0 {
+        while status.queue_fill > 0 || status.flags & StatusReport::STREAMING != 0 {
             stopped(stop)?;
             if waited > budget {
                 return Err(LinkError::Unexpected {

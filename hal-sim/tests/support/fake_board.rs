@@ -23,6 +23,8 @@ pub struct FakeBoard {
     pub capacity: usize,
     pub rate: f64,
     pub running: bool,
+    /// `Stream(Finish)` in force: stop at the end of the queue instead of underrunning.
+    pub finishing: bool,
     pub expected_seq: u16,
     pub ticks: u64,
     /// Simulated time, seconds.
@@ -64,6 +66,7 @@ impl FakeBoard {
             capacity,
             rate,
             running: false,
+            finishing: false,
             expected_seq: 0,
             ticks: 0,
             time: 0.0,
@@ -121,8 +124,14 @@ impl FakeBoard {
                 next_seq: self.status_seq.unwrap_or(self.expected_seq),
                 tick_rate_hz: self.rate as u32,
                 recorded: self.recording.len() as u32,
+                flags: if self.running {
+                    StatusReport::STREAMING
+                } else {
+                    0
+                },
                 ..StatusReport::default()
             }),
+            Request::PackedSetpoints(b) => self.handle(Request::Setpoints(b.into())),
             Request::Setpoints(b) => {
                 let n = self.setpoint_requests;
                 self.setpoint_requests += 1;
@@ -152,7 +161,11 @@ impl FakeBoard {
             Request::Stream(c) => {
                 match c {
                     StreamControl::Start => self.running = true,
-                    StreamControl::Stop => self.running = false,
+                    StreamControl::Stop => {
+                        self.running = false;
+                        self.finishing = false;
+                    }
+                    StreamControl::Finish => self.finishing = true,
                     StreamControl::Rate { divider: 0 } => {
                         return Response::Nack {
                             reason: NackReason::Refused(Refusal::new(
@@ -201,6 +214,10 @@ impl FakeBoard {
             if self.running {
                 match self.queue.pop_front() {
                     Some(s) => self.played.push(s),
+                    None if self.finishing => {
+                        self.running = false;
+                        self.finishing = false;
+                    }
                     None => self.underruns += 1,
                 }
             }

@@ -1,0 +1,134 @@
+//! Streaming over a realistic link: the simulated board behind a USB–serial adapter's latency
+//! and jitter ([`LinkDelay::ADAPTER`], 16 ms ± 4 ms each way), at 50 kHz and 100 kHz with
+//! divider 1. The streamer's underrun count is the board's own counter, read here straight
+//! from the board (not over the link). Time is simulated: these are counts, not timings.
+
+use std::time::Duration;
+
+use hal_sim::link::client::Client;
+use hal_sim::link::streamer::{stream_setpoints, StreamOptions, StreamReport};
+use hal_sim::sim_device::{LinkDelay, SimDevice, SimDeviceConfig};
+use twinstack::control_loop::SETPOINT_CAPACITY;
+use twinstack::protocol::messages::{Request, Response, UnderrunPolicy};
+
+fn device(rate_hz: f64, baud: u32, link: LinkDelay) -> Client<SimDevice> {
+    let mut config = SimDeviceConfig {
+        baud,
+        link,
+        ..SimDeviceConfig::paper()
+    };
+    config.board.plant.dt = 1.0 / rate_hz;
+    Client::new(SimDevice::new(config).expect("device"))
+}
+
+/// A full-range triangle, `n` setpoints, `period` setpoints a cycle: most samples need three
+/// bytes as varints, two packed.
+fn triangle(n: usize, period: usize) -> Vec<i16> {
+    (0..n)
+        .map(|i| {
+            let phase = (i % period) as f64 / period as f64;
+            let x = if phase < 0.5 {
+                4.0 * phase - 1.0
+            } else {
+                3.0 - 4.0 * phase
+            };
+            (0.95 * x * 32767.0).round() as i16
+        })
+        .collect()
+}
+
+/// Streams `samples` (hold policy) and checks the report's count against the board's own
+/// counter, then returns the report.
+fn stream_and_check(client: &mut Client<SimDevice>, samples: &[i16]) -> StreamReport {
+    let before = client.transport().control().telemetry().underruns;
+    let options = StreamOptions {
+        underrun: Some(UnderrunPolicy::Hold),
+        ..StreamOptions::default()
+    };
+    let r = stream_setpoints(client, samples, &options, |_| {}).expect("stream");
+    assert_eq!(r.accepted, samples.len());
+    let dev = client.transport();
+    let counted = dev.control().telemetry().underruns.wrapping_sub(before);
+    assert_eq!(
+        r.underruns_during_stream(),
+        counted,
+        "the streamer's count is the board's counter: {r:?}"
+    );
+    assert!(!dev.control().telemetry().streaming, "the stream ended");
+    r
+}
+
+#[test]
+fn streams_at_50_and_100_khz_through_an_adapter_s_latency_never_run_dry() {
+    for rate in [50_000.0, 100_000.0] {
+        let mut client = device(rate, hal_sim::port::DEFAULT_BAUD, LinkDelay::ADAPTER);
+        // Two seconds: ten queues' worth at 100 kHz, twenty at 50 kHz.
+        let n = (2.0 * rate) as usize;
+        let samples = triangle(n, 5000);
+        let r = stream_and_check(&mut client, &samples);
+        assert_eq!(r.underruns_during_stream(), 0, "{rate} Hz: {r:?}");
+        assert!(!r.primed_whole, "the stream outlasted the queue");
+        assert!(r.nacks.is_empty(), "{:?}", r.nacks);
+        // Pipelined: far more than one batch in flight to cover the round trip.
+        assert!(r.max_unacked > 10 * 96, "{rate} Hz: {r:?}");
+        // The board played every setpoint: it ticked at least once per setpoint.
+        let end = r.drained.expect("drained");
+        assert!(end.ticks.wrapping_sub(r.before.ticks) as usize >= n);
+        // Two bytes and a bit a setpoint on the line (packed batches), whatever the values.
+        let per = r.link.bytes_sent as f64 / n as f64;
+        assert!(per < 2.2, "{per} bytes a setpoint");
+    }
+}
+
+#[test]
+fn a_link_too_slow_for_the_rate_underruns_and_the_count_is_the_board_s() {
+    // 1 Mbaud carries 100 000 bytes/s: under 47 000 packed setpoints/s, for a 100 kHz
+    // stream. The queue primes full, then runs dry again and again.
+    let mut client = device(100_000.0, 1_000_000, LinkDelay::ADAPTER);
+    let samples = triangle(SETPOINT_CAPACITY + 30_000, 4000);
+    let r = stream_and_check(&mut client, &samples);
+    assert!(r.underruns_during_stream() > 10_000, "{r:?}");
+    // The ticks after the end are not counted: the stream finished by itself.
+    let dev = client.transport();
+    let after = dev.control().telemetry().underruns;
+    client.wait(Duration::from_millis(50)).unwrap();
+    assert_eq!(client.transport().control().telemetry().underruns, after);
+}
+
+#[test]
+fn the_adapter_s_latency_is_on_every_round_trip() {
+    for (link, at_least, below) in [
+        (LinkDelay::IDEAL, Duration::ZERO, Duration::from_millis(1)),
+        (
+            LinkDelay::ADAPTER,
+            Duration::from_millis(24),
+            Duration::from_millis(41),
+        ),
+    ] {
+        let mut client = device(50_000.0, 3_000_000, link);
+        for _ in 0..5 {
+            let start = client.transport().now();
+            assert!(matches!(
+                client.request(&Request::Status).unwrap(),
+                Response::Status(_)
+            ));
+            let rtt = client.transport().now() - start;
+            assert!(rtt >= at_least && rtt < below, "{link:?}: {rtt:?}");
+        }
+    }
+}
+
+#[test]
+fn a_jitter_larger_than_the_latency_is_refused() {
+    let e = LinkDelay::new(Duration::from_millis(2), Duration::from_millis(3)).unwrap_err();
+    assert!(e.to_string().contains("exceeds its latency"), "{e}");
+    let config = SimDeviceConfig {
+        link: LinkDelay {
+            latency: Duration::from_millis(1),
+            jitter: Duration::from_millis(2),
+            seed: 7,
+        },
+        ..SimDeviceConfig::paper()
+    };
+    assert!(SimDevice::new(config).is_err());
+}
