@@ -85,6 +85,9 @@ enum Command {
     /// Serve the simulated board over TCP (tcp:HOST:PORT), paced in real time, keeping its
     /// state from one command to the next (--port tcp:HOST:PORT), until killed.
     VirtualBoard(cli::virtual_board::Args),
+    /// Share one board among several clients over TCP (tcp:HOST:PORT): one owns the stream
+    /// and settings at a time, the others read (status, telemetry, records), until killed.
+    Serve(cli::serve::Args),
 }
 
 fn main() -> std::process::ExitCode {
@@ -143,6 +146,7 @@ fn main() -> std::process::ExitCode {
         Command::DualStage(a) => cli::dual_stage::run(a),
         Command::LabStage(a) => cli::lab_stage::run(a),
         Command::VirtualBoard(a) => cli::virtual_board::run(a),
+        Command::Serve(a) => cli::serve::run(a),
         Command::Tune(a) => cli::tune::run(a),
         Command::Coarse(a) => cli::coarse::run(a),
     };

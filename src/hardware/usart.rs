@@ -30,9 +30,9 @@ use super::clocks::BusClocks;
 pub const BAUD: u32 = 3_000_000;
 /// Size of the DMA receive ring, bytes. Bursts longer than this between two drains lose data;
 /// the half-transfer and transfer-complete interrupts drain at every half ring, so a drain may
-/// start up to `RX_BUFFER_LEN / 2` byte times (512 bytes: 171 µs at 3 Mbaud, 17 ticks at
+/// start up to `RX_BUFFER_LEN / 2` byte times (256 bytes: 853 µs at 3 Mbaud, 85 ticks at
 /// 100 kHz) after its interrupt before the DMA overwrites an unread byte.
-pub const RX_BUFFER_LEN: usize = 1024;
+pub const RX_BUFFER_LEN: usize = 512;
 /// Polls of TXE per byte before [`UsartTx::write_all`] gives up (≈ 3 ms at 168 MHz, far more
 /// than one byte time at [`BAUD`]).
 const TX_SPIN_LIMIT: u32 = 100_000;

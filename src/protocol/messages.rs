@@ -480,6 +480,10 @@ pub enum NackReason {
     NothingStored,
     /// Writing the flash record failed (erase or program error, or the read-back differs).
     StoreFailed,
+    /// Sent by a host-side server sharing the board among several clients, never by the
+    /// board: another client owns what this request changes (the stream and settings, or the
+    /// telemetry); this client may read.
+    NotOwner,
 }
 
 /// Status and telemetry. Counters count since start-up and wrap after 2^32 events.

@@ -40,6 +40,7 @@ pub mod params;
 pub mod progress;
 pub mod record;
 pub mod scan;
+pub mod serve;
 pub mod status;
 pub mod stop;
 pub mod stream;

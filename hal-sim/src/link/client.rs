@@ -143,6 +143,7 @@ pub fn nack_text(reason: &NackReason) -> String {
         }
         NackReason::NothingStored => "no valid settings are stored in flash".into(),
         NackReason::StoreFailed => "writing the flash record failed".into(),
+        NackReason::NotOwner => "another client of the server owns the board's stream and settings (or its telemetry): this one may only read (status, records, settings)".into(),
     }
 }
 

@@ -10,9 +10,12 @@
 //!   recorder read-back;
 //! * [`streamer`] — [`streamer::stream_setpoints`]: batches within credits, sequence numbers,
 //!   go-back-N after a refusal;
+//! * [`server`] — [`server::serve`]: one board link shared by several TCP clients, one
+//!   owner of the stream and settings at a time;
 
 pub mod client;
 pub mod serial;
+pub mod server;
 pub mod socket;
 pub mod streamer;
 pub mod transport;

@@ -66,12 +66,12 @@ mod app {
         FrameLink, TelemetryQueue, TelemetrySample, TELEMETRY_QUEUE_LEN,
     };
 
-    /// Received bytes waiting for the command handler: 4 095 bytes, 13.6 ms of the line at 3
-    /// Mbaud, two of the largest frames (1 575 bytes with its delimiter) and more: a frame sent
-    /// back to back at line rate is received whole while the command task is kept from
-    /// draining the queue (the receive interrupt outranks it; in QEMU a burst from the host
-    /// starves it until the burst ends) for up to 13.6 ms (the streaming chapter's analysis).
-    const RX_QUEUE: usize = 4096;
+    /// Received bytes waiting for the command handler: 2 047 bytes, 6.8 ms of the line at 3
+    /// Mbaud: the largest frame (1 575 bytes with its delimiter) whole, with 472 bytes to
+    /// spare, while the command task is kept from draining the queue (the receive interrupt
+    /// outranks it; in QEMU a burst from the host starves it until the burst ends). The
+    /// streaming chapter has the analysis.
+    const RX_QUEUE: usize = 2048;
 
     /// The parameter storage: flash sector 11 on the board; read-only in the emulator (QEMU
     /// does not model the flash interface).

@@ -1,0 +1,191 @@
+//! Several clients on one board through the server ([`hal_sim::link::server::serve`]): a
+//! stream beside a 10 Hz status poller, telemetry beside a stream, and a second writer
+//! refused with the reason. The board is the simulated one behind an adapter's 16 ms ± 4 ms,
+//! run by the server in step with the wall clock; the clients are TCP clients, as the CLI and
+//! the Python package are. The assertions are counts (answers, underruns, samples), not
+//! timings.
+
+use std::net::TcpListener;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+use std::thread;
+use std::time::Duration;
+
+use hal_sim::link::client::{Client, LinkError};
+use hal_sim::link::server::{serve, ServeReport};
+use hal_sim::link::socket::SocketTransport;
+use hal_sim::link::streamer::{stream_setpoints, StreamOptions};
+use hal_sim::sim_device::{LinkDelay, SimDevice, SimDeviceConfig};
+use twinstack::protocol::messages::{Mode, NackReason, StreamControl, UnderrunPolicy};
+
+struct Server {
+    address: String,
+    stop: Arc<AtomicBool>,
+    handle: thread::JoinHandle<(SimDevice, ServeReport)>,
+}
+
+impl Server {
+    fn start() -> Server {
+        let listener = TcpListener::bind("127.0.0.1:0").unwrap();
+        let address = format!("127.0.0.1:{}", listener.local_addr().unwrap().port());
+        let stop = Arc::new(AtomicBool::new(false));
+        let flag = stop.clone();
+        let handle = thread::spawn(move || {
+            let config = SimDeviceConfig {
+                link: LinkDelay::ADAPTER,
+                ..SimDeviceConfig::paper()
+            };
+            let mut device = SimDevice::new(config).unwrap();
+            let report = serve(listener, &mut device, &flag).expect("serve");
+            (device, report)
+        });
+        Server {
+            address,
+            stop,
+            handle,
+        }
+    }
+
+    fn client(&self) -> Client<SocketTransport> {
+        let mut c = Client::new(SocketTransport::tcp(&self.address).unwrap());
+        c.set_timeout(Duration::from_secs(10));
+        c
+    }
+
+    fn finish(self) -> (SimDevice, ServeReport) {
+        self.stop.store(true, Ordering::Relaxed);
+        self.handle.join().unwrap()
+    }
+}
+
+fn sine(n: usize) -> Vec<i16> {
+    (0..n)
+        .map(|i| (0.9 * (i as f64 * 2e-3).sin() * 32767.0) as i16)
+        .collect()
+}
+
+/// A stream of `n` setpoints by one client while `beside` runs on another (in a thread,
+/// until the stream ends); returns the stream's underruns (checked against the board's
+/// counter), what `beside` returned, and the server's report.
+fn stream_beside<R: Send + 'static>(
+    n: usize,
+    beside: impl FnOnce(Client<SocketTransport>, Arc<AtomicBool>) -> R + Send + 'static,
+) -> (u32, R, ServeReport) {
+    let server = Server::start();
+    let mut streamer = server.client();
+    // The stream's client owns the board from its first write on (the rate, the policy).
+    let done = Arc::new(AtomicBool::new(false));
+    let other = server.client();
+    let flag = done.clone();
+    let options = StreamOptions {
+        underrun: Some(UnderrunPolicy::Hold),
+        ..StreamOptions::default()
+    };
+    // The stream's first write makes its client the owner before the other one starts.
+    streamer.set_mode(Mode::Bypass).unwrap();
+    let side = thread::spawn(move || beside(other, flag));
+    let r = stream_setpoints(&mut streamer, &sine(n), &options, |_| {}).expect("stream");
+    done.store(true, Ordering::Relaxed);
+    let side = side.join().unwrap();
+    assert_eq!(r.accepted, n);
+    let (device, report) = server.finish();
+    let counted = device.control().telemetry().underruns;
+    assert_eq!(
+        r.underruns_during_stream(),
+        counted.wrapping_sub(r.before.underruns),
+        "the streamer's count is the board's counter"
+    );
+    (r.underruns_during_stream(), side, report)
+}
+
+#[test]
+fn a_stream_and_a_10_hz_status_poller_share_the_board_and_nothing_is_lost() {
+    let (underruns, (polls, answers, ticks), report) = stream_beside(40_000, |mut poller, done| {
+        let (mut polls, mut answers, mut ticks) = (0u32, 0u32, Vec::new());
+        while !done.load(Ordering::Relaxed) {
+            polls += 1;
+            let s = poller.status().expect("every poll is answered");
+            answers += 1;
+            ticks.push(s.ticks);
+            thread::sleep(Duration::from_millis(100));
+        }
+        (polls, answers, ticks)
+    });
+    assert_eq!(underruns, 0);
+    assert!(
+        polls >= 3,
+        "the poller ran beside the stream: {polls} polls"
+    );
+    assert_eq!(polls, answers);
+    // Each poll got its own answer: the board's time only moves on.
+    assert!(ticks.windows(2).all(|w| w[1] > w[0]), "{ticks:?}");
+    assert_eq!(report.refused, 0);
+    assert_eq!(report.unmatched, 0);
+}
+
+#[test]
+fn telemetry_runs_beside_a_stream_owned_by_another_client() {
+    let (underruns, frames, _) = stream_beside(40_000, |mut viewer, done| {
+        // Setpoint and sensor, every 10th tick: 10 000 values/s.
+        viewer
+            .start_telemetry(0b1001, 10)
+            .expect("telemetry is the viewer's");
+        let mut frames = Vec::new();
+        while !done.load(Ordering::Relaxed) {
+            frames.extend(viewer.collect_telemetry(Duration::from_millis(50)).unwrap());
+        }
+        viewer.stop_telemetry().unwrap();
+        frames.extend(
+            viewer
+                .collect_telemetry(Duration::from_millis(200))
+                .unwrap(),
+        );
+        frames
+    });
+    assert_eq!(underruns, 0);
+    assert!(frames.len() > 20, "{} telemetry frames", frames.len());
+    // Consecutive, nothing lost on the board or on the way.
+    assert!(frames.iter().all(|f| f.lost == 0));
+    assert!(frames
+        .windows(2)
+        .all(|w| w[1].seq == w[0].seq.wrapping_add(1)));
+}
+
+#[test]
+fn a_second_writer_is_refused_with_the_reason_and_may_still_read() {
+    let server = Server::start();
+    let mut owner = server.client();
+    let mut other = server.client();
+    owner.stream(StreamControl::Rate { divider: 2 }).unwrap();
+    // The other client may read …
+    assert!(other.status().is_ok());
+    assert!(other.read_params().is_ok());
+    // … but not change the stream, the mode or the settings.
+    for e in [
+        other.stream(StreamControl::Start).unwrap_err(),
+        other.set_mode(Mode::OpenLoop).unwrap_err(),
+    ] {
+        assert!(
+            matches!(
+                e,
+                LinkError::Nack {
+                    reason: NackReason::NotOwner,
+                    ..
+                }
+            ),
+            "{e}"
+        );
+        assert!(e.to_string().contains("another client"), "{e}");
+    }
+    // Once the owner leaves, the other client may take over.
+    drop(owner);
+    let mut tries = 0;
+    while other.stream(StreamControl::Stop).is_err() {
+        tries += 1;
+        assert!(tries < 100, "the ownership was not released");
+        thread::sleep(Duration::from_millis(20));
+    }
+    let (_, report) = server.finish();
+    assert!(report.refused >= 2, "{report:?}");
+    assert_eq!(report.clients, 2);
+}
