@@ -619,3 +619,84 @@ fn tune_runs_its_sweep_on_the_emulated_firmware_and_stops_cleanly_without_a_stag
     let (_, status, _) = hal_sim(&["status", "--port", &port, "--json"]);
     assert!(status.contains("\"mode\":\"bypass\""), "{status}");
 }
+
+/// The largest settings the protocol carries (two generalised P–I models of 32 operators and
+/// 8 dead zones, the feedback's notch, the input shaping): the largest frame there is.
+fn largest_settings() -> twinstack::settings::Settings {
+    use twinstack::notch::NotchDesign;
+    use twinstack::settings::{representative_gpi, Model};
+    let Model::GeneralisedPi(mut g) = representative_gpi(32).unwrap() else {
+        unreachable!()
+    };
+    g.dead_zones = twinstack::generalised_pi::DeadZoneParams::new(
+        35.0,
+        1.0,
+        &[-32.0, -24.0, -16.0, -8.0, 8.0, 16.0, 24.0, 32.0],
+        &[-0.1, -0.1, -0.1, -0.05, 0.05, 0.1, 0.15, 0.1],
+    )
+    .unwrap();
+    let mut s = hal_sim::sim_device::SimDeviceConfig::paper_settings(Mode::OpenLoop);
+    s.compensator = Some(Model::GeneralisedPi(g.clone()));
+    s.observer = Some(Model::GeneralisedPi(g));
+    if let Some(f) = s.feedback.as_mut() {
+        f.notch = Some(NotchDesign {
+            frequency_hz: 1000.0,
+            q: 2.0,
+            depth: 0.1,
+        });
+    }
+    if let Some(sensor) = s.sensor.as_mut() {
+        sensor.drift_limit = Some(0.1);
+    }
+    s.shaping = Some(NotchDesign {
+        frequency_hz: 2_000.0,
+        q: 0.5,
+        depth: 0.0173,
+    });
+    s
+}
+
+/// A frame as large as the protocol allows, sent in one write at the link's full rate (no
+/// pacing), is received whole: the board answers it (accepted or refused on its fields, never
+/// a damaged or lost frame), five times in a row, each followed at once by a status request.
+#[test]
+fn the_largest_load_sent_unpaced_is_received_whole() {
+    let qemu = boot();
+    let mut client = connect(&qemu);
+    let load = Request::LoadParams(largest_settings());
+    let mut out = [0u8; MAX_ENCODED + 1];
+    let n = frame::encode(&load, &mut out).expect("fits a frame");
+    assert!(n > 1_500, "{n} bytes: not the largest frame");
+    let mut status = [0u8; 64];
+    let m = frame::encode(&Request::Status, &mut status).unwrap();
+    let before = client.status().unwrap();
+    for attempt in 0..5 {
+        // The load and a status request back to back, one write.
+        let mut bytes = out[..n].to_vec();
+        bytes.extend_from_slice(&status[..m]);
+        client.send_raw(&bytes).unwrap();
+        let answer = client
+            .receive(Duration::from_secs(10))
+            .unwrap()
+            .unwrap_or_else(|| panic!("attempt {attempt}: the load got no answer"));
+        assert!(
+            !matches!(
+                answer,
+                Response::Nack {
+                    reason: NackReason::Frame(_)
+                }
+            ),
+            "attempt {attempt}: {answer:?}"
+        );
+        assert!(
+            matches!(
+                client.receive(Duration::from_secs(10)).unwrap(),
+                Some(Response::Status(_))
+            ),
+            "attempt {attempt}: the status behind the load was lost"
+        );
+    }
+    let after = client.status().unwrap();
+    assert_eq!(after.crc_errors, before.crc_errors);
+    assert_eq!(after.frame_errors, before.frame_errors);
+}

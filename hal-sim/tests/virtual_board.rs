@@ -37,7 +37,12 @@ impl Server {
         let stop = Arc::new(AtomicBool::new(false));
         let flag = stop.clone();
         let thread = std::thread::spawn(move || {
-            serve(listener, SimDeviceConfig::paper(), speed, &flag).expect("serve")
+            // Behind a USB–serial adapter's latency, as a lab's board is.
+            let config = SimDeviceConfig {
+                link: hal_sim::sim_device::LinkDelay::ADAPTER,
+                ..SimDeviceConfig::paper()
+            };
+            serve(listener, config, speed, &flag).expect("serve")
         });
         Self {
             address,
@@ -74,7 +79,7 @@ impl Drop for Server {
 }
 
 /// Values captured by the recorder in the first test (ticks, 50 kHz).
-const CAPTURE: u32 = 16_000;
+const CAPTURE: u32 = 15_000;
 
 /// `n` setpoints of a ±0.9 sine, Q1.15.
 fn sine(n: usize) -> Vec<i16> {
@@ -164,7 +169,7 @@ fn the_board_keeps_its_state_from_one_client_to_the_next() {
     assert_eq!(client.status().unwrap().queue_fill, 0, "played out");
 
     // The streamer, through credits (a record longer than the queue).
-    let long = sine(3000);
+    let long = sine(twinstack::control_loop::SETPOINT_CAPACITY + 3000);
     let options = StreamOptions {
         underrun: Some(UnderrunPolicy::Hold),
         ..StreamOptions::default()

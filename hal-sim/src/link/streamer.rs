@@ -50,6 +50,12 @@ pub struct StreamOptions {
     pub drain: bool,
     /// Refused batches in a row before giving up.
     pub max_retries: u32,
+    /// Most setpoints to keep queued on the board (`None`: its whole queue). Smaller queues
+    /// show what a board with less RAM would do (the streaming chapter's comparison).
+    pub queue_limit: Option<usize>,
+    /// Send [`Request::Setpoints`] (zigzag varints, up to three bytes a setpoint) instead of
+    /// [`Request::PackedSetpoints`]: for comparisons, and boards that predate packing.
+    pub varint: bool,
 }
 
 impl Default for StreamOptions {
@@ -61,6 +67,8 @@ impl Default for StreamOptions {
             batch: MAX_BATCH,
             drain: true,
             max_retries: 8,
+            queue_limit: None,
+            varint: false,
         }
     }
 }
@@ -214,7 +222,12 @@ fn run<T: Transport>(
         client.stream(StreamControl::Stop)?;
         before = client.status()?;
     }
-    let capacity = before.queue_fill as usize + before.credits as usize;
+    let board_capacity = before.queue_fill as usize + before.credits as usize;
+    let capacity = options
+        .queue_limit
+        .map_or(board_capacity, |l| l.min(board_capacity));
+    // Credits beyond the limit are not used.
+    let reserve = board_capacity - capacity;
     if capacity == 0 {
         return Err(LinkError::Unexpected {
             request: "Status",
@@ -250,7 +263,7 @@ fn run<T: Transport>(
         link: LinkCounters::default(),
     };
 
-    let mut granted = before.credits as usize;
+    let mut granted = (before.credits as usize).saturating_sub(reserve);
     let mut in_flight: VecDeque<InFlight> = VecDeque::new();
     let mut unacked = 0usize; // samples in in-flight batches
     let mut next = 0usize; // next sample to send
@@ -303,15 +316,17 @@ fn run<T: Transport>(
                     }
                 })?,
             };
+            let batch = if options.varint {
+                Request::Setpoints(batch.into())
+            } else {
+                Request::PackedSetpoints(batch)
+            };
             let last = next + want == samples.len();
             if last && started && !finish_sent {
                 // The last batch and `Finish` in one write: they reach the board together.
-                client.send_together(&[
-                    Request::PackedSetpoints(batch),
-                    Request::Stream(StreamControl::Finish),
-                ])?;
+                client.send_together(&[batch, Request::Stream(StreamControl::Finish)])?;
             } else {
-                client.send(&Request::PackedSetpoints(batch))?;
+                client.send(&batch)?;
             }
             let slot = next / batch_max;
             if sent_ever.get(slot).copied().unwrap_or(false) {
@@ -399,7 +414,7 @@ fn run<T: Transport>(
         match (head, response) {
             (InFlight::Batch { len, .. }, Response::Ack { credits }) if !rewinding => {
                 unacked -= len;
-                granted = credits as usize;
+                granted = (credits as usize).saturating_sub(reserve);
                 *accepted += len;
                 report.batches += 1;
                 handshaken = true;
@@ -429,7 +444,9 @@ fn run<T: Transport>(
                     };
                 }
             }
-            (InFlight::Probe, Response::Status(s)) => granted = s.credits as usize,
+            (InFlight::Probe, Response::Status(s)) => {
+                granted = (s.credits as usize).saturating_sub(reserve)
+            }
             (InFlight::Control, Response::Ack { .. }) => {}
             (InFlight::Control, Response::Nack { reason }) => {
                 return Err(LinkError::Nack {
