@@ -97,8 +97,8 @@ struct Client {
 enum Pending {
     /// The board's next response answers this client.
     Board(u64),
-    /// The server's own answer (a refusal), in its place in the order.
-    Local(u64, Response),
+    /// The server's own answer (a refusal, its reason), in its place in the order.
+    Local(u64, NackReason),
 }
 
 /// Serves the board behind `board` to the clients that connect to `listener` (see the module
@@ -174,12 +174,7 @@ pub fn serve<T: Transport + ?Sized>(
                 let request = match request {
                     Ok(r) => r,
                     Err(e) => {
-                        pending.push_back(Pending::Local(
-                            c.id,
-                            Response::Nack {
-                                reason: NackReason::Frame(e),
-                            },
-                        ));
+                        pending.push_back(Pending::Local(c.id, NackReason::Frame(e)));
                         continue;
                     }
                 };
@@ -194,20 +189,13 @@ pub fn serve<T: Transport + ?Sized>(
                 };
                 if !allowed {
                     report.refused += 1;
-                    pending.push_back(Pending::Local(
-                        c.id,
-                        Response::Nack {
-                            reason: NackReason::NotOwner,
-                        },
-                    ));
+                    pending.push_back(Pending::Local(c.id, NackReason::NotOwner));
                     continue;
                 }
                 let Ok(len) = frame::encode(&request, &mut frame_out) else {
                     pending.push_back(Pending::Local(
                         c.id,
-                        Response::Nack {
-                            reason: NackReason::Frame(FrameError::TooLarge),
-                        },
+                        NackReason::Frame(FrameError::TooLarge),
                     ));
                     continue;
                 };
@@ -312,11 +300,11 @@ fn deliver(
 /// The server's own answers at the head of the order.
 fn flush_local(pending: &mut VecDeque<Pending>, clients: &mut [Client]) {
     while let Some(Pending::Local(..)) = pending.front() {
-        let Some(Pending::Local(id, response)) = pending.pop_front() else {
+        let Some(Pending::Local(id, reason)) = pending.pop_front() else {
             break;
         };
         if let Some(c) = clients.iter_mut().find(|c| c.id == id && c.open) {
-            push_frame(c, &response);
+            push_frame(c, &Response::Nack { reason });
         }
     }
 }
