@@ -260,8 +260,8 @@ fn what_is_left_is_the_resonance_band() {
     }
 }
 
-fn sim_port() -> hal_sim::cli::board_link::PortArgs {
-    hal_sim::cli::board_link::PortArgs {
+fn sim_port() -> hal_sim::board_link::PortArgs {
+    hal_sim::board_link::PortArgs {
         port: Some("sim".into()),
         baud: 3_000_000,
         timeout_ms: 2000,
@@ -294,7 +294,7 @@ fn the_board_refuses_what_it_cannot_learn() {
     use twinstack::learning::{LearnSettings, LearnState};
     use twinstack::protocol::messages::{LearnRequest, NackReason, Request, Response};
     use twinstack::refusal::{Field, Refusal, Rule};
-    let mut client = hal_sim::cli::board_link::connect(&sim_port()).unwrap();
+    let mut client = hal_sim::board_link::connect(&sim_port()).unwrap();
     let mut ask = |r: LearnRequest| client.request(&Request::Learn(r)).unwrap();
     let refused = |field, rule| Response::Nack {
         reason: NackReason::Refused(Refusal::new(field, rule)),

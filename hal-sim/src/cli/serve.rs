@@ -6,9 +6,9 @@
 //! would change what another client owns is refused with the reason. Runs until killed
 //! (Ctrl-C). The first line on stdout says where it listens.
 
-use crate::cli::board_link::{port_spec, PortArgs};
-use crate::link::port::{self, PortSpec};
+use crate::board_link::{port_spec, PortArgs};
 use crate::link::server;
+use crate::port::{self, PortSpec};
 use std::io::Write;
 use std::net::TcpListener;
 use std::sync::atomic::AtomicBool;

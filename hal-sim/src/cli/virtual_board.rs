@@ -34,7 +34,7 @@ pub struct Args {
     pub dual_stage: bool,
     /// The USB–serial adapter the board is reached through (in simulated time).
     #[command(flatten)]
-    pub link: crate::cli::board_link::LinkArgs,
+    pub link: crate::board_link::LinkArgs,
 }
 
 /// Runs `virtual-board`.
