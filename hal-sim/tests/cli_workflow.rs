@@ -326,7 +326,7 @@ fn progress_bars_only_on_a_terminal() {
         "--signal",
         "setpoint",
         "--count",
-        "16000",
+        "15000",
         "--out",
         out.to_str().unwrap(),
     ];
@@ -374,7 +374,7 @@ fn progress_bars_only_on_a_terminal() {
         seen.contains("recording") || seen.contains("reading"),
         "no progress bar on the terminal: {seen:?}"
     );
-    assert!(seen.contains("16000 values"), "{seen:?}");
+    assert!(seen.contains("15000 values"), "{seen:?}");
 }
 
 #[test]

@@ -221,7 +221,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         r.credit_probes
     );
     println!(
-        "underruns during the stream: {} (the board's counter)",
+        "underruns during the stream: {}",
         r.underruns_during_stream()
     );
     println!(
