@@ -1,4 +1,4 @@
-//! `hal-sim serve --port PORT --listen tcp:HOST:PORT`: owns the board's link and shares it
+//! `twinstack serve --port PORT --listen tcp:HOST:PORT`: owns the board's link and shares it
 //! with several clients ([`crate::link::server`]): each connects with `--port tcp:HOST:PORT`
 //! (the CLI, the Python package, a live view) as if it had the board to itself. One client at
 //! a time owns the stream and the settings (the first to change anything, until it leaves),
