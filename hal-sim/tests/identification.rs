@@ -609,27 +609,39 @@ fn identify_at_a_tick_rate_keeps_a_model_the_board_runs() {
     let stdout = identify(&fast, &["--tick-rate", "100000"]);
     assert!(runs_at(&settings(&fast), 100_000.0).is_ok(), "{stdout}");
     assert!(
-        stdout.contains("not admitted (the board at 100 kHz"),
+        stdout.contains("not admitted: the board at 100 kHz"),
         "{stdout}"
     );
     // Sized to the rate: P–I 17 is one pair of operators too dear at 100 kHz, ranked with 16;
     // P–I 17 + creep ranked with one creep mode and fewer operators.
     assert!(
-        stdout.contains("P-I (16 uniform operators)       max"),
+        stdout
+            .lines()
+            .any(|l| l.contains("P-I (16 uniform operators) ") && l.contains("forward")),
         "{stdout}"
     );
     assert!(
         stdout
             .lines()
-            .any(|l| l.contains("operators) + creep (1 mode)") && l.contains(" max ")),
+            .any(|l| l.contains("operators) + creep (1 mode)") && l.contains("forward")),
         "{stdout}"
     );
-    assert!(stdout.contains("picked: Bouc-Wen + creep"), "{stdout}");
+    // Bouc–Wen + creep predicts best, but its compensator ratchets on the sensor's noise: set
+    // aside, and the pick is a model whose inverse holds.
+    assert!(
+        stdout
+            .lines()
+            .any(|l| l.contains("Bouc-Wen + creep") && l.contains("set aside: inverse max")),
+        "{stdout}"
+    );
+    assert!(!stdout.contains("picked: Bouc-Wen"), "{stdout}");
     // Unless 17 are asked for.
     let seventeen = dir.path().join("seventeen.json");
     let stdout = identify(&seventeen, &["--tick-rate", "100000", "--operators", "17"]);
     assert!(
-        stdout.contains("P-I (17 uniform operators)       not admitted"),
+        stdout
+            .lines()
+            .any(|l| l.contains("P-I (17 uniform operators) ") && l.contains("not admitted")),
         "{stdout}"
     );
 
@@ -639,11 +651,157 @@ fn identify_at_a_tick_rate_keeps_a_model_the_board_runs() {
         err.contains("generalised P-I") && err.contains("cycles per tick"),
         "{err}"
     );
+    // Advice only on what identify can change: it sets the dead zones itself.
+    assert!(
+        err.contains("--operators") && !err.contains("dead zones or"),
+        "{err}"
+    );
 
     // A rate the board does not run at is refused by name before anything is fitted.
     let err = refused(&named, &["--tick-rate", "1e9"]);
     assert!(
         err.contains("--tick-rate") && err.contains("100000 Hz"),
+        "{err}"
+    );
+}
+
+// ---------------------------------------------------------------------------------------
+// `auto` picks by the compensator.
+
+/// On both measured records, and at the board's rates, `auto` ranks by what the stage will
+/// see: the pick's inverse on the validation part keeps within 1.5 × its forward error, each
+/// admitted candidate that does not is set aside (and ranked after those that do), the
+/// ranking is ordered by the compensated error, and the picked model's inverse on the
+/// held-out part stays within reach of its fit. On the bipolar record at 100 kHz a
+/// forward-only ranking would pick Bouc–Wen + creep, whose inverse is ten times its fit: the
+/// test fails if `auto` ranks by the forward error alone.
+#[test]
+fn auto_picks_the_model_whose_compensator_holds() {
+    use hal_sim::identification::auto::INVERSE_TO_FORWARD_LIMIT;
+    use hal_sim::identification::run::{identify_and_score, BoardRate, ModelChoice};
+    use hal_sim::identification::{IdentifyOptions, ModelKind};
+    use hal_sim::measured_data::{Columns, MeasuredData};
+    let cases = [
+        (BIPOLAR, 5.95, Some(100_000.0), 1.5),
+        (BIPOLAR, 5.95, Some(50_000.0), 1.6),
+        (MICROMANIPULATOR, 16.0, None, 1.5),
+    ];
+    for (name, fit_until, rate, held_out_ratio) in cases {
+        let data = MeasuredData::read(&measured_data(name), Columns::TimeDriveOutput).unwrap();
+        let run = identify_and_score(
+            &data,
+            ModelChoice::Auto,
+            &IdentifyOptions::new(ModelKind::Pi, fit_until),
+            None,
+            "units",
+            rate.map(|hz| BoardRate::sizing(hz, false)),
+        )
+        .unwrap();
+        let auto = run.auto.as_ref().unwrap();
+        let picked = &auto.ranking[0];
+        let forward =
+            |r: &hal_sim::identification::auto::Ranked| r.validation.admitted().map(|f| f.max_pct);
+        let what = format!("{name} at {rate:?}: {}", auto.reason);
+        let (f, i) = (forward(picked).unwrap(), picked.inverse.unwrap().max_pct);
+        assert!(picked.set_aside.is_none(), "{what}");
+        assert!(i <= INVERSE_TO_FORWARD_LIMIT * f, "{what}: {i} vs {f}");
+        assert!(
+            auto.ranking.iter().all(|r| r.compensated().is_none()
+                || r.set_aside.is_some()
+                || r.validation.admitted().is_none()
+                || r.compensated() >= picked.compensated()
+                || r.options.model.special_case() == Some(picked.options.model)),
+            "{what}: a candidate whose compensator does better was passed over"
+        );
+        // Every admitted candidate whose inverse is much worse than its fit is set aside, and
+        // the ranking puts it after those that are not, each group by its compensated error.
+        let best_inverse = auto
+            .ranking
+            .iter()
+            .filter_map(|r| r.inverse.map(|f| f.max_pct))
+            .fold(f64::INFINITY, f64::min);
+        let mut seen_aside = false;
+        let mut last = (false, 0.0);
+        for r in auto.ranking.iter().filter(|r| forward(r).is_some()) {
+            let inverse = r.inverse.unwrap().max_pct;
+            assert_eq!(
+                r.set_aside.is_some(),
+                inverse > INVERSE_TO_FORWARD_LIMIT * forward(r).unwrap()
+                    && inverse > INVERSE_TO_FORWARD_LIMIT * best_inverse,
+                "{what}: {}",
+                r.label
+            );
+            seen_aside |= r.set_aside.is_some();
+            assert!(
+                !(seen_aside && r.set_aside.is_none()),
+                "{what}: set aside before {}",
+                r.label
+            );
+            let key = (r.set_aside.is_some(), r.compensated().unwrap());
+            assert!(
+                key.0 != last.0 || key.1 >= last.1,
+                "{what}: not ordered at {}",
+                r.label
+            );
+            last = key;
+        }
+        let record = &run.record;
+        assert!(
+            record.inverse_held_out.max_pct <= held_out_ratio * record.held_out.max_pct,
+            "{what}: held-out inverse {:?} vs forward {:?}",
+            record.inverse_held_out,
+            record.held_out
+        );
+        if rate == Some(100_000.0) {
+            // What a forward-only ranking would have picked, and why it must not be.
+            let forward_only = auto
+                .ranking
+                .iter()
+                .filter(|r| forward(r).is_some())
+                .min_by(|a, b| forward(a).unwrap().total_cmp(&forward(b).unwrap()))
+                .unwrap();
+            assert_eq!(forward_only.options.model, ModelKind::BoucWen, "{what}");
+            assert!(
+                forward_only.inverse.unwrap().max_pct > 5.0 * forward(forward_only).unwrap(),
+                "{what}"
+            );
+            assert_ne!(forward_only.label, picked.label, "{what}");
+        }
+    }
+}
+
+/// `compensate` says what it did with the last `lag` samples (the micromanipulator's sensor
+/// lags by 3): they have no later reading to aim at.
+#[test]
+fn compensate_says_what_it_did_with_the_last_lag_samples() {
+    let dir = tempfile::tempdir().unwrap();
+    let params = dir.path().join("p.json");
+    let data = measured_data(MICROMANIPULATOR);
+    let (d, p) = (data.to_str().unwrap(), params.to_str().unwrap());
+    ok(&[
+        "identify",
+        "--model",
+        "pi",
+        "--data",
+        d,
+        "--fit-until",
+        "16",
+        "--out",
+        p,
+    ]);
+    let out = run(&[
+        "compensate",
+        "--params",
+        p,
+        "--data",
+        d,
+        "--out",
+        dir.path().join("c.csv").to_str().unwrap(),
+    ]);
+    assert!(out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        err.contains("lags the drive by 3 samples") && err.contains("last 3 samples aim at"),
         "{err}"
     );
 }

@@ -5,7 +5,8 @@
 //!   reading;
 //! * `twinstack compensate --params PARAMS.json --data IN.csv --out OUT.csv`: IN's `t,x` are the
 //!   desired readings; writes `t,u,x` with `u` the drive from the library's fixed-point inverse
-//!   and `x` copied.
+//!   and `x` copied. With a sensor lag of `L` samples the drive leads by `L`; its last `L`
+//!   samples aim at the last desired reading (held), and the run says so.
 
 use crate::measured_data::{ColumnNames, Columns, MeasuredData};
 use crate::output_file::{csv_t_u_x, Staged};
@@ -68,6 +69,17 @@ pub fn run(args: &Args, direction: Direction) -> anyhow::Result<()> {
         Direction::Inverse => {
             let x = data.x.clone().unwrap_or_default();
             let u = model.compensate(&data.t, &x).map_err(model_error)?;
+            // With a sensor lag of L samples the drive at sample k aims at the reading at
+            // k + L; the last L samples have none, so they aim at the last reading (held).
+            let lag = model.lag_samples(&data.t).min(data.len().saturating_sub(1));
+            if lag > 0 {
+                eprintln!(
+                    "note: the sensor lags the drive by {lag} sample{}: the drive leads the desired reading by as much, and its last {lag} sample{} aim at the last desired reading (t = {} s), there being no later one",
+                    if lag == 1 { "" } else { "s" },
+                    if lag == 1 { "" } else { "s" },
+                    data.t.last().copied().unwrap_or_default()
+                );
+            }
             let outside = model.reading_outside_range(&x);
             (
                 u,

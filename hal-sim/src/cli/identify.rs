@@ -46,7 +46,11 @@ pub struct Args {
     #[arg(long)]
     pub lag: Option<usize>,
     /// Fit a creep operator (4 log-spaced first-order modes, 10 samples to the fit window,
-    /// at most 100 s) in series with the model.
+    /// at most 100 s) in series with the model. It is kept only where it lowers the fit
+    /// error (modes fitted with no weight are dropped), and the run says what was kept
+    /// ("creep asked for, none kept" when nothing was). With `--model auto`, only the
+    /// candidates with creep are ranked; without `--creep`, auto ranks every model with and
+    /// without creep.
     #[arg(long)]
     pub creep: bool,
     /// Keep only a model the board runs at this control rate, Hz (its tick budget, as the
@@ -115,10 +119,13 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     let in_file = |e: RunError| match e {
         RunError::Params(e) => anyhow!("{e}"),
         // The rate or an option refused the models, not the file.
+        // What identify can change to make a model fit the rate: its own options only.
+        RunError::Identify(e @ IdentifyError::NoneAdmitted(_)) => anyhow!(
+            "{e} (a smaller model runs faster: fewer --operators, no --creep, another --model, \
+             or a lower --tick-rate)"
+        ),
         RunError::Identify(
-            e @ (IdentifyError::NoneAdmitted(_)
-            | IdentifyError::BadOperatorCount(_)
-            | IdentifyError::BadCreepModes(_)),
+            e @ (IdentifyError::BadOperatorCount(_) | IdentifyError::BadCreepModes(_)),
         ) => anyhow!("{e}"),
         e => anyhow!("{}: {e}", args.data.display()),
     };
@@ -137,11 +144,15 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
             "ranking (fitted on t < {:.4} s, scored on {:.4} <= t < {} s):",
             auto.validation_from_s, auto.validation_from_s, args.fit_until
         );
+        println!(
+            "  (compensated max = the larger of inverse and tracking; inverse: compensate on the measured x against the measured u; tracking: that drive through the best forward model)"
+        );
         for (i, r) in auto.ranking.iter().enumerate() {
-            match (r.validation.admitted(), r.validation.note()) {
-                (Some(f), _) => println!("  {}. {:<32} {}", i + 1, r.label, show(f)),
-                (None, note) => println!("  -. {:<32} {}", r.label, note.unwrap_or_default()),
-            }
+            let place = match (r.validation.admitted(), &r.set_aside) {
+                (Some(_), None) => format!("{}.", i + 1),
+                _ => "-.".into(),
+            };
+            println!("  {place:<3} {:<40} {}", r.label, r.summary());
         }
         println!("picked: {}", auto.reason);
     }
@@ -153,7 +164,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     let (fit, held_out, inverse) = (record.fit, record.held_out, record.inverse_held_out);
     let fit_from = id.motion.first_fitted;
     let held = id.held_out_from;
-    let model_name = options.model_label();
+    let model_name = options.label_of_fit(model);
     println!("identified {model_name} from {}", args.data.display());
     println!(
         "  fitted t = {:.4} .. {} s ({} rows, {} outliers dropped), scored t >= {} s",

@@ -1,13 +1,25 @@
-//! `--model auto`: pick the model family member that predicts best on data it was not fitted
-//! on, then fit it on the whole window.
+//! `--model auto`: pick the model family member whose compensator does best on data it was
+//! not fitted on, then fit it on the whole window.
 //!
 //! The fit window (samples with `t < fit_until`) is split once more: every candidate is fitted
 //! on its first part (from the start of motion up to [`VALIDATION_FRACTION`] before its end)
-//! and scored, with the library's fixed-point `predict`, on the last part. The samples after
-//! `fit_until` — the user's held-out part — are never looked at, so the held-out figure the
-//! user is shown afterwards stays honest. Candidates are ranked by their validation max
-//! error, then RMS (the figures the book and the papers quote); the best is refitted on the
-//! whole window with the same options.
+//! and scored on the last part, with the library's fixed point, three ways:
+//! * **forward**: its `predict` on the measured drive against the measured output;
+//! * **inverse**: its `compensate` on the measured output against the drive that produced it
+//!   (what the stage will be sent, on real sensor noise);
+//! * **tracking**: the drive its `compensate` makes for the measured output, played through
+//!   the forward model of the candidate that predicts best (the closest stand-in for the
+//!   stage the data has), against that output.
+//!
+//! The samples after `fit_until` — the user's held-out part — are never looked at, so the
+//! held-out figure the user is shown afterwards stays honest. Candidates are ranked by what the
+//! stage will see, the larger of their inverse and tracking max errors ([`Ranked::compensated`]),
+//! then their forward max error. A candidate whose inverse max error exceeds
+//! [`INVERSE_TO_FORWARD_LIMIT`] times its forward max error and as many times the best inverse
+//! of all (the record's noise reaches every inverse: that floor is no model's fault) — a
+//! compensator that ratchets on noise, or drifts from its own model — is set aside, ranked after every candidate that is
+//! not, and the ranking says why ([`Ranked::set_aside`]); it is picked only if every candidate
+//! is. The best is refitted on the whole window with the same options.
 //!
 //! A candidate that cannot be fitted (too few samples, a model the board refuses) is kept in
 //! the ranking with its reason, last. So is one the caller does not admit
@@ -17,20 +29,25 @@
 //! again smaller ([`Admission::Smaller`]: fewer creep modes, fewer play operators).
 //!
 //! Parsimony: a model that generalises another (Bouc–Wen generalises Duhem,
-//! [`super::ModelKind::special_case`]; with creep, Bouc–Wen + creep generalises Duhem + creep)
-//! can always fit at least as well, so it wins only if its
-//! validation max error beats its special case's by [`PARSIMONY_MARGIN`] (relative);
-//! otherwise the special case is picked.
+//! [`super::ModelKind::special_case`]; a model + creep generalises the model alone) can always
+//! fit at least as well, so it wins only if its compensated max error beats the simpler
+//! one's by [`PARSIMONY_MARGIN`] (relative); otherwise the simplest such is picked.
 
 use super::score::{score, ErrorFigures};
 use super::{identify, motion, Identification, IdentifyError, IdentifyOptions};
 use crate::measured_data::MeasuredData;
+use crate::stage_model::StageModel;
 
 /// Fraction of the fit window (after the start of motion) kept back to rank the candidates.
 pub const VALIDATION_FRACTION: f64 = 0.3;
-/// How much better (relative, on the validation max error) a generalisation must predict than
-/// its special case to be picked over it.
+/// How much better (relative, on the compensated max error) a generalisation must do than its
+/// special case to be picked over it.
 pub const PARSIMONY_MARGIN: f64 = 0.05;
+/// A candidate whose inverse max error on the validation part exceeds this multiple of its
+/// forward max error there, and this multiple of the best inverse of all candidates (the
+/// record's noise floor, which no compensator beats), is set aside: its compensator does much
+/// worse than its fit.
+pub const INVERSE_TO_FORWARD_LIMIT: f64 = 1.5;
 
 /// One candidate's result on the validation part.
 #[derive(Clone, Debug)]
@@ -44,6 +61,58 @@ pub struct Ranked {
     pub validation: Validation,
     /// The size asked for, where the candidate was sized down from it to be admitted.
     pub sized_down_from: Option<Size>,
+    /// Its inverse on the validation part: `compensate` on the measured output against the
+    /// measured drive, % of the drive's span (`None` if it was not fitted).
+    pub inverse: Option<ErrorFigures>,
+    /// Its compensated tracking on the validation part through the best-predicting
+    /// candidate's forward model, % of the output's span (`None` if it was not fitted).
+    pub tracking: Option<ErrorFigures>,
+    /// Why an admitted candidate was set aside (inverse much worse than its fit); `None` if
+    /// it was not.
+    pub set_aside: Option<String>,
+}
+
+impl Ranked {
+    /// What the stage will see of it: the larger of its inverse and tracking max errors on the
+    /// validation part, % (`None` if it was not fitted).
+    pub fn compensated(&self) -> Option<f64> {
+        match (self.inverse, self.tracking) {
+            (Some(i), Some(t)) => Some(i.max_pct.max(t.max_pct)),
+            (Some(i), None) => Some(i.max_pct),
+            (None, Some(t)) => Some(t.max_pct),
+            (None, None) => None,
+        }
+    }
+
+    /// Its figures in one line: forward, inverse and tracking max (and forward RMS), then
+    /// why it cannot be picked or was set aside, if so.
+    pub fn summary(&self) -> String {
+        let pct = |f: Option<&ErrorFigures>| match f {
+            Some(f) => format!("{:5.2} %", f.max_pct),
+            None => "    - ".to_string(),
+        };
+        let figures = format!(
+            "forward {} (RMS {})  inverse {}  tracking {}",
+            pct(self.validation.figures()),
+            self.validation
+                .figures()
+                .map_or("-".into(), |f| format!("{:.2} %", f.rms_pct)),
+            pct(self.inverse.as_ref()),
+            pct(self.tracking.as_ref()),
+        );
+        match (
+            self.validation.admitted(),
+            self.validation.note(),
+            &self.set_aside,
+        ) {
+            (Some(_), _, Some(why)) => format!("{figures}  set aside: {why}"),
+            (Some(_), _, None) => figures,
+            (None, _, _) => match &self.validation {
+                Validation::NotAdmitted { why, .. } => format!("{figures}  not admitted: {why}"),
+                v => v.note().unwrap_or_default(),
+            },
+        }
+    }
 }
 
 /// The size of a candidate that grows the tick's cost: its P–I's play operators and its creep
@@ -233,12 +302,15 @@ pub fn label(options: &IdentifyOptions) -> String {
     options.model_label()
 }
 
-/// Admitted candidates by their figures, then refused ones by theirs, then those not fitted.
+/// Admitted candidates by their compensated max error, then forward max error (those set
+/// aside after those not), then refused ones likewise, then those not fitted.
 fn rank_key(r: &Ranked) -> (u8, f64, f64) {
+    let compensated = r.compensated().unwrap_or(f64::INFINITY);
     match &r.validation {
-        Validation::Scored(f) => (0, f.max_pct, f.rms_pct),
-        Validation::NotAdmitted { figures: f, .. } => (1, f.max_pct, f.rms_pct),
-        Validation::NotFitted(_) => (2, 0.0, 0.0),
+        Validation::Scored(f) if r.set_aside.is_none() => (0, compensated, f.max_pct),
+        Validation::Scored(f) => (1, compensated, f.max_pct),
+        Validation::NotAdmitted { figures: f, .. } => (2, compensated, f.max_pct),
+        Validation::NotFitted(_) => (3, 0.0, 0.0),
     }
 }
 
@@ -303,6 +375,7 @@ pub fn identify_auto_admitting(
                 Ok((id, figures))
             })
     };
+    let mut models: Vec<Option<StageModel>> = Vec::with_capacity(candidates.len());
     let mut ranking: Vec<Ranked> = candidates
         .iter()
         .map(|c| {
@@ -310,36 +383,62 @@ pub fn identify_auto_admitting(
             let mut inner = c.clone();
             inner.fit_until_s = validation_from_s;
             let mut sized_down_from = None;
+            let mut model = None;
             let validation = match fit_and_score(&inner) {
                 Err(why) => Validation::NotFitted(why),
                 Ok((id, figures)) => match admit(&id) {
-                    Admission::Admitted => Validation::Scored(figures),
-                    Admission::Refused(why) => Validation::NotAdmitted { figures, why },
+                    Admission::Admitted => {
+                        model = Some(id.model);
+                        Validation::Scored(figures)
+                    }
+                    Admission::Refused(why) => {
+                        model = Some(id.model);
+                        Validation::NotAdmitted { figures, why }
+                    }
                     Admission::Smaller { resize, why } => {
                         let asked = Size::of(c);
                         let smaller = resize.apply(&inner);
                         match fit_and_score(&smaller) {
-                            Ok((id, smaller_figures))
+                            Ok((small, smaller_figures))
                                 if Size::of(&smaller).is_smaller_than(&asked)
-                                    && admit(&id) == Admission::Admitted =>
+                                    && admit(&small) == Admission::Admitted =>
                             {
                                 sized_down_from = Some(asked);
                                 options = resize.apply(&options);
+                                model = Some(small.model);
                                 Validation::Scored(smaller_figures)
                             }
-                            _ => Validation::NotAdmitted { figures, why },
+                            _ => {
+                                model = Some(id.model);
+                                Validation::NotAdmitted { figures, why }
+                            }
                         }
                     }
                 },
             };
+            let label = model
+                .as_ref()
+                .map_or_else(|| label(&options), |m| options.label_of_fit(m));
+            models.push(model);
             Ranked {
-                label: label(&options),
+                label,
                 options,
                 validation,
                 sized_down_from,
+                inverse: None,
+                tracking: None,
+                set_aside: None,
             }
         })
         .collect();
+    score_compensators(
+        &mut ranking,
+        &models,
+        &window.t,
+        &u[..n_fit],
+        &x[..n_fit],
+        split,
+    );
     ranking.sort_by(|a, b| {
         let (a, b) = (rank_key(a), rank_key(b));
         a.0.cmp(&b.0)
@@ -350,20 +449,33 @@ pub fn identify_auto_admitting(
         .iter()
         .find(|r| r.validation.admitted().is_some())
         .cloned();
-    // Parsimony: the special case wins unless the generalisation beats it by the margin.
+    // Parsimony: a simpler candidate — the special case (Duhem for Bouc–Wen), the same model
+    // without creep, or both — wins unless the pick beats it by the margin; the simplest such.
     let simpler = best.as_ref().and_then(|b| {
-        let special = b.options.model.special_case()?;
-        let best_max = b.validation.admitted()?.max_pct;
-        ranking
+        let best_score = b.compensated()?;
+        let special = b.options.model.special_case();
+        let simpler_forms = [
+            (special, false),
+            (special, b.options.creep),
+            (Some(b.options.model), false),
+        ];
+        simpler_forms
             .iter()
-            // Its special case with the same creep (Bouc–Wen + creep against Duhem + creep).
-            .find(|r| r.options.model == special && r.options.creep == b.options.creep)
-            .filter(|r| {
-                r.validation
-                    .admitted()
-                    .is_some_and(|f| f.max_pct <= best_max * (1.0 + PARSIMONY_MARGIN))
+            .filter(|(m, creep)| {
+                m.is_some() && (*m != Some(b.options.model) || *creep != b.options.creep)
             })
-            .cloned()
+            .find_map(|&(m, creep)| {
+                ranking
+                    .iter()
+                    .find(|r| Some(r.options.model) == m && r.options.creep == creep)
+                    .filter(|r| {
+                        r.validation.admitted().is_some()
+                            && r.set_aside.is_none() == b.set_aside.is_none()
+                            && r.compensated()
+                                .is_some_and(|c| c <= best_score * (1.0 + PARSIMONY_MARGIN))
+                    })
+                    .cloned()
+            })
     });
     let parsimony = simpler.is_some();
     if let Some(s) = &simpler {
@@ -401,23 +513,38 @@ pub fn identify_auto_admitting(
     let (options, identification) = identify_admitted(data, best.options.clone(), &admit)?;
     let runner_up = ranking
         .iter()
-        .filter(|r| r.label != best.label)
-        .find_map(|r| r.validation.admitted().map(|f| (r.label.clone(), *f)));
-    let reason = match (best.validation.admitted(), runner_up) {
-        (Some(b), Some((next, n))) if parsimony => format!(
-            "{} predicts the validation part (t >= {:.4} s) within {:.0} % of the best ({next}: max {:.2} % / RMS {:.2} %) with fewer parameters: max {:.2} % / RMS {:.2} % of span",
-            best.label, validation_from_s, 100.0 * PARSIMONY_MARGIN, n.max_pct, n.rms_pct, b.max_pct, b.rms_pct
+        .filter(|r| r.label != best.label && r.validation.admitted().is_some())
+        .find_map(|r| Some((r.label.clone(), r.compensated()?)));
+    let figures = |r: &Ranked| {
+        let forward = r.validation.figures().map_or(f64::NAN, |f| f.max_pct);
+        format!(
+            "compensated max {:.2} % (inverse {:.2} %, tracking {:.2} %), forward max {:.2} %",
+            r.compensated().unwrap_or(f64::NAN),
+            r.inverse.map_or(f64::NAN, |f| f.max_pct),
+            r.tracking.map_or(f64::NAN, |f| f.max_pct),
+            forward
+        )
+    };
+    let reason = match runner_up {
+        Some((next, n)) if parsimony => format!(
+            "{}'s compensator does within {:.0} % of the best ({next}: {n:.2} %) on the validation part (t >= {:.4} s) with fewer parameters: {}",
+            best.label, 100.0 * PARSIMONY_MARGIN, validation_from_s, figures(&best)
         ),
-        (Some(b), Some((next, n))) => format!(
-            "{} predicts the validation part (t >= {:.4} s) best: max {:.2} % / RMS {:.2} % of span, against {:.2} % / {:.2} % for the next ({next})",
-            best.label, validation_from_s, b.max_pct, b.rms_pct, n.max_pct, n.rms_pct
+        Some((next, n)) => format!(
+            "{}'s compensator does best on the validation part (t >= {:.4} s): {}; next {next}: compensated max {n:.2} %",
+            best.label, validation_from_s, figures(&best)
         ),
-        (Some(b), None) => format!(
-            "{} is the only candidate that could be fitted: validation max {:.2} % / RMS {:.2} %",
-            best.label, b.max_pct, b.rms_pct
+        None => format!(
+            "{} is the only candidate that could be fitted: {}",
+            best.label,
+            figures(&best)
         ),
-        // `best` is admitted by construction; its note, should that ever change.
-        (None, _) => best.validation.note().unwrap_or_default(),
+    };
+    let reason = match &best.set_aside {
+        Some(why) => format!(
+            "{reason}; every candidate's inverse is worse than {INVERSE_TO_FORWARD_LIMIT} × its fit ({why})"
+        ),
+        None => reason,
     };
     let asked = best.sized_down_from.unwrap_or(Size::of(&best.options));
     let reason = match Size::of(&options).sized_down_note(&asked) {
@@ -431,4 +558,81 @@ pub fn identify_auto_admitting(
         identification,
         reason,
     })
+}
+
+/// Fills in each fitted candidate's inverse and tracking figures on the validation part
+/// (`split..` of `t`, `u`, `x`, the last `lag` samples left out: they have no later reading to
+/// aim the drive at), and sets aside an admitted one whose inverse is more than
+/// [`INVERSE_TO_FORWARD_LIMIT`] times worse than its forward error and than the best inverse
+/// of all (the noise floor). `models[i]` is
+/// `ranking[i]`'s fit on the first part, if any. The tracking plant, the stand-in for the
+/// stage, is the fitted model with the lowest forward max error among those whose inverse
+/// keeps within that limit (a model that ratchets on a noisy drive is no stand-in for a stage
+/// that does not), admitted by the board or not; the best forward model if none does.
+fn score_compensators(
+    ranking: &mut [Ranked],
+    models: &[Option<StageModel>],
+    t: &[f64],
+    u: &[f64],
+    x: &[f64],
+    split: usize,
+) {
+    let n = t.len();
+    let mut drives: Vec<Option<(Vec<f64>, usize)>> = Vec::with_capacity(models.len());
+    let mut consistent = Vec::with_capacity(models.len());
+    for (r, model) in ranking.iter_mut().zip(models) {
+        let drive = model.as_ref().and_then(|m| {
+            let aimed = n - m.lag_samples(t).min(n.saturating_sub(split + 1));
+            Some((m.compensate(t, x).ok()?, aimed))
+        });
+        r.inverse = drive
+            .as_ref()
+            .and_then(|(d, aimed)| score(u, d, split..*aimed));
+        drives.push(drive);
+    }
+    // The record's noise reaches the inverse through the model's local slope: no compensator
+    // beats that floor, whatever its fit. The best inverse of all stands for it.
+    let best_inverse = ranking
+        .iter()
+        .filter_map(|r| r.inverse.map(|f| f.max_pct))
+        .fold(f64::INFINITY, f64::min);
+    for r in ranking.iter_mut() {
+        let holds = match (r.inverse, r.validation.figures()) {
+            (Some(i), Some(f)) => {
+                i.max_pct <= INVERSE_TO_FORWARD_LIMIT * f.max_pct
+                    || i.max_pct <= INVERSE_TO_FORWARD_LIMIT * best_inverse
+            }
+            _ => false,
+        };
+        if !holds && r.validation.admitted().is_some() {
+            if let (Some(i), Some(f)) = (r.inverse, r.validation.figures()) {
+                r.set_aside = Some(format!(
+                    "inverse max {:.2} % > {INVERSE_TO_FORWARD_LIMIT} × forward max {:.2} % and > {INVERSE_TO_FORWARD_LIMIT} × the best inverse {best_inverse:.2} %",
+                    i.max_pct, f.max_pct
+                ));
+            }
+        }
+        consistent.push(holds);
+    }
+    let forward_max = |r: &Ranked| r.validation.figures().map_or(f64::INFINITY, |f| f.max_pct);
+    let best_of = |only_consistent: bool| {
+        (0..ranking.len())
+            .filter(|&i| models[i].is_some() && (consistent[i] || !only_consistent))
+            .min_by(|&a, &b| forward_max(&ranking[a]).total_cmp(&forward_max(&ranking[b])))
+    };
+    let Some(plant) = best_of(true)
+        .or_else(|| best_of(false))
+        .and_then(|i| models[i].as_ref())
+    else {
+        return;
+    };
+    for (r, drive) in ranking.iter_mut().zip(&drives) {
+        let Some((drive, aimed)) = drive else {
+            continue;
+        };
+        r.tracking = plant
+            .predict(t, drive)
+            .ok()
+            .and_then(|y| score(x, &y, split..*aimed));
+    }
 }

@@ -225,6 +225,29 @@ impl IdentifyOptions {
         }
     }
 
+    /// The model a fit with these options gave, in words: [`Self::model_label`], but saying
+    /// what creep the fit kept (a creep is kept only where it lowers the fit error, its
+    /// unweighted modes dropped), never "+ creep" for a model that kept none.
+    pub fn label_of_fit(&self, model: &StageModel) -> String {
+        match (self.creep, &model.creep) {
+            (true, None) => format!(
+                "{} (creep asked for, none kept)",
+                IdentifyOptions {
+                    creep: false,
+                    ..self.clone()
+                }
+                .model_label()
+            ),
+            (_, Some(c)) => IdentifyOptions {
+                creep: true,
+                creep_modes: c.weights.len(),
+                ..self.clone()
+            }
+            .model_label(),
+            (false, None) => self.model_label(),
+        }
+    }
+
     /// `--model auto`'s candidates: every model kind, each without and with creep (only with
     /// creep when these options ask for it), with these options otherwise.
     pub fn candidates(&self) -> Vec<IdentifyOptions> {
@@ -861,6 +884,30 @@ fn with_first_weight_floor(
 mod tests {
     use super::*;
     use crate::identification::score::score;
+
+    /// A fit asked for with creep says what it kept: never "+ creep" without one.
+    #[test]
+    fn the_label_of_a_fit_says_what_creep_it_kept() {
+        let mut model = StageModel {
+            hysteresis: Hysteresis::Duhem(twinstack::DuhemParams {
+                alpha: 0.02,
+                beta: 0.5,
+                gamma: 0.35,
+                offset: 0.0,
+            }),
+            scaling: twinstack::Scaling::new(0.0, 140.0, 0.0, 70.0).unwrap(),
+            output_sign: 1.0,
+            sensor_lag_s: 0.0,
+            creep: None,
+        };
+        let mut o = IdentifyOptions::new(ModelKind::Duhem, 1.0);
+        assert_eq!(o.label_of_fit(&model), "Duhem");
+        o.creep = true;
+        assert_eq!(o.model_label(), "Duhem + creep");
+        assert_eq!(o.label_of_fit(&model), "Duhem (creep asked for, none kept)");
+        model.creep = Some(twinstack::creep::CreepParams::new(&[0.1], &[0.05]).unwrap());
+        assert_eq!(o.label_of_fit(&model), "Duhem + creep (1 mode)");
+    }
     use crate::reference;
     use std::path::PathBuf;
     use twinstack::params::{PiParams, Thresholds};

@@ -12,7 +12,7 @@ use crate::measured_data::MeasuredData;
 use crate::param_file::{IdentificationRecord, ParamFile};
 use twinstack::board::Hardware;
 use twinstack::params::PiParams;
-use twinstack::refusal::Field;
+use twinstack::refusal::{Field, Rule};
 use twinstack::settings::{Model, Settings};
 
 /// Which model to fit: every candidate, or one.
@@ -232,10 +232,17 @@ pub fn admission_at(settings: &Settings, rate: &BoardRate) -> Admission {
     // Only the tick budget is judged here: what else the board would refuse (a sensor it
     // lacks, …) it says at load.
     let fits = |s: &Settings| !matches!(s.build(&hardware), Err(r) if r.field == Field::Workload);
+    // The board's own refusal advises on every size a parameter file can set; identification
+    // sets the dead zones itself, so only what its options change is named here.
     let why = match settings.build(&hardware) {
-        Err(r) if r.field == Field::Workload => {
-            format!("the board at {:.0} kHz would refuse it: {r}", rate.hz / 1e3)
-        }
+        Err(r) if r.field == Field::Workload => match r.rule {
+            Rule::TickOverrun { needs, available } => format!(
+                "the board at {:.0} kHz would refuse it: it needs {needs} cycles per tick, more \
+                 than the {available} that rate leaves",
+                rate.hz / 1e3
+            ),
+            _ => format!("the board at {:.0} kHz would refuse it: {r}", rate.hz / 1e3),
+        },
         _ => return Admission::Admitted,
     };
     let operators = [&settings.compensator, &settings.observer]
