@@ -135,7 +135,7 @@ fn auto_picks_the_model_that_generated_the_data() {
         .collect();
     assert!(
         keys.windows(2)
-            .all(|w| w[0].0 < w[1].0 || (w[0].0 == w[1].0 && w[0].1 <= w[1].1)),
+            .all(|w| (w[0].0, w[0].1) <= (w[1].0, w[1].1)),
         "{keys:?}"
     );
     assert_eq!(auto.ranking.len(), candidates().len());
