@@ -13,8 +13,11 @@
 //! 3. **Step** the setpoint (30 % → 70 % of the stroke) in closed loop with and without the
 //!    resonance notch, and measure the ringing.
 //!
-//! The feedback's gains ([`feedback_settings`]) are the same in every run at a rate: a PI on
-//! the error with the notch at the stage's resonance.
+//! The feedback's gains are the same in every run at a rate: by default ([`Gains::Tuned`])
+//! those `hal-sim tune` picks at that rate on the simulated board (its sweep measured through
+//! the protocol, fitted and designed: [`tuned_feedback`]); with [`Gains::Fixed`], a fixed PI
+//! with the notch at the stage's resonance ([`feedback_settings`]). The steps run the same
+//! gains with and without their notch.
 
 use crate::identification::{identify, score::score, IdentifyOptions, ModelKind, ThresholdSpread};
 use crate::measured_data::MeasuredData;
@@ -50,6 +53,18 @@ pub struct ClosedLoopOptions {
     pub sensor_noise_um: f64,
     /// Where the PNG figure goes (`None`: no figure).
     pub out_dir: Option<PathBuf>,
+    /// Which feedback gains run.
+    pub gains: Gains,
+}
+
+/// Which feedback gains the study runs.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum Gains {
+    /// What `hal-sim tune` picks at each rate on the simulated board ([`tuned_feedback`]).
+    #[default]
+    Tuned,
+    /// The fixed PI with the notch of [`feedback_settings`].
+    Fixed,
 }
 
 impl Default for ClosedLoopOptions {
@@ -58,6 +73,7 @@ impl Default for ClosedLoopOptions {
             rates: vec![50_000.0, 100_000.0],
             sine_cycles: 30,
             triangle_cycles: 4,
+            gains: Gains::Tuned,
             sensor_noise_um: 0.002,
             out_dir: Some(PathBuf::from("out")),
         }
@@ -136,6 +152,8 @@ pub struct StepRow {
 /// Everything the study found.
 #[derive(Clone, Debug, Default)]
 pub struct ClosedLoopReport {
+    /// The feedback each rate ran (in the study model's normalised units).
+    pub feedback: Vec<(f64, FeedbackSettings)>,
     /// The table.
     pub tracking: Vec<TrackingRow>,
     /// The steps.
@@ -225,6 +243,35 @@ pub fn feedback_settings(rate: f64, notch: bool) -> FeedbackSettings {
         }),
         ..FeedbackSettings::pi(0.1, 0.2 * rate, 0.25)
     }
+}
+
+/// The feedback `hal-sim tune` picks at `rate` on the simulated board (the paper's stage:
+/// sweep measured through the protocol, resonance and delay fitted, PI and notch designed to
+/// its default margins), its gains carried from the board's normalised units (its 70 V input
+/// half span onto ±45 µm) to those of `model`'s scaling.
+pub fn tuned_feedback(rate: f64, model: &StageModel) -> Result<FeedbackSettings> {
+    use crate::link::Client;
+    use crate::sim_device::{SimDevice, SimDeviceConfig};
+    use crate::tune::{tune, TuneOptions};
+    let mut config = SimDeviceConfig::paper();
+    config.board.plant.dt = 1.0 / rate;
+    let device = SimDevice::new(config).map_err(|e| anyhow!("simulated board: {e}"))?;
+    let board_ranges =
+        SimDeviceConfig::paper_settings(twinstack::protocol::messages::Mode::Bypass).ranges;
+    let mut client = Client::new(device);
+    let report = tune(&mut client, &TuneOptions::default(), |_| {})
+        .map_err(|e| anyhow!("tuning at {rate} Hz: {e}"))?;
+    let s = model.scaling;
+    // Loop gain per normalised error is the same on both scalings when kp scales by
+    // (board's volts per µm) / (model's volts per µm), normalised.
+    let k = (s.input_half_span() / s.output_half_span())
+        / (board_ranges.input_half_span() / board_ranges.output_half_span());
+    let d = report.design.settings;
+    Ok(FeedbackSettings {
+        kp: d.kp / k,
+        ki: d.ki / k,
+        ..d
+    })
 }
 
 /// The model as the settings carry it.
@@ -381,9 +428,33 @@ pub fn track(
     shape: Shape,
     c: Configuration4,
 ) -> Result<TrackingRow> {
+    track_with(
+        rate,
+        options,
+        model,
+        shape,
+        c,
+        &feedback_settings(rate, true),
+    )
+}
+
+/// [`track`] with the feedback `feedback`.
+pub fn track_with(
+    rate: f64,
+    options: &ClosedLoopOptions,
+    model: &StageModel,
+    shape: Shape,
+    c: Configuration4,
+    feedback: &FeedbackSettings,
+) -> Result<TrackingRow> {
     let board0 = board(rate, options.sensor_noise_um)?;
     let sensor = sensor_settings(&board0);
-    let config = configuration(rate, model, sensor, c, true)?;
+    let config = Settings {
+        feedback: Some(*feedback),
+        ..settings(rate, model, sensor, c, feedback.notch.is_some())
+    }
+    .build(&hardware(rate))
+    .map_err(|e| anyhow!("settings refused: {e}"))?;
     let (frequency, cycles, skip, label) = match shape {
         Shape::Triangle => (100.0, options.triangle_cycles, 1, "100 Hz triangle"),
         Shape::Sine => (750.0, options.sine_cycles, 2, "750 Hz sine"),
@@ -512,16 +583,26 @@ pub fn run(options: &ClosedLoopOptions) -> Result<ClosedLoopReport> {
     let mut panels = Vec::new();
     for &rate in &options.rates {
         let model = identify_model(rate, options)?;
+        let feedback = match options.gains {
+            Gains::Tuned => tuned_feedback(rate, &model)?,
+            Gains::Fixed => feedback_settings(rate, true),
+        };
+        report.feedback.push((rate, feedback));
         for shape in [Shape::Triangle, Shape::Sine] {
             for c in Configuration4::ALL {
                 report
                     .tracking
-                    .push(track(rate, options, &model, shape, c)?);
+                    .push(track_with(rate, options, &model, shape, c, &feedback)?);
             }
         }
         let mut series = Vec::new();
         for (notch, color) in [(false, RED), (true, BLUE)] {
-            let row = step(rate, options, &model, notch)?;
+            let gains = FeedbackSettings {
+                notch: if notch { feedback.notch } else { None },
+                ..feedback
+            };
+            let mut row = step_with(rate, options, &model, &gains)?;
+            row.notch = notch;
             series.push(Series {
                 label: if notch { "with notch" } else { "without notch" }.into(),
                 points: row.trace.clone(),
@@ -552,6 +633,22 @@ pub fn run(options: &ClosedLoopOptions) -> Result<ClosedLoopReport> {
 
 /// Prints the table and the step figures.
 pub fn print(report: &ClosedLoopReport, out: &mut impl std::io::Write) -> std::io::Result<()> {
+    for (rate, f) in &report.feedback {
+        writeln!(
+            out,
+            "feedback at {:.0} kHz: kp {:.4}, ki {:.0} /s, notch {}",
+            rate / 1e3,
+            f.kp,
+            f.ki,
+            match &f.notch {
+                Some(n) => format!(
+                    "{:.0} Hz, Q {:.2}, depth {:.2}",
+                    n.frequency_hz, n.q, n.depth
+                ),
+                None => "none".into(),
+            }
+        )?;
+    }
     writeln!(
         out,
         "Tracking error over 10–90 % of the stroke (% of the commanded stroke)"

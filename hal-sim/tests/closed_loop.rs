@@ -153,9 +153,11 @@ fn study_options() -> ClosedLoopOptions {
     }
 }
 
-/// The README's table: feedforward + feedback beats feedforward alone and feedback alone, on
-/// max and on RMS, for both waveforms at both rates; and every compensated configuration beats
-/// none.
+/// The README's table, on the gains `hal-sim tune` picks at each rate: feedforward + feedback
+/// beats feedforward alone and feedback alone, on max and on RMS, for both waveforms at both
+/// rates; and every compensated configuration beats none. The tuned gains do better than the
+/// fixed PI (worst feedforward + feedback max 0.77 %): within 0.6 % on every row (the goal,
+/// 0.25 %, is not reached yet).
 #[test]
 fn feedforward_plus_feedback_beats_either_alone_on_every_row() {
     let report = closed_loop::run(&study_options()).unwrap();
@@ -164,6 +166,16 @@ fn feedforward_plus_feedback_beats_either_alone_on_every_row() {
     closed_loop::print(&report, &mut text).unwrap();
     let text = String::from_utf8(text).unwrap();
     assert!(report.both_beats_the_others_everywhere(), "{text}");
+    // The gains are what tune picked, one set per rate, not the fixed PI.
+    assert_eq!(report.feedback.len(), 2, "{text}");
+    for (rate, f) in &report.feedback {
+        assert_ne!(*f, closed_loop::feedback_settings(*rate, true), "{text}");
+    }
+    for r in &report.tracking {
+        if r.configuration == Configuration4::Both {
+            assert!(r.max_pct < 0.6, "{text}");
+        }
+    }
     for r in &report.tracking {
         let none = report
             .row(r.rate, r.waveform, Configuration4::None)

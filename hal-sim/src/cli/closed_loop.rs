@@ -2,7 +2,7 @@
 //! stage — the tracking table (4 configurations × 2 waveforms × each rate) and the step with and
 //! without the resonance notch.
 
-use crate::closed_loop::{print, run as run_study, ClosedLoopOptions};
+use crate::closed_loop::{print, run as run_study, ClosedLoopOptions, Gains};
 use std::path::PathBuf;
 
 /// Arguments of `twinstack closed-loop`.
@@ -27,6 +27,19 @@ pub struct Args {
     /// Write no figure.
     #[arg(long)]
     pub no_plot: bool,
+    /// The feedback gains: `tuned` (what `hal-sim tune` picks at each rate on the simulated
+    /// board) or `fixed` (kp 0.1, ki 0.2 × rate /s, notch at 21.8 kHz, Q 2).
+    #[arg(long, value_enum, default_value_t = GainsArg::Tuned)]
+    pub gains: GainsArg,
+}
+
+/// `--gains` values.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum GainsArg {
+    /// What `hal-sim tune` picks at each rate.
+    Tuned,
+    /// The fixed PI with the notch.
+    Fixed,
 }
 
 /// Runs the study and prints its tables.
@@ -52,6 +65,10 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         triangle_cycles: args.triangle_cycles,
         sensor_noise_um: args.sensor_noise_um,
         out_dir: (!args.no_plot).then(|| args.out.clone()),
+        gains: match args.gains {
+            GainsArg::Tuned => Gains::Tuned,
+            GainsArg::Fixed => Gains::Fixed,
+        },
     })?;
     print(&report, &mut std::io::stdout().lock())?;
     Ok(())
