@@ -335,7 +335,7 @@ impl DualStageDeviceConfig {
             sim: DualStageSimConfig::paper(),
             supervisor: SupervisorSettings::paper_stage(),
             switches: SwitchPositions::paper(),
-            baud: crate::port::DEFAULT_BAUD,
+            baud: twinstack::protocol::LINK_BAUD,
             link: crate::sim_device::LinkDelay::IDEAL,
         }
     }

@@ -12,7 +12,7 @@ use std::path::PathBuf;
 
 /// Default baud rate of the board link: the board's (`twinstack::hardware::usart::BAUD`), 3
 /// Mbaud, which FT232R, CP2102N and FT232H adapters make exactly.
-pub const DEFAULT_BAUD: u32 = 3_000_000;
+pub const DEFAULT_BAUD: u32 = twinstack::protocol::LINK_BAUD;
 
 /// Where the board is.
 #[derive(Clone, Debug, PartialEq, Eq)]

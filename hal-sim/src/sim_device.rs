@@ -91,7 +91,7 @@ impl SimDeviceConfig {
     pub fn paper() -> Self {
         Self {
             board: BoardConfig::paper(Configuration::Differential),
-            baud: crate::port::DEFAULT_BAUD,
+            baud: twinstack::protocol::LINK_BAUD,
             link: LinkDelay::IDEAL,
             stored: Some(Self::paper_settings(Mode::Bypass)),
         }

@@ -27,7 +27,7 @@ use super::clocks::BusClocks;
 /// CP2102N's top rate; FT232H's 12 MHz ÷ 4): 300 000 bytes/s each way, of which 100 000
 /// setpoints/s in packed batches take 213 542 (docs: the streaming chapter). (The emulator's
 /// 16 MHz HSI cannot divide down to it; QEMU ignores the divider.)
-pub const BAUD: u32 = 3_000_000;
+pub const BAUD: u32 = crate::protocol::LINK_BAUD;
 /// Size of the DMA receive ring, bytes. Bursts longer than this between two drains lose data;
 /// the half-transfer and transfer-complete interrupts drain at every half ring, so a drain may
 /// start up to `RX_BUFFER_LEN / 2` byte times (256 bytes: 853 µs at 3 Mbaud, 85 ticks at

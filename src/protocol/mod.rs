@@ -8,6 +8,11 @@
 //! The board's side of it, bytes in and one response frame per request, is
 //! [`crate::command_handler`], above the tick side it commands.
 
+/// The host link's line rate: USART1 at 3 Mbaud, 8N1 (300 000 bytes/s each way). The board
+/// sets its UART to it (`hardware::usart::BAUD` on the target) and the host opens
+/// its ports and models the simulated board's line at it.
+pub const LINK_BAUD: u32 = 3_000_000;
+
 pub mod decoder;
 pub mod frame;
 // Message enums are sized by their largest variant on purpose: there is no heap on the board,
