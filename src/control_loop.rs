@@ -57,13 +57,16 @@ use crate::waveform::WaveformGenerator;
 /// fit). 20 000 slots, 40 008 bytes with the indices: 200 ms at 100 kHz (400 ms at 50 kHz),
 /// divider 1 — several round trips of a USB–serial adapter (whose latency timer holds bytes
 /// up to 16 ms each way) plus the host's scheduling. On the board it lives in CCM RAM
-/// ([`crate::hardware::ccm::setpoint_queue`]), taken from the recorder's CCM part. The
+/// (`hardware::ccm::setpoint_queue`), taken from the recorder's CCM part. The
 /// emulator image (QEMU models no CCM) keeps 2 048 slots in SRAM: 20 ms at 100 kHz.
 pub const SETPOINT_QUEUE_LEN: usize = if cfg!(feature = "emulator") {
-    2048
+    EMULATOR_SETPOINT_QUEUE_LEN
 } else {
     20_000
 };
+/// Slots of the setpoint queue in the QEMU image: 2 048 in SRAM (QEMU's `netduinoplus2`
+/// models no CCM RAM), 2 047 setpoints, 20 ms at 100 kHz.
+pub const EMULATOR_SETPOINT_QUEUE_LEN: usize = 2048;
 /// Setpoints the queue holds: the credits of an empty queue.
 pub const SETPOINT_CAPACITY: usize = SETPOINT_QUEUE_LEN - 1;
 /// The setpoint queue between the handler (producer) and the tick (consumer): Q1.15 wire

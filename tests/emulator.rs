@@ -258,7 +258,7 @@ fn emulator_answers_a_status_query_and_its_tick_counter_advances() {
     assert_eq!((b.underruns, b.queue_fill), (0, 0), "{b:?}");
     assert_eq!(
         b.credits as usize,
-        twinstack::control_loop::SETPOINT_CAPACITY
+        (twinstack::control_loop::EMULATOR_SETPOINT_QUEUE_LEN - 1)
     );
     // Nothing was stored in the emulated flash: the compiled-in settings, flagged.
     assert!(b.has(StatusReport::DEFAULTS), "{b:?}");
@@ -331,7 +331,7 @@ fn emulator_streams_setpoints_loads_parameters_records_and_nacks_a_bad_frame() {
     assert_eq!(emu.status().crc_errors, 1);
     // Queue a ramp (two batches), one setpoint every 10 ticks, interpolated.
     let ramp: Vec<i16> = (0..192).map(|k| (k * 100) as i16).collect();
-    let free = twinstack::control_loop::SETPOINT_CAPACITY as u16;
+    let free = (twinstack::control_loop::EMULATOR_SETPOINT_QUEUE_LEN - 1) as u16;
     for seq in 0..2u16 {
         let part = &ramp[96 * seq as usize..96 * (seq as usize + 1)];
         assert_eq!(
