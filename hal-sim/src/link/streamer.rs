@@ -17,7 +17,7 @@
 //!
 //! * **the end**: right behind the last batch goes `Stream(Finish)`: the board plays what is
 //!   queued and then stops by itself, so it counts no underrun after the last setpoint, and
-//!   the change of its underrun counter over the stream ([`StreamReport::underruns`]) is
+//!   the change of its underrun counter over the stream ([`StreamReport::underruns_during_stream`]) is
 //!   exactly the stream's underruns.
 //!
 //! Setpoints are Q1.15 normalised displacement (the wire format,
