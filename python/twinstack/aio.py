@@ -11,7 +11,7 @@ Semantics, which a caller can rely on:
   :class:`asyncio.Lock` (first come, first served) instead of failing as two threads sharing
   a :class:`~twinstack.Board` do. A call that is waiting for its turn can be cancelled freely.
 * **A stream leaves room for other calls.** :meth:`AsyncBoard.stream` sends its setpoints in
-  chunks (by default about one setpoint queue's worth: what the board holds anyway) and lets
+  chunks (by default 0.1 s of setpoints, at most one setpoint queue's worth) and lets
   go of the board between two chunks, so a :meth:`~AsyncBoard.status` poll is answered within
   one chunk while the stream plays; the board's queue is topped up again right after it.
   Underruns, if a host is too slow for that, are counted in the report as always.
@@ -45,7 +45,7 @@ from ._native import identify as _identify
 
 T = TypeVar("T")
 
-#: Seconds of setpoints :meth:`AsyncBoard.stream` sends per chunk by default (at least one
+#: Seconds of setpoints :meth:`AsyncBoard.stream` sends per chunk by default (at most one
 #: setpoint queue's worth): how long another call on the board waits at most during a stream.
 CHUNK_SECONDS = 0.1
 
@@ -186,7 +186,7 @@ class AsyncBoard:
         chunk: Optional[int] = None,
     ) -> Dict[str, Any]:
         """Streams `setpoints` as :meth:`twinstack.Board.stream` does, in chunks of `chunk`
-        setpoints (default: :data:`CHUNK_SECONDS` of them, at least the board's setpoint queue),
+        setpoints (default: :data:`CHUNK_SECONDS` of them, at most the board's setpoint queue),
         letting other
         calls on this board in between two chunks. Returns the blocking call's report summed
         over the chunks (``accepted``, ``batches``, ``underruns``, ``seconds``, ...) plus
@@ -200,7 +200,7 @@ class AsyncBoard:
             s = await self.status()
             per_second = rate if rate is not None else float(s["tick_rate_hz"])
             queue = int(s["queue_fill"]) + int(s["credits"])
-            chunk = max(1, queue, int(CHUNK_SECONDS * per_second))
+            chunk = max(1, min(queue, int(CHUNK_SECONDS * per_second)))
         elif chunk < 1:
             raise ValueError(f"chunk {chunk}: must be at least 1 setpoint")
         total: Dict[str, Any] = {}
