@@ -18,22 +18,8 @@ use std::time::Duration;
 
 use hal_sim::link::client::Client;
 use hal_sim::link::streamer::{stream_setpoints, StreamOptions, StreamReport};
-use hal_sim::sim_device::{LinkDelay, SimDevice, SimDeviceConfig};
+use hal_sim::sim_device::{full_range_triangle, LinkDelay, SimDevice, SimDeviceConfig};
 use twinstack::protocol::messages::UnderrunPolicy;
-
-fn triangle(n: usize, period: usize) -> Vec<i16> {
-    (0..n)
-        .map(|i| {
-            let phase = (i % period) as f64 / period as f64;
-            let x = if phase < 0.5 {
-                4.0 * phase - 1.0
-            } else {
-                3.0 - 4.0 * phase
-            };
-            (0.95 * x * 32767.0).round() as i16
-        })
-        .collect()
-}
 
 struct Setup {
     baud: u32,
@@ -44,14 +30,9 @@ struct Setup {
 fn run(setup: &Setup, rate: f64, latency_ms: f64, seconds: f64) -> Result<StreamReport, String> {
     let latency = Duration::from_secs_f64(latency_ms / 1e3);
     let link = LinkDelay::new(latency, latency / 4).map_err(|e| e.to_string())?;
-    let mut config = SimDeviceConfig {
-        baud: setup.baud,
-        link,
-        ..SimDeviceConfig::paper()
-    };
-    config.board.plant.dt = 1.0 / rate;
+    let config = SimDeviceConfig::paper_at(rate, setup.baud, link);
     let mut client = Client::new(SimDevice::new(config).map_err(|e| e.to_string())?);
-    let samples = triangle((seconds * rate) as usize, (rate / 10.0) as usize);
+    let samples = full_range_triangle((seconds * rate) as usize, (rate / 10.0) as usize);
     let options = StreamOptions {
         underrun: Some(UnderrunPolicy::Hold),
         queue_limit: setup.queue_limit,

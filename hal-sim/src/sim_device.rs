@@ -97,6 +97,24 @@ impl SimDeviceConfig {
         }
     }
 
+    /// [`SimDeviceConfig::paper`] at `rate_hz` ticks a second, behind a link of `baud` with
+    /// `link`'s latency: the board a link measurement streams to.
+    ///
+    /// ```
+    /// use hal_sim::sim_device::{LinkDelay, SimDeviceConfig};
+    /// let config = SimDeviceConfig::paper_at(100e3, 3_000_000, LinkDelay::ADAPTER);
+    /// assert_eq!(config.board.plant.dt, 1e-5);
+    /// ```
+    pub fn paper_at(rate_hz: f64, baud: u32, link: LinkDelay) -> Self {
+        let mut config = Self {
+            baud,
+            link,
+            ..Self::paper()
+        };
+        config.board.plant.dt = 1.0 / rate_hz;
+        config
+    }
+
     /// Settings for the paper's differential stage in `mode`: 0…140 V on the left stack onto
     /// the sensor's ±45 µm (its calibration), bias 70 V, 0…140 V limits, 0.9 V/µs slew, a
     /// representative 8-operator P–I model (total slope ≈ 0.4 µm/V) as compensator and
@@ -641,4 +659,22 @@ impl<D: AnalogDualDac, A: AnalogSensorAdc> Transport for SimDevice<D, A> {
     fn clock(&self) -> Option<Duration> {
         Some(self.now())
     }
+}
+
+/// A triangle over 95 % of the setpoint range, `n` setpoints of `period` each cycle (from the
+/// bottom): a stream whose samples mostly need three bytes as varints and two packed, what
+/// the link measurements send.
+pub fn full_range_triangle(n: usize, period: usize) -> Vec<i16> {
+    let period = period.max(1);
+    (0..n)
+        .map(|i| {
+            let phase = (i % period) as f64 / period as f64;
+            let x = if phase < 0.5 {
+                4.0 * phase - 1.0
+            } else {
+                3.0 - 4.0 * phase
+            };
+            (0.95 * x * 32767.0).round() as i16
+        })
+        .collect()
 }

@@ -7,34 +7,12 @@ use std::time::Duration;
 
 use hal_sim::link::client::Client;
 use hal_sim::link::streamer::{stream_setpoints, StreamOptions, StreamReport};
-use hal_sim::sim_device::{LinkDelay, SimDevice, SimDeviceConfig};
+use hal_sim::sim_device::{full_range_triangle, LinkDelay, SimDevice, SimDeviceConfig};
 use twinstack::control_loop::SETPOINT_CAPACITY;
 use twinstack::protocol::messages::{Request, Response, UnderrunPolicy};
 
 fn device(rate_hz: f64, baud: u32, link: LinkDelay) -> Client<SimDevice> {
-    let mut config = SimDeviceConfig {
-        baud,
-        link,
-        ..SimDeviceConfig::paper()
-    };
-    config.board.plant.dt = 1.0 / rate_hz;
-    Client::new(SimDevice::new(config).expect("device"))
-}
-
-/// A full-range triangle, `n` setpoints, `period` setpoints a cycle: most samples need three
-/// bytes as varints, two packed.
-fn triangle(n: usize, period: usize) -> Vec<i16> {
-    (0..n)
-        .map(|i| {
-            let phase = (i % period) as f64 / period as f64;
-            let x = if phase < 0.5 {
-                4.0 * phase - 1.0
-            } else {
-                3.0 - 4.0 * phase
-            };
-            (0.95 * x * 32767.0).round() as i16
-        })
-        .collect()
+    Client::new(SimDevice::new(SimDeviceConfig::paper_at(rate_hz, baud, link)).expect("device"))
 }
 
 /// Streams `samples` (hold policy) and checks the report's count against the board's own
@@ -64,7 +42,7 @@ fn streams_at_50_and_100_khz_through_an_adapter_s_latency_never_run_dry() {
         let mut client = device(rate, hal_sim::port::DEFAULT_BAUD, LinkDelay::ADAPTER);
         // Two seconds: ten queues' worth at 100 kHz, twenty at 50 kHz.
         let n = (2.0 * rate) as usize;
-        let samples = triangle(n, 5000);
+        let samples = full_range_triangle(n, 5000);
         let r = stream_and_check(&mut client, &samples);
         assert_eq!(r.underruns_during_stream(), 0, "{rate} Hz: {r:?}");
         assert!(!r.primed_whole, "the stream outlasted the queue");
@@ -85,7 +63,7 @@ fn a_link_too_slow_for_the_rate_underruns_and_the_count_is_the_board_s() {
     // 1 Mbaud carries 100 000 bytes/s: under 47 000 packed setpoints/s, for a 100 kHz
     // stream. The queue primes full, then runs dry again and again.
     let mut client = device(100_000.0, 1_000_000, LinkDelay::ADAPTER);
-    let samples = triangle(SETPOINT_CAPACITY + 30_000, 4000);
+    let samples = full_range_triangle(SETPOINT_CAPACITY + 30_000, 4000);
     let r = stream_and_check(&mut client, &samples);
     assert!(r.underruns_during_stream() > 10_000, "{r:?}");
     // The ticks after the end are not counted: the stream finished by itself.

@@ -495,6 +495,10 @@ fn gate(what: impl Into<String>, cmd: Command) -> Gate {
     }
 }
 
+/// The bench test that traces every tick in QEMU (`tests/irq_bench.rs`): run in the
+/// optimised gate only.
+const IRQ_BENCH_SCENARIOS: &str = "the_whole_interrupt_in_every_scenario";
+
 fn gates() -> Vec<Gate> {
     // `cargo test` runs the library crates' doc tests too: no separate `--doc` run.
     let mut gates = vec![
@@ -502,9 +506,22 @@ fn gates() -> Vec<Gate> {
             "module graph: no cycles (cargo xtask graph)",
             cargo(&["run", "--quiet", "-p", "xtask", "--", "graph", "--quiet"]),
         ),
+        // The whole-interrupt bench parses QEMU's instruction trace of every tick (hundreds of
+        // millions of lines): unoptimised, the parse alone takes most of an hour, so it runs in
+        // its own optimised gate below and is skipped here.
         gate(
             "host tests and doc tests (cargo test --workspace)",
-            cargo(&["test", "--workspace"]),
+            cargo(&[
+                "test",
+                "--workspace",
+                "--",
+                "--skip",
+                IRQ_BENCH_SCENARIOS,
+            ]),
+        ),
+        gate(
+            "the whole interrupt in QEMU, optimised (cargo test --profile host-opt --test irq_bench)",
+            cargo(&["test", "--profile", "host-opt", "--test", "irq_bench"]),
         ),
         gate(
             "the lab stage's variants, optimised (cargo test --profile host-opt -p hal-sim --test stage_variants)",

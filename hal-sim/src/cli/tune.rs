@@ -9,7 +9,7 @@
 use super::board_link::{connect, PortArgs, UsageError};
 use crate::link::{Client, Transport};
 use crate::plot::{draw_panels, Panel, Series};
-use crate::sim_device::{SimDevice, SimDeviceConfig};
+use crate::sim_device::{LinkDelay, SimDevice, SimDeviceConfig};
 use crate::tune::loop_model::{loop_response, LoopController};
 use crate::tune::{tune, TuneOptions, TuneReport};
 use plotters::style::RGBColor;
@@ -207,11 +207,7 @@ fn run_on<T: Transport>(args: &Args, client: &mut Client<T>) -> anyhow::Result<(
 pub fn run(args: &Args) -> anyhow::Result<()> {
     let is_sim = args.port.port.as_deref().map(str::trim) == Some("sim");
     if let (Some(rate), true) = (args.rate, is_sim) {
-        let mut config = SimDeviceConfig {
-            baud: args.port.baud,
-            ..SimDeviceConfig::paper()
-        };
-        config.board.plant.dt = 1.0 / rate;
+        let config = SimDeviceConfig::paper_at(rate, args.port.baud, LinkDelay::IDEAL);
         let device = SimDevice::new(config).map_err(|e| anyhow::anyhow!("{e}"))?;
         let mut client = Client::new(device);
         client.set_timeout(Duration::from_millis(args.port.timeout_ms.max(1)));

@@ -63,12 +63,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         anyhow::bail!("--baud must be positive");
     }
     let link = args.link.delay()?;
-    let mut config = SimDeviceConfig {
-        baud: args.baud,
-        link,
-        ..SimDeviceConfig::paper()
-    };
-    config.board.plant.dt = 1.0 / args.tick_rate;
+    let config = SimDeviceConfig::paper_at(args.tick_rate, args.baud, link);
     let speed = if args.speed == 0.0 {
         "as fast as possible".to_string()
     } else {
