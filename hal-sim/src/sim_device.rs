@@ -598,6 +598,19 @@ impl<D: AnalogDualDac, A: AnalogSensorAdc> SimDevice<D, A> {
     pub fn bytes_in_flight(&self) -> usize {
         self.rx.len()
     }
+
+    /// A client hung up and another is connecting: the adapter's buffers are emptied both
+    /// ways, as when a serial port is closed and opened again. What the earlier client sent
+    /// and the board has not received is dropped, and so is everything the board sent that
+    /// has not been read, arrived or still on its way (a late answer to the earlier client's
+    /// last request would otherwise be taken for the answer to the new client's first).
+    /// Returns the bytes dropped, host → board and board → host.
+    pub fn hang_up(&mut self) -> (usize, usize) {
+        let dropped = (self.rx.len(), self.tx.bytes.len());
+        self.rx.clear();
+        self.tx.bytes.clear();
+        dropped
+    }
 }
 
 fn board_dt_ns(rate_hz: f64) -> u64 {

@@ -104,15 +104,15 @@ pub fn serve_device<D: AnalogDualDac, A: AnalogSensorAdc>(
                 Ok((stream, _)) => {
                     // The client may have left without the server noticing yet (`hal-sim
                     // load` then at once `twinstack stream`): check before refusing.
-                    if client.as_ref().is_some_and(|c| !is_open(c)) {
+                    if client.as_mut().is_some_and(|c| !is_open(c, &mut device)) {
                         client = None;
                     }
                     if client.is_some() {
                         report.refused += 1;
                         drop(stream);
                     } else if let Ok(stream) = prepare(stream) {
-                        // What the board sent while nobody listened is lost, as on a UART.
-                        discard_output(&mut device);
+                        // A new line: nothing of the last client's is left on it.
+                        device.hang_up();
                         report.clients += 1;
                         client = Some(stream);
                     }
@@ -179,8 +179,8 @@ pub fn serve_pty(
         match master.read(&mut buf) {
             Ok(n) if n > 0 => {
                 if !connected {
-                    // What the board sent while nobody listened is lost, as on a UART.
-                    discard_output(&mut device);
+                    // A new line: nothing of the last client's is left on it.
+                    device.hang_up();
                     report.clients += 1;
                     connected = true;
                 }
@@ -218,16 +218,41 @@ fn prepare(stream: TcpStream) -> io::Result<TcpStream> {
     Ok(stream)
 }
 
-/// The client has not closed its end (nor reset it).
-fn is_open(stream: &TcpStream) -> bool {
-    let mut byte = [0u8; 1];
-    match stream.peek(&mut byte) {
-        Ok(n) => n > 0,
-        Err(e) => matches!(
-            e.kind(),
-            io::ErrorKind::WouldBlock | io::ErrorKind::TimedOut | io::ErrorKind::Interrupted
-        ),
+/// The client has not closed its end (nor reset it). Bytes it sent before closing are read
+/// onto the board's line first (at most [`OPEN_CHECK_READS`] reads: a client still sending is
+/// open), so that a close behind them is seen.
+fn is_open<D: AnalogDualDac, A: AnalogSensorAdc>(
+    stream: &mut TcpStream,
+    device: &mut SimDevice<D, A>,
+) -> bool {
+    let mut buf = [0u8; 4096];
+    for _ in 0..OPEN_CHECK_READS {
+        match stream.peek(&mut buf[..1]) {
+            Ok(0) => return false,
+            Ok(_) => match stream.read(&mut buf) {
+                Ok(0) => return false,
+                Ok(n) => {
+                    if device.send(&buf[..n]).is_err() {
+                        return false;
+                    }
+                }
+                Err(e) => return is_waiting(&e),
+            },
+            Err(e) => return is_waiting(&e),
+        }
     }
+    true
+}
+
+/// Reads the open check makes before it takes a client that keeps sending as open.
+const OPEN_CHECK_READS: usize = 16;
+
+/// A read that found nothing yet on a connection still open.
+fn is_waiting(e: &io::Error) -> bool {
+    matches!(
+        e.kind(),
+        io::ErrorKind::WouldBlock | io::ErrorKind::TimedOut | io::ErrorKind::Interrupted
+    )
 }
 
 fn is_connection_error(e: &io::Error) -> bool {

@@ -216,6 +216,32 @@ fn real_time_pacing_runs_the_board_at_the_wall_clock() {
     assert!(board >= 0.05, "board {board} s in {wall} s");
 }
 
+#[test]
+fn a_new_client_never_gets_the_answers_meant_for_the_last() {
+    let server = Server::start(1.0);
+    // A client asks five times and leaves before any answer is back (the adapter's 16 ms each
+    // way): its requests and answers are still on the line when the next client connects.
+    {
+        let mut client = server.client();
+        client
+            .send_together(&vec![Request::Status; 5])
+            .expect("sent");
+    }
+    for _ in 0..3 {
+        let mut client = server.client();
+        let status = client.status().expect("the answer to this status");
+        assert_eq!(status.tick_rate_hz, 50_000);
+        // The next answer is this request's own (an Ack), not a late Status.
+        client
+            .stream(StreamControl::Stop)
+            .expect("the answer to this stop");
+        client
+            .send_together(&vec![Request::Status; 5])
+            .expect("sent");
+    }
+    server.stop();
+}
+
 /// The binary: prints the address it listens on; killed when dropped.
 struct Binary(Child);
 

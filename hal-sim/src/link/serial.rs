@@ -69,6 +69,14 @@ impl SerialTransport {
                 path: path.into(),
                 reason: e.description,
             })?;
+        // Bytes the board sent to an earlier client (a late answer to its last request) are
+        // still in the adapter's buffer: they would be taken for the answer to this client's
+        // first request.
+        port.clear(serialport::ClearBuffer::All)
+            .map_err(|e| SerialError::Open {
+                path: path.into(),
+                reason: e.description,
+            })?;
         Ok(Self { port, timeout })
     }
 }
