@@ -32,6 +32,7 @@ use crate::param_store::{RecordStorage, StorageError, StoredRecord, MAX_RECORD};
 use crate::recorder::{in_pieces, RecordError, SampleStore};
 use crate::refusal::{Field, Refusal, Rule};
 use crate::scan::{ScanGenerator, ScanRequest};
+use crate::sequence::{SequenceRequest, SequenceStatus};
 use crate::setpoint_stream::setpoint_from_wire;
 use crate::settings::{Mode, Settings};
 use crate::telemetry::{self, TelemetryPacker, TelemetrySample};
@@ -220,6 +221,11 @@ impl<S: RecordStorage> CommandHandler<S> {
                 control.lock(|c| c.set_trigger(t));
                 Ok(())
             }
+            Request::Sequence(r) => match self.sequence(r, control) {
+                Ok(Some(status)) => return Response::Sequence(status),
+                Ok(None) => Ok(()),
+                Err(reason) => Err(reason),
+            },
         };
         match done {
             Ok(()) => Response::Ack {
@@ -254,6 +260,7 @@ impl<S: RecordStorage> CommandHandler<S> {
             (self.telemetry.is_active(), StatusReport::TELEMETRY),
             (t.scanning, StatusReport::SCANNING),
             (t.trigger_armed, StatusReport::TRIGGER_ARMED),
+            (t.sequence, StatusReport::SEQUENCE),
         ] {
             if on {
                 flags |= flag;
@@ -455,6 +462,33 @@ impl<S: RecordStorage> CommandHandler<S> {
         }
         control.lock(|c| c.scan(generator, r.on_trigger));
         Ok(())
+    }
+
+    /// Arms (settings checked outside any lock), stops or reads a TTL-stepped sequence.
+    #[inline(never)] // rare: one copy, not one per caller
+    fn sequence<B, C, L>(
+        &mut self,
+        r: SequenceRequest,
+        control: &mut L,
+    ) -> Result<Option<SequenceStatus>, NackReason>
+    where
+        B: SampleStore,
+        C: DerefMut<Target = Controller>,
+        L: Mutex<T = ControlLoop<B, C>>,
+    {
+        match r {
+            SequenceRequest::Arm(config) => {
+                config.check().map_err(NackReason::Refused)?;
+                let step = crate::sequence::move_step(self.max_scan_step());
+                control.lock(|c| c.arm_sequence(&config, step));
+                Ok(None)
+            }
+            SequenceRequest::Stop => {
+                control.lock(|c| c.stop());
+                Ok(None)
+            }
+            SequenceRequest::Status => Ok(Some(control.lock(|c| c.sequence_status()))),
+        }
     }
 
     /// The largest setpoint step per tick (Q2.30) the drive's slew limit follows: the

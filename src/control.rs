@@ -558,6 +558,20 @@ impl Controller {
         self.setpoint
     }
 
+    /// Where the stage is, as well as the board knows it after the last tick (Q2.30
+    /// normalised): the sensor's last reading, else the observer's last estimate, else the
+    /// setpoint in force (what a sequence's settle window is checked against).
+    #[inline(always)]
+    pub fn position(&self) -> i32 {
+        if self.sensor.is_some() {
+            self.feedback_state.measured
+        } else if matches!(self.observer, ObserverRun::None) {
+            self.setpoint
+        } else {
+            self.feedback_state.estimates[0]
+        }
+    }
+
     /// The rest position: the observer's displacement with the drive at rest (the bias),
     /// Q2.30 normalised (the drive itself without an observer). Computed when the
     /// configuration was prepared.

@@ -18,6 +18,10 @@
 //! events into the trigger outputs' levels ([`ControlLoop::trigger_levels`], for the board to
 //! write to its pins, and in the capture's `triggers` channel). All O(1).
 //!
+//! With a TTL-stepped sequence armed ([`crate::sequence`]) the setpoint comes from it instead
+//! (step 1): each edge on the trigger input pops one position from the setpoint queue, and the
+//! settled output joins the trigger levels.
+//!
 //! A configuration prepared by the command handler ([`Controller::prepare`], on the spare
 //! controller, outside any lock) is swapped in by [`ControlLoop::post`] inside the handler's
 //! short critical section, in O(1): the loop holds its controllers by pointer, so the swap
@@ -48,6 +52,7 @@ use crate::mode_switch::ModeError;
 use crate::recorder::{CaptureInfo, RecordError, Recorder, SampleStore, TickSignals, Trigger};
 use crate::recorder::{Signal, MAX_CAPTURE_CHUNK, MAX_CHUNK};
 use crate::scan::{ExternalTrigger, ScanGenerator, TriggerConfig, TriggerOutputs, INPUT};
+use crate::sequence::{SequenceConfig, SequenceStatus, SteppedSequence};
 use crate::setpoint_stream::UnderrunPolicy;
 use crate::setpoint_stream::{SetpointStream, Underrun};
 use crate::telemetry::{TelemetrySample, TelemetryTap};
@@ -102,6 +107,8 @@ pub struct Telemetry {
     pub scanning: bool,
     /// Whether the external trigger input is armed.
     pub trigger_armed: bool,
+    /// Whether a TTL-stepped sequence is armed.
+    pub sequence: bool,
 }
 
 /// Everything the control interrupt owns. `B` is the recorder's buffer; `C` a handle on a
@@ -153,6 +160,8 @@ pub struct ControlLoop<B, C> {
     stream_on_trigger: bool,
     /// The trigger outputs' levels the last tick left (bit 0 pixel, 1 line, 2 frame).
     levels: u8,
+    /// The TTL-stepped sequence ([`crate::sequence`]): while armed, the setpoint source.
+    sequence: SteppedSequence,
     /// The learning's tick half: the correction table it plays, the errors it stores
     /// ([`crate::learning`]). Last: see the type's doc, and the assertion after it.
     learning: LearnTick,
@@ -203,6 +212,7 @@ where
             input: false,
             stream_on_trigger: false,
             levels: 0,
+            sequence: SteppedSequence::new(),
         }
     }
 
@@ -217,7 +227,10 @@ where
         if self.external.poll(self.input) {
             self.fire_external();
         }
-        let (scanned, events) = self.scan_tick();
+        let (mut scanned, events) = self.scan_tick();
+        if self.sequence.is_armed() {
+            scanned = Some(self.sequence_tick(queue));
+        }
         #[cfg(not(feature = "dual-stage"))]
         let setpoint = match scanned {
             Some(x) => Some(x),
@@ -280,6 +293,28 @@ where
         }
     }
 
+    /// The sequence's setpoint this tick (armed): an edge on the input pops the next
+    /// position ([`SteppedSequence::next`]).
+    #[inline(always)]
+    fn sequence_tick<const N: usize>(&mut self, queue: &mut Consumer<'_, i16, N>) -> i32 {
+        let position = self.controller.position();
+        self.sequence.next(self.input, position, queue)
+    }
+
+    /// Arms a TTL-stepped sequence ([`crate::sequence`]; `config` checked by the caller) over
+    /// the positions queued, moving by at most `max_step` (Q2.30) a tick: the stream, the
+    /// waveform or a scan stops, and the stage holds until the first edge.
+    pub fn arm_sequence(&mut self, config: &SequenceConfig, max_step: i32) {
+        self.stop();
+        let from = self.controller.setpoint();
+        self.sequence.arm(config, from, self.input, max_step);
+    }
+
+    /// The sequence's state and counts.
+    pub fn sequence_status(&self) -> SequenceStatus {
+        self.sequence.status()
+    }
+
     /// The external trigger's armed edge came (on the tick): starts the scan waiting for it
     /// (from the setpoint in force: no step), the stream if asked, and fires a capture armed
     /// on it. O(1).
@@ -309,7 +344,7 @@ where
     /// [`crate::scan`]), for the board to write to its pins.
     #[inline(always)]
     pub fn trigger_levels(&self) -> u8 {
-        self.levels
+        self.levels | self.sequence.level()
     }
 
     /// Applies trigger I/O settings: the pulse width, and arms (or disarms) the input.
@@ -333,6 +368,7 @@ where
     /// waveform: now, from the setpoint in force (its approach walks from there), or, with
     /// `on_trigger`, when the armed external trigger fires (the setpoint holds meanwhile).
     pub fn scan(&mut self, mut scan: ScanGenerator, on_trigger: bool) {
+        self.end_sequence();
         self.waveform = false;
         self.stream.stop();
         self.stream.hold_at_if_stopped(self.controller.setpoint());
@@ -469,6 +505,7 @@ where
     pub fn start(&mut self) {
         self.waveform = false;
         self.end_scan();
+        self.end_sequence();
         self.stream.start();
         self.learning.restart();
         self.recorder.trigger(Trigger::StreamStart);
@@ -479,6 +516,15 @@ where
         self.waveform = false;
         self.stream.stop();
         self.end_scan();
+        self.end_sequence();
+    }
+
+    /// Disarms a sequence: the stream (stopped) holds where the sequence left the setpoint.
+    fn end_sequence(&mut self) {
+        if self.sequence.is_armed() {
+            self.sequence.disarm();
+            self.stream.hold_at_if_stopped(self.controller.setpoint());
+        }
     }
 
     /// Plays what is queued, then stops the stream (no underruns counted after its end).
@@ -509,6 +555,7 @@ where
     /// Plays `waveform` instead of the queue, from the next tick.
     pub fn play(&mut self, waveform: WaveformGenerator) {
         self.end_scan();
+        self.end_sequence();
         self.waveform = true;
         self.stream.play(waveform);
         self.learning.restart();
@@ -599,12 +646,13 @@ where
             recording: self.recorder.is_capturing(),
             scanning: self.is_scanning(),
             trigger_armed: self.external.is_armed(),
+            sequence: self.sequence.is_armed(),
         }
     }
 
-    /// Whether the stream, the waveform generator or a scan is running.
+    /// Whether the stream, the waveform generator, a scan or a sequence is running.
     pub fn is_running(&self) -> bool {
-        self.stream.is_running() || self.is_scanning()
+        self.stream.is_running() || self.is_scanning() || self.sequence.is_armed()
     }
 
     /// The controller (configuration in force, counters).

@@ -73,6 +73,7 @@ pub mod refusal;
 pub mod scaling;
 pub mod scan;
 pub mod sensor;
+pub mod sequence;
 pub mod setpoint_stream;
 pub mod settings;
 pub mod telemetry;

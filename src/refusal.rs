@@ -174,6 +174,12 @@ pub enum Field {
     ShapingQ,
     /// `shaping.depth`: the feedforward notch's gain at its centre.
     ShapingDepth,
+    /// A sequence's trigger edge (rising or falling; off is refused).
+    SequenceEdge,
+    /// A sequence's settle window, normalised displacement.
+    SequenceWindow,
+    /// A sequence's settle time, ticks.
+    SequenceSettle,
 }
 
 /// The rule a field broke, with its limit where it has one (in the field's own units).
@@ -365,6 +371,9 @@ impl core::fmt::Display for Field {
             Field::ShapingFrequency => "shaping.frequency_hz",
             Field::ShapingQ => "shaping.q",
             Field::ShapingDepth => "shaping.depth",
+            Field::SequenceEdge => "sequence edge",
+            Field::SequenceWindow => "sequence window",
+            Field::SequenceSettle => "sequence settle ticks",
         };
         f.write_str(name)
     }

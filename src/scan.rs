@@ -80,19 +80,25 @@ pub const LINE_PIN: u32 = 2;
 pub const FRAME_PIN: u32 = 3;
 /// GPIOA pin of the external trigger input (PA6).
 pub const INPUT_PIN: u32 = 6;
+/// GPIOA pin of a sequence's settled output (PA7, [`crate::sequence::SETTLED`]).
+pub const SETTLED_PIN: u32 = 7;
 
-/// The GPIOA `BSRR` word that puts the three outputs at `levels` ([`PIXEL`], [`LINE`],
-/// [`FRAME`] bits): a set bit for each high output, a reset bit (bit + 16) for each low one,
-/// so one store writes all three whatever they were. Three shifts and masks.
+/// The GPIOA `BSRR` word that puts the four outputs at `levels` ([`PIXEL`], [`LINE`],
+/// [`FRAME`] bits, and a sequence's [`crate::sequence::SETTLED`]): a set bit for each high
+/// output, a reset bit (bit + 16) for each low one, so one store writes all four whatever
+/// they were. A few shifts and masks.
 ///
 /// ```
 /// use twinstack::scan::{bsrr_word, LINE};
-/// assert_eq!(bsrr_word(LINE), 1 << 2 | (1 << 1 | 1 << 3) << 16);
+/// use twinstack::sequence::SETTLED;
+/// assert_eq!(bsrr_word(LINE), 1 << 2 | (1 << 1 | 1 << 3 | 1 << 7) << 16);
+/// assert_eq!(bsrr_word(SETTLED), 1 << 7 | (1 << 1 | 1 << 2 | 1 << 3) << 16);
 /// ```
 #[inline(always)]
 pub const fn bsrr_word(levels: u8) -> u32 {
-    let high = (levels & 0b111) as u32;
-    let low = !high & 0b111;
+    let high = (levels & 0b111) as u32 | (((levels >> 4) & 1) as u32) << (SETTLED_PIN - PIXEL_PIN);
+    let all = 0b111 | 1 << (SETTLED_PIN - PIXEL_PIN);
+    let low = !high & all;
     (high << PIXEL_PIN) | (low << (PIXEL_PIN + 16))
 }
 

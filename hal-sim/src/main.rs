@@ -54,6 +54,9 @@ enum Command {
     /// Run a scan pattern (raster, Lissajous, spiral) on the board with its trigger outputs,
     /// and report the trigger timing.
     Scan(cli::scan::Args),
+    /// Step through a list of positions, one per edge on the trigger input (a camera's TTL),
+    /// with a settled output; reports early and missed edges and the trigger-to-motion time.
+    Sequence(cli::sequence::Args),
     /// Stop the stream or the waveform generator (the output holds).
     Stop(cli::stop::Args),
     /// Capture a signal with the board's recorder into a CSV.
@@ -138,6 +141,7 @@ fn main() -> std::process::ExitCode {
         Command::Status(a) => cli::status::run(a),
         Command::Waveform(a) => cli::waveform::run(a),
         Command::Scan(a) => cli::scan::run(a),
+        Command::Sequence(a) => cli::sequence::run(a),
         Command::Stop(a) => cli::stop::run(a),
         Command::Record(a) => cli::record::run(a),
         Command::Telemetry(a) => cli::telemetry::run(a),

@@ -60,6 +60,7 @@ use twinstack::dual_stage::{CoarseLimits, CoarseStatus};
 use twinstack::param_store::{self, RamStorage, RecordStorage, StoredRecord, MAX_RECORD};
 use twinstack::recorder::CAPTURE_SLOTS;
 use twinstack::refusal::Refusal;
+use twinstack::sequence::SETTLED;
 use twinstack::settings::{pi_model, FeedbackSettings, Mode, SensorSettings, Settings};
 use twinstack::telemetry::TelemetryQueue;
 use twinstack::Scaling;
@@ -68,6 +69,7 @@ use crate::converters::{AnalogDualDac, AnalogSensorAdc, InternalAdc, InternalDac
 use crate::link::Transport;
 use crate::plant::Configuration;
 use crate::sim_board::{BoardConfig, BoardError, SimBoard};
+use crate::sim_camera::{CameraConfig, SimCamera};
 
 /// Everything a simulated device is built from.
 #[derive(Clone, Debug)]
@@ -82,6 +84,9 @@ pub struct SimDeviceConfig {
     /// defaults, bypass, no model) or settings stored as the board would store them (it boots
     /// in their mode).
     pub stored: Option<Settings>,
+    /// A simulated camera on the trigger input ([`crate::sim_camera`]), or none (the input
+    /// stays where [`SimDevice::set_trigger_input`] puts it).
+    pub camera: Option<CameraConfig>,
 }
 
 impl SimDeviceConfig {
@@ -94,6 +99,7 @@ impl SimDeviceConfig {
             baud: twinstack::protocol::LINK_BAUD,
             link: LinkDelay::IDEAL,
             stored: Some(Self::paper_settings(Mode::Bypass)),
+            camera: None,
         }
     }
 
@@ -386,6 +392,8 @@ pub struct SimDevice<D = InternalDac, A = InternalAdc> {
     last_report: Option<TickReport>,
     /// The external trigger input's level (protocol v6 trigger I/O).
     trigger_input: bool,
+    /// A simulated camera driving the trigger input (its TTL output ORed onto it).
+    camera: Option<SimCamera>,
 }
 
 impl SimDevice {
@@ -398,14 +406,16 @@ impl SimDevice {
         // The control rate is a whole number of hertz, as the firmware's timer runs it (and
         // as the status report and the stored record carry it); `1 / dt` is not exactly one.
         let rate_hz = (1.0 / board.plant().dt()).round();
-        SimDevice::build(
+        let mut device = SimDevice::build(
             board,
             hardware(rate_hz),
             config.stored,
             config.baud,
             config.link,
             None,
-        )
+        )?;
+        device.set_camera(config.camera);
+        Ok(device)
     }
 }
 
@@ -488,6 +498,7 @@ impl<D: AnalogDualDac, A: AnalogSensorAdc> SimDevice<D, A> {
             },
             last_report: None,
             trigger_input: false,
+            camera: None,
         })
     }
 
@@ -523,7 +534,14 @@ impl<D: AnalogDualDac, A: AnalogSensorAdc> SimDevice<D, A> {
             .service_learning(&mut Exclusive(&mut self.control));
         let (_, mut consumer) = self.queue.split();
         let (mut dac, mut adc) = self.board.split();
-        self.control.set_trigger_input(self.trigger_input);
+        let camera = match self.camera.as_mut() {
+            Some(c) => {
+                let armed = self.control.sequence_status().armed;
+                c.step(armed, self.control.trigger_levels() & SETTLED != 0)
+            }
+            None => false,
+        };
+        self.control.set_trigger_input(self.trigger_input | camera);
         let report = self.control.tick(&mut consumer, &mut adc, &mut dac);
         let (mut samples_in, mut samples_out) = self.telemetry.split();
         self.control.tap_telemetry(&mut samples_in);
@@ -547,6 +565,17 @@ impl<D: AnalogDualDac, A: AnalogSensorAdc> SimDevice<D, A> {
     /// tick on: what a lab's camera or function generator does to the pin.
     pub fn set_trigger_input(&mut self, level: bool) {
         self.trigger_input = level;
+    }
+
+    /// Puts a simulated camera on the trigger input (its TTL output ORed with the level
+    /// [`SimDevice::set_trigger_input`] sets), or takes it off.
+    pub fn set_camera(&mut self, camera: Option<CameraConfig>) {
+        self.camera = camera.map(SimCamera::new);
+    }
+
+    /// The simulated camera, if there is one.
+    pub fn camera(&self) -> Option<&SimCamera> {
+        self.camera.as_ref()
     }
 
     /// Bytes the modelled UART carried each way so far.

@@ -1,6 +1,7 @@
 //! The trigger I/O pins ([`crate::scan`]): pixel, line and frame clock outputs on PA1, PA2,
-//! PA3 (push-pull), the external trigger input on PA6 (pull-down, 3.3 V logic; 5 V tolerant
-//! as an FT pin). All four on GPIOA, so the tick writes the three outputs in one `BSRR` store
+//! PA3 (push-pull), a sequence's settled output on PA7 (push-pull, [`crate::sequence`]), the
+//! external trigger input on PA6 (pull-down, 3.3 V logic; 5 V tolerant as an FT pin). All
+//! five on GPIOA, so the tick writes the four outputs in one `BSRR` store
 //! ([`crate::scan::bsrr_word`]) and reads the input in one `IDR` load: constant time, every
 //! tick (the outputs are written even when they do not change).
 //!
@@ -18,6 +19,7 @@ pub struct TriggerPins {
     _line: Pin<'A', 2, Output<PushPull>>,
     _frame: Pin<'A', 3, Output<PushPull>>,
     _input: Pin<'A', 6, Input>,
+    _settled: Pin<'A', 7, Output<PushPull>>,
 }
 
 impl TriggerPins {
@@ -27,19 +29,22 @@ impl TriggerPins {
         line: Pin<'A', 2, Output<PushPull>>,
         frame: Pin<'A', 3, Output<PushPull>>,
         input: Pin<'A', 6, Input>,
+        settled: Pin<'A', 7, Output<PushPull>>,
     ) -> Self {
         Self {
             _pixel: pixel,
             _line: line,
             _frame: frame,
             _input: input,
+            _settled: settled,
         }
     }
 
-    /// Puts the outputs at `levels` (bit 0 pixel, 1 line, 2 frame): one `BSRR` store.
+    /// Puts the outputs at `levels` (bit 0 pixel, 1 line, 2 frame, 4 settled): one `BSRR`
+    /// store.
     #[inline(always)]
     pub fn write(&mut self, levels: u8) {
-        // SAFETY: BSRR is write-only and atomic per bit; this struct owns the three pins it
+        // SAFETY: BSRR is write-only and atomic per bit; this struct owns the four pins it
         // sets or resets, and no other code writes GPIOA's BSRR from an interrupt.
         let gpioa = unsafe { &*pac::GPIOA::ptr() };
         gpioa.bsrr().write(|w| unsafe { w.bits(bsrr_word(levels)) });

@@ -12,6 +12,7 @@ use crate::refusal::Refusal;
 pub use crate::scan::{
     LissajousScan, RasterScan, ScanPattern, ScanRequest, SpiralScan, TriggerConfig, TriggerEdge,
 };
+pub use crate::sequence::{SequenceConfig, SequenceRequest, SequenceStatus};
 pub use crate::setpoint_stream::UnderrunPolicy;
 use crate::settings::Settings;
 use serde::{Deserialize, Serialize};
@@ -19,11 +20,11 @@ use serde::{Deserialize, Serialize};
 use super::frame::{FrameError, Message};
 
 impl Message for Request {
-    const VARIANTS: u32 = 24;
+    const VARIANTS: u32 = 25;
 }
 
 impl Message for Response {
-    const VARIANTS: u32 = 10;
+    const VARIANTS: u32 = 11;
 }
 
 /// Most setpoints one batch carries.
@@ -103,6 +104,9 @@ pub enum Request {
     /// [`Request::Setpoints`] with every sample in two bytes, whatever its value
     /// ([`PackedBatch`]); answered the same way. What the host streams with.
     PackedSetpoints(PackedBatch),
+    /// A TTL-stepped sequence ([`crate::sequence`]): arm it over the positions queued (sent
+    /// as setpoints), stop it, or read its counts (answered with [`Response::Sequence`]).
+    Sequence(SequenceRequest),
 }
 
 /// Start or stop continuous telemetry.
@@ -454,6 +458,8 @@ pub enum Response {
     Coarse(CoarseStatus),
     /// The learning's state (the answer to `Learn(Status)`).
     Learn(LearnStatus),
+    /// A sequence's state and counts (the answer to `Sequence(Status)`).
+    Sequence(SequenceStatus),
 }
 
 /// Why a request was refused. Wire-stable: variants are only appended.
@@ -534,6 +540,8 @@ impl StatusReport {
     pub const SCANNING: u16 = 1 << 6;
     /// Flag (protocol v6): the external trigger input is armed.
     pub const TRIGGER_ARMED: u16 = 1 << 7;
+    /// Flag: a TTL-stepped sequence is armed (`Request::Sequence`).
+    pub const SEQUENCE: u16 = 1 << 10;
     // Bit 4 is reserved (protocol v2's "load waiting for the next tick": since v3 a load is
     // in force when it is acknowledged).
     /// Flags bits 8–9: the mode (0 bypass, 1 open loop, 2 closed loop).

@@ -35,6 +35,17 @@ pub struct Args {
     /// The USB–serial adapter the board is reached through (in simulated time).
     #[command(flatten)]
     pub link: crate::board_link::LinkArgs,
+    /// A simulated camera on the trigger input at this frame rate: it starts when a sequence
+    /// is armed (`twinstack sequence`) and stops when it is disarmed.
+    #[arg(long, value_name = "HZ")]
+    pub camera_hz: Option<f64>,
+    /// With --camera-hz: frames per sequence, then the camera stops (0: until disarmed).
+    #[arg(long, default_value_t = 0, requires = "camera_hz")]
+    pub camera_frames: u32,
+    /// With --camera-hz: each exposure starts on the settled output (settled → camera
+    /// trigger-in) instead of free-running.
+    #[arg(long, requires = "camera_hz")]
+    pub camera_on_settled: bool,
 }
 
 /// Runs `virtual-board`.
@@ -63,7 +74,23 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         anyhow::bail!("--baud must be positive");
     }
     let link = args.link.delay()?;
-    let config = SimDeviceConfig::paper_at(args.tick_rate, args.baud, link);
+    let mut config = SimDeviceConfig::paper_at(args.tick_rate, args.baud, link);
+    if let Some(hz) = args.camera_hz {
+        if args.dual_stage {
+            anyhow::bail!(
+                "--camera-hz: the simulated camera is on the default board, not --dual-stage"
+            );
+        }
+        config.camera = Some(
+            crate::sim_camera::CameraConfig::at_rate(
+                hz,
+                args.tick_rate,
+                args.camera_frames,
+                args.camera_on_settled,
+            )
+            .map_err(|e| anyhow::anyhow!("--camera-hz: {e}"))?,
+        );
+    }
     let speed = if args.speed == 0.0 {
         "as fast as possible".to_string()
     } else {

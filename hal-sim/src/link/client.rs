@@ -22,8 +22,8 @@ use twinstack::protocol::decoder::FrameDecoder;
 use twinstack::protocol::frame::{self, FrameError, MAX_ENCODED};
 use twinstack::protocol::messages::{
     CaptureRequest, CaptureStatus, CoarseStatus, Mode, NackReason, RecordRequest, Request,
-    Response, StatusReport, StreamControl, TelemetryFrame, TelemetryRequest, Waveform,
-    MAX_CAPTURE_CHUNK, MAX_CHUNK,
+    Response, SequenceRequest, SequenceStatus, StatusReport, StreamControl, TelemetryFrame,
+    TelemetryRequest, Waveform, MAX_CAPTURE_CHUNK, MAX_CHUNK,
 };
 use twinstack::settings::Settings;
 
@@ -108,6 +108,7 @@ pub fn request_name(request: &Request) -> &'static str {
         Request::Scan(_) => "Scan",
         Request::Trigger(_) => "Trigger",
         Request::PackedSetpoints(_) => "Setpoints",
+        Request::Sequence(_) => "Sequence",
     }
 }
 
@@ -520,6 +521,21 @@ impl<T: Transport> Client<T> {
             }),
             other => Err(LinkError::Unexpected {
                 request: "CaptureStatus",
+                got: format!("{other:?}"),
+            }),
+        }
+    }
+
+    /// A TTL-stepped sequence's state and counts (`Sequence(Status)`).
+    pub fn sequence_status(&mut self) -> Result<SequenceStatus, LinkError> {
+        match self.request(&Request::Sequence(SequenceRequest::Status))? {
+            Response::Sequence(s) => Ok(s),
+            Response::Nack { reason } => Err(LinkError::Nack {
+                request: "Sequence",
+                reason,
+            }),
+            other => Err(LinkError::Unexpected {
+                request: "Sequence",
                 got: format!("{other:?}"),
             }),
         }

@@ -245,6 +245,7 @@ mod app {
             gpioa.pa2.into_push_pull_output(),
             gpioa.pa3.into_push_pull_output(),
             gpioa.pa6.into_pull_down_input(),
+            gpioa.pa7.into_push_pull_output(),
         );
 
         // The timer's rate is fixed before the controller is built, so the drive's slew limit
