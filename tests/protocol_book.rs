@@ -145,6 +145,14 @@ fn messages() -> Vec<(&'static str, Message)> {
                 start_stream: true,
             })),
         ),
+        (
+            "Sequence(Arm { Rising, window 0.005, settle_ticks 25 })",
+            Q(Request::Sequence(SequenceRequest::Arm(SequenceConfig {
+                edge: TriggerEdge::Rising,
+                window: 0.005,
+                settle_ticks: 25,
+            }))),
+        ),
     ]
 }
 
@@ -344,6 +352,11 @@ fn check_note(note: &str, bytes: &[u8], at: usize, decoded: &str, title: &str) {
         (_, None) => None,
         (_, Some(v)) if unit == "f64 LE" => {
             let x: f64 = v.parse().unwrap_or_else(|_| panic!("{ctx}: {v:?}"));
+            assert_eq!(bytes, x.to_le_bytes(), "{ctx}");
+            Some(format!("{x:?}"))
+        }
+        (_, Some(v)) if unit == "f32 LE" => {
+            let x: f32 = v.parse().unwrap_or_else(|_| panic!("{ctx}: {v:?}"));
             assert_eq!(bytes, x.to_le_bytes(), "{ctx}");
             Some(format!("{x:?}"))
         }

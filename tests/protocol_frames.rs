@@ -206,6 +206,24 @@ fn request() -> impl Strategy<Value = Request> {
                     start_stream,
                 })
             }),
+        (
+            prop_oneof![Just(TriggerEdge::Rising), Just(TriggerEdge::Falling)],
+            any::<f32>(),
+            any::<u16>(),
+            0u8..3
+        )
+            .prop_map(|(edge, window, settle_ticks, which)| {
+                Request::Sequence(match which {
+                    0 => SequenceRequest::Arm(SequenceConfig {
+                        edge,
+                        // NaN ≠ NaN: the round trip is compared with `==`.
+                        window: if window.is_nan() { 0.0 } else { window },
+                        settle_ticks,
+                    }),
+                    1 => SequenceRequest::Stop,
+                    _ => SequenceRequest::Status,
+                })
+            }),
     ]
 }
 
@@ -389,11 +407,7 @@ fn a_full_batch_fits_one_frame() {
 #[test]
 fn message_variant_counts_match_the_enums() {
     use twinstack::protocol::frame::Message;
-    let last = Request::Trigger(TriggerConfig {
-        pulse_ticks: 2,
-        input: TriggerEdge::Rising,
-        start_stream: false,
-    });
+    let last = Request::Sequence(SequenceRequest::Status);
     let mut d = FrameDecoder::new();
     assert_eq!(feed(&mut d, &frame_of(&last)), vec![Ok(last)]);
     let tag = Request::VARIANTS as u8;
@@ -401,7 +415,7 @@ fn message_variant_counts_match_the_enums() {
         feed(&mut d, &raw_frame(&[PROTOCOL_VERSION, tag])),
         vec![Err(FrameError::UnknownType)]
     );
-    let resp = Response::Learn(twinstack::protocol::messages::LearnStatus::default());
+    let resp = Response::Sequence(twinstack::protocol::messages::SequenceStatus::default());
     let mut buf = [0u8; MAX_ENCODED + 1];
     let n = encode(&resp, &mut buf).unwrap();
     let mut d = FrameDecoder::new();
