@@ -149,7 +149,7 @@ pub fn run_sequence<T: Transport>(
     // The last position's settling is what the caller waits for; the counts are final.
     client.expect_ack(&Request::Sequence(SequenceRequest::Stop))?;
     let status = client.sequence_status()?;
-    let timing = if options.timing {
+    let timing = if options.timing && status.steps.wrapping_add(status.missed) > 0 {
         let (_, window) = wait_and_read(client, Duration::from_secs(1), |_, _| {})?;
         edge_timing(
             &window,

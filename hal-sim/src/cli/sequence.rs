@@ -49,6 +49,10 @@ pub struct Args {
     /// Ticks in a row within the window before the settled output goes high.
     #[arg(long, default_value_t = 25)]
     pub settle_ticks: u16,
+    /// Switch the board to this mode first (bypass, open-loop, closed-loop; bumpless) [default:
+    /// leave it].
+    #[arg(long)]
+    pub mode: Option<String>,
     /// Stop waiting when no edge has advanced the sequence for this long, seconds.
     #[arg(long, default_value_t = 5.0)]
     pub idle_s: f64,
@@ -104,10 +108,19 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     // A `t` column, if any, is checked as a stream's (uniform steps); the sequence itself
     // takes its time from the edges.
     let positions = setpoint_file::read(&args.data, units, 50_000.0, None)?.samples;
+    let mode = match &args.mode {
+        Some(m) => Some(crate::session::parse_mode(m).ok_or_else(|| {
+            anyhow::anyhow!("--mode {m:?}: give bypass, open-loop or closed-loop")
+        })?),
+        None => None,
+    };
     let mut client = match args.sim_camera_hz {
         Some(hz) => sim_with_camera(args, hz, positions.len() as u32)?,
         None => connect(&args.port)?,
     };
+    if let Some(mode) = mode {
+        client.set_mode(mode)?;
+    }
     let options = SequenceOptions {
         config,
         idle: Duration::from_secs_f64(args.idle_s),
@@ -117,6 +130,13 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     let report = run_sequence(&mut client, &positions, &options, |_| {})?;
     print_report(&report, positions.len(), args.json)?;
     let s = report.status;
+    if s.steps == 0 && s.missed == 0 {
+        anyhow::bail!(
+            "no edge came in {} s: check the camera's TTL output on the trigger input (PA6) and --edge; a camera triggered by the settled output (PA7) waits for the stage to settle within --window {}",
+            args.idle_s,
+            args.window
+        );
+    }
     if !report.complete || s.missed > 0 {
         anyhow::bail!(
             "the sequence reached {} of {} positions ({} edges missed, {} early): no edge for {} s",
