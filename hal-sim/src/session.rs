@@ -269,6 +269,7 @@ pub fn flag_names(s: &StatusReport) -> Vec<&'static str> {
         (StatusReport::WAVEFORM, "waveform"),
         (StatusReport::RECORDING, "recording"),
         (StatusReport::TELEMETRY, "telemetry"),
+        (StatusReport::SEQUENCE, "sequence"),
     ]
     .into_iter()
     .filter(|&(bit, _)| s.has(bit))

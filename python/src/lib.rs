@@ -21,8 +21,11 @@ use hal_sim::link::Transport;
 use hal_sim::measured_data::{ColumnsError, MeasuredData};
 use hal_sim::param_file::{ParamFile, ParamFileError};
 use hal_sim::port::{open_send, PortError, PortSpec, DEFAULT_BAUD};
+use hal_sim::sequence_run::{run_sequence, SequenceError, SequenceOptions};
 use hal_sim::session::{self, LoadRefused};
 use hal_sim::setpoint_file::{divider_for_rate, to_wire, SetpointUnits};
+use hal_sim::sim_camera::CameraConfig;
+use hal_sim::sim_device::{SimDevice, SimDeviceConfig};
 use hal_sim::stage_model::{Hysteresis, StageModel};
 use numpy::{PyArray1, PyArrayMethods};
 use pyo3::exceptions::{
@@ -35,7 +38,7 @@ use std::path::{Path, PathBuf};
 use std::sync::Mutex;
 use std::time::{Duration, Instant};
 use twinstack::protocol::messages::{
-    NackReason, StreamControl, Trigger, UnderrunPolicy, WaveShape,
+    NackReason, SequenceConfig, StreamControl, Trigger, TriggerEdge, UnderrunPolicy, WaveShape,
 };
 use twinstack::refusal::Rule;
 use twinstack::settings::Mode;
@@ -616,12 +619,46 @@ fn seconds(s: f64, name: &str) -> PyResult<Duration> {
 impl Board {
     /// Connects to the board at `port` and cleans the line.
     #[new]
-    #[pyo3(signature = (port, baud=3_000_000, timeout=2.0))]
-    fn new(py: Python<'_>, port: &str, baud: u32, timeout: f64) -> PyResult<Self> {
+    #[pyo3(signature = (port, baud=3_000_000, timeout=2.0, sim_camera_hz=None, sim_camera_frames=0, sim_camera_on_settled=false))]
+    fn new(
+        py: Python<'_>,
+        port: &str,
+        baud: u32,
+        timeout: f64,
+        sim_camera_hz: Option<f64>,
+        sim_camera_frames: u32,
+        sim_camera_on_settled: bool,
+    ) -> PyResult<Self> {
         let timeout = seconds(timeout, "timeout")?;
         let spec: PortSpec = port.parse().map_err(port_error)?;
+        let camera = match sim_camera_hz {
+            None => None,
+            Some(_) if spec != PortSpec::Sim => {
+                return Err(PyValueError::new_err(format!(
+                    "sim_camera_hz: only with port \"sim\" (this is {port:?})"
+                )))
+            }
+            Some(hz) => {
+                let config = SimDeviceConfig::paper();
+                let rate = 1.0 / config.board.plant.dt;
+                Some(
+                    CameraConfig::at_rate(hz, rate, sim_camera_frames, sim_camera_on_settled)
+                        .map_err(|e| PyValueError::new_err(format!("sim_camera_hz: {e}")))?,
+                )
+            }
+        };
         let client = py.detach(|| -> Result<BoardClient, Result<PortError, LinkError>> {
-            let transport = open_send(&spec, baud).map_err(Ok)?;
+            let transport: Box<dyn Transport + Send> = match camera {
+                Some(camera) => {
+                    let config = SimDeviceConfig {
+                        baud,
+                        camera: Some(camera),
+                        ..SimDeviceConfig::paper()
+                    };
+                    Box::new(SimDevice::new(config).map_err(|e| Ok(PortError::Sim(e.to_string())))?)
+                }
+                None => open_send(&spec, baud).map_err(Ok)?,
+            };
             let mut client = Client::new(transport);
             client.set_timeout(timeout);
             client.resync(Duration::from_millis(20)).map_err(Err)?;
@@ -834,6 +871,81 @@ impl Board {
         )?;
         d.set_item("drained", report.drained.is_some())?;
         d.set_item("bytes_sent", report.link.bytes_sent)?;
+        Ok(d)
+    }
+
+    /// Runs a TTL-stepped sequence: `positions` loaded through the setpoint queue (topped up
+    /// as edges consume it), one per edge on the trigger input; returns the counts.
+    #[pyo3(signature = (positions, window=0.005, settle_ticks=25, edge="rising", normalised=false, mode=None, idle=5.0))]
+    #[allow(clippy::too_many_arguments)]
+    fn sequence<'py>(
+        &self,
+        py: Python<'py>,
+        positions: &Bound<'py, PyAny>,
+        window: f32,
+        settle_ticks: u16,
+        edge: &str,
+        normalised: bool,
+        mode: Option<&str>,
+        idle: f64,
+    ) -> PyResult<Bound<'py, PyDict>> {
+        let values = vector(py, positions, "positions")?;
+        let edge = match edge {
+            "rising" => TriggerEdge::Rising,
+            "falling" => TriggerEdge::Falling,
+            other => {
+                return Err(PyValueError::new_err(format!(
+                    "edge {other:?}: expected \"rising\" or \"falling\""
+                )))
+            }
+        };
+        let config = SequenceConfig {
+            edge,
+            window,
+            settle_ticks,
+        };
+        config
+            .check()
+            .map_err(|r| PyValueError::new_err(format!("{} {}", r.field, r.rule)))?;
+        let mode = mode.map(parse_mode).transpose()?;
+        let idle = seconds(idle, "idle")?;
+        let settings = self.with(py, |c| c.read_params())?;
+        let units = if normalised {
+            SetpointUnits::Normalised
+        } else {
+            SetpointUnits::Output(&settings.ranges)
+        };
+        let samples = values
+            .iter()
+            .enumerate()
+            .map(|(k, &v)| {
+                to_wire(v, units).map_err(|m| PyValueError::new_err(format!("positions[{k}]: {m}")))
+            })
+            .collect::<PyResult<Vec<i16>>>()?;
+        let options = SequenceOptions {
+            config,
+            idle,
+            poll: Duration::from_millis(20),
+            timing: true,
+        };
+        let report = self.with_py(py, |client| {
+            let err = |e: LinkError| Python::attach(|py| link_error(py, e));
+            if let Some(m) = mode {
+                client.set_mode(m).map_err(err)?;
+            }
+            run_sequence(client, &samples, &options, |_| {}).map_err(|e| match e {
+                SequenceError::Link(l) => err(l),
+                other => PyRuntimeError::new_err(other.to_string()),
+            })
+        })?;
+        let d = PyDict::new(py);
+        d.set_item("positions", samples.len())?;
+        d.set_item("sent", report.sent)?;
+        d.set_item("steps", report.status.steps)?;
+        d.set_item("early", report.status.early)?;
+        d.set_item("missed", report.status.missed)?;
+        d.set_item("complete", report.complete)?;
+        d.set_item("ticks_to_motion", report.timing.map(|t| t.ticks_to_motion))?;
         Ok(d)
     }
 

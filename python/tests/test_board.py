@@ -237,3 +237,36 @@ def test_calibrate_identifies_loads_and_verifies_the_stage(board):
 def test_calibrate_refuses_an_unknown_model_before_touching_the_board(board):
     with pytest.raises(ValueError, match="unknown model"):
         board.calibrate(model="preisach")
+
+
+def test_a_sequence_steps_one_position_per_camera_frame_and_counts_early_and_missed():
+    # A 200-position Z stack on the simulated camera's edges, each exposure started by the
+    # settled output: every position reached, none early, none missed, and the edge's own
+    # tick writes the first moved DAC sample.
+    z = np.concatenate([np.linspace(-0.1, 0.05, 100), np.linspace(0.05, -0.1, 100)])
+    with twinstack.Board(
+        "sim", sim_camera_hz=1000.0, sim_camera_frames=200, sim_camera_on_settled=True
+    ) as b:
+        r = b.sequence(z, window=0.05, settle_ticks=25, normalised=True, mode="closed-loop")
+        assert (r["steps"], r["early"], r["missed"], r["complete"]) == (200, 0, 0, True)
+        assert r["ticks_to_motion"] == 0
+        assert "sequence" not in b.status()["flags"], "disarmed at the end"
+    # Free-running at 10 kHz (5 ticks a frame) against a 25-tick settle time, 10 frames more
+    # than positions: every edge early, the last ten missed.
+    with twinstack.Board("sim", sim_camera_hz=10000.0, sim_camera_frames=210) as b:
+        r = b.sequence(z, window=0.05, settle_ticks=25, normalised=True, idle=0.05)
+        assert r["steps"] == 200 and r["early"] >= 200
+        assert r["missed"] <= 10
+
+
+def test_a_bad_sequence_is_refused_before_anything_moves():
+    with twinstack.Board("sim") as b:
+        with pytest.raises(ValueError, match="positions\\[1\\]"):
+            b.sequence([0.1, float("nan")], normalised=True)
+        with pytest.raises(ValueError, match="sequence window"):
+            b.sequence([0.1], window=2.0, normalised=True)
+        with pytest.raises(ValueError, match="edge"):
+            b.sequence([0.1], edge="up", normalised=True)
+        assert b.status()["queue_fill"] == 0
+    with pytest.raises(ValueError, match="only with port"):
+        twinstack.Board("tcp:127.0.0.1:1", sim_camera_hz=100.0)

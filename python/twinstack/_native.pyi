@@ -149,8 +149,19 @@ class Board:
     as a context manager, or call :meth:`close`.
     """
 
-    def __new__(cls, port: str, baud: int = 3000000, timeout: float = 2.0) -> "Board":
-        """Opens ``port`` and cleans the line."""
+    def __new__(
+        cls,
+        port: str,
+        baud: int = 3000000,
+        timeout: float = 2.0,
+        sim_camera_hz: Optional[float] = None,
+        sim_camera_frames: int = 0,
+        sim_camera_on_settled: bool = False,
+    ) -> "Board":
+        """Opens ``port`` and cleans the line. With ``port="sim"``, ``sim_camera_hz`` puts a
+        simulated camera on the board's trigger input: ``sim_camera_frames`` frames (0: until
+        the sequence is disarmed) from each arming of a sequence, free-running or, with
+        ``sim_camera_on_settled``, each started by the settled output."""
     @property
     def port(self) -> str:
         """The port this board was opened on."""
@@ -196,6 +207,26 @@ class Board:
         Ctrl-C stops the stream, tells the board to stop, and raises ``KeyboardInterrupt``.
         Returns a report: ``accepted``, ``divider``, ``batches``, ``underruns`` (``None`` when
         they cannot be ruled out), ``underran``, ``seconds`` and link counters."""
+    def sequence(
+        self,
+        positions: _ArrayLike,
+        window: float = 0.005,
+        settle_ticks: int = 25,
+        edge: str = "rising",
+        normalised: bool = False,
+        mode: Optional[str] = None,
+        idle: float = 5.0,
+    ) -> Dict[str, Any]:
+        """Runs a TTL-stepped sequence: ``positions`` (in the output unit of the settings in
+        force, or -1...1 with ``normalised=True``; a value outside the range raises
+        ``ValueError``, nothing is sent) go through the setpoint queue, topped up as the edges
+        on the trigger input (``edge``: ``"rising"`` or ``"falling"``) consume them, one per
+        edge; the settled output goes high once the stage has stayed within ``window``
+        (normalised) for ``settle_ticks`` ticks. ``mode`` switches the mode first. Ends when
+        every position is reached or no edge came for ``idle`` seconds, then disarms.
+        Returns ``positions``, ``sent``, ``steps``, ``early`` (edges before the stage had
+        settled), ``missed`` (edges with no position left), ``complete`` and
+        ``ticks_to_motion`` (the first edge's tick to its first moved DAC sample)."""
     def stop(self) -> None:
         """Stops the setpoint stream or the waveform; the output holds where it is."""
     def waveform(
