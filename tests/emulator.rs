@@ -844,7 +844,8 @@ fn emulator_scan_pulses_the_gpio_outputs_at_the_pattern_s_ticks() {
         .collect();
     assert!(words.len() > 1000, "{} BSRR writes logged", words.len());
     // From the first tick on (the HAL's pin set-up writes a few single-pin words first),
-    // every word writes all three outputs: a set or a reset bit for each.
+    // every word writes all four outputs (the scan's three and a sequence's settled output,
+    // low here): a set or a reset bit for each.
     let full = |w: u32| bsrr_word(((w >> 1) & 7) as u8) == w;
     let first = words.iter().position(|&w| full(w)).unwrap();
     assert!(first < 8, "{:x?}", &words[..first]);

@@ -407,6 +407,7 @@ mod app {
             gpioa.pa2.into_push_pull_output(),
             gpioa.pa3.into_push_pull_output(),
             gpioa.pa6.into_pull_down_input(),
+            gpioa.pa7.into_push_pull_output(),
         );
         let timer = ControlTimer::start(cx.core.SYST, &bus, RATE_HZ);
         let hardware = Hardware::driver_board(timer.rate_hz() as f64);
