@@ -176,6 +176,21 @@ class AsyncBoard:
         """Calibrates the stage in one call, as :meth:`twinstack.Board.calibrate`."""
         return await self._call(self._board.calibrate, store, clamp, model)
 
+    async def sequence(
+        self,
+        positions: Any,
+        window: float = 0.005,
+        settle_ticks: int = 25,
+        edge: str = "rising",
+        normalised: bool = False,
+        mode: Optional[str] = None,
+        idle: float = 5.0,
+    ) -> Dict[str, Any]:
+        """Runs a TTL-stepped sequence, as :meth:`twinstack.Board.sequence`."""
+        return await self._call(
+            self._board.sequence, positions, window, settle_ticks, edge, normalised, mode, idle
+        )
+
     async def stream(
         self,
         setpoints: Any,
