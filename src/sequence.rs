@@ -254,7 +254,7 @@ impl SteppedSequence {
             && (position as i64 - self.target as i64).unsigned_abs() <= self.window as u64;
         if within {
             if self.inside < self.settle_ticks {
-                self.inside += 1;
+                self.inside = self.inside.wrapping_add(1);
             }
         } else {
             self.inside = 0;
@@ -270,9 +270,11 @@ impl SteppedSequence {
         if edge {
             self.advance(queue);
         }
-        // 3. Shaping: at most `step` toward the target.
-        let d =
-            (self.target as i64 - self.current as i64).clamp(-(self.step as i64), self.step as i64);
+        // 3. Shaping: at most `step` toward the target (`max`/`min`, not `clamp`: no panic
+        // path on the tick).
+        let d = (self.target as i64 - self.current as i64)
+            .max(-(self.step as i64))
+            .min(self.step as i64);
         self.current = (self.current as i64 + d) as i32;
         self.current
     }

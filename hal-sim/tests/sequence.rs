@@ -322,3 +322,43 @@ fn the_sequence_command_refuses_a_hostile_file_by_its_line_and_runs_a_good_one()
     assert!(String::from_utf8_lossy(&o.stderr).contains("sequence window"));
     std::fs::remove_dir_all(&dir).ok();
 }
+
+#[test]
+fn a_served_virtual_board_steps_a_sequence_on_its_simulated_camera() {
+    use hal_sim::link::socket::SocketTransport;
+    use std::sync::atomic::{AtomicBool, Ordering};
+    use std::sync::Arc;
+    let listener = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    let address = listener.local_addr().unwrap();
+    let stop = Arc::new(AtomicBool::new(false));
+    let flag = stop.clone();
+    let positions = z_stack(300, 2);
+    let frames = positions.len() as u32;
+    let server = std::thread::spawn(move || {
+        let mut settings = SimDeviceConfig::paper_settings(Mode::OpenLoop);
+        settings.sensor = None;
+        settings.feedback = None;
+        let config = SimDeviceConfig {
+            stored: Some(settings),
+            camera: Some(CameraConfig {
+                period_ticks: 20,
+                frames,
+                on_settled: true,
+            }),
+            ..SimDeviceConfig::paper()
+        };
+        // As fast as the host goes: the board's time is its own.
+        hal_sim::virtual_board::serve(listener, config, 0.0, &flag).unwrap()
+    });
+    let mut client = Client::new(SocketTransport::tcp(&address.to_string()).unwrap());
+    client.set_timeout(Duration::from_secs(5));
+    client.resync(Duration::from_millis(20)).unwrap();
+    let mut opts = options(0.002, 10);
+    opts.idle = Duration::from_secs(5);
+    let report = run_sequence(&mut client, &positions, &opts, |_| {}).unwrap();
+    stop.store(true, Ordering::Relaxed);
+    let s = report.status;
+    assert_eq!((s.steps, s.early, s.missed), (300, 0, 0), "{s:?}");
+    assert_eq!(report.timing.map(|t| t.ticks_to_motion), Some(0));
+    server.join().unwrap();
+}
