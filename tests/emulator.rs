@@ -1074,15 +1074,35 @@ fn the_board_answers_the_fuzzer_s_findings_as_the_host_build_does() {
             "offset {offset:#x}"
         );
     }
-    // The fuzzer's frame as it was sent (it was acknowledged, and nothing written).
-    emu.uart
-        .write_all(&[
-            0x0f, 0x07, 0x14, 0x05, 0xff, 0xff, 0xff, 0xff, 0x0f, 0x01, 0x02, 0xc7, 0x59, 0x40,
-            0x26, 0x00,
-        ])
-        .expect("write");
-    assert!(
-        matches!(emu.response(), Response::Nack { .. }),
+    // The fuzzer's message bytes as it sent them (it was acknowledged, and nothing written),
+    // framed with the current version: `Learn`, `WriteTable`, offset u32::MAX, one value.
+    let mut frame = [0u8; 32];
+    let n = twinstack::protocol::frame::encode_body_bytes(
+        &[
+            twinstack::protocol::frame::PROTOCOL_VERSION,
+            0x14,
+            0x05,
+            0xff,
+            0xff,
+            0xff,
+            0xff,
+            0x0f,
+            0x01,
+            0x02,
+        ],
+        &mut frame,
+    )
+    .expect("frames");
+    emu.uart.write_all(&frame[..n]).expect("write");
+    assert_eq!(
+        emu.response(),
+        Response::Nack {
+            // One value: the last offset it may start at is one further.
+            reason: NackReason::Refused(Refusal::new(
+                Field::RecordOffset,
+                Rule::AtMost(last + 1.0)
+            ))
+        },
         "the fuzzer's frame is refused"
     );
     assert_eq!(

@@ -477,16 +477,16 @@ fn a_wrong_byte_or_annotation_in_the_chapter_is_caught() {
     let mutations = [
         // A frame byte.
         (
-            "frame: 02 07 05 38 84 98 0e 00",
-            "frame: 02 07 05 38 84 98 0f 00",
+            "frame: 02 08 03 f7 98 02 89 00",
+            "frame: 02 08 03 f7 98 02 8a 00",
         ),
         // The version before the current one, with its CRC.
         (
+            "body:  08 (version) | 00 (Status) | CRC f7 98 00 89",
             "body:  07 (version) | 00 (Status) | CRC 38 84 98 0e",
-            "body:  06 (version) | 00 (Status) | CRC 79 b5 83 17",
         ),
         // A CRC alone.
-        ("| CRC 6d 4b be b6", "| CRC 6d 4b be b7"),
+        ("| CRC 3b 5b dd ee", "| CRC 3b 5b dd ef"),
         // A variant's name.
         ("0a (Field::Ki)", "0a (Field::Kp)"),
         ("00 (Ack)", "00 (Nack)"),

@@ -30,12 +30,13 @@
 //!   state from one client to the next (`twinstack virtual-board`).
 //! * [`calibrate`] — one-command calibration over the board link: excite with the board's
 //!   waveform generator, record, identify, load, store, verify (`twinstack calibrate`).
-//! * [`session`] — what the board commands and the Python package share: the settings a load
+//! * [`board_requests`] — what the board commands and the Python package share: the settings a load
 //!   sends and its checks, waveform and capture requests, the status as JSON.
 //! * [`cli`] — the `hal-sim` subcommands.
 
 pub mod accuracy;
 pub mod board_link;
+pub mod board_requests;
 pub mod calibrate;
 pub mod capture;
 pub mod cli;
@@ -60,7 +61,6 @@ pub mod port;
 pub mod reference;
 pub mod scan_timing;
 pub mod sequence_run;
-pub mod session;
 pub mod setpoint_file;
 pub mod sim_board;
 pub mod sim_camera;

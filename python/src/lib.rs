@@ -22,7 +22,7 @@ use hal_sim::measured_data::{ColumnsError, MeasuredData};
 use hal_sim::param_file::{ParamFile, ParamFileError};
 use hal_sim::port::{open_send, PortError, PortSpec, DEFAULT_BAUD};
 use hal_sim::sequence_run::{run_sequence, SequenceError, SequenceOptions};
-use hal_sim::session::{self, LoadRefused};
+use hal_sim::board_requests::{self, LoadRefused};
 use hal_sim::setpoint_file::{divider_for_rate, to_wire, SetpointUnits};
 use hal_sim::sim_camera::CameraConfig;
 use hal_sim::sim_device::{SimDevice, SimDeviceConfig};
@@ -508,7 +508,7 @@ fn identify(
 // The board
 
 fn parse_mode(name: &str) -> PyResult<Mode> {
-    session::parse_mode(name).ok_or_else(|| {
+    board_requests::parse_mode(name).ok_or_else(|| {
         PyValueError::new_err(format!(
             "mode {name:?}: expected \"bypass\", \"open-loop\" or \"closed-loop\""
         ))
@@ -683,7 +683,7 @@ impl Board {
     /// Status and telemetry, as a dict.
     fn status<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
         let s = self.with(py, |c| c.status())?;
-        json_to_py(py, &session::status_json(&s))
+        json_to_py(py, &board_requests::status_json(&s))
     }
 
     /// Loads a parameter file's settings.
@@ -699,11 +699,11 @@ impl Board {
         let mode = mode.map(parse_mode).transpose()?;
         let store = store.map(parse_mode).transpose()?;
         let board = self.with(py, |c| Ok(c.read_params().ok()))?;
-        let mut settings = session::keep_from_board(&params.file.settings, board.as_ref());
+        let mut settings = board_requests::keep_from_board(&params.file.settings, board.as_ref());
         if let Some(m) = mode {
             settings.mode = m;
         }
-        match session::check_load(&settings, params.model.output_sign, clamp) {
+        match board_requests::check_load(&settings, params.model.output_sign, clamp) {
             Ok(None) => {}
             Ok(Some(warning)) => {
                 let warnings = py.import("warnings")?;
@@ -973,7 +973,7 @@ impl Board {
                 )))
             }
         };
-        let w = session::waveform(shape, offset, amplitude, frequency, None)
+        let w = board_requests::waveform(shape, offset, amplitude, frequency, None)
             .map_err(|e| PyValueError::new_err(e.to_string()))?;
         self.with(py, |c| c.waveform(w))
     }
@@ -991,7 +991,7 @@ impl Board {
     ) -> PyResult<()> {
         let signals = signal_list(signals)?;
         let trigger = parse_trigger(trigger)?;
-        let request = session::capture_request(&signals, samples, pre, trigger, decimation)
+        let request = board_requests::capture_request(&signals, samples, pre, trigger, decimation)
             .map_err(|e| PyValueError::new_err(e.to_string()))?;
         self.with(py, |c| c.arm_capture(request))
     }

@@ -32,8 +32,11 @@ use serde::{Deserialize, Serialize};
 /// Version 7: the settings end with the optional
 /// input shaping (`shaping: Option<NotchDesign>`, the feedforward's notch), the `Field`s
 /// `ShapingFrequency`, `ShapingQ`, `ShapingDepth` were appended, and a body may be 1 568
-/// bytes (the largest settings with shaping).
-pub const PROTOCOL_VERSION: u8 = 7;
+/// bytes (the largest settings with shaping). Version 8: appended the packed setpoint batch
+/// (`Request::PackedSetpoints`), `StreamControl::Finish`, `NackReason::NotOwner` and
+/// TTL-stepped sequences (`Request::Sequence`, `Response::Sequence`, the `Field`s
+/// `SequenceEdge` … `SequenceSettle`).
+pub const PROTOCOL_VERSION: u8 = 8;
 /// Largest frame body (version + message + CRC), bytes: a load of the largest settings (two
 /// generalised P–I models of 32 operators and 8 dead zones, both notches) fits.
 pub const MAX_BODY: usize = 1568;

@@ -14,8 +14,8 @@
 
 use super::board_link::{connect, PortArgs};
 use super::params::ModeArg;
+use crate::board_requests::{check_load, keep_from_board, LoadRefused};
 use crate::param_file::ParamFile;
-use crate::session::{check_load, keep_from_board, LoadRefused};
 use std::path::PathBuf;
 use twinstack::drive::{Configuration, SafeState};
 use twinstack::settings::{FeedbackSettings, Model, Settings};
@@ -71,7 +71,7 @@ pub struct Args {
     pub clamp: bool,
 }
 
-pub use crate::session::unreachable_input;
+pub use crate::board_requests::unreachable_input;
 
 /// `--safe-state` values.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]

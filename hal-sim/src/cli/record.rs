@@ -160,8 +160,8 @@ pub fn arm_capture(
     trigger: Trigger,
     decimation: u16,
 ) -> anyhow::Result<CaptureRequest> {
-    use crate::session::CaptureRequestError as E;
-    let request = crate::session::capture_request(signals, samples, pre, trigger, decimation)
+    use crate::board_requests::CaptureRequestError as E;
+    let request = crate::board_requests::capture_request(signals, samples, pre, trigger, decimation)
         .map_err(|e| match e {
             E::Signals { list, error } => anyhow::anyhow!("--signals {list:?}: {error}"),
             E::NoSamples => anyhow::anyhow!("--samples must be at least 1"),

@@ -109,7 +109,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     // takes its time from the edges.
     let positions = setpoint_file::read(&args.data, units, 50_000.0, None)?.samples;
     let mode = match &args.mode {
-        Some(m) => Some(crate::session::parse_mode(m).ok_or_else(|| {
+        Some(m) => Some(crate::board_requests::parse_mode(m).ok_or_else(|| {
             anyhow::anyhow!("--mode {m:?}: give bypass, open-loop or closed-loop")
         })?),
         None => None,

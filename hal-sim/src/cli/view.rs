@@ -21,9 +21,9 @@
 //! who can reach its port can drive the stage.
 
 use super::board_link::{connect, BoardClient, PortArgs};
+use crate::board_requests;
 use crate::capture::signal_mask;
 use crate::scan_timing::parse_pattern;
-use crate::session;
 use crate::telemetry::TelemetryRecord;
 use anyhow::{bail, Context};
 use serde_json::{json, Value};
@@ -305,7 +305,7 @@ fn board_loop(
         }
         if last_status.is_none_or(|t| t.elapsed() >= STATUS_EVERY) {
             let status = client.status()?;
-            let mut s = session::status_json(&status);
+            let mut s = board_requests::status_json(&status);
             s["telemetry"] = tel.counts.json();
             s["telemetry"]["running"] = json!(tel.running);
             let link = client.counters();
@@ -387,11 +387,11 @@ fn execute(
     let link = |e: crate::link::LinkError| e.to_string();
     match command {
         Command::Mode(name) => {
-            let mode = session::parse_mode(&name).ok_or_else(|| {
+            let mode = board_requests::parse_mode(&name).ok_or_else(|| {
                 format!("mode {name:?}: expected \"bypass\", \"open-loop\" or \"closed-loop\"")
             })?;
             client.set_mode(mode).map_err(link)?;
-            Ok(format!("mode {}", session::mode_name(mode)))
+            Ok(format!("mode {}", board_requests::mode_name(mode)))
         }
         Command::Waveform(v) => {
             let num = |k: &str, default: Option<f64>| -> Result<f64, String> {
@@ -410,8 +410,8 @@ fn execute(
                 num("frequency", None)?,
                 num("offset", Some(0.0))?,
             );
-            let w =
-                session::waveform(shape, o, a, f, None).map_err(|e| format!("waveform: {e}"))?;
+            let w = board_requests::waveform(shape, o, a, f, None)
+                .map_err(|e| format!("waveform: {e}"))?;
             client.waveform(w).map_err(link)?;
             Ok(format!("waveform {a} at {f} Hz"))
         }
