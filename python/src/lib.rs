@@ -8,6 +8,7 @@
 //! The Python-facing documentation is in `twinstack/_native.pyi` and the book's Python
 //! chapter (`docs/src/guide/python.md`).
 
+use hal_sim::board_requests::{self, LoadRefused};
 use hal_sim::capture::{self, CaptureError};
 use hal_sim::identification::auto::Validation;
 use hal_sim::identification::run::{
@@ -22,7 +23,6 @@ use hal_sim::measured_data::{ColumnsError, MeasuredData};
 use hal_sim::param_file::{ParamFile, ParamFileError};
 use hal_sim::port::{open_send, PortError, PortSpec, DEFAULT_BAUD};
 use hal_sim::sequence_run::{run_sequence, SequenceError, SequenceOptions};
-use hal_sim::board_requests::{self, LoadRefused};
 use hal_sim::setpoint_file::{divider_for_rate, to_wire, SetpointUnits};
 use hal_sim::sim_camera::CameraConfig;
 use hal_sim::sim_device::{SimDevice, SimDeviceConfig};
