@@ -1007,10 +1007,45 @@ fn stretch(events: u8, bit: u8, width: u16, left: &mut u16) -> u8 {
 /// The external trigger input: one shot, armed for an edge, fired by it.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct ExternalTrigger {
-    edge: TriggerEdge,
+    edges: EdgeDetector,
     armed: bool,
-    last: bool,
     fired: u32,
+}
+
+/// The trigger input's edges, one sample a tick: the level compared with the last tick's.
+/// What the external trigger and a TTL-stepped sequence ([`crate::sequence`]) both count.
+///
+/// ```
+/// use twinstack::scan::{EdgeDetector, TriggerEdge};
+/// let mut e = EdgeDetector::new(TriggerEdge::Falling, true);
+/// assert!(!e.poll(true));
+/// assert!(e.poll(false)); // high to low
+/// assert!(!e.poll(false));
+/// ```
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct EdgeDetector {
+    edge: TriggerEdge,
+    /// The input's level at the last tick.
+    last: bool,
+}
+
+impl EdgeDetector {
+    /// Counts `edge` (`Off`: none), the input now at `level`: an edge is a change from it.
+    pub const fn new(edge: TriggerEdge, level: bool) -> Self {
+        Self { edge, last: level }
+    }
+
+    /// One tick with the input at `level`: whether it made the edge. O(1).
+    #[inline(always)]
+    pub fn poll(&mut self, level: bool) -> bool {
+        let edge = match self.edge {
+            TriggerEdge::Off => false,
+            TriggerEdge::Rising => level && !self.last,
+            TriggerEdge::Falling => !level && self.last,
+        };
+        self.last = level;
+        edge
+    }
 }
 
 impl Default for ExternalTrigger {
@@ -1023,9 +1058,8 @@ impl ExternalTrigger {
     /// Disarmed, edge off, input low.
     pub const fn new() -> Self {
         Self {
-            edge: TriggerEdge::Off,
+            edges: EdgeDetector::new(TriggerEdge::Off, false),
             armed: false,
-            last: false,
             fired: 0,
         }
     }
@@ -1033,9 +1067,8 @@ impl ExternalTrigger {
     /// Arms for `edge` (`Off` disarms), with the input now at `level` (the level the tick
     /// saw last): an edge is a change from it.
     pub fn arm(&mut self, edge: TriggerEdge, level: bool) {
-        self.edge = edge;
+        self.edges = EdgeDetector::new(edge, level);
         self.armed = edge != TriggerEdge::Off;
-        self.last = level;
     }
 
     /// Whether it waits for its edge.
@@ -1056,12 +1089,7 @@ impl ExternalTrigger {
         if !self.armed {
             return false;
         }
-        let edge = match self.edge {
-            TriggerEdge::Off => false,
-            TriggerEdge::Rising => level && !self.last,
-            TriggerEdge::Falling => !level && self.last,
-        };
-        self.last = level;
+        let edge = self.edges.poll(level);
         if edge {
             self.armed = false;
             self.fired = self.fired.wrapping_add(1);

@@ -37,7 +37,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::fixed_point::{signal_from_f64, SIGNAL_ONE};
 use crate::refusal::{Field, Refusal, Rule};
-use crate::scan::TriggerEdge;
+use crate::scan::{EdgeDetector, TriggerEdge};
 use crate::setpoint_stream::setpoint_from_wire;
 use heapless::spsc::Consumer;
 
@@ -126,9 +126,8 @@ pub struct SequenceStatus {
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct SteppedSequence {
     armed: bool,
-    rising: bool,
-    /// The input's level at the last tick.
-    last: bool,
+    /// The trigger input's edges.
+    edges: EdgeDetector,
     /// The shaped setpoint, Q2.30.
     current: i32,
     /// The position in force, Q2.30.
@@ -157,8 +156,7 @@ impl SteppedSequence {
     pub const fn new() -> Self {
         Self {
             armed: false,
-            rising: true,
-            last: false,
+            edges: EdgeDetector::new(TriggerEdge::Rising, false),
             current: 0,
             target: 0,
             step: 1,
@@ -193,8 +191,7 @@ impl SteppedSequence {
     pub fn arm(&mut self, config: &SequenceConfig, from: i32, level: bool, max_step: i32) {
         *self = Self {
             armed: true,
-            rising: config.edge != TriggerEdge::Falling,
-            last: level,
+            edges: EdgeDetector::new(config.edge, level),
             current: from,
             target: from,
             step: max_step.max(1),
@@ -261,13 +258,7 @@ impl SteppedSequence {
         }
         self.settled = self.inside >= self.settle_ticks;
         // 2. Edge.
-        let edge = if self.rising {
-            level && !self.last
-        } else {
-            !level && self.last
-        };
-        self.last = level;
-        if edge {
+        if self.edges.poll(level) {
             self.advance(queue);
         }
         // 3. Shaping: at most `step` toward the target (`max`/`min`, not `clamp`: no panic

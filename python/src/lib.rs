@@ -785,18 +785,7 @@ impl Board {
         };
         let (status, settings) = self.with(py, |c| Ok((c.status()?, c.read_params()?)))?;
         let tick_rate = status.tick_rate_hz.max(1) as f64;
-        let units = if normalised {
-            SetpointUnits::Normalised
-        } else {
-            SetpointUnits::Output(&settings.ranges)
-        };
-        let samples = values
-            .iter()
-            .enumerate()
-            .map(|(k, &v)| {
-                to_wire(v, units).map_err(|m| PyValueError::new_err(format!("setpoints[{k}]: {m}")))
-            })
-            .collect::<PyResult<Vec<i16>>>()?;
+        let samples = wire_values(&values, normalised, &settings, "setpoints")?;
         let divider = match rate {
             None => 1,
             Some(r) => divider_for_rate(tick_rate, r).map_err(PyValueError::new_err)?,
@@ -910,18 +899,7 @@ impl Board {
         let mode = mode.map(parse_mode).transpose()?;
         let idle = seconds(idle, "idle")?;
         let settings = self.with(py, |c| c.read_params())?;
-        let units = if normalised {
-            SetpointUnits::Normalised
-        } else {
-            SetpointUnits::Output(&settings.ranges)
-        };
-        let samples = values
-            .iter()
-            .enumerate()
-            .map(|(k, &v)| {
-                to_wire(v, units).map_err(|m| PyValueError::new_err(format!("positions[{k}]: {m}")))
-            })
-            .collect::<PyResult<Vec<i16>>>()?;
+        let samples = wire_values(&values, normalised, &settings, "positions")?;
         let options = SequenceOptions {
             config,
             idle,
@@ -1127,4 +1105,26 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(identify, m)?)?;
     m.add_function(wrap_pyfunction!(load_params, m)?)?;
     Ok(())
+}
+
+/// `values` as wire setpoints: normalised (−1…1), or in the output units of `settings`'s
+/// ranges; a bad value is refused naming `name[k]`.
+fn wire_values(
+    values: &[f64],
+    normalised: bool,
+    settings: &twinstack::settings::Settings,
+    name: &str,
+) -> PyResult<Vec<i16>> {
+    let units = if normalised {
+        SetpointUnits::Normalised
+    } else {
+        SetpointUnits::Output(&settings.ranges)
+    };
+    values
+        .iter()
+        .enumerate()
+        .map(|(k, &v)| {
+            to_wire(v, units).map_err(|m| PyValueError::new_err(format!("{name}[{k}]: {m}")))
+        })
+        .collect()
 }
