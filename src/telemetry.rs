@@ -21,7 +21,7 @@
 //!   lost to a full queue leaves a gap the packer sees: the frame after it starts at the
 //!   next index that exists and its `lost` counts every sample skipped since the start. Once
 //!   telemetry is stopped the packer sends what is queued, then a frame with `end` set whose
-//!   `first` is the number of samples the session produced: nothing the host does not get
+//!   `first` is the number of samples the run produced: nothing the host does not get
 //!   goes unannounced, even at the tail.
 //! * **The line**: the board hands frames to a [`FrameLink`] (the board's USART1 TX by DMA,
 //!   double-buffered; the emulator's polled TX; the simulator's modelled line). Responses to
@@ -163,7 +163,7 @@ impl TelemetryTap {
     }
 
     /// Stops taking samples; returns the index the next sample would have carried (the
-    /// session's end).
+    /// run's end).
     pub fn stop(&mut self) -> u32 {
         self.enabled = false;
         self.next
@@ -273,12 +273,12 @@ pub fn frame_target(mask: u8, decimation: u16, tick_rate_hz: u32) -> usize {
 pub struct TelemetryPacker {
     /// Started, and the end frame not sent yet.
     running: bool,
-    /// The session's end index, once stopped.
+    /// The run's end index, once stopped.
     stopping: Option<u32>,
     mask: u8,
     /// Values per sample.
     per_sample: usize,
-    /// The session's first index.
+    /// The run's first index.
     start: u32,
     /// The index of the next sample expected.
     expected: u32,
@@ -320,7 +320,7 @@ impl TelemetryPacker {
         }
     }
 
-    /// A session starts: samples of `mask` every `decimation` ticks at `tick_rate_hz`, the
+    /// A run starts: samples of `mask` every `decimation` ticks at `tick_rate_hz`, the
     /// first carrying index `first` ([`TelemetryTap::start`]). Queued samples from before
     /// `first` are dropped unsent; frame and sample numbers restart at 0.
     pub fn start(&mut self, mask: u8, decimation: u16, first: u32, tick_rate_hz: u32) {
@@ -341,15 +341,15 @@ impl TelemetryPacker {
         };
     }
 
-    /// The session was stopped at `end` ([`TelemetryTap::stop`]): what is queued is still
-    /// sent, then the end frame. Nothing happens if no session runs.
+    /// The run was stopped at `end` ([`TelemetryTap::stop`]): what is queued is still
+    /// sent, then the end frame. Nothing happens if telemetry is not running.
     pub fn stop(&mut self, end: u32) {
         if self.running {
             self.stopping = Some(end);
         }
     }
 
-    /// Whether a session runs or its last frames are still to be sent.
+    /// Whether telemetry is running or its last frames are still to be sent.
     pub fn is_active(&self) -> bool {
         self.running
     }
@@ -364,7 +364,7 @@ impl TelemetryPacker {
         self.lost
     }
 
-    /// Whether a frame is due: enough samples are queued, or the session was stopped and
+    /// Whether a frame is due: enough samples are queued, or the run was stopped and
     /// its last frames are to go.
     pub fn due<const N: usize>(&self, queue: &Consumer<'_, TelemetrySample, N>) -> bool {
         self.running && (self.stopping.is_some() || queue.len() >= self.target)
@@ -393,7 +393,7 @@ impl TelemetryPacker {
             let Some(sample) = queue.peek() else { break };
             let index = sample.index;
             if index.wrapping_sub(self.start) >= 1 << 31 {
-                // Before the start: an earlier session's, never sent.
+                // Before the start: an earlier run's, never sent.
                 queue.dequeue();
                 continue;
             }
@@ -693,7 +693,7 @@ mod tests {
     }
 
     #[test]
-    fn a_restart_drops_the_earlier_sessions_samples() {
+    fn a_restart_drops_the_earlier_runs_samples() {
         let mut q: Queue<TelemetrySample, 64> = Queue::new();
         let (mut p, mut c) = q.split();
         let mut tap = TelemetryTap::new();

@@ -2,7 +2,7 @@
 //! protocol frames on USART1 (status, setpoint batches, stream control, a parameter load, the
 //! recorder; a corrupted frame NACKed), its control tick must run, it must boot in bypass on
 //! the compiled-in settings, read back what it was loaded with bit for bit, and the parameter
-//! record in flash must be honoured (or refused with defaults and a flag); a fuzzed session
+//! record in flash must be honoured (or refused with defaults and a flag); a fuzzed exchange
 //! (mutated frames that pass the CRC, cut frames, junk) gets one response per frame.
 //!
 //! Builds the `emulator` image (`cargo build-emu`) into `target/firmware`, installing the
@@ -902,7 +902,7 @@ fn framed(message: &[u8]) -> Vec<u8> {
 /// Every frame gets exactly one response (telemetry frames aside), and afterwards the board
 /// still answers and its tick still runs. Deterministic (a fixed xorshift sequence).
 #[test]
-fn the_firmware_answers_every_frame_of_a_fuzzed_session_and_keeps_ticking() {
+fn the_firmware_answers_every_frame_of_a_fuzzed_exchange_and_keeps_ticking() {
     let mut emu = Emulator::boot("fuzz", None);
     let seeds = [
         Request::Status,
@@ -1021,7 +1021,7 @@ fn the_firmware_answers_every_frame_of_a_fuzzed_session_and_keeps_ticking() {
             }
         }
     }
-    assert!(sent > 250, "the session sent {sent} frames");
+    assert!(sent > 250, "the exchange sent {sent} frames");
     // A missing response stalls the loop above (no answer within its timeout); a surplus one
     // shifts every later answer by one and shows here. Close a frame left open and ask for
     // the status: the responses before the status's are exactly the closed frame's.

@@ -5,7 +5,7 @@
 //! Two ways a sample can be missing, both announced: the board's queue was full (the frame
 //! after the gap starts later and its `lost` says how many), or a frame was damaged on the
 //! line (its sequence number is missing). The end frame, sent once telemetry is stopped,
-//! gives the number of samples the session produced, so samples lost at the tail are counted
+//! gives the number of samples the run produced, so samples lost at the tail are counted
 //! too: [`TelemetryRecord::missing`] is exactly what the host did not get.
 //!
 //! ```
@@ -31,8 +31,8 @@ use twinstack::settings::Settings;
 /// Why a frame does not belong to the record.
 #[derive(Debug, thiserror::Error, PartialEq, Eq)]
 pub enum TelemetryError {
-    /// A frame of other signals (another session's).
-    #[error("a telemetry frame of signal mask {got:#04b}, the session's is {want:#04b}")]
+    /// A frame of other signals (another run's).
+    #[error("a telemetry frame of signal mask {got:#04b}, the run's is {want:#04b}")]
     Signals {
         /// The frame's mask.
         got: u8,
@@ -47,7 +47,7 @@ pub enum TelemetryError {
         /// Signals per sample.
         signals: usize,
     },
-    /// A frame that goes back in time (a restarted session).
+    /// A frame that goes back in time (a restarted run).
     #[error("a telemetry frame starting at sample {first}, after sample {after} was received")]
     Backwards {
         /// The frame's first sample.
@@ -57,7 +57,7 @@ pub enum TelemetryError {
     },
 }
 
-/// One telemetry session's samples as received, and what is missing.
+/// One telemetry run's samples as received, and what is missing.
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub struct TelemetryRecord {
     signals: u8,
@@ -153,7 +153,7 @@ impl TelemetryRecord {
         self.frames_missing
     }
 
-    /// The samples the session produced, once its end frame has arrived.
+    /// The samples the run produced, once its end frame has arrived.
     pub fn produced(&self) -> Option<u32> {
         self.end
     }
@@ -192,7 +192,7 @@ impl TelemetryRecord {
 
     /// The record in physical units (as a capture's: [`capture::convert`]) with `facts`, a
     /// capture status of the board (its DAC and amplifier full scale and tick rate), and
-    /// the settings in force; `t` is seconds from the first sample of the session (a gap
+    /// the settings in force; `t` is seconds from the first sample of the run (a gap
     /// shows as a jump in `t`).
     pub fn recording(
         &self,
@@ -217,7 +217,7 @@ impl TelemetryRecord {
     }
 }
 
-/// Receives until the end frame of the session in `record` has arrived (after
+/// Receives until the end frame of the run in `record` has arrived (after
 /// [`Client::stop_telemetry`]), for at most `budget`; frames set aside before are taken
 /// first. `false` if the end never came.
 pub fn wait_for_end<T: Transport>(
@@ -246,7 +246,7 @@ pub enum WaitError {
     /// The link.
     #[error(transparent)]
     Link(#[from] LinkError),
-    /// A frame that does not belong to the session.
+    /// A frame that does not belong to the run.
     #[error(transparent)]
     Frame(#[from] TelemetryError),
 }

@@ -142,7 +142,7 @@ fn the_page_telemetry_and_a_mode_switch_over_http() {
     let evs = events(&view.addr, |event, v| {
         match event {
             "samples" => {
-                // The first sample this connection saw: the session began before it.
+                // The first sample this connection saw: the run began before it.
                 start.get_or_insert(v["first"].as_u64().unwrap());
                 received += v["n"].as_u64().unwrap();
                 assert_eq!(

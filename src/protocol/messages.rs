@@ -146,7 +146,7 @@ pub struct TelemetryFrame {
     /// Samples lost on the board (queue full) since the start, up to `first`.
     pub lost: u32,
     /// The last frame of the telemetry (it was stopped): `first` is then the number of
-    /// samples the session produced, and `values` is empty.
+    /// samples the run produced, and `values` is empty.
     pub end: bool,
     /// The samples' values, frame-interleaved (one per signal per sample).
     pub values: heapless::Vec<i16, MAX_TELEMETRY_VALUES>,

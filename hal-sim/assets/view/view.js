@@ -13,10 +13,10 @@ const GROUPS = [
 ];
 
 // What the page received, for the eye and for tests: `samples` is the page's own count of
-// telemetry samples in this session from sample `start` on (the first it saw: a page opened
-// during a session sees it from then), `counts` the server's (what the board sent).
+// telemetry samples in this run from sample `start` on (the first it saw: a page opened
+// during a run sees it from then), `counts` the server's (what the board sent).
 const view = {
-  session: -1, samples: 0, start: null, expected: 0, gaps: 0, missedMessages: 0, batches: 0,
+  run: -1, samples: 0, start: null, expected: 0, gaps: 0, missedMessages: 0, batches: 0,
   counts: null, status: null, hello: null, draws: 0, rateHz: 0, signals: [],
   tune: null, calibration: null, connected: false,
 };
@@ -34,8 +34,8 @@ function resetBuffers() {
   }
 }
 
-function startSession(session) {
-  view.session = session;
+function startRun(run) {
+  view.run = run;
   view.samples = 0;
   view.start = null;
   view.expected = 0;
@@ -64,11 +64,11 @@ events.addEventListener("hello", (e) => {
   document.getElementById("port").textContent = h.port;
   document.getElementById("rate").textContent =
     `${h.signals.join(", ")} at ${h.rate_hz} samples/s`;
-  if (h.session !== view.session) startSession(h.session);
+  if (h.run !== view.run) startRun(h.run);
 });
 events.addEventListener("samples", (e) => {
   const b = JSON.parse(e.data);
-  if (b.session !== view.session) startSession(b.session);
+  if (b.run !== view.run) startRun(b.run);
   if (view.start === null) { view.start = b.first; view.expected = b.first; }
   if (b.first > view.expected) view.gaps += b.first - view.expected;
   view.samples += b.n;
@@ -118,7 +118,7 @@ function showStatus() {
 function showCounters() {
   const c = view.counts || {};
   rows(document.getElementById("counters"), [
-    ["session", view.session],
+    ["run", view.run],
     ["page: samples received", view.samples, "page-samples"],
     ["board: samples sent", c.expected === undefined ? "–" : c.expected - (view.start || 0), "board-samples"],
     ["missing (board's count)", c.missing ?? "–", "missing"],

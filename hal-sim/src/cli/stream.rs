@@ -269,11 +269,11 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
             super::record::finish_capture(&mut client, wait, &out, &png)?
         );
     }
-    if let Some((session, out)) = telemetry {
+    if let Some((telemetry, out)) = telemetry {
         let png = out.with_extension("png");
         println!(
             "{}",
-            super::telemetry::finish(&mut client, session, &out, &png)?
+            super::telemetry::finish(&mut client, telemetry, &out, &png)?
         );
     }
     if r.underran() {

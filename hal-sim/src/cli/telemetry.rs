@@ -52,9 +52,9 @@ pub struct Args {
     pub png: Option<PathBuf>,
 }
 
-/// A telemetry session started on a board.
+/// A telemetry run started on a board.
 #[derive(Debug)]
-pub struct Session {
+pub struct TelemetryRun {
     /// The frames received so far.
     pub record: TelemetryRecord,
     /// Samples per second (the board's tick rate / the decimation).
@@ -78,7 +78,7 @@ pub fn parse_spec(spec: &str) -> anyhow::Result<(String, f64)> {
 }
 
 /// Starts telemetry of `signals` (names) at about `rate` samples per second on `client`.
-pub fn start(client: &mut BoardClient, signals: &str, rate: f64) -> anyhow::Result<Session> {
+pub fn start(client: &mut BoardClient, signals: &str, rate: f64) -> anyhow::Result<TelemetryRun> {
     let mask = signal_mask(signals).map_err(|e| anyhow::anyhow!("--signals {signals:?}: {e}"))?;
     if !(rate.is_finite() && rate > 0.0) {
         bail!("--rate {rate}: must be a positive number of samples per second");
@@ -123,25 +123,25 @@ pub fn start(client: &mut BoardClient, signals: &str, rate: f64) -> anyhow::Resu
         }
         other => other?,
     }
-    Ok(Session {
+    Ok(TelemetryRun {
         record: TelemetryRecord::new(mask, decimation),
         rate_hz,
         tick_rate_hz,
     })
 }
 
-/// Stops the session, waits for its end frame, writes the CSV `out` and the PNG `png` in
+/// Stops the run, waits for its end frame, writes the CSV `out` and the PNG `png` in
 /// physical units and returns a one-line summary; an error (after the files are written) if
 /// any sample did not arrive.
 pub fn finish(
     client: &mut BoardClient,
-    mut session: Session,
+    mut telemetry: TelemetryRun,
     out: &Path,
     png: &Path,
 ) -> anyhow::Result<String> {
     client.stop_telemetry()?;
-    let ended = wait_for_end(client, &mut session.record, Duration::from_secs(2))?;
-    let record = &session.record;
+    let ended = wait_for_end(client, &mut telemetry.record, Duration::from_secs(2))?;
+    let record = &telemetry.record;
     let settings = client.read_params()?;
     let facts = client.capture_status()?;
     let recording = record.recording(&facts, &settings)?;
@@ -154,7 +154,7 @@ pub fn finish(
         &format!(
             "telemetry, {} samples at {} Hz",
             record.samples(),
-            session.rate_hz
+            telemetry.rate_hz
         ),
     )?;
     files.commit()?;
@@ -167,7 +167,7 @@ pub fn finish(
         png.display(),
         record.samples(),
         names.join(", "),
-        session.rate_hz,
+        telemetry.rate_hz,
         record.frames()
     );
     if !ended {
@@ -194,8 +194,8 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         );
     }
     let mut client = connect(&args.port)?;
-    let mut session = start(&mut client, &args.signals, args.rate)?;
-    let wanted = (args.duration * session.rate_hz).ceil() as u64;
+    let mut telemetry = start(&mut client, &args.signals, args.rate)?;
+    let wanted = (args.duration * telemetry.rate_hz).ceil() as u64;
     let bar = super::progress::bar(wanted, "telemetry", "samples");
     // The samples come at their rate: allow their duration twice over, plus the link's
     // timeout, before deciding the board is not sending them.
@@ -203,9 +203,9 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     let mut waited = Duration::ZERO;
     let step = Duration::from_millis(20);
     let reached = |r: &TelemetryRecord| r.samples() as u64 + r.missing();
-    while reached(&session.record) < wanted {
+    while reached(&telemetry.record) < wanted {
         if waited > budget {
-            let got = reached(&session.record);
+            let got = reached(&telemetry.record);
             let _ = client.stop_telemetry();
             bail!(
                 "{got} of {wanted} samples after {:.1} s: is the board ticking?",
@@ -213,15 +213,15 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
             );
         }
         let frames = client.collect_telemetry(step)?;
-        session.record.add_all(&frames)?;
+        telemetry.record.add_all(&frames)?;
         waited += step;
-        bar.set_position(reached(&session.record).min(wanted));
+        bar.set_position(reached(&telemetry.record).min(wanted));
     }
     bar.finish_and_clear();
     let png = args
         .png
         .clone()
         .unwrap_or_else(|| args.out.with_extension("png"));
-    println!("{}", finish(&mut client, session, &args.out, &png)?);
+    println!("{}", finish(&mut client, telemetry, &args.out, &png)?);
     Ok(())
 }

@@ -98,7 +98,7 @@ struct Hub {
     next: u64,
     /// The latest status event (sent first to a page that connects).
     status: Option<Arc<String>>,
-    /// The session's description (sent first to a page that connects).
+    /// The run's description (sent first to a page that connects).
     hello: Option<Arc<String>>,
     closed: bool,
 }
@@ -129,11 +129,11 @@ impl Shared {
     }
 }
 
-/// The telemetry of one session as the board thread follows it: counts like
+/// The telemetry of one run as the board thread follows it: counts like
 /// [`TelemetryRecord`]'s, without keeping the samples.
 #[derive(Clone, Copy, Debug, Default)]
 struct Counts {
-    session: u32,
+    run: u32,
     frames: u64,
     frames_missing: u64,
     samples: u64,
@@ -147,7 +147,7 @@ struct Counts {
 impl Counts {
     fn json(&self) -> Value {
         json!({
-            "session": self.session,
+            "run": self.run,
             "frames": self.frames,
             "frames_missing": self.frames_missing,
             "samples": self.samples,
@@ -159,7 +159,7 @@ impl Counts {
     }
 }
 
-/// The board thread's telemetry session.
+/// The board thread's telemetry run.
 struct Telemetry {
     mask: u8,
     decimation: u16,
@@ -274,7 +274,7 @@ fn board_loop(
             "port": port,
             "signals": names,
             "rate_hz": tel.rate_hz,
-            "session": tel.counts.session,
+            "run": tel.counts.run,
             "output_range": [settings.ranges.output_min, settings.ranges.output_max],
             "drive_range": [settings.drive.min_voltage, settings.drive.max_voltage],
         })
@@ -329,7 +329,7 @@ fn board_loop(
     }
 }
 
-/// Counts `frames` and converts their samples to physical units: `{session, first, n, dt,
+/// Counts `frames` and converts their samples to physical units: `{run, first, n, dt,
 /// signals: {name: [values]}}`.
 fn convert(
     tel: &mut Telemetry,
@@ -342,7 +342,7 @@ fn convert(
     let first = frames.first().map_or(c.expected, |f| f.first as u64);
     for f in frames {
         if (f.first as u64) < c.expected {
-            // A frame of an earlier session still on the line: not this session's.
+            // A frame of an earlier run still on the line: not this run's.
             continue;
         }
         record.add(f)?;
@@ -368,7 +368,7 @@ fn convert(
         signals.insert(col.channel.name().to_string(), Value::Array(values));
     }
     Ok(json!({
-        "session": c.session,
+        "run": c.run,
         "first": first,
         "n": record.samples(),
         "dt": 1.0 / tel.rate_hz,
@@ -457,10 +457,10 @@ fn execute(
                 .map_err(link)?;
             tel.running = true;
             tel.counts = Counts {
-                session: tel.counts.session + 1,
+                run: tel.counts.run + 1,
                 ..Counts::default()
             };
-            Ok(format!("telemetry session {} started", tel.counts.session))
+            Ok(format!("telemetry run {} started", tel.counts.run))
         }
         Command::Telemetry(false) => {
             client.stop_telemetry().map_err(link)?;
@@ -704,7 +704,7 @@ fn command(path: &str, body: &[u8]) -> Result<Command, String> {
     }
 }
 
-/// Server-Sent Events: the session's description, the latest status, then every message as
+/// Server-Sent Events: the run's description, the latest status, then every message as
 /// it is published. A page that fell behind the backlog is told how many it missed.
 fn events(mut out: TcpStream, shared: &Shared) -> std::io::Result<()> {
     out.write_all(

@@ -301,7 +301,7 @@ impl<T: Transport> Client<T> {
 
     /// Starts telemetry of `signals` (a [`twinstack::recorder::Channel`] mask), one sample
     /// every `decimation` ticks; frames set aside before are dropped (they belong to an
-    /// earlier session).
+    /// earlier run).
     pub fn start_telemetry(&mut self, signals: u8, decimation: u16) -> Result<(), LinkError> {
         self.expect_ack(&Request::Telemetry(TelemetryRequest::Start {
             signals,
