@@ -94,6 +94,8 @@ pub struct DemoReport {
     pub tracking: Vec<TrackingRow>,
     /// Figures written.
     pub figures: Vec<PathBuf>,
+    /// The excitation's and the tracked sine's frequency, Hz.
+    pub frequency_hz: f64,
 }
 
 impl DemoReport {
@@ -228,7 +230,7 @@ fn excite(options: &DemoOptions, stage: StageConfiguration, ticks: usize) -> Res
         stage,
         config,
         ticks,
-        format!("{}: 750 Hz excitation", name(stage)),
+        format!("{}: {} Hz excitation", name(stage), options.frequency),
         |_| wave.next_sample(),
         signal_to_f64,
     )
@@ -337,7 +339,10 @@ pub fn run(options: &DemoOptions) -> Result<DemoReport> {
     }
     let ticks_per_cycle = (options.control_rate / options.frequency).round() as usize;
     let ticks = ticks_per_cycle * options.cycles;
-    let mut report = DemoReport::default();
+    let mut report = DemoReport {
+        frequency_hz: options.frequency,
+        ..DemoReport::default()
+    };
     let mut loops = Vec::new();
     let mut error_panels = Vec::new();
     for stage in [
@@ -385,7 +390,7 @@ pub fn run(options: &DemoOptions) -> Result<DemoReport> {
             });
         }
         loops.push(Panel {
-            caption: format!("{} stage, 750 Hz, 70 ± 70 V", name(stage)),
+            caption: format!("{} stage, {} Hz, 70 ± 70 V", name(stage), options.frequency),
             x_label: "left-stack drive u_l [V]".into(),
             y_label: "stage displacement [µm]".into(),
             series: loop_series,
@@ -437,7 +442,10 @@ pub fn run(options: &DemoOptions) -> Result<DemoReport> {
     let errors_png = options.out_dir.join("demo-tracking-error.png");
     draw_panels(
         &errors_png,
-        "Tracking a 750 Hz sine over 10–90 % of the stroke",
+        &format!(
+            "Tracking a {} Hz sine over 10–90 % of the stroke",
+            options.frequency
+        ),
         &error_panels,
         2,
     )?;
@@ -445,41 +453,40 @@ pub fn run(options: &DemoOptions) -> Result<DemoReport> {
     Ok(report)
 }
 
-/// Prints the report as the paper's tables.
+/// Prints the report as the paper's tables (Markdown tables: the book's results page is this
+/// output, written by `cargo xtask figures`).
 pub fn print(report: &DemoReport, out: &mut impl std::io::Write) -> std::io::Result<()> {
     writeln!(
         out,
         "Modelling error on the held-out half (% of the output range)"
     )?;
-    writeln!(
-        out,
-        "{:<16} {:<12} {:>8} {:>8}",
-        "configuration", "model", "max %", "RMS %"
-    )?;
+    writeln!(out, "| configuration | model | max % | RMS % |")?;
+    writeln!(out, "|---|---|---:|---:|")?;
     for r in &report.modelling {
         writeln!(
             out,
-            "{:<16} {:<12} {:>8.2} {:>8.2}",
+            "| {} | {} | {:.2} | {:.2} |",
             r.configuration, r.model, r.max_pct, r.rms_pct
         )?;
     }
     writeln!(out)?;
     writeln!(
         out,
-        "Tracking a 750 Hz sine over 10–90 % of the stroke (% of the commanded stroke)"
+        "Tracking a {} Hz sine over 10–90 % of the stroke (% of the commanded stroke)",
+        report.frequency_hz
     )?;
     writeln!(
         out,
-        "{:<16} {:<14} {:>8} {:>8} {:>12}",
-        "configuration", "compensator", "max %", "RMS %", "RMS vs none"
+        "| configuration | compensator | max % | RMS % | RMS vs none |"
     )?;
+    writeln!(out, "|---|---|---:|---:|---:|")?;
     for r in &report.tracking {
         let none = report
             .tracking(r.configuration, "none")
             .map_or(f64::NAN, |n| n.rms_pct);
         writeln!(
             out,
-            "{:<16} {:<14} {:>8.2} {:>8.2} {:>11.1}x",
+            "| {} | {} | {:.2} | {:.2} | {:.1}× |",
             r.configuration,
             r.compensator,
             r.max_pct,

@@ -3,7 +3,7 @@
 //!
 //! A figure is a block of a page between `<!-- figures:NAME -->` and `<!-- /figures -->`: the
 //! command that makes it, then what it prints, turned into a table. `cargo xtask figures` runs
-//! each command (the debug build of the host tool: `cargo run -p hal-sim`) and rewrites the
+//! each command (the host tool's optimised build: `cargo run --profile host-opt -p hal-sim`) and rewrites the
 //! block; with `--check` it writes nothing and fails when a page differs from what the code
 //! produces now. `cargo xtask test` runs the check for the figures marked deterministic and
 //! cheap (they depend on nothing but the code and the committed data), so a change that moves
@@ -33,13 +33,86 @@ struct Figure {
     render: fn(&str) -> Result<String, String>,
 }
 
-const FIGURES: &[Figure] = &[Figure {
-    name: "golden-distances",
-    page: "docs/src/reference/golden-vectors.md",
-    args: &["golden"],
-    checked: true,
-    render: golden_distances,
-}];
+const FIGURES: &[Figure] = &[
+    Figure {
+        name: "golden-distances",
+        page: "docs/src/reference/golden-vectors.md",
+        args: &["golden"],
+        checked: true,
+        render: golden_distances,
+    },
+    Figure {
+        name: "demo",
+        page: "docs/src/results/demo.md",
+        args: &["demo", "--quiet", "--out", "target/figures/demo"],
+        checked: true,
+        render: markdown,
+    },
+    Figure {
+        name: "closed-loop",
+        page: "docs/src/results/closed-loop.md",
+        args: &["closed-loop", "--gains", "fixed", "--no-plot"],
+        checked: true,
+        render: markdown,
+    },
+    Figure {
+        name: "closed-loop-tuned",
+        page: "docs/src/results/closed-loop.md",
+        args: &["closed-loop", "--no-plot"],
+        checked: true,
+        render: markdown,
+    },
+    Figure {
+        name: "dual-stage",
+        page: "docs/src/results/dual-stage.md",
+        args: &["dual-stage"],
+        checked: true,
+        render: verbatim,
+    },
+];
+
+/// Output that is already Markdown (titles and tables, as `demo` and `closed-loop` print
+/// them): each title line its own paragraph, each table as printed, the lines naming the files
+/// the command wrote left out.
+fn markdown(out: &str) -> Result<String, String> {
+    let mut body = String::new();
+    let mut tables = 0;
+    for line in out.lines().filter(|l| !l.starts_with("wrote ")) {
+        let line = line.trim_end();
+        if line.is_empty() {
+            continue;
+        }
+        let row = line.starts_with('|');
+        let last_was_row = body.lines().last().is_some_and(|l| l.starts_with('|'));
+        if !body.is_empty() && (!row || !last_was_row) {
+            body.push('\n');
+        }
+        if row && line.starts_with("|---") {
+            tables += 1;
+        }
+        body.push_str(line);
+        body.push('\n');
+    }
+    if tables == 0 {
+        return Err("no Markdown table in the output".into());
+    }
+    Ok(body)
+}
+
+/// Output shown as printed, in a text block, less the lines naming the files it wrote.
+fn verbatim(out: &str) -> Result<String, String> {
+    let kept: Vec<&str> = out
+        .lines()
+        .map(str::trim_end)
+        .filter(|l| !l.starts_with("wrote "))
+        .collect();
+    let text = kept.join("\n");
+    let text = text.trim_matches('\n');
+    if text.is_empty() {
+        return Err("no output".into());
+    }
+    Ok(format!("```text\n{text}\n```\n"))
+}
 
 /// `twinstack golden`'s per-set lines as the page's table: distances to the `f64` reference
 /// tick, the worst DAC-code error, ambiguous flag decisions and the flag counts.
@@ -103,11 +176,22 @@ fn replace_block(page: &str, name: &str, body: &str) -> Result<String, String> {
     Ok(format!("{}\n{body}{}", &page[..start], &page[end..]))
 }
 
-/// Runs the host tool with `args` (debug build), returning its standard output.
+/// Runs the host tool with `args` (the optimised `host-opt` build the simulation gates use),
+/// returning its standard output.
 fn run_tool(root: &Path, args: &[&str]) -> Result<String, String> {
     let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
     let out = Command::new(cargo)
-        .args(["run", "--quiet", "-p", "hal-sim", "--"])
+        .args([
+            "run",
+            "--quiet",
+            "--profile",
+            "host-opt",
+            "-p",
+            "hal-sim",
+            "--bin",
+            "twinstack",
+            "--",
+        ])
         .args(args)
         .current_dir(root)
         .output()
@@ -194,6 +278,27 @@ tests/golden/vectors.bin is up to date
         let cut = GOLDEN.replace("bypass                 2400", "");
         assert!(golden_distances(&cut).is_err());
         assert!(golden_distances("").is_err());
+    }
+
+    #[test]
+    fn markdown_output_keeps_its_tables_and_drops_the_files_written() {
+        let out = "title one\n| a | b |\n|---|---:|\n| x | 1 |\n\nsecond line\nthird\n| c |\n|---|\n| y |\n\nwrote out/x.png\n";
+        assert_eq!(
+            markdown(out).unwrap(),
+            "title one\n\n| a | b |\n|---|---:|\n| x | 1 |\n\nsecond line\n\nthird\n\n| c |\n|---|\n| y |\n"
+        );
+        // Output without a table is an error, not an empty figure.
+        assert!(markdown("wrote out/x.png\n").is_err());
+        assert!(markdown("just text\n").is_err());
+    }
+
+    #[test]
+    fn verbatim_output_is_a_text_block() {
+        assert_eq!(
+            verbatim("\nline 1  \n  line 2\nwrote a.png\n\n").unwrap(),
+            "```text\nline 1\n  line 2\n```\n"
+        );
+        assert!(verbatim("wrote a.png\n").is_err());
     }
 
     #[test]
