@@ -114,13 +114,14 @@ fn write(dir: &Path, name: &str, contents: &str) -> String {
 
 #[test]
 fn status_and_stream_over_a_pty() {
-    // 5 kHz: 300 queued setpoints are 60 ms of play, ample for a pty's round trips on a
-    // loaded machine (a stream that runs dry exits with 3, tested below).
-    let pty = PtyBoard::start(FakeBoard::new(300, 5_000.0));
+    // 5 kHz: 1 000 queued setpoints are 200 ms of play, so the host being descheduled on a
+    // loaded machine (60 ms was seen) does not run the queue dry; the 2 000-setpoint file
+    // still needs the credit flow (a stream that runs dry exits with 3, tested below).
+    let pty = PtyBoard::start(FakeBoard::new(1000, 5_000.0));
     let o = hal_sim(&["status", "--port", &pty.path]);
     let (out, err) = text(&o);
     assert!(o.status.success(), "{out}{err}");
-    assert!(out.contains("queue_fill 0\ncredits 300\n"), "{out}");
+    assert!(out.contains("queue_fill 0\ncredits 1000\n"), "{out}");
 
     let dir = tempfile::tempdir().unwrap();
     let n = 2000;

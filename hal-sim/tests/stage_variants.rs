@@ -2,9 +2,9 @@
 //! ([`hal_sim::tracking::STAGE_VARIANTS`]: each non-ideality made stronger, weaker or turned
 //! around, and two combinations), identified and tracked as on the default stage.
 //!
-//! Release only (`cargo xtask test` runs it as its own gate, `cargo test --release -p hal-sim
-//! --test stage_variants`): 21 stages, each identified with every candidate, take about 25 s
-//! optimised and far too long unoptimised.
+//! Ignored unless asked for (`cargo xtask test` runs it as its own gate, `cargo test --profile
+//! host-opt -p hal-sim --test stage_variants -- --ignored`): 21 stages, each identified with
+//! every candidate, take about half a minute optimised and far too long unoptimised.
 //!
 //! It holds, on every variant, what the default stage's test holds on one: `auto` at most
 //! half the textbook P–I's worst error and a quarter of no compensation's; and the number of
@@ -21,7 +21,7 @@ use hal_sim::tracking::{
 const WITHIN_GOAL_AT_LEAST: usize = 17;
 
 #[test]
-#[cfg_attr(debug_assertions, ignore = "release only: see the module doc")]
+#[ignore = "slow: run optimised, see the module doc"]
 fn auto_holds_on_stages_it_was_not_tuned_on() {
     let base = IdentifyOptions::new(ModelKind::Pi, FIT_UNTIL_S);
     let tables = evaluate_variants(

@@ -9,7 +9,7 @@
 //!   Running it again changes nothing.
 //! * `cargo xtask test` runs `setup`, then every gate CI holds the project to, in order,
 //!   stopping at the first that fails: the module graph (no cycles, `cargo xtask graph`), host
-//!   tests (with doc tests), the book's deterministic figures (`cargo xtask figures --check`),
+//!   tests (optimised, with overflow checks, and doc tests), the book's deterministic figures (`cargo xtask figures --check`),
 //!   rustfmt, clippy on the host,
 //!   clippy and builds of each firmware image on the target, `cargo check` of the host tool
 //!   for Windows, the Python package (`pip install ./python` into the virtual environment —
@@ -85,7 +85,7 @@ const USAGE: &str = "usage: cargo xtask <command>
 commands:
   setup   install what the tests need (thumbv7em and x86_64-pc-windows-gnu targets,
           qemu-system-arm, mdbook, a Python virtual environment), each only if missing
-  test    setup, then every gate in order: tests (and the lab stage's variants, optimised), fmt,
+  test    setup, then every gate in order: tests (optimised, with overflow checks), fmt,
           clippy (host and target), firmware builds, hal-sim checked for Windows, the Python
           package (pip install ./python, pytest), rustdoc, the docs book and its links; stops at
           the first failure
@@ -506,13 +506,17 @@ fn gates() -> Vec<Gate> {
             "module graph: no cycles (cargo xtask graph)",
             cargo(&["run", "--quiet", "-p", "xtask", "--", "graph", "--quiet"]),
         ),
-        // The whole-interrupt bench parses QEMU's instruction trace of every tick (hundreds of
-        // millions of lines): unoptimised, the parse alone takes most of an hour, so it runs in
-        // its own optimised gate below and is skipped here.
+        // Every host test runs optimised with debug assertions and overflow checks (the
+        // `host-opt` profile): identification, calibration and the studies are numeric work
+        // that takes several times longer unoptimised. The whole-interrupt bench parses QEMU's
+        // instruction trace of every tick (hundreds of millions of lines) and gets its own gate
+        // below, so its time is reported apart.
         gate(
-            "host tests and doc tests (cargo test --workspace)",
+            "host tests and doc tests (cargo test --profile host-opt --workspace)",
             cargo(&[
                 "test",
+                "--profile",
+                "host-opt",
                 "--workspace",
                 "--",
                 "--skip",
@@ -520,11 +524,11 @@ fn gates() -> Vec<Gate> {
             ]),
         ),
         gate(
-            "the whole interrupt in QEMU, optimised (cargo test --profile host-opt --test irq_bench)",
+            "the whole interrupt in QEMU (cargo test --profile host-opt --test irq_bench)",
             cargo(&["test", "--profile", "host-opt", "--test", "irq_bench"]),
         ),
         gate(
-            "the lab stage's variants, optimised (cargo test --profile host-opt -p hal-sim --test stage_variants)",
+            "the lab stage's variants (cargo test --profile host-opt -p hal-sim --test stage_variants -- --ignored)",
             cargo(&[
                 "test",
                 "--profile",
@@ -533,6 +537,8 @@ fn gates() -> Vec<Gate> {
                 "hal-sim",
                 "--test",
                 "stage_variants",
+                "--",
+                "--ignored",
             ]),
         ),
         gate(
@@ -594,7 +600,7 @@ fn gates() -> Vec<Gate> {
 /// The Python package (`python/`, its own cargo workspace): its Rust formatted and clippy-clean,
 /// installed with pip into the virtual environment `setup` made (maturin builds it from PyPI's
 /// wheel; the build goes to `TARGET/python`), then its pytest suite against the in-process board
-/// and a `twinstack virtual-board` process (the debug `twinstack` the host tests built).
+/// and a `twinstack virtual-board` process (the optimised `twinstack` the host tests built).
 fn python_gates() -> Vec<Gate> {
     let manifest = root().join("python").join("Cargo.toml");
     let manifest = manifest.to_string_lossy().into_owned();
@@ -632,7 +638,7 @@ fn python_gates() -> Vec<Gate> {
         .env(
             "TWINSTACK_HAL_SIM",
             target_dir()
-                .join("debug")
+                .join("host-opt")
                 .join(format!("twinstack{}", std::env::consts::EXE_SUFFIX)),
         );
     vec![
@@ -650,8 +656,16 @@ fn python_gates() -> Vec<Gate> {
             pip(&["--force-reinstall", "--no-deps", "./python"]),
         ),
         gate(
-            "Python: the hal-sim binary the tests start (cargo build -p hal-sim)",
-            cargo(&["build", "-p", "hal-sim", "--bin", "twinstack"]),
+            "Python: the twinstack binary the tests start (cargo build --profile host-opt -p hal-sim)",
+            cargo(&[
+                "build",
+                "--profile",
+                "host-opt",
+                "-p",
+                "hal-sim",
+                "--bin",
+                "twinstack",
+            ]),
         ),
         gate("Python: pytest python/tests", pytest),
     ]
