@@ -63,6 +63,20 @@ const FIGURES: &[Figure] = &[
         render: markdown,
     },
     Figure {
+        name: "tune-50k",
+        page: "docs/src/results/tuning.md",
+        args: &["tune", "--port", "sim", "--rate", "50k"],
+        checked: true,
+        render: tune_summary,
+    },
+    Figure {
+        name: "tune-100k",
+        page: "docs/src/results/tuning.md",
+        args: &["tune", "--port", "sim", "--rate", "100k"],
+        checked: true,
+        render: tune_summary,
+    },
+    Figure {
         name: "dual-stage",
         page: "docs/src/results/dual-stage.md",
         args: &["dual-stage"],
@@ -97,6 +111,24 @@ fn markdown(out: &str) -> Result<String, String> {
         return Err("no Markdown table in the output".into());
     }
     Ok(body)
+}
+
+/// `tune`'s summary: its output less the measured response's lines (`FREQ Hz  GAIN dB  PHASE°`,
+/// which the PNG draws), as Markdown.
+fn tune_summary(out: &str) -> Result<String, String> {
+    let is_response = |l: &str| {
+        let cols: Vec<&str> = l.split_whitespace().collect();
+        matches!(cols[..], [f, "Hz", _, "dB", _] if f.parse::<f64>().is_ok())
+    };
+    let kept: String = out
+        .lines()
+        .filter(|l| !is_response(l))
+        .map(|l| format!("{l}\n"))
+        .collect();
+    if !kept.contains("fit: ") || !kept.contains("tuned: ") {
+        return Err("no `fit:` and `tuned:` lines in the output".into());
+    }
+    markdown(&kept)
 }
 
 /// Output shown as printed, in a text block, less the lines naming the files it wrote.
@@ -290,6 +322,16 @@ tests/golden/vectors.bin is up to date
         // Output without a table is an error, not an empty figure.
         assert!(markdown("wrote out/x.png\n").is_err());
         assert!(markdown("just text\n").is_err());
+    }
+
+    #[test]
+    fn tune_summary_leaves_out_the_response() {
+        let out = "       200 Hz    -4.17 dB      -3.8°\n     10258 Hz    -2.23 dB    -112.4°\nfit: gain 0.6\ntuned: kp 0.05\n| a |\n|---:|\n| 1 |\n";
+        assert_eq!(
+            tune_summary(out).unwrap(),
+            "fit: gain 0.6\n\ntuned: kp 0.05\n\n| a |\n|---:|\n| 1 |\n"
+        );
+        assert!(tune_summary("       200 Hz    -4.17 dB      -3.8°\n").is_err());
     }
 
     #[test]
