@@ -85,27 +85,31 @@ const FIGURES: &[Figure] = &[
     },
 ];
 
+/// The lines of a command's output, trailing spaces trimmed, less those naming the files it
+/// wrote (`wrote PATH`: where they go depends on the machine, not on the code).
+fn printed_lines(out: &str) -> impl Iterator<Item = &str> {
+    out.lines()
+        .map(str::trim_end)
+        .filter(|l| !l.starts_with("wrote "))
+}
+
 /// Output that is already Markdown (titles and tables, as `demo` and `closed-loop` print
 /// them): each title line its own paragraph, each table as printed, the lines naming the files
 /// the command wrote left out.
 fn markdown(out: &str) -> Result<String, String> {
     let mut body = String::new();
     let mut tables = 0;
-    for line in out.lines().filter(|l| !l.starts_with("wrote ")) {
-        let line = line.trim_end();
-        if line.is_empty() {
-            continue;
-        }
+    // Whether the last line written was a table row (`None` before the first line).
+    let mut last_row = None;
+    for line in printed_lines(out).filter(|l| !l.is_empty()) {
         let row = line.starts_with('|');
-        let last_was_row = body.lines().last().is_some_and(|l| l.starts_with('|'));
-        if !body.is_empty() && (!row || !last_was_row) {
+        if last_row.is_some() && !(row && last_row == Some(true)) {
             body.push('\n');
         }
-        if row && line.starts_with("|---") {
-            tables += 1;
-        }
+        tables += usize::from(line.starts_with("|---"));
         body.push_str(line);
         body.push('\n');
+        last_row = Some(row);
     }
     if tables == 0 {
         return Err("no Markdown table in the output".into());
@@ -133,11 +137,7 @@ fn tune_summary(out: &str) -> Result<String, String> {
 
 /// Output shown as printed, in a text block, less the lines naming the files it wrote.
 fn verbatim(out: &str) -> Result<String, String> {
-    let kept: Vec<&str> = out
-        .lines()
-        .map(str::trim_end)
-        .filter(|l| !l.starts_with("wrote "))
-        .collect();
+    let kept: Vec<&str> = printed_lines(out).collect();
     let text = kept.join("\n");
     let text = text.trim_matches('\n');
     if text.is_empty() {
@@ -213,17 +213,9 @@ fn replace_block(page: &str, name: &str, body: &str) -> Result<String, String> {
 fn run_tool(root: &Path, args: &[&str]) -> Result<String, String> {
     let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
     let out = Command::new(cargo)
-        .args([
-            "run",
-            "--quiet",
-            "--profile",
-            "host-opt",
-            "-p",
-            "hal-sim",
-            "--bin",
-            "twinstack",
-            "--",
-        ])
+        .args(["run", "--quiet"])
+        .args(super::TWINSTACK_BIN)
+        .arg("--")
         .args(args)
         .current_dir(root)
         .output()

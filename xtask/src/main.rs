@@ -495,6 +495,21 @@ fn gate(what: impl Into<String>, cmd: Command) -> Gate {
     }
 }
 
+/// The profile every host gate builds with: optimised, with debug assertions and overflow
+/// checks (`[profile.host-opt]` in the workspace manifest).
+const HOST_PROFILE: &str = "host-opt";
+
+/// Cargo's arguments that select the host tool `twinstack` in [`HOST_PROFILE`]: the build the
+/// Python tests start and the book's figures run.
+const TWINSTACK_BIN: [&str; 6] = [
+    "--profile",
+    HOST_PROFILE,
+    "-p",
+    "hal-sim",
+    "--bin",
+    "twinstack",
+];
+
 /// The bench test that traces every tick in QEMU (`tests/irq_bench.rs`): run in the
 /// optimised gate only.
 const IRQ_BENCH_SCENARIOS: &str = "the_whole_interrupt_in_every_scenario";
@@ -516,7 +531,7 @@ fn gates() -> Vec<Gate> {
             cargo(&[
                 "test",
                 "--profile",
-                "host-opt",
+                HOST_PROFILE,
                 "--workspace",
                 "--",
                 "--skip",
@@ -525,14 +540,14 @@ fn gates() -> Vec<Gate> {
         ),
         gate(
             "the whole interrupt in QEMU (cargo test --profile host-opt --test irq_bench)",
-            cargo(&["test", "--profile", "host-opt", "--test", "irq_bench"]),
+            cargo(&["test", "--profile", HOST_PROFILE, "--test", "irq_bench"]),
         ),
         gate(
             "the lab stage's variants (cargo test --profile host-opt -p hal-sim --test stage_variants -- --ignored)",
             cargo(&[
                 "test",
                 "--profile",
-                "host-opt",
+                HOST_PROFILE,
                 "-p",
                 "hal-sim",
                 "--test",
@@ -638,7 +653,7 @@ fn python_gates() -> Vec<Gate> {
         .env(
             "TWINSTACK_HAL_SIM",
             target_dir()
-                .join("host-opt")
+                .join(HOST_PROFILE)
                 .join(format!("twinstack{}", std::env::consts::EXE_SUFFIX)),
         );
     vec![
@@ -657,15 +672,7 @@ fn python_gates() -> Vec<Gate> {
         ),
         gate(
             "Python: the twinstack binary the tests start (cargo build --profile host-opt -p hal-sim)",
-            cargo(&[
-                "build",
-                "--profile",
-                "host-opt",
-                "-p",
-                "hal-sim",
-                "--bin",
-                "twinstack",
-            ]),
+            cargo(&[&["build"][..], &TWINSTACK_BIN].concat()),
         ),
         gate("Python: pytest python/tests", pytest),
     ]
