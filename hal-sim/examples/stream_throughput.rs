@@ -15,9 +15,11 @@
 //!
 //! **Emulator** (`--emulator ELF`: the firmware's emulator image `twinstack-emu`, `cargo
 //! build-emu`): boots
-//! QEMU's netduinoplus2 with USART1 on a Unix socket and streams the same sine (default
-//! 10 s). QEMU's UART is not paced at a baud rate, so this measures how fast the emulated
-//! firmware takes setpoints, not the link. Needs `qemu-system-arm` on the PATH.
+//! QEMU's netduinoplus2 with USART1 on a Unix socket, once per row, and streams the same sine
+//! for `--seconds` of the guest's ticks (default 10) at dividers 1, 2 and 4, with QEMU's
+//! clock following the host's and with `-icount shift=0,sleep=on`. QEMU's UART is not paced
+//! at a baud rate and hands the guest one byte per interrupt, so this measures QEMU and the
+//! emulated firmware, not the board's link. Needs `qemu-system-arm` on the PATH.
 
 use hal_sim::link::client::Client;
 use hal_sim::link::streamer::{stream_setpoints, StreamOptions, StreamReport};
@@ -55,7 +57,16 @@ fn stream<T: Transport>(
     client: &mut Client<T>,
     samples: &[i16],
 ) -> Result<(StreamReport, f64), String> {
+    stream_divided(client, samples, 1)
+}
+
+fn stream_divided<T: Transport>(
+    client: &mut Client<T>,
+    samples: &[i16],
+    divider: u16,
+) -> Result<(StreamReport, f64), String> {
     let options = StreamOptions {
+        divider,
         underrun: Some(UnderrunPolicy::Hold),
         ..StreamOptions::default()
     };
@@ -214,8 +225,22 @@ impl Drop for Qemu {
     }
 }
 
-fn emulator(elf: &str, seconds: f64) -> Result<(), String> {
-    let dir = std::env::temp_dir().join(format!("stream-throughput-{}", std::process::id()));
+/// QEMU's modes for the emulator runs: its default (the guest's clock is the host's: when
+/// QEMU runs the guest slower than the chip, the SysTick interrupts it cannot take are lost
+/// and counted as overruns) and `-icount shift=0,sleep=on` (one instruction a nanosecond of
+/// guest time, idle time at the host's pace: no tick is lost, the guest runs as fast as QEMU
+/// executes it).
+const QEMU_MODES: [(&str, &[&str]); 2] = [
+    ("host clock", &[]),
+    ("icount shift=0,sleep=on", &["-icount", "shift=0,sleep=on"]),
+];
+
+/// A booted emulator: QEMU (killed on drop), a client on its UART, its tick rate (Hz).
+type Emulator = (Qemu, Client<Box<dyn Transport>>, f64);
+
+/// Boots the emulator image with USART1 on a Unix socket and waits until it answers.
+fn boot_emulator(elf: &str, extra: &[&str], run: usize) -> Result<Emulator, String> {
+    let dir = std::env::temp_dir().join(format!("stream-throughput-{}-{run}", std::process::id()));
     std::fs::create_dir_all(&dir).map_err(|e| e.to_string())?;
     let sock = dir.join("uart.sock");
     let child = Command::new("qemu-system-arm")
@@ -232,6 +257,7 @@ fn emulator(elf: &str, seconds: f64) -> Result<(), String> {
             "-semihosting-config",
             "enable=on,target=native",
         ])
+        .args(extra)
         .arg("-chardev")
         .arg(format!(
             "socket,id=u1,path={},server=on,wait=on",
@@ -243,7 +269,7 @@ fn emulator(elf: &str, seconds: f64) -> Result<(), String> {
         .stderr(Stdio::null())
         .spawn()
         .map_err(|e| format!("qemu-system-arm: {e}"))?;
-    let _qemu = Qemu { child, dir };
+    let qemu = Qemu { child, dir };
     let spec = PortSpec::Unix(sock.clone());
     let start = Instant::now();
     let transport = loop {
@@ -267,19 +293,53 @@ fn emulator(elf: &str, seconds: f64) -> Result<(), String> {
         }
     }
     let status = status.ok_or("the emulator never answered a status request")?;
-    client.set_timeout(Duration::from_secs(5));
-    let rate = status.tick_rate_hz as f64;
-    println!("emulator ({elf}), QEMU netduinoplus2, USART1 on a Unix socket (not baud-paced), tick {rate} Hz:");
-    header();
-    let samples = sine((seconds * rate) as usize, rate);
-    let (r, wall) = stream(&mut client, &samples)?;
-    print_report("sine ±0.95", &r, rate, None, wall);
-    let board_s = r.after_last_batch.ticks.wrapping_sub(r.before.ticks) as f64 / rate;
+    client.set_timeout(Duration::from_secs(10));
+    Ok((qemu, client, status.tick_rate_hz as f64))
+}
+
+/// Streams `seconds` of the guest's ticks at dividers 1, 2 and 4 in each of QEMU's modes,
+/// each on a freshly booted emulator.
+fn emulator(elf: &str, seconds: f64) -> Result<(), String> {
     println!(
-        "    guest time {board_s:.2} s in {wall:.2} s wall ({:.2}× real time); {} credit probes",
-        board_s / wall,
-        r.credit_probes
+        "emulator ({elf}), QEMU netduinoplus2, USART1 on a Unix socket (not baud-paced), \
+         {seconds} s of ticks per run, hold on underrun:"
     );
+    println!(
+        "{:<24} {:>4} {:>8} {:>8} {:>9} {:>9} {:>9} {:>7} {:>7} {:>6}",
+        "QEMU",
+        "div",
+        "setpts",
+        "guest s",
+        "setpt/s",
+        "underrun",
+        "overruns",
+        "wall s",
+        "sp/wall",
+        "guest×"
+    );
+    let mut run = 0;
+    for (mode, extra) in QEMU_MODES {
+        for divider in [1u16, 2, 4] {
+            run += 1;
+            let (_qemu, mut client, rate) = boot_emulator(elf, extra, run)?;
+            let samples = sine(
+                (seconds * rate / divider as f64) as usize,
+                rate / divider as f64,
+            );
+            let (r, wall) = stream_divided(&mut client, &samples, divider)?;
+            let end = r.drained.unwrap_or(r.after_last_batch);
+            let guest = end.ticks.wrapping_sub(r.before.ticks) as f64 / rate;
+            println!(
+                "{mode:<24} {divider:>4} {:>8} {guest:>8.3} {:>9.0} {:>9} {:>9} {wall:>7.2} {:>7.0} {:>6.2}",
+                r.accepted,
+                r.accepted as f64 / guest,
+                r.underruns_during_stream(),
+                end.overruns.wrapping_sub(r.before.overruns),
+                r.accepted as f64 / wall,
+                guest / wall,
+            );
+        }
+    }
     Ok(())
 }
 
