@@ -9,6 +9,8 @@
 
 #[path = "../../tests/support/mod.rs"]
 mod support;
+#[path = "support/view_client.rs"]
+mod view_client;
 
 use hal_sim::link::client::{Client, LinkError};
 use hal_sim::link::streamer::{stream_setpoints, StreamOptions};
@@ -699,4 +701,69 @@ fn the_largest_load_sent_unpaced_is_received_whole() {
     let after = client.status().unwrap();
     assert_eq!(after.crc_errors, before.crc_errors);
     assert_eq!(after.frame_errors, before.frame_errors);
+}
+
+/// `twinstack view` on the emulated firmware's UART: the page's events carry its telemetry
+/// with every sample counted, its status says it is the emulator, a mode the board refuses
+/// comes back with the board's reason and a waveform started from the HTTP interface runs.
+#[test]
+fn the_live_view_shows_the_emulated_firmware() {
+    let qemu = boot();
+    drop(connect(&qemu)); // it answers; the view takes the UART next
+    let port = format!("unix:{}", qemu.socket.display());
+    let view = view_client::start_on(&port, &["--signals", "setpoint,sensor", "--rate", "1000"]);
+    let addr = view.addr.clone();
+    let mut received = 0u64;
+    let mut start: Option<u64> = None;
+    let (mut switched, mut refused, mut paused) = (false, false, false);
+    let evs = view_client::events(&view.addr, |event, v| {
+        match event {
+            "samples" => {
+                start.get_or_insert(v["first"].as_u64().unwrap());
+                received += v["n"].as_u64().unwrap();
+            }
+            "status" if !refused && received > 100 => {
+                assert_eq!(v["image"], "emulator", "{v}");
+                // No sensor in the emulator's defaults: closed loop is refused with why.
+                let (code, answer) =
+                    view_client::post(&addr, "/api/mode", r#"{"mode": "closed-loop"}"#);
+                assert_eq!(code, 422, "{answer}");
+                assert!(
+                    answer["error"].as_str().unwrap().contains("feedback"),
+                    "{answer}"
+                );
+                refused = true;
+                // The waveform generator, started from the same interface, runs on the board.
+                let (code, answer) = view_client::post(
+                    &addr,
+                    "/api/waveform",
+                    r#"{"amplitude": 0.3, "frequency": 20, "shape": "sine", "offset": 0}"#,
+                );
+                assert_eq!(code, 200, "{answer}");
+                switched = true;
+            }
+            "status"
+                if switched
+                    && !paused
+                    && v["flags"]
+                        .as_array()
+                        .is_some_and(|f| f.iter().any(|f| f == "waveform")) =>
+            {
+                let (code, answer) =
+                    view_client::post(&addr, "/api/telemetry", r#"{"run": false}"#);
+                assert_eq!(code, 200, "{answer}");
+                paused = true;
+            }
+            _ => {}
+        }
+        paused && v["counts"]["produced"].is_u64()
+    });
+    let (_, last) = evs.last().unwrap();
+    let produced = last["counts"]["produced"].as_u64().unwrap();
+    assert_eq!(
+        received,
+        produced - start.unwrap(),
+        "every sample the emulated board produced from the first this client saw reached it"
+    );
+    assert_eq!(last["counts"]["missing"], 0);
 }

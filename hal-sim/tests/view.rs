@@ -3,121 +3,12 @@
 //! counted, a mode switch reaches the board, and malformed or hostile requests are refused
 //! with a reason, never a crash.
 
-use std::io::{BufRead, BufReader, Read, Write};
-use std::net::TcpStream;
-use std::process::{Child, Command, Stdio};
-use std::time::{Duration, Instant};
+use std::process::Command;
 
-struct View {
-    child: Child,
-    addr: String,
-}
+#[path = "support/view_client.rs"]
+mod view_client;
 
-impl Drop for View {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
-}
-
-fn start(extra: &[&str]) -> View {
-    let mut child = Command::new(env!("CARGO_BIN_EXE_twinstack"))
-        .args(["view", "--port", "sim", "--listen", "127.0.0.1:0"])
-        .args(extra)
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
-    let mut line = String::new();
-    BufReader::new(child.stdout.take().unwrap())
-        .read_line(&mut line)
-        .unwrap();
-    let url = line
-        .split_whitespace()
-        .find(|w| w.starts_with("http://"))
-        .unwrap_or_else(|| panic!("no address in {line:?}"));
-    let addr = url
-        .trim_start_matches("http://")
-        .trim_end_matches('/')
-        .to_string();
-    View { child, addr }
-}
-
-/// One request on a fresh connection: (status, body).
-fn http(addr: &str, raw: &[u8]) -> (u16, String) {
-    let mut s = TcpStream::connect(addr).unwrap();
-    s.set_read_timeout(Some(Duration::from_secs(20))).unwrap();
-    s.write_all(raw).unwrap();
-    let mut reader = BufReader::new(s);
-    let mut status = String::new();
-    reader.read_line(&mut status).unwrap();
-    let code: u16 = status.split_whitespace().nth(1).unwrap().parse().unwrap();
-    let mut length = 0usize;
-    loop {
-        let mut h = String::new();
-        reader.read_line(&mut h).unwrap();
-        if h == "\r\n" {
-            break;
-        }
-        if let Some(v) = h.to_ascii_lowercase().strip_prefix("content-length:") {
-            length = v.trim().parse().unwrap();
-        }
-    }
-    let mut body = vec![0; length];
-    reader.read_exact(&mut body).unwrap();
-    (code, String::from_utf8(body).unwrap())
-}
-
-fn get(addr: &str, path: &str) -> (u16, String) {
-    http(
-        addr,
-        format!("GET {path} HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n").as_bytes(),
-    )
-}
-
-fn post(addr: &str, path: &str, body: &str) -> (u16, serde_json::Value) {
-    let (code, text) = http(
-        addr,
-        format!(
-            "POST {path} HTTP/1.1\r\nHost: x\r\nContent-Length: {}\r\n\r\n{body}",
-            body.len()
-        )
-        .as_bytes(),
-    );
-    (code, serde_json::from_str(&text).unwrap())
-}
-
-/// Reads Server-Sent Events until `done` says so: (event, data) pairs.
-fn events(
-    addr: &str,
-    mut done: impl FnMut(&str, &serde_json::Value) -> bool,
-) -> Vec<(String, serde_json::Value)> {
-    let mut s = TcpStream::connect(addr).unwrap();
-    s.set_read_timeout(Some(Duration::from_secs(20))).unwrap();
-    s.write_all(b"GET /events HTTP/1.1\r\nHost: x\r\n\r\n")
-        .unwrap();
-    let mut reader = BufReader::new(s);
-    let mut out = Vec::new();
-    let mut event = String::new();
-    let deadline = Instant::now() + Duration::from_secs(60);
-    loop {
-        assert!(Instant::now() < deadline, "no end to the events");
-        let mut line = String::new();
-        if reader.read_line(&mut line).unwrap() == 0 {
-            return out;
-        }
-        if let Some(e) = line.strip_prefix("event: ") {
-            event = e.trim().to_string();
-        } else if let Some(d) = line.strip_prefix("data: ") {
-            let v: serde_json::Value = serde_json::from_str(d.trim()).unwrap();
-            let stop = done(&event, &v);
-            out.push((event.clone(), v));
-            if stop {
-                return out;
-            }
-        }
-    }
-}
+use view_client::{events, get, http, post, start};
 
 #[test]
 fn the_page_telemetry_and_a_mode_switch_over_http() {
