@@ -18,6 +18,9 @@ use hal_sim::link::streamer::{stream_setpoints, StreamOptions};
 use hal_sim::sim_device::{LinkDelay, SimDevice, SimDeviceConfig};
 use twinstack::protocol::messages::{Mode, NackReason, StreamControl, UnderrunPolicy};
 
+#[path = "support/view_client.rs"]
+mod view_client;
+
 struct Server {
     address: String,
     stop: Arc<AtomicBool>,
@@ -188,4 +191,73 @@ fn a_second_writer_is_refused_with_the_reason_and_may_still_read() {
     let (_, report) = server.finish();
     assert!(report.refused >= 2, "{report:?}");
     assert_eq!(report.clients, 2);
+}
+
+/// `twinstack view` is one more client of the server: it shows the board's telemetry with
+/// every sample counted while another client streams, and a mode switch from the page is
+/// refused with the reason while that client owns the board.
+#[test]
+fn the_live_view_reads_through_the_server_beside_a_stream() {
+    let server = Server::start();
+    let mut streamer = server.client();
+    streamer.set_mode(Mode::Bypass).unwrap();
+    let view = view_client::start_on(
+        &format!("tcp:{}", server.address),
+        &["--signals", "setpoint,sensor", "--rate", "1000"],
+    );
+    let done = Arc::new(AtomicBool::new(false));
+    let flag = done.clone();
+    let stream = thread::spawn(move || {
+        let options = StreamOptions {
+            underrun: Some(UnderrunPolicy::Hold),
+            ..StreamOptions::default()
+        };
+        let r = stream_setpoints(&mut streamer, &sine(40_000), &options, |_| {}).expect("stream");
+        flag.store(true, Ordering::Relaxed);
+        (r, streamer)
+    });
+    let addr = view.addr.clone();
+    let mut received = 0u64;
+    let mut start: Option<u64> = None;
+    let (mut refused, mut paused) = (false, false);
+    let evs = view_client::events(&view.addr, |event, v| {
+        match event {
+            "samples" => {
+                start.get_or_insert(v["first"].as_u64().unwrap());
+                received += v["n"].as_u64().unwrap();
+            }
+            "status" if !refused && received > 200 => {
+                let (code, answer) =
+                    view_client::post(&addr, "/api/mode", r#"{"mode": "closed-loop"}"#);
+                assert_eq!(code, 422, "{answer}");
+                assert!(
+                    answer["error"].as_str().unwrap().contains("another client"),
+                    "{answer}"
+                );
+                refused = true;
+            }
+            "status" if refused && !paused && done.load(Ordering::Relaxed) => {
+                let (code, answer) =
+                    view_client::post(&addr, "/api/telemetry", r#"{"run": false}"#);
+                assert_eq!(code, 200, "{answer}");
+                paused = true;
+            }
+            _ => {}
+        }
+        paused && v["counts"]["produced"].is_u64()
+    });
+    let (_, last) = evs.last().unwrap();
+    let produced = last["counts"]["produced"].as_u64().unwrap();
+    assert_eq!(
+        received,
+        produced - start.unwrap(),
+        "every sample from the first the view saw reached it"
+    );
+    assert_eq!(last["counts"]["missing"], 0);
+    let (r, streamer) = stream.join().unwrap();
+    assert_eq!(r.accepted, 40_000);
+    assert_eq!(r.underruns_during_stream(), 0);
+    drop((view, streamer));
+    let (_, report) = server.finish();
+    assert!(report.refused >= 1, "{report:?}");
 }
