@@ -584,3 +584,57 @@ fn a_capture_armed_on_the_waveform_start_is_fetched_by_a_later_command() {
         assert!(err.contains(needle), "{args:?}: {err}");
     }
 }
+
+/// Ten seconds of a full-range triangle streamed by `twinstack stream` to a virtual board in
+/// real time, through its default link (an adapter's 16 ms ± 4 ms each way): the board's
+/// counter, which the streamer prints, says no tick ran dry.
+fn ten_seconds_in_real_time(rate: u32) {
+    let (_board, port) = virtual_board_process::start(&["--tick-rate", &rate.to_string()]);
+    let dir = tempfile::tempdir().unwrap();
+    let n = 10 * rate as usize;
+    let mut text = String::with_capacity(10 * n);
+    text.push_str("setpoint\n");
+    for i in 0..n {
+        // ±0.95, 5 000 ticks a ramp.
+        let phase = (i % 10_000) as f64 / 5_000.0;
+        let v = if phase < 1.0 { phase } else { 2.0 - phase };
+        text.push_str(&format!("{:.5}\n", 0.95 * (2.0 * v - 1.0)));
+    }
+    let data = dir.path().join("triangle.csv");
+    std::fs::write(&data, text).unwrap();
+    let o = hal_sim(&[
+        "stream",
+        "--port",
+        &port,
+        "--data",
+        data.to_str().unwrap(),
+        "--tick-rate",
+        &rate.to_string(),
+        "--underrun",
+        "hold",
+    ]);
+    let stdout = String::from_utf8_lossy(&o.stdout);
+    assert!(
+        o.status.success(),
+        "{rate} Hz: {stdout}{}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    assert!(
+        stdout.contains(&format!("streamed {n} setpoints")),
+        "{rate} Hz: {stdout}"
+    );
+    assert!(
+        stdout.contains("underruns during the stream: 0\n"),
+        "{rate} Hz: {stdout}"
+    );
+}
+
+#[test]
+fn ten_seconds_at_50_khz_stream_in_real_time_without_an_underrun() {
+    ten_seconds_in_real_time(50_000);
+}
+
+#[test]
+fn ten_seconds_at_100_khz_stream_in_real_time_without_an_underrun() {
+    ten_seconds_in_real_time(100_000);
+}
