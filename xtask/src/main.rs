@@ -482,16 +482,29 @@ fn ensure_mdbook() -> Result<(), String> {
     Ok(())
 }
 
-/// One gate: what it checks, and the command that checks it.
+/// One gate: what it checks, the command that checks it, and whether it runs beside the gates
+/// after it.
 struct Gate {
     what: String,
     cmd: Command,
+    beside: bool,
 }
 
 fn gate(what: impl Into<String>, cmd: Command) -> Gate {
     Gate {
         what: what.into(),
         cmd,
+        beside: false,
+    }
+}
+
+/// A gate that runs beside the gates after it (its output in a log file, its result collected
+/// at the end): for a long single-threaded one (QEMU) whose core the others' builds and
+/// scripts would otherwise leave idle. Its result depends on nothing they do.
+fn gate_beside(what: impl Into<String>, cmd: Command) -> Gate {
+    Gate {
+        beside: true,
+        ..gate(what, cmd)
     }
 }
 
@@ -538,7 +551,7 @@ fn gates() -> Vec<Gate> {
                 IRQ_BENCH_SCENARIOS,
             ]),
         ),
-        gate(
+        gate_beside(
             "the whole interrupt in QEMU (cargo test --profile host-opt --test irq_bench)",
             cargo(&["test", "--profile", HOST_PROFILE, "--test", "irq_bench"]),
         ),
@@ -682,14 +695,30 @@ fn test() -> Result<(), String> {
     run_gates(gates())
 }
 
-/// Runs `gates` in order, stopping at the first that fails, with each one's time.
+/// Runs `gates` in order, stopping at the first that fails, with each one's time; a gate marked
+/// beside runs in the background from its turn on, and its result is collected after the rest.
 fn run_gates(mut gates: Vec<Gate>) -> Result<(), String> {
     let total = gates.len();
     let start = Instant::now();
+    let mut beside: Vec<Beside> = Vec::new();
     for (i, g) in gates.iter_mut().enumerate() {
+        if g.beside {
+            let b = Beside::spawn(i + 1, &g.what, &mut g.cmd)?;
+            println!(
+                "\n== [{}/{total}] {} (beside the gates after it; its output: {})",
+                i + 1,
+                g.what,
+                b.log.display()
+            );
+            beside.push(b);
+            continue;
+        }
         println!("\n== [{}/{total}] {}", i + 1, g.what);
         let t = Instant::now();
         run(&mut g.cmd).map_err(|e| {
+            for b in &mut beside {
+                b.stop();
+            }
             format!(
                 "gate {}/{total} failed: {}\n{e}\nThe gates after it did not run; fix it and run \
                  `cargo xtask test` again.",
@@ -699,9 +728,79 @@ fn run_gates(mut gates: Vec<Gate>) -> Result<(), String> {
         })?;
         println!("   ok ({:.0} s)", t.elapsed().as_secs_f64());
     }
+    for mut b in beside {
+        println!("\n== [{}/{total}] {}: waiting for it", b.index, b.what);
+        b.finish().map_err(|e| {
+            format!(
+                "gate {}/{total} failed: {}\n{e}\nFix it and run `cargo xtask test` again.",
+                b.index, b.what
+            )
+        })?;
+        println!("   ok ({:.0} s)", b.started.elapsed().as_secs_f64());
+    }
     println!(
         "\nAll {total} gates passed ({:.0} s).",
         start.elapsed().as_secs_f64()
     );
     Ok(())
+}
+
+/// A gate running in the background, its output going to a log file.
+struct Beside {
+    index: usize,
+    what: String,
+    child: std::process::Child,
+    log: PathBuf,
+    started: Instant,
+}
+
+impl Beside {
+    fn spawn(index: usize, what: &str, cmd: &mut Command) -> Result<Self, String> {
+        let dir = target_dir().join("xtask");
+        std::fs::create_dir_all(&dir)
+            .map_err(|e| format!("cannot create {}: {e}", dir.display()))?;
+        let log = dir.join(format!("gate-{index}.log"));
+        let file = std::fs::File::create(&log)
+            .map_err(|e| format!("cannot create {}: {e}", log.display()))?;
+        let err = file
+            .try_clone()
+            .map_err(|e| format!("{}: {e}", log.display()))?;
+        let child = cmd
+            .stdin(Stdio::null())
+            .stdout(file)
+            .stderr(err)
+            .spawn()
+            .map_err(|e| format!("cannot start {cmd:?}: {e}"))?;
+        Ok(Self {
+            index,
+            what: what.to_string(),
+            child,
+            log,
+            started: Instant::now(),
+        })
+    }
+
+    /// Waits for it; on failure the error carries the end of its log.
+    fn finish(&mut self) -> Result<(), String> {
+        let status = self
+            .child
+            .wait()
+            .map_err(|e| format!("cannot wait for the gate: {e}"))?;
+        if status.success() {
+            return Ok(());
+        }
+        let text = std::fs::read_to_string(&self.log).unwrap_or_default();
+        let lines: Vec<&str> = text.lines().collect();
+        let tail = lines[lines.len().saturating_sub(80)..].join("\n");
+        Err(format!(
+            "it failed ({status}); the end of {}:\n{tail}",
+            self.log.display()
+        ))
+    }
+
+    /// Stops it (another gate failed first).
+    fn stop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
 }
