@@ -9,9 +9,8 @@
 //! cheap (they depend on nothing but the code and the committed data), so a change that moves
 //! them has to update the page in the same commit.
 //!
-//! Figures that depend on the machine (timings) or take minutes (QEMU instruction counts,
-//! identification of whole records) are not in the registry yet: their pages say which command
-//! wrote them.
+//! Figures that depend on the machine (timings) or take minutes (QEMU instruction counts) are
+//! not in the registry yet: their pages say which command wrote them.
 
 use std::path::Path;
 use std::process::Command;
@@ -75,6 +74,36 @@ const FIGURES: &[Figure] = &[
         args: &["tune", "--port", "sim", "--rate", "100k"],
         checked: true,
         render: tune_summary,
+    },
+    Figure {
+        name: "identify-bipolar",
+        page: "docs/src/results/identification.md",
+        args: &[
+            "identify",
+            "--data",
+            "data/piezo-bipolar-150v-1hz.csv",
+            "--fit-until",
+            "5.95",
+            "--out",
+            "target/figures/identify-bipolar.json",
+        ],
+        checked: true,
+        render: verbatim,
+    },
+    Figure {
+        name: "identify-micromanipulator",
+        page: "docs/src/results/identification.md",
+        args: &[
+            "identify",
+            "--data",
+            "data/micromanipulator-unipolar-3v6-1hz.csv",
+            "--fit-until",
+            "16",
+            "--out",
+            "target/figures/identify-micromanipulator.json",
+        ],
+        checked: true,
+        render: verbatim,
     },
     Figure {
         name: "dual-stage",
