@@ -24,61 +24,176 @@ struct Figure {
     name: &'static str,
     /// The page, relative to the workspace root.
     page: &'static str,
-    /// The host tool's arguments.
-    args: &'static [&'static str],
+    /// The host tool's arguments, one list per run.
+    runs: &'static [&'static [&'static str]],
     /// Checked by `cargo xtask test` (deterministic and cheap).
     checked: bool,
-    /// The block's body from the command's standard output.
-    render: fn(&str) -> Result<String, String>,
+    /// The block's body from the runs' standard output.
+    render: Render,
 }
+
+/// How a figure's output becomes its block.
+enum Render {
+    /// From the one run's output.
+    One(fn(&str) -> Result<String, String>),
+    /// From every run's arguments and output (a table with a row per run).
+    Many(fn(&[Run]) -> Result<String, String>),
+}
+
+/// One run of the host tool: its arguments and what it printed.
+struct Run {
+    args: &'static [&'static str],
+    out: String,
+}
+
+/// The learning page's runs: each waveform without input shaping (the learning's corner at
+/// 18 kHz) and with it (the notch on the simulated stage's resonance as `tune` fits it).
+const LEARN_RUNS: &[&[&str]] = &[
+    &[
+        "learn",
+        "--waveform",
+        "sine:750",
+        "--out",
+        "target/figures/learning",
+    ],
+    &[
+        "learn",
+        "--waveform",
+        "sine:750",
+        "--shape-hz",
+        "21807",
+        "--out",
+        "target/figures/learning",
+    ],
+    &[
+        "learn",
+        "--waveform",
+        "triangle:200",
+        "--out",
+        "target/figures/learning",
+    ],
+    &[
+        "learn",
+        "--waveform",
+        "triangle:200",
+        "--shape-hz",
+        "21807",
+        "--out",
+        "target/figures/learning",
+    ],
+    &[
+        "learn",
+        "--waveform",
+        "sine:500",
+        "--out",
+        "target/figures/learning",
+    ],
+    &[
+        "learn",
+        "--waveform",
+        "sine:500",
+        "--shape-hz",
+        "21807",
+        "--out",
+        "target/figures/learning",
+    ],
+    &[
+        "learn",
+        "--waveform",
+        "sine:1000",
+        "--out",
+        "target/figures/learning",
+    ],
+    &[
+        "learn",
+        "--waveform",
+        "sine:1000",
+        "--shape-hz",
+        "21807",
+        "--out",
+        "target/figures/learning",
+    ],
+    &[
+        "learn",
+        "--waveform",
+        "triangle:100",
+        "--out",
+        "target/figures/learning",
+    ],
+    &[
+        "learn",
+        "--waveform",
+        "triangle:100",
+        "--shape-hz",
+        "21807",
+        "--out",
+        "target/figures/learning",
+    ],
+    &[
+        "learn",
+        "--waveform",
+        "triangle:250",
+        "--out",
+        "target/figures/learning",
+    ],
+    &[
+        "learn",
+        "--waveform",
+        "triangle:250",
+        "--shape-hz",
+        "21807",
+        "--out",
+        "target/figures/learning",
+    ],
+];
 
 const FIGURES: &[Figure] = &[
     Figure {
         name: "golden-distances",
         page: "docs/src/reference/golden-vectors.md",
-        args: &["golden"],
+        runs: &[&["golden"]],
         checked: true,
-        render: golden_distances,
+        render: Render::One(golden_distances),
     },
     Figure {
         name: "demo",
         page: "docs/src/results/demo.md",
-        args: &["demo", "--quiet", "--out", "target/figures/demo"],
+        runs: &[&["demo", "--quiet", "--out", "target/figures/demo"]],
         checked: true,
-        render: markdown,
+        render: Render::One(markdown),
     },
     Figure {
         name: "closed-loop",
         page: "docs/src/results/closed-loop.md",
-        args: &["closed-loop", "--gains", "fixed", "--no-plot"],
+        runs: &[&["closed-loop", "--gains", "fixed", "--no-plot"]],
         checked: true,
-        render: markdown,
+        render: Render::One(markdown),
     },
     Figure {
         name: "closed-loop-tuned",
         page: "docs/src/results/closed-loop.md",
-        args: &["closed-loop", "--no-plot"],
+        runs: &[&["closed-loop", "--no-plot"]],
         checked: true,
-        render: markdown,
+        render: Render::One(markdown),
     },
     Figure {
         name: "tune-50k",
         page: "docs/src/results/tuning.md",
-        args: &["tune", "--port", "sim", "--rate", "50k"],
+        runs: &[&["tune", "--port", "sim", "--rate", "50k"]],
         checked: true,
-        render: tune_summary,
+        render: Render::One(tune_summary),
     },
     Figure {
         name: "tune-100k",
         page: "docs/src/results/tuning.md",
-        args: &["tune", "--port", "sim", "--rate", "100k"],
+        runs: &[&["tune", "--port", "sim", "--rate", "100k"]],
         checked: true,
-        render: tune_summary,
+        render: Render::One(tune_summary),
     },
     Figure {
         name: "identify-bipolar",
         page: "docs/src/results/identification.md",
-        args: &[
+        runs: &[&[
             "identify",
             "--data",
             "data/piezo-bipolar-150v-1hz.csv",
@@ -86,14 +201,14 @@ const FIGURES: &[Figure] = &[
             "5.95",
             "--out",
             "target/figures/identify-bipolar.json",
-        ],
+        ]],
         checked: true,
-        render: verbatim,
+        render: Render::One(verbatim),
     },
     Figure {
         name: "identify-micromanipulator",
         page: "docs/src/results/identification.md",
-        args: &[
+        runs: &[&[
             "identify",
             "--data",
             "data/micromanipulator-unipolar-3v6-1hz.csv",
@@ -101,16 +216,23 @@ const FIGURES: &[Figure] = &[
             "16",
             "--out",
             "target/figures/identify-micromanipulator.json",
-        ],
+        ]],
         checked: true,
-        render: verbatim,
+        render: Render::One(verbatim),
+    },
+    Figure {
+        name: "learning",
+        page: "docs/src/results/learning.md",
+        runs: LEARN_RUNS,
+        checked: true,
+        render: Render::Many(learn_table),
     },
     Figure {
         name: "dual-stage",
         page: "docs/src/results/dual-stage.md",
-        args: &["dual-stage"],
+        runs: &[&["dual-stage"]],
         checked: true,
-        render: verbatim,
+        render: Render::One(verbatim),
     },
 ];
 
@@ -214,12 +336,120 @@ fn golden_distances(out: &str) -> Result<String, String> {
     Ok(table)
 }
 
-/// The block a figure's marker pair holds: the command, then its rendering.
+/// `learn`'s summary of each run as one row: the feedforward alone (and shaped, with input
+/// shaping), the learned and the replayed errors, the reduction, and `(not met)` beside a
+/// figure that misses its goal (RMS ≥ 20× lower, max ≤ 0.1 %, replay max ≤ 0.2 %).
+fn learn_table(runs: &[Run]) -> Result<String, String> {
+    let mut table = String::from(
+        "| waveform | run | feedforward alone RMS % | shaped feedforward alone RMS % | learned max % | learned RMS % | RMS reduction | replay max % | RMS below 15 kHz % | RMS 15 kHz–Nyquist % |\n\
+         |---|---|---:|---:|---:|---:|---:|---:|---:|---:|\n",
+    );
+    for run in runs {
+        let arg = |flag: &str| {
+            run.args
+                .iter()
+                .position(|a| *a == flag)
+                .and_then(|i| run.args.get(i + 1))
+        };
+        let what = |e: &str| format!("`{TOOL} {}`: {e}", run.args.join(" "));
+        let waveform = arg("--waveform").ok_or_else(|| what("no --waveform"))?;
+        let (shape, hz) = waveform
+            .split_once(':')
+            .ok_or_else(|| what("a waveform is SHAPE:HZ"))?;
+        let hz: f64 = hz.parse().map_err(|_| what("a waveform's frequency"))?;
+        let label = if hz >= 1000.0 {
+            format!("{} kHz {shape}", hz / 1000.0)
+        } else {
+            format!("{hz} Hz {shape}")
+        };
+        let shaped = arg("--shape-hz").is_some();
+        // The summary table's row for `name`: its four figures.
+        let row = |name: &str| -> Result<Vec<String>, String> {
+            let line = run
+                .out
+                .lines()
+                .find(|l| l.starts_with(&format!("| {name} |")))
+                .ok_or_else(|| what(&format!("no `{name}` row")))?;
+            let cols: Vec<String> = line
+                .trim_matches('|')
+                .split('|')
+                .skip(1)
+                .map(|c| c.trim().to_string())
+                .collect();
+            if cols.len() == 4 {
+                Ok(cols)
+            } else {
+                Err(what(&format!(
+                    "the `{name}` row has {} figures",
+                    cols.len()
+                )))
+            }
+        };
+        let met = |goal: &str| -> Result<&str, String> {
+            let line = run
+                .out
+                .lines()
+                .find(|l| l.starts_with(&format!("goal: {goal}")))
+                .ok_or_else(|| what(&format!("no goal `{goal}`")))?;
+            Ok(if line.ends_with(": met") {
+                ""
+            } else {
+                " (not met)"
+            })
+        };
+        let alone = row("inverse P–I feedforward alone")?;
+        let shaped_alone = if shaped {
+            row("shaped feedforward alone")?[1].clone()
+        } else {
+            "—".into()
+        };
+        let learned = row("learned (last period)")?;
+        let replay = row("replayed, sensor off")?;
+        let reduction = run
+            .out
+            .lines()
+            .find_map(|l| l.strip_prefix("RMS reduction "))
+            .and_then(|l| l.split(';').next())
+            .ok_or_else(|| what("no `RMS reduction`"))?;
+        table.push_str(&format!(
+            "| {label} | {} | {} | {shaped_alone} | {}{} | {} | {reduction}{} | {}{} | {} | {} |\n",
+            if shaped {
+                "shaping, corner 23 kHz"
+            } else {
+                "no shaping, corner 18 kHz"
+            },
+            alone[1],
+            learned[0],
+            met("max")?,
+            learned[1],
+            met("RMS")?,
+            replay[0],
+            met("replay")?,
+            learned[2],
+            learned[3],
+        ));
+    }
+    Ok(table)
+}
+
+/// The block a figure's marker pair holds: the command (or commands), then the rendering.
 fn block(f: &Figure, body: &str) -> String {
-    format!(
-        "Written by `cargo xtask figures` from `{TOOL} {}`:\n\n{body}",
-        f.args.join(" ")
-    )
+    match f.runs {
+        [one] => format!(
+            "Written by `cargo xtask figures` from `{TOOL} {}`:\n\n{body}",
+            one.join(" ")
+        ),
+        runs => {
+            let commands: Vec<String> = runs
+                .iter()
+                .map(|r| format!("{TOOL} {}", r.join(" ")))
+                .collect();
+            format!(
+                "Written by `cargo xtask figures` from\n\n```sh\n{}\n```\n\n{body}",
+                commands.join("\n")
+            )
+        }
+    }
 }
 
 /// Replaces the body between `f`'s markers in `page`; an error if the markers are missing.
@@ -283,8 +513,19 @@ pub fn run(root: &Path, args: &[String]) -> Result<(), String> {
         let path = root.join(f.page);
         let page = std::fs::read_to_string(&path)
             .map_err(|e| format!("{}: cannot read: {e}", path.display()))?;
-        let out = run_tool(root, f.args)?;
-        let body = (f.render)(&out).map_err(|e| format!("{}: {e}", f.name))?;
+        let mut runs = Vec::new();
+        for args in f.runs {
+            runs.push(Run {
+                args,
+                out: run_tool(root, args)?,
+            });
+        }
+        let body = match (&f.render, &runs[..]) {
+            (Render::One(render), [run]) => render(&run.out),
+            (Render::One(_), _) => Err("a figure rendered from one run has one run".into()),
+            (Render::Many(render), runs) => render(runs),
+        }
+        .map_err(|e| format!("{}: {e}", f.name))?;
         let new = replace_block(&page, f.name, &block(f, &body))
             .map_err(|e| format!("{}: {e}", f.page))?;
         if new == page {
@@ -362,6 +603,37 @@ tests/golden/vectors.bin is up to date
             "```text\nline 1\n  line 2\n```\n"
         );
         assert!(verbatim("wrote a.png\n").is_err());
+    }
+
+    #[test]
+    fn learn_runs_become_rows_with_their_unmet_goals_marked() {
+        let out = "| run | max % | RMS % | RMS below 15 kHz % | RMS 15 kHz–Nyquist % |\n\
+                   |---|---:|---:|---:|---:|\n\
+                   | inverse P–I feedforward alone | 1.9294 | 1.3000 | 1.2855 | 0.1939 |\n\
+                   | learned (last period) | 0.7359 | 0.2212 | 0.0092 | 0.2210 |\n\
+                   | replayed, sensor off | 0.7336 | 0.2199 | 0.0084 | 0.2198 |\n\n\
+                   RMS reduction 5.9×; 50 tables posted, 0 periods missed\n\
+                   goal: RMS ≥ 20× lower than feedforward alone: NOT met\n\
+                   goal: max ≤ 0.1 % of the stroke: NOT met\n\
+                   goal: replay (sensor off) max ≤ 0.2 %: met\n";
+        let runs = [Run {
+            args: &["learn", "--waveform", "triangle:250"],
+            out: out.into(),
+        }];
+        let table = learn_table(&runs).unwrap();
+        assert!(
+            table.ends_with(
+                "| 250 Hz triangle | no shaping, corner 18 kHz | 1.3000 | — | 0.7359 (not met) | \
+                 0.2212 | 5.9× (not met) | 0.7336 | 0.0092 | 0.2210 |\n"
+            ),
+            "{table}"
+        );
+        // A shaped run needs its shaped row; a missing row is an error, not a blank.
+        let shaped = [Run {
+            args: &["learn", "--waveform", "triangle:250", "--shape-hz", "21807"],
+            out: out.into(),
+        }];
+        assert!(learn_table(&shaped).is_err());
     }
 
     #[test]
