@@ -46,6 +46,195 @@ struct Run {
     out: String,
 }
 
+/// The identification page's per-model runs: every model, without and with creep, on each
+/// shipped record (fitted on its first cycles, scored on the rest).
+const IDENTIFY_RUNS: &[&[&str]] = &[
+    &[
+        "identify",
+        "--model",
+        "pi",
+        "--data",
+        "data/piezo-bipolar-150v-1hz.csv",
+        "--fit-until",
+        "5.95",
+        "--out",
+        "target/figures/identify-model.json",
+    ],
+    &[
+        "identify",
+        "--model",
+        "pi",
+        "--data",
+        "data/micromanipulator-unipolar-3v6-1hz.csv",
+        "--fit-until",
+        "16",
+        "--out",
+        "target/figures/identify-model.json",
+    ],
+    &[
+        "identify",
+        "--model",
+        "pi",
+        "--creep",
+        "--data",
+        "data/piezo-bipolar-150v-1hz.csv",
+        "--fit-until",
+        "5.95",
+        "--out",
+        "target/figures/identify-model.json",
+    ],
+    &[
+        "identify",
+        "--model",
+        "pi",
+        "--creep",
+        "--data",
+        "data/micromanipulator-unipolar-3v6-1hz.csv",
+        "--fit-until",
+        "16",
+        "--out",
+        "target/figures/identify-model.json",
+    ],
+    &[
+        "identify",
+        "--model",
+        "gpi",
+        "--data",
+        "data/piezo-bipolar-150v-1hz.csv",
+        "--fit-until",
+        "5.95",
+        "--out",
+        "target/figures/identify-model.json",
+    ],
+    &[
+        "identify",
+        "--model",
+        "gpi",
+        "--data",
+        "data/micromanipulator-unipolar-3v6-1hz.csv",
+        "--fit-until",
+        "16",
+        "--out",
+        "target/figures/identify-model.json",
+    ],
+    &[
+        "identify",
+        "--model",
+        "gpi",
+        "--creep",
+        "--data",
+        "data/piezo-bipolar-150v-1hz.csv",
+        "--fit-until",
+        "5.95",
+        "--out",
+        "target/figures/identify-model.json",
+    ],
+    &[
+        "identify",
+        "--model",
+        "gpi",
+        "--creep",
+        "--data",
+        "data/micromanipulator-unipolar-3v6-1hz.csv",
+        "--fit-until",
+        "16",
+        "--out",
+        "target/figures/identify-model.json",
+    ],
+    &[
+        "identify",
+        "--model",
+        "duhem",
+        "--data",
+        "data/piezo-bipolar-150v-1hz.csv",
+        "--fit-until",
+        "5.95",
+        "--out",
+        "target/figures/identify-model.json",
+    ],
+    &[
+        "identify",
+        "--model",
+        "duhem",
+        "--data",
+        "data/micromanipulator-unipolar-3v6-1hz.csv",
+        "--fit-until",
+        "16",
+        "--out",
+        "target/figures/identify-model.json",
+    ],
+    &[
+        "identify",
+        "--model",
+        "duhem",
+        "--creep",
+        "--data",
+        "data/piezo-bipolar-150v-1hz.csv",
+        "--fit-until",
+        "5.95",
+        "--out",
+        "target/figures/identify-model.json",
+    ],
+    &[
+        "identify",
+        "--model",
+        "duhem",
+        "--creep",
+        "--data",
+        "data/micromanipulator-unipolar-3v6-1hz.csv",
+        "--fit-until",
+        "16",
+        "--out",
+        "target/figures/identify-model.json",
+    ],
+    &[
+        "identify",
+        "--model",
+        "bouc-wen",
+        "--data",
+        "data/piezo-bipolar-150v-1hz.csv",
+        "--fit-until",
+        "5.95",
+        "--out",
+        "target/figures/identify-model.json",
+    ],
+    &[
+        "identify",
+        "--model",
+        "bouc-wen",
+        "--data",
+        "data/micromanipulator-unipolar-3v6-1hz.csv",
+        "--fit-until",
+        "16",
+        "--out",
+        "target/figures/identify-model.json",
+    ],
+    &[
+        "identify",
+        "--model",
+        "bouc-wen",
+        "--creep",
+        "--data",
+        "data/piezo-bipolar-150v-1hz.csv",
+        "--fit-until",
+        "5.95",
+        "--out",
+        "target/figures/identify-model.json",
+    ],
+    &[
+        "identify",
+        "--model",
+        "bouc-wen",
+        "--creep",
+        "--data",
+        "data/micromanipulator-unipolar-3v6-1hz.csv",
+        "--fit-until",
+        "16",
+        "--out",
+        "target/figures/identify-model.json",
+    ],
+];
+
 /// The learning page's runs: each waveform without input shaping (the learning's corner at
 /// 18 kHz) and with it (the notch on the simulated stage's resonance as `tune` fits it).
 const LEARN_RUNS: &[&[&str]] = &[
@@ -221,6 +410,13 @@ const FIGURES: &[Figure] = &[
         render: Render::One(verbatim),
     },
     Figure {
+        name: "identify-models",
+        page: "docs/src/results/identification.md",
+        runs: IDENTIFY_RUNS,
+        checked: true,
+        render: Render::Many(identify_table),
+    },
+    Figure {
         name: "learning",
         page: "docs/src/results/learning.md",
         runs: LEARN_RUNS,
@@ -333,6 +529,101 @@ fn golden_distances(out: &str) -> Result<String, String> {
     table.push_str(&format!(
         "\n{sets} sets, {bytes} bytes in `tests/golden/vectors.bin`.\n"
     ));
+    Ok(table)
+}
+
+/// `identify`'s held-out errors of each run: a row per model (its name as `identify` prints it,
+/// less the creep's mode count, which differs from record to record), forward and inverse
+/// columns per record, `max / RMS %`.
+fn identify_table(runs: &[Run]) -> Result<String, String> {
+    let mut records: Vec<(&str, &str)> = Vec::new();
+    let mut rows: Vec<(String, Vec<Option<String>>)> = Vec::new();
+    let mut cells = Vec::new();
+    for run in runs {
+        let arg = |flag: &str| {
+            run.args
+                .iter()
+                .position(|a| *a == flag)
+                .and_then(|i| run.args.get(i + 1))
+                .copied()
+        };
+        let what = |e: &str| format!("`{TOOL} {}`: {e}", run.args.join(" "));
+        let data = arg("--data").ok_or_else(|| what("no --data"))?;
+        let until = arg("--fit-until").ok_or_else(|| what("no --fit-until"))?;
+        let model = run
+            .out
+            .lines()
+            .find_map(|l| l.strip_prefix("identified "))
+            .and_then(|l| l.split(" from ").next())
+            .ok_or_else(|| what("no `identified … from` line"))?;
+        // "+ creep (2 modes)" → "+ creep".
+        let model = match model.split_once(" + creep") {
+            Some((m, _)) => format!("{m} + creep"),
+            None => model.to_string(),
+        };
+        let errors = |prefix: &str| -> Result<String, String> {
+            let line = run
+                .out
+                .lines()
+                .map(str::trim)
+                .find(|l| l.starts_with(prefix))
+                .ok_or_else(|| what(&format!("no `{prefix}` line")))?;
+            let cols: Vec<&str> = line.split_whitespace().collect();
+            let at = |word: &str| {
+                cols.iter()
+                    .position(|c| *c == word)
+                    .and_then(|i| cols.get(i + 1))
+            };
+            match (at("max"), at("RMS")) {
+                (Some(max), Some(rms)) => Ok(format!("{max} / {rms} %")),
+                _ => Err(what(&format!("`{prefix}` has no max and RMS"))),
+            }
+        };
+        let forward = errors("held-out (predict vs measured x):")?;
+        let inverse = errors("inverse held-out (compensate u vs measured u):")?;
+        let column = match records.iter().position(|(d, _)| *d == data) {
+            Some(i) => i,
+            None => {
+                records.push((data, until));
+                records.len() - 1
+            }
+        };
+        cells.push((model, column, forward, inverse));
+    }
+    for (model, column, forward, inverse) in cells {
+        let row = match rows.iter().position(|(m, _)| *m == model) {
+            Some(i) => i,
+            None => {
+                rows.push((model, vec![None; records.len()]));
+                rows.len() - 1
+            }
+        };
+        if rows[row].1[column].is_some() {
+            return Err(format!("{} twice on one record", rows[row].0));
+        }
+        rows[row].1[column] = Some(format!("{forward} | {inverse}"));
+    }
+    let mut table = String::from("| model |");
+    for (data, until) in &records {
+        let name = data
+            .rsplit('/')
+            .next()
+            .unwrap_or(data)
+            .trim_end_matches(".csv");
+        table.push_str(&format!(
+            " `{name}` (`--fit-until {until}`): held-out max / RMS | inverse |"
+        ));
+    }
+    table.push_str("\n|---|");
+    table.push_str(&"---:|---:|".repeat(records.len()));
+    table.push('\n');
+    for (model, cols) in rows {
+        table.push_str(&format!("| {model} |"));
+        for c in cols {
+            table.push_str(&format!(" {} |", c.unwrap_or_else(|| "— | —".into())));
+        }
+        table.push('\n');
+    }
     Ok(table)
 }
 
@@ -634,6 +925,70 @@ tests/golden/vectors.bin is up to date
             out: out.into(),
         }];
         assert!(learn_table(&shaped).is_err());
+    }
+
+    #[test]
+    fn identify_runs_become_a_row_per_model_and_a_column_pair_per_record() {
+        let out = |model: &str, fwd: &str, inv: &str| {
+            format!(
+                "identified {model} from data/x.csv\n  fit      (predict vs measured x): max 9 %  RMS 9 %\n  \
+                 held-out (predict vs measured x): max {fwd}  (20251 samples)\n  \
+                 inverse held-out (compensate u vs measured u): max {inv}  (20251 samples)\n"
+            )
+        };
+        let runs = [
+            Run {
+                args: &[
+                    "identify",
+                    "--model",
+                    "pi",
+                    "--creep",
+                    "--data",
+                    "data/a.csv",
+                    "--fit-until",
+                    "5",
+                ],
+                out: out(
+                    "P-I (17 uniform operators) + creep (2 modes)",
+                    "0.83 %  RMS 0.18 %",
+                    "1.29 %  RMS 0.24 %",
+                ),
+            },
+            Run {
+                args: &[
+                    "identify",
+                    "--model",
+                    "pi",
+                    "--creep",
+                    "--data",
+                    "data/b.csv",
+                    "--fit-until",
+                    "16",
+                ],
+                out: out(
+                    "P-I (17 uniform operators) + creep (1 mode)",
+                    "1.44 %  RMS 0.70 %",
+                    "2.08 %  RMS 0.89 %",
+                ),
+            },
+        ];
+        let table = identify_table(&runs).unwrap();
+        assert!(
+            table.ends_with(
+                "| P-I (17 uniform operators) + creep | 0.83 / 0.18 % | 1.29 / 0.24 % | 1.44 / 0.70 % | 2.08 / 0.89 % |\n"
+            ),
+            "{table}"
+        );
+        assert!(
+            table.starts_with("| model | `a` (`--fit-until 5`)"),
+            "{table}"
+        );
+        // A run without its held-out line is an error, not an empty cell.
+        let cut = [Run {
+            args: runs[0].args,
+            out: runs[0].out.replace("held-out (predict", "(predict"),
+        }];
+        assert!(identify_table(&cut).is_err());
     }
 
     #[test]
