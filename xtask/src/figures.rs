@@ -235,6 +235,59 @@ const IDENTIFY_RUNS: &[&[&str]] = &[
     ],
 ];
 
+/// The lab-stage page's runs: `identify`'s default with the textbook and generalised P–I, the
+/// models that do not fit the stage, and both P–Is with creep.
+const LAB_STAGE_RUNS: &[&[&str]] = &[
+    &["lab-stage"],
+    &["lab-stage", "--model", "duhem,bouc-wen"],
+    &["lab-stage", "--model", "pi,gpi", "--creep"],
+];
+
+/// The lab stage with its non-idealities taken out, one run each and all four at once: what is
+/// left of the generalised P–I + creep's error.
+const LAB_STAGE_WITHOUT_RUNS: &[&[&str]] = &[
+    &[
+        "lab-stage",
+        "--model",
+        "gpi",
+        "--creep",
+        "--without",
+        "creep",
+    ],
+    &[
+        "lab-stage",
+        "--model",
+        "gpi",
+        "--creep",
+        "--without",
+        "flexure",
+    ],
+    &[
+        "lab-stage",
+        "--model",
+        "gpi",
+        "--creep",
+        "--without",
+        "asymmetry",
+    ],
+    &[
+        "lab-stage",
+        "--model",
+        "gpi",
+        "--creep",
+        "--without",
+        "noise",
+    ],
+    &[
+        "lab-stage",
+        "--model",
+        "gpi",
+        "--creep",
+        "--without",
+        "creep,flexure,asymmetry,noise",
+    ],
+];
+
 /// The learning page's runs: each waveform without input shaping (the learning's corner at
 /// 18 kHz) and with it (the notch on the simulated stage's resonance as `tune` fits it).
 const LEARN_RUNS: &[&[&str]] = &[
@@ -415,6 +468,21 @@ const FIGURES: &[Figure] = &[
         runs: IDENTIFY_RUNS,
         checked: true,
         render: Render::Many(identify_table),
+    },
+    Figure {
+        name: "lab-stage",
+        page: "docs/src/results/lab-stage.md",
+        runs: LAB_STAGE_RUNS,
+        checked: true,
+        render: Render::Many(lab_stage_table),
+    },
+    Figure {
+        name: "lab-stage-without",
+        page: "docs/src/results/lab-stage.md",
+        runs: LAB_STAGE_WITHOUT_RUNS,
+        // Five more identifications of the whole stage: written, not re-run by the gate.
+        checked: false,
+        render: Render::Many(lab_stage_table),
     },
     Figure {
         name: "learning",
@@ -623,6 +691,75 @@ fn identify_table(runs: &[Run]) -> Result<String, String> {
             table.push_str(&format!(" {} |", c.unwrap_or_else(|| "— | —".into())));
         }
         table.push('\n');
+    }
+    Ok(table)
+}
+
+/// `lab-stage`'s rows from every run as one Markdown table, a method that several runs print
+/// (`none`) once: held-out, the three trajectories and the worst max (`max / RMS %`), or the
+/// reason a model was refused.
+fn lab_stage_table(runs: &[Run]) -> Result<String, String> {
+    let mut table = String::from(
+        "| method | held-out (last cycle) | triangle | minor loops | multisine | worst max |\n\
+         |---|---:|---:|---:|---:|---:|\n",
+    );
+    let mut seen: Vec<String> = Vec::new();
+    for run in runs {
+        let what = |e: &str| format!("`{TOOL} {}`: {e}", run.args.join(" "));
+        // A stage with some of its non-idealities taken out: its rows say so.
+        let without = run
+            .args
+            .iter()
+            .position(|a| *a == "--without")
+            .and_then(|i| run.args.get(i + 1))
+            .map(|w| format!(", without {}", w.replace(',', ", ")))
+            .unwrap_or_default();
+        let mut lines = run.out.lines().skip_while(|l| !l.starts_with("method "));
+        if lines.next().is_none() {
+            return Err(what("no `method` header"));
+        }
+        let mut rows = 0;
+        for line in lines.take_while(|l| !l.starts_with('(')) {
+            let (name, rest) = match line.split_once(" failed: ") {
+                Some((head, reason)) => {
+                    let name = head.split_whitespace().next().unwrap_or("");
+                    (name.to_string(), format!("refused: {reason} | | | | |"))
+                }
+                None => {
+                    let cols: Vec<&str> = line.split_whitespace().collect();
+                    let n = cols.len();
+                    if n < 6 {
+                        return Err(what(&format!("a row with {n} columns: {line:?}")));
+                    }
+                    let figure = |c: &str| c.replace('/', " / ");
+                    (
+                        cols[..n - 5].join(" "),
+                        format!(
+                            "{} | {} | {} | {} | {} |",
+                            if cols[n - 5] == "-" {
+                                "–".into()
+                            } else {
+                                figure(cols[n - 5])
+                            },
+                            figure(cols[n - 4]),
+                            figure(cols[n - 3]),
+                            figure(cols[n - 2]),
+                            cols[n - 1]
+                        ),
+                    )
+                }
+            };
+            let name = format!("{name}{without}");
+            rows += 1;
+            if seen.contains(&name) {
+                continue;
+            }
+            table.push_str(&format!("| {name} | {rest}\n"));
+            seen.push(name);
+        }
+        if rows == 0 {
+            return Err(what("no rows"));
+        }
     }
     Ok(table)
 }
@@ -989,6 +1126,39 @@ tests/golden/vectors.bin is up to date
             out: runs[0].out.replace("held-out (predict", "(predict"),
         }];
         assert!(identify_table(&cut).is_err());
+    }
+
+    #[test]
+    fn lab_stage_rows_of_every_run_become_one_table() {
+        let runs = [
+            Run {
+                args: &["lab-stage"],
+                out: "Lab stage (seed 1)\nmethod     held-out max/rms   triangle  minor loops  multisine  worst max\n\
+                      none    -   10.47/5.46   10.47/4.80   10.50/5.06   10.50\n\
+                      auto: gpi+creep   1.58/0.79   0.66/0.29   0.63/0.23   0.62/0.23   0.66\n\
+                      (max/rms error in %)\n"
+                    .into(),
+            },
+            Run {
+                args: &["lab-stage", "--model", "duhem"],
+                out: "method     held-out\nnone    -   10.47/5.46   10.47/4.80   10.50/5.06   10.50\n\
+                      duhem     - failed: Duhem does not fit this record\n(max/rms)\n"
+                    .into(),
+            },
+        ];
+        assert_eq!(
+            lab_stage_table(&runs).unwrap(),
+            "| method | held-out (last cycle) | triangle | minor loops | multisine | worst max |\n\
+             |---|---:|---:|---:|---:|---:|\n\
+             | none | – | 10.47 / 5.46 | 10.47 / 4.80 | 10.50 / 5.06 | 10.50 |\n\
+             | auto: gpi+creep | 1.58 / 0.79 | 0.66 / 0.29 | 0.63 / 0.23 | 0.62 / 0.23 | 0.66 |\n\
+             | duhem | refused: Duhem does not fit this record | | | | |\n"
+        );
+        let headless = [Run {
+            args: &["lab-stage"],
+            out: "none - 1/1 1/1 1/1 1/1 1\n".into(),
+        }];
+        assert!(lab_stage_table(&headless).is_err());
     }
 
     #[test]
