@@ -507,6 +507,36 @@ const FIGURES: &[Figure] = &[
         render: Render::Many(lab_stage_table),
     },
     Figure {
+        name: "lab-stage-duhem-without",
+        page: "docs/src/results/lab-stage.md",
+        runs: &[
+            &[
+                "lab-stage",
+                "--model",
+                "duhem",
+                "--without",
+                "creep,flexure",
+            ],
+            &[
+                "lab-stage",
+                "--model",
+                "duhem",
+                "--without",
+                "creep,flexure,asymmetry",
+            ],
+        ],
+        checked: false,
+        render: Render::Many(lab_stage_table),
+    },
+    Figure {
+        name: "lab-stage-variants",
+        page: "docs/src/results/lab-stage.md",
+        runs: &[&["lab-stage", "--variants", "--model", "auto,pi"]],
+        // 21 stages identified and tracked (minutes): `stage_variants` asserts the goals.
+        checked: false,
+        render: Render::One(variants_table),
+    },
+    Figure {
         name: "learning",
         page: "docs/src/results/learning.md",
         runs: LEARN_RUNS,
@@ -782,6 +812,47 @@ fn lab_stage_table(runs: &[Run]) -> Result<String, String> {
         if rows == 0 {
             return Err(what("no rows"));
         }
+    }
+    Ok(table)
+}
+
+/// `lab-stage --variants`'s lines as a table: the stage, its settings, the worst max error of no
+/// compensation, `auto` and the textbook P–I, and what `auto` picked.
+fn variants_table(out: &str) -> Result<String, String> {
+    let mut table = String::from(
+        "| stage | changes (`--set`) | none | textbook P–I | auto | auto picked |\n\
+         |---|---|---:|---:|---:|---|\n",
+    );
+    let mut lines = out.lines().skip_while(|l| !l.starts_with("stage "));
+    if lines.next().is_none() {
+        return Err("no `stage` header".into());
+    }
+    let mut rows = 0;
+    for line in lines.filter(|l| !l.trim().is_empty()) {
+        let (head, settings) = line
+            .rsplit_once(" / ")
+            .ok_or_else(|| format!("no ` / ` in {line:?}"))?;
+        let cols: Vec<&str> = head.split_whitespace().collect();
+        let n = cols.len();
+        if n < 5 || cols[n - 4..n - 1].iter().any(|c| c.parse::<f64>().is_err()) {
+            return Err(format!("not a stage's line: {line:?}"));
+        }
+        let settings = match settings.trim() {
+            "-" => "–".to_string(),
+            s => format!("`{}`", s.replace(',', ", ")),
+        };
+        table.push_str(&format!(
+            "| {} | {settings} | {} | {} | {} | {} |\n",
+            cols[..n - 4].join(" "),
+            cols[n - 4],
+            cols[n - 2],
+            cols[n - 3],
+            cols[n - 1]
+        ));
+        rows += 1;
+    }
+    if rows == 0 {
+        return Err("no stages".into());
     }
     Ok(table)
 }
@@ -1181,6 +1252,23 @@ tests/golden/vectors.bin is up to date
             out: "none - 1/1 1/1 1/1 1/1 1\n".into(),
         }];
         assert!(lab_stage_table(&headless).is_err());
+    }
+
+    #[test]
+    fn variant_lines_become_the_table() {
+        let out = "Worst max tracking error\n\
+                   stage                      none     auto       pi  auto picked / settings\n\
+                   default                   10.50     0.66     4.42  gpi+creep / -\n\
+                   no creep                   8.88     0.74     3.63  gpi / creep_per_decade=0,noise_rms_nm=5\n";
+        assert_eq!(
+            variants_table(out).unwrap(),
+            "| stage | changes (`--set`) | none | textbook P–I | auto | auto picked |\n\
+             |---|---|---:|---:|---:|---|\n\
+             | default | – | 10.50 | 4.42 | 0.66 | gpi+creep |\n\
+             | no creep | `creep_per_decade=0, noise_rms_nm=5` | 8.88 | 3.63 | 0.74 | gpi |\n"
+        );
+        assert!(variants_table("default 10.50 0.66 4.42 gpi / -\n").is_err());
+        assert!(variants_table("stage none auto pi\ndefault x y z gpi / -\n").is_err());
     }
 
     #[test]
