@@ -151,9 +151,9 @@ pub trait LimitSwitches {
 ///
 /// `BRR` is `USARTDIV` in fixed point: a 12-bit mantissa above a 4-bit fraction (16×
 /// oversampling) or a 3-bit one (8×, bit 3 zero), with `USARTDIV = f_PCLK / (oversampling ×
-/// baud)`. 16× tolerates more clock error at the receiver (RM0090's tables: 3.75 % against
-/// 3.41 % with a zero fraction), so it is chosen whenever `USARTDIV ≥ 1` allows it; below that,
-/// only 8× reaches the rate.
+/// baud)`. 16× tolerates more clock error at the receiver (RM0090, "USART receiver tolerance
+/// to clock deviation"), so it is chosen whenever `USARTDIV ≥ 1` allows it; below that, only
+/// 8× reaches the rate.
 ///
 /// ```
 /// use twinstack::board::UartDivider;
