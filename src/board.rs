@@ -146,6 +146,68 @@ pub trait LimitSwitches {
     fn read(&mut self) -> Switches;
 }
 
+/// An STM32F4 USART's baud-rate divider (RM0090 §30.3.4): the `BRR` value, whether it needs
+/// oversampling by 8 (`CR1.OVER8`), and the rate it gives.
+///
+/// `BRR` is `USARTDIV` in fixed point: a 12-bit mantissa above a 4-bit fraction (16×
+/// oversampling) or a 3-bit one (8×, bit 3 zero), with `USARTDIV = f_PCLK / (oversampling ×
+/// baud)`. 16× tolerates more clock error at the receiver (RM0090, "USART receiver tolerance
+/// to clock deviation"), so it is chosen whenever `USARTDIV ≥ 1` allows it; below that, only
+/// 8× reaches the rate.
+///
+/// ```
+/// use twinstack::board::UartDivider;
+/// // The driver board: USART1 on the 84 MHz APB2, 3 Mbaud exact at 16× (USARTDIV 1.75).
+/// let d = UartDivider::for_rate(84_000_000, 3_000_000).unwrap();
+/// assert_eq!((d.brr, d.over8, d.baud_hz), (28, false, 3_000_000));
+/// // The Feather: USART3 on the 42 MHz APB1, where 16× cannot go below 2.625 Mbaud; at 8×,
+/// // USARTDIV 1.75 = mantissa 1, fraction 6/8: exact.
+/// let d = UartDivider::for_rate(42_000_000, 3_000_000).unwrap();
+/// assert_eq!((d.brr, d.over8, d.baud_hz), (0x16, true, 3_000_000));
+/// ```
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct UartDivider {
+    /// The `BRR` register's value.
+    pub brr: u16,
+    /// Oversampling by 8 (`CR1.OVER8 = 1`).
+    pub over8: bool,
+    /// The rate this divider gives, Hz (rounded down).
+    pub baud_hz: u32,
+}
+
+impl UartDivider {
+    /// The divider nearest `baud_hz` from a `pclk_hz` peripheral clock; `None` when even 8×
+    /// oversampling cannot reach it (`USARTDIV < 1`) or the mantissa would not fit 12 bits.
+    pub const fn for_rate(pclk_hz: u32, baud_hz: u32) -> Option<Self> {
+        if baud_hz == 0 {
+            return None;
+        }
+        // USARTDIV × 16 (or × 8), rounded to nearest: the register's fixed-point value.
+        let div16 = (pclk_hz as u64 + baud_hz as u64 / 2) / baud_hz as u64;
+        if div16 >= 16 && div16 < 1 << 16 {
+            return Some(Self {
+                brr: div16 as u16,
+                over8: false,
+                baud_hz: (pclk_hz as u64 / div16) as u32,
+            });
+        }
+        let div8 = (pclk_hz as u64 + baud_hz as u64 / 2) / baud_hz as u64;
+        if div8 < 8 || div8 >= 1 << 15 {
+            return None;
+        }
+        Some(Self {
+            brr: ((div8 >> 3) << 4 | (div8 & 7)) as u16,
+            over8: true,
+            baud_hz: (pclk_hz as u64 / div8) as u32,
+        })
+    }
+
+    /// The rate's error against `baud_hz`, parts per million (signed: positive is fast).
+    pub const fn error_ppm(&self, baud_hz: u32) -> i64 {
+        (self.baud_hz as i64 - baud_hz as i64) * 1_000_000 / baud_hz as i64
+    }
+}
+
 /// Test doubles of the board traits, for tests of code that drives converters: the library's
 /// unit tests, and — with the cargo feature `fakes` — any crate's tests (hal-sim's enable it
 /// with `twinstack = { path = "..", features = ["fakes"] }` under `[dev-dependencies]`).
@@ -224,5 +286,32 @@ pub mod fakes {
         fn count(&mut self) -> u16 {
             self.0
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::UartDivider;
+
+    #[test]
+    fn the_link_rate_is_exact_on_both_boards_and_refused_where_no_divider_reaches_it() {
+        // Driver board (APB2 84 MHz, 16×) and Feather (APB1 42 MHz, 8×): 3 Mbaud, 0 ppm.
+        for (pclk, over8) in [(84_000_000, false), (42_000_000, true)] {
+            let d = UartDivider::for_rate(pclk, 3_000_000).unwrap();
+            assert_eq!((d.over8, d.error_ppm(3_000_000)), (over8, 0), "{d:?}");
+        }
+        // 16× at 42 MHz would need USARTDIV 0.875 (< 1): the 8× divider is the only one.
+        assert_eq!(
+            UartDivider::for_rate(42_000_000, 3_000_000).unwrap().brr,
+            0x16
+        );
+        // The emulator's 16 MHz HSI cannot reach 3 Mbaud at all (USARTDIV×8 = 5.3 < 8).
+        assert_eq!(UartDivider::for_rate(16_000_000, 3_000_000), None);
+        assert_eq!(UartDivider::for_rate(16_000_000, 0), None);
+        // A rate that does not divide: 115 200 baud from 42 MHz at 16×, BRR 365 (22.8125),
+        // 115 068 baud, −1 145 ppm.
+        let d = UartDivider::for_rate(42_000_000, 115_200).unwrap();
+        assert_eq!((d.brr, d.over8, d.baud_hz), (365, false, 115_068));
+        assert_eq!(d.error_ppm(115_200), -1_145);
     }
 }

@@ -63,3 +63,44 @@ fn the_emulator_binary_exists_only_with_the_emulator_feature() {
         "src/bin/twinstack-fw.rs no longer refuses the emulator feature"
     );
 }
+
+#[test]
+fn the_feather_images_have_their_own_names_and_features() {
+    let fw = alias("build-fw-feather");
+    let emu = alias("build-emu-feather");
+    assert_eq!(bin(&fw), "twinstack-feather", "{fw}");
+    assert_eq!(bin(&emu), "twinstack-feather-emu", "{emu}");
+    assert!(
+        fw.contains("--features feather") && !fw.contains("emulator"),
+        "{fw}"
+    );
+    assert!(emu.contains("--features emulator,feather"), "{emu}");
+    assert_eq!(bin(&alias("flash-fw-feather")), "twinstack-feather");
+    let manifest = read("Cargo.toml");
+    let target = |name: &str| {
+        manifest
+            .split("[[bin]]")
+            .skip(1)
+            .find(|t| t.contains(&format!("name = \"{name}\"\n")))
+            .unwrap_or_else(|| panic!("no [[bin]] {name} in Cargo.toml"))
+            .to_string()
+    };
+    assert!(target("twinstack-feather").contains("required-features = [\"feather\"]"));
+    assert!(
+        target("twinstack-feather-emu").contains("required-features = [\"feather\", \"emulator\"]")
+    );
+    // Each image refuses the other profile's feature under its name.
+    for (file, feature) in [
+        ("src/bin/twinstack-fw.rs", "feature = \"feather\""),
+        ("src/bin/twinstack-emu.rs", "feature = \"feather\""),
+        ("src/bin/twinstack-feather.rs", "feature = \"emulator\""),
+    ] {
+        let text = read(file);
+        assert!(
+            text.contains(&format!(
+                "#[cfg(all(target_os = \"none\", {feature}))]\ncompile_error!"
+            )),
+            "{file} no longer refuses {feature}"
+        );
+    }
+}

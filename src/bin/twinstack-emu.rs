@@ -20,6 +20,13 @@ fn main() {
     std::process::exit(2);
 }
 
+// The Feather profile has its own images (`twinstack-feather`, `twinstack-feather-emu`), so
+// that this name always means the driver board's pins and clock.
+#[cfg(all(target_os = "none", feature = "feather"))]
+compile_error!(
+    "twinstack-emu is the driver board's image; the Feather's is twinstack-feather-emu: `cargo build-emu-feather`"
+);
+
 /// This image's name, in its start-up log.
 #[cfg(target_os = "none")]
 const IMAGE_NAME: &str = "twinstack-emu";

@@ -57,6 +57,13 @@ compile_error!(
      (--bin twinstack-emu --features emulator)"
 );
 
+// The Feather profile has its own images (`twinstack-feather`, `twinstack-feather-emu`), so
+// that this name always means the driver board's pins and clock.
+#[cfg(all(target_os = "none", feature = "feather"))]
+compile_error!(
+    "twinstack-fw is the driver board's image; the Feather's is twinstack-feather: `cargo build-fw-feather`"
+);
+
 /// This image's name, in its start-up log.
 #[cfg(target_os = "none")]
 const IMAGE_NAME: &str = "twinstack-fw";

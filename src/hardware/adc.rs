@@ -1,4 +1,6 @@
-//! The position sensor on ADC1 channel 0 (PA0) as the board's [`SensorAdc`].
+//! The position sensor on ADC1 as the board's [`SensorAdc`]: channel
+//! [`super::profile::SENSOR_CHANNEL`] (0, PA0, on the driver board; 6, PA6 — the Feather's
+//! A2).
 //!
 //! The conversion is started by hardware on TIM2's TRGO (the update event that also fires the
 //! control interrupt), so sampling is jitter-free; the tick reads the data register, which
@@ -17,25 +19,32 @@ pub const FULL_SCALE: u32 = 4095;
 const EXTSEL_TIM2_TRGO: u8 = 0b0110;
 /// `EXTEN`: trigger on the rising edge.
 const EXTEN_RISING: u8 = 0b01;
-/// Sample time 15 ADC cycles for channel 0 (`SMP = 001`); with the 21 MHz ADC clock a
-/// conversion takes (15 + 12) / 21 MHz ≈ 1.3 µs.
-const SMP_15_CYCLES: u8 = 0b001;
+/// Sample time 15 ADC cycles (`SMP = 001`); with the 21 MHz ADC clock a conversion takes
+/// (15 + 12) / 21 MHz ≈ 1.3 µs.
+const SMP_15_CYCLES: u32 = 0b001;
+/// The sensor's channel (0…9: its sample time is in `SMPR2`).
+const CHANNEL: u8 = super::profile::SENSOR_CHANNEL;
+#[allow(clippy::absurd_extreme_comparisons)] // 0 on the driver board
+const _: () = assert!(CHANNEL <= 9);
 
-/// ADC1 converting channel 0 on each TIM2 TRGO.
+/// ADC1 converting the sensor's channel on each TIM2 TRGO.
 pub struct SensorInput {
     adc: ADC1,
 }
 
 impl SensorInput {
-    /// Enables ADC1 (clock PCLK2 / 4 = 21 MHz), one-channel regular sequence on channel 0,
-    /// external trigger TIM2 TRGO on the rising edge. PA0 must already be in analog mode.
+    /// Enables ADC1 (clock PCLK2 / 4 = 21 MHz), one-channel regular sequence on the sensor's
+    /// channel, external trigger TIM2 TRGO on the rising edge. Its pin must already be in
+    /// analog mode.
     pub fn new(adc: ADC1, common: &ADC_COMMON, rcc: &RCC) -> Self {
         rcc.apb2enr().modify(|_, w| w.adc1en().set_bit());
         common.ccr().modify(|_, w| unsafe { w.adcpre().bits(0b01) });
-        adc.smpr2()
-            .modify(|_, w| unsafe { w.smp0().bits(SMP_15_CYCLES) });
+        let shift = 3 * CHANNEL as u32;
+        adc.smpr2().modify(|r, w| unsafe {
+            w.bits(r.bits() & !(0b111 << shift) | SMP_15_CYCLES << shift)
+        });
         adc.sqr1().modify(|_, w| unsafe { w.l().bits(0) });
-        adc.sqr3().modify(|_, w| unsafe { w.sq1().bits(0) });
+        adc.sqr3().modify(|_, w| unsafe { w.sq1().bits(CHANNEL) });
         adc.cr2().modify(|_, w| unsafe {
             w.extsel()
                 .bits(EXTSEL_TIM2_TRGO)

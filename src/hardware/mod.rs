@@ -1,4 +1,6 @@
-//! Board support for the twinstack driver board (STM32F405RG), firmware build only.
+//! Board support for the STM32F405 boards (firmware build only): the twinstack driver board,
+//! and — with the `feather` feature — the Adafruit Feather STM32F405 Express, whose pins,
+//! crystal and host-link USART are in [`profile`]. The table below is the driver board's.
 //!
 //! Each module wraps one peripheral and exposes only what the RTIC shell
 //! (`src/bin/twinstack-fw.rs`) needs; the control algorithm never sees a register, only the
@@ -30,6 +32,7 @@ pub mod coarse_stage;
 pub mod control_timer;
 pub mod dac;
 pub mod param_flash;
+pub mod profile;
 pub mod safe_state;
 pub mod tick;
 pub mod trigger_pins;

@@ -1,7 +1,9 @@
-//! The trigger I/O pins ([`crate::scan`]): pixel, line and frame clock outputs on PA1, PA2,
-//! PA3 (push-pull), a sequence's settled output on PA7 (push-pull, [`crate::sequence`]), the
-//! external trigger input on PA6 (pull-down, 3.3 V logic; 5 V tolerant as an FT pin). All
-//! five on GPIOA, so the tick writes the four outputs in one `BSRR` store
+//! The trigger I/O pins ([`crate::scan`]): pixel, line and frame clock outputs on pins 1, 2, 3
+//! (push-pull), a sequence's settled output on pin 7 (push-pull, [`crate::sequence`]), the
+//! external trigger input on pin 6 (pull-down, 3.3 V logic; 5 V tolerant as an FT pin) of the
+//! board profile's trigger port ([`super::profile::TRIGGER_PORT`]: PA1–PA3, PA6, PA7 on the
+//! driver board; PC1–PC3, PC6, PC7 — D13, D12, D11, D6, D5 — on the Feather). All five on one
+//! port, so the tick writes the four outputs in one `BSRR` store
 //! ([`crate::scan::bsrr_word`]) and reads the input in one `IDR` load: constant time, every
 //! tick (the outputs are written even when they do not change).
 //!
@@ -9,27 +11,27 @@
 //! (logged with `-d unimp`, which is how the emulator test sees them) and `IDR` reads 0.
 
 use stm32f4xx_hal::gpio::{Input, Output, Pin, PushPull};
-use stm32f4xx_hal::pac;
 
+use super::profile::{trigger_port, TRIGGER_PORT as P};
 use crate::scan::{bsrr_word, INPUT_PIN};
 
 /// The four pins, configured; the tick's handle on them.
 pub struct TriggerPins {
-    _pixel: Pin<'A', 1, Output<PushPull>>,
-    _line: Pin<'A', 2, Output<PushPull>>,
-    _frame: Pin<'A', 3, Output<PushPull>>,
-    _input: Pin<'A', 6, Input>,
-    _settled: Pin<'A', 7, Output<PushPull>>,
+    _pixel: Pin<P, 1, Output<PushPull>>,
+    _line: Pin<P, 2, Output<PushPull>>,
+    _frame: Pin<P, 3, Output<PushPull>>,
+    _input: Pin<P, 6, Input>,
+    _settled: Pin<P, 7, Output<PushPull>>,
 }
 
 impl TriggerPins {
     /// Takes the configured pins (outputs low, input pulled down).
     pub fn new(
-        pixel: Pin<'A', 1, Output<PushPull>>,
-        line: Pin<'A', 2, Output<PushPull>>,
-        frame: Pin<'A', 3, Output<PushPull>>,
-        input: Pin<'A', 6, Input>,
-        settled: Pin<'A', 7, Output<PushPull>>,
+        pixel: Pin<P, 1, Output<PushPull>>,
+        line: Pin<P, 2, Output<PushPull>>,
+        frame: Pin<P, 3, Output<PushPull>>,
+        input: Pin<P, 6, Input>,
+        settled: Pin<P, 7, Output<PushPull>>,
     ) -> Self {
         Self {
             _pixel: pixel,
@@ -45,16 +47,16 @@ impl TriggerPins {
     #[inline(always)]
     pub fn write(&mut self, levels: u8) {
         // SAFETY: BSRR is write-only and atomic per bit; this struct owns the four pins it
-        // sets or resets, and no other code writes GPIOA's BSRR from an interrupt.
-        let gpioa = unsafe { &*pac::GPIOA::ptr() };
-        gpioa.bsrr().write(|w| unsafe { w.bits(bsrr_word(levels)) });
+        // sets or resets, and no other code writes the port's BSRR from an interrupt.
+        trigger_port()
+            .bsrr()
+            .write(|w| unsafe { w.bits(bsrr_word(levels)) });
     }
 
     /// The input's level: one `IDR` load.
     #[inline(always)]
     pub fn input(&self) -> bool {
-        // SAFETY: a read of the input data register has no side effect.
-        let gpioa = unsafe { &*pac::GPIOA::ptr() };
-        gpioa.idr().read().bits() & (1 << INPUT_PIN) != 0
+        // A read of the input data register has no side effect.
+        trigger_port().idr().read().bits() & (1 << INPUT_PIN) != 0
     }
 }

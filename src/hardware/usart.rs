@@ -1,4 +1,8 @@
-//! USART1 (PA9 TX, PA10 RX, AF7), 8N1 at [`BAUD`]: the host link.
+//! The host link, 8N1 at [`BAUD`]: the board profile's USART ([`super::profile::LinkUsart`]:
+//! USART1 on PA9/PA10 on the driver board, USART3 on PB10/PB11 — the TX/RX pins — on the
+//! Feather), its pins in AF7, and its DMA streams ([`super::profile::LINK_DMA`]). The text below
+//! names the driver board's; the Feather's are DMA1 streams 1 (receive) and 3 (transmit),
+//! channel 4.
 //!
 //! **Receive, board:** DMA2 stream 2 (channel 4) copies every received byte into a circular
 //! buffer of [`RX_BUFFER_LEN`] bytes; the USART's idle-line interrupt (a gap after a burst) and
@@ -18,12 +22,16 @@
 //! through the same trait by polling TXE from the command task, with a bounded wait per byte
 //! (3.3 µs a byte at 3 Mbaud on a board).
 
-use stm32f4xx_hal::pac::{RCC, USART1};
+use stm32f4xx_hal::pac::RCC;
 
 use super::clocks::BusClocks;
+use super::profile::{self, LinkUsart};
+use crate::board::UartDivider;
 
-/// Baud rate of the host link: 3 Mbaud, exact from the board's 84 MHz APB2 (BRR = 28,
-/// USARTDIV 1.75 at 16× oversampling) and exact on the common USB–serial adapters (FT232R's and
+/// Baud rate of the host link: 3 Mbaud, exact from the driver board's 84 MHz APB2 (BRR = 28,
+/// USARTDIV 1.75 at 16× oversampling) and from the Feather's 42 MHz APB1 (BRR = 0x16,
+/// USARTDIV 1.75 at 8× oversampling: 16× cannot go above 2.625 Mbaud there), computed by
+/// [`crate::board::UartDivider`], and exact on the common USB–serial adapters (FT232R's and
 /// CP2102N's top rate; FT232H's 12 MHz ÷ 4): 300 000 bytes/s each way, of which 100 000
 /// setpoints/s in packed batches take 213 542 (docs: the streaming chapter). (The emulator's
 /// 16 MHz HSI cannot divide down to it; QEMU ignores the divider.)
@@ -38,10 +46,10 @@ pub const RX_BUFFER_LEN: usize = 512;
 const TX_SPIN_LIMIT: u32 = 100_000;
 
 fn regs() -> &'static stm32f4xx_hal::pac::usart1::RegisterBlock {
-    // SAFETY: USART1 is owned by this module after `configure` consumed it; TX and RX use
+    // SAFETY: the link's USART is owned by this module after `configure` consumed it; TX and RX use
     // disjoint parts of it (TX: DR writes, TXE; RX: DR reads, RXNE/IDLE), which the hardware
     // keeps apart (separate transmit and receive data registers behind DR).
-    unsafe { &*USART1::ptr() }
+    unsafe { &*LinkUsart::ptr() }
 }
 
 /// The transmit half, polled (the emulator's: QEMU models no DMA).
@@ -85,25 +93,36 @@ impl crate::telemetry::FrameLink for UsartTx {
     }
 }
 
-/// Enables USART1 (and, on the board, DMA2 stream 2) and returns its two halves. PA9/PA10 must
-/// already be in AF7.
+/// The divider for [`BAUD`] from the link USART's bus clock. The emulator's 16 MHz HSI cannot
+/// reach 3 Mbaud (QEMU ignores the divider): it gets the fastest divider there is (8×,
+/// USARTDIV 1).
+fn divider(pclk_hz: u32) -> UartDivider {
+    UartDivider::for_rate(pclk_hz, BAUD).unwrap_or(UartDivider {
+        brr: 0x10,
+        over8: true,
+        baud_hz: pclk_hz / 8,
+    })
+}
+
+/// Enables the link's USART (and, on a board, its receive DMA stream) and returns its two
+/// halves. Its TX/RX pins must already be in AF7.
 pub fn configure(
-    usart: USART1,
-    #[cfg(not(feature = "emulator"))] dma: stm32f4xx_hal::pac::DMA2,
+    usart: LinkUsart,
+    #[cfg(not(feature = "emulator"))] dma: profile::LinkDma,
     rcc: &RCC,
     clocks: &BusClocks,
 ) -> (UsartTx, UsartRx) {
-    rcc.apb2enr().modify(|_, w| w.usart1en().set_bit());
-    let brr = (clocks.pclk2_hz + BAUD / 2) / BAUD;
-    usart
-        .brr()
-        .write(|w| unsafe { w.bits(brr.min(u16::MAX as u32) as u16) });
+    let pclk_hz = profile::enable_link_usart(rcc, clocks);
+    let divider = divider(pclk_hz);
+    usart.brr().write(|w| unsafe { w.bits(divider.brr) });
     #[cfg(not(feature = "emulator"))]
-    let rx = UsartRx::start_dma(dma, rcc, &usart);
+    let rx = UsartRx::start_dma(dma, rcc, &usart, divider.over8);
     #[cfg(feature = "emulator")]
     let rx = {
         usart.cr1().write(|w| {
-            w.ue()
+            w.over8()
+                .bit(divider.over8)
+                .ue()
                 .set_bit()
                 .te()
                 .set_bit()
@@ -117,6 +136,20 @@ pub fn configure(
     (UsartTx { _private: () }, rx)
 }
 
+/// Clears DMA `stream`'s five flags (FEIF, DMEIF, TEIF, HTIF, TCIF): streams 0–3 in `LIFCR`,
+/// 4–7 in `HIFCR`, at bits 0, 6, 16, 22 (RM0090 §10.5.3). Write-1-to-clear: no other stream's
+/// flag changes.
+#[cfg(not(feature = "emulator"))]
+fn clear_stream_flags(dma: &stm32f4xx_hal::pac::dma2::RegisterBlock, stream: usize) {
+    const OFFSET: [u32; 4] = [0, 6, 16, 22];
+    let bits = 0b11_1101 << OFFSET[stream % 4];
+    if stream < 4 {
+        dma.lifcr().write(|w| unsafe { w.bits(bits) });
+    } else {
+        dma.hifcr().write(|w| unsafe { w.bits(bits) });
+    }
+}
+
 #[cfg(not(feature = "emulator"))]
 pub use dma_rx::UsartRx;
 #[cfg(not(feature = "emulator"))]
@@ -126,19 +159,20 @@ pub use dma_tx::DmaTx;
 mod dma_tx {
     use core::cell::UnsafeCell;
 
-    use stm32f4xx_hal::pac::{DMA2, RCC};
+    use stm32f4xx_hal::pac::RCC;
 
-    use super::{regs, UsartTx};
+    use super::profile::{self, LinkDma, LINK_DMA};
+    use super::{clear_stream_flags, regs, UsartTx};
     use crate::command_handler::MAX_RESPONSE;
 
-    /// DMA2 stream carrying USART1_TX.
-    const STREAM: usize = 7;
+    /// The DMA stream carrying the link's TX (DMA2 stream 7 on the driver board).
+    const STREAM: usize = LINK_DMA.tx;
     /// Its channel selection.
-    const CHANNEL: u8 = 4;
+    const CHANNEL: u8 = LINK_DMA.channel;
     /// Bytes of one frame buffer: the largest response frame.
     const TX_BUFFER_LEN: usize = MAX_RESPONSE;
 
-    /// The two frame buffers, in SRAM (DMA2 cannot reach CCM RAM). The DMA reads the buffer on
+    /// The two frame buffers, in SRAM (the DMA cannot reach CCM RAM). The DMA reads the buffer on
     /// the line; only [`DmaTx::send_frame`] writes, and only the other one.
     struct TxBuffers(UnsafeCell<[[u8; TX_BUFFER_LEN]; 2]>);
     // SAFETY: written only through `DmaTx` (one owner, behind the RTIC resource lock), into
@@ -147,12 +181,13 @@ mod dma_tx {
     static TX_BUFFERS: TxBuffers = TxBuffers(UnsafeCell::new([[0; TX_BUFFER_LEN]; 2]));
 
     fn dma() -> &'static stm32f4xx_hal::pac::dma2::RegisterBlock {
-        // SAFETY: this module touches only stream 7's registers and its flags in HIFCR
-        // (bits 22–27); the receive side ([`super::UsartRx`]) owns stream 2 and LIFCR.
-        unsafe { &*DMA2::ptr() }
+        // SAFETY: this module touches only its stream's registers and flags; the receive side
+        // ([`super::UsartRx`]) owns another stream, and the flag-clear registers are
+        // write-1-to-clear, so neither side's writes touch the other's flags.
+        unsafe { &*LinkDma::ptr() }
     }
 
-    /// USART1 TX by DMA, double-buffered: one frame on the line, one waiting.
+    /// The link's TX by DMA, double-buffered: one frame on the line, one waiting.
     pub struct DmaTx {
         /// The buffer on the line.
         sending: Option<usize>,
@@ -161,10 +196,10 @@ mod dma_tx {
     }
 
     impl DmaTx {
-        /// Takes over the transmit half (USART1's CR3.DMAT is set by `configure`); DMA2's
-        /// clock is enabled here too.
+        /// Takes over the transmit half (the USART's CR3.DMAT is set by `configure`); the DMA
+        /// controller's clock is enabled here too.
         pub fn new(_tx: UsartTx, rcc: &RCC) -> Self {
-            rcc.ahb1enr().modify(|_, w| w.dma2en().set_bit());
+            profile::enable_link_dma(rcc);
             dma().st(STREAM).cr().write(|w| w.en().clear_bit());
             Self {
                 sending: None,
@@ -172,7 +207,7 @@ mod dma_tx {
             }
         }
 
-        /// The transfer-complete interrupt (`DMA2_STREAM7`): the buffer on the line is free;
+        /// The transfer-complete interrupt (`DMA2_STREAM7`, `DMA1_STREAM3` on the Feather): the buffer on the line is free;
         /// the waiting one, if any, goes on the line at once.
         pub fn on_complete(&mut self) {
             clear_flags();
@@ -248,20 +283,9 @@ mod dma_tx {
         }
     }
 
-    /// Clears stream 7's flags (HIFCR bits 22–27).
+    /// Clears the stream's flags.
     fn clear_flags() {
-        dma().hifcr().write(|w| {
-            w.cfeif7()
-                .clear()
-                .cdmeif7()
-                .clear()
-                .cteif7()
-                .clear()
-                .chtif7()
-                .clear()
-                .ctcif7()
-                .clear()
-        });
+        clear_stream_flags(dma(), STREAM);
     }
 }
 
@@ -269,14 +293,15 @@ mod dma_tx {
 mod dma_rx {
     use core::cell::UnsafeCell;
 
-    use stm32f4xx_hal::pac::{DMA2, RCC, USART1};
+    use stm32f4xx_hal::pac::RCC;
 
-    use super::{regs, RX_BUFFER_LEN};
+    use super::profile::{self, LinkDma, LinkUsart, LINK_DMA};
+    use super::{clear_stream_flags, regs, RX_BUFFER_LEN};
 
-    /// DMA2 stream carrying USART1_RX.
-    const STREAM: usize = 2;
+    /// The DMA stream carrying the link's RX (DMA2 stream 2 on the driver board).
+    const STREAM: usize = LINK_DMA.rx;
     /// Its channel selection.
-    const CHANNEL: u8 = 4;
+    const CHANNEL: u8 = LINK_DMA.channel;
 
     /// The receive ring; only the DMA writes it, only [`UsartRx::drain`] reads it.
     struct RxRing(UnsafeCell<[u8; RX_BUFFER_LEN]>);
@@ -287,13 +312,13 @@ mod dma_rx {
 
     /// The receive half: the DMA ring and how far it has been read.
     pub struct UsartRx {
-        dma: DMA2,
+        dma: LinkDma,
         read: usize,
     }
 
     impl UsartRx {
-        pub(super) fn start_dma(dma: DMA2, rcc: &RCC, usart: &USART1) -> Self {
-            rcc.ahb1enr().modify(|_, w| w.dma2en().set_bit());
+        pub(super) fn start_dma(dma: LinkDma, rcc: &RCC, usart: &LinkUsart, over8: bool) -> Self {
+            profile::enable_link_dma(rcc);
             let st = dma.st(STREAM);
             st.cr().write(|w| w.en().clear_bit());
             st.par()
@@ -317,10 +342,12 @@ mod dma_rx {
                     .en()
                     .set_bit()
             });
-            // DMA for receive (stream 2) and transmit (stream 7, [`super::DmaTx`]).
+            // DMA for receive (this stream) and transmit ([`super::DmaTx`]'s).
             usart.cr3().write(|w| w.dmar().set_bit().dmat().set_bit());
             usart.cr1().write(|w| {
-                w.ue()
+                w.over8()
+                    .bit(over8)
+                    .ue()
                     .set_bit()
                     .te()
                     .set_bit()
@@ -334,7 +361,8 @@ mod dma_rx {
 
         /// Hands every byte received since the last call to `sink`, oldest first, and clears
         /// the interrupt causes (USART idle line, DMA half / full transfer). Call it from both
-        /// the `USART1` and the `DMA2_STREAM2` interrupt. At most one ring's worth of bytes.
+        /// the USART's and the receive stream's interrupt (`USART1` and `DMA2_STREAM2` on the
+        /// driver board, `USART3` and `DMA1_STREAM1` on the Feather). At most one ring's worth of bytes.
         pub fn drain(&mut self, mut sink: impl FnMut(u8)) {
             let u = regs();
             // IDLE clears by reading SR, then DR.
@@ -357,9 +385,9 @@ mod dma_rx {
         }
     }
 
-    /// Clears stream 2's flags (LIFCR bits 16–21).
-    fn clear_flags(dma: &DMA2) {
-        dma.lifcr().write(|w| unsafe { w.bits(0b11_1101 << 16) });
+    /// Clears the stream's flags.
+    fn clear_flags(dma: &LinkDma) {
+        clear_stream_flags(dma, STREAM);
     }
 }
 
@@ -371,7 +399,7 @@ pub struct UsartRx {
 
 #[cfg(feature = "emulator")]
 impl UsartRx {
-    /// Hands the received byte(s) to `sink`; call from the `USART1` interrupt. Reading DR
+    /// Hands the received byte(s) to `sink`; call from the link USART's interrupt. Reading DR
     /// clears RXNE. Bounded: at most 16 bytes per call.
     pub fn drain(&mut self, mut sink: impl FnMut(u8)) {
         let u = regs();

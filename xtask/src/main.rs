@@ -58,6 +58,19 @@ const TARGET_CLIPPY: &[(&str, &[&str])] = &[
         ],
     ),
     (
+        "twinstack-feather (Adafruit Feather STM32F405 Express)",
+        &["--bin", "twinstack-feather", "--features", "feather"],
+    ),
+    (
+        "twinstack-feather-emu (the Feather image for QEMU)",
+        &[
+            "--bin",
+            "twinstack-feather-emu",
+            "--features",
+            "emulator,feather",
+        ],
+    ),
+    (
         "QEMU test images (tick-bench, irq-bench, safe-state-probe, golden-replay)",
         &["-p", "twinstack-qemu-images", "--bins"],
     ),
@@ -602,6 +615,10 @@ fn gates() -> Vec<Gate> {
     gates.push(gate(
         "board image (cargo build-fw)",
         target_cargo(&["build-fw"]),
+    ));
+    gates.push(gate(
+        "Feather image (cargo build-fw-feather)",
+        target_cargo(&["build-fw-feather"]),
     ));
     // The host tool on Windows: the Unix-socket transport is `cfg(unix)`; everything else
     // (serial ports, TCP to an emulator, the simulated board) must compile there.

@@ -23,7 +23,6 @@ unsafe fn HardFault(_frame: &cortex_m_rt::ExceptionFrame) -> ! {
 #[rtic::app(device = stm32f4xx_hal::pac, peripherals = true)]
 mod app {
     use heapless::spsc::{Consumer, Producer, Queue};
-    use stm32f4xx_hal::gpio::GpioExt;
     use stm32f4xx_hal::pac::{self, Interrupt};
 
     use twinstack::board::Hardware;
@@ -46,6 +45,7 @@ mod app {
     use twinstack::hardware::control_timer::ControlTimer;
     use twinstack::hardware::dac::InternalDac;
     use twinstack::hardware::param_flash;
+    use twinstack::hardware::profile;
     use twinstack::hardware::safe_state;
     use twinstack::hardware::tick::{ControlTick, LoopLock};
     #[cfg(not(feature = "emulator"))]
@@ -234,19 +234,14 @@ mod app {
         }
 
         let (mut rcc, bus) = clocks::configure(dp.RCC);
-        let gpioa = dp.GPIOA.split(&mut rcc);
-        let _dac_left = gpioa.pa4.into_analog();
-        let _dac_right = gpioa.pa5.into_analog();
-        let _sensor = gpioa.pa0.into_analog();
-        let _tx_pin = gpioa.pa9.into_alternate::<7>();
-        let _rx_pin = gpioa.pa10.into_alternate::<7>();
-        let triggers = twinstack::hardware::trigger_pins::TriggerPins::new(
-            gpioa.pa1.into_push_pull_output(),
-            gpioa.pa2.into_push_pull_output(),
-            gpioa.pa3.into_push_pull_output(),
-            gpioa.pa6.into_pull_down_input(),
-            gpioa.pa7.into_push_pull_output(),
-        );
+        // The board profile's pins (driver board or Feather: `hardware::profile`).
+        let pins = profile::configure(dp.GPIOA, dp.GPIOB, dp.GPIOC, &mut rcc);
+        let triggers = pins.triggers;
+        // The host link's USART and DMA controller.
+        #[cfg(not(feature = "feather"))]
+        let (link_usart, link_dma) = (dp.USART1, dp.DMA2);
+        #[cfg(feature = "feather")]
+        let (link_usart, link_dma) = (dp.USART3, dp.DMA1);
 
         // The timer's rate is fixed before the controller is built, so the drive's slew limit
         // per tick matches the real period.
@@ -292,10 +287,12 @@ mod app {
 
         let dac = InternalDac::new(dp.DAC, &rcc, (safe_left, safe_right));
         let adc = SensorInput::new(dp.ADC1, &dp.ADC_COMMON, &rcc);
+        #[cfg(feature = "emulator")]
+        let _ = link_dma;
         let (tx, rx) = usart::configure(
-            dp.USART1,
+            link_usart,
             #[cfg(not(feature = "emulator"))]
-            dp.DMA2,
+            link_dma,
             &rcc,
             &bus,
         );
@@ -316,20 +313,8 @@ mod app {
             #[cfg(not(feature = "emulator"))]
             let (mut io, timer) = {
                 let coarse_rate = dual_settings.coarse_rate_hz as u32;
-                let gpiob = dp.GPIOB.split(&mut rcc);
-                let gpioc = dp.GPIOC.split(&mut rcc);
-                let _step_pin = gpioa.pa8.into_alternate::<1>();
-                let dir_pin = gpiob.pb0.into_push_pull_output();
-                let _linear_a = gpiob.pb6.into_alternate::<2>();
-                let _linear_b = gpiob.pb7.into_alternate::<2>();
-                let _motor_a = gpioc.pc6.into_alternate::<3>();
-                let _motor_b = gpioc.pc7.into_alternate::<3>();
-                let switches = BoardSwitches::new(
-                    gpioc.pc0.into_pull_up_input(),
-                    gpioc.pc1.into_pull_up_input(),
-                    gpioc.pc2.into_pull_up_input(),
-                );
-                let steps = StepOutput::new(dp.TIM1, dir_pin, &rcc, &bus, coarse_rate);
+                let switches = pins.coarse.switches;
+                let steps = StepOutput::new(dp.TIM1, pins.coarse.dir, &rcc, &bus, coarse_rate);
                 let motor = MotorEncoder::new(dp.TIM8, &rcc);
                 let linear = LinearEncoder::new(dp.TIM4, &rcc);
                 let timer = CoarseTimer::start(dp.TIM3, &rcc, &bus, coarse_rate);
@@ -412,11 +397,24 @@ mod app {
         let (bytes, bytes_in) = cx.local.rx_queue.split();
         let (telemetry, telemetry_out) = cx.local.telemetry_queue.split();
         defmt::info!(
-            "{=str} up: sysclk {=u32} Hz, tick {=u32} Hz",
+            "{=str} ({=str}) up: sysclk {=u32} Hz, tick {=u32} Hz",
             super::IMAGE_NAME,
+            profile::NAME,
             bus.sysclk_hz,
             rate
         );
+        #[cfg(not(feature = "emulator"))]
+        {
+            let pll = clocks::Pll::read_back();
+            defmt::info!(
+                "PLL: HSE {=u32} Hz / M {=u32} × N {=u32} / P {=u32}; / Q {=u32} (48 MHz clock)",
+                profile::HSE_HZ,
+                pll.m,
+                pll.n,
+                pll.p,
+                pll.q
+            );
+        }
         (
             Shared {
                 tick: ControlTick {
@@ -504,23 +502,50 @@ mod app {
         shared.coarse.run(&mut tick);
     }
 
+    // The host link's interrupts: one binding each per board profile (the driver board's
+    // USART1 and DMA2 streams 2/7, the Feather's USART3 and DMA1 streams 1/3), the same body.
+
     /// USART1: idle line (board) or a received byte (emulator).
+    #[cfg(not(feature = "feather"))]
     #[task(binds = USART1, priority = 2, shared = [receiver])]
     fn usart1_rx(mut cx: usart1_rx::Context) {
         cx.shared.receiver.lock(|r| r.drain());
     }
 
+    /// USART3 (the Feather's TX/RX pins): idle line (board) or a received byte (emulator).
+    #[cfg(feature = "feather")]
+    #[task(binds = USART3, priority = 2, shared = [receiver])]
+    fn usart3_rx(mut cx: usart3_rx::Context) {
+        cx.shared.receiver.lock(|r| r.drain());
+    }
+
     /// DMA2 stream 2 (USART1 RX): half or full ring.
+    #[cfg(not(feature = "feather"))]
     #[task(binds = DMA2_STREAM2, priority = 2, shared = [receiver])]
     fn dma_rx(mut cx: dma_rx::Context) {
         cx.shared.receiver.lock(|r| r.drain());
     }
 
+    /// DMA1 stream 1 (USART3 RX, the Feather): half or full ring.
+    #[cfg(feature = "feather")]
+    #[task(binds = DMA1_STREAM1, priority = 2, shared = [receiver])]
+    fn dma1_rx(mut cx: dma1_rx::Context) {
+        cx.shared.receiver.lock(|r| r.drain());
+    }
+
     /// DMA2 stream 7 (USART1 TX): a frame has left; the waiting one goes on the line, and the
     /// command task may fill the free buffer.
-    #[cfg(not(feature = "emulator"))]
+    #[cfg(all(not(feature = "emulator"), not(feature = "feather")))]
     #[task(binds = DMA2_STREAM7, priority = 2, shared = [uplink])]
     fn dma_tx(mut cx: dma_tx::Context) {
+        cx.shared.uplink.lock(|u| u.on_complete());
+        rtic::pend(Interrupt::EXTI0);
+    }
+
+    /// DMA1 stream 3 (USART3 TX, the Feather): as the driver board's DMA2 stream 7.
+    #[cfg(all(not(feature = "emulator"), feature = "feather"))]
+    #[task(binds = DMA1_STREAM3, priority = 2, shared = [uplink])]
+    fn dma1_tx(mut cx: dma1_tx::Context) {
         cx.shared.uplink.lock(|u| u.on_complete());
         rtic::pend(Interrupt::EXTI0);
     }
