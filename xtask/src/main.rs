@@ -821,3 +821,49 @@ impl Beside {
         let _ = self.child.wait();
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn shell(script: &str) -> Command {
+        let mut cmd = Command::new("sh");
+        cmd.args(["-c", script]);
+        cmd
+    }
+
+    #[test]
+    fn a_gate_beside_the_others_is_waited_for_and_its_failure_reported_with_its_log() {
+        let gates = vec![
+            gate_beside(
+                "beside, failing",
+                shell("sleep 0.2; echo the-bench-said-this; exit 3"),
+            ),
+            gate("after it", shell("true")),
+        ];
+        let e = run_gates(gates).unwrap_err();
+        assert!(e.contains("beside, failing"), "{e}");
+        assert!(e.contains("the-bench-said-this"), "{e}");
+        let gates = vec![
+            gate_beside("beside, passing", shell("sleep 0.2")),
+            gate("after it", shell("true")),
+        ];
+        assert!(run_gates(gates).is_ok());
+    }
+
+    #[test]
+    fn a_failing_gate_stops_the_run_and_the_one_beside_it() {
+        let gates = vec![
+            gate_beside("beside", shell("sleep 30")),
+            gate("fails", shell("exit 1")),
+            gate("never runs", shell("exit 1")),
+        ];
+        let t = Instant::now();
+        let e = run_gates(gates).unwrap_err();
+        assert!(e.contains("gate 2/3 failed: fails"), "{e}");
+        assert!(
+            t.elapsed().as_secs() < 25,
+            "the gate beside was stopped, not waited for"
+        );
+    }
+}
