@@ -32,6 +32,7 @@ pub mod coarse_stage;
 pub mod control_timer;
 pub mod dac;
 pub mod param_flash;
+pub mod pins;
 pub mod profile;
 pub mod safe_state;
 pub mod tick;

@@ -25,7 +25,7 @@
 use stm32f4xx_hal::pac::RCC;
 
 use super::clocks::BusClocks;
-use super::profile::{self, LinkUsart};
+use super::profile::LinkUsart;
 use crate::board::UartDivider;
 
 /// Baud rate of the host link: 3 Mbaud, exact from the driver board's 84 MHz APB2 (BRR = 28,
@@ -108,11 +108,11 @@ fn divider(pclk_hz: u32) -> UartDivider {
 /// halves. Its TX/RX pins must already be in AF7.
 pub fn configure(
     usart: LinkUsart,
-    #[cfg(not(feature = "emulator"))] dma: profile::LinkDma,
+    #[cfg(not(feature = "emulator"))] dma: super::profile::LinkDma,
     rcc: &RCC,
     clocks: &BusClocks,
 ) -> (UsartTx, UsartRx) {
-    let pclk_hz = profile::enable_link_usart(rcc, clocks);
+    let pclk_hz = enable_link_usart(rcc, clocks);
     let divider = divider(pclk_hz);
     usart.brr().write(|w| unsafe { w.bits(divider.brr) });
     #[cfg(not(feature = "emulator"))]
@@ -161,9 +161,9 @@ mod dma_tx {
 
     use stm32f4xx_hal::pac::RCC;
 
-    use super::profile::{self, LinkDma, LINK_DMA};
     use super::{clear_stream_flags, regs, UsartTx};
     use crate::command_handler::MAX_RESPONSE;
+    use crate::hardware::profile::{LinkDma, LINK_DMA};
 
     /// The DMA stream carrying the link's TX (DMA2 stream 7 on the driver board).
     const STREAM: usize = LINK_DMA.tx;
@@ -199,7 +199,7 @@ mod dma_tx {
         /// Takes over the transmit half (the USART's CR3.DMAT is set by `configure`); the DMA
         /// controller's clock is enabled here too.
         pub fn new(_tx: UsartTx, rcc: &RCC) -> Self {
-            profile::enable_link_dma(rcc);
+            super::enable_link_dma(rcc);
             dma().st(STREAM).cr().write(|w| w.en().clear_bit());
             Self {
                 sending: None,
@@ -295,8 +295,8 @@ mod dma_rx {
 
     use stm32f4xx_hal::pac::RCC;
 
-    use super::profile::{self, LinkDma, LinkUsart, LINK_DMA};
     use super::{clear_stream_flags, regs, RX_BUFFER_LEN};
+    use crate::hardware::profile::{LinkDma, LinkUsart, LINK_DMA};
 
     /// The DMA stream carrying the link's RX (DMA2 stream 2 on the driver board).
     const STREAM: usize = LINK_DMA.rx;
@@ -318,7 +318,7 @@ mod dma_rx {
 
     impl UsartRx {
         pub(super) fn start_dma(dma: LinkDma, rcc: &RCC, usart: &LinkUsart, over8: bool) -> Self {
-            profile::enable_link_dma(rcc);
+            super::enable_link_dma(rcc);
             let st = dma.st(STREAM);
             st.cr().write(|w| w.en().clear_bit());
             st.par()
@@ -410,4 +410,28 @@ impl UsartRx {
             sink(u.dr().read().bits() as u8);
         }
     }
+}
+
+/// Enables the link USART's clock and returns the bus clock it counts, Hz: USART1 on APB2.
+#[cfg(not(feature = "feather"))]
+fn enable_link_usart(rcc: &RCC, clocks: &BusClocks) -> u32 {
+    rcc.apb2enr().modify(|_, w| w.usart1en().set_bit());
+    clocks.pclk2_hz
+}
+/// Enables the link USART's clock and returns the bus clock it counts, Hz: USART3 on APB1.
+#[cfg(feature = "feather")]
+fn enable_link_usart(rcc: &RCC, clocks: &BusClocks) -> u32 {
+    rcc.apb1enr().modify(|_, w| w.usart3en().set_bit());
+    clocks.pclk1_hz
+}
+
+/// Enables the link's DMA controller's clock.
+#[cfg(all(not(feature = "emulator"), not(feature = "feather")))]
+fn enable_link_dma(rcc: &RCC) {
+    rcc.ahb1enr().modify(|_, w| w.dma2en().set_bit());
+}
+/// Enables the link's DMA controller's clock.
+#[cfg(all(not(feature = "emulator"), feature = "feather"))]
+fn enable_link_dma(rcc: &RCC) {
+    rcc.ahb1enr().modify(|_, w| w.dma1en().set_bit());
 }

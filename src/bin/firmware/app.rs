@@ -45,7 +45,7 @@ mod app {
     use twinstack::hardware::control_timer::ControlTimer;
     use twinstack::hardware::dac::InternalDac;
     use twinstack::hardware::param_flash;
-    use twinstack::hardware::profile;
+    use twinstack::hardware::{pins, profile};
     use twinstack::hardware::safe_state;
     use twinstack::hardware::tick::{ControlTick, LoopLock};
     #[cfg(not(feature = "emulator"))]
@@ -234,8 +234,8 @@ mod app {
         }
 
         let (mut rcc, bus) = clocks::configure(dp.RCC);
-        // The board profile's pins (driver board or Feather: `hardware::profile`).
-        let pins = profile::configure(dp.GPIOA, dp.GPIOB, dp.GPIOC, &mut rcc);
+        // The board profile's pins (driver board or Feather: `hardware::pins`).
+        let pins = pins::configure(dp.GPIOA, dp.GPIOB, dp.GPIOC, &mut rcc);
         let triggers = pins.triggers;
         // The host link's USART and DMA controller.
         #[cfg(not(feature = "feather"))]
