@@ -217,6 +217,7 @@ impl<S: RecordStorage> CommandHandler<S> {
                 }
             }
             Request::Scan(r) => self.scan(r, control),
+            Request::Echo(bytes) => return Response::Echo(bytes),
             Request::Trigger(t) => {
                 control.lock(|c| c.set_trigger(t));
                 Ok(())
@@ -721,6 +722,11 @@ impl<S: RecordStorage> CommandHandler<S> {
     /// The parameter storage.
     pub fn storage(&self) -> &S {
         &self.storage
+    }
+
+    /// The parameter storage, mutably (a simulated board injecting a flash fault).
+    pub fn storage_mut(&mut self) -> &mut S {
+        &mut self.storage
     }
 }
 

@@ -41,6 +41,11 @@ pub struct LinkArgs {
     /// Jitter of that latency, ± ms (at most the latency).
     #[arg(long, default_value_t = 4.0, value_name = "MS")]
     pub link_jitter_ms: f64,
+    /// Fraction of bytes the simulated board's link corrupts, each way (one bit flipped in
+    /// each byte hit; 0: a sound link): a bad cable or a wrong baud rate, for rehearsing what
+    /// the host does about it (`twinstack selftest`).
+    #[arg(long, default_value_t = 0.0, value_name = "FRACTION")]
+    pub link_error_rate: f64,
 }
 
 impl Default for LinkArgs {
@@ -49,6 +54,7 @@ impl Default for LinkArgs {
         LinkArgs {
             link_latency_ms: 16.0,
             link_jitter_ms: 4.0,
+            link_error_rate: 0.0,
         }
     }
 }
@@ -73,6 +79,16 @@ impl LinkArgs {
             );
         }
         Ok(crate::sim_device::LinkDelay::new(latency, jitter)?)
+    }
+
+    /// The fraction of bytes corrupted; outside 0…1 (or not a number) is an error naming the
+    /// flag.
+    pub fn error_rate(&self) -> anyhow::Result<f64> {
+        let r = self.link_error_rate;
+        if !(r.is_finite() && (0.0..=1.0).contains(&r)) {
+            anyhow::bail!("--link-error-rate {r}: must be a fraction of bytes from 0 to 1");
+        }
+        Ok(r)
     }
 }
 
@@ -116,12 +132,40 @@ pub fn port_spec(args: &PortArgs) -> anyhow::Result<PortSpec> {
 /// Opens the port and resynchronises the line. A serial device that is missing or cannot be
 /// opened is reported with the ports that are there.
 pub fn connect(args: &PortArgs) -> anyhow::Result<BoardClient> {
+    connect_with(args, |_| {})
+}
+
+/// [`connect`], with `sim` adjusting the in-process board's configuration before it is built
+/// (`--port sim` only: what a command's own flags fit on the simulated bench).
+pub fn connect_with(
+    args: &PortArgs,
+    sim: impl FnOnce(&mut crate::sim_device::SimDeviceConfig),
+) -> anyhow::Result<BoardClient> {
     if args.timeout_ms == 0 {
         anyhow::bail!("--timeout-ms must be at least 1");
     }
     let spec = port_spec(args)?;
     let link = args.link.delay()?;
-    let transport = match port::open_with_link(&spec, args.baud, link) {
+    let error_rate = args.link.error_rate()?;
+    let opened = match spec {
+        PortSpec::Sim => {
+            if args.baud == 0 {
+                anyhow::bail!("--baud must be positive");
+            }
+            let mut config = crate::sim_device::SimDeviceConfig {
+                baud: args.baud,
+                link,
+                link_error_rate: error_rate,
+                ..crate::sim_device::SimDeviceConfig::paper()
+            };
+            sim(&mut config);
+            let device = crate::sim_device::SimDevice::new(config)
+                .map_err(|e| anyhow::anyhow!("the simulated board: {e}"))?;
+            Ok(Box::new(device) as Box<dyn Transport + Send>)
+        }
+        _ => port::open_with_link(&spec, args.baud, link),
+    };
+    let transport = match opened {
         Ok(t) => t as Box<dyn Transport>,
         Err(e @ PortError::Serial(SerialError::Missing { .. } | SerialError::Open { .. })) => {
             anyhow::bail!("{e}; {}", available_ports())

@@ -49,6 +49,10 @@ enum Command {
     Recall(cli::params::RecallArgs),
     /// Print the board's status and telemetry.
     Status(cli::status::Args),
+    /// What works on a freshly flashed board, one line per check (safe state, link
+    /// integrity, tick rate against the host's clock, DAC→ADC loopback, flash store and
+    /// recall) with what to fix; exits 1 when a check fails.
+    Selftest(cli::selftest::Args),
     /// Start the board's waveform generator.
     Waveform(cli::waveform::Args),
     /// Run a scan pattern (raster, Lissajous, spiral) on the board with its trigger outputs,
@@ -139,6 +143,7 @@ fn main() -> std::process::ExitCode {
         Command::Mode(a) => cli::params::run_mode(a),
         Command::Recall(a) => cli::params::run_recall(a),
         Command::Status(a) => cli::status::run(a),
+        Command::Selftest(a) => cli::selftest::run(a),
         Command::Waveform(a) => cli::waveform::run(a),
         Command::Scan(a) => cli::scan::run(a),
         Command::Sequence(a) => cli::sequence::run(a),

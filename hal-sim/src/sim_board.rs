@@ -137,6 +137,8 @@ struct DriveChain<D> {
     plant: Plant,
     sensor: PositionSensor,
     periods: u64,
+    /// A jumper from the left DAC channel to the ADC's input in place of the sensor.
+    loopback: bool,
 }
 
 impl<D: AnalogDualDac> DriveChain<D> {
@@ -149,7 +151,8 @@ impl<D: AnalogDualDac> DriveChain<D> {
         let ur = self.amplifiers[1].drive(vr, dt);
         let x = self.plant.step(ul, ur);
         self.periods += 1;
-        Ok(self.sensor.volts(x))
+        let sensor = self.sensor.volts(x);
+        Ok(if self.loopback { vl } else { sensor })
     }
 }
 
@@ -261,6 +264,7 @@ impl<D: AnalogDualDac, A: AnalogSensorAdc> SimBoard<D, A> {
                 plant,
                 sensor,
                 periods: 0,
+                loopback: false,
             },
             adc,
             sensor_node,
@@ -280,6 +284,14 @@ impl<D: AnalogDualDac, A: AnalogSensorAdc> SimBoard<D, A> {
                 sensor_node: &self.sensor_node,
             },
         )
+    }
+
+    /// Fits (`true`) or removes a jumper from the left DAC channel's output to the sensor
+    /// ADC's input, in place of the sensor: the ADC then reads the DAC's volts (from the
+    /// next write on), which `twinstack selftest` checks the converters with. The stage is
+    /// still driven.
+    pub fn set_loopback(&mut self, fitted: bool) {
+        self.chain.loopback = fitted;
     }
 
     /// The plant (displacement, tips, charges, hysteresis voltages).

@@ -57,7 +57,9 @@ use twinstack::command_handler::CommandHandler;
 use twinstack::control::{Controller, TickReport};
 use twinstack::control_loop::{ControlLoop, SetpointQueue};
 use twinstack::dual_stage::{CoarseLimits, CoarseStatus};
-use twinstack::param_store::{self, RamStorage, RecordStorage, StoredRecord, MAX_RECORD};
+use twinstack::param_store::{
+    self, RamStorage, RecordStorage, StorageError, StoredRecord, MAX_RECORD,
+};
 use twinstack::recorder::CAPTURE_SLOTS;
 use twinstack::refusal::Refusal;
 use twinstack::sequence::SETTLED;
@@ -87,6 +89,15 @@ pub struct SimDeviceConfig {
     /// A simulated camera on the trigger input ([`crate::sim_camera`]), or none (the input
     /// stays where [`SimDevice::set_trigger_input`] puts it).
     pub camera: Option<CameraConfig>,
+    /// Fraction of bytes the link corrupts, each way (one bit flipped, at random from a
+    /// seeded generator): a bad cable, a ground loop, a wrong baud rate. 0: a sound link.
+    pub link_error_rate: f64,
+    /// A jumper from the left DAC channel to the sensor ADC's input in place of the sensor
+    /// (`twinstack selftest`'s loopback): the ADC reads the DAC's output volts.
+    pub loopback: bool,
+    /// Every flash write fails (the erase goes through, the programming does not: the
+    /// sector is left erased), as a worn or locked flash would.
+    pub failing_flash: bool,
 }
 
 impl SimDeviceConfig {
@@ -100,6 +111,9 @@ impl SimDeviceConfig {
             link: LinkDelay::IDEAL,
             stored: Some(Self::paper_settings(Mode::Bypass)),
             camera: None,
+            link_error_rate: 0.0,
+            loopback: false,
+            failing_flash: false,
         }
     }
 
@@ -256,6 +270,8 @@ pub enum SimDeviceError {
     Baud,
     /// The coarse axis of the dual-stage board could not be built (which setting, why).
     Coarse(String),
+    /// A link error rate outside 0…1.
+    ErrorRate(f64),
     /// The link's jitter exceeds its latency.
     Jitter {
         /// The latency asked for.
@@ -273,6 +289,10 @@ impl std::fmt::Display for SimDeviceError {
             Self::Defaults(r) => write!(f, "compiled-in settings refused: {r}"),
             Self::Baud => write!(f, "baud rate must be positive"),
             Self::Coarse(e) => write!(f, "coarse axis: {e}"),
+            Self::ErrorRate(r) => write!(
+                f,
+                "link error rate {r}: must be a fraction of bytes from 0 to 1"
+            ),
             Self::Jitter { latency, jitter } => write!(
                 f,
                 "link jitter {jitter:?} exceeds its latency {latency:?} (a delay cannot be negative)"
@@ -374,7 +394,7 @@ pub struct SimDevice<D = InternalDac, A = InternalAdc> {
     /// task runs between them.
     coarse: Option<Box<dyn CoarseAxisSim>>,
     control: ControlLoop<Vec<i16>, Box<Controller>>,
-    handler: CommandHandler<RamStorage>,
+    handler: CommandHandler<SimFlash>,
     queue: Box<SetpointQueue>,
     telemetry: Box<TelemetryQueue>,
     /// Simulated time, ns.
@@ -394,6 +414,65 @@ pub struct SimDevice<D = InternalDac, A = InternalAdc> {
     trigger_input: bool,
     /// A simulated camera driving the trigger input (its TTL output ORed onto it).
     camera: Option<SimCamera>,
+    /// The link's byte corruption, both ways.
+    errors: LinkErrors,
+}
+
+/// The simulated board's "flash": [`RamStorage`], whose writes can be made to fail
+/// ([`SimDeviceConfig::failing_flash`]).
+#[derive(Clone, Debug, Default)]
+pub struct SimFlash {
+    ram: RamStorage,
+    /// Every write fails, leaving the sector erased (the erase went through, the programming
+    /// did not).
+    pub fail_writes: bool,
+}
+
+impl RecordStorage for SimFlash {
+    fn read(&self) -> &[u8] {
+        self.ram.read()
+    }
+
+    fn write(&mut self, record: &[u8]) -> Result<(), StorageError> {
+        if self.fail_writes {
+            self.ram = RamStorage::default();
+            return Err(StorageError::WriteFailed);
+        }
+        self.ram.write(record)
+    }
+}
+
+/// Corrupts a fraction of the bytes on the link: one bit flipped in each byte hit (xorshift64*
+/// from a seed: the same bytes every run).
+#[derive(Clone, Debug)]
+struct LinkErrors {
+    /// Threshold on a 53-bit draw: `rate × 2^53`.
+    threshold: u64,
+    state: u64,
+}
+
+impl LinkErrors {
+    fn new(rate: f64, seed: u64) -> Self {
+        Self {
+            threshold: (rate.clamp(0.0, 1.0) * (1u64 << 53) as f64) as u64,
+            state: seed.wrapping_mul(0xD1B5_4A32_D192_ED03) | 1,
+        }
+    }
+
+    fn draw(&mut self) -> u64 {
+        self.state ^= self.state >> 12;
+        self.state ^= self.state << 25;
+        self.state ^= self.state >> 27;
+        self.state.wrapping_mul(0x2545_F491_4F6C_DD1D) >> 11
+    }
+
+    /// `byte`, or it with one bit flipped.
+    fn pass(&mut self, byte: u8) -> u8 {
+        if self.threshold == 0 || self.draw() >= self.threshold {
+            return byte;
+        }
+        byte ^ 1 << (self.draw() % 8)
+    }
 }
 
 impl SimDevice {
@@ -402,7 +481,12 @@ impl SimDevice {
         if config.baud == 0 {
             return Err(SimDeviceError::Baud);
         }
-        let board = SimBoard::internal(&config.board).map_err(SimDeviceError::Board)?;
+        if !(config.link_error_rate.is_finite() && (0.0..=1.0).contains(&config.link_error_rate))
+        {
+            return Err(SimDeviceError::ErrorRate(config.link_error_rate));
+        }
+        let mut board = SimBoard::internal(&config.board).map_err(SimDeviceError::Board)?;
+        board.set_loopback(config.loopback);
         // The control rate is a whole number of hertz, as the firmware's timer runs it (and
         // as the status report and the stored record carry it); `1 / dt` is not exactly one.
         let rate_hz = (1.0 / board.plant().dt()).round();
@@ -415,6 +499,8 @@ impl SimDevice {
             None,
         )?;
         device.set_camera(config.camera);
+        device.handler.storage_mut().fail_writes = config.failing_flash;
+        device.set_link_errors(config.link_error_rate);
         Ok(device)
     }
 }
@@ -442,7 +528,7 @@ impl<D: AnalogDualDac, A: AnalogSensorAdc> SimDevice<D, A> {
         let rate_hz = hw.control_rate_hz;
         // The "flash": erased, or holding the stored settings at this rate; the board boots
         // from it exactly as the firmware does.
-        let mut storage = RamStorage::default();
+        let mut storage = SimFlash::default();
         if let Some(settings) = stored {
             let record = StoredRecord {
                 control_rate_hz: rate_hz.round() as u32,
@@ -499,6 +585,7 @@ impl<D: AnalogDualDac, A: AnalogSensorAdc> SimDevice<D, A> {
             last_report: None,
             trigger_input: false,
             camera: None,
+            errors: LinkErrors::new(0.0, link.seed),
         })
     }
 
@@ -578,6 +665,12 @@ impl<D: AnalogDualDac, A: AnalogSensorAdc> SimDevice<D, A> {
         self.camera.as_ref()
     }
 
+    /// Corrupts `rate` of the bytes on the link from now on, each way (0: a sound link);
+    /// clamped to 0…1.
+    pub fn set_link_errors(&mut self, rate: f64) {
+        self.errors = LinkErrors::new(rate, self.errors.state);
+    }
+
     /// Bytes the modelled UART carried each way so far.
     pub fn line(&self) -> LineCounters {
         self.tx.counters
@@ -614,7 +707,7 @@ impl<D: AnalogDualDac, A: AnalogSensorAdc> SimDevice<D, A> {
     }
 
     /// The command handler (settings in force, sequence number, storage).
-    pub fn handler(&self) -> &CommandHandler<RamStorage> {
+    pub fn handler(&self) -> &CommandHandler<SimFlash> {
         &self.handler
     }
 
@@ -657,6 +750,7 @@ impl<D: AnalogDualDac, A: AnalogSensorAdc> Transport for SimDevice<D, A> {
         self.tx.counters.bytes_in += bytes.len() as u64;
         for &b in bytes {
             t += self.byte_ns;
+            let b = self.errors.pass(b);
             self.rx.push_back((t, b));
         }
         self.rx_line_free_ns = t;
@@ -681,7 +775,7 @@ impl<D: AnalogDualDac, A: AnalogSensorAdc> Transport for SimDevice<D, A> {
                 while n < buf.len() {
                     match self.tx.bytes.front() {
                         Some(&(at, b)) if at <= self.now_ns => {
-                            buf[n] = b;
+                            buf[n] = self.errors.pass(b);
                             n += 1;
                             self.tx.bytes.pop_front();
                         }

@@ -35,7 +35,8 @@ use serde::{Deserialize, Serialize};
 /// bytes (the largest settings with shaping). Version 8: appended the packed setpoint batch
 /// (`Request::PackedSetpoints`), `StreamControl::Finish`, `NackReason::NotOwner` and
 /// TTL-stepped sequences (`Request::Sequence`, `Response::Sequence`, the `Field`s
-/// `SequenceEdge` … `SequenceSettle`).
+/// `SequenceEdge` … `SequenceSettle`), then the echo (`Request::Echo`, `Response::Echo`:
+/// appended, so every other encoding stays; a board without it answers `UnknownType`).
 pub const PROTOCOL_VERSION: u8 = 8;
 /// Largest frame body (version + message + CRC), bytes: a load of the largest settings (two
 /// generalised P–I models of 32 operators and 8 dead zones, both notches) fits.

@@ -17,14 +17,14 @@ pub use crate::setpoint_stream::UnderrunPolicy;
 use crate::settings::Settings;
 use serde::{Deserialize, Serialize};
 
-use super::frame::{FrameError, Message};
+use super::frame::{FrameError, Message, MAX_BODY};
 
 impl Message for Request {
-    const VARIANTS: u32 = 25;
+    const VARIANTS: u32 = 26;
 }
 
 impl Message for Response {
-    const VARIANTS: u32 = 11;
+    const VARIANTS: u32 = 12;
 }
 
 /// Most setpoints one batch carries.
@@ -107,7 +107,26 @@ pub enum Request {
     /// A TTL-stepped sequence ([`crate::sequence`]): arm it over the positions queued (sent
     /// as setpoints), stop it, or read its counts (answered with [`Response::Sequence`]).
     Sequence(SequenceRequest),
+    /// Answer these bytes back ([`Response::Echo`], the same bytes): what `twinstack
+    /// selftest` checks the link's integrity with, frames of any content and length up to the
+    /// largest. Handled as a command (the low-priority task), never on the tick.
+    Echo(heapless::Vec<u8, MAX_ECHO>),
 }
+
+/// Most bytes one [`Request::Echo`] carries: what fills a frame body of [`MAX_BODY`]
+/// (version, tag, a two-byte length, the bytes, the CRC), so an echo both ways is as large a
+/// frame as the protocol sends.
+///
+/// ```
+/// use twinstack::protocol::frame::{encode, MAX_BODY, MAX_ENCODED};
+/// use twinstack::protocol::messages::{Request, Response, MAX_ECHO};
+/// let bytes: heapless::Vec<u8, MAX_ECHO> = (0..MAX_ECHO).map(|i| i as u8).collect();
+/// let mut out = [0u8; MAX_ENCODED + 1];
+/// assert!(encode(&Request::Echo(bytes.clone()), &mut out).is_ok());
+/// assert!(encode(&Response::Echo(bytes), &mut out).is_ok());
+/// assert_eq!(MAX_ECHO, MAX_BODY - 8);
+/// ```
+pub const MAX_ECHO: usize = MAX_BODY - 8;
 
 /// Start or stop continuous telemetry.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
@@ -460,6 +479,8 @@ pub enum Response {
     Learn(LearnStatus),
     /// A sequence's state and counts (the answer to `Sequence(Status)`).
     Sequence(SequenceStatus),
+    /// The bytes of a [`Request::Echo`], as they arrived.
+    Echo(heapless::Vec<u8, MAX_ECHO>),
 }
 
 /// Why a request was refused. Wire-stable: variants are only appended.

@@ -1,7 +1,7 @@
 //! The `hal-sim` subcommands, one module each: `run(&Args) -> anyhow::Result<()>`.
 //!
 //! Board commands (`calibrate`, `stream`, `load`, `params`, `mode`, `recall`, `status`,
-//! `waveform`, `stop`, `record`, `telemetry`, `coarse`, `scan`, `sequence`, `tune`, `view`, and `learn` with
+//! `waveform`, `stop`, `record`, `telemetry`, `coarse`, `scan`, `sequence`, `selftest`, `tune`, `view`, and `learn` with
 //! `--port`) share [`board_link`]'s `--port` / `--baud` / `--timeout-ms`.
 
 /// The exit codes of every `hal-sim` command, as `twinstack --help` lists them.
@@ -40,6 +40,7 @@ pub mod params;
 pub mod progress;
 pub mod record;
 pub mod scan;
+pub mod selftest;
 pub mod sequence;
 pub mod serve;
 pub mod status;

@@ -19,7 +19,9 @@ pub struct Args {
     /// device).
     #[arg(long)]
     pub listen: String,
-    /// Simulated seconds per wall-clock second (0: as fast as possible).
+    /// Simulated seconds per wall-clock second (0: as fast as possible). Everything on the
+    /// board runs on it, so 1.02 is a board whose clock runs 2 % fast (what `twinstack
+    /// selftest`'s tick rate check finds).
     #[arg(long, default_value_t = 1.0)]
     pub speed: f64,
     /// The board's control rate, Hz.
@@ -46,6 +48,13 @@ pub struct Args {
     /// trigger-in) instead of free-running.
     #[arg(long, requires = "camera_hz")]
     pub camera_on_settled: bool,
+    /// A jumper from the left DAC channel to the sensor ADC's input, in place of the sensor
+    /// (the wiring `twinstack selftest` checks the converters with): the ADC reads the DAC.
+    #[arg(long)]
+    pub loopback: bool,
+    /// Every flash write fails (the sector is left erased), as a worn or locked flash would.
+    #[arg(long)]
+    pub fail_flash_writes: bool,
 }
 
 /// Runs `virtual-board`.
@@ -75,6 +84,14 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     }
     let link = args.link.delay()?;
     let mut config = SimDeviceConfig::paper_at(args.tick_rate, args.baud, link);
+    config.link_error_rate = args.link.error_rate()?;
+    config.loopback = args.loopback;
+    config.failing_flash = args.fail_flash_writes;
+    if args.dual_stage && (args.loopback || args.fail_flash_writes || config.link_error_rate > 0.0) {
+        anyhow::bail!(
+            "--loopback, --fail-flash-writes and --link-error-rate are faults and wiring of the default board, not --dual-stage"
+        );
+    }
     if let Some(hz) = args.camera_hz {
         if args.dual_stage {
             anyhow::bail!(

@@ -109,6 +109,7 @@ pub fn request_name(request: &Request) -> &'static str {
         Request::Trigger(_) => "Trigger",
         Request::PackedSetpoints(_) => "Setpoints",
         Request::Sequence(_) => "Sequence",
+        Request::Echo(_) => "Echo",
     }
 }
 
@@ -408,6 +409,26 @@ impl<T: Transport> Client<T> {
             }),
             other => Err(LinkError::Unexpected {
                 request: name,
+                got: format!("{other:?}"),
+            }),
+        }
+    }
+
+    /// Sends `bytes` in a [`Request::Echo`] and returns what the board answered back (the
+    /// same bytes on a sound link).
+    pub fn echo(&mut self, bytes: &[u8]) -> Result<Vec<u8>, LinkError> {
+        let payload = heapless::Vec::from_slice(bytes).map_err(|_| LinkError::Encode {
+            request: "Echo",
+            reason: FrameError::TooLarge,
+        })?;
+        match self.request(&Request::Echo(payload))? {
+            Response::Echo(back) => Ok(back.to_vec()),
+            Response::Nack { reason } => Err(LinkError::Nack {
+                request: "Echo",
+                reason,
+            }),
+            other => Err(LinkError::Unexpected {
+                request: "Echo",
                 got: format!("{other:?}"),
             }),
         }

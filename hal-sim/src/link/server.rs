@@ -3,7 +3,7 @@
 //! board to itself (`--port tcp:HOST:PORT`).
 //!
 //! **Who may do what.** Reading is open to everyone: `Status`, `ReadParams`, `ReadRecord`,
-//! `CaptureStatus`, `ReadCapture`, `CoarseStatus`, and the learning's `Status` and
+//! `CaptureStatus`, `ReadCapture`, `CoarseStatus`, `Echo`, and the learning's `Status` and
 //! `ReadTable`. Everything that changes the board (setpoints, stream control, modes,
 //! settings, recorder and capture arming, waveforms, scans, triggers, the coarse axis, the
 //! learning) belongs to one client at a time, the **owner**: the first client to send such a
@@ -66,6 +66,7 @@ pub fn access(request: &Request) -> Access {
         | Request::CaptureStatus
         | Request::ReadCapture { .. }
         | Request::CoarseStatus
+        | Request::Echo(_)
         | Request::Learn(LearnRequest::Status | LearnRequest::ReadTable { .. }) => Access::Read,
         Request::Telemetry(_) => Access::Telemetry,
         _ => Access::Write,
