@@ -481,8 +481,7 @@ impl SimDevice {
         if config.baud == 0 {
             return Err(SimDeviceError::Baud);
         }
-        if !(config.link_error_rate.is_finite() && (0.0..=1.0).contains(&config.link_error_rate))
-        {
+        if !(config.link_error_rate.is_finite() && (0.0..=1.0).contains(&config.link_error_rate)) {
             return Err(SimDeviceError::ErrorRate(config.link_error_rate));
         }
         let mut board = SimBoard::internal(&config.board).map_err(SimDeviceError::Board)?;

@@ -231,7 +231,8 @@ fn validate(args: &Args, spec: Option<&PortSpec>) -> anyhow::Result<()> {
         ))
         .into());
     }
-    if !(args.tick_tolerance_ppm.is_finite() && (0.0..=100_000.0).contains(&args.tick_tolerance_ppm))
+    if !(args.tick_tolerance_ppm.is_finite()
+        && (0.0..=100_000.0).contains(&args.tick_tolerance_ppm))
     {
         return Err(UsageError(format!(
             "--tick-tolerance-ppm {}: must be from 0 to 100000",
@@ -475,16 +476,16 @@ fn link(client: &mut BoardClient, echoes: u32, seed: u64) -> anyhow::Result<Chec
     let host_before = client.counters().corrupt_frames;
     let timeout = client.timeout();
     let mut rng = Rng(seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) | 1);
-    let (mut intact, mut damaged_in, mut lost, mut differ, mut bytes) = (0u32, 0u32, 0u32, 0u32, 0u64);
+    let (mut intact, mut damaged_in, mut lost, mut differ, mut bytes) =
+        (0u32, 0u32, 0u32, 0u32, 0u64);
     let mut unknown = 0u32;
     let mut rtt_max = Duration::ZERO;
     let origin = Instant::now();
     for i in 0..echoes {
         let payload = echo_payload(i, &mut rng);
         bytes += payload.len() as u64;
-        let request = Request::Echo(
-            heapless::Vec::from_slice(&payload).expect("at most MAX_ECHO bytes"),
-        );
+        let request =
+            Request::Echo(heapless::Vec::from_slice(&payload).expect("at most MAX_ECHO bytes"));
         let start = link_now(client, origin);
         // Sent once, not retried: a damaged frame is what this check counts.
         client.send(&request)?;
@@ -587,11 +588,7 @@ fn bracketed_status(
     Ok(best.expect("three reads"))
 }
 
-fn tick_rate(
-    client: &mut BoardClient,
-    image: Image,
-    args: &Args,
-) -> anyhow::Result<CheckResult> {
+fn tick_rate(client: &mut BoardClient, image: Image, args: &Args) -> anyhow::Result<CheckResult> {
     let check = CheckName::TickRate;
     if client.transport().clock().is_some() {
         return Ok(CheckResult::skip(
@@ -665,7 +662,11 @@ fn tick_rate(
         ));
     }
     if !(low..=high).contains(&configured) {
-        let way = if measured > configured { "fast" } else { "slow" };
+        let way = if measured > configured {
+            "fast"
+        } else {
+            "slow"
+        };
         return Ok(CheckResult::fail(
             check,
             detail,
@@ -729,11 +730,18 @@ fn loopback(
     // left it: where it started).
     let restored = retry(client, |c| c.load_params(&original));
     let (pairs, dac_full_scale) = measured?;
-    restored.map_err(|e| anyhow::anyhow!("loopback: the settings in force could not be put back: {e}"))?;
+    restored.map_err(|e| {
+        anyhow::anyhow!("loopback: the settings in force could not be put back: {e}")
+    })?;
     let fs = dac_full_scale.max(1) as f64;
     let points: Vec<(f64, f64)> = pairs
         .iter()
-        .map(|&(dac, sensor)| (dac as u16 as f64 / fs, (sensor as f64 / 32768.0 + 1.0) / 2.0))
+        .map(|&(dac, sensor)| {
+            (
+                dac as u16 as f64 / fs,
+                (sensor as f64 / 32768.0 + 1.0) / 2.0,
+            )
+        })
         .collect();
     let (dac_lo, dac_hi) = span(points.iter().map(|p| p.0));
     let (adc_lo, adc_hi) = span(points.iter().map(|p| p.1));
@@ -965,15 +973,17 @@ fn flash(client: &mut BoardClient) -> anyhow::Result<CheckResult> {
             let put_back = retry(client, |c| c.load_params(s))
                 .and_then(|()| retry(client, |c| c.store_params(s.mode)));
             let again = retry(client, |c| c.load_params(&in_force));
-            put_back.and(again).map(|()| "the settings stored before were stored again")
+            put_back
+                .and(again)
+                .map(|()| "the settings stored before were stored again")
         }
-        None if equal => {
-            retry(client, |c| c.load_params(&in_force)).map(|()| {
-                "flash held no settings before and now holds the settings in force (the \
+        None if equal => retry(client, |c| c.load_params(&in_force)).map(|()| {
+            "flash held no settings before and now holds the settings in force (the \
                  protocol has no erase): the board boots on them"
-            })
+        }),
+        None => {
+            retry(client, |c| c.load_params(&in_force)).map(|()| "flash held no settings before")
         }
-        None => retry(client, |c| c.load_params(&in_force)).map(|()| "flash held no settings before"),
     };
     let restored = restored
         .map(str::to_string)

@@ -87,7 +87,8 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     config.link_error_rate = args.link.error_rate()?;
     config.loopback = args.loopback;
     config.failing_flash = args.fail_flash_writes;
-    if args.dual_stage && (args.loopback || args.fail_flash_writes || config.link_error_rate > 0.0) {
+    if args.dual_stage && (args.loopback || args.fail_flash_writes || config.link_error_rate > 0.0)
+    {
         anyhow::bail!(
             "--loopback, --fail-flash-writes and --link-error-rate are faults and wiring of the default board, not --dual-stage"
         );
