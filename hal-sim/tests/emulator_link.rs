@@ -767,3 +767,47 @@ fn the_live_view_shows_the_emulated_firmware() {
     );
     assert_eq!(last["counts"]["missing"], 0);
 }
+
+/// `twinstack selftest` on the emulator image: the link's echoes pass through QEMU's UART and
+/// the safe state is read; the checks QEMU cannot answer say why they skip — the tick rate
+/// (QEMU runs on its instruction count, not the wall clock), the loopback (no DAC or ADC
+/// modelled) and the flash (the image has no parameter storage in QEMU, and says so).
+#[test]
+fn selftest_passes_on_the_emulator_image_and_skips_what_qemu_does_not_model() {
+    let qemu = boot();
+    drop(connect(&qemu)); // the firmware answers
+    let port = format!("unix:{}", qemu.socket.display());
+    let o = std::process::Command::new(env!("CARGO_BIN_EXE_twinstack"))
+        .args(["selftest", "--port", &port, "--echoes", "50", "--json"])
+        .output()
+        .expect("twinstack runs");
+    let out = String::from_utf8_lossy(&o.stdout);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{out}{err}");
+    let report: serde_json::Value = serde_json::from_str(out.trim()).expect("one JSON object");
+    assert_eq!(report["image"], "emulator");
+    let outcome = |name: &str| -> (String, String) {
+        let c = report["checks"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .find(|c| c["check"] == name)
+            .unwrap_or_else(|| panic!("no {name} in {report}"));
+        (
+            c["outcome"].as_str().unwrap().to_string(),
+            c["detail"].as_str().unwrap().to_string(),
+        )
+    };
+    assert_eq!(outcome("link").0, "PASS", "{report}");
+    assert_eq!(report["checks"][2]["figures"]["intact"], 50);
+    assert_eq!(outcome("safe-state").0, "PASS", "{report}");
+    let (tick, why) = outcome("tick-rate");
+    assert_eq!(tick, "SKIP");
+    assert!(why.contains("instruction count"), "{why}");
+    let (loopback, why) = outcome("loopback");
+    assert_eq!(loopback, "SKIP");
+    assert!(why.contains("no DAC"), "{why}");
+    let (flash, why) = outcome("flash");
+    assert_eq!(flash, "SKIP");
+    assert!(why.contains("no parameter storage"), "{why}");
+}

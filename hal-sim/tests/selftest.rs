@@ -275,8 +275,8 @@ fn bad_flags_are_one_line_usage_errors() {
             "--tick-seconds NaN",
         ),
         (
-            vec!["--port", "sim", "--tick-tolerance-ppm", "-1"],
-            "--tick-tolerance-ppm",
+            vec!["--port", "sim", "--tick-tolerance-ppm=-1"],
+            "--tick-tolerance-ppm -1",
         ),
         (
             vec!["--port", "sim", "--loopback-tolerance-pct", "0"],

@@ -957,7 +957,7 @@ fn flash(client: &mut BoardClient) -> anyhow::Result<CheckResult> {
             return Ok(CheckResult::fail(
                 check,
                 format!("writing the settings in force to flash failed (erase, program or read-back); {lost}"),
-                "the parameter sector is worn, write-protected (option bytes) or the supply sagged during the write: check the option bytes with probe-rs, the board's 3.3 V under load, and store again (twinstack load --store)",
+                "the parameter sector is worn, write-protected (option bytes) or the supply sagged during the write: check the option bytes with probe-rs, the board's 3.3 V under load, and store again (twinstack load --params FILE --store MODE)",
                 figures(false),
             ));
         }
