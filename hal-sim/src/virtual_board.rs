@@ -15,7 +15,8 @@
 //! server, or was busy) is owed and run in the next turns, so the board's clock keeps the wall
 //! clock's rate, as a board's crystal does (`twinstack selftest` measures it); only a debt
 //! beyond [`MAX_DEBT`] (a host too slow for real time) is dropped, and the board then runs
-//! slower than real time. `speed` 0 runs as fast as possible ([`MAX_STEP`] per turn). The
+//! slower than real time. Before the client's bytes go onto the board's line the whole debt is
+//! run, so a request is answered at the board time it was sent, not behind it. `speed` 0 runs as fast as possible ([`MAX_STEP`] per turn). The
 //! board runs while no client is connected, too.
 //!
 //! **Pseudo-terminal** (Unix, [`serve_pty`]): the board's UART is the master side of a pty; a
@@ -135,7 +136,12 @@ pub fn serve_device<D: AnalogDualDac, A: AnalogSensorAdc>(
         match client.as_mut() {
             Some(stream) => match stream.read(&mut buf) {
                 Ok(0) => connected = false,
-                Ok(n) => device.send(&buf[..n])?,
+                Ok(n) => {
+                    // The bytes arrive now on the wall clock: the board's clock first catches
+                    // up with it, so that what it answers is read at the time it is asked.
+                    device.run_for(clock.catch_up(device.now()));
+                    device.send(&buf[..n])?
+                }
                 Err(e)
                     if matches!(
                         e.kind(),
@@ -190,6 +196,7 @@ pub fn serve_pty(
                     report.clients += 1;
                     connected = true;
                 }
+                device.run_for(clock.catch_up(device.now()));
                 device.send(&buf[..n])?;
             }
             Err(e)
@@ -327,6 +334,19 @@ impl Pacer {
             self.target = now + MAX_DEBT;
         }
         owed.min(MAX_STEP)
+    }
+
+    /// All the simulated time owed now (at most [`MAX_DEBT`]), to run before bytes that
+    /// arrive now are put on the board's line: a board's clock does not lag the requests.
+    fn catch_up(&mut self, now: Duration) -> Duration {
+        if self.speed == 0.0 {
+            return Duration::ZERO;
+        }
+        let wall = self.start.elapsed();
+        let elapsed = wall.saturating_sub(self.wall);
+        self.wall = wall;
+        self.target = (self.target.max(now) + elapsed.mul_f64(self.speed)).min(now + MAX_DEBT);
+        self.target.saturating_sub(now)
     }
 }
 
