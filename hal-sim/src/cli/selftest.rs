@@ -792,7 +792,7 @@ fn loopback(
         return Ok(CheckResult::fail(
             check,
             detail,
-            "fit the jumper from the left DAC channel (PA4) to the sensor ADC input (PA0), the sensor unplugged, or --skip loopback on a board without it; a jumper fitted and a slope far from 1 is a converter or reference fault",
+            "fit the jumper from the left DAC channel (PA4) to the sensor ADC input (PA0 on the driver board, A2/PA6 on the Feather), the sensor unplugged, or --skip loopback on a board without it; a jumper fitted and a slope far from 1 is a converter or reference fault",
             figures,
         ));
     }
