@@ -749,23 +749,14 @@ fn the_live_view_shows_the_emulated_firmware() {
                         .as_array()
                         .is_some_and(|f| f.iter().any(|f| f == "waveform")) =>
             {
-                let (code, answer) =
-                    view_client::post(&addr, "/api/telemetry", r#"{"run": false}"#);
-                assert_eq!(code, 200, "{answer}");
+                view_client::pause(&addr);
                 paused = true;
             }
             _ => {}
         }
         paused && v["counts"]["produced"].is_u64()
     });
-    let (_, last) = evs.last().unwrap();
-    let produced = last["counts"]["produced"].as_u64().unwrap();
-    assert_eq!(
-        received,
-        produced - start.unwrap(),
-        "every sample the emulated board produced from the first this client saw reached it"
-    );
-    assert_eq!(last["counts"]["missing"], 0);
+    view_client::assert_every_sample_arrived(&evs, received, start);
 }
 
 /// `twinstack selftest` on the emulator image: the link's echoes pass through QEMU's UART and

@@ -237,23 +237,14 @@ fn the_live_view_reads_through_the_server_beside_a_stream() {
                 refused = true;
             }
             "status" if refused && !paused && done.load(Ordering::Relaxed) => {
-                let (code, answer) =
-                    view_client::post(&addr, "/api/telemetry", r#"{"run": false}"#);
-                assert_eq!(code, 200, "{answer}");
+                view_client::pause(&addr);
                 paused = true;
             }
             _ => {}
         }
         paused && v["counts"]["produced"].is_u64()
     });
-    let (_, last) = evs.last().unwrap();
-    let produced = last["counts"]["produced"].as_u64().unwrap();
-    assert_eq!(
-        received,
-        produced - start.unwrap(),
-        "every sample from the first the view saw reached it"
-    );
-    assert_eq!(last["counts"]["missing"], 0);
+    view_client::assert_every_sample_arrived(&evs, received, start);
     let (r, streamer) = stream.join().unwrap();
     assert_eq!(r.accepted, 40_000);
     assert_eq!(r.underruns_during_stream(), 0);

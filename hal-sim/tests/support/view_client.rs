@@ -127,3 +127,29 @@ pub fn events(
         }
     }
 }
+
+/// Pauses the view's telemetry (`POST /api/telemetry {"run": false}`): the board's end frame
+/// then carries the count it produced.
+pub fn pause(addr: &str) {
+    let (code, answer) = post(addr, "/api/telemetry", r#"{"run": false}"#);
+    assert_eq!(code, 200, "{answer}");
+}
+
+/// The last event carries the board's count of samples produced: `received`, counted from the
+/// sample numbered `first` (the first this client saw), is all of them, and none is missing.
+pub fn assert_every_sample_arrived(
+    events: &[(String, serde_json::Value)],
+    received: u64,
+    first: Option<u64>,
+) {
+    let (_, last) = events.last().expect("events");
+    let produced = last["counts"]["produced"]
+        .as_u64()
+        .expect("the board's count");
+    assert_eq!(
+        received,
+        produced - first.expect("samples"),
+        "every sample the board produced from the first this client saw reached it"
+    );
+    assert_eq!(last["counts"]["missing"], 0);
+}
