@@ -78,6 +78,15 @@ pub trait SensorAdc {
     fn full_scale(&self) -> AdcCode;
     /// The most recent conversion (started by the control timer's trigger).
     fn read(&mut self) -> Result<AdcCode, Self::Error>;
+
+    /// The analog setpoint input's most recent conversion ([`crate::analog_input`]),
+    /// converted on the same trigger as the sensor: a fraction of the input's span, UQ0.16
+    /// (0 = 0 V at the pin, 65535 = full scale; a 12-bit code shifted left by 4). `None`: the
+    /// board has no such input (the default) or the conversion failed — a lost input.
+    #[inline(always)]
+    fn setpoint_input(&mut self) -> Option<u16> {
+        None
+    }
 }
 
 /// Direction of travel of the coarse stage's motor (the step/dir driver's DIR line).

@@ -23,6 +23,7 @@ use core::ops::DerefMut;
 use heapless::spsc::Producer;
 use rtic_core::Mutex;
 
+use crate::analog_input::{AnalogInputConfig, AnalogRequest, AnalogStatus, PreparedInput};
 use crate::board::Hardware;
 use crate::control::Controller;
 use crate::control_loop::ControlLoop;
@@ -68,6 +69,9 @@ pub struct CommandHandler<S> {
     telemetry: TelemetryPacker,
     /// The learning's task half ([`crate::learning`]): its table and the ILC law.
     learn: LearnTask,
+    /// The analog input's settings last started (or loaded from the stored record): what
+    /// `StoreParams` stores with the settings.
+    analog: Option<AnalogInputConfig>,
 }
 
 impl<S: RecordStorage> CommandHandler<S> {
@@ -86,7 +90,20 @@ impl<S: RecordStorage> CommandHandler<S> {
             tx: [0; MAX_RESPONSE],
             telemetry: TelemetryPacker::new(),
             learn: LearnTask::new(),
+            analog: None,
         }
+    }
+
+    /// The analog input's settings from the stored record the board booted on (`None` for
+    /// a board on its defaults): kept for the next `StoreParams`, and prepared at the
+    /// control rate when they say `start_at_boot` — the caller starts the input with them
+    /// ([`ControlLoop::start_analog`]) before the first tick, so the board runs stand-alone
+    /// from power-up. Settings the rate refuses are dropped (the record's were checked at
+    /// its own rate, which is the rate the board runs).
+    pub fn boot_analog(&mut self, stored: Option<AnalogInputConfig>) -> Option<PreparedInput> {
+        let prepared = stored?.prepare(self.hardware.control_rate_hz).ok()?;
+        self.analog = stored;
+        stored.filter(|a| a.start_at_boot).map(|_| prepared)
     }
 
     /// Feeds one received byte. When it completes a frame, the request is handled and the
@@ -157,11 +174,15 @@ impl<S: RecordStorage> CommandHandler<S> {
             Request::Status => return Response::Status(self.status(queue, control)),
             Request::Setpoints(batch) => self.setpoints(batch, queue),
             Request::PackedSetpoints(batch) => self.setpoints(batch.into(), queue),
+            Request::Stream(StreamControl::Start) if analog_running(control) => {
+                Err(NackReason::Busy)
+            }
             Request::Stream(c) => stream(c, control),
             Request::Mode(mode) => self.mode(mode, control),
             Request::LoadParams(p) => self.load(p, control),
             Request::StoreParams { boot_mode } => self.store(boot_mode, control),
             Request::RecallParams => self.recall(control),
+            Request::Waveform(_) if analog_running(control) => Err(NackReason::Busy),
             Request::Waveform(w) => self.waveform(w, control),
             Request::Record(r) => record(r, control),
             Request::ReadRecord { offset } => {
@@ -216,6 +237,7 @@ impl<S: RecordStorage> CommandHandler<S> {
                     Err(reason) => nack(reason),
                 }
             }
+            Request::Scan(_) if analog_running(control) => Err(NackReason::Busy),
             Request::Scan(r) => self.scan(r, control),
             Request::Echo(bytes) => return Response::Echo(bytes),
             Request::Trigger(t) => {
@@ -224,6 +246,11 @@ impl<S: RecordStorage> CommandHandler<S> {
             }
             Request::Sequence(r) => match self.sequence(r, control) {
                 Ok(Some(status)) => return Response::Sequence(status),
+                Ok(None) => Ok(()),
+                Err(reason) => Err(reason),
+            },
+            Request::Analog(r) => match self.analog(r, control) {
+                Ok(Some(status)) => return Response::Analog(status),
                 Ok(None) => Ok(()),
                 Err(reason) => Err(reason),
             },
@@ -262,6 +289,8 @@ impl<S: RecordStorage> CommandHandler<S> {
             (t.scanning, StatusReport::SCANNING),
             (t.trigger_armed, StatusReport::TRIGGER_ARMED),
             (t.sequence, StatusReport::SEQUENCE),
+            (t.analog, StatusReport::ANALOG),
+            (t.analog_fault, StatusReport::ANALOG_FAULT),
         ] {
             if on {
                 flags |= flag;
@@ -374,6 +403,7 @@ impl<S: RecordStorage> CommandHandler<S> {
                 mode: boot_mode,
                 ..self.settings.clone()
             },
+            analog: self.analog,
         };
         let mut bytes = [0u8; MAX_RECORD];
         let n = record
@@ -478,6 +508,7 @@ impl<S: RecordStorage> CommandHandler<S> {
         L: Mutex<T = ControlLoop<B, C>>,
     {
         match r {
+            SequenceRequest::Arm(_) if analog_running(control) => Err(NackReason::Busy),
             SequenceRequest::Arm(config) => {
                 config.check().map_err(NackReason::Refused)?;
                 let step = crate::sequence::move_step(self.max_scan_step());
@@ -489,6 +520,47 @@ impl<S: RecordStorage> CommandHandler<S> {
                 Ok(None)
             }
             SequenceRequest::Status => Ok(Some(control.lock(|c| c.sequence_status()))),
+        }
+    }
+
+    /// Starts (settings checked and prepared outside any lock; refused while another source
+    /// runs), stops or reads the analog setpoint input.
+    #[inline(never)] // rare: one copy, not one per caller
+    fn analog<B, C, L>(
+        &mut self,
+        r: AnalogRequest,
+        control: &mut L,
+    ) -> Result<Option<AnalogStatus>, NackReason>
+    where
+        B: SampleStore,
+        C: DerefMut<Target = Controller>,
+        L: Mutex<T = ControlLoop<B, C>>,
+    {
+        match r {
+            AnalogRequest::Start(config) => {
+                let prepared = config
+                    .prepare(self.hardware.control_rate_hz)
+                    .map_err(NackReason::Refused)?;
+                control.lock(|c| {
+                    if c.other_source_running() {
+                        Err(NackReason::Busy)
+                    } else {
+                        c.start_analog(prepared);
+                        Ok(())
+                    }
+                })?;
+                self.analog = Some(config);
+                Ok(None)
+            }
+            AnalogRequest::Stop => {
+                control.lock(|c| {
+                    if c.analog_status().running {
+                        c.stop();
+                    }
+                });
+                Ok(None)
+            }
+            AnalogRequest::Status => Ok(Some(control.lock(|c| c.analog_status()))),
         }
     }
 
@@ -740,6 +812,16 @@ fn refused(field: Field, rule: Rule) -> NackReason {
 
 fn credits<const N: usize>(queue: &Producer<'_, i16, N>) -> u16 {
     queue.capacity().saturating_sub(queue.len()) as u16
+}
+
+/// Whether the analog input is the setpoint source (another source's start is refused).
+fn analog_running<B, C, L>(control: &mut L) -> bool
+where
+    B: SampleStore,
+    C: DerefMut<Target = Controller>,
+    L: Mutex<T = ControlLoop<B, C>>,
+{
+    control.lock(|c| c.analog_status().running)
 }
 
 fn stream<B, C, L>(c: StreamControl, control: &mut L) -> Result<(), NackReason>

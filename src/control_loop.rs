@@ -22,6 +22,10 @@
 //! (step 1): each edge on the trigger input pops one position from the setpoint queue, and the
 //! settled output joins the trigger levels.
 //!
+//! With the analog input running ([`crate::analog_input`]) the setpoint comes from the board's
+//! second ADC input instead (step 1: [`SensorAdc::setpoint_input`], scaled, filtered, checked
+//! against its window).
+//!
 //! A configuration prepared by the command handler ([`Controller::prepare`], on the spare
 //! controller, outside any lock) is swapped in by [`ControlLoop::post`] inside the handler's
 //! short critical section, in O(1): the loop holds its controllers by pointer, so the swap
@@ -43,6 +47,7 @@ use heapless::spsc::{Consumer, Producer, Queue};
 
 use core::ops::DerefMut;
 
+use crate::analog_input::{AnalogInput, AnalogStatus, PreparedInput};
 use crate::board::{DualDac, SensorAdc};
 use crate::control::{ControlCounters, Controller, TickFlags, TickReport};
 use crate::drive::StackVoltages;
@@ -109,6 +114,10 @@ pub struct Telemetry {
     pub trigger_armed: bool,
     /// Whether a TTL-stepped sequence is armed.
     pub sequence: bool,
+    /// Whether the analog input is the setpoint source.
+    pub analog: bool,
+    /// Whether the analog input is lost or over-range (while it runs).
+    pub analog_fault: bool,
 }
 
 /// Everything the control interrupt owns. `B` is the recorder's buffer; `C` a handle on a
@@ -162,6 +171,8 @@ pub struct ControlLoop<B, C> {
     levels: u8,
     /// The TTL-stepped sequence ([`crate::sequence`]): while armed, the setpoint source.
     sequence: SteppedSequence,
+    /// The analog setpoint input ([`crate::analog_input`]): while running, the setpoint source.
+    analog: AnalogInput,
     /// The learning's tick half: the correction table it plays, the errors it stores
     /// ([`crate::learning`]). Last: see the type's doc, and the assertion after it.
     learning: LearnTick,
@@ -213,6 +224,7 @@ where
             stream_on_trigger: false,
             levels: 0,
             sequence: SteppedSequence::new(),
+            analog: AnalogInput::new(),
         }
     }
 
@@ -230,6 +242,9 @@ where
         let (mut scanned, events) = self.scan_tick();
         if self.sequence.is_armed() {
             scanned = Some(self.sequence_tick(queue));
+        }
+        if self.analog.is_running() {
+            scanned = Some(self.analog_tick(adc));
         }
         #[cfg(not(feature = "dual-stage"))]
         let setpoint = match scanned {
@@ -301,6 +316,37 @@ where
         self.sequence.next(self.input, position, queue)
     }
 
+    /// The analog input's setpoint this tick (running): the input's conversion, scaled,
+    /// filtered and checked ([`AnalogInput::next`]).
+    #[inline(always)]
+    fn analog_tick<A: SensorAdc>(&mut self, adc: &mut A) -> i32 {
+        let rest = self.controller.rest_setpoint();
+        self.analog.next(adc.setpoint_input(), rest)
+    }
+
+    /// Makes the analog input the setpoint source with `prepared` (checked and prepared by
+    /// the caller, [`crate::analog_input::AnalogInputConfig::prepare`]): the stream, the
+    /// waveform, a scan or a sequence stops, and the setpoint walks from where it is to the
+    /// input's value at the configured rate.
+    pub fn start_analog(&mut self, prepared: PreparedInput) {
+        self.stop();
+        let from = self.controller.setpoint();
+        self.analog.start(prepared, from);
+    }
+
+    /// The analog input's state and counts.
+    pub fn analog_status(&self) -> AnalogStatus {
+        self.analog.status()
+    }
+
+    /// Stops the analog input: the stream (stopped) holds where it left the setpoint.
+    fn end_analog(&mut self) {
+        if self.analog.is_running() {
+            self.analog.stop();
+            self.stream.hold_at_if_stopped(self.controller.setpoint());
+        }
+    }
+
     /// Arms a TTL-stepped sequence ([`crate::sequence`]; `config` checked by the caller) over
     /// the positions queued, moving by at most `max_step` (Q2.30) a tick: the stream, the
     /// waveform or a scan stops, and the stage holds until the first edge.
@@ -369,6 +415,7 @@ where
     /// `on_trigger`, when the armed external trigger fires (the setpoint holds meanwhile).
     pub fn scan(&mut self, mut scan: ScanGenerator, on_trigger: bool) {
         self.end_sequence();
+        self.end_analog();
         self.waveform = false;
         self.stream.stop();
         self.stream.hold_at_if_stopped(self.controller.setpoint());
@@ -506,6 +553,7 @@ where
         self.waveform = false;
         self.end_scan();
         self.end_sequence();
+        self.end_analog();
         self.stream.start();
         self.learning.restart();
         self.recorder.trigger(Trigger::StreamStart);
@@ -517,6 +565,7 @@ where
         self.stream.stop();
         self.end_scan();
         self.end_sequence();
+        self.end_analog();
     }
 
     /// Disarms a sequence: the stream (stopped) holds where the sequence left the setpoint.
@@ -556,6 +605,7 @@ where
     pub fn play(&mut self, waveform: WaveformGenerator) {
         self.end_scan();
         self.end_sequence();
+        self.end_analog();
         self.waveform = true;
         self.stream.play(waveform);
         self.learning.restart();
@@ -647,11 +697,26 @@ where
             scanning: self.is_scanning(),
             trigger_armed: self.external.is_armed(),
             sequence: self.sequence.is_armed(),
+            analog: self.analog.is_running(),
+            analog_fault: {
+                let a = self.analog.status();
+                a.running && (a.lost || a.over_range)
+            },
         }
     }
 
-    /// Whether the stream, the waveform generator, a scan or a sequence is running.
+    /// Whether the stream, the waveform generator, a scan, a sequence or the analog input is
+    /// running.
     pub fn is_running(&self) -> bool {
+        self.stream.is_running()
+            || self.is_scanning()
+            || self.sequence.is_armed()
+            || self.analog.is_running()
+    }
+
+    /// Whether a source other than the analog input runs (the stream, the waveform, a scan or
+    /// a sequence): what an analog start is refused for.
+    pub fn other_source_running(&self) -> bool {
         self.stream.is_running() || self.is_scanning() || self.sequence.is_armed()
     }
 

@@ -44,6 +44,7 @@
 #![cfg_attr(target_os = "none", deny(unsafe_code))]
 #![warn(missing_docs)]
 
+pub mod analog_input;
 pub mod board;
 pub mod bouc_wen;
 pub mod coarse_axis;

@@ -194,14 +194,39 @@ pub fn decode(record: &[u8], expected_version: u16) -> Result<&[u8], StoreError>
     Ok(&record[HEADER_LEN..body_end])
 }
 
-/// Payload layout version of the record (version 5: the control rate and the one
-/// [`Settings`] type, which ends with the optional input shaping (`shaping`); version 4 lacked
+/// Payload layout version of the record (version 6: the control rate, the one [`Settings`]
+/// type, and the analog setpoint input's settings ([`StoredRecord::analog`]); version 5
+/// lacked the last and is still read, as no analog input. Version 5's settings end with the
+/// optional input shaping (`shaping`); version 4 lacked
 /// it and is still read, as settings without shaping ([`StoredRecord::decode`]); in version 4
 /// `Model` had gained the generalised P–I and Bouc–Wen (appended in that order) and the
 /// settings the optional creep operator; version 3 lacked all three, and versions 1 and 2 had
 /// a separate board payload and a wire parameter set: none of them is read, such a
 /// board boots on the defaults and says so).
-pub const RECORD_VERSION: u16 = 5;
+pub const RECORD_VERSION: u16 = 6;
+
+/// The last record version without the analog input's settings, still read.
+pub const RECORD_VERSION_WITHOUT_ANALOG: u16 = 5;
+
+/// Version 5's payload: the rate and the settings, no analog input (read only).
+#[derive(serde::Deserialize)]
+struct RecordV5 {
+    control_rate_hz: u32,
+    settings: Settings,
+}
+
+/// A version-5 payload as a record without an analog input.
+#[inline(never)]
+fn decode_v5(payload: &[u8]) -> Option<StoredRecord> {
+    match postcard::take_from_bytes::<RecordV5>(payload) {
+        Ok((r, [])) => Some(StoredRecord {
+            control_rate_hz: r.control_rate_hz,
+            settings: r.settings,
+            analog: None,
+        }),
+        _ => None,
+    }
+}
 
 /// The last record version without input shaping, still read.
 pub const RECORD_VERSION_WITHOUT_SHAPING: u16 = 4;
@@ -221,6 +246,7 @@ fn decode_v4(payload: &[u8]) -> Option<StoredRecord> {
         Ok((r, [])) => Some(StoredRecord {
             control_rate_hz: r.control_rate_hz,
             settings: r.settings.into(),
+            analog: None,
         }),
         _ => None,
     }
@@ -234,6 +260,9 @@ pub struct StoredRecord {
     pub control_rate_hz: u32,
     /// The settings, in the mode the user stored them to boot in.
     pub settings: Settings,
+    /// The analog setpoint input's settings last started ([`crate::analog_input`]), or none;
+    /// with `start_at_boot` the board starts it at power-up, with no host.
+    pub analog: Option<crate::analog_input::AnalogInputConfig>,
 }
 
 /// Why a sound record's contents were refused.
@@ -272,6 +301,7 @@ impl Default for StoredRecord {
         Self {
             control_rate_hz: Hardware::DEFAULT_CONTROL_RATE_HZ,
             settings: Settings::default(),
+            analog: None,
         }
     }
 }
@@ -289,14 +319,21 @@ impl StoredRecord {
     }
 
     /// Decodes and checks a record: the envelope, the payload, the control rate, and the
-    /// settings on `hardware` at the stored rate (`hardware`'s own rate is ignored). A
-    /// version-4 record (before input shaping) is read as settings without shaping.
+    /// settings and the analog input's on `hardware` at the stored rate (`hardware`'s own rate
+    /// is ignored). A version-5 record is read as no analog input, a version-4 record (before
+    /// input shaping) as settings without shaping.
     pub fn decode(record: &[u8], hardware: &Hardware) -> Result<Self, LoadFailure> {
         let stored = match decode(record, RECORD_VERSION) {
             Ok(payload) => match postcard::take_from_bytes::<StoredRecord>(payload) {
                 Ok((r, [])) => Some(r),
                 _ => None,
             },
+            Err(StoreError::UnsupportedVersion {
+                found: RECORD_VERSION_WITHOUT_ANALOG,
+                ..
+            }) => decode_v5(
+                decode(record, RECORD_VERSION_WITHOUT_ANALOG).map_err(LoadFailure::Record)?,
+            ),
             Err(StoreError::UnsupportedVersion {
                 found: RECORD_VERSION_WITHOUT_SHAPING,
                 ..
@@ -324,6 +361,10 @@ impl StoredRecord {
             .settings
             .build(&hw)
             .map_err(|r| LoadFailure::Settings(SettingsError::Refused(r)))?;
+        if let Some(a) = &stored.analog {
+            a.check(rate as f64)
+                .map_err(|r| LoadFailure::Settings(SettingsError::Refused(r)))?;
+        }
         Ok(stored)
     }
 }
@@ -481,6 +522,7 @@ mod tests {
         StoredRecord {
             control_rate_hz: rate,
             settings,
+            analog: None,
         }
     }
 
@@ -523,14 +565,15 @@ mod tests {
         let mut s = stored(50_000);
         s.settings.compensator = Some(crate::settings::representative_pi(8).unwrap());
         s.settings.mode = crate::settings::Mode::OpenLoop;
-        // Version 4's payload is version 5's without the last byte (`shaping: None`).
+        // Version 4's payload is version 6's without the last two bytes (`shaping: None`,
+        // `analog: None`).
         let mut payload = [0u8; MAX_PAYLOAD];
         let used = postcard::to_slice(&s, &mut payload).unwrap().len();
-        assert_eq!(payload[used - 1], 0, "the trailing None");
+        assert_eq!(payload[used - 2..used], [0, 0], "the trailing Nones");
         let mut buf = [0u8; MAX_RECORD];
         let n = encode(
             RECORD_VERSION_WITHOUT_SHAPING,
-            &payload[..used - 1],
+            &payload[..used - 2],
             &mut buf,
         )
         .unwrap();
@@ -539,7 +582,12 @@ mod tests {
             (s.clone(), ParamSource::Stored)
         );
         // Version 5 with the byte left off is malformed, not silently shaped.
-        let n = encode(RECORD_VERSION, &payload[..used - 1], &mut buf).unwrap();
+        let n = encode(
+            RECORD_VERSION_WITHOUT_ANALOG,
+            &payload[..used - 2],
+            &mut buf,
+        )
+        .unwrap();
         assert_eq!(load_record(&buf[..n], &HW).1.as_str(), "bad-settings");
         s.settings.shaping = Some(crate::notch::NotchDesign {
             frequency_hz: 21_807.0,
@@ -548,6 +596,55 @@ mod tests {
         });
         let (buf, n) = record_of(&s);
         assert_eq!(load_record(&buf[..n], &HW), (s, ParamSource::Stored));
+    }
+
+    /// A record stored before the analog input (version 5) still loads, as no analog input;
+    /// a record with one round-trips, and one with hostile analog settings is refused.
+    #[test]
+    fn a_version_5_record_loads_without_an_analog_input() {
+        use crate::analog_input::{AnalogInputConfig, OnFault};
+        let mut s = stored(50_000);
+        let mut payload = [0u8; MAX_PAYLOAD];
+        let used = postcard::to_slice(&s, &mut payload).unwrap().len();
+        assert_eq!(payload[used - 1], 0, "the trailing None");
+        let mut buf = [0u8; MAX_RECORD];
+        let n = encode(
+            RECORD_VERSION_WITHOUT_ANALOG,
+            &payload[..used - 1],
+            &mut buf,
+        )
+        .unwrap();
+        assert_eq!(
+            load_record(&buf[..n], &HW),
+            (s.clone(), ParamSource::Stored)
+        );
+        // Version 6 without the byte is malformed.
+        let n = encode(RECORD_VERSION, &payload[..used - 1], &mut buf).unwrap();
+        assert_eq!(load_record(&buf[..n], &HW).1.as_str(), "bad-settings");
+        let analog = AnalogInputConfig {
+            gain: 2.0,
+            offset: -1.0,
+            corner_hz: Some(1000.0),
+            lost_below: 0.02,
+            over_above: 0.98,
+            on_fault: OnFault::RampToRest,
+            rate: 5.0,
+            start_at_boot: true,
+        };
+        s.analog = Some(analog);
+        let (buf, n) = record_of(&s);
+        assert_eq!(
+            load_record(&buf[..n], &HW),
+            (s.clone(), ParamSource::Stored)
+        );
+        s.analog = Some(AnalogInputConfig {
+            rate: -1.0,
+            ..analog
+        });
+        let (buf, n) = record_of(&s);
+        let (record, source) = load_record(&buf[..n], &HW);
+        assert_eq!(record, StoredRecord::default());
+        assert_eq!(source.as_str(), "bad-settings");
     }
 
     #[test]

@@ -180,6 +180,18 @@ pub enum Field {
     SequenceWindow,
     /// A sequence's settle time, ticks.
     SequenceSettle,
+    /// The analog input's gain, normalised displacement per input span.
+    AnalogGain,
+    /// The analog input's offset, normalised displacement.
+    AnalogOffset,
+    /// The analog input's low-pass corner, Hz.
+    AnalogCorner,
+    /// The analog input's valid window, lower bound (fraction of the span).
+    AnalogLostBelow,
+    /// The analog input's valid window, upper bound (fraction of the span).
+    AnalogOverAbove,
+    /// The analog input's ramp rate (faults and recovery), normalised displacement per second.
+    AnalogRate,
 }
 
 /// The rule a field broke, with its limit where it has one (in the field's own units).
@@ -374,6 +386,12 @@ impl core::fmt::Display for Field {
             Field::SequenceEdge => "sequence edge",
             Field::SequenceWindow => "sequence window",
             Field::SequenceSettle => "sequence settle ticks",
+            Field::AnalogGain => "analog gain",
+            Field::AnalogOffset => "analog offset",
+            Field::AnalogCorner => "analog corner_hz",
+            Field::AnalogLostBelow => "analog lost_below",
+            Field::AnalogOverAbove => "analog over_above",
+            Field::AnalogRate => "analog rate",
         };
         f.write_str(name)
     }

@@ -1033,6 +1033,7 @@ fn a_board_on_erased_storage_boots_in_bypass_on_the_defaults_and_says_so() {
     let n = StoredRecord {
         control_rate_hz: RATE,
         settings: closed(),
+        analog: None,
     }
     .encode(&mut sector)
     .unwrap();

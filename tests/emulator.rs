@@ -446,6 +446,7 @@ fn a_stored_parameter_record_sets_the_tick_rate_and_boots_in_its_mode() {
     let stored = StoredRecord {
         control_rate_hz: 20_000,
         settings: settings.clone(),
+        analog: None,
     };
     let mut emu = Emulator::boot("stored", Some(&record_of(&stored)));
     let s = emu.status();
@@ -463,6 +464,7 @@ fn a_record_with_a_bad_crc_boots_on_defaults_and_says_so() {
     let mut record = record_of(&StoredRecord {
         control_rate_hz: 20_000,
         settings: awkward_settings(),
+        analog: None,
     });
     record[HEADER_LEN] ^= 0x40; // corrupt the stored rate; the CRC no longer matches
     let mut emu = Emulator::boot("bad-crc", Some(&record));

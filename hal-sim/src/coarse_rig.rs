@@ -366,7 +366,7 @@ impl DualStageDevice {
         SimDevice::build(
             board,
             hw,
-            Some(settings),
+            Some((settings, None)),
             config.baud,
             config.link,
             Some(Box::new(rig) as Box<dyn CoarseAxisSim>),

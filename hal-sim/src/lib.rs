@@ -35,6 +35,7 @@
 //! * [`cli`] — the `hal-sim` subcommands.
 
 pub mod accuracy;
+pub mod analog_source;
 pub mod board_link;
 pub mod board_requests;
 pub mod calibrate;

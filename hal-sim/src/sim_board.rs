@@ -18,6 +18,7 @@
 //!   2.5 V reference: 0–5 V), and its [`Ads8689`] driver on an emulated ADS8689 (±10.24 V) with a
 //!   ±10 V sensor.
 
+use crate::analog_source::SetpointInput;
 use crate::converters::{
     Ads8689FrameError, Amplifier, AmplifierConfig, AnalogDualDac, AnalogSensorAdc,
     Dac856xFrameError, Dac856xVariant, EmulatedAds8689, EmulatedDac856x, InternalAdc,
@@ -127,6 +128,8 @@ pub struct SimBoard<D, A> {
     adc: A,
     /// The wire from the sensor's output to the ADC's input, volts.
     sensor_node: Cell<f64>,
+    /// The analog setpoint input's pin and ADC channel.
+    setpoint_input: SetpointInput,
 }
 
 /// Everything from the DAC codes to the sensor's output voltage.
@@ -169,6 +172,10 @@ pub struct BoardDac<'a, D> {
 pub struct BoardAdc<'a, A> {
     adc: &'a mut A,
     sensor_node: &'a Cell<f64>,
+    setpoint_input: &'a SetpointInput,
+    /// The control period about to run (what the setpoint input converts).
+    period: u64,
+    dt: f64,
 }
 
 impl<D: AnalogDualDac> DualDac for BoardDac<'_, D> {
@@ -198,6 +205,12 @@ impl<A: AnalogSensorAdc> SensorAdc for BoardAdc<'_, A> {
     fn read(&mut self) -> Result<AdcCode, Self::Error> {
         self.adc.set_input_volts(self.sensor_node.get());
         self.adc.read()
+    }
+
+    /// The setpoint input's conversion at the start of this period (converted on the same
+    /// trigger, before the tick).
+    fn setpoint_input(&mut self) -> Option<u16> {
+        self.setpoint_input.reading(self.period, self.dt)
     }
 }
 
@@ -268,12 +281,24 @@ impl<D: AnalogDualDac, A: AnalogSensorAdc> SimBoard<D, A> {
             },
             adc,
             sensor_node,
+            setpoint_input: SetpointInput::default(),
         }
+    }
+
+    /// What drives the analog setpoint input's pin from now on.
+    pub fn set_setpoint_input(&mut self, input: SetpointInput) {
+        self.setpoint_input = input;
+    }
+
+    /// The analog setpoint input's pin.
+    pub fn setpoint_input(&self) -> &SetpointInput {
+        &self.setpoint_input
     }
 
     /// The DAC and the ADC as two handles, for code that takes them separately (the control
     /// tick: `controller.tick(setpoint, &mut adc, &mut dac)`).
     pub fn split(&mut self) -> (BoardDac<'_, D>, BoardAdc<'_, A>) {
+        let (period, dt) = (self.chain.periods, self.chain.plant.dt());
         (
             BoardDac {
                 chain: &mut self.chain,
@@ -282,6 +307,9 @@ impl<D: AnalogDualDac, A: AnalogSensorAdc> SimBoard<D, A> {
             BoardAdc {
                 adc: &mut self.adc,
                 sensor_node: &self.sensor_node,
+                setpoint_input: &self.setpoint_input,
+                period,
+                dt,
             },
         )
     }
@@ -352,5 +380,9 @@ impl<D: AnalogDualDac, A: AnalogSensorAdc> SensorAdc for SimBoard<D, A> {
 
     fn read(&mut self) -> Result<AdcCode, Self::Error> {
         self.split().1.read()
+    }
+
+    fn setpoint_input(&mut self) -> Option<u16> {
+        self.split().1.setpoint_input()
     }
 }

@@ -52,6 +52,7 @@ use std::io;
 use std::time::Duration;
 
 use rtic_core::Exclusive;
+use twinstack::analog_input::AnalogInputConfig;
 use twinstack::board::Hardware;
 use twinstack::command_handler::CommandHandler;
 use twinstack::control::{Controller, TickReport};
@@ -60,6 +61,7 @@ use twinstack::dual_stage::{CoarseLimits, CoarseStatus};
 use twinstack::param_store::{
     self, RamStorage, RecordStorage, StorageError, StoredRecord, MAX_RECORD,
 };
+use twinstack::protocol::messages::{Request, Response};
 use twinstack::recorder::CAPTURE_SLOTS;
 use twinstack::refusal::Refusal;
 use twinstack::sequence::SETTLED;
@@ -98,6 +100,9 @@ pub struct SimDeviceConfig {
     /// Every flash write fails (the erase goes through, the programming does not: the
     /// sector is left erased), as a worn or locked flash would.
     pub failing_flash: bool,
+    /// The analog setpoint input's settings stored with `stored` (ignored without it): with
+    /// `start_at_boot`, the board starts the input at power-up as the firmware does.
+    pub stored_analog: Option<AnalogInputConfig>,
 }
 
 impl SimDeviceConfig {
@@ -114,6 +119,7 @@ impl SimDeviceConfig {
             link_error_rate: 0.0,
             loopback: false,
             failing_flash: false,
+            stored_analog: None,
         }
     }
 
@@ -492,7 +498,7 @@ impl SimDevice {
         let mut device = SimDevice::build(
             board,
             hardware(rate_hz),
-            config.stored,
+            config.stored.map(|s| (s, config.stored_analog)),
             config.baud,
             config.link,
             None,
@@ -510,7 +516,7 @@ impl<D: AnalogDualDac, A: AnalogSensorAdc> SimDevice<D, A> {
     pub(crate) fn build(
         board: SimBoard<D, A>,
         hw: Hardware,
-        stored: Option<Settings>,
+        stored: Option<(Settings, Option<AnalogInputConfig>)>,
         baud: u32,
         link: LinkDelay,
         coarse: Option<Box<dyn CoarseAxisSim>>,
@@ -528,10 +534,11 @@ impl<D: AnalogDualDac, A: AnalogSensorAdc> SimDevice<D, A> {
         // The "flash": erased, or holding the stored settings at this rate; the board boots
         // from it exactly as the firmware does.
         let mut storage = SimFlash::default();
-        if let Some(settings) = stored {
+        if let Some((settings, analog)) = stored {
             let record = StoredRecord {
                 control_rate_hz: rate_hz.round() as u32,
                 settings,
+                analog,
             };
             let mut bytes = [0u8; MAX_RECORD];
             let n = record
@@ -542,6 +549,7 @@ impl<D: AnalogDualDac, A: AnalogSensorAdc> SimDevice<D, A> {
                 .map_err(|_| SimDeviceError::Stored)?;
         }
         let (record, source) = param_store::load_record(storage.read(), &hw);
+        let stored_analog = record.analog;
         let (settings, boot, defaults) =
             param_store::boot(record, source, &hw).map_err(SimDeviceError::Defaults)?;
         let mut control = ControlLoop::new(
@@ -553,7 +561,13 @@ impl<D: AnalogDualDac, A: AnalogSensorAdc> SimDevice<D, A> {
         if let Some(rig) = &coarse {
             control.coarse().attach(rig.limits(), rig.status());
         }
-        let handler = CommandHandler::new(hw, settings, defaults, storage);
+        let mut handler = CommandHandler::new(hw, settings, defaults, storage);
+        // As the firmware: the stored analog input starts before the first tick.
+        if !defaults {
+            if let Some(prepared) = handler.boot_analog(stored_analog) {
+                control.start_analog(prepared);
+            }
+        }
         Ok(Self {
             board,
             coarse,
@@ -595,6 +609,23 @@ impl<D: AnalogDualDac, A: AnalogSensorAdc> SimDevice<D, A> {
         while self.now_ns + self.tick_ns <= end {
             self.step();
         }
+    }
+
+    /// One tick period (see [`SimDevice::run_for`]): what a test steps tick by tick.
+    pub fn tick(&mut self) {
+        self.step();
+    }
+
+    /// Hands `request` to the command handler between two ticks, as the decoder task does
+    /// with a frame that arrived, bypassing the modelled UART: for tests that must know the
+    /// exact tick a command takes effect before.
+    pub fn handle(&mut self, request: &Request) -> Response {
+        let (mut producer, _) = self.queue.split();
+        self.handler.handle(
+            request.clone(),
+            &mut producer,
+            &mut Exclusive(&mut self.control),
+        )
     }
 
     /// One tick period: feed the bytes that have arrived to the handler, then tick, then
@@ -651,6 +682,13 @@ impl<D: AnalogDualDac, A: AnalogSensorAdc> SimDevice<D, A> {
     /// tick on: what a lab's camera or function generator does to the pin.
     pub fn set_trigger_input(&mut self, level: bool) {
         self.trigger_input = level;
+    }
+
+    /// Drives the board's analog setpoint input's pin with `source` from the next tick on
+    /// ([`crate::analog_source`]): what a lab's controller or function generator does to it.
+    pub fn set_analog_input(&mut self, source: crate::analog_source::AnalogSource) {
+        self.board
+            .set_setpoint_input(crate::analog_source::SetpointInput::new(source));
     }
 
     /// Puts a simulated camera on the trigger input (its TTL output ORed with the level

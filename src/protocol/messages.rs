@@ -5,6 +5,7 @@
 //! That halves the bytes per sample, so that 2 Mbaud carries 50 000 setpoints/s with room for
 //! framing and acknowledgements.
 
+pub use crate::analog_input::{AnalogInputConfig, AnalogRequest, AnalogStatus, OnFault};
 pub use crate::dual_stage::{CoarseState, CoarseStatus};
 pub use crate::learning::{LearnSettings, LearnState, PeriodError};
 pub use crate::recorder::{CaptureState, Signal, Trigger, MAX_CAPTURE_CHUNK, MAX_CHUNK};
@@ -20,11 +21,11 @@ use serde::{Deserialize, Serialize};
 use super::frame::{FrameError, Message, MAX_BODY};
 
 impl Message for Request {
-    const VARIANTS: u32 = 26;
+    const VARIANTS: u32 = 27;
 }
 
 impl Message for Response {
-    const VARIANTS: u32 = 12;
+    const VARIANTS: u32 = 13;
 }
 
 /// Most setpoints one batch carries.
@@ -111,6 +112,10 @@ pub enum Request {
     /// selftest` checks the link's integrity with, frames of any content and length up to the
     /// largest. Handled as a command (the low-priority task), never on the tick.
     Echo(heapless::Vec<u8, MAX_ECHO>),
+    /// The analog setpoint input ([`crate::analog_input`]): start it as the setpoint source
+    /// (refused with `Busy` while another source runs), stop it, or read its state (answered
+    /// with [`Response::Analog`]).
+    Analog(AnalogRequest),
 }
 
 /// Most bytes one [`Request::Echo`] carries: what fills a frame body of [`MAX_BODY`]
@@ -481,6 +486,8 @@ pub enum Response {
     Sequence(SequenceStatus),
     /// The bytes of a [`Request::Echo`], as they arrived.
     Echo(heapless::Vec<u8, MAX_ECHO>),
+    /// The analog input's state and counts (the answer to `Analog(Status)`).
+    Analog(AnalogStatus),
 }
 
 /// Why a request was refused. Wire-stable: variants are only appended.
@@ -501,7 +508,8 @@ pub enum NackReason {
     /// The board has no parameter storage.
     NoStorage,
     /// Not now: storing to flash stalls the tick, so it is refused while the stream or the
-    /// waveform runs.
+    /// waveform runs; a setpoint source is refused while another one runs (the analog input
+    /// and the stream, the waveform, a scan or a sequence exclude each other).
     Busy,
     /// Recall found no valid settings in flash (erased, damaged, or an older record).
     NothingStored,
@@ -563,6 +571,10 @@ impl StatusReport {
     pub const TRIGGER_ARMED: u16 = 1 << 7;
     /// Flag: a TTL-stepped sequence is armed (`Request::Sequence`).
     pub const SEQUENCE: u16 = 1 << 10;
+    /// Flag: the analog input is the setpoint source (`Request::Analog`).
+    pub const ANALOG: u16 = 1 << 11;
+    /// Flag: the analog input is lost or over-range (its fault behaviour holds or ramps).
+    pub const ANALOG_FAULT: u16 = 1 << 14;
     // Bit 4 is reserved (protocol v2's "load waiting for the next tick": since v3 a load is
     // in force when it is acknowledged).
     /// Flags bits 8–9: the mode (0 bypass, 1 open loop, 2 closed loop).

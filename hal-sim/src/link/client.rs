@@ -110,6 +110,7 @@ pub fn request_name(request: &Request) -> &'static str {
         Request::PackedSetpoints(_) => "Setpoints",
         Request::Sequence(_) => "Sequence",
         Request::Echo(_) => "Echo",
+        Request::Analog(_) => "Analog",
     }
 }
 

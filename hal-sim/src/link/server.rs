@@ -28,7 +28,7 @@ use std::time::{Duration, Instant};
 
 use twinstack::protocol::decoder::FrameDecoder;
 use twinstack::protocol::frame::{self, FrameError, MAX_ENCODED};
-use twinstack::protocol::messages::{LearnRequest, NackReason, Request, Response};
+use twinstack::protocol::messages::{AnalogRequest, LearnRequest, NackReason, Request, Response};
 
 use super::Transport;
 
@@ -67,6 +67,7 @@ pub fn access(request: &Request) -> Access {
         | Request::ReadCapture { .. }
         | Request::CoarseStatus
         | Request::Echo(_)
+        | Request::Analog(AnalogRequest::Status)
         | Request::Learn(LearnRequest::Status | LearnRequest::ReadTable { .. }) => Access::Read,
         Request::Telemetry(_) => Access::Telemetry,
         _ => Access::Write,

@@ -254,6 +254,7 @@ mod app {
 
         // The stored settings if they hold at the rate the timer runs, else the compiled-in
         // ones (bypass, no model), which hold at every rate the board runs.
+        let stored_analog = record.analog;
         let Ok((settings, config, defaults)) = param_store::boot(record, source, &hardware) else {
             panic!("compiled-in settings refused");
         };
@@ -272,8 +273,8 @@ mod app {
         #[cfg(feature = "emulator")]
         let second_half: &'static mut [i16; 0] = &mut [];
         let capture_buffer = SplitStore::new(cx.local.record_buffer, second_half as &mut [i16]);
-        let control = ControlLoop::new(active, spare, rate, capture_buffer);
-        let handler = CommandHandler::new(
+        let mut control = ControlLoop::new(active, spare, rate, capture_buffer);
+        let mut handler = CommandHandler::new(
             hardware,
             settings,
             defaults,
@@ -282,6 +283,12 @@ mod app {
             #[cfg(feature = "emulator")]
             ReadOnlyStorage(param_flash::record_window()),
         );
+        // The stored analog setpoint input starts before the first tick: stand-alone, no host.
+        if !defaults {
+            if let Some(prepared) = handler.boot_analog(stored_analog) {
+                control.start_analog(prepared);
+            }
+        }
         let (safe_left, safe_right) = control.safe_codes();
         safe_state::arm(safe_left, safe_right);
 

@@ -1,0 +1,103 @@
+//! The simulated board's analog setpoint input ([`twinstack::analog_input`]): the voltage a
+//! lab's controller puts on the board's input pin, tick by tick, converted as the board's
+//! 12-bit ADC converts it (0–3.3 V, on the control timer's trigger before each tick).
+//!
+//! ```
+//! use hal_sim::analog_source::{AnalogSource, SetpointInput};
+//! let input = SetpointInput::new(AnalogSource::Step { before: 0.0, after: 3.3, at_tick: 10 });
+//! assert_eq!(input.reading(9, 2e-5), Some(0));
+//! assert_eq!(input.reading(10, 2e-5), Some(4095 << 4));
+//! ```
+
+/// The ADC's reference: full scale at the pin, volts.
+pub const INPUT_FULL_SCALE_VOLTS: f64 = 3.3;
+/// The ADC's resolution, bits.
+pub const INPUT_BITS: u32 = 12;
+
+/// What drives the input pin.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum AnalogSource {
+    /// Nothing: the pin's pull-down holds it at 0 V (what an open input or a cut cable reads).
+    Disconnected,
+    /// A constant voltage at the pin.
+    Constant(f64),
+    /// `before` until tick `at_tick`, then `after` (volts at the pin).
+    Step {
+        /// Volts before the step.
+        before: f64,
+        /// Volts from tick `at_tick` on.
+        after: f64,
+        /// The first tick that converts `after`.
+        at_tick: u64,
+    },
+    /// `offset + amplitude · sin(2π f t)` volts.
+    Sine {
+        /// Mean, volts.
+        offset: f64,
+        /// Amplitude, volts.
+        amplitude: f64,
+        /// Frequency, Hz.
+        frequency_hz: f64,
+    },
+    /// No conversion at all (the ADC's result missing): the tick gets `None`.
+    NoConversion,
+}
+
+/// The input pin and its ADC channel.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct SetpointInput {
+    /// What drives the pin.
+    pub source: AnalogSource,
+}
+
+impl Default for SetpointInput {
+    fn default() -> Self {
+        Self::new(AnalogSource::Disconnected)
+    }
+}
+
+impl SetpointInput {
+    /// The input driven by `source`.
+    pub fn new(source: AnalogSource) -> Self {
+        Self { source }
+    }
+
+    /// Volts at the pin at tick `tick` (`dt` the control period, s); `None` without a
+    /// conversion.
+    pub fn volts(&self, tick: u64, dt: f64) -> Option<f64> {
+        match self.source {
+            AnalogSource::Disconnected => Some(0.0),
+            AnalogSource::Constant(v) => Some(v),
+            AnalogSource::Step {
+                before,
+                after,
+                at_tick,
+            } => Some(if tick >= at_tick { after } else { before }),
+            AnalogSource::Sine {
+                offset,
+                amplitude,
+                frequency_hz,
+            } => Some(
+                offset
+                    + amplitude
+                        * (2.0 * std::f64::consts::PI * frequency_hz * tick as f64 * dt).sin(),
+            ),
+            AnalogSource::NoConversion => None,
+        }
+    }
+
+    /// The conversion the tick `tick` reads: the 12-bit code of the pin's voltage (clipped
+    /// to the ADC's range) as UQ0.16 of the span, what [`twinstack::board::SensorAdc::setpoint_input`]
+    /// returns.
+    pub fn reading(&self, tick: u64, dt: f64) -> Option<u16> {
+        let v = self.volts(tick, dt)?;
+        let max = ((1u32 << INPUT_BITS) - 1) as f64;
+        let code = (v / INPUT_FULL_SCALE_VOLTS * max).round();
+        let code = if code.is_nan() {
+            0.0
+        } else {
+            code.clamp(0.0, max)
+        } as u16;
+        Some(code << (16 - INPUT_BITS))
+    }
+}
