@@ -27,9 +27,11 @@ const CHANNEL: u8 = super::profile::SENSOR_CHANNEL;
 #[allow(clippy::absurd_extreme_comparisons)] // 0 on the driver board
 const _: () = assert!(CHANNEL <= 9);
 
-/// ADC1 converting the sensor's channel on each TIM2 TRGO.
+/// ADC1 converting the sensor's channel on each TIM2 TRGO (and, when added, the analog
+/// setpoint input on ADC2: [`SensorInput::with_setpoint_input`]).
 pub struct SensorInput {
     adc: ADC1,
+    setpoint: Option<super::setpoint_adc::SetpointChannel>,
 }
 
 impl SensorInput {
@@ -53,7 +55,18 @@ impl SensorInput {
                 .adon()
                 .set_bit()
         });
-        Self { adc }
+        Self {
+            adc,
+            setpoint: None,
+        }
+    }
+
+    /// Adds the analog setpoint input ([`crate::analog_input`]) converted beside the sensor.
+    pub fn with_setpoint_input(self, input: super::setpoint_adc::SetpointChannel) -> Self {
+        Self {
+            setpoint: Some(input),
+            ..self
+        }
     }
 }
 
@@ -67,5 +80,10 @@ impl SensorAdc for SensorInput {
     #[inline(always)]
     fn read(&mut self) -> Result<AdcCode, Infallible> {
         Ok(AdcCode(self.adc.dr().read().bits() & FULL_SCALE))
+    }
+
+    #[inline(always)]
+    fn setpoint_input(&mut self) -> Option<u16> {
+        self.setpoint.as_ref().map(|s| s.read())
     }
 }

@@ -11,6 +11,7 @@
 //! | left stack drive `u_l` | PA4 | DAC channel 1 |
 //! | right stack drive `u_r` | PA5 | DAC channel 2 |
 //! | position sensor | PA0 | ADC1 channel 0, triggered by TIM2 TRGO |
+//! | analog setpoint input (0–3.3 V) | PC3 | ADC2 channel 13, triggered by TIM2 TRGO ([`setpoint_adc`]) |
 //! | host link TX / RX | PA9 / PA10 | USART1 (AF7), RX by DMA2 stream 2 channel 4 |
 //! | SWD | PA13 / PA14 | debug probe |
 //! | coarse stage STEP / DIR | PA8 / PB0 | TIM1 CH1 (AF1) / GPIO ([`coarse_stage`]) |
@@ -35,6 +36,7 @@ pub mod param_flash;
 pub mod pins;
 pub mod profile;
 pub mod safe_state;
+pub mod setpoint_adc;
 pub mod tick;
 pub mod trigger_pins;
 pub mod usart;

@@ -392,6 +392,10 @@ mod app {
         }
         #[cfg(feature = "dual-stage")]
         let coarse = coarse;
+        // The analog setpoint input (ADC2: PC3, the Feather's A3), after every port's split.
+        let adc = adc.with_setpoint_input(
+            twinstack::hardware::setpoint_adc::SetpointChannel::new(dp.ADC2, &rcc),
+        );
         // The setpoint queue: in CCM RAM on the board (only the core touches it), in SRAM in
         // the emulator (QEMU models no CCM).
         #[cfg(not(feature = "emulator"))]
