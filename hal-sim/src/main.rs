@@ -61,6 +61,9 @@ enum Command {
     /// Step through a list of positions, one per edge on the trigger input (a camera's TTL),
     /// with a settled output; reports early and missed edges and the trigger-to-motion time.
     Sequence(cli::sequence::Args),
+    /// The analog setpoint input: start it (the board follows a voltage on its input pin,
+    /// compensated), stop it, or read its state.
+    Analog(cli::analog::Args),
     /// Stop the stream or the waveform generator (the output holds).
     Stop(cli::stop::Args),
     /// Capture a signal with the board's recorder into a CSV.
@@ -147,6 +150,7 @@ fn main() -> std::process::ExitCode {
         Command::Waveform(a) => cli::waveform::run(a),
         Command::Scan(a) => cli::scan::run(a),
         Command::Sequence(a) => cli::sequence::run(a),
+        Command::Analog(a) => cli::analog::run(a),
         Command::Stop(a) => cli::stop::run(a),
         Command::Record(a) => cli::record::run(a),
         Command::Telemetry(a) => cli::telemetry::run(a),

@@ -366,3 +366,32 @@ fn store_params_keeps_the_input_last_started_for_the_next_power_up() {
     .unwrap();
     assert_eq!(record.analog, Some(c));
 }
+
+#[test]
+fn the_command_refuses_hostile_settings_by_name_and_starts_and_reads_the_input() {
+    let run = |args: &[&str]| {
+        std::process::Command::new(env!("CARGO_BIN_EXE_twinstack"))
+            .args(args)
+            .output()
+            .unwrap()
+    };
+    for (flag, value, field) in [
+        ("--rate", "0", "analog rate"),
+        ("--gain", "NaN", "analog gain"),
+        ("--over-above", "0.01", "analog over_above"),
+    ] {
+        let out = run(&["analog", "start", "--port", "sim", "--lost-below", "0.02", flag, value]);
+        assert!(!out.status.success(), "{flag} {value}");
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(err.contains(field) && err.contains("nothing was sent"), "{err}");
+    }
+    let out = run(&["analog", "start", "--port", "sim"]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let out = run(&["analog", "status", "--port", "sim", "--json"]);
+    assert!(out.status.success());
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(v["running"], false, "a fresh simulated board per command");
+    // --start-at-boot is a stored setting.
+    let out = run(&["analog", "start", "--port", "sim", "--start-at-boot"]);
+    assert!(String::from_utf8_lossy(&out.stderr).contains("--store"));
+}

@@ -1,7 +1,7 @@
 //! The `hal-sim` subcommands, one module each: `run(&Args) -> anyhow::Result<()>`.
 //!
 //! Board commands (`calibrate`, `stream`, `load`, `params`, `mode`, `recall`, `status`,
-//! `waveform`, `stop`, `record`, `telemetry`, `coarse`, `scan`, `sequence`, `selftest`, `tune`, `view`, and `learn` with
+//! `waveform`, `stop`, `record`, `telemetry`, `coarse`, `scan`, `sequence`, `selftest`, `analog`, `tune`, `view`, and `learn` with
 //! `--port`) share [`board_link`]'s `--port` / `--baud` / `--timeout-ms`.
 
 /// The exit codes of every `hal-sim` command, as `twinstack --help` lists them.
@@ -25,6 +25,7 @@ pub const EXIT_USAGE: u8 = 2;
 // The board connection is a library module (the learning over the link uses it too); the
 // commands reach it here as before.
 pub use crate::board_link;
+pub mod analog;
 pub mod calibrate;
 pub mod closed_loop;
 pub mod coarse;

@@ -21,9 +21,9 @@ use std::time::{Duration, Instant};
 use twinstack::protocol::decoder::FrameDecoder;
 use twinstack::protocol::frame::{self, FrameError, MAX_ENCODED};
 use twinstack::protocol::messages::{
-    CaptureRequest, CaptureStatus, CoarseStatus, Mode, NackReason, RecordRequest, Request,
-    Response, SequenceRequest, SequenceStatus, StatusReport, StreamControl, TelemetryFrame,
-    TelemetryRequest, Waveform, MAX_CAPTURE_CHUNK, MAX_CHUNK,
+    AnalogRequest, AnalogStatus, CaptureRequest, CaptureStatus, CoarseStatus, Mode, NackReason,
+    RecordRequest, Request, Response, SequenceRequest, SequenceStatus, StatusReport, StreamControl,
+    TelemetryFrame, TelemetryRequest, Waveform, MAX_CAPTURE_CHUNK, MAX_CHUNK,
 };
 use twinstack::settings::Settings;
 
@@ -543,6 +543,21 @@ impl<T: Transport> Client<T> {
             }),
             other => Err(LinkError::Unexpected {
                 request: "CaptureStatus",
+                got: format!("{other:?}"),
+            }),
+        }
+    }
+
+    /// The analog setpoint input's state and counts (`Analog(Status)`).
+    pub fn analog_status(&mut self) -> Result<AnalogStatus, LinkError> {
+        match self.request(&Request::Analog(AnalogRequest::Status))? {
+            Response::Analog(s) => Ok(s),
+            Response::Nack { reason } => Err(LinkError::Nack {
+                request: "Analog",
+                reason,
+            }),
+            other => Err(LinkError::Unexpected {
+                request: "Analog",
                 got: format!("{other:?}"),
             }),
         }
