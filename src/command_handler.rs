@@ -99,11 +99,18 @@ impl<S: RecordStorage> CommandHandler<S> {
     /// control rate when they say `start_at_boot` — the caller starts the input with them
     /// ([`ControlLoop::start_analog`]) before the first tick, so the board runs stand-alone
     /// from power-up. Settings the rate refuses are dropped (the record's were checked at
-    /// its own rate, which is the rate the board runs).
+    /// its own rate, which is the rate the board runs), and so is a start that would take
+    /// the tick over its budget ([`crate::tick_budget::ANALOG_CYCLES`]).
     pub fn boot_analog(&mut self, stored: Option<AnalogInputConfig>) -> Option<PreparedInput> {
         let prepared = stored?.prepare(self.hardware.control_rate_hz).ok()?;
         self.analog = stored;
-        stored.filter(|a| a.start_at_boot).map(|_| prepared)
+        let fits = self
+            .over_budget(crate::tick_budget::Beside {
+                analog: true,
+                ..Default::default()
+            })
+            .is_none();
+        stored.filter(|a| a.start_at_boot && fits).map(|_| prepared)
     }
 
     /// Feeds one received byte. When it completes a frame, the request is handled and the
@@ -350,6 +357,7 @@ impl<S: RecordStorage> CommandHandler<S> {
         let beside = control.lock(|c| crate::tick_budget::Beside {
             learning: c.learning().state() != LearnState::Off,
             scanning: c.is_scanning(),
+            analog: c.analog_status().running,
         });
         crate::tick_budget::check_with(&config, self.hardware.control_rate_hz, beside)
             .map_err(NackReason::Refused)?;
@@ -488,6 +496,7 @@ impl<S: RecordStorage> CommandHandler<S> {
         if let Some(refusal) = self.over_budget(crate::tick_budget::Beside {
             learning,
             scanning: true,
+            analog: false,
         }) {
             return Err(NackReason::Refused(refusal));
         }
@@ -541,6 +550,14 @@ impl<S: RecordStorage> CommandHandler<S> {
                 let prepared = config
                     .prepare(self.hardware.control_rate_hz)
                     .map_err(NackReason::Refused)?;
+                let learning = control.lock(|c| c.learning().state()) != LearnState::Off;
+                if let Some(refusal) = self.over_budget(crate::tick_budget::Beside {
+                    learning,
+                    scanning: false,
+                    analog: true,
+                }) {
+                    return Err(NackReason::Refused(refusal));
+                }
                 control.lock(|c| {
                     if c.other_source_running() {
                         Err(NackReason::Busy)
@@ -702,10 +719,12 @@ impl<S: RecordStorage> CommandHandler<S> {
                     Err(refused(Field::Sensor, Rule::Required))
                 } else if let Some(refusal) = (state != LearnState::Off)
                     .then(|| {
-                        let scanning = control.lock(|c| c.is_scanning());
+                        let (scanning, analog) =
+                            control.lock(|c| (c.is_scanning(), c.analog_status().running));
                         self.over_budget(crate::tick_budget::Beside {
                             learning: true,
                             scanning,
+                            analog,
                         })
                     })
                     .flatten()

@@ -86,6 +86,13 @@ pub const LEARNING_CYCLES: u32 = 90;
 /// pixel, line and frame events. Counted when a scan starts, and at every load while one runs.
 pub const SCAN_CYCLES: u32 = 150;
 
+/// The analog setpoint input while it runs ([`crate::analog_input`]): the second ADC's read,
+/// the window's compares, the scaling's and the low-pass's multiplies, the ramp. It replaces
+/// the stream's step, which the fixed part already charges; charged as a scan's step
+/// (whose pattern step does more), not yet measured by the whole-interrupt bench. Counted
+/// when the input starts, and at every load while it runs.
+pub const ANALOG_CYCLES: u32 = 150;
+
 /// Cycles the tick may take at `control_rate_hz`: [`TICK_SHARE_PERCENT`] of the period.
 /// A rate that is not positive and finite leaves none.
 pub fn available_cycles(control_rate_hz: f64) -> u32 {
@@ -165,19 +172,24 @@ pub fn check(config: &ControlConfig, control_rate_hz: f64) -> Result<(), Refusal
     check_with(config, control_rate_hz, Beside::default())
 }
 
-/// What runs beside the configuration and costs the tick: the learning feedforward, a scan.
+/// What runs beside the configuration and costs the tick: the learning feedforward, a scan,
+/// the analog setpoint input.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct Beside {
     /// The learning feedforward plays (learning or frozen).
     pub learning: bool,
     /// A scan runs (or waits for its trigger).
     pub scanning: bool,
+    /// The analog setpoint input runs.
+    pub analog: bool,
 }
 
 impl Beside {
     /// Their cost, cycles.
     pub fn cycles(&self) -> u32 {
-        u32::from(self.learning) * LEARNING_CYCLES + u32::from(self.scanning) * SCAN_CYCLES
+        u32::from(self.learning) * LEARNING_CYCLES
+            + u32::from(self.scanning) * SCAN_CYCLES
+            + u32::from(self.analog) * ANALOG_CYCLES
     }
 }
 

@@ -380,13 +380,29 @@ fn the_command_refuses_hostile_settings_by_name_and_starts_and_reads_the_input()
         ("--gain", "NaN", "analog gain"),
         ("--over-above", "0.01", "analog over_above"),
     ] {
-        let out = run(&["analog", "start", "--port", "sim", "--lost-below", "0.02", flag, value]);
+        let out = run(&[
+            "analog",
+            "start",
+            "--port",
+            "sim",
+            "--lost-below",
+            "0.02",
+            flag,
+            value,
+        ]);
         assert!(!out.status.success(), "{flag} {value}");
         let err = String::from_utf8_lossy(&out.stderr);
-        assert!(err.contains(field) && err.contains("nothing was sent"), "{err}");
+        assert!(
+            err.contains(field) && err.contains("nothing was sent"),
+            "{err}"
+        );
     }
     let out = run(&["analog", "start", "--port", "sim"]);
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
     let out = run(&["analog", "status", "--port", "sim", "--json"]);
     assert!(out.status.success());
     let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
