@@ -385,8 +385,6 @@ mod app {
         let coarse = CoarseStage;
 
         #[cfg(feature = "dual-stage")]
-        let mut control = control;
-        #[cfg(feature = "dual-stage")]
         if let Some(axis) = coarse.axis.as_mut() {
             control.coarse().attach(axis.limits(), axis.status());
         }
