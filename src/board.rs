@@ -48,6 +48,12 @@ impl Hardware {
     }
 }
 
+/// The board's independent watchdog timeout, ms: a tick that stops feeding it (a hung
+/// interrupt, a fault loop, or [`crate::protocol::messages::Request::WatchdogDrill`]) resets
+/// the MCU within this time. The board's IWDG (`hardware::watchdog`) and the simulated
+/// board's model of it both use it.
+pub const WATCHDOG_TIMEOUT_MS: u32 = 20;
+
 /// A DAC output code, right-aligned (0…4095 for the 12-bit internal DAC, 0…65535 for a
 /// 16-bit external one).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, PartialOrd, Ord, Hash)]

@@ -25,7 +25,7 @@ use rtic_core::Mutex;
 
 use crate::analog_input::{AnalogInputConfig, AnalogRequest, AnalogStatus, PreparedInput};
 use crate::board::Hardware;
-use crate::control::Controller;
+use crate::control::{ControlConfig, Controller};
 use crate::control_loop::ControlLoop;
 use crate::dual_stage::{CoarseCommand, CoarseLimits, CoarseRefusal, CoarseStatus};
 use crate::learning::{self, LearnState, LearnTask, Service};
@@ -72,6 +72,8 @@ pub struct CommandHandler<S> {
     /// The analog input's settings last started (or loaded from the stored record): what
     /// `StoreParams` stores with the settings.
     analog: Option<AnalogInputConfig>,
+    /// The board last started from a watchdog reset (the status flag).
+    watchdog_reset: bool,
 }
 
 impl<S: RecordStorage> CommandHandler<S> {
@@ -91,7 +93,16 @@ impl<S: RecordStorage> CommandHandler<S> {
             telemetry: TelemetryPacker::new(),
             learn: LearnTask::new(),
             analog: None,
+            watchdog_reset: false,
         }
+    }
+
+    /// Says whether the board started from a watchdog reset (the firmware reads the MCU's
+    /// reset flags at boot; the simulated board knows when its model of the watchdog fired):
+    /// reported in the status until the next reset
+    /// ([`crate::protocol::messages::StatusReport::WATCHDOG_RESET`]).
+    pub fn set_watchdog_reset(&mut self, watchdog_reset: bool) {
+        self.watchdog_reset = watchdog_reset;
     }
 
     /// The analog input's settings from the stored record the board booted on (`None` for
@@ -100,16 +111,22 @@ impl<S: RecordStorage> CommandHandler<S> {
     /// ([`ControlLoop::start_analog`]) before the first tick, so the board runs stand-alone
     /// from power-up. Settings the rate refuses are dropped (the record's were checked at
     /// its own rate, which is the rate the board runs), and so is a start that would take
-    /// the tick over its budget ([`crate::tick_budget::ANALOG_CYCLES`]).
-    pub fn boot_analog(&mut self, stored: Option<AnalogInputConfig>) -> Option<PreparedInput> {
+    /// the tick over its budget ([`crate::tick_budget::ANALOG_CYCLES`]) beside `config`, the
+    /// configuration the board booted on (passed in, not built again: at power-up the
+    /// board's stack already holds it, and a second one would cost as much stack again).
+    pub fn boot_analog(
+        &mut self,
+        stored: Option<AnalogInputConfig>,
+        config: &ControlConfig,
+    ) -> Option<PreparedInput> {
         let prepared = stored?.prepare(self.hardware.control_rate_hz).ok()?;
         self.analog = stored;
-        let fits = self
-            .over_budget(crate::tick_budget::Beside {
-                analog: true,
-                ..Default::default()
-            })
-            .is_none();
+        let beside = crate::tick_budget::Beside {
+            analog: true,
+            ..Default::default()
+        };
+        let fits =
+            crate::tick_budget::check_with(config, self.hardware.control_rate_hz, beside).is_ok();
         stored.filter(|a| a.start_at_boot && fits).map(|_| prepared)
     }
 
@@ -247,6 +264,7 @@ impl<S: RecordStorage> CommandHandler<S> {
             Request::Scan(_) if analog_running(control) => Err(NackReason::Busy),
             Request::Scan(r) => self.scan(r, control),
             Request::Echo(bytes) => return Response::Echo(bytes),
+            Request::WatchdogDrill => watchdog_drill(control),
             Request::Trigger(t) => {
                 control.lock(|c| c.set_trigger(t));
                 Ok(())
@@ -298,6 +316,7 @@ impl<S: RecordStorage> CommandHandler<S> {
             (t.sequence, StatusReport::SEQUENCE),
             (t.analog, StatusReport::ANALOG),
             (t.analog_fault, StatusReport::ANALOG_FAULT),
+            (self.watchdog_reset, StatusReport::WATCHDOG_RESET),
         ] {
             if on {
                 flags |= flag;
@@ -834,6 +853,28 @@ fn credits<const N: usize>(queue: &Producer<'_, i16, N>) -> u16 {
 }
 
 /// Whether the analog input is the setpoint source (another source's start is refused).
+/// Starts a watchdog drill ([`ControlLoop::drill_watchdog`]) on an idle board with a
+/// watchdog: refused while a setpoint source drives the outputs (the reset would cut it off
+/// mid-motion), and by the emulator image, whose QEMU machine has no watchdog.
+fn watchdog_drill<B, C, L>(control: &mut L) -> Result<(), NackReason>
+where
+    B: SampleStore,
+    C: DerefMut<Target = Controller>,
+    L: Mutex<T = ControlLoop<B, C>>,
+{
+    if Image::THIS == Image::Emulator {
+        return Err(NackReason::Unsupported);
+    }
+    control.lock(|c| {
+        if c.is_running() {
+            Err(NackReason::Busy)
+        } else {
+            c.drill_watchdog();
+            Ok(())
+        }
+    })
+}
+
 fn analog_running<B, C, L>(control: &mut L) -> bool
 where
     B: SampleStore,

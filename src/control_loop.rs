@@ -173,6 +173,9 @@ pub struct ControlLoop<B, C> {
     sequence: SteppedSequence,
     /// The analog setpoint input ([`crate::analog_input`]): while running, the setpoint source.
     analog: AnalogInput,
+    /// A watchdog drill is on: the tick no longer feeds the watchdog, which resets the board
+    /// ([`ControlLoop::drill_watchdog`]).
+    drilling: bool,
     /// The learning's tick half: the correction table it plays, the errors it stores
     /// ([`crate::learning`]). Last: see the type's doc, and the assertion after it.
     learning: LearnTick,
@@ -225,6 +228,7 @@ where
             levels: 0,
             sequence: SteppedSequence::new(),
             analog: AnalogInput::new(),
+            drilling: false,
         }
     }
 
@@ -332,6 +336,20 @@ where
         self.stop();
         let from = self.controller.setpoint();
         self.analog.start(prepared, from);
+    }
+
+    /// Starts a watchdog drill: from the next tick on the tick stops feeding the watchdog,
+    /// which resets the board within [`crate::board::WATCHDOG_TIMEOUT_MS`] while the control
+    /// law keeps running until then (the outputs hold where they are). Irreversible short of
+    /// the reset: what a real hang would do, on purpose, to prove the watchdog is armed.
+    pub fn drill_watchdog(&mut self) {
+        self.drilling = true;
+    }
+
+    /// Whether the tick feeds the watchdog (it does unless a drill is on).
+    #[inline(always)]
+    pub fn feeds_watchdog(&self) -> bool {
+        !self.drilling
     }
 
     /// The analog input's state and counts.

@@ -35,6 +35,7 @@ fn feed(decoder: &mut FrameDecoder, bytes: &[u8]) -> Vec<Result<Request, FrameEr
 fn request() -> impl Strategy<Value = Request> {
     prop_oneof![
         Just(Request::Status),
+        Just(Request::WatchdogDrill),
         (
             any::<u16>(),
             prop::collection::vec(any::<i16>(), 0..=MAX_BATCH)
@@ -438,7 +439,7 @@ fn a_full_batch_fits_one_frame() {
 #[test]
 fn message_variant_counts_match_the_enums() {
     use twinstack::protocol::frame::Message;
-    let last = Request::Analog(AnalogRequest::Status);
+    let last = Request::WatchdogDrill;
     let mut d = FrameDecoder::new();
     assert_eq!(feed(&mut d, &frame_of(&last)), vec![Ok(last)]);
     let tag = Request::VARIANTS as u8;

@@ -53,7 +53,7 @@ use std::time::Duration;
 
 use rtic_core::Exclusive;
 use twinstack::analog_input::AnalogInputConfig;
-use twinstack::board::Hardware;
+use twinstack::board::{Hardware, WATCHDOG_TIMEOUT_MS};
 use twinstack::command_handler::CommandHandler;
 use twinstack::control::{Controller, TickReport};
 use twinstack::control_loop::{ControlLoop, SetpointQueue};
@@ -100,6 +100,10 @@ pub struct SimDeviceConfig {
     /// Every flash write fails (the erase goes through, the programming does not: the
     /// sector is left erased), as a worn or locked flash would.
     pub failing_flash: bool,
+    /// The watchdog runs (as the firmware starts it at boot): a tick that stops feeding it
+    /// (a [`twinstack::protocol::messages::Request::WatchdogDrill`]) resets the board within
+    /// [`WATCHDOG_TIMEOUT_MS`]. `false`: a board whose watchdog never fires.
+    pub watchdog: bool,
     /// The analog setpoint input's settings stored with `stored` (ignored without it): with
     /// `start_at_boot`, the board starts the input at power-up as the firmware does.
     pub stored_analog: Option<AnalogInputConfig>,
@@ -119,6 +123,7 @@ impl SimDeviceConfig {
             link_error_rate: 0.0,
             loopback: false,
             failing_flash: false,
+            watchdog: true,
             stored_analog: None,
         }
     }
@@ -422,6 +427,10 @@ pub struct SimDevice<D = InternalDac, A = InternalAdc> {
     camera: Option<SimCamera>,
     /// The link's byte corruption, both ways.
     errors: LinkErrors,
+    /// The watchdog is armed (the firmware starts it at boot).
+    watchdog: bool,
+    /// How long the tick has not fed the watchdog, ns.
+    starved_ns: u64,
 }
 
 /// The simulated board's "flash": [`RamStorage`], whose writes can be made to fail
@@ -505,6 +514,7 @@ impl SimDevice {
         )?;
         device.set_camera(config.camera);
         device.handler.storage_mut().fail_writes = config.failing_flash;
+        device.set_watchdog(config.watchdog);
         device.set_link_errors(config.link_error_rate);
         Ok(device)
     }
@@ -548,26 +558,7 @@ impl<D: AnalogDualDac, A: AnalogSensorAdc> SimDevice<D, A> {
                 .write(&bytes[..n])
                 .map_err(|_| SimDeviceError::Stored)?;
         }
-        let (record, source) = param_store::load_record(storage.read(), &hw);
-        let stored_analog = record.analog;
-        let (settings, boot, defaults) =
-            param_store::boot(record, source, &hw).map_err(SimDeviceError::Defaults)?;
-        let mut control = ControlLoop::new(
-            Box::new(Controller::new(boot)),
-            Box::new(Controller::new(boot)),
-            rate_hz.round() as u32,
-            vec![0; CAPTURE_SLOTS],
-        );
-        if let Some(rig) = &coarse {
-            control.coarse().attach(rig.limits(), rig.status());
-        }
-        let mut handler = CommandHandler::new(hw, settings, defaults, storage);
-        // As the firmware: the stored analog input starts before the first tick.
-        if !defaults {
-            if let Some(prepared) = handler.boot_analog(stored_analog) {
-                control.start_analog(prepared);
-            }
-        }
+        let (control, handler) = boot(storage, hw, coarse.as_deref())?;
         Ok(Self {
             board,
             coarse,
@@ -599,7 +590,38 @@ impl<D: AnalogDualDac, A: AnalogSensorAdc> SimDevice<D, A> {
             trigger_input: false,
             camera: None,
             errors: LinkErrors::new(0.0, link.seed),
+            watchdog: true,
+            starved_ns: 0,
         })
+    }
+
+    /// With its watchdog running (`true`, as built) or without (`false`: a drill or a hang
+    /// never resets it, as a board whose watchdog was not started).
+    pub fn set_watchdog(&mut self, armed: bool) {
+        self.watchdog = armed;
+    }
+
+    /// The watchdog's reset: the board starts again from its flash as at power-up (the
+    /// stored settings, or the defaults), its queues empty and its counters at zero, and
+    /// reports the watchdog as the cause. The stage, the converters and the bytes already on
+    /// the line are physical and stay.
+    fn reset_by_watchdog(&mut self) {
+        let storage = self.handler.storage().clone();
+        let hw = *self.handler.hardware();
+        match boot(storage, hw, self.coarse.as_deref()) {
+            Ok((control, mut handler)) => {
+                handler.set_watchdog_reset(true);
+                self.control = control;
+                self.handler = handler;
+            }
+            // The flash booted once and the defaults always build: unreachable, but a
+            // board that cannot boot stays as it is rather than panicking.
+            Err(_) => return,
+        }
+        *self.queue = SetpointQueue::new();
+        *self.telemetry = TelemetryQueue::new();
+        self.starved_ns = 0;
+        self.last_report = None;
     }
 
     /// Runs simulated time forward by `duration` (ticks, received bytes, responses), without
@@ -667,6 +689,16 @@ impl<D: AnalogDualDac, A: AnalogSensorAdc> SimDevice<D, A> {
         }
         self.last_report = Some(report);
         self.ticks += 1;
+        // The watchdog (the tick feeds it unless a drill stopped it).
+        if self.control.feeds_watchdog() {
+            self.starved_ns = 0;
+        } else {
+            self.starved_ns += self.tick_ns;
+            if self.watchdog && self.starved_ns >= u64::from(WATCHDOG_TIMEOUT_MS) * 1_000_000 {
+                self.reset_by_watchdog();
+                return;
+            }
+        }
         // The sending side, after the tick (the firmware's command task, woken between ticks).
         while self.handler.telemetry_due(&samples_out) && self.tx.buffer_free(self.now_ns) {
             let Some(frame) = self.handler.pack_telemetry(&mut samples_out) else {
@@ -770,6 +802,44 @@ impl<D: AnalogDualDac, A: AnalogSensorAdc> SimDevice<D, A> {
         self.tx.bytes.clear();
         dropped
     }
+}
+
+/// The board's boot from its flash, as the firmware's `init`: the stored settings if they
+/// hold at the board's rate (else the defaults), the two controllers, the control loop (with
+/// the coarse axis attached), the command handler, and the stored analog input started
+/// before the first tick.
+#[allow(clippy::type_complexity)]
+fn boot(
+    storage: SimFlash,
+    hw: Hardware,
+    coarse: Option<&dyn CoarseAxisSim>,
+) -> Result<
+    (
+        ControlLoop<Vec<i16>, Box<Controller>>,
+        CommandHandler<SimFlash>,
+    ),
+    SimDeviceError,
+> {
+    let (record, source) = param_store::load_record(storage.read(), &hw);
+    let stored_analog = record.analog;
+    let (settings, boot, defaults) =
+        param_store::boot(record, source, &hw).map_err(SimDeviceError::Defaults)?;
+    let mut control = ControlLoop::new(
+        Box::new(Controller::new(boot)),
+        Box::new(Controller::new(boot)),
+        hw.control_rate_hz.round() as u32,
+        vec![0; CAPTURE_SLOTS],
+    );
+    if let Some(rig) = coarse {
+        control.coarse().attach(rig.limits(), rig.status());
+    }
+    let mut handler = CommandHandler::new(hw, settings, defaults, storage);
+    if !defaults {
+        if let Some(prepared) = handler.boot_analog(stored_analog, &boot) {
+            control.start_analog(prepared);
+        }
+    }
+    Ok((control, handler))
 }
 
 fn board_dt_ns(rate_hz: f64) -> u64 {

@@ -1,8 +1,9 @@
 //! `twinstack selftest` as a user runs it: every check passes on the in-process board (the tick
 //! rate skipped: it runs on simulated time) and on a virtual board paced by the wall clock;
 //! each injected fault — a clock running fast, a corrupting link, an open loopback, a failing
-//! flash write — fails exactly its own check, with its hint; what flash held is put back; bad
-//! flags are one-line usage errors.
+//! flash write, a watchdog that never fires — fails exactly its own check, with its hint;
+//! what flash held and the settings in force are put back; bad flags are one-line usage
+//! errors.
 
 use std::process::{Command, Output};
 
@@ -67,11 +68,11 @@ fn expect(
         names,
         [
             "safe-state",
-            "watchdog",
             "link",
             "tick-rate",
             "loopback",
-            "flash"
+            "flash",
+            "watchdog"
         ],
         "{context}"
     );
@@ -91,31 +92,42 @@ fn expect(
     }
 }
 
-/// The in-process board: no wall clock (the tick rate and the watchdog skip), everything
-/// else passes; the lines and the summary as a person reads them.
+/// The in-process board: no wall clock (the tick rate skips), everything else passes (the
+/// watchdog drill resets the board and it comes back reporting the watchdog); the lines and
+/// the summary as a person reads them.
 #[test]
 fn every_check_passes_on_the_in_process_board_but_the_tick_rate_skips() {
     let (code, checks, report) = selftest(&["--port", "sim"]);
-    expect(&checks, &[], &["watchdog", "tick-rate"], "sim");
+    expect(&checks, &[], &["tick-rate"], "sim");
     assert_eq!(code, Some(0), "{report}");
     assert_eq!(report["image"], "simulator");
     assert_eq!(report["fail"], 0);
-    let link = &report["checks"][2]["figures"];
+    let link = &report["checks"][1]["figures"];
     assert_eq!(link["intact"], 200);
     assert_eq!(link["board_crc_errors"], 0);
-    let loopback = &report["checks"][4]["figures"];
+    let loopback = &report["checks"][3]["figures"];
     assert!(loopback["slope"].as_f64().unwrap() > 0.99, "{loopback}");
+    let watchdog = &report["checks"][5]["figures"];
+    assert_eq!(watchdog["reset"], true, "{watchdog}");
+    assert_eq!(watchdog["cause_watchdog"], true, "{watchdog}");
+    // Back within the timeout and a few round trips.
+    let ms = watchdog["back_within_ms"].as_f64().unwrap();
+    assert!((20.0..100.0).contains(&ms), "{watchdog}");
 
     let o = twinstack(&["selftest", "--port", "sim", "--echoes", "20"]);
     let (out, err) = text(&o);
     assert_eq!(o.status.code(), Some(0), "{out}{err}");
     let lines: Vec<&str> = out.lines().collect();
     assert_eq!(lines.len(), 7, "{out}");
-    assert!(lines[2].starts_with("PASS link       20 echoes"), "{out}");
-    assert!(lines[3].starts_with("SKIP tick-rate"), "{out}");
+    assert!(lines[1].starts_with("PASS link       20 echoes"), "{out}");
+    assert!(lines[2].starts_with("SKIP tick-rate"), "{out}");
+    assert!(
+        lines[5].starts_with("PASS watchdog   the drill reset"),
+        "{out}"
+    );
     assert_eq!(
         lines[6],
-        "selftest of the simulator image: 4 PASS, 0 FAIL, 2 SKIP"
+        "selftest of the simulator image: 5 PASS, 0 FAIL, 1 SKIP"
     );
 }
 
@@ -125,19 +137,14 @@ fn an_open_loopback_fails_the_loopback_check_only() {
     expect(
         &checks,
         &[("loopback", "fit the jumper from the left DAC channel (PA4)")],
-        &["watchdog", "tick-rate"],
+        &["tick-rate"],
         "open loopback",
     );
     assert_eq!(code, Some(1));
     // A board without the jumper skips it.
     let (code, checks, _) =
         selftest(&["--port", "sim", "--sim-open-loopback", "--skip", "loopback"]);
-    expect(
-        &checks,
-        &[],
-        &["watchdog", "tick-rate", "loopback"],
-        "--skip loopback",
-    );
+    expect(&checks, &[], &["tick-rate", "loopback"], "--skip loopback");
     assert_eq!(code, Some(0));
 }
 
@@ -147,10 +154,23 @@ fn a_failing_flash_write_fails_the_flash_check_only() {
     expect(
         &checks,
         &[("flash", "writing the settings in force to flash failed")],
-        &["watchdog", "tick-rate"],
+        &["tick-rate"],
         "failing flash",
     );
     assert_eq!(code, Some(1));
+}
+
+#[test]
+fn a_watchdog_that_never_fires_fails_the_watchdog_check_only() {
+    let (code, checks, report) = selftest(&["--port", "sim", "--sim-no-watchdog"]);
+    expect(
+        &checks,
+        &[("watchdog", "its watchdog is not running")],
+        &["tick-rate"],
+        "no watchdog",
+    );
+    assert_eq!(code, Some(1));
+    assert_eq!(report["checks"][5]["figures"]["reset"], false);
 }
 
 #[test]
@@ -159,11 +179,11 @@ fn a_corrupting_link_fails_the_link_check_only() {
     expect(
         &checks,
         &[("link", "check the adapter's ground and the baud rate")],
-        &["watchdog", "tick-rate"],
+        &["tick-rate"],
         "corrupting link",
     );
     assert_eq!(code, Some(1));
-    let link = &report["checks"][2]["figures"];
+    let link = &report["checks"][1]["figures"];
     let bad = 200 - link["intact"].as_u64().unwrap();
     assert!(bad > 0, "{link}");
     // The board's and the host's counters saw the damage.
@@ -186,9 +206,9 @@ fn a_virtual_board_passes_on_time_and_fails_the_tick_rate_when_its_clock_runs_fa
     ];
     let (_board, port) = virtual_board_process::start(&link);
     let (code, checks, report) = selftest(&["--port", &port, "--echoes", "60"]);
-    expect(&checks, &[], &["watchdog"], "virtual board");
+    expect(&checks, &[], &[], "virtual board");
     assert_eq!(code, Some(0), "{report}");
-    let tick = &report["checks"][3]["figures"];
+    let tick = &report["checks"][2]["figures"];
     assert!(tick["error_pct"].as_f64().unwrap().abs() < 1.0, "{tick}");
 
     let mut fast = link.to_vec();
@@ -198,15 +218,15 @@ fn a_virtual_board_passes_on_time_and_fails_the_tick_rate_when_its_clock_runs_fa
     expect(
         &checks,
         &[("tick-rate", "the board's clock runs")],
-        &["watchdog"],
+        &[],
         "fast clock",
     );
     assert_eq!(code, Some(1));
-    let error = report["checks"][3]["figures"]["error_pct"]
+    let error = report["checks"][2]["figures"]["error_pct"]
         .as_f64()
         .unwrap();
     assert!((error - 10.0).abs() < 2.0, "{error}");
-    assert!(checks[3].2.contains("% fast"), "{}", checks[3].2);
+    assert!(checks[2].2.contains("% fast"), "{}", checks[2].2);
 }
 
 /// The flash check leaves the board as it found it: the settings in force stay, and flash
@@ -241,12 +261,7 @@ fn the_flash_check_puts_back_what_flash_held() {
         "--echoes",
         "5",
     ]);
-    expect(
-        &checks,
-        &[],
-        &["watchdog", "tick-rate", "loopback"],
-        "restore",
-    );
+    expect(&checks, &[], &["tick-rate", "loopback"], "restore");
     assert_eq!(code, Some(0));
     assert_eq!(
         ok(&["params", "--port", &port]),
@@ -285,6 +300,10 @@ fn bad_flags_are_one_line_usage_errors() {
         (vec!["--port", "sim", "--skip", "everything"], "everything"),
         (
             vec!["--port", "tcp:127.0.0.1:9", "--sim-open-loopback"],
+            "fit the in-process board (--port sim)",
+        ),
+        (
+            vec!["--port", "tcp:127.0.0.1:9", "--sim-no-watchdog"],
             "fit the in-process board (--port sim)",
         ),
         (

@@ -35,6 +35,7 @@ pub mod dac;
 pub mod param_flash;
 pub mod pins;
 pub mod profile;
+pub mod reset_cause;
 pub mod safe_state;
 pub mod setpoint_adc;
 pub mod tick;

@@ -2,8 +2,8 @@
 //! whole-interrupt bench image (`qemu-images`, `irq-bench`), so that the bench measures the
 //! very code the board runs: acknowledge the timer, sample the trigger input,
 //! [`ControlLoop::tick`] on the board's converters, write the trigger outputs (one `BSRR`
-//! store), telemetry's tap ([`ControlLoop::tap_telemetry`]), feed the watchdog, count an
-//! overrun.
+//! store), telemetry's tap ([`ControlLoop::tap_telemetry`]), feed the watchdog (unless a
+//! drill stopped it: [`ControlLoop::feeds_watchdog`]), count an overrun.
 
 use heapless::spsc::{Consumer, Producer};
 
@@ -72,7 +72,9 @@ impl ControlTick {
             .tick(&mut self.setpoints, &mut self.adc, &mut self.dac);
         self.triggers.write(self.control.trigger_levels());
         let frame_due = self.control.tap_telemetry(&mut self.telemetry);
-        self.watchdog.feed();
+        if self.control.feeds_watchdog() {
+            self.watchdog.feed();
+        }
         if self.timer.next_tick_already_due() {
             self.control.count_overrun();
         }

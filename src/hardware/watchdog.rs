@@ -1,10 +1,12 @@
 //! The independent watchdog (IWDG, on the 32 kHz LSI), fed from the control tick: if the tick
-//! stops (a hung interrupt, a fault loop) the MCU resets within [`TIMEOUT_MS`].
+//! stops (a hung interrupt, a fault loop) the MCU resets within [`TIMEOUT_MS`]. After the
+//! reset, [`super::reset_cause`] tells the firmware it was the watchdog.
 
 use stm32f4xx_hal::pac::{DBGMCU, IWDG};
 
-/// Watchdog timeout, ms (LSI 32 kHz / 8 = 4 kHz counter, reload 4 × 20 − 1).
-pub const TIMEOUT_MS: u32 = 20;
+/// Watchdog timeout, ms (LSI 32 kHz / 8 = 4 kHz counter, reload 4 × 20 − 1): the board's
+/// [`crate::board::WATCHDOG_TIMEOUT_MS`].
+pub const TIMEOUT_MS: u32 = crate::board::WATCHDOG_TIMEOUT_MS;
 
 const KEY_UNLOCK: u16 = 0x5555;
 const KEY_FEED: u16 = 0xAAAA;

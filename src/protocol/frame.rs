@@ -38,7 +38,9 @@ use serde::{Deserialize, Serialize};
 /// `SequenceEdge` … `SequenceSettle`), then the echo (`Request::Echo`, `Response::Echo`:
 /// appended, so every other encoding stays; a board without it answers `UnknownType`), then the analog setpoint input
 /// (`Request::Analog`, `Response::Analog`, the `Field`s `AnalogGain` … `AnalogRate`, the status
-/// flags `ANALOG` and `ANALOG_FAULT`: appended the same way).
+/// flags `ANALOG` and `ANALOG_FAULT`: appended the same way), then the watchdog drill
+/// (`Request::WatchdogDrill`, `NackReason::Unsupported`, the status flag `WATCHDOG_RESET`:
+/// appended the same way).
 pub const PROTOCOL_VERSION: u8 = 8;
 /// Largest frame body (version + message + CRC), bytes: a load of the largest settings (two
 /// generalised P–I models of 32 operators and 8 dead zones, both notches) fits.

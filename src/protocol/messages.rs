@@ -21,7 +21,7 @@ use serde::{Deserialize, Serialize};
 use super::frame::{FrameError, Message, MAX_BODY};
 
 impl Message for Request {
-    const VARIANTS: u32 = 27;
+    const VARIANTS: u32 = 28;
 }
 
 impl Message for Response {
@@ -116,6 +116,13 @@ pub enum Request {
     /// (refused with `Busy` while another source runs), stop it, or read its state (answered
     /// with [`Response::Analog`]).
     Analog(AnalogRequest),
+    /// Stop feeding the watchdog, to prove it resets the board (`twinstack selftest`'s
+    /// watchdog check): acknowledged, then the board resets within
+    /// [`crate::board::WATCHDOG_TIMEOUT_MS`] and starts again on its stored settings (its
+    /// safe state until then), reporting [`StatusReport::WATCHDOG_RESET`]. Refused with
+    /// `Busy` while a setpoint source drives the outputs or the flash is written, and with
+    /// `Unsupported` by an image without a watchdog (QEMU models none).
+    WatchdogDrill,
 }
 
 /// Most bytes one [`Request::Echo`] carries: what fills a frame body of [`MAX_BODY`]
@@ -519,6 +526,8 @@ pub enum NackReason {
     /// board: another client owns what this request changes (the stream and settings, or the
     /// telemetry); this client may read.
     NotOwner,
+    /// This build cannot do it (the emulator image has no watchdog to drill).
+    Unsupported,
 }
 
 /// Status and telemetry. Counters count since start-up and wrap after 2^32 events.
@@ -575,6 +584,9 @@ impl StatusReport {
     pub const ANALOG: u16 = 1 << 11;
     /// Flag: the analog input is lost or over-range (its fault behaviour holds or ramps).
     pub const ANALOG_FAULT: u16 = 1 << 14;
+    /// Flag: the board last started from a watchdog reset (its tick stopped feeding the
+    /// watchdog: a hang, or a [`Request::WatchdogDrill`]); set until the next reset.
+    pub const WATCHDOG_RESET: u16 = 1 << 15;
     // Bit 4 is reserved (protocol v2's "load waiting for the next tick": since v3 a load is
     // in force when it is acknowledged).
     /// Flags bits 8–9: the mode (0 bypass, 1 open loop, 2 closed loop).

@@ -544,6 +544,14 @@ const FIGURES: &[Figure] = &[
         render: Render::Many(learn_table),
     },
     Figure {
+        name: "selftest-sim",
+        page: "docs/src/guide/selftest.md",
+        runs: &[&["selftest", "--port", "sim"]],
+        // The in-process board runs on simulated time: the same lines every run.
+        checked: true,
+        render: Render::One(verbatim),
+    },
+    Figure {
         name: "dual-stage",
         page: "docs/src/results/dual-stage.md",
         runs: &[&["dual-stage"]],

@@ -8,18 +8,22 @@
 //! 1. **safe state**: the board's status — idle (no stream, waveform, scan or sequence
 //!    driving the outputs) and no tick overran its period. A busy board fails here, and the
 //!    checks that move the outputs or write the flash are skipped.
-//! 2. **watchdog**: the reset cause, if the firmware reports it (it does not yet: `SKIP`).
-//! 3. **link**: `--echoes` frames of random content and length (0 to [`MAX_ECHO`] bytes)
+//! 2. **link**: `--echoes` frames of random content and length (0 to [`MAX_ECHO`] bytes)
 //!    echoed by the board ([`Request::Echo`]) and compared byte for byte, with the board's
 //!    and the host's corrupt-frame counters before and after.
-//! 4. **tick rate**: the board's tick counter read twice `--tick-seconds` apart, each read
+//! 3. **tick rate**: the board's tick counter read twice `--tick-seconds` apart, each read
 //!    bracketed by its round trip, against the rate the board reports; the tolerance is what
 //!    the brackets leave plus `--tick-tolerance-ppm`.
-//! 5. **loopback**: with a jumper from the left DAC channel to the sensor ADC's input, a few
+//! 4. **loopback**: with a jumper from the left DAC channel to the sensor ADC's input, a few
 //!    output levels streamed in bypass (range and slew limits hold) and the ADC's reading
 //!    captured beside the DAC's code: the ADC must read what the DAC drives.
-//! 6. **flash**: the settings in force stored, recalled and read back; what flash held before
+//! 5. **flash**: the settings in force stored, recalled and read back; what flash held before
 //!    is put back.
+//! 6. **watchdog**: last, because it resets the board: a drill ([`Request::WatchdogDrill`])
+//!    stops the tick feeding the watchdog, and the board must start again within
+//!    [`DRILL_WAIT`] reporting the watchdog as the cause
+//!    ([`StatusReport::WATCHDOG_RESET`]); the settings in force before go back in force
+//!    after (the reset boots on the stored ones).
 
 use super::board_link::{connect_with, BoardClient, PortArgs};
 use crate::link::client::LinkError;
@@ -28,6 +32,7 @@ use crate::link::Transport;
 use crate::port::PortSpec;
 use std::io::Write;
 use std::time::{Duration, Instant};
+use twinstack::board::WATCHDOG_TIMEOUT_MS;
 use twinstack::protocol::frame::FrameError;
 use twinstack::protocol::messages::{
     CaptureRequest, CaptureState, Image, NackReason, Request, Response, StatusReport, Trigger,
@@ -103,6 +108,9 @@ pub struct Args {
     /// `--port sim` only: every flash write of the in-process board fails.
     #[arg(long)]
     pub sim_fail_flash_writes: bool,
+    /// `--port sim` only: the in-process board's watchdog never fires.
+    #[arg(long)]
+    pub sim_no_watchdog: bool,
     /// One JSON object on stdout (each check's name, outcome, figures and hint, and the
     /// counts) instead of lines.
     #[arg(long)]
@@ -250,10 +258,13 @@ fn validate(args: &Args, spec: Option<&PortSpec>) -> anyhow::Result<()> {
         ))
         .into());
     }
-    if (args.sim_open_loopback || args.sim_fail_flash_writes) && spec != Some(&PortSpec::Sim) {
+    if (args.sim_open_loopback || args.sim_fail_flash_writes || args.sim_no_watchdog)
+        && spec != Some(&PortSpec::Sim)
+    {
         return Err(UsageError(
-            "--sim-open-loopback and --sim-fail-flash-writes fit the in-process board (--port sim); \
-             a virtual board takes --loopback and --fail-flash-writes itself"
+            "--sim-open-loopback, --sim-fail-flash-writes and --sim-no-watchdog fit the in-process \
+             board (--port sim); a virtual board takes --loopback, --fail-flash-writes and \
+             --no-watchdog itself"
                 .to_string(),
         )
         .into());
@@ -271,6 +282,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     let mut client = connect_with(&args.port, |config| {
         config.loopback = !args.sim_open_loopback;
         config.failing_flash = args.sim_fail_flash_writes;
+        config.watchdog = !args.sim_no_watchdog;
     })?;
     let mut results = Vec::new();
     let json = args.json;
@@ -290,11 +302,11 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     let idle = busy_flags(&first).is_empty();
     for check in [
         CheckName::SafeState,
-        CheckName::Watchdog,
         CheckName::Link,
         CheckName::TickRate,
         CheckName::Loopback,
         CheckName::Flash,
+        CheckName::Watchdog,
     ] {
         if skipped(check) {
             emit(skip_flag(check));
@@ -311,13 +323,8 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         };
         let result = match check {
             CheckName::SafeState => safe_state(&first),
-            CheckName::Watchdog => CheckResult::skip(
-                check,
-                "the firmware does not report its reset cause over the link, so a watchdog \
-                 reset cannot be told from a power-on; a tick that hangs is reset within the \
-                 watchdog's timeout and the board comes back on its stored settings"
-                    .to_string(),
-            ),
+            CheckName::Watchdog if !idle => busy(),
+            CheckName::Watchdog => watchdog(&mut client, &first)?,
             CheckName::Link => link(&mut client, args.echoes, args.seed)?,
             CheckName::TickRate => tick_rate(&mut client, image, args)?,
             CheckName::Loopback if !idle => busy(),
@@ -1015,5 +1022,136 @@ fn flash(client: &mut BoardClient) -> anyhow::Result<CheckResult> {
         check,
         format!("the settings in force were stored, recalled and read back equal; {restored}"),
         figures(true),
+    ))
+}
+
+/// How long the watchdog check waits for the board to start again after the drill: the
+/// watchdog's timeout ([`WATCHDOG_TIMEOUT_MS`]), the boot, and the link's round trips, with
+/// room to spare.
+pub const DRILL_WAIT: Duration = Duration::from_secs(2);
+
+fn watchdog(client: &mut BoardClient, first: &StatusReport) -> anyhow::Result<CheckResult> {
+    let check = CheckName::Watchdog;
+    let before = retry(client, |c| c.status())?;
+    let was_watchdog = before.has(StatusReport::WATCHDOG_RESET);
+    let in_force = retry(client, |c| c.read_params())?;
+    match client.expect_ack(&Request::WatchdogDrill) {
+        Ok(_) => {}
+        Err(e) if nack_of(&e) == Some(NackReason::Unsupported) => {
+            return Ok(CheckResult::skip(
+                check,
+                format!(
+                    "the {} image has no watchdog to drill, and says so{}",
+                    first.image().name(),
+                    if first.image() == Image::Emulator {
+                        " (QEMU models none)"
+                    } else {
+                        ""
+                    }
+                ),
+            ))
+        }
+        Err(e) if nack_of(&e) == Some(NackReason::Busy) => {
+            return Ok(CheckResult::skip(
+                check,
+                "the board is busy (a setpoint source started): it was not disturbed".to_string(),
+            ))
+        }
+        // The answer lost: the board may be resetting already; the wait below tells.
+        Err(LinkError::Timeout { .. }) => {}
+        Err(e) => return Err(e.into()),
+    }
+    // Until the board answers with its tick counter started again.
+    let origin = Instant::now();
+    let start = link_now(client, origin);
+    let mut last_ticks = before.ticks;
+    let restarted = loop {
+        let waited = link_now(client, origin).saturating_sub(start);
+        if waited > DRILL_WAIT {
+            break None;
+        }
+        std::thread::sleep(Duration::from_millis(
+            if client.transport().clock().is_some() {
+                0
+            } else {
+                20
+            },
+        ));
+        match client.status() {
+            // Answered by the board started again: back within the time to this answer.
+            Ok(s) if s.ticks < last_ticks => {
+                break Some((s, link_now(client, origin).saturating_sub(start)))
+            }
+            Ok(s) => last_ticks = s.ticks,
+            // Silent while it resets: the line resynchronised, asked again.
+            Err(LinkError::Timeout { .. } | LinkError::Unexpected { .. }) => {
+                client.resync(Duration::from_millis(20))?;
+            }
+            Err(e) => return Err(e.into()),
+        }
+    };
+    let figures = |reset: bool, flagged: bool, ms: Option<f64>| {
+        serde_json::json!({
+            "reset": reset,
+            "cause_watchdog": flagged,
+            "back_within_ms": ms,
+            "previous_start_watchdog": was_watchdog,
+        })
+    };
+    let Some((after, waited)) = restarted else {
+        return Ok(CheckResult::fail(
+            check,
+            format!(
+                "the board acknowledged the drill but did not reset within {} s (its tick \
+                 counter kept counting): its watchdog is not running, and the board now runs \
+                 without one",
+                DRILL_WAIT.as_secs_f64()
+            ),
+            "power-cycle the board; a firmware image whose init does not start the IWDG, or a \
+             debugger session that freezes it (DBGMCU), keeps it from firing: flash the \
+             release image and run the selftest without a probe attached",
+            figures(false, false, None),
+        ));
+    };
+    let ms = waited.as_secs_f64() * 1e3;
+    // The reset booted on the stored settings: the settings in force go back.
+    let now = retry(client, |c| c.read_params())?;
+    let restored = if now == in_force {
+        "it came back on the settings in force before (they are the stored ones)".to_string()
+    } else {
+        match retry(client, |c| c.load_params(&in_force)) {
+            Ok(()) => {
+                "it came back on its stored settings; those in force before were loaded again"
+                    .to_string()
+            }
+            Err(e) => format!(
+                "it came back on its stored settings; loading those in force before failed: {e}"
+            ),
+        }
+    };
+    let previous = if was_watchdog {
+        " (its start before this check was a watchdog reset too)"
+    } else {
+        ""
+    };
+    if !after.has(StatusReport::WATCHDOG_RESET) {
+        return Ok(CheckResult::fail(
+            check,
+            format!(
+                "the board restarted {ms:.0} ms after the drill but does not report the \
+                 watchdog as the cause; {restored}"
+            ),
+            "a reset by the reset pin or a brown-out came first (check the 3.3 V supply and \
+             NRST), or the image predates the reset-cause report: flash the current image",
+            figures(true, false, Some(ms)),
+        ));
+    }
+    Ok(CheckResult::pass(
+        check,
+        format!(
+            "the drill reset the board within {ms:.0} ms (timeout {WATCHDOG_TIMEOUT_MS} ms), \
+             the watchdog reported as the cause{previous}; {restored}"
+        ),
+        figures(true, true, Some(ms)),
     ))
 }

@@ -55,6 +55,10 @@ pub struct Args {
     /// Every flash write fails (the sector is left erased), as a worn or locked flash would.
     #[arg(long)]
     pub fail_flash_writes: bool,
+    /// The board's watchdog never fires (as if the firmware had not started it): a
+    /// watchdog drill is acknowledged and the board does not reset.
+    #[arg(long)]
+    pub no_watchdog: bool,
 }
 
 /// Runs `virtual-board`.
@@ -87,10 +91,15 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     config.link_error_rate = args.link.error_rate()?;
     config.loopback = args.loopback;
     config.failing_flash = args.fail_flash_writes;
-    if args.dual_stage && (args.loopback || args.fail_flash_writes || config.link_error_rate > 0.0)
+    config.watchdog = !args.no_watchdog;
+    if args.dual_stage
+        && (args.loopback
+            || args.fail_flash_writes
+            || args.no_watchdog
+            || config.link_error_rate > 0.0)
     {
         anyhow::bail!(
-            "--loopback, --fail-flash-writes and --link-error-rate are faults and wiring of the default board, not --dual-stage"
+            "--loopback, --fail-flash-writes, --no-watchdog and --link-error-rate are faults and wiring of the default board, not --dual-stage"
         );
     }
     if let Some(hz) = args.camera_hz {

@@ -219,6 +219,13 @@ mod app {
     ])]
     fn init(cx: init::Context) -> (Shared, Local) {
         let dp: pac::Peripherals = cx.device;
+        // Why the MCU started (read and cleared before anything can reset it again).
+        let reset = twinstack::hardware::reset_cause::ResetCause::take(&dp.RCC);
+        if reset.is_watchdog() {
+            defmt::warn!("started after a watchdog reset");
+        } else {
+            defmt::info!("reset cause: {=str}", reset.as_str());
+        }
         let (record, source) = param_store::load_record(
             param_flash::record_window(),
             &Hardware::driver_board(Hardware::DEFAULT_CONTROL_RATE_HZ as f64),
@@ -283,9 +290,10 @@ mod app {
             #[cfg(feature = "emulator")]
             ReadOnlyStorage(param_flash::record_window()),
         );
+        handler.set_watchdog_reset(reset.is_watchdog());
         // The stored analog setpoint input starts before the first tick: stand-alone, no host.
         if !defaults {
-            if let Some(prepared) = handler.boot_analog(stored_analog) {
+            if let Some(prepared) = handler.boot_analog(stored_analog, &config) {
                 control.start_analog(prepared);
             }
         }
