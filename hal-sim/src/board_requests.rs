@@ -270,6 +270,11 @@ pub fn flag_names(s: &StatusReport) -> Vec<&'static str> {
         (StatusReport::RECORDING, "recording"),
         (StatusReport::TELEMETRY, "telemetry"),
         (StatusReport::SEQUENCE, "sequence"),
+        (StatusReport::SCANNING, "scanning"),
+        (StatusReport::TRIGGER_ARMED, "trigger-armed"),
+        (StatusReport::ANALOG, "analog"),
+        (StatusReport::ANALOG_FAULT, "analog-fault"),
+        (StatusReport::WATCHDOG_RESET, "watchdog-reset"),
     ]
     .into_iter()
     .filter(|&(bit, _)| s.has(bit))
@@ -298,6 +303,20 @@ pub fn status_json(s: &StatusReport) -> serde_json::Value {
         "estimate": s.estimate as f64 / (1u64 << 30) as f64,
         "estimate_q2_30": s.estimate,
         "recorded": s.recorded,
+    })
+}
+
+/// The analog input's state as one JSON object: `running`, `lost`, `over_range`, `faults`,
+/// `reading` (fraction of the input's span, 0–1) and `setpoint` (normalised, ±1 of the
+/// output range).
+pub fn analog_status_json(s: &twinstack::analog_input::AnalogStatus) -> serde_json::Value {
+    serde_json::json!({
+        "running": s.running,
+        "lost": s.lost,
+        "over_range": s.over_range,
+        "faults": s.faults,
+        "reading": s.reading as f64 / 65536.0,
+        "setpoint": s.setpoint as f64 / twinstack::fixed_point::SIGNAL_ONE as f64,
     })
 }
 

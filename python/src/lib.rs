@@ -37,8 +37,10 @@ use pyo3::types::{PyDict, PyList};
 use std::path::{Path, PathBuf};
 use std::sync::Mutex;
 use std::time::{Duration, Instant};
+use twinstack::analog_input::{AnalogInputConfig, AnalogRequest, OnFault};
 use twinstack::protocol::messages::{
-    NackReason, SequenceConfig, StreamControl, Trigger, TriggerEdge, UnderrunPolicy, WaveShape,
+    NackReason, Request, SequenceConfig, StreamControl, Trigger, TriggerEdge, UnderrunPolicy,
+    WaveShape,
 };
 use twinstack::refusal::Rule;
 use twinstack::settings::Mode;
@@ -927,7 +929,64 @@ impl Board {
         Ok(d)
     }
 
-    /// Stops the setpoint stream or the waveform; the output holds where it is.
+    /// Makes the board's analog setpoint input the setpoint source: the input's span (0 V to
+    /// 3.3 V at the pin) times `gain` plus `offset`, normalised displacement; filtered by a
+    /// one-pole low-pass at `corner_hz` (none: unfiltered); below `lost_below` or above
+    /// `over_above` (fractions of the span) the input is faulty and the output holds
+    /// (`on_fault="hold"`) or ramps to rest (`"ramp-to-rest"`) at `rate` (normalised per
+    /// second, also the rate it walks back at). Settings checked here first: a refusal raises
+    /// `ValueError` naming the field, nothing sent.
+    #[pyo3(signature = (gain=2.0, offset=-1.0, corner_hz=None, lost_below=0.0, over_above=1.0, on_fault="hold", rate=10.0))]
+    #[allow(clippy::too_many_arguments)]
+    fn analog(
+        &self,
+        py: Python<'_>,
+        gain: f32,
+        offset: f32,
+        corner_hz: Option<f32>,
+        lost_below: f32,
+        over_above: f32,
+        on_fault: &str,
+        rate: f32,
+    ) -> PyResult<()> {
+        let on_fault = match on_fault {
+            "hold" => OnFault::Hold,
+            "ramp-to-rest" => OnFault::RampToRest,
+            other => {
+                return Err(PyValueError::new_err(format!(
+                    "on_fault {other:?}: expected \"hold\" or \"ramp-to-rest\""
+                )))
+            }
+        };
+        let config = AnalogInputConfig {
+            gain,
+            offset,
+            corner_hz,
+            lost_below,
+            over_above,
+            on_fault,
+            rate,
+            start_at_boot: false,
+        };
+        let tick_rate = self.with(py, |c| c.status())?.tick_rate_hz as f64;
+        config
+            .check(tick_rate)
+            .map_err(|r| PyValueError::new_err(format!("refused: {r}; nothing was sent")))?;
+        self.with(py, |c| {
+            c.expect_ack(&Request::Analog(AnalogRequest::Start(config)))
+                .map(drop)
+        })
+    }
+
+    /// The analog input's state: `running`, `lost`, `over_range`, `faults`, `reading`
+    /// (fraction of the span) and `setpoint` (normalised).
+    fn analog_status<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
+        let s = self.with(py, |c| c.analog_status())?;
+        json_to_py(py, &board_requests::analog_status_json(&s))
+    }
+
+    /// Stops the setpoint stream, the waveform or the analog input; the output holds where
+    /// it is.
     fn stop(&self, py: Python<'_>) -> PyResult<()> {
         self.with(py, |c| c.stream(StreamControl::Stop))
     }

@@ -270,3 +270,28 @@ def test_a_bad_sequence_is_refused_before_anything_moves():
         assert b.status()["queue_fill"] == 0
     with pytest.raises(ValueError, match="only with port"):
         twinstack.Board("tcp:127.0.0.1:1", sim_camera_hz=100.0)
+
+
+def test_the_analog_input_starts_reports_and_stops(board):
+    # The in-process board's input pin has nothing wired to it: the input is lost and the
+    # output holds where it was.
+    board.analog(gain=2.0, offset=-1.0, corner_hz=500.0, lost_below=0.02, rate=5.0)
+    flags = board.status()["flags"]
+    assert "analog" in flags and "analog-fault" in flags, flags
+    a = board.analog_status()
+    assert a["running"] and a["lost"] and not a["over_range"], a
+    assert a["faults"] == 1, a
+    # Another source is refused while it runs, and the board says why.
+    with pytest.raises(twinstack.BoardError, match="busy"):
+        board.waveform(amplitude=0.5, frequency=50.0)
+    board.stop()
+    assert not board.analog_status()["running"]
+    assert "analog" not in board.status()["flags"]
+
+
+def test_analog_settings_are_refused_before_sending(board):
+    with pytest.raises(ValueError, match="analog gain is NaN"):
+        board.analog(gain=float("nan"))
+    with pytest.raises(ValueError, match="on_fault"):
+        board.analog(on_fault="jump")
+    assert not board.analog_status()["running"], "nothing was sent"

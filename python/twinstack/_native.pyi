@@ -227,8 +227,29 @@ class Board:
         Returns ``positions``, ``sent``, ``steps``, ``early`` (edges before the stage had
         settled), ``missed`` (edges with no position left), ``complete`` and
         ``ticks_to_motion`` (the first edge's tick to its first moved DAC sample)."""
+    def analog(
+        self,
+        gain: float = 2.0,
+        offset: float = -1.0,
+        corner_hz: Optional[float] = None,
+        lost_below: float = 0.0,
+        over_above: float = 1.0,
+        on_fault: str = "hold",
+        rate: float = 10.0,
+    ) -> None:
+        """Makes the board's analog setpoint input the setpoint source: the input's span
+        (0 V to 3.3 V at the pin) times ``gain`` plus ``offset``, normalised displacement;
+        low-pass filtered at ``corner_hz`` (``None``: unfiltered); below ``lost_below`` or
+        above ``over_above`` (fractions of the span) the input is faulty and the output holds
+        (``on_fault="hold"``) or ramps to rest (``"ramp-to-rest"``) at ``rate`` (normalised
+        per second, also the rate it walks back at). Refused settings raise ``ValueError``
+        naming the field, nothing sent; a board busy with another source raises."""
+    def analog_status(self) -> Dict[str, Any]:
+        """The analog input's state: ``running``, ``lost``, ``over_range``, ``faults``,
+        ``reading`` (fraction of the span) and ``setpoint`` (normalised)."""
     def stop(self) -> None:
-        """Stops the setpoint stream or the waveform; the output holds where it is."""
+        """Stops the setpoint stream, the waveform or the analog input; the output holds
+        where it is."""
     def waveform(
         self, amplitude: float, frequency: float, shape: str = "sine", offset: float = 0.0
     ) -> None:

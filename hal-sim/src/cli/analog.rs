@@ -172,14 +172,7 @@ fn print_status(s: &AnalogStatus, json: bool) -> anyhow::Result<()> {
     let setpoint = s.setpoint as f64 / SIGNAL_ONE as f64;
     let reading = s.reading as f64 / 65536.0;
     if json {
-        let v = serde_json::json!({
-            "running": s.running,
-            "lost": s.lost,
-            "over_range": s.over_range,
-            "faults": s.faults,
-            "reading": reading,
-            "setpoint": setpoint,
-        });
+        let v = crate::board_requests::analog_status_json(s);
         println!("{}", serde_json::to_string(&v)?);
     } else {
         println!(
