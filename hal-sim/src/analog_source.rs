@@ -43,6 +43,51 @@ pub enum AnalogSource {
     NoConversion,
 }
 
+impl std::str::FromStr for AnalogSource {
+    type Err = String;
+
+    /// `open` (nothing on the pin), `V` (a constant voltage) or `sine:MEAN,AMPLITUDE,HZ`
+    /// (volts, volts, Hz): what `twinstack virtual-board --analog-input` takes.
+    ///
+    /// ```
+    /// use hal_sim::analog_source::AnalogSource;
+    /// assert_eq!("1.65".parse(), Ok(AnalogSource::Constant(1.65)));
+    /// assert!("sine:1.65,1,2".parse::<AnalogSource>().is_ok());
+    /// assert!("sine:1.65,1".parse::<AnalogSource>().is_err());
+    /// ```
+    fn from_str(s: &str) -> Result<Self, String> {
+        let number = |x: &str, what: &str| -> Result<f64, String> {
+            match x.trim().parse::<f64>() {
+                Ok(v) if v.is_finite() => Ok(v),
+                _ => Err(format!("{what} {x:?} is not a finite number")),
+            }
+        };
+        if s == "open" {
+            return Ok(AnalogSource::Disconnected);
+        }
+        if let Some(rest) = s.strip_prefix("sine:") {
+            let parts: Vec<&str> = rest.split(',').collect();
+            let [mean, amplitude, hz] = parts[..] else {
+                return Err(format!(
+                    "{s:?}: give sine:MEAN,AMPLITUDE,HZ (three numbers, volts, volts, Hz)"
+                ));
+            };
+            let frequency_hz = number(hz, "the frequency")?;
+            if frequency_hz < 0.0 {
+                return Err(format!("the frequency {hz} Hz is negative"));
+            }
+            return Ok(AnalogSource::Sine {
+                offset: number(mean, "the mean")?,
+                amplitude: number(amplitude, "the amplitude")?,
+                frequency_hz,
+            });
+        }
+        number(s, "the voltage")
+            .map(AnalogSource::Constant)
+            .map_err(|e| format!("{e}: give open, a voltage (e.g. 1.65) or sine:MEAN,AMPLITUDE,HZ"))
+    }
+}
+
 /// The input pin and its ADC channel.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct SetpointInput {

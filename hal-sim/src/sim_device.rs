@@ -104,6 +104,9 @@ pub struct SimDeviceConfig {
     /// (a [`twinstack::protocol::messages::Request::WatchdogDrill`]) resets the board within
     /// [`WATCHDOG_TIMEOUT_MS`]. `false`: a board whose watchdog never fires.
     pub watchdog: bool,
+    /// What drives the analog setpoint input's pin ([`crate::analog_source`]); by default
+    /// nothing (the pull-down's 0 V).
+    pub analog_input: crate::analog_source::AnalogSource,
     /// The analog setpoint input's settings stored with `stored` (ignored without it): with
     /// `start_at_boot`, the board starts the input at power-up as the firmware does.
     pub stored_analog: Option<AnalogInputConfig>,
@@ -124,6 +127,7 @@ impl SimDeviceConfig {
             loopback: false,
             failing_flash: false,
             watchdog: true,
+            analog_input: crate::analog_source::AnalogSource::Disconnected,
             stored_analog: None,
         }
     }
@@ -515,6 +519,7 @@ impl SimDevice {
         device.set_camera(config.camera);
         device.handler.storage_mut().fail_writes = config.failing_flash;
         device.set_watchdog(config.watchdog);
+        device.set_analog_input(config.analog_input);
         device.set_link_errors(config.link_error_rate);
         Ok(device)
     }

@@ -5,6 +5,9 @@
 //! never stepping the DAC beyond the slew limit; the other sources and the analog input
 //! refuse each other; the status flags report it.
 
+#[path = "support/virtual_board_process.rs"]
+mod virtual_board_process;
+
 use hal_sim::analog_source::AnalogSource;
 use hal_sim::sim_device::{SimDevice, SimDeviceConfig};
 use twinstack::analog_input::{AnalogInputConfig, AnalogRequest, AnalogStatus, OnFault};
@@ -410,4 +413,78 @@ fn the_command_refuses_hostile_settings_by_name_and_starts_and_reads_the_input()
     // --start-at-boot is a stored setting.
     let out = run(&["analog", "start", "--port", "sim", "--start-at-boot"]);
     assert!(String::from_utf8_lossy(&out.stderr).contains("--store"));
+}
+
+/// A virtual board with a voltage on its analog input (`--analog-input`): `twinstack analog
+/// start` makes it the setpoint source, the status reads the pin as the ADC converts it and
+/// names the flag, and the output walks to the input's value; a bad spec is one line naming
+/// it, nothing served.
+#[test]
+fn a_virtual_board_s_analog_input_is_driven_from_the_command_line() {
+    let run = |args: &[&str]| {
+        std::process::Command::new(env!("CARGO_BIN_EXE_twinstack"))
+            .args(args)
+            .output()
+            .unwrap()
+    };
+    // Three quarters of 3.3 V: gain 2, offset −1 maps it onto +0.5 of the output range.
+    let (_board, port) = virtual_board_process::start(&["--speed", "0", "--analog-input", "2.475"]);
+    let out = run(&["analog", "start", "--port", &port, "--rate", "50"]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let out = run(&["status", "--port", &port, "--json"]);
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let flags: Vec<&str> = v["flags"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|f| f.as_str().unwrap())
+        .collect();
+    assert!(
+        flags.contains(&"analog") && !flags.contains(&"analog-fault"),
+        "{v}"
+    );
+    let status = || {
+        let out = run(&["analog", "status", "--port", &port, "--json"]);
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        serde_json::from_slice::<serde_json::Value>(&out.stdout).unwrap()
+    };
+    let start = std::time::Instant::now();
+    let a = loop {
+        let a = status();
+        assert_eq!(a["running"], true, "{a}");
+        assert!((a["reading"].as_f64().unwrap() - 0.75).abs() < 1e-3, "{a}");
+        if (a["setpoint"].as_f64().unwrap() - 0.5).abs() < 1e-3 {
+            break a;
+        }
+        assert!(
+            start.elapsed() < std::time::Duration::from_secs(30),
+            "never reached: {a}"
+        );
+    };
+    assert_eq!(a["faults"], 0, "{a}");
+    for (spec, needle) in [
+        ("sine:1,2", "sine:MEAN,AMPLITUDE,HZ"),
+        ("volts", "the voltage"),
+        ("nan", "not a finite number"),
+    ] {
+        let out = run(&[
+            "virtual-board",
+            "--listen",
+            "tcp:127.0.0.1:0",
+            "--analog-input",
+            spec,
+        ]);
+        assert_eq!(out.status.code(), Some(2), "{spec}");
+        assert!(out.stdout.is_empty(), "{spec} served");
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(err.contains(needle), "{spec}: {err}");
+    }
 }

@@ -59,6 +59,11 @@ pub struct Args {
     /// watchdog drill is acknowledged and the board does not reset.
     #[arg(long)]
     pub no_watchdog: bool,
+    /// What drives the analog setpoint input's pin (0–3.3 V, `twinstack analog`): `open`, a
+    /// voltage (e.g. 1.65), or `sine:MEAN,AMPLITUDE,HZ` (volts, volts, Hz). The pin reads as
+    /// the board's 12-bit ADC converts it, clipped to 0–3.3 V.
+    #[arg(long, default_value = "open", value_name = "SPEC")]
+    pub analog_input: crate::analog_source::AnalogSource,
 }
 
 /// Runs `virtual-board`.
@@ -92,14 +97,16 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     config.loopback = args.loopback;
     config.failing_flash = args.fail_flash_writes;
     config.watchdog = !args.no_watchdog;
+    config.analog_input = args.analog_input;
     if args.dual_stage
         && (args.loopback
             || args.fail_flash_writes
             || args.no_watchdog
+            || args.analog_input != crate::analog_source::AnalogSource::Disconnected
             || config.link_error_rate > 0.0)
     {
         anyhow::bail!(
-            "--loopback, --fail-flash-writes, --no-watchdog and --link-error-rate are faults and wiring of the default board, not --dual-stage"
+            "--loopback, --fail-flash-writes, --no-watchdog, --analog-input and --link-error-rate are faults and wiring of the default board, not --dual-stage"
         );
     }
     if let Some(hz) = args.camera_hz {
