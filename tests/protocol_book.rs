@@ -507,3 +507,114 @@ fn a_wrong_byte_or_annotation_in_the_chapter_is_caught() {
         assert!(caught, "{from:?} → {to:?} was not caught");
     }
 }
+
+const RECORDING: &str = include_str!("../docs/src/guide/recording.md");
+
+/// The number written just before `phrase` in `text` (whitespace collapsed; digits grouped by
+/// spaces, "15 872"), for every occurrence of `phrase`.
+fn numbers_before(text: &str, phrase: &str) -> Vec<Option<u64>> {
+    let text = text.split_whitespace().collect::<Vec<_>>().join(" ");
+    text.match_indices(phrase)
+        .map(|(at, _)| {
+            let words: Vec<&str> = text[..at].split(' ').collect();
+            let digits: String = words
+                .iter()
+                .rev()
+                .skip_while(|w| w.is_empty())
+                .take_while(|w| !w.is_empty() && w.chars().all(|c| c.is_ascii_digit()))
+                .collect::<Vec<_>>()
+                .into_iter()
+                .rev()
+                .copied()
+                .collect();
+            digits.parse().ok()
+        })
+        .collect()
+}
+
+/// Where the book states a record's limit, and the constant of the image it names.
+fn record_limits() -> [(&'static str, &'static str, &'static str, usize); 4] {
+    use twinstack::recorder::{EMULATOR_RECORD_CAPACITY, RECORD_CAPACITY};
+    [
+        (
+            "protocol",
+            CHAPTER,
+            "values on the board (`recorder::RECORD_CAPACITY`)",
+            RECORD_CAPACITY,
+        ),
+        (
+            "protocol",
+            CHAPTER,
+            "in the QEMU image (`recorder::EMULATOR_RECORD_CAPACITY`",
+            EMULATOR_RECORD_CAPACITY,
+        ),
+        ("recording", RECORDING, "on the board, ", RECORD_CAPACITY),
+        (
+            "recording",
+            RECORDING,
+            "in the QEMU image), `--decimation",
+            EMULATOR_RECORD_CAPACITY,
+        ),
+    ]
+}
+
+fn check_record_limits(pages: &[(&str, &str)]) -> Result<(), String> {
+    for (page, _, phrase, constant) in record_limits() {
+        let text = pages.iter().find(|(p, _)| *p == page).unwrap().1;
+        let found = numbers_before(text, phrase);
+        if found.is_empty() {
+            return Err(format!("{page}: no limit before {phrase:?}"));
+        }
+        for n in found {
+            if n != Some(constant as u64) {
+                return Err(format!(
+                    "{page}: {n:?} before {phrase:?}, the image's {constant}"
+                ));
+            }
+        }
+    }
+    // The capture's length at the board's default rate, from the same constant.
+    let secs = format!(
+        "{:.2} s at 50 kHz",
+        twinstack::recorder::RECORD_CAPACITY as f64 / 50_000.0
+    );
+    let chapter = pages[0].1.split_whitespace().collect::<Vec<_>>().join(" ");
+    if !chapter.contains(&format!("(`recorder::RECORD_CAPACITY`): {secs}")) {
+        return Err(format!("protocol: the record's length is not {secs}"));
+    }
+    Ok(())
+}
+
+/// The record limits the book states, one figure per image (the board's and the QEMU
+/// image's), are the constants each image refuses a longer record with: a change of the
+/// buffer that moves them fails here until the pages say the new figure.
+#[test]
+fn the_record_limits_the_book_states_are_each_image_s_constants() {
+    let pages = [("protocol", CHAPTER), ("recording", RECORDING)];
+    check_record_limits(&pages).unwrap();
+    // A stale figure is caught, on either page and for either image.
+    let board = twinstack::recorder::RECORD_CAPACITY;
+    let stale = |n: usize| {
+        let s = n.to_string();
+        let (hi, lo) = s.split_at(s.len() - 3);
+        format!("{hi} {lo}")
+    };
+    for (page, text, phrase, constant) in record_limits() {
+        let text = text.split_whitespace().collect::<Vec<_>>().join(" ");
+        let (right, stale) = (
+            format!("{} {phrase}", stale(constant)),
+            format!("{} {phrase}", stale(constant + 512)),
+        );
+        let wrong = text.replacen(&right, &stale, 1);
+        assert_ne!(wrong, text, "{page}: the book writes {right:?}");
+        let mutated: Vec<(&str, &str)> = pages
+            .iter()
+            .map(|&(p, t)| (p, if p == page { wrong.as_str() } else { t }))
+            .collect();
+        assert!(
+            check_record_limits(&mutated).is_err(),
+            "{page}: a stale {phrase:?} figure passes"
+        );
+    }
+    assert!(board > twinstack::recorder::EMULATOR_RECORD_CAPACITY);
+}
