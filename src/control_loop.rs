@@ -466,7 +466,8 @@ where
 
     /// Telemetry's part of a tick, right after [`ControlLoop::tick`] (same interrupt): on a
     /// sample tick, that tick's signals onto the telemetry queue (or counted as an overflow).
-    /// Returns whether to wake the packer (the queue reached a frame's worth, or overflowed).
+    /// Returns whether to wake the packer (a frame's worth of samples taken since the last wake,
+    /// queued or dropped).
     /// O(1); see [`TelemetryTap::push`].
     #[inline(always)]
     pub fn tap_telemetry<const N: usize>(

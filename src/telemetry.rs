@@ -181,8 +181,9 @@ impl TelemetryTap {
 
     /// One tick: on a sample tick, the tick's `signals` onto `queue` (all seven: the packer
     /// takes the mask's), or counted as an overflow if it is full. Returns whether to wake
-    /// the packer: a frame's worth queued since the last wake ([`TelemetryTap::wake_at`]), or
-    /// a sample the full queue dropped. O(1), no branch per signal, no panic path.
+    /// the packer: a frame's worth of samples taken since the last wake
+    /// ([`TelemetryTap::wake_at`]), queued or dropped alike (a full queue does not wake it on
+    /// every sample tick). O(1), no branch per signal, no panic path.
     #[inline(always)]
     pub fn push<const N: usize>(
         &mut self,
@@ -204,8 +205,9 @@ impl TelemetryTap {
         self.next = self.next.wrapping_add(1);
         if queue.enqueue(sample).is_err() {
             self.overflows = self.overflows.wrapping_add(1);
-            return true;
         }
+        // A dropped sample counts as a queued one: a packer that cannot keep up is woken a
+        // frame's worth of samples later, not on every sample tick while the queue is full.
         self.since_wake += 1;
         let wake = self.since_wake >= self.wake;
         if wake {
@@ -587,12 +589,15 @@ mod tests {
         }
         let at: Vec<usize> = (0..10).filter(|_| tap.push(&mut p, &signals)).collect();
         assert_eq!(at.len(), 1);
-        // A full queue (the packer stalled) wakes it on every sample it drops.
+        // A full queue (the packer stalled) wakes it a frame's worth of samples later, as
+        // queued ones do, not on every sample it drops.
         for _ in 0..40 {
             tap.push(&mut p, &signals);
         }
         assert!(p.len() == 15 && tap.overflows() > 0);
-        assert!((0..2).any(|_| tap.push(&mut p, &signals)));
+        let wakes = (0..40).filter(|_| tap.push(&mut p, &signals)).count();
+        assert_eq!(wakes, 4, "20 samples dropped in 40 ticks: one wake per 5");
+        assert!(tap.overflows() >= 20);
     }
 
     #[test]
