@@ -1136,17 +1136,25 @@ fn the_board_answers_the_fuzzer_s_findings_as_the_host_build_does() {
     assert!(matches!(emu.request(&record(cap)), Response::Ack { .. }));
 }
 
-/// The firmware's own tick binding (the emulator image's SysTick handler) reaches no panic
-/// path: nothing it can branch or call to, directly or through what it calls, is one of
-/// `core::panicking`'s. Static, from the image's disassembly.
+/// Every firmware image's own tick binding (the board's TIM2, the emulator's SysTick, each
+/// feature set the gates build) reaches no panic path: nothing it can branch or call to,
+/// directly or through what it calls, panics. Static, from each image's disassembly.
 #[test]
 fn the_firmware_tick_links_no_panic_path() {
-    let elf = support::build_image(support::FIRMWARE, "twinstack-emu", &["emulator"]);
-    let reached = support::reachable_functions(&support::objdump(), &elf, "SysTick");
-    assert!(reached.len() > 1, "the handler calls out: {reached:?}");
-    let panics: Vec<&String> = reached
-        .iter()
-        .filter(|f| f.contains("panic") || f.contains("unwrap_failed"))
-        .collect();
-    assert!(panics.is_empty(), "the tick reaches {panics:?}");
+    let images: [(&str, &[&str], &str); 6] = [
+        ("twinstack-fw", &[], "TIM2"),
+        ("twinstack-fw", &["dual-stage"], "TIM2"),
+        ("twinstack-feather", &["feather"], "TIM2"),
+        ("twinstack-emu", &["emulator"], "SysTick"),
+        ("twinstack-emu", &["emulator", "dual-stage"], "SysTick"),
+        ("twinstack-feather-emu", &["emulator", "feather"], "SysTick"),
+    ];
+    for (bin, features, tick) in images {
+        let elf = support::build_image(support::FIRMWARE, bin, features);
+        let panics = support::panic_paths(&elf, tick);
+        assert!(
+            panics.is_empty(),
+            "{bin} {features:?}: {tick} reaches {panics:?}"
+        );
+    }
 }

@@ -328,22 +328,23 @@ pub fn stack_used(elf: &Path, ram: &[u8]) -> Result<(u32, u32), String> {
 
 /// The functions of `elf` reachable from symbol `root` by direct branches and calls (from
 /// `llvm-objdump -d`: each branch's target address, mapped to the function holding it),
-/// their names as the symbol table spells them (mangled). Indirect calls (`blx rN`) are not
-/// followed: the tick makes none. `objdump` is the disassembler's path.
-pub fn reachable_functions(objdump: &Path, elf: &Path, root: &str) -> Vec<String> {
+/// their names as the symbol table spells them (mangled), each with the indirect branches it
+/// holds (`blx rN`, `bx rN` other than a return), which the walk cannot follow: a caller that
+/// vouches for what is reached checks there are none. `objdump` is the disassembler's path.
+pub fn reachable_functions(objdump: &Path, elf: &Path, root: &str) -> Vec<(String, Vec<String>)> {
     let out = Command::new(objdump)
         .args(["-d", "--no-show-raw-insn", "--triple=thumbv7em-none-eabihf"])
         .arg(elf)
         .output()
         .expect("llvm-objdump runs");
     assert!(out.status.success(), "llvm-objdump failed");
-    // (start address, name, branch targets), in address order.
-    let mut funcs: Vec<(u32, String, Vec<u32>)> = Vec::new();
+    // (start address, name, branch targets, indirect branches), in address order.
+    let mut funcs: Vec<(u32, String, Vec<u32>, Vec<String>)> = Vec::new();
     for line in String::from_utf8_lossy(&out.stdout).lines() {
         if let Some(head) = line.strip_suffix(">:") {
             if let Some((addr, name)) = head.split_once(" <") {
                 if let Ok(a) = u32::from_str_radix(addr.trim(), 16) {
-                    funcs.push((a, name.to_string(), Vec::new()));
+                    funcs.push((a, name.to_string(), Vec::new(), Vec::new()));
                     continue;
                 }
             }
@@ -357,6 +358,13 @@ pub fn reachable_functions(objdump: &Path, elf: &Path, root: &str) -> Vec<String
             continue;
         };
         if !(mnemonic.starts_with('b') || mnemonic.starts_with("cb")) {
+            continue;
+        }
+        let register = !operands.contains("0x") && !operands.starts_with("lr");
+        if (mnemonic.starts_with("blx") || mnemonic.starts_with("bx")) && register {
+            if let Some(f) = funcs.last_mut() {
+                f.3.push(format!("{mnemonic} {operands}"));
+            }
             continue;
         }
         let Some(hex) = operands.split("0x").nth(1) else {
@@ -382,8 +390,41 @@ pub fn reachable_functions(objdump: &Path, elf: &Path, root: &str) -> Vec<String
         .iter()
         .zip(seen)
         .filter(|(_, s)| *s)
-        .map(|(f, _)| f.1.clone())
+        .map(|(f, _)| (f.1.clone(), f.3.clone()))
         .collect()
+}
+
+/// The panic paths handler `root` of `elf` links: the functions it reaches
+/// ([`reachable_functions`]) that panic. Every panic — an assertion, a bound check, an
+/// `unwrap`, `clamp`'s check of its bounds — ends in `core::panicking::panic_fmt` (or
+/// `panic_nounwind_fmt`) and the panic handler, so a reached helper (`*_fail`, `expect_failed`)
+/// brings one of those into the set as well; the names are matched in both manglings.
+///
+/// The walk follows direct branches only: when nothing reached panics, it also asserts that
+/// nothing reached branches through a register, so that no call can hide from it.
+pub fn panic_paths(elf: &Path, root: &str) -> Vec<String> {
+    let reached = reachable_functions(&objdump(), elf, root);
+    assert!(reached.len() > 1, "{root} calls out: {reached:?}");
+    let panics: Vec<String> = reached
+        .iter()
+        .map(|(f, _)| f.clone())
+        .filter(|f| {
+            f.contains("panic")
+                || f.contains("rust_begin_unwind")
+                || f.contains("unwrap_failed")
+                || f.contains("expect_failed")
+                || f.ends_with("_fail")
+                || f.contains("_fail17h")
+        })
+        .collect();
+    if panics.is_empty() {
+        let blind: Vec<_> = reached.iter().filter(|(_, i)| !i.is_empty()).collect();
+        assert!(
+            blind.is_empty(),
+            "{root} reaches indirect branches the walk cannot follow: {blind:?}"
+        );
+    }
+    panics
 }
 
 /// `llvm-objdump`: on the path, or rustup's llvm-tools in the toolchain's sysroot.
