@@ -1608,3 +1608,50 @@ fn two_loads_between_two_ticks_swap_twice_and_the_newer_runs_from_the_drive_held
         (l, r)
     );
 }
+
+/// The analog input is charged beside the configuration's tick
+/// ([`twinstack::tick_budget::ANALOG_CYCLES`]): at a rate whose period holds the closed-loop
+/// configuration but not the input beside it, the load is taken and the start refused with
+/// the cycles it needs and has; nothing starts.
+#[test]
+fn an_analog_start_that_would_overrun_the_tick_is_refused_with_its_cycles() {
+    use twinstack::analog_input::{AnalogInputConfig, AnalogRequest, OnFault};
+    use twinstack::tick_budget::{available_cycles, worst_case_cycles, ANALOG_CYCLES, SYSCLK_HZ};
+    let worst = worst_case_cycles(&closed().build(&hardware()).unwrap());
+    // A period halfway between the configuration alone and the input beside it.
+    let rate = SYSCLK_HZ as f64 / (worst + ANALOG_CYCLES / 2) as f64;
+    let hw = Hardware::driver_board(rate);
+    let fits = worst_case_cycles(&closed().build(&hw).unwrap());
+    assert!(fits <= available_cycles(rate) && fits + ANALOG_CYCLES > available_cycles(rate));
+    let mut b = board_on(RamStorage::default(), hw);
+    assert!(matches!(
+        b.handle(Request::LoadParams(closed())),
+        Response::Ack { .. }
+    ));
+    let input = AnalogInputConfig {
+        gain: 2.0,
+        offset: -1.0,
+        corner_hz: None,
+        lost_below: 0.0,
+        over_above: 1.0,
+        on_fault: OnFault::Hold,
+        rate: 10.0,
+        start_at_boot: false,
+    };
+    match b.handle(Request::Analog(AnalogRequest::Start(input))) {
+        Response::Nack {
+            reason: NackReason::Refused(r),
+        } => {
+            assert_eq!(r.field, Field::Workload, "{r:?}");
+            assert_eq!(
+                r.rule,
+                Rule::TickOverrun {
+                    needs: fits + ANALOG_CYCLES,
+                    available: available_cycles(rate)
+                }
+            );
+        }
+        r => panic!("the start was not refused: {r:?}"),
+    }
+    assert!(!b.control.analog_status().running);
+}

@@ -546,7 +546,7 @@ fn the_whole_interrupt_in_every_scenario() {
         .lines()
         .filter_map(|l| l.strip_prefix("SCENARIO "))
         .collect();
-    assert_eq!(names.len(), 91, "every scenario and load ran: {stdout}");
+    assert_eq!(names.len(), 98, "every scenario and load ran: {stdout}");
     // The stack's high-water mark over the whole run (painted at reset, read back by the image
     // before it exits): within three quarters of the reserve memory.x keeps for it.
     let reserve = support::elf_symbol(&elf, "_stack_reserve")
@@ -642,6 +642,8 @@ fn the_whole_interrupt_in_every_scenario() {
                 predicted + u64::from(twinstack::tick_budget::LEARNING_CYCLES)
             } else if name.contains("/scan-") {
                 predicted + u64::from(twinstack::tick_budget::SCAN_CYCLES)
+            } else if name.contains("/analog-") {
+                predicted + u64::from(twinstack::tick_budget::ANALOG_CYCLES)
             } else if name.contains("reload") {
                 let other = if config.starts_with("inverse-pi16") {
                     "inverse-duhem+duhem-observer+pi+drift"

@@ -26,6 +26,7 @@ pub const RATE_HZ: u32 = 40_000;
 
 /// The scenarios' setpoints, Q1.15, one per tick (divider 1).
 pub mod scenarios {
+    use twinstack::analog_input::{AnalogInputConfig, OnFault};
     use twinstack::scan::{LissajousScan, RasterScan, ScanPattern, ScanRequest, SpiralScan};
 
     /// Ticks each scenario streams.
@@ -47,7 +48,25 @@ pub mod scenarios {
         /// Instead of streaming: a scan generated on the board with its pixel, line and frame
         /// outputs pulsing ([`RASTER`], [`LISSAJOUS`], [`SPIRAL`]), for `TICKS` ticks.
         pub scan: Option<ScanRequest>,
+        /// Instead of streaming: the analog setpoint input as the source for `TICKS` ticks
+        /// ([`ANALOG`]).
+        pub analog: Option<AnalogInputConfig>,
     }
+
+    /// The analog scenario's input: scaled, low-pass filtered and walking to the input's
+    /// value at 5 full scales a second, so every tick takes the valid path's dearest branch
+    /// (scale, filter, the walk). QEMU's ADC2 converts nothing on the timer's trigger and
+    /// reads 0, which the window (from 0) takes as valid.
+    pub const ANALOG: AnalogInputConfig = AnalogInputConfig {
+        gain: 2.0,
+        offset: -1.0,
+        corner_hz: Some(500.0),
+        lost_below: 0.0,
+        over_above: 1.0,
+        on_fault: OnFault::Hold,
+        rate: 5.0,
+        start_at_boot: false,
+    };
 
     /// `pattern` scanned until stopped, 4 ticks a pixel, started at once.
     const fn endless(pattern: ScanPattern) -> ScanRequest {
@@ -169,6 +188,7 @@ pub mod scenarios {
             lifecycle,
             learning,
             scan: None,
+            analog: None,
         }
     }
 
@@ -180,11 +200,24 @@ pub mod scenarios {
             lifecycle: false,
             learning,
             scan: Some(scan),
+            analog: None,
+        }
+    }
+
+    /// The analog input scenario (the stream's setpoint function unused).
+    const fn analog(name: &'static str, input: AnalogInputConfig) -> Scenario {
+        Scenario {
+            name,
+            setpoint: triangle,
+            lifecycle: false,
+            learning: false,
+            scan: None,
+            analog: Some(input),
         }
     }
 
     /// Every scenario, in the order they run.
-    pub const ALL: [Scenario; 12] = [
+    pub const ALL: [Scenario; 13] = [
         streamed("triangle", triangle, false, false),
         streamed("sine-750Hz", sine_750hz, false, false),
         streamed("full-range-steps", steps, false, false),
@@ -197,6 +230,7 @@ pub mod scenarios {
         // The learning's use case: a periodic scan with the learned feedforward on.
         scanned("scan-raster-learning", RASTER, true),
         scanned("scan-spiral-learning", SPIRAL, true),
+        analog("analog-input", ANALOG),
         streamed("reload-and-mode-switches", triangle, true, false),
     ];
 }
@@ -364,8 +398,8 @@ mod app {
     use twinstack::learning::{LearnSettings, LearnState};
     use twinstack::param_store::ReadOnlyStorage;
     use twinstack::protocol::messages::{
-        CaptureRequest, CaptureState, LearnRequest, RecordRequest, Request, Response,
-        SetpointBatch, Signal, StreamControl, Trigger, MAX_BATCH, MAX_CAPTURE_CHUNK,
+        AnalogRequest, CaptureRequest, CaptureState, LearnRequest, RecordRequest, Request,
+        Response, SetpointBatch, Signal, StreamControl, Trigger, MAX_BATCH, MAX_CAPTURE_CHUNK,
     };
     use twinstack::recorder::{SplitStore, CHANNELS};
     use twinstack::settings::{Mode, Settings};
@@ -427,7 +461,10 @@ mod app {
         let control = ControlLoop::new(active, spare, timer.rate_hz(), record);
         let (safe_left, safe_right) = control.safe_codes();
         let dac = InternalDac::new(dp.DAC, &rcc, (safe_left, safe_right));
-        let adc = SensorInput::new(dp.ADC1, &dp.ADC_COMMON, &rcc);
+        // The analog setpoint input on ADC2, as the firmware's.
+        let adc = SensorInput::new(dp.ADC1, &dp.ADC_COMMON, &rcc).with_setpoint_input(
+            twinstack::hardware::setpoint_adc::SetpointChannel::new(dp.ADC2, &rcc),
+        );
         let watchdog = Watchdog::start(dp.IWDG, &dp.DBGMCU);
         let handler = CommandHandler::new(hardware, settings, true, ReadOnlyStorage(&[]));
         let (setpoints_in, setpoints) = cx.local.setpoint_queue.split();
@@ -530,21 +567,28 @@ mod app {
                 let mut k = 0u32;
                 let mut started = false;
                 let mut changed = 0u8;
-                if let Some(scan) = scenario.scan {
-                    // Pulses of 2 ticks; the scan runs TICKS ticks (counted by the status).
-                    expect_ack(
-                        ask!(Request::Trigger(twinstack::scan::TriggerConfig {
-                            pulse_ticks: 2,
-                            input: twinstack::scan::TriggerEdge::Rising,
-                            start_stream: false,
-                        })),
-                        "trigger",
-                    );
+                if scenario.scan.is_some() || scenario.analog.is_some() {
+                    // A source on the board (a scan, the analog input) runs TICKS ticks
+                    // (counted by the status).
                     let t0 = match ask!(Request::Status) {
                         Response::Status(s) => s.ticks,
                         _ => 0,
                     };
-                    expect_ack(ask!(Request::Scan(scan)), "scan");
+                    if let Some(scan) = scenario.scan {
+                        // Pulses of 2 ticks.
+                        expect_ack(
+                            ask!(Request::Trigger(twinstack::scan::TriggerConfig {
+                                pulse_ticks: 2,
+                                input: twinstack::scan::TriggerEdge::Rising,
+                                start_stream: false,
+                            })),
+                            "trigger",
+                        );
+                        expect_ack(ask!(Request::Scan(scan)), "scan");
+                    }
+                    if let Some(input) = scenario.analog {
+                        expect_ack(ask!(Request::Analog(AnalogRequest::Start(input))), "analog");
+                    }
                     loop {
                         let now = match ask!(Request::Status) {
                             Response::Status(s) => s.ticks,
