@@ -16,10 +16,10 @@
 
 use std::time::Duration;
 
-use hal_sim::link::client::Client;
-use hal_sim::link::streamer::{stream_setpoints, StreamOptions, StreamReport};
 use hal_sim::sim_device::{full_range_triangle, LinkDelay, SimDevice, SimDeviceConfig};
 use twinstack::protocol::messages::UnderrunPolicy;
+use twinstack_link::client::Client;
+use twinstack_link::streamer::{stream_setpoints, StreamOptions, StreamReport};
 
 struct Setup {
     baud: u32,

@@ -1,4 +1,4 @@
-//! Sustained setpoint throughput of the host streamer (`hal_sim::link::streamer`).
+//! Sustained setpoint throughput of the host streamer (`twinstack_link::streamer`).
 //!
 //! ```text
 //! cargo run --release -p hal-sim --example stream_throughput                 # in-process
@@ -21,14 +21,14 @@
 //! at a baud rate and hands the guest one byte per interrupt, so this measures QEMU and the
 //! emulated firmware, not the board's link. Needs `qemu-system-arm` on the PATH.
 
-use hal_sim::link::client::Client;
-use hal_sim::link::streamer::{stream_setpoints, StreamOptions, StreamReport};
-use hal_sim::link::Transport;
 use hal_sim::port::{self, PortSpec};
 use hal_sim::sim_device::{SimDevice, SimDeviceConfig};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 use twinstack::protocol::messages::UnderrunPolicy;
+use twinstack_link::client::Client;
+use twinstack_link::streamer::{stream_setpoints, StreamOptions, StreamReport};
+use twinstack_link::Transport;
 
 fn sine(n: usize, rate: f64) -> Vec<i16> {
     (0..n)

@@ -2,10 +2,10 @@
 //! and connecting. When no port is given, or a serial device cannot be opened, the error lists
 //! the serial ports the system has ([`available_ports`]).
 
-use crate::link::serial::SerialError;
-use crate::link::{Client, Transport};
 use crate::port::{self, PortError, PortSpec, DEFAULT_BAUD};
 use std::time::Duration;
+use twinstack_link::serial::SerialError;
+use twinstack_link::{Client, Transport};
 
 /// The environment variable `--port` falls back to.
 pub const PORT_ENV: &str = "TWINSTACK_PORT";

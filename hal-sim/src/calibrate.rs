@@ -27,17 +27,16 @@
 //! 4. **Load**: the parameter file `identify` would write ([`ParamFile::from_model`]), with the
 //!    board's own drive, sensor calibration and feedback gains kept; a model whose input range
 //!    the drive cannot reach is refused as `load` refuses it
-//!    ([`crate::cli::load::unreachable_input`]) unless [`CalibrateOptions::clamp`].
+//!    ([`twinstack_link::board_requests::unreachable_input`]) unless [`CalibrateOptions::clamp`].
 //! 5. **Verify**: a test trajectory — two triangle cycles, then nested minor loops
-//!    ([`crate::tracking::trajectories`]), not the excitation — over the measured output range
-//!    less [`crate::tracking::TRAJECTORY_MARGIN`] each side, streamed in bypass (the new
+//!    ([`crate::trajectory::trajectories`]), not the excitation — over the measured output range
+//!    less [`crate::trajectory::TRAJECTORY_MARGIN`] each side, streamed in bypass (the new
 //!    ranges' linear map: what a user gets without compensation) and then in open loop
 //!    (the inverse model), each recorded (setpoint and sensor) and scored: the sensor against
 //!    the setpoint, max and RMS in % of the trajectory's span ([`Tracking`]).
 //! 6. **Store** (unless [`CalibrateOptions::store`] is `None`): the settings in force (open
 //!    loop) to flash, to boot in the mode asked for.
 
-use crate::capture::{self, CaptureError, ConvertError, Recording};
 use crate::identification::auto::{
     identify_admitted, identify_auto_admitting, Ranked, Size, Validation,
 };
@@ -46,13 +45,8 @@ use crate::identification::score::{score, ErrorFigures};
 use crate::identification::{
     Identification, IdentifyError, IdentifyOptions, ModelKind, DEFAULT_OPERATORS,
 };
-use crate::link::client::{Client, LinkError};
-use crate::link::streamer::{stream_setpoints, StreamError, StreamOptions};
-use crate::link::Transport;
-use crate::measured_data::MeasuredData;
 use crate::param_file::{IdentificationRecord, ParamFile};
-use crate::setpoint_file::q1_15;
-use crate::tracking;
+use crate::trajectory;
 use std::time::Duration;
 use twinstack::protocol::messages::{
     CaptureRequest, CaptureStatus, Mode, StatusReport, StreamControl, Trigger, UnderrunPolicy,
@@ -60,6 +54,12 @@ use twinstack::protocol::messages::{
 };
 use twinstack::recorder::Channel;
 use twinstack::settings::Settings;
+use twinstack_link::capture::{self, CaptureError, ConvertError, Recording};
+use twinstack_link::client::{Client, LinkError};
+use twinstack_link::measured_data::MeasuredData;
+use twinstack_link::setpoint_file::q1_15;
+use twinstack_link::streamer::{stream_setpoints, StreamError, StreamOptions};
+use twinstack_link::Transport;
 
 /// How a calibration runs. [`CalibrateOptions::default`] is what `twinstack calibrate` runs.
 #[derive(Clone, Debug, PartialEq)]
@@ -457,7 +457,7 @@ pub fn calibrate<T: Transport>(
         .fold((f64::INFINITY, f64::NEG_INFINITY), |(l, h), &v| {
             (l.min(v), h.max(v))
         });
-    let margin = tracking::TRAJECTORY_MARGIN * (hi - lo);
+    let margin = trajectory::TRAJECTORY_MARGIN * (hi - lo);
     let trajectory_range = (lo + margin, hi - margin);
     let setpoint_rate = rate / options.stream_divider as f64;
     let trajectory = test_trajectory(trajectory_range, setpoint_rate);
@@ -622,7 +622,7 @@ fn measure<T: Transport>(
     file.settings.drive = board.drive;
     file.settings.sensor = board.sensor;
     file.settings.feedback = board.feedback;
-    let clamped = match crate::cli::load::unreachable_input(&file.settings) {
+    let clamped = match twinstack_link::board_requests::unreachable_input(&file.settings) {
         Some(((model_lo, model_hi), (drive_lo, drive_hi))) if !options.clamp => {
             return Err(CalibrateError::Unreachable {
                 model_lo,
@@ -779,14 +779,14 @@ fn identification_record(
     Ok((record, predicted))
 }
 
-/// Two triangle cycles then the nested minor loops of [`tracking::trajectories`] over
+/// Two triangle cycles then the nested minor loops of [`trajectory::trajectories`] over
 /// `lo … hi`, at `rate` setpoints per second.
-pub fn test_trajectory((lo, hi): (f64, f64), rate: f64) -> tracking::Trajectory {
-    let [triangle, loops, _] = tracking::trajectories(lo, hi, rate);
+pub fn test_trajectory((lo, hi): (f64, f64), rate: f64) -> trajectory::Trajectory {
+    let [triangle, loops, _] = trajectory::trajectories(lo, hi, rate);
     // The triangle's first two of four cycles end at `lo`, where the loops start.
     let mut x: Vec<f64> = triangle.x[..triangle.x.len() / 2].to_vec();
     x.extend_from_slice(&loops.x);
-    tracking::Trajectory {
+    trajectory::Trajectory {
         name: "triangle + minor loops",
         t: (0..x.len()).map(|k| k as f64 / rate).collect(),
         x,
@@ -795,14 +795,14 @@ pub fn test_trajectory((lo, hi): (f64, f64), rate: f64) -> tracking::Trajectory 
 
 /// The record streamed for `trajectory`: from `x_rest` (where the output holds) up to the
 /// trajectory's top, down to its bottom (its start), then the trajectory, at
-/// [`tracking::SWEEP_SPEED`]; returns it and the index of the trajectory's first setpoint.
+/// [`trajectory::SWEEP_SPEED`]; returns it and the index of the trajectory's first setpoint.
 ///
 /// The sweep over the whole range before the scored part wipes the hysteresis memory of the
 /// stage and of the model alike (both end on the same descending branch), so the scored part
 /// starts with the compensator's state matching the stage's: a mode switch prepares the
 /// compensator relaxed at the present drive, which the stage's branch need not be.
 pub fn with_conditioning(
-    trajectory: &tracking::Trajectory,
+    trajectory: &trajectory::Trajectory,
     x_rest: f64,
     rate: f64,
 ) -> (Vec<f64>, usize) {
@@ -813,7 +813,7 @@ pub fn with_conditioning(
             (l.min(v), h.max(v))
         });
     let start = trajectory.x.first().copied().unwrap_or(lo);
-    let speed = tracking::SWEEP_SPEED * (hi - lo).max(f64::MIN_POSITIVE);
+    let speed = trajectory::SWEEP_SPEED * (hi - lo).max(f64::MIN_POSITIVE);
     let mut x = Vec::new();
     for (a, b) in [(x_rest, hi), (hi, start)] {
         let steps = ((b - a).abs() / speed * rate).round().max(1.0) as usize;
@@ -829,7 +829,7 @@ pub fn with_conditioning(
 /// setpoint over the trajectory.
 fn track<T: Transport>(
     client: &mut Client<T>,
-    trajectory: &tracking::Trajectory,
+    trajectory: &trajectory::Trajectory,
     x_rest: f64,
     options: &CalibrateOptions,
     settings: &Settings,

@@ -20,9 +20,7 @@
 //! gains with and without their notch.
 
 use crate::identification::{identify, score::score, IdentifyOptions, ModelKind, ThresholdSpread};
-use crate::measured_data::MeasuredData;
 use crate::plant::Configuration as StageConfiguration;
-use crate::plot::{draw_panels, Panel, Series};
 use crate::sim_board::{BoardConfig, ExternalBoard, SimBoard};
 use crate::stage_model::{Hysteresis, StageModel};
 use anyhow::{anyhow, Context, Result};
@@ -36,6 +34,8 @@ use twinstack::notch::NotchDesign;
 use twinstack::settings::{FeedbackSettings, Mode, Model, SensorSettings, Settings};
 use twinstack::waveform::{Shape, WaveformGenerator};
 use twinstack::Scaling;
+use twinstack_link::measured_data::MeasuredData;
+use twinstack_link::plot::{draw_panels, Panel, Series};
 
 /// The differential stage's first resonance (see the book, docs/src/reference/physics.md), Hz: where the notch sits.
 pub const RESONANCE_HZ: f64 = 21_800.0;
@@ -250,9 +250,9 @@ pub fn feedback_settings(rate: f64, notch: bool) -> FeedbackSettings {
 /// its default margins), its gains carried from the board's normalised units (its 70 V input
 /// half span onto ±45 µm) to those of `model`'s scaling.
 pub fn tuned_feedback(rate: f64, model: &StageModel) -> Result<FeedbackSettings> {
-    use crate::link::Client;
     use crate::sim_device::{SimDevice, SimDeviceConfig};
     use crate::tune::{tune, TuneOptions};
+    use twinstack_link::Client;
     let mut config = SimDeviceConfig::paper();
     config.board.plant.dt = 1.0 / rate;
     let device = SimDevice::new(config).map_err(|e| anyhow!("simulated board: {e}"))?;

@@ -15,9 +15,7 @@
 //!    cycle (PNG).
 
 use crate::identification::{identify, score::score, IdentifyOptions, ModelKind, ThresholdSpread};
-use crate::measured_data::MeasuredData;
 use crate::plant::Configuration as StageConfiguration;
-use crate::plot::{draw_panels, Panel, Series};
 use crate::sim_board::{BoardConfig, ExternalBoard, SimBoard};
 use crate::stage_model::{Hysteresis, StageModel};
 use anyhow::{anyhow, Context, Result};
@@ -31,6 +29,8 @@ use twinstack::fixed_point::{signal_from_f64, signal_to_f64};
 use twinstack::settings::{Mode, Model, Settings};
 use twinstack::waveform::{Shape, WaveformGenerator};
 use twinstack::Scaling;
+use twinstack_link::measured_data::MeasuredData;
+use twinstack_link::plot::{draw_panels, Panel, Series};
 
 /// What the demo runs.
 #[derive(Clone, Debug)]

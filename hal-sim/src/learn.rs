@@ -18,7 +18,6 @@ use crate::closed_loop::{
     board, hardware, identify_model, sensor_settings, settings, ClosedLoopOptions, Configuration4,
 };
 use crate::identification::score::score;
-use crate::plot::{draw_panels, Panel, Series};
 use crate::sim_board::ExternalBoard;
 use crate::stage_model::StageModel;
 use anyhow::{anyhow, bail, Context, Result};
@@ -34,6 +33,7 @@ use twinstack::learning::{
 use twinstack::recorder::CAPTURE_SLOTS;
 use twinstack::settings::{NotchDesign, Settings};
 use twinstack::waveform::{Shape, WaveformGenerator};
+use twinstack_link::plot::{draw_panels, Panel, Series};
 
 /// The waveform to learn: a shape and a frequency.
 #[derive(Clone, Copy, Debug, PartialEq)]

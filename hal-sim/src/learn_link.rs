@@ -17,7 +17,6 @@
 
 use crate::board_link::{connect, BoardClient, PortArgs};
 use crate::learn::{period_ticks, LearnOptions};
-use crate::plot::{draw_panels, Panel, Series};
 use anyhow::{anyhow, bail, Context, Result};
 use plotters::style::{BLACK, BLUE, RED};
 use std::path::PathBuf;
@@ -28,6 +27,7 @@ use twinstack::protocol::messages::{
     LearnRequest, LearnState, LearnStatus, Mode, Request, Response, StreamControl, WaveShape,
     Waveform,
 };
+use twinstack_link::plot::{draw_panels, Panel, Series};
 
 /// One period as the board's sensor saw it, % of the commanded stroke.
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize)]
@@ -75,7 +75,7 @@ fn learn(client: &mut BoardClient, r: LearnRequest) -> Result<Response> {
     match response {
         Response::Nack { reason } => Err(anyhow!(
             "the board refused Learn({r:?}): {}",
-            crate::link::client::nack_text(&reason)
+            twinstack_link::client::nack_text(&reason)
         )),
         other => Ok(other),
     }
@@ -147,7 +147,7 @@ pub fn run(port: &PortArgs, options: &LearnOptions, amplitude: f64) -> Result<Li
             twinstack::waveform::Shape::Triangle => WaveShape::Triangle,
         },
         offset: 0,
-        amplitude: crate::setpoint_file::q1_15(amplitude),
+        amplitude: twinstack_link::setpoint_file::q1_15(amplitude),
         frequency_mhz: (options.motion.frequency_hz * 1000.0).round() as u32,
         decay: None,
     })?;

@@ -4,11 +4,11 @@
 //! Unix host; elsewhere (Windows) it is refused with [`PortError::UnixSocketUnsupported`] and
 //! `tcp:` is the way to an emulator.
 
-use crate::link::serial::{SerialError, SerialTransport};
-use crate::link::socket::SocketTransport;
-use crate::link::Transport;
 use crate::sim_device::{LinkDelay, SimDevice, SimDeviceConfig};
 use std::path::PathBuf;
+use twinstack_link::serial::{SerialError, SerialTransport};
+use twinstack_link::socket::SocketTransport;
+use twinstack_link::Transport;
 
 /// Default baud rate of the board link: the board's (`twinstack::hardware::usart::BAUD`), 3
 /// Mbaud, which FT232R, CP2102N and FT232H adapters make exactly.

@@ -23,7 +23,7 @@
 //!
 //! ```
 //! use std::time::Duration;
-//! use hal_sim::link::Transport;
+//! use twinstack_link::Transport;
 //! use hal_sim::sim_device::{SimDevice, SimDeviceConfig};
 //! use twinstack::protocol::frame;
 //! use twinstack::protocol::messages::{Request, Response};
@@ -70,10 +70,10 @@ use twinstack::telemetry::TelemetryQueue;
 use twinstack::Scaling;
 
 use crate::converters::{AnalogDualDac, AnalogSensorAdc, InternalAdc, InternalDac};
-use crate::link::Transport;
 use crate::plant::Configuration;
 use crate::sim_board::{BoardConfig, BoardError, SimBoard};
 use crate::sim_camera::{CameraConfig, SimCamera};
+use twinstack_link::Transport;
 
 /// Everything a simulated device is built from.
 #[derive(Clone, Debug)]

@@ -12,7 +12,7 @@
 //!    three-frequency multisine. The drive is the model's inverse ([`StageModel::compensate`],
 //!    the library's fixed point), or for the *no compensation* row the least-squares line
 //!    `u = a x + b` fitted to the excitation ([`LinearMap`]). The stage runs open loop from rest
-//!    at 0 V, as for the excitation, through an unscored [`LEAD_IN_S`] ramp to the
+//!    at 0 V, as for the excitation, through an unscored [`LEAD_IN_S`](crate::trajectory::LEAD_IN_S) ramp to the
 //!    trajectory's start ([`Trajectory::with_lead_in`]); the error is the reading minus the
 //!    desired displacement, in % of the trajectory's span ([`TrackingScore`]).
 //!
@@ -27,12 +27,13 @@
 use crate::identification::auto::identify_auto;
 use crate::identification::score::{score, ErrorFigures};
 use crate::identification::{identify, IdentifyOptions, ModelKind};
-use crate::measured_data::MeasuredData;
 use crate::plant::{LabStage, LabStageConfig, LabStageError, SetFieldError};
 use crate::stage_model::StageModel;
+use crate::trajectory::{trajectories, Trajectory, TRAJECTORY_MARGIN};
 use std::f64::consts::TAU;
 use std::path::PathBuf;
 use twinstack::ParamError;
+use twinstack_link::measured_data::MeasuredData;
 
 /// The default sample rate of the excitation and of tracking, Hz (see the module docs).
 pub const SAMPLE_RATE_HZ: f64 = 10_000.0;
@@ -46,8 +47,6 @@ pub const FULL_RANGE_CYCLES: usize = 6;
 pub const FINAL_AMPLITUDE: f64 = 0.15;
 /// The default `fit_until_s`: everything but the last excitation cycle is fitted.
 pub const FIT_UNTIL_S: f64 = EXCITATION_S - 1.0 / EXCITATION_HZ;
-/// Trajectories stay this fraction of the measured output span inside it, each side.
-pub const TRAJECTORY_MARGIN: f64 = 0.1;
 
 /// The excitation drive at `sample_rate_hz` for a stage whose drive range is `0 … drive_max`
 /// volts: `u = (U/2)(1 − A(t) cos 2πft)`, `A = 1` for the first [`FULL_RANGE_CYCLES`], then
@@ -88,93 +87,6 @@ pub fn excite(stage: &mut LabStage) -> MeasuredData {
         u: Some(u),
         x: Some(x),
     }
-}
-
-/// A desired displacement record.
-#[derive(Clone, Debug, PartialEq)]
-pub struct Trajectory {
-    /// Its name in the table.
-    pub name: &'static str,
-    /// Time, seconds.
-    pub t: Vec<f64>,
-    /// Desired reading, µm.
-    pub x: Vec<f64>,
-}
-
-/// Length of the unscored lead-in before each trajectory, seconds.
-pub const LEAD_IN_S: f64 = 0.1;
-
-impl Trajectory {
-    /// The record actually played: a [`LEAD_IN_S`] ramp from `x_rest` (the reading at rest at
-    /// 0 V, where the stage starts) to the trajectory's first value, then the trajectory.
-    /// Returns `(t, x, first)`, `first` being the index of the trajectory's first sample.
-    ///
-    /// The lead-in is what a user does (move to the start, then run), and it starts the
-    /// stage and the compensator in the states the model was identified in: the excitation
-    /// also started from rest at 0 V, and the model is run from rest at its first value.
-    pub fn with_lead_in(&self, x_rest: f64, sample_rate_hz: f64) -> (Vec<f64>, Vec<f64>, usize) {
-        let first = (LEAD_IN_S * sample_rate_hz).round() as usize;
-        let x0 = self.x.first().copied().unwrap_or(x_rest);
-        let mut x: Vec<f64> = (0..first)
-            .map(|k| x_rest + (x0 - x_rest) * k as f64 / first as f64)
-            .collect();
-        x.extend_from_slice(&self.x);
-        let t = (0..x.len()).map(|k| k as f64 / sample_rate_hz).collect();
-        (t, x, first)
-    }
-}
-
-/// Piecewise-linear through `points` (fractions) at `speed` fractions per second.
-fn piecewise(points: &[f64], speed: f64, rate: f64) -> Vec<f64> {
-    let mut out = Vec::new();
-    for w in points.windows(2) {
-        let steps = ((w[1] - w[0]).abs() / speed * rate).round().max(1.0) as usize;
-        out.extend((0..steps).map(|k| w[0] + (w[1] - w[0]) * k as f64 / steps as f64));
-    }
-    out.push(points.last().copied().unwrap_or(0.0));
-    out
-}
-
-/// Sweep speed of the triangle and the minor loops, fractions of the span per second.
-pub const SWEEP_SPEED: f64 = 4.0;
-
-/// The three trajectories over `lo … hi` µm (their full span) at `sample_rate_hz`, each
-/// starting at `lo`:
-/// * `triangle`: 2 Hz, 4 cycles (2 s);
-/// * `minor loops`: reversals at 1, 0.2, 0.8, 0.35, 0.65, 0.45, 0.55, then out to 0.3, 0.9
-///   and back to 0, at [`SWEEP_SPEED`] (≈ 1.4 s);
-/// * `multisine`: `lo + span (0.5 − 0.25 cos 2π·1t − 0.15 cos 2π·3t − 0.1 cos 2π·7t)`, 2 s.
-pub fn trajectories(lo: f64, hi: f64, sample_rate_hz: f64) -> [Trajectory; 3] {
-    let span = hi - lo;
-    let make = |name, frac: Vec<f64>| Trajectory {
-        name,
-        t: (0..frac.len()).map(|k| k as f64 / sample_rate_hz).collect(),
-        x: frac.iter().map(|f| lo + span * f).collect(),
-    };
-    let triangle = piecewise(
-        &[0.0, 1.0, 0.0, 1.0, 0.0, 1.0, 0.0, 1.0, 0.0],
-        SWEEP_SPEED,
-        sample_rate_hz,
-    );
-    let loops = piecewise(
-        &[0.0, 1.0, 0.2, 0.8, 0.35, 0.65, 0.45, 0.55, 0.3, 0.9, 0.0],
-        SWEEP_SPEED,
-        sample_rate_hz,
-    );
-    let n = (2.0 * sample_rate_hz).round() as usize;
-    let multisine = (0..n)
-        .map(|k| {
-            let t = k as f64 / sample_rate_hz;
-            0.5 - 0.25 * (TAU * t).cos()
-                - 0.15 * (TAU * 3.0 * t).cos()
-                - 0.1 * (TAU * 7.0 * t).cos()
-        })
-        .collect();
-    [
-        make("triangle", triangle),
-        make("minor loops", loops),
-        make("multisine", multisine),
-    ]
 }
 
 /// The user's linear calibration `u = a x + b`, least squares over the fitted part of the

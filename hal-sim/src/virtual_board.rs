@@ -30,8 +30,8 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
 
 use crate::converters::{AnalogDualDac, AnalogSensorAdc};
-use crate::link::Transport;
 use crate::sim_device::{SimDevice, SimDeviceConfig};
+use twinstack_link::Transport;
 
 /// Most simulated time run per turn of the loop.
 pub const MAX_STEP: Duration = Duration::from_millis(10);

@@ -12,6 +12,7 @@ use std::sync::{Arc, Mutex};
 use std::time::Duration;
 use support::fake_board::FakeBoard;
 
+#[path = "../../link/tests/support/mod.rs"]
 mod support;
 
 fn hal_sim(args: &[&str]) -> Output {
@@ -242,7 +243,7 @@ fn a_busy_port_is_refused() {
     let pty = PtyBoard::start(FakeBoard::new(300, 50_000.0));
     // Another program holds the port (exclusively, as twinstack opens it).
     let _holder =
-        hal_sim::link::serial::SerialTransport::open(&pty.path, 115_200).expect("first open");
+        twinstack_link::serial::SerialTransport::open(&pty.path, 115_200).expect("first open");
     refused(
         &["status", "--port", &pty.path],
         &format!("{}: cannot open serial device", pty.path),

@@ -5,7 +5,6 @@
 use hal_sim::identification::auto::identify_auto;
 use hal_sim::identification::score::score;
 use hal_sim::identification::{identify, IdentifyOptions, ModelKind};
-use hal_sim::measured_data::MeasuredData;
 use hal_sim::reference;
 use hal_sim::stage_model::Hysteresis;
 use proptest::prelude::*;
@@ -16,6 +15,7 @@ use twinstack::control::Controller;
 use twinstack::fixed_point::{signal_from_f64 as q, signal_to_f64 as f};
 use twinstack::settings::{Hardware, Mode, Model, Settings};
 use twinstack::{BoucWenParams, Scaling};
+use twinstack_link::measured_data::MeasuredData;
 
 /// One LSB of a 16-bit converter over the normalised range [-1, 1].
 const LSB16: f64 = 2.0 / 65536.0;

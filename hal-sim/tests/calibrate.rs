@@ -7,12 +7,12 @@
 use hal_sim::calibrate::{calibrate, CalibrateError, CalibrateOptions};
 use hal_sim::identification::auto::{identify_auto_admitting, Admission, Validation};
 use hal_sim::identification::{IdentifyError, IdentifyOptions, ModelKind};
-use hal_sim::link::client::Client;
 use hal_sim::sim_device::{SimDevice, SimDeviceConfig};
 use std::process::{Command, Output};
 use std::time::Duration;
 use twinstack::board::Hardware;
 use twinstack::settings::{Mode, Settings};
+use twinstack_link::client::Client;
 
 #[path = "support/virtual_board_process.rs"]
 mod virtual_board_process;
@@ -437,7 +437,7 @@ fn the_board_plays_the_decaying_excitation_it_is_asked_for() {
         .unwrap();
     client.waveform(w).unwrap();
     let (status, window) =
-        hal_sim::capture::wait_and_read(&mut client, Duration::from_secs(5), |_, _| {})
+        twinstack_link::capture::wait_and_read(&mut client, Duration::from_secs(5), |_, _| {})
             .expect("the capture completes");
     assert_eq!(status.samples, 3000);
     let peaks: Vec<i16> = window

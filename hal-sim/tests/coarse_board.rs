@@ -6,10 +6,10 @@
 use std::time::Duration;
 
 use hal_sim::coarse_rig::{DualStageDevice, DualStageDeviceConfig, InjectedFaults};
-use hal_sim::link::client::{Client, LinkError};
 use twinstack::dual_stage::{CoarseState, CoarseStatus};
 use twinstack::protocol::messages::{CoarseMove, NackReason, Request};
 use twinstack::refusal::{Field, Refusal, Rule};
+use twinstack_link::client::{Client, LinkError};
 
 const TICK: Duration = Duration::from_micros(20);
 

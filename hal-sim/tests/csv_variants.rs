@@ -4,10 +4,10 @@
 //! CRLF line ends and other column names (`--columns`) all read to the same data as the plain
 //! CSV; a bad cell still names the file, line and column.
 
-use hal_sim::measured_data::{ColumnNames, Columns, DataError, MeasuredData};
-use hal_sim::setpoint_file::{self, SetpointUnits};
 use std::path::Path;
 use std::process::Command;
+use twinstack_link::measured_data::{ColumnNames, Columns, DataError, MeasuredData};
+use twinstack_link::setpoint_file::{self, SetpointUnits};
 
 const N: usize = 12;
 

@@ -12,15 +12,15 @@ mod support;
 #[path = "support/view_client.rs"]
 mod view_client;
 
-use hal_sim::link::client::{Client, LinkError};
-use hal_sim::link::streamer::{stream_setpoints, StreamOptions};
-use hal_sim::link::Transport;
 use hal_sim::param_file::ParamFile;
 use hal_sim::port::{self, PortSpec};
 use hal_sim::stage_model::{Hysteresis, StageModel};
 use std::path::PathBuf;
 use std::process::Child;
 use std::time::{Duration, Instant};
+use twinstack_link::client::{Client, LinkError};
+use twinstack_link::streamer::{stream_setpoints, StreamOptions};
+use twinstack_link::Transport;
 
 /// Values the stream's capture records: the emulator's whole recorder (its 19 456 SRAM slots,
 /// two per value; QEMU models no CCM RAM, the board's other 32 768).

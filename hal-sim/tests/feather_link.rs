@@ -16,8 +16,6 @@
 #[path = "../../tests/support/mod.rs"]
 mod support;
 
-use hal_sim::link::client::Client;
-use hal_sim::link::Transport;
 use hal_sim::port::{self, PortSpec};
 use std::io::{Read, Write};
 use std::os::unix::net::UnixStream;
@@ -26,6 +24,8 @@ use std::process::Child;
 use std::time::{Duration, Instant};
 use twinstack::protocol::frame;
 use twinstack::protocol::messages::{Image, Mode, Request};
+use twinstack_link::client::Client;
+use twinstack_link::Transport;
 
 /// QEMU running the Feather's emulator image: USART1 and USART3 on Unix sockets, the
 /// unimplemented-device log in the scratch directory; killed on drop.

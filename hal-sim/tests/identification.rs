@@ -680,7 +680,7 @@ fn auto_picks_the_model_whose_compensator_holds() {
     use hal_sim::identification::auto::INVERSE_TO_FORWARD_LIMIT;
     use hal_sim::identification::run::{identify_and_score, BoardRate, ModelChoice};
     use hal_sim::identification::{IdentifyOptions, ModelKind};
-    use hal_sim::measured_data::{Columns, MeasuredData};
+    use twinstack_link::measured_data::{Columns, MeasuredData};
     let cases = [
         (BIPOLAR, 5.95, Some(100_000.0), 1.5),
         (BIPOLAR, 5.95, Some(50_000.0), 1.6),

@@ -4,8 +4,6 @@
 //! `identify` file, a corrupted frame NACKed with nothing lost, and a recorder capture that
 //! matches what was streamed. Time is simulated: these are counts, not timings.
 
-use hal_sim::link::client::{Client, LinkError};
-use hal_sim::link::streamer::{stream_setpoints, StreamOptions};
 use hal_sim::param_file::ParamFile;
 use hal_sim::sim_device::{LinkDelay, SimDevice, SimDeviceConfig};
 use hal_sim::stage_model::{Hysteresis, StageModel};
@@ -16,6 +14,8 @@ use twinstack::protocol::messages::{
 };
 use twinstack::refusal::{Field, ModelField, Refusal, Rule};
 use twinstack::settings::{representative_pi, Model};
+use twinstack_link::client::{Client, LinkError};
+use twinstack_link::streamer::{stream_setpoints, StreamOptions};
 
 /// The simulated board behind a USB–serial adapter's latency (16 ms ± 4 ms each way).
 fn device() -> Client<SimDevice> {
@@ -255,7 +255,7 @@ fn stream_and_capture(
     client: &mut Client<SimDevice>,
     samples: &[i16],
     drain: bool,
-) -> (hal_sim::link::streamer::StreamReport, Vec<i32>) {
+) -> (twinstack_link::streamer::StreamReport, Vec<i32>) {
     // The stream starts about six round trips of the link (each ≤ 40 ms: arming, status,
     // rate, the first batch, the rest, the start) after the arming.
     let count = samples.len() as u32 + 12_000;

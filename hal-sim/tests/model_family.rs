@@ -15,10 +15,10 @@
 use hal_sim::identification::auto::identify_auto;
 use hal_sim::identification::score::score;
 use hal_sim::identification::{identify, IdentifyOptions, ModelKind};
-use hal_sim::measured_data::{Columns, MeasuredData};
 use hal_sim::plant::LabStageConfig;
 use hal_sim::tracking::{evaluate_methods, Method, SAMPLE_RATE_HZ};
 use std::path::Path;
+use twinstack_link::measured_data::{Columns, MeasuredData};
 
 fn record(name: &str) -> MeasuredData {
     let path = Path::new(env!("CARGO_MANIFEST_DIR"))

@@ -7,11 +7,11 @@
 
 use hal_sim::identification::auto::identify_auto;
 use hal_sim::identification::{identify, IdentifyOptions, ModelKind};
-use hal_sim::measured_data::MeasuredData;
 use hal_sim::reference;
 use std::path::PathBuf;
 use twinstack::params::{DuhemParams, PiParams, Thresholds};
 use twinstack::Scaling;
+use twinstack_link::measured_data::MeasuredData;
 
 /// Deterministic Gaussian-ish noise (sum of 4 uniforms from an xorshift), unit variance.
 struct Noise(u64);

@@ -5,14 +5,15 @@
 
 use clap::Parser;
 use hal_sim::cli::load::{settings_for, Args};
-use hal_sim::link::client::Client;
 use hal_sim::param_file::{ParamFile, ParamFileError};
 use hal_sim::sim_device::{SimDevice, SimDeviceConfig};
 use hal_sim::stage_model::{Hysteresis, StageModel};
 use twinstack::drive::DriveSettings;
 use twinstack::settings::{representative_duhem, representative_pi, Mode, Model};
 use twinstack::Scaling;
+use twinstack_link::client::Client;
 
+#[path = "../../link/tests/support/mod.rs"]
 mod support;
 
 fn pi_model() -> StageModel {

@@ -13,7 +13,6 @@
 
 use std::time::Duration;
 
-use hal_sim::link::Transport;
 use hal_sim::sim_device::{SimDevice, SimDeviceConfig};
 use proptest::prelude::*;
 use twinstack::control_loop::SETPOINT_CAPACITY;
@@ -25,6 +24,7 @@ use twinstack::recorder::{Signal, Trigger};
 use twinstack::scan::{RasterScan, ScanPattern, ScanRequest, TriggerConfig, TriggerEdge};
 use twinstack::setpoint_stream::UnderrunPolicy;
 use twinstack::settings::Mode;
+use twinstack_link::Transport;
 
 /// One valid request of every type (and of every variant of the nested requests), the
 /// seeds the mutations start from.

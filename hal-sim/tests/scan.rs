@@ -6,9 +6,6 @@
 
 use std::time::Duration;
 
-use hal_sim::capture::wait_and_read;
-use hal_sim::link::client::Client;
-use hal_sim::scan_timing::{analyse, parse_pattern};
 use hal_sim::sim_device::{SimDevice, SimDeviceConfig};
 use twinstack::protocol::messages::{
     CaptureRequest, CaptureState, Request, ScanRequest, StatusReport, StreamControl, Trigger,
@@ -16,6 +13,9 @@ use twinstack::protocol::messages::{
 };
 use twinstack::recorder::Channel;
 use twinstack::scan::{slew_step, FRAME, INPUT, LINE};
+use twinstack_link::capture::wait_and_read;
+use twinstack_link::client::Client;
+use twinstack_link::scan_timing::{analyse, parse_pattern};
 
 const RATE: f64 = 50_000.0;
 

@@ -7,8 +7,6 @@
 use std::process::Command;
 use std::time::Duration;
 
-use hal_sim::link::client::Client;
-use hal_sim::sequence_run::{run_sequence, SequenceOptions};
 use hal_sim::sim_camera::CameraConfig;
 use hal_sim::sim_device::{SimDevice, SimDeviceConfig};
 use twinstack::control::TickFlags;
@@ -16,6 +14,8 @@ use twinstack::protocol::messages::{
     Mode, Request, SequenceConfig, SequenceRequest, StatusReport, TriggerEdge,
 };
 use twinstack::sequence::SETTLED;
+use twinstack_link::client::Client;
+use twinstack_link::sequence_run::{run_sequence, SequenceOptions};
 
 const TICK: Duration = Duration::from_micros(20);
 
@@ -325,9 +325,9 @@ fn the_sequence_command_refuses_a_hostile_file_by_its_line_and_runs_a_good_one()
 
 #[test]
 fn a_served_virtual_board_steps_a_sequence_on_its_simulated_camera() {
-    use hal_sim::link::socket::SocketTransport;
     use std::sync::atomic::{AtomicBool, Ordering};
     use std::sync::Arc;
+    use twinstack_link::socket::SocketTransport;
     let listener = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
     let address = listener.local_addr().unwrap();
     let stop = Arc::new(AtomicBool::new(false));

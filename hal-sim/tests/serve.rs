@@ -1,4 +1,4 @@
-//! Several clients on one board through the server ([`hal_sim::link::server::serve`]): a
+//! Several clients on one board through the server ([`twinstack_link::server::serve`]): a
 //! stream beside a 10 Hz status poller, telemetry beside a stream, and a second writer
 //! refused with the reason. The board is the simulated one behind an adapter's 16 ms ± 4 ms,
 //! run by the server in step with the wall clock; the clients are TCP clients, as the CLI and
@@ -11,12 +11,12 @@ use std::sync::Arc;
 use std::thread;
 use std::time::Duration;
 
-use hal_sim::link::client::{Client, LinkError};
-use hal_sim::link::server::{serve, ServeReport};
-use hal_sim::link::socket::SocketTransport;
-use hal_sim::link::streamer::{stream_setpoints, StreamOptions};
 use hal_sim::sim_device::{LinkDelay, SimDevice, SimDeviceConfig};
 use twinstack::protocol::messages::{Mode, NackReason, StreamControl, UnderrunPolicy};
+use twinstack_link::client::{Client, LinkError};
+use twinstack_link::server::{serve, ServeReport};
+use twinstack_link::socket::SocketTransport;
+use twinstack_link::streamer::{stream_setpoints, StreamOptions};
 
 #[path = "support/view_client.rs"]
 mod view_client;

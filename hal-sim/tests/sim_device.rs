@@ -3,7 +3,6 @@
 
 use std::time::Duration;
 
-use hal_sim::link::Transport;
 use hal_sim::sim_device::{SimDevice, SimDeviceConfig};
 use twinstack::control_loop::SETPOINT_CAPACITY;
 use twinstack::protocol::decoder::FrameDecoder;
@@ -11,6 +10,7 @@ use twinstack::protocol::frame::{self, MAX_ENCODED};
 use twinstack::protocol::messages::*;
 use twinstack::refusal::{Field, ModelField, Refusal, Rule};
 use twinstack::settings::{Mode, Model};
+use twinstack_link::Transport;
 
 /// A stop-and-wait client: one request, one response.
 struct Client {

@@ -5,11 +5,11 @@
 
 use std::time::Duration;
 
-use hal_sim::link::client::Client;
-use hal_sim::link::streamer::{stream_setpoints, StreamOptions, StreamReport};
 use hal_sim::sim_device::{full_range_triangle, LinkDelay, SimDevice, SimDeviceConfig};
 use twinstack::control_loop::SETPOINT_CAPACITY;
 use twinstack::protocol::messages::{Request, Response, UnderrunPolicy};
+use twinstack_link::client::Client;
+use twinstack_link::streamer::{stream_setpoints, StreamOptions, StreamReport};
 
 fn device(rate_hz: f64, baud: u32, link: LinkDelay) -> Client<SimDevice> {
     Client::new(SimDevice::new(SimDeviceConfig::paper_at(rate_hz, baud, link)).expect("device"))

@@ -8,13 +8,13 @@
 
 use std::time::Duration;
 
-use hal_sim::link::client::{Client, LinkError};
-use hal_sim::link::streamer::{stream_setpoints, StreamOptions};
 use hal_sim::sim_device::{SimDevice, SimDeviceConfig};
-use hal_sim::telemetry::{wait_for_end, TelemetryRecord};
 use twinstack::protocol::messages::{NackReason, UnderrunPolicy};
 use twinstack::recorder::Channel;
 use twinstack::refusal::{Field, Rule};
+use twinstack_link::client::{Client, LinkError};
+use twinstack_link::streamer::{stream_setpoints, StreamOptions};
+use twinstack_link::telemetry::{wait_for_end, TelemetryRecord};
 
 /// 2 Mbaud, 8N1: bytes per second each way.
 const LINE_BYTES_PER_S: f64 = 200_000.0;

@@ -4,13 +4,13 @@
 //! and virtual boards).
 
 use hal_sim::closed_loop::{self, ClosedLoopOptions};
-use hal_sim::link::Client;
-use hal_sim::plant::{Configuration, StageParams};
+use hal_sim::plant::{true_plant, Configuration, StageParams};
 use hal_sim::sim_device::{SimDevice, SimDeviceConfig};
 use hal_sim::tune::design::{check, Goals, Refused};
-use hal_sim::tune::{true_plant, tune, TuneError, TuneOptions, TuneReport};
+use hal_sim::tune::{tune, TuneError, TuneOptions, TuneReport};
 use std::process::{Command, Output};
 use twinstack::feedback::FeedbackSettings;
+use twinstack_link::Client;
 
 #[path = "support/virtual_board_process.rs"]
 mod virtual_board_process;

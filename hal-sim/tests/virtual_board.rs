@@ -2,9 +2,6 @@
 //! from one client to the next — through the library's `serve` on a thread, and through the
 //! binary as a user runs it. Every wait is bounded.
 
-use hal_sim::link::client::Client;
-use hal_sim::link::socket::SocketTransport;
-use hal_sim::link::streamer::{stream_setpoints, StreamOptions};
 use hal_sim::sim_device::SimDeviceConfig;
 use hal_sim::virtual_board::{serve, ServeReport};
 use std::io::{BufRead, BufReader};
@@ -19,6 +16,9 @@ use twinstack::protocol::messages::{
     UnderrunPolicy, MAX_BATCH,
 };
 use twinstack::settings::Mode;
+use twinstack_link::client::Client;
+use twinstack_link::socket::SocketTransport;
+use twinstack_link::streamer::{stream_setpoints, StreamOptions};
 
 #[path = "support/virtual_board_process.rs"]
 mod virtual_board_process;

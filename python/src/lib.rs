@@ -8,22 +8,14 @@
 //! The Python-facing documentation is in `twinstack/_native.pyi` and the book's Python
 //! chapter (`docs/src/guide/python.md`).
 
-use hal_sim::board_requests::{self, LoadRefused};
-use hal_sim::capture::{self, CaptureError};
 use hal_sim::identification::auto::Validation;
 use hal_sim::identification::run::{
     check_tick_rate, default_fit_until, identify_and_score, parse_model, BoardRate, Identified,
     RunError,
 };
 use hal_sim::identification::{IdentifyOptions, ModelKind, ThresholdSpread, DEFAULT_OPERATORS};
-use hal_sim::link::client::{nack_text, Client, LinkError};
-use hal_sim::link::streamer::{stream_setpoints_until, StreamOptions};
-use hal_sim::link::Transport;
-use hal_sim::measured_data::{ColumnsError, MeasuredData};
 use hal_sim::param_file::{ParamFile, ParamFileError};
 use hal_sim::port::{open_send, PortError, PortSpec, DEFAULT_BAUD};
-use hal_sim::sequence_run::{run_sequence, SequenceError, SequenceOptions};
-use hal_sim::setpoint_file::{divider_for_rate, to_wire, SetpointUnits};
 use hal_sim::sim_camera::CameraConfig;
 use hal_sim::sim_device::{SimDevice, SimDeviceConfig};
 use hal_sim::stage_model::{Hysteresis, StageModel};
@@ -44,6 +36,14 @@ use twinstack::protocol::messages::{
 };
 use twinstack::refusal::Rule;
 use twinstack::settings::Mode;
+use twinstack_link::board_requests::{self, LoadRefused};
+use twinstack_link::capture::{self, CaptureError};
+use twinstack_link::client::{nack_text, Client, LinkError};
+use twinstack_link::measured_data::{ColumnsError, MeasuredData};
+use twinstack_link::sequence_run::{run_sequence, SequenceError, SequenceOptions};
+use twinstack_link::setpoint_file::{divider_for_rate, to_wire, SetpointUnits};
+use twinstack_link::streamer::{stream_setpoints_until, StreamOptions};
+use twinstack_link::Transport;
 
 pyo3::create_exception!(
     twinstack,
@@ -133,10 +133,10 @@ fn link_error(py: Python<'_>, e: LinkError) -> PyErr {
 fn port_error(e: PortError) -> PyErr {
     match e {
         PortError::Empty => PyValueError::new_err(e.to_string()),
-        PortError::Serial(hal_sim::link::serial::SerialError::Missing { .. }) => {
+        PortError::Serial(twinstack_link::serial::SerialError::Missing { .. }) => {
             PyFileNotFoundError::new_err(format!("{e}; {}", hal_sim::board_link::available_ports()))
         }
-        PortError::Serial(hal_sim::link::serial::SerialError::BadBaud(_)) => {
+        PortError::Serial(twinstack_link::serial::SerialError::BadBaud(_)) => {
             PyValueError::new_err(e.to_string())
         }
         PortError::Socket(_) => PyConnectionError::new_err(e.to_string()),

@@ -13,12 +13,12 @@ use super::board_link::{connect, PortArgs};
 use super::params::ModeArg;
 use crate::calibrate::{calibrate, CalibrateOptions, CalibrationReport, Progress};
 use crate::identification::auto::Validation;
-use crate::output_file::Staged;
-use crate::plot::{draw_charts, Bar, BarPanel, Chart, Panel, Series};
 use anyhow::bail;
 use plotters::style::RGBColor;
 use std::path::{Path, PathBuf};
 use twinstack::recorder::Channel;
+use twinstack_link::output_file::Staged;
+use twinstack_link::plot::{draw_charts, Bar, BarPanel, Chart, Panel, Series};
 
 /// Arguments of `calibrate`.
 #[derive(Debug, clap::Args)]
@@ -299,7 +299,7 @@ fn plot(r: &CalibrationReport, path: &Path) -> anyhow::Result<()> {
             })
             .collect(),
     };
-    let error = |rec: &crate::capture::Recording, label: String, color| {
+    let error = |rec: &twinstack_link::capture::Recording, label: String, color| {
         let sp = rec.column(Channel::Setpoint).map(|c| &c.values[..]);
         let se = rec.column(Channel::Sensor).map(|c| &c.values[..]);
         let points = match (sp, se) {

@@ -13,10 +13,10 @@ use std::time::{Duration, Instant};
 
 use super::board_link::{connect, port_spec, BoardClient, PortArgs};
 use crate::coarse_rig::{DualStageDevice, DualStageDeviceConfig};
-use crate::link::Client;
 use crate::port::PortSpec;
 use twinstack::dual_stage::{CoarseState, CoarseStatus};
 use twinstack::protocol::messages::{CoarseMove, Request};
+use twinstack_link::Client;
 
 /// Arguments of `coarse`.
 #[derive(Debug, clap::Args)]
@@ -102,7 +102,7 @@ pub fn connect_coarse(port: &PortArgs) -> anyhow::Result<BoardClient> {
             ..DualStageDeviceConfig::paper()
         };
         let device = DualStageDevice::dual_stage(&config)?;
-        let mut client = Client::new(Box::new(device) as Box<dyn crate::link::Transport>);
+        let mut client = Client::new(Box::new(device) as Box<dyn twinstack_link::Transport>);
         client.set_timeout(Duration::from_millis(port.timeout_ms.max(1)));
         client.resync(Duration::from_millis(20))?;
         return Ok(client);

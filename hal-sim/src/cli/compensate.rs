@@ -8,10 +8,10 @@
 //!   and `x` copied. With a sensor lag of `L` samples the drive leads by `L`; its last `L`
 //!   samples aim at the last desired reading (held), and the run says so.
 
-use crate::measured_data::{ColumnNames, Columns, MeasuredData};
-use crate::output_file::{csv_t_u_x, Staged};
 use crate::param_file::ParamFile;
 use std::path::PathBuf;
+use twinstack_link::measured_data::{ColumnNames, Columns, MeasuredData};
+use twinstack_link::output_file::{csv_t_u_x, Staged};
 
 /// Arguments of `predict` and `compensate`.
 #[derive(Debug, clap::Args)]

@@ -5,11 +5,11 @@
 //! `--write`) if the stored file differs from what the tick now produces.
 
 use crate::golden::{default_dir, generate, reference_tick, sets, REGENERATE, VECTOR_FILE};
-use crate::output_file::Staged;
 use anyhow::{anyhow, bail};
 use std::path::PathBuf;
 use twinstack::control::TickFlags;
 use twinstack_golden::{VectorSet, VectorSets};
+use twinstack_link::output_file::Staged;
 
 /// Arguments of `golden`.
 #[derive(Debug, clap::Args)]

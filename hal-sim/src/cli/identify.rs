@@ -8,11 +8,11 @@ use crate::identification::score::ErrorFigures;
 use crate::identification::{
     IdentifyError, IdentifyOptions, ModelKind, ThresholdSpread, DEFAULT_OPERATORS,
 };
-use crate::measured_data::{ColumnNames, Columns, MeasuredData};
-use crate::output_file::Staged;
-use crate::plot::{draw, IdentificationFigure};
 use anyhow::{anyhow, bail};
 use std::path::PathBuf;
+use twinstack_link::measured_data::{ColumnNames, Columns, MeasuredData};
+use twinstack_link::output_file::Staged;
+use twinstack_link::plot::{draw, IdentificationFigure};
 
 /// Arguments of `identify`.
 #[derive(Debug, clap::Args)]

@@ -7,13 +7,13 @@
 
 use crate::cli::identify::{parse_model, ModelChoice};
 use crate::identification::{IdentifyOptions, ModelKind};
-use crate::output_file::{csv_t_u_x, Staged};
 use crate::plant::{LabStage, LabStageConfig};
 use crate::tracking::{
     evaluate_methods, evaluate_variants, excite, print_variants, Method, EXCITATION_S, FIT_UNTIL_S,
     SAMPLE_RATE_HZ, STAGE_VARIANTS,
 };
 use std::path::PathBuf;
+use twinstack_link::output_file::{csv_t_u_x, Staged};
 
 /// Arguments of `twinstack lab-stage`.
 #[derive(clap::Args, Debug)]

@@ -14,11 +14,11 @@
 
 use super::board_link::{connect, PortArgs};
 use super::params::ModeArg;
-use crate::board_requests::{check_load, keep_from_board, LoadRefused};
 use crate::param_file::ParamFile;
 use std::path::PathBuf;
 use twinstack::drive::{Configuration, SafeState};
 use twinstack::settings::{FeedbackSettings, Model, Settings};
+use twinstack_link::board_requests::{check_load, keep_from_board, LoadRefused};
 
 /// Arguments of `load`.
 #[derive(Debug, clap::Args)]
@@ -71,7 +71,7 @@ pub struct Args {
     pub clamp: bool,
 }
 
-pub use crate::board_requests::unreachable_input;
+pub use twinstack_link::board_requests::unreachable_input;
 
 /// `--safe-state` values.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]

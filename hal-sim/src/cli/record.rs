@@ -17,12 +17,12 @@
 //! Files are written only if the whole capture arrived.
 
 use super::board_link::{connect, BoardClient, PortArgs};
-use crate::capture;
-use crate::output_file::Staged;
 use anyhow::bail;
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 use twinstack::protocol::messages::{CaptureRequest, RecordRequest, Signal, Trigger};
+use twinstack_link::capture;
+use twinstack_link::output_file::Staged;
 
 /// Arguments of `record`.
 #[derive(Debug, clap::Args)]
@@ -137,7 +137,7 @@ pub fn recording_csv(
     values: &[i32],
     seconds_per_value: f64,
 ) -> Result<Vec<u8>, csv::Error> {
-    crate::output_file::csv_bytes(|w| {
+    twinstack_link::output_file::csv_bytes(|w| {
         w.write_record(["t".to_string(), name.to_string(), format!("{name}_q2_30")])?;
         for (i, &v) in values.iter().enumerate() {
             w.write_record([
@@ -160,8 +160,8 @@ pub fn arm_capture(
     trigger: Trigger,
     decimation: u16,
 ) -> anyhow::Result<CaptureRequest> {
-    use crate::board_requests::CaptureRequestError as E;
-    let request = crate::board_requests::capture_request(signals, samples, pre, trigger, decimation)
+    use twinstack_link::board_requests::CaptureRequestError as E;
+    let request = twinstack_link::board_requests::capture_request(signals, samples, pre, trigger, decimation)
         .map_err(|e| match e {
             E::Signals { list, error } => anyhow::anyhow!("--signals {list:?}: {error}"),
             E::NoSamples => anyhow::anyhow!("--samples must be at least 1"),

@@ -1,7 +1,7 @@
 //! `twinstack scan --port PORT --pattern raster:lines=64,… | lissajous:… | spiral:…`: runs a
 //! scan pattern generated on the board with its pixel, line and frame trigger outputs,
 //! captures the setpoint and the trigger levels from the scan's start, and prints the timing
-//! table ([`crate::scan_timing`]: each line and frame pulse against the library's replay of
+//! table ([`twinstack_link::scan_timing`]: each line and frame pulse against the library's replay of
 //! the pattern, the jitter, the turnaround-to-pulse time); writes a PNG (x–y of the pattern,
 //! and x(t) with the clocks); `--json` prints the figures as one JSON object instead.
 //! Works against the simulated board (`--port sim`), the virtual board and the emulator.
@@ -13,14 +13,14 @@ use anyhow::{bail, Context};
 use plotters::style::{RGBColor, BLACK, BLUE, RED};
 
 use super::board_link::{connect, PortArgs};
-use crate::capture::wait_and_read;
-use crate::plot::{draw_panels, Panel, Series};
-use crate::scan_timing::{analyse, parse_pattern, table, ScanFigures};
 use twinstack::protocol::messages::{
     CaptureRequest, Request, ScanRequest, StreamControl, Trigger, TriggerConfig, TriggerEdge,
 };
 use twinstack::recorder::Channel;
 use twinstack::scan::{slew_step, LINE, PIXEL};
+use twinstack_link::capture::wait_and_read;
+use twinstack_link::plot::{draw_panels, Panel, Series};
+use twinstack_link::scan_timing::{analyse, parse_pattern, table, ScanFigures};
 
 /// Arguments of `scan`.
 #[derive(Debug, clap::Args)]
@@ -143,7 +143,7 @@ fn draw(
     f: &ScanFigures,
     x: &[i16],
     trig: &[i16],
-    replay: &crate::scan_timing::Replay,
+    replay: &twinstack_link::scan_timing::Replay,
 ) -> anyhow::Result<()> {
     let xy: Vec<(f64, f64)> = x
         .iter()

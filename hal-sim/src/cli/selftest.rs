@@ -26,9 +26,6 @@
 //!    after (the reset boots on the stored ones).
 
 use super::board_link::{connect_with, BoardClient, PortArgs};
-use crate::link::client::LinkError;
-use crate::link::streamer::{stream_setpoints, StreamOptions};
-use crate::link::Transport;
 use crate::port::PortSpec;
 use std::io::Write;
 use std::time::{Duration, Instant};
@@ -40,6 +37,9 @@ use twinstack::protocol::messages::{
 };
 use twinstack::recorder::Channel;
 use twinstack::settings::{Mode, SensorSettings, Settings};
+use twinstack_link::client::LinkError;
+use twinstack_link::streamer::{stream_setpoints, StreamOptions};
+use twinstack_link::Transport;
 
 /// The checks, by the names `--skip` takes.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
@@ -417,7 +417,7 @@ fn safe_state(s: &StatusReport) -> CheckResult {
         "overruns": s.overruns,
         "limit_hits": s.limit_hits,
         "defaults": s.has(StatusReport::DEFAULTS),
-        "mode": crate::board_requests::mode_name(s.mode()),
+        "mode": twinstack_link::board_requests::mode_name(s.mode()),
     });
     let settings = if s.has(StatusReport::DEFAULTS) {
         "on the compiled-in defaults (no valid stored settings)"
@@ -439,7 +439,7 @@ fn safe_state(s: &StatusReport) -> CheckResult {
                 "idle, outputs held; {} of {} ticks overran, which in QEMU says how fast the host emulates the tick, not what a board does (its tick cost is measured on instruction counts); {} mode, {settings}",
                 s.overruns,
                 s.ticks,
-                crate::board_requests::mode_name(s.mode()),
+                twinstack_link::board_requests::mode_name(s.mode()),
             ),
             figures,
         );
@@ -460,7 +460,7 @@ fn safe_state(s: &StatusReport) -> CheckResult {
         format!(
             "idle, outputs held, no tick overran in {} ticks; {} mode, {settings}; {} ticks clipped by the range or slew limits",
             s.ticks,
-            crate::board_requests::mode_name(s.mode()),
+            twinstack_link::board_requests::mode_name(s.mode()),
             s.limit_hits
         ),
         figures,
@@ -708,7 +708,7 @@ const PLATEAU: usize = 30;
 const LOOPBACK_DIVIDER: u16 = 50;
 
 fn q15(x: f64) -> i16 {
-    crate::setpoint_file::q1_15(x)
+    twinstack_link::setpoint_file::q1_15(x)
 }
 
 fn loopback(

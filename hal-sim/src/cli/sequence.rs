@@ -1,10 +1,10 @@
 //! `twinstack sequence --port PORT --data POSITIONS.csv [--params PARAMS.json] [--edge rising]
 //! [--window 0.005] [--settle-ticks 25]`: a TTL-stepped sequence ([`twinstack::sequence`]).
-//! Checks the whole positions file (the stream's format, [`crate::setpoint_file`]; every bad
+//! Checks the whole positions file (the stream's format, [`twinstack_link::setpoint_file`]; every bad
 //! row named with its line), fills the board's queue, arms the sequence, keeps the queue
 //! topped up while the camera's edges step through it, and reports the steps, the early edges
 //! (before the stage had settled) and the missed ones (no position left), and the first
-//! edge's trigger-to-motion latency from a capture ([`crate::sequence_run`]).
+//! edge's trigger-to-motion latency from a capture ([`twinstack_link::sequence_run`]).
 //!
 //! On `--port sim`, `--sim-camera-hz HZ` puts a simulated camera on the trigger input
 //! ([`crate::sim_camera`]; `--sim-camera-on-settled`: its exposures start on the settled
@@ -17,14 +17,14 @@ use std::path::PathBuf;
 use std::time::Duration;
 
 use super::board_link::{connect, port_spec, BoardClient, PortArgs};
-use crate::link::client::Client;
 use crate::param_file::ParamFile;
 use crate::port::PortSpec;
-use crate::sequence_run::{run_sequence, SequenceOptions, SequenceReport};
-use crate::setpoint_file::{self, SetpointUnits};
 use crate::sim_camera::CameraConfig;
 use crate::sim_device::{SimDevice, SimDeviceConfig};
 use twinstack::protocol::messages::{SequenceConfig, TriggerEdge};
+use twinstack_link::client::Client;
+use twinstack_link::sequence_run::{run_sequence, SequenceOptions, SequenceReport};
+use twinstack_link::setpoint_file::{self, SetpointUnits};
 
 /// Arguments of `sequence`.
 #[derive(Debug, clap::Args)]
@@ -109,9 +109,11 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     // takes its time from the edges.
     let positions = setpoint_file::read(&args.data, units, 50_000.0, None)?.samples;
     let mode = match &args.mode {
-        Some(m) => Some(crate::board_requests::parse_mode(m).ok_or_else(|| {
-            anyhow::anyhow!("--mode {m:?}: give bypass, open-loop or closed-loop")
-        })?),
+        Some(m) => Some(
+            twinstack_link::board_requests::parse_mode(m).ok_or_else(|| {
+                anyhow::anyhow!("--mode {m:?}: give bypass, open-loop or closed-loop")
+            })?,
+        ),
         None => None,
     };
     let mut client = match args.sim_camera_hz {

@@ -1,5 +1,5 @@
 //! `twinstack serve --port PORT --listen tcp:HOST:PORT`: owns the board's link and shares it
-//! with several clients ([`crate::link::server`]): each connects with `--port tcp:HOST:PORT`
+//! with several clients ([`twinstack_link::server`]): each connects with `--port tcp:HOST:PORT`
 //! (the CLI, the Python package, a live view) as if it had the board to itself. One client at
 //! a time owns the stream and the settings (the first to change anything, until it leaves),
 //! another the telemetry; everyone may read status, records and settings; a request that
@@ -7,12 +7,12 @@
 //! (Ctrl-C). The first line on stdout says where it listens.
 
 use crate::board_link::{port_spec, PortArgs};
-use crate::link::server;
 use crate::port::{self, PortSpec};
 use std::io::Write;
 use std::net::TcpListener;
 use std::sync::atomic::AtomicBool;
 use std::time::Duration;
+use twinstack_link::server;
 
 /// Arguments of `serve`.
 #[derive(Debug, clap::Args)]

@@ -16,7 +16,7 @@ pub struct Args {
     pub json: bool,
 }
 
-pub use crate::board_requests::{flag_names, status_json};
+pub use twinstack_link::board_requests::{flag_names, status_json};
 
 /// The report as `name value` lines.
 pub fn format_status(s: &StatusReport) -> String {

@@ -1,5 +1,5 @@
 //! `twinstack stream --port PORT --data SETPOINTS.csv [--params PARAMS.json] [--divider D]`:
-//! streams a setpoint record to the board (format: [`crate::setpoint_file`]), within the
+//! streams a setpoint record to the board (format: [`twinstack_link::setpoint_file`]), within the
 //! credits it grants, starts it once the queue is primed, waits until it has played and stops
 //! (the output holds the last setpoint). The whole file is checked before anything is sent.
 //!
@@ -20,12 +20,12 @@
 //! underruns: [`Underran`]).
 
 use super::board_link::{connect, PortArgs};
-use crate::capture::signal_mask;
-use crate::link::streamer::{stream_setpoints, StreamOptions};
 use crate::param_file::ParamFile;
-use crate::setpoint_file::{self, SetpointUnits};
 use std::path::PathBuf;
 use twinstack::protocol::messages::{Trigger, UnderrunPolicy};
+use twinstack_link::capture::signal_mask;
+use twinstack_link::setpoint_file::{self, SetpointUnits};
+use twinstack_link::streamer::{stream_setpoints, StreamOptions};
 
 /// The exit codes of `twinstack stream`, as `twinstack stream --help` lists them.
 pub const EXIT_CODES: &str = "\

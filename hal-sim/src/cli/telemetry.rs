@@ -17,16 +17,16 @@
 //! around a streamed run, over its one connection ([`start`], [`finish`]).
 
 use super::board_link::{connect, BoardClient, PortArgs};
-use crate::capture::{self, signal_mask};
-use crate::link::LinkError;
-use crate::output_file::Staged;
-use crate::telemetry::{wait_for_end, TelemetryRecord};
 use anyhow::bail;
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 use twinstack::protocol::messages::NackReason;
 use twinstack::recorder::Channel;
 use twinstack::refusal::{Field, Rule};
+use twinstack_link::capture::{self, signal_mask};
+use twinstack_link::output_file::Staged;
+use twinstack_link::telemetry::{wait_for_end, TelemetryRecord};
+use twinstack_link::LinkError;
 
 /// Arguments of `telemetry`.
 #[derive(Debug, clap::Args)]

@@ -7,8 +7,6 @@
 //! unstable or short of the margins).
 
 use super::board_link::{connect, PortArgs, UsageError};
-use crate::link::{Client, Transport};
-use crate::plot::{draw_panels, Panel, Series};
 use crate::sim_device::{LinkDelay, SimDevice, SimDeviceConfig};
 use crate::tune::loop_model::{loop_response, LoopController};
 use crate::tune::{tune, TuneOptions, TuneReport};
@@ -17,6 +15,8 @@ use std::path::{Path, PathBuf};
 use std::time::Duration;
 use twinstack::feedback::FeedbackSettings;
 use twinstack::notch::NotchDesign;
+use twinstack_link::plot::{draw_panels, Panel, Series};
+use twinstack_link::{Client, Transport};
 
 /// Arguments of `tune`.
 #[derive(Debug, clap::Args)]

@@ -21,10 +21,6 @@
 //! who can reach its port can drive the stage.
 
 use super::board_link::{connect, BoardClient, PortArgs};
-use crate::board_requests;
-use crate::capture::signal_mask;
-use crate::scan_timing::parse_pattern;
-use crate::telemetry::TelemetryRecord;
 use anyhow::{bail, Context};
 use serde_json::{json, Value};
 use std::collections::VecDeque;
@@ -39,6 +35,10 @@ use twinstack::protocol::messages::{
     Request, ScanRequest, StreamControl, TelemetryFrame, TriggerConfig, TriggerEdge, WaveShape,
 };
 use twinstack::recorder::Channel;
+use twinstack_link::board_requests;
+use twinstack_link::capture::signal_mask;
+use twinstack_link::scan_timing::parse_pattern;
+use twinstack_link::telemetry::TelemetryRecord;
 
 /// Messages the server keeps for a page that is behind (at 20 ms each, 40 s).
 pub const BACKLOG: usize = 2000;
@@ -384,7 +384,7 @@ fn execute(
     shared: &Shared,
     command: Command,
 ) -> Reply {
-    let link = |e: crate::link::LinkError| e.to_string();
+    let link = |e: twinstack_link::LinkError| e.to_string();
     match command {
         Command::Mode(name) => {
             let mode = board_requests::parse_mode(&name).ok_or_else(|| {

@@ -48,7 +48,7 @@ pub fn waveform_of(args: &Args) -> anyhow::Result<Waveform> {
         Shape::Sine => WaveShape::Sine,
         Shape::Triangle => WaveShape::Triangle,
     };
-    Ok(crate::board_requests::waveform(
+    Ok(twinstack_link::board_requests::waveform(
         shape,
         args.offset,
         args.amplitude,

@@ -35,8 +35,8 @@
 
 use super::score::{score, ErrorFigures};
 use super::{identify, motion, Identification, IdentifyError, IdentifyOptions};
-use crate::measured_data::MeasuredData;
 use crate::stage_model::StageModel;
+use twinstack_link::measured_data::MeasuredData;
 
 /// Fraction of the fit window (after the start of motion) kept back to rank the candidates.
 pub const VALIDATION_FRACTION: f64 = 0.3;

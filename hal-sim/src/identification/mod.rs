@@ -45,11 +45,11 @@ pub mod run;
 pub mod score;
 pub mod simplex;
 
-use crate::measured_data::MeasuredData;
 use crate::stage_model::{Hysteresis, StageModel};
 use least_squares::LeastSquaresError;
 pub use pi::ThresholdSpread;
 use twinstack::{ParamError, Scaling};
+use twinstack_link::measured_data::MeasuredData;
 
 /// Residuals beyond this multiple of the RMS residual are dropped as outliers.
 pub const OUTLIER_FACTOR: f64 = 5.0;
@@ -555,11 +555,11 @@ pub fn identify(
             needed: MIN_FIT_SAMPLES,
         });
     }
-    if data.len() - n_fit < crate::measured_data::MIN_SAMPLES {
+    if data.len() - n_fit < twinstack_link::measured_data::MIN_SAMPLES {
         return Err(IdentifyError::NothingToScore {
             fit_until_s,
             found: data.len() - n_fit,
-            needed: crate::measured_data::MIN_SAMPLES,
+            needed: twinstack_link::measured_data::MIN_SAMPLES,
         });
     }
     let u_fit = &u[..n_fit];

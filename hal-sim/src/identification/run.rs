@@ -8,12 +8,12 @@ use super::auto::{
 };
 use super::score::{score, ErrorFigures};
 use super::{Identification, IdentifyError, IdentifyOptions, ModelKind};
-use crate::measured_data::MeasuredData;
 use crate::param_file::{IdentificationRecord, ParamFile};
 use twinstack::board::Hardware;
 use twinstack::params::PiParams;
 use twinstack::refusal::{Field, Rule};
 use twinstack::settings::{Model, Settings};
+use twinstack_link::measured_data::MeasuredData;
 
 /// Which model to fit: every candidate, or one.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]

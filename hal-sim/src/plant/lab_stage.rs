@@ -54,7 +54,7 @@
 //!
 //! ## Resonance
 //! `G(s) = ω_n² / (s² + 2ζ ω_n s + ω_n²)`, `f_n` = 3.5 kHz, `ζ` = 0.03 by default, integrated
-//! exactly with the input held over the period ([`super::zero_order_hold`]): stable and
+//! exactly with the input held over the period ([`crate::zero_order_hold`]): stable and
 //! exact at any sample rate.
 //!
 //! ## Sensor
@@ -62,8 +62,8 @@
 //! seeded: [`crate::converters::GaussianNoise`]) rounded to the sensor's resolution
 //! (`sensor_lsb_nm`, 2 nm; 0 for none). The same seed gives the same record, bit for bit.
 
-use super::zero_order_hold::ZeroOrderHold;
 use crate::converters::GaussianNoise;
+use crate::zero_order_hold::ZeroOrderHold;
 
 /// The Preisach density `μ(α, β) ∝ exp(−(α − β)/w) (1 − a α²) (1 − b (1 − β)²)` and its grid.
 #[derive(Clone, Debug, PartialEq)]

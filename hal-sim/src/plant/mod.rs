@@ -4,7 +4,7 @@
 //! * [`coupled`] — the 3-DOF coupled model (stack tips, stage, contact `K_0`).
 //! * [`reduced`] — its `K_0 → ∞` 1-DOF reduction.
 //! * [`hysteresis`] — Duhem or P–I hysteresis per stack, with a skew option.
-//! * [`zero_order_hold`] — the exact discretisation both mechanical models are advanced with.
+//! * [`crate::zero_order_hold`] — the exact discretisation both mechanical models are advanced with.
 //! * [`lab_stage`] — a single-input laboratory stage built *outside* the project's model family
 //!   (asymmetric Preisach hysteresis, logarithmic creep, flexure nonlinearity, resonance,
 //!   sensor noise): the plant the tracking harness ([`crate::tracking`]) evaluates models on.
@@ -22,7 +22,6 @@ pub mod hysteresis;
 pub mod lab_stage;
 pub mod reduced;
 pub mod stage;
-pub mod zero_order_hold;
 
 pub use coupled::{CoupledModel, DEFAULT_CONTACT_STIFFNESS};
 pub use hysteresis::{HysteresisConfig, HysteresisError, HysteresisModel, StackHysteresis};
@@ -318,4 +317,25 @@ impl Plant {
     pub fn dt(&self) -> f64 {
         self.dt
     }
+}
+
+/// The paper stage's true small-signal plant on the simulated board, as the tick sees it:
+/// the `K_0 → ∞` model of `stage` (the coupled model's first mode is within 0.1 % of it), in
+/// normalised units for an input half span of `input_half_span_volts` on the left stack and
+/// an output half span of `output_half_span_um`, read one tick late, at `rate` Hz. The
+/// hysteresis is left out: it only ever lowers the small-signal gain.
+pub fn true_plant(
+    stage: &StageParams,
+    input_half_span_volts: f64,
+    output_half_span_um: f64,
+    rate: f64,
+) -> crate::tune::loop_model::LinearPlant {
+    let s = stage.second_order(Configuration::Differential);
+    crate::tune::loop_model::LinearPlant::resonance(
+        s.a0_um_per_volt * input_half_span_volts / output_half_span_um,
+        s.omega_n / (2.0 * std::f64::consts::PI),
+        s.zeta,
+        1,
+        rate,
+    )
 }

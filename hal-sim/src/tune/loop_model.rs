@@ -17,7 +17,7 @@
 //! Q2.30/Q0.32/Q4.28; the loop is judged on the exact values (rounding moves the poles by
 //! about 1e-9).
 
-use crate::plant::zero_order_hold::ZeroOrderHold;
+use crate::zero_order_hold::ZeroOrderHold;
 use std::f64::consts::PI;
 use twinstack::feedback::{FeedbackSettings, SENSOR_DELAY_TICKS};
 

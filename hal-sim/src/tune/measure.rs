@@ -18,15 +18,15 @@
 //! amplitude scaled down to a sixth of the range.
 
 use super::loop_model::C64;
-use crate::capture::{self, CaptureError, ConvertError};
-use crate::link::client::{Client, LinkError};
-use crate::link::Transport;
-use crate::setpoint_file::q1_15;
 use std::f64::consts::PI;
 use std::time::Duration;
 use twinstack::protocol::messages::{CaptureRequest, StreamControl, Trigger, WaveShape, Waveform};
 use twinstack::recorder::Channel;
 use twinstack::settings::Settings;
+use twinstack_link::capture::{self, CaptureError, ConvertError};
+use twinstack_link::client::{Client, LinkError};
+use twinstack_link::setpoint_file::q1_15;
+use twinstack_link::Transport;
 
 /// How the sweep runs.
 #[derive(Clone, Debug, PartialEq, serde::Serialize)]

@@ -18,14 +18,14 @@ pub mod fit;
 pub mod loop_model;
 pub mod measure;
 
-use crate::link::client::{Client, LinkError};
-use crate::link::Transport;
 use design::{Design, Goals, Refused};
 use fit::Fit;
-use loop_model::{LinearPlant, LoopFigures};
+use loop_model::LoopFigures;
 use measure::{FrequencyPoint, MeasureError, SweepOptions};
 use twinstack::feedback::FeedbackSettings;
 use twinstack::protocol::messages::{Mode, StatusReport, StreamControl};
+use twinstack_link::client::{Client, LinkError};
+use twinstack_link::Transport;
 
 /// What [`tune`] does.
 #[derive(Clone, Debug, PartialEq)]
@@ -207,25 +207,4 @@ pub fn tune<T: Transport>(
         before,
         loaded,
     })
-}
-
-/// The paper stage's true small-signal plant on the simulated board, as the tick sees it:
-/// the `K_0 → ∞` model of `stage` (the coupled model's first mode is within 0.1 % of it), in
-/// normalised units for an input half span of `input_half_span_volts` on the left stack and
-/// an output half span of `output_half_span_um`, read one tick late, at `rate` Hz. The
-/// hysteresis is left out: it only ever lowers the small-signal gain.
-pub fn true_plant(
-    stage: &crate::plant::StageParams,
-    input_half_span_volts: f64,
-    output_half_span_um: f64,
-    rate: f64,
-) -> LinearPlant {
-    let s = stage.second_order(crate::plant::Configuration::Differential);
-    LinearPlant::resonance(
-        s.a0_um_per_volt * input_half_span_volts / output_half_span_um,
-        s.omega_n / (2.0 * std::f64::consts::PI),
-        s.zeta,
-        1,
-        rate,
-    )
 }

@@ -256,7 +256,7 @@ impl MeasuredData {
     /// columns of one length, at least [`MIN_SAMPLES`] samples.
     ///
     /// ```
-    /// use hal_sim::measured_data::MeasuredData;
+    /// use twinstack_link::measured_data::MeasuredData;
     /// let t: Vec<f64> = (0..20).map(|k| k as f64 * 1e-3).collect();
     /// let d = MeasuredData::from_columns("arrays", t.clone(), Some(t.clone()), None).unwrap();
     /// assert_eq!(d.len(), 20);

@@ -53,7 +53,7 @@ pub enum Access {
 /// The access `request` needs (see the module doc).
 ///
 /// ```
-/// use hal_sim::link::server::{access, Access};
+/// use twinstack_link::server::{access, Access};
 /// use twinstack::protocol::messages::{Request, StreamControl};
 /// assert_eq!(access(&Request::Status), Access::Read);
 /// assert_eq!(access(&Request::Stream(StreamControl::Start)), Access::Write);

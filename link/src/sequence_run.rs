@@ -12,8 +12,8 @@
 use std::time::Duration;
 
 use crate::capture::{wait_and_read, CaptureError};
-use crate::link::client::{Client, LinkError};
-use crate::link::Transport;
+use crate::client::{Client, LinkError};
+use crate::Transport;
 use twinstack::protocol::messages::{
     CaptureRequest, NackReason, PackedBatch, Request, Response, SequenceConfig, SequenceRequest,
     SequenceStatus, StatusReport, StreamControl, Trigger, TriggerConfig, TriggerEdge, MAX_BATCH,
@@ -217,7 +217,7 @@ const PRE_TRIGGER: u32 = 8;
 /// after it.
 ///
 /// ```
-/// use hal_sim::sequence_run::edge_timing;
+/// use twinstack_link::sequence_run::edge_timing;
 /// use twinstack::scan::INPUT;
 /// let i = INPUT as i16;
 /// // left, triggers: the edge on the third frame, the DAC moving on the same frame.

@@ -7,9 +7,9 @@
 //! code and the amplifier's full-scale volts, the tick rate, the pre-trigger frames kept).
 //! Slot formats: see [`twinstack::recorder`].
 
-use crate::link::client::{Client, LinkError};
-use crate::link::Transport;
+use crate::client::{Client, LinkError};
 use crate::plot::{draw_panels, Panel, PlotError, Series};
+use crate::Transport;
 use plotters::style::RGBColor;
 use std::path::Path;
 use std::time::Duration;
@@ -36,7 +36,7 @@ pub enum SignalListError {
 /// The board's mask for a comma-separated list of signal names (`setpoint,left,sensor`).
 ///
 /// ```
-/// use hal_sim::capture::signal_mask;
+/// use twinstack_link::capture::signal_mask;
 /// assert_eq!(signal_mask("setpoint, left").unwrap(), 0b11);
 /// assert!(signal_mask("setpoint,voltage").is_err());
 /// ```

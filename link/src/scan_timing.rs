@@ -50,7 +50,7 @@ pub enum PatternError {
 /// given keeps its default, shown here).
 ///
 /// ```
-/// use hal_sim::scan_timing::parse_pattern;
+/// use twinstack_link::scan_timing::parse_pattern;
 /// use twinstack::scan::ScanPattern;
 /// let p = parse_pattern("raster:lines=8,turn=20").unwrap();
 /// assert!(matches!(p, ScanPattern::Raster(r) if r.lines == 8 && r.turn_ticks == 20 && r.pixels == 100));

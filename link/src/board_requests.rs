@@ -72,7 +72,7 @@ pub enum LoadRefused {
 /// full, accepted because of `clamp`.
 ///
 /// ```
-/// use hal_sim::board_requests::{check_load, LoadRefused};
+/// use twinstack_link::board_requests::{check_load, LoadRefused};
 /// use hal_sim::sim_device::SimDeviceConfig;
 /// use twinstack::settings::Mode;
 /// let mut s = SimDeviceConfig::paper_settings(Mode::OpenLoop);
@@ -137,7 +137,7 @@ pub enum WaveformError {
 /// the model's output range) at `frequency_hz` (resolution 1 mHz).
 ///
 /// ```
-/// use hal_sim::board_requests::waveform;
+/// use twinstack_link::board_requests::waveform;
 /// use twinstack::protocol::messages::WaveShape;
 /// let w = waveform(WaveShape::Sine, 0.0, 0.5, 2.5, None).unwrap();
 /// assert_eq!((w.amplitude, w.frequency_mhz), (16384, 2500));
@@ -223,7 +223,7 @@ pub enum CaptureRequestError {
 /// `decimation` ticks, or why it cannot be armed.
 ///
 /// ```
-/// use hal_sim::board_requests::capture_request;
+/// use twinstack_link::board_requests::capture_request;
 /// use twinstack::protocol::messages::Trigger;
 /// let r = capture_request("setpoint,sensor", 1000, 0, Trigger::Now, 1).unwrap();
 /// assert_eq!((r.signals.count_ones(), r.samples), (2, 1000));

@@ -96,7 +96,7 @@ pub fn to_wire(v: f64, units: SetpointUnits<'_>) -> Result<i16, String> {
 /// as a `t` column is checked) from 1 to 65 535.
 ///
 /// ```
-/// use hal_sim::setpoint_file::divider_for_rate;
+/// use twinstack_link::setpoint_file::divider_for_rate;
 /// assert_eq!(divider_for_rate(50_000.0, 10_000.0), Ok(5));
 /// assert!(divider_for_rate(50_000.0, 30_000.0).is_err());
 /// ```

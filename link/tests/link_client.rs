@@ -3,13 +3,13 @@
 //! exceeded, batches are numbered in order, refusals become typed errors or go-back-N
 //! resends, timeouts are reported, garbage on the line is skipped.
 
-use hal_sim::link::client::{Client, LinkError};
-use hal_sim::link::streamer::{stream_setpoints, StreamOptions};
 use std::time::Duration;
 use support::fake_board::FakeBoard;
 use twinstack::protocol::frame::{self, FrameError, MAX_ENCODED};
 use twinstack::protocol::messages::{NackReason, Request, Response, StreamControl, UnderrunPolicy};
 use twinstack::refusal::{Field, ModelField, Refusal, Rule};
+use twinstack_link::client::{Client, LinkError};
+use twinstack_link::streamer::{stream_setpoints, StreamOptions};
 
 mod support;
 

@@ -3,7 +3,6 @@
 //! refusals, garbage, silence), playing its queue while the host waits.
 #![allow(dead_code)] // each test binary uses its own subset
 
-pub use hal_sim::link::Transport;
 use std::collections::{HashMap, VecDeque};
 use std::io;
 use std::time::Duration;
@@ -13,6 +12,7 @@ use twinstack::protocol::messages::{
     NackReason, Request, Response, StatusReport, StreamControl, MAX_CHUNK,
 };
 use twinstack::refusal::{Field, ModelField, Refusal, Rule};
+pub use twinstack_link::Transport;
 
 /// A board reduced to its protocol behaviour: a setpoint queue of `capacity` played at
 /// `rate` samples per second of (simulated) waiting, a sequence check, scripted refusals.

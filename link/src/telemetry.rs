@@ -1,5 +1,5 @@
 //! Continuous telemetry on the host (protocol v5): the board's unsolicited frames, as the
-//! client sets them aside ([`crate::link::Client::take_telemetry`]), put back together into
+//! client sets them aside ([`crate::Client::take_telemetry`]), put back together into
 //! one record, with everything that did not arrive accounted for.
 //!
 //! Two ways a sample can be missing, both announced: the board's queue was full (the frame
@@ -9,7 +9,7 @@
 //! too: [`TelemetryRecord::missing`] is exactly what the host did not get.
 //!
 //! ```
-//! use hal_sim::telemetry::TelemetryRecord;
+//! use twinstack_link::telemetry::TelemetryRecord;
 //! use twinstack::protocol::messages::TelemetryFrame;
 //! let frame = |seq, first, lost, end, values: &[i16]| TelemetryFrame {
 //!     seq, first, signals: 0b1001, lost, end, values: twinstack::heapless::Vec::from_slice(values).unwrap(),
@@ -22,8 +22,8 @@
 //! ```
 
 use crate::capture::{self, ConvertError, Recording};
-use crate::link::client::{Client, LinkError};
-use crate::link::Transport;
+use crate::client::{Client, LinkError};
+use crate::Transport;
 use std::time::Duration;
 use twinstack::protocol::messages::{CaptureState, CaptureStatus, TelemetryFrame};
 use twinstack::settings::Settings;
