@@ -34,31 +34,14 @@
 //!   sends and its checks, waveform and capture requests, the status as JSON.
 //! * [`cli`] — the `hal-sim` subcommands.
 
-pub mod accuracy;
 pub mod analog_source;
-pub mod board_link;
-pub mod calibrate;
-pub mod cli;
-pub mod closed_loop;
 pub mod coarse_rig;
 pub mod coarse_stage;
 pub mod converters;
-pub mod demo;
 pub mod dual_stage_sim;
-pub mod golden;
-pub mod identification;
-pub mod learn;
-pub mod learn_link;
-pub mod param_file;
 pub mod plant;
 pub mod port;
-pub mod reference;
 pub mod sim_board;
 pub mod sim_camera;
 pub mod sim_device;
-pub mod stage_model;
-pub mod tracking;
-pub mod trajectory;
-pub mod tune;
 pub mod virtual_board;
-pub mod zero_order_hold;

@@ -4,9 +4,7 @@
 //! `identify` file, a corrupted frame NACKed with nothing lost, and a recorder capture that
 //! matches what was streamed. Time is simulated: these are counts, not timings.
 
-use hal_sim::param_file::ParamFile;
 use hal_sim::sim_device::{LinkDelay, SimDevice, SimDeviceConfig};
-use hal_sim::stage_model::{Hysteresis, StageModel};
 use twinstack::protocol::frame::{self, FrameError, MAX_ENCODED};
 use twinstack::protocol::messages::{
     Mode, NackReason, RecordRequest, Request, Response, SetpointBatch, Signal, StatusReport,
@@ -14,6 +12,8 @@ use twinstack::protocol::messages::{
 };
 use twinstack::refusal::{Field, ModelField, Refusal, Rule};
 use twinstack::settings::{representative_pi, Model};
+use twinstack_identify::param_file::ParamFile;
+use twinstack_identify::stage_model::{Hysteresis, StageModel};
 use twinstack_link::client::{Client, LinkError};
 use twinstack_link::streamer::{stream_setpoints, StreamOptions};
 

@@ -8,17 +8,9 @@
 //! The Python-facing documentation is in `twinstack/_native.pyi` and the book's Python
 //! chapter (`docs/src/guide/python.md`).
 
-use hal_sim::identification::auto::Validation;
-use hal_sim::identification::run::{
-    check_tick_rate, default_fit_until, identify_and_score, parse_model, BoardRate, Identified,
-    RunError,
-};
-use hal_sim::identification::{IdentifyOptions, ModelKind, ThresholdSpread, DEFAULT_OPERATORS};
-use hal_sim::param_file::{ParamFile, ParamFileError};
 use hal_sim::port::{open_send, PortError, PortSpec, DEFAULT_BAUD};
 use hal_sim::sim_camera::CameraConfig;
 use hal_sim::sim_device::{SimDevice, SimDeviceConfig};
-use hal_sim::stage_model::{Hysteresis, StageModel};
 use numpy::{PyArray1, PyArrayMethods};
 use pyo3::exceptions::{
     PyConnectionError, PyException, PyFileNotFoundError, PyOSError, PyRuntimeError, PyTimeoutError,
@@ -36,6 +28,16 @@ use twinstack::protocol::messages::{
 };
 use twinstack::refusal::Rule;
 use twinstack::settings::Mode;
+use twinstack_identify::identification::auto::Validation;
+use twinstack_identify::identification::run::{
+    check_tick_rate, default_fit_until, identify_and_score, parse_model, BoardRate, Identified,
+    RunError,
+};
+use twinstack_identify::identification::{
+    IdentifyOptions, ModelKind, ThresholdSpread, DEFAULT_OPERATORS,
+};
+use twinstack_identify::param_file::{ParamFile, ParamFileError};
+use twinstack_identify::stage_model::{Hysteresis, StageModel};
 use twinstack_link::board_requests::{self, LoadRefused};
 use twinstack_link::capture::{self, CaptureError};
 use twinstack_link::client::{nack_text, Client, LinkError};
@@ -134,7 +136,7 @@ fn port_error(e: PortError) -> PyErr {
     match e {
         PortError::Empty => PyValueError::new_err(e.to_string()),
         PortError::Serial(twinstack_link::serial::SerialError::Missing { .. }) => {
-            PyFileNotFoundError::new_err(format!("{e}; {}", hal_sim::board_link::available_ports()))
+            PyFileNotFoundError::new_err(format!("{e}; {}", hal_sim::port::available_ports()))
         }
         PortError::Serial(twinstack_link::serial::SerialError::BadBaud(_)) => {
             PyValueError::new_err(e.to_string())
@@ -1074,8 +1076,8 @@ impl Board {
         clamp: bool,
         model: Option<&str>,
     ) -> PyResult<Bound<'py, PyAny>> {
-        use hal_sim::calibrate::{calibrate, CalibrateError, CalibrateOptions};
-        use hal_sim::identification::run::{parse_model, ModelChoice};
+        use twinstack_identify::calibrate::{calibrate, CalibrateError, CalibrateOptions};
+        use twinstack_identify::identification::run::{parse_model, ModelChoice};
         let model = match model
             .map(parse_model)
             .transpose()

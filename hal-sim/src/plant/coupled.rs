@@ -33,7 +33,7 @@
 //! zero-order hold of [`ZeroOrderHold`].
 
 use super::stage::{Configuration, StageParams};
-use crate::zero_order_hold::ZeroOrderHold;
+use twinstack_identify::zero_order_hold::ZeroOrderHold;
 
 /// Default stack–stage contact stiffness `K_0`, N/m (2000 N/µm).
 pub const DEFAULT_CONTACT_STIFFNESS: f64 = 2.0e9;

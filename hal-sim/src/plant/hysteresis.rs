@@ -1,4 +1,4 @@
-//! The "truth" hysteresis of each stack: a Duhem or P–I model from [`crate::reference`],
+//! The "truth" hysteresis of each stack: a Duhem or P–I model from [`twinstack_identify::reference`],
 //! in volts, with an optional skew.
 //!
 //! Hysteresis sits in series with the stack's electrical port (see the book, docs/src/reference/physics.md): the stack moves as
@@ -16,8 +16,8 @@
 //! work at `ū ± v`, and the quadratic terms cancel in `e_l − e_r` to first order: the
 //! differential loop comes out nearly symmetric, as in the paper.
 
-use crate::reference;
 use twinstack::{DuhemParams, ParamError, PiParams, Scaling};
+use twinstack_identify::reference;
 
 /// Which operator a stack's hysteresis follows (parameters in volts → volts).
 // Held by value like the operators it configures: no heap in the simulator's models.

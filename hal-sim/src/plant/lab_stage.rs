@@ -1,5 +1,5 @@
 //! A laboratory stage that is deliberately **not** a member of the project's model family: the
-//! plant the tracking harness ([`crate::tracking`]) identifies and then tracks on, open loop.
+//! plant the tracking harness ([`twinstack_cli::tracking`]) identifies and then tracks on, open loop.
 //!
 //! The models the project fits are the symmetric Prandtl–Ishlinskii (P–I), Duhem, a
 //! generalised P–I (P–I followed by a piecewise-linear dead-zone output map), Bouc–Wen, and a
@@ -54,7 +54,7 @@
 //!
 //! ## Resonance
 //! `G(s) = ω_n² / (s² + 2ζ ω_n s + ω_n²)`, `f_n` = 3.5 kHz, `ζ` = 0.03 by default, integrated
-//! exactly with the input held over the period ([`crate::zero_order_hold`]): stable and
+//! exactly with the input held over the period ([`twinstack_identify::zero_order_hold`]): stable and
 //! exact at any sample rate.
 //!
 //! ## Sensor
@@ -63,7 +63,7 @@
 //! (`sensor_lsb_nm`, 2 nm; 0 for none). The same seed gives the same record, bit for bit.
 
 use crate::converters::GaussianNoise;
-use crate::zero_order_hold::ZeroOrderHold;
+use twinstack_identify::zero_order_hold::ZeroOrderHold;
 
 /// The Preisach density `μ(α, β) ∝ exp(−(α − β)/w) (1 − a α²) (1 − b (1 − β)²)` and its grid.
 #[derive(Clone, Debug, PartialEq)]

@@ -4,10 +4,10 @@
 //! * [`coupled`] — the 3-DOF coupled model (stack tips, stage, contact `K_0`).
 //! * [`reduced`] — its `K_0 → ∞` 1-DOF reduction.
 //! * [`hysteresis`] — Duhem or P–I hysteresis per stack, with a skew option.
-//! * [`crate::zero_order_hold`] — the exact discretisation both mechanical models are advanced with.
+//! * [`twinstack_identify::zero_order_hold`] — the exact discretisation both mechanical models are advanced with.
 //! * [`lab_stage`] — a single-input laboratory stage built *outside* the project's model family
 //!   (asymmetric Preisach hysteresis, logarithmic creep, flexure nonlinearity, resonance,
-//!   sensor noise): the plant the tracking harness ([`crate::tracking`]) evaluates models on.
+//!   sensor noise): the plant the tracking harness ([`twinstack_cli::tracking`]) evaluates models on.
 //! * [`ball_screw`] — the coarse stage of a dual-actuated axis (stepper, screw, backlash,
 //!   friction, encoder) that carries the piezo stage.
 //!
@@ -329,9 +329,9 @@ pub fn true_plant(
     input_half_span_volts: f64,
     output_half_span_um: f64,
     rate: f64,
-) -> crate::tune::loop_model::LinearPlant {
+) -> twinstack_identify::tune::loop_model::LinearPlant {
     let s = stage.second_order(Configuration::Differential);
-    crate::tune::loop_model::LinearPlant::resonance(
+    twinstack_identify::tune::loop_model::LinearPlant::resonance(
         s.a0_um_per_volt * input_half_span_volts / output_half_span_um,
         s.omega_n / (2.0 * std::f64::consts::PI),
         s.zeta,

@@ -8,7 +8,7 @@
 //! State (SI): `[x_s, ẋ_s]`; exact zero-order hold per control period.
 
 use super::stage::{Configuration, StageParams};
-use crate::zero_order_hold::ZeroOrderHold;
+use twinstack_identify::zero_order_hold::ZeroOrderHold;
 
 /// The 1-DOF stage model, advanced one control period at a time.
 #[derive(Clone, Debug, PartialEq)]

@@ -1,0 +1,352 @@
+//! `twinstack calibrate --port PORT --out PARAMS.json [--model auto|…] [--no-store] [--json]`:
+//! the whole calibration in one command ([`twinstack_identify::calibrate`]): excites the stage with the
+//! board's waveform generator, records drive and sensor, identifies the best model, writes the
+//! parameter file (the format `identify` writes) and a PNG beside it (the fit, the ranking, the
+//! tracking before and after), loads the settings (open loop), verifies them on a test
+//! trajectory and stores them to flash (to boot in bypass unless `--store MODE`).
+//!
+//! The files are written only once the calibration has succeeded; a failure changes nothing on
+//! disk and loads nothing on a board it stopped before (see [`twinstack_identify::calibrate`] for which
+//! step does what).
+
+use super::board_link::{connect, PortArgs};
+use super::params::ModeArg;
+use anyhow::bail;
+use plotters::style::RGBColor;
+use std::path::{Path, PathBuf};
+use twinstack::recorder::Channel;
+use twinstack_identify::calibrate::{calibrate, CalibrateOptions, CalibrationReport, Progress};
+use twinstack_identify::identification::auto::Validation;
+use twinstack_link::output_file::Staged;
+use twinstack_link::plot::{draw_charts, Bar, BarPanel, Chart, Panel, Series};
+
+/// Arguments of `calibrate`.
+#[derive(Debug, clap::Args)]
+pub struct Args {
+    /// The board.
+    #[command(flatten)]
+    pub port: PortArgs,
+    /// Parameter file to write (the figure goes beside it, extension .png).
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Model to fit: `auto` (the default) ranks every model of the family and keeps the best;
+    /// or one model by name.
+    #[arg(long, default_value = "auto", value_parser = super::identify::parse_model,
+          value_name = "auto|pi|gpi|bouc-wen|duhem")]
+    pub model: super::identify::ModelChoice,
+    /// Play operators of a P–I model (1 to 32) [default: 17, or as many as the board runs at
+    /// its rate where 17 are too many].
+    #[arg(long)]
+    pub operators: Option<usize>,
+    /// Sensor lag in samples of the recorded excitation [default: 0]; `--lag auto` estimates
+    /// it as `identify` does.
+    #[arg(long, default_value = "0", value_parser = parse_lag, value_name = "N|auto")]
+    pub lag: LagArg,
+    /// Frequency of the excitation, Hz.
+    #[arg(long, default_value_t = 10.0)]
+    pub frequency: f64,
+    /// Full-amplitude cycles of the excitation.
+    #[arg(long, default_value_t = 6)]
+    pub full_cycles: u16,
+    /// Decaying cycles after them (the last is held out to score the model).
+    #[arg(long, default_value_t = 14)]
+    pub decay_cycles: u16,
+    /// Refuse the model if it predicts the held-out cycle worse than this, % of span (max).
+    #[arg(long, default_value_t = 5.0, value_name = "PERCENT")]
+    pub max_held_out: f64,
+    /// Store to flash to boot in this mode.
+    #[arg(long, value_enum, default_value_t = ModeArg::Bypass)]
+    pub store: ModeArg,
+    /// Do not store the settings to flash (they stay loaded until the board restarts).
+    #[arg(long)]
+    pub no_store: bool,
+    /// Load a model whose input range the drive cannot reach in full, with a warning.
+    #[arg(long)]
+    pub clamp: bool,
+    /// Print the figures as one JSON object on stdout instead of text.
+    #[arg(long)]
+    pub json: bool,
+}
+
+impl Args {
+    /// The library's options for these arguments.
+    pub fn options(&self) -> CalibrateOptions {
+        CalibrateOptions {
+            excitation_hz: self.frequency,
+            full_cycles: self.full_cycles,
+            decay_cycles: self.decay_cycles,
+            model: match self.model {
+                super::identify::ModelChoice::Auto => None,
+                super::identify::ModelChoice::Only(kind) => Some(kind),
+            },
+            operators: self.operators,
+            lag: self.lag.0,
+            max_held_out_pct: self.max_held_out,
+            clamp: self.clamp,
+            store: (!self.no_store).then(|| self.store.into()),
+            ..CalibrateOptions::default()
+        }
+    }
+}
+
+/// `--lag`: a number of samples, or `None` for `auto` (estimated).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct LagArg(pub Option<usize>);
+
+/// Parses `--lag`: a number of samples, or `auto`.
+pub fn parse_lag(s: &str) -> Result<LagArg, String> {
+    if s.eq_ignore_ascii_case("auto") {
+        return Ok(LagArg(None));
+    }
+    s.parse()
+        .map(|n| LagArg(Some(n)))
+        .map_err(|_| format!("--lag {s}: a number of samples, or auto"))
+}
+
+/// The figures as one JSON object (what `--json` prints).
+pub fn report_json(r: &CalibrationReport, out: &Path, png: &Path) -> serde_json::Value {
+    serde_json::json!({
+        "model": r.model,
+        "reason": r.reason,
+        "ranking": r.ranking.iter().map(|c| match &c.validation {
+            Validation::Scored(f) => serde_json::json!({"model": c.label, "max_pct": f.max_pct, "rms_pct": f.rms_pct}),
+            Validation::NotAdmitted { figures: f, why } => serde_json::json!({"model": c.label, "max_pct": f.max_pct, "rms_pct": f.rms_pct, "not_admitted": why}),
+            Validation::NotFitted(e) => serde_json::json!({"model": c.label, "error": e}),
+        }).collect::<Vec<_>>(),
+        "held_out": r.held_out,
+        "tracking_before": r.before,
+        "tracking_after": r.after,
+        "trajectory_range": [r.trajectory_range.0, r.trajectory_range.1],
+        "output_unit": r.file.units.output,
+        "samples": r.excitation.t.len(),
+        "decimation": r.decimation,
+        "tick_rate_hz": r.tick_rate_hz,
+        "stored": r.stored.map(|m| format!("{m:?}")),
+        "clamped": r.clamped,
+        "params": out.display().to_string(),
+        "png": png.display().to_string(),
+    })
+}
+
+/// Runs `calibrate`.
+pub fn run(args: &Args) -> anyhow::Result<()> {
+    if args
+        .out
+        .extension()
+        .is_some_and(|e| e.eq_ignore_ascii_case("png"))
+    {
+        bail!(
+            "--out {}: the parameter file must not end in .png (the figure goes there)",
+            args.out.display()
+        );
+    }
+    let options = args.options();
+    options.check()?;
+    let mut client = connect(&args.port)?;
+    let bar = super::progress::bar(0, "calibrating", "");
+    let quiet = args.json || !super::progress::enabled();
+    let report = calibrate(&mut client, &options, |p| match p {
+        Progress::Step(step) => {
+            bar.set_message(step.to_string());
+            if !quiet {
+                bar.println(step);
+            }
+        }
+        Progress::Count { done, .. } => bar.set_position(done),
+    });
+    bar.finish_and_clear();
+    let report = report?;
+    let png = args.out.with_extension("png");
+    let mut files = Staged::new();
+    let temp_png = files.temporary_for(&png);
+    plot(&report, &temp_png)?;
+    files.write(&args.out, report.file.to_json().as_bytes())?;
+    files.commit()?;
+    if report.clamped {
+        eprintln!(
+            "warning: the model's input range reaches beyond the drive's (--clamp: loaded anyway)"
+        );
+    }
+    if args.json {
+        println!("{}", report_json(&report, &args.out, &png));
+        return Ok(());
+    }
+    let unit = &report.file.units.output;
+    println!(
+        "excited {} s at {} Hz ({} samples, every {} ticks at {} Hz)",
+        options.excitation_s(),
+        options.excitation_hz,
+        report.excitation.t.len(),
+        report.decimation,
+        report.tick_rate_hz
+    );
+    if !report.ranking.is_empty() {
+        println!("ranking (validation part of the excitation):");
+        for (i, c) in report.ranking.iter().enumerate() {
+            match (c.validation.admitted(), c.validation.note()) {
+                (Some(f), _) => println!(
+                    "  {}. {:<32} max {:.2} %  RMS {:.2} %",
+                    i + 1,
+                    c.label,
+                    f.max_pct,
+                    f.rms_pct
+                ),
+                (None, note) => println!("  -. {:<32} {}", c.label, note.unwrap_or_default()),
+            }
+        }
+    }
+    println!("picked: {}", report.reason);
+    println!(
+        "held-out last cycle: max {:.2} %  RMS {:.2} % of span",
+        report.held_out.max_pct, report.held_out.rms_pct
+    );
+    println!(
+        "tracking over {:.2} … {:.2} {unit} (triangle + nested minor loops), % of span:",
+        report.trajectory_range.0, report.trajectory_range.1
+    );
+    for (name, t) in [
+        ("before (bypass)", report.before),
+        ("after (open loop)", report.after),
+    ] {
+        println!(
+            "  {name:<18} max {:.2} %  RMS {:.2} %{}",
+            t.max_pct,
+            t.rms_pct,
+            if t.underran {
+                "  (the stream underran)"
+            } else {
+                ""
+            }
+        );
+    }
+    match report.stored {
+        Some(m) => println!("loaded (open loop) and stored to flash (boots in {m:?})"),
+        None => println!("loaded (open loop), not stored (--no-store)"),
+    }
+    println!("wrote {} and {}", args.out.display(), png.display());
+    Ok(())
+}
+
+/// The calibration figure: the excitation's fit, the held-out loops, the ranking, and the
+/// tracking error before and after.
+fn plot(r: &CalibrationReport, path: &Path) -> anyhow::Result<()> {
+    let black = RGBColor(0, 0, 0);
+    let blue = RGBColor(31, 119, 180);
+    let red = RGBColor(214, 39, 40);
+    let unit = r.file.units.output.clone();
+    let t = &r.excitation.t;
+    let u = r.excitation.u.as_deref().unwrap_or_default();
+    let x = r.excitation.x.as_deref().unwrap_or_default();
+    let line = |label: &str, xs: &[f64], ys: &[f64], color| Series {
+        label: label.to_string(),
+        points: xs.iter().copied().zip(ys.iter().copied()).collect(),
+        color,
+    };
+    let held = r.held_out_from.min(x.len());
+    let mut panels = vec![
+        Panel {
+            caption: "excitation: measured and model".into(),
+            x_label: "t [s]".into(),
+            y_label: format!("[{unit}]"),
+            series: vec![
+                line("measured", t, x, black),
+                line(&r.model, t, &r.predicted, blue),
+            ],
+        },
+        Panel {
+            caption: "held-out last cycle".into(),
+            x_label: "left stack [V]".into(),
+            y_label: format!("[{unit}]"),
+            series: vec![
+                line("measured", &u[held..], &x[held..], black),
+                line(
+                    "model",
+                    &u[held..],
+                    &r.predicted[held.min(r.predicted.len())..],
+                    blue,
+                ),
+            ],
+        },
+    ];
+    // The ranking: one bar per candidate at its validation max error, best first; the
+    // model kept in blue, the others light, one the board would not run grey.
+    let ranking = BarPanel {
+        caption: "ranking: validation max error".into(),
+        x_label: "[% of span]".into(),
+        bars: r
+            .ranking
+            .iter()
+            .enumerate()
+            .map(|(i, c)| {
+                let kept = c.label == r.model;
+                let (value, note, color) = match &c.validation {
+                    Validation::Scored(f) => (
+                        f.max_pct,
+                        if kept { "kept" } else { "" },
+                        if kept { blue } else { RGBColor(158, 202, 225) },
+                    ),
+                    Validation::NotAdmitted { figures, .. } => {
+                        (figures.max_pct, "not admitted", RGBColor(190, 190, 190))
+                    }
+                    Validation::NotFitted(_) => (f64::NAN, "not fitted", RGBColor(190, 190, 190)),
+                };
+                Bar {
+                    label: format!("{}. {}", i + 1, c.label),
+                    value,
+                    note: note.to_string(),
+                    color,
+                }
+            })
+            .collect(),
+    };
+    let error = |rec: &twinstack_link::capture::Recording, label: String, color| {
+        let sp = rec.column(Channel::Setpoint).map(|c| &c.values[..]);
+        let se = rec.column(Channel::Sensor).map(|c| &c.values[..]);
+        let points = match (sp, se) {
+            (Some(sp), Some(se)) => rec
+                .t
+                .iter()
+                .zip(sp.iter().zip(se))
+                .map(|(&t, (a, b))| (t, b - a))
+                .collect(),
+            _ => Vec::new(),
+        };
+        Series {
+            label,
+            points,
+            color,
+        }
+    };
+    panels.push(Panel {
+        caption: "tracking error (sensor - setpoint)".into(),
+        x_label: "t from the stream's start [s]".into(),
+        y_label: format!("[{unit}]"),
+        series: vec![
+            error(
+                &r.runs[0],
+                format!("bypass: max {:.2} %", r.before.max_pct),
+                red,
+            ),
+            error(
+                &r.runs[1],
+                format!("compensated: max {:.2} %", r.after.max_pct),
+                blue,
+            ),
+        ],
+    });
+    let mut charts: Vec<Chart> = panels[..2].iter().map(Chart::Lines).collect();
+    if !ranking.bars.is_empty() {
+        charts.push(Chart::Bars(&ranking));
+    }
+    charts.extend(panels[2..].iter().map(Chart::Lines));
+    draw_charts(
+        path,
+        &format!(
+            "calibrate: {} (held-out max {:.2} %), tracking max {:.2} % -> {:.2} %",
+            r.model, r.held_out.max_pct, r.before.max_pct, r.after.max_pct
+        ),
+        &charts,
+        2,
+    )?;
+    Ok(())
+}

@@ -1,0 +1,103 @@
+//! The parameter file's model run on a record, either way:
+//!
+//! * `twinstack predict --params PARAMS.json --data IN.csv --out OUT.csv`: the forward model (the
+//!   library's fixed-point observer) on IN's `t,u`; writes `t,u,x` with `x` the predicted
+//!   reading;
+//! * `twinstack compensate --params PARAMS.json --data IN.csv --out OUT.csv`: IN's `t,x` are the
+//!   desired readings; writes `t,u,x` with `u` the drive from the library's fixed-point inverse
+//!   and `x` copied. With a sensor lag of `L` samples the drive leads by `L`; its last `L`
+//!   samples aim at the last desired reading (held), and the run says so.
+
+use std::path::PathBuf;
+use twinstack_identify::param_file::ParamFile;
+use twinstack_link::measured_data::{ColumnNames, Columns, MeasuredData};
+use twinstack_link::output_file::{csv_t_u_x, Staged};
+
+/// Arguments of `predict` and `compensate`.
+#[derive(Debug, clap::Args)]
+pub struct Args {
+    /// Parameter file written by `identify`.
+    #[arg(long)]
+    pub params: PathBuf,
+    /// Input CSV: columns t and u (the drive) for `predict`, t and x (the desired reading)
+    /// for `compensate`.
+    #[arg(long)]
+    pub data: PathBuf,
+    /// Names of the t, u, x columns in the CSV when it calls them something else (matched
+    /// without unit suffix and case, like the header): `--columns t=time,u=drive,x=sensor`.
+    #[arg(long, value_name = "t=NAME,u=NAME,x=NAME")]
+    pub columns: Option<ColumnNames>,
+    /// Output CSV (t,u,x).
+    #[arg(long)]
+    pub out: PathBuf,
+}
+
+/// Which way the model runs.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Direction {
+    /// Drive in, predicted reading out (`predict`).
+    Forward,
+    /// Desired reading in, drive out (`compensate`).
+    Inverse,
+}
+
+/// Runs `predict` ([`Direction::Forward`]) or `compensate` ([`Direction::Inverse`]).
+pub fn run(args: &Args, direction: Direction) -> anyhow::Result<()> {
+    let (_, model) = ParamFile::load(&args.params)?;
+    let columns = match direction {
+        Direction::Forward => Columns::TimeDrive,
+        Direction::Inverse => Columns::TimeOutput,
+    };
+    let data = MeasuredData::read_with(
+        &args.data,
+        columns,
+        &args.columns.clone().unwrap_or_default(),
+    )?;
+    let model_error = |e| anyhow::anyhow!("{}: {e}", args.params.display());
+    let (u, x, outside, what) = match direction {
+        Direction::Forward => {
+            let u = data.u.clone().unwrap_or_default();
+            let x = model.predict(&data.t, &u).map_err(model_error)?;
+            let outside = model.drive_outside_range(&u);
+            (
+                u,
+                x,
+                outside,
+                "drive samples outside the model's input range",
+            )
+        }
+        Direction::Inverse => {
+            let x = data.x.clone().unwrap_or_default();
+            let u = model.compensate(&data.t, &x).map_err(model_error)?;
+            // With a sensor lag of L samples the drive at sample k aims at the reading at
+            // k + L; the last L samples have none, so they aim at the last reading (held).
+            let lag = model.lag_samples(&data.t).min(data.len().saturating_sub(1));
+            if lag > 0 {
+                eprintln!(
+                    "note: the sensor lags the drive by {lag} sample{}: the drive leads the desired reading by as much, and its last {lag} sample{} aim at the last desired reading (t = {} s), there being no later one",
+                    if lag == 1 { "" } else { "s" },
+                    if lag == 1 { "" } else { "s" },
+                    data.t.last().copied().unwrap_or_default()
+                );
+            }
+            let outside = model.reading_outside_range(&x);
+            (
+                u,
+                x,
+                outside,
+                "desired readings outside the model's output range",
+            )
+        }
+    };
+    if outside > 0 {
+        eprintln!(
+            "warning: {}: {outside} {what} were clamped to it",
+            args.data.display()
+        );
+    }
+    let mut out = Staged::new();
+    out.write(&args.out, &csv_t_u_x(&data.t, &u, &x)?)?;
+    out.commit()?;
+    println!("wrote {} ({} samples)", args.out.display(), data.len());
+    Ok(())
+}

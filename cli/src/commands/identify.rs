@@ -1,0 +1,234 @@
+//! `twinstack identify [--model auto|pi|duhem|gpi|…] [--creep] --data FILE.csv --fit-until SECONDS
+//! --out PARAMS.json [--operators N] [--thresholds uniform|geometric] [--lag N]`: fits on
+//! `t < SECONDS`, scores
+//! on the rest, writes the parameter file and a PNG beside it (`PARAMS.png`).
+
+use anyhow::{anyhow, bail};
+use std::path::PathBuf;
+use twinstack_identify::identification::run::{
+    check_tick_rate, identify_and_score, BoardRate, RunError,
+};
+use twinstack_identify::identification::score::ErrorFigures;
+use twinstack_identify::identification::{
+    IdentifyError, IdentifyOptions, ModelKind, ThresholdSpread, DEFAULT_OPERATORS,
+};
+use twinstack_link::measured_data::{ColumnNames, Columns, MeasuredData};
+use twinstack_link::output_file::Staged;
+use twinstack_link::plot::{draw, IdentificationFigure};
+
+/// Arguments of `identify`.
+#[derive(Debug, clap::Args)]
+pub struct Args {
+    /// Model to fit: `auto` (the default) fits every model on the first part of the fit
+    /// window, ranks them on its last part and keeps the best; or one model by name.
+    #[arg(long, default_value = "auto", value_parser = parse_model,
+          value_name = "auto|pi|gpi|bouc-wen|duhem")]
+    pub model: ModelChoice,
+    /// Measured CSV (t,u,x).
+    #[arg(long)]
+    pub data: PathBuf,
+    /// Names of the t, u, x columns in the CSV when it calls them something else (matched
+    /// without unit suffix and case, like the header): `--columns t=time,u=drive,x=sensor`.
+    #[arg(long, value_name = "t=NAME,u=NAME,x=NAME")]
+    pub columns: Option<ColumnNames>,
+    /// Fit on samples with t < SECONDS, score on the rest.
+    #[arg(long, value_name = "SECONDS")]
+    pub fit_until: f64,
+    /// Parameter file to write (the figure goes beside it, extension .png).
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Play operators of a P–I model (1 to 32) [default: 17, or with `--tick-rate` as many as
+    /// the board runs at that rate where 17 are too many].
+    #[arg(long)]
+    pub operators: Option<usize>,
+    /// Spread of the P–I thresholds.
+    #[arg(long, value_enum, default_value_t = Spread::Uniform)]
+    pub thresholds: Spread,
+    /// Sensor lag in samples (estimated over 0 to 10 samples when not given).
+    #[arg(long)]
+    pub lag: Option<usize>,
+    /// Fit a creep operator (4 log-spaced first-order modes, 10 samples to the fit window,
+    /// at most 100 s) in series with the model. It is kept only where it lowers the fit
+    /// error (modes fitted with no weight are dropped), and the run says what was kept
+    /// ("creep asked for, none kept" when nothing was). With `--model auto`, only the
+    /// candidates with creep are ranked; without `--creep`, auto ranks every model with and
+    /// without creep.
+    #[arg(long)]
+    pub creep: bool,
+    /// Keep only a model the board runs at this control rate, Hz (its tick budget, as the
+    /// board applies it at load, with the file's settings): `auto` picks among those, a P–I
+    /// gets fewer operators where that makes it fit (unless `--operators` is given), a model
+    /// asked for by name that does not fit is an error. Without it any model is kept, and a
+    /// fast board may refuse the file.
+    #[arg(long, value_name = "HZ")]
+    pub tick_rate: Option<f64>,
+    /// Unit of the x column, recorded in the parameter file.
+    #[arg(long, default_value = "units of the x column")]
+    pub output_unit: String,
+}
+
+pub use twinstack_identify::identification::run::{parse_model, ModelChoice};
+
+/// `--thresholds` values.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum Spread {
+    /// r_i = (i - 1)/N · A.
+    Uniform,
+    /// Geometric progression, denser near zero.
+    Geometric,
+}
+
+fn show(f: &ErrorFigures) -> String {
+    format!(
+        "max {:.2} %  RMS {:.2} %  ({} samples)",
+        f.max_pct, f.rms_pct, f.samples
+    )
+}
+
+/// Runs `identify`.
+pub fn run(args: &Args) -> anyhow::Result<()> {
+    if !args.fit_until.is_finite() {
+        bail!(
+            "--fit-until {}: not a finite number of seconds",
+            args.fit_until
+        );
+    }
+    if args
+        .out
+        .extension()
+        .is_some_and(|e| e.eq_ignore_ascii_case("png"))
+    {
+        bail!(
+            "--out {}: the parameter file must not end in .png (the figure goes there)",
+            args.out.display()
+        );
+    }
+    if let Some(rate) = args.tick_rate {
+        check_tick_rate(rate).map_err(|e| anyhow!("--tick-rate {e}"))?;
+    }
+    let data = MeasuredData::read_with(
+        &args.data,
+        Columns::TimeDriveOutput,
+        &args.columns.clone().unwrap_or_default(),
+    )?;
+    let mut options = IdentifyOptions::new(ModelKind::Pi, args.fit_until);
+    options.operators = args.operators.unwrap_or(DEFAULT_OPERATORS);
+    options.thresholds = match args.thresholds {
+        Spread::Uniform => ThresholdSpread::Uniform,
+        Spread::Geometric => ThresholdSpread::Geometric,
+    };
+    options.lag = args.lag;
+    let in_file = |e: RunError| match e {
+        RunError::Params(e) => anyhow!("{e}"),
+        // The rate or an option refused the models, not the file.
+        // What identify can change to make a model fit the rate: its own options only.
+        RunError::Identify(e @ IdentifyError::NoneAdmitted(_)) => anyhow!(
+            "{e} (a smaller model runs faster: fewer --operators, no --creep, another --model, \
+             or a lower --tick-rate)"
+        ),
+        RunError::Identify(
+            e @ (IdentifyError::BadOperatorCount(_) | IdentifyError::BadCreepModes(_)),
+        ) => anyhow!("{e}"),
+        e => anyhow!("{}: {e}", args.data.display()),
+    };
+    let run = identify_and_score(
+        &data,
+        args.model,
+        &options,
+        args.creep.then_some(true),
+        &args.output_unit,
+        args.tick_rate
+            .map(|hz| BoardRate::sizing(hz, args.operators.is_some())),
+    )
+    .map_err(in_file)?;
+    if let Some(auto) = &run.auto {
+        println!(
+            "ranking (fitted on t < {:.4} s, scored on {:.4} <= t < {} s):",
+            auto.validation_from_s, auto.validation_from_s, args.fit_until
+        );
+        println!(
+            "  (compensated max = the larger of inverse and tracking; inverse: compensate on the measured x against the measured u; tracking: that drive through the best forward model)"
+        );
+        for (i, r) in auto.ranking.iter().enumerate() {
+            let place = match (r.validation.admitted(), &r.set_aside) {
+                (Some(_), None) => format!("{}.", i + 1),
+                _ => "-.".into(),
+            };
+            println!("  {place:<3} {:<40} {}", r.label, r.summary());
+        }
+        println!("picked: {}", auto.reason);
+    }
+    let (options, id, record) = (&run.options, &run.identification, &run.record);
+    let t = &data.t;
+    let u = data.u.as_deref().unwrap_or_default();
+    let x = data.x.as_deref().unwrap_or_default();
+    let model = &id.model;
+    let (fit, held_out, inverse) = (record.fit, record.held_out, record.inverse_held_out);
+    let fit_from = id.motion.first_fitted;
+    let held = id.held_out_from;
+    let model_name = options.label_of_fit(model);
+    println!("identified {model_name} from {}", args.data.display());
+    println!(
+        "  fitted t = {:.4} .. {} s ({} rows, {} outliers dropped), scored t >= {} s",
+        t[fit_from], args.fit_until, id.fitted_rows, id.outliers, args.fit_until
+    );
+    println!(
+        "  sensor lag {} samples ({}), output sign {:+}",
+        id.lag_samples,
+        if id.lag_estimated {
+            "estimated"
+        } else {
+            "given"
+        },
+        model.output_sign
+    );
+    for note in &id.notes {
+        println!("  note: {note}");
+    }
+    println!("  fit      (predict vs measured x): {}", show(&fit));
+    println!("  held-out (predict vs measured x): {}", show(&held_out));
+    println!(
+        "  inverse held-out (compensate u vs measured u): {}",
+        show(&inverse)
+    );
+    println!(
+        "  inverse held-out, f64 reference: {}",
+        show(&run.inverse_reference)
+    );
+    println!(
+        "  fixed point vs f64 reference: predict max {:.2e} %, compensate max {:.2e} % of span",
+        record.fixed_vs_reference_max_pct, record.inverse_fixed_vs_reference_max_pct
+    );
+
+    let file = &run.file;
+
+    let figure_path = args.out.with_extension("png");
+    let mut out = Staged::new();
+    let temp_png = out.temporary_for(&figure_path);
+    let title = format!(
+        "{model_name}: held-out max {:.2} % RMS {:.2} % of span ({})",
+        held_out.max_pct,
+        held_out.rms_pct,
+        args.data
+            .file_name()
+            .map(|f| f.to_string_lossy().into_owned())
+            .unwrap_or_default()
+    );
+    draw(
+        &temp_png,
+        &IdentificationFigure {
+            title: &title,
+            t,
+            u,
+            measured: x,
+            model: &run.predicted,
+            held_out_from: held,
+            fit_from,
+            output_unit: &args.output_unit,
+        },
+    )?;
+    out.write(&args.out, file.to_json().as_bytes())?;
+    out.commit()?;
+    println!("wrote {} and {}", args.out.display(), figure_path.display());
+    Ok(())
+}

@@ -1,0 +1,213 @@
+//! `twinstack lab-stage [--model pi,duhem] [--seed N] [--json] [--without creep,…] [--set field=value,…]
+//! [--variants]`: the tracking table on the simulated laboratory stage
+//! ([`hal_sim::plant::lab_stage`], outside the model family) — identified from 2 s of 10 Hz
+//! excitation, then a triangle, nested minor loops and a multisine tracked open loop with each
+//! model's compensator and with none ([`crate::tracking`]); with `--variants`, the worst error
+//! on each of [`crate::tracking::STAGE_VARIANTS`] (stages the family was not tuned on).
+
+use crate::commands::identify::{parse_model, ModelChoice};
+use crate::tracking::{
+    evaluate_methods, evaluate_variants, excite, print_variants, Method, EXCITATION_S, FIT_UNTIL_S,
+    SAMPLE_RATE_HZ, STAGE_VARIANTS,
+};
+use hal_sim::plant::{LabStage, LabStageConfig};
+use std::path::PathBuf;
+use twinstack_identify::identification::{IdentifyOptions, ModelKind};
+use twinstack_link::output_file::{csv_t_u_x, Staged};
+
+/// Arguments of `twinstack lab-stage`.
+#[derive(clap::Args, Debug)]
+pub struct Args {
+    /// Models to identify and compensate with, comma-separated (one row each); `auto` ranks
+    /// them all as `identify` does and keeps the best.
+    #[arg(long, value_delimiter = ',', default_value = "auto,pi,gpi", value_parser = parse_model)]
+    pub model: Vec<ModelChoice>,
+    /// Fit each model with a creep operator in series (for `auto`: only candidates with creep).
+    #[arg(long)]
+    pub creep: bool,
+    /// Seed of the stage's sensor noise.
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// Sample rate of the excitation and of tracking, Hz (2 000 … 100 000).
+    #[arg(long, default_value_t = SAMPLE_RATE_HZ)]
+    pub rate: f64,
+    /// Play operators of a P–I model (1 … the library's maximum).
+    #[arg(long, default_value_t = 17)]
+    pub operators: usize,
+    /// Samples before this time (s) are fitted, the rest of the 2 s excitation held out.
+    #[arg(long, default_value_t = FIT_UNTIL_S)]
+    pub fit_until: f64,
+    /// Print the table as JSON.
+    #[arg(long)]
+    pub json: bool,
+    /// Also write the excitation record (t,u,x) to this CSV, for `twinstack identify`.
+    #[arg(long)]
+    pub write_excitation: Option<PathBuf>,
+    /// Take non-idealities out of the stage, comma-separated, to see what each costs.
+    #[arg(long, value_enum, value_delimiter = ',')]
+    pub without: Vec<NonIdeality>,
+    /// Change the stage's physics, comma-separated `field=value` (the fields: see
+    /// `hal_sim::plant::SETTABLE_FIELDS`, e.g. `preisach.bottom_saturation=0.6`,
+    /// `flexure_saturation_um=100`, `resonance_hz=1200`).
+    #[arg(long, value_delimiter = ',', value_parser = parse_setting)]
+    pub set: Vec<(String, f64)>,
+    /// Track on every stage of the built-in list of variants (the default stage made
+    /// otherwise, one non-ideality at a time and combined) and print each one's worst error.
+    #[arg(long, conflicts_with_all = ["set", "without", "write_excitation"])]
+    pub variants: bool,
+}
+
+/// One `--set` entry: `field=value`, the value a number (`inf` for an unbounded field).
+fn parse_setting(s: &str) -> Result<(String, f64), String> {
+    let (field, value) = s
+        .split_once('=')
+        .ok_or_else(|| format!("`{s}`: expected field=value"))?;
+    let field = field.trim();
+    if !hal_sim::plant::SETTABLE_FIELDS.contains(&field) {
+        return Err(format!(
+            "`{field}`: no such field (the fields: {})",
+            hal_sim::plant::SETTABLE_FIELDS.join(", ")
+        ));
+    }
+    let v: f64 = value
+        .trim()
+        .parse()
+        .map_err(|_| format!("`{s}`: `{}` is not a number", value.trim()))?;
+    if v.is_nan() {
+        return Err(format!("`{s}`: not a number"));
+    }
+    Ok((field.to_string(), v))
+}
+
+/// A non-ideality of the lab stage that `--without` removes.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum NonIdeality {
+    /// The creep (`creep_per_decade = 0`).
+    Creep,
+    /// The flexure's nonlinearity (a linear flexure).
+    Flexure,
+    /// The Preisach density's asymmetry (bottom saturation made equal to the top's).
+    Asymmetry,
+    /// The sensor noise and rounding.
+    Noise,
+}
+
+impl NonIdeality {
+    /// Removes it from `config`.
+    pub fn remove(self, config: &mut LabStageConfig) {
+        match self {
+            Self::Creep => config.creep_per_decade = 0.0,
+            Self::Flexure => config.flexure_saturation_um = f64::INFINITY,
+            Self::Asymmetry => {
+                config.preisach.bottom_saturation = config.preisach.top_saturation;
+            }
+            Self::Noise => {
+                config.noise_rms_nm = 0.0;
+                config.sensor_lsb_nm = 0.0;
+            }
+        }
+    }
+}
+
+/// Runs the evaluation and prints the table.
+pub fn run(args: &Args) -> anyhow::Result<()> {
+    if !(args.rate.is_finite() && (2_000.0..=100_000.0).contains(&args.rate)) {
+        anyhow::bail!("--rate {} is outside 2 000 … 100 000 Hz", args.rate);
+    }
+    if !(args.fit_until.is_finite() && args.fit_until > 0.1 && args.fit_until < EXCITATION_S) {
+        anyhow::bail!(
+            "--fit-until {} must lie within 0.1 … {EXCITATION_S} s (the excitation's length), leaving a part to hold out",
+            args.fit_until
+        );
+    }
+    if !(1..=twinstack::MAX_OPERATORS).contains(&args.operators) {
+        anyhow::bail!(
+            "--operators {}: must be 1 to {}",
+            args.operators,
+            twinstack::MAX_OPERATORS
+        );
+    }
+    if args.model.is_empty() {
+        anyhow::bail!("--model: name at least one model");
+    }
+    let mut config = LabStageConfig::new(args.rate, args.seed);
+    for n in &args.without {
+        n.remove(&mut config);
+    }
+    for (field, value) in &args.set {
+        config.set(field, *value)?;
+    }
+    config.validate()?;
+    let options = |kind: ModelKind| IdentifyOptions {
+        operators: args.operators,
+        creep: args.creep,
+        ..IdentifyOptions::new(kind, args.fit_until)
+    };
+    let methods: Vec<Method> = args
+        .model
+        .iter()
+        .map(|&m| match m {
+            ModelChoice::Only(kind) => Method::One(options(kind)),
+            ModelChoice::Auto => Method::Auto(options(ModelKind::Pi).candidates()),
+        })
+        .collect();
+    if let Some(path) = &args.write_excitation {
+        let data = excite(&mut LabStage::new(&config)?);
+        let (u, x) = (data.u.unwrap_or_default(), data.x.unwrap_or_default());
+        let mut out = Staged::new();
+        out.write(path, &csv_t_u_x(&data.t, &u, &x)?)?;
+        out.commit()?;
+    }
+    let mut stdout = std::io::stdout().lock();
+    if args.variants {
+        let tables = evaluate_variants(&config, &STAGE_VARIANTS, &methods)?;
+        if args.json {
+            use std::io::Write;
+            serde_json::to_writer_pretty(&mut stdout, &tables)?;
+            writeln!(stdout)?;
+        } else {
+            print_variants(&tables, &mut stdout)?;
+        }
+        return Ok(());
+    }
+    let table = evaluate_methods(&config, &methods)?;
+    if args.json {
+        use std::io::Write;
+        serde_json::to_writer_pretty(&mut stdout, &table)?;
+        writeln!(stdout)?;
+    } else {
+        table.print(&mut stdout)?;
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn each_non_ideality_is_removed_from_the_stage() {
+        let base = LabStageConfig::new(SAMPLE_RATE_HZ, 1);
+        let without = |n: NonIdeality| {
+            let mut c = base.clone();
+            n.remove(&mut c);
+            c
+        };
+        assert_eq!(without(NonIdeality::Creep).creep_per_decade, 0.0);
+        assert!(without(NonIdeality::Flexure)
+            .flexure_saturation_um
+            .is_infinite());
+        let sym = without(NonIdeality::Asymmetry).preisach;
+        assert_eq!(sym.bottom_saturation, sym.top_saturation);
+        assert_ne!(
+            base.preisach.bottom_saturation,
+            base.preisach.top_saturation
+        );
+        let quiet = without(NonIdeality::Noise);
+        assert_eq!((quiet.noise_rms_nm, quiet.sensor_lsb_nm), (0.0, 0.0));
+        // Each leaves a stage that builds.
+        for c in [quiet, without(NonIdeality::Flexure)] {
+            LabStage::new(&c).unwrap();
+        }
+    }
+}

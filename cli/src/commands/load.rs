@@ -1,0 +1,170 @@
+//! `twinstack load --port PORT --params PARAMS.json [--mode …] [--store] [overrides]`: sends the
+//! settings a parameter file carries as one parameter load (the board validates them whole,
+//! prepares them off the tick and swaps them in with the drive continuous), optionally
+//! storing them to flash.
+//!
+//! What the file leaves out is kept from the board: a file from `identify` has no sensor
+//! calibration and no feedback gains, so the board's present ones are read back
+//! (`ReadParams`) and kept. The command line overrides any of them. Every gain has one unit
+//! everywhere: `ki` per second, `limit` a fraction of the drive range.
+//!
+//! A model whose input range reaches beyond what the drive can apply (a ±150 V model onto a
+//! 0…140 V drive: the limit would clip every excursion past it) is refused before anything is
+//! sent ([`unreachable_input`]), unless `--clamp` accepts it with a warning.
+
+use super::board_link::{connect, PortArgs};
+use super::params::ModeArg;
+use std::path::PathBuf;
+use twinstack::drive::{Configuration, SafeState};
+use twinstack::settings::{FeedbackSettings, Model, Settings};
+use twinstack_identify::param_file::ParamFile;
+use twinstack_link::board_requests::{check_load, keep_from_board, LoadRefused};
+
+/// Arguments of `load`.
+#[derive(Debug, clap::Args)]
+pub struct Args {
+    /// The board.
+    #[command(flatten)]
+    pub port: PortArgs,
+    /// Parameter file written by `identify` (or by hand).
+    #[arg(long)]
+    pub params: PathBuf,
+    /// Mode to enter once loaded [default: the file's].
+    #[arg(long, value_enum)]
+    pub mode: Option<ModeArg>,
+    /// Also write the settings to the board's flash, to boot in this mode.
+    #[arg(long, value_enum)]
+    pub store: Option<ModeArg>,
+    /// Drive only the left stack (the right one idles at the minimum voltage).
+    #[arg(long)]
+    pub unidirectional: bool,
+    /// Bias ū, volts.
+    #[arg(long)]
+    pub bias: Option<f64>,
+    /// Lowest stack voltage, volts.
+    #[arg(long, allow_negative_numbers = true)]
+    pub min_voltage: Option<f64>,
+    /// Highest stack voltage, volts.
+    #[arg(long)]
+    pub max_voltage: Option<f64>,
+    /// Slew limit, volts per second.
+    #[arg(long)]
+    pub slew_rate: Option<f64>,
+    /// Where the outputs go on a fault.
+    #[arg(long, value_enum)]
+    pub safe_state: Option<SafeArg>,
+    /// PI feedback: proportional gain (drive fraction per displacement fraction).
+    #[arg(long)]
+    pub kp: Option<f64>,
+    /// PI feedback: integral gain, per second.
+    #[arg(long)]
+    pub ki: Option<f64>,
+    /// Largest feedback correction, fraction of the drive range (0…1].
+    #[arg(long)]
+    pub correction_limit: Option<f64>,
+    /// No sensor feedback (open loop and bypass only).
+    #[arg(long, conflicts_with_all = ["kp", "ki", "correction_limit"])]
+    pub no_feedback: bool,
+    /// Load a model whose input range the drive cannot reach in full (the drive is then
+    /// clipped at its limits), with a warning, instead of refusing it.
+    #[arg(long)]
+    pub clamp: bool,
+}
+
+pub use twinstack_link::board_requests::unreachable_input;
+
+/// `--safe-state` values.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum SafeArg {
+    /// Both stacks at the bias.
+    Bias,
+    /// Both stacks at 0 V.
+    Zero,
+}
+
+/// The settings `args` ask for: the file's, with what it leaves out taken from `board` (the
+/// settings in force on the board) and the command line's overrides on top.
+pub fn settings_for(args: &Args, file: &Settings, board: Option<&Settings>) -> Settings {
+    let mut s = keep_from_board(file, board);
+    if args.unidirectional {
+        s.drive.configuration = Configuration::Unidirectional;
+    }
+    s.drive.bias = args.bias.unwrap_or(s.drive.bias);
+    s.drive.min_voltage = args.min_voltage.unwrap_or(s.drive.min_voltage);
+    s.drive.max_voltage = args.max_voltage.unwrap_or(s.drive.max_voltage);
+    s.drive.slew_rate = args.slew_rate.unwrap_or(s.drive.slew_rate);
+    if let Some(safe) = args.safe_state {
+        s.drive.safe_state = match safe {
+            SafeArg::Bias => SafeState::Bias,
+            SafeArg::Zero => SafeState::Zero,
+        };
+    }
+    if args.no_feedback {
+        s.feedback = None;
+    } else if args.kp.is_some() || args.ki.is_some() || args.correction_limit.is_some() {
+        let base = s.feedback.unwrap_or(FeedbackSettings::DEFAULT);
+        s.feedback = Some(FeedbackSettings {
+            kp: args.kp.unwrap_or(base.kp),
+            ki: args.ki.unwrap_or(base.ki),
+            limit: args.correction_limit.unwrap_or(base.limit),
+            ..base
+        });
+    }
+    if let Some(m) = args.mode {
+        s.mode = m.into();
+    }
+    s
+}
+
+/// Runs `load`.
+pub fn run(args: &Args) -> anyhow::Result<()> {
+    let (file, model) = ParamFile::load(&args.params)?;
+    let mut client = connect(&args.port)?;
+    let board = client.read_params().ok();
+    let settings = settings_for(args, &file.settings, board.as_ref());
+    match check_load(&settings, model.output_sign, args.clamp) {
+        Ok(None) => {}
+        Ok(Some(warning)) => eprintln!(
+            "warning: {}: {warning} (--clamp: loading it anyway)",
+            args.params.display()
+        ),
+        Err(e @ LoadRefused::InvertedSensor) => {
+            anyhow::bail!("{}: {e}; nothing was sent", args.params.display())
+        }
+        Err(e) => anyhow::bail!(
+            "{}: {e}; identify the model within the drive's range, or pass --clamp to load \
+             it anyway; nothing was loaded",
+            args.params.display()
+        ),
+    }
+    client.load_params(&settings)?;
+    let what = match &settings.compensator {
+        Some(Model::PrandtlIshlinskii(p)) => format!("P–I, {} operators", p.thresholds.len()),
+        Some(Model::Duhem(_)) => "Duhem".to_string(),
+        Some(Model::GeneralisedPi(p)) => format!(
+            "generalised P–I, {} operators, {} dead zones",
+            p.pi.thresholds.len(),
+            p.dead_zones.thresholds.len()
+        ),
+        Some(Model::BoucWen(_)) => "Bouc-Wen".to_string(),
+        None => "no compensator".to_string(),
+    };
+    let d = &settings.drive;
+    println!(
+        "loaded {} ({what}), mode {:?}, drive {:?} {}…{} V bias {} V",
+        args.params.display(),
+        settings.mode,
+        d.configuration,
+        d.min_voltage,
+        d.max_voltage,
+        d.bias
+    );
+    if let Some(boot) = args.store {
+        client.store_params(boot.into())?;
+        println!(
+            "stored to flash (boots in {:?})",
+            twinstack::settings::Mode::from(boot)
+        );
+    }
+    Ok(())
+}

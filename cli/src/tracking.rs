@@ -1,0 +1,702 @@
+//! Open-loop tracking on the laboratory stage ([`hal_sim::plant::lab_stage`]), evaluated the way a
+//! user evaluates a model on their own stage:
+//!
+//! 1. **Excite** ([`excite`]): from rest at 0 V, drive the stage for [`EXCITATION_S`] with a
+//!    [`EXCITATION_HZ`] sine — [`FULL_RANGE_CYCLES`] cycles over the whole drive range, then
+//!    amplitudes decaying around mid-range to [`FINAL_AMPLITUDE`] of it, so the record holds
+//!    minor loops — and record `t, u, x` as a [`MeasuredData`].
+//! 2. **Identify** ([`identify`]) with the caller's [`IdentifyOptions`] (fitted on
+//!    `t < fit_until_s`, by default [`FIT_UNTIL_S`]: the last cycle is held out and scored).
+//! 3. **Track** three desired trajectories ([`trajectories`]), placed inside the measured output
+//!    range with a [`TRAJECTORY_MARGIN`] each side: a triangle, nested minor loops and a
+//!    three-frequency multisine. The drive is the model's inverse ([`StageModel::compensate`],
+//!    the library's fixed point), or for the *no compensation* row the least-squares line
+//!    `u = a x + b` fitted to the excitation ([`LinearMap`]). The stage runs open loop from rest
+//!    at 0 V, as for the excitation, through an unscored [`LEAD_IN_S`](twinstack_identify::trajectory::LEAD_IN_S) ramp to the
+//!    trajectory's start ([`Trajectory::with_lead_in`]); the error is the reading minus the
+//!    desired displacement, in % of the trajectory's span ([`TrackingScore`]).
+//!
+//! [`evaluate`] runs all of it and returns the table (`twinstack lab-stage`).
+//!
+//! **Sample rate.** [`SAMPLE_RATE_HZ`] = 10 kHz: 1 000 samples per 10 Hz cycle (the drive
+//! moves at most 0.5 V between samples, far finer than the P–I thresholds), above twice the
+//! stage's 3.5 kHz resonance so the record does not alias it, and 20 000 rows keep the
+//! least-squares fits to seconds. The hysteresis models are rate-independent, so the
+//! compensator run at 10 kHz gives the drive the board's 50–100 kHz tick would, sampled.
+
+use hal_sim::plant::{LabStage, LabStageConfig, LabStageError, SetFieldError};
+use std::f64::consts::TAU;
+use std::path::PathBuf;
+use twinstack::ParamError;
+use twinstack_identify::identification::auto::identify_auto;
+use twinstack_identify::identification::score::{score, ErrorFigures};
+use twinstack_identify::identification::{identify, IdentifyOptions, ModelKind};
+use twinstack_identify::stage_model::StageModel;
+use twinstack_identify::trajectory::{trajectories, Trajectory, TRAJECTORY_MARGIN};
+use twinstack_link::measured_data::MeasuredData;
+
+/// The default sample rate of the excitation and of tracking, Hz (see the module docs).
+pub const SAMPLE_RATE_HZ: f64 = 10_000.0;
+/// Length of the identification record, seconds.
+pub const EXCITATION_S: f64 = 2.0;
+/// Frequency of the excitation, Hz.
+pub const EXCITATION_HZ: f64 = 10.0;
+/// Full-range cycles at the start of the excitation.
+pub const FULL_RANGE_CYCLES: usize = 6;
+/// Amplitude the excitation has decayed to at its end, fraction of the full range.
+pub const FINAL_AMPLITUDE: f64 = 0.15;
+/// The default `fit_until_s`: everything but the last excitation cycle is fitted.
+pub const FIT_UNTIL_S: f64 = EXCITATION_S - 1.0 / EXCITATION_HZ;
+
+/// The excitation drive at `sample_rate_hz` for a stage whose drive range is `0 … drive_max`
+/// volts: `u = (U/2)(1 − A(t) cos 2πft)`, `A = 1` for the first [`FULL_RANGE_CYCLES`], then
+/// decaying geometrically to [`FINAL_AMPLITUDE`] at [`EXCITATION_S`]. Returns `(t, u)`.
+pub fn excitation_drive(sample_rate_hz: f64, drive_max: f64) -> (Vec<f64>, Vec<f64>) {
+    let n = (EXCITATION_S * sample_rate_hz).round() as usize;
+    let full = FULL_RANGE_CYCLES as f64 / EXCITATION_HZ;
+    let t: Vec<f64> = (0..n).map(|k| k as f64 / sample_rate_hz).collect();
+    let u = t
+        .iter()
+        .map(|&t| {
+            let a = if t < full {
+                1.0
+            } else {
+                FINAL_AMPLITUDE.powf((t - full) / (EXCITATION_S - full))
+            };
+            0.5 * drive_max * (1.0 - a * (TAU * EXCITATION_HZ * t).cos())
+        })
+        .collect();
+    (t, u)
+}
+
+/// Runs `stage` open loop from rest at 0 V on the drive `u`; returns the readings.
+pub fn run_open_loop(stage: &mut LabStage, u: &[f64]) -> Vec<f64> {
+    stage.reset();
+    u.iter().map(|&v| stage.step(v)).collect()
+}
+
+/// The identification record: the [`excitation_drive`] played on `stage` from rest, at the
+/// stage's sample rate.
+pub fn excite(stage: &mut LabStage) -> MeasuredData {
+    let rate = 1.0 / stage.sample_period_s();
+    let (t, u) = excitation_drive(rate, stage.config().drive_max_volts);
+    let x = run_open_loop(stage, &u);
+    MeasuredData {
+        path: PathBuf::from("lab-stage-excitation"),
+        t,
+        u: Some(u),
+        x: Some(x),
+    }
+}
+
+/// The user's linear calibration `u = a x + b`, least squares over the fitted part of the
+/// excitation: the "no compensation" drive.
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize)]
+pub struct LinearMap {
+    /// `a`, volts per µm.
+    pub volts_per_um: f64,
+    /// `b`, volts.
+    pub offset_volts: f64,
+}
+
+impl LinearMap {
+    /// Fits `u = a x + b` on the samples of `data` with `t < fit_until_s`; `None` without
+    /// `u`/`x` columns or when `x` does not vary there.
+    pub fn fit(data: &MeasuredData, fit_until_s: f64) -> Option<Self> {
+        let (u, x) = (data.u.as_ref()?, data.x.as_ref()?);
+        let n = data.t.iter().take_while(|&&t| t < fit_until_s).count();
+        if n < 2 {
+            return None;
+        }
+        let nf = n as f64;
+        let (mx, mu) = (
+            x[..n].iter().sum::<f64>() / nf,
+            u[..n].iter().sum::<f64>() / nf,
+        );
+        let sxx: f64 = x[..n].iter().map(|v| (v - mx) * (v - mx)).sum();
+        let sxu: f64 = x[..n]
+            .iter()
+            .zip(&u[..n])
+            .map(|(a, b)| (a - mx) * (b - mu))
+            .sum();
+        if sxx.is_nan() || sxx <= 0.0 {
+            return None;
+        }
+        let a = sxu / sxx;
+        Some(Self {
+            volts_per_um: a,
+            offset_volts: mu - a * mx,
+        })
+    }
+
+    /// The drive for the desired readings `x`.
+    pub fn drive(&self, x: &[f64]) -> Vec<f64> {
+        x.iter()
+            .map(|v| self.volts_per_um * v + self.offset_volts)
+            .collect()
+    }
+}
+
+/// How well a run tracked its trajectory.
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize)]
+pub struct TrackingScore {
+    /// Largest `|reading − desired|`, % of the trajectory's span.
+    pub max_pct: f64,
+    /// RMS of `reading − desired`, % of the trajectory's span.
+    pub rms_pct: f64,
+    /// Scored drive samples outside the stage's `0 … drive_max` (clamped by the amplifier).
+    pub clipped: usize,
+}
+
+/// Plays `drive` (lead-in and trajectory, see [`Trajectory::with_lead_in`]) on `stage` from
+/// rest at 0 V and scores the readings from sample `first` on against `trajectory`.
+pub fn track_drive(
+    stage: &mut LabStage,
+    trajectory: &Trajectory,
+    drive: &[f64],
+    first: usize,
+) -> TrackingScore {
+    let max = stage.config().drive_max_volts;
+    let clipped = drive
+        .get(first..)
+        .unwrap_or_default()
+        .iter()
+        .filter(|&&u| !(0.0..=max).contains(&u))
+        .count();
+    let x = run_open_loop(stage, drive);
+    let x = x.get(first..).unwrap_or_default();
+    let n = trajectory.x.len().min(x.len());
+    let figures = score(&trajectory.x[..n], &x[..n], 0..n).unwrap_or(ErrorFigures {
+        max_pct: f64::NAN,
+        rms_pct: f64::NAN,
+        samples: 0,
+    });
+    TrackingScore {
+        max_pct: figures.max_pct,
+        rms_pct: figures.rms_pct,
+        clipped,
+    }
+}
+
+/// Compensated open-loop tracking: `model`'s fixed-point inverse turns the trajectory, after
+/// its lead-in from `x_rest` (the reading at rest at 0 V), into a drive, played on `stage`
+/// from rest at 0 V. Fails only if the library refuses the model.
+pub fn track(
+    stage: &mut LabStage,
+    model: &StageModel,
+    trajectory: &Trajectory,
+    x_rest: f64,
+) -> Result<TrackingScore, ParamError> {
+    let (t, x, first) = trajectory.with_lead_in(x_rest, 1.0 / stage.sample_period_s());
+    let drive = model.compensate(&t, &x)?;
+    Ok(track_drive(stage, trajectory, &drive, first))
+}
+
+/// Uncompensated tracking: the linear map turns the trajectory (after its lead-in) into a
+/// drive.
+pub fn track_linear(
+    stage: &mut LabStage,
+    map: &LinearMap,
+    trajectory: &Trajectory,
+    x_rest: f64,
+) -> TrackingScore {
+    let (_, x, first) = trajectory.with_lead_in(x_rest, 1.0 / stage.sample_period_s());
+    track_drive(stage, trajectory, &map.drive(&x), first)
+}
+
+/// One row of the table: a way of computing the drive and its score on each trajectory.
+#[derive(Clone, Debug, PartialEq, serde::Serialize)]
+pub struct TrackingRow {
+    /// `none` (the linear map) or the model's name as `--model` spells it.
+    pub method: String,
+    /// The identified model's held-out error on the excitation's last cycle (`None` for
+    /// `none`, or when identification failed).
+    pub held_out: Option<ErrorFigures>,
+    /// One score per trajectory, in the table's order (empty when `error` is set).
+    pub scores: Vec<TrackingScore>,
+    /// Why this row has no scores (identification or the library refused the model).
+    pub error: Option<String>,
+}
+
+impl TrackingRow {
+    /// The worst max error over the trajectories, % (`None` without scores).
+    pub fn worst_max_pct(&self) -> Option<f64> {
+        self.scores.iter().map(|s| s.max_pct).reduce(f64::max)
+    }
+}
+
+/// The whole evaluation.
+#[derive(Clone, Debug, PartialEq, serde::Serialize)]
+pub struct TrackingTable {
+    /// The noise seed of the stage.
+    pub seed: u64,
+    /// Sample rate, Hz.
+    pub sample_rate_hz: f64,
+    /// The trajectories' names, the columns' order.
+    pub trajectories: Vec<&'static str>,
+    /// The measured output range of the excitation, µm.
+    pub excitation_range_um: (f64, f64),
+    /// The range the trajectories span, µm.
+    pub trajectory_range_um: (f64, f64),
+    /// The linear map behind the `none` row.
+    pub linear_map: Option<LinearMap>,
+    /// `none` first, then one row per model.
+    pub rows: Vec<TrackingRow>,
+}
+
+impl TrackingTable {
+    /// The row of `method`.
+    pub fn row(&self, method: &str) -> Option<&TrackingRow> {
+        self.rows.iter().find(|r| r.method == method)
+    }
+
+    /// Prints the table as text.
+    pub fn print(&self, out: &mut impl std::io::Write) -> std::io::Result<()> {
+        writeln!(
+            out,
+            "Lab stage (seed {}, {} Hz): identified from {} s of {} Hz, tracked open loop over {:.2} … {:.2} µm",
+            self.seed,
+            self.sample_rate_hz,
+            EXCITATION_S,
+            EXCITATION_HZ,
+            self.trajectory_range_um.0,
+            self.trajectory_range_um.1
+        )?;
+        write!(out, "{:<10} {:>16}", "method", "held-out max/rms")?;
+        for name in &self.trajectories {
+            write!(out, " {:>16}", name)?;
+        }
+        writeln!(out, " {:>10}", "worst max")?;
+        for row in &self.rows {
+            let held = row
+                .held_out
+                .map(|h| format!("{:.2}/{:.2}", h.max_pct, h.rms_pct))
+                .unwrap_or_else(|| "-".into());
+            write!(out, "{:<10} {:>16}", row.method, held)?;
+            if let Some(e) = &row.error {
+                writeln!(out, " failed: {e}")?;
+                continue;
+            }
+            for s in &row.scores {
+                let clip = if s.clipped > 0 { "*" } else { " " };
+                write!(
+                    out,
+                    " {:>15}{clip}",
+                    format!("{:.2}/{:.2}", s.max_pct, s.rms_pct)
+                )?;
+            }
+            writeln!(
+                out,
+                " {:>10}",
+                row.worst_max_pct()
+                    .map(|w| format!("{w:.2}"))
+                    .unwrap_or_default()
+            )?;
+        }
+        writeln!(
+            out,
+            "(max/rms error in % of each trajectory's span; * = drive clipped at the rails)"
+        )
+    }
+}
+
+/// A stage other than the default: a name and the fields ([`LabStageConfig::set`]) it changes.
+pub type StageVariant = (&'static str, &'static [(&'static str, f64)]);
+
+/// The stages `twinstack lab-stage --variants` tracks on besides the default: each
+/// non-ideality of the default stage made stronger, weaker or turned around, and two
+/// combinations. The default stage is what the family was tuned on; these say how far that
+/// carries to a stage it was not (see the book, results/lab-stage.md, "Other stages").
+pub const STAGE_VARIANTS: [StageVariant; 21] = [
+    ("default", &[]),
+    (
+        "mirrored asymmetry",
+        &[
+            ("preisach.top_saturation", 0.2),
+            ("preisach.bottom_saturation", 0.6),
+        ],
+    ),
+    (
+        "strong top saturation",
+        &[
+            ("preisach.top_saturation", 0.9),
+            ("preisach.bottom_saturation", 0.0),
+        ],
+    ),
+    (
+        "symmetric density",
+        &[
+            ("preisach.top_saturation", 0.0),
+            ("preisach.bottom_saturation", 0.0),
+        ],
+    ),
+    ("wide loops", &[("preisach.width", 0.3)]),
+    ("narrow loops", &[("preisach.width", 0.06)]),
+    ("less reversible", &[("preisach.reversible", 0.2)]),
+    ("more reversible", &[("preisach.reversible", 0.7)]),
+    ("strong creep", &[("creep_per_decade", 0.04)]),
+    ("weak creep", &[("creep_per_decade", 0.005)]),
+    ("no creep", &[("creep_per_decade", 0.0)]),
+    (
+        "slower creep",
+        &[("creep_fastest_s", 1e-3), ("creep_slowest_s", 1e5)],
+    ),
+    ("stiff flexure", &[("flexure_saturation_um", 100.0)]),
+    (
+        "linear flexure",
+        &[("flexure_saturation_um", f64::INFINITY)],
+    ),
+    (
+        "low resonance",
+        &[("resonance_hz", 1200.0), ("damping_ratio", 0.01)],
+    ),
+    (
+        "high resonance",
+        &[("resonance_hz", 8000.0), ("damping_ratio", 0.1)],
+    ),
+    ("noisy sensor", &[("noise_rms_nm", 10.0)]),
+    (
+        "fine sensor",
+        &[("noise_rms_nm", 0.5), ("sensor_lsb_nm", 0.5)],
+    ),
+    ("short stroke", &[("stroke_um", 20.0)]),
+    (
+        "combined A",
+        &[
+            ("preisach.top_saturation", 0.3),
+            ("preisach.bottom_saturation", 0.7),
+            ("creep_per_decade", 0.03),
+            ("flexure_saturation_um", 120.0),
+            ("resonance_hz", 2000.0),
+            ("damping_ratio", 0.02),
+            ("noise_rms_nm", 5.0),
+        ],
+    ),
+    (
+        "combined B",
+        &[
+            ("preisach.width", 0.25),
+            ("preisach.reversible", 0.25),
+            ("creep_per_decade", 0.025),
+            ("flexure_saturation_um", 300.0),
+            ("noise_rms_nm", 3.0),
+        ],
+    ),
+];
+
+/// A variant's changes as `--set` spells them: `field=value,…` (`-` for none).
+pub fn variant_settings(changes: &[(&str, f64)]) -> String {
+    if changes.is_empty() {
+        return "-".into();
+    }
+    changes
+        .iter()
+        .map(|(f, v)| format!("{f}={v}"))
+        .collect::<Vec<_>>()
+        .join(",")
+}
+
+/// `base` with a variant's changes applied.
+pub fn variant_config(
+    base: &LabStageConfig,
+    changes: &[(&str, f64)],
+) -> Result<LabStageConfig, SetFieldError> {
+    let mut c = base.clone();
+    for &(field, value) in changes {
+        c.set(field, value)?;
+    }
+    Ok(c)
+}
+
+/// One stage's tracking table, for [`evaluate_variants`].
+#[derive(Clone, Debug, PartialEq, serde::Serialize)]
+pub struct VariantTable {
+    /// The variant's name.
+    pub variant: &'static str,
+    /// Its changes, as `--set` spells them.
+    pub settings: String,
+    /// The tracking table on it.
+    pub table: TrackingTable,
+}
+
+/// [`evaluate_methods`] on each of `variants` applied to `base`, the stages evaluated two at a
+/// time (each is independent and deterministic for its seed).
+pub fn evaluate_variants(
+    base: &LabStageConfig,
+    variants: &[StageVariant],
+    methods: &[Method],
+) -> Result<Vec<VariantTable>, VariantError> {
+    let configs = variants
+        .iter()
+        .map(|(_, changes)| variant_config(base, changes))
+        .collect::<Result<Vec<_>, _>>()?;
+    let mut out = Vec::with_capacity(variants.len());
+    for (pair, configs) in variants.chunks(2).zip(configs.chunks(2)) {
+        let tables: Vec<Result<TrackingTable, LabStageError>> = std::thread::scope(|s| {
+            let running: Vec<_> = configs
+                .iter()
+                .map(|c| s.spawn(move || evaluate_methods(c, methods)))
+                .collect();
+            running
+                .into_iter()
+                .map(|h| h.join().unwrap_or_else(|e| std::panic::resume_unwind(e)))
+                .collect()
+        });
+        for ((variant, changes), table) in pair.iter().zip(tables) {
+            out.push(VariantTable {
+                variant,
+                settings: variant_settings(changes),
+                table: table?,
+            });
+        }
+    }
+    Ok(out)
+}
+
+/// Why [`evaluate_variants`] could not run.
+#[derive(Debug, thiserror::Error)]
+pub enum VariantError {
+    /// A variant names a field the stage does not have.
+    #[error(transparent)]
+    Field(#[from] SetFieldError),
+    /// A variant's stage is out of range.
+    #[error(transparent)]
+    Stage(#[from] LabStageError),
+}
+
+/// Prints one line per variant: its name, the uncompensated worst max and each method's
+/// (`auto` with what it picked), % of span.
+pub fn print_variants(
+    tables: &[VariantTable],
+    out: &mut impl std::io::Write,
+) -> std::io::Result<()> {
+    writeln!(
+        out,
+        "Worst max tracking error (% of span) over the triangle, minor loops and multisine, per stage"
+    )?;
+    let Some(first) = tables.first() else {
+        return Ok(());
+    };
+    write!(out, "{:<22}", "stage")?;
+    for row in &first.table.rows {
+        let head = row.method.split(':').next().unwrap_or(&row.method);
+        write!(out, " {head:>8}")?;
+    }
+    writeln!(out, "  auto picked / settings")?;
+    for v in tables {
+        write!(out, "{:<22}", v.variant)?;
+        let mut picked = "";
+        for row in &v.table.rows {
+            if let Some(p) = row.method.strip_prefix("auto: ") {
+                picked = p;
+            }
+            match row.worst_max_pct() {
+                Some(w) => write!(out, " {w:>8.2}")?,
+                None => write!(out, " {:>8}", "failed")?,
+            }
+        }
+        writeln!(out, "  {picked} / {}", v.settings)?;
+    }
+    Ok(())
+}
+
+/// The name `--model` gives `kind`.
+pub fn model_name(kind: ModelKind) -> String {
+    use clap::ValueEnum;
+    kind.to_possible_value()
+        .map(|v| v.get_name().to_string())
+        .unwrap_or_else(|| format!("{kind:?}").to_lowercase())
+}
+
+/// How a row's model is identified.
+#[derive(Clone, Debug)]
+pub enum Method {
+    /// One model, these options.
+    One(IdentifyOptions),
+    /// `--model auto`: every candidate ranked on the last part of the fit window, the best kept.
+    Auto(Vec<IdentifyOptions>),
+}
+
+impl Method {
+    /// The row's name: the model (`+creep` with creep), or `auto: ` and what auto picked.
+    fn name(o: &IdentifyOptions) -> String {
+        let kind = model_name(o.model);
+        if o.creep {
+            format!("{kind}+creep")
+        } else {
+            kind
+        }
+    }
+}
+
+/// [`evaluate_methods`] with one model per row.
+pub fn evaluate(
+    config: &LabStageConfig,
+    options: &[IdentifyOptions],
+) -> Result<TrackingTable, LabStageError> {
+    let methods: Vec<Method> = options.iter().cloned().map(Method::One).collect();
+    evaluate_methods(config, &methods)
+}
+
+/// Excites the stage built from `config`, identifies a model with each of `methods`, and
+/// tracks the three trajectories with each model and without compensation.
+///
+/// ```no_run
+/// use twinstack_identify::identification::{IdentifyOptions, ModelKind};
+/// use hal_sim::plant::LabStageConfig;
+/// use twinstack_cli::tracking::{evaluate, FIT_UNTIL_S, SAMPLE_RATE_HZ};
+/// let table = evaluate(
+///     &LabStageConfig::new(SAMPLE_RATE_HZ, 1),
+///     &[IdentifyOptions::new(ModelKind::Pi, FIT_UNTIL_S)],
+/// )
+/// .unwrap();
+/// table.print(&mut std::io::stdout()).unwrap();
+/// ```
+pub fn evaluate_methods(
+    config: &LabStageConfig,
+    methods: &[Method],
+) -> Result<TrackingTable, LabStageError> {
+    let mut stage = LabStage::new(config)?;
+    let data = excite(&mut stage);
+    let x = data.x.as_deref().unwrap_or_default();
+    let (lo, hi) = x
+        .iter()
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(l, h), &v| {
+            (l.min(v), h.max(v))
+        });
+    let margin = TRAJECTORY_MARGIN * (hi - lo);
+    let rate = 1.0 / config.sample_period_s;
+    let trajectories = trajectories(lo + margin, hi - margin, rate);
+    let x_rest = x.first().copied().unwrap_or(0.0);
+
+    let fit_until = methods
+        .iter()
+        .find_map(|m| match m {
+            Method::One(o) => Some(o.fit_until_s),
+            Method::Auto(c) => c.first().map(|o| o.fit_until_s),
+        })
+        .unwrap_or(FIT_UNTIL_S);
+    let linear_map = LinearMap::fit(&data, fit_until);
+    let mut rows = vec![match linear_map {
+        Some(map) => TrackingRow {
+            method: "none".into(),
+            held_out: None,
+            scores: trajectories
+                .iter()
+                .map(|tr| track_linear(&mut stage, &map, tr, x_rest))
+                .collect(),
+            error: None,
+        },
+        None => TrackingRow {
+            method: "none".into(),
+            held_out: None,
+            scores: Vec::new(),
+            error: Some("the excitation's reading does not vary".into()),
+        },
+    }];
+    for m in methods {
+        let (method, identified) = match m {
+            Method::One(o) => (Method::name(o), identify(&data, o)),
+            Method::Auto(candidates) => match identify_auto(&data, candidates) {
+                Ok(a) => {
+                    let picked = Method::name(&a.options);
+                    (format!("auto: {picked}"), Ok(a.identification))
+                }
+                Err(e) => ("auto".into(), Err(e)),
+            },
+        };
+        let outcome = identified.map_err(|e| e.to_string()).and_then(|id| {
+            let u = data.u.as_deref().unwrap_or_default();
+            let predicted = id.model.predict(&data.t, u).map_err(|e| e.to_string())?;
+            let held_out = score(x, &predicted, id.held_out_from..x.len());
+            let scores = trajectories
+                .iter()
+                .map(|tr| track(&mut stage, &id.model, tr, x_rest))
+                .collect::<Result<Vec<_>, _>>()
+                .map_err(|e| e.to_string())?;
+            Ok((held_out, scores))
+        });
+        rows.push(match outcome {
+            Ok((held_out, scores)) => TrackingRow {
+                method,
+                held_out,
+                scores,
+                error: None,
+            },
+            Err(e) => TrackingRow {
+                method,
+                held_out: None,
+                scores: Vec::new(),
+                error: Some(e),
+            },
+        });
+    }
+    Ok(TrackingTable {
+        seed: config.seed,
+        sample_rate_hz: rate,
+        trajectories: trajectories.iter().map(|t| t.name).collect(),
+        excitation_range_um: (lo, hi),
+        trajectory_range_um: (lo + margin, hi - margin),
+        linear_map,
+        rows,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_excitation_starts_at_rest_covers_the_range_and_decays() {
+        let (t, u) = excitation_drive(SAMPLE_RATE_HZ, 150.0);
+        assert_eq!(t.len(), 20_000);
+        assert!(u[0].abs() < 1e-12);
+        let first = u[..6000].iter().copied().fold(0.0, f64::max);
+        assert!((first - 150.0).abs() < 1e-6);
+        let last_cycle = &u[19_000..];
+        let (lo, hi) = last_cycle
+            .iter()
+            .fold((f64::INFINITY, f64::NEG_INFINITY), |(l, h), &v| {
+                (l.min(v), h.max(v))
+            });
+        assert!(
+            hi - lo < 0.2 * 150.0 && hi - lo > 0.1 * 150.0,
+            "{lo} … {hi}"
+        );
+    }
+
+    #[test]
+    fn trajectories_start_low_and_stay_within_their_range() {
+        for tr in trajectories(10.0, 70.0, 1000.0) {
+            assert!((tr.x[0] - 10.0).abs() < 1e-9, "{}", tr.name);
+            let (lo, hi) =
+                tr.x.iter()
+                    .fold((f64::INFINITY, f64::NEG_INFINITY), |(l, h), &v| {
+                        (l.min(v), h.max(v))
+                    });
+            assert!(lo >= 10.0 - 1e-9 && hi <= 70.0 + 1e-9, "{}", tr.name);
+            assert!(hi - lo > 59.0, "{} spans the range", tr.name);
+            assert_eq!(tr.t.len(), tr.x.len());
+        }
+    }
+
+    #[test]
+    fn the_linear_map_recovers_a_line() {
+        let t: Vec<f64> = (0..100).map(|k| k as f64 * 0.01).collect();
+        let x: Vec<f64> = t.iter().map(|t| 5.0 * (7.0 * t).sin()).collect();
+        let u: Vec<f64> = x.iter().map(|x| 2.0 * x + 3.0).collect();
+        let data = MeasuredData {
+            path: "line".into(),
+            t,
+            u: Some(u),
+            x: Some(x),
+        };
+        let m = LinearMap::fit(&data, 0.5).unwrap();
+        assert!((m.volts_per_um - 2.0).abs() < 1e-12 && (m.offset_volts - 3.0).abs() < 1e-12);
+        let flat = MeasuredData {
+            x: Some(vec![1.0; 100]),
+            ..data
+        };
+        assert!(LinearMap::fit(&flat, 0.5).is_none());
+    }
+}

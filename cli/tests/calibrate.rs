@@ -1,0 +1,480 @@
+//! `twinstack calibrate`: the whole lab workflow against the virtual board run as a
+//! process (calibrate → stream a 100-sample file → record the streamed run with four signals →
+//! read the parameters back), with the virtual stage's tracking error below 1 % max after
+//! calibration; and each way a calibration can fail, on the in-process board, with the error
+//! that says why and nothing loaded.
+
+use hal_sim::sim_device::{SimDevice, SimDeviceConfig};
+use std::process::{Command, Output};
+use std::time::Duration;
+use twinstack::board::Hardware;
+use twinstack::settings::{Mode, Settings};
+use twinstack_identify::calibrate::{calibrate, CalibrateError, CalibrateOptions};
+use twinstack_identify::identification::auto::{identify_auto_admitting, Admission, Validation};
+use twinstack_identify::identification::{IdentifyError, IdentifyOptions, ModelKind};
+use twinstack_link::client::Client;
+
+#[path = "support/virtual_board_process.rs"]
+mod virtual_board_process;
+
+fn hal_sim(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_twinstack"))
+        .env_remove("TWINSTACK_PORT")
+        .args(args)
+        .output()
+        .expect("twinstack runs")
+}
+
+fn ok(o: Output) -> String {
+    let out = String::from_utf8_lossy(&o.stdout).into_owned();
+    assert!(
+        o.status.success(),
+        "exit {:?}\n{out}{}",
+        o.status.code(),
+        String::from_utf8_lossy(&o.stderr)
+    );
+    out
+}
+
+/// `twinstack virtual-board` as fast as it runs; returns it and its `--port`.
+fn start_virtual_board() -> (virtual_board_process::VirtualBoard, String) {
+    virtual_board_process::start(&["--speed", "0"])
+}
+
+#[test]
+fn the_lab_workflow_calibrates_the_virtual_stage_below_one_percent_then_streams_and_records() {
+    let (_board, port) = start_virtual_board();
+    let dir = tempfile::tempdir().unwrap();
+    let params = dir.path().join("stage.json");
+
+    // 1. calibrate: one JSON object with the figures.
+    let out = ok(hal_sim(&[
+        "calibrate",
+        "--port",
+        &port,
+        "--out",
+        params.to_str().unwrap(),
+        "--json",
+    ]));
+    assert_eq!(out.lines().count(), 1, "{out}");
+    let v: serde_json::Value = serde_json::from_str(&out).expect("JSON");
+    eprintln!("{v:#}");
+    let after = v["tracking_after"]["max_pct"].as_f64().unwrap();
+    let before = v["tracking_before"]["max_pct"].as_f64().unwrap();
+    assert!(
+        after < 1.0,
+        "compensated tracking max {after} % (goal < 1 %)"
+    );
+    assert!(
+        before > 3.0 * after,
+        "bypass {before} % against compensated {after} %"
+    );
+    assert!(
+        v["tracking_after"]["rms_pct"].as_f64().unwrap() < 0.5,
+        "{v}"
+    );
+    assert_eq!(v["tracking_after"]["underran"], false);
+    // auto ranked the whole family and picked a model that predicts the held-out cycle.
+    assert_eq!(v["ranking"].as_array().unwrap().len(), 8, "{v}");
+    assert!(v["held_out"]["max_pct"].as_f64().unwrap() < 5.0);
+    assert_eq!(v["stored"], "Bypass");
+    // The parameter file is the one `identify` writes, and `load` reads it back.
+    let (file, _) =
+        twinstack_identify::param_file::ParamFile::load(&params).expect("a parameter file");
+    assert_eq!(file.settings.mode, Mode::OpenLoop);
+    assert!(file.identification.is_some());
+    let png = std::fs::read(params.with_extension("png")).expect("the PNG is written");
+    assert_eq!(&png[..8], b"\x89PNG\r\n\x1a\n");
+
+    // 2. The board runs the calibration: the settings read back are the file's, in open loop.
+    let read_back: Settings =
+        serde_json::from_str(&ok(hal_sim(&["params", "--port", &port]))).expect("params JSON");
+    assert_eq!(read_back, file.settings);
+    let status: serde_json::Value =
+        serde_json::from_str(&ok(hal_sim(&["status", "--port", &port, "--json"]))).unwrap();
+    assert_eq!(status["mode"], "open-loop");
+
+    // 3. stream a 100-sample file (µm, through the file's ranges): one slow cosine cycle over
+    // the trajectory's range, from its bottom where the verification left the output; record
+    // the streamed run with four signals over the same connection.
+    let (lo, hi) = (
+        v["trajectory_range"][0].as_f64().unwrap(),
+        v["trajectory_range"][1].as_f64().unwrap(),
+    );
+    let mut text = String::from("x\n");
+    for i in 0..100 {
+        let f = 0.5 - 0.5 * (std::f64::consts::TAU * i as f64 / 100.0).cos();
+        text.push_str(&format!("{}\n", lo + (hi - lo) * f));
+    }
+    let data = dir.path().join("setpoints.csv");
+    std::fs::write(&data, text).unwrap();
+    let run = dir.path().join("run.csv");
+    let out = ok(hal_sim(&[
+        "stream",
+        "--port",
+        &port,
+        "--data",
+        data.to_str().unwrap(),
+        "--params",
+        params.to_str().unwrap(),
+        "--divider",
+        "50",
+        "--record",
+        "setpoint,left,sensor,error",
+        "--record-out",
+        run.to_str().unwrap(),
+    ]));
+    assert!(
+        out.contains("streamed 100 setpoints")
+            && out.contains("frames of setpoint, left, sensor, error"),
+        "{out}"
+    );
+    let csv = std::fs::read_to_string(&run).unwrap();
+    let mut lines = csv.lines();
+    assert_eq!(
+        lines.next(),
+        Some("t [s],setpoint [um],left [V],sensor [um],error [um]")
+    );
+    let rows: Vec<Vec<f64>> = lines
+        .map(|l| l.split(',').map(|c| c.parse().unwrap()).collect())
+        .collect();
+    assert_eq!(rows.len(), 5000, "100 setpoints × 50 ticks");
+    // The compensated stage follows the streamed setpoints (a 10 Hz cosine over the
+    // trajectory's range) as it tracked the verification's trajectory, once the rise to the top
+    // has wiped the hysteresis memory: between two commands the virtual board runs on (as fast
+    // as it can here), and its Duhem stacks creep under the amplifier's noise toward their
+    // anhysteretic curve (see the simulator's chapter), a drift the compensator knows nothing
+    // of and the first half-cycle undoes. The descending half: within the verification's
+    // worst case and half a percent of the span.
+    let span = hi - lo;
+    let worst = rows[2500..]
+        .iter()
+        .map(|row| (row[3] - row[1]).abs())
+        .fold(0.0, f64::max);
+    assert!(
+        worst < (after + 0.5) / 100.0 * span,
+        "worst {worst} um over a {span} um range (verification {after} %)"
+    );
+    // The error column is the sensor's difference from the setpoint, as recorded.
+    assert!(rows
+        .iter()
+        .all(|row| (row[4] - (row[1] - row[3])).abs() < 0.01 * span));
+
+    // 4. A later `record` on the same board, four signals, in physical units.
+    let now = dir.path().join("now.csv");
+    let out = ok(hal_sim(&[
+        "record",
+        "--port",
+        &port,
+        "--signals",
+        "setpoint,left,right,sensor",
+        "--samples",
+        "1000",
+        "--out",
+        now.to_str().unwrap(),
+    ]));
+    assert!(
+        out.contains("1000 frames of setpoint, left, right, sensor"),
+        "{out}"
+    );
+}
+
+/// The in-process board (simulated time), and a client on it.
+fn sim_client(config: SimDeviceConfig) -> Client<SimDevice> {
+    let mut client = Client::new(SimDevice::new(config).expect("the simulated board"));
+    client.set_timeout(Duration::from_secs(2));
+    client
+}
+
+/// A short excitation and one model: the failures below come before or right after the fit.
+fn quick() -> CalibrateOptions {
+    CalibrateOptions {
+        excitation_hz: 20.0,
+        full_cycles: 2,
+        decay_cycles: 4,
+        model: Some(ModelKind::Duhem),
+        store: None,
+        ..CalibrateOptions::default()
+    }
+}
+
+#[test]
+fn a_board_without_a_sensor_is_refused_before_anything_moves() {
+    let mut client = sim_client(SimDeviceConfig::paper());
+    let mut no_sensor = SimDeviceConfig::paper_settings(Mode::Bypass);
+    no_sensor.sensor = None;
+    no_sensor.feedback = None;
+    client.load_params(&no_sensor).unwrap();
+    let ticks = client.status().unwrap().ticks;
+    let e = calibrate(&mut client, &quick(), |_| {}).unwrap_err();
+    assert!(matches!(e, CalibrateError::NoSensor), "{e}");
+    assert!(e.to_string().contains("no sensor"), "{e}");
+    // Nothing was started or loaded.
+    let s = client.status().unwrap();
+    assert!(s.ticks > ticks);
+    assert_eq!(client.read_params().unwrap(), no_sensor);
+}
+
+#[test]
+fn a_sensor_that_does_not_see_the_stage_is_named_and_nothing_is_loaded() {
+    // A sensor spanning ±50 mm: the stage's ±35 µm are a few steps of its 12-bit ADC.
+    let mut config = SimDeviceConfig::paper();
+    config.board.sensor_range_um = (-50_000.0, 50_000.0);
+    let mut client = sim_client(config);
+    let before = client.read_params().unwrap();
+    let e = calibrate(&mut client, &quick(), |_| {}).unwrap_err();
+    assert!(matches!(e, CalibrateError::SensorFlat { .. }), "{e}");
+    let text = e.to_string();
+    assert!(
+        text.contains("the sensor did not follow the drive") && text.contains("Nothing was loaded"),
+        "{text}"
+    );
+    assert_eq!(
+        client.read_params().unwrap().compensator,
+        before.compensator
+    );
+}
+
+#[test]
+fn a_sensor_reading_clipped_by_the_output_range_is_named() {
+    let mut client = sim_client(SimDeviceConfig::paper());
+    // The board's output range ±25 µm: the stage's ±30 µm saturate the normalised reading.
+    let mut narrow = SimDeviceConfig::paper_settings(Mode::Bypass);
+    narrow.ranges.output_min = -25.0;
+    narrow.ranges.output_max = 25.0;
+    // (The representative model does not fit so narrow a range; bypass needs none.)
+    narrow.compensator = None;
+    narrow.observer = None;
+    client.load_params(&narrow).unwrap();
+    let e = calibrate(&mut client, &quick(), |_| {}).unwrap_err();
+    assert!(matches!(e, CalibrateError::SensorSaturated { .. }), "{e}");
+    assert!(
+        e.to_string().contains("widen settings.ranges.output"),
+        "{e}"
+    );
+}
+
+#[test]
+fn a_fit_that_does_not_fit_is_refused_and_the_full_range_needs_no_clamp() {
+    // A held-out limit no model meets.
+    let mut client = sim_client(SimDeviceConfig::paper());
+    let strict = CalibrateOptions {
+        max_held_out_pct: 0.01,
+        ..quick()
+    };
+    let e = calibrate(&mut client, &strict, |_| {}).unwrap_err();
+    match &e {
+        CalibrateError::DoesNotFit {
+            model,
+            max_pct,
+            limit,
+        } => {
+            assert_eq!(model, "Duhem");
+            assert!(*max_pct > 0.01 && *limit == 0.01, "{e}");
+        }
+        other => panic!("{other}"),
+    }
+    assert!(e.to_string().contains("nothing was loaded"), "{e}");
+    assert_eq!(
+        client.read_params().unwrap(),
+        SimDeviceConfig::paper_settings(Mode::Bypass)
+    );
+
+    // The full drive range: identify's input range is the range swept (no margin since the
+    // models rest on the ascending branch of it), which the drive reaches: no clamp needed.
+    let full = CalibrateOptions {
+        amplitude: 1.0,
+        ..quick()
+    };
+    let r = calibrate(&mut client, &full, |_| {}).expect("full-range calibration");
+    assert!(!r.clamped);
+    assert_eq!(client.read_params().unwrap(), r.file.settings);
+}
+
+/// At 100 kHz the tick budget leaves room for fewer models than at 50 kHz (no 17-operator
+/// P–I, no generalised P–I, no creep beside a Duhem): `auto` ranks them all but picks only
+/// among those the board runs at its rate, so the calibration loads (a pick the board then
+/// refused would fail `calibrate` at the load).
+#[test]
+fn auto_picks_a_model_the_board_runs_at_its_rate() {
+    let rate = 100_000.0;
+    let mut config = SimDeviceConfig::paper();
+    config.board.plant.dt = 1.0 / rate;
+    let mut client = sim_client(config);
+    let options = CalibrateOptions {
+        model: None,
+        ..quick()
+    };
+    let r = calibrate(&mut client, &options, |_| {}).expect("calibration at 100 kHz");
+    assert_eq!(r.tick_rate_hz, 100_000);
+    // What was loaded runs at the board's rate.
+    let loaded = client.read_params().unwrap();
+    assert_eq!(loaded, r.file.settings);
+    assert!(loaded.build(&Hardware::driver_board(rate)).is_ok());
+    // Some candidates fitted but were left out for the budget, and say so.
+    let refused: Vec<_> = r
+        .ranking
+        .iter()
+        .filter_map(|c| match &c.validation {
+            Validation::NotAdmitted { why, .. } => Some(why),
+            _ => None,
+        })
+        .filter(|why| why.contains("100 kHz"))
+        .collect();
+    assert!(!refused.is_empty(), "{:?}", r.ranking);
+    assert!(
+        r.ranking[0].validation.admitted().is_some(),
+        "{:?}",
+        r.ranking
+    );
+    // Creep beside a Bouc–Wen runs at 100 kHz once no larger than it needs (1 784 cycles with
+    // four modes, 1 712 with three, 1 640 with two): ranked, not left out.
+    assert!(
+        r.ranking
+            .iter()
+            .any(|c| c.label.starts_with("Bouc-Wen + creep") && c.validation.admitted().is_some()),
+        "{:?}",
+        r.ranking
+    );
+    // Admitted candidates rank ahead of refused ones, whatever their figures.
+    let first_refused = r
+        .ranking
+        .iter()
+        .position(|c| c.validation.admitted().is_none())
+        .unwrap();
+    assert!(r.ranking[first_refused..]
+        .iter()
+        .all(|c| c.validation.admitted().is_none()));
+
+    // Admitting none: an error naming every candidate and why, not a pick.
+    let fit_until = options.excitation_s() - 1.0 / options.excitation_hz;
+    let candidates = IdentifyOptions::new(ModelKind::Pi, fit_until).candidates();
+    let e = identify_auto_admitting(&r.excitation, &candidates, |_| {
+        Admission::Refused("too dear".into())
+    })
+    .unwrap_err();
+    match &e {
+        IdentifyError::NoneAdmitted(why) => {
+            assert_eq!(why.matches("too dear").count(), candidates.len(), "{e}")
+        }
+        other => panic!("{other}"),
+    }
+}
+
+/// At 100 kHz a P–I of the default 17 operators is too dear by one pair of operators per
+/// bank: `calibrate --model pi` without `--operators` fits 16 and says so rather
+/// than refuse; with `--operators 17` asked for, it still refuses, before loading anything.
+#[test]
+fn a_pi_is_sized_to_the_boards_rate_unless_its_operators_are_asked_for() {
+    let rate = 100_000.0;
+    let mut config = SimDeviceConfig::paper();
+    config.board.plant.dt = 1.0 / rate;
+    let mut client = sim_client(config.clone());
+    let options = CalibrateOptions {
+        model: Some(ModelKind::Pi),
+        // The sizing is under test, not the fit: this stage creeps more than a P–I alone
+        // follows over the quick excitation (8 % held out).
+        max_held_out_pct: 20.0,
+        ..quick()
+    };
+    let r = calibrate(&mut client, &options, |_| {}).expect("P-I sized to 100 kHz");
+    assert_eq!(r.file.identification.as_ref().unwrap().operators, 16);
+    assert!(r.model.contains("16 uniform operators"), "{}", r.model);
+    assert!(
+        r.reason.contains("16 play operators instead of 17"),
+        "{}",
+        r.reason
+    );
+    let loaded = client.read_params().unwrap();
+    assert!(loaded.build(&Hardware::driver_board(rate)).is_ok());
+
+    let mut client = sim_client(config);
+    let before = client.read_params().unwrap();
+    let asked = CalibrateOptions {
+        operators: Some(17),
+        ..options
+    };
+    let e = calibrate(&mut client, &asked, |_| {}).unwrap_err();
+    assert!(e.to_string().contains("cycles per tick"), "{e}");
+    assert_eq!(client.read_params().unwrap(), before);
+}
+
+#[test]
+fn bad_options_are_refused_naming_the_option() {
+    let mut client = sim_client(SimDeviceConfig::paper());
+    let e = calibrate(
+        &mut client,
+        &CalibrateOptions {
+            decay_cycles: 1,
+            ..quick()
+        },
+        |_| {},
+    )
+    .unwrap_err();
+    assert!(e.to_string().contains("decay_cycles"), "{e}");
+    let o = hal_sim(&["calibrate", "--port", "sim", "--out", "x.png"]);
+    assert_eq!(o.status.code(), Some(1));
+    assert!(String::from_utf8_lossy(&o.stderr).contains("must not end in .png"));
+}
+
+/// The board's generator decays as the request says (protocol v5): full cycles, then each
+/// cycle's peak the previous one's × keep / 65536, bit for bit as the library's generator.
+#[test]
+fn the_board_plays_the_decaying_excitation_it_is_asked_for() {
+    use twinstack::protocol::messages::{CaptureRequest, Trigger};
+    use twinstack::recorder::Channel;
+    let mut client = sim_client(SimDeviceConfig::paper());
+    let options = quick();
+    let w = options.waveform();
+    // 6 cycles of 20 Hz at 50 kHz: 2 500 ticks a cycle, every 5th captured.
+    client
+        .arm_capture(CaptureRequest {
+            signals: Channel::Setpoint.bit(),
+            samples: 3000,
+            pre_trigger: 0,
+            trigger: Trigger::WaveformStart,
+            decimation: 5,
+        })
+        .unwrap();
+    client.waveform(w).unwrap();
+    let (status, window) =
+        twinstack_link::capture::wait_and_read(&mut client, Duration::from_secs(5), |_, _| {})
+            .expect("the capture completes");
+    assert_eq!(status.samples, 3000);
+    let peaks: Vec<i16> = window
+        .chunks(500)
+        .map(|c| *c.iter().max().unwrap())
+        .collect();
+    // The library's generator, fed the same request, gives the same peaks.
+    let decay = w.decay.unwrap();
+    let mut g = twinstack::waveform::WaveformGenerator::new(
+        twinstack::waveform::Shape::Sine,
+        0,
+        (w.amplitude as i32) << 15,
+        w.frequency_mhz as f64 / 1000.0,
+        50_000.0,
+    )
+    .unwrap()
+    .with_decay(decay.hold_cycles, decay.keep);
+    let want: Vec<i16> = (0..6)
+        .map(|_| {
+            (0..2500)
+                .map(|k| {
+                    let v = g.next_sample();
+                    if k % 5 == 0 {
+                        (v >> 15).clamp(-32768, 32767) as i16
+                    } else {
+                        i16::MIN
+                    }
+                })
+                .max()
+                .unwrap()
+        })
+        .collect();
+    assert_eq!(peaks, want);
+    // Two full cycles, then four shrinking ones down to the final amplitude.
+    assert_eq!(peaks[0], peaks[1]);
+    assert!(peaks.windows(2).skip(1).all(|p| p[1] < p[0]), "{peaks:?}");
+    let last = peaks[5] as f64 / peaks[0] as f64;
+    assert!((last - options.final_amplitude).abs() < 0.01, "{last}");
+}

@@ -1,0 +1,103 @@
+//! The model family against the textbook P–I (17 uniform play operators, NNLS), the way a
+//! user runs it: `identify` with its defaults (`--model auto`).
+//!
+//! * on both measured records, the held-out forward and inverse errors of what `auto` picks;
+//! * on the lab stage (a simulated stage built from none of our models), open-loop tracking of
+//!   a triangle, nested minor loops and a multisine with what `auto` picks.
+//!
+//! Each test holds the figure reached (see the book, results/identification.md and
+//! results/lab-stage.md) and fails when the pick is replaced by the textbook P–I. `auto` picks
+//! by the compensator: held out, the bipolar record's pick (P–I + creep) predicts within
+//! 0.83 % and inverts within 1.29 %, the micromanipulator's (the generalised P–I) 1.44 % and
+//! 1.30 %; tracking on the lab stage is held within 1 %.
+//! `stage_variants` holds `auto` on 21 other stages.
+
+use hal_sim::plant::LabStageConfig;
+use std::path::Path;
+use twinstack_cli::tracking::{evaluate_methods, Method, SAMPLE_RATE_HZ};
+use twinstack_identify::identification::auto::identify_auto;
+use twinstack_identify::identification::score::score;
+use twinstack_identify::identification::{identify, IdentifyOptions, ModelKind};
+use twinstack_link::measured_data::{Columns, MeasuredData};
+
+fn record(name: &str) -> MeasuredData {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../data")
+        .join(name);
+    MeasuredData::read(&path, Columns::TimeDriveOutput).unwrap()
+}
+
+/// Held-out figures (max %, of span) of a fit: forward (`predict` against the measured
+/// reading) and inverse (`compensate` against the measured drive, the last `lag` samples, with
+/// no later reading to aim at, left out).
+fn figures(
+    data: &MeasuredData,
+    id: &twinstack_identify::identification::Identification,
+) -> (f64, f64) {
+    let (u, x) = (data.u.as_deref().unwrap(), data.x.as_deref().unwrap());
+    let n = x.len();
+    let predicted = id.model.predict(&data.t, u).unwrap();
+    let forward = score(x, &predicted, id.held_out_from..n).unwrap();
+    let drive = id.model.compensate(&data.t, x).unwrap();
+    let aimed = n - id.model.lag_samples(&data.t);
+    let inverse = score(u, &drive, id.held_out_from..aimed).unwrap();
+    (forward.max_pct, inverse.max_pct)
+}
+
+/// What the stage sees is the inverse: on both measured records the compensator of the model
+/// `auto` picks beats the textbook P–I's on the held-out part, and its forward error stays
+/// within 1.5 %. (Ranked by the forward error alone, auto picked models whose forward error
+/// was lower — 0.83 % and 0.87 % — but whose compensators were not the best: on the
+/// micromanipulator the generalised P–I + creep's inverse is 1.70 % on the validation part
+/// against the generalised P–I's 0.97 %.)
+#[test]
+fn auto_beats_the_textbook_pi_on_both_measured_records() {
+    for (name, fit_until) in [
+        ("piezo-bipolar-150v-1hz.csv", 5.95),
+        ("micromanipulator-unipolar-3v6-1hz.csv", 16.0),
+    ] {
+        let data = record(name);
+        let base = IdentifyOptions::new(ModelKind::Pi, fit_until);
+        let auto = identify_auto(&data, &base.candidates()).unwrap();
+        let picked = auto.options.model_label();
+        let (forward, inverse) = figures(&data, &auto.identification);
+        let (p_forward, p_inverse) = figures(&data, &identify(&data, &base).unwrap());
+        eprintln!(
+            "{name}: auto picked {picked}: held-out forward {forward:.2} %, inverse {inverse:.2} %; textbook P-I {p_forward:.2} %, {p_inverse:.2} %"
+        );
+        assert!(forward <= 1.5, "{name}: {forward} % > 1.5 %");
+        assert!(
+            inverse < p_inverse && forward.max(inverse) < p_forward.max(p_inverse),
+            "{name}: auto {forward} / {inverse} % against the textbook P-I's {p_forward} / {p_inverse} %"
+        );
+    }
+}
+
+#[test]
+fn auto_tracks_the_lab_stage_far_better_than_the_textbook_pi() {
+    let config = LabStageConfig::new(SAMPLE_RATE_HZ, 1);
+    let base = IdentifyOptions::new(ModelKind::Pi, twinstack_cli::tracking::FIT_UNTIL_S);
+    let table = evaluate_methods(
+        &config,
+        &[Method::Auto(base.candidates()), Method::One(base.clone())],
+    )
+    .unwrap();
+    let worst = |i: usize| {
+        let row = &table.rows[i];
+        assert!(row.error.is_none(), "{}: {:?}", row.method, row.error);
+        assert_eq!(row.scores.len(), 3, "{}", row.method);
+        row.scores.iter().map(|s| s.max_pct).fold(0.0, f64::max)
+    };
+    // rows[0] is the uncompensated line.
+    let (none, auto, pi) = (worst(0), worst(1), worst(2));
+    eprintln!(
+        "lab stage, worst max over the three trajectories: none {none:.2} %, {} {auto:.2} %, textbook P-I {pi:.2} %",
+        table.rows[1].method
+    );
+    assert!(auto <= 1.0, "the goal: {auto} %");
+    assert!(
+        auto < 0.5 * pi,
+        "auto {auto} % against the textbook P-I's {pi} %"
+    );
+    assert!(pi < none);
+}

@@ -1,0 +1,409 @@
+//! `identify`'s whole job short of printing and drawing, shared by `twinstack identify` and the
+//! Python package's `twinstack.identify`: fit the model asked for (or rank every model, `auto`),
+//! score it on the fitted and the held-out part, in fixed point and against the `f64`
+//! reference, and put it in a parameter file with that record.
+
+use super::auto::{
+    identify_admitted, identify_auto_admitting, Admission, AutoIdentification, Resize,
+};
+use super::score::{score, ErrorFigures};
+use super::{Identification, IdentifyError, IdentifyOptions, ModelKind};
+use crate::param_file::{IdentificationRecord, ParamFile};
+use twinstack::board::Hardware;
+use twinstack::params::PiParams;
+use twinstack::refusal::{Field, Rule};
+use twinstack::settings::{Model, Settings};
+use twinstack_link::measured_data::MeasuredData;
+
+/// Which model to fit: every candidate, or one.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum ModelChoice {
+    /// Rank every model on held-back data and keep the best.
+    Auto,
+    /// This model only.
+    Only(ModelKind),
+}
+
+/// Parses a model choice: `auto` or a model kind's name (`pi`, `duhem`, `gpi`, `bouc-wen`),
+/// in any case.
+///
+/// ```
+/// use twinstack_identify::identification::run::{parse_model, ModelChoice};
+/// use twinstack_identify::identification::ModelKind;
+/// assert_eq!(parse_model("auto"), Ok(ModelChoice::Auto));
+/// assert_eq!(parse_model("GPI"), Ok(ModelChoice::Only(ModelKind::Gpi)));
+/// assert!(parse_model("spline").unwrap_err().contains("expected auto, pi"));
+/// ```
+pub fn parse_model(s: &str) -> Result<ModelChoice, String> {
+    use clap::ValueEnum;
+    if s.eq_ignore_ascii_case("auto") {
+        return Ok(ModelChoice::Auto);
+    }
+    ModelKind::from_str(s, true)
+        .map(ModelChoice::Only)
+        .map_err(|_| {
+            let names: Vec<String> = ModelKind::value_variants()
+                .iter()
+                .filter_map(|v| v.to_possible_value().map(|p| p.get_name().to_string()))
+                .collect();
+            format!("unknown model '{s}': expected auto, {}", names.join(", "))
+        })
+}
+
+/// Where a record is split when the caller does not say: this fraction of its duration is
+/// fitted, the rest held out to score the model.
+pub const DEFAULT_FIT_FRACTION: f64 = 0.7;
+
+/// The split time for a record with times `t` when none is given: [`DEFAULT_FIT_FRACTION`]
+/// of the way from its first to its last sample.
+pub fn default_fit_until(t: &[f64]) -> f64 {
+    match (t.first(), t.last()) {
+        (Some(a), Some(b)) => a + DEFAULT_FIT_FRACTION * (b - a),
+        _ => 0.0,
+    }
+}
+
+/// An identified model with its scores and its parameter file.
+#[derive(Clone, Debug)]
+pub struct Identified {
+    /// The ranking, when `auto` picked the model.
+    pub auto: Option<AutoIdentification>,
+    /// The options of the model kept.
+    pub options: IdentifyOptions,
+    /// The fit.
+    pub identification: Identification,
+    /// The model's prediction over the whole record (fixed point).
+    pub predicted: Vec<f64>,
+    /// The inverse on the held-out part, in the `f64` reference.
+    pub inverse_reference: ErrorFigures,
+    /// What the parameter file records about the fit and its scores.
+    pub record: IdentificationRecord,
+    /// The parameter file.
+    pub file: ParamFile,
+}
+
+/// Why identifying and scoring failed.
+#[derive(Debug, thiserror::Error)]
+pub enum RunError {
+    /// The fit failed.
+    #[error(transparent)]
+    Identify(#[from] IdentifyError),
+    /// The fitted model could not be run over the record.
+    #[error("{0}")]
+    Params(twinstack::ParamError),
+    /// The measured output does not move where the model is scored.
+    #[error("the measured output is flat, cannot score")]
+    Flat,
+}
+
+/// `auto`'s candidates for `options`: every model kind with and without creep (`creep =
+/// None`), or only with (`Some(true)`) or only without (`Some(false)`).
+pub fn candidates(options: &IdentifyOptions, creep: Option<bool>) -> Vec<IdentifyOptions> {
+    let base = IdentifyOptions {
+        creep: creep == Some(true),
+        ..options.clone()
+    };
+    base.candidates()
+        .into_iter()
+        .filter(|c| creep.is_none_or(|want| c.creep == want))
+        .collect()
+}
+
+/// `Ok(())` if the driver board's tick budget runs `settings` at `rate_hz`, the test the board
+/// applies when they are loaded ([`twinstack::tick_budget`]); else why not, with the cycles
+/// they need and the cycles the rate leaves.
+///
+/// ```
+/// use twinstack_identify::identification::run::runs_at;
+/// use twinstack::settings::{representative_gpi, Settings};
+/// let gpi = representative_gpi(16).unwrap();
+/// let s = Settings {
+///     compensator: Some(gpi.clone()),
+///     observer: Some(gpi),
+///     ..Settings::default()
+/// };
+/// assert!(runs_at(&s, 50_000.0).is_ok());
+/// assert!(runs_at(&s, 100_000.0).unwrap_err().contains("100 kHz"));
+/// ```
+pub fn runs_at(settings: &Settings, rate_hz: f64) -> Result<(), String> {
+    match admission_at(settings, &BoardRate::exactly(rate_hz)) {
+        Admission::Admitted => Ok(()),
+        Admission::Refused(why) | Admission::Smaller { why, .. } => Err(why),
+    }
+}
+
+/// `Ok(())` if `hz` is a control rate the board runs at
+/// ([`Hardware::MIN_CONTROL_RATE_HZ`] to [`Hardware::MAX_CONTROL_RATE_HZ`]), else why not.
+///
+/// ```
+/// use twinstack_identify::identification::run::check_tick_rate;
+/// assert!(check_tick_rate(100_000.0).is_ok());
+/// assert!(check_tick_rate(1e9).unwrap_err().contains("10000 to 100000 Hz"));
+/// assert!(check_tick_rate(f64::NAN).is_err());
+/// ```
+pub fn check_tick_rate(hz: f64) -> Result<(), String> {
+    let (lo, hi) = (
+        Hardware::MIN_CONTROL_RATE_HZ as f64,
+        Hardware::MAX_CONTROL_RATE_HZ as f64,
+    );
+    if (lo..=hi).contains(&hz) {
+        Ok(())
+    } else {
+        Err(format!(
+            "{hz}: must be {lo} to {hi} Hz, the control rates the board runs at"
+        ))
+    }
+}
+
+/// The control rate a model must run at, and how it may be made smaller so that it does.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct BoardRate {
+    /// The board's control rate, Hz.
+    pub hz: f64,
+    /// A P–I or generalised P–I too dear at this rate may be fitted with fewer play
+    /// operators (`false` when the user asked for a number of operators).
+    pub fewer_operators: bool,
+    /// A creep operator too dear at this rate may be fitted with fewer modes (at least one).
+    pub fewer_creep_modes: bool,
+}
+
+impl BoardRate {
+    /// `hz`, the model kept as asked.
+    pub fn exactly(hz: f64) -> Self {
+        Self {
+            hz,
+            fewer_operators: false,
+            fewer_creep_modes: false,
+        }
+    }
+
+    /// `hz`, the creep's modes fewer where needed, and the play operators fewer where needed
+    /// unless the user asked for a number of them (`operators_asked`).
+    pub fn sizing(hz: f64, operators_asked: bool) -> Self {
+        Self {
+            hz,
+            fewer_operators: !operators_asked,
+            fewer_creep_modes: true,
+        }
+    }
+}
+
+/// Whether the driver board's tick budget runs `settings` at `rate` ([`runs_at`]); where it
+/// does not, but would with a smaller creep or smaller P–I banks and `rate` allows them
+/// smaller, the largest such size ([`Admission::Smaller`]): the creep first loses modes
+/// (down to one), then the P–I banks pairs of operators. Each size is costed by the library's
+/// own tick budget, on `settings` with the model cut to that size.
+///
+/// ```
+/// use twinstack_identify::identification::auto::{Admission, Resize};
+/// use twinstack_identify::identification::run::{admission_at, BoardRate};
+/// use twinstack::settings::{representative_pi, Settings};
+/// let pi17 = representative_pi(17).unwrap();
+/// let s = Settings {
+///     compensator: Some(pi17.clone()),
+///     observer: Some(pi17),
+///     ..Settings::default()
+/// };
+/// let sized = admission_at(&s, &BoardRate::sizing(100_000.0, false));
+/// assert!(matches!(
+///     sized,
+///     Admission::Smaller { resize: Resize { operators: Some(16), creep_modes: None }, .. }
+/// ));
+/// assert!(matches!(admission_at(&s, &BoardRate::sizing(100_000.0, true)), Admission::Refused(_)));
+/// assert_eq!(admission_at(&s, &BoardRate::sizing(50_000.0, false)), Admission::Admitted);
+///
+/// // Bouc–Wen with four creep modes both ways: 1 784 cycles; with two, 1 640 of 1 680.
+/// use twinstack::creep::CreepParams;
+/// use twinstack::settings::representative_bouc_wen;
+/// let s = Settings {
+///     compensator: Some(representative_bouc_wen()),
+///     observer: Some(representative_bouc_wen()),
+///     creep: Some(CreepParams::new(&[0.01, 0.1, 1.0, 10.0], &[0.02; 4]).unwrap()),
+///     ..Settings::default()
+/// };
+/// let sized = admission_at(&s, &BoardRate::sizing(100_000.0, true));
+/// assert!(matches!(
+///     sized,
+///     Admission::Smaller { resize: Resize { operators: None, creep_modes: Some(2) }, .. }
+/// ));
+/// ```
+pub fn admission_at(settings: &Settings, rate: &BoardRate) -> Admission {
+    let hardware = Hardware::driver_board(rate.hz);
+    // Only the tick budget is judged here: what else the board would refuse (a sensor it
+    // lacks, …) it says at load.
+    let fits = |s: &Settings| !matches!(s.build(&hardware), Err(r) if r.field == Field::Workload);
+    // The board's own refusal advises on every size a parameter file can set; identification
+    // sets the dead zones itself, so only what its options change is named here.
+    let why = match settings.build(&hardware) {
+        Err(r) if r.field == Field::Workload => match r.rule {
+            Rule::TickOverrun { needs, available } => format!(
+                "the board at {:.0} kHz would refuse it: it needs {needs} cycles per tick, more \
+                 than the {available} that rate leaves",
+                rate.hz / 1e3
+            ),
+            _ => format!("the board at {:.0} kHz would refuse it: {r}", rate.hz / 1e3),
+        },
+        _ => return Admission::Admitted,
+    };
+    let operators = [&settings.compensator, &settings.observer]
+        .into_iter()
+        .find_map(|m| pi_part(m.as_ref()?).map(|p| p.thresholds.len()))
+        .unwrap_or(0);
+    let modes = settings.creep.as_ref().map_or(0, |c| c.weights.len());
+    let fewer_modes = rate.fewer_creep_modes && modes > 1;
+    // The creep alone, as many modes as fit …
+    if fewer_modes {
+        if let Some(m) = (1..modes)
+            .rev()
+            .find(|&m| fits(&cut(settings, None, Some(m))))
+        {
+            return Admission::Smaller {
+                resize: Resize {
+                    operators: None,
+                    creep_modes: Some(m),
+                },
+                why,
+            };
+        }
+    }
+    // … then one mode and the P–I banks, as many pairs of operators as fit.
+    let creep_modes = fewer_modes.then_some(1);
+    if rate.fewer_operators && operators > 0 {
+        let pairs = (1..operators.div_ceil(2))
+            .rev()
+            .find(|&p| fits(&cut(settings, Some(2 * p), creep_modes)));
+        if let Some(p) = pairs {
+            return Admission::Smaller {
+                resize: Resize {
+                    operators: Some(2 * p),
+                    creep_modes,
+                },
+                why,
+            };
+        }
+    }
+    Admission::Refused(why)
+}
+
+/// The P–I part of a model (a P–I's, or a generalised P–I's).
+fn pi_part(model: &Model) -> Option<&PiParams> {
+    match model {
+        Model::PrandtlIshlinskii(p) => Some(p),
+        Model::GeneralisedPi(g) => Some(&g.pi),
+        _ => None,
+    }
+}
+
+/// `settings` with their P–I parts cut to their first `operators` and their creep to its first
+/// `creep_modes` (`None`: as they are): the shape a smaller fit would have, for the tick
+/// budget to cost.
+fn cut(settings: &Settings, operators: Option<usize>, creep_modes: Option<usize>) -> Settings {
+    let mut s = settings.clone();
+    if let Some(n) = operators {
+        for model in [&mut s.compensator, &mut s.observer].into_iter().flatten() {
+            let pi = match model {
+                Model::PrandtlIshlinskii(p) => p,
+                Model::GeneralisedPi(g) => &mut g.pi,
+                _ => continue,
+            };
+            pi.thresholds.truncate(n);
+            pi.weights.truncate(n);
+        }
+    }
+    if let (Some(m), Some(creep)) = (creep_modes, s.creep.as_mut()) {
+        creep.time_constants_s.truncate(m);
+        creep.weights.truncate(m);
+    }
+    s
+}
+
+/// Fits `data` (`t`, `u`, `x`) as `choice` says, with `options` (its `model` is ignored;
+/// `creep`: see [`candidates`]; for one model, `Some(true)` adds a creep operator), scores
+/// the model kept and writes its parameter file with `output_unit` as the unit of `x`.
+///
+/// With `rate`, only a model the board runs at that control rate is kept
+/// ([`admission_at`], with the parameter file's settings: the board's own sensor and feedback
+/// are not known here, and a derivative term or a notch there costs more), a P–I sized down
+/// to fewer operators where `rate` allows: `auto` picks among those, and one model asked for
+/// by name that does not fit fails with [`IdentifyError::NoneAdmitted`].
+pub fn identify_and_score(
+    data: &MeasuredData,
+    choice: ModelChoice,
+    options: &IdentifyOptions,
+    creep: Option<bool>,
+    output_unit: &str,
+    rate: Option<BoardRate>,
+) -> Result<Identified, RunError> {
+    let admit = |id: &Identification| match &rate {
+        Some(rate) => admission_at(
+            &ParamFile::from_model(&id.model, output_unit, None).settings,
+            rate,
+        ),
+        None => Admission::Admitted,
+    };
+    let (auto, options, id) = match choice {
+        ModelChoice::Only(kind) => {
+            let o = IdentifyOptions {
+                model: kind,
+                creep: creep == Some(true),
+                ..options.clone()
+            };
+            let (o, id) = identify_admitted(data, o, &admit)?;
+            (None, o, id)
+        }
+        ModelChoice::Auto => {
+            let auto = identify_auto_admitting(data, &candidates(options, creep), admit)?;
+            let kept = auto.options.clone();
+            let id = auto.identification.clone();
+            (Some(auto), kept, id)
+        }
+    };
+    let (t, u, x) = (
+        &data.t,
+        data.u.as_deref().unwrap_or_default(),
+        data.x.as_deref().unwrap_or_default(),
+    );
+    let n = t.len();
+    let model = &id.model;
+    let predicted = model.predict(t, u).map_err(RunError::Params)?;
+    let reference = model.predict_reference(t, u).map_err(RunError::Params)?;
+    let drive = model.compensate(t, x).map_err(RunError::Params)?;
+    let drive_reference = model.compensate_reference(t, x).map_err(RunError::Params)?;
+    let fit_from = id.motion.first_fitted;
+    let held = id.held_out_from;
+    let fit = score(x, &predicted, fit_from..held).ok_or(RunError::Flat)?;
+    let held_out = score(x, &predicted, held..n).ok_or(RunError::Flat)?;
+    // The last `lag` samples have no later reading to aim the drive at: not scored.
+    let aimed = n - model.lag_samples(t).min(n - held - 1);
+    let inverse = score(u, &drive, held..aimed).ok_or(RunError::Flat)?;
+    let fixed_vs_reference = score(&reference, &predicted, fit_from..n).ok_or(RunError::Flat)?;
+    let inverse_reference = score(u, &drive_reference, held..aimed).ok_or(RunError::Flat)?;
+    let inverse_fixed_vs_reference =
+        score(&drive_reference, &drive, fit_from..n).ok_or(RunError::Flat)?;
+    let record = IdentificationRecord {
+        data: data.path.display().to_string(),
+        fit_until_s: options.fit_until_s,
+        fit_from_s: t[fit_from],
+        operators: options.operators,
+        thresholds: format!("{:?}", options.thresholds).to_lowercase(),
+        lag_samples: id.lag_samples,
+        lag_estimated: id.lag_estimated,
+        outliers: id.outliers,
+        fit,
+        held_out,
+        inverse_held_out: inverse,
+        fixed_vs_reference_max_pct: fixed_vs_reference.max_pct,
+        inverse_fixed_vs_reference_max_pct: inverse_fixed_vs_reference.max_pct,
+        notes: id.notes.clone(),
+    };
+    let file = ParamFile::from_model(model, output_unit, Some(record.clone()));
+    Ok(Identified {
+        auto,
+        options,
+        identification: id,
+        predicted,
+        inverse_reference,
+        record,
+        file,
+    })
+}

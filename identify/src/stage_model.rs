@@ -1,0 +1,729 @@
+//! A stage's identified model as the board runs it: the hysteresis model, the scaling onto
+//! the fixed-point ranges, the sensor's sign and its lag — and whole-record runs of it, in the
+//! library's fixed point (the code the firmware runs) and in the `f64` reference.
+//!
+//! Conventions shared by `identify`, `predict` and `compensate`:
+//! * the model's output is the *sign-corrected* output: `sensor reading = output_sign × y`;
+//!   the scaling's output range is in those units (an inverted sensor needs no `max < min`);
+//! * the sensor lags the drive by `sensor_lag_s`: the reading at sample `k` is the model's
+//!   output at sample `k − L` (`L` = lag in samples of the record being run);
+//! * forward runs start relaxed at the first drive value (P–I: every operator there; Duhem:
+//!   on the anhysteretic curve, `y0 = β u0 + δ`; Bouc–Wen: `h = 0`); inverse runs start
+//!   relaxed at the first desired output;
+//! * with creep, the creep operator runs after the hysteresis model (`predict`) and its
+//!   inverse before the inverse model (`compensate`), discretised at the record's sample
+//!   period (the median interval), its modes at rest at the first value they see.
+
+use crate::reference;
+use twinstack::bouc_wen::{BoucWen, InverseBoucWen};
+use twinstack::creep::{Creep, CreepParams, CreepState};
+use twinstack::duhem::{Duhem, InverseDuhem};
+use twinstack::fixed_point::{
+    clamp_full_scale, gain_from_f64, saturate_i64, signal_from_f64, signal_to_f64, GAIN_FRAC_BITS,
+};
+use twinstack::generalised_pi::{GeneralisedPi, GpiParams, InverseGeneralisedPi};
+use twinstack::play_operator::play;
+use twinstack::prandtl_ishlinskii::{InversePrandtlIshlinskii, PrandtlIshlinskii};
+use twinstack::{BoucWenParams, DuhemParams, ParamError, PiParams, Scaling};
+
+/// The hysteresis model of a stage, in physical units. (Built once per command, so the
+/// size difference between the variants does not matter.)
+#[allow(clippy::large_enum_variant)]
+#[derive(Clone, Debug, PartialEq)]
+pub enum Hysteresis {
+    /// Prandtl–Ishlinskii.
+    Pi(PiParams),
+    /// Duhem.
+    Duhem(DuhemParams),
+    /// Generalised (asymmetric) P–I: a P–I followed by a dead-zone map.
+    GeneralisedPi(GpiParams),
+    /// Generalised (asymmetric) Bouc–Wen.
+    BoucWen(BoucWenParams),
+}
+
+/// Everything needed to run a stage's model on a record.
+#[derive(Clone, Debug, PartialEq)]
+pub struct StageModel {
+    /// The hysteresis model (volts in, sign-corrected output units out).
+    pub hysteresis: Hysteresis,
+    /// Input and (sign-corrected) output ranges onto the normalised Q2.30 signals.
+    pub scaling: Scaling,
+    /// `+1` or `−1`: the sensor reads `output_sign × y`.
+    pub output_sign: f64,
+    /// Sensor lag behind the drive, seconds (`≥ 0`).
+    pub sensor_lag_s: f64,
+    /// The stage's creep, in series after the hysteresis model (`None`: no creep).
+    pub creep: Option<CreepParams>,
+}
+
+/// The sample rate of a record with times `t`: one over the median interval (`None` for fewer
+/// than two samples or a non-increasing median).
+pub fn sample_rate(t: &[f64]) -> Option<f64> {
+    let mut dt: Vec<f64> = t.windows(2).map(|w| w[1] - w[0]).collect();
+    dt.sort_by(f64::total_cmp);
+    match dt.get(dt.len() / 2) {
+        Some(&d) if d > 0.0 && d.is_finite() => Some(1.0 / d),
+        _ => None,
+    }
+}
+
+/// A creep operator run over a record in fixed point, its modes at rest at the first value.
+struct CreepRun {
+    creep: Creep,
+    state: Option<CreepState>,
+}
+
+impl CreepRun {
+    fn forward(&mut self, y: i32) -> i32 {
+        let s = self.state.get_or_insert_with(|| CreepState::at_rest(y));
+        self.creep.forward_step(s, y)
+    }
+
+    fn inverse(&mut self, x: i32) -> i32 {
+        let s = self.state.get_or_insert_with(|| CreepState::at_rest(x));
+        self.creep.inverse_step(s, x)
+    }
+}
+
+/// A creep operator run over a record in `f64`, its modes at rest at the first value.
+struct CreepReference {
+    params: CreepParams,
+    rate_hz: f64,
+    run: Option<reference::Creep>,
+}
+
+impl CreepReference {
+    fn run(&mut self, v: f64) -> Result<&mut reference::Creep, ParamError> {
+        if self.run.is_none() {
+            self.run = Some(reference::Creep::new(&self.params, self.rate_hz, v)?);
+        }
+        self.run.as_mut().ok_or(ParamError::NotFinite)
+    }
+}
+
+impl StageModel {
+    /// The fixed-point creep for a record with times `t` (at its sample rate), if any.
+    fn creep_run(&self, t: &[f64]) -> Result<Option<CreepRun>, ParamError> {
+        let Some(p) = &self.creep else {
+            return Ok(None);
+        };
+        let rate =
+            sample_rate(t).ok_or(ParamError::Creep(twinstack::creep::CreepError::NotFinite {
+                mode: 0,
+            }))?;
+        Ok(Some(CreepRun {
+            creep: Creep::new(p, rate)?,
+            state: None,
+        }))
+    }
+
+    /// The `f64` creep for a record with times `t`, if any.
+    fn creep_reference(&self, t: &[f64]) -> Result<Option<CreepReference>, ParamError> {
+        let Some(p) = &self.creep else {
+            return Ok(None);
+        };
+        let rate_hz =
+            sample_rate(t).ok_or(ParamError::Creep(twinstack::creep::CreepError::NotFinite {
+                mode: 0,
+            }))?;
+        p.check(rate_hz)?;
+        Ok(Some(CreepReference {
+            params: p.clone(),
+            rate_hz,
+            run: None,
+        }))
+    }
+
+    /// The lag in samples for a record with times `t` (rounded to the median interval).
+    pub fn lag_samples(&self, t: &[f64]) -> usize {
+        let mut dt: Vec<f64> = t.windows(2).map(|w| w[1] - w[0]).collect();
+        dt.sort_by(f64::total_cmp);
+        match dt.get(dt.len() / 2) {
+            Some(&d) if d > 0.0 => (self.sensor_lag_s / d).round().max(0.0) as usize,
+            _ => 0,
+        }
+    }
+
+    /// How many drive samples in `u` lie outside the input range (the models clamp them).
+    pub fn drive_outside_range(&self, u: &[f64]) -> usize {
+        let s = &self.scaling;
+        u.iter()
+            .filter(|&&v| v < s.input_min || v > s.input_max)
+            .count()
+    }
+
+    /// How many readings in `x` lie outside the output range once sign-corrected (the
+    /// compensator clamps them).
+    pub fn reading_outside_range(&self, x: &[f64]) -> usize {
+        let s = &self.scaling;
+        x.iter()
+            .map(|&v| self.output_sign * v)
+            .filter(|&y| y < s.output_min || y > s.output_max)
+            .count()
+    }
+
+    /// Checks the library accepts the model for both the observer and the compensator.
+    pub fn check(&self) -> Result<(), ParamError> {
+        match &self.hysteresis {
+            Hysteresis::Pi(p) => {
+                PrandtlIshlinskii::new(p, &self.scaling)?;
+                InversePrandtlIshlinskii::new(p, &self.scaling)?;
+            }
+            Hysteresis::Duhem(p) => {
+                InverseDuhem::new(p, &self.scaling)?;
+            }
+            Hysteresis::GeneralisedPi(p) => {
+                GeneralisedPi::new(p, &self.scaling)?;
+                InverseGeneralisedPi::new(p, &self.scaling)?;
+            }
+            Hysteresis::BoucWen(p) => {
+                InverseBoucWen::new(p, &self.scaling)?;
+            }
+        }
+        Ok(())
+    }
+
+    fn delay(&self, t: &[f64], y: Vec<f64>) -> Vec<f64> {
+        let lag = self.lag_samples(t);
+        (0..y.len())
+            .map(|k| self.output_sign * y[k.saturating_sub(lag)])
+            .collect()
+    }
+
+    fn advance(&self, t: &[f64], x: &[f64]) -> Vec<f64> {
+        let lag = self.lag_samples(t);
+        let last = x.len().saturating_sub(1);
+        (0..x.len())
+            .map(|k| self.output_sign * x[(k + lag).min(last)])
+            .collect()
+    }
+
+    /// Forward model on drive `u` (volts) at times `t`, in the library's fixed point:
+    /// the sensor reading it predicts at each sample.
+    pub fn predict(&self, t: &[f64], u: &[f64]) -> Result<Vec<f64>, ParamError> {
+        let s = &self.scaling;
+        let u_norm = |v: f64| signal_from_f64(s.input_to_norm(v));
+        let y_phys = |q: i32| s.norm_to_output(signal_to_f64(q));
+        let u0 = u.first().copied().unwrap_or(0.0);
+        let mut creep = self.creep_run(t)?;
+        let mut creep = |q: i32| match creep.as_mut() {
+            Some(c) => c.forward(q),
+            None => q,
+        };
+        let y: Vec<f64> = match &self.hysteresis {
+            Hysteresis::Pi(p) => {
+                let m = PrandtlIshlinskii::new(p, s)?;
+                let mut st = m.state_at_rest(u_norm(u0));
+                u.iter()
+                    .map(|&v| y_phys(creep(m.step(&mut st, u_norm(v)))))
+                    .collect()
+            }
+            Hysteresis::Duhem(p) => {
+                let m = Duhem::new(p, s)?;
+                let u0 = u0.clamp(s.input_min, s.input_max);
+                let y0 = signal_from_f64(s.output_to_norm(p.beta * u0 + p.offset));
+                let mut st = m.state_at(u_norm(u0), y0);
+                u.iter()
+                    .map(|&v| y_phys(creep(m.step(&mut st, u_norm(v)))))
+                    .collect()
+            }
+            Hysteresis::GeneralisedPi(p) => {
+                let m = GeneralisedPi::new(p, s)?;
+                let mut st = m.state_at_rest(u_norm(u0));
+                u.iter()
+                    .map(|&v| y_phys(creep(m.step(&mut st, u_norm(v)))))
+                    .collect()
+            }
+            Hysteresis::BoucWen(p) => {
+                let m = BoucWen::new(p, s)?;
+                let mut st = m.relaxed(u_norm(u0));
+                u.iter()
+                    .map(|&v| y_phys(creep(m.step(&mut st, u_norm(v)))))
+                    .collect()
+            }
+        };
+        Ok(self.delay(t, y))
+    }
+
+    /// [`Self::predict`] computed by the `f64` reference models.
+    pub fn predict_reference(&self, t: &[f64], u: &[f64]) -> Result<Vec<f64>, ParamError> {
+        let s = &self.scaling;
+        let u0 = u.first().copied().unwrap_or(0.0);
+        let mut y: Vec<f64> = match &self.hysteresis {
+            Hysteresis::Pi(p) => {
+                let mut m = reference::PrandtlIshlinskii::new(p, s, u0)?;
+                u.iter().map(|&v| m.step(v)).collect()
+            }
+            Hysteresis::Duhem(p) => {
+                let u0 = u0.clamp(s.input_min, s.input_max);
+                let mut m = reference::Duhem::new(p, s, u0, p.beta * u0 + p.offset)?;
+                u.iter().map(|&v| m.step(v)).collect()
+            }
+            Hysteresis::GeneralisedPi(p) => {
+                let mut m = reference::GeneralisedPi::new(p, s, u0)?;
+                u.iter().map(|&v| m.step(v)).collect()
+            }
+            Hysteresis::BoucWen(p) => {
+                let mut m = reference::BoucWen::new(p, s, u0)?;
+                u.iter().map(|&v| m.step(v)).collect()
+            }
+        };
+        if let Some(mut c) = self.creep_reference(t)? {
+            for v in y.iter_mut() {
+                *v = c.run(*v)?.step(*v);
+            }
+        }
+        Ok(self.delay(t, y))
+    }
+
+    /// Inverse model: the drive (volts) that makes the sensor read `x` at times `t`, in the
+    /// library's fixed point. With a sensor lag of `L` samples the drive leads by `L`.
+    pub fn compensate(&self, t: &[f64], x: &[f64]) -> Result<Vec<f64>, ParamError> {
+        let s = &self.scaling;
+        let y_norm = |v: f64| signal_from_f64(s.output_to_norm(v));
+        let u_phys = |q: i32| s.norm_to_input(signal_to_f64(q));
+        let desired = self.advance(t, x);
+        let y0 = desired.first().copied().unwrap_or(0.0);
+        let mut creep = self.creep_run(t)?;
+        let mut y_norm = |v: f64| match creep.as_mut() {
+            Some(c) => c.inverse(y_norm(v)),
+            None => y_norm(v),
+        };
+        Ok(match &self.hysteresis {
+            Hysteresis::Pi(p) => {
+                let m = InversePrandtlIshlinskii::new(p, s)?;
+                let mut st = m.state_at_rest(signal_from_f64(s.output_to_norm(y0)));
+                desired
+                    .iter()
+                    .map(|&v| u_phys(m.step(&mut st, y_norm(v))))
+                    .collect()
+            }
+            Hysteresis::Duhem(p) => {
+                let m = InverseDuhem::new(p, s)?;
+                let y0 = y0.clamp(s.output_min, s.output_max);
+                let u0 = ((y0 - p.offset) / p.beta).clamp(s.input_min, s.input_max);
+                let y0_norm = signal_from_f64(s.output_to_norm(y0));
+                let mut st = m
+                    .model()
+                    .state_at(signal_from_f64(s.input_to_norm(u0)), y0_norm);
+                // The noise band (see `NoiseBand`): the inverse's memory follows the
+                // band-filtered trajectory, the rest passes through the anhysteretic slope.
+                let band = NoiseBand::of(&desired, p, s)?;
+                let width = signal_from_f64(band.width_norm);
+                let through = gain_from_f64(band.inverse_slope_norm);
+                let mut filtered = y0_norm;
+                desired
+                    .iter()
+                    .map(|&v| {
+                        let y = y_norm(v);
+                        filtered = play(y, width, filtered);
+                        let rest = (y as i64 - filtered as i64) * through as i64;
+                        let u = m.step(&mut st, filtered) as i64 + (rest >> GAIN_FRAC_BITS);
+                        u_phys(clamp_full_scale(saturate_i64(u)))
+                    })
+                    .collect()
+            }
+            Hysteresis::GeneralisedPi(p) => {
+                let m = InverseGeneralisedPi::new(p, s)?;
+                let mut st = m.state_at_rest(signal_from_f64(s.output_to_norm(y0)));
+                desired
+                    .iter()
+                    .map(|&v| u_phys(m.step(&mut st, y_norm(v))))
+                    .collect()
+            }
+            Hysteresis::BoucWen(p) => {
+                let m = InverseBoucWen::new(p, s)?;
+                let y0 = y0.clamp(s.output_min, s.output_max);
+                let u0 = ((y0 - p.offset) / p.k).clamp(s.input_min, s.input_max);
+                let mut st = m.model().relaxed(signal_from_f64(s.input_to_norm(u0)));
+                desired
+                    .iter()
+                    .map(|&v| u_phys(m.step(&mut st, y_norm(v))))
+                    .collect()
+            }
+        })
+    }
+
+    /// [`Self::compensate`] computed by the `f64` reference models.
+    pub fn compensate_reference(&self, t: &[f64], x: &[f64]) -> Result<Vec<f64>, ParamError> {
+        let s = &self.scaling;
+        let trajectory = self.advance(t, x);
+        let mut desired = trajectory.clone();
+        if let Some(mut c) = self.creep_reference(t)? {
+            for v in desired.iter_mut() {
+                *v = c.run(*v)?.inverse_step(*v);
+            }
+        }
+        let y0 = desired
+            .first()
+            .copied()
+            .unwrap_or(0.0)
+            .clamp(s.output_min, s.output_max);
+        Ok(match &self.hysteresis {
+            Hysteresis::Pi(p) => {
+                let c = p.canonical()?;
+                let total: f64 = c.weights.iter().sum();
+                let mut m =
+                    reference::InversePrandtlIshlinskii::new(p, s, (y0 - c.offset) / total)?;
+                desired.iter().map(|&v| m.step(v)).collect()
+            }
+            Hysteresis::Duhem(p) => {
+                let u0 = ((y0 - p.offset) / p.beta).clamp(s.input_min, s.input_max);
+                let mut m = reference::InverseDuhem::new(p, s, u0, y0)?;
+                // The band from the trajectory as given (before the inverse creep), as the
+                // fixed-point `compensate` takes it.
+                let band = NoiseBand::of(&trajectory, p, s)?;
+                let width = band.width_norm * s.output_half_span();
+                let mut filtered = y0;
+                desired
+                    .iter()
+                    .map(|&v| {
+                        filtered = reference::play(v, width, filtered);
+                        let u = m.step(filtered) + (v - filtered) / p.beta;
+                        u.clamp(s.input_min, s.input_max)
+                    })
+                    .collect()
+            }
+            Hysteresis::GeneralisedPi(p) => {
+                // Relaxed where the P–I part's output is S⁻¹[y0], as for the P–I.
+                let c = p.pi.canonical()?;
+                let total: f64 = c.weights.iter().sum();
+                let mut m = reference::InverseGeneralisedPi::new(p, s, 0.0)?;
+                let z0 = m.map_inverse(y0);
+                m = reference::InverseGeneralisedPi::new(p, s, (z0 - c.offset) / total)?;
+                desired.iter().map(|&v| m.step(v)).collect()
+            }
+            Hysteresis::BoucWen(p) => {
+                let u0 = ((y0 - p.offset) / p.k).clamp(s.input_min, s.input_max);
+                let mut m = reference::InverseBoucWen::new(p, s, u0)?;
+                desired.iter().map(|&v| m.step(v)).collect()
+            }
+        })
+    }
+}
+
+/// Band widths in units of the trajectory's noise RMS: reversals smaller than this are noise.
+pub const NOISE_BAND_SIGMAS: f64 = 3.0;
+
+/// The noise band of a measured trajectory given to the inverse Duhem.
+///
+/// A Duhem model relaxes towards its anhysteretic curve whenever its input moves, whichever
+/// way: dithered, it forgets its hysteresis. Its exact inverse, given a *measured* trajectory,
+/// treats every sample of sensor noise as a reversal of the desired motion and ratchets its
+/// drive towards the anhysteretic curve (12.9 % on the bipolar set). So the inverse's memory
+/// follows the trajectory through a play operator of half-width `3σ` (`σ` the trajectory's
+/// noise RMS, estimated from its second differences, robustly: corners of a triangle do not
+/// count), and what the band holds back passes straight through at the anhysteretic slope
+/// `1/β`. A clean trajectory (a planned one; the board's setpoints) has `σ ≈ 0` and is
+/// inverted exactly; the band exists only for measured ones (`compensate` on recorded data).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct NoiseBand {
+    /// Noise RMS of the trajectory, output units.
+    pub noise_rms: f64,
+    /// Half-width of the band, normalised output units.
+    pub width_norm: f64,
+    /// `1/β`, normalised (input span per output span).
+    pub inverse_slope_norm: f64,
+}
+
+impl NoiseBand {
+    /// The band for trajectory `x` (output units) and the model `p` on `scaling`.
+    pub fn of(x: &[f64], p: &DuhemParams, scaling: &Scaling) -> Result<Self, ParamError> {
+        let n = p.normalized(scaling)?;
+        let noise_rms = noise_rms(x);
+        Ok(Self {
+            noise_rms,
+            width_norm: (NOISE_BAND_SIGMAS * noise_rms / scaling.output_half_span()).min(1.0),
+            inverse_slope_norm: 1.0 / n.beta,
+        })
+    }
+}
+
+/// Noise RMS of a sampled signal from its second differences `x_k − (x_{k−1} + x_{k+1})/2`
+/// (for white noise their RMS is `σ·√1.5`), taken robustly as the median absolute value
+/// over 0.6745: the few samples where a trajectory turns do not count.
+pub fn noise_rms(x: &[f64]) -> f64 {
+    let mut d: Vec<f64> = x
+        .windows(3)
+        .map(|w| (w[1] - 0.5 * (w[0] + w[2])).abs())
+        .filter(|v| v.is_finite())
+        .collect();
+    if d.is_empty() {
+        return 0.0;
+    }
+    let mid = d.len() / 2;
+    let (_, median, _) = d.select_nth_unstable_by(mid, f64::total_cmp);
+    *median / 0.6745 / 1.5f64.sqrt()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn pi_model(sign: f64, lag_s: f64) -> StageModel {
+        StageModel {
+            hysteresis: Hysteresis::Pi(
+                PiParams::new(0.0, 1.0, &[0.0, 20.0, 40.0], &[0.08, 0.03, 0.02]).unwrap(),
+            ),
+            scaling: Scaling::new(-100.0, 100.0, -15.0, 17.0).unwrap(),
+            output_sign: sign,
+            sensor_lag_s: lag_s,
+            creep: None,
+        }
+    }
+
+    fn record() -> (Vec<f64>, Vec<f64>) {
+        let t: Vec<f64> = (0..800).map(|k| k as f64 * 0.01).collect();
+        let u = t.iter().map(|&t| 90.0 * (t * 2.0).sin()).collect();
+        (t, u)
+    }
+
+    #[test]
+    fn fixed_point_prediction_tracks_the_f64_reference() {
+        let m = pi_model(1.0, 0.0);
+        let (t, u) = record();
+        let fx = m.predict(&t, &u).unwrap();
+        let rf = m.predict_reference(&t, &u).unwrap();
+        let worst = fx
+            .iter()
+            .zip(&rf)
+            .map(|(a, b)| (a - b).abs())
+            .fold(0.0, f64::max);
+        // The packed bank's Q1.15 grid: within 1 LSB16 of the output span (see
+        // docs/src/reference/fixed-point.md).
+        let lsb = (m.scaling.output_max - m.scaling.output_min) / 65536.0;
+        assert!(worst < lsb, "{worst} against 1 LSB16 = {lsb}");
+    }
+
+    fn duhem_model() -> StageModel {
+        StageModel {
+            hysteresis: Hysteresis::Duhem(DuhemParams {
+                alpha: 0.03,
+                beta: 0.2,
+                gamma: 0.12,
+                offset: 0.5,
+            }),
+            scaling: Scaling::new(-100.0, 100.0, -25.0, 25.0).unwrap(),
+            output_sign: 1.0,
+            sensor_lag_s: 0.0,
+            creep: None,
+        }
+    }
+
+    /// Deterministic unit-variance noise (sum of 4 uniforms from an xorshift).
+    fn noise(n: usize) -> Vec<f64> {
+        let mut s = 0x9e37_79b9_7f4a_7c15u64;
+        (0..n)
+            .map(|_| {
+                let mut v = 0.0;
+                for _ in 0..4 {
+                    s ^= s << 13;
+                    s ^= s >> 7;
+                    s ^= s << 17;
+                    v += (s >> 11) as f64 / (1u64 << 53) as f64 - 0.5;
+                }
+                v * 3f64.sqrt()
+            })
+            .collect()
+    }
+
+    #[test]
+    fn the_noise_estimate_sees_noise_and_not_the_trajectory() {
+        let t: Vec<f64> = (0..20_000).map(|k| k as f64 * 1e-4).collect();
+        // A triangle and a sine: no noise to speak of (the corners do not count).
+        let triangle: Vec<f64> = t
+            .iter()
+            .map(|&t| 10.0 * ((t * 5.0) % 1.0 - 0.5).abs())
+            .collect();
+        assert!(noise_rms(&triangle) < 1e-9, "{}", noise_rms(&triangle));
+        let sine: Vec<f64> = t.iter().map(|&t| 10.0 * (t * 60.0).sin()).collect();
+        // (its curvature: second differences of 10·(60·1e-4)²/2 at most)
+        assert!(noise_rms(&sine) < 1e-3, "{}", noise_rms(&sine));
+        // Noise of RMS 0.05 on the sine is found to within 10 %.
+        let noisy: Vec<f64> = sine
+            .iter()
+            .zip(noise(t.len()))
+            .map(|(a, n)| a + 0.05 * n)
+            .collect();
+        let found = noise_rms(&noisy);
+        assert!((found - 0.05).abs() < 0.005, "{found}");
+        assert_eq!(noise_rms(&[1.0, 2.0]), 0.0);
+    }
+
+    /// The inverse Duhem on a measured (noisy) trajectory: the drive it computes stays on the
+    /// true drive, where the exact inverse on the same samples ratchets away from it.
+    #[test]
+    fn compensate_of_a_noisy_duhem_trajectory_does_not_ratchet() {
+        let m = duhem_model();
+        let t: Vec<f64> = (0..30_000).map(|k| k as f64 * 2e-4).collect();
+        let u: Vec<f64> = t
+            .iter()
+            .map(|&t| 90.0 * (t * std::f64::consts::TAU).sin())
+            .collect();
+        let clean = m.predict(&t, &u).unwrap();
+        let span = 40.0;
+        let noisy: Vec<f64> = clean
+            .iter()
+            .zip(noise(t.len()))
+            .map(|(x, n)| x + 0.002 * span * n)
+            .collect();
+        let worst = |drive: &[f64]| {
+            drive[5000..]
+                .iter()
+                .zip(&u[5000..])
+                .map(|(a, b)| (a - b).abs())
+                .fold(0.0, f64::max)
+                / 180.0
+                * 100.0
+        };
+        let banded = worst(&m.compensate(&t, &noisy).unwrap());
+        let banded_reference = worst(&m.compensate_reference(&t, &noisy).unwrap());
+        // The library's inverse alone, every noisy sample fed to its memory.
+        let Hysteresis::Duhem(p) = &m.hysteresis else {
+            unreachable!()
+        };
+        let s = &m.scaling;
+        let inv = InverseDuhem::new(p, s).unwrap();
+        let mut st = inv
+            .model()
+            .state_at(0, signal_from_f64(s.output_to_norm(noisy[0])));
+        let exact: Vec<f64> = noisy
+            .iter()
+            .map(|&x| {
+                s.norm_to_input(signal_to_f64(
+                    inv.step(&mut st, signal_from_f64(s.output_to_norm(x))),
+                ))
+            })
+            .collect();
+        let unbanded = worst(&exact);
+        eprintln!("drive error, % of span: banded {banded:.4} (f64 {banded_reference:.4}), exact inverse {unbanded:.4}");
+        // Noise of 0.2 % of the output span is 0.22 % of the drive span through 1/β, and
+        // its peaks reach four times that.
+        assert!(banded < 2.5, "{banded}");
+        assert!(banded_reference < 2.5, "{banded_reference}");
+        assert!(
+            unbanded > 3.0 * banded,
+            "the band made no difference: {unbanded} vs {banded}"
+        );
+        // A clean trajectory is inverted as without the band: the band shrinks to nothing.
+        let back = m.compensate(&t, &clean).unwrap();
+        let worst_clean = worst(&back);
+        assert!(worst_clean < 1e-3, "{worst_clean}");
+    }
+
+    #[test]
+    fn sign_and_lag_are_applied_to_the_prediction() {
+        let (t, u) = record();
+        let plain = pi_model(1.0, 0.0).predict(&t, &u).unwrap();
+        let turned = pi_model(-1.0, 0.02).predict(&t, &u).unwrap();
+        for k in 2..t.len() {
+            assert!((turned[k] + plain[k - 2]).abs() < 1e-12);
+        }
+    }
+
+    proptest::proptest! {
+        /// For any invertible P–I (non-negative weights, `w_1 > 0`), any sign and lag, and any
+        /// drive inside the input range, the fixed-point compensator fed the fixed-point
+        /// prediction gives back the drive.
+        #[test]
+        fn compensate_inverts_predict_for_any_invertible_pi(
+            w1 in 0.05f64..0.5,
+            rest in proptest::collection::vec(0.0f64..0.2, 1..8),
+            offset in -3.0f64..3.0,
+            negative in proptest::bool::ANY,
+            lag in 0usize..4,
+            drive in proptest::collection::vec(-100.0f64..100.0, 20..200),
+        ) {
+            let n = rest.len() + 1;
+            let thresholds: Vec<f64> = (0..n).map(|i| 100.0 * i as f64 / n as f64).collect();
+            let mut weights = vec![w1];
+            weights.extend(&rest);
+            let reach = 100.0 * weights.iter().sum::<f64>() + offset.abs() + 1.0;
+            let m = StageModel {
+                hysteresis: Hysteresis::Pi(PiParams::new(0.0, offset, &thresholds, &weights).unwrap()),
+                scaling: Scaling::new(-100.0, 100.0, -reach, reach).unwrap(),
+                output_sign: if negative { -1.0 } else { 1.0 },
+                sensor_lag_s: lag as f64 * 0.01,
+                creep: None,
+            };
+            // Models whose inverse does not fit Q8.24 are refused (tested elsewhere).
+            proptest::prop_assume!(m.check().is_ok());
+            let t: Vec<f64> = (0..drive.len()).map(|k| k as f64 * 0.01).collect();
+            let x = m.predict(&t, &drive).unwrap();
+            let back = m.compensate(&t, &x).unwrap();
+            // 16 LSB16 of the input span (the packed banks' grid), plus 4 LSB16 of the
+            // output span through the inverse's steepest slope 1/w1: the prediction the
+            // compensator reads is on the output grid, and a small w1 magnifies its step
+            // (see twinstack_identify::accuracy's bounds). A wrong inverse is volts off.
+            let lsb = 200.0 / 65536.0;
+            let lsb_out = 2.0 * reach / 65536.0;
+            let bound = 16.0 * lsb + 4.0 * lsb_out / w1;
+            for k in 0..drive.len() - lag {
+                proptest::prop_assert!((back[k] - drive[k]).abs() < bound, "k {}: {} vs {} (bound {})", k, back[k], drive[k], bound);
+            }
+        }
+    }
+
+    /// The generalised P–I: fixed point tracks the `f64` reference (forward and inverse), and
+    /// the compensator fed the prediction gives the drive back.
+    #[test]
+    fn generalised_pi_tracks_its_reference_and_inverts() {
+        use twinstack::generalised_pi::DeadZoneParams;
+        let Hysteresis::Pi(pi) = pi_model(1.0, 0.0).hysteresis else {
+            unreachable!()
+        };
+        let m = StageModel {
+            hysteresis: Hysteresis::GeneralisedPi(GpiParams {
+                pi,
+                dead_zones: DeadZoneParams::new(1.0, 0.9, &[-6.0, 4.0], &[-0.3, 0.4]).unwrap(),
+            }),
+            scaling: Scaling::new(-100.0, 100.0, -18.0, 20.0).unwrap(),
+            output_sign: -1.0,
+            sensor_lag_s: 0.02,
+            creep: None,
+        };
+        m.check().unwrap();
+        let (t, u) = record();
+        let worst = |a: &[f64], b: &[f64]| {
+            a.iter()
+                .zip(b)
+                .map(|(a, b)| (a - b).abs())
+                .fold(0.0, f64::max)
+        };
+        // Tolerances in LSB16 of the spans: the packed banks' Q1.15 grid.
+        let lsb_out = (m.scaling.output_max - m.scaling.output_min) / 65536.0;
+        let lsb_in = (m.scaling.input_max - m.scaling.input_min) / 65536.0;
+        let x = m.predict(&t, &u).unwrap();
+        assert!(worst(&x, &m.predict_reference(&t, &u).unwrap()) < 2.0 * lsb_out);
+        let back = m.compensate(&t, &x).unwrap();
+        let back_ref = m.compensate_reference(&t, &x).unwrap();
+        assert!(worst(&back, &back_ref) < 16.0 * lsb_in);
+        let n = t.len() - 2;
+        assert!(
+            worst(&back[..n], &u[..n]) < 16.0 * lsb_in,
+            "{}",
+            worst(&back[..n], &u[..n])
+        );
+    }
+
+    #[test]
+    fn compensating_the_prediction_returns_the_drive() {
+        for sign in [1.0, -1.0] {
+            let m = pi_model(sign, 0.02);
+            let (t, u) = record();
+            let x = m.predict(&t, &u).unwrap();
+            let back = m.compensate(&t, &x).unwrap();
+            // The last `lag` samples have no future reading to aim at.
+            // 4 LSB16 of the input span (the packed banks' Q1.15 grid).
+            let lsb = (m.scaling.input_max - m.scaling.input_min) / 65536.0;
+            for k in 0..t.len() - 2 {
+                assert!(
+                    (back[k] - u[k]).abs() < 4.0 * lsb,
+                    "k {k}: {} vs {}",
+                    back[k],
+                    u[k]
+                );
+            }
+        }
+    }
+}
