@@ -3,7 +3,7 @@
 //!
 //! A figure is a block of a page between `<!-- figures:NAME -->` and `<!-- /figures -->`: the
 //! command that makes it, then what it prints, turned into a table. `cargo xtask figures` runs
-//! each command (the host tool's optimised build: `cargo run --profile host-opt -p hal-sim`) and rewrites the
+//! each command (the host tool's optimised build: `cargo run --profile host-opt -p twinstack-cli`) and rewrites the
 //! block; with `--check` it writes nothing and fails when a page differs from what the code
 //! produces now. `cargo xtask test` runs the check for the figures marked deterministic and
 //! cheap (they depend on nothing but the code and the committed data), so a change that moves

@@ -28,7 +28,10 @@ use std::path::{Path, PathBuf};
 /// and are not read; the QEMU test images are binaries only.
 pub const CRATES: &[(&str, &str)] = &[
     ("twinstack", "src"),
+    ("twinstack-link", "link/src"),
+    ("twinstack-identify", "identify/src"),
     ("hal-sim", "hal-sim/src"),
+    ("twinstack-cli", "cli/src"),
     ("twinstack-golden", "golden/src"),
     ("xtask", "xtask/src"),
 ];

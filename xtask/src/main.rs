@@ -22,6 +22,7 @@
 
 mod figures;
 mod graph;
+mod layers;
 
 use std::path::{Path, PathBuf};
 use std::process::{Command, ExitCode, Stdio};
@@ -29,7 +30,7 @@ use std::time::Instant;
 
 /// The firmware's target triple.
 const TARGET: &str = "thumbv7em-none-eabihf";
-/// A Windows target the host tool (`hal-sim`) must keep compiling for: `cargo check` only
+/// A Windows target the host crates (the `twinstack` tool and the libraries under it) must keep compiling for: `cargo check` only
 /// (no linker or C toolchain needed; serialport's Windows backend is plain Rust on
 /// `windows-sys`).
 const WINDOWS_TARGET: &str = "x86_64-pc-windows-gnu";
@@ -99,7 +100,7 @@ commands:
   setup   install what the tests need (thumbv7em and x86_64-pc-windows-gnu targets,
           qemu-system-arm, mdbook, a Python virtual environment), each only if missing
   test    setup, then every gate in order: tests (optimised, with overflow checks), fmt,
-          clippy (host and target), firmware builds, hal-sim checked for Windows, the Python
+          clippy (host and target), firmware builds, the host tool checked for Windows, the Python
           package (pip install ./python, pytest), rustdoc, the docs book and its links; stops at
           the first failure
   python  the Python package's gates alone (virtual environment, pip install ./python,
@@ -118,7 +119,8 @@ fn main() -> ExitCode {
         Some("python") => ensure_python_venv().and_then(|()| run_gates(python_gates())),
         Some("links") => check_links(),
         Some("figures") => figures::run(&root(), &std::env::args().skip(2).collect::<Vec<_>>()),
-        Some("graph") => graph::run(&root(), std::env::args().any(|a| a == "--quiet")),
+        Some("graph") => graph::run(&root(), std::env::args().any(|a| a == "--quiet"))
+            .and_then(|()| layers::check(&root())),
         Some("help" | "-h" | "--help") => {
             println!("{USAGE}");
             Ok(())
@@ -531,7 +533,7 @@ const TWINSTACK_BIN: [&str; 6] = [
     "--profile",
     HOST_PROFILE,
     "-p",
-    "hal-sim",
+    "twinstack-cli",
     "--bin",
     "twinstack",
 ];
@@ -544,7 +546,7 @@ fn gates() -> Vec<Gate> {
     // `cargo test` runs the library crates' doc tests too: no separate `--doc` run.
     let mut gates = vec![
         gate(
-            "module graph: no cycles (cargo xtask graph)",
+            "module graph and crate layers: no cycles, no dependency on a layer above (cargo xtask graph)",
             cargo(&["run", "--quiet", "-p", "xtask", "--", "graph", "--quiet"]),
         ),
         // Every host test runs optimised with debug assertions and overflow checks (the
@@ -569,13 +571,13 @@ fn gates() -> Vec<Gate> {
             cargo(&["test", "--profile", HOST_PROFILE, "--test", "irq_bench"]),
         ),
         gate(
-            "the lab stage's variants (cargo test --profile host-opt -p hal-sim --test stage_variants -- --ignored)",
+            "the lab stage's variants (cargo test --profile host-opt -p twinstack-cli --test stage_variants -- --ignored)",
             cargo(&[
                 "test",
                 "--profile",
                 HOST_PROFILE,
                 "-p",
-                "hal-sim",
+                "twinstack-cli",
                 "--test",
                 "stage_variants",
                 "--",
@@ -623,8 +625,10 @@ fn gates() -> Vec<Gate> {
     // The host tool on Windows: the Unix-socket transport is `cfg(unix)`; everything else
     // (serial ports, TCP to an emulator, the simulated board) must compile there.
     gates.push(gate(
-        format!("hal-sim for Windows (cargo check -p hal-sim --target {WINDOWS_TARGET})"),
-        target_cargo(&["check", "-p", "hal-sim", "--target", WINDOWS_TARGET]),
+        format!(
+            "the host tool for Windows (cargo check -p twinstack-cli --target {WINDOWS_TARGET})"
+        ),
+        target_cargo(&["check", "-p", "twinstack-cli", "--target", WINDOWS_TARGET]),
     ));
     gates.extend(python_gates());
     let mut doc = cargo(&["doc", "--workspace", "--no-deps"]);
@@ -701,7 +705,7 @@ fn python_gates() -> Vec<Gate> {
             pip(&["--force-reinstall", "--no-deps", "./python"]),
         ),
         gate(
-            "Python: the twinstack binary the tests start (cargo build --profile host-opt -p hal-sim)",
+            "Python: the twinstack binary the tests start (cargo build --profile host-opt -p twinstack-cli)",
             cargo(&[&["build"][..], &TWINSTACK_BIN].concat()),
         ),
         gate("Python: pytest python/tests", pytest),
