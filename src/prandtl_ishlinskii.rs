@@ -110,7 +110,7 @@ struct PairConfig {
 /// Precision: the input and the operators' outputs are Q1.15 (a 16-bit converter's step,
 /// 1 LSB16); the input is rounded to that grid and the thresholds too, so an output differs
 /// from the `f64` model by up to about half a step times the model's slope, plus the
-/// thresholds' rounding weighted by the weights (measured in `hal_sim::accuracy`).
+/// thresholds' rounding weighted by the weights (measured in `twinstack_identify::accuracy`).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct PlayOperatorBank {
     len: usize,
@@ -632,7 +632,7 @@ mod tests {
                 let x = clamp_full_scale(u0 / 2 + ((k * 7919) % 2001 - 1000) * (1 << 20));
                 let target = f.step(&mut fs, x);
                 let drive = inv.step(&mut is, target);
-                // 8 LSB16: the inverse's error bound for these weights (see hal_sim::accuracy).
+                // 8 LSB16: the inverse's error bound for these weights (see twinstack_identify::accuracy).
                 assert!(
                     (drive - x).abs() < 8 << 14,
                     "u0 {u0} step {k}: {drive} vs {x}"

@@ -120,10 +120,19 @@ pub fn check(root: &Path) -> Result<(), String> {
     }
     let problems = violations(&manifests);
     if problems.is_empty() {
-        let names: Vec<&str> = LAYERS.iter().map(|(n, ..)| *n).collect();
+        let mut layers: Vec<String> = Vec::new();
+        for (i, (name, _, layer)) in LAYERS.iter().enumerate() {
+            match layers.last_mut() {
+                Some(last) if i > 0 && LAYERS[i - 1].2 == *layer => {
+                    last.push_str(" + ");
+                    last.push_str(name);
+                }
+                _ => layers.push((*name).to_string()),
+            }
+        }
         println!(
             "crate layers: each depends only on those below it ({})",
-            names.join(" < ")
+            layers.join(" < ")
         );
         Ok(())
     } else {
