@@ -4,7 +4,7 @@
 //! * On the host: every set's stored inputs go through `twinstack_golden::replay` (the
 //!   library's `Controller::tick`); every output must equal the stored one. A difference means
 //!   the tick's behaviour changed: if that was intended, regenerate the vectors (the
-//!   `f64`-reference check in `hal-sim/tests/golden.rs` then shows the new ones are right).
+//!   `f64`-reference check in `identify/tests/golden.rs` then shows the new ones are right).
 //! * On the target: the `golden-replay` image (`qemu-images/src/bin/golden-replay/`) runs the
 //!   same replay in QEMU's netduinoplus2 (STM32F405, Cortex-M4F) and reports, per set, the fingerprint of
 //!   the configuration it built, the CRC-32 of its outputs and the first differing tick; they
@@ -16,7 +16,7 @@ use std::time::Duration;
 use twinstack::settings::{Mode, Model};
 use twinstack_golden::{config_fingerprint, replay, ReplayResult, VectorSet, VectorSets};
 
-const REGENERATE: &str = "cargo run --release -p hal-sim -- golden --write";
+const REGENERATE: &str = "cargo run --release -p twinstack-cli -- golden --write";
 
 fn vector_file() -> Vec<u8> {
     let path = support::workspace_root().join("tests/golden/vectors.bin");

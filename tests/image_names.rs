@@ -2,7 +2,7 @@
 //! build-fw` and `cargo build-emu` never write the same file, and the wrong one is never
 //! booted by mistake). Checked where the names are decided: the cargo aliases and the `[[bin]]`
 //! targets. (That each image reports which it is, is checked by `tests/emulator.rs` and
-//! `hal-sim/tests/emulator_link.rs` in QEMU, and by the handler's status test here.)
+//! `cli/tests/emulator_link.rs` in QEMU, and by the handler's status test here.)
 
 use std::path::Path;
 

@@ -427,7 +427,7 @@ fn ki_has_one_unit_in_the_user_docs() {
 #[test]
 fn the_readme_says_how_to_install_the_tool() {
     let readme = repo_file("README.md");
-    assert!(readme.contains("cargo install --path hal-sim"), "README");
+    assert!(readme.contains("cargo install --path cli"), "README");
     // What it installs is the `twinstack` command, and that is the name it answers to.
     assert!(readme.contains("twinstack --help"), "README");
     let (out, _) = text(&run(&["--help"]));

@@ -127,6 +127,21 @@ fn open_sim(baud: u32, link: LinkDelay) -> Result<Box<dyn Transport + Send>, Por
     Ok(Box::new(device))
 }
 
+/// The serial ports the system reports (`serialport::available_ports`), as
+/// `"available serial ports: /dev/ttyUSB0, /dev/ttyACM0"` or `"no serial ports found"`, each
+/// followed by the other kinds of port.
+pub fn available_ports() -> String {
+    let names: Vec<String> = serialport::available_ports()
+        .map(|ports| ports.into_iter().map(|p| p.port_name).collect())
+        .unwrap_or_default();
+    let serial = if names.is_empty() {
+        "no serial ports found".to_string()
+    } else {
+        format!("available serial ports: {}", names.join(", "))
+    };
+    format!("{serial} (other ports: tcp:HOST:PORT, unix:SOCKET, sim)")
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -153,19 +168,4 @@ mod tests {
             Ok(_) => panic!("connected to a socket that does not exist"),
         }
     }
-}
-
-/// The serial ports the system reports (`serialport::available_ports`), as
-/// `"available serial ports: /dev/ttyUSB0, /dev/ttyACM0"` or `"no serial ports found"`, each
-/// followed by the other kinds of port.
-pub fn available_ports() -> String {
-    let names: Vec<String> = serialport::available_ports()
-        .map(|ports| ports.into_iter().map(|p| p.port_name).collect())
-        .unwrap_or_default();
-    let serial = if names.is_empty() {
-        "no serial ports found".to_string()
-    } else {
-        format!("available serial ports: {}", names.join(", "))
-    };
-    format!("{serial} (other ports: tcp:HOST:PORT, unix:SOCKET, sim)")
 }

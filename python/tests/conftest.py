@@ -1,7 +1,7 @@
 """Fixtures: the repository, the `twinstack` binary, a virtual board process, boards of both kinds.
 
 The `twinstack` binary is `$TWINSTACK_HAL_SIM` when set (`cargo xtask test` builds it and sets
-it), else built here with `cargo build -p hal-sim`.
+it), else built here with `cargo build -p twinstack-cli`.
 """
 
 import json
@@ -19,7 +19,7 @@ REPO = pathlib.Path(__file__).resolve().parents[2]
 
 def _build_hal_sim() -> str:
     out = subprocess.run(
-        ["cargo", "build", "-p", "hal-sim", "--bin", "twinstack", "--message-format=json"],
+        ["cargo", "build", "-p", "twinstack-cli", "--bin", "twinstack", "--message-format=json"],
         cwd=REPO,
         check=True,
         stdout=subprocess.PIPE,

@@ -1,6 +1,7 @@
 """twinstack: the lab's Python interface to a twinstack piezo board.
 
-Built from the project's own host library (``hal-sim``) with PyO3: the same protocol client,
+Built from the project's own host libraries (``twinstack-link``, ``twinstack-identify``,
+``hal-sim``) with PyO3: the same protocol client,
 in-process simulated board, identification and parameter file as the ``twinstack`` command line.
 
 * :class:`Board` -- a board on a serial port, ``tcp:HOST:PORT`` (a virtual board, QEMU) or

@@ -1,5 +1,5 @@
 //! A laboratory stage that is deliberately **not** a member of the project's model family: the
-//! plant the tracking harness ([`twinstack_cli::tracking`]) identifies and then tracks on, open loop.
+//! plant the tracking harness (`twinstack lab-stage`) identifies and then tracks on, open loop.
 //!
 //! The models the project fits are the symmetric Prandtl–Ishlinskii (P–I), Duhem, a
 //! generalised P–I (P–I followed by a piecewise-linear dead-zone output map), Bouc–Wen, and a

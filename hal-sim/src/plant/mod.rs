@@ -7,7 +7,8 @@
 //! * [`twinstack_identify::zero_order_hold`] — the exact discretisation both mechanical models are advanced with.
 //! * [`lab_stage`] — a single-input laboratory stage built *outside* the project's model family
 //!   (asymmetric Preisach hysteresis, logarithmic creep, flexure nonlinearity, resonance,
-//!   sensor noise): the plant the tracking harness ([`twinstack_cli::tracking`]) evaluates models on.
+//!   sensor noise): the plant the tracking harness (`twinstack lab-stage`) evaluates models
+//!   on.
 //! * [`ball_screw`] — the coarse stage of a dual-actuated axis (stepper, screw, backlash,
 //!   friction, encoder) that carries the piezo stage.
 //!

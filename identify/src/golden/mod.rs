@@ -12,7 +12,7 @@
 //! * [`reference_tick`] — the `f64` reference of the whole tick and the check of stored
 //!   outputs against it.
 //!
-//! `cargo run --release -p hal-sim -- golden --write` regenerates `tests/golden/vectors.bin`.
+//! `cargo run --release -p twinstack-cli -- golden --write` regenerates `tests/golden/vectors.bin`.
 
 pub mod generate;
 pub mod reference_tick;
@@ -33,4 +33,4 @@ pub fn default_dir() -> PathBuf {
 pub const VECTOR_FILE: &str = "vectors.bin";
 
 /// The command that regenerates the vectors (quoted in every failure message).
-pub const REGENERATE: &str = "cargo run --release -p hal-sim -- golden --write";
+pub const REGENERATE: &str = "cargo run --release -p twinstack-cli -- golden --write";

@@ -77,7 +77,7 @@ use twinstack_golden::{Recipe, VectorSet};
 /// Largest |stored drive − reference drive|, LSB16. The P–I banks run their operators on a
 /// Q1.15 grid (1 LSB16 a step; see `twinstack_identify::accuracy`): an inverse's error is up to its
 /// gain `Σ|w'|` LSB16 in the worst case; on the sets' identified models it measures 1.07
-/// (`cargo run --release -p hal-sim -- golden`), and 1.5 leaves a margin. The scalar models
+/// (`cargo run --release -p twinstack-cli -- golden`), and 1.5 leaves a margin. The scalar models
 /// (Duhem, Bouc–Wen, creep) stay below 0.03.
 pub const DRIVE_BOUND_LSB16: f64 = 1.5;
 /// Largest |stored estimate − reference observer|, LSB16: the P–I observers' Q1.15 grid (half
