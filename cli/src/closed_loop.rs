@@ -14,7 +14,7 @@
 //!    resonance notch, and measure the ringing.
 //!
 //! The feedback's gains are the same in every run at a rate: by default ([`Gains::Tuned`])
-//! those `hal-sim tune` picks at that rate on the simulated board (its sweep measured through
+//! those `twinstack tune` picks at that rate on the simulated board (its sweep measured through
 //! the protocol, fitted and designed: [`tuned_feedback`]); with [`Gains::Fixed`], a fixed PI
 //! with the notch at the stage's resonance ([`feedback_settings`]). The steps run the same
 //! gains with and without their notch.
@@ -62,7 +62,7 @@ pub struct ClosedLoopOptions {
 /// Which feedback gains the study runs.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub enum Gains {
-    /// What `hal-sim tune` picks at each rate on the simulated board ([`tuned_feedback`]).
+    /// What `twinstack tune` picks at each rate on the simulated board ([`tuned_feedback`]).
     #[default]
     Tuned,
     /// The fixed PI with the notch of [`feedback_settings`].
@@ -247,7 +247,7 @@ pub fn feedback_settings(rate: f64, notch: bool) -> FeedbackSettings {
     }
 }
 
-/// The feedback `hal-sim tune` picks at `rate` on the simulated board (the paper's stage:
+/// The feedback `twinstack tune` picks at `rate` on the simulated board (the paper's stage:
 /// sweep measured through the protocol, resonance and delay fitted, PI and notch designed to
 /// its default margins), its gains carried from the board's normalised units (its 70 V input
 /// half span onto ±45 µm) to those of `model`'s scaling.

@@ -184,7 +184,7 @@ impl LearnOptions {
 /// The learning's robustness corner with input shaping, Hz.
 pub const SHAPED_CUTOFF_HZ: f64 = 23_000.0;
 
-/// The input shaping for a resonance at `resonance_hz` with damping `zeta` (what `hal-sim
+/// The input shaping for a resonance at `resonance_hz` with damping `zeta` (what `twinstack
 /// tune` fits): a notch whose zeros are the resonance's poles (`depth = 2·Q·ζ`) and whose
 /// poles are critically damped (`Q = ½`). The shaped stage's response has the notch's poles
 /// where the resonance was.

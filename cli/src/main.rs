@@ -1,5 +1,5 @@
 //! `twinstack`, the command-line tool of the twinstack board (see `twinstack --help`): the
-//! binary of the `hal-sim` package.
+//! binary of the `twinstack-cli` package.
 
 use clap::{Parser, Subcommand};
 use twinstack_cli::commands;

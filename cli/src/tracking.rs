@@ -502,10 +502,7 @@ pub fn print_variants(
 
 /// The name `--model` gives `kind`.
 pub fn model_name(kind: ModelKind) -> String {
-    use clap::ValueEnum;
-    kind.to_possible_value()
-        .map(|v| v.get_name().to_string())
-        .unwrap_or_else(|| format!("{kind:?}").to_lowercase())
+    kind.name().to_string()
 }
 
 /// How a row's model is identified.

@@ -15,7 +15,7 @@ use support::fake_board::FakeBoard;
 #[path = "../../link/tests/support/mod.rs"]
 mod support;
 
-fn hal_sim(args: &[&str]) -> Output {
+fn twinstack_bin(args: &[&str]) -> Output {
     Command::new(env!("CARGO_BIN_EXE_twinstack"))
         .args(args)
         .output()
@@ -31,7 +31,7 @@ fn text(o: &Output) -> (String, String) {
 
 /// Asserts a clean refusal: exit code 1 or 2, one `error:` line containing `needle`.
 fn refused(args: &[&str], needle: &str) {
-    let o = hal_sim(args);
+    let o = twinstack_bin(args);
     let (out, err) = text(&o);
     assert!(
         matches!(o.status.code(), Some(1) | Some(2)),
@@ -119,7 +119,7 @@ fn status_and_stream_over_a_pty() {
     // loaded machine (60 ms was seen) does not run the queue dry; the 2 000-setpoint file
     // still needs the credit flow (a stream that runs dry exits with 3, tested below).
     let pty = PtyBoard::start(FakeBoard::new(1000, 5_000.0));
-    let o = hal_sim(&["status", "--port", &pty.path]);
+    let o = twinstack_bin(&["status", "--port", &pty.path]);
     let (out, err) = text(&o);
     assert!(o.status.success(), "{out}{err}");
     assert!(out.contains("queue_fill 0\ncredits 1000\n"), "{out}");
@@ -134,7 +134,7 @@ fn status_and_stream_over_a_pty() {
         want.push((v * 32768.0).round() as i16);
     }
     let data = write(dir.path(), "sp.csv", &csv);
-    let o = hal_sim(&[
+    let o = twinstack_bin(&[
         "stream",
         "--port",
         &pty.path,
@@ -169,7 +169,7 @@ fn a_stream_that_underran_exits_with_code_3() {
         want.push((v * 32768.0).round() as i16);
     }
     let data = write(dir.path(), "fast.csv", &csv);
-    let o = hal_sim(&["stream", "--port", &pty.path, "--data", &data]);
+    let o = twinstack_bin(&["stream", "--port", &pty.path, "--data", &data]);
     let (out, err) = text(&o);
     assert_eq!(o.status.code(), Some(3), "{out}{err}");
     assert!(out.contains("streamed 3000 setpoints"), "{out}");
@@ -178,7 +178,7 @@ fn a_stream_that_underran_exits_with_code_3() {
     assert!(err.contains("underrun"), "{err}");
     assert_eq!(pty.board.lock().unwrap().played, want);
 
-    let o = hal_sim(&["stream", "--help"]);
+    let o = twinstack_bin(&["stream", "--help"]);
     let (out, _) = text(&o);
     assert!(o.status.success());
     for line in [
@@ -317,7 +317,7 @@ fn bad_parameter_files_and_flags_are_refused_before_anything_is_sent() {
 #[test]
 fn every_command_runs_against_the_simulated_board() {
     let dir = tempfile::tempdir().unwrap();
-    let o = hal_sim(&["status", "--port", "sim"]);
+    let o = twinstack_bin(&["status", "--port", "sim"]);
     let (out, err) = text(&o);
     assert!(o.status.success(), "{out}{err}");
     assert!(out.contains("tick_rate_hz 50000\nmode Bypass\n"), "{out}");
@@ -334,7 +334,7 @@ fn every_command_runs_against_the_simulated_board() {
         ));
     }
     let data = write(dir.path(), "sine.csv", &csv);
-    let o = hal_sim(&["stream", "--port", "sim", "--data", &data]);
+    let o = twinstack_bin(&["stream", "--port", "sim", "--data", &data]);
     let (out, err) = text(&o);
     assert!(o.status.success(), "{out}{err}");
     assert!(
@@ -357,7 +357,7 @@ fn every_command_runs_against_the_simulated_board() {
     };
     let file = twinstack_identify::param_file::ParamFile::from_model(&model, "um", None);
     let params = write(dir.path(), "p.json", &file.to_json());
-    let o = hal_sim(&[
+    let o = twinstack_bin(&[
         "load",
         "--port",
         "sim",
@@ -375,7 +375,7 @@ fn every_command_runs_against_the_simulated_board() {
     );
 
     // `params` reads back the settings in force: the simulated board's, as JSON.
-    let o = hal_sim(&["params", "--port", "sim"]);
+    let o = twinstack_bin(&["params", "--port", "sim"]);
     let (out, err) = text(&o);
     assert!(o.status.success(), "{out}{err}");
     let read: twinstack::settings::Settings = serde_json::from_str(&out).expect("JSON settings");
@@ -384,17 +384,17 @@ fn every_command_runs_against_the_simulated_board() {
         hal_sim::sim_device::SimDeviceConfig::paper_settings(twinstack::settings::Mode::Bypass)
     );
     // `mode` switches; `recall` reloads the stored settings.
-    let o = hal_sim(&["mode", "--port", "sim", "open-loop"]);
+    let o = twinstack_bin(&["mode", "--port", "sim", "open-loop"]);
     let (out, err) = text(&o);
     assert!(o.status.success(), "{out}{err}");
     assert!(out.contains("mode OpenLoop"), "{out}");
-    let o = hal_sim(&["recall", "--port", "sim"]);
+    let o = twinstack_bin(&["recall", "--port", "sim"]);
     let (out, err) = text(&o);
     assert!(o.status.success(), "{out}{err}");
     assert!(out.contains("recalled the stored settings"), "{out}");
 
     let rec = dir.path().join("rec.csv");
-    let o = hal_sim(&[
+    let o = twinstack_bin(&[
         "record",
         "--port",
         "sim",
@@ -431,7 +431,7 @@ fn every_command_runs_against_the_simulated_board() {
         ][..],
         &["stop", "--port", "sim"][..],
     ] {
-        let o = hal_sim(args);
+        let o = twinstack_bin(args);
         let (out, err) = text(&o);
         assert!(o.status.success(), "{args:?}: {out}{err}");
     }

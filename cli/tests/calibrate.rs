@@ -17,7 +17,7 @@ use twinstack_link::client::Client;
 #[path = "support/virtual_board_process.rs"]
 mod virtual_board_process;
 
-fn hal_sim(args: &[&str]) -> Output {
+fn twinstack_bin(args: &[&str]) -> Output {
     Command::new(env!("CARGO_BIN_EXE_twinstack"))
         .env_remove("TWINSTACK_PORT")
         .args(args)
@@ -48,7 +48,7 @@ fn the_lab_workflow_calibrates_the_virtual_stage_below_one_percent_then_streams_
     let params = dir.path().join("stage.json");
 
     // 1. calibrate: one JSON object with the figures.
-    let out = ok(hal_sim(&[
+    let out = ok(twinstack_bin(&[
         "calibrate",
         "--port",
         &port,
@@ -88,10 +88,11 @@ fn the_lab_workflow_calibrates_the_virtual_stage_below_one_percent_then_streams_
 
     // 2. The board runs the calibration: the settings read back are the file's, in open loop.
     let read_back: Settings =
-        serde_json::from_str(&ok(hal_sim(&["params", "--port", &port]))).expect("params JSON");
+        serde_json::from_str(&ok(twinstack_bin(&["params", "--port", &port])))
+            .expect("params JSON");
     assert_eq!(read_back, file.settings);
     let status: serde_json::Value =
-        serde_json::from_str(&ok(hal_sim(&["status", "--port", &port, "--json"]))).unwrap();
+        serde_json::from_str(&ok(twinstack_bin(&["status", "--port", &port, "--json"]))).unwrap();
     assert_eq!(status["mode"], "open-loop");
 
     // 3. stream a 100-sample file (µm, through the file's ranges): one slow cosine cycle over
@@ -109,7 +110,7 @@ fn the_lab_workflow_calibrates_the_virtual_stage_below_one_percent_then_streams_
     let data = dir.path().join("setpoints.csv");
     std::fs::write(&data, text).unwrap();
     let run = dir.path().join("run.csv");
-    let out = ok(hal_sim(&[
+    let out = ok(twinstack_bin(&[
         "stream",
         "--port",
         &port,
@@ -162,7 +163,7 @@ fn the_lab_workflow_calibrates_the_virtual_stage_below_one_percent_then_streams_
 
     // 4. A later `record` on the same board, four signals, in physical units.
     let now = dir.path().join("now.csv");
-    let out = ok(hal_sim(&[
+    let out = ok(twinstack_bin(&[
         "record",
         "--port",
         &port,
@@ -412,7 +413,7 @@ fn bad_options_are_refused_naming_the_option() {
     )
     .unwrap_err();
     assert!(e.to_string().contains("decay_cycles"), "{e}");
-    let o = hal_sim(&["calibrate", "--port", "sim", "--out", "x.png"]);
+    let o = twinstack_bin(&["calibrate", "--port", "sim", "--out", "x.png"]);
     assert_eq!(o.status.code(), Some(1));
     assert!(String::from_utf8_lossy(&o.stderr).contains("must not end in .png"));
 }

@@ -9,7 +9,7 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Output, Stdio};
 use std::time::{Duration, Instant};
 
-fn hal_sim() -> Command {
+fn twinstack_bin() -> Command {
     let mut c = Command::new(env!("CARGO_BIN_EXE_twinstack"));
     // Tests choose their own port.
     c.env_remove("TWINSTACK_PORT");
@@ -17,7 +17,7 @@ fn hal_sim() -> Command {
 }
 
 fn run(args: &[&str]) -> Output {
-    hal_sim().args(args).output().expect("twinstack runs")
+    twinstack_bin().args(args).output().expect("twinstack runs")
 }
 
 fn text(o: &Output) -> (String, String) {
@@ -70,7 +70,7 @@ fn each_exit_code_is_the_documented_one() {
 
 #[test]
 fn the_port_comes_from_twinstack_port_and_missing_ports_are_listed() {
-    let o = hal_sim()
+    let o = twinstack_bin()
         .args(["status"])
         .env("TWINSTACK_PORT", "sim")
         .output()
@@ -79,7 +79,7 @@ fn the_port_comes_from_twinstack_port_and_missing_ports_are_listed() {
     assert!(o.status.success(), "{err}");
     assert!(out.starts_with("image simulator\n"), "{out}");
     // --port wins over the variable.
-    let o = hal_sim()
+    let o = twinstack_bin()
         .args(["status", "--port", "sim"])
         .env("TWINSTACK_PORT", "/dev/no-such-tty")
         .output()
@@ -220,7 +220,7 @@ impl Drop for PtyBoard {
 #[cfg(unix)]
 fn pty_board() -> PtyBoard {
     use std::io::BufRead;
-    let mut child = hal_sim()
+    let mut child = twinstack_bin()
         .args(["virtual-board", "--listen", "pty", "--speed", "4"])
         .stdout(Stdio::piped())
         .stderr(Stdio::null())
@@ -287,7 +287,7 @@ fn an_ordinary_user_can_open_the_virtual_boards_pty_again_and_again() {
                 .arg(env!("CARGO_BIN_EXE_twinstack"));
             c
         } else {
-            hal_sim()
+            twinstack_bin()
         };
         let o = c
             .args(["status", "--port", &board.path])
@@ -339,7 +339,7 @@ fn progress_bars_only_on_a_terminal() {
     // A terminal: the bar.
     let (mut master, slave) = serialport::TTYPort::pair().expect("pty pair");
     let stderr = unsafe { std::fs::File::from_raw_fd(slave.into_raw_fd()) };
-    let mut child = hal_sim()
+    let mut child = twinstack_bin()
         .args(args)
         .stdout(Stdio::null())
         .stderr(Stdio::from(stderr))
@@ -439,7 +439,7 @@ fn the_readme_says_how_to_install_the_tool() {
 #[cfg(unix)]
 #[test]
 fn a_closed_pipe_on_stdout_ends_the_tool_quietly() {
-    let mut child = hal_sim()
+    let mut child = twinstack_bin()
         .args([
             "identify",
             "--data",

@@ -153,7 +153,7 @@ fn study_options() -> ClosedLoopOptions {
     }
 }
 
-/// The README's table, on the gains `hal-sim tune` picks at each rate: feedforward + feedback
+/// The README's table, on the gains `twinstack tune` picks at each rate: feedforward + feedback
 /// beats feedforward alone and feedback alone, on max and on RMS, for both waveforms at both
 /// rates; and every compensated configuration beats none. The tuned gains do better than the
 /// fixed PI (worst feedforward + feedback max 0.77 %): within 0.6 % on every row (the goal,

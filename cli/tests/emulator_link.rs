@@ -2,7 +2,7 @@
 //! `Client`, streamer, parameter load and recorder read-back as with a real board (USART1 on a
 //! Unix socket, `--port unix:SOCK`): status, a parameter load from an `identify` file, a
 //! deliberately corrupted frame NACKed with nothing lost, a streamed record played in full,
-//! and a recorder capture that holds what was streamed; then the `hal-sim` binary itself.
+//! and a recorder capture that holds what was streamed; then the `twinstack` binary itself.
 //!
 //! Builds the `emulator` image into `target/firmware` and installs the Rust target and
 //! `qemu-system-arm` if they are missing (the root crate's `tests/support`).
@@ -337,8 +337,8 @@ fn the_board_image_in_qemu_is_named_in_the_no_response_error() {
     );
 }
 
-/// Runs the `hal-sim` binary with `args`; returns its exit code, stdout and stderr.
-fn hal_sim(args: &[&str]) -> (Option<i32>, String, String) {
+/// Runs the `twinstack` binary with `args`; returns its exit code, stdout and stderr.
+fn twinstack_bin(args: &[&str]) -> (Option<i32>, String, String) {
     let o = std::process::Command::new(env!("CARGO_BIN_EXE_twinstack"))
         .env_remove("TWINSTACK_PORT")
         .args(args)
@@ -362,8 +362,8 @@ fn the_lab_workflow_runs_command_by_command_on_the_emulated_firmware() {
     let port = format!("unix:{}", qemu.socket.display());
     let dir = tempfile::tempdir().unwrap();
     let ok = |args: &[&str]| {
-        let (code, out, err) = hal_sim(args);
-        assert_eq!(code, Some(0), "hal-sim {args:?}:\n{out}{err}");
+        let (code, out, err) = twinstack_bin(args);
+        assert_eq!(code, Some(0), "twinstack {args:?}:\n{out}{err}");
         out
     };
 
@@ -453,7 +453,7 @@ fn the_lab_workflow_runs_command_by_command_on_the_emulated_firmware() {
 
     // calibrate: a short excitation; QEMU's ADC does not measure a stage.
     let out_file = dir.path().join("calibrated.json");
-    let (code, out, err) = hal_sim(&[
+    let (code, out, err) = twinstack_bin(&[
         "calibrate",
         "--port",
         &port,
@@ -608,8 +608,8 @@ fn tune_runs_its_sweep_on_the_emulated_firmware_and_stops_cleanly_without_a_stag
     let qemu = boot();
     drop(connect(&qemu));
     let port = format!("unix:{}", qemu.socket.display());
-    let (_, before, _) = hal_sim(&["params", "--port", &port]);
-    let (code, out, err) = hal_sim(&["tune", "--port", &port, "--load", "--json"]);
+    let (_, before, _) = twinstack_bin(&["params", "--port", &port]);
+    let (code, out, err) = twinstack_bin(&["tune", "--port", &port, "--load", "--json"]);
     eprintln!("tune on the emulator: exit {code:?}\n{out}{err}");
     assert_eq!(code, Some(1), "{out}{err}");
     assert!(!err.contains("panicked"), "{err}");
@@ -617,9 +617,9 @@ fn tune_runs_its_sweep_on_the_emulated_firmware_and_stops_cleanly_without_a_stag
         err.starts_with("error: ") && err.contains("sensor did not move"),
         "the error says why: {err}"
     );
-    let (_, after, _) = hal_sim(&["params", "--port", &port]);
+    let (_, after, _) = twinstack_bin(&["params", "--port", &port]);
     assert_eq!(after, before, "nothing was loaded");
-    let (_, status, _) = hal_sim(&["status", "--port", &port, "--json"]);
+    let (_, status, _) = twinstack_bin(&["status", "--port", &port, "--json"]);
     assert!(status.contains("\"mode\":\"bypass\""), "{status}");
 }
 

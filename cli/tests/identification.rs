@@ -33,7 +33,7 @@ fn ok(args: &[&str]) -> String {
     let out = run(args);
     assert!(
         out.status.success(),
-        "hal-sim {args:?} failed:\n{}\n{}",
+        "twinstack {args:?} failed:\n{}\n{}",
         String::from_utf8_lossy(&out.stdout),
         String::from_utf8_lossy(&out.stderr)
     );
@@ -201,7 +201,7 @@ fn csv_with(dir: &Path, name: &str, edit: impl FnOnce(&mut Vec<String>)) -> Path
 fn fails(args: &[&str], must_not_exist: &[&Path]) -> String {
     let out = run(args);
     let err = String::from_utf8_lossy(&out.stderr).into_owned();
-    assert!(!out.status.success(), "hal-sim {args:?} should fail");
+    assert!(!out.status.success(), "twinstack {args:?} should fail");
     assert_eq!(err.trim().lines().count(), 1, "one-line error, got: {err}");
     for p in must_not_exist {
         assert!(!p.exists(), "{} written on failure", p.display());

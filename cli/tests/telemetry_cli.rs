@@ -8,7 +8,7 @@ use std::process::{Command, Output};
 #[path = "support/virtual_board_process.rs"]
 mod virtual_board_process;
 
-fn hal_sim(args: &[&str]) -> Output {
+fn twinstack_bin(args: &[&str]) -> Output {
     Command::new(env!("CARGO_BIN_EXE_twinstack"))
         .env_remove("TWINSTACK_PORT")
         .args(args)
@@ -45,7 +45,7 @@ fn telemetry_and_a_watched_stream_on_the_virtual_board() {
 
     // Two signals at 10 kHz for 0.3 s: every sample, in physical units, 100 µs apart.
     let csv = dir.path().join("t.csv");
-    let o = hal_sim(&[
+    let o = twinstack_bin(&[
         "telemetry",
         "--port",
         &port,
@@ -83,7 +83,7 @@ fn telemetry_and_a_watched_stream_on_the_virtual_board() {
     }
     std::fs::write(&data, file).unwrap();
     let watched = dir.path().join("s.csv");
-    let o = hal_sim(&[
+    let o = twinstack_bin(&[
         "stream",
         "--port",
         &port,
@@ -132,7 +132,7 @@ fn lost_samples_are_reported_and_exit_1() {
     // not fit, the board's queue overflows and the frames announce the gaps.
     let dir = tempfile::tempdir().unwrap();
     let csv = dir.path().join("t.csv");
-    let o = hal_sim(&[
+    let o = twinstack_bin(&[
         "telemetry",
         "--port",
         "sim",

@@ -196,7 +196,7 @@ fn load_puts_the_tuned_feedback_on_the_board() {
     assert_eq!(client.status().unwrap().mode(), mode);
 }
 
-fn hal_sim(args: &[&str]) -> Output {
+fn twinstack_bin(args: &[&str]) -> Output {
     Command::new(env!("CARGO_BIN_EXE_twinstack"))
         .env_remove("TWINSTACK_PORT")
         .args(args)
@@ -223,7 +223,7 @@ fn json(o: Output) -> serde_json::Value {
 fn the_command_tunes_the_simulated_and_the_virtual_board() {
     let dir = tempfile::tempdir().unwrap();
     let png = dir.path().join("bode.png");
-    let v = json(hal_sim(&[
+    let v = json(twinstack_bin(&[
         "tune",
         "--port",
         "sim",
@@ -245,7 +245,7 @@ fn the_command_tunes_the_simulated_and_the_virtual_board() {
     assert!((v["fit"]["resonance_hz"].as_f64().unwrap() / 21_804.0 - 1.0).abs() < 0.005);
     assert!(std::fs::metadata(&png).unwrap().len() > 10_000);
 
-    let bad = hal_sim(&[
+    let bad = twinstack_bin(&[
         "tune", "--port", "sim", "--rate", "100k", "--kp", "0.1", "--ki", "20000",
     ]);
     assert_eq!(bad.status.code(), Some(1));
@@ -253,9 +253,11 @@ fn the_command_tunes_the_simulated_and_the_virtual_board() {
     assert!(err.contains("unstable"), "{err}");
 
     let (_board, port) = virtual_board_process::start(&["--speed", "0"]);
-    let v = json(hal_sim(&["tune", "--port", &port, "--load", "--json"]));
+    let v = json(twinstack_bin(&[
+        "tune", "--port", &port, "--load", "--json",
+    ]));
     assert_eq!(v["loaded"], true);
-    let params = hal_sim(&["params", "--port", &port]);
+    let params = twinstack_bin(&["params", "--port", &port]);
     let settings: serde_json::Value =
         serde_json::from_slice(&params.stdout).expect("params prints JSON");
     assert_eq!(

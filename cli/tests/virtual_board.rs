@@ -252,7 +252,7 @@ impl Drop for Binary {
     }
 }
 
-fn hal_sim(args: &[&str]) -> std::process::Output {
+fn twinstack_bin(args: &[&str]) -> std::process::Output {
     Command::new(env!("CARGO_BIN_EXE_twinstack"))
         .args(args)
         .output()
@@ -298,7 +298,7 @@ fn the_cli_serves_one_board_to_successive_commands() {
         .unwrap_or_else(|| panic!("no address in {line:?}"));
     assert!(!port.ends_with(":0"), "{line}");
 
-    let o = hal_sim(&["status", "--port", port]);
+    let o = twinstack_bin(&["status", "--port", port]);
     let out = String::from_utf8_lossy(&o.stdout).into_owned();
     assert!(
         o.status.success(),
@@ -308,11 +308,11 @@ fn the_cli_serves_one_board_to_successive_commands() {
     assert_eq!(status_field(&out, "mode"), "Bypass");
     let ticks: u64 = status_field(&out, "ticks").parse().unwrap();
 
-    let o = hal_sim(&["mode", "open-loop", "--port", port]);
+    let o = twinstack_bin(&["mode", "open-loop", "--port", port]);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
 
     // The next command finds the mode the last one set, on a board that kept running.
-    let o = hal_sim(&["status", "--port", port]);
+    let o = twinstack_bin(&["status", "--port", port]);
     let out = String::from_utf8_lossy(&o.stdout).into_owned();
     assert!(
         o.status.success(),
@@ -333,7 +333,7 @@ fn the_cli_refuses_a_listen_address_that_is_not_tcp() {
             "--speed",
         ),
     ] {
-        let o = hal_sim(args);
+        let o = twinstack_bin(args);
         let err = String::from_utf8_lossy(&o.stderr);
         assert_eq!(o.status.code(), Some(1), "{args:?}: {err}");
         assert!(err.contains(needle), "{args:?}: {err}");
@@ -366,7 +366,7 @@ fn a_streamed_run_is_recorded_with_four_signals_in_physical_units() {
     let data = dir.path().join("sine.csv");
     std::fs::write(&data, text).unwrap();
     let out = dir.path().join("run.csv");
-    let o = hal_sim(&[
+    let o = twinstack_bin(&[
         "stream",
         "--port",
         &port,
@@ -487,7 +487,7 @@ fn a_capture_armed_on_the_waveform_start_is_fetched_by_a_later_command() {
         );
         stdout
     };
-    let armed = ok(hal_sim(&[
+    let armed = ok(twinstack_bin(&[
         "record",
         "--port",
         &port,
@@ -502,7 +502,7 @@ fn a_capture_armed_on_the_waveform_start_is_fetched_by_a_later_command() {
         "--arm-only",
     ]));
     assert!(armed.contains("--fetch"), "{armed}");
-    ok(hal_sim(&[
+    ok(twinstack_bin(&[
         "waveform",
         "--port",
         &port,
@@ -515,7 +515,7 @@ fn a_capture_armed_on_the_waveform_start_is_fetched_by_a_later_command() {
         "--frequency",
         "1000",
     ]));
-    let fetched = ok(hal_sim(&[
+    let fetched = ok(twinstack_bin(&[
         "record",
         "--port",
         &port,
@@ -578,7 +578,7 @@ fn a_capture_armed_on_the_waveform_start_is_fetched_by_a_later_command() {
     ] {
         let mut all = vec!["record", "--port", &port, "--out", out.to_str().unwrap()];
         all.extend_from_slice(args);
-        let o = hal_sim(&all);
+        let o = twinstack_bin(&all);
         let err = String::from_utf8_lossy(&o.stderr);
         assert_eq!(o.status.code(), Some(1), "{args:?}: {err}");
         assert!(err.contains(needle), "{args:?}: {err}");
@@ -602,7 +602,7 @@ fn ten_seconds_in_real_time(rate: u32) {
     }
     let data = dir.path().join("triangle.csv");
     std::fs::write(&data, text).unwrap();
-    let o = hal_sim(&[
+    let o = twinstack_bin(&[
         "stream",
         "--port",
         &port,

@@ -12,7 +12,7 @@
 //! The byte layout is in [`format`]; the configuration's encoding and build in [`recipe`].
 //! Nothing here allocates; a malformed file is refused with a [`FormatError`], never a panic.
 //! It is its own `no_std` crate, apart from the firmware library: only the tests use it (the
-//! host generator in `hal-sim`, the replay image in `qemu-images`).
+//! host generator in `twinstack-identify`, the replay image in `qemu-images`).
 #![no_std]
 #![forbid(unsafe_code)]
 #![warn(missing_docs)]

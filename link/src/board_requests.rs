@@ -1,4 +1,4 @@
-//! What the host does with a board beyond single requests, shared by the `hal-sim` board
+//! What the host does with a board beyond single requests, shared by the `twinstack` board
 //! commands and the Python package (`python/`), so that both send the same thing and refuse the
 //! same thing:
 //!

@@ -1,4 +1,4 @@
-// twinstack view: live telemetry from `hal-sim view` over Server-Sent Events, drawn on
+// twinstack view: live telemetry from `twinstack view` over Server-Sent Events, drawn on
 // <canvas>. No library, nothing fetched from elsewhere.
 "use strict";
 
@@ -253,7 +253,7 @@ function drawBode() {
   ctx.clearRect(0, 0, w, h);
   const t = view.tune;
   ctx.font = "12px sans-serif"; ctx.fillStyle = "#999";
-  if (!t) { ctx.fillText("no tune: start the view with --tune tune.json (hal-sim tune --json)", 10, 20); return; }
+  if (!t) { ctx.fillText("no tune: start the view with --tune tune.json (twinstack tune --json)", 10, 20); return; }
   const pts = t.points;
   const lf = pts.map((p) => Math.log10(p.frequency_hz));
   const xlo = Math.min(...lf), xhi = Math.max(...lf);
@@ -296,7 +296,7 @@ function drawRanking() {
   ctx.clearRect(0, 0, w, h);
   const c = view.calibration;
   ctx.font = "12px sans-serif"; ctx.fillStyle = "#999";
-  if (!c) { ctx.fillText("no calibration: start the view with --calibration cal.json (hal-sim calibrate --json)", 10, 20); return; }
+  if (!c) { ctx.fillText("no calibration: start the view with --calibration cal.json (twinstack calibrate --json)", 10, 20); return; }
   const rows = c.ranking;
   const box = { x: 12, y: 8, w: w - 24, h: h - 36 };
   const top = Math.max(...rows.map((r) => r.max_pct || 0), 1e-9) * 1.25;

@@ -27,7 +27,7 @@ pub struct Args {
     /// Write no figure.
     #[arg(long)]
     pub no_plot: bool,
-    /// The feedback gains: `tuned` (what `hal-sim tune` picks at each rate on the simulated
+    /// The feedback gains: `tuned` (what `twinstack tune` picks at each rate on the simulated
     /// board) or `fixed` (kp 0.1, ki 0.2 × rate /s, notch at 21.8 kHz, Q 2).
     #[arg(long, value_enum, default_value_t = GainsArg::Tuned)]
     pub gains: GainsArg,
@@ -36,7 +36,7 @@ pub struct Args {
 /// `--gains` values.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
 pub enum GainsArg {
-    /// What `hal-sim tune` picks at each rate.
+    /// What `twinstack tune` picks at each rate.
     Tuned,
     /// The fixed PI with the notch.
     Fixed,

@@ -1,10 +1,10 @@
-//! The `hal-sim` subcommands, one module each: `run(&Args) -> anyhow::Result<()>`.
+//! The `twinstack` subcommands, one module each: `run(&Args) -> anyhow::Result<()>`.
 //!
 //! Board commands (`calibrate`, `stream`, `load`, `params`, `mode`, `recall`, `status`,
 //! `waveform`, `stop`, `record`, `telemetry`, `coarse`, `scan`, `sequence`, `selftest`, `analog`, `tune`, `view`, and `learn` with
 //! `--port`) share [`board_link`]'s `--port` / `--baud` / `--timeout-ms`.
 
-/// The exit codes of every `hal-sim` command, as `twinstack --help` lists them.
+/// The exit codes of every `twinstack` command, as `twinstack --help` lists them.
 pub const EXIT_CODES: &str = "\
 Exit codes:
   0  done

@@ -1,6 +1,6 @@
 //! `twinstack virtual-board --listen tcp:HOST:PORT|pty [--speed X] [--tick-rate HZ]`: the
 //! simulated board and stage ([`hal_sim::virtual_board`]) as a long-running server on a TCP port
-//! or (Unix) a pseudo-terminal, paced in real time, keeping its state from one client (`hal-sim
+//! or (Unix) a pseudo-terminal, paced in real time, keeping its state from one client (`twinstack
 //! load/stream/record/status --port tcp:HOST:PORT` or `--port /dev/pts/N`) to the next. Runs
 //! until killed (Ctrl-C). The first line on stdout says where it listens.
 

@@ -99,7 +99,7 @@ pub const MIN_NORM_FIRST_WEIGHT: f64 = 1.0 / 24.0;
 pub const DUHEM_MAX_NORM_DISTANCE: f64 = 1.0;
 
 /// Which hysteresis model to fit.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum ModelKind {
     /// Prandtl–Ishlinskii.
     Pi,
@@ -112,6 +112,25 @@ pub enum ModelKind {
 }
 
 impl ModelKind {
+    /// Every kind, in the order `--model auto` tries them and error messages list them.
+    pub const ALL: [ModelKind; 4] = [
+        ModelKind::Pi,
+        ModelKind::Duhem,
+        ModelKind::Gpi,
+        ModelKind::BoucWen,
+    ];
+
+    /// The kind's name on the command line, in parameter files' reports and in Python:
+    /// `pi`, `duhem`, `gpi`, `bouc-wen`.
+    pub fn name(self) -> &'static str {
+        match self {
+            ModelKind::Pi => "pi",
+            ModelKind::Duhem => "duhem",
+            ModelKind::Gpi => "gpi",
+            ModelKind::BoucWen => "bouc-wen",
+        }
+    }
+
     /// The model this one generalises, if any (Duhem is Bouc–Wen with `γ = ψ = 0`): `--model
     /// auto` prefers it when it predicts as well (see [`auto::PARSIMONY_MARGIN`]).
     pub fn special_case(self) -> Option<ModelKind> {
@@ -251,9 +270,8 @@ impl IdentifyOptions {
     /// `--model auto`'s candidates: every model kind, each without and with creep (only with
     /// creep when these options ask for it), with these options otherwise.
     pub fn candidates(&self) -> Vec<IdentifyOptions> {
-        use clap::ValueEnum;
         let creep: &[bool] = if self.creep { &[true] } else { &[false, true] };
-        ModelKind::value_variants()
+        ModelKind::ALL
             .iter()
             .flat_map(|&model| {
                 creep.iter().map(move |&creep| IdentifyOptions {

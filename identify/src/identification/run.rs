@@ -32,20 +32,19 @@ pub enum ModelChoice {
 /// use twinstack_identify::identification::ModelKind;
 /// assert_eq!(parse_model("auto"), Ok(ModelChoice::Auto));
 /// assert_eq!(parse_model("GPI"), Ok(ModelChoice::Only(ModelKind::Gpi)));
+/// assert_eq!(parse_model("bouc-wen"), Ok(ModelChoice::Only(ModelKind::BoucWen)));
 /// assert!(parse_model("spline").unwrap_err().contains("expected auto, pi"));
 /// ```
 pub fn parse_model(s: &str) -> Result<ModelChoice, String> {
-    use clap::ValueEnum;
     if s.eq_ignore_ascii_case("auto") {
         return Ok(ModelChoice::Auto);
     }
-    ModelKind::from_str(s, true)
+    ModelKind::ALL
+        .into_iter()
+        .find(|kind| kind.name().eq_ignore_ascii_case(s))
         .map(ModelChoice::Only)
-        .map_err(|_| {
-            let names: Vec<String> = ModelKind::value_variants()
-                .iter()
-                .filter_map(|v| v.to_possible_value().map(|p| p.get_name().to_string()))
-                .collect();
+        .ok_or_else(|| {
+            let names: Vec<&str> = ModelKind::ALL.iter().map(|k| k.name()).collect();
             format!("unknown model '{s}': expected auto, {}", names.join(", "))
         })
 }
