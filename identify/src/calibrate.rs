@@ -460,7 +460,7 @@ pub fn calibrate<T: Transport>(
     let margin = trajectory::TRAJECTORY_MARGIN * (hi - lo);
     let trajectory_range = (lo + margin, hi - margin);
     let setpoint_rate = rate / options.stream_divider as f64;
-    let trajectory = test_trajectory(trajectory_range, setpoint_rate);
+    let trajectory = trajectory::test_trajectory(trajectory_range, setpoint_rate);
     let mut x_rest = settings.ranges.norm_to_output(0.0);
     let mut run = |client: &mut Client<T>, mode: Mode, step: &'static str| {
         progress(Progress::Step(step));
@@ -779,54 +779,9 @@ fn identification_record(
     Ok((record, predicted))
 }
 
-/// Two triangle cycles then the nested minor loops of [`trajectory::trajectories`] over
-/// `lo … hi`, at `rate` setpoints per second.
-pub fn test_trajectory((lo, hi): (f64, f64), rate: f64) -> trajectory::Trajectory {
-    let [triangle, loops, _] = trajectory::trajectories(lo, hi, rate);
-    // The triangle's first two of four cycles end at `lo`, where the loops start.
-    let mut x: Vec<f64> = triangle.x[..triangle.x.len() / 2].to_vec();
-    x.extend_from_slice(&loops.x);
-    trajectory::Trajectory {
-        name: "triangle + minor loops",
-        t: (0..x.len()).map(|k| k as f64 / rate).collect(),
-        x,
-    }
-}
-
-/// The record streamed for `trajectory`: from `x_rest` (where the output holds) up to the
-/// trajectory's top, down to its bottom (its start), then the trajectory, at
-/// [`trajectory::SWEEP_SPEED`]; returns it and the index of the trajectory's first setpoint.
-///
-/// The sweep over the whole range before the scored part wipes the hysteresis memory of the
-/// stage and of the model alike (both end on the same descending branch), so the scored part
-/// starts with the compensator's state matching the stage's: a mode switch prepares the
-/// compensator relaxed at the present drive, which the stage's branch need not be.
-pub fn with_conditioning(
-    trajectory: &trajectory::Trajectory,
-    x_rest: f64,
-    rate: f64,
-) -> (Vec<f64>, usize) {
-    let (lo, hi) = trajectory
-        .x
-        .iter()
-        .fold((f64::INFINITY, f64::NEG_INFINITY), |(l, h), &v| {
-            (l.min(v), h.max(v))
-        });
-    let start = trajectory.x.first().copied().unwrap_or(lo);
-    let speed = trajectory::SWEEP_SPEED * (hi - lo).max(f64::MIN_POSITIVE);
-    let mut x = Vec::new();
-    for (a, b) in [(x_rest, hi), (hi, start)] {
-        let steps = ((b - a).abs() / speed * rate).round().max(1.0) as usize;
-        x.extend((0..steps).map(|k| a + (b - a) * k as f64 / steps as f64));
-    }
-    let first = x.len();
-    x.extend_from_slice(&trajectory.x);
-    (x, first)
-}
-
-/// Streams `trajectory` (after [`with_conditioning`] from `x_rest`) in the mode in force, records the
-/// setpoint and the sensor from the stream's start and scores the sensor against the
-/// setpoint over the trajectory.
+/// Streams `trajectory` (after [`trajectory::with_conditioning`] from `x_rest`) in the mode in
+/// force, records the setpoint and the sensor from the stream's start and scores the sensor
+/// against the setpoint over the trajectory.
 fn track<T: Transport>(
     client: &mut Client<T>,
     trajectory: &trajectory::Trajectory,
@@ -839,7 +794,7 @@ fn track<T: Transport>(
     let rate = facts.tick_rate_hz.max(1) as f64;
     let divider = options.stream_divider;
     let setpoint_rate = rate / divider as f64;
-    let (x, first) = with_conditioning(trajectory, x_rest, setpoint_rate);
+    let (x, first) = trajectory::with_conditioning(trajectory, x_rest, setpoint_rate);
     let samples: Vec<i16> = x
         .iter()
         .map(|&v| q1_15(settings.ranges.output_to_norm(v)))
@@ -895,76 +850,4 @@ fn track<T: Transport>(
 }
 
 #[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn the_decimation_fits_the_run_into_the_slots_at_most_at_the_rate_asked() {
-        let facts = CaptureStatus {
-            capacity: 65_536,
-            ..CaptureStatus::default()
-        };
-        // 2 s at 50 kHz, 2 signals, 10 kHz asked: every 5th tick, 20 000 frames.
-        assert_eq!(
-            decimation_for(100_000, 50_000.0, 10_000.0, &facts, 2),
-            (5, 20_000)
-        );
-        // The emulator's 32 768 slots: every 7th tick.
-        let half = CaptureStatus {
-            capacity: 32_768,
-            ..facts
-        };
-        let (d, f) = decimation_for(100_000, 50_000.0, 10_000.0, &half, 2);
-        assert_eq!((d, f), (7, 14_286));
-        assert!(f <= 16_384);
-    }
-
-    #[test]
-    fn the_waveform_decays_to_the_final_amplitude_over_the_decay_cycles() {
-        let o = CalibrateOptions::default();
-        let w = o.waveform();
-        let d = w.decay.unwrap();
-        assert_eq!(d.hold_cycles, 6);
-        // The last of the 14 decaying cycles: 0.15 of the amplitude.
-        let last = (d.keep as f64 / 65536.0).powi(14);
-        assert!((last - 0.15).abs() < 1e-3, "{last}");
-        assert_eq!(w.frequency_mhz, 10_000);
-        assert!((o.excitation_s() - 2.0).abs() < 1e-12);
-    }
-
-    #[test]
-    fn bad_options_are_named() {
-        let bad = CalibrateOptions {
-            excitation_hz: f64::NAN,
-            ..CalibrateOptions::default()
-        };
-        assert!(bad
-            .check()
-            .unwrap_err()
-            .to_string()
-            .contains("excitation_hz"));
-        let bad = CalibrateOptions {
-            final_amplitude: 1.0,
-            ..CalibrateOptions::default()
-        };
-        assert!(bad
-            .check()
-            .unwrap_err()
-            .to_string()
-            .contains("final_amplitude"));
-    }
-
-    #[test]
-    fn the_test_trajectory_is_two_triangles_then_the_loops_within_the_range() {
-        let tr = test_trajectory((10.0, 50.0), 1000.0);
-        let (lo, hi) =
-            tr.x.iter()
-                .fold((f64::MAX, f64::MIN), |(l, h), &v| (l.min(v), h.max(v)));
-        assert!((lo - 10.0).abs() < 1e-9 && (hi - 50.0).abs() < 1e-9);
-        // 1 s of triangle (4 sweeps at 4 spans/s) then ≈ 1.2 s of loops.
-        assert!(tr.x.len() > 2000 && tr.x.len() < 2500, "{}", tr.x.len());
-        assert!((tr.x[250] - 50.0).abs() < 1e-9 && (tr.x[500] - 10.0).abs() < 1e-9);
-        // No jump where the loops start.
-        assert!(tr.x.windows(2).all(|w| (w[1] - w[0]).abs() < 0.2));
-    }
-}
+mod tests;

@@ -94,3 +94,44 @@ pub fn trajectories(lo: f64, hi: f64, sample_rate_hz: f64) -> [Trajectory; 3] {
         make("multisine", multisine),
     ]
 }
+
+/// Calibration's test record: two triangle cycles then the nested minor loops of [`trajectories`] over
+/// `lo … hi`, at `rate` setpoints per second.
+pub fn test_trajectory((lo, hi): (f64, f64), rate: f64) -> Trajectory {
+    let [triangle, loops, _] = trajectories(lo, hi, rate);
+    // The triangle's first two of four cycles end at `lo`, where the loops start.
+    let mut x: Vec<f64> = triangle.x[..triangle.x.len() / 2].to_vec();
+    x.extend_from_slice(&loops.x);
+    Trajectory {
+        name: "triangle + minor loops",
+        t: (0..x.len()).map(|k| k as f64 / rate).collect(),
+        x,
+    }
+}
+
+/// The record streamed for `trajectory`: from `x_rest` (where the output holds) up to the
+/// trajectory's top, down to its bottom (its start), then the trajectory, at
+/// [`SWEEP_SPEED`]; returns it and the index of the trajectory's first setpoint.
+///
+/// The sweep over the whole range before the scored part wipes the hysteresis memory of the
+/// stage and of the model alike (both end on the same descending branch), so the scored part
+/// starts with the compensator's state matching the stage's: a mode switch prepares the
+/// compensator relaxed at the present drive, which the stage's branch need not be.
+pub fn with_conditioning(trajectory: &Trajectory, x_rest: f64, rate: f64) -> (Vec<f64>, usize) {
+    let (lo, hi) = trajectory
+        .x
+        .iter()
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(l, h), &v| {
+            (l.min(v), h.max(v))
+        });
+    let start = trajectory.x.first().copied().unwrap_or(lo);
+    let speed = SWEEP_SPEED * (hi - lo).max(f64::MIN_POSITIVE);
+    let mut x = Vec::new();
+    for (a, b) in [(x_rest, hi), (hi, start)] {
+        let steps = ((b - a).abs() / speed * rate).round().max(1.0) as usize;
+        x.extend((0..steps).map(|k| a + (b - a) * k as f64 / steps as f64));
+    }
+    let first = x.len();
+    x.extend_from_slice(&trajectory.x);
+    (x, first)
+}

@@ -1,0 +1,71 @@
+use super::*;
+
+#[test]
+fn the_decimation_fits_the_run_into_the_slots_at_most_at_the_rate_asked() {
+    let facts = CaptureStatus {
+        capacity: 65_536,
+        ..CaptureStatus::default()
+    };
+    // 2 s at 50 kHz, 2 signals, 10 kHz asked: every 5th tick, 20 000 frames.
+    assert_eq!(
+        decimation_for(100_000, 50_000.0, 10_000.0, &facts, 2),
+        (5, 20_000)
+    );
+    // The emulator's 32 768 slots: every 7th tick.
+    let half = CaptureStatus {
+        capacity: 32_768,
+        ..facts
+    };
+    let (d, f) = decimation_for(100_000, 50_000.0, 10_000.0, &half, 2);
+    assert_eq!((d, f), (7, 14_286));
+    assert!(f <= 16_384);
+}
+
+#[test]
+fn the_waveform_decays_to_the_final_amplitude_over_the_decay_cycles() {
+    let o = CalibrateOptions::default();
+    let w = o.waveform();
+    let d = w.decay.unwrap();
+    assert_eq!(d.hold_cycles, 6);
+    // The last of the 14 decaying cycles: 0.15 of the amplitude.
+    let last = (d.keep as f64 / 65536.0).powi(14);
+    assert!((last - 0.15).abs() < 1e-3, "{last}");
+    assert_eq!(w.frequency_mhz, 10_000);
+    assert!((o.excitation_s() - 2.0).abs() < 1e-12);
+}
+
+#[test]
+fn bad_options_are_named() {
+    let bad = CalibrateOptions {
+        excitation_hz: f64::NAN,
+        ..CalibrateOptions::default()
+    };
+    assert!(bad
+        .check()
+        .unwrap_err()
+        .to_string()
+        .contains("excitation_hz"));
+    let bad = CalibrateOptions {
+        final_amplitude: 1.0,
+        ..CalibrateOptions::default()
+    };
+    assert!(bad
+        .check()
+        .unwrap_err()
+        .to_string()
+        .contains("final_amplitude"));
+}
+
+#[test]
+fn the_test_trajectory_is_two_triangles_then_the_loops_within_the_range() {
+    let tr = trajectory::test_trajectory((10.0, 50.0), 1000.0);
+    let (lo, hi) =
+        tr.x.iter()
+            .fold((f64::MAX, f64::MIN), |(l, h), &v| (l.min(v), h.max(v)));
+    assert!((lo - 10.0).abs() < 1e-9 && (hi - 50.0).abs() < 1e-9);
+    // 1 s of triangle (4 sweeps at 4 spans/s) then ≈ 1.2 s of loops.
+    assert!(tr.x.len() > 2000 && tr.x.len() < 2500, "{}", tr.x.len());
+    assert!((tr.x[250] - 50.0).abs() < 1e-9 && (tr.x[500] - 10.0).abs() < 1e-9);
+    // No jump where the loops start.
+    assert!(tr.x.windows(2).all(|w| (w[1] - w[0]).abs() < 0.2));
+}
