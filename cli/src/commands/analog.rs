@@ -141,9 +141,11 @@ fn start(a: &StartArgs) -> anyhow::Result<()> {
         start_at_boot: a.start_at_boot,
     };
     let boot_mode = match &a.store {
-        Some(m) => Some(twinstack_link::board_requests::parse_mode(m).ok_or_else(|| {
-            anyhow::anyhow!("--store {m:?}: give bypass, open-loop or closed-loop")
-        })?),
+        Some(m) => Some(
+            twinstack_link::board_requests::parse_mode(m).ok_or_else(|| {
+                anyhow::anyhow!("--store {m:?}: give bypass, open-loop or closed-loop")
+            })?,
+        ),
         None => None,
     };
     if a.start_at_boot && boot_mode.is_none() {
