@@ -10,7 +10,8 @@
 //! * [`sim_board`] — [`sim_board::SimBoard`]: all of it behind the library's board traits.
 //! * [`sim_device`] — [`sim_device::SimDevice`]: the board, the library's control loop and
 //!   command handler in-process, on a modelled UART, behind the link's `Transport`;
-//!   [`sim_camera`] — a camera on its trigger input.
+//!   [`sim_camera`] — a camera on its trigger input; [`analog_source`] — the voltage on its
+//!   analog setpoint input.
 //! * [`dual_stage_sim`] — the piezo stage on a ball-screw coarse stage, with the emulated
 //!   step/dir output and encoders ([`coarse_stage`]): the dual-stage controller end to end;
 //!   [`coarse_rig`] — the same stage as a board on the wire (a [`sim_device::SimDevice`] whose
