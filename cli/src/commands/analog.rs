@@ -174,7 +174,7 @@ fn print_status(s: &AnalogStatus, json: bool) -> anyhow::Result<()> {
     let setpoint = s.setpoint as f64 / SIGNAL_ONE as f64;
     let reading = s.reading as f64 / 65536.0;
     if json {
-        let v = crate::board_requests::analog_status_json(s);
+        let v = twinstack_link::board_requests::analog_status_json(s);
         println!("{}", serde_json::to_string(&v)?);
     } else {
         println!(

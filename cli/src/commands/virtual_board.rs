@@ -63,7 +63,7 @@ pub struct Args {
     /// voltage (e.g. 1.65), or `sine:MEAN,AMPLITUDE,HZ` (volts, volts, Hz). The pin reads as
     /// the board's 12-bit ADC converts it, clipped to 0–3.3 V.
     #[arg(long, default_value = "open", value_name = "SPEC")]
-    pub analog_input: crate::analog_source::AnalogSource,
+    pub analog_input: hal_sim::analog_source::AnalogSource,
 }
 
 /// Runs `virtual-board`.
@@ -102,7 +102,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         && (args.loopback
             || args.fail_flash_writes
             || args.no_watchdog
-            || args.analog_input != crate::analog_source::AnalogSource::Disconnected
+            || args.analog_input != hal_sim::analog_source::AnalogSource::Disconnected
             || config.link_error_rate > 0.0)
     {
         anyhow::bail!(
