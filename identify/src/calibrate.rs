@@ -387,8 +387,8 @@ fn link(step: &'static str) -> impl Fn(LinkError) -> CalibrateError {
 ///
 /// ```no_run
 /// use twinstack_identify::calibrate::{calibrate, CalibrateOptions};
-/// use hal_sim::{link::Client, port};
-/// let transport = port::open(&"tcp:127.0.0.1:4000".parse().unwrap(), port::DEFAULT_BAUD).unwrap();
+/// use twinstack_link::{socket::SocketTransport, Client};
+/// let transport = SocketTransport::tcp("127.0.0.1:4000").unwrap();
 /// let mut client = Client::new(transport);
 /// let report = calibrate(&mut client, &CalibrateOptions::default(), |_| {}).unwrap();
 /// println!("{}: {:.2} % -> {:.2} %", report.model, report.before.max_pct, report.after.max_pct);

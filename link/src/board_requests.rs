@@ -73,9 +73,9 @@ pub enum LoadRefused {
 ///
 /// ```
 /// use twinstack_link::board_requests::{check_load, LoadRefused};
-/// use hal_sim::sim_device::SimDeviceConfig;
-/// use twinstack::settings::Mode;
-/// let mut s = SimDeviceConfig::paper_settings(Mode::OpenLoop);
+/// use twinstack::settings::{Mode, Settings};
+/// // 0…140 V of model input on the default drive's 0…140 V.
+/// let mut s = Settings { mode: Mode::OpenLoop, ..Settings::default() };
 /// assert_eq!(check_load(&s, 1.0, false), Ok(None));
 /// s.ranges.input_min = -150.0;
 /// assert!(matches!(check_load(&s, 1.0, false), Err(LoadRefused::Unreachable { .. })));

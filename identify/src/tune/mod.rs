@@ -154,8 +154,9 @@ pub fn analyse(
 ///
 /// ```no_run
 /// use twinstack_identify::tune::{tune, TuneOptions};
-/// use hal_sim::{link::Client, port};
-/// let transport = port::open(&"sim".parse().unwrap(), port::DEFAULT_BAUD).unwrap();
+/// use twinstack_link::{socket::SocketTransport, Client};
+/// // A board behind TCP: a virtual board (`twinstack virtual-board`) or QEMU's UART.
+/// let transport = SocketTransport::tcp("127.0.0.1:4000").unwrap();
 /// let mut client = Client::new(transport);
 /// let r = tune(&mut client, &TuneOptions::default(), |_| {}).unwrap();
 /// println!("bandwidth {:.0} Hz", r.design.figures.bandwidth_hz);
