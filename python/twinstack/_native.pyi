@@ -230,7 +230,7 @@ class Board:
     def analog(
         self,
         gain: float = 2.0,
-        offset: float = -1.0,
+        offset: float = ...,
         corner_hz: Optional[float] = None,
         lost_below: float = 0.0,
         over_above: float = 1.0,
@@ -238,8 +238,8 @@ class Board:
         rate: float = 10.0,
     ) -> None:
         """Makes the board's analog setpoint input the setpoint source: the input's span
-        (0 V to 3.3 V at the pin) times ``gain`` plus ``offset``, normalised displacement;
-        low-pass filtered at ``corner_hz`` (``None``: unfiltered); below ``lost_below`` or
+        (0 V to 3.3 V at the pin) times ``gain`` plus ``offset`` (default -1.0), normalised
+        displacement; low-pass filtered at ``corner_hz`` (``None``: unfiltered); below ``lost_below`` or
         above ``over_above`` (fractions of the span) the input is faulty and the output holds
         (``on_fault="hold"``) or ramps to rest (``"ramp-to-rest"``) at ``rate`` (normalised
         per second, also the rate it walks back at). Refused settings raise ``ValueError``
