@@ -5,9 +5,9 @@
 
 use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion};
 use std::hint::black_box;
-use twinstack::duhem::{Duhem, InverseDuhem};
 use twinstack::fixed_point::signal_from_f64 as q;
-use twinstack::prandtl_ishlinskii::{InversePrandtlIshlinskii, PrandtlIshlinskii};
+use twinstack::models::duhem::{Duhem, InverseDuhem};
+use twinstack::models::prandtl_ishlinskii::{InversePrandtlIshlinskii, PrandtlIshlinskii};
 use twinstack::{DuhemParams, PiParams, Scaling, Thresholds};
 
 fn pi_params(n: usize) -> (PiParams, Scaling) {

@@ -85,7 +85,7 @@ pub trait SensorAdc {
     /// The most recent conversion (started by the control timer's trigger).
     fn read(&mut self) -> Result<AdcCode, Self::Error>;
 
-    /// The analog setpoint input's most recent conversion ([`crate::analog_input`]),
+    /// The analog setpoint input's most recent conversion ([`crate::sources::analog_input`]),
     /// converted on the same trigger as the sensor: a fraction of the input's span, UQ0.16
     /// (0 = 0 V at the pin, 65535 = full scale; a 12-bit code shifted left by 4). `None`: the
     /// board has no such input (the default) or the conversion failed — a lost input.
@@ -129,7 +129,7 @@ pub trait StepDir {
 }
 
 /// A quadrature encoder input (a timer in encoder mode, ×4 counting): the raw 16-bit counter,
-/// which wraps; [`crate::coarse_axis::EncoderCounter`] extends it.
+/// which wraps; [`crate::dual_stage::coarse_axis::EncoderCounter`] extends it.
 pub trait QuadratureEncoder {
     /// The counter now.
     fn count(&mut self) -> u16;

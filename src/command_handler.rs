@@ -23,21 +23,21 @@ use core::ops::DerefMut;
 use heapless::spsc::Producer;
 use rtic_core::Mutex;
 
-use crate::analog_input::{AnalogInputConfig, AnalogRequest, AnalogStatus, PreparedInput};
 use crate::board::Hardware;
+use crate::config::param_store::{RecordStorage, StorageError, StoredRecord, MAX_RECORD};
+use crate::config::settings::{Mode, Settings};
 use crate::control::{ControlConfig, Controller};
 use crate::control_loop::ControlLoop;
 use crate::dual_stage::{CoarseCommand, CoarseLimits, CoarseRefusal, CoarseStatus};
-use crate::learning::{self, LearnState, LearnTask, Service};
-use crate::param_store::{RecordStorage, StorageError, StoredRecord, MAX_RECORD};
-use crate::recorder::{in_pieces, RecordError, SampleStore};
 use crate::refusal::{Field, Refusal, Rule};
-use crate::scan::{ScanGenerator, ScanRequest};
-use crate::sequence::{SequenceRequest, SequenceStatus};
-use crate::setpoint_stream::setpoint_from_wire;
-use crate::settings::{Mode, Settings};
-use crate::telemetry::{self, TelemetryPacker, TelemetrySample};
-use crate::waveform::{Shape, WaveformError, WaveformGenerator};
+use crate::services::learning::{self, LearnState, LearnTask, Service};
+use crate::services::recorder::{in_pieces, RecordError, SampleStore};
+use crate::services::telemetry::{self, TelemetryPacker, TelemetrySample};
+use crate::sources::analog_input::{AnalogInputConfig, AnalogRequest, AnalogStatus, PreparedInput};
+use crate::sources::scan::{ScanGenerator, ScanRequest};
+use crate::sources::sequence::{SequenceRequest, SequenceStatus};
+use crate::sources::setpoint_stream::setpoint_from_wire;
+use crate::sources::waveform::{Shape, WaveformError, WaveformGenerator};
 
 use crate::protocol::decoder::FrameDecoder;
 use crate::protocol::frame::{self, FrameError, MAX_ENCODED};
@@ -67,7 +67,7 @@ pub struct CommandHandler<S> {
     tx: [u8; MAX_RESPONSE],
     /// Continuous telemetry's packer (the tick's tap is in the control loop).
     telemetry: TelemetryPacker,
-    /// The learning's task half ([`crate::learning`]): its table and the ILC law.
+    /// The learning's task half ([`crate::services::learning`]): its table and the ILC law.
     learn: LearnTask,
     /// The analog input's settings last started (or loaded from the stored record): what
     /// `StoreParams` stores with the settings.
@@ -111,7 +111,7 @@ impl<S: RecordStorage> CommandHandler<S> {
     /// ([`ControlLoop::start_analog`]) before the first tick, so the board runs stand-alone
     /// from power-up. Settings the rate refuses are dropped (the record's were checked at
     /// its own rate, which is the rate the board runs), and so is a start that would take
-    /// the tick over its budget ([`crate::tick_budget::ANALOG_CYCLES`]) beside `config`, the
+    /// the tick over its budget ([`crate::config::tick_budget::ANALOG_CYCLES`]) beside `config`, the
     /// configuration the board booted on (passed in, not built again: at power-up the
     /// board's stack already holds it, and a second one would cost as much stack again).
     pub fn boot_analog(
@@ -121,12 +121,13 @@ impl<S: RecordStorage> CommandHandler<S> {
     ) -> Option<PreparedInput> {
         let prepared = stored?.prepare(self.hardware.control_rate_hz).ok()?;
         self.analog = stored;
-        let beside = crate::tick_budget::Beside {
+        let beside = crate::config::tick_budget::Beside {
             analog: true,
             ..Default::default()
         };
         let fits =
-            crate::tick_budget::check_with(config, self.hardware.control_rate_hz, beside).is_ok();
+            crate::config::tick_budget::check_with(config, self.hardware.control_rate_hz, beside)
+                .is_ok();
         stored.filter(|a| a.start_at_boot && fits).map(|_| prepared)
     }
 
@@ -373,12 +374,12 @@ impl<S: RecordStorage> CommandHandler<S> {
             .build(&self.hardware)
             .map_err(NackReason::Refused)?;
         // What the tick runs beside the new configuration: the learning, a scan.
-        let beside = control.lock(|c| crate::tick_budget::Beside {
+        let beside = control.lock(|c| crate::config::tick_budget::Beside {
             learning: c.learning().state() != LearnState::Off,
             scanning: c.is_scanning(),
             analog: c.analog_status().running,
         });
-        crate::tick_budget::check_with(&config, self.hardware.control_rate_hz, beside)
+        crate::config::tick_budget::check_with(&config, self.hardware.control_rate_hz, beside)
             .map_err(NackReason::Refused)?;
         let (spare, stacks) = control.lock(|c| (c.spare(), c.stacks()));
         // Two controllers cycle between the tick and this task: the spare is always there.
@@ -512,7 +513,7 @@ impl<S: RecordStorage> CommandHandler<S> {
         let generator = ScanGenerator::new(&r, rate, self.max_scan_step(), pulse)
             .map_err(NackReason::Refused)?;
         let learning = control.lock(|c| c.learning().state()) != LearnState::Off;
-        if let Some(refusal) = self.over_budget(crate::tick_budget::Beside {
+        if let Some(refusal) = self.over_budget(crate::config::tick_budget::Beside {
             learning,
             scanning: true,
             analog: false,
@@ -539,7 +540,7 @@ impl<S: RecordStorage> CommandHandler<S> {
             SequenceRequest::Arm(_) if analog_running(control) => Err(NackReason::Busy),
             SequenceRequest::Arm(config) => {
                 config.check().map_err(NackReason::Refused)?;
-                let step = crate::sequence::move_step(self.max_scan_step());
+                let step = crate::sources::sequence::move_step(self.max_scan_step());
                 control.lock(|c| c.arm_sequence(&config, step));
                 Ok(None)
             }
@@ -570,7 +571,7 @@ impl<S: RecordStorage> CommandHandler<S> {
                     .prepare(self.hardware.control_rate_hz)
                     .map_err(NackReason::Refused)?;
                 let learning = control.lock(|c| c.learning().state()) != LearnState::Off;
-                if let Some(refusal) = self.over_budget(crate::tick_budget::Beside {
+                if let Some(refusal) = self.over_budget(crate::config::tick_budget::Beside {
                     learning,
                     scanning: false,
                     analog: true,
@@ -604,7 +605,7 @@ impl<S: RecordStorage> CommandHandler<S> {
     /// normalised stroke (2.0) spans the voltage range, as in bypass.
     fn max_scan_step(&self) -> i32 {
         let d = &self.settings.drive;
-        crate::scan::slew_step(
+        crate::sources::scan::slew_step(
             d.slew_rate,
             d.min_voltage,
             d.max_voltage,
@@ -672,13 +673,14 @@ impl<S: RecordStorage> CommandHandler<S> {
     }
 
     /// The next telemetry frame (delimiter included), packed from `queue`, or `None` when
-    /// there is nothing to send (see [`TelemetryPacker::pack`]). Uses the response buffer:
+    /// there is nothing to send (see [`crate::protocol::messages::encode_telemetry`]). Uses the response buffer:
     /// send the frame before the next byte is pushed.
     pub fn pack_telemetry<const N: usize>(
         &mut self,
         queue: &mut Consumer<'_, TelemetrySample, N>,
     ) -> Option<&[u8]> {
-        let n = self.telemetry.pack(queue, &mut self.tx)?;
+        let n =
+            crate::protocol::messages::encode_telemetry(&mut self.telemetry, queue, &mut self.tx)?;
         self.tx.get(..n)
     }
 
@@ -706,9 +708,12 @@ impl<S: RecordStorage> CommandHandler<S> {
 
     /// Whether the loaded settings (built again here, off the tick) with `beside` would take
     /// the tick over its budget: the refusal if so.
-    fn over_budget(&self, beside: crate::tick_budget::Beside) -> Option<crate::refusal::Refusal> {
+    fn over_budget(
+        &self,
+        beside: crate::config::tick_budget::Beside,
+    ) -> Option<crate::refusal::Refusal> {
         let config = self.settings.build(&self.hardware).ok()?;
-        crate::tick_budget::check_with(&config, self.hardware.control_rate_hz, beside).err()
+        crate::config::tick_budget::check_with(&config, self.hardware.control_rate_hz, beside).err()
     }
 
     #[inline(never)] // rare and large: one copy, not one per caller
@@ -740,7 +745,7 @@ impl<S: RecordStorage> CommandHandler<S> {
                     .then(|| {
                         let (scanning, analog) =
                             control.lock(|c| (c.is_scanning(), c.analog_status().running));
-                        self.over_budget(crate::tick_budget::Beside {
+                        self.over_budget(crate::config::tick_budget::Beside {
                             learning: true,
                             scanning,
                             analog,
@@ -776,7 +781,9 @@ impl<S: RecordStorage> CommandHandler<S> {
                 if from > period {
                     Err(refused(Field::RecordOffset, Rule::AtMost(period as f64)))
                 } else {
-                    let end = from.saturating_add(crate::recorder::MAX_CHUNK).min(period);
+                    let end = from
+                        .saturating_add(crate::services::recorder::MAX_CHUNK)
+                        .min(period);
                     let mut values = heapless::Vec::new();
                     for &v in self.learn.table().get(from..end).unwrap_or(&[]) {
                         let _ = values.push(v);
@@ -937,7 +944,7 @@ where
     if r.signals == 0 {
         return Err(refused(Field::RecordSignals, Rule::AtLeast(1.0)));
     }
-    if r.signals >> crate::recorder::CHANNELS != 0 {
+    if r.signals >> crate::services::recorder::CHANNELS != 0 {
         // Bit 7 names no signal: the mask is at most 0b111_1111.
         return Err(refused(Field::RecordSignals, Rule::AtMost(127.0)));
     }
@@ -948,7 +955,7 @@ where
         // The limit in samples per signal for this many signals.
         return Err(refused(Field::RecordCount, Rule::AtMost(max_frames as f64)));
     }
-    if r.trigger == crate::recorder::Trigger::Now && r.pre_trigger != 0 {
+    if r.trigger == crate::services::recorder::Trigger::Now && r.pre_trigger != 0 {
         return Err(refused(Field::RecordPreTrigger, Rule::AtMost(0.0)));
     }
     if r.pre_trigger >= r.samples {

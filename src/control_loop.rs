@@ -10,7 +10,7 @@
 //! 3. the recorder captures the chosen signals (a capture armed on a stream or waveform start
 //!    is triggered where that start is commanded, in [`ControlLoop::start`] / [`ControlLoop::play`]).
 //!
-//! With a scan ([`crate::scan`], protocol v6) the setpoint comes from the scan generator
+//! With a scan ([`crate::sources::scan`], protocol v6) the setpoint comes from the scan generator
 //! instead (step 1), and around it the tick samples the external trigger input (set by the
 //! board with [`ControlLoop::set_trigger_input`] before the tick: an armed edge starts a scan
 //! waiting for it, the stream if asked, and fires a capture armed on
@@ -18,11 +18,11 @@
 //! events into the trigger outputs' levels ([`ControlLoop::trigger_levels`], for the board to
 //! write to its pins, and in the capture's `triggers` channel). All O(1).
 //!
-//! With a TTL-stepped sequence armed ([`crate::sequence`]) the setpoint comes from it instead
+//! With a TTL-stepped sequence armed ([`crate::sources::sequence`]) the setpoint comes from it instead
 //! (step 1): each edge on the trigger input pops one position from the setpoint queue, and the
 //! settled output joins the trigger levels.
 //!
-//! With the analog input running ([`crate::analog_input`]) the setpoint comes from the board's
+//! With the analog input running ([`crate::sources::analog_input`]) the setpoint comes from the board's
 //! second ADC input instead (step 1: [`SensorAdc::setpoint_input`], scaled, filtered, checked
 //! against its window).
 //!
@@ -47,21 +47,23 @@ use heapless::spsc::{Consumer, Producer, Queue};
 
 use core::ops::DerefMut;
 
-use crate::analog_input::{AnalogInput, AnalogStatus, PreparedInput};
 use crate::board::{DualDac, SensorAdc};
+use crate::control::drive::StackVoltages;
+use crate::control::mode_switch::Mode;
+use crate::control::mode_switch::ModeError;
 use crate::control::{ControlCounters, Controller, TickFlags, TickReport};
-use crate::drive::StackVoltages;
-use crate::learning::{LearnHost, LearnState, LearnTick};
-use crate::mode_switch::Mode;
-use crate::mode_switch::ModeError;
-use crate::recorder::{CaptureInfo, RecordError, Recorder, SampleStore, TickSignals, Trigger};
-use crate::recorder::{Signal, MAX_CAPTURE_CHUNK, MAX_CHUNK};
-use crate::scan::{ExternalTrigger, ScanGenerator, TriggerConfig, TriggerOutputs, INPUT};
-use crate::sequence::{SequenceConfig, SequenceStatus, SteppedSequence};
-use crate::setpoint_stream::UnderrunPolicy;
-use crate::setpoint_stream::{SetpointStream, Underrun};
-use crate::telemetry::{TelemetrySample, TelemetryTap};
-use crate::waveform::WaveformGenerator;
+use crate::services::learning::{LearnHost, LearnState, LearnTick};
+use crate::services::recorder::{
+    CaptureInfo, RecordError, Recorder, SampleStore, TickSignals, Trigger,
+};
+use crate::services::recorder::{Signal, MAX_CAPTURE_CHUNK, MAX_CHUNK};
+use crate::services::telemetry::{TelemetrySample, TelemetryTap};
+use crate::sources::analog_input::{AnalogInput, AnalogStatus, PreparedInput};
+use crate::sources::scan::{ExternalTrigger, ScanGenerator, TriggerConfig, TriggerOutputs, INPUT};
+use crate::sources::sequence::{SequenceConfig, SequenceStatus, SteppedSequence};
+use crate::sources::setpoint_stream::UnderrunPolicy;
+use crate::sources::setpoint_stream::{SetpointStream, Underrun};
+use crate::sources::waveform::WaveformGenerator;
 
 /// Slots of the setpoint queue (`heapless` keeps one free: [`SETPOINT_CAPACITY`] setpoints
 /// fit). 20 000 slots, 40 008 bytes with the indices: 200 ms at 100 kHz (400 ms at 50 kHz),
@@ -169,15 +171,15 @@ pub struct ControlLoop<B, C> {
     stream_on_trigger: bool,
     /// The trigger outputs' levels the last tick left (bit 0 pixel, 1 line, 2 frame).
     levels: u8,
-    /// The TTL-stepped sequence ([`crate::sequence`]): while armed, the setpoint source.
+    /// The TTL-stepped sequence ([`crate::sources::sequence`]): while armed, the setpoint source.
     sequence: SteppedSequence,
-    /// The analog setpoint input ([`crate::analog_input`]): while running, the setpoint source.
+    /// The analog setpoint input ([`crate::sources::analog_input`]): while running, the setpoint source.
     analog: AnalogInput,
     /// A watchdog drill is on: the tick no longer feeds the watchdog, which resets the board
     /// ([`ControlLoop::drill_watchdog`]).
     drilling: bool,
     /// The learning's tick half: the correction table it plays, the errors it stores
-    /// ([`crate::learning`]). Last: see the type's doc, and the assertion after it.
+    /// ([`crate::services::learning`]). Last: see the type's doc, and the assertion after it.
     learning: LearnTick,
 }
 
@@ -329,7 +331,7 @@ where
     }
 
     /// Makes the analog input the setpoint source with `prepared` (checked and prepared by
-    /// the caller, [`crate::analog_input::AnalogInputConfig::prepare`]): the stream, the
+    /// the caller, [`crate::sources::analog_input::AnalogInputConfig::prepare`]): the stream, the
     /// waveform, a scan or a sequence stops, and the setpoint walks from where it is to the
     /// input's value at the configured rate.
     pub fn start_analog(&mut self, prepared: PreparedInput) {
@@ -365,7 +367,7 @@ where
         }
     }
 
-    /// Arms a TTL-stepped sequence ([`crate::sequence`]; `config` checked by the caller) over
+    /// Arms a TTL-stepped sequence ([`crate::sources::sequence`]; `config` checked by the caller) over
     /// the positions queued, moving by at most `max_step` (Q2.30) a tick: the stream, the
     /// waveform or a scan stops, and the stage holds until the first edge.
     pub fn arm_sequence(&mut self, config: &SequenceConfig, max_step: i32) {
@@ -405,7 +407,7 @@ where
     }
 
     /// The trigger outputs' levels after the last tick (bit 0 pixel, 1 line, 2 frame: see
-    /// [`crate::scan`]), for the board to write to its pins.
+    /// [`crate::sources::scan`]), for the board to write to its pins.
     #[inline(always)]
     pub fn trigger_levels(&self) -> u8 {
         self.levels | self.sequence.level()
@@ -479,7 +481,7 @@ where
 
     /// Starts telemetry of `mask` every `decimation` ticks (see [`TelemetryTap::start`]);
     /// the index of its first sample, or `None` for a bad mask or decimation. The tap wakes
-    /// the packer at `wake` queued samples (a frame's worth, [`crate::telemetry::frame_target`]).
+    /// the packer at `wake` queued samples (a frame's worth, [`crate::services::telemetry::frame_target`]).
     pub fn start_telemetry(&mut self, mask: u8, decimation: u16, wake: u16) -> Option<u32> {
         self.telemetry.wake_at(wake);
         self.telemetry.start(mask, decimation)
@@ -766,7 +768,7 @@ where
     }
 
     /// The learning's tick half, to configure it or move a table in or errors out (O(1) or one
-    /// [`crate::learning::CHUNK`] per call: see [`crate::learning::service`]).
+    /// [`crate::services::learning::CHUNK`] per call: see [`crate::services::learning::service`]).
     pub fn learning_mut(&mut self) -> &mut LearnTick {
         &mut self.learning
     }

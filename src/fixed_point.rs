@@ -19,7 +19,7 @@
 //! | Q4.60 `i64` ([`Q60_FRAC_BITS`]) | | signal × signal products and their sums (the Duhem update) |
 //!
 //! The differential split forms its DAC codes in a Q19.45 `i64` of its own (see
-//! [`crate::drive`]).
+//! [`crate::control::drive`]).
 //!
 //! Signals are *normalised*: the physical range of a quantity (e.g. 0…150 V of drive, or the
 //! stage's stroke in µm) maps to [-1, 1] (see [`crate::scaling::Scaling`]). The extra integer bit
@@ -151,7 +151,7 @@ pub fn q60_to_signal_floor(acc: i64) -> i32 {
 }
 
 /// Fractional bits of the packed play-operator bank's sum (Q25.39 in `i64`): Q8.24 weights
-/// times Q1.15 operator outputs (see [`crate::play_operator`]).
+/// times Q1.15 operator outputs (see [`crate::models::play_operator`]).
 pub const Q39_FRAC_BITS: u32 = GAIN_FRAC_BITS + 15;
 
 /// Converts a Q25.39 accumulator (the packed bank's sum) to a Q2.30 signal, rounding toward

@@ -147,7 +147,7 @@ pub enum Field {
     /// `learning.limit`.
     LearnLimit,
     /// The tick's work as a whole at the board's control rate: the models, their creep and
-    /// the feedback together ([`crate::tick_budget`]).
+    /// the feedback together ([`crate::config::tick_budget`]).
     Workload,
     /// A scan's lines per frame (raster) or turns (spiral), protocol v6.
     ScanLines,
@@ -235,7 +235,7 @@ pub enum Rule {
     /// The move runs into a limit switch that is active.
     LimitSwitch,
     /// The tick would need more cycles than the control period leaves it
-    /// ([`crate::tick_budget`]): its predicted worst case and the cycles available, both at 5
+    /// ([`crate::config::tick_budget`]): its predicted worst case and the cycles available, both at 5
     /// flash wait states.
     TickOverrun {
         /// Predicted worst case of the whole interrupt, cycles.

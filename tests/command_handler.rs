@@ -9,21 +9,21 @@ use core::convert::Infallible;
 use rtic_core::Exclusive;
 use twinstack::board::{AdcCode, DacCode, DualDac, Hardware, SensorAdc};
 use twinstack::command_handler::CommandHandler;
-use twinstack::control::Controller;
-use twinstack::control_loop::{ControlLoop, SetpointQueue, SETPOINT_CAPACITY};
-use twinstack::drive::SafeState;
-use twinstack::param_store::{
+use twinstack::config::param_store::{
     self, RamStorage, ReadOnlyStorage, RecordStorage, StorageError, StoredRecord, MAX_RECORD,
 };
-use twinstack::protocol::decoder::FrameDecoder;
-use twinstack::protocol::frame::{self, FrameError, MAX_ENCODED, PROTOCOL_VERSION};
-use twinstack::protocol::messages::*;
-use twinstack::recorder::Channel;
-use twinstack::refusal::{Field, ModelField, Refusal, Rule};
-use twinstack::settings::{
+use twinstack::config::settings::{
     representative_bouc_wen, representative_duhem, representative_pi, FeedbackSettings, Mode,
     Model, NotchDesign, SensorSettings, Settings,
 };
+use twinstack::control::drive::SafeState;
+use twinstack::control::Controller;
+use twinstack::control_loop::{ControlLoop, SetpointQueue, SETPOINT_CAPACITY};
+use twinstack::protocol::decoder::FrameDecoder;
+use twinstack::protocol::frame::{self, FrameError, MAX_ENCODED, PROTOCOL_VERSION};
+use twinstack::protocol::messages::*;
+use twinstack::refusal::{Field, ModelField, Refusal, Rule};
+use twinstack::services::recorder::Channel;
 
 struct Dac(DacCode, DacCode);
 impl DualDac for Dac {
@@ -463,7 +463,7 @@ fn model_fields(which: &str, model: &Model, field: fn(ModelField) -> Field) -> V
         }
         Model::GeneralisedPi(g) => {
             // The P–I part's fields keep the P–I's names; then the dead-zone map's.
-            type Get = fn(&mut twinstack::generalised_pi::GpiParams, usize) -> &mut f64;
+            type Get = fn(&mut twinstack::models::generalised_pi::GpiParams, usize) -> &mut f64;
             let mut parts: Vec<(String, ModelField, Get, usize)> = vec![
                 ("a0".into(), ModelField::A0, |p, _| &mut p.pi.a0, 0),
                 (
@@ -658,8 +658,8 @@ fn nan_or_infinity_in_any_float_of_a_load_is_refused_naming_that_field_and_chang
         ..pi_duhem.clone()
     };
     let gpi_gpi = Settings {
-        compensator: Some(twinstack::settings::representative_gpi(8).unwrap()),
-        observer: Some(twinstack::settings::representative_gpi(4).unwrap()),
+        compensator: Some(twinstack::config::settings::representative_gpi(8).unwrap()),
+        observer: Some(twinstack::config::settings::representative_gpi(4).unwrap()),
         ..pi_duhem.clone()
     };
     let bouc_wen = Settings {
@@ -1532,12 +1532,12 @@ fn a_learning_table_write_near_two_to_the_32_is_refused_not_wrapped() {
     // on the 32-bit board, and the host and the board give the same refusal (the emulator's
     // test sends the fuzzer's frame itself).
     let mut b = board();
-    let learn = twinstack::learning::LearnSettings::for_period(200);
+    let learn = twinstack::services::learning::LearnSettings::for_period(200);
     assert!(matches!(
         b.handle(Request::Learn(LearnRequest::Configure(learn))),
         Response::Ack { .. }
     ));
-    let last = (twinstack::learning::MAX_BINS - 2) as f64;
+    let last = (twinstack::services::learning::MAX_BINS - 2) as f64;
     for offset in [u32::MAX, u32::MAX - 1, 1 << 31, 511] {
         let values = heapless::Vec::from_slice(&[1, 2]).unwrap();
         assert_eq!(
@@ -1610,13 +1610,15 @@ fn two_loads_between_two_ticks_swap_twice_and_the_newer_runs_from_the_drive_held
 }
 
 /// The analog input is charged beside the configuration's tick
-/// ([`twinstack::tick_budget::ANALOG_CYCLES`]): at a rate whose period holds the closed-loop
+/// ([`twinstack::config::tick_budget::ANALOG_CYCLES`]): at a rate whose period holds the closed-loop
 /// configuration but not the input beside it, the load is taken and the start refused with
 /// the cycles it needs and has; nothing starts.
 #[test]
 fn an_analog_start_that_would_overrun_the_tick_is_refused_with_its_cycles() {
-    use twinstack::analog_input::{AnalogInputConfig, AnalogRequest, OnFault};
-    use twinstack::tick_budget::{available_cycles, worst_case_cycles, ANALOG_CYCLES, SYSCLK_HZ};
+    use twinstack::config::tick_budget::{
+        available_cycles, worst_case_cycles, ANALOG_CYCLES, SYSCLK_HZ,
+    };
+    use twinstack::sources::analog_input::{AnalogInputConfig, AnalogRequest, OnFault};
     let worst = worst_case_cycles(&closed().build(&hardware()).unwrap());
     // A period halfway between the configuration alone and the input beside it.
     let rate = SYSCLK_HZ as f64 / (worst + ANALOG_CYCLES / 2) as f64;

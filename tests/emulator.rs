@@ -17,15 +17,15 @@ use std::process::Child;
 use std::time::{Duration, Instant};
 
 use twinstack::board::Hardware;
-use twinstack::drive::SafeState;
-use twinstack::param_store::{StoredRecord, HEADER_LEN, MAX_RECORD};
+use twinstack::config::param_store::{StoredRecord, HEADER_LEN, MAX_RECORD};
+use twinstack::config::settings::{
+    representative_duhem, representative_pi, FeedbackSettings, Model, Settings,
+};
+use twinstack::control::drive::SafeState;
 use twinstack::protocol::decoder::FrameDecoder;
 use twinstack::protocol::frame::{self, FrameError, MAX_ENCODED};
 use twinstack::protocol::messages::*;
 use twinstack::refusal::{Field, ModelField, Refusal, Rule};
-use twinstack::settings::{
-    representative_duhem, representative_pi, FeedbackSettings, Model, Settings,
-};
 
 /// Address of the parameter sector (flash sector 11).
 const PARAM_SECTOR: u32 = 0x080E_0000;
@@ -509,7 +509,7 @@ fn emulator_captures_a_streamed_run_with_several_signals() {
     assert_eq!(
         first.capacity,
         // The SRAM part only: QEMU models no CCM RAM (the board's other 12 288 slots).
-        (twinstack::recorder::CAPTURE_SLOTS - 12 * 1024) as u32,
+        (twinstack::services::recorder::CAPTURE_SLOTS - 12 * 1024) as u32,
         "{first:?}"
     );
     assert_eq!(first.state, CaptureState::Armed);
@@ -671,9 +671,9 @@ fn the_stack_stays_within_its_reserve_on_the_deepest_paths() {
     settings.mode = Mode::ClosedLoop;
     for model in [
         representative_pi(16).unwrap(),
-        twinstack::settings::representative_gpi(16).unwrap(),
+        twinstack::config::settings::representative_gpi(16).unwrap(),
         representative_duhem(),
-        twinstack::settings::representative_bouc_wen(),
+        twinstack::config::settings::representative_bouc_wen(),
     ] {
         settings.compensator = Some(model);
         let r = emu.request(&Request::LoadParams(settings.clone()));
@@ -689,7 +689,7 @@ fn the_stack_stays_within_its_reserve_on_the_deepest_paths() {
     });
     let _ = emu.request(&Request::RecallParams);
     let _ = emu.request(&Request::ReadParams);
-    let learn = twinstack::learning::LearnSettings::for_period(200);
+    let learn = twinstack::services::learning::LearnSettings::for_period(200);
     assert!(matches!(
         emu.request(&Request::Learn(LearnRequest::Configure(learn))),
         Response::Ack { .. }
@@ -748,7 +748,7 @@ fn the_stack_stays_within_its_reserve_on_the_deepest_paths() {
 /// each trace), and the board's own capture of the trigger levels must be that same sequence.
 #[test]
 fn emulator_scan_pulses_the_gpio_outputs_at_the_pattern_s_ticks() {
-    use twinstack::scan::{
+    use twinstack::sources::scan::{
         bsrr_word, RasterScan, ScanGenerator, ScanPattern, TriggerOutputs, FRAME, LINE, PIXEL,
     };
     let mut emu = Emulator::boot_with("scan", None, &["-d", "unimp", "-D", "{scratch}/unimp.log"]);
@@ -929,7 +929,7 @@ fn the_firmware_answers_every_frame_of_a_fuzzed_exchange_and_keeps_ticking() {
             decay: None,
         }),
         Request::Record(RecordRequest {
-            signal: twinstack::recorder::Signal::Drive,
+            signal: twinstack::services::recorder::Signal::Drive,
             count: 100,
             decimation: 1,
         }),
@@ -939,7 +939,7 @@ fn the_firmware_answers_every_frame_of_a_fuzzed_exchange_and_keeps_ticking() {
             signals: 0x7f,
             samples: 50,
             pre_trigger: 0,
-            trigger: twinstack::recorder::Trigger::Now,
+            trigger: twinstack::services::recorder::Trigger::Now,
             decimation: 1,
         }),
         Request::CaptureStatus,
@@ -1063,7 +1063,7 @@ fn the_firmware_answers_every_frame_of_a_fuzzed_exchange_and_keeps_ticking() {
 #[test]
 fn the_board_answers_the_fuzzer_s_findings_as_the_host_build_does() {
     let mut emu = Emulator::boot("findings", None);
-    let last = (twinstack::learning::MAX_BINS - 2) as f64;
+    let last = (twinstack::services::learning::MAX_BINS - 2) as f64;
     for offset in [u32::MAX, u32::MAX - 1, 1 << 31] {
         assert_eq!(
             emu.request(&Request::Learn(LearnRequest::WriteTable {
@@ -1119,10 +1119,10 @@ fn the_board_answers_the_fuzzer_s_findings_as_the_host_build_does() {
             ))
         }
     );
-    let cap = twinstack::recorder::EMULATOR_RECORD_CAPACITY as u32;
+    let cap = twinstack::services::recorder::EMULATOR_RECORD_CAPACITY as u32;
     let record = |count| {
         Request::Record(RecordRequest {
-            signal: twinstack::recorder::Signal::Drive,
+            signal: twinstack::services::recorder::Signal::Drive,
             count,
             decimation: 1,
         })

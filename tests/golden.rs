@@ -13,7 +13,7 @@
 mod support;
 
 use std::time::Duration;
-use twinstack::settings::{Mode, Model};
+use twinstack::config::settings::{Mode, Model};
 use twinstack_golden::{config_fingerprint, replay, ReplayResult, VectorSet, VectorSets};
 
 const REGENERATE: &str = "cargo run --release -p twinstack-cli -- golden --write";

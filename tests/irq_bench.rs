@@ -91,7 +91,7 @@ struct Code {
 }
 
 /// The parts of the tick the bench attributes cycles to, by the source file an instruction's
-/// line (inlined or not) comes from: the parts [`twinstack::tick_budget`] costs apart.
+/// line (inlined or not) comes from: the parts [`twinstack::config::tick_budget`] costs apart.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 enum Part {
     /// Everything else: RTIC, stream, sensor, drive, recorder, telemetry, DAC, watchdog.
@@ -134,12 +134,12 @@ fn part_of(file: &str) -> Part {
     }
 }
 
-/// The lines of the tick's rebase blocks in `src/control.rs` (each `if self.rebase { … }`:
+/// The lines of the tick's rebase blocks in `src/control/mod.rs` (each `if self.rebase { … }`:
 /// the transfer's start and input shaping's settling, inlined into the interrupt: their
 /// instructions mark the first tick after a swap or a mode switch).
 fn rebase_lines() -> Vec<std::ops::RangeInclusive<u32>> {
-    let src = std::fs::read_to_string(support::workspace_root().join("src/control.rs"))
-        .expect("read src/control.rs");
+    let src = std::fs::read_to_string(support::workspace_root().join("src/control/mod.rs"))
+        .expect("read src/control/mod.rs");
     let lines: Vec<&str> = src.lines().collect();
     let mut blocks = Vec::new();
     for (start, line) in lines.iter().enumerate() {
@@ -156,7 +156,7 @@ fn rebase_lines() -> Vec<std::ops::RangeInclusive<u32>> {
     }
     assert!(
         !blocks.is_empty(),
-        "the tick's rebase block is in src/control.rs"
+        "the tick's rebase block is in src/control/mod.rs"
     );
     blocks
 }
@@ -183,9 +183,9 @@ fn disassemble(elf: &Path) -> Code {
     let mut project = String::from("(no line)");
     for line in String::from_utf8_lossy(&out.stdout).lines() {
         if let Some(source) = line.strip_prefix("; ") {
-            // `; /path/src/control.rs:123`: the source line of the instructions that follow.
+            // `; /path/src/control/mod.rs:123`: the source line of the instructions that follow.
             if let Some((file, n)) = source.rsplit_once(':') {
-                in_swap = file.ends_with("/src/control.rs")
+                in_swap = file.ends_with("/src/control/mod.rs")
                     && n.parse::<u32>()
                         .is_ok_and(|n| swap_lines.iter().any(|r| r.contains(&n)));
                 let short = match file.rfind("/src/") {
@@ -458,7 +458,7 @@ fn parse_trace(
 }
 
 /// A legacy-mangled Rust symbol (`_ZN9twinstack8learning10post_table17h…E`) as its path
-/// without the hash (`twinstack::learning::post_table`); anything else as it is.
+/// without the hash (`twinstack::services::learning::post_table`); anything else as it is.
 fn demangled(symbol: &str) -> String {
     let Some(mut rest) = symbol.strip_prefix("_ZN") else {
         return symbol.to_string();
@@ -636,14 +636,14 @@ fn the_whole_interrupt_in_every_scenario() {
                 budgets.values().copied().max().unwrap_or(0)
             } else if name.contains("/scan-") && name.ends_with("-learning") {
                 predicted
-                    + u64::from(twinstack::tick_budget::LEARNING_CYCLES)
-                    + u64::from(twinstack::tick_budget::SCAN_CYCLES)
+                    + u64::from(twinstack::config::tick_budget::LEARNING_CYCLES)
+                    + u64::from(twinstack::config::tick_budget::SCAN_CYCLES)
             } else if name.ends_with("-learning") {
-                predicted + u64::from(twinstack::tick_budget::LEARNING_CYCLES)
+                predicted + u64::from(twinstack::config::tick_budget::LEARNING_CYCLES)
             } else if name.contains("/scan-") {
-                predicted + u64::from(twinstack::tick_budget::SCAN_CYCLES)
+                predicted + u64::from(twinstack::config::tick_budget::SCAN_CYCLES)
             } else if name.contains("/analog-") {
-                predicted + u64::from(twinstack::tick_budget::ANALOG_CYCLES)
+                predicted + u64::from(twinstack::config::tick_budget::ANALOG_CYCLES)
             } else if name.contains("reload") {
                 let other = if config.starts_with("inverse-pi16") {
                     "inverse-duhem+duhem-observer+pi+drift"
@@ -666,7 +666,7 @@ fn the_whole_interrupt_in_every_scenario() {
             };
             if max_c5 > bound {
                 failures.push(format!(
-                    "{name}: the worst tick takes {max_c5} cycles (5 WS), more than the tick budget's {bound}: raise src/tick_budget.rs's coefficients"
+                    "{name}: the worst tick takes {max_c5} cycles (5 WS), more than the tick budget's {bound}: raise src/config/tick_budget.rs's coefficients"
                 ));
             }
         }
@@ -702,7 +702,7 @@ fn the_whole_interrupt_in_every_scenario() {
         );
         if ratio > LOOSEST_PREDICTION {
             failures.push(format!(
-                "{config}: the tick budget predicts {predicted} cycles for a worst tick of {}: looser than {LOOSEST_PREDICTION}× (lower src/tick_budget.rs's coefficients)",
+                "{config}: the tick budget predicts {predicted} cycles for a worst tick of {}: looser than {LOOSEST_PREDICTION}× (lower src/config/tick_budget.rs's coefficients)",
                 t.cycles_ws5
             ));
         }

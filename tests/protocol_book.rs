@@ -534,7 +534,7 @@ fn numbers_before(text: &str, phrase: &str) -> Vec<Option<u64>> {
 
 /// Where the book states a record's limit, and the constant of the image it names.
 fn record_limits() -> [(&'static str, &'static str, &'static str, usize); 4] {
-    use twinstack::recorder::{EMULATOR_RECORD_CAPACITY, RECORD_CAPACITY};
+    use twinstack::services::recorder::{EMULATOR_RECORD_CAPACITY, RECORD_CAPACITY};
     [
         (
             "protocol",
@@ -576,7 +576,7 @@ fn check_record_limits(pages: &[(&str, &str)]) -> Result<(), String> {
     // The capture's length at the board's default rate, from the same constant.
     let secs = format!(
         "{:.2} s at 50 kHz",
-        twinstack::recorder::RECORD_CAPACITY as f64 / 50_000.0
+        twinstack::services::recorder::RECORD_CAPACITY as f64 / 50_000.0
     );
     let chapter = pages[0].1.split_whitespace().collect::<Vec<_>>().join(" ");
     if !chapter.contains(&format!("(`recorder::RECORD_CAPACITY`): {secs}")) {
@@ -593,7 +593,7 @@ fn the_record_limits_the_book_states_are_each_image_s_constants() {
     let pages = [("protocol", CHAPTER), ("recording", RECORDING)];
     check_record_limits(&pages).unwrap();
     // A stale figure is caught, on either page and for either image.
-    let board = twinstack::recorder::RECORD_CAPACITY;
+    let board = twinstack::services::recorder::RECORD_CAPACITY;
     let stale = |n: usize| {
         let s = n.to_string();
         let (hi, lo) = s.split_at(s.len() - 3);
@@ -616,5 +616,5 @@ fn the_record_limits_the_book_states_are_each_image_s_constants() {
             "{page}: a stale {phrase:?} figure passes"
         );
     }
-    assert!(board > twinstack::recorder::EMULATOR_RECORD_CAPACITY);
+    assert!(board > twinstack::services::recorder::EMULATOR_RECORD_CAPACITY);
 }

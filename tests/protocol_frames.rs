@@ -2,16 +2,16 @@
 //! random bytes (no panic; a good frame after junk still decodes).
 
 use proptest::prelude::*;
+use twinstack::config::settings::{
+    representative_duhem, DriveSettings, FeedbackSettings, Model, NotchDesign, SensorSettings,
+    Settings,
+};
 use twinstack::protocol::decoder::FrameDecoder;
 use twinstack::protocol::frame::{
     decode_body, encode, encode_body_bytes, FrameError, FRAME_CRC, MAX_BODY, MAX_ENCODED,
     PROTOCOL_VERSION,
 };
 use twinstack::protocol::messages::*;
-use twinstack::settings::{
-    representative_duhem, DriveSettings, FeedbackSettings, Model, NotchDesign, SensorSettings,
-    Settings,
-};
 use twinstack::PiParams;
 
 fn frame_of(req: &Request) -> Vec<u8> {

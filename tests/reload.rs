@@ -10,14 +10,16 @@ use rtic_core::Exclusive;
 use twinstack::board::fakes::{FixedAdc, RecordingDac};
 use twinstack::board::{AdcCode, DacCode, Hardware};
 use twinstack::command_handler::CommandHandler;
+use twinstack::config::param_store::RamStorage;
+use twinstack::config::settings::{
+    pi_model, FeedbackSettings, Mode, Model, SensorSettings, Settings,
+};
+use twinstack::control::drive::{Configuration, DriveSettings, SafeState};
 use twinstack::control::{Controller, TickFlags};
 use twinstack::control_loop::{ControlLoop, SetpointQueue};
-use twinstack::drive::{Configuration, DriveSettings, SafeState};
-use twinstack::generalised_pi::{DeadZoneParams, GpiParams};
-use twinstack::param_store::RamStorage;
-use twinstack::params::DuhemParams;
+use twinstack::models::generalised_pi::{DeadZoneParams, GpiParams};
+use twinstack::models::params::DuhemParams;
 use twinstack::protocol::messages::{Request, Response, SetpointBatch, StreamControl};
-use twinstack::settings::{pi_model, FeedbackSettings, Mode, Model, SensorSettings, Settings};
 use twinstack::Scaling;
 
 const RATE: f64 = 50_000.0;
@@ -121,7 +123,7 @@ prop_compose! {
             feedback: feedback.map(|(kp, ki, limit)| FeedbackSettings::pi(kp, ki, limit)),
             mode: [Mode::Bypass, Mode::OpenLoop, Mode::ClosedLoop][mode as usize],
             creep: None,
-            shaping: shaping.map(|(frequency_hz, q, depth)| twinstack::notch::NotchDesign {
+            shaping: shaping.map(|(frequency_hz, q, depth)| twinstack::control::notch::NotchDesign {
                 frequency_hz,
                 q,
                 depth,

@@ -7,7 +7,7 @@
 //! a table. It fails if the bench does not run or report every configuration, or if the board
 //! image or the Feather image exceeds its 128 KiB flash budget; the instruction target (≤ 250 for inverse P–I
 //! N = 16 with observer and feedback) is printed, not asserted, because it is a property of
-//! the library's tick (src/control.rs), not of this harness.
+//! the library's tick (src/control/mod.rs), not of this harness.
 
 mod support;
 

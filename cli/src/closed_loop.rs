@@ -25,12 +25,12 @@ use hal_sim::sim_board::{BoardConfig, ExternalBoard, SimBoard};
 use plotters::style::{BLUE, RED};
 use std::path::PathBuf;
 use twinstack::board::Hardware;
+use twinstack::config::settings::{FeedbackSettings, Mode, Model, SensorSettings, Settings};
+use twinstack::control::drive::{Configuration, DriveSettings, SafeState};
+use twinstack::control::notch::NotchDesign;
 use twinstack::control::{ControlConfig, Controller, TickFlags};
-use twinstack::drive::{Configuration, DriveSettings, SafeState};
 use twinstack::fixed_point::{signal_from_f64, signal_to_f64};
-use twinstack::notch::NotchDesign;
-use twinstack::settings::{FeedbackSettings, Mode, Model, SensorSettings, Settings};
-use twinstack::waveform::{Shape, WaveformGenerator};
+use twinstack::sources::waveform::{Shape, WaveformGenerator};
 use twinstack::Scaling;
 use twinstack_identify::identification::{
     identify, score::score, IdentifyOptions, ModelKind, ThresholdSpread,
@@ -406,7 +406,7 @@ pub fn identify_model(rate: f64, options: &ClosedLoopOptions) -> Result<StageMod
     };
     let mut opts = IdentifyOptions::new(ModelKind::Pi, t[t.len() / 2]);
     // 16 operators; 12 above 50 kHz, where the tick budget admits a P–I both ways beside the
-    // notch only up to 12 (twinstack::tick_budget: 16 needs 1 761 of the 1 680 cycles a
+    // notch only up to 12 (twinstack::config::tick_budget: 16 needs 1 761 of the 1 680 cycles a
     // 100 kHz period has).
     opts.operators = if rate > 50_000.0 { 12 } else { 16 };
     opts.thresholds = ThresholdSpread::Uniform;

@@ -21,11 +21,11 @@ use indicatif::{ProgressBar, ProgressStyle};
 use plotters::style::{RGBColor, BLACK, BLUE, RED};
 use std::path::PathBuf;
 use twinstack::board::Hardware;
+use twinstack::config::settings::{Mode, Model, Settings};
+use twinstack::control::drive::{Configuration, DriveSettings, SafeState};
 use twinstack::control::{ControlConfig, Controller};
-use twinstack::drive::{Configuration, DriveSettings, SafeState};
 use twinstack::fixed_point::{signal_from_f64, signal_to_f64};
-use twinstack::settings::{Mode, Model, Settings};
-use twinstack::waveform::{Shape, WaveformGenerator};
+use twinstack::sources::waveform::{Shape, WaveformGenerator};
 use twinstack::Scaling;
 use twinstack_identify::identification::{
     identify, score::score, IdentifyOptions, ModelKind, ThresholdSpread,

@@ -1,5 +1,5 @@
 //! Learning feedforward (iterative learning control) on the simulated differential stage, in
-//! process: the library's [`ControlLoop`] with its learning ([`twinstack::learning`]) on the
+//! process: the library's [`ControlLoop`] with its learning ([`twinstack::services::learning`]) on the
 //! closed-loop study's board (16-bit DAC8562 and ADS8689, 2 nm rms sensor noise, 1 mV
 //! amplifier noise, 0.9 V/µs slew) and its identified P–I model (N = 16).
 //!
@@ -7,7 +7,7 @@
 //!    stroke) for a few periods; the last are scored (stage against setpoint, % of the
 //!    commanded stroke).
 //! 2. **Learning**: the same tick with the learning on; after every period the low-priority
-//!    task ([`twinstack::learning::service`]) takes the sensor's errors and posts the next
+//!    task ([`twinstack::services::learning::service`]) takes the sensor's errors and posts the next
 //!    table. Each period is scored from the stage itself: the learning curve.
 //! 3. **Replay, sensor off**: the table is frozen and stored; a fresh board and controller
 //!    whose settings have **no sensor** recall it and play it open loop.
@@ -22,15 +22,15 @@ use hal_sim::sim_board::ExternalBoard;
 use plotters::style::{BLACK, BLUE, RED};
 use rtic_core::Exclusive;
 use std::path::PathBuf;
+use twinstack::config::settings::{NotchDesign, Settings};
 use twinstack::control::Controller;
 use twinstack::control_loop::{ControlLoop, SetpointQueue};
 use twinstack::fixed_point::{signal_from_f64, signal_to_f64};
-use twinstack::learning::{
+use twinstack::services::learning::{
     configure, post_table, service, LearnSettings, LearnState, LearnTask, MAX_BINS,
 };
-use twinstack::recorder::CAPTURE_SLOTS;
-use twinstack::settings::{NotchDesign, Settings};
-use twinstack::waveform::{Shape, WaveformGenerator};
+use twinstack::services::recorder::CAPTURE_SLOTS;
+use twinstack::sources::waveform::{Shape, WaveformGenerator};
 use twinstack_identify::identification::score::score;
 use twinstack_identify::stage_model::StageModel;
 use twinstack_link::plot::{draw_panels, Panel, Series};
@@ -286,7 +286,7 @@ pub struct LearnReport {
     pub updates: u32,
     /// Periods the task missed.
     pub missed: u32,
-    /// Times the divergence guard stopped the learning (`twinstack::learning::DIVERGENCE_FACTOR`:
+    /// Times the divergence guard stopped the learning (`twinstack::services::learning::DIVERGENCE_FACTOR`:
     /// switched off, the feedforward alone plays).
     pub guard_stops: u32,
     /// Figures written.

@@ -22,11 +22,11 @@ use plotters::style::{BLACK, BLUE, RED};
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
 use twinstack::fixed_point::signal_to_f64;
-use twinstack::learning::PeriodError;
 use twinstack::protocol::messages::{
     LearnRequest, LearnState, LearnStatus, Mode, Request, Response, StreamControl, WaveShape,
     Waveform,
 };
+use twinstack::services::learning::PeriodError;
 use twinstack_link::plot::{draw_panels, Panel, Series};
 
 /// One period as the board's sensor saw it, % of the commanded stroke.
@@ -143,8 +143,8 @@ pub fn run(port: &PortArgs, options: &LearnOptions, amplitude: f64) -> Result<Li
         .context("open loop (the learning plays on the inverse-model feedforward)")?;
     client.waveform(Waveform {
         shape: match options.motion.shape {
-            twinstack::waveform::Shape::Sine => WaveShape::Sine,
-            twinstack::waveform::Shape::Triangle => WaveShape::Triangle,
+            twinstack::sources::waveform::Shape::Sine => WaveShape::Sine,
+            twinstack::sources::waveform::Shape::Triangle => WaveShape::Triangle,
         },
         offset: 0,
         amplitude: twinstack_link::setpoint_file::q1_15(amplitude),

@@ -10,13 +10,13 @@ mod virtual_board_process;
 
 use hal_sim::analog_source::AnalogSource;
 use hal_sim::sim_device::{SimDevice, SimDeviceConfig};
-use twinstack::analog_input::{AnalogInputConfig, AnalogRequest, AnalogStatus, OnFault};
 use twinstack::board::DacCode;
 use twinstack::fixed_point::SIGNAL_ONE;
 use twinstack::protocol::messages::{
     Mode, NackReason, PackedBatch, Request, Response, StatusReport, StreamControl,
 };
 use twinstack::refusal::Field;
+use twinstack::sources::analog_input::{AnalogInputConfig, AnalogRequest, AnalogStatus, OnFault};
 
 const RATE: f64 = 50_000.0;
 
@@ -237,9 +237,9 @@ fn the_analog_input_and_the_other_sources_refuse_each_other() {
     ack(&mut dev, start);
     for other in [
         Request::Stream(StreamControl::Start),
-        Request::Sequence(twinstack::sequence::SequenceRequest::Arm(
-            twinstack::sequence::SequenceConfig {
-                edge: twinstack::scan::TriggerEdge::Rising,
+        Request::Sequence(twinstack::sources::sequence::SequenceRequest::Arm(
+            twinstack::sources::sequence::SequenceConfig {
+                edge: twinstack::sources::scan::TriggerEdge::Rising,
                 window: 0.01,
                 settle_ticks: 1,
             },
@@ -362,8 +362,8 @@ fn store_params_keeps_the_input_last_started_for_the_next_power_up() {
             boot_mode: Mode::OpenLoop,
         },
     );
-    let record = twinstack::param_store::StoredRecord::decode(
-        twinstack::param_store::RecordStorage::read(dev.handler().storage()),
+    let record = twinstack::config::param_store::StoredRecord::decode(
+        twinstack::config::param_store::RecordStorage::read(dev.handler().storage()),
         &hal_sim::sim_device::hardware(RATE),
     )
     .unwrap();

@@ -345,8 +345,8 @@ fn every_command_runs_against_the_simulated_board() {
 
     let model = twinstack_identify::stage_model::StageModel {
         hysteresis: twinstack_identify::stage_model::Hysteresis::Pi(
-            match twinstack::settings::representative_pi(16).unwrap() {
-                twinstack::settings::Model::PrandtlIshlinskii(p) => p,
+            match twinstack::config::settings::representative_pi(16).unwrap() {
+                twinstack::config::settings::Model::PrandtlIshlinskii(p) => p,
                 other => panic!("{other:?}"),
             },
         ),
@@ -378,10 +378,13 @@ fn every_command_runs_against_the_simulated_board() {
     let o = twinstack_bin(&["params", "--port", "sim"]);
     let (out, err) = text(&o);
     assert!(o.status.success(), "{out}{err}");
-    let read: twinstack::settings::Settings = serde_json::from_str(&out).expect("JSON settings");
+    let read: twinstack::config::settings::Settings =
+        serde_json::from_str(&out).expect("JSON settings");
     assert_eq!(
         read,
-        hal_sim::sim_device::SimDeviceConfig::paper_settings(twinstack::settings::Mode::Bypass)
+        hal_sim::sim_device::SimDeviceConfig::paper_settings(
+            twinstack::config::settings::Mode::Bypass
+        )
     );
     // `mode` switches; `recall` reloads the stored settings.
     let o = twinstack_bin(&["mode", "--port", "sim", "open-loop"]);

@@ -8,7 +8,7 @@ use hal_sim::sim_device::{SimDevice, SimDeviceConfig};
 use std::process::{Command, Output};
 use std::time::Duration;
 use twinstack::board::Hardware;
-use twinstack::settings::{Mode, Settings};
+use twinstack::config::settings::{Mode, Settings};
 use twinstack_identify::calibrate::{calibrate, CalibrateError, CalibrateOptions};
 use twinstack_identify::identification::auto::{identify_auto_admitting, Admission, Validation};
 use twinstack_identify::identification::{IdentifyError, IdentifyOptions, ModelKind};
@@ -423,7 +423,7 @@ fn bad_options_are_refused_naming_the_option() {
 #[test]
 fn the_board_plays_the_decaying_excitation_it_is_asked_for() {
     use twinstack::protocol::messages::{CaptureRequest, Trigger};
-    use twinstack::recorder::Channel;
+    use twinstack::services::recorder::Channel;
     let mut client = sim_client(SimDeviceConfig::paper());
     let options = quick();
     let w = options.waveform();
@@ -448,8 +448,8 @@ fn the_board_plays_the_decaying_excitation_it_is_asked_for() {
         .collect();
     // The library's generator, fed the same request, gives the same peaks.
     let decay = w.decay.unwrap();
-    let mut g = twinstack::waveform::WaveformGenerator::new(
-        twinstack::waveform::Shape::Sine,
+    let mut g = twinstack::sources::waveform::WaveformGenerator::new(
+        twinstack::sources::waveform::Shape::Sine,
         0,
         (w.amplitude as i32) << 15,
         w.frequency_mhz as f64 / 1000.0,

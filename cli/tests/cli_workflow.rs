@@ -138,8 +138,8 @@ fn status_json_is_one_object() {
 fn param_file(dir: &Path, name: &str, lo: f64, hi: f64) -> PathBuf {
     let model = twinstack_identify::stage_model::StageModel {
         hysteresis: twinstack_identify::stage_model::Hysteresis::Pi(
-            match twinstack::settings::representative_pi(16).unwrap() {
-                twinstack::settings::Model::PrandtlIshlinskii(p) => p,
+            match twinstack::config::settings::representative_pi(16).unwrap() {
+                twinstack::config::settings::Model::PrandtlIshlinskii(p) => p,
                 other => panic!("{other:?}"),
             },
         ),

@@ -10,10 +10,10 @@ use hal_sim::converters::{AnalogDualDac, AnalogSensorAdc};
 use hal_sim::plant::{Configuration as PlantConfiguration, StageParams};
 use hal_sim::sim_board::{BoardConfig, ExternalBoard, InternalBoard, SimBoard};
 use twinstack::board::{DualDac, Hardware};
+use twinstack::config::settings::{FeedbackSettings, Mode, Model, SensorSettings, Settings};
+use twinstack::control::drive::{Configuration, DriveSettings, SafeState};
 use twinstack::control::{ControlConfig, Controller};
-use twinstack::drive::{Configuration, DriveSettings, SafeState};
 use twinstack::fixed_point::signal_from_f64;
-use twinstack::settings::{FeedbackSettings, Mode, Model, SensorSettings, Settings};
 use twinstack::{DuhemParams, Scaling};
 
 /// Output range of the controller's model, µm (normalised setpoint 1.0 = 40 µm).

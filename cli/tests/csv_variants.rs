@@ -209,8 +209,8 @@ fn predict_reads_an_export_through_the_cli() {
     let dir = tempfile::tempdir().unwrap();
     let model = twinstack_identify::stage_model::StageModel {
         hysteresis: twinstack_identify::stage_model::Hysteresis::Pi(
-            match twinstack::settings::representative_pi(16).unwrap() {
-                twinstack::settings::Model::PrandtlIshlinskii(p) => p,
+            match twinstack::config::settings::representative_pi(16).unwrap() {
+                twinstack::config::settings::Model::PrandtlIshlinskii(p) => p,
                 other => panic!("{other:?}"),
             },
         ),

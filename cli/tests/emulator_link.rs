@@ -173,14 +173,14 @@ fn the_host_tools_drive_the_emulated_firmware_over_its_uart() {
 
     // A parameter load from the file `identify` writes (a representative P–I model on the
     // firmware's default ranges), open loop.
-    let twinstack::settings::Model::PrandtlIshlinskii(pi) =
-        twinstack::settings::representative_pi(16).unwrap()
+    let twinstack::config::settings::Model::PrandtlIshlinskii(pi) =
+        twinstack::config::settings::representative_pi(16).unwrap()
     else {
         unreachable!()
     };
     let model = StageModel {
         hysteresis: Hysteresis::Pi(pi),
-        scaling: twinstack::settings::Settings::default().ranges,
+        scaling: twinstack::config::settings::Settings::default().ranges,
         output_sign: 1.0,
         sensor_lag_s: 0.0,
         creep: None,
@@ -235,7 +235,7 @@ fn the_host_tools_drive_the_emulated_firmware_over_its_uart() {
     assert_eq!(after.next_seq, s.next_seq.wrapping_add(1));
     // A load the firmware refuses (not invertible) changes nothing.
     let mut bad = set.clone();
-    if let Some(twinstack::settings::Model::PrandtlIshlinskii(p)) = &mut bad.compensator {
+    if let Some(twinstack::config::settings::Model::PrandtlIshlinskii(p)) = &mut bad.compensator {
         p.weights[0] = -1.0;
     }
     assert!(matches!(
@@ -368,14 +368,14 @@ fn the_lab_workflow_runs_command_by_command_on_the_emulated_firmware() {
     };
 
     // load: a P–I model on the firmware's default ranges (0…140 V onto 0…70 µm), open loop.
-    let twinstack::settings::Model::PrandtlIshlinskii(pi) =
-        twinstack::settings::representative_pi(16).unwrap()
+    let twinstack::config::settings::Model::PrandtlIshlinskii(pi) =
+        twinstack::config::settings::representative_pi(16).unwrap()
     else {
         unreachable!()
     };
     let model = StageModel {
         hysteresis: Hysteresis::Pi(pi),
-        scaling: twinstack::settings::Settings::default().ranges,
+        scaling: twinstack::config::settings::Settings::default().ranges,
         output_sign: 1.0,
         sensor_lag_s: 0.0,
         creep: None,
@@ -435,7 +435,7 @@ fn the_lab_workflow_runs_command_by_command_on_the_emulated_firmware() {
     );
 
     // params: what was loaded; status: the emulator image, open loop.
-    let loaded: twinstack::settings::Settings =
+    let loaded: twinstack::config::settings::Settings =
         serde_json::from_str(&ok(&["params", "--port", &port])).expect("params JSON");
     assert_eq!(loaded.mode, Mode::OpenLoop);
     assert_eq!(
@@ -481,7 +481,7 @@ fn the_lab_workflow_runs_command_by_command_on_the_emulated_firmware() {
             );
             assert!(!out_file.exists(), "no parameter file after a failure");
             // Nothing was loaded, and the mode calibrate switched to bypass is restored.
-            let after: twinstack::settings::Settings =
+            let after: twinstack::config::settings::Settings =
                 serde_json::from_str(&ok(&["params", "--port", &port])).unwrap();
             assert_eq!(after, loaded);
         }
@@ -625,13 +625,13 @@ fn tune_runs_its_sweep_on_the_emulated_firmware_and_stops_cleanly_without_a_stag
 
 /// The largest settings the protocol carries (two generalised P–I models of 32 operators and
 /// 8 dead zones, the feedback's notch, the input shaping): the largest frame there is.
-fn largest_settings() -> twinstack::settings::Settings {
-    use twinstack::notch::NotchDesign;
-    use twinstack::settings::{representative_gpi, Model};
+fn largest_settings() -> twinstack::config::settings::Settings {
+    use twinstack::config::settings::{representative_gpi, Model};
+    use twinstack::control::notch::NotchDesign;
     let Model::GeneralisedPi(mut g) = representative_gpi(32).unwrap() else {
         unreachable!()
     };
-    g.dead_zones = twinstack::generalised_pi::DeadZoneParams::new(
+    g.dead_zones = twinstack::models::generalised_pi::DeadZoneParams::new(
         35.0,
         1.0,
         &[-32.0, -24.0, -16.0, -8.0, 8.0, 16.0, 24.0, 32.0],

@@ -132,9 +132,9 @@ fn the_feather_image_answers_on_usart3_and_keeps_usart1_silent() {
     // The compiled-in settings read back; a load (open loop, a representative P–I model on
     // the default ranges) reads back as sent.
     let defaults = client.read_params().expect("the settings");
-    assert_eq!(defaults, twinstack::settings::Settings::default());
-    let loaded = twinstack::settings::Settings {
-        compensator: Some(twinstack::settings::representative_pi(16).unwrap()),
+    assert_eq!(defaults, twinstack::config::settings::Settings::default());
+    let loaded = twinstack::config::settings::Settings {
+        compensator: Some(twinstack::config::settings::representative_pi(16).unwrap()),
         mode: Mode::OpenLoop,
         ..defaults
     };
@@ -235,7 +235,7 @@ fn the_feather_image_sets_its_pins_up_on_the_feather_s_header() {
         .map(|w| w.2)
         .collect();
     assert!(words.len() > 1000, "{} GPIOC BSRR writes", words.len());
-    let full = |w: u32| twinstack::scan::bsrr_word(((w >> 1) & 7) as u8) == w;
+    let full = |w: u32| twinstack::sources::scan::bsrr_word(((w >> 1) & 7) as u8) == w;
     assert!(
         words.iter().filter(|&&w| full(w)).count() > 1000,
         "{:x?}",

@@ -8,7 +8,7 @@
 
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
-use twinstack::params::{DuhemParams, PiParams, Thresholds};
+use twinstack::models::params::{DuhemParams, PiParams, Thresholds};
 use twinstack::Scaling;
 use twinstack_identify::reference;
 

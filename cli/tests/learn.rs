@@ -291,9 +291,9 @@ fn a_board_learns_over_the_protocol() {
 /// A refused learning request names the field and its limit, and changes nothing.
 #[test]
 fn the_board_refuses_what_it_cannot_learn() {
-    use twinstack::learning::{LearnSettings, LearnState};
     use twinstack::protocol::messages::{LearnRequest, NackReason, Request, Response};
     use twinstack::refusal::{Field, Refusal, Rule};
+    use twinstack::services::learning::{LearnSettings, LearnState};
     let mut client = twinstack_cli::board_link::connect(&sim_port()).unwrap();
     let mut ask = |r: LearnRequest| client.request(&Request::Learn(r)).unwrap();
     let refused = |field, rule| Response::Nack {

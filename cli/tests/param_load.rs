@@ -5,8 +5,8 @@
 
 use clap::Parser;
 use hal_sim::sim_device::{SimDevice, SimDeviceConfig};
-use twinstack::drive::DriveSettings;
-use twinstack::settings::{representative_duhem, representative_pi, Mode, Model};
+use twinstack::config::settings::{representative_duhem, representative_pi, Mode, Model};
+use twinstack::control::drive::DriveSettings;
 use twinstack::Scaling;
 use twinstack_cli::commands::load::{settings_for, Args};
 use twinstack_identify::param_file::{ParamFile, ParamFileError};

@@ -13,7 +13,7 @@ use twinstack::control::TickFlags;
 use twinstack::protocol::messages::{
     Mode, Request, SequenceConfig, SequenceRequest, StatusReport, TriggerEdge,
 };
-use twinstack::sequence::SETTLED;
+use twinstack::sources::sequence::SETTLED;
 use twinstack_link::client::Client;
 use twinstack_link::sequence_run::{run_sequence, SequenceOptions};
 

@@ -6,7 +6,7 @@
 use hal_sim::plant::{true_plant, Configuration, StageParams};
 use hal_sim::sim_device::{SimDevice, SimDeviceConfig};
 use std::process::{Command, Output};
-use twinstack::feedback::FeedbackSettings;
+use twinstack::control::feedback::FeedbackSettings;
 use twinstack_cli::closed_loop::{self, ClosedLoopOptions};
 use twinstack_identify::tune::design::{check, Goals, Refused};
 use twinstack_identify::tune::{tune, TuneError, TuneOptions, TuneReport};
@@ -307,7 +307,7 @@ fn the_shipped_default_feedback_is_stable_at_every_allowed_rate() {
     for rate in [f64::from(lo), f64::from(hi)] {
         let model = closed_loop::identify_model(rate, &options).unwrap();
         let mut board = closed_loop::board(rate, options.sensor_noise_um).unwrap();
-        let settings = twinstack::settings::Settings {
+        let settings = twinstack::config::settings::Settings {
             feedback: Some(FeedbackSettings::DEFAULT),
             ..closed_loop::settings(
                 rate,

@@ -11,11 +11,11 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
+use twinstack::config::settings::Mode;
 use twinstack::protocol::messages::{
     RecordRequest, Request, Response, SetpointBatch, Signal, StatusReport, StreamControl,
     UnderrunPolicy, MAX_BATCH,
 };
-use twinstack::settings::Mode;
 use twinstack_link::client::Client;
 use twinstack_link::socket::SocketTransport;
 use twinstack_link::streamer::{stream_setpoints, StreamOptions};
@@ -556,7 +556,10 @@ fn a_capture_armed_on_the_waveform_start_is_fetched_by_a_later_command() {
     );
 
     // Six signals share the board's capture buffer.
-    let six_signals = format!("at most {}", twinstack::recorder::CAPTURE_SLOTS / 6);
+    let six_signals = format!(
+        "at most {}",
+        twinstack::services::recorder::CAPTURE_SLOTS / 6
+    );
     for (args, needle) in [
         (
             &["--signals", "setpoint,volts", "--samples", "10"][..],

@@ -6,9 +6,9 @@
 use serde::{Deserialize, Serialize};
 
 use twinstack::board::Hardware;
+use twinstack::config::settings::{Settings, SettingsWithoutShaping};
 use twinstack::control::ControlConfig;
 use twinstack::refusal::Refusal;
-use twinstack::settings::{Settings, SettingsWithoutShaping};
 
 /// Longest encoded recipe, bytes (two 32-operator P–I models and everything else fit).
 pub const MAX_RECIPE: usize = 1536;

@@ -1,4 +1,4 @@
-//! The simulated board's analog setpoint input ([`twinstack::analog_input`]): the voltage a
+//! The simulated board's analog setpoint input ([`twinstack::sources::analog_input`]): the voltage a
 //! lab's controller puts on the board's input pin, tick by tick, converted as the board's
 //! 12-bit ADC converts it (0–3.3 V, on the control timer's trigger before each tick).
 //!

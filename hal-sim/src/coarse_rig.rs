@@ -22,7 +22,7 @@ use twinstack::dual_stage::{
     CoarseLimits, CoarseStatus, CoarseSupervisor, DualStage, DualStageSettings, SupervisorSettings,
     PM_PER_UM,
 };
-use twinstack::recorder::SampleStore;
+use twinstack::services::recorder::SampleStore;
 
 impl CoarseAxisSim for CoarseRig {
     fn limits(&self) -> CoarseLimits {

@@ -5,7 +5,7 @@
 //! ×4 into a wrapping 16-bit counter).
 
 use twinstack::board::{QuadratureEncoder, StepBurst, StepDir, StepDirection};
-use twinstack::coarse_axis::QuadratureDecoder;
+use twinstack::dual_stage::coarse_axis::QuadratureDecoder;
 
 /// Why the emulated step output refused a burst.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]

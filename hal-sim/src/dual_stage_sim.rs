@@ -15,11 +15,11 @@ use crate::plant::{Configuration as PlantConfiguration, StageParams};
 use crate::sim_board::{BoardConfig, BoardError, ExternalBoard};
 use std::f64::consts::PI;
 use twinstack::board::{DualDac, Hardware};
+use twinstack::config::settings::{FeedbackSettings, Mode, Model, SensorSettings, Settings};
+use twinstack::control::drive::{Configuration, DriveSettings, SafeState};
 use twinstack::control::{Controller, TickFlags};
-use twinstack::drive::{Configuration, DriveSettings, SafeState};
 use twinstack::dual_stage::{DualMode, DualStage, DualStageError, DualStageSettings, PM_PER_UM};
 use twinstack::refusal::Refusal;
-use twinstack::settings::{FeedbackSettings, Mode, Model, SensorSettings, Settings};
 use twinstack::{DuhemParams, Scaling};
 
 /// The piezo controller's output range, µm (its Q2.30 ±1).

@@ -1,5 +1,5 @@
 //! A simulated camera on the simulated board's trigger input: what drives a TTL-stepped
-//! sequence ([`twinstack::sequence`]) on `--port sim` and `twinstack virtual-board`.
+//! sequence ([`twinstack::sources::sequence`]) on `--port sim` and `twinstack virtual-board`.
 //!
 //! Wired as a lab wires one: the camera's TTL output (a pulse at the end of each frame's
 //! exposure) onto the board's trigger input (PA6). Like an acquisition program that arms the

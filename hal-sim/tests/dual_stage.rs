@@ -213,7 +213,7 @@ fn encoders_count_quadrature_through_direction_changes() {
     assert_eq!(enc.missed(), 0);
     assert!(wraps >= 1, "the 16-bit counter wrapped");
     // The library's counter extension recovers the position from the wrapping register.
-    let mut ext = twinstack::coarse_axis::EncoderCounter::new(start);
+    let mut ext = twinstack::dual_stage::coarse_axis::EncoderCounter::new(start);
     let mut enc = EmulatedEncoder::new(0.005, 0.0);
     for k in 0..2000 {
         let x = 150.0 * (k as f64 * 0.01).sin();

@@ -5,13 +5,13 @@
 //! matches what was streamed. Time is simulated: these are counts, not timings.
 
 use hal_sim::sim_device::{LinkDelay, SimDevice, SimDeviceConfig};
+use twinstack::config::settings::{representative_pi, Model};
 use twinstack::protocol::frame::{self, FrameError, MAX_ENCODED};
 use twinstack::protocol::messages::{
     Mode, NackReason, RecordRequest, Request, Response, SetpointBatch, Signal, StatusReport,
     StreamControl, UnderrunPolicy,
 };
 use twinstack::refusal::{Field, ModelField, Refusal, Rule};
-use twinstack::settings::{representative_pi, Model};
 use twinstack_identify::param_file::ParamFile;
 use twinstack_identify::stage_model::{Hysteresis, StageModel};
 use twinstack_link::client::{Client, LinkError};

@@ -15,15 +15,15 @@ use std::time::Duration;
 
 use hal_sim::sim_device::{SimDevice, SimDeviceConfig};
 use proptest::prelude::*;
+use twinstack::config::settings::Mode;
 use twinstack::control_loop::SETPOINT_CAPACITY;
-use twinstack::learning::{LearnSettings, LearnState};
 use twinstack::protocol::decoder::FrameDecoder;
 use twinstack::protocol::frame::{self, MAX_ENCODED};
 use twinstack::protocol::messages::*;
-use twinstack::recorder::{Signal, Trigger};
-use twinstack::scan::{RasterScan, ScanPattern, ScanRequest, TriggerConfig, TriggerEdge};
-use twinstack::setpoint_stream::UnderrunPolicy;
-use twinstack::settings::Mode;
+use twinstack::services::learning::{LearnSettings, LearnState};
+use twinstack::services::recorder::{Signal, Trigger};
+use twinstack::sources::scan::{RasterScan, ScanPattern, ScanRequest, TriggerConfig, TriggerEdge};
+use twinstack::sources::setpoint_stream::UnderrunPolicy;
 use twinstack_link::Transport;
 
 /// One valid request of every type (and of every variant of the nested requests), the

@@ -11,8 +11,8 @@ use twinstack::protocol::messages::{
     CaptureRequest, CaptureState, Request, ScanRequest, StatusReport, StreamControl, Trigger,
     TriggerConfig, TriggerEdge,
 };
-use twinstack::recorder::Channel;
-use twinstack::scan::{slew_step, FRAME, INPUT, LINE};
+use twinstack::services::recorder::Channel;
+use twinstack::sources::scan::{slew_step, FRAME, INPUT, LINE};
 use twinstack_link::capture::wait_and_read;
 use twinstack_link::client::Client;
 use twinstack_link::scan_timing::{analyse, parse_pattern};
@@ -97,7 +97,7 @@ fn each_pattern_on_the_board_is_the_library_s_tick_for_tick_with_its_clocks() {
         assert!(f.line.ideal_error_max_ticks < 1.0, "{spec}: {f:?}");
         assert_eq!(f.line.width_ticks, (2, 2), "{spec}");
         match request.pattern {
-            twinstack::scan::ScanPattern::Raster(r) => {
+            twinstack::sources::scan::ScanPattern::Raster(r) => {
                 assert_eq!(f.line.pulses, r.lines as usize);
                 assert_eq!(f.line.period_ticks, (240, 240));
                 assert_eq!(f.line.jitter_ticks, 0);
@@ -110,12 +110,12 @@ fn each_pattern_on_the_board_is_the_library_s_tick_for_tick_with_its_clocks() {
                     "{lo} {hi}"
                 );
             }
-            twinstack::scan::ScanPattern::Lissajous(_) => {
+            twinstack::sources::scan::ScanPattern::Lissajous(_) => {
                 assert_eq!(f.line.pulses, 6);
                 let (lo, hi, _) = f.turnaround_to_line.unwrap();
                 assert!(lo.abs() <= 1.0 && hi.abs() <= 1.0, "{lo} {hi}");
             }
-            twinstack::scan::ScanPattern::Spiral(_) => assert_eq!(f.line.pulses, 8),
+            twinstack::sources::scan::ScanPattern::Spiral(_) => assert_eq!(f.line.pulses, 8),
         }
     }
 }

@@ -4,12 +4,12 @@
 use std::time::Duration;
 
 use hal_sim::sim_device::{SimDevice, SimDeviceConfig};
+use twinstack::config::settings::{Mode, Model};
 use twinstack::control_loop::SETPOINT_CAPACITY;
 use twinstack::protocol::decoder::FrameDecoder;
 use twinstack::protocol::frame::{self, MAX_ENCODED};
 use twinstack::protocol::messages::*;
 use twinstack::refusal::{Field, ModelField, Refusal, Rule};
-use twinstack::settings::{Mode, Model};
 use twinstack_link::Transport;
 
 /// A stop-and-wait client: one request, one response.

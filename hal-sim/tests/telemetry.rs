@@ -10,8 +10,8 @@ use std::time::Duration;
 
 use hal_sim::sim_device::{SimDevice, SimDeviceConfig};
 use twinstack::protocol::messages::{NackReason, UnderrunPolicy};
-use twinstack::recorder::Channel;
 use twinstack::refusal::{Field, Rule};
+use twinstack::services::recorder::Channel;
 use twinstack_link::client::{Client, LinkError};
 use twinstack_link::streamer::{stream_setpoints, StreamOptions};
 use twinstack_link::telemetry::{wait_for_end, TelemetryRecord};

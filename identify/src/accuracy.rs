@@ -16,12 +16,14 @@
 //! LSB16 forward, 0.5 inverse.
 
 use crate::reference;
-use twinstack::bouc_wen::{BoucWen, InverseBoucWen};
-use twinstack::creep::{Creep, CreepParams};
-use twinstack::duhem::{Duhem, InverseDuhem};
 use twinstack::fixed_point::{signal_from_f64 as q, signal_to_f64 as f};
-use twinstack::generalised_pi::{DeadZoneParams, GeneralisedPi, GpiParams, InverseGeneralisedPi};
-use twinstack::prandtl_ishlinskii::{InversePrandtlIshlinskii, PrandtlIshlinskii};
+use twinstack::models::bouc_wen::{BoucWen, InverseBoucWen};
+use twinstack::models::creep::{Creep, CreepParams};
+use twinstack::models::duhem::{Duhem, InverseDuhem};
+use twinstack::models::generalised_pi::{
+    DeadZoneParams, GeneralisedPi, GpiParams, InverseGeneralisedPi,
+};
+use twinstack::models::prandtl_ishlinskii::{InversePrandtlIshlinskii, PrandtlIshlinskii};
 use twinstack::{BoucWenParams, DuhemParams, PiParams, Scaling, Thresholds};
 
 /// One LSB of a 16-bit converter over the normalised range [-1, 1].
@@ -112,7 +114,7 @@ fn random_gpi(rng: &mut Rng, n: usize) -> (GpiParams, Scaling) {
 
 /// A bank's bound in LSB16: its gain `Σ|w_i|` (its Q8.24 weights) times 1.5 LSB16, how far
 /// each operator may be from the `f64` one (see the module doc).
-fn gain(bank: &twinstack::prandtl_ishlinskii::PlayOperatorBank) -> f64 {
+fn gain(bank: &twinstack::models::prandtl_ishlinskii::PlayOperatorBank) -> f64 {
     1.5 * (0..bank.operators())
         .map(|i| (bank.weight(i) as f64).abs() / (1u64 << 24) as f64)
         .sum::<f64>()

@@ -48,12 +48,12 @@ use crate::identification::{
 use crate::param_file::{IdentificationRecord, ParamFile};
 use crate::trajectory;
 use std::time::Duration;
+use twinstack::config::settings::Settings;
 use twinstack::protocol::messages::{
     CaptureRequest, CaptureStatus, Mode, StatusReport, StreamControl, Trigger, UnderrunPolicy,
     WaveDecay, WaveShape, Waveform,
 };
-use twinstack::recorder::Channel;
-use twinstack::settings::Settings;
+use twinstack::services::recorder::Channel;
 use twinstack_link::capture::{self, CaptureError, ConvertError, Recording};
 use twinstack_link::client::{Client, LinkError};
 use twinstack_link::measured_data::MeasuredData;
@@ -573,7 +573,7 @@ fn measure<T: Transport>(
     let rate_limit = BoardRate::sizing(rate, options.operators.is_some());
     id_options.lag = options.lag;
     // Only a model the board runs at its control rate with its drive, sensor and feedback:
-    // the tick budget the board applies at load ([`twinstack::tick_budget`]), applied here
+    // the tick budget the board applies at load ([`twinstack::config::tick_budget`]), applied here
     // first, so that `auto` picks among what the board takes.
     let runs_on_board = |id: &Identification| {
         let mut settings = ParamFile::from_model(&id.model, &options.output_unit, None).settings;

@@ -1,6 +1,6 @@
 //! The versioned parameter file (`PARAMS.json`) that `identify` writes, `load` sends, and
 //! `predict` and `compensate` read. It carries the board's one settings type
-//! ([`twinstack::settings::Settings`]) as it is, so what a file says is exactly what a
+//! ([`twinstack::config::settings::Settings`]) as it is, so what a file says is exactly what a
 //! parameter load carries, what the board stores, and what `params` reads back.
 //!
 //! ```json
@@ -25,8 +25,8 @@ use crate::stage_model::{Hysteresis, StageModel};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 use twinstack::board::Hardware;
-use twinstack::drive::DriveSettings;
-use twinstack::settings::{Mode, Model, Settings};
+use twinstack::config::settings::{Mode, Model, Settings};
+use twinstack::control::drive::DriveSettings;
 
 /// Max and RMS error, % of the measured span (what [`crate::identification::score::score`]
 /// computes, recorded in the file).
@@ -364,7 +364,8 @@ mod tests {
     fn creep_round_trips_and_a_file_without_it_still_loads() {
         let m = StageModel {
             creep: Some(
-                twinstack::creep::CreepParams::new(&[0.01, 0.1, 1.0], &[0.02, 0.01, 0.03]).unwrap(),
+                twinstack::models::creep::CreepParams::new(&[0.01, 0.1, 1.0], &[0.02, 0.01, 0.03])
+                    .unwrap(),
             ),
             ..model()
         };

@@ -3,9 +3,9 @@
 //! same clamps, no quantisation. They allocate nothing, but are not meant for the tick: they
 //! live here, on the host, and not in the firmware's library.
 
-use twinstack::creep::CreepParams;
-use twinstack::generalised_pi::{DeadZoneParams, GpiParams};
-use twinstack::params::{
+use twinstack::models::creep::CreepParams;
+use twinstack::models::generalised_pi::{DeadZoneParams, GpiParams};
+use twinstack::models::params::{
     BoucWenParams, CanonicalPi, DuhemParams, ParamError, PiParams, MAX_CANONICAL_OPERATORS,
 };
 use twinstack::scaling::Scaling;
@@ -353,7 +353,7 @@ impl InverseDuhem {
 }
 
 /// Creep operator, `f64`: `z_k ← a_k z_k + b_k y`, `x = c0·y + Σ c_k z_k` (see
-/// `twinstack::creep`), in any units (the static gain is 1, so an affine change of units
+/// `twinstack::models::creep`), in any units (the static gain is 1, so an affine change of units
 /// commutes with it).
 #[derive(Clone, Debug, PartialEq)]
 pub struct Creep {
@@ -483,7 +483,7 @@ impl InverseBoucWen {
 }
 
 /// A biquad in `f64`, direct form I (`a₀ = 1`): the reference the fixed-point
-/// [`twinstack::notch::Notch`] is checked against.
+/// [`twinstack::control::notch::Notch`] is checked against.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Biquad {
     b: [f64; 3],

@@ -15,15 +15,15 @@
 //!   period (the median interval), its modes at rest at the first value they see.
 
 use crate::reference;
-use twinstack::bouc_wen::{BoucWen, InverseBoucWen};
-use twinstack::creep::{Creep, CreepParams, CreepState};
-use twinstack::duhem::{Duhem, InverseDuhem};
 use twinstack::fixed_point::{
     clamp_full_scale, gain_from_f64, saturate_i64, signal_from_f64, signal_to_f64, GAIN_FRAC_BITS,
 };
-use twinstack::generalised_pi::{GeneralisedPi, GpiParams, InverseGeneralisedPi};
-use twinstack::play_operator::play;
-use twinstack::prandtl_ishlinskii::{InversePrandtlIshlinskii, PrandtlIshlinskii};
+use twinstack::models::bouc_wen::{BoucWen, InverseBoucWen};
+use twinstack::models::creep::{Creep, CreepParams, CreepState};
+use twinstack::models::duhem::{Duhem, InverseDuhem};
+use twinstack::models::generalised_pi::{GeneralisedPi, GpiParams, InverseGeneralisedPi};
+use twinstack::models::play_operator::play;
+use twinstack::models::prandtl_ishlinskii::{InversePrandtlIshlinskii, PrandtlIshlinskii};
 use twinstack::{BoucWenParams, DuhemParams, ParamError, PiParams, Scaling};
 
 /// The hysteresis model of a stage, in physical units. (Built once per command, so the
@@ -107,10 +107,9 @@ impl StageModel {
         let Some(p) = &self.creep else {
             return Ok(None);
         };
-        let rate =
-            sample_rate(t).ok_or(ParamError::Creep(twinstack::creep::CreepError::NotFinite {
-                mode: 0,
-            }))?;
+        let rate = sample_rate(t).ok_or(ParamError::Creep(
+            twinstack::models::creep::CreepError::NotFinite { mode: 0 },
+        ))?;
         Ok(Some(CreepRun {
             creep: Creep::new(p, rate)?,
             state: None,
@@ -122,10 +121,9 @@ impl StageModel {
         let Some(p) = &self.creep else {
             return Ok(None);
         };
-        let rate_hz =
-            sample_rate(t).ok_or(ParamError::Creep(twinstack::creep::CreepError::NotFinite {
-                mode: 0,
-            }))?;
+        let rate_hz = sample_rate(t).ok_or(ParamError::Creep(
+            twinstack::models::creep::CreepError::NotFinite { mode: 0 },
+        ))?;
         p.check(rate_hz)?;
         Ok(Some(CreepReference {
             params: p.clone(),
@@ -668,7 +666,7 @@ mod tests {
     /// the compensator fed the prediction gives the drive back.
     #[test]
     fn generalised_pi_tracks_its_reference_and_inverts() {
-        use twinstack::generalised_pi::DeadZoneParams;
+        use twinstack::models::generalised_pi::DeadZoneParams;
         let Hysteresis::Pi(pi) = pi_model(1.0, 0.0).hysteresis else {
             unreachable!()
         };

@@ -5,10 +5,10 @@
 use proptest::prelude::*;
 use std::path::PathBuf;
 use twinstack::board::fakes::{FixedAdc, RecordingDac};
-use twinstack::bouc_wen::{BoucWen, InverseBoucWen};
+use twinstack::config::settings::{Hardware, Mode, Model, Settings};
 use twinstack::control::Controller;
 use twinstack::fixed_point::{signal_from_f64 as q, signal_to_f64 as f};
-use twinstack::settings::{Hardware, Mode, Model, Settings};
+use twinstack::models::bouc_wen::{BoucWen, InverseBoucWen};
 use twinstack::{BoucWenParams, Scaling};
 use twinstack_identify::identification::auto::identify_auto;
 use twinstack_identify::identification::score::score;
@@ -79,7 +79,7 @@ proptest! {
     /// for any bounded model: the forward model on a random walk with full-range jumps, the
     /// compensator on the reference model's output along the walk without the jumps (a jump
     /// in one sample makes `f = 1`, where its loop needs a gain below ½: the drive's slew
-    /// limit rules that out on the board, see the module doc of `twinstack::bouc_wen`).
+    /// limit rules that out on the board, see the module doc of `twinstack::models::bouc_wen`).
     #[test]
     fn fixed_point_tracks_the_f64_reference(
         (p, s) in bouc_wen_model(),

@@ -4,7 +4,7 @@
 //! (`tests/golden.rs` at the repository root checks that the tick, on the host and on the
 //! board, reproduces the outputs bit for bit.)
 
-use twinstack::settings::Mode;
+use twinstack::config::settings::Mode;
 use twinstack_golden::format::encode_record;
 use twinstack_golden::{TickInput, TickOutput, VectorSet, VectorSets, MAX_RECIPE};
 use twinstack_identify::golden::reference_tick::{
@@ -123,7 +123,7 @@ fn a_wrong_output_fails_the_reference_check() {
 fn recheck_with(
     file: &[u8],
     name: &str,
-    f: &dyn Fn(&mut twinstack::settings::Settings),
+    f: &dyn Fn(&mut twinstack::config::settings::Settings),
 ) -> Agreement {
     let set = parse(file)
         .into_iter()
@@ -154,8 +154,9 @@ fn recheck_with(
 #[test]
 fn the_reference_check_depends_on_the_feedback_settings() {
     let file = stored();
-    let recheck =
-        |f: &dyn Fn(&mut twinstack::settings::Settings)| recheck_with(&file, "ipi16-pi-closed", f);
+    let recheck = |f: &dyn Fn(&mut twinstack::config::settings::Settings)| {
+        recheck_with(&file, "ipi16-pi-closed", f)
+    };
     assert!(recheck(&|_| {}).holds());
     let a = recheck(&|s| s.feedback.as_mut().unwrap().kp *= 1.1);
     assert!(a.first_violation.is_some(), "kp: {a:?}");
@@ -171,13 +172,13 @@ fn the_reference_check_depends_on_the_feedback_settings() {
 #[test]
 fn the_reference_check_depends_on_the_mode_and_the_safe_state() {
     let file = stored();
-    let recheck = |f: &dyn Fn(&mut twinstack::settings::Settings)| {
+    let recheck = |f: &dyn Fn(&mut twinstack::config::settings::Settings)| {
         recheck_with(&file, "ipi16-duhem-bypass", f)
     };
     assert!(recheck(&|_| {}).holds());
     let a = recheck(&|s| s.mode = Mode::OpenLoop);
     assert!(a.first_violation.is_some(), "open loop: {a:?}");
-    let a = recheck(&|s| s.drive.safe_state = twinstack::drive::SafeState::Bias);
+    let a = recheck(&|s| s.drive.safe_state = twinstack::control::drive::SafeState::Bias);
     assert_eq!(a.first_violation, Some(0), "safe state: {a:?}");
 }
 
@@ -186,7 +187,7 @@ fn the_reference_check_depends_on_the_mode_and_the_safe_state() {
 #[test]
 fn the_reference_check_depends_on_the_creep() {
     let file = stored();
-    let recheck = |f: &dyn Fn(&mut twinstack::settings::Settings)| {
+    let recheck = |f: &dyn Fn(&mut twinstack::config::settings::Settings)| {
         recheck_with(&file, "ipi16-pi-creep-closed", f)
     };
     assert!(recheck(&|_| {}).holds());

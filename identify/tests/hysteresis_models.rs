@@ -5,9 +5,9 @@
 //! (`LSB16 = 2 / 65536` in normalised units).
 
 use proptest::prelude::*;
-use twinstack::duhem::{Duhem, InverseDuhem};
 use twinstack::fixed_point::{signal_from_f64 as q, signal_to_f64 as f};
-use twinstack::prandtl_ishlinskii::{InversePrandtlIshlinskii, PrandtlIshlinskii};
+use twinstack::models::duhem::{Duhem, InverseDuhem};
+use twinstack::models::prandtl_ishlinskii::{InversePrandtlIshlinskii, PrandtlIshlinskii};
 use twinstack::{DuhemParams, ParamError, PiParams, Scaling, Thresholds};
 use twinstack_identify::reference;
 
@@ -20,7 +20,7 @@ const LSB16: f64 = 2.0 / 65536.0;
 /// each operator may run from the `f64` one (the input rounded to the Q1.15 grid, half a
 /// step, a whole one at +1, which the lane's top `1 − 2^-15` misses; half a step of
 /// threshold).
-fn gain(bank: &twinstack::prandtl_ishlinskii::PlayOperatorBank) -> f64 {
+fn gain(bank: &twinstack::models::prandtl_ishlinskii::PlayOperatorBank) -> f64 {
     1.5 * (0..bank.operators())
         .map(|i| (bank.weight(i) as f64).abs() / (1u64 << 24) as f64)
         .sum::<f64>()

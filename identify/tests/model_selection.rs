@@ -6,7 +6,7 @@
 //!   3-sample delay is found.
 
 use std::path::PathBuf;
-use twinstack::params::{DuhemParams, PiParams, Thresholds};
+use twinstack::models::params::{DuhemParams, PiParams, Thresholds};
 use twinstack::Scaling;
 use twinstack_identify::identification::auto::identify_auto;
 use twinstack_identify::identification::{identify, IdentifyOptions, ModelKind};

@@ -1,8 +1,8 @@
 //! The library's fixed-point notch against the `f64` biquad of the same coefficients
 //! ([`twinstack_identify::reference::Biquad`]).
 
+use twinstack::control::notch::{Notch, NotchDesign, NotchState};
 use twinstack::fixed_point::{signal_from_f64, signal_to_f64};
-use twinstack::notch::{Notch, NotchDesign, NotchState};
 use twinstack_identify::reference::Biquad;
 
 /// The differential stage's resonance, as wide as the one in the demo.

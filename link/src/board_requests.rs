@@ -11,9 +11,9 @@
 //! * the status report as one JSON object ([`status_json`]).
 
 use crate::capture::signal_mask;
-use twinstack::drive::Configuration;
+use twinstack::config::settings::{Mode, Settings};
+use twinstack::control::drive::Configuration;
 use twinstack::protocol::messages::{CaptureRequest, StatusReport, Trigger, WaveShape, Waveform};
-use twinstack::settings::{Mode, Settings};
 
 /// The settings a parameter load sends for a file's `file` settings: the file's, with the
 /// sensor calibration, the feedback gains and the input shaping it leaves out (a file from
@@ -73,7 +73,7 @@ pub enum LoadRefused {
 ///
 /// ```
 /// use twinstack_link::board_requests::{check_load, LoadRefused};
-/// use twinstack::settings::{Mode, Settings};
+/// use twinstack::config::settings::{Mode, Settings};
 /// // 0…140 V of model input on the default drive's 0…140 V.
 /// let mut s = Settings { mode: Mode::OpenLoop, ..Settings::default() };
 /// assert_eq!(check_load(&s, 1.0, false), Ok(None));
@@ -309,7 +309,7 @@ pub fn status_json(s: &StatusReport) -> serde_json::Value {
 /// The analog input's state as one JSON object: `running`, `lost`, `over_range`, `faults`,
 /// `reading` (fraction of the input's span, 0–1) and `setpoint` (normalised, ±1 of the
 /// output range).
-pub fn analog_status_json(s: &twinstack::analog_input::AnalogStatus) -> serde_json::Value {
+pub fn analog_status_json(s: &twinstack::sources::analog_input::AnalogStatus) -> serde_json::Value {
     serde_json::json!({
         "running": s.running,
         "lost": s.lost,
@@ -342,7 +342,7 @@ pub fn parse_mode(name: &str) -> Option<Mode> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use twinstack::settings::NotchDesign;
+    use twinstack::config::settings::NotchDesign;
 
     /// A file without shaping (as `identify` writes) keeps the board's; a file with its own
     /// replaces it.

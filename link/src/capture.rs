@@ -5,7 +5,7 @@
 //! The conversion uses what the board reports: the settings in force (`ReadParams`: the
 //! output range the normalised signals span) and the capture status (the DAC's full-scale
 //! code and the amplifier's full-scale volts, the tick rate, the pre-trigger frames kept).
-//! Slot formats: see [`twinstack::recorder`].
+//! Slot formats: see [`twinstack::services::recorder`].
 
 use crate::client::{Client, LinkError};
 use crate::plot::{draw_panels, Panel, PlotError, Series};
@@ -13,9 +13,9 @@ use crate::Transport;
 use plotters::style::RGBColor;
 use std::path::Path;
 use std::time::Duration;
+use twinstack::config::settings::Settings;
 use twinstack::protocol::messages::{CaptureState, CaptureStatus};
-use twinstack::recorder::Channel;
-use twinstack::settings::Settings;
+use twinstack::services::recorder::Channel;
 
 /// Why a signal list was refused.
 #[derive(Debug, thiserror::Error, PartialEq, Eq)]

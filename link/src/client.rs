@@ -18,6 +18,7 @@ use super::Transport;
 use std::collections::VecDeque;
 use std::io;
 use std::time::{Duration, Instant};
+use twinstack::config::settings::Settings;
 use twinstack::protocol::decoder::FrameDecoder;
 use twinstack::protocol::frame::{self, FrameError, MAX_ENCODED};
 use twinstack::protocol::messages::{
@@ -25,7 +26,6 @@ use twinstack::protocol::messages::{
     RecordRequest, Request, Response, SequenceRequest, SequenceStatus, StatusReport, StreamControl,
     TelemetryFrame, TelemetryRequest, Waveform, MAX_CAPTURE_CHUNK, MAX_CHUNK,
 };
-use twinstack::settings::Settings;
 
 /// Times [`Client::request`] resends a request the board NACKed as a damaged frame.
 pub const FRAME_RETRIES: u32 = 2;
@@ -303,7 +303,7 @@ impl<T: Transport> Client<T> {
         Ok(self.take_telemetry())
     }
 
-    /// Starts telemetry of `signals` (a [`twinstack::recorder::Channel`] mask), one sample
+    /// Starts telemetry of `signals` (a [`twinstack::services::recorder::Channel`] mask), one sample
     /// every `decimation` ticks; frames set aside before are dropped (they belong to an
     /// earlier run).
     pub fn start_telemetry(&mut self, signals: u8, decimation: u16) -> Result<(), LinkError> {

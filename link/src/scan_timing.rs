@@ -1,4 +1,4 @@
-//! The figures of a scan the board ran ([`twinstack::scan`]): its pattern and trigger outputs
+//! The figures of a scan the board ran ([`twinstack::sources::scan`]): its pattern and trigger outputs
 //! as the board captured them (the `setpoint` and `triggers` capture signals), against the
 //! library's own generator replayed on the host (bit for bit the board's arithmetic).
 //!
@@ -12,8 +12,8 @@
 
 use serde::Serialize;
 use twinstack::fixed_point::SIGNAL_ONE;
-use twinstack::recorder::q1_15;
-use twinstack::scan::{
+use twinstack::services::recorder::q1_15;
+use twinstack::sources::scan::{
     LissajousScan, RasterScan, ScanGenerator, ScanPattern, ScanRequest, SpiralScan, TriggerOutputs,
     FRAME, LINE, PIXEL,
 };
@@ -51,7 +51,7 @@ pub enum PatternError {
 ///
 /// ```
 /// use twinstack_link::scan_timing::parse_pattern;
-/// use twinstack::scan::ScanPattern;
+/// use twinstack::sources::scan::ScanPattern;
 /// let p = parse_pattern("raster:lines=8,turn=20").unwrap();
 /// assert!(matches!(p, ScanPattern::Raster(r) if r.lines == 8 && r.turn_ticks == 20 && r.pixels == 100));
 /// assert!(parse_pattern("raster:lines=x").is_err());
@@ -318,7 +318,7 @@ pub fn describe(pattern: &ScanPattern) -> String {
 }
 
 /// Analyses a capture of `request` run at `rate_hz` with slew step `max_step` (Q2.30 per tick,
-/// [`twinstack::scan::slew_step`]) and pulses of `pulse_ticks`: `x` the captured setpoint
+/// [`twinstack::sources::scan::slew_step`]) and pulses of `pulse_ticks`: `x` the captured setpoint
 /// (Q1.15) and `triggers` the captured trigger levels, both from the scan's first tick.
 pub fn analyse(
     request: &ScanRequest,

@@ -1,4 +1,4 @@
-//! Runs a TTL-stepped sequence ([`twinstack::sequence`]) from the host: reads the positions
+//! Runs a TTL-stepped sequence ([`twinstack::sources::sequence`]) from the host: reads the positions
 //! file, fills the board's setpoint queue with them, arms the sequence, keeps the queue topped
 //! up as edges consume it (so a sequence may be longer than the queue), and reports the
 //! steps, early and missed edges. Optionally captures the first edge and measures the
@@ -18,8 +18,8 @@ use twinstack::protocol::messages::{
     CaptureRequest, NackReason, PackedBatch, Request, Response, SequenceConfig, SequenceRequest,
     SequenceStatus, StatusReport, StreamControl, Trigger, TriggerConfig, TriggerEdge, MAX_BATCH,
 };
-use twinstack::recorder::Channel;
-use twinstack::scan::INPUT;
+use twinstack::services::recorder::Channel;
+use twinstack::sources::scan::INPUT;
 
 /// How a sequence is run.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -218,7 +218,7 @@ const PRE_TRIGGER: u32 = 8;
 ///
 /// ```
 /// use twinstack_link::sequence_run::edge_timing;
-/// use twinstack::scan::INPUT;
+/// use twinstack::sources::scan::INPUT;
 /// let i = INPUT as i16;
 /// // left, triggers: the edge on the third frame, the DAC moving on the same frame.
 /// let w = [100, 0, 100, 0, 120, i, 140, i];

@@ -25,8 +25,8 @@ use crate::capture::{self, ConvertError, Recording};
 use crate::client::{Client, LinkError};
 use crate::Transport;
 use std::time::Duration;
+use twinstack::config::settings::Settings;
 use twinstack::protocol::messages::{CaptureState, CaptureStatus, TelemetryFrame};
-use twinstack::settings::Settings;
 
 /// Why a frame does not belong to the record.
 #[derive(Debug, thiserror::Error, PartialEq, Eq)]

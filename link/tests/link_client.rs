@@ -141,10 +141,10 @@ fn endless_refusals_give_up_after_the_retry_limit() {
 #[test]
 fn a_nack_is_a_typed_error_that_names_the_request_and_the_reason() {
     let mut client = Client::new(FakeBoard::new(100, 1000.0));
-    let set = twinstack::settings::Settings {
-        compensator: Some(twinstack::settings::representative_duhem()),
-        mode: twinstack::settings::Mode::OpenLoop,
-        ..twinstack::settings::Settings::default()
+    let set = twinstack::config::settings::Settings {
+        compensator: Some(twinstack::config::settings::representative_duhem()),
+        mode: twinstack::config::settings::Mode::OpenLoop,
+        ..twinstack::config::settings::Settings::default()
     };
     let err = client.load_params(&set).expect_err("refused");
     assert!(matches!(

@@ -21,13 +21,13 @@ use pyo3::types::{PyDict, PyList};
 use std::path::{Path, PathBuf};
 use std::sync::Mutex;
 use std::time::{Duration, Instant};
-use twinstack::analog_input::{AnalogInputConfig, AnalogRequest, OnFault};
+use twinstack::sources::analog_input::{AnalogInputConfig, AnalogRequest, OnFault};
 use twinstack::protocol::messages::{
     NackReason, Request, SequenceConfig, StreamControl, Trigger, TriggerEdge, UnderrunPolicy,
     WaveShape,
 };
 use twinstack::refusal::Rule;
-use twinstack::settings::Mode;
+use twinstack::config::settings::Mode;
 use twinstack_identify::identification::auto::Validation;
 use twinstack_identify::identification::run::{
     check_tick_rate, default_fit_until, identify_and_score, parse_model, BoardRate, Identified,
@@ -1089,7 +1089,7 @@ impl Board {
         let options = CalibrateOptions {
             model,
             clamp,
-            store: store.then_some(twinstack::settings::Mode::Bypass),
+            store: store.then_some(twinstack::config::settings::Mode::Bypass),
             ..CalibrateOptions::default()
         };
         let report = self.with_py(py, |client| {
@@ -1173,7 +1173,7 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
 fn wire_values(
     values: &[f64],
     normalised: bool,
-    settings: &twinstack::settings::Settings,
+    settings: &twinstack::config::settings::Settings,
     name: &str,
 ) -> PyResult<Vec<i16>> {
     let units = if normalised {

@@ -22,7 +22,7 @@ use super::split_filter::SplitFilter;
 use super::trapezoid::TrapezoidalProfile;
 use super::DualStageConfig;
 use crate::board::{QuadratureEncoder, StepDir};
-use crate::coarse_axis::{EncoderCounter, StepGenerator};
+use crate::dual_stage::coarse_axis::{EncoderCounter, StepGenerator};
 use crate::fixed_point::{limit_i64, saturate_i64, SIGNAL_FRAC_BITS};
 
 /// `a / b`, 0 when `b` is 0 (or the quotient overflows): no panic path. Every divisor here is

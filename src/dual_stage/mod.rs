@@ -33,6 +33,7 @@
 //! fine controller's output range (as [`crate::control::Controller::tick`] takes them).
 
 pub mod carriage_tracker;
+pub mod coarse_axis;
 pub mod controller;
 pub mod ideal_axis;
 pub mod link;

@@ -61,7 +61,7 @@ impl SensorInput {
         }
     }
 
-    /// Adds the analog setpoint input ([`crate::analog_input`]) converted beside the sensor.
+    /// Adds the analog setpoint input ([`crate::sources::analog_input`]) converted beside the sensor.
     pub fn with_setpoint_input(self, input: super::setpoint_adc::SetpointChannel) -> Self {
         Self {
             setpoint: Some(input),

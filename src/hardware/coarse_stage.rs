@@ -19,7 +19,7 @@
 //! (≥ 10 µs at 10 steps per 200 µs) before the first rising edge.
 //!
 //! **Encoders.** TIM8 and TIM4 count every edge of A and B (×4), up or down; their 16-bit
-//! counters wrap and the library's [`crate::coarse_axis::EncoderCounter`] extends them (valid
+//! counters wrap and the library's [`crate::dual_stage::coarse_axis::EncoderCounter`] extends them (valid
 //! while they move less than 32768 counts per coarse tick: 160 mm/s at 5 nm, 5 kHz). Inputs
 //! are filtered over 8 timer clocks.
 //!
@@ -32,7 +32,7 @@ use stm32f4xx_hal::pac::{RCC, TIM1, TIM3, TIM4, TIM8};
 
 use super::clocks::BusClocks;
 use crate::board::{LimitSwitches, QuadratureEncoder, StepBurst, StepDir, StepDirection, Switches};
-use crate::coarse_axis::StepTiming;
+use crate::dual_stage::coarse_axis::StepTiming;
 
 /// Shortest STEP high time the driver needs, ns.
 pub const MIN_STEP_PULSE_NS: u32 = 2_000;

@@ -1,8 +1,8 @@
 //! Where the parameter record lives: the start of flash sector 11 (`memory.x` keeps the image
 //! out of it), and [`FlashStorage`], which writes it. The record format and its checks are in
-//! [`crate::param_store`].
+//! [`crate::config::param_store`].
 
-use crate::param_store::{RecordStorage, StorageError, MAX_RECORD};
+use crate::config::param_store::{RecordStorage, StorageError, MAX_RECORD};
 
 /// Address of flash sector 11 (128 KiB).
 pub const PARAM_SECTOR_ADDRESS: usize = 0x080E_0000;

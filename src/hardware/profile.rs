@@ -14,7 +14,7 @@
 //! PA0–PA2 are not connected and PA3 measures the battery; the host link is USART3 on the TX/RX
 //! pins (PB10/PB11), and the trigger I/O moves to port C, where D13, D12, D11, D6 and D5 are PC1,
 //! PC2, PC3, PC6 and PC7 — the same pin numbers as PA1–PA3, PA6 and PA7 on the driver board, so
-//! the tick's one-store write ([`crate::scan::bsrr_word`]) is unchanged.
+//! the tick's one-store write ([`crate::sources::scan::bsrr_word`]) is unchanged.
 //!
 //! | signal | driver board | Feather pin (MCU pin) | peripheral |
 //! |--------|--------------|-----------------------|------------|

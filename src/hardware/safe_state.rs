@@ -1,7 +1,7 @@
 //! The outputs' safe state, entered on panic or hard fault before the core halts.
 //!
 //! The shell [`arm`]s it at boot with the codes for the configured
-//! [`SafeState`](crate::param_store::SafeState) (both zero, or both at the common bias);
+//! [`SafeState`](crate::config::param_store::SafeState) (both zero, or both at the common bias);
 //! [`make_outputs_safe`] masks every interrupt (so the control tick cannot write again), writes those codes
 //! through the DAC's dual register, and [`halt`]s. The watchdog, no longer fed, then resets the
 //! MCU after its timeout; at reset the DAC is off until the firmware has re-initialised it.

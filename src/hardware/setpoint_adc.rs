@@ -1,4 +1,4 @@
-//! The analog setpoint input ([`crate::analog_input`]) on ADC2, 0–3.3 V, converted on the same
+//! The analog setpoint input ([`crate::sources::analog_input`]) on ADC2, 0–3.3 V, converted on the same
 //! TIM2 TRGO as the sensor on ADC1: both conversions start together, ≈ 1.3 µs before the
 //! control interrupt reads them, so the input's value at the period's start is what that
 //! period's tick writes to the DAC.

@@ -9,8 +9,8 @@ use heapless::spsc::{Consumer, Producer};
 
 use crate::control::Controller;
 use crate::control_loop::{ControlLoop, SETPOINT_QUEUE_LEN};
-use crate::recorder::{SplitStore, CAPTURE_SLOTS};
-use crate::telemetry::{TelemetrySample, TELEMETRY_QUEUE_LEN};
+use crate::services::recorder::{SplitStore, CAPTURE_SLOTS};
+use crate::services::telemetry::{TelemetrySample, TELEMETRY_QUEUE_LEN};
 
 use super::adc::SensorInput;
 use super::control_timer::ControlTimer;
@@ -20,7 +20,7 @@ use super::watchdog::Watchdog;
 
 /// The CCM part of the recorder's buffer: 12 288 slots, 24 KiB of CCM RAM (the setpoint
 /// queue takes the other 40 KiB, [`super::ccm::setpoint_queue`]).
-pub const HALF_SLOTS: usize = crate::recorder::CCM_SLOTS;
+pub const HALF_SLOTS: usize = crate::services::recorder::CCM_SLOTS;
 
 /// The SRAM part of the recorder's buffer: 19 456 slots, 38 KiB (the rest of
 /// [`CAPTURE_SLOTS`]), so that with the learning's tables, telemetry's queue and the scan
@@ -61,7 +61,7 @@ pub struct ControlTick {
 
 impl ControlTick {
     /// One tick. No allocation, no panic path, no loop. Returns whether the low-priority
-    /// command task has work: a learning period ended ([`crate::learning::service`]), or the
+    /// command task has work: a learning period ended ([`crate::services::learning::service`]), or the
     /// telemetry queue reached a frame's worth of samples (the packer is woken by that fill
     /// level, not after every tick). The caller pends it.
     #[inline(always)]

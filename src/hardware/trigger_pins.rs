@@ -1,10 +1,10 @@
-//! The trigger I/O pins ([`crate::scan`]): pixel, line and frame clock outputs on pins 1, 2, 3
-//! (push-pull), a sequence's settled output on pin 7 (push-pull, [`crate::sequence`]), the
+//! The trigger I/O pins ([`crate::sources::scan`]): pixel, line and frame clock outputs on pins 1, 2, 3
+//! (push-pull), a sequence's settled output on pin 7 (push-pull, [`crate::sources::sequence`]), the
 //! external trigger input on pin 6 (pull-down, 3.3 V logic; 5 V tolerant as an FT pin) of the
 //! board profile's trigger port ([`super::profile::TRIGGER_PORT`]: PA1–PA3, PA6, PA7 on the
 //! driver board; PC1–PC3, PC6, PC7 — D13, D12, D11, D6, D5 — on the Feather). All five on one
 //! port, so the tick writes the four outputs in one `BSRR` store
-//! ([`crate::scan::bsrr_word`]) and reads the input in one `IDR` load: constant time, every
+//! ([`crate::sources::scan::bsrr_word`]) and reads the input in one `IDR` load: constant time, every
 //! tick (the outputs are written even when they do not change).
 //!
 //! QEMU's `netduinoplus2` models no GPIO: the stores land in an unimplemented-device region
@@ -13,7 +13,7 @@
 use stm32f4xx_hal::gpio::{Input, Output, Pin, PushPull};
 
 use super::profile::{trigger_port, TRIGGER_PORT as P};
-use crate::scan::{bsrr_word, INPUT_PIN};
+use crate::sources::scan::{bsrr_word, INPUT_PIN};
 
 /// The four pins, configured; the tick's handle on them.
 pub struct TriggerPins {

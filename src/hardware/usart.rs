@@ -14,7 +14,7 @@
 //!
 //! **Transmit, board:** [`DmaTx`], USART1_TX on DMA2 stream 7 (channel 4), two frame buffers:
 //! one on the line, one waiting. The command handler's task hands it whole frames (responses
-//! first, telemetry in between: [`crate::telemetry::FrameLink`]); the stream's
+//! first, telemetry in between: [`crate::services::telemetry::FrameLink`]); the stream's
 //! transfer-complete interrupt ([`DmaTx::on_complete`]) starts the waiting buffer at once, so
 //! the line does not idle between frames and no byte costs the CPU anything.
 //!
@@ -79,7 +79,7 @@ impl UsartTx {
     }
 }
 
-impl crate::telemetry::FrameLink for UsartTx {
+impl crate::services::telemetry::FrameLink for UsartTx {
     /// Always: the frame is written out before `send_frame` returns.
     fn ready(&mut self) -> bool {
         true
@@ -248,7 +248,7 @@ mod dma_tx {
         }
     }
 
-    impl crate::telemetry::FrameLink for DmaTx {
+    impl crate::services::telemetry::FrameLink for DmaTx {
         /// A buffer is free: none is waiting for the line.
         fn ready(&mut self) -> bool {
             self.waiting.is_none()

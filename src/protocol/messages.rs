@@ -5,17 +5,18 @@
 //! That halves the bytes per sample, so that 2 Mbaud carries 50 000 setpoints/s with room for
 //! framing and acknowledgements.
 
-pub use crate::analog_input::{AnalogInputConfig, AnalogRequest, AnalogStatus, OnFault};
+use crate::config::settings::Settings;
 pub use crate::dual_stage::{CoarseState, CoarseStatus};
-pub use crate::learning::{LearnSettings, LearnState, PeriodError};
-pub use crate::recorder::{CaptureState, Signal, Trigger, MAX_CAPTURE_CHUNK, MAX_CHUNK};
 use crate::refusal::Refusal;
-pub use crate::scan::{
+pub use crate::services::learning::{LearnSettings, LearnState, PeriodError};
+pub use crate::services::recorder::{CaptureState, Signal, Trigger, MAX_CAPTURE_CHUNK, MAX_CHUNK};
+pub use crate::services::telemetry::{TelemetryFrame, MAX_TELEMETRY_VALUES};
+pub use crate::sources::analog_input::{AnalogInputConfig, AnalogRequest, AnalogStatus, OnFault};
+pub use crate::sources::scan::{
     LissajousScan, RasterScan, ScanPattern, ScanRequest, SpiralScan, TriggerConfig, TriggerEdge,
 };
-pub use crate::sequence::{SequenceConfig, SequenceRequest, SequenceStatus};
-pub use crate::setpoint_stream::UnderrunPolicy;
-use crate::settings::Settings;
+pub use crate::sources::sequence::{SequenceConfig, SequenceRequest, SequenceStatus};
+pub use crate::sources::setpoint_stream::UnderrunPolicy;
 use serde::{Deserialize, Serialize};
 
 use super::frame::{FrameError, Message, MAX_BODY};
@@ -93,10 +94,10 @@ pub enum Request {
     CoarseStop,
     /// Read the coarse axis's status (answered with [`Response::Coarse`]).
     CoarseStatus,
-    /// Learning feedforward (protocol v6, [`crate::learning`]): configure, switch, reset,
+    /// Learning feedforward (protocol v6, [`crate::services::learning`]): configure, switch, reset,
     /// read its status, read or write its table.
     Learn(LearnRequest),
-    /// Run a scan pattern (protocol v6, [`crate::scan`]): now, or when the armed external
+    /// Run a scan pattern (protocol v6, [`crate::sources::scan`]): now, or when the armed external
     /// trigger fires; stopped by `Stream(Stop)`, replaced by a stream or waveform start.
     Scan(ScanRequest),
     /// Trigger I/O settings (protocol v6): the outputs' pulse width, and the external input's
@@ -105,14 +106,14 @@ pub enum Request {
     /// [`Request::Setpoints`] with every sample in two bytes, whatever its value
     /// ([`PackedBatch`]); answered the same way. What the host streams with.
     PackedSetpoints(PackedBatch),
-    /// A TTL-stepped sequence ([`crate::sequence`]): arm it over the positions queued (sent
+    /// A TTL-stepped sequence ([`crate::sources::sequence`]): arm it over the positions queued (sent
     /// as setpoints), stop it, or read its counts (answered with [`Response::Sequence`]).
     Sequence(SequenceRequest),
     /// Answer these bytes back ([`Response::Echo`], the same bytes): what `twinstack
     /// selftest` checks the link's integrity with, frames of any content and length up to the
     /// largest. Handled as a command (the low-priority task), never on the tick.
     Echo(heapless::Vec<u8, MAX_ECHO>),
-    /// The analog setpoint input ([`crate::analog_input`]): start it as the setpoint source
+    /// The analog setpoint input ([`crate::sources::analog_input`]): start it as the setpoint source
     /// (refused with `Busy` while another source runs), stop it, or read its state (answered
     /// with [`Response::Analog`]).
     Analog(AnalogRequest),
@@ -143,44 +144,18 @@ pub const MAX_ECHO: usize = MAX_BODY - 8;
 /// Start or stop continuous telemetry.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub enum TelemetryRequest {
-    /// Stream the signals of `signals` (a [`crate::recorder::Channel`] mask, as a capture's),
+    /// Stream the signals of `signals` (a [`crate::services::recorder::Channel`] mask, as a capture's),
     /// one sample every `decimation` ticks, until stopped; a running telemetry is restarted.
     Start {
         /// Signal mask: bit 0 setpoint, 1 left stack, 2 right stack, 3 sensor, 4 estimate,
         /// 5 error.
         signals: u8,
         /// Ticks per sample, ≥ 1 (and at least what keeps `signals × rate` within
-        /// [`crate::telemetry::MAX_VALUES_PER_SECOND`]).
+        /// [`crate::services::telemetry::MAX_VALUES_PER_SECOND`]).
         decimation: u16,
     },
     /// Stop: the samples queued are still sent, then a frame with `end` set.
     Stop,
-}
-
-/// Most values (samples × signals) one telemetry frame carries: at most 3 bytes each on the
-/// wire, about 2 ms of the line at 2 Mbaud.
-pub const MAX_TELEMETRY_VALUES: usize = 120;
-
-/// One unsolicited telemetry frame (the board → host, between responses): consecutive
-/// samples from `first`, each its signals in [`crate::recorder::Channel`] order and format
-/// (as a capture's slots). Samples lost to a full queue on the board are never silent: the
-/// next frame's `first` skips them and `lost` counts them.
-#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
-pub struct TelemetryFrame {
-    /// Frame number since the start (wrapping): a gap means a frame was lost on the line.
-    pub seq: u16,
-    /// Index of the first sample, counted from 0 at the start (sample `i` is the tick
-    /// `i × decimation` after the first sample's).
-    pub first: u32,
-    /// The signal mask of the samples.
-    pub signals: u8,
-    /// Samples lost on the board (queue full) since the start, up to `first`.
-    pub lost: u32,
-    /// The last frame of the telemetry (it was stopped): `first` is then the number of
-    /// samples the run produced, and `values` is empty.
-    pub end: bool,
-    /// The samples' values, frame-interleaved (one per signal per sample).
-    pub values: heapless::Vec<i16, MAX_TELEMETRY_VALUES>,
 }
 
 /// A coarse move: target and trapezoid, in millimetres.
@@ -247,7 +222,7 @@ pub struct LearnStatus {
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub struct CaptureRequest {
     /// Signal mask: bit 0 setpoint, 1 left stack, 2 right stack, 3 sensor, 4 estimate,
-    /// 5 error ([`crate::recorder::Channel`]).
+    /// 5 error ([`crate::services::recorder::Channel`]).
     pub signals: u8,
     /// Frames (values per signal), pre-trigger included; `signals × samples` ≤ the board's
     /// capture slots.
@@ -401,7 +376,7 @@ pub enum StreamControl {
 /// Control mode (the settings' own enum, so a mode on the wire is a mode in the settings):
 /// `Bypass` (the drive follows the setpoint linearly), `OpenLoop` (inverse-model feedforward),
 /// `ClosedLoop` (feedforward plus sensor feedback).
-pub use crate::settings::Mode;
+pub use crate::config::settings::Mode;
 
 /// The built-in waveform generator.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
@@ -418,7 +393,7 @@ pub struct Waveform {
     pub decay: Option<WaveDecay>,
 }
 
-/// A waveform's amplitude decay ([`crate::waveform::WaveformGenerator::with_decay`]): the first
+/// A waveform's amplitude decay ([`crate::sources::waveform::WaveformGenerator::with_decay`]): the first
 /// `hold_cycles` cycles (at least one) at the full amplitude, then each cycle's amplitude is
 /// the previous one's × `keep / 65536` — full-range cycles, then nested minor loops.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
@@ -479,7 +454,7 @@ pub enum Response {
     CaptureChunk {
         /// Index of the first slot.
         offset: u32,
-        /// Slots, each in its signal's format (see [`crate::recorder`]).
+        /// Slots, each in its signal's format (see [`crate::services::recorder`]).
         values: heapless::Vec<i16, MAX_CAPTURE_CHUNK>,
     },
     /// Unsolicited (protocol v5): telemetry samples, sent between responses while telemetry
@@ -679,4 +654,16 @@ impl Image {
             Image::Simulator => "simulator",
         }
     }
+}
+
+/// The next frame of a running telemetry ([`crate::services::telemetry::TelemetryPacker::next_frame`]), encoded as a
+/// complete protocol frame ([`Response::Telemetry`], delimiter included) into `out`; returns
+/// its length, or `None` when no frame is due.
+pub fn encode_telemetry<const N: usize>(
+    packer: &mut crate::services::telemetry::TelemetryPacker,
+    queue: &mut heapless::spsc::Consumer<'_, crate::services::telemetry::TelemetrySample, N>,
+    out: &mut [u8],
+) -> Option<usize> {
+    let frame = packer.next_frame(queue)?;
+    super::frame::encode(&Response::Telemetry(frame), out).ok()
 }

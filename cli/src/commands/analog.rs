@@ -1,5 +1,5 @@
 //! `twinstack analog start|stop|status --port PORT`: the analog setpoint input
-//! ([`twinstack::analog_input`]) — the board as a linearising front-end between a lab's
+//! ([`twinstack::sources::analog_input`]) — the board as a linearising front-end between a lab's
 //! controller (an analog voltage on the input pin) and the piezo stacks.
 //!
 //! `start` checks the settings here first (a refusal names the field, and nothing is sent),
@@ -10,9 +10,9 @@
 //! over-range.
 
 use super::board_link::{connect, PortArgs};
-use twinstack::analog_input::{AnalogInputConfig, AnalogRequest, AnalogStatus, OnFault};
 use twinstack::fixed_point::SIGNAL_ONE;
 use twinstack::protocol::messages::Request;
+use twinstack::sources::analog_input::{AnalogInputConfig, AnalogRequest, AnalogStatus, OnFault};
 
 /// Arguments of `analog`.
 #[derive(Debug, clap::Args)]

@@ -14,7 +14,7 @@ use super::params::ModeArg;
 use anyhow::bail;
 use plotters::style::RGBColor;
 use std::path::{Path, PathBuf};
-use twinstack::recorder::Channel;
+use twinstack::services::recorder::Channel;
 use twinstack_identify::calibrate::{calibrate, CalibrateOptions, CalibrationReport, Progress};
 use twinstack_identify::identification::auto::Validation;
 use twinstack_link::output_file::Staged;

@@ -100,7 +100,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         lead_ticks: args.lead,
         shaping: args
             .shape_hz
-            .map(|frequency_hz| twinstack::notch::NotchDesign {
+            .map(|frequency_hz| twinstack::control::notch::NotchDesign {
                 frequency_hz,
                 q: args.shape_q,
                 depth: args.shape_depth,

@@ -15,8 +15,8 @@
 use super::board_link::{connect, PortArgs};
 use super::params::ModeArg;
 use std::path::PathBuf;
-use twinstack::drive::{Configuration, SafeState};
-use twinstack::settings::{FeedbackSettings, Model, Settings};
+use twinstack::config::settings::{FeedbackSettings, Model, Settings};
+use twinstack::control::drive::{Configuration, SafeState};
 use twinstack_identify::param_file::ParamFile;
 use twinstack_link::board_requests::{check_load, keep_from_board, LoadRefused};
 
@@ -163,7 +163,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         client.store_params(boot.into())?;
         println!(
             "stored to flash (boots in {:?})",
-            twinstack::settings::Mode::from(boot)
+            twinstack::config::settings::Mode::from(boot)
         );
     }
     Ok(())

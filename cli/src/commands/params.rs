@@ -4,7 +4,7 @@
 
 use super::board_link::{connect, PortArgs};
 use std::path::PathBuf;
-use twinstack::settings::Mode;
+use twinstack::config::settings::Mode;
 
 /// `--mode` values.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]

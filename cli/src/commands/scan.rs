@@ -16,8 +16,8 @@ use super::board_link::{connect, PortArgs};
 use twinstack::protocol::messages::{
     CaptureRequest, Request, ScanRequest, StreamControl, Trigger, TriggerConfig, TriggerEdge,
 };
-use twinstack::recorder::Channel;
-use twinstack::scan::{slew_step, LINE, PIXEL};
+use twinstack::services::recorder::Channel;
+use twinstack::sources::scan::{slew_step, LINE, PIXEL};
 use twinstack_link::capture::wait_and_read;
 use twinstack_link::plot::{draw_panels, Panel, Series};
 use twinstack_link::scan_timing::{analyse, parse_pattern, table, ScanFigures};
@@ -73,8 +73,9 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         rate,
     );
     // Validate here first, as the board will: the refusal names the field.
-    let generator = twinstack::scan::ScanGenerator::new(&request, rate, max_step, args.pulse)
-        .map_err(|r| anyhow::anyhow!("refused: {r}; nothing was sent"))?;
+    let generator =
+        twinstack::sources::scan::ScanGenerator::new(&request, rate, max_step, args.pulse)
+            .map_err(|r| anyhow::anyhow!("refused: {r}; nothing was sent"))?;
     client.expect_ack(&Request::Trigger(TriggerConfig {
         pulse_ticks: args.pulse,
         input: TriggerEdge::Off,
@@ -86,9 +87,9 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         .ceil()
         .min(1e7);
     let frame_ticks = match pattern {
-        twinstack::scan::ScanPattern::Raster(r) => generator.line_ticks() * r.lines as f64,
-        twinstack::scan::ScanPattern::Lissajous(l) => rate / l.frame_hz,
-        twinstack::scan::ScanPattern::Spiral(s) => rate / s.turn_hz * 2.0 * s.turns as f64,
+        twinstack::sources::scan::ScanPattern::Raster(r) => generator.line_ticks() * r.lines as f64,
+        twinstack::sources::scan::ScanPattern::Lissajous(l) => rate / l.frame_hz,
+        twinstack::sources::scan::ScanPattern::Spiral(s) => rate / s.turn_hz * 2.0 * s.turns as f64,
     };
     let wanted = approach + frame_ticks * args.frames.max(1) as f64 + 2.0 * generator.line_ticks();
     let signals = Channel::Setpoint.bit() | Channel::Triggers.bit();

@@ -1,5 +1,5 @@
 //! `twinstack sequence --port PORT --data POSITIONS.csv [--params PARAMS.json] [--edge rising]
-//! [--window 0.005] [--settle-ticks 25]`: a TTL-stepped sequence ([`twinstack::sequence`]).
+//! [--window 0.005] [--settle-ticks 25]`: a TTL-stepped sequence ([`twinstack::sources::sequence`]).
 //! Checks the whole positions file (the stream's format, [`twinstack_link::setpoint_file`]; every bad
 //! row named with its line), fills the board's queue, arms the sequence, keeps the queue
 //! topped up while the camera's edges step through it, and reports the steps, the early edges

@@ -21,8 +21,8 @@ use anyhow::bail;
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 use twinstack::protocol::messages::NackReason;
-use twinstack::recorder::Channel;
 use twinstack::refusal::{Field, Rule};
+use twinstack::services::recorder::Channel;
 use twinstack_link::capture::{self, signal_mask};
 use twinstack_link::output_file::Staged;
 use twinstack_link::telemetry::{wait_for_end, TelemetryRecord};
@@ -118,7 +118,7 @@ pub fn start(client: &mut BoardClient, signals: &str, rate: f64) -> anyhow::Resu
                 "--rate {rate}: the board refused it ({r}): {} signals at most {} samples/s each at {tick_rate_hz} Hz ({} values/s in all, what its link carries)",
                 mask.count_ones(),
                 tick / least.max(1.0),
-                twinstack::telemetry::MAX_VALUES_PER_SECOND
+                twinstack::services::telemetry::MAX_VALUES_PER_SECOND
             )
         }
         other => other?,

@@ -34,7 +34,7 @@ use std::time::{Duration, Instant};
 use twinstack::protocol::messages::{
     Request, ScanRequest, StreamControl, TelemetryFrame, TriggerConfig, TriggerEdge, WaveShape,
 };
-use twinstack::recorder::Channel;
+use twinstack::services::recorder::Channel;
 use twinstack_link::board_requests;
 use twinstack_link::capture::signal_mask;
 use twinstack_link::scan_timing::parse_pattern;
@@ -269,7 +269,7 @@ fn board_loop(
     let mut settings = client.read_params()?;
     let facts = client.capture_status()?;
     let names: Vec<&str> = Channel::of_mask(tel.mask).map(|c| c.name()).collect();
-    let hello = |tel: &Telemetry, settings: &twinstack::settings::Settings| {
+    let hello = |tel: &Telemetry, settings: &twinstack::config::settings::Settings| {
         json!({
             "port": port,
             "signals": names,
@@ -335,7 +335,7 @@ fn convert(
     tel: &mut Telemetry,
     frames: &[TelemetryFrame],
     facts: &twinstack::protocol::messages::CaptureStatus,
-    settings: &twinstack::settings::Settings,
+    settings: &twinstack::config::settings::Settings,
 ) -> anyhow::Result<Value> {
     let mut record = TelemetryRecord::new(tel.mask, tel.decimation);
     let c = &mut tel.counts;

@@ -1,7 +1,7 @@
 //! Generating the vectors: the library's tick in closed loop on a sensor model, recorded.
 //!
 //! Each tick reads the sensor ADC code of the stage as the drive of two ticks ago left it
-//! ([`twinstack::feedback::SENSOR_DELAY_TICKS`]: the conversion starts at the tick's trigger,
+//! ([`twinstack::control::feedback::SENSOR_DELAY_TICKS`]: the conversion starts at the tick's trigger,
 //! before the tick writes, and the ADC returns the previous conversion — the board's one
 //! sample of latency), so the feedback and the observer see a stage that responds. The
 //! stage is the set's [`Truth`] model (the `f64` reference, in physical units) on the left

@@ -1,8 +1,8 @@
 //! The whole tick in `f64`, and the check that stored vectors agree with it.
 //!
 //! The reference composes the `f64` models (`crate::reference`) with the tick's
-//! other steps written out in real arithmetic from their documented semantics (`src/control.rs`,
-//! `src/sensor.rs`, `src/feedback.rs`, `src/drive.rs`, the README's "Closed loop"): setpoint
+//! other steps written out in real arithmetic from their documented semantics (`src/control/mod.rs`,
+//! `src/control/sensor.rs`, `src/control/feedback.rs`, `src/control/drive.rs`, the README's "Closed loop"): setpoint
 //! clamp and hold, the compensator (stepped in every mode; in bypass its output is unused and
 //! the drive follows the setpoint; with creep, the inverse creep before it), the observer
 //! (with creep, the creep after it), the creep's modes at rest at the start's setpoint, the sensor reading and the drift check (whenever a sensor
@@ -66,11 +66,11 @@
 
 use crate::accuracy::LSB16;
 use crate::reference;
+use twinstack::config::settings::{Mode, Model};
+use twinstack::control::drive::{Configuration, DriveSettings, SafeState};
+use twinstack::control::feedback::{DRIFT_FILTER_SHIFT, SENSOR_DELAY_TICKS};
 use twinstack::control::TickFlags;
-use twinstack::drive::{Configuration, DriveSettings, SafeState};
-use twinstack::feedback::{DRIFT_FILTER_SHIFT, SENSOR_DELAY_TICKS};
 use twinstack::fixed_point::signal_to_f64;
-use twinstack::settings::{Mode, Model};
 use twinstack::Scaling;
 use twinstack_golden::{Recipe, VectorSet};
 

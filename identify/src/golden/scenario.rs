@@ -14,7 +14,7 @@
 
 use std::f64::consts::PI;
 use twinstack::fixed_point::signal_from_f64 as q;
-use twinstack::setpoint_stream::{setpoint_to_wire, SetpointStream, Underrun};
+use twinstack::sources::setpoint_stream::{setpoint_to_wire, SetpointStream, Underrun};
 use twinstack_golden::TickInput;
 
 /// Ticks per segment.

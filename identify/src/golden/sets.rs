@@ -39,9 +39,11 @@ use crate::stage_model::Hysteresis;
 use anyhow::{bail, Context};
 use std::path::Path;
 use twinstack::board::Hardware;
-use twinstack::drive::{Configuration, DriveSettings, SafeState};
-use twinstack::generalised_pi::GpiParams;
-use twinstack::settings::{CreepParams, FeedbackSettings, Mode, Model, SensorSettings, Settings};
+use twinstack::config::settings::{
+    CreepParams, FeedbackSettings, Mode, Model, SensorSettings, Settings,
+};
+use twinstack::control::drive::{Configuration, DriveSettings, SafeState};
+use twinstack::models::generalised_pi::GpiParams;
 use twinstack::{BoucWenParams, DuhemParams, PiParams, Scaling};
 use twinstack_golden::Recipe;
 

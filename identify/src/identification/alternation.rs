@@ -116,7 +116,7 @@ pub(super) fn with_creep(
                 None
             } else {
                 Some(
-                    twinstack::creep::CreepParams::new(&taus, &weights)
+                    twinstack::models::creep::CreepParams::new(&taus, &weights)
                         .map_err(|e| IdentifyError::Params(ParamError::Creep(e)))?,
                 )
             };

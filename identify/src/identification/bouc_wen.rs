@@ -19,7 +19,7 @@ use super::least_squares::LeastSquaresError;
 use super::simplex::minimise;
 use super::FitRows;
 use crate::reference;
-use twinstack::params::{BoucWenParams, BOUC_WEN_MAX_INVERSE_LOOP_GAIN};
+use twinstack::models::params::{BoucWenParams, BOUC_WEN_MAX_INVERSE_LOOP_GAIN};
 use twinstack::Scaling;
 
 /// Largest compensator loop gain a fitted model may have: a margin below what the library

@@ -1,7 +1,7 @@
 //! Creep identification: the weights of log-spaced first-order modes behind a fitted
 //! hysteresis model.
 //!
-//! With the time constants fixed, the creep operator (`twinstack::creep`) is linear in its
+//! With the time constants fixed, the creep operator (`twinstack::models::creep`) is linear in its
 //! weights: `x = h + Σ_k c_k (L_k[h] − h)`, `h` the hysteresis model's output and `L_k` the
 //! first-order lag of mode `k` at the data's sample period (the operator's own
 //! discretisation, at rest at `h[0]`). So the weights are one non-negative least-squares
@@ -20,7 +20,7 @@
 
 use super::least_squares::{LeastSquaresError, NormalEquations};
 use super::FitRows;
-use twinstack::creep::{CreepParams, MAX_WEIGHT_SUM};
+use twinstack::models::creep::{CreepParams, MAX_WEIGHT_SUM};
 
 /// Modes fitted by default.
 pub const MODES: usize = 4;

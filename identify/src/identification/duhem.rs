@@ -21,7 +21,7 @@ use super::least_squares::{LeastSquaresError, NormalEquations};
 use super::simplex::minimise;
 use super::FitRows;
 use crate::reference;
-use twinstack::params::DuhemParams;
+use twinstack::models::params::DuhemParams;
 use twinstack::Scaling;
 
 /// What happened on the way to the fitted model (reported to the user).

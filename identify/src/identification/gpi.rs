@@ -25,11 +25,11 @@
 use super::least_squares::{LeastSquaresError, NormalEquations};
 use super::simplex::minimise;
 use super::FitRows;
-use twinstack::generalised_pi::{DeadZoneParams, GpiParams};
-use twinstack::params::PiParams;
+use twinstack::models::generalised_pi::{DeadZoneParams, GpiParams};
+use twinstack::models::params::PiParams;
 
 /// Dead zones of the fitted map on each side of its centre: four, the eight the board's map
-/// holds ([`twinstack::generalised_pi::MAX_DEAD_ZONES`]).
+/// holds ([`twinstack::models::generalised_pi::MAX_DEAD_ZONES`]).
 pub const DEAD_ZONES_PER_SIDE: usize = 4;
 /// Where the dead zones sit, as fractions of the measured output's half range from its centre:
 /// one within 15 % of each end, where branches saturate. Against three a side at 0.25, 0.5 and

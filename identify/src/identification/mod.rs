@@ -22,7 +22,7 @@
 //!    Bouc–Wen from that Duhem fit refined on the simulated error ([`bouc_wen`]).
 //! 6. **Scaling**: the input range is the fitted drive range (widened by [`INPUT_MARGIN`],
 //!    zero: the range's ends are the rails the stage was swept between, where the models'
-//!    rest state puts the major loop, see `twinstack::prandtl_ishlinskii`), the
+//!    rest state puts the major loop, see `twinstack::models::prandtl_ishlinskii`), the
 //!    output range the model's output range widened by [`OUTPUT_MARGIN`] — for Duhem, wider
 //!    still if needed so that the distance to the anhysteretic curve stays within
 //!    [`DUHEM_MAX_NORM_DISTANCE`] normalised (the fixed-point model saturates it at 2). The
@@ -347,7 +347,7 @@ pub enum IdentifyError {
     #[error("--operators {0}: must be 1 to {max}", max = twinstack::MAX_OPERATORS)]
     BadOperatorCount(usize),
     /// Creep modes out of range.
-    #[error("{0} creep modes: must be 1 to {max}", max = twinstack::creep::MAX_CREEP_MODES)]
+    #[error("{0} creep modes: must be 1 to {max}", max = twinstack::models::creep::MAX_CREEP_MODES)]
     BadCreepModes(usize),
     /// The least-squares problem failed.
     #[error("fit failed: {0}")]
@@ -406,7 +406,8 @@ pub fn identify(
         return Err(IdentifyError::BadOperatorCount(options.operators));
     }
     if options.creep
-        && (options.creep_modes == 0 || options.creep_modes > twinstack::creep::MAX_CREEP_MODES)
+        && (options.creep_modes == 0
+            || options.creep_modes > twinstack::models::creep::MAX_CREEP_MODES)
     {
         return Err(IdentifyError::BadCreepModes(options.creep_modes));
     }

@@ -13,7 +13,7 @@
 use super::least_squares::{LeastSquaresError, NormalEquations};
 use super::FitRows;
 use crate::reference::play;
-use twinstack::params::{PiParams, Thresholds};
+use twinstack::models::params::{PiParams, Thresholds};
 
 /// How thresholds are spread (the CLI's `--thresholds`).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]

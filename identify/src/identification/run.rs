@@ -10,9 +10,9 @@ use super::score::{score, ErrorFigures};
 use super::{Identification, IdentifyError, IdentifyOptions, ModelKind};
 use crate::param_file::{IdentificationRecord, ParamFile};
 use twinstack::board::Hardware;
-use twinstack::params::PiParams;
+use twinstack::config::settings::{Model, Settings};
+use twinstack::models::params::PiParams;
 use twinstack::refusal::{Field, Rule};
-use twinstack::settings::{Model, Settings};
 use twinstack_link::measured_data::MeasuredData;
 
 /// Which model to fit: every candidate, or one.
@@ -109,12 +109,12 @@ pub fn candidates(options: &IdentifyOptions, creep: Option<bool>) -> Vec<Identif
 }
 
 /// `Ok(())` if the driver board's tick budget runs `settings` at `rate_hz`, the test the board
-/// applies when they are loaded ([`twinstack::tick_budget`]); else why not, with the cycles
+/// applies when they are loaded ([`twinstack::config::tick_budget`]); else why not, with the cycles
 /// they need and the cycles the rate leaves.
 ///
 /// ```
 /// use twinstack_identify::identification::run::runs_at;
-/// use twinstack::settings::{representative_gpi, Settings};
+/// use twinstack::config::settings::{representative_gpi, Settings};
 /// let gpi = representative_gpi(16).unwrap();
 /// let s = Settings {
 ///     compensator: Some(gpi.clone()),
@@ -196,7 +196,7 @@ impl BoardRate {
 /// ```
 /// use twinstack_identify::identification::auto::{Admission, Resize};
 /// use twinstack_identify::identification::run::{admission_at, BoardRate};
-/// use twinstack::settings::{representative_pi, Settings};
+/// use twinstack::config::settings::{representative_pi, Settings};
 /// let pi17 = representative_pi(17).unwrap();
 /// let s = Settings {
 ///     compensator: Some(pi17.clone()),
@@ -212,8 +212,8 @@ impl BoardRate {
 /// assert_eq!(admission_at(&s, &BoardRate::sizing(50_000.0, false)), Admission::Admitted);
 ///
 /// // Bouc–Wen with four creep modes both ways: 1 784 cycles; with two, 1 640 of 1 680.
-/// use twinstack::creep::CreepParams;
-/// use twinstack::settings::representative_bouc_wen;
+/// use twinstack::models::creep::CreepParams;
+/// use twinstack::config::settings::representative_bouc_wen;
 /// let s = Settings {
 ///     compensator: Some(representative_bouc_wen()),
 ///     observer: Some(representative_bouc_wen()),

@@ -21,12 +21,12 @@ fn the_label_of_a_fit_says_what_creep_it_kept() {
     o.creep = true;
     assert_eq!(o.model_label(), "Duhem + creep");
     assert_eq!(o.label_of_fit(&model), "Duhem (creep asked for, none kept)");
-    model.creep = Some(twinstack::creep::CreepParams::new(&[0.1], &[0.05]).unwrap());
+    model.creep = Some(twinstack::models::creep::CreepParams::new(&[0.1], &[0.05]).unwrap());
     assert_eq!(o.label_of_fit(&model), "Duhem + creep (1 mode)");
 }
 use crate::reference;
 use std::path::PathBuf;
-use twinstack::params::{PiParams, Thresholds};
+use twinstack::models::params::{PiParams, Thresholds};
 
 /// At rest for 50 samples, then a drive that steps to −80 V and follows a ±100 V sine;
 /// the reading is a known P–I plus an offset, with ringing after the step and one spike.
@@ -149,7 +149,7 @@ fn creeping_record() -> (MeasuredData, Vec<f64>) {
     // The fit window: the record's start up to t < 4 s.
     let taus = creep::time_constants(1.0 / rate, t[3999] - t[0], creep::MODES);
     let creep_weights = vec![0.03, 0.02, 0.0, 0.04];
-    let c = twinstack::creep::CreepParams::new(&taus, &creep_weights).unwrap();
+    let c = twinstack::models::creep::CreepParams::new(&taus, &creep_weights).unwrap();
     let mut op = reference::Creep::new(&c, rate, h[0]).unwrap();
     let x: Vec<f64> = h.iter().map(|&v| op.step(v)).collect();
     let data = MeasuredData {
@@ -218,7 +218,8 @@ fn a_record_still_creeping_from_before_it_gets_a_creep_that_follows_the_drift() 
     let settled = reference::PrandtlIshlinskii::new(&truth, &s, 0.0)
         .unwrap()
         .step(0.0);
-    let c = twinstack::creep::CreepParams::new(&[0.3, 3.0, 30.0], &[0.02, 0.04, 0.12]).unwrap();
+    let c =
+        twinstack::models::creep::CreepParams::new(&[0.3, 3.0, 30.0], &[0.02, 0.04, 0.12]).unwrap();
     let mut op = reference::Creep::new(&c, rate, settled).unwrap();
     let stage: Vec<f64> = h.iter().map(|&v| op.step(v)).collect();
     // The sensor lags 3 samples: its first readings are the stage at rest before the
@@ -305,7 +306,7 @@ fn bad_options_and_splits_have_their_own_errors() {
 /// sine's amplitude decaying so the held-out part has inner loops.
 #[test]
 fn a_known_generalised_pi_is_recovered_and_beats_the_symmetric_pi() {
-    use twinstack::generalised_pi::{DeadZoneParams, GpiParams};
+    use twinstack::models::generalised_pi::{DeadZoneParams, GpiParams};
     let n = 4000;
     let t: Vec<f64> = (0..n).map(|k| k as f64 * 1e-3).collect();
     let u: Vec<f64> = (0..n)

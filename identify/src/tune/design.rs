@@ -13,8 +13,8 @@
 //! closed-loop bandwidth wins, refined by a local search of the gains.
 
 use super::loop_model::{judge, judge_with, LinearPlant, LoopController, LoopFigures, StepTest};
-use twinstack::feedback::FeedbackSettings;
-use twinstack::notch::NotchDesign;
+use twinstack::control::feedback::FeedbackSettings;
+use twinstack::control::notch::NotchDesign;
 
 /// What a design must meet.
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize)]
@@ -101,7 +101,7 @@ pub enum Refused {
 /// ```
 /// use twinstack_identify::tune::design::{check, Goals};
 /// use twinstack_identify::tune::loop_model::LinearPlant;
-/// use twinstack::feedback::FeedbackSettings;
+/// use twinstack::control::feedback::FeedbackSettings;
 /// let plant = LinearPlant::resonance(0.8, 21_800.0, 0.017, 1, 100_000.0);
 /// // The closed-loop study's gains without the notch drive the resonance unstable at 100 kHz.
 /// assert!(check(&plant, &FeedbackSettings::pi(0.1, 20_000.0, 0.25), &Goals::at(plant.rate)).is_err());

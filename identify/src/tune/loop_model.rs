@@ -4,13 +4,13 @@
 //! closed-loop poles (stability) and the ringing after a step.
 //!
 //! **Timing** (as in `SimBoard` and on the board): the tick reads the sensor, computes
-//! `u_k = feedforward + C(e)`, `e_k = r_{k−2} − y_k` ([`twinstack::feedback::SENSOR_DELAY_TICKS`]),
+//! `u_k = feedforward + C(e)`, `e_k = r_{k−2} − y_k` ([`twinstack::control::feedback::SENSOR_DELAY_TICKS`]),
 //! and writes the DAC, which holds `u_k` over the next period. The stage advances by the exact
 //! zero-order hold `x_{k+1} = Φ x_k + Γ u_k`; the reading of tick `k` is `y_k = c·x_{k−d}`
 //! (`d = 1` on the simulated board: the ADC returns the previous conversion). So the loop
 //! transfer is `L(z) = C(z) · P(z)`, `P(z) = c (zI − Φ)⁻¹ Γ z^{−d}`, with no other delay.
 //!
-//! **The controller** is the tick's own structure ([`twinstack::feedback`]): the notch on the
+//! **The controller** is the tick's own structure ([`twinstack::control::feedback`]): the notch on the
 //! error, `N(z) = (b₀ + b₁z⁻¹ + b₂z⁻²)/(1 + a₁z⁻¹ + a₂z⁻²)` (the library's design for the rate),
 //! then `kp + ki_t / (1 − z⁻¹) + kd_t · s (1 − z⁻¹) / (1 − (1 − s) z⁻¹)` with `ki_t = ki / f_s`,
 //! `kd_t = kd · f_s`, `s = 1 − e^{−2π f_c / f_s}`. The fixed-point tick rounds these to
@@ -19,7 +19,7 @@
 
 use crate::zero_order_hold::ZeroOrderHold;
 use std::f64::consts::PI;
-use twinstack::feedback::{FeedbackSettings, SENSOR_DELAY_TICKS};
+use twinstack::control::feedback::{FeedbackSettings, SENSOR_DELAY_TICKS};
 
 /// A complex number (the little arithmetic the loop needs).
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -395,7 +395,7 @@ pub fn characteristic(plant: &LinearPlant, controller: &LoopController) -> Poly 
 ///
 /// ```
 /// use twinstack_identify::tune::loop_model::{judge, LinearPlant, LoopController, StepTest};
-/// use twinstack::feedback::FeedbackSettings;
+/// use twinstack::control::feedback::FeedbackSettings;
 /// let plant = LinearPlant::resonance(0.8, 21_800.0, 0.017, 1, 50_000.0);
 /// let c = LoopController::new(&FeedbackSettings::pi(0.0, 1000.0, 0.25), 50_000.0).unwrap();
 /// let step = StepTest::study(0.9e6, 70.0, 50_000.0);

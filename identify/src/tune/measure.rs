@@ -20,9 +20,9 @@
 use super::loop_model::C64;
 use std::f64::consts::PI;
 use std::time::Duration;
+use twinstack::config::settings::Settings;
 use twinstack::protocol::messages::{CaptureRequest, StreamControl, Trigger, WaveShape, Waveform};
-use twinstack::recorder::Channel;
-use twinstack::settings::Settings;
+use twinstack::services::recorder::Channel;
 use twinstack_link::capture::{self, CaptureError, ConvertError};
 use twinstack_link::client::{Client, LinkError};
 use twinstack_link::setpoint_file::q1_15;

@@ -22,7 +22,7 @@ use design::{Design, Goals, Refused};
 use fit::Fit;
 use loop_model::LoopFigures;
 use measure::{FrequencyPoint, MeasureError, SweepOptions};
-use twinstack::feedback::FeedbackSettings;
+use twinstack::control::feedback::FeedbackSettings;
 use twinstack::protocol::messages::{Mode, StatusReport, StreamControl};
 use twinstack_link::client::{Client, LinkError};
 use twinstack_link::Transport;
@@ -190,7 +190,7 @@ pub fn tune<T: Transport>(
         .map(|f| (f, design::check(&fit.plant, &f, &goals)));
     let mut loaded = false;
     if options.load {
-        let settings = twinstack::settings::Settings {
+        let settings = twinstack::config::settings::Settings {
             feedback: Some(design.settings),
             ..board
         };

@@ -55,14 +55,14 @@ mod app {
     use twinstack::hardware::usart::{self, UsartRx};
     use twinstack::hardware::watchdog::Watchdog;
     #[cfg(feature = "emulator")]
-    use twinstack::param_store::ReadOnlyStorage;
-    use twinstack::param_store::{self, ParamSource};
+    use twinstack::config::param_store::ReadOnlyStorage;
+    use twinstack::config::param_store::{self, ParamSource};
     use twinstack::command_handler::{CommandHandler, MAX_RESPONSE};
     #[cfg(not(feature = "emulator"))]
     use twinstack::hardware::ccm;
     use twinstack::hardware::tick::SRAM_SLOTS;
-    use twinstack::recorder::SplitStore;
-    use twinstack::telemetry::{
+    use twinstack::services::recorder::SplitStore;
+    use twinstack::services::telemetry::{
         FrameLink, TelemetryQueue, TelemetrySample, TELEMETRY_QUEUE_LEN,
     };
 

@@ -26,8 +26,10 @@ pub const RATE_HZ: u32 = 40_000;
 
 /// The scenarios' setpoints, Q1.15, one per tick (divider 1).
 pub mod scenarios {
-    use twinstack::analog_input::{AnalogInputConfig, OnFault};
-    use twinstack::scan::{LissajousScan, RasterScan, ScanPattern, ScanRequest, SpiralScan};
+    use twinstack::sources::analog_input::{AnalogInputConfig, OnFault};
+    use twinstack::sources::scan::{
+        LissajousScan, RasterScan, ScanPattern, ScanRequest, SpiralScan,
+    };
 
     /// Ticks each scenario streams.
     pub const TICKS: u32 = 1500;
@@ -236,15 +238,15 @@ pub mod scenarios {
 }
 
 /// The configurations a user can load, as the bench measures them: the shipped sizes of each
-/// model, and the largest of every part the tick budget ([`twinstack::tick_budget`]) counts, so
+/// model, and the largest of every part the tick budget ([`twinstack::config::tick_budget`]) counts, so
 /// that its prediction is checked at both ends of each size.
 pub mod configs {
-    use twinstack::creep::CreepParams;
-    use twinstack::generalised_pi::{DeadZoneParams, GpiParams};
-    use twinstack::settings::{
+    use twinstack::config::settings::{
         representative_bouc_wen, representative_duhem, representative_pi, FeedbackSettings, Mode,
         Model, NotchDesign, SensorSettings, Settings,
     };
+    use twinstack::models::creep::CreepParams;
+    use twinstack::models::generalised_pi::{DeadZoneParams, GpiParams};
 
     /// How many configurations run.
     pub const COUNT: usize = 7;
@@ -385,6 +387,9 @@ mod app {
     use twinstack::board::Hardware;
     use twinstack::command_handler::CommandHandler;
     use twinstack::command_handler::MAX_RESPONSE;
+    use twinstack::config::param_store::ReadOnlyStorage;
+    use twinstack::config::settings::{Mode, Settings};
+    use twinstack::config::tick_budget::worst_case_cycles;
     use twinstack::control::Controller;
     use twinstack::control_loop::ControlLoop;
     use twinstack::control_loop::{SetpointQueue, SETPOINT_QUEUE_LEN};
@@ -395,18 +400,15 @@ mod app {
     use twinstack::hardware::tick::SRAM_SLOTS;
     use twinstack::hardware::tick::{ControlTick, LoopLock};
     use twinstack::hardware::watchdog::Watchdog;
-    use twinstack::learning::{LearnSettings, LearnState};
-    use twinstack::param_store::ReadOnlyStorage;
     use twinstack::protocol::messages::{
         AnalogRequest, CaptureRequest, CaptureState, LearnRequest, RecordRequest, Request,
         Response, SetpointBatch, Signal, StreamControl, Trigger, MAX_BATCH, MAX_CAPTURE_CHUNK,
     };
-    use twinstack::recorder::{SplitStore, CHANNELS};
-    use twinstack::settings::{Mode, Settings};
-    use twinstack::telemetry::{
+    use twinstack::services::learning::{LearnSettings, LearnState};
+    use twinstack::services::recorder::{SplitStore, CHANNELS};
+    use twinstack::services::telemetry::{
         TelemetryPacker, TelemetryQueue, TelemetrySample, TELEMETRY_QUEUE_LEN,
     };
-    use twinstack::tick_budget::worst_case_cycles;
 
     use cortex_m_semihosting::{debug, hprintln};
 
@@ -577,9 +579,9 @@ mod app {
                     if let Some(scan) = scenario.scan {
                         // Pulses of 2 ticks.
                         expect_ack(
-                            ask!(Request::Trigger(twinstack::scan::TriggerConfig {
+                            ask!(Request::Trigger(twinstack::sources::scan::TriggerConfig {
                                 pulse_ticks: 2,
-                                input: twinstack::scan::TriggerEdge::Rising,
+                                input: twinstack::sources::scan::TriggerEdge::Rising,
                                 start_stream: false,
                             })),
                             "trigger",
@@ -602,7 +604,13 @@ mod app {
                             let _ = handler.service_learning(&mut lock);
                         }
                         while packer.due(samples) {
-                            if packer.pack(samples, frame).is_none() {
+                            if twinstack::protocol::messages::encode_telemetry(
+                                &mut packer,
+                                samples,
+                                frame,
+                            )
+                            .is_none()
+                            {
                                 break;
                             }
                         }
@@ -667,7 +675,13 @@ mod app {
                         let _ = handler.service_learning(&mut lock);
                     }
                     while packer.due(samples) {
-                        if packer.pack(samples, frame).is_none() {
+                        if twinstack::protocol::messages::encode_telemetry(
+                            &mut packer,
+                            samples,
+                            frame,
+                        )
+                        .is_none()
+                        {
                             break;
                         }
                     }

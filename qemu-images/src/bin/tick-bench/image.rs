@@ -8,19 +8,19 @@ use defmt_rtt as _;
 use stm32f4xx_hal::pac;
 
 use twinstack::board::{DacCode, DualDac, Hardware, SensorAdc};
-use twinstack::control::{Compensator, ControlConfig, Controller, Observer, TickReport};
-use twinstack::drive::{DifferentialDrive, DriveOutput, StackVoltages};
-use twinstack::duhem::{Duhem, DuhemState};
-use twinstack::fixed_point::SIGNAL_ONE;
-use twinstack::generalised_pi::{GeneralisedPi, InverseGeneralisedPi};
-use twinstack::hardware::adc::SensorInput;
-use twinstack::hardware::dac::InternalDac;
-use twinstack::notch::NotchDesign;
-use twinstack::prandtl_ishlinskii::{InversePrandtlIshlinskii, PiState};
-use twinstack::settings::{
+use twinstack::config::settings::{
     representative_bouc_wen, representative_duhem, representative_gpi, representative_pi,
     FeedbackSettings, Mode, Model, SensorSettings, Settings,
 };
+use twinstack::control::drive::{DifferentialDrive, DriveOutput, StackVoltages};
+use twinstack::control::notch::NotchDesign;
+use twinstack::control::{Compensator, ControlConfig, Controller, Observer, TickReport};
+use twinstack::fixed_point::SIGNAL_ONE;
+use twinstack::hardware::adc::SensorInput;
+use twinstack::hardware::dac::InternalDac;
+use twinstack::models::duhem::{Duhem, DuhemState};
+use twinstack::models::generalised_pi::{GeneralisedPi, InverseGeneralisedPi};
+use twinstack::models::prandtl_ishlinskii::{InversePrandtlIshlinskii, PiState};
 
 /// Ticks measured per configuration (after as many warm-up ticks).
 const TICKS: u32 = 1000;
@@ -153,7 +153,7 @@ fn main() -> ! {
     };
     let base = closed(None);
     // Four creep modes, 0.1 ms … 100 ms, 2 % each, in series with both models.
-    let creep = match twinstack::creep::CreepParams::new(
+    let creep = match twinstack::models::creep::CreepParams::new(
         &[1e-4, 1e-3, 1e-2, 1e-1],
         &[0.02, 0.02, 0.02, 0.02],
     ) {

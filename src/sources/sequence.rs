@@ -37,8 +37,8 @@ use serde::{Deserialize, Serialize};
 
 use crate::fixed_point::{signal_from_f64, SIGNAL_ONE};
 use crate::refusal::{Field, Refusal, Rule};
-use crate::scan::{EdgeDetector, TriggerEdge};
-use crate::setpoint_stream::setpoint_from_wire;
+use crate::sources::scan::{EdgeDetector, TriggerEdge};
+use crate::sources::setpoint_stream::setpoint_from_wire;
 use heapless::spsc::Consumer;
 
 /// Output bit of the settled output, in [`crate::control_loop::ControlLoop::trigger_levels`]
@@ -64,8 +64,8 @@ impl SequenceConfig {
     /// Checks the settings; the refusal names the field and its limit.
     ///
     /// ```
-    /// use twinstack::scan::TriggerEdge;
-    /// use twinstack::sequence::SequenceConfig;
+    /// use twinstack::sources::scan::TriggerEdge;
+    /// use twinstack::sources::sequence::SequenceConfig;
     /// let ok = SequenceConfig { edge: TriggerEdge::Rising, window: 0.01, settle_ticks: 50 };
     /// assert!(ok.check().is_ok());
     /// assert!(SequenceConfig { window: f32::NAN, ..ok }.check().is_err());
@@ -176,8 +176,8 @@ impl SteppedSequence {
     ///
     /// ```
     /// use heapless::spsc::Queue;
-    /// use twinstack::scan::TriggerEdge;
-    /// use twinstack::sequence::{SequenceConfig, SteppedSequence};
+    /// use twinstack::sources::scan::TriggerEdge;
+    /// use twinstack::sources::sequence::{SequenceConfig, SteppedSequence};
     /// let mut q: Queue<i16, 4> = Queue::new();
     /// let (mut p, mut c) = q.split();
     /// p.enqueue(16384).unwrap(); // 0.5
@@ -289,10 +289,10 @@ impl SteppedSequence {
 }
 
 /// The largest step per tick (Q2.30) a sequence moves by with the drive's slew step
-/// `slew_step` (Q2.30 per tick, [`crate::scan::slew_step`]): a quarter of it, at least one LSB.
+/// `slew_step` (Q2.30 per tick, [`crate::sources::scan::slew_step`]): a quarter of it, at least one LSB.
 ///
 /// ```
-/// assert_eq!(twinstack::sequence::move_step(1 << 28), 1 << 26);
+/// assert_eq!(twinstack::sources::sequence::move_step(1 << 28), 1 << 26);
 /// ```
 pub const fn move_step(slew_step: i32) -> i32 {
     let q = slew_step / 4;

@@ -20,7 +20,7 @@
 //! | setpoint, sensor, estimate | Q1.15 normalised displacement (the top 16 bits of the Q2.30 signal, saturated at ±1: outside the model's output range it reads −32768 or 32767), the setpoint's wire format |
 //! | left, right | the stack's DAC code (u16 bits) |
 //! | error | setpoint − sensor, Q2.14 (the top 16 bits of the Q2.30 difference; never saturates) |
-//! | triggers | bit 0 pixel, bit 1 line, bit 2 frame output, bit 3 the trigger input ([`crate::scan`]) |
+//! | triggers | bit 0 pixel, bit 1 line, bit 2 frame output, bit 3 the trigger input ([`crate::sources::scan`]) |
 //!
 //! # Cost on the tick
 //!
@@ -60,7 +60,7 @@ pub const PIECE_SLOTS: u32 = 16;
 /// and `out` holds `N`.
 ///
 /// ```
-/// use twinstack::recorder::{in_pieces, Recorder, Signal, TickSignals};
+/// use twinstack::services::recorder::{in_pieces, Recorder, Signal, TickSignals};
 /// # use twinstack::control::{TickFlags, TickReport};
 /// # use twinstack::board::DacCode;
 /// let mut r = Recorder::new(vec![0i16; 200]);
@@ -139,7 +139,7 @@ pub enum Channel {
     /// Setpoint − sensor, Q2.14 normalised displacement.
     Error = 5,
     /// The trigger outputs' levels (bit 0 pixel, 1 line, 2 frame) and the trigger input's
-    /// (bit 3), protocol v6 ([`crate::scan`]).
+    /// (bit 3), protocol v6 ([`crate::sources::scan`]).
     Triggers = 6,
 }
 
@@ -197,7 +197,7 @@ impl TickSignals {
     /// ```
     /// use twinstack::board::DacCode;
     /// use twinstack::control::{TickFlags, TickReport};
-    /// use twinstack::recorder::{Channel, TickSignals};
+    /// use twinstack::services::recorder::{Channel, TickSignals};
     /// let report = TickReport { left: DacCode(1234), right: DacCode(99), estimate: 1 << 29,
     ///     measured: 0, drive: 0, flags: TickFlags(0), triggers: 0b101 };
     /// let s = TickSignals::of(-(1 << 30), 1 << 29, &report); // setpoint −1, sensor 0.5
@@ -238,7 +238,7 @@ pub enum Trigger {
     WaveformStart,
     /// The next start of a scan (protocol v6; at its approach's first tick).
     ScanStart,
-    /// The external trigger input's armed edge (protocol v6, [`crate::scan::ExternalTrigger`]).
+    /// The external trigger input's armed edge (protocol v6, [`crate::sources::scan::ExternalTrigger`]).
     External,
 }
 
@@ -321,7 +321,7 @@ impl<T: AsRef<[i16]> + AsMut<[i16]>> SampleStore for T {
 /// board, SRAM then CCM RAM).
 ///
 /// ```
-/// use twinstack::recorder::{SampleStore, SplitStore};
+/// use twinstack::services::recorder::{SampleStore, SplitStore};
 /// let mut s = SplitStore::new([0i16; 2], [0i16; 3]);
 /// s.tail_mut(true, 1).copy_from_slice(&[7, 8]);
 /// assert_eq!((s.segments(), s.get(3), s.second), ((2, 3), 7, [0, 7, 8]));
@@ -462,7 +462,7 @@ impl<B: SampleStore> Recorder<B> {
     /// An idle recorder over `buffer` (its slots are the capacity).
     ///
     /// ```
-    /// use twinstack::recorder::{Channel, Recorder, Trigger};
+    /// use twinstack::services::recorder::{Channel, Recorder, Trigger};
     /// let mut r = Recorder::new(vec![0i16; 1024]);
     /// r.arm_capture(Channel::Setpoint.bit() | Channel::Left.bit(), 512, 0, Trigger::Now, 1).unwrap();
     /// assert!(r.is_capturing());

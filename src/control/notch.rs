@@ -5,8 +5,8 @@
 //! Nyquist frequency of a 50 kHz tick. The feedback loop sees it amplified some 30 times; a
 //! notch on the feedback error removes it from the loop, so the controller neither excites nor
 //! sustains the ringing and its gains can go higher. The same notch on the feedforward (input
-//! shaping, [`crate::settings::Settings::shaping`]) keeps the drive from exciting it in open
-//! loop, where the learning feedforward runs ([`crate::learning`]).
+//! shaping, [`crate::config::settings::Settings::shaping`]) keeps the drive from exciting it in open
+//! loop, where the learning feedforward runs ([`crate::services::learning`]).
 //!
 //! **Design.** The analog notch `H(s) = (s² + 2ζ_z ω₀ s + ω₀²) / (s² + 2ζ_p ω₀ s + ω₀²)` with
 //! `ζ_p = 1 / (2Q)` and `ζ_z = depth · ζ_p` is mapped to the tick's rate by the bilinear

@@ -16,27 +16,29 @@ use heapless::Vec;
 use serde::{Deserialize, Serialize};
 
 pub use crate::board::Hardware;
-use crate::bouc_wen::{BoucWen, InverseBoucWen};
+pub use crate::control::drive::{Configuration, DriveSettings, SafeState};
+pub use crate::control::feedback::FeedbackSettings;
+pub use crate::control::mode_switch::Mode;
+use crate::control::notch::Notch;
+pub use crate::control::notch::NotchDesign;
+pub use crate::control::sensor::SensorSettings;
 use crate::control::{Compensator, ControlConfig, Observer};
-pub use crate::creep::CreepParams;
-use crate::creep::{
+use crate::models::bouc_wen::{BoucWen, InverseBoucWen};
+pub use crate::models::creep::CreepParams;
+use crate::models::creep::{
     Creep, CreepError, MAX_CREEP_MODES, MAX_TIME_CONSTANT_TICKS, MAX_WEIGHT_SUM,
     MIN_TIME_CONSTANT_TICKS,
 };
-pub use crate::drive::{Configuration, DriveSettings, SafeState};
-use crate::duhem::{Duhem, InverseDuhem};
-pub use crate::feedback::FeedbackSettings;
-use crate::generalised_pi::{GeneralisedPi, GpiParams, InverseGeneralisedPi, MAX_DEAD_ZONES};
-pub use crate::mode_switch::Mode;
-use crate::notch::Notch;
-pub use crate::notch::NotchDesign;
-use crate::params::{
+use crate::models::duhem::{Duhem, InverseDuhem};
+use crate::models::generalised_pi::{
+    GeneralisedPi, GpiParams, InverseGeneralisedPi, MAX_DEAD_ZONES,
+};
+use crate::models::params::{
     BoucWenCoefficient, BoucWenParams, DuhemParams, ParamError, PiParams, MAX_OPERATORS,
 };
-use crate::prandtl_ishlinskii::{InversePrandtlIshlinskii, PrandtlIshlinskii};
+use crate::models::prandtl_ishlinskii::{InversePrandtlIshlinskii, PrandtlIshlinskii};
 use crate::refusal::{finite, CreepField, Field, ModelField, Refusal, Rule};
 use crate::scaling::Scaling;
-pub use crate::sensor::SensorSettings;
 
 /// A hysteresis model in physical units (volts in, output units out).
 #[allow(clippy::large_enum_variant)] // no heap on the board; settings live in one place
@@ -47,7 +49,7 @@ pub enum Model {
     /// Duhem.
     Duhem(DuhemParams),
     /// Generalised (asymmetric) Prandtl–Ishlinskii: a P–I followed by a dead-zone map
-    /// ([`crate::generalised_pi`]).
+    /// ([`crate::models::generalised_pi`]).
     GeneralisedPi(GpiParams),
     /// Generalised (asymmetric) Bouc–Wen; compensated inverse-multiplicatively.
     BoucWen(BoucWenParams),
@@ -75,7 +77,7 @@ pub struct Settings {
     pub feedback: Option<FeedbackSettings>,
     /// The mode to run in: entered once loaded, and at boot for a stored record.
     pub mode: Mode,
-    /// The stage's creep, in series after the hysteresis model ([`crate::creep`]): the
+    /// The stage's creep, in series after the hysteresis model ([`crate::models::creep`]): the
     /// compensator runs its inverse before the inverse model (`setpoint → C⁻¹ → H⁻¹ →
     /// drive`), the observer runs it after the model (`drive → H → C → estimate`). `None`
     /// (and absent from older parameter files): no creep.
@@ -155,7 +157,7 @@ impl Settings {
     /// is partly accepted: the first refusal is returned, naming its field.
     ///
     /// ```
-    /// use twinstack::settings::{Hardware, Mode, Settings};
+    /// use twinstack::config::settings::{Hardware, Mode, Settings};
     /// let config = Settings::default().build(&Hardware::driver_board(50_000.0)).unwrap();
     /// assert_eq!(config.mode, Mode::Bypass);
     /// let mut s = Settings::default();
@@ -225,7 +227,7 @@ impl Settings {
         };
         let shaping = match &self.shaping {
             Some(d) => Some(Notch::new(d, hw.control_rate_hz).map_err(|e| {
-                crate::notch::refusal(
+                crate::control::notch::refusal(
                     d,
                     e,
                     [
@@ -249,7 +251,7 @@ impl Settings {
             shaping,
         };
         // Last: what the tick runs must fit its period at this rate.
-        crate::tick_budget::check(&config, hw.control_rate_hz)?;
+        crate::config::tick_budget::check(&config, hw.control_rate_hz)?;
         Ok(config)
     }
 
@@ -500,7 +502,7 @@ fn bouc_wen_field(c: BoucWenCoefficient) -> ModelField {
 /// 0.3 µm/V`, the other 0.2 µm/V decaying by 0.8 per operator. Replace it with the
 /// identification tool's output for a real stage.
 pub fn representative_pi(n: usize) -> Result<Model, ParamError> {
-    let thresholds = crate::params::Thresholds::Uniform.generate(n, 140.0)?;
+    let thresholds = crate::models::params::Thresholds::Uniform.generate(n, 140.0)?;
     let mut weights: Vec<f64, MAX_OPERATORS> = Vec::new();
     let mut decay = 1.0;
     let mut tail = 0.0;
@@ -530,7 +532,7 @@ pub fn representative_gpi(n: usize) -> Result<Model, ParamError> {
     let Model::PrandtlIshlinskii(pi) = representative_pi(n)? else {
         return Err(ParamError::NoOperators);
     };
-    let dead_zones = crate::generalised_pi::DeadZoneParams::new(
+    let dead_zones = crate::models::generalised_pi::DeadZoneParams::new(
         35.0,
         1.0,
         &[-24.0, -16.0, -8.0, 8.0, 16.0, 24.0],
@@ -780,7 +782,7 @@ mod tests {
         let Model::GeneralisedPi(mut g) = representative_gpi(32).unwrap() else {
             unreachable!()
         };
-        g.dead_zones = crate::generalised_pi::DeadZoneParams::new(
+        g.dead_zones = crate::models::generalised_pi::DeadZoneParams::new(
             35.0,
             1.0,
             &[-32.0, -24.0, -16.0, -8.0, 8.0, 16.0, 24.0, 32.0],
@@ -809,7 +811,7 @@ mod tests {
             n + 1 + 1 + 4 <= crate::protocol::frame::MAX_BODY,
             "{n} bytes of settings"
         );
-        assert!(n + 5 <= crate::param_store::MAX_PAYLOAD);
+        assert!(n + 5 <= crate::config::param_store::MAX_PAYLOAD);
     }
 
     /// The feedforward's notch is designed at the board's rate; a design that cannot work
@@ -828,7 +830,7 @@ mod tests {
         let c = s.build(&hw()).unwrap();
         assert_eq!(
             c.shaping,
-            Some(crate::notch::Notch::new(&design, 50_000.0).unwrap())
+            Some(crate::control::notch::Notch::new(&design, 50_000.0).unwrap())
         );
         assert_eq!(closed().build(&hw()).unwrap().shaping, None);
         let refused = |f: fn(&mut NotchDesign)| {

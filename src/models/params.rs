@@ -1,7 +1,7 @@
 //! Physical parameter sets (in `f64`, volts and output units) and their validation.
 //!
 //! Parameters are checked and converted once, off the tick path, into the fixed-point
-//! configurations of [`crate::prandtl_ishlinskii`] and [`crate::duhem`]; anything that would make
+//! configurations of [`crate::models::prandtl_ishlinskii`] and [`crate::models::duhem`]; anything that would make
 //! the tick misbehave (a non-invertible P–I, a gain the Q-formats cannot hold, NaN) is refused
 //! here with a [`ParamError`] that says what and where. Operator numbers in errors are 1-based,
 //! as in the equations of the book's docs/src/reference/models.md.
@@ -90,7 +90,7 @@ pub enum ParamError {
     DuhemGammaNotPositive,
     /// A Duhem coefficient, once normalised, does not fit the Q8.24 gain format.
     DuhemCoefficientOutOfRange,
-    /// More than [`crate::generalised_pi::MAX_DEAD_ZONES`] dead-zone operators.
+    /// More than [`crate::models::generalised_pi::MAX_DEAD_ZONES`] dead-zone operators.
     TooManyDeadZones {
         /// How many were given.
         count: usize,
@@ -134,8 +134,8 @@ pub enum ParamError {
     /// The dead-zone map's centre lies outside the output range.
     DeadZoneCentreOutOfRange,
     /// The creep operator in series with the model was refused (see
-    /// [`crate::creep::CreepError`]).
-    Creep(crate::creep::CreepError),
+    /// [`crate::models::creep::CreepError`]).
+    Creep(crate::models::creep::CreepError),
     /// A Bouc–Wen coefficient that must be positive (`k`, `β`) is not.
     BoucWenNotPositive(BoucWenCoefficient),
     /// A Bouc–Wen coefficient lets the hysteretic state grow without bound: `|γ| < β` and
@@ -302,8 +302,8 @@ impl core::fmt::Display for ParamError {
 
 impl core::error::Error for ParamError {}
 
-impl From<crate::creep::CreepError> for ParamError {
-    fn from(e: crate::creep::CreepError) -> Self {
+impl From<crate::models::creep::CreepError> for ParamError {
+    fn from(e: crate::models::creep::CreepError) -> Self {
         ParamError::Creep(e)
     }
 }
@@ -691,7 +691,7 @@ pub const BOUC_WEN_MAX_INVERSE_LOOP_GAIN: f64 = 0.9;
 /// docs/src/reference/models.md).
 ///
 /// ```
-/// use twinstack::params::{BoucWenCoefficient, BoucWenParams};
+/// use twinstack::models::params::{BoucWenCoefficient, BoucWenParams};
 /// use twinstack::ParamError;
 /// let p = BoucWenParams { k: 0.4, offset: 0.0, a: 0.15, beta: 0.03, gamma: 0.01, psi: 0.005 };
 /// assert_eq!(p.validate(), Ok(()));

@@ -79,7 +79,7 @@ static SINE_TABLE: [i32; QUARTER + 1] = {
 ///
 /// ```
 /// use twinstack::fixed_point::signal_to_f64 as f;
-/// use twinstack::waveform::unit_sine;
+/// use twinstack::sources::waveform::unit_sine;
 /// assert_eq!(f(unit_sine(1 << 30)), 1.0);
 /// assert!((f(unit_sine(0x2AAA_AAAB)) - 0.866_025_4).abs() < 5e-6); // 60°
 /// ```
@@ -161,7 +161,7 @@ impl WaveformGenerator {
     ///
     /// ```
     /// use twinstack::fixed_point::{signal_from_f64 as q, signal_to_f64 as f};
-    /// use twinstack::waveform::{Shape, WaveformGenerator};
+    /// use twinstack::sources::waveform::{Shape, WaveformGenerator};
     /// // 1 kHz at 4 kHz: four samples a cycle; two full cycles, then halved each cycle.
     /// let mut g = WaveformGenerator::new(Shape::Triangle, 0, q(0.5), 1000.0, 4000.0)
     ///     .unwrap()

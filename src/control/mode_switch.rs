@@ -10,7 +10,7 @@
 //! an offset added to the command that fades out over about 2^[`TRANSFER_SHIFT`] ticks (5 ms at
 //! 50 kHz), so the drive glides from where it was to the new mode's command. Entering closed
 //! loop also restarts the feedback's history at the present setpoint
-//! ([`crate::feedback::FeedbackState::enter_closed_loop`]): the integrator takes up what the
+//! ([`crate::control::feedback::FeedbackState::enter_closed_loop`]): the integrator takes up what the
 //! fading offset leaves.
 
 /// Control mode.

@@ -15,7 +15,7 @@
 //!   allocation, no division, no panic path.
 //! * **Off the tick**, [`TelemetryPacker`] (owned by the command handler, run where the board
 //!   sends its frames) takes queued samples and makes protocol frames
-//!   ([`TelemetryFrame`], sent as the unsolicited [`Response::Telemetry`]): a frame sequence
+//!   ([`TelemetryFrame`], sent as the unsolicited [`Response::Telemetry`](crate::protocol::messages::Response::Telemetry)): a frame sequence
 //!   number, the index of its first sample, the signal mask, the samples. Samples are
 //!   indexed on the tick (every sample, sent or dropped, takes the next index), so a sample
 //!   lost to a full queue leaves a gap the packer sees: the frame after it starts at the
@@ -36,8 +36,8 @@
 //! use twinstack::board::DacCode;
 //! use twinstack::protocol::frame;
 //! use twinstack::protocol::messages::Response;
-//! use twinstack::recorder::{Channel, TickSignals};
-//! use twinstack::telemetry::{TelemetryPacker, TelemetryQueue, TelemetryTap};
+//! use twinstack::services::recorder::{Channel, TickSignals};
+//! use twinstack::services::telemetry::{TelemetryPacker, TelemetryQueue, TelemetryTap};
 //!
 //! let mut queue = TelemetryQueue::new();
 //! let (mut producer, mut consumer) = queue.split();
@@ -53,7 +53,7 @@
 //!     tap.push(&mut producer, &TickSignals::of(1 << 29, 0, &report)); // setpoint 0.5 (Q2.30)
 //! }
 //! let mut out = [0u8; 600];
-//! let n = packer.pack(&mut consumer, &mut out).unwrap();
+//! let n = twinstack::protocol::messages::encode_telemetry(&mut packer, &mut consumer, &mut out).unwrap();
 //! let mut decoder = twinstack::protocol::decoder::FrameDecoder::new();
 //! let (&delimiter, body) = out[..n].split_last().unwrap();
 //! body.iter().for_each(|&b| assert!(decoder.push(b).is_none()));
@@ -63,11 +63,10 @@
 //! ```
 
 use heapless::spsc::{Consumer, Producer, Queue};
+use serde::{Deserialize, Serialize};
 
-use crate::protocol::frame;
-use crate::protocol::messages::{Response, TelemetryFrame, MAX_TELEMETRY_VALUES};
-use crate::recorder::{Channel, TickSignals, CHANNELS};
 use crate::refusal::{Field, Refusal, Rule};
+use crate::services::recorder::{Channel, TickSignals, CHANNELS};
 
 /// Slots of the telemetry queue (`heapless` keeps one free): 8 KiB of samples; at 10 kHz it
 /// holds 51 ms of samples, at 50 kHz 10 ms.
@@ -87,7 +86,7 @@ pub const MAX_VALUES_PER_SECOND: u32 = 50_000;
 pub const FRAME_LATENCY_S: f64 = 0.005;
 
 /// One sample of the tick: all seven signals ([`TickSignals`]), in [`Channel`] order, each in
-/// its slot format (Q1.15, DAC code, Q2.14: see [`crate::recorder`]); the packer sends the
+/// its slot format (Q1.15, DAC code, Q2.14: see [`crate::services::recorder`]); the packer sends the
 /// mask's.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct TelemetrySample {
@@ -120,7 +119,7 @@ impl TelemetryTap {
     /// A tap that takes nothing.
     ///
     /// ```
-    /// use twinstack::telemetry::TelemetryTap;
+    /// use twinstack::services::telemetry::TelemetryTap;
     /// let mut tap = TelemetryTap::new();
     /// assert!(!tap.is_running());
     /// assert_eq!(tap.start(0b1001, 5), Some(0)); // setpoint and sensor, every 5th tick
@@ -224,7 +223,7 @@ impl TelemetryTap {
 ///
 /// ```
 /// use twinstack::refusal::{Field, Rule};
-/// use twinstack::telemetry::check_request;
+/// use twinstack::services::telemetry::check_request;
 /// assert!(check_request(0b1001, 5, 50_000).is_ok()); // 2 signals at 10 kHz
 /// let r = check_request(0b11_1111, 1, 50_000).unwrap_err(); // 300 000 values/s
 /// assert_eq!((r.field, r.rule), (Field::TelemetryDecimation, Rule::AtLeast(6.0)));
@@ -257,7 +256,7 @@ pub fn check_request(signals: u8, decimation: u16, tick_rate_hz: u32) -> Result<
 /// at this fill level, and the tap wakes it there ([`TelemetryTap::wake_at`]).
 ///
 /// ```
-/// use twinstack::telemetry::frame_target;
+/// use twinstack::services::telemetry::frame_target;
 /// assert_eq!(frame_target(0b11, 5, 50_000), 50); // 10 kHz: 5 ms is 50 samples
 /// assert_eq!(frame_target(0b11_1111, 6, 50_000), 20); // a full frame: 120 values
 /// ```
@@ -296,7 +295,7 @@ impl TelemetryPacker {
     /// A packer with nothing to send.
     ///
     /// ```
-    /// use twinstack::telemetry::{TelemetryPacker, TelemetryQueue};
+    /// use twinstack::services::telemetry::{TelemetryPacker, TelemetryQueue};
     /// let mut queue = TelemetryQueue::new();
     /// let (_, mut samples) = queue.split();
     /// let mut packer = TelemetryPacker::new();
@@ -429,17 +428,32 @@ impl TelemetryPacker {
         self.seq = self.seq.wrapping_add(1);
         Some(frame)
     }
+}
 
-    /// [`TelemetryPacker::next_frame`], encoded as a complete protocol frame
-    /// ([`Response::Telemetry`], delimiter included) into `out`; returns its length.
-    pub fn pack<const N: usize>(
-        &mut self,
-        queue: &mut Consumer<'_, TelemetrySample, N>,
-        out: &mut [u8],
-    ) -> Option<usize> {
-        let frame = self.next_frame(queue)?;
-        frame::encode(&Response::Telemetry(frame), out).ok()
-    }
+/// Most values (samples × signals) one telemetry frame carries: at most 3 bytes each on the
+/// wire, about 2 ms of the line at 2 Mbaud.
+pub const MAX_TELEMETRY_VALUES: usize = 120;
+
+/// One unsolicited telemetry frame (the board → host, between responses): consecutive
+/// samples from `first`, each its signals in [`crate::services::recorder::Channel`] order and format
+/// (as a capture's slots). Samples lost to a full queue on the board are never silent: the
+/// next frame's `first` skips them and `lost` counts them.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct TelemetryFrame {
+    /// Frame number since the start (wrapping): a gap means a frame was lost on the line.
+    pub seq: u16,
+    /// Index of the first sample, counted from 0 at the start (sample `i` is the tick
+    /// `i × decimation` after the first sample's).
+    pub first: u32,
+    /// The signal mask of the samples.
+    pub signals: u8,
+    /// Samples lost on the board (queue full) since the start, up to `first`.
+    pub lost: u32,
+    /// The last frame of the telemetry (it was stopped): `first` is then the number of
+    /// samples the run produced, and `values` is empty.
+    pub end: bool,
+    /// The samples' values, frame-interleaved (one per signal per sample).
+    pub values: heapless::Vec<i16, MAX_TELEMETRY_VALUES>,
 }
 
 /// Where the board's outgoing frames go: USART1 TX by DMA on the board (two buffers: one on
@@ -461,7 +475,9 @@ mod tests {
     use crate::board::DacCode;
     use crate::control::{TickFlags, TickReport};
     use crate::protocol::decoder::FrameDecoder;
-    use crate::recorder::{Recorder, Trigger};
+    use crate::protocol::frame;
+    use crate::protocol::messages::Response;
+    use crate::services::recorder::{Recorder, Trigger};
     use std::vec;
     use std::vec::Vec;
 
@@ -729,7 +745,9 @@ mod tests {
         let mut decoder = FrameDecoder::new();
         let mut values = Vec::new();
         let mut ended = false;
-        while let Some(n) = packer.pack(&mut c, &mut out) {
+        while let Some(n) =
+            crate::protocol::messages::encode_telemetry(&mut packer, &mut c, &mut out)
+        {
             // A full frame of the worst case (3 bytes a value) fits in what the docs say.
             assert!(n <= MAX_TELEMETRY_VALUES * 3 + 24, "{n} bytes");
             let (&delimiter, body) = out[..n].split_last().unwrap();

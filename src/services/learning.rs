@@ -49,7 +49,7 @@
 //! Gain `L`: Q2.30 (0 < L ≤ 1.5). Filter coefficients: Q2.30; its state: Q2.46 in an `i64`;
 //! its products in `i128` (off the tick).
 
-use crate::feedback::SENSOR_DELAY_TICKS;
+use crate::control::feedback::SENSOR_DELAY_TICKS;
 use crate::fixed_point::{limit, saturate_i64, signal_from_f64};
 use crate::refusal::{finite, Field, Refusal, Rule};
 use serde::{Deserialize, Serialize};
@@ -117,7 +117,7 @@ impl LearnSettings {
     /// Validates at `control_rate` (Hz) and builds the fixed-point configuration.
     ///
     /// ```
-    /// use twinstack::learning::LearnSettings;
+    /// use twinstack::services::learning::LearnSettings;
     /// let c = LearnSettings::for_period(200).build(50_000.0).unwrap();
     /// assert_eq!(c.period(), 200);
     /// let mut s = LearnSettings::for_period(200);
@@ -237,7 +237,7 @@ impl LearnTick {
     /// Off, empty tables, period [`MAX_BINS`].
     ///
     /// ```
-    /// use twinstack::learning::{LearnState, LearnTick};
+    /// use twinstack::services::learning::{LearnState, LearnTick};
     /// let t = LearnTick::new();
     /// assert_eq!(t.state(), LearnState::Off);
     /// assert_eq!(t.correction(), 0);
@@ -465,7 +465,7 @@ impl LearnTask {
     /// No configuration, empty table.
     ///
     /// ```
-    /// use twinstack::learning::LearnTask;
+    /// use twinstack::services::learning::LearnTask;
     /// let t = LearnTask::new();
     /// assert!(t.table().iter().all(|&u| u == 0));
     /// ```
@@ -649,7 +649,7 @@ impl RobustnessFilter {
     /// cutoff < rate / 2`, checked by [`LearnSettings::build`]).
     ///
     /// ```
-    /// use twinstack::learning::RobustnessFilter;
+    /// use twinstack::services::learning::RobustnessFilter;
     /// use twinstack::fixed_point::signal_from_f64;
     /// let q = RobustnessFilter::new(3000.0, 50_000.0, 200);
     /// let mut dc = [signal_from_f64(0.25); 200];

@@ -20,9 +20,9 @@
 use core::fmt;
 
 use crate::board::Hardware;
+use crate::config::settings::Settings;
 use crate::control::ControlConfig;
 use crate::refusal::Refusal;
-use crate::settings::Settings;
 
 /// First four bytes of a record.
 pub const MAGIC: [u8; 4] = *b"TWST";
@@ -235,7 +235,7 @@ pub const RECORD_VERSION_WITHOUT_SHAPING: u16 = 4;
 #[derive(serde::Deserialize)]
 struct RecordV4 {
     control_rate_hz: u32,
-    settings: crate::settings::SettingsWithoutShaping,
+    settings: crate::config::settings::SettingsWithoutShaping,
 }
 
 /// A version-4 payload as a record without shaping (out of line: its frame is only on the
@@ -260,9 +260,9 @@ pub struct StoredRecord {
     pub control_rate_hz: u32,
     /// The settings, in the mode the user stored them to boot in.
     pub settings: Settings,
-    /// The analog setpoint input's settings last started ([`crate::analog_input`]), or none;
+    /// The analog setpoint input's settings last started ([`crate::sources::analog_input`]), or none;
     /// with `start_at_boot` the board starts it at power-up, with no host.
-    pub analog: Option<crate::analog_input::AnalogInputConfig>,
+    pub analog: Option<crate::sources::analog_input::AnalogInputConfig>,
 }
 
 /// Why a sound record's contents were refused.
@@ -518,7 +518,7 @@ mod tests {
 
     fn stored(rate: u32) -> StoredRecord {
         let mut settings = Settings::default();
-        settings.drive.safe_state = crate::drive::SafeState::Zero;
+        settings.drive.safe_state = crate::control::drive::SafeState::Zero;
         StoredRecord {
             control_rate_hz: rate,
             settings,
@@ -563,8 +563,8 @@ mod tests {
     #[test]
     fn a_version_4_record_loads_without_shaping() {
         let mut s = stored(50_000);
-        s.settings.compensator = Some(crate::settings::representative_pi(8).unwrap());
-        s.settings.mode = crate::settings::Mode::OpenLoop;
+        s.settings.compensator = Some(crate::config::settings::representative_pi(8).unwrap());
+        s.settings.mode = crate::config::settings::Mode::OpenLoop;
         // Version 4's payload is version 6's without the last two bytes (`shaping: None`,
         // `analog: None`).
         let mut payload = [0u8; MAX_PAYLOAD];
@@ -589,7 +589,7 @@ mod tests {
         )
         .unwrap();
         assert_eq!(load_record(&buf[..n], &HW).1.as_str(), "bad-settings");
-        s.settings.shaping = Some(crate::notch::NotchDesign {
+        s.settings.shaping = Some(crate::control::notch::NotchDesign {
             frequency_hz: 21_807.0,
             q: 0.5,
             depth: 0.0173,
@@ -602,7 +602,7 @@ mod tests {
     /// a record with one round-trips, and one with hostile analog settings is refused.
     #[test]
     fn a_version_5_record_loads_without_an_analog_input() {
-        use crate::analog_input::{AnalogInputConfig, OnFault};
+        use crate::sources::analog_input::{AnalogInputConfig, OnFault};
         let mut s = stored(50_000);
         let mut payload = [0u8; MAX_PAYLOAD];
         let used = postcard::to_slice(&s, &mut payload).unwrap().len();
@@ -746,7 +746,7 @@ mod tests {
     fn the_defaults_boot_in_bypass() {
         assert_eq!(
             StoredRecord::default().settings.mode,
-            crate::settings::Mode::Bypass
+            crate::config::settings::Mode::Bypass
         );
     }
 

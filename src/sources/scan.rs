@@ -33,7 +33,7 @@
 //! Positions are Q2.30 (`SIGNAL_ONE` = 1.0). The raster's speed is Q2.30 · 2^16 per tick
 //! (`i64`) and its deceleration Q2.30 · 2^16 per tick²: one or two `i64` multiplies a tick.
 //! Lissajous and spiral phases are `u32` accumulators (2^32 per cycle), their sines the
-//! waveform generator's interpolated quarter-wave table ([`crate::waveform::unit_sine`]).
+//! waveform generator's interpolated quarter-wave table ([`crate::sources::waveform::unit_sine`]).
 //! [`ScanGenerator::next_sample`] is O(1): no loop, no division, no allocation, no panic path;
 //! every division is in [`ScanGenerator::new`] (off the tick, where the request is
 //! validated). Host and board run this same code: bit for bit the same samples.
@@ -61,7 +61,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::fixed_point::{saturate_i64, signal_from_f64, SIGNAL_ONE};
 use crate::refusal::{Field, Refusal, Rule};
-use crate::waveform::unit_sine;
+use crate::sources::waveform::unit_sine;
 
 /// Event / output bit: a pixel starts (pixel clock).
 pub const PIXEL: u8 = 1 << 0;
@@ -80,17 +80,17 @@ pub const LINE_PIN: u32 = 2;
 pub const FRAME_PIN: u32 = 3;
 /// GPIOA pin of the external trigger input (PA6).
 pub const INPUT_PIN: u32 = 6;
-/// GPIOA pin of a sequence's settled output (PA7, [`crate::sequence::SETTLED`]).
+/// GPIOA pin of a sequence's settled output (PA7, [`crate::sources::sequence::SETTLED`]).
 pub const SETTLED_PIN: u32 = 7;
 
 /// The GPIOA `BSRR` word that puts the four outputs at `levels` ([`PIXEL`], [`LINE`],
-/// [`FRAME`] bits, and a sequence's [`crate::sequence::SETTLED`]): a set bit for each high
+/// [`FRAME`] bits, and a sequence's [`crate::sources::sequence::SETTLED`]): a set bit for each high
 /// output, a reset bit (bit + 16) for each low one, so one store writes all four whatever
 /// they were. A few shifts and masks.
 ///
 /// ```
-/// use twinstack::scan::{bsrr_word, LINE};
-/// use twinstack::sequence::SETTLED;
+/// use twinstack::sources::scan::{bsrr_word, LINE};
+/// use twinstack::sources::sequence::SETTLED;
 /// assert_eq!(bsrr_word(LINE), 1 << 2 | (1 << 1 | 1 << 3 | 1 << 7) << 16);
 /// assert_eq!(bsrr_word(SETTLED), 1 << 7 | (1 << 1 | 1 << 2 | 1 << 3) << 16);
 /// ```
@@ -109,7 +109,7 @@ pub const fn bsrr_word(levels: u8) -> u32 {
 ///
 /// ```
 /// // 1 V/µs over 0–140 V at 50 kHz: 20 V a tick, 2 · 20 / 140 of the stroke.
-/// let step = twinstack::scan::slew_step(1e6, 0.0, 140.0, 50_000.0);
+/// let step = twinstack::sources::scan::slew_step(1e6, 0.0, 140.0, 50_000.0);
 /// assert_eq!(step, twinstack::fixed_point::signal_from_f64(40.0 / 140.0));
 /// ```
 pub fn slew_step(slew_rate: f64, min_voltage: f64, max_voltage: f64, rate_hz: f64) -> i32 {
@@ -148,7 +148,7 @@ impl RasterScan {
     /// over ±`amplitude` (normalised) on both axes, `turn_ticks` per turnaround.
     ///
     /// ```
-    /// use twinstack::scan::RasterScan;
+    /// use twinstack::sources::scan::RasterScan;
     /// let r = RasterScan::centred(4, 16, 20, 0.5);
     /// assert_eq!((r.offset, r.amplitude, r.y_offset, r.y_amplitude), (0.0, 0.5, 0.0, 0.5));
     /// ```
@@ -245,7 +245,7 @@ pub struct TriggerConfig {
     /// The input's edge; any but `Off` arms the input (one shot: send again to re-arm).
     pub input: TriggerEdge,
     /// The edge also starts the setpoint stream (besides a scan waiting for it and a capture
-    /// armed on [`crate::recorder::Trigger::External`]).
+    /// armed on [`crate::services::recorder::Trigger::External`]).
     pub start_stream: bool,
 }
 
@@ -408,7 +408,7 @@ impl ScanGenerator {
     /// ticks; every refusal names the field and the limit it broke.
     ///
     /// ```
-    /// use twinstack::scan::*;
+    /// use twinstack::sources::scan::*;
     /// let raster = ScanPattern::Raster(RasterScan {
     ///     lines: 8, pixels: 16, turn_ticks: 20, offset: 0.0, amplitude: 0.5,
     ///     y_offset: 0.0, y_amplitude: 0.5,
@@ -950,7 +950,7 @@ impl TriggerOutputs {
     /// Outputs with pulses of `width` ticks (0: always low).
     ///
     /// ```
-    /// use twinstack::scan::{TriggerOutputs, LINE, PIXEL};
+    /// use twinstack::sources::scan::{TriggerOutputs, LINE, PIXEL};
     /// let mut out = TriggerOutputs::new(2);
     /// assert_eq!(out.tick(PIXEL | LINE), PIXEL | LINE);
     /// assert_eq!(out.tick(0), PIXEL | LINE);
@@ -1013,10 +1013,10 @@ pub struct ExternalTrigger {
 }
 
 /// The trigger input's edges, one sample a tick: the level compared with the last tick's.
-/// What the external trigger and a TTL-stepped sequence ([`crate::sequence`]) both count.
+/// What the external trigger and a TTL-stepped sequence ([`crate::sources::sequence`]) both count.
 ///
 /// ```
-/// use twinstack::scan::{EdgeDetector, TriggerEdge};
+/// use twinstack::sources::scan::{EdgeDetector, TriggerEdge};
 /// let mut e = EdgeDetector::new(TriggerEdge::Falling, true);
 /// assert!(!e.poll(true));
 /// assert!(e.poll(false)); // high to low

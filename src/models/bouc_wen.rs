@@ -1,7 +1,7 @@
 //! Generalised (asymmetric) Bouc–Wen hysteresis in fixed point: the forward observer and the
 //! inverse-multiplicative compensator.
 //!
-//! Model (normalised by [`Scaling`], as [`crate::duhem`]): `y = k·u + δ + h`, with the
+//! Model (normalised by [`Scaling`], as [`crate::models::duhem`]): `y = k·u + δ + h`, with the
 //! hysteretic state advanced per sample by
 //!
 //! `h_k = h_{k−1} + A·Δu_k − β·|Δu_k|·h_{k−1} − γ·Δu_k·|h_{k−1}| − ψ·Δu_k·h_{k−1}`
@@ -16,7 +16,7 @@
 //! **Bound.** From rest (`h = 0`), `|h| ≤ H = |A|·max(1/(β − |γ| − |ψ|), 2)`: a step with
 //! `f < 1` gives `|h'| ≤ (1 − f)H + |A||Δu| ≤ H` because `f ≥ (β − |γ| − |ψ|)|Δu|`, and one with
 //! `f = 1` gives `h' = A·Δu`, `|Δu| ≤ 2`. Validation keeps `H ≤ 1.9` normalised
-//! ([`crate::params::BOUC_WEN_MAX_NORM_STATE`]), so `h` never reaches the Q2.30 saturation.
+//! ([`crate::models::params::BOUC_WEN_MAX_NORM_STATE`]), so `h` never reaches the Q2.30 saturation.
 //!
 //! **Duhem** is the special case `γ = ψ = 0`: with `k = β_D`, `A = γ_D − β_D`, `β = α_D` and
 //! `h = y − β_D u − δ` (minus Duhem's distance `e` to the anhysteretic curve), this step is
@@ -49,7 +49,7 @@ use crate::fixed_point::{
     clamp_full_scale, gain_from_f64, q60_to_signal_floor, saturate_i64, signal_from_f64,
     GAIN_FRAC_BITS, SIGNAL_ONE,
 };
-use crate::params::{
+use crate::models::params::{
     BoucWenCoefficient, BoucWenParams, ParamError, BOUC_WEN_MAX_INVERSE_LOOP_GAIN,
 };
 use crate::scaling::Scaling;
@@ -84,7 +84,7 @@ impl BoucWen {
     /// fixed-point form the tick runs.
     ///
     /// ```
-    /// use twinstack::bouc_wen::BoucWen;
+    /// use twinstack::models::bouc_wen::BoucWen;
     /// use twinstack::{BoucWenParams, Scaling};
     /// let params = BoucWenParams { k: 0.45, offset: 0.0, a: 0.08, beta: 0.03, gamma: 0.01, psi: 0.005 };
     /// let scaling = Scaling::new(0.0, 140.0, 0.0, 70.0).unwrap();
@@ -175,7 +175,7 @@ impl InverseBoucWen {
     /// Validates `params` and builds the compensator for them, normalised by `scaling`.
     ///
     /// ```
-    /// use twinstack::bouc_wen::InverseBoucWen;
+    /// use twinstack::models::bouc_wen::InverseBoucWen;
     /// use twinstack::fixed_point::{signal_from_f64, signal_to_f64};
     /// use twinstack::{BoucWenParams, Scaling};
     /// let params = BoucWenParams { k: 0.45, offset: 0.0, a: 0.08, beta: 0.03, gamma: 0.01, psi: 0.005 };
@@ -222,9 +222,9 @@ impl InverseBoucWen {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::duhem::Duhem;
     use crate::fixed_point::{signal_from_f64 as q, signal_to_f64 as f};
-    use crate::params::DuhemParams;
+    use crate::models::duhem::Duhem;
+    use crate::models::params::DuhemParams;
 
     fn scaling() -> Scaling {
         Scaling::new(0.0, 140.0, -5.0, 75.0).unwrap()

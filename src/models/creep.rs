@@ -168,7 +168,7 @@ impl CreepParams {
     /// (the rest by [`CreepParams::check`], which needs the control rate).
     ///
     /// ```
-    /// use twinstack::creep::{CreepError, CreepParams};
+    /// use twinstack::models::creep::{CreepError, CreepParams};
     /// let p = CreepParams::new(&[0.01, 1.0], &[0.02, 0.03]).unwrap();
     /// assert!((p.instant_weight() - 0.95).abs() < 1e-12);
     /// assert_eq!(p.check(50_000.0), Ok(()));
@@ -310,7 +310,7 @@ impl Creep {
     /// `control_rate_hz`.
     ///
     /// ```
-    /// use twinstack::creep::{Creep, CreepParams};
+    /// use twinstack::models::creep::{Creep, CreepParams};
     /// use twinstack::fixed_point::SIGNAL_ONE;
     /// let p = CreepParams::new(&[1e-3, 0.1], &[0.05, 0.05]).unwrap();
     /// let creep = Creep::new(&p, 50_000.0).unwrap();

@@ -5,36 +5,47 @@
 //! 1. the next setpoint (Q2.30 normalised displacement; on underrun the last one is held);
 //! 2. the compensator (inverse P–I, inverse Duhem, inverse-multiplicative Bouc–Wen, or none)
 //!    turns it into a drive command (after the inverse creep, when the stage has creep:
-//!    [`crate::creep`]); the learned correction is added ([`crate::learning`]) and, with input
+//!    [`crate::models::creep`]); the learned correction is added ([`crate::services::learning`]) and, with input
 //!    shaping, the sum goes through the feedforward's notch (not in bypass;
 //!    [`ControlConfig::shaping`]);
 //! 3. with a sensor, the reading is checked against the observer (drift flag) and, in closed
 //!    loop, the PI(D) controller on the measured error adds its correction
-//!    ([`crate::feedback`]); a mode switch's fading offset is added ([`crate::mode_switch`]);
+//!    ([`crate::control::feedback`]); a mode switch's fading offset is added ([`crate::control::mode_switch`]);
 //! 4. the differential drive clamps the command to the stacks' range and slew limits and splits
 //!    it into both stacks' DAC codes (`u_l = ū + v`, `u_r = ū − v`), written at once;
 //! 5. the forward observer, fed the drive actually applied, gives the estimated displacement
 //!    (followed by the creep, when the stage has creep).
 //!
 //! Configuration ([`ControlConfig`]) is built and validated off the tick path
-//! ([`crate::settings::Settings::build`]) and prepared there ([`Controller::prepare`]); the tick
+//! ([`crate::config::settings::Settings::build`]) and prepared there ([`Controller::prepare`]); the tick
 //! swaps it in O(1) ([`Controller::take_over`]). Nothing here allocates, panics or loops
 //! without bound.
+//!
+//! The parts of the control law, each in its own module: [`sensor`] (the position sensor),
+//! [`feedback`] (PI(D) with anti-windup, the drift check), [`notch`] (the resonance notch),
+//! [`mode_switch`] (bumpless switching and reloads) and [`drive`] (the differential drive and
+//! the limits that hold through everything).
+
+pub mod drive;
+pub mod feedback;
+pub mod mode_switch;
+pub mod notch;
+pub mod sensor;
 
 use crate::board::{AdcCode, DacCode, DualDac, SensorAdc};
-use crate::bouc_wen::{BoucWen, BoucWenState, InverseBoucWen};
-use crate::creep::{Creep, CreepState};
-use crate::drive::{DifferentialDrive, StackVoltages};
-use crate::duhem::{Duhem, DuhemState, InverseDuhem};
-use crate::feedback::FeedbackState;
-pub use crate::feedback::{Derivative, Feedback};
+use crate::control::drive::{DifferentialDrive, StackVoltages};
+use crate::control::feedback::FeedbackState;
+pub use crate::control::feedback::{Derivative, Feedback};
+pub use crate::control::mode_switch::Mode;
+use crate::control::mode_switch::{BumplessTransfer, ModeError};
+use crate::control::notch::{Notch, NotchState};
+pub use crate::control::sensor::Sensor;
 use crate::fixed_point::clamp_full_scale;
-use crate::generalised_pi::{GeneralisedPi, InverseGeneralisedPi};
-pub use crate::mode_switch::Mode;
-use crate::mode_switch::{BumplessTransfer, ModeError};
-use crate::notch::{Notch, NotchState};
-use crate::prandtl_ishlinskii::{InversePrandtlIshlinskii, PiState, PrandtlIshlinskii};
-pub use crate::sensor::Sensor;
+use crate::models::bouc_wen::{BoucWen, BoucWenState, InverseBoucWen};
+use crate::models::creep::{Creep, CreepState};
+use crate::models::duhem::{Duhem, DuhemState, InverseDuhem};
+use crate::models::generalised_pi::{GeneralisedPi, InverseGeneralisedPi};
+use crate::models::prandtl_ishlinskii::{InversePrandtlIshlinskii, PiState, PrandtlIshlinskii};
 
 /// The feedforward compensator: desired displacement → drive.
 // The variants differ in size by design: there is no heap on the board, and the configuration
@@ -71,7 +82,7 @@ pub enum Observer {
 }
 
 /// Everything the tick needs, validated and in fixed point (built by
-/// [`crate::settings::Settings::build`]).
+/// [`crate::config::settings::Settings::build`]).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct ControlConfig {
     /// Feedforward compensator.
@@ -91,7 +102,7 @@ pub struct ControlConfig {
     pub creep: Option<Creep>,
     /// Input shaping: a notch on the feedforward (the compensator's output plus the learned
     /// correction), before the range and slew limits, in every mode but bypass, so that the
-    /// drive does not excite the stage's resonance ([`crate::settings::Settings::shaping`]).
+    /// drive does not excite the stage's resonance ([`crate::config::settings::Settings::shaping`]).
     pub shaping: Option<Notch>,
 }
 
@@ -134,13 +145,13 @@ pub struct TickReport {
     /// Observer's estimated displacement, Q2.30 normalised.
     pub estimate: i32,
     /// Measured displacement, Q2.30 normalised (0 without a sensor); it is
-    /// [`crate::feedback::SENSOR_DELAY_TICKS`] ticks older than `estimate`.
+    /// [`crate::control::feedback::SENSOR_DELAY_TICKS`] ticks older than `estimate`.
     pub measured: i32,
     /// Model-normalised drive applied, Q2.30.
     pub drive: i32,
     /// What happened.
     pub flags: TickFlags,
-    /// The trigger outputs' levels and the trigger input's ([`crate::scan`]: bit 0 pixel,
+    /// The trigger outputs' levels and the trigger input's ([`crate::sources::scan`]: bit 0 pixel,
     /// 1 line, 2 frame, 3 input); 0 from the controller, set by the control loop.
     pub triggers: u8,
 }
@@ -202,7 +213,7 @@ impl ControlCounters {
 /// in O(1) ([`Controller::take_over`]: the stacks' voltages, counters and slew limit carry
 /// over). The stacks' voltages are remembered in board units, so the drive is continuous across
 /// any reload; the first tick after a swap or a mode switch hands the difference between the
-/// new command and the present drive to a fading offset ([`crate::mode_switch`]), and until
+/// new command and the present drive to a fading offset ([`crate::control::mode_switch`]), and until
 /// that has faded the slew limit is the stricter of the old and the new one.
 #[derive(Clone, Debug)]
 pub struct Controller {
@@ -232,7 +243,7 @@ pub struct Controller {
     transfer: BumplessTransfer,
     counters: ControlCounters,
     /// The learned correction for this tick, Q2.30 normalised drive, added to the feedforward
-    /// ([`crate::learning`]; set by the control loop before each tick, 0 without learning).
+    /// ([`crate::services::learning`]; set by the control loop before each tick, 0 without learning).
     learned: i32,
     /// The feedforward's notch ([`ControlConfig::shaping`]).
     shaping: Option<Notch>,
@@ -337,7 +348,7 @@ impl Controller {
     ///
     /// ```
     /// use twinstack::control::Controller;
-    /// use twinstack::settings::{Hardware, Settings};
+    /// use twinstack::config::settings::{Hardware, Settings};
     /// let config = Settings::default().build(&Hardware::driver_board(50_000.0)).unwrap();
     /// let c = Controller::new(config);
     /// assert_eq!(c.stacks(), config.drive.safe_stacks());
@@ -518,7 +529,7 @@ impl Controller {
     }
 
     /// Switches between bypass, open loop and closed loop between two ticks, in O(1) and
-    /// without a bump in the drive (see [`crate::mode_switch`]). Refused, changing nothing,
+    /// without a bump in the drive (see [`crate::control::mode_switch`]). Refused, changing nothing,
     /// when the configuration lacks what the mode needs.
     pub fn set_mode(&mut self, mode: Mode) -> Result<(), ModeError> {
         match mode {
@@ -615,7 +626,7 @@ impl Controller {
     }
 
     /// Sets the learned correction the next ticks add to the feedforward (Q2.30 normalised
-    /// drive; [`crate::learning`]): it goes through the same range and slew limits as the
+    /// drive; [`crate::services::learning`]): it goes through the same range and slew limits as the
     /// rest of the command. O(1).
     #[inline(always)]
     pub fn set_learned(&mut self, correction: i32) {
@@ -860,8 +871,10 @@ mod tests {
     use super::*;
     use crate::board::fakes::{FixedAdc, RecordingDac};
     use crate::board::Hardware;
+    use crate::config::settings::{
+        representative_duhem, representative_pi, FeedbackSettings, Settings,
+    };
     use crate::fixed_point::{signal_from_f64, signal_to_f64};
-    use crate::settings::{representative_duhem, representative_pi, FeedbackSettings, Settings};
 
     fn hw() -> Hardware {
         Hardware {
@@ -952,12 +965,12 @@ mod tests {
             sensor: None,
             ..Settings::default()
         };
-        s.drive.safe_state = crate::drive::SafeState::Zero;
+        s.drive.safe_state = crate::control::drive::SafeState::Zero;
         let mut c = Controller::new(s.build(&hw()).unwrap());
         assert_eq!(c.safe_codes(), (DacCode(0), DacCode(0)));
         // It starts where the DAC starts (the safe state): the left stack stays at 0 V, the
         // right one moves to its mirror (140 V) at the slew limit, never in one step.
-        assert_eq!(c.stacks(), crate::drive::StackVoltages::default());
+        assert_eq!(c.stacks(), crate::control::drive::StackVoltages::default());
         let mut dac = RecordingDac::default();
         let mut last = 0.0;
         for _ in 0..10 {
@@ -1079,8 +1092,9 @@ mod tests {
             observer: Some(representative_pi(8).unwrap()),
             sensor: None,
             mode: Mode::OpenLoop,
-            creep: creep
-                .then(|| crate::creep::CreepParams::new(&[1e-3, 1e-2], &[0.05, 0.05]).unwrap()),
+            creep: creep.then(|| {
+                crate::models::creep::CreepParams::new(&[1e-3, 1e-2], &[0.05, 0.05]).unwrap()
+            }),
             ..Settings::default()
         };
         s.drive.slew_rate = 1.0e7; // 200 V per tick: never limits
@@ -1165,7 +1179,7 @@ mod tests {
             observer: Some(representative_pi(16).unwrap()),
             sensor: None,
             mode: Mode::OpenLoop,
-            shaping: shaping.then_some(crate::notch::NotchDesign {
+            shaping: shaping.then_some(crate::control::notch::NotchDesign {
                 frequency_hz: 21_807.0,
                 q: 0.5,
                 depth: 0.0173,

@@ -149,7 +149,7 @@ impl DriveSettings {
     /// them. The model's input range beyond it cannot be driven (the limit clips it).
     ///
     /// ```
-    /// use twinstack::drive::DriveSettings;
+    /// use twinstack::control::drive::DriveSettings;
     /// let d = DriveSettings { bias: 50.0, ..DriveSettings::DEFAULT }; // 0…140 V, differential
     /// assert_eq!(d.left_window(), (0.0, 100.0));
     /// ```
@@ -179,7 +179,7 @@ impl DriveSettings {
     ///
     /// ```
     /// use twinstack::board::Hardware;
-    /// use twinstack::drive::DriveSettings;
+    /// use twinstack::control::drive::DriveSettings;
     /// use twinstack::Scaling;
     /// let ranges = Scaling::new(0.0, 140.0, 0.0, 70.0).unwrap();
     /// let drive = DriveSettings::DEFAULT.build(&Hardware::driver_board(50e3), &ranges).unwrap();

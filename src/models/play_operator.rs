@@ -14,7 +14,7 @@
 //! `2 − 2^-15`). One pair's update is six dual-16-bit instructions ([`play2`]: `UQADD16`,
 //! `UQSUB16`, and `USUB16` + `SEL` twice for the per-lane min and max), its weighted sum one
 //! `SMLALD` per 16-bit half of the weights (see
-//! [`crate::prandtl_ishlinskii::PlayOperatorBank`]).
+//! [`crate::models::prandtl_ishlinskii::PlayOperatorBank`]).
 //! On the target each primitive below is that instruction (`core::arch::asm!`; the compiler
 //! does not emit them from portable code); on the host the same function is plain Rust
 //! written from the instruction's definition in the Armv7-M Architecture Reference Manual

@@ -9,7 +9,7 @@
 //!    target of now would feed the feedback a phantom error `ẋ · delay` (7 % of the stroke
 //!    for a 750 Hz sine at 50 kHz) that it would then "correct" into the output. The
 //!    feedforward acts on the present target; the feedback corrects what the model got wrong;
-//! 2. with a notch, `e` passes through it ([`crate::notch`]): the loop no longer sees the
+//! 2. with a notch, `e` passes through it ([`crate::control::notch`]): the loop no longer sees the
 //!    resonance, so it can neither excite nor sustain it;
 //! 3. integral: `i += ki · e` (Q0.32 gain, one `SMMUL`), limited to ±`limit` — and **held**
 //!    (anti-windup by conditional integration) while the previous tick's command was cut by the
@@ -19,7 +19,7 @@
 //! 5. derivative (optional): `kd · d` on the low-passed change of `e` per tick;
 //! 6. the sum, limited to ±`limit`, is the correction added to the feedforward.
 //!
-//! The drift check ([`crate::sensor::Sensor::drifted`]) compares the measurement with the observer's
+//! The drift check ([`crate::control::sensor::Sensor::drifted`]) compares the measurement with the observer's
 //! estimate of the same instant (the sensor reading is [`SENSOR_DELAY_TICKS`] ticks old), low
 //! passes the difference over 2^[`DRIFT_FILTER_SHIFT`] ticks and flags it when it exceeds the
 //! drift limit: the model no longer describes the stage.
@@ -27,11 +27,11 @@
 //! Configuration ([`Feedback`]) and memory ([`FeedbackState`]) are kept apart; nothing here
 //! allocates, panics or loops.
 
+use crate::control::notch::{Notch, NotchDesign, NotchError, NotchState};
 use crate::fixed_point::{
     limit, mul_high, q0_32_from_f64, q1_31_from_f64, q4_28_from_f64, saturate_i64, signal_from_f64,
     SIGNAL_ONE,
 };
-use crate::notch::{Notch, NotchDesign, NotchError, NotchState};
 use crate::refusal::{finite, Field, Refusal, Rule};
 
 /// PI(D) feedback on the sensor's error and the resonance notch, in physical terms. Gains are
@@ -69,7 +69,7 @@ impl FeedbackSettings {
     /// measures the stage and chooses faster gains for its rate.
     ///
     /// ```
-    /// use twinstack::feedback::FeedbackSettings;
+    /// use twinstack::control::feedback::FeedbackSettings;
     /// for rate in [10_000.0, 50_000.0, 100_000.0] {
     ///     assert!(FeedbackSettings::DEFAULT.build(rate).is_ok());
     /// }
@@ -98,7 +98,7 @@ impl FeedbackSettings {
     /// Validates the gains at `control_rate` (Hz) and builds the tick's feedback.
     ///
     /// ```
-    /// use twinstack::feedback::FeedbackSettings;
+    /// use twinstack::control::feedback::FeedbackSettings;
     /// let fb = FeedbackSettings::pi(0.2, 500.0, 0.1).build(50_000.0).unwrap();
     /// assert!(fb.derivative.is_none() && fb.notch.is_none());
     /// assert!(FeedbackSettings::pi(0.2, 30_000.0, 0.1).build(50_000.0).is_err()); // ki ≥ rate/2
@@ -166,7 +166,7 @@ impl FeedbackSettings {
 
 /// The notch's refusal, on the field it names.
 fn notch_refusal(d: &NotchDesign, e: NotchError) -> Refusal {
-    crate::notch::refusal(
+    crate::control::notch::refusal(
         d,
         e,
         [Field::NotchFrequency, Field::NotchQ, Field::NotchDepth],
@@ -342,7 +342,7 @@ impl FeedbackState {
     /// target history restarts at `target`, the integrator, the anti-windup clip and the
     /// derivative are empty, and the notch starts settled at the present error, so the first
     /// correction is the proportional term alone; the tick's transfer offset takes up the
-    /// rest (see [`crate::mode_switch`]).
+    /// rest (see [`crate::control::mode_switch`]).
     pub fn enter_closed_loop(&mut self, target: i32) {
         self.targets = [target; SENSOR_DELAY_TICKS];
         let error = limit(

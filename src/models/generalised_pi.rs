@@ -7,7 +7,7 @@
 //! its output through a monotone piecewise-linear map bends the loops asymmetrically and keeps
 //! the model invertible:
 //!
-//! * forward (observer): `z = PI[u]` (the P–I of [`crate::prandtl_ishlinskii`], offset
+//! * forward (observer): `z = PI[u]` (the P–I of [`crate::models::prandtl_ishlinskii`], offset
 //!   included, output units), then
 //!   `y = S[z] = c + g_0·(z − c) + Σ_j g_j · S_{d_j}(z − c)`
 //! * inverse (compensator): `u = PI⁻¹[S⁻¹[y]]`, with
@@ -45,15 +45,15 @@ use crate::fixed_point::{
     clamp_full_scale, gain_from_f64, limit, q54_to_signal_floor, signal_from_f64, GAIN_FRAC_BITS,
     MAX_GAIN_SUM,
 };
-use crate::params::{
+use crate::models::params::{
     ParamError, PiParams, MAX_CANONICAL_OPERATORS, MAX_NORM_THRESHOLD, MAX_NORM_WEIGHT,
 };
-use crate::prandtl_ishlinskii::{InversePrandtlIshlinskii, PiState, PrandtlIshlinskii};
+use crate::models::prandtl_ishlinskii::{InversePrandtlIshlinskii, PiState, PrandtlIshlinskii};
 use crate::scaling::Scaling;
 use heapless::Vec;
 
 // Defined with the parameters that are checked against it (params sits below this module).
-pub use crate::params::MAX_DEAD_ZONES;
+pub use crate::models::params::MAX_DEAD_ZONES;
 // `DeadZoneMap::apply` writes its zones out, 0 … 7.
 const _: () = assert!(MAX_DEAD_ZONES == 8);
 
@@ -367,7 +367,7 @@ impl GeneralisedPi {
     /// the fixed-point form the tick runs.
     ///
     /// ```
-    /// use twinstack::generalised_pi::{DeadZoneParams, GeneralisedPi, GpiParams};
+    /// use twinstack::models::generalised_pi::{DeadZoneParams, GeneralisedPi, GpiParams};
     /// use twinstack::{PiParams, Scaling};
     /// // 0…140 V onto 0…70 µm by a P–I, then a map that steepens above 50 µm (centre 35 µm).
     /// let params = GpiParams {
@@ -437,7 +437,7 @@ impl InverseGeneralisedPi {
     /// inverses that do not fit the fixed-point formats.
     ///
     /// ```
-    /// use twinstack::generalised_pi::{DeadZoneParams, GeneralisedPi, GpiParams, InverseGeneralisedPi};
+    /// use twinstack::models::generalised_pi::{DeadZoneParams, GeneralisedPi, GpiParams, InverseGeneralisedPi};
     /// use twinstack::{PiParams, Scaling};
     /// let params = GpiParams {
     ///     pi: PiParams::new(0.0, 0.0, &[0.0, 70.0], &[0.3, 0.1]).unwrap(),

@@ -4,10 +4,10 @@
 //!
 //! The sensor is apart from the feedback: a stage with a sensor has it read once per tick in
 //! every mode (for the recorder, the drift check and, in closed loop, the feedback); the
-//! feedback ([`crate::feedback`]) only adds a controller on its error.
+//! feedback ([`crate::control::feedback`]) only adds a controller on its error.
 
 use crate::board::AdcCode;
-use crate::feedback::{FeedbackState, DRIFT_FILTER_SHIFT, SENSOR_DELAY_TICKS};
+use crate::control::feedback::{FeedbackState, DRIFT_FILTER_SHIFT, SENSOR_DELAY_TICKS};
 use crate::fixed_point::{q4_28_from_f64, signal_from_f64};
 use crate::refusal::{finite, Field, Refusal, Rule};
 use crate::scaling::Scaling;
@@ -46,7 +46,7 @@ impl SensorSettings {
     /// says whether an observer runs (the drift check needs one).
     ///
     /// ```
-    /// use twinstack::sensor::SensorSettings;
+    /// use twinstack::control::sensor::SensorSettings;
     /// use twinstack::Scaling;
     /// let ranges = Scaling::new(0.0, 140.0, 0.0, 70.0).unwrap();
     /// let cal = SensorSettings { displacement_at_zero: 0.0, displacement_at_full_scale: 70.0, drift_limit: None };

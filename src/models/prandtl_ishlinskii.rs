@@ -40,8 +40,8 @@ use crate::fixed_point::{
     gain_from_f64, limit, q39_to_signal_floor, saturate_q54_to_signal, signal_from_f64,
     Q39_FRAC_BITS, SIGNAL_FRAC_BITS,
 };
-use crate::params::{CanonicalPi, ParamError, PiParams, MAX_CANONICAL_OPERATORS};
-use crate::play_operator::{lanes, pack, play, play2, smlald, OFFSET_BINARY};
+use crate::models::params::{CanonicalPi, ParamError, PiParams, MAX_CANONICAL_OPERATORS};
+use crate::models::play_operator::{lanes, pack, play, play2, smlald, OFFSET_BINARY};
 use crate::scaling::Scaling;
 
 /// Operator pairs a bank holds: [`MAX_CANONICAL_OPERATORS`] two to a word, rounded up.
@@ -82,7 +82,7 @@ pub fn signal_to_q15(x: i32) -> i32 {
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct PiState {
     /// Operator `2k` in the low half of word `k`, `2k + 1` in the high half, offset binary
-    /// (`p + 2^15`, see [`crate::play_operator`]; slots past the bank's operators follow the
+    /// (`p + 2^15`, see [`crate::models::play_operator`]; slots past the bank's operators follow the
     /// input and weigh 0).
     pairs: [u32; MAX_PAIRS],
 }
@@ -300,7 +300,7 @@ impl PrandtlIshlinskii {
     /// the fixed-point form the tick runs.
     ///
     /// ```
-    /// use twinstack::prandtl_ishlinskii::PrandtlIshlinskii;
+    /// use twinstack::models::prandtl_ishlinskii::PrandtlIshlinskii;
     /// use twinstack::{PiParams, Scaling};
     /// // Play operators at 0 and 70 V (0.3 and 0.2 µm/V): 0…140 V onto 0…70 µm.
     /// let params = PiParams::new(0.0, 0.0, &[0.0, 70.0], &[0.3, 0.2]).unwrap();
@@ -373,7 +373,7 @@ impl InversePrandtlIshlinskii {
     /// first failing operator, and inverses whose weights do not fit Q8.24.
     ///
     /// ```
-    /// use twinstack::prandtl_ishlinskii::{InversePrandtlIshlinskii, PrandtlIshlinskii};
+    /// use twinstack::models::prandtl_ishlinskii::{InversePrandtlIshlinskii, PrandtlIshlinskii};
     /// use twinstack::{PiParams, Scaling};
     /// let params = PiParams::new(0.0, 0.0, &[0.0, 70.0], &[0.3, 0.2]).unwrap();
     /// let ranges = Scaling::new(0.0, 140.0, 0.0, 70.0).unwrap();
@@ -483,7 +483,7 @@ impl InversePrandtlIshlinskii {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::params::Thresholds;
+    use crate::models::params::Thresholds;
     use proptest::prelude::*;
 
     fn bank(n: usize, weights: &[f64], geometric: bool) -> PlayOperatorBank {
@@ -507,7 +507,7 @@ mod tests {
         /// output in the lane), and the sum is the exact weighted sum of the outputs.
         #[test]
         fn the_bank_keeps_its_invariant_and_sums_its_outputs(
-            n in 1usize..=crate::params::MAX_OPERATORS,
+            n in 1usize..=crate::models::params::MAX_OPERATORS,
             weights in proptest::collection::vec(-1.9f64..1.9, MAX_CANONICAL_OPERATORS),
             geometric: bool,
             start: i16,
@@ -539,7 +539,7 @@ mod tests {
         /// [`play`] on `i32` with the same (Q1.15) thresholds, wide thresholds included.
         #[test]
         fn the_packed_bank_is_the_scalar_play_operator(
-            n in 1usize..=crate::params::MAX_OPERATORS,
+            n in 1usize..=crate::models::params::MAX_OPERATORS,
             geometric: bool,
             inputs in proptest::collection::vec(any::<i16>(), 1..200),
         ) {
@@ -560,7 +560,7 @@ mod tests {
         /// from outputs that already satisfy it keeps them.
         #[test]
         fn states_from_outputs_are_projected_onto_the_invariant(
-            n in 1usize..=crate::params::MAX_OPERATORS,
+            n in 1usize..=crate::models::params::MAX_OPERATORS,
             outputs in proptest::array::uniform32(any::<i32>()),
             x: i16,
         ) {

@@ -11,7 +11,7 @@
 //! the last setpoint and counts an underrun; **ramp to bias** walks the setpoint to the rest
 //! position at a bounded rate (counted here, in [`SetpointStream::ramp_underruns`]).
 
-use crate::waveform::WaveformGenerator;
+use crate::sources::waveform::WaveformGenerator;
 use heapless::spsc::Consumer;
 
 /// Q1.15 wire sample → Q2.30 setpoint.

@@ -25,7 +25,7 @@ use crate::fixed_point::{
     clamp_full_scale, gain_from_f64, q60_to_signal_floor, saturate_i64, signal_from_f64,
     GAIN_FRAC_BITS, SIGNAL_FRAC_BITS, SIGNAL_ONE,
 };
-use crate::params::{DuhemParams, ParamError};
+use crate::models::params::{DuhemParams, ParamError};
 use crate::scaling::Scaling;
 
 /// Fraction of `min(β, γ)` below which the inverse's slope is floored.
@@ -63,7 +63,7 @@ impl Duhem {
     /// fixed-point form the tick runs.
     ///
     /// ```
-    /// use twinstack::duhem::Duhem;
+    /// use twinstack::models::duhem::Duhem;
     /// use twinstack::{DuhemParams, Scaling};
     /// let params = DuhemParams { alpha: 0.02, beta: 0.5, gamma: 0.35, offset: 0.0 };
     /// let model = Duhem::new(&params, &Scaling::new(0.0, 140.0, 0.0, 70.0).unwrap()).unwrap();

@@ -81,7 +81,7 @@ impl AnalogInputConfig {
     /// limit.
     ///
     /// ```
-    /// use twinstack::analog_input::{AnalogInputConfig, OnFault};
+    /// use twinstack::sources::analog_input::{AnalogInputConfig, OnFault};
     /// let ok = AnalogInputConfig {
     ///     gain: 2.0, offset: -1.0, corner_hz: Some(500.0), lost_below: 0.02,
     ///     over_above: 0.99, on_fault: OnFault::Hold, rate: 10.0, start_at_boot: false,
@@ -271,7 +271,7 @@ impl AnalogInput {
     /// primes the filter, and the setpoint walks there at the rate. Counts restart at zero.
     ///
     /// ```
-    /// use twinstack::analog_input::{AnalogInput, AnalogInputConfig, OnFault};
+    /// use twinstack::sources::analog_input::{AnalogInput, AnalogInputConfig, OnFault};
     /// let config = AnalogInputConfig {
     ///     gain: 2.0, offset: -1.0, corner_hz: None, lost_below: 0.0,
     ///     over_above: 1.0, on_fault: OnFault::Hold, rate: 50_000.0, start_at_boot: false,

@@ -5,7 +5,7 @@
 //! stream, the sensor, the feedback, the drift check, the drive stage, the recorder, telemetry's
 //! tap, the DAC write, the watchdog) and the models, whose banks grow with their operators, dead
 //! zones and creep modes. [`worst_case_cycles`] adds these up from a built
-//! [`ControlConfig`]; [`Settings::build`](crate::settings::Settings::build) refuses
+//! [`ControlConfig`]; [`Settings::build`](crate::config::settings::Settings::build) refuses
 //! ([`Field::Workload`], [`Rule::TickOverrun`]) a configuration whose prediction exceeds
 //! [`TICK_SHARE_PERCENT`] of the control period, so that no loaded configuration overruns the
 //! interrupt at the board's rate, and the link, the command handler and the coarse axis keep the
@@ -22,8 +22,8 @@
 //!
 //! ```
 //! use twinstack::board::Hardware;
-//! use twinstack::settings::{representative_gpi, Settings};
-//! use twinstack::tick_budget::{available_cycles, worst_case_cycles};
+//! use twinstack::config::settings::{representative_gpi, Settings};
+//! use twinstack::config::tick_budget::{available_cycles, worst_case_cycles};
 //!
 //! let s = Settings { compensator: Some(representative_gpi(16).unwrap()), ..Settings::default() };
 //! let config = s.build(&Hardware::driver_board(50_000.0)).unwrap();
@@ -77,16 +77,16 @@ pub const DERIVATIVE_CYCLES: u32 = 50;
 /// [`ControlConfig::shaping`]) is charged the same.
 pub const NOTCH_CYCLES: u32 = 95;
 
-/// The learning feedforward while it plays or learns ([`crate::learning`]): one table read,
+/// The learning feedforward while it plays or learns ([`crate::services::learning`]): one table read,
 /// one error store, the index flips at a period's end. Counted when the learning is switched
 /// on, and at every load while it is on (the command handler checks both).
 pub const LEARNING_CYCLES: u32 = 90;
 
-/// A scan generated on the board while it runs ([`crate::scan`]): the pattern's step, the
+/// A scan generated on the board while it runs ([`crate::sources::scan`]): the pattern's step, the
 /// pixel, line and frame events. Counted when a scan starts, and at every load while one runs.
 pub const SCAN_CYCLES: u32 = 150;
 
-/// The analog setpoint input while it runs ([`crate::analog_input`]): the second ADC's read,
+/// The analog setpoint input while it runs ([`crate::sources::analog_input`]): the second ADC's read,
 /// the window's compares, the scaling's and the low-pass's multiplies, the walk. It replaces
 /// the stream's step, which the fixed part already charges. Measured by the whole-interrupt
 /// bench (`cargo test --profile host-opt --test irq_bench`, scenario `analog-input`: scaled,
@@ -217,8 +217,8 @@ pub fn check_with(
 mod tests {
     use super::*;
     use crate::board::Hardware;
-    use crate::creep::CreepParams;
-    use crate::settings::{representative_gpi, representative_pi, Settings};
+    use crate::config::settings::{representative_gpi, representative_pi, Settings};
+    use crate::models::creep::CreepParams;
 
     fn build(s: &Settings) -> ControlConfig {
         s.build(&Hardware::driver_board(10_000.0)).unwrap()
@@ -271,7 +271,7 @@ mod tests {
         );
         // The feedforward's notch is charged as the feedback's (the same biquad).
         let shaped = Settings {
-            shaping: Some(crate::notch::NotchDesign {
+            shaping: Some(crate::control::notch::NotchDesign {
                 frequency_hz: 2_000.0,
                 q: 0.5,
                 depth: 0.02,
