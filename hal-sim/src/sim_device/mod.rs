@@ -52,21 +52,21 @@ use std::io;
 use std::time::Duration;
 
 use rtic_core::Exclusive;
+use twinstack::analog_input::AnalogInputConfig;
 use twinstack::board::{Hardware, WATCHDOG_TIMEOUT_MS};
 use twinstack::command_handler::CommandHandler;
-use twinstack::config::param_store::{
-    self, RamStorage, RecordStorage, StorageError, StoredRecord, MAX_RECORD,
-};
-use twinstack::config::settings::{pi_model, FeedbackSettings, Mode, SensorSettings, Settings};
 use twinstack::control::{Controller, TickReport};
 use twinstack::control_loop::{ControlLoop, SetpointQueue};
 use twinstack::dual_stage::{CoarseLimits, CoarseStatus};
+use twinstack::param_store::{
+    self, RamStorage, RecordStorage, StorageError, StoredRecord, MAX_RECORD,
+};
 use twinstack::protocol::messages::{Request, Response};
+use twinstack::recorder::CAPTURE_SLOTS;
 use twinstack::refusal::Refusal;
-use twinstack::services::recorder::CAPTURE_SLOTS;
-use twinstack::services::telemetry::TelemetryQueue;
-use twinstack::sources::analog_input::AnalogInputConfig;
-use twinstack::sources::sequence::SETTLED;
+use twinstack::sequence::SETTLED;
+use twinstack::settings::{pi_model, FeedbackSettings, Mode, SensorSettings, Settings};
+use twinstack::telemetry::TelemetryQueue;
 use twinstack::Scaling;
 
 use crate::converters::{AnalogDualDac, AnalogSensorAdc, InternalAdc, InternalDac};
@@ -75,309 +75,12 @@ use crate::sim_board::{BoardConfig, BoardError, SimBoard};
 use crate::sim_camera::{CameraConfig, SimCamera};
 use twinstack_link::Transport;
 
-/// Everything a simulated device is built from.
-#[derive(Clone, Debug)]
-pub struct SimDeviceConfig {
-    /// The board: stage, converters, noise. Its plant's `dt` sets the control rate.
-    pub board: BoardConfig,
-    /// UART baud rate, both directions (10 bits per byte).
-    pub baud: u32,
-    /// The USB–serial adapter between host and UART: each transfer's latency and jitter.
-    pub link: LinkDelay,
-    /// What the "flash" holds at power-up: `None` (erased: the board boots on the compiled-in
-    /// defaults, bypass, no model) or settings stored as the board would store them (it boots
-    /// in their mode).
-    pub stored: Option<Settings>,
-    /// A simulated camera on the trigger input ([`crate::sim_camera`]), or none (the input
-    /// stays where [`SimDevice::set_trigger_input`] puts it).
-    pub camera: Option<CameraConfig>,
-    /// Fraction of bytes the link corrupts, each way (one bit flipped, at random from a
-    /// seeded generator): a bad cable, a ground loop, a wrong baud rate. 0: a sound link.
-    pub link_error_rate: f64,
-    /// A jumper from the left DAC channel to the sensor ADC's input in place of the sensor
-    /// (`twinstack selftest`'s loopback): the ADC reads the DAC's output volts.
-    pub loopback: bool,
-    /// Every flash write fails (the erase goes through, the programming does not: the
-    /// sector is left erased), as a worn or locked flash would.
-    pub failing_flash: bool,
-    /// The watchdog runs (as the firmware starts it at boot): a tick that stops feeding it
-    /// (a [`twinstack::protocol::messages::Request::WatchdogDrill`]) resets the board within
-    /// [`WATCHDOG_TIMEOUT_MS`]. `false`: a board whose watchdog never fires.
-    pub watchdog: bool,
-    /// What drives the analog setpoint input's pin ([`crate::analog_source`]); by default
-    /// nothing (the pull-down's 0 V).
-    pub analog_input: crate::analog_source::AnalogSource,
-    /// The analog setpoint input's settings stored with `stored` (ignored without it): with
-    /// `start_at_boot`, the board starts the input at power-up as the firmware does.
-    pub stored_analog: Option<AnalogInputConfig>,
-}
+mod config;
+mod line;
 
-impl SimDeviceConfig {
-    /// The paper's differential stage on the STM32's internal converters (12-bit DAC, 12-bit
-    /// sensor ADC spanning ±45 µm), 50 kHz, 3 Mbaud, with [`SimDeviceConfig::paper_settings`]
-    /// stored to boot in bypass.
-    pub fn paper() -> Self {
-        Self {
-            board: BoardConfig::paper(Configuration::Differential),
-            baud: twinstack::protocol::LINK_BAUD,
-            link: LinkDelay::IDEAL,
-            stored: Some(Self::paper_settings(Mode::Bypass)),
-            camera: None,
-            link_error_rate: 0.0,
-            loopback: false,
-            failing_flash: false,
-            watchdog: true,
-            analog_input: crate::analog_source::AnalogSource::Disconnected,
-            stored_analog: None,
-        }
-    }
-
-    /// [`SimDeviceConfig::paper`] at `rate_hz` ticks a second, behind a link of `baud` with
-    /// `link`'s latency: the board a link measurement streams to.
-    ///
-    /// ```
-    /// use hal_sim::sim_device::{LinkDelay, SimDeviceConfig};
-    /// let config = SimDeviceConfig::paper_at(100e3, 3_000_000, LinkDelay::ADAPTER);
-    /// assert_eq!(config.board.plant.dt, 1e-5);
-    /// ```
-    pub fn paper_at(rate_hz: f64, baud: u32, link: LinkDelay) -> Self {
-        let mut config = Self {
-            baud,
-            link,
-            ..Self::paper()
-        };
-        config.board.plant.dt = 1.0 / rate_hz;
-        config
-    }
-
-    /// Settings for the paper's differential stage in `mode`: 0…140 V on the left stack onto
-    /// the sensor's ±45 µm (its calibration), bias 70 V, 0…140 V limits, 0.9 V/µs slew, a
-    /// representative 8-operator P–I model (total slope ≈ 0.4 µm/V) as compensator and
-    /// observer (not identified: load
-    /// the identification's settings for accuracy), and the shipped default feedback
-    /// ([`FeedbackSettings::DEFAULT`], stable at every allowed rate; `twinstack tune` chooses
-    /// faster gains).
-    pub fn paper_settings(mode: Mode) -> Settings {
-        let n = 8;
-        let thresholds: Vec<f64> = (0..n).map(|i| i as f64 * 140.0 / n as f64).collect();
-        // Total slope ≈ 0.4 µm/V, the first operator carrying most of it.
-        let weights: Vec<f64> = (0..n)
-            .map(|i| if i == 0 { 0.25 } else { 0.15 / (n - 1) as f64 })
-            .collect();
-        let model = pi_model(0.0, -28.0, &thresholds, &weights)
-            .expect("8 increasing thresholds and positive weights form a model");
-        let mut drive = twinstack::control::drive::DriveSettings::DEFAULT;
-        drive.slew_rate = 0.9e6;
-        Settings {
-            ranges: Scaling {
-                input_min: 0.0,
-                input_max: 140.0,
-                output_min: -45.0,
-                output_max: 45.0,
-            },
-            compensator: Some(model.clone()),
-            observer: Some(model),
-            drive,
-            sensor: Some(SensorSettings {
-                displacement_at_zero: -45.0,
-                displacement_at_full_scale: 45.0,
-                drift_limit: None,
-            }),
-            feedback: Some(FeedbackSettings::DEFAULT),
-            mode,
-            creep: None,
-            shaping: None,
-        }
-    }
-}
-
-/// The delay a USB–serial adapter adds to each transfer, each way: the host's writes reach
-/// the UART, and the UART's bytes reach the host, `latency ± jitter` later (uniform, from a
-/// seeded generator: the same run every time), never out of order. An FTDI adapter's latency
-/// timer holds received bytes up to 16 ms by default; [`LinkDelay::ADAPTER`] models that
-/// bound both ways.
-///
-/// ```
-/// use std::time::Duration;
-/// use hal_sim::sim_device::LinkDelay;
-/// let link = LinkDelay::new(Duration::from_millis(16), Duration::from_millis(4)).unwrap();
-/// assert_eq!(link, LinkDelay::ADAPTER);
-/// assert!(LinkDelay::new(Duration::from_millis(1), Duration::from_millis(2)).is_err());
-/// ```
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub struct LinkDelay {
-    /// Mean delay of a transfer.
-    pub latency: Duration,
-    /// Largest departure from it, either way (≤ `latency`).
-    pub jitter: Duration,
-    /// Seed of the jitter's generator.
-    pub seed: u64,
-}
-
-impl LinkDelay {
-    /// No adapter: bytes take only their time on the line.
-    pub const IDEAL: LinkDelay = LinkDelay {
-        latency: Duration::ZERO,
-        jitter: Duration::ZERO,
-        seed: 1,
-    };
-    /// An FTDI-like adapter at its default latency timer: 16 ms ± 4 ms each way.
-    pub const ADAPTER: LinkDelay = LinkDelay {
-        latency: Duration::from_millis(16),
-        jitter: Duration::from_millis(4),
-        seed: 1,
-    };
-
-    /// `latency ± jitter`; a jitter larger than the latency (a negative delay) is refused.
-    pub fn new(latency: Duration, jitter: Duration) -> Result<Self, SimDeviceError> {
-        if jitter > latency {
-            return Err(SimDeviceError::Jitter { latency, jitter });
-        }
-        Ok(LinkDelay {
-            latency,
-            jitter,
-            seed: 1,
-        })
-    }
-}
-
-/// The adapter's delays: `latency ± jitter`, from xorshift64*.
-#[derive(Clone, Debug)]
-struct Delays {
-    latency_ns: u64,
-    jitter_ns: u64,
-    state: u64,
-}
-
-impl Delays {
-    fn new(link: LinkDelay) -> Self {
-        Self {
-            latency_ns: link.latency.as_nanos() as u64,
-            jitter_ns: link.jitter.as_nanos().min(link.latency.as_nanos()) as u64,
-            state: link.seed.max(1),
-        }
-    }
-
-    /// The next transfer's delay, ns.
-    fn next(&mut self) -> u64 {
-        if self.jitter_ns == 0 {
-            return self.latency_ns;
-        }
-        self.state ^= self.state >> 12;
-        self.state ^= self.state << 25;
-        self.state ^= self.state >> 27;
-        let r = self.state.wrapping_mul(0x2545_F491_4F6C_DD1D) >> 11; // 53 bits
-        let span = 2 * self.jitter_ns + 1;
-        self.latency_ns - self.jitter_ns + ((r as u128 * span as u128) >> 53) as u64
-    }
-}
-
-/// Why a simulated device could not be built.
-#[derive(Debug)]
-pub enum SimDeviceError {
-    /// The board.
-    Board(BoardError),
-    /// The stored settings could not be written (too large for the record).
-    Stored,
-    /// The compiled-in settings were refused on this board (its rate or converters).
-    Defaults(Refusal),
-    /// Baud rate zero.
-    Baud,
-    /// The coarse axis of the dual-stage board could not be built (which setting, why).
-    Coarse(String),
-    /// A link error rate outside 0…1.
-    ErrorRate(f64),
-    /// The link's jitter exceeds its latency.
-    Jitter {
-        /// The latency asked for.
-        latency: Duration,
-        /// The jitter asked for.
-        jitter: Duration,
-    },
-}
-
-impl std::fmt::Display for SimDeviceError {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        match self {
-            Self::Board(e) => write!(f, "simulated board: {e}"),
-            Self::Stored => write!(f, "the stored settings do not fit a flash record"),
-            Self::Defaults(r) => write!(f, "compiled-in settings refused: {r}"),
-            Self::Baud => write!(f, "baud rate must be positive"),
-            Self::Coarse(e) => write!(f, "coarse axis: {e}"),
-            Self::ErrorRate(r) => write!(
-                f,
-                "link error rate {r}: must be a fraction of bytes from 0 to 1"
-            ),
-            Self::Jitter { latency, jitter } => write!(
-                f,
-                "link jitter {jitter:?} exceeds its latency {latency:?} (a delay cannot be negative)"
-            ),
-        }
-    }
-}
-
-impl std::error::Error for SimDeviceError {}
-
-/// The simulated board's hardware facts at `rate_hz`: the driver board's 150 V amplifier, 12-bit
-/// DAC and 12-bit sensor ADC.
-pub fn hardware(rate_hz: f64) -> Hardware {
-    Hardware::driver_board(rate_hz)
-}
-
-/// Bytes the modelled UART carried, each way.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
-pub struct LineCounters {
-    /// Host → board bytes (sent to the board, arrived or not).
-    pub bytes_in: u64,
-    /// Board → host bytes put on the line (responses and telemetry).
-    pub bytes_out: u64,
-    /// Of them, telemetry frames' bytes.
-    pub telemetry_bytes_out: u64,
-    /// Telemetry frames put on the line.
-    pub telemetry_frames: u64,
-}
-
-/// The board → host line: bytes with their arrival times, and the board's two transmit
-/// buffers (a frame holds one until its last byte has left).
-struct TxLine {
-    /// Bytes with the time they reach the host (after the adapter's delay).
-    bytes: VecDeque<(u64, u8)>,
-    free_ns: u64,
-    /// When the last byte reaches the host: the adapter keeps the order.
-    delivered_ns: u64,
-    delays: Delays,
-    /// When each frame still holding a buffer has left.
-    frame_ends: VecDeque<u64>,
-    byte_ns: u64,
-    counters: LineCounters,
-}
-
-/// The board's transmit buffers (the firmware's DMA double buffer).
-const TX_BUFFERS: usize = 2;
-
-impl TxLine {
-    /// Puts `frame` on the line after what is there, not before `at`.
-    fn transmit(&mut self, frame: &[u8], at: u64) {
-        let start = self.free_ns.max(at);
-        let delay = self.delays.next();
-        for (i, &b) in frame.iter().enumerate() {
-            let arrives = (start + (i as u64 + 1) * self.byte_ns + delay).max(self.delivered_ns);
-            self.delivered_ns = arrives;
-            self.bytes.push_back((arrives, b));
-        }
-        self.free_ns = start + frame.len() as u64 * self.byte_ns;
-        self.frame_ends.push_back(self.free_ns);
-        self.counters.bytes_out += frame.len() as u64;
-    }
-
-    /// Whether a transmit buffer is free at `now`.
-    fn buffer_free(&mut self, now: u64) -> bool {
-        while self.frame_ends.front().is_some_and(|&end| end <= now) {
-            self.frame_ends.pop_front();
-        }
-        self.frame_ends.len() < TX_BUFFERS
-    }
-}
+pub use config::{hardware, LinkDelay, SimDeviceConfig, SimDeviceError};
+pub use line::LineCounters;
+use line::{Delays, LinkErrors, TxLine};
 
 /// A coarse axis run between the ticks, as the firmware's coarse task runs between them (the
 /// dual-stage board's, [`crate::coarse_rig::CoarseRig`]). The device holds it by this trait,
@@ -458,39 +161,6 @@ impl RecordStorage for SimFlash {
             return Err(StorageError::WriteFailed);
         }
         self.ram.write(record)
-    }
-}
-
-/// Corrupts a fraction of the bytes on the link: one bit flipped in each byte hit (xorshift64*
-/// from a seed: the same bytes every run).
-#[derive(Clone, Debug)]
-struct LinkErrors {
-    /// Threshold on a 53-bit draw: `rate × 2^53`.
-    threshold: u64,
-    state: u64,
-}
-
-impl LinkErrors {
-    fn new(rate: f64, seed: u64) -> Self {
-        Self {
-            threshold: (rate.clamp(0.0, 1.0) * (1u64 << 53) as f64) as u64,
-            state: seed.wrapping_mul(0xD1B5_4A32_D192_ED03) | 1,
-        }
-    }
-
-    fn draw(&mut self) -> u64 {
-        self.state ^= self.state >> 12;
-        self.state ^= self.state << 25;
-        self.state ^= self.state >> 27;
-        self.state.wrapping_mul(0x2545_F491_4F6C_DD1D) >> 11
-    }
-
-    /// `byte`, or it with one bit flipped.
-    fn pass(&mut self, byte: u8) -> u8 {
-        if self.threshold == 0 || self.draw() >= self.threshold {
-            return byte;
-        }
-        byte ^ 1 << (self.draw() % 8)
     }
 }
 
@@ -849,64 +519,6 @@ fn boot(
 
 fn board_dt_ns(rate_hz: f64) -> u64 {
     (1e9 / rate_hz).round() as u64
-}
-
-impl<D: AnalogDualDac, A: AnalogSensorAdc> Transport for SimDevice<D, A> {
-    /// Queues `bytes` on the host → board line, behind the adapter's delay (returns at once;
-    /// simulated time does not move).
-    fn send(&mut self, bytes: &[u8]) -> io::Result<()> {
-        // The adapter hands the write to the UART `delay` later; the UART then sends the
-        // bytes one after the other, after what it is still sending.
-        let delay = self.rx_delays.next();
-        let mut t = self.rx_line_free_ns.max(self.now_ns + delay);
-        self.tx.counters.bytes_in += bytes.len() as u64;
-        for &b in bytes {
-            t += self.byte_ns;
-            let b = self.errors.pass(b);
-            self.rx.push_back((t, b));
-        }
-        self.rx_line_free_ns = t;
-        Ok(())
-    }
-
-    /// Advances simulated time until response bytes have arrived (or `timeout` of simulated
-    /// time has passed: `Ok(0)`), then returns those that have arrived, up to `buf.len()`.
-    fn receive(&mut self, buf: &mut [u8], timeout: Duration) -> io::Result<usize> {
-        if buf.is_empty() {
-            return Ok(0);
-        }
-        let end = self.now_ns.saturating_add(timeout.as_nanos() as u64);
-        loop {
-            let arrived = self
-                .tx
-                .bytes
-                .front()
-                .is_some_and(|&(at, _)| at <= self.now_ns);
-            if arrived {
-                let mut n = 0;
-                while n < buf.len() {
-                    match self.tx.bytes.front() {
-                        Some(&(at, b)) if at <= self.now_ns => {
-                            buf[n] = self.errors.pass(b);
-                            n += 1;
-                            self.tx.bytes.pop_front();
-                        }
-                        _ => break,
-                    }
-                }
-                return Ok(n);
-            }
-            if self.now_ns + self.tick_ns > end {
-                return Ok(0);
-            }
-            self.step();
-        }
-    }
-
-    /// Simulated time: the client's timeouts run on it.
-    fn clock(&self) -> Option<Duration> {
-        Some(self.now())
-    }
 }
 
 /// A triangle over 95 % of the setpoint range, `n` setpoints of `period` each cycle (from the

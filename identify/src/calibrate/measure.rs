@@ -1,0 +1,283 @@
+//! Steps 2 and 3 of a calibration: excite the stage with the board's waveform generator,
+//! record drive and sensor with its recorder, identify the model, and the checks before a load.
+
+use super::*;
+
+/// What steps 2 and 3 measured and identified, checked for loading.
+pub(super) struct Measured {
+    pub(super) excitation: MeasuredData,
+    pub(super) predicted: Vec<f64>,
+    pub(super) id: Identification,
+    pub(super) label: String,
+    pub(super) reason: String,
+    pub(super) ranking: Vec<Candidate>,
+    pub(super) file: ParamFile,
+    pub(super) held_out: ErrorFigures,
+    pub(super) decimation: u16,
+    pub(super) tick_rate_hz: u32,
+    pub(super) clamped: bool,
+}
+
+/// Steps 2 and 3: excite and record, identify, and the checks before a load (the fit, the
+/// drive's reach). Loads nothing.
+pub(super) fn measure<T: Transport>(
+    client: &mut Client<T>,
+    options: &CalibrateOptions,
+    board: &Settings,
+    progress: &mut impl FnMut(Progress),
+) -> Result<Measured, CalibrateError> {
+    // 2. Excite and record.
+    progress(Progress::Step("exciting the stage"));
+    let facts = client
+        .capture_status()
+        .map_err(link("the recorder's capacity"))?;
+    let rate = facts.tick_rate_hz.max(1) as f64;
+    let mask = Channel::Left.bit() | Channel::Sensor.bit();
+    let ticks = (options.excitation_s() * rate).ceil() as u64;
+    let (decimation, frames) = decimation_for(ticks, rate, options.sample_rate_hz, &facts, 2);
+    client
+        .arm_capture(CaptureRequest {
+            signals: mask,
+            samples: frames,
+            pre_trigger: 0,
+            trigger: Trigger::WaveformStart,
+            decimation,
+        })
+        .map_err(link("arming the recorder"))?;
+    client
+        .waveform(options.waveform())
+        .map_err(link("starting the excitation"))?;
+    let budget = Duration::from_secs_f64(2.0 * options.excitation_s() + 10.0);
+    let read = capture::wait_and_read(client, budget, |what, n| {
+        progress(Progress::Count {
+            what,
+            done: n as u64,
+        })
+    });
+    // Stop the generator whatever happened (the output holds near the middle).
+    let stopped = client.stream(StreamControl::Stop);
+    let (cap, window) = read.map_err(|source| CalibrateError::Capture {
+        step: "recording the excitation",
+        source,
+    })?;
+    stopped.map_err(link("stopping the excitation"))?;
+    let recording =
+        capture::convert(&cap, board, &window).map_err(|source| CalibrateError::Convert {
+            step: "the excitation",
+            source,
+        })?;
+    let excitation = excitation_record(&recording, board, &options.output_unit)?;
+
+    // 3. Identify.
+    progress(Progress::Step("identifying"));
+    let fit_until = options.excitation_s() - 1.0 / options.excitation_hz;
+    let mut id_options = IdentifyOptions::new(options.model.unwrap_or(ModelKind::Pi), fit_until);
+    id_options.operators = options.operators.unwrap_or(DEFAULT_OPERATORS);
+    let rate_limit = BoardRate::sizing(rate, options.operators.is_some());
+    id_options.lag = options.lag;
+    // Only a model the board runs at its control rate with its drive, sensor and feedback:
+    // the tick budget the board applies at load ([`twinstack::tick_budget`]), applied here
+    // first, so that `auto` picks among what the board takes.
+    let runs_on_board = |id: &Identification| {
+        let mut settings = ParamFile::from_model(&id.model, &options.output_unit, None).settings;
+        settings.drive = board.drive;
+        settings.sensor = board.sensor;
+        settings.feedback = board.feedback;
+        admission_at(&settings, &rate_limit)
+    };
+    let (id, operators, label, reason, ranking) = match options.model {
+        Some(_) => {
+            let asked = Size::of(&id_options);
+            let (fitted, id) = identify_admitted(&excitation, id_options.clone(), &runs_on_board)?;
+            let label = fitted.model_label();
+            let reason = match Size::of(&fitted).sized_down_note(&asked) {
+                Some(note) => format!("{label} (asked for; {note})"),
+                None => format!("{label} (asked for)"),
+            };
+            (id, fitted.operators, label, reason, Vec::new())
+        }
+        None => {
+            let auto =
+                identify_auto_admitting(&excitation, &id_options.candidates(), runs_on_board)?;
+            let picked = auto.options.clone();
+            let ranking = auto.ranking.iter().map(candidate).collect();
+            (
+                auto.identification,
+                picked.operators,
+                picked.model_label(),
+                auto.reason,
+                ranking,
+            )
+        }
+    };
+    let (record, predicted) = identification_record(&excitation, &id, fit_until, operators)?;
+    if record.held_out.max_pct > options.max_held_out_pct {
+        return Err(CalibrateError::DoesNotFit {
+            model: label,
+            max_pct: record.held_out.max_pct,
+            limit: options.max_held_out_pct,
+        });
+    }
+    let held_out = record.held_out;
+    let mut file = ParamFile::from_model(&id.model, &options.output_unit, Some(record));
+
+    // The settings to load: the board's drive, sensor and gains kept.
+    file.settings.drive = board.drive;
+    file.settings.sensor = board.sensor;
+    file.settings.feedback = board.feedback;
+    let clamped = match twinstack_link::board_requests::unreachable_input(&file.settings) {
+        Some(((model_lo, model_hi), (drive_lo, drive_hi))) if !options.clamp => {
+            return Err(CalibrateError::Unreachable {
+                model_lo,
+                model_hi,
+                drive_lo,
+                drive_hi,
+            })
+        }
+        Some(_) => true,
+        None => false,
+    };
+    Ok(Measured {
+        excitation,
+        predicted,
+        id,
+        label,
+        reason,
+        ranking,
+        file,
+        held_out,
+        decimation: cap.decimation,
+        tick_rate_hz: facts.tick_rate_hz,
+        clamped,
+    })
+}
+
+fn candidate(r: &Ranked) -> Candidate {
+    Candidate {
+        label: r.label.clone(),
+        validation: r.validation.clone(),
+    }
+}
+
+/// Ticks per frame and frames for a capture of `signals` signals over `ticks` ticks: at most
+/// `sample_rate_hz`, and few enough frames for the board's slots.
+pub(super) fn decimation_for(
+    ticks: u64,
+    rate: f64,
+    sample_rate_hz: f64,
+    facts: &CaptureStatus,
+    signals: u32,
+) -> (u16, u32) {
+    let max_frames = (facts.capacity / signals).max(1) as u64;
+    let by_rate = (rate / sample_rate_hz).ceil().max(1.0) as u64;
+    let by_slots = ticks.div_ceil(max_frames).max(1);
+    let decimation = by_rate.max(by_slots).min(u16::MAX as u64);
+    let frames = ticks.div_ceil(decimation).clamp(1, max_frames);
+    (decimation as u16, frames as u32)
+}
+
+/// The excitation as a `t,u,x` record (left stack volts, sensor in the output unit), after
+/// checking that the sensor moved and did not saturate.
+fn excitation_record(
+    recording: &Recording,
+    board: &Settings,
+    unit: &str,
+) -> Result<MeasuredData, CalibrateError> {
+    let column = |c: Channel| recording.column(c).cloned();
+    let (Some(left), Some(sensor)) = (column(Channel::Left), column(Channel::Sensor)) else {
+        return Err(CalibrateError::MissingSignals);
+    };
+    let range = |v: &[i16]| {
+        v.iter().fold((i32::MAX, i32::MIN), |(l, h), &q| {
+            (l.min(q as i32), h.max(q as i32))
+        })
+    };
+    let (q_lo, q_hi) = range(&sensor.raw);
+    // (Saturating: an empty capture reads as the widest negative span, i.e. flat.)
+    let lsb = q_hi.saturating_sub(q_lo);
+    // Fewer than 64 steps of the reading (0.2 % of the output range): no stage to identify.
+    if lsb < 64 {
+        let (d_lo, d_hi) = left
+            .values
+            .iter()
+            .fold((f64::INFINITY, f64::NEG_INFINITY), |(l, h), &v| {
+                (l.min(v), h.max(v))
+            });
+        let span = board.ranges.norm_to_output(q_hi as f64 / 32768.0)
+            - board.ranges.norm_to_output(q_lo as f64 / 32768.0);
+        return Err(CalibrateError::SensorFlat {
+            span: span.abs(),
+            unit: unit.into(),
+            lsb,
+            drive_lo: d_lo,
+            drive_hi: d_hi,
+        });
+    }
+    let at_ends = sensor
+        .raw
+        .iter()
+        .filter(|&&q| q == i16::MAX || q == i16::MIN)
+        .count();
+    // A few samples at an end can be noise; one in a hundred is a clipped loop.
+    if at_ends * 100 > sensor.raw.len() {
+        return Err(CalibrateError::SensorSaturated {
+            lo: board.ranges.output_min,
+            hi: board.ranges.output_max,
+            unit: unit.into(),
+            count: at_ends,
+            total: sensor.raw.len(),
+        });
+    }
+    let t0 = recording.t.first().copied().unwrap_or(0.0);
+    Ok(MeasuredData {
+        path: "calibrate-excitation".into(),
+        t: recording.t.iter().map(|t| t - t0).collect(),
+        u: Some(left.values),
+        x: Some(sensor.values),
+    })
+}
+
+/// The figures `identify` writes into the parameter file, and the model's prediction.
+fn identification_record(
+    data: &MeasuredData,
+    id: &Identification,
+    fit_until: f64,
+    operators: usize,
+) -> Result<(IdentificationRecord, Vec<f64>), CalibrateError> {
+    let (t, u, x) = (
+        &data.t,
+        data.u.as_deref().unwrap_or_default(),
+        data.x.as_deref().unwrap_or_default(),
+    );
+    let n = t.len();
+    let model = &id.model;
+    let lib = |e: twinstack::ParamError| CalibrateError::Model(e.to_string());
+    let predicted = model.predict(t, u).map_err(lib)?;
+    let reference = model.predict_reference(t, u).map_err(lib)?;
+    let drive = model.compensate(t, x).map_err(lib)?;
+    let drive_reference = model.compensate_reference(t, x).map_err(lib)?;
+    let (fit_from, held) = (id.motion.first_fitted, id.held_out_from);
+    let flat = || CalibrateError::Model("the recorded output is flat: cannot score".into());
+    let aimed = n - model.lag_samples(t).min(n.saturating_sub(held + 1));
+    let record = IdentificationRecord {
+        data: data.path.display().to_string(),
+        fit_until_s: fit_until,
+        fit_from_s: t.get(fit_from).copied().unwrap_or(0.0),
+        operators,
+        thresholds: "uniform".into(),
+        lag_samples: id.lag_samples,
+        lag_estimated: id.lag_estimated,
+        outliers: id.outliers,
+        fit: score(x, &predicted, fit_from..held).ok_or_else(flat)?,
+        held_out: score(x, &predicted, held..n).ok_or_else(flat)?,
+        inverse_held_out: score(u, &drive, held..aimed).ok_or_else(flat)?,
+        fixed_vs_reference_max_pct: score(&reference, &predicted, fit_from..n)
+            .ok_or_else(flat)?
+            .max_pct,
+        inverse_fixed_vs_reference_max_pct: score(&drive_reference, &drive, fit_from..n)
+            .ok_or_else(flat)?
+            .max_pct,
+        notes: id.notes.clone(),
+    };
+    Ok((record, predicted))
+}

@@ -1,0 +1,210 @@
+//! One-command calibration (`twinstack calibrate`): excite the stage with the board's own
+//! waveform generator, record drive and sensor with the board's recorder, identify the best
+//! model, load it (and store it), then verify it by tracking a test trajectory before and
+//! after compensation — over any [`Transport`], so the same function serves the command line,
+//! a real board, the emulator and the virtual board (and a Python binding later).
+//!
+//! The steps of [`calibrate`]:
+//!
+//! 1. **Check** the board: it has a sensor calibration ([`CalibrateError::NoSensor`]); a
+//!    running stream or waveform is stopped; the mode is set to bypass (the drive then follows
+//!    the setpoint linearly, so the excitation *is* the drive).
+//! 2. **Excite**: a multi-signal capture of the left stack and the sensor is armed on the
+//!    waveform's start, decimated so the run fits the board's capture slots (at most
+//!    [`CalibrateOptions::sample_rate_hz`]), then the generator plays a sine about the middle of
+//!    the range: [`CalibrateOptions::full_cycles`] cycles of amplitude
+//!    [`CalibrateOptions::amplitude`], then [`CalibrateOptions::decay_cycles`] cycles decaying
+//!    geometrically (the generator's per-cycle decay, protocol v5) to
+//!    [`CalibrateOptions::final_amplitude`] of it: nested minor loops.
+//! 3. **Identify**: the window in physical units (left stack V, sensor in the output unit) is a
+//!    `t,u,x` record; the last cycle is held out; [`identify_auto_admitting`] ranks every model
+//!    of the family (or one model, [`CalibrateOptions::model`]) and keeps the best among those
+//!    the board's tick budget runs at its control rate. A sensor that
+//!    does not move ([`CalibrateError::SensorFlat`]), that saturates
+//!    ([`CalibrateError::SensorSaturated`]), or a model that does not predict the held-out cycle
+//!    within [`CalibrateOptions::max_held_out_pct`] ([`CalibrateError::DoesNotFit`]) stops here,
+//!    before anything is loaded.
+//! 4. **Load**: the parameter file `identify` would write ([`ParamFile::from_model`]), with the
+//!    board's own drive, sensor calibration and feedback gains kept; a model whose input range
+//!    the drive cannot reach is refused as `load` refuses it
+//!    ([`twinstack_link::board_requests::unreachable_input`]) unless [`CalibrateOptions::clamp`].
+//! 5. **Verify**: a test trajectory — two triangle cycles, then nested minor loops
+//!    ([`crate::trajectory::trajectories`]), not the excitation — over the measured output range
+//!    less [`crate::trajectory::TRAJECTORY_MARGIN`] each side, streamed in bypass (the new
+//!    ranges' linear map: what a user gets without compensation) and then in open loop
+//!    (the inverse model), each recorded (setpoint and sensor) and scored: the sensor against
+//!    the setpoint, max and RMS in % of the trajectory's span ([`Tracking`]).
+//! 6. **Store** (unless [`CalibrateOptions::store`] is `None`): the settings in force (open
+//!    loop) to flash, to boot in the mode asked for.
+
+use crate::identification::auto::{
+    identify_admitted, identify_auto_admitting, Ranked, Size, Validation,
+};
+use crate::identification::run::{admission_at, BoardRate};
+use crate::identification::score::{score, ErrorFigures};
+use crate::identification::{
+    Identification, IdentifyError, IdentifyOptions, ModelKind, DEFAULT_OPERATORS,
+};
+use crate::param_file::{IdentificationRecord, ParamFile};
+use crate::trajectory;
+use std::time::Duration;
+use twinstack::protocol::messages::{
+    CaptureRequest, CaptureStatus, Mode, StatusReport, StreamControl, Trigger, UnderrunPolicy,
+    WaveDecay, WaveShape, Waveform,
+};
+use twinstack::recorder::Channel;
+use twinstack::settings::Settings;
+use twinstack_link::capture::{self, CaptureError, ConvertError, Recording};
+use twinstack_link::client::{Client, LinkError};
+use twinstack_link::measured_data::MeasuredData;
+use twinstack_link::setpoint_file::q1_15;
+use twinstack_link::streamer::{stream_setpoints, StreamError, StreamOptions};
+use twinstack_link::Transport;
+
+mod measure;
+mod options;
+mod report;
+mod track;
+
+use measure::{decimation_for, measure, Measured};
+pub use options::CalibrateOptions;
+pub use report::{CalibrateError, CalibrationReport, Candidate, Tracking};
+use track::track;
+
+/// What [`calibrate`] tells its caller as it goes (for a progress display).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Progress<'a> {
+    /// A step starts (its name).
+    Step(&'a str),
+    /// Within a step: `done` of `total` (frames captured, values read, setpoints sent).
+    Count {
+        /// What is counted.
+        what: &'a str,
+        /// How many so far.
+        done: u64,
+    },
+}
+
+fn link(step: &'static str) -> impl Fn(LinkError) -> CalibrateError {
+    move |source| CalibrateError::Link { step, source }
+}
+
+/// Runs the whole calibration on the board behind `client` (see the module doc).
+///
+/// ```no_run
+/// use twinstack_identify::calibrate::{calibrate, CalibrateOptions};
+/// use twinstack_link::{socket::SocketTransport, Client};
+/// let transport = SocketTransport::tcp("127.0.0.1:4000").unwrap();
+/// let mut client = Client::new(transport);
+/// let report = calibrate(&mut client, &CalibrateOptions::default(), |_| {}).unwrap();
+/// println!("{}: {:.2} % -> {:.2} %", report.model, report.before.max_pct, report.after.max_pct);
+/// ```
+pub fn calibrate<T: Transport>(
+    client: &mut Client<T>,
+    options: &CalibrateOptions,
+    mut progress: impl FnMut(Progress),
+) -> Result<CalibrationReport, CalibrateError> {
+    options.check()?;
+    progress(Progress::Step("checking the board"));
+    let status = client.status().map_err(link("status"))?;
+    let board = client.read_params().map_err(link("reading the settings"))?;
+    if board.sensor.is_none() {
+        return Err(CalibrateError::NoSensor);
+    }
+    if status.has(StatusReport::STREAMING) || status.has(StatusReport::WAVEFORM) {
+        client
+            .stream(StreamControl::Stop)
+            .map_err(link("stopping the stream"))?;
+    }
+    client
+        .set_mode(Mode::Bypass)
+        .map_err(link("switching to bypass"))?;
+
+    // Steps 2 and 3, and the checks before a load: a failure there leaves the board's settings
+    // as they were, and its mode is restored.
+    let previous = status.mode();
+    let Measured {
+        excitation,
+        predicted,
+        id,
+        label,
+        reason,
+        ranking,
+        file,
+        held_out,
+        decimation,
+        tick_rate_hz,
+        clamped,
+    } = match measure(client, options, &board, &mut progress) {
+        Ok(m) => m,
+        Err(e) => {
+            // Best effort: the error at hand says more than a failure to restore the mode.
+            let _ = client.set_mode(previous);
+            return Err(e);
+        }
+    };
+    let rate = tick_rate_hz.max(1) as f64;
+    // 4. Load, first in bypass for the "before".
+    progress(Progress::Step("loading"));
+    let settings = Settings {
+        mode: Mode::Bypass,
+        ..file.settings.clone()
+    };
+    client
+        .load_params(&settings)
+        .map_err(link("loading the identified settings"))?;
+
+    // 5. Verify: the same trajectory before (bypass) and after (open loop).
+    let (lo, hi) = excitation
+        .x
+        .as_deref()
+        .unwrap_or_default()
+        .iter()
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(l, h), &v| {
+            (l.min(v), h.max(v))
+        });
+    let margin = trajectory::TRAJECTORY_MARGIN * (hi - lo);
+    let trajectory_range = (lo + margin, hi - margin);
+    let setpoint_rate = rate / options.stream_divider as f64;
+    let trajectory = trajectory::test_trajectory(trajectory_range, setpoint_rate);
+    let mut x_rest = settings.ranges.norm_to_output(0.0);
+    let mut run = |client: &mut Client<T>, mode: Mode, step: &'static str| {
+        progress(Progress::Step(step));
+        client.set_mode(mode).map_err(link(step))?;
+        let r = track(client, &trajectory, x_rest, options, &settings, step);
+        x_rest = trajectory.x.last().copied().unwrap_or(x_rest);
+        r
+    };
+    let (before, run_before) = run(client, Mode::Bypass, "tracking in bypass (before)")?;
+    let (after, run_after) = run(client, Mode::OpenLoop, "tracking compensated (after)")?;
+
+    // 6. Store.
+    if let Some(boot) = options.store {
+        progress(Progress::Step("storing to flash"));
+        client
+            .store_params(boot)
+            .map_err(link("storing the settings"))?;
+    }
+    Ok(CalibrationReport {
+        model: label,
+        reason,
+        ranking,
+        file,
+        excitation,
+        predicted,
+        held_out_from: id.held_out_from,
+        fit_from: id.motion.first_fitted,
+        held_out,
+        decimation,
+        tick_rate_hz,
+        trajectory_range,
+        before,
+        after,
+        runs: [run_before, run_after],
+        stored: options.store,
+        clamped,
+    })
+}
+
+#[cfg(test)]
+mod tests;
