@@ -37,7 +37,7 @@ use twinstack_identify::identification::{
 };
 use twinstack_identify::stage_model::{Hysteresis, StageModel};
 use twinstack_link::measured_data::MeasuredData;
-use twinstack_link::plot::{draw_panels, Panel, Series};
+use crate::plot::{draw_panels, Panel, Series};
 
 /// The differential stage's first resonance (see the book, docs/src/reference/physics.md), Hz: where the notch sits.
 pub const RESONANCE_HZ: f64 = 21_800.0;

@@ -32,7 +32,7 @@ use twinstack_identify::identification::{
 };
 use twinstack_identify::stage_model::{Hysteresis, StageModel};
 use twinstack_link::measured_data::MeasuredData;
-use twinstack_link::plot::{draw_panels, Panel, Series};
+use crate::plot::{draw_panels, Panel, Series};
 
 /// What the demo runs.
 #[derive(Clone, Debug)]

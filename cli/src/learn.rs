@@ -33,7 +33,7 @@ use twinstack::services::recorder::CAPTURE_SLOTS;
 use twinstack::sources::waveform::{Shape, WaveformGenerator};
 use twinstack_identify::identification::score::score;
 use twinstack_identify::stage_model::StageModel;
-use twinstack_link::plot::{draw_panels, Panel, Series};
+use crate::plot::{draw_panels, Panel, Series};
 
 /// The waveform to learn: a shape and a frequency.
 #[derive(Clone, Copy, Debug, PartialEq)]

@@ -27,7 +27,7 @@ use twinstack::protocol::messages::{
     Waveform,
 };
 use twinstack::services::learning::PeriodError;
-use twinstack_link::plot::{draw_panels, Panel, Series};
+use crate::plot::{draw_panels, Panel, Series};
 
 /// One period as the board's sensor saw it, % of the commanded stroke.
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize)]

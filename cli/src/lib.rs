@@ -18,4 +18,5 @@ pub mod commands;
 pub mod demo;
 pub mod learn;
 pub mod learn_link;
+pub mod plot;
 pub mod tracking;

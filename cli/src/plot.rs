@@ -1,11 +1,14 @@
-//! The identification figure: measured against model loops (held-out part), and the model
-//! error over the whole record, as a PNG (plotters, bitmap backend).
+//! The command-line tool's PNG figures (plotters, bitmap backend): panels of time series and
+//! bar charts for the studies and commands, a capture or a telemetry recording
+//! ([`capture`]), and the identification figure (measured against model loops on the held-out
+//! part, and the model error over the whole record).
 //!
 //! Text is drawn with DejaVu Sans Mono, embedded in the binary (`assets/`, Bitstream Vera
 //! licence, which allows redistribution), so the figure renders without system fonts.
 
 use plotters::prelude::*;
 use std::path::Path;
+use twinstack_link::capture::Recording;
 use std::sync::Once;
 
 /// The embedded font.
@@ -419,4 +422,44 @@ mod tests {
             "a figure with axes and text, not an empty image"
         );
     }
+}
+
+/// Draws a capture or a telemetry recording into the PNG `path`: one panel for the displacements (µm), one for
+/// the stack voltages, against time.
+pub fn capture(recording: &Recording, path: &Path, title: &str) -> Result<(), PlotError> {
+    let colors = [
+        RGBColor(0, 0, 0),
+        RGBColor(31, 119, 180),
+        RGBColor(214, 39, 40),
+        RGBColor(44, 160, 44),
+        RGBColor(255, 127, 14),
+        RGBColor(148, 103, 189),
+    ];
+    let mut panels = Vec::new();
+    for (caption, unit) in [("displacement", "um"), ("stack voltages", "V")] {
+        let series: Vec<Series> = recording
+            .columns
+            .iter()
+            .filter(|c| c.unit == unit)
+            .map(|c| Series {
+                label: c.channel.name().to_string(),
+                points: recording
+                    .t
+                    .iter()
+                    .copied()
+                    .zip(c.values.iter().copied())
+                    .collect(),
+                color: colors[c.channel as usize % colors.len()],
+            })
+            .collect();
+        if !series.is_empty() {
+            panels.push(Panel {
+                caption: caption.to_string(),
+                x_label: "t from the trigger [s]".to_string(),
+                y_label: format!("[{unit}]"),
+                series,
+            });
+        }
+    }
+    draw_panels(path, title, &panels, 1)
 }

@@ -1,6 +1,6 @@
 //! Multi-signal captures on the host (protocol v4's `Capture`): signal names ↔ the board's
 //! mask, waiting for a capture and reading its window back, and the window in physical units
-//! (stack volts, displacement in the model's output unit) as CSV and PNG.
+//! (stack volts, displacement in the model's output unit) as CSV (the command-line tool draws it).
 //!
 //! The conversion uses what the board reports: the settings in force (`ReadParams`: the
 //! output range the normalised signals span) and the capture status (the DAC's full-scale
@@ -8,10 +8,7 @@
 //! Slot formats: see [`twinstack::services::recorder`].
 
 use crate::client::{Client, LinkError};
-use crate::plot::{draw_panels, Panel, PlotError, Series};
 use crate::Transport;
-use plotters::style::RGBColor;
-use std::path::Path;
 use std::time::Duration;
 use twinstack::config::settings::Settings;
 use twinstack::protocol::messages::{CaptureState, CaptureStatus};
@@ -190,46 +187,6 @@ pub fn csv(recording: &Recording) -> Result<Vec<u8>, csv::Error> {
         }
         Ok(())
     })
-}
-
-/// Draws the recording into the PNG `path`: one panel for the displacements (µm), one for
-/// the stack voltages, against time.
-pub fn plot(recording: &Recording, path: &Path, title: &str) -> Result<(), PlotError> {
-    let colors = [
-        RGBColor(0, 0, 0),
-        RGBColor(31, 119, 180),
-        RGBColor(214, 39, 40),
-        RGBColor(44, 160, 44),
-        RGBColor(255, 127, 14),
-        RGBColor(148, 103, 189),
-    ];
-    let mut panels = Vec::new();
-    for (caption, unit) in [("displacement", "um"), ("stack voltages", "V")] {
-        let series: Vec<Series> = recording
-            .columns
-            .iter()
-            .filter(|c| c.unit == unit)
-            .map(|c| Series {
-                label: c.channel.name().to_string(),
-                points: recording
-                    .t
-                    .iter()
-                    .copied()
-                    .zip(c.values.iter().copied())
-                    .collect(),
-                color: colors[c.channel as usize % colors.len()],
-            })
-            .collect();
-        if !series.is_empty() {
-            panels.push(Panel {
-                caption: caption.to_string(),
-                x_label: "t from the trigger [s]".to_string(),
-                y_label: format!("[{unit}]"),
-                series,
-            });
-        }
-    }
-    draw_panels(path, title, &panels, 1)
 }
 
 /// Why waiting for or reading a capture failed.

@@ -14,12 +14,13 @@
 //!   go-back-N after a refusal;
 //! * [`server`] — [`server::serve`]: one board link shared by several TCP clients, one
 //!   owner of the stream and settings at a time;
-//! * [`capture`], [`telemetry`], [`sequence_run`], [`scan_timing`] — a capture's read-back and
-//!   figure, the telemetry stream, triggered sequences, a scan's line timing;
+//! * [`capture`], [`telemetry`], [`sequence_run`], [`scan_timing`] — a capture's read-back,
+//!   the telemetry stream, triggered sequences, a scan's line timing;
 //! * [`board_requests`] — what the board commands and the Python package share: the settings a
 //!   load sends and its checks, waveform and capture requests, the status as JSON;
 //! * [`setpoint_file`], [`measured_data`], [`csv_table`] — the setpoint and measured-data CSVs;
-//!   [`output_file`] — outputs written only when complete; [`plot`] — PNG figures.
+//!   [`output_file`] — outputs written only when complete (the command-line tool draws the
+//!   PNG figures: this crate, which the Python package uses too, has no plotting dependency).
 
 pub mod board_requests;
 pub mod capture;
@@ -27,7 +28,6 @@ pub mod client;
 pub mod csv_table;
 pub mod measured_data;
 pub mod output_file;
-pub mod plot;
 pub mod scan_timing;
 pub mod sequence_run;
 pub mod serial;

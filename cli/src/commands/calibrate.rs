@@ -18,7 +18,7 @@ use twinstack::services::recorder::Channel;
 use twinstack_identify::calibrate::{calibrate, CalibrateOptions, CalibrationReport, Progress};
 use twinstack_identify::identification::auto::Validation;
 use twinstack_link::output_file::Staged;
-use twinstack_link::plot::{draw_charts, Bar, BarPanel, Chart, Panel, Series};
+use crate::plot::{draw_charts, Bar, BarPanel, Chart, Panel, Series};
 
 /// Arguments of `calibrate`.
 #[derive(Debug, clap::Args)]

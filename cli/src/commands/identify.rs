@@ -14,7 +14,7 @@ use twinstack_identify::identification::{
 };
 use twinstack_link::measured_data::{ColumnNames, Columns, MeasuredData};
 use twinstack_link::output_file::Staged;
-use twinstack_link::plot::{draw, IdentificationFigure};
+use crate::plot::{draw, IdentificationFigure};
 
 /// Arguments of `identify`.
 #[derive(Debug, clap::Args)]

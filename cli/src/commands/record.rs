@@ -198,7 +198,7 @@ pub fn finish_capture(
     files.write(out, &capture::csv(&recording)?)?;
     let temp_png = files.temporary_for(png);
     let names: Vec<&str> = recording.columns.iter().map(|c| c.channel.name()).collect();
-    capture::plot(
+    crate::plot::capture(
         &recording,
         &temp_png,
         &format!(

@@ -19,7 +19,7 @@ use twinstack::protocol::messages::{
 use twinstack::services::recorder::Channel;
 use twinstack::sources::scan::{slew_step, LINE, PIXEL};
 use twinstack_link::capture::wait_and_read;
-use twinstack_link::plot::{draw_panels, Panel, Series};
+use crate::plot::{draw_panels, Panel, Series};
 use twinstack_link::scan_timing::{analyse, parse_pattern, table, ScanFigures};
 
 /// Arguments of `scan`.

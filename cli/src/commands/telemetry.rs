@@ -148,7 +148,7 @@ pub fn finish(
     let mut files = Staged::new();
     files.write(out, &capture::csv(&recording)?)?;
     let temp_png = files.temporary_for(png);
-    capture::plot(
+    crate::plot::capture(
         &recording,
         &temp_png,
         &format!(

@@ -15,7 +15,7 @@ use twinstack::control::feedback::FeedbackSettings;
 use twinstack::control::notch::NotchDesign;
 use twinstack_identify::tune::loop_model::{loop_response, LoopController};
 use twinstack_identify::tune::{tune, TuneOptions, TuneReport};
-use twinstack_link::plot::{draw_panels, Panel, Series};
+use crate::plot::{draw_panels, Panel, Series};
 use twinstack_link::{Client, Transport};
 
 /// Arguments of `tune`.
