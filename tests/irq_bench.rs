@@ -14,6 +14,10 @@
 //! CPU at 50 / 100 / 200 kHz) and asserts what is deterministic: every scenario ran; the worst
 //! instruction count stays within [`WORST_INSTRUCTIONS`]; the first tick after a reload or a
 //! mode switch costs at most [`SWAP_OVERHEAD`] instructions more than the tick after it.
+//!
+//! When every assertion holds it writes what it measured to `target/figures/tick-cost.json`
+//! ([`FIGURES_JSON`]), from which `cargo xtask figures tick-cost` writes the tick-cost page's
+//! tables (and `cargo xtask figures --check` compares the page with it).
 
 mod support;
 
@@ -68,6 +72,9 @@ const GOAL_CYCLES: u64 = 600;
 const SYSCLK_HZ: f64 = 168e6;
 /// Exception entry and return, cycles (TRM: 12 in, 10 out; no floating-point context).
 const ENTRY_EXIT_CYCLES: u64 = 22;
+/// Where the bench writes its figures, relative to the workspace root (read by `cargo xtask
+/// figures tick-cost`).
+const FIGURES_JSON: &str = "target/figures/tick-cost.json";
 
 /// What one instruction is, from the image's disassembly.
 #[derive(Clone, Debug)]
@@ -563,6 +570,15 @@ fn the_whole_interrupt_in_every_scenario() {
         })
         .unwrap_or_else(|| panic!("no STACK line: {stdout}"));
     println!("stack: {used} bytes used of the {room} the static RAM leaves (reserve {reserve})");
+    let mut figures = serde_json::json!({
+        "sysclk_hz": SYSCLK_HZ,
+        "goal_cycles": GOAL_CYCLES,
+        "scan_cycles": twinstack::tick_budget::SCAN_CYCLES,
+        "learning_cycles": twinstack::tick_budget::LEARNING_CYCLES,
+        "analog_cycles": twinstack::tick_budget::ANALOG_CYCLES,
+        "part_names": PART_NAMES,
+        "stack": { "used": used, "room": room, "reserve": reserve },
+    });
     assert!(room >= reserve, "static RAM leaves {room} < {reserve}");
     assert!(
         used <= reserve / 4 * 3,
@@ -582,6 +598,8 @@ fn the_whole_interrupt_in_every_scenario() {
         "the budget refused a benched configuration at the bench's 40 kHz: {stdout}"
     );
     assert_eq!(budgets.len(), 7, "every configuration has a prediction");
+    figures["budgets"] = serde_json::json!(budgets);
+    let mut figure_rows = Vec::new();
 
     println!();
     println!("Whole control interrupt (SysTick entry to exception return), QEMU netduinoplus2, -icount shift=0");
@@ -625,6 +643,14 @@ fn the_whole_interrupt_in_every_scenario() {
             cpu(200e3)
         );
         worst_at.push(format!("{name}: worst at tick {at} of {}", ticks.len()));
+        figure_rows.push(serde_json::json!({
+            "name": name,
+            "ticks": ticks.len(),
+            "instructions_mean": mean,
+            "instructions_max": max_i,
+            "cycles_max": max_c,
+            "cycles_max_ws5": max_c5,
+        }));
         let config = name.split('/').next().unwrap_or(name);
         if let Some(&predicted) = budgets.get(config) {
             // Every tick of the configuration's own scenarios stays within its prediction; in
@@ -683,6 +709,8 @@ fn the_whole_interrupt_in_every_scenario() {
     for line in &worst_at {
         println!("{line}");
     }
+    figures["rows"] = serde_json::json!(figure_rows);
+    let mut figure_parts = Vec::new();
     println!();
     println!(
         "Worst tick of each configuration (5 WS cycles) by part, and the tick budget's prediction:"
@@ -695,6 +723,14 @@ fn the_whole_interrupt_in_every_scenario() {
     for (config, t, _) in &by_config {
         let predicted = budgets[config.as_str()];
         let ratio = predicted as f64 / t.cycles_ws5 as f64;
+        figure_parts.push(serde_json::json!({
+            "config": config,
+            "parts": t.parts,
+            "cycles_ws5": t.cycles_ws5,
+            "cycles": t.cycles,
+            "instructions": t.instructions,
+            "predicted": predicted,
+        }));
         println!(
             "| {config} | {} | {} | {predicted} | {ratio:.2} |",
             t.parts.map(|c| c.to_string()).join(" | "),
@@ -710,6 +746,8 @@ fn the_whole_interrupt_in_every_scenario() {
     // Where each configuration's worst tick goes, by source file (5 WS cycles; "(no line)" is
     // the exception entry and return and code without line information); with
     // `IRQ_BENCH_LINES=N`, also its N dearest source lines.
+    figures["worst_by_config"] = serde_json::json!(figure_parts);
+    let mut figure_files = serde_json::Map::new();
     let detail: usize = std::env::var("IRQ_BENCH_LINES")
         .ok()
         .and_then(|v| v.parse().ok())
@@ -728,6 +766,10 @@ fn the_whole_interrupt_in_every_scenario() {
         let mut files: Vec<_> = files.into_iter().collect();
         files.sort_by(|a, b| b.1.cmp(&a.1).then(a.0.cmp(b.0)));
         let listed: Vec<String> = files.iter().map(|(f, c)| format!("{f} {c}")).collect();
+        figure_files.insert(
+            config.clone(),
+            serde_json::json!({ "row": rows[*row].0, "files": files }),
+        );
         println!(
             "{config}, worst tick ({} cycles at 5 WS, row {}) by file: {}",
             t.cycles_ws5,
@@ -742,12 +784,18 @@ fn the_whole_interrupt_in_every_scenario() {
             }
         }
     }
+    figures["worst_by_file"] = serde_json::Value::Object(figure_files);
     assert!(failures.is_empty(), "{}", failures.join("\n"));
     assert_eq!(
         by_config.len(),
         budgets.len(),
         "every configuration was checked against its prediction"
     );
+    figures["shipped_worst"] = serde_json::json!({
+        "instructions": worst.instructions,
+        "cycles": worst.cycles,
+        "cycles_ws5": worst.cycles_ws5,
+    });
     println!(
         "worst of the shipped P–I and Duhem configurations: {} instructions, {} cycles at 0 WS ({} at 5 WS); goal {GOAL_CYCLES} cycles: {}",
         worst.instructions,
@@ -846,12 +894,21 @@ fn the_whole_interrupt_in_every_scenario() {
     println!("Critical sections that hold the tick off (from masking it to unmasking it), longest first:");
     println!("| where (function, source line) | times | instr max | cycles max (0 WS) | cycles max (5 WS) |");
     println!("|---|---:|---:|---:|---:|");
+    let mut figure_sections = Vec::new();
     for (site, s) in held.iter().take(12) {
         println!(
             "| {site} | {} | {} | {} | {} |",
             s.count, s.instructions, s.cycles, s.cycles_ws5
         );
+        figure_sections.push(serde_json::json!({
+            "site": site,
+            "count": s.count,
+            "instructions": s.instructions,
+            "cycles": s.cycles,
+            "cycles_ws5": s.cycles_ws5,
+        }));
     }
+    figures["held_off"] = serde_json::json!(figure_sections);
     let (longest_site, longest) = held.first().cloned().unwrap_or_default();
     println!(
         "longest: {} instructions, {} cycles at 5 WS ({:.1} µs at 168 MHz): {longest_site}",
@@ -879,4 +936,13 @@ fn the_whole_interrupt_in_every_scenario() {
         family_worst > 0 && family_worst <= FAMILY_WORST_INSTRUCTIONS,
         "the generalised P–I + creep tick takes {family_worst} instructions (asserted ≤ {FAMILY_WORST_INSTRUCTIONS})"
     );
+    figures["family_worst_instructions"] = serde_json::json!(family_worst);
+    // Every assertion held: the figures are the code's.
+    let path = support::workspace_root().join(FIGURES_JSON);
+    if let Some(dir) = path.parent() {
+        std::fs::create_dir_all(dir).expect("create target/figures");
+    }
+    let text = serde_json::to_string_pretty(&figures).expect("the figures serialise");
+    std::fs::write(&path, text + "\n").unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+    println!("wrote {}", path.display());
 }

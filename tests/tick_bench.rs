@@ -127,8 +127,28 @@ fn run_bench() -> (Vec<Row>, Vec<Part>) {
     (rows, parts)
 }
 
+/// Where the test writes what it printed, relative to the workspace root, once every
+/// assertion holds (read by `cargo xtask figures tick-bench`).
+const FIGURES_MD: &str = "target/figures/tick-bench.md";
+
+/// Prints a line and keeps it in `$md`.
+macro_rules! out {
+    ($md:ident) => {{
+        println!();
+        $md.push('\n');
+    }};
+    ($md:ident, $($arg:tt)*) => {{
+        let line = format!($($arg)*);
+        println!("{line}");
+        $md.push_str(&line);
+        $md.push('\n');
+    }};
+}
+
 #[test]
 fn tick_cost_table_and_image_size() {
+    // What the test prints, kept for the tick-cost page (`cargo xtask figures tick-bench`).
+    let mut md = String::new();
     let (rows, parts) = run_bench();
     let expected = [
         "bypass",
@@ -154,17 +174,22 @@ fn tick_cost_table_and_image_size() {
         );
     }
 
-    println!();
-    println!(
+    out!(md);
+    out!(
+        md,
         "Instructions per control tick (QEMU netduinoplus2, -icount shift=0, opt-level {},",
         firmware_opt_level()
     );
-    println!(
+    out!(
+        md,
         "Controller::tick on the firmware's DAC/ADC drivers, 1000 ticks of a ±0.95 triangle):"
     );
-    println!();
-    println!("| compensator | observer | feedback | mean | min | max |");
-    println!("|---|---|---|---:|---:|---:|");
+    out!(md);
+    out!(
+        md,
+        "| compensator | observer | feedback | mean | min | max |"
+    );
+    out!(md, "|---|---|---|---:|---:|---:|");
     for r in &rows {
         let (comp, obs, fb) = match r.name.as_str() {
             "bypass" => ("none", "off", "off"),
@@ -190,21 +215,24 @@ fn tick_cost_table_and_image_size() {
             "inverse-bouc-wen-bouc-wen" => ("inverse-multiplicative Bouc–Wen", "Bouc–Wen", "PI"),
             other => panic!("unknown bench row {other}"),
         };
-        println!(
+        out!(
+            md,
             "| {comp} | {obs} | {fb} | {:.1} | {} | {} |",
             r.total as f64 / r.ticks as f64,
             r.min,
             r.max
         );
     }
-    println!(
+    out!(
+        md,
         "\n(net of the {}-instruction timer bracket; each count still includes the call, `BL` and \
          argument moves, which the firmware's inlined tick does not pay)",
         rows[0].overhead
     );
     let n16 = &rows[4];
     let n16_mean = n16.total as f64 / n16.ticks as f64;
-    println!(
+    out!(
+        md,
         "target: inverse P–I N = 16 + observer + feedback ≤ {TICK_BUDGET} instructions per tick: \
          {} (mean {n16_mean:.1}; max {}, on the ticks where the P–I memory changes)",
         if n16_mean <= TICK_BUDGET {
@@ -229,11 +257,15 @@ fn tick_cost_table_and_image_size() {
         ],
         "the bench must report every part"
     );
-    println!("\nParts of the tick measured alone (each includes its own call, ≈ 14 instructions):");
-    println!("\n| part | mean | max |");
-    println!("|---|---:|---:|");
+    out!(
+        md,
+        "\nParts of the tick measured alone (each includes its own call, ≈ 14 instructions):"
+    );
+    out!(md, "\n| part | mean | max |");
+    out!(md, "|---|---:|---:|");
     for p in &parts {
-        println!(
+        out!(
+            md,
             "| {} | {:.1} | {} |",
             p.name,
             p.total as f64 / p.ticks as f64,
@@ -241,8 +273,8 @@ fn tick_cost_table_and_image_size() {
         );
     }
 
-    println!("\n| image | flash (bytes) | static RAM (bytes) |");
-    println!("|---|---:|---:|");
+    out!(md, "\n| image | flash (bytes) | static RAM (bytes) |");
+    out!(md, "|---|---:|---:|");
     let board = support::build_image(support::FIRMWARE, "twinstack-fw", &[]);
     let emu = support::build_image(support::FIRMWARE, "twinstack-emu", &["emulator"]);
     let feather = support::build_image(support::FIRMWARE, "twinstack-feather", &["feather"]);
@@ -254,7 +286,7 @@ fn tick_cost_table_and_image_size() {
         ("tick-bench", &bench, None),
     ] {
         let s = support::image_size(path).unwrap_or_else(|e| panic!("{e}"));
-        println!("| {label} | {} | {} |", s.flash, s.ram);
+        out!(md, "| {label} | {} | {} |", s.flash, s.ram);
         // Both board images: the same chip, the same sectors 0–4.
         if let Some(budget) = budget {
             assert!(
@@ -264,6 +296,11 @@ fn tick_cost_table_and_image_size() {
             );
         }
     }
+    let path = support::workspace_root().join(FIGURES_MD);
+    if let Some(dir) = path.parent() {
+        std::fs::create_dir_all(dir).expect("create target/figures");
+    }
+    std::fs::write(&path, md).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
 }
 
 #[test]

@@ -5,10 +5,13 @@ use twinstack_identify::accuracy::measure;
 #[test]
 fn fixed_point_stays_within_the_documented_bounds_of_the_f64_reference() {
     let rows = measure(2026, 6, 3000);
+    // The benchmarks page's table (`cargo xtask figures accuracy`, with `--nocapture`).
+    println!("| model | max error (LSB16) | RMS error (LSB16) | bound (LSB16) | samples |");
+    println!("|---|---:|---:|---:|---:|");
     for r in &rows {
-        eprintln!(
-            "{:<24} max {:.4} LSB16  rms {:.4} LSB16  ({} samples; bound {:.2})",
-            r.model, r.max_lsb16, r.rms_lsb16, r.samples, r.bound_lsb16
+        println!(
+            "| {} | {:.4} | {:.4} | {:.2} | {} |",
+            r.model, r.max_lsb16, r.rms_lsb16, r.bound_lsb16, r.samples
         );
     }
     for r in &rows {

@@ -9,8 +9,12 @@
 //! cheap (they depend on nothing but the code and the committed data), so a change that moves
 //! them has to update the page in the same commit.
 //!
-//! Figures that depend on the machine (timings) or take minutes (QEMU instruction counts) are
-//! not in the registry yet: their pages say which command wrote them.
+//! A figure comes from one of three sources ([`Source`]): the host tool's runs; a cargo
+//! command run as is (the host benchmarks and the simulator's throughput examples, whose
+//! figures are timings of the machine: written, never checked); or a file a long command
+//! writes, read rather than run (the whole-interrupt bench in QEMU, 20–30 minutes: its
+//! instruction and cycle counts are deterministic, so `--check` compares the page with the
+//! bench's latest output, and fails, naming the command, when there is none).
 
 use std::path::Path;
 use std::process::Command;
@@ -24,12 +28,37 @@ struct Figure {
     name: &'static str,
     /// The page, relative to the workspace root.
     page: &'static str,
-    /// The host tool's arguments, one list per run.
+    /// The arguments of each run: the host tool's, or cargo's (see [`Source`]).
     runs: &'static [&'static [&'static str]],
-    /// Checked by `cargo xtask test` (deterministic and cheap).
+    /// What the runs are.
+    source: Source,
+    /// Checked by `cargo xtask test` (deterministic).
     checked: bool,
     /// The block's body from the runs' standard output.
     render: Render,
+}
+
+/// What a figure's runs are, and how their output is had.
+#[derive(Clone, Copy)]
+enum Source {
+    /// The host tool `twinstack` (its optimised build, `cargo run --profile host-opt -p
+    /// twinstack-cli`), run for each of the runs.
+    Tool,
+    /// `cargo` with the run's arguments, run from the workspace root.
+    Cargo,
+    /// A file (relative to the workspace root) the one run, a cargo command, writes: read, not
+    /// run (the command takes too long for the figures gate; the test gate runs it before).
+    Written(&'static str),
+}
+
+impl Source {
+    /// The program the runs' arguments follow, as the page shows it.
+    fn program(self) -> &'static str {
+        match self {
+            Source::Tool => TOOL,
+            Source::Cargo | Source::Written(_) => "cargo",
+        }
+    }
 }
 
 /// How a figure's output becomes its block.
@@ -406,9 +435,127 @@ const LEARN_RUNS: &[&[&str]] = &[
 
 const FIGURES: &[Figure] = &[
     Figure {
+        name: "accuracy",
+        page: "docs/src/results/benchmarks.md",
+        runs: &[&[
+            "test",
+            "--profile",
+            "host-opt",
+            "-p",
+            "twinstack-identify",
+            "--test",
+            "accuracy",
+            "--",
+            "--nocapture",
+        ]],
+        source: Source::Cargo,
+        checked: true,
+        render: Render::One(test_markdown),
+    },
+    Figure {
+        name: "model-bench",
+        page: "docs/src/results/benchmarks.md",
+        runs: &[&["bench", "--bench", "models"]],
+        source: Source::Cargo,
+        checked: false,
+        render: Render::One(criterion_table),
+    },
+    Figure {
+        name: "plant-speed",
+        page: "docs/src/results/benchmarks.md",
+        runs: &[&[
+            "run",
+            "--release",
+            "-p",
+            "hal-sim",
+            "--example",
+            "plant_speed",
+        ]],
+        source: Source::Cargo,
+        checked: false,
+        render: Render::One(verbatim),
+    },
+    Figure {
+        name: "stream-throughput",
+        page: "docs/src/results/throughput.md",
+        runs: &[&[
+            "run",
+            "--profile",
+            "host-opt",
+            "-p",
+            "hal-sim",
+            "--example",
+            "stream_throughput",
+        ]],
+        source: Source::Cargo,
+        checked: false,
+        render: Render::One(verbatim),
+    },
+    Figure {
+        name: "stream-throughput-emulator",
+        page: "docs/src/results/throughput.md",
+        runs: &[
+            &["build-emu"],
+            &[
+                "run",
+                "--profile",
+                "host-opt",
+                "-p",
+                "hal-sim",
+                "--example",
+                "stream_throughput",
+                "--",
+                "--emulator",
+                "target/thumbv7em-none-eabihf/release/twinstack-emu",
+                "--seconds",
+                "10",
+            ],
+        ],
+        source: Source::Cargo,
+        checked: false,
+        render: Render::Many(last_verbatim),
+    },
+    Figure {
+        name: "telemetry-throughput",
+        page: "docs/src/results/throughput.md",
+        runs: &[&[
+            "test",
+            "--profile",
+            "host-opt",
+            "-p",
+            "hal-sim",
+            "--test",
+            "telemetry",
+            "--",
+            "--nocapture",
+            "--test-threads",
+            "1",
+        ]],
+        source: Source::Cargo,
+        checked: false,
+        render: Render::One(test_markdown),
+    },
+    Figure {
+        name: "tick-cost",
+        page: "docs/src/results/tick-cost.md",
+        runs: &[&["test", "--profile", "host-opt", "--test", "irq_bench"]],
+        source: Source::Written("target/figures/tick-cost.json"),
+        checked: true,
+        render: Render::One(tick_cost),
+    },
+    Figure {
+        name: "tick-bench",
+        page: "docs/src/results/tick-cost.md",
+        runs: &[&["test", "--profile", "host-opt", "--test", "tick_bench"]],
+        source: Source::Written("target/figures/tick-bench.md"),
+        checked: true,
+        render: Render::One(markdown),
+    },
+    Figure {
         name: "golden-distances",
         page: "docs/src/reference/golden-vectors.md",
         runs: &[&["golden"]],
+        source: Source::Tool,
         checked: true,
         render: Render::One(golden_distances),
     },
@@ -416,6 +563,7 @@ const FIGURES: &[Figure] = &[
         name: "demo",
         page: "docs/src/results/demo.md",
         runs: &[&["demo", "--quiet", "--out", "target/figures/demo"]],
+        source: Source::Tool,
         checked: true,
         render: Render::One(markdown),
     },
@@ -423,6 +571,7 @@ const FIGURES: &[Figure] = &[
         name: "closed-loop",
         page: "docs/src/results/closed-loop.md",
         runs: &[&["closed-loop", "--gains", "fixed", "--no-plot"]],
+        source: Source::Tool,
         checked: true,
         render: Render::One(markdown),
     },
@@ -430,6 +579,7 @@ const FIGURES: &[Figure] = &[
         name: "closed-loop-tuned",
         page: "docs/src/results/closed-loop.md",
         runs: &[&["closed-loop", "--no-plot"]],
+        source: Source::Tool,
         checked: true,
         render: Render::One(markdown),
     },
@@ -437,6 +587,7 @@ const FIGURES: &[Figure] = &[
         name: "tune-50k",
         page: "docs/src/results/tuning.md",
         runs: &[&["tune", "--port", "sim", "--rate", "50k"]],
+        source: Source::Tool,
         checked: true,
         render: Render::One(tune_summary),
     },
@@ -444,6 +595,7 @@ const FIGURES: &[Figure] = &[
         name: "tune-100k",
         page: "docs/src/results/tuning.md",
         runs: &[&["tune", "--port", "sim", "--rate", "100k"]],
+        source: Source::Tool,
         checked: true,
         render: Render::One(tune_summary),
     },
@@ -459,6 +611,7 @@ const FIGURES: &[Figure] = &[
             "--out",
             "target/figures/identify-bipolar.json",
         ]],
+        source: Source::Tool,
         checked: true,
         render: Render::One(verbatim),
     },
@@ -474,6 +627,7 @@ const FIGURES: &[Figure] = &[
             "--out",
             "target/figures/identify-micromanipulator.json",
         ]],
+        source: Source::Tool,
         checked: true,
         render: Render::One(verbatim),
     },
@@ -481,6 +635,7 @@ const FIGURES: &[Figure] = &[
         name: "identify-models",
         page: "docs/src/results/identification.md",
         runs: IDENTIFY_RUNS,
+        source: Source::Tool,
         checked: true,
         render: Render::Many(identify_table),
     },
@@ -488,6 +643,7 @@ const FIGURES: &[Figure] = &[
         name: "lab-stage",
         page: "docs/src/results/lab-stage.md",
         runs: LAB_STAGE_RUNS,
+        source: Source::Tool,
         checked: true,
         render: Render::Many(lab_stage_table),
     },
@@ -496,6 +652,7 @@ const FIGURES: &[Figure] = &[
         page: "docs/src/results/lab-stage.md",
         runs: LAB_STAGE_WITHOUT_RUNS,
         // Five more identifications of the whole stage: written, not re-run by the gate.
+        source: Source::Tool,
         checked: false,
         render: Render::Many(lab_stage_table),
     },
@@ -503,6 +660,7 @@ const FIGURES: &[Figure] = &[
         name: "lab-stage-pi-without",
         page: "docs/src/results/lab-stage.md",
         runs: LAB_STAGE_PI_WITHOUT_RUNS,
+        source: Source::Tool,
         checked: false,
         render: Render::Many(lab_stage_table),
     },
@@ -525,6 +683,7 @@ const FIGURES: &[Figure] = &[
                 "creep,flexure,asymmetry",
             ],
         ],
+        source: Source::Tool,
         checked: false,
         render: Render::Many(lab_stage_table),
     },
@@ -533,6 +692,7 @@ const FIGURES: &[Figure] = &[
         page: "docs/src/results/lab-stage.md",
         runs: &[&["lab-stage", "--variants", "--model", "auto,pi"]],
         // 21 stages identified and tracked (minutes): `stage_variants` asserts the goals.
+        source: Source::Tool,
         checked: false,
         render: Render::One(variants_table),
     },
@@ -540,6 +700,7 @@ const FIGURES: &[Figure] = &[
         name: "learning",
         page: "docs/src/results/learning.md",
         runs: LEARN_RUNS,
+        source: Source::Tool,
         checked: true,
         render: Render::Many(learn_table),
     },
@@ -555,6 +716,7 @@ const FIGURES: &[Figure] = &[
             "--out",
             "target/figures/scan-raster.png",
         ]],
+        source: Source::Tool,
         checked: true,
         render: Render::One(verbatim),
     },
@@ -572,6 +734,7 @@ const FIGURES: &[Figure] = &[
             "--out",
             "target/figures/scan-lissajous.png",
         ]],
+        source: Source::Tool,
         checked: true,
         render: Render::One(verbatim),
     },
@@ -587,6 +750,7 @@ const FIGURES: &[Figure] = &[
             "--out",
             "target/figures/scan-spiral.png",
         ]],
+        source: Source::Tool,
         checked: true,
         render: Render::One(verbatim),
     },
@@ -595,6 +759,7 @@ const FIGURES: &[Figure] = &[
         page: "docs/src/guide/selftest.md",
         runs: &[&["selftest", "--port", "sim"]],
         // The in-process board runs on simulated time: the same lines every run.
+        source: Source::Tool,
         checked: true,
         render: Render::One(verbatim),
     },
@@ -602,6 +767,7 @@ const FIGURES: &[Figure] = &[
         name: "dual-stage",
         page: "docs/src/results/dual-stage.md",
         runs: &[&["dual-stage"]],
+        source: Source::Tool,
         checked: true,
         render: Render::One(verbatim),
     },
@@ -613,6 +779,78 @@ fn printed_lines(out: &str) -> impl Iterator<Item = &str> {
     out.lines()
         .map(str::trim_end)
         .filter(|l| !l.starts_with("wrote "))
+}
+
+/// What a `cargo test -- --nocapture` run printed, less the test harness's own lines (`running
+/// N tests`, `test NAME ... ok`, `test result: …`).
+fn test_printed(out: &str) -> String {
+    let mut kept = Vec::new();
+    for line in out.lines() {
+        let line = line.trim_end();
+        if line.starts_with("running ") || line.starts_with("test result:") {
+            continue;
+        }
+        // The harness writes `test NAME ... ` before the test's output and its verdict after it.
+        let line = match line
+            .strip_prefix("test ")
+            .and_then(|l| l.split_once(" ... "))
+        {
+            Some((_, rest)) => rest,
+            None => line,
+        };
+        let line = ["ok", "ignored", "FAILED"]
+            .iter()
+            .find_map(|v| line.strip_suffix(v))
+            .unwrap_or(line)
+            .trim_end();
+        if !line.is_empty() {
+            kept.push(line);
+        }
+    }
+    kept.join("\n") + "\n"
+}
+
+/// A test's printed Markdown (see [`test_printed`] and [`markdown`]).
+fn test_markdown(out: &str) -> Result<String, String> {
+    markdown(&test_printed(out))
+}
+
+/// criterion's results (`cargo bench`) as a table: each benchmark's estimate of one iteration
+/// (the middle of its `time: [low estimate high]`).
+fn criterion_table(out: &str) -> Result<String, String> {
+    let mut table = String::from("| benchmark | time per iteration |\n|---|---:|\n");
+    let mut name = "";
+    let mut rows = 0;
+    for line in out.lines().map(str::trim) {
+        let (before, times) = match line.split_once("time:") {
+            Some(split) => split,
+            None => {
+                if !line.is_empty() && !line.contains(':') && !line.starts_with(['F', 'c']) {
+                    name = line;
+                }
+                continue;
+            }
+        };
+        let before = before.trim();
+        if !before.is_empty() {
+            name = before;
+        }
+        let words: Vec<&str> = times
+            .trim()
+            .trim_start_matches('[')
+            .trim_end_matches(']')
+            .split_whitespace()
+            .collect();
+        let [_, _, mid, unit, _, _] = words[..] else {
+            return Err(format!("`{line}`: not criterion's `time: [a u b u c u]`"));
+        };
+        table.push_str(&format!("| `{name}` | {mid} {unit} |\n"));
+        rows += 1;
+    }
+    if rows == 0 {
+        return Err("no criterion results in the output".into());
+    }
+    Ok(table)
 }
 
 /// Output that is already Markdown (titles and tables, as `demo` and `closed-loop` print
@@ -666,6 +904,11 @@ fn verbatim(out: &str) -> Result<String, String> {
         return Err("no output".into());
     }
     Ok(format!("```text\n{text}\n```\n"))
+}
+
+/// The last run's output as a text block (the runs before it build what it runs).
+fn last_verbatim(runs: &[Run]) -> Result<String, String> {
+    verbatim(&runs.last().ok_or("no runs")?.out)
 }
 
 /// `twinstack golden`'s per-set lines as the page's table: distances to the `f64` reference
@@ -1008,20 +1251,357 @@ fn learn_table(runs: &[Run]) -> Result<String, String> {
     Ok(table)
 }
 
+/// Thousands grouped by a space, as the book writes counts (`1 573`).
+fn grouped(n: u64) -> String {
+    let digits = n.to_string();
+    let mut out = String::new();
+    for (i, c) in digits.chars().enumerate() {
+        if i > 0 && (digits.len() - i) % 3 == 0 {
+            out.push(' ');
+        }
+        out.push(c);
+    }
+    out
+}
+
+/// A bench configuration's name (`inverse-pi16+pi16-observer+pi+drift`) as the book writes it
+/// (`inverse P–I 16 + P–I 16 observer + PI + drift`); a part it does not know stays as it is.
+fn config_label(name: &str) -> String {
+    fn model(m: &str) -> String {
+        if let Some(gpi) = m.strip_prefix("gpi") {
+            if let Some((n, zones)) = gpi.split_once('x') {
+                return format!("generalised P–I {n} ({zones} dead zones)");
+            }
+        }
+        if let Some(n) = m.strip_prefix("pi").filter(|n| n.parse::<u32>().is_ok()) {
+            return format!("P–I {n}");
+        }
+        match m {
+            "duhem" => "Duhem".into(),
+            "bouc-wen" => "Bouc–Wen".into(),
+            other => other.into(),
+        }
+    }
+    name.split('+')
+        .map(|part| {
+            if let Some(m) = part.strip_prefix("inverse-") {
+                format!("inverse {}", model(m))
+            } else if let Some(m) = part.strip_suffix("-observer") {
+                format!("{} observer", model(m))
+            } else if let Some(n) = part.strip_prefix("creep") {
+                format!("creep {n}")
+            } else {
+                match part {
+                    "pi" => "PI".into(),
+                    "pid" => "PID".into(),
+                    other => other.into(),
+                }
+            }
+        })
+        .collect::<Vec<_>>()
+        .join(" + ")
+}
+
+/// The streamed scenarios the first table takes each configuration's worst of.
+const STREAMED: [&str; 5] = [
+    "triangle",
+    "sine-750Hz",
+    "full-range-steps",
+    "random",
+    "nested-loops",
+];
+
+/// The scan and analog-input scenarios, with their columns' titles.
+const SCANNED: [(&str, &str); 6] = [
+    ("scan-raster-triggers", "raster"),
+    ("scan-lissajous-triggers", "Lissajous"),
+    ("scan-spiral-triggers", "spiral"),
+    ("scan-raster-learning", "raster + learning"),
+    ("scan-spiral-learning", "spiral + learning"),
+    ("analog-input", "analog input"),
+];
+
+/// The whole-interrupt bench's figures (`target/figures/tick-cost.json`, written by
+/// `tests/irq_bench.rs` when every assertion holds) as the tick-cost page's tables.
+fn tick_cost(out: &str) -> Result<String, String> {
+    use serde_json::Value;
+    let v: Value = serde_json::from_str(out).map_err(|e| format!("not the bench's JSON: {e}"))?;
+    let field = |v: &Value, k: &str| -> Result<u64, String> {
+        v.get(k)
+            .and_then(Value::as_u64)
+            .ok_or_else(|| format!("no number `{k}` in {v}"))
+    };
+    let sysclk = v
+        .get("sysclk_hz")
+        .and_then(Value::as_f64)
+        .ok_or("no `sysclk_hz`")?;
+    let (scan, learning, analog) = (
+        field(&v, "scan_cycles")?,
+        field(&v, "learning_cycles")?,
+        field(&v, "analog_cycles")?,
+    );
+    let rows = v.get("rows").and_then(Value::as_array).ok_or("no `rows`")?;
+    let budgets = v
+        .get("budgets")
+        .and_then(Value::as_object)
+        .ok_or("no `budgets`")?;
+    // Each measured row: (configuration, scenario) → (instructions, cycles 0 WS, cycles 5 WS).
+    let mut measured: Vec<(&str, &str, [u64; 3])> = Vec::new();
+    for r in rows {
+        let name = r
+            .get("name")
+            .and_then(Value::as_str)
+            .ok_or("a row has no name")?;
+        let counts = [
+            field(r, "instructions_max")?,
+            field(r, "cycles_max")?,
+            field(r, "cycles_max_ws5")?,
+        ];
+        let (config, scenario) = name.split_once('/').unwrap_or((name, ""));
+        measured.push((config, scenario, counts));
+    }
+    let boot = measured.first().ok_or("no rows")?.2;
+    // The configurations in the order the bench ran them.
+    let mut configs: Vec<&str> = Vec::new();
+    for (c, s, _) in &measured {
+        if !s.is_empty() && !configs.contains(c) {
+            configs.push(c);
+        }
+    }
+    // The worst of each count over a configuration's scenarios that `pick` selects.
+    let worst = |config: &str, pick: &dyn Fn(&str) -> bool| -> Result<[u64; 3], String> {
+        let mut w = [0u64; 3];
+        let mut any = false;
+        for (_, _, c) in measured.iter().filter(|(c, s, _)| *c == config && pick(s)) {
+            any = true;
+            for i in 0..3 {
+                w[i] = w[i].max(c[i]);
+            }
+        }
+        if any {
+            Ok(w)
+        } else {
+            Err(format!("{config}: no such scenario measured"))
+        }
+    };
+    let triple = |c: [u64; 3]| format!("{} / {} / {}", grouped(c[0]), grouped(c[1]), grouped(c[2]));
+    let rate = |cycles: u64| {
+        let hz = (sysclk / cycles as f64 / 100.0).floor() as u64 * 100;
+        format!("{} Hz", grouped(hz))
+    };
+    let predicted = |config: &str| -> Result<u64, String> {
+        budgets
+            .get(config)
+            .and_then(Value::as_u64)
+            .ok_or_else(|| format!("{config}: no prediction"))
+    };
+
+    let mut t = String::new();
+    t.push_str(
+        "Worst tick of each configuration, instructions / cycles at 0 WS / cycles at 5 WS: streamed \
+         (the worst of triangle, sine, full-range steps, random, nested loops) and with every \
+         feature on (the worst of the scans with the learning, each with its trigger outputs, the \
+         capture of all seven signals and telemetry's tap of all seven on every tick). \
+         \"Predicted\" is the tick budget's (cycles, 5 WS), with the scan's ",
+    );
+    t.push_str(&format!(
+        "({scan}) and the learning's ({learning}) charges for every feature on; the highest \
+         admitted rate is the highest control rate whose period holds that prediction.\n\n"
+    ));
+    t.push_str("| configuration | streamed | every feature on | predicted | predicted, every feature | highest admitted rate, streamed | highest admitted rate, every feature |\n");
+    t.push_str("|---|---:|---:|---:|---:|---:|---:|\n");
+    t.push_str(&format!(
+        "| boot: bypass, no model, nothing running | {} | – | – | – | – | – |\n",
+        triple(boot)
+    ));
+    for config in &configs {
+        let streamed = worst(config, &|s| STREAMED.contains(&s))?;
+        let every = worst(config, &|s| {
+            s.starts_with("scan-") && s.ends_with("-learning")
+        })?;
+        let p = predicted(config)?;
+        t.push_str(&format!(
+            "| {} | {} | {} | {} | {} | {} | {} |\n",
+            config_label(config),
+            triple(streamed),
+            triple(every),
+            grouped(p),
+            grouped(p + scan + learning),
+            rate(p),
+            rate(p + scan + learning),
+        ));
+    }
+
+    t.push_str(&format!(
+        "\nEach scan pattern (200 Hz on x, ±0.8, trigger pulses of 2 ticks), alone and with the \
+         learning on, and the analog setpoint input as the source (budget's charge: {analog} \
+         cycles); worst tick, instructions / cycles at 5 WS:\n\n"
+    ));
+    t.push_str("| configuration |");
+    for (_, title) in SCANNED {
+        t.push_str(&format!(" {title} |"));
+    }
+    t.push_str("\n|---|");
+    t.push_str(&"---:|".repeat(SCANNED.len()));
+    t.push('\n');
+    for config in &configs {
+        t.push_str(&format!("| {} |", config_label(config)));
+        for (scenario, _) in SCANNED {
+            let c = worst(config, &|s| s == scenario)?;
+            t.push_str(&format!(" {} / {} |", grouped(c[0]), grouped(c[2])));
+        }
+        t.push('\n');
+    }
+
+    let parts = v
+        .get("part_names")
+        .and_then(Value::as_array)
+        .ok_or("no `part_names`")?;
+    t.push_str(
+        "\nEach configuration's worst streamed tick, cycles at 5 WS by the part of the tick its \
+         source belongs to, against the tick budget's prediction:\n\n| configuration |",
+    );
+    for p in parts {
+        t.push_str(&format!(" {} |", p.as_str().unwrap_or("?")));
+    }
+    t.push_str(" total | predicted | predicted / measured |\n|---|");
+    t.push_str(&"---:|".repeat(parts.len() + 3));
+    t.push('\n');
+    for w in v
+        .get("worst_by_config")
+        .and_then(Value::as_array)
+        .ok_or("no `worst_by_config`")?
+    {
+        let config = w.get("config").and_then(Value::as_str).ok_or("no config")?;
+        let total = field(w, "cycles_ws5")?;
+        let p = field(w, "predicted")?;
+        let cells: Vec<String> = w
+            .get("parts")
+            .and_then(Value::as_array)
+            .ok_or("no parts")?
+            .iter()
+            .map(|c| grouped(c.as_u64().unwrap_or(0)))
+            .collect();
+        t.push_str(&format!(
+            "| {} | {} | {} | {} | {:.2} |\n",
+            config_label(config),
+            cells.join(" | "),
+            grouped(total),
+            grouped(p),
+            p as f64 / total as f64
+        ));
+    }
+
+    let reference = configs.first().ok_or("no configuration")?;
+    if let Some(by_file) = v.get("worst_by_file").and_then(|f| f.get(*reference)) {
+        let files = by_file
+            .get("files")
+            .and_then(Value::as_array)
+            .ok_or("no files")?;
+        t.push_str(&format!(
+            "\nThe reference configuration's ({}) worst streamed tick by source file (`(no \
+             line)`: the exception's entry and return, code without line information):\n\n\
+             | source file | cycles (5 WS) |\n|---|---:|\n",
+            config_label(reference)
+        ));
+        let mut total = 0;
+        for f in files {
+            let name = f
+                .get(0)
+                .and_then(Value::as_str)
+                .ok_or("a file has no name")?;
+            let c = f
+                .get(1)
+                .and_then(Value::as_u64)
+                .ok_or("a file has no cycles")?;
+            total += c;
+            t.push_str(&format!("| `{name}` | {} |\n", grouped(c)));
+        }
+        t.push_str(&format!("| **total** | **{}** |\n", grouped(total)));
+    }
+
+    let shipped = v.get("shipped_worst").ok_or("no `shipped_worst`")?;
+    t.push_str(&format!(
+        "\nThe shipped P–I and Duhem configurations' worst tick: **{} instructions, {} cycles at \
+         0 WS, {} at 5 WS** (goal {} cycles at 0 WS: {}); the generalised P–I + creep \
+         configuration's: {} instructions.\n",
+        grouped(field(shipped, "instructions")?),
+        grouped(field(shipped, "cycles")?),
+        grouped(field(shipped, "cycles_ws5")?),
+        grouped(field(&v, "goal_cycles")?),
+        if field(shipped, "cycles")? <= field(&v, "goal_cycles")? {
+            "met"
+        } else {
+            "not met"
+        },
+        grouped(field(&v, "family_worst_instructions")?),
+    ));
+
+    t.push_str(
+        "\nThe critical sections outside the tick that hold it off (from the instruction that \
+         masks it to the one that unmasks it), longest first:\n\n\
+         | where (function, source line) | times | instructions | cycles (0 WS) | cycles (5 WS) | µs at 5 WS |\n\
+         |---|---:|---:|---:|---:|---:|\n",
+    );
+    for h in v
+        .get("held_off")
+        .and_then(Value::as_array)
+        .ok_or("no `held_off`")?
+    {
+        let c5 = field(h, "cycles_ws5")?;
+        t.push_str(&format!(
+            "| {} | {} | {} | {} | {} | {:.1} |\n",
+            format!(
+                "`{}`",
+                h.get("site").and_then(Value::as_str).ok_or("no site")?
+            ),
+            grouped(field(h, "count")?),
+            grouped(field(h, "instructions")?),
+            grouped(field(h, "cycles")?),
+            grouped(c5),
+            c5 as f64 / sysclk * 1e6
+        ));
+    }
+    let stack = v.get("stack").ok_or("no `stack`")?;
+    t.push_str(&format!(
+        "\nThe bench image's stack high-water mark over every scenario: {} bytes of the {} its \
+         static RAM leaves (reserve {}).\n",
+        grouped(field(stack, "used")?),
+        grouped(field(stack, "room")?),
+        grouped(field(stack, "reserve")?),
+    ));
+    Ok(t)
+}
+
 /// The block a figure's marker pair holds: the command (or commands), then the rendering.
 fn block(f: &Figure, body: &str) -> String {
-    match f.runs {
-        [one] => format!(
-            "Written by `cargo xtask figures` from `{TOOL} {}`:\n\n{body}",
+    let program = f.source.program();
+    // Timings are the machine's: the page says so, and that the check leaves them out.
+    let unchecked = if f.checked {
+        String::new()
+    } else {
+        format!(
+            " (`cargo xtask figures {}`; timings of the machine it ran on, not checked)",
+            f.name
+        )
+    };
+    match (f.source, f.runs) {
+        (Source::Written(file), [one]) => format!(
+            "Written by `cargo xtask figures`{unchecked} from `{file}`, which `{program} {}` \
+             writes:\n\n{body}",
             one.join(" ")
         ),
-        runs => {
+        (_, [one]) => format!(
+            "Written by `cargo xtask figures`{unchecked} from `{program} {}`:\n\n{body}",
+            one.join(" ")
+        ),
+        (_, runs) => {
             let commands: Vec<String> = runs
                 .iter()
-                .map(|r| format!("{TOOL} {}", r.join(" ")))
+                .map(|r| format!("{program} {}", r.join(" ")))
                 .collect();
             format!(
-                "Written by `cargo xtask figures` from\n\n```sh\n{}\n```\n\n{body}",
+                "Written by `cargo xtask figures`{unchecked} from\n\n```sh\n{}\n```\n\n{body}",
                 commands.join("\n")
             )
         }
@@ -1041,6 +1621,44 @@ fn replace_block(page: &str, name: &str, body: &str) -> Result<String, String> {
         .ok_or_else(|| format!("`{open}` has no `{close}` after it"))?
         + start;
     Ok(format!("{}\n{body}{}", &page[..start], &page[end..]))
+}
+
+/// A figure's output for one of its runs: the host tool's or cargo's standard output, or the
+/// file the run writes.
+fn output(root: &Path, source: Source, args: &[&str]) -> Result<String, String> {
+    match source {
+        Source::Tool => run_tool(root, args),
+        Source::Cargo => run_cargo(root, args),
+        Source::Written(file) => {
+            let path = root.join(file);
+            std::fs::read_to_string(&path).map_err(|e| {
+                format!(
+                    "{} cannot be read ({e}): it is written by `cargo {}`; run that first",
+                    path.display(),
+                    args.join(" ")
+                )
+            })
+        }
+    }
+}
+
+/// Runs `cargo` with `args` from the workspace root, returning its standard output.
+fn run_cargo(root: &Path, args: &[&str]) -> Result<String, String> {
+    let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
+    let out = Command::new(cargo)
+        .args(args)
+        .current_dir(root)
+        .output()
+        .map_err(|e| format!("cannot run cargo: {e}"))?;
+    if !out.status.success() {
+        return Err(format!(
+            "`cargo {}` failed ({}):\n{}",
+            args.join(" "),
+            out.status,
+            String::from_utf8_lossy(&out.stderr)
+        ));
+    }
+    String::from_utf8(out.stdout).map_err(|e| format!("`cargo {}`: {e}", args.join(" ")))
 }
 
 /// Runs the host tool with `args` (the optimised `host-opt` build the simulation gates use),
@@ -1066,8 +1684,9 @@ fn run_tool(root: &Path, args: &[&str]) -> Result<String, String> {
     String::from_utf8(out.stdout).map_err(|e| format!("`{TOOL} {}`: {e}", args.join(" ")))
 }
 
-/// `cargo xtask figures [--check] [NAME…]`: every figure (or those named), or with `--check`
-/// the deterministic ones, compared and not written.
+/// `cargo xtask figures [--check] [NAME…]`: the deterministic figures (or those named, timings
+/// included), or with `--check` the deterministic ones, compared and not written. Timings are
+/// written only when named: they take minutes and differ from run to run.
 pub fn run(root: &Path, args: &[String]) -> Result<(), String> {
     let check = args.iter().any(|a| a == "--check");
     let names: Vec<&str> = args
@@ -1083,7 +1702,14 @@ pub fn run(root: &Path, args: &[String]) -> Result<(), String> {
     }
     let mut stale = Vec::new();
     for f in FIGURES {
-        if (!names.is_empty() && !names.contains(&f.name)) || (check && !f.checked) {
+        let named = names.contains(&f.name);
+        if (!names.is_empty() && !named) || (!named && !f.checked) || (check && !f.checked) {
+            if names.is_empty() && !f.checked && !check {
+                println!(
+                    "{}: {} left as it is (timings: `cargo xtask figures {}` writes it)",
+                    f.page, f.name, f.name
+                );
+            }
             continue;
         }
         let path = root.join(f.page);
@@ -1093,7 +1719,7 @@ pub fn run(root: &Path, args: &[String]) -> Result<(), String> {
         for args in f.runs {
             runs.push(Run {
                 args,
-                out: run_tool(root, args)?,
+                out: output(root, f.source, args).map_err(|e| format!("{}: {e}", f.name))?,
             });
         }
         let body = match (&f.render, &runs[..]) {
@@ -1135,6 +1761,131 @@ ipi8-pi-open           2400    48011  00ff00ff       1.0507       0.5686    0.49
 total 96022 bytes in 2 sets
 tests/golden/vectors.bin is up to date
 ";
+
+    #[test]
+    fn test_output_loses_the_harness_lines_and_keeps_what_the_test_printed() {
+        let out = "\nrunning 2 tests\ntest a ... | x |\n|---|\n| 1 |\nok\ntest b ... first line\nok\n\ntest result: ok. 2 passed\n";
+        assert_eq!(test_printed(out), "| x |\n|---|\n| 1 |\nfirst line\n");
+        assert_eq!(
+            test_markdown(out).unwrap(),
+            "| x |\n|---|\n| 1 |\n\nfirst line\n"
+        );
+        assert!(test_markdown("running 1 test\ntest a ... ok\n").is_err());
+    }
+
+    #[test]
+    fn criterion_results_become_a_row_each() {
+        let out = "pi_step/forward/8       time:   [5.5 ns 5.6 ns 5.7 ns]\n\
+                   Found 3 outliers among 100 measurements (3.00%)\n\
+                   duhem_step/inverse\n                        time:   [23.9 ns 24.1 ns 24.4 ns]\n\
+                   change: [-1.0% +0.2% +1.1%] (p = 0.70 > 0.05)\n";
+        assert_eq!(
+            criterion_table(out).unwrap(),
+            "| benchmark | time per iteration |\n|---|---:|\n| `pi_step/forward/8` | 5.6 ns |\n| `duhem_step/inverse` | 24.1 ns |\n"
+        );
+        assert!(criterion_table("nothing measured\n").is_err());
+        assert!(criterion_table("x time: [1 ns]\n").is_err());
+    }
+
+    #[test]
+    fn bench_configurations_read_as_the_book_writes_them() {
+        assert_eq!(
+            config_label("inverse-pi16+pi16-observer+pi+drift"),
+            "inverse P–I 16 + P–I 16 observer + PI + drift"
+        );
+        assert_eq!(
+            config_label("inverse-gpi32x8+creep6+gpi32x8-observer+pid+notch+shaping+drift"),
+            "inverse generalised P–I 32 (8 dead zones) + creep 6 + generalised P–I 32 (8 dead zones) observer + PID + notch + shaping + drift"
+        );
+        assert_eq!(
+            config_label("inverse-bouc-wen+bouc-wen-observer"),
+            "inverse Bouc–Wen + Bouc–Wen observer"
+        );
+        assert_eq!(grouped(7), "7");
+        assert_eq!(grouped(1573), "1 573");
+        assert_eq!(grouped(100800), "100 800");
+        assert_eq!(grouped(1234567), "1 234 567");
+    }
+
+    /// A bench output of one configuration with every scenario the tables read.
+    fn bench_json() -> String {
+        let mut rows = vec![r#"{"name": "boot (defaults: bypass, no model)", "ticks": 10, "instructions_mean": 300.0, "instructions_max": 326, "cycles_max": 569, "cycles_max_ws5": 689}"#.to_string()];
+        let scenarios = STREAMED
+            .iter()
+            .chain(SCANNED.iter().map(|(s, _)| s))
+            .chain(["reload-and-mode-switches", "load"].iter());
+        for (i, s) in scenarios.enumerate() {
+            rows.push(format!(
+                r#"{{"name": "inverse-pi16+pi16-observer+pi+drift/{s}", "ticks": 100, "instructions_mean": 800.0, "instructions_max": {}, "cycles_max": {}, "cycles_max_ws5": {}}}"#,
+                900 + i,
+                1400 + i,
+                1570 + i
+            ));
+        }
+        format!(
+            r#"{{"sysclk_hz": 168000000.0, "goal_cycles": 600, "scan_cycles": 150, "learning_cycles": 90,
+            "analog_cycles": 32, "part_names": ["fixed", "P–I banks"],
+            "stack": {{"used": 30000, "room": 55000, "reserve": 49152}},
+            "budgets": {{"inverse-pi16+pi16-observer+pi+drift": 1666}},
+            "rows": [{}],
+            "worst_by_config": [{{"config": "inverse-pi16+pi16-observer+pi+drift", "parts": [1066, 507], "cycles_ws5": 1573, "cycles": 1408, "instructions": 899, "predicted": 1666}}],
+            "worst_by_file": {{"inverse-pi16+pi16-observer+pi+drift": {{"row": "x", "files": [["prandtl_ishlinskii.rs", 400], ["(no line)", 22]]}}}},
+            "shipped_worst": {{"instructions": 1000, "cycles": 1550, "cycles_ws5": 1740}},
+            "family_worst_instructions": 1558,
+            "held_off": [{{"site": "read_capture_piece, recorder.rs:770", "count": 12, "instructions": 276, "cycles": 500, "cycles_ws5": 591}}]}}"#,
+            rows.join(", ")
+        )
+    }
+
+    #[test]
+    fn the_bench_output_becomes_the_tick_cost_tables() {
+        let t = tick_cost(&bench_json()).unwrap();
+        // The boot row, then the configuration: streamed is the worst of the five streamed
+        // scenarios (the fifth, index 4); every feature on the worst scan with the learning
+        // (spiral + learning, index 9); the rates from the prediction and its charges.
+        assert!(
+            t.contains("| boot: bypass, no model, nothing running | 326 / 569 / 689 | – |"),
+            "{t}"
+        );
+        assert!(
+            t.contains("| inverse P–I 16 + P–I 16 observer + PI + drift | 904 / 1 404 / 1 574 | 909 / 1 409 / 1 579 | 1 666 | 1 906 | 100 800 Hz | 88 100 Hz |"),
+            "{t}"
+        );
+        // The scans: raster is index 5, analog input index 10 (instructions / 5 WS).
+        assert!(t.contains("| 905 / 1 575 | 906 / 1 576 | 907 / 1 577 | 908 / 1 578 | 909 / 1 579 | 910 / 1 580 |"), "{t}");
+        assert!(t.contains("| 1 066 | 507 | 1 573 | 1 666 | 1.06 |"), "{t}");
+        assert!(
+            t.contains(
+                "| `prandtl_ishlinskii.rs` | 400 |\n| `(no line)` | 22 |\n| **total** | **422** |"
+            ),
+            "{t}"
+        );
+        assert!(t.contains("**1 000 instructions, 1 550 cycles at 0 WS, 1 740 at 5 WS** (goal 600 cycles at 0 WS: not met)"), "{t}");
+        assert!(
+            t.contains("| `read_capture_piece, recorder.rs:770` | 12 | 276 | 500 | 591 | 3.5 |"),
+            "{t}"
+        );
+        assert!(t.contains("30 000 bytes of the 55 000"), "{t}");
+        // A bench output without a scenario the tables read is an error, not a gap.
+        let without = bench_json().replace("scan-spiral-learning", "something-else");
+        assert!(tick_cost(&without).is_err());
+        assert!(tick_cost("not json").is_err());
+    }
+
+    #[test]
+    fn a_figure_read_from_a_file_that_is_not_there_names_the_command_that_writes_it() {
+        let e = output(
+            Path::new("/nonexistent-root"),
+            Source::Written("target/figures/tick-cost.json"),
+            &["test", "--profile", "host-opt", "--test", "irq_bench"],
+        )
+        .unwrap_err();
+        assert!(
+            e.contains("cargo test --profile host-opt --test irq_bench")
+                && e.contains("run that first"),
+            "{e}"
+        );
+    }
 
     #[test]
     fn golden_lines_become_the_table() {

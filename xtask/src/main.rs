@@ -498,11 +498,12 @@ fn ensure_mdbook() -> Result<(), String> {
 }
 
 /// One gate: what it checks, the command that checks it, and whether it runs beside the gates
-/// after it.
+/// after it or once those beside have finished.
 struct Gate {
     what: String,
     cmd: Command,
     beside: bool,
+    last: bool,
 }
 
 fn gate(what: impl Into<String>, cmd: Command) -> Gate {
@@ -510,6 +511,16 @@ fn gate(what: impl Into<String>, cmd: Command) -> Gate {
         what: what.into(),
         cmd,
         beside: false,
+        last: false,
+    }
+}
+
+/// A gate that runs after every other, once the gates beside have finished: for one that reads
+/// what a gate beside writes (the tick-cost page's figures, from the whole-interrupt bench).
+fn gate_last(what: impl Into<String>, cmd: Command) -> Gate {
+    Gate {
+        last: true,
+        ..gate(what, cmd)
     }
 }
 
@@ -584,7 +595,8 @@ fn gates() -> Vec<Gate> {
                 "--ignored",
             ]),
         ),
-        gate(
+        // After the bench beside, whose output the tick-cost page's figures are checked against.
+        gate_last(
             "the book's deterministic figures match the code (cargo xtask figures --check)",
             cargo(&["run", "--quiet", "-p", "xtask", "--", "figures", "--check"]),
         ),
@@ -717,12 +729,16 @@ fn test() -> Result<(), String> {
 }
 
 /// Runs `gates` in order, stopping at the first that fails, with each one's time; a gate marked
-/// beside runs in the background from its turn on, and its result is collected after the rest.
+/// beside runs in the background from its turn on, and its result is collected after the rest;
+/// a gate marked last runs after that, in order.
 fn run_gates(mut gates: Vec<Gate>) -> Result<(), String> {
     let total = gates.len();
     let start = Instant::now();
     let mut beside: Vec<Beside> = Vec::new();
     for (i, g) in gates.iter_mut().enumerate() {
+        if g.last {
+            continue;
+        }
         if g.beside {
             let b = Beside::spawn(i + 1, &g.what, &mut g.cmd)?;
             println!(
@@ -758,6 +774,12 @@ fn run_gates(mut gates: Vec<Gate>) -> Result<(), String> {
             )
         })?;
         println!("   ok ({:.0} s)", b.started.elapsed().as_secs_f64());
+    }
+    for (i, g) in gates.iter_mut().enumerate().filter(|(_, g)| g.last) {
+        println!("\n== [{}/{total}] {}", i + 1, g.what);
+        let t = Instant::now();
+        run(&mut g.cmd).map_err(|e| format!("gate {}/{total} failed: {}\n{e}", i + 1, g.what))?;
+        println!("   ok ({:.0} s)", t.elapsed().as_secs_f64());
     }
     println!(
         "\nAll {total} gates passed ({:.0} s).",
@@ -853,6 +875,25 @@ mod tests {
             gate("after it", shell("true")),
         ];
         assert!(run_gates(gates).is_ok());
+    }
+
+    #[test]
+    fn a_last_gate_runs_after_the_gate_beside_has_finished() {
+        let dir = std::env::temp_dir().join(format!("xtask-last-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(&dir).unwrap();
+        let file = dir.join("written");
+        let gates = vec![
+            gate_beside(
+                "beside, writes",
+                shell(&format!("sleep 0.5; echo x > {}", file.display())),
+            ),
+            gate_last("reads", shell(&format!("test -f {}", file.display()))),
+            gate("runs first", shell("true")),
+        ];
+        let ran = run_gates(gates);
+        let _ = std::fs::remove_dir_all(&dir);
+        assert!(ran.is_ok(), "{ran:?}");
     }
 
     #[test]
