@@ -19,6 +19,7 @@
 //! with the notch at the stage's resonance ([`feedback_settings`]). The steps run the same
 //! gains with and without their notch.
 
+use crate::plot::{draw_panels, Panel, Series};
 use anyhow::{anyhow, Context, Result};
 use hal_sim::plant::Configuration as StageConfiguration;
 use hal_sim::sim_board::{BoardConfig, ExternalBoard, SimBoard};
@@ -37,7 +38,6 @@ use twinstack_identify::identification::{
 };
 use twinstack_identify::stage_model::{Hysteresis, StageModel};
 use twinstack_link::measured_data::MeasuredData;
-use crate::plot::{draw_panels, Panel, Series};
 
 /// The differential stage's first resonance (see the book, docs/src/reference/physics.md), Hz: where the notch sits.
 pub const RESONANCE_HZ: f64 = 21_800.0;

@@ -14,6 +14,7 @@
 //! 4. **Plot** the hysteresis loops of both configurations and the tracking error over one
 //!    cycle (PNG).
 
+use crate::plot::{draw_panels, Panel, Series};
 use anyhow::{anyhow, Context, Result};
 use hal_sim::plant::Configuration as StageConfiguration;
 use hal_sim::sim_board::{BoardConfig, ExternalBoard, SimBoard};
@@ -32,7 +33,6 @@ use twinstack_identify::identification::{
 };
 use twinstack_identify::stage_model::{Hysteresis, StageModel};
 use twinstack_link::measured_data::MeasuredData;
-use crate::plot::{draw_panels, Panel, Series};
 
 /// What the demo runs.
 #[derive(Clone, Debug)]

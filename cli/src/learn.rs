@@ -17,6 +17,7 @@
 use crate::closed_loop::{
     board, hardware, identify_model, sensor_settings, settings, ClosedLoopOptions, Configuration4,
 };
+use crate::plot::{draw_panels, Panel, Series};
 use anyhow::{anyhow, bail, Context, Result};
 use hal_sim::sim_board::ExternalBoard;
 use plotters::style::{BLACK, BLUE, RED};
@@ -33,7 +34,6 @@ use twinstack::services::recorder::CAPTURE_SLOTS;
 use twinstack::sources::waveform::{Shape, WaveformGenerator};
 use twinstack_identify::identification::score::score;
 use twinstack_identify::stage_model::StageModel;
-use crate::plot::{draw_panels, Panel, Series};
 
 /// The waveform to learn: a shape and a frequency.
 #[derive(Clone, Copy, Debug, PartialEq)]

@@ -8,8 +8,8 @@
 
 use plotters::prelude::*;
 use std::path::Path;
-use twinstack_link::capture::Recording;
 use std::sync::Once;
+use twinstack_link::capture::Recording;
 
 /// The embedded font.
 const FONT: &[u8] = include_bytes!("../assets/DejaVuSansMono.ttf");

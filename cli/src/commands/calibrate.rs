@@ -11,6 +11,7 @@
 
 use super::board_link::{connect, PortArgs};
 use super::params::ModeArg;
+use crate::plot::{draw_charts, Bar, BarPanel, Chart, Panel, Series};
 use anyhow::bail;
 use plotters::style::RGBColor;
 use std::path::{Path, PathBuf};
@@ -18,7 +19,6 @@ use twinstack::services::recorder::Channel;
 use twinstack_identify::calibrate::{calibrate, CalibrateOptions, CalibrationReport, Progress};
 use twinstack_identify::identification::auto::Validation;
 use twinstack_link::output_file::Staged;
-use crate::plot::{draw_charts, Bar, BarPanel, Chart, Panel, Series};
 
 /// Arguments of `calibrate`.
 #[derive(Debug, clap::Args)]

@@ -3,6 +3,7 @@
 //! `t < SECONDS`, scores
 //! on the rest, writes the parameter file and a PNG beside it (`PARAMS.png`).
 
+use crate::plot::{draw, IdentificationFigure};
 use anyhow::{anyhow, bail};
 use std::path::PathBuf;
 use twinstack_identify::identification::run::{
@@ -14,7 +15,6 @@ use twinstack_identify::identification::{
 };
 use twinstack_link::measured_data::{ColumnNames, Columns, MeasuredData};
 use twinstack_link::output_file::Staged;
-use crate::plot::{draw, IdentificationFigure};
 
 /// Arguments of `identify`.
 #[derive(Debug, clap::Args)]

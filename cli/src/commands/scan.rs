@@ -13,13 +13,13 @@ use anyhow::{bail, Context};
 use plotters::style::{RGBColor, BLACK, BLUE, RED};
 
 use super::board_link::{connect, PortArgs};
+use crate::plot::{draw_panels, Panel, Series};
 use twinstack::protocol::messages::{
     CaptureRequest, Request, ScanRequest, StreamControl, Trigger, TriggerConfig, TriggerEdge,
 };
 use twinstack::services::recorder::Channel;
 use twinstack::sources::scan::{slew_step, LINE, PIXEL};
 use twinstack_link::capture::wait_and_read;
-use crate::plot::{draw_panels, Panel, Series};
 use twinstack_link::scan_timing::{analyse, parse_pattern, table, ScanFigures};
 
 /// Arguments of `scan`.

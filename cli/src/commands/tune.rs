@@ -7,6 +7,7 @@
 //! unstable or short of the margins).
 
 use super::board_link::{connect, PortArgs, UsageError};
+use crate::plot::{draw_panels, Panel, Series};
 use hal_sim::sim_device::{LinkDelay, SimDevice, SimDeviceConfig};
 use plotters::style::RGBColor;
 use std::path::{Path, PathBuf};
@@ -15,7 +16,6 @@ use twinstack::control::feedback::FeedbackSettings;
 use twinstack::control::notch::NotchDesign;
 use twinstack_identify::tune::loop_model::{loop_response, LoopController};
 use twinstack_identify::tune::{tune, TuneOptions, TuneReport};
-use crate::plot::{draw_panels, Panel, Series};
 use twinstack_link::{Client, Transport};
 
 /// Arguments of `tune`.
