@@ -3,18 +3,18 @@
 //!
 //! A figure is a block of a page between `<!-- figures:NAME -->` and `<!-- /figures -->`: the
 //! command that makes it, then what it prints, turned into a table. `cargo xtask figures` runs
-//! each command (the host tool's optimised build: `cargo run --profile host-opt -p twinstack-cli`) and rewrites the
-//! block; with `--check` it writes nothing and fails when a page differs from what the code
-//! produces now. `cargo xtask test` runs the check for the figures marked deterministic and
-//! cheap (they depend on nothing but the code and the committed data), so a change that moves
-//! them has to update the page in the same commit.
+//! each command and rewrites the block; with `--check` it writes nothing and fails when a page
+//! differs from what the code produces now. `cargo xtask test` runs the check for the figures
+//! marked deterministic (they depend on nothing but the code and the committed data), so a
+//! change that moves them has to update the page in the same commit.
 //!
-//! A figure comes from one of three sources ([`Source`]): the host tool's runs; a cargo
-//! command run as is (the host benchmarks and the simulator's throughput examples, whose
-//! figures are timings of the machine: written, never checked); or a file a long command
-//! writes, read rather than run (the whole-interrupt bench in QEMU, 20–30 minutes: its
-//! instruction and cycle counts are deterministic, so `--check` compares the page with the
-//! bench's latest output, and fails, naming the command, when there is none).
+//! A figure comes from one of three sources ([`Source`]): the host tool's runs (its optimised
+//! build, `cargo run --profile host-opt -p twinstack-cli`); a cargo command run as is (the
+//! fixed-point accuracy table, checked; the host benchmarks and the throughput examples,
+//! timings of the machine, written only when named and never checked); or a file a long
+//! command writes, read rather than run (the QEMU benches, the whole interrupt's taking 20–30
+//! minutes: their instruction and cycle counts are deterministic, so `--check` compares the
+//! page with the bench's latest output, and fails, naming the command, when there is none).
 
 use std::path::Path;
 use std::process::Command;
@@ -69,7 +69,7 @@ enum Render {
     Many(fn(&[Run]) -> Result<String, String>),
 }
 
-/// One run of the host tool: its arguments and what it printed.
+/// One run: its arguments and what it printed (or the file it wrote).
 struct Run {
     args: &'static [&'static str],
     out: String,
