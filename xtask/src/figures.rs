@@ -1550,11 +1550,8 @@ fn tick_cost(out: &str) -> Result<String, String> {
     {
         let c5 = field(h, "cycles_ws5")?;
         t.push_str(&format!(
-            "| {} | {} | {} | {} | {} | {:.1} |\n",
-            format!(
-                "`{}`",
-                h.get("site").and_then(Value::as_str).ok_or("no site")?
-            ),
+            "| `{}` | {} | {} | {} | {} | {:.1} |\n",
+            h.get("site").and_then(Value::as_str).ok_or("no site")?,
             grouped(field(h, "count")?),
             grouped(field(h, "instructions")?),
             grouped(field(h, "cycles")?),
@@ -1703,7 +1700,9 @@ pub fn run(root: &Path, args: &[String]) -> Result<(), String> {
     let mut stale = Vec::new();
     for f in FIGURES {
         let named = names.contains(&f.name);
-        if (!names.is_empty() && !named) || (!named && !f.checked) || (check && !f.checked) {
+        // Run: what is named, or with no names every checked figure; `--check` only checked ones.
+        let wanted = named || (names.is_empty() && f.checked);
+        if !wanted || (check && !f.checked) {
             if names.is_empty() && !f.checked && !check {
                 println!(
                     "{}: {} left as it is (timings: `cargo xtask figures {}` writes it)",
