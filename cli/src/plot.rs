@@ -392,38 +392,6 @@ fn draw_bars<'a>(area: &Area<'a>, panel: &BarPanel) -> DrawResult<'a> {
     Ok(())
 }
 
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn the_figure_renders_to_a_png_with_the_embedded_font() {
-        let t: Vec<f64> = (0..400).map(|k| k as f64 * 0.01).collect();
-        let u: Vec<f64> = t.iter().map(|&t| 100.0 * (t * 3.0).sin()).collect();
-        let measured: Vec<f64> = u.iter().map(|&v| 0.1 * v + 0.3).collect();
-        let model: Vec<f64> = u.iter().map(|&v| 0.1 * v).collect();
-        let dir = tempfile::tempdir().unwrap();
-        let path = dir.path().join("figure.png");
-        let fig = IdentificationFigure {
-            title: "test",
-            t: &t,
-            u: &u,
-            measured: &measured,
-            model: &model,
-            held_out_from: 300,
-            fit_from: 10,
-            output_unit: "um",
-        };
-        draw(&path, &fig).unwrap();
-        let bytes = std::fs::read(&path).unwrap();
-        assert_eq!(&bytes[..8], b"\x89PNG\r\n\x1a\n");
-        assert!(
-            bytes.len() > 10_000,
-            "a figure with axes and text, not an empty image"
-        );
-    }
-}
-
 /// Draws a capture or a telemetry recording into the PNG `path`: one panel for the displacements (µm), one for
 /// the stack voltages, against time.
 pub fn capture(recording: &Recording, path: &Path, title: &str) -> Result<(), PlotError> {
@@ -462,4 +430,36 @@ pub fn capture(recording: &Recording, path: &Path, title: &str) -> Result<(), Pl
         }
     }
     draw_panels(path, title, &panels, 1)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_figure_renders_to_a_png_with_the_embedded_font() {
+        let t: Vec<f64> = (0..400).map(|k| k as f64 * 0.01).collect();
+        let u: Vec<f64> = t.iter().map(|&t| 100.0 * (t * 3.0).sin()).collect();
+        let measured: Vec<f64> = u.iter().map(|&v| 0.1 * v + 0.3).collect();
+        let model: Vec<f64> = u.iter().map(|&v| 0.1 * v).collect();
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("figure.png");
+        let fig = IdentificationFigure {
+            title: "test",
+            t: &t,
+            u: &u,
+            measured: &measured,
+            model: &model,
+            held_out_from: 300,
+            fit_from: 10,
+            output_unit: "um",
+        };
+        draw(&path, &fig).unwrap();
+        let bytes = std::fs::read(&path).unwrap();
+        assert_eq!(&bytes[..8], b"\x89PNG\r\n\x1a\n");
+        assert!(
+            bytes.len() > 10_000,
+            "a figure with axes and text, not an empty image"
+        );
+    }
 }
