@@ -177,12 +177,9 @@ fn tick_cost_table_and_image_size() {
     out!(md);
     out!(
         md,
-        "Instructions per control tick (QEMU netduinoplus2, -icount shift=0, opt-level {},",
+        "Instructions per control tick (QEMU netduinoplus2, -icount shift=0, opt-level {}, \
+         `Controller::tick` on the firmware's DAC/ADC drivers, 1000 ticks of a ±0.95 triangle):",
         firmware_opt_level()
-    );
-    out!(
-        md,
-        "Controller::tick on the firmware's DAC/ADC drivers, 1000 ticks of a ±0.95 triangle):"
     );
     out!(md);
     out!(
@@ -273,6 +270,11 @@ fn tick_cost_table_and_image_size() {
         );
     }
 
+    out!(
+        md,
+        "\nEach image's size (flash: loadable segments at flash addresses; static RAM: `.data` + \
+         `.bss` + `.uninit`, CCM included):"
+    );
     out!(md, "\n| image | flash (bytes) | static RAM (bytes) |");
     out!(md, "|---|---:|---:|");
     let board = support::build_image(support::FIRMWARE, "twinstack-fw", &[]);

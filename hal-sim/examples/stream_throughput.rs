@@ -8,8 +8,9 @@
 //!
 //! **In-process** (`SimDevice`: the library's command handler and control loop on a UART
 //! modelled at 2 Mbaud, 10 bits a byte, simulated time): streams 10 s of setpoints at one per
-//! tick — a ±0.95 sine, and a worst case where every sample takes 3 bytes on the wire — at
-//! 50 kHz, then at higher tick rates to find where 2 Mbaud runs out. Reports setpoints per
+//! tick — a ±0.95 sine, and a full-range stream whose every sample would take 3 bytes as a
+//! varint (packed, both take two) — at 50 kHz, then at higher tick rates to find where 2 Mbaud
+//! runs out. Reports setpoints per
 //! second of board time, underruns counted by the board while the stream still had setpoints
 //! to deliver, refusals, wire bytes per setpoint and the line's utilisation.
 //!
@@ -120,11 +121,11 @@ fn header() {
 fn in_process(seconds: f64) -> Result<(), String> {
     println!("in-process SimDevice, 2 Mbaud (10 bits/byte), divider 1, hold on underrun:");
     header();
-    for rate in [50_000.0, 60_000.0, 65_000.0, 70_000.0, 80_000.0] {
+    for rate in [50_000.0, 60_000.0, 70_000.0, 80_000.0, 90_000.0, 100_000.0] {
         let n = (seconds * rate) as usize;
         for (name, samples) in [
             ("sine ±0.95", sine(n, rate)),
-            ("worst case (3 B/sample)", worst_case(n)),
+            ("full range (3 B as varints)", worst_case(n)),
         ] {
             let mut config = SimDeviceConfig::paper();
             config.board.plant.dt = 1.0 / rate;

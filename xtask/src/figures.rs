@@ -1591,7 +1591,7 @@ fn block(f: &Figure, body: &str) -> String {
         String::new()
     } else {
         format!(
-            " (`cargo xtask figures {}`; timings of the machine it ran on, not checked)",
+            " only when named (`cargo xtask figures {}`; not checked)",
             f.name
         )
     };
