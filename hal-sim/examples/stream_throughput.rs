@@ -7,10 +7,11 @@
 //! ```
 //!
 //! **In-process** (`SimDevice`: the library's command handler and control loop on a UART
-//! modelled at 2 Mbaud, 10 bits a byte, simulated time): streams 10 s of setpoints at one per
+//! modelled at the board's link rate, `LINK_BAUD`, 10 bits a byte, simulated time): streams
+//! 10 s of setpoints at one per
 //! tick — a ±0.95 sine, and a full-range stream whose every sample would take 3 bytes as a
-//! varint (packed, both take two) — at 50 kHz, then at higher tick rates to find where 2 Mbaud
-//! runs out. Reports setpoints per
+//! varint (packed, both take two) — at 50 kHz, then at higher tick rates up to the board's
+//! highest, 100 kHz. Reports setpoints per
 //! second of board time, underruns counted by the board while the stream still had setpoints
 //! to deliver, refusals, wire bytes per setpoint and the line's utilisation.
 //!
@@ -27,6 +28,7 @@ use hal_sim::sim_device::{SimDevice, SimDeviceConfig};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 use twinstack::protocol::messages::UnderrunPolicy;
+use twinstack::protocol::LINK_BAUD;
 use twinstack_link::client::Client;
 use twinstack_link::streamer::{stream_setpoints, StreamOptions, StreamReport};
 use twinstack_link::Transport;
@@ -119,21 +121,21 @@ fn header() {
 }
 
 fn in_process(seconds: f64) -> Result<(), String> {
-    println!("in-process SimDevice, 2 Mbaud (10 bits/byte), divider 1, hold on underrun:");
+    println!(
+        "in-process SimDevice, {} Mbaud (10 bits/byte), divider 1, hold on underrun:",
+        f64::from(LINK_BAUD) / 1e6
+    );
     header();
     for rate in [50_000.0, 60_000.0, 70_000.0, 80_000.0, 90_000.0, 100_000.0] {
         let n = (seconds * rate) as usize;
-        for (name, samples) in [
-            ("sine ±0.95", sine(n, rate)),
-            ("full range (3 B as varints)", worst_case(n)),
-        ] {
+        for (name, samples) in [("sine ±0.95", sine(n, rate)), ("full range", worst_case(n))] {
             let mut config = SimDeviceConfig::paper();
             config.board.plant.dt = 1.0 / rate;
             let dev = SimDevice::new(config).map_err(|e| e.to_string())?;
             let mut client = Client::new(dev);
             let label = format!("{name} @ {} kHz", rate / 1000.0);
             match stream(&mut client, &samples) {
-                Ok((r, wall)) => print_report(&label, &r, rate, Some(2_000_000.0), wall),
+                Ok((r, wall)) => print_report(&label, &r, rate, Some(f64::from(LINK_BAUD)), wall),
                 Err(e) => println!("{label:<34} failed: {e}"),
             }
         }
@@ -169,7 +171,10 @@ impl<T: Transport> Transport for LossyLine<T> {
 
 fn lossy(seconds: f64) -> Result<(), String> {
     println!();
-    println!("in-process, 50 kHz, 2 Mbaud, one bit flipped in every N-th host → board frame:");
+    println!(
+        "in-process, 50 kHz, {} Mbaud, one bit flipped in every N-th host → board frame:",
+        f64::from(LINK_BAUD) / 1e6
+    );
     println!(
         "{:<34} {:>8} {:>9} {:>8} {:>7} {:>9} {:>8} {:>10}",
         "", "setpts", "damaged", "nacks", "resent", "underrun", "crc err", "batches"

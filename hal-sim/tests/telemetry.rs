@@ -1,5 +1,5 @@
 //! Continuous telemetry on the in-process board (`SimDevice`: the library's command handler,
-//! control loop and telemetry on a UART modelled at 2 Mbaud, 10 bits a byte, simulated time
+//! control loop and telemetry on a UART modelled at the board's link rate (`LINK_BAUD`), 10 bits a byte, simulated time
 //! — deterministic counts, not timings).
 //!
 //! `cargo test -p hal-sim --test telemetry -- --nocapture` prints the figures of
@@ -16,8 +16,8 @@ use twinstack_link::client::{Client, LinkError};
 use twinstack_link::streamer::{stream_setpoints, StreamOptions};
 use twinstack_link::telemetry::{wait_for_end, TelemetryRecord};
 
-/// 2 Mbaud, 8N1: bytes per second each way.
-const LINE_BYTES_PER_S: f64 = 200_000.0;
+/// The board's link (`LINK_BAUD`), 8N1: bytes per second each way.
+const LINE_BYTES_PER_S: f64 = twinstack::protocol::LINK_BAUD as f64 / 10.0;
 const RATE_HZ: f64 = 50_000.0;
 
 /// Every sample ≥ 2^13 in magnitude: 3 bytes each on the wire (the setpoints' worst case).
@@ -82,7 +82,7 @@ fn run(signals: u8, decimation: u16, seconds: f64) -> Figures {
 /// 2 signals at 10 kHz each while setpoints stream in at 50 k/s, for 2 s of
 /// simulated time: every sample arrives (no gap, no frame missing, nothing dropped on the
 /// board), the setpoints stream without an underrun, and both directions stay within the
-/// 2 Mbaud line.
+/// line.
 #[test]
 fn two_signals_at_10_khz_beside_a_50k_stream_lose_nothing() {
     let signals = Channel::Setpoint.bit() | Channel::Sensor.bit();
