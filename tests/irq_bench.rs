@@ -573,9 +573,9 @@ fn the_whole_interrupt_in_every_scenario() {
     let mut figures = serde_json::json!({
         "sysclk_hz": SYSCLK_HZ,
         "goal_cycles": GOAL_CYCLES,
-        "scan_cycles": twinstack::tick_budget::SCAN_CYCLES,
-        "learning_cycles": twinstack::tick_budget::LEARNING_CYCLES,
-        "analog_cycles": twinstack::tick_budget::ANALOG_CYCLES,
+        "scan_cycles": twinstack::config::tick_budget::SCAN_CYCLES,
+        "learning_cycles": twinstack::config::tick_budget::LEARNING_CYCLES,
+        "analog_cycles": twinstack::config::tick_budget::ANALOG_CYCLES,
         "part_names": PART_NAMES,
         "stack": { "used": used, "room": room, "reserve": reserve },
     });

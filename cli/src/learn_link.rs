@@ -17,6 +17,7 @@
 
 use crate::board_link::{connect, BoardClient, PortArgs};
 use crate::learn::{period_ticks, LearnOptions};
+use crate::plot::{draw_panels, Panel, Series};
 use anyhow::{anyhow, bail, Context, Result};
 use plotters::style::{BLACK, BLUE, RED};
 use std::path::PathBuf;
@@ -27,7 +28,6 @@ use twinstack::protocol::messages::{
     Waveform,
 };
 use twinstack::services::learning::PeriodError;
-use crate::plot::{draw_panels, Panel, Series};
 
 /// One period as the board's sensor saw it, % of the commanded stroke.
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize)]

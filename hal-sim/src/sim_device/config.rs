@@ -94,7 +94,7 @@ impl SimDeviceConfig {
             .collect();
         let model = pi_model(0.0, -28.0, &thresholds, &weights)
             .expect("8 increasing thresholds and positive weights form a model");
-        let mut drive = twinstack::drive::DriveSettings::DEFAULT;
+        let mut drive = twinstack::control::drive::DriveSettings::DEFAULT;
         drive.slew_rate = 0.9e6;
         Settings {
             ranges: Scaling {

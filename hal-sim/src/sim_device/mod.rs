@@ -52,21 +52,21 @@ use std::io;
 use std::time::Duration;
 
 use rtic_core::Exclusive;
-use twinstack::analog_input::AnalogInputConfig;
 use twinstack::board::{Hardware, WATCHDOG_TIMEOUT_MS};
 use twinstack::command_handler::CommandHandler;
+use twinstack::config::param_store::{
+    self, RamStorage, RecordStorage, StorageError, StoredRecord, MAX_RECORD,
+};
+use twinstack::config::settings::{pi_model, FeedbackSettings, Mode, SensorSettings, Settings};
 use twinstack::control::{Controller, TickReport};
 use twinstack::control_loop::{ControlLoop, SetpointQueue};
 use twinstack::dual_stage::{CoarseLimits, CoarseStatus};
-use twinstack::param_store::{
-    self, RamStorage, RecordStorage, StorageError, StoredRecord, MAX_RECORD,
-};
 use twinstack::protocol::messages::{Request, Response};
-use twinstack::recorder::CAPTURE_SLOTS;
 use twinstack::refusal::Refusal;
-use twinstack::sequence::SETTLED;
-use twinstack::settings::{pi_model, FeedbackSettings, Mode, SensorSettings, Settings};
-use twinstack::telemetry::TelemetryQueue;
+use twinstack::services::recorder::CAPTURE_SLOTS;
+use twinstack::services::telemetry::TelemetryQueue;
+use twinstack::sources::analog_input::AnalogInputConfig;
+use twinstack::sources::sequence::SETTLED;
 use twinstack::Scaling;
 
 use crate::converters::{AnalogDualDac, AnalogSensorAdc, InternalAdc, InternalDac};

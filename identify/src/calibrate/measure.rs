@@ -76,7 +76,7 @@ pub(super) fn measure<T: Transport>(
     let rate_limit = BoardRate::sizing(rate, options.operators.is_some());
     id_options.lag = options.lag;
     // Only a model the board runs at its control rate with its drive, sensor and feedback:
-    // the tick budget the board applies at load ([`twinstack::tick_budget`]), applied here
+    // the tick budget the board applies at load ([`twinstack::config::tick_budget`]), applied here
     // first, so that `auto` picks among what the board takes.
     let runs_on_board = |id: &Identification| {
         let mut settings = ParamFile::from_model(&id.model, &options.output_unit, None).settings;

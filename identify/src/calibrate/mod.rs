@@ -48,12 +48,12 @@ use crate::identification::{
 use crate::param_file::{IdentificationRecord, ParamFile};
 use crate::trajectory;
 use std::time::Duration;
+use twinstack::config::settings::Settings;
 use twinstack::protocol::messages::{
     CaptureRequest, CaptureStatus, Mode, StatusReport, StreamControl, Trigger, UnderrunPolicy,
     WaveDecay, WaveShape, Waveform,
 };
-use twinstack::recorder::Channel;
-use twinstack::settings::Settings;
+use twinstack::services::recorder::Channel;
 use twinstack_link::capture::{self, CaptureError, ConvertError, Recording};
 use twinstack_link::client::{Client, LinkError};
 use twinstack_link::measured_data::MeasuredData;

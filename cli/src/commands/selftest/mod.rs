@@ -30,13 +30,13 @@ use hal_sim::port::PortSpec;
 use std::io::Write;
 use std::time::{Duration, Instant};
 use twinstack::board::WATCHDOG_TIMEOUT_MS;
+use twinstack::config::settings::{Mode, SensorSettings, Settings};
 use twinstack::protocol::frame::FrameError;
 use twinstack::protocol::messages::{
     CaptureRequest, CaptureState, Image, NackReason, Request, Response, StatusReport, Trigger,
     MAX_ECHO,
 };
-use twinstack::recorder::Channel;
-use twinstack::settings::{Mode, SensorSettings, Settings};
+use twinstack::services::recorder::Channel;
 use twinstack_link::client::LinkError;
 use twinstack_link::streamer::{stream_setpoints, StreamOptions};
 use twinstack_link::Transport;
