@@ -243,3 +243,93 @@ impl ObserverRun {
         }
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::board::Hardware;
+    use crate::config::settings::{representative_pi, Settings};
+    use crate::models::creep::CreepParams;
+
+    /// A P–I 8 compensator and observer with two creep modes, built as the board builds them.
+    fn config() -> crate::control::ControlConfig {
+        let pi = representative_pi(8).unwrap();
+        Settings {
+            compensator: Some(pi.clone()),
+            observer: Some(pi),
+            creep: Some(CreepParams::new(&[0.01, 0.1], &[0.02, 0.03]).unwrap()),
+            ..Settings::default()
+        }
+        .build(&Hardware::driver_board(50_000.0))
+        .unwrap()
+    }
+
+    #[test]
+    fn creep_runs_in_series_before_the_inverse_and_after_the_forward_model() {
+        let config = config();
+        let (Compensator::InversePi(inverse), Observer::Pi(forward), Some(creep)) =
+            (config.compensator, config.observer, config.creep)
+        else {
+            panic!("the settings build a P–I pair with creep");
+        };
+        let u0 = crate::fixed_point::signal_from_f64(0.25);
+        let (mut observer, y0) = config.observer.prepare(config.creep, u0);
+        let mut compensator = config.compensator.prepare(&observer, config.creep, u0, y0);
+        // By hand: the observer relaxed at u0, the compensator's operators from the
+        // observer's, both creeps settled at the observer's output.
+        let mut fs = forward.state_at_rest(u0);
+        assert_eq!(forward.step(&mut fs, u0), y0);
+        let mut is = inverse.state_from_forward(&forward.bank().outputs(&fs));
+        let (mut cf, mut ci) = (creep.state_at_rest(y0), creep.state_at_rest(y0));
+        let mut moved = false;
+        for k in 0..400 {
+            let x = crate::fixed_point::signal_from_f64(0.8 * libm::sin(k as f64 * 0.05));
+            let u = compensator.step(x);
+            assert_eq!(
+                u,
+                inverse.step(&mut is, creep.inverse_step(&mut ci, x)),
+                "tick {k}"
+            );
+            let y = observer.step(u);
+            assert_eq!(
+                y,
+                creep.forward_step(&mut cf, forward.step(&mut fs, u)),
+                "tick {k}"
+            );
+            moved |= u != x;
+        }
+        assert!(moved, "the compensator shapes the drive");
+    }
+
+    #[test]
+    fn without_creep_a_model_runs_alone_and_without_a_model_creep_does_not_run() {
+        let config = config();
+        let u0 = 1 << 28;
+        let (run, _) = config.observer.prepare(None, u0);
+        let ObserverRun::Pi(r) = run else {
+            panic!("a P–I observer");
+        };
+        assert_eq!(r.model.1, None);
+        assert_eq!(r.model.cycles(), config.observer.cycles());
+        let (run, y) = Observer::None.prepare(config.creep, u0);
+        assert_eq!((run, y), (ObserverRun::None, u0));
+        assert_eq!(Observer::None.cycles(), 0);
+        let mut none = Compensator::None.prepare(&run, config.creep, u0, y);
+        assert_eq!(none.step(12_345), 12_345);
+        // With creep, the series costs the model and the creep.
+        let (run, y) = config.observer.prepare(config.creep, u0);
+        let ObserverRun::Pi(r) = run else {
+            panic!("a P–I observer");
+        };
+        let creep = config.creep.unwrap();
+        assert_eq!(r.model.cycles(), config.observer.cycles() + creep.cycles());
+        let CompensatorRun::InversePi(c) = config.compensator.prepare(&run, config.creep, u0, y)
+        else {
+            panic!("a P–I compensator");
+        };
+        assert_eq!(
+            c.model.cycles(),
+            config.compensator.cycles() + creep.cycles()
+        );
+    }
+}

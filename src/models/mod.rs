@@ -26,8 +26,9 @@
 //!
 //! Adding a model: its module here (the forward and inverse types, [`Hysteresis`],
 //! [`Forward`] and [`Inverse`] implemented on them, their cost beside them), one variant in
-//! each of [`dispatch`]'s enums, and its parameters in [`params::Model`] with the line in
-//! [`crate::config::settings::Settings::build`] that builds it.
+//! each of [`dispatch`]'s enums, its parameters in [`params`] and a
+//! [`Model`](crate::config::settings::Model) variant, with the lines in
+//! [`crate::config::settings::Settings::build`] that build it.
 
 pub mod bouc_wen;
 pub mod creep;
