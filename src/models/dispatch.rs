@@ -91,16 +91,13 @@ pub enum ObserverRun {
 /// `m` after the inverse creep, with its state: matched to the observer's where that runs the
 /// model `m` inverts, else relaxed at drive `u` with the stage at `y`; the creep's modes
 /// settled at `y` (where the models are relaxed, so it passes `y` through).
-fn compensating<M: Inverse>(
+fn compensating<M: Inverse + Copy>(
     m: &M,
     observer: &ObserverRun,
     creep: Option<Creep>,
     u: i32,
     y: i32,
-) -> Running<Compensating<M>>
-where
-    M: Copy,
-{
+) -> Running<Compensating<M>> {
     let state = m
         .matching(observer)
         .unwrap_or_else(|| Inverse::relaxed(m, u, y));
