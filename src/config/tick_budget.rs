@@ -5,7 +5,8 @@
 //! stream, the sensor, the feedback, the drift check, the drive stage, the recorder, telemetry's
 //! tap, the DAC write, the watchdog) and the models, whose banks grow with their operators, dead
 //! zones and creep modes. [`worst_case_cycles`] adds these up from a built
-//! [`ControlConfig`]; [`Settings::build`](crate::config::settings::Settings::build) refuses
+//! [`ControlConfig`], asking each model for its own cost ([`Hysteresis::cycles`], declared
+//! beside the model: [`crate::models::prandtl_ishlinskii::PI_PAIR_CYCLES`] and the like); [`Settings::build`](crate::config::settings::Settings::build) refuses
 //! ([`Field::Workload`], [`Rule::TickOverrun`]) a configuration whose prediction exceeds
 //! [`TICK_SHARE_PERCENT`] of the control period, so that no loaded configuration overruns the
 //! interrupt at the board's rate, and the link, the command handler and the coarse axis keep the
@@ -18,7 +19,7 @@
 //! that its worst tick stays under this prediction and that the prediction is not loose by more
 //! than a stated factor. Between the measured sizes the prediction is linear in operators, dead
 //! zones and modes, as the banks' loops are. A change that makes the tick dearer fails that
-//! bench until the coefficients here are raised.
+//! bench until the coefficients (here, and each model's beside it) are raised.
 //!
 //! ```
 //! use twinstack::board::Hardware;
@@ -31,6 +32,7 @@
 //! ```
 
 use crate::control::{Compensator, ControlConfig, Observer};
+use crate::models::Hysteresis;
 use crate::refusal::{Field, Refusal, Rule};
 
 /// The core clock the board runs at, Hz.
@@ -52,25 +54,6 @@ pub const TICK_SHARE_PERCENT: u32 = 100;
 /// and the first tick after a reload or a mode switch (its rebase, up to 50 instructions more).
 /// 1 130 since input shaping: its test on the tick (off) and the handler's code around it.
 pub const FIXED_CYCLES: u32 = 1130;
-/// A P–I bank's cost beyond its operators (the inverse's and the forward's alike): the call
-/// to the bank's step, the input's conversion, the sum's.
-pub const PI_BASE_CYCLES: u32 = 92;
-/// Each pair of play operators (one packed word) of a P–I bank (written out pair by pair:
-/// 34 cycles as a loop).
-pub const PI_PAIR_CYCLES: u32 = 22;
-/// A generalised P–I's dead-zone map beyond its dead zones (the call to its one copy).
-pub const DEAD_ZONE_BASE_CYCLES: u32 = 49;
-/// Each dead zone of a generalised P–I's map.
-pub const DEAD_ZONE_CYCLES: u32 = 22;
-/// A Duhem model (either direction).
-pub const DUHEM_CYCLES: u32 = 170;
-/// A Bouc–Wen model (either direction).
-pub const BOUC_WEN_CYCLES: u32 = 88;
-/// A creep operator beyond its modes (per side it runs on: the compensator's inverse, the
-/// observer's forward).
-pub const CREEP_BASE_CYCLES: u32 = 95;
-/// Each creep mode, per side (written out mode by mode: 40 as a loop).
-pub const CREEP_MODE_CYCLES: u32 = 36;
 /// The feedback's derivative term.
 pub const DERIVATIVE_CYCLES: u32 = 50;
 /// The feedback's notch (one biquad); the feedforward's notch (input shaping,
@@ -106,53 +89,15 @@ pub fn available_cycles(control_rate_hz: f64) -> u32 {
     (period * TICK_SHARE_PERCENT as f64 / 100.0) as u32
 }
 
-fn pi_cycles(operators: usize) -> u32 {
-    PI_BASE_CYCLES + PI_PAIR_CYCLES * operators.div_ceil(2) as u32
-}
-
-fn dead_zone_cycles(dead_zones: usize) -> u32 {
-    DEAD_ZONE_BASE_CYCLES + DEAD_ZONE_CYCLES * dead_zones as u32
-}
-
-/// The compensator's own cost (without creep).
-fn compensator_cycles(c: &Compensator) -> u32 {
-    match c {
-        Compensator::None => 0,
-        Compensator::InversePi(m) => pi_cycles(m.operators()),
-        Compensator::InverseDuhem(_) => DUHEM_CYCLES,
-        Compensator::InverseGeneralisedPi(m) => {
-            let (operators, dead_zones) = m.size();
-            pi_cycles(operators) + dead_zone_cycles(dead_zones)
-        }
-        Compensator::InverseBoucWen(_) => BOUC_WEN_CYCLES,
-    }
-}
-
-/// The observer's own cost (without creep).
-fn observer_cycles(o: &Observer) -> u32 {
-    match o {
-        Observer::None => 0,
-        Observer::Pi(m) => pi_cycles(m.operators()),
-        Observer::Duhem(_) => DUHEM_CYCLES,
-        Observer::GeneralisedPi(m) => {
-            let (operators, dead_zones) = m.size();
-            pi_cycles(operators) + dead_zone_cycles(dead_zones)
-        }
-        Observer::BoucWen(_) => BOUC_WEN_CYCLES,
-    }
-}
-
 /// The predicted worst case of the whole interrupt running `config`, cycles at 5 flash wait
 /// states (see the module doc for what it covers and how it is checked).
 pub fn worst_case_cycles(config: &ControlConfig) -> u32 {
-    let mut cycles =
-        FIXED_CYCLES + compensator_cycles(&config.compensator) + observer_cycles(&config.observer);
+    // Each model declares its own cost; creep runs in series on each side that has a model.
+    let mut cycles = FIXED_CYCLES + config.compensator.cycles() + config.observer.cycles();
     if let Some(creep) = &config.creep {
-        let side = CREEP_BASE_CYCLES + CREEP_MODE_CYCLES * creep.modes() as u32;
-        // Creep runs on each side that has a model.
         let sides = u32::from(!matches!(config.compensator, Compensator::None))
             + u32::from(!matches!(config.observer, Observer::None));
-        cycles += side * sides;
+        cycles += creep.cycles() * sides;
     }
     if let Some(feedback) = &config.feedback {
         if feedback.derivative.is_some() {
@@ -218,7 +163,8 @@ mod tests {
     use super::*;
     use crate::board::Hardware;
     use crate::config::settings::{representative_gpi, representative_pi, Settings};
-    use crate::models::creep::CreepParams;
+    use crate::models::creep::{CreepParams, CREEP_BASE_CYCLES, CREEP_MODE_CYCLES};
+    use crate::models::generalised_pi::{DEAD_ZONE_BASE_CYCLES, DEAD_ZONE_CYCLES};
 
     fn build(s: &Settings) -> ControlConfig {
         s.build(&Hardware::driver_board(10_000.0)).unwrap()

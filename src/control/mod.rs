@@ -41,45 +41,9 @@ use crate::control::mode_switch::{BumplessTransfer, ModeError};
 use crate::control::notch::{Notch, NotchState};
 pub use crate::control::sensor::Sensor;
 use crate::fixed_point::clamp_full_scale;
-use crate::models::bouc_wen::{BoucWen, BoucWenState, InverseBoucWen};
-use crate::models::creep::{Creep, CreepState};
-use crate::models::duhem::{Duhem, DuhemState, InverseDuhem};
-use crate::models::generalised_pi::{GeneralisedPi, InverseGeneralisedPi};
-use crate::models::prandtl_ishlinskii::{InversePrandtlIshlinskii, PiState, PrandtlIshlinskii};
-
-/// The feedforward compensator: desired displacement → drive.
-// The variants differ in size by design: there is no heap on the board, and the configuration
-// lives in a static, so boxing the large variant is neither possible nor wanted.
-#[allow(clippy::large_enum_variant)]
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum Compensator {
-    /// No compensation: the drive is the setpoint, range onto range (bypass).
-    None,
-    /// Analytic inverse Prandtl–Ishlinskii.
-    InversePi(InversePrandtlIshlinskii),
-    /// Inverse Duhem.
-    InverseDuhem(InverseDuhem),
-    /// Analytic inverse of the generalised (asymmetric) P–I.
-    InverseGeneralisedPi(InverseGeneralisedPi),
-    /// Inverse-multiplicative Bouc–Wen.
-    InverseBoucWen(InverseBoucWen),
-}
-
-/// The forward observer: applied drive → estimated displacement.
-#[allow(clippy::large_enum_variant)] // as for `Compensator`
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum Observer {
-    /// No observer (estimate reads 0).
-    None,
-    /// Forward Prandtl–Ishlinskii.
-    Pi(PrandtlIshlinskii),
-    /// Forward Duhem.
-    Duhem(Duhem),
-    /// Forward generalised (asymmetric) P–I.
-    GeneralisedPi(GeneralisedPi),
-    /// Forward Bouc–Wen.
-    BoucWen(BoucWen),
-}
+use crate::models::creep::Creep;
+pub use crate::models::{Compensator, Observer};
+use crate::models::{CompensatorRun, ObserverRun};
 
 /// Everything the tick needs, validated and in fixed point (built by
 /// [`crate::config::settings::Settings::build`]).
@@ -253,66 +217,6 @@ pub struct Controller {
     shaping_state: NotchState,
 }
 
-/// A creep operator and its modes, as the tick runs it in series with a model.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-struct CreepRun {
-    creep: Creep,
-    state: CreepState,
-}
-
-impl CreepRun {
-    /// Every mode at rest at `y`.
-    fn at_rest(creep: Creep, y: i32) -> Self {
-        Self {
-            creep,
-            state: creep.state_at_rest(y),
-        }
-    }
-
-    #[inline(always)]
-    fn forward(&mut self, y: i32) -> i32 {
-        self.creep.forward_step(&mut self.state, y)
-    }
-
-    #[inline(always)]
-    fn inverse(&mut self, x: i32) -> i32 {
-        self.creep.inverse_step(&mut self.state, x)
-    }
-}
-
-/// The compensator as the tick runs it: model and state in one enum (one tag per tick).
-#[allow(clippy::large_enum_variant)] // no heap: the controllers live in statics
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-///
-/// With creep, the inverse creep is part of the compensator's variant (`…Creep`), so a tick
-/// without creep dispatches on the model alone: no creep check of its own.
-enum CompensatorRun {
-    InversePi(InversePrandtlIshlinskii, PiState),
-    InverseDuhem(InverseDuhem, DuhemState),
-    None,
-    InverseGpi(InverseGeneralisedPi, PiState),
-    InversePiCreep(InversePrandtlIshlinskii, PiState, CreepRun),
-    InverseDuhemCreep(InverseDuhem, DuhemState, CreepRun),
-    InverseGpiCreep(InverseGeneralisedPi, PiState, CreepRun),
-    InverseBoucWen(InverseBoucWen, BoucWenState),
-    InverseBoucWenCreep(InverseBoucWen, BoucWenState, CreepRun),
-}
-
-/// The observer as the tick runs it (see [`CompensatorRun`]).
-#[allow(clippy::large_enum_variant)]
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-enum ObserverRun {
-    Duhem(Duhem, DuhemState),
-    Pi(PrandtlIshlinskii, PiState),
-    None,
-    Gpi(GeneralisedPi, PiState),
-    DuhemCreep(Duhem, DuhemState, CreepRun),
-    PiCreep(PrandtlIshlinskii, PiState, CreepRun),
-    GpiCreep(GeneralisedPi, PiState, CreepRun),
-    BoucWen(BoucWen, BoucWenState),
-    BoucWenCreep(BoucWen, BoucWenState, CreepRun),
-}
-
 /// What the sensor step does this mode.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 enum Run {
@@ -389,108 +293,15 @@ impl Controller {
     pub fn prepare(&mut self, config: ControlConfig, stacks: StackVoltages) {
         let d = &config.drive;
         let drive = d.drive_of(stacks.left);
-        let (observer, y) = match config.observer {
-            Observer::None => (ObserverRun::None, drive),
-            Observer::Pi(m) => {
-                let mut s = m.state_at_rest(drive);
-                let y = m.step(&mut s, drive);
-                (ObserverRun::Pi(m, s), y)
-            }
-            Observer::Duhem(m) => {
-                let y = m.anhysteretic(drive);
-                (ObserverRun::Duhem(m, m.state_at(drive, y)), y)
-            }
-            Observer::GeneralisedPi(m) => {
-                let mut s = m.state_at_rest(drive);
-                let y = m.step(&mut s, drive);
-                (ObserverRun::Gpi(m, s), y)
-            }
-            Observer::BoucWen(m) => {
-                let s = m.relaxed(drive);
-                (ObserverRun::BoucWen(m, s), m.output(&s))
-            }
-        };
-        let compensator = match (config.compensator, &observer) {
-            (Compensator::None, _) => CompensatorRun::None,
-            // The compensator's operators from the observer's, where the observer is the
-            // model the compensator inverts; otherwise relaxed where the observer puts the stage.
-            (Compensator::InversePi(m), ObserverRun::Pi(o, s)) if m.inverts(o) => {
-                CompensatorRun::InversePi(m, m.state_from_forward(&o.bank().outputs(s)))
-            }
-            (Compensator::InversePi(m), _) => CompensatorRun::InversePi(m, m.state_at_rest(y)),
-            (Compensator::InverseDuhem(m), ObserverRun::Duhem(o, s)) if o == m.model() => {
-                CompensatorRun::InverseDuhem(m, *s)
-            }
-            (Compensator::InverseDuhem(m), _) => {
-                let model = m.model();
-                CompensatorRun::InverseDuhem(m, model.state_at(drive, model.anhysteretic(drive)))
-            }
-            // As for the P–I: the map is static, so only the P–I part's operators carry over.
-            (Compensator::InverseGeneralisedPi(m), ObserverRun::Gpi(o, s)) if m.inverts(o) => {
-                CompensatorRun::InverseGpi(m, m.state_from_forward(&o.pi().bank().outputs(s)))
-            }
-            (Compensator::InverseGeneralisedPi(m), _) => {
-                CompensatorRun::InverseGpi(m, m.state_at_rest(y))
-            }
-            // Bouc–Wen as Duhem: the observer's state where it is the compensator's model,
-            // otherwise relaxed (h = 0) at the present drive.
-            (Compensator::InverseBoucWen(m), ObserverRun::BoucWen(o, s)) if o == m.model() => {
-                CompensatorRun::InverseBoucWen(m, *s)
-            }
-            (Compensator::InverseBoucWen(m), _) => {
-                CompensatorRun::InverseBoucWen(m, m.model().relaxed(drive))
-            }
-        };
-        let rest = d.rest_drive();
-        let rest_setpoint = match &observer {
-            ObserverRun::None => rest,
-            // (The creep is wrapped in below; at rest it passes the output through.)
-            ObserverRun::Pi(m, _) | ObserverRun::PiCreep(m, _, _) => {
-                let mut s = m.state_at_rest(rest);
-                m.step(&mut s, rest)
-            }
-            ObserverRun::Duhem(m, _) | ObserverRun::DuhemCreep(m, _, _) => m.anhysteretic(rest),
-            ObserverRun::Gpi(m, _) | ObserverRun::GpiCreep(m, _, _) => {
-                let mut s = m.state_at_rest(rest);
-                m.step(&mut s, rest)
-            }
-            ObserverRun::BoucWen(m, _) | ObserverRun::BoucWenCreep(m, _, _) => {
-                m.output(&m.relaxed(rest))
-            }
-        };
-        // With creep, its modes settled where the models are relaxed: at the observer's output
-        // (which is also the setpoint), so both pass it through unchanged.
-        let (compensator, observer) = match config.creep {
-            None => (compensator, observer),
-            Some(c) => (
-                match compensator {
-                    CompensatorRun::InversePi(m, s) => {
-                        CompensatorRun::InversePiCreep(m, s, CreepRun::at_rest(c, y))
-                    }
-                    CompensatorRun::InverseDuhem(m, s) => {
-                        CompensatorRun::InverseDuhemCreep(m, s, CreepRun::at_rest(c, y))
-                    }
-                    CompensatorRun::InverseGpi(m, s) => {
-                        CompensatorRun::InverseGpiCreep(m, s, CreepRun::at_rest(c, y))
-                    }
-                    CompensatorRun::InverseBoucWen(m, s) => {
-                        CompensatorRun::InverseBoucWenCreep(m, s, CreepRun::at_rest(c, y))
-                    }
-                    other => other,
-                },
-                match observer {
-                    ObserverRun::Pi(m, s) => ObserverRun::PiCreep(m, s, CreepRun::at_rest(c, y)),
-                    ObserverRun::Duhem(m, s) => {
-                        ObserverRun::DuhemCreep(m, s, CreepRun::at_rest(c, y))
-                    }
-                    ObserverRun::Gpi(m, s) => ObserverRun::GpiCreep(m, s, CreepRun::at_rest(c, y)),
-                    ObserverRun::BoucWen(m, s) => {
-                        ObserverRun::BoucWenCreep(m, s, CreepRun::at_rest(c, y))
-                    }
-                    other => other,
-                },
-            ),
-        };
+        // The observer relaxed at the drive the stacks hold; the compensator's state from the
+        // observer's where it inverts the observer's model, otherwise relaxed where the
+        // observer puts the stage. With creep, its modes settled where the models are relaxed:
+        // at the observer's output (which is also the setpoint), so it passes that through.
+        let (observer, y) = config.observer.prepare(config.creep, drive);
+        let compensator = config
+            .compensator
+            .prepare(&observer, config.creep, drive, y);
+        let rest_setpoint = config.observer.relaxed_output(d.rest_drive());
         *self = Self {
             compensator,
             observer,
@@ -679,17 +490,7 @@ impl Controller {
         // 2. Feedforward. The compensator runs in every mode (in bypass on the setpoint, its
         // output unused), so that a switch into open loop finds its state current; with creep,
         // the inverse creep first (setpoint → C⁻¹ → H⁻¹).
-        let compensated = match &mut self.compensator {
-            CompensatorRun::InversePi(m, s) => m.step(s, target),
-            CompensatorRun::InverseDuhem(m, s) => m.step(s, target),
-            CompensatorRun::None => target,
-            CompensatorRun::InverseGpi(m, s) => m.step(s, target),
-            CompensatorRun::InversePiCreep(m, s, c) => m.step(s, c.inverse(target)),
-            CompensatorRun::InverseDuhemCreep(m, s, c) => m.step(s, c.inverse(target)),
-            CompensatorRun::InverseGpiCreep(m, s, c) => m.step(s, c.inverse(target)),
-            CompensatorRun::InverseBoucWen(m, s) => m.step(s, target),
-            CompensatorRun::InverseBoucWenCreep(m, s, c) => m.step(s, c.inverse(target)),
-        };
+        let compensated = self.compensator.step(target);
         // With shaping, the feedforward (the compensator's output plus the learned
         // correction) goes through the notch, in every mode but bypass: Q2.30 normalised drive.
         let feedforward = if self.mode == Mode::Bypass {
@@ -777,17 +578,7 @@ impl Controller {
         };
 
         // 6. Observer on the applied drive.
-        report.estimate = match &mut self.observer {
-            ObserverRun::Duhem(m, s) => m.step(s, out.applied),
-            ObserverRun::Pi(m, s) => m.step(s, out.applied),
-            ObserverRun::None => 0,
-            ObserverRun::Gpi(m, s) => m.step(s, out.applied),
-            ObserverRun::DuhemCreep(m, s, c) => c.forward(m.step(s, out.applied)),
-            ObserverRun::PiCreep(m, s, c) => c.forward(m.step(s, out.applied)),
-            ObserverRun::GpiCreep(m, s, c) => c.forward(m.step(s, out.applied)),
-            ObserverRun::BoucWen(m, s) => m.step(s, out.applied),
-            ObserverRun::BoucWenCreep(m, s, c) => c.forward(m.step(s, out.applied)),
-        };
+        report.estimate = self.observer.step(out.applied);
         self.feedback_state.observed(report.estimate);
         report
     }

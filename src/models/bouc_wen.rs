@@ -52,6 +52,7 @@ use crate::fixed_point::{
 use crate::models::params::{
     BoucWenCoefficient, BoucWenParams, ParamError, BOUC_WEN_MAX_INVERSE_LOOP_GAIN,
 };
+use crate::models::{Forward, Hysteresis, Inverse, ObserverRun};
 use crate::scaling::Scaling;
 
 /// State of a Bouc–Wen model: the previous input and the hysteretic state, Q2.30 normalised.
@@ -216,6 +217,59 @@ impl InverseBoucWen {
         let u = clamp_full_scale(saturate_i64((r * m.inverse_slope as i64) >> GAIN_FRAC_BITS));
         m.advance(state, u);
         u
+    }
+}
+
+/// A Bouc–Wen model in the tick (either direction), cycles at 5 wait states (see
+/// [`Hysteresis::cycles`]).
+pub const BOUC_WEN_CYCLES: u32 = 88;
+
+impl Hysteresis for BoucWen {
+    type State = BoucWenState;
+
+    #[inline(always)]
+    fn step(&self, state: &mut BoucWenState, u: i32) -> i32 {
+        BoucWen::step(self, state, u)
+    }
+
+    fn cycles(&self) -> u32 {
+        BOUC_WEN_CYCLES
+    }
+}
+
+impl Forward for BoucWen {
+    /// Relaxed (`h = 0`) at `u`.
+    fn relaxed(&self, u: i32) -> (BoucWenState, i32) {
+        let s = BoucWen::relaxed(self, u);
+        (s, self.output(&s))
+    }
+}
+
+impl Hysteresis for InverseBoucWen {
+    type State = BoucWenState;
+
+    #[inline(always)]
+    fn step(&self, state: &mut BoucWenState, y: i32) -> i32 {
+        InverseBoucWen::step(self, state, y)
+    }
+
+    fn cycles(&self) -> u32 {
+        BOUC_WEN_CYCLES
+    }
+}
+
+impl Inverse for InverseBoucWen {
+    /// Its own model relaxed (`h = 0`) at the present drive.
+    fn relaxed(&self, u: i32, _y: i32) -> BoucWenState {
+        BoucWen::relaxed(self.model(), u)
+    }
+
+    /// The observer's state, where it runs this compensator's model.
+    fn matching(&self, observer: &ObserverRun) -> Option<BoucWenState> {
+        match observer {
+            ObserverRun::BoucWen(o) if o.model.0 == *self.model() => Some(o.state.0),
+            _ => None,
+        }
     }
 }
 

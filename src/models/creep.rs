@@ -46,6 +46,7 @@
 //! a 32 × 32 → 64 multiply and a 64-bit add for the update, and one multiply-accumulate for
 //! the output; no division (the reciprocal `1/D` is formed in [`Creep::new`]).
 
+use crate::models::Hysteresis;
 use serde::{Deserialize, Serialize};
 
 use crate::fixed_point::{
@@ -445,6 +446,44 @@ fn relax(z: i64, b: i32, y: i32) -> i64 {
 #[inline(always)]
 fn floor_shift_to_signal<const BITS: u32>(acc: i64) -> i32 {
     saturate_i64(acc >> BITS)
+}
+
+/// A creep operator beyond its modes, per side it runs on (the compensator's inverse, the
+/// observer's forward), cycles at 5 wait states (see [`Hysteresis::cycles`]).
+pub const CREEP_BASE_CYCLES: u32 = 95;
+/// Each creep mode, per side (written out mode by mode: 40 as a loop).
+pub const CREEP_MODE_CYCLES: u32 = 36;
+
+/// The creep forward, after a forward model ([`crate::models::Series`]).
+impl Hysteresis for Creep {
+    type State = CreepState;
+
+    #[inline(always)]
+    fn step(&self, state: &mut CreepState, y: i32) -> i32 {
+        self.forward_step(state, y)
+    }
+
+    fn cycles(&self) -> u32 {
+        CREEP_BASE_CYCLES + CREEP_MODE_CYCLES * self.modes() as u32
+    }
+}
+
+/// The creep's exact inverse, before an inverse model ([`crate::models::Series`]): desired
+/// displacement `x` → the hysteresis model's output `y` that gives it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct InverseCreep(pub Creep);
+
+impl Hysteresis for InverseCreep {
+    type State = CreepState;
+
+    #[inline(always)]
+    fn step(&self, state: &mut CreepState, x: i32) -> i32 {
+        self.0.inverse_step(state, x)
+    }
+
+    fn cycles(&self) -> u32 {
+        self.0.cycles()
+    }
 }
 
 #[cfg(test)]

@@ -26,6 +26,7 @@ use crate::fixed_point::{
     GAIN_FRAC_BITS, SIGNAL_FRAC_BITS, SIGNAL_ONE,
 };
 use crate::models::params::{DuhemParams, ParamError};
+use crate::models::{Forward, Hysteresis, Inverse, ObserverRun};
 use crate::scaling::Scaling;
 
 /// Fraction of `min(β, γ)` below which the inverse's slope is floored.
@@ -221,5 +222,57 @@ impl InverseDuhem {
         let u = clamp_full_scale(saturate_i64(state.u as i64 + du));
         self.model.step(state, u);
         u
+    }
+}
+
+/// A Duhem model in the tick (either direction), cycles at 5 wait states (see
+/// [`Hysteresis::cycles`]).
+pub const DUHEM_CYCLES: u32 = 170;
+
+impl Hysteresis for Duhem {
+    type State = DuhemState;
+
+    #[inline(always)]
+    fn step(&self, state: &mut DuhemState, u: i32) -> i32 {
+        Duhem::step(self, state, u)
+    }
+
+    fn cycles(&self) -> u32 {
+        DUHEM_CYCLES
+    }
+}
+
+impl Forward for Duhem {
+    /// On the anhysteretic curve, where the model settles after a long excursion.
+    fn relaxed(&self, u: i32) -> (DuhemState, i32) {
+        let y = self.anhysteretic(u);
+        (self.state_at(u, y), y)
+    }
+}
+
+impl Hysteresis for InverseDuhem {
+    type State = DuhemState;
+
+    #[inline(always)]
+    fn step(&self, state: &mut DuhemState, y: i32) -> i32 {
+        InverseDuhem::step(self, state, y)
+    }
+
+    fn cycles(&self) -> u32 {
+        DUHEM_CYCLES
+    }
+}
+
+impl Inverse for InverseDuhem {
+    fn relaxed(&self, u: i32, _y: i32) -> DuhemState {
+        Forward::relaxed(self.model(), u).0
+    }
+
+    /// The observer's state, where it runs this compensator's model.
+    fn matching(&self, observer: &ObserverRun) -> Option<DuhemState> {
+        match observer {
+            ObserverRun::Duhem(o) if o.model.0 == *self.model() => Some(o.state.0),
+            _ => None,
+        }
     }
 }

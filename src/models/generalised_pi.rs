@@ -48,7 +48,9 @@ use crate::fixed_point::{
 use crate::models::params::{
     ParamError, PiParams, MAX_CANONICAL_OPERATORS, MAX_NORM_THRESHOLD, MAX_NORM_WEIGHT,
 };
+use crate::models::prandtl_ishlinskii::bank_cycles;
 use crate::models::prandtl_ishlinskii::{InversePrandtlIshlinskii, PiState, PrandtlIshlinskii};
+use crate::models::{Forward, Hysteresis, Inverse, ObserverRun};
 use crate::scaling::Scaling;
 use heapless::Vec;
 
@@ -506,6 +508,68 @@ impl InverseGeneralisedPi {
     #[inline(always)]
     pub fn step(&self, state: &mut PiState, y: i32) -> i32 {
         self.pi.step(state, self.map.apply(clamp_full_scale(y)))
+    }
+}
+
+/// A generalised P–I's dead-zone map beyond its dead zones (the call to its one copy), cycles
+/// at 5 wait states (see [`Hysteresis::cycles`]); the P–I part costs as a P–I
+/// ([`crate::models::prandtl_ishlinskii::bank_cycles`]).
+pub const DEAD_ZONE_BASE_CYCLES: u32 = 49;
+/// Each dead zone of a generalised P–I's map.
+pub const DEAD_ZONE_CYCLES: u32 = 22;
+
+/// A generalised P–I of `operators` operators and `dead_zones` dead zones in the tick.
+fn gpi_cycles((operators, dead_zones): (usize, usize)) -> u32 {
+    bank_cycles(operators) + DEAD_ZONE_BASE_CYCLES + DEAD_ZONE_CYCLES * dead_zones as u32
+}
+
+impl Hysteresis for GeneralisedPi {
+    type State = PiState;
+
+    #[inline(always)]
+    fn step(&self, state: &mut PiState, u: i32) -> i32 {
+        GeneralisedPi::step(self, state, u)
+    }
+
+    fn cycles(&self) -> u32 {
+        gpi_cycles(self.size())
+    }
+}
+
+impl Forward for GeneralisedPi {
+    fn relaxed(&self, u: i32) -> (PiState, i32) {
+        let mut s = self.state_at_rest(u);
+        let y = GeneralisedPi::step(self, &mut s, u);
+        (s, y)
+    }
+}
+
+impl Hysteresis for InverseGeneralisedPi {
+    type State = PiState;
+
+    #[inline(always)]
+    fn step(&self, state: &mut PiState, y: i32) -> i32 {
+        InverseGeneralisedPi::step(self, state, y)
+    }
+
+    fn cycles(&self) -> u32 {
+        gpi_cycles(self.size())
+    }
+}
+
+impl Inverse for InverseGeneralisedPi {
+    fn relaxed(&self, _u: i32, y: i32) -> PiState {
+        self.state_at_rest(y)
+    }
+
+    /// As for the P–I: the map is static, so only the P–I part's operators carry over.
+    fn matching(&self, observer: &ObserverRun) -> Option<PiState> {
+        match observer {
+            ObserverRun::GeneralisedPi(o) if self.inverts(&o.model.0) => {
+                Some(self.state_from_forward(&o.model.0.pi().bank().outputs(&o.state.0)))
+            }
+            _ => None,
+        }
     }
 }
 

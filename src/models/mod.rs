@@ -2,6 +2,15 @@
 //! drive in, displacement out) and its inverse (the compensator, setpoint in, drive out),
 //! with their physical (`f64`) parameters. These run in the interrupt, inside the control law.
 //!
+//! Every model has the same shape: its configuration (the immutable, validated model, built
+//! off the tick) apart from its state (what one step changes), one [`Hysteresis::step`] and a
+//! declared cost ([`Hysteresis::cycles`], the cycles it adds to the tick's worst case, which
+//! the [tick budget](crate::config::tick_budget) adds up). Creep is composed in series with a
+//! model ([`Series`]: the inverse creep before an inverse model, the creep after a forward
+//! one), not written into each model. The tick runs the models by static dispatch
+//! ([`dispatch`]: one enum over the models, no `dyn`: the interrupt branches through no
+//! register).
+//!
 //! * [`play_operator`] — the play (backlash) operator, the building block of P–I.
 //! * [`prandtl_ishlinskii`] — forward and analytic-inverse Prandtl–Ishlinskii models.
 //! * [`generalised_pi`] — the generalised (asymmetric) P–I: a P–I followed by a monotone
@@ -12,11 +21,112 @@
 //! * [`creep`] — the creep operator (log-spaced first-order modes) in series with a
 //!   hysteresis model, and its exact inverse.
 //! * [`params`] — the models' physical (`f64`) parameters and their own checks.
+//! * [`dispatch`] — the compensator and the observer a configuration picks, and the pairs of
+//!   model and state the tick runs.
+//!
+//! Adding a model: its module here (the forward and inverse types, [`Hysteresis`],
+//! [`Forward`] and [`Inverse`] implemented on them, their cost beside them), one variant in
+//! each of [`dispatch`]'s enums, its parameters in [`params`] and a
+//! [`Model`](crate::config::settings::Model) variant, with the lines in
+//! [`crate::config::settings::Settings::build`] that build it.
 
 pub mod bouc_wen;
 pub mod creep;
+pub mod dispatch;
 pub mod duhem;
 pub mod generalised_pi;
 pub mod params;
 pub mod play_operator;
 pub mod prandtl_ishlinskii;
+
+pub use dispatch::{Compensator, CompensatorRun, Observer, ObserverRun};
+
+/// A model in fixed point, in idsp's shape: the configuration is `self` (immutable on the
+/// tick), the state apart, one step per tick.
+pub trait Hysteresis {
+    /// What one step changes.
+    type State: Copy + core::fmt::Debug + PartialEq + Eq;
+
+    /// One tick: input `x` (Q2.30 normalised) → output (Q2.30 normalised, saturated).
+    fn step(&self, state: &mut Self::State, x: i32) -> i32;
+
+    /// The cycles this model adds to the tick's worst case (5 flash wait states, cache cold;
+    /// measured by the whole-interrupt bench, `tests/irq_bench.rs`, which holds every
+    /// configuration's worst tick under the sum the [tick budget](crate::config::tick_budget)
+    /// makes of these).
+    fn cycles(&self) -> u32;
+}
+
+/// A forward model (the observer: drive in, displacement out).
+pub trait Forward: Hysteresis {
+    /// The state after the drive has rested at `u` (Q2.30), and the output there.
+    fn relaxed(&self, u: i32) -> (Self::State, i32);
+}
+
+/// An inverse model (the compensator: desired displacement in, drive out).
+pub trait Inverse: Hysteresis {
+    /// The state after the drive has rested at `u` with the stage at `y` (both Q2.30; `y` is
+    /// where the observer puts the stage, or `u` without one).
+    fn relaxed(&self, u: i32, y: i32) -> Self::State;
+
+    /// The state matching `observer`'s, where the observer runs the very model this inverts
+    /// (then the compensator continues from the observer's history); `None` otherwise.
+    fn matching(&self, observer: &ObserverRun) -> Option<Self::State>;
+}
+
+/// Two models in series: `A`'s output is `B`'s input. The compensator is
+/// `Series<Option<InverseCreep>, inverse model>` (the setpoint through the inverse creep,
+/// then the inverse hysteresis), the observer `Series<forward model, Option<Creep>>`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Series<A, B>(pub A, pub B);
+
+impl<A: Hysteresis, B: Hysteresis> Hysteresis for Series<A, B> {
+    type State = (A::State, B::State);
+
+    #[inline(always)]
+    fn step(&self, state: &mut Self::State, x: i32) -> i32 {
+        self.1.step(&mut state.1, self.0.step(&mut state.0, x))
+    }
+
+    fn cycles(&self) -> u32 {
+        self.0.cycles() + self.1.cycles()
+    }
+}
+
+/// A model that may be absent: `None` passes its input through and costs nothing (its state
+/// is then unused, held at its default).
+impl<M: Hysteresis> Hysteresis for Option<M>
+where
+    M::State: Default,
+{
+    type State = M::State;
+
+    #[inline(always)]
+    fn step(&self, state: &mut Self::State, x: i32) -> i32 {
+        match self {
+            Some(m) => m.step(state, x),
+            None => x,
+        }
+    }
+
+    fn cycles(&self) -> u32 {
+        self.as_ref().map_or(0, M::cycles)
+    }
+}
+
+/// A model and its state, as the tick runs it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Running<M: Hysteresis> {
+    /// The configuration.
+    pub model: M,
+    /// Its state.
+    pub state: M::State,
+}
+
+impl<M: Hysteresis> Running<M> {
+    /// One tick of the model on its state.
+    #[inline(always)]
+    pub fn step(&mut self, x: i32) -> i32 {
+        self.model.step(&mut self.state, x)
+    }
+}

@@ -42,6 +42,7 @@ use crate::fixed_point::{
 };
 use crate::models::params::{CanonicalPi, ParamError, PiParams, MAX_CANONICAL_OPERATORS};
 use crate::models::play_operator::{lanes, pack, play, play2, smlald, OFFSET_BINARY};
+use crate::models::{Forward, Hysteresis, Inverse, ObserverRun};
 use crate::scaling::Scaling;
 
 /// Operator pairs a bank holds: [`MAX_CANONICAL_OPERATORS`] two to a word, rounded up.
@@ -477,6 +478,69 @@ impl InversePrandtlIshlinskii {
     #[inline(always)]
     pub fn step(&self, state: &mut PiState, y: i32) -> i32 {
         q39_to_signal_floor(self.bank.step(state, signal_to_q15(y), self.bias))
+    }
+}
+
+/// A P–I bank's cost beyond its operators (the inverse's and the forward's alike): the call
+/// to the bank's step, the input's conversion, the sum's; cycles at 5 wait states (see
+/// [`Hysteresis::cycles`]).
+pub const PI_BASE_CYCLES: u32 = 92;
+/// Each pair of play operators (one packed word) of a P–I bank (written out pair by pair:
+/// 34 cycles as a loop).
+pub const PI_PAIR_CYCLES: u32 = 22;
+
+/// A P–I bank of `operators` operators in the tick, cycles at 5 wait states.
+pub fn bank_cycles(operators: usize) -> u32 {
+    PI_BASE_CYCLES + PI_PAIR_CYCLES * operators.div_ceil(2) as u32
+}
+
+impl Hysteresis for PrandtlIshlinskii {
+    type State = PiState;
+
+    #[inline(always)]
+    fn step(&self, state: &mut PiState, u: i32) -> i32 {
+        PrandtlIshlinskii::step(self, state, u)
+    }
+
+    fn cycles(&self) -> u32 {
+        bank_cycles(self.operators())
+    }
+}
+
+impl Forward for PrandtlIshlinskii {
+    fn relaxed(&self, u: i32) -> (PiState, i32) {
+        let mut s = self.state_at_rest(u);
+        let y = PrandtlIshlinskii::step(self, &mut s, u);
+        (s, y)
+    }
+}
+
+impl Hysteresis for InversePrandtlIshlinskii {
+    type State = PiState;
+
+    #[inline(always)]
+    fn step(&self, state: &mut PiState, y: i32) -> i32 {
+        InversePrandtlIshlinskii::step(self, state, y)
+    }
+
+    fn cycles(&self) -> u32 {
+        bank_cycles(self.operators())
+    }
+}
+
+impl Inverse for InversePrandtlIshlinskii {
+    fn relaxed(&self, _u: i32, y: i32) -> PiState {
+        self.state_at_rest(y)
+    }
+
+    /// The operators from the observer's, where the observer is the model this inverts.
+    fn matching(&self, observer: &ObserverRun) -> Option<PiState> {
+        match observer {
+            ObserverRun::Pi(o) if self.inverts(&o.model.0) => {
+                Some(self.state_from_forward(&o.model.0.bank().outputs(&o.state.0)))
+            }
+            _ => None,
+        }
     }
 }
 
