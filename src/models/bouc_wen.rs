@@ -52,7 +52,7 @@ use crate::fixed_point::{
 use crate::models::params::{
     BoucWenCoefficient, BoucWenParams, ParamError, BOUC_WEN_MAX_INVERSE_LOOP_GAIN,
 };
-use crate::models::{Forward, Hysteresis, Inverse, ObserverRun};
+use crate::models::{Forward, Hysteresis, Inverse};
 use crate::scaling::Scaling;
 
 /// State of a Bouc–Wen model: the previous input and the hysteretic state, Q2.30 normalised.
@@ -265,11 +265,10 @@ impl Inverse for InverseBoucWen {
     }
 
     /// The observer's state, where it runs this compensator's model.
-    fn matching(&self, observer: &ObserverRun) -> Option<BoucWenState> {
-        match observer {
-            ObserverRun::BoucWen(o) if o.model.0 == *self.model() => Some(o.state.0),
-            _ => None,
-        }
+    type Forward = BoucWen;
+
+    fn matching(&self, forward: &BoucWen, state: &BoucWenState) -> Option<BoucWenState> {
+        (forward == self.model()).then_some(*state)
     }
 }
 

@@ -93,13 +93,13 @@ pub enum ObserverRun {
 /// settled at `y` (where the models are relaxed, so it passes `y` through).
 fn compensating<M: Inverse + Copy>(
     m: &M,
-    observer: &ObserverRun,
+    observer: Option<&Running<Observing<M::Forward>>>,
     creep: Option<Creep>,
     u: i32,
     y: i32,
 ) -> Running<Compensating<M>> {
-    let state = m
-        .matching(observer)
+    let state = observer
+        .and_then(|o| m.matching(&o.model.0, &o.state.0))
         .unwrap_or_else(|| Inverse::relaxed(m, u, y));
     let creep_state = creep.map(|c| c.state_at_rest(y)).unwrap_or_default();
     Running {
@@ -137,15 +137,33 @@ impl Compensator {
     ) -> CompensatorRun {
         match self {
             Self::None => CompensatorRun::None,
-            Self::InversePi(m) => CompensatorRun::InversePi(compensating(m, observer, creep, u, y)),
+            Self::InversePi(m) => {
+                let o = match observer {
+                    ObserverRun::Pi(o) => Some(o),
+                    _ => None,
+                };
+                CompensatorRun::InversePi(compensating(m, o, creep, u, y))
+            }
             Self::InverseDuhem(m) => {
-                CompensatorRun::InverseDuhem(compensating(m, observer, creep, u, y))
+                let o = match observer {
+                    ObserverRun::Duhem(o) => Some(o),
+                    _ => None,
+                };
+                CompensatorRun::InverseDuhem(compensating(m, o, creep, u, y))
             }
             Self::InverseGeneralisedPi(m) => {
-                CompensatorRun::InverseGeneralisedPi(compensating(m, observer, creep, u, y))
+                let o = match observer {
+                    ObserverRun::GeneralisedPi(o) => Some(o),
+                    _ => None,
+                };
+                CompensatorRun::InverseGeneralisedPi(compensating(m, o, creep, u, y))
             }
             Self::InverseBoucWen(m) => {
-                CompensatorRun::InverseBoucWen(compensating(m, observer, creep, u, y))
+                let o = match observer {
+                    ObserverRun::BoucWen(o) => Some(o),
+                    _ => None,
+                };
+                CompensatorRun::InverseBoucWen(compensating(m, o, creep, u, y))
             }
         }
     }

@@ -26,7 +26,7 @@ use crate::fixed_point::{
     GAIN_FRAC_BITS, SIGNAL_FRAC_BITS, SIGNAL_ONE,
 };
 use crate::models::params::{DuhemParams, ParamError};
-use crate::models::{Forward, Hysteresis, Inverse, ObserverRun};
+use crate::models::{Forward, Hysteresis, Inverse};
 use crate::scaling::Scaling;
 
 /// Fraction of `min(β, γ)` below which the inverse's slope is floored.
@@ -269,10 +269,9 @@ impl Inverse for InverseDuhem {
     }
 
     /// The observer's state, where it runs this compensator's model.
-    fn matching(&self, observer: &ObserverRun) -> Option<DuhemState> {
-        match observer {
-            ObserverRun::Duhem(o) if o.model.0 == *self.model() => Some(o.state.0),
-            _ => None,
-        }
+    type Forward = Duhem;
+
+    fn matching(&self, forward: &Duhem, state: &DuhemState) -> Option<DuhemState> {
+        (forward == self.model()).then_some(*state)
     }
 }

@@ -50,7 +50,7 @@ use crate::models::params::{
 };
 use crate::models::prandtl_ishlinskii::bank_cycles;
 use crate::models::prandtl_ishlinskii::{InversePrandtlIshlinskii, PiState, PrandtlIshlinskii};
-use crate::models::{Forward, Hysteresis, Inverse, ObserverRun};
+use crate::models::{Forward, Hysteresis, Inverse};
 use crate::scaling::Scaling;
 use heapless::Vec;
 
@@ -563,13 +563,11 @@ impl Inverse for InverseGeneralisedPi {
     }
 
     /// As for the P–I: the map is static, so only the P–I part's operators carry over.
-    fn matching(&self, observer: &ObserverRun) -> Option<PiState> {
-        match observer {
-            ObserverRun::GeneralisedPi(o) if self.inverts(&o.model.0) => {
-                Some(self.state_from_forward(&o.model.0.pi().bank().outputs(&o.state.0)))
-            }
-            _ => None,
-        }
+    type Forward = GeneralisedPi;
+
+    fn matching(&self, forward: &GeneralisedPi, state: &PiState) -> Option<PiState> {
+        self.inverts(forward)
+            .then(|| self.state_from_forward(&forward.pi().bank().outputs(state)))
     }
 }
 

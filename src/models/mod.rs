@@ -69,9 +69,17 @@ pub trait Inverse: Hysteresis {
     /// where the observer puts the stage, or `u` without one).
     fn relaxed(&self, u: i32, y: i32) -> Self::State;
 
-    /// The state matching `observer`'s, where the observer runs the very model this inverts
-    /// (then the compensator continues from the observer's history); `None` otherwise.
-    fn matching(&self, observer: &ObserverRun) -> Option<Self::State>;
+    /// The forward model this inverts (the observer that can hand it its history).
+    type Forward: Hysteresis;
+
+    /// The state matching an observer's (`forward` in state `state`), where `forward` is the
+    /// very model this inverts (then the compensator continues from the observer's
+    /// history); `None` otherwise.
+    fn matching(
+        &self,
+        forward: &Self::Forward,
+        state: &<Self::Forward as Hysteresis>::State,
+    ) -> Option<Self::State>;
 }
 
 /// Two models in series: `A`'s output is `B`'s input. The compensator is

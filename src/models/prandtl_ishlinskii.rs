@@ -42,7 +42,7 @@ use crate::fixed_point::{
 };
 use crate::models::params::{CanonicalPi, ParamError, PiParams, MAX_CANONICAL_OPERATORS};
 use crate::models::play_operator::{lanes, pack, play, play2, smlald, OFFSET_BINARY};
-use crate::models::{Forward, Hysteresis, Inverse, ObserverRun};
+use crate::models::{Forward, Hysteresis, Inverse};
 use crate::scaling::Scaling;
 
 /// Operator pairs a bank holds: [`MAX_CANONICAL_OPERATORS`] two to a word, rounded up.
@@ -534,13 +534,11 @@ impl Inverse for InversePrandtlIshlinskii {
     }
 
     /// The operators from the observer's, where the observer is the model this inverts.
-    fn matching(&self, observer: &ObserverRun) -> Option<PiState> {
-        match observer {
-            ObserverRun::Pi(o) if self.inverts(&o.model.0) => {
-                Some(self.state_from_forward(&o.model.0.bank().outputs(&o.state.0)))
-            }
-            _ => None,
-        }
+    type Forward = PrandtlIshlinskii;
+
+    fn matching(&self, forward: &PrandtlIshlinskii, state: &PiState) -> Option<PiState> {
+        self.inverts(forward)
+            .then(|| self.state_from_forward(&forward.bank().outputs(state)))
     }
 }
 
