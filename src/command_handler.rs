@@ -34,7 +34,7 @@ use crate::services::learning::{self, LearnState, LearnTask, Service};
 use crate::services::recorder::{in_pieces, RecordError, SampleStore};
 use crate::services::telemetry::{self, TelemetryPacker, TelemetrySample};
 use crate::sources::analog_input::{AnalogInputConfig, AnalogRequest, AnalogStatus, PreparedInput};
-use crate::sources::scan::{ScanGenerator, ScanRequest};
+use crate::sources::scan::{ScanGenerator, ScanRequest, TriggerConfig};
 use crate::sources::sequence::{SequenceRequest, SequenceStatus};
 use crate::sources::setpoint_stream::setpoint_from_wire;
 use crate::sources::waveform::{Shape, WaveformError, WaveformGenerator};
@@ -197,6 +197,16 @@ impl<S: RecordStorage> CommandHandler<S> {
     {
         let done = match request {
             Request::Status => return Response::Status(self.status(queue, control)),
+            // A drill was accepted on an idle board so that its reset cuts off no motion: a
+            // source start, or an input edge armed to start the stream, waits for the reset.
+            Request::Stream(StreamControl::Start)
+            | Request::Waveform(_)
+            | Request::Scan(_)
+            | Request::Sequence(SequenceRequest::Arm(_))
+            | Request::Analog(AnalogRequest::Start(_))
+            | Request::Trigger(TriggerConfig {
+                start_stream: true, ..
+            }) if drilling(control) => Err(NackReason::Busy),
             Request::Setpoints(batch) => self.setpoints(batch, queue),
             Request::PackedSetpoints(batch) => self.setpoints(batch.into(), queue),
             Request::Stream(StreamControl::Start) if analog_running(control) => {
@@ -859,7 +869,17 @@ fn credits<const N: usize>(queue: &Producer<'_, i16, N>) -> u16 {
     queue.capacity().saturating_sub(queue.len()) as u16
 }
 
-/// Whether the analog input is the setpoint source (another source's start is refused).
+/// Whether a watchdog drill is on (the board resets within the watchdog's timeout): a source
+/// start is refused until then.
+fn drilling<B, C, L>(control: &mut L) -> bool
+where
+    B: SampleStore,
+    C: DerefMut<Target = Controller>,
+    L: Mutex<T = ControlLoop<B, C>>,
+{
+    control.lock(|c| !c.feeds_watchdog())
+}
+
 /// Starts a watchdog drill ([`ControlLoop::drill_watchdog`]) on an idle board with a
 /// watchdog: refused while a setpoint source drives the outputs (the reset would cut it off
 /// mid-motion), and by the emulator image, whose QEMU machine has no watchdog.
@@ -882,6 +902,7 @@ where
     })
 }
 
+/// Whether the analog input is the setpoint source (another source's start is refused).
 fn analog_running<B, C, L>(control: &mut L) -> bool
 where
     B: SampleStore,

@@ -382,11 +382,14 @@ where
     }
 
     /// The external trigger's armed edge came (on the tick): starts the scan waiting for it
-    /// (from the setpoint in force: no step), the stream if asked, and fires a capture armed
-    /// on it. O(1).
+    /// (from the setpoint in force: no step), the stream if asked (neither while a watchdog
+    /// drill is on: its reset would cut them off), and fires a capture armed on it. O(1).
     #[inline(never)] // rare: kept out of the tick's common path
     fn fire_external(&mut self) {
-        if self.scan_pending {
+        if self.drilling {
+            // The watchdog resets the board within its timeout: no source starts to be cut
+            // off mid-motion (a capture still fires).
+        } else if self.scan_pending {
             self.scan_pending = false;
             let from = self.controller.setpoint();
             if let Some(g) = self.scan.as_mut() {

@@ -288,3 +288,96 @@ fn a_parameter_load_takes_effect_between_ticks_and_a_bad_one_changes_nothing() {
     assert_eq!(c.status().mode(), Mode::OpenLoop);
     assert_eq!(c.dev.handler().settings(), &good);
 }
+
+/// A watchdog drill is accepted only on an idle board, so that its reset cuts off no motion;
+/// until the reset, a source start is refused and an input edge armed before the drill starts
+/// nothing: the outputs hold where they are up to the reset. (A waveform started after the
+/// drill was once cut off by the reset mid-swing.)
+#[test]
+fn a_watchdog_drill_refuses_source_starts_until_the_reset() {
+    use twinstack::sources::analog_input::{AnalogInputConfig, AnalogRequest, OnFault};
+    use twinstack::sources::scan::{
+        RasterScan, ScanPattern, ScanRequest, TriggerConfig, TriggerEdge,
+    };
+    use twinstack::sources::sequence::{SequenceConfig, SequenceRequest};
+
+    let mut dev = SimDevice::new(SimDeviceConfig::paper()).expect("device");
+    assert!(matches!(
+        dev.handle(&Request::Mode(Mode::OpenLoop)),
+        Response::Ack { .. }
+    ));
+    // An input edge armed to start the stream, before the drill.
+    let arm_stream = Request::Trigger(TriggerConfig {
+        pulse_ticks: 2,
+        input: TriggerEdge::Rising,
+        start_stream: true,
+    });
+    assert!(matches!(dev.handle(&arm_stream), Response::Ack { .. }));
+    assert!(matches!(
+        dev.handle(&Request::WatchdogDrill),
+        Response::Ack { .. }
+    ));
+    let starts = [
+        Request::Stream(StreamControl::Start),
+        Request::Waveform(Waveform {
+            shape: WaveShape::Sine,
+            offset: 0,
+            amplitude: 12_000,
+            frequency_mhz: 250_000,
+            decay: None,
+        }),
+        Request::Scan(ScanRequest {
+            pattern: ScanPattern::Raster(RasterScan::centred(4, 16, 20, 0.5)),
+            ticks_per_pixel: 4,
+            frames: 1,
+            on_trigger: false,
+        }),
+        Request::Sequence(SequenceRequest::Arm(SequenceConfig {
+            edge: TriggerEdge::Rising,
+            window: 0.05,
+            settle_ticks: 10,
+        })),
+        Request::Analog(AnalogRequest::Start(AnalogInputConfig {
+            gain: 2.0,
+            offset: -1.0,
+            corner_hz: None,
+            lost_below: 0.0,
+            over_above: 1.0,
+            on_fault: OnFault::Hold,
+            rate: 10.0,
+            start_at_boot: false,
+        })),
+        arm_stream,
+    ];
+    for start in &starts {
+        assert_eq!(
+            dev.handle(start),
+            Response::Nack {
+                reason: NackReason::Busy
+            },
+            "{start:?} during a drill"
+        );
+    }
+    // The armed edge comes: the stream stays off, the outputs hold.
+    dev.tick();
+    let before = dev.last_report().expect("a tick");
+    dev.set_trigger_input(true);
+    for _ in 0..100 {
+        dev.tick();
+        assert!(
+            !dev.control().is_running(),
+            "a source started during a drill"
+        );
+        let r = dev.last_report().expect("a tick");
+        assert_eq!((r.left, r.right), (before.left, before.right));
+    }
+    // After the reset the board takes source starts again.
+    dev.run_for(Duration::from_millis(u64::from(
+        twinstack::board::WATCHDOG_TIMEOUT_MS,
+    )));
+    assert!(dev.control().feeds_watchdog(), "the board was reset");
+    assert!(matches!(
+        dev.handle(&Request::Stream(StreamControl::Start)),
+        Response::Ack { .. }
+    ));
+}

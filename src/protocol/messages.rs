@@ -122,7 +122,10 @@ pub enum Request {
     /// [`crate::board::WATCHDOG_TIMEOUT_MS`] and starts again on its stored settings (its
     /// safe state until then), reporting [`StatusReport::WATCHDOG_RESET`]. Refused with
     /// `Busy` while a setpoint source drives the outputs or the flash is written, and with
-    /// `Unsupported` by an image without a watchdog (QEMU models none).
+    /// `Unsupported` by an image without a watchdog (QEMU models none). Until the reset, a
+    /// source start (stream, waveform, scan, sequence, analog input, or a trigger set to start
+    /// the stream) is refused with `Busy` and an armed input edge starts nothing, so the
+    /// reset cuts off no motion.
     WatchdogDrill,
 }
 
