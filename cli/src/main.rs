@@ -43,6 +43,13 @@ enum Command {
     Load(commands::load::Args),
     /// Read back the settings in force on the board (JSON, physical units).
     Params(commands::params::Args),
+    /// Read one setting by its path (/feedback/kp), from the board or a parameter file.
+    Get(commands::settings::GetArgs),
+    /// Change one setting by its path: on the board (validated and swapped in bumplessly, as
+    /// any load) or in a parameter file.
+    Set(commands::settings::SetArgs),
+    /// List every settings path with what it holds (--schema).
+    Settings(commands::settings::SchemaArgs),
     /// Switch the board's mode (bypass, open-loop, closed-loop), bumpless.
     Mode(commands::params::ModeArgs),
     /// Reload the settings stored in the board's flash.
@@ -147,6 +154,9 @@ fn main() -> std::process::ExitCode {
         Command::Stream(a) => commands::stream::run(a),
         Command::Load(a) => commands::load::run(a),
         Command::Params(a) => commands::params::run(a),
+        Command::Get(a) => commands::settings::run_get(a),
+        Command::Set(a) => commands::settings::run_set(a),
+        Command::Settings(a) => commands::settings::run_schema(a),
         Command::Mode(a) => commands::params::run_mode(a),
         Command::Recall(a) => commands::params::run_recall(a),
         Command::Status(a) => commands::status::run(a),

@@ -33,6 +33,7 @@ pub mod sequence_run;
 pub mod serial;
 pub mod server;
 pub mod setpoint_file;
+pub mod settings_path;
 pub mod socket;
 pub mod streamer;
 pub mod telemetry;

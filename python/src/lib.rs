@@ -13,21 +13,21 @@ use hal_sim::sim_camera::CameraConfig;
 use hal_sim::sim_device::{SimDevice, SimDeviceConfig};
 use numpy::{PyArray1, PyArrayMethods};
 use pyo3::exceptions::{
-    PyConnectionError, PyException, PyFileNotFoundError, PyOSError, PyRuntimeError, PyTimeoutError,
-    PyTypeError, PyValueError,
+    PyConnectionError, PyException, PyFileNotFoundError, PyKeyError, PyOSError, PyRuntimeError,
+    PyTimeoutError, PyTypeError, PyValueError,
 };
 use pyo3::prelude::*;
 use pyo3::types::{PyDict, PyList};
 use std::path::{Path, PathBuf};
 use std::sync::Mutex;
 use std::time::{Duration, Instant};
-use twinstack::sources::analog_input::{AnalogInputConfig, AnalogRequest, OnFault};
+use twinstack::config::settings::Mode;
 use twinstack::protocol::messages::{
     NackReason, Request, SequenceConfig, StreamControl, Trigger, TriggerEdge, UnderrunPolicy,
     WaveShape,
 };
 use twinstack::refusal::Rule;
-use twinstack::config::settings::Mode;
+use twinstack::sources::analog_input::{AnalogInputConfig, AnalogRequest, OnFault};
 use twinstack_identify::identification::auto::Validation;
 use twinstack_identify::identification::run::{
     check_tick_rate, default_fit_until, identify_and_score, parse_model, BoardRate, Identified,
@@ -44,6 +44,7 @@ use twinstack_link::client::{nack_text, Client, LinkError};
 use twinstack_link::measured_data::{ColumnsError, MeasuredData};
 use twinstack_link::sequence_run::{run_sequence, SequenceError, SequenceOptions};
 use twinstack_link::setpoint_file::{divider_for_rate, to_wire, SetpointUnits};
+use twinstack_link::settings_path;
 use twinstack_link::streamer::{stream_setpoints_until, StreamOptions};
 use twinstack_link::Transport;
 
@@ -759,6 +760,45 @@ impl Board {
         json_to_py(py, &v)
     }
 
+    /// One setting by its path (``"/feedback/kp"``; :func:`settings_schema` lists them), as
+    /// the Python value of its JSON (``None`` for a part that is not set); ``KeyError`` names
+    /// a path that names nothing.
+    fn get<'py>(&self, py: Python<'py>, path: &str) -> PyResult<Bound<'py, PyAny>> {
+        let s = self.with(py, |c| c.read_params())?;
+        let v = settings_path::get(&s, path).map_err(path_error)?;
+        json_to_py(py, &v)
+    }
+
+    /// Changes one setting by its path and loads the settings whole (the board validates
+    /// them, prepares them off the tick and swaps them in bumplessly); returns the value the
+    /// board then holds. ``KeyError`` names a path that names nothing, ``ValueError`` a value
+    /// of the wrong type, ``BoardError`` the board's refusal (field and limit).
+    fn set<'py>(
+        &self,
+        py: Python<'py>,
+        path: &str,
+        value: &Bound<'py, PyAny>,
+    ) -> PyResult<Bound<'py, PyAny>> {
+        let text: String = py
+            .import("json")?
+            .call_method1("dumps", (value,))?
+            .extract()?;
+        let value: serde_json::Value =
+            serde_json::from_str(&text).map_err(|e| PyValueError::new_err(e.to_string()))?;
+        let held = self.with(py, |c| {
+            let s = c.read_params()?;
+            let new = match settings_path::set(&s, path, value.clone()) {
+                Ok(new) => new,
+                Err(e) => return Ok(Err(e)),
+            };
+            c.load_params(&new)?;
+            Ok(Ok(c.read_params()?))
+        })?;
+        let held = held.map_err(path_error)?;
+        let v = settings_path::get(&held, path).map_err(path_error)?;
+        json_to_py(py, &v)
+    }
+
     /// Switches the control mode (bumpless).
     fn mode(&self, py: Python<'_>, mode: &str) -> PyResult<()> {
         let m = parse_mode(mode)?;
@@ -1157,6 +1197,25 @@ impl Board {
     }
 }
 
+/// A settings path's error as Python's: ``KeyError`` for a path that names nothing (or a
+/// part not set), ``ValueError`` for a value of the wrong type.
+fn path_error(e: settings_path::PathError) -> PyErr {
+    match e {
+        settings_path::PathError::Invalid { .. } => PyValueError::new_err(e.to_string()),
+        _ => PyKeyError::new_err(e.to_string()),
+    }
+}
+
+/// Every settings path with what it holds, as ``(path, kind)`` pairs (``twinstack settings
+/// --schema``): traced from the settings type, so it lists exactly what the board takes.
+#[pyfunction]
+fn settings_schema() -> Vec<(String, String)> {
+    settings_path::schema()
+        .into_iter()
+        .map(|e| (e.path, e.kind))
+        .collect()
+}
+
 /// The extension module.
 #[pymodule]
 fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
@@ -1165,6 +1224,7 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<Params>()?;
     m.add_function(wrap_pyfunction!(identify, m)?)?;
     m.add_function(wrap_pyfunction!(load_params, m)?)?;
+    m.add_function(wrap_pyfunction!(settings_schema, m)?)?;
     Ok(())
 }
 

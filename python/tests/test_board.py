@@ -295,3 +295,20 @@ def test_analog_settings_are_refused_before_sending(board):
     with pytest.raises(ValueError, match="on_fault"):
         board.analog(on_fault="jump")
     assert not board.analog_status()["running"], "nothing was sent"
+
+
+def test_settings_by_path(board):
+    schema = dict(twinstack.settings_schema())
+    assert schema["/drive/slew_rate"] == "f64"
+    assert "ClosedLoop" in schema["/mode"]
+    assert board.set("/drive/slew_rate", 2000.0) == 2000.0
+    assert board.get("/drive/slew_rate") == 2000.0
+    assert board.set("/mode", "ClosedLoop") == "ClosedLoop"
+    assert board.params()["mode"] == "ClosedLoop"
+    with pytest.raises(KeyError, match="has no `slew`"):
+        board.get("/drive/slew")
+    with pytest.raises(ValueError, match="/drive/slew_rate"):
+        board.set("/drive/slew_rate", "fast")
+    with pytest.raises(twinstack.BoardError, match="max_voltage"):
+        board.set("/drive/max_voltage", 1000.0)
+    assert board.get("/drive/slew_rate") == 2000.0

@@ -18,8 +18,17 @@ in-process simulated board, identification and parameter file as the ``twinstack
 """
 
 from . import aio
-from ._native import Board, BoardError, Params, identify, load_params
+from ._native import Board, BoardError, Params, identify, load_params, settings_schema
 from .aio import AsyncBoard
 
-__all__ = ["AsyncBoard", "Board", "BoardError", "Params", "aio", "identify", "load_params"]
+__all__ = [
+    "AsyncBoard",
+    "Board",
+    "BoardError",
+    "Params",
+    "aio",
+    "identify",
+    "load_params",
+    "settings_schema",
+]
 __version__ = "0.1.0"

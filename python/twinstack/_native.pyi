@@ -130,6 +130,10 @@ def identify(
     picks among those, a model asked for by name that does not fit raises ``ValueError``. Runs without the
     interpreter's lock. ``ValueError`` says why a record cannot be fitted."""
 
+def settings_schema() -> List[Tuple[str, str]]:
+    """Every settings path with what it holds, as ``(path, kind)`` pairs (``twinstack settings
+    --schema``)."""
+
 def load_params(path: Union[str, "PathLike[str]"]) -> Params:
     """Reads and checks a parameter file (``twinstack identify``'s, or :meth:`Params.save`'s);
     ``ValueError`` names the field refused, ``FileNotFoundError`` a missing file."""
@@ -187,6 +191,15 @@ class Board:
     def params(self) -> Dict[str, Any]:
         """The settings in force on the board, physical units (a parameter file's
         ``settings``)."""
+    def get(self, path: str) -> Any:
+        """One setting by its path (``"/feedback/kp"``; :func:`settings_schema` lists them),
+        as the Python value of its JSON (``None`` for a part that is not set); ``KeyError``
+        names a path that names nothing."""
+    def set(self, path: str, value: Any) -> Any:
+        """Changes one setting by its path and loads the settings whole (validated by the
+        board, swapped in bumplessly); returns the value the board then holds. ``KeyError``:
+        a path that names nothing; ``ValueError``: a value of the wrong type;
+        ``BoardError``: the board's refusal (field and limit)."""
     def mode(self, mode: str) -> None:
         """Switches to ``"bypass"``, ``"open-loop"`` or ``"closed-loop"`` (bumpless)."""
     def stream(

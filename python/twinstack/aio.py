@@ -109,6 +109,14 @@ class AsyncBoard:
         """The settings in force, as :meth:`twinstack.Board.params`."""
         return await self._call(self._board.params)
 
+    async def get(self, path: str) -> Any:
+        """One setting by its path, as :meth:`twinstack.Board.get`."""
+        return await self._call(self._board.get, path)
+
+    async def set(self, path: str, value: Any) -> Any:
+        """Changes one setting by its path, as :meth:`twinstack.Board.set`."""
+        return await self._call(self._board.set, path, value)
+
     async def mode(self, mode: str) -> None:
         """Switches the control mode, as :meth:`twinstack.Board.mode`."""
         await self._call(self._board.mode, mode)

@@ -1,4 +1,4 @@
-//! `twinstack load --port PORT --params PARAMS.json [--mode …] [--store] [overrides]`: sends the
+//! `twinstack load --port PORT --params PARAMS.json [--mode …] [--store] [overrides] [--set PATH=VALUE …]`: sends the
 //! settings a parameter file carries as one parameter load (the board validates them whole,
 //! prepares them off the tick and swaps them in with the drive continuous), optionally
 //! storing them to flash.
@@ -19,6 +19,7 @@ use twinstack::config::settings::{FeedbackSettings, Model, Settings};
 use twinstack::control::drive::{Configuration, SafeState};
 use twinstack_identify::param_file::ParamFile;
 use twinstack_link::board_requests::{check_load, keep_from_board, LoadRefused};
+use twinstack_link::settings_path;
 
 /// Arguments of `load`.
 #[derive(Debug, clap::Args)]
@@ -65,6 +66,11 @@ pub struct Args {
     /// No sensor feedback (open loop and bypass only).
     #[arg(long, conflicts_with_all = ["kp", "ki", "correction_limit"])]
     pub no_feedback: bool,
+    /// Any setting by its path, after the file and the flags above: `--set /feedback/kp=0.1`
+    /// (repeatable; `twinstack settings --schema` lists the paths; the value is JSON or a bare
+    /// word).
+    #[arg(long = "set", value_name = "PATH=VALUE", value_parser = parse_assignment)]
+    pub set: Vec<(String, String)>,
     /// Load a model whose input range the drive cannot reach in full (the drive is then
     /// clipped at its limits), with a warning, instead of refusing it.
     #[arg(long)]
@@ -116,12 +122,36 @@ pub fn settings_for(args: &Args, file: &Settings, board: Option<&Settings>) -> S
     s
 }
 
+/// `PATH=VALUE` of `--set`, split at the first `=`.
+fn parse_assignment(text: &str) -> Result<(String, String), String> {
+    match text.split_once('=') {
+        Some((path, value)) if path.starts_with('/') => Ok((path.to_string(), value.to_string())),
+        _ => Err(format!(
+            "`{text}`: expected PATH=VALUE, e.g. /feedback/kp=0.1"
+        )),
+    }
+}
+
+/// The settings `load` sends: [`settings_for`], then each `--set` in order.
+pub fn settings_with_paths(
+    args: &Args,
+    file: &Settings,
+    board: Option<&Settings>,
+) -> Result<Settings, settings_path::PathError> {
+    let mut settings = settings_for(args, file, board);
+    for (path, value) in &args.set {
+        settings = settings_path::set(&settings, path, settings_path::parse_value(value))?;
+    }
+    Ok(settings)
+}
+
 /// Runs `load`.
 pub fn run(args: &Args) -> anyhow::Result<()> {
     let (file, model) = ParamFile::load(&args.params)?;
     let mut client = connect(&args.port)?;
     let board = client.read_params().ok();
-    let settings = settings_for(args, &file.settings, board.as_ref());
+    let settings = settings_with_paths(args, &file.settings, board.as_ref())
+        .map_err(|e| anyhow::anyhow!("--set {e}; nothing was loaded"))?;
     match check_load(&settings, model.output_sign, args.clamp) {
         Ok(None) => {}
         Ok(Some(warning)) => eprintln!(

@@ -1,7 +1,7 @@
 //! The `twinstack` subcommands, one module each: `run(&Args) -> anyhow::Result<()>`.
 //!
 //! Board commands (`calibrate`, `stream`, `load`, `params`, `mode`, `recall`, `status`,
-//! `waveform`, `stop`, `record`, `telemetry`, `coarse`, `scan`, `sequence`, `selftest`, `analog`, `tune`, `view`, and `learn` with
+//! `get`, `set`, `waveform`, `stop`, `record`, `telemetry`, `coarse`, `scan`, `sequence`, `selftest`, `analog`, `tune`, `view`, and `learn` with
 //! `--port`) share [`board_link`]'s `--port` / `--baud` / `--timeout-ms`.
 
 /// The exit codes of every `twinstack` command, as `twinstack --help` lists them.
@@ -44,6 +44,7 @@ pub mod scan;
 pub mod selftest;
 pub mod sequence;
 pub mod serve;
+pub mod settings;
 pub mod status;
 pub mod stop;
 pub mod stream;
