@@ -11,7 +11,7 @@ from typing import Any, Dict, List, Optional, Sequence, Tuple, Union, final
 import numpy as np
 import numpy.typing as npt
 
-__all__ = ["Board", "BoardError", "Params", "identify", "load_params"]
+__all__ = ["Board", "BoardError", "Params", "identify", "load_params", "settings_schema"]
 
 _ArrayLike = Union[npt.ArrayLike, Sequence[float]]
 _Signals = Union[str, Sequence[str]]
