@@ -6,7 +6,10 @@
 //! runs whatever it was last told. Whatever arrives:
 //! - nothing panics, and every frame gets exactly one response (telemetry frames aside);
 //! - every tick keeps both stacks inside the voltage limits of some settings the board
-//!   accepted, and no DAC step exceeds the largest slew limit the board accepted;
+//!   accepted, and no DAC step exceeds the largest slew limit the board accepted, from one
+//!   tick to the next of the same boot: a watchdog reset (after a drill, never otherwise) is a
+//!   discontinuity the firmware does not drive (the MCU's reset turns the DAC off until the
+//!   booted firmware starts it at its boot codes), so no slew is measured across it;
 //! - the setpoint queue's fill and credits add up to its capacity.
 //!
 //! `tests/command_handler.rs` fuzzes the handler alone, with a fixed handful of request types.
@@ -263,6 +266,8 @@ struct Watch {
     max_voltage: f64,
     slew_per_tick: f64,
     last: Option<(f64, f64)>,
+    /// Watchdog resets seen (each after a drill).
+    resets: usize,
     decoder: FrameDecoder,
     /// Responses other than telemetry frames.
     answered: usize,
@@ -282,6 +287,7 @@ impl Watch {
             max_voltage: f64::MIN,
             slew_per_tick: 0.0,
             last: None,
+            resets: 0,
             decoder: FrameDecoder::new(),
             answered: 0,
             status: None,
@@ -304,9 +310,24 @@ impl Watch {
         let lsb = self.volts_per_code;
         let mut buf = [0u8; 4096];
         for _ in 0..ticks {
+            let drilling = !self.dev.control().feeds_watchdog();
             self.dev.run_for(tick);
             self.widen();
             let Some(report) = self.dev.last_report() else {
+                // The tick that ends in the watchdog's reset reports nothing: the board starts
+                // again from its flash. A reset with no drill on would be a hang.
+                prop_assert!(
+                    drilling,
+                    "a reset with no watchdog drill on at tick {}",
+                    self.dev.ticks()
+                );
+                // The outputs between the last tick before the reset and the first after it
+                // are not the firmware's: the reset turns the DAC off, and the booted firmware
+                // starts it at its boot codes (checked against the range like every tick's).
+                // A slew measured across the reset would compare two boots, not a step the
+                // limiter let through.
+                self.last = None;
+                self.resets += 1;
                 continue;
             };
             let v = (report.left.0 as f64 * lsb, report.right.0 as f64 * lsb);
@@ -355,6 +376,35 @@ impl Watch {
     }
 }
 
+/// Sends each frame run (`bytes`, then `ticks` ticks) to a fresh board under watch, then the
+/// closing checks: every frame answered, the queue's accounting whole. Returns the watch.
+fn replay(frames: &[(Vec<u8>, u32)]) -> Result<Watch, TestCaseError> {
+    let mut w = Watch::new();
+    let (mut run, mut sent) = (0usize, 0usize);
+    for (bytes, ticks) in frames {
+        sent += frames_in(bytes, &mut run);
+        w.dev.send(bytes).expect("the line takes bytes");
+        w.ticks(*ticks)?;
+    }
+    // A delimiter ends a cut frame left open; then the line drains and every frame has
+    // had its answer.
+    sent += frames_in(&[0], &mut run);
+    w.dev.send(&[0]).expect("the line takes bytes");
+    w.ticks((w.rate_hz * 0.05) as u32)?;
+    prop_assert_eq!(w.answered, sent, "responses for the frames sent");
+    // The queue's accounting, through the protocol as a host sees it.
+    w.dev
+        .send(&encoded(&Request::Status))
+        .expect("the line takes bytes");
+    w.ticks((w.rate_hz * 0.01) as u32)?;
+    let s = w.status.expect("a status answer");
+    prop_assert_eq!(
+        s.queue_fill as usize + s.credits as usize,
+        SETPOINT_CAPACITY
+    );
+    Ok(w)
+}
+
 proptest! {
     // Deterministic work (simulated time), bounded so CI spends seconds here.
     #![proptest_config(ProptestConfig { cases: 96, ..ProptestConfig::default() })]
@@ -365,24 +415,40 @@ proptest! {
             (any_chunk(seeds().len()), 0u32..400, prop::bool::weighted(0.05)), 1..40),
     ) {
         let seeds = seeds();
-        let mut w = Watch::new();
-        let (mut run, mut sent) = (0usize, 0usize);
-        for (chunk, gap_ticks, long_run) in &chunks {
-            let bytes = bytes_of(chunk, &seeds);
-            sent += frames_in(&bytes, &mut run);
-            w.dev.send(&bytes).expect("the line takes bytes");
-            w.ticks(if *long_run { 5_000 } else { *gap_ticks })?;
-        }
-        // A delimiter ends a cut frame left open; then the line drains and every frame has
-        // had its answer.
-        sent += frames_in(&[0], &mut run);
-        w.dev.send(&[0]).expect("the line takes bytes");
-        w.ticks((w.rate_hz * 0.05) as u32)?;
-        prop_assert_eq!(w.answered, sent, "responses for the frames sent");
-        // The queue's accounting, through the protocol as a host sees it.
-        w.dev.send(&encoded(&Request::Status)).expect("the line takes bytes");
-        w.ticks((w.rate_hz * 0.01) as u32)?;
-        let s = w.status.expect("a status answer");
-        prop_assert_eq!(s.queue_fill as usize + s.credits as usize, SETPOINT_CAPACITY);
+        let frames: Vec<_> = chunks
+            .iter()
+            .map(|(chunk, gap_ticks, long_run)| {
+                (bytes_of(chunk, &seeds), if *long_run { 5_000 } else { *gap_ticks })
+            })
+            .collect();
+        replay(&frames)?;
     }
+}
+
+/// A case the fuzzer found: open loop, a watchdog drill (a mutated frame whose one message
+/// byte is the drill's tag), a waveform started while the drill runs, closed-loop settings
+/// (bias 40 V) loaded; 20 ms after the drill the watchdog resets the board, which boots on
+/// its defaults (bypass, bias 70 V): the right stack's code goes from 570 to 2070, 54.9 V
+/// between the last tick before the reset and the first after it. The checker takes the reset
+/// as the discontinuity it is (no slew across it) and still checks every other tick.
+#[test]
+fn a_watchdog_reset_after_a_drill_is_not_measured_as_a_slew() {
+    let seeds = seeds();
+    let drill = framed(&[27]);
+    assert_eq!(
+        drill,
+        encoded(&Request::WatchdogDrill),
+        "the mutated frame is the drill"
+    );
+    let frames = [
+        (encoded(&seeds[8]), 0),
+        (drill, 63),
+        (encoded(&seeds[14]), 244),
+        (encoded(&seeds[11]), 0),
+    ];
+    assert!(matches!(seeds[8], Request::Mode(Mode::OpenLoop)));
+    assert!(matches!(seeds[14], Request::Waveform(_)));
+    assert!(matches!(seeds[11], Request::LoadParams(_)));
+    let w = replay(&frames).unwrap_or_else(|e| panic!("{e}"));
+    assert_eq!(w.resets, 1, "the drill reset the board once");
 }
