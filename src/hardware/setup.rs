@@ -133,6 +133,11 @@ fn pend(irq: Interrupt) {
 ///
 /// Panics only on what cannot happen at a cold boot (a singleton taken twice, the compiled-in
 /// settings refused); the panic handler drives the safe state.
+///
+/// Inlined into the shell's `init`, so that the `Board` (the tick's 8 KiB loop among it) is
+/// built where RTIC stores it rather than copied up through a second frame: the boot's stack
+/// use, the deepest of the image, stays what it was when `init` built it inline.
+#[inline(always)]
 pub fn setup(
     dp: pac::Peripherals,
     syst: cortex_m::peripheral::SYST,
