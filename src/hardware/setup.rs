@@ -23,7 +23,7 @@ use crate::board::Hardware;
 use crate::command_handler::{CommandHandler, MAX_RESPONSE};
 use crate::config::param_store::{self, ParamSource};
 use crate::control::Controller;
-use crate::control_loop::{ControlLoop, SetpointQueue, SETPOINT_QUEUE_LEN};
+use crate::control_loop::{SetpointQueue, SETPOINT_QUEUE_LEN};
 use crate::services::recorder::SplitStore;
 use crate::services::telemetry::{FrameLink, TelemetryQueue, TelemetrySample, TELEMETRY_QUEUE_LEN};
 
@@ -134,9 +134,10 @@ fn pend(irq: Interrupt) {
 /// Panics only on what cannot happen at a cold boot (a singleton taken twice, the compiled-in
 /// settings refused); the panic handler drives the safe state.
 ///
-/// Inlined into the shell's `init`, so that the `Board` (the tick's 8 KiB loop among it) is
-/// built where RTIC stores it rather than copied up through a second frame: the boot's stack
-/// use, the deepest of the image, stays what it was when `init` built it inline.
+/// The loop (8 KiB) is built in its static ([`super::tick::control_loop`]) and the queues
+/// and the capture buffer are statics too, so the `Board` carries references to them, not
+/// their bytes; inlined into the shell's `init`, so that what it does carry is not copied up
+/// through a second frame.
 #[inline(always)]
 pub fn setup(
     dp: pac::Peripherals,
@@ -189,7 +190,10 @@ pub fn setup(
         panic!("controllers already taken");
     };
     let capture_buffer = SplitStore::new(statics.record_buffer, capture_second_part());
-    let mut control = ControlLoop::new(active, spare, rate, capture_buffer);
+    // Built in its static: the loop (8 KiB) never sits on the boot's stack.
+    let Some(control) = super::tick::control_loop(active, spare, rate, capture_buffer) else {
+        panic!("control loop already taken");
+    };
     let mut handler = CommandHandler::new(hardware, settings, defaults, storage());
     handler.set_watchdog_reset(reset.is_watchdog());
     // The stored analog setpoint input starts before the first tick: stand-alone, no host.
@@ -217,7 +221,7 @@ pub fn setup(
         tim4: dp.TIM4,
         tim8: dp.TIM8,
     };
-    let (coarse, pacer) = CoarseStage::start(coarse_io, &rcc, &bus, rate, &mut control);
+    let (coarse, pacer) = CoarseStage::start(coarse_io, &rcc, &bus, rate, control);
     // The analog setpoint input (ADC2: PC3, the Feather's A3), after every port's split.
     let adc = adc.with_setpoint_input(super::setpoint_adc::SetpointChannel::new(dp.ADC2, &rcc));
     let Some(setpoint_queue) = setpoint_queue() else {
