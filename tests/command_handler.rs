@@ -1657,3 +1657,51 @@ fn an_analog_start_that_would_overrun_the_tick_is_refused_with_its_cycles() {
     }
     assert!(!b.control.analog_status().running);
 }
+
+/// While telemetry runs, the tick wakes the command task (the packer) when the queue holds a
+/// frame's worth of samples, never once per tick: the wake level the handler gives the tap is
+/// the packer's own frame target, and at every wake a frame is due and packed.
+#[test]
+fn the_telemetry_packer_is_woken_by_the_queue_s_fill_level_not_per_tick() {
+    use twinstack::services::telemetry::{frame_target, TelemetryQueue};
+    let mut b = board();
+    let (signals, decimation) = (0b11, 2);
+    assert!(matches!(
+        b.handle(Request::Telemetry(TelemetryRequest::Start {
+            signals,
+            decimation
+        })),
+        Response::Ack { .. }
+    ));
+    let target = frame_target(signals, decimation, RATE);
+    assert!(target > 1, "a frame's worth of {target} samples");
+    let queue: &'static mut TelemetryQueue = Box::leak(Box::new(TelemetryQueue::new()));
+    let (mut tap, mut packer) = queue.split();
+    let ticks = 4_000;
+    let (mut wakes, mut frames) = (0, 0);
+    for _ in 0..ticks {
+        b.ticks(1);
+        if !b.control.tap_telemetry(&mut tap) {
+            continue;
+        }
+        wakes += 1;
+        assert!(
+            packer.len() >= target,
+            "woken at {} queued samples, a frame is {target}",
+            packer.len()
+        );
+        assert!(b.handler.telemetry_due(&packer));
+        while b.handler.telemetry_due(&packer) {
+            assert!(b.handler.pack_telemetry(&mut packer).is_some());
+            frames += 1;
+        }
+    }
+    let samples = ticks / decimation as usize;
+    assert_eq!(
+        wakes,
+        samples / target,
+        "{samples} samples, {target} a frame"
+    );
+    assert!(frames >= wakes);
+    assert_eq!(b.control.telemetry_overflows(), 0);
+}

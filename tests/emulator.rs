@@ -1143,10 +1143,10 @@ fn the_board_answers_the_fuzzer_s_findings_as_the_host_build_does() {
 fn the_firmware_tick_links_no_panic_path() {
     let images: [(&str, &[&str], &str); 6] = [
         ("twinstack-fw", &[], "TIM2"),
-        ("twinstack-fw", &["dual-stage"], "TIM2"),
+        ("twinstack-fw-dual", &["dual-stage"], "TIM2"),
         ("twinstack-feather", &["feather"], "TIM2"),
         ("twinstack-emu", &["emulator"], "SysTick"),
-        ("twinstack-emu", &["emulator", "dual-stage"], "SysTick"),
+        ("twinstack-emu-dual", &["emulator", "dual-stage"], "SysTick"),
         ("twinstack-feather-emu", &["emulator", "feather"], "SysTick"),
     ];
     for (bin, features, tick) in images {

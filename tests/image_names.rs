@@ -104,3 +104,52 @@ fn the_feather_images_have_their_own_names_and_features() {
         );
     }
 }
+
+#[test]
+fn the_dual_stage_images_have_their_own_names_and_features() {
+    let fw = alias("build-fw-dual");
+    let emu = alias("build-emu-dual");
+    assert_eq!(bin(&fw), "twinstack-fw-dual", "{fw}");
+    assert_eq!(bin(&emu), "twinstack-emu-dual", "{emu}");
+    assert!(
+        fw.contains("--features dual-stage") && !fw.contains("emulator"),
+        "{fw}"
+    );
+    assert!(emu.contains("--features emulator,dual-stage"), "{emu}");
+    let manifest = read("Cargo.toml");
+    let target = |name: &str| {
+        manifest
+            .split("[[bin]]")
+            .skip(1)
+            .find(|t| t.contains(&format!("name = \"{name}\"\n")))
+            .unwrap_or_else(|| panic!("no [[bin]] {name} in Cargo.toml"))
+            .to_string()
+    };
+    assert!(target("twinstack-fw-dual").contains("required-features = [\"dual-stage\"]"));
+    assert!(
+        target("twinstack-emu-dual").contains("required-features = [\"emulator\", \"dual-stage\"]")
+    );
+    // The piezo-only images refuse the coarse axis under their names.
+    for file in ["src/bin/twinstack-fw.rs", "src/bin/twinstack-emu.rs"] {
+        assert!(
+            read(file).contains(
+                "#[cfg(all(target_os = \"none\", feature = \"dual-stage\"))]\ncompile_error!"
+            ),
+            "{file} no longer refuses dual-stage"
+        );
+    }
+}
+
+/// The RTIC application is one shell for every image: what differs per target is chosen in
+/// the library (`hardware::setup`), and per image only the interrupt bindings each binary
+/// passes, so the shared application has no feature switch.
+#[test]
+fn the_shared_application_has_no_feature_switch() {
+    let app = read("src/bin/firmware/app.rs");
+    for feature in ["emulator", "dual-stage", "feather"] {
+        assert!(
+            !app.contains(&format!("feature = \"{feature}\"")),
+            "src/bin/firmware/app.rs switches on {feature}"
+        );
+    }
+}

@@ -503,7 +503,7 @@ fn the_coarse_axis_of_the_emulated_firmware_homes_and_moves_over_its_uart() {
     use twinstack::refusal::{Field, Refusal, Rule};
     let qemu = boot_image(support::build_image(
         support::FIRMWARE,
-        "twinstack-emu",
+        "twinstack-emu-dual",
         &["emulator", "dual-stage"],
     ));
     let mut client = connect(&qemu);

@@ -1,9 +1,10 @@
 //! # twinstack-emu — the firmware's QEMU image (`netduinoplus2`, STM32F405)
 //!
-//! The board's application (`src/bin/firmware/app.rs`, documented in `twinstack-fw.rs`) built
-//! with the `emulator` feature: HSI clock, SysTick instead of TIM2 for the tick,
-//! interrupt-driven USART receive instead of DMA (QEMU models neither RCC, DMA, the DAC nor
-//! TIM2's update interrupt). Nothing else changes. `cargo build-emu` writes
+//! The board's shell (`src/bin/firmware/app.rs`, documented in `twinstack-fw.rs`) with the
+//! library built for the emulator (feature `emulator`, [`twinstack::hardware::setup`]): HSI
+//! clock, SysTick instead of TIM2 for the tick, interrupt-driven USART receive and polled
+//! transmit instead of DMA, the parameter record read-only (QEMU models neither RCC, DMA, the
+//! DAC, the flash interface nor TIM2's update interrupt). `cargo build-emu` writes
 //! `target/thumbv7em-none-eabihf/release/twinstack-emu`, a different file from the board
 //! image (`twinstack-fw`), and the image's status report says `emulator`
 //! ([`twinstack::protocol::messages::Image`]).
@@ -27,8 +28,23 @@ compile_error!(
     "twinstack-emu is the driver board's image; the Feather's is twinstack-feather-emu: `cargo build-emu-feather`"
 );
 
+// The coarse axis has its own emulator image.
+#[cfg(all(target_os = "none", feature = "dual-stage"))]
+compile_error!(
+    "twinstack-emu is the piezo-only emulator image; with the coarse axis it is \
+     twinstack-emu-dual: `cargo build-emu-dual`"
+);
+
 /// This image's name, in its start-up log.
 #[cfg(target_os = "none")]
 const IMAGE_NAME: &str = "twinstack-emu";
 
 include!("firmware/app.rs");
+
+#[cfg(target_os = "none")]
+firmware_app!(
+    tick = SysTick,
+    coarse = EXTI1,
+    rx = USART1,
+    rx_dma = DMA2_STREAM2,
+);

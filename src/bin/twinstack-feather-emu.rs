@@ -24,3 +24,11 @@ fn main() {
 const IMAGE_NAME: &str = "twinstack-feather-emu";
 
 include!("firmware/app.rs");
+
+#[cfg(target_os = "none")]
+firmware_app!(
+    tick = SysTick,
+    coarse = EXTI1,
+    rx = USART3,
+    rx_dma = DMA1_STREAM1,
+);

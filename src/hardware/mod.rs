@@ -2,9 +2,10 @@
 //! and — with the `feather` feature — the Adafruit Feather STM32F405 Express, whose pins,
 //! crystal and host-link USART are in [`profile`]. The table below is the driver board's.
 //!
-//! Each module wraps one peripheral and exposes only what the RTIC shell
-//! (`src/bin/twinstack-fw.rs`) needs; the control algorithm never sees a register, only the
-//! [`crate::board`] traits that [`dac::InternalDac`] and [`adc::SensorInput`] implement.
+//! Each module wraps one peripheral; [`setup`] brings the board up from them and holds every
+//! task's body, so the RTIC shells (`src/bin/twinstack-*.rs`) only bind interrupts. The
+//! control algorithm never sees a register, only the [`crate::board`] traits that
+//! [`dac::InternalDac`] and [`adc::SensorInput`] implement.
 //!
 //! | signal | pin | peripheral |
 //! |--------|-----|------------|
@@ -20,10 +21,13 @@
 //! | pixel / line / frame clock out | PA1 / PA2 / PA3 | GPIO push-pull ([`trigger_pins`]) |
 //! | external trigger in | PA6 | GPIO input, pull-down ([`trigger_pins`]) |
 //!
-//! The `emulator` feature swaps exactly three things for QEMU's `netduinoplus2`, which models
-//! neither RCC, DMA, the DAC nor TIM2's update interrupt: the clock stays on HSI
-//! ([`clocks`]), the control tick comes from SysTick instead of TIM2 ([`control_timer`]), and
-//! USART1 receives by RXNE interrupt instead of DMA ([`usart`]).
+//! The `emulator` feature builds these modules for QEMU's `netduinoplus2`, which models
+//! neither RCC, DMA, the DAC, the flash interface, CCM RAM nor TIM2's update interrupt: the
+//! clock stays on HSI ([`clocks`]), the control tick comes from SysTick instead of TIM2
+//! ([`control_timer`]), the link receives by RXNE interrupt and transmits polled instead of
+//! by DMA ([`usart`]), the parameter record is read-only, and the coarse axis (`dual-stage`)
+//! is the library's model of it. [`setup`] has the table; every difference is chosen there
+//! or below, by type, never in the application.
 #![allow(unsafe_code)]
 
 pub mod adc;
@@ -38,6 +42,7 @@ pub mod profile;
 pub mod reset_cause;
 pub mod safe_state;
 pub mod setpoint_adc;
+pub mod setup;
 pub mod tick;
 pub mod trigger_pins;
 pub mod usart;

@@ -98,6 +98,29 @@ pub type LinkDma = pac::DMA2;
 #[cfg(feature = "feather")]
 pub type LinkDma = pac::DMA1;
 
+/// The host link's USART and DMA controller, out of the device's peripherals: USART1 and DMA2
+/// on the driver board (the others stay unused).
+#[cfg(not(feature = "feather"))]
+pub fn link_peripherals(
+    usart1: pac::USART1,
+    _usart3: pac::USART3,
+    _dma1: pac::DMA1,
+    dma2: pac::DMA2,
+) -> (LinkUsart, LinkDma) {
+    (usart1, dma2)
+}
+
+/// The host link's USART and DMA controller: USART3 and DMA1 on the Feather.
+#[cfg(feature = "feather")]
+pub fn link_peripherals(
+    _usart1: pac::USART1,
+    usart3: pac::USART3,
+    dma1: pac::DMA1,
+    _dma2: pac::DMA2,
+) -> (LinkUsart, LinkDma) {
+    (usart3, dma1)
+}
+
 /// The DMA streams carrying the link's receive and transmit, and their channel: USART1_RX is
 /// DMA2 stream 2, USART1_TX stream 7, both channel 4.
 #[cfg(not(feature = "feather"))]

@@ -5,6 +5,9 @@
 //! store), telemetry's tap ([`ControlLoop::tap_telemetry`]), feed the watchdog (unless a
 //! drill stopped it: [`ControlLoop::feeds_watchdog`]), count an overrun.
 
+use core::mem::MaybeUninit;
+use core::sync::atomic::{AtomicBool, Ordering};
+
 use heapless::spsc::{Consumer, Producer};
 
 use crate::control::Controller;
@@ -36,9 +39,39 @@ pub type RecordBuffer = SplitStore<&'static mut [i16; SRAM_SLOTS], &'static mut 
 /// tick and the command handler.
 pub type BoardLoop = ControlLoop<RecordBuffer, &'static mut Controller>;
 
-/// Everything the control interrupt owns. `repr(C)` with the loop (8 KiB, most of it the
-/// learning's tables at its end) last, so that the converters, the timer and the queues are
-/// within a one-instruction load's reach of the resource's address.
+/// The loop's home (8 KiB, most of it the learning's tables): a static, written once by
+/// [`control_loop`], so that the loop is built where it stays and never sits on the boot's
+/// stack, nor is moved through `init`'s return into RTIC's resources.
+static mut CONTROL: MaybeUninit<BoardLoop> = MaybeUninit::uninit();
+
+/// Whether [`control_loop`] has handed the loop out (in `.bss`: zeroed at start-up).
+static CONTROL_TAKEN: AtomicBool = AtomicBool::new(false);
+
+/// The loop at rest ([`ControlLoop::new`]), built in its static: `Some` the first time,
+/// `None` after.
+pub fn control_loop(
+    controller: &'static mut Controller,
+    spare: &'static mut Controller,
+    control_rate_hz: u32,
+    record_buffer: RecordBuffer,
+) -> Option<&'static mut BoardLoop> {
+    if CONTROL_TAKEN.swap(true, Ordering::AcqRel) {
+        return None;
+    }
+    // SAFETY: `CONTROL_TAKEN` lets exactly one caller through, so this is the only reference
+    // to the static ever made; it is initialised before it is handed out.
+    let slot = unsafe { &mut *core::ptr::addr_of_mut!(CONTROL) };
+    Some(slot.write(ControlLoop::new(
+        controller,
+        spare,
+        control_rate_hz,
+        record_buffer,
+    )))
+}
+
+/// Everything the control interrupt owns: the converters, the timer and the queues by value,
+/// the loop (8 KiB) by reference to its static ([`control_loop`]), so that the resource RTIC
+/// moves out of `init` is a few hundred bytes, not the loop.
 #[repr(C)]
 pub struct ControlTick {
     /// The sensor's ADC.
@@ -55,8 +88,8 @@ pub struct ControlTick {
     pub telemetry: Producer<'static, TelemetrySample, TELEMETRY_QUEUE_LEN>,
     /// The trigger I/O pins (pixel, line, frame outputs; the external trigger input).
     pub triggers: TriggerPins,
-    /// The loop: setpoint stream, controller, recorder.
-    pub control: BoardLoop,
+    /// The loop: setpoint stream, controller, recorder ([`control_loop`]).
+    pub control: &'static mut BoardLoop,
 }
 
 impl ControlTick {
@@ -91,6 +124,6 @@ impl<M: rtic_core::Mutex<T = ControlTick>> rtic_core::Mutex for LoopLock<M> {
     type T = BoardLoop;
 
     fn lock<R>(&mut self, f: impl FnOnce(&mut Self::T) -> R) -> R {
-        self.0.lock(|t| f(&mut t.control))
+        self.0.lock(|t| f(t.control))
     }
 }

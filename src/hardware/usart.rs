@@ -61,6 +61,15 @@ pub struct UsartTx {
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct TxTimeout;
 
+/// Frames [`UsartTx`] cut short because the transmitter stopped taking bytes, since power-up.
+static TX_TIMEOUTS: core::sync::atomic::AtomicU32 = core::sync::atomic::AtomicU32::new(0);
+
+/// Frames the polled transmitter cut short on a [`TxTimeout`] since power-up (each one also
+/// logged): 0 on working hardware.
+pub fn tx_timeouts() -> u32 {
+    TX_TIMEOUTS.load(core::sync::atomic::Ordering::Relaxed)
+}
+
 impl UsartTx {
     /// Sends `bytes`, waiting for TXE before each one.
     pub fn write_all(&mut self, bytes: &[u8]) -> Result<(), TxTimeout> {
@@ -85,10 +94,18 @@ impl crate::services::telemetry::FrameLink for UsartTx {
         true
     }
 
-    /// Writes the frame out, polling TXE; a transmitter that stops taking bytes (never on
-    /// working hardware) loses the rest of the frame, which the host sees as a bad frame.
+    /// Writes the frame out, polling TXE at most `TX_SPIN_LIMIT` times a byte; a
+    /// transmitter that stops taking bytes (never on working hardware) loses the rest of the
+    /// frame, which the host sees as a bad frame, and the loss is counted ([`tx_timeouts`])
+    /// and logged.
     fn send_frame(&mut self, frame: &[u8]) -> bool {
-        let _ = self.write_all(frame);
+        if self.write_all(frame).is_err() {
+            let n = TX_TIMEOUTS.fetch_add(1, core::sync::atomic::Ordering::Relaxed) + 1;
+            defmt::warn!(
+                "link transmitter stalled: frame cut short ({=u32} so far)",
+                n
+            );
+        }
         true
     }
 }

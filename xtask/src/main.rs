@@ -46,14 +46,14 @@ const TARGET_CLIPPY: &[(&str, &[&str])] = &[
         &["--bin", "twinstack-emu", "--features", "emulator"],
     ),
     (
-        "twinstack-fw (board, dual-stage)",
-        &["--bin", "twinstack-fw", "--features", "dual-stage"],
+        "twinstack-fw-dual (board, dual-stage)",
+        &["--bin", "twinstack-fw-dual", "--features", "dual-stage"],
     ),
     (
-        "twinstack-emu (emulator, dual-stage)",
+        "twinstack-emu-dual (emulator, dual-stage)",
         &[
             "--bin",
-            "twinstack-emu",
+            "twinstack-emu-dual",
             "--features",
             "emulator,dual-stage",
         ],

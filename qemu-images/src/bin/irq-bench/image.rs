@@ -391,7 +391,6 @@ mod app {
     use twinstack::config::settings::{Mode, Settings};
     use twinstack::config::tick_budget::worst_case_cycles;
     use twinstack::control::Controller;
-    use twinstack::control_loop::ControlLoop;
     use twinstack::control_loop::{SetpointQueue, SETPOINT_QUEUE_LEN};
     use twinstack::hardware::adc::SensorInput;
     use twinstack::hardware::clocks;
@@ -460,7 +459,12 @@ mod app {
         // QEMU 7.2's netduinoplus2 models no CCM RAM: the SRAM half only (the same code on
         // the tick: a split store whose second half is empty).
         let record = SplitStore::new(cx.local.record_buffer, &mut [] as &mut [i16]);
-        let control = ControlLoop::new(active, spare, timer.rate_hz(), record);
+        // In its static, as the firmware's.
+        let Some(control) =
+            twinstack::hardware::tick::control_loop(active, spare, timer.rate_hz(), record)
+        else {
+            panic!("control loop already taken");
+        };
         let (safe_left, safe_right) = control.safe_codes();
         let dac = InternalDac::new(dp.DAC, &rcc, (safe_left, safe_right));
         // The analog setpoint input on ADC2, as the firmware's.
