@@ -4,9 +4,12 @@
 //! checks it).
 //!
 //! The configuration's enums ([`Compensator`], [`Observer`]) hold the models; the tick's
-//! ([`CompensatorRun`], [`ObserverRun`]) hold each model in series with the stage's creep and
-//! its state ([`Running`]), one tag per tick. Creep is not a variant of its own: it is the
-//! [`Series`] every model runs in, `None` where the stage has none.
+//! ([`CompensatorRun`], [`ObserverRun`]) hold each model, alone or in [`Series`] with the
+//! stage's creep, and its state ([`Running`]), one tag per tick. Whether the creep runs is
+//! part of that tag (`InversePi` / `InversePiCreep`), not a check of its own: a tick without
+//! creep dispatches on the model alone, as cheap as a model run by hand (an `Option` of the
+//! creep inside each variant cost the P–I 16 tick 15–20 instructions in the whole-interrupt
+//! bench).
 
 use crate::models::bouc_wen::{BoucWen, InverseBoucWen};
 use crate::models::creep::{Creep, InverseCreep};
@@ -16,9 +19,9 @@ use crate::models::prandtl_ishlinskii::{InversePrandtlIshlinskii, PrandtlIshlins
 use crate::models::{Forward, Hysteresis, Inverse, Running, Series};
 
 /// An inverse model after the inverse creep (setpoint → C⁻¹ → H⁻¹ → drive).
-pub type Compensating<M> = Series<Option<InverseCreep>, M>;
+pub type Compensating<M> = Series<InverseCreep, M>;
 /// A forward model followed by the creep (drive → H → C → displacement).
-pub type Observing<M> = Series<M, Option<Creep>>;
+pub type Observing<M> = Series<M, Creep>;
 
 /// The feedforward compensator: desired displacement → drive.
 // The variants differ in size by design: there is no heap on the board, and the configuration
@@ -54,72 +57,97 @@ pub enum Observer {
     BoucWen(BoucWen),
 }
 
-/// The compensator as the tick runs it: the inverse creep and the model in series, and their
+/// The compensator as the tick runs it: the model, alone or after the inverse creep, and its
 /// state, in one enum (one tag per tick).
 // The order of the variants is the tag the tick's dispatch compares: the reference model first.
 #[allow(clippy::large_enum_variant)] // no heap: the controllers live in statics
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum CompensatorRun {
     /// Inverse P–I.
-    InversePi(Running<Compensating<InversePrandtlIshlinskii>>),
+    InversePi(Running<InversePrandtlIshlinskii>),
     /// Inverse Duhem.
-    InverseDuhem(Running<Compensating<InverseDuhem>>),
+    InverseDuhem(Running<InverseDuhem>),
     /// No compensation: the drive is the setpoint.
     None,
     /// Inverse generalised P–I.
-    InverseGeneralisedPi(Running<Compensating<InverseGeneralisedPi>>),
+    InverseGeneralisedPi(Running<InverseGeneralisedPi>),
     /// Inverse Bouc–Wen.
-    InverseBoucWen(Running<Compensating<InverseBoucWen>>),
+    InverseBoucWen(Running<InverseBoucWen>),
+    /// Inverse creep, then the inverse P–I.
+    InversePiCreep(Running<Compensating<InversePrandtlIshlinskii>>),
+    /// Inverse creep, then the inverse Duhem.
+    InverseDuhemCreep(Running<Compensating<InverseDuhem>>),
+    /// Inverse creep, then the inverse generalised P–I.
+    InverseGeneralisedPiCreep(Running<Compensating<InverseGeneralisedPi>>),
+    /// Inverse creep, then the inverse Bouc–Wen.
+    InverseBoucWenCreep(Running<Compensating<InverseBoucWen>>),
 }
 
-/// The observer as the tick runs it (see [`CompensatorRun`]): the model and the creep in series.
+/// The observer as the tick runs it (see [`CompensatorRun`]): the model, alone or followed by
+/// the creep.
 #[allow(clippy::large_enum_variant)]
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum ObserverRun {
     /// Forward Duhem.
-    Duhem(Running<Observing<Duhem>>),
+    Duhem(Running<Duhem>),
     /// Forward P–I.
-    Pi(Running<Observing<PrandtlIshlinskii>>),
+    Pi(Running<PrandtlIshlinskii>),
     /// No observer: the estimate reads 0.
     None,
     /// Forward generalised P–I.
-    GeneralisedPi(Running<Observing<GeneralisedPi>>),
+    GeneralisedPi(Running<GeneralisedPi>),
     /// Forward Bouc–Wen.
-    BoucWen(Running<Observing<BoucWen>>),
+    BoucWen(Running<BoucWen>),
+    /// Forward Duhem, then the creep.
+    DuhemCreep(Running<Observing<Duhem>>),
+    /// Forward P–I, then the creep.
+    PiCreep(Running<Observing<PrandtlIshlinskii>>),
+    /// Forward generalised P–I, then the creep.
+    GeneralisedPiCreep(Running<Observing<GeneralisedPi>>),
+    /// Forward Bouc–Wen, then the creep.
+    BoucWenCreep(Running<Observing<BoucWen>>),
 }
 
-/// `m` after the inverse creep, with its state: matched to the observer's where that runs the
-/// model `m` inverts, else relaxed at drive `u` with the stage at `y`; the creep's modes
-/// settled at `y` (where the models are relaxed, so it passes `y` through).
+/// `m` alone or after the inverse creep, with its state: matched to the observer's where that
+/// runs the model `m` inverts, else relaxed at drive `u` with the stage at `y`; the creep's
+/// modes settled at `y` (where the models are relaxed, so it passes `y` through).
 fn compensating<M: Inverse + Copy>(
     m: &M,
-    observer: Option<&Running<Observing<M::Forward>>>,
+    observer: Option<(&M::Forward, &<M::Forward as Hysteresis>::State)>,
     creep: Option<Creep>,
     u: i32,
     y: i32,
-) -> Running<Compensating<M>> {
+    alone: fn(Running<M>) -> CompensatorRun,
+    with_creep: fn(Running<Compensating<M>>) -> CompensatorRun,
+) -> CompensatorRun {
     let state = observer
-        .and_then(|o| m.matching(&o.model.0, &o.state.0))
+        .and_then(|(model, state)| m.matching(model, state))
         .unwrap_or_else(|| Inverse::relaxed(m, u, y));
-    let creep_state = creep.map(|c| c.state_at_rest(y)).unwrap_or_default();
-    Running {
-        model: Series(creep.map(InverseCreep), *m),
-        state: (creep_state, state),
+    match creep {
+        None => alone(Running { model: *m, state }),
+        Some(c) => with_creep(Running {
+            model: Series(InverseCreep(c), *m),
+            state: (c.state_at_rest(y), state),
+        }),
     }
 }
 
-/// `m` followed by the creep, relaxed at drive `u`, and its output there; the creep's modes
-/// settled at the model's output (so it passes it through).
+/// `m` alone or followed by the creep, relaxed at drive `u`, and its output there; the
+/// creep's modes settled at the model's output (so it passes it through).
 fn observing<M: Forward + Copy>(
     m: &M,
     creep: Option<Creep>,
     u: i32,
-) -> (Running<Observing<M>>, i32) {
+    alone: fn(Running<M>) -> ObserverRun,
+    with_creep: fn(Running<Observing<M>>) -> ObserverRun,
+) -> (ObserverRun, i32) {
     let (state, y) = Forward::relaxed(m, u);
-    let creep_state = creep.map(|c| c.state_at_rest(y)).unwrap_or_default();
-    let run = Running {
-        model: Series(*m, creep),
-        state: (state, creep_state),
+    let run = match creep {
+        None => alone(Running { model: *m, state }),
+        Some(c) => with_creep(Running {
+            model: Series(*m, c),
+            state: (state, c.state_at_rest(y)),
+        }),
     };
     (run, y)
 }
@@ -135,35 +163,42 @@ impl Compensator {
         u: i32,
         y: i32,
     ) -> CompensatorRun {
+        use CompensatorRun as C;
+        use ObserverRun as O;
         match self {
-            Self::None => CompensatorRun::None,
+            Self::None => C::None,
             Self::InversePi(m) => {
                 let o = match observer {
-                    ObserverRun::Pi(o) => Some(o),
+                    O::Pi(o) => Some((&o.model, &o.state)),
+                    O::PiCreep(o) => Some((&o.model.0, &o.state.0)),
                     _ => None,
                 };
-                CompensatorRun::InversePi(compensating(m, o, creep, u, y))
+                compensating(m, o, creep, u, y, C::InversePi, C::InversePiCreep)
             }
             Self::InverseDuhem(m) => {
                 let o = match observer {
-                    ObserverRun::Duhem(o) => Some(o),
+                    O::Duhem(o) => Some((&o.model, &o.state)),
+                    O::DuhemCreep(o) => Some((&o.model.0, &o.state.0)),
                     _ => None,
                 };
-                CompensatorRun::InverseDuhem(compensating(m, o, creep, u, y))
+                compensating(m, o, creep, u, y, C::InverseDuhem, C::InverseDuhemCreep)
             }
             Self::InverseGeneralisedPi(m) => {
                 let o = match observer {
-                    ObserverRun::GeneralisedPi(o) => Some(o),
+                    O::GeneralisedPi(o) => Some((&o.model, &o.state)),
+                    O::GeneralisedPiCreep(o) => Some((&o.model.0, &o.state.0)),
                     _ => None,
                 };
-                CompensatorRun::InverseGeneralisedPi(compensating(m, o, creep, u, y))
+                let (alone, with_creep) = (C::InverseGeneralisedPi, C::InverseGeneralisedPiCreep);
+                compensating(m, o, creep, u, y, alone, with_creep)
             }
             Self::InverseBoucWen(m) => {
                 let o = match observer {
-                    ObserverRun::BoucWen(o) => Some(o),
+                    O::BoucWen(o) => Some((&o.model, &o.state)),
+                    O::BoucWenCreep(o) => Some((&o.model.0, &o.state.0)),
                     _ => None,
                 };
-                CompensatorRun::InverseBoucWen(compensating(m, o, creep, u, y))
+                compensating(m, o, creep, u, y, C::InverseBoucWen, C::InverseBoucWenCreep)
             }
         }
     }
@@ -185,24 +220,15 @@ impl Observer {
     /// What the tick runs of it, followed by `creep` (not applied without a model), relaxed at
     /// drive `u`; and its estimate there (`u` without a model). Off the tick.
     pub fn prepare(&self, creep: Option<Creep>, u: i32) -> (ObserverRun, i32) {
+        use ObserverRun as O;
         match self {
-            Self::None => (ObserverRun::None, u),
-            Self::Pi(m) => {
-                let (run, y) = observing(m, creep, u);
-                (ObserverRun::Pi(run), y)
-            }
-            Self::Duhem(m) => {
-                let (run, y) = observing(m, creep, u);
-                (ObserverRun::Duhem(run), y)
-            }
+            Self::None => (O::None, u),
+            Self::Pi(m) => observing(m, creep, u, O::Pi, O::PiCreep),
+            Self::Duhem(m) => observing(m, creep, u, O::Duhem, O::DuhemCreep),
             Self::GeneralisedPi(m) => {
-                let (run, y) = observing(m, creep, u);
-                (ObserverRun::GeneralisedPi(run), y)
+                observing(m, creep, u, O::GeneralisedPi, O::GeneralisedPiCreep)
             }
-            Self::BoucWen(m) => {
-                let (run, y) = observing(m, creep, u);
-                (ObserverRun::BoucWen(run), y)
-            }
+            Self::BoucWen(m) => observing(m, creep, u, O::BoucWen, O::BoucWenCreep),
         }
     }
 
@@ -240,6 +266,10 @@ impl CompensatorRun {
             Self::None => y,
             Self::InverseGeneralisedPi(r) => r.step(y),
             Self::InverseBoucWen(r) => r.step(y),
+            Self::InversePiCreep(r) => r.step(y),
+            Self::InverseDuhemCreep(r) => r.step(y),
+            Self::InverseGeneralisedPiCreep(r) => r.step(y),
+            Self::InverseBoucWenCreep(r) => r.step(y),
         }
     }
 }
@@ -255,6 +285,10 @@ impl ObserverRun {
             Self::None => 0,
             Self::GeneralisedPi(r) => r.step(u),
             Self::BoucWen(r) => r.step(u),
+            Self::DuhemCreep(r) => r.step(u),
+            Self::PiCreep(r) => r.step(u),
+            Self::GeneralisedPiCreep(r) => r.step(u),
+            Self::BoucWenCreep(r) => r.step(u),
         }
     }
 }
@@ -321,11 +355,15 @@ mod tests {
         let config = config();
         let u0 = 1 << 28;
         let (run, _) = config.observer.prepare(None, u0);
-        let ObserverRun::Pi(r) = run else {
-            panic!("a P–I observer");
+        let ObserverRun::Pi(mut r) = run else {
+            panic!("a P–I observer, alone");
         };
-        assert_eq!(r.model.1, None);
         assert_eq!(r.model.cycles(), config.observer.cycles());
+        let alone = config.compensator.prepare(&run, None, u0, r.step(u0));
+        assert!(
+            matches!(alone, CompensatorRun::InversePi(_)),
+            "without creep the inverse runs alone: {alone:?}"
+        );
         let (run, y) = Observer::None.prepare(config.creep, u0);
         assert_eq!((run, y), (ObserverRun::None, u0));
         assert_eq!(Observer::None.cycles(), 0);
@@ -333,14 +371,15 @@ mod tests {
         assert_eq!(none.step(12_345), 12_345);
         // With creep, the series costs the model and the creep.
         let (run, y) = config.observer.prepare(config.creep, u0);
-        let ObserverRun::Pi(r) = run else {
-            panic!("a P–I observer");
+        let ObserverRun::PiCreep(r) = run else {
+            panic!("a P–I observer and the creep");
         };
         let creep = config.creep.unwrap();
         assert_eq!(r.model.cycles(), config.observer.cycles() + creep.cycles());
-        let CompensatorRun::InversePi(c) = config.compensator.prepare(&run, config.creep, u0, y)
+        let CompensatorRun::InversePiCreep(c) =
+            config.compensator.prepare(&run, config.creep, u0, y)
         else {
-            panic!("a P–I compensator");
+            panic!("the inverse creep and a P–I compensator");
         };
         assert_eq!(
             c.model.cycles(),

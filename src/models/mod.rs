@@ -83,8 +83,9 @@ pub trait Inverse: Hysteresis {
 }
 
 /// Two models in series: `A`'s output is `B`'s input. The compensator is
-/// `Series<Option<InverseCreep>, inverse model>` (the setpoint through the inverse creep,
-/// then the inverse hysteresis), the observer `Series<forward model, Option<Creep>>`.
+/// `Series<InverseCreep, inverse model>` (the setpoint through the inverse creep, then the
+/// inverse hysteresis), the observer `Series<forward model, Creep>`, where the stage has
+/// creep (`dispatch`'s `…Creep` variants).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct Series<A, B>(pub A, pub B);
 
@@ -98,27 +99,6 @@ impl<A: Hysteresis, B: Hysteresis> Hysteresis for Series<A, B> {
 
     fn cycles(&self) -> u32 {
         self.0.cycles() + self.1.cycles()
-    }
-}
-
-/// A model that may be absent: `None` passes its input through and costs nothing (its state
-/// is then unused, held at its default).
-impl<M: Hysteresis> Hysteresis for Option<M>
-where
-    M::State: Default,
-{
-    type State = M::State;
-
-    #[inline(always)]
-    fn step(&self, state: &mut Self::State, x: i32) -> i32 {
-        match self {
-            Some(m) => m.step(state, x),
-            None => x,
-        }
-    }
-
-    fn cycles(&self) -> u32 {
-        self.as_ref().map_or(0, M::cycles)
     }
 }
 
