@@ -8,8 +8,8 @@
 //! the [tick budget](crate::config::tick_budget) adds up). Creep is composed in series with a
 //! model ([`Series`]: the inverse creep before an inverse model, the creep after a forward
 //! one), not written into each model. The tick runs the models by static dispatch
-//! ([`dispatch`]: one enum over the models, no `dyn`: the interrupt branches through no
-//! register).
+//! ([`dispatch`]: one enum over the models, each alone or in series with the creep, no `dyn`:
+//! the interrupt branches through no register).
 //!
 //! * [`play_operator`] — the play (backlash) operator, the building block of P–I.
 //! * [`prandtl_ishlinskii`] — forward and analytic-inverse Prandtl–Ishlinskii models.
@@ -25,9 +25,9 @@
 //!   model and state the tick runs.
 //!
 //! Adding a model: its module here (the forward and inverse types, [`Hysteresis`],
-//! [`Forward`] and [`Inverse`] implemented on them, their cost beside them), one variant in
-//! each of [`dispatch`]'s enums, its parameters in [`params`] and a
-//! [`Model`](crate::config::settings::Model) variant, with the lines in
+//! [`Forward`] and [`Inverse`] implemented on them, their cost beside them), its variants in
+//! [`dispatch`]'s enums (in the tick's, alone and with the creep), its parameters in
+//! [`params`] and a [`Model`](crate::config::settings::Model) variant, with the lines in
 //! [`crate::config::settings::Settings::build`] that build it.
 
 pub mod bouc_wen;
