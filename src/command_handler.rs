@@ -276,10 +276,7 @@ impl<S: RecordStorage> CommandHandler<S> {
             Request::Scan(r) => self.scan(r, control),
             Request::Echo(bytes) => return Response::Echo(bytes),
             Request::WatchdogDrill => watchdog_drill(control),
-            Request::Trigger(t) => {
-                control.lock(|c| c.set_trigger(t));
-                Ok(())
-            }
+            Request::Trigger(t) => self.trigger(t, control),
             Request::Sequence(r) => match self.sequence(r, control) {
                 Ok(Some(status)) => return Response::Sequence(status),
                 Ok(None) => Ok(()),
@@ -384,11 +381,7 @@ impl<S: RecordStorage> CommandHandler<S> {
             .build(&self.hardware)
             .map_err(NackReason::Refused)?;
         // What the tick runs beside the new configuration: the learning, a scan.
-        let beside = control.lock(|c| crate::config::tick_budget::Beside {
-            learning: c.learning().state() != LearnState::Off,
-            scanning: c.is_scanning(),
-            analog: c.analog_status().running,
-        });
+        let beside = control.lock(|c| c.beside());
         crate::config::tick_budget::check_with(&config, self.hardware.control_rate_hz, beside)
             .map_err(NackReason::Refused)?;
         let (spare, stacks) = control.lock(|c| (c.spare(), c.stacks()));
@@ -522,15 +515,37 @@ impl<S: RecordStorage> CommandHandler<S> {
         let pulse = control.lock(|c| c.trigger_pulse_ticks());
         let generator = ScanGenerator::new(&r, rate, self.max_scan_step(), pulse)
             .map_err(NackReason::Refused)?;
-        let learning = control.lock(|c| c.learning().state()) != LearnState::Off;
-        if let Some(refusal) = self.over_budget(crate::config::tick_budget::Beside {
-            learning,
+        // The scan ends the analog input (another source).
+        let beside = control.lock(|c| crate::config::tick_budget::Beside {
             scanning: true,
             analog: false,
-        }) {
+            ..c.beside()
+        });
+        if let Some(refusal) = self.over_budget(beside) {
             return Err(NackReason::Refused(refusal));
         }
         control.lock(|c| c.scan(generator, r.on_trigger));
+        Ok(())
+    }
+
+    /// Applies trigger I/O settings; arming the input is refused if its edge's tick would not
+    /// fit the control period beside what runs ([`crate::config::tick_budget::TRIGGER_CYCLES`]).
+    fn trigger<B, C, L>(&mut self, t: TriggerConfig, control: &mut L) -> Result<(), NackReason>
+    where
+        B: SampleStore,
+        C: DerefMut<Target = Controller>,
+        L: Mutex<T = ControlLoop<B, C>>,
+    {
+        if t.input != crate::sources::scan::TriggerEdge::Off {
+            let beside = control.lock(|c| crate::config::tick_budget::Beside {
+                trigger: true,
+                ..c.beside()
+            });
+            if let Some(refusal) = self.over_budget(beside) {
+                return Err(NackReason::Refused(refusal));
+            }
+        }
+        control.lock(|c| c.set_trigger(t));
         Ok(())
     }
 
@@ -580,12 +595,13 @@ impl<S: RecordStorage> CommandHandler<S> {
                 let prepared = config
                     .prepare(self.hardware.control_rate_hz)
                     .map_err(NackReason::Refused)?;
-                let learning = control.lock(|c| c.learning().state()) != LearnState::Off;
-                if let Some(refusal) = self.over_budget(crate::config::tick_budget::Beside {
-                    learning,
+                // The input ends a scan (another source).
+                let beside = control.lock(|c| crate::config::tick_budget::Beside {
                     scanning: false,
                     analog: true,
-                }) {
+                    ..c.beside()
+                });
+                if let Some(refusal) = self.over_budget(beside) {
                     return Err(NackReason::Refused(refusal));
                 }
                 control.lock(|c| {
@@ -753,13 +769,11 @@ impl<S: RecordStorage> CommandHandler<S> {
                     Err(refused(Field::Sensor, Rule::Required))
                 } else if let Some(refusal) = (state != LearnState::Off)
                     .then(|| {
-                        let (scanning, analog) =
-                            control.lock(|c| (c.is_scanning(), c.analog_status().running));
-                        self.over_budget(crate::config::tick_budget::Beside {
+                        let beside = control.lock(|c| crate::config::tick_budget::Beside {
                             learning: true,
-                            scanning,
-                            analog,
-                        })
+                            ..c.beside()
+                        });
+                        self.over_budget(beside)
                     })
                     .flatten()
                 {

@@ -48,6 +48,7 @@ use heapless::spsc::{Consumer, Producer, Queue};
 use core::ops::DerefMut;
 
 use crate::board::{DualDac, SensorAdc};
+use crate::config::tick_budget::Beside;
 use crate::control::drive::StackVoltages;
 use crate::control::mode_switch::Mode;
 use crate::control::mode_switch::ModeError;
@@ -456,6 +457,18 @@ where
         self.scan_pending = false;
         if self.scan.take().is_some() {
             self.stream.hold_at_if_stopped(self.controller.setpoint());
+        }
+    }
+
+    /// What runs beside the controller and costs the tick, as the tick budget charges it
+    /// ([`Beside`]): the learning (playing or learning), a scan (running, or waiting for its
+    /// trigger: the edge starts it), the analog input, the armed trigger input.
+    pub fn beside(&self) -> Beside {
+        Beside {
+            learning: self.learning.state() != LearnState::Off,
+            scanning: self.scan_pending || self.is_scanning(),
+            analog: self.analog.is_running(),
+            trigger: self.external.is_armed(),
         }
     }
 

@@ -1658,6 +1658,87 @@ fn an_analog_start_that_would_overrun_the_tick_is_refused_with_its_cycles() {
     assert!(!b.control.analog_status().running);
 }
 
+/// The armed trigger input is charged beside the configuration's tick
+/// ([`twinstack::config::tick_budget::TRIGGER_CYCLES`]: its edge's tick starts a scan or the
+/// stream and fires a capture, and the edge may come on any tick): at a rate whose period
+/// holds the configuration but not the edge's tick beside it, arming is refused with the
+/// cycles it needs and has, and nothing is armed; trigger outputs alone (input off) are taken.
+#[test]
+fn arming_the_trigger_input_where_its_edge_would_overrun_the_tick_is_refused() {
+    use twinstack::config::tick_budget::{
+        available_cycles, worst_case_cycles, SYSCLK_HZ, TRIGGER_CYCLES,
+    };
+    use twinstack::sources::scan::{TriggerConfig, TriggerEdge};
+    let worst = worst_case_cycles(&closed().build(&hardware()).unwrap());
+    let rate = SYSCLK_HZ as f64 / (worst + TRIGGER_CYCLES / 2) as f64;
+    let hw = Hardware::driver_board(rate);
+    let fits = worst_case_cycles(&closed().build(&hw).unwrap());
+    assert!(fits <= available_cycles(rate) && fits + TRIGGER_CYCLES > available_cycles(rate));
+    let mut b = board_on(RamStorage::default(), hw);
+    assert!(matches!(
+        b.handle(Request::LoadParams(closed())),
+        Response::Ack { .. }
+    ));
+    let armed = TriggerConfig {
+        pulse_ticks: 2,
+        input: TriggerEdge::Rising,
+        start_stream: true,
+    };
+    match b.handle(Request::Trigger(armed)) {
+        Response::Nack {
+            reason: NackReason::Refused(r),
+        } => {
+            assert_eq!(r.field, Field::Workload, "{r:?}");
+            assert_eq!(
+                r.rule,
+                Rule::TickOverrun {
+                    needs: fits + TRIGGER_CYCLES,
+                    available: available_cycles(rate)
+                }
+            );
+        }
+        r => panic!("arming was not refused: {r:?}"),
+    }
+    assert!(!b.control.beside().trigger, "nothing armed");
+    let outputs_only = TriggerConfig {
+        input: TriggerEdge::Off,
+        ..armed
+    };
+    assert!(matches!(
+        b.handle(Request::Trigger(outputs_only)),
+        Response::Ack { .. }
+    ));
+    // At the test's own rate the same arming fits, and the tick budget then charges it.
+    let mut b = board();
+    assert!(matches!(
+        b.handle(Request::Trigger(armed)),
+        Response::Ack { .. }
+    ));
+    assert!(b.control.beside().trigger);
+    // A scan waiting for the edge is charged as a scan (the edge starts it): a load meanwhile
+    // is checked with it.
+    use twinstack::sources::scan::{RasterScan, ScanPattern, ScanRequest};
+    let waiting = ScanRequest {
+        pattern: ScanPattern::Raster(RasterScan {
+            lines: 3,
+            pixels: 40,
+            turn_ticks: 20,
+            offset: 0.0,
+            amplitude: 0.5,
+            y_offset: 0.0,
+            y_amplitude: 0.5,
+        }),
+        ticks_per_pixel: 3,
+        frames: 1,
+        on_trigger: true,
+    };
+    assert!(matches!(
+        b.handle(Request::Scan(waiting)),
+        Response::Ack { .. }
+    ));
+    assert!(!b.control.is_scanning() && b.control.beside().scanning);
+}
+
 /// While telemetry runs, the tick wakes the command task (the packer) when the queue holds a
 /// frame's worth of samples, never once per tick: the wake level the handler gives the tap is
 /// the packer's own frame target, and at every wake a frame is due and packed.

@@ -79,6 +79,17 @@ pub const SCAN_CYCLES: u32 = 150;
 /// runs.
 pub const ANALOG_CYCLES: u32 = 32;
 
+/// The tick on which the external trigger input's armed edge comes
+/// ([`crate::sources::scan::TriggerConfig`]): the scan waiting for it starts from the setpoint
+/// in force (its approach computed), or the stream starts, and a capture armed on it fires.
+/// Charged while the input is armed, since an edge may come on any tick: measured by the
+/// whole-interrupt bench (`cargo test --profile host-opt --test irq_bench`, scenario
+/// `scan-spiral-on-trigger-learning`, whose image drives the input so that a spiral armed on
+/// it starts, beside the learning and a capture armed on the same edge, again and again) as the
+/// worst such tick above the configuration's worst scan with the learning, with a margin.
+/// Counted when the input is armed, and at every load, scan, analog input or learning start
+/// while it is.
+pub const TRIGGER_CYCLES: u32 = 200;
 /// Cycles the tick may take at `control_rate_hz`: [`TICK_SHARE_PERCENT`] of the period.
 /// A rate that is not positive and finite leaves none.
 pub fn available_cycles(control_rate_hz: f64) -> u32 {
@@ -121,7 +132,7 @@ pub fn check(config: &ControlConfig, control_rate_hz: f64) -> Result<(), Refusal
 }
 
 /// What runs beside the configuration and costs the tick: the learning feedforward, a scan,
-/// the analog setpoint input.
+/// the analog setpoint input, the armed trigger input.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct Beside {
     /// The learning feedforward plays (learning or frozen).
@@ -130,6 +141,8 @@ pub struct Beside {
     pub scanning: bool,
     /// The analog setpoint input runs.
     pub analog: bool,
+    /// The external trigger input is armed: its edge's tick may come on any tick.
+    pub trigger: bool,
 }
 
 impl Beside {
@@ -138,6 +151,7 @@ impl Beside {
         u32::from(self.learning) * LEARNING_CYCLES
             + u32::from(self.scanning) * SCAN_CYCLES
             + u32::from(self.analog) * ANALOG_CYCLES
+            + u32::from(self.trigger) * TRIGGER_CYCLES
     }
 }
 

@@ -8,12 +8,26 @@
 //! tick (the outputs are written even when they do not change).
 //!
 //! QEMU's `netduinoplus2` models no GPIO: the stores land in an unimplemented-device region
-//! (logged with `-d unimp`, which is how the emulator test sees them) and `IDR` reads 0.
+//! (logged with `-d unimp`, which is how the emulator test sees them) and `IDR` reads 0. So
+//! that the tick an input edge fires on is measured too, the emulator images read the input
+//! from a word in RAM instead ([`EMULATED_INPUT`], one load as the `IDR`'s): low unless the
+//! image drives it, as the whole-interrupt bench's image does.
 
 use stm32f4xx_hal::gpio::{Input, Output, Pin, PushPull};
 
+#[cfg(feature = "emulator")]
+use core::sync::atomic::{AtomicBool, Ordering};
+
 use super::profile::{trigger_port, TRIGGER_PORT as P};
-use crate::sources::scan::{bsrr_word, INPUT_PIN};
+use crate::sources::scan::bsrr_word;
+#[cfg(not(feature = "emulator"))]
+use crate::sources::scan::INPUT_PIN;
+
+/// The external trigger input's level in the emulator images (QEMU models no GPIO): what
+/// [`TriggerPins::input`] reads there instead of the port's `IDR`. Low at reset; an image that
+/// measures the trigger's tick sets it between ticks.
+#[cfg(feature = "emulator")]
+pub static EMULATED_INPUT: AtomicBool = AtomicBool::new(false);
 
 /// The four pins, configured; the tick's handle on them.
 pub struct TriggerPins {
@@ -53,10 +67,18 @@ impl TriggerPins {
             .write(|w| unsafe { w.bits(bsrr_word(levels)) });
     }
 
-    /// The input's level: one `IDR` load.
+    /// The input's level: one `IDR` load (in the emulator images, one load of
+    /// [`EMULATED_INPUT`]).
     #[inline(always)]
     pub fn input(&self) -> bool {
+        #[cfg(feature = "emulator")]
+        {
+            EMULATED_INPUT.load(Ordering::Relaxed)
+        }
         // A read of the input data register has no side effect.
-        trigger_port().idr().read().bits() & (1 << INPUT_PIN) != 0
+        #[cfg(not(feature = "emulator"))]
+        {
+            trigger_port().idr().read().bits() & (1 << INPUT_PIN) != 0
+        }
     }
 }

@@ -1311,14 +1311,19 @@ const STREAMED: [&str; 5] = [
     "nested-loops",
 ];
 
-/// The scan and analog-input scenarios, with their columns' titles.
-const SCANNED: [(&str, &str); 6] = [
+/// The scan, analog-input and trigger-input scenarios, with their columns' titles.
+const SCANNED: [(&str, &str); 8] = [
     ("scan-raster-triggers", "raster"),
     ("scan-lissajous-triggers", "Lissajous"),
     ("scan-spiral-triggers", "spiral"),
     ("scan-raster-learning", "raster + learning"),
     ("scan-spiral-learning", "spiral + learning"),
+    (
+        "scan-spiral-on-trigger-learning",
+        "spiral started by the input's edges + learning",
+    ),
     ("analog-input", "analog input"),
+    ("triangle-on-trigger", "stream, the input's edges"),
 ];
 
 /// `site` without its source lines (`recorder.rs:799` → `recorder.rs`): the page names the
@@ -1348,11 +1353,14 @@ fn tick_cost(out: &str) -> Result<String, String> {
         .get("sysclk_hz")
         .and_then(Value::as_f64)
         .ok_or("no `sysclk_hz`")?;
-    let (scan, learning, analog) = (
+    let (scan, learning, analog, trigger) = (
         field(&v, "scan_cycles")?,
         field(&v, "learning_cycles")?,
         field(&v, "analog_cycles")?,
+        field(&v, "trigger_cycles")?,
     );
+    // Every feature on: a scan, the learning, the trigger input armed.
+    let every_charge = scan + learning + trigger;
     let rows = v.get("rows").and_then(Value::as_array).ok_or("no `rows`")?;
     let budgets = v
         .get("budgets")
@@ -1413,13 +1421,15 @@ fn tick_cost(out: &str) -> Result<String, String> {
     t.push_str(
         "Worst tick of each configuration, instructions / cycles at 0 WS / cycles at 5 WS: streamed \
          (the worst of triangle, sine, full-range steps, random, nested loops) and with every \
-         feature on (the worst of the scans with the learning, each with its trigger outputs, the \
-         capture of all seven signals and telemetry's tap of all seven on every tick). \
-         \"Predicted\" is the tick budget's (cycles, 5 WS), with the scan's ",
+         feature on (the worst of the scans with the learning, each with its trigger outputs, one \
+         of them started by the trigger input's edges, the capture of all seven signals and \
+         telemetry's tap of all seven on every tick). \"Predicted\" is the tick budget's \
+         (cycles, 5 WS), with the scan's ",
     );
     t.push_str(&format!(
-        "({scan}) and the learning's ({learning}) charges for every feature on; the highest \
-         admitted rate is the highest control rate whose period holds that prediction.\n\n"
+        "({scan}), the learning's ({learning}) and the armed trigger input's ({trigger}) charges \
+         for every feature on; the highest admitted rate is the highest control rate whose \
+         period holds that prediction.\n\n"
     ));
     t.push_str("| configuration | streamed | every feature on | predicted | predicted, every feature | highest admitted rate, streamed | highest admitted rate, every feature |\n");
     t.push_str("|---|---:|---:|---:|---:|---:|---:|\n");
@@ -1439,16 +1449,19 @@ fn tick_cost(out: &str) -> Result<String, String> {
             triple(streamed),
             triple(every),
             grouped(p),
-            grouped(p + scan + learning),
+            grouped(p + every_charge),
             rate(p),
-            rate(p + scan + learning),
+            rate(p + every_charge),
         ));
     }
 
     t.push_str(&format!(
         "\nEach scan pattern (200 Hz on x, ±0.8, trigger pulses of 2 ticks), alone and with the \
-         learning on, and the analog setpoint input as the source (budget's charge: {analog} \
-         cycles); worst tick, instructions / cycles at 5 WS:\n\n"
+         learning on; the spiral started by the trigger input's rising edge every 150 ticks (the \
+         input armed again before each, a capture armed on the first); the analog setpoint input \
+         as the source (budget's charge: {analog} cycles); and a stream the input's edges start \
+         again, a capture armed on the first (the armed input's charge: {trigger} cycles); worst \
+         tick, instructions / cycles at 5 WS:\n\n"
     ));
     t.push_str("| configuration |");
     for (_, title) in SCANNED {
@@ -1836,7 +1849,7 @@ tests/golden/vectors.bin is up to date
         }
         format!(
             r#"{{"sysclk_hz": 168000000.0, "goal_cycles": 600, "scan_cycles": 150, "learning_cycles": 90,
-            "analog_cycles": 32, "part_names": ["fixed", "P–I banks"],
+            "analog_cycles": 32, "trigger_cycles": 200, "part_names": ["fixed", "P–I banks"],
             "stack": {{"used": 30000, "room": 55000, "reserve": 49152}},
             "budgets": {{"inverse-pi16+pi16-observer+pi+drift": 1666}},
             "rows": [{}],
@@ -1854,17 +1867,19 @@ tests/golden/vectors.bin is up to date
         let t = tick_cost(&bench_json()).unwrap();
         // The boot row, then the configuration: streamed is the worst of the five streamed
         // scenarios (the fifth, index 4); every feature on the worst scan with the learning
-        // (spiral + learning, index 9); the rates from the prediction and its charges.
+        // (the spiral on the trigger + learning, index 10); the rates from the prediction and
+        // its charges (scan, learning, trigger: 1 666 + 150 + 90 + 200).
         assert!(
             t.contains("| boot: bypass, no model, nothing running | 326 / 569 / 689 | – |"),
             "{t}"
         );
         assert!(
-            t.contains("| inverse P–I 16 + P–I 16 observer + PI + drift | 904 / 1 404 / 1 574 | 909 / 1 409 / 1 579 | 1 666 | 1 906 | 100 800 Hz | 88 100 Hz |"),
+            t.contains("| inverse P–I 16 + P–I 16 observer + PI + drift | 904 / 1 404 / 1 574 | 910 / 1 410 / 1 580 | 1 666 | 2 106 | 100 800 Hz | 79 700 Hz |"),
             "{t}"
         );
-        // The scans: raster is index 5, analog input index 10 (instructions / 5 WS).
-        assert!(t.contains("| 905 / 1 575 | 906 / 1 576 | 907 / 1 577 | 908 / 1 578 | 909 / 1 579 | 910 / 1 580 |"), "{t}");
+        // The scans: raster is index 5, the stream on the trigger index 12 (instructions /
+        // 5 WS).
+        assert!(t.contains("| 905 / 1 575 | 906 / 1 576 | 907 / 1 577 | 908 / 1 578 | 909 / 1 579 | 910 / 1 580 | 911 / 1 581 | 912 / 1 582 |"), "{t}");
         assert!(t.contains("| 1 066 | 507 | 1 573 | 1 666 | 1.06 |"), "{t}");
         assert!(
             t.contains(

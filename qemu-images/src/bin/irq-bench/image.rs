@@ -53,7 +53,18 @@ pub mod scenarios {
         /// Instead of streaming: the analog setpoint input as the source for `TICKS` ticks
         /// ([`ANALOG`]).
         pub analog: Option<AnalogInputConfig>,
+        /// The external trigger input armed, and its rising edge driven by the image
+        /// ([`twinstack::hardware::trigger_pins::EMULATED_INPUT`]) every [`TRIGGER_EVERY`]
+        /// ticks (the input fires once per arming: it is armed again before each edge), with a
+        /// capture armed on the first edge. With a scan, the scan waits for each edge (stopped
+        /// and requested again between edges), so the edge's tick starts it (its approach
+        /// from the setpoint in force); streamed, the edge (armed to start the stream) starts
+        /// the running stream again.
+        pub on_trigger: bool,
     }
+
+    /// Ticks between the trigger scenario's edges (the scan runs most of them).
+    pub const TRIGGER_EVERY: u32 = 150;
 
     /// The analog scenario's input: scaled, low-pass filtered and walking to the input's
     /// value at 5 full scales a second, so every tick takes the valid path's dearest branch
@@ -191,6 +202,15 @@ pub mod scenarios {
             learning,
             scan: None,
             analog: None,
+            on_trigger: false,
+        }
+    }
+
+    /// A streamed scenario whose trigger input's edges start the (running) stream again.
+    const fn streamed_on_trigger(name: &'static str, setpoint: fn(u32) -> i16) -> Scenario {
+        Scenario {
+            on_trigger: true,
+            ..streamed(name, setpoint, false, false)
         }
     }
 
@@ -203,6 +223,16 @@ pub mod scenarios {
             learning,
             scan: Some(scan),
             analog: None,
+            on_trigger: false,
+        }
+    }
+
+    /// A scan started by the external trigger's edges, again and again (the stream's setpoint
+    /// function unused).
+    const fn on_trigger(name: &'static str, scan: ScanRequest, learning: bool) -> Scenario {
+        Scenario {
+            on_trigger: true,
+            ..scanned(name, scan, learning)
         }
     }
 
@@ -215,11 +245,12 @@ pub mod scenarios {
             learning: false,
             scan: None,
             analog: Some(input),
+            on_trigger: false,
         }
     }
 
     /// Every scenario, in the order they run.
-    pub const ALL: [Scenario; 13] = [
+    pub const ALL: [Scenario; 15] = [
         streamed("triangle", triangle, false, false),
         streamed("sine-750Hz", sine_750hz, false, false),
         streamed("full-range-steps", steps, false, false),
@@ -232,7 +263,12 @@ pub mod scenarios {
         // The learning's use case: a periodic scan with the learned feedforward on.
         scanned("scan-raster-learning", RASTER, true),
         scanned("scan-spiral-learning", SPIRAL, true),
+        // Every path: the tick on which the armed input's edge starts the spiral and fires a
+        // capture, beside the learning.
+        on_trigger("scan-spiral-on-trigger-learning", SPIRAL, true),
         analog("analog-input", ANALOG),
+        // The edge's tick beside a stream: the stream started again, a capture fired.
+        streamed_on_trigger("triangle-on-trigger", triangle),
         streamed("reload-and-mode-switches", triangle, true, false),
     ];
 }
@@ -384,6 +420,7 @@ mod app {
     use heapless::spsc::{Producer, Queue};
     use stm32f4xx_hal::gpio::GpioExt;
 
+    use core::sync::atomic::Ordering;
     use twinstack::board::Hardware;
     use twinstack::command_handler::CommandHandler;
     use twinstack::command_handler::MAX_RESPONSE;
@@ -398,6 +435,7 @@ mod app {
     use twinstack::hardware::dac::InternalDac;
     use twinstack::hardware::tick::SRAM_SLOTS;
     use twinstack::hardware::tick::{ControlTick, LoopLock};
+    use twinstack::hardware::trigger_pins::EMULATED_INPUT;
     use twinstack::hardware::watchdog::Watchdog;
     use twinstack::protocol::messages::{
         AnalogRequest, CaptureRequest, CaptureState, LearnRequest, RecordRequest, Request,
@@ -408,6 +446,7 @@ mod app {
     use twinstack::services::telemetry::{
         TelemetryPacker, TelemetryQueue, TelemetrySample, TELEMETRY_QUEUE_LEN,
     };
+    use twinstack::sources::scan::ScanRequest;
 
     use cortex_m_semihosting::{debug, hprintln};
 
@@ -502,6 +541,24 @@ mod app {
         cx.shared.tick.lock(|t| t.run());
     }
 
+    /// The trigger I/O settings with the input armed for its rising edge (pulses of 2 ticks);
+    /// the edge starts the stream if `start_stream`.
+    fn arm_input(start_stream: bool) -> twinstack::sources::scan::TriggerConfig {
+        twinstack::sources::scan::TriggerConfig {
+            pulse_ticks: 2,
+            input: twinstack::sources::scan::TriggerEdge::Rising,
+            start_stream,
+        }
+    }
+
+    /// The trigger I/O settings with the input disarmed (pulses of 2 ticks).
+    fn disarm_input() -> twinstack::sources::scan::TriggerConfig {
+        twinstack::sources::scan::TriggerConfig {
+            input: twinstack::sources::scan::TriggerEdge::Off,
+            ..arm_input(false)
+        }
+    }
+
     /// The host: requests through the command handler, one scenario after another.
     #[idle(shared = [tick], local = [handler, setpoints_in, telemetry_out, frame: [u8; MAX_RESPONSE] = [0; MAX_RESPONSE]])]
     fn idle(cx: idle::Context) -> ! {
@@ -546,12 +603,19 @@ mod app {
             for scenario in &scenarios::ALL {
                 // A fresh capture per scenario: the recorder runs throughout, taking all seven
                 // signals every tick (its worst case: seven stores per tick).
+                // (In the trigger scenario, armed on the input's edge with a pre-trigger window:
+                // the edge's tick fires it.)
+                let (trigger, pre_trigger) = if scenario.on_trigger {
+                    (Trigger::External, 100)
+                } else {
+                    (Trigger::Now, 0)
+                };
                 expect_ack(
                     ask!(Request::Capture(CaptureRequest {
                         signals: 0b111_1111,
                         samples: (SRAM_SLOTS / CHANNELS) as u32,
-                        pre_trigger: 0,
-                        trigger: Trigger::Now,
+                        pre_trigger,
+                        trigger,
                         decimation: 1,
                     })),
                     "capture",
@@ -573,6 +637,9 @@ mod app {
                 let mut k = 0u32;
                 let mut started = false;
                 let mut changed = 0u8;
+                // The trigger scenarios' cycle: the input armed (low), raised a few ticks later.
+                let mut cycle = 0u32;
+                let mut armed_at: Option<u32> = None;
                 if scenario.scan.is_some() || scenario.analog.is_some() {
                     // A source on the board (a scan, the analog input) runs TICKS ticks
                     // (counted by the status).
@@ -581,16 +648,12 @@ mod app {
                         _ => 0,
                     };
                     if let Some(scan) = scenario.scan {
-                        // Pulses of 2 ticks.
-                        expect_ack(
-                            ask!(Request::Trigger(twinstack::sources::scan::TriggerConfig {
-                                pulse_ticks: 2,
-                                input: twinstack::sources::scan::TriggerEdge::Rising,
-                                start_stream: false,
-                            })),
-                            "trigger",
-                        );
-                        expect_ack(ask!(Request::Scan(scan)), "scan");
+                        // Pulses of 2 ticks; the input disarmed (the trigger scenario arms it
+                        // before each edge).
+                        expect_ack(ask!(Request::Trigger(disarm_input())), "trigger");
+                        if !scenario.on_trigger {
+                            expect_ack(ask!(Request::Scan(scan)), "scan");
+                        }
                     }
                     if let Some(input) = scenario.analog {
                         expect_ack(ask!(Request::Analog(AnalogRequest::Start(input))), "analog");
@@ -600,8 +663,26 @@ mod app {
                             Response::Status(s) => s.ticks,
                             _ => 0,
                         };
-                        if now.wrapping_sub(t0) >= scenarios::TICKS {
+                        let elapsed = now.wrapping_sub(t0);
+                        if elapsed >= scenarios::TICKS {
                             break;
+                        }
+                        if let (true, Some(scan)) = (scenario.on_trigger, scenario.scan) {
+                            if elapsed / scenarios::TRIGGER_EVERY >= cycle {
+                                cycle = elapsed / scenarios::TRIGGER_EVERY + 1;
+                                EMULATED_INPUT.store(false, Ordering::Relaxed);
+                                expect_ack(ask!(Request::Stream(StreamControl::Stop)), "stop");
+                                expect_ack(ask!(Request::Trigger(arm_input(false))), "arm");
+                                let armed = ScanRequest {
+                                    on_trigger: true,
+                                    ..scan
+                                };
+                                expect_ack(ask!(Request::Scan(armed)), "scan on the trigger");
+                                armed_at = Some(now);
+                            } else if armed_at.is_some_and(|t| now.wrapping_sub(t) >= 4) {
+                                EMULATED_INPUT.store(true, Ordering::Relaxed);
+                                armed_at = None;
+                            }
                         }
                         cortex_m::asm::wfi();
                         if scenario.learning {
@@ -620,6 +701,10 @@ mod app {
                         }
                     }
                     expect_ack(ask!(Request::Stream(StreamControl::Stop)), "stop");
+                    if scenario.on_trigger {
+                        EMULATED_INPUT.store(false, Ordering::Relaxed);
+                        expect_ack(ask!(Request::Trigger(disarm_input())), "trigger off");
+                    }
                     if scenario.learning {
                         expect_ack(
                             ask!(Request::Learn(LearnRequest::State(LearnState::Off))),
@@ -654,6 +739,17 @@ mod app {
                         Response::Status(s) => (s.queue_fill as u32, k - s.queue_fill as u32),
                         _ => (0, 0),
                     };
+                    if scenario.on_trigger && started {
+                        if ticks_played / scenarios::TRIGGER_EVERY >= cycle {
+                            cycle = ticks_played / scenarios::TRIGGER_EVERY + 1;
+                            EMULATED_INPUT.store(false, Ordering::Relaxed);
+                            expect_ack(ask!(Request::Trigger(arm_input(true))), "arm");
+                            armed_at = Some(ticks_played);
+                        } else if armed_at.is_some_and(|t| ticks_played >= t + 4) {
+                            EMULATED_INPUT.store(true, Ordering::Relaxed);
+                            armed_at = None;
+                        }
+                    }
                     if scenario.lifecycle {
                         // The reload loads the first other configuration (the P–I and the
                         // Duhem ones reload each other; the rest reload the P–I one), so a
@@ -693,6 +789,10 @@ mod app {
                 // (The lifecycle scenario is each configuration's last; the next configuration
                 // starts with its own load.)
                 expect_ack(ask!(Request::Stream(StreamControl::Stop)), "stop");
+                if scenario.on_trigger {
+                    EMULATED_INPUT.store(false, Ordering::Relaxed);
+                    expect_ack(ask!(Request::Trigger(disarm_input())), "trigger off");
+                }
                 if scenario.learning {
                     expect_ack(
                         ask!(Request::Learn(LearnRequest::State(LearnState::Off))),
