@@ -8,7 +8,7 @@
 use std::path::PathBuf;
 use twinstack::models::params::{DuhemParams, PiParams, Thresholds};
 use twinstack::Scaling;
-use twinstack_identify::identification::auto::identify_auto;
+use twinstack_identify::identification::auto::{identify_auto, InverseBound};
 use twinstack_identify::identification::{identify, IdentifyOptions, ModelKind};
 use twinstack_identify::reference;
 use twinstack_link::measured_data::MeasuredData;
@@ -123,14 +123,14 @@ fn auto_picks_the_model_that_generated_the_data() {
         "{}",
         auto.reason
     );
-    // Every candidate was fitted and ranked, best first: by the compensated error, those set
-    // aside (inverse much worse than the fit) last.
-    let keys: Vec<(bool, f64)> = auto
+    // Every candidate was fitted and ranked, best first: those whose inverse holds first, then
+    // those at the noise floor, then those that ratchet, each by the compensated error.
+    let keys: Vec<(InverseBound, f64)> = auto
         .ranking
         .iter()
         .map(|r| {
             assert!(r.validation.admitted().is_some(), "{}", r.label);
-            (r.set_aside.is_some(), r.compensated().unwrap())
+            (r.bound.unwrap(), r.compensated().unwrap())
         })
         .collect();
     assert!(

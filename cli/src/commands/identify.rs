@@ -6,6 +6,7 @@
 use crate::plot::{draw, IdentificationFigure};
 use anyhow::{anyhow, bail};
 use std::path::PathBuf;
+use twinstack_identify::identification::auto::INVERSE_TO_FORWARD_LIMIT;
 use twinstack_identify::identification::run::{
     check_tick_rate, identify_and_score, BoardRate, RunError,
 };
@@ -148,6 +149,9 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         );
         println!(
             "  (compensated max = the larger of inverse and tracking; inverse: compensate on the measured x against the measured u; tracking: that drive through the best forward model)"
+        );
+        println!(
+            "  (ranked by compensated max among the candidates whose inverse holds within {INVERSE_TO_FORWARD_LIMIT} × their forward max; the others after, with why)"
         );
         for (i, r) in auto.ranking.iter().enumerate() {
             let place = match (r.validation.admitted(), &r.set_aside) {
