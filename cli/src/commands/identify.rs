@@ -52,8 +52,8 @@ pub struct Args {
     /// at most 100 s) in series with the model. It is kept only where it lowers the fit
     /// error (modes fitted with no weight are dropped), and the run says what was kept
     /// ("creep asked for, none kept" when nothing was). With `--model auto`, only the
-    /// candidates with creep are ranked; without `--creep`, auto ranks every model with and
-    /// without creep.
+    /// candidates with creep are ranked (the ranking says so); without `--creep`, auto ranks
+    /// every model with and without creep.
     #[arg(long)]
     pub creep: bool,
     /// Keep only a model the board runs at this control rate, Hz (its tick budget, as the
@@ -153,6 +153,9 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         println!(
             "  (ranked by compensated max among the candidates whose inverse holds within {INVERSE_TO_FORWARD_LIMIT} × their forward max; the others after, with why)"
         );
+        if args.creep {
+            println!("  (--creep: only the candidates with creep are ranked)");
+        }
         for (i, r) in auto.ranking.iter().enumerate() {
             let place = match (r.validation.admitted(), &r.set_aside) {
                 (Some(_), None) => format!("{}.", i + 1),
