@@ -123,14 +123,20 @@ fn auto_picks_the_model_that_generated_the_data() {
         "{}",
         auto.reason
     );
-    // Every candidate was fitted and ranked, best first: those whose inverse holds first, then
-    // those at the noise floor, then those that ratchet, each by the compensated error.
-    let keys: Vec<(InverseBound, f64)> = auto
+    // Every candidate was fitted and ranked, best first: by the compensated error, those set
+    // aside (their inverse ratchets) last.
+    let keys: Vec<(bool, f64)> = auto
         .ranking
         .iter()
         .map(|r| {
             assert!(r.validation.admitted().is_some(), "{}", r.label);
-            (r.bound.unwrap(), r.compensated().unwrap())
+            assert_eq!(
+                r.set_aside.is_some(),
+                r.bound == Some(InverseBound::Ratchets),
+                "{}",
+                r.label
+            );
+            (r.set_aside.is_some(), r.compensated().unwrap())
         })
         .collect();
     assert!(

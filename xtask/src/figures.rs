@@ -1191,8 +1191,9 @@ fn ranking_row(line: &str) -> Option<(String, String, [String; 3], String)> {
             "set aside: inverse {} × its fit, far from the best",
             ratio(t)?
         )
-    } else if let Some(t) = tail.strip_prefix("passed over: ") {
-        format!("passed over: inverse {} × its fit", ratio(t)?)
+    } else if let Some(t) = tail.strip_prefix("(inverse ") {
+        let r = t.split(" × ").next()?;
+        format!("inverse {r} × its fit: at the noise floor")
     } else if let Some(t) = tail.strip_prefix("not admitted: ") {
         match t
             .split("needs ")
@@ -2194,7 +2195,7 @@ tests/golden/vectors.bin is up to date
             "ranking (fitted on t < 5.1502 s, scored on 5.1502 <= t < 5.95 s):",
             "  (legend)",
             "  1.  P-I (16 uniform operators)               forward  1.30 % (RMS 0.38 %)  inverse  1.59 %  tracking  1.02 %",
-            "  -.  P-I (4 uniform operators) + creep (1 mode) forward  1.10 % (RMS 0.39 %)  inverse  1.81 %  tracking  1.84 %  passed over: inverse max 1.81 % is 1.64 × its forward max 1.10 % (> 1.5 ×), near",
+            "  2.  P-I (4 uniform operators) + creep (1 mode) forward  1.10 % (RMS 0.39 %)  inverse  1.81 %  tracking  1.84 %  (inverse 1.64 × its forward: at the record's noise floor)",
             "  -.  Bouc-Wen + creep (1 mode)                forward  0.90 % (RMS 0.23 %)  inverse 14.58 %  tracking 13.55 %  set aside: inverse max 14.58 % is 16.22 × its forward max 0.90 % and more",
             "  -.  Duhem + creep (1 mode)                   forward  1.11 % (RMS 0.30 %)  inverse 17.58 %  tracking 15.66 %  not admitted: the board at 100 kHz would refuse it: it needs 1732 cycles per tick, more",
             "  -.  Duhem                                    not fitted: too few samples",
@@ -2215,7 +2216,7 @@ tests/golden/vectors.bin is up to date
             rows,
             [
                 "| `a`, 100 kHz | P-I (16 uniform operators) | 1.30 % | 1.59 % | 1.02 % | **picked** (held out: forward 1.16 %, inverse 1.47 %) |",
-                "|  | P-I (4 uniform operators) + creep (1 mode) | 1.10 % | 1.81 % | 1.84 % | passed over: inverse 1.64 × its fit |",
+                "|  | P-I (4 uniform operators) + creep (1 mode) | 1.10 % | 1.81 % | 1.84 % | 2. inverse 1.64 × its fit: at the noise floor |",
                 "|  | Bouc-Wen + creep (1 mode) | 0.90 % | 14.58 % | 13.55 % | set aside: inverse 16.22 × its fit, far from the best |",
                 "|  | Duhem + creep (1 mode) | 1.11 % | 17.58 % | 15.66 % | not admitted: 1732 cycles per tick |",
                 "|  | Duhem | — | — | — | not fitted: too few samples |",

@@ -196,7 +196,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     if !report.ranking.is_empty() {
         println!("ranking (validation part of the excitation, max error % of span):");
         println!(
-            "  (ranked by the larger of inverse and tracking among the candidates whose inverse holds within {INVERSE_TO_FORWARD_LIMIT} × their forward max; the others after, with why)"
+            "  (ranked by the larger of inverse and tracking; set aside after the others, with why: a candidate whose inverse is beyond {INVERSE_TO_FORWARD_LIMIT} × its forward max and {INVERSE_TO_FORWARD_LIMIT} × the best inverse)"
         );
         for (i, c) in report.ranking.iter().enumerate() {
             let place = match (c.validation.admitted(), &c.set_aside) {
@@ -295,7 +295,7 @@ fn plot(r: &CalibrationReport, path: &Path) -> anyhow::Result<()> {
                 let value = |f: &ErrorFigures| c.compensated_max_pct.unwrap_or(f.max_pct);
                 let (value, note, color) = match &c.validation {
                     Validation::Scored(f) if c.set_aside.is_some() && !kept => {
-                        (value(f), "inverse does not hold", RGBColor(190, 190, 190))
+                        (value(f), "set aside", RGBColor(190, 190, 190))
                     }
                     Validation::Scored(f) => (
                         value(f),

@@ -151,7 +151,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
             "  (compensated max = the larger of inverse and tracking; inverse: compensate on the measured x against the measured u; tracking: that drive through the best forward model)"
         );
         println!(
-            "  (ranked by compensated max among the candidates whose inverse holds within {INVERSE_TO_FORWARD_LIMIT} × their forward max; the others after, with why)"
+            "  (ranked by compensated max; set aside after the others, with why: a candidate whose inverse is beyond {INVERSE_TO_FORWARD_LIMIT} × its forward max and {INVERSE_TO_FORWARD_LIMIT} × the best inverse)"
         );
         if args.creep {
             println!("  (--creep: only the candidates with creep are ranked)");
