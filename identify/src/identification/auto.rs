@@ -407,7 +407,7 @@ pub enum Picked {
     Simpler,
 }
 
-/// Orders `ranking` best first ([`rank_key`]: admitted before refused before not fitted;
+/// Orders `ranking` best first (admitted before refused before not fitted;
 /// among the admitted, those whose inverse does not ratchet first, then by the compensated
 /// error) and
 /// puts the pick first: the best admitted candidate, or a simpler one for parsimony (see the
