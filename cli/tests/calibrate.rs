@@ -76,6 +76,16 @@ fn the_lab_workflow_calibrates_the_virtual_stage_below_one_percent_then_streams_
     assert_eq!(v["tracking_after"]["underran"], false);
     // auto ranked the whole family and picked a model that predicts the held-out cycle.
     assert_eq!(v["ranking"].as_array().unwrap().len(), 8, "{v}");
+    // Each with its compensator's figures beside the forward ones: what it was ranked by.
+    assert!(
+        v["ranking"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .all(|c| c["error"].is_string()
+                || (c["inverse_max_pct"].is_number() && c["tracking_max_pct"].is_number())),
+        "{v}"
+    );
     assert!(v["held_out"]["max_pct"].as_f64().unwrap() < 5.0);
     assert_eq!(v["stored"], "Bypass");
     // The parameter file is the one `identify` writes, and `load` reads it back.
@@ -336,6 +346,31 @@ fn auto_picks_a_model_the_board_runs_at_its_rate() {
             .any(|c| c.label.starts_with("Bouc-Wen + creep") && c.validation.admitted().is_some()),
         "{:?}",
         r.ranking
+    );
+    // Each fitted candidate carries its compensator's figures beside its fit, as `identify`
+    // prints them, and the pick's inverse holds where any admitted candidate's does.
+    for c in r
+        .ranking
+        .iter()
+        .filter(|c| c.validation.figures().is_some())
+    {
+        assert!(
+            c.inverse.is_some() && c.tracking.is_some() && c.summary.contains("inverse"),
+            "{c:?}"
+        );
+    }
+    if r.ranking
+        .iter()
+        .any(|c| c.validation.admitted().is_some() && c.set_aside.is_none())
+    {
+        assert!(r.ranking[0].set_aside.is_none(), "{:?}", r.ranking);
+    }
+    // The model's name says "+ creep" only where the file holds one.
+    assert_eq!(
+        r.model.contains("+ creep"),
+        r.file.settings.creep.is_some(),
+        "{}",
+        r.model
     );
     // Admitted candidates rank ahead of refused ones, whatever their figures.
     let first_refused = r

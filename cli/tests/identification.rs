@@ -668,23 +668,33 @@ fn identify_at_a_tick_rate_keeps_a_model_the_board_runs() {
 // ---------------------------------------------------------------------------------------
 // `auto` picks by the compensator.
 
-/// On both measured records, and at the board's rates, `auto` ranks by what the stage will
-/// see: the pick's inverse on the validation part keeps within 1.5 × its forward error, each
-/// admitted candidate that does not is set aside (and ranked after those that do), the
-/// ranking is ordered by the compensated error, and the picked model's inverse on the
-/// held-out part stays within reach of its fit. On the bipolar record at 100 kHz a
-/// forward-only ranking would pick Bouc–Wen + creep, whose inverse is ten times its fit: the
-/// test fails if `auto` ranks by the forward error alone.
+/// On both measured records, at both of the board's rates, `auto` ranks by what the stage
+/// will see: the pick's inverse on the validation part keeps within 1.5 × its forward error,
+/// every admitted candidate whose inverse ratchets (beyond 1.5 × its fit and 1.5 × the best
+/// inverse) is set aside after every one that does not (and says why), each group ordered by
+/// the compensated error, and the picked model's
+/// inverse on the held-out part stays within reach of its fit. On the bipolar record at
+/// 100 kHz a forward-only ranking would pick Bouc–Wen + creep, whose inverse is sixteen times
+/// its fit: the test fails if `auto` ranks by the forward error alone.
 #[test]
 fn auto_picks_the_model_whose_compensator_holds() {
-    use twinstack_identify::identification::auto::INVERSE_TO_FORWARD_LIMIT;
+    use twinstack_identify::identification::auto::{
+        InverseBound, Ranked, INVERSE_TO_FORWARD_LIMIT,
+    };
     use twinstack_identify::identification::run::{identify_and_score, BoardRate, ModelChoice};
     use twinstack_identify::identification::{IdentifyOptions, ModelKind};
     use twinstack_link::measured_data::{Columns, MeasuredData};
+    // The held-out ratio aimed at is 1.5 ×. The bipolar record at 50 kHz misses it (its pick,
+    // P–I + creep, 1.29 % inverse / 0.83 % forward = 1.55 × held out, 1.44 × on the
+    // validation part): its largest inverse errors sit just after the drive's reversals,
+    // where the loop is flattest and the compensator's slope multiplies the fit's error by
+    // about two. Every other candidate admitted there does worse held out or has an inverse
+    // that does not hold.
     let cases = [
-        (BIPOLAR, 5.95, Some(100_000.0), 1.5),
-        (BIPOLAR, 5.95, Some(50_000.0), 1.6),
-        (MICROMANIPULATOR, 16.0, None, 1.5),
+        (BIPOLAR, 5.95, 100_000.0, 1.5),
+        (BIPOLAR, 5.95, 50_000.0, 1.6),
+        (MICROMANIPULATOR, 16.0, 100_000.0, 1.5),
+        (MICROMANIPULATOR, 16.0, 50_000.0, 1.5),
     ];
     for (name, fit_until, rate, held_out_ratio) in cases {
         let data = MeasuredData::read(&measured_data(name), Columns::TimeDriveOutput).unwrap();
@@ -694,53 +704,53 @@ fn auto_picks_the_model_whose_compensator_holds() {
             &IdentifyOptions::new(ModelKind::Pi, fit_until),
             None,
             "units",
-            rate.map(|hz| BoardRate::sizing(hz, false)),
+            Some(BoardRate::sizing(rate, false)),
         )
         .unwrap();
         let auto = run.auto.as_ref().unwrap();
         let picked = &auto.ranking[0];
-        let forward = |r: &twinstack_identify::identification::auto::Ranked| {
-            r.validation.admitted().map(|f| f.max_pct)
-        };
-        let what = format!("{name} at {rate:?}: {}", auto.reason);
+        let forward = |r: &Ranked| r.validation.admitted().map(|f| f.max_pct);
+        let what = format!("{name} at {rate} Hz: {}", auto.reason);
         let (f, i) = (forward(picked).unwrap(), picked.inverse.unwrap().max_pct);
         assert!(picked.set_aside.is_none(), "{what}");
         assert!(i <= INVERSE_TO_FORWARD_LIMIT * f, "{what}: {i} vs {f}");
+        // No admitted candidate whose inverse holds does better on the compensated error
+        // (but a special case, picked for parsimony).
         assert!(
-            auto.ranking.iter().all(|r| r.compensated().is_none()
-                || r.set_aside.is_some()
+            auto.ranking.iter().all(|r| r.set_aside.is_some()
                 || r.validation.admitted().is_none()
                 || r.compensated() >= picked.compensated()
                 || r.options.model.special_case() == Some(picked.options.model)),
             "{what}: a candidate whose compensator does better was passed over"
         );
-        // Every admitted candidate whose inverse is much worse than its fit is set aside, and
-        // the ranking puts it after those that are not, each group by its compensated error.
+        // Every admitted candidate's inverse is judged against its fit and the noise floor,
+        // and the ranking puts those that ratchet after the others, each group by its
+        // compensated error.
         let best_inverse = auto
             .ranking
             .iter()
             .filter_map(|r| r.inverse.map(|f| f.max_pct))
             .fold(f64::INFINITY, f64::min);
-        let mut seen_aside = false;
         let mut last = (false, 0.0);
         for r in auto.ranking.iter().filter(|r| forward(r).is_some()) {
             let inverse = r.inverse.unwrap().max_pct;
+            let bound = if inverse <= INVERSE_TO_FORWARD_LIMIT * forward(r).unwrap() {
+                InverseBound::Holds
+            } else if inverse <= INVERSE_TO_FORWARD_LIMIT * best_inverse {
+                InverseBound::NoiseFloor
+            } else {
+                InverseBound::Ratchets
+            };
+            assert_eq!(r.bound, Some(bound), "{what}: {}", r.label);
             assert_eq!(
                 r.set_aside.is_some(),
-                inverse > INVERSE_TO_FORWARD_LIMIT * forward(r).unwrap()
-                    && inverse > INVERSE_TO_FORWARD_LIMIT * best_inverse,
+                bound == InverseBound::Ratchets,
                 "{what}: {}",
                 r.label
             );
-            seen_aside |= r.set_aside.is_some();
+            let key = (bound == InverseBound::Ratchets, r.compensated().unwrap());
             assert!(
-                !(seen_aside && r.set_aside.is_none()),
-                "{what}: set aside before {}",
-                r.label
-            );
-            let key = (r.set_aside.is_some(), r.compensated().unwrap());
-            assert!(
-                key.0 != last.0 || key.1 >= last.1,
+                (key.0 && !last.0) || (key.0 == last.0 && key.1 >= last.1),
                 "{what}: not ordered at {}",
                 r.label
             );
@@ -753,7 +763,7 @@ fn auto_picks_the_model_whose_compensator_holds() {
             record.inverse_held_out,
             record.held_out
         );
-        if rate == Some(100_000.0) {
+        if name == BIPOLAR && rate == 100_000.0 {
             // What a forward-only ranking would have picked, and why it must not be.
             let forward_only = auto
                 .ranking
@@ -761,12 +771,21 @@ fn auto_picks_the_model_whose_compensator_holds() {
                 .filter(|r| forward(r).is_some())
                 .min_by(|a, b| forward(a).unwrap().total_cmp(&forward(b).unwrap()))
                 .unwrap();
-            assert_eq!(forward_only.options.model, ModelKind::BoucWen, "{what}");
+            assert_eq!(
+                (forward_only.options.model, forward_only.bound),
+                (ModelKind::BoucWen, Some(InverseBound::Ratchets)),
+                "{what}"
+            );
             assert!(
                 forward_only.inverse.unwrap().max_pct > 5.0 * forward(forward_only).unwrap(),
                 "{what}"
             );
             assert_ne!(forward_only.label, picked.label, "{what}");
+            assert!(
+                auto.reason
+                    .contains("the best forward fit, Bouc-Wen + creep"),
+                "{what}"
+            );
         }
     }
 }

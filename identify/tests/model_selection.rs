@@ -8,7 +8,7 @@
 use std::path::PathBuf;
 use twinstack::models::params::{DuhemParams, PiParams, Thresholds};
 use twinstack::Scaling;
-use twinstack_identify::identification::auto::identify_auto;
+use twinstack_identify::identification::auto::{identify_auto, InverseBound};
 use twinstack_identify::identification::{identify, IdentifyOptions, ModelKind};
 use twinstack_identify::reference;
 use twinstack_link::measured_data::MeasuredData;
@@ -124,12 +124,18 @@ fn auto_picks_the_model_that_generated_the_data() {
         auto.reason
     );
     // Every candidate was fitted and ranked, best first: by the compensated error, those set
-    // aside (inverse much worse than the fit) last.
+    // aside (their inverse ratchets) last.
     let keys: Vec<(bool, f64)> = auto
         .ranking
         .iter()
         .map(|r| {
             assert!(r.validation.admitted().is_some(), "{}", r.label);
+            assert_eq!(
+                r.set_aside.is_some(),
+                r.bound == Some(InverseBound::Ratchets),
+                "{}",
+                r.label
+            );
             (r.set_aside.is_some(), r.compensated().unwrap())
         })
         .collect();

@@ -75,6 +75,55 @@ struct Run {
     out: String,
 }
 
+/// `auto`'s ranking on each shipped record at the board's two control rates: every candidate's
+/// forward, inverse and tracking figures on the validation part, and where it stands.
+const RANKING_RUNS: &[&[&str]] = &[
+    &[
+        "identify",
+        "--data",
+        "data/piezo-bipolar-150v-1hz.csv",
+        "--fit-until",
+        "5.95",
+        "--tick-rate",
+        "50000",
+        "--out",
+        "target/figures/identify-ranking.json",
+    ],
+    &[
+        "identify",
+        "--data",
+        "data/piezo-bipolar-150v-1hz.csv",
+        "--fit-until",
+        "5.95",
+        "--tick-rate",
+        "100000",
+        "--out",
+        "target/figures/identify-ranking.json",
+    ],
+    &[
+        "identify",
+        "--data",
+        "data/micromanipulator-unipolar-3v6-1hz.csv",
+        "--fit-until",
+        "16",
+        "--tick-rate",
+        "50000",
+        "--out",
+        "target/figures/identify-ranking.json",
+    ],
+    &[
+        "identify",
+        "--data",
+        "data/micromanipulator-unipolar-3v6-1hz.csv",
+        "--fit-until",
+        "16",
+        "--tick-rate",
+        "100000",
+        "--out",
+        "target/figures/identify-ranking.json",
+    ],
+];
+
 /// The identification page's per-model runs: every model, without and with creep, on each
 /// shipped record (fitted on its first cycles, scored on the rest).
 const IDENTIFY_RUNS: &[&[&str]] = &[
@@ -632,6 +681,32 @@ const FIGURES: &[Figure] = &[
         render: Render::One(verbatim),
     },
     Figure {
+        name: "identify-ranking",
+        page: "docs/src/results/identification.md",
+        runs: RANKING_RUNS,
+        source: Source::Tool,
+        checked: true,
+        render: Render::Many(ranking_table),
+    },
+    Figure {
+        name: "identify-guide-bipolar",
+        page: "docs/src/guide/identification.md",
+        runs: &[&[
+            "identify",
+            "--data",
+            "data/piezo-bipolar-150v-1hz.csv",
+            "--fit-until",
+            "5.95",
+            "--tick-rate",
+            "100000",
+            "--out",
+            "target/figures/identify-guide.json",
+        ]],
+        source: Source::Tool,
+        checked: true,
+        render: Render::One(ranking_only),
+    },
+    Figure {
         name: "identify-models",
         page: "docs/src/results/identification.md",
         runs: IDENTIFY_RUNS,
@@ -1041,6 +1116,181 @@ fn identify_table(runs: &[Run]) -> Result<String, String> {
             table.push_str(&format!(" {} |", c.unwrap_or_else(|| "— | —".into())));
         }
         table.push('\n');
+    }
+    Ok(table)
+}
+
+/// What `identify` prints of `auto`'s choice: the ranking, its legend and the pick, then the
+/// model kept and its held-out figures (its notes and the fixed-point check left out).
+fn ranking_only(out: &str) -> Result<String, String> {
+    let kept: Vec<&str> = printed_lines(out)
+        .filter(|l| {
+            let l = l.trim_start();
+            !(l.starts_with("note:")
+                || l.starts_with("fitted t")
+                || l.starts_with("sensor lag")
+                || l.starts_with("fixed point")
+                || l.starts_with("inverse held-out, f64"))
+        })
+        .collect();
+    if !kept.iter().any(|l| l.starts_with("picked: ")) {
+        return Err("no `picked:` line".into());
+    }
+    verbatim(&kept.join("\n"))
+}
+
+/// One `identify` ranking line (`  1.  LABEL forward  0.85 % (RMS 0.21 %)  inverse  1.22 %
+/// tracking  0.74 %[  set aside: …]`) as its place, label, three figures and standing.
+fn ranking_row(line: &str) -> Option<(String, String, [String; 3], String)> {
+    let line = line.trim_start();
+    let (place, rest) = line.split_once(' ')?;
+    if !place.ends_with('.') {
+        return None;
+    }
+    let rest = rest.trim_start();
+    let Some((label, figures)) = rest.split_once(" forward ") else {
+        // Not fitted: no figures, only why.
+        let (label, why) = rest.split_once("  ")?;
+        let dash = || "—".to_string();
+        return Some((
+            place.into(),
+            label.trim().into(),
+            [dash(), dash(), dash()],
+            why.trim().into(),
+        ));
+    };
+    let after = |key: &str| -> Option<String> {
+        let i = figures.find(key)? + key.len();
+        let v = figures[i..].split_whitespace().next()?;
+        Some(if v == "-" {
+            "—".into()
+        } else {
+            format!("{v} %")
+        })
+    };
+    let forward = figures.split_whitespace().next()?;
+    let forward = if forward == "-" {
+        "—".into()
+    } else {
+        format!("{forward} %")
+    };
+    let (inverse, tracking) = (after("inverse ")?, after("tracking ")?);
+    // What follows the tracking figure: the standing, if any.
+    let tracked = figures[figures.find("tracking ")? + "tracking ".len()..].trim_start();
+    let value = tracked.split_whitespace().next()?;
+    let tail = tracked[value.len()..].trim_start();
+    let tail = tail.strip_prefix('%').unwrap_or(tail).trim();
+    let ratio = |t: &str| {
+        t.split(" is ")
+            .nth(1)
+            .and_then(|r| r.split(" × ").next())
+            .map(str::to_string)
+    };
+    let standing = if let Some(t) = tail.strip_prefix("set aside: ") {
+        format!(
+            "set aside: inverse {} × its fit, far from the best",
+            ratio(t)?
+        )
+    } else if let Some(t) = tail.strip_prefix("(inverse ") {
+        let r = t.split(" × ").next()?;
+        format!("inverse {r} × its fit: at the noise floor")
+    } else if let Some(t) = tail.strip_prefix("not admitted: ") {
+        match t
+            .split("needs ")
+            .nth(1)
+            .and_then(|n| n.split(" cycles").next())
+        {
+            Some(cycles) => format!("not admitted: {cycles} cycles per tick"),
+            None => format!("not admitted: {t}"),
+        }
+    } else if tail.is_empty() {
+        "inverse holds".into()
+    } else {
+        return None;
+    };
+    Some((
+        place.into(),
+        label.trim().into(),
+        [forward, inverse, tracking],
+        standing,
+    ))
+}
+
+/// `auto`'s ranking from every run as one Markdown table: per record and tick rate, each
+/// candidate's validation max errors (forward, inverse, tracking) and where it stands, the
+/// pick marked with its held-out figures.
+fn ranking_table(runs: &[Run]) -> Result<String, String> {
+    let mut table = String::from(
+        "| record, tick rate | candidate | forward | inverse | tracking | standing |\n\
+         |---|---|---:|---:|---:|---|\n",
+    );
+    for run in runs {
+        let what = |e: &str| format!("`{TOOL} {}`: {e}", run.args.join(" "));
+        let arg = |flag: &str| {
+            run.args
+                .iter()
+                .position(|a| *a == flag)
+                .and_then(|i| run.args.get(i + 1))
+                .copied()
+        };
+        let data = arg("--data").ok_or_else(|| what("no --data"))?;
+        let name = data
+            .rsplit('/')
+            .next()
+            .unwrap_or(data)
+            .trim_end_matches(".csv");
+        let rate = arg("--tick-rate").map_or("any".to_string(), |r| {
+            r.parse::<f64>()
+                .map_or(r.to_string(), |hz| format!("{:.0} kHz", hz / 1e3))
+        });
+        let held = |prefix: &str| -> Result<String, String> {
+            run.out
+                .lines()
+                .map(str::trim)
+                .find_map(|l| l.strip_prefix(prefix))
+                .and_then(|l| l.split_whitespace().nth(1))
+                .map(|v| format!("{v} %"))
+                .ok_or_else(|| what(&format!("no `{prefix}` line")))
+        };
+        let (held_forward, held_inverse) = (
+            held("held-out (predict vs measured x):")?,
+            held("inverse held-out (compensate u vs measured u):")?,
+        );
+        let mut rows = 0;
+        let mut in_ranking = false;
+        for line in run.out.lines() {
+            if line.starts_with("ranking ") {
+                in_ranking = true;
+                continue;
+            }
+            if !line.starts_with("  ") {
+                in_ranking = false;
+            }
+            if !in_ranking || line.trim_start().starts_with('(') {
+                continue;
+            }
+            let (place, label, [f, i, t], standing) =
+                ranking_row(line).ok_or_else(|| what(&format!("unread ranking line `{line}`")))?;
+            let standing = if rows == 0 {
+                format!("**picked** (held out: forward {held_forward}, inverse {held_inverse})")
+            } else if place == "-." {
+                standing
+            } else {
+                format!("{place} {standing}")
+            };
+            let record = if rows == 0 {
+                format!("`{name}`, {rate}")
+            } else {
+                String::new()
+            };
+            table.push_str(&format!(
+                "| {record} | {label} | {f} | {i} | {t} | {standing} |\n"
+            ));
+            rows += 1;
+        }
+        if rows == 0 {
+            return Err(what("no ranking"));
+        }
     }
     Ok(table)
 }
@@ -1952,6 +2202,46 @@ tests/golden/vectors.bin is up to date
             "fit: gain 0.6\n\ntuned: kp 0.05\n\n| a |\n|---:|\n| 1 |\n"
         );
         assert!(tune_summary("       200 Hz    -4.17 dB      -3.8°\n").is_err());
+    }
+
+    #[test]
+    fn ranking_lines_become_rows_with_their_standing() {
+        let out = [
+            "ranking (fitted on t < 5.1502 s, scored on 5.1502 <= t < 5.95 s):",
+            "  (legend)",
+            "  1.  P-I (16 uniform operators)               forward  1.30 % (RMS 0.38 %)  inverse  1.59 %  tracking  1.02 %",
+            "  2.  P-I (4 uniform operators) + creep (1 mode) forward  1.10 % (RMS 0.39 %)  inverse  1.81 %  tracking  1.84 %  (inverse 1.64 × its forward: at the record's noise floor)",
+            "  -.  Bouc-Wen + creep (1 mode)                forward  0.90 % (RMS 0.23 %)  inverse 14.58 %  tracking 13.55 %  set aside: inverse max 14.58 % is 16.22 × its forward max 0.90 % and more",
+            "  -.  Duhem + creep (1 mode)                   forward  1.11 % (RMS 0.30 %)  inverse 17.58 %  tracking 15.66 %  not admitted: the board at 100 kHz would refuse it: it needs 1732 cycles per tick, more",
+            "  -.  Duhem                                    not fitted: too few samples",
+            "picked: P-I",
+            "identified P-I (16 uniform operators) from x",
+            "  held-out (predict vs measured x): max 1.16 %  RMS 0.30 %  (20251 samples)",
+            "  inverse held-out (compensate u vs measured u): max 1.47 %  RMS 0.33 %  (20251 samples)",
+        ]
+        .join("\n");
+        let out = out.as_str();
+        let runs = [Run {
+            args: &["identify", "--data", "data/a.csv", "--tick-rate", "100000"],
+            out: out.into(),
+        }];
+        let table = ranking_table(&runs).unwrap();
+        let rows: Vec<&str> = table.lines().skip(2).collect();
+        assert_eq!(
+            rows,
+            [
+                "| `a`, 100 kHz | P-I (16 uniform operators) | 1.30 % | 1.59 % | 1.02 % | **picked** (held out: forward 1.16 %, inverse 1.47 %) |",
+                "|  | P-I (4 uniform operators) + creep (1 mode) | 1.10 % | 1.81 % | 1.84 % | 2. inverse 1.64 × its fit: at the noise floor |",
+                "|  | Bouc-Wen + creep (1 mode) | 0.90 % | 14.58 % | 13.55 % | set aside: inverse 16.22 × its fit, far from the best |",
+                "|  | Duhem + creep (1 mode) | 1.11 % | 17.58 % | 15.66 % | not admitted: 1732 cycles per tick |",
+                "|  | Duhem | — | — | — | not fitted: too few samples |",
+            ]
+        );
+        let kept = ranking_only(out).unwrap();
+        assert!(
+            kept.contains("picked: P-I") && kept.contains("inverse held-out"),
+            "{kept}"
+        );
     }
 
     #[test]

@@ -17,7 +17,8 @@ use plotters::style::RGBColor;
 use std::path::{Path, PathBuf};
 use twinstack::services::recorder::Channel;
 use twinstack_identify::calibrate::{calibrate, CalibrateOptions, CalibrationReport, Progress};
-use twinstack_identify::identification::auto::Validation;
+use twinstack_identify::identification::auto::{Validation, INVERSE_TO_FORWARD_LIMIT};
+use twinstack_identify::identification::score::ErrorFigures;
 use twinstack_link::output_file::Staged;
 
 /// Arguments of `calibrate`.
@@ -108,10 +109,22 @@ pub fn report_json(r: &CalibrationReport, out: &Path, png: &Path) -> serde_json:
     serde_json::json!({
         "model": r.model,
         "reason": r.reason,
-        "ranking": r.ranking.iter().map(|c| match &c.validation {
-            Validation::Scored(f) => serde_json::json!({"model": c.label, "max_pct": f.max_pct, "rms_pct": f.rms_pct}),
-            Validation::NotAdmitted { figures: f, why } => serde_json::json!({"model": c.label, "max_pct": f.max_pct, "rms_pct": f.rms_pct, "not_admitted": why}),
-            Validation::NotFitted(e) => serde_json::json!({"model": c.label, "error": e}),
+        "ranking": r.ranking.iter().map(|c| {
+            let mut v = match &c.validation {
+                Validation::Scored(f) => serde_json::json!({"model": c.label, "max_pct": f.max_pct, "rms_pct": f.rms_pct}),
+                Validation::NotAdmitted { figures: f, why } => serde_json::json!({"model": c.label, "max_pct": f.max_pct, "rms_pct": f.rms_pct, "not_admitted": why}),
+                Validation::NotFitted(e) => serde_json::json!({"model": c.label, "error": e}),
+            };
+            // The compensator's figures beside the forward ones: what it was ranked by.
+            if let (Some(i), Some(t), Some(c_max)) = (c.inverse, c.tracking, c.compensated_max_pct) {
+                v["inverse_max_pct"] = i.max_pct.into();
+                v["tracking_max_pct"] = t.max_pct.into();
+                v["compensated_max_pct"] = c_max.into();
+            }
+            if let Some(why) = &c.set_aside {
+                v["set_aside"] = why.as_str().into();
+            }
+            v
         }).collect::<Vec<_>>(),
         "held_out": r.held_out,
         "tracking_before": r.before,
@@ -181,18 +194,16 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         report.tick_rate_hz
     );
     if !report.ranking.is_empty() {
-        println!("ranking (validation part of the excitation):");
+        println!("ranking (validation part of the excitation, max error % of span):");
+        println!(
+            "  (ranked by the larger of inverse and tracking; set aside after the others, with why: a candidate whose inverse is beyond {INVERSE_TO_FORWARD_LIMIT} × its forward max and {INVERSE_TO_FORWARD_LIMIT} × the best inverse)"
+        );
         for (i, c) in report.ranking.iter().enumerate() {
-            match (c.validation.admitted(), c.validation.note()) {
-                (Some(f), _) => println!(
-                    "  {}. {:<32} max {:.2} %  RMS {:.2} %",
-                    i + 1,
-                    c.label,
-                    f.max_pct,
-                    f.rms_pct
-                ),
-                (None, note) => println!("  -. {:<32} {}", c.label, note.unwrap_or_default()),
-            }
+            let place = match (c.validation.admitted(), &c.set_aside) {
+                (Some(_), None) => format!("{}.", i + 1),
+                _ => "-.".into(),
+            };
+            println!("  {place:<3} {:<40} {}", c.label, c.summary);
         }
     }
     println!("picked: {}", report.reason);
@@ -268,25 +279,31 @@ fn plot(r: &CalibrationReport, path: &Path) -> anyhow::Result<()> {
             ],
         },
     ];
-    // The ranking: one bar per candidate at its validation max error, best first; the
-    // model kept in blue, the others light, one the board would not run grey.
+    // The ranking: one bar per candidate at its compensated max error on the validation part
+    // (what it was ranked by; its forward max where it has none), best first; the model kept
+    // in blue, the others light, one set aside or the board would not run grey.
     let ranking = BarPanel {
-        caption: "ranking: validation max error".into(),
+        caption: "ranking: validation compensated max error".into(),
         x_label: "[% of span]".into(),
         bars: r
             .ranking
             .iter()
             .enumerate()
             .map(|(i, c)| {
-                let kept = c.label == r.model;
+                // The pick heads the ranking.
+                let kept = i == 0;
+                let value = |f: &ErrorFigures| c.compensated_max_pct.unwrap_or(f.max_pct);
                 let (value, note, color) = match &c.validation {
+                    Validation::Scored(f) if c.set_aside.is_some() && !kept => {
+                        (value(f), "set aside", RGBColor(190, 190, 190))
+                    }
                     Validation::Scored(f) => (
-                        f.max_pct,
+                        value(f),
                         if kept { "kept" } else { "" },
                         if kept { blue } else { RGBColor(158, 202, 225) },
                     ),
                     Validation::NotAdmitted { figures, .. } => {
-                        (figures.max_pct, "not admitted", RGBColor(190, 190, 190))
+                        (value(figures), "not admitted", RGBColor(190, 190, 190))
                     }
                     Validation::NotFitted(_) => (f64::NAN, "not fitted", RGBColor(190, 190, 190)),
                 };

@@ -6,6 +6,7 @@
 use crate::plot::{draw, IdentificationFigure};
 use anyhow::{anyhow, bail};
 use std::path::PathBuf;
+use twinstack_identify::identification::auto::INVERSE_TO_FORWARD_LIMIT;
 use twinstack_identify::identification::run::{
     check_tick_rate, identify_and_score, BoardRate, RunError,
 };
@@ -51,8 +52,8 @@ pub struct Args {
     /// at most 100 s) in series with the model. It is kept only where it lowers the fit
     /// error (modes fitted with no weight are dropped), and the run says what was kept
     /// ("creep asked for, none kept" when nothing was). With `--model auto`, only the
-    /// candidates with creep are ranked; without `--creep`, auto ranks every model with and
-    /// without creep.
+    /// candidates with creep are ranked (the ranking says so); without `--creep`, auto ranks
+    /// every model with and without creep.
     #[arg(long)]
     pub creep: bool,
     /// Keep only a model the board runs at this control rate, Hz (its tick budget, as the
@@ -149,6 +150,12 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         println!(
             "  (compensated max = the larger of inverse and tracking; inverse: compensate on the measured x against the measured u; tracking: that drive through the best forward model)"
         );
+        println!(
+            "  (ranked by compensated max; set aside after the others, with why: a candidate whose inverse is beyond {INVERSE_TO_FORWARD_LIMIT} × its forward max and {INVERSE_TO_FORWARD_LIMIT} × the best inverse)"
+        );
+        if args.creep {
+            println!("  (--creep: only the candidates with creep are ranked)");
+        }
         for (i, r) in auto.ranking.iter().enumerate() {
             let place = match (r.validation.admitted(), &r.set_aside) {
                 (Some(_), None) => format!("{}.", i + 1),

@@ -89,7 +89,8 @@ pub(super) fn measure<T: Transport>(
         Some(_) => {
             let asked = Size::of(&id_options);
             let (fitted, id) = identify_admitted(&excitation, id_options.clone(), &runs_on_board)?;
-            let label = fitted.model_label();
+            // What was kept: "+ creep" only if the fit kept one.
+            let label = fitted.label_of_fit(&id.model);
             let reason = match Size::of(&fitted).sized_down_note(&asked) {
                 Some(note) => format!("{label} (asked for; {note})"),
                 None => format!("{label} (asked for)"),
@@ -101,10 +102,11 @@ pub(super) fn measure<T: Transport>(
                 identify_auto_admitting(&excitation, &id_options.candidates(), runs_on_board)?;
             let picked = auto.options.clone();
             let ranking = auto.ranking.iter().map(candidate).collect();
+            let label = picked.label_of_fit(&auto.identification.model);
             (
                 auto.identification,
                 picked.operators,
-                picked.model_label(),
+                label,
                 auto.reason,
                 ranking,
             )
@@ -156,6 +158,11 @@ fn candidate(r: &Ranked) -> Candidate {
     Candidate {
         label: r.label.clone(),
         validation: r.validation.clone(),
+        inverse: r.inverse,
+        tracking: r.tracking,
+        compensated_max_pct: r.compensated(),
+        set_aside: r.set_aside.clone(),
+        summary: r.summary(),
     }
 }
 

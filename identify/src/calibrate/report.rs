@@ -22,8 +22,18 @@ pub struct Tracking {
 pub struct Candidate {
     /// The model, in words.
     pub label: String,
-    /// Where it stands after the validation part.
+    /// Where it stands after the validation part (its forward figures).
     pub validation: Validation,
+    /// Its inverse on the validation part (`None` if it was not fitted).
+    pub inverse: Option<ErrorFigures>,
+    /// Its compensated tracking on the validation part (`None` if it was not fitted).
+    pub tracking: Option<ErrorFigures>,
+    /// The larger of its inverse and tracking max errors, % (what it was ranked by).
+    pub compensated_max_pct: Option<f64>,
+    /// Why it was ranked after the candidates whose inverse holds, if it was.
+    pub set_aside: Option<String>,
+    /// Its figures and standing in one line, as `identify` prints them.
+    pub summary: String,
 }
 
 /// What [`calibrate`] did and measured.
