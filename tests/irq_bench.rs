@@ -553,7 +553,7 @@ fn the_whole_interrupt_in_every_scenario() {
         .lines()
         .filter_map(|l| l.strip_prefix("SCENARIO "))
         .collect();
-    assert_eq!(names.len(), 105, "every scenario and load ran: {stdout}");
+    assert_eq!(names.len(), 112, "every scenario and load ran: {stdout}");
     // The stack's high-water mark over the whole run (painted at reset, read back by the image
     // before it exits): within three quarters of the reserve memory.x keeps for it.
     let reserve = support::elf_symbol(&elf, "_stack_reserve")
