@@ -1,0 +1,735 @@
+//! The `Board` class: a board behind the protocol client (a serial port, a socket or the
+//! in-process simulated board), its requests, streams, captures and calibration, and
+//! `settings_schema`.
+
+use crate::convert::{array, json_to_py, vector, wire_values};
+use crate::errors::{board_error, link_error, param_file_error, path_error, port_error};
+use crate::params::Params;
+use hal_sim::port::{open_send, PortError, PortSpec, DEFAULT_BAUD};
+use hal_sim::sim_camera::CameraConfig;
+use hal_sim::sim_device::{SimDevice, SimDeviceConfig};
+use pyo3::exceptions::{
+    PyConnectionError, PyRuntimeError, PyTimeoutError, PyTypeError, PyValueError,
+};
+use pyo3::prelude::*;
+use pyo3::types::PyDict;
+use std::path::Path;
+use std::sync::Mutex;
+use std::time::{Duration, Instant};
+use twinstack::config::settings::Mode;
+use twinstack::protocol::messages::{
+    Request, SequenceConfig, StreamControl, Trigger, TriggerEdge, UnderrunPolicy, WaveShape,
+};
+use twinstack::sources::analog_input::{AnalogInputConfig, AnalogRequest, OnFault};
+use twinstack_identify::param_file::ParamFile;
+use twinstack_link::board_requests::{self, LoadRefused};
+use twinstack_link::capture::{self, CaptureError};
+use twinstack_link::client::{Client, LinkError};
+use twinstack_link::sequence_run::{run_sequence, SequenceError, SequenceOptions};
+use twinstack_link::setpoint_file::divider_for_rate;
+use twinstack_link::settings_path;
+use twinstack_link::streamer::{stream_setpoints_until, StreamOptions};
+use twinstack_link::Transport;
+
+// The default baud in `Board`'s signature (a literal, so Python shows it) is the CLI's.
+const _: () = assert!(DEFAULT_BAUD == 3_000_000);
+
+/// How often a stream asks the interpreter whether Ctrl-C was pressed.
+const SIGNAL_CHECK: Duration = Duration::from_millis(50);
+
+pub(crate) type BoardClient = Client<Box<dyn Transport + Send>>;
+
+pub(crate) fn parse_mode(name: &str) -> PyResult<Mode> {
+    board_requests::parse_mode(name).ok_or_else(|| {
+        PyValueError::new_err(format!(
+            "mode {name:?}: expected \"bypass\", \"open-loop\" or \"closed-loop\""
+        ))
+    })
+}
+
+pub(crate) fn parse_trigger(name: &str) -> PyResult<Trigger> {
+    match name.to_ascii_lowercase().as_str() {
+        "now" => Ok(Trigger::Now),
+        "stream" => Ok(Trigger::StreamStart),
+        "waveform" => Ok(Trigger::WaveformStart),
+        _ => Err(PyValueError::new_err(format!(
+            "trigger {name:?}: expected \"now\", \"stream\" or \"waveform\""
+        ))),
+    }
+}
+
+pub(crate) fn signal_list(signals: &Bound<'_, PyAny>) -> PyResult<String> {
+    if let Ok(s) = signals.extract::<String>() {
+        return Ok(s);
+    }
+    let names: Vec<String> = signals.extract().map_err(|_| {
+        PyTypeError::new_err(
+            "signals: give a list of names (setpoint, left, right, sensor, estimate, error) or one comma-separated string",
+        )
+    })?;
+    Ok(names.join(","))
+}
+
+/// A board: a serial device, `tcp:HOST:PORT` (a virtual board, QEMU), `unix:PATH`, or `"sim"`.
+#[pyclass(module = "twinstack")]
+pub(crate) struct Board {
+    port: String,
+    client: Mutex<Option<BoardClient>>,
+}
+
+impl Board {
+    /// Runs `f` on the client without the interpreter's lock.
+    fn with<T: Send>(
+        &self,
+        py: Python<'_>,
+        f: impl FnOnce(&mut BoardClient) -> Result<T, LinkError> + Send,
+    ) -> PyResult<T> {
+        self.with_py(py, |client| {
+            f(client).map_err(|e| Python::attach(|py| link_error(py, e)))
+        })
+    }
+
+    /// Runs `f` on the client (without the interpreter's lock unless `f` takes it back).
+    fn with_py<T: Send>(
+        &self,
+        py: Python<'_>,
+        f: impl FnOnce(&mut BoardClient) -> PyResult<T> + Send,
+    ) -> PyResult<T> {
+        let mut guard = self.client.try_lock().map_err(|_| {
+            PyRuntimeError::new_err(
+                "the board is in use by another thread (one call at a time per Board)",
+            )
+        })?;
+        let client: &mut BoardClient = guard.as_mut().ok_or_else(|| {
+            PyRuntimeError::new_err(format!("{}: the board is closed", self.port))
+        })?;
+        py.detach(|| f(client))
+    }
+
+    /// Waits for the capture armed on the board and reads it back in physical units: `t`,
+    /// then one column per signal.
+    fn read_capture(&self, py: Python<'_>, timeout: Duration) -> PyResult<Vec<(String, Vec<f64>)>> {
+        self.with_py(py, |client| {
+            let err = |e: LinkError| Python::attach(|py| link_error(py, e));
+            let settings = client.read_params().map_err(err)?;
+            let (status, window) =
+                capture::wait_and_read(client, timeout, |_, _| {}).map_err(|e| match e {
+                    CaptureError::Link(l) => err(l),
+                    e @ CaptureError::NotDone { .. } => PyTimeoutError::new_err(e.to_string()),
+                })?;
+            let recording = capture::convert(&status, &settings, &window)
+                .map_err(|e| PyRuntimeError::new_err(e.to_string()))?;
+            let mut out = vec![("t".to_string(), recording.t)];
+            for c in recording.columns {
+                out.push((c.channel.name().to_string(), c.values));
+            }
+            Ok(out)
+        })
+    }
+
+    fn fetch_dict<'py>(&self, py: Python<'py>, timeout: f64) -> PyResult<Bound<'py, PyDict>> {
+        let columns = self.read_capture(py, seconds(timeout, "timeout")?)?;
+        let d = PyDict::new(py);
+        for (name, values) in columns {
+            d.set_item(name, array(py, values))?;
+        }
+        Ok(d)
+    }
+}
+
+pub(crate) fn seconds(s: f64, name: &str) -> PyResult<Duration> {
+    if s.is_finite() && s > 0.0 && s < 1e9 {
+        Ok(Duration::from_secs_f64(s))
+    } else {
+        Err(PyValueError::new_err(format!(
+            "{name} {s}: must be a positive number of seconds"
+        )))
+    }
+}
+
+#[pymethods]
+impl Board {
+    /// Connects to the board at `port` and cleans the line.
+    #[new]
+    #[pyo3(signature = (port, baud=3_000_000, timeout=2.0, sim_camera_hz=None, sim_camera_frames=0, sim_camera_on_settled=false))]
+    fn new(
+        py: Python<'_>,
+        port: &str,
+        baud: u32,
+        timeout: f64,
+        sim_camera_hz: Option<f64>,
+        sim_camera_frames: u32,
+        sim_camera_on_settled: bool,
+    ) -> PyResult<Self> {
+        let timeout = seconds(timeout, "timeout")?;
+        let spec: PortSpec = port.parse().map_err(port_error)?;
+        let camera = match sim_camera_hz {
+            None => None,
+            Some(_) if spec != PortSpec::Sim => {
+                return Err(PyValueError::new_err(format!(
+                    "sim_camera_hz: only with port \"sim\" (this is {port:?})"
+                )))
+            }
+            Some(hz) => {
+                let config = SimDeviceConfig::paper();
+                let rate = 1.0 / config.board.plant.dt;
+                Some(
+                    CameraConfig::at_rate(hz, rate, sim_camera_frames, sim_camera_on_settled)
+                        .map_err(|e| PyValueError::new_err(format!("sim_camera_hz: {e}")))?,
+                )
+            }
+        };
+        let client = py.detach(|| -> Result<BoardClient, Result<PortError, LinkError>> {
+            let transport: Box<dyn Transport + Send> = match camera {
+                Some(camera) => {
+                    let config = SimDeviceConfig {
+                        baud,
+                        camera: Some(camera),
+                        ..SimDeviceConfig::paper()
+                    };
+                    Box::new(SimDevice::new(config).map_err(|e| Ok(PortError::Sim(e.to_string())))?)
+                }
+                None => open_send(&spec, baud).map_err(Ok)?,
+            };
+            let mut client = Client::new(transport);
+            client.set_timeout(timeout);
+            client.resync(Duration::from_millis(20)).map_err(Err)?;
+            Ok(client)
+        });
+        let client = client.map_err(|e| match e {
+            Ok(p) => port_error(p),
+            Err(l) => link_error(py, l),
+        })?;
+        Ok(Self {
+            port: port.to_string(),
+            client: Mutex::new(Some(client)),
+        })
+    }
+
+    /// The port this board was opened on.
+    #[getter]
+    fn port(&self) -> &str {
+        &self.port
+    }
+
+    /// Status and telemetry, as a dict.
+    fn status<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
+        let s = self.with(py, |c| c.status())?;
+        json_to_py(py, &board_requests::status_json(&s))
+    }
+
+    /// Loads a parameter file's settings.
+    #[pyo3(signature = (params, clamp=false, mode=None, store=None))]
+    fn load(
+        &self,
+        py: Python<'_>,
+        params: &Params,
+        clamp: bool,
+        mode: Option<&str>,
+        store: Option<&str>,
+    ) -> PyResult<()> {
+        let mode = mode.map(parse_mode).transpose()?;
+        let store = store.map(parse_mode).transpose()?;
+        let board = self.with(py, |c| Ok(c.read_params().ok()))?;
+        let mut settings = board_requests::keep_from_board(&params.file.settings, board.as_ref());
+        if let Some(m) = mode {
+            settings.mode = m;
+        }
+        match board_requests::check_load(&settings, params.model.output_sign, clamp) {
+            Ok(None) => {}
+            Ok(Some(warning)) => {
+                let warnings = py.import("warnings")?;
+                let category = py.get_type::<pyo3::exceptions::PyRuntimeWarning>();
+                warnings.call_method1(
+                    "warn",
+                    (
+                        format!("{warning} (clamp=True: loading it anyway)"),
+                        category,
+                        2,
+                    ),
+                )?;
+            }
+            Err(e) => {
+                let field = match e {
+                    LoadRefused::InvertedSensor => "output_sign",
+                    LoadRefused::Unreachable { .. } => "ranges.input",
+                };
+                let hint = match e {
+                    LoadRefused::InvertedSensor => "nothing was sent",
+                    LoadRefused::Unreachable { .. } => {
+                        "identify the model within the drive's range, or pass clamp=True to load it anyway; nothing was loaded"
+                    }
+                };
+                return Err(board_error(
+                    py,
+                    format!("{e}; {hint}"),
+                    "LoadParams",
+                    Some(field.to_string()),
+                    e.to_string(),
+                    None,
+                    None,
+                ));
+            }
+        }
+        self.with(py, |c| {
+            c.load_params(&settings)?;
+            if let Some(boot) = store {
+                c.store_params(boot)?;
+            }
+            Ok(())
+        })
+    }
+
+    /// The settings in force on the board, as a dict (physical units).
+    fn params<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
+        let s = self.with(py, |c| c.read_params())?;
+        let v = serde_json::to_value(&s).map_err(|e| PyRuntimeError::new_err(e.to_string()))?;
+        json_to_py(py, &v)
+    }
+
+    /// One setting by its path (``"/feedback/kp"``; :func:`settings_schema` lists them), as
+    /// the Python value of its JSON (``None`` for a part that is not set); ``KeyError`` names
+    /// a path that names nothing.
+    fn get<'py>(&self, py: Python<'py>, path: &str) -> PyResult<Bound<'py, PyAny>> {
+        let s = self.with(py, |c| c.read_params())?;
+        let v = settings_path::get(&s, path).map_err(path_error)?;
+        json_to_py(py, &v)
+    }
+
+    /// Changes one setting by its path and loads the settings whole (the board validates
+    /// them, prepares them off the tick and swaps them in bumplessly); returns the value the
+    /// board then holds. ``KeyError`` names a path that names nothing, ``ValueError`` a value
+    /// of the wrong type, ``BoardError`` the board's refusal (field and limit).
+    fn set<'py>(
+        &self,
+        py: Python<'py>,
+        path: &str,
+        value: &Bound<'py, PyAny>,
+    ) -> PyResult<Bound<'py, PyAny>> {
+        let text: String = py
+            .import("json")?
+            .call_method1("dumps", (value,))?
+            .extract()?;
+        let value: serde_json::Value =
+            serde_json::from_str(&text).map_err(|e| PyValueError::new_err(e.to_string()))?;
+        let held = self.with(py, |c| {
+            let s = c.read_params()?;
+            let new = match settings_path::set(&s, path, value.clone()) {
+                Ok(new) => new,
+                Err(e) => return Ok(Err(e)),
+            };
+            c.load_params(&new)?;
+            Ok(Ok(c.read_params()?))
+        })?;
+        let held = held.map_err(path_error)?;
+        let v = settings_path::get(&held, path).map_err(path_error)?;
+        json_to_py(py, &v)
+    }
+
+    /// Switches the control mode (bumpless).
+    fn mode(&self, py: Python<'_>, mode: &str) -> PyResult<()> {
+        let m = parse_mode(mode)?;
+        self.with(py, |c| c.set_mode(m))
+    }
+
+    /// Streams setpoints and waits until they have played.
+    #[pyo3(signature = (setpoints, rate=None, normalised=false, underrun=None, wait=true))]
+    fn stream<'py>(
+        &self,
+        py: Python<'py>,
+        setpoints: &Bound<'py, PyAny>,
+        rate: Option<f64>,
+        normalised: bool,
+        underrun: Option<&str>,
+        wait: bool,
+    ) -> PyResult<Bound<'py, PyDict>> {
+        let values = vector(py, setpoints, "setpoints")?;
+        let underrun = match underrun {
+            None => None,
+            Some("hold") => Some(UnderrunPolicy::Hold),
+            Some("ramp-to-bias") | Some("ramp_to_bias") => Some(UnderrunPolicy::RampToBias),
+            Some(other) => {
+                return Err(PyValueError::new_err(format!(
+                    "underrun {other:?}: expected \"hold\" or \"ramp-to-bias\""
+                )))
+            }
+        };
+        let (status, settings) = self.with(py, |c| Ok((c.status()?, c.read_params()?)))?;
+        let tick_rate = status.tick_rate_hz.max(1) as f64;
+        let samples = wire_values(&values, normalised, &settings, "setpoints")?;
+        let divider = match rate {
+            None => 1,
+            Some(r) => divider_for_rate(tick_rate, r).map_err(PyValueError::new_err)?,
+        };
+        let options = StreamOptions {
+            divider,
+            underrun,
+            tick_rate_hz: tick_rate,
+            drain: wait,
+            ..StreamOptions::default()
+        };
+        let report = self.with_py(py, |client| {
+            // Ctrl-C: asked of the interpreter every SIGNAL_CHECK, with its lock taken back
+            // for the question only.
+            let mut interrupt: Option<PyErr> = None;
+            let mut last = Instant::now();
+            let r = stream_setpoints_until(
+                client,
+                &samples,
+                &options,
+                |_| {},
+                || {
+                    if last.elapsed() < SIGNAL_CHECK {
+                        return false;
+                    }
+                    last = Instant::now();
+                    match Python::attach(|py| py.check_signals()) {
+                        Ok(()) => false,
+                        Err(e) => {
+                            interrupt = Some(e);
+                            true
+                        }
+                    }
+                },
+            );
+            match r {
+                Ok(report) => Ok(report),
+                Err(e) => {
+                    if let Some(signal) = interrupt {
+                        // Tell the board to stop; the signal's exception goes up.
+                        let _ = client.stream(StreamControl::Stop);
+                        return Err(signal);
+                    }
+                    Err(Python::attach(|py| {
+                        let message = e.to_string();
+                        match e.source {
+                            LinkError::Nack { .. } => {
+                                let err = link_error(py, e.source);
+                                let _ = err.value(py).setattr("accepted", e.accepted);
+                                err
+                            }
+                            LinkError::Timeout { .. } => PyTimeoutError::new_err(message),
+                            LinkError::Io(_) => PyConnectionError::new_err(message),
+                            _ => PyRuntimeError::new_err(message),
+                        }
+                    }))
+                }
+            }
+        })?;
+        let end = report.drained.unwrap_or(report.after_last_batch);
+        let d = PyDict::new(py);
+        d.set_item("accepted", report.accepted)?;
+        d.set_item("divider", divider)?;
+        d.set_item("batches", report.batches)?;
+        d.set_item("resent_batches", report.resent_batches)?;
+        d.set_item("refused_and_retried", report.nacks.len())?;
+        d.set_item("underruns", report.underruns_during_stream())?;
+        d.set_item("underran", report.underran())?;
+        d.set_item(
+            "seconds",
+            end.ticks.wrapping_sub(report.before.ticks) as f64 / tick_rate,
+        )?;
+        d.set_item("drained", report.drained.is_some())?;
+        d.set_item("bytes_sent", report.link.bytes_sent)?;
+        Ok(d)
+    }
+
+    /// Runs a TTL-stepped sequence: `positions` loaded through the setpoint queue (topped up
+    /// as edges consume it), one per edge on the trigger input; returns the counts.
+    #[pyo3(signature = (positions, window=0.005, settle_ticks=25, edge="rising", normalised=false, mode=None, idle=5.0))]
+    #[allow(clippy::too_many_arguments)]
+    fn sequence<'py>(
+        &self,
+        py: Python<'py>,
+        positions: &Bound<'py, PyAny>,
+        window: f32,
+        settle_ticks: u16,
+        edge: &str,
+        normalised: bool,
+        mode: Option<&str>,
+        idle: f64,
+    ) -> PyResult<Bound<'py, PyDict>> {
+        let values = vector(py, positions, "positions")?;
+        let edge = match edge {
+            "rising" => TriggerEdge::Rising,
+            "falling" => TriggerEdge::Falling,
+            other => {
+                return Err(PyValueError::new_err(format!(
+                    "edge {other:?}: expected \"rising\" or \"falling\""
+                )))
+            }
+        };
+        let config = SequenceConfig {
+            edge,
+            window,
+            settle_ticks,
+        };
+        config
+            .check()
+            .map_err(|r| PyValueError::new_err(format!("{} {}", r.field, r.rule)))?;
+        let mode = mode.map(parse_mode).transpose()?;
+        let idle = seconds(idle, "idle")?;
+        let settings = self.with(py, |c| c.read_params())?;
+        let samples = wire_values(&values, normalised, &settings, "positions")?;
+        let options = SequenceOptions {
+            config,
+            idle,
+            poll: Duration::from_millis(20),
+            timing: true,
+        };
+        let report = self.with_py(py, |client| {
+            let err = |e: LinkError| Python::attach(|py| link_error(py, e));
+            if let Some(m) = mode {
+                client.set_mode(m).map_err(err)?;
+            }
+            run_sequence(client, &samples, &options, |_| {}).map_err(|e| match e {
+                SequenceError::Link(l) => err(l),
+                other => PyRuntimeError::new_err(other.to_string()),
+            })
+        })?;
+        let d = PyDict::new(py);
+        d.set_item("positions", samples.len())?;
+        d.set_item("sent", report.sent)?;
+        d.set_item("steps", report.status.steps)?;
+        d.set_item("early", report.status.early)?;
+        d.set_item("missed", report.status.missed)?;
+        d.set_item("complete", report.complete)?;
+        d.set_item("ticks_to_motion", report.timing.map(|t| t.ticks_to_motion))?;
+        Ok(d)
+    }
+
+    /// Makes the board's analog setpoint input the setpoint source: the input's span (0 V to
+    /// 3.3 V at the pin) times `gain` plus `offset`, normalised displacement; filtered by a
+    /// one-pole low-pass at `corner_hz` (none: unfiltered); below `lost_below` or above
+    /// `over_above` (fractions of the span) the input is faulty and the output holds
+    /// (`on_fault="hold"`) or ramps to rest (`"ramp-to-rest"`) at `rate` (normalised per
+    /// second, also the rate it walks back at). Settings checked here first: a refusal raises
+    /// `ValueError` naming the field, nothing sent.
+    #[pyo3(signature = (gain=2.0, offset=-1.0, corner_hz=None, lost_below=0.0, over_above=1.0, on_fault="hold", rate=10.0))]
+    #[allow(clippy::too_many_arguments)]
+    fn analog(
+        &self,
+        py: Python<'_>,
+        gain: f32,
+        offset: f32,
+        corner_hz: Option<f32>,
+        lost_below: f32,
+        over_above: f32,
+        on_fault: &str,
+        rate: f32,
+    ) -> PyResult<()> {
+        let on_fault = match on_fault {
+            "hold" => OnFault::Hold,
+            "ramp-to-rest" => OnFault::RampToRest,
+            other => {
+                return Err(PyValueError::new_err(format!(
+                    "on_fault {other:?}: expected \"hold\" or \"ramp-to-rest\""
+                )))
+            }
+        };
+        let config = AnalogInputConfig {
+            gain,
+            offset,
+            corner_hz,
+            lost_below,
+            over_above,
+            on_fault,
+            rate,
+            start_at_boot: false,
+        };
+        let tick_rate = self.with(py, |c| c.status())?.tick_rate_hz as f64;
+        config
+            .check(tick_rate)
+            .map_err(|r| PyValueError::new_err(format!("refused: {r}; nothing was sent")))?;
+        self.with(py, |c| {
+            c.expect_ack(&Request::Analog(AnalogRequest::Start(config)))
+                .map(drop)
+        })
+    }
+
+    /// The analog input's state: `running`, `lost`, `over_range`, `faults`, `reading`
+    /// (fraction of the span) and `setpoint` (normalised).
+    fn analog_status<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
+        let s = self.with(py, |c| c.analog_status())?;
+        json_to_py(py, &board_requests::analog_status_json(&s))
+    }
+
+    /// Stops the setpoint stream, the waveform or the analog input; the output holds where
+    /// it is.
+    fn stop(&self, py: Python<'_>) -> PyResult<()> {
+        self.with(py, |c| c.stream(StreamControl::Stop))
+    }
+
+    /// Starts the board's waveform generator (normalised units).
+    #[pyo3(signature = (amplitude, frequency, shape="sine", offset=0.0))]
+    fn waveform(
+        &self,
+        py: Python<'_>,
+        amplitude: f64,
+        frequency: f64,
+        shape: &str,
+        offset: f64,
+    ) -> PyResult<()> {
+        let shape = match shape.to_ascii_lowercase().as_str() {
+            "sine" => WaveShape::Sine,
+            "triangle" => WaveShape::Triangle,
+            other => {
+                return Err(PyValueError::new_err(format!(
+                    "shape {other:?}: expected \"sine\" or \"triangle\""
+                )))
+            }
+        };
+        let w = board_requests::waveform(shape, offset, amplitude, frequency, None)
+            .map_err(|e| PyValueError::new_err(e.to_string()))?;
+        self.with(py, |c| c.waveform(w))
+    }
+
+    /// Arms a multi-signal capture without waiting for it (see `fetch`).
+    #[pyo3(signature = (signals, samples, trigger="now", pre=0, decimation=1))]
+    fn arm(
+        &self,
+        py: Python<'_>,
+        signals: &Bound<'_, PyAny>,
+        samples: u32,
+        trigger: &str,
+        pre: u32,
+        decimation: u16,
+    ) -> PyResult<()> {
+        let signals = signal_list(signals)?;
+        let trigger = parse_trigger(trigger)?;
+        let request = board_requests::capture_request(&signals, samples, pre, trigger, decimation)
+            .map_err(|e| PyValueError::new_err(e.to_string()))?;
+        self.with(py, |c| c.arm_capture(request))
+    }
+
+    /// Waits for the capture armed before and reads it back in physical units.
+    #[pyo3(signature = (timeout=30.0))]
+    fn fetch<'py>(&self, py: Python<'py>, timeout: f64) -> PyResult<Bound<'py, PyDict>> {
+        self.fetch_dict(py, timeout)
+    }
+
+    /// Records several signals at once and returns them in physical units.
+    #[pyo3(signature = (signals, samples, trigger="now", pre=0, decimation=1, timeout=30.0))]
+    #[allow(clippy::too_many_arguments)]
+    fn record<'py>(
+        &self,
+        py: Python<'py>,
+        signals: &Bound<'py, PyAny>,
+        samples: u32,
+        trigger: &str,
+        pre: u32,
+        decimation: u16,
+        timeout: f64,
+    ) -> PyResult<Bound<'py, PyDict>> {
+        seconds(timeout, "timeout")?;
+        self.arm(py, signals, samples, trigger, pre, decimation)?;
+        self.fetch_dict(py, timeout)
+    }
+
+    /// Calibrates the stage behind the board in one call (`twinstack calibrate`): excites it
+    /// with the board's waveform generator (full-range cycles, then decaying minor loops),
+    /// records drive and sensor, identifies the best model of the family (or `model`), loads
+    /// it, verifies by tracking a test trajectory before (bypass) and after (open loop), and
+    /// stores it to flash unless `store` is false. Returns a dict: `params` (a `Params`, the
+    /// file `twinstack calibrate` writes), `model`, `reason`, `held_out` / `before` / `after`
+    /// (`max_pct`, `rms_pct`), `stored`, `clamped`. Board refusals raise `BoardError`; a stage
+    /// that cannot be calibrated (no sensor, a sensor that does not follow the drive, a fit
+    /// that does not fit) raises `RuntimeError` saying which.
+    #[pyo3(signature = (store=true, clamp=false, model=None))]
+    fn calibrate<'py>(
+        &self,
+        py: Python<'py>,
+        store: bool,
+        clamp: bool,
+        model: Option<&str>,
+    ) -> PyResult<Bound<'py, PyAny>> {
+        use twinstack_identify::calibrate::{calibrate, CalibrateError, CalibrateOptions};
+        use twinstack_identify::identification::run::{parse_model, ModelChoice};
+        let model = match model
+            .map(parse_model)
+            .transpose()
+            .map_err(PyValueError::new_err)?
+        {
+            None | Some(ModelChoice::Auto) => None,
+            Some(ModelChoice::Only(kind)) => Some(kind),
+        };
+        let options = CalibrateOptions {
+            model,
+            clamp,
+            store: store.then_some(twinstack::config::settings::Mode::Bypass),
+            ..CalibrateOptions::default()
+        };
+        let report = self.with_py(py, |client| {
+            calibrate(client, &options, |_| {}).map_err(|e| match e {
+                CalibrateError::Link { source, .. } => Python::attach(|py| link_error(py, source)),
+                other => PyRuntimeError::new_err(other.to_string()),
+            })
+        })?;
+        let (file, stage) = ParamFile::parse(Path::new("<calibrate>"), &report.file.to_json())
+            .map_err(param_file_error)?;
+        let figures = |max: f64, rms: f64| serde_json::json!({"max_pct": max, "rms_pct": rms});
+        let out = json_to_py(
+            py,
+            &serde_json::json!({
+                "model": report.model,
+                "reason": report.reason,
+                "held_out": figures(report.held_out.max_pct, report.held_out.rms_pct),
+                "before": figures(report.before.max_pct, report.before.rms_pct),
+                "after": figures(report.after.max_pct, report.after.rms_pct),
+                "stored": report.stored.is_some(),
+                "clamped": report.clamped,
+            }),
+        )?;
+        out.set_item("params", Params::from_file(file, stage))?;
+        Ok(out)
+    }
+
+    /// Writes the settings in force to the board's flash, to boot in `boot_mode`.
+    #[pyo3(signature = (boot_mode="bypass"))]
+    fn store(&self, py: Python<'_>, boot_mode: &str) -> PyResult<()> {
+        let m = parse_mode(boot_mode)?;
+        self.with(py, |c| c.store_params(m))
+    }
+
+    /// Reloads the settings stored in the board's flash.
+    fn recall(&self, py: Python<'_>) -> PyResult<()> {
+        self.with(py, |c| c.recall_params())
+    }
+
+    /// Closes the link (a `"sim"` board is gone with it). Further calls raise.
+    fn close(&self) -> PyResult<()> {
+        let mut guard = self
+            .client
+            .try_lock()
+            .map_err(|_| PyRuntimeError::new_err("the board is in use by another thread"))?;
+        guard.take();
+        Ok(())
+    }
+
+    /// The board itself (`with Board(port) as board:`).
+    fn __enter__(slf: Py<Self>) -> Py<Self> {
+        slf
+    }
+
+    /// Closes the board at the end of a `with` block.
+    #[pyo3(signature = (*_args))]
+    fn __exit__(&self, _args: &Bound<'_, pyo3::types::PyTuple>) -> PyResult<bool> {
+        self.close()?;
+        Ok(false)
+    }
+
+    /// `Board("port")`.
+    fn __repr__(&self) -> String {
+        format!("Board({:?})", self.port)
+    }
+}
+
+/// Every settings path with what it holds, as ``(path, kind)`` pairs (``twinstack settings
+/// --schema``): traced from the settings type, so it lists exactly what the board takes.
+#[pyfunction]
+pub(crate) fn settings_schema() -> Vec<(String, String)> {
+    settings_path::schema()
+        .into_iter()
+        .map(|e| (e.path, e.kind))
+        .collect()
+}

@@ -1,0 +1,322 @@
+//! Identification and parameters: the `Params` class (a fitted model, its file and its
+//! ranking), `load_params` and `identify`.
+
+use crate::convert::{array, json_to_py, vector};
+use crate::errors::param_file_error;
+use numpy::PyArray1;
+use pyo3::exceptions::{PyRuntimeError, PyValueError};
+use pyo3::prelude::*;
+use pyo3::types::{PyDict, PyList};
+use std::path::{Path, PathBuf};
+use twinstack_identify::identification::auto::Validation;
+use twinstack_identify::identification::run::{
+    check_tick_rate, default_fit_until, identify_and_score, parse_model, BoardRate, Identified,
+    RunError,
+};
+use twinstack_identify::identification::{
+    IdentifyOptions, ModelKind, ThresholdSpread, DEFAULT_OPERATORS,
+};
+use twinstack_identify::param_file::ParamFile;
+use twinstack_identify::stage_model::{Hysteresis, StageModel};
+use twinstack_link::measured_data::{ColumnsError, MeasuredData};
+
+/// The record's times: `t` as given, or `k / rate`, or (for a model with neither creep nor a
+/// sensor lag, which need the sample period) any uniform spacing.
+pub(crate) fn times(
+    py: Python<'_>,
+    model: &StageModel,
+    n: usize,
+    t: Option<&Bound<'_, PyAny>>,
+    rate: Option<f64>,
+) -> PyResult<Vec<f64>> {
+    match (t, rate) {
+        (Some(_), Some(_)) => Err(PyValueError::new_err("give t or rate, not both")),
+        (Some(t), None) => {
+            let t = vector(py, t, "t")?;
+            if t.len() != n {
+                return Err(PyValueError::new_err(format!(
+                    "t has {} samples, the signal {n}",
+                    t.len()
+                )));
+            }
+            MeasuredData::check_columns(&t, &[]).map_err(|e| PyValueError::new_err(e.to_string()))?;
+            Ok(t)
+        }
+        (None, Some(rate)) => {
+            if !(rate.is_finite() && rate > 0.0) {
+                return Err(PyValueError::new_err(format!(
+                    "rate {rate}: must be a positive number of samples per second"
+                )));
+            }
+            Ok((0..n).map(|k| k as f64 / rate).collect())
+        }
+        (None, None) if model.creep.is_none() && model.sensor_lag_s == 0.0 => {
+            Ok((0..n).map(|k| k as f64).collect())
+        }
+        (None, None) => Err(PyValueError::new_err(
+            "this model has a creep operator or a sensor lag, which run at the record's sample period: give t (seconds) or rate (samples per second)",
+        )),
+    }
+}
+
+/// An identified or loaded model with its parameter file: what `twinstack identify` writes and
+/// `twinstack load` sends.
+#[pyclass(module = "twinstack", frozen)]
+pub(crate) struct Params {
+    pub(crate) file: ParamFile,
+    pub(crate) model: StageModel,
+    ranking: Option<Vec<Ranked>>,
+}
+
+/// One of `auto`'s candidates: its label, and where it stands after the validation part.
+pub(crate) type Ranked = (String, Validation);
+
+impl Params {
+    pub(crate) fn from_file(file: ParamFile, model: StageModel) -> Self {
+        Self {
+            file,
+            model,
+            ranking: None,
+        }
+    }
+}
+
+#[pymethods]
+impl Params {
+    /// The model's predicted sensor reading for the drive `u` (volts).
+    #[pyo3(signature = (u, t=None, rate=None))]
+    fn predict<'py>(
+        &self,
+        py: Python<'py>,
+        u: &Bound<'py, PyAny>,
+        t: Option<&Bound<'py, PyAny>>,
+        rate: Option<f64>,
+    ) -> PyResult<Bound<'py, PyArray1<f64>>> {
+        let u = vector(py, u, "u")?;
+        let t = times(py, &self.model, u.len(), t, rate)?;
+        let model = &self.model;
+        let x = py
+            .detach(|| model.predict(&t, &u))
+            .map_err(|e| PyValueError::new_err(e.to_string()))?;
+        Ok(array(py, x))
+    }
+
+    /// The drive (volts) the compensator gives for the desired reading `x`.
+    #[pyo3(signature = (x, t=None, rate=None))]
+    fn compensate<'py>(
+        &self,
+        py: Python<'py>,
+        x: &Bound<'py, PyAny>,
+        t: Option<&Bound<'py, PyAny>>,
+        rate: Option<f64>,
+    ) -> PyResult<Bound<'py, PyArray1<f64>>> {
+        let x = vector(py, x, "x")?;
+        let t = times(py, &self.model, x.len(), t, rate)?;
+        let model = &self.model;
+        let u = py
+            .detach(|| model.compensate(&t, &x))
+            .map_err(|e| PyValueError::new_err(e.to_string()))?;
+        Ok(array(py, u))
+    }
+
+    /// Writes the parameter file (the JSON `twinstack identify` writes).
+    fn save(&self, path: PathBuf) -> PyResult<()> {
+        self.file.save(&path).map_err(param_file_error)
+    }
+
+    /// The parameter file's JSON text.
+    fn to_json(&self) -> String {
+        self.file.to_json()
+    }
+
+    /// A parameter file's JSON text, checked as `load_params` checks a file.
+    #[staticmethod]
+    fn from_json(text: &str) -> PyResult<Self> {
+        let (file, model) =
+            ParamFile::parse(Path::new("<json>"), text).map_err(param_file_error)?;
+        Ok(Self::from_file(file, model))
+    }
+
+    /// The model's kind: `pi`, `duhem`, `gpi` or `bouc-wen`.
+    #[getter]
+    fn model(&self) -> &'static str {
+        match self.model.hysteresis {
+            Hysteresis::Pi(_) => "pi",
+            Hysteresis::Duhem(_) => "duhem",
+            Hysteresis::GeneralisedPi(_) => "gpi",
+            Hysteresis::BoucWen(_) => "bouc-wen",
+        }
+    }
+
+    /// Whether a creep operator runs in series with the model.
+    #[getter]
+    fn creep(&self) -> bool {
+        self.model.creep.is_some()
+    }
+
+    /// The model's input range, volts.
+    #[getter]
+    fn input_range(&self) -> (f64, f64) {
+        (self.model.scaling.input_min, self.model.scaling.input_max)
+    }
+
+    /// The model's (sign-corrected) output range, in its output unit.
+    #[getter]
+    fn output_range(&self) -> (f64, f64) {
+        (self.model.scaling.output_min, self.model.scaling.output_max)
+    }
+
+    /// `1.0`, or `-1.0` for a sensor that reads the model's output negated.
+    #[getter]
+    fn output_sign(&self) -> f64 {
+        self.model.output_sign
+    }
+
+    /// The sensor's lag behind the drive, seconds.
+    #[getter]
+    fn sensor_lag_s(&self) -> f64 {
+        self.model.sensor_lag_s
+    }
+
+    /// The unit of the model's output (the identified record's `x`).
+    #[getter]
+    fn output_unit(&self) -> &str {
+        &self.file.units.output
+    }
+
+    /// The board settings the file carries, as a dict (the JSON's `settings`).
+    #[getter]
+    fn settings<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
+        let v = serde_json::to_value(&self.file.settings)
+            .map_err(|e| PyRuntimeError::new_err(e.to_string()))?;
+        json_to_py(py, &v)
+    }
+
+    /// How the model was fitted and scored (the file's `identification`), or `None`.
+    #[getter]
+    fn identification<'py>(&self, py: Python<'py>) -> PyResult<Option<Bound<'py, PyAny>>> {
+        match &self.file.identification {
+            None => Ok(None),
+            Some(r) => {
+                let v =
+                    serde_json::to_value(r).map_err(|e| PyRuntimeError::new_err(e.to_string()))?;
+                json_to_py(py, &v).map(Some)
+            }
+        }
+    }
+
+    /// `model="auto"`'s ranking, best first: dicts with `label`, `max_pct`, `rms_pct` (and
+    /// `not_admitted`, the reason, for a model the board would not run at `tick_rate`), or
+    /// `error` for one that could not be fitted; `None` when one model was asked for or the
+    /// file was loaded.
+    #[getter]
+    fn ranking<'py>(&self, py: Python<'py>) -> PyResult<Option<Bound<'py, PyList>>> {
+        let Some(ranking) = &self.ranking else {
+            return Ok(None);
+        };
+        let list = PyList::empty(py);
+        for (label, validation) in ranking {
+            let d = PyDict::new(py);
+            d.set_item("label", label)?;
+            if let Some(f) = validation.figures() {
+                d.set_item("max_pct", f.max_pct)?;
+                d.set_item("rms_pct", f.rms_pct)?;
+            }
+            match validation {
+                Validation::Scored(_) => {}
+                Validation::NotAdmitted { why, .. } => d.set_item("not_admitted", why)?,
+                Validation::NotFitted(why) => d.set_item("error", why)?,
+            }
+            list.append(d)?;
+        }
+        Ok(Some(list))
+    }
+
+    /// The model's kind, creep, ranges and output unit.
+    fn __repr__(&self) -> String {
+        let s = &self.model.scaling;
+        format!(
+            "Params(model={:?}, creep={}, input_range=({}, {}), output_range=({}, {}), output_unit={:?})",
+            self.model(),
+            self.creep(),
+            s.input_min,
+            s.input_max,
+            s.output_min,
+            s.output_max,
+            self.file.units.output
+        )
+    }
+}
+
+/// Reads and checks a parameter file (`twinstack identify`'s output, or `Params.save`'s).
+#[pyfunction]
+pub(crate) fn load_params(path: PathBuf) -> PyResult<Params> {
+    let (file, model) = ParamFile::load(&path).map_err(param_file_error)?;
+    Ok(Params::from_file(file, model))
+}
+
+/// Identifies a model from a measured record (`t` seconds, `u` drive volts, `x` reading).
+#[pyfunction]
+#[pyo3(signature = (t, u, x, model="auto", creep=None, fit_until=None, operators=None, thresholds="uniform", lag=None, output_unit="um", tick_rate=None))]
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn identify(
+    py: Python<'_>,
+    t: &Bound<'_, PyAny>,
+    u: &Bound<'_, PyAny>,
+    x: &Bound<'_, PyAny>,
+    model: &str,
+    creep: Option<bool>,
+    fit_until: Option<f64>,
+    operators: Option<usize>,
+    thresholds: &str,
+    lag: Option<usize>,
+    output_unit: &str,
+    tick_rate: Option<f64>,
+) -> PyResult<Params> {
+    let choice = parse_model(model).map_err(PyValueError::new_err)?;
+    if let Some(rate) = tick_rate {
+        check_tick_rate(rate).map_err(|e| PyValueError::new_err(format!("tick_rate {e}")))?;
+    }
+    // A P–I sized to the rate unless its operators were asked for.
+    let rate = tick_rate.map(|hz| BoardRate::sizing(hz, operators.is_some()));
+    let spread = match thresholds.to_ascii_lowercase().as_str() {
+        "uniform" => ThresholdSpread::Uniform,
+        "geometric" => ThresholdSpread::Geometric,
+        other => {
+            return Err(PyValueError::new_err(format!(
+                "thresholds {other:?}: expected \"uniform\" or \"geometric\""
+            )))
+        }
+    };
+    let (t, u, x) = (
+        vector(py, t, "t")?,
+        vector(py, u, "u")?,
+        vector(py, x, "x")?,
+    );
+    let data = MeasuredData::from_columns("<arrays>", t, Some(u), Some(x))
+        .map_err(|e: ColumnsError| PyValueError::new_err(e.to_string()))?;
+    let fit_until = fit_until.unwrap_or_else(|| default_fit_until(&data.t));
+    if !fit_until.is_finite() {
+        return Err(PyValueError::new_err(format!(
+            "fit_until {fit_until}: not a finite number of seconds"
+        )));
+    }
+    let mut options = IdentifyOptions::new(ModelKind::Pi, fit_until);
+    options.operators = operators.unwrap_or(DEFAULT_OPERATORS);
+    options.thresholds = spread;
+    options.lag = lag;
+    let run: Result<Identified, RunError> =
+        py.detach(|| identify_and_score(&data, choice, &options, creep, output_unit, rate));
+    let run = run.map_err(|e| PyValueError::new_err(e.to_string()))?;
+    let ranking = run.auto.as_ref().map(|a| {
+        a.ranking
+            .iter()
+            .map(|r| (r.label.clone(), r.validation.clone()))
+            .collect()
+    });
+    Ok(Params {
+        model: run.identification.model,
+        file: run.file,
+        ranking,
+    })
+}
