@@ -83,13 +83,16 @@ pub const ANALOG_CYCLES: u32 = 32;
 /// ([`crate::sources::scan::TriggerConfig`]): the scan waiting for it starts from the setpoint
 /// in force (its approach computed), or the stream starts, and a capture armed on it fires.
 /// Charged while the input is armed, since an edge may come on any tick: measured by the
-/// whole-interrupt bench (`cargo test --profile host-opt --test irq_bench`, scenario
-/// `scan-spiral-on-trigger-learning`, whose image drives the input so that a spiral armed on
-/// it starts, beside the learning and a capture armed on the same edge, again and again) as the
-/// worst such tick above the configuration's worst scan with the learning, with a margin.
-/// Counted when the input is armed, and at every load, scan, analog input or learning start
-/// while it is.
-pub const TRIGGER_CYCLES: u32 = 200;
+/// whole-interrupt bench (`cargo test --profile host-opt --test irq_bench`, scenarios
+/// `scan-spiral-on-trigger-learning` and `triangle-on-trigger`, whose image drives the input so
+/// that its edges start a spiral beside the learning, or the running stream, again and again,
+/// a capture armed on the first) as the
+/// worst such tick above the configuration's prediction: the stream started again beside it
+/// (`triangle-on-trigger`) is the dearest, 147 cycles above it for the P–I 16 and P–I 17
+/// configurations (5 WS), the spiral started by the edge is within the scan's charge; 170
+/// keeps a margin. Counted when the input is armed, and at every load, scan, analog input or
+/// learning start while it is.
+pub const TRIGGER_CYCLES: u32 = 170;
 /// Cycles the tick may take at `control_rate_hz`: [`TICK_SHARE_PERCENT`] of the period.
 /// A rate that is not positive and finite leaves none.
 pub fn available_cycles(control_rate_hz: f64) -> u32 {
