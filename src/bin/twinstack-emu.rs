@@ -1,7 +1,7 @@
 //! # twinstack-emu — the firmware's QEMU image (`netduinoplus2`, STM32F405)
 //!
 //! The board's shell (`src/bin/firmware/app.rs`, documented in `twinstack-fw.rs`) with the
-//! library built for the emulator (feature `emulator`, [`twinstack::hardware::setup`]): HSI
+//! library built for the emulator (feature `emulator`, `twinstack::hardware::setup`): HSI
 //! clock, SysTick instead of TIM2 for the tick, interrupt-driven USART receive and polled
 //! transmit instead of DMA, the parameter record read-only (QEMU models neither RCC, DMA, the
 //! DAC, the flash interface nor TIM2's update interrupt). `cargo build-emu` writes

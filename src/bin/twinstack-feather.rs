@@ -1,7 +1,7 @@
 //! # twinstack-feather — the firmware on an Adafruit Feather STM32F405 Express
 //!
 //! The board's shell (`src/bin/firmware/app.rs`, documented in `twinstack-fw.rs`) with the
-//! library built for the `feather` board profile ([`twinstack::hardware::profile`]): the same control tick,
+//! library built for the `feather` board profile (`twinstack::hardware::profile`): the same control tick,
 //! command handler, converters (the chip's own DAC and ADC), watchdog and parameter sector, on
 //! the Feather's 12 MHz crystal and its header pins — both stacks' drives on A0/A1, the sensor
 //! on A2, the host link on USART3 at the TX/RX pins, the trigger I/O on D5, D6 and D11–D13.

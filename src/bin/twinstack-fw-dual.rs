@@ -3,7 +3,7 @@
 //! The board image (`twinstack-fw.rs` describes the shell and its tasks) with the coarse axis
 //! of a dual-actuated stage (feature `dual-stage`): a coarse task (priority 2, TIM3 at 5 kHz)
 //! runs [`twinstack::dual_stage::DualStage::coarse_tick`] through
-//! [`twinstack::hardware::setup::CoarseStage::run`]: it reads the motor and linear encoders
+//! `twinstack::hardware::setup::CoarseStage::run`: it reads the motor and linear encoders
 //! (TIM8, TIM4), runs the trajectory and emits a burst of step pulses on TIM1. It holds its
 //! power-up position until a command moves it; the piezo tick is untouched.
 //! `cargo build-fw-dual` writes `target/thumbv7em-none-eabihf/release/twinstack-fw-dual`; the

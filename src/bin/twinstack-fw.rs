@@ -1,7 +1,7 @@
 //! # twinstack-fw — the driver board's firmware (STM32F405RG, RTIC 2)
 //!
 //! A thin RTIC shell (`src/bin/firmware/app.rs`) over the library: the board is brought up by
-//! [`twinstack::hardware::setup::setup`], and every task's body is one library function, over
+//! `twinstack::hardware::setup::setup`, and every task's body is one library function, over
 //! the two halves of the board, [`twinstack::control_loop`] (tick side) and
 //! [`twinstack::command_handler`] (command side):
 //!
@@ -11,14 +11,14 @@
 //!   setpoint from the queue or the waveform generator, compensator, feedback, limits,
 //!   differential split, both DAC channels in one store, recorder), feeds the watchdog and
 //!   counts overruns (a tick still running when the next is due)
-//!   ([`twinstack::hardware::setup::tick`]).
+//!   (`twinstack::hardware::setup::tick`).
 //! * **USART1 receive** (priority 2): DMA into a ring, drained on idle line and half/full
 //!   transfer, bytes queued for the command handler.
 //! * **USART1 transmit** (priority 2, DMA2 stream 7): frames leave by DMA, double-buffered;
 //!   the transfer-complete interrupt puts the waiting frame on the line and wakes the command
 //!   task.
 //! * **Command handler** (priority 1, EXTI0 as a software interrupt,
-//!   [`twinstack::hardware::setup::command`]): `CommandHandler` decodes frames, answers each
+//!   `twinstack::hardware::setup::command`): `CommandHandler` decodes frames, answers each
 //!   request with one response frame, queues setpoint batches for the tick, and reaches the
 //!   tick's state through short RTIC locks. A response the uplink cannot take yet waits in an
 //!   outbox and no further request is read until it has gone: nothing spins on the line.
