@@ -1609,27 +1609,33 @@ fn two_loads_between_two_ticks_swap_twice_and_the_newer_runs_from_the_drive_held
     );
 }
 
+/// A board at a rate whose period holds the closed-loop configuration (loaded) but not
+/// `charge` more cycles beside it: halfway between the two. Returns it, the rate and the
+/// configuration's predicted cycles there.
+fn closed_loop_board_short_of(charge: u32) -> (Board<RamStorage>, f64, u32) {
+    use twinstack::config::tick_budget::{available_cycles, worst_case_cycles, SYSCLK_HZ};
+    let worst = worst_case_cycles(&closed().build(&hardware()).unwrap());
+    let rate = SYSCLK_HZ as f64 / (worst + charge / 2) as f64;
+    let hw = Hardware::driver_board(rate);
+    let fits = worst_case_cycles(&closed().build(&hw).unwrap());
+    assert!(fits <= available_cycles(rate) && fits + charge > available_cycles(rate));
+    let mut b = board_on(RamStorage::default(), hw);
+    assert!(matches!(
+        b.handle(Request::LoadParams(closed())),
+        Response::Ack { .. }
+    ));
+    (b, rate, fits)
+}
+
 /// The analog input is charged beside the configuration's tick
 /// ([`twinstack::config::tick_budget::ANALOG_CYCLES`]): at a rate whose period holds the closed-loop
 /// configuration but not the input beside it, the load is taken and the start refused with
 /// the cycles it needs and has; nothing starts.
 #[test]
 fn an_analog_start_that_would_overrun_the_tick_is_refused_with_its_cycles() {
-    use twinstack::config::tick_budget::{
-        available_cycles, worst_case_cycles, ANALOG_CYCLES, SYSCLK_HZ,
-    };
+    use twinstack::config::tick_budget::{available_cycles, ANALOG_CYCLES};
     use twinstack::sources::analog_input::{AnalogInputConfig, AnalogRequest, OnFault};
-    let worst = worst_case_cycles(&closed().build(&hardware()).unwrap());
-    // A period halfway between the configuration alone and the input beside it.
-    let rate = SYSCLK_HZ as f64 / (worst + ANALOG_CYCLES / 2) as f64;
-    let hw = Hardware::driver_board(rate);
-    let fits = worst_case_cycles(&closed().build(&hw).unwrap());
-    assert!(fits <= available_cycles(rate) && fits + ANALOG_CYCLES > available_cycles(rate));
-    let mut b = board_on(RamStorage::default(), hw);
-    assert!(matches!(
-        b.handle(Request::LoadParams(closed())),
-        Response::Ack { .. }
-    ));
+    let (mut b, rate, fits) = closed_loop_board_short_of(ANALOG_CYCLES);
     let input = AnalogInputConfig {
         gain: 2.0,
         offset: -1.0,
@@ -1665,20 +1671,9 @@ fn an_analog_start_that_would_overrun_the_tick_is_refused_with_its_cycles() {
 /// cycles it needs and has, and nothing is armed; trigger outputs alone (input off) are taken.
 #[test]
 fn arming_the_trigger_input_where_its_edge_would_overrun_the_tick_is_refused() {
-    use twinstack::config::tick_budget::{
-        available_cycles, worst_case_cycles, SYSCLK_HZ, TRIGGER_CYCLES,
-    };
+    use twinstack::config::tick_budget::{available_cycles, TRIGGER_CYCLES};
     use twinstack::sources::scan::{TriggerConfig, TriggerEdge};
-    let worst = worst_case_cycles(&closed().build(&hardware()).unwrap());
-    let rate = SYSCLK_HZ as f64 / (worst + TRIGGER_CYCLES / 2) as f64;
-    let hw = Hardware::driver_board(rate);
-    let fits = worst_case_cycles(&closed().build(&hw).unwrap());
-    assert!(fits <= available_cycles(rate) && fits + TRIGGER_CYCLES > available_cycles(rate));
-    let mut b = board_on(RamStorage::default(), hw);
-    assert!(matches!(
-        b.handle(Request::LoadParams(closed())),
-        Response::Ack { .. }
-    ));
+    let (mut b, rate, fits) = closed_loop_board_short_of(TRIGGER_CYCLES);
     let armed = TriggerConfig {
         pulse_ticks: 2,
         input: TriggerEdge::Rising,
