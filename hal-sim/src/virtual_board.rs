@@ -293,6 +293,8 @@ fn forward_output<D: AnalogDualDac, A: AnalogSensorAdc>(
     }
 }
 
+/// Bytes from the board with nobody on the line: dropped, as a serial line drops them.
+#[cfg(unix)]
 fn discard_output<D: AnalogDualDac, A: AnalogSensorAdc>(device: &mut SimDevice<D, A>) {
     let mut buf = [0u8; 512];
     while matches!(device.receive(&mut buf, Duration::ZERO), Ok(n) if n > 0) {}

@@ -1,9 +1,9 @@
 //! Sustained setpoint throughput of the host streamer (`twinstack_link::streamer`).
 //!
 //! ```text
-//! cargo run --release -p hal-sim --example stream_throughput                 # in-process
-//! cargo run --release -p hal-sim --example stream_throughput -- --emulator ELF [--seconds S]
-//! cargo run --release -p hal-sim --example stream_throughput -- --port PORT   # a real board
+//! cargo run --release -p twinstack-cli --example stream_throughput                 # in-process
+//! cargo run --release -p twinstack-cli --example stream_throughput -- --emulator ELF [--seconds S]
+//! cargo run --release -p twinstack-cli --example stream_throughput -- --port PORT   # a real board
 //! ```
 //!
 //! **In-process** (`SimDevice`: the library's command handler and control loop on a UART

@@ -11,7 +11,7 @@
 //! ticks after its end are not counted). Then the link's share at 100 kHz, each way.
 //!
 //! ```text
-//! cargo run --release -p hal-sim --example link_latency -- --seconds 10
+//! cargo run --release -p twinstack-cli --example link_latency -- --seconds 10
 //! ```
 
 use std::time::Duration;
