@@ -8,7 +8,7 @@ use pyo3::exceptions::{PyRuntimeError, PyValueError};
 use pyo3::prelude::*;
 use pyo3::types::{PyDict, PyList};
 use std::path::{Path, PathBuf};
-use twinstack_identify::identification::auto::Validation;
+use twinstack_identify::identification::auto::{Ranked, Validation};
 use twinstack_identify::identification::run::{
     check_tick_rate, default_fit_until, identify_and_score, parse_model, BoardRate, Identified,
     RunError,
@@ -67,9 +67,6 @@ pub(crate) struct Params {
     pub(crate) model: StageModel,
     ranking: Option<Vec<Ranked>>,
 }
-
-/// One of `auto`'s candidates: its label, and where it stands after the validation part.
-pub(crate) type Ranked = (String, Validation);
 
 impl Params {
     pub(crate) fn from_file(file: ParamFile, model: StageModel) -> Self {
@@ -205,24 +202,40 @@ impl Params {
         }
     }
 
-    /// `model="auto"`'s ranking, best first: dicts with `label`, `max_pct`, `rms_pct` (and
-    /// `not_admitted`, the reason, for a model the board would not run at `tick_rate`), or
-    /// `error` for one that could not be fitted; `None` when one model was asked for or the
-    /// file was loaded.
+    /// `model="auto"`'s ranking, best first, by what the stage will see: dicts with `label`,
+    /// the forward fit's `max_pct`, `rms_pct`, the compensator's `inverse_max_pct`,
+    /// `inverse_rms_pct` (its inverse on the measured output against the measured drive),
+    /// `tracking_max_pct`, `tracking_rms_pct` (compensated tracking through the best forward
+    /// model), `compensated_pct` (the larger max, the ranking's key), `set_aside` (why a
+    /// candidate whose inverse ratchets was ranked last), `not_admitted` (the reason, for a
+    /// model the board would not run at `tick_rate`), or `error` for one that could not be
+    /// fitted; `None` when one model was asked for or the file was loaded.
     #[getter]
     fn ranking<'py>(&self, py: Python<'py>) -> PyResult<Option<Bound<'py, PyList>>> {
         let Some(ranking) = &self.ranking else {
             return Ok(None);
         };
         let list = PyList::empty(py);
-        for (label, validation) in ranking {
+        for r in ranking {
             let d = PyDict::new(py);
-            d.set_item("label", label)?;
-            if let Some(f) = validation.figures() {
+            d.set_item("label", &r.label)?;
+            if let Some(f) = r.validation.figures() {
                 d.set_item("max_pct", f.max_pct)?;
                 d.set_item("rms_pct", f.rms_pct)?;
             }
-            match validation {
+            for (name, figures) in [("inverse", r.inverse), ("tracking", r.tracking)] {
+                if let Some(f) = figures {
+                    d.set_item(format!("{name}_max_pct"), f.max_pct)?;
+                    d.set_item(format!("{name}_rms_pct"), f.rms_pct)?;
+                }
+            }
+            if let Some(c) = r.compensated() {
+                d.set_item("compensated_pct", c)?;
+            }
+            if let Some(why) = &r.set_aside {
+                d.set_item("set_aside", why)?;
+            }
+            match &r.validation {
                 Validation::Scored(_) => {}
                 Validation::NotAdmitted { why, .. } => d.set_item("not_admitted", why)?,
                 Validation::NotFitted(why) => d.set_item("error", why)?,
@@ -308,12 +321,7 @@ pub(crate) fn identify(
     let run: Result<Identified, RunError> =
         py.detach(|| identify_and_score(&data, choice, &options, creep, output_unit, rate));
     let run = run.map_err(|e| PyValueError::new_err(e.to_string()))?;
-    let ranking = run.auto.as_ref().map(|a| {
-        a.ranking
-            .iter()
-            .map(|r| (r.label.clone(), r.validation.clone()))
-            .collect()
-    });
+    let ranking = run.auto.as_ref().map(|a| a.ranking.clone());
     Ok(Params {
         model: run.identification.model,
         file: run.file,

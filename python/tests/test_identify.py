@@ -120,6 +120,23 @@ def test_auto_ranks_every_model_and_creep_selects_the_candidates(micro):
     assert not any("+ creep" in r["label"] for r in none.ranking) and len(none.ranking) == 4
 
 
+def test_auto_ranks_by_what_the_compensator_does(micro):
+    t, u, x = micro
+    p = twinstack.identify(t, u, x, fit_until=16.0)
+    scored = [r for r in p.ranking if "error" not in r]
+    for r in scored:
+        # Each candidate carries its compensator's figures beside its fit, and the key is the
+        # larger of the inverse's and the tracking's max.
+        assert r["inverse_max_pct"] >= r["inverse_rms_pct"] > 0
+        assert r["tracking_max_pct"] >= r["tracking_rms_pct"] > 0
+        assert r["compensated_pct"] == max(r["inverse_max_pct"], r["tracking_max_pct"])
+    # The pick heads the ranking: among the admitted candidates not set aside, none
+    # compensates better by more than the parsimony margin (5 %: a simpler model that close wins).
+    kept = [r for r in scored if "not_admitted" not in r and "set_aside" not in r]
+    assert kept and kept[0] is scored[0]
+    assert all(kept[0]["compensated_pct"] <= r["compensated_pct"] * 1.05 + 1e-9 for r in kept[1:])
+
+
 def test_tick_rate_keeps_a_model_the_board_runs(micro):
     t, u, x = micro
     fast = twinstack.identify(t, u, x, fit_until=16.0, tick_rate=100_000.0)

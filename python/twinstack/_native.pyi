@@ -95,9 +95,13 @@ class Params:
         held-out error figures, lag, notes; ``None`` for a file without it."""
     @property
     def ranking(self) -> Optional[List[Dict[str, Any]]]:
-        """``model="auto"``'s ranking, best first: dicts with ``label`` and ``max_pct`` /
-        ``rms_pct`` on the validation part (and ``not_admitted``, the reason, for a model the
-        board would not run at ``tick_rate``), or ``error``. ``None`` otherwise."""
+        """``model="auto"``'s ranking, best first, by what the stage will see: dicts with
+        ``label``; on the validation part the forward fit's ``max_pct`` / ``rms_pct``, the
+        compensator's ``inverse_max_pct`` / ``inverse_rms_pct`` and ``tracking_max_pct`` /
+        ``tracking_rms_pct``, ``compensated_pct`` (the larger max: the ranking's key) and
+        ``set_aside`` (why a ratcheting inverse was ranked last); ``not_admitted``, the reason,
+        for a model the board would not run at ``tick_rate``; or ``error``. ``None``
+        otherwise."""
 
 def identify(
     t: _ArrayLike,
