@@ -50,6 +50,10 @@ enum Command {
     Set(commands::settings::SetArgs),
     /// List every settings path with what it holds (--schema).
     Settings(commands::settings::SchemaArgs),
+    /// What each configuration (parameter files, or every model calibrate can pick) costs the
+    /// control tick, and the highest rate the board admits it at: as loaded, without its
+    /// observer, with the learning, a scan and the trigger input beside it.
+    Budget(commands::budget::Args),
     /// Switch the board's mode (bypass, open-loop, closed-loop), bumpless.
     Mode(commands::params::ModeArgs),
     /// Reload the settings stored in the board's flash.
@@ -157,6 +161,7 @@ fn main() -> std::process::ExitCode {
         Command::Get(a) => commands::settings::run_get(a),
         Command::Set(a) => commands::settings::run_set(a),
         Command::Settings(a) => commands::settings::run_schema(a),
+        Command::Budget(a) => commands::budget::run(a),
         Command::Mode(a) => commands::params::run_mode(a),
         Command::Recall(a) => commands::params::run_recall(a),
         Command::Status(a) => commands::status::run(a),

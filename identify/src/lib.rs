@@ -13,8 +13,11 @@
 //!   margins; [`zero_order_hold`] — the exact discretisation its loop model and the simulated
 //!   stage share.
 //! * [`golden`] — golden vectors: generating them, and checking them against the `f64` tick.
+//! * [`budget`] — what a configuration costs the control tick and the highest rate the board
+//!   admits it at.
 
 pub mod accuracy;
+pub mod budget;
 pub mod calibrate;
 pub mod golden;
 pub mod identification;

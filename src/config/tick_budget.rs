@@ -103,6 +103,25 @@ pub fn available_cycles(control_rate_hz: f64) -> u32 {
     (period * TICK_SHARE_PERCENT as f64 / 100.0) as u32
 }
 
+/// The highest control rate at which a tick predicted to take `cycles` is admitted, Hz: the
+/// rate whose [`available_cycles`] are `cycles` (at most; a hair below the exact quotient, so
+/// that the rate returned is admitted). Zero cycles: infinite.
+///
+/// ```
+/// use twinstack::config::tick_budget::{available_cycles, highest_rate_hz};
+///
+/// let rate = highest_rate_hz(1_680);
+/// assert!((rate - 100_000.0).abs() < 0.01 && available_cycles(rate) >= 1_680);
+/// assert!(available_cycles(rate * 1.000_01) < 1_680);
+/// ```
+pub fn highest_rate_hz(cycles: u32) -> f64 {
+    if cycles == 0 {
+        return f64::INFINITY;
+    }
+    let exact = SYSCLK_HZ as f64 * TICK_SHARE_PERCENT as f64 / 100.0 / cycles as f64;
+    exact * (1.0 - 1e-12)
+}
+
 /// The predicted worst case of the whole interrupt running `config`, cycles at 5 flash wait
 /// states (see the module doc for what it covers and how it is checked).
 pub fn worst_case_cycles(config: &ControlConfig) -> u32 {
@@ -185,6 +204,19 @@ mod tests {
 
     fn build(s: &Settings) -> ControlConfig {
         s.build(&Hardware::driver_board(10_000.0)).unwrap()
+    }
+
+    #[test]
+    fn the_highest_rate_is_admitted_and_a_faster_one_is_not() {
+        for cycles in [1, 346, 1_130, 1_679, 1_680, 1_681, 3_250, 16_800] {
+            let rate = highest_rate_hz(cycles);
+            assert!(available_cycles(rate) >= cycles, "{cycles} at {rate}");
+            assert!(
+                available_cycles(rate * (1.0 + 1e-9)) < cycles,
+                "{cycles} above {rate}"
+            );
+        }
+        assert_eq!(highest_rate_hz(0), f64::INFINITY);
     }
 
     #[test]

@@ -26,6 +26,7 @@ pub const EXIT_USAGE: u8 = 2;
 // commands reach it here as before.
 pub use crate::board_link;
 pub mod analog;
+pub mod budget;
 pub mod calibrate;
 pub mod closed_loop;
 pub mod coarse;

@@ -196,6 +196,14 @@ const FIGURES: &[Figure] = &[
         render: Render::One(tick_cost),
     },
     Figure {
+        name: "budget-family",
+        page: "docs/src/results/tick-cost.md",
+        runs: &[&["budget", "--rate", "100000"]],
+        source: Source::Tool,
+        checked: true,
+        render: Render::One(markdown),
+    },
+    Figure {
         name: "tick-bench",
         page: "docs/src/results/tick-cost.md",
         runs: &[&["test", "--profile", "host-opt", "--test", "tick_bench"]],

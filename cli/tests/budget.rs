@@ -1,0 +1,95 @@
+//! `twinstack budget` as a user runs it: the model family's table, a parameter file's row, the
+//! JSON, and every bad input refused with what and where, exit 1 or 2, no panic.
+
+use std::path::PathBuf;
+use std::process::{Command, Output};
+
+fn twinstack(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_twinstack"))
+        .args(args)
+        .output()
+        .expect("twinstack runs")
+}
+
+fn ok(args: &[&str]) -> String {
+    let o = twinstack(args);
+    assert!(
+        o.status.success(),
+        "{args:?}: {}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    String::from_utf8_lossy(&o.stdout).into_owned()
+}
+
+fn golden(name: &str) -> String {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("../tests/golden/params")
+        .join(name)
+        .to_string_lossy()
+        .into_owned()
+}
+
+#[test]
+fn the_family_table_has_a_row_per_model_with_and_without_creep() {
+    let out = ok(&["budget", "--rate", "100000"]);
+    let rows: Vec<&str> = out
+        .lines()
+        .filter(|l| l.starts_with("| ") && !l.starts_with("| configuration"))
+        .collect();
+    assert_eq!(rows.len(), 8, "{out}");
+    // The P–I 17 row: 1 710 cycles as loaded, just over a 100 kHz period (1 680), and admitted
+    // there without its observer.
+    let pi = rows
+        .iter()
+        .find(|r| r.starts_with("| P–I 17 + PI |"))
+        .unwrap();
+    assert!(pi.contains("| 1710 | 98.2 kHz |"), "{pi}");
+    assert!(pi.contains("no (without its observer: yes;"), "{pi}");
+}
+
+#[test]
+fn the_json_matches_the_budget_and_says_what_is_admitted() {
+    let out = ok(&["budget", "--json", "--rate", "50000"]);
+    let v: serde_json::Value = serde_json::from_str(&out).unwrap();
+    let rows = v.as_array().unwrap();
+    assert_eq!(rows.len(), 8);
+    for r in rows {
+        let cycles = r["loaded"]["cycles"].as_u64().unwrap() as f64;
+        let rate = r["loaded"]["highest_rate_hz"].as_f64().unwrap();
+        // The rate whose period (168 MHz) holds exactly the cycles.
+        assert!((rate * cycles / 168e6 - 1.0).abs() < 1e-9, "{r}");
+        assert_eq!(
+            r["admitted_at_rate"].as_bool(),
+            Some(rate >= 50_000.0),
+            "{r}"
+        );
+        let every = r["every_feature"]["cycles"].as_u64().unwrap();
+        assert_eq!(every as f64 - cycles, 90.0 + 150.0 + 170.0, "{r}");
+    }
+}
+
+#[test]
+fn a_parameter_files_row_is_its_own_settings() {
+    let pi16 = golden("micromanipulator-pi16.json");
+    let bw = golden("micromanipulator-bouc-wen.json");
+    let out = ok(&["budget", &pi16, &bw]);
+    assert!(out.contains("micromanipulator-pi16.json |"), "{out}");
+    assert!(out.contains("micromanipulator-bouc-wen.json |"), "{out}");
+}
+
+#[test]
+fn bad_inputs_are_named_and_refused() {
+    let o = twinstack(&["budget", "no-such-file.json"]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert!(err.contains("no-such-file.json"), "{err}");
+    for rate in ["0", "-5", "inf", "NaN"] {
+        let o = twinstack(&["budget", "--rate", rate]);
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(1), "{rate}: {err}");
+        assert!(err.contains("--rate"), "{err}");
+        assert!(!err.contains("panicked"), "{err}");
+    }
+    let o = twinstack(&["budget", "--rate", "fast"]);
+    assert_eq!(o.status.code(), Some(2));
+}

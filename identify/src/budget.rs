@@ -1,0 +1,204 @@
+//! What a configuration costs the control tick, and the highest control rate the board admits
+//! it at: the tick budget ([`twinstack::config::tick_budget`]) asked for each configuration
+//! as loaded, without its observer, and with every feature a user may run beside it (the
+//! learning feedforward, a scan, the trigger input armed).
+//!
+//! ```
+//! use twinstack_identify::budget::{family, BudgetRow};
+//!
+//! let rows: Vec<BudgetRow> = family().iter().map(|(name, s)| BudgetRow::of(name, s).unwrap()).collect();
+//! // Every row's figures follow from its cycles; dropping the observer never costs more.
+//! assert!(rows.iter().all(|r| r.without_observer.is_none_or(|w| w.cycles <= r.loaded.cycles)));
+//! ```
+
+use twinstack::board::Hardware;
+use twinstack::config::settings::{
+    representative_bouc_wen, representative_duhem, representative_pi, FeedbackSettings, Mode,
+    Model, SensorSettings, Settings,
+};
+use twinstack::config::tick_budget::{
+    available_cycles, highest_rate_hz, worst_case_cycles, Beside,
+};
+use twinstack::models::creep::CreepParams;
+use twinstack::models::generalised_pi::{DeadZoneParams, GpiParams};
+use twinstack::refusal::Refusal;
+
+/// One prediction: the tick's worst case and the highest rate it is admitted at.
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize)]
+pub struct Prediction {
+    /// The whole interrupt's predicted worst case, cycles at 5 flash wait states.
+    pub cycles: u32,
+    /// The highest control rate at which it is admitted, Hz.
+    pub highest_rate_hz: f64,
+}
+
+impl Prediction {
+    fn of(cycles: u32) -> Self {
+        Self {
+            cycles,
+            highest_rate_hz: highest_rate_hz(cycles),
+        }
+    }
+
+    /// Whether the board runs it at `rate_hz` (within its range of rates and the budget).
+    pub fn admitted_at(&self, rate_hz: f64) -> bool {
+        available_cycles(rate_hz) >= self.cycles
+            && (Hardware::MIN_CONTROL_RATE_HZ as f64..=Hardware::MAX_CONTROL_RATE_HZ as f64)
+                .contains(&rate_hz)
+    }
+}
+
+/// A configuration's budget: as loaded, without its observer, and with every feature beside.
+#[derive(Clone, Debug, PartialEq, serde::Serialize)]
+pub struct BudgetRow {
+    /// What it is.
+    pub name: String,
+    /// As loaded.
+    pub loaded: Prediction,
+    /// The same without its observer (`None`: it has none). With a sensor, the observer's
+    /// estimate is telemetry only; the feedback runs on the sensor.
+    pub without_observer: Option<Prediction>,
+    /// As loaded, with the learning feedforward on, a scan running and the trigger input
+    /// armed ([`BESIDE_EVERY_FEATURE`]).
+    pub every_feature: Prediction,
+}
+
+/// What can run beside a configuration at once: the learning, a scan (the analog input is
+/// the other board-side source, and cheaper), the armed trigger input.
+pub const BESIDE_EVERY_FEATURE: Beside = Beside {
+    learning: true,
+    scanning: true,
+    analog: false,
+    trigger: true,
+};
+
+impl BudgetRow {
+    /// The budget of `settings`, or the refusal the board would send for them at its slowest
+    /// rate (a model out of range, a sensor without feedback, …).
+    pub fn of(name: &str, settings: &Settings) -> Result<Self, Refusal> {
+        let hardware = Hardware::driver_board(f64::from(Hardware::MIN_CONTROL_RATE_HZ));
+        let loaded = worst_case_cycles(&settings.build(&hardware)?);
+        let without_observer = match settings.observer {
+            Some(_) => {
+                let bare = Settings {
+                    observer: None,
+                    ..settings.clone()
+                };
+                Some(Prediction::of(worst_case_cycles(&bare.build(&hardware)?)))
+            }
+            None => None,
+        };
+        Ok(Self {
+            name: name.to_string(),
+            loaded: Prediction::of(loaded),
+            without_observer,
+            every_feature: Prediction::of(loaded + BESIDE_EVERY_FEATURE.cycles()),
+        })
+    }
+}
+
+/// The closed loop as `calibrate` loads it: `model` as compensator and observer, a sensor with
+/// its drift check, PI feedback, closed loop.
+fn closed(model: Model) -> Settings {
+    Settings {
+        compensator: Some(model.clone()),
+        observer: Some(model),
+        sensor: Some(SensorSettings {
+            displacement_at_zero: 0.0,
+            displacement_at_full_scale: 70.0,
+            drift_limit: Some(0.02),
+        }),
+        feedback: Some(FeedbackSettings::pi(0.2, 500.0, 0.1)),
+        mode: Mode::ClosedLoop,
+        ..Settings::default()
+    }
+}
+
+/// A generalised P–I of `n` operators with all 8 dead zones (four a side), the shape
+/// `calibrate` fits by default.
+fn gpi_with_eight_dead_zones(n: usize) -> Option<Model> {
+    let Model::PrandtlIshlinskii(pi) = representative_pi(n).ok()? else {
+        return None;
+    };
+    let dead_zones = DeadZoneParams::new(
+        35.0,
+        1.0,
+        &[-28.0, -21.0, -14.0, -7.0, 7.0, 14.0, 21.0, 28.0],
+        &[-0.05, -0.05, -0.05, -0.05, 0.05, 0.05, 0.1, 0.1],
+    )
+    .ok()?;
+    Some(Model::GeneralisedPi(GpiParams { pi, dead_zones }))
+}
+
+/// Every model `calibrate` (and `identify --model auto`) can pick, at its default size, without
+/// and with four creep modes, each loaded as `calibrate` loads it ([`closed`]): the names say
+/// what runs.
+pub fn family() -> Vec<(String, Settings)> {
+    let mut out = Vec::new();
+    let creep = CreepParams::new(&[0.01, 0.1, 1.0, 10.0], &[0.02; 4]).ok();
+    let models = [
+        ("P–I 17", representative_pi(17).ok()),
+        ("generalised P–I 17 × 8", gpi_with_eight_dead_zones(17)),
+        ("Bouc–Wen", Some(representative_bouc_wen())),
+        ("Duhem", Some(representative_duhem())),
+    ];
+    for (name, model) in models {
+        let Some(model) = model else { continue };
+        out.push((format!("{name} + PI"), closed(model.clone())));
+        if let Some(creep) = &creep {
+            out.push((
+                format!("{name} + creep 4 + PI"),
+                Settings {
+                    creep: Some(creep.clone()),
+                    ..closed(model)
+                },
+            ));
+        }
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use twinstack::config::tick_budget::{check, check_with};
+
+    #[test]
+    fn the_highest_rate_is_where_the_board_starts_to_refuse() {
+        for (name, settings) in family() {
+            let row = BudgetRow::of(&name, &settings).unwrap();
+            let hardware = Hardware::driver_board(10_000.0);
+            let config = settings.build(&hardware).unwrap();
+            let at = row.loaded.highest_rate_hz;
+            assert!(check(&config, at).is_ok(), "{name} refused at {at}");
+            assert!(
+                check(&config, at * 1.000_001).is_err(),
+                "{name} admitted above {at}"
+            );
+            let all = row.every_feature.highest_rate_hz;
+            assert!(check_with(&config, all, BESIDE_EVERY_FEATURE).is_ok());
+            assert!(check_with(&config, all * 1.000_001, BESIDE_EVERY_FEATURE).is_err());
+            assert!(available_cycles(all) >= row.every_feature.cycles);
+            let without = row
+                .without_observer
+                .expect("every family member has an observer");
+            assert!(without.cycles < row.loaded.cycles, "{name}");
+        }
+    }
+
+    #[test]
+    fn the_family_is_every_model_with_and_without_creep() {
+        let names: Vec<String> = family().into_iter().map(|(n, _)| n).collect();
+        assert_eq!(names.len(), 8);
+        assert!(names.iter().filter(|n| n.contains("creep")).count() == 4);
+    }
+
+    #[test]
+    fn admitted_is_within_the_boards_rates_and_the_budget() {
+        let p = Prediction::of(1_680);
+        assert!(p.admitted_at(100_000.0) && p.admitted_at(10_000.0));
+        assert!(!p.admitted_at(100_001.0) && !p.admitted_at(9_999.0));
+        let dear = Prediction::of(3_360);
+        assert!(dear.admitted_at(50_000.0) && !dear.admitted_at(50_001.0));
+    }
+}
