@@ -657,6 +657,22 @@ fn identify_at_a_tick_rate_keeps_a_model_the_board_runs() {
         "{err}"
     );
 
+    // The generalised P–I needs its observer's cost off the tick to run at 100 kHz: the
+    // refusal says so, and the compensator alone is admitted, its file without an observer.
+    assert!(
+        err.contains("without the observer") && err.contains("--no-observer"),
+        "{err}"
+    );
+    let alone = dir.path().join("alone.json");
+    let stdout = identify(
+        &alone,
+        &["--model", "gpi", "--tick-rate", "100000", "--no-observer"],
+    );
+    let s = settings(&alone);
+    assert!(s.observer.is_none() && s.compensator.is_some(), "{stdout}");
+    assert!(runs_at(&s, 100_000.0).is_ok(), "{stdout}");
+    assert!(stdout.contains("identified generalised P-I"), "{stdout}");
+
     // A rate the board does not run at is refused by name before anything is fitted.
     let err = refused(&named, &["--tick-rate", "1e9"]);
     assert!(

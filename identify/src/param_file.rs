@@ -202,6 +202,15 @@ impl ParamFile {
         }
     }
 
+    /// The same file with the model as compensator only (`observer: false`): no estimate and
+    /// no drift check on the board, and the observer's cost off its tick.
+    pub fn with_observer(mut self, observer: bool) -> Self {
+        if !observer {
+            self.settings.observer = None;
+        }
+        self
+    }
+
     /// The JSON text.
     pub fn to_json(&self) -> String {
         // Serialising plain data with finite numbers cannot fail.

@@ -270,7 +270,7 @@ pub(crate) fn load_params(path: PathBuf) -> PyResult<Params> {
 
 /// Identifies a model from a measured record (`t` seconds, `u` drive volts, `x` reading).
 #[pyfunction]
-#[pyo3(signature = (t, u, x, model="auto", creep=None, fit_until=None, operators=None, thresholds="uniform", lag=None, output_unit="um", tick_rate=None))]
+#[pyo3(signature = (t, u, x, model="auto", creep=None, fit_until=None, operators=None, thresholds="uniform", lag=None, output_unit="um", tick_rate=None, observer=true))]
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn identify(
     py: Python<'_>,
@@ -285,6 +285,7 @@ pub(crate) fn identify(
     lag: Option<usize>,
     output_unit: &str,
     tick_rate: Option<f64>,
+    observer: bool,
 ) -> PyResult<Params> {
     let choice = parse_model(model).map_err(PyValueError::new_err)?;
     if let Some(rate) = tick_rate {
@@ -318,6 +319,7 @@ pub(crate) fn identify(
     options.operators = operators.unwrap_or(DEFAULT_OPERATORS);
     options.thresholds = spread;
     options.lag = lag;
+    options.observer = observer;
     let run: Result<Identified, RunError> =
         py.detach(|| identify_and_score(&data, choice, &options, creep, output_unit, rate));
     let run = run.map_err(|e| PyValueError::new_err(e.to_string()))?;

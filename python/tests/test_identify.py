@@ -144,8 +144,13 @@ def test_tick_rate_keeps_a_model_the_board_runs(micro):
     assert "not_admitted" not in fast.ranking[0] and "max_pct" in fast.ranking[0]
     refused = [r for r in fast.ranking if "not_admitted" in r]
     assert refused and all("100 kHz" in r["not_admitted"] and "max_pct" in r for r in refused)
-    with pytest.raises(ValueError, match="cycles per tick"):
+    with pytest.raises(ValueError, match="without the observer"):
         twinstack.identify(t, u, x, model="gpi", fit_until=16.0, tick_rate=100_000.0)
+    # The compensator alone is admitted, and its file has no observer.
+    alone = twinstack.identify(
+        t, u, x, model="gpi", fit_until=16.0, tick_rate=100_000.0, observer=False
+    )
+    assert alone.model == "gpi" and alone.settings["observer"] is None
     # A P-I of 17 operators is one pair too many at 100 kHz: 16 unless 17 are asked for.
     pi = twinstack.identify(t, u, x, model="pi", fit_until=16.0, tick_rate=100_000.0)
     assert pi.identification["operators"] == 16

@@ -115,6 +115,7 @@ def identify(
     lag: Optional[int] = None,
     output_unit: str = "um",
     tick_rate: Optional[float] = None,
+    observer: bool = True,
 ) -> Params:
     """Identifies a hysteresis model from a measured record: ``t`` seconds (strictly
     increasing), ``u`` the drive in volts, ``x`` the measured output.
@@ -131,7 +132,10 @@ def identify(
     ``None``). ``tick_rate`` (Hz): keep only a model the board runs at that control rate
     (its tick budget, as the board applies it at load), made smaller where that makes it fit
     (creep with fewer modes; fewer play operators unless ``operators`` is given); ``auto``
-    picks among those, a model asked for by name that does not fit raises ``ValueError``. Runs without the
+    picks among those, a model asked for by name that does not fit raises ``ValueError``.
+    ``observer=False``: the file runs the model as the compensator only (no estimate, no drift
+    check on the board, and the observer's cost off its tick, so larger models fit a fast
+    board, as ``twinstack identify --no-observer``). Runs without the
     interpreter's lock. ``ValueError`` says why a record cannot be fitted."""
 
 def settings_schema() -> List[Tuple[str, str]]:

@@ -64,6 +64,12 @@ pub struct Args {
     /// Load a model whose input range the drive cannot reach in full, with a warning.
     #[arg(long)]
     pub clamp: bool,
+    /// Load the model as the compensator only, not as the observer too: the board then has no
+    /// estimate of the displacement and no drift check of its sensor, and the tick saves the
+    /// observer's cost (the feedback runs on the sensor either way). A faster board admits
+    /// larger models this way (`twinstack budget` shows by how much).
+    #[arg(long)]
+    pub no_observer: bool,
     /// Print the figures as one JSON object on stdout instead of text.
     #[arg(long)]
     pub json: bool,
@@ -85,6 +91,7 @@ impl Args {
             max_held_out_pct: self.max_held_out,
             clamp: self.clamp,
             store: (!self.no_store).then(|| self.store.into()),
+            observer: !self.no_observer,
             ..CalibrateOptions::default()
         }
     }

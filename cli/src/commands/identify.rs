@@ -63,6 +63,12 @@ pub struct Args {
     /// fast board may refuse the file.
     #[arg(long, value_name = "HZ")]
     pub tick_rate: Option<f64>,
+    /// Write the model as the compensator only, not as the observer too: the board then has
+    /// no estimate of the displacement and no drift check of its sensor, and its tick saves
+    /// the observer's cost, so that with `--tick-rate` larger models are admitted (a
+    /// generalised P–I at 100 kHz; `twinstack budget` shows each model's figures).
+    #[arg(long)]
+    pub no_observer: bool,
     /// Unit of the x column, recorded in the parameter file.
     #[arg(long, default_value = "units of the x column")]
     pub output_unit: String,
@@ -119,13 +125,19 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         Spread::Geometric => ThresholdSpread::Geometric,
     };
     options.lag = args.lag;
+    options.observer = !args.no_observer;
     let in_file = |e: RunError| match e {
         RunError::Params(e) => anyhow!("{e}"),
         // The rate or an option refused the models, not the file.
         // What identify can change to make a model fit the rate: its own options only.
         RunError::Identify(e @ IdentifyError::NoneAdmitted(_)) => anyhow!(
             "{e} (a smaller model runs faster: fewer --operators, no --creep, another --model, \
-             or a lower --tick-rate)"
+             {}or a lower --tick-rate)",
+            if args.no_observer {
+                ""
+            } else {
+                "the compensator alone (--no-observer: no estimate, no drift check), "
+            }
         ),
         RunError::Identify(
             e @ (IdentifyError::BadOperatorCount(_) | IdentifyError::BadCreepModes(_)),

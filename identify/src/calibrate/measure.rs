@@ -79,7 +79,9 @@ pub(super) fn measure<T: Transport>(
     // the tick budget the board applies at load ([`twinstack::config::tick_budget`]), applied here
     // first, so that `auto` picks among what the board takes.
     let runs_on_board = |id: &Identification| {
-        let mut settings = ParamFile::from_model(&id.model, &options.output_unit, None).settings;
+        let mut settings = ParamFile::from_model(&id.model, &options.output_unit, None)
+            .with_observer(options.observer)
+            .settings;
         settings.drive = board.drive;
         settings.sensor = board.sensor;
         settings.feedback = board.feedback;
@@ -121,7 +123,8 @@ pub(super) fn measure<T: Transport>(
         });
     }
     let held_out = record.held_out;
-    let mut file = ParamFile::from_model(&id.model, &options.output_unit, Some(record));
+    let mut file = ParamFile::from_model(&id.model, &options.output_unit, Some(record))
+        .with_observer(options.observer);
 
     // The settings to load: the board's drive, sensor and gains kept.
     file.settings.drive = board.drive;

@@ -39,6 +39,10 @@ pub struct CalibrateOptions {
     pub stream_divider: u16,
     /// Unit of the sensor's displacement, written into the parameter file.
     pub output_unit: String,
+    /// Load the model as the observer too (the estimate, and the drift check's reference),
+    /// as well as the compensator; `false`: the compensator only, the observer's cost off the
+    /// tick ([`crate::identification::IdentifyOptions::observer`]).
+    pub observer: bool,
 }
 
 impl Default for CalibrateOptions {
@@ -61,6 +65,7 @@ impl Default for CalibrateOptions {
             store: Some(Mode::Bypass),
             stream_divider: 5,
             output_unit: "um".into(),
+            observer: true,
         }
     }
 }

@@ -199,6 +199,11 @@ pub struct IdentifyOptions {
     /// Fit a creep operator in series with the model ([`creep`]), alternating with the
     /// hysteresis fit.
     pub creep: bool,
+    /// The parameter file runs the model as the board's observer too (its estimate of the
+    /// displacement, and the reference of the sensor's drift check), as well as the
+    /// compensator. `false`: the compensator only, and the observer's cost off the tick (with
+    /// a sensor, the feedback runs on the sensor; the estimate and the drift check are gone).
+    pub observer: bool,
 }
 
 impl IdentifyOptions {
@@ -215,6 +220,7 @@ impl IdentifyOptions {
             max_lag: 10,
             refine: true,
             creep: false,
+            observer: true,
         }
     }
 }

@@ -233,12 +233,27 @@ pub fn admission_at(settings: &Settings, rate: &BoardRate) -> Admission {
     let fits = |s: &Settings| !matches!(s.build(&hardware), Err(r) if r.field == Field::Workload);
     // The board's own refusal advises on every size a parameter file can set; identification
     // sets the dead zones itself, so only what its options change is named here.
+    // What the compensator alone would need, where an observer runs beside it.
+    let alone = settings.observer.as_ref().and_then(|_| {
+        let alone = Settings {
+            observer: None,
+            ..settings.clone()
+        };
+        match alone.build(&hardware) {
+            Err(r) => match r.rule {
+                Rule::TickOverrun { needs, .. } => Some(format!("; without the observer, {needs}")),
+                _ => None,
+            },
+            Ok(_) => Some("; without the observer it fits".to_string()),
+        }
+    });
     let why = match settings.build(&hardware) {
         Err(r) if r.field == Field::Workload => match r.rule {
             Rule::TickOverrun { needs, available } => format!(
                 "the board at {:.0} kHz would refuse it: it needs {needs} cycles per tick, more \
-                 than the {available} that rate leaves",
-                rate.hz / 1e3
+                 than the {available} that rate leaves{}",
+                rate.hz / 1e3,
+                alone.unwrap_or_default()
             ),
             _ => format!("the board at {:.0} kHz would refuse it: {r}", rate.hz / 1e3),
         },
@@ -335,7 +350,9 @@ pub fn identify_and_score(
 ) -> Result<Identified, RunError> {
     let admit = |id: &Identification| match &rate {
         Some(rate) => admission_at(
-            &ParamFile::from_model(&id.model, output_unit, None).settings,
+            &ParamFile::from_model(&id.model, output_unit, None)
+                .with_observer(options.observer)
+                .settings,
             rate,
         ),
         None => Admission::Admitted,
@@ -395,7 +412,8 @@ pub fn identify_and_score(
         inverse_fixed_vs_reference_max_pct: inverse_fixed_vs_reference.max_pct,
         notes: id.notes.clone(),
     };
-    let file = ParamFile::from_model(model, output_unit, Some(record.clone()));
+    let file = ParamFile::from_model(model, output_unit, Some(record.clone()))
+        .with_observer(options.observer);
     Ok(Identified {
         auto,
         options,
