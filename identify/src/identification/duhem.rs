@@ -351,6 +351,33 @@ mod tests {
         assert!(f.rms < 0.01 * 30.0, "rms {}", f.rms);
     }
 
+    /// The output-error fit minimises the simulated error itself: on a noise-free record of a
+    /// Duhem model it finds that model.
+    #[test]
+    fn the_output_error_fit_recovers_a_noise_free_model() {
+        let s = Scaling::new(0.0, 120.0, -5.0, 25.0).unwrap();
+        let truth = DuhemParams {
+            alpha: 0.03,
+            beta: 0.15,
+            gamma: 0.08,
+            offset: 1.0,
+        };
+        let (u, y) = record(&truth, &s);
+        let rows = FitRows {
+            index: (0..u.len()).collect(),
+            lag: 0,
+        };
+        let p = output_error_fit(&u, &y, &rows, &s).unwrap();
+        for (got, want) in [
+            (p.alpha, truth.alpha),
+            (p.beta, truth.beta),
+            (p.gamma, truth.gamma),
+            (p.offset, truth.offset),
+        ] {
+            assert!((got / want - 1.0).abs() < 0.01, "{p:?}");
+        }
+    }
+
     #[test]
     fn a_fit_that_is_not_a_valid_duhem_model_is_constrained_and_says_so() {
         // Output falls while the drive rises: the plain fit has β, γ < 0.
