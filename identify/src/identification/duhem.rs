@@ -6,9 +6,13 @@
 //!    `J0 = Σ |Δu|` (the measured `y` stands in for the model's), linear in
 //!    `θ = (c0, αβ, α, αδ, γ)`. `c0` (the output at `τ0` less `γ u(τ0)`) is fitted rather than
 //!    read from one noisy sample. Signals are centred first for conditioning.
-//! 2. **Constraint.** If the plain solution is not a valid Duhem model (`α, β, γ ≤ 0`) or its
-//!    simulation diverges on the data, it is refitted with `αβ, α, γ ≥ 0` (NNLS) and floored
-//!    at a small positive value; the caller is told.
+//! 2. **Output-error refit.** If the plain solution is not a valid Duhem model (`α, β, γ ≤ 0`)
+//!    or its simulation runs off on the data, it is refitted on the *simulated* error instead
+//!    ([`output_error_fit`]), and the caller is told. (A refit of the same equation error with
+//!    `αβ, α, γ ≥ 0` is no answer: where the constraint pins `α` at 0, `β = (αβ)/α` and
+//!    `δ = (αδ)/α` come out as a finite product over a floored `α` — on the simulated lab stage
+//!    `α = 1.3e-8 /V`, `β = 1.3e5`, `δ = −9.9e6 µm` — a model that starts on its anhysteretic
+//!    curve ten million µm away and, with `α` that small, never relaxes towards the data.)
 //! 3. **Refinement.** The least-squares fit uses the measured output inside `J2`, so noise and
 //!    lag bias it. Starting from it, a simplex search minimises the RMS of the *simulated*
 //!    output against the measurement (what `predict` is scored on), over `ln α, ln β, ln γ, δ`
@@ -29,9 +33,9 @@ use twinstack::Scaling;
 pub enum DuhemFitPath {
     /// The plain integrated least squares was valid and stable.
     Plain,
-    /// The plain solution had a non-positive coefficient; refitted with constraints.
+    /// The plain solution had a non-positive coefficient; refitted on the simulated error.
     ConstrainedNotPositive,
-    /// The plain solution diverged when simulated; refitted with constraints.
+    /// The plain solution ran off when simulated; refitted on the simulated error.
     ConstrainedDiverged,
 }
 
@@ -72,6 +76,120 @@ fn rms_error(sim: &[f64], y: &[f64], rows: &FitRows) -> f64 {
         f64::INFINITY
     } else {
         (s / n as f64).sqrt()
+    }
+}
+
+/// Normalised rates `α·U` (`U` the input half-span: e-foldings of the distance to the
+/// anhysteretic curve over half the range) that [`output_error_fit`] tries: log-spaced.
+pub const ALPHA_GRID: [f64; 2] = [1e-2, 1e3];
+/// Points of that grid (about four per decade).
+pub const ALPHA_GRID_POINTS: usize = 21;
+
+/// For a given `α`, the Duhem model simulated as [`simulate`] runs it is linear in
+/// `(β, δ, γ)`: `y_k = (1 − a_k) y_{k−1} + a_k (β u_{k−1} + δ) + γ Δu_k` with
+/// `a_k = min(α|Δu_k|, 1)` set by `α` and the drive alone, and the start `y_0 = β u_0 + δ`.
+/// So `y = β Y_β + δ + γ Y_γ`, each `Y` the same recursion driven by `u` (from `u_0`) or by
+/// `Δu` (from 0). Returns the normal equations of the simulated error in
+/// `(β, c, γ)`, drive centred at `uc` and target at `yc` (`δ = c + yc − β uc`).
+fn output_error_equations(
+    alpha: f64,
+    u: &[f64],
+    y: &[f64],
+    rows: &FitRows,
+    scaling: &Scaling,
+    (uc, yc): (f64, f64),
+) -> NormalEquations {
+    let mut ne = NormalEquations::new(3);
+    let Some(&last) = rows.index.last() else {
+        return ne;
+    };
+    let clamp = |v: f64| v.clamp(scaling.input_min, scaling.input_max);
+    let mut prev = clamp(u[0]);
+    let (mut y_beta, mut y_gamma) = (prev - uc, 0.0);
+    let mut next_row = rows.index.iter().copied().peekable();
+    for (k, &v) in u.iter().enumerate().take(last + 1) {
+        let v = clamp(v);
+        let du = v - prev;
+        let a = (alpha * du.abs()).min(1.0);
+        y_beta = (1.0 - a) * y_beta + a * (prev - uc);
+        y_gamma = (1.0 - a) * y_gamma + du;
+        prev = v;
+        if next_row.next_if_eq(&k).is_some() {
+            ne.add_row(&[y_beta, 1.0, y_gamma], y[k + rows.lag] - yc, 1.0);
+        }
+    }
+    ne
+}
+
+/// The Duhem model that minimises the RMS of the *simulated* output against `y` over
+/// `rows`: for each `α` of [`ALPHA_GRID`] the best `(β, δ, γ)` with `β, γ ≥ 0` is a linear
+/// least-squares problem ([`output_error_equations`]); the best grid point is then refined
+/// by a golden-section search on `ln α` between its neighbours. `β` or `γ` pinned at zero is
+/// floored at a small positive value (`1e-6` of the data's mean slope). Any Duhem model
+/// with `α > 0` simulates bounded (each step moves the output a fraction `a ≤ 1` of the way
+/// to the anhysteretic curve, plus `γ Δu`), so what this returns does.
+pub fn output_error_fit(
+    u: &[f64],
+    y: &[f64],
+    rows: &FitRows,
+    scaling: &Scaling,
+) -> Result<DuhemParams, LeastSquaresError> {
+    if rows.index.is_empty() {
+        return Err(LeastSquaresError::NoRows);
+    }
+    let centre = (scaling.input_mid(), rows.mean_target(y));
+    let half = scaling.input_half_span();
+    let gain = rows.target_span(y).max(f64::MIN_POSITIVE) / (2.0 * half);
+    let at = |ln_alpha: f64| -> Result<(f64, DuhemParams), LeastSquaresError> {
+        let alpha = ln_alpha.exp() / half;
+        let ne = output_error_equations(alpha, u, y, rows, scaling, centre);
+        let t = ne.solve_constrained(&[true, false, true])?;
+        let t = [t[0].max(1e-6 * gain), t[1], t[2].max(1e-6 * gain)];
+        let sse = ne.residual_sum_of_squares(&t);
+        let p = DuhemParams {
+            alpha,
+            beta: t[0],
+            gamma: t[2],
+            offset: t[1] + centre.1 - t[0] * centre.0,
+        };
+        Ok((if sse.is_finite() { sse } else { f64::INFINITY }, p))
+    };
+    let (lo, hi) = (ALPHA_GRID[0].ln(), ALPHA_GRID[1].ln());
+    let step = (hi - lo) / (ALPHA_GRID_POINTS - 1) as f64;
+    let mut best = (0usize, f64::INFINITY);
+    for i in 0..ALPHA_GRID_POINTS {
+        let (sse, _) = at(lo + step * i as f64)?;
+        if sse < best.1 {
+            best = (i, sse);
+        }
+    }
+    // Golden section on ln α over the best point's neighbours.
+    let ratio = 0.5 * (5f64.sqrt() - 1.0);
+    let centre_ln = lo + step * best.0 as f64;
+    let (mut a, mut b) = (centre_ln - step, centre_ln + step);
+    let mut c = b - ratio * (b - a);
+    let mut d = a + ratio * (b - a);
+    let (mut fc, mut fd) = (at(c)?.0, at(d)?.0);
+    for _ in 0..30 {
+        if fc < fd {
+            b = d;
+            d = c;
+            fd = fc;
+            c = b - ratio * (b - a);
+            fc = at(c)?.0;
+        } else {
+            a = c;
+            c = d;
+            fc = fd;
+            d = a + ratio * (b - a);
+            fd = at(d)?.0;
+        }
+    }
+    let (sse, p) = at(0.5 * (a + b))?;
+    if sse <= best.1 {
+        Ok(p)
+    } else {
+        Ok(at(centre_ln)?.1)
     }
 }
 
@@ -140,18 +258,7 @@ pub fn fit(
             } else {
                 DuhemFitPath::ConstrainedDiverged
             };
-            let t = ne.solve_constrained(&[false, true, true, false, true])?;
-            // Floors: a coefficient NNLS pinned at zero becomes a small positive one.
-            let gain = y_span / (2.0 * scaling.input_half_span());
-            let alpha = t[2].max(1e-6 / scaling.input_half_span());
-            let floored = [
-                t[0],
-                t[1].max(1e-6 * gain * alpha),
-                alpha,
-                t[3],
-                t[4].max(1e-6 * gain),
-            ];
-            let p = from_theta(&floored);
+            let p = output_error_fit(u, y, rows, scaling)?;
             let (rms, sim) = evaluate(&p).ok_or(LeastSquaresError::NotFinite)?;
             (p, path, rms, sim)
         }
@@ -242,6 +349,33 @@ mod tests {
             assert!((got / want - 1.0).abs() < 0.02, "{:?}", f.params);
         }
         assert!(f.rms < 0.01 * 30.0, "rms {}", f.rms);
+    }
+
+    /// The output-error fit minimises the simulated error itself: on a noise-free record of a
+    /// Duhem model it finds that model.
+    #[test]
+    fn the_output_error_fit_recovers_a_noise_free_model() {
+        let s = Scaling::new(0.0, 120.0, -5.0, 25.0).unwrap();
+        let truth = DuhemParams {
+            alpha: 0.03,
+            beta: 0.15,
+            gamma: 0.08,
+            offset: 1.0,
+        };
+        let (u, y) = record(&truth, &s);
+        let rows = FitRows {
+            index: (0..u.len()).collect(),
+            lag: 0,
+        };
+        let p = output_error_fit(&u, &y, &rows, &s).unwrap();
+        for (got, want) in [
+            (p.alpha, truth.alpha),
+            (p.beta, truth.beta),
+            (p.gamma, truth.gamma),
+            (p.offset, truth.offset),
+        ] {
+            assert!((got / want - 1.0).abs() < 0.01, "{p:?}");
+        }
     }
 
     #[test]

@@ -17,7 +17,8 @@
 //! 4. **Outliers**: rows whose P–I residual exceeds [`OUTLIER_FACTOR`] × its RMS (spikes,
 //!    leftover ringing) are dropped and the model refitted.
 //! 5. **Model**: P–I weights by NNLS ([`pi`]), or Duhem by integrated least squares with a
-//!    stability check and a simulated-error refinement ([`duhem`]), or a generalised
+//!    stability check (an output-error refit where it fails) and a simulated-error refinement
+//!    ([`duhem`]), or a generalised
 //!    (asymmetric) P–I by Kuhnen's linear equation-error fit ([`gpi`]), or the generalised
 //!    Bouc–Wen from that Duhem fit refined on the simulated error ([`bouc_wen`]).
 //! 6. **Scaling**: the input range is the fitted drive range (widened by [`INPUT_MARGIN`],
@@ -556,9 +557,9 @@ pub fn identify(
                     match f.path {
                         duhem::DuhemFitPath::Plain => String::new(),
                         duhem::DuhemFitPath::ConstrainedNotPositive =>
-                            " (plain fit had a non-positive coefficient: refitted with alpha, beta, gamma >= 0)".into(),
+                            " (plain fit had a non-positive coefficient: refitted on the simulated error)".into(),
                         duhem::DuhemFitPath::ConstrainedDiverged =>
-                            " (plain fit diverged when simulated: refitted with alpha, beta, gamma >= 0)".into(),
+                            " (plain fit ran off when simulated: refitted on the simulated error)".into(),
                     }
                 ));
                 if f.params != f.least_squares {
