@@ -5,7 +5,8 @@
 //! position sensor's noise and the amplifiers' noise and slew limit:
 //!
 //! 1. **Identify** the feedforward model as a user would: the bypassed tick plays a 70 ± 70 V
-//!    750 Hz sine, and a P–I model (N = 16) is fitted to the first half of the record.
+//!    750 Hz sine, and a P–I model (16 operators, fewer where the rate's tick budget needs it:
+//!    [`operators_at`]) is fitted to the first half of the record.
 //! 2. **Track** a 100 Hz triangle and a 750 Hz sine over 10–90 % of the stroke with four
 //!    configurations of the very same tick — no compensation (bypass), feedforward only (open
 //!    loop), feedback only (closed loop without the inverse model), feedforward + feedback —
@@ -368,7 +369,36 @@ fn simulate(
     Ok(run)
 }
 
-/// Step 1: excite with the bypassed tick, identify P–I N = 16.
+/// The P–I size the study fits at `rate`: 16 operators, or the most (in pairs) the tick budget
+/// admits at that rate as the study loads them — compensator and observer, the sensor with its
+/// drift check, PI with the notch ([`twinstack::config::tick_budget`]).
+pub fn operators_at(rate: f64) -> usize {
+    let admitted = |n: usize| {
+        let Ok(pi) = twinstack::config::settings::representative_pi(n) else {
+            return false;
+        };
+        let settings = Settings {
+            compensator: Some(pi.clone()),
+            observer: Some(pi),
+            sensor: Some(SensorSettings {
+                displacement_at_zero: 0.0,
+                displacement_at_full_scale: 70.0,
+                drift_limit: Some(0.03),
+            }),
+            feedback: Some(feedback_settings(rate, true)),
+            mode: Mode::ClosedLoop,
+            ..Settings::default()
+        };
+        settings.build(&hardware(rate)).is_ok()
+    };
+    (1..=8)
+        .rev()
+        .map(|pairs| 2 * pairs)
+        .find(|&n| admitted(n))
+        .unwrap_or(2)
+}
+
+/// Step 1: excite with the bypassed tick, identify P–I N = [`operators_at`] the rate.
 pub fn identify_model(rate: f64, options: &ClosedLoopOptions) -> Result<StageModel> {
     let cycles = 20;
     let ticks = (rate / 750.0).round() as usize * cycles;
@@ -405,10 +435,7 @@ pub fn identify_model(rate: f64, options: &ClosedLoopOptions) -> Result<StageMod
         x: Some(x),
     };
     let mut opts = IdentifyOptions::new(ModelKind::Pi, t[t.len() / 2]);
-    // 16 operators; 12 above 50 kHz, where the tick budget admits a P–I both ways beside the
-    // notch only up to 12 (twinstack::config::tick_budget: 16 needs 1 761 of the 1 680 cycles a
-    // 100 kHz period has).
-    opts.operators = if rate > 50_000.0 { 12 } else { 16 };
+    opts.operators = operators_at(rate);
     opts.thresholds = ThresholdSpread::Uniform;
     opts.lag = Some(0);
     Ok(identify(&data, &opts)

@@ -397,8 +397,8 @@ fn auto_picks_a_model_the_board_runs_at_its_rate() {
     }
 }
 
-/// At 100 kHz a P–I of the default 17 operators is too dear by one pair of operators per
-/// bank: `calibrate --model pi` without `--operators` fits 16 and says so rather
+/// At 100 kHz a P–I of the default 17 operators with its observer is too dear by three
+/// operators per bank: `calibrate --model pi` without `--operators` fits 14 and says so rather
 /// than refuse; with `--operators 17` asked for, it still refuses, before loading anything.
 #[test]
 fn a_pi_is_sized_to_the_boards_rate_unless_its_operators_are_asked_for() {
@@ -414,10 +414,10 @@ fn a_pi_is_sized_to_the_boards_rate_unless_its_operators_are_asked_for() {
         ..quick()
     };
     let r = calibrate(&mut client, &options, |_| {}).expect("P-I sized to 100 kHz");
-    assert_eq!(r.file.identification.as_ref().unwrap().operators, 16);
-    assert!(r.model.contains("16 uniform operators"), "{}", r.model);
+    assert_eq!(r.file.identification.as_ref().unwrap().operators, 14);
+    assert!(r.model.contains("14 uniform operators"), "{}", r.model);
     assert!(
-        r.reason.contains("16 play operators instead of 17"),
+        r.reason.contains("14 play operators instead of 17"),
         "{}",
         r.reason
     );

@@ -42,18 +42,21 @@ pub const SYSCLK_HZ: u32 = 168_000_000;
 /// prediction is cache-cold (5 wait states on every taken branch), so 100 % guarantees that no
 /// tick overruns even then; what a tick leaves of its period is for the link's DMA
 /// interrupts, the command handler and the coarse axis, which run below it. A configuration
-/// near the limit leaves them no *guaranteed* time: the P–I 16 configuration at 100 kHz,
-/// predicted at 99 % of the period, has its worst tick measured at 84 % at 0 wait states
-/// (the ART cache warm), and the command task lives on that difference. A user who needs
-/// guaranteed link time beside it runs at 50 kHz ([`available_cycles`] doubles).
+/// near the limit leaves them no *guaranteed* time: the Bouc–Wen configuration (inverse,
+/// observer, PI, drift check) at 100 kHz, predicted at 81 % of the period, has its worst tick
+/// measured at 68 % at 0 wait states (the ART cache warm), and the command task lives on what
+/// is left. A user who needs guaranteed link time beside a configuration near the limit runs
+/// at 50 kHz ([`available_cycles`] doubles).
 pub const TICK_SHARE_PERCENT: u32 = 100;
 
 /// Everything that does not grow with a model: RTIC's entry and exit, the stream, the trigger
 /// input and outputs, the sensor read and its drift check, PI feedback, the drive stage, the
 /// recorder taking all seven signals, telemetry's tap at its worst, the DAC write, the watchdog,
-/// and the first tick after a reload or a mode switch (its rebase, up to 50 instructions more).
-/// 1 130 since input shaping: its test on the tick (off) and the handler's code around it.
-pub const FIXED_CYCLES: u32 = 1130;
+/// the first tick after a reload or a mode switch (its rebase, up to 50 instructions more),
+/// and the firmware's own binding of the tick (`hardware::setup::tick`: the command task
+/// pended when telemetry has a frame's worth or the learning a period's end, 22 instructions,
+/// 53 cycles at 5 WS, which the whole-interrupt bench runs as the firmware does).
+pub const FIXED_CYCLES: u32 = 1183;
 /// The feedback's derivative term.
 pub const DERIVATIVE_CYCLES: u32 = 50;
 /// The feedback's notch (one biquad); the feedforward's notch (input shaping,

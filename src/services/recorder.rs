@@ -54,6 +54,12 @@ pub const MAX_CAPTURE_CHUNK: usize = 256;
 /// 100 kHz).
 pub const PIECE_SLOTS: u32 = 16;
 
+/// Most values one piece of a v3 `Record` read copies ([`Recorder::read_piece`]): each value
+/// is two slots, each slot mapped through the ring and the two parts of the buffer on its own
+/// (about 35 instructions a value): eight values a piece would hold the tick off for longer
+/// than a capture's piece of [`PIECE_SLOTS`] slots copied as slice runs; four keep it within.
+pub const RECORD_PIECE_VALUES: u32 = 4;
+
 /// Reads a whole chunk into `out` (cleared first) piece by piece: `piece` appends the next
 /// piece (the caller takes its lock around each) and says how many values it added; a piece
 /// of none, or a full `out`, ends the chunk. Bounded: every piece but the last adds a value,
@@ -747,7 +753,7 @@ impl<B: SampleStore> Recorder<B> {
     }
 
     /// Appends the next piece of the chunk of a v3 `Record` that starts at `offset`: the
-    /// values from `offset + out.len()`, at most [`PIECE_SLOTS`] / 2 of them (two slots
+    /// values from `offset + out.len()`, at most [`RECORD_PIECE_VALUES`] of them (two slots
     /// each), up to what is recorded and `out`'s capacity. Returns how many it appended (0:
     /// the chunk is complete). An offset past the values recorded is refused.
     pub fn read_piece(
@@ -761,7 +767,7 @@ impl<B: SampleStore> Recorder<B> {
         }
         let from = offset.saturating_add(out.len() as u32);
         let room = (MAX_CHUNK - out.len()) as u32;
-        let to = recorded.min(from.saturating_add(room.min(PIECE_SLOTS / 2)));
+        let to = recorded.min(from.saturating_add(room.min(RECORD_PIECE_VALUES)));
         for i in from..to {
             let at = 2 * i;
             let hi = self.buffer.get(self.physical(at)) as i32;
@@ -1123,16 +1129,22 @@ mod tests {
         assert_eq!(piecewise, whole);
         // Frame k holds setpoint k then left k: slot 10 is frame 5's setpoint.
         assert_eq!((whole[0], whole[1], whole[199]), (5, 5, 104));
-        // A record's pieces: at most half as many values (two slots each).
+        // A record's pieces: at most `RECORD_PIECE_VALUES` values (two slots each).
         r.arm(Signal::Setpoint, 100, 1).unwrap();
         for k in 0..100 {
             tick(&mut r, k, 0, &report(k));
         }
         let mut values = heapless::Vec::new();
-        assert_eq!(r.read_piece(3, &mut values), Ok(PIECE_SLOTS as usize / 2));
-        assert_eq!(r.read_piece(3, &mut values), Ok(PIECE_SLOTS as usize / 2));
-        // Two pieces: the values 3 .. 3 + PIECE_SLOTS, in order.
-        let want: Vec<i32> = (3..3 + PIECE_SLOTS as i32).collect();
+        assert_eq!(
+            r.read_piece(3, &mut values),
+            Ok(RECORD_PIECE_VALUES as usize)
+        );
+        assert_eq!(
+            r.read_piece(3, &mut values),
+            Ok(RECORD_PIECE_VALUES as usize)
+        );
+        // Two pieces: the values 3 .. 3 + 2 × RECORD_PIECE_VALUES, in order.
+        let want: Vec<i32> = (3..3 + 2 * RECORD_PIECE_VALUES as i32).collect();
         assert_eq!(&values[..], &want[..]);
     }
 

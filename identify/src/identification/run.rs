@@ -206,12 +206,12 @@ impl BoardRate {
 /// let sized = admission_at(&s, &BoardRate::sizing(100_000.0, false));
 /// assert!(matches!(
 ///     sized,
-///     Admission::Smaller { resize: Resize { operators: Some(16), creep_modes: None }, .. }
+///     Admission::Smaller { resize: Resize { operators: Some(14), creep_modes: None }, .. }
 /// ));
 /// assert!(matches!(admission_at(&s, &BoardRate::sizing(100_000.0, true)), Admission::Refused(_)));
 /// assert_eq!(admission_at(&s, &BoardRate::sizing(50_000.0, false)), Admission::Admitted);
 ///
-/// // Bouc–Wen with four creep modes both ways: 1 784 cycles; with two, 1 640 of 1 680.
+/// // Bouc–Wen with four creep modes both ways: 1 837 cycles; with one, 1 621 of 1 680.
 /// use twinstack::models::creep::CreepParams;
 /// use twinstack::config::settings::representative_bouc_wen;
 /// let s = Settings {
@@ -223,7 +223,7 @@ impl BoardRate {
 /// let sized = admission_at(&s, &BoardRate::sizing(100_000.0, true));
 /// assert!(matches!(
 ///     sized,
-///     Admission::Smaller { resize: Resize { operators: None, creep_modes: Some(2) }, .. }
+///     Admission::Smaller { resize: Resize { operators: None, creep_modes: Some(1) }, .. }
 /// ));
 /// ```
 pub fn admission_at(settings: &Settings, rate: &BoardRate) -> Admission {

@@ -61,8 +61,8 @@ pub(super) const STREAMED: [&str; 5] = [
     "nested-loops",
 ];
 
-/// The scan, analog-input and trigger-input scenarios, with their columns' titles.
-pub(super) const SCANNED: [(&str, &str); 8] = [
+/// The scan, analog-input, generator and trigger-input scenarios, with their columns' titles.
+pub(super) const SCANNED: [(&str, &str); 10] = [
     ("scan-raster-triggers", "raster"),
     ("scan-lissajous-triggers", "Lissajous"),
     ("scan-spiral-triggers", "spiral"),
@@ -73,6 +73,8 @@ pub(super) const SCANNED: [(&str, &str); 8] = [
         "spiral started by the input's edges + learning",
     ),
     ("analog-input", "analog input"),
+    ("waveform-sine-decaying", "the board's generator"),
+    ("waveform-sine-learning", "the board's generator + learning"),
     ("triangle-on-trigger", "stream, the input's edges"),
 ];
 

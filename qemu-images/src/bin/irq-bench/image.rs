@@ -26,6 +26,7 @@ pub const RATE_HZ: u32 = 40_000;
 
 /// The scenarios' setpoints, Q1.15, one per tick (divider 1).
 pub mod scenarios {
+    use twinstack::protocol::messages::{WaveDecay, WaveShape, Waveform};
     use twinstack::sources::analog_input::{AnalogInputConfig, OnFault};
     use twinstack::sources::scan::{
         LissajousScan, RasterScan, ScanPattern, ScanRequest, SpiralScan,
@@ -61,6 +62,8 @@ pub mod scenarios {
         /// from the setpoint in force); streamed, the edge (armed to start the stream) starts
         /// the running stream again.
         pub on_trigger: bool,
+        /// Instead of streaming: the board's own waveform generator for `TICKS` ticks.
+        pub waveform: Option<Waveform>,
     }
 
     /// Ticks between the trigger scenario's edges (the scan runs most of them).
@@ -79,6 +82,30 @@ pub mod scenarios {
         on_fault: OnFault::Hold,
         rate: 5.0,
         start_at_boot: false,
+    };
+
+    /// The board's generator at its dearest: a table sine at 750 Hz, ±0.95, its amplitude
+    /// decaying after the first cycle (nested minor loops, so the P–I memory moves on every
+    /// reversal).
+    pub const SINE_DECAYING: Waveform = Waveform {
+        shape: WaveShape::Sine,
+        offset: 0,
+        amplitude: 31_129,
+        frequency_mhz: 750_000,
+        decay: Some(WaveDecay {
+            hold_cycles: 1,
+            keep: 62_259,
+        }),
+    };
+
+    /// The board's generator beside the learning: a 200 Hz sine, ±0.95 (one learning period
+    /// of 200 ticks a cycle at the bench's 40 kHz).
+    pub const SINE_200HZ: Waveform = Waveform {
+        shape: WaveShape::Sine,
+        offset: 0,
+        amplitude: 31_129,
+        frequency_mhz: 200_000,
+        decay: None,
     };
 
     /// `pattern` scanned until stopped, 4 ticks a pixel, started at once.
@@ -203,6 +230,7 @@ pub mod scenarios {
             scan: None,
             analog: None,
             on_trigger: false,
+            waveform: None,
         }
     }
 
@@ -224,6 +252,7 @@ pub mod scenarios {
             scan: Some(scan),
             analog: None,
             on_trigger: false,
+            waveform: None,
         }
     }
 
@@ -233,6 +262,20 @@ pub mod scenarios {
         Scenario {
             on_trigger: true,
             ..scanned(name, scan, learning)
+        }
+    }
+
+    /// The board's waveform generator (the stream's setpoint function unused).
+    const fn generated(name: &'static str, waveform: Waveform, learning: bool) -> Scenario {
+        Scenario {
+            name,
+            setpoint: triangle,
+            lifecycle: false,
+            learning,
+            scan: None,
+            analog: None,
+            on_trigger: false,
+            waveform: Some(waveform),
         }
     }
 
@@ -246,11 +289,12 @@ pub mod scenarios {
             scan: None,
             analog: Some(input),
             on_trigger: false,
+            waveform: None,
         }
     }
 
     /// Every scenario, in the order they run.
-    pub const ALL: [Scenario; 15] = [
+    pub const ALL: [Scenario; 17] = [
         streamed("triangle", triangle, false, false),
         streamed("sine-750Hz", sine_750hz, false, false),
         streamed("full-range-steps", steps, false, false),
@@ -267,6 +311,9 @@ pub mod scenarios {
         // capture, beside the learning.
         on_trigger("scan-spiral-on-trigger-learning", SPIRAL, true),
         analog("analog-input", ANALOG),
+        // The board's own generator, as `twinstack waveform` plays it.
+        generated("waveform-sine-decaying", SINE_DECAYING, false),
+        generated("waveform-sine-learning", SINE_200HZ, true),
         // The edge's tick beside a stream: the stream started again, a capture fired.
         streamed_on_trigger("triangle-on-trigger", triangle),
         streamed("reload-and-mode-switches", triangle, true, false),
@@ -433,6 +480,7 @@ mod app {
     use twinstack::hardware::clocks;
     use twinstack::hardware::control_timer::ControlTimer;
     use twinstack::hardware::dac::InternalDac;
+    use twinstack::hardware::setup::{self, CoarsePacer};
     use twinstack::hardware::tick::SRAM_SLOTS;
     use twinstack::hardware::tick::{ControlTick, LoopLock};
     use twinstack::hardware::trigger_pins::EMULATED_INPUT;
@@ -535,11 +583,18 @@ mod app {
         )
     }
 
-    /// The control tick: exactly the firmware's emulator binding.
-    #[task(binds = SysTick, priority = 3, shared = [tick])]
+    /// The control tick: the firmware's own body ([`setup::tick`]: the tick, then the command
+    /// task pended when it has work, then the coarse stage's pacer), bound as the firmware's
+    /// emulator image binds it.
+    #[task(binds = SysTick, priority = 3, shared = [tick], local = [pacer: CoarsePacer = CoarsePacer])]
     fn systick_tick(mut cx: systick_tick::Context) {
-        cx.shared.tick.lock(|t| t.run());
+        setup::tick(&mut cx.shared.tick, cx.local.pacer);
     }
+
+    /// What the tick pends ([`setup::COMMAND_IRQ`]): the firmware's command task. Here the
+    /// idle task plays the host and the command task in turn, so the wake-up finds no work.
+    #[task(binds = EXTI0, priority = 1)]
+    fn command_woken(_: command_woken::Context) {}
 
     /// The trigger I/O settings with the input armed for its rising edge (pulses of 2 ticks);
     /// the edge starts the stream if `start_stream`.
@@ -640,8 +695,12 @@ mod app {
                 // The trigger scenarios' cycle: the input armed (low), raised a few ticks later.
                 let mut cycle = 0u32;
                 let mut armed_at: Option<u32> = None;
-                if scenario.scan.is_some() || scenario.analog.is_some() {
-                    // A source on the board (a scan, the analog input) runs TICKS ticks
+                if scenario.scan.is_some()
+                    || scenario.analog.is_some()
+                    || scenario.waveform.is_some()
+                {
+                    // A source on the board (a scan, the analog input, the generator) runs
+                    // TICKS ticks
                     // (counted by the status).
                     let t0 = match ask!(Request::Status) {
                         Response::Status(s) => s.ticks,
@@ -657,6 +716,9 @@ mod app {
                     }
                     if let Some(input) = scenario.analog {
                         expect_ack(ask!(Request::Analog(AnalogRequest::Start(input))), "analog");
+                    }
+                    if let Some(waveform) = scenario.waveform {
+                        expect_ack(ask!(Request::Waveform(waveform)), "waveform");
                     }
                     loop {
                         let now = match ask!(Request::Status) {
@@ -844,6 +906,8 @@ mod app {
             })),
             "readback record",
         );
+        // Read slower than the tick (every 24 ticks), as a host on a slow link does: each
+        // chunk then copies full pieces, the record's longest sections.
         let mut offset = 0;
         while offset < 256 {
             match ask!(Request::ReadRecord { offset }) {
@@ -853,7 +917,9 @@ mod app {
                     debug::exit(debug::EXIT_FAILURE);
                 }
             }
-            cortex_m::asm::wfi();
+            for _ in 0..24 {
+                cortex_m::asm::wfi();
+            }
         }
         hprintln!("READBACK done");
         irq_bench_marker(u32::MAX);
