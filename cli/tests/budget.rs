@@ -1,25 +1,11 @@
 //! `twinstack budget` as a user runs it: the model family's table, a parameter file's row, the
 //! JSON, and every bad input refused with what and where, exit 1 or 2, no panic.
 
+#[path = "support/tool.rs"]
+mod tool;
+
 use std::path::PathBuf;
-use std::process::{Command, Output};
-
-fn twinstack(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_twinstack"))
-        .args(args)
-        .output()
-        .expect("twinstack runs")
-}
-
-fn ok(args: &[&str]) -> String {
-    let o = twinstack(args);
-    assert!(
-        o.status.success(),
-        "{args:?}: {}",
-        String::from_utf8_lossy(&o.stderr)
-    );
-    String::from_utf8_lossy(&o.stdout).into_owned()
-}
+use tool::{ok, twinstack};
 
 fn golden(name: &str) -> String {
     PathBuf::from(env!("CARGO_MANIFEST_DIR"))

@@ -2,7 +2,10 @@
 //! simulated board (through its validation and reload) and in a parameter file, and every
 //! wrong path or value refused with the path named, exit 1, nothing changed.
 
-use std::process::{Command, Output};
+#[path = "support/tool.rs"]
+mod tool;
+
+use tool::{ok, twinstack};
 
 const SIM: [&str; 6] = [
     "--port",
@@ -12,23 +15,6 @@ const SIM: [&str; 6] = [
     "--link-jitter-ms",
     "0",
 ];
-
-fn twinstack(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_twinstack"))
-        .args(args)
-        .output()
-        .expect("twinstack runs")
-}
-
-fn ok(args: &[&str]) -> String {
-    let o = twinstack(args);
-    assert!(
-        o.status.success(),
-        "{args:?}: {}",
-        String::from_utf8_lossy(&o.stderr)
-    );
-    String::from_utf8_lossy(&o.stdout).into_owned()
-}
 
 fn refused(args: &[&str], needle: &str) {
     let o = twinstack(args);
