@@ -131,8 +131,8 @@ fn gpi_with_eight_dead_zones(n: usize) -> Option<Model> {
 }
 
 /// Every model `calibrate` (and `identify --model auto`) can pick, at its default size, without
-/// and with four creep modes, each loaded as `calibrate` loads it ([`closed`]): the names say
-/// what runs.
+/// and with four creep modes, each loaded as `calibrate` loads it (compensator and observer, a
+/// sensor with its drift check, PI feedback): the names say what runs.
 pub fn family() -> Vec<(String, Settings)> {
     let mut out = Vec::new();
     let creep = CreepParams::new(&[0.01, 0.1, 1.0, 10.0], &[0.02; 4]).ok();

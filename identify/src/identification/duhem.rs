@@ -123,7 +123,7 @@ fn output_error_equations(
 
 /// The Duhem model that minimises the RMS of the *simulated* output against `y` over
 /// `rows`: for each `α` of [`ALPHA_GRID`] the best `(β, δ, γ)` with `β, γ ≥ 0` is a linear
-/// least-squares problem ([`output_error_equations`]); the best grid point is then refined
+/// least-squares problem (`output_error_equations`); the best grid point is then refined
 /// by a golden-section search on `ln α` between its neighbours. `β` or `γ` pinned at zero is
 /// floored at a small positive value (`1e-6` of the data's mean slope). Any Duhem model
 /// with `α > 0` simulates bounded (each step moves the output a fraction `a ≤ 1` of the way
