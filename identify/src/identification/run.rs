@@ -12,7 +12,7 @@ use crate::param_file::{IdentificationRecord, ParamFile};
 use twinstack::board::Hardware;
 use twinstack::config::settings::{Model, Settings};
 use twinstack::models::params::PiParams;
-use twinstack::refusal::{Field, Rule};
+use twinstack::refusal::{Field, Refusal, Rule};
 use twinstack_link::measured_data::MeasuredData;
 
 /// Which model to fit: every candidate, or one.
@@ -233,27 +233,30 @@ pub fn admission_at(settings: &Settings, rate: &BoardRate) -> Admission {
     let fits = |s: &Settings| !matches!(s.build(&hardware), Err(r) if r.field == Field::Workload);
     // The board's own refusal advises on every size a parameter file can set; identification
     // sets the dead zones itself, so only what its options change is named here.
-    // What the compensator alone would need, where an observer runs beside it.
-    let alone = settings.observer.as_ref().and_then(|_| {
+    // What the compensator alone would need, where an observer runs beside it (asked only of
+    // a refused configuration).
+    let alone = || {
+        settings.observer.as_ref()?;
         let alone = Settings {
             observer: None,
             ..settings.clone()
         };
         match alone.build(&hardware) {
-            Err(r) => match r.rule {
-                Rule::TickOverrun { needs, .. } => Some(format!("; without the observer, {needs}")),
-                _ => None,
-            },
             Ok(_) => Some("; without the observer it fits".to_string()),
+            Err(Refusal {
+                rule: Rule::TickOverrun { needs, .. },
+                ..
+            }) => Some(format!("; without the observer, {needs}")),
+            Err(_) => None,
         }
-    });
+    };
     let why = match settings.build(&hardware) {
         Err(r) if r.field == Field::Workload => match r.rule {
             Rule::TickOverrun { needs, available } => format!(
                 "the board at {:.0} kHz would refuse it: it needs {needs} cycles per tick, more \
                  than the {available} that rate leaves{}",
                 rate.hz / 1e3,
-                alone.unwrap_or_default()
+                alone().unwrap_or_default()
             ),
             _ => format!("the board at {:.0} kHz would refuse it: {r}", rate.hz / 1e3),
         },
