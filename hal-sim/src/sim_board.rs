@@ -9,7 +9,14 @@
 //! for the external variant), passes the DAC outputs through the amplifiers, advances the plant
 //! one control period, and presents the new displacement, through the sensor, at the ADC's
 //! input. [`SensorAdc::read`] returns what the ADC returns: the conversion of the previous
-//! period (one sample of latency, as on the board).
+//! period (one sample of latency).
+//!
+//! That is the board's discrete loop ([`twinstack::board::sample_to_output_s`]): there the DAC
+//! latches a tick's drive at the next timer event and holds it one period, and the tick after
+//! that reads the sample taken just before its own event — the drive of tick `k` is first seen
+//! by tick `k + 2`, here as there. The simulated periods are the board's shifted by one (here a
+//! write drives the period that follows it at once), and the simulation samples at the period's
+//! boundary, without the board's 2 µs lead ([`twinstack::board::SAMPLE_LEAD_NS`]).
 //!
 //! Two variants:
 //! * [`InternalBoard`]: the STM32's 12-bit DAC (3.3 V reference) and a 12-bit ADC over

@@ -1,7 +1,8 @@
 //! The analog setpoint input ([`crate::sources::analog_input`]) on ADC2, 0–3.3 V, converted on the same
-//! TIM2 TRGO as the sensor on ADC1: both conversions start together, ≈ 1.3 µs before the
-//! control interrupt reads them, so the input's value at the period's start is what that
-//! period's tick writes to the DAC.
+//! TIM2 channel 2 compare as the sensor on ADC1: both conversions start together,
+//! [`crate::board::SAMPLE_LEAD_NS`] before the control interrupt that reads them, so the input's
+//! value just before the period's start is what that period's tick computes (and the DAC puts
+//! out at the next timer event).
 //!
 //! | board | pin | ADC2 channel |
 //! |-------|-----|--------------|
@@ -14,8 +15,9 @@
 
 use stm32f4xx_hal::pac::{ADC2, RCC};
 
-/// ADC `EXTSEL` value for TIM2 TRGO (RM0090, ADC_CR2).
-const EXTSEL_TIM2_TRGO: u8 = 0b0110;
+/// ADC `EXTSEL` value for TIM2's channel 2 compare (RM0090, ADC_CR2): the edge
+/// [`crate::board::SAMPLE_LEAD_NS`] before each tick ([`super::control_timer`]).
+const EXTSEL_TIM2_CC2: u8 = 0b0011;
 /// `EXTEN`: trigger on the rising edge.
 const EXTEN_RISING: u8 = 0b01;
 /// Sample time 15 ADC cycles (`SMP = 001`), as the sensor's: (15 + 12) / 21 MHz ≈ 1.3 µs.
@@ -32,7 +34,7 @@ const INPUT: (u32, u32, u8) = (0, 7, 7);
 /// GPIOA's base address; the ports follow every 0x400 bytes (RM0090, memory map).
 const GPIO_BASE: usize = 0x4002_0000;
 
-/// ADC2 converting the input's channel on each TIM2 TRGO (the ADC clock prescaler is the
+/// ADC2 converting the input's channel on each TIM2 channel 2 compare (the ADC clock prescaler is the
 /// common one [`super::adc::SensorInput::new`] sets).
 pub struct SetpointChannel {
     adc: ADC2,
@@ -40,7 +42,7 @@ pub struct SetpointChannel {
 
 impl SetpointChannel {
     /// Puts the input's pin in analog mode, enables ADC2, one-channel regular sequence on
-    /// the input's channel, external trigger TIM2 TRGO on the rising edge. Called after every
+    /// the input's channel, external trigger TIM2's channel 2 compare on the rising edge. Called after every
     /// `split()` of the pin's port (which resets it): the pin is set by its own `MODER`
     /// bits, so the other pins of that port stay as they are.
     pub fn new(adc: ADC2, rcc: &RCC) -> Self {
@@ -69,7 +71,7 @@ impl SetpointChannel {
         adc.sqr3().modify(|_, w| unsafe { w.sq1().bits(channel) });
         adc.cr2().modify(|_, w| unsafe {
             w.extsel()
-                .bits(EXTSEL_TIM2_TRGO)
+                .bits(EXTSEL_TIM2_CC2)
                 .exten()
                 .bits(EXTEN_RISING)
                 .adon()

@@ -1,8 +1,8 @@
 //! The control interrupt's body, shared by the firmware (`src/bin/twinstack-fw.rs`) and the
 //! whole-interrupt bench image (`qemu-images`, `irq-bench`), so that the bench measures the
-//! very code the board runs: acknowledge the timer, sample the trigger input,
-//! [`ControlLoop::tick`] on the board's converters, write the trigger outputs (one `BSRR`
-//! store), telemetry's tap ([`ControlLoop::tap_telemetry`]), feed the watchdog (unless a
+//! very code the board runs: acknowledge the timer, write the trigger outputs the last tick
+//! computed (one `BSRR` store: they mark the drive the DAC latched at this timer event), sample
+//! the trigger input, [`ControlLoop::tick`] on the board's converters, telemetry's tap ([`ControlLoop::tap_telemetry`]), feed the watchdog (unless a
 //! drill stopped it: [`ControlLoop::feeds_watchdog`]), count an overrun.
 
 use core::mem::MaybeUninit;
@@ -104,9 +104,13 @@ impl ControlTick {
         // instructions more than with the loop held by value).
         let control = &mut *self.control;
         self.timer.acknowledge();
+        // The trigger outputs the last tick computed, first: they mark the drive that tick
+        // wrote, which the DAC put out at this tick's timer event. Written here, their instant
+        // is the interrupt's entry, whatever this tick goes on to run (the recorder, a capture
+        // being read) — not the end of the control law.
+        self.triggers.write(control.trigger_levels());
         control.set_trigger_input(self.triggers.input());
         control.tick(&mut self.setpoints, &mut self.adc, &mut self.dac);
-        self.triggers.write(control.trigger_levels());
         let frame_due = control.tap_telemetry(&mut self.telemetry);
         if control.feeds_watchdog() {
             self.watchdog.feed();
