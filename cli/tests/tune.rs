@@ -244,6 +244,16 @@ fn the_command_tunes_the_simulated_and_the_virtual_board() {
     );
     assert!((v["fit"]["resonance_hz"].as_f64().unwrap() / 21_804.0 - 1.0).abs() < 0.005);
     assert!(std::fs::metadata(&png).unwrap().len() > 10_000);
+    // The board's timing: one period (the DAC latched by the timer) plus the 2 µs lead, whose
+    // phase at the crossover is what the whole-tick model leaves out.
+    let timing = &v["board_timing"];
+    assert!((timing["sample_to_output_s"].as_f64().unwrap() - 12e-6).abs() < 1e-12);
+    let crossover = v["figures"]["crossover_hz"].as_f64().unwrap();
+    let lead = timing["lead_phase_deg"].as_f64().unwrap();
+    assert!(
+        crossover > 0.0 && (lead - 360.0 * crossover * 2e-6).abs() < 1e-9,
+        "{v}"
+    );
 
     let bad = twinstack_bin(&[
         "tune", "--port", "sim", "--rate", "100k", "--kp", "0.1", "--ki", "20000",

@@ -100,6 +100,18 @@ impl Args {
     }
 }
 
+/// The board's timing beside a tuned loop: sample to output, s
+/// ([`twinstack::board::sample_to_output_s`]), and the phase the sample's lead
+/// ([`twinstack::board::SAMPLE_LEAD_NS`]) costs at the loop's crossover, degrees — a delay the
+/// whole-tick loop model rounds away and the simulated board does not have.
+pub fn board_timing(r: &TuneReport) -> (f64, f64) {
+    let lead_s = twinstack::board::SAMPLE_LEAD_NS as f64 * 1e-9;
+    (
+        twinstack::board::sample_to_output_s(r.rate),
+        360.0 * r.design.figures.crossover_hz * lead_s,
+    )
+}
+
 /// The figures as one JSON object (what `--json` prints).
 pub fn report_json(r: &TuneReport) -> serde_json::Value {
     let p = &r.fit.plant;
@@ -124,6 +136,10 @@ pub fn report_json(r: &TuneReport) -> serde_json::Value {
             "refused": f.as_ref().err().map(|e| e.to_string()),
         })),
         "loaded": r.loaded,
+        "board_timing": {
+            "sample_to_output_s": board_timing(r).0,
+            "lead_phase_deg": board_timing(r).1,
+        },
     })
 }
 
@@ -184,6 +200,17 @@ fn run_on<T: Transport>(args: &Args, client: &mut Client<T>) -> anyhow::Result<(
         f.bandwidth_hz,
         f.sensitivity_peak_db,
         f.ringing_pct
+    );
+    // The board's own timing, beside the loop the fit found: the sample's lead is a delay the
+    // whole-tick model rounds (and the simulated board does not have).
+    let (latency_s, lead_deg) = board_timing(&report);
+    println!(
+        "board timing: sample to output {:.0} µs (one period, the DAC latched by the timer, plus \
+         the sample's {:.0} µs lead); the lead costs {lead_deg:.1}° of phase at the {:.0} Hz \
+         crossover",
+        latency_s * 1e6,
+        twinstack::board::SAMPLE_LEAD_NS as f64 * 1e-3,
+        f.crossover_hz
     );
     if let Some((b, verdict)) = &report.before {
         match verdict {
