@@ -107,6 +107,10 @@ fn every_check_passes_on_the_in_process_board_but_the_tick_rate_skips() {
     assert_eq!(link["board_crc_errors"], 0);
     let loopback = &report["checks"][3]["figures"];
     assert!(loopback["slope"].as_f64().unwrap() > 0.99, "{loopback}");
+    // The loop's delay, measured through the jumper: a write shows in the reading two ticks
+    // later, as the feedback assumes.
+    let delay = loopback["delay_ticks"].as_f64().unwrap();
+    assert!((delay - 2.0).abs() < 0.05, "{loopback}");
     let watchdog = &report["checks"][5]["figures"];
     assert_eq!(watchdog["reset"], true, "{watchdog}");
     assert_eq!(watchdog["cause_watchdog"], true, "{watchdog}");
@@ -146,6 +150,43 @@ fn an_open_loopback_fails_the_loopback_check_only() {
         selftest(&["--port", "sim", "--sim-open-loopback", "--skip", "loopback"]);
     expect(&checks, &[], &["tick-rate", "loopback"], "--skip loopback");
     assert_eq!(code, Some(0));
+}
+
+/// Converters timed otherwise than the firmware's — the reading one tick sooner, as when the
+/// conversion started on the tick's own timer event and a short tick read it complete — pass
+/// the levels but fail the loopback check on the delay it measures, and only it.
+#[test]
+fn a_sensor_reading_a_tick_early_fails_the_loopback_check_on_its_delay() {
+    let (code, checks, report) = selftest(&["--port", "sim", "--sim-sensor-latency", "0"]);
+    expect(
+        &checks,
+        &[(
+            "loopback",
+            "the converters are not timed as the firmware expects",
+        )],
+        &["tick-rate"],
+        "sensor latency 0",
+    );
+    assert_eq!(code, Some(1));
+    let loopback = &report["checks"][3]["figures"];
+    let delay = loopback["delay_ticks"].as_f64().unwrap();
+    assert!((delay - 1.0).abs() < 0.05, "{loopback}");
+    // Only on the in-process board, and within what the simulated ADC models.
+    for args in [
+        vec![
+            "selftest",
+            "--port",
+            "tcp:127.0.0.1:9",
+            "--sim-sensor-latency",
+            "0",
+        ],
+        vec!["selftest", "--port", "sim", "--sim-sensor-latency", "9"],
+    ] {
+        let o = twinstack(&args);
+        let (_, err) = text(&o);
+        assert_eq!(o.status.code(), Some(2), "{args:?}: {err}");
+        assert!(err.contains("--sim-sensor-latency"), "{args:?}: {err}");
+    }
 }
 
 #[test]

@@ -235,7 +235,7 @@ impl InternalBoard {
     pub fn internal(config: &BoardConfig) -> Result<Self, BoardError> {
         checked_sensor_range(config)?;
         let plant = Plant::new(&config.plant).map_err(BoardError::Plant)?;
-        let adc = InternalAdc::new(12, (0.0, 3.3), 1).map_err(BoardError::Adc)?;
+        let adc = InternalAdc::new(12, (0.0, 3.3), SENSOR_LATENCY).map_err(BoardError::Adc)?;
         Ok(SimBoard::new(
             InternalDac::new(3.3),
             config.amplifiers(3.3),
@@ -244,7 +244,24 @@ impl InternalBoard {
             adc,
         ))
     }
+
+    /// The sensor ADC's reading `latency` conversions late instead of
+    /// [`SENSOR_LATENCY`]: a board whose converters are timed otherwise than the firmware's
+    /// (0: the reading one tick sooner, as when the conversion started on the tick's own timer
+    /// event and finished before a short tick read it), for rehearsing the fault that
+    /// `twinstack selftest`'s loopback check measures. At most
+    /// [`crate::converters::internal_adc::MAX_LATENCY`].
+    pub fn set_sensor_latency(&mut self, latency: usize) -> Result<(), BoardError> {
+        self.adc = InternalAdc::new(12, (0.0, 3.3), latency).map_err(BoardError::Adc)?;
+        Ok(())
+    }
 }
+
+/// Conversions the internal sensor ADC's reading lags: 1, the board's timing — the tick reads
+/// the sample taken just before its own timer event, which sees the drive the DAC latched at
+/// the previous event, i.e. the one written two ticks before
+/// ([`twinstack::control::feedback::SENSOR_DELAY_TICKS`]).
+pub const SENSOR_LATENCY: usize = 1;
 
 impl ExternalBoard {
     /// The board with the external converters: the library's drivers initialise the emulated

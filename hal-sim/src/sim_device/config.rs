@@ -25,6 +25,10 @@ pub struct SimDeviceConfig {
     /// A jumper from the left DAC channel to the sensor ADC's input in place of the sensor
     /// (`twinstack selftest`'s loopback): the ADC reads the DAC's output volts.
     pub loopback: bool,
+    /// Conversions the sensor ADC's reading lags
+    /// ([`crate::sim_board::SENSOR_LATENCY`], the board's timing, unless a test rehearses
+    /// converters timed otherwise: [`crate::sim_board::InternalBoard::set_sensor_latency`]).
+    pub sensor_latency: usize,
     /// Every flash write fails (the erase goes through, the programming does not: the
     /// sector is left erased), as a worn or locked flash would.
     pub failing_flash: bool,
@@ -53,6 +57,7 @@ impl SimDeviceConfig {
             camera: None,
             link_error_rate: 0.0,
             loopback: false,
+            sensor_latency: crate::sim_board::SENSOR_LATENCY,
             failing_flash: false,
             watchdog: true,
             analog_input: crate::analog_source::AnalogSource::Disconnected,

@@ -175,6 +175,9 @@ impl SimDevice {
         }
         let mut board = SimBoard::internal(&config.board).map_err(SimDeviceError::Board)?;
         board.set_loopback(config.loopback);
+        board
+            .set_sensor_latency(config.sensor_latency)
+            .map_err(SimDeviceError::Board)?;
         // The control rate is a whole number of hertz, as the firmware's timer runs it (and
         // as the status report and the stored record carry it); `1 / dt` is not exactly one.
         let rate_hz = (1.0 / board.plant().dt()).round();

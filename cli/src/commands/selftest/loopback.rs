@@ -1,6 +1,22 @@
 //! The loopback check: with a jumper from the left DAC channel to the sensor ADC's input, a
-//! few output levels streamed in bypass and the ADC's reading captured beside the DAC's code.
+//! few output levels streamed in bypass and the ADC's reading captured beside the DAC's code;
+//! then a step streamed one setpoint a tick and captured every tick, which measures the loop's
+//! delay: how many ticks after a tick writes the DAC the sensor reading shows it. The feedback's
+//! reference, the drift check and the learning assume
+//! [`SENSOR_DELAY_TICKS`](twinstack::control::feedback::SENSOR_DELAY_TICKS); a board whose
+//! converters are timed otherwise fails here.
 use super::*;
+use twinstack::control::feedback::SENSOR_DELAY_TICKS;
+
+/// The delay step's two levels (normalised setpoints) and the ticks streamed at each, one
+/// setpoint a tick, captured every tick from the stream's start.
+const STEP_LEVELS: (f64, f64) = (-0.3, 0.3);
+const STEP_TICKS: usize = 48;
+/// Ticks averaged at each end of the step for its levels before and after.
+const STEP_ENDS: usize = 12;
+/// The measured delay may be this far from a whole number of ticks (the converters' noise on
+/// the crossing's interpolation).
+const DELAY_TOLERANCE_TICKS: f64 = 0.35;
 
 /// Levels the loopback check drives, normalised setpoints (−1…1 of the range).
 const LOOPBACK_LEVELS: [f64; 5] = [-0.6, -0.3, 0.0, 0.3, 0.6];
@@ -47,14 +63,15 @@ pub(super) fn loopback(
             serde_json::Value::Null,
         ));
     }
-    let measured = drive_and_capture(client);
+    let measured = drive_and_capture(client).and_then(|m| Ok((m, step_and_capture(client)?)));
     // Whatever happened, the settings in force go back (the output holds where the stream
     // left it: where it started).
     let restored = retry(client, |c| c.load_params(&original));
-    let (pairs, dac_full_scale) = measured?;
+    let ((pairs, dac_full_scale), step) = measured?;
     restored.map_err(|e| {
         anyhow::anyhow!("loopback: the settings in force could not be put back: {e}")
     })?;
+    let delay = loop_delay(&step);
     let fs = dac_full_scale.max(1) as f64;
     let points: Vec<(f64, f64)> = pairs
         .iter()
@@ -79,6 +96,8 @@ pub(super) fn loopback(
         "worst_difference_pct": 100.0 * worst,
         "slope": slope,
         "tolerance_pct": tolerance_pct,
+        "delay_ticks": delay,
+        "expected_delay_ticks": SENSOR_DELAY_TICKS,
     });
     if dac_hi - dac_lo < 0.1 {
         return Ok(CheckResult::fail(
@@ -106,7 +125,114 @@ pub(super) fn loopback(
             figures,
         ));
     }
+    let Some(delay) = delay else {
+        return Ok(CheckResult::fail(
+            check,
+            format!("{detail}; the step streamed one setpoint a tick did not show in the capture"),
+            "the DAC and the ADC follow each other at rest but not a step: look for a filter or a slow buffer between the jumper and the ADC input",
+            figures,
+        ));
+    };
+    let detail = format!(
+        "{detail}; a DAC write shows in the reading {delay:.2} ticks later (the feedback assumes {SENSOR_DELAY_TICKS})"
+    );
+    if (delay - SENSOR_DELAY_TICKS as f64).abs() > DELAY_TOLERANCE_TICKS {
+        return Ok(CheckResult::fail(
+            check,
+            detail,
+            "the converters are not timed as the firmware expects (the ADC started by TIM2's channel 2 before each tick, the DAC latched by TIM2's update): a modified image, or a filter on the jumper slower than a tick",
+            figures,
+        ));
+    }
     Ok(CheckResult::pass(check, detail, figures))
+}
+
+/// Ticks from a DAC write to the sensor reading that shows it, from `(left code, sensor)`
+/// pairs captured every tick across a step: where each series crosses halfway between its
+/// own levels before and after the step (each averaged over [`STEP_ENDS`] ticks, so the
+/// converters' gain and offset do not matter), interpolated between ticks; the reading's
+/// crossing less the code's. `None` if either series does not step (by a tenth of its full
+/// scale) or never crosses.
+pub(super) fn loop_delay(pairs: &[(i16, i16)]) -> Option<f64> {
+    if pairs.len() < 3 * STEP_ENDS {
+        return None;
+    }
+    // The DAC's code is unsigned (up to 65 535 on a 16-bit DAC), the reading Q1.15.
+    let code: Vec<f64> = pairs.iter().map(|p| p.0 as u16 as f64 / 65_536.0).collect();
+    let reading: Vec<f64> = pairs
+        .iter()
+        .map(|p| (p.1 as f64 / 32_768.0 + 1.0) / 2.0)
+        .collect();
+    Some(crossing(&reading)? - crossing(&code)?)
+}
+
+/// Where `x` first crosses halfway between its mean over the first and over the last
+/// [`STEP_ENDS`] values, in (fractional) indices; `None` if those means are within a tenth of
+/// full scale (`x` in fractions of it) or it never crosses.
+fn crossing(x: &[f64]) -> Option<f64> {
+    let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len() as f64;
+    let (before, after) = (mean(&x[..STEP_ENDS]), mean(&x[x.len() - STEP_ENDS..]));
+    if (after - before).abs() < 0.1 / 16.0 {
+        return None;
+    }
+    let mid = 0.5 * (before + after);
+    let up = after > before;
+    (1..x.len()).find_map(|k| {
+        let (a, b) = (x[k - 1] - mid, x[k] - mid);
+        let crossed = if up {
+            a < 0.0 && b >= 0.0
+        } else {
+            a > 0.0 && b <= 0.0
+        };
+        crossed.then(|| (k - 1) as f64 + a / (a - b))
+    })
+}
+
+/// Streams the delay step — [`STEP_LEVELS`], [`STEP_TICKS`] at each, one setpoint a tick —
+/// after walking the output to its first level, capturing the left DAC code and the sensor
+/// every tick from the step's stream start; then walks the output back to where it was.
+fn step_and_capture(client: &mut BoardClient) -> anyhow::Result<Vec<(i16, i16)>> {
+    let start = capture(client, Channel::Setpoint.bit(), 1, 1)?;
+    let s0 = start.0.first().copied().unwrap_or(0) as f64 / 32768.0;
+    let rate = retry(client, |c| c.status())?.tick_rate_hz.max(1);
+    let walk = |client: &mut BoardClient, from: f64, to: f64| {
+        let samples: Vec<i16> = (1..=RAMP)
+            .map(|i| q15(from + (to - from) * i as f64 / RAMP as f64))
+            .chain(std::iter::repeat_n(q15(to), PLATEAU))
+            .collect();
+        let options = StreamOptions {
+            divider: LOOPBACK_DIVIDER,
+            tick_rate_hz: rate as f64,
+            ..StreamOptions::default()
+        };
+        stream_setpoints(client, &samples, &options, |_| {})
+            .map_err(|e| anyhow::anyhow!("loopback: walking the output: {e}"))
+    };
+    let (low, high) = STEP_LEVELS;
+    walk(client, s0, low)?;
+    let frames = 2 * STEP_TICKS as u32;
+    retry(client, |c| {
+        c.arm_capture(CaptureRequest {
+            signals: Channel::Left.bit() | Channel::Sensor.bit(),
+            samples: frames,
+            pre_trigger: 0,
+            trigger: Trigger::StreamStart,
+            decimation: 1,
+        })
+    })?;
+    let step: Vec<i16> = std::iter::repeat_n(q15(low), STEP_TICKS)
+        .chain(std::iter::repeat_n(q15(high), STEP_TICKS))
+        .collect();
+    let options = StreamOptions {
+        divider: 1,
+        tick_rate_hz: rate as f64,
+        ..StreamOptions::default()
+    };
+    stream_setpoints(client, &step, &options, |_| {})
+        .map_err(|e| anyhow::anyhow!("loopback: streaming the step: {e}"))?;
+    let (values, _) = wait_capture(client, frames * 2)?;
+    walk(client, high, s0)?;
+    Ok(values.chunks_exact(2).map(|p| (p[0], p[1])).collect())
 }
 
 fn span(values: impl Iterator<Item = f64>) -> (f64, f64) {
@@ -211,5 +337,38 @@ fn wait_capture(client: &mut BoardClient, slots: u32) -> anyhow::Result<(Vec<i16
         } else {
             std::thread::sleep(Duration::from_millis(5));
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A step in the code, and the reading `late` ticks behind it with a gain, an offset and a
+    /// two-tick ramp (a slew limit): the delay comes out whole whatever the gain and offset,
+    /// and a reading that does not step gives none.
+    #[test]
+    fn the_delay_is_where_the_reading_crosses_less_where_the_code_does() {
+        let code = |k: usize| -> i16 {
+            match k {
+                0..=29 => 1000,
+                30 => 2000,
+                _ => 3000,
+            }
+        };
+        for late in 0..4usize {
+            let pairs: Vec<(i16, i16)> = (0..80usize)
+                .map(|k| {
+                    let c = code(k.saturating_sub(late)) as f64 / 4096.0;
+                    // 0.97 gain, +0.01 offset, as a fraction of full scale, in Q1.15.
+                    let r = ((0.97 * c + 0.01) * 2.0 - 1.0) * 32768.0;
+                    ((code(k) as u16 * 16) as i16, r as i16)
+                })
+                .collect();
+            let d = loop_delay(&pairs).unwrap();
+            assert!((d - late as f64).abs() < 0.02, "{late}: {d}");
+        }
+        let flat: Vec<(i16, i16)> = (0..80).map(|k| ((code(k) as u16 * 16) as i16, 0)).collect();
+        assert_eq!(loop_delay(&flat), None);
     }
 }

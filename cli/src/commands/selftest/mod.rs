@@ -16,7 +16,10 @@
 //!    the brackets leave plus `--tick-tolerance-ppm`.
 //! 4. **loopback**: with a jumper from the left DAC channel to the sensor ADC's input, a few
 //!    output levels streamed in bypass (range and slew limits hold) and the ADC's reading
-//!    captured beside the DAC's code: the ADC must read what the DAC drives.
+//!    captured beside the DAC's code: the ADC must read what the DAC drives; then a step
+//!    streamed one setpoint a tick and captured every tick: a DAC write must show in the
+//!    reading [`SENSOR_DELAY_TICKS`](twinstack::control::feedback::SENSOR_DELAY_TICKS) ticks
+//!    later, the delay the feedback, the drift check and the learning assume.
 //! 5. **flash**: the settings in force stored, recalled and read back; what flash held before
 //!    is put back.
 //! 6. **watchdog**: last, because it resets the board: a drill ([`Request::WatchdogDrill`])
@@ -118,6 +121,11 @@ pub struct Args {
     /// expects.
     #[arg(long)]
     pub sim_open_loopback: bool,
+    /// `--port sim` only: the in-process board's sensor reading lags this many conversions
+    /// (the board's timing is 1; 0 rehearses converters timed otherwise, which the loopback
+    /// check's delay measurement fails).
+    #[arg(long, value_name = "N")]
+    pub sim_sensor_latency: Option<usize>,
     /// `--port sim` only: every flash write of the in-process board fails.
     #[arg(long)]
     pub sim_fail_flash_writes: bool,
@@ -271,16 +279,28 @@ fn validate(args: &Args, spec: Option<&PortSpec>) -> anyhow::Result<()> {
         ))
         .into());
     }
-    if (args.sim_open_loopback || args.sim_fail_flash_writes || args.sim_no_watchdog)
+    if (args.sim_open_loopback
+        || args.sim_fail_flash_writes
+        || args.sim_no_watchdog
+        || args.sim_sensor_latency.is_some())
         && spec != Some(&PortSpec::Sim)
     {
         return Err(UsageError(
-            "--sim-open-loopback, --sim-fail-flash-writes and --sim-no-watchdog fit the in-process \
-             board (--port sim); a virtual board takes --loopback, --fail-flash-writes and \
-             --no-watchdog itself"
+            "--sim-open-loopback, --sim-sensor-latency, --sim-fail-flash-writes and \
+             --sim-no-watchdog fit the in-process board (--port sim); a virtual board takes \
+             --loopback, --fail-flash-writes and --no-watchdog itself"
                 .to_string(),
         )
         .into());
+    }
+    if let Some(n) = args.sim_sensor_latency {
+        let most = hal_sim::converters::internal_adc::MAX_LATENCY;
+        if n > most {
+            return Err(UsageError(format!(
+                "--sim-sensor-latency {n}: the simulated ADC lags at most {most} conversions"
+            ))
+            .into());
+        }
     }
     Ok(())
 }
@@ -294,6 +314,9 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     validate(args, spec.as_ref())?;
     let mut client = connect_with(&args.port, |config| {
         config.loopback = !args.sim_open_loopback;
+        if let Some(n) = args.sim_sensor_latency {
+            config.sensor_latency = n;
+        }
         config.failing_flash = args.sim_fail_flash_writes;
         config.watchdog = !args.sim_no_watchdog;
     })?;
