@@ -95,14 +95,7 @@ impl Transport for SerialTransport {
         }
         match self.port.read(buf) {
             Ok(n) => Ok(n),
-            Err(e)
-                if matches!(
-                    e.kind(),
-                    io::ErrorKind::TimedOut | io::ErrorKind::WouldBlock
-                ) =>
-            {
-                Ok(0)
-            }
+            Err(e) if crate::transport::nothing_received(e.kind()) => Ok(0),
             Err(e) => Err(e),
         }
     }

@@ -68,14 +68,7 @@ impl Transport for SocketTransport {
         match r {
             Ok(0) if !buf.is_empty() => Err(closed()),
             Ok(n) => Ok(n),
-            Err(e)
-                if matches!(
-                    e.kind(),
-                    io::ErrorKind::TimedOut | io::ErrorKind::WouldBlock
-                ) =>
-            {
-                Ok(0)
-            }
+            Err(e) if crate::transport::nothing_received(e.kind()) => Ok(0),
             Err(e) => Err(e),
         }
     }

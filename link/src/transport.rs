@@ -22,6 +22,24 @@ pub trait Transport {
     }
 }
 
+/// Whether a failed read of a link received nothing, and the caller should go on waiting: its
+/// timeout passed (`TimedOut`, or `WouldBlock` on some back ends), or a signal interrupted the
+/// wait (`Interrupted`, `EINTR`: a child process exiting, a terminal resize) — not an error of
+/// the link.
+///
+/// ```
+/// use std::io::ErrorKind;
+/// use twinstack_link::transport::nothing_received;
+/// assert!(nothing_received(ErrorKind::Interrupted));
+/// assert!(!nothing_received(ErrorKind::BrokenPipe));
+/// ```
+pub fn nothing_received(kind: io::ErrorKind) -> bool {
+    matches!(
+        kind,
+        io::ErrorKind::TimedOut | io::ErrorKind::WouldBlock | io::ErrorKind::Interrupted
+    )
+}
+
 impl<T: Transport + ?Sized> Transport for Box<T> {
     fn send(&mut self, bytes: &[u8]) -> io::Result<()> {
         (**self).send(bytes)
