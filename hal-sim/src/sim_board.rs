@@ -235,7 +235,7 @@ impl InternalBoard {
     pub fn internal(config: &BoardConfig) -> Result<Self, BoardError> {
         checked_sensor_range(config)?;
         let plant = Plant::new(&config.plant).map_err(BoardError::Plant)?;
-        let adc = InternalAdc::new(12, (0.0, 3.3), SENSOR_LATENCY).map_err(BoardError::Adc)?;
+        let adc = internal_adc(SENSOR_LATENCY)?;
         Ok(SimBoard::new(
             InternalDac::new(3.3),
             config.amplifiers(3.3),
@@ -252,9 +252,14 @@ impl InternalBoard {
     /// `twinstack selftest`'s loopback check measures. At most
     /// [`crate::converters::internal_adc::MAX_LATENCY`].
     pub fn set_sensor_latency(&mut self, latency: usize) -> Result<(), BoardError> {
-        self.adc = InternalAdc::new(12, (0.0, 3.3), latency).map_err(BoardError::Adc)?;
+        self.adc = internal_adc(latency)?;
         Ok(())
     }
+}
+
+/// The STM32's sensor ADC: 12 bits over 0–3.3 V, its reading `latency` conversions late.
+fn internal_adc(latency: usize) -> Result<InternalAdc, BoardError> {
+    InternalAdc::new(12, (0.0, 3.3), latency).map_err(BoardError::Adc)
 }
 
 /// Conversions the internal sensor ADC's reading lags: 1, the board's timing — the tick reads

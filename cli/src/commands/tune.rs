@@ -115,6 +115,7 @@ pub fn board_timing(r: &TuneReport) -> (f64, f64) {
 /// The figures as one JSON object (what `--json` prints).
 pub fn report_json(r: &TuneReport) -> serde_json::Value {
     let p = &r.fit.plant;
+    let (latency_s, lead_deg) = board_timing(r);
     serde_json::json!({
         "rate_hz": r.rate,
         "points": r.points.iter().map(|q| serde_json::json!({
@@ -137,8 +138,8 @@ pub fn report_json(r: &TuneReport) -> serde_json::Value {
         })),
         "loaded": r.loaded,
         "board_timing": {
-            "sample_to_output_s": board_timing(r).0,
-            "lead_phase_deg": board_timing(r).1,
+            "sample_to_output_s": latency_s,
+            "lead_phase_deg": lead_deg,
         },
     })
 }

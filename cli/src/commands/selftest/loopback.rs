@@ -71,16 +71,10 @@ pub(super) fn loopback(
     restored.map_err(|e| {
         anyhow::anyhow!("loopback: the settings in force could not be put back: {e}")
     })?;
-    let delay = loop_delay(&step);
-    let fs = dac_full_scale.max(1) as f64;
+    let delay = loop_delay(&step, dac_full_scale);
     let points: Vec<(f64, f64)> = pairs
         .iter()
-        .map(|&(dac, sensor)| {
-            (
-                dac as u16 as f64 / fs,
-                (sensor as f64 / 32768.0 + 1.0) / 2.0,
-            )
-        })
+        .map(|&(dac, sensor)| fractions(dac, sensor, dac_full_scale))
         .collect();
     let (dac_lo, dac_hi) = span(points.iter().map(|p| p.0));
     let (adc_lo, adc_hi) = span(points.iter().map(|p| p.1));
@@ -148,22 +142,29 @@ pub(super) fn loopback(
 }
 
 /// Ticks from a DAC write to the sensor reading that shows it, from `(left code, sensor)`
-/// pairs captured every tick across a step: where each series crosses halfway between its
-/// own levels before and after the step (each averaged over [`STEP_ENDS`] ticks, so the
-/// converters' gain and offset do not matter), interpolated between ticks; the reading's
-/// crossing less the code's. `None` if either series does not step (by a tenth of its full
-/// scale) or never crosses.
-pub(super) fn loop_delay(pairs: &[(i16, i16)]) -> Option<f64> {
+/// pairs captured every tick across a step (the code of a DAC whose full scale is
+/// `dac_full_scale`): where each series crosses halfway between its own levels before and
+/// after the step (each averaged over [`STEP_ENDS`] ticks, so the converters' gain and offset
+/// do not matter), interpolated between ticks; the reading's crossing less the code's. `None`
+/// if either series does not step (by a tenth of its full scale) or never crosses.
+pub(super) fn loop_delay(pairs: &[(i16, i16)], dac_full_scale: u16) -> Option<f64> {
     if pairs.len() < 3 * STEP_ENDS {
         return None;
     }
-    // The DAC's code is unsigned (up to 65 535 on a 16-bit DAC), the reading Q1.15.
-    let code: Vec<f64> = pairs.iter().map(|p| p.0 as u16 as f64 / 65_536.0).collect();
-    let reading: Vec<f64> = pairs
+    let (code, reading): (Vec<f64>, Vec<f64>) = pairs
         .iter()
-        .map(|p| (p.1 as f64 / 32_768.0 + 1.0) / 2.0)
-        .collect();
+        .map(|&(dac, sensor)| fractions(dac, sensor, dac_full_scale))
+        .unzip();
     Some(crossing(&reading)? - crossing(&code)?)
+}
+
+/// A captured `(left DAC code, sensor)` pair as fractions of each converter's full scale: the
+/// code is unsigned (up to 65 535 on a 16-bit DAC), the reading Q1.15 over the ADC's span.
+fn fractions(dac: i16, sensor: i16, dac_full_scale: u16) -> (f64, f64) {
+    (
+        dac as u16 as f64 / dac_full_scale.max(1) as f64,
+        (sensor as f64 / 32768.0 + 1.0) / 2.0,
+    )
 }
 
 /// Where `x` first crosses halfway between its mean over the first and over the last
@@ -172,7 +173,7 @@ pub(super) fn loop_delay(pairs: &[(i16, i16)]) -> Option<f64> {
 fn crossing(x: &[f64]) -> Option<f64> {
     let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len() as f64;
     let (before, after) = (mean(&x[..STEP_ENDS]), mean(&x[x.len() - STEP_ENDS..]));
-    if (after - before).abs() < 0.1 / 16.0 {
+    if (after - before).abs() < 0.1 {
         return None;
     }
     let mid = 0.5 * (before + after);
@@ -192,14 +193,10 @@ fn crossing(x: &[f64]) -> Option<f64> {
 /// after walking the output to its first level, capturing the left DAC code and the sensor
 /// every tick from the step's stream start; then walks the output back to where it was.
 fn step_and_capture(client: &mut BoardClient) -> anyhow::Result<Vec<(i16, i16)>> {
-    let start = capture(client, Channel::Setpoint.bit(), 1, 1)?;
-    let s0 = start.0.first().copied().unwrap_or(0) as f64 / 32768.0;
+    let s0 = output_now(client)?;
     let rate = retry(client, |c| c.status())?.tick_rate_hz.max(1);
     let walk = |client: &mut BoardClient, from: f64, to: f64| {
-        let samples: Vec<i16> = (1..=RAMP)
-            .map(|i| q15(from + (to - from) * i as f64 / RAMP as f64))
-            .chain(std::iter::repeat_n(q15(to), PLATEAU))
-            .collect();
+        let samples: Vec<i16> = ramp_and_hold(from, to).collect();
         let options = StreamOptions {
             divider: LOOPBACK_DIVIDER,
             tick_rate_hz: rate as f64,
@@ -210,6 +207,18 @@ fn step_and_capture(client: &mut BoardClient) -> anyhow::Result<Vec<(i16, i16)>>
     };
     let (low, high) = STEP_LEVELS;
     walk(client, s0, low)?;
+    let stepped = stream_step(client, rate);
+    // Back to where the output was, whether or not the step's capture came.
+    let back = walk(client, high, s0);
+    let values = stepped?;
+    back?;
+    Ok(values.chunks_exact(2).map(|p| (p[0], p[1])).collect())
+}
+
+/// The step itself, streamed at divider 1 from [`STEP_LEVELS`]' first level (where the output
+/// already is) to its second, captured every tick from the stream's start.
+fn stream_step(client: &mut BoardClient, rate: u32) -> anyhow::Result<Vec<i16>> {
+    let (low, high) = STEP_LEVELS;
     let frames = 2 * STEP_TICKS as u32;
     retry(client, |c| {
         c.arm_capture(CaptureRequest {
@@ -230,9 +239,21 @@ fn step_and_capture(client: &mut BoardClient) -> anyhow::Result<Vec<(i16, i16)>>
     };
     stream_setpoints(client, &step, &options, |_| {})
         .map_err(|e| anyhow::anyhow!("loopback: streaming the step: {e}"))?;
-    let (values, _) = wait_capture(client, frames * 2)?;
-    walk(client, high, s0)?;
-    Ok(values.chunks_exact(2).map(|p| (p[0], p[1])).collect())
+    Ok(wait_capture(client, frames * 2)?.0)
+}
+
+/// Where the output is: the setpoint in force, normalised (one captured frame).
+fn output_now(client: &mut BoardClient) -> anyhow::Result<f64> {
+    let start = capture(client, Channel::Setpoint.bit(), 1, 1)?;
+    Ok(start.0.first().copied().unwrap_or(0) as f64 / 32768.0)
+}
+
+/// The streamed setpoints that ramp from `from` to `to` in [`RAMP`] steps and hold `to` for
+/// [`PLATEAU`].
+fn ramp_and_hold(from: f64, to: f64) -> impl Iterator<Item = i16> {
+    (1..=RAMP)
+        .map(move |i| q15(from + (to - from) * i as f64 / RAMP as f64))
+        .chain(std::iter::repeat_n(q15(to), PLATEAU))
 }
 
 fn span(values: impl Iterator<Item = f64>) -> (f64, f64) {
@@ -258,16 +279,11 @@ fn fit_slope(points: &[(f64, f64)]) -> f64 {
 /// Streams the loopback's levels from where the output is back to it, capturing the left
 /// DAC code and the sensor beside it; returns the pairs and the DAC's full-scale code.
 fn drive_and_capture(client: &mut BoardClient) -> anyhow::Result<(Vec<(i16, i16)>, u16)> {
-    // Where the output is: the setpoint in force (one captured frame).
-    let start = capture(client, Channel::Setpoint.bit(), 1, 1)?;
-    let s0 = start.0.first().copied().unwrap_or(0) as f64 / 32768.0;
+    let s0 = output_now(client)?;
     let mut samples = Vec::new();
     let mut from = s0;
     for &level in LOOPBACK_LEVELS.iter().chain(std::iter::once(&s0)) {
-        for i in 1..=RAMP {
-            samples.push(q15(from + (level - from) * i as f64 / RAMP as f64));
-        }
-        samples.extend(std::iter::repeat_n(q15(level), PLATEAU));
+        samples.extend(ramp_and_hold(from, level));
         from = level;
     }
     let status = retry(client, |c| c.status())?;
@@ -362,13 +378,13 @@ mod tests {
                     let c = code(k.saturating_sub(late)) as f64 / 4096.0;
                     // 0.97 gain, +0.01 offset, as a fraction of full scale, in Q1.15.
                     let r = ((0.97 * c + 0.01) * 2.0 - 1.0) * 32768.0;
-                    ((code(k) as u16 * 16) as i16, r as i16)
+                    (code(k), r as i16)
                 })
                 .collect();
-            let d = loop_delay(&pairs).unwrap();
+            let d = loop_delay(&pairs, 4095).unwrap();
             assert!((d - late as f64).abs() < 0.02, "{late}: {d}");
         }
-        let flat: Vec<(i16, i16)> = (0..80).map(|k| ((code(k) as u16 * 16) as i16, 0)).collect();
-        assert_eq!(loop_delay(&flat), None);
+        let flat: Vec<(i16, i16)> = (0..80).map(|k| (code(k), 0)).collect();
+        assert_eq!(loop_delay(&flat, 4095), None);
     }
 }
