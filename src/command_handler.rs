@@ -7,9 +7,10 @@
 //!
 //! * setpoint batches go into the lock-free setpoint queue (`heapless::spsc` producer); the
 //!   credits in every `Ack` are that queue's free slots;
-//! * everything else is one short critical section through an [`rtic_core::Mutex`] (RTIC's
-//!   resource lock on the board, `rtic_core::Exclusive` in the simulator): a few stores, a
-//!   chunk copy, or moving a pointer.
+//! * everything else is one short critical section through [`Locks`] (RTIC's resource locks
+//!   on the board, plain borrows on the host, [`Parts`]): on the control loop a few stores or
+//!   moving a pointer; on the services (the recorder, telemetry's tap) a chunk's piece copied,
+//!   under a lock that never masks the tick.
 //!
 //! A load is validated whole ([`Settings::build`]) and *prepared* here, outside any lock, in the
 //! spare controller ([`ControlLoop::spare`], [`Controller::prepare`]: models relaxed at the
@@ -20,8 +21,7 @@
 
 use core::ops::DerefMut;
 
-use heapless::spsc::Producer;
-use rtic_core::Mutex;
+use heapless::spsc::{Producer, Queue};
 
 use crate::board::Hardware;
 use crate::config::param_store::{RecordStorage, StorageError, StoredRecord, MAX_RECORD};
@@ -30,8 +30,10 @@ use crate::control::{ControlConfig, Controller};
 use crate::control_loop::ControlLoop;
 use crate::dual_stage::{CoarseCommand, CoarseLimits, CoarseRefusal, CoarseStatus};
 use crate::refusal::{Field, Refusal, Rule};
+use crate::services::consumer::Services;
 use crate::services::learning::{self, LearnState, LearnTask, Service};
 use crate::services::recorder::{in_pieces, RecordError, SampleStore};
+use crate::services::snapshot::{SnapshotConsumer, SnapshotRing};
 use crate::services::telemetry::{self, TelemetryPacker, TelemetrySample};
 use crate::sources::analog_input::{AnalogInputConfig, AnalogRequest, AnalogStatus, PreparedInput};
 use crate::sources::scan::{ScanGenerator, ScanRequest, TriggerConfig};
@@ -47,6 +49,91 @@ use crate::protocol::messages::{
     Waveform,
 };
 use heapless::spsc::Consumer;
+
+/// How the command handler reaches the board's two halves, each behind its own lock.
+///
+/// * The control loop ([`ControlLoop`], the tick's resource): its lock masks the tick, so it
+///   is held for a few stores, a pointer swap or one short copy.
+/// * The services ([`Services`]: the recorder and telemetry's tap, the snapshot consumer's
+///   resource): their lock masks only the consumer, never the tick. Taking it first serves
+///   every snapshot the tick has pushed, so what the handler reads or arms is up to date with
+///   the ticks before it.
+///
+/// On the board both are RTIC resources ([`crate::hardware::tick::BoardLocks`]); on the host
+/// plain borrows ([`Parts`]).
+pub trait Locks {
+    /// The loop's handle on a controller.
+    type Controller: DerefMut<Target = Controller>;
+    /// The recorder's buffer.
+    type Store: SampleStore;
+    /// Runs `f` on the control loop, the tick kept out.
+    fn lock<R>(&mut self, f: impl FnOnce(&mut ControlLoop<Self::Controller>) -> R) -> R;
+    /// Runs `f` on the services, the snapshot ring served first, the consumer kept out.
+    fn lock_services<R>(&mut self, f: impl FnOnce(&mut Services<Self::Store>) -> R) -> R;
+}
+
+/// The board's two halves on the host (the simulator, tests): plain borrows of the loop and
+/// the services, and the queues' ends the services use. Taking the services serves the
+/// snapshot ring first, as the board's lock does.
+pub struct Parts<'a, C, B, const T: usize> {
+    /// The control loop.
+    pub control: &'a mut ControlLoop<C>,
+    /// The services.
+    pub services: &'a mut Services<B>,
+    /// The snapshot ring's consumer end.
+    pub snapshots: SnapshotConsumer<'a>,
+    /// The telemetry queue's producer end.
+    pub telemetry: Producer<'a, TelemetrySample, T>,
+}
+
+impl<'a, C, B, const T: usize> Parts<'a, C, B, T> {
+    /// The halves over `control` and `services`, with the consumer end of `snapshots` and the
+    /// producer end of `telemetry`.
+    pub fn new(
+        control: &'a mut ControlLoop<C>,
+        services: &'a mut Services<B>,
+        snapshots: &'a mut SnapshotRing,
+        telemetry: &'a mut Queue<TelemetrySample, T>,
+    ) -> Self {
+        Self {
+            control,
+            services,
+            snapshots: snapshots.split().1,
+            telemetry: telemetry.split().0,
+        }
+    }
+}
+
+impl<C, B, const T: usize> Locks for Parts<'_, C, B, T>
+where
+    C: DerefMut<Target = Controller>,
+    B: SampleStore,
+{
+    type Controller = C;
+    type Store = B;
+
+    fn lock<R>(&mut self, f: impl FnOnce(&mut ControlLoop<C>) -> R) -> R {
+        f(self.control)
+    }
+
+    fn lock_services<R>(&mut self, f: impl FnOnce(&mut Services<B>) -> R) -> R {
+        self.services
+            .consume(&mut self.snapshots, &mut self.telemetry);
+        f(self.services)
+    }
+}
+
+/// The control loop's lock alone, as an [`rtic_core::Mutex`] (what the learning's service
+/// takes: it needs the loop, not the services).
+struct LoopOf<'a, L>(&'a mut L);
+
+impl<L: Locks> rtic_core::Mutex for LoopOf<'_, L> {
+    type T = ControlLoop<L::Controller>;
+
+    fn lock<R>(&mut self, f: impl FnOnce(&mut Self::T) -> R) -> R {
+        self.0.lock(f)
+    }
+}
 
 /// Largest response frame, delimiter included.
 pub const MAX_RESPONSE: usize = MAX_ENCODED + 1;
@@ -133,16 +220,14 @@ impl<S: RecordStorage> CommandHandler<S> {
 
     /// Feeds one received byte. When it completes a frame, the request is handled and the
     /// response frame (delimiter included) is returned, to be sent as it is.
-    pub fn push_byte<const N: usize, B, C, L>(
+    pub fn push_byte<const N: usize, L>(
         &mut self,
         byte: u8,
         queue: &mut Producer<'_, i16, N>,
         control: &mut L,
     ) -> Option<&[u8]>
     where
-        B: SampleStore,
-        C: DerefMut<Target = Controller>,
-        L: Mutex<T = ControlLoop<B, C>>,
+        L: Locks,
     {
         let decoded = match self.decoder.push(byte)? {
             Ok(body) => frame::decode_body::<Request>(body),
@@ -165,16 +250,14 @@ impl<S: RecordStorage> CommandHandler<S> {
     }
 
     /// Feeds received bytes, passing each response frame to `send`.
-    pub fn receive<const N: usize, B, C, L>(
+    pub fn receive<const N: usize, L>(
         &mut self,
         bytes: &[u8],
         queue: &mut Producer<'_, i16, N>,
         control: &mut L,
         mut send: impl FnMut(&[u8]),
     ) where
-        B: SampleStore,
-        C: DerefMut<Target = Controller>,
-        L: Mutex<T = ControlLoop<B, C>>,
+        L: Locks,
     {
         for &b in bytes {
             if let Some(frame) = self.push_byte(b, queue, control) {
@@ -184,16 +267,14 @@ impl<S: RecordStorage> CommandHandler<S> {
     }
 
     /// Answers one request (already decoded).
-    pub fn handle<const N: usize, B, C, L>(
+    pub fn handle<const N: usize, L>(
         &mut self,
         request: Request,
         queue: &mut Producer<'_, i16, N>,
         control: &mut L,
     ) -> Response
     where
-        B: SampleStore,
-        C: DerefMut<Target = Controller>,
-        L: Mutex<T = ControlLoop<B, C>>,
+        L: Locks,
     {
         let done = match request {
             Request::Status => return Response::Status(self.status(queue, control)),
@@ -223,13 +304,15 @@ impl<S: RecordStorage> CommandHandler<S> {
             Request::ReadRecord { offset } => {
                 // Piece by piece, a lock each: a tick falling due waits for one piece's copy.
                 let mut values = heapless::Vec::new();
-                let read = in_pieces(&mut values, |v| control.lock(|c| c.read_record(offset, v)));
+                let read = in_pieces(&mut values, |v| {
+                    control.lock_services(|c| c.read_record(offset, v))
+                });
                 return match read {
                     Ok(()) => Response::RecordChunk { offset, values },
                     // The limit is what the recorder holds now.
                     Err(_) => nack(refused(
                         Field::RecordOffset,
-                        Rule::AtMost(control.lock(|c| c.recorded()) as f64),
+                        Rule::AtMost(control.lock_services(|c| c.recorded()) as f64),
                     )),
                 };
             }
@@ -246,14 +329,16 @@ impl<S: RecordStorage> CommandHandler<S> {
                 // handler arms another): a tick falling due waits for one piece's copy.
                 let mut values = heapless::Vec::new();
                 let read = in_pieces(&mut values, |v| {
-                    control.lock(|c| c.read_capture(offset, count, v))
+                    control.lock_services(|c| c.read_capture(offset, count, v))
                 });
                 return match read {
                     Ok(()) => Response::CaptureChunk { offset, values },
                     Err(RecordError::NotDone) => nack(NackReason::Busy),
                     Err(_) => nack(refused(
                         Field::RecordOffset,
-                        Rule::AtMost(control.lock(|c| c.capture_info()).window_slots() as f64),
+                        Rule::AtMost(
+                            control.lock_services(|c| c.capture_info()).window_slots() as f64
+                        ),
                     )),
                 };
             }
@@ -296,17 +381,17 @@ impl<S: RecordStorage> CommandHandler<S> {
         }
     }
 
-    fn status<const N: usize, B, C, L>(
+    fn status<const N: usize, L>(
         &self,
         queue: &Producer<'_, i16, N>,
         control: &mut L,
     ) -> StatusReport
     where
-        B: SampleStore,
-        C: DerefMut<Target = Controller>,
-        L: Mutex<T = ControlLoop<B, C>>,
+        L: Locks,
     {
         let t = control.lock(|c| c.telemetry());
+        let (recording, recorded, lost) =
+            control.lock_services(|s| (s.is_capturing(), s.recorded(), s.lost()));
         let mut flags = match self.settings.mode {
             Mode::Bypass => 0,
             Mode::OpenLoop => 1,
@@ -317,7 +402,7 @@ impl<S: RecordStorage> CommandHandler<S> {
             (self.defaults, StatusReport::DEFAULTS),
             (t.streaming, StatusReport::STREAMING),
             (t.waveform, StatusReport::WAVEFORM),
-            (t.recording, StatusReport::RECORDING),
+            (recording, StatusReport::RECORDING),
             (self.telemetry.is_active(), StatusReport::TELEMETRY),
             (t.scanning, StatusReport::SCANNING),
             (t.trigger_armed, StatusReport::TRIGGER_ARMED),
@@ -335,14 +420,14 @@ impl<S: RecordStorage> CommandHandler<S> {
             queue_fill: queue.len() as u16,
             credits: credits(queue),
             underruns: t.underruns,
-            overruns: t.overruns,
+            overruns: t.overruns.wrapping_add(lost),
             crc_errors: self.crc_errors,
             frame_errors: self.frame_errors,
             limit_hits: t.limit_hits,
             estimate: t.estimate,
             next_seq: self.next_seq,
             tick_rate_hz: self.hardware.control_rate_hz as u32,
-            recorded: t.recorded,
+            recorded,
             flags,
         }
     }
@@ -371,11 +456,9 @@ impl<S: RecordStorage> CommandHandler<S> {
     /// Validates `settings` whole, prepares them in the spare controller at the stacks'
     /// present voltages (outside any lock) and posts it to the tick.
     #[inline(never)] // rare and large: one copy, not one per caller
-    fn load<B, C, L>(&mut self, settings: Settings, control: &mut L) -> Result<(), NackReason>
+    fn load<L>(&mut self, settings: Settings, control: &mut L) -> Result<(), NackReason>
     where
-        B: SampleStore,
-        C: DerefMut<Target = Controller>,
-        L: Mutex<T = ControlLoop<B, C>>,
+        L: Locks,
     {
         let config = settings
             .build(&self.hardware)
@@ -399,11 +482,9 @@ impl<S: RecordStorage> CommandHandler<S> {
     }
 
     #[inline(never)]
-    fn mode<B, C, L>(&mut self, mode: Mode, control: &mut L) -> Result<(), NackReason>
+    fn mode<L>(&mut self, mode: Mode, control: &mut L) -> Result<(), NackReason>
     where
-        B: SampleStore,
-        C: DerefMut<Target = Controller>,
-        L: Mutex<T = ControlLoop<B, C>>,
+        L: Locks,
     {
         self.settings
             .check_mode(mode)
@@ -416,11 +497,9 @@ impl<S: RecordStorage> CommandHandler<S> {
     }
 
     #[inline(never)] // rare and large: one copy, not one per caller
-    fn store<B, C, L>(&mut self, boot_mode: Mode, control: &mut L) -> Result<(), NackReason>
+    fn store<L>(&mut self, boot_mode: Mode, control: &mut L) -> Result<(), NackReason>
     where
-        B: SampleStore,
-        C: DerefMut<Target = Controller>,
-        L: Mutex<T = ControlLoop<B, C>>,
+        L: Locks,
     {
         self.settings
             .check_mode(boot_mode)
@@ -448,11 +527,9 @@ impl<S: RecordStorage> CommandHandler<S> {
     }
 
     #[inline(never)] // rare and large: one copy, not one per caller
-    fn recall<B, C, L>(&mut self, control: &mut L) -> Result<(), NackReason>
+    fn recall<L>(&mut self, control: &mut L) -> Result<(), NackReason>
     where
-        B: SampleStore,
-        C: DerefMut<Target = Controller>,
-        L: Mutex<T = ControlLoop<B, C>>,
+        L: Locks,
     {
         let record = StoredRecord::decode(self.storage.read(), &self.hardware)
             .map_err(|_| NackReason::NothingStored)?;
@@ -464,11 +541,9 @@ impl<S: RecordStorage> CommandHandler<S> {
     }
 
     #[inline(never)] // rare and large: one copy, not one per caller
-    fn waveform<B, C, L>(&mut self, w: Waveform, control: &mut L) -> Result<(), NackReason>
+    fn waveform<L>(&mut self, w: Waveform, control: &mut L) -> Result<(), NackReason>
     where
-        B: SampleStore,
-        C: DerefMut<Target = Controller>,
-        L: Mutex<T = ControlLoop<B, C>>,
+        L: Locks,
     {
         let shape = match w.shape {
             WaveShape::Sine => Shape::Sine,
@@ -505,11 +580,9 @@ impl<S: RecordStorage> CommandHandler<S> {
     /// and the trigger pulse width, then starts it (or leaves it waiting for the trigger) in
     /// one short lock.
     #[inline(never)] // rare and large: one copy, not one per caller
-    fn scan<B, C, L>(&mut self, r: ScanRequest, control: &mut L) -> Result<(), NackReason>
+    fn scan<L>(&mut self, r: ScanRequest, control: &mut L) -> Result<(), NackReason>
     where
-        B: SampleStore,
-        C: DerefMut<Target = Controller>,
-        L: Mutex<T = ControlLoop<B, C>>,
+        L: Locks,
     {
         let rate = self.hardware.control_rate_hz;
         let pulse = control.lock(|c| c.trigger_pulse_ticks());
@@ -530,11 +603,9 @@ impl<S: RecordStorage> CommandHandler<S> {
 
     /// Applies trigger I/O settings; arming the input is refused if its edge's tick would not
     /// fit the control period beside what runs ([`crate::config::tick_budget::TRIGGER_CYCLES`]).
-    fn trigger<B, C, L>(&mut self, t: TriggerConfig, control: &mut L) -> Result<(), NackReason>
+    fn trigger<L>(&mut self, t: TriggerConfig, control: &mut L) -> Result<(), NackReason>
     where
-        B: SampleStore,
-        C: DerefMut<Target = Controller>,
-        L: Mutex<T = ControlLoop<B, C>>,
+        L: Locks,
     {
         if t.input != crate::sources::scan::TriggerEdge::Off {
             let beside = control.lock(|c| crate::config::tick_budget::Beside {
@@ -551,15 +622,13 @@ impl<S: RecordStorage> CommandHandler<S> {
 
     /// Arms (settings checked outside any lock), stops or reads a TTL-stepped sequence.
     #[inline(never)] // rare: one copy, not one per caller
-    fn sequence<B, C, L>(
+    fn sequence<L>(
         &mut self,
         r: SequenceRequest,
         control: &mut L,
     ) -> Result<Option<SequenceStatus>, NackReason>
     where
-        B: SampleStore,
-        C: DerefMut<Target = Controller>,
-        L: Mutex<T = ControlLoop<B, C>>,
+        L: Locks,
     {
         match r {
             SequenceRequest::Arm(_) if analog_running(control) => Err(NackReason::Busy),
@@ -580,15 +649,13 @@ impl<S: RecordStorage> CommandHandler<S> {
     /// Starts (settings checked and prepared outside any lock; refused while another source
     /// runs), stops or reads the analog setpoint input.
     #[inline(never)] // rare: one copy, not one per caller
-    fn analog<B, C, L>(
+    fn analog<L>(
         &mut self,
         r: AnalogRequest,
         control: &mut L,
     ) -> Result<Option<AnalogStatus>, NackReason>
     where
-        B: SampleStore,
-        C: DerefMut<Target = Controller>,
-        L: Mutex<T = ControlLoop<B, C>>,
+        L: Locks,
     {
         match r {
             AnalogRequest::Start(config) => {
@@ -639,13 +706,11 @@ impl<S: RecordStorage> CommandHandler<S> {
         )
     }
 
-    fn capture_status<B, C, L>(&self, control: &mut L) -> CaptureStatus
+    fn capture_status<L>(&self, control: &mut L) -> CaptureStatus
     where
-        B: SampleStore,
-        C: DerefMut<Target = Controller>,
-        L: Mutex<T = ControlLoop<B, C>>,
+        L: Locks,
     {
-        let (info, capacity) = control.lock(|c| (c.capture_info(), c.capture_capacity()));
+        let (info, capacity) = control.lock_services(|c| (c.capture_info(), c.capture_capacity()));
         CaptureStatus {
             state: info.state,
             signals: info.signals,
@@ -665,11 +730,9 @@ impl<S: RecordStorage> CommandHandler<S> {
     /// Starts or stops telemetry: validated against the control rate (refusals name the
     /// field and its limit), then the tick's tap and the packer start (or stop) together.
     #[inline(never)] // rare: one copy, not one per caller
-    fn telemetry<B, C, L>(&mut self, t: TelemetryRequest, control: &mut L) -> Result<(), NackReason>
+    fn telemetry<L>(&mut self, t: TelemetryRequest, control: &mut L) -> Result<(), NackReason>
     where
-        B: SampleStore,
-        C: DerefMut<Target = Controller>,
-        L: Mutex<T = ControlLoop<B, C>>,
+        L: Locks,
     {
         let rate = self.hardware.control_rate_hz as u32;
         match t {
@@ -680,12 +743,12 @@ impl<S: RecordStorage> CommandHandler<S> {
                 telemetry::check_request(signals, decimation, rate).map_err(NackReason::Refused)?;
                 let wake = telemetry::frame_target(signals, decimation, rate) as u16;
                 let first = control
-                    .lock(|c| c.start_telemetry(signals, decimation, wake))
+                    .lock_services(|c| c.start_telemetry(signals, decimation, wake))
                     .ok_or(refused(Field::TelemetrySignals, Rule::AtMost(127.0)))?;
                 self.telemetry.start(signals, decimation, first, rate);
             }
             TelemetryRequest::Stop => {
-                let end = control.lock(|c| c.stop_telemetry());
+                let end = control.lock_services(|c| c.stop_telemetry());
                 self.telemetry.stop(end);
             }
         }
@@ -718,13 +781,11 @@ impl<S: RecordStorage> CommandHandler<S> {
     /// The learning's work at period boundaries ([`learning::service`]): call it whenever the
     /// low-priority task runs (the tick pends it at each boundary); it returns at once when no
     /// period has completed.
-    pub fn service_learning<B, C, L>(&mut self, control: &mut L) -> Service
+    pub fn service_learning<L>(&mut self, control: &mut L) -> Service
     where
-        B: SampleStore,
-        C: DerefMut<Target = Controller>,
-        L: Mutex<T = ControlLoop<B, C>>,
+        L: Locks,
     {
-        learning::service(&mut self.learn, control)
+        learning::service(&mut self.learn, &mut LoopOf(control))
     }
 
     /// The learning's task half (its table, counters, last period).
@@ -743,21 +804,15 @@ impl<S: RecordStorage> CommandHandler<S> {
     }
 
     #[inline(never)] // rare and large: one copy, not one per caller
-    fn learn<B, C, L>(
-        &mut self,
-        r: LearnRequest,
-        control: &mut L,
-    ) -> Result<Option<Response>, NackReason>
+    fn learn<L>(&mut self, r: LearnRequest, control: &mut L) -> Result<Option<Response>, NackReason>
     where
-        B: SampleStore,
-        C: DerefMut<Target = Controller>,
-        L: Mutex<T = ControlLoop<B, C>>,
+        L: Locks,
     {
         let period = self.learn.config().map_or(0, |c| c.period());
         match r {
             LearnRequest::Configure(s) => match s.build(self.hardware.control_rate_hz) {
                 Ok(config) => {
-                    learning::configure(&mut self.learn, config, control);
+                    learning::configure(&mut self.learn, config, &mut LoopOf(control));
                     Ok(())
                 }
                 Err(refusal) => Err(NackReason::Refused(refusal)),
@@ -785,7 +840,7 @@ impl<S: RecordStorage> CommandHandler<S> {
             }
             LearnRequest::Reset => {
                 self.learn.set_table(&[]);
-                learning::post_table(&self.learn, control);
+                learning::post_table(&self.learn, &mut LoopOf(control));
                 Ok(())
             }
             LearnRequest::Status => {
@@ -828,7 +883,7 @@ impl<S: RecordStorage> CommandHandler<S> {
                 }
             }
             LearnRequest::PostTable => {
-                learning::post_table(&self.learn, control);
+                learning::post_table(&self.learn, &mut LoopOf(control));
                 Ok(())
             }
         }
@@ -885,11 +940,9 @@ fn credits<const N: usize>(queue: &Producer<'_, i16, N>) -> u16 {
 
 /// Whether a watchdog drill is on (the board resets within the watchdog's timeout): a source
 /// start is refused until then.
-fn drilling<B, C, L>(control: &mut L) -> bool
+fn drilling<L>(control: &mut L) -> bool
 where
-    B: SampleStore,
-    C: DerefMut<Target = Controller>,
-    L: Mutex<T = ControlLoop<B, C>>,
+    L: Locks,
 {
     control.lock(|c| !c.feeds_watchdog())
 }
@@ -897,11 +950,9 @@ where
 /// Starts a watchdog drill ([`ControlLoop::drill_watchdog`]) on an idle board with a
 /// watchdog: refused while a setpoint source drives the outputs (the reset would cut it off
 /// mid-motion), and by the emulator image, whose QEMU machine has no watchdog.
-fn watchdog_drill<B, C, L>(control: &mut L) -> Result<(), NackReason>
+fn watchdog_drill<L>(control: &mut L) -> Result<(), NackReason>
 where
-    B: SampleStore,
-    C: DerefMut<Target = Controller>,
-    L: Mutex<T = ControlLoop<B, C>>,
+    L: Locks,
 {
     if Image::THIS == Image::Emulator {
         return Err(NackReason::Unsupported);
@@ -917,20 +968,16 @@ where
 }
 
 /// Whether the analog input is the setpoint source (another source's start is refused).
-fn analog_running<B, C, L>(control: &mut L) -> bool
+fn analog_running<L>(control: &mut L) -> bool
 where
-    B: SampleStore,
-    C: DerefMut<Target = Controller>,
-    L: Mutex<T = ControlLoop<B, C>>,
+    L: Locks,
 {
     control.lock(|c| c.analog_status().running)
 }
 
-fn stream<B, C, L>(c: StreamControl, control: &mut L) -> Result<(), NackReason>
+fn stream<L>(c: StreamControl, control: &mut L) -> Result<(), NackReason>
 where
-    B: SampleStore,
-    C: DerefMut<Target = Controller>,
-    L: Mutex<T = ControlLoop<B, C>>,
+    L: Locks,
 {
     match c {
         StreamControl::Start => control.lock(|c| c.start()),
@@ -946,13 +993,11 @@ where
     Ok(())
 }
 
-fn record<B, C, L>(r: RecordRequest, control: &mut L) -> Result<(), NackReason>
+fn record<L>(r: RecordRequest, control: &mut L) -> Result<(), NackReason>
 where
-    B: SampleStore,
-    C: DerefMut<Target = Controller>,
-    L: Mutex<T = ControlLoop<B, C>>,
+    L: Locks,
 {
-    let capacity = control.lock(|c| c.record_capacity());
+    let capacity = control.lock_services(|c| c.record_capacity());
     if r.decimation == 0 {
         return Err(refused(Field::RecordDecimation, Rule::AtLeast(1.0)));
     }
@@ -963,19 +1008,17 @@ where
         return Err(refused(Field::RecordCount, Rule::AtMost(capacity as f64)));
     }
     control
-        .lock(|c| c.arm_recorder(r.signal, r.count, r.decimation))
+        .lock_services(|c| c.arm_recorder(r.signal, r.count, r.decimation))
         .map_err(|_| refused(Field::RecordCount, Rule::AtMost(capacity as f64)))
 }
 
 #[inline(never)] // rare: one copy, not one per caller
-fn capture<B, C, L>(r: CaptureRequest, control: &mut L) -> Result<(), NackReason>
+fn capture<L>(r: CaptureRequest, control: &mut L) -> Result<(), NackReason>
 where
-    B: SampleStore,
-    C: DerefMut<Target = Controller>,
-    L: Mutex<T = ControlLoop<B, C>>,
+    L: Locks,
 {
     let signals = r.signals.count_ones();
-    let max_frames = control.lock(|c| c.capture_max_frames(signals));
+    let max_frames = control.lock_services(|c| c.capture_max_frames(signals));
     if r.signals == 0 {
         return Err(refused(Field::RecordSignals, Rule::AtLeast(1.0)));
     }
@@ -1003,17 +1046,17 @@ where
         return Err(refused(Field::RecordDecimation, Rule::AtLeast(1.0)));
     }
     control
-        .lock(|c| c.arm_capture(r.signals, r.samples, r.pre_trigger, r.trigger, r.decimation))
+        .lock_services(|c| {
+            c.arm_capture(r.signals, r.samples, r.pre_trigger, r.trigger, r.decimation)
+        })
         .map_err(|_| refused(Field::RecordCount, Rule::AtMost(max_frames as f64)))
 }
 
 /// The coarse axis's limits and latest status, read in one short lock; refused when the image
 /// has no coarse axis (built without `dual-stage`, or its settings refused at boot).
-fn coarse_snapshot<B, C, L>(control: &mut L) -> Result<(CoarseLimits, CoarseStatus), NackReason>
+fn coarse_snapshot<L>(control: &mut L) -> Result<(CoarseLimits, CoarseStatus), NackReason>
 where
-    B: SampleStore,
-    C: DerefMut<Target = Controller>,
-    L: Mutex<T = ControlLoop<B, C>>,
+    L: Locks,
 {
     #[cfg(feature = "dual-stage")]
     {
@@ -1033,14 +1076,12 @@ where
 /// axis's latest status, then left for the coarse task in one short lock. The coarse task
 /// checks it again against the state it is in when it takes it.
 #[inline(never)] // rare: one copy, not one per caller
-fn coarse<B, C, L>(
+fn coarse<L>(
     control: &mut L,
     check: impl FnOnce(&CoarseLimits, &CoarseStatus) -> Result<CoarseCommand, CoarseRefusal>,
 ) -> Result<(), NackReason>
 where
-    B: SampleStore,
-    C: DerefMut<Target = Controller>,
-    L: Mutex<T = ControlLoop<B, C>>,
+    L: Locks,
 {
     let (limits, status) = coarse_snapshot(control)?;
     let command = check(&limits, &status).map_err(|r| match r {

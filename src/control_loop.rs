@@ -1,5 +1,5 @@
-//! The tick side of the board: where each tick's setpoint comes from, the control tick itself,
-//! and the data recorder — everything the timer interrupt runs, in one struct.
+//! The tick side of the board: where each tick's setpoint comes from and the control tick
+//! itself — everything the timer interrupt runs, in one struct.
 //!
 //! One [`ControlLoop::tick`] is:
 //!
@@ -7,8 +7,10 @@
 //!    setpoint queue through [`SetpointStream`] (rate divider with linear interpolation; on an
 //!    empty queue the underrun policy holds or ramps to the rest position, and counts);
 //! 2. [`Controller::tick`] (compensator, sensor, feedback, limits, both DACs);
-//! 3. the recorder captures the chosen signals (a capture armed on a stream or waveform start
-//!    is triggered where that start is commanded, in [`ControlLoop::start`] / [`ControlLoop::play`]).
+//! 3. one [`Snapshot`] of what the tick did onto the snapshot ring, for the services below
+//!    the tick ([`crate::services::consumer`]: the recorder, telemetry's tap). A capture armed
+//!    on a stream or waveform start is triggered by an event the start (commanded in
+//!    [`ControlLoop::start`] / [`ControlLoop::play`]) puts in the next snapshot.
 //!
 //! With a scan ([`crate::sources::scan`], protocol v6) the setpoint comes from the scan generator
 //! instead (step 1), and around it the tick samples the external trigger input (set by the
@@ -43,7 +45,7 @@
 //! handler, on a spare controller the tick does not touch ([`ControlLoop::spare`]). Nothing on
 //! the tick path allocates, panics or loops.
 
-use heapless::spsc::{Consumer, Producer, Queue};
+use heapless::spsc::{Consumer, Queue};
 
 use core::ops::DerefMut;
 
@@ -54,11 +56,8 @@ use crate::control::mode_switch::Mode;
 use crate::control::mode_switch::ModeError;
 use crate::control::{ControlCounters, Controller, TickFlags, TickReport};
 use crate::services::learning::{LearnHost, LearnState, LearnTick};
-use crate::services::recorder::{
-    CaptureInfo, RecordError, Recorder, SampleStore, TickSignals, Trigger,
-};
-use crate::services::recorder::{Signal, MAX_CAPTURE_CHUNK, MAX_CHUNK};
-use crate::services::telemetry::{TelemetrySample, TelemetryTap};
+use crate::services::recorder::Trigger;
+use crate::services::snapshot::{Events, Snapshot, SnapshotProducer, BATCH};
 use crate::sources::analog_input::{AnalogInput, AnalogStatus, PreparedInput};
 use crate::sources::scan::{ExternalTrigger, ScanGenerator, TriggerConfig, TriggerOutputs, INPUT};
 use crate::sources::sequence::{SequenceConfig, SequenceStatus, SteppedSequence};
@@ -103,14 +102,10 @@ pub struct Telemetry {
     pub limit_hits: u32,
     /// The observer's last estimate, Q2.30.
     pub estimate: i32,
-    /// Values the recorder holds.
-    pub recorded: u32,
     /// Whether the stream consumes the queue.
     pub streaming: bool,
     /// Whether the waveform generator runs.
     pub waveform: bool,
-    /// Whether the recorder is capturing.
-    pub recording: bool,
     /// Whether a scan runs (its approach or its pattern; not once its last frame is done).
     pub scanning: bool,
     /// Whether the external trigger input is armed.
@@ -123,7 +118,7 @@ pub struct Telemetry {
     pub analog_fault: bool,
 }
 
-/// Everything the control interrupt owns. `B` is the recorder's buffer; `C` a handle on a
+/// Everything the control interrupt owns. `C` is a handle on a
 /// [`Controller`] (`&'static mut Controller` on the board, `Box<Controller>` on the host): the
 /// loop runs one, and passes a second back and forth with the command handler.
 ///
@@ -132,7 +127,7 @@ pub struct Telemetry {
 /// load reaches in one instruction (the whole-interrupt bench saw +27 instructions a tick).
 #[derive(Debug)]
 #[repr(C)]
-pub struct ControlLoop<B, C> {
+pub struct ControlLoop<C> {
     controller: C,
     /// The controller a swap retired (or the one the handler has not taken yet): the spare.
     spare: Option<C>,
@@ -142,18 +137,17 @@ pub struct ControlLoop<B, C> {
     /// Configurations swapped in since start-up.
     swaps: u32,
     stream: SetpointStream,
-    recorder: Recorder<B>,
     underrun: UnderrunPolicy,
     waveform: bool,
     overruns: u32,
     limit_hits: u32,
     estimate: i32,
     control_rate_hz: u32,
-    /// Continuous telemetry's tick side (off until started).
-    telemetry: TelemetryTap,
-    /// The last tick's signals in their slot formats (computed while a capture or telemetry
-    /// runs): what the capture stores and telemetry's tap sends.
-    signals: TickSignals,
+    /// The recorder's trigger events since the last snapshot (a start commanded between two
+    /// ticks, the external edge seen in this one): they travel with the next snapshot.
+    events: Events,
+    /// The next snapshot's sequence number: ticks since start-up, wrapping.
+    seq: u32,
     /// The coarse axis's mailbox (feature `dual-stage`): once the coarse task has posted a
     /// ramp, the piezo's setpoint comes from it instead of the stream.
     #[cfg(feature = "dual-stage")]
@@ -188,21 +182,19 @@ pub struct ControlLoop<B, C> {
 // load's reach (a field placed after them would cost every tick an extra instruction for
 // each of its accesses).
 const _: () = {
-    type Board = ControlLoop<[i16; 1], &'static mut Controller>;
+    type Board = ControlLoop<&'static mut Controller>;
     let end = core::mem::offset_of!(Board, learning) + core::mem::size_of::<LearnTick>();
     assert!(end + 8 > core::mem::size_of::<Board>());
     assert!(core::mem::offset_of!(Board, learning) < 1024);
 };
 
-impl<B, C> ControlLoop<B, C>
+impl<C> ControlLoop<C>
 where
-    B: SampleStore,
     C: DerefMut<Target = Controller>,
 {
     /// The loop at rest on `controller`, with `spare` for the handler's reloads: stream
-    /// stopped (holding the setpoint), divider 1, underrun policy hold, recorder idle over
-    /// `record_buffer`.
-    pub fn new(controller: C, spare: C, control_rate_hz: u32, record_buffer: B) -> Self {
+    /// stopped (holding the setpoint), divider 1, underrun policy hold.
+    pub fn new(controller: C, spare: C, control_rate_hz: u32) -> Self {
         let stream = SetpointStream::new(controller.setpoint());
         Self {
             controller,
@@ -210,15 +202,14 @@ where
             counted: ControlCounters::default(),
             swaps: 0,
             stream,
-            recorder: Recorder::new(record_buffer),
             underrun: UnderrunPolicy::Hold,
             waveform: false,
             overruns: 0,
             limit_hits: 0,
             estimate: 0,
             control_rate_hz,
-            telemetry: TelemetryTap::new(),
-            signals: TickSignals::default(),
+            events: Events::NONE,
+            seq: 0,
             #[cfg(feature = "dual-stage")]
             coarse: crate::dual_stage::CoarseLink::new(),
             learning: LearnTick::new(),
@@ -240,6 +231,7 @@ where
     pub fn tick<const N: usize, A: SensorAdc, D: DualDac>(
         &mut self,
         queue: &mut Consumer<'_, i16, N>,
+        snapshots: &mut SnapshotProducer<'_>,
         adc: &mut A,
         dac: &mut D,
     ) -> TickReport {
@@ -289,15 +281,21 @@ where
             self.limit_hits = self.limit_hits.wrapping_add(1);
         }
         self.estimate = report.estimate;
-        // The tick's signals in their slot formats, once, for the capture and telemetry's
-        // tap (taken after the tick, [`ControlLoop::tap_telemetry`]).
+        // One snapshot for the services below the tick (the recorder, telemetry's tap):
+        // a fixed-size copy. A full ring refuses it; the sequence number's gap tells the
+        // consumer ([`crate::services::consumer::Services::consume`]).
         let setpoint = self.controller.setpoint();
-        if self.recorder.is_capturing() || self.telemetry.is_running() {
-            self.signals = TickSignals::of(setpoint, report.measured, &report);
-        }
-        self.recorder
-            .capture(&self.signals, setpoint, report.measured, &report);
+        let _ = snapshots.enqueue(Snapshot::of(self.seq, setpoint, &report, self.events));
+        self.seq = self.seq.wrapping_add(1);
+        self.events = Events::NONE;
         report
+    }
+
+    /// Whether the services' consumer is due: one wake every [`BATCH`] snapshots (the tick's
+    /// caller pends it).
+    #[inline(always)]
+    pub fn services_due(&self) -> bool {
+        self.seq % BATCH == 0
     }
 
     /// The scan's setpoint and events this tick (`None` without a running scan).
@@ -396,11 +394,11 @@ where
             if let Some(g) = self.scan.as_mut() {
                 g.start(from);
             }
-            self.recorder.trigger(Trigger::ScanStart);
+            self.events.add(Trigger::ScanStart);
         } else if self.stream_on_trigger {
             self.start();
         }
-        self.recorder.trigger(Trigger::External);
+        self.events.add(Trigger::External);
     }
 
     /// The board's trigger input level, sampled before each tick (the tick looks for the
@@ -445,7 +443,7 @@ where
         self.stream.hold_at_if_stopped(self.controller.setpoint());
         if !on_trigger {
             scan.start(self.controller.setpoint());
-            self.recorder.trigger(Trigger::ScanStart);
+            self.events.add(Trigger::ScanStart);
         }
         self.scan = Some(scan);
         self.scan_pending = on_trigger;
@@ -480,37 +478,6 @@ where
     /// The scan (running, done or waiting), for the host's simulated board to inspect.
     pub fn scan_generator(&self) -> Option<&ScanGenerator> {
         self.scan.as_ref()
-    }
-
-    /// Telemetry's part of a tick, right after [`ControlLoop::tick`] (same interrupt): on a
-    /// sample tick, that tick's signals onto the telemetry queue (or counted as an overflow).
-    /// Returns whether to wake the packer (a frame's worth of samples taken since the last wake,
-    /// queued or dropped).
-    /// O(1); see [`TelemetryTap::push`].
-    #[inline(always)]
-    pub fn tap_telemetry<const N: usize>(
-        &mut self,
-        queue: &mut Producer<'_, TelemetrySample, N>,
-    ) -> bool {
-        self.telemetry.push(queue, &self.signals)
-    }
-
-    /// Starts telemetry of `mask` every `decimation` ticks (see [`TelemetryTap::start`]);
-    /// the index of its first sample, or `None` for a bad mask or decimation. The tap wakes
-    /// the packer at `wake` queued samples (a frame's worth, [`crate::services::telemetry::frame_target`]).
-    pub fn start_telemetry(&mut self, mask: u8, decimation: u16, wake: u16) -> Option<u32> {
-        self.telemetry.wake_at(wake);
-        self.telemetry.start(mask, decimation)
-    }
-
-    /// Stops telemetry; the index its next sample would have carried.
-    pub fn stop_telemetry(&mut self) -> u32 {
-        self.telemetry.stop()
-    }
-
-    /// Telemetry samples dropped on a full queue since power-up.
-    pub fn telemetry_overflows(&self) -> u32 {
-        self.telemetry.overflows()
     }
 
     /// The coarse axis's mailbox (feature `dual-stage`), for the handler's short lock.
@@ -593,7 +560,7 @@ where
         self.end_analog();
         self.stream.start();
         self.learning.restart();
-        self.recorder.trigger(Trigger::StreamStart);
+        self.events.add(Trigger::StreamStart);
     }
 
     /// Stops the stream or the waveform: the setpoint holds; queued setpoints stay queued.
@@ -646,76 +613,7 @@ where
         self.waveform = true;
         self.stream.play(waveform);
         self.learning.restart();
-        self.recorder.trigger(Trigger::WaveformStart);
-    }
-
-    /// Arms the recorder (see [`Recorder::arm`]).
-    pub fn arm_recorder(
-        &mut self,
-        signal: Signal,
-        count: u32,
-        decimation: u16,
-    ) -> Result<(), RecordError> {
-        self.recorder.arm(signal, count, decimation)
-    }
-
-    /// Appends the next piece of the recorded values' chunk from `offset` (see
-    /// [`Recorder::read_piece`]: a short copy, for one lock of the command handler's).
-    pub fn read_record(
-        &self,
-        offset: u32,
-        out: &mut heapless::Vec<i32, MAX_CHUNK>,
-    ) -> Result<usize, RecordError> {
-        self.recorder.read_piece(offset, out)
-    }
-
-    /// Values the recorder holds (what a read may reach).
-    pub fn recorded(&self) -> u32 {
-        self.recorder.recorded()
-    }
-
-    /// Most values one v3 `Record` holds.
-    pub fn record_capacity(&self) -> usize {
-        self.recorder.record_capacity()
-    }
-
-    /// Slots of the capture buffer.
-    pub fn capture_capacity(&self) -> usize {
-        self.recorder.capacity()
-    }
-
-    /// Most frames a capture of `signals` signals holds (see [`Recorder::max_frames`]).
-    pub fn capture_max_frames(&self, signals: u32) -> u32 {
-        self.recorder.max_frames(signals)
-    }
-
-    /// Arms a multi-signal capture (see [`Recorder::arm_capture`]).
-    pub fn arm_capture(
-        &mut self,
-        mask: u8,
-        samples: u32,
-        pre: u32,
-        trigger: Trigger,
-        decimation: u16,
-    ) -> Result<(), RecordError> {
-        self.recorder
-            .arm_capture(mask, samples, pre, trigger, decimation)
-    }
-
-    /// The capture's settings and progress (see [`Recorder::capture_info`]).
-    pub fn capture_info(&self) -> CaptureInfo {
-        self.recorder.capture_info()
-    }
-
-    /// Appends the next piece of a complete capture's chunk (see
-    /// [`Recorder::read_capture_piece`]: a short copy, for one lock of the command handler's).
-    pub fn read_capture(
-        &self,
-        offset: u32,
-        count: u16,
-        out: &mut heapless::Vec<i16, MAX_CAPTURE_CHUNK>,
-    ) -> Result<usize, RecordError> {
-        self.recorder.read_capture_piece(offset, count, out)
+        self.events.add(Trigger::WaveformStart);
     }
 
     /// Counters and state for the status report.
@@ -727,10 +625,8 @@ where
             overruns: self.overruns,
             limit_hits: self.limit_hits,
             estimate: self.estimate,
-            recorded: self.recorder.recorded(),
             streaming: self.stream.is_running() && !self.waveform,
             waveform: self.waveform,
-            recording: self.recorder.is_capturing(),
             scanning: self.is_scanning(),
             trigger_armed: self.external.is_armed(),
             sequence: self.sequence.is_armed(),
@@ -799,9 +695,8 @@ where
     }
 }
 
-impl<B, C> LearnHost for ControlLoop<B, C>
+impl<C> LearnHost for ControlLoop<C>
 where
-    B: SampleStore,
     C: DerefMut<Target = Controller>,
 {
     fn learning(&self) -> &LearnTick {

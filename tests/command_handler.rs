@@ -6,9 +6,8 @@
 
 use core::convert::Infallible;
 
-use rtic_core::Exclusive;
 use twinstack::board::{AdcCode, DacCode, DualDac, Hardware, SensorAdc};
-use twinstack::command_handler::CommandHandler;
+use twinstack::command_handler::{CommandHandler, Parts};
 use twinstack::config::param_store::{
     self, RamStorage, ReadOnlyStorage, RecordStorage, StorageError, StoredRecord, MAX_RECORD,
 };
@@ -23,7 +22,10 @@ use twinstack::protocol::decoder::FrameDecoder;
 use twinstack::protocol::frame::{self, FrameError, MAX_ENCODED, PROTOCOL_VERSION};
 use twinstack::protocol::messages::*;
 use twinstack::refusal::{Field, ModelField, Refusal, Rule};
+use twinstack::services::consumer::Services;
 use twinstack::services::recorder::Channel;
+use twinstack::services::snapshot::SnapshotRing;
+use twinstack::services::telemetry::TelemetryQueue;
 
 struct Dac(DacCode, DacCode);
 impl DualDac for Dac {
@@ -69,8 +71,11 @@ fn hardware() -> Hardware {
 /// A board: handler, control loop, queue, converters.
 struct Board<S> {
     handler: CommandHandler<S>,
-    control: ControlLoop<Vec<i16>, Box<Controller>>,
+    control: ControlLoop<Box<Controller>>,
+    services: Services<Vec<i16>>,
     queue: &'static mut SetpointQueue,
+    snapshots: &'static mut SnapshotRing,
+    telemetry: &'static mut TelemetryQueue,
     dac: Dac,
     adc: Adc,
     /// The loop's swap count before the last request.
@@ -89,9 +94,11 @@ fn board_on<S: RecordStorage>(storage: S, hw: Hardware) -> Board<S> {
             Box::new(Controller::new(config)),
             Box::new(Controller::new(config)),
             RATE,
-            vec![0i16; 2 * RECORD_LEN],
         ),
+        services: Services::new(vec![0i16; 2 * RECORD_LEN]),
         queue: Box::leak(Box::new(SetpointQueue::new())),
+        snapshots: Box::leak(Box::new(SnapshotRing::new())),
+        telemetry: Box::leak(Box::new(TelemetryQueue::new())),
         dac: Dac(DacCode(0), DacCode(0)),
         adc: Adc(2048),
         swaps_before: 0,
@@ -148,8 +155,13 @@ impl<S: RecordStorage> Board<S> {
     fn handle(&mut self, request: Request) -> Response {
         self.swaps_before = self.control.swaps();
         let (mut p, _) = self.queue.split();
-        self.handler
-            .handle(request, &mut p, &mut Exclusive(&mut self.control))
+        let mut locks = Parts::new(
+            &mut self.control,
+            &mut self.services,
+            self.snapshots,
+            self.telemetry,
+        );
+        self.handler.handle(request, &mut p, &mut locks)
     }
 
     /// Bytes in, response frames out (decoded).
@@ -157,18 +169,32 @@ impl<S: RecordStorage> Board<S> {
         self.swaps_before = self.control.swaps();
         let (mut p, _) = self.queue.split();
         let mut frames = Vec::new();
+        let mut locks = Parts::new(
+            &mut self.control,
+            &mut self.services,
+            self.snapshots,
+            self.telemetry,
+        );
         self.handler
-            .receive(bytes, &mut p, &mut Exclusive(&mut self.control), |f| {
-                frames.push(f.to_vec())
-            });
+            .receive(bytes, &mut p, &mut locks, |f| frames.push(f.to_vec()));
         frames.iter().map(|f| decode_response(f)).collect()
     }
 
     fn ticks(&mut self, n: usize) {
         for _ in 0..n {
-            let (_, mut c) = self.queue.split();
-            self.control.tick(&mut c, &mut self.adc, &mut self.dac);
+            self.tick();
         }
+    }
+
+    /// One tick, and the services' batch when it is due, as the board runs them; whether the
+    /// services woke the telemetry packer.
+    fn tick(&mut self) -> bool {
+        let (_, mut c) = self.queue.split();
+        let (mut snapshots, mut served) = self.snapshots.split();
+        self.control
+            .tick(&mut c, &mut snapshots, &mut self.adc, &mut self.dac);
+        let (mut samples, _) = self.telemetry.split();
+        self.control.services_due() && self.services.consume(&mut served, &mut samples)
     }
 
     fn status(&mut self) -> StatusReport {
@@ -882,9 +908,11 @@ fn mode_changes_are_checked_against_the_settings_and_switch_between_two_ticks() 
             Box::new(Controller::new(config)),
             Box::new(Controller::new(config)),
             RATE,
-            vec![0i16; 32],
         ),
+        services: Services::new(vec![0i16; 32]),
         queue: Box::leak(Box::new(SetpointQueue::new())),
+        snapshots: Box::leak(Box::new(SnapshotRing::new())),
+        telemetry: Box::leak(Box::new(TelemetryQueue::new())),
         dac: Dac(DacCode(0), DacCode(0)),
         adc: Adc(0),
         swaps_before: 0,
@@ -1307,11 +1335,16 @@ fn a_capture_triggered_by_the_stream_holds_its_setpoints_and_the_dac_codes() {
         b.handle(Request::Stream(StreamControl::Start)),
         Response::Ack { .. }
     ));
-    assert_eq!(status(&mut b).state, CaptureState::Triggered);
+    // The start reaches the recorder with the next tick's snapshot: the trigger frame is
+    // that tick's.
+    assert_eq!(status(&mut b).state, CaptureState::Armed);
     let mut codes = Vec::new();
-    for _ in 0..60 {
+    for k in 0..60 {
         b.ticks(1);
         codes.push(b.outputs());
+        if k == 0 {
+            assert_eq!(status(&mut b).state, CaptureState::Triggered);
+        }
     }
     let s = status(&mut b);
     assert_eq!(
@@ -1739,7 +1772,7 @@ fn arming_the_trigger_input_where_its_edge_would_overrun_the_tick_is_refused() {
 /// the packer's own frame target, and at every wake a frame is due and packed.
 #[test]
 fn the_telemetry_packer_is_woken_by_the_queue_s_fill_level_not_per_tick() {
-    use twinstack::services::telemetry::{frame_target, TelemetryQueue};
+    use twinstack::services::telemetry::frame_target;
     let mut b = board();
     let (signals, decimation) = (0b11, 2);
     assert!(matches!(
@@ -1751,16 +1784,14 @@ fn the_telemetry_packer_is_woken_by_the_queue_s_fill_level_not_per_tick() {
     ));
     let target = frame_target(signals, decimation, RATE);
     assert!(target > 1, "a frame's worth of {target} samples");
-    let queue: &'static mut TelemetryQueue = Box::leak(Box::new(TelemetryQueue::new()));
-    let (mut tap, mut packer) = queue.split();
     let ticks = 4_000;
     let (mut wakes, mut frames) = (0, 0);
     for _ in 0..ticks {
-        b.ticks(1);
-        if !b.control.tap_telemetry(&mut tap) {
+        if !b.tick() {
             continue;
         }
         wakes += 1;
+        let (_, mut packer) = b.telemetry.split();
         assert!(
             packer.len() >= target,
             "woken at {} queued samples, a frame is {target}",
@@ -1779,5 +1810,5 @@ fn the_telemetry_packer_is_woken_by_the_queue_s_fill_level_not_per_tick() {
         "{samples} samples, {target} a frame"
     );
     assert!(frames >= wakes);
-    assert_eq!(b.control.telemetry_overflows(), 0);
+    assert_eq!(b.services.telemetry_overflows(), 0);
 }

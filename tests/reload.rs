@@ -6,10 +6,9 @@
 //! stack moves only towards the new voltage limits until it is inside them, then stays there.
 
 use proptest::prelude::*;
-use rtic_core::Exclusive;
 use twinstack::board::fakes::{FixedAdc, RecordingDac};
 use twinstack::board::{AdcCode, DacCode, Hardware};
-use twinstack::command_handler::CommandHandler;
+use twinstack::command_handler::{CommandHandler, Parts};
 use twinstack::config::param_store::RamStorage;
 use twinstack::config::settings::{
     pi_model, FeedbackSettings, Mode, Model, SensorSettings, Settings,
@@ -20,6 +19,9 @@ use twinstack::control_loop::{ControlLoop, SetpointQueue};
 use twinstack::models::generalised_pi::{DeadZoneParams, GpiParams};
 use twinstack::models::params::DuhemParams;
 use twinstack::protocol::messages::{Request, Response, SetpointBatch, StreamControl};
+use twinstack::services::consumer::Services;
+use twinstack::services::snapshot::SnapshotRing;
+use twinstack::services::telemetry::TelemetryQueue;
 use twinstack::Scaling;
 
 const RATE: f64 = 50_000.0;
@@ -183,8 +185,16 @@ proptest! {
             Box::new(Controller::new(config)),
             Box::new(Controller::new(config)),
             RATE as u32,
-            vec![0i16; 2048],
         );
+        let mut services = Services::new(vec![0i16; 2048]);
+        let snapshots: &'static mut SnapshotRing = Box::leak(Box::new(SnapshotRing::new()));
+        let telemetry: &'static mut TelemetryQueue = Box::leak(Box::new(TelemetryQueue::new()));
+        // The handler's two locks: the loop, and the services (the snapshots served first).
+        macro_rules! locks {
+            () => {
+                &mut Parts::new(&mut control, &mut services, snapshots, telemetry)
+            };
+        }
         let mut handler = CommandHandler::new(HW, boot.clone(), false, RamStorage::default());
         let queue: &'static mut SetpointQueue = Box::leak(Box::new(SetpointQueue::new()));
         let (mut producer, mut consumer) = queue.split();
@@ -209,7 +219,7 @@ proptest! {
                             before = core::mem::replace(&mut now, next);
                             settled_inside = [false, false];
                         }
-                        let report = control.tick(&mut consumer, &mut adc, &mut dac);
+                        let report = control.tick(&mut consumer, &mut snapshots.split().0, &mut adc, &mut dac);
                         let volts = (dac.left.0 as f64 * VOLTS_PER_CODE, dac.right.0 as f64 * VOLTS_PER_CODE);
                         let slew = |s: &Settings| s.drive.slew_rate / RATE;
                         let allowed = if report.flags.contains(TickFlags::SETTLING) {
@@ -236,19 +246,19 @@ proptest! {
                 }
                 Event::Batch { samples } => {
                     let batch = SetpointBatch { seq, samples: samples.into_iter().take(96).collect() };
-                    let r = handler.handle(Request::Setpoints(batch), &mut producer, &mut Exclusive(&mut control));
+                    let r = handler.handle(Request::Setpoints(batch), &mut producer, locks!());
                     if matches!(r, Response::Ack { .. }) {
                         seq = seq.wrapping_add(1);
                     }
                 }
                 Event::Load(s) => {
-                    let r = handler.handle(Request::LoadParams((*s).clone()), &mut producer, &mut Exclusive(&mut control));
+                    let r = handler.handle(Request::LoadParams((*s).clone()), &mut producer, locks!());
                     prop_assert!(matches!(r, Response::Ack { .. }), "an accepted settings set is acked: {r:?}");
                     pending = Some(*s);
                 }
                 Event::Mode(m) => {
                     let mode = [Mode::Bypass, Mode::OpenLoop, Mode::ClosedLoop][m as usize];
-                    let r = handler.handle(Request::Mode(mode), &mut producer, &mut Exclusive(&mut control));
+                    let r = handler.handle(Request::Mode(mode), &mut producer, locks!());
                     let newest = pending.as_ref().unwrap_or(&now);
                     prop_assert_eq!(matches!(r, Response::Ack { .. }), newest.check_mode(mode).is_ok(), "{:?}", r);
                     if matches!(r, Response::Ack { .. }) {
@@ -260,7 +270,7 @@ proptest! {
                 }
                 Event::Stream(on) => {
                     let c = if on { StreamControl::Start } else { StreamControl::Stop };
-                    handler.handle(Request::Stream(c), &mut producer, &mut Exclusive(&mut control));
+                    handler.handle(Request::Stream(c), &mut producer, locks!());
                 }
             }
         }
@@ -285,8 +295,15 @@ fn a_load_with_another_input_range_does_not_step_the_outputs() {
         Box::new(Controller::new(config)),
         Box::new(Controller::new(config)),
         RATE as u32,
-        vec![0i16; 32],
     );
+    let mut services = Services::new(vec![0i16; 32]);
+    let snapshots: &'static mut SnapshotRing = Box::leak(Box::new(SnapshotRing::new()));
+    let telemetry: &'static mut TelemetryQueue = Box::leak(Box::new(TelemetryQueue::new()));
+    macro_rules! locks {
+        () => {
+            &mut Parts::new(&mut control, &mut services, snapshots, telemetry)
+        };
+    }
     let mut handler = CommandHandler::new(HW, first, false, RamStorage::default());
     let queue: &'static mut SetpointQueue = Box::leak(Box::new(SetpointQueue::new()));
     let (mut producer, mut consumer) = queue.split();
@@ -299,24 +316,20 @@ fn a_load_with_another_input_range_does_not_step_the_outputs() {
             samples: [9830i16; 8].into_iter().collect(),
         }),
         &mut producer,
-        &mut Exclusive(&mut control),
+        locks!(),
     );
     handler.handle(
         Request::Stream(StreamControl::Start),
         &mut producer,
-        &mut Exclusive(&mut control),
+        locks!(),
     );
     for _ in 0..100 {
-        control.tick(&mut consumer, &mut adc, &mut dac);
+        control.tick(&mut consumer, &mut snapshots.split().0, &mut adc, &mut dac);
     }
     let held = (dac.left, dac.right);
-    let r = handler.handle(
-        Request::LoadParams(second),
-        &mut producer,
-        &mut Exclusive(&mut control),
-    );
+    let r = handler.handle(Request::LoadParams(second), &mut producer, locks!());
     assert!(matches!(r, Response::Ack { .. }), "{r:?}");
-    control.tick(&mut consumer, &mut adc, &mut dac);
+    control.tick(&mut consumer, &mut snapshots.split().0, &mut adc, &mut dac);
     let step = |a: DacCode, b: DacCode| (a.0 as i32 - b.0 as i32).abs();
     assert!(
         step(held.0, dac.left) <= 1 && step(held.1, dac.right) <= 1,

@@ -30,7 +30,7 @@ use twinstack::fixed_point::{signal_from_f64, signal_to_f64};
 use twinstack::services::learning::{
     configure, post_table, service, LearnSettings, LearnState, LearnTask, MAX_BINS,
 };
-use twinstack::services::recorder::CAPTURE_SLOTS;
+use twinstack::services::snapshot::SnapshotRing;
 use twinstack::sources::waveform::{Shape, WaveformGenerator};
 use twinstack_identify::identification::score::score;
 use twinstack_identify::stage_model::StageModel;
@@ -312,7 +312,7 @@ impl LearnReport {
 }
 
 /// The loop the study runs: the library's, with the simulator's buffers.
-type SimLoop = ControlLoop<Vec<i16>, Box<Controller>>;
+type SimLoop = ControlLoop<Box<Controller>>;
 
 /// A run of the waveform on one board: the loop, the task, the setpoint and the stage.
 struct Rig {
@@ -320,6 +320,9 @@ struct Rig {
     control: SimLoop,
     task: LearnTask,
     queue: Box<SetpointQueue>,
+    /// The tick's snapshots (the study records from the stage, not the board's recorder:
+    /// they are dropped after each tick).
+    snapshots: Box<SnapshotRing>,
     scaling: twinstack::Scaling,
     period: usize,
     rate: f64,
@@ -334,7 +337,6 @@ impl Rig {
             Box::new(Controller::new(config)),
             Box::new(Controller::new(config)),
             options.rate.round() as u32,
-            vec![0; CAPTURE_SLOTS],
         );
         let learn = options
             .learn_settings(period)
@@ -347,6 +349,7 @@ impl Rig {
             control,
             task,
             queue: Box::new(SetpointQueue::new()),
+            snapshots: Box::new(SnapshotRing::new()),
             scaling: settings.ranges,
             period: period as usize,
             rate: options.rate,
@@ -390,7 +393,10 @@ impl Rig {
         for _ in 0..self.period {
             let (_, mut consumer) = self.queue.split();
             let (mut dac, mut adc) = self.board.split();
-            self.control.tick(&mut consumer, &mut adc, &mut dac);
+            let (mut snapshots, mut dropped) = self.snapshots.split();
+            self.control
+                .tick(&mut consumer, &mut snapshots, &mut adc, &mut dac);
+            while dropped.dequeue().is_some() {}
             service(&mut self.task, &mut Exclusive(&mut self.control));
             desired.push(
                 self.scaling

@@ -22,7 +22,6 @@ use twinstack::dual_stage::{
     CoarseLimits, CoarseStatus, CoarseSupervisor, DualStage, DualStageSettings, SupervisorSettings,
     PM_PER_UM,
 };
-use twinstack::services::recorder::SampleStore;
 
 impl CoarseAxisSim for CoarseRig {
     fn limits(&self) -> CoarseLimits {
@@ -31,7 +30,7 @@ impl CoarseAxisSim for CoarseRig {
     fn status(&self) -> CoarseStatus {
         CoarseRig::status(self)
     }
-    fn before_tick(&mut self, control: &mut ControlLoop<Vec<i16>, Box<Controller>>) {
+    fn before_tick(&mut self, control: &mut ControlLoop<Box<Controller>>) {
         CoarseRig::before_tick(self, control)
     }
     fn after_tick(&mut self, piezo_um: f64, report: &TickReport) {
@@ -257,7 +256,7 @@ impl CoarseRig {
     }
 
     /// Before a control tick: every `fine_ticks` ticks, the coarse tick and the exchange.
-    pub fn before_tick<B: SampleStore>(&mut self, control: &mut ControlLoop<B, Box<Controller>>) {
+    pub fn before_tick(&mut self, control: &mut ControlLoop<Box<Controller>>) {
         if self.phase == 0 {
             let carriage = self.screw.carriage_um();
             let at = |um: f64| carriage <= um;

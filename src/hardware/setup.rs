@@ -20,17 +20,19 @@ use rtic_core::Mutex;
 use stm32f4xx_hal::pac::{self, Interrupt};
 
 use crate::board::Hardware;
-use crate::command_handler::{CommandHandler, MAX_RESPONSE};
+use crate::command_handler::{CommandHandler, Locks, MAX_RESPONSE};
 use crate::config::param_store::{self, ParamSource};
 use crate::control::Controller;
 use crate::control_loop::{SetpointQueue, SETPOINT_QUEUE_LEN};
+use crate::services::consumer::Services;
 use crate::services::recorder::SplitStore;
+use crate::services::snapshot::SnapshotRing;
 use crate::services::telemetry::{FrameLink, TelemetryQueue, TelemetrySample, TELEMETRY_QUEUE_LEN};
 
 use super::adc::SensorInput;
 use super::control_timer::ControlTimer;
 use super::dac::InternalDac;
-use super::tick::{ControlTick, LoopLock, SRAM_SLOTS};
+use super::tick::{BoardLocks, ControlTick, ServiceSide, SRAM_SLOTS};
 use super::watchdog::Watchdog;
 use super::{clocks, param_flash, pins, profile, safe_state, usart};
 
@@ -44,6 +46,10 @@ pub const RX_QUEUE: usize = 2048;
 /// The command task's interrupt (a software interrupt: nothing raises EXTI0 but [`pend`]).
 /// Every image binds its command task here.
 pub const COMMAND_IRQ: Interrupt = Interrupt::EXTI0;
+
+/// The services' task's interrupt (a software interrupt: the tick pends it once a batch of
+/// snapshots, [`crate::services::snapshot::BATCH`]). Every image binds its services task here.
+pub const SERVICES_IRQ: Interrupt = Interrupt::EXTI2;
 
 /// The parameter storage: flash sector 11 on a board.
 #[cfg(not(feature = "emulator"))]
@@ -97,8 +103,10 @@ pub struct CommandSide {
 pub struct Statics {
     /// The received bytes' queue.
     pub rx_queue: &'static mut Queue<u8, RX_QUEUE>,
-    /// Telemetry's queue, from the tick's tap to the command task's packer.
+    /// Telemetry's queue, from the services' tap to the command task's packer.
     pub telemetry_queue: &'static mut TelemetryQueue,
+    /// The snapshot ring, from the tick to the services.
+    pub snapshot_ring: &'static mut SnapshotRing,
     /// The SRAM part of the capture buffer.
     pub record_buffer: &'static mut [i16; SRAM_SLOTS],
 }
@@ -106,8 +114,12 @@ pub struct Statics {
 /// The board, brought up: what the RTIC shell hands to its tasks, the same type on every
 /// target.
 pub struct Board {
-    /// The control interrupt's resources (shared with the command task through [`LoopLock`]).
+    /// The control interrupt's resources (shared with the command task through
+    /// [`BoardLocks`]).
     pub tick: ControlTick,
+    /// The services' resources (the recorder, telemetry's tap; shared with the command task
+    /// through [`BoardLocks`]).
+    pub services: ServiceSide,
     /// The link's receive side.
     pub receiver: Receiver,
     /// The link's transmit side.
@@ -191,7 +203,7 @@ pub fn setup(
     };
     let capture_buffer = SplitStore::new(statics.record_buffer, capture_second_part());
     // Built in its static: the loop (8 KiB) never sits on the boot's stack.
-    let Some(control) = super::tick::control_loop(active, spare, rate, capture_buffer) else {
+    let Some(control) = super::tick::control_loop(active, spare, rate) else {
         panic!("control loop already taken");
     };
     let mut handler = CommandHandler::new(hardware, settings, defaults, storage());
@@ -230,6 +242,7 @@ pub fn setup(
     let (setpoints_in, setpoints) = setpoint_queue.split();
     let (bytes, bytes_in) = statics.rx_queue.split();
     let (telemetry, telemetry_out) = statics.telemetry_queue.split();
+    let (snapshots, snapshots_out) = statics.snapshot_ring.split();
     defmt::info!(
         "{=str} ({=str}) up: sysclk {=u32} Hz, tick {=u32} Hz",
         image,
@@ -246,8 +259,13 @@ pub fn setup(
             timer,
             watchdog,
             setpoints,
-            telemetry,
+            snapshots,
             triggers,
+        },
+        services: ServiceSide {
+            services: Services::new(capture_buffer),
+            snapshots: snapshots_out,
+            telemetry,
         },
         receiver: Receiver { rx, bytes },
         uplink,
@@ -375,16 +393,29 @@ fn log_pll() {
 fn log_pll() {}
 
 /// The control tick's task body, for the image's tick binding (TIM2 on a board, SysTick in
-/// the emulator): [`ControlTick::run`] in one lock; the command task pended when it has work
-/// (a learning period's end, or a telemetry frame's worth queued: the tap wakes the packer
-/// by the queue's fill since the last wake, never per tick); the coarse task paced where no
+/// the emulator): [`ControlTick::run`] in one lock; the services' task pended once a batch of
+/// snapshots, the command task at a learning period's end; the coarse task paced where no
 /// timer of its own paces it.
 #[inline(always)]
 pub fn tick(tick: &mut impl Mutex<T = ControlTick>, pacer: &mut CoarsePacer) {
-    if tick.lock(|t| t.run()) {
+    let wake = tick.lock(|t| t.run());
+    if wake.services {
+        pend(SERVICES_IRQ);
+    }
+    if wake.command {
         pend(COMMAND_IRQ);
     }
     pacer.step();
+}
+
+/// The services' task body ([`SERVICES_IRQ`], priority 2, below the tick): the snapshots the
+/// tick pushed, served ([`ServiceSide::run`]); the command task pended when a telemetry
+/// frame's worth of samples is queued (woken by that fill level, never per tick).
+#[inline(always)]
+pub fn services(services: &mut impl Mutex<T = ServiceSide>) {
+    if services.lock(|s| s.run()) {
+        pend(COMMAND_IRQ);
+    }
 }
 
 /// The body of the uplink's transmit-complete interrupt (a board's TX DMA stream): the
@@ -402,11 +433,12 @@ pub fn uplink_done(uplink: &mut impl Mutex<T = Uplink>) {
 /// interrupt wakes it again. No spinning on the uplink: every loop here ends with its queue.
 pub fn command(
     tick: impl Mutex<T = ControlTick>,
+    services: impl Mutex<T = ServiceSide>,
     uplink: &mut impl Mutex<T = Uplink>,
     side: &mut CommandSide,
     outbox: &mut Outbox,
 ) {
-    let mut control = LoopLock(tick);
+    let mut control = BoardLocks { tick, services };
     let mut blocked = !send(uplink, outbox);
     while !blocked {
         let Some(b) = side.bytes_in.dequeue() else {

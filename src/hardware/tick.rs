@@ -2,17 +2,25 @@
 //! whole-interrupt bench image (`qemu-images`, `irq-bench`), so that the bench measures the
 //! very code the board runs: acknowledge the timer, write the trigger outputs the last tick
 //! computed (one `BSRR` store: they mark the drive the DAC latched at this timer event), sample
-//! the trigger input, [`ControlLoop::tick`] on the board's converters, telemetry's tap ([`ControlLoop::tap_telemetry`]), feed the watchdog (unless a
-//! drill stopped it: [`ControlLoop::feeds_watchdog`]), count an overrun.
+//! the trigger input, [`ControlLoop::tick`] on the board's converters (its snapshot pushed
+//! for the services), feed the watchdog (unless a drill stopped it:
+//! [`ControlLoop::feeds_watchdog`]), count an overrun.
+//!
+//! The services ([`Services`]: the recorder, telemetry's tap) are the [`ServiceSide`]
+//! resource, run by a priority-2 task the tick wakes once a batch of snapshots
+//! ([`ServiceSide::run`]); the command handler reaches both halves through [`BoardLocks`].
 
 use core::mem::MaybeUninit;
 use core::sync::atomic::{AtomicBool, Ordering};
 
 use heapless::spsc::{Consumer, Producer};
 
+use crate::command_handler::Locks;
 use crate::control::Controller;
 use crate::control_loop::{ControlLoop, SETPOINT_QUEUE_LEN};
+use crate::services::consumer::Services;
 use crate::services::recorder::{SplitStore, CAPTURE_SLOTS};
+use crate::services::snapshot::{SnapshotConsumer, SnapshotProducer};
 use crate::services::telemetry::{TelemetrySample, TELEMETRY_QUEUE_LEN};
 
 use super::adc::SensorInput;
@@ -37,7 +45,10 @@ pub type RecordBuffer = SplitStore<&'static mut [i16; SRAM_SLOTS], &'static mut 
 
 /// The tick's loop on the board: two controllers in statics, passed by pointer between the
 /// tick and the command handler.
-pub type BoardLoop = ControlLoop<RecordBuffer, &'static mut Controller>;
+pub type BoardLoop = ControlLoop<&'static mut Controller>;
+
+/// The services on the board, over the recorder's split buffer.
+pub type BoardServices = Services<RecordBuffer>;
 
 /// The loop's home (8 KiB, most of it the learning's tables): a static, written once by
 /// [`control_loop`], so that the loop is built where it stays and never sits on the boot's
@@ -53,7 +64,6 @@ pub fn control_loop(
     controller: &'static mut Controller,
     spare: &'static mut Controller,
     control_rate_hz: u32,
-    record_buffer: RecordBuffer,
 ) -> Option<&'static mut BoardLoop> {
     if CONTROL_TAKEN.swap(true, Ordering::AcqRel) {
         return None;
@@ -61,12 +71,7 @@ pub fn control_loop(
     // SAFETY: `CONTROL_TAKEN` lets exactly one caller through, so this is the only reference
     // to the static ever made; it is initialised before it is handed out.
     let slot = unsafe { &mut *core::ptr::addr_of_mut!(CONTROL) };
-    Some(slot.write(ControlLoop::new(
-        controller,
-        spare,
-        control_rate_hz,
-        record_buffer,
-    )))
+    Some(slot.write(ControlLoop::new(controller, spare, control_rate_hz)))
 }
 
 /// Everything the control interrupt owns: the converters, the timer and the queues by value,
@@ -84,21 +89,29 @@ pub struct ControlTick {
     pub watchdog: Watchdog,
     /// The setpoint queue's consumer end.
     pub setpoints: Consumer<'static, i16, SETPOINT_QUEUE_LEN>,
-    /// The telemetry queue's producer end (the tap's samples, for the command task's packer).
-    pub telemetry: Producer<'static, TelemetrySample, TELEMETRY_QUEUE_LEN>,
+    /// The snapshot ring's producer end (one snapshot a tick, for the services).
+    pub snapshots: SnapshotProducer<'static>,
     /// The trigger I/O pins (pixel, line, frame outputs; the external trigger input).
     pub triggers: TriggerPins,
-    /// The loop: setpoint stream, controller, recorder ([`control_loop`]).
+    /// The loop: setpoint sources, controller ([`control_loop`]).
     pub control: &'static mut BoardLoop,
 }
 
+/// Whom a tick wakes.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct Wake {
+    /// The services' consumer: a batch of snapshots is in the ring.
+    pub services: bool,
+    /// The command task: a learning period ended ([`crate::services::learning::service`]).
+    pub command: bool,
+}
+
 impl ControlTick {
-    /// One tick. No allocation, no panic path, no loop. Returns whether the low-priority
-    /// command task has work: a learning period ended ([`crate::services::learning::service`]), or the
-    /// telemetry queue reached a frame's worth of samples (the packer is woken by that fill
-    /// level, not after every tick). The caller pends it.
+    /// One tick. No allocation, no panic path, no loop. Returns whom to wake: the services'
+    /// consumer once every [`crate::services::snapshot::BATCH`] ticks, the command task at a
+    /// learning period's end. The caller pends them.
     #[inline(always)]
-    pub fn run(&mut self) -> bool {
+    pub fn run(&mut self) -> Wake {
         // The loop's address read once, into a register: read through `self` after each of
         // the queues' atomic operations, it would be loaded again (the tick cost 15–20
         // instructions more than with the loop held by value).
@@ -106,12 +119,16 @@ impl ControlTick {
         self.timer.acknowledge();
         // The trigger outputs the last tick computed, first: they mark the drive that tick
         // wrote, which the DAC put out at this tick's timer event. Written here, their instant
-        // is the interrupt's entry, whatever this tick goes on to run (the recorder, a capture
-        // being read) — not the end of the control law.
+        // is the interrupt's entry, whatever this tick goes on to run — not the end of the
+        // control law.
         self.triggers.write(control.trigger_levels());
         control.set_trigger_input(self.triggers.input());
-        control.tick(&mut self.setpoints, &mut self.adc, &mut self.dac);
-        let frame_due = control.tap_telemetry(&mut self.telemetry);
+        control.tick(
+            &mut self.setpoints,
+            &mut self.snapshots,
+            &mut self.adc,
+            &mut self.dac,
+        );
         if control.feeds_watchdog() {
             self.watchdog.feed();
         }
@@ -119,18 +136,62 @@ impl ControlTick {
             control.count_overrun();
         }
         let learning = control.learning();
-        frame_due | (learning.is_on() && learning.bin() == 0)
+        Wake {
+            services: control.services_due(),
+            command: learning.is_on() && learning.bin() == 0,
+        }
     }
 }
 
-/// The command handler's lock on the control loop: the RTIC lock on the whole tick resource
-/// (`M`), handing on only the loop — what [`crate::command_handler::CommandHandler`] takes.
-pub struct LoopLock<M>(pub M);
+/// The services' resource: the recorder and telemetry's tap with the snapshot ring's consumer
+/// end and the telemetry queue's producer end. Run by a priority-2 task the tick wakes; the
+/// command handler takes it through [`BoardLocks`], a lock that never masks the tick.
+pub struct ServiceSide {
+    /// The recorder and telemetry's tap.
+    pub services: BoardServices,
+    /// The snapshot ring's consumer end.
+    pub snapshots: SnapshotConsumer<'static>,
+    /// The telemetry queue's producer end (the tap's samples, for the command task's packer).
+    pub telemetry: Producer<'static, TelemetrySample, TELEMETRY_QUEUE_LEN>,
+}
 
-impl<M: rtic_core::Mutex<T = ControlTick>> rtic_core::Mutex for LoopLock<M> {
-    type T = BoardLoop;
+impl ServiceSide {
+    /// Serves every snapshot in the ring ([`Services::consume`]); returns whether to wake the
+    /// packer (a telemetry frame's worth of samples queued since its last wake).
+    #[inline(always)]
+    pub fn run(&mut self) -> bool {
+        self.services
+            .consume(&mut self.snapshots, &mut self.telemetry)
+    }
+}
 
-    fn lock<R>(&mut self, f: impl FnOnce(&mut Self::T) -> R) -> R {
-        self.0.lock(|t| f(t.control))
+/// The command handler's locks on the board's two halves ([`Locks`]): RTIC's lock on the tick
+/// resource (`M`), handing on only the loop, and on the services' resource (`S`), which serves
+/// the snapshot ring before handing on the services.
+pub struct BoardLocks<M, S> {
+    /// The tick's resource.
+    pub tick: M,
+    /// The services' resource.
+    pub services: S,
+}
+
+impl<M, S> Locks for BoardLocks<M, S>
+where
+    M: rtic_core::Mutex<T = ControlTick>,
+    S: rtic_core::Mutex<T = ServiceSide>,
+{
+    type Controller = &'static mut Controller;
+    type Store = RecordBuffer;
+
+    fn lock<R>(&mut self, f: impl FnOnce(&mut BoardLoop) -> R) -> R {
+        self.tick.lock(|t| f(t.control))
+    }
+
+    fn lock_services<R>(&mut self, f: impl FnOnce(&mut BoardServices) -> R) -> R {
+        self.services.lock(|s| {
+            // The packer is the caller: it looks for due frames itself.
+            let _ = s.run();
+            f(&mut s.services)
+        })
     }
 }

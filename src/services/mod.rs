@@ -1,10 +1,16 @@
 //! The services beside the control law: they watch the tick's signals and serve the host.
 //!
+//! * [`snapshot`] — the ring the tick pushes one snapshot a tick onto: the services' only
+//!   input from the tick.
+//! * [`consumer`] — the services that consume it below the tick: the recorder and telemetry's
+//!   tap, one resource apart from the tick's.
 //! * [`recorder`] — the data recorder (triggered capture with pre-trigger and decimation).
-//! * [`telemetry`] — continuous telemetry: the tick's tap, the queue, the frame packer.
+//! * [`telemetry`] — continuous telemetry: the tap, the queue, the frame packer.
 //! * [`learning`] — learning feedforward for periodic motion (a phase-indexed correction table,
 //!   updated from the tracking error).
 
+pub mod consumer;
 pub mod learning;
 pub mod recorder;
+pub mod snapshot;
 pub mod telemetry;

@@ -610,6 +610,22 @@ impl<B: SampleStore> Recorder<B> {
         }
     }
 
+    /// Frames were lost before they reached the recorder (the snapshot ring was full: see
+    /// [`crate::services::snapshot`]): a capture or `Record` in progress ends without
+    /// completing, its frames discarded (the capture's state reads idle, a `Record` holds
+    /// nothing), rather than complete with a hole in its time base. O(1).
+    #[cold]
+    pub fn lose_frames(&mut self) {
+        if self.active {
+            self.active = false;
+            self.triggered = false;
+            self.kind = Kind::Record(Signal::Setpoint);
+            self.frames = 0;
+            self.pre = 0;
+            self.post_left = 0;
+        }
+    }
+
     /// Whether a capture (or a `Record`) is running: armed and not complete.
     pub fn is_capturing(&self) -> bool {
         self.active

@@ -68,9 +68,11 @@ use serde::{Deserialize, Serialize};
 use crate::refusal::{Field, Refusal, Rule};
 use crate::services::recorder::{Channel, TickSignals, CHANNELS};
 
-/// Slots of the telemetry queue (`heapless` keeps one free): 8 KiB of samples; at 10 kHz it
-/// holds 51 ms of samples, at 50 kHz 10 ms.
-pub const TELEMETRY_QUEUE_LEN: usize = 512;
+/// Slots of the telemetry queue (`heapless` keeps one free): 447 samples, 8.8 KiB; at 10 kHz
+/// it holds 45 ms of samples, at 50 kHz 9 ms. Sized with the snapshot ring
+/// ([`crate::services::snapshot::SNAPSHOT_RING_LEN`]) so that every image's static RAM leaves
+/// the stack its reserve (`memory.x`).
+pub const TELEMETRY_QUEUE_LEN: usize = 448;
 
 /// The queue between the tick (producer) and the packer (consumer).
 pub type TelemetryQueue = Queue<TelemetrySample, TELEMETRY_QUEUE_LEN>;
@@ -171,6 +173,29 @@ impl TelemetryTap {
     /// Whether samples are being taken.
     pub fn is_running(&self) -> bool {
         self.enabled
+    }
+
+    /// `ticks` ticks were lost before they reached the tap (the snapshot ring was full: see
+    /// [`crate::services::snapshot`]): the samples they would have given count as dropped,
+    /// their indices skipped, so that the host sees the gap where it is. Off the tick (one
+    /// division).
+    #[cold]
+    pub fn lose_ticks(&mut self, ticks: u32) {
+        if !self.enabled || ticks == 0 {
+            return;
+        }
+        let countdown = u32::from(self.countdown);
+        if ticks <= countdown {
+            self.countdown = (countdown - ticks) as u16;
+            return;
+        }
+        // The first lost tick that samples is the countdown's end; then one every period.
+        let period = u32::from(self.reload) + 1;
+        let after = ticks - countdown - 1;
+        let lost = 1 + after / period;
+        self.countdown = (u32::from(self.reload) - after % period) as u16;
+        self.next = self.next.wrapping_add(lost);
+        self.overflows = self.overflows.wrapping_add(lost);
     }
 
     /// Samples dropped because the queue was full (since power-up, wrapping).

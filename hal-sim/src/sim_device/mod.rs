@@ -51,9 +51,8 @@ use std::collections::VecDeque;
 use std::io;
 use std::time::Duration;
 
-use rtic_core::Exclusive;
 use twinstack::board::{Hardware, WATCHDOG_TIMEOUT_MS};
-use twinstack::command_handler::CommandHandler;
+use twinstack::command_handler::{CommandHandler, Parts};
 use twinstack::config::param_store::{
     self, RamStorage, RecordStorage, StorageError, StoredRecord, MAX_RECORD,
 };
@@ -63,7 +62,9 @@ use twinstack::control_loop::{ControlLoop, SetpointQueue};
 use twinstack::dual_stage::{CoarseLimits, CoarseStatus};
 use twinstack::protocol::messages::{Request, Response};
 use twinstack::refusal::Refusal;
+use twinstack::services::consumer::Services;
 use twinstack::services::recorder::CAPTURE_SLOTS;
+use twinstack::services::snapshot::SnapshotRing;
 use twinstack::services::telemetry::TelemetryQueue;
 use twinstack::sources::analog_input::AnalogInputConfig;
 use twinstack::sources::sequence::SETTLED;
@@ -91,7 +92,7 @@ pub trait CoarseAxisSim: std::any::Any + Send {
     /// The axis's status now.
     fn status(&self) -> CoarseStatus;
     /// Runs before a control tick (the coarse tick and its exchange with the loop).
-    fn before_tick(&mut self, control: &mut ControlLoop<Vec<i16>, Box<Controller>>);
+    fn before_tick(&mut self, control: &mut ControlLoop<Box<Controller>>);
     /// Runs after a control tick: `piezo_um` the piezo's displacement now, `report` the tick's.
     fn after_tick(&mut self, piezo_um: f64, report: &TickReport);
     /// The axis as [`std::any::Any`], to reach its own type.
@@ -111,9 +112,13 @@ pub struct SimDevice<D = InternalDac, A = InternalAdc> {
     /// The coarse axis (dual-stage board), run between the ticks as the firmware's coarse
     /// task runs between them.
     coarse: Option<Box<dyn CoarseAxisSim>>,
-    control: ControlLoop<Vec<i16>, Box<Controller>>,
+    control: ControlLoop<Box<Controller>>,
+    /// The services below the tick (the recorder, telemetry's tap), served when the tick
+    /// says a batch is due, as the firmware's services task is.
+    services: Services<Vec<i16>>,
     handler: CommandHandler<SimFlash>,
     queue: Box<SetpointQueue>,
+    snapshots: Box<SnapshotRing>,
     telemetry: Box<TelemetryQueue>,
     /// Simulated time, ns.
     now_ns: u64,
@@ -241,8 +246,10 @@ impl<D: AnalogDualDac, A: AnalogSensorAdc> SimDevice<D, A> {
             board,
             coarse,
             control,
+            services: Services::new(vec![0; CAPTURE_SLOTS]),
             handler,
             queue: Box::new(SetpointQueue::new()),
+            snapshots: Box::new(SnapshotRing::new()),
             telemetry: Box::new(TelemetryQueue::new()),
             now_ns: 0,
             tick_ns: (board_dt_ns(rate_hz)).max(1),
@@ -297,7 +304,9 @@ impl<D: AnalogDualDac, A: AnalogSensorAdc> SimDevice<D, A> {
             Err(_) => return,
         }
         *self.queue = SetpointQueue::new();
+        *self.snapshots = SnapshotRing::new();
         *self.telemetry = TelemetryQueue::new();
+        self.services = Services::new(vec![0; CAPTURE_SLOTS]);
         self.starved_ns = 0;
         self.last_report = None;
     }
@@ -324,7 +333,12 @@ impl<D: AnalogDualDac, A: AnalogSensorAdc> SimDevice<D, A> {
         self.handler.handle(
             request.clone(),
             &mut producer,
-            &mut Exclusive(&mut self.control),
+            &mut Parts::new(
+                &mut self.control,
+                &mut self.services,
+                &mut self.snapshots,
+                &mut self.telemetry,
+            ),
         )
     }
 
@@ -338,7 +352,12 @@ impl<D: AnalogDualDac, A: AnalogSensorAdc> SimDevice<D, A> {
                 break;
             }
             self.rx.pop_front();
-            let mut control = Exclusive(&mut self.control);
+            let mut control = Parts::new(
+                &mut self.control,
+                &mut self.services,
+                &mut self.snapshots,
+                &mut self.telemetry,
+            );
             if let Some(frame) = self.handler.push_byte(byte, &mut producer, &mut control) {
                 self.tx.transmit(frame, at);
             }
@@ -347,8 +366,12 @@ impl<D: AnalogDualDac, A: AnalogSensorAdc> SimDevice<D, A> {
             rig.before_tick(&mut self.control);
         }
         // The learning's work at period boundaries, in the same low-priority context.
-        self.handler
-            .service_learning(&mut Exclusive(&mut self.control));
+        self.handler.service_learning(&mut Parts::new(
+            &mut self.control,
+            &mut self.services,
+            &mut self.snapshots,
+            &mut self.telemetry,
+        ));
         let (_, mut consumer) = self.queue.split();
         let (mut dac, mut adc) = self.board.split();
         let camera = match self.camera.as_mut() {
@@ -359,9 +382,15 @@ impl<D: AnalogDualDac, A: AnalogSensorAdc> SimDevice<D, A> {
             None => false,
         };
         self.control.set_trigger_input(self.trigger_input | camera);
-        let report = self.control.tick(&mut consumer, &mut adc, &mut dac);
+        let (mut snapshots_in, mut snapshots_out) = self.snapshots.split();
+        let report = self
+            .control
+            .tick(&mut consumer, &mut snapshots_in, &mut adc, &mut dac);
         let (mut samples_in, mut samples_out) = self.telemetry.split();
-        self.control.tap_telemetry(&mut samples_in);
+        // The services' task, woken once a batch of snapshots (the firmware's EXTI2).
+        if self.control.services_due() {
+            self.services.consume(&mut snapshots_out, &mut samples_in);
+        }
         if let Some(rig) = self.coarse.as_mut() {
             rig.after_tick(self.board.plant().stage_um(), &report);
         }
@@ -448,9 +477,14 @@ impl<D: AnalogDualDac, A: AnalogSensorAdc> SimDevice<D, A> {
         &self.board
     }
 
-    /// The tick side (controller, counters, recorder).
-    pub fn control(&self) -> &ControlLoop<Vec<i16>, Box<Controller>> {
+    /// The tick side (controller, counters, sources).
+    pub fn control(&self) -> &ControlLoop<Box<Controller>> {
         &self.control
+    }
+
+    /// The services below the tick (recorder, telemetry's tap), as the last batch left them.
+    pub fn services(&self) -> &Services<Vec<i16>> {
+        &self.services
     }
 
     /// The command handler (settings in force, sequence number, storage).
@@ -491,13 +525,7 @@ fn boot(
     storage: SimFlash,
     hw: Hardware,
     coarse: Option<&dyn CoarseAxisSim>,
-) -> Result<
-    (
-        ControlLoop<Vec<i16>, Box<Controller>>,
-        CommandHandler<SimFlash>,
-    ),
-    SimDeviceError,
-> {
+) -> Result<(ControlLoop<Box<Controller>>, CommandHandler<SimFlash>), SimDeviceError> {
     let (record, source) = param_store::load_record(storage.read(), &hw);
     let stored_analog = record.analog;
     let (settings, boot, defaults) =
@@ -506,7 +534,6 @@ fn boot(
         Box::new(Controller::new(boot)),
         Box::new(Controller::new(boot)),
         hw.control_rate_hz.round() as u32,
-        vec![0; CAPTURE_SLOTS],
     );
     if let Some(rig) = coarse {
         control.coarse().attach(rig.limits(), rig.status());

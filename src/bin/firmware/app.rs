@@ -9,7 +9,8 @@
 // Bindings: `tick` (TIM2 on a board, SysTick in QEMU), `coarse` (TIM3 on a board, EXTI1 —
 // pended by the tick — in QEMU; it never fires without `dual-stage`), `rx` and `rx_dma` (the
 // link's USART and receive DMA stream), and, on a board, `uplink_done` (the transmit DMA
-// stream). The command task is EXTI0 in every image (`setup::COMMAND_IRQ`).
+// stream). The command task is EXTI0 in every image (`setup::COMMAND_IRQ`), the services'
+// task EXTI2 (`setup::SERVICES_IRQ`, pended by the tick once a batch of snapshots).
 
 #[cfg(target_os = "none")]
 use defmt_rtt as _;
@@ -43,7 +44,8 @@ macro_rules! firmware_app {
                 self, Board, CoarsePacer, CoarseStage, CommandSide, Outbox, Receiver, Statics,
                 Uplink, RX_QUEUE,
             };
-            use twinstack::hardware::tick::{ControlTick, SRAM_SLOTS};
+            use twinstack::hardware::tick::{ControlTick, ServiceSide, SRAM_SLOTS};
+            use twinstack::services::snapshot::SnapshotRing;
             use twinstack::services::telemetry::TelemetryQueue;
 
             #[shared]
@@ -51,6 +53,9 @@ macro_rules! firmware_app {
                 /// The control tick's resources; the command task reaches the loop through a
                 /// short lock.
                 tick: ControlTick,
+                /// The services (recorder, telemetry's tap): their task and the command task
+                /// share them; neither lock masks the tick.
+                services: ServiceSide,
                 /// Shared by the link's receive interrupts (same priority).
                 receiver: Receiver,
                 /// Shared by the command task (frames in) and, on a board, the transmit DMA
@@ -70,16 +75,19 @@ macro_rules! firmware_app {
             #[init(local = [
                 rx_queue: Queue<u8, RX_QUEUE> = Queue::new(),
                 telemetry_queue: TelemetryQueue = Queue::new(),
+                snapshot_ring: SnapshotRing = Queue::new(),
                 record_buffer: [i16; SRAM_SLOTS] = [0; SRAM_SLOTS],
             ])]
             fn init(cx: init::Context) -> (Shared, Local) {
                 let statics = Statics {
                     rx_queue: cx.local.rx_queue,
                     telemetry_queue: cx.local.telemetry_queue,
+                    snapshot_ring: cx.local.snapshot_ring,
                     record_buffer: cx.local.record_buffer,
                 };
                 let Board {
                     tick,
+                    services,
                     receiver,
                     uplink,
                     coarse,
@@ -89,6 +97,7 @@ macro_rules! firmware_app {
                 (
                     Shared {
                         tick,
+                        services,
                         receiver,
                         uplink,
                         coarse,
@@ -98,8 +107,9 @@ macro_rules! firmware_app {
             }
 
             /// Sleeps between interrupts. The command task is woken by what gives it work:
-            /// received bytes, a transmit buffer freed, the tick (a learning period's end, or
-            /// the telemetry queue at a frame's worth of samples) — never once per tick.
+            /// received bytes, a transmit buffer freed, the tick (a learning period's end),
+            /// the services (the telemetry queue at a frame's worth of samples) — never once
+            /// per tick.
             #[idle]
             fn idle(_: idle::Context) -> ! {
                 loop {
@@ -111,6 +121,13 @@ macro_rules! firmware_app {
             #[task(binds = $tick, priority = 3, shared = [tick], local = [pacer])]
             fn control_tick(mut cx: control_tick::Context) {
                 setup::tick(&mut cx.shared.tick, cx.local.pacer);
+            }
+
+            /// The services below the tick: the snapshots of a batch of ticks served (the
+            /// recorder, telemetry's tap). EXTI2, pended by the tick (`setup::SERVICES_IRQ`).
+            #[task(binds = EXTI2, priority = 2, shared = [services])]
+            fn services(mut cx: services::Context) {
+                setup::services(&mut cx.shared.services);
             }
 
             /// The coarse stage's tick (`dual-stage`; never raised without it).
@@ -143,9 +160,15 @@ macro_rules! firmware_app {
             )?
 
             /// The command handler (EXTI0, a software interrupt: `setup::COMMAND_IRQ`).
-            #[task(binds = EXTI0, priority = 1, shared = [tick, uplink], local = [command, outbox: Outbox = Outbox::new()])]
+            #[task(binds = EXTI0, priority = 1, shared = [tick, services, uplink], local = [command, outbox: Outbox = Outbox::new()])]
             fn command(mut cx: command::Context) {
-                setup::command(cx.shared.tick, &mut cx.shared.uplink, cx.local.command, cx.local.outbox);
+                setup::command(
+                    cx.shared.tick,
+                    cx.shared.services,
+                    &mut cx.shared.uplink,
+                    cx.local.command,
+                    cx.local.outbox,
+                );
             }
         }
     };

@@ -469,8 +469,8 @@ mod app {
 
     use core::sync::atomic::Ordering;
     use twinstack::board::Hardware;
-    use twinstack::command_handler::CommandHandler;
     use twinstack::command_handler::MAX_RESPONSE;
+    use twinstack::command_handler::{CommandHandler, Locks};
     use twinstack::config::param_store::ReadOnlyStorage;
     use twinstack::config::settings::{Mode, Settings};
     use twinstack::config::tick_budget::worst_case_cycles;
@@ -482,15 +482,17 @@ mod app {
     use twinstack::hardware::dac::InternalDac;
     use twinstack::hardware::setup::{self, CoarsePacer};
     use twinstack::hardware::tick::SRAM_SLOTS;
-    use twinstack::hardware::tick::{ControlTick, LoopLock};
+    use twinstack::hardware::tick::{BoardLocks, ControlTick, ServiceSide};
     use twinstack::hardware::trigger_pins::EMULATED_INPUT;
     use twinstack::hardware::watchdog::Watchdog;
     use twinstack::protocol::messages::{
         AnalogRequest, CaptureRequest, CaptureState, LearnRequest, RecordRequest, Request,
         Response, SetpointBatch, Signal, StreamControl, Trigger, MAX_BATCH, MAX_CAPTURE_CHUNK,
     };
+    use twinstack::services::consumer::Services;
     use twinstack::services::learning::{LearnSettings, LearnState};
     use twinstack::services::recorder::{SplitStore, CHANNELS};
+    use twinstack::services::snapshot::SnapshotRing;
     use twinstack::services::telemetry::{
         TelemetryPacker, TelemetryQueue, TelemetrySample, TELEMETRY_QUEUE_LEN,
     };
@@ -503,6 +505,7 @@ mod app {
     #[shared]
     struct Shared {
         tick: ControlTick,
+        services: ServiceSide,
     }
 
     #[local]
@@ -515,6 +518,7 @@ mod app {
     #[init(local = [
         setpoint_queue: SetpointQueue = Queue::new(),
         telemetry_queue: TelemetryQueue = Queue::new(),
+        snapshot_ring: SnapshotRing = Queue::new(),
         record_buffer: [i16; SRAM_SLOTS] = [0; SRAM_SLOTS],
     ])]
     fn init(cx: init::Context) -> (Shared, Local) {
@@ -547,8 +551,7 @@ mod app {
         // the tick: a split store whose second half is empty).
         let record = SplitStore::new(cx.local.record_buffer, &mut [] as &mut [i16]);
         // In its static, as the firmware's.
-        let Some(control) =
-            twinstack::hardware::tick::control_loop(active, spare, timer.rate_hz(), record)
+        let Some(control) = twinstack::hardware::tick::control_loop(active, spare, timer.rate_hz())
         else {
             panic!("control loop already taken");
         };
@@ -562,6 +565,7 @@ mod app {
         let handler = CommandHandler::new(hardware, settings, true, ReadOnlyStorage(&[]));
         let (setpoints_in, setpoints) = cx.local.setpoint_queue.split();
         let (telemetry, telemetry_out) = cx.local.telemetry_queue.split();
+        let (snapshots, snapshots_out) = cx.local.snapshot_ring.split();
         (
             Shared {
                 tick: ControlTick {
@@ -571,8 +575,13 @@ mod app {
                     timer,
                     watchdog,
                     setpoints,
-                    telemetry,
+                    snapshots,
                     triggers,
+                },
+                services: ServiceSide {
+                    services: Services::new(record),
+                    snapshots: snapshots_out,
+                    telemetry,
                 },
             },
             Local {
@@ -589,6 +598,13 @@ mod app {
     #[task(binds = SysTick, priority = 3, shared = [tick], local = [pacer: CoarsePacer = CoarsePacer])]
     fn systick_tick(mut cx: systick_tick::Context) {
         setup::tick(&mut cx.shared.tick, cx.local.pacer);
+    }
+
+    /// The services below the tick: the firmware's own body ([`setup::services`]), bound as
+    /// the firmware binds it ([`setup::SERVICES_IRQ`], priority 2).
+    #[task(binds = EXTI2, priority = 2, shared = [services])]
+    fn services(mut cx: services::Context) {
+        setup::services(&mut cx.shared.services);
     }
 
     /// What the tick pends ([`setup::COMMAND_IRQ`]): the firmware's command task. Here the
@@ -615,19 +631,21 @@ mod app {
     }
 
     /// The host: requests through the command handler, one scenario after another.
-    #[idle(shared = [tick], local = [handler, setpoints_in, telemetry_out, frame: [u8; MAX_RESPONSE] = [0; MAX_RESPONSE]])]
+    #[idle(shared = [tick, services], local = [handler, setpoints_in, telemetry_out, frame: [u8; MAX_RESPONSE] = [0; MAX_RESPONSE]])]
     fn idle(cx: idle::Context) -> ! {
         let handler = cx.local.handler;
         let producer = cx.local.setpoints_in;
         let samples = cx.local.telemetry_out;
         let frame = cx.local.frame;
-        let mut lock = LoopLock(cx.shared.tick);
+        let mut lock = BoardLocks {
+            tick: cx.shared.tick,
+            services: cx.shared.services,
+        };
         // Telemetry at the tick's worst: all seven signals on every tick (the tap's dearest
         // sample; the handler would refuse this rate for the 2 Mbaud line, but the tick's
         // cost per sample is what is measured), packed into frames here between ticks.
         let mut packer = TelemetryPacker::new();
-        let Some(first) = rtic::Mutex::lock(&mut lock, |c| c.start_telemetry(0b111_1111, 1, 1))
-        else {
+        let Some(first) = lock.lock_services(|s| s.start_telemetry(0b111_1111, 1, 1)) else {
             panic!("telemetry refused");
         };
         packer.start(0b111_1111, 1, first, RATE_HZ);

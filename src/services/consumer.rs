@@ -1,0 +1,287 @@
+//! The services below the tick: the recorder and continuous telemetry's tap, fed from the
+//! snapshot ring ([`crate::services::snapshot`]).
+//!
+//! On the board they are one RTIC resource of their own, run by a priority-2 task the tick
+//! wakes once every [`crate::services::snapshot::BATCH`] ticks, and reached by the command
+//! handler through a lock that never masks the tick: reading a capture back, arming the
+//! recorder or starting telemetry holds off the consumer, not the control law. In the
+//! simulator the same struct is stepped after the ticks.
+//!
+//! Whoever takes the services (the consumer's task, or the command handler through its lock)
+//! first drains the ring ([`Services::consume`]), so that what the handler reads or arms is
+//! up to date with every tick pushed before it: a capture armed now starts with the next
+//! tick's frame, as it did when the recorder ran in the tick.
+
+use heapless::spsc::Producer;
+
+use crate::services::recorder::{
+    CaptureInfo, RecordError, Recorder, SampleStore, Signal, TickSignals, Trigger,
+};
+use crate::services::recorder::{MAX_CAPTURE_CHUNK, MAX_CHUNK};
+use crate::services::snapshot::{Snapshot, SnapshotConsumer, SNAPSHOT_RING_LEN};
+use crate::services::telemetry::{TelemetrySample, TelemetryTap};
+
+/// The recorder and telemetry's tap, consuming the tick's snapshots. `B` is the recorder's
+/// buffer.
+#[derive(Debug)]
+pub struct Services<B> {
+    recorder: Recorder<B>,
+    telemetry: TelemetryTap,
+    /// The sequence number the next snapshot should carry.
+    expected: u32,
+    /// Snapshots the ring refused (gaps in the sequence), since power-up, wrapping.
+    lost: u32,
+}
+
+impl<B: SampleStore> Services<B> {
+    /// Idle services over `record_buffer`: no capture armed, telemetry stopped.
+    ///
+    /// ```
+    /// use twinstack::services::consumer::Services;
+    /// let services = Services::new(vec![0i16; 1024]);
+    /// assert_eq!(services.capture_capacity(), 1024);
+    /// assert!(!services.is_capturing());
+    /// ```
+    pub fn new(record_buffer: B) -> Self {
+        Self {
+            recorder: Recorder::new(record_buffer),
+            telemetry: TelemetryTap::new(),
+            expected: 0,
+            lost: 0,
+        }
+    }
+
+    /// Serves every snapshot the ring holds, oldest first (at most the ring's length: the
+    /// loop is bounded), putting telemetry's samples on `telemetry`. Returns whether to wake
+    /// the packer (a frame's worth of samples taken since its last wake).
+    pub fn consume<const T: usize>(
+        &mut self,
+        ring: &mut SnapshotConsumer<'_>,
+        telemetry: &mut Producer<'_, TelemetrySample, T>,
+    ) -> bool {
+        let mut wake = false;
+        for _ in 0..SNAPSHOT_RING_LEN {
+            let Some(snapshot) = ring.dequeue() else {
+                break;
+            };
+            wake |= self.serve(&snapshot, telemetry);
+        }
+        wake
+    }
+
+    /// One tick's snapshot: what the recorder did in the tick, in the same order — its
+    /// trigger events, then its capture — and telemetry's tap.
+    #[inline(always)]
+    fn serve<const T: usize>(
+        &mut self,
+        s: &Snapshot,
+        telemetry: &mut Producer<'_, TelemetrySample, T>,
+    ) -> bool {
+        let missing = s.seq.wrapping_sub(self.expected);
+        self.expected = s.seq.wrapping_add(1);
+        if missing != 0 {
+            self.lose(missing);
+        }
+        if s.events.0 != 0 {
+            for event in s.events.iter() {
+                self.recorder.trigger(event);
+            }
+        }
+        if !self.recorder.is_capturing() && !self.telemetry.is_running() {
+            return false;
+        }
+        let report = s.report();
+        let signals = TickSignals::of(s.setpoint, s.measured, &report);
+        self.recorder
+            .capture(&signals, s.setpoint, s.measured, &report);
+        self.telemetry.push(telemetry, &signals)
+    }
+
+    /// `ticks` snapshots never reached the ring: a capture in progress ends without
+    /// completing, telemetry's indices skip the samples lost.
+    #[cold]
+    fn lose(&mut self, ticks: u32) {
+        self.lost = self.lost.wrapping_add(ticks);
+        self.recorder.lose_frames();
+        self.telemetry.lose_ticks(ticks);
+    }
+
+    /// Snapshots lost since power-up (the ring was full when the tick pushed them): each one
+    /// a tick whose services did not keep up, counted with the board's overruns.
+    pub fn lost(&self) -> u32 {
+        self.lost
+    }
+
+    /// Arms a v3 `Record` (see [`Recorder::arm`]).
+    pub fn arm_recorder(
+        &mut self,
+        signal: Signal,
+        count: u32,
+        decimation: u16,
+    ) -> Result<(), RecordError> {
+        self.recorder.arm(signal, count, decimation)
+    }
+
+    /// Arms a multi-signal capture (see [`Recorder::arm_capture`]).
+    pub fn arm_capture(
+        &mut self,
+        mask: u8,
+        samples: u32,
+        pre: u32,
+        trigger: Trigger,
+        decimation: u16,
+    ) -> Result<(), RecordError> {
+        self.recorder
+            .arm_capture(mask, samples, pre, trigger, decimation)
+    }
+
+    /// Appends the next piece of the recorded values' chunk from `offset` (see
+    /// [`Recorder::read_piece`]).
+    pub fn read_record(
+        &self,
+        offset: u32,
+        out: &mut heapless::Vec<i32, MAX_CHUNK>,
+    ) -> Result<usize, RecordError> {
+        self.recorder.read_piece(offset, out)
+    }
+
+    /// Appends the next piece of a complete capture's chunk (see
+    /// [`Recorder::read_capture_piece`]).
+    pub fn read_capture(
+        &self,
+        offset: u32,
+        count: u16,
+        out: &mut heapless::Vec<i16, MAX_CAPTURE_CHUNK>,
+    ) -> Result<usize, RecordError> {
+        self.recorder.read_capture_piece(offset, count, out)
+    }
+
+    /// Values the recorder holds (what a read may reach).
+    pub fn recorded(&self) -> u32 {
+        self.recorder.recorded()
+    }
+
+    /// Whether the recorder is capturing (a `Record` or a capture, armed or triggered).
+    pub fn is_capturing(&self) -> bool {
+        self.recorder.is_capturing()
+    }
+
+    /// Most values one v3 `Record` holds.
+    pub fn record_capacity(&self) -> usize {
+        self.recorder.record_capacity()
+    }
+
+    /// Slots of the capture buffer.
+    pub fn capture_capacity(&self) -> usize {
+        self.recorder.capacity()
+    }
+
+    /// Most frames a capture of `signals` signals holds (see [`Recorder::max_frames`]).
+    pub fn capture_max_frames(&self, signals: u32) -> u32 {
+        self.recorder.max_frames(signals)
+    }
+
+    /// The capture's settings and progress (see [`Recorder::capture_info`]).
+    pub fn capture_info(&self) -> CaptureInfo {
+        self.recorder.capture_info()
+    }
+
+    /// Starts telemetry of `mask` every `decimation` ticks (see [`TelemetryTap::start`]);
+    /// the index of its first sample, or `None` for a bad mask or decimation. The tap wakes
+    /// the packer at `wake` queued samples (a frame's worth,
+    /// [`crate::services::telemetry::frame_target`]).
+    pub fn start_telemetry(&mut self, mask: u8, decimation: u16, wake: u16) -> Option<u32> {
+        self.telemetry.wake_at(wake);
+        self.telemetry.start(mask, decimation)
+    }
+
+    /// Stops telemetry; the index its next sample would have carried.
+    pub fn stop_telemetry(&mut self) -> u32 {
+        self.telemetry.stop()
+    }
+
+    /// Telemetry samples dropped since power-up (a full queue, or ticks lost before the tap).
+    pub fn telemetry_overflows(&self) -> u32 {
+        self.telemetry.overflows()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::board::DacCode;
+    use crate::control::{TickFlags, TickReport};
+    use crate::services::recorder::{CaptureState, Channel};
+    use crate::services::snapshot::{Events, SnapshotRing};
+    use heapless::spsc::Queue;
+
+    fn snapshot(seq: u32, events: Events) -> Snapshot {
+        let report = TickReport {
+            left: DacCode(seq as u16),
+            right: DacCode(0),
+            estimate: 0,
+            measured: 0,
+            drive: 0,
+            flags: TickFlags(0),
+            triggers: 0,
+        };
+        Snapshot::of(seq, (seq as i32) << 16, &report, events)
+    }
+
+    /// A capture armed on the stream's start begins with the snapshot carrying that event,
+    /// as it began with the tick after the start when it ran in the tick.
+    #[test]
+    fn a_trigger_event_starts_the_capture_at_its_own_snapshot() {
+        let mut ring = SnapshotRing::new();
+        let mut samples: Queue<TelemetrySample, 4> = Queue::new();
+        let (mut tx, _rx) = samples.split();
+        let (mut push, mut pop) = ring.split();
+        let mut s = Services::new([0i16; 64]);
+        s.arm_capture(Channel::Left.bit(), 4, 0, Trigger::StreamStart, 1)
+            .unwrap();
+        for seq in 0..3 {
+            push.enqueue(snapshot(seq, Events::NONE)).unwrap();
+        }
+        let mut start = Events::NONE;
+        start.add(Trigger::StreamStart);
+        push.enqueue(snapshot(3, start)).unwrap();
+        for seq in 4..10 {
+            push.enqueue(snapshot(seq, Events::NONE)).unwrap();
+        }
+        s.consume(&mut pop, &mut tx);
+        assert_eq!(s.capture_info().state, CaptureState::Done);
+        let mut out = heapless::Vec::new();
+        s.read_capture(0, 4, &mut out).unwrap();
+        assert_eq!(&out[..], &[3, 4, 5, 6]);
+        assert_eq!(s.lost(), 0);
+    }
+
+    /// A gap in the sequence ends a capture in progress (its state no longer reads as one
+    /// that completes) and skips telemetry's indices by the samples lost.
+    #[test]
+    fn a_lost_snapshot_ends_the_capture_and_skips_telemetry() {
+        let mut ring = SnapshotRing::new();
+        let mut samples: Queue<TelemetrySample, 16> = Queue::new();
+        let (mut tx, mut rx) = samples.split();
+        let (mut push, mut pop) = ring.split();
+        let mut s = Services::new([0i16; 64]);
+        s.arm_capture(Channel::Left.bit(), 8, 0, Trigger::Now, 1)
+            .unwrap();
+        assert_eq!(s.start_telemetry(Channel::Left.bit(), 2, 100), Some(0));
+        push.enqueue(snapshot(0, Events::NONE)).unwrap();
+        push.enqueue(snapshot(1, Events::NONE)).unwrap();
+        // Ticks 2–6 lost: telemetry's samples of ticks 2, 4 and 6.
+        push.enqueue(snapshot(7, Events::NONE)).unwrap();
+        push.enqueue(snapshot(8, Events::NONE)).unwrap();
+        s.consume(&mut pop, &mut tx);
+        assert_eq!(s.lost(), 5);
+        assert_eq!(s.capture_info().state, CaptureState::Idle);
+        assert!(!s.is_capturing());
+        let indices: heapless::Vec<u32, 8> = core::iter::from_fn(|| rx.dequeue())
+            .map(|t| t.index)
+            .collect();
+        // Tick 0 sampled (index 0), ticks 2, 4, 6 lost (1–3), tick 8 sampled (index 4).
+        assert_eq!(&indices[..], &[0, 4]);
+        assert_eq!(s.telemetry_overflows(), 3);
+    }
+}
