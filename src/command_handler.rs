@@ -59,7 +59,7 @@ use heapless::spsc::Consumer;
 ///   every snapshot the tick has pushed, so what the handler reads or arms is up to date with
 ///   the ticks before it.
 ///
-/// On the board both are RTIC resources ([`crate::hardware::tick::BoardLocks`]); on the host
+/// On the board both are RTIC resources (`hardware::tick::BoardLocks`); on the host
 /// plain borrows ([`Parts`]).
 pub trait Locks {
     /// The loop's handle on a controller.

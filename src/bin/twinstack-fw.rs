@@ -9,9 +9,13 @@
 //!   parameter record (10–100 kHz, default 50 kHz), starts the sensor ADC conversion and raises
 //!   the interrupt; the interrupt runs `ControlLoop::tick` (pending configuration swapped in,
 //!   setpoint from the queue or the waveform generator, compensator, feedback, limits,
-//!   differential split, both DAC channels in one store, recorder), feeds the watchdog and
-//!   counts overruns (a tick still running when the next is due)
+//!   differential split, both DAC channels in one store, one snapshot onto the snapshot
+//!   ring), feeds the watchdog and counts overruns (a tick still running when the next is due)
 //!   (`twinstack::hardware::setup::tick`).
+//! * **Services** (priority 2, EXTI2 as a software interrupt, pended by the tick once every 8
+//!   snapshots, `twinstack::hardware::setup::services`): the recorder's capture and telemetry's
+//!   tap, served from the snapshots; they wake the command handler when the telemetry queue
+//!   holds a frame's worth of samples.
 //! * **USART1 receive** (priority 2): DMA into a ring, drained on idle line and half/full
 //!   transfer, bytes queued for the command handler.
 //! * **USART1 transmit** (priority 2, DMA2 stream 7): frames leave by DMA, double-buffered;
@@ -20,9 +24,10 @@
 //! * **Command handler** (priority 1, EXTI0 as a software interrupt,
 //!   `twinstack::hardware::setup::command`): `CommandHandler` decodes frames, answers each
 //!   request with one response frame, queues setpoint batches for the tick, and reaches the
-//!   tick's state through short RTIC locks. A response the uplink cannot take yet waits in an
+//!   tick's state through short RTIC locks, the services' through locks that do not mask the
+//!   tick. A response the uplink cannot take yet waits in an
 //!   outbox and no further request is read until it has gone: nothing spins on the line.
-//!   Telemetry frames fill the line between responses; the tick wakes this task when the
+//!   Telemetry frames fill the line between responses; the services wake this task when the
 //!   telemetry queue holds a frame's worth of samples, not once per tick. After each request
 //!   it re-arms the safe-state codes of the newest configuration. A parameter load is
 //!   validated and *prepared* here (the models relaxed at the stacks' present voltages, in the

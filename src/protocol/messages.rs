@@ -519,7 +519,8 @@ pub struct StatusReport {
     pub credits: u16,
     /// Ticks the running stream found the queue empty (held or ramped, as the policy says).
     pub underruns: u32,
-    /// Ticks that did not finish before the next.
+    /// Ticks that did not finish before the next, and ticks whose snapshot the services
+    /// could not take (the snapshot ring full: [`crate::services::snapshot`]).
     pub overruns: u32,
     /// Frames refused for their CRC.
     pub crc_errors: u32,

@@ -22,16 +22,17 @@
 //! | error | setpoint − sensor, Q2.14 (the top 16 bits of the Q2.30 difference; never saturates) |
 //! | triggers | bit 0 pixel, bit 1 line, bit 2 frame output, bit 3 the trigger input ([`crate::sources::scan`]) |
 //!
-//! # Cost on the tick
+//! # Cost per tick
 //!
-//! [`Recorder::capture`] does, on a capture tick: the six values (three saturating shifts, a
-//! difference, two loads), one compare to find the frame's segment (a frame never straddles
-//! the two: each segment holds whole frames), one store per selected signal (at most
-//! [`CHANNELS`]), one wrap compare of the write index and one countdown; on other ticks a
-//! countdown, and when idle one compare. No division (the one at arming, off the tick), no
-//! allocation, no panic path (the frame is a checked sub-slice). Triggers are not checked on
-//! the tick: [`Recorder::trigger`] is called where the stream or the waveform is started (the
-//! command handler's critical section).
+//! The recorder runs below the control interrupt, in the services
+//! ([`crate::services::consumer::Services`]), one [`Recorder::capture`] a snapshot of a tick.
+//! On a capture tick: the six values (three saturating shifts, a difference, two loads), one
+//! compare to find the frame's segment (a frame never straddles the two: each segment holds
+//! whole frames), one store per selected signal (at most [`CHANNELS`]), one wrap compare of
+//! the write index and one countdown; on other ticks a countdown, and when idle one compare.
+//! No division (the one at arming, off the tick), no allocation, no panic path (the frame is a
+//! checked sub-slice). Triggers travel with the snapshots ([`Recorder::trigger`] for each of
+//! a snapshot's events, before its capture).
 //!
 //! The buffer is whatever the board gives it ([`SampleStore`]): the firmware hands it two
 //! parts, 40 KiB in SRAM and 64 KiB in the F405's CCM RAM ([`SplitStore`]); the simulator a
@@ -602,8 +603,8 @@ impl<B: SampleStore> Recorder<B> {
     }
 
     /// Tells the recorder that `event` happened (the stream or the waveform generator
-    /// started): an armed capture waiting for it is triggered. Called off the tick, where the
-    /// event is commanded; O(1).
+    /// started): an armed capture waiting for it is triggered. Called by the services with a
+    /// snapshot's events, before that snapshot's capture; O(1).
     pub fn trigger(&mut self, event: Trigger) {
         if self.active && !self.triggered && self.kind == Kind::Capture(event) {
             self.fire();

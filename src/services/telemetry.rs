@@ -2,16 +2,17 @@
 //! the host over the UART while the board runs — beside the setpoint stream, without
 //! stopping anything.
 //!
-//! Three pieces, split where the tick ends:
+//! Three pieces:
 //!
-//! * **On the tick**, [`TelemetryTap::push`] (called by
-//!   [`crate::control_loop::ControlLoop::tap_telemetry`] right after the control tick) takes
-//!   the tick's seven signals ([`TickSignals`]: the recorder's channels, [`Channel`], each
+//! * **In the services** (below the tick, [`crate::services::consumer::Services`], one call
+//!   a snapshot of a tick), [`TelemetryTap::push`] takes the tick's seven signals ([`TickSignals`]: the recorder's channels, [`Channel`], each
 //!   one quantity in one form, the capture's slot format, computed once for both) into one
 //!   [`TelemetrySample`] and puts it on a bounded lock-free single-producer single-consumer
 //!   queue ([`TelemetryQueue`], `heapless::spsc`); the packer sends the mask's. Constant
-//!   time: a countdown on the ticks between samples; on a sample tick one enqueue. A full queue never blocks
-//!   the tick: the sample is dropped and counted ([`TelemetryTap::overflows`]). No
+//!   time: a countdown on the ticks between samples; on a sample tick one enqueue. A full
+//!   queue never blocks the services: the sample is dropped and counted
+//!   ([`TelemetryTap::overflows`]), and so are the samples of ticks whose snapshot was lost
+//!   ([`TelemetryTap::lose_ticks`]). No
 //!   allocation, no division, no panic path.
 //! * **Off the tick**, [`TelemetryPacker`] (owned by the command handler, run where the board
 //!   sends its frames) takes queued samples and makes protocol frames

@@ -118,8 +118,9 @@ pub(super) fn tick_cost(out: &str) -> Result<String, String> {
         .get("budgets")
         .and_then(Value::as_object)
         .ok_or("no `budgets`")?;
-    // Each measured row: (configuration, scenario) → (instructions, cycles 0 WS, cycles 5 WS).
-    let mut measured: Vec<(&str, &str, [u64; 3])> = Vec::new();
+    // Each measured row: (configuration, scenario) → (instructions, cycles 0 WS, cycles 5 WS,
+    // the services' dearest batch at 5 WS, the interrupt and the services' share at 5 WS).
+    let mut measured: Vec<(&str, &str, [u64; 5])> = Vec::new();
     for r in rows {
         let name = r
             .get("name")
@@ -129,6 +130,8 @@ pub(super) fn tick_cost(out: &str) -> Result<String, String> {
             field(r, "instructions_max")?,
             field(r, "cycles_max")?,
             field(r, "cycles_max_ws5")?,
+            field(r, "services_max_ws5")?,
+            field(r, "pipeline_ws5")?,
         ];
         let (config, scenario) = name.split_once('/').unwrap_or((name, ""));
         measured.push((config, scenario, counts));
@@ -142,12 +145,12 @@ pub(super) fn tick_cost(out: &str) -> Result<String, String> {
         }
     }
     // The worst of each count over a configuration's scenarios that `pick` selects.
-    let worst = |config: &str, pick: &dyn Fn(&str) -> bool| -> Result<[u64; 3], String> {
-        let mut w = [0u64; 3];
+    let worst = |config: &str, pick: &dyn Fn(&str) -> bool| -> Result<[u64; 5], String> {
+        let mut w = [0u64; 5];
         let mut any = false;
         for (_, _, c) in measured.iter().filter(|(c, s, _)| *c == config && pick(s)) {
             any = true;
-            for i in 0..3 {
+            for i in 0..5 {
                 w[i] = w[i].max(c[i]);
             }
         }
@@ -157,7 +160,7 @@ pub(super) fn tick_cost(out: &str) -> Result<String, String> {
             Err(format!("{config}: no such scenario measured"))
         }
     };
-    let triple = |c: [u64; 3]| format!("{} / {} / {}", grouped(c[0]), grouped(c[1]), grouped(c[2]));
+    let triple = |c: [u64; 5]| format!("{} / {} / {}", grouped(c[0]), grouped(c[1]), grouped(c[2]));
     let rate = |cycles: u64| {
         let hz = (sysclk / cycles as f64 / 100.0).floor() as u64 * 100;
         format!("{} Hz", grouped(hz))
@@ -175,18 +178,21 @@ pub(super) fn tick_cost(out: &str) -> Result<String, String> {
          (the worst of triangle, sine, full-range steps, random, nested loops) and with every \
          feature on (the worst of the scans with the learning, each with its trigger outputs, one \
          of them started by the trigger input's edges, the capture of all seven signals and \
-         telemetry's tap of all seven on every tick). \"Predicted\" is the tick budget's \
-         (cycles, 5 WS), with the scan's ",
+         telemetry's tap of all seven on every tick). The interrupt's columns are the control \
+         interrupt alone; the services below it (the capture, telemetry's tap) run in their own \
+         task, woken once every 8 ticks: \"services, a batch\" is its dearest invocation, and \
+         \"per tick, with the services\" the interrupt's worst plus an eighth of that. \
+         \"Predicted\" is the tick budget's for the whole (cycles, 5 WS), with the scan's ",
     );
     t.push_str(&format!(
         "({scan}), the learning's ({learning}) and the armed trigger input's ({trigger}) charges \
          for every feature on; the highest admitted rate is the highest control rate whose \
          period holds that prediction.\n\n"
     ));
-    t.push_str("| configuration | streamed | every feature on | predicted | predicted, every feature | highest admitted rate, streamed | highest admitted rate, every feature |\n");
-    t.push_str("|---|---:|---:|---:|---:|---:|---:|\n");
+    t.push_str("| configuration | interrupt, streamed | interrupt, every feature on | services, a batch (5 WS) | per tick, with the services (5 WS) | predicted | predicted, every feature | highest admitted rate, streamed | highest admitted rate, every feature |\n");
+    t.push_str("|---|---:|---:|---:|---:|---:|---:|---:|---:|\n");
     t.push_str(&format!(
-        "| boot: bypass, no model, nothing running | {} | – | – | – | – | – |\n",
+        "| boot: bypass, no model, nothing running | {} | – | – | – | – | – | – | – |\n",
         triple(boot)
     ));
     for config in &configs {
@@ -196,10 +202,12 @@ pub(super) fn tick_cost(out: &str) -> Result<String, String> {
         })?;
         let p = predicted(config)?;
         t.push_str(&format!(
-            "| {} | {} | {} | {} | {} | {} | {} |\n",
+            "| {} | {} | {} | {} | {} | {} | {} | {} | {} |\n",
             config_label(config),
             triple(streamed),
             triple(every),
+            grouped(every[3]),
+            grouped(every[4]),
             grouped(p),
             grouped(p + every_charge),
             rate(p),
@@ -374,17 +382,19 @@ mod tests {
 
     /// A bench output of one configuration with every scenario the tables read.
     fn bench_json() -> String {
-        let mut rows = vec![r#"{"name": "boot (defaults: bypass, no model)", "ticks": 10, "instructions_mean": 300.0, "instructions_max": 326, "cycles_max": 569, "cycles_max_ws5": 689}"#.to_string()];
+        let mut rows = vec![r#"{"name": "boot (defaults: bypass, no model)", "ticks": 10, "instructions_mean": 300.0, "instructions_max": 326, "cycles_max": 569, "cycles_max_ws5": 689, "services_max_ws5": 0, "pipeline_ws5": 689}"#.to_string()];
         let scenarios = STREAMED
             .iter()
             .chain(SCANNED.iter().map(|(s, _)| s))
             .chain(["reload-and-mode-switches", "load"].iter());
         for (i, s) in scenarios.enumerate() {
             rows.push(format!(
-                r#"{{"name": "inverse-pi16+pi16-observer+pi+drift/{s}", "ticks": 100, "instructions_mean": 800.0, "instructions_max": {}, "cycles_max": {}, "cycles_max_ws5": {}}}"#,
+                r#"{{"name": "inverse-pi16+pi16-observer+pi+drift/{s}", "ticks": 100, "instructions_mean": 800.0, "instructions_max": {}, "cycles_max": {}, "cycles_max_ws5": {}, "services_max_ws5": {}, "pipeline_ws5": {}}}"#,
                 900 + i,
                 1400 + i,
-                1570 + i
+                1570 + i,
+                800 + i,
+                1670 + i
             ));
         }
         format!(
@@ -407,14 +417,15 @@ mod tests {
         let t = tick_cost(&bench_json()).unwrap();
         // The boot row, then the configuration: streamed is the worst of the five streamed
         // scenarios (the fifth, index 4); every feature on the worst scan with the learning
-        // (the spiral on the trigger + learning, index 10); the rates from the prediction and
-        // its charges (scan, learning, trigger: 1 666 + 150 + 90 + 200).
+        // (the spiral on the trigger + learning, index 10), with the services' batch and the
+        // tick's share of it beside it; the rates from the prediction and its charges (scan,
+        // learning, trigger: 1 666 + 150 + 90 + 200).
         assert!(
-            t.contains("| boot: bypass, no model, nothing running | 326 / 569 / 689 | – |"),
+            t.contains("| boot: bypass, no model, nothing running | 326 / 569 / 689 | – | – | – |"),
             "{t}"
         );
         assert!(
-            t.contains("| inverse P–I 16 + P–I 16 observer + PI + drift | 904 / 1 404 / 1 574 | 910 / 1 410 / 1 580 | 1 666 | 2 106 | 100 800 Hz | 79 700 Hz |"),
+            t.contains("| inverse P–I 16 + P–I 16 observer + PI + drift | 904 / 1 404 / 1 574 | 910 / 1 410 / 1 580 | 810 | 1 680 | 1 666 | 2 106 | 100 800 Hz | 79 700 Hz |"),
             "{t}"
         );
         // The scans: raster is index 5, the stream on the trigger index 12 (instructions /
