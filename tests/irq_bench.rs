@@ -201,9 +201,9 @@ fn disassemble(elf: &Path) -> Code {
     let mut index: HashMap<String, u32> = HashMap::new();
     let mut at = 0u32;
     let mut project = String::from("(no line)");
-    // The immediate last moved into each register (`movs r1, #208`), in address order: what a
-    // `msr basepri_max, r1` after it raises the level to.
-    let mut immediates: HashMap<String, u32> = HashMap::new();
+    // The last few instructions in address order: RTIC's lock moves its level into a register
+    // (`movs r1, #208`) at most two instructions before the `msr basepri_max, r1`.
+    let mut recent: std::collections::VecDeque<(String, String)> = Default::default();
     for line in String::from_utf8_lossy(&out.stdout).lines() {
         if let Some(source) = line.strip_prefix("; ") {
             // `; /path/src/control/mod.rs:123`: the source line of the instructions that follow.
@@ -249,20 +249,21 @@ fn disassemble(elf: &Path) -> Code {
         let mnemonic = mnemonic.trim().to_string();
         let operands = parts.next().unwrap_or("").trim().to_string();
         let masks_tick = if mnemonic == "msr" && operands.starts_with("basepri_max") {
+            // The level moved into its register just before; unknown: assume it masks.
             let register = operands.rsplit(',').next().unwrap_or("").trim();
-            immediates
-                .get(register)
-                .is_none_or(|&level| level != 0 && level <= TICK_BASEPRI)
+            let level = recent.iter().rev().find_map(|(m, o)| {
+                let (r, v) = o.split_once(", #")?;
+                (m.starts_with("mov") && r.trim() == register)
+                    .then(|| v.trim().parse::<u32>().ok())
+                    .flatten()
+            });
+            level.is_none_or(|level| level != 0 && level <= TICK_BASEPRI)
         } else {
             mnemonic == "cpsid"
         };
-        if mnemonic.starts_with("mov") {
-            if let Some((register, value)) = operands.split_once(", #") {
-                match value.trim().parse::<u32>() {
-                    Ok(v) => immediates.insert(register.trim().to_string(), v),
-                    Err(_) => immediates.remove(register.trim()),
-                };
-            }
+        recent.push_back((mnemonic.clone(), operands.clone()));
+        if recent.len() > 3 {
+            recent.pop_front();
         }
         map.insert(
             addr,
@@ -412,7 +413,15 @@ fn parse_trace(reader: impl BufRead, code: &HashMap<u32, Insn>) -> Trace {
             serve_previous = None;
             continue;
         }
-        if line.contains("successful exception return") && current.is_none() {
+        // The end of an exception: QEMU logs "Exception return: magic PC … previous exception
+        // N" for every return, tail-chained or not ("successful exception return" follows
+        // only when the core goes back to thread mode, not when it tail-chains into the
+        // services' task the tick pended).
+        let returned = line
+            .strip_prefix("Exception return: ")
+            .and_then(|l| l.rsplit_once("previous exception "))
+            .and_then(|(_, n)| n.trim().parse::<u32>().ok());
+        if returned == Some(SERVICES_EXCEPTION_NUMBER) && current.is_none() {
             if let Some(mut t) = serving.take() {
                 let mut unused = HashMap::new();
                 settle(&mut t, &mut unused, &serve_previous, None);
@@ -425,7 +434,7 @@ fn parse_trace(reader: impl BufRead, code: &HashMap<u32, Insn>) -> Trace {
                 continue;
             }
         }
-        if line.contains("successful exception return") {
+        if returned == Some(TICK_EXCEPTION_NUMBER) {
             if let Some(mut t) = current.take() {
                 settle(&mut t, &mut by_line, &previous, None);
                 // The last instruction (the return) refills the pipeline.
@@ -544,6 +553,10 @@ struct Trace {
 /// QEMU's log line for the services' task's interrupt: EXTI2 (IRQ 8, exception 24), the
 /// firmware's `setup::SERVICES_IRQ`.
 const SERVICES_EXCEPTION: &str = "taking pending nonsecure exception 24";
+/// The services' task's exception number (EXTI2).
+const SERVICES_EXCEPTION_NUMBER: u32 = 24;
+/// The tick's exception number (SysTick).
+const TICK_EXCEPTION_NUMBER: u32 = 15;
 
 /// The services' cost a tick carries, cycles at 5 WS: the dearest invocation of the
 /// services' task in `invocations`, shared by the [`BATCH`] ticks that wake it once (an
