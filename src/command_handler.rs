@@ -305,14 +305,14 @@ impl<S: RecordStorage> CommandHandler<S> {
                 // Piece by piece, a lock each: a tick falling due waits for one piece's copy.
                 let mut values = heapless::Vec::new();
                 let read = in_pieces(&mut values, |v| {
-                    control.lock_services(|c| c.read_record(offset, v))
+                    control.lock_services(|c| c.recorder().read_piece(offset, v))
                 });
                 return match read {
                     Ok(()) => Response::RecordChunk { offset, values },
                     // The limit is what the recorder holds now.
                     Err(_) => nack(refused(
                         Field::RecordOffset,
-                        Rule::AtMost(control.lock_services(|c| c.recorded()) as f64),
+                        Rule::AtMost(control.lock_services(|c| c.recorder().recorded()) as f64),
                     )),
                 };
             }
@@ -329,7 +329,7 @@ impl<S: RecordStorage> CommandHandler<S> {
                 // handler arms another): a tick falling due waits for one piece's copy.
                 let mut values = heapless::Vec::new();
                 let read = in_pieces(&mut values, |v| {
-                    control.lock_services(|c| c.read_capture(offset, count, v))
+                    control.lock_services(|c| c.recorder().read_capture_piece(offset, count, v))
                 });
                 return match read {
                     Ok(()) => Response::CaptureChunk { offset, values },
@@ -337,7 +337,9 @@ impl<S: RecordStorage> CommandHandler<S> {
                     Err(_) => nack(refused(
                         Field::RecordOffset,
                         Rule::AtMost(
-                            control.lock_services(|c| c.capture_info()).window_slots() as f64
+                            control
+                                .lock_services(|c| c.recorder().capture_info())
+                                .window_slots() as f64,
                         ),
                     )),
                 };
@@ -390,8 +392,13 @@ impl<S: RecordStorage> CommandHandler<S> {
         L: Locks,
     {
         let t = control.lock(|c| c.telemetry());
-        let (recording, recorded, lost) =
-            control.lock_services(|s| (s.is_capturing(), s.recorded(), s.lost()));
+        let (recording, recorded, lost) = control.lock_services(|s| {
+            (
+                s.recorder().is_capturing(),
+                s.recorder().recorded(),
+                s.lost(),
+            )
+        });
         let mut flags = match self.settings.mode {
             Mode::Bypass => 0,
             Mode::OpenLoop => 1,
@@ -710,7 +717,8 @@ impl<S: RecordStorage> CommandHandler<S> {
     where
         L: Locks,
     {
-        let (info, capacity) = control.lock_services(|c| (c.capture_info(), c.capture_capacity()));
+        let (info, capacity) =
+            control.lock_services(|c| (c.recorder().capture_info(), c.recorder().capacity()));
         CaptureStatus {
             state: info.state,
             signals: info.signals,
@@ -997,7 +1005,7 @@ fn record<L>(r: RecordRequest, control: &mut L) -> Result<(), NackReason>
 where
     L: Locks,
 {
-    let capacity = control.lock_services(|c| c.record_capacity());
+    let capacity = control.lock_services(|c| c.recorder().record_capacity());
     if r.decimation == 0 {
         return Err(refused(Field::RecordDecimation, Rule::AtLeast(1.0)));
     }
@@ -1008,7 +1016,7 @@ where
         return Err(refused(Field::RecordCount, Rule::AtMost(capacity as f64)));
     }
     control
-        .lock_services(|c| c.arm_recorder(r.signal, r.count, r.decimation))
+        .lock_services(|c| c.recorder_mut().arm(r.signal, r.count, r.decimation))
         .map_err(|_| refused(Field::RecordCount, Rule::AtMost(capacity as f64)))
 }
 
@@ -1018,7 +1026,7 @@ where
     L: Locks,
 {
     let signals = r.signals.count_ones();
-    let max_frames = control.lock_services(|c| c.capture_max_frames(signals));
+    let max_frames = control.lock_services(|c| c.recorder().max_frames(signals));
     if r.signals == 0 {
         return Err(refused(Field::RecordSignals, Rule::AtLeast(1.0)));
     }
@@ -1047,7 +1055,13 @@ where
     }
     control
         .lock_services(|c| {
-            c.arm_capture(r.signals, r.samples, r.pre_trigger, r.trigger, r.decimation)
+            c.recorder_mut().arm_capture(
+                r.signals,
+                r.samples,
+                r.pre_trigger,
+                r.trigger,
+                r.decimation,
+            )
         })
         .map_err(|_| refused(Field::RecordCount, Rule::AtMost(max_frames as f64)))
 }

@@ -1810,5 +1810,5 @@ fn the_telemetry_packer_is_woken_by_the_queue_s_fill_level_not_per_tick() {
         "{samples} samples, {target} a frame"
     );
     assert!(frames >= wakes);
-    assert_eq!(b.services.telemetry_overflows(), 0);
+    assert_eq!(b.services.telemetry().overflows(), 0);
 }

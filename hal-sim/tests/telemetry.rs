@@ -73,7 +73,7 @@ fn run(signals: u8, decimation: u16, seconds: f64) -> Figures {
         bytes_out_per_s: (line.bytes_out - line0.bytes_out) as f64 / secs,
         telemetry_bytes_per_s: (line.telemetry_bytes_out - line0.telemetry_bytes_out) as f64 / secs,
         underruns: report.underruns_during_stream(),
-        overflows: client.transport().services().telemetry_overflows(),
+        overflows: client.transport().services().telemetry().overflows(),
         record,
         setpoints,
     }

@@ -14,10 +14,7 @@
 
 use heapless::spsc::Producer;
 
-use crate::services::recorder::{
-    CaptureInfo, RecordError, Recorder, SampleStore, Signal, TickSignals, Trigger,
-};
-use crate::services::recorder::{MAX_CAPTURE_CHUNK, MAX_CHUNK};
+use crate::services::recorder::{Recorder, SampleStore, TickSignals};
 use crate::services::snapshot::{Snapshot, SnapshotConsumer, SNAPSHOT_RING_LEN};
 use crate::services::telemetry::{TelemetrySample, TelemetryTap};
 
@@ -39,8 +36,8 @@ impl<B: SampleStore> Services<B> {
     /// ```
     /// use twinstack::services::consumer::Services;
     /// let services = Services::new(vec![0i16; 1024]);
-    /// assert_eq!(services.capture_capacity(), 1024);
-    /// assert!(!services.is_capturing());
+    /// assert_eq!(services.recorder().capacity(), 1024);
+    /// assert!(!services.recorder().is_capturing());
     /// ```
     pub fn new(record_buffer: B) -> Self {
         Self {
@@ -112,78 +109,19 @@ impl<B: SampleStore> Services<B> {
         self.lost
     }
 
-    /// Arms a v3 `Record` (see [`Recorder::arm`]).
-    pub fn arm_recorder(
-        &mut self,
-        signal: Signal,
-        count: u32,
-        decimation: u16,
-    ) -> Result<(), RecordError> {
-        self.recorder.arm(signal, count, decimation)
+    /// The recorder: its settings, progress and reads.
+    pub fn recorder(&self) -> &Recorder<B> {
+        &self.recorder
     }
 
-    /// Arms a multi-signal capture (see [`Recorder::arm_capture`]).
-    pub fn arm_capture(
-        &mut self,
-        mask: u8,
-        samples: u32,
-        pre: u32,
-        trigger: Trigger,
-        decimation: u16,
-    ) -> Result<(), RecordError> {
-        self.recorder
-            .arm_capture(mask, samples, pre, trigger, decimation)
+    /// The recorder, to arm it.
+    pub fn recorder_mut(&mut self) -> &mut Recorder<B> {
+        &mut self.recorder
     }
 
-    /// Appends the next piece of the recorded values' chunk from `offset` (see
-    /// [`Recorder::read_piece`]).
-    pub fn read_record(
-        &self,
-        offset: u32,
-        out: &mut heapless::Vec<i32, MAX_CHUNK>,
-    ) -> Result<usize, RecordError> {
-        self.recorder.read_piece(offset, out)
-    }
-
-    /// Appends the next piece of a complete capture's chunk (see
-    /// [`Recorder::read_capture_piece`]).
-    pub fn read_capture(
-        &self,
-        offset: u32,
-        count: u16,
-        out: &mut heapless::Vec<i16, MAX_CAPTURE_CHUNK>,
-    ) -> Result<usize, RecordError> {
-        self.recorder.read_capture_piece(offset, count, out)
-    }
-
-    /// Values the recorder holds (what a read may reach).
-    pub fn recorded(&self) -> u32 {
-        self.recorder.recorded()
-    }
-
-    /// Whether the recorder is capturing (a `Record` or a capture, armed or triggered).
-    pub fn is_capturing(&self) -> bool {
-        self.recorder.is_capturing()
-    }
-
-    /// Most values one v3 `Record` holds.
-    pub fn record_capacity(&self) -> usize {
-        self.recorder.record_capacity()
-    }
-
-    /// Slots of the capture buffer.
-    pub fn capture_capacity(&self) -> usize {
-        self.recorder.capacity()
-    }
-
-    /// Most frames a capture of `signals` signals holds (see [`Recorder::max_frames`]).
-    pub fn capture_max_frames(&self, signals: u32) -> u32 {
-        self.recorder.max_frames(signals)
-    }
-
-    /// The capture's settings and progress (see [`Recorder::capture_info`]).
-    pub fn capture_info(&self) -> CaptureInfo {
-        self.recorder.capture_info()
+    /// Telemetry's tap: whether it runs, its counts.
+    pub fn telemetry(&self) -> &TelemetryTap {
+        &self.telemetry
     }
 
     /// Starts telemetry of `mask` every `decimation` ticks (see [`TelemetryTap::start`]);
@@ -199,11 +137,6 @@ impl<B: SampleStore> Services<B> {
     pub fn stop_telemetry(&mut self) -> u32 {
         self.telemetry.stop()
     }
-
-    /// Telemetry samples dropped since power-up (a full queue, or ticks lost before the tap).
-    pub fn telemetry_overflows(&self) -> u32 {
-        self.telemetry.overflows()
-    }
 }
 
 #[cfg(test)]
@@ -211,7 +144,7 @@ mod tests {
     use super::*;
     use crate::board::DacCode;
     use crate::control::{TickFlags, TickReport};
-    use crate::services::recorder::{CaptureState, Channel};
+    use crate::services::recorder::{CaptureState, Channel, Trigger};
     use crate::services::snapshot::{Events, SnapshotRing};
     use heapless::spsc::Queue;
 
@@ -237,7 +170,8 @@ mod tests {
         let (mut tx, _rx) = samples.split();
         let (mut push, mut pop) = ring.split();
         let mut s = Services::new([0i16; 64]);
-        s.arm_capture(Channel::Left.bit(), 4, 0, Trigger::StreamStart, 1)
+        s.recorder_mut()
+            .arm_capture(Channel::Left.bit(), 4, 0, Trigger::StreamStart, 1)
             .unwrap();
         for seq in 0..3 {
             push.enqueue(snapshot(seq, Events::NONE)).unwrap();
@@ -249,9 +183,9 @@ mod tests {
             push.enqueue(snapshot(seq, Events::NONE)).unwrap();
         }
         s.consume(&mut pop, &mut tx);
-        assert_eq!(s.capture_info().state, CaptureState::Done);
+        assert_eq!(s.recorder().capture_info().state, CaptureState::Done);
         let mut out = heapless::Vec::new();
-        s.read_capture(0, 4, &mut out).unwrap();
+        s.recorder().read_capture_piece(0, 4, &mut out).unwrap();
         assert_eq!(&out[..], &[3, 4, 5, 6]);
         assert_eq!(s.lost(), 0);
     }
@@ -265,7 +199,8 @@ mod tests {
         let (mut tx, mut rx) = samples.split();
         let (mut push, mut pop) = ring.split();
         let mut s = Services::new([0i16; 64]);
-        s.arm_capture(Channel::Left.bit(), 8, 0, Trigger::Now, 1)
+        s.recorder_mut()
+            .arm_capture(Channel::Left.bit(), 8, 0, Trigger::Now, 1)
             .unwrap();
         assert_eq!(s.start_telemetry(Channel::Left.bit(), 2, 100), Some(0));
         push.enqueue(snapshot(0, Events::NONE)).unwrap();
@@ -275,13 +210,13 @@ mod tests {
         push.enqueue(snapshot(8, Events::NONE)).unwrap();
         s.consume(&mut pop, &mut tx);
         assert_eq!(s.lost(), 5);
-        assert_eq!(s.capture_info().state, CaptureState::Idle);
-        assert!(!s.is_capturing());
+        assert_eq!(s.recorder().capture_info().state, CaptureState::Idle);
+        assert!(!s.recorder().is_capturing());
         let indices: heapless::Vec<u32, 8> = core::iter::from_fn(|| rx.dequeue())
             .map(|t| t.index)
             .collect();
         // Tick 0 sampled (index 0), ticks 2, 4, 6 lost (1–3), tick 8 sampled (index 4).
         assert_eq!(&indices[..], &[0, 4]);
-        assert_eq!(s.telemetry_overflows(), 3);
+        assert_eq!(s.telemetry().overflows(), 3);
     }
 }
