@@ -368,6 +368,9 @@ fn parse_trace(reader: impl BufRead, code: &HashMap<u32, Insn>) -> Trace {
     let mut services: Vec<Vec<Tick>> = vec![Vec::new()];
     let mut serving: Option<Tick> = None;
     let mut serve_previous: Option<(u32, Insn)> = None;
+    // The services' invocation in progress by source line, and the dearest one's (5 WS).
+    let mut serve_by_line: HashMap<u32, u64> = HashMap::new();
+    let mut serve_worst: (u64, Breakdown) = (0, Vec::new());
     let mut worst: Vec<(u64, Breakdown)> = vec![(0, Vec::new())];
     let mut by_line: HashMap<u32, u64> = HashMap::new();
     let mut current: Option<Tick> = None;
@@ -411,6 +414,7 @@ fn parse_trace(reader: impl BufRead, code: &HashMap<u32, Insn>) -> Trace {
         if line.contains(SERVICES_EXCEPTION) {
             serving = Some(Tick::default());
             serve_previous = None;
+            serve_by_line.clear();
             continue;
         }
         // The end of an exception: QEMU logs "Exception return: magic PC … previous exception
@@ -423,8 +427,14 @@ fn parse_trace(reader: impl BufRead, code: &HashMap<u32, Insn>) -> Trace {
             .and_then(|(_, n)| n.trim().parse::<u32>().ok());
         if returned == Some(SERVICES_EXCEPTION_NUMBER) && current.is_none() {
             if let Some(mut t) = serving.take() {
-                let mut unused = HashMap::new();
-                settle(&mut t, &mut unused, &serve_previous, None);
+                settle(&mut t, &mut serve_by_line, &serve_previous, None);
+                if t.cycles_ws5 > serve_worst.0 {
+                    serve_worst = (
+                        t.cycles_ws5,
+                        serve_by_line.iter().map(|(&l, &c)| (l, c)).collect(),
+                    );
+                }
+                serve_by_line.clear();
                 t.cycles += 3 + ENTRY_EXIT_CYCLES;
                 t.cycles_ws5 += 3 + 5 + ENTRY_EXIT_CYCLES;
                 if let Some(seg) = services.last_mut() {
@@ -482,8 +492,7 @@ fn parse_trace(reader: impl BufRead, code: &HashMap<u32, Insn>) -> Trace {
             None if serving.is_some() => {
                 if let Some(t) = serving.as_mut() {
                     t.instructions += 1;
-                    let mut unused = HashMap::new();
-                    settle(t, &mut unused, &serve_previous, Some(pc));
+                    settle(t, &mut serve_by_line, &serve_previous, Some(pc));
                     serve_previous = code.get(&pc).cloned().map(|i| (pc, i));
                 }
             }
@@ -533,6 +542,7 @@ fn parse_trace(reader: impl BufRead, code: &HashMap<u32, Insn>) -> Trace {
     Trace {
         segments,
         services,
+        services_worst: serve_worst.1,
         breakdowns: worst.into_iter().map(|(_, b)| b).collect(),
         sections,
     }
@@ -544,6 +554,8 @@ struct Trace {
     segments: Vec<Vec<Tick>>,
     /// The services' task's invocations, by segment.
     services: Vec<Vec<Tick>>,
+    /// The dearest invocation of the services' task by source line (5 WS).
+    services_worst: Breakdown,
     /// Each segment's worst tick (5 WS) by source line.
     breakdowns: Vec<Breakdown>,
     /// Critical sections outside the tick, by where each started.
@@ -647,9 +659,20 @@ fn the_whole_interrupt_in_every_scenario() {
     let Trace {
         segments,
         services,
+        services_worst,
         breakdowns,
         sections,
     } = parse_trace(BufReader::with_capacity(1 << 20, trace), &code);
+    // Where the services' dearest invocation goes: its 20 dearest source lines.
+    let mut dearest = services_worst.clone();
+    dearest.sort_by_key(|&(_, c)| std::cmp::Reverse(c));
+    println!(
+        "The services' dearest invocation, {} cycles (5 WS), by source line:",
+        dearest.iter().map(|&(_, c)| c).sum::<u64>()
+    );
+    for (l, c) in dearest.iter().take(20) {
+        println!("    {c:5}  {}", lines[*l as usize]);
+    }
     let out = child.wait_with_output().expect("qemu exits");
     let _ = std::fs::remove_file(&fifo);
     let stdout = String::from_utf8_lossy(&out.stdout);
