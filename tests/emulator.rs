@@ -63,7 +63,7 @@ impl Emulator {
         let _ = std::fs::remove_dir_all(&scratch);
         std::fs::create_dir_all(&scratch).expect("scratch directory");
         let socket = scratch.join("uart.sock");
-        let mut cmd = support::qemu_command(&elf);
+        let mut cmd = support::emulator_command(&elf);
         cmd.arg("-chardev")
             .arg(format!(
                 "socket,id=u1,path={},server=on,wait=on",

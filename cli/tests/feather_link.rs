@@ -65,7 +65,7 @@ fn boot(name: &str) -> Qemu {
     let _ = std::fs::remove_dir_all(&scratch);
     std::fs::create_dir_all(&scratch).expect("scratch directory");
     let mut qemu = Qemu {
-        child: support::qemu_command(&elf)
+        child: support::emulator_command(&elf)
             .arg("-chardev")
             .arg(format!(
                 "socket,id=u1,path={},server=on,wait=off",

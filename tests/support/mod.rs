@@ -233,6 +233,18 @@ pub fn qemu_command(elf: &Path) -> Command {
     cmd
 }
 
+/// [`qemu_command`] for an emulated board talking to a host: with `-icount shift=0,sleep=on`,
+/// one guest instruction is one nanosecond of the guest's clock and idle time passes at the
+/// host's pace. The guest then takes every tick with the headroom a board has, whatever the
+/// host's load: on the host's clock QEMU runs the guest slower than the chip, ticks are lost
+/// (counted as overruns) and what runs below the tick (the command task) gets what the tick
+/// leaves, as on an overloaded board.
+pub fn emulator_command(elf: &Path) -> Command {
+    let mut cmd = qemu_command(elf);
+    cmd.args(["-icount", "shift=0,sleep=on"]);
+    cmd
+}
+
 /// Boots `elf` in QEMU with `extra` arguments, waits for it to exit through semihosting
 /// (at most `limit`), and returns its stdout; panics, naming `what`, if it does not exit in
 /// time or exits with a failure. For the images that print a report and quit (tick bench,
