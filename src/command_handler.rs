@@ -300,7 +300,7 @@ impl<S: RecordStorage> CommandHandler<S> {
             Request::RecallParams => self.recall(control),
             Request::Waveform(_) if analog_running(control) => Err(NackReason::Busy),
             Request::Waveform(w) => self.waveform(w, control),
-            Request::Record(r) => record(r, control),
+            Request::Record(r) => record(r, control, |c| self.listen(c)),
             Request::ReadRecord { offset } => {
                 // Piece by piece, a lock each: a tick falling due waits for one piece's copy.
                 let mut values = heapless::Vec::new();
@@ -317,7 +317,7 @@ impl<S: RecordStorage> CommandHandler<S> {
                 };
             }
             Request::ReadParams => return Response::Params(self.settings.clone()),
-            Request::Capture(r) => capture(r, control),
+            Request::Capture(r) => capture(r, control, |c| self.listen(c)),
             Request::CaptureStatus => return Response::Capture(self.capture_status(control)),
             Request::Learn(r) => match self.learn(r, control) {
                 Ok(Some(response)) => return response,
@@ -391,6 +391,8 @@ impl<S: RecordStorage> CommandHandler<S> {
     where
         L: Locks,
     {
+        // A capture or a record that has completed stops the tick's snapshots.
+        settle_listening(control);
         let t = control.lock(|c| c.telemetry());
         let (recording, recorded, lost) = control.lock_services(|s| {
             (
@@ -471,7 +473,7 @@ impl<S: RecordStorage> CommandHandler<S> {
             .build(&self.hardware)
             .map_err(NackReason::Refused)?;
         // What the tick runs beside the new configuration: the learning, a scan.
-        let beside = control.lock(|c| c.beside());
+        let beside = beside_now(control);
         crate::config::tick_budget::check_with(&config, self.hardware.control_rate_hz, beside)
             .map_err(NackReason::Refused)?;
         let (spare, stacks) = control.lock(|c| (c.spare(), c.stacks()));
@@ -596,11 +598,11 @@ impl<S: RecordStorage> CommandHandler<S> {
         let generator = ScanGenerator::new(&r, rate, self.max_scan_step(), pulse)
             .map_err(NackReason::Refused)?;
         // The scan ends the analog input (another source).
-        let beside = control.lock(|c| crate::config::tick_budget::Beside {
+        let beside = crate::config::tick_budget::Beside {
             scanning: true,
             analog: false,
-            ..c.beside()
-        });
+            ..beside_now(control)
+        };
         if let Some(refusal) = self.over_budget(beside) {
             return Err(NackReason::Refused(refusal));
         }
@@ -615,10 +617,10 @@ impl<S: RecordStorage> CommandHandler<S> {
         L: Locks,
     {
         if t.input != crate::sources::scan::TriggerEdge::Off {
-            let beside = control.lock(|c| crate::config::tick_budget::Beside {
+            let beside = crate::config::tick_budget::Beside {
                 trigger: true,
-                ..c.beside()
-            });
+                ..beside_now(control)
+            };
             if let Some(refusal) = self.over_budget(beside) {
                 return Err(NackReason::Refused(refusal));
             }
@@ -670,11 +672,11 @@ impl<S: RecordStorage> CommandHandler<S> {
                     .prepare(self.hardware.control_rate_hz)
                     .map_err(NackReason::Refused)?;
                 // The input ends a scan (another source).
-                let beside = control.lock(|c| crate::config::tick_budget::Beside {
+                let beside = crate::config::tick_budget::Beside {
                     scanning: false,
                     analog: true,
-                    ..c.beside()
-                });
+                    ..beside_now(control)
+                };
                 if let Some(refusal) = self.over_budget(beside) {
                     return Err(NackReason::Refused(refusal));
                 }
@@ -750,6 +752,7 @@ impl<S: RecordStorage> CommandHandler<S> {
             } => {
                 telemetry::check_request(signals, decimation, rate).map_err(NackReason::Refused)?;
                 let wake = telemetry::frame_target(signals, decimation, rate) as u16;
+                self.listen(control)?;
                 let first = control
                     .lock_services(|c| c.start_telemetry(signals, decimation, wake))
                     .ok_or(refused(Field::TelemetrySignals, Rule::AtMost(127.0)))?;
@@ -758,6 +761,7 @@ impl<S: RecordStorage> CommandHandler<S> {
             TelemetryRequest::Stop => {
                 let end = control.lock_services(|c| c.stop_telemetry());
                 self.telemetry.stop(end);
+                settle_listening(control);
             }
         }
         Ok(())
@@ -811,6 +815,25 @@ impl<S: RecordStorage> CommandHandler<S> {
         crate::config::tick_budget::check_with(&config, self.hardware.control_rate_hz, beside).err()
     }
 
+    /// Has the tick hand the services its snapshots (before a capture, a record or telemetry
+    /// is armed, so that the tick that arms it is served), unless their cost beside what
+    /// runs would take the tick over its budget
+    /// ([`crate::config::tick_budget::SERVICES_CYCLES`]): then the refusal.
+    fn listen<L>(&self, control: &mut L) -> Result<(), NackReason>
+    where
+        L: Locks,
+    {
+        let beside = crate::config::tick_budget::Beside {
+            services: true,
+            ..beside_now(control)
+        };
+        if let Some(refusal) = self.over_budget(beside) {
+            return Err(NackReason::Refused(refusal));
+        }
+        control.lock(|c| c.listen(true));
+        Ok(())
+    }
+
     #[inline(never)] // rare and large: one copy, not one per caller
     fn learn<L>(&mut self, r: LearnRequest, control: &mut L) -> Result<Option<Response>, NackReason>
     where
@@ -832,10 +855,10 @@ impl<S: RecordStorage> CommandHandler<S> {
                     Err(refused(Field::Sensor, Rule::Required))
                 } else if let Some(refusal) = (state != LearnState::Off)
                     .then(|| {
-                        let beside = control.lock(|c| crate::config::tick_budget::Beside {
+                        let beside = crate::config::tick_budget::Beside {
                             learning: true,
-                            ..c.beside()
-                        });
+                            ..beside_now(control)
+                        };
                         self.over_budget(beside)
                     })
                     .flatten()
@@ -1001,7 +1024,13 @@ where
     Ok(())
 }
 
-fn record<L>(r: RecordRequest, control: &mut L) -> Result<(), NackReason>
+/// Arms a v3 `Record` (checked first; `listen` then has the tick hand the services its
+/// snapshots, or refuses the services' cost beside what runs).
+fn record<L>(
+    r: RecordRequest,
+    control: &mut L,
+    listen: impl FnOnce(&mut L) -> Result<(), NackReason>,
+) -> Result<(), NackReason>
 where
     L: Locks,
 {
@@ -1015,13 +1044,20 @@ where
     if r.count as usize > capacity {
         return Err(refused(Field::RecordCount, Rule::AtMost(capacity as f64)));
     }
+    listen(control)?;
     control
         .lock_services(|c| c.recorder_mut().arm(r.signal, r.count, r.decimation))
         .map_err(|_| refused(Field::RecordCount, Rule::AtMost(capacity as f64)))
 }
 
+/// Arms a capture (checked first; `listen` then has the tick hand the services its
+/// snapshots, or refuses the services' cost beside what runs).
 #[inline(never)] // rare: one copy, not one per caller
-fn capture<L>(r: CaptureRequest, control: &mut L) -> Result<(), NackReason>
+fn capture<L>(
+    r: CaptureRequest,
+    control: &mut L,
+    listen: impl FnOnce(&mut L) -> Result<(), NackReason>,
+) -> Result<(), NackReason>
 where
     L: Locks,
 {
@@ -1053,6 +1089,7 @@ where
     if r.decimation == 0 {
         return Err(refused(Field::RecordDecimation, Rule::AtLeast(1.0)));
     }
+    listen(control)?;
     control
         .lock_services(|c| {
             c.recorder_mut().arm_capture(
@@ -1064,6 +1101,28 @@ where
             )
         })
         .map_err(|_| refused(Field::RecordCount, Rule::AtMost(max_frames as f64)))
+}
+
+/// What runs beside the configuration now, as the tick budget charges it: the services'
+/// listening settled first ([`settle_listening`]), so that a capture that has completed is no
+/// longer charged.
+fn beside_now<L>(control: &mut L) -> crate::config::tick_budget::Beside
+where
+    L: Locks,
+{
+    settle_listening(control);
+    control.lock(|c| c.beside())
+}
+
+/// Stops the tick's snapshots once the services are idle (no capture or record armed or
+/// running, telemetry stopped). Only this task arms them, so they stay idle until it does.
+fn settle_listening<L>(control: &mut L)
+where
+    L: Locks,
+{
+    if control.lock(|c| c.is_listening()) && !control.lock_services(|s| s.is_active()) {
+        control.lock(|c| c.listen(false));
+    }
 }
 
 /// The coarse axis's limits and latest status, read in one short lock; refused when the image

@@ -146,8 +146,12 @@ pub struct ControlLoop<C> {
     /// The recorder's trigger events since the last snapshot (a start commanded between two
     /// ticks, the external edge seen in this one): they travel with the next snapshot.
     events: Events,
-    /// The next snapshot's sequence number: ticks since start-up, wrapping.
+    /// The next snapshot's sequence number: snapshots pushed (or refused) since start-up,
+    /// wrapping.
     seq: u32,
+    /// The services listen: a capture or a record is armed or running, or telemetry runs
+    /// ([`ControlLoop::listen`]). Only then does the tick push its snapshot and wake them.
+    listening: bool,
     /// The coarse axis's mailbox (feature `dual-stage`): once the coarse task has posted a
     /// ramp, the piezo's setpoint comes from it instead of the stream.
     #[cfg(feature = "dual-stage")]
@@ -210,6 +214,7 @@ where
             control_rate_hz,
             events: Events::NONE,
             seq: 0,
+            listening: false,
             #[cfg(feature = "dual-stage")]
             coarse: crate::dual_stage::CoarseLink::new(),
             learning: LearnTick::new(),
@@ -281,21 +286,38 @@ where
             self.limit_hits = self.limit_hits.wrapping_add(1);
         }
         self.estimate = report.estimate;
-        // One snapshot for the services below the tick (the recorder, telemetry's tap):
+        // While the services listen, one snapshot for them (the recorder, telemetry's tap):
         // a fixed-size copy. A full ring refuses it; the sequence number's gap tells the
         // consumer ([`crate::services::consumer::Services::consume`]).
-        let setpoint = self.controller.setpoint();
-        let _ = snapshots.enqueue(Snapshot::of(self.seq, setpoint, &report, self.events));
-        self.seq = self.seq.wrapping_add(1);
+        if self.listening {
+            let setpoint = self.controller.setpoint();
+            let _ = snapshots.enqueue(Snapshot::of(self.seq, setpoint, &report, self.events));
+            self.seq = self.seq.wrapping_add(1);
+        }
         self.events = Events::NONE;
         report
     }
 
-    /// Whether the services' consumer is due: one wake every [`BATCH`] snapshots (the tick's
-    /// caller pends it).
+    /// Whether the services' consumer is due: while they listen, one wake every [`BATCH`]
+    /// snapshots (the tick's caller pends it).
     #[inline(always)]
     pub fn services_due(&self) -> bool {
-        self.seq % BATCH == 0
+        self.listening && self.seq % BATCH == 0
+    }
+
+    /// Whether the tick hands its snapshots to the services (see [`ControlLoop::listen`]).
+    pub fn is_listening(&self) -> bool {
+        self.listening
+    }
+
+    /// Starts (`true`) or stops handing the services a snapshot a tick. The command handler
+    /// turns it on before it arms a capture or a record or starts telemetry (so that the
+    /// tick that arms it is served), and off once the services are idle again: while nothing
+    /// listens, the tick pushes nothing and the services' task is never woken, and the tick
+    /// budget charges them ([`crate::config::tick_budget::SERVICES_CYCLES`]) only while they
+    /// listen. Snapshots are numbered by push, so the pause leaves no gap.
+    pub fn listen(&mut self, on: bool) {
+        self.listening = on;
     }
 
     /// The scan's setpoint and events this tick (`None` without a running scan).
@@ -460,13 +482,15 @@ where
 
     /// What runs beside the controller and costs the tick, as the tick budget charges it
     /// ([`Beside`]): the learning (playing or learning), a scan (running, or waiting for its
-    /// trigger: the edge starts it), the analog input, the armed trigger input.
+    /// trigger: the edge starts it), the analog input, the armed trigger input, the services
+    /// while they listen.
     pub fn beside(&self) -> Beside {
         Beside {
             learning: self.learning.state() != LearnState::Off,
             scanning: self.scan_pending || self.is_scanning(),
             analog: self.analog.is_running(),
             trigger: self.external.is_armed(),
+            services: self.listening,
         }
     }
 

@@ -1812,3 +1812,86 @@ fn the_telemetry_packer_is_woken_by_the_queue_s_fill_level_not_per_tick() {
     assert!(frames >= wakes);
     assert_eq!(b.services.telemetry().overflows(), 0);
 }
+
+/// The services (recorder, telemetry) are charged beside the configuration while they listen
+/// ([`twinstack::config::tick_budget::SERVICES_CYCLES`]): at a rate whose period holds the
+/// closed-loop configuration but not the services beside it, a capture and telemetry are
+/// refused with the cycles they need and have, and the tick hands the services nothing. At
+/// the test's own rate a capture makes the tick push its snapshots until it completes, and
+/// the next request that looks stops them; telemetry keeps them until it stops.
+#[test]
+fn the_services_are_charged_while_they_listen_and_refused_where_they_would_overrun() {
+    use twinstack::config::tick_budget::{available_cycles, SERVICES_CYCLES};
+    use twinstack::services::recorder::Trigger;
+    let (mut b, rate, fits) = closed_loop_board_short_of(SERVICES_CYCLES);
+    let over = Rule::TickOverrun {
+        needs: fits + SERVICES_CYCLES,
+        available: available_cycles(rate),
+    };
+    let capture = CaptureRequest {
+        signals: Channel::Left.bit() | Channel::Sensor.bit(),
+        samples: 8,
+        pre_trigger: 0,
+        trigger: Trigger::Now,
+        decimation: 1,
+    };
+    for request in [
+        Request::Capture(capture),
+        Request::Telemetry(TelemetryRequest::Start {
+            signals: Channel::Left.bit(),
+            decimation: 10,
+        }),
+    ] {
+        match b.handle(request.clone()) {
+            Response::Nack {
+                reason: NackReason::Refused(r),
+            } => assert_eq!((r.field, r.rule), (Field::Workload, over.clone()), "{request:?}"),
+            r => panic!("{request:?} was not refused: {r:?}"),
+        }
+        assert!(!b.control.is_listening() && !b.control.beside().services);
+    }
+    // A request the checks refuse first (no signal) is refused for that, not the budget.
+    match b.handle(Request::Capture(CaptureRequest {
+        signals: 0,
+        ..capture
+    })) {
+        Response::Nack {
+            reason: NackReason::Refused(r),
+        } => assert_eq!(r.field, Field::RecordSignals, "{r:?}"),
+        r => panic!("{r:?}"),
+    }
+
+    let mut b = closed_board();
+    assert!(!b.control.is_listening(), "nothing listens at boot");
+    b.ticks(16);
+    assert!(b.snapshots.is_empty(), "no snapshot while nothing listens");
+    assert!(matches!(
+        b.handle(Request::Capture(capture)),
+        Response::Ack { .. }
+    ));
+    assert!(b.control.is_listening() && b.control.beside().services);
+    b.ticks(8 + 8);
+    // The capture completed; a status read sees it and the tick stops pushing.
+    let _ = b.status();
+    assert!(!b.control.is_listening());
+    match b.handle(Request::CaptureStatus) {
+        Response::Capture(c) => assert_eq!(c.captured, 8, "{c:?}"),
+        r => panic!("{r:?}"),
+    }
+    // Telemetry listens until it stops.
+    assert!(matches!(
+        b.handle(Request::Telemetry(TelemetryRequest::Start {
+            signals: Channel::Left.bit(),
+            decimation: 10,
+        })),
+        Response::Ack { .. }
+    ));
+    b.ticks(40);
+    let _ = b.status();
+    assert!(b.control.is_listening());
+    assert!(matches!(
+        b.handle(Request::Telemetry(TelemetryRequest::Stop)),
+        Response::Ack { .. }
+    ));
+    assert!(!b.control.is_listening());
+}

@@ -1,7 +1,7 @@
 //! What a configuration costs the control tick, and the highest control rate the board admits
 //! it at: the tick budget ([`twinstack::config::tick_budget`]) asked for each configuration
 //! as loaded, without its observer, and with every feature a user may run beside it (the
-//! learning feedforward, a scan, the trigger input armed).
+//! learning feedforward, a scan, the trigger input armed, a capture and telemetry).
 //!
 //! ```
 //! use twinstack_identify::budget::{family, BudgetRow};
@@ -58,18 +58,20 @@ pub struct BudgetRow {
     /// The same without its observer (`None`: it has none). With a sensor, the observer's
     /// estimate is telemetry only; the feedback runs on the sensor.
     pub without_observer: Option<Prediction>,
-    /// As loaded, with the learning feedforward on, a scan running and the trigger input
-    /// armed ([`BESIDE_EVERY_FEATURE`]).
+    /// As loaded, with the learning feedforward on, a scan running, the trigger input armed,
+    /// a capture and telemetry running ([`BESIDE_EVERY_FEATURE`]).
     pub every_feature: Prediction,
 }
 
 /// What can run beside a configuration at once: the learning, a scan (the analog input is
-/// the other board-side source, and cheaper), the armed trigger input.
+/// the other board-side source, and cheaper), the armed trigger input, a capture and
+/// telemetry (the services).
 pub const BESIDE_EVERY_FEATURE: Beside = Beside {
     learning: true,
     scanning: true,
     analog: false,
     trigger: true,
+    services: true,
 };
 
 impl BudgetRow {

@@ -2,9 +2,12 @@
 //! refusal of a configuration that would not fit the control period.
 //!
 //! The tick's cost is set by what it runs: the fixed part (RTIC's entry and exit, the setpoint
-//! stream, the sensor, the feedback, the drift check, the drive stage, the recorder, telemetry's
-//! tap, the DAC write, the watchdog) and the models, whose banks grow with their operators, dead
-//! zones and creep modes. [`worst_case_cycles`] adds these up from a built
+//! stream, the sensor, the feedback, the drift check, the drive stage, the DAC write, the
+//! watchdog) and the models, whose banks grow with their operators, dead zones and creep
+//! modes; beside them, what the user turns on ([`Beside`]: the learning, a scan, the analog
+//! input, the armed trigger input, and the services — the recorder and telemetry, which run
+//! below the tick on its snapshots but take their share of its period while they listen).
+//! [`worst_case_cycles`] adds these up from a built
 //! [`ControlConfig`], asking each model for its own cost ([`Hysteresis::cycles`], declared
 //! beside the model: [`crate::models::prandtl_ishlinskii::PI_PAIR_CYCLES`] and the like); [`Settings::build`](crate::config::settings::Settings::build) refuses
 //! ([`Field::Workload`], [`Rule::TickOverrun`]) a configuration whose prediction exceeds
@@ -49,14 +52,26 @@ pub const SYSCLK_HZ: u32 = 168_000_000;
 /// at 50 kHz ([`available_cycles`] doubles).
 pub const TICK_SHARE_PERCENT: u32 = 100;
 
-/// Everything that does not grow with a model: RTIC's entry and exit, the stream, the trigger
-/// input and outputs, the sensor read and its drift check, PI feedback, the drive stage, the
-/// recorder taking all seven signals, telemetry's tap at its worst, the DAC write, the watchdog,
-/// the first tick after a reload or a mode switch (its rebase, up to 50 instructions more),
-/// and the firmware's own binding of the tick (`hardware::setup::tick`: the command task
-/// pended when telemetry has a frame's worth or the learning a period's end, 22 instructions,
-/// 53 cycles at 5 WS, which the whole-interrupt bench runs as the firmware does).
-pub const FIXED_CYCLES: u32 = 1183;
+/// Everything in the interrupt that does not grow with a model: RTIC's entry and exit, the
+/// stream, the trigger input and outputs, the sensor read and its drift check, PI feedback,
+/// the drive stage, the DAC write, the watchdog, the snapshot's push while the services
+/// listen, the first tick after a reload or a mode
+/// switch (its rebase, up to 50 instructions more), and the firmware's own binding of the
+/// tick (`hardware::setup::tick`: the services' task pended once a batch, the command task
+/// when the learning ends a period, which the whole-interrupt bench runs as the firmware
+/// does). The recorder and telemetry are not in it: they run below the tick, charged as
+/// [`SERVICES_CYCLES`] while they listen.
+pub const FIXED_CYCLES: u32 = 953;
+
+/// The services while they listen ([`crate::services::consumer::Services`]: a capture or a
+/// record armed or running, telemetry running): the tick's share of the services' task (the
+/// snapshot's push is in [`FIXED_CYCLES`]), which serves the snapshots a batch at a time below the tick (its
+/// dearest invocation over [`crate::services::snapshot::BATCH`] ticks), with the recorder
+/// taking all seven signals and telemetry's tap all seven on every tick. Measured by the
+/// whole-interrupt bench, whose every scenario captures and streams telemetry. Counted when a
+/// capture or a record is armed and telemetry started, and at every load, scan, analog input,
+/// learning start or trigger arming while they listen.
+pub const SERVICES_CYCLES: u32 = 400;
 /// The feedback's derivative term.
 pub const DERIVATIVE_CYCLES: u32 = 50;
 /// The feedback's notch (one biquad); the feedforward's notch (input shaping,
@@ -157,7 +172,7 @@ pub fn check(config: &ControlConfig, control_rate_hz: f64) -> Result<(), Refusal
 }
 
 /// What runs beside the configuration and costs the tick: the learning feedforward, a scan,
-/// the analog setpoint input, the armed trigger input.
+/// the analog setpoint input, the armed trigger input, the services (recorder, telemetry).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct Beside {
     /// The learning feedforward plays (learning or frozen).
@@ -168,6 +183,9 @@ pub struct Beside {
     pub analog: bool,
     /// The external trigger input is armed: its edge's tick may come on any tick.
     pub trigger: bool,
+    /// The services listen (a capture or a record armed or running, telemetry running): the
+    /// tick pushes its snapshot and the services' task serves it.
+    pub services: bool,
 }
 
 impl Beside {
@@ -177,6 +195,7 @@ impl Beside {
             + u32::from(self.scanning) * SCAN_CYCLES
             + u32::from(self.analog) * ANALOG_CYCLES
             + u32::from(self.trigger) * TRIGGER_CYCLES
+            + u32::from(self.services) * SERVICES_CYCLES
     }
 }
 

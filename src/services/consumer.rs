@@ -103,6 +103,12 @@ impl<B: SampleStore> Services<B> {
         self.telemetry.lose_ticks(ticks);
     }
 
+    /// Whether the services need the tick's snapshots: a capture or a record armed or
+    /// running, or telemetry running.
+    pub fn is_active(&self) -> bool {
+        self.recorder.is_capturing() || self.telemetry.is_running()
+    }
+
     /// Snapshots lost since power-up (the ring was full when the tick pushed them): each one
     /// a tick whose services did not keep up, counted with the board's overruns.
     pub fn lost(&self) -> u32 {

@@ -645,6 +645,9 @@ mod app {
         // sample; the handler would refuse this rate for the 2 Mbaud line, but the tick's
         // cost per sample is what is measured), packed into frames here between ticks.
         let mut packer = TelemetryPacker::new();
+        // The tick hands the services its snapshots from here on (as the handler has it do
+        // before it starts telemetry).
+        lock.lock(|c| c.listen(true));
         let Some(first) = lock.lock_services(|s| s.start_telemetry(0b111_1111, 1, 1)) else {
             panic!("telemetry refused");
         };
