@@ -26,6 +26,7 @@ use heapless::spsc::{Producer, Queue};
 use crate::board::Hardware;
 use crate::config::param_store::{RecordStorage, StorageError, StoredRecord, MAX_RECORD};
 use crate::config::settings::{Mode, Settings};
+use crate::config::tick_budget::ServicesLoad;
 use crate::control::{ControlConfig, Controller};
 use crate::control_loop::ControlLoop;
 use crate::dual_stage::{CoarseCommand, CoarseLimits, CoarseRefusal, CoarseStatus};
@@ -300,7 +301,12 @@ impl<S: RecordStorage> CommandHandler<S> {
             Request::RecallParams => self.recall(control),
             Request::Waveform(_) if analog_running(control) => Err(NackReason::Busy),
             Request::Waveform(w) => self.waveform(w, control),
-            Request::Record(r) => record(r, control, |c| self.listen(c)),
+            Request::Record(r) => record(r, control, |c| {
+                self.listen(c, |l| ServicesLoad {
+                    capture_decimation: Some(r.decimation),
+                    ..l
+                })
+            }),
             Request::ReadRecord { offset } => {
                 // Piece by piece, a lock each: a tick falling due waits for one piece's copy.
                 let mut values = heapless::Vec::new();
@@ -317,7 +323,12 @@ impl<S: RecordStorage> CommandHandler<S> {
                 };
             }
             Request::ReadParams => return Response::Params(self.settings.clone()),
-            Request::Capture(r) => capture(r, control, |c| self.listen(c)),
+            Request::Capture(r) => capture(r, control, |c| {
+                self.listen(c, |l| ServicesLoad {
+                    capture_decimation: Some(r.decimation),
+                    ..l
+                })
+            }),
             Request::CaptureStatus => return Response::Capture(self.capture_status(control)),
             Request::Learn(r) => match self.learn(r, control) {
                 Ok(Some(response)) => return response,
@@ -752,7 +763,10 @@ impl<S: RecordStorage> CommandHandler<S> {
             } => {
                 telemetry::check_request(signals, decimation, rate).map_err(NackReason::Refused)?;
                 let wake = telemetry::frame_target(signals, decimation, rate) as u16;
-                self.listen(control)?;
+                self.listen(control, |l| ServicesLoad {
+                    telemetry_decimation: Some(decimation),
+                    ..l
+                })?;
                 let first = control
                     .lock_services(|c| c.start_telemetry(signals, decimation, wake))
                     .ok_or(refused(Field::TelemetrySignals, Rule::AtMost(127.0)))?;
@@ -816,16 +830,21 @@ impl<S: RecordStorage> CommandHandler<S> {
     }
 
     /// Has the tick hand the services its snapshots (before a capture, a record or telemetry
-    /// is armed, so that the tick that arms it is served), unless their cost beside what
-    /// runs would take the tick over its budget
-    /// ([`crate::config::tick_budget::SERVICES_CYCLES`]): then the refusal.
-    fn listen<L>(&self, control: &mut L) -> Result<(), NackReason>
+    /// is armed, so that the tick that arms it is served), unless the services' load once
+    /// armed (`with` the load now) would take the tick over its budget beside what runs
+    /// ([`crate::config::tick_budget::ServicesLoad`]): then the refusal.
+    fn listen<L>(
+        &self,
+        control: &mut L,
+        with: impl FnOnce(ServicesLoad) -> ServicesLoad,
+    ) -> Result<(), NackReason>
     where
         L: Locks,
     {
+        let now = beside_now(control);
         let beside = crate::config::tick_budget::Beside {
-            services: true,
-            ..beside_now(control)
+            services: with(now.services),
+            ..now
         };
         if let Some(refusal) = self.over_budget(beside) {
             return Err(NackReason::Refused(refusal));
@@ -1103,15 +1122,19 @@ where
         .map_err(|_| refused(Field::RecordCount, Rule::AtMost(max_frames as f64)))
 }
 
-/// What runs beside the configuration now, as the tick budget charges it: the services'
-/// listening settled first ([`settle_listening`]), so that a capture that has completed is no
-/// longer charged.
+/// What runs beside the configuration now, as the tick budget charges it: the loop's, and
+/// what the services run, their listening settled first ([`settle_listening`]), so that a
+/// capture that has completed is no longer charged.
 fn beside_now<L>(control: &mut L) -> crate::config::tick_budget::Beside
 where
     L: Locks,
 {
     settle_listening(control);
-    control.lock(|c| c.beside())
+    let services = control.lock_services(|s| s.load());
+    crate::config::tick_budget::Beside {
+        services,
+        ..control.lock(|c| c.beside())
+    }
 }
 
 /// Stops the tick's snapshots once the services are idle (no capture or record armed or

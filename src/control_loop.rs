@@ -314,7 +314,7 @@ where
     /// turns it on before it arms a capture or a record or starts telemetry (so that the
     /// tick that arms it is served), and off once the services are idle again: while nothing
     /// listens, the tick pushes nothing and the services' task is never woken, and the tick
-    /// budget charges them ([`crate::config::tick_budget::SERVICES_CYCLES`]) only while they
+    /// budget charges them ([`crate::config::tick_budget::ServicesLoad`]) only while they
     /// listen. Snapshots are numbered by push, so the pause leaves no gap.
     pub fn listen(&mut self, on: bool) {
         self.listening = on;
@@ -482,15 +482,16 @@ where
 
     /// What runs beside the controller and costs the tick, as the tick budget charges it
     /// ([`Beside`]): the learning (playing or learning), a scan (running, or waiting for its
-    /// trigger: the edge starts it), the analog input, the armed trigger input, the services
-    /// while they listen.
+    /// trigger: the edge starts it), the analog input, the armed trigger input (the services'
+    /// load is the command handler's to add: they are not the loop's).
     pub fn beside(&self) -> Beside {
         Beside {
             learning: self.learning.state() != LearnState::Off,
             scanning: self.scan_pending || self.is_scanning(),
             analog: self.analog.is_running(),
             trigger: self.external.is_armed(),
-            services: self.listening,
+            // The services are not the loop's: the command handler adds what they run.
+            services: Default::default(),
         }
     }
 

@@ -1813,21 +1813,16 @@ fn the_telemetry_packer_is_woken_by_the_queue_s_fill_level_not_per_tick() {
     assert_eq!(b.services.telemetry().overflows(), 0);
 }
 
-/// The services (recorder, telemetry) are charged beside the configuration while they listen
-/// ([`twinstack::config::tick_budget::SERVICES_CYCLES`]): at a rate whose period holds the
-/// closed-loop configuration but not the services beside it, a capture and telemetry are
-/// refused with the cycles they need and have, and the tick hands the services nothing. At
+/// The services (recorder, telemetry) are charged beside the configuration while they listen,
+/// by what they run ([`twinstack::config::tick_budget::ServicesLoad`]): at a rate whose period
+/// holds the closed-loop configuration but not a capture (or telemetry) beside it, the arming
+/// is refused with the cycles it needs and has, and the tick hands the services nothing. At
 /// the test's own rate a capture makes the tick push its snapshots until it completes, and
 /// the next request that looks stops them; telemetry keeps them until it stops.
 #[test]
 fn the_services_are_charged_while_they_listen_and_refused_where_they_would_overrun() {
-    use twinstack::config::tick_budget::{available_cycles, SERVICES_CYCLES};
+    use twinstack::config::tick_budget::{available_cycles, ServicesLoad};
     use twinstack::services::recorder::Trigger;
-    let (mut b, rate, fits) = closed_loop_board_short_of(SERVICES_CYCLES);
-    let over = Rule::TickOverrun {
-        needs: fits + SERVICES_CYCLES,
-        available: available_cycles(rate),
-    };
     let capture = CaptureRequest {
         signals: Channel::Left.bit() | Channel::Sensor.bit(),
         samples: 8,
@@ -1835,30 +1830,50 @@ fn the_services_are_charged_while_they_listen_and_refused_where_they_would_overr
         trigger: Trigger::Now,
         decimation: 1,
     };
-    for request in [
-        Request::Capture(capture),
-        Request::Telemetry(TelemetryRequest::Start {
-            signals: Channel::Left.bit(),
-            decimation: 10,
-        }),
+    let telemetry = Request::Telemetry(TelemetryRequest::Start {
+        signals: Channel::Left.bit(),
+        decimation: 10,
+    });
+    let capture_load = ServicesLoad {
+        capture_decimation: Some(1),
+        telemetry_decimation: None,
+    };
+    let telemetry_load = ServicesLoad {
+        capture_decimation: None,
+        telemetry_decimation: Some(10),
+    };
+    for (request, load) in [
+        (Request::Capture(capture), capture_load),
+        (telemetry.clone(), telemetry_load),
     ] {
+        let (mut b, rate, fits) = closed_loop_board_short_of(load.cycles());
         match b.handle(request.clone()) {
             Response::Nack {
                 reason: NackReason::Refused(r),
-            } => assert_eq!((r.field, r.rule), (Field::Workload, over.clone()), "{request:?}"),
+            } => assert_eq!(
+                (r.field, r.rule),
+                (
+                    Field::Workload,
+                    Rule::TickOverrun {
+                        needs: fits + load.cycles(),
+                        available: available_cycles(rate)
+                    }
+                ),
+                "{request:?}"
+            ),
             r => panic!("{request:?} was not refused: {r:?}"),
         }
-        assert!(!b.control.is_listening() && !b.control.beside().services);
-    }
-    // A request the checks refuse first (no signal) is refused for that, not the budget.
-    match b.handle(Request::Capture(CaptureRequest {
-        signals: 0,
-        ..capture
-    })) {
-        Response::Nack {
-            reason: NackReason::Refused(r),
-        } => assert_eq!(r.field, Field::RecordSignals, "{r:?}"),
-        r => panic!("{r:?}"),
+        assert!(!b.control.is_listening());
+        // A request the checks refuse first (no signal) is refused for that, not the budget.
+        match b.handle(Request::Capture(CaptureRequest {
+            signals: 0,
+            ..capture
+        })) {
+            Response::Nack {
+                reason: NackReason::Refused(r),
+            } => assert_eq!(r.field, Field::RecordSignals, "{r:?}"),
+            r => panic!("{r:?}"),
+        }
     }
 
     let mut b = closed_board();
@@ -1869,7 +1884,7 @@ fn the_services_are_charged_while_they_listen_and_refused_where_they_would_overr
         b.handle(Request::Capture(capture)),
         Response::Ack { .. }
     ));
-    assert!(b.control.is_listening() && b.control.beside().services);
+    assert!(b.control.is_listening());
     b.ticks(8 + 8);
     // The capture completed; a status read sees it and the tick stops pushing.
     let _ = b.status();
@@ -1879,13 +1894,7 @@ fn the_services_are_charged_while_they_listen_and_refused_where_they_would_overr
         r => panic!("{r:?}"),
     }
     // Telemetry listens until it stops.
-    assert!(matches!(
-        b.handle(Request::Telemetry(TelemetryRequest::Start {
-            signals: Channel::Left.bit(),
-            decimation: 10,
-        })),
-        Response::Ack { .. }
-    ));
+    assert!(matches!(b.handle(telemetry), Response::Ack { .. }));
     b.ticks(40);
     let _ = b.status();
     assert!(b.control.is_listening());

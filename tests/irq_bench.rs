@@ -22,9 +22,11 @@
 mod support;
 
 use std::collections::HashMap;
+
 use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
+use twinstack::config::tick_budget::ServicesLoad;
 
 /// The worst instruction count of any tick, asserted (deterministic under `-icount`): the
 /// figure the bench measures, rounded up by a margin of 1–2 %. Lower it when the tick
@@ -725,6 +727,25 @@ fn the_whole_interrupt_in_every_scenario() {
         .lines()
         .filter_map(|l| l.strip_prefix("SCENARIO "))
         .collect();
+    // What the services ran in each scenario (`SERVICES <capture decimation> <telemetry
+    // decimation>` after its `SCENARIO` line; none after a load's: charged at their worst).
+    let mut loads: Vec<ServicesLoad> = Vec::new();
+    for line in stdout.lines() {
+        if line.starts_with("SCENARIO ") {
+            loads.push(ServicesLoad::WORST);
+        } else if let Some(d) = line.strip_prefix("SERVICES ") {
+            let mut d = d
+                .split(' ')
+                .map(|d| d.parse::<u16>().expect("SERVICES <c> <t>"));
+            if let Some(last) = loads.last_mut() {
+                *last = ServicesLoad {
+                    capture_decimation: d.next(),
+                    telemetry_decimation: d.next(),
+                };
+            }
+        }
+    }
+    assert_eq!(loads.len(), names.len(), "a load per scenario");
     assert_eq!(names.len(), 126, "every scenario and load ran: {stdout}");
     // The stack's high-water mark over the whole run (painted at reset, read back by the image
     // before it exits): within three quarters of the reserve memory.x keeps for it.
@@ -749,7 +770,10 @@ fn the_whole_interrupt_in_every_scenario() {
         "learning_cycles": twinstack::config::tick_budget::LEARNING_CYCLES,
         "analog_cycles": twinstack::config::tick_budget::ANALOG_CYCLES,
         "trigger_cycles": twinstack::config::tick_budget::TRIGGER_CYCLES,
-        "services_cycles": twinstack::config::tick_budget::SERVICES_CYCLES,
+        "services_base_cycles": twinstack::config::tick_budget::SERVICES_BASE_CYCLES,
+        "capture_frame_cycles": twinstack::config::tick_budget::CAPTURE_FRAME_CYCLES,
+        "telemetry_sample_cycles": twinstack::config::tick_budget::TELEMETRY_SAMPLE_CYCLES,
+        "services_worst_cycles": ServicesLoad::WORST.cycles(),
         "part_names": PART_NAMES,
         "stack": { "used": used, "room": room, "reserve": reserve },
     });
@@ -831,6 +855,7 @@ fn the_whole_interrupt_in_every_scenario() {
             "instructions_max": max_i,
             "cycles_max": max_c,
             "cycles_max_ws5": max_c5,
+            "services_load": row.checked_sub(1).map(|i| [loads[i].capture_decimation, loads[i].telemetry_decimation]),
             "services_invocations": served.len(),
             "services_max_ws5": services_max,
             "pipeline_ws5": pipeline,
@@ -841,8 +866,10 @@ fn the_whole_interrupt_in_every_scenario() {
             // the lifecycle scenario (a reload to another configuration and two mode
             // switches) within the larger of the two predictions.
             // Every scenario captures and streams telemetry: the services listen throughout,
-            // charged beside the configuration as the command handler charges them.
-            let services = u64::from(twinstack::config::tick_budget::SERVICES_CYCLES);
+            // charged beside the configuration as the command handler charges them, by their
+            // decimations (the boot row has no load: `row` 0).
+            let load = row.checked_sub(1).map_or(ServicesLoad::WORST, |i| loads[i]);
+            let services = u64::from(load.cycles());
             let interrupt_bound = if name.ends_with("/load") {
                 // The previous configuration's last ticks and this one's first: no tick above
                 // the dearest prediction.
@@ -859,7 +886,7 @@ fn the_whole_interrupt_in_every_scenario() {
                     scanning: name.contains("/scan-"),
                     analog: name.contains("/analog-"),
                     trigger: name.contains("-on-trigger"),
-                    services: false,
+                    services: ServicesLoad::default(),
                 };
                 predicted + u64::from(beside.cycles())
             } else if name.contains("reload") {
@@ -924,10 +951,10 @@ fn the_whole_interrupt_in_every_scenario() {
         PART_NAMES.join(" | ")
     );
     println!("|---|{}---:|---:|---:|", "---:|".repeat(PARTS));
-    for (config, t, _) in &by_config {
-        // What the budget predicts with the services listening, as every scenario runs.
-        let predicted =
-            budgets[config.as_str()] + u64::from(twinstack::config::tick_budget::SERVICES_CYCLES);
+    for (config, t, row) in &by_config {
+        // What the budget predicts with the services listening, as that scenario ran them.
+        let load = row.checked_sub(1).map_or(ServicesLoad::WORST, |i| loads[i]);
+        let predicted = budgets[config.as_str()] + u64::from(load.cycles());
         let ratio = predicted as f64 / t.cycles_ws5 as f64;
         figure_parts.push(serde_json::json!({
             "config": config,

@@ -17,7 +17,7 @@ use twinstack::config::settings::{
     Model, SensorSettings, Settings,
 };
 use twinstack::config::tick_budget::{
-    available_cycles, highest_rate_hz, worst_case_cycles, Beside,
+    available_cycles, highest_rate_hz, worst_case_cycles, Beside, ServicesLoad,
 };
 use twinstack::models::creep::CreepParams;
 use twinstack::models::generalised_pi::{DeadZoneParams, GpiParams};
@@ -71,7 +71,7 @@ pub const BESIDE_EVERY_FEATURE: Beside = Beside {
     scanning: true,
     analog: false,
     trigger: true,
-    services: true,
+    services: ServicesLoad::WORST,
 };
 
 impl BudgetRow {

@@ -60,18 +60,77 @@ pub const TICK_SHARE_PERCENT: u32 = 100;
 /// tick (`hardware::setup::tick`: the services' task pended once a batch, the command task
 /// when the learning ends a period, which the whole-interrupt bench runs as the firmware
 /// does). The recorder and telemetry are not in it: they run below the tick, charged as
-/// [`SERVICES_CYCLES`] while they listen.
+/// [`ServicesLoad`] while they listen.
 pub const FIXED_CYCLES: u32 = 953;
 
-/// The services while they listen ([`crate::services::consumer::Services`]: a capture or a
-/// record armed or running, telemetry running): the tick's share of the services' task (the
-/// snapshot's push is in [`FIXED_CYCLES`]), which serves the snapshots a batch at a time below the tick (its
-/// dearest invocation over [`crate::services::snapshot::BATCH`] ticks), with the recorder
-/// taking all seven signals and telemetry's tap all seven on every tick. Measured by the
-/// whole-interrupt bench, whose every scenario captures and streams telemetry. Counted when a
-/// capture or a record is armed and telemetry started, and at every load, scan, analog input,
-/// learning start or trigger arming while they listen.
-pub const SERVICES_CYCLES: u32 = 400;
+/// The services' part of a tick while they listen ([`crate::services::consumer::Services`]:
+/// a capture or a record armed or running, telemetry running), whatever they take: the tick's
+/// share of the services' task's wake (its entry, return and lock, once a batch of
+/// [`crate::services::snapshot::BATCH`] snapshots) and of each snapshot's serving (its
+/// dequeue, sequence and events checks, the capture's and the tap's countdowns). The
+/// snapshot's push in the tick is in [`FIXED_CYCLES`]. Measured by the whole-interrupt bench
+/// (the services' dearest invocation, apart from the recorder's and telemetry's source files,
+/// over its snapshots).
+pub const SERVICES_BASE_CYCLES: u32 = 100;
+
+/// A frame the capture (or a `Record`) stores, all seven signals: charged for each frame a
+/// batch of snapshots can hold at the capture's decimation. Measured by the whole-interrupt
+/// bench (the recorder's source file in the services' dearest invocation, per frame).
+pub const CAPTURE_FRAME_CYCLES: u32 = 150;
+
+/// A sample telemetry's tap queues (all seven signals): charged for each sample a batch of
+/// snapshots can hold at telemetry's decimation. Measured by the whole-interrupt bench
+/// (telemetry's source file in the services' dearest invocation, per sample).
+pub const TELEMETRY_SAMPLE_CYCLES: u32 = 150;
+
+/// What the services run, as the tick budget charges it: a capture (or a `Record`) and
+/// telemetry, each by its decimation (`None`: not running). Nothing running costs nothing:
+/// the tick then pushes no snapshot and never wakes the services.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct ServicesLoad {
+    /// The capture's (or record's) decimation, if one is armed or running.
+    pub capture_decimation: Option<u16>,
+    /// Telemetry's decimation, if it runs.
+    pub telemetry_decimation: Option<u16>,
+}
+
+impl ServicesLoad {
+    /// The dearest the services can be: a capture and telemetry taking every tick.
+    pub const WORST: Self = Self {
+        capture_decimation: Some(1),
+        telemetry_decimation: Some(1),
+    };
+
+    /// Whether anything runs (the tick hands the services its snapshots).
+    pub fn is_listening(&self) -> bool {
+        self.capture_decimation.is_some() || self.telemetry_decimation.is_some()
+    }
+
+    /// Their cost per tick, cycles (rounded up): [`SERVICES_BASE_CYCLES`], and the frames and
+    /// samples the dearest batch of [`crate::services::snapshot::BATCH`] snapshots holds at
+    /// their decimations shared by its ticks.
+    ///
+    /// ```
+    /// use twinstack::config::tick_budget::{ServicesLoad, SERVICES_BASE_CYCLES};
+    /// assert_eq!(ServicesLoad::default().cycles(), 0);
+    /// let decimated = ServicesLoad { capture_decimation: Some(10), telemetry_decimation: None };
+    /// assert!(decimated.cycles() > SERVICES_BASE_CYCLES);
+    /// assert!(decimated.cycles() < ServicesLoad::WORST.cycles());
+    /// ```
+    pub fn cycles(&self) -> u32 {
+        if !self.is_listening() {
+            return 0;
+        }
+        let batch = crate::services::snapshot::BATCH;
+        // The most frames (samples) a batch holds at decimation `d`: one every `d` ticks.
+        let per_batch = |d: Option<u16>| d.map_or(0, |d| batch.div_ceil(u32::from(d.max(1))));
+        (SERVICES_BASE_CYCLES * batch
+            + CAPTURE_FRAME_CYCLES * per_batch(self.capture_decimation)
+            + TELEMETRY_SAMPLE_CYCLES * per_batch(self.telemetry_decimation))
+        .div_ceil(batch)
+    }
+}
+
 /// The feedback's derivative term.
 pub const DERIVATIVE_CYCLES: u32 = 50;
 /// The feedback's notch (one biquad); the feedforward's notch (input shaping,
@@ -183,9 +242,9 @@ pub struct Beside {
     pub analog: bool,
     /// The external trigger input is armed: its edge's tick may come on any tick.
     pub trigger: bool,
-    /// The services listen (a capture or a record armed or running, telemetry running): the
+    /// What the services run (a capture or a record, telemetry): while anything does, the
     /// tick pushes its snapshot and the services' task serves it.
-    pub services: bool,
+    pub services: ServicesLoad,
 }
 
 impl Beside {
@@ -195,7 +254,7 @@ impl Beside {
             + u32::from(self.scanning) * SCAN_CYCLES
             + u32::from(self.analog) * ANALOG_CYCLES
             + u32::from(self.trigger) * TRIGGER_CYCLES
-            + u32::from(self.services) * SERVICES_CYCLES
+            + self.services.cycles()
     }
 }
 
@@ -239,6 +298,53 @@ mod tests {
             );
         }
         assert_eq!(highest_rate_hz(0), f64::INFINITY);
+    }
+
+    #[test]
+    fn the_services_cost_nothing_idle_and_less_the_coarser_they_take_the_ticks() {
+        let load = |c: Option<u16>, t: Option<u16>| ServicesLoad {
+            capture_decimation: c,
+            telemetry_decimation: t,
+        };
+        assert_eq!(load(None, None).cycles(), 0);
+        assert_eq!(Beside::default().cycles(), 0);
+        let batch = crate::services::snapshot::BATCH as u16;
+        for side in [0, 1] {
+            let at = |d: u16| {
+                if side == 0 {
+                    load(Some(d), None)
+                } else {
+                    load(None, Some(d))
+                }
+                .cycles()
+            };
+            // Every tick: a frame (a sample) on each; every `batch` ticks or coarser: one a batch.
+            let per = if side == 0 {
+                CAPTURE_FRAME_CYCLES
+            } else {
+                TELEMETRY_SAMPLE_CYCLES
+            };
+            assert_eq!(at(1), SERVICES_BASE_CYCLES + per);
+            assert_eq!(at(batch), at(u16::MAX));
+            assert_eq!(
+                at(batch),
+                SERVICES_BASE_CYCLES + per.div_ceil(u32::from(batch))
+            );
+            for d in 1..3 * batch {
+                assert!(at(d + 1) <= at(d), "{side}: {d}");
+            }
+        }
+        let both = load(Some(1), Some(1));
+        assert_eq!(both, ServicesLoad::WORST);
+        assert_eq!(
+            both.cycles(),
+            SERVICES_BASE_CYCLES + CAPTURE_FRAME_CYCLES + TELEMETRY_SAMPLE_CYCLES
+        );
+        let beside = Beside {
+            services: both,
+            ..Beside::default()
+        };
+        assert_eq!(beside.cycles(), both.cycles());
     }
 
     #[test]

@@ -14,6 +14,7 @@
 
 use heapless::spsc::Producer;
 
+use crate::config::tick_budget::ServicesLoad;
 use crate::services::recorder::{Recorder, SampleStore, TickSignals};
 use crate::services::snapshot::{Snapshot, SnapshotConsumer, SNAPSHOT_RING_LEN};
 use crate::services::telemetry::{TelemetrySample, TelemetryTap};
@@ -107,6 +108,15 @@ impl<B: SampleStore> Services<B> {
     /// running, or telemetry running.
     pub fn is_active(&self) -> bool {
         self.recorder.is_capturing() || self.telemetry.is_running()
+    }
+
+    /// What they run, as the tick budget charges it: the capture's (or record's) and
+    /// telemetry's decimations.
+    pub fn load(&self) -> ServicesLoad {
+        ServicesLoad {
+            capture_decimation: self.recorder.running_decimation(),
+            telemetry_decimation: self.telemetry.running_decimation(),
+        }
     }
 
     /// Snapshots lost since power-up (the ring was full when the tick pushed them): each one

@@ -632,6 +632,12 @@ impl<B: SampleStore> Recorder<B> {
         self.active
     }
 
+    /// The running capture's (or `Record`'s) decimation: one frame every that many ticks;
+    /// `None` when none runs.
+    pub fn running_decimation(&self) -> Option<u16> {
+        self.active.then_some(self.decimation)
+    }
+
     /// Values a v3 `Record` holds so far (0 for a capture).
     pub fn recorded(&self) -> u32 {
         match self.kind {

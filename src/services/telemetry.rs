@@ -176,6 +176,11 @@ impl TelemetryTap {
         self.enabled
     }
 
+    /// The running tap's decimation: one sample every that many ticks; `None` when stopped.
+    pub fn running_decimation(&self) -> Option<u16> {
+        self.enabled.then_some(self.reload + 1)
+    }
+
     /// `ticks` ticks were lost before they reached the tap (the snapshot ring was full: see
     /// [`crate::services::snapshot`]): the samples they would have given count as dropped,
     /// their indices skipped, so that the host sees the gap where it is. Off the tick (one

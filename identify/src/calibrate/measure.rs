@@ -73,7 +73,12 @@ pub(super) fn measure<T: Transport>(
     let fit_until = options.excitation_s() - 1.0 / options.excitation_hz;
     let mut id_options = IdentifyOptions::new(options.model.unwrap_or(ModelKind::Pi), fit_until);
     id_options.operators = options.operators.unwrap_or(DEFAULT_OPERATORS);
-    let rate_limit = BoardRate::sizing(rate, options.operators.is_some());
+    // Its own tracking check captures with the model loaded, at the sample rate's decimation
+    // or coarser ([`decimation_for`]): the services are charged too.
+    let least = (rate / options.sample_rate_hz)
+        .ceil()
+        .clamp(1.0, u16::MAX as f64) as u16;
+    let rate_limit = BoardRate::sizing(rate, options.operators.is_some()).capturing(least);
     id_options.lag = options.lag;
     // Only a model the board runs at its control rate with its drive, sensor and feedback:
     // the tick budget the board applies at load ([`twinstack::config::tick_budget`]), applied here

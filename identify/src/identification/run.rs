@@ -11,6 +11,7 @@ use super::{Identification, IdentifyError, IdentifyOptions, ModelKind};
 use crate::param_file::{IdentificationRecord, ParamFile};
 use twinstack::board::Hardware;
 use twinstack::config::settings::{Model, Settings};
+use twinstack::config::tick_budget::{self, Beside, ServicesLoad};
 use twinstack::models::params::PiParams;
 use twinstack::refusal::{Field, Refusal, Rule};
 use twinstack_link::measured_data::MeasuredData;
@@ -164,6 +165,10 @@ pub struct BoardRate {
     pub fewer_operators: bool,
     /// A creep operator too dear at this rate may be fitted with fewer modes (at least one).
     pub fewer_creep_modes: bool,
+    /// The board captures while it runs the model (as `calibrate`'s tracking check does), at
+    /// this decimation or coarser: the services' share
+    /// ([`twinstack::config::tick_budget::ServicesLoad`]) is charged beside it.
+    pub capturing: Option<u16>,
 }
 
 impl BoardRate {
@@ -173,6 +178,7 @@ impl BoardRate {
             hz,
             fewer_operators: false,
             fewer_creep_modes: false,
+            capturing: None,
         }
     }
 
@@ -183,6 +189,16 @@ impl BoardRate {
             hz,
             fewer_operators: !operators_asked,
             fewer_creep_modes: true,
+            capturing: None,
+        }
+    }
+
+    /// The same, with a capture at `decimation` (or coarser) running beside the model
+    /// ([`BoardRate::capturing`]).
+    pub fn capturing(self, decimation: u16) -> Self {
+        Self {
+            capturing: Some(decimation),
+            ..self
         }
     }
 }
@@ -203,15 +219,21 @@ impl BoardRate {
 ///     observer: Some(pi17),
 ///     ..Settings::default()
 /// };
-/// let sized = admission_at(&s, &BoardRate::sizing(100_000.0, false));
+/// // As loaded, it runs at 100 kHz; with a capture beside it (as `calibrate` checks its
+/// // tracking), the P–I banks lose pairs of operators, unless the user asked for 17.
+/// assert_eq!(admission_at(&s, &BoardRate::sizing(100_000.0, false)), Admission::Admitted);
+/// let sized = admission_at(&s, &BoardRate::sizing(100_000.0, false).capturing(1));
 /// assert!(matches!(
 ///     sized,
-///     Admission::Smaller { resize: Resize { operators: Some(14), creep_modes: None }, .. }
+///     Admission::Smaller { resize: Resize { operators: Some(n), creep_modes: None }, .. }
+///         if n < 17
 /// ));
-/// assert!(matches!(admission_at(&s, &BoardRate::sizing(100_000.0, true)), Admission::Refused(_)));
-/// assert_eq!(admission_at(&s, &BoardRate::sizing(50_000.0, false)), Admission::Admitted);
+/// let asked = BoardRate::sizing(100_000.0, true).capturing(1);
+/// assert!(matches!(admission_at(&s, &asked), Admission::Refused(_)));
+/// assert_eq!(admission_at(&s, &BoardRate::sizing(50_000.0, false).capturing(1)), Admission::Admitted);
 ///
-/// // Bouc–Wen with four creep modes both ways: 1 837 cycles; with one, 1 621 of 1 680.
+/// // Bouc–Wen with four creep modes both ways, captured at 100 kHz: the creep loses modes
+/// // first.
 /// use twinstack::models::creep::CreepParams;
 /// use twinstack::config::settings::representative_bouc_wen;
 /// let s = Settings {
@@ -220,17 +242,33 @@ impl BoardRate {
 ///     creep: Some(CreepParams::new(&[0.01, 0.1, 1.0, 10.0], &[0.02; 4]).unwrap()),
 ///     ..Settings::default()
 /// };
-/// let sized = admission_at(&s, &BoardRate::sizing(100_000.0, true));
+/// let sized = admission_at(&s, &BoardRate::sizing(100_000.0, true).capturing(1));
 /// assert!(matches!(
 ///     sized,
-///     Admission::Smaller { resize: Resize { operators: None, creep_modes: Some(1) }, .. }
+///     Admission::Smaller { resize: Resize { operators: None, creep_modes: Some(m) }, .. }
+///         if m < 4
 /// ));
 /// ```
 pub fn admission_at(settings: &Settings, rate: &BoardRate) -> Admission {
     let hardware = Hardware::driver_board(rate.hz);
+    // The board's refusal at load, and (capturing) at the capture's arming.
+    let judge = |s: &Settings| -> Result<(), Refusal> {
+        let config = s.build(&hardware)?;
+        if let Some(decimation) = rate.capturing {
+            let services = Beside {
+                services: ServicesLoad {
+                    capture_decimation: Some(decimation),
+                    telemetry_decimation: None,
+                },
+                ..Beside::default()
+            };
+            tick_budget::check_with(&config, rate.hz, services)?;
+        }
+        Ok(())
+    };
     // Only the tick budget is judged here: what else the board would refuse (a sensor it
     // lacks, …) it says at load.
-    let fits = |s: &Settings| !matches!(s.build(&hardware), Err(r) if r.field == Field::Workload);
+    let fits = |s: &Settings| !matches!(judge(s), Err(r) if r.field == Field::Workload);
     // The board's own refusal advises on every size a parameter file can set; identification
     // sets the dead zones itself, so only what its options change is named here.
     // What the compensator alone would need, where an observer runs beside it (asked only of
@@ -241,7 +279,7 @@ pub fn admission_at(settings: &Settings, rate: &BoardRate) -> Admission {
             observer: None,
             ..settings.clone()
         };
-        match alone.build(&hardware) {
+        match judge(&alone) {
             Ok(_) => Some("; without the observer it fits".to_string()),
             Err(Refusal {
                 rule: Rule::TickOverrun { needs, .. },
@@ -250,12 +288,17 @@ pub fn admission_at(settings: &Settings, rate: &BoardRate) -> Admission {
             Err(_) => None,
         }
     };
-    let why = match settings.build(&hardware) {
+    let why = match judge(settings) {
         Err(r) if r.field == Field::Workload => match r.rule {
             Rule::TickOverrun { needs, available } => format!(
-                "the board at {:.0} kHz would refuse it: it needs {needs} cycles per tick, more \
-                 than the {available} that rate leaves{}",
+                "the board at {:.0} kHz would refuse it: it needs {needs} cycles per tick{}, \
+                 more than the {available} that rate leaves{}",
                 rate.hz / 1e3,
+                if rate.capturing.is_some() {
+                    " with a capture beside it"
+                } else {
+                    ""
+                },
                 alone().unwrap_or_default()
             ),
             _ => format!("the board at {:.0} kHz would refuse it: {r}", rate.hz / 1e3),

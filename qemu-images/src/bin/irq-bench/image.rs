@@ -612,6 +612,12 @@ mod app {
     #[task(binds = EXTI0, priority = 1)]
     fn command_woken(_: command_woken::Context) {}
 
+    /// The capture's and telemetry's decimations the scenarios alternate: every tick (the
+    /// dearest batch) and every eighth (a batch with one frame or sample and seven countdowns).
+    /// The services' cost is affine in the frames and samples a batch holds, so these two
+    /// bound every decimation between.
+    const DECIMATIONS: [u16; 2] = [1, 8];
+
     /// The trigger I/O settings with the input armed for its rising edge (pulses of 2 ticks);
     /// the edge starts the stream if `start_stream`.
     fn arm_input(start_stream: bool) -> twinstack::sources::scan::TriggerConfig {
@@ -641,17 +647,15 @@ mod app {
             tick: cx.shared.tick,
             services: cx.shared.services,
         };
-        // Telemetry at the tick's worst: all seven signals on every tick (the tap's dearest
-        // sample; the handler would refuse this rate for the 2 Mbaud line, but the tick's
-        // cost per sample is what is measured), packed into frames here between ticks.
+        // Telemetry of all seven signals (the tap queues all seven whatever the mask), packed
+        // into frames here between ticks; started again at each configuration, on every tick
+        // (the tap's dearest; the handler would refuse this rate for the 2 Mbaud line, but
+        // the services' cost per sample is what is measured) or every eighth (the most
+        // snapshots a batch serves without a sample).
         let mut packer = TelemetryPacker::new();
         // The tick hands the services its snapshots from here on (as the handler has it do
         // before it starts telemetry).
         lock.lock(|c| c.listen(true));
-        let Some(first) = lock.lock_services(|s| s.start_telemetry(0b111_1111, 1, 1)) else {
-            panic!("telemetry refused");
-        };
-        packer.start(0b111_1111, 1, first, RATE_HZ);
         // A macro, not a closure: the learning's service borrows the handler and the lock too.
         macro_rules! ask {
             ($request:expr) => {
@@ -665,6 +669,13 @@ mod app {
             let Some(config) = configs::get(i) else {
                 panic!("configuration refused");
             };
+            let telemetry_decimation = DECIMATIONS[i % 2];
+            let Some(first) =
+                lock.lock_services(|s| s.start_telemetry(0b111_1111, telemetry_decimation, 1))
+            else {
+                panic!("telemetry refused");
+            };
+            packer.start(0b111_1111, telemetry_decimation, first, RATE_HZ);
             // The budget's prediction for it, computed by the library on the target.
             match config.settings.build(&hardware) {
                 Ok(c) => hprintln!("BUDGET {} {}", config.name, worst_case_cycles(&c)),
@@ -676,9 +687,11 @@ mod app {
             irq_bench_marker(marker);
             hprintln!("SCENARIO {}/load", config.name);
             expect_ack(ask!(Request::LoadParams(config.settings.clone())), "load");
-            for scenario in &scenarios::ALL {
+            for (j, scenario) in scenarios::ALL.iter().enumerate() {
                 // A fresh capture per scenario: the recorder runs throughout, taking all seven
-                // signals every tick (its worst case: seven stores per tick).
+                // signals every tick (its worst case: seven stores per tick), or every eighth
+                // tick in every other scenario.
+                let capture_decimation = DECIMATIONS[j % 2];
                 // (In the trigger scenario, armed on the input's edge with a pre-trigger window:
                 // the edge's tick fires it.)
                 let (trigger, pre_trigger) = if scenario.on_trigger {
@@ -692,7 +705,7 @@ mod app {
                         samples: (SRAM_SLOTS / CHANNELS) as u32,
                         pre_trigger,
                         trigger,
-                        decimation: 1,
+                        decimation: capture_decimation,
                     })),
                     "capture",
                 );
@@ -710,6 +723,7 @@ mod app {
                 marker += 1;
                 irq_bench_marker(marker);
                 hprintln!("SCENARIO {}/{}", config.name, scenario.name);
+                hprintln!("SERVICES {} {}", capture_decimation, telemetry_decimation);
                 let mut k = 0u32;
                 let mut started = false;
                 let mut changed = 0u8;
