@@ -59,10 +59,12 @@ impl<B: SampleStore> Services<B> {
     ) -> bool {
         let mut wake = false;
         for _ in 0..SNAPSHOT_RING_LEN {
-            let Some(snapshot) = ring.dequeue() else {
+            // Served where it lies in the ring, then released: no copy of it out.
+            let Some(snapshot) = ring.peek() else {
                 break;
             };
-            wake |= self.serve(&snapshot, telemetry);
+            wake |= self.serve(snapshot, telemetry);
+            let _ = ring.dequeue();
         }
         wake
     }
@@ -85,14 +87,19 @@ impl<B: SampleStore> Services<B> {
                 self.recorder.trigger(event);
             }
         }
-        if !self.recorder.is_capturing() && !self.telemetry.is_running() {
+        // The countdowns first: the signals are computed only on a tick that takes them.
+        let frame = self.recorder.due();
+        let sample = self.telemetry.due();
+        if !(frame || sample) {
             return false;
         }
         let report = s.report();
         let signals = TickSignals::of(s.setpoint, s.measured, &report);
-        self.recorder
-            .capture(&signals, s.setpoint, s.measured, &report);
-        self.telemetry.push(telemetry, &signals)
+        if frame {
+            self.recorder
+                .store(&signals, s.setpoint, s.measured, &report);
+        }
+        sample && self.telemetry.queue(telemetry, &signals)
     }
 
     /// `ticks` snapshots never reached the ring: a capture in progress ends without

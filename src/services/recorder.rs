@@ -693,14 +693,38 @@ impl<B: SampleStore> Recorder<B> {
         sensor: i32,
         report: &TickReport,
     ) {
+        if self.due() {
+            self.store(signals, setpoint, sensor, report);
+        }
+    }
+
+    /// One tick's countdown: whether this tick is a capture tick (a capture or a `Record`
+    /// running, and its decimation's countdown at zero, which it reloads), for
+    /// [`Recorder::store`] to take. [`Recorder::capture`] is both.
+    #[inline(always)]
+    pub fn due(&mut self) -> bool {
         if !self.active {
-            return;
+            return false;
         }
         if self.countdown > 0 {
             self.countdown -= 1;
-            return;
+            return false;
         }
         self.countdown = self.reload;
+        true
+    }
+
+    /// Stores a capture tick's frame (after [`Recorder::due`] said it is one): the mask's
+    /// channels of `signals`, or the `Record`'s signal, full width, as [`Recorder::capture`]
+    /// says.
+    #[inline(always)]
+    pub fn store(
+        &mut self,
+        signals: &TickSignals,
+        setpoint: i32,
+        sensor: i32,
+        report: &TickReport,
+    ) {
         // One compare for the segment, then one store per value of the frame (at most
         // CHANNELS), straight-line: a bit test and a store for each channel.
         let (second, offset) = if self.pos < self.first_slots {

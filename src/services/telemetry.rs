@@ -220,6 +220,14 @@ impl TelemetryTap {
         queue: &mut Producer<'_, TelemetrySample, N>,
         signals: &TickSignals,
     ) -> bool {
+        self.due() && self.queue(queue, signals)
+    }
+
+    /// One tick's countdown: whether this tick is a sample tick (telemetry running, and its
+    /// decimation's countdown at zero, which it reloads), for [`TelemetryTap::queue`] to
+    /// take. [`TelemetryTap::push`] is both.
+    #[inline(always)]
+    pub fn due(&mut self) -> bool {
         if !self.enabled {
             return false;
         }
@@ -228,6 +236,17 @@ impl TelemetryTap {
             return false;
         }
         self.countdown = self.reload;
+        true
+    }
+
+    /// Queues a sample tick's `signals` (after [`TelemetryTap::due`] said it is one), as
+    /// [`TelemetryTap::push`] says; whether to wake the packer.
+    #[inline(always)]
+    pub fn queue<const N: usize>(
+        &mut self,
+        queue: &mut Producer<'_, TelemetrySample, N>,
+        signals: &TickSignals,
+    ) -> bool {
         let sample = TelemetrySample {
             index: self.next,
             values: signals.0,

@@ -111,8 +111,10 @@ pub(super) fn tick_cost(out: &str) -> Result<String, String> {
         field(&v, "analog_cycles")?,
         field(&v, "trigger_cycles")?,
     );
-    // Every feature on: a scan, the learning, the trigger input armed.
-    let every_charge = scan + learning + trigger;
+    // The services at their worst: a capture and telemetry taking every tick.
+    let services = field(&v, "services_worst_cycles")?;
+    // Every feature on: a scan, the learning, the trigger input armed, the services.
+    let every_charge = scan + learning + trigger + services;
     let rows = v.get("rows").and_then(Value::as_array).ok_or("no `rows`")?;
     let budgets = v
         .get("budgets")
@@ -177,17 +179,20 @@ pub(super) fn tick_cost(out: &str) -> Result<String, String> {
         "Worst tick of each configuration, instructions / cycles at 0 WS / cycles at 5 WS: streamed \
          (the worst of triangle, sine, full-range steps, random, nested loops) and with every \
          feature on (the worst of the scans with the learning, each with its trigger outputs, one \
-         of them started by the trigger input's edges, the capture of all seven signals and \
-         telemetry's tap of all seven on every tick). The interrupt's columns are the control \
-         interrupt alone; the services below it (the capture, telemetry's tap) run in their own \
-         task, woken once every 8 ticks: \"services, a batch\" is its dearest invocation, and \
-         \"per tick, with the services\" the interrupt's worst plus an eighth of that. \
-         \"Predicted\" is the tick budget's for the whole (cycles, 5 WS), with the scan's ",
+         of them started by the trigger input's edges). Every scenario captures all seven signals \
+         and streams telemetry of all seven, each on every tick or every eighth (the scenarios \
+         alternate). The interrupt's columns are the control interrupt alone; the services below \
+         it (the capture, telemetry's tap) run in their own task, woken once every 8 snapshots: \
+         \"services, a batch\" is its dearest invocation, and \"per tick, with the services\" \
+         the interrupt's worst plus an eighth of that. \"Predicted\" is the tick budget's for \
+         the interrupt as loaded, nothing beside it and nothing captured (cycles, 5 WS); \
+         \"predicted, every feature\" adds the scan's ",
     );
     t.push_str(&format!(
         "({scan}), the learning's ({learning}) and the armed trigger input's ({trigger}) charges \
-         for every feature on; the highest admitted rate is the highest control rate whose \
-         period holds that prediction.\n\n"
+         and the services' at their worst ({services}: a capture and telemetry on every tick); \
+         the highest admitted rate is the highest control rate whose period holds that \
+         prediction.\n\n"
     ));
     t.push_str("| configuration | interrupt, streamed | interrupt, every feature on | services, a batch (5 WS) | per tick, with the services (5 WS) | predicted | predicted, every feature | highest admitted rate, streamed | highest admitted rate, every feature |\n");
     t.push_str("|---|---:|---:|---:|---:|---:|---:|---:|---:|\n");
@@ -244,8 +249,10 @@ pub(super) fn tick_cost(out: &str) -> Result<String, String> {
         .and_then(Value::as_array)
         .ok_or("no `part_names`")?;
     t.push_str(
-        "\nEach configuration's worst streamed tick, cycles at 5 WS by the part of the tick its \
-         source belongs to, against the tick budget's prediction:\n\n| configuration |",
+        "\nEach configuration's worst streamed tick with its services' share, cycles at 5 WS by \
+         the part of the tick its source belongs to (\"services (share)\": an eighth of the \
+         services' batch), against the tick budget's prediction with the services as that \
+         scenario ran them:\n\n| configuration |",
     );
     for p in parts {
         t.push_str(&format!(" {} |", p.as_str().unwrap_or("?")));
@@ -399,7 +406,7 @@ mod tests {
         }
         format!(
             r#"{{"sysclk_hz": 168000000.0, "goal_cycles": 600, "scan_cycles": 150, "learning_cycles": 90,
-            "analog_cycles": 32, "trigger_cycles": 200, "part_names": ["fixed", "P–I banks"],
+            "analog_cycles": 32, "trigger_cycles": 200, "services_worst_cycles": 400, "part_names": ["fixed", "P–I banks"],
             "stack": {{"used": 30000, "room": 55000, "reserve": 49152}},
             "budgets": {{"inverse-pi16+pi16-observer+pi+drift": 1666}},
             "rows": [{}],
@@ -419,13 +426,13 @@ mod tests {
         // scenarios (the fifth, index 4); every feature on the worst scan with the learning
         // (the spiral on the trigger + learning, index 10), with the services' batch and the
         // tick's share of it beside it; the rates from the prediction and its charges (scan,
-        // learning, trigger: 1 666 + 150 + 90 + 200).
+        // learning, trigger, the services at their worst: 1 666 + 150 + 90 + 200 + 400).
         assert!(
             t.contains("| boot: bypass, no model, nothing running | 326 / 569 / 689 | – | – | – |"),
             "{t}"
         );
         assert!(
-            t.contains("| inverse P–I 16 + P–I 16 observer + PI + drift | 904 / 1 404 / 1 574 | 910 / 1 410 / 1 580 | 810 | 1 680 | 1 666 | 2 106 | 100 800 Hz | 79 700 Hz |"),
+            t.contains("| inverse P–I 16 + P–I 16 observer + PI + drift | 904 / 1 404 / 1 574 | 910 / 1 410 / 1 580 | 810 | 1 680 | 1 666 | 2 506 | 100 800 Hz | 67 000 Hz |"),
             "{t}"
         );
         // The scans: raster is index 5, the stream on the trigger index 12 (instructions /
