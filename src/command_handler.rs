@@ -71,6 +71,11 @@ pub trait Locks {
     fn lock<R>(&mut self, f: impl FnOnce(&mut ControlLoop<Self::Controller>) -> R) -> R;
     /// Runs `f` on the services, the snapshot ring served first, the consumer kept out.
     fn lock_services<R>(&mut self, f: impl FnOnce(&mut Services<Self::Store>) -> R) -> R;
+    /// Runs `f` on the services as they stand, the ring left to the consumer (up to a batch
+    /// behind the tick): for what a few ticks' lag does not change — the status's counts,
+    /// what runs — so that a host polling the status does not serve the ring in the command
+    /// task a tick at a time.
+    fn peek_services<R>(&mut self, f: impl FnOnce(&Services<Self::Store>) -> R) -> R;
 }
 
 /// The board's two halves on the host (the simulator, tests): plain borrows of the loop and
@@ -120,6 +125,10 @@ where
     fn lock_services<R>(&mut self, f: impl FnOnce(&mut Services<B>) -> R) -> R {
         self.services
             .consume(&mut self.snapshots, &mut self.telemetry);
+        f(self.services)
+    }
+
+    fn peek_services<R>(&mut self, f: impl FnOnce(&Services<B>) -> R) -> R {
         f(self.services)
     }
 }
@@ -405,7 +414,7 @@ impl<S: RecordStorage> CommandHandler<S> {
         // A capture or a record that has completed stops the tick's snapshots.
         settle_listening(control);
         let t = control.lock(|c| c.telemetry());
-        let (recording, recorded, lost) = control.lock_services(|s| {
+        let (recording, recorded, lost) = control.peek_services(|s| {
             (
                 s.recorder().is_capturing(),
                 s.recorder().recorded(),
@@ -1130,7 +1139,7 @@ where
     L: Locks,
 {
     settle_listening(control);
-    let services = control.lock_services(|s| s.load());
+    let services = control.peek_services(|s| s.load());
     crate::config::tick_budget::Beside {
         services,
         ..control.lock(|c| c.beside())
@@ -1143,7 +1152,7 @@ fn settle_listening<L>(control: &mut L)
 where
     L: Locks,
 {
-    if control.lock(|c| c.is_listening()) && !control.lock_services(|s| s.is_active()) {
+    if control.lock(|c| c.is_listening()) && !control.peek_services(|s| s.is_active()) {
         control.lock(|c| c.listen(false));
     }
 }

@@ -52,7 +52,7 @@ enum Command {
     Settings(commands::settings::SchemaArgs),
     /// What each configuration (parameter files, or every model calibrate can pick) costs the
     /// control tick, and the highest rate the board admits it at: as loaded, without its
-    /// observer, with the learning, a scan and the trigger input beside it.
+    /// observer, with the learning, a scan, the trigger input, a capture and telemetry beside it.
     Budget(commands::budget::Args),
     /// Switch the board's mode (bypass, open-loop, closed-loop), bumpless.
     Mode(commands::params::ModeArgs),

@@ -194,4 +194,8 @@ where
             f(&mut s.services)
         })
     }
+
+    fn peek_services<R>(&mut self, f: impl FnOnce(&BoardServices) -> R) -> R {
+        self.services.lock(|s| f(&s.services))
+    }
 }

@@ -1,7 +1,7 @@
 //! `twinstack budget [PARAMS.json …] [--rate HZ] [--json]`: what each configuration costs the
 //! control tick (the whole interrupt's predicted worst case, cycles at 5 flash wait states) and
 //! the highest control rate the board admits it at — as loaded, without its observer, and with
-//! the learning, a scan and the trigger input beside it. Without files, every model
+//! the learning, a scan, the trigger input, a capture and telemetry beside it. Without files, every model
 //! `calibrate` can pick, loaded as it loads them ([`twinstack_identify::budget::family`]).
 
 use anyhow::Context as _;
@@ -84,7 +84,7 @@ fn table(rows: &[BudgetRow], at: Option<f64>) -> String {
         Hardware::MIN_CONTROL_RATE_HZ / 1000,
         Hardware::MAX_CONTROL_RATE_HZ / 1000
     );
-    out += "| configuration | as loaded | highest rate | without its observer | highest rate | + learning + scan + trigger | highest rate |";
+    out += "| configuration | as loaded | highest rate | without its observer | highest rate | + learning + scan + trigger + capture + telemetry | highest rate |";
     if let Some(r) = at {
         out += &format!(" admitted at {} |", kilo(r));
     }
