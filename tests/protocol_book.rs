@@ -618,3 +618,56 @@ fn the_record_limits_the_book_states_are_each_image_s_constants() {
     }
     assert!(board > twinstack::services::recorder::EMULATOR_RECORD_CAPACITY);
 }
+
+/// The settings chapter's example of the tick budget's refusal
+/// (`docs/src/reference/settings.md`) is what the library says for the configuration it
+/// names — a P–I of `OPERATORS` operators as compensator and observer, a sensor, PI feedback
+/// with a notch, closed loop, at 100 kHz — and the largest P–I that fits there is the one it
+/// names.
+#[test]
+fn the_settings_chapters_refusal_example_is_the_librarys() {
+    use twinstack::board::Hardware;
+    use twinstack::config::settings::{
+        representative_pi, FeedbackSettings, Mode, NotchDesign, Settings,
+    };
+    const OPERATORS: usize = 32;
+    let chapter = include_str!("../docs/src/reference/settings.md");
+    let at = |n: usize| {
+        let pi = representative_pi(n).unwrap();
+        let defaults = Settings::default();
+        Settings {
+            compensator: Some(pi.clone()),
+            observer: Some(pi),
+            sensor: defaults.sensor,
+            feedback: Some(FeedbackSettings {
+                notch: Some(NotchDesign {
+                    frequency_hz: 2_000.0,
+                    q: 2.0,
+                    depth: 0.1,
+                }),
+                ..FeedbackSettings::pi(0.2, 500.0, 0.1)
+            }),
+            mode: Mode::ClosedLoop,
+            ..defaults
+        }
+        .build(&Hardware::driver_board(100_000.0))
+    };
+    let refusal = at(OPERATORS).expect_err("refused at 100 kHz");
+    let said = format!("refused: {refusal}");
+    let flat = |s: &str| s.split_whitespace().collect::<Vec<_>>().join(" ");
+    let example = chapter
+        .split("```text\n")
+        .skip(1)
+        .filter_map(|rest| rest.split("```").next())
+        .find(|block| block.starts_with("refused:"))
+        .expect("the chapter's text block of a refusal");
+    assert_eq!(flat(example), flat(&said));
+    let fits = (1..OPERATORS).rev().find(|&n| at(n).is_ok()).unwrap();
+    let named = format!(
+        "for a {OPERATORS}-operator P–I as compensator and observer with the notch at 100 kHz ({fits} operators fit)"
+    );
+    assert!(
+        flat(chapter).contains(&named),
+        "the chapter should say: {named}"
+    );
+}

@@ -302,8 +302,8 @@ fn a_fit_that_does_not_fit_is_refused_and_the_full_range_needs_no_clamp() {
     assert_eq!(client.read_params().unwrap(), r.file.settings);
 }
 
-/// At 100 kHz the tick budget leaves room for fewer models than at 50 kHz (no 17-operator
-/// P–I, no generalised P–I, no creep beside a Duhem): `auto` ranks them all but picks only
+/// At 100 kHz the tick budget leaves room for fewer models than at 50 kHz (no generalised
+/// P–I of 17 operators, no four-mode creep beside a Duhem): `auto` ranks them all but picks only
 /// among those the board runs at its rate, so the calibration loads (a pick the board then
 /// refused would fail `calibrate` at the load).
 #[test]
@@ -397,27 +397,34 @@ fn auto_picks_a_model_the_board_runs_at_its_rate() {
     }
 }
 
-/// At 100 kHz a P–I of the default 17 operators with its observer is too dear by three
-/// operators per bank: `calibrate --model pi` without `--operators` fits 14 and says so rather
-/// than refuse; with `--operators 17` asked for, it still refuses, before loading anything.
+/// At 100 kHz a generalised P–I of the default 17 operators and its 8 dead zones, with its
+/// observer and the calibration's own capture beside it, is too dear: `calibrate --model gpi`
+/// without `--operators` fits fewer and says so rather than refuse; with `--operators 17`
+/// asked for, it refuses, before loading anything.
 #[test]
-fn a_pi_is_sized_to_the_boards_rate_unless_its_operators_are_asked_for() {
+fn a_model_is_sized_to_the_boards_rate_unless_its_operators_are_asked_for() {
     let rate = 100_000.0;
     let mut config = SimDeviceConfig::paper();
     config.board.plant.dt = 1.0 / rate;
     let mut client = sim_client(config.clone());
     let options = CalibrateOptions {
-        model: Some(ModelKind::Pi),
+        model: Some(ModelKind::Gpi),
         // The sizing is under test, not the fit: this stage creeps more than a P–I alone
         // follows over the quick excitation (8 % held out).
         max_held_out_pct: 20.0,
         ..quick()
     };
-    let r = calibrate(&mut client, &options, |_| {}).expect("P-I sized to 100 kHz");
-    assert_eq!(r.file.identification.as_ref().unwrap().operators, 14);
-    assert!(r.model.contains("14 uniform operators"), "{}", r.model);
+    let r = calibrate(&mut client, &options, |_| {}).expect("generalised P-I sized to 100 kHz");
+    let operators = r.file.identification.as_ref().unwrap().operators;
+    assert!(operators < 17, "{operators}");
     assert!(
-        r.reason.contains("14 play operators instead of 17"),
+        r.model.contains(&format!("{operators} uniform operators")),
+        "{}",
+        r.model
+    );
+    assert!(
+        r.reason
+            .contains(&format!("{operators} play operators instead of 17")),
         "{}",
         r.reason
     );

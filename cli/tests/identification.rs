@@ -612,12 +612,12 @@ fn identify_at_a_tick_rate_keeps_a_model_the_board_runs() {
         stdout.contains("not admitted: the board at 100 kHz"),
         "{stdout}"
     );
-    // Sized to the rate: P–I 17 with its observer is too dear at 100 kHz, ranked with 14;
-    // P–I 17 + creep ranked with one creep mode and fewer operators.
+    // Sized to the rate: P–I 17 with its observer runs at 100 kHz as it is; P–I 17 + creep
+    // is ranked with one creep mode and fewer operators.
     assert!(
         stdout
             .lines()
-            .any(|l| l.contains("P-I (14 uniform operators) ") && l.contains("forward")),
+            .any(|l| l.contains("P-I (17 uniform operators) ") && l.contains("forward")),
         "{stdout}"
     );
     assert!(
@@ -635,18 +635,34 @@ fn identify_at_a_tick_rate_keeps_a_model_the_board_runs() {
         "{stdout}"
     );
     assert!(!stdout.contains("picked: Bouc-Wen"), "{stdout}");
-    // Unless 17 are asked for.
-    let seventeen = dir.path().join("seventeen.json");
-    let stdout = identify(&seventeen, &["--tick-rate", "100000", "--operators", "17"]);
+    // Operators asked for are not sized: 32 are too many at 100 kHz.
+    let many = dir.path().join("many.json");
+    let stdout = identify(&many, &["--tick-rate", "100000", "--operators", "32"]);
     assert!(
         stdout
             .lines()
-            .any(|l| l.contains("P-I (17 uniform operators) ") && l.contains("not admitted")),
+            .any(|l| l.contains("P-I (32 uniform operators) ") && l.contains("not admitted")),
         "{stdout}"
     );
 
+    // The generalised P–I asked for by name is sized to the rate, unless its operators are
+    // asked for too: then it is refused, naming its cycles.
+    let sized = dir.path().join("sized.json");
+    let stdout = identify(&sized, &["--model", "gpi", "--tick-rate", "100000"]);
+    assert!(runs_at(&settings(&sized), 100_000.0).is_ok(), "{stdout}");
+    assert!(stdout.contains("play operators instead of 17"), "{stdout}");
     let named = dir.path().join("named.json");
-    let err = refused(&named, &["--model", "gpi", "--tick-rate", "100000"]);
+    let err = refused(
+        &named,
+        &[
+            "--model",
+            "gpi",
+            "--operators",
+            "17",
+            "--tick-rate",
+            "100000",
+        ],
+    );
     assert!(
         err.contains("generalised P-I") && err.contains("cycles per tick"),
         "{err}"
@@ -666,7 +682,15 @@ fn identify_at_a_tick_rate_keeps_a_model_the_board_runs() {
     let alone = dir.path().join("alone.json");
     let stdout = identify(
         &alone,
-        &["--model", "gpi", "--tick-rate", "100000", "--no-observer"],
+        &[
+            "--model",
+            "gpi",
+            "--operators",
+            "17",
+            "--tick-rate",
+            "100000",
+            "--no-observer",
+        ],
     );
     let s = settings(&alone);
     assert!(s.observer.is_none() && s.compensator.is_some(), "{stdout}");

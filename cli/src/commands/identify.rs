@@ -6,7 +6,7 @@
 use crate::plot::{draw, IdentificationFigure};
 use anyhow::{anyhow, bail};
 use std::path::PathBuf;
-use twinstack_identify::identification::auto::INVERSE_TO_FORWARD_LIMIT;
+use twinstack_identify::identification::auto::{Size, INVERSE_TO_FORWARD_LIMIT};
 use twinstack_identify::identification::run::{
     check_tick_rate, identify_and_score, BoardRate, RunError,
 };
@@ -177,6 +177,12 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         }
         println!("picked: {}", auto.reason);
     }
+    // A model asked for by name, made smaller to run at the board's rate, says so.
+    let sized = run
+        .auto
+        .is_none()
+        .then(|| Size::of(&run.options).sized_down_note(&Size::of(&options)))
+        .flatten();
     let (options, id, record) = (&run.options, &run.identification, &run.record);
     let t = &data.t;
     let u = data.u.as_deref().unwrap_or_default();
@@ -187,6 +193,9 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     let held = id.held_out_from;
     let model_name = options.label_of_fit(model);
     println!("identified {model_name} from {}", args.data.display());
+    if let Some(note) = sized {
+        println!("  note: sized to the board's rate: {note}");
+    }
     println!(
         "  fitted t = {:.4} .. {} s ({} rows, {} outliers dropped), scored t >= {} s",
         t[fit_from], args.fit_until, id.fitted_rows, id.outliers, args.fit_until

@@ -251,20 +251,28 @@ impl BoardRate {
 /// ```
 pub fn admission_at(settings: &Settings, rate: &BoardRate) -> Admission {
     let hardware = Hardware::driver_board(rate.hz);
-    // The board's refusal at load, and (capturing) at the capture's arming.
+    // The board's refusal at load, and (capturing) at the capture's arming: the cycles it
+    // names are the configuration's with the capture's beside them either way.
+    let capture = ServicesLoad {
+        capture_decimation: rate.capturing,
+        telemetry_decimation: None,
+    };
     let judge = |s: &Settings| -> Result<(), Refusal> {
-        let config = s.build(&hardware)?;
-        if let Some(decimation) = rate.capturing {
-            let services = Beside {
-                services: ServicesLoad {
-                    capture_decimation: Some(decimation),
-                    telemetry_decimation: None,
-                },
-                ..Beside::default()
-            };
-            tick_budget::check_with(&config, rate.hz, services)?;
+        match s.build(&hardware) {
+            Err(mut r) => {
+                if let Rule::TickOverrun { needs, .. } = &mut r.rule {
+                    *needs += capture.cycles();
+                }
+                Err(r)
+            }
+            Ok(config) => {
+                let services = Beside {
+                    services: capture,
+                    ..Beside::default()
+                };
+                tick_budget::check_with(&config, rate.hz, services)
+            }
         }
-        Ok(())
     };
     // Only the tick budget is judged here: what else the board would refuse (a sensor it
     // lacks, …) it says at load.
