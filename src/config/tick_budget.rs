@@ -71,17 +71,17 @@ pub const FIXED_CYCLES: u32 = 953;
 /// snapshot's push in the tick is in [`FIXED_CYCLES`]. Measured by the whole-interrupt bench
 /// (the services' dearest invocation, apart from the recorder's and telemetry's source files,
 /// over its snapshots).
-pub const SERVICES_BASE_CYCLES: u32 = 110;
+pub const SERVICES_BASE_CYCLES: u32 = 140;
 
 /// A frame the capture (or a `Record`) stores, all seven signals: charged for each frame a
 /// batch of snapshots can hold at the capture's decimation. Measured by the whole-interrupt
 /// bench (the recorder's source file in the services' dearest invocation, per frame).
-pub const CAPTURE_FRAME_CYCLES: u32 = 150;
+pub const CAPTURE_FRAME_CYCLES: u32 = 155;
 
 /// A sample telemetry's tap queues (all seven signals): charged for each sample a batch of
 /// snapshots can hold at telemetry's decimation. Measured by the whole-interrupt bench
 /// (telemetry's source file in the services' dearest invocation, per sample).
-pub const TELEMETRY_SAMPLE_CYCLES: u32 = 140;
+pub const TELEMETRY_SAMPLE_CYCLES: u32 = 115;
 
 /// What the services run, as the tick budget charges it: a capture (or a `Record`) and
 /// telemetry, each by its decimation (`None`: not running). Nothing running costs nothing:

@@ -408,12 +408,18 @@ pub fn tick(tick: &mut impl Mutex<T = ControlTick>, pacer: &mut CoarsePacer) {
     pacer.step();
 }
 
-/// The services' task body ([`SERVICES_IRQ`], priority 2, below the tick): the snapshots the
-/// tick pushed, served ([`ServiceSide::run`]); the command task pended when a telemetry
-/// frame's worth of samples is queued (woken by that fill level, never per tick).
+/// The services' task body ([`SERVICES_IRQ`], priority 2, below the tick): a batch of the
+/// snapshots the tick pushed, served ([`ServiceSide::run_batch`]), the task pended again while
+/// the ring holds more (it was held off for a few ticks: it catches up a batch a turn, so no
+/// turn costs more than a batch); the command task pended when a telemetry frame's worth of
+/// samples is queued (woken by that fill level, never per tick).
 #[inline(always)]
 pub fn services(services: &mut impl Mutex<T = ServiceSide>) {
-    if services.lock(|s| s.run()) {
+    let (wake, more) = services.lock(|s| s.run_batch());
+    if more {
+        pend(SERVICES_IRQ);
+    }
+    if wake {
         pend(COMMAND_IRQ);
     }
 }

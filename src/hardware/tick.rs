@@ -163,6 +163,19 @@ impl ServiceSide {
         self.services
             .consume(&mut self.snapshots, &mut self.telemetry)
     }
+
+    /// The services' task's turn: one batch of snapshots served
+    /// ([`Services::consume_at_most`]). Returns whether to wake the packer, and whether the
+    /// ring holds more (the task is to run again).
+    #[inline(always)]
+    pub fn run_batch(&mut self) -> (bool, bool) {
+        let wake = self.services.consume_at_most(
+            crate::services::snapshot::BATCH as usize,
+            &mut self.snapshots,
+            &mut self.telemetry,
+        );
+        (wake, self.snapshots.ready())
+    }
 }
 
 /// The command handler's locks on the board's two halves ([`Locks`]): RTIC's lock on the tick

@@ -57,8 +57,21 @@ impl<B: SampleStore> Services<B> {
         ring: &mut SnapshotConsumer<'_>,
         telemetry: &mut Producer<'_, TelemetrySample, T>,
     ) -> bool {
+        self.consume_at_most(SNAPSHOT_RING_LEN, ring, telemetry)
+    }
+
+    /// Serves at most `count` snapshots, oldest first, as [`Services::consume`] does: the
+    /// services' task serves a batch ([`crate::services::snapshot::BATCH`]) a wake, so that
+    /// one wake never costs more than a batch, and wakes itself again while the ring holds
+    /// more (a task held off for a few ticks catches up in batches).
+    pub fn consume_at_most<const T: usize>(
+        &mut self,
+        count: usize,
+        ring: &mut SnapshotConsumer<'_>,
+        telemetry: &mut Producer<'_, TelemetrySample, T>,
+    ) -> bool {
         let mut wake = false;
-        for _ in 0..SNAPSHOT_RING_LEN {
+        for _ in 0..count.min(SNAPSHOT_RING_LEN) {
             // Served where it lies in the ring, then released: no copy of it out.
             let Some(snapshot) = ring.peek() else {
                 break;
