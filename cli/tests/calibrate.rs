@@ -397,10 +397,10 @@ fn auto_picks_a_model_the_board_runs_at_its_rate() {
     }
 }
 
-/// At 100 kHz a generalised P–I of the default 17 operators and its 8 dead zones, with its
-/// observer and the calibration's own capture beside it, is too dear: `calibrate --model gpi`
-/// without `--operators` fits fewer and says so rather than refuse; with `--operators 17`
-/// asked for, it refuses, before loading anything.
+/// At 100 kHz a P–I of the default 17 operators with its observer, and the calibration's own
+/// capture of every tick beside it, is too dear: `calibrate --model pi` without `--operators`
+/// fits fewer and says so rather than refuse; with `--operators 17` asked for, it refuses,
+/// before loading anything.
 #[test]
 fn a_model_is_sized_to_the_boards_rate_unless_its_operators_are_asked_for() {
     let rate = 100_000.0;
@@ -408,13 +408,15 @@ fn a_model_is_sized_to_the_boards_rate_unless_its_operators_are_asked_for() {
     config.board.plant.dt = 1.0 / rate;
     let mut client = sim_client(config.clone());
     let options = CalibrateOptions {
-        model: Some(ModelKind::Gpi),
+        model: Some(ModelKind::Pi),
+        // The capture takes every tick: its share of the tick is the dearest.
+        sample_rate_hz: rate,
         // The sizing is under test, not the fit: this stage creeps more than a P–I alone
         // follows over the quick excitation (8 % held out).
         max_held_out_pct: 20.0,
         ..quick()
     };
-    let r = calibrate(&mut client, &options, |_| {}).expect("generalised P-I sized to 100 kHz");
+    let r = calibrate(&mut client, &options, |_| {}).expect("P-I sized to 100 kHz");
     let operators = r.file.identification.as_ref().unwrap().operators;
     assert!(operators < 17, "{operators}");
     assert!(

@@ -232,21 +232,20 @@ impl BoardRate {
 /// assert!(matches!(admission_at(&s, &asked), Admission::Refused(_)));
 /// assert_eq!(admission_at(&s, &BoardRate::sizing(50_000.0, false).capturing(1)), Admission::Admitted);
 ///
-/// // Bouc–Wen with four creep modes both ways, captured at 100 kHz: the creep loses modes
-/// // first.
+/// // Bouc–Wen with six creep modes both ways at 100 kHz: the creep loses modes first.
 /// use twinstack::models::creep::CreepParams;
 /// use twinstack::config::settings::representative_bouc_wen;
 /// let s = Settings {
 ///     compensator: Some(representative_bouc_wen()),
 ///     observer: Some(representative_bouc_wen()),
-///     creep: Some(CreepParams::new(&[0.01, 0.1, 1.0, 10.0], &[0.02; 4]).unwrap()),
+///     creep: Some(CreepParams::new(&[0.01, 0.03, 0.1, 0.3, 1.0, 3.0], &[0.02; 6]).unwrap()),
 ///     ..Settings::default()
 /// };
-/// let sized = admission_at(&s, &BoardRate::sizing(100_000.0, true).capturing(1));
+/// let sized = admission_at(&s, &BoardRate::sizing(100_000.0, true));
 /// assert!(matches!(
 ///     sized,
 ///     Admission::Smaller { resize: Resize { operators: None, creep_modes: Some(m) }, .. }
-///         if m < 4
+///         if m < 6
 /// ));
 /// ```
 pub fn admission_at(settings: &Settings, rate: &BoardRate) -> Admission {
