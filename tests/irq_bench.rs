@@ -301,7 +301,7 @@ fn writes_register(mnemonic: &str, operands: &str, register: &str) -> bool {
     let m = mnemonic.trim_end_matches(".w").trim_end_matches(".n");
     if m.starts_with("pop") || m.starts_with("ldm") {
         return operands
-            .split(|c: char| c == ',' || c == '{' || c == '}' || c == '!')
+            .split([',', '{', '}', '!'])
             .any(|r| r.trim() == register);
     }
     if m.starts_with("bl") {

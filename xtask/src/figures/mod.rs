@@ -550,6 +550,9 @@ fn run_cargo(root: &Path, args: &[&str]) -> Result<String, String> {
 /// Runs the host tool with `args` (the optimised `host-opt` build the simulation gates use),
 /// returning its standard output.
 fn run_tool(root: &Path, args: &[&str]) -> Result<String, String> {
+    // Where the runs write their files: on a fresh clone nothing has made it yet.
+    std::fs::create_dir_all(root.join("target/figures"))
+        .map_err(|e| format!("cannot make target/figures: {e}"))?;
     let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
     let out = Command::new(cargo)
         .args(["run", "--quiet"])
