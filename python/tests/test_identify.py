@@ -144,18 +144,23 @@ def test_tick_rate_keeps_a_model_the_board_runs(micro):
     assert "not_admitted" not in fast.ranking[0] and "max_pct" in fast.ranking[0]
     refused = [r for r in fast.ranking if "not_admitted" in r]
     assert refused and all("100 kHz" in r["not_admitted"] and "max_pct" in r for r in refused)
+    # A generalised P-I of 17 operators with its observer is too dear at 100 kHz: fewer unless
+    # 17 are asked for, and then refused, saying the compensator alone fits.
+    gpi = twinstack.identify(t, u, x, model="gpi", fit_until=16.0, tick_rate=100_000.0)
+    assert gpi.identification["operators"] < 17
     with pytest.raises(ValueError, match="without the observer"):
-        twinstack.identify(t, u, x, model="gpi", fit_until=16.0, tick_rate=100_000.0)
+        twinstack.identify(
+            t, u, x, model="gpi", operators=17, fit_until=16.0, tick_rate=100_000.0
+        )
     # The compensator alone is admitted, and its file has no observer.
     alone = twinstack.identify(
-        t, u, x, model="gpi", fit_until=16.0, tick_rate=100_000.0, observer=False
+        t, u, x, model="gpi", operators=17, fit_until=16.0, tick_rate=100_000.0, observer=False
     )
     assert alone.model == "gpi" and alone.settings["observer"] is None
-    # A P-I of 17 operators with its observer is too dear at 100 kHz: 14 unless 17 are asked
-    # for.
+    # A P-I of 17 operators with its observer runs at 100 kHz; 32 asked for do not.
     pi = twinstack.identify(t, u, x, model="pi", fit_until=16.0, tick_rate=100_000.0)
-    assert pi.identification["operators"] == 14
+    assert pi.identification["operators"] == 17
     with pytest.raises(ValueError, match="cycles per tick"):
-        twinstack.identify(t, u, x, model="pi", operators=17, fit_until=16.0, tick_rate=100_000.0)
+        twinstack.identify(t, u, x, model="pi", operators=32, fit_until=16.0, tick_rate=100_000.0)
     with pytest.raises(ValueError, match="tick_rate"):
         twinstack.identify(t, u, x, fit_until=16.0, tick_rate=-1.0)
