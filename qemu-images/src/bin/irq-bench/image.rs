@@ -491,7 +491,7 @@ mod app {
     };
     use twinstack::services::consumer::Services;
     use twinstack::services::learning::{LearnSettings, LearnState};
-    use twinstack::services::recorder::{SplitStore, CHANNELS};
+    use twinstack::services::recorder::SplitStore;
     use twinstack::services::snapshot::SnapshotRing;
     use twinstack::services::telemetry::{
         TelemetryPacker, TelemetryQueue, TelemetrySample, TELEMETRY_QUEUE_LEN,
@@ -669,13 +669,6 @@ mod app {
             let Some(config) = configs::get(i) else {
                 panic!("configuration refused");
             };
-            let telemetry_decimation = DECIMATIONS[i % 2];
-            let Some(first) =
-                lock.lock_services(|s| s.start_telemetry(0b111_1111, telemetry_decimation, 1))
-            else {
-                panic!("telemetry refused");
-            };
-            packer.start(0b111_1111, telemetry_decimation, first, RATE_HZ);
             // The budget's prediction for it, computed by the library on the target.
             match config.settings.build(&hardware) {
                 Ok(c) => hprintln!("BUDGET {} {}", config.name, worst_case_cycles(&c)),
@@ -686,23 +679,40 @@ mod app {
             marker += 1;
             irq_bench_marker(marker);
             hprintln!("SCENARIO {}/load", config.name);
+            // Telemetry started again at this configuration's decimation, inside the load's
+            // row (charged at the services' worst), so that no scenario's row holds ticks of
+            // another decimation.
+            let telemetry_decimation = DECIMATIONS[i % 2];
+            let Some(first) =
+                lock.lock_services(|s| s.start_telemetry(0b111_1111, telemetry_decimation, 1))
+            else {
+                panic!("telemetry refused");
+            };
+            packer.start(0b111_1111, telemetry_decimation, first, RATE_HZ);
             expect_ack(ask!(Request::LoadParams(config.settings.clone())), "load");
             for (j, scenario) in scenarios::ALL.iter().enumerate() {
-                // A fresh capture per scenario: the recorder runs throughout, taking all seven
-                // signals every tick (its worst case: seven stores per tick), or every eighth
-                // tick in every other scenario.
+                // A fresh capture per scenario, of all seven signals (seven stores a frame, the
+                // recorder's dearest), on every tick or every eighth in every other scenario.
+                // Armed after the scenario's marker, and done within its first half, so that
+                // no row holds ticks of another scenario's capture: the row is charged the
+                // services as its `SERVICES` line says.
                 let capture_decimation = DECIMATIONS[j % 2];
+                let frames = scenarios::TICKS / 2 / u32::from(capture_decimation);
                 // (In the trigger scenario, armed on the input's edge with a pre-trigger window:
                 // the edge's tick fires it.)
                 let (trigger, pre_trigger) = if scenario.on_trigger {
-                    (Trigger::External, 100)
+                    (Trigger::External, frames / 2)
                 } else {
                     (Trigger::Now, 0)
                 };
+                marker += 1;
+                irq_bench_marker(marker);
+                hprintln!("SCENARIO {}/{}", config.name, scenario.name);
+                hprintln!("SERVICES {} {}", capture_decimation, telemetry_decimation);
                 expect_ack(
                     ask!(Request::Capture(CaptureRequest {
                         signals: 0b111_1111,
-                        samples: (SRAM_SLOTS / CHANNELS) as u32,
+                        samples: frames,
                         pre_trigger,
                         trigger,
                         decimation: capture_decimation,
@@ -720,10 +730,6 @@ mod app {
                         "learn on",
                     );
                 }
-                marker += 1;
-                irq_bench_marker(marker);
-                hprintln!("SCENARIO {}/{}", config.name, scenario.name);
-                hprintln!("SERVICES {} {}", capture_decimation, telemetry_decimation);
                 let mut k = 0u32;
                 let mut started = false;
                 let mut changed = 0u8;
