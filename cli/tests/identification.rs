@@ -651,18 +651,16 @@ fn identify_at_a_tick_rate_keeps_a_model_the_board_runs() {
     let stdout = identify(&sized, &["--model", "gpi", "--tick-rate", "100000"]);
     assert!(runs_at(&settings(&sized), 100_000.0).is_ok(), "{stdout}");
     assert!(stdout.contains("play operators instead of 17"), "{stdout}");
+    let gpi17 = [
+        "--model",
+        "gpi",
+        "--operators",
+        "17",
+        "--tick-rate",
+        "100000",
+    ];
     let named = dir.path().join("named.json");
-    let err = refused(
-        &named,
-        &[
-            "--model",
-            "gpi",
-            "--operators",
-            "17",
-            "--tick-rate",
-            "100000",
-        ],
-    );
+    let err = refused(&named, &gpi17);
     assert!(
         err.contains("generalised P-I") && err.contains("cycles per tick"),
         "{err}"
@@ -680,18 +678,7 @@ fn identify_at_a_tick_rate_keeps_a_model_the_board_runs() {
         "{err}"
     );
     let alone = dir.path().join("alone.json");
-    let stdout = identify(
-        &alone,
-        &[
-            "--model",
-            "gpi",
-            "--operators",
-            "17",
-            "--tick-rate",
-            "100000",
-            "--no-observer",
-        ],
-    );
+    let stdout = identify(&alone, &[&gpi17[..], &["--no-observer"]].concat());
     let s = settings(&alone);
     assert!(s.observer.is_none() && s.compensator.is_some(), "{stdout}");
     assert!(runs_at(&s, 100_000.0).is_ok(), "{stdout}");
