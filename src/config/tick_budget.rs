@@ -63,73 +63,9 @@ pub const TICK_SHARE_PERCENT: u32 = 100;
 /// [`ServicesLoad`] while they listen.
 pub const FIXED_CYCLES: u32 = 953;
 
-/// The services' part of a tick while they listen ([`crate::services::consumer::Services`]:
-/// a capture or a record armed or running, telemetry running), whatever they take: the tick's
-/// share of the services' task's wake (its entry, return and lock, once a batch of
-/// [`crate::services::snapshot::BATCH`] snapshots) and of each snapshot's serving (its
-/// dequeue, sequence and events checks, the capture's and the tap's countdowns). The
-/// snapshot's push in the tick is in [`FIXED_CYCLES`]. Measured by the whole-interrupt bench
-/// (the services' dearest invocation, apart from the recorder's and telemetry's source files,
-/// over its snapshots).
-pub const SERVICES_BASE_CYCLES: u32 = 140;
-
-/// A frame the capture (or a `Record`) stores, all seven signals: charged for each frame a
-/// batch of snapshots can hold at the capture's decimation. Measured by the whole-interrupt
-/// bench (the recorder's source file in the services' dearest invocation, per frame).
-pub const CAPTURE_FRAME_CYCLES: u32 = 155;
-
-/// A sample telemetry's tap queues (all seven signals): charged for each sample a batch of
-/// snapshots can hold at telemetry's decimation. Measured by the whole-interrupt bench
-/// (telemetry's source file in the services' dearest invocation, per sample).
-pub const TELEMETRY_SAMPLE_CYCLES: u32 = 115;
-
-/// What the services run, as the tick budget charges it: a capture (or a `Record`) and
-/// telemetry, each by its decimation (`None`: not running). Nothing running costs nothing:
-/// the tick then pushes no snapshot and never wakes the services.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
-pub struct ServicesLoad {
-    /// The capture's (or record's) decimation, if one is armed or running.
-    pub capture_decimation: Option<u16>,
-    /// Telemetry's decimation, if it runs.
-    pub telemetry_decimation: Option<u16>,
-}
-
-impl ServicesLoad {
-    /// The dearest the services can be: a capture and telemetry taking every tick.
-    pub const WORST: Self = Self {
-        capture_decimation: Some(1),
-        telemetry_decimation: Some(1),
-    };
-
-    /// Whether anything runs (the tick hands the services its snapshots).
-    pub fn is_listening(&self) -> bool {
-        self.capture_decimation.is_some() || self.telemetry_decimation.is_some()
-    }
-
-    /// Their cost per tick, cycles (rounded up): [`SERVICES_BASE_CYCLES`], and the frames and
-    /// samples the dearest batch of [`crate::services::snapshot::BATCH`] snapshots holds at
-    /// their decimations shared by its ticks.
-    ///
-    /// ```
-    /// use twinstack::config::tick_budget::{ServicesLoad, SERVICES_BASE_CYCLES};
-    /// assert_eq!(ServicesLoad::default().cycles(), 0);
-    /// let decimated = ServicesLoad { capture_decimation: Some(10), telemetry_decimation: None };
-    /// assert!(decimated.cycles() > SERVICES_BASE_CYCLES);
-    /// assert!(decimated.cycles() < ServicesLoad::WORST.cycles());
-    /// ```
-    pub fn cycles(&self) -> u32 {
-        if !self.is_listening() {
-            return 0;
-        }
-        let batch = crate::services::snapshot::BATCH;
-        // The most frames (samples) a batch holds at decimation `d`: one every `d` ticks.
-        let per_batch = |d: Option<u16>| d.map_or(0, |d| batch.div_ceil(u32::from(d.max(1))));
-        (SERVICES_BASE_CYCLES * batch
-            + CAPTURE_FRAME_CYCLES * per_batch(self.capture_decimation)
-            + TELEMETRY_SAMPLE_CYCLES * per_batch(self.telemetry_decimation))
-        .div_ceil(batch)
-    }
-}
+pub use crate::services::consumer::{
+    ServicesLoad, CAPTURE_FRAME_CYCLES, SERVICES_BASE_CYCLES, TELEMETRY_SAMPLE_CYCLES,
+};
 
 /// The feedback's derivative term.
 pub const DERIVATIVE_CYCLES: u32 = 50;

@@ -14,10 +14,78 @@
 
 use heapless::spsc::Producer;
 
-use crate::config::tick_budget::ServicesLoad;
 use crate::services::recorder::{Recorder, SampleStore, TickSignals};
-use crate::services::snapshot::{Snapshot, SnapshotConsumer, SNAPSHOT_RING_LEN};
+use crate::services::snapshot::{Snapshot, SnapshotConsumer, BATCH, SNAPSHOT_RING_LEN};
 use crate::services::telemetry::{TelemetrySample, TelemetryTap};
+
+/// The services' part of a tick while they listen ([`Services`]:
+/// a capture or a record armed or running, telemetry running), whatever they take: the tick's
+/// share of the services' task's wake (its entry, return and lock, once a batch of
+/// [`BATCH`] snapshots) and of each snapshot's serving (its
+/// dequeue, sequence and events checks, the capture's and the tap's countdowns). The
+/// snapshot's push in the tick is in the tick budget's `FIXED_CYCLES`. These three
+/// coefficients are declared here, beside the code they cost, and the tick budget
+/// (`config::tick_budget`) charges them; the whole-interrupt bench (`tests/irq_bench.rs`)
+/// measures the services' dearest turn in every scenario, with the capture and telemetry each
+/// on every tick or every eighth (a batch's cost is affine in the frames and samples it holds,
+/// so these bound every decimation), and checks it against this charge.
+pub const SERVICES_BASE_CYCLES: u32 = 140;
+
+/// A frame the capture (or a `Record`) stores, all seven signals: charged for each frame a
+/// batch of snapshots can hold at the capture's decimation (see [`SERVICES_BASE_CYCLES`]).
+pub const CAPTURE_FRAME_CYCLES: u32 = 155;
+
+/// A sample telemetry's tap queues (all seven signals): charged for each sample a batch of
+/// snapshots can hold at telemetry's decimation (see [`SERVICES_BASE_CYCLES`]).
+pub const TELEMETRY_SAMPLE_CYCLES: u32 = 115;
+
+/// What the services run, as the tick budget charges it: a capture (or a `Record`) and
+/// telemetry, each by its decimation (`None`: not running). Nothing running costs nothing:
+/// the tick then pushes no snapshot and never wakes the services.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct ServicesLoad {
+    /// The capture's (or record's) decimation, if one is armed or running.
+    pub capture_decimation: Option<u16>,
+    /// Telemetry's decimation, if it runs.
+    pub telemetry_decimation: Option<u16>,
+}
+
+impl ServicesLoad {
+    /// The dearest the services can be: a capture and telemetry taking every tick.
+    pub const WORST: Self = Self {
+        capture_decimation: Some(1),
+        telemetry_decimation: Some(1),
+    };
+
+    /// Whether anything runs (the tick hands the services its snapshots).
+    pub fn is_listening(&self) -> bool {
+        self.capture_decimation.is_some() || self.telemetry_decimation.is_some()
+    }
+
+    /// Their cost per tick, cycles (rounded up): [`SERVICES_BASE_CYCLES`], and the frames and
+    /// samples the dearest batch of [`BATCH`] snapshots holds at
+    /// their decimations shared by its ticks.
+    ///
+    /// ```
+    /// use twinstack::services::consumer::{ServicesLoad, SERVICES_BASE_CYCLES};
+    /// assert_eq!(ServicesLoad::default().cycles(), 0);
+    /// let decimated = ServicesLoad { capture_decimation: Some(10), telemetry_decimation: None };
+    /// assert!(decimated.cycles() > SERVICES_BASE_CYCLES);
+    /// assert!(decimated.cycles() < ServicesLoad::WORST.cycles());
+    /// ```
+    pub fn cycles(&self) -> u32 {
+        if !self.is_listening() {
+            return 0;
+        }
+        let batch = BATCH;
+        // The most frames (samples) a batch holds at decimation `d`: one every `d` ticks.
+        let per_batch = |d: Option<u16>| d.map_or(0, |d| batch.div_ceil(u32::from(d.max(1))));
+        (SERVICES_BASE_CYCLES * batch
+            + CAPTURE_FRAME_CYCLES * per_batch(self.capture_decimation)
+            + TELEMETRY_SAMPLE_CYCLES * per_batch(self.telemetry_decimation))
+        .div_ceil(batch)
+    }
+}
 
 /// The recorder and telemetry's tap, consuming the tick's snapshots. `B` is the recorder's
 /// buffer.
