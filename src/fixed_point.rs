@@ -173,12 +173,13 @@ fn floor_shift_saturated<const DROPPED: u32>(acc: i64) -> i32 {
     let high = (acc >> 32) as i32;
     let low = acc as u32;
     let fitted = high.clamp(-high_max - 1, high_max);
-    if fitted != high {
-        // Out of range: i32::MAX for a positive accumulator, i32::MIN for a negative one.
-        (high >> 31) ^ i32::MAX
-    } else {
-        (high << (32 - DROPPED)) | (low >> DROPPED) as i32
-    }
+    // Out of range: i32::MAX for a positive accumulator, i32::MIN for a negative one. Chosen
+    // by a mask, not a branch: both values are a couple of instructions, and a branch taken
+    // on the common path costs the flash's wait states on every call.
+    let out = -((fitted != high) as i32); // all ones where out of range
+    let saturated = (high >> 31) ^ i32::MAX;
+    let shifted = (high << (32 - DROPPED)) | (low >> DROPPED) as i32;
+    (shifted & !out) | (saturated & out)
 }
 
 /// Saturates an `i64` to the `i32` range.

@@ -36,15 +36,14 @@ use twinstack::config::tick_budget::ServicesLoad;
 /// the trigger input and drives the pulse outputs (one BSRR store), tests input shaping, and
 /// streams, scans (raster, Lissajous figure, spiral), learns and takes the trigger input's
 /// edges; the dearest scenario is the spiral started by the input's edges with the learning
-/// feedforward on (P–I 17: 1 068 measured, the firmware's binding of the tick included).
-const WORST_INSTRUCTIONS: u64 = 1080;
+/// feedforward on (P–I 17: 947 measured, the firmware's binding of the tick included).
+const WORST_INSTRUCTIONS: u64 = 960;
 /// The longest critical section outside the tick (a lock on its resource, or interrupts
-/// off), instructions: how late a tick can start. The command handler copies a capture chunk
-/// in pieces of 16 slots, a lock each (`recorder::PIECE_SLOTS`): 274 measured (a record read
-/// slower than the tick, in pieces of four values: 186). One lock
-/// over a whole 256-slot chunk would hold the tick off for about 8 000 instructions (93 µs at
-/// 5 WS).
-const HELD_OFF_INSTRUCTIONS: u64 = 290;
+/// off), instructions: how late a tick can start. The dearest is the board's waveform
+/// generator started under the tick's lock: 140 measured. A capture's or a record's read-back
+/// copies its pieces under the services' lock (`recorder::PIECE_SLOTS`), which masks the
+/// services' priority and below, never the tick.
+const HELD_OFF_INSTRUCTIONS: u64 = 145;
 /// Most instructions the learning feedforward, on, adds to a configuration's worst tick (its
 /// table read, its error store and, at a period's end, the flips).
 const LEARNING_EXTRA: u64 = 120;
@@ -55,8 +54,8 @@ const LEARNING_EXTRA: u64 = 120;
 const FAMILY_CONFIG: &str = "inverse-gpi17x8+creep4+gpi17x8-observer+pi+drift";
 /// Its bound, instructions (the worst measured, rounded up by about 1 %), over the same
 /// scenarios as [`WORST_INSTRUCTIONS`]: the dearest is the spiral started by the trigger
-/// input's edges with the learning feedforward on (1 607 measured).
-const FAMILY_WORST_INSTRUCTIONS: u64 = 1620;
+/// input's edges with the learning feedforward on (1 287 measured).
+const FAMILY_WORST_INSTRUCTIONS: u64 = 1300;
 /// The configurations [`WORST_INSTRUCTIONS`] bounds: the P–I and Duhem ones (P–I 16, the
 /// reference configuration of the tick's cost, and P–I 17, what `twinstack calibrate --model pi` loads
 /// by default).

@@ -645,22 +645,29 @@ fn identify_at_a_tick_rate_keeps_a_model_the_board_runs() {
         "{stdout}"
     );
 
-    // The generalised P–I asked for by name is sized to the rate, unless its operators are
-    // asked for too: then it is refused, naming its cycles.
+    // The generalised P–I asked for by name runs at 100 kHz with its default 17 operators,
+    // eight dead zones and its observer (its map costs the same at any size); asked for with
+    // more operators than that rate leaves time for, it is refused, naming its cycles.
     let sized = dir.path().join("sized.json");
     let stdout = identify(&sized, &["--model", "gpi", "--tick-rate", "100000"]);
-    assert!(runs_at(&settings(&sized), 100_000.0).is_ok(), "{stdout}");
-    assert!(stdout.contains("play operators instead of 17"), "{stdout}");
-    let gpi17 = [
+    let s = settings(&sized);
+    assert!(runs_at(&s, 100_000.0).is_ok(), "{stdout}");
+    assert!(s.observer.is_some(), "{stdout}");
+    assert!(
+        stdout.contains("generalised P-I (17 uniform operators, 8 dead zones)")
+            && !stdout.contains("instead of 17"),
+        "{stdout}"
+    );
+    let gpi32 = [
         "--model",
         "gpi",
         "--operators",
-        "17",
+        "32",
         "--tick-rate",
         "100000",
     ];
     let named = dir.path().join("named.json");
-    let err = refused(&named, &gpi17);
+    let err = refused(&named, &gpi32);
     assert!(
         err.contains("generalised P-I") && err.contains("cycles per tick"),
         "{err}"
@@ -671,14 +678,14 @@ fn identify_at_a_tick_rate_keeps_a_model_the_board_runs() {
         "{err}"
     );
 
-    // The generalised P–I needs its observer's cost off the tick to run at 100 kHz: the
-    // refusal says so, and the compensator alone is admitted, its file without an observer.
+    // Without its observer's cost the 32 operators fit: the refusal says so, and the
+    // compensator alone is admitted, its file without an observer.
     assert!(
         err.contains("without the observer") && err.contains("--no-observer"),
         "{err}"
     );
     let alone = dir.path().join("alone.json");
-    let stdout = identify(&alone, &[&gpi17[..], &["--no-observer"]].concat());
+    let stdout = identify(&alone, &[&gpi32[..], &["--no-observer"]].concat());
     let s = settings(&alone);
     assert!(s.observer.is_none() && s.compensator.is_some(), "{stdout}");
     assert!(runs_at(&s, 100_000.0).is_ok(), "{stdout}");

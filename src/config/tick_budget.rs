@@ -217,7 +217,7 @@ mod tests {
     use crate::board::Hardware;
     use crate::config::settings::{representative_gpi, representative_pi, Settings};
     use crate::models::creep::{CreepParams, CREEP_BASE_CYCLES, CREEP_MODE_CYCLES};
-    use crate::models::generalised_pi::{DEAD_ZONE_BASE_CYCLES, DEAD_ZONE_CYCLES};
+    use crate::models::generalised_pi::DEAD_ZONE_MAP_CYCLES;
 
     fn build(s: &Settings) -> ControlConfig {
         s.build(&Hardware::driver_board(10_000.0)).unwrap()
@@ -324,10 +324,7 @@ mod tests {
             compensator: Some(representative_gpi(32).unwrap()),
             ..pi32
         };
-        assert_eq!(
-            worst_case_cycles(&build(&gpi)) - c32,
-            DEAD_ZONE_BASE_CYCLES + 6 * DEAD_ZONE_CYCLES
-        );
+        assert_eq!(worst_case_cycles(&build(&gpi)) - c32, DEAD_ZONE_MAP_CYCLES);
         // The feedforward's notch is charged as the feedback's (the same biquad).
         let shaped = Settings {
             shaping: Some(crate::control::notch::NotchDesign {

@@ -38,11 +38,12 @@
 //!
 //! Formats: signals Q2.30 normalised; thresholds and the centre Q2.30 normalised; gains Q8.24;
 //! the sum accumulates in Q10.54 (`i64`) and is brought back to Q2.30 once, rounding toward −∞
-//! and saturating. A step costs the same whatever the input does: every dead zone is evaluated
-//! every tick (a `QSUB`, two conditional moves and an `SMLAL` each), no branch on the input.
+//! and saturating. A step costs the same whatever the input does and whatever the map's size:
+//! the map is a table of its segments, found by a branchless binary search and evaluated by
+//! one `SMLAL` ([`DeadZoneBank`]), bit for bit the zone-by-zone sum.
 
 use crate::fixed_point::{
-    clamp_full_scale, gain_from_f64, limit, q54_to_signal_floor, signal_from_f64, GAIN_FRAC_BITS,
+    clamp_full_scale, gain_from_f64, q54_to_signal_floor, signal_from_f64, GAIN_FRAC_BITS,
     MAX_GAIN_SUM,
 };
 use crate::models::params::{
@@ -56,7 +57,7 @@ use heapless::Vec;
 
 // Defined with the parameters that are checked against it (params sits below this module).
 pub use crate::models::params::MAX_DEAD_ZONES;
-// `DeadZoneMap::apply` writes its zones out, 0 … 7.
+// `DeadZoneBank::apply`'s search takes four halving steps: at most 8 breakpoints.
 const _: () = assert!(MAX_DEAD_ZONES == 8);
 
 /// The one-sided dead-zone operator in `f64`: `max(x − d, 0)` for `d > 0`, `min(x − d, 0)` for
@@ -275,47 +276,77 @@ impl GpiParams {
     }
 }
 
-/// A dead-zone map in fixed point: `y = c + g_0·x + Σ_j g_j · clamp(x − d_j, lo_j, hi_j)`,
-/// `x = z − c`, where `[lo_j, hi_j]` is `[0, MAX]` for `d_j > 0` and `[MIN, 0]` for `d_j < 0`
-/// (so both one-sided operators are the same two instructions, chosen by data, not a branch).
+/// A dead-zone map in fixed point, as a table of its segments.
+///
+/// The map `y = c + g_0·x + Σ_j g_j · S_{d_j}(x)`, `x = z − c`, is piecewise linear with a
+/// breakpoint at each `d_j`. On the segment where exactly `k` breakpoints lie at or below `x`,
+/// the dead zones above the centre that are open are those below `x`, and those below the
+/// centre that are open are those above it, so the map is one line there:
+/// `y = σ_k·x + b_k` with `σ_k = g_0 + Σ_{open} g_j` and `b_k = c − Σ_{open} g_j·d_j`.
+/// The table holds `σ_k` and `b_k` for every segment, built once off the tick; a step finds
+/// its segment by a branchless binary search over the sorted breakpoints (four compares, each
+/// a conditional add, whatever the map's size and whatever the input does) and is then one
+/// multiply-accumulate.
+///
+/// The result is bit for bit the zone-by-zone sum `c + g_0·x + Σ_j g_j·clamp(x − d_j, …)`
+/// (Q10.54 in `i64`, exact, then rounded once): a zone that contributes is never saturated
+/// (`x ≥ d_j > 0` or `x ≤ d_j ≤ 0` keep `x − d_j` within `(−2, 2)`), and a sum of exact
+/// products regrouped is the same integer. The tests check it against that sum.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct DeadZoneBank {
     len: usize,
     /// Centre `c`, Q2.30 normalised.
     centre: i32,
-    /// Linear gain `g_0`, Q8.24.
-    linear: i32,
-    /// Thresholds `d_j`, Q2.30 normalised, relative to the centre.
-    thresholds: [i32; MAX_DEAD_ZONES],
-    /// Lower clamp of `x − d_j`, Q2.30: 0 above the centre, `i32::MIN` below.
-    lower: [i32; MAX_DEAD_ZONES],
-    /// Upper clamp of `x − d_j`, Q2.30: `i32::MAX` above the centre, 0 below.
-    upper: [i32; MAX_DEAD_ZONES],
-    /// Weights `g_j`, Q8.24.
-    weights: [i32; MAX_DEAD_ZONES],
+    /// Breakpoints `d_j`, Q2.30 normalised, relative to the centre, increasing; `i32::MAX`
+    /// past the map's dead zones.
+    breakpoints: [i32; MAX_DEAD_ZONES],
+    /// Each segment's slope `σ_k`, Q8.24 (`|σ_k| ≤ Σ|g| ≤ MAX_GAIN_SUM` fits); segments past
+    /// the map's dead zones repeat its last.
+    slopes: [i32; MAX_DEAD_ZONES + 1],
+    /// Each segment's intercept `b_k`, Q10.54, as its two 32-bit words (low, high): an
+    /// 8-byte-aligned field would move the tick's other state, as the creep states' note says.
+    intercepts: [[u32; 2]; MAX_DEAD_ZONES + 1],
 }
 
 impl DeadZoneBank {
     /// The fixed-point form of a normalised map (range-checked first).
     fn from_normalized(n: &DeadZoneParams) -> Result<Self, ParamError> {
         n.check_fixed_point_range()?;
+        let len = n.thresholds.len().min(MAX_DEAD_ZONES);
+        let centre = signal_from_f64(n.centre);
+        // Each zone in fixed point: (d_j, g_j, opens above the centre).
+        let mut zones = [(i32::MAX, 0i32, true); MAX_DEAD_ZONES];
+        for (zone, (&d, &g)) in zones.iter_mut().zip(n.thresholds.iter().zip(&n.weights)) {
+            *zone = (signal_from_f64(d), gain_from_f64(g), d > 0.0);
+        }
+        // Validation keeps the thresholds increasing; sorting here makes the search's order
+        // hold whatever built the map.
+        zones[..len].sort_unstable_by_key(|z| z.0);
         let mut bank = Self {
-            len: n.thresholds.len().min(MAX_DEAD_ZONES),
-            centre: signal_from_f64(n.centre),
-            linear: gain_from_f64(n.linear),
-            thresholds: [0; MAX_DEAD_ZONES],
-            lower: [0; MAX_DEAD_ZONES],
-            upper: [0; MAX_DEAD_ZONES],
-            weights: [0; MAX_DEAD_ZONES],
+            len,
+            centre,
+            breakpoints: [i32::MAX; MAX_DEAD_ZONES],
+            slopes: [0; MAX_DEAD_ZONES + 1],
+            intercepts: [[0; 2]; MAX_DEAD_ZONES + 1],
         };
-        for (j, (&d, &g)) in n.thresholds.iter().zip(n.weights.iter()).enumerate() {
-            bank.thresholds[j] = signal_from_f64(d);
-            bank.weights[j] = gain_from_f64(g);
-            if d > 0.0 {
-                bank.upper[j] = i32::MAX;
-            } else {
-                bank.lower[j] = i32::MIN;
+        for (k, slot) in bank.breakpoints.iter_mut().enumerate().take(len) {
+            *slot = zones[k].0;
+        }
+        for k in 0..=MAX_DEAD_ZONES {
+            // Segment k: exactly k breakpoints at or below x (past `len`, the last segment).
+            let below = k.min(len);
+            let mut slope = gain_from_f64(n.linear) as i64;
+            let mut intercept = (centre as i64) << GAIN_FRAC_BITS;
+            for (j, &(d, g, above_centre)) in zones[..len].iter().enumerate() {
+                let open = if above_centre { j < below } else { j >= below };
+                if open {
+                    slope += g as i64;
+                    intercept -= g as i64 * d as i64;
+                }
             }
+            // |σ| ≤ Σ|g| ≤ MAX_GAIN_SUM · 2^24 = 2^30: validated, so this never clamps.
+            bank.slopes[k] = slope.clamp(i32::MIN as i64, i32::MAX as i64) as i32;
+            bank.intercepts[k] = [intercept as u32, (intercept >> 32) as u32];
         }
         Ok(bank)
     }
@@ -326,29 +357,25 @@ impl DeadZoneBank {
     }
 
     /// The map at `z` (Q2.30 normalised) → Q2.30, rounded toward −∞ and saturated. Constant
-    /// time: every dead zone, every call (see the type's doc). The sum fits `i64` exactly:
-    /// `|x|, |x − d| < 2` and `Σ|g| + |c| ≤ MAX_GAIN_SUM` are validated.
+    /// time: four compares find the segment, one multiply-accumulate evaluates it (see the
+    /// type's doc). The sum fits `i64` exactly: `|x| < 2`, `|σ| + |b|` are bounded by the
+    /// validated `Σ|g| + |c| ≤ MAX_GAIN_SUM`.
     ///
-    /// Written out zone by zone, each behind a compare with the map's size, as the P–I bank's
-    /// pairs are (a loop pays its counter and a taken branch on every zone). One copy in
-    /// flash (not inlined): written out into each of the tick's model variants, it made the
-    /// whole handler's other code dearer (more registers spilled), whatever the model.
+    /// One copy in flash (not inlined): written out into each of the tick's model variants,
+    /// it made the whole handler's other code dearer (more registers spilled), whatever the
+    /// model.
     #[inline(never)]
     pub fn apply(&self, z: i32) -> i32 {
         let x = z.saturating_sub(self.centre);
-        let mut acc = self.linear as i64 * x as i64 + ((self.centre as i64) << GAIN_FRAC_BITS);
-        let n = self.len;
-        macro_rules! zones {
-            ($($k:literal)*) => {$(
-                if $k >= n {
-                    return q54_to_signal_floor(acc);
-                }
-                let zone = limit(x.saturating_sub(self.thresholds[$k]), self.lower[$k], self.upper[$k]);
-                acc += self.weights[$k] as i64 * zone as i64;
-            )*};
-        }
-        zones!(0 1 2 3 4 5 6 7);
-        q54_to_signal_floor(acc)
+        let t = &self.breakpoints;
+        // Branchless lower bound: k = #{j : d_j ≤ x}, 0 … 8, in four halving steps.
+        let mut k = ((t[3] <= x) as usize) << 2;
+        k += ((t[k + 1] <= x) as usize) << 1;
+        k += (t[k] <= x) as usize;
+        k += (t[k] <= x) as usize;
+        let [lo, hi] = self.intercepts[k];
+        let intercept = ((hi as i64) << 32) | lo as i64;
+        q54_to_signal_floor(self.slopes[k] as i64 * x as i64 + intercept)
     }
 }
 
@@ -511,16 +538,15 @@ impl InverseGeneralisedPi {
     }
 }
 
-/// A generalised P–I's dead-zone map beyond its dead zones (the call to its one copy), cycles
-/// at 5 wait states (see [`Hysteresis::cycles`]); the P–I part costs as a P–I
+/// A generalised P–I's dead-zone map (the call to its one copy: the segment's search and
+/// its multiply-accumulate), cycles at 5 wait states (see [`Hysteresis::cycles`]), whatever
+/// its number of dead zones; the P–I part costs as a P–I
 /// ([`crate::models::prandtl_ishlinskii::bank_cycles`]).
-pub const DEAD_ZONE_BASE_CYCLES: u32 = 49;
-/// Each dead zone of a generalised P–I's map.
-pub const DEAD_ZONE_CYCLES: u32 = 22;
+pub const DEAD_ZONE_MAP_CYCLES: u32 = 60;
 
-/// A generalised P–I of `operators` operators and `dead_zones` dead zones in the tick.
-fn gpi_cycles((operators, dead_zones): (usize, usize)) -> u32 {
-    bank_cycles(operators) + DEAD_ZONE_BASE_CYCLES + DEAD_ZONE_CYCLES * dead_zones as u32
+/// A generalised P–I of `operators` operators in the tick (its map costs the same at any size).
+fn gpi_cycles((operators, _dead_zones): (usize, usize)) -> u32 {
+    bank_cycles(operators) + DEAD_ZONE_MAP_CYCLES
 }
 
 impl Hysteresis for GeneralisedPi {
@@ -628,7 +654,61 @@ mod tests {
         0.5 * (lo + hi)
     }
 
+    /// The map as the zone-by-zone sum `c + g_0·x + Σ_j g_j·clamp(x − d_j, lo_j, hi_j)`
+    /// (`[0, MAX]` above the centre, `[MIN, 0]` below), exact in `i64` and rounded once: what
+    /// the segment table must give bit for bit.
+    fn zone_by_zone(n: &DeadZoneParams, z: i32) -> i32 {
+        let centre = signal_from_f64(n.centre);
+        let x = z.saturating_sub(centre);
+        let mut acc =
+            gain_from_f64(n.linear) as i64 * x as i64 + ((centre as i64) << GAIN_FRAC_BITS);
+        for (&d, &g) in n.thresholds.iter().zip(&n.weights) {
+            let (lo, hi) = if d > 0.0 {
+                (0, i32::MAX)
+            } else {
+                (i32::MIN, 0)
+            };
+            let zone = x.saturating_sub(signal_from_f64(d)).clamp(lo, hi);
+            acc += gain_from_f64(g) as i64 * zone as i64;
+        }
+        q54_to_signal_floor(acc)
+    }
+
     proptest! {
+        /// The segment table is the zone-by-zone sum bit for bit: on any valid map (either
+        /// side of the centre, up to the largest normalised threshold) and any input, the
+        /// breakpoints themselves and their neighbours included, and for the map's inverse.
+        #[test]
+        fn the_segment_table_is_the_zone_by_zone_sum_bit_for_bit(
+            centre in -1.0f64..1.0,
+            linear in 0.3f64..3.0,
+            raw in proptest::collection::vec((-1.95f64..1.95, -1.5f64..1.5), 0..=MAX_DEAD_ZONES),
+            zs in proptest::collection::vec(any::<i32>(), 1..40),
+        ) {
+            let m = map(centre, linear, &raw.iter().map(|&(d, g)| (d * 60.0, g)).collect::<HVec<_>>());
+            let m = DeadZoneParams { thresholds: m.thresholds.iter().map(|d| d / 60.0).collect(), ..m };
+            prop_assume!(m.check_fixed_point_range().is_ok());
+            let mut maps = HVec::from([m.clone()]);
+            if let Ok(inv) = m.inverse() {
+                if inv.check_fixed_point_range().is_ok() {
+                    maps.push(inv);
+                }
+            }
+            for n in &maps {
+                let bank = DeadZoneBank::from_normalized(n).unwrap();
+                let centre = signal_from_f64(n.centre);
+                let mut inputs: HVec<i32> = zs.clone();
+                for &d in &n.thresholds {
+                    let at = centre.saturating_add(signal_from_f64(d));
+                    inputs.extend([at.saturating_sub(1), at, at.saturating_add(1)]);
+                }
+                inputs.extend([i32::MIN, i32::MAX, centre, -SIGNAL_ONE, SIGNAL_ONE - 1]);
+                for z in inputs {
+                    prop_assert_eq!(bank.apply(z), zone_by_zone(n, z), "z = {}", z);
+                }
+            }
+        }
+
         /// The closed-form inverse map agrees with a bisection on the forward map.
         #[test]
         fn the_closed_form_inverse_is_the_numeric_inverse(

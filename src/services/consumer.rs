@@ -77,13 +77,12 @@ impl ServicesLoad {
         if !self.is_listening() {
             return 0;
         }
-        let batch = BATCH;
         // The most frames (samples) a batch holds at decimation `d`: one every `d` ticks.
-        let per_batch = |d: Option<u16>| d.map_or(0, |d| batch.div_ceil(u32::from(d.max(1))));
-        (SERVICES_BASE_CYCLES * batch
+        let per_batch = |d: Option<u16>| d.map_or(0, |d| BATCH.div_ceil(u32::from(d.max(1))));
+        (SERVICES_BASE_CYCLES * BATCH
             + CAPTURE_FRAME_CYCLES * per_batch(self.capture_decimation)
             + TELEMETRY_SAMPLE_CYCLES * per_batch(self.telemetry_decimation))
-        .div_ceil(batch)
+        .div_ceil(BATCH)
     }
 }
 

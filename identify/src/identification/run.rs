@@ -116,7 +116,7 @@ pub fn candidates(options: &IdentifyOptions, creep: Option<bool>) -> Vec<Identif
 /// ```
 /// use twinstack_identify::identification::run::runs_at;
 /// use twinstack::config::settings::{representative_gpi, Settings};
-/// let gpi = representative_gpi(16).unwrap();
+/// let gpi = representative_gpi(32).unwrap();
 /// let s = Settings {
 ///     compensator: Some(gpi.clone()),
 ///     observer: Some(gpi),
