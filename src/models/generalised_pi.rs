@@ -387,7 +387,8 @@ pub struct GeneralisedPi {
 }
 
 impl GeneralisedPi {
-    /// Play operators and dead zones the tick runs (the size that sets its cost).
+    /// Play operators and dead zones the tick runs (the operators set its cost; the map costs
+    /// the same at any number of dead zones).
     pub fn size(&self) -> (usize, usize) {
         (self.pi.operators(), self.map.dead_zones())
     }
@@ -456,7 +457,8 @@ pub struct InverseGeneralisedPi {
 }
 
 impl InverseGeneralisedPi {
-    /// Play operators and dead zones the tick runs (the size that sets its cost).
+    /// Play operators and dead zones the tick runs (the operators set its cost; the map costs
+    /// the same at any number of dead zones).
     pub fn size(&self) -> (usize, usize) {
         (self.pi.operators(), self.map.dead_zones())
     }
@@ -545,7 +547,7 @@ impl InverseGeneralisedPi {
 pub const DEAD_ZONE_MAP_CYCLES: u32 = 60;
 
 /// A generalised P–I of `operators` operators in the tick (its map costs the same at any size).
-fn gpi_cycles((operators, _dead_zones): (usize, usize)) -> u32 {
+fn gpi_cycles(operators: usize) -> u32 {
     bank_cycles(operators) + DEAD_ZONE_MAP_CYCLES
 }
 
@@ -558,7 +560,7 @@ impl Hysteresis for GeneralisedPi {
     }
 
     fn cycles(&self) -> u32 {
-        gpi_cycles(self.size())
+        gpi_cycles(self.pi.operators())
     }
 }
 
@@ -579,7 +581,7 @@ impl Hysteresis for InverseGeneralisedPi {
     }
 
     fn cycles(&self) -> u32 {
-        gpi_cycles(self.size())
+        gpi_cycles(self.pi.operators())
     }
 }
 
