@@ -33,6 +33,7 @@ use crate::dual_stage::{CoarseCommand, CoarseLimits, CoarseRefusal, CoarseStatus
 use crate::refusal::{Field, Refusal, Rule};
 use crate::services::consumer::Services;
 use crate::services::learning::{self, LearnState, LearnTask, Service};
+use crate::services::observer::ObserverBelow;
 use crate::services::recorder::{in_pieces, RecordError, SampleStore};
 use crate::services::snapshot::{SnapshotConsumer, SnapshotRing};
 use crate::services::telemetry::{self, TelemetryPacker, TelemetrySample};
@@ -414,11 +415,12 @@ impl<S: RecordStorage> CommandHandler<S> {
         // A capture or a record that has completed stops the tick's snapshots.
         settle_listening(control);
         let t = control.lock(|c| c.telemetry());
-        let (recording, recorded, lost) = control.peek_services(|s| {
+        let (recording, recorded, lost, below) = control.peek_services(|s| {
             (
                 s.recorder().is_capturing(),
                 s.recorder().recorded(),
                 s.lost(),
+                s.observer().map(|o| o.estimate()),
             )
         });
         let mut flags = match self.settings.mode {
@@ -453,7 +455,9 @@ impl<S: RecordStorage> CommandHandler<S> {
             crc_errors: self.crc_errors,
             frame_errors: self.frame_errors,
             limit_hits: t.limit_hits,
-            estimate: t.estimate,
+            // The observer runs below the tick: its estimate as of the services' last batch
+            // (up to a batch behind the tick); 0 without one.
+            estimate: below.unwrap_or(0),
             next_seq: self.next_seq,
             tick_rate_hz: self.hardware.control_rate_hz as u32,
             recorded,
@@ -503,6 +507,14 @@ impl<S: RecordStorage> CommandHandler<S> {
         };
         // The heavy part, outside any lock: the tick runs meanwhile.
         spare.prepare(config, stacks);
+        let observer = ObserverBelow::prepare(&config, stacks);
+        // The observer runs below the tick: the services take it over at the new controller's
+        // first snapshot, staged first, the tick handing them its snapshots.
+        let below = observer.is_some();
+        control.lock_services(|s| s.stage_observer(observer));
+        if below {
+            control.lock(|c| c.listen(true));
+        }
         // O(1) under the lock: the stacks' voltages as they are now carry over.
         control.lock(|c| c.post(spare));
         self.settings = settings;
@@ -1144,6 +1156,23 @@ where
         services,
         ..control.lock(|c| c.beside())
     }
+}
+
+/// Starts the services beside the configuration the tick runs from power-up (`config`, its
+/// controller prepared at the drive's safe state, as [`Controller::new`] prepares it): its
+/// observer below the tick, if it has one, in force at once, and the tick handing the
+/// services its snapshots if so. The board, the simulator and the tests boot through it.
+pub fn start_services<C, B>(
+    config: &ControlConfig,
+    control: &mut ControlLoop<C>,
+    services: &mut Services<B>,
+) where
+    C: DerefMut<Target = Controller>,
+    B: SampleStore,
+{
+    let observer = ObserverBelow::prepare(config, config.drive.safe_stacks());
+    control.listen(observer.is_some());
+    services.start_observer(observer);
 }
 
 /// Stops the tick's snapshots once the services are idle (no capture or record armed or

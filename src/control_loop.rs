@@ -100,8 +100,6 @@ pub struct Telemetry {
     pub overruns: u32,
     /// Ticks a range or slew limit clipped the drive.
     pub limit_hits: u32,
-    /// The observer's last estimate, Q2.30.
-    pub estimate: i32,
     /// Whether the stream consumes the queue.
     pub streaming: bool,
     /// Whether the waveform generator runs.
@@ -141,7 +139,6 @@ pub struct ControlLoop<C> {
     waveform: bool,
     overruns: u32,
     limit_hits: u32,
-    estimate: i32,
     control_rate_hz: u32,
     /// The recorder's trigger events since the last snapshot (a start commanded between two
     /// ticks, the external edge seen in this one): they travel with the next snapshot.
@@ -210,7 +207,6 @@ where
             waveform: false,
             overruns: 0,
             limit_hits: 0,
-            estimate: 0,
             control_rate_hz,
             events: Events::NONE,
             seq: 0,
@@ -285,13 +281,18 @@ where
         if report.flags.0 & (TickFlags::RANGE_LIMIT | TickFlags::SLEW_LIMIT) != 0 {
             self.limit_hits = self.limit_hits.wrapping_add(1);
         }
-        self.estimate = report.estimate;
         // While the services listen, one snapshot for them (the recorder, telemetry's tap):
         // a fixed-size copy. A full ring refuses it; the sequence number's gap tells the
         // consumer ([`crate::services::consumer::Services::consume`]).
         if self.listening {
             let setpoint = self.controller.setpoint();
-            let _ = snapshots.enqueue(Snapshot::of(self.seq, setpoint, &report, self.events));
+            let _ = snapshots.enqueue(Snapshot::of(
+                self.seq,
+                setpoint,
+                &report,
+                self.events,
+                self.swaps as u8,
+            ));
             self.seq = self.seq.wrapping_add(1);
         }
         self.events = Events::NONE;
@@ -649,7 +650,6 @@ where
             underruns: c.underruns.wrapping_add(self.stream.ramp_underruns()),
             overruns: self.overruns,
             limit_hits: self.limit_hits,
-            estimate: self.estimate,
             streaming: self.stream.is_running() && !self.waveform,
             waveform: self.waveform,
             scanning: self.is_scanning(),

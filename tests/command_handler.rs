@@ -7,7 +7,7 @@
 use core::convert::Infallible;
 
 use twinstack::board::{AdcCode, DacCode, DualDac, Hardware, SensorAdc};
-use twinstack::command_handler::{CommandHandler, Parts};
+use twinstack::command_handler::{start_services, CommandHandler, Parts};
 use twinstack::config::param_store::{
     self, RamStorage, ReadOnlyStorage, RecordStorage, StorageError, StoredRecord, MAX_RECORD,
 };
@@ -88,7 +88,7 @@ fn board_on<S: RecordStorage>(storage: S, hw: Hardware) -> Board<S> {
     let (record, source) = param_store::load_record(storage.read(), &hw);
     let (settings, config, defaults) =
         param_store::boot(record, source, &hw).expect("the defaults hold on the driver board");
-    Board {
+    let mut b = Board {
         handler: CommandHandler::new(hw, settings, defaults, storage),
         control: ControlLoop::new(
             Box::new(Controller::new(config)),
@@ -102,7 +102,9 @@ fn board_on<S: RecordStorage>(storage: S, hw: Hardware) -> Board<S> {
         dac: Dac(DacCode(0), DacCode(0)),
         adc: Adc(2048),
         swaps_before: 0,
-    }
+    };
+    start_services(&config, &mut b.control, &mut b.services);
+    b
 }
 
 fn board_with<S: RecordStorage>(storage: S) -> Board<S> {
@@ -1818,12 +1820,15 @@ fn the_telemetry_packer_is_woken_by_the_queue_s_fill_level_not_per_tick() {
 /// The services (recorder, telemetry) are charged beside the configuration while they listen,
 /// by what they run ([`twinstack::config::tick_budget::ServicesLoad`]): at a rate whose period
 /// holds the closed-loop configuration but not a capture (or telemetry) beside it, the arming
-/// is refused with the cycles it needs and has, and the tick hands the services nothing. At
-/// the test's own rate a capture makes the tick push its snapshots until it completes, and
-/// the next request that looks stops them; telemetry keeps them until it stops.
+/// is refused with the cycles it needs and has, and the tick hands the services nothing more.
+/// Without an observer below the tick, at the test's own rate a capture makes the tick push its
+/// snapshots until it completes, and the next request that looks stops them; telemetry keeps
+/// them until it stops.
 #[test]
 fn the_services_are_charged_while_they_listen_and_refused_where_they_would_overrun() {
-    use twinstack::config::tick_budget::{available_cycles, ServicesLoad};
+    use twinstack::config::tick_budget::{
+        available_cycles, pipeline_cycles, worst_case_cycles, Beside, ServicesLoad,
+    };
     use twinstack::services::recorder::Trigger;
     let capture = CaptureRequest {
         signals: Channel::Left.bit() | Channel::Sensor.bit(),
@@ -1838,17 +1843,27 @@ fn the_services_are_charged_while_they_listen_and_refused_where_they_would_overr
     });
     let capture_load = ServicesLoad {
         capture_decimation: Some(1),
-        telemetry_decimation: None,
+        ..ServicesLoad::default()
     };
     let telemetry_load = ServicesLoad {
-        capture_decimation: None,
         telemetry_decimation: Some(10),
+        ..ServicesLoad::default()
+    };
+    // What each adds to the configuration's pipeline (its observer below the tick already
+    // has the services listening: their base share is charged once).
+    let config = closed().build(&hardware()).unwrap();
+    let adds = |load: ServicesLoad| {
+        let beside = Beside {
+            services: load,
+            ..Beside::default()
+        };
+        pipeline_cycles(&config, beside) - worst_case_cycles(&config)
     };
     for (request, load) in [
         (Request::Capture(capture), capture_load),
         (telemetry.clone(), telemetry_load),
     ] {
-        let (mut b, rate, fits) = closed_loop_board_short_of(load.cycles());
+        let (mut b, rate, fits) = closed_loop_board_short_of(adds(load));
         match b.handle(request.clone()) {
             Response::Nack {
                 reason: NackReason::Refused(r),
@@ -1857,7 +1872,7 @@ fn the_services_are_charged_while_they_listen_and_refused_where_they_would_overr
                 (
                     Field::Workload,
                     Rule::TickOverrun {
-                        needs: fits + load.cycles(),
+                        needs: fits + adds(load),
                         available: available_cycles(rate)
                     }
                 ),
@@ -1865,7 +1880,8 @@ fn the_services_are_charged_while_they_listen_and_refused_where_they_would_overr
             ),
             r => panic!("{request:?} was not refused: {r:?}"),
         }
-        assert!(!b.control.is_listening());
+        assert!(!b.services.recorder().is_capturing());
+        assert!(!b.services.telemetry().is_running());
         // A request the checks refuse first (no signal) is refused for that, not the budget.
         match b.handle(Request::Capture(CaptureRequest {
             signals: 0,
@@ -1878,8 +1894,19 @@ fn the_services_are_charged_while_they_listen_and_refused_where_they_would_overr
         }
     }
 
-    let mut b = closed_board();
-    assert!(!b.control.is_listening(), "nothing listens at boot");
+    // The closed loop without an observer: nothing below the tick until a capture is armed.
+    let mut b = board();
+    let blind = Settings {
+        observer: None,
+        ..closed()
+    };
+    assert!(matches!(
+        b.handle(Request::LoadParams(blind)),
+        Response::Ack { .. }
+    ));
+    b.ticks(1);
+    let _ = b.status();
+    assert!(!b.control.is_listening(), "nothing listens");
     b.ticks(16);
     assert!(b.snapshots.is_empty(), "no snapshot while nothing listens");
     assert!(matches!(
@@ -1905,4 +1932,43 @@ fn the_services_are_charged_while_they_listen_and_refused_where_they_would_overr
         Response::Ack { .. }
     ));
     assert!(!b.control.is_listening());
+}
+
+/// The observer runs below the tick: the services listen from the load that brings one in
+/// force on, the estimate the status reports is theirs (the tick's report carries none), and a
+/// load without an observer stops them once its first tick has been served.
+#[test]
+fn the_observer_below_the_tick_listens_from_its_load_until_a_load_without_one() {
+    let mut b = board();
+    assert!(!b.control.is_listening(), "the defaults have no observer");
+    assert!(matches!(
+        b.handle(Request::LoadParams(closed())),
+        Response::Ack { .. }
+    ));
+    assert!(b.control.is_listening(), "listening before the swap's tick");
+    b.adc = Adc(40_000);
+    b.ticks(64);
+    let _ = b.status();
+    assert!(b.control.is_listening());
+    let below = b
+        .services
+        .observer()
+        .expect("the observer is below the tick")
+        .estimate();
+    assert_ne!(below, 0);
+    assert_eq!(b.status().estimate, below);
+    // The same settings without the observer: nothing below the tick any more.
+    let bare = Settings {
+        observer: None,
+        ..closed()
+    };
+    assert!(matches!(
+        b.handle(Request::LoadParams(bare)),
+        Response::Ack { .. }
+    ));
+    b.ticks(8);
+    let s = b.status();
+    assert!(b.services.observer().is_none());
+    assert!(!b.control.is_listening());
+    assert_eq!(s.estimate, 0);
 }

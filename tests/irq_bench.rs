@@ -740,6 +740,7 @@ fn the_whole_interrupt_in_every_scenario() {
                 *last = ServicesLoad {
                     capture_decimation: d.next(),
                     telemetry_decimation: d.next(),
+                    ..ServicesLoad::default()
                 };
             }
         }
@@ -783,19 +784,53 @@ fn the_whole_interrupt_in_every_scenario() {
     );
     // Segment 0 is the boot (defaults: bypass, no model); the last follows the final marker.
     assert!(segments.len() > names.len(), "{} segments", segments.len());
-    // The tick budget's prediction for each configuration, computed on the target.
-    let budgets: HashMap<&str, u64> = stdout
+    // The tick budget's prediction for each configuration, computed on the target: the
+    // interrupt's, what its observer below the tick costs the services a snapshot, and the
+    // pipeline's with every feature beside it.
+    let predictions: HashMap<&str, [u64; 3]> = stdout
         .lines()
         .filter_map(|l| l.strip_prefix("BUDGET "))
-        .filter_map(|l| l.rsplit_once(' '))
-        .map(|(name, c)| (name, c.parse().expect("BUDGET <name> <cycles>")))
+        .map(|l| {
+            let mut w = l.split(' ');
+            let name = w.next().unwrap_or_default();
+            let n: Vec<u64> = w
+                .map(|c| {
+                    c.parse()
+                        .expect("BUDGET <name> <interrupt> <observer> <every feature>")
+                })
+                .collect();
+            (name, [n[0], n[1], n[2]])
+        })
         .collect();
+    // The interrupt's prediction alone, and each configuration's services load with its
+    // observer below the tick (what the scenario's capture and telemetry add is per row).
+    let budgets: HashMap<&str, u64> = predictions.iter().map(|(n, p)| (*n, p[0])).collect();
+    let observing = |config: &str, load: ServicesLoad| {
+        load.observing(predictions.get(config).map_or(0, |p| p[1] as u32))
+    };
     assert!(
         !stdout.contains("BUDGET-REFUSED"),
         "the budget refused a benched configuration at the bench's 40 kHz: {stdout}"
     );
     assert_eq!(budgets.len(), 7, "every configuration has a prediction");
-    figures["budgets"] = serde_json::json!(budgets);
+    // What `twinstack budget` prints for each configuration: the pipeline's per tick alone
+    // (the interrupt and, with an observer below the tick, the services serving it), and with
+    // every feature beside it.
+    let alone: HashMap<&str, u64> = predictions
+        .keys()
+        .map(|n| {
+            (
+                *n,
+                budgets[n] + u64::from(observing(n, ServicesLoad::default()).cycles()),
+            )
+        })
+        .collect();
+    figures["budgets"] = serde_json::json!(alone);
+    figures["interrupt_budgets"] = serde_json::json!(budgets);
+    figures["every_feature_budgets"] = serde_json::json!(predictions
+        .iter()
+        .map(|(n, p)| (*n, p[2]))
+        .collect::<HashMap<_, _>>());
     let mut figure_rows = Vec::new();
 
     println!();
@@ -868,7 +903,7 @@ fn the_whole_interrupt_in_every_scenario() {
             // charged beside the configuration as the command handler charges them, by their
             // decimations (the boot row has no load: `row` 0).
             let load = row.checked_sub(1).map_or(ServicesLoad::WORST, |i| loads[i]);
-            let services = u64::from(load.cycles());
+            let services = u64::from(observing(config, load).cycles());
             let interrupt_bound = if name.ends_with("/load") {
                 // The previous configuration's last ticks and this one's first: no tick above
                 // the dearest prediction.
@@ -919,6 +954,28 @@ fn the_whole_interrupt_in_every_scenario() {
                     "{name}: the worst tick takes {max_c5} cycles (5 WS), more than the tick budget's {interrupt_bound} for the interrupt: raise src/config/tick_budget.rs's coefficients"
                 ));
             }
+            // A load's row holds the previous configuration's ticks and this one's, a
+            // reload's the two configurations': their dearer services.
+            let services = if name.ends_with("/load") {
+                predictions
+                    .keys()
+                    .map(|c| u64::from(observing(c, load).cycles()))
+                    .max()
+                    .unwrap_or(services)
+            } else if name.contains("reload") {
+                predictions
+                    .keys()
+                    .filter(|c| {
+                        **c == config
+                            || **c == "inverse-duhem+duhem-observer+pi+drift"
+                            || **c == "inverse-pi16+pi16-observer+pi+drift"
+                    })
+                    .map(|c| u64::from(observing(c, load).cycles()))
+                    .max()
+                    .unwrap_or(services)
+            } else {
+                services
+            };
             let bound = interrupt_bound + services;
             if pipeline > bound {
                 failures.push(format!(
@@ -953,7 +1010,7 @@ fn the_whole_interrupt_in_every_scenario() {
     for (config, t, row) in &by_config {
         // What the budget predicts with the services listening, as that scenario ran them.
         let load = row.checked_sub(1).map_or(ServicesLoad::WORST, |i| loads[i]);
-        let predicted = budgets[config.as_str()] + u64::from(load.cycles());
+        let predicted = budgets[config.as_str()] + u64::from(observing(config, load).cycles());
         let ratio = predicted as f64 / t.cycles_ws5 as f64;
         figure_parts.push(serde_json::json!({
             "config": config,

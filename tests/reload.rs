@@ -3,12 +3,15 @@
 //! accepted settings and random running states — a setpoint stream of jumps and ramps, random
 //! sensor readings and failed reads, mode switches — no DAC step ever exceeds the slew limit in
 //! volts (the stricter of the old and the new one while a reload or switch settles), and each
-//! stack moves only towards the new voltage limits until it is inside them, then stays there.
+//! stack moves only towards the new voltage limits until it is inside them, then stays there;
+//! and where the settings have a sensor, the observer the services run below the tick gives,
+//! tick for tick, the estimate and drift flags of one prepared with each load and run on the
+//! tick's report from the tick its controller took over (the reload's hand-over in band).
 
 use proptest::prelude::*;
 use twinstack::board::fakes::{FixedAdc, RecordingDac};
 use twinstack::board::{AdcCode, DacCode, Hardware};
-use twinstack::command_handler::{CommandHandler, Parts};
+use twinstack::command_handler::{start_services, CommandHandler, Parts};
 use twinstack::config::param_store::RamStorage;
 use twinstack::config::settings::{
     pi_model, FeedbackSettings, Mode, Model, SensorSettings, Settings,
@@ -20,6 +23,7 @@ use twinstack::models::generalised_pi::{DeadZoneParams, GpiParams};
 use twinstack::models::params::DuhemParams;
 use twinstack::protocol::messages::{Request, Response, SetpointBatch, StreamControl};
 use twinstack::services::consumer::Services;
+use twinstack::services::observer::ObserverBelow;
 use twinstack::services::snapshot::SnapshotRing;
 use twinstack::services::telemetry::TelemetryQueue;
 use twinstack::Scaling;
@@ -187,6 +191,13 @@ proptest! {
             RATE as u32,
         );
         let mut services = Services::new(vec![0i16; 2048]);
+        // At power-up, as the firmware starts: the observer below the tick in force at once.
+        start_services(&config, &mut control, &mut services);
+        // The reference: each load's observer, prepared at the stacks of its load, run on the
+        // tick's report from the tick its controller takes over.
+        let mut shadow = ObserverBelow::prepare(&config, config.drive.safe_stacks());
+        let mut shadow_pending: Option<Option<ObserverBelow>> = None;
+        let mut shadow_drifts = 0u32;
         let snapshots: &'static mut SnapshotRing = Box::leak(Box::new(SnapshotRing::new()));
         let telemetry: &'static mut TelemetryQueue = Box::leak(Box::new(TelemetryQueue::new()));
         // The handler's two locks: the loop, and the services (the snapshots served first).
@@ -219,7 +230,22 @@ proptest! {
                             before = core::mem::replace(&mut now, next);
                             settled_inside = [false, false];
                         }
+                        if let Some(next) = shadow_pending.take() {
+                            shadow = next;
+                        }
                         let report = control.tick(&mut consumer, &mut snapshots.split().0, &mut adc, &mut dac);
+                        let mut expected = report;
+                        if let Some(o) = shadow.as_mut() {
+                            o.observe(&mut expected);
+                            shadow_drifts += u32::from(expected.flags.contains(TickFlags::DRIFT));
+                        }
+                        services.consume(&mut snapshots.split().1, &mut telemetry.split().0);
+                        prop_assert_eq!(
+                            services.observer().map(|o| (o.estimate(), o.drift())),
+                            shadow.as_ref().map(|o| (o.estimate(), o.drift())),
+                            "the observer below the tick"
+                        );
+                        prop_assert_eq!(services.drifts(), shadow_drifts);
                         let volts = (dac.left.0 as f64 * VOLTS_PER_CODE, dac.right.0 as f64 * VOLTS_PER_CODE);
                         let slew = |s: &Settings| s.drive.slew_rate / RATE;
                         let allowed = if report.flags.contains(TickFlags::SETTLING) {
@@ -252,6 +278,8 @@ proptest! {
                     }
                 }
                 Event::Load(s) => {
+                    let stacks = control.stacks();
+                    shadow_pending = Some(ObserverBelow::prepare(&s.build(&HW).unwrap(), stacks));
                     let r = handler.handle(Request::LoadParams((*s).clone()), &mut producer, locks!());
                     prop_assert!(matches!(r, Response::Ack { .. }), "an accepted settings set is acked: {r:?}");
                     pending = Some(*s);

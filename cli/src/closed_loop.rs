@@ -32,6 +32,7 @@ use twinstack::control::drive::{Configuration, DriveSettings, SafeState};
 use twinstack::control::notch::NotchDesign;
 use twinstack::control::{ControlConfig, Controller, TickFlags};
 use twinstack::fixed_point::{signal_from_f64, signal_to_f64};
+use twinstack::services::observer::Observed;
 use twinstack::sources::waveform::{Shape, WaveformGenerator};
 use twinstack::Scaling;
 use twinstack_identify::identification::{
@@ -124,10 +125,11 @@ pub struct TrackingRow {
     pub max_pct: f64,
     /// RMS tracking error, % of the commanded stroke.
     pub rms_pct: f64,
-    /// Ticks the drift check flagged (the observer runs in every configuration).
-    pub drift_ticks: u64,
+    /// Ticks the drift check flagged (`None`: no observer at this rate, so no check; see
+    /// [`settings`]).
+    pub drift_ticks: Option<u64>,
     /// Of those, the ticks after the first [`START_UP_S`] of the run.
-    pub drift_ticks_after_start: u64,
+    pub drift_ticks_after_start: Option<u64>,
 }
 
 /// The start of a run, after boot, whose drift flags [`TrackingRow::drift_ticks_after_start`]
@@ -288,7 +290,9 @@ pub fn model_of(model: &StageModel) -> Model {
 }
 
 /// The settings for `c` with `model` as the compensator (except feedback only) and as the
-/// observer (always: the drift check runs in every configuration).
+/// observer where the rate leaves the pipeline time for it (the observer runs below the tick;
+/// where it does not fit, the model runs as the compensator only and there is no drift
+/// check, as `calibrate` loads it: the compensator's size comes first).
 pub fn settings(
     rate: f64,
     model: &StageModel,
@@ -297,6 +301,25 @@ pub fn settings(
     notch: bool,
 ) -> Settings {
     let m = model_of(model);
+    let with = settings_observed(rate, model, sensor, c, notch, m.clone());
+    if with.build(&hardware(rate)).is_ok() {
+        with
+    } else {
+        Settings {
+            observer: None,
+            ..with
+        }
+    }
+}
+
+fn settings_observed(
+    rate: f64,
+    model: &StageModel,
+    sensor: SensorSettings,
+    c: Configuration4,
+    notch: bool,
+    m: Model,
+) -> Settings {
     Settings {
         ranges: model.scaling,
         compensator: (c != Configuration4::Feedback).then(|| m.clone()),
@@ -343,7 +366,8 @@ fn simulate(
     setpoints: impl Iterator<Item = i32>,
 ) -> Result<Run> {
     let mut board = board(rate, options.sensor_noise_um)?;
-    let mut controller = Controller::new(config);
+    // The tick and, with the sensor, the observer and its drift check below it.
+    let mut controller = Observed::new(config);
     let mut run = Run {
         desired: Vec::new(),
         x: Vec::new(),
@@ -362,7 +386,7 @@ fn simulate(
         run.desired.push(scaling.norm_to_output(signal_to_f64(sp)));
         run.x.push(board.plant().stage_um());
     }
-    let c = controller.counters();
+    let c = controller.controller.counters();
     if c.adc_errors + c.dac_errors > 0 {
         return Err(anyhow!("converter errors in the simulated run: {c:?}"));
     }
@@ -370,16 +394,17 @@ fn simulate(
 }
 
 /// The P–I size the study fits at `rate`: 16 operators, or the most (in pairs) the tick budget
-/// admits at that rate as the study loads them — compensator and observer, the sensor with its
-/// drift check, PI with the notch ([`twinstack::config::tick_budget`]).
+/// admits at that rate as the study loads them — the compensator, the sensor, PI with the
+/// notch ([`twinstack::config::tick_budget`]; the observer only where it fits beside them,
+/// [`settings`]).
 pub fn operators_at(rate: f64) -> usize {
     let admitted = |n: usize| {
         let Ok(pi) = twinstack::config::settings::representative_pi(n) else {
             return false;
         };
         let settings = Settings {
-            compensator: Some(pi.clone()),
-            observer: Some(pi),
+            compensator: Some(pi),
+            observer: None,
             sensor: Some(SensorSettings {
                 displacement_at_zero: 0.0,
                 displacement_at_full_scale: 70.0,
@@ -478,12 +503,23 @@ pub fn track_with(
 ) -> Result<TrackingRow> {
     let board0 = board(rate, options.sensor_noise_um)?;
     let sensor = sensor_settings(&board0);
-    let config = Settings {
+    // The observer where the tuned feedback leaves it time ([`settings`]).
+    let with = Settings {
         feedback: Some(*feedback),
+        observer: Some(model_of(model)),
         ..settings(rate, model, sensor, c, feedback.notch.is_some())
-    }
-    .build(&hardware(rate))
-    .map_err(|e| anyhow!("settings refused: {e}"))?;
+    };
+    let config = with
+        .build(&hardware(rate))
+        .or_else(|_| {
+            Settings {
+                observer: None,
+                ..with
+            }
+            .build(&hardware(rate))
+        })
+        .map_err(|e| anyhow!("settings refused: {e}"))?;
+    let observed = !matches!(config.observer, twinstack::control::Observer::None);
     let (frequency, cycles, skip, label) = match shape {
         Shape::Triangle => (100.0, options.triangle_cycles, 1, "100 Hz triangle"),
         Shape::Sine => (750.0, options.sine_cycles, 2, "750 Hz sine"),
@@ -518,8 +554,8 @@ pub fn track_with(
         configuration: c,
         max_pct: fig.max_pct,
         rms_pct: fig.rms_pct,
-        drift_ticks: run.drift_ticks,
-        drift_ticks_after_start: run.drift_ticks_after_start,
+        drift_ticks: observed.then_some(run.drift_ticks),
+        drift_ticks_after_start: observed.then_some(run.drift_ticks_after_start),
     })
 }
 
@@ -696,7 +732,7 @@ pub fn print(report: &ClosedLoopReport, out: &mut impl std::io::Write) -> std::i
             r.configuration.label(),
             r.max_pct,
             r.rms_pct,
-            r.drift_ticks
+            r.drift_ticks.map_or("–".to_string(), |n| n.to_string())
         )?;
     }
     writeln!(

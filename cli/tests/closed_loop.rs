@@ -14,6 +14,7 @@ use twinstack::config::settings::{FeedbackSettings, Mode, Model, SensorSettings,
 use twinstack::control::drive::{Configuration, DriveSettings, SafeState};
 use twinstack::control::{ControlConfig, Controller};
 use twinstack::fixed_point::signal_from_f64;
+use twinstack::services::observer::Observed;
 use twinstack::{DuhemParams, Scaling};
 
 /// Output range of the controller's model, µm (normalised setpoint 1.0 = 40 µm).
@@ -184,8 +185,12 @@ fn feedforward_plus_feedback_beats_either_alone_on_every_row() {
             assert!(r.rms_pct < none.rms_pct, "{text}");
         }
         // The identified model agrees with the stage: no drift flag in any run once the
-        // first millisecond after boot is over (closed_loop::START_UP_S).
-        assert_eq!(r.drift_ticks_after_start, 0, "{text}");
+        // first millisecond after boot is over (closed_loop::START_UP_S), where the rate
+        // leaves the observer time (at 50 kHz it always does).
+        assert!(r.drift_ticks_after_start.unwrap_or(0) == 0, "{text}");
+        if r.rate < 60e3 {
+            assert_eq!(r.drift_ticks_after_start, Some(0), "{text}");
+        }
     }
 }
 
@@ -235,15 +240,6 @@ fn study_settings(
 /// [`study_settings`] built on the study's board.
 fn build(settings: &Settings) -> ControlConfig {
     settings.build(&closed_loop::hardware(RATE)).unwrap()
-}
-
-/// Reloads `config` into `c` as the board does: prepared at the stacks' present voltages in a
-/// spare controller, which then takes over.
-fn reload(c: &mut Controller, config: ControlConfig) {
-    let mut next = c.clone();
-    next.prepare(config, c.stacks());
-    next.take_over(c);
-    *c = next;
 }
 
 /// Holds a setpoint the lowered stack limit cannot reach for 20 ms (the drive sits at the
@@ -384,7 +380,9 @@ fn drift_is_flagged_for_a_wrong_model_and_clears_for_the_right_one() {
         let um = mid + amp * (2.0 * std::f64::consts::PI * 100.0 * k as f64 / 50_000.0).sin();
         signal_from_f64(s.output_to_norm(um))
     };
-    let mut c = Controller::new(build(&right));
+    // The drift check runs below the tick, with the observer: the tick and the services in
+    // one call.
+    let mut c = Observed::new(build(&right));
     let mut flags = 0;
     for k in 0..5000 {
         flags += c
@@ -393,7 +391,7 @@ fn drift_is_flagged_for_a_wrong_model_and_clears_for_the_right_one() {
             .contains(TickFlags::DRIFT) as u32;
     }
     assert_eq!(flags, 0, "the right model is not flagged");
-    reload(&mut c, build(&wrong));
+    c.reload(build(&wrong));
     let mut flags = 0;
     for k in 5000..10_000 {
         flags += c
@@ -405,21 +403,19 @@ fn drift_is_flagged_for_a_wrong_model_and_clears_for_the_right_one() {
         flags > 1000,
         "the wrong model is flagged ({flags} of 5000 ticks)"
     );
-    reload(&mut c, build(&right));
-    let (mut last_flag, mut flagged) = (0, 0);
+    c.reload(build(&right));
+    let mut last_flag = 0;
     for k in 10_000..15_000 {
         if c.tick_board(Some(sp(k)), &mut board)
             .flags
             .contains(TickFlags::DRIFT)
         {
             last_flag = k;
-            flagged += 1;
         }
     }
     assert!(
         last_flag < 10_500,
         "the flag clears (last at tick {last_flag})"
     );
-    // Each controller counts its own ticks (the control loop totals them across reloads).
-    assert_eq!(c.counters().drifts, flagged);
+    assert!(!c.observer.as_ref().unwrap().is_drifting());
 }

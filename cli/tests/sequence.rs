@@ -30,7 +30,7 @@ fn board(camera: Option<CameraConfig>, mode: Mode) -> Client<SimDevice> {
 }
 
 /// The paper's stage in open loop without a sensor: the settle window is checked against
-/// the observer's estimate (the compensator's model run forward on the applied drive).
+/// the setpoint in force (the observer's estimate is computed below the tick).
 fn board_without_sensor(camera: Option<CameraConfig>) -> Client<SimDevice> {
     let mut settings = SimDeviceConfig::paper_settings(Mode::OpenLoop);
     settings.sensor = None;

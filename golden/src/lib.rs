@@ -25,7 +25,8 @@ pub use recipe::{Recipe, RecipeError, MAX_RECIPE};
 
 use crc::{Crc, Digest, CRC_32_ISO_HDLC};
 use twinstack::board::{AdcCode, DacCode, DualDac, SensorAdc};
-use twinstack::control::{ControlConfig, Controller};
+use twinstack::control::ControlConfig;
+use twinstack::services::observer::Observed;
 
 /// The CRC every digest of this module uses: CRC-32/ISO-HDLC (as zlib).
 pub const CRC32: Crc<u32> = Crc::<u32>::new(&CRC_32_ISO_HDLC);
@@ -97,9 +98,11 @@ impl DualDac for ReplayDac {
     }
 }
 
-/// One tick of `controller` on `input`: [`Controller::tick`] with the replay's ADC and DAC.
+/// One tick of `controller` on `input`: [`Observed::tick`] (the tick, and the observer below
+/// it where the configuration has a sensor, as the board's services run it) with the
+/// replay's ADC and DAC.
 #[inline]
-pub fn run_tick(controller: &mut Controller, input: &TickInput) -> TickOutput {
+pub fn run_tick(controller: &mut Observed, input: &TickInput) -> TickOutput {
     let mut adc = ReplayAdc(if input.adc_fails {
         None
     } else {
@@ -169,11 +172,11 @@ impl ReplayResult {
     }
 }
 
-/// Builds the set's configuration, runs every stored input through [`Controller::tick`] from
+/// Builds the set's configuration, runs every stored input through [`Observed::tick`] from
 /// a fresh controller, and compares each output with the stored one.
 pub fn replay(set: &VectorSet<'_>) -> Result<ReplayResult, RecipeError> {
     let config = set.recipe()?.build()?;
-    let mut controller = Controller::new(config);
+    let mut controller = Observed::new(config);
     let mut digest = CRC32.digest();
     let mut first_mismatch = None;
     let mut ticks = 0u32;

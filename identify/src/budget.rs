@@ -17,7 +17,7 @@ use twinstack::config::settings::{
     Model, SensorSettings, Settings,
 };
 use twinstack::config::tick_budget::{
-    available_cycles, highest_rate_hz, worst_case_cycles, Beside, ServicesLoad,
+    available_cycles, highest_rate_hz, pipeline_cycles, worst_case_cycles, Beside,
 };
 use twinstack::models::creep::CreepParams;
 use twinstack::models::generalised_pi::{DeadZoneParams, GpiParams};
@@ -26,7 +26,8 @@ use twinstack::refusal::Refusal;
 /// One prediction: the tick's worst case and the highest rate it is admitted at.
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize)]
 pub struct Prediction {
-    /// The whole interrupt's predicted worst case, cycles at 5 flash wait states.
+    /// The pipeline's predicted worst case per tick (the interrupt and, with an observer below
+    /// the tick or anything captured, the services' share), cycles at 5 flash wait states.
     pub cycles: u32,
     /// The highest control rate at which it is admitted, Hz.
     pub highest_rate_hz: f64,
@@ -66,20 +67,15 @@ pub struct BudgetRow {
 /// What can run beside a configuration at once: the learning, a scan (the analog input is
 /// the other board-side source, and cheaper), the armed trigger input, a capture and
 /// telemetry (the services).
-pub const BESIDE_EVERY_FEATURE: Beside = Beside {
-    learning: true,
-    scanning: true,
-    analog: false,
-    trigger: true,
-    services: ServicesLoad::WORST,
-};
+pub const BESIDE_EVERY_FEATURE: Beside = Beside::EVERY_FEATURE;
 
 impl BudgetRow {
     /// The budget of `settings`, or the refusal the board would send for them at its slowest
     /// rate (a model out of range, a sensor without feedback, …).
     pub fn of(name: &str, settings: &Settings) -> Result<Self, Refusal> {
         let hardware = Hardware::driver_board(f64::from(Hardware::MIN_CONTROL_RATE_HZ));
-        let loaded = worst_case_cycles(&settings.build(&hardware)?);
+        let config = settings.build(&hardware)?;
+        let loaded = worst_case_cycles(&config);
         let without_observer = match settings.observer {
             Some(_) => {
                 let bare = Settings {
@@ -94,7 +90,7 @@ impl BudgetRow {
             name: name.to_string(),
             loaded: Prediction::of(loaded),
             without_observer,
-            every_feature: Prediction::of(loaded + BESIDE_EVERY_FEATURE.cycles()),
+            every_feature: Prediction::of(pipeline_cycles(&config, BESIDE_EVERY_FEATURE)),
         })
     }
 }

@@ -6,9 +6,9 @@ use proptest::prelude::*;
 use std::path::PathBuf;
 use twinstack::board::fakes::{FixedAdc, RecordingDac};
 use twinstack::config::settings::{Hardware, Mode, Model, Settings};
-use twinstack::control::Controller;
 use twinstack::fixed_point::{signal_from_f64 as q, signal_to_f64 as f};
 use twinstack::models::bouc_wen::{BoucWen, InverseBoucWen};
+use twinstack::services::observer::Observed;
 use twinstack::{BoucWenParams, Scaling};
 use twinstack_identify::identification::auto::identify_auto;
 use twinstack_identify::identification::score::score;
@@ -175,8 +175,8 @@ fn inverse_multiplicative_compensation_tracks_and_does_not_ratchet_on_noise() {
     }
 }
 
-/// In the tick, open loop on a Bouc–Wen compensator and the same model as observer: the
-/// observer's estimate follows the setpoint (the compensator shares the observer's state from
+/// In the tick, open loop on a Bouc–Wen compensator and the same model as observer (run below
+/// the tick, on its report: [`Observed`]): the observer's estimate follows the setpoint (the compensator shares the observer's state from
 /// the start, and both see the same drive while the drive limits do not act).
 #[test]
 fn the_tick_runs_the_bouc_wen_compensator_and_observer() {
@@ -189,9 +189,9 @@ fn the_tick_runs_the_bouc_wen_compensator_and_observer() {
         ..Settings::default()
     };
     let hw = Hardware::driver_board(50_000.0);
-    let mut c = Controller::new(s.build(&hw).unwrap());
+    let mut c = Observed::new(s.build(&hw).unwrap());
     let mut dac = RecordingDac::default();
-    let start = c.setpoint();
+    let start = c.controller.setpoint();
     let mut worst = 0.0f64;
     for k in 0..20_000 {
         let sp = f(start) + 0.3 * (k as f64 * 1e-3).sin();

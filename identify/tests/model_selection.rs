@@ -194,7 +194,8 @@ fn auto_checks_the_refit_on_the_whole_window_too() {
     let candidates = candidates();
     let fit_until = candidates[0].fit_until_s;
     let whole = data.t.iter().take_while(|&&t| t < fit_until).count();
-    let admit = |id: &twinstack_identify::identification::Identification| {
+    let admit = |_: &twinstack_identify::identification::IdentifyOptions,
+                 id: &twinstack_identify::identification::Identification| {
         if id.held_out_from >= whole {
             Admission::Refused("refitted on the whole window".into())
         } else {

@@ -1,13 +1,16 @@
-//! The whole control interrupt's worst case, predicted from what a configuration runs, and the
-//! refusal of a configuration that would not fit the control period.
+//! The control pipeline's worst case per tick — the interrupt and what runs below it on its
+//! snapshots — predicted from what a configuration runs, and the refusal of a configuration
+//! that would not fit the control period.
 //!
-//! The tick's cost is set by what it runs: the fixed part (RTIC's entry and exit, the setpoint
-//! stream, the sensor, the feedback, the drift check, the drive stage, the DAC write, the
-//! watchdog) and the models, whose banks grow with their operators, dead zones and creep
-//! modes; beside them, what the user turns on ([`Beside`]: the learning, a scan, the analog
-//! input, the armed trigger input, and the services — the recorder and telemetry, which run
-//! below the tick on its snapshots but take their share of its period while they listen).
-//! [`worst_case_cycles`] adds these up from a built
+//! The interrupt's cost is set by what it runs ([`interrupt_cycles`]): the fixed part (RTIC's
+//! entry and exit, the setpoint stream, the sensor, the feedback, the drive stage, the DAC
+//! write, the watchdog) and the models, whose banks grow with their operators, dead zones and
+//! creep modes (the compensator's). The observer and its drift check run below the tick
+//! ([`observer_below_cycles`]).
+//! Beside them, what the user turns on ([`Beside`]: the learning, a scan, the analog input,
+//! the armed trigger input, and the services — the recorder and telemetry, which run below the
+//! tick on its snapshots but take their share of its period while they listen).
+//! [`pipeline_cycles`] and [`worst_case_cycles`] add these up from a built
 //! [`ControlConfig`], asking each model for its own cost ([`Hysteresis::cycles`], declared
 //! beside the model: [`crate::models::prandtl_ishlinskii::PI_PAIR_CYCLES`] and the like); [`Settings::build`](crate::config::settings::Settings::build) refuses
 //! ([`Field::Workload`], [`Rule::TickOverrun`]) a configuration whose prediction exceeds
@@ -41,19 +44,19 @@ use crate::refusal::{Field, Refusal, Rule};
 /// The core clock the board runs at, Hz.
 pub const SYSCLK_HZ: u32 = 168_000_000;
 
-/// The share of the control period the tick's predicted worst case may take, percent. The
-/// prediction is cache-cold (5 wait states on every taken branch), so 100 % guarantees that no
-/// tick overruns even then; what a tick leaves of its period is for the link's DMA
-/// interrupts, the command handler and the coarse axis, which run below it. A configuration
-/// near the limit leaves them no *guaranteed* time: the Bouc–Wen configuration (inverse,
-/// observer, PI, drift check) at 100 kHz, predicted at 81 % of the period, has its worst tick
-/// measured at 68 % at 0 wait states (the ART cache warm), and the command task lives on what
-/// is left. A user who needs guaranteed link time beside a configuration near the limit runs
-/// at 50 kHz ([`available_cycles`] doubles).
+/// The share of the control period the pipeline's predicted worst case (the interrupt and
+/// the services below it) may take, percent. The prediction is cache-cold (5 wait states on
+/// every taken branch), so 100 % guarantees that no tick overruns even then; what the
+/// pipeline leaves of its period is for the link's DMA interrupts, the command handler and
+/// the coarse axis, which run below it. A configuration near the limit leaves them no
+/// *guaranteed* time: they live on the gap between the cache-cold prediction and the warm
+/// cache (the whole-interrupt bench prints both, `cargo test --profile host-opt --test
+/// irq_bench -- --nocapture`). A user who needs guaranteed link time beside a configuration
+/// near the limit runs at 50 kHz ([`available_cycles`] doubles).
 pub const TICK_SHARE_PERCENT: u32 = 100;
 
 /// Everything in the interrupt that does not grow with a model: RTIC's entry and exit, the
-/// stream, the trigger input and outputs, the sensor read and its drift check, PI feedback,
+/// stream, the trigger input and outputs, the sensor read, PI feedback,
 /// the drive stage, the DAC write, the watchdog, the snapshot's push while the services
 /// listen, the first tick after a reload or a mode
 /// switch (its rebase, up to 50 instructions more), and the firmware's own binding of the
@@ -61,11 +64,12 @@ pub const TICK_SHARE_PERCENT: u32 = 100;
 /// when the learning ends a period, which the whole-interrupt bench runs as the firmware
 /// does). The recorder and telemetry are not in it: they run below the tick, charged as
 /// [`ServicesLoad`] while they listen.
-pub const FIXED_CYCLES: u32 = 953;
+pub const FIXED_CYCLES: u32 = 915;
 
 pub use crate::services::consumer::{
     ServicesLoad, CAPTURE_FRAME_CYCLES, SERVICES_BASE_CYCLES, TELEMETRY_SAMPLE_CYCLES,
 };
+pub use crate::services::observer::OBSERVER_BELOW_CYCLES;
 
 /// The feedback's derivative term.
 pub const DERIVATIVE_CYCLES: u32 = 50;
@@ -135,15 +139,17 @@ pub fn highest_rate_hz(cycles: u32) -> f64 {
     exact * (1.0 - 1e-12)
 }
 
-/// The predicted worst case of the whole interrupt running `config`, cycles at 5 flash wait
-/// states (see the module doc for what it covers and how it is checked).
-pub fn worst_case_cycles(config: &ControlConfig) -> u32 {
-    // Each model declares its own cost; creep runs in series on each side that has a model.
-    let mut cycles = FIXED_CYCLES + config.compensator.cycles() + config.observer.cycles();
-    if let Some(creep) = &config.creep {
-        let sides = u32::from(!matches!(config.compensator, Compensator::None))
-            + u32::from(!matches!(config.observer, Observer::None));
-        cycles += creep.cycles() * sides;
+/// The predicted worst case of the control interrupt itself running `config`, cycles at 5
+/// flash wait states: the fixed part, the compensator (each model declares its own cost)
+/// with its creep in series, the feedback's derivative and notch, input shaping. The observer
+/// runs below the tick ([`observer_below_cycles`]).
+pub fn interrupt_cycles(config: &ControlConfig) -> u32 {
+    let mut cycles = FIXED_CYCLES + config.compensator.cycles();
+    if let (Some(creep), false) = (
+        &config.creep,
+        matches!(config.compensator, Compensator::None),
+    ) {
+        cycles += creep.cycles();
     }
     if let Some(feedback) = &config.feedback {
         if feedback.derivative.is_some() {
@@ -158,6 +164,36 @@ pub fn worst_case_cycles(config: &ControlConfig) -> u32 {
         cycles += NOTCH_CYCLES;
     }
     cycles
+}
+
+/// What `config`'s observer costs the services a snapshot below the tick: its model, its
+/// creep and the drift check ([`OBSERVER_BELOW_CYCLES`]); 0 where it has none.
+pub fn observer_below_cycles(config: &ControlConfig) -> u32 {
+    if matches!(config.observer, Observer::None) {
+        return 0;
+    }
+    config.observer.cycles()
+        + config.creep.as_ref().map_or(0, |c| c.cycles())
+        + OBSERVER_BELOW_CYCLES
+}
+
+/// The whole pipeline's predicted worst case per tick running `config` with `beside`, cycles
+/// at 5 flash wait states: the interrupt ([`interrupt_cycles`]) and what runs beside it
+/// ([`Beside::cycles`]), the services charged with the configuration's observer (and their
+/// base share once, whatever makes them listen).
+pub fn pipeline_cycles(config: &ControlConfig, beside: Beside) -> u32 {
+    let beside = Beside {
+        services: beside.services.observing(observer_below_cycles(config)),
+        ..beside
+    };
+    interrupt_cycles(config) + beside.cycles()
+}
+
+/// The predicted worst case per tick of `config` alone, cycles at 5 flash wait states: the
+/// interrupt and, where it has an observer, the services' share serving it
+/// ([`pipeline_cycles`] with nothing beside).
+pub fn worst_case_cycles(config: &ControlConfig) -> u32 {
+    pipeline_cycles(config, Beside::default())
 }
 
 /// `Ok(())` if `config` fits the tick at `control_rate_hz`, else a [`Rule::TickOverrun`]
@@ -184,6 +220,17 @@ pub struct Beside {
 }
 
 impl Beside {
+    /// Everything that can run beside a configuration at once: the learning, a scan (the
+    /// analog input is the other board-side source, and cheaper), the armed trigger input, a
+    /// capture and telemetry on every tick.
+    pub const EVERY_FEATURE: Self = Self {
+        learning: true,
+        scanning: true,
+        analog: false,
+        trigger: true,
+        services: ServicesLoad::WORST,
+    };
+
     /// Their cost, cycles.
     pub fn cycles(&self) -> u32 {
         u32::from(self.learning) * LEARNING_CYCLES
@@ -200,7 +247,7 @@ pub fn check_with(
     control_rate_hz: f64,
     beside: Beside,
 ) -> Result<(), Refusal> {
-    let needs = worst_case_cycles(config) + beside.cycles();
+    let needs = pipeline_cycles(config, beside);
     let available = available_cycles(control_rate_hz);
     if needs > available {
         return Err(Refusal::new(
@@ -241,6 +288,7 @@ mod tests {
         let load = |c: Option<u16>, t: Option<u16>| ServicesLoad {
             capture_decimation: c,
             telemetry_decimation: t,
+            observer_cycles: 0,
         };
         assert_eq!(load(None, None).cycles(), 0);
         assert_eq!(Beside::default().cycles(), 0);
@@ -304,11 +352,26 @@ mod tests {
             observer: Some(representative_pi(32).unwrap()),
             ..pi32.clone()
         };
+        // The observer runs below the tick: the interrupt is the compensator's, the pipeline
+        // adds the observer's bank, its drift check and the services' base share.
         let both = worst_case_cycles(&build(&with_observer));
+        assert_eq!(interrupt_cycles(&build(&with_observer)), c32);
         assert_eq!(
             both - c32,
-            c32 - bare,
+            c32 - bare + OBSERVER_BELOW_CYCLES + SERVICES_BASE_CYCLES,
             "the observer's bank costs what the inverse's does"
+        );
+        // The services' base share is charged once, whatever else makes them listen.
+        let capturing = Beside {
+            services: ServicesLoad {
+                capture_decimation: Some(1),
+                ..ServicesLoad::default()
+            },
+            ..Beside::default()
+        };
+        assert_eq!(
+            pipeline_cycles(&build(&with_observer), capturing) - both,
+            CAPTURE_FRAME_CYCLES
         );
         let creep = CreepParams::new(&[0.01, 0.1], &[0.02, 0.02]).unwrap();
         let crept = Settings {

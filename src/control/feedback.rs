@@ -1,6 +1,6 @@
 //! Sensor feedback around the feedforward compensator: the position sensor's reading, a PI(D)
 //! controller on the error with anti-windup and an output limit, an optional notch at the stage
-//! resonance, and the drift check of the observer against the sensor.
+//! resonance, and the constants of the drift check of the observer against the sensor.
 //!
 //! Per closed-loop tick ([`Feedback::correction`]):
 //!
@@ -19,10 +19,11 @@
 //! 5. derivative (optional): `kd · d` on the low-passed change of `e` per tick;
 //! 6. the sum, limited to ±`limit`, is the correction added to the feedforward.
 //!
-//! The drift check ([`crate::control::sensor::Sensor::drifted`]) compares the measurement with the observer's
-//! estimate of the same instant (the sensor reading is [`SENSOR_DELAY_TICKS`] ticks old), low
-//! passes the difference over 2^[`DRIFT_FILTER_SHIFT`] ticks and flags it when it exceeds the
-//! drift limit: the model no longer describes the stage.
+//! The drift check ([`crate::services::observer::ObserverBelow::observe`], below the tick)
+//! compares the measurement with the observer's estimate of the same instant (the sensor
+//! reading is [`SENSOR_DELAY_TICKS`] ticks old), low passes the difference over
+//! 2^[`DRIFT_FILTER_SHIFT`] ticks and flags it when it exceeds the drift limit: the model no
+//! longer describes the stage.
 //!
 //! Configuration ([`Feedback`]) and memory ([`FeedbackState`]) are kept apart; nothing here
 //! allocates, panics or loops.
@@ -224,12 +225,8 @@ pub struct FeedbackState {
     derivative: i32,
     /// The notch's memory.
     notch: NotchState,
-    /// The observer's last estimates, newest first, Q2.30.
-    pub(crate) estimates: [i32; SENSOR_DELAY_TICKS],
     /// The last targets, newest first, Q2.30.
     targets: [i32; SENSOR_DELAY_TICKS],
-    /// Low-passed measured − estimate, Q2.30.
-    pub(crate) drift: i32,
     /// The last measurement, Q2.30.
     pub(crate) measured: i32,
 }
@@ -328,12 +325,12 @@ impl FeedbackState {
         reference
     }
 
-    /// The state at rest: integrator empty, the stage where the observer puts it.
-    pub fn at_rest(estimate: i32) -> Self {
+    /// The state at rest: integrator empty, the stage at `position` (where the observer puts
+    /// it).
+    pub fn at_rest(position: i32) -> Self {
         Self {
-            estimates: [estimate; SENSOR_DELAY_TICKS],
-            targets: [estimate; SENSOR_DELAY_TICKS],
-            measured: estimate,
+            targets: [position; SENSOR_DELAY_TICKS],
+            measured: position,
             ..Self::default()
         }
     }
@@ -363,21 +360,9 @@ impl FeedbackState {
         self.clip = command.saturating_sub(applied);
     }
 
-    /// This tick's observer estimate (for the drift check [`SENSOR_DELAY_TICKS`] ticks on).
-    #[inline(always)]
-    pub fn observed(&mut self, estimate: i32) {
-        self.estimates.copy_within(0..SENSOR_DELAY_TICKS - 1, 1);
-        self.estimates[0] = estimate;
-    }
-
     /// The integrator, Q2.30 normalised drive.
     pub fn integrator(&self) -> i32 {
         self.integrator
-    }
-
-    /// The low-passed difference measured − estimate, Q2.30 normalised displacement.
-    pub fn drift(&self) -> i32 {
-        self.drift
     }
 
     /// The last measurement, Q2.30 normalised displacement.
@@ -437,18 +422,15 @@ mod tests {
         for _ in 0..1000 {
             fb.correction(&mut s, signal_from_f64(0.5), 0);
             s.limited(0, 0);
-            s.observed(0);
         }
         assert_eq!(s.integrator(), signal_from_f64(0.2));
         // The command is cut from above while the error still pushes up: the integrator holds...
         let mut s = FeedbackState::at_rest(0);
         s.integrator = signal_from_f64(0.05);
         s.limited(signal_from_f64(1.2), signal_from_f64(1.0));
-        s.observed(0);
         for _ in 0..100 {
             fb.correction(&mut s, signal_from_f64(0.5), 0);
             s.limited(signal_from_f64(1.2), signal_from_f64(1.0));
-            s.observed(0);
         }
         assert_eq!(s.integrator(), signal_from_f64(0.05));
         // ...but unwinds as soon as the error reverses (the reference is the target of

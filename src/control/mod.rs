@@ -8,13 +8,17 @@
 //!    [`crate::models::creep`]); the learned correction is added ([`crate::services::learning`]) and, with input
 //!    shaping, the sum goes through the feedforward's notch (not in bypass;
 //!    [`ControlConfig::shaping`]);
-//! 3. with a sensor, the reading is checked against the observer (drift flag) and, in closed
-//!    loop, the PI(D) controller on the measured error adds its correction
+//! 3. with a sensor, the reading is kept and, in closed loop, the PI(D) controller on the
+//!    measured error adds its correction
 //!    ([`crate::control::feedback`]); a mode switch's fading offset is added ([`crate::control::mode_switch`]);
 //! 4. the differential drive clamps the command to the stacks' range and slew limits and splits
 //!    it into both stacks' DAC codes (`u_l = ū + v`, `u_r = ū − v`), written at once;
-//! 5. the forward observer, fed the drive actually applied, gives the estimated displacement
-//!    (followed by the creep, when the stage has creep).
+//!
+//! The forward observer is not in the tick: nothing in it needs the estimate (the feedback
+//! acts on the sensor), and the observer only has to see every drive sample the stacks were
+//! given, in order. It runs below the tick on the tick's snapshots, with its drift check
+//! against the sensor ([`crate::services::observer`]); the tick's report carries the applied
+//! drive and the measurement it needs.
 //!
 //! Configuration ([`ControlConfig`]) is built and validated off the tick path
 //! ([`crate::config::settings::Settings::build`]) and prepared there ([`Controller::prepare`]); the tick
@@ -42,8 +46,8 @@ use crate::control::notch::{Notch, NotchState};
 pub use crate::control::sensor::Sensor;
 use crate::fixed_point::clamp_full_scale;
 use crate::models::creep::Creep;
+use crate::models::CompensatorRun;
 pub use crate::models::{Compensator, Observer};
-use crate::models::{CompensatorRun, ObserverRun};
 
 /// Everything the tick needs, validated and in fixed point (built by
 /// [`crate::config::settings::Settings::build`]).
@@ -87,7 +91,8 @@ impl TickFlags {
     /// The DAC write failed.
     pub const DAC_ERROR: u8 = 1 << 4;
     /// The sensor and the observer disagree by more than the drift limit: the model has
-    /// drifted from the stage.
+    /// drifted from the stage (set by the drift check below the tick,
+    /// [`crate::services::observer::ObserverBelow::observe`], not by the tick).
     pub const DRIFT: u8 = 1 << 5;
     /// A reload is settling: the drive is gliding from where the stacks were to the new
     /// command (a fading offset) under the stricter of the old and the new slew limit.
@@ -106,7 +111,8 @@ pub struct TickReport {
     pub left: DacCode,
     /// Right stack's DAC code.
     pub right: DacCode,
-    /// Observer's estimated displacement, Q2.30 normalised.
+    /// Observer's estimated displacement, Q2.30 normalised: 0 from the tick, filled in below
+    /// it ([`crate::services::observer::ObserverBelow::observe`]).
     pub estimate: i32,
     /// Measured displacement, Q2.30 normalised (0 without a sensor); it is
     /// [`crate::control::feedback::SENSOR_DELAY_TICKS`] ticks older than `estimate`.
@@ -137,8 +143,6 @@ pub struct ControlCounters {
     pub adc_errors: u32,
     /// Failed DAC writes.
     pub dac_errors: u32,
-    /// Ticks the drift check flagged.
-    pub drifts: u32,
 }
 
 impl ControlCounters {
@@ -152,7 +156,6 @@ impl ControlCounters {
         add(&mut self.slew_limits, TickFlags::SLEW_LIMIT);
         add(&mut self.adc_errors, TickFlags::ADC_ERROR);
         add(&mut self.dac_errors, TickFlags::DAC_ERROR);
-        add(&mut self.drifts, TickFlags::DRIFT);
     }
 
     /// Both counts added (wrapping).
@@ -164,7 +167,6 @@ impl ControlCounters {
             slew_limits: self.slew_limits.wrapping_add(o.slew_limits),
             adc_errors: self.adc_errors.wrapping_add(o.adc_errors),
             dac_errors: self.dac_errors.wrapping_add(o.dac_errors),
-            drifts: self.drifts.wrapping_add(o.drifts),
         }
     }
 }
@@ -182,7 +184,6 @@ impl ControlCounters {
 #[derive(Clone, Debug)]
 pub struct Controller {
     compensator: CompensatorRun,
-    observer: ObserverRun,
     sensor: Option<Sensor>,
     feedback: Option<Feedback>,
     /// What the tick runs, from the mode and the parts present: one tag, one compare.
@@ -260,7 +261,6 @@ impl Controller {
     pub fn new(config: ControlConfig) -> Self {
         let mut c = Self {
             compensator: CompensatorRun::None,
-            observer: ObserverRun::None,
             sensor: None,
             feedback: None,
             run: Run::Blind,
@@ -302,9 +302,10 @@ impl Controller {
             .compensator
             .prepare(&observer, config.creep, drive, y);
         let rest_setpoint = config.observer.relaxed_output(d.rest_drive());
+        // The observer runs below the tick ([`crate::services::observer`]): this one only
+        // prepared the compensator's state.
         *self = Self {
             compensator,
-            observer,
             sensor: config.sensor,
             feedback: config.feedback,
             run: Run::of(config.mode, &config.sensor, &config.feedback),
@@ -380,17 +381,15 @@ impl Controller {
         self.setpoint
     }
 
-    /// Where the stage is, as well as the board knows it after the last tick (Q2.30
-    /// normalised): the sensor's last reading, else the observer's last estimate, else the
-    /// setpoint in force (what a sequence's settle window is checked against).
+    /// Where the stage is, as well as the tick knows it after the last tick (Q2.30
+    /// normalised): the sensor's last reading, else the setpoint in force (what a sequence's
+    /// settle window is checked against; the observer's estimate is computed below the tick).
     #[inline(always)]
     pub fn position(&self) -> i32 {
         if self.sensor.is_some() {
             self.feedback_state.measured
-        } else if matches!(self.observer, ObserverRun::None) {
-            self.setpoint
         } else {
-            self.feedback_state.estimates[0]
+            self.setpoint
         }
     }
 
@@ -565,9 +564,9 @@ impl Controller {
         if flags & !TickFlags::SETTLING != 0 {
             self.counters.count(TickFlags(flags));
         }
-        // What the limits cut, kept now: the command need not live on through the observer.
+        // What the limits cut, kept for the next tick's anti-windup.
         self.feedback_state.limited(command, out.applied);
-        let mut report = TickReport {
+        TickReport {
             left: out.left,
             right: out.right,
             estimate: 0,
@@ -575,12 +574,7 @@ impl Controller {
             drive: out.applied,
             flags: TickFlags(flags),
             triggers: 0,
-        };
-
-        // 6. Observer on the applied drive.
-        report.estimate = self.observer.step(out.applied);
-        self.feedback_state.observed(report.estimate);
-        report
+        }
     }
 }
 
@@ -600,9 +594,7 @@ fn sense<IO: TickIo, const CLOSED: bool, const FULL: bool>(
     match io.read() {
         Ok(code) => {
             let measured = sensor.displacement(code);
-            if sensor.drifted(fs, measured) {
-                *flags |= TickFlags::DRIFT;
-            }
+            fs.measured = measured;
             let command = match (CLOSED, fb) {
                 (true, Some(fb)) => {
                     feedforward.saturating_add(fb.correction_with::<FULL>(fs, target, measured))
@@ -666,6 +658,7 @@ mod tests {
         representative_duhem, representative_pi, FeedbackSettings, Settings,
     };
     use crate::fixed_point::{signal_from_f64, signal_to_f64};
+    use crate::services::observer::Observed;
 
     fn hw() -> Hardware {
         Hardware {
@@ -833,7 +826,8 @@ mod tests {
         assert!(top <= 100.01, "within the new limits once settled: {top}");
     }
 
-    /// Every counter is the number of ticks whose report carried its flag.
+    /// Every counter is the number of ticks whose report carried its flag; the tick never
+    /// flags drift (its check runs below the tick, with the observer).
     #[test]
     fn the_counters_are_the_flags_counted() {
         let mut s = Settings {
@@ -867,12 +861,12 @@ mod tests {
                 k.slew_limits,
                 k.adc_errors,
                 k.dac_errors,
-                k.drifts
             ],
-            [seen[0], seen[1], seen[2], seen[3], seen[4], seen[5]]
+            [seen[0], seen[1], seen[2], seen[3], seen[4]]
         );
+        assert_eq!(seen[5], 0, "the tick flagged drift");
         assert!(
-            seen[..6].iter().filter(|&&n| n > 0).count() >= 4,
+            seen[..5].iter().filter(|&&n| n > 0).count() >= 4,
             "{seen:?}"
         );
     }
@@ -899,7 +893,8 @@ mod tests {
     #[test]
     fn creep_runs_in_series_with_the_compensator_and_the_observer() {
         for creep in [false, true] {
-            let mut c = Controller::new(creep_open_loop(creep).build(&hw()).unwrap());
+            // The tick and the observer below it.
+            let mut c = Observed::new(creep_open_loop(creep).build(&hw()).unwrap());
             let mut dac = RecordingDac::default();
             let sp = signal_from_f64(0.4);
             let mut drives = [0i32; 3000];
@@ -936,16 +931,15 @@ mod tests {
         let sp = signal_from_f64(-0.3);
         let with = creep_open_loop(true).build(&hw()).unwrap();
         let without = creep_open_loop(false).build(&hw()).unwrap();
-        let mut c = Controller::new(with);
+        let mut c = Observed::new(with);
         let mut dac = RecordingDac::default();
         let mut before = c.tick(Some(sp), &mut FixedAdc(None), &mut dac);
         for _ in 0..20_000 {
             before = c.tick(Some(sp), &mut FixedAdc(None), &mut dac);
         }
         let after = |config: ControlConfig| -> [TickReport; 50] {
-            let mut next = Controller::new(config);
-            next.prepare(config, c.stacks());
-            next.take_over(&c);
+            let mut next = c.clone();
+            next.reload(config);
             let mut dac = RecordingDac::default();
             // No new setpoint: the one prepared (where the observer puts the stage) is held.
             core::array::from_fn(|_| next.tick(None, &mut FixedAdc(None), &mut dac))

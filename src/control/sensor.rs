@@ -1,13 +1,12 @@
 //! The position sensor: its calibration ([`SensorSettings`], physical units) and the
-//! fixed-point form the tick reads it with ([`Sensor`]), plus the drift check of the observer
-//! against it.
+//! fixed-point form the tick reads it with ([`Sensor`]), with the drift check's limit (the
+//! check itself runs below the tick: [`crate::services::observer`]).
 //!
 //! The sensor is apart from the feedback: a stage with a sensor has it read once per tick in
 //! every mode (for the recorder, the drift check and, in closed loop, the feedback); the
 //! feedback ([`crate::control::feedback`]) only adds a controller on its error.
 
 use crate::board::AdcCode;
-use crate::control::feedback::{FeedbackState, DRIFT_FILTER_SHIFT, SENSOR_DELAY_TICKS};
 use crate::fixed_point::{q4_28_from_f64, signal_from_f64};
 use crate::refusal::{finite, Field, Refusal, Rule};
 use crate::scaling::Scaling;
@@ -128,18 +127,6 @@ impl Sensor {
         let x = x.saturating_add(x);
         x.saturating_add(x)
     }
-
-    /// The drift check on this tick's measurement: updates the low-passed difference from the
-    /// observer's estimate of the same instant and says whether it exceeds the limit.
-    /// It runs on every tick with a reading, in every mode, and keeps the reading.
-    #[inline(always)]
-    pub fn drifted(&self, s: &mut FeedbackState, measured: i32) -> bool {
-        s.measured = measured;
-        let difference = measured.saturating_sub(s.estimates[SENSOR_DELAY_TICKS - 1]);
-        let step = difference.saturating_sub(s.drift) >> DRIFT_FILTER_SHIFT;
-        s.drift = s.drift.saturating_add(step);
-        s.drift.unsigned_abs() > self.drift_limit
-    }
 }
 
 #[cfg(test)]
@@ -200,45 +187,6 @@ mod tests {
         assert_eq!(
             cal.build(Some(12), &ranges, true),
             Err(Refusal::new(Field::SensorCalibration, Rule::NotFinite))
-        );
-    }
-
-    #[test]
-    fn drift_is_flagged_when_the_sensor_leaves_the_estimate_and_cleared_when_it_returns() {
-        let sensor = sensor();
-        let mut s = FeedbackState::at_rest(signal_from_f64(0.3));
-        // The estimate and the (delayed) measurement agree, with sensor noise: no flag.
-        let mut seed = 3u32;
-        for _ in 0..500 {
-            seed = seed.wrapping_mul(1_664_525).wrapping_add(1_013_904_223);
-            let noise = ((seed >> 16) as i32 - 32768) * 256; // ±0.8 % of full scale
-            assert!(!sensor.drifted(&mut s, signal_from_f64(0.3) + noise));
-            s.observed(signal_from_f64(0.3));
-        }
-        // The stage sits 2 % away from the model: flagged within a few filter time constants.
-        let flagged = (0..100).position(|_| {
-            let d = sensor.drifted(&mut s, signal_from_f64(0.32));
-            s.observed(signal_from_f64(0.3));
-            d
-        });
-        assert!(matches!(flagged, Some(k) if k < 40), "{flagged:?}");
-        // Back in agreement: the flag clears.
-        let cleared = (0..200).position(|_| {
-            let d = sensor.drifted(&mut s, signal_from_f64(0.3));
-            s.observed(signal_from_f64(0.3));
-            !d
-        });
-        assert!(cleared.is_some());
-        // The measurement is compared with the estimate from SENSOR_DELAY_TICKS ago.
-        let mut s = FeedbackState::at_rest(0);
-        s.observed(signal_from_f64(0.5));
-        for _ in 1..SENSOR_DELAY_TICKS {
-            s.observed(0);
-        }
-        let _ = sensor.drifted(&mut s, 0);
-        assert!(
-            s.drift() < 0,
-            "the old estimate (0.5) is what the reading is compared to"
         );
     }
 }

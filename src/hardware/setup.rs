@@ -20,11 +20,12 @@ use rtic_core::Mutex;
 use stm32f4xx_hal::pac::{self, Interrupt};
 
 use crate::board::Hardware;
-use crate::command_handler::{CommandHandler, Locks, MAX_RESPONSE};
+use crate::command_handler::{start_services, CommandHandler, Locks, MAX_RESPONSE};
 use crate::config::param_store::{self, ParamSource};
 use crate::control::Controller;
 use crate::control_loop::{SetpointQueue, SETPOINT_QUEUE_LEN};
 use crate::services::consumer::Services;
+
 use crate::services::recorder::SplitStore;
 use crate::services::snapshot::SnapshotRing;
 use crate::services::telemetry::{FrameLink, TelemetryQueue, TelemetrySample, TELEMETRY_QUEUE_LEN};
@@ -216,6 +217,9 @@ pub fn setup(
     }
     let (safe_left, safe_right) = control.safe_codes();
     safe_state::arm(safe_left, safe_right);
+    // With a sensor the observer runs below the tick, from its first snapshot on.
+    let mut services = Services::new(capture_buffer);
+    start_services(&config, control, &mut services);
 
     let dac = InternalDac::new(dp.DAC, &rcc, (safe_left, safe_right));
     let adc = SensorInput::new(dp.ADC1, &dp.ADC_COMMON, &rcc);
@@ -263,7 +267,7 @@ pub fn setup(
             triggers,
         },
         services: ServiceSide {
-            services: Services::new(capture_buffer),
+            services,
             snapshots: snapshots_out,
             telemetry,
         },

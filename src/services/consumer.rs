@@ -1,5 +1,6 @@
-//! The services below the tick: the recorder and continuous telemetry's tap, fed from the
-//! snapshot ring ([`crate::services::snapshot`]).
+//! The services below the tick: the recorder, continuous telemetry's tap and the observer
+//! with its drift check ([`crate::services::observer`]), fed from the snapshot ring
+//! ([`crate::services::snapshot`]).
 //!
 //! On the board they are one RTIC resource of their own, run by a priority-2 task the tick
 //! wakes once every [`crate::services::snapshot::BATCH`] ticks, and reached by the command
@@ -14,6 +15,8 @@
 
 use heapless::spsc::Producer;
 
+use crate::control::TickFlags;
+use crate::services::observer::ObserverBelow;
 use crate::services::recorder::{Recorder, SampleStore, TickSignals};
 use crate::services::snapshot::{Snapshot, SnapshotConsumer, BATCH, SNAPSHOT_RING_LEN};
 use crate::services::telemetry::{TelemetrySample, TelemetryTap};
@@ -40,36 +43,53 @@ pub const CAPTURE_FRAME_CYCLES: u32 = 155;
 pub const TELEMETRY_SAMPLE_CYCLES: u32 = 115;
 
 /// What the services run, as the tick budget charges it: a capture (or a `Record`) and
-/// telemetry, each by its decimation (`None`: not running). Nothing running costs nothing:
-/// the tick then pushes no snapshot and never wakes the services.
+/// telemetry, each by its decimation (`None`: not running), and the configuration's observer
+/// where it runs below the tick. Nothing running costs nothing: the tick then pushes no
+/// snapshot and never wakes the services.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct ServicesLoad {
     /// The capture's (or record's) decimation, if one is armed or running.
     pub capture_decimation: Option<u16>,
     /// Telemetry's decimation, if it runs.
     pub telemetry_decimation: Option<u16>,
+    /// What the configuration's observer below the tick costs a snapshot, cycles (its model,
+    /// its creep, the drift check: `config::tick_budget::observer_below_cycles`); 0 where it
+    /// has none there. The tick budget sets it from the configuration.
+    pub observer_cycles: u32,
 }
 
 impl ServicesLoad {
-    /// The dearest the services can be: a capture and telemetry taking every tick.
+    /// The dearest a capture and telemetry can be: both taking every tick (with no observer
+    /// below the tick: that one is the configuration's, charged with it).
     pub const WORST: Self = Self {
         capture_decimation: Some(1),
         telemetry_decimation: Some(1),
+        observer_cycles: 0,
     };
+
+    /// This load with an observer below the tick costing `cycles` a snapshot.
+    pub const fn observing(self, cycles: u32) -> Self {
+        Self {
+            observer_cycles: cycles,
+            ..self
+        }
+    }
 
     /// Whether anything runs (the tick hands the services its snapshots).
     pub fn is_listening(&self) -> bool {
-        self.capture_decimation.is_some() || self.telemetry_decimation.is_some()
+        self.capture_decimation.is_some()
+            || self.telemetry_decimation.is_some()
+            || self.observer_cycles > 0
     }
 
-    /// Their cost per tick, cycles (rounded up): [`SERVICES_BASE_CYCLES`], and the frames and
-    /// samples the dearest batch of [`BATCH`] snapshots holds at
-    /// their decimations shared by its ticks.
+    /// Their cost per tick, cycles (rounded up): [`SERVICES_BASE_CYCLES`], the observer below
+    /// the tick on every snapshot, and the frames and samples the dearest batch of [`BATCH`]
+    /// snapshots holds at their decimations shared by its ticks.
     ///
     /// ```
     /// use twinstack::services::consumer::{ServicesLoad, SERVICES_BASE_CYCLES};
     /// assert_eq!(ServicesLoad::default().cycles(), 0);
-    /// let decimated = ServicesLoad { capture_decimation: Some(10), telemetry_decimation: None };
+    /// let decimated = ServicesLoad { capture_decimation: Some(10), ..ServicesLoad::default() };
     /// assert!(decimated.cycles() > SERVICES_BASE_CYCLES);
     /// assert!(decimated.cycles() < ServicesLoad::WORST.cycles());
     /// ```
@@ -79,19 +99,28 @@ impl ServicesLoad {
         }
         // The most frames (samples) a batch holds at decimation `d`: one every `d` ticks.
         let per_batch = |d: Option<u16>| d.map_or(0, |d| BATCH.div_ceil(u32::from(d.max(1))));
-        (SERVICES_BASE_CYCLES * BATCH
+        ((SERVICES_BASE_CYCLES + self.observer_cycles) * BATCH
             + CAPTURE_FRAME_CYCLES * per_batch(self.capture_decimation)
             + TELEMETRY_SAMPLE_CYCLES * per_batch(self.telemetry_decimation))
         .div_ceil(BATCH)
     }
 }
 
-/// The recorder and telemetry's tap, consuming the tick's snapshots. `B` is the recorder's
-/// buffer.
+/// The recorder, telemetry's tap and the observer below the tick, consuming the tick's
+/// snapshots. `B` is the recorder's buffer.
 #[derive(Debug)]
 pub struct Services<B> {
     recorder: Recorder<B>,
     telemetry: TelemetryTap,
+    /// The configuration's observer, where it runs below the tick.
+    observer: Option<ObserverBelow>,
+    /// The observer of a configuration posted to the tick but not yet seen running
+    /// (`Some(None)`: the next configuration has none here).
+    staged: Option<Option<ObserverBelow>>,
+    /// The generation of the last snapshot served ([`Snapshot::generation`]).
+    generation: u8,
+    /// Ticks the drift check flagged, since power-up, wrapping.
+    drifts: u32,
     /// The sequence number the next snapshot should carry.
     expected: u32,
     /// Snapshots the ring refused (gaps in the sequence), since power-up, wrapping.
@@ -111,6 +140,10 @@ impl<B: SampleStore> Services<B> {
         Self {
             recorder: Recorder::new(record_buffer),
             telemetry: TelemetryTap::new(),
+            observer: None,
+            staged: None,
+            generation: 0,
+            drifts: 0,
             expected: 0,
             lost: 0,
         }
@@ -149,8 +182,9 @@ impl<B: SampleStore> Services<B> {
         wake
     }
 
-    /// One tick's snapshot: what the recorder did in the tick, in the same order — its
-    /// trigger events, then its capture — and telemetry's tap.
+    /// One tick's snapshot: the observer below the tick on its drive and measurement, then
+    /// what the recorder did in the tick, in the same order — its trigger events, then its
+    /// capture — and telemetry's tap.
     #[inline(always)]
     fn serve<const T: usize>(
         &mut self,
@@ -161,6 +195,16 @@ impl<B: SampleStore> Services<B> {
         self.expected = s.seq.wrapping_add(1);
         if missing != 0 {
             self.lose(missing);
+        }
+        if s.generation != self.generation {
+            self.reload(s.generation);
+        }
+        let mut report = s.report();
+        if let Some(o) = &mut self.observer {
+            o.observe(&mut report);
+            if report.flags.contains(TickFlags::DRIFT) {
+                self.drifts = self.drifts.wrapping_add(1);
+            }
         }
         if s.events.0 != 0 {
             for event in s.events.iter() {
@@ -173,7 +217,6 @@ impl<B: SampleStore> Services<B> {
         if !(frame || sample) {
             return false;
         }
-        let report = s.report();
         let signals = TickSignals::of(s.setpoint, s.measured, &report);
         if frame {
             self.recorder
@@ -182,8 +225,21 @@ impl<B: SampleStore> Services<B> {
         sample && self.telemetry.queue(telemetry, &signals)
     }
 
+    /// A new configuration ran its first tick at this snapshot: its observer (staged by
+    /// [`Services::stage_observer`] before the controller was posted) takes over.
+    #[cold]
+    fn reload(&mut self, generation: u8) {
+        self.generation = generation;
+        if let Some(observer) = self.staged.take() {
+            self.observer = observer;
+        }
+    }
+
     /// `ticks` snapshots never reached the ring: a capture in progress ends without
-    /// completing, telemetry's indices skip the samples lost.
+    /// completing, telemetry's indices skip the samples lost. The observer below the tick
+    /// goes on from the next drive it is given: for a rate-independent model that is as if
+    /// the drive had moved straight between the two, so the estimate stays within the
+    /// hysteresis of what the lost ticks swept (each loss is counted in the overruns).
     #[cold]
     fn lose(&mut self, ticks: u32) {
         self.lost = self.lost.wrapping_add(ticks);
@@ -192,17 +248,53 @@ impl<B: SampleStore> Services<B> {
     }
 
     /// Whether the services need the tick's snapshots: a capture or a record armed or
-    /// running, or telemetry running.
+    /// running, telemetry running, or an observer below the tick in force or staged.
     pub fn is_active(&self) -> bool {
-        self.recorder.is_capturing() || self.telemetry.is_running()
+        self.recorder.is_capturing()
+            || self.telemetry.is_running()
+            || self.observer.is_some()
+            || self.staged.is_some()
+    }
+
+    /// Stages the observer below the tick of a configuration about to be posted to the tick
+    /// ([`ObserverBelow::prepare`], `None` where it has none there): it takes over at the
+    /// first snapshot the new configuration's tick pushes. Call it before the post, with the
+    /// tick handing the services its snapshots if either observer is there; a newer staging
+    /// replaces one no tick has run yet, as the newer of two posts between two ticks
+    /// replaces the older.
+    pub fn stage_observer(&mut self, observer: Option<ObserverBelow>) {
+        self.staged = if observer.is_none() && self.observer.is_none() {
+            None
+        } else {
+            Some(observer)
+        };
+    }
+
+    /// Puts `observer` in force at once, for the configuration the tick runs from power-up
+    /// (generation 0: no swap yet).
+    pub fn start_observer(&mut self, observer: Option<ObserverBelow>) {
+        self.observer = observer;
+        self.staged = None;
+    }
+
+    /// The observer below the tick in force, if any: its last estimate and drift.
+    pub fn observer(&self) -> Option<&ObserverBelow> {
+        self.observer.as_ref()
+    }
+
+    /// Ticks the drift check below the tick flagged since power-up (wrapping).
+    pub fn drifts(&self) -> u32 {
+        self.drifts
     }
 
     /// What they run, as the tick budget charges it: the capture's (or record's) and
-    /// telemetry's decimations.
+    /// telemetry's decimations (the observer below the tick is the configuration's: the tick
+    /// budget charges it from the configuration).
     pub fn load(&self) -> ServicesLoad {
         ServicesLoad {
             capture_decimation: self.recorder.running_decimation(),
             telemetry_decimation: self.telemetry.running_decimation(),
+            observer_cycles: 0,
         }
     }
 
@@ -261,7 +353,7 @@ mod tests {
             flags: TickFlags(0),
             triggers: 0,
         };
-        Snapshot::of(seq, (seq as i32) << 16, &report, events)
+        Snapshot::of(seq, (seq as i32) << 16, &report, events, 0)
     }
 
     /// A capture armed on the stream's start begins with the snapshot carrying that event,

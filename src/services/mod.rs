@@ -4,6 +4,8 @@
 //!   input from the tick.
 //! * [`consumer`] — the services that consume it below the tick: the recorder and telemetry's
 //!   tap, one resource apart from the tick's.
+//! * [`observer`] — the forward observer and the drift check, where the stage has a sensor:
+//!   fed each tick's applied drive and measurement from the snapshots.
 //! * [`recorder`] — the data recorder (triggered capture with pre-trigger and decimation).
 //! * [`telemetry`] — continuous telemetry: the tap, the queue, the frame packer.
 //! * [`learning`] — learning feedforward for periodic motion (a phase-indexed correction table,
@@ -11,6 +13,7 @@
 
 pub mod consumer;
 pub mod learning;
+pub mod observer;
 pub mod recorder;
 pub mod snapshot;
 pub mod telemetry;

@@ -36,9 +36,10 @@ pub type SnapshotProducer<'a> = Producer<'a, Snapshot, SNAPSHOT_RING_LEN>;
 /// The services' end of the ring.
 pub type SnapshotConsumer<'a> = Consumer<'a, Snapshot, SNAPSHOT_RING_LEN>;
 
-/// What one tick did, as the services need it: fixed size (28 bytes: the tick's
-/// [`TickReport`] laid out flat beside the sequence number, the setpoint and the events, so
-/// that no padding is copied), written once by the tick.
+/// What one tick did, as the services need it: fixed size (24 bytes: the tick's
+/// [`TickReport`] laid out flat beside the sequence number, the setpoint, the events and the
+/// generation, so that no padding is copied; the estimate is not in it, the services compute
+/// it), written once by the tick.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct Snapshot {
     /// The tick's sequence number (wrapping): one more than the snapshot before it, unless
@@ -46,8 +47,6 @@ pub struct Snapshot {
     pub seq: u32,
     /// The setpoint in force, Q2.30 normalised displacement.
     pub setpoint: i32,
-    /// The observer's estimate, Q2.30 ([`TickReport::estimate`]).
-    pub estimate: i32,
     /// The measured displacement, Q2.30 ([`TickReport::measured`]).
     pub measured: i32,
     /// The model-normalised drive applied, Q2.30 ([`TickReport::drive`]).
@@ -63,17 +62,27 @@ pub struct Snapshot {
     /// The recorder's trigger events commanded or seen since the snapshot before it
     /// ([`Events`]), in force from this tick's frame on.
     pub events: Events,
+    /// The configurations swapped in before this tick, wrapping at 256 (the control loop's
+    /// swap count): a change from the snapshot before says a new configuration ran its first
+    /// tick here, where the services put its observer in force
+    /// ([`crate::services::observer`]). It fills the byte the layout would pad.
+    pub generation: u8,
 }
 
 impl Snapshot {
-    /// The snapshot of a tick: its sequence number, the setpoint in force, its report and the
-    /// events since the last one.
+    /// The snapshot of a tick: its sequence number, the setpoint in force, its report, the
+    /// events since the last one and the configuration's generation.
     #[inline(always)]
-    pub fn of(seq: u32, setpoint: i32, report: &TickReport, events: Events) -> Self {
+    pub fn of(
+        seq: u32,
+        setpoint: i32,
+        report: &TickReport,
+        events: Events,
+        generation: u8,
+    ) -> Self {
         Self {
             seq,
             setpoint,
-            estimate: report.estimate,
             measured: report.measured,
             drive: report.drive,
             left: report.left,
@@ -81,6 +90,7 @@ impl Snapshot {
             flags: report.flags,
             triggers: report.triggers,
             events,
+            generation,
         }
     }
 
@@ -90,7 +100,9 @@ impl Snapshot {
         TickReport {
             left: self.left,
             right: self.right,
-            estimate: self.estimate,
+            // The observer runs below the tick, on this snapshot
+            // ([`crate::services::observer`]).
+            estimate: 0,
             measured: self.measured,
             drive: self.drive,
             flags: self.flags,
@@ -157,18 +169,21 @@ mod tests {
 
     #[test]
     fn a_snapshot_is_small_and_keeps_the_report() {
-        assert_eq!(core::mem::size_of::<Snapshot>(), 28);
+        assert_eq!(core::mem::size_of::<Snapshot>(), 24);
         let report = TickReport {
             left: DacCode(1),
             right: DacCode(2),
-            estimate: 3,
+            estimate: 0,
             measured: 4,
             drive: 5,
             flags: TickFlags(6),
             triggers: 7,
         };
-        let s = Snapshot::of(8, 9, &report, Events(1));
+        let s = Snapshot::of(8, 9, &report, Events(1), 10);
         assert_eq!(s.report(), report);
-        assert_eq!((s.seq, s.setpoint, s.events), (8, 9, Events(1)));
+        assert_eq!(
+            (s.seq, s.setpoint, s.events, s.generation),
+            (8, 9, Events(1), 10)
+        );
     }
 }

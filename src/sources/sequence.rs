@@ -12,9 +12,9 @@
 //!
 //! # One tick
 //!
-//! 1. **Settled**: the stage's position as the board knows it (the sensor's last reading; without
-//!    a sensor the observer's last estimate; without an observer the setpoint itself,
-//!    [`crate::control::Controller::position`]) within `window` of the target, and the shaped
+//! 1. **Settled**: the stage's position as the tick knows it (the sensor's last reading; without
+//!    a sensor the setpoint itself, [`crate::control::Controller::position`]: the observer's
+//!    estimate is computed below the tick, a batch later) within `window` of the target, and the shaped
 //!    setpoint on it, for `settle_ticks` ticks in a row: the settled output goes high
 //!    ([`SETTLED`], on its own pin). A new target takes it low at once.
 //! 2. **Edge**: the chosen edge of the trigger input (sampled before the tick) pops the next

@@ -52,7 +52,7 @@ use std::io;
 use std::time::Duration;
 
 use twinstack::board::{Hardware, WATCHDOG_TIMEOUT_MS};
-use twinstack::command_handler::{CommandHandler, Parts};
+use twinstack::command_handler::{start_services, CommandHandler, Parts};
 use twinstack::config::param_store::{
     self, RamStorage, RecordStorage, StorageError, StoredRecord, MAX_RECORD,
 };
@@ -63,6 +63,7 @@ use twinstack::dual_stage::{CoarseLimits, CoarseStatus};
 use twinstack::protocol::messages::{Request, Response};
 use twinstack::refusal::Refusal;
 use twinstack::services::consumer::Services;
+
 use twinstack::services::recorder::CAPTURE_SLOTS;
 use twinstack::services::snapshot::SnapshotRing;
 use twinstack::services::telemetry::TelemetryQueue;
@@ -113,8 +114,9 @@ pub struct SimDevice<D = InternalDac, A = InternalAdc> {
     /// task runs between them.
     coarse: Option<Box<dyn CoarseAxisSim>>,
     control: ControlLoop<Box<Controller>>,
-    /// The services below the tick (the recorder, telemetry's tap), served when the tick
-    /// says a batch is due, as the firmware's services task is.
+    /// The services below the tick (the recorder, telemetry's tap, the observer where there is
+    /// a sensor), served when the tick says a batch is due, as the firmware's services task
+    /// is.
     services: Services<Vec<i16>>,
     handler: CommandHandler<SimFlash>,
     queue: Box<SetpointQueue>,
@@ -241,12 +243,12 @@ impl<D: AnalogDualDac, A: AnalogSensorAdc> SimDevice<D, A> {
                 .write(&bytes[..n])
                 .map_err(|_| SimDeviceError::Stored)?;
         }
-        let (control, handler) = boot(storage, hw, coarse.as_deref())?;
+        let (control, services, handler) = boot(storage, hw, coarse.as_deref())?;
         Ok(Self {
             board,
             coarse,
             control,
-            services: Services::new(vec![0; CAPTURE_SLOTS]),
+            services,
             handler,
             queue: Box::new(SetpointQueue::new()),
             snapshots: Box::new(SnapshotRing::new()),
@@ -294,9 +296,10 @@ impl<D: AnalogDualDac, A: AnalogSensorAdc> SimDevice<D, A> {
         let storage = self.handler.storage().clone();
         let hw = *self.handler.hardware();
         match boot(storage, hw, self.coarse.as_deref()) {
-            Ok((control, mut handler)) => {
+            Ok((control, services, mut handler)) => {
                 handler.set_watchdog_reset(true);
                 self.control = control;
+                self.services = services;
                 self.handler = handler;
             }
             // The flash booted once and the defaults always build: unreachable, but a
@@ -306,7 +309,6 @@ impl<D: AnalogDualDac, A: AnalogSensorAdc> SimDevice<D, A> {
         *self.queue = SetpointQueue::new();
         *self.snapshots = SnapshotRing::new();
         *self.telemetry = TelemetryQueue::new();
-        self.services = Services::new(vec![0; CAPTURE_SLOTS]);
         self.starved_ns = 0;
         self.last_report = None;
     }
@@ -518,14 +520,22 @@ impl<D: AnalogDualDac, A: AnalogSensorAdc> SimDevice<D, A> {
 
 /// The board's boot from its flash, as the firmware's `init`: the stored settings if they
 /// hold at the board's rate (else the defaults), the two controllers, the control loop (with
-/// the coarse axis attached), the command handler, and the stored analog input started
-/// before the first tick.
+/// the coarse axis attached), the services (with the observer below the tick, where the
+/// settings have a sensor), the command handler, and the stored analog input started before
+/// the first tick.
 #[allow(clippy::type_complexity)]
 fn boot(
     storage: SimFlash,
     hw: Hardware,
     coarse: Option<&dyn CoarseAxisSim>,
-) -> Result<(ControlLoop<Box<Controller>>, CommandHandler<SimFlash>), SimDeviceError> {
+) -> Result<
+    (
+        ControlLoop<Box<Controller>>,
+        Services<Vec<i16>>,
+        CommandHandler<SimFlash>,
+    ),
+    SimDeviceError,
+> {
     let (record, source) = param_store::load_record(storage.read(), &hw);
     let stored_analog = record.analog;
     let (settings, boot, defaults) =
@@ -538,13 +548,15 @@ fn boot(
     if let Some(rig) = coarse {
         control.coarse().attach(rig.limits(), rig.status());
     }
+    let mut services = Services::new(vec![0; CAPTURE_SLOTS]);
+    start_services(&boot, &mut control, &mut services);
     let mut handler = CommandHandler::new(hw, settings, defaults, storage);
     if !defaults {
         if let Some(prepared) = handler.boot_analog(stored_analog, &boot) {
             control.start_analog(prepared);
         }
     }
-    Ok((control, handler))
+    Ok((control, services, handler))
 }
 
 fn board_dt_ns(rate_hz: f64) -> u64 {

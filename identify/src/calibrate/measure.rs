@@ -83,16 +83,17 @@ pub(super) fn measure<T: Transport>(
     // Only a model the board runs at its control rate with its drive, sensor and feedback:
     // the tick budget the board applies at load ([`twinstack::config::tick_budget`]), applied here
     // first, so that `auto` picks among what the board takes.
-    let runs_on_board = |id: &Identification| {
+    let runs_on_board = |fitted: &IdentifyOptions, id: &Identification| {
         let mut settings = ParamFile::from_model(&id.model, &options.output_unit, None)
-            .with_observer(options.observer)
+            .with_observer(fitted.observer)
             .settings;
         settings.drive = board.drive;
         settings.sensor = board.sensor;
         settings.feedback = board.feedback;
         admission_at(&settings, &rate_limit)
     };
-    let (id, operators, label, reason, ranking) = match options.model {
+    // What was fitted: the size, and the observer (left out where the rate has no time for it).
+    let (id, operators, observer, label, reason, ranking) = match options.model {
         Some(_) => {
             let asked = Size::of(&id_options);
             let (fitted, id) = identify_admitted(&excitation, id_options.clone(), &runs_on_board)?;
@@ -102,7 +103,14 @@ pub(super) fn measure<T: Transport>(
                 Some(note) => format!("{label} (asked for; {note})"),
                 None => format!("{label} (asked for)"),
             };
-            (id, fitted.operators, label, reason, Vec::new())
+            (
+                id,
+                fitted.operators,
+                fitted.observer,
+                label,
+                reason,
+                Vec::new(),
+            )
         }
         None => {
             let auto =
@@ -113,6 +121,7 @@ pub(super) fn measure<T: Transport>(
             (
                 auto.identification,
                 picked.operators,
+                picked.observer,
                 label,
                 auto.reason,
                 ranking,
@@ -129,7 +138,7 @@ pub(super) fn measure<T: Transport>(
     }
     let held_out = record.held_out;
     let mut file = ParamFile::from_model(&id.model, &options.output_unit, Some(record))
-        .with_observer(options.observer);
+        .with_observer(observer);
 
     // The settings to load: the board's drive, sensor and gains kept.
     file.settings.drive = board.drive;

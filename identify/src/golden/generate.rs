@@ -92,12 +92,12 @@ pub fn generate(def: &SetDefinition) -> anyhow::Result<GeneratedSet> {
     let config = recipe
         .build()
         .map_err(|e| anyhow!("set {}: configuration refused: {e:?}", def.name))?;
-    let mut controller = twinstack::control::Controller::new(config);
+    let mut controller = twinstack::services::observer::Observed::new(config);
     let hw = &recipe.hardware;
     let volts_per_code = hw.amplifier_full_scale / hw.dac_full_scale as f64;
     // The controller starts with the stacks in the safe state, where the DAC starts: the stage
     // rests at the left stack's voltage there.
-    let (left, _) = controller.safe_codes();
+    let (left, _) = controller.controller.safe_codes();
     let start = left.0 as f64 * volts_per_code;
     let mut stage = Stage::at_rest(&def.truth, &recipe.settings.ranges, start)
         .with_context(|| format!("set {}: stage model", def.name))?;

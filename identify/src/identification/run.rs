@@ -169,6 +169,11 @@ pub struct BoardRate {
     /// this decimation or coarser: the services' share
     /// ([`twinstack::config::tick_budget::ServicesLoad`]) is charged beside it.
     pub capturing: Option<u16>,
+    /// The observer may be left out where the model with it is too dear at this rate, before
+    /// the model is made smaller: the observer only gives the estimate and the drift check
+    /// (the feedback acts on the sensor), so the compensator's accuracy comes first. The
+    /// file says what was left out.
+    pub observer_optional: bool,
 }
 
 impl BoardRate {
@@ -179,17 +184,20 @@ impl BoardRate {
             fewer_operators: false,
             fewer_creep_modes: false,
             capturing: None,
+            observer_optional: false,
         }
     }
 
-    /// `hz`, the creep's modes fewer where needed, and the play operators fewer where needed
-    /// unless the user asked for a number of them (`operators_asked`).
+    /// `hz`, the observer left out where needed ([`BoardRate::observer_optional`]), the
+    /// creep's modes fewer where needed, and the play operators fewer where needed unless the
+    /// user asked for a number of them (`operators_asked`).
     pub fn sizing(hz: f64, operators_asked: bool) -> Self {
         Self {
             hz,
             fewer_operators: !operators_asked,
             fewer_creep_modes: true,
             capturing: None,
+            observer_optional: true,
         }
     }
 
@@ -205,8 +213,9 @@ impl BoardRate {
 
 /// Whether the driver board's tick budget runs `settings` at `rate` ([`runs_at`]); where it
 /// does not, but would with a smaller creep or smaller P–I banks and `rate` allows them
-/// smaller, the largest such size ([`Admission::Smaller`]): the creep first loses modes
-/// (down to one), then the P–I banks pairs of operators. Each size is costed by the library's
+/// smaller, the largest such size ([`Admission::Smaller`]): the observer goes first where
+/// `rate` lets it ([`BoardRate::observer_optional`]), then the creep loses modes (down to
+/// one), then the P–I banks pairs of operators. Each size is costed by the library's
 /// own tick budget, on `settings` with the model cut to that size.
 ///
 /// ```
@@ -219,17 +228,28 @@ impl BoardRate {
 ///     observer: Some(pi17),
 ///     ..Settings::default()
 /// };
-/// // As loaded, it runs at 100 kHz; with a capture beside it (as `calibrate` checks its
-/// // tracking), the P–I banks lose pairs of operators, unless the user asked for 17.
-/// assert_eq!(admission_at(&s, &BoardRate::sizing(100_000.0, false)), Admission::Admitted);
-/// let sized = admission_at(&s, &BoardRate::sizing(100_000.0, false).capturing(1));
+/// // With a capture beside it (as `calibrate` checks its tracking) it is too dear at
+/// // 100 kHz. Its observer kept, the P–I banks lose pairs of operators, unless the user
+/// // asked for 17.
+/// let keeping = |rate: BoardRate| BoardRate { observer_optional: false, ..rate };
+/// let sized = admission_at(&s, &keeping(BoardRate::sizing(100_000.0, false).capturing(1)));
 /// assert!(matches!(
 ///     sized,
-///     Admission::Smaller { resize: Resize { operators: Some(n), creep_modes: None }, .. }
-///         if n < 17
+///     Admission::Smaller {
+///         resize: Resize { operators: Some(n), creep_modes: None, without_observer: false },
+///         ..
+///     } if n < 17
 /// ));
 /// let asked = BoardRate::sizing(100_000.0, true).capturing(1);
-/// assert!(matches!(admission_at(&s, &asked), Admission::Refused(_)));
+/// assert!(matches!(admission_at(&s, &keeping(asked)), Admission::Refused(_)));
+/// // As sized by default, the observer goes first, and the model keeps its 17.
+/// assert!(matches!(
+///     admission_at(&s, &asked),
+///     Admission::Smaller {
+///         resize: Resize { operators: None, creep_modes: None, without_observer: true },
+///         ..
+///     }
+/// ));
 /// assert_eq!(admission_at(&s, &BoardRate::sizing(50_000.0, false).capturing(1)), Admission::Admitted);
 ///
 /// // Bouc–Wen with six creep modes both ways at 100 kHz: the creep loses modes first.
@@ -241,10 +261,10 @@ impl BoardRate {
 ///     creep: Some(CreepParams::new(&[0.01, 0.03, 0.1, 0.3, 1.0, 3.0], &[0.02; 6]).unwrap()),
 ///     ..Settings::default()
 /// };
-/// let sized = admission_at(&s, &BoardRate::sizing(100_000.0, true));
+/// let sized = admission_at(&s, &keeping(BoardRate::sizing(100_000.0, true)));
 /// assert!(matches!(
 ///     sized,
-///     Admission::Smaller { resize: Resize { operators: None, creep_modes: Some(m) }, .. }
+///     Admission::Smaller { resize: Resize { operators: None, creep_modes: Some(m), .. }, .. }
 ///         if m < 6
 /// ));
 /// ```
@@ -254,13 +274,20 @@ pub fn admission_at(settings: &Settings, rate: &BoardRate) -> Admission {
     // names are the configuration's with the capture's beside them either way.
     let capture = ServicesLoad {
         capture_decimation: rate.capturing,
-        telemetry_decimation: None,
+        ..ServicesLoad::default()
     };
     let judge = |s: &Settings| -> Result<(), Refusal> {
         match s.build(&hardware) {
             Err(mut r) => {
                 if let Rule::TickOverrun { needs, .. } = &mut r.rule {
-                    *needs += capture.cycles();
+                    // The capture's frames, and the services' base share unless the
+                    // observer already has them listening.
+                    let base = if s.observer.is_some() && capture.is_listening() {
+                        tick_budget::SERVICES_BASE_CYCLES
+                    } else {
+                        0
+                    };
+                    *needs += capture.cycles() - base;
                 }
                 Err(r)
             }
@@ -312,6 +339,27 @@ pub fn admission_at(settings: &Settings, rate: &BoardRate) -> Admission {
         },
         _ => return Admission::Admitted,
     };
+    // The observer first, where it may go: the model keeps its size.
+    let without_observer = rate.observer_optional && settings.observer.is_some();
+    let bare;
+    let settings = if without_observer {
+        bare = Settings {
+            observer: None,
+            ..settings.clone()
+        };
+        if fits(&bare) {
+            return Admission::Smaller {
+                resize: Resize {
+                    without_observer,
+                    ..Resize::default()
+                },
+                why,
+            };
+        }
+        &bare
+    } else {
+        settings
+    };
     let operators = [&settings.compensator, &settings.observer]
         .into_iter()
         .find_map(|m| pi_part(m.as_ref()?).map(|p| p.thresholds.len()))
@@ -328,6 +376,7 @@ pub fn admission_at(settings: &Settings, rate: &BoardRate) -> Admission {
                 resize: Resize {
                     operators: None,
                     creep_modes: Some(m),
+                    without_observer,
                 },
                 why,
             };
@@ -344,6 +393,7 @@ pub fn admission_at(settings: &Settings, rate: &BoardRate) -> Admission {
                 resize: Resize {
                     operators: Some(2 * p),
                     creep_modes,
+                    without_observer,
                 },
                 why,
             };
@@ -401,10 +451,10 @@ pub fn identify_and_score(
     output_unit: &str,
     rate: Option<BoardRate>,
 ) -> Result<Identified, RunError> {
-    let admit = |id: &Identification| match &rate {
+    let admit = |fitted: &IdentifyOptions, id: &Identification| match &rate {
         Some(rate) => admission_at(
             &ParamFile::from_model(&id.model, output_unit, None)
-                .with_observer(options.observer)
+                .with_observer(fitted.observer)
                 .settings,
             rate,
         ),

@@ -151,6 +151,8 @@ pub struct Size {
     pub operators: usize,
     /// Creep modes (when the candidate has creep).
     pub creep_modes: usize,
+    /// Whether the parameter file runs the model as the observer too.
+    pub observer: bool,
 }
 
 impl Size {
@@ -159,12 +161,16 @@ impl Size {
         Self {
             operators: options.operators,
             creep_modes: options.creep_modes,
+            observer: options.observer,
         }
     }
 
     /// Whether it is smaller than `asked` in one count at least and larger in none.
     pub fn is_smaller_than(&self, asked: &Size) -> bool {
-        self.operators <= asked.operators && self.creep_modes <= asked.creep_modes && self != asked
+        self.operators <= asked.operators
+            && self.creep_modes <= asked.creep_modes
+            && self.observer <= asked.observer
+            && self != asked
     }
 
     /// What was made smaller than `asked` for the board, in words ("16 play operators instead
@@ -182,6 +188,13 @@ impl Size {
                 "{} creep modes instead of {}",
                 self.creep_modes, asked.creep_modes
             ));
+        }
+        if self.observer != asked.observer {
+            parts.push(
+                "no observer (the model as the compensator only: no estimate, no drift check) \
+                 instead of the observer"
+                    .to_string(),
+            );
         }
         (!parts.is_empty()).then(|| {
             format!(
@@ -210,14 +223,16 @@ pub enum Admission {
     },
 }
 
-/// Fewer play operators, fewer creep modes, or both: how [`Admission::Smaller`] makes a
-/// candidate smaller.
+/// No observer, fewer play operators, fewer creep modes, or several: how
+/// [`Admission::Smaller`] makes a candidate smaller.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct Resize {
     /// The play operators to fit with (`None`: as asked).
     pub operators: Option<usize>,
     /// The creep modes to fit with (`None`: as asked).
     pub creep_modes: Option<usize>,
+    /// The parameter file without the observer (the model as the compensator only).
+    pub without_observer: bool,
 }
 
 impl Resize {
@@ -226,6 +241,7 @@ impl Resize {
         IdentifyOptions {
             operators: self.operators.unwrap_or(options.operators),
             creep_modes: self.creep_modes.unwrap_or(options.creep_modes),
+            observer: options.observer && !self.without_observer,
             ..options.clone()
         }
     }
@@ -304,18 +320,18 @@ pub struct AutoIdentification {
 pub fn identify_admitted(
     data: &MeasuredData,
     options: IdentifyOptions,
-    admit: &impl Fn(&Identification) -> Admission,
+    admit: &impl Fn(&IdentifyOptions, &Identification) -> Admission,
 ) -> Result<(IdentifyOptions, Identification), IdentifyError> {
     let id = identify(data, &options)?;
     let refused =
         |why: String| IdentifyError::NoneAdmitted(format!("{}: {why}", options.model_label()));
-    match admit(&id) {
+    match admit(&options, &id) {
         Admission::Admitted => Ok((options, id)),
         Admission::Refused(why) => Err(refused(why)),
         Admission::Smaller { resize, why } => {
             let smaller = resize.apply(&options);
             let id = identify(data, &smaller)?;
-            match admit(&id) {
+            match admit(&smaller, &id) {
                 Admission::Admitted if Size::of(&smaller).is_smaller_than(&Size::of(&options)) => {
                     Ok((smaller, id))
                 }
@@ -337,7 +353,7 @@ pub fn identify_auto(
     data: &MeasuredData,
     candidates: &[IdentifyOptions],
 ) -> Result<AutoIdentification, IdentifyError> {
-    identify_auto_admitting(data, candidates, |_| Admission::Admitted)
+    identify_auto_admitting(data, candidates, |_, _| Admission::Admitted)
 }
 
 /// [`identify_auto`], picking only among the candidates `admit` accepts, given each one's fit
@@ -350,7 +366,7 @@ pub fn identify_auto(
 pub fn identify_auto_admitting(
     data: &MeasuredData,
     candidates: &[IdentifyOptions],
-    admit: impl Fn(&Identification) -> Admission,
+    admit: impl Fn(&IdentifyOptions, &Identification) -> Admission,
 ) -> Result<AutoIdentification, IdentifyError> {
     let first = candidates.first().ok_or(IdentifyError::NoCandidates)?;
     let fit_until_s = first.fit_until_s;
@@ -402,7 +418,7 @@ pub fn identify_auto_admitting(
             let mut model = None;
             let validation = match fit_and_score(&inner) {
                 Err(why) => Validation::NotFitted(why),
-                Ok((id, figures)) => match admit(&id) {
+                Ok((id, figures)) => match admit(&inner, &id) {
                     Admission::Admitted => {
                         model = Some(id.model);
                         Validation::Scored(figures)
@@ -417,7 +433,7 @@ pub fn identify_auto_admitting(
                         match fit_and_score(&smaller) {
                             Ok((small, smaller_figures))
                                 if Size::of(&smaller).is_smaller_than(&asked)
-                                    && admit(&small) == Admission::Admitted =>
+                                    && admit(&smaller, &small) == Admission::Admitted =>
                             {
                                 sized_down_from = Some(asked);
                                 options = resize.apply(&options);

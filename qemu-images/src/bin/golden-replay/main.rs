@@ -4,8 +4,9 @@
 //! `tests/golden.rs`, which builds and runs it). The image embeds `tests/golden/vectors.bin`
 //! and, for every vector set in it, runs `twinstack_golden::replay`: it builds the set's
 //! configuration from its recipe with the library's constructors, runs each stored input
-//! through `Controller::tick` (the code the firmware's interrupt runs) and compares each output
-//! with the stored one. Per set it prints over semihosting
+//! through `Observed::tick` (the code the firmware's interrupt runs, then the observer its
+//! services run where the configuration has a sensor) and compares each output with the
+//! stored one. Per set it prints over semihosting
 //!
 //! ```text
 //! GOLDEN set=<name> ticks=<n> config=<crc> expected_config=<crc> outputs=<crc> expected=<crc> first_diff=<tick|none>

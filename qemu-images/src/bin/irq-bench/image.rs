@@ -473,7 +473,9 @@ mod app {
     use twinstack::command_handler::{CommandHandler, Locks};
     use twinstack::config::param_store::ReadOnlyStorage;
     use twinstack::config::settings::{Mode, Settings};
-    use twinstack::config::tick_budget::worst_case_cycles;
+    use twinstack::config::tick_budget::{
+        interrupt_cycles, observer_below_cycles, pipeline_cycles, Beside,
+    };
     use twinstack::control::Controller;
     use twinstack::control_loop::{SetpointQueue, SETPOINT_QUEUE_LEN};
     use twinstack::hardware::adc::SensorInput;
@@ -671,7 +673,13 @@ mod app {
             };
             // The budget's prediction for it, computed by the library on the target.
             match config.settings.build(&hardware) {
-                Ok(c) => hprintln!("BUDGET {} {}", config.name, worst_case_cycles(&c)),
+                Ok(c) => hprintln!(
+                    "BUDGET {} {} {} {}",
+                    config.name,
+                    interrupt_cycles(&c),
+                    observer_below_cycles(&c),
+                    pipeline_cycles(&c, Beside::EVERY_FEATURE)
+                ),
                 Err(e) => hprintln!("BUDGET-REFUSED {} {}", config.name, e),
             }
             // The load's own row: the ticks between it and the first scenario (the previous

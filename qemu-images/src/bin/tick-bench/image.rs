@@ -14,13 +14,14 @@ use twinstack::config::settings::{
 };
 use twinstack::control::drive::{DifferentialDrive, DriveOutput, StackVoltages};
 use twinstack::control::notch::NotchDesign;
-use twinstack::control::{Compensator, ControlConfig, Controller, Observer, TickReport};
+use twinstack::control::{Compensator, ControlConfig, Observer, TickReport};
 use twinstack::fixed_point::SIGNAL_ONE;
 use twinstack::hardware::adc::SensorInput;
 use twinstack::hardware::dac::InternalDac;
 use twinstack::models::duhem::{Duhem, DuhemState};
 use twinstack::models::generalised_pi::{GeneralisedPi, InverseGeneralisedPi};
 use twinstack::models::prandtl_ishlinskii::{InversePrandtlIshlinskii, PiState};
+use twinstack::services::observer::Observed;
 
 /// Ticks measured per configuration (after as many warm-up ticks).
 const TICKS: u32 = 1000;
@@ -46,10 +47,12 @@ fn now(tim: &pac::TIM2) -> u32 {
     tim.cnt().read().bits()
 }
 
-/// One tick, not inlined, so the measurement brackets exactly one call.
+/// One tick and the observer's step on its report (which the board runs below the tick, in
+/// its services: the control law's whole per-tick work), not inlined, so the measurement
+/// brackets exactly one call.
 #[inline(never)]
 fn one_tick<D: DualDac, A: SensorAdc>(
-    c: &mut Controller,
+    c: &mut Observed,
     setpoint: Option<i32>,
     adc: &mut A,
     dac: &mut D,
@@ -235,7 +238,7 @@ fn main() -> ! {
     // The parts below run the inverse P–I N = 16 row's models and drive.
     let parts = build("inverse-pi-16", closed(pi(16)));
     for (name, settings) in cases {
-        let mut c = Controller::new(build(name, settings));
+        let mut c = Observed::new(build(name, settings));
         // Overhead: the bracket itself, two timer reads with nothing between. What is left of
         // a measured call is the tick's own instructions plus the call (`BL`) and its argument
         // moves, a few instructions the firmware, which inlines the tick, does not have: the

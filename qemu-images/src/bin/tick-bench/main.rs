@@ -10,7 +10,8 @@
 //! observer and sensor feedback on (plus breakdown rows: `bypass` = split, limits and DAC
 //! write only; `none-observer-only` = that plus the Duhem observer; `none-sensor-drift` = that
 //! plus the sensor read and drift check, open loop; `none-pid-notch` = closed loop with the
-//! derivative and the resonance notch), it runs `Controller::tick` on the firmware's own DAC and
+//! derivative and the resonance notch), it runs `Observed::tick` — `Controller::tick` and the
+//! observer's step on its report, which the board runs below the tick — on the firmware's own DAC and
 //! ADC drivers (the DAC write is the real `DHR12RD` store) for a triangle setpoint (±0.95) that
 //! reverses every 100 ticks, and prints one line per configuration over semihosting:
 //!

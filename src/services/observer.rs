@@ -1,0 +1,293 @@
+//! The forward observer and its drift check, below the tick.
+//!
+//! Nothing in the tick needs the observer's estimate: the feedback acts on the measurement,
+//! and the estimate is only reported (the recorder's and telemetry's `estimate` signal, the
+//! status) and, with a sensor, compared with the measurement (the drift check: the model no
+//! longer describes the stage). So the tick does not run the observer. It only has to see
+//! every drive sample the stacks were given, in order, not at once: the services run it from
+//! the tick's snapshots ([`crate::services::consumer::Services`]), each snapshot's applied
+//! drive and measurement, in the same order and fixed point as the tick did — the same
+//! estimates and drift flags, bit for bit, computed a batch later at a lower priority.
+//!
+//! A configuration's observer below the tick is prepared with it, off the tick, at the same
+//! stacks' voltages ([`ObserverBelow::prepare`]): relaxed at the drive they hold, as the
+//! controller prepares its compensator. A reload reaches the services in band: the command
+//! handler stages the new configuration's observer ([`crate::services::consumer::Services::stage_observer`])
+//! before it posts the controller, and the first snapshot of the new controller carries the
+//! loop's new swap count ([`crate::services::snapshot::Snapshot::generation`]), at which the
+//! services put the staged observer in force — the tick the new controller first ran.
+//!
+//! [`Observed`] runs a controller and its observer below the tick in one call, for what runs
+//! the control law on its own (the golden vectors' replay, the closed-loop studies): the
+//! report is the one the board's tick and services give together.
+
+use crate::board::{DualDac, SensorAdc};
+use crate::control::drive::StackVoltages;
+use crate::control::feedback::{DRIFT_FILTER_SHIFT, SENSOR_DELAY_TICKS};
+use crate::control::{ControlConfig, Controller, Observer, TickFlags, TickReport};
+use crate::models::ObserverRun;
+
+/// What the observer below the tick costs a snapshot beside its model's own cycles (which
+/// each model declares, as in the tick): the dispatch, the drift check, the estimate's
+/// history, the report's fields it reads and writes, at 5 flash wait states. Measured by the
+/// whole-interrupt bench (`cargo test --profile host-opt --test irq_bench`), which traces the
+/// services' task serving it beside a capture and telemetry and checks every configuration's
+/// pipeline against the tick budget's charge (`config::tick_budget::observer_below_cycles`):
+/// against the same scenarios without the observer in the services, a P–I 17 observer adds
+/// about 370 cycles a snapshot (its bank about 260 of them) and a Bouc–Wen one about 190
+/// (its model 88), so 100 covers both.
+pub const OBSERVER_BELOW_CYCLES: u32 = 100;
+
+/// The forward observer of a configuration with a sensor and its drift check, fed the tick's
+/// applied drive and measurement from the snapshots.
+#[derive(Clone, Debug)]
+pub struct ObserverBelow {
+    observer: ObserverRun,
+    /// Largest low-passed |measured − estimate| before the drift flag, Q2.30 (`u32::MAX`: no
+    /// check).
+    drift_limit: u32,
+    /// Whether the stage has a sensor (no drift check without one).
+    sensed: bool,
+    /// The last estimates, newest first, Q2.30: the measurement is
+    /// [`SENSOR_DELAY_TICKS`] ticks old, so it is compared with the estimate of its instant.
+    estimates: [i32; SENSOR_DELAY_TICKS],
+    /// Low-passed measured − estimate, Q2.30.
+    drift: i32,
+    /// The last drift check's verdict.
+    drifting: bool,
+}
+
+impl ObserverBelow {
+    /// The observer below the tick for `config` with the stacks at `stacks` (board units; the
+    /// voltages the controller is prepared at, [`Controller::prepare`]): `None` where it has
+    /// none. The heavy part of a reload, as the controller's: off the tick.
+    ///
+    /// ```
+    /// use twinstack::board::Hardware;
+    /// use twinstack::config::settings::{representative_pi, SensorSettings, Settings};
+    /// use twinstack::services::observer::ObserverBelow;
+    ///
+    /// let hardware = Hardware::driver_board(50_000.0);
+    /// let config = Settings::default().build(&hardware).unwrap();
+    /// assert!(ObserverBelow::prepare(&config, config.drive.safe_stacks()).is_none());
+    /// let observed = Settings { observer: Some(representative_pi(8).unwrap()), ..Settings::default() };
+    /// let config = observed.build(&hardware).unwrap();
+    /// let o = ObserverBelow::prepare(&config, config.drive.safe_stacks()).unwrap();
+    /// assert!(!o.is_drifting());
+    /// ```
+    pub fn prepare(config: &ControlConfig, stacks: StackVoltages) -> Option<Self> {
+        if matches!(config.observer, Observer::None) {
+            return None;
+        }
+        let drive = config.drive.drive_of(stacks.left);
+        let (observer, y) = config.observer.prepare(config.creep, drive);
+        Some(Self {
+            observer,
+            drift_limit: config.sensor.map_or(u32::MAX, |s| s.drift_limit),
+            sensed: config.sensor.is_some(),
+            estimates: [y; SENSOR_DELAY_TICKS],
+            drift: 0,
+            drifting: false,
+        })
+    }
+
+    /// One tick, after it: the drift check of its measurement (with a sensor; skipped on a
+    /// failed reading), then the observer on its applied drive. Fills the report's `estimate` and sets its
+    /// `DRIFT` flag as the tick would have. No division, no loop, no panic.
+    #[inline(always)]
+    pub fn observe(&mut self, report: &mut TickReport) {
+        if self.sensed && !report.flags.contains(TickFlags::ADC_ERROR) {
+            let difference = report
+                .measured
+                .saturating_sub(self.estimates[SENSOR_DELAY_TICKS - 1]);
+            let step = difference.saturating_sub(self.drift) >> DRIFT_FILTER_SHIFT;
+            self.drift = self.drift.saturating_add(step);
+            self.drifting = self.drift.unsigned_abs() > self.drift_limit;
+            if self.drifting {
+                report.flags.0 |= TickFlags::DRIFT;
+            }
+        }
+        let estimate = self.observer.step(report.drive);
+        self.estimates.copy_within(0..SENSOR_DELAY_TICKS - 1, 1);
+        self.estimates[0] = estimate;
+        report.estimate = estimate;
+    }
+
+    /// The last estimate, Q2.30 normalised displacement.
+    pub fn estimate(&self) -> i32 {
+        self.estimates[0]
+    }
+
+    /// The low-passed difference measured − estimate, Q2.30 normalised displacement.
+    pub fn drift(&self) -> i32 {
+        self.drift
+    }
+
+    /// Whether the last drift check found the model drifted from the stage.
+    pub fn is_drifting(&self) -> bool {
+        self.drifting
+    }
+}
+
+/// A controller and its observer, run one after the other: the report the board's tick and
+/// its services give together, for what runs the control law without the board's two
+/// priorities (replays, studies, tests).
+#[derive(Clone, Debug)]
+pub struct Observed {
+    /// The controller (the tick).
+    pub controller: Controller,
+    /// Its observer, if its configuration has one.
+    pub observer: Option<ObserverBelow>,
+}
+
+impl Observed {
+    /// A controller on `config` ([`Controller::new`]) and its observer below the tick,
+    /// prepared at the same stacks.
+    ///
+    /// ```
+    /// use twinstack::board::Hardware;
+    /// use twinstack::config::settings::Settings;
+    /// use twinstack::services::observer::Observed;
+    /// let config = Settings::default().build(&Hardware::driver_board(50_000.0)).unwrap();
+    /// let o = Observed::new(config);
+    /// assert!(o.observer.is_none()); // the defaults have no model
+    /// ```
+    pub fn new(config: ControlConfig) -> Self {
+        let controller = Controller::new(config);
+        let observer = ObserverBelow::prepare(&config, controller.stacks());
+        Self {
+            controller,
+            observer,
+        }
+    }
+
+    /// Reloads `config` as the board does: the controller prepared at the stacks' present
+    /// voltages ([`Controller::prepare`]) takes over from the running one
+    /// ([`Controller::take_over`]), and the observer below the tick is prepared at the same
+    /// voltages, in force from the next tick.
+    pub fn reload(&mut self, config: ControlConfig) {
+        let stacks = self.controller.stacks();
+        let mut next = self.controller.clone();
+        next.prepare(config, stacks);
+        next.take_over(&self.controller);
+        self.controller = next;
+        self.observer = ObserverBelow::prepare(&config, stacks);
+    }
+
+    /// One tick ([`Controller::tick`]) and the observer below it on the tick's report.
+    #[inline]
+    pub fn tick<D: DualDac, A: SensorAdc>(
+        &mut self,
+        setpoint: Option<i32>,
+        adc: &mut A,
+        dac: &mut D,
+    ) -> TickReport {
+        let report = self.controller.tick(setpoint, adc, dac);
+        self.observed(report)
+    }
+
+    /// [`Observed::tick`] for a board that is both the DAC and the ADC.
+    #[inline]
+    pub fn tick_board<B: DualDac + SensorAdc>(
+        &mut self,
+        setpoint: Option<i32>,
+        board: &mut B,
+    ) -> TickReport {
+        let report = self.controller.tick_board(setpoint, board);
+        self.observed(report)
+    }
+
+    /// The tick's `report` with the observer's estimate and drift flag filled in.
+    #[inline(always)]
+    fn observed(&mut self, mut report: TickReport) -> TickReport {
+        if let Some(o) = &mut self.observer {
+            o.observe(&mut report);
+        }
+        report
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::board::DacCode;
+    use crate::fixed_point::signal_from_f64;
+
+    /// An observer whose estimate reads 0 (no model), with a sensor and a 1 % drift limit:
+    /// the drift check alone.
+    fn check_alone() -> ObserverBelow {
+        ObserverBelow {
+            observer: ObserverRun::None,
+            drift_limit: signal_from_f64(0.01) as u32,
+            sensed: true,
+            estimates: [0; SENSOR_DELAY_TICKS],
+            drift: 0,
+            drifting: false,
+        }
+    }
+
+    fn report(measured: i32, flags: u8) -> TickReport {
+        TickReport {
+            left: DacCode(0),
+            right: DacCode(0),
+            estimate: 0,
+            measured,
+            drive: 0,
+            flags: TickFlags(flags),
+            triggers: 0,
+        }
+    }
+
+    fn drifted(o: &mut ObserverBelow, measured: i32) -> bool {
+        let mut r = report(measured, 0);
+        o.observe(&mut r);
+        r.flags.contains(TickFlags::DRIFT)
+    }
+
+    #[test]
+    fn drift_is_flagged_when_the_sensor_leaves_the_estimate_and_cleared_when_it_returns() {
+        let mut o = check_alone();
+        // The estimate and the (delayed) measurement agree, with sensor noise: no flag.
+        let mut seed = 3u32;
+        for _ in 0..500 {
+            seed = seed.wrapping_mul(1_664_525).wrapping_add(1_013_904_223);
+            let noise = ((seed >> 16) as i32 - 32768) * 256; // ±0.8 % of full scale
+            assert!(!drifted(&mut o, noise));
+        }
+        // The stage sits 2 % away from the model: flagged within a few filter time constants.
+        let flagged = (0..100).position(|_| drifted(&mut o, signal_from_f64(0.02)));
+        assert!(matches!(flagged, Some(k) if k < 40), "{flagged:?}");
+        assert!(o.is_drifting());
+        // Back in agreement: the flag clears.
+        let cleared = (0..200).position(|_| !drifted(&mut o, 0));
+        assert!(cleared.is_some());
+        assert!(!o.is_drifting());
+    }
+
+    #[test]
+    fn the_reading_is_compared_with_the_estimate_of_its_instant_and_skipped_when_it_failed() {
+        // The estimate of SENSOR_DELAY_TICKS ago was 0.5, the newer ones 0: a reading of 0 is
+        // below the old one.
+        let mut o = check_alone();
+        o.estimates[SENSOR_DELAY_TICKS - 1] = signal_from_f64(0.5);
+        let mut r = report(0, 0);
+        o.observe(&mut r);
+        assert!(
+            o.drift() < 0,
+            "the old estimate (0.5) is what the reading is compared to"
+        );
+        // A failed reading leaves the check as it was; no sensor, no check at all.
+        let mut o = check_alone();
+        let mut r = report(signal_from_f64(0.5), TickFlags::ADC_ERROR);
+        o.observe(&mut r);
+        assert_eq!(o.drift(), 0);
+        let mut o = ObserverBelow {
+            sensed: false,
+            ..check_alone()
+        };
+        for _ in 0..100 {
+            assert!(!drifted(&mut o, signal_from_f64(0.5)));
+        }
+        assert_eq!(o.drift(), 0);
+    }
+}
