@@ -1650,9 +1650,9 @@ fn two_loads_between_two_ticks_swap_twice_and_the_newer_runs_from_the_drive_held
 /// `charge` more cycles beside it: halfway between the two. Returns it, the rate and the
 /// configuration's predicted cycles there.
 fn closed_loop_board_short_of(charge: u32) -> (Board<RamStorage>, f64, u32) {
-    use twinstack::config::tick_budget::{available_cycles, worst_case_cycles, SYSCLK_HZ};
+    use twinstack::config::tick_budget::{available_cycles, highest_rate_hz, worst_case_cycles};
     let worst = worst_case_cycles(&closed().build(&hardware()).unwrap());
-    let rate = SYSCLK_HZ as f64 / (worst + charge / 2) as f64;
+    let rate = highest_rate_hz(worst + charge / 2);
     let hw = Hardware::driver_board(rate);
     let fits = worst_case_cycles(&closed().build(&hw).unwrap());
     assert!(fits <= available_cycles(rate) && fits + charge > available_cycles(rate));

@@ -56,8 +56,10 @@ fn the_json_matches_the_budget_and_says_what_is_admitted() {
     for r in rows {
         let cycles = r["loaded"]["cycles"].as_u64().unwrap() as f64;
         let rate = r["loaded"]["highest_rate_hz"].as_f64().unwrap();
-        // The rate whose period (168 MHz) holds exactly the cycles.
-        assert!((rate * cycles / 168e6 - 1.0).abs() < 1e-9, "{r}");
+        // The rate whose period's share (`TICK_SHARE_PERCENT` of 168 MHz / rate) holds exactly
+        // the cycles.
+        let share = f64::from(twinstack::config::tick_budget::TICK_SHARE_PERCENT) / 100.0;
+        assert!((rate * cycles / (share * 168e6) - 1.0).abs() < 1e-9, "{r}");
         assert_eq!(
             r["admitted_at_rate"].as_bool(),
             Some(rate >= 50_000.0),
