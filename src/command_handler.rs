@@ -505,9 +505,10 @@ impl<S: RecordStorage> CommandHandler<S> {
         let Some(mut spare) = spare else {
             return Err(NackReason::Busy);
         };
-        // The heavy part, outside any lock: the tick runs meanwhile.
-        spare.prepare(config, stacks);
-        let observer = ObserverBelow::prepare(&config, stacks);
+        // The heavy part, outside any lock: the tick runs meanwhile. The observer the
+        // preparation relaxed is the one below the tick: relaxed once.
+        let relaxed = spare.prepare(config, stacks);
+        let observer = ObserverBelow::from_relaxed(&config, relaxed);
         // The observer runs below the tick: the services take it over at the new controller's
         // first snapshot, staged first, the tick handing them its snapshots.
         let below = observer.is_some();

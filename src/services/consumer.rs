@@ -257,7 +257,7 @@ impl<B: SampleStore> Services<B> {
     }
 
     /// Stages the observer below the tick of a configuration about to be posted to the tick
-    /// ([`ObserverBelow::prepare`], `None` where it has none there): it takes over at the
+    /// ([`ObserverBelow::from_relaxed`], `None` where it has none there): it takes over at the
     /// first snapshot the new configuration's tick pushes. Call it before the post, with the
     /// tick handing the services its snapshots if either observer is there; a newer staging
     /// replaces one no tick has run yet, as the newer of two posts between two ticks
