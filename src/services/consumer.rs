@@ -282,7 +282,9 @@ impl<B: SampleStore> Services<B> {
         self.observer.as_ref()
     }
 
-    /// Ticks the drift check below the tick flagged since power-up (wrapping).
+    /// Ticks the drift check below the tick flagged since power-up (wrapping): a load does
+    /// not reset it, and ticks whose snapshots were lost are not checked. The status reports
+    /// it (`StatusReport::drifts`).
     pub fn drifts(&self) -> u32 {
         self.drifts
     }
