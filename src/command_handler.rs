@@ -415,12 +415,13 @@ impl<S: RecordStorage> CommandHandler<S> {
         // A capture or a record that has completed stops the tick's snapshots.
         settle_listening(control);
         let t = control.lock(|c| c.telemetry());
-        let (recording, recorded, lost, below) = control.peek_services(|s| {
+        let (recording, recorded, lost, below, drifts) = control.peek_services(|s| {
             (
                 s.recorder().is_capturing(),
                 s.recorder().recorded(),
                 s.lost(),
                 s.observer().map(|o| o.estimate()),
+                s.drifts(),
             )
         });
         let mut flags = match self.settings.mode {
@@ -462,6 +463,8 @@ impl<S: RecordStorage> CommandHandler<S> {
             tick_rate_hz: self.hardware.control_rate_hz as u32,
             recorded,
             flags,
+            // The drift check runs below the tick too: its count as of the same batch.
+            drifts,
         }
     }
 
@@ -505,9 +508,10 @@ impl<S: RecordStorage> CommandHandler<S> {
         let Some(mut spare) = spare else {
             return Err(NackReason::Busy);
         };
-        // The heavy part, outside any lock: the tick runs meanwhile.
-        spare.prepare(config, stacks);
-        let observer = ObserverBelow::prepare(&config, stacks);
+        // The heavy part, outside any lock: the tick runs meanwhile. The observer the
+        // preparation relaxed is the one below the tick: relaxed once.
+        let relaxed = spare.prepare(config, stacks);
+        let observer = ObserverBelow::from_relaxed(&config, relaxed);
         // The observer runs below the tick: the services take it over at the new controller's
         // first snapshot, staged first, the tick handing them its snapshots.
         let below = observer.is_some();

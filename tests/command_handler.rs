@@ -1972,3 +1972,71 @@ fn the_observer_below_the_tick_listens_from_its_load_until_a_load_without_one() 
     assert!(!b.control.is_listening());
     assert_eq!(s.estimate, 0);
 }
+
+/// The drift check is reported: with an observer and a sensor with a drift limit, a sensor
+/// reading far from the observer's estimate is counted in the status's `drifts`, one a tick
+/// the services have checked, as a host decodes it from the status frame; the count is since
+/// start-up (a load does not reset it) and stands still without an observer.
+#[test]
+fn the_status_counts_the_ticks_the_drift_check_flagged_since_start_up() {
+    // The status as a host reads it: a `Status` frame in, the response frame decoded.
+    fn wire_status<S: RecordStorage>(b: &mut Board<S>) -> StatusReport {
+        match b.bytes(&encoded(&Request::Status)).as_slice() {
+            [Response::Status(s)] => *s,
+            r => panic!("{r:?}"),
+        }
+    }
+    let mut b = board();
+    // The defaults have no observer: a reading anywhere is no drift.
+    b.adc = Adc(4095);
+    b.ticks(64);
+    assert_eq!(wire_status(&mut b).drifts, 0);
+    // An observer and a drift limit of 2 % of the range; open loop, the setpoint held.
+    let mut observed = Settings {
+        compensator: Some(representative_pi(16).unwrap()),
+        observer: Some(representative_duhem()),
+        mode: Mode::OpenLoop,
+        ..Settings::default()
+    };
+    observed.sensor = Some(SensorSettings {
+        drift_limit: Some(0.02),
+        ..observed.sensor.unwrap()
+    });
+    assert!(matches!(
+        b.handle(Request::LoadParams(observed.clone())),
+        Response::Ack { .. }
+    ));
+    b.ticks(8);
+    let estimate = wire_status(&mut b).estimate;
+    // The sensor at the end of its span farther from the estimate: half the range away or more.
+    b.adc = Adc(if estimate > 0 { 0 } else { 4095 });
+    b.ticks(64);
+    let first = wire_status(&mut b);
+    assert!(first.drifts > 0, "the drift check fired: {first:?}");
+    assert_eq!(first.drifts, b.services.drifts());
+    // Every tick from now on is flagged and counted, a batch of 8 at a time.
+    b.ticks(64);
+    let later = wire_status(&mut b);
+    assert_eq!(later.drifts, first.drifts + 64);
+    // A load does not reset the count, and its observer goes on flagging the stage.
+    assert!(matches!(
+        b.handle(Request::LoadParams(observed.clone())),
+        Response::Ack { .. }
+    ));
+    b.ticks(64);
+    let reloaded = wire_status(&mut b);
+    assert!(reloaded.drifts > later.drifts, "{reloaded:?}");
+    // Without an observer nothing is checked: the count stands.
+    assert!(matches!(
+        b.handle(Request::LoadParams(Settings {
+            observer: None,
+            ..observed
+        })),
+        Response::Ack { .. }
+    ));
+    b.ticks(8);
+    let bare = wire_status(&mut b).drifts;
+    b.ticks(64);
+    assert_eq!(wire_status(&mut b).drifts, bare);
+    assert!(bare >= reloaded.drifts);
+}

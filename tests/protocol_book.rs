@@ -477,16 +477,16 @@ fn a_wrong_byte_or_annotation_in_the_chapter_is_caught() {
     let mutations = [
         // A frame byte.
         (
-            "frame: 02 08 03 f7 98 02 89 00",
-            "frame: 02 08 03 f7 98 02 8a 00",
+            "frame: 02 09 05 b6 a9 1b 90 00",
+            "frame: 02 09 05 b6 a9 1b 91 00",
         ),
         // The version before the current one, with its CRC.
         (
+            "body:  09 (version) | 00 (Status) | CRC b6 a9 1b 90",
             "body:  08 (version) | 00 (Status) | CRC f7 98 00 89",
-            "body:  07 (version) | 00 (Status) | CRC 38 84 98 0e",
         ),
         // A CRC alone.
-        ("| CRC 3b 5b dd ee", "| CRC 3b 5b dd ef"),
+        ("| CRC 5e 3c 61 56", "| CRC 5e 3c 61 57"),
         // A variant's name.
         ("0a (Field::Ki)", "0a (Field::Kp)"),
         ("00 (Ack)", "00 (Nack)"),

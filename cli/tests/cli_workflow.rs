@@ -123,6 +123,8 @@ fn status_json_is_one_object() {
     assert_eq!(v["tick_rate_hz"], 50_000);
     assert_eq!(v["queue_fill"], 0);
     assert!(v["flags"].is_array(), "{out}");
+    // The drift check's count: 0 on the defaults, which have no observer to check.
+    assert_eq!(v["drifts"], 0, "{out}");
     // The estimate at rest (the observer on its ascending branch at the boot drive), in
     // both forms: normalised and raw Q2.30, the same number.
     let (e, raw) = (

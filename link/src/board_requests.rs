@@ -300,6 +300,7 @@ pub fn status_json(s: &StatusReport) -> serde_json::Value {
         "crc_errors": s.crc_errors,
         "frame_errors": s.frame_errors,
         "limit_hits": s.limit_hits,
+        "drifts": s.drifts,
         "estimate": s.estimate as f64 / (1u64 << 30) as f64,
         "estimate_q2_30": s.estimate,
         "recorded": s.recorded,

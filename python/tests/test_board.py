@@ -18,6 +18,7 @@ def test_status_reports_the_simulated_board(board):
     assert s["tick_rate_hz"] == 50000
     assert s["mode"] == "bypass"
     assert s["queue_fill"] == 0 and s["credits"] > 0
+    assert s["drifts"] == 0, "the defaults have no observer, so no drift check"
     ticks = s["ticks"]
     assert board.status()["ticks"] > ticks, "the board's time runs"
 

@@ -180,7 +180,8 @@ class Board:
     def status(self) -> Dict[str, Any]:
         """Status and telemetry: ``image`` (board/emulator/simulator), ``ticks``,
         ``tick_rate_hz``, ``mode``, ``flags`` (streaming, waveform, recording, defaults),
-        queue and link counters, ``estimate`` (normalised), ``recorded``."""
+        queue and link counters, ``limit_hits``, ``drifts`` (ticks the drift check flagged
+        since start-up), ``estimate`` (normalised), ``recorded``."""
     def load(
         self,
         params: Params,

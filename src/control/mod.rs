@@ -46,8 +46,23 @@ use crate::control::notch::{Notch, NotchState};
 pub use crate::control::sensor::Sensor;
 use crate::fixed_point::clamp_full_scale;
 use crate::models::creep::Creep;
-use crate::models::CompensatorRun;
 pub use crate::models::{Compensator, Observer};
+use crate::models::{CompensatorRun, ObserverRun};
+
+/// The observer a preparation relaxed ([`Controller::prepare`]): the tick's form of the
+/// configuration's forward model (and its creep), its state relaxed at the drive the stacks
+/// hold, and its output there. The controller derives its compensator's state from it and
+/// hands it out, so that the observer below the tick starts from the same state
+/// ([`crate::services::observer::ObserverBelow::from_relaxed`]) without relaxing the model a
+/// second time.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct RelaxedObserver {
+    /// The observer as the tick would run it, relaxed ([`ObserverRun::None`] without a model).
+    pub run: ObserverRun,
+    /// Its output there, Q2.30 normalised displacement (the drive itself without a model):
+    /// the setpoint the controller is prepared at.
+    pub output: i32,
+}
 
 /// Everything the tick needs, validated and in fixed point (built by
 /// [`crate::config::settings::Settings::build`]).
@@ -289,8 +304,9 @@ impl Controller {
     /// drive those voltages amount to (within the new limits), the compensator's state derived
     /// from the observer's, the setpoint where the observer puts the stage. This is the heavy
     /// part of a reload (thousands of instructions for a large P–I): it runs in the
-    /// low-priority task, never in the tick.
-    pub fn prepare(&mut self, config: ControlConfig, stacks: StackVoltages) {
+    /// low-priority task, never in the tick. Returns the observer it relaxed, for the
+    /// observer below the tick to start from ([`RelaxedObserver`]).
+    pub fn prepare(&mut self, config: ControlConfig, stacks: StackVoltages) -> RelaxedObserver {
         let d = &config.drive;
         let drive = d.drive_of(stacks.left);
         // The observer relaxed at the drive the stacks hold; the compensator's state from the
@@ -302,8 +318,8 @@ impl Controller {
             .compensator
             .prepare(&observer, config.creep, drive, y);
         let rest_setpoint = config.observer.relaxed_output(d.rest_drive());
-        // The observer runs below the tick ([`crate::services::observer`]): this one only
-        // prepared the compensator's state.
+        // The observer runs below the tick ([`crate::services::observer`]): this one prepared
+        // the compensator's state and is handed out for it, relaxed once.
         *self = Self {
             compensator,
             sensor: config.sensor,
@@ -326,6 +342,10 @@ impl Controller {
             // Settled at the drive held: the shaped feedforward starts where the stacks are.
             shaping_state: Notch::state_at(drive),
         };
+        RelaxedObserver {
+            run: observer,
+            output: y,
+        }
     }
 
     /// Takes over from `old` between two ticks, in O(1): the stacks' voltages and the stricter

@@ -40,8 +40,10 @@ use serde::{Deserialize, Serialize};
 /// (`Request::Analog`, `Response::Analog`, the `Field`s `AnalogGain` … `AnalogRate`, the status
 /// flags `ANALOG` and `ANALOG_FAULT`: appended the same way), then the watchdog drill
 /// (`Request::WatchdogDrill`, `NackReason::Unsupported`, the status flag `WATCHDOG_RESET`:
-/// appended the same way).
-pub const PROTOCOL_VERSION: u8 = 8;
+/// appended the same way). Version 9 appended the drift count to the status
+/// (`StatusReport::drifts`): a status of another length does not decode, so a version-8
+/// board and a version-9 host refuse each other's frames whole.
+pub const PROTOCOL_VERSION: u8 = 9;
 /// Largest frame body (version + message + CRC), bytes: a load of the largest settings (two
 /// generalised P–I models of 32 operators and 8 dead zones, both notches) fits.
 pub const MAX_BODY: usize = 1568;

@@ -539,6 +539,12 @@ pub struct StatusReport {
     pub recorded: u32,
     /// Flags, see [`StatusReport::DEFAULTS`] and the other `StatusReport` constants.
     pub flags: u16,
+    /// Ticks the drift check flagged (protocol v9): with an observer and a sensor with a drift
+    /// limit, ticks whose low-passed difference between the measurement and the observer's
+    /// estimate exceeded the limit — the model no longer describes the stage. Counted by the
+    /// services below the tick ([`crate::services::consumer::Services::drifts`]), up to a
+    /// batch of 8 ticks behind; since start-up, across loads (a load does not reset it).
+    pub drifts: u32,
 }
 
 impl StatusReport {

@@ -261,7 +261,7 @@ impl<B: SampleStore> Services<B> {
     }
 
     /// Stages the observer below the tick of a configuration about to be posted to the tick
-    /// ([`ObserverBelow::prepare`], `None` where it has none there): it takes over at the
+    /// ([`ObserverBelow::from_relaxed`], `None` where it has none there): it takes over at the
     /// first snapshot the new configuration's tick pushes. Call it before the post, with the
     /// tick handing the services its snapshots if either observer is there; a newer staging
     /// replaces one no tick has run yet, as the newer of two posts between two ticks
@@ -286,7 +286,9 @@ impl<B: SampleStore> Services<B> {
         self.observer.as_ref()
     }
 
-    /// Ticks the drift check below the tick flagged since power-up (wrapping).
+    /// Ticks the drift check below the tick flagged since power-up (wrapping): a load does
+    /// not reset it, and ticks whose snapshots were lost are not checked. The status reports
+    /// it (`StatusReport::drifts`).
     pub fn drifts(&self) -> u32 {
         self.drifts
     }

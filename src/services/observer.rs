@@ -10,8 +10,10 @@
 //! estimates and drift flags, bit for bit, computed a batch later at a lower priority.
 //!
 //! A configuration's observer below the tick is prepared with it, off the tick, at the same
-//! stacks' voltages ([`ObserverBelow::prepare`]): relaxed at the drive they hold, as the
-//! controller prepares its compensator. A reload reaches the services in band: the command
+//! stacks' voltages: relaxed at the drive they hold, once — the controller's preparation
+//! relaxes it to derive its compensator's state and hands it out ([`Controller::prepare`],
+//! [`ObserverBelow::from_relaxed`]); [`ObserverBelow::prepare`] relaxes it on its own, for
+//! what has no controller prepared beside it. A reload reaches the services in band: the command
 //! handler stages the new configuration's observer ([`crate::services::consumer::Services::stage_observer`])
 //! before it posts the controller, and the first snapshot of the new controller carries the
 //! loop's new swap count ([`crate::services::snapshot::Snapshot::generation`]), at which the
@@ -24,7 +26,7 @@
 use crate::board::{DualDac, SensorAdc};
 use crate::control::drive::StackVoltages;
 use crate::control::feedback::{DRIFT_FILTER_SHIFT, SENSOR_DELAY_TICKS};
-use crate::control::{ControlConfig, Controller, Observer, TickFlags, TickReport};
+use crate::control::{ControlConfig, Controller, Observer, RelaxedObserver, TickFlags, TickReport};
 use crate::models::ObserverRun;
 
 /// What the observer below the tick costs a snapshot beside its model's own cycles (which
@@ -41,7 +43,7 @@ pub const OBSERVER_BELOW_CYCLES: u32 = 50;
 
 /// The forward observer of a configuration with a sensor and its drift check, fed the tick's
 /// applied drive and measurement from the snapshots.
-#[derive(Clone, Debug)]
+#[derive(Clone, Debug, PartialEq, Eq)]
 pub struct ObserverBelow {
     observer: ObserverRun,
     /// Largest low-passed |measured − estimate| before the drift flag, Q2.30 (`u32::MAX`: no
@@ -61,7 +63,8 @@ pub struct ObserverBelow {
 impl ObserverBelow {
     /// The observer below the tick for `config` with the stacks at `stacks` (board units; the
     /// voltages the controller is prepared at, [`Controller::prepare`]): `None` where it has
-    /// none. The heavy part of a reload, as the controller's: off the tick.
+    /// none. Relaxes the model itself, off the tick: where a controller is prepared beside it,
+    /// [`ObserverBelow::from_relaxed`] takes the observer that preparation relaxed instead.
     ///
     /// ```
     /// use twinstack::board::Hardware;
@@ -81,12 +84,39 @@ impl ObserverBelow {
             return None;
         }
         let drive = config.drive.drive_of(stacks.left);
-        let (observer, y) = config.observer.prepare(config.creep, drive);
+        let (run, output) = config.observer.prepare(config.creep, drive);
+        Self::from_relaxed(config, RelaxedObserver { run, output })
+    }
+
+    /// The observer below the tick for `config` from the observer its controller's
+    /// preparation relaxed ([`Controller::prepare`] on `config`, which hands it out): the same
+    /// as [`ObserverBelow::prepare`] at the same stacks, bit for bit, without relaxing the
+    /// model again. `None` where `config` has no observer.
+    ///
+    /// ```
+    /// use twinstack::board::Hardware;
+    /// use twinstack::config::settings::{representative_pi, Settings};
+    /// use twinstack::control::Controller;
+    /// use twinstack::services::observer::ObserverBelow;
+    ///
+    /// let hardware = Hardware::driver_board(50_000.0);
+    /// let observed = Settings { observer: Some(representative_pi(8).unwrap()), ..Settings::default() };
+    /// let config = observed.build(&hardware).unwrap();
+    /// let mut c = Controller::new(config);
+    /// let stacks = c.stacks();
+    /// let relaxed = c.prepare(config, stacks);
+    /// let o = ObserverBelow::from_relaxed(&config, relaxed).unwrap();
+    /// assert_eq!(o.estimate(), ObserverBelow::prepare(&config, stacks).unwrap().estimate());
+    /// ```
+    pub fn from_relaxed(config: &ControlConfig, relaxed: RelaxedObserver) -> Option<Self> {
+        if matches!(config.observer, Observer::None) {
+            return None;
+        }
         Some(Self {
-            observer,
+            observer: relaxed.run,
             drift_limit: config.sensor.map_or(u32::MAX, |s| s.drift_limit),
             sensed: config.sensor.is_some(),
-            estimates: [y; SENSOR_DELAY_TICKS],
+            estimates: [relaxed.output; SENSOR_DELAY_TICKS],
             drift: 0,
             drifting: false,
         })
@@ -164,15 +194,15 @@ impl Observed {
 
     /// Reloads `config` as the board does: the controller prepared at the stacks' present
     /// voltages ([`Controller::prepare`]) takes over from the running one
-    /// ([`Controller::take_over`]), and the observer below the tick is prepared at the same
-    /// voltages, in force from the next tick.
+    /// ([`Controller::take_over`]), and the observer below the tick starts from the observer
+    /// that preparation relaxed ([`ObserverBelow::from_relaxed`]), in force from the next tick.
     pub fn reload(&mut self, config: ControlConfig) {
         let stacks = self.controller.stacks();
         let mut next = self.controller.clone();
-        next.prepare(config, stacks);
+        let relaxed = next.prepare(config, stacks);
         next.take_over(&self.controller);
         self.controller = next;
-        self.observer = ObserverBelow::prepare(&config, stacks);
+        self.observer = ObserverBelow::from_relaxed(&config, relaxed);
     }
 
     /// One tick ([`Controller::tick`]) and the observer below it on the tick's report.
@@ -243,6 +273,61 @@ mod tests {
         let mut r = report(measured, 0);
         o.observe(&mut r);
         r.flags.contains(TickFlags::DRIFT)
+    }
+
+    /// The observer a controller's preparation hands out (what a load stages below the tick)
+    /// is the one [`ObserverBelow::prepare`] relaxes on its own at the same stacks, bit for
+    /// bit: every model, with and without creep, with and without a drift check, wherever
+    /// the stacks stand.
+    #[test]
+    fn the_observer_a_preparation_hands_out_is_the_one_prepared_on_its_own() {
+        use crate::board::Hardware;
+        use crate::config::settings::{
+            representative_bouc_wen, representative_duhem, representative_gpi, representative_pi,
+            Settings,
+        };
+        use crate::models::creep::CreepParams;
+        let hardware = Hardware::driver_board(50_000.0);
+        let models = [
+            None,
+            Some(representative_pi(16).unwrap()),
+            Some(representative_gpi(8).unwrap()),
+            Some(representative_duhem()),
+            Some(representative_bouc_wen()),
+        ];
+        let mut compared = 0;
+        for model in models {
+            for creep in [false, true] {
+                for drift_limit in [None, Some(0.02)] {
+                    let mut s = Settings {
+                        compensator: model.clone(),
+                        observer: model.clone(),
+                        creep: creep
+                            .then(|| CreepParams::new(&[1e-3, 1e-2], &[0.05, 0.05]).unwrap()),
+                        ..Settings::default()
+                    };
+                    if let Some(sensor) = &mut s.sensor {
+                        sensor.drift_limit = drift_limit;
+                    }
+                    let config = s.build(&hardware).unwrap();
+                    let safe = config.drive.safe_stacks();
+                    for step in [-20_000i32, 0, 12_000, 30_000] {
+                        let stacks = StackVoltages {
+                            left: safe.left.saturating_add(step << 15),
+                            right: safe.right.saturating_sub(step << 15),
+                        };
+                        let mut c = Controller::new(config);
+                        let relaxed = c.prepare(config, stacks);
+                        let handed = ObserverBelow::from_relaxed(&config, relaxed);
+                        let own = ObserverBelow::prepare(&config, stacks);
+                        assert_eq!(handed, own, "{model:?}, creep {creep}, stacks {stacks:?}");
+                        assert_eq!(handed.is_some(), model.is_some());
+                        compared += usize::from(handed.is_some());
+                    }
+                }
+            }
+        }
+        assert_eq!(compared, 4 * 2 * 2 * 4);
     }
 
     #[test]

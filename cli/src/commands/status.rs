@@ -22,7 +22,7 @@ pub use twinstack_link::board_requests::{flag_names, status_json};
 pub fn format_status(s: &StatusReport) -> String {
     let flags = flag_names(s);
     format!(
-        "image {}\nticks {}\ntick_rate_hz {}\nmode {:?}\nflags {}\nqueue_fill {}\ncredits {}\nnext_seq {}\nunderruns {}\noverruns {}\ncrc_errors {}\nframe_errors {}\nlimit_hits {}\nestimate {:.6} (Q2.30 {})\nrecorded {}\n",
+        "image {}\nticks {}\ntick_rate_hz {}\nmode {:?}\nflags {}\nqueue_fill {}\ncredits {}\nnext_seq {}\nunderruns {}\noverruns {}\ncrc_errors {}\nframe_errors {}\nlimit_hits {}\ndrifts {}\nestimate {:.6} (Q2.30 {})\nrecorded {}\n",
         s.image().name(),
         s.ticks,
         s.tick_rate_hz,
@@ -36,6 +36,7 @@ pub fn format_status(s: &StatusReport) -> String {
         s.crc_errors,
         s.frame_errors,
         s.limit_hits,
+        s.drifts,
         s.estimate as f64 / (1u64 << 30) as f64,
         s.estimate,
         s.recorded,
