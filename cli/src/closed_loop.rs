@@ -300,16 +300,24 @@ pub fn settings(
     c: Configuration4,
     notch: bool,
 ) -> Settings {
-    let m = model_of(model);
-    let with = settings_observed(rate, model, sensor, c, notch, m.clone());
-    if with.build(&hardware(rate)).is_ok() {
-        with
-    } else {
-        Settings {
-            observer: None,
-            ..with
-        }
+    observer_if_it_fits(settings_observed(rate, model, sensor, c, notch), rate).0
+}
+
+/// `with` (its observer set) where the rate leaves the pipeline time for the observer, else
+/// `with` without it; and the configuration the settings kept build on [`hardware`].
+fn observer_if_it_fits(with: Settings, rate: f64) -> (Settings, Result<ControlConfig>) {
+    let hw = hardware(rate);
+    if let Ok(config) = with.build(&hw) {
+        return (with, Ok(config));
     }
+    let without = Settings {
+        observer: None,
+        ..with
+    };
+    let config = without
+        .build(&hw)
+        .map_err(|e| anyhow!("settings refused: {e}"));
+    (without, config)
 }
 
 fn settings_observed(
@@ -318,8 +326,8 @@ fn settings_observed(
     sensor: SensorSettings,
     c: Configuration4,
     notch: bool,
-    m: Model,
 ) -> Settings {
+    let m = model_of(model);
     Settings {
         ranges: model.scaling,
         compensator: (c != Configuration4::Feedback).then(|| m.clone()),
@@ -506,19 +514,9 @@ pub fn track_with(
     // The observer where the tuned feedback leaves it time ([`settings`]).
     let with = Settings {
         feedback: Some(*feedback),
-        observer: Some(model_of(model)),
-        ..settings(rate, model, sensor, c, feedback.notch.is_some())
+        ..settings_observed(rate, model, sensor, c, feedback.notch.is_some())
     };
-    let config = with
-        .build(&hardware(rate))
-        .or_else(|_| {
-            Settings {
-                observer: None,
-                ..with
-            }
-            .build(&hardware(rate))
-        })
-        .map_err(|e| anyhow!("settings refused: {e}"))?;
+    let config = observer_if_it_fits(with, rate).1?;
     let observed = !matches!(config.observer, twinstack::control::Observer::None);
     let (frequency, cycles, skip, label) = match shape {
         Shape::Triangle => (100.0, options.triangle_cycles, 1, "100 Hz triangle"),
