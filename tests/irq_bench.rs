@@ -202,8 +202,8 @@ fn disassemble(elf: &Path) -> Code {
     let mut index: HashMap<String, u32> = HashMap::new();
     let mut at = 0u32;
     let mut project = String::from("(no line)");
-    // The last few instructions in address order, within the function: RTIC's lock moves its
-    // level into a register (`movs r1, #208`) a few instructions before the
+    // The last instructions in address order, within the function: RTIC's lock moves its
+    // level into a register (`movs r1, #208`) some instructions before the
     // `msr basepri_max, r1`.
     let mut recent: std::collections::VecDeque<(String, String)> = Default::default();
     for line in String::from_utf8_lossy(&out.stdout).lines() {
@@ -274,7 +274,9 @@ fn disassemble(elf: &Path) -> Code {
             mnemonic == "cpsid"
         };
         recent.push_back((mnemonic.clone(), operands.clone()));
-        if recent.len() > 12 {
+        // A level hoisted out of a read-back loop sits up to about 20 instructions before its
+        // `msr` (a `mov.w r6, #224` ahead of the loop's bounds checks).
+        if recent.len() > 32 {
             recent.pop_front();
         }
         map.insert(
