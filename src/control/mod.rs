@@ -54,14 +54,15 @@ use crate::models::{CompensatorRun, ObserverRun};
 /// hold, and its output there. The controller derives its compensator's state from it and
 /// hands it out, so that the observer below the tick starts from the same state
 /// ([`crate::services::observer::ObserverBelow::from_relaxed`]) without relaxing the model a
-/// second time.
+/// second time. Only a preparation makes one, so the state and its output always belong
+/// together.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct RelaxedObserver {
     /// The observer as the tick would run it, relaxed ([`ObserverRun::None`] without a model).
-    pub run: ObserverRun,
+    pub(crate) run: ObserverRun,
     /// Its output there, Q2.30 normalised displacement (the drive itself without a model):
     /// the setpoint the controller is prepared at.
-    pub output: i32,
+    pub(crate) output: i32,
 }
 
 /// Everything the tick needs, validated and in fixed point (built by
