@@ -978,6 +978,17 @@ fn the_whole_interrupt_in_every_scenario() {
             } else {
                 services
             };
+            // The services' share alone stays within their charge: the interrupt's margin
+            // never pays for them.
+            if share > services {
+                failures.push(format!(
+                    "{name}: the services' share of their dearest batch is {share} cycles a tick (5 WS), more than the {services} the tick budget charges them: raise src/services/consumer.rs's coefficients"
+                ));
+            }
+            if let Some(r) = figure_rows.last_mut() {
+                r["services_share_ws5"] = serde_json::json!(share);
+                r["services_charge"] = serde_json::json!(services);
+            }
             let bound = interrupt_bound + services;
             if pipeline > bound {
                 failures.push(format!(

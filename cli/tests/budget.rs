@@ -65,14 +65,14 @@ fn the_json_matches_the_budget_and_says_what_is_admitted() {
             Some(rate >= 50_000.0),
             "{r}"
         );
-        // Every feature adds its charges; the services' base share is already the
-        // configuration's (its observer runs below the tick), charged once.
+        // Every feature adds its charges; with the configuration's observer below the tick
+        // the services serve every snapshot already (`SERVICES_EVERY_CYCLES`), charged once.
         let every = r["every_feature"]["cycles"].as_u64().unwrap();
         assert_eq!(
             every as f64 - cycles,
             f64::from(
                 twinstack_identify::budget::BESIDE_EVERY_FEATURE.cycles()
-                    - twinstack::config::tick_budget::SERVICES_BASE_CYCLES
+                    - twinstack::config::tick_budget::SERVICES_EVERY_CYCLES
             ),
             "{r}"
         );

@@ -67,7 +67,8 @@ pub const TICK_SHARE_PERCENT: u32 = 100;
 pub const FIXED_CYCLES: u32 = 915;
 
 pub use crate::services::consumer::{
-    ServicesLoad, CAPTURE_FRAME_CYCLES, SERVICES_BASE_CYCLES, TELEMETRY_SAMPLE_CYCLES,
+    ServicesLoad, CAPTURE_FRAME_CYCLES, SERVE_CYCLES, SERVICES_BASE_CYCLES, SERVICES_EVERY_CYCLES,
+    TELEMETRY_SAMPLE_CYCLES,
 };
 pub use crate::services::observer::OBSERVER_BELOW_CYCLES;
 
@@ -302,17 +303,20 @@ mod tests {
                 }
                 .cycles()
             };
-            // Every tick: a frame (a sample) on each; every `batch` ticks or coarser: one a batch.
+            // Every tick: every snapshot served in full, a frame (a sample) on each; every
+            // `batch` ticks or coarser: the others passed over, one served a batch.
             let per = if side == 0 {
                 CAPTURE_FRAME_CYCLES
             } else {
                 TELEMETRY_SAMPLE_CYCLES
             };
-            assert_eq!(at(1), SERVICES_BASE_CYCLES + per);
+            assert_eq!(at(1), SERVICES_EVERY_CYCLES + per);
             assert_eq!(at(batch), at(u16::MAX));
+            // A capture's batch also serves the event it waits for in full.
+            let served = if side == 0 { 2 } else { 1 };
             assert_eq!(
                 at(batch),
-                SERVICES_BASE_CYCLES + per.div_ceil(u32::from(batch))
+                SERVICES_BASE_CYCLES + (served * SERVE_CYCLES + per).div_ceil(u32::from(batch))
             );
             for d in 1..3 * batch {
                 assert!(at(d + 1) <= at(d), "{side}: {d}");
@@ -322,7 +326,15 @@ mod tests {
         assert_eq!(both, ServicesLoad::WORST);
         assert_eq!(
             both.cycles(),
-            SERVICES_BASE_CYCLES + CAPTURE_FRAME_CYCLES + TELEMETRY_SAMPLE_CYCLES
+            SERVICES_EVERY_CYCLES + CAPTURE_FRAME_CYCLES + TELEMETRY_SAMPLE_CYCLES
+        );
+        // A frame and a sample every other tick: four of each a batch (and the capture's
+        // event), each of the eight snapshots served in full at most once.
+        assert_eq!(
+            load(Some(2), Some(2)).cycles(),
+            SERVICES_BASE_CYCLES
+                + SERVE_CYCLES
+                + (CAPTURE_FRAME_CYCLES + TELEMETRY_SAMPLE_CYCLES).div_ceil(2)
         );
         let beside = Beside {
             services: both,
@@ -358,10 +370,11 @@ mod tests {
         assert_eq!(interrupt_cycles(&build(&with_observer)), c32);
         assert_eq!(
             both - c32,
-            c32 - bare + OBSERVER_BELOW_CYCLES + SERVICES_BASE_CYCLES,
+            c32 - bare + OBSERVER_BELOW_CYCLES + SERVICES_EVERY_CYCLES,
             "the observer's bank costs what the inverse's does"
         );
-        // The services' base share is charged once, whatever else makes them listen.
+        // With an observer every snapshot is served in full already: a capture beside it adds
+        // its frames only.
         let capturing = Beside {
             services: ServicesLoad {
                 capture_decimation: Some(1),

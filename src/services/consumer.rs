@@ -18,33 +18,45 @@ use heapless::spsc::Producer;
 use crate::control::TickFlags;
 use crate::services::observer::ObserverBelow;
 use crate::services::recorder::{Recorder, SampleStore, TickSignals};
-use crate::services::snapshot::{Snapshot, SnapshotConsumer, BATCH, SNAPSHOT_RING_LEN};
+use crate::services::snapshot::{Events, Snapshot, SnapshotConsumer, BATCH, SNAPSHOT_RING_LEN};
 use crate::services::telemetry::{TelemetrySample, TelemetryTap};
 
-/// The services' part of a tick while they listen ([`Services`]:
-/// a capture or a record armed or running, telemetry running), whatever they take: the tick's
-/// share of the services' task's wake (its entry, return and lock, once a batch of
-/// [`BATCH`] snapshots) and of each snapshot's serving (its
-/// dequeue, sequence and events checks, the capture's and the tap's countdowns). The
-/// snapshot's push in the tick is in the tick budget's `FIXED_CYCLES`. These three
-/// coefficients are declared here, beside the code they cost, and the tick budget
-/// (`config::tick_budget`) charges them; the whole-interrupt bench (`tests/irq_bench.rs`)
-/// measures the services' dearest turn in every scenario, with the capture and telemetry each
-/// on every tick or every eighth (a batch's cost is affine in the frames and samples it holds,
-/// so these bound every decimation), and checks the pipeline — the worst tick and the share of
-/// that turn each tick carries — against the budget's prediction with these charges. The
-/// charge alone is not the share alone: on the bench's configuration without an observer the
-/// share exceeds it where the snapshots carry the recorder's events (a scan's, or a capture
-/// armed on the trigger input: up to 247 cycles a tick against 174), which the interrupt's
-/// prediction covers.
-pub const SERVICES_BASE_CYCLES: u32 = 140;
+/// The services' part of a tick while they listen ([`Services`]: a capture or a record armed
+/// or running, telemetry running) and pass over the snapshots that take nothing: a snapshot
+/// passed over (its dequeue, its sequence, generation and awaited-event checks) and its share
+/// of the services' task's wake (its entry, return and lock, once a batch of [`BATCH`]
+/// snapshots). The snapshot's push in the tick is in the tick budget's `FIXED_CYCLES`.
+///
+/// The services serve a batch in one of two loops ([`Services::consume_at_most`]), and the
+/// charge follows the loop: where every snapshot is served in full (an observer below the
+/// tick, or a capture or telemetry on every tick), [`SERVICES_EVERY_CYCLES`] a snapshot;
+/// otherwise this base a snapshot and [`SERVE_CYCLES`] for each that takes a frame or a
+/// sample. Each frame and sample adds [`CAPTURE_FRAME_CYCLES`] and
+/// [`TELEMETRY_SAMPLE_CYCLES`]. These coefficients are declared here, beside the code they
+/// cost, and the tick budget (`config::tick_budget`) charges them; the whole-interrupt bench
+/// (`tests/irq_bench.rs`) measures the services' dearest batch in every scenario, with the
+/// capture and telemetry each on every tick or every eighth (the two loops' dearest
+/// batches), and fails any scenario whose share of that batch a tick exceeds this charge, and
+/// any whose worst tick and share exceed the pipeline's prediction.
+pub const SERVICES_BASE_CYCLES: u32 = 75;
 
-/// A frame the capture (or a `Record`) stores, all seven signals: charged for each frame a
-/// batch of snapshots can hold at the capture's decimation (see [`SERVICES_BASE_CYCLES`]).
-pub const CAPTURE_FRAME_CYCLES: u32 = 155;
+/// A snapshot the passing loop serves in full (a frame or a sample due, an awaited event, a
+/// gap, a new configuration), beyond a passed one: the loop's checks, the countdowns moved
+/// at once, the full serve (see [`SERVICES_BASE_CYCLES`]). Charged for each frame and sample
+/// a batch holds, and, while a capture is armed or running, for one more: the snapshot of
+/// the event it waits for.
+pub const SERVE_CYCLES: u32 = 190;
 
-/// A sample telemetry's tap queues (all seven signals): charged for each sample a batch of
-/// snapshots can hold at telemetry's decimation (see [`SERVICES_BASE_CYCLES`]).
+/// A snapshot where every snapshot is served in full, with its share of the wake (see
+/// [`SERVICES_BASE_CYCLES`]); the observer's own cost is the configuration's.
+pub const SERVICES_EVERY_CYCLES: u32 = 175;
+
+/// A frame the capture (or a `Record`) stores, all seven signals: its signals computed and
+/// stored (see [`SERVICES_BASE_CYCLES`]).
+pub const CAPTURE_FRAME_CYCLES: u32 = 150;
+
+/// A sample telemetry's tap queues (all seven signals): its signals computed and queued (see
+/// [`SERVICES_BASE_CYCLES`]).
 pub const TELEMETRY_SAMPLE_CYCLES: u32 = 115;
 
 /// What the services run, as the tick budget charges it: a capture (or a `Record`) and
@@ -87,9 +99,21 @@ impl ServicesLoad {
             || self.observer_cycles > 0
     }
 
-    /// Their cost per tick, cycles (rounded up): [`SERVICES_BASE_CYCLES`], the observer below
-    /// the tick on every snapshot, and the frames and samples the dearest batch of [`BATCH`]
-    /// snapshots holds at their decimations shared by its ticks.
+    /// Whether the services serve every snapshot in full under this load: an observer below
+    /// the tick, or a capture or telemetry taking every tick (as
+    /// [`Services::consume_at_most`] decides).
+    pub fn serves_every_snapshot(&self) -> bool {
+        self.observer_cycles > 0
+            || self.capture_decimation.is_some_and(|d| d <= 1)
+            || self.telemetry_decimation.is_some_and(|d| d <= 1)
+    }
+
+    /// Their cost per tick, cycles (rounded up), over the dearest batch of [`BATCH`]
+    /// snapshots: where every snapshot is served in full, [`SERVICES_EVERY_CYCLES`] and the
+    /// observer below the tick on each; otherwise [`SERVICES_BASE_CYCLES`] on each and
+    /// [`SERVE_CYCLES`] on each frame and sample the batch holds at their decimations (and on
+    /// an armed capture's event); and the frames' and samples' own costs, shared by the
+    /// batch's ticks.
     ///
     /// ```
     /// use twinstack::services::consumer::{ServicesLoad, SERVICES_BASE_CYCLES};
@@ -104,12 +128,28 @@ impl ServicesLoad {
         }
         // The most frames (samples) a batch holds at decimation `d`: one every `d` ticks.
         let per_batch = |d: Option<u16>| d.map_or(0, |d| BATCH.div_ceil(u32::from(d.max(1))));
-        ((SERVICES_BASE_CYCLES + self.observer_cycles) * BATCH
-            + CAPTURE_FRAME_CYCLES * per_batch(self.capture_decimation)
-            + TELEMETRY_SAMPLE_CYCLES * per_batch(self.telemetry_decimation))
-        .div_ceil(BATCH)
+        let (frames, samples) = (
+            per_batch(self.capture_decimation),
+            per_batch(self.telemetry_decimation),
+        );
+        let serving = if self.serves_every_snapshot() {
+            (SERVICES_EVERY_CYCLES + self.observer_cycles) * BATCH
+        } else {
+            // A capture's batch may also hold the event it waits for: one more in full.
+            let event = u32::from(self.capture_decimation.is_some());
+            SERVICES_BASE_CYCLES * BATCH + SERVE_CYCLES * (frames + samples + event).min(BATCH)
+        };
+        (serving + CAPTURE_FRAME_CYCLES * frames + TELEMETRY_SAMPLE_CYCLES * samples)
+            .div_ceil(BATCH)
     }
 }
+
+/// Marks the branch that serves a snapshot in full as the less likely one: the loop is laid
+/// out with passing a quiet snapshot as its straight run of instructions, and the full serve
+/// (inlined still) out of it.
+#[cold]
+#[inline(always)]
+fn full_serve() {}
 
 /// The recorder, telemetry's tap and the observer below the tick, consuming the tick's
 /// snapshots. `B` is the recorder's buffer.
@@ -169,15 +209,27 @@ impl<B: SampleStore> Services<B> {
     /// services' task serves a batch ([`crate::services::snapshot::BATCH`]) a wake, so that
     /// one wake never costs more than a batch, and wakes itself again while the ring holds
     /// more (a task held off for a few ticks catches up in batches).
+    ///
+    /// A snapshot that takes no frame and no sample, where no observer runs below the tick,
+    /// is passed over in one pass: dequeued, its sequence, generation
+    /// and awaited event checked, and nothing else; the capture's and the tap's countdowns
+    /// then move by the snapshots passed at once. Any other snapshot (a frame or a sample
+    /// due, an observer, a gap, a new configuration, the event an armed capture waits for)
+    /// is served in full ([`Services::serve`]), which is what each did before the pass.
     pub fn consume_at_most<const T: usize>(
         &mut self,
         count: usize,
         ring: &mut SnapshotConsumer<'_>,
         telemetry: &mut Producer<'_, TelemetrySample, T>,
     ) -> bool {
+        let mut left = count.min(SNAPSHOT_RING_LEN);
         let mut wake = false;
-        for _ in 0..count.min(SNAPSHOT_RING_LEN) {
-            // Served where it lies in the ring, then released: no copy of it out.
+        if !self.serves_every_snapshot() {
+            wake = self.pass_quiet(&mut left, ring, telemetry);
+        }
+        // Every snapshot in full (an observer, or a capture or telemetry taking every tick),
+        // with none of passing's checks around it.
+        for _ in 0..left {
             let Some(snapshot) = ring.peek() else {
                 break;
             };
@@ -185,6 +237,95 @@ impl<B: SampleStore> Services<B> {
             let _ = ring.dequeue();
         }
         wake
+    }
+
+    /// The passing loop of [`Services::consume_at_most`]: serves snapshots, passing quiet ones
+    /// over, until `left` is used up, the ring is empty, or a full serve made every snapshot
+    /// one to serve in full (a new configuration's observer, a capture taking every tick);
+    /// `left` is what remains. Whether to wake the packer.
+    #[inline(always)]
+    fn pass_quiet<const T: usize>(
+        &mut self,
+        left: &mut usize,
+        ring: &mut SnapshotConsumer<'_>,
+        telemetry: &mut Producer<'_, TelemetrySample, T>,
+    ) -> bool {
+        let mut wake = false;
+        let mut quiet = self.quiet();
+        // The event an armed capture waits for: only arming sets it, never while the services
+        // consume; the full serve that fires it clears it (so an armed capture's events cost
+        // one full serve, the one that fires it).
+        let mut awaited = self.awaited();
+        // What a quiet snapshot is checked against, in registers: only a full serve changes
+        // them.
+        let (mut expected, mut generation) = (self.expected, self.generation);
+        let mut passed = 0;
+        while *left > 0 {
+            // Checked and served where it lies in the ring, then released: no copy of it out
+            // (a dequeue by value would copy all of it before releasing its slot).
+            let Some(snapshot) = ring.peek() else {
+                break;
+            };
+            *left -= 1;
+            if quiet > passed
+                && snapshot.seq == expected.wrapping_add(passed)
+                && snapshot.generation == generation
+                && snapshot.events.0 & awaited == 0
+            {
+                passed += 1;
+                let _ = ring.dequeue();
+                continue;
+            }
+            full_serve();
+            self.pass(passed);
+            passed = 0;
+            wake |= self.serve(snapshot, telemetry);
+            let _ = ring.dequeue();
+            if self.serves_every_snapshot() {
+                return wake;
+            }
+            (quiet, awaited) = (self.quiet(), self.awaited());
+            (expected, generation) = (self.expected, self.generation);
+        }
+        self.pass(passed);
+        wake
+    }
+
+    /// Whether every snapshot is served in full whatever happens before the batch ends: an
+    /// observer runs below the tick, or a capture or telemetry takes every tick. (A reload
+    /// or a capture's end within the batch only makes a full serve unneeded, never wrong.)
+    #[inline(always)]
+    fn serves_every_snapshot(&self) -> bool {
+        self.observer.is_some()
+            || self.recorder.running_decimation() == Some(1)
+            || self.telemetry.running_decimation() == Some(1)
+    }
+
+    /// How many snapshots from the next on need nothing but their countdowns: those before
+    /// the next frame or sample (`u32::MAX` when neither a capture nor telemetry runs). Only
+    /// the passing loop asks, which never runs beside an observer below the tick.
+    #[inline(always)]
+    fn quiet(&self) -> u32 {
+        self.recorder
+            .quiet_ticks()
+            .min(self.telemetry.quiet_ticks())
+    }
+
+    /// The [`Events`] bit of the event an armed capture waits for (0: none waits).
+    #[inline(always)]
+    fn awaited(&self) -> u8 {
+        self.recorder.awaited_trigger().map_or(0, Events::bit)
+    }
+
+    /// `ticks` snapshots passed over ([`Services::quiet`]): the sequence, the capture's and
+    /// the tap's countdowns move by them at once.
+    #[inline(always)]
+    fn pass(&mut self, ticks: u32) {
+        if ticks > 0 {
+            self.expected = self.expected.wrapping_add(ticks);
+            self.recorder.pass(ticks);
+            self.telemetry.pass(ticks);
+        }
     }
 
     /// One tick's snapshot: the observer below the tick on its drive and measurement, then
@@ -211,9 +352,13 @@ impl<B: SampleStore> Services<B> {
                 self.drifts = self.drifts.wrapping_add(1);
             }
         }
+        // Of the events, only the one an armed capture waits for does anything (the first
+        // fires it; after that it waits for none): one test, not one per event.
         if s.events.0 != 0 {
-            for event in s.events.iter() {
-                self.recorder.trigger(event);
+            if let Some(awaited) = self.recorder.awaited_trigger() {
+                if s.events.0 & Events::bit(awaited) != 0 {
+                    self.recorder.trigger(awaited);
+                }
             }
         }
         // The countdowns first: the signals are computed only on a tick that takes them.
@@ -346,9 +491,11 @@ mod tests {
     use super::*;
     use crate::board::DacCode;
     use crate::control::{TickFlags, TickReport};
-    use crate::services::recorder::{CaptureState, Channel, Trigger};
+    use crate::services::recorder::{CaptureInfo, CaptureState, Channel, Trigger};
+    extern crate std;
     use crate::services::snapshot::{Events, SnapshotRing};
     use heapless::spsc::Queue;
+    use std::vec::Vec;
 
     fn snapshot(seq: u32, events: Events) -> Snapshot {
         let report = TickReport {
@@ -361,6 +508,178 @@ mod tests {
             triggers: 0,
         };
         Snapshot::of(seq, (seq as i32) << 16, &report, events, 0)
+    }
+
+    /// What a script of snapshots and commands leaves in the services: the capture's state
+    /// and frames, a `Record`'s values, telemetry's samples and counts.
+    type Outcome = (
+        CaptureInfo,
+        Vec<i16>,
+        u32,
+        Vec<TelemetrySample>,
+        (u32, u32, u32),
+    );
+
+    fn outcome(s: &Services<[i16; 96]>, samples: Vec<TelemetrySample>) -> Outcome {
+        let info = s.recorder().capture_info();
+        let mut frames = Vec::new();
+        let mut out = heapless::Vec::new();
+        let mut at = 0;
+        while s
+            .recorder()
+            .read_capture_piece(at, 8, &mut out)
+            .unwrap_or(0)
+            > 0
+        {
+            frames.extend_from_slice(&out);
+            at += out.len() as u32;
+        }
+        (
+            info,
+            frames,
+            s.recorder().recorded(),
+            samples,
+            (s.lost(), s.telemetry().overflows(), s.drifts()),
+        )
+    }
+
+    /// A command between two batches, applied to both services alike.
+    #[derive(Clone, Debug)]
+    enum Command {
+        Capture(u8, u32, u32, u8, u16),
+        Record(u8, u32, u16),
+        Telemetry(u8, u16),
+        StopTelemetry,
+        /// An observer below the tick (with a 2 % drift check) for the next configuration,
+        /// or none.
+        Stage(bool),
+    }
+
+    /// A P–I 4 observer with its drift check at 2 %.
+    fn observer() -> ObserverBelow {
+        use crate::config::settings::{representative_pi, Settings};
+        let mut settings = Settings {
+            observer: Some(representative_pi(4).unwrap()),
+            ..Settings::default()
+        };
+        if let Some(sensor) = &mut settings.sensor {
+            sensor.drift_limit = Some(0.02);
+        }
+        let config = settings
+            .build(&crate::board::Hardware::driver_board(50_000.0))
+            .unwrap();
+        ObserverBelow::prepare(&config, config.drive.safe_stacks()).unwrap()
+    }
+
+    fn apply(s: &mut Services<[i16; 96]>, command: &Command) {
+        const TRIGGERS: [Trigger; 5] = [
+            Trigger::Now,
+            Trigger::StreamStart,
+            Trigger::WaveformStart,
+            Trigger::ScanStart,
+            Trigger::External,
+        ];
+        match *command {
+            Command::Capture(mask, samples, pre, trigger, decimation) => {
+                let _ = s.recorder_mut().arm_capture(
+                    mask,
+                    samples,
+                    pre,
+                    TRIGGERS[usize::from(trigger) % 5],
+                    decimation,
+                );
+            }
+            Command::Record(signal, count, decimation) => {
+                let signal = [
+                    crate::protocol::messages::Signal::Setpoint,
+                    crate::protocol::messages::Signal::Drive,
+                    crate::protocol::messages::Signal::Sensor,
+                    crate::protocol::messages::Signal::Estimate,
+                ][usize::from(signal) % 4];
+                let _ = s.recorder_mut().arm(signal, count, decimation);
+            }
+            Command::Telemetry(mask, decimation) => {
+                let _ = s.start_telemetry(mask, decimation, 3);
+            }
+            Command::StopTelemetry => {
+                let _ = s.stop_telemetry();
+            }
+            Command::Stage(with) => s.stage_observer(with.then(observer)),
+        }
+    }
+
+    fn command() -> impl proptest::strategy::Strategy<Value = Command> {
+        use proptest::prelude::*;
+        prop_oneof![
+            (1u8..128, 1u32..20, 0u32..6, 0u8..5, 1u16..12)
+                .prop_map(|(m, n, p, t, d)| Command::Capture(m, n, p, t, d)),
+            (0u8..4, 1u32..30, 1u16..12).prop_map(|(s, n, d)| Command::Record(s, n, d)),
+            (1u8..128, 1u16..12).prop_map(|(m, d)| Command::Telemetry(m, d)),
+            Just(Command::StopTelemetry),
+            proptest::bool::ANY.prop_map(Command::Stage),
+        ]
+    }
+
+    proptest::proptest! {
+        /// Passing over quiet snapshots in one pass leaves the services exactly as serving
+        /// each snapshot in full does: the same frames, `Record` values, telemetry samples
+        /// and indices, and counts, whatever the decimations, the events (awaited or not),
+        /// the gaps in the sequence, the configurations' generations and the commands between
+        /// batches, with or without an observer below the tick.
+        #[test]
+        fn passing_quiet_snapshots_is_serving_each(
+            script in proptest::collection::vec(
+                (
+                    proptest::option::weighted(0.3, command()),
+                    proptest::collection::vec((0u32..40, 0u8..16, 0u8..20), 1..20),
+                ),
+                1..12,
+            ),
+            batch in 1usize..12,
+        ) {
+            let mut batched = Services::new([0i16; 96]);
+            let mut each = Services::new([0i16; 96]);
+            let mut ring_b = SnapshotRing::new();
+            let mut ring_e = SnapshotRing::new();
+            let (mut push_b, mut pop_b) = ring_b.split();
+            let (mut push_e, mut pop_e) = ring_e.split();
+            let mut out_b: Queue<TelemetrySample, 512> = Queue::new();
+            let mut out_e: Queue<TelemetrySample, 512> = Queue::new();
+            let (mut tx_b, mut rx_b) = out_b.split();
+            let (mut tx_e, mut rx_e) = out_e.split();
+            let (mut samples_b, mut samples_e) = (Vec::new(), Vec::new());
+            let (mut wakes_b, mut wakes_e) = (0, 0);
+            let (mut seq, mut generation) = (0u32, 0u8);
+            for (command, ticks) in &script {
+                if let Some(c) = command {
+                    apply(&mut batched, c);
+                    apply(&mut each, c);
+                }
+                for &(value, events, roll) in ticks.iter().take(SNAPSHOT_RING_LEN - 1) {
+                    // Rare gaps and new configurations; events on a fifth of the ticks.
+                    seq = seq.wrapping_add(if roll == 0 { 3 } else { 1 });
+                    if roll == 1 {
+                        generation = generation.wrapping_add(1);
+                    }
+                    let events = Events(if roll % 5 == 2 { events } else { 0 });
+                    let mut shot = snapshot(seq, events);
+                    shot.measured = (value as i32 - 20) << 24;
+                    shot.generation = generation;
+                    push_b.enqueue(shot).unwrap();
+                    push_e.enqueue(shot).unwrap();
+                }
+                while pop_b.ready() {
+                    wakes_b += u32::from(batched.consume_at_most(batch, &mut pop_b, &mut tx_b));
+                }
+                while let Some(shot) = pop_e.dequeue() {
+                    wakes_e += u32::from(each.serve(&shot, &mut tx_e));
+                }
+                samples_b.extend(core::iter::from_fn(|| rx_b.dequeue()));
+                samples_e.extend(core::iter::from_fn(|| rx_e.dequeue()));
+            }
+            proptest::prop_assert_eq!(wakes_b > 0, wakes_e > 0);
+            proptest::prop_assert_eq!(outcome(&batched, samples_b), outcome(&each, samples_e));
+        }
     }
 
     /// A capture armed on the stream's start begins with the snapshot carrying that event,

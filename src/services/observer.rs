@@ -30,15 +30,15 @@ use crate::control::{ControlConfig, Controller, Observer, RelaxedObserver, TickF
 use crate::models::ObserverRun;
 
 /// What the observer below the tick costs a snapshot beside its model's own cycles (which
-/// each model declares, as in the tick): the dispatch, the drift check, the estimate's
-/// history, the report's fields it reads and writes, at 5 flash wait states. Measured by the
-/// whole-interrupt bench (`cargo test --profile host-opt --test irq_bench`), which traces the
-/// services' task serving it beside a capture and telemetry and checks every configuration's
-/// pipeline against the tick budget's charge (`config::tick_budget::observer_below_cycles`):
-/// against the same scenarios without the observer in the services, a P–I 17 observer adds
-/// about 370 cycles a snapshot (its bank about 260 of them) and a Bouc–Wen one about 190
-/// (its model 88), so 100 covers both.
-pub const OBSERVER_BELOW_CYCLES: u32 = 100;
+/// each model declares, as in the tick) and the snapshot's full serve
+/// (`services::consumer::SERVICES_EVERY_CYCLES`: with an observer the services serve every
+/// snapshot in full): the dispatch, the drift check, the estimate's history, the report's
+/// fields it reads and writes, at 5 flash wait states. Measured by the whole-interrupt bench
+/// (`cargo test --profile host-opt --test irq_bench`), which traces the services' task
+/// serving it beside a capture and telemetry and fails any scenario whose services' share
+/// exceeds what the tick budget charges them (`config::tick_budget::observer_below_cycles`
+/// with the services' own coefficients).
+pub const OBSERVER_BELOW_CYCLES: u32 = 80;
 
 /// The forward observer of a configuration with a sensor and its drift check, fed the tick's
 /// applied drive and measurement from the snapshots.

@@ -714,6 +714,38 @@ impl<B: SampleStore> Recorder<B> {
         true
     }
 
+    /// Ticks before the next capture tick, each of which [`Recorder::due`] would only count
+    /// down (`u32::MAX` when no capture or `Record` runs): what the services may pass over
+    /// at once ([`Recorder::pass`]).
+    #[inline(always)]
+    pub fn quiet_ticks(&self) -> u32 {
+        if self.active {
+            u32::from(self.countdown)
+        } else {
+            u32::MAX
+        }
+    }
+
+    /// Counts `ticks` ticks down at once, as that many [`Recorder::due`] calls returning
+    /// `false` would: `ticks` is at most [`Recorder::quiet_ticks`] (more stops at the
+    /// capture tick, which `due` then takes). O(1).
+    #[inline(always)]
+    pub fn pass(&mut self, ticks: u32) {
+        if self.active {
+            self.countdown = u32::from(self.countdown).saturating_sub(ticks) as u16;
+        }
+    }
+
+    /// The trigger an armed capture waits for (`None` while none waits: idle, a `Record`,
+    /// or already triggered): the one event [`Recorder::trigger`] acts on.
+    #[inline(always)]
+    pub fn awaited_trigger(&self) -> Option<Trigger> {
+        match self.kind {
+            Kind::Capture(trigger) if self.active && !self.triggered => Some(trigger),
+            _ => None,
+        }
+    }
+
     /// Stores a capture tick's frame (after [`Recorder::due`] said it is one): the mask's
     /// channels of `signals`, or the `Record`'s signal, full width, as [`Recorder::capture`]
     /// says.

@@ -239,6 +239,28 @@ impl TelemetryTap {
         true
     }
 
+    /// Ticks before the next sample tick, each of which [`TelemetryTap::due`] would only
+    /// count down (`u32::MAX` when stopped): what the services may pass over at once
+    /// ([`TelemetryTap::pass`]).
+    #[inline(always)]
+    pub fn quiet_ticks(&self) -> u32 {
+        if self.enabled {
+            u32::from(self.countdown)
+        } else {
+            u32::MAX
+        }
+    }
+
+    /// Counts `ticks` ticks down at once, as that many [`TelemetryTap::due`] calls returning
+    /// `false` would: `ticks` is at most [`TelemetryTap::quiet_ticks`] (more stops at the
+    /// sample tick, which `due` then takes). O(1).
+    #[inline(always)]
+    pub fn pass(&mut self, ticks: u32) {
+        if self.enabled {
+            self.countdown = u32::from(self.countdown).saturating_sub(ticks) as u16;
+        }
+    }
+
     /// Queues a sample tick's `signals` (after [`TelemetryTap::due`] said it is one), as
     /// [`TelemetryTap::push`] says; whether to wake the packer.
     #[inline(always)]

@@ -280,14 +280,14 @@ pub fn admission_at(settings: &Settings, rate: &BoardRate) -> Admission {
         match s.build(&hardware) {
             Err(mut r) => {
                 if let Rule::TickOverrun { needs, .. } = &mut r.rule {
-                    // The capture's frames, and the services' base share unless the
-                    // observer already has them listening.
-                    let base = if s.observer.is_some() && capture.is_listening() {
-                        tick_budget::SERVICES_BASE_CYCLES
+                    // The capture's frames beside the configuration: where its observer
+                    // already has the services serving every snapshot, its frames alone.
+                    *needs += if s.observer.is_some() {
+                        capture.observing(1).cycles()
+                            - ServicesLoad::default().observing(1).cycles()
                     } else {
-                        0
+                        capture.cycles()
                     };
-                    *needs += capture.cycles() - base;
                 }
                 Err(r)
             }

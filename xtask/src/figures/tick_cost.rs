@@ -285,6 +285,43 @@ pub(super) fn tick_cost(out: &str) -> Result<String, String> {
         ));
     }
 
+    t.push_str(
+        "\nThe services' own share a tick (an eighth of their dearest batch, 5 WS) against what \
+         the tick budget charges them for that scenario's capture, telemetry and observer below \
+         the tick: each configuration's scenario with the highest share over charge (the bench \
+         fails any scenario whose share exceeds its charge):\n\n\
+         | configuration | scenario | services' share a tick | charged | share / charge |\n\
+         |---|---|---:|---:|---:|\n",
+    );
+    for config in &configs {
+        let mut dearest: Option<(&str, u64, u64)> = None;
+        for r in rows {
+            let name = r.get("name").and_then(Value::as_str).unwrap_or("");
+            let Some((c, scenario)) = name.split_once('/') else {
+                continue;
+            };
+            if c != *config {
+                continue;
+            }
+            let (share, charge) = (
+                field(r, "services_share_ws5")?,
+                field(r, "services_charge")?.max(1),
+            );
+            if dearest.is_none_or(|(_, s, c)| share * c > s * charge) {
+                dearest = Some((scenario, share, charge));
+            }
+        }
+        let (scenario, share, charge) =
+            dearest.ok_or_else(|| format!("{config}: no services' share measured"))?;
+        t.push_str(&format!(
+            "| {} | {scenario} | {} | {} | {:.2} |\n",
+            config_label(config),
+            grouped(share),
+            grouped(charge),
+            share as f64 / charge as f64
+        ));
+    }
+
     let reference = configs.first().ok_or("no configuration")?;
     if let Some(by_file) = v.get("worst_by_file").and_then(|f| f.get(*reference)) {
         let files = by_file
@@ -396,12 +433,13 @@ mod tests {
             .chain(["reload-and-mode-switches", "load"].iter());
         for (i, s) in scenarios.enumerate() {
             rows.push(format!(
-                r#"{{"name": "inverse-pi16+pi16-observer+pi+drift/{s}", "ticks": 100, "instructions_mean": 800.0, "instructions_max": {}, "cycles_max": {}, "cycles_max_ws5": {}, "services_max_ws5": {}, "pipeline_ws5": {}}}"#,
+                r#"{{"name": "inverse-pi16+pi16-observer+pi+drift/{s}", "ticks": 100, "instructions_mean": 800.0, "instructions_max": {}, "cycles_max": {}, "cycles_max_ws5": {}, "services_max_ws5": {}, "pipeline_ws5": {}, "services_share_ws5": {}, "services_charge": 120}}"#,
                 900 + i,
                 1400 + i,
                 1570 + i,
                 800 + i,
-                1670 + i
+                1670 + i,
+                100 + i
             ));
         }
         format!(
@@ -439,6 +477,14 @@ mod tests {
         // 5 WS).
         assert!(t.contains("| 905 / 1 575 | 906 / 1 576 | 907 / 1 577 | 908 / 1 578 | 909 / 1 579 | 910 / 1 580 | 911 / 1 581 | 912 / 1 582 |"), "{t}");
         assert!(t.contains("| 1 066 | 507 | 1 573 | 1 666 | 1.06 |"), "{t}");
+        // The services' share against their charge: the scenario with the highest ratio
+        // (the last, `load`: 116 of 120).
+        assert!(
+            t.contains(
+                "| inverse P–I 16 + P–I 16 observer + PI + drift | load | 116 | 120 | 0.97 |"
+            ),
+            "{t}"
+        );
         assert!(
             t.contains(
                 "| `prandtl_ishlinskii.rs` | 400 |\n| `(no line)` | 22 |\n| **total** | **422** |"
