@@ -215,7 +215,7 @@ impl<B: SampleStore> Services<B> {
     /// and awaited event checked, and nothing else; the capture's and the tap's countdowns
     /// then move by the snapshots passed at once. Any other snapshot (a frame or a sample
     /// due, an observer, a gap, a new configuration, the event an armed capture waits for)
-    /// is served in full ([`Services::serve`]), which is what each did before the pass.
+    /// is served in full, as every snapshot is where nothing can be passed over.
     pub fn consume_at_most<const T: usize>(
         &mut self,
         count: usize,
