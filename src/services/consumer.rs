@@ -103,9 +103,11 @@ impl ServicesLoad {
     /// the tick, or a capture or telemetry taking every tick (as
     /// [`Services::consume_at_most`] decides).
     pub fn serves_every_snapshot(&self) -> bool {
-        self.observer_cycles > 0
-            || self.capture_decimation.is_some_and(|d| d <= 1)
-            || self.telemetry_decimation.is_some_and(|d| d <= 1)
+        every_snapshot_served(
+            self.observer_cycles > 0,
+            self.capture_decimation,
+            self.telemetry_decimation,
+        )
     }
 
     /// Their cost per tick, cycles (rounded up), over the dearest batch of [`BATCH`]
@@ -142,6 +144,21 @@ impl ServicesLoad {
         (serving + CAPTURE_FRAME_CYCLES * frames + TELEMETRY_SAMPLE_CYCLES * samples)
             .div_ceil(BATCH)
     }
+}
+
+/// The rule by which the services serve every snapshot in full rather than pass quiet ones
+/// over: an observer below the tick, or a capture or telemetry (by their decimations, `None`
+/// when not running) taking every tick. [`Services::consume_at_most`] runs by it and
+/// [`ServicesLoad::cycles`] charges by it.
+#[inline(always)]
+const fn every_snapshot_served(
+    observer: bool,
+    capture_decimation: Option<u16>,
+    telemetry_decimation: Option<u16>,
+) -> bool {
+    observer
+        || matches!(capture_decimation, Some(0 | 1))
+        || matches!(telemetry_decimation, Some(0 | 1))
 }
 
 /// Marks the branch that serves a snapshot in full as the less likely one: the loop is laid
@@ -296,9 +313,11 @@ impl<B: SampleStore> Services<B> {
     /// or a capture's end within the batch only makes a full serve unneeded, never wrong.)
     #[inline(always)]
     fn serves_every_snapshot(&self) -> bool {
-        self.observer.is_some()
-            || self.recorder.running_decimation() == Some(1)
-            || self.telemetry.running_decimation() == Some(1)
+        every_snapshot_served(
+            self.observer.is_some(),
+            self.recorder.running_decimation(),
+            self.telemetry.running_decimation(),
+        )
     }
 
     /// How many snapshots from the next on need nothing but their countdowns: those before

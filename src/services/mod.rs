@@ -7,11 +7,13 @@
 //! * [`observer`] — the forward observer and the drift check, where the stage has a sensor:
 //!   fed each tick's applied drive and measurement from the snapshots.
 //! * [`recorder`] — the data recorder (triggered capture with pre-trigger and decimation).
+//! * [`decimation`] — one tick in every `n`: the recorder's and telemetry's countdown.
 //! * [`telemetry`] — continuous telemetry: the tap, the queue, the frame packer.
 //! * [`learning`] — learning feedforward for periodic motion (a phase-indexed correction table,
 //!   updated from the tracking error).
 
 pub mod consumer;
+pub mod decimation;
 pub mod learning;
 pub mod observer;
 pub mod recorder;

@@ -39,6 +39,7 @@
 //! `Vec<i16>`.
 
 use crate::control::TickReport;
+use crate::services::decimation::Decimation;
 
 /// Most recorder values one `ReadRecord` returns (one response chunk).
 pub const MAX_CHUNK: usize = 64;
@@ -445,8 +446,6 @@ pub struct Recorder<B> {
     first_slots: u32,
     /// Slot of the second segment where the ring continues (the first segment's length).
     split: u32,
-    /// `decimation − 1`: the countdown after a capture tick.
-    reload: u16,
     pre: u32,
     /// The next slot written.
     pos: u32,
@@ -460,9 +459,8 @@ pub struct Recorder<B> {
     /// Capturing: armed or triggered, and not done.
     active: bool,
     triggered: bool,
-    decimation: u16,
-    /// Ticks until the next capture (0: capture on this tick).
-    countdown: u16,
+    /// One capture tick in every `decimation` ticks.
+    decimation: Decimation,
 }
 
 impl<B: SampleStore> Recorder<B> {
@@ -484,7 +482,6 @@ impl<B: SampleStore> Recorder<B> {
             ring: 0,
             first_slots: 0,
             split: 0,
-            reload: 0,
             pre: 0,
             pos: 0,
             before: 0,
@@ -493,8 +490,7 @@ impl<B: SampleStore> Recorder<B> {
             pre_available: 0,
             active: false,
             triggered: false,
-            decimation: 1,
-            countdown: 0,
+            decimation: Decimation::every(1),
         }
     }
 
@@ -580,7 +576,6 @@ impl<B: SampleStore> Recorder<B> {
         // Off the tick: the one division, whole frames in the first segment.
         self.first_slots = ((first as u32 / per_frame) * per_frame).min(self.ring);
         self.split = first as u32;
-        self.reload = dec.saturating_sub(1);
         self.pre = pre;
         self.pos = 0;
         self.before = 0;
@@ -589,8 +584,7 @@ impl<B: SampleStore> Recorder<B> {
         self.pre_available = 0;
         self.active = true;
         self.triggered = false;
-        self.decimation = dec;
-        self.countdown = 0;
+        self.decimation = Decimation::every(dec);
     }
 
     /// The trigger: from the next capture tick on, the post-trigger frames.
@@ -599,7 +593,7 @@ impl<B: SampleStore> Recorder<B> {
         self.trigger_pos = self.pos;
         self.pre_available = self.before.min(self.pre);
         // The trigger frame is the next tick's.
-        self.countdown = 0;
+        self.decimation.restart();
     }
 
     /// Tells the recorder that `event` happened (the stream or the waveform generator
@@ -635,7 +629,7 @@ impl<B: SampleStore> Recorder<B> {
     /// The running capture's (or `Record`'s) decimation: one frame every that many ticks;
     /// `None` when none runs.
     pub fn running_decimation(&self) -> Option<u16> {
-        self.active.then_some(self.decimation)
+        self.active.then_some(self.decimation.ticks())
     }
 
     /// Values a v3 `Record` holds so far (0 for a capture).
@@ -676,7 +670,7 @@ impl<B: SampleStore> Recorder<B> {
             } else {
                 self.before.min(self.pre)
             },
-            decimation: self.decimation,
+            decimation: self.decimation.ticks(),
             trigger: Some(trigger),
         }
     }
@@ -703,15 +697,7 @@ impl<B: SampleStore> Recorder<B> {
     /// [`Recorder::store`] to take. [`Recorder::capture`] is both.
     #[inline(always)]
     pub fn due(&mut self) -> bool {
-        if !self.active {
-            return false;
-        }
-        if self.countdown > 0 {
-            self.countdown -= 1;
-            return false;
-        }
-        self.countdown = self.reload;
-        true
+        self.active && self.decimation.due()
     }
 
     /// Ticks before the next capture tick, each of which [`Recorder::due`] would only count
@@ -720,7 +706,7 @@ impl<B: SampleStore> Recorder<B> {
     #[inline(always)]
     pub fn quiet_ticks(&self) -> u32 {
         if self.active {
-            u32::from(self.countdown)
+            self.decimation.quiet_ticks()
         } else {
             u32::MAX
         }
@@ -732,7 +718,7 @@ impl<B: SampleStore> Recorder<B> {
     #[inline(always)]
     pub fn pass(&mut self, ticks: u32) {
         if self.active {
-            self.countdown = u32::from(self.countdown).saturating_sub(ticks) as u16;
+            self.decimation.pass(ticks);
         }
     }
 

@@ -137,19 +137,6 @@ impl Events {
     pub fn add(&mut self, trigger: Trigger) {
         self.0 |= Self::bit(trigger);
     }
-
-    /// The events, in the order the tick saw them when several come together (a scan the
-    /// external edge starts fires `ScanStart`, then `External`).
-    pub fn iter(self) -> impl Iterator<Item = Trigger> {
-        [
-            Trigger::StreamStart,
-            Trigger::WaveformStart,
-            Trigger::ScanStart,
-            Trigger::External,
-        ]
-        .into_iter()
-        .filter(move |&t| self.0 & Self::bit(t) != 0)
-    }
 }
 
 #[cfg(test)]
@@ -157,14 +144,26 @@ mod tests {
     use super::*;
 
     #[test]
-    fn events_keep_every_trigger_and_their_order() {
+    fn events_keep_every_trigger_apart() {
+        let all = [
+            Trigger::StreamStart,
+            Trigger::WaveformStart,
+            Trigger::ScanStart,
+            Trigger::External,
+        ];
         let mut e = Events::NONE;
         e.add(Trigger::External);
         e.add(Trigger::ScanStart);
         e.add(Trigger::Now);
-        let seen: heapless::Vec<Trigger, 4> = e.iter().collect();
-        assert_eq!(&seen[..], &[Trigger::ScanStart, Trigger::External]);
-        assert_eq!(Events::NONE.iter().count(), 0);
+        // Each trigger a bit of its own; `Now` (fired at the arming) none.
+        for t in all {
+            let expected = matches!(t, Trigger::External | Trigger::ScanStart);
+            assert_eq!(e.0 & Events::bit(t) != 0, expected, "{t:?}");
+            assert_eq!(Events::bit(t).count_ones(), 1, "{t:?}");
+        }
+        assert_eq!(Events::bit(Trigger::Now), 0);
+        let bits = all.iter().fold(0u8, |acc, &t| acc | Events::bit(t));
+        assert_eq!(bits.count_ones(), 4);
     }
 
     #[test]

@@ -67,6 +67,7 @@ use heapless::spsc::{Consumer, Producer, Queue};
 use serde::{Deserialize, Serialize};
 
 use crate::refusal::{Field, Refusal, Rule};
+use crate::services::decimation::Decimation;
 use crate::services::recorder::{Channel, TickSignals, CHANNELS};
 
 /// Slots of the telemetry queue (`heapless` keeps one free): 447 samples, 8.8 KiB; at 10 kHz
@@ -104,10 +105,8 @@ pub struct TelemetrySample {
 pub struct TelemetryTap {
     enabled: bool,
     mask: u8,
-    /// `decimation − 1`: the countdown after a sample tick.
-    reload: u16,
-    /// Ticks until the next sample (0: this tick).
-    countdown: u16,
+    /// One sample tick in every `decimation` ticks.
+    decimation: Decimation,
     /// The next sample's index (never reset: samples of an earlier start stay before it).
     next: u32,
     overflows: u32,
@@ -132,8 +131,7 @@ impl TelemetryTap {
         Self {
             enabled: false,
             mask: 0,
-            reload: 0,
-            countdown: 0,
+            decimation: Decimation::every(1),
             next: 0,
             overflows: 0,
             wake: 1,
@@ -159,8 +157,7 @@ impl TelemetryTap {
         }
         self.enabled = true;
         self.mask = mask;
-        self.reload = decimation - 1;
-        self.countdown = 0;
+        self.decimation = Decimation::every(decimation);
         Some(self.next)
     }
 
@@ -178,7 +175,7 @@ impl TelemetryTap {
 
     /// The running tap's decimation: one sample every that many ticks; `None` when stopped.
     pub fn running_decimation(&self) -> Option<u16> {
-        self.enabled.then_some(self.reload + 1)
+        self.enabled.then_some(self.decimation.ticks())
     }
 
     /// `ticks` ticks were lost before they reached the tap (the snapshot ring was full: see
@@ -190,16 +187,7 @@ impl TelemetryTap {
         if !self.enabled || ticks == 0 {
             return;
         }
-        let countdown = u32::from(self.countdown);
-        if ticks <= countdown {
-            self.countdown = (countdown - ticks) as u16;
-            return;
-        }
-        // The first lost tick that samples is the countdown's end; then one every period.
-        let period = u32::from(self.reload) + 1;
-        let after = ticks - countdown - 1;
-        let lost = 1 + after / period;
-        self.countdown = (u32::from(self.reload) - after % period) as u16;
+        let lost = self.decimation.skip(ticks);
         self.next = self.next.wrapping_add(lost);
         self.overflows = self.overflows.wrapping_add(lost);
     }
@@ -228,15 +216,7 @@ impl TelemetryTap {
     /// take. [`TelemetryTap::push`] is both.
     #[inline(always)]
     pub fn due(&mut self) -> bool {
-        if !self.enabled {
-            return false;
-        }
-        if self.countdown > 0 {
-            self.countdown -= 1;
-            return false;
-        }
-        self.countdown = self.reload;
-        true
+        self.enabled && self.decimation.due()
     }
 
     /// Ticks before the next sample tick, each of which [`TelemetryTap::due`] would only
@@ -245,7 +225,7 @@ impl TelemetryTap {
     #[inline(always)]
     pub fn quiet_ticks(&self) -> u32 {
         if self.enabled {
-            u32::from(self.countdown)
+            self.decimation.quiet_ticks()
         } else {
             u32::MAX
         }
@@ -257,7 +237,7 @@ impl TelemetryTap {
     #[inline(always)]
     pub fn pass(&mut self, ticks: u32) {
         if self.enabled {
-            self.countdown = u32::from(self.countdown).saturating_sub(ticks) as u16;
+            self.decimation.pass(ticks);
         }
     }
 
