@@ -208,8 +208,8 @@ fn tick_cost_table_and_image_size() {
                 "Duhem + creep",
                 "PI",
             ),
-            "inverse-bouc-wen" => ("inverse-multiplicative Bouc–Wen", "Duhem", "PI"),
-            "inverse-bouc-wen-bouc-wen" => ("inverse-multiplicative Bouc–Wen", "Bouc–Wen", "PI"),
+            "inverse-bouc-wen" => ("inverse Bouc–Wen", "Duhem", "PI"),
+            "inverse-bouc-wen-bouc-wen" => ("inverse Bouc–Wen", "Bouc–Wen", "PI"),
             other => panic!("unknown bench row {other}"),
         };
         out!(

@@ -358,7 +358,7 @@ fn random_bouc_wen(rng: &mut Rng) -> (BoucWenParams, Scaling) {
     )
 }
 
-/// The Bouc–Wen observer and inverse-multiplicative compensator against their `f64`
+/// The Bouc–Wen observer and compensator against their `f64`
 /// reference, as for Duhem: the compensator is fed the reference model's output on a random
 /// drive (reachable setpoints).
 fn bouc_wen(rng: &mut Rng, models: usize, samples: usize) -> (Stats, Stats) {

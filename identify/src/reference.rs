@@ -446,8 +446,10 @@ impl BoucWen {
     }
 }
 
-/// Inverse-multiplicative Bouc–Wen, `f64`: `u = (y_d − δ − h)/k` clamped to the input range,
-/// then the internal model advanced on that `u` (as the fixed-point compensator).
+/// Bouc–Wen compensator, `f64`, as the fixed-point one: per sample the drive step
+/// `m = |y_d − y|/g_s` in the direction `s` of the desired change, `g_s = k + A − c·s·h` the
+/// model's slope that way (floored at `k/16`), capped at `1/c` and at the input span, the
+/// drive clamped to the input range; then the internal model advanced on it.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct InverseBoucWen {
     model: BoucWen,
@@ -466,12 +468,19 @@ impl InverseBoucWen {
     pub fn step(&mut self, y_desired: f64) -> f64 {
         let s = self.model.scaling;
         let p = self.model.params;
-        let y = clamp(y_desired, s.output_min, s.output_max);
-        let u = clamp(
-            (y - p.offset - self.model.h) / p.k,
-            s.input_min,
-            s.input_max,
-        );
+        let r = clamp(y_desired, s.output_min, s.output_max) - self.model.output();
+        if r == 0.0 {
+            return self.model.u;
+        }
+        let sign = if r > 0.0 { 1.0 } else { -1.0 };
+        let h = self.model.h;
+        let sh = if h < 0.0 { -1.0 } else { 1.0 };
+        let c = p.beta + sign * sh * p.gamma + sign * p.psi;
+        let slope = (p.k + p.a - sign * c * h).max(p.k / 16.0);
+        let m = (r.abs() / slope)
+            .min(1.0 / c)
+            .min(2.0 * s.input_half_span());
+        let u = clamp(self.model.u + sign * m, s.input_min, s.input_max);
         self.model.step(u);
         u
     }

@@ -3,7 +3,7 @@
 //! sample, within one code of the board's DAC, for every model whose hysteresis is rate
 //! independent (the P–I and the generalised P–I: their output depends on the order of the
 //! input's values only). Duhem and Bouc–Wen are integrated per sample and are not: their
-//! difference is printed, as what the models chapter states.
+//! difference is printed, as what the models chapter states, and bounded.
 
 use twinstack::board::Hardware;
 use twinstack::config::settings::{
@@ -95,14 +95,20 @@ fn the_pi_family_gives_the_same_drive_at_10_and_100_khz() {
 
 #[test]
 fn the_integrated_models_rate_dependence_is_measured() {
-    // Not asserted equal: Duhem and Bouc–Wen step per sample. Their difference is bounded,
-    // so a compensator that ran away at one rate would fail here.
-    for (name, model) in [
-        ("Duhem", representative_duhem()),
-        ("Bouc–Wen", representative_bouc_wen()),
+    // Not asserted equal: Duhem and Bouc–Wen step per sample. Both compensators land on their
+    // own model every sample, so what differs is the explicit step's own integration: bounded
+    // (a compensator that ran away at one rate would fail here), and for the Bouc–Wen below
+    // a volt (0.79 V; an inverse `u = (y_d − δ − h)/k` that misses by one sample's change of
+    // `h` gives 3.5 V).
+    for (name, model, bound) in [
+        ("Duhem", representative_duhem(), 6.0),
+        ("Bouc–Wen", representative_bouc_wen(), 1.0),
     ] {
         let d = drive_difference(&stage(model));
         println!("{name}: drive at 10 kHz vs 100 kHz differs by at most {d:.4} V");
-        assert!(d.is_finite() && d < 150.0, "{name}: {d}");
+        assert!(
+            d.is_finite() && d < bound,
+            "{name}: {d} V, more than {bound} V"
+        );
     }
 }

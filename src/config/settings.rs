@@ -51,7 +51,7 @@ pub enum Model {
     /// Generalised (asymmetric) Prandtl–Ishlinskii: a P–I followed by a dead-zone map
     /// ([`crate::models::generalised_pi`]).
     GeneralisedPi(GpiParams),
-    /// Generalised (asymmetric) Bouc–Wen; compensated inverse-multiplicatively.
+    /// Generalised (asymmetric) Bouc–Wen; compensated by its exact per-sample inverse.
     BoucWen(BoucWenParams),
 }
 

@@ -3,7 +3,7 @@
 //! Read top to bottom, one tick is:
 //!
 //! 1. the next setpoint (Q2.30 normalised displacement; on underrun the last one is held);
-//! 2. the compensator (inverse P–I, inverse Duhem, inverse-multiplicative Bouc–Wen, or none)
+//! 2. the compensator (inverse P–I, inverse Duhem, inverse Bouc–Wen, or none)
 //!    turns it into a drive command (after the inverse creep, when the stage has creep:
 //!    [`crate::models::creep`]); the learned correction is added ([`crate::services::learning`]) and, with input
 //!    shaping, the sum goes through the feedforward's notch (not in bypass;

@@ -1,5 +1,5 @@
 //! Generalised (asymmetric) Bouc–Wen hysteresis in fixed point: the forward observer and the
-//! inverse-multiplicative compensator.
+//! compensator, exact per sample.
 //!
 //! Model (normalised by [`Scaling`], as [`crate::models::duhem`]): `y = k·u + δ + h`, with the
 //! hysteretic state advanced per sample by
@@ -23,31 +23,36 @@
 //! Duhem's `y_k = y_{k−1} + a_k·e_{k−1} + γ_D·Δu_k`, sample for sample
 //! ([`BoucWenParams::from_duhem`]).
 //!
-//! **Inverse (multiplicative).** `u_k = (y_d,k − δ − h_{k−1})·(1/k)`, with `1/k` precomputed
-//! off the tick, clamped to the input range; the compensator then advances its own `h` with
-//! the `u_k` it produced (its own observer). No division on the tick, constant time, bounded by
-//! construction: `|u_k| ≤ (1 + |δ| + H)/k` before the clamp. The output it obtains is
-//! `y_k = y_d,k + (h_k − h_{k−1})`: the error is one sample's change of `h`,
-//! `|A·Δu − f·h| ≤ (|A| + c_max·|h|)·|Δu|`.
+//! **Inverse (exact, per sample).** While `f < 1`, one step of the model is linear in `Δu`
+//! in each direction: writing `Δu = s·m` (`s` the sign, `m ≥ 0`),
+//! `y_k = y_{k−1} + (k + A − c·s·h_{k−1})·Δu`, the slope `g_s = k + A − c·s·h_{k−1}` with
+//! `c` the factor of that direction and of the sign of `h`. For the desired `y_d` the
+//! compensator takes `s = sign(y_d − y_{k−1})` and `m = |y_d − y_{k−1}| / g_s`, capped at
+//! `1/c` (where `f` reaches 1 and the step stops being linear: a larger step is made over
+//! several samples), clamps the drive to the input range, and advances its own model with
+//! it (its own observer): the model's output lands on `y_d`, to the rounding, on every sample
+//! the cap and the range leave alone, and a shortfall is made up on the next. So the drive
+//! does not depend on how finely the target is sampled beyond what the discrete model itself
+//! does, and nothing lags by a sample (an inverse `u = (y_d − δ − h_{k−1})/k` would miss by
+//! one sample's change of `h` and feed that back). The division is one `VDIV.F32`, as
+//! Duhem's ([`crate::fixed_point::magnitude_over_gain`]): host and board agree bit for bit.
 //!
-//! **Stability of the compensator's loop.** A perturbation `ε` of `h` moves the next drive by
-//! `−ε/k`, which moves `h` by the local hysteretic slope `∂h/∂u = A − c·s·h` times that: the
-//! loop gain is `|A − c·s·h|/k`, largest just after a reversal from the other branch's
-//! saturation, `|A|·(1 + c_max/c_min)/k` ([`BoucWenParams::inverse_loop_gain`]). At 1 or
-//! more the drive would chatter from sample to sample (still within its bound); the
-//! compensator refuses such a model ([`ParamError::BoucWenNotInvertible`], at
-//! [`BOUC_WEN_MAX_INVERSE_LOOP_GAIN`]). The observer has no such limit. (With the factor
-//! `f` the loop's characteristic equation is `z² − (1 − f − r)z − r = 0`, `r` the gain: stable
-//! for `r < 1 − f/2`. At control rates `f` is of order 1e-4; only a jump across the whole
-//! range in one sample, which the drive's slew limit prevents, brings it near 1.)
+//! **Invertibility.** The slope `g_s` stays positive — the model is monotone, and the step
+//! unique — when the hysteretic slope `|A − c·s·h|` stays below `k`; it is largest just after
+//! a reversal from the other branch's saturation, `|A|·(1 + c_max/c_min)`
+//! ([`BoucWenParams::inverse_loop_gain`] of `k`). The compensator refuses a model at
+//! [`BOUC_WEN_MAX_INVERSE_LOOP_GAIN`] or above ([`ParamError::BoucWenNotInvertible`]); the
+//! tick floors the slope at `k/16` besides, so that a state beyond the bound (after a
+//! rounding) still gives a bounded step. The observer has no such limit.
 //!
-//! Formats: `u, y, δ, h, A` Q2.30 normalised; `k, 1/k` and the factors `β ± γ ± ψ` Q8.24;
+//! Formats: `u, y, δ, h, A` Q2.30 normalised; `k`, the slope `g_s` and the factors `β ± γ ± ψ`
+//! Q8.24; the step caps `1/c` Q2.30;
 //! the factor `f` Q2.30 in `[0, 1]`; products in `i64`, the update `h·(1 − f) + A·Δu`
 //! summed in Q4.60 and brought back once, rounding toward −∞ and saturating.
 
 use crate::fixed_point::{
-    clamp_full_scale, gain_from_f64, q60_to_signal_floor, saturate_i64, signal_from_f64,
-    GAIN_FRAC_BITS, SIGNAL_ONE,
+    clamp_full_scale, gain_from_f64, magnitude_over_gain, q60_to_signal_floor, saturate_i64,
+    signal_from_f64, GAIN_FRAC_BITS, SIGNAL_FRAC_BITS, SIGNAL_ONE,
 };
 use crate::models::params::{
     BoucWenCoefficient, BoucWenParams, ParamError, BOUC_WEN_MAX_INVERSE_LOOP_GAIN,
@@ -69,8 +74,6 @@ pub struct BoucWenState {
 pub struct BoucWen {
     /// `k`, Q8.24 normalised (output span per input span), in `[1/64, 2)`.
     slope: i32,
-    /// `1/k`, Q8.24, at most 64 (`2^30`): the compensator's multiplier.
-    inverse_slope: i32,
     /// `δ`, Q2.30 normalised output.
     offset: i32,
     /// `A`, Q2.30 normalised (`|A| < 2`), so that `A·Δu` is a Q2.30 × Q2.30 product.
@@ -99,15 +102,9 @@ impl BoucWen {
     pub fn new(params: &BoucWenParams, scaling: &Scaling) -> Result<Self, ParamError> {
         let n = params.normalized(scaling)?;
         let slope = gain_from_f64(n.k);
-        // 1/k: 2^48 / k(Q8.24) in Q8.24, rounded; k ≥ 1/64 (validated) keeps it ≤ 2^30.
-        let inverse_slope = ((1i64 << (2 * GAIN_FRAC_BITS)) + (slope as i64 >> 1))
-            .checked_div(slope as i64)
-            .unwrap_or(i64::MAX)
-            .clamp(1, i32::MAX as i64) as i32;
         let factor = |x: f64| gain_from_f64(x).max(1);
         Ok(Self {
             slope,
-            inverse_slope,
             offset: signal_from_f64(n.offset),
             a: signal_from_f64(n.a),
             factors: [
@@ -139,14 +136,20 @@ impl BoucWen {
         )
     }
 
+    /// The index of the factor `c` for a step falling (or not) from `state`: its direction
+    /// and the sign of `h`.
+    #[inline(always)]
+    fn factor_index(falling: bool, state: &BoucWenState) -> usize {
+        ((falling as usize) << 1) | ((state.h < 0) as usize)
+    }
+
     /// Advances the hysteretic state to input `u` (Q2.30 normalised, clamped to full scale).
     #[inline(always)]
     fn advance(&self, state: &mut BoucWenState, u: i32) {
         let u = clamp_full_scale(u);
         // |Δu| ≤ 2; a full-range jump saturates 2^-30 short of 2 (QSUB).
         let du = u.saturating_sub(state.u);
-        let index = (((du < 0) as usize) << 1) | ((state.h < 0) as usize);
-        let c = self.factors[index & 3];
+        let c = self.factors[Self::factor_index(du < 0, state) & 3];
         // f = min(c·|Δu|, 1), Q2.30: c (Q8.24, < 2^31) × |Δu| (< 2^31) < 2^62; c ≥ 1, so
         // f ≥ 0.
         let f = ((c as i64 * du.unsigned_abs() as i64) >> GAIN_FRAC_BITS).min(SIGNAL_ONE as i64);
@@ -165,11 +168,16 @@ impl BoucWen {
     }
 }
 
-/// Inverse-multiplicative Bouc–Wen compensator, fixed point: `u = (y_d − δ − h)·(1/k)`, then
-/// its own model advanced on that `u` (see the module doc).
+/// Bouc–Wen compensator, fixed point: per sample, the drive step that brings its own model's
+/// output to the desired displacement (see the module doc), then its model advanced on it.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct InverseBoucWen {
     model: BoucWen,
+    /// The floor of the step's slope `g_s`: `k/16`, Q8.24, at least one LSB.
+    min_slope: i32,
+    /// The largest drive step per sample for each factor (indexed as the factors): `1/c`,
+    /// Q2.30, saturated just below 2: up to there `f = c·|Δu| ≤ 1` and the step is linear.
+    max_steps: [i32; 4],
 }
 
 impl InverseBoucWen {
@@ -187,8 +195,8 @@ impl InverseBoucWen {
     /// assert!(signal_to_f64(u) > 0.0 && signal_to_f64(u) < 1.0);
     /// ```
     ///
-    /// Beyond [`BoucWenParams::validate`] and the fixed-point ranges, refuses a model whose
-    /// compensator loop would oscillate ([`BoucWenParams::inverse_loop_gain`] at or above
+    /// Beyond [`BoucWenParams::validate`] and the fixed-point ranges, refuses a model that may
+    /// not be monotone ([`BoucWenParams::inverse_loop_gain`] at or above
     /// [`BOUC_WEN_MAX_INVERSE_LOOP_GAIN`]) with [`ParamError::BoucWenNotInvertible`] on `a`.
     #[inline(never)] // configuration, off the tick path: one copy in flash
     pub fn new(params: &BoucWenParams, scaling: &Scaling) -> Result<Self, ParamError> {
@@ -198,7 +206,16 @@ impl InverseBoucWen {
         if gain.is_nan() || gain >= BOUC_WEN_MAX_INVERSE_LOOP_GAIN {
             return Err(ParamError::BoucWenNotInvertible(BoucWenCoefficient::A));
         }
-        Ok(Self { model })
+        // 1/c in Q2.30: 2^54 / c(Q8.24); c ≥ 1 LSB, the quotient saturated at i32::MAX.
+        let max_steps = model.factors.map(|c| {
+            ((1i64 << (SIGNAL_FRAC_BITS + GAIN_FRAC_BITS)) / i64::from(c.max(1)))
+                .min(i32::MAX as i64) as i32
+        });
+        Ok(Self {
+            model,
+            min_slope: (model.slope >> 4).max(1),
+            max_steps,
+        })
     }
 
     /// The forward model the compensator inverts (its observer).
@@ -212,17 +229,34 @@ impl InverseBoucWen {
     #[inline(always)]
     pub fn step(&self, state: &mut BoucWenState, y_desired: i32) -> i32 {
         let m = &self.model;
-        // Q2.30 in i64: |y_d| ≤ 1, |δ| ≤ 1.5, |h| < 2, so |r| < 4.5·2^30; × 1/k (≤ 2^30) < 2^63.
-        let r = clamp_full_scale(y_desired) as i64 - m.offset as i64 - state.h as i64;
-        let u = clamp_full_scale(saturate_i64((r * m.inverse_slope as i64) >> GAIN_FRAC_BITS));
+        // Q2.30 in i64: |y_d| ≤ 1 and the model's output is saturated, so |r| < 3·2^30.
+        let r = clamp_full_scale(y_desired) as i64 - m.output(state) as i64;
+        if r == 0 {
+            return state.u;
+        }
+        let falling = r < 0;
+        let index = BoucWen::factor_index(falling, state) & 3;
+        // The slope g_s = k + A − c·s·h, Q8.24: A (Q2.30) shifted down by 6, c·h (Q8.24 ×
+        // Q2.30 < 2^62) by 30; |g_s| < 2^27, floored at k/16.
+        let ch = (i64::from(m.factors[index]) * i64::from(state.h)) >> SIGNAL_FRAC_BITS;
+        let g = i64::from(m.slope) + (i64::from(m.a) >> (SIGNAL_FRAC_BITS - GAIN_FRAC_BITS));
+        let g = if falling { g + ch } else { g - ch }.max(i64::from(self.min_slope));
+        let step = magnitude_over_gain(r.unsigned_abs(), g).min(self.max_steps[index]);
+        let du = if falling { -step } else { step };
+        let u = clamp_full_scale(state.u.saturating_add(du));
         m.advance(state, u);
         u
     }
 }
 
-/// A Bouc–Wen model in the tick (either direction), cycles at 5 wait states (see
+/// The forward Bouc–Wen model (the observer) in the tick, cycles at 5 wait states (see
 /// [`Hysteresis::cycles`]).
 pub const BOUC_WEN_CYCLES: u32 = 88;
+
+/// The Bouc–Wen compensator in the tick, cycles at 5 wait states: the forward step and the
+/// step's slope and quotient before it (one `VDIV.F32` and its conversions, as Duhem's
+/// inverse).
+pub const INVERSE_BOUC_WEN_CYCLES: u32 = 175;
 
 impl Hysteresis for BoucWen {
     type State = BoucWenState;
@@ -254,7 +288,7 @@ impl Hysteresis for InverseBoucWen {
     }
 
     fn cycles(&self) -> u32 {
-        BOUC_WEN_CYCLES
+        INVERSE_BOUC_WEN_CYCLES
     }
 }
 
@@ -388,28 +422,36 @@ mod tests {
         );
     }
 
-    /// The compensator driving its own model: the output is the desired one but for one
-    /// sample's change of `h`.
+    /// The compensator driving its own model: the output lands on the desired one, to the
+    /// rounding, on every sample, finely sampled or coarsely (steps of 5 % of the range, with
+    /// reversals on both branches), well inside the step cap.
     #[test]
     fn the_inverse_tracks_its_own_model() {
         let s = scaling();
         let inv = InverseBoucWen::new(&asymmetric(), &s).unwrap();
-        let mut st = inv.model().relaxed(0);
-        let mut plant = inv.model().relaxed(0);
-        let mut worst = 0.0f64;
-        for k in 0..20_000 {
-            let yd = 0.5 * libm::sin(k as f64 * 2e-3);
-            let u = inv.step(&mut st, q(yd));
-            let y = inv.model().step(&mut plant, u);
-            if k > 10 {
-                worst = worst.max((f(y) - yd).abs());
+        for (name, samples_per_period) in [("fine", 3_000.0), ("coarse", 40.0)] {
+            let mut st = inv.model().relaxed(0);
+            let mut plant = inv.model().relaxed(0);
+            let mut worst = 0.0f64;
+            for k in 0..20_000 {
+                let phase = k as f64 / samples_per_period;
+                // A triangle whose amplitude shrinks and grows: nested minor loops.
+                let tri = 2.0 * (phase - libm::floor(phase + 0.5)).abs() * 2.0 - 1.0;
+                let yd = 0.5 * tri * (0.6 + 0.4 * libm::cos(phase * 0.37));
+                let u = inv.step(&mut st, q(yd));
+                let y = inv.model().step(&mut plant, u);
+                if k > 0 {
+                    worst = worst.max((f(y) - yd).abs());
+                }
             }
+            assert_eq!(
+                st, plant,
+                "{name}: the compensator's state is the model's on its drive"
+            );
+            // Some tens of LSB of Q2.30 (one is 9.3e-10): the step's f32 quotient (24 bits of
+            // a step up to 0.1) and the roundings. A compensator that lagged one sample would
+            // miss by that sample's change of h, 1e-3 and more.
+            assert!(worst < 3e-8, "{name}: {worst}");
         }
-        assert_eq!(
-            st, plant,
-            "the compensator's state is the model's on its drive"
-        );
-        // One sample's Δh at this rate: about |A|·|Δu| ≈ 0.175 · 1e-3 / 0.735.
-        assert!(worst < 1e-3, "{worst}");
     }
 }

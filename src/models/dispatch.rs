@@ -37,7 +37,7 @@ pub enum Compensator {
     InverseDuhem(InverseDuhem),
     /// Analytic inverse of the generalised (asymmetric) P–I.
     InverseGeneralisedPi(InverseGeneralisedPi),
-    /// Inverse-multiplicative Bouc–Wen.
+    /// Inverse Bouc–Wen (exact per sample).
     InverseBoucWen(InverseBoucWen),
 }
 

@@ -22,8 +22,8 @@
 //! shortfall in one sample is made up in the next.
 
 use crate::fixed_point::{
-    clamp_full_scale, gain_from_f64, q60_to_signal_floor, saturate_i64, signal_from_f64,
-    GAIN_FRAC_BITS, SIGNAL_FRAC_BITS, SIGNAL_ONE,
+    clamp_full_scale, gain_from_f64, magnitude_over_gain, q60_to_signal_floor, saturate_i64,
+    signal_from_f64, GAIN_FRAC_BITS, SIGNAL_FRAC_BITS, SIGNAL_ONE,
 };
 use crate::models::params::{DuhemParams, ParamError};
 use crate::models::{Forward, Hysteresis, Inverse};
@@ -199,24 +199,8 @@ impl InverseDuhem {
             self.model.gamma as i64 - alpha_e
         }
         .max(self.min_slope as i64);
-        // m = |Δy| / g, Q2.30 = Q2.30 · 2^24 / Q8.24. An i64 division is a library call on
-        // the M4 (`__aeabi_ldivmod`, a few hundred instructions); its FPU divides in one
-        // `VDIV.F32`. f32 carries 24 bits, so m is within 3·2^-24 of itself (< 0.02 LSB16 at
-        // the largest step the cap allows); IEEE division and conversion round the same on
-        // the host and the M4, so host and board still agree bit for bit (golden vectors).
-        // The slope is at least min_slope ≥ 1 (no division by zero); `as i32` saturates.
-        // |Δy| < 2^32 (two Q2.30 values) and a slope below 2^32 convert from `u32` with one
-        // `VCVT` each (from `i64`, the same value rounds the same, but it is a library call,
-        // `__aeabi_l2f`, ~35 instructions); a larger slope (not reached by validated models)
-        // keeps the `i64` conversion.
-        let to_f32 = |v: i64| {
-            if (0..1 << 32).contains(&v) {
-                v as u32 as f32
-            } else {
-                v as f32
-            }
-        };
-        let m = ((to_f32(dy.abs()) / to_f32(slope)) * (1u32 << GAIN_FRAC_BITS) as f32) as i32;
+        // m = |Δy| / g, Q2.30; the slope is at least min_slope ≥ 1.
+        let m = magnitude_over_gain(dy.unsigned_abs(), slope);
         let m = (m as i64).min(self.max_step as i64);
         let du = if dy > 0 { m } else { -m };
         let u = clamp_full_scale(saturate_i64(state.u as i64 + du));

@@ -16,7 +16,7 @@
 //! * [`generalised_pi`] — the generalised (asymmetric) P–I: a P–I followed by a monotone
 //!   dead-zone map, and its analytic inverse.
 //! * [`duhem`] — Duhem forward observer and inverse Duhem compensator.
-//! * [`bouc_wen`] — generalised (asymmetric) Bouc–Wen observer and its inverse-multiplicative
+//! * [`bouc_wen`] — generalised (asymmetric) Bouc–Wen observer and its exact per-sample
 //!   compensator.
 //! * [`creep`] — the creep operator (log-spaced first-order modes) in series with a
 //!   hysteresis model, and its exact inverse.

@@ -144,9 +144,9 @@ pub enum ParamError {
     /// A Bouc–Wen coefficient, once normalised, does not fit its fixed-point format (or the
     /// bound on the hysteretic state it implies does not fit Q2.30).
     BoucWenOutOfRange(BoucWenCoefficient),
-    /// The inverse-multiplicative Bouc–Wen compensator would oscillate: the hysteretic slope
-    /// `|A|·(1 + c_max/c_min)` reaches [`BOUC_WEN_MAX_INVERSE_LOOP_GAIN`] of `k` (see
-    /// [`BoucWenParams::inverse_loop_gain`]).
+    /// The Bouc–Wen model may not be monotone, so that its compensator's step is not unique:
+    /// the hysteretic slope `|A|·(1 + c_max/c_min)` reaches [`BOUC_WEN_MAX_INVERSE_LOOP_GAIN`]
+    /// of `k` (see [`BoucWenParams::inverse_loop_gain`]).
     BoucWenNotInvertible(BoucWenCoefficient),
 }
 
@@ -293,7 +293,7 @@ impl core::fmt::Display for ParamError {
             ),
             BoucWenNotInvertible(c) => write!(
                 f,
-                "Bouc-Wen {}: the hysteretic slope |a|(1 + c_max/c_min) must stay below {BOUC_WEN_MAX_INVERSE_LOOP_GAIN} k for the inverse-multiplicative compensator",
+                "Bouc-Wen {}: the hysteretic slope |a|(1 + c_max/c_min) must stay below {BOUC_WEN_MAX_INVERSE_LOOP_GAIN} k for the model to be monotone and its compensator's step unique",
                 c.name()
             ),
         }
@@ -676,8 +676,9 @@ pub const BOUC_WEN_MAX_NORM_STATE: f64 = 1.9;
 pub const BOUC_WEN_MIN_NORM_SLOPE: f64 = 1.0 / 64.0;
 /// Largest normalised Bouc–Wen `β` (so that `β + |γ| + |ψ| < 2β` fits Q8.24).
 pub const BOUC_WEN_MAX_NORM_BETA: f64 = 40.0;
-/// Largest loop gain of the inverse-multiplicative Bouc–Wen compensator
-/// ([`BoucWenParams::inverse_loop_gain`]): at 1 its internal loop oscillates for ever.
+/// Largest hysteretic slope of a Bouc–Wen model the compensator accepts, relative to `k`
+/// ([`BoucWenParams::inverse_loop_gain`]): at 1 the model's slope may reach zero (not
+/// monotone, the inverse not unique); 0.9 keeps a margin for the rounding.
 pub const BOUC_WEN_MAX_INVERSE_LOOP_GAIN: f64 = 0.9;
 
 /// A generalised Bouc–Wen model in physical units (volts in, output units out):
@@ -751,12 +752,13 @@ impl BoucWenParams {
         self.beta + self.gamma.abs() + self.psi.abs()
     }
 
-    /// The loop gain of the inverse-multiplicative compensator, `|A|·(1 + c_max/c_min) / k`
-    /// (scale-free). The compensator sets `u_k = (y_d − δ − h_{k−1})/k`; a perturbation of
-    /// `h` moves `u` by `−δh/k`, which moves `h` by the local hysteretic slope
-    /// `∂h/∂u = A − c·s·h` times it, at most `|A| + c_max·|A|/c_min` in magnitude (just after
-    /// a reversal from the other branch's saturation `|h| = |A|/c_min`). Below 1 the loop
-    /// settles; at or above 1 the drive chatters from sample to sample (within its bound).
+    /// The largest hysteretic slope relative to `k`, `|A|·(1 + c_max/c_min) / k`
+    /// (scale-free): the local slope `∂h/∂u = A − c·s·h` is at most `|A| + c_max·|A|/c_min`
+    /// in magnitude (just after a reversal from the other branch's saturation
+    /// `|h| = |A|/c_min`). Below 1 the model's slope `k + ∂h/∂u` stays positive in both
+    /// directions: the model is monotone and the compensator's step (the drive change that
+    /// gives a desired output change) unique. The name keeps the gain an inverse
+    /// `u = (y_d − δ − h)/k` would loop with.
     pub fn inverse_loop_gain(&self) -> f64 {
         self.a.abs() * (1.0 + self.max_factor() / self.min_factor()) / self.k
     }

@@ -21,7 +21,7 @@
 //! | `ipi16-pi-creep-closed` | inverse P–I, N = 16, + inverse creep (4 modes) | P–I, N = 16, + creep | drift limit 2 % | PI | closed loop | differential, bias | 16-bit, 16-bit |
 //! | `iduhem-pi-open` | inverse Duhem | P–I, N = 16 | none | none | open loop | unidirectional, bias | 16-bit, none |
 //! | `igpi16-gpi-closed` | inverse generalised P–I, N = 16, 6 dead zones | the same | drift limit 2 % | PI | closed loop | differential, bias | 16-bit, 16-bit |
-//! | `ibw-bw-closed` | inverse-multiplicative Bouc–Wen | Bouc–Wen | drift limit 2 % | PI | closed loop | differential, bias | 16-bit, 16-bit |
+//! | `ibw-bw-closed` | inverse Bouc–Wen | Bouc–Wen | drift limit 2 % | PI | closed loop | differential, bias | 16-bit, 16-bit |
 //!
 //! The generalised P–I's and the Bouc–Wen's files widen their output ranges a little beyond
 //! the others' (for the P–I part's output; 5 % beyond its own simulated output); the shared

@@ -3,9 +3,9 @@
 //!
 //! 1. **Start.** Duhem is Bouc–Wen with `γ = ψ = 0` ([`BoucWenParams::from_duhem`]): the
 //!    Duhem fit ([`super::duhem::fit`], integrated least squares and its own refinement) is
-//!    an exact Bouc–Wen model with the same simulated output. If its compensator loop gain
-//!    ([`BoucWenParams::inverse_loop_gain`]) is beyond what the compensator accepts, `A` is
-//!    scaled down until it is not (the caller is told).
+//!    an exact Bouc–Wen model with the same simulated output. If its hysteretic slope
+//!    ([`BoucWenParams::inverse_loop_gain`]) is beyond what the compensator accepts (a model
+//!    that may not be monotone), `A` is scaled down until it is not (the caller is told).
 //! 2. **Refinement.** A Nelder–Mead simplex ([`super::simplex::minimise`]) minimises the RMS
 //!    of the simulated output against the measurement over `(ln k, δ, A, ln β, γ, ψ)`, on the
 //!    rows after the drive has seen both extremes (as the Duhem refinement), with

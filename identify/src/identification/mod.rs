@@ -611,7 +611,7 @@ pub fn identify(
                     100.0 * f.start_rms / span,
                     data.t[steady_from.min(n_fit - 1)],
                     if f.start_scaled {
-                        " (A scaled down: the inverse-multiplicative compensator's loop gain was too high)"
+                        " (A scaled down: the hysteretic slope was too steep for a monotone model)"
                     } else {
                         ""
                     }

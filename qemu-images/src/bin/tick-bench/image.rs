@@ -224,7 +224,7 @@ fn main() -> ! {
                 ..closed(pi(16))
             },
         ),
-        // Bouc–Wen: the inverse-multiplicative compensator with the Duhem observer, then
+        // Bouc–Wen: the compensator with the Duhem observer, then
         // with its own model as the observer.
         ("inverse-bouc-wen", closed(Some(representative_bouc_wen()))),
         (
