@@ -306,7 +306,7 @@ impl StageModel {
                     .state_at(signal_from_f64(s.input_to_norm(u0)), y0_norm);
                 // The noise band (see `NoiseBand`): the inverse's memory follows the
                 // band-filtered trajectory, the rest passes through the anhysteretic slope.
-                let band = NoiseBand::of(&desired, p, s)?;
+                let band = NoiseBand::of(&desired, p.normalized(s)?.beta, s);
                 let width = signal_from_f64(band.width_norm);
                 let through = gain_from_f64(band.inverse_slope_norm);
                 let mut filtered = y0_norm;
@@ -334,9 +334,20 @@ impl StageModel {
                 let y0 = y0.clamp(s.output_min, s.output_max);
                 let u0 = ((y0 - p.offset) / p.k).clamp(s.input_min, s.input_max);
                 let mut st = m.model().relaxed(signal_from_f64(s.input_to_norm(u0)));
+                // The noise band, as Duhem's: what it holds back passes through the slope k.
+                let band = NoiseBand::of(&desired, p.normalized(s)?.k, s);
+                let width = signal_from_f64(band.width_norm);
+                let through = gain_from_f64(band.inverse_slope_norm);
+                let mut filtered = signal_from_f64(s.output_to_norm(y0));
                 desired
                     .iter()
-                    .map(|&v| u_phys(m.step(&mut st, y_norm(v))))
+                    .map(|&v| {
+                        let y = y_norm(v);
+                        filtered = play(y, width, filtered);
+                        let rest = (y as i64 - filtered as i64) * through as i64;
+                        let u = m.step(&mut st, filtered) as i64 + (rest >> GAIN_FRAC_BITS);
+                        u_phys(clamp_full_scale(saturate_i64(u)))
+                    })
                     .collect()
             }
         })
@@ -370,7 +381,7 @@ impl StageModel {
                 let mut m = reference::InverseDuhem::new(p, s, u0, y0)?;
                 // The band from the trajectory as given (before the inverse creep), as the
                 // fixed-point `compensate` takes it.
-                let band = NoiseBand::of(&trajectory, p, s)?;
+                let band = NoiseBand::of(&trajectory, p.normalized(s)?.beta, s);
                 let width = band.width_norm * s.output_half_span();
                 let mut filtered = y0;
                 desired
@@ -394,7 +405,17 @@ impl StageModel {
             Hysteresis::BoucWen(p) => {
                 let u0 = ((y0 - p.offset) / p.k).clamp(s.input_min, s.input_max);
                 let mut m = reference::InverseBoucWen::new(p, s, u0)?;
-                desired.iter().map(|&v| m.step(v)).collect()
+                let band = NoiseBand::of(&trajectory, p.normalized(s)?.k, s);
+                let width = band.width_norm * s.output_half_span();
+                let mut filtered = y0;
+                desired
+                    .iter()
+                    .map(|&v| {
+                        filtered = reference::play(v, width, filtered);
+                        let u = m.step(filtered) + (v - filtered) / p.k;
+                        u.clamp(s.input_min, s.input_max)
+                    })
+                    .collect()
             }
         })
     }
@@ -403,16 +424,16 @@ impl StageModel {
 /// Band widths in units of the trajectory's noise RMS: reversals smaller than this are noise.
 pub const NOISE_BAND_SIGMAS: f64 = 3.0;
 
-/// The noise band of a measured trajectory given to the inverse Duhem.
+/// The noise band of a measured trajectory given to the inverse Duhem or Bouc–Wen.
 ///
-/// A Duhem model relaxes towards its anhysteretic curve whenever its input moves, whichever
-/// way: dithered, it forgets its hysteresis. Its exact inverse, given a *measured* trajectory,
-/// treats every sample of sensor noise as a reversal of the desired motion and ratchets its
-/// drive towards the anhysteretic curve (12.9 % on the bipolar set). So the inverse's memory
-/// follows the trajectory through a play operator of half-width `3σ` (`σ` the trajectory's
-/// noise RMS, estimated from its second differences, robustly: corners of a triangle do not
-/// count), and what the band holds back passes straight through at the anhysteretic slope
-/// `1/β`. A clean trajectory (a planned one; the board's setpoints) has `σ ≈ 0` and is
+/// A Duhem or Bouc–Wen model relaxes towards its anhysteretic curve whenever its input moves,
+/// whichever way: dithered, it forgets its hysteresis. Its exact inverse, given a *measured*
+/// trajectory, treats every sample of sensor noise as a reversal of the desired motion and
+/// ratchets its drive towards the anhysteretic curve (12.9 % on the bipolar set for Duhem).
+/// So the inverse's memory follows the trajectory through a play operator of half-width `3σ`
+/// (`σ` the trajectory's noise RMS, estimated from its second differences, robustly: corners
+/// of a triangle do not count), and what the band holds back passes straight through at the
+/// anhysteretic slope (`1/β` for Duhem, `1/k` for Bouc–Wen). A clean trajectory (a planned one; the board's setpoints) has `σ ≈ 0` and is
 /// inverted exactly; the band exists only for measured ones (`compensate` on recorded data).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct NoiseBand {
@@ -420,20 +441,20 @@ pub struct NoiseBand {
     pub noise_rms: f64,
     /// Half-width of the band, normalised output units.
     pub width_norm: f64,
-    /// `1/β`, normalised (input span per output span).
+    /// The inverse of the anhysteretic slope, normalised (input span per output span).
     pub inverse_slope_norm: f64,
 }
 
 impl NoiseBand {
-    /// The band for trajectory `x` (output units) and the model `p` on `scaling`.
-    pub fn of(x: &[f64], p: &DuhemParams, scaling: &Scaling) -> Result<Self, ParamError> {
-        let n = p.normalized(scaling)?;
+    /// The band for trajectory `x` (output units) on `scaling`, for a model whose
+    /// anhysteretic slope is `slope_norm` (normalised: Duhem's `β`, Bouc–Wen's `k`).
+    pub fn of(x: &[f64], slope_norm: f64, scaling: &Scaling) -> Self {
         let noise_rms = noise_rms(x);
-        Ok(Self {
+        Self {
             noise_rms,
             width_norm: (NOISE_BAND_SIGMAS * noise_rms / scaling.output_half_span()).min(1.0),
-            inverse_slope_norm: 1.0 / n.beta,
-        })
+            inverse_slope_norm: 1.0 / slope_norm,
+        }
     }
 }
 
@@ -548,65 +569,91 @@ mod tests {
         assert_eq!(noise_rms(&[1.0, 2.0]), 0.0);
     }
 
-    /// The inverse Duhem on a measured (noisy) trajectory: the drive it computes stays on the
-    /// true drive, where the exact inverse on the same samples ratchets away from it.
-    #[test]
-    fn compensate_of_a_noisy_duhem_trajectory_does_not_ratchet() {
-        let m = duhem_model();
-        let t: Vec<f64> = (0..30_000).map(|k| k as f64 * 2e-4).collect();
-        let u: Vec<f64> = t
-            .iter()
-            .map(|&t| 90.0 * (t * std::f64::consts::TAU).sin())
-            .collect();
-        let clean = m.predict(&t, &u).unwrap();
-        let span = 40.0;
-        let noisy: Vec<f64> = clean
-            .iter()
-            .zip(noise(t.len()))
-            .map(|(x, n)| x + 0.002 * span * n)
-            .collect();
-        let worst = |drive: &[f64]| {
-            drive[5000..]
-                .iter()
-                .zip(&u[5000..])
-                .map(|(a, b)| (a - b).abs())
-                .fold(0.0, f64::max)
-                / 180.0
-                * 100.0
-        };
-        let banded = worst(&m.compensate(&t, &noisy).unwrap());
-        let banded_reference = worst(&m.compensate_reference(&t, &noisy).unwrap());
-        // The library's inverse alone, every noisy sample fed to its memory.
-        let Hysteresis::Duhem(p) = &m.hysteresis else {
-            unreachable!()
-        };
+    /// A generalised Bouc–Wen model on the Duhem model's ranges: asymmetric (`γ`, `ψ`).
+    fn bouc_wen_model() -> StageModel {
+        StageModel {
+            hysteresis: Hysteresis::BoucWen(BoucWenParams {
+                k: 0.2,
+                offset: 0.5,
+                a: 0.05,
+                beta: 0.02,
+                gamma: 0.004,
+                psi: 0.003,
+            }),
+            ..duhem_model()
+        }
+    }
+
+    /// The library's inverse alone on `x` (output units), every sample fed to its memory:
+    /// the drive, volts.
+    fn exact_inverse(m: &StageModel, x: &[f64]) -> Vec<f64> {
         let s = &m.scaling;
-        let inv = InverseDuhem::new(p, s).unwrap();
-        let mut st = inv
-            .model()
-            .state_at(0, signal_from_f64(s.output_to_norm(noisy[0])));
-        let exact: Vec<f64> = noisy
-            .iter()
-            .map(|&x| {
-                s.norm_to_input(signal_to_f64(
-                    inv.step(&mut st, signal_from_f64(s.output_to_norm(x))),
-                ))
-            })
-            .collect();
-        let unbanded = worst(&exact);
-        eprintln!("drive error, % of span: banded {banded:.4} (f64 {banded_reference:.4}), exact inverse {unbanded:.4}");
-        // Noise of 0.2 % of the output span is 0.22 % of the drive span through 1/β, and
-        // its peaks reach four times that.
-        assert!(banded < 2.5, "{banded}");
-        assert!(banded_reference < 2.5, "{banded_reference}");
-        assert!(
-            unbanded > 3.0 * banded,
-            "the band made no difference: {unbanded} vs {banded}"
-        );
-        // A clean trajectory is inverted as without the band: the band shrinks to nothing.
-        let back = m.compensate(&t, &clean).unwrap();
-        let worst_clean = worst(&back);
-        assert!(worst_clean < 1e-3, "{worst_clean}");
+        let norm = |x: f64| signal_from_f64(s.output_to_norm(x));
+        let volts = |q: i32| s.norm_to_input(signal_to_f64(q));
+        match &m.hysteresis {
+            Hysteresis::Duhem(p) => {
+                let inv = InverseDuhem::new(p, s).unwrap();
+                let mut st = inv.model().state_at(0, norm(x[0]));
+                x.iter()
+                    .map(|&x| volts(inv.step(&mut st, norm(x))))
+                    .collect()
+            }
+            Hysteresis::BoucWen(p) => {
+                let inv = InverseBoucWen::new(p, s).unwrap();
+                let u0 = signal_from_f64(s.input_to_norm((x[0] - p.offset) / p.k));
+                let mut st = inv.model().relaxed(u0);
+                x.iter()
+                    .map(|&x| volts(inv.step(&mut st, norm(x))))
+                    .collect()
+            }
+            _ => unreachable!("the models with a noise band"),
+        }
+    }
+
+    /// The inverse Duhem and Bouc–Wen on a measured (noisy) trajectory: the drive each
+    /// computes stays on the true drive, where the exact inverse on the same samples ratchets
+    /// away from it.
+    #[test]
+    fn compensate_of_a_noisy_trajectory_does_not_ratchet() {
+        for (name, m) in [("Duhem", duhem_model()), ("Bouc–Wen", bouc_wen_model())] {
+            let t: Vec<f64> = (0..30_000).map(|k| k as f64 * 2e-4).collect();
+            let u: Vec<f64> = t
+                .iter()
+                .map(|&t| 90.0 * (t * std::f64::consts::TAU).sin())
+                .collect();
+            let clean = m.predict(&t, &u).unwrap();
+            let span = 40.0;
+            let noisy: Vec<f64> = clean
+                .iter()
+                .zip(noise(t.len()))
+                .map(|(x, n)| x + 0.002 * span * n)
+                .collect();
+            let worst = |drive: &[f64]| {
+                drive[5000..]
+                    .iter()
+                    .zip(&u[5000..])
+                    .map(|(a, b)| (a - b).abs())
+                    .fold(0.0, f64::max)
+                    / 180.0
+                    * 100.0
+            };
+            let banded = worst(&m.compensate(&t, &noisy).unwrap());
+            let banded_reference = worst(&m.compensate_reference(&t, &noisy).unwrap());
+            let unbanded = worst(&exact_inverse(&m, &noisy));
+            eprintln!("{name}: drive error, % of span: banded {banded:.4} (f64 {banded_reference:.4}), exact inverse {unbanded:.4}");
+            // Noise of 0.2 % of the output span is 0.22 % of the drive span through the
+            // anhysteretic slope, and its peaks reach four times that.
+            assert!(banded < 2.5, "{name}: {banded}");
+            assert!(banded_reference < 2.5, "{name}: {banded_reference}");
+            assert!(
+                unbanded > 3.0 * banded,
+                "{name}: the band made no difference: {unbanded} vs {banded}"
+            );
+            // A clean trajectory is inverted as without the band: the band shrinks to nothing.
+            let back = m.compensate(&t, &clean).unwrap();
+            let worst_clean = worst(&back);
+            assert!(worst_clean < 1e-3, "{name}: {worst_clean}");
+        }
     }
 
     #[test]
