@@ -621,9 +621,9 @@ fn the_record_limits_the_book_states_are_each_image_s_constants() {
 
 /// The settings chapter's example of the tick budget's refusal
 /// (`docs/src/reference/settings.md`) is what the library says for the configuration it
-/// names — a P–I of `OPERATORS` operators as compensator and observer, a sensor, PI feedback
-/// with a notch, closed loop, at 100 kHz — and the largest P–I that fits there is the one it
-/// names.
+/// names — a P–I of `OPERATORS` operators as the compensator (no observer), a sensor, PI
+/// feedback with a notch, closed loop, at 100 kHz — and the largest P–I that fits there is the
+/// one it names.
 #[test]
 fn the_settings_chapters_refusal_example_is_the_librarys() {
     use twinstack::board::Hardware;
@@ -636,8 +636,8 @@ fn the_settings_chapters_refusal_example_is_the_librarys() {
         let pi = representative_pi(n).unwrap();
         let defaults = Settings::default();
         Settings {
-            compensator: Some(pi.clone()),
-            observer: Some(pi),
+            compensator: Some(pi),
+            observer: None,
             sensor: defaults.sensor,
             feedback: Some(FeedbackSettings {
                 notch: Some(NotchDesign {
@@ -664,7 +664,7 @@ fn the_settings_chapters_refusal_example_is_the_librarys() {
     assert_eq!(flat(example), flat(&said));
     let fits = (1..OPERATORS).rev().find(|&n| at(n).is_ok()).unwrap();
     let named = format!(
-        "for a {OPERATORS}-operator P–I as compensator and observer with the notch at 100 kHz ({fits} operators fit)"
+        "for a {OPERATORS}-operator P–I as the compensator, without an observer, with the notch at 100 kHz ({fits} operators fit)"
     );
     assert!(
         flat(chapter).contains(&named),

@@ -398,10 +398,11 @@ fn auto_picks_a_model_the_board_runs_at_its_rate() {
 }
 
 /// At 100 kHz a P–I of the default 17 operators with its observer, and the calibration's own
-/// capture of every tick beside it, is too dear: `calibrate --model pi` leaves the observer
-/// out (the board has a sensor; the observer only gives the estimate and the drift check) and
-/// keeps the 17 operators, says so, and loads what the board runs, with or without
-/// `--operators 17` asked for.
+/// capture of every tenth tick beside it, is too dear for the share of the period the tick
+/// budget leaves the pipeline: `calibrate --model pi` leaves the observer out (the board has a
+/// sensor; the observer only gives the estimate and the drift check) and, where that is not
+/// enough, fits fewer operators, says so, and loads what the board runs; with `--operators
+/// 17` asked for it keeps them and is refused, naming what they need.
 #[test]
 fn a_model_is_sized_to_the_boards_rate_unless_its_operators_are_asked_for() {
     let rate = 100_000.0;
@@ -409,27 +410,39 @@ fn a_model_is_sized_to_the_boards_rate_unless_its_operators_are_asked_for() {
     config.board.plant.dt = 1.0 / rate;
     let options = CalibrateOptions {
         model: Some(ModelKind::Pi),
-        // The capture takes every tick: its share of the tick is the dearest.
-        sample_rate_hz: rate,
+        // A capture of every tenth tick beside the model, as the board's calibration records
+        // at this rate.
+        sample_rate_hz: rate / 10.0,
         // The sizing is under test, not the fit: this stage creeps more than a P–I alone
         // follows over the quick excitation (8 % held out).
         max_held_out_pct: 20.0,
         ..quick()
     };
-    for operators in [None, Some(17)] {
-        let mut client = sim_client(config.clone());
-        let options = CalibrateOptions {
-            operators,
-            ..options.clone()
-        };
-        let r = calibrate(&mut client, &options, |_| {}).expect("P-I sized to 100 kHz");
-        assert_eq!(r.file.identification.as_ref().unwrap().operators, 17);
-        assert!(r.model.contains("17 uniform operators"), "{}", r.model);
-        assert!(r.reason.contains("no observer"), "{}", r.reason);
-        let loaded = client.read_params().unwrap();
-        assert!(loaded.observer.is_none() && loaded.compensator.is_some());
-        assert!(loaded.build(&Hardware::driver_board(rate)).is_ok());
-    }
+    let mut client = sim_client(config.clone());
+    let r = calibrate(&mut client, &options, |_| {}).expect("P-I sized to 100 kHz");
+    let operators = r.file.identification.as_ref().unwrap().operators;
+    eprintln!("at 100 kHz beside the capture: {} ({})", r.model, r.reason);
+    assert!((8..17).contains(&operators), "{operators}");
+    assert!(r.reason.contains("no observer"), "{}", r.reason);
+    let loaded = client.read_params().unwrap();
+    assert!(loaded.observer.is_none() && loaded.compensator.is_some());
+    assert!(loaded.build(&Hardware::driver_board(rate)).is_ok());
+
+    let mut client = sim_client(config);
+    let e = calibrate(
+        &mut client,
+        &CalibrateOptions {
+            operators: Some(17),
+            ..options
+        },
+        |_| {},
+    )
+    .unwrap_err()
+    .to_string();
+    assert!(
+        e.contains("17 uniform operators") && e.contains("1344"),
+        "{e}"
+    );
 }
 
 #[test]

@@ -193,10 +193,12 @@ mod tests {
 
     #[test]
     fn admitted_is_within_the_boards_rates_and_the_budget() {
-        let p = Prediction::of(1_680);
+        // The share of the period a 100 kHz board leaves the pipeline (80 % of 1 680 cycles).
+        let p = Prediction::of(1_344);
         assert!(p.admitted_at(100_000.0) && p.admitted_at(10_000.0));
         assert!(!p.admitted_at(100_001.0) && !p.admitted_at(9_999.0));
-        let dear = Prediction::of(3_360);
+        assert!(!Prediction::of(1_345).admitted_at(100_000.0));
+        let dear = Prediction::of(2_688);
         assert!(dear.admitted_at(50_000.0) && !dear.admitted_at(50_001.0));
     }
 }

@@ -191,8 +191,8 @@ pub(super) fn tick_cost(out: &str) -> Result<String, String> {
     t.push_str(&format!(
         "({scan}), the learning's ({learning}) and the armed trigger input's ({trigger}) charges \
          and the services' at their worst ({services}: a capture and telemetry on every tick); \
-         the highest admitted rate is the highest control rate whose period holds that \
-         prediction.\n\n"
+         the highest admitted rate is the highest control rate whose period's share for the \
+         pipeline (`tick_budget::TICK_SHARE_PERCENT`) holds that prediction.\n\n"
     ));
     t.push_str("| configuration | interrupt, streamed | interrupt, every feature on | services, a batch (5 WS) | per tick, with the services (5 WS) | predicted | predicted, every feature | highest admitted rate, streamed | highest admitted rate, every feature |\n");
     t.push_str("|---|---:|---:|---:|---:|---:|---:|---:|---:|\n");
