@@ -337,12 +337,15 @@ fn auto_picks_a_model_the_board_runs_at_its_rate() {
         "{:?}",
         r.ranking
     );
-    // Creep beside a Bouc–Wen runs at 100 kHz once no larger than it needs (1 784 cycles with
-    // four modes, 1 712 with three, 1 640 with two): ranked, not left out.
+    // Creep beside a Bouc–Wen does not fit 80 % of a 100 kHz period beside the capture even
+    // with one mode and no observer (1 363 cycles): listed with its figures and why, not
+    // admitted.
     assert!(
         r.ranking
             .iter()
-            .any(|c| c.label.starts_with("Bouc-Wen + creep") && c.validation.admitted().is_some()),
+            .any(|c| c.label.starts_with("Bouc-Wen + creep")
+                && c.validation.admitted().is_none()
+                && c.summary.contains("not admitted")),
         "{:?}",
         r.ranking
     );

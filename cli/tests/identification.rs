@@ -668,7 +668,8 @@ fn identify_at_a_tick_rate_keeps_a_model_the_board_runs() {
             && stdout.contains("no observer (the model as the compensator only"),
         "{stdout}"
     );
-    // Asked for without its observer, it is fitted so at any rate.
+    // Asked for without its observer, it is fitted so at any rate (20 operators: what 80 % of
+    // a 100 kHz period holds beside the eight dead zones and PI).
     let alone = dir.path().join("alone.json");
     let stdout = identify(
         &alone,
@@ -676,7 +677,7 @@ fn identify_at_a_tick_rate_keeps_a_model_the_board_runs() {
             "--model",
             "gpi",
             "--operators",
-            "32",
+            "20",
             "--tick-rate",
             "100000",
             "--no-observer",
@@ -705,8 +706,10 @@ fn identify_at_a_tick_rate_keeps_a_model_the_board_runs() {
 /// inverse) is set aside after every one that does not (and says why), each group ordered by
 /// the compensated error, and the picked model's
 /// inverse on the held-out part stays within reach of its fit. On the micromanipulator record
-/// a forward-only ranking would pick the generalised P–I + creep, whose inverse is 1.84 × its
-/// fit and far from the best: the test fails if `auto` ranks by the forward error alone.
+/// at 50 kHz a forward-only ranking would pick the generalised P–I + creep, whose inverse is
+/// 1.84 × its fit and far from the best: the test fails if `auto` ranks by the forward error
+/// alone. (At 100 kHz that candidate is sized down to what the rate holds, 12 operators and one
+/// creep mode, whose inverse holds: there the two rankings agree.)
 #[test]
 fn auto_picks_the_model_whose_compensator_holds() {
     use twinstack_identify::identification::auto::{
@@ -715,9 +718,9 @@ fn auto_picks_the_model_whose_compensator_holds() {
     use twinstack_identify::identification::run::{identify_and_score, BoardRate, ModelChoice};
     use twinstack_identify::identification::{IdentifyOptions, ModelKind};
     use twinstack_link::measured_data::{Columns, MeasuredData};
-    // The held-out ratio aimed at is 1.5 ×. The bipolar record misses it at 50 and 100 kHz
-    // (the same pick at both rates, P–I + creep, at 100 kHz without its observer: 1.29 %
-    // inverse / 0.83 % forward = 1.55 × held out, 1.44 × on the validation part): its largest
+    // The held-out ratio aimed at is 1.5 ×. The bipolar record misses it at 50 kHz (P–I +
+    // creep: 1.29 % inverse / 0.83 % forward = 1.55 × held out, 1.44 × on the validation part;
+    // at 100 kHz, where its second creep mode does not fit, P–I 17 alone: 1.35 ×): its largest
     // inverse errors sit just after the drive's reversals, where the loop is flattest and the
     // compensator's slope multiplies the fit's error by about two. Every other candidate
     // admitted there does worse held out or has an inverse that does not hold.
@@ -794,7 +797,7 @@ fn auto_picks_the_model_whose_compensator_holds() {
             record.inverse_held_out,
             record.held_out
         );
-        if name == MICROMANIPULATOR {
+        if name == MICROMANIPULATOR && rate == 50_000.0 {
             // What a forward-only ranking would have picked, and why it must not be.
             let forward_only = auto
                 .ranking

@@ -128,9 +128,10 @@ pub fn available_cycles(control_rate_hz: f64) -> u32 {
 /// ```
 /// use twinstack::config::tick_budget::{available_cycles, highest_rate_hz};
 ///
-/// let rate = highest_rate_hz(1_680);
-/// assert!((rate - 100_000.0).abs() < 0.01 && available_cycles(rate) >= 1_680);
-/// assert!(available_cycles(rate * 1.000_01) < 1_680);
+/// // 80 % of a 100 kHz period.
+/// let rate = highest_rate_hz(1_344);
+/// assert!((rate - 100_000.0).abs() < 0.01 && available_cycles(rate) >= 1_344);
+/// assert!(available_cycles(rate * 1.000_01) < 1_344);
 /// ```
 pub fn highest_rate_hz(cycles: u32) -> f64 {
     if cycles == 0 {

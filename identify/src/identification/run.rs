@@ -229,10 +229,10 @@ impl BoardRate {
 ///     ..Settings::default()
 /// };
 /// // With a capture beside it (as `calibrate` checks its tracking) it is too dear at
-/// // 100 kHz. Its observer kept, the P–I banks lose pairs of operators, unless the user
+/// // 80 kHz. Its observer kept, the P–I banks lose pairs of operators, unless the user
 /// // asked for 17.
 /// let keeping = |rate: BoardRate| BoardRate { observer_optional: false, ..rate };
-/// let sized = admission_at(&s, &keeping(BoardRate::sizing(100_000.0, false).capturing(1)));
+/// let sized = admission_at(&s, &keeping(BoardRate::sizing(80_000.0, false).capturing(1)));
 /// assert!(matches!(
 ///     sized,
 ///     Admission::Smaller {
@@ -240,7 +240,7 @@ impl BoardRate {
 ///         ..
 ///     } if n < 17
 /// ));
-/// let asked = BoardRate::sizing(100_000.0, true).capturing(1);
+/// let asked = BoardRate::sizing(80_000.0, true).capturing(1);
 /// assert!(matches!(admission_at(&s, &keeping(asked)), Admission::Refused(_)));
 /// // As sized by default, the observer goes first, and the model keeps its 17.
 /// assert!(matches!(
@@ -252,7 +252,7 @@ impl BoardRate {
 /// ));
 /// assert_eq!(admission_at(&s, &BoardRate::sizing(50_000.0, false).capturing(1)), Admission::Admitted);
 ///
-/// // Bouc–Wen with six creep modes both ways at 100 kHz: the creep loses modes first.
+/// // Bouc–Wen with six creep modes both ways at 70 kHz: the creep loses modes first.
 /// use twinstack::models::creep::CreepParams;
 /// use twinstack::config::settings::representative_bouc_wen;
 /// let s = Settings {
@@ -261,7 +261,7 @@ impl BoardRate {
 ///     creep: Some(CreepParams::new(&[0.01, 0.03, 0.1, 0.3, 1.0, 3.0], &[0.02; 6]).unwrap()),
 ///     ..Settings::default()
 /// };
-/// let sized = admission_at(&s, &keeping(BoardRate::sizing(100_000.0, true)));
+/// let sized = admission_at(&s, &keeping(BoardRate::sizing(70_000.0, true)));
 /// assert!(matches!(
 ///     sized,
 ///     Admission::Smaller { resize: Resize { operators: None, creep_modes: Some(m), .. }, .. }
