@@ -767,6 +767,7 @@ fn the_whole_interrupt_in_every_scenario() {
     println!("stack: {used} bytes used of the {room} the static RAM leaves (reserve {reserve})");
     let mut figures = serde_json::json!({
         "sysclk_hz": SYSCLK_HZ,
+        "tick_share_percent": twinstack::config::tick_budget::TICK_SHARE_PERCENT,
         "goal_cycles": GOAL_CYCLES,
         "scan_cycles": twinstack::config::tick_budget::SCAN_CYCLES,
         "learning_cycles": twinstack::config::tick_budget::LEARNING_CYCLES,

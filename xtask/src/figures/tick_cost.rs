@@ -105,6 +105,8 @@ pub(super) fn tick_cost(out: &str) -> Result<String, String> {
         .get("sysclk_hz")
         .and_then(Value::as_f64)
         .ok_or("no `sysclk_hz`")?;
+    // The share of the period the tick budget lets the pipeline take.
+    let share = field(&v, "tick_share_percent")? as f64 / 100.0;
     let (scan, learning, analog, trigger) = (
         field(&v, "scan_cycles")?,
         field(&v, "learning_cycles")?,
@@ -164,7 +166,7 @@ pub(super) fn tick_cost(out: &str) -> Result<String, String> {
     };
     let triple = |c: [u64; 5]| format!("{} / {} / {}", grouped(c[0]), grouped(c[1]), grouped(c[2]));
     let rate = |cycles: u64| {
-        let hz = (sysclk / cycles as f64 / 100.0).floor() as u64 * 100;
+        let hz = (sysclk * share / cycles as f64 / 100.0).floor() as u64 * 100;
         format!("{} Hz", grouped(hz))
     };
     let predicted = |config: &str| -> Result<u64, String> {
@@ -443,7 +445,7 @@ mod tests {
             ));
         }
         format!(
-            r#"{{"sysclk_hz": 168000000.0, "goal_cycles": 600, "scan_cycles": 150, "learning_cycles": 90,
+            r#"{{"sysclk_hz": 168000000.0, "tick_share_percent": 80, "goal_cycles": 600, "scan_cycles": 150, "learning_cycles": 90,
             "analog_cycles": 32, "trigger_cycles": 200, "services_worst_cycles": 400, "part_names": ["fixed", "P–I banks"],
             "stack": {{"used": 30000, "room": 55000, "reserve": 49152}},
             "budgets": {{"inverse-pi16+pi16-observer+pi+drift": 1666}},
@@ -464,13 +466,14 @@ mod tests {
         // scenarios (the fifth, index 4); every feature on the worst scan with the learning
         // (the spiral on the trigger + learning, index 10), with the services' batch and the
         // tick's share of it beside it; the rates from the prediction and its charges (scan,
-        // learning, trigger, the services at their worst: 1 666 + 150 + 90 + 200 + 400).
+        // learning, trigger, the services at their worst: 1 666 + 150 + 90 + 200 + 400), at
+        // 80 % of the period.
         assert!(
             t.contains("| boot: bypass, no model, nothing running | 326 / 569 / 689 | – | – | – |"),
             "{t}"
         );
         assert!(
-            t.contains("| inverse P–I 16 + P–I 16 observer + PI + drift | 904 / 1 404 / 1 574 | 910 / 1 410 / 1 580 | 810 | 1 680 | 1 666 | 2 506 | 100 800 Hz | 67 000 Hz |"),
+            t.contains("| inverse P–I 16 + P–I 16 observer + PI + drift | 904 / 1 404 / 1 574 | 910 / 1 410 / 1 580 | 810 | 1 680 | 1 666 | 2 506 | 80 600 Hz | 53 600 Hz |"),
             "{t}"
         );
         // The scans: raster is index 5, the stream on the trigger index 12 (instructions /
