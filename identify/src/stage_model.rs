@@ -283,17 +283,30 @@ impl StageModel {
         let desired = self.advance(t, x);
         let y0 = desired.first().copied().unwrap_or(0.0);
         let mut creep = self.creep_run(t)?;
-        let mut y_norm = |v: f64| match creep.as_mut() {
-            Some(c) => c.inverse(y_norm(v)),
-            None => y_norm(v),
+        // What the hysteresis inverse is given: the trajectory through the inverse creep,
+        // normalised.
+        let targets: Vec<i32> = desired
+            .iter()
+            .map(|&v| match creep.as_mut() {
+                Some(c) => c.inverse(y_norm(v)),
+                None => y_norm(v),
+            })
+            .collect();
+        // The noise band of a measured trajectory is taken on what the inverse is given: the
+        // inverse creep's gain above 1 passes the sensor's noise on larger.
+        let given = || -> Vec<f64> {
+            targets
+                .iter()
+                .map(|&q| s.norm_to_output(signal_to_f64(q)))
+                .collect()
         };
         Ok(match &self.hysteresis {
             Hysteresis::Pi(p) => {
                 let m = InversePrandtlIshlinskii::new(p, s)?;
                 let mut st = m.state_at_rest(signal_from_f64(s.output_to_norm(y0)));
-                desired
+                targets
                     .iter()
-                    .map(|&v| u_phys(m.step(&mut st, y_norm(v))))
+                    .map(|&y| u_phys(m.step(&mut st, y)))
                     .collect()
             }
             Hysteresis::Duhem(p) => {
@@ -306,14 +319,13 @@ impl StageModel {
                     .state_at(signal_from_f64(s.input_to_norm(u0)), y0_norm);
                 // The noise band (see `NoiseBand`): the inverse's memory follows the
                 // band-filtered trajectory, the rest passes through the anhysteretic slope.
-                let band = NoiseBand::of(&desired, p.normalized(s)?.beta, s);
+                let band = NoiseBand::of(&given(), p.normalized(s)?.beta, s);
                 let width = signal_from_f64(band.width_norm);
                 let through = gain_from_f64(band.inverse_slope_norm);
                 let mut filtered = y0_norm;
-                desired
+                targets
                     .iter()
-                    .map(|&v| {
-                        let y = y_norm(v);
+                    .map(|&y| {
                         filtered = play(y, width, filtered);
                         let rest = (y as i64 - filtered as i64) * through as i64;
                         let u = m.step(&mut st, filtered) as i64 + (rest >> GAIN_FRAC_BITS);
@@ -324,9 +336,9 @@ impl StageModel {
             Hysteresis::GeneralisedPi(p) => {
                 let m = InverseGeneralisedPi::new(p, s)?;
                 let mut st = m.state_at_rest(signal_from_f64(s.output_to_norm(y0)));
-                desired
+                targets
                     .iter()
-                    .map(|&v| u_phys(m.step(&mut st, y_norm(v))))
+                    .map(|&y| u_phys(m.step(&mut st, y)))
                     .collect()
             }
             Hysteresis::BoucWen(p) => {
@@ -335,14 +347,13 @@ impl StageModel {
                 let u0 = ((y0 - p.offset) / p.k).clamp(s.input_min, s.input_max);
                 let mut st = m.model().relaxed(signal_from_f64(s.input_to_norm(u0)));
                 // The noise band, as Duhem's: what it holds back passes through the slope k.
-                let band = NoiseBand::of(&desired, p.normalized(s)?.k, s);
+                let band = NoiseBand::of(&given(), p.normalized(s)?.k, s);
                 let width = signal_from_f64(band.width_norm);
                 let through = gain_from_f64(band.inverse_slope_norm);
                 let mut filtered = signal_from_f64(s.output_to_norm(y0));
-                desired
+                targets
                     .iter()
-                    .map(|&v| {
-                        let y = y_norm(v);
+                    .map(|&y| {
                         filtered = play(y, width, filtered);
                         let rest = (y as i64 - filtered as i64) * through as i64;
                         let u = m.step(&mut st, filtered) as i64 + (rest >> GAIN_FRAC_BITS);
@@ -356,8 +367,7 @@ impl StageModel {
     /// [`Self::compensate`] computed by the `f64` reference models.
     pub fn compensate_reference(&self, t: &[f64], x: &[f64]) -> Result<Vec<f64>, ParamError> {
         let s = &self.scaling;
-        let trajectory = self.advance(t, x);
-        let mut desired = trajectory.clone();
+        let mut desired = self.advance(t, x);
         if let Some(mut c) = self.creep_reference(t)? {
             for v in desired.iter_mut() {
                 *v = c.run(*v)?.inverse_step(*v);
@@ -379,9 +389,9 @@ impl StageModel {
             Hysteresis::Duhem(p) => {
                 let u0 = ((y0 - p.offset) / p.beta).clamp(s.input_min, s.input_max);
                 let mut m = reference::InverseDuhem::new(p, s, u0, y0)?;
-                // The band from the trajectory as given (before the inverse creep), as the
+                // The band on what the inverse is given (after the inverse creep), as the
                 // fixed-point `compensate` takes it.
-                let band = NoiseBand::of(&trajectory, p.normalized(s)?.beta, s);
+                let band = NoiseBand::of(&desired, p.normalized(s)?.beta, s);
                 let width = band.width_norm * s.output_half_span();
                 let mut filtered = y0;
                 desired
@@ -405,7 +415,7 @@ impl StageModel {
             Hysteresis::BoucWen(p) => {
                 let u0 = ((y0 - p.offset) / p.k).clamp(s.input_min, s.input_max);
                 let mut m = reference::InverseBoucWen::new(p, s, u0)?;
-                let band = NoiseBand::of(&trajectory, p.normalized(s)?.k, s);
+                let band = NoiseBand::of(&desired, p.normalized(s)?.k, s);
                 let width = band.width_norm * s.output_half_span();
                 let mut filtered = y0;
                 desired
@@ -615,7 +625,17 @@ mod tests {
     /// away from it.
     #[test]
     fn compensate_of_a_noisy_trajectory_does_not_ratchet() {
-        for (name, m) in [("Duhem", duhem_model()), ("Bouc–Wen", bouc_wen_model())] {
+        // With creep before it, the inverse creep's gain above 1 passes the noise on larger:
+        // the band is taken on what the hysteresis inverse is given.
+        let with_creep = StageModel {
+            creep: Some(CreepParams::new(&[0.02, 0.2], &[0.15, 0.1]).unwrap()),
+            ..duhem_model()
+        };
+        for (name, m) in [
+            ("Duhem", duhem_model()),
+            ("Bouc–Wen", bouc_wen_model()),
+            ("Duhem + creep", with_creep),
+        ] {
             let t: Vec<f64> = (0..30_000).map(|k| k as f64 * 2e-4).collect();
             let u: Vec<f64> = t
                 .iter()
