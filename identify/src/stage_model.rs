@@ -317,21 +317,8 @@ impl StageModel {
                 let mut st = m
                     .model()
                     .state_at(signal_from_f64(s.input_to_norm(u0)), y0_norm);
-                // The noise band (see `NoiseBand`): the inverse's memory follows the
-                // band-filtered trajectory, the rest passes through the anhysteretic slope.
                 let band = NoiseBand::of(&given(), p.normalized(s)?.beta, s);
-                let width = signal_from_f64(band.width_norm);
-                let through = gain_from_f64(band.inverse_slope_norm);
-                let mut filtered = y0_norm;
-                targets
-                    .iter()
-                    .map(|&y| {
-                        filtered = play(y, width, filtered);
-                        let rest = (y as i64 - filtered as i64) * through as i64;
-                        let u = m.step(&mut st, filtered) as i64 + (rest >> GAIN_FRAC_BITS);
-                        u_phys(clamp_full_scale(saturate_i64(u)))
-                    })
-                    .collect()
+                band.around(&targets, y0_norm, s, |y| m.step(&mut st, y))
             }
             Hysteresis::GeneralisedPi(p) => {
                 let m = InverseGeneralisedPi::new(p, s)?;
@@ -346,20 +333,9 @@ impl StageModel {
                 let y0 = y0.clamp(s.output_min, s.output_max);
                 let u0 = ((y0 - p.offset) / p.k).clamp(s.input_min, s.input_max);
                 let mut st = m.model().relaxed(signal_from_f64(s.input_to_norm(u0)));
-                // The noise band, as Duhem's: what it holds back passes through the slope k.
                 let band = NoiseBand::of(&given(), p.normalized(s)?.k, s);
-                let width = signal_from_f64(band.width_norm);
-                let through = gain_from_f64(band.inverse_slope_norm);
-                let mut filtered = signal_from_f64(s.output_to_norm(y0));
-                targets
-                    .iter()
-                    .map(|&y| {
-                        filtered = play(y, width, filtered);
-                        let rest = (y as i64 - filtered as i64) * through as i64;
-                        let u = m.step(&mut st, filtered) as i64 + (rest >> GAIN_FRAC_BITS);
-                        u_phys(clamp_full_scale(saturate_i64(u)))
-                    })
-                    .collect()
+                let y0_norm = signal_from_f64(s.output_to_norm(y0));
+                band.around(&targets, y0_norm, s, |y| m.step(&mut st, y))
             }
         })
     }
@@ -392,16 +368,7 @@ impl StageModel {
                 // The band on what the inverse is given (after the inverse creep), as the
                 // fixed-point `compensate` takes it.
                 let band = NoiseBand::of(&desired, p.normalized(s)?.beta, s);
-                let width = band.width_norm * s.output_half_span();
-                let mut filtered = y0;
-                desired
-                    .iter()
-                    .map(|&v| {
-                        filtered = reference::play(v, width, filtered);
-                        let u = m.step(filtered) + (v - filtered) / p.beta;
-                        u.clamp(s.input_min, s.input_max)
-                    })
-                    .collect()
+                band.around_reference(&desired, y0, p.beta, s, |y| m.step(y))
             }
             Hysteresis::GeneralisedPi(p) => {
                 // Relaxed where the P–I part's output is S⁻¹[y0], as for the P–I.
@@ -416,16 +383,7 @@ impl StageModel {
                 let u0 = ((y0 - p.offset) / p.k).clamp(s.input_min, s.input_max);
                 let mut m = reference::InverseBoucWen::new(p, s, u0)?;
                 let band = NoiseBand::of(&desired, p.normalized(s)?.k, s);
-                let width = band.width_norm * s.output_half_span();
-                let mut filtered = y0;
-                desired
-                    .iter()
-                    .map(|&v| {
-                        filtered = reference::play(v, width, filtered);
-                        let u = m.step(filtered) + (v - filtered) / p.k;
-                        u.clamp(s.input_min, s.input_max)
-                    })
-                    .collect()
+                band.around_reference(&desired, y0, p.k, s, |y| m.step(y))
             }
         })
     }
@@ -465,6 +423,53 @@ impl NoiseBand {
             width_norm: (NOISE_BAND_SIGMAS * noise_rms / scaling.output_half_span()).min(1.0),
             inverse_slope_norm: 1.0 / slope_norm,
         }
+    }
+
+    /// The drive, volts, for the normalised `targets` (starting from `y0`, normalised): the
+    /// fixed-point inverse `step`'s memory follows them through the band (a play operator of
+    /// the band's half-width), what the band holds back passes through the anhysteretic
+    /// slope, and the sum is clamped to full scale.
+    fn around(
+        &self,
+        targets: &[i32],
+        y0: i32,
+        scaling: &Scaling,
+        mut step: impl FnMut(i32) -> i32,
+    ) -> Vec<f64> {
+        let width = signal_from_f64(self.width_norm);
+        let through = gain_from_f64(self.inverse_slope_norm);
+        let mut filtered = y0;
+        targets
+            .iter()
+            .map(|&y| {
+                filtered = play(y, width, filtered);
+                let rest = (y as i64 - filtered as i64) * through as i64;
+                let u = step(filtered) as i64 + (rest >> GAIN_FRAC_BITS);
+                scaling.norm_to_input(signal_to_f64(clamp_full_scale(saturate_i64(u))))
+            })
+            .collect()
+    }
+
+    /// [`NoiseBand::around`] in `f64` and physical units: `targets` and `y0` output units,
+    /// `slope` the anhysteretic slope (output units per volt), the `f64` inverse `step`.
+    fn around_reference(
+        &self,
+        targets: &[f64],
+        y0: f64,
+        slope: f64,
+        scaling: &Scaling,
+        mut step: impl FnMut(f64) -> f64,
+    ) -> Vec<f64> {
+        let width = self.width_norm * scaling.output_half_span();
+        let mut filtered = y0;
+        targets
+            .iter()
+            .map(|&v| {
+                filtered = reference::play(v, width, filtered);
+                (step(filtered) + (v - filtered) / slope)
+                    .clamp(scaling.input_min, scaling.input_max)
+            })
+            .collect()
     }
 }
 
