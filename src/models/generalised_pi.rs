@@ -782,6 +782,8 @@ mod tests {
             for u in drive {
                 let u = signal_from_f64(u);
                 let y = f.step(&mut fs, u);
+                // An output beyond the range is clamped by the inverse: no identity to check.
+                prop_assume!(y > -SIGNAL_ONE && y < SIGNAL_ONE);
                 let back = i.step(&mut is, y);
                 prop_assert!(((back as i64 - u as i64).abs() as f64) < bound, "{} vs {}", back, u);
             }
