@@ -255,7 +255,28 @@ impl InverseGeneralisedPi {
     }
 }
 
-/// Forward Duhem, `f64`: `y_k = y_{k−1} + min(α|Δu|, 1)(β u_{k−1} + δ − y_{k−1}) + γ Δu`.
+/// The exact relaxation over an input step `m ≥ 0` at rate `c`: `q = 1 − e^{−c·m}` and
+/// `φ = q/c` (`c > 0`), as `twinstack::models::relaxation` computes them.
+pub fn relax(c: f64, m: f64) -> (f64, f64) {
+    let q = -libm::expm1(-c * m);
+    (q, q / c)
+}
+
+/// The step `m ≥ 0` (at most `cap`) with `k·m + d·q(c·m) = target`: the linear guess and one
+/// Halley step, slopes floored at `floor`, as `RelaxationRate::solve` in the library.
+pub fn solve(c: f64, k: f64, d: f64, floor: f64, target: f64, cap: f64) -> f64 {
+    let m0 = (target / (k + c * d).max(floor)).min(cap);
+    let q0 = relax(c, m0).0;
+    let miss = k * m0 + d * q0 - target;
+    let slope = (k + c * d * (1.0 - q0)).max(floor);
+    let bend = -c * c * d * (1.0 - q0);
+    let square = slope * slope;
+    let denominator = (square - 0.5 * miss * bend).max(0.5 * square);
+    (m0 - miss * slope / denominator).clamp(0.0, cap)
+}
+
+/// Forward Duhem, `f64`: `ẏ = α|u̇|(βu + δ − y) + γu̇` integrated exactly over each sample's
+/// (monotone) step of the input ([`Duhem::step`]).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Duhem {
     params: DuhemParams,
@@ -283,13 +304,15 @@ impl Duhem {
         })
     }
 
-    /// One sample: drive (volts) → displacement (output units).
+    /// One sample: drive (volts) → displacement (output units): the exact relaxation over
+    /// the step, `y += β·Δu + q·e − s·(β − γ)·q/α`, `q = 1 − e^{−α|Δu|}`, `e = βu + δ − y`.
     pub fn step(&mut self, u: f64) -> f64 {
         let u = clamp(u, self.scaling.input_min, self.scaling.input_max);
         let du = u - self.u;
         let p = &self.params;
-        let a = (p.alpha * du.abs()).min(1.0);
-        self.y += a * (p.beta * self.u + p.offset - self.y) + p.gamma * du;
+        let (q, phi) = relax(p.alpha, du.abs());
+        let e = p.beta * self.u + p.offset - self.y;
+        self.y += p.beta * du + q * e - du.signum() * (p.beta - p.gamma) * phi;
         self.u = u;
         self.y
     }
@@ -306,8 +329,9 @@ impl Duhem {
     }
 }
 
-/// Inverse Duhem, `f64`: the same construction as the fixed-point compensator
-/// (slope floored at `min(β, γ)/16`, step capped at `1/α`, drive clamped to the input range).
+/// Inverse Duhem, `f64`: the same construction as the fixed-point compensator (the linear
+/// guess over the slope floored at `min(β, γ)/16`, one Halley step on the exact relaxation,
+/// the step capped at `0.99/α`, the drive clamped to the input range).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct InverseDuhem {
     model: Duhem,
@@ -335,12 +359,15 @@ impl InverseDuhem {
         }
         let p = &self.model.params;
         let e = p.beta * self.model.u + p.offset - self.model.y;
-        let sign = if dy > 0.0 { 1.0 } else { -1.0 };
-        let slope = (p.gamma + sign * p.alpha * e).max(p.beta.min(p.gamma) / 16.0);
-        // Steps capped at 1/α, where the discrete model stops being linear in Δu.
-        let m = (dy.abs() / slope)
-            .min(2.0 * s.input_half_span())
-            .min(1.0 / p.alpha);
+        let sign = dy.signum();
+        let m = solve(
+            p.alpha,
+            p.beta,
+            (p.gamma - p.beta) / p.alpha + sign * e,
+            p.beta.min(p.gamma) / 16.0,
+            dy.abs(),
+            (0.99 / p.alpha).min(2.0 * s.input_half_span()),
+        );
         let u = clamp(self.model.u + sign * m, s.input_min, s.input_max);
         self.model.step(u);
         u
@@ -401,9 +428,9 @@ impl Creep {
         y
     }
 }
-/// Forward generalised Bouc–Wen, `f64`: `y = k·u + δ + h`,
-/// `h_k = (1 − f)·h_{k−1} + A·Δu` with `f = clamp((β + s·sgn(h)·γ + s·ψ)·|Δu|, 0, 1)` (`s` the
-/// sign of `Δu`), i.e. `Δh = A·Δu − β|Δu|h − γΔu|h| − ψΔu·h` with the factor on `h` clamped.
+/// Forward generalised Bouc–Wen, `f64`: `y = k·u + δ + h`, `h` relaxed exactly over each
+/// step toward `s·A/c`: `h ← h − q·h + s·A·q/c`, `q = 1 − e^{−c|Δu|}`,
+/// `c = β + s·sgn(h)·γ + s·ψ` (`s` the sign of `Δu`, `sgn(h)` at the step's start).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct BoucWen {
     params: BoucWenParams,
@@ -439,17 +466,27 @@ impl BoucWen {
         let s = if du < 0.0 { -1.0 } else { 1.0 };
         let sh = if self.h < 0.0 { -1.0 } else { 1.0 };
         let c = p.beta + s * sh * p.gamma + s * p.psi;
-        let f = clamp(c * du.abs(), 0.0, 1.0);
-        self.h = (1.0 - f) * self.h + p.a * du;
+        let (q, phi) = relax(c, du.abs());
+        let h = self.h + s * p.a * phi - q * self.h;
+        self.h = if h * self.h < 0.0 {
+            // Through zero: to zero at c, the rest from zero at the other sign's rate.
+            let c_other = p.beta - s * sh * p.gamma + s * p.psi;
+            let to_zero = libm::log1p(self.h.abs() * c / p.a.abs()) / c;
+            s * p.a * relax(c_other, (du.abs() - to_zero).max(0.0)).1
+        } else {
+            h
+        };
         self.u = u;
         self.output()
     }
 }
 
-/// Bouc–Wen compensator, `f64`, as the fixed-point one: per sample the drive step
-/// `m = |y_d − y|/g_s` in the direction `s` of the desired change, `g_s = k + A − c·s·h` the
-/// model's slope that way (floored at `k/16`), capped at `1/c` and at the input span, the
-/// drive clamped to the input range; then the internal model advanced on it.
+/// Bouc–Wen compensator, `f64`, as the fixed-point one: per sample the drive step `m` in
+/// the direction `s` of the desired change with `k·m + D·q(c·m) = |y_d − y|`,
+/// `D = A/c − s·h` — the linear guess over the slope `g_s = k + A − c·s·h` (floored at `k/16`)
+/// and one Halley step, solved past zero at the other sign's rate where `h` crosses it —
+/// capped at `0.99/c` and at the input span, the drive clamped to the input
+/// range; then the internal model advanced on it.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct InverseBoucWen {
     model: BoucWen,
@@ -476,10 +513,31 @@ impl InverseBoucWen {
         let h = self.model.h;
         let sh = if h < 0.0 { -1.0 } else { 1.0 };
         let c = p.beta + sign * sh * p.gamma + sign * p.psi;
-        let slope = (p.k + p.a - sign * c * h).max(p.k / 16.0);
-        let m = (r.abs() / slope)
-            .min(1.0 / c)
-            .min(2.0 * s.input_half_span());
+        // As the library's `STEP_CAP`: 0.99/c.
+        let cap = |c: f64| (0.99 / c).min(2.0 * s.input_half_span());
+        let toward = -sign * h;
+        let at_zero = if toward * p.a > 0.0 {
+            // h heads across zero: the step to it, and the output change there.
+            let to_zero = libm::log1p(h.abs() * c / p.a.abs()) / c;
+            Some((to_zero, p.k * to_zero + toward))
+        } else {
+            None
+        };
+        let m = match at_zero {
+            Some((to_zero, change)) if r.abs() > change => {
+                let c_other = p.beta - sign * sh * p.gamma + sign * p.psi;
+                to_zero
+                    + solve(
+                        c_other,
+                        p.k,
+                        p.a / c_other,
+                        p.k / 16.0,
+                        r.abs() - change,
+                        cap(c_other).min(cap(c) - to_zero),
+                    )
+            }
+            _ => solve(c, p.k, p.a / c - sign * h, p.k / 16.0, r.abs(), cap(c)),
+        };
         let u = clamp(self.model.u + sign * m, s.input_min, s.input_max);
         self.model.step(u);
         u

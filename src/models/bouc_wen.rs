@@ -1,41 +1,46 @@
 //! Generalised (asymmetric) Bouc–Wen hysteresis in fixed point: the forward observer and the
-//! compensator, exact per sample.
+//! compensator, both integrated exactly in the input.
 //!
 //! Model (normalised by [`Scaling`], as [`crate::models::duhem`]): `y = k·u + δ + h`, with the
-//! hysteretic state advanced per sample by
+//! hysteretic state
 //!
-//! `h_k = h_{k−1} + A·Δu_k − β·|Δu_k|·h_{k−1} − γ·Δu_k·|h_{k−1}| − ψ·Δu_k·h_{k−1}`
+//! `dh = A·du − β·|du|·h − γ·du·|h| − ψ·du·h`
 //!
 //! (exponent `n = 1`; `β, γ` the classical terms, `ψ` the asymmetric one). The last three terms
-//! are one factor times `h`: `h_k = (1 − f_k)·h_{k−1} + A·Δu_k` with
-//! `f_k = min(c·|Δu_k|, 1)` and `c = β + s·sgn(h)·γ + s·ψ` (`s` the sign of `Δu`): one of the
-//! four constants `β ± γ ± ψ`, precomputed. Validation ([`BoucWenParams::validate`]) keeps all
-//! four positive (`|γ| < β`, `|ψ| < β − |γ|`), so `f ≥ 0`; the clamp `f ≤ 1` is the discrete
-//! form's stability bound, as Duhem's `min(α|Δu|, 1)`. At control rates `c·|Δu|` is far below 1.
+//! are one factor times `h`: on a monotone stretch of input (direction `s`) with `h` of one
+//! sign, `dh/dm = s·A − c·h` (`m = |Δu|`), `c = β + s·sgn(h)·γ + s·ψ` one of the four
+//! constants `β ± γ ± ψ`, precomputed: `h` relaxes toward `h* = s·A/c`. The model takes that
+//! exactly over each sample's step ([`crate::models::relaxation`]):
 //!
-//! **Bound.** From rest (`h = 0`), `|h| ≤ H = |A|·max(1/(β − |γ| − |ψ|), 2)`: a step with
-//! `f < 1` gives `|h'| ≤ (1 − f)H + |A||Δu| ≤ H` because `f ≥ (β − |γ| − |ψ|)|Δu|`, and one with
-//! `f = 1` gives `h' = A·Δu`, `|Δu| ≤ 2`. Validation keeps `H ≤ 1.9` normalised
-//! ([`crate::models::params::BOUC_WEN_MAX_NORM_STATE`]), so `h` never reaches the Q2.30 saturation.
+//! `h_k = h_{k−1} − q_k·h_{k−1} + s·A·φ_k`, `q_k = 1 − e^{−c·m}`, `φ_k = q_k/c`,
+//!
+//! with `c` chosen by the direction and the sign of `h_{k−1}`. Integrated in the input, the
+//! output depends on the path of the drive, not on the sample rate (a sample whose step
+//! carries `h` through zero takes the factor of its start for the whole step: the one place
+//! where the rate shows, by `O(γ·m²)` once per branch). For small steps `q ≈ c·m`, `φ ≈ m`
+//! and this is the explicit step `h + A·Δu − c·|Δu|·h`. Validation
+//! ([`BoucWenParams::validate`]) keeps all four factors positive (`|γ| < β`,
+//! `|ψ| < β − |γ|`).
+//!
+//! **Bound.** From rest (`h = 0`), `|h| ≤ H = |A|/(β − |γ| − |ψ|)`: each step moves `h` a
+//! fraction `q ≤ 1` of the way to `h*`, `|h*| ≤ H`. Validation keeps `H ≤ 1.9` normalised
+//! ([`crate::models::params::BOUC_WEN_MAX_NORM_STATE`]), so `h` never reaches the Q2.30
+//! saturation.
 //!
 //! **Duhem** is the special case `γ = ψ = 0`: with `k = β_D`, `A = γ_D − β_D`, `β = α_D` and
 //! `h = y − β_D u − δ` (minus Duhem's distance `e` to the anhysteretic curve), this step is
-//! Duhem's `y_k = y_{k−1} + a_k·e_{k−1} + γ_D·Δu_k`, sample for sample
-//! ([`BoucWenParams::from_duhem`]).
+//! Duhem's, to the rounding ([`BoucWenParams::from_duhem`]).
 //!
-//! **Inverse (exact, per sample).** While `f < 1`, one step of the model is linear in `Δu`
-//! in each direction: writing `Δu = s·m` (`s` the sign, `m ≥ 0`),
-//! `y_k = y_{k−1} + (k + A − c·s·h_{k−1})·Δu`, the slope `g_s = k + A − c·s·h_{k−1}` with
-//! `c` the factor of that direction and of the sign of `h`. For the desired `y_d` the
-//! compensator takes `s = sign(y_d − y_{k−1})` and `m = |y_d − y_{k−1}| / g_s`, capped at
-//! `1/c` (where `f` reaches 1 and the step stops being linear: a larger step is made over
-//! several samples), clamps the drive to the input range, and advances its own model with
-//! it (its own observer): the model's output lands on `y_d`, to the rounding, on every sample
-//! the cap and the range leave alone, and a shortfall is made up on the next. So the drive
-//! does not depend on how finely the target is sampled beyond what the discrete model itself
-//! does, and nothing lags by a sample (an inverse `u = (y_d − δ − h_{k−1})/k` would miss by
-//! one sample's change of `h` and feed that back). The division is one `VDIV.F32`, as
-//! Duhem's ([`crate::fixed_point::magnitude_over_gain`]): host and board agree bit for bit.
+//! **Inverse.** For the desired `y_d` the compensator takes `s = sign(y_d − y_{k−1})` and the
+//! step `m` with `k·m + D·q(c·m) = |y_d − y_{k−1}|`, `D = A/c − s·h_{k−1}` (the distance to
+//! `h*` that way): the linear guess over the slope `g_s = k + A − c·s·h_{k−1}` and one Newton
+//! step ([`RelaxationRate::solve`]), capped at `0.99/c` (a larger step is made over several
+//! samples); it clamps the drive to the input range and advances its own model with it (its
+//! own observer): the model's output lands on `y_d` to within the Newton step's
+//! `O((c·m)²)` of the step, and a shortfall is made up on the next sample. So the drive does
+//! not depend on how finely the target is sampled, and nothing lags by a sample (an inverse
+//! `u = (y_d − δ − h_{k−1})/k` would miss by one sample's change of `h` and feed that back).
+//! The quotients are `VDIV.F32`s, as in Duhem's inverse: host and board agree bit for bit.
 //!
 //! **Invertibility.** The slope `g_s` stays positive — the model is monotone, and the step
 //! unique — when the hysteretic slope `|A − c·s·h|` stays below `k`; it is largest just after
@@ -45,17 +50,19 @@
 //! tick floors the slope at `k/16` besides, so that a state beyond the bound (after a
 //! rounding) still gives a bounded step. The observer has no such limit.
 //!
-//! Formats: `u, y, δ, h, A` Q2.30 normalised; `k`, the slope `g_s` and the factors `β ± γ ± ψ`
-//! Q8.24; the step caps `1/c` Q2.30;
-//! the factor `f` Q2.30 in `[0, 1]`; products in `i64`, the update `h·(1 − f) + A·Δu`
-//! summed in Q4.60 and brought back once, rounding toward −∞ and saturating.
+//! Formats: `u, y, δ, h, A` Q2.30 normalised; `k` and the factors `β ± γ ± ψ` Q8.24; `q`
+//! Q0.32 and `φ` Q1.31 (rounded to nearest from `f32`); the update `h − q·h + s·A·φ` summed
+//! in Q4.60 (`i64`) and brought back once, rounding to nearest and saturating.
 
 use crate::fixed_point::{
-    clamp_full_scale, gain_from_f64, magnitude_over_gain, q60_to_signal_floor, saturate_i64,
-    signal_from_f64, GAIN_FRAC_BITS, SIGNAL_FRAC_BITS, SIGNAL_ONE,
+    clamp_full_scale, gain_from_f64, q60_to_signal_floor, saturate_i64, signal_from_f64,
+    GAIN_FRAC_BITS, SIGNAL_FRAC_BITS,
 };
 use crate::models::params::{
     BoucWenCoefficient, BoucWenParams, ParamError, BOUC_WEN_MAX_INVERSE_LOOP_GAIN,
+};
+use crate::models::relaxation::{
+    to_signal, RelaxationRate, Relaxed, SIGNAL_TO_F32, STEP_CAP,
 };
 use crate::models::{Forward, Hysteresis, Inverse};
 use crate::scaling::Scaling;
@@ -76,11 +83,13 @@ pub struct BoucWen {
     slope: i32,
     /// `δ`, Q2.30 normalised output.
     offset: i32,
-    /// `A`, Q2.30 normalised (`|A| < 2`), so that `A·Δu` is a Q2.30 × Q2.30 product.
+    /// `A`, Q2.30 normalised (`|A| < 2`), so that `A·φ` is a Q2.30 × Q1.31 product.
     a: i32,
-    /// The factors multiplying `h·|Δu|`, Q8.24, each at least one LSB: index
+    /// The relaxation rates `c` (from the Q8.24 factors, each at least one LSB): index
     /// `(Δu < 0)·2 + (h < 0)`: `β+γ+ψ`, `β−γ+ψ`, `β−γ−ψ`, `β+γ−ψ`.
-    factors: [i32; 4],
+    rates: [RelaxationRate; 4],
+    /// `1/A`, `f32` bits (0 for `A = 0`, where `h` never crosses zero).
+    a_reciprocal: u32,
 }
 
 impl BoucWen {
@@ -101,17 +110,19 @@ impl BoucWen {
     #[inline(never)] // configuration, off the tick path: one copy in flash
     pub fn new(params: &BoucWenParams, scaling: &Scaling) -> Result<Self, ParamError> {
         let n = params.normalized(scaling)?;
-        let slope = gain_from_f64(n.k);
-        let factor = |x: f64| gain_from_f64(x).max(1);
+        let rate = |x: f64| RelaxationRate::from_gain(gain_from_f64(x).max(1));
+        let a = signal_from_f64(n.a);
+        let a_f32 = a as f32 * SIGNAL_TO_F32;
         Ok(Self {
-            slope,
+            slope: gain_from_f64(n.k),
             offset: signal_from_f64(n.offset),
-            a: signal_from_f64(n.a),
-            factors: [
-                factor(n.beta + n.gamma + n.psi),
-                factor(n.beta - n.gamma + n.psi),
-                factor(n.beta - n.gamma - n.psi),
-                factor(n.beta + n.gamma - n.psi),
+            a,
+            a_reciprocal: if a == 0 { 0.0f32 } else { 1.0 / a_f32 }.to_bits(),
+            rates: [
+                rate(n.beta + n.gamma + n.psi),
+                rate(n.beta - n.gamma + n.psi),
+                rate(n.beta - n.gamma - n.psi),
+                rate(n.beta + n.gamma - n.psi),
             ],
         })
     }
@@ -136,7 +147,7 @@ impl BoucWen {
         )
     }
 
-    /// The index of the factor `c` for a step falling (or not) from `state`: its direction
+    /// The index of the rate `c` for a step falling (or not) from `state`: its direction
     /// and the sign of `h`.
     #[inline(always)]
     fn factor_index(falling: bool, state: &BoucWenState) -> usize {
@@ -149,14 +160,48 @@ impl BoucWen {
         let u = clamp_full_scale(u);
         // |Δu| ≤ 2; a full-range jump saturates 2^-30 short of 2 (QSUB).
         let du = u.saturating_sub(state.u);
-        let c = self.factors[Self::factor_index(du < 0, state) & 3];
-        // f = min(c·|Δu|, 1), Q2.30: c (Q8.24, < 2^31) × |Δu| (< 2^31) < 2^62; c ≥ 1, so
-        // f ≥ 0.
-        let f = ((c as i64 * du.unsigned_abs() as i64) >> GAIN_FRAC_BITS).min(SIGNAL_ONE as i64);
-        // |h·(1 − f)| ≤ 2^61 (0 ≤ 1 − f ≤ 2^30), |A·Δu| < 2^62: the Q4.60 sum fits i64.
-        let acc = state.h as i64 * (SIGNAL_ONE as i64 - f) + self.a as i64 * du as i64;
-        state.h = q60_to_signal_floor(acc);
+        let falling = du < 0;
+        let index = Self::factor_index(falling, state) & 3;
+        let h = self.relaxed_by(state.h, self.rates[index].relax(du.unsigned_abs()), falling);
+        // A sign change: h crossed zero within the step, past which the other rate holds.
+        state.h = if (h ^ state.h) < 0 && state.h != 0 {
+            self.past_zero(state.h, du.unsigned_abs(), index, falling)
+        } else {
+            h
+        };
         state.u = u;
+    }
+
+    /// `h` relaxed over one step: `h − q·h + s·A·φ`, Q2.30 rounded to nearest.
+    #[inline(always)]
+    fn relaxed_by(&self, h: i32, relaxed: Relaxed, falling: bool) -> i32 {
+        // Q4.60: h·2^30 and q·h (Q2.30 × Q0.32, shifted down by 2) below 2^61 (|h| < 2),
+        // A·φ (Q2.30 × Q1.31, shifted down by 1) below 2^62: the sum fits i64.
+        let pull = (self.a as i64 * relaxed.phi_q31() as i64) >> 1;
+        let acc = ((h as i64) << SIGNAL_FRAC_BITS) - ((h as i64 * relaxed.q_q32() as i64) >> 2)
+            + if falling { -pull } else { pull };
+        q60_to_signal_floor(acc + (1 << (SIGNAL_FRAC_BITS - 1)))
+    }
+
+    /// The step of magnitude `m` (Q2.30) from `h` (rate `index`) that carries `h` through
+    /// zero: the part to zero at its own rate, `ln(1 + w)/c` with `w = −h/h*`, the rest from
+    /// zero at the rate of the other sign.
+    #[inline(never)] // a crossing of zero only, once per branch
+    fn past_zero(&self, h: i32, m: u32, index: usize, falling: bool) -> i32 {
+        let rate = &self.rates[index];
+        let rest = m as f32 * SIGNAL_TO_F32 - rate.step_to_cover(self.crossing_ratio(h, rate));
+        let relaxed = self.rates[index ^ 1].relax_normalised(rest.max(0.0));
+        self.relaxed_by(0, relaxed, falling)
+    }
+
+    /// `w = −h/h*`, `h* = s·A/c` the target of `h` at `rate` (`w > 0` when `h` heads across
+    /// zero); `s·h` is `|h|`-signed by the direction, which the sign of `h` and of its
+    /// target's opposite already give: `w = |h|·c/|A|`.
+    #[inline(always)]
+    fn crossing_ratio(&self, h: i32, rate: &RelaxationRate) -> f32 {
+        let h = (h as f32 * SIGNAL_TO_F32).max(-(h as f32 * SIGNAL_TO_F32));
+        let a = f32::from_bits(self.a_reciprocal);
+        h * rate.rate() * a.max(-a)
     }
 
     /// One sample: input `u` (Q2.30 normalised drive, clamped to full scale) → estimated
@@ -173,11 +218,15 @@ impl BoucWen {
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct InverseBoucWen {
     model: BoucWen,
-    /// The floor of the step's slope `g_s`: `k/16`, Q8.24, at least one LSB.
-    min_slope: i32,
-    /// The largest drive step per sample for each factor (indexed as the factors): `1/c`,
-    /// Q2.30, saturated just below 2: up to there `f = c·|Δu| ≤ 1` and the step is linear.
-    max_steps: [i32; 4],
+    /// `k`, `f32` bits.
+    slope: u32,
+    /// The floor of the step's slope: `k/16`, `f32` bits, at least one Q8.24 LSB.
+    min_slope: u32,
+    /// `A/c` for each rate (indexed as the rates), `f32` bits: `h*` rising.
+    targets: [u32; 4],
+    /// The largest drive step per sample for each rate: `0.99/c` ([`STEP_CAP`]), below 2,
+    /// `f32` bits.
+    max_steps: [u32; 4],
 }
 
 impl InverseBoucWen {
@@ -206,15 +255,18 @@ impl InverseBoucWen {
         if gain.is_nan() || gain >= BOUC_WEN_MAX_INVERSE_LOOP_GAIN {
             return Err(ParamError::BoucWenNotInvertible(BoucWenCoefficient::A));
         }
-        // 1/c in Q2.30: 2^54 / c(Q8.24); c ≥ 1 LSB, the quotient saturated at i32::MAX.
-        let max_steps = model.factors.map(|c| {
-            ((1i64 << (SIGNAL_FRAC_BITS + GAIN_FRAC_BITS)) / i64::from(c.max(1)))
-                .min(i32::MAX as i64) as i32
-        });
+        let slope = model.slope as f32 / (1u32 << GAIN_FRAC_BITS) as f32;
+        let a = model.a as f32 * SIGNAL_TO_F32;
+        let below_two = 2.0 - SIGNAL_TO_F32;
         Ok(Self {
             model,
-            min_slope: (model.slope >> 4).max(1),
-            max_steps,
+            slope: slope.to_bits(),
+            min_slope: ((model.slope >> 4).max(1) as f32 / (1u32 << GAIN_FRAC_BITS) as f32)
+                .to_bits(),
+            targets: model.rates.map(|r| (a * r.reciprocal()).to_bits()),
+            max_steps: model
+                .rates
+                .map(|r| (STEP_CAP * r.reciprocal()).min(below_two).to_bits()),
         })
     }
 
@@ -236,12 +288,41 @@ impl InverseBoucWen {
         }
         let falling = r < 0;
         let index = BoucWen::factor_index(falling, state) & 3;
-        // The slope g_s = k + A − c·s·h, Q8.24: A (Q2.30) shifted down by 6, c·h (Q8.24 ×
-        // Q2.30 < 2^62) by 30; |g_s| < 2^27, floored at k/16.
-        let ch = (i64::from(m.factors[index]) * i64::from(state.h)) >> SIGNAL_FRAC_BITS;
-        let g = i64::from(m.slope) + (i64::from(m.a) >> (SIGNAL_FRAC_BITS - GAIN_FRAC_BITS));
-        let g = if falling { g + ch } else { g - ch }.max(i64::from(self.min_slope));
-        let step = magnitude_over_gain(r.unsigned_abs(), g).min(self.max_steps[index]);
+        // D = A/c − s·h.
+        let h = state.h as f32 * SIGNAL_TO_F32;
+        let target = f32::from_bits(self.targets[index]);
+        let d = if falling { target + h } else { target - h };
+        let (slope, floor) = (f32::from_bits(self.slope), f32::from_bits(self.min_slope));
+        let reach = r.unsigned_abs() as u32 as f32 * SIGNAL_TO_F32;
+        let rate = &m.rates[index];
+        let cap = f32::from_bits(self.max_steps[index]);
+        // `h` heads across zero (its target `s·A/c` of the other sign, `s·h·A < 0`) and the
+        // output change wanted is more than `|h|` alone gives: the step may pass zero.
+        let toward = if falling { h } else { -h };
+        let step = if toward * target > 0.0 && reach > toward {
+            let to_zero = rate.step_to_cover(m.crossing_ratio(state.h, rate));
+            // The output change at zero: k·m' + |h|.
+            let at_zero = slope * to_zero + toward;
+            if reach > at_zero {
+                let other = index ^ 1;
+                to_signal(
+                    to_zero
+                        + m.rates[other].solve_normalised(
+                            slope,
+                            f32::from_bits(self.targets[other]),
+                            floor,
+                            reach - at_zero,
+                            // Both parts within the series' range: the whole step at the
+                            // first rate, the rest at the other's.
+                            f32::from_bits(self.max_steps[other]).min(cap - to_zero),
+                        ),
+                )
+            } else {
+                rate.solve(slope, d, floor, reach, cap)
+            }
+        } else {
+            rate.solve(slope, d, floor, reach, cap)
+        };
         let du = if falling { -step } else { step };
         let u = clamp_full_scale(state.u.saturating_add(du));
         m.advance(state, u);
@@ -400,7 +481,7 @@ mod tests {
     }
 
     /// Whatever the drive (steps across the whole range included), `|h|` stays within the
-    /// documented bound `|A|·max(1/(β − |γ| − |ψ|), 2)`.
+    /// documented bound `|A|/(β − |γ| − |ψ|)`, and comes near it.
     #[test]
     fn the_state_stays_within_its_bound() {
         let s = scaling();
@@ -448,10 +529,13 @@ mod tests {
                 st, plant,
                 "{name}: the compensator's state is the model's on its drive"
             );
-            // Some tens of LSB of Q2.30 (one is 9.3e-10): the step's f32 quotient (24 bits of
-            // a step up to 0.1) and the roundings. A compensator that lagged one sample would
-            // miss by that sample's change of h, 1e-3 and more.
-            assert!(worst < 3e-8, "{name}: {worst}");
+            // Fine: some tens of LSB of Q2.30 (one is 9.3e-10), the f32 quotients and the
+            // roundings. Coarse (steps of 5 % of the range): the Newton step's miss, of the
+            // order of (c·m)² of the step, 3e-7 (a hundredth of a 16-bit DAC code). A
+            // compensator that lagged one sample would miss by that sample's change of h,
+            // 1e-3 and more; one that took the linear guess alone, by 3e-5 even finely sampled.
+            let bound = if samples_per_period > 1_000.0 { 3e-8 } else { 1e-6 };
+            assert!(worst < bound, "{name}: {worst}");
         }
     }
 }

@@ -1,31 +1,39 @@
 //! Duhem hysteresis in fixed point: the forward observer and the inverse compensator.
 //!
-//! Model (normalised by [`Scaling`]): `ẏ = α |u̇| (β u + δ − y) + γ u̇`, discretised per sample
-//! as in the book (docs/src/reference/models.md):
+//! Model (normalised by [`Scaling`]): `ẏ = α |u̇| (β u + δ − y) + γ u̇`. On a monotone stretch
+//! of input (direction `s`) the distance to the anhysteretic curve, `e = β u + δ − y`,
+//! relaxes in the input: `de/du = (β − γ) − s·α·e`. The model takes that exactly over each
+//! sample's step `Δu` (`m = |Δu|`), as in the book (docs/src/reference/models.md):
 //!
-//! `y_k = y_{k−1} + a_k (β u_{k−1} + δ − y_{k−1}) + γ Δu_k`, with `a_k = min(α |Δu_k|, 1)`.
+//! `y_k = y_{k−1} + β·Δu_k + q_k·e_{k−1} − s·(β − γ)·φ_k`, with `q_k = 1 − e^{−α m}`,
+//! `φ_k = q_k/α`
 //!
-//! The clamp `a_k ≤ 1` is the discrete form's stability bound: beyond it a single large step
-//! would overshoot the anhysteretic curve. At control rates (tens of kHz) `α |Δu|` is far below
-//! 1 and the clamp never acts; it only keeps a step to the range limits bounded.
+//! ([`crate::models::relaxation`]). Integrated in the input, not stepped per sample, the
+//! model's output depends on the path of the input alone, not on the sample rate: the same
+//! drive sampled at 10 kHz or 100 kHz gives the same output (the physics is rate-independent,
+//! and a model identified from a record at one rate runs at the board's). For small steps
+//! `q ≈ α m`, `φ ≈ m` and this is the explicit step `y + α|Δu|·e + γ·Δu`.
 //!
-//! Formats: `u, y, δ` Q2.30 normalised; `α, β, γ` Q8.24 normalised; the factor `a` Q2.30 in
-//! [0, 1]; the distance to the anhysteretic curve `e = β u + δ − y` Q2.30, saturated at ±2
-//! (it only reaches that for states far outside the range); products in `i64`.
+//! Formats: `u, y, δ` Q2.30 normalised; `α, β, γ` Q8.24 normalised; `q` Q0.32 and `φ` Q1.31
+//! (rounded to nearest from `f32`); the distance `e` Q2.30, saturated at ±2 (it only reaches
+//! that for states far outside the range); the update summed in Q10.54 (`i64`) and brought
+//! back to Q2.30 once, rounding to nearest.
 //!
-//! **Inverse.** Writing `Δu = s·m` (`s` the sign, `m ≥ 0`), one step of the model gives
-//! `Δy = s·m·g_s` with `g_s = γ + s·α·e`, the local slope in direction `s`. For a desired
-//! `Δy`, take `s = sign(Δy)` and `m = |Δy| / g_s`. The slope can approach zero (or turn
-//! negative for parameters outside the physical set); it is floored at
-//! `g_min = min(β, γ) / 16`, so `m` — and the drive — stay bounded, and the drive is clamped to
-//! the input range. The inverse runs its own forward model on the drive it produced, so any
-//! shortfall in one sample is made up in the next.
+//! **Inverse.** For a desired `Δy` in direction `s = sign(Δy)`, the step `m` with
+//! `β·m + D·q(α m) = |Δy|`, `D = (γ − β)/α + s·e` the distance to the curve's target that
+//! way: the linear guess `|Δy|/g_s`, `g_s = γ + s·α·e` the local slope, and one Newton step
+//! ([`RelaxationRate::solve`]). The slope can approach zero (or turn negative for parameters
+//! outside the physical set); it is floored at `g_min = min(β, γ) / 16`, so `m` — and the
+//! drive — stay bounded; a step is capped at `0.99/α` (a larger one is made over several
+//! samples), and the drive is clamped to the input range. The inverse runs its own forward
+//! model on the drive it produced, so any shortfall in one sample is made up in the next.
 
 use crate::fixed_point::{
-    clamp_full_scale, gain_from_f64, magnitude_over_gain, q60_to_signal_floor, saturate_i64,
-    signal_from_f64, GAIN_FRAC_BITS, SIGNAL_FRAC_BITS, SIGNAL_ONE,
+    clamp_full_scale, gain_from_f64, q54_to_signal_floor, saturate_i64, signal_from_f64,
+    GAIN_FRAC_BITS, SIGNAL_FRAC_BITS,
 };
 use crate::models::params::{DuhemParams, ParamError};
+use crate::models::relaxation::{RelaxationRate, SIGNAL_TO_F32, STEP_CAP};
 use crate::models::{Forward, Hysteresis, Inverse};
 use crate::scaling::Scaling;
 
@@ -50,13 +58,12 @@ pub struct Duhem {
     beta: i32,
     /// `γ`, Q8.24 normalised (the inverse's slope).
     gamma: i32,
-    /// `γ` again, Q2.30 (`gamma << 6`, exact; validation keeps `γ < 2`): the step's
-    /// `γ·Δu` is then a Q2.30 × Q2.30 product like `a·e`, and both accumulate in Q4.60.
-    gamma_q30: i32,
+    /// `β − γ`, Q8.24 (both below 2, validated: exact).
+    beta_minus_gamma: i32,
     /// `δ`, offset of the anhysteretic curve, Q2.30 normalised output.
     offset: i32,
-    /// `1/α`, Q2.30 (saturated just below 2): the input step at which `a = α|Δu|` reaches 1.
-    inverse_alpha: i32,
+    /// `α` as the relaxation's rate, with `1/α`.
+    rate: RelaxationRate,
 }
 
 impl Duhem {
@@ -75,21 +82,16 @@ impl Duhem {
     #[inline(never)] // configuration, off the tick path: one copy in flash
     pub fn new(params: &DuhemParams, scaling: &Scaling) -> Result<Self, ParamError> {
         let n = params.normalized(scaling)?;
-        let alpha = gain_from_f64(n.alpha);
-        // 1/α: 2^(30+24) / α(Q8.24) in Q2.30; 2.0 does not fit Q2.30, so saturate below it.
-        let inverse_alpha = (1i64 << (SIGNAL_FRAC_BITS + GAIN_FRAC_BITS))
-            .checked_div(alpha as i64)
-            .unwrap_or(i64::MAX)
-            .clamp(1, i32::MAX as i64) as i32;
+        let alpha = gain_from_f64(n.alpha).max(1);
+        let beta = gain_from_f64(n.beta);
         let gamma = gain_from_f64(n.gamma);
         Ok(Self {
             alpha,
-            beta: gain_from_f64(n.beta),
+            beta,
             gamma,
-            // γ < 2 (validated): the Q8.24 value is below 2^25, so the shift is exact.
-            gamma_q30: gamma.saturating_mul(1 << (SIGNAL_FRAC_BITS - GAIN_FRAC_BITS)),
+            beta_minus_gamma: beta - gamma,
             offset: signal_from_f64(n.offset),
-            inverse_alpha,
+            rate: RelaxationRate::from_gain(alpha),
         })
     }
 
@@ -120,61 +122,73 @@ impl Duhem {
     /// One sample: input `u` (Q2.30 normalised drive, clamped to full scale) → estimated
     /// displacement (Q2.30 normalised, saturated).
     ///
-    /// The update `y + a·e + γ·Δu` is summed in one Q4.60 accumulator (`y` shifted up by 30,
-    /// `a·e` and `γ·Δu` Q2.30 × Q2.30 products, one `SMLAL` each) and brought back to Q2.30
-    /// once, rounding toward −∞ and saturating ([`q60_to_signal_floor`]): one rounding per
-    /// step. This is bit for bit the Q10.54 sum `(y << 24) + (a·e >> 6) + γ₂₄·Δu` shifted
-    /// down by 24 (`⌊(64X + ae)/2^30⌋ = ⌊(X + ⌊ae/64⌋)/2^24⌋`), without the shift of `a·e`.
+    /// The update `β·Δu + q·e − s·(β − γ)·φ` is summed with `y` in one Q10.54 accumulator
+    /// (`β·Δu` a Q8.24 × Q2.30 product, `q·e` Q0.32 × Q2.30 shifted down by 8, `(β − γ)·φ`
+    /// Q8.24 × Q1.31 shifted down by 1) and brought back to Q2.30 once, rounding to nearest.
     #[inline(always)]
     pub fn step(&self, state: &mut DuhemState, u: i32) -> i32 {
         let u = clamp_full_scale(u);
         // |Δu| ≤ 2; a full-range jump saturates 2^-30 short of 2 (QSUB).
         let du = u.saturating_sub(state.u);
-        let magnitude = du.unsigned_abs();
-        // a = min(α|Δu|, 1), Q2.30: below 1/α the product is < 2^54 and fits after the shift;
-        // there |Δu| < 1/α < 2, so it is a non-negative i32 and a signed multiply serves.
-        let a = if magnitude >= self.inverse_alpha as u32 {
-            SIGNAL_ONE
-        } else {
-            ((self.alpha as i64 * magnitude as i32 as i64) >> GAIN_FRAC_BITS) as i32
-        };
+        let relaxed = self.rate.relax(du.unsigned_abs());
         let e = self.anhysteretic_error(state);
-        // |y·2^30| ≤ 2^61, |a·e| ≤ 2^61, |γ·Δu| < 2^62: the sum fits i64.
-        let acc = ((state.y as i64) << SIGNAL_FRAC_BITS)
-            + a as i64 * e as i64
-            + self.gamma_q30 as i64 * du as i64;
+        // |β·Δu| < 2^25·2^31, |q·e| < 2^32·2^31, |(β − γ)·φ| < 2^25·2^32: the sum of the
+        // three, shifted to Q10.54, and y·2^24 (< 2^55) fits i64.
+        let pull = (self.beta_minus_gamma as i64 * relaxed.phi_q31() as i64) >> 1;
+        let acc = ((state.y as i64) << GAIN_FRAC_BITS)
+            + self.beta as i64 * du as i64
+            + ((e as i64 * relaxed.q_q32() as i64) >> 8)
+            + if du < 0 { pull } else { -pull };
         state.u = u;
-        state.y = q60_to_signal_floor(acc);
+        state.y = q54_to_signal_floor(acc + (1 << (GAIN_FRAC_BITS - 1)));
         state.y
     }
 }
 
-/// Inverse Duhem compensator, fixed point: per sample, the drive increment that produces the
-/// desired displacement increment.
-///
-/// One sample's drive step `m` is capped at `1/α`: up to there the discrete model is exactly
-/// linear in `Δu` (`α|Δu| ≤ 1`, so `a` does not clamp) and the step lands on the target or
-/// short of it; beyond it `a` clamps, the step overshoots, and a large setpoint step would
-/// ping-pong between the range ends for ever. A larger step is made over several samples.
+/// Inverse Duhem compensator, fixed point: per sample, the drive step that brings its own
+/// model's output to the desired displacement (see the module doc), then its model advanced
+/// on it.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct InverseDuhem {
     model: Duhem,
-    /// Floor of the slope `g_s`, Q8.24, `> 0`.
-    min_slope: i32,
-    /// Largest drive step per sample, `min(1/α, 2 − 2^-30)`, Q2.30.
-    max_step: i32,
+    /// `β`, `f32` bits: the output's slope in the input beside the relaxation.
+    beta: u32,
+    /// `(γ − β)/α`, `f32` bits: the distance to the anhysteretic curve the rising branch
+    /// relaxes to, less `e`.
+    shift: u32,
+    /// Floor of the slope `g_s`, `min(β, γ)/16`, `f32` bits, `> 0`.
+    min_slope: u32,
+    /// Largest drive step per sample, `min(0.99/α, 2 − 2^-30)` ([`STEP_CAP`]), `f32` bits.
+    max_step: u32,
 }
 
 impl InverseDuhem {
     /// Validates `params` and builds the compensator for them, normalised by `scaling`.
+    ///
+    /// ```
+    /// use twinstack::models::duhem::InverseDuhem;
+    /// use twinstack::fixed_point::{signal_from_f64, signal_to_f64};
+    /// use twinstack::{DuhemParams, Scaling};
+    /// let params = DuhemParams { alpha: 0.02, beta: 0.5, gamma: 0.35, offset: 0.0 };
+    /// let inverse = InverseDuhem::new(&params, &Scaling::new(0.0, 140.0, 0.0, 70.0).unwrap()).unwrap();
+    /// let mut state = inverse.model().state_at(0, 0);
+    /// // From rest at mid-range, ask for a tenth of the span more: its own model lands there.
+    /// let u = inverse.step(&mut state, signal_from_f64(0.1));
+    /// assert!(signal_to_f64(u) > 0.1);
+    /// assert!((signal_to_f64(state.y) - 0.1).abs() < 1e-6);
+    /// ```
     #[inline(never)] // configuration, off the tick path: one copy in flash
     pub fn new(params: &DuhemParams, scaling: &Scaling) -> Result<Self, ParamError> {
         let model = Duhem::new(params, scaling)?;
+        let to_f32 = |q24: i32| q24 as f32 / (1u32 << GAIN_FRAC_BITS) as f32;
         let min_slope = (model.beta.min(model.gamma) / MIN_SLOPE_DIVISOR).max(1);
+        let max_step = (STEP_CAP * model.rate.reciprocal()).min(2.0 - (1.0 / (1u32 << SIGNAL_FRAC_BITS) as f32));
         Ok(Self {
             model,
-            min_slope,
-            max_step: model.inverse_alpha,
+            beta: to_f32(model.beta).to_bits(),
+            shift: (-to_f32(model.beta_minus_gamma) * model.rate.reciprocal()).to_bits(),
+            min_slope: to_f32(min_slope).to_bits(),
+            max_step: max_step.to_bits(),
         })
     }
 
@@ -191,19 +205,20 @@ impl InverseDuhem {
         if dy == 0 {
             return state.u;
         }
-        let e = self.model.anhysteretic_error(state) as i64;
-        let alpha_e = (self.model.alpha as i64 * e) >> SIGNAL_FRAC_BITS; // Q8.24
-        let slope = if dy > 0 {
-            self.model.gamma as i64 + alpha_e
-        } else {
-            self.model.gamma as i64 - alpha_e
-        }
-        .max(self.min_slope as i64);
-        // m = |Δy| / g, Q2.30; the slope is at least min_slope ≥ 1.
-        let m = magnitude_over_gain(dy.unsigned_abs(), slope);
-        let m = (m as i64).min(self.max_step as i64);
+        let e = self.model.anhysteretic_error(state) as f32 * SIGNAL_TO_F32;
+        let shift = f32::from_bits(self.shift);
+        // D = (γ − β)/α + s·e; |Δy| < 3·2^30 fits u32.
+        let d = if dy > 0 { shift + e } else { shift - e };
+        let target = dy.unsigned_abs() as u32 as f32 * SIGNAL_TO_F32;
+        let m = self.model.rate.solve(
+            f32::from_bits(self.beta),
+            d,
+            f32::from_bits(self.min_slope),
+            target,
+            f32::from_bits(self.max_step),
+        );
         let du = if dy > 0 { m } else { -m };
-        let u = clamp_full_scale(saturate_i64(state.u as i64 + du));
+        let u = clamp_full_scale(state.u.saturating_add(du));
         self.model.step(state, u);
         u
     }

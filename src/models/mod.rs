@@ -38,6 +38,7 @@ pub mod generalised_pi;
 pub mod params;
 pub mod play_operator;
 pub mod prandtl_ishlinskii;
+pub mod relaxation;
 
 pub use dispatch::{Compensator, CompensatorRun, Observer, ObserverRun};
 

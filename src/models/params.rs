@@ -763,11 +763,11 @@ impl BoucWenParams {
         self.a.abs() * (1.0 + self.max_factor() / self.min_factor()) / self.k
     }
 
-    /// The bound on the hysteretic state from rest (`h = 0`):
-    /// `|h| ≤ |A| · max(1 / (β − |γ| − |ψ|), 2)`, the second term for a step whose factor
-    /// clamps at 1 (then `h = A·Δu`, `|Δu| ≤ 2` normalised). Meaningful in normalised units.
+    /// The bound on the hysteretic state from rest (`h = 0`): `|h| ≤ |A| / (β − |γ| − |ψ|)`,
+    /// the farthest of the targets `±A/c` each step relaxes toward (a fraction `q ≤ 1` of the
+    /// way). Meaningful in normalised units.
     pub fn state_bound(&self) -> f64 {
-        self.a.abs() * (1.0 / self.min_factor()).max(2.0)
+        self.a.abs() / self.min_factor()
     }
 
     /// The model in the normalised coordinates of `scaling`: `k, A → (k, A)·U/Y`,

@@ -86,11 +86,13 @@ pub const ALPHA_GRID: [f64; 2] = [1e-2, 1e3];
 pub const ALPHA_GRID_POINTS: usize = 21;
 
 /// For a given `α`, the Duhem model simulated as [`simulate`] runs it is linear in
-/// `(β, δ, γ)`: `y_k = (1 − a_k) y_{k−1} + a_k (β u_{k−1} + δ) + γ Δu_k` with
-/// `a_k = min(α|Δu_k|, 1)` set by `α` and the drive alone, and the start `y_0 = β u_0 + δ`.
-/// So `y = β Y_β + δ + γ Y_γ`, each `Y` the same recursion driven by `u` (from `u_0`) or by
-/// `Δu` (from 0). Returns the normal equations of the simulated error in
-/// `(β, c, γ)`, drive centred at `uc` and target at `yc` (`δ = c + yc − β uc`).
+/// `(β, δ, γ)`: over each sample's step, with `q_k = 1 − e^{−α|Δu_k|}`, `E_k = 1 − q_k` and
+/// `φ_k = q_k/α` set by `α` and the drive alone,
+/// `y_k = E_k y_{k−1} + β (u_k − E_k u_{k−1} − s_k φ_k) + δ q_k + γ s_k φ_k`, and the start
+/// `y_0 = β u_0 + δ`. So `y = β Y_β + δ + γ Y_γ`, each `Y` the same recursion driven by `u`
+/// (from `u_0`) or by `s φ` (from 0), the `δ` term staying 1. Returns the normal equations
+/// of the simulated error in `(β, c, γ)`, drive centred at `uc` and target at `yc`
+/// (`δ = c + yc − β uc`).
 fn output_error_equations(
     alpha: f64,
     u: &[f64],
@@ -110,9 +112,10 @@ fn output_error_equations(
     for (k, &v) in u.iter().enumerate().take(last + 1) {
         let v = clamp(v);
         let du = v - prev;
-        let a = (alpha * du.abs()).min(1.0);
-        y_beta = (1.0 - a) * y_beta + a * (prev - uc);
-        y_gamma = (1.0 - a) * y_gamma + du;
+        let (q, phi) = reference::relax(alpha, du.abs());
+        let s_phi = du.signum() * phi;
+        y_beta = (1.0 - q) * y_beta + (v - uc) - (1.0 - q) * (prev - uc) - s_phi;
+        y_gamma = (1.0 - q) * y_gamma + s_phi;
         prev = v;
         if next_row.next_if_eq(&k).is_some() {
             ne.add_row(&[y_beta, 1.0, y_gamma], y[k + rows.lag] - yc, 1.0);
@@ -126,8 +129,8 @@ fn output_error_equations(
 /// least-squares problem (`output_error_equations`); the best grid point is then refined
 /// by a golden-section search on `ln α` between its neighbours. `β` or `γ` pinned at zero is
 /// floored at a small positive value (`1e-6` of the data's mean slope). Any Duhem model
-/// with `α > 0` simulates bounded (each step moves the output a fraction `a ≤ 1` of the way
-/// to the anhysteretic curve, plus `γ Δu`), so what this returns does.
+/// with `α > 0` simulates bounded (each step moves the distance to the anhysteretic curve a
+/// fraction `q < 1` of the way to its target `s(β − γ)/α`), so what this returns does.
 pub fn output_error_fit(
     u: &[f64],
     y: &[f64],
