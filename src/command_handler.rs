@@ -314,6 +314,7 @@ impl<S: RecordStorage> CommandHandler<S> {
             Request::Record(r) => record(r, control, |c| {
                 self.listen(c, |l| ServicesLoad {
                     capture_decimation: Some(r.decimation),
+                    capture_pre_trigger: false,
                     ..l
                 })
             }),
@@ -336,6 +337,7 @@ impl<S: RecordStorage> CommandHandler<S> {
             Request::Capture(r) => capture(r, control, |c| {
                 self.listen(c, |l| ServicesLoad {
                     capture_decimation: Some(r.decimation),
+                    capture_pre_trigger: r.pre_trigger > 0,
                     ..l
                 })
             }),

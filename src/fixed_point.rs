@@ -226,40 +226,6 @@ pub fn clamp_full_scale(signal: i32) -> i32 {
     signal.clamp(-SIGNAL_ONE, FULL_SCALE_MAX)
 }
 
-/// A Q2.30 magnitude divided by a Q8.24 gain, `magnitude · 2^24 / gain`, in Q2.30, saturated
-/// at `i32::MAX` (a gain of at most 0 gives `i32::MAX` too): the step a model's compensator
-/// takes for a desired change of output over the local slope.
-///
-/// An `i64` division is a library call on the M4 (`__aeabi_ldivmod`, a few hundred
-/// instructions); its FPU divides in one `VDIV.F32`. f32 carries 24 bits, so the quotient is
-/// within 3·2^-24 of itself; IEEE division and conversion round the same on the host and the
-/// M4, so host and board agree bit for bit (golden vectors). A magnitude or a gain below 2^32
-/// converts from `u32` with one `VCVT` each (from `i64` the same value rounds the same, but
-/// it is a library call, `__aeabi_l2f`, ~35 instructions); a larger one keeps the `i64`
-/// conversion.
-///
-/// ```
-/// use twinstack::fixed_point::{magnitude_over_gain, signal_from_f64, gain_from_f64};
-/// let step = magnitude_over_gain(signal_from_f64(0.25) as u64, gain_from_f64(0.5) as i64);
-/// assert_eq!(step, signal_from_f64(0.5));
-/// ```
-#[inline(always)]
-pub fn magnitude_over_gain(magnitude: u64, gain: i64) -> i32 {
-    let to_f32 = |v: i64| {
-        if (0..1 << 32).contains(&v) {
-            v as u32 as f32
-        } else {
-            v as f32
-        }
-    };
-    let magnitude = to_f32(magnitude.min(i64::MAX as u64) as i64);
-    // `as i32` saturates (and maps NaN, from 0/0, to 0; a gain ≤ 0 is taken as none).
-    if gain <= 0 {
-        return i32::MAX;
-    }
-    ((magnitude / to_f32(gain)) * (1u32 << GAIN_FRAC_BITS) as f32) as i32
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;

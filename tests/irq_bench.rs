@@ -729,7 +729,7 @@ fn the_whole_interrupt_in_every_scenario() {
         .filter_map(|l| l.strip_prefix("SCENARIO "))
         .collect();
     // What the services ran in each scenario (`SERVICES <capture decimation> <telemetry
-    // decimation>` after its `SCENARIO` line; none after a load's: charged at their worst).
+    // decimation> <pre-trigger window: 1>` after its `SCENARIO` line; none after a load's: charged at their worst).
     let mut loads: Vec<ServicesLoad> = Vec::new();
     for line in stdout.lines() {
         if line.starts_with("SCENARIO ") {
@@ -737,11 +737,12 @@ fn the_whole_interrupt_in_every_scenario() {
         } else if let Some(d) = line.strip_prefix("SERVICES ") {
             let mut d = d
                 .split(' ')
-                .map(|d| d.parse::<u16>().expect("SERVICES <c> <t>"));
+                .map(|d| d.parse::<u16>().expect("SERVICES <c> <t> <pre-trigger>"));
             if let Some(last) = loads.last_mut() {
                 *last = ServicesLoad {
                     capture_decimation: d.next(),
                     telemetry_decimation: d.next(),
+                    capture_pre_trigger: d.next() == Some(1),
                     ..ServicesLoad::default()
                 };
             }

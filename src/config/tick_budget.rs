@@ -50,9 +50,10 @@ pub const SYSCLK_HZ: u32 = 168_000_000;
 /// period are guaranteed to what runs below the pipeline — the link's DMA interrupts, the
 /// command handler and the coarse axis — whatever configuration is loaded (on a warm cache
 /// they get more: the whole-interrupt bench prints both, `cargo test --profile host-opt
-/// --test irq_bench -- --nocapture`). At 100 kHz that leaves 1 344 cycles: the models
-/// `calibrate` picks run there as the compensator (the observer, where the board has a
-/// sensor, only at lower rates: `twinstack budget` prints each one's highest rate).
+/// --test irq_bench -- --nocapture`). At 100 kHz that leaves 1 344 cycles: what fits there
+/// of each model, with or without its creep and its observer, `twinstack budget --rate
+/// 100000` prints (with each one's highest admitted rate); `calibrate` and `identify
+/// --tick-rate` size and pick only among what fits.
 pub const TICK_SHARE_PERCENT: u32 = 80;
 
 /// Everything in the interrupt that does not grow with a model: RTIC's entry and exit, the
@@ -67,8 +68,8 @@ pub const TICK_SHARE_PERCENT: u32 = 80;
 pub const FIXED_CYCLES: u32 = 915;
 
 pub use crate::services::consumer::{
-    ServicesLoad, CAPTURE_FRAME_CYCLES, SERVE_CYCLES, SERVICES_BASE_CYCLES, SERVICES_EVERY_CYCLES,
-    TELEMETRY_SAMPLE_CYCLES,
+    ServicesLoad, CAPTURE_FRAME_CYCLES, FIRE_CYCLES, RELOAD_CYCLES, SERVE_CYCLES,
+    SERVICES_BASE_CYCLES, SERVICES_EVERY_CYCLES, TELEMETRY_SAMPLE_CYCLES,
 };
 pub use crate::services::observer::OBSERVER_BELOW_CYCLES;
 
@@ -290,6 +291,7 @@ mod tests {
         let load = |c: Option<u16>, t: Option<u16>| ServicesLoad {
             capture_decimation: c,
             telemetry_decimation: t,
+            capture_pre_trigger: false,
             observer_cycles: 0,
         };
         assert_eq!(load(None, None).cycles(), 0);
@@ -319,12 +321,32 @@ mod tests {
                 at(batch),
                 SERVICES_BASE_CYCLES + (served * SERVE_CYCLES + per).div_ceil(u32::from(batch))
             );
+            // With a pre-trigger window, the batch it fires in costs more.
+            if side == 0 {
+                let windowed = ServicesLoad {
+                    capture_pre_trigger: true,
+                    ..load(Some(batch), None)
+                };
+                assert_eq!(
+                    windowed.cycles(),
+                    SERVICES_BASE_CYCLES
+                        + (2 * SERVE_CYCLES + FIRE_CYCLES + per).div_ceil(u32::from(batch))
+                );
+            }
             for d in 1..3 * batch {
                 assert!(at(d + 1) <= at(d), "{side}: {d}");
             }
         }
         let both = load(Some(1), Some(1));
-        assert_eq!(both, ServicesLoad::WORST);
+        assert_eq!(
+            ServicesLoad {
+                capture_pre_trigger: true,
+                ..both
+            },
+            ServicesLoad::WORST
+        );
+        // Every snapshot served in full (a pre-trigger window of every tick adds nothing).
+        assert_eq!(both.cycles(), ServicesLoad::WORST.cycles());
         assert_eq!(
             both.cycles(),
             SERVICES_EVERY_CYCLES + CAPTURE_FRAME_CYCLES + TELEMETRY_SAMPLE_CYCLES
@@ -371,7 +393,10 @@ mod tests {
         assert_eq!(interrupt_cycles(&build(&with_observer)), c32);
         assert_eq!(
             both - c32,
-            c32 - bare + OBSERVER_BELOW_CYCLES + SERVICES_EVERY_CYCLES,
+            c32 - bare
+                + OBSERVER_BELOW_CYCLES
+                + SERVICES_EVERY_CYCLES
+                + RELOAD_CYCLES.div_ceil(crate::services::snapshot::BATCH),
             "the observer's bank costs what the inverse's does"
         );
         // With an observer every snapshot is served in full already: a capture beside it adds

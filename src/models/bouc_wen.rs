@@ -62,7 +62,7 @@ use crate::models::params::{
     BoucWenCoefficient, BoucWenParams, ParamError, BOUC_WEN_MAX_INVERSE_LOOP_GAIN,
 };
 use crate::models::relaxation::{
-    to_signal, RelaxationRate, Relaxed, SIGNAL_TO_F32, STEP_CAP,
+    larger, magnitude, smaller, to_signal, RelaxationRate, Relaxed, SIGNAL_TO_F32, STEP_CAP,
 };
 use crate::models::{Forward, Hysteresis, Inverse};
 use crate::scaling::Scaling;
@@ -172,6 +172,24 @@ impl BoucWen {
         state.u = u;
     }
 
+    /// Advances to `u` on a step the compensator found to pass zero `to_zero` (normalised)
+    /// into it at rate `index` (what [`BoucWen::advance`] would find again): from zero, at
+    /// the other sign's rate, over the rest.
+    #[inline(always)]
+    fn advance_past_zero(&self, state: &mut BoucWenState, u: i32, to_zero: f32, index: usize) {
+        let u = clamp_full_scale(u);
+        let du = u.saturating_sub(state.u);
+        let rest = du.unsigned_abs() as f32 * SIGNAL_TO_F32 - to_zero;
+        if rest > 0.0 {
+            let relaxed = self.rates[index ^ 1].relax_normalised(rest);
+            state.h = self.relaxed_by(0, relaxed, du < 0);
+            state.u = u;
+        } else {
+            // The range clamped the step short of zero.
+            self.advance(state, u);
+        }
+    }
+
     /// `h` relaxed over one step: `h − q·h + s·A·φ`, Q2.30 rounded to nearest.
     #[inline(always)]
     fn relaxed_by(&self, h: i32, relaxed: Relaxed, falling: bool) -> i32 {
@@ -190,18 +208,17 @@ impl BoucWen {
     fn past_zero(&self, h: i32, m: u32, index: usize, falling: bool) -> i32 {
         let rate = &self.rates[index];
         let rest = m as f32 * SIGNAL_TO_F32 - rate.step_to_cover(self.crossing_ratio(h, rate));
-        let relaxed = self.rates[index ^ 1].relax_normalised(rest.max(0.0));
+        let relaxed = self.rates[index ^ 1].relax_normalised(larger(rest, 0.0));
         self.relaxed_by(0, relaxed, falling)
     }
 
-    /// `w = −h/h*`, `h* = s·A/c` the target of `h` at `rate` (`w > 0` when `h` heads across
-    /// zero); `s·h` is `|h|`-signed by the direction, which the sign of `h` and of its
-    /// target's opposite already give: `w = |h|·c/|A|`.
+    /// `w = −h/h*` for a state `h` heading across zero toward its target `h* = s·A/c` at
+    /// `rate` (the two of opposite signs): `|h|·c/|A|`.
     #[inline(always)]
     fn crossing_ratio(&self, h: i32, rate: &RelaxationRate) -> f32 {
-        let h = (h as f32 * SIGNAL_TO_F32).max(-(h as f32 * SIGNAL_TO_F32));
-        let a = f32::from_bits(self.a_reciprocal);
-        h * rate.rate() * a.max(-a)
+        magnitude(h as f32 * SIGNAL_TO_F32)
+            * rate.rate()
+            * magnitude(f32::from_bits(self.a_reciprocal))
     }
 
     /// One sample: input `u` (Q2.30 normalised drive, clamped to full scale) → estimated
@@ -299,45 +316,47 @@ impl InverseBoucWen {
         // `h` heads across zero (its target `s·A/c` of the other sign, `s·h·A < 0`) and the
         // output change wanted is more than `|h|` alone gives: the step may pass zero.
         let toward = if falling { h } else { -h };
-        let step = if toward * target > 0.0 && reach > toward {
+        // The step, and where it passes zero (the input from here to zero) if it does.
+        let (step, past) = if toward * target > 0.0 && reach > toward {
             let to_zero = rate.step_to_cover(m.crossing_ratio(state.h, rate));
             // The output change at zero: k·m' + |h|.
             let at_zero = slope * to_zero + toward;
             if reach > at_zero {
                 let other = index ^ 1;
-                to_signal(
-                    to_zero
-                        + m.rates[other].solve_normalised(
-                            slope,
-                            f32::from_bits(self.targets[other]),
-                            floor,
-                            reach - at_zero,
-                            // Both parts within the series' range: the whole step at the
-                            // first rate, the rest at the other's.
-                            f32::from_bits(self.max_steps[other]).min(cap - to_zero),
-                        ),
-                )
+                let rest = m.rates[other].solve_normalised(
+                    slope,
+                    f32::from_bits(self.targets[other]),
+                    floor,
+                    reach - at_zero,
+                    // Both parts within the series' range: the whole step at the first
+                    // rate, the rest at the other's.
+                    smaller(f32::from_bits(self.max_steps[other]), cap - to_zero),
+                );
+                (to_signal(to_zero + rest), Some(to_zero))
             } else {
-                rate.solve(slope, d, floor, reach, cap)
+                (rate.solve(slope, d, floor, reach, cap), None)
             }
         } else {
-            rate.solve(slope, d, floor, reach, cap)
+            (rate.solve(slope, d, floor, reach, cap), None)
         };
         let du = if falling { -step } else { step };
         let u = clamp_full_scale(state.u.saturating_add(du));
-        m.advance(state, u);
+        match past {
+            Some(to_zero) => m.advance_past_zero(state, u, to_zero, index),
+            None => m.advance(state, u),
+        }
         u
     }
 }
 
 /// The forward Bouc–Wen model (the observer) in the tick, cycles at 5 wait states (see
 /// [`Hysteresis::cycles`]).
-pub const BOUC_WEN_CYCLES: u32 = 88;
+pub const BOUC_WEN_CYCLES: u32 = 520;
 
 /// The Bouc–Wen compensator in the tick, cycles at 5 wait states: the forward step and the
 /// step's slope and quotient before it (one `VDIV.F32` and its conversions, as Duhem's
 /// inverse).
-pub const INVERSE_BOUC_WEN_CYCLES: u32 = 175;
+pub const INVERSE_BOUC_WEN_CYCLES: u32 = 620;
 
 impl Hysteresis for BoucWen {
     type State = BoucWenState;
@@ -534,7 +553,11 @@ mod tests {
             // order of (c·m)² of the step, 3e-7 (a hundredth of a 16-bit DAC code). A
             // compensator that lagged one sample would miss by that sample's change of h,
             // 1e-3 and more; one that took the linear guess alone, by 3e-5 even finely sampled.
-            let bound = if samples_per_period > 1_000.0 { 3e-8 } else { 1e-6 };
+            let bound = if samples_per_period > 1_000.0 {
+                3e-8
+            } else {
+                1e-6
+            };
             assert!(worst < bound, "{name}: {worst}");
         }
     }

@@ -37,7 +37,7 @@ pub enum Compensator {
     InverseDuhem(InverseDuhem),
     /// Analytic inverse of the generalised (asymmetric) P–I.
     InverseGeneralisedPi(InverseGeneralisedPi),
-    /// Inverse Bouc–Wen (exact per sample).
+    /// Inverse Bouc–Wen.
     InverseBoucWen(InverseBoucWen),
 }
 

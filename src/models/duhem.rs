@@ -182,7 +182,8 @@ impl InverseDuhem {
         let model = Duhem::new(params, scaling)?;
         let to_f32 = |q24: i32| q24 as f32 / (1u32 << GAIN_FRAC_BITS) as f32;
         let min_slope = (model.beta.min(model.gamma) / MIN_SLOPE_DIVISOR).max(1);
-        let max_step = (STEP_CAP * model.rate.reciprocal()).min(2.0 - (1.0 / (1u32 << SIGNAL_FRAC_BITS) as f32));
+        let max_step = (STEP_CAP * model.rate.reciprocal())
+            .min(2.0 - (1.0 / (1u32 << SIGNAL_FRAC_BITS) as f32));
         Ok(Self {
             model,
             beta: to_f32(model.beta).to_bits(),
@@ -224,9 +225,13 @@ impl InverseDuhem {
     }
 }
 
-/// A Duhem model in the tick (either direction), cycles at 5 wait states (see
-/// [`Hysteresis::cycles`]).
+/// The forward Duhem model (the observer) in the tick, cycles at 5 wait states (see
+/// [`Hysteresis::cycles`]): the relaxation's series (one call) and the Q10.54 update.
 pub const DUHEM_CYCLES: u32 = 170;
+
+/// The Duhem compensator in the tick, cycles at 5 wait states: the step solved (the linear
+/// guess, the relaxation at it and one Halley step: two `VDIV.F32`s) and the forward step.
+pub const INVERSE_DUHEM_CYCLES: u32 = 395;
 
 impl Hysteresis for Duhem {
     type State = DuhemState;
@@ -258,7 +263,7 @@ impl Hysteresis for InverseDuhem {
     }
 
     fn cycles(&self) -> u32 {
-        DUHEM_CYCLES
+        INVERSE_DUHEM_CYCLES
     }
 }
 

@@ -16,8 +16,10 @@
 //! * [`generalised_pi`] — the generalised (asymmetric) P–I: a P–I followed by a monotone
 //!   dead-zone map, and its analytic inverse.
 //! * [`duhem`] — Duhem forward observer and inverse Duhem compensator.
-//! * [`bouc_wen`] — generalised (asymmetric) Bouc–Wen observer and its exact per-sample
-//!   compensator.
+//! * [`bouc_wen`] — generalised (asymmetric) Bouc–Wen observer and its compensator.
+//! * [`relaxation`] — the exponential relaxation in the input that Duhem and Bouc–Wen take
+//!   exactly over each sample (what makes them rate-independent), and the step their
+//!   compensators solve for.
 //! * [`creep`] — the creep operator (log-spaced first-order modes) in series with a
 //!   hysteresis model, and its exact inverse.
 //! * [`params`] — the models' physical (`f64`) parameters and their own checks.

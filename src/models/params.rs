@@ -603,9 +603,8 @@ impl CanonicalPi {
 }
 
 /// A Duhem model in physical units: `ẏ = α |u̇| (β u + offset − y) + γ u̇`
-/// (volts in, output units out). The discrete form per sample is
-/// `y_k = y_{k−1} + α |Δu| (β u_{k−1} + offset − y_{k−1}) + γ Δu` (see the book,
-/// docs/src/reference/models.md).
+/// (volts in, output units out), integrated exactly in the input over each sample's step
+/// (see [`crate::models::duhem`] and the book, docs/src/reference/models.md).
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct DuhemParams {
@@ -682,9 +681,9 @@ pub const BOUC_WEN_MAX_NORM_BETA: f64 = 40.0;
 pub const BOUC_WEN_MAX_INVERSE_LOOP_GAIN: f64 = 0.9;
 
 /// A generalised Bouc–Wen model in physical units (volts in, output units out):
-/// `y = k·u + offset + h`, with the hysteretic state, per sample,
-/// `Δh = a·Δu − β·|Δu|·h − γ·Δu·|h| − ψ·Δu·h` (exponent `n = 1`; the factor multiplying `h`
-/// clamped to `[0, 1]`).
+/// `y = k·u + offset + h`, with the hysteretic state
+/// `dh = a·du − β·|du|·h − γ·du·|h| − ψ·du·h` (exponent `n = 1`), integrated exactly in the
+/// input over each sample's step (see [`crate::models::bouc_wen`]).
 ///
 /// `β, γ` are the classical Bouc–Wen terms; `ψ` is the asymmetric one: it makes the rising
 /// and the falling branches differ. The Duhem model of [`DuhemParams`] is the special case

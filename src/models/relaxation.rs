@@ -19,11 +19,12 @@
 //! `ψ(x) = (1 − e^{−x})/x = Σ (−x)^n/(n+1)!` to `x^10` (truncation below `2^-24` of `ψ`),
 //! `q = x·ψ`, `φ = m·ψ` — no cancellation, so both keep `f32`'s relative precision however
 //! small the step, which is what a sum over 10⁵ samples a second needs; for `x > 1`,
-//! `e^{−x}` from the series at `x/2^j ≤ 1` squared `j ≤ 5` times (`x ≥ 24`: `q = 1`). Each is
+//! `e^{−x} = 2^{−n}·e^{−r}` (`r < ln 2` from the series; `x ≥ 24`: `q = 1`). Each is
 //! then rounded to nearest into a fixed-point fraction (`q` Q0.32, `φ` Q1.31) and the models
 //! update their Q2.30 state with integer products, rounding once. Every `f32` operation is an
-//! IEEE single-precision one (no fused multiply-add), so the host and the Cortex-M4's FPU
-//! compute the same bits ([`crate::fixed_point::magnitude_over_gain`] relies on the same).
+//! IEEE single-precision one (no fused multiply-add; a quotient is one `VDIV.F32` on the M4,
+//! where an `i64` division would be a library call of a few hundred instructions), so the
+//! host and the Cortex-M4's FPU compute the same bits (the golden vectors replay them).
 //!
 //! **Inverse.** A compensator wants the step `m ≥ 0` that moves its model's output by `R` in
 //! direction `s`: with slope `k` of the output in the input and `D = s·(h* − h)` the state's
@@ -128,6 +129,12 @@ impl RelaxationRate {
     /// (each model's step calls it, in every configuration that holds the model).
     #[inline(never)]
     pub fn relax_normalised(&self, m: f32) -> Relaxed {
+        self.relax_inline(m)
+    }
+
+    /// [`RelaxationRate::relax_normalised`], inlined (in [`RelaxationRate::solve_normalised`]).
+    #[inline(always)]
+    fn relax_inline(&self, m: f32) -> Relaxed {
         let x = self.rate() * m;
         if x <= SERIES_LIMIT {
             let psi = psi(x);
@@ -168,19 +175,46 @@ impl RelaxationRate {
     pub fn solve_normalised(&self, k: f32, d: f32, floor: f32, target: f32, cap: f32) -> f32 {
         let c = self.rate();
         let cd = c * d;
-        let m0 = (target / (k + cd).max(floor)).min(cap);
-        let q0 = self.relax_normalised(m0).q;
+        let m0 = smaller(target / larger(k + cd, floor), cap);
+        let q0 = self.relax_inline(m0).q;
         // F(m₀) − R, F′(m₀) (floored) and F″(m₀) = −c²·D·e^{−c·m₀}.
         let miss = k * m0 + d * q0 - target;
         let decay = 1.0 - q0;
-        let slope = (k + cd * decay).max(floor);
+        let slope = larger(k + cd * decay, floor);
         let bend = -c * cd * decay;
         // Halley's step, m₀ − F·F′/(F′² − F·F″/2) (one quotient): Newton's with the
         // curvature's correction, kept from more than doubling it.
         let square = slope * slope;
-        let denominator = (square - 0.5 * miss * bend).max(0.5 * square);
-        (m0 - miss * slope / denominator).max(0.0).min(cap)
+        let denominator = larger(square - 0.5 * miss * bend, 0.5 * square);
+        smaller(larger(m0 - miss * slope / denominator, 0.0), cap)
     }
+}
+
+/// The larger of `a` and `b` (`b` if either is NaN): one compare. `f32::max` is a library
+/// call on the M4 (`fmaxf`, for its NaN rules), a few tens of cycles.
+#[inline(always)]
+pub fn larger(a: f32, b: f32) -> f32 {
+    if a > b {
+        a
+    } else {
+        b
+    }
+}
+
+/// The smaller of `a` and `b` (`b` if either is NaN): one compare (see [`larger`]).
+#[inline(always)]
+pub fn smaller(a: f32, b: f32) -> f32 {
+    if a < b {
+        a
+    } else {
+        b
+    }
+}
+
+/// `|x|`: the sign bit cleared.
+#[inline(always)]
+pub fn magnitude(x: f32) -> f32 {
+    f32::from_bits(x.to_bits() & 0x7fff_ffff)
 }
 
 /// A normalised step (`0 ≤ m < 2`) as Q2.30, rounded to nearest (the conversion saturates,
@@ -195,7 +229,7 @@ pub fn to_signal(m: f32) -> i32 {
 /// below `2^-30`). One quotient; no loop.
 #[inline(never)] // a crossing of zero only: kept out of the common path
 pub fn ln_1p(w: f32) -> f32 {
-    let y = 1.0 + w.max(0.0);
+    let y = 1.0 + larger(w, 0.0);
     let bits = y.to_bits();
     let mut exponent = ((bits >> 23) & 0xff) as i32 - 127;
     let mut f = f32::from_bits((bits & 0x007f_ffff) | 0x3f80_0000);
@@ -205,7 +239,8 @@ pub fn ln_1p(w: f32) -> f32 {
     }
     let z = (f - 1.0) / (f + 1.0);
     let z2 = z * z;
-    let series = z * (2.0 + z2 * (2.0 / 3.0 + z2 * (2.0 / 5.0 + z2 * (2.0 / 7.0 + z2 * (2.0 / 9.0)))));
+    let series =
+        z * (2.0 + z2 * (2.0 / 3.0 + z2 * (2.0 / 5.0 + z2 * (2.0 / 7.0 + z2 * (2.0 / 9.0)))));
     exponent as f32 * core::f32::consts::LN_2 + series
 }
 
@@ -239,24 +274,19 @@ fn psi(x: f32) -> f32 {
     p * x + C[0]
 }
 
-/// `e^{−x}` for `x > 1`: the series at `x/2^j ≤ 1`, squared `j ≤ 5` times; 0 from
-/// [`DECAYED`] on. A bounded loop: 5 halvings bring any `x < 24` to at most 0.75.
+/// `e^{−x}` for `x > 1`: `2^{−n}·e^{−r}` with `x = n·ln 2 + r`, `0 ≤ r < ln 2` (so
+/// `e^{−r} = 1 − r·ψ(r)` from the series), `2^{−n}` put into the exponent's bits; 0 from
+/// [`DECAYED`] on. No loop.
 #[inline(never)] // the large steps only: kept out of the common path
 fn decay(x: f32) -> f32 {
     if x >= DECAYED || x.is_nan() {
         return 0.0;
     }
-    let mut reduced = x;
-    let mut halvings = 0u32;
-    while reduced > SERIES_LIMIT && halvings < 5 {
-        reduced *= 0.5;
-        halvings += 1;
-    }
-    let mut e = 1.0 - reduced * psi(reduced);
-    for _ in 0..halvings {
-        e *= e;
-    }
-    e
+    // x < 24: n ≤ 34, so the exponent stays normal (2^-34 ≫ f32's least normal).
+    let n = (x * core::f32::consts::LOG2_E) as i32;
+    let r = x - n as f32 * core::f32::consts::LN_2;
+    let scale = f32::from_bits(((127 - n) as u32) << 23);
+    (1.0 - r * psi(r)) * scale
 }
 
 #[cfg(test)]
@@ -328,8 +358,22 @@ mod tests {
         assert_eq!(full.q_q32(), u32::MAX);
         // 1.4 LSB of Q0.32 rounds to 1, 1.6 to 2.
         let lsb = 1.0 / 4_294_967_296.0f32;
-        assert_eq!(Relaxed { q: 1.4 * lsb, phi: 0.0 }.q_q32(), 1);
-        assert_eq!(Relaxed { q: 1.6 * lsb, phi: 0.0 }.q_q32(), 2);
+        assert_eq!(
+            Relaxed {
+                q: 1.4 * lsb,
+                phi: 0.0
+            }
+            .q_q32(),
+            1
+        );
+        assert_eq!(
+            Relaxed {
+                q: 1.6 * lsb,
+                phi: 0.0
+            }
+            .q_q32(),
+            2
+        );
     }
 
     #[test]

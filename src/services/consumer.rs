@@ -31,8 +31,8 @@ use crate::services::telemetry::{TelemetrySample, TelemetryTap};
 /// charge follows the loop: where every snapshot is served in full (an observer below the
 /// tick, or a capture or telemetry on every tick), [`SERVICES_EVERY_CYCLES`] a snapshot;
 /// otherwise this base a snapshot and [`SERVE_CYCLES`] for each that takes a frame or a
-/// sample. Each frame and sample adds [`CAPTURE_FRAME_CYCLES`] and
-/// [`TELEMETRY_SAMPLE_CYCLES`]. These coefficients are declared here, beside the code they
+/// sample, and a capture's with a pre-trigger window [`FIRE_CYCLES`] more. Each frame and sample adds
+/// [`CAPTURE_FRAME_CYCLES`] and [`TELEMETRY_SAMPLE_CYCLES`]. These coefficients are declared here, beside the code they
 /// cost, and the tick budget (`config::tick_budget`) charges them; the whole-interrupt bench
 /// (`tests/irq_bench.rs`) measures the services' dearest batch in every scenario, with the
 /// capture and telemetry each on every tick or every eighth (the two loops' dearest
@@ -46,6 +46,21 @@ pub const SERVICES_BASE_CYCLES: u32 = 75;
 /// a batch holds, and, while a capture is armed or running, for one more: the snapshot of
 /// the event it waits for.
 pub const SERVE_CYCLES: u32 = 190;
+
+/// The batch in which a capture with a pre-trigger window fires (its awaited event served in
+/// full), beyond the [`SERVE_CYCLES`] of that serve: the window closed and what falls beside
+/// it in that batch. Measured by the whole-interrupt bench's trigger scenarios (the dearest:
+/// a capture armed on the trigger input's edge with a pre-trigger window, every eighth tick,
+/// beside telemetry every eighth and a spiral with the learning: 1 693 cycles at 5 WS for
+/// that batch). A capture without a window (every other scenario) stays within the charge
+/// without it.
+pub const FIRE_CYCLES: u32 = 280;
+
+/// The batch in which a reloaded configuration's observer below the tick takes over (the
+/// staged observer moved into place, its bank's state with it), beyond its serve. Measured
+/// by the whole-interrupt bench's reload scenario (a P–I 17 configuration reloaded with
+/// P–I 16 and its observer: 41 cycles a tick over the batch's serves).
+pub const RELOAD_CYCLES: u32 = 360;
 
 /// A snapshot where every snapshot is served in full, with its share of the wake (see
 /// [`SERVICES_BASE_CYCLES`]); the observer's own cost is the configuration's.
@@ -69,6 +84,9 @@ pub struct ServicesLoad {
     pub capture_decimation: Option<u16>,
     /// Telemetry's decimation, if it runs.
     pub telemetry_decimation: Option<u16>,
+    /// The capture keeps a pre-trigger window (charged [`FIRE_CYCLES`] for the batch it
+    /// fires in).
+    pub capture_pre_trigger: bool,
     /// What the configuration's observer below the tick costs a snapshot, cycles (its model,
     /// its creep, the drift check: `config::tick_budget::observer_below_cycles`); 0 where it
     /// has none there. The tick budget sets it from the configuration.
@@ -81,6 +99,7 @@ impl ServicesLoad {
     pub const WORST: Self = Self {
         capture_decimation: Some(1),
         telemetry_decimation: Some(1),
+        capture_pre_trigger: true,
         observer_cycles: 0,
     };
 
@@ -134,13 +153,26 @@ impl ServicesLoad {
             per_batch(self.capture_decimation),
             per_batch(self.telemetry_decimation),
         );
-        let serving = if self.serves_every_snapshot() {
-            (SERVICES_EVERY_CYCLES + self.observer_cycles) * BATCH
+        // A capture's batch may also hold the event it waits for: one more in full, and
+        // with a pre-trigger window taking every d-th tick (d > 1), what firing adds (a
+        // window of every tick is filled in full all along: measured within its serves).
+        let event = u32::from(self.capture_decimation.is_some());
+        let fire = if self.capture_pre_trigger && frames < BATCH {
+            FIRE_CYCLES * event
         } else {
-            // A capture's batch may also hold the event it waits for: one more in full.
-            let event = u32::from(self.capture_decimation.is_some());
-            SERVICES_BASE_CYCLES * BATCH + SERVE_CYCLES * (frames + samples + event).min(BATCH)
+            0
         };
+        let serving = if self.serves_every_snapshot() {
+            // With an observer, the batch a new configuration's observer takes over in.
+            let reload = if self.observer_cycles > 0 {
+                RELOAD_CYCLES
+            } else {
+                0
+            };
+            (SERVICES_EVERY_CYCLES + self.observer_cycles) * BATCH + reload
+        } else {
+            SERVICES_BASE_CYCLES * BATCH + SERVE_CYCLES * (frames + samples + event).min(BATCH)
+        } + fire;
         (serving + CAPTURE_FRAME_CYCLES * frames + TELEMETRY_SAMPLE_CYCLES * samples)
             .div_ceil(BATCH)
     }
@@ -465,6 +497,7 @@ impl<B: SampleStore> Services<B> {
         ServicesLoad {
             capture_decimation: self.recorder.running_decimation(),
             telemetry_decimation: self.telemetry.running_decimation(),
+            capture_pre_trigger: self.recorder.keeps_pre_trigger(),
             observer_cycles: 0,
         }
     }

@@ -722,6 +722,11 @@ impl<B: SampleStore> Recorder<B> {
         }
     }
 
+    /// Whether an armed or running capture keeps frames from before its trigger.
+    pub fn keeps_pre_trigger(&self) -> bool {
+        self.active && self.pre > 0
+    }
+
     /// The trigger an armed capture waits for (`None` while none waits: idle, a `Record`,
     /// or already triggered): the one event [`Recorder::trigger`] acts on.
     #[inline(always)]

@@ -96,7 +96,12 @@ pub(super) fn with_creep(
         let mut inverse =
             crate::reference::Creep::new(&c, rate, start).map_err(IdentifyError::Params)?;
         let corrected: Vec<f64> = y.iter().map(|&v| inverse.inverse_step(v)).collect();
-        hysteresis = fit_model(&corrected, &mut Vec::new())?;
+        // A hysteresis fit that fails on the corrected target (a Duhem start the board cannot
+        // hold, say) ends the alternation: the best iterate so far stands.
+        hysteresis = match fit_model(&corrected, &mut Vec::new()) {
+            Ok(h) => h,
+            Err(_) => break,
+        };
     }
     let (rms_best, mut model) = best.ok_or(IdentifyError::Fit(LeastSquaresError::NoRows))?;
     // A mode the fit gave no weight does nothing (forward and inverse alike) but costs the

@@ -19,7 +19,9 @@ use super::least_squares::LeastSquaresError;
 use super::simplex::minimise;
 use super::FitRows;
 use crate::reference;
-use twinstack::models::params::{BoucWenParams, BOUC_WEN_MAX_INVERSE_LOOP_GAIN};
+use twinstack::models::params::{
+    BoucWenParams, BOUC_WEN_MAX_INVERSE_LOOP_GAIN, BOUC_WEN_MAX_NORM_BETA,
+};
 use twinstack::Scaling;
 
 /// Largest compensator loop gain a fitted model may have: a margin below what the library
@@ -96,7 +98,25 @@ pub fn fit(
     steady_from: usize,
 ) -> Result<BoucWenFit, LeastSquaresError> {
     let d = duhem::fit(u, y, rows, scaling, refine, steady_from)?;
+    // From the refined Duhem fit, or, where the board cannot hold that as a Bouc–Wen (a
+    // refinement pinned at its least α, its slope beyond the fixed point), from its least
+    // squares.
     let mut start = BoucWenParams::from_duhem(&d.params);
+    if start.normalized(scaling).is_err() {
+        start = BoucWenParams::from_duhem(&d.least_squares);
+    }
+    if start.normalized(scaling).is_err() {
+        start = BoucWenParams::from_duhem(&duhem::output_error_fit(u, y, rows, scaling)?);
+    }
+    // The board holds β normalised below its limit: a Duhem start that relaxes faster is
+    // slowed to it (the refinement then searches within it).
+    let max_beta = 0.99 * BOUC_WEN_MAX_NORM_BETA / scaling.input_half_span();
+    start.beta = start.beta.min(max_beta);
+    // Slowed, its state's bound |A|/β may pass what Q2.30 holds: A is cut to keep it.
+    let max_a = 1.5 * start.beta * scaling.output_half_span();
+    if start.a.abs() > max_a {
+        start.a = start.a.signum() * max_a;
+    }
     let gain = start.inverse_loop_gain();
     let start_scaled = gain >= MAX_FITTED_LOOP_GAIN;
     if start_scaled {
@@ -117,7 +137,8 @@ pub fn fit(
         rows.clone()
     };
     let evaluate = |p: &BoucWenParams| -> Option<(f64, Vec<f64>)> {
-        p.validate().ok()?;
+        // A trial the board cannot hold (in its fixed point) is no candidate.
+        p.normalized(scaling).ok()?;
         if p.inverse_loop_gain() >= MAX_FITTED_LOOP_GAIN {
             return None;
         }

@@ -7,7 +7,9 @@
 //!    `θ = (c0, αβ, α, αδ, γ)`. `c0` (the output at `τ0` less `γ u(τ0)`) is fitted rather than
 //!    read from one noisy sample. Signals are centred first for conditioning.
 //! 2. **Output-error refit.** If the plain solution is not a valid Duhem model (`α, β, γ ≤ 0`)
-//!    or its simulation runs off on the data, it is refitted on the *simulated* error instead
+//!    or its simulation misses the data by more than a tenth of their span (RMS: the
+//!    integrated equation is the model's small-step form, and where a record's steps are not
+//!    small it can be far off), it is refitted on the *simulated* error instead
 //!    ([`output_error_fit`]), and the caller is told. (A refit of the same equation error with
 //!    `αβ, α, γ ≥ 0` is no answer: where the constraint pins `α` at 0, `β = (αβ)/α` and
 //!    `δ = (αδ)/α` come out as a finite product over a floored `α` — on the simulated lab stage
@@ -16,7 +18,9 @@
 //! 3. **Refinement.** The least-squares fit uses the measured output inside `J2`, so noise and
 //!    lag bias it. Starting from it, a simplex search minimises the RMS of the *simulated*
 //!    output against the measurement (what `predict` is scored on), over `ln α, ln β, ln γ, δ`
-//!    (so the parameters stay positive), on the rows from `steady_from` on: the model's
+//!    (so the parameters stay positive; `α` no slower than the output-error grid's, below
+//!    which only `αβ` matters and the search could run off to `α → 0`, `β → ∞`), on the
+//!    rows from `steady_from` on: the model's
 //!    start (on the anhysteretic curve) is an assumption, and fitting the transient out of it
 //!    (the initial loading curve) trades away accuracy on the loops that follow. The refined
 //!    model is kept only if it is better on those rows.
@@ -35,7 +39,8 @@ pub enum DuhemFitPath {
     Plain,
     /// The plain solution had a non-positive coefficient; refitted on the simulated error.
     ConstrainedNotPositive,
-    /// The plain solution ran off when simulated; refitted on the simulated error.
+    /// The plain solution, simulated, missed the data by more than a tenth of their span (RMS);
+    /// refitted on the simulated error.
     ConstrainedDiverged,
 }
 
@@ -254,7 +259,7 @@ pub fn fit(
 
     let plain = from_theta(&ne.solve()?);
     let (ls, path, ls_rms, ls_sim) = match (plain.validate(), evaluate(&plain)) {
-        (Ok(()), Some((rms, sim))) if rms < 10.0 * y_span => (plain, DuhemFitPath::Plain, rms, sim),
+        (Ok(()), Some((rms, sim))) if rms < 0.1 * y_span => (plain, DuhemFitPath::Plain, rms, sim),
         (result, _) => {
             let path = if result.is_err() {
                 DuhemFitPath::ConstrainedNotPositive
@@ -280,6 +285,10 @@ pub fn fit(
     if refine && steady.index.len() >= super::MIN_FIT_SAMPLES {
         let ls_steady = rms_error(&best.2, y, &steady);
         let start = [ls.alpha.ln(), ls.beta.ln(), ls.gamma.ln(), ls.offset];
+        // No slower relaxation than the output-error grid's (α·U ≥ 1e-2): below it only the
+        // product αβ matters, and the search can follow that valley to α → 0, β → ∞, a
+        // model whose distance to the anhysteretic line no fixed point holds.
+        let least_alpha = ALPHA_GRID[0] / scaling.input_half_span();
         let cost = |v: &[f64; 4]| -> f64 {
             let p = DuhemParams {
                 alpha: v[0].exp(),
@@ -287,6 +296,9 @@ pub fn fit(
                 gamma: v[2].exp(),
                 offset: v[3],
             };
+            if p.alpha < least_alpha {
+                return f64::INFINITY;
+            }
             match p.validate().ok().and_then(|_| simulate(&p, scaling, u)) {
                 Some(sim) => rms_error(&sim, y, &steady),
                 None => f64::INFINITY,

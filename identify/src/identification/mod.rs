@@ -559,7 +559,7 @@ pub fn identify(
                         duhem::DuhemFitPath::ConstrainedNotPositive =>
                             " (plain fit had a non-positive coefficient: refitted on the simulated error)".into(),
                         duhem::DuhemFitPath::ConstrainedDiverged =>
-                            " (plain fit ran off when simulated: refitted on the simulated error)".into(),
+                            " (plain fit missed the data by more than a tenth of their span when simulated: refitted on the simulated error)".into(),
                     }
                 ));
                 if f.params != f.least_squares {

@@ -252,7 +252,7 @@ impl BoardRate {
 /// ));
 /// assert_eq!(admission_at(&s, &BoardRate::sizing(50_000.0, false).capturing(1)), Admission::Admitted);
 ///
-/// // Bouc–Wen with six creep modes both ways at 70 kHz: the creep loses modes first.
+/// // Bouc–Wen with six creep modes both ways at 50 kHz: the creep loses modes first.
 /// use twinstack::models::creep::CreepParams;
 /// use twinstack::config::settings::representative_bouc_wen;
 /// let s = Settings {
@@ -261,7 +261,7 @@ impl BoardRate {
 ///     creep: Some(CreepParams::new(&[0.01, 0.03, 0.1, 0.3, 1.0, 3.0], &[0.02; 6]).unwrap()),
 ///     ..Settings::default()
 /// };
-/// let sized = admission_at(&s, &keeping(BoardRate::sizing(70_000.0, true)));
+/// let sized = admission_at(&s, &keeping(BoardRate::sizing(50_000.0, true)));
 /// assert!(matches!(
 ///     sized,
 ///     Admission::Smaller { resize: Resize { operators: None, creep_modes: Some(m), .. }, .. }

@@ -725,7 +725,12 @@ mod app {
                 marker += 1;
                 irq_bench_marker(marker);
                 hprintln!("SCENARIO {}/{}", config.name, scenario.name);
-                hprintln!("SERVICES {} {}", capture_decimation, telemetry_decimation);
+                hprintln!(
+                    "SERVICES {} {} {}",
+                    capture_decimation,
+                    telemetry_decimation,
+                    u8::from(pre_trigger > 0)
+                );
                 expect_ack(
                     ask!(Request::Capture(CaptureRequest {
                         signals: 0b111_1111,
