@@ -108,6 +108,14 @@ pub fn fit(
     if start.normalized(scaling).is_err() {
         start = BoucWenParams::from_duhem(&duhem::output_error_fit(u, y, rows, scaling)?);
     }
+    // The board holds k normalised below 2: a steeper start keeps its slope after a reversal
+    // (k + A) and moves the rest into A (the refinement then searches within the limit).
+    let max_k = 1.9 * scaling.output_half_span() / scaling.input_half_span();
+    if start.k > max_k {
+        let slope = start.k + start.a;
+        start.k = max_k;
+        start.a = slope - max_k;
+    }
     // The board holds β normalised below its limit: a Duhem start that relaxes faster is
     // slowed to it (the refinement then searches within it).
     let max_beta = 0.99 * BOUC_WEN_MAX_NORM_BETA / scaling.input_half_span();

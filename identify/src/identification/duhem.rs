@@ -299,7 +299,8 @@ pub fn fit(
             if p.alpha < least_alpha {
                 return f64::INFINITY;
             }
-            match p.validate().ok().and_then(|_| simulate(&p, scaling, u)) {
+            // Only models the board holds (its fixed point, on this record's ranges).
+            match p.normalized(scaling).ok().and_then(|_| simulate(&p, scaling, u)) {
                 Some(sim) => rms_error(&sim, y, &steady),
                 None => f64::INFINITY,
             }
