@@ -1,9 +1,11 @@
 //! Generalised Bouc–Wen identification: the Duhem fit as the start, refined on the simulated
 //! error.
 //!
-//! 1. **Start.** Duhem is Bouc–Wen with `γ = ψ = 0` ([`BoucWenParams::from_duhem`]): the
-//!    Duhem fit ([`super::duhem::fit`], integrated least squares and its own refinement) is
-//!    an exact Bouc–Wen model with the same simulated output. If its hysteretic slope
+//! 1. **Starts.** Duhem is Bouc–Wen with `γ = ψ = 0` ([`BoucWenParams::from_duhem`]): each
+//!    Duhem fit ([`super::duhem::fit`]'s refined model and its integrated least squares, and
+//!    the output-error fit) is an exact Bouc–Wen model with the same simulated output. Each
+//!    is made one the board holds: a slope `k` beyond the fixed point is cut (keeping `k + A`,
+//!    the slope after a reversal), and where its hysteretic slope
 //!    ([`BoucWenParams::inverse_loop_gain`]) is beyond what the compensator accepts (a model
 //!    that may not be monotone), `A` is scaled down until it is not (the caller is told).
 //! 2. **Refinement.** A Nelder–Mead simplex ([`super::simplex::minimise`]) minimises the RMS
@@ -11,8 +13,10 @@
 //!    rows after the drive has seen both extremes (as the Duhem refinement), with
 //!    `γ = β·tanh(g)` and `ψ = (β − |γ|)·tanh(p)` so that every trial is a bounded model; a
 //!    trial the compensator would refuse (loop gain at or above
-//!    [`MAX_FITTED_LOOP_GAIN`]) costs `+∞`. The refined model is kept only if it beats the
-//!    start on those rows.
+//!    [`MAX_FITTED_LOOP_GAIN`]) costs `+∞`. Each start is refined (the simplex finds the
+//!    minimum nearest its start, and on a record the Duhem refinement runs into a valley
+//!    Bouc–Wen cannot follow); the best fit on those rows is kept, a start where no
+//!    refinement beats it.
 
 use super::duhem::{self, DuhemFit};
 use super::least_squares::LeastSquaresError;
@@ -87,6 +91,37 @@ fn from_point(v: &[f64; 6]) -> BoucWenParams {
     }
 }
 
+/// A model and its simulated fit (RMS over the steady rows, the simulated output).
+type Fitted = (BoucWenParams, (f64, Vec<f64>));
+
+/// A start (whether `A` was scaled down, its fit) and its refinement where that beats it.
+type Candidate = (BoucWenParams, bool, (f64, Vec<f64>), Option<Fitted>);
+
+/// `start` made a model the board holds: a slope `k` beyond the fixed point is cut to it,
+/// keeping the slope after a reversal (`k + A`); a `β` beyond it is slowed to it; `A` is cut to
+/// keep the state's bound, and scaled down (the second value `true`) where the loop would be
+/// too steep for a monotone model.
+fn held_by_the_board(mut start: BoucWenParams, scaling: &Scaling) -> (BoucWenParams, bool) {
+    let max_k = 1.9 * scaling.output_half_span() / scaling.input_half_span();
+    if start.k > max_k {
+        let slope = start.k + start.a;
+        start.k = max_k;
+        start.a = slope - max_k;
+    }
+    let max_beta = 0.99 * BOUC_WEN_MAX_NORM_BETA / scaling.input_half_span();
+    start.beta = start.beta.min(max_beta);
+    let max_a = 1.5 * start.beta * scaling.output_half_span();
+    if start.a.abs() > max_a {
+        start.a = start.a.signum() * max_a;
+    }
+    let gain = start.inverse_loop_gain();
+    let scaled = gain >= MAX_FITTED_LOOP_GAIN;
+    if scaled {
+        start.a *= 0.9 * MAX_FITTED_LOOP_GAIN / gain;
+    }
+    (start, scaled)
+}
+
 /// Fits a Bouc–Wen model of `y` (lag-aligned by `rows.lag`) driven by `u`, refined on the
 /// rows from `steady_from` on (see the module doc). `refine = false` returns the start.
 pub fn fit(
@@ -98,38 +133,6 @@ pub fn fit(
     steady_from: usize,
 ) -> Result<BoucWenFit, LeastSquaresError> {
     let d = duhem::fit(u, y, rows, scaling, refine, steady_from)?;
-    // From the refined Duhem fit, or, where the board cannot hold that as a Bouc–Wen (a
-    // refinement pinned at its least α, its slope beyond the fixed point), from its least
-    // squares.
-    let mut start = BoucWenParams::from_duhem(&d.params);
-    if start.normalized(scaling).is_err() {
-        start = BoucWenParams::from_duhem(&d.least_squares);
-    }
-    if start.normalized(scaling).is_err() {
-        start = BoucWenParams::from_duhem(&duhem::output_error_fit(u, y, rows, scaling)?);
-    }
-    // The board holds k normalised below 2: a steeper start keeps its slope after a reversal
-    // (k + A) and moves the rest into A (the refinement then searches within the limit).
-    let max_k = 1.9 * scaling.output_half_span() / scaling.input_half_span();
-    if start.k > max_k {
-        let slope = start.k + start.a;
-        start.k = max_k;
-        start.a = slope - max_k;
-    }
-    // The board holds β normalised below its limit: a Duhem start that relaxes faster is
-    // slowed to it (the refinement then searches within it).
-    let max_beta = 0.99 * BOUC_WEN_MAX_NORM_BETA / scaling.input_half_span();
-    start.beta = start.beta.min(max_beta);
-    // Slowed, its state's bound |A|/β may pass what Q2.30 holds: A is cut to keep it.
-    let max_a = 1.5 * start.beta * scaling.output_half_span();
-    if start.a.abs() > max_a {
-        start.a = start.a.signum() * max_a;
-    }
-    let gain = start.inverse_loop_gain();
-    let start_scaled = gain >= MAX_FITTED_LOOP_GAIN;
-    if start_scaled {
-        start.a *= 0.9 * MAX_FITTED_LOOP_GAIN / gain;
-    }
     let steady = FitRows {
         index: rows
             .index
@@ -154,9 +157,21 @@ pub fn fit(
         let rms = rms_error(&sim, y, &steady);
         rms.is_finite().then_some((rms, sim))
     };
-    let (start_rms, start_sim) = evaluate(&start).ok_or(LeastSquaresError::NotFinite)?;
-    let mut best = (start, start_rms, start_sim, false);
-    if refine {
+    // Three Duhem fits, each an exact Bouc–Wen, made one the board holds: the refined one,
+    // its least squares and the output-error fit. The refined one may sit where Bouc–Wen
+    // cannot follow (a least α with a slope beyond the fixed point, or a loop too steep to
+    // stay monotone at any state), and the simplex finds the minimum nearest its start: each
+    // start is refined, and the best fit kept.
+    let mut duhem_starts = vec![d.params, d.least_squares];
+    if let Ok(p) = duhem::output_error_fit(u, y, rows, scaling) {
+        duhem_starts.push(p);
+    }
+    let starts: Vec<_> = duhem_starts
+        .iter()
+        .map(|p| held_by_the_board(BoucWenParams::from_duhem(p), scaling))
+        .filter_map(|(p, scaled)| evaluate(&p).map(|e| (p, scaled, e)))
+        .collect();
+    let refine_from = |start: &BoucWenParams| -> Option<Fitted> {
         let y_span = rows.target_span(y).max(f64::MIN_POSITIVE);
         let point = [
             start.k.ln(),
@@ -175,14 +190,28 @@ pub fn fit(
             0.3,
         ];
         let cost = |v: &[f64; 6]| evaluate(&from_point(v)).map_or(f64::INFINITY, |e| e.0);
-        let v = minimise(cost, point, steps, REFINE_EVALUATIONS, 1e-10);
-        let p = from_point(&v);
-        if let Some((rms, sim)) = evaluate(&p) {
-            if rms < start_rms {
-                best = (p, rms, sim, true);
-            }
+        let p = from_point(&minimise(cost, point, steps, REFINE_EVALUATIONS, 1e-10));
+        evaluate(&p).map(|e| (p, e))
+    };
+    let mut best: Option<Candidate> = None;
+    let score = |c: &Candidate| c.3.as_ref().map_or(c.2 .0, |r| r.1 .0);
+    for (start, scaled, fitted) in starts {
+        let refined = if refine {
+            refine_from(&start).filter(|r| r.1 .0 < fitted.0)
+        } else {
+            None
+        };
+        let candidate = (start, scaled, fitted, refined);
+        if best.as_ref().is_none_or(|b| score(&candidate) < score(b)) {
+            best = Some(candidate);
         }
     }
+    let (start, start_scaled, (start_rms, start_sim), refined) =
+        best.ok_or(LeastSquaresError::NotFinite)?;
+    let best = match refined {
+        Some((p, (rms, sim))) => (p, rms, sim, true),
+        None => (start, start_rms, start_sim, false),
+    };
     Ok(BoucWenFit {
         duhem: d,
         start,

@@ -300,7 +300,11 @@ pub fn fit(
                 return f64::INFINITY;
             }
             // Only models the board holds (its fixed point, on this record's ranges).
-            match p.normalized(scaling).ok().and_then(|_| simulate(&p, scaling, u)) {
+            match p
+                .normalized(scaling)
+                .ok()
+                .and_then(|_| simulate(&p, scaling, u))
+            {
                 Some(sim) => rms_error(&sim, y, &steady),
                 None => f64::INFINITY,
             }

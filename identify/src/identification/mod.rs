@@ -100,6 +100,10 @@ pub const MIN_NORM_FIRST_WEIGHT: f64 = 1.0 / 24.0;
 /// fitted data (the fixed-point model saturates it at 2).
 pub const DUHEM_MAX_NORM_DISTANCE: f64 = 1.0;
 
+/// Largest normalised Bouc–Wen slope (`k` or `|A|`) an identified model is given: a margin
+/// below the fixed point's 1.99 (the model's output range is widened where it needs).
+pub const BOUC_WEN_MAX_NORM_SLOPE: f64 = 1.8;
+
 /// Which hysteresis model to fit.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum ModelKind {
@@ -629,11 +633,13 @@ pub fn identify(
                     );
                 }
                 // The fixed-point state is Q2.30: widen the output range until the state bound
-                // |A|·max(1/(β − |γ| − |ψ|), 2U) is within DUHEM_MAX_NORM_DISTANCE of it.
+                // |A|·max(1/(β − |γ| − |ψ|), 2U) is within DUHEM_MAX_NORM_DISTANCE of it, and
+                // the slopes k and A, normalised, within BOUC_WEN_MAX_NORM_SLOPE.
                 let p = f.params;
-                let bound =
-                    p.a.abs() * (1.0 / p.min_factor()).max(2.0 * provisional.input_half_span());
-                let needed = bound / DUHEM_MAX_NORM_DISTANCE;
+                let input_half = provisional.input_half_span();
+                let bound = p.a.abs() * (1.0 / p.min_factor()).max(2.0 * input_half);
+                let needed = (bound / DUHEM_MAX_NORM_DISTANCE)
+                    .max(p.k.max(p.a.abs()) * input_half / BOUC_WEN_MAX_NORM_SLOPE);
                 let model = with_output_range(Hysteresis::BoucWen(p), &f.simulated, needed)?;
                 let (lo, hi) = min_max(f.simulated.iter().copied());
                 if needed > (0.5 + OUTPUT_MARGIN) * (hi - lo) {
