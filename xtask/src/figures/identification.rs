@@ -480,6 +480,127 @@ pub(super) fn learn_table(runs: &[Run]) -> Result<String, String> {
     Ok(table)
 }
 
+/// The value following `flag` in a run's arguments.
+fn run_arg<'a>(run: &'a Run, flag: &str) -> Option<&'a str> {
+    run.args
+        .iter()
+        .position(|a| *a == flag)
+        .and_then(|i| run.args.get(i + 1))
+        .copied()
+}
+
+/// A waveform argument (`SHAPE:HZ`) as the learning tables name it (`750 Hz sine`).
+fn waveform_label(waveform: &str) -> Option<String> {
+    let (shape, hz) = waveform.split_once(':')?;
+    let hz: f64 = hz.parse().ok()?;
+    Some(if hz >= 1000.0 {
+        format!("{} kHz {shape}", hz / 1000.0)
+    } else {
+        format!("{hz} Hz {shape}")
+    })
+}
+
+/// The learning run's per-period RMS errors (`| period | max % | RMS % |`), period 1 first.
+fn period_rms(out: &str) -> Vec<String> {
+    out.lines()
+        .filter_map(|l| {
+            let cols: Vec<&str> = l.trim_matches('|').split('|').map(str::trim).collect();
+            match cols.as_slice() {
+                [period, _, rms] if period.parse::<u32>().is_ok() => Some(rms.to_string()),
+                _ => None,
+            }
+        })
+        .collect()
+}
+
+/// The learning curves: the RMS error (% of the stroke) at periods 1, 3, 5, 10, 20, 30 and 50
+/// of each run, a row per waveform and shaping.
+pub(super) fn learn_curves_table(runs: &[Run]) -> Result<String, String> {
+    const PERIODS: [usize; 7] = [1, 3, 5, 10, 20, 30, 50];
+    let mut table = String::from("| waveform | run |");
+    for p in PERIODS {
+        table.push_str(&format!(" {p} |"));
+    }
+    table.push_str("\n|---|---|");
+    table.push_str(&"---:|".repeat(PERIODS.len()));
+    table.push('\n');
+    for run in runs {
+        let what = |e: &str| format!("`{TOOL} {}`: {e}", run.args.join(" "));
+        let label = run_arg(run, "--waveform")
+            .and_then(waveform_label)
+            .ok_or_else(|| what("no --waveform SHAPE:HZ"))?;
+        let shaping = if run_arg(run, "--shape-hz").is_some() {
+            "shaping"
+        } else {
+            "no shaping"
+        };
+        let rms = period_rms(&run.out);
+        table.push_str(&format!("| {label} | {shaping} |"));
+        for p in PERIODS {
+            let v = rms
+                .get(p - 1)
+                .ok_or_else(|| what(&format!("no period {p}")))?;
+            table.push_str(&format!(" {v} |"));
+        }
+        table.push('\n');
+    }
+    Ok(table)
+}
+
+/// The notch's robustness: the learned RMS (sine / triangle, % of the stroke) for each corner
+/// (a row) and the notch's offset from the fitted resonance (a column). The runs come in
+/// pairs (sine, triangle) for each notch frequency, corner by corner.
+pub(super) fn learn_notch_table(runs: &[Run]) -> Result<String, String> {
+    const RESONANCE_HZ: f64 = 21_807.0;
+    let mut corners: Vec<(String, Vec<(String, String)>)> = Vec::new();
+    for pair in runs.chunks(2) {
+        let [sine, triangle] = pair else {
+            return Err("the notch runs come in pairs (sine, triangle)".into());
+        };
+        let what = |run: &Run, e: &str| format!("`{TOOL} {}`: {e}", run.args.join(" "));
+        let learned = |run: &Run| -> Result<String, String> {
+            run.out
+                .lines()
+                .find(|l| l.starts_with("| learned (last period) |"))
+                .and_then(|l| l.trim_matches('|').split('|').nth(2))
+                .map(|v| v.trim().to_string())
+                .ok_or_else(|| what(run, "no `learned (last period)` row"))
+        };
+        let corner = run_arg(sine, "--cutoff-hz").ok_or_else(|| what(sine, "no --cutoff-hz"))?;
+        let notch: f64 = run_arg(sine, "--shape-hz")
+            .and_then(|v| v.parse().ok())
+            .ok_or_else(|| what(sine, "no --shape-hz"))?;
+        let offset = 100.0 * (notch / RESONANCE_HZ - 1.0);
+        let offset = if offset.abs() < 0.05 {
+            "0".to_string()
+        } else {
+            format!("{offset:+.1} %")
+        };
+        let cell = (offset, format!("{} / {}", learned(sine)?, learned(triangle)?));
+        match corners.last_mut() {
+            Some((c, cells)) if c == corner => cells.push(cell),
+            _ => corners.push((corner.to_string(), vec![cell])),
+        }
+    }
+    let first = corners.first().ok_or("no notch runs")?;
+    let mut table = String::from("| corner |");
+    for (offset, _) in &first.1 {
+        table.push_str(&format!(" {offset} |"));
+    }
+    table.push_str("\n|---|");
+    table.push_str(&"---:|".repeat(first.1.len()));
+    table.push('\n');
+    for (corner, cells) in &corners {
+        let hz: f64 = corner.parse().map_err(|_| format!("corner {corner}"))?;
+        table.push_str(&format!("| {} kHz |", hz / 1000.0));
+        for (_, cell) in cells {
+            table.push_str(&format!(" {cell} |"));
+        }
+        table.push('\n');
+    }
+    Ok(table)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -391,6 +391,22 @@ const FIGURES: &[Figure] = &[
         render: Render::Many(learn_table),
     },
     Figure {
+        name: "learning-curves",
+        page: "docs/src/results/learning.md",
+        runs: LEARN_CURVE_RUNS,
+        source: Source::Tool,
+        checked: true,
+        render: Render::Many(learn_curves_table),
+    },
+    Figure {
+        name: "learning-notch",
+        page: "docs/src/results/learning.md",
+        runs: LEARN_NOTCH_RUNS,
+        source: Source::Tool,
+        checked: true,
+        render: Render::Many(learn_notch_table),
+    },
+    Figure {
         name: "scan-raster",
         page: "docs/src/results/scan-timing.md",
         runs: &[&[
