@@ -576,7 +576,10 @@ pub(super) fn learn_notch_table(runs: &[Run]) -> Result<String, String> {
         } else {
             format!("{offset:+.1} %")
         };
-        let cell = (offset, format!("{} / {}", learned(sine)?, learned(triangle)?));
+        let cell = (
+            offset,
+            format!("{} / {}", learned(sine)?, learned(triangle)?),
+        );
         match corners.last_mut() {
             Some((c, cells)) if c == corner => cells.push(cell),
             _ => corners.push((corner.to_string(), vec![cell])),
@@ -604,6 +607,88 @@ pub(super) fn learn_notch_table(runs: &[Run]) -> Result<String, String> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A learning run's output: the per-period table, then the summary.
+    fn learn_out(rms: &[&str], learned: &str) -> String {
+        let mut out = String::from("| period | max % | RMS % |\n|---:|---:|---:|\n");
+        for (i, r) in rms.iter().enumerate() {
+            out.push_str(&format!("| {} | 0.9 | {r} |\n", i + 1));
+        }
+        out.push_str(&format!(
+            "\n| run | max % | RMS % | a | b |\n| learned (last period) | 0.1 | {learned} | 0 | 0 |\n"
+        ));
+        out
+    }
+
+    #[test]
+    fn learning_curves_take_the_periods_rms_and_fail_on_a_short_run() {
+        let rms: Vec<String> = (1..=50).map(|p| format!("0.{p:04}")).collect();
+        let rms: Vec<&str> = rms.iter().map(String::as_str).collect();
+        let runs = [
+            Run {
+                args: &["learn", "--waveform", "sine:750"],
+                out: learn_out(&rms, "0.0050"),
+            },
+            Run {
+                args: &["learn", "--waveform", "triangle:200", "--shape-hz", "21807"],
+                out: learn_out(&rms, "0.0050"),
+            },
+        ];
+        let table = learn_curves_table(&runs).unwrap();
+        let rows: Vec<&str> = table.lines().skip(2).collect();
+        assert_eq!(
+            rows,
+            [
+                "| 750 Hz sine | no shaping | 0.0001 | 0.0003 | 0.0005 | 0.0010 | 0.0020 | 0.0030 | 0.0050 |",
+                "| 200 Hz triangle | shaping | 0.0001 | 0.0003 | 0.0005 | 0.0010 | 0.0020 | 0.0030 | 0.0050 |",
+            ]
+        );
+        let short = [Run {
+            args: &["learn", "--waveform", "sine:750"],
+            out: learn_out(&rms[..20], "0.0050"),
+        }];
+        assert!(learn_curves_table(&short)
+            .unwrap_err()
+            .contains("no period 30"));
+    }
+
+    #[test]
+    fn the_notch_table_has_a_row_per_corner_and_a_column_per_offset() {
+        let run = |w: &'static str, notch: &'static str, corner: &'static str, v: &str| Run {
+            args: Box::leak(Box::new([
+                "learn",
+                "--waveform",
+                w,
+                "--shape-hz",
+                notch,
+                "--cutoff-hz",
+                corner,
+            ])),
+            out: learn_out(&["1"], v),
+        };
+        let runs = [
+            run("sine:750", "21371", "22000", "0.1"),
+            run("triangle:200", "21371", "22000", "0.2"),
+            run("sine:750", "21807", "22000", "0.3"),
+            run("triangle:200", "21807", "22000", "0.4"),
+            run("sine:750", "21371", "23000", "0.5"),
+            run("triangle:200", "21371", "23000", "0.6"),
+            run("sine:750", "21807", "23000", "0.7"),
+            run("triangle:200", "21807", "23000", "0.8"),
+        ];
+        let table = learn_notch_table(&runs).unwrap();
+        let lines: Vec<&str> = table.lines().collect();
+        assert_eq!(
+            lines,
+            [
+                "| corner | -2.0 % | 0 |",
+                "|---|---:|---:|",
+                "| 22 kHz | 0.1 / 0.2 | 0.3 / 0.4 |",
+                "| 23 kHz | 0.5 / 0.6 | 0.7 / 0.8 |",
+            ]
+        );
+        assert!(learn_notch_table(&runs[..3]).is_err());
+    }
 
     #[test]
     fn ranking_lines_become_rows_with_their_standing() {

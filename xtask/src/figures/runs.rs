@@ -411,12 +411,8 @@ pub(super) const LEARN_RUNS: &[&[&str]] = &[
 
 /// The learning curves' runs: the two waveforms the goals are set on, without and with input
 /// shaping (the learning page's first four runs).
-pub(super) const LEARN_CURVE_RUNS: &[&[&str]] = &[
-    LEARN_RUNS[0],
-    LEARN_RUNS[1],
-    LEARN_RUNS[2],
-    LEARN_RUNS[3],
-];
+pub(super) const LEARN_CURVE_RUNS: &[&[&str]] =
+    &[LEARN_RUNS[0], LEARN_RUNS[1], LEARN_RUNS[2], LEARN_RUNS[3]];
 
 /// The notch's robustness: the learning's corner at 22, 23 (the default with shaping) and
 /// 24 kHz, the notch placed off the fitted resonance (21 807 Hz) by −2, −1, −0.5, 0, +0.5, +1
