@@ -32,7 +32,9 @@ use twinstack_identify::identification::auto::identify_auto;
 use twinstack_identify::identification::score::{score, ErrorFigures};
 use twinstack_identify::identification::{identify, IdentifyOptions, ModelKind};
 use twinstack_identify::stage_model::StageModel;
-use twinstack_identify::trajectory::{trajectories, Trajectory, TRAJECTORY_MARGIN};
+use twinstack_identify::trajectory::{
+    trajectories, triangle, Trajectory, MIN_SAMPLES_PER_CYCLE, TRAJECTORY_MARGIN,
+};
 use twinstack_link::measured_data::MeasuredData;
 
 /// The default sample rate of the excitation and of tracking, Hz (see the module docs).
@@ -233,7 +235,7 @@ pub struct TrackingTable {
     /// Sample rate, Hz.
     pub sample_rate_hz: f64,
     /// The trajectories' names, the columns' order.
-    pub trajectories: Vec<&'static str>,
+    pub trajectories: Vec<String>,
     /// The measured output range of the excitation, µm.
     pub excitation_range_um: (f64, f64),
     /// The range the trajectories span, µm.
@@ -553,6 +555,37 @@ pub fn evaluate_methods(
     config: &LabStageConfig,
     methods: &[Method],
 ) -> Result<TrackingTable, LabStageError> {
+    evaluate_all(config, methods, &[])
+}
+
+/// [`evaluate_methods`] with, after the three trajectories, a triangle at each of
+/// `triangles_hz` over the same span ([`triangle`]): one calibration, tracked from slow
+/// motion (creep) to fast (the stage's dynamics). A frequency [`triangle`] cannot sample at the
+/// stage's rate is refused, naming it.
+pub fn evaluate_methods_with_triangles(
+    config: &LabStageConfig,
+    methods: &[Method],
+    triangles_hz: &[f64],
+) -> anyhow::Result<TrackingTable> {
+    let rate = 1.0 / config.sample_period_s;
+    for &hz in triangles_hz {
+        // The same test `triangle` makes, on any span.
+        if triangle(0.0, 1.0, hz, rate).is_none() {
+            anyhow::bail!(
+                "triangle {hz} Hz: a triangle's frequency must be positive and at most {} Hz at {rate} Hz (at least {MIN_SAMPLES_PER_CYCLE} samples a cycle)",
+                rate / MIN_SAMPLES_PER_CYCLE
+            );
+        }
+    }
+    Ok(evaluate_all(config, methods, triangles_hz)?)
+}
+
+/// [`evaluate_methods_with_triangles`] on frequencies it has checked.
+fn evaluate_all(
+    config: &LabStageConfig,
+    methods: &[Method],
+    triangles_hz: &[f64],
+) -> Result<TrackingTable, LabStageError> {
     let mut stage = LabStage::new(config)?;
     let data = excite(&mut stage);
     let x = data.x.as_deref().unwrap_or_default();
@@ -563,7 +596,13 @@ pub fn evaluate_methods(
         });
     let margin = TRAJECTORY_MARGIN * (hi - lo);
     let rate = 1.0 / config.sample_period_s;
-    let trajectories = trajectories(lo + margin, hi - margin, rate);
+    let mut trajectories = trajectories(lo + margin, hi - margin, rate).to_vec();
+    // Checked by the caller: `triangle` refuses a frequency whatever the span.
+    trajectories.extend(
+        triangles_hz
+            .iter()
+            .filter_map(|&hz| triangle(lo + margin, hi - margin, hz, rate)),
+    );
     let x_rest = x.first().copied().unwrap_or(0.0);
 
     let fit_until = methods
@@ -631,7 +670,7 @@ pub fn evaluate_methods(
     Ok(TrackingTable {
         seed: config.seed,
         sample_rate_hz: rate,
-        trajectories: trajectories.iter().map(|t| t.name).collect(),
+        trajectories: trajectories.iter().map(|t| t.name.clone()).collect(),
         excitation_range_um: (lo, hi),
         trajectory_range_um: (lo + margin, hi - margin),
         linear_map,

@@ -12,7 +12,7 @@ pub const TRAJECTORY_MARGIN: f64 = 0.1;
 #[derive(Clone, Debug, PartialEq)]
 pub struct Trajectory {
     /// Its name in the table.
-    pub name: &'static str,
+    pub name: String,
     /// Time, seconds.
     pub t: Vec<f64>,
     /// Desired reading, µm.
@@ -64,8 +64,8 @@ pub const SWEEP_SPEED: f64 = 4.0;
 /// * `multisine`: `lo + span (0.5 − 0.25 cos 2π·1t − 0.15 cos 2π·3t − 0.1 cos 2π·7t)`, 2 s.
 pub fn trajectories(lo: f64, hi: f64, sample_rate_hz: f64) -> [Trajectory; 3] {
     let span = hi - lo;
-    let make = |name, frac: Vec<f64>| Trajectory {
-        name,
+    let make = |name: &str, frac: Vec<f64>| Trajectory {
+        name: name.to_string(),
         t: (0..frac.len()).map(|k| k as f64 / sample_rate_hz).collect(),
         x: frac.iter().map(|f| lo + span * f).collect(),
     };
@@ -95,6 +95,44 @@ pub fn trajectories(lo: f64, hi: f64, sample_rate_hz: f64) -> [Trajectory; 3] {
     ]
 }
 
+/// The fewest samples a cycle of [`triangle`] may have.
+pub const MIN_SAMPLES_PER_CYCLE: f64 = 20.0;
+
+/// A triangle over `lo … hi` µm (its full span) at `hz` cycles per second, sampled at
+/// `sample_rate_hz`, starting at `lo`: whole cycles for at least a second and at least
+/// four (so a 1 Hz triangle lasts 4 s, a 200 Hz one 1 s). Named `triangle HZ Hz`. `None` for
+/// a frequency that is not positive and finite, or leaves a cycle fewer than
+/// [`MIN_SAMPLES_PER_CYCLE`] samples.
+///
+/// ```
+/// use twinstack_identify::trajectory::triangle;
+/// let t = triangle(10.0, 70.0, 200.0, 10_000.0).unwrap();
+/// assert_eq!(t.name, "triangle 200 Hz");
+/// assert_eq!(t.x.len(), 10_001);
+/// assert!(triangle(10.0, 70.0, 600.0, 10_000.0).is_none());
+/// ```
+pub fn triangle(lo: f64, hi: f64, hz: f64, sample_rate_hz: f64) -> Option<Trajectory> {
+    if !(hz.is_finite() && hz > 0.0 && sample_rate_hz / hz >= MIN_SAMPLES_PER_CYCLE) {
+        return None;
+    }
+    let cycles = (hz.ceil() as usize).max(4);
+    let per_cycle = sample_rate_hz / hz;
+    let n = (cycles as f64 * per_cycle).round() as usize;
+    let span = hi - lo;
+    let x = (0..=n)
+        .map(|k| {
+            // The phase within the cycle, 0 … 1: up over the first half, down over the second.
+            let phase = (k as f64 / per_cycle).fract();
+            lo + span * (1.0 - (2.0 * phase - 1.0).abs())
+        })
+        .collect();
+    Some(Trajectory {
+        name: format!("triangle {hz} Hz"),
+        t: (0..=n).map(|k| k as f64 / sample_rate_hz).collect(),
+        x,
+    })
+}
+
 /// Calibration's test record: two triangle cycles then the nested minor loops of [`trajectories`] over
 /// `lo … hi`, at `rate` setpoints per second.
 pub fn test_trajectory((lo, hi): (f64, f64), rate: f64) -> Trajectory {
@@ -103,7 +141,7 @@ pub fn test_trajectory((lo, hi): (f64, f64), rate: f64) -> Trajectory {
     let mut x: Vec<f64> = triangle.x[..triangle.x.len() / 2].to_vec();
     x.extend_from_slice(&loops.x);
     Trajectory {
-        name: "triangle + minor loops",
+        name: "triangle + minor loops".into(),
         t: (0..x.len()).map(|k| k as f64 / rate).collect(),
         x,
     }

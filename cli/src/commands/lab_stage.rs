@@ -7,8 +7,8 @@
 
 use crate::commands::identify::{parse_model, ModelChoice};
 use crate::tracking::{
-    evaluate_methods, evaluate_variants, excite, print_variants, Method, EXCITATION_S, FIT_UNTIL_S,
-    SAMPLE_RATE_HZ, STAGE_VARIANTS,
+    evaluate_methods_with_triangles, evaluate_variants, excite, print_variants, Method,
+    EXCITATION_S, FIT_UNTIL_S, SAMPLE_RATE_HZ, STAGE_VARIANTS,
 };
 use hal_sim::plant::{LabStage, LabStageConfig};
 use std::path::PathBuf;
@@ -53,8 +53,14 @@ pub struct Args {
     pub set: Vec<(String, f64)>,
     /// Track on every stage of the built-in list of variants (the default stage made
     /// otherwise, one non-ideality at a time and combined) and print each one's worst error.
-    #[arg(long, conflicts_with_all = ["set", "without", "write_excitation"])]
+    #[arg(long, conflicts_with_all = ["set", "without", "write_excitation", "triangles"])]
     pub variants: bool,
+    /// Also track a triangle at each of these frequencies, Hz, comma-separated (e.g.
+    /// `1,5,20,50,100,200`), over the same span with the same calibration: how one model holds
+    /// from slow motion (creep) to fast (the stage's dynamics). At least 20 samples a cycle at
+    /// `--rate`; whole cycles for at least a second and at least four.
+    #[arg(long, value_delimiter = ',')]
+    pub triangles: Vec<f64>,
 }
 
 /// One `--set` entry: `field=value`, the value a number (`inf` for an unbounded field).
@@ -170,7 +176,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         }
         return Ok(());
     }
-    let table = evaluate_methods(&config, &methods)?;
+    let table = evaluate_methods_with_triangles(&config, &methods, &args.triangles)?;
     if args.json {
         use std::io::Write;
         serde_json::to_writer_pretty(&mut stdout, &table)?;

@@ -480,6 +480,60 @@ pub(super) fn learn_table(runs: &[Run]) -> Result<String, String> {
     Ok(table)
 }
 
+/// The lab stage's triangles (`twinstack lab-stage --triangles … --json`): a row per method,
+/// a column per triangle frequency, max / RMS % of the span (`*` where the drive clipped).
+pub(super) fn triangles_table(out: &str) -> Result<String, String> {
+    let v: serde_json::Value =
+        serde_json::from_str(out).map_err(|e| format!("lab-stage's JSON: {e}"))?;
+    let names: Vec<&str> = v["trajectories"]
+        .as_array()
+        .ok_or("no `trajectories`")?
+        .iter()
+        .filter_map(|n| n.as_str())
+        .collect();
+    // The triangles asked for follow the three standing trajectories.
+    let columns: Vec<usize> = (0..names.len())
+        .filter(|&i| names[i].starts_with("triangle ") && names[i].ends_with(" Hz"))
+        .collect();
+    if columns.is_empty() {
+        return Err("no `triangle … Hz` trajectory: run with --triangles".into());
+    }
+    let mut table = String::from("| method |");
+    for &i in &columns {
+        table.push_str(&format!(" {} |", &names[i]["triangle ".len()..]));
+    }
+    table.push_str("\n|---|");
+    table.push_str(&"---:|".repeat(columns.len()));
+    table.push('\n');
+    for row in v["rows"].as_array().ok_or("no `rows`")? {
+        let method = row["method"].as_str().ok_or("a row without `method`")?;
+        table.push_str(&format!("| {method} |"));
+        match row["scores"].as_array() {
+            Some(scores) if scores.len() == names.len() => {
+                for &i in &columns {
+                    let s = &scores[i];
+                    let (max, rms) = (s["max_pct"].as_f64(), s["rms_pct"].as_f64());
+                    let (Some(max), Some(rms)) = (max, rms) else {
+                        return Err(format!("{method}: a score without its figures"));
+                    };
+                    let clipped = s["clipped"].as_u64().unwrap_or(0) > 0;
+                    table.push_str(&format!(
+                        " {max:.2} / {rms:.2}{} |",
+                        if clipped { " *" } else { "" }
+                    ));
+                }
+            }
+            _ => {
+                let why = row["error"].as_str().unwrap_or("no scores");
+                table.push_str(&format!(" refused: {why} |"));
+                table.push_str(&" |".repeat(columns.len() - 1));
+            }
+        }
+        table.push('\n');
+    }
+    Ok(table)
+}
+
 /// The value following `flag` in a run's arguments.
 fn run_arg<'a>(run: &'a Run, flag: &str) -> Option<&'a str> {
     run.args
@@ -688,6 +742,41 @@ mod tests {
             ]
         );
         assert!(learn_notch_table(&runs[..3]).is_err());
+    }
+
+    #[test]
+    fn triangles_become_a_column_each_and_a_refused_row_says_why() {
+        let score =
+            |m: f64, c: u64| format!(r#"{{"max_pct": {m}, "rms_pct": 0.5, "clipped": {c}}}"#);
+        let scores = |a: f64| {
+            [0.0, 0.0, 0.0, a, 2.0 * a]
+                .iter()
+                .enumerate()
+                .map(|(i, &m)| score(m, (i == 4 && a > 1.0) as u64))
+                .collect::<Vec<_>>()
+                .join(",")
+        };
+        let out = format!(
+            r#"{{"trajectories": ["triangle", "minor loops", "multisine", "triangle 1 Hz", "triangle 200 Hz"],
+               "rows": [{{"method": "none", "scores": [{}], "error": null}},
+                        {{"method": "auto: gpi", "scores": [{}], "error": null}},
+                        {{"method": "duhem", "scores": [], "error": "not fitted"}}]}}"#,
+            scores(10.0),
+            scores(0.5)
+        );
+        let table = triangles_table(&out).unwrap();
+        let lines: Vec<&str> = table.lines().collect();
+        assert_eq!(
+            lines,
+            [
+                "| method | 1 Hz | 200 Hz |",
+                "|---|---:|---:|",
+                "| none | 10.00 / 0.50 | 20.00 / 0.50 * |",
+                "| auto: gpi | 0.50 / 0.50 | 1.00 / 0.50 |",
+                "| duhem | refused: not fitted | |",
+            ]
+        );
+        assert!(triangles_table(r#"{"trajectories": ["triangle"], "rows": []}"#).is_err());
     }
 
     #[test]

@@ -374,6 +374,21 @@ const FIGURES: &[Figure] = &[
         render: Render::Many(lab_stage_table),
     },
     Figure {
+        name: "lab-stage-triangles",
+        page: "docs/src/results/lab-stage.md",
+        runs: &[&[
+            "lab-stage",
+            "--model",
+            "auto,pi,gpi",
+            "--triangles",
+            "1,5,20,50,100,200",
+            "--json",
+        ]],
+        source: Source::Tool,
+        checked: true,
+        render: Render::One(triangles_table),
+    },
+    Figure {
         name: "lab-stage-variants",
         page: "docs/src/results/lab-stage.md",
         runs: &[&["lab-stage", "--variants", "--model", "auto,pi"]],
