@@ -161,7 +161,9 @@ pub fn fit(
     // its least squares and the output-error fit. The refined one may sit where Bouc–Wen
     // cannot follow (a least α with a slope beyond the fixed point, or a loop too steep to
     // stay monotone at any state), and the simplex finds the minimum nearest its start: each
-    // start is refined, and the best fit kept.
+    // start is refined, and the best fit kept (refining only the start that fits best does
+    // as well on the whole bipolar record but not on `auto`'s shorter window of it: Bouc–Wen's
+    // validation inverse 2.23 % against 2.04 %, and with creep 4.22 % against 1.57 %).
     let mut duhem_starts = vec![d.params, d.least_squares];
     if let Ok(p) = duhem::output_error_fit(u, y, rows, scaling) {
         duhem_starts.push(p);
