@@ -428,9 +428,20 @@ impl Creep {
         y
     }
 }
+/// The sign of a Bouc–Wen state `h` for its rate: at `h = 0`, the sign it takes on the step,
+/// that of `s·A` (`pull`).
+fn heading_sign(h: f64, pull: f64) -> f64 {
+    if h < 0.0 || (h == 0.0 && pull < 0.0) {
+        -1.0
+    } else {
+        1.0
+    }
+}
+
 /// Forward generalised Bouc–Wen, `f64`: `y = k·u + δ + h`, `h` relaxed exactly over each
 /// step toward `s·A/c`: `h ← h − q·h + s·A·q/c`, `q = 1 − e^{−c|Δu|}`,
-/// `c = β + s·sgn(h)·γ + s·ψ` (`s` the sign of `Δu`, `sgn(h)` at the step's start).
+/// `c = β + s·sgn(h)·γ + s·ψ` (`s` the sign of `Δu`, `sgn(h)` at the step's start; at
+/// `h = 0` the sign of `s·A`, the sign `h` takes).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct BoucWen {
     params: BoucWenParams,
@@ -464,7 +475,7 @@ impl BoucWen {
         let du = u - self.u;
         let p = &self.params;
         let s = if du < 0.0 { -1.0 } else { 1.0 };
-        let sh = if self.h < 0.0 { -1.0 } else { 1.0 };
+        let sh = heading_sign(self.h, s * p.a);
         let c = p.beta + s * sh * p.gamma + s * p.psi;
         let (q, phi) = relax(c, du.abs());
         let h = self.h + s * p.a * phi - q * self.h;
@@ -511,7 +522,7 @@ impl InverseBoucWen {
         }
         let sign = if r > 0.0 { 1.0 } else { -1.0 };
         let h = self.model.h;
-        let sh = if h < 0.0 { -1.0 } else { 1.0 };
+        let sh = heading_sign(h, sign * p.a);
         let c = p.beta + sign * sh * p.gamma + sign * p.psi;
         // As the library's `STEP_CAP`: 0.99/c.
         let cap = |c: f64| (0.99 / c).min(2.0 * s.input_half_span());

@@ -14,7 +14,8 @@
 //!
 //! `h_k = h_{k−1} − q_k·h_{k−1} + s·A·φ_k`, `q_k = 1 − e^{−c·m}`, `φ_k = q_k/c`,
 //!
-//! with `c` chosen by the direction and the sign of `h_{k−1}`. Integrated in the input, the
+//! with `c` chosen by the direction and the sign of `h_{k−1}` (at `h_{k−1} = 0`, the sign `h`
+//! takes on the step, that of `s·A`: the rate is continuous in `h`). Integrated in the input, the
 //! output depends on the path of the drive, not on the sample rate (a sample whose step
 //! carries `h` through zero takes the factor of its start for the whole step: the one place
 //! where the rate shows, by `O(γ·m²)` once per branch). For small steps `q ≈ c·m`, `φ ≈ m`
@@ -148,10 +149,13 @@ impl BoucWen {
     }
 
     /// The index of the rate `c` for a step falling (or not) from `state`: its direction
-    /// and the sign of `h`.
+    /// and the sign of `h` — at `h = 0`, the sign `h` takes on the step (that of `s·A`), so
+    /// that the rate is continuous in `h`: a state a rounding above zero and one a rounding
+    /// below it relax alike.
     #[inline(always)]
-    fn factor_index(falling: bool, state: &BoucWenState) -> usize {
-        ((falling as usize) << 1) | ((state.h < 0) as usize)
+    fn factor_index(&self, falling: bool, state: &BoucWenState) -> usize {
+        let negative = state.h < 0 || (state.h == 0 && falling != (self.a < 0));
+        ((falling as usize) << 1) | (negative as usize)
     }
 
     /// Advances the hysteretic state to input `u` (Q2.30 normalised, clamped to full scale).
@@ -161,7 +165,7 @@ impl BoucWen {
         // |Δu| ≤ 2; a full-range jump saturates 2^-30 short of 2 (QSUB).
         let du = u.saturating_sub(state.u);
         let falling = du < 0;
-        let index = Self::factor_index(falling, state) & 3;
+        let index = self.factor_index(falling, state) & 3;
         let h = self.relaxed_by(state.h, self.rates[index].relax(du.unsigned_abs()), falling);
         // A sign change: h crossed zero within the step, past which the other rate holds.
         state.h = if (h ^ state.h) < 0 && state.h != 0 {
@@ -304,7 +308,7 @@ impl InverseBoucWen {
             return state.u;
         }
         let falling = r < 0;
-        let index = BoucWen::factor_index(falling, state) & 3;
+        let index = m.factor_index(falling, state) & 3;
         // D = A/c − s·h.
         let h = state.h as f32 * SIGNAL_TO_F32;
         let target = f32::from_bits(self.targets[index]);
@@ -497,6 +501,29 @@ mod tests {
             (r1 + f1 - expected).abs() < 0.05 * expected.abs(),
             "ψ: {r1} + {f1} against {expected}"
         );
+    }
+
+    /// A state at zero relaxes as a state a rounding on either side of it: at `h = 0` the
+    /// step takes the rate of the sign `h` heads for, so that the output is continuous in
+    /// the state (a state at zero once took the rate of positive `h` whichever way it went).
+    #[test]
+    fn the_rate_is_continuous_in_the_state_at_zero() {
+        let s = scaling();
+        for a in [0.1, -0.1] {
+            let m = BoucWen::new(&BoucWenParams { a, ..asymmetric() }, &s).unwrap();
+            for (from, to) in [(-0.5, 0.4), (0.5, -0.4)] {
+                let outputs = [-1, 0, 1].map(|h| {
+                    let mut st = BoucWenState { u: q(from), h };
+                    m.step(&mut st, q(to))
+                });
+                for y in [outputs[0], outputs[2]] {
+                    assert!(
+                        (y - outputs[1]).abs() <= 4,
+                        "A = {a}, {from} → {to}: {outputs:?}"
+                    );
+                }
+            }
+        }
     }
 
     /// Whatever the drive (steps across the whole range included), `|h|` stays within the
