@@ -33,7 +33,7 @@ use twinstack_identify::identification::score::{score, ErrorFigures};
 use twinstack_identify::identification::{identify, IdentifyOptions, ModelKind};
 use twinstack_identify::stage_model::StageModel;
 use twinstack_identify::trajectory::{
-    trajectories, triangle, Trajectory, MIN_SAMPLES_PER_CYCLE, TRAJECTORY_MARGIN,
+    trajectories, triangle, triangle_fits, Trajectory, MIN_SAMPLES_PER_CYCLE, TRAJECTORY_MARGIN,
 };
 use twinstack_link::measured_data::MeasuredData;
 
@@ -569,8 +569,7 @@ pub fn evaluate_methods_with_triangles(
 ) -> anyhow::Result<TrackingTable> {
     let rate = 1.0 / config.sample_period_s;
     for &hz in triangles_hz {
-        // The same test `triangle` makes, on any span.
-        if triangle(0.0, 1.0, hz, rate).is_none() {
+        if !triangle_fits(hz, rate) {
             anyhow::bail!(
                 "triangle {hz} Hz: a triangle's frequency must be positive and at most {} Hz at {rate} Hz (at least {MIN_SAMPLES_PER_CYCLE} samples a cycle)",
                 rate / MIN_SAMPLES_PER_CYCLE

@@ -98,6 +98,12 @@ pub fn trajectories(lo: f64, hi: f64, sample_rate_hz: f64) -> [Trajectory; 3] {
 /// The fewest samples a cycle of [`triangle`] may have.
 pub const MIN_SAMPLES_PER_CYCLE: f64 = 20.0;
 
+/// Whether [`triangle`] makes a triangle of `hz` at `sample_rate_hz`: a positive, finite
+/// frequency with at least [`MIN_SAMPLES_PER_CYCLE`] samples a cycle.
+pub fn triangle_fits(hz: f64, sample_rate_hz: f64) -> bool {
+    hz.is_finite() && hz > 0.0 && sample_rate_hz / hz >= MIN_SAMPLES_PER_CYCLE
+}
+
 /// A triangle over `lo … hi` µm (its full span) at `hz` cycles per second, sampled at
 /// `sample_rate_hz`, starting at `lo`: whole cycles for at least a second and at least
 /// four (so a 1 Hz triangle lasts 4 s, a 200 Hz one 1 s). Named `triangle HZ Hz`. `None` for
@@ -112,7 +118,7 @@ pub const MIN_SAMPLES_PER_CYCLE: f64 = 20.0;
 /// assert!(triangle(10.0, 70.0, 600.0, 10_000.0).is_none());
 /// ```
 pub fn triangle(lo: f64, hi: f64, hz: f64, sample_rate_hz: f64) -> Option<Trajectory> {
-    if !(hz.is_finite() && hz > 0.0 && sample_rate_hz / hz >= MIN_SAMPLES_PER_CYCLE) {
+    if !triangle_fits(hz, sample_rate_hz) {
         return None;
     }
     let cycles = (hz.ceil() as usize).max(4);

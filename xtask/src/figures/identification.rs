@@ -12,16 +12,9 @@ pub(super) fn identify_table(runs: &[Run]) -> Result<String, String> {
     let mut rows: Vec<(String, Vec<Option<String>>)> = Vec::new();
     let mut cells = Vec::new();
     for run in runs {
-        let arg = |flag: &str| {
-            run.args
-                .iter()
-                .position(|a| *a == flag)
-                .and_then(|i| run.args.get(i + 1))
-                .copied()
-        };
         let what = |e: &str| format!("`{TOOL} {}`: {e}", run.args.join(" "));
-        let data = arg("--data").ok_or_else(|| what("no --data"))?;
-        let until = arg("--fit-until").ok_or_else(|| what("no --fit-until"))?;
+        let data = run_arg(run, "--data").ok_or_else(|| what("no --data"))?;
+        let until = run_arg(run, "--fit-until").ok_or_else(|| what("no --fit-until"))?;
         let model = run
             .out
             .lines()
@@ -205,20 +198,13 @@ pub(super) fn ranking_table(runs: &[Run]) -> Result<String, String> {
     );
     for run in runs {
         let what = |e: &str| format!("`{TOOL} {}`: {e}", run.args.join(" "));
-        let arg = |flag: &str| {
-            run.args
-                .iter()
-                .position(|a| *a == flag)
-                .and_then(|i| run.args.get(i + 1))
-                .copied()
-        };
-        let data = arg("--data").ok_or_else(|| what("no --data"))?;
+        let data = run_arg(run, "--data").ok_or_else(|| what("no --data"))?;
         let name = data
             .rsplit('/')
             .next()
             .unwrap_or(data)
             .trim_end_matches(".csv");
-        let rate = arg("--tick-rate").map_or("any".to_string(), |r| {
+        let rate = run_arg(run, "--tick-rate").map_or("any".to_string(), |r| {
             r.parse::<f64>()
                 .map_or(r.to_string(), |hz| format!("{:.0} kHz", hz / 1e3))
         });
@@ -286,11 +272,7 @@ pub(super) fn lab_stage_table(runs: &[Run]) -> Result<String, String> {
     for run in runs {
         let what = |e: &str| format!("`{TOOL} {}`: {e}", run.args.join(" "));
         // A stage with some of its non-idealities taken out: its rows say so.
-        let without = run
-            .args
-            .iter()
-            .position(|a| *a == "--without")
-            .and_then(|i| run.args.get(i + 1))
+        let without = run_arg(run, "--without")
             .map(|w| format!(", without {}", w.replace(',', ", ")))
             .unwrap_or_default();
         let mut lines = run.out.lines().skip_while(|l| !l.starts_with("method "));
@@ -393,24 +375,11 @@ pub(super) fn learn_table(runs: &[Run]) -> Result<String, String> {
          |---|---|---:|---:|---:|---:|---:|---:|---:|---:|\n",
     );
     for run in runs {
-        let arg = |flag: &str| {
-            run.args
-                .iter()
-                .position(|a| *a == flag)
-                .and_then(|i| run.args.get(i + 1))
-        };
         let what = |e: &str| format!("`{TOOL} {}`: {e}", run.args.join(" "));
-        let waveform = arg("--waveform").ok_or_else(|| what("no --waveform"))?;
-        let (shape, hz) = waveform
-            .split_once(':')
-            .ok_or_else(|| what("a waveform is SHAPE:HZ"))?;
-        let hz: f64 = hz.parse().map_err(|_| what("a waveform's frequency"))?;
-        let label = if hz >= 1000.0 {
-            format!("{} kHz {shape}", hz / 1000.0)
-        } else {
-            format!("{hz} Hz {shape}")
-        };
-        let shaped = arg("--shape-hz").is_some();
+        let label = run_arg(run, "--waveform")
+            .and_then(waveform_label)
+            .ok_or_else(|| what("no --waveform SHAPE:HZ"))?;
+        let shaped = run_arg(run, "--shape-hz").is_some();
         // The summary table's row for `name`: its four figures.
         let row = |name: &str| -> Result<Vec<String>, String> {
             let line = run
