@@ -428,6 +428,7 @@ impl Creep {
         y
     }
 }
+
 /// The sign of a Bouc–Wen state `h` for its rate: at `h = 0`, the sign it takes on the step,
 /// that of `s·A` (`pull`).
 fn heading_sign(h: f64, pull: f64) -> f64 {

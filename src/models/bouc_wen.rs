@@ -16,9 +16,9 @@
 //!
 //! with `c` chosen by the direction and the sign of `h_{k−1}` (at `h_{k−1} = 0`, the sign `h`
 //! takes on the step, that of `s·A`: the rate is continuous in `h`). Integrated in the input, the
-//! output depends on the path of the drive, not on the sample rate (a sample whose step
-//! carries `h` through zero takes the factor of its start for the whole step: the one place
-//! where the rate shows, by `O(γ·m²)` once per branch). For small steps `q ≈ c·m`, `φ ≈ m`
+//! output depends on the path of the drive, not on the sample rate: a sample whose step
+//! carries `h` through zero is split where it crosses, the rest taken from zero at the other
+//! sign's rate ([`BoucWen::step`]). For small steps `q ≈ c·m`, `φ ≈ m`
 //! and this is the explicit step `h + A·Δu − c·|Δu|·h`. Validation
 //! ([`BoucWenParams::validate`]) keeps all four factors positive (`|γ| < β`,
 //! `|ψ| < β − |γ|`).
