@@ -129,12 +129,6 @@ impl RelaxationRate {
     /// (each model's step calls it, in every configuration that holds the model).
     #[inline(never)]
     pub fn relax_normalised(&self, m: f32) -> Relaxed {
-        self.relax_inline(m)
-    }
-
-    /// [`RelaxationRate::relax_normalised`], inlined (in [`RelaxationRate::solve_normalised`]).
-    #[inline(always)]
-    fn relax_inline(&self, m: f32) -> Relaxed {
         let x = self.rate() * m;
         if x <= SERIES_LIMIT {
             let psi = psi(x);
@@ -171,12 +165,18 @@ impl RelaxationRate {
 
     /// [`RelaxationRate::solve`], the step normalised in `f32`. One copy in flash (called
     /// by each compensator's step).
+    ///
+    /// `cap` is at most [`STEP_CAP`]`/c` (the compensators' caps are), so that `c·m₀` is
+    /// within the series' range: `q(m₀)` is the series alone, with no call to the large
+    /// steps' path (whose call would make this function save and restore eight FPU registers
+    /// on every step). A larger `cap` still gives a step in `[0, cap]`, not an exact one.
     #[inline(never)]
     pub fn solve_normalised(&self, k: f32, d: f32, floor: f32, target: f32, cap: f32) -> f32 {
         let c = self.rate();
         let cd = c * d;
         let m0 = smaller(target / larger(k + cd, floor), cap);
-        let q0 = self.relax_inline(m0).q;
+        let x0 = c * m0;
+        let q0 = x0 * psi(x0);
         // F(m₀) − R, F′(m₀) (floored) and F″(m₀) = −c²·D·e^{−c·m₀}.
         let miss = k * m0 + d * q0 - target;
         let decay = 1.0 - q0;
@@ -381,11 +381,14 @@ mod tests {
         let rate = RelaxationRate::from_gain(gain_from_f64(4.0));
         let c = rate.rate() as f64;
         let k = 0.5;
-        // d > 0: F concave; d < 0: convex; 0: linear.
+        // The compensators' cap: the largest step within the series' range.
+        let cap = STEP_CAP * rate.reciprocal();
+        // d > 0: F concave; d < 0: convex; 0: linear. The largest target needs c·m ≈ 0.9.
         for d in [0.08, -0.05, 0.0] {
-            for target in [1e-6, 1e-4, 1e-3, 0.01, 0.1] {
-                let m = rate.solve(k as f32, d as f32, 0.01, target as f32, 1.9) as f64
+            for target in [1e-6, 1e-4, 1e-3, 0.01, 0.08] {
+                let m = rate.solve(k as f32, d as f32, 0.01, target as f32, cap) as f64
                     / (1u64 << 30) as f64;
+                assert!(m < cap as f64, "d = {d}, target = {target}: within the cap");
                 let reached = k * m + d * exact(c, m).0;
                 let miss = (reached - target) / target;
                 // The step's rounding to Q2.30 (half an LSB times the slope), f32's, and the
@@ -394,6 +397,19 @@ mod tests {
                 let x = c * m;
                 let tolerance = 2e-6 + rounding + 1e-3 * x * x * x;
                 assert!(miss.abs() < tolerance, "d = {d}, target = {target}: {miss}");
+            }
+        }
+    }
+
+    /// A cap beyond the series' range (no compensator passes one) still gives a step in
+    /// `[0, cap]`, whatever the series makes of `c·m₀` out there.
+    #[test]
+    fn a_cap_beyond_the_series_range_gives_a_bounded_step() {
+        let rate = RelaxationRate::from_gain(gain_from_f64(4.0));
+        for target in [0.05, 0.5, 3.0, 1e6] {
+            for d in [0.08, -0.05] {
+                let m = rate.solve_normalised(0.5, d, 0.01, target, 1.9);
+                assert!((0.0..=1.9).contains(&m), "d = {d}, target = {target}: {m}");
             }
         }
     }
