@@ -125,26 +125,36 @@ def test_numpy_in_and_out_and_errors_as_the_blocking_api():
     assert err.field == "record count"
 
 
-def test_identify_runs_in_a_worker_thread(repo=None):
+def test_identify_runs_in_a_worker_thread(monkeypatch):
     import pathlib
+    import threading
 
     data = pathlib.Path(__file__).resolve().parents[2] / "data" / "micromanipulator-unipolar-3v6-1hz.csv"
     t, u, x = np.loadtxt(data, delimiter=",", skiprows=5).T
 
+    # The fit waits, off the loop, for a coroutine on the loop: with the fit on the loop's own
+    # thread that coroutine could never run, and the wait would give up. No clock decides it.
+    real_identify = twinstack.aio._identify
+    loop_ran = threading.Event()
+    seen = {}
+
+    def identify_after_the_loop_runs(*args, **kwargs):
+        seen["waited"] = loop_ran.wait(timeout=60.0)
+        seen["thread"] = threading.get_ident()
+        return real_identify(*args, **kwargs)
+
+    monkeypatch.setattr(twinstack.aio, "_identify", identify_after_the_loop_runs)
+
     async def main():
-        beats = 0
+        async def beat():
+            loop_ran.set()
 
-        async def heartbeat():
-            nonlocal beats
-            while True:
-                beats += 1
-                await asyncio.sleep(0.005)
+        fit = asyncio.ensure_future(twinstack.aio.identify(t, u, x, model="pi", fit_until=16.0))
+        await asyncio.sleep(0)
+        await beat()
+        return await fit
 
-        hb = asyncio.create_task(heartbeat())
-        params = await twinstack.aio.identify(t, u, x, model="pi", fit_until=16.0)
-        hb.cancel()
-        return params, beats
-
-    params, beats = asyncio.run(main())
+    params = asyncio.run(main())
     assert params.model == "pi"
-    assert beats > 1, "the loop ran while the model was fitted"
+    assert seen["waited"], "the event loop did not run while the model was fitted"
+    assert seen["thread"] != threading.get_ident(), "the fit ran on the event loop's thread"
