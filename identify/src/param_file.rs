@@ -70,8 +70,10 @@ pub struct IdentificationRecord {
     pub operators: usize,
     /// P–I threshold spread.
     pub thresholds: String,
-    /// Lag, samples of the record.
-    pub lag_samples: usize,
+    /// Lag, samples of the record: a whole or a half number (written as an integer when whole,
+    /// as files from before half lags hold it).
+    #[serde(serialize_with = "whole_as_integer")]
+    pub lag_samples: f64,
     /// Whether the lag was estimated.
     pub lag_estimated: bool,
     /// Rows dropped as outliers.
@@ -324,6 +326,15 @@ impl ParamFile {
             creep: s.creep.clone(),
         };
         Ok((file, model))
+    }
+}
+
+/// Writes `v` as an integer when it is a whole number that fits one, else as a float.
+fn whole_as_integer<S: serde::Serializer>(v: &f64, s: S) -> Result<S::Ok, S::Error> {
+    if v.fract() == 0.0 && v.abs() < 9.0e15 {
+        s.serialize_i64(*v as i64)
+    } else {
+        s.serialize_f64(*v)
     }
 }
 

@@ -5,8 +5,11 @@
 //! Conventions shared by `identify`, `predict` and `compensate`:
 //! * the model's output is the *sign-corrected* output: `sensor reading = output_sign × y`;
 //!   the scaling's output range is in those units (an inverted sensor needs no `max < min`);
-//! * the sensor lags the drive by `sensor_lag_s`: the reading at sample `k` is the model's
-//!   output at sample `k − L` (`L` = lag in samples of the record being run);
+//! * the sensor lags the drive by `sensor_lag_s`, a whole or a half number `λ` of samples of
+//!   the record being run: the reading at sample `k` is the model's output at sample `k − λ`,
+//!   between two samples the outputs around it interpolated there (a drive held for a sample
+//!   acts on the stage as at the middle of its hold, half a sample before the reading of its
+//!   end: [`between_samples`]);
 //! * forward runs start relaxed at the first drive value (P–I: every operator there; Duhem:
 //!   on the anhysteretic curve, `y0 = β u0 + δ`; Bouc–Wen: `h = 0`); inverse runs start
 //!   relaxed at the first desired output;
@@ -54,6 +57,47 @@ pub struct StageModel {
     pub sensor_lag_s: f64,
     /// The stage's creep, in series after the hysteresis model (`None`: no creep).
     pub creep: Option<CreepParams>,
+}
+
+/// The value midway between `b` and `c` of four consecutive samples `a, b, c, d`: the cubic
+/// through the four, `(9·(b + c) − (a + d)) / 16` — the rule the tick takes the target of a
+/// reading's instant by (`twinstack::control::instant::between_holds`, in fixed point).
+///
+/// ```
+/// use twinstack_identify::stage_model::between;
+/// assert_eq!(between(0.0, 1.0, 4.0, 9.0), 2.25);
+/// ```
+pub fn between(a: f64, b: f64, c: f64, d: f64) -> f64 {
+    (9.0 * (b + c) - (a + d)) / 16.0
+}
+
+/// The values midway between consecutive samples: element `k` lies between `x[k]` and
+/// `x[k + 1]` ([`between`]; at the ends the first and last samples stand for those beyond,
+/// and the last element is `x`'s last).
+///
+/// Each drive sample is held until the next (the board's DAC, a DAQ's output), and acts on
+/// the stage as at the middle of its hold, half a sample before the reading of its end: with
+/// a half lag a model is fitted to, and its compensator aims at, the readings' values between
+/// samples. Fitted to the readings at the holds' ends, a model carries that half sample as
+/// hysteresis width that fits only the rate it was identified at; `identify` finds the half
+/// lag where the data show it.
+///
+/// ```
+/// use twinstack_identify::stage_model::between_samples;
+/// assert_eq!(between_samples(&[0.0, 1.0, 4.0, 9.0, 16.0]), vec![0.3125, 2.25, 6.25, 12.8125, 16.0]);
+/// ```
+pub fn between_samples(x: &[f64]) -> Vec<f64> {
+    let n = x.len();
+    let at = |k: isize| x[k.clamp(0, n as isize - 1) as usize];
+    (0..n as isize)
+        .map(|k| {
+            if k + 1 >= n as isize {
+                at(k)
+            } else {
+                between(at(k - 1), at(k), at(k + 1), at(k + 2))
+            }
+        })
+        .collect()
 }
 
 /// The sample rate of a record with times `t`: one over the median interval (`None` for fewer
@@ -132,14 +176,20 @@ impl StageModel {
         }))
     }
 
-    /// The lag in samples for a record with times `t` (rounded to the median interval).
-    pub fn lag_samples(&self, t: &[f64]) -> usize {
+    /// The lag in half samples for a record with times `t` (rounded to the median interval).
+    pub fn lag_half_samples(&self, t: &[f64]) -> usize {
         let mut dt: Vec<f64> = t.windows(2).map(|w| w[1] - w[0]).collect();
         dt.sort_by(f64::total_cmp);
         match dt.get(dt.len() / 2) {
-            Some(&d) if d > 0.0 => (self.sensor_lag_s / d).round().max(0.0) as usize,
+            Some(&d) if d > 0.0 => (2.0 * self.sensor_lag_s / d).round().max(0.0) as usize,
             _ => 0,
         }
+    }
+
+    /// The whole samples a drive sample's reading lies ahead of it, for a record with times
+    /// `t`: the lag rounded up (a half lag's reading needs the sample after).
+    pub fn lag_samples(&self, t: &[f64]) -> usize {
+        self.lag_half_samples(t).div_ceil(2)
     }
 
     /// How many drive samples in `u` lie outside the input range (the models clamp them).
@@ -181,24 +231,63 @@ impl StageModel {
         Ok(())
     }
 
+    /// The readings the model's outputs `y` give: reading `k` is output `k − λ` (between two
+    /// outputs, the value between them, [`between_samples`]; before the first, the first).
     fn delay(&self, t: &[f64], y: Vec<f64>) -> Vec<f64> {
-        let lag = self.lag_samples(t);
+        let h = self.lag_half_samples(t);
+        let (whole, half) = (h / 2, h % 2 == 1);
+        let mid = if half {
+            between_samples(&y)
+        } else {
+            Vec::new()
+        };
         (0..y.len())
-            .map(|k| self.output_sign * y[k.saturating_sub(lag)])
+            .map(|k| {
+                let j = k.saturating_sub(whole);
+                let v = match (half, j) {
+                    (false, _) | (true, 0) => y[j],
+                    (true, j) => mid[j - 1],
+                };
+                self.output_sign * v
+            })
             .collect()
     }
 
+    /// The output each drive sample is to give, from the readings wanted `x`: the reading
+    /// `λ` samples on (between two readings, the value between them, [`between_samples`];
+    /// past the last, the last).
     fn advance(&self, t: &[f64], x: &[f64]) -> Vec<f64> {
-        let lag = self.lag_samples(t);
+        let h = self.lag_half_samples(t);
+        let (whole, half) = (h / 2, h % 2 == 1);
         let last = x.len().saturating_sub(1);
+        let mid = if half { between_samples(x) } else { Vec::new() };
         (0..x.len())
-            .map(|k| self.output_sign * x[(k + lag).min(last)])
+            .map(|k| {
+                let j = (k + whole).min(last);
+                self.output_sign * if half { mid[j] } else { x[j] }
+            })
             .collect()
     }
 
     /// Forward model on drive `u` (volts) at times `t`, in the library's fixed point:
     /// the sensor reading it predicts at each sample.
     pub fn predict(&self, t: &[f64], u: &[f64]) -> Result<Vec<f64>, ParamError> {
+        Ok(self.delay(t, self.hold_outputs(t, u)?))
+    }
+
+    /// [`StageModel::predict`] as `identify` fits it: element `k` is the (sign-applied)
+    /// output of drive `k − ⌊λ⌋`, which `identify` pairs with the reading `k` (with a half
+    /// lag, the value between readings `k` and `k + 1`).
+    pub fn predict_targets(&self, t: &[f64], u: &[f64]) -> Result<Vec<f64>, ParamError> {
+        let y = self.hold_outputs(t, u)?;
+        let whole = self.lag_half_samples(t) / 2;
+        Ok((0..y.len())
+            .map(|k| self.output_sign * y[k.saturating_sub(whole)])
+            .collect())
+    }
+
+    /// The model's output for each drive sample, fixed point.
+    fn hold_outputs(&self, t: &[f64], u: &[f64]) -> Result<Vec<f64>, ParamError> {
         let s = &self.scaling;
         let u_norm = |v: f64| signal_from_f64(s.input_to_norm(v));
         let y_phys = |q: i32| s.norm_to_output(signal_to_f64(q));
@@ -240,7 +329,7 @@ impl StageModel {
                     .collect()
             }
         };
-        Ok(self.delay(t, y))
+        Ok(y)
     }
 
     /// [`Self::predict`] computed by the `f64` reference models.

@@ -11,6 +11,7 @@ use twinstack::Scaling;
 use twinstack_identify::identification::auto::{identify_auto, InverseBound};
 use twinstack_identify::identification::{identify, IdentifyOptions, ModelKind};
 use twinstack_identify::reference;
+use twinstack_identify::stage_model::between;
 use twinstack_link::measured_data::MeasuredData;
 
 /// Deterministic Gaussian-ish noise (sum of 4 uniforms from an xorshift), unit variance.
@@ -67,6 +68,22 @@ fn pi_record(noise_rms: f64, lag: usize) -> MeasuredData {
     let x = (0..clean.len())
         .map(|k| clean[k.saturating_sub(lag)] + noise_rms * n.next())
         .collect();
+    record(t, u, x)
+}
+
+/// [`pi_record`] read `lag + ½` samples late: each reading lies between two outputs (a drive
+/// held for a sample, read at the end of its hold), interpolated as `identify` pairs them.
+fn pi_record_half(noise_rms: f64, lag: usize) -> MeasuredData {
+    let clean = pi_record(0.0, 0).x.unwrap();
+    let at = |k: isize| clean[k.clamp(0, clean.len() as isize - 1) as usize];
+    let mut n = Noise(7);
+    let x = (0..clean.len() as isize)
+        .map(|k| {
+            let j = k - lag as isize;
+            between(at(j - 2), at(j - 1), at(j), at(j + 1)) + noise_rms * n.next()
+        })
+        .collect();
+    let (t, u) = drive();
     record(t, u, x)
 }
 
@@ -185,10 +202,13 @@ fn a_lag_is_estimated_only_where_the_data_has_one() {
     // Sensor noise of 0.3 % of the span and no delay: no lag.
     let id = identify(&pi_record(0.1, 0), &o).unwrap();
     assert!(id.lag_estimated);
-    assert_eq!(id.lag_samples, 0, "a lag invented on data without one");
+    assert_eq!(id.lag_samples, 0.0, "a lag invented on data without one");
     // A 3-sample delay is found.
     let id = identify(&pi_record(0.02, 3), &o).unwrap();
-    assert_eq!(id.lag_samples, 3);
+    assert_eq!(id.lag_samples, 3.0);
+    // And half samples: a reading of a held drive's end, one and a half samples late.
+    let id = identify(&pi_record_half(0.02, 1), &o).unwrap();
+    assert_eq!(id.lag_samples, 1.5);
 }
 
 /// What `auto` returns is admitted as refitted on the whole window, not only as fitted on its

@@ -282,7 +282,7 @@ pub(crate) fn identify(
     fit_until: Option<f64>,
     operators: Option<usize>,
     thresholds: &str,
-    lag: Option<usize>,
+    lag: Option<f64>,
     output_unit: &str,
     tick_rate: Option<f64>,
     observer: bool,
@@ -318,7 +318,11 @@ pub(crate) fn identify(
     let mut options = IdentifyOptions::new(ModelKind::Pi, fit_until);
     options.operators = operators.unwrap_or(DEFAULT_OPERATORS);
     options.thresholds = spread;
-    options.lag = lag;
+    if let Some(lag) = lag {
+        options
+            .given_lag(lag)
+            .map_err(|e| PyValueError::new_err(e))?;
+    }
     options.observer = observer;
     let run: Result<Identified, RunError> =
         py.detach(|| identify_and_score(&data, choice, &options, creep, output_unit, rate));

@@ -170,3 +170,12 @@ def test_tick_rate_keeps_a_model_the_board_runs(micro):
     assert pi.identification["operators"] == 17
     with pytest.raises(ValueError, match="tick_rate"):
         twinstack.identify(t, u, x, fit_until=16.0, tick_rate=-1.0)
+
+
+def test_a_given_lag_is_a_whole_or_half_number_of_samples(micro):
+    t, u, x = micro
+    with pytest.raises(ValueError, match="lag 0.3"):
+        twinstack.identify(t, u, x, model="pi", fit_until=16.0, lag=0.3)
+    p = twinstack.identify(t, u, x, model="pi", fit_until=16.0, lag=1.5)
+    assert p.identification["lag_samples"] == 1.5
+    assert p.sensor_lag_s == pytest.approx(1.5 * np.median(np.diff(t)))

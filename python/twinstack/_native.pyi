@@ -112,7 +112,7 @@ def identify(
     fit_until: Optional[float] = None,
     operators: Optional[int] = None,
     thresholds: str = "uniform",
-    lag: Optional[int] = None,
+    lag: Optional[float] = None,
     output_unit: str = "um",
     tick_rate: Optional[float] = None,
     observer: bool = True,
@@ -128,8 +128,8 @@ def identify(
     each model with and without a creep operator (one model: without), ``True`` fits one,
     ``False`` none. ``operators``/``thresholds``: the P-I's play operators (1 to 32; ``None``:
     17, or fewer where ``tick_rate`` needs it) and their spread (``"uniform"`` or
-    ``"geometric"``); ``lag``: the sensor lag in samples (estimated when
-    ``None``). ``tick_rate`` (Hz): keep only a model the board runs at that control rate
+    ``"geometric"``); ``lag``: the sensor lag in samples, a whole or a half number
+    (``1.5``: a reading of a held drive's end; estimated in half samples when ``None``). ``tick_rate`` (Hz): keep only a model the board runs at that control rate
     (its tick budget, as the board applies it at load), made smaller where that makes it fit
     (creep with fewer modes; fewer play operators unless ``operators`` is given); ``auto``
     picks among those, a model asked for by name that does not fit raises ``ValueError``.

@@ -5,10 +5,13 @@
 //! Per closed-loop tick ([`Feedback::correction`]):
 //!
 //! 1. `e = reference − measured` (Q2.30, saturating), where the reference is the target of
-//!    [`SENSOR_DELAY_TICKS`] ticks ago: the reading is that old, and comparing it with the
-//!    target of now would feed the feedback a phantom error `ẋ · delay` (7 % of the stroke
-//!    for a 750 Hz sine at 50 kHz) that it would then "correct" into the output. The
-//!    feedforward acts on the present target; the feedback corrects what the model got wrong;
+//!    the reading's instant: the reading is of the end of the hold of the drive of
+//!    [`SENSOR_DELAY_TICKS`] ticks ago, between the instants that drive and the next were
+//!    aimed at (the middles of their holds), so the targets around it interpolated there
+//!    ([`crate::control::instant`]). Comparing it with the target of now would feed the feedback a phantom
+//!    error `ẋ · delay` (7 % of the stroke for a 750 Hz sine at 50 kHz) that it would then
+//!    "correct" into the output. The feedforward acts on the present target; the feedback
+//!    corrects what the model got wrong;
 //! 2. with a notch, `e` passes through it ([`crate::control::notch`]): the loop no longer sees the
 //!    resonance, so it can neither excite nor sustain it;
 //! 3. integral: `i += ki · e` (Q0.32 gain, one `SMMUL`), limited to ±`limit` — and **held**
@@ -28,6 +31,7 @@
 //! Configuration ([`Feedback`]) and memory ([`FeedbackState`]) are kept apart; nothing here
 //! allocates, panics or loops.
 
+use crate::control::instant::ReadingInstant;
 use crate::control::notch::{Notch, NotchDesign, NotchError, NotchState};
 use crate::fixed_point::{
     limit, mul_high, q0_32_from_f64, q1_31_from_f64, q4_28_from_f64, saturate_i64, signal_from_f64,
@@ -179,6 +183,8 @@ fn notch_refusal(d: &NotchDesign, e: NotchError) -> Refusal {
 /// write) and the ADC returns the previous conversion (one sample of latency), as on the board
 /// and in `hal-sim`'s `SimBoard`.
 pub const SENSOR_DELAY_TICKS: usize = 2;
+// A reading lies between the holds of two drives: the feedback and the drift check take both.
+const _: () = assert!(SENSOR_DELAY_TICKS >= 2);
 
 /// The drift check low-passes the model-vs-sensor difference over `2^DRIFT_FILTER_SHIFT`
 /// ticks, so sensor noise and the stage's own fast dynamics do not trip it.
@@ -225,8 +231,8 @@ pub struct FeedbackState {
     derivative: i32,
     /// The notch's memory.
     notch: NotchState,
-    /// The last targets, newest first, Q2.30.
-    targets: [i32; SENSOR_DELAY_TICKS],
+    /// The last targets, and from them the target of the present reading's instant.
+    targets: ReadingInstant,
     /// The last measurement, Q2.30.
     pub(crate) measured: i32,
 }
@@ -315,21 +321,19 @@ impl Derivative {
 }
 
 impl FeedbackState {
-    /// Puts this tick's `target` into the history and returns the one of
-    /// [`SENSOR_DELAY_TICKS`] ticks ago (what the present reading is to be compared with).
+    /// Puts this tick's `target` into the history and returns what the present reading is to
+    /// be compared with: the target of the reading's instant, the end of the hold of the
+    /// drive of [`SENSOR_DELAY_TICKS`] ticks ago ([`crate::control::instant`]).
     #[inline(always)]
     fn delayed_target(&mut self, target: i32) -> i32 {
-        let reference = self.targets[SENSOR_DELAY_TICKS - 1];
-        self.targets.copy_within(0..SENSOR_DELAY_TICKS - 1, 1);
-        self.targets[0] = target;
-        reference
+        self.targets.push(target)
     }
 
     /// The state at rest: integrator empty, the stage at `position` (where the observer puts
     /// it).
     pub fn at_rest(position: i32) -> Self {
         Self {
-            targets: [position; SENSOR_DELAY_TICKS],
+            targets: ReadingInstant::at(position),
             measured: position,
             ..Self::default()
         }
@@ -341,7 +345,7 @@ impl FeedbackState {
     /// correction is the proportional term alone; the tick's transfer offset takes up the
     /// rest (see [`crate::control::mode_switch`]).
     pub fn enter_closed_loop(&mut self, target: i32) {
-        self.targets = [target; SENSOR_DELAY_TICKS];
+        self.targets = ReadingInstant::at(target);
         let error = limit(
             target.saturating_sub(self.measured),
             -SIGNAL_ONE,
@@ -425,7 +429,9 @@ mod tests {
         }
         assert_eq!(s.integrator(), signal_from_f64(0.2));
         // The command is cut from above while the error still pushes up: the integrator holds...
+        // (the target has been 0.5 all along, the stage at 0)
         let mut s = FeedbackState::at_rest(0);
+        s.targets = ReadingInstant::at(signal_from_f64(0.5));
         s.integrator = signal_from_f64(0.05);
         s.limited(signal_from_f64(1.2), signal_from_f64(1.0));
         for _ in 0..100 {
@@ -433,25 +439,51 @@ mod tests {
             s.limited(signal_from_f64(1.2), signal_from_f64(1.0));
         }
         assert_eq!(s.integrator(), signal_from_f64(0.05));
-        // ...but unwinds as soon as the error reverses (the reference is the target of
-        // SENSOR_DELAY_TICKS ago).
+        // ...but unwinds as soon as the error reverses (the reference, the target of the
+        // reading's instant, crosses once the new target is SENSOR_DELAY_TICKS + 1 ticks old).
         for _ in 0..=SENSOR_DELAY_TICKS {
             fb.correction(&mut s, signal_from_f64(-0.5), 0);
         }
         assert!(s.integrator() < signal_from_f64(0.05));
     }
 
+    /// A ramp from rest the stage follows exactly, each target at the middle of its drive's
+    /// hold, read at the end of the hold of SENSOR_DELAY_TICKS ago: between that target and
+    /// the next (half a step past it, once the ramp is under way).
+    fn read_at_its_instant(k: i32, step: i32) -> i32 {
+        let d = SENSOR_DELAY_TICKS as i32;
+        let r = |j: i32| j.max(0) * step;
+        let at = crate::control::instant::between_holds([
+            r(k - d - 1),
+            r(k - d),
+            r(k - d + 1),
+            r(k - d + 2),
+        ]);
+        if k > d + 1 {
+            assert_eq!(at, r(k - d) + step / 2);
+        }
+        at
+    }
+
     #[test]
-    fn the_reading_is_compared_with_the_target_of_as_many_ticks_ago() {
+    fn the_reading_is_compared_with_the_target_of_its_instant() {
         let fb = feedback(1.0, 0.0);
         let mut s = FeedbackState::at_rest(0);
-        // A ramp the stage follows exactly, read SENSOR_DELAY_TICKS late: no error, no
-        // correction (comparing with the present target would see a phantom lag).
+        // No error, no correction (comparing with the present target, or with the target of
+        // SENSOR_DELAY_TICKS ago alone, would see a phantom lag).
         let step = signal_from_f64(0.001);
         for k in 0..100i32 {
-            let measured = (k - SENSOR_DELAY_TICKS as i32).max(0) * step;
+            let measured = read_at_its_instant(k, step);
             assert_eq!(fb.correction(&mut s, k * step, measured), 0, "tick {k}");
         }
+        // The target of SENSOR_DELAY_TICKS ago alone is half a step off.
+        let mut s = FeedbackState::at_rest(0);
+        let mut seen = 0;
+        for k in 0..100i32 {
+            let measured = (k - SENSOR_DELAY_TICKS as i32).max(0) * step;
+            seen = fb.correction(&mut s, k * step, measured);
+        }
+        assert_eq!(seen, step / 2);
     }
 
     #[test]
@@ -463,7 +495,7 @@ mod tests {
         // error (a history frozen at tick 19 would see the ramp's ten ticks of travel).
         let step = signal_from_f64(0.001);
         for k in 0..60i32 {
-            let measured = (k - SENSOR_DELAY_TICKS as i32).max(0) * step;
+            let measured = read_at_its_instant(k, step);
             if (20..30).contains(&k) {
                 assert_eq!(fb.held_correction(&mut s, k * step), 0, "tick {k}");
             } else {

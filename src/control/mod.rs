@@ -32,6 +32,7 @@
 
 pub mod drive;
 pub mod feedback;
+pub mod instant;
 pub mod mode_switch;
 pub mod notch;
 pub mod sensor;

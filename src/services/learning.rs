@@ -11,8 +11,10 @@
 //! * [`LearnTick`], owned by the control tick ([`crate::control_loop::ControlLoop`]): per tick
 //!   it reads **one** entry of the active table (the correction, Q2.30 normalised drive, added
 //!   to the feedforward before the range and slew limits: the table's output is limited like
-//!   everything else) and stores **one** error (`target(k − d) − measured(k)`, Q2.30, `d` =
-//!   [`SENSOR_DELAY_TICKS`]) in the error buffer being filled. Constant time, no division, no
+//!   everything else) and stores **one** error (the target of the reading's instant minus
+//!   the reading, Q2.30: the end of the hold of [`SENSOR_DELAY_TICKS`] ticks ago, between the
+//!   targets of two ticks, as the feedback takes it: [`crate::control::instant`]) in the error
+//!   buffer being filled. Constant time, no division, no
 //!   loop. At the period's end it flips the error buffers and, if the task has posted a new
 //!   table, flips the tables: a table always plays whole periods.
 //! * [`LearnTask`], owned by the low-priority task (the command handler's context): at each
@@ -50,6 +52,7 @@
 //! its products in `i128` (off the tick).
 
 use crate::control::feedback::SENSOR_DELAY_TICKS;
+use crate::control::instant::ReadingInstant;
 use crate::fixed_point::{limit, saturate_i64, signal_from_f64};
 use crate::refusal::{finite, Field, Refusal, Rule};
 use serde::{Deserialize, Serialize};
@@ -215,8 +218,9 @@ pub struct LearnTick {
     bin: usize,
     active: usize,
     fill: usize,
-    /// The last targets, newest first, Q2.30 (the sensor is `SENSOR_DELAY_TICKS` late).
-    targets: [i32; SENSOR_DELAY_TICKS],
+    /// The last targets, and from them the target of the present reading's instant (the
+    /// sensor is `SENSOR_DELAY_TICKS` late: [`crate::control::instant`]).
+    targets: ReadingInstant,
     /// Periods completed (wrapping): the task's cue.
     periods: u32,
     /// Ticks whose error could not be measured (ADC error or no sensor) while storing.
@@ -252,7 +256,7 @@ impl LearnTick {
             posted: false,
             errors: [[0; MAX_BINS]; 2],
             fill: 0,
-            targets: [0; SENSOR_DELAY_TICKS],
+            targets: ReadingInstant::at(0),
             periods: 0,
             missing: 0,
         }
@@ -271,8 +275,8 @@ impl LearnTick {
             .unwrap_or(0)
     }
 
-    /// After the tick: stores this tick's error (`target` of [`SENSOR_DELAY_TICKS`] ticks ago
-    /// minus `measured`, Q2.30; `None`: no reading, stored as 0, which leaves that bin as it
+    /// After the tick: stores this tick's error (the target of the reading's instant, the end
+    /// of the hold of [`SENSOR_DELAY_TICKS`] ticks ago, minus `measured`, Q2.30; `None`: no reading, stored as 0, which leaves that bin as it
     /// is) and advances one bin; at the period's end flips the error buffers and, if a table
     /// was posted, the tables. Returns whether a period ended. Constant time.
     #[inline(always)]
@@ -280,9 +284,8 @@ impl LearnTick {
         if self.state == LearnState::Off {
             return false;
         }
-        let reference = self.targets[SENSOR_DELAY_TICKS - 1];
-        self.targets.copy_within(0..SENSOR_DELAY_TICKS - 1, 1);
-        self.targets[0] = target;
+        // The target of the reading's instant, as the feedback takes it.
+        let reference = self.targets.push(target);
         let error = match measured {
             Some(m) => reference.saturating_sub(m),
             None => {
@@ -326,7 +329,7 @@ impl LearnTick {
     /// setpoint in force).
     pub fn set_state(&mut self, state: LearnState, target: i32) {
         if self.state == LearnState::Off && state != LearnState::Off {
-            self.targets = [target; SENSOR_DELAY_TICKS];
+            self.targets = ReadingInstant::at(target);
         }
         self.state = state;
     }
@@ -985,18 +988,31 @@ mod tests {
         let mut t = LearnTick::new();
         t.set_period(5);
         t.set_state(LearnState::Learning, 0);
-        // The stage follows the target exactly, read SENSOR_DELAY_TICKS late: no error.
+        // The stage follows the target exactly, read at the end of the hold of
+        // SENSOR_DELAY_TICKS ago, between that target's instant and the next's: no error.
         let target = |k: i32| 1000 * k;
+        let d = SENSOR_DELAY_TICKS as i32;
+        // Along the ramp, half a step past the target of SENSOR_DELAY_TICKS ago (from the
+        // third tick on: the cubic sees the ramp's start before).
+        let instant = |k: i32| {
+            let r = |j: i32| target(j.max(0));
+            crate::control::instant::between_holds([
+                r(k - d - 1),
+                r(k - d),
+                r(k - d + 1),
+                r(k - d + 2),
+            ])
+        };
+        assert_eq!(instant(9), target(9 - d) + 500);
         for k in 0..5 {
-            let measured = target((k - SENSOR_DELAY_TICKS as i32).max(0));
-            t.observe(target(k), Some(measured));
+            t.observe(target(k), Some(instant(k)));
         }
         let mut e = [7; 5];
         assert_eq!(t.copy_errors(0, &mut e), 5);
         assert_eq!(e, [0; 5]);
         // A constant shortfall of 3 appears in every bin; a failed read stores 0.
         for k in 5..10 {
-            let measured = target(k - SENSOR_DELAY_TICKS as i32) - 3;
+            let measured = instant(k) - 3;
             t.observe(target(k), (k != 7).then_some(measured));
         }
         t.copy_errors(0, &mut e);

@@ -25,7 +25,8 @@
 
 use crate::board::{DualDac, SensorAdc};
 use crate::control::drive::StackVoltages;
-use crate::control::feedback::{DRIFT_FILTER_SHIFT, SENSOR_DELAY_TICKS};
+use crate::control::feedback::DRIFT_FILTER_SHIFT;
+use crate::control::instant::ReadingInstant;
 use crate::control::{ControlConfig, Controller, Observer, RelaxedObserver, TickFlags, TickReport};
 use crate::models::ObserverRun;
 
@@ -50,9 +51,10 @@ pub struct ObserverBelow {
     drift_limit: u32,
     /// Whether the stage has a sensor (no drift check without one).
     sensed: bool,
-    /// The last estimates, newest first, Q2.30: the measurement is
-    /// [`SENSOR_DELAY_TICKS`] ticks old, so it is compared with the estimate of its instant.
-    estimates: [i32; SENSOR_DELAY_TICKS],
+    /// The last estimates, each of the middle of its drive's hold, and from them the estimate
+    /// of the instant of the present reading (the end of the hold [`SENSOR_DELAY_TICKS`](crate::control::feedback::SENSOR_DELAY_TICKS)
+    /// ticks old: [`crate::control::instant`]).
+    estimates: ReadingInstant,
     /// Low-passed measured − estimate, Q2.30.
     drift: i32,
     /// The last drift check's verdict.
@@ -115,21 +117,23 @@ impl ObserverBelow {
             observer: relaxed.run,
             drift_limit: config.sensor.map_or(u32::MAX, |s| s.drift_limit),
             sensed: config.sensor.is_some(),
-            estimates: [relaxed.output; SENSOR_DELAY_TICKS],
+            estimates: ReadingInstant::at(relaxed.output),
             drift: 0,
             drifting: false,
         })
     }
 
-    /// One tick, after it: the drift check of its measurement (with a sensor; skipped on a
-    /// failed reading), then the observer on its applied drive. Fills the report's `estimate` and sets its
-    /// `DRIFT` flag as the tick would have. No division, no loop, no panic.
+    /// One tick, after it: the observer on its applied drive, then the drift check of its
+    /// measurement against the estimate of the reading's instant (with a sensor; skipped on a
+    /// failed reading). Fills the report's `estimate` and sets its `DRIFT` flag as the tick
+    /// would have. No division, no loop, no panic.
     #[inline(always)]
     pub fn observe(&mut self, report: &mut TickReport) {
+        let estimate = self.observer.step(report.drive);
+        let at_reading = self.estimates.push(estimate);
+        report.estimate = estimate;
         if self.sensed && !report.flags.contains(TickFlags::ADC_ERROR) {
-            let difference = report
-                .measured
-                .saturating_sub(self.estimates[SENSOR_DELAY_TICKS - 1]);
+            let difference = report.measured.saturating_sub(at_reading);
             let step = difference.saturating_sub(self.drift) >> DRIFT_FILTER_SHIFT;
             self.drift = self.drift.saturating_add(step);
             self.drifting = self.drift.unsigned_abs() > self.drift_limit;
@@ -137,15 +141,11 @@ impl ObserverBelow {
                 report.flags.0 |= TickFlags::DRIFT;
             }
         }
-        let estimate = self.observer.step(report.drive);
-        self.estimates.copy_within(0..SENSOR_DELAY_TICKS - 1, 1);
-        self.estimates[0] = estimate;
-        report.estimate = estimate;
     }
 
     /// The last estimate, Q2.30 normalised displacement.
     pub fn estimate(&self) -> i32 {
-        self.estimates[0]
+        self.estimates.newest()
     }
 
     /// The low-passed difference measured − estimate, Q2.30 normalised displacement.
@@ -250,7 +250,7 @@ mod tests {
             observer: ObserverRun::None,
             drift_limit: signal_from_f64(0.01) as u32,
             sensed: true,
-            estimates: [0; SENSOR_DELAY_TICKS],
+            estimates: ReadingInstant::at(0),
             drift: 0,
             drifting: false,
         }
@@ -352,10 +352,10 @@ mod tests {
 
     #[test]
     fn the_reading_is_compared_with_the_estimate_of_its_instant_and_skipped_when_it_failed() {
-        // The estimate of SENSOR_DELAY_TICKS ago was 0.5, the newer ones 0: a reading of 0 is
-        // below the old one.
+        // The estimates were 0.5 until this tick's, 0: a reading of 0 is below the estimate of
+        // its instant, SENSOR_DELAY_TICKS ticks back (the present estimate would see no drift).
         let mut o = check_alone();
-        o.estimates[SENSOR_DELAY_TICKS - 1] = signal_from_f64(0.5);
+        o.estimates = ReadingInstant::at(signal_from_f64(0.5));
         let mut r = report(0, 0);
         o.observe(&mut r);
         assert!(

@@ -12,7 +12,7 @@ use twinstack_identify::identification::run::{
 };
 use twinstack_identify::identification::score::ErrorFigures;
 use twinstack_identify::identification::{
-    IdentifyError, IdentifyOptions, ModelKind, ThresholdSpread, DEFAULT_OPERATORS,
+    half_samples, IdentifyError, IdentifyOptions, ModelKind, ThresholdSpread, DEFAULT_OPERATORS,
 };
 use twinstack_link::measured_data::{ColumnNames, Columns, MeasuredData};
 use twinstack_link::output_file::Staged;
@@ -45,9 +45,11 @@ pub struct Args {
     /// Spread of the P–I thresholds.
     #[arg(long, value_enum, default_value_t = Spread::Uniform)]
     pub thresholds: Spread,
-    /// Sensor lag in samples (estimated over 0 to 10 samples when not given).
-    #[arg(long)]
-    pub lag: Option<usize>,
+    /// Sensor lag in samples, a whole or a half number (1.5: a reading of a held drive's end,
+    /// one and a half samples after the middle of its hold); estimated in half samples over 0
+    /// to 10 when not given.
+    #[arg(long, allow_negative_numbers = true, value_parser = parse_lag)]
+    pub lag: Option<f64>,
     /// Fit a creep operator (4 log-spaced first-order modes, 10 samples to the fit window,
     /// at most 100 s) in series with the model. It is kept only where it lowers the fit
     /// error (modes fitted with no weight are dropped), and the run says what was kept
@@ -75,6 +77,14 @@ pub struct Args {
 }
 
 pub use twinstack_identify::identification::run::{parse_model, ModelChoice};
+
+/// `--lag`: a whole or a half number of samples ([`half_samples`]).
+fn parse_lag(s: &str) -> Result<f64, String> {
+    let v: f64 = s
+        .parse()
+        .map_err(|_| format!("lag {s}: not a number of samples"))?;
+    half_samples(v).map(|_| v)
+}
 
 /// `--thresholds` values.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
@@ -124,7 +134,9 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         Spread::Uniform => ThresholdSpread::Uniform,
         Spread::Geometric => ThresholdSpread::Geometric,
     };
-    options.lag = args.lag;
+    if let Some(lag) = args.lag {
+        options.given_lag(lag).map_err(|e| anyhow!("--lag: {e}"))?;
+    }
     options.observer = !args.no_observer;
     let in_file = |e: RunError| match e {
         RunError::Params(e) => anyhow!("{e}"),

@@ -27,12 +27,16 @@
 //!
 //! * the reading `measured = at_zero + gain · code / 2^bits` (code masked to the ADC's bits)
 //!   is [`SENSOR_DELAY_TICKS`] ticks old; a failed read raises the ADC flag in every mode;
-//! * drift: `δ ← δ + (measured − estimate of SENSOR_DELAY_TICKS ago − δ) / 2^DRIFT_FILTER_SHIFT`,
+//! * drift: `δ ← δ + (measured − ē − δ) / 2^DRIFT_FILTER_SHIFT`, `ē` the estimate of the
+//!   reading's instant: the end of the hold of SENSOR_DELAY_TICKS ago, between the estimates
+//!   of the holds' middles around it (`twinstack::control::instant`),
 //!   flagged when `|δ|` exceeds the drift limit (only with an observer and a drift limit).
 //!
 //! The feedback, per closed-loop tick:
 //!
-//! * the reading is compared with the **target of [`SENSOR_DELAY_TICKS`] ticks ago** — whether
+//! * the reading is compared with the **target of its instant**: the end of the hold of
+//!   [`SENSOR_DELAY_TICKS`] ticks ago, between the targets of the holds' middles around it
+//!   (`twinstack::control::instant`) — whether
 //!   or not the reads in between succeeded (the delay is the converter's);
 //! * integral: `i ← clamp(i + ki/f_s · e, ±limit)`, **held** while the previous tick's command
 //!   (feedforward + correction) was cut by the range or slew limit in the direction `e`
@@ -66,6 +70,7 @@
 
 use crate::accuracy::LSB16;
 use crate::reference;
+use crate::stage_model::between;
 use twinstack::config::settings::{Mode, Model};
 use twinstack::control::drive::{Configuration, DriveSettings, SafeState};
 use twinstack::control::feedback::{DRIFT_FILTER_SHIFT, SENSOR_DELAY_TICKS};
@@ -151,19 +156,18 @@ struct ReferenceSensor {
     /// Drift limit, normalised displacement (`None`: no check).
     drift_limit: Option<f64>,
     /// The observer's estimates of the last ticks, newest first.
-    estimates: [f64; SENSOR_DELAY_TICKS],
+    estimates: [f64; SENSOR_DELAY_TICKS + 2],
     /// Low-passed measured − estimate.
     drift: f64,
 }
 
-/// What the sensor gave one tick.
-struct Reading {
-    /// The measurement, normalised.
-    measured: f64,
+/// What the drift check found one tick.
+#[derive(Default)]
+struct Drift {
     /// The drift flag, and whether the reference's filter lies within the drift bound of the
     /// limit (the stored flag may go either way).
-    drift: bool,
-    drift_ambiguous: bool,
+    flagged: bool,
+    ambiguous: bool,
 }
 
 impl ReferenceSensor {
@@ -186,37 +190,46 @@ impl ReferenceSensor {
             bits: u32::from(bits).min(30),
             // Fractions of the range; the normalised range is 2 wide.
             drift_limit: sensor.drift_limit.filter(|_| observed).map(|d| 2.0 * d),
-            estimates: [at_rest; SENSOR_DELAY_TICKS],
+            estimates: [at_rest; SENSOR_DELAY_TICKS + 2],
             drift: 0.0,
         }))
     }
 
-    /// Reads `code` and runs the drift check.
-    fn read(&mut self, code: u16, drift_tol: f64) -> Reading {
+    /// Reads `code`: the measurement, normalised.
+    fn read(&self, code: u16) -> f64 {
         let mask = (1u32 << self.bits) - 1;
         let fraction = (code as u32 & mask) as f64 / (1u64 << self.bits) as f64;
-        let measured = saturate(self.at_zero + self.gain * fraction);
-        let difference = saturate(measured - self.estimates[SENSOR_DELAY_TICKS - 1]);
-        self.drift += (difference - self.drift) / (1u32 << DRIFT_FILTER_SHIFT) as f64;
-        let (drift, drift_ambiguous) = match self.drift_limit {
-            Some(l) => (
-                self.drift.abs() > l,
-                (self.drift.abs() - l).abs() < drift_tol,
-            ),
-            None => (false, false),
-        };
-        Reading {
-            measured,
-            drift,
-            drift_ambiguous,
-        }
+        saturate(self.at_zero + self.gain * fraction)
     }
 
-    /// End of a tick: the observer's estimate.
-    fn observed(&mut self, estimate: f64) {
+    /// End of a tick: the observer's `estimate` into the history, then the drift check of the
+    /// tick's `measured` (`None`: the read failed, no check) against the estimate of the
+    /// reading's instant (the end of the hold of SENSOR_DELAY_TICKS ago, between the estimates
+    /// of the middles around it).
+    fn observed(&mut self, estimate: f64, measured: Option<f64>, drift_tol: f64) -> Drift {
         self.estimates.rotate_right(1);
         self.estimates[0] = estimate;
+        let Some(measured) = measured else {
+            return Drift::default();
+        };
+        let difference = saturate(measured - at_reading(&self.estimates));
+        self.drift += (difference - self.drift) / (1u32 << DRIFT_FILTER_SHIFT) as f64;
+        match self.drift_limit {
+            Some(l) => Drift {
+                flagged: self.drift.abs() > l,
+                ambiguous: (self.drift.abs() - l).abs() < drift_tol,
+            },
+            None => Drift::default(),
+        }
     }
+}
+
+/// The value of the present reading's instant from a history of the last ticks' values
+/// (newest first, this tick's included): the end of the hold of SENSOR_DELAY_TICKS ago,
+/// between the values of the middles around it (`twinstack::control::instant`).
+fn at_reading(history: &[f64; SENSOR_DELAY_TICKS + 2]) -> f64 {
+    let d = SENSOR_DELAY_TICKS;
+    between(history[d + 1], history[d], history[d - 1], history[d - 2])
 }
 
 /// The PI feedback in real arithmetic (see the module doc), with its memory.
@@ -231,7 +244,7 @@ struct ReferenceFeedback {
     /// The previous tick's command minus the drive applied.
     clip: f64,
     /// Targets of the last ticks, newest first.
-    targets: [f64; SENSOR_DELAY_TICKS],
+    targets: [f64; SENSOR_DELAY_TICKS + 2],
 }
 
 impl ReferenceFeedback {
@@ -251,17 +264,17 @@ impl ReferenceFeedback {
             limit: 2.0 * fb.limit,
             integrator: 0.0,
             clip: 0.0,
-            targets: [at_rest; SENSOR_DELAY_TICKS],
+            targets: [at_rest; SENSOR_DELAY_TICKS + 2],
         }))
     }
 
     /// One tick's correction: `measured` the reading (`None`: the read failed), `target`
     /// this tick's. Also says whether the integrator was held against a non-zero error.
     fn correction(&mut self, target: f64, measured: Option<f64>) -> (f64, bool) {
-        // The target of SENSOR_DELAY_TICKS ago, then this tick's into the history.
-        let reference = self.targets[SENSOR_DELAY_TICKS - 1];
+        // This tick's target into the history, then the target of the reading's instant.
         self.targets.rotate_right(1);
         self.targets[0] = target;
+        let reference = at_reading(&self.targets);
         let Some(measured) = measured else {
             return (self.integrator, false);
         };
@@ -476,20 +489,15 @@ pub fn check(set: &VectorSet<'_>) -> anyhow::Result<Agreement> {
         let mut command = ff;
         // Flags the stored tick may set either way (its decision lies within its bound).
         let mut loose = 0u8;
+        let mut reading = None;
         if let Some(sn) = &mut sensor {
             let measured = if input.adc_fails {
                 flags |= TickFlags::ADC_ERROR;
                 None
             } else {
-                let r = sn.read(input.adc_code, drift_tol);
-                if r.drift {
-                    flags |= TickFlags::DRIFT;
-                }
-                if r.drift_ambiguous {
-                    loose |= TickFlags::DRIFT;
-                }
-                Some(r.measured)
+                Some(sn.read(input.adc_code))
             };
+            reading = measured;
             if let Some(fb) = &mut feedback {
                 let (correction, held) = fb.correction(target, measured);
                 a.integrator_holds += usize::from(held);
@@ -552,7 +560,13 @@ pub fn check(set: &VectorSet<'_>) -> anyhow::Result<Agreement> {
             None => estimate_ref,
         };
         if let Some(sn) = &mut sensor {
-            sn.observed(estimate_ref);
+            let drift = sn.observed(estimate_ref, reading, drift_tol);
+            if drift.flagged {
+                flags |= TickFlags::DRIFT;
+            }
+            if drift.ambiguous {
+                loose |= TickFlags::DRIFT;
+            }
         }
         if let Some(fb) = &mut feedback {
             fb.clip = command - applied;

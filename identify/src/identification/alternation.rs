@@ -45,8 +45,9 @@ pub(super) fn with_creep(
     let rate = 1.0 / period;
     let taus = creep::time_constants(period, t.last().unwrap_or(&0.0) - t[0], modes);
     let score = |m: &StageModel| -> Result<f64, IdentifyError> {
-        let x = m.predict(t, u).map_err(IdentifyError::Params)?;
-        // `predict` applies the sign and the lag: compare with the reading at k + lag.
+        let x = m.predict_targets(t, u).map_err(IdentifyError::Params)?;
+        // Applied the sign and the lag as the fit pairs them: compare with the target at
+        // k + lag.
         Ok(rms(rows.index.iter().map(|&k| {
             m.output_sign * x[k + rows.lag] - y[k + rows.lag]
         })))

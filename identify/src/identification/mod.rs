@@ -8,8 +8,13 @@
 //!    the settling samples are left out.
 //! 2. **Sign**: a sensor whose reading falls as the drive rises is fitted on the negated
 //!    reading, and the model records `output_sign = −1`.
-//! 3. **Lag**: the sensor may lag the drive by a few samples. Unless given, a lag is estimated
-//!    only where the data supports one: the P–I fit is repeated for 0 … `max_lag` samples (its
+//! 3. **Lag**: the sensor may lag the drive by a few samples, in half samples: a drive held
+//!    for a sample (the board's DAC, a DAQ's output) acts on the stage as at the middle of its
+//!    hold, so on such a record a reading of a hold's end is half a sample past the instant the
+//!    drive's model output belongs to; a half lag `L + ½` pairs drive `k` with the mean of the
+//!    readings `k + L` and `k + L + 1` ([`crate::stage_model::between_samples`]). Unless given, a
+//!    lag is estimated only where the data supports one: the P–I fit is repeated for 0,
+//!    ½, 1, … `max_lag` samples (its
 //!    residual screened for outliers as in step 4), and a
 //!    lag is kept only if it lowers the residual RMS by at least [`LAG_EVIDENCE`] of the
 //!    no-lag fit's (noise, resonance or creep shave a little off at any lag; a real delay
@@ -47,7 +52,7 @@ pub mod run;
 pub mod score;
 pub mod simplex;
 
-use crate::stage_model::{Hysteresis, StageModel};
+use crate::stage_model::{between, between_samples, Hysteresis, StageModel};
 use least_squares::LeastSquaresError;
 pub use pi::ThresholdSpread;
 use twinstack::{ParamError, Scaling};
@@ -67,11 +72,33 @@ pub const OUTPUT_MARGIN: f64 = 0.05;
 /// A lag is estimated only if it lowers the P–I residual RMS by at least this fraction of the
 /// no-lag fit's.
 pub const LAG_EVIDENCE: f64 = 0.05;
+/// The largest lag [`IdentifyOptions::given_lag`] takes, samples.
+pub const MAX_GIVEN_LAG: f64 = 100_000.0;
+
+/// A given lag of `samples` in half samples: a whole or a half number from 0 to
+/// [`MAX_GIVEN_LAG`], else an error naming it.
+///
+/// ```
+/// use twinstack_identify::identification::half_samples;
+/// assert_eq!(half_samples(1.5), Ok(3));
+/// assert!(half_samples(-0.5).is_err() && half_samples(0.25).is_err());
+/// ```
+pub fn half_samples(samples: f64) -> Result<usize, String> {
+    let halves = 2.0 * samples;
+    if !(samples.is_finite() && (0.0..=MAX_GIVEN_LAG).contains(&samples)) || halves.fract() != 0.0 {
+        return Err(format!(
+            "lag {samples}: not a whole or half number of samples from 0 to {MAX_GIVEN_LAG}"
+        ));
+    }
+    Ok(halves as usize)
+}
+
 /// Among the lags that do, the smallest whose RMS is within this fraction of the best.
 pub const LAG_TOLERANCE: f64 = 0.01;
 
-/// The lag the residuals `(lag, rms)` (increasing lags from 0) support: 0 unless one lowers
-/// the RMS by [`LAG_EVIDENCE`], else the smallest within [`LAG_TOLERANCE`] of the best.
+/// The lag the residuals `(lag, rms)` (increasing lags from 0, in half samples) support: 0
+/// unless one lowers the RMS by [`LAG_EVIDENCE`], else the smallest within [`LAG_TOLERANCE`]
+/// of the best.
 pub fn supported_lag(fits: &[(usize, f64)]) -> usize {
     let Some(&(_, at_zero)) = fits.first() else {
         return 0;
@@ -195,8 +222,12 @@ pub struct IdentifyOptions {
     pub creep_modes: usize,
     /// Threshold spread of a P–I model.
     pub thresholds: ThresholdSpread,
-    /// Sensor lag in samples; `None` to estimate it.
+    /// Sensor lag in samples; `None` to estimate it (in half samples). [`IdentifyOptions::given_lag`]
+    /// sets it with [`IdentifyOptions::half_lag`] from a whole or half number.
     pub lag: Option<usize>,
+    /// With a given `lag`: half a sample more (the reading of a held drive's end is half a
+    /// sample past the middle of its hold, the instant the model's output belongs to).
+    pub half_lag: bool,
     /// Largest lag tried when estimating, samples.
     pub max_lag: usize,
     /// Refine a Duhem or generalised P–I fit on its simulated error.
@@ -222,11 +253,31 @@ impl IdentifyOptions {
             creep_modes: creep::MODES,
             thresholds: ThresholdSpread::Uniform,
             lag: None,
+            half_lag: false,
             max_lag: 10,
             refine: true,
             creep: false,
             observer: true,
         }
+    }
+
+    /// Gives the sensor lag as `samples`, a whole or a half number of samples from 0 to
+    /// [`MAX_GIVEN_LAG`] (a half: the reading of a held drive's end, half a sample past the
+    /// middle of its hold): sets [`IdentifyOptions::lag`] and [`IdentifyOptions::half_lag`].
+    /// Anything else is refused, naming it.
+    ///
+    /// ```
+    /// use twinstack_identify::identification::{IdentifyOptions, ModelKind};
+    /// let mut o = IdentifyOptions::new(ModelKind::Pi, 1.0);
+    /// o.given_lag(1.5).unwrap();
+    /// assert_eq!((o.lag, o.half_lag), (Some(1), true));
+    /// assert!(o.given_lag(0.3).is_err() && o.given_lag(f64::NAN).is_err());
+    /// ```
+    pub fn given_lag(&mut self, samples: f64) -> Result<(), String> {
+        let halves = half_samples(samples)?;
+        self.lag = Some(halves / 2);
+        self.half_lag = halves % 2 == 1;
+        Ok(())
     }
 }
 
@@ -305,8 +356,8 @@ pub struct Identification {
     pub motion: motion::MotionStart,
     /// First held-out sample (samples before it were available to the fit).
     pub held_out_from: usize,
-    /// Sensor lag, samples of this record.
-    pub lag_samples: usize,
+    /// Sensor lag, samples of this record (a whole or a half number).
+    pub lag_samples: f64,
     /// Whether the lag was estimated (rather than given).
     pub lag_estimated: bool,
     /// Rows fitted (after outliers were dropped).
@@ -459,7 +510,18 @@ pub fn identify(
     if output_sign < 0.0 {
         notes.push("the reading falls as the drive rises: output_sign = -1".into());
     }
-    let y: Vec<f64> = x[..n_fit].iter().map(|v| output_sign * v).collect();
+    let y_readings: Vec<f64> = x[..n_fit].iter().map(|v| output_sign * v).collect();
+    // The targets at a half lag: the value between each reading and the next (the middle of
+    // a held drive's hold, half a sample before the reading of its end).
+    let y_between = between_samples(&y_readings);
+    // Lag `h` half samples: the targets and the whole samples they are taken ahead.
+    let targets = |h: usize| -> (&[f64], usize) {
+        if h % 2 == 1 {
+            (&y_between, h / 2)
+        } else {
+            (&y_readings, h / 2)
+        }
+    };
 
     let (u_lo, u_hi) = min_max(u_fit.iter().copied());
     let margin = INPUT_MARGIN * (u_hi - u_lo);
@@ -475,37 +537,56 @@ pub fn identify(
         .generate(options.operators, amplitude)
         .map_err(IdentifyError::Params)?;
     let columns = pi::operator_outputs(u_fit, &thresholds, u_mid, (in_lo, in_hi));
-    let rows_for = |lag: usize| FitRows {
-        index: (first..n_fit.saturating_sub(lag)).collect(),
-        lag,
+    // A half lag also needs the reading after: one row fewer.
+    let rows_for = |h: usize| FitRows {
+        index: (first..n_fit.saturating_sub(h / 2 + h % 2)).collect(),
+        lag: h / 2,
     };
-    let pi_rms = |rows: &FitRows| -> Result<f64, IdentifyError> {
-        let f = pi::fit(&columns, &thresholds, u_mid, &y, rows, 0.0)?;
+    // A lag's P–I residual RMS, against the readings themselves: at a half lag the model
+    // gives a reading as the mean of the outputs on either side (as `predict` does), so that
+    // the mean of two readings' noise does not pass for a better fit.
+    let pi_rms = |h: usize, rows: &FitRows| -> Result<f64, IdentifyError> {
+        let (y, lag) = targets(h);
+        let f = pi::fit(&columns, &thresholds, u_mid, y, rows, 0.0)?;
+        let residuals: Vec<f64> = if h % 2 == 1 {
+            // Reading `k + lag + 1` lies between the outputs of drives `k` and `k + 1`.
+            rows.index
+                .windows(4)
+                .filter(|w| w[3] == w[0] + 3)
+                .map(|w| {
+                    let output = |k: usize| y[k + lag] - f.residuals[k];
+                    let between = between(output(w[0]), output(w[1]), output(w[2]), output(w[3]));
+                    y_readings[w[2] + lag] - between
+                })
+                .collect()
+        } else {
+            rows.index.iter().map(|&k| f.residuals[k]).collect()
+        };
         // Screened as the outliers will be: a start-up transient's few large residuals
         // would otherwise drown the difference a lag makes.
-        let all = rms(rows.index.iter().map(|&k| f.residuals[k]));
-        Ok(rms(rows
-            .index
-            .iter()
-            .map(|&k| f.residuals[k])
+        let all = rms(residuals.iter().copied());
+        Ok(rms(residuals
+            .into_iter()
             .filter(|r| r.abs() <= OUTLIER_FACTOR * all)))
     };
 
-    let (lag, lag_estimated) = match options.lag {
-        Some(l) => (l, false),
+    let (half_lag, lag_estimated) = match options.lag {
+        Some(l) => (2 * l + usize::from(options.half_lag), false),
         None => {
             let mut fits = Vec::new();
-            for l in 0..=options.max_lag {
-                let rows = rows_for(l);
+            for h in 0..=2 * options.max_lag {
+                let rows = rows_for(h);
                 if rows.index.len() < MIN_FIT_SAMPLES {
                     break;
                 }
-                fits.push((l, pi_rms(&rows)?));
+                fits.push((h, pi_rms(h, &rows)?));
             }
             (supported_lag(&fits), true)
         }
     };
-    let mut rows = rows_for(lag);
+    let (y, lag) = targets(half_lag);
+    let y = y.to_vec();
+    let mut rows = rows_for(half_lag);
     if rows.index.len() < MIN_FIT_SAMPLES {
         return Err(IdentifyError::LagTooLong { lag });
     }
@@ -518,7 +599,8 @@ pub fn identify(
     let outliers = before - rows.index.len();
 
     let sample_period = data.sample_period();
-    let sensor_lag_s = lag as f64 * sample_period;
+    let lag_samples = 0.5 * half_lag as f64;
+    let sensor_lag_s = lag_samples * sample_period;
     let with_output_range = |hysteresis: Hysteresis, model_output: &[f64], min_half_span: f64| {
         let (lo, hi) = min_max(model_output.iter().copied().filter(|v| v.is_finite()));
         let half = (0.5 + OUTPUT_MARGIN) * (hi - lo);
@@ -682,7 +764,7 @@ pub fn identify(
         model,
         motion,
         held_out_from: n_fit,
-        lag_samples: lag,
+        lag_samples,
         lag_estimated,
         fitted_rows: rows.index.len(),
         outliers,

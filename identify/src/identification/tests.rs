@@ -109,7 +109,7 @@ fn a_start_up_step_and_a_spike_are_skipped_and_the_model_predicts_the_held_out_p
         id.motion
     );
     assert!(id.outliers >= 1, "the spike is dropped");
-    assert_eq!(id.lag_samples, 0);
+    assert_eq!(id.lag_samples, 0.0);
     let (u, x) = (data.u.as_ref().unwrap(), data.x.as_ref().unwrap());
     let predicted = id.model.predict(&data.t, u).unwrap();
     let held = score(x, &predicted, 2000..3000).unwrap();

@@ -4,7 +4,7 @@
 //! closed-loop poles (stability) and the ringing after a step.
 //!
 //! **Timing** (as in `SimBoard` and on the board): the tick reads the sensor, computes
-//! `u_k = feedforward + C(e)`, `e_k = r_{k−2} − y_k` ([`twinstack::control::feedback::SENSOR_DELAY_TICKS`]),
+//! `u_k = feedforward + C(e)`, `e_k = r̄_k − y_k` (`r̄_k` the target between `r_{k−2}` and `r_{k−1}`, `twinstack::control::instant`) ([`twinstack::control::feedback::SENSOR_DELAY_TICKS`]),
 //! and writes the DAC, which holds `u_k` over the next period. The stage advances by the exact
 //! zero-order hold `x_{k+1} = Φ x_k + Γ u_k`; the reading of tick `k` is `y_k = c·x_{k−d}`
 //! (`d = 1` on the simulated board: the ADC returns the previous conversion). So the loop
@@ -17,6 +17,7 @@
 //! Q2.30/Q0.32/Q4.28; the loop is judged on the exact values (rounding moves the poles by
 //! about 1e-9).
 
+use crate::stage_model::between;
 use crate::zero_order_hold::ZeroOrderHold;
 use std::f64::consts::PI;
 use twinstack::control::feedback::{FeedbackSettings, SENSOR_DELAY_TICKS};
@@ -529,7 +530,7 @@ impl StepTest {
 
 /// A setpoint step on the linear loop: the feedforward steps the drive by `size / gain` (its
 /// inverse model at DC) under the slew limit, the feedback corrects against the reference of
-/// [`SENSOR_DELAY_TICKS`] ago. Returns the stage's ringing 1–3 ms after the step and its
+/// the reading's instant (between those of [`SENSOR_DELAY_TICKS`] and one fewer ago). Returns the stage's ringing 1–3 ms after the step and its
 /// overshoot, % of the step.
 pub fn step_figures(
     plant: &LinearPlant,
@@ -563,16 +564,20 @@ pub fn step_trace(
         history: vec![0.0; plant.delay],
     };
     let mut cs = ControllerState::default();
-    let mut refs = [0.0f64; SENSOR_DELAY_TICKS];
+    let mut refs = [0.0f64; SENSOR_DELAY_TICKS + 2];
     let target_drive = step.size / plant.gain;
     let max_step = step.slew_per_tick.max(1e-9);
     let mut drive = 0.0f64;
     let mut out = Vec::with_capacity(ticks);
     for _ in 0..ticks {
         let reading = plant.step_reading(&ps);
-        let reference = refs[SENSOR_DELAY_TICKS - 1];
-        refs.copy_within(0..SENSOR_DELAY_TICKS - 1, 1);
+        // The reference of the reading's instant, as the tick's feedback takes it
+        // (`twinstack::control::instant`): this tick's into the history, then the value
+        // between the holds' middles around the reading.
+        refs.copy_within(0..SENSOR_DELAY_TICKS + 1, 1);
         refs[0] = step.size;
+        let d = SENSOR_DELAY_TICKS;
+        let reference = between(refs[d + 1], refs[d], refs[d - 1], refs[d - 2]);
         let c = controller.step(&mut cs, reference - reading);
         let command = target_drive + c;
         drive += (command - drive).clamp(-max_step, max_step);
