@@ -6,11 +6,15 @@
 //!
 //! 1. **Identify** the feedforward model as a user would: the bypassed tick plays a 70 ± 70 V
 //!    750 Hz sine, and a P–I model (16 operators, fewer where the rate's tick budget needs it:
-//!    [`operators_at`]) is fitted to the first half of the record.
+//!    [`operators_at`]) is fitted to the first half of the record, each drive sample paired
+//!    with the stage at the middle of its hold (half a sample's lag: see `identify`).
 //! 2. **Track** a 100 Hz triangle and a 750 Hz sine over 10–90 % of the stroke with four
 //!    configurations of the very same tick — no compensation (bypass), feedforward only (open
 //!    loop), feedback only (closed loop without the inverse model), feedforward + feedback —
-//!    and score the tracking error (max and RMS, % of the commanded stroke).
+//!    and score the tracking error (max and RMS, % of the commanded stroke): the stage at
+//!    each hold's end, where the sensor reads it, against the target of that instant, between
+//!    the setpoints of the holds' middles around it (the rule the tick's feedback takes it
+//!    by, `twinstack::control::instant`).
 //! 3. **Step** the setpoint (30 % → 70 % of the stroke) in closed loop with and without the
 //!    resonance notch, and measure the ringing.
 //!
@@ -38,7 +42,7 @@ use twinstack::Scaling;
 use twinstack_identify::identification::{
     identify, score::score, IdentifyOptions, ModelKind, ThresholdSpread,
 };
-use twinstack_identify::stage_model::{Hysteresis, StageModel};
+use twinstack_identify::stage_model::{between_samples, Hysteresis, StageModel};
 use twinstack_link::measured_data::MeasuredData;
 
 /// The differential stage's first resonance (see the book, docs/src/reference/physics.md), Hz: where the notch sits.
@@ -128,15 +132,13 @@ pub struct TrackingRow {
     /// Ticks the drift check flagged (`None`: no observer at this rate, so no check; see
     /// [`settings`]).
     pub drift_ticks: Option<u64>,
-    /// Of those, the ticks after the first [`START_UP_S`] of the run.
+    /// Of those, the ticks in the scored cycles (the first cycles, which the tracking error
+    /// leaves out, left out here too): the observer starts at rest on its ascending branch in
+    /// the differential drive `v`, while both stacks rose together from 0 V to the bias, so the
+    /// first move after boot can disagree until the drive has swept its range (see the book,
+    /// reference/models.md, "At rest").
     pub drift_ticks_after_start: Option<u64>,
 }
-
-/// The start of a run, after boot, whose drift flags [`TrackingRow::drift_ticks_after_start`]
-/// leaves out: the observer starts at rest on its ascending branch in the differential drive
-/// `v`, while both stacks rose together from 0 V to the bias, so the first move after boot
-/// can disagree for a few ticks (see the book, reference/models.md, "At rest").
-pub const START_UP_S: f64 = 1e-3;
 
 /// The step with or without the notch.
 #[derive(Clone, Debug)]
@@ -372,6 +374,7 @@ fn simulate(
     config: ControlConfig,
     scaling: &Scaling,
     setpoints: impl Iterator<Item = i32>,
+    start_up: usize,
 ) -> Result<Run> {
     let mut board = board(rate, options.sensor_noise_um)?;
     // The tick and, with the sensor, the observer and its drift check below it.
@@ -382,7 +385,6 @@ fn simulate(
         drift_ticks: 0,
         drift_ticks_after_start: 0,
     };
-    let start_up = (START_UP_S * rate).round() as usize;
     for sp in setpoints {
         let r = controller.tick_board(Some(sp), &mut board);
         if r.flags.contains(TickFlags::DRIFT) {
@@ -392,8 +394,14 @@ fn simulate(
             }
         }
         run.desired.push(scaling.norm_to_output(signal_to_f64(sp)));
+        // The stage at the hold's end, where the sensor reads it.
         run.x.push(board.plant().stage_um());
     }
+    // Each setpoint is for the middle of its drive's hold: the target at a hold's end lies
+    // between two, by the rule the tick's feedback takes it (`twinstack::control::instant`).
+    // The last is the last setpoint (no setpoint after it): a run's last two samples are
+    // not scored.
+    run.desired = between_samples(&run.desired);
     let c = controller.controller.counters();
     if c.adc_errors + c.dac_errors > 0 {
         return Err(anyhow!("converter errors in the simulated run: {c:?}"));
@@ -455,11 +463,13 @@ pub fn identify_model(rate: f64, options: &ClosedLoopOptions) -> Result<StageMod
     let mut board = board(rate, options.sensor_noise_um)?;
     let mut controller = Controller::new(config);
     let (mut t, mut u, mut x) = (Vec::new(), Vec::new(), Vec::new());
+    // Sample k: the stage at the tick's instant (the end of the hold before), then the drive
+    // the tick gives it to hold.
     for k in 0..ticks {
+        x.push(board.plant().stage_um());
         controller.tick_board(Some(wave.next_sample()), &mut board);
         t.push(k as f64 / rate);
         u.push(board.amplifier_volts()[0]);
-        x.push(board.plant().stage_um());
     }
     let data = MeasuredData {
         path: PathBuf::from("simulated differential stage"),
@@ -470,7 +480,10 @@ pub fn identify_model(rate: f64, options: &ClosedLoopOptions) -> Result<StageMod
     let mut opts = IdentifyOptions::new(ModelKind::Pi, t[t.len() / 2]);
     opts.operators = operators_at(rate);
     opts.thresholds = ThresholdSpread::Uniform;
+    // The drive of sample k is held from the stage's sample k to its sample k + 1: the model
+    // maps it to the middle of that hold, half a sample on (see `identify`'s half lag).
     opts.lag = Some(0);
+    opts.half_lag = true;
     Ok(identify(&data, &opts)
         .context("identifying P–I on the simulated stage")?
         .model)
@@ -536,15 +549,16 @@ pub fn track_with(
     .map_err(|e| anyhow!("tracking waveform: {e:?}"))?;
     let per_cycle = (rate / frequency).round() as usize;
     let ticks = per_cycle * cycles;
+    let from = (skip * per_cycle).min(ticks);
     let run = simulate(
         rate,
         options,
         config,
         &s,
         (0..ticks).map(|_| wave.next_sample()),
+        from,
     )?;
-    let from = (skip * per_cycle).min(ticks);
-    let fig = score(&run.desired, &run.x, from..ticks)
+    let fig = score(&run.desired, &run.x, from..ticks.saturating_sub(2))
         .ok_or_else(|| anyhow!("nothing to score ({cycles} cycles)"))?;
     Ok(TrackingRow {
         rate,
@@ -599,6 +613,7 @@ pub fn step_with(
         config,
         &s,
         (0..before + after).map(|k| if k < before { sp(from_um) } else { sp(to_um) }),
+        before,
     )?;
     let x = &run.x[before..];
     let last = (0.0035 * rate) as usize..after;
@@ -730,7 +745,8 @@ pub fn print(report: &ClosedLoopReport, out: &mut impl std::io::Write) -> std::i
             r.configuration.label(),
             r.max_pct,
             r.rms_pct,
-            r.drift_ticks.map_or("–".to_string(), |n| n.to_string())
+            r.drift_ticks_after_start
+                .map_or("–".to_string(), |n| n.to_string())
         )?;
     }
     writeln!(

@@ -31,7 +31,7 @@ use twinstack::Scaling;
 use twinstack_identify::identification::{
     identify, score::score, IdentifyOptions, ModelKind, ThresholdSpread,
 };
-use twinstack_identify::stage_model::{Hysteresis, StageModel};
+use twinstack_identify::stage_model::{between_samples, Hysteresis, StageModel};
 use twinstack_link::measured_data::MeasuredData;
 
 /// What the demo runs.
@@ -188,16 +188,25 @@ fn simulate(
     };
     for k in 0..ticks {
         let sp = setpoint(k);
+        // Sample k: the stage as the tick starts (the end of the hold before, where a sensor
+        // reads it), then the drive the tick gives it to hold.
+        rec.x.push(board.plant().stage_um());
         controller.tick_board(Some(sp), &mut board);
         rec.t.push(k as f64 * dt);
         rec.u.push(board.amplifier_volts()[0]);
-        rec.x.push(board.plant().stage_um());
         rec.desired.push(output_of(sp));
         if k % 1024 == 0 {
             bar.set_position(k as u64);
         }
     }
     bar.finish_and_clear();
+    // Each setpoint is for the middle of its drive's hold, so the target of the stage's
+    // sample k, the end of hold k − 1, lies between setpoints k − 1 and k
+    // (`twinstack::control::instant`).
+    let between = between_samples(&rec.desired);
+    rec.desired = (0..between.len())
+        .map(|k| between[k.saturating_sub(1)])
+        .collect();
     Ok(rec)
 }
 
@@ -249,8 +258,10 @@ fn identify_on(rec: &Record, kind: ModelKind, stage: StageConfiguration) -> Resu
     let mut opts = IdentifyOptions::new(kind, rec.t[rec.t.len() / 2]);
     opts.operators = 9;
     opts.thresholds = ThresholdSpread::Uniform;
-    // The simulated displacement is read without lag: no lag to estimate.
+    // The drive of sample k is held from the stage's sample k to its sample k + 1: the model
+    // maps it to the middle of that hold, half a sample on (see `identify`'s half lag).
     opts.lag = Some(0);
+    opts.half_lag = true;
     Ok(identify(&data, &opts)
         .with_context(|| format!("identifying {kind:?} on the {} stage", name(stage)))?
         .model)

@@ -33,7 +33,7 @@ use twinstack::services::learning::{
 use twinstack::services::snapshot::SnapshotRing;
 use twinstack::sources::waveform::{Shape, WaveformGenerator};
 use twinstack_identify::identification::score::score;
-use twinstack_identify::stage_model::StageModel;
+use twinstack_identify::stage_model::{between, StageModel};
 
 /// The waveform to learn: a shape and a frequency.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -402,8 +402,13 @@ impl Rig {
                 self.scaling
                     .norm_to_output(signal_to_f64(self.control.controller().setpoint())),
             );
+            // The stage at the hold's end, where the sensor reads it.
             x.push(self.board.plant().stage_um());
         }
+        // Each setpoint is for the middle of its drive's hold: the target at a hold's end lies
+        // between two (the rule the tick's learning and feedback take it by,
+        // `twinstack::control::instant`), the waveform periodic over the period.
+        let desired = between_periodic(&desired);
         let c = self.control.counters();
         if c.adc_errors + c.dac_errors > 0 {
             bail!("converter errors in the simulated run: {c:?}");
@@ -425,6 +430,16 @@ impl Rig {
             band_rms_pct: 100.0 * band / span,
         })
     }
+}
+
+/// The values between consecutive samples of one period of a periodic signal: element `k`
+/// lies between `x[k]` and `x[k + 1]` (the period wrapping round), [`between`].
+fn between_periodic(x: &[f64]) -> Vec<f64> {
+    let n = x.len();
+    let at = |k: usize| x[k % n];
+    (0..n)
+        .map(|k| between(at(k + n - 1), at(k), at(k + 1), at(k + 2)))
+        .collect()
 }
 
 /// The worst max and the RMS of RMS over `periods`.

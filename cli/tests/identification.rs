@@ -415,6 +415,51 @@ fn identify_refuses_a_split_that_leaves_nothing_to_score() {
     );
 }
 
+/// `--lag` takes a whole or a half number of samples (a half: the reading of a held drive's
+/// end) and stores it in seconds; anything else is refused by name, and nothing is written.
+#[test]
+fn a_given_half_lag_is_kept_and_a_lag_between_halves_is_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let good = csv_with(dir.path(), "good.csv", |_| {});
+    let out = dir.path().join("p.json");
+    let args = |lag: &'static str| {
+        vec![
+            "identify".to_string(),
+            "--model".into(),
+            "pi".into(),
+            "--operators".into(),
+            "4".into(),
+            "--data".into(),
+            good.to_str().unwrap().into(),
+            "--fit-until".into(),
+            "0.5".into(),
+            "--lag".into(),
+            lag.into(),
+            "--out".into(),
+            out.to_str().unwrap().into(),
+        ]
+    };
+    for bad in ["0.3", "-1", "NaN", "200000", "x"] {
+        let a = args(bad);
+        let a: Vec<&str> = a.iter().map(String::as_str).collect();
+        let err = fails(&a, &[&out]);
+        assert!(err.contains("--lag") && err.contains(bad), "{bad}: {err}");
+    }
+    let a = args("1.5");
+    let a: Vec<&str> = a.iter().map(String::as_str).collect();
+    let report = ok(&a);
+    assert!(
+        report.contains("sensor lag 1.5 samples (given)"),
+        "{report}"
+    );
+    let file: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&out).unwrap()).unwrap();
+    assert_eq!(
+        file["identification"]["lag_samples"],
+        serde_json::json!(1.5)
+    );
+}
+
 // ---------------------------------------------------------------------------------------
 // Synthetic round trips.
 
