@@ -70,13 +70,15 @@ pub fn run(args: &Args, direction: Direction) -> anyhow::Result<()> {
             let x = data.x.clone().unwrap_or_default();
             let u = model.compensate(&data.t, &x).map_err(model_error)?;
             // With a sensor lag of L samples the drive at sample k aims at the reading at
-            // k + L; the last L samples have none, so they aim at the last reading (held).
-            let lag = model.lag_samples(&data.t).min(data.len().saturating_sub(1));
-            if lag > 0 {
+            // k + L (between two readings for a half L); the last ⌈L⌉ samples have none, so
+            // they aim at the last reading (held).
+            let lag = 0.5 * model.lag_half_samples(&data.t) as f64;
+            let last = model.lag_samples(&data.t).min(data.len().saturating_sub(1));
+            if last > 0 {
                 eprintln!(
-                    "note: the sensor lags the drive by {lag} sample{}: the drive leads the desired reading by as much, and its last {lag} sample{} aim at the last desired reading (t = {} s), there being no later one",
-                    if lag == 1 { "" } else { "s" },
-                    if lag == 1 { "" } else { "s" },
+                    "note: the sensor lags the drive by {lag} sample{}: the drive leads the desired reading by as much, and its last {last} sample{} aim at the last desired reading (t = {} s), there being no later one",
+                    if lag == 1.0 { "" } else { "s" },
+                    if last == 1 { "" } else { "s" },
                     data.t.last().copied().unwrap_or_default()
                 );
             }
