@@ -183,8 +183,10 @@ fn notch_refusal(d: &NotchDesign, e: NotchError) -> Refusal {
 /// write) and the ADC returns the previous conversion (one sample of latency), as on the board
 /// and in `hal-sim`'s `SimBoard`.
 pub const SENSOR_DELAY_TICKS: usize = 2;
-// A reading lies between the holds of two drives: the feedback and the drift check take both.
-const _: () = assert!(SENSOR_DELAY_TICKS >= 2);
+// The target of a reading's instant (`instant::ReadingInstant`) is laid out for this delay:
+// the end of the hold of two ticks ago, between the targets of two and one tick ago, the cubic
+// taking those of three ticks ago and of the present tick beside them.
+const _: () = assert!(SENSOR_DELAY_TICKS == 2);
 
 /// The drift check low-passes the model-vs-sensor difference over `2^DRIFT_FILTER_SHIFT`
 /// ticks, so sensor noise and the stage's own fast dynamics do not trip it.

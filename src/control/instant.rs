@@ -15,8 +15,6 @@
 //! curvature over a period (`T²·ẍ/8`): 0.1 % of a 750 Hz sine's amplitude at 50 kHz, the size
 //! of what the learning is there to remove.
 
-use crate::control::feedback::SENSOR_DELAY_TICKS;
-
 /// The value midway between `b` and `c` of four consecutive ticks' values `a, b, c, d`
 /// (oldest first, Q2.30): the cubic through the four, `m + (m − o)/8` with `m` the mean of
 /// `b` and `c` and `o` that of `a` and `d` (each `⌊(x + y)/2⌋`, exact without overflow; the
@@ -46,7 +44,8 @@ fn mean(x: i32, y: i32) -> i32 {
 
 /// The last ticks' values (setpoints, or the observer's estimates), each of the middle of its
 /// drive's hold, and from them the value at the present reading's instant: the end of the hold
-/// of the drive of [`SENSOR_DELAY_TICKS`] ticks ago ([`between_holds`]).
+/// of the drive of [`SENSOR_DELAY_TICKS`](crate::control::feedback::SENSOR_DELAY_TICKS)
+/// ticks ago ([`between_holds`]).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct ReadingInstant {
     /// The last three values, newest first, Q2.30: `values[i]` is of `i + 1` ticks ago
@@ -73,8 +72,9 @@ impl ReadingInstant {
     }
 
     /// Puts this tick's `value` into the history and returns the value at the instant of the
-    /// present reading (between the middles of the holds of [`SENSOR_DELAY_TICKS`] and
-    /// `SENSOR_DELAY_TICKS − 1` ticks ago, from those of three ticks ago to the present one).
+    /// present reading (between the middles of the holds of two ticks and one tick ago,
+    /// [`SENSOR_DELAY_TICKS`](crate::control::feedback::SENSOR_DELAY_TICKS), from the values of
+    /// three ticks ago to the present one).
     /// Constant time: four moves and the cubic, no call.
     #[inline(always)]
     pub fn push(&mut self, value: i32) -> i32 {
@@ -91,14 +91,10 @@ impl Default for ReadingInstant {
     }
 }
 
-// The history is laid out for a reading of the end of the hold of two ticks ago: between the
-// values of two and one tick ago, the cubic taking those of three ticks ago and of the present
-// tick beside them.
-const _: () = assert!(SENSOR_DELAY_TICKS == 2);
-
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::control::feedback::SENSOR_DELAY_TICKS;
     use crate::fixed_point::{signal_from_f64, signal_to_f64};
 
     #[test]
