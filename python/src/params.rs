@@ -319,9 +319,7 @@ pub(crate) fn identify(
     options.operators = operators.unwrap_or(DEFAULT_OPERATORS);
     options.thresholds = spread;
     if let Some(lag) = lag {
-        options
-            .given_lag(lag)
-            .map_err(|e| PyValueError::new_err(e))?;
+        options.given_lag(lag).map_err(PyValueError::new_err)?;
     }
     options.observer = observer;
     let run: Result<Identified, RunError> =
