@@ -861,8 +861,8 @@ fn auto_picks_the_model_whose_compensator_holds() {
     }
 }
 
-/// `compensate` says what it did with the last `lag` samples (the micromanipulator's sensor
-/// lags by 3): they have no later reading to aim at.
+/// `compensate` says what it did with the last `⌈lag⌉` samples (the micromanipulator's sensor
+/// lags by 2.5, as its P–I is fitted): they have no later reading to aim at.
 #[test]
 fn compensate_says_what_it_did_with_the_last_lag_samples() {
     let dir = tempfile::tempdir().unwrap();
@@ -892,7 +892,7 @@ fn compensate_says_what_it_did_with_the_last_lag_samples() {
     assert!(out.status.success());
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(
-        err.contains("lags the drive by 3 samples") && err.contains("last 3 samples aim at"),
+        err.contains("lags the drive by 2.5 samples") && err.contains("last 3 samples aim at"),
         "{err}"
     );
 }
