@@ -115,7 +115,7 @@ fn a_5_mm_move_over_the_wire_settles_within_the_encoder_resolution() {
     let rms = (tail.iter().map(|e| (e - mean).powi(2)).sum::<f64>() / tail.len() as f64).sqrt();
     let status = c.coarse_status().unwrap();
     let rig = c.transport().coarse_rig().unwrap();
-    eprintln!(
+    println!(
         "5 mm move over the wire: from {:.6} mm, planned move {:.3} s, settled (1 ms mean within 5 nm) {:.1} ms after it, final error {mean:.2} nm (noise {rms:.2} nm rms), board reports {:.6} mm, peak piezo {:.2} µm, range-limit ticks {}, largest DAC step {} LSB",
         start.position_pm as f64 / 1e9,
         done_at as f64 * 20e-6,
@@ -140,10 +140,10 @@ fn a_5_mm_move_over_the_wire_settles_within_the_encoder_resolution() {
     );
 }
 
-/// Home, start a 5 mm move up, inject a fault 0.1 s in; returns the fault's status, the
-/// rig's figures, and checks what every fault must do.
-fn fault(inject: InjectedFaults, flag: u16) -> (CoarseStatus, u16, f64) {
-    eprintln!("{inject:?}");
+/// Home, start a 5 mm move up, inject a fault 0.1 s in; checks what every fault must do,
+/// prints one line of what `what` (the fault, and the flag it must raise) did, and returns
+/// the fault's status and the largest DAC step after its detection.
+fn fault(what: &str, inject: InjectedFaults, flag: u16) -> (CoarseStatus, u16) {
     let mut c = board();
     home(&mut c);
     c.wait(Duration::from_millis(50)).unwrap();
@@ -185,12 +185,12 @@ fn fault(inject: InjectedFaults, flag: u16) -> (CoarseStatus, u16, f64) {
         Refusal::new(Field::CoarseAxis, Rule::NotHomed)
     );
     let piezo_after = c.transport().coarse_rig().unwrap().piezo_um();
-    eprintln!(
-        "  piezo at detection {piezo_at_fault:.3} µm, 20 ms later {piezo_20ms:.3} µm, 50 ms later {piezo_after:.3} µm"
+    println!(
+        "{what}: detected after {detected_ms:.2} ms; piezo {piezo_at_fault:.2} µm at detection, {piezo_20ms:.2} µm 20 ms later, {piezo_after:.2} µm 50 ms later; largest DAC step after detection {dac_step} LSB; no step after the fault"
     );
     // It settles on its held setpoint (its own loop lagged the last ramp) and stays there.
     assert!((piezo_after - piezo_20ms).abs() < 0.1, "the piezo holds");
-    (s, dac_step, detected_ms)
+    (s, dac_step)
 }
 
 /// The largest change of a DAC code per tick from a fault's detection on: the last ramp of
@@ -201,40 +201,40 @@ const NO_JUMP_LSB: u16 = 1000;
 
 #[test]
 fn a_stalled_motor_stops_the_axis_and_the_piezo_holds() {
-    let (s, dac, ms) = fault(
+    let (_, dac) = fault(
+        "motor stalls (following-error)",
         InjectedFaults {
             stall: true,
             ..Default::default()
         },
         CoarseStatus::FOLLOWING_ERROR,
     );
-    eprintln!("stall: detected after {ms:.2} ms, largest DAC step {dac} LSB, {s:?}");
     assert!(dac <= NO_JUMP_LSB, "{dac}");
 }
 
 #[test]
 fn a_lost_linear_encoder_stops_the_axis_and_the_piezo_holds() {
-    let (s, dac, ms) = fault(
+    let (_, dac) = fault(
+        "linear encoder stops counting (encoder-lost)",
         InjectedFaults {
             linear_lost: true,
             ..Default::default()
         },
         CoarseStatus::ENCODER_LOST,
     );
-    eprintln!("lost encoder: detected after {ms:.2} ms, largest DAC step {dac} LSB, {s:?}");
     assert!(dac <= NO_JUMP_LSB, "{dac}");
 }
 
 #[test]
 fn a_limit_switch_mid_move_stops_the_axis_and_the_piezo_holds() {
-    let (s, dac, ms) = fault(
+    let (s, dac) = fault(
+        "upper limit switch reads active (limit-switch)",
         InjectedFaults {
             upper_limit: true,
             ..Default::default()
         },
         CoarseStatus::LIMIT_SWITCH,
     );
-    eprintln!("limit switch: detected after {ms:.2} ms, largest DAC step {dac} LSB, {s:?}");
     assert!(dac <= NO_JUMP_LSB, "{dac}");
     assert!(s.switches & CoarseStatus::UPPER_LIMIT != 0);
 }

@@ -488,6 +488,28 @@ const FIGURES: &[Figure] = &[
         checked: true,
         render: Render::One(verbatim),
     },
+    Figure {
+        name: "coarse-board",
+        page: "docs/src/results/dual-stage.md",
+        runs: &[&[
+            "test",
+            "--profile",
+            "host-opt",
+            "-p",
+            "twinstack-cli",
+            "--test",
+            "coarse_board",
+            "--",
+            "--nocapture",
+            "--test-threads",
+            "1",
+        ]],
+        // The simulated board runs on simulated time, one test after another: the same
+        // lines every run.
+        source: Source::Cargo,
+        checked: true,
+        render: Render::One(test_verbatim),
+    },
 ];
 
 /// The block a figure's marker pair holds: the command (or commands), then the rendering.

@@ -136,6 +136,11 @@ pub(super) fn verbatim(out: &str) -> Result<String, String> {
     Ok(format!("```text\n{text}\n```\n"))
 }
 
+/// What a test printed (`cargo test -- --nocapture`), as a text block.
+pub(super) fn test_verbatim(out: &str) -> Result<String, String> {
+    verbatim(&test_printed(out))
+}
+
 /// The last run's output as a text block (the runs before it build what it runs).
 pub(super) fn last_verbatim(runs: &[Run]) -> Result<String, String> {
     verbatim(&runs.last().ok_or("no runs")?.out)
