@@ -33,7 +33,7 @@ use twinstack::services::learning::{
 use twinstack::services::snapshot::SnapshotRing;
 use twinstack::sources::waveform::{Shape, WaveformGenerator};
 use twinstack_identify::identification::score::score;
-use twinstack_identify::stage_model::{between, StageModel};
+use twinstack_identify::stage_model::{between_periodic, StageModel};
 
 /// The waveform to learn: a shape and a frequency.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -430,16 +430,6 @@ impl Rig {
             band_rms_pct: 100.0 * band / span,
         })
     }
-}
-
-/// The values between consecutive samples of one period of a periodic signal: element `k`
-/// lies between `x[k]` and `x[k + 1]` (the period wrapping round), [`between`].
-fn between_periodic(x: &[f64]) -> Vec<f64> {
-    let n = x.len();
-    let at = |k: usize| x[k % n];
-    (0..n)
-        .map(|k| between(at(k + n - 1), at(k), at(k + 1), at(k + 2)))
-        .collect()
 }
 
 /// The worst max and the RMS of RMS over `periods`.

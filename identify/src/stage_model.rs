@@ -18,6 +18,7 @@
 //!   period (the median interval), its modes at rest at the first value they see.
 
 use crate::reference;
+use twinstack::control::feedback::SENSOR_DELAY_TICKS;
 use twinstack::fixed_point::{
     clamp_full_scale, gain_from_f64, saturate_i64, signal_from_f64, signal_to_f64, GAIN_FRAC_BITS,
 };
@@ -87,17 +88,43 @@ pub fn between(a: f64, b: f64, c: f64, d: f64) -> f64 {
 /// assert_eq!(between_samples(&[0.0, 1.0, 4.0, 9.0, 16.0]), vec![0.3125, 2.25, 6.25, 12.8125, 16.0]);
 /// ```
 pub fn between_samples(x: &[f64]) -> Vec<f64> {
-    let n = x.len();
-    let at = |k: isize| x[k.clamp(0, n as isize - 1) as usize];
-    (0..n as isize)
+    let n = x.len() as isize;
+    let at = |k: isize| x[k.clamp(0, n - 1) as usize];
+    (0..n)
         .map(|k| {
-            if k + 1 >= n as isize {
+            if k + 1 >= n {
                 at(k)
             } else {
                 between(at(k - 1), at(k), at(k + 1), at(k + 2))
             }
         })
         .collect()
+}
+
+/// [`between_samples`] of one period of a periodic signal: element `k` lies between `x[k]`
+/// and `x[k + 1]`, the period wrapping round (the last element between the last sample and
+/// the first).
+///
+/// ```
+/// use twinstack_identify::stage_model::between_periodic;
+/// assert_eq!(between_periodic(&[0.0, 1.0, 0.0, -1.0]), vec![0.625, 0.625, -0.625, -0.625]);
+/// ```
+pub fn between_periodic(x: &[f64]) -> Vec<f64> {
+    let n = x.len() as isize;
+    let at = |k: isize| x[k.rem_euclid(n) as usize];
+    (0..n)
+        .map(|k| between(at(k - 1), at(k), at(k + 1), at(k + 2)))
+        .collect()
+}
+
+/// The value of the present reading's instant from a history of the last ticks' values,
+/// newest first, this tick's included: the end of the hold of
+/// [`SENSOR_DELAY_TICKS`] ticks ago, between
+/// the values of the holds' middles around it — the tick's
+/// `twinstack::control::instant::ReadingInstant`, in `f64`.
+pub fn at_reading(history: &[f64; SENSOR_DELAY_TICKS + 2]) -> f64 {
+    let d = SENSOR_DELAY_TICKS;
+    between(history[d + 1], history[d], history[d - 1], history[d - 2])
 }
 
 /// The sample rate of a record with times `t`: one over the median interval (`None` for fewer

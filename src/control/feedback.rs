@@ -8,10 +8,10 @@
 //!    the reading's instant: the reading is of the end of the hold of the drive of
 //!    [`SENSOR_DELAY_TICKS`] ticks ago, between the instants that drive and the next were
 //!    aimed at (the middles of their holds), so the targets around it interpolated there
-//!    ([`crate::control::instant`]). Comparing it with the target of now would feed the feedback a phantom
-//!    error `ẋ · delay` (7 % of the stroke for a 750 Hz sine at 50 kHz) that it would then
-//!    "correct" into the output. The feedforward acts on the present target; the feedback
-//!    corrects what the model got wrong;
+//!    ([`crate::control::instant`]). Comparing it with the target of now would feed the
+//!    feedback a phantom error `ẋ · delay` (7 % of the stroke for a 750 Hz sine at 50 kHz)
+//!    that it would then "correct" into the output. The feedforward acts on the present
+//!    target; the feedback corrects what the model got wrong;
 //! 2. with a notch, `e` passes through it ([`crate::control::notch`]): the loop no longer sees the
 //!    resonance, so it can neither excite nor sustain it;
 //! 3. integral: `i += ki · e` (Q0.32 gain, one `SMMUL`), limited to ±`limit` — and **held**

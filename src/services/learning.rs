@@ -14,9 +14,9 @@
 //!   everything else) and stores **one** error (the target of the reading's instant minus
 //!   the reading, Q2.30: the end of the hold of [`SENSOR_DELAY_TICKS`] ticks ago, between the
 //!   targets of two ticks, as the feedback takes it: [`crate::control::instant`]) in the error
-//!   buffer being filled. Constant time, no division, no
-//!   loop. At the period's end it flips the error buffers and, if the task has posted a new
-//!   table, flips the tables: a table always plays whole periods.
+//!   buffer being filled. Constant time, no division, no loop. At the period's end it flips
+//!   the error buffers and, if the task has posted a new table, flips the tables: a table
+//!   always plays whole periods.
 //! * [`LearnTask`], owned by the low-priority task (the command handler's context): at each
 //!   period boundary [`service`] copies the completed period's errors out in short locked
 //!   chunks, runs the ILC law below **off the tick**, writes the new table into the tick's
@@ -276,9 +276,10 @@ impl LearnTick {
     }
 
     /// After the tick: stores this tick's error (the target of the reading's instant, the end
-    /// of the hold of [`SENSOR_DELAY_TICKS`] ticks ago, minus `measured`, Q2.30; `None`: no reading, stored as 0, which leaves that bin as it
-    /// is) and advances one bin; at the period's end flips the error buffers and, if a table
-    /// was posted, the tables. Returns whether a period ended. Constant time.
+    /// of the hold of [`SENSOR_DELAY_TICKS`] ticks ago, minus `measured`, Q2.30; `None`: no
+    /// reading, stored as 0, which leaves that bin as it is) and advances one bin; at the
+    /// period's end flips the error buffers and, if a table was posted, the tables. Returns
+    /// whether a period ended. Constant time.
     #[inline(always)]
     pub fn observe(&mut self, target: i32, measured: Option<i32>) -> bool {
         if self.state == LearnState::Off {

@@ -70,7 +70,7 @@
 
 use crate::accuracy::LSB16;
 use crate::reference;
-use crate::stage_model::between;
+use crate::stage_model::at_reading;
 use twinstack::config::settings::{Mode, Model};
 use twinstack::control::drive::{Configuration, DriveSettings, SafeState};
 use twinstack::control::feedback::{DRIFT_FILTER_SHIFT, SENSOR_DELAY_TICKS};
@@ -222,14 +222,6 @@ impl ReferenceSensor {
             None => Drift::default(),
         }
     }
-}
-
-/// The value of the present reading's instant from a history of the last ticks' values
-/// (newest first, this tick's included): the end of the hold of SENSOR_DELAY_TICKS ago,
-/// between the values of the middles around it (`twinstack::control::instant`).
-fn at_reading(history: &[f64; SENSOR_DELAY_TICKS + 2]) -> f64 {
-    let d = SENSOR_DELAY_TICKS;
-    between(history[d + 1], history[d], history[d - 1], history[d - 2])
 }
 
 /// The PI feedback in real arithmetic (see the module doc), with its memory.

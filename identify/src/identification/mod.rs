@@ -11,7 +11,7 @@
 //! 3. **Lag**: the sensor may lag the drive by a few samples, in half samples: a drive held
 //!    for a sample (the board's DAC, a DAQ's output) acts on the stage as at the middle of its
 //!    hold, so on such a record a reading of a hold's end is half a sample past the instant the
-//!    drive's model output belongs to; a half lag `L + ½` pairs drive `k` with the mean of the
+//!    drive's model output belongs to; a half lag `L + ½` pairs drive `k` with the value between the
 //!    readings `k + L` and `k + L + 1` ([`crate::stage_model::between_samples`]). Unless given, a
 //!    lag is estimated only where the data supports one: the P–I fit is repeated for 0,
 //!    ½, 1, … `max_lag` samples (its
@@ -222,8 +222,8 @@ pub struct IdentifyOptions {
     pub creep_modes: usize,
     /// Threshold spread of a P–I model.
     pub thresholds: ThresholdSpread,
-    /// Sensor lag in samples; `None` to estimate it (in half samples). [`IdentifyOptions::given_lag`]
-    /// sets it with [`IdentifyOptions::half_lag`] from a whole or half number.
+    /// Sensor lag in samples; `None` to estimate it (in half samples).
+    /// [`IdentifyOptions::given_lag`] sets it with [`IdentifyOptions::half_lag`] from a whole or half number.
     pub lag: Option<usize>,
     /// With a given `lag`: half a sample more (the reading of a held drive's end is half a
     /// sample past the middle of its hold, the instant the model's output belongs to).
@@ -543,8 +543,8 @@ pub fn identify(
         lag: h / 2,
     };
     // A lag's P–I residual RMS, against the readings themselves: at a half lag the model
-    // gives a reading as the mean of the outputs on either side (as `predict` does), so that
-    // the mean of two readings' noise does not pass for a better fit.
+    // gives a reading as the outputs around it interpolated there (as `predict` does), so
+    // that the readings' noise, smoothed by the interpolation, does not pass for a better fit.
     let pi_rms = |h: usize, rows: &FitRows| -> Result<f64, IdentifyError> {
         let (y, lag) = targets(h);
         let f = pi::fit(&columns, &thresholds, u_mid, y, rows, 0.0)?;

@@ -17,7 +17,7 @@
 //! Q2.30/Q0.32/Q4.28; the loop is judged on the exact values (rounding moves the poles by
 //! about 1e-9).
 
-use crate::stage_model::between;
+use crate::stage_model::at_reading;
 use crate::zero_order_hold::ZeroOrderHold;
 use std::f64::consts::PI;
 use twinstack::control::feedback::{FeedbackSettings, SENSOR_DELAY_TICKS};
@@ -576,8 +576,7 @@ pub fn step_trace(
         // between the holds' middles around the reading.
         refs.copy_within(0..SENSOR_DELAY_TICKS + 1, 1);
         refs[0] = step.size;
-        let d = SENSOR_DELAY_TICKS;
-        let reference = between(refs[d + 1], refs[d], refs[d - 1], refs[d - 2]);
+        let reference = at_reading(&refs);
         let c = controller.step(&mut cs, reference - reading);
         let command = target_drive + c;
         drive += (command - drive).clamp(-max_step, max_step);
