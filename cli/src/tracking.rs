@@ -28,9 +28,10 @@ use hal_sim::plant::{LabStage, LabStageConfig, LabStageError, SetFieldError};
 use std::f64::consts::TAU;
 use std::path::PathBuf;
 use twinstack::ParamError;
-use twinstack_identify::identification::auto::identify_auto;
+use twinstack_identify::identification::auto::{identify_admitted, identify_auto_admitting};
+use twinstack_identify::identification::run::{board_admission, BoardRate};
 use twinstack_identify::identification::score::{score, ErrorFigures};
-use twinstack_identify::identification::{identify, IdentifyOptions, ModelKind};
+use twinstack_identify::identification::{creep, Identification, IdentifyOptions, ModelKind};
 use twinstack_identify::stage_model::StageModel;
 use twinstack_identify::trajectory::{
     trajectories, triangle, triangle_fits, Trajectory, MIN_SAMPLES_PER_CYCLE, TRAJECTORY_MARGIN,
@@ -39,6 +40,10 @@ use twinstack_link::measured_data::MeasuredData;
 
 /// The default sample rate of the excitation and of tracking, Hz (see the module docs).
 pub const SAMPLE_RATE_HZ: f64 = 10_000.0;
+
+/// The unit of the stage's displacement, for the parameter file a board's admission is judged
+/// on ([`board_admission`]).
+const OUTPUT_UNIT: &str = "um";
 /// Length of the identification record, seconds.
 pub const EXCITATION_S: f64 = 2.0;
 /// Frequency of the excitation, Hz.
@@ -422,11 +427,13 @@ pub struct VariantTable {
 }
 
 /// [`evaluate_methods`] on each of `variants` applied to `base`, the stages evaluated two at a
-/// time (each is independent and deterministic for its seed).
+/// time (each is independent and deterministic for its seed); with `board`, as
+/// [`evaluate_methods_with_triangles`] fits them.
 pub fn evaluate_variants(
     base: &LabStageConfig,
     variants: &[StageVariant],
     methods: &[Method],
+    board: Option<&BoardRate>,
 ) -> Result<Vec<VariantTable>, VariantError> {
     let configs = variants
         .iter()
@@ -437,7 +444,7 @@ pub fn evaluate_variants(
         let tables: Vec<Result<TrackingTable, LabStageError>> = std::thread::scope(|s| {
             let running: Vec<_> = configs
                 .iter()
-                .map(|c| s.spawn(move || evaluate_methods(c, methods)))
+                .map(|c| s.spawn(move || evaluate_all(c, methods, &[], board)))
                 .collect();
             running
                 .into_iter()
@@ -526,6 +533,43 @@ impl Method {
             kind
         }
     }
+
+    /// The options asked for (`auto`: its first candidate's).
+    fn asked(&self) -> Option<&IdentifyOptions> {
+        match self {
+            Method::One(o) => Some(o),
+            Method::Auto(c) => c.first(),
+        }
+    }
+}
+
+/// A fitted row's name ([`Method::name`]) with what a board's rate made smaller than `asked`:
+/// `gpi+creep (12 operators, 1 creep mode, no observer)`; the creep's modes are those the fit
+/// kept. Nothing is added where nothing was made smaller.
+fn fitted_name(fitted: &IdentifyOptions, model: &StageModel, asked: &IdentifyOptions) -> String {
+    let mut parts = Vec::new();
+    let sized = matches!(fitted.model, ModelKind::Pi | ModelKind::Gpi);
+    if sized && fitted.operators != asked.operators {
+        parts.push(format!("{} operators", fitted.operators));
+    }
+    if let Some(c) = &model.creep {
+        let modes = c.weights.len();
+        if modes != creep::MODES {
+            parts.push(format!(
+                "{modes} creep mode{}",
+                if modes == 1 { "" } else { "s" }
+            ));
+        }
+    }
+    if asked.observer && !fitted.observer {
+        parts.push("no observer".to_string());
+    }
+    let name = Method::name(fitted);
+    if parts.is_empty() {
+        name
+    } else {
+        format!("{name} ({})", parts.join(", "))
+    }
 }
 
 /// [`evaluate_methods`] with one model per row.
@@ -555,17 +599,22 @@ pub fn evaluate_methods(
     config: &LabStageConfig,
     methods: &[Method],
 ) -> Result<TrackingTable, LabStageError> {
-    evaluate_all(config, methods, &[])
+    evaluate_all(config, methods, &[], None)
 }
 
 /// [`evaluate_methods`] with, after the three trajectories, a triangle at each of
 /// `triangles_hz` over the same span ([`triangle`]): one calibration, tracked from slow
 /// motion (creep) to fast (the stage's dynamics). A frequency [`triangle`] cannot sample at the
 /// stage's rate is refused, naming it.
+///
+/// With `board`, each model is fitted only as the board runs it at that control rate: `auto`
+/// picks among what the board's tick budget admits (sizing a model down where it allows, as
+/// `identify --tick-rate` and `calibrate` do), and a row names what was made smaller.
 pub fn evaluate_methods_with_triangles(
     config: &LabStageConfig,
     methods: &[Method],
     triangles_hz: &[f64],
+    board: Option<&BoardRate>,
 ) -> anyhow::Result<TrackingTable> {
     let rate = 1.0 / config.sample_period_s;
     for &hz in triangles_hz {
@@ -576,14 +625,17 @@ pub fn evaluate_methods_with_triangles(
             );
         }
     }
-    Ok(evaluate_all(config, methods, triangles_hz)?)
+    Ok(evaluate_all(config, methods, triangles_hz, board)?)
 }
 
-/// [`evaluate_methods_with_triangles`] on frequencies it has checked.
+/// [`evaluate_methods_with_triangles`] on frequencies it has checked; with `board`, each model
+/// fitted only as the board runs it at that control rate ([`board_admission`]: `auto` picks
+/// among those, a model asked for by name is sized down or refused).
 fn evaluate_all(
     config: &LabStageConfig,
     methods: &[Method],
     triangles_hz: &[f64],
+    board: Option<&BoardRate>,
 ) -> Result<TrackingTable, LabStageError> {
     let mut stage = LabStage::new(config)?;
     let data = excite(&mut stage);
@@ -629,12 +681,21 @@ fn evaluate_all(
             error: Some("the excitation's reading does not vary".into()),
         },
     }];
+    // With a board's rate, only what the board runs at it (sized down where it allows).
+    let admit = board_admission(board, OUTPUT_UNIT);
     for m in methods {
+        let named = |fitted: &IdentifyOptions, id: &Identification| match m.asked() {
+            Some(asked) => fitted_name(fitted, &id.model, asked),
+            None => Method::name(fitted),
+        };
         let (method, identified) = match m {
-            Method::One(o) => (Method::name(o), identify(&data, o)),
-            Method::Auto(candidates) => match identify_auto(&data, candidates) {
+            Method::One(o) => match identify_admitted(&data, o.clone(), &admit) {
+                Ok((fitted, id)) => (named(&fitted, &id), Ok(id)),
+                Err(e) => (Method::name(o), Err(e)),
+            },
+            Method::Auto(candidates) => match identify_auto_admitting(&data, candidates, &admit) {
                 Ok(a) => {
-                    let picked = Method::name(&a.options);
+                    let picked = named(&a.options, &a.identification);
                     (format!("auto: {picked}"), Ok(a.identification))
                 }
                 Err(e) => ("auto".into(), Err(e)),

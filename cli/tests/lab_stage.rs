@@ -315,6 +315,17 @@ fn the_cli_prints_the_table_as_json_and_refuses_bad_flags() {
         .unwrap();
     assert!(!bad.status.success());
     assert!(String::from_utf8_lossy(&bad.stderr).contains("--fit-until"));
+    // A control rate the board does not run, or not a number: refused naming the flag.
+    for rate in ["5000", "200000", "NaN"] {
+        let bad = std::process::Command::new(env!("CARGO_BIN_EXE_twinstack"))
+            .args(["lab-stage", "--model", "pi", "--tick-rate", rate])
+            .output()
+            .unwrap();
+        assert!(!bad.status.success(), "{rate}");
+        let err = String::from_utf8_lossy(&bad.stderr);
+        assert!(err.contains("--tick-rate"), "{rate}: {err}");
+        assert!(bad.stdout.is_empty(), "{rate}: nothing printed");
+    }
 
     // `--set`: an unknown field, a value out of range and a count that is not whole are
     // refused naming the field, before anything runs.

@@ -28,6 +28,7 @@ fn auto_holds_on_stages_it_was_not_tuned_on() {
         &LabStageConfig::new(SAMPLE_RATE_HZ, 1),
         &STAGE_VARIANTS,
         &[Method::Auto(base.candidates()), Method::One(base.clone())],
+        None,
     )
     .unwrap();
     print_variants(&tables, &mut std::io::stdout()).unwrap();

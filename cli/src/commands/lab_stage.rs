@@ -1,5 +1,5 @@
 //! `twinstack lab-stage [--model pi,duhem] [--seed N] [--json] [--without creep,…] [--set field=value,…]
-//! [--variants]`: the tracking table on the simulated laboratory stage
+//! [--variants] [--tick-rate HZ]`: the tracking table on the simulated laboratory stage
 //! ([`hal_sim::plant::lab_stage`], outside the model family) — identified from 2 s of 10 Hz
 //! excitation, then a triangle, nested minor loops and a multisine tracked open loop with each
 //! model's compensator and with none ([`crate::tracking`]); with `--variants`, the worst error
@@ -12,6 +12,7 @@ use crate::tracking::{
 };
 use hal_sim::plant::{LabStage, LabStageConfig};
 use std::path::PathBuf;
+use twinstack_identify::identification::run::{check_tick_rate, BoardRate};
 use twinstack_identify::identification::{IdentifyOptions, ModelKind};
 use twinstack_link::output_file::{csv_t_u_x, Staged};
 
@@ -61,6 +62,13 @@ pub struct Args {
     /// `--rate`; whole cycles for at least a second and at least four.
     #[arg(long, value_delimiter = ',')]
     pub triangles: Vec<f64>,
+    /// Fit only what the board runs at this control rate, Hz (10 000 … 100 000), as
+    /// `calibrate` does: `auto` picks among the models the board's tick budget admits, sized
+    /// down where that lets one in (fewer creep modes or play operators, no observer); a
+    /// model named with `--model` that does not fit is refused on its row. Without it, every
+    /// model is fitted as asked.
+    #[arg(long)]
+    pub tick_rate: Option<f64>,
 }
 
 /// One `--set` entry: `field=value`, the value a number (`inf` for an unbounded field).
@@ -136,6 +144,13 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     if args.model.is_empty() {
         anyhow::bail!("--model: name at least one model");
     }
+    let board = match args.tick_rate {
+        Some(hz) => {
+            check_tick_rate(hz).map_err(|e| anyhow::anyhow!("--tick-rate {e}"))?;
+            Some(BoardRate::sizing(hz, false))
+        }
+        None => None,
+    };
     let mut config = LabStageConfig::new(args.rate, args.seed);
     for n in &args.without {
         n.remove(&mut config);
@@ -166,7 +181,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     }
     let mut stdout = std::io::stdout().lock();
     if args.variants {
-        let tables = evaluate_variants(&config, &STAGE_VARIANTS, &methods)?;
+        let tables = evaluate_variants(&config, &STAGE_VARIANTS, &methods, board.as_ref())?;
         if args.json {
             use std::io::Write;
             serde_json::to_writer_pretty(&mut stdout, &tables)?;
@@ -176,7 +191,8 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         }
         return Ok(());
     }
-    let table = evaluate_methods_with_triangles(&config, &methods, &args.triangles)?;
+    let table =
+        evaluate_methods_with_triangles(&config, &methods, &args.triangles, board.as_ref())?;
     if args.json {
         use std::io::Write;
         serde_json::to_writer_pretty(&mut stdout, &table)?;

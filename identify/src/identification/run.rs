@@ -434,6 +434,25 @@ fn cut(settings: &Settings, operators: Option<usize>, creep_modes: Option<usize>
     s
 }
 
+/// What the board says of a fitted model at `rate` ([`admission_at`] on the parameter file's
+/// settings, the observer as fitted: the board's own sensor and feedback are not known here);
+/// every model is admitted without a rate. The admission [`identify_and_score`] and the
+/// lab stage's study (`twinstack lab-stage --tick-rate`) fit with.
+pub fn board_admission<'a>(
+    rate: Option<&'a BoardRate>,
+    output_unit: &'a str,
+) -> impl Fn(&IdentifyOptions, &Identification) -> Admission + 'a {
+    move |fitted: &IdentifyOptions, id: &Identification| match rate {
+        Some(rate) => admission_at(
+            &ParamFile::from_model(&id.model, output_unit, None)
+                .with_observer(fitted.observer)
+                .settings,
+            rate,
+        ),
+        None => Admission::Admitted,
+    }
+}
+
 /// Fits `data` (`t`, `u`, `x`) as `choice` says, with `options` (its `model` is ignored;
 /// `creep`: see [`candidates`]; for one model, `Some(true)` adds a creep operator), scores
 /// the model kept and writes its parameter file with `output_unit` as the unit of `x`.
@@ -451,15 +470,7 @@ pub fn identify_and_score(
     output_unit: &str,
     rate: Option<BoardRate>,
 ) -> Result<Identified, RunError> {
-    let admit = |fitted: &IdentifyOptions, id: &Identification| match &rate {
-        Some(rate) => admission_at(
-            &ParamFile::from_model(&id.model, output_unit, None)
-                .with_observer(fitted.observer)
-                .settings,
-            rate,
-        ),
-        None => Admission::Admitted,
-    };
+    let admit = board_admission(rate.as_ref(), output_unit);
     let (auto, options, id) = match choice {
         ModelChoice::Only(kind) => {
             let o = IdentifyOptions {

@@ -275,6 +275,11 @@ pub(super) fn lab_stage_table(runs: &[Run]) -> Result<String, String> {
         let without = run_arg(run, "--without")
             .map(|w| format!(", without {}", w.replace(',', ", ")))
             .unwrap_or_default();
+        // Fitted as the board runs it at a control rate: its rows say at which.
+        let without = match run_arg(run, "--tick-rate").and_then(|r| r.parse::<f64>().ok()) {
+            Some(hz) => format!("{without}, board at {} kHz", hz / 1e3),
+            None => without,
+        };
         let mut lines = run.out.lines().skip_while(|l| !l.starts_with("method "));
         if lines.next().is_none() {
             return Err(what("no `method` header"));

@@ -334,6 +334,33 @@ const FIGURES: &[Figure] = &[
         render: Render::Many(lab_stage_table),
     },
     Figure {
+        name: "lab-stage-board-rates",
+        page: "docs/src/results/lab-stage.md",
+        runs: &[
+            &["lab-stage", "--model", "auto,gpi", "--tick-rate", "50000"],
+            &[
+                "lab-stage",
+                "--model",
+                "gpi",
+                "--creep",
+                "--tick-rate",
+                "50000",
+            ],
+            &["lab-stage", "--model", "auto,gpi", "--tick-rate", "100000"],
+            &[
+                "lab-stage",
+                "--model",
+                "gpi",
+                "--creep",
+                "--tick-rate",
+                "100000",
+            ],
+        ],
+        source: Source::Tool,
+        checked: true,
+        render: Render::Many(lab_stage_table),
+    },
+    Figure {
         name: "lab-stage-without",
         page: "docs/src/results/lab-stage.md",
         runs: LAB_STAGE_WITHOUT_RUNS,
