@@ -346,9 +346,14 @@ pub(super) fn variants_table(out: &str) -> Result<String, String> {
         let (head, settings) = line
             .rsplit_once(" / ")
             .ok_or_else(|| format!("no ` / ` in {line:?}"))?;
-        let cols: Vec<&str> = head.split_whitespace().collect();
-        let n = cols.len();
-        if n < 5 || cols[n - 4..n - 1].iter().any(|c| c.parse::<f64>().is_err()) {
+        // The stage's name in its column (`print_variants`), then the three rows' worst
+        // errors in the order run (none, auto, the textbook P–I), then what auto picked
+        // (words: `gpi (no observer)` where a board's rate sized it down).
+        let (stage, rest) = head
+            .split_at_checked(STAGE_COLUMN.min(head.len()))
+            .ok_or_else(|| format!("not a stage's line: {line:?}"))?;
+        let cols: Vec<&str> = rest.split_whitespace().collect();
+        if cols.len() < 4 || cols[..3].iter().any(|c| c.parse::<f64>().is_err()) {
             return Err(format!("not a stage's line: {line:?}"));
         }
         let settings = match settings.trim() {
@@ -357,11 +362,11 @@ pub(super) fn variants_table(out: &str) -> Result<String, String> {
         };
         table.push_str(&format!(
             "| {} | {settings} | {} | {} | {} | {} |\n",
-            cols[..n - 4].join(" "),
-            cols[n - 4],
-            cols[n - 2],
-            cols[n - 3],
-            cols[n - 1]
+            stage.trim(),
+            cols[0],
+            cols[2],
+            cols[1],
+            cols[3..].join(" ")
         ));
         rows += 1;
     }
@@ -370,6 +375,10 @@ pub(super) fn variants_table(out: &str) -> Result<String, String> {
     }
     Ok(table)
 }
+
+/// The width of `twinstack lab-stage --variants`' stage column
+/// (`twinstack_cli::tracking::print_variants`).
+const STAGE_COLUMN: usize = 22;
 
 /// `learn`'s summary of each run as one row: the feedforward alone (and shaped, with input
 /// shaping), the learned and the replayed errors, the reduction, and `(not met)` beside a

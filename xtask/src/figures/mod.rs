@@ -425,6 +425,22 @@ const FIGURES: &[Figure] = &[
         render: Render::One(variants_table),
     },
     Figure {
+        name: "lab-stage-variants-100k",
+        page: "docs/src/results/lab-stage.md",
+        runs: &[&[
+            "lab-stage",
+            "--variants",
+            "--model",
+            "auto,pi",
+            "--tick-rate",
+            "100000",
+        ]],
+        // As `lab-stage-variants`: minutes; written when named, not re-run by the gate.
+        source: Source::Tool,
+        checked: false,
+        render: Render::One(variants_table),
+    },
+    Figure {
         name: "learning",
         page: "docs/src/results/learning.md",
         runs: LEARN_RUNS,
