@@ -3,9 +3,11 @@
 //!
 //! One [`ControlLoop::tick`] is:
 //!
-//! 1. the setpoint: the built-in waveform generator, or the next streamed sample from the
-//!    setpoint queue through [`SetpointStream`] (rate divider with linear interpolation; on an
-//!    empty queue the underrun policy holds or ramps to the rest position, and counts);
+//! 1. the setpoint, from the one source in force (the loop's `Source`, switched only by its
+//!    command methods, so the tick dispatches once): the built-in waveform generator, or the
+//!    next streamed sample from the setpoint queue through [`SetpointStream`] (rate divider
+//!    with linear interpolation; on an empty queue the underrun policy holds or ramps to the
+//!    rest position, and counts), or a scan, a sequence or the analog input (below);
 //! 2. [`Controller::tick`] (compensator, sensor, feedback, limits, both DACs);
 //! 3. one [`Snapshot`] of what the tick did onto the snapshot ring, for the services below
 //!    the tick ([`crate::services::consumer`]: the recorder, telemetry's tap). A capture armed
@@ -116,6 +118,21 @@ pub struct Telemetry {
     pub analog_fault: bool,
 }
 
+/// Where the tick's setpoint comes from. One at a time: starting one stops the others (the
+/// loop's command methods switch it, between two ticks), so the tick dispatches once.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Source {
+    /// The stream: the setpoint queue or the board's waveform generator, or, stopped, the
+    /// setpoint it holds (also while a scan waits for its trigger).
+    Stream,
+    /// The scan generator, started ([`ControlLoop::scan`]).
+    Scan,
+    /// The TTL-stepped sequence, armed ([`ControlLoop::arm_sequence`]).
+    Sequence,
+    /// The analog setpoint input, running ([`ControlLoop::start_analog`]).
+    Analog,
+}
+
 /// Everything the control interrupt owns. `C` is a handle on a
 /// [`Controller`] (`&'static mut Controller` on the board, `Box<Controller>` on the host): the
 /// loop runs one, and passes a second back and forth with the command handler.
@@ -127,6 +144,9 @@ pub struct Telemetry {
 #[repr(C)]
 pub struct ControlLoop<C> {
     controller: C,
+    /// Where the setpoint comes from ([`Source`]): one source at a time, switched only by the
+    /// loop's command methods.
+    source: Source,
     /// The controller a swap retired (or the one the handler has not taken yet): the spare.
     spare: Option<C>,
     /// Counts of the controllers retired and taken back (the totals less the running one's and
@@ -199,6 +219,7 @@ where
         let stream = SetpointStream::new(controller.setpoint());
         Self {
             controller,
+            source: Source::Stream,
             spare: Some(spare),
             counted: ControlCounters::default(),
             swaps: 0,
@@ -239,13 +260,14 @@ where
         if self.external.poll(self.input) {
             self.fire_external();
         }
-        let (mut scanned, events) = self.scan_tick();
-        if self.sequence.is_armed() {
-            scanned = Some(self.sequence_tick(queue));
-        }
-        if self.analog.is_running() {
-            scanned = Some(self.analog_tick(adc));
-        }
+        // One source at a time, one dispatch: the stream (the common tick) goes straight to
+        // the queue below.
+        let (scanned, events) = match self.source {
+            Source::Stream => (None, 0),
+            Source::Scan => self.scan_tick(),
+            Source::Sequence => (Some(self.sequence_tick(queue)), 0),
+            Source::Analog => (Some(self.analog_tick(adc)), 0),
+        };
         #[cfg(not(feature = "dual-stage"))]
         let setpoint = match scanned {
             Some(x) => Some(x),
@@ -321,12 +343,10 @@ where
         self.listening = on;
     }
 
-    /// The scan's setpoint and events this tick (`None` without a running scan).
+    /// The scan's setpoint and events this tick (the source is the scan, running: not waiting
+    /// for its trigger).
     #[inline(always)]
     fn scan_tick(&mut self) -> (Option<i32>, u8) {
-        if self.scan_pending {
-            return (None, 0);
-        }
         match self.scan.as_mut() {
             Some(g) => {
                 let s = g.next_sample();
@@ -360,6 +380,7 @@ where
         self.stop();
         let from = self.controller.setpoint();
         self.analog.start(prepared, from);
+        self.source = Source::Analog;
     }
 
     /// Starts a watchdog drill: from the next tick on the tick stops feeding the watchdog,
@@ -385,6 +406,7 @@ where
     fn end_analog(&mut self) {
         if self.analog.is_running() {
             self.analog.stop();
+            self.source = Source::Stream;
             self.stream.hold_at_if_stopped(self.controller.setpoint());
         }
     }
@@ -396,6 +418,7 @@ where
         self.stop();
         let from = self.controller.setpoint();
         self.sequence.arm(config, from, self.input, max_step);
+        self.source = Source::Sequence;
     }
 
     /// The sequence's state and counts.
@@ -416,6 +439,7 @@ where
             let from = self.controller.setpoint();
             if let Some(g) = self.scan.as_mut() {
                 g.start(from);
+                self.source = Source::Scan;
             }
             self.events.add(Trigger::ScanStart);
         } else if self.stream_on_trigger {
@@ -470,12 +494,21 @@ where
         }
         self.scan = Some(scan);
         self.scan_pending = on_trigger;
+        // Waiting for its trigger, the scan is not the source yet: the stopped stream holds.
+        self.source = if on_trigger {
+            Source::Stream
+        } else {
+            Source::Scan
+        };
     }
 
     /// Ends a scan (running, done or waiting): the stream holds where the scan left the
     /// setpoint.
     fn end_scan(&mut self) {
         self.scan_pending = false;
+        if self.source == Source::Scan {
+            self.source = Source::Stream;
+        }
         if self.scan.take().is_some() {
             self.stream.hold_at_if_stopped(self.controller.setpoint());
         }
@@ -602,6 +635,7 @@ where
     fn end_sequence(&mut self) {
         if self.sequence.is_armed() {
             self.sequence.disarm();
+            self.source = Source::Stream;
             self.stream.hold_at_if_stopped(self.controller.setpoint());
         }
     }

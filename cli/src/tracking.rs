@@ -5,8 +5,10 @@
 //!    [`EXCITATION_HZ`] sine — [`FULL_RANGE_CYCLES`] cycles over the whole drive range, then
 //!    amplitudes decaying around mid-range to [`FINAL_AMPLITUDE`] of it, so the record holds
 //!    minor loops — and record `t, u, x` as a [`MeasuredData`].
-//! 2. **Identify** ([`identify`]) with the caller's [`IdentifyOptions`] (fitted on
-//!    `t < fit_until_s`, by default [`FIT_UNTIL_S`]: the last cycle is held out and scored).
+//! 2. **Identify** ([`twinstack_identify::identification::identify`]) with the caller's
+//!    [`IdentifyOptions`] (fitted on `t < fit_until_s`, by default [`FIT_UNTIL_S`]: the last
+//!    cycle is held out and scored); with a board's control rate, only what the board runs at
+//!    it ([`evaluate_methods_with_triangles`]).
 //! 3. **Track** three desired trajectories ([`trajectories`]), placed inside the measured output
 //!    range with a [`TRAJECTORY_MARGIN`] each side: a triangle, nested minor loops and a
 //!    three-frequency multisine. The drive is the model's inverse ([`StageModel::compensate`],
@@ -684,9 +686,10 @@ fn evaluate_all(
     // With a board's rate, only what the board runs at it (sized down where it allows).
     let admit = board_admission(board, OUTPUT_UNIT);
     for m in methods {
-        let named = |fitted: &IdentifyOptions, id: &Identification| match m.asked() {
-            Some(asked) => fitted_name(fitted, &id.model, asked),
-            None => Method::name(fitted),
+        // With a board's rate, the row says what the rate took away.
+        let named = |fitted: &IdentifyOptions, id: &Identification| match (board, m.asked()) {
+            (Some(_), Some(asked)) => fitted_name(fitted, &id.model, asked),
+            _ => Method::name(fitted),
         };
         let (method, identified) = match m {
             Method::One(o) => match identify_admitted(&data, o.clone(), &admit) {

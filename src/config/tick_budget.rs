@@ -65,7 +65,7 @@ pub const TICK_SHARE_PERCENT: u32 = 80;
 /// when the learning ends a period, which the whole-interrupt bench runs as the firmware
 /// does). The recorder and telemetry are not in it: they run below the tick, charged as
 /// [`ServicesLoad`] while they listen.
-pub const FIXED_CYCLES: u32 = 915;
+pub const FIXED_CYCLES: u32 = 885;
 
 pub use crate::services::consumer::{
     ServicesLoad, CAPTURE_FRAME_CYCLES, FIRE_CYCLES, RELOAD_CYCLES, SERVE_CYCLES,
