@@ -221,6 +221,77 @@ fn the_external_trigger_starts_a_capture_and_a_waiting_scan_on_its_edge() {
     assert!(!s.has(StatusReport::TRIGGER_ARMED));
 }
 
+/// A running scan replaced by one that waits for the trigger: the first stops where it is and
+/// the stage holds there, without a step (the waiting scan is not the setpoint's source yet),
+/// until the edge starts the second from that point.
+#[test]
+fn a_scan_replaced_by_one_waiting_for_its_trigger_holds_until_the_edge() {
+    let mut client = board();
+    client
+        .expect_ack(&Request::Trigger(TriggerConfig {
+            pulse_ticks: 1,
+            input: TriggerEdge::Rising,
+            start_stream: false,
+        }))
+        .unwrap();
+    let scan = |on_trigger: bool| ScanRequest {
+        pattern: parse_pattern("raster:lines=4,pixels=40,turn=20,amplitude=0.5").unwrap(),
+        ticks_per_pixel: 3,
+        frames: 0,
+        on_trigger,
+    };
+    client.expect_ack(&Request::Scan(scan(false))).unwrap();
+    client.wait(Duration::from_millis(3)).unwrap();
+    assert!(client.status().unwrap().has(StatusReport::SCANNING));
+    // The setpoint from before the replacement to well after it.
+    client
+        .arm_capture(CaptureRequest {
+            signals: Channel::Setpoint.bit(),
+            samples: 400,
+            pre_trigger: 0,
+            trigger: Trigger::Now,
+            decimation: 1,
+        })
+        .unwrap();
+    client.wait(Duration::from_millis(2)).unwrap();
+    client.expect_ack(&Request::Scan(scan(true))).unwrap();
+    let (_, x) = wait_and_read(&mut client, Duration::from_secs(2), |_, _| {}).unwrap();
+    assert!(!client.status().unwrap().has(StatusReport::SCANNING));
+    // No step at the replacement: no move larger than the first scan's own moves.
+    let moves = |x: &[i16]| {
+        x.windows(2)
+            .map(|w| (w[1] as i32 - w[0] as i32).abs())
+            .max()
+            .unwrap_or(0)
+    };
+    let (scanning, all) = (moves(&x[..50]), moves(&x));
+    assert!(
+        scanning > 0 && all <= scanning,
+        "a step of {all} where the scan moved by {scanning}"
+    );
+    let last = *x.last().unwrap();
+    assert!(x[x.len() - 100..].iter().all(|&v| v == last), "held");
+    assert!(
+        x[..50].iter().any(|&v| v != last),
+        "the first scan moved before"
+    );
+    // The edge starts the waiting scan from where the stage holds.
+    client
+        .arm_capture(CaptureRequest {
+            signals: Channel::Setpoint.bit(),
+            samples: 300,
+            pre_trigger: 100,
+            trigger: Trigger::External,
+            decimation: 1,
+        })
+        .unwrap();
+    client.wait(Duration::from_millis(3)).unwrap();
+    client.transport_mut().set_trigger_input(true);
+    let (_, y) = wait_and_read(&mut client, Duration::from_secs(2), |_, _| {}).unwrap();
+    assert!(y[..100].iter().all(|&v| v == last), "held until the edge");
+    assert!(y[100..].iter().any(|&v| v != last), "the edge starts it");
+}
+
 #[test]
 fn the_board_refuses_a_bad_scan_by_field_and_keeps_what_it_was_doing() {
     use twinstack::protocol::messages::{NackReason, Response};
