@@ -167,10 +167,8 @@ fn a_scan_starts_and_stops_without_a_step() {
     assert!(!s.has(StatusReport::SCANNING));
 }
 
-#[test]
-fn the_external_trigger_starts_a_capture_and_a_waiting_scan_on_its_edge() {
-    let mut client = board();
-    let step = max_step(&mut client);
+/// Arms the trigger input on its rising edge (pulses of one tick, the stream not started by it).
+fn arm_rising_input(client: &mut Client<SimDevice>) {
     client
         .expect_ack(&Request::Trigger(TriggerConfig {
             pulse_ticks: 1,
@@ -178,6 +176,13 @@ fn the_external_trigger_starts_a_capture_and_a_waiting_scan_on_its_edge() {
             start_stream: false,
         }))
         .unwrap();
+}
+
+#[test]
+fn the_external_trigger_starts_a_capture_and_a_waiting_scan_on_its_edge() {
+    let mut client = board();
+    let step = max_step(&mut client);
+    arm_rising_input(&mut client);
     assert!(client.status().unwrap().has(StatusReport::TRIGGER_ARMED));
     // A capture armed on the external trigger, with 100 frames from before it.
     client
@@ -227,13 +232,7 @@ fn the_external_trigger_starts_a_capture_and_a_waiting_scan_on_its_edge() {
 #[test]
 fn a_scan_replaced_by_one_waiting_for_its_trigger_holds_until_the_edge() {
     let mut client = board();
-    client
-        .expect_ack(&Request::Trigger(TriggerConfig {
-            pulse_ticks: 1,
-            input: TriggerEdge::Rising,
-            start_stream: false,
-        }))
-        .unwrap();
+    arm_rising_input(&mut client);
     let scan = |on_trigger: bool| ScanRequest {
         pattern: parse_pattern("raster:lines=4,pixels=40,turn=20,amplitude=0.5").unwrap(),
         ticks_per_pixel: 3,
