@@ -145,12 +145,11 @@ fn one_calibration_tracks_slow_triangles_and_the_resonance_limits_fast_ones() {
 }
 
 /// What `auto` picks where it must run on the board: at 50 kHz the board's tick budget admits
-/// the generalised P–I + creep with its observer, and it tracks the lab stage within the 1 %
-/// goal; at 100 kHz the budget admits neither the creep nor the observer beside the
-/// generalised P–I (the creep's inverse runs in the interrupt), and `auto` picks the
-/// generalised P–I alone, as the compensator only, whose worst error is about 1.5 % (held as
-/// a figure in the book: results/lab-stage.md, "At the board's control rates"). Each row
-/// names what the rate took away.
+/// the generalised P–I + creep with its observer; at 100 kHz it admits it as the compensator
+/// only (the creep's modes taking turns, one a tick, keep its inverse in the interrupt at one
+/// cost whatever its modes). Both track the lab stage within the 1 % goal (held as a figure in
+/// the book: results/lab-stage.md, "At the board's control rates"). Each row names what the
+/// rate took away.
 #[test]
 fn at_the_boards_rates_auto_picks_what_the_board_runs() {
     use twinstack_identify::identification::run::BoardRate;
@@ -183,8 +182,8 @@ fn at_the_boards_rates_auto_picks_what_the_board_runs() {
     let (picked, worst, none_100) = at(100_000.0);
     assert_eq!(none_100, none, "the stage is the same");
     assert_eq!(
-        picked, "auto: gpi (no observer)",
+        picked, "auto: gpi+creep (no observer)",
         "what the budget admits at 100 kHz"
     );
-    assert!(worst < none / 5.0, "{worst} % against none's {none} %");
+    assert!(worst <= 1.0, "the goal at 100 kHz: {worst} %");
 }

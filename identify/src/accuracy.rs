@@ -288,33 +288,58 @@ pub fn measure(seed: u64, models: usize, samples: usize) -> Vec<AccuracyRow> {
     }
     rows.push(fwd_stats.row("forward generalised P–I, N = 16, 6 dead zones".into()));
     rows.push(inv_stats.row("inverse generalised P–I, N = 16, 6 dead zones".into()));
-    let (fwd, inv) = measure_creep(&mut rng, models, samples);
+    let (fwd, inv) = measure_creep(&mut rng, models, samples, Schedule::EveryTick);
     rows.push(fwd);
     rows.push(inv);
     let (obs, comp) = bouc_wen(&mut rng, models, samples);
+    let (fwd, inv) = measure_creep(&mut rng, models, samples, Schedule::TakingTurns);
+    rows.push(fwd);
+    rows.push(inv);
     rows.push(obs.fixed(0.1).row("Bouc-Wen observer".into()));
     rows.push(comp.fixed(0.5).row("inverse Bouc-Wen".into()));
     rows
 }
 
-/// The creep operator (4 random modes, 2 ticks … 2^20 ticks, weights summing to up to 0.9)
-/// forward, and its inverse fed the `f64` forward output, against the `f64` reference.
-fn measure_creep(rng: &mut Rng, models: usize, samples: usize) -> (AccuracyRow, AccuracyRow) {
+/// How the creep's modes update in [`measure_creep`]: the first mode's time constant decides.
+#[derive(Clone, Copy, PartialEq)]
+enum Schedule {
+    /// From 2 to 20 ticks: every mode every tick.
+    EveryTick,
+    /// From 80 to 2 000 ticks: the modes take turns.
+    TakingTurns,
+}
+
+/// The creep operator (4 random modes, from 2 ticks (every tick) or 80 ticks (taking turns)
+/// up to 2^26 ticks, weights summing to up to 0.9) forward, and its inverse fed the `f64`
+/// forward output, against the `f64` reference.
+fn measure_creep(
+    rng: &mut Rng,
+    models: usize,
+    samples: usize,
+    schedule: Schedule,
+) -> (AccuracyRow, AccuracyRow) {
     let rate = 50_000.0;
     let mut fwd_stats = Stats::new();
     let mut inv_stats = Stats::new();
+    // The first mode's time constant and the spacing, in ticks (the slowest stays within
+    // 2^26 ticks).
+    let (first, spacing, name) = match schedule {
+        Schedule::EveryTick => ((2.0, 20.0), 60.0, "4 modes"),
+        Schedule::TakingTurns => ((80.0, 2000.0), 30.0, "4 modes taking turns"),
+    };
     for _ in 0..models {
         let mut taus = Vec::new();
-        let mut ticks = rng.range(2.0, 20.0);
+        let mut ticks = rng.range(first.0, first.1);
         for _ in 0..4 {
             taus.push(ticks / rate);
-            ticks *= rng.range(4.0, 60.0);
+            ticks *= rng.range(4.0, spacing);
         }
         let raw: Vec<f64> = (0..4).map(|_| rng.uniform()).collect();
         let total = rng.range(0.05, 0.9) / raw.iter().sum::<f64>();
         let weights: Vec<f64> = raw.iter().map(|w| w * total * 0.999).collect();
         let p = CreepParams::new(&taus, &weights).expect("4 modes");
         let fixed = Creep::new(&p, rate).expect("valid");
+        assert_eq!(fixed.takes_turns(), schedule == Schedule::TakingTurns);
         let drive = random_drive(rng, samples);
         let y0 = drive.first().copied().unwrap_or(0.0);
         let (mut fs, mut is) = (fixed.state_at_rest(q(y0)), fixed.state_at_rest(q(y0)));
@@ -328,8 +353,8 @@ fn measure_creep(rng: &mut Rng, models: usize, samples: usize) -> (AccuracyRow, 
         }
     }
     (
-        fwd_stats.fixed(0.1).row("creep, 4 modes".into()),
-        inv_stats.fixed(0.5).row("inverse creep, 4 modes".into()),
+        fwd_stats.fixed(0.1).row(format!("creep, {name}")),
+        inv_stats.fixed(0.5).row(format!("inverse creep, {name}")),
     )
 }
 

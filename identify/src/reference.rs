@@ -381,13 +381,17 @@ impl InverseDuhem {
 
 /// Creep operator, `f64`: `z_k ← a_k z_k + b_k y`, `x = c0·y + Σ c_k z_k` (see
 /// `twinstack::models::creep`), in any units (the static gain is 1, so an affine change of units
-/// commutes with it).
+/// commutes with it). Where the modes take turns at the rate
+/// (`twinstack::models::creep::takes_turns`), one mode updates a sample, with the coefficients
+/// of its update period.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Creep {
-    /// `(a_k, b_k, c_k)` per mode.
+    /// `(a_k, b_k, c_k)` per mode, per update.
     modes: Vec<(f64, f64, f64)>,
     /// The modes' states `z_k`.
     z: Vec<f64>,
+    /// Taking turns: the mode the next sample updates.
+    turn: Option<usize>,
 }
 
 impl Creep {
@@ -395,36 +399,61 @@ impl Creep {
     pub fn new(params: &CreepParams, rate_hz: f64, y0: f64) -> Result<Self, ParamError> {
         params.check(rate_hz)?;
         let modes: Vec<(f64, f64, f64)> = params
-            .poles(rate_hz)
+            .update_poles(rate_hz)
             .zip(&params.weights)
             .map(|((a, b), &c)| (a, b, c))
             .collect();
         let z = vec![y0; modes.len()];
-        Ok(Self { modes, z })
+        let turn = params.takes_turns(rate_hz).then_some(0);
+        Ok(Self { modes, z, turn })
+    }
+
+    /// The modes that update this sample: all, or the one whose turn it is.
+    fn moving(&self) -> std::ops::Range<usize> {
+        match self.turn {
+            Some(j) => j..j + 1,
+            None => 0..self.modes.len(),
+        }
+    }
+
+    /// The next turn comes (taking turns).
+    fn advance(&mut self) {
+        if let Some(j) = self.turn.as_mut() {
+            *j = (*j + 1) % self.modes.len().max(1);
+        }
     }
 
     /// One sample forward: `y` → `x` (modes updated first).
     pub fn step(&mut self, y: f64) -> f64 {
+        for k in self.moving() {
+            let (a, b, _) = self.modes[k];
+            self.z[k] = a * self.z[k] + b * y;
+        }
+        self.advance();
         let mut x = y;
-        for (&(a, b, c), z) in self.modes.iter().zip(self.z.iter_mut()) {
-            *z = a * *z + b * y;
-            x += c * (*z - y);
+        for (&(_, _, c), &z) in self.modes.iter().zip(&self.z) {
+            x += c * (z - y);
         }
         x
     }
 
     /// One sample of the exact inverse: `x` → the `y` that [`Creep::step`] turns into `x`,
-    /// `y = (x − Σ c_k a_k z_k) / (1 − Σ c_k a_k)`; the modes are then updated with it.
+    /// `y = (x − Σ_moving c_k a_k z_k − Σ_held c_k z_k) / (1 − Σ_moving c_k a_k − Σ_held c_k)`;
+    /// the moving modes are then updated with it.
     pub fn inverse_step(&mut self, x: f64) -> f64 {
         let (mut rest, mut d) = (x, 1.0);
-        for (&(a, _, c), &z) in self.modes.iter().zip(&self.z) {
-            rest -= c * a * z;
-            d -= c * a;
+        let moving = self.moving();
+        for (k, (&(a, _, c), &z)) in self.modes.iter().zip(&self.z).enumerate() {
+            let kept = if moving.contains(&k) { a } else { 1.0 };
+            rest -= c * kept * z;
+            d -= c * kept;
         }
         let y = rest / d;
-        for (&(a, b, _), z) in self.modes.iter().zip(self.z.iter_mut()) {
-            *z = a * *z + b * y;
+        for k in moving {
+            let (a, b, _) = self.modes[k];
+            self.z[k] = a * self.z[k] + b * y;
         }
+        self.advance();
         y
     }
 }

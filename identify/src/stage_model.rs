@@ -146,12 +146,16 @@ struct CreepRun {
 
 impl CreepRun {
     fn forward(&mut self, y: i32) -> i32 {
-        let s = self.state.get_or_insert_with(|| CreepState::at_rest(y));
+        let s = self
+            .state
+            .get_or_insert_with(|| self.creep.state_at_rest(y));
         self.creep.forward_step(s, y)
     }
 
     fn inverse(&mut self, x: i32) -> i32 {
-        let s = self.state.get_or_insert_with(|| CreepState::at_rest(x));
+        let s = self
+            .state
+            .get_or_insert_with(|| self.creep.state_at_rest(x));
         self.creep.inverse_step(s, x)
     }
 }

@@ -266,7 +266,9 @@ mod tests {
     use super::*;
     use crate::board::Hardware;
     use crate::config::settings::{representative_gpi, representative_pi, Settings};
-    use crate::models::creep::{CreepParams, CREEP_BASE_CYCLES, CREEP_MODE_CYCLES};
+    use crate::models::creep::{
+        Creep, CreepParams, CREEP_BASE_CYCLES, CREEP_MODE_CYCLES, CREEP_TURN_CYCLES,
+    };
     use crate::models::generalised_pi::DEAD_ZONE_MAP_CYCLES;
 
     fn build(s: &Settings) -> ControlConfig {
@@ -412,16 +414,22 @@ mod tests {
             pipeline_cycles(&build(&with_observer), capturing) - both,
             CAPTURE_FRAME_CYCLES
         );
-        let creep = CreepParams::new(&[0.01, 0.1], &[0.02, 0.02]).unwrap();
-        let crept = Settings {
-            creep: Some(creep),
-            ..with_observer.clone()
-        };
-        assert_eq!(
-            worst_case_cycles(&build(&crept)) - both,
-            2 * (CREEP_BASE_CYCLES + 2 * CREEP_MODE_CYCLES),
-            "creep runs on both sides"
-        );
+        // At 10 kHz modes of 2 ms and 10 ms update every tick (2 ms is 20 ticks, less than
+        // 20 updates of 2 ticks); modes of 10 ms and 100 ms take turns, at one cost.
+        for (taus, cost) in [
+            ([0.002, 0.01], CREEP_BASE_CYCLES + 2 * CREEP_MODE_CYCLES),
+            ([0.01, 0.1], CREEP_TURN_CYCLES),
+        ] {
+            let crept = Settings {
+                creep: Some(CreepParams::new(&taus, &[0.02, 0.02]).unwrap()),
+                ..with_observer.clone()
+            };
+            assert_eq!(
+                worst_case_cycles(&build(&crept)) - both,
+                2 * cost,
+                "creep runs on both sides"
+            );
+        }
         let gpi = Settings {
             compensator: Some(representative_gpi(32).unwrap()),
             ..pi32
@@ -451,9 +459,14 @@ mod tests {
             creep: Some(creep),
             ..Settings::default()
         };
-        let config = build(&dear);
+        assert!(check(&build(&dear), 10_000.0).is_ok());
+        // The creep's modes take turns at 100 kHz (not at 10 kHz): the cost is the 100 kHz one.
+        let config = dear.build(&Hardware::driver_board(1_000.0)).unwrap();
+        let config = ControlConfig {
+            creep: Creep::new(dear.creep.as_ref().unwrap(), 100_000.0).ok(),
+            ..config
+        };
         let needs = worst_case_cycles(&config);
-        assert!(check(&config, 10_000.0).is_ok());
         let refusal = check(&config, 100_000.0).unwrap_err();
         assert_eq!(
             refusal,

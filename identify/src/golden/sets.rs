@@ -22,6 +22,7 @@
 //! | `iduhem-pi-open` | inverse Duhem | P–I, N = 16 | none | none | open loop | unidirectional, bias | 16-bit, none |
 //! | `igpi16-gpi-closed` | inverse generalised P–I, N = 16, 6 dead zones | the same | drift limit 2 % | PI | closed loop | differential, bias | 16-bit, 16-bit |
 //! | `ibw-bw-closed` | inverse Bouc–Wen | Bouc–Wen | drift limit 2 % | PI | closed loop | differential, bias | 16-bit, 16-bit |
+//! | `ipi16-pi-creep-turns-closed` | inverse P–I, N = 16, + inverse creep (4 modes taking turns) | P–I, N = 16, + creep | drift limit 2 % | PI | closed loop | differential, bias | 16-bit, 16-bit |
 //!
 //! The generalised P–I's and the Bouc–Wen's files widen their output ranges a little beyond
 //! the others' (for the P–I part's output; 5 % beyond its own simulated output); the shared
@@ -322,5 +323,14 @@ pub fn definitions(dir: &Path) -> anyhow::Result<Vec<SetDefinition>> {
         def(closed("igpi16-gpi-closed", &gpi16, &gpi16, &t_duhem)),
         // The observer (Bouc–Wen) and the stage (P–I) differ: the drift check flags.
         def(closed("ibw-bw-closed", &bouc_wen, &bouc_wen, &t_pi)),
+        // The inverse P–I N = 16 set with creep as identification picks its modes (10 ms …
+        // 10 s): they take turns, one a tick.
+        def(Set {
+            creep: Some(CreepParams::new(
+                &[1e-2, 1e-1, 1.0, 10.0],
+                &[0.04, 0.02, 0.02, 0.03],
+            )?),
+            ..closed("ipi16-pi-creep-turns-closed", &pi16, &pi16, &t_duhem)
+        }),
     ])
 }

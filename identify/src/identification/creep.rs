@@ -4,7 +4,7 @@
 //! With the time constants fixed, the creep operator (`twinstack::models::creep`) is linear in its
 //! weights: `x = h + Σ_k c_k (L_k[h] − h)`, `h` the hysteresis model's output and `L_k` the
 //! first-order lag of mode `k` at the data's sample period (the operator's own
-//! discretisation, at rest at `h[0]`). So the weights are one non-negative least-squares
+//! discretisation, at rest at `h[0]`, its modes taking turns where the operator's do). So the weights are one non-negative least-squares
 //! problem on `x − h`; `Σ c_k ≤ 0.9` (the library's bound) is then enforced by scaling the
 //! weights down when the unconstrained-sum solution exceeds it.
 //!
@@ -48,15 +48,38 @@ pub fn time_constants(sample_period: f64, window_s: f64, modes: usize) -> Vec<f6
         .collect()
 }
 
+/// Which samples a mode updates on: every one, or, where the modes take turns
+/// (`twinstack::models::creep::takes_turns`), mode `mode` of `of` on every `of`-th from its own.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Updates {
+    /// Every sample.
+    Every,
+    /// Taking turns.
+    Turn {
+        /// The mode, 0-based: it updates on samples `mode`, `mode + of`, …
+        mode: usize,
+        /// The number of modes.
+        of: usize,
+    },
+}
+
 /// First-order lag of `h` with time constant `tau` at `rate_hz`, at rest at `h[0]`, with the
-/// creep operator's discretisation (`z ← a z + b h`, `b = −expm1(−T/τ)`).
-pub fn lag(h: &[f64], tau: f64, rate_hz: f64) -> Vec<f64> {
-    let b = -(-1.0 / (tau * rate_hz)).exp_m1();
+/// creep operator's discretisation (`z ← a z + b h`, `b = −expm1(−T/τ)`, `T` the mode's
+/// update period: a sample, or `of` samples taking turns, holding between its updates).
+pub fn lag(h: &[f64], tau: f64, rate_hz: f64, updates: Updates) -> Vec<f64> {
+    let (period, phase) = match updates {
+        Updates::Every => (1, 0),
+        Updates::Turn { mode, of } => (of.max(1), mode),
+    };
+    let b = -(-(period as f64) / (tau * rate_hz)).exp_m1();
     let a = 1.0 - b;
     let mut z = h.first().copied().unwrap_or(0.0);
     h.iter()
-        .map(|&v| {
-            z = a * z + b * v;
+        .enumerate()
+        .map(|(k, &v)| {
+            if k % period == phase {
+                z = a * z + b * v;
+            }
             z
         })
         .collect()
@@ -72,10 +95,20 @@ pub fn fit(
     taus: &[f64],
     rate_hz: f64,
 ) -> Result<CreepParams, LeastSquaresError> {
+    let turns = twinstack::models::creep::takes_turns(taus, rate_hz);
     let columns: Vec<Vec<f64>> = taus
         .iter()
-        .map(|&tau| {
-            lag(h, tau, rate_hz)
+        .enumerate()
+        .map(|(mode, &tau)| {
+            let updates = if turns {
+                Updates::Turn {
+                    mode,
+                    of: taus.len(),
+                }
+            } else {
+                Updates::Every
+            };
+            lag(h, tau, rate_hz, updates)
                 .iter()
                 .zip(h)
                 .map(|(l, v)| l - v)
@@ -134,8 +167,19 @@ mod tests {
 
     #[test]
     fn known_weights_are_recovered_from_the_creep_of_a_signal() {
-        let rate = 1000.0;
-        let h: Vec<f64> = (0..20_000)
+        // At 1 kHz the modes update every sample; at 10 kHz they take turns, and the fit's
+        // columns take them as the operator does.
+        for rate in [1000.0, 10_000.0] {
+            known_weights_are_recovered_at(rate);
+        }
+    }
+
+    fn known_weights_are_recovered_at(rate: f64) {
+        assert_eq!(
+            twinstack::models::creep::takes_turns(&[0.01, 0.1, 1.0, 10.0], rate),
+            rate > 1000.0
+        );
+        let h: Vec<f64> = (0..(20.0 * rate) as usize)
             .map(|k| {
                 let t = k as f64 / rate;
                 (t * 0.7).sin() * 3.0 + if (t as usize) % 4 < 2 { 1.0 } else { -1.0 }

@@ -252,13 +252,15 @@ impl BoardRate {
 /// ));
 /// assert_eq!(admission_at(&s, &BoardRate::sizing(50_000.0, false).capturing(1)), Admission::Admitted);
 ///
-/// // Bouc–Wen with six creep modes both ways at 50 kHz: the creep loses modes first.
+/// // Bouc–Wen with six creep modes both ways at 50 kHz, the fastest too fast for them to
+/// // take turns (1 ms is 50 ticks, less than 20 updates of 6 ticks): the creep loses modes
+/// // first.
 /// use twinstack::models::creep::CreepParams;
 /// use twinstack::config::settings::representative_bouc_wen;
 /// let s = Settings {
 ///     compensator: Some(representative_bouc_wen()),
 ///     observer: Some(representative_bouc_wen()),
-///     creep: Some(CreepParams::new(&[0.01, 0.03, 0.1, 0.3, 1.0, 3.0], &[0.02; 6]).unwrap()),
+///     creep: Some(CreepParams::new(&[0.001, 0.003, 0.01, 0.03, 0.1, 0.3], &[0.02; 6]).unwrap()),
 ///     ..Settings::default()
 /// };
 /// let sized = admission_at(&s, &keeping(BoardRate::sizing(50_000.0, true)));
