@@ -4,9 +4,10 @@
 //! With the time constants fixed, the creep operator (`twinstack::models::creep`) is linear in its
 //! weights: `x = h + Σ_k c_k (L_k[h] − h)`, `h` the hysteresis model's output and `L_k` the
 //! first-order lag of mode `k` at the data's sample period (the operator's own
-//! discretisation, at rest at `h[0]`, its modes taking turns where the operator's do). So the weights are one non-negative least-squares
-//! problem on `x − h`; `Σ c_k ≤ 0.9` (the library's bound) is then enforced by scaling the
-//! weights down when the unconstrained-sum solution exceeds it.
+//! discretisation, at rest at `h[0]`, its modes taking turns where the operator's do). So the
+//! weights are one non-negative least-squares problem on `x − h`; `Σ c_k ≤ 0.9` (the
+//! library's bound) is then enforced by scaling the weights down when the unconstrained-sum
+//! solution exceeds it.
 //!
 //! Two free columns join the creep's: `h` itself and a constant. A hysteresis model fitted
 //! without creep has absorbed the slow modes into its gain and offset (a mode slower than
