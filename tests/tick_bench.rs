@@ -5,7 +5,7 @@
 //! `qemu-system-arm -machine netduinoplus2 -icount shift=0` (one guest instruction per
 //! virtual nanosecond, TIM2 counting at 1 GHz, so counts are exact and repeatable) and prints
 //! a table. It fails if the bench does not run or report every configuration, or if the board
-//! image or the Feather image exceeds its 136 KiB flash budget; the instruction target (≤ 250 for inverse P–I
+//! image or the Feather image exceeds its 128 KiB flash budget; the instruction target (≤ 250 for inverse P–I
 //! N = 16 with observer and feedback) is printed, not asserted, because it is a property of
 //! the library's tick (src/control/mod.rs), not of this harness.
 
@@ -13,13 +13,11 @@ mod support;
 
 use std::time::Duration;
 
-/// Flash budget of the board image, bytes: 136 KiB, a few KiB above the image, of the 896 KiB
+/// Flash budget of the board image, bytes: 128 KiB, a few KiB above the image, of the 896 KiB
 /// it may use (sectors 0–10): room for the model family (generalised P–I, creep, Bouc–Wen),
-/// tight enough to catch a configuration path inlined into every caller or a formatting
-/// machinery pulled in. One path is written into several callers on purpose: the creep's turn
-/// in each of the compensator's four creep variants (about 1 KiB of the tick's handler, for
-/// about 25 cycles a tick that a call would cost).
-const FLASH_BUDGET: u64 = 136 * 1024;
+/// tight enough to catch a path written into every caller (a model's or the creep's step
+/// inlined once per model variant) or a formatting machinery pulled in.
+const FLASH_BUDGET: u64 = 128 * 1024;
 /// Instruction budget of the N = 16 tick.
 const TICK_BUDGET: f64 = 250.0;
 

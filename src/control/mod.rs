@@ -59,7 +59,7 @@ use crate::models::{CompensatorRun, ObserverRun};
 /// together.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct RelaxedObserver {
-    /// The observer as the tick would run it, relaxed ([`ObserverRun::None`] without a model).
+    /// The observer as the tick would run it, relaxed ([`ObserverRun::NONE`] without a model).
     pub(crate) run: ObserverRun,
     /// Its output there, Q2.30 normalised displacement (the drive itself without a model):
     /// the setpoint the controller is prepared at.
@@ -277,7 +277,7 @@ impl Controller {
     /// ```
     pub fn new(config: ControlConfig) -> Self {
         let mut c = Self {
-            compensator: CompensatorRun::None,
+            compensator: CompensatorRun::NONE,
             sensor: None,
             feedback: None,
             run: Run::Blind,
@@ -367,9 +367,7 @@ impl Controller {
     /// when the configuration lacks what the mode needs.
     pub fn set_mode(&mut self, mode: Mode) -> Result<(), ModeError> {
         match mode {
-            Mode::OpenLoop if matches!(self.compensator, CompensatorRun::None) => {
-                return Err(ModeError::NoCompensator)
-            }
+            Mode::OpenLoop if self.compensator.is_bypass() => return Err(ModeError::NoCompensator),
             Mode::ClosedLoop if self.sensor.is_none() || self.feedback.is_none() => {
                 return Err(ModeError::NoSensor)
             }

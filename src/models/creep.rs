@@ -457,8 +457,8 @@ impl Creep {
     /// `x = c0·y + Σ c_k z_k`, computed as `y − Σ c_k (y − z_k)` (Q4.60 sum of Q1.31 ×
     /// Q3.29 products), so that the static gain is exactly 1.
     ///
-    /// One copy in flash (not inlined), as [`Self::inverse_step`]: written out into each of
-    /// the tick's model variants, the modes made the whole handler's other code dearer.
+    /// One copy in flash (not inlined), as [`Self::inverse_step`]'s every-tick form: the
+    /// modes written out where they are called made the caller's other code dearer.
     #[inline(never)]
     pub fn forward_step(&self, state: &mut CreepState, y: i32) -> i32 {
         if self.turns {
@@ -492,8 +492,9 @@ impl Creep {
     /// on the states before the update; then the modes are updated with `y`. Where the modes
     /// take turns, `y = (x − S + c_j b_j z_j)·(1/D_j)` and mode `j` is updated.
     ///
-    /// Taking turns, the step is written out where it is called (a short, straight path: a
-    /// call would cost the tick as much again); every tick, it is one copy in flash.
+    /// Taking turns, the step is written out where it is called, once in the tick (a short,
+    /// straight path: a call would cost the tick as much again); every tick, it is one copy
+    /// in flash.
     #[inline(always)]
     pub fn inverse_step(&self, state: &mut CreepState, x: i32) -> i32 {
         if self.turns {
@@ -586,7 +587,13 @@ fn reciprocal_q5_27(d: i64) -> i32 {
 /// beyond −2): `z` Q4.60, `y` Q2.30.
 #[inline(always)]
 fn lag(z: i64, y: i32) -> i32 {
-    (y >> 1).saturating_sub((z >> 31) as i32)
+    lag_from((z >> 31) as i32, y)
+}
+
+/// [`lag`] with the state's high word `z >> 31` (Q3.29) already formed.
+#[inline(always)]
+fn lag_from(high: i32, y: i32) -> i32 {
+    (y >> 1).saturating_sub(high)
 }
 
 /// One mode's update `z ← z + b·(y − z)`: `z` Q4.60, `b` Q0.32, `y` Q2.30; the product
@@ -601,7 +608,7 @@ fn relax(z: i64, b: i32, y: i32) -> i64 {
 /// [`relax`] with the state's high word `z >> 31` (Q3.29) already formed.
 #[inline(always)]
 fn relax_from(z: i64, high: i32, b: i32, y: i32) -> i64 {
-    z.wrapping_add((b as i64 * (y >> 1).saturating_sub(high) as i64) >> 1)
+    z.wrapping_add((b as i64 * lag_from(high, y) as i64) >> 1)
 }
 
 /// `acc >> BITS` (rounding toward −∞) saturated to `i32`: a product with `BITS + 30`
@@ -630,7 +637,7 @@ pub const CREEP_MODE_CYCLES: u32 = 36;
 /// that tick to this file's lines, the test of the schedule and the join after it included).
 pub const CREEP_TURN_CYCLES: u32 = 100;
 
-/// The creep forward, after a forward model ([`crate::models::Series`]).
+/// The creep forward, after a forward model ([`crate::models::ObserverRun`]).
 impl Hysteresis for Creep {
     type State = CreepState;
 
@@ -648,7 +655,7 @@ impl Hysteresis for Creep {
     }
 }
 
-/// The creep's exact inverse, before an inverse model ([`crate::models::Series`]): desired
+/// The creep's exact inverse, before an inverse model ([`crate::models::CompensatorRun`]): desired
 /// displacement `x` → the hysteresis model's output `y` that gives it.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct InverseCreep(pub Creep);

@@ -4,24 +4,19 @@
 //! checks it).
 //!
 //! The configuration's enums ([`Compensator`], [`Observer`]) hold the models; the tick's
-//! ([`CompensatorRun`], [`ObserverRun`]) hold each model, alone or in [`Series`] with the
-//! stage's creep, and its state ([`Running`]), one tag per tick. Whether the creep runs is
-//! part of that tag (`InversePi` / `InversePiCreep`), not a check of its own: a tick without
-//! creep dispatches on the model alone, as cheap as a model run by hand (an `Option` of the
-//! creep inside each variant cost the P–I 16 tick 15–20 instructions in the whole-interrupt
-//! bench).
+//! ([`InverseRun`], [`ForwardRun`]) hold each model with its state ([`Running`]), one tag per
+//! tick. The stage's creep is composed in series by a wrapper, once for every model: the
+//! compensator ([`CompensatorRun`]) runs the inverse creep, where the configuration has one,
+//! then the inverse model; the observer ([`ObserverRun`]) the forward model, then the creep.
+//! A model is written once, and the creep's step once in the tick (written out into each
+//! model's variant, it cost the board image about 1 KiB of flash).
 
 use crate::models::bouc_wen::{BoucWen, InverseBoucWen};
 use crate::models::creep::{Creep, InverseCreep};
 use crate::models::duhem::{Duhem, InverseDuhem};
 use crate::models::generalised_pi::{GeneralisedPi, InverseGeneralisedPi};
 use crate::models::prandtl_ishlinskii::{InversePrandtlIshlinskii, PrandtlIshlinskii};
-use crate::models::{Forward, Hysteresis, Inverse, Running, Series};
-
-/// An inverse model after the inverse creep (setpoint → C⁻¹ → H⁻¹ → drive).
-pub type Compensating<M> = Series<InverseCreep, M>;
-/// A forward model followed by the creep (drive → H → C → displacement).
-pub type Observing<M> = Series<M, Creep>;
+use crate::models::{Forward, Hysteresis, Inverse, Running};
 
 /// The feedforward compensator: desired displacement → drive.
 // The variants differ in size by design: there is no heap on the board, and the configuration
@@ -57,12 +52,11 @@ pub enum Observer {
     BoucWen(BoucWen),
 }
 
-/// The compensator as the tick runs it: the model, alone or after the inverse creep, and its
-/// state, in one enum (one tag per tick).
+/// The inverse model as the tick runs it, with its state (one tag per tick).
 // The order of the variants is the tag the tick's dispatch compares: the reference model first.
 #[allow(clippy::large_enum_variant)] // no heap: the controllers live in statics
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum CompensatorRun {
+pub enum InverseRun {
     /// Inverse P–I.
     InversePi(Running<InversePrandtlIshlinskii>),
     /// Inverse Duhem.
@@ -73,21 +67,12 @@ pub enum CompensatorRun {
     InverseGeneralisedPi(Running<InverseGeneralisedPi>),
     /// Inverse Bouc–Wen.
     InverseBoucWen(Running<InverseBoucWen>),
-    /// Inverse creep, then the inverse P–I.
-    InversePiCreep(Running<Compensating<InversePrandtlIshlinskii>>),
-    /// Inverse creep, then the inverse Duhem.
-    InverseDuhemCreep(Running<Compensating<InverseDuhem>>),
-    /// Inverse creep, then the inverse generalised P–I.
-    InverseGeneralisedPiCreep(Running<Compensating<InverseGeneralisedPi>>),
-    /// Inverse creep, then the inverse Bouc–Wen.
-    InverseBoucWenCreep(Running<Compensating<InverseBoucWen>>),
 }
 
-/// The observer as the tick runs it (see [`CompensatorRun`]): the model, alone or followed by
-/// the creep.
-#[allow(clippy::large_enum_variant)]
+/// The forward model as the tick runs it, with its state (see [`InverseRun`]).
+#[allow(clippy::large_enum_variant)] // as for `InverseRun`
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum ObserverRun {
+pub enum ForwardRun {
     /// Forward Duhem.
     Duhem(Running<Duhem>),
     /// Forward P–I.
@@ -98,64 +83,85 @@ pub enum ObserverRun {
     GeneralisedPi(Running<GeneralisedPi>),
     /// Forward Bouc–Wen.
     BoucWen(Running<BoucWen>),
-    /// Forward Duhem, then the creep.
-    DuhemCreep(Running<Observing<Duhem>>),
-    /// Forward P–I, then the creep.
-    PiCreep(Running<Observing<PrandtlIshlinskii>>),
-    /// Forward generalised P–I, then the creep.
-    GeneralisedPiCreep(Running<Observing<GeneralisedPi>>),
-    /// Forward Bouc–Wen, then the creep.
-    BoucWenCreep(Running<Observing<BoucWen>>),
 }
 
-/// `m` alone or after the inverse creep, with its state: matched to the observer's where that
-/// runs the model `m` inverts, else relaxed at drive `u` with the stage at `y`; the creep's
-/// modes settled at `y` (where the models are relaxed, so it passes `y` through).
-fn compensating<M: Inverse + Copy>(
-    m: &M,
-    observer: Option<(&M::Forward, &<M::Forward as Hysteresis>::State)>,
-    creep: Option<Creep>,
-    u: i32,
-    y: i32,
-    alone: fn(Running<M>) -> CompensatorRun,
-    with_creep: fn(Running<Compensating<M>>) -> CompensatorRun,
-) -> CompensatorRun {
-    let state = observer
-        .and_then(|(model, state)| m.matching(model, state))
-        .unwrap_or_else(|| Inverse::relaxed(m, u, y));
-    match creep {
-        None => alone(Running { model: *m, state }),
-        Some(c) => with_creep(Running {
-            model: Series(InverseCreep(c), *m),
-            state: (c.state_at_rest(y), state),
-        }),
+/// The compensator as the tick runs it: the inverse creep (where the stage has creep and the
+/// configuration a model), then the inverse model — setpoint → C⁻¹ → H⁻¹ → drive.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct CompensatorRun {
+    /// The inverse creep and its state; `None` without creep or without a model.
+    pub creep: Option<Running<InverseCreep>>,
+    /// The inverse model and its state.
+    pub model: InverseRun,
+}
+
+/// The observer as it runs (see [`CompensatorRun`]): the forward model, then the creep
+/// (where the stage has creep and the configuration a model) — drive → H → C → displacement.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct ObserverRun {
+    /// The forward model and its state.
+    pub model: ForwardRun,
+    /// The creep and its state; `None` without creep or without a model.
+    pub creep: Option<Running<Creep>>,
+}
+
+impl CompensatorRun {
+    /// No compensation (bypass): the drive is the setpoint.
+    pub const NONE: Self = Self {
+        creep: None,
+        model: InverseRun::None,
+    };
+
+    /// Whether there is no model: the drive is the setpoint.
+    pub fn is_bypass(&self) -> bool {
+        matches!(self.model, InverseRun::None)
+    }
+
+    /// One tick: desired displacement `y` (Q2.30) → drive (Q2.30); without a model, `y`.
+    #[inline(always)]
+    pub fn step(&mut self, y: i32) -> i32 {
+        let x = match &mut self.creep {
+            Some(c) => c.step(y),
+            None => y,
+        };
+        self.model.step(x)
+    }
+
+    /// Its cost in the tick (the model and its creep), cycles at 5 wait states.
+    pub fn cycles(&self) -> u32 {
+        self.model.cycles() + self.creep.as_ref().map_or(0, |c| c.model.cycles())
     }
 }
 
-/// `m` alone or followed by the creep, relaxed at drive `u`, and its output there; the
-/// creep's modes settled at the model's output (so it passes it through).
-fn observing<M: Forward + Copy>(
-    m: &M,
-    creep: Option<Creep>,
-    u: i32,
-    alone: fn(Running<M>) -> ObserverRun,
-    with_creep: fn(Running<Observing<M>>) -> ObserverRun,
-) -> (ObserverRun, i32) {
-    let (state, y) = Forward::relaxed(m, u);
-    let run = match creep {
-        None => alone(Running { model: *m, state }),
-        Some(c) => with_creep(Running {
-            model: Series(*m, c),
-            state: (state, c.state_at_rest(y)),
-        }),
+impl ObserverRun {
+    /// No observer: the estimate reads 0.
+    pub const NONE: Self = Self {
+        model: ForwardRun::None,
+        creep: None,
     };
-    (run, y)
+
+    /// One tick: applied drive `u` (Q2.30) → estimated displacement (Q2.30); without a
+    /// model, 0.
+    #[inline(always)]
+    pub fn step(&mut self, u: i32) -> i32 {
+        let y = self.model.step(u);
+        match &mut self.creep {
+            Some(c) => c.step(y),
+            None => y,
+        }
+    }
+
+    /// Its cost (the model and its creep), cycles at 5 wait states.
+    pub fn cycles(&self) -> u32 {
+        self.model.cycles() + self.creep.as_ref().map_or(0, |c| c.model.cycles())
+    }
 }
 
 impl Compensator {
-    /// What the tick runs of it, in series with `creep` (not applied without a model), its
-    /// state from `observer`'s (prepared first) or relaxed at drive `u` with the stage at `y`.
-    /// Off the tick.
+    /// What the tick runs of it, after `creep` (not applied without a model), its state from
+    /// `observer`'s (prepared first) where that runs the model this inverts, else relaxed at
+    /// drive `u` with the stage at `y`; the creep's modes settled at `y` (where the models
+    /// are relaxed, so it passes `y` through). Off the tick.
     pub fn prepare(
         &self,
         observer: &ObserverRun,
@@ -163,43 +169,29 @@ impl Compensator {
         u: i32,
         y: i32,
     ) -> CompensatorRun {
-        use CompensatorRun as C;
-        use ObserverRun as O;
-        match self {
-            Self::None => C::None,
-            Self::InversePi(m) => {
-                let o = match observer {
-                    O::Pi(o) => Some((&o.model, &o.state)),
-                    O::PiCreep(o) => Some((&o.model.0, &o.state.0)),
-                    _ => None,
-                };
-                compensating(m, o, creep, u, y, C::InversePi, C::InversePiCreep)
+        use ForwardRun as F;
+        use InverseRun as I;
+        let model = match (self, &observer.model) {
+            (Self::None, _) => return CompensatorRun::NONE,
+            (Self::InversePi(m), F::Pi(o)) => I::InversePi(inverse(m, Some(o), u, y)),
+            (Self::InversePi(m), _) => I::InversePi(inverse(m, None, u, y)),
+            (Self::InverseDuhem(m), F::Duhem(o)) => I::InverseDuhem(inverse(m, Some(o), u, y)),
+            (Self::InverseDuhem(m), _) => I::InverseDuhem(inverse(m, None, u, y)),
+            (Self::InverseGeneralisedPi(m), F::GeneralisedPi(o)) => {
+                I::InverseGeneralisedPi(inverse(m, Some(o), u, y))
             }
-            Self::InverseDuhem(m) => {
-                let o = match observer {
-                    O::Duhem(o) => Some((&o.model, &o.state)),
-                    O::DuhemCreep(o) => Some((&o.model.0, &o.state.0)),
-                    _ => None,
-                };
-                compensating(m, o, creep, u, y, C::InverseDuhem, C::InverseDuhemCreep)
+            (Self::InverseGeneralisedPi(m), _) => I::InverseGeneralisedPi(inverse(m, None, u, y)),
+            (Self::InverseBoucWen(m), F::BoucWen(o)) => {
+                I::InverseBoucWen(inverse(m, Some(o), u, y))
             }
-            Self::InverseGeneralisedPi(m) => {
-                let o = match observer {
-                    O::GeneralisedPi(o) => Some((&o.model, &o.state)),
-                    O::GeneralisedPiCreep(o) => Some((&o.model.0, &o.state.0)),
-                    _ => None,
-                };
-                let (alone, with_creep) = (C::InverseGeneralisedPi, C::InverseGeneralisedPiCreep);
-                compensating(m, o, creep, u, y, alone, with_creep)
-            }
-            Self::InverseBoucWen(m) => {
-                let o = match observer {
-                    O::BoucWen(o) => Some((&o.model, &o.state)),
-                    O::BoucWenCreep(o) => Some((&o.model.0, &o.state.0)),
-                    _ => None,
-                };
-                compensating(m, o, creep, u, y, C::InverseBoucWen, C::InverseBoucWenCreep)
-            }
+            (Self::InverseBoucWen(m), _) => I::InverseBoucWen(inverse(m, None, u, y)),
+        };
+        CompensatorRun {
+            creep: creep.map(|c| Running {
+                model: InverseCreep(c),
+                state: c.state_at_rest(y),
+            }),
+            model,
         }
     }
 
@@ -216,20 +208,56 @@ impl Compensator {
     }
 }
 
+/// `m` with its state: matched to the observer's where that runs the model `m` inverts,
+/// else relaxed at drive `u` with the stage at `y`.
+fn inverse<M: Inverse + Copy>(
+    m: &M,
+    observer: Option<&Running<M::Forward>>,
+    u: i32,
+    y: i32,
+) -> Running<M> {
+    let state = observer
+        .and_then(|o| m.matching(&o.model, &o.state))
+        .unwrap_or_else(|| Inverse::relaxed(m, u, y));
+    Running { model: *m, state }
+}
+
+/// `m` relaxed at drive `u`, and its output there.
+fn forward<M: Forward + Copy>(m: &M, u: i32) -> (Running<M>, i32) {
+    let (state, y) = Forward::relaxed(m, u);
+    (Running { model: *m, state }, y)
+}
+
 impl Observer {
     /// What the tick runs of it, followed by `creep` (not applied without a model), relaxed at
-    /// drive `u`; and its estimate there (`u` without a model). Off the tick.
+    /// drive `u`, the creep's modes settled at the model's output (so it passes it through);
+    /// and its estimate there (`u` without a model). Off the tick.
     pub fn prepare(&self, creep: Option<Creep>, u: i32) -> (ObserverRun, i32) {
-        use ObserverRun as O;
-        match self {
-            Self::None => (O::None, u),
-            Self::Pi(m) => observing(m, creep, u, O::Pi, O::PiCreep),
-            Self::Duhem(m) => observing(m, creep, u, O::Duhem, O::DuhemCreep),
-            Self::GeneralisedPi(m) => {
-                observing(m, creep, u, O::GeneralisedPi, O::GeneralisedPiCreep)
+        use ForwardRun as F;
+        let (model, y) = match self {
+            Self::None => return (ObserverRun::NONE, u),
+            Self::Pi(m) => {
+                let (r, y) = forward(m, u);
+                (F::Pi(r), y)
             }
-            Self::BoucWen(m) => observing(m, creep, u, O::BoucWen, O::BoucWenCreep),
-        }
+            Self::Duhem(m) => {
+                let (r, y) = forward(m, u);
+                (F::Duhem(r), y)
+            }
+            Self::GeneralisedPi(m) => {
+                let (r, y) = forward(m, u);
+                (F::GeneralisedPi(r), y)
+            }
+            Self::BoucWen(m) => {
+                let (r, y) = forward(m, u);
+                (F::BoucWen(r), y)
+            }
+        };
+        let creep = creep.map(|c| Running {
+            model: c,
+            state: c.state_at_rest(y),
+        });
+        (ObserverRun { model, creep }, y)
     }
 
     /// The estimate after the drive has rested at `u` (`u` without a model). Off the tick.
@@ -256,27 +284,33 @@ impl Observer {
     }
 }
 
-impl CompensatorRun {
-    /// One tick: desired displacement `y` (Q2.30) → drive (Q2.30); without a model, `y`.
+impl InverseRun {
+    /// One tick of the model: `x` (Q2.30) → drive (Q2.30); without a model, `x`.
     #[inline(always)]
-    pub fn step(&mut self, y: i32) -> i32 {
+    pub fn step(&mut self, x: i32) -> i32 {
         match self {
-            Self::InversePi(r) => r.step(y),
-            Self::InverseDuhem(r) => r.step(y),
-            Self::None => y,
-            Self::InverseGeneralisedPi(r) => r.step(y),
-            Self::InverseBoucWen(r) => r.step(y),
-            Self::InversePiCreep(r) => r.step(y),
-            Self::InverseDuhemCreep(r) => r.step(y),
-            Self::InverseGeneralisedPiCreep(r) => r.step(y),
-            Self::InverseBoucWenCreep(r) => r.step(y),
+            Self::InversePi(r) => r.step(x),
+            Self::InverseDuhem(r) => r.step(x),
+            Self::None => x,
+            Self::InverseGeneralisedPi(r) => r.step(x),
+            Self::InverseBoucWen(r) => r.step(x),
+        }
+    }
+
+    /// The model's cost, cycles at 5 wait states; 0 without a model.
+    pub fn cycles(&self) -> u32 {
+        match self {
+            Self::InversePi(r) => r.model.cycles(),
+            Self::InverseDuhem(r) => r.model.cycles(),
+            Self::None => 0,
+            Self::InverseGeneralisedPi(r) => r.model.cycles(),
+            Self::InverseBoucWen(r) => r.model.cycles(),
         }
     }
 }
 
-impl ObserverRun {
-    /// One tick: applied drive `u` (Q2.30) → estimated displacement (Q2.30); without a
-    /// model, 0.
+impl ForwardRun {
+    /// One tick of the model: drive `u` (Q2.30) → its output (Q2.30); without a model, 0.
     #[inline(always)]
     pub fn step(&mut self, u: i32) -> i32 {
         match self {
@@ -285,10 +319,17 @@ impl ObserverRun {
             Self::None => 0,
             Self::GeneralisedPi(r) => r.step(u),
             Self::BoucWen(r) => r.step(u),
-            Self::DuhemCreep(r) => r.step(u),
-            Self::PiCreep(r) => r.step(u),
-            Self::GeneralisedPiCreep(r) => r.step(u),
-            Self::BoucWenCreep(r) => r.step(u),
+        }
+    }
+
+    /// The model's cost, cycles at 5 wait states; 0 without a model.
+    pub fn cycles(&self) -> u32 {
+        match self {
+            Self::Duhem(r) => r.model.cycles(),
+            Self::Pi(r) => r.model.cycles(),
+            Self::None => 0,
+            Self::GeneralisedPi(r) => r.model.cycles(),
+            Self::BoucWen(r) => r.model.cycles(),
         }
     }
 }
@@ -354,36 +395,33 @@ mod tests {
     fn without_creep_a_model_runs_alone_and_without_a_model_creep_does_not_run() {
         let config = config();
         let u0 = 1 << 28;
-        let (run, _) = config.observer.prepare(None, u0);
-        let ObserverRun::Pi(mut r) = run else {
-            panic!("a P–I observer, alone");
-        };
-        assert_eq!(r.model.cycles(), config.observer.cycles());
-        let alone = config.compensator.prepare(&run, None, u0, r.step(u0));
+        let (mut run, _) = config.observer.prepare(None, u0);
         assert!(
-            matches!(alone, CompensatorRun::InversePi(_)),
+            matches!(run.model, ForwardRun::Pi(_)) && run.creep.is_none(),
+            "a P–I observer, alone: {run:?}"
+        );
+        assert_eq!(run.cycles(), config.observer.cycles());
+        let y = run.step(u0);
+        let alone = config.compensator.prepare(&run, None, u0, y);
+        assert!(
+            matches!(alone.model, InverseRun::InversePi(_)) && alone.creep.is_none(),
             "without creep the inverse runs alone: {alone:?}"
         );
+        assert!(!alone.is_bypass());
         let (run, y) = Observer::None.prepare(config.creep, u0);
-        assert_eq!((run, y), (ObserverRun::None, u0));
+        assert_eq!((run, y), (ObserverRun::NONE, u0));
         assert_eq!(Observer::None.cycles(), 0);
         let mut none = Compensator::None.prepare(&run, config.creep, u0, y);
+        assert_eq!(none, CompensatorRun::NONE, "no creep without a model");
+        assert!(none.is_bypass());
         assert_eq!(none.step(12_345), 12_345);
         // With creep, the series costs the model and the creep.
         let (run, y) = config.observer.prepare(config.creep, u0);
-        let ObserverRun::PiCreep(r) = run else {
-            panic!("a P–I observer and the creep");
-        };
+        assert!(matches!(run.model, ForwardRun::Pi(_)) && run.creep.is_some());
         let creep = config.creep.unwrap();
-        assert_eq!(r.model.cycles(), config.observer.cycles() + creep.cycles());
-        let CompensatorRun::InversePiCreep(c) =
-            config.compensator.prepare(&run, config.creep, u0, y)
-        else {
-            panic!("the inverse creep and a P–I compensator");
-        };
-        assert_eq!(
-            c.model.cycles(),
-            config.compensator.cycles() + creep.cycles()
-        );
+        assert_eq!(run.cycles(), config.observer.cycles() + creep.cycles());
+        let c = config.compensator.prepare(&run, config.creep, u0, y);
+        assert!(matches!(c.model, InverseRun::InversePi(_)) && c.creep.is_some());
+        assert_eq!(c.cycles(), config.compensator.cycles() + creep.cycles());
     }
 }

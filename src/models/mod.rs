@@ -5,11 +5,11 @@
 //! Every model has the same shape: its configuration (the immutable, validated model, built
 //! off the tick) apart from its state (what one step changes), one [`Hysteresis::step`] and a
 //! declared cost ([`Hysteresis::cycles`], the cycles it adds to the tick's worst case, which
-//! the [tick budget](crate::config::tick_budget) adds up). Creep is composed in series with a
-//! model ([`Series`]: the inverse creep before an inverse model, the creep after a forward
-//! one), not written into each model. The tick runs the models by static dispatch
-//! ([`dispatch`]: one enum over the models, each alone or in series with the creep, no `dyn`:
-//! the interrupt branches through no register).
+//! the [tick budget](crate::config::tick_budget) adds up). Creep is composed in series with
+//! whichever model runs, by a wrapper ([`CompensatorRun`]: the inverse creep before the
+//! inverse model; [`ObserverRun`]: the creep after the forward one), not written into each
+//! model. The tick runs the models by static dispatch ([`dispatch`]: one enum over the
+//! models, no `dyn`: the interrupt branches through no register).
 //!
 //! * [`play_operator`] — the play (backlash) operator, the building block of P–I.
 //! * [`prandtl_ishlinskii`] — forward and analytic-inverse Prandtl–Ishlinskii models.
@@ -23,12 +23,12 @@
 //! * [`creep`] — the creep operator (log-spaced first-order modes) in series with a
 //!   hysteresis model, and its exact inverse.
 //! * [`params`] — the models' physical (`f64`) parameters and their own checks.
-//! * [`dispatch`] — the compensator and the observer a configuration picks, and the pairs of
-//!   model and state the tick runs.
+//! * [`dispatch`] — the compensator and the observer a configuration picks, and what the tick
+//!   runs of them: each model with its state, after (or before) the creep.
 //!
 //! Adding a model: its module here (the forward and inverse types, [`Hysteresis`],
 //! [`Forward`] and [`Inverse`] implemented on them, their cost beside them), its variants in
-//! [`dispatch`]'s enums (in the tick's, alone and with the creep), its parameters in
+//! [`dispatch`]'s enums (the configuration's and the tick's), its parameters in
 //! [`params`] and a [`Model`](crate::config::settings::Model) variant, with the lines in
 //! [`crate::config::settings::Settings::build`] that build it.
 
@@ -42,7 +42,7 @@ pub mod play_operator;
 pub mod prandtl_ishlinskii;
 pub mod relaxation;
 
-pub use dispatch::{Compensator, CompensatorRun, Observer, ObserverRun};
+pub use dispatch::{Compensator, CompensatorRun, ForwardRun, InverseRun, Observer, ObserverRun};
 
 /// A model in fixed point, in idsp's shape: the configuration is `self` (immutable on the
 /// tick), the state apart, one step per tick.
@@ -83,26 +83,6 @@ pub trait Inverse: Hysteresis {
         forward: &Self::Forward,
         state: &<Self::Forward as Hysteresis>::State,
     ) -> Option<Self::State>;
-}
-
-/// Two models in series: `A`'s output is `B`'s input. The compensator is
-/// `Series<InverseCreep, inverse model>` (the setpoint through the inverse creep, then the
-/// inverse hysteresis), the observer `Series<forward model, Creep>`, where the stage has
-/// creep (`dispatch`'s `…Creep` variants).
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub struct Series<A, B>(pub A, pub B);
-
-impl<A: Hysteresis, B: Hysteresis> Hysteresis for Series<A, B> {
-    type State = (A::State, B::State);
-
-    #[inline(always)]
-    fn step(&self, state: &mut Self::State, x: i32) -> i32 {
-        self.1.step(&mut state.1, self.0.step(&mut state.0, x))
-    }
-
-    fn cycles(&self) -> u32 {
-        self.0.cycles() + self.1.cycles()
-    }
 }
 
 /// A model and its state, as the tick runs it.

@@ -58,10 +58,13 @@ pub const FIRE_CYCLES: u32 = 280;
 
 /// The batch in which a reloaded configuration's observer below the tick takes over (the
 /// staged observer moved into place, its bank's state with it), beyond its serve. Measured
-/// by the whole-interrupt bench's reload scenario (a P–I 17 configuration reloaded with
-/// P–I 16 and its observer: 41 to 44 cycles a tick over the batch's serves, by the tick the
-/// reload falls on and the observer's input around it).
-pub const RELOAD_CYCLES: u32 = 400;
+/// by the whole-interrupt bench's reload scenario (mid-stream, another configuration and its
+/// observer loaded, then the modes switched: the P–I and the Duhem configurations reload
+/// each other, the rest the P–I one). The dearest batch, the Duhem configuration's taking
+/// over from the P–I one, is 746 cycles a tick with its serves, where 400 here charged 738:
+/// the observer's step tests the creep that follows it on every snapshot, and where the
+/// reload falls moves with the tick's length.
+pub const RELOAD_CYCLES: u32 = 480;
 
 /// A snapshot where every snapshot is served in full, with its share of the wake (see
 /// [`SERVICES_BASE_CYCLES`]); the observer's own cost is the configuration's.

@@ -247,7 +247,7 @@ mod tests {
     /// the drift check alone.
     fn check_alone() -> ObserverBelow {
         ObserverBelow {
-            observer: ObserverRun::None,
+            observer: ObserverRun::NONE,
             drift_limit: signal_from_f64(0.01) as u32,
             sensed: true,
             estimates: ReadingInstant::at(0),
