@@ -393,6 +393,30 @@ pub const STAGE_VARIANTS: [StageVariant; 21] = [
     ),
 ];
 
+/// The Bouc–Wen-class stage's variants (`twinstack lab-stage --hysteresis bouc-wen
+/// --variants`): its default, its exponent and asymmetry made otherwise, its loops wider and
+/// narrower, and one with every non-ideality stronger.
+pub const BOUC_WEN_VARIANTS: [StageVariant; 8] = [
+    ("default", &[]),
+    ("exponent 1", &[("bouc_wen.exponent", 1.0)]),
+    ("exponent 2.5", &[("bouc_wen.exponent", 2.5)]),
+    ("symmetric branches", &[("bouc_wen.rising", 0.0)]),
+    ("rising saturates more", &[("bouc_wen.rising", 30.0)]),
+    ("wide loops", &[("bouc_wen.alpha", 0.45)]),
+    ("narrow loops", &[("bouc_wen.alpha", 0.15)]),
+    (
+        "combined",
+        &[
+            ("bouc_wen.rising", 20.0),
+            ("creep_per_decade", 0.03),
+            ("flexure_saturation_um", 120.0),
+            ("resonance_hz", 2000.0),
+            ("damping_ratio", 0.02),
+            ("noise_rms_nm", 5.0),
+        ],
+    ),
+];
+
 /// A variant's changes as `--set` spells them: `field=value,…` (`-` for none).
 pub fn variant_settings(changes: &[(&str, f64)]) -> String {
     if changes.is_empty() {

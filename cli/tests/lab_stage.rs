@@ -2,7 +2,7 @@
 //! says (creep across decades, asymmetric loops, the noise asked for, the resonance), and the
 //! tracking table on it (`twinstack_cli::tracking`), printed with `--nocapture`.
 
-use hal_sim::plant::{LabStage, LabStageConfig};
+use hal_sim::plant::{LabStage, LabStageConfig, StageHysteresis};
 use twinstack_cli::tracking::{evaluate, excite, FIT_UNTIL_S, SAMPLE_RATE_HZ};
 use twinstack_identify::identification::score::score;
 use twinstack_identify::identification::{identify, IdentifyOptions, ModelKind};
@@ -208,7 +208,7 @@ fn a_step_rings_at_the_resonance_with_its_damping() {
 fn bad_configurations_are_refused_naming_the_field() {
     let base = LabStageConfig::new(SAMPLE_RATE_HZ, 1);
     type Spoil = fn(&mut LabStageConfig);
-    let cases: [(&str, Spoil); 5] = [
+    let cases: [(&str, Spoil); 7] = [
         ("sample_period_s", |c| c.sample_period_s = f64::NAN),
         ("preisach.levels", |c| c.preisach.levels = 1),
         ("preisach.top_saturation", |c| {
@@ -216,6 +216,11 @@ fn bad_configurations_are_refused_naming_the_field() {
         }),
         ("creep_slowest_s", |c| c.creep_slowest_s = 1e-6),
         ("noise_rms_nm", |c| c.noise_rms_nm = -1.0),
+        // γ > β: on a reversal the state would run away instead of relaxing.
+        ("bouc_wen.gamma", |c| {
+            c.bouc_wen.gamma = c.bouc_wen.beta + 1.0
+        }),
+        ("bouc_wen.exponent", |c| c.bouc_wen.exponent = 0.5),
     ];
     for (field, spoil) in cases {
         let mut c = base.clone();
@@ -251,6 +256,35 @@ fn tracking_table_compensated_pi_beats_no_compensation_on_every_trajectory() {
     // The figures are a function of the seed: the same evaluation again gives the same rows.
     let again = evaluate(&config, &options[..1]).unwrap();
     assert_eq!(again.rows[..], table.rows[..2]);
+}
+
+/// The Bouc–Wen-class stage (`--hysteresis bouc-wen`): a P–I's and a generalised P–I's
+/// compensators, identified from the same excitation, at least halve no compensation's error
+/// on every trajectory.
+#[test]
+fn on_the_bouc_wen_class_stage_compensation_halves_the_error() {
+    let config = LabStageConfig {
+        hysteresis: StageHysteresis::BoucWen,
+        ..LabStageConfig::new(SAMPLE_RATE_HZ, 1)
+    };
+    let options = [
+        IdentifyOptions::new(ModelKind::Pi, FIT_UNTIL_S),
+        IdentifyOptions::new(ModelKind::Gpi, FIT_UNTIL_S),
+    ];
+    let table = evaluate(&config, &options).unwrap();
+    table.print(&mut std::io::stdout()).unwrap();
+    let none = table.row("none").unwrap();
+    for name in ["pi", "gpi"] {
+        let row = table.row(name).unwrap();
+        assert!(row.error.is_none(), "{name}: {:?}", row.error);
+        for (k, trajectory) in table.trajectories.iter().enumerate() {
+            let (m, n) = (row.scores[k], none.scores[k]);
+            assert!(
+                m.max_pct < 0.5 * n.max_pct,
+                "{name}, {trajectory}: {m:?} against none {n:?}"
+            );
+        }
+    }
 }
 
 /// Duhem and Bouc–Wen are not this stage's physics, but a model of their class describes its
@@ -325,6 +359,26 @@ fn the_cli_prints_the_table_as_json_and_refuses_bad_flags() {
         let err = String::from_utf8_lossy(&bad.stderr);
         assert!(err.contains("--tick-rate"), "{rate}: {err}");
         assert!(bad.stdout.is_empty(), "{rate}: nothing printed");
+    }
+
+    // A field of the hysteresis not chosen: refused naming it and the one chosen.
+    for (hysteresis, set) in [
+        ("bouc-wen", "preisach.width=0.3"),
+        ("preisach", "bouc_wen.alpha=0.2"),
+    ] {
+        let bad = std::process::Command::new(env!("CARGO_BIN_EXE_twinstack"))
+            .args(["lab-stage", "--model", "pi", "--hysteresis", hysteresis])
+            .args(["--set", set])
+            .output()
+            .unwrap();
+        assert!(!bad.status.success(), "{set}");
+        let err = String::from_utf8_lossy(&bad.stderr);
+        let field = set.split('=').next().unwrap();
+        assert!(
+            err.contains(field) && err.contains(hysteresis),
+            "{set}: {err}"
+        );
+        assert!(bad.stdout.is_empty(), "{set}: nothing printed");
     }
 
     // `--set`: an unknown field, a value out of range and a count that is not whole are

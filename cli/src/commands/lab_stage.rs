@@ -8,9 +8,9 @@
 use crate::commands::identify::{parse_model, ModelChoice};
 use crate::tracking::{
     evaluate_methods_with_triangles, evaluate_variants, excite, print_variants, Method,
-    EXCITATION_S, FIT_UNTIL_S, SAMPLE_RATE_HZ, STAGE_VARIANTS,
+    BOUC_WEN_VARIANTS, EXCITATION_S, FIT_UNTIL_S, SAMPLE_RATE_HZ, STAGE_VARIANTS,
 };
-use hal_sim::plant::{LabStage, LabStageConfig};
+use hal_sim::plant::{LabStage, LabStageConfig, StageHysteresis};
 use std::path::PathBuf;
 use twinstack_identify::identification::run::{check_tick_rate, BoardRate};
 use twinstack_identify::identification::{IdentifyOptions, ModelKind};
@@ -44,6 +44,12 @@ pub struct Args {
     /// Also write the excitation record (t,u,x) to this CSV, for `twinstack identify`.
     #[arg(long)]
     pub write_excitation: Option<PathBuf>,
+    /// The stage's hysteresis: `preisach` (an asymmetric Preisach operator) or `bouc-wen` (a
+    /// Bouc–Wen-class operator with `n = 1.5` and a rising branch that saturates first), both
+    /// outside the model family; `--set` takes the fields of the one chosen (`preisach.…` or
+    /// `bouc_wen.…`), `--variants` its list of variants.
+    #[arg(long, value_enum, default_value_t = Hysteresis::Preisach)]
+    pub hysteresis: Hysteresis,
     /// Take non-idealities out of the stage, comma-separated, to see what each costs.
     #[arg(long, value_enum, value_delimiter = ',')]
     pub without: Vec<NonIdeality>,
@@ -93,6 +99,43 @@ fn parse_setting(s: &str) -> Result<(String, f64), String> {
     Ok((field.to_string(), v))
 }
 
+/// The stage's hysteresis, as `--hysteresis` names it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum Hysteresis {
+    /// The asymmetric Preisach operator.
+    Preisach,
+    /// The Bouc–Wen-class operator.
+    BoucWen,
+}
+
+impl From<Hysteresis> for StageHysteresis {
+    fn from(h: Hysteresis) -> Self {
+        match h {
+            Hysteresis::Preisach => Self::Preisach,
+            Hysteresis::BoucWen => Self::BoucWen,
+        }
+    }
+}
+
+/// The `--set` field that belongs to the hysteresis not chosen, if any, as an error.
+fn check_fields_of(hysteresis: StageHysteresis, set: &[(String, f64)]) -> anyhow::Result<()> {
+    let other = match hysteresis {
+        StageHysteresis::Preisach => StageHysteresis::BoucWen,
+        StageHysteresis::BoucWen => StageHysteresis::Preisach,
+    };
+    if let Some((field, _)) = set.iter().find(|(f, _)| f.starts_with(other.prefix())) {
+        anyhow::bail!(
+            "--set {field}: the stage's hysteresis is {} (--hysteresis), whose fields are {}…",
+            match hysteresis {
+                StageHysteresis::Preisach => "preisach",
+                StageHysteresis::BoucWen => "bouc-wen",
+            },
+            hysteresis.prefix()
+        );
+    }
+    Ok(())
+}
+
 /// A non-ideality of the lab stage that `--without` removes.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
 pub enum NonIdeality {
@@ -100,7 +143,8 @@ pub enum NonIdeality {
     Creep,
     /// The flexure's nonlinearity (a linear flexure).
     Flexure,
-    /// The Preisach density's asymmetry (bottom saturation made equal to the top's).
+    /// The hysteresis's asymmetry: the Preisach density's bottom saturation made equal to
+    /// the top's; the Bouc–Wen-class rising branch's extra saturation (`bouc_wen.rising`) 0.
     Asymmetry,
     /// The sensor noise and rounding.
     Noise,
@@ -112,9 +156,12 @@ impl NonIdeality {
         match self {
             Self::Creep => config.creep_per_decade = 0.0,
             Self::Flexure => config.flexure_saturation_um = f64::INFINITY,
-            Self::Asymmetry => {
-                config.preisach.bottom_saturation = config.preisach.top_saturation;
-            }
+            Self::Asymmetry => match config.hysteresis {
+                StageHysteresis::Preisach => {
+                    config.preisach.bottom_saturation = config.preisach.top_saturation;
+                }
+                StageHysteresis::BoucWen => config.bouc_wen.rising = 0.0,
+            },
             Self::Noise => {
                 config.noise_rms_nm = 0.0;
                 config.sensor_lsb_nm = 0.0;
@@ -152,6 +199,8 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         None => None,
     };
     let mut config = LabStageConfig::new(args.rate, args.seed);
+    config.hysteresis = args.hysteresis.into();
+    check_fields_of(config.hysteresis, &args.set)?;
     for n in &args.without {
         n.remove(&mut config);
     }
@@ -181,7 +230,11 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     }
     let mut stdout = std::io::stdout().lock();
     if args.variants {
-        let tables = evaluate_variants(&config, &STAGE_VARIANTS, &methods, board.as_ref())?;
+        let variants: &[_] = match config.hysteresis {
+            StageHysteresis::Preisach => &STAGE_VARIANTS,
+            StageHysteresis::BoucWen => &BOUC_WEN_VARIANTS,
+        };
+        let tables = evaluate_variants(&config, variants, &methods, board.as_ref())?;
         if args.json {
             use std::io::Write;
             serde_json::to_writer_pretty(&mut stdout, &tables)?;

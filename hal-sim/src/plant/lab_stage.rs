@@ -36,6 +36,13 @@
 //! being raised slowly from 0 V (where every relay is off) to `u0` and held until the creep has
 //! settled.
 //!
+//! ## Or: a Bouc–Wen-class hysteresis
+//! With [`LabStageConfig::hysteresis`] set to [`StageHysteresis::BoucWen`] the Preisach block
+//! is replaced by a Bouc–Wen-class operator outside the family's Bouc–Wen (exponent 1.5, a
+//! rising branch that saturates sooner than the falling one, non-congruent minor loops,
+//! integrated in the input; [`BoucWenClass`]), its major loop mapped onto the same 0 … 1; the
+//! rest of the chain is the same.
+//!
 //! ## Creep over decades
 //! `x_free = S (p + Σ_i w_i z_i)`, `τ_i ż_i = p − z_i`, with `τ_i` log-spaced from
 //! `creep_fastest_s` (0.1 ms) to `creep_slowest_s` (10⁴ s), `m` modes per decade and equal
@@ -64,6 +71,31 @@
 
 use crate::converters::GaussianNoise;
 use twinstack_identify::zero_order_hold::ZeroOrderHold;
+
+mod bouc_wen;
+use bouc_wen::BoucWenStage;
+pub use bouc_wen::{BoucWenClass, MAX_SUBSTEP};
+
+/// Which hysteresis the stage has: the Preisach operator (the default) or the Bouc–Wen-class
+/// one ([`BoucWenClass`], see the module `bouc_wen`'s doc), each outside the model family.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum StageHysteresis {
+    /// The Preisach operator with the asymmetric density ([`LabStageConfig::preisach`]).
+    #[default]
+    Preisach,
+    /// The Bouc–Wen-class operator ([`LabStageConfig::bouc_wen`]).
+    BoucWen,
+}
+
+impl StageHysteresis {
+    /// The prefix of its fields in [`SETTABLE_FIELDS`].
+    pub fn prefix(self) -> &'static str {
+        match self {
+            Self::Preisach => "preisach.",
+            Self::BoucWen => "bouc_wen.",
+        }
+    }
+}
 
 /// The Preisach density `μ(α, β) ∝ exp(−(α − β)/w) (1 − a α²) (1 − b (1 − β)²)` and its grid.
 #[derive(Clone, Debug, PartialEq)]
@@ -118,8 +150,12 @@ pub struct LabStageConfig {
     pub drive_max_volts: f64,
     /// `S`: free stroke of the stack at full drive before creep and the flexure, µm.
     pub stroke_um: f64,
-    /// The hysteresis.
+    /// Which hysteresis the stage has; the other's parameters are not used.
+    pub hysteresis: StageHysteresis,
+    /// The Preisach hysteresis (where [`Self::hysteresis`] is `Preisach`).
     pub preisach: PreisachDensity,
+    /// The Bouc–Wen-class hysteresis (where [`Self::hysteresis`] is `BoucWen`).
+    pub bouc_wen: BoucWenClass,
     /// `γ`: creep per decade of time, fraction of a step (`≥ 0`; 0 for none).
     pub creep_per_decade: f64,
     /// Fastest creep mode, seconds.
@@ -158,7 +194,9 @@ impl LabStageConfig {
             seed,
             drive_max_volts: 150.0,
             stroke_um: 80.0,
+            hysteresis: StageHysteresis::Preisach,
             preisach: PreisachDensity::default(),
+            bouc_wen: BoucWenClass::default(),
             creep_per_decade: 0.015,
             creep_fastest_s: 1e-4,
             creep_slowest_s: 1e4,
@@ -199,7 +237,7 @@ fn check(
 
 /// The fields [`LabStageConfig::set`] takes, by the names [`LabStageConfig::validate`] gives
 /// them (one name per quantity, in the units the field's doc gives).
-pub const SETTABLE_FIELDS: [&str; 16] = [
+pub const SETTABLE_FIELDS: [&str; 21] = [
     "drive_max_volts",
     "stroke_um",
     "preisach.levels",
@@ -207,6 +245,11 @@ pub const SETTABLE_FIELDS: [&str; 16] = [
     "preisach.width",
     "preisach.top_saturation",
     "preisach.bottom_saturation",
+    "bouc_wen.alpha",
+    "bouc_wen.beta",
+    "bouc_wen.gamma",
+    "bouc_wen.rising",
+    "bouc_wen.exponent",
     "creep_per_decade",
     "creep_fastest_s",
     "creep_slowest_s",
@@ -266,6 +309,11 @@ impl LabStageConfig {
             "preisach.width" => p.width = value,
             "preisach.top_saturation" => p.top_saturation = value,
             "preisach.bottom_saturation" => p.bottom_saturation = value,
+            "bouc_wen.alpha" => self.bouc_wen.alpha = value,
+            "bouc_wen.beta" => self.bouc_wen.beta = value,
+            "bouc_wen.gamma" => self.bouc_wen.gamma = value,
+            "bouc_wen.rising" => self.bouc_wen.rising = value,
+            "bouc_wen.exponent" => self.bouc_wen.exponent = value,
             "creep_per_decade" => self.creep_per_decade = value,
             "creep_fastest_s" => self.creep_fastest_s = value,
             "creep_slowest_s" => self.creep_slowest_s = value,
@@ -305,6 +353,38 @@ impl LabStageConfig {
             c.stroke_um,
             pos(c.stroke_um),
             "finite and positive",
+        )?;
+        let b = &c.bouc_wen;
+        let weight = |v: f64| v.is_finite() && (0.0..=1000.0).contains(&v);
+        check(
+            "bouc_wen.alpha",
+            b.alpha,
+            b.alpha > 0.0 && b.alpha < 1.0,
+            "within 0 … 1 (exclusive)",
+        )?;
+        check(
+            "bouc_wen.beta",
+            b.beta,
+            weight(b.beta) && b.beta > 0.0,
+            "within 0 … 1000, not 0",
+        )?;
+        check(
+            "bouc_wen.gamma",
+            b.gamma,
+            b.gamma >= 0.0 && b.gamma <= b.beta,
+            "within 0 … bouc_wen.beta (on a reversal the state relaxes)",
+        )?;
+        check(
+            "bouc_wen.rising",
+            b.rising,
+            weight(b.rising),
+            "within 0 … 1000",
+        )?;
+        check(
+            "bouc_wen.exponent",
+            b.exponent,
+            (1.0..=4.0).contains(&b.exponent),
+            "within 1 … 4",
         )?;
         check(
             "preisach.levels",
@@ -600,12 +680,19 @@ impl Preisach {
     }
 }
 
+/// The stage's hysteresis, running.
+#[derive(Clone, Debug)]
+enum Hysteresis {
+    Preisach(Preisach),
+    BoucWen(BoucWenStage),
+}
+
 /// The laboratory stage: drive volts in, sensor reading µm out, one sample period per step.
 /// See the [module documentation](self) for its physics.
 #[derive(Clone, Debug)]
 pub struct LabStage {
     config: LabStageConfig,
-    preisach: Preisach,
+    hysteresis: Hysteresis,
     /// `e^{−dt/τ_i}` of each creep mode.
     creep_decay: Vec<f64>,
     /// Weight `w_i` of each creep mode.
@@ -650,7 +737,12 @@ impl LabStage {
             dt,
         );
         let mut stage = Self {
-            preisach: Preisach::new(&config.preisach),
+            hysteresis: match config.hysteresis {
+                StageHysteresis::Preisach => Hysteresis::Preisach(Preisach::new(&config.preisach)),
+                StageHysteresis::BoucWen => {
+                    Hysteresis::BoucWen(BoucWenStage::new(&config.bouc_wen))
+                }
+            },
             creep_weight: config.creep_per_decade / config.creep_modes_per_decade as f64,
             creep_state: vec![0.0; creep_decay.len()],
             creep_decay,
@@ -667,7 +759,10 @@ impl LabStage {
     /// moving; the noise starts its sequence again (so a run from rest is reproducible).
     pub fn rest(&mut self, u0: f64) {
         let v0 = self.normalised(u0);
-        self.preisach.rest(v0);
+        match &mut self.hysteresis {
+            Hysteresis::Preisach(h) => h.rest(v0),
+            Hysteresis::BoucWen(h) => h.rest(v0),
+        }
         let p = self.polarisation(v0);
         self.creep_state.iter_mut().for_each(|z| *z = p);
         self.mechanics = [self.free_position(p), 0.0];
@@ -683,7 +778,10 @@ impl LabStage {
     /// sensor's reading at the end of the period, µm.
     pub fn step(&mut self, u_volts: f64) -> f64 {
         let v = self.normalised(u_volts);
-        self.preisach.set(v);
+        match &mut self.hysteresis {
+            Hysteresis::Preisach(h) => h.set(v),
+            Hysteresis::BoucWen(h) => h.set(v),
+        }
         let p = self.polarisation(v);
         for (z, a) in self.creep_state.iter_mut().zip(&self.creep_decay) {
             *z = a * *z + (1.0 - a) * p;
@@ -714,9 +812,13 @@ impl LabStage {
         &self.config
     }
 
-    /// Turning points the hysteresis remembers (including its rest point).
+    /// Turning points the Preisach hysteresis remembers (including its rest point); 1 for
+    /// the Bouc–Wen-class one, whose memory is its state.
     pub fn memory_len(&self) -> usize {
-        self.preisach.memory_len()
+        match &self.hysteresis {
+            Hysteresis::Preisach(h) => h.memory_len(),
+            Hysteresis::BoucWen(_) => 1,
+        }
     }
 
     /// Creep modes integrated.
@@ -733,10 +835,15 @@ impl LabStage {
         }
     }
 
-    /// `p = r v + (1 − r) h`.
+    /// `p = r v + (1 − r) h` (Preisach), `v − h` on the major loop's 0 … 1 (Bouc–Wen class).
     fn polarisation(&self, v: f64) -> f64 {
-        let r = self.config.preisach.reversible;
-        r * v + (1.0 - r) * self.preisach.output()
+        match &self.hysteresis {
+            Hysteresis::Preisach(h) => {
+                let r = self.config.preisach.reversible;
+                r * v + (1.0 - r) * h.output()
+            }
+            Hysteresis::BoucWen(h) => h.output(),
+        }
     }
 
     /// The flexure's static deflection for polarisation `p` and the current creep state.

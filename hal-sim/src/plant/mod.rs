@@ -27,7 +27,8 @@ pub mod stage;
 pub use coupled::{CoupledModel, DEFAULT_CONTACT_STIFFNESS};
 pub use hysteresis::{HysteresisConfig, HysteresisError, HysteresisModel, StackHysteresis};
 pub use lab_stage::{
-    LabStage, LabStageConfig, LabStageError, PreisachDensity, SetFieldError, SETTABLE_FIELDS,
+    BoucWenClass, LabStage, LabStageConfig, LabStageError, PreisachDensity, SetFieldError,
+    StageHysteresis, SETTABLE_FIELDS,
 };
 pub use reduced::ReducedModel;
 pub use stage::{Configuration, SecondOrder, StageParams};

@@ -441,6 +441,47 @@ const FIGURES: &[Figure] = &[
         render: Render::One(variants_table),
     },
     Figure {
+        name: "lab-stage-bouc-wen",
+        page: "docs/src/results/lab-stage.md",
+        runs: &[
+            &[
+                "lab-stage",
+                "--hysteresis",
+                "bouc-wen",
+                "--model",
+                "auto,pi,gpi,duhem,bouc-wen",
+            ],
+            &[
+                "lab-stage",
+                "--hysteresis",
+                "bouc-wen",
+                "--model",
+                "auto",
+                "--tick-rate",
+                "100000",
+            ],
+        ],
+        source: Source::Tool,
+        checked: true,
+        render: Render::Many(lab_stage_table),
+    },
+    Figure {
+        name: "lab-stage-bouc-wen-variants",
+        page: "docs/src/results/lab-stage.md",
+        runs: &[&[
+            "lab-stage",
+            "--hysteresis",
+            "bouc-wen",
+            "--variants",
+            "--model",
+            "auto,pi",
+        ]],
+        // Eight stages identified and tracked (a minute): written when named.
+        source: Source::Tool,
+        checked: false,
+        render: Render::One(variants_table),
+    },
+    Figure {
         name: "learning",
         page: "docs/src/results/learning.md",
         runs: LEARN_RUNS,
