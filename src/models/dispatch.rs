@@ -126,11 +126,6 @@ impl CompensatorRun {
         };
         self.model.step(x)
     }
-
-    /// Its cost in the tick (the model and its creep), cycles at 5 wait states.
-    pub fn cycles(&self) -> u32 {
-        self.model.cycles() + self.creep.as_ref().map_or(0, |c| c.model.cycles())
-    }
 }
 
 impl ObserverRun {
@@ -149,11 +144,6 @@ impl ObserverRun {
             Some(c) => c.step(y),
             None => y,
         }
-    }
-
-    /// Its cost (the model and its creep), cycles at 5 wait states.
-    pub fn cycles(&self) -> u32 {
-        self.model.cycles() + self.creep.as_ref().map_or(0, |c| c.model.cycles())
     }
 }
 
@@ -296,17 +286,6 @@ impl InverseRun {
             Self::InverseBoucWen(r) => r.step(x),
         }
     }
-
-    /// The model's cost, cycles at 5 wait states; 0 without a model.
-    pub fn cycles(&self) -> u32 {
-        match self {
-            Self::InversePi(r) => r.model.cycles(),
-            Self::InverseDuhem(r) => r.model.cycles(),
-            Self::None => 0,
-            Self::InverseGeneralisedPi(r) => r.model.cycles(),
-            Self::InverseBoucWen(r) => r.model.cycles(),
-        }
-    }
 }
 
 impl ForwardRun {
@@ -319,17 +298,6 @@ impl ForwardRun {
             Self::None => 0,
             Self::GeneralisedPi(r) => r.step(u),
             Self::BoucWen(r) => r.step(u),
-        }
-    }
-
-    /// The model's cost, cycles at 5 wait states; 0 without a model.
-    pub fn cycles(&self) -> u32 {
-        match self {
-            Self::Duhem(r) => r.model.cycles(),
-            Self::Pi(r) => r.model.cycles(),
-            Self::None => 0,
-            Self::GeneralisedPi(r) => r.model.cycles(),
-            Self::BoucWen(r) => r.model.cycles(),
         }
     }
 }
@@ -400,7 +368,6 @@ mod tests {
             matches!(run.model, ForwardRun::Pi(_)) && run.creep.is_none(),
             "a P–I observer, alone: {run:?}"
         );
-        assert_eq!(run.cycles(), config.observer.cycles());
         let y = run.step(u0);
         let alone = config.compensator.prepare(&run, None, u0, y);
         assert!(
@@ -415,13 +382,10 @@ mod tests {
         assert_eq!(none, CompensatorRun::NONE, "no creep without a model");
         assert!(none.is_bypass());
         assert_eq!(none.step(12_345), 12_345);
-        // With creep, the series costs the model and the creep.
+        // With creep, both wrap it.
         let (run, y) = config.observer.prepare(config.creep, u0);
         assert!(matches!(run.model, ForwardRun::Pi(_)) && run.creep.is_some());
-        let creep = config.creep.unwrap();
-        assert_eq!(run.cycles(), config.observer.cycles() + creep.cycles());
         let c = config.compensator.prepare(&run, config.creep, u0, y);
         assert!(matches!(c.model, InverseRun::InversePi(_)) && c.creep.is_some());
-        assert_eq!(c.cycles(), config.compensator.cycles() + creep.cycles());
     }
 }
