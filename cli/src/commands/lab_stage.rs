@@ -118,19 +118,21 @@ impl From<Hysteresis> for StageHysteresis {
 }
 
 /// The `--set` field that belongs to the hysteresis not chosen, if any, as an error.
-fn check_fields_of(hysteresis: StageHysteresis, set: &[(String, f64)]) -> anyhow::Result<()> {
-    let other = match hysteresis {
-        StageHysteresis::Preisach => StageHysteresis::BoucWen,
-        StageHysteresis::BoucWen => StageHysteresis::Preisach,
+fn check_fields_of(chosen: Hysteresis, set: &[(String, f64)]) -> anyhow::Result<()> {
+    let prefix = StageHysteresis::from(chosen).prefix();
+    let of_a_hysteresis = |f: &str| {
+        [StageHysteresis::Preisach, StageHysteresis::BoucWen]
+            .iter()
+            .any(|h| f.starts_with(h.prefix()))
     };
-    if let Some((field, _)) = set.iter().find(|(f, _)| f.starts_with(other.prefix())) {
+    if let Some((field, _)) = set
+        .iter()
+        .find(|(f, _)| of_a_hysteresis(f) && !f.starts_with(prefix))
+    {
         anyhow::bail!(
-            "--set {field}: the stage's hysteresis is {} (--hysteresis), whose fields are {}…",
-            match hysteresis {
-                StageHysteresis::Preisach => "preisach",
-                StageHysteresis::BoucWen => "bouc-wen",
-            },
-            hysteresis.prefix()
+            "--set {field}: the stage's hysteresis is {} (--hysteresis), whose fields are {prefix}…",
+            clap::ValueEnum::to_possible_value(&chosen)
+                .map_or_else(String::new, |v| v.get_name().to_string()),
         );
     }
     Ok(())
@@ -200,7 +202,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     };
     let mut config = LabStageConfig::new(args.rate, args.seed);
     config.hysteresis = args.hysteresis.into();
-    check_fields_of(config.hysteresis, &args.set)?;
+    check_fields_of(args.hysteresis, &args.set)?;
     for n in &args.without {
         n.remove(&mut config);
     }

@@ -687,6 +687,24 @@ enum Hysteresis {
     BoucWen(BoucWenStage),
 }
 
+impl Hysteresis {
+    /// At rest at `v0` (see [`LabStage::rest`]).
+    fn rest(&mut self, v0: f64) {
+        match self {
+            Self::Preisach(h) => h.rest(v0),
+            Self::BoucWen(h) => h.rest(v0),
+        }
+    }
+
+    /// The input moves to `v`.
+    fn set(&mut self, v: f64) {
+        match self {
+            Self::Preisach(h) => h.set(v),
+            Self::BoucWen(h) => h.set(v),
+        }
+    }
+}
+
 /// The laboratory stage: drive volts in, sensor reading µm out, one sample period per step.
 /// See the [module documentation](self) for its physics.
 #[derive(Clone, Debug)]
@@ -759,10 +777,7 @@ impl LabStage {
     /// moving; the noise starts its sequence again (so a run from rest is reproducible).
     pub fn rest(&mut self, u0: f64) {
         let v0 = self.normalised(u0);
-        match &mut self.hysteresis {
-            Hysteresis::Preisach(h) => h.rest(v0),
-            Hysteresis::BoucWen(h) => h.rest(v0),
-        }
+        self.hysteresis.rest(v0);
         let p = self.polarisation(v0);
         self.creep_state.iter_mut().for_each(|z| *z = p);
         self.mechanics = [self.free_position(p), 0.0];
@@ -778,10 +793,7 @@ impl LabStage {
     /// sensor's reading at the end of the period, µm.
     pub fn step(&mut self, u_volts: f64) -> f64 {
         let v = self.normalised(u_volts);
-        match &mut self.hysteresis {
-            Hysteresis::Preisach(h) => h.set(v),
-            Hysteresis::BoucWen(h) => h.set(v),
-        }
+        self.hysteresis.set(v);
         let p = self.polarisation(v);
         for (z, a) in self.creep_state.iter_mut().zip(&self.creep_decay) {
             *z = a * *z + (1.0 - a) * p;
