@@ -516,7 +516,7 @@ pub fn identify_auto_admitting(
         .and_then(|(_, fit)| fit);
     let refit = identify_admitted(data, best.options.clone(), &admit);
     let (options, identification, refit_note) =
-        keep_the_better_fit(&window, n_fit, refit, ranked_fit, &best.options)?;
+        keep_the_better_fit(&window, n_fit, refit, ranked_fit, &best.options, &admit)?;
     let runner_up = ranking
         .iter()
         .filter(|r| r.label != best.label && r.validation.admitted().is_some())
@@ -606,14 +606,16 @@ pub const REFIT_MARGIN: f64 = 0.1;
 /// fit, or why it failed or was refused), unless it predicts the window (`window`'s first
 /// `n_fit` samples, from where motion starts) worse than the fit on the first part that was
 /// ranked (`ranked`) by more than [`REFIT_MARGIN`], or cannot be made: then that fit, with
-/// `options` (the ranked candidate's) and a note saying why. The fit kept is scored on the
-/// user's held-out part as the refit would be (`held_out_from` the window's end).
+/// `options` (the ranked candidate's) and a note saying why — where `admit` takes it as it is
+/// returned (scored on the user's held-out part as the refit would be, `held_out_from` the
+/// window's end); otherwise the refit, or its error, stands.
 fn keep_the_better_fit(
     window: &MeasuredData,
     n_fit: usize,
     refit: Result<(IdentifyOptions, Identification), IdentifyError>,
     ranked: Option<Identification>,
     options: &IdentifyOptions,
+    admit: &impl Fn(&IdentifyOptions, &Identification) -> Admission,
 ) -> Result<(IdentifyOptions, Identification, Option<String>), IdentifyError> {
     let window_rms = |id: &Identification| -> Option<f64> {
         let (u, x) = (window.u.as_deref()?, window.x.as_deref()?);
@@ -622,12 +624,15 @@ fn keep_the_better_fit(
             .map(|f| f.rms_pct)
             .filter(|r| r.is_finite())
     };
-    let Some(mut ranked) = ranked else {
+    let ranked = ranked.map(|mut r| {
+        r.held_out_from = n_fit;
+        r
+    });
+    let Some(mut ranked) = ranked.filter(|r| admit(options, r) == Admission::Admitted) else {
         let (o, id) = refit?;
         return Ok((o, id, None));
     };
     let ranked_rms = window_rms(&ranked);
-    ranked.held_out_from = n_fit;
     match refit {
         Ok((o, id)) => match (window_rms(&id), ranked_rms) {
             (Some(r), Some(f)) if r > f * (1.0 + REFIT_MARGIN) => {
@@ -779,6 +784,7 @@ mod tests {
         first_part.fit_until_s = 1.1;
         let ranked = identify(&window, &first_part).unwrap();
         let refit = identify(&data, &options).unwrap();
+        let admitted = |_: &IdentifyOptions, _: &Identification| Admission::Admitted;
         assert!(ranked.held_out_from < n_fit);
 
         // A good refit is the pick.
@@ -788,6 +794,7 @@ mod tests {
             Ok((options.clone(), refit.clone())),
             Some(ranked.clone()),
             &options,
+            &admitted,
         )
         .unwrap();
         assert_eq!(id.model, refit.model);
@@ -808,6 +815,7 @@ mod tests {
             Ok((options.clone(), worse)),
             Some(ranked.clone()),
             &options,
+            &admitted,
         )
         .unwrap();
         assert_eq!(id.model, ranked.model);
@@ -824,6 +832,7 @@ mod tests {
             Err(IdentifyError::NoCandidates),
             Some(ranked.clone()),
             &options,
+            &admitted,
         )
         .unwrap();
         assert_eq!(id.model, ranked.model);
@@ -835,7 +844,19 @@ mod tests {
             n_fit,
             Err(IdentifyError::NoCandidates),
             None,
-            &options
+            &options,
+            &admitted,
+        )
+        .is_err());
+        // Nor where the caller does not admit the ranked fit as it would be returned.
+        let refused = |_: &IdentifyOptions, _: &Identification| Admission::Refused("no".into());
+        assert!(keep_the_better_fit(
+            &window,
+            n_fit,
+            Err(IdentifyError::NoCandidates),
+            Some(ranked.clone()),
+            &options,
+            &refused,
         )
         .is_err());
     }
