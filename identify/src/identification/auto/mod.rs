@@ -595,11 +595,11 @@ pub fn identify_auto_admitting(
 }
 
 /// How much worse (relative) than the ranked fit's the refit's RMS error over the fit window
-/// may be before the ranked fit is kept instead ([`keep_the_better_fit`]): the refit has seen
+/// may be before the ranked fit is kept instead (`keep_the_better_fit`): the refit has seen
 /// every row the ranked fit saw and the validation part besides, so a least-squares refit is
-/// never worse there; only a refinement that settles in another, worse minimum (a Duhem's
-/// simplex on the whole window of a stage outside the family: 8.65 % RMS where its fit on
-/// the first part simulated 0.62 %) is. The margin keeps a refit that differs by a rounding.
+/// never worse there; only a refinement that settles in another, worse minimum (the Duhem and
+/// Bouc–Wen fits refine by a simplex from a few starts) can be. The margin keeps a refit that
+/// differs by a rounding.
 pub const REFIT_MARGIN: f64 = 0.1;
 
 /// The pick as it goes to the board: the refit on the whole window (`refit`: its options and
