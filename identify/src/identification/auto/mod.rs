@@ -466,13 +466,9 @@ pub fn identify_auto_admitting(
             }
         })
         .collect();
-    let models: Vec<Option<StageModel>> = fits
-        .iter()
-        .map(|f| f.as_ref().map(|f| f.model.clone()))
-        .collect();
     score_compensators(
         &mut ranking,
-        &models,
+        &fits,
         &window.t,
         &u[..n_fit],
         &x[..n_fit],
@@ -632,28 +628,25 @@ fn keep_the_better_fit(
         let (o, id) = refit?;
         return Ok((o, id, None));
     };
-    let ranked_rms = window_rms(&ranked);
-    match refit {
-        Ok((o, id)) => match (window_rms(&id), ranked_rms) {
-            (Some(r), Some(f)) if r > f * (1.0 + REFIT_MARGIN) => {
-                let note = format!(
-                    "the refit on the whole window predicted it worse (RMS {r:.2} %) than the fit on its first part that was ranked ({f:.2} %): that fit is kept"
-                );
-                ranked.notes.push(note.clone());
-                Ok((options.clone(), ranked, Some(note)))
-            }
-            (None, Some(f)) => {
-                let note = format!(
-                    "the refit on the whole window could not be run over it: the fit on its first part that was ranked (RMS {f:.2} % over the window) is kept"
-                );
-                ranked.notes.push(note.clone());
-                Ok((options.clone(), ranked, Some(note)))
-            }
-            _ => Ok((o, id, None)),
+    // Why the refit gives way to the ranked fit, if it does.
+    let why = match &refit {
+        Ok((_, id)) => match (window_rms(id), window_rms(&ranked)) {
+            (Some(r), Some(f)) if r > f * (1.0 + REFIT_MARGIN) => Some(format!(
+                "predicted it worse (RMS {r:.2} %) than the fit on its first part that was ranked ({f:.2} %)"
+            )),
+            (None, Some(f)) => Some(format!(
+                "could not be run over it (the fit on its first part that was ranked: RMS {f:.2} % over the window)"
+            )),
+            _ => None,
         },
-        Err(e) => {
+        Err(e) => Some(format!("failed ({e})")),
+    };
+    match (refit, why) {
+        (Ok((o, id)), None) => Ok((o, id, None)),
+        (_, why) => {
             let note = format!(
-                "the refit on the whole window failed ({e}): the fit on its first part that was ranked is kept"
+                "the refit on the whole window {}: the fit on its first part that was ranked is kept",
+                why.unwrap_or_default()
             );
             ranked.notes.push(note.clone());
             Ok((options.clone(), ranked, Some(note)))
@@ -664,23 +657,25 @@ fn keep_the_better_fit(
 /// Fills in each fitted candidate's inverse and tracking figures on the validation part
 /// (`split..` of `t`, `u`, `x`, the last `lag` samples left out: they have no later reading to
 /// aim the drive at), and where its inverse stands against its fit ([`InverseBound`], with
-/// why for an admitted one whose inverse does not hold). `models[i]` is
+/// why for an admitted one whose inverse does not hold). `fits[i]` is
 /// `ranking[i]`'s fit on the first part, if any. The tracking plant, the stand-in for the
 /// stage, is the fitted model with the lowest forward max error among those whose inverse
 /// does not ratchet ([`InverseBound::Ratchets`]: a model that ratchets on a noisy drive is no
 /// stand-in for a stage that does not), admitted by the board or not; the best forward model if none does.
 fn score_compensators(
     ranking: &mut [Ranked],
-    models: &[Option<StageModel>],
+    fits: &[Option<Identification>],
     t: &[f64],
     u: &[f64],
     x: &[f64],
     split: usize,
 ) {
     let n = t.len();
+    let models: Vec<Option<&StageModel>> =
+        fits.iter().map(|f| f.as_ref().map(|f| &f.model)).collect();
     let mut drives: Vec<Option<(Vec<f64>, usize)>> = Vec::with_capacity(models.len());
-    for (r, model) in ranking.iter_mut().zip(models) {
-        let drive = model.as_ref().and_then(|m| {
+    for (r, model) in ranking.iter_mut().zip(&models) {
+        let drive = model.and_then(|m| {
             let aimed = n - m.lag_samples(t).min(n.saturating_sub(split + 1));
             Some((m.compensate(t, x).ok()?, aimed))
         });
@@ -707,7 +702,7 @@ fn score_compensators(
     };
     let Some(plant) = best_of(true)
         .or_else(|| best_of(false))
-        .and_then(|i| models[i].as_ref())
+        .and_then(|i| models[i])
     else {
         return;
     };
