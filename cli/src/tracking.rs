@@ -1,10 +1,11 @@
 //! Open-loop tracking on the laboratory stage ([`hal_sim::plant::lab_stage`]), evaluated the way a
 //! user evaluates a model on their own stage:
 //!
-//! 1. **Excite** ([`excite`]): from rest at 0 V, drive the stage for [`EXCITATION_S`] with a
-//!    [`EXCITATION_HZ`] sine — [`FULL_RANGE_CYCLES`] cycles over the whole drive range, then
-//!    amplitudes decaying around mid-range to [`FINAL_AMPLITUDE`] of it, so the record holds
-//!    minor loops — and record `t, u, x` as a [`MeasuredData`].
+//! 1. **Excite** ([`excite`]): from rest at 0 V, drive the stage over its whole drive range
+//!    with the excitation `twinstack calibrate` streams to a board by default
+//!    ([`twinstack_identify::excitation::Excitation::DEFAULT`], [`EXCITATION_S`] at
+//!    [`EXCITATION_HZ`]: full-range cycles, then cycles decaying about mid-range, so the
+//!    record holds minor loops) and record `t, u, x` as a [`MeasuredData`].
 //! 2. **Identify** ([`twinstack_identify::identification::identify`]) with the caller's
 //!    [`IdentifyOptions`] (fitted on `t < fit_until_s`, by default [`FIT_UNTIL_S`]: the last
 //!    cycle is held out and scored); with a board's control rate, only what the board runs at
@@ -27,9 +28,9 @@
 //! compensator run at 10 kHz gives the drive the board's 50–100 kHz tick would, sampled.
 
 use hal_sim::plant::{LabStage, LabStageConfig, LabStageError, SetFieldError};
-use std::f64::consts::TAU;
 use std::path::PathBuf;
 use twinstack::ParamError;
+use twinstack_identify::excitation::Excitation;
 use twinstack_identify::identification::auto::{identify_admitted, identify_auto_admitting};
 use twinstack_identify::identification::run::{board_admission, BoardRate};
 use twinstack_identify::identification::score::{score, ErrorFigures};
@@ -46,35 +47,25 @@ pub const SAMPLE_RATE_HZ: f64 = 10_000.0;
 /// The unit of the stage's displacement, for the parameter file a board's admission is judged
 /// on ([`board_admission`]).
 const OUTPUT_UNIT: &str = "um";
+/// The excitation: `calibrate`'s ([`Excitation::DEFAULT`]).
+pub const EXCITATION: Excitation = Excitation::DEFAULT;
 /// Length of the identification record, seconds.
-pub const EXCITATION_S: f64 = 2.0;
-/// Frequency of the excitation, Hz.
-pub const EXCITATION_HZ: f64 = 10.0;
-/// Full-range cycles at the start of the excitation.
-pub const FULL_RANGE_CYCLES: usize = 6;
-/// Amplitude the excitation has decayed to at its end, fraction of the full range.
-pub const FINAL_AMPLITUDE: f64 = 0.15;
+pub const EXCITATION_S: f64 = (EXCITATION.full_cycles as f64
+    + EXCITATION.decay_cycles as f64
+    + EXCITATION.loop_cycles as f64
+    + EXCITATION.multisine_cycles as f64)
+    / EXCITATION.hz;
+/// Base frequency of the excitation, Hz.
+pub const EXCITATION_HZ: f64 = EXCITATION.hz;
 /// The default `fit_until_s`: everything but the last excitation cycle is fitted.
 pub const FIT_UNTIL_S: f64 = EXCITATION_S - 1.0 / EXCITATION_HZ;
 
 /// The excitation drive at `sample_rate_hz` for a stage whose drive range is `0 … drive_max`
-/// volts: `u = (U/2)(1 − A(t) cos 2πft)`, `A = 1` for the first [`FULL_RANGE_CYCLES`], then
-/// decaying geometrically to [`FINAL_AMPLITUDE`] at [`EXCITATION_S`]. Returns `(t, u)`.
+/// volts: [`EXCITATION`] over the whole range, from 0 V. Returns `(t, u)`.
 pub fn excitation_drive(sample_rate_hz: f64, drive_max: f64) -> (Vec<f64>, Vec<f64>) {
-    let n = (EXCITATION_S * sample_rate_hz).round() as usize;
-    let full = FULL_RANGE_CYCLES as f64 / EXCITATION_HZ;
-    let t: Vec<f64> = (0..n).map(|k| k as f64 / sample_rate_hz).collect();
-    let u = t
-        .iter()
-        .map(|&t| {
-            let a = if t < full {
-                1.0
-            } else {
-                FINAL_AMPLITUDE.powf((t - full) / (EXCITATION_S - full))
-            };
-            0.5 * drive_max * (1.0 - a * (TAU * EXCITATION_HZ * t).cos())
-        })
-        .collect();
+    let x = EXCITATION.sampled(sample_rate_hz);
+    let t = (0..x.len()).map(|k| k as f64 / sample_rate_hz).collect();
+    let u = x.iter().map(|v| 0.5 * drive_max * (1.0 + v)).collect();
     (t, u)
 }
 
@@ -773,9 +764,11 @@ mod tests {
     fn the_excitation_starts_at_rest_covers_the_range_and_decays() {
         let (t, u) = excitation_drive(SAMPLE_RATE_HZ, 150.0);
         assert_eq!(t.len(), 20_000);
+        assert_eq!(t.len() as f64, EXCITATION_S * SAMPLE_RATE_HZ);
         assert!(u[0].abs() < 1e-12);
-        let first = u[..6000].iter().copied().fold(0.0, f64::max);
-        assert!((first - 150.0).abs() < 1e-6);
+        let top = u[..6000].iter().copied().fold(0.0, f64::max);
+        assert!((top - 150.0).abs() < 1e-6);
+        assert!(u.iter().all(|&v| (0.0..=150.0).contains(&v)));
         let last_cycle = &u[19_000..];
         let (lo, hi) = last_cycle
             .iter()

@@ -7,8 +7,11 @@
 //!   run over whole records in fixed point and in the `f64` reference.
 //! * [`identification`] — fitting P–I, generalised P–I, Bouc–Wen, Duhem and creep models, and
 //!   choosing among them on held-out data; [`param_file`] — the versioned parameter file.
-//! * [`calibrate`] — one-command calibration over the board link: excite with the board's
-//!   waveform generator, record, identify, load, store, verify on the [`trajectory`] records.
+//! * [`calibrate`] — one-command calibration over the board link: stream the
+//!   [`excitation`], record, identify, load, store, verify on the [`trajectory`] records.
+//! * [`excitation`] — the drive an identification is recorded on (calibrate's, and the
+//!   laboratory stage's): the major loop, concentric minor loops, and on request nested
+//!   off-centre loops and a multisine.
 //! * [`tune`] — the feedback gains from a measured frequency response, checked against
 //!   margins; [`zero_order_hold`] — the exact discretisation its loop model and the simulated
 //!   stage share.
@@ -19,6 +22,7 @@
 pub mod accuracy;
 pub mod budget;
 pub mod calibrate;
+pub mod excitation;
 pub mod golden;
 pub mod identification;
 pub mod param_file;
