@@ -203,6 +203,8 @@ fn quick() -> CalibrateOptions {
         excitation_hz: 20.0,
         full_cycles: 2,
         decay_cycles: 4,
+        loop_cycles: 3,
+        multisine_cycles: 3,
         model: Some(ModelKind::Duhem),
         store: None,
         ..CalibrateOptions::default()
@@ -472,12 +474,23 @@ fn bad_options_are_refused_naming_the_option() {
 /// The board's generator decays as the request says (protocol v5): full cycles, then each
 /// cycle's peak the previous one's × keep / 65536, bit for bit as the library's generator.
 #[test]
-fn the_board_plays_the_decaying_excitation_it_is_asked_for() {
+fn the_board_plays_the_decaying_waveform_it_is_asked_for() {
     use twinstack::protocol::messages::{CaptureRequest, Trigger};
     use twinstack::services::recorder::Channel;
     let mut client = sim_client(SimDeviceConfig::paper());
-    let options = quick();
-    let w = options.waveform();
+    use twinstack::protocol::messages::{WaveDecay, WaveShape, Waveform};
+    // Two full cycles of 20 Hz at 0.97, then four decaying to 15 % of it.
+    let final_amplitude = 0.15f64;
+    let w = Waveform {
+        shape: WaveShape::Sine,
+        offset: 0,
+        amplitude: (0.97f64 * 32768.0).round() as i16,
+        frequency_mhz: 20_000,
+        decay: Some(WaveDecay {
+            hold_cycles: 2,
+            keep: (final_amplitude.powf(0.25) * 65536.0).round() as u16,
+        }),
+    };
     // 6 cycles of 20 Hz at 50 kHz: 2 500 ticks a cycle, every 5th captured.
     client
         .arm_capture(CaptureRequest {
@@ -528,5 +541,66 @@ fn the_board_plays_the_decaying_excitation_it_is_asked_for() {
     assert_eq!(peaks[0], peaks[1]);
     assert!(peaks.windows(2).skip(1).all(|p| p[1] < p[0]), "{peaks:?}");
     let last = peaks[5] as f64 / peaks[0] as f64;
-    assert!((last - options.final_amplitude).abs() < 0.01, "{last}");
+    assert!((last - final_amplitude).abs() < 0.01, "{last}");
+}
+
+/// The board plays the excitation calibrate streams: in bypass, the setpoint it captured from
+/// the stream's start is the one planned, setpoint for setpoint (one every `stream_divider`
+/// ticks, captured at that decimation), and the drive follows it over the swept range.
+#[test]
+fn the_board_plays_the_excitation_calibrate_streams() {
+    use twinstack::protocol::messages::{CaptureRequest, Trigger, UnderrunPolicy};
+    use twinstack::services::recorder::Channel;
+    use twinstack_link::streamer::{stream_setpoints, StreamOptions};
+    let mut client = sim_client(SimDeviceConfig::paper());
+    client.set_mode(Mode::Bypass).unwrap();
+    let options = quick();
+    let rate = client.capture_status().unwrap().tick_rate_hz as f64;
+    let divider = options.stream_divider;
+    let planned = options.excitation_setpoints(rate / divider as f64);
+    assert!(planned.len() > 1000, "{}", planned.len());
+    client
+        .arm_capture(CaptureRequest {
+            signals: Channel::Setpoint.bit(),
+            samples: planned.len() as u32,
+            pre_trigger: 0,
+            trigger: Trigger::StreamStart,
+            decimation: divider,
+        })
+        .unwrap();
+    let stream = StreamOptions {
+        divider,
+        underrun: Some(UnderrunPolicy::Hold),
+        tick_rate_hz: rate,
+        drain: true,
+        ..StreamOptions::default()
+    };
+    let report = stream_setpoints(&mut client, &planned, &stream, |_| {}).unwrap();
+    assert!(!report.underran());
+    let (status, window) =
+        twinstack_link::capture::wait_and_read(&mut client, Duration::from_secs(10), |_, _| {})
+            .expect("the capture completes");
+    assert_eq!(status.samples as usize, planned.len());
+    // Captured once every `divider` ticks from the stream's start: each is the planned
+    // setpoint of its instant, within the stream's interpolation between that setpoint and a
+    // neighbour (the capture's tick and the stream's sample need not fall together).
+    for (k, &got) in window.iter().enumerate().skip(1) {
+        let near = &planned[k - 1..(k + 2).min(planned.len())];
+        let (lo, hi) = near
+            .iter()
+            .fold((i16::MAX, i16::MIN), |(l, h), &v| (l.min(v), h.max(v)));
+        assert!(
+            got >= lo.saturating_sub(1) && got <= hi.saturating_add(1),
+            "sample {k}: {got} outside {lo} … {hi}"
+        );
+    }
+    // It sweeps the amplitude asked for, about the middle.
+    let (lo, hi) = window
+        .iter()
+        .fold((i16::MAX, i16::MIN), |(l, h), &v| (l.min(v), h.max(v)));
+    let want = (options.amplitude * 32768.0) as i16;
+    assert!(
+        (hi - want).abs() < 100 && (lo + want).abs() < 100,
+        "{lo} … {hi}"
+    );
 }

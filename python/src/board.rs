@@ -627,12 +627,14 @@ impl Board {
     }
 
     /// Calibrates the stage behind the board in one call (`twinstack calibrate`): excites it
-    /// with the board's waveform generator (full-range cycles, then decaying minor loops),
+    /// with the identification excitation streamed in bypass (full-range cycles, decaying
+    /// minor loops, nested off-centre loops, a multisine),
     /// records drive and sensor, identifies the best model of the family (or `model`), loads
     /// it, verifies by tracking a test trajectory before (bypass) and after (open loop), and
     /// stores it to flash unless `store` is false. Returns a dict: `params` (a `Params`, the
     /// file `twinstack calibrate` writes), `model`, `reason`, `held_out` / `before` / `after`
-    /// (`max_pct`, `rms_pct`), `stored`, `clamped`. Board refusals raise `BoardError`; a stage
+    /// (`max_pct`, `rms_pct`), `stored`, `clamped`, `excitation_underran` (the excitation's
+    /// stream found the queue empty: identified on the drive as applied). Board refusals raise `BoardError`; a stage
     /// that cannot be calibrated (no sensor, a sensor that does not follow the drive, a fit
     /// that does not fit) raises `RuntimeError` saying which.
     #[pyo3(signature = (store=true, clamp=false, model=None))]
@@ -678,6 +680,7 @@ impl Board {
                 "after": figures(report.after.max_pct, report.after.rms_pct),
                 "stored": report.stored.is_some(),
                 "clamped": report.clamped,
+                "excitation_underran": report.excitation_underran,
             }),
         )?;
         out.set_item("params", Params::from_file(file, stage))?;

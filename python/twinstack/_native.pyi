@@ -314,12 +314,14 @@ class Board:
     def calibrate(
         self, store: bool = True, clamp: bool = False, model: Optional[str] = None
     ) -> Dict[str, Any]:
-        """One-command calibration (``twinstack calibrate``): excites the stage with the board's
-        waveform generator, records drive and sensor, identifies the best model of the family
+        """One-command calibration (``twinstack calibrate``): excites the stage with the
+        identification excitation streamed in bypass (full-range cycles, decaying minor loops,
+        nested off-centre loops, a multisine), records drive and sensor, identifies the best model of the family
         (or ``model``), loads it, tracks a test trajectory before (bypass) and after (open
         loop), and stores it unless ``store`` is false. Returns ``params`` (a
         :class:`Params`), ``model``, ``reason``, ``held_out`` / ``before`` / ``after``
-        (``max_pct``, ``rms_pct``), ``stored``, ``clamped``. Board refusals raise
+        (``max_pct``, ``rms_pct``), ``stored``, ``clamped``, ``excitation_underran`` (the
+        excitation's stream found the queue empty: identified on the drive as applied). Board refusals raise
         :class:`BoardError`; a stage that cannot be calibrated raises ``RuntimeError``."""
     def store(self, boot_mode: str = "bypass") -> None:
         """Writes the settings in force to the board's flash, to boot in ``boot_mode``."""

@@ -1,6 +1,7 @@
 //! `twinstack calibrate --port PORT --out PARAMS.json [--model auto|…] [--no-store] [--json]`:
-//! the whole calibration in one command ([`twinstack_identify::calibrate`]): excites the stage with the
-//! board's waveform generator, records drive and sensor, identifies the best model, writes the
+//! the whole calibration in one command ([`twinstack_identify::calibrate`]): excites the stage with
+//! the identification excitation streamed in bypass ([`twinstack_identify::excitation`]:
+//! the major loop, concentric and nested minor loops, a multisine), records drive and sensor, identifies the best model, writes the
 //! parameter file (the format `identify` writes) and a PNG beside it (the fit, the ranking, the
 //! tracking before and after), loads the settings (open loop), verifies them on a test
 //! trajectory and stores them to flash (to boot in bypass unless `--store MODE`).
@@ -17,6 +18,7 @@ use plotters::style::RGBColor;
 use std::path::{Path, PathBuf};
 use twinstack::services::recorder::Channel;
 use twinstack_identify::calibrate::{calibrate, CalibrateOptions, CalibrationReport, Progress};
+use twinstack_identify::excitation::Excitation;
 use twinstack_identify::identification::auto::{Validation, INVERSE_TO_FORWARD_LIMIT};
 use twinstack_identify::identification::score::ErrorFigures;
 use twinstack_link::output_file::Staged;
@@ -43,15 +45,25 @@ pub struct Args {
     /// it as `identify` does.
     #[arg(long, default_value = "0", value_parser = parse_lag, value_name = "N|auto")]
     pub lag: LagArg,
-    /// Frequency of the excitation, Hz.
-    #[arg(long, default_value_t = 10.0)]
+    /// Base frequency of the excitation, Hz (its parts last whole cycles of it).
+    #[arg(long, default_value_t = Excitation::DEFAULT.hz)]
     pub frequency: f64,
-    /// Full-amplitude cycles of the excitation.
-    #[arg(long, default_value_t = 6)]
+    /// Cycles of the excitation over the whole swept range.
+    #[arg(long, default_value_t = Excitation::DEFAULT.full_cycles)]
     pub full_cycles: u16,
-    /// Decaying cycles after them (the last is held out to score the model).
-    #[arg(long, default_value_t = 14)]
+    /// Cycles decaying about the middle after them.
+    #[arg(long, default_value_t = Excitation::DEFAULT.decay_cycles)]
     pub decay_cycles: u16,
+    /// The decaying cycles' last amplitude, fraction of the full cycles'.
+    #[arg(long, default_value_t = Excitation::DEFAULT.final_amplitude)]
+    pub final_amplitude: f64,
+    /// Cycles' time of nested, off-centre minor loops after them.
+    #[arg(long, default_value_t = Excitation::DEFAULT.loop_cycles)]
+    pub loop_cycles: u16,
+    /// Cycles' time of a three-tone multisine last (its last cycle is held out to score the
+    /// model).
+    #[arg(long, default_value_t = Excitation::DEFAULT.multisine_cycles)]
+    pub multisine_cycles: u16,
     /// Refuse the model if it predicts the held-out cycle worse than this, % of span (max).
     #[arg(long, default_value_t = 5.0, value_name = "PERCENT")]
     pub max_held_out: f64,
@@ -82,6 +94,9 @@ impl Args {
             excitation_hz: self.frequency,
             full_cycles: self.full_cycles,
             decay_cycles: self.decay_cycles,
+            final_amplitude: self.final_amplitude,
+            loop_cycles: self.loop_cycles,
+            multisine_cycles: self.multisine_cycles,
             model: match self.model {
                 super::identify::ModelChoice::Auto => None,
                 super::identify::ModelChoice::Only(kind) => Some(kind),
@@ -143,6 +158,7 @@ pub fn report_json(r: &CalibrationReport, out: &Path, png: &Path) -> serde_json:
         "tick_rate_hz": r.tick_rate_hz,
         "stored": r.stored.map(|m| format!("{m:?}")),
         "clamped": r.clamped,
+        "excitation_underran": r.excitation_underran,
         "params": out.display().to_string(),
         "png": png.display().to_string(),
     })
@@ -182,6 +198,11 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     plot(&report, &temp_png)?;
     files.write(&args.out, report.file.to_json().as_bytes())?;
     files.commit()?;
+    if report.excitation_underran {
+        eprintln!(
+            "warning: the excitation's stream found the board's queue empty (a slow link): the model was identified on the drive as applied, held where the queue ran dry"
+        );
+    }
     if report.clamped {
         eprintln!(
             "warning: the model's input range reaches beyond the drive's (--clamp: loaded anyway)"

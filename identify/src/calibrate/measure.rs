@@ -1,4 +1,4 @@
-//! Steps 2 and 3 of a calibration: excite the stage with the board's waveform generator,
+//! Steps 2 and 3 of a calibration: excite the stage with the excitation streamed in bypass,
 //! record drive and sensor with its recorder, identify the model, and the checks before a load.
 
 use super::*;
@@ -16,6 +16,7 @@ pub(super) struct Measured {
     pub(super) decimation: u16,
     pub(super) tick_rate_hz: u32,
     pub(super) clamped: bool,
+    pub(super) underran: bool,
 }
 
 /// Steps 2 and 3: excite and record, identify, and the checks before a load (the fit, the
@@ -32,35 +33,58 @@ pub(super) fn measure<T: Transport>(
         .capture_status()
         .map_err(link("the recorder's capacity"))?;
     let rate = facts.tick_rate_hz.max(1) as f64;
+    // Streamed in bypass: each setpoint is the drive. The capture records the drive the
+    // board applied (the left stack) beside the sensor, so a stream that underran on a slow
+    // link still gives a true record, only a different one.
+    let divider = options.stream_divider;
+    let samples = options.excitation_setpoints(rate / divider as f64);
+    let ticks = samples.len() as u64 * divider as u64;
     let mask = Channel::Left.bit() | Channel::Sensor.bit();
-    let ticks = (options.excitation_s() * rate).ceil() as u64;
     let (decimation, frames) = decimation_for(ticks, rate, options.sample_rate_hz, &facts, 2);
     client
         .arm_capture(CaptureRequest {
             signals: mask,
             samples: frames,
             pre_trigger: 0,
-            trigger: Trigger::WaveformStart,
+            trigger: Trigger::StreamStart,
             decimation,
         })
         .map_err(link("arming the recorder"))?;
-    client
-        .waveform(options.waveform())
-        .map_err(link("starting the excitation"))?;
-    let budget = Duration::from_secs_f64(2.0 * options.excitation_s() + 10.0);
-    let read = capture::wait_and_read(client, budget, |what, n| {
+    let stream = StreamOptions {
+        divider,
+        underrun: Some(UnderrunPolicy::Hold),
+        tick_rate_hz: rate,
+        drain: true,
+        ..StreamOptions::default()
+    };
+    let streamed = match stream_setpoints(client, &samples, &stream, |sent| {
+        progress(Progress::Count {
+            what: "setpoints sent",
+            done: sent as u64,
+        })
+    }) {
+        Ok(r) => r,
+        Err(source) => {
+            // Best effort: the stream stopped, the output holding where it is (the error at
+            // hand says more than a failure to stop).
+            let _ = client.stream(StreamControl::Stop);
+            return Err(CalibrateError::Stream {
+                step: "streaming the excitation",
+                source,
+            });
+        }
+    };
+    let budget = Duration::from_secs_f64(2.0 * ticks as f64 / rate + 10.0);
+    let (cap, window) = capture::wait_and_read(client, budget, |what, n| {
         progress(Progress::Count {
             what,
             done: n as u64,
         })
-    });
-    // Stop the generator whatever happened (the output holds near the middle).
-    let stopped = client.stream(StreamControl::Stop);
-    let (cap, window) = read.map_err(|source| CalibrateError::Capture {
+    })
+    .map_err(|source| CalibrateError::Capture {
         step: "recording the excitation",
         source,
     })?;
-    stopped.map_err(link("stopping the excitation"))?;
     let recording =
         capture::convert(&cap, board, &window).map_err(|source| CalibrateError::Convert {
             step: "the excitation",
@@ -168,6 +192,7 @@ pub(super) fn measure<T: Transport>(
         decimation: cap.decimation,
         tick_rate_hz: facts.tick_rate_hz,
         clamped,
+        underran: streamed.underran(),
     })
 }
 

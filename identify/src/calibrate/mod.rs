@@ -1,6 +1,6 @@
-//! One-command calibration (`twinstack calibrate`): excite the stage with the board's own
-//! waveform generator, record drive and sensor with the board's recorder, identify the best
-//! model, load it (and store it), then verify it by tracking a test trajectory before and
+//! One-command calibration (`twinstack calibrate`): excite the stage with the
+//! [`crate::excitation`] streamed to the board, record drive and sensor with the board's
+//! recorder, identify the best model, load it (and store it), then verify it by tracking a test trajectory before and
 //! after compensation — over any [`Transport`], so the same function serves the command line,
 //! a real board, the emulator and the virtual board (and a Python binding later).
 //!
@@ -10,12 +10,18 @@
 //!    running stream or waveform is stopped; the mode is set to bypass (the drive then follows
 //!    the setpoint linearly, so the excitation *is* the drive).
 //! 2. **Excite**: a multi-signal capture of the left stack and the sensor is armed on the
-//!    waveform's start, decimated so the run fits the board's capture slots (at most
-//!    [`CalibrateOptions::sample_rate_hz`]), then the generator plays a sine about the middle of
-//!    the range: [`CalibrateOptions::full_cycles`] cycles of amplitude
-//!    [`CalibrateOptions::amplitude`], then [`CalibrateOptions::decay_cycles`] cycles decaying
-//!    geometrically (the generator's per-cycle decay, protocol v5) to
-//!    [`CalibrateOptions::final_amplitude`] of it: nested minor loops.
+//!    stream's start, decimated so the run fits the board's capture slots (at most
+//!    [`CalibrateOptions::sample_rate_hz`]), then the excitation is streamed in bypass
+//!    ([`CalibrateOptions::excitation_setpoints`], at [`CalibrateOptions::stream_divider`]
+//!    ticks a setpoint): a quarter cycle from the middle of the range down to the bottom of the
+//!    swept range, then [`crate::excitation::Excitation`] over the middle ±
+//!    [`CalibrateOptions::amplitude`] — full cycles, cycles decaying to
+//!    [`CalibrateOptions::final_amplitude`], and where asked nested off-centre minor loops
+//!    ([`CalibrateOptions::loop_cycles`]) and a multisine
+//!    ([`CalibrateOptions::multisine_cycles`]). The
+//!    record is the drive the board applied, so a stream that found the queue empty on a
+//!    slow link still records what the stage did ([`CalibrationReport::excitation_underran`]
+//!    says so).
 //! 3. **Identify**: the window in physical units (left stack V, sensor in the output unit) is a
 //!    `t,u,x` record; the last cycle is held out; [`identify_auto_admitting`] ranks every model
 //!    of the family (or one model, [`CalibrateOptions::model`]) and keeps the best among those
@@ -51,7 +57,6 @@ use std::time::Duration;
 use twinstack::config::settings::Settings;
 use twinstack::protocol::messages::{
     CaptureRequest, CaptureStatus, Mode, StatusReport, StreamControl, Trigger, UnderrunPolicy,
-    WaveDecay, WaveShape, Waveform,
 };
 use twinstack::services::recorder::Channel;
 use twinstack_link::capture::{self, CaptureError, ConvertError, Recording};
@@ -135,6 +140,7 @@ pub fn calibrate<T: Transport>(
         decimation,
         tick_rate_hz,
         clamped,
+        underran,
     } = match measure(client, options, &board, &mut progress) {
         Ok(m) => m,
         Err(e) => {
@@ -203,6 +209,7 @@ pub fn calibrate<T: Transport>(
         runs: [run_before, run_after],
         stored: options.store,
         clamped,
+        excitation_underran: underran,
     })
 }
 

@@ -2,22 +2,28 @@
 //! calibrate` runs.
 
 use super::*;
+use crate::excitation::Excitation;
 
 /// How a calibration runs. [`CalibrateOptions::default`] is what `twinstack calibrate` runs.
 #[derive(Clone, Debug, PartialEq)]
 pub struct CalibrateOptions {
-    /// Frequency of the excitation, Hz.
+    /// Base frequency of the excitation, Hz ([`Excitation::hz`]).
     pub excitation_hz: f64,
-    /// Amplitude of the full cycles, normalised (fraction of the half range about its middle);
-    /// the identified input range is the range swept (see
-    /// [`crate::identification::INPUT_MARGIN`]).
+    /// Amplitude of the excitation, normalised (fraction of the half range about its middle):
+    /// the full cycles sweep the middle ± this; the identified input range is the range swept
+    /// (see [`crate::identification::INPUT_MARGIN`]).
     pub amplitude: f64,
-    /// Cycles at full amplitude.
+    /// Cycles over the whole swept range ([`Excitation::full_cycles`]).
     pub full_cycles: u16,
-    /// Cycles decaying after them (the last one is held out of the fit and scores it).
+    /// Cycles decaying about the middle after them ([`Excitation::decay_cycles`]).
     pub decay_cycles: u16,
-    /// Amplitude of the last cycle, fraction of [`CalibrateOptions::amplitude`].
+    /// The decaying cycles' last amplitude, fraction of [`CalibrateOptions::amplitude`].
     pub final_amplitude: f64,
+    /// Cycles' time of nested, off-centre minor loops after them ([`Excitation::loop_cycles`]).
+    pub loop_cycles: u16,
+    /// Cycles' time of a three-tone multisine last ([`Excitation::multisine_cycles`]). The
+    /// excitation's last cycle, whichever part it is of, is held out of the fit and scores it.
+    pub multisine_cycles: u16,
     /// Highest rate the excitation and the verification runs are recorded at, Hz (lower if
     /// the board's capture slots do not hold the run at this rate).
     pub sample_rate_hz: f64,
@@ -46,16 +52,19 @@ pub struct CalibrateOptions {
 }
 
 impl Default for CalibrateOptions {
-    /// 10 Hz, 6 full cycles at 0.97 then 14 decaying to 15 %, recorded at up to 10 kHz, the
-    /// model picked by `auto`, refused above 5 % held-out max error, stored to boot in
-    /// bypass, verification streamed at 10 000 setpoints/s on a 50 kHz board.
+    /// The excitation [`Excitation::DEFAULT`] at 0.97 of the range (2 s at 10 Hz: 6 full
+    /// cycles, 14 decaying to 15 %), streamed and recorded at up to 10 kHz; the model picked
+    /// by `auto`, refused above 5 % held-out max error, stored to boot in bypass;
+    /// verification streamed at 10 000 setpoints/s on a 50 kHz board.
     fn default() -> Self {
         Self {
-            excitation_hz: 10.0,
+            excitation_hz: Excitation::DEFAULT.hz,
             amplitude: 0.97,
-            full_cycles: 6,
-            decay_cycles: 14,
-            final_amplitude: 0.15,
+            full_cycles: Excitation::DEFAULT.full_cycles,
+            decay_cycles: Excitation::DEFAULT.decay_cycles,
+            final_amplitude: Excitation::DEFAULT.final_amplitude,
+            loop_cycles: Excitation::DEFAULT.loop_cycles,
+            multisine_cycles: Excitation::DEFAULT.multisine_cycles,
             sample_rate_hz: 10_000.0,
             model: None,
             operators: None,
@@ -76,24 +85,11 @@ impl CalibrateOptions {
         let bad = |field: &'static str, rule: &'static str, value: f64| {
             Err(CalibrateError::Option { field, rule, value })
         };
-        if !(self.excitation_hz.is_finite() && self.excitation_hz > 0.0) {
-            return bad(
-                "excitation_hz",
-                "a positive number of Hz",
-                self.excitation_hz,
-            );
+        if let Err((field, rule, value)) = self.excitation().check() {
+            return bad(field, rule, value);
         }
         if !(self.amplitude > 0.0 && self.amplitude <= 1.0) {
             return bad("amplitude", "in (0, 1]", self.amplitude);
-        }
-        if self.full_cycles == 0 {
-            return bad("full_cycles", "at least 1", 0.0);
-        }
-        if self.decay_cycles < 2 {
-            return bad("decay_cycles", "at least 2", self.decay_cycles as f64);
-        }
-        if !(self.final_amplitude > 0.0 && self.final_amplitude < 1.0) {
-            return bad("final_amplitude", "in (0, 1)", self.final_amplitude);
         }
         if !(self.sample_rate_hz.is_finite() && self.sample_rate_hz > 0.0) {
             return bad(
@@ -111,30 +107,40 @@ impl CalibrateOptions {
         Ok(())
     }
 
-    /// Cycles of the excitation in all.
-    pub fn cycles(&self) -> u32 {
-        self.full_cycles as u32 + self.decay_cycles as u32
-    }
-
-    /// Length of the excitation, seconds.
-    pub fn excitation_s(&self) -> f64 {
-        self.cycles() as f64 / self.excitation_hz
-    }
-
-    /// The waveform request: a sine about the middle, decaying per cycle after the full ones
-    /// so that the last cycle's amplitude is [`CalibrateOptions::final_amplitude`] of the first.
-    pub fn waveform(&self) -> Waveform {
-        // Cycle `full_cycles + k` (k = 0 …) has `keep^(k + 1)`: the last, `keep^decay_cycles`.
-        let keep = self.final_amplitude.powf(1.0 / self.decay_cycles as f64);
-        Waveform {
-            shape: WaveShape::Sine,
-            offset: 0,
-            amplitude: q1_15(self.amplitude),
-            frequency_mhz: (self.excitation_hz * 1000.0).round().max(1.0) as u32,
-            decay: Some(WaveDecay {
-                hold_cycles: self.full_cycles,
-                keep: (keep * 65536.0).round().min(65535.0) as u16,
-            }),
+    /// The excitation's shape.
+    pub fn excitation(&self) -> Excitation {
+        Excitation {
+            hz: self.excitation_hz,
+            full_cycles: self.full_cycles,
+            decay_cycles: self.decay_cycles,
+            final_amplitude: self.final_amplitude,
+            loop_cycles: self.loop_cycles,
+            multisine_cycles: self.multisine_cycles,
         }
+    }
+
+    /// The lead-in before the excitation, seconds: a quarter cycle from the middle of the
+    /// range down to the bottom of the swept range, where the excitation starts.
+    pub fn lead_in_s(&self) -> f64 {
+        0.25 / self.excitation_hz
+    }
+
+    /// Length of what is streamed and recorded (the lead-in, then the excitation), seconds.
+    pub fn excitation_s(&self) -> f64 {
+        self.lead_in_s() + self.excitation().duration_s()
+    }
+
+    /// The setpoints streamed at `rate` per second, Q1.15 normalised (the middle of the range
+    /// ± [`CalibrateOptions::amplitude`]); in bypass, the drive: the lead-in from the middle
+    /// (`−sin`, ending on the excitation's first value with its slope, 0), then the
+    /// excitation.
+    pub fn excitation_setpoints(&self, rate: f64) -> Vec<i16> {
+        let lead = (self.lead_in_s() * rate).round() as usize;
+        let w = std::f64::consts::TAU * self.excitation_hz;
+        (0..lead)
+            .map(|k| -(w * k as f64 / rate).sin())
+            .chain(self.excitation().sampled(rate))
+            .map(|x| q1_15(self.amplitude * x))
+            .collect()
     }
 }

@@ -73,6 +73,10 @@ pub struct CalibrationReport {
     pub stored: Option<Mode>,
     /// The model's input range reaches beyond the drive and was loaded with `clamp`.
     pub clamped: bool,
+    /// The excitation's stream found the board's queue empty at least once (a link slower
+    /// than the stream): the record holds the drive as the board applied it, held where the
+    /// queue ran dry, so the identification stands, on a record other than the one planned.
+    pub excitation_underran: bool,
 }
 
 /// Why a calibration stopped. Nothing here panics; each says what to check.

@@ -22,16 +22,39 @@ fn the_decimation_fits_the_run_into_the_slots_at_most_at_the_rate_asked() {
 }
 
 #[test]
-fn the_waveform_decays_to_the_final_amplitude_over_the_decay_cycles() {
+fn the_excitation_streamed_starts_at_the_middle_and_sweeps_the_amplitude_without_a_jump() {
     let o = CalibrateOptions::default();
-    let w = o.waveform();
-    let d = w.decay.unwrap();
-    assert_eq!(d.hold_cycles, 6);
-    // The last of the 14 decaying cycles: 0.15 of the amplitude.
-    let last = (d.keep as f64 / 65536.0).powi(14);
-    assert!((last - 0.15).abs() < 1e-3, "{last}");
-    assert_eq!(w.frequency_mhz, 10_000);
-    assert!((o.excitation_s() - 2.0).abs() < 1e-12);
+    let rate = 10_000.0;
+    let s = o.excitation_setpoints(rate);
+    // The lead-in (a quarter cycle, 25 ms at 10 Hz) and the 2 s excitation.
+    assert!((o.excitation_s() - 2.025).abs() < 1e-12);
+    assert_eq!(s.len(), 20_250);
+    assert_eq!(s[0], 0);
+    // The lead-in ends at the bottom of the swept range, where the excitation starts.
+    let bottom = q1_15(-o.amplitude);
+    assert!((s[250] - bottom).abs() <= 1, "{} vs {bottom}", s[250]);
+    let (lo, hi) = s
+        .iter()
+        .fold((i16::MAX, i16::MIN), |(l, h), &v| (l.min(v), h.max(v)));
+    assert!(
+        (lo - bottom).abs() <= 1 && (hi + bottom).abs() <= 1,
+        "{lo} {hi}"
+    );
+    // No step larger than the full cycles' own (2π·10 Hz × 0.97 of the half range).
+    let largest = s
+        .windows(2)
+        .map(|w| (w[1] as i32 - w[0] as i32).abs())
+        .max()
+        .unwrap();
+    assert!(largest <= 210, "{largest}");
+    // Another amplitude scales it.
+    let half = CalibrateOptions {
+        amplitude: 0.5,
+        ..o.clone()
+    }
+    .excitation_setpoints(rate);
+    assert_eq!(half.len(), s.len());
+    assert!((half[250] - q1_15(-0.5)).abs() <= 1);
 }
 
 #[test]

@@ -326,6 +326,20 @@ const FIGURES: &[Figure] = &[
         render: Render::Many(identify_table),
     },
     Figure {
+        name: "calibrate-sim",
+        page: "docs/src/guide/calibration.md",
+        runs: &[&[
+            "calibrate",
+            "--port",
+            "sim",
+            "--out",
+            "docs/src/guide/calibrate-sim.json",
+        ]],
+        source: Source::Tool,
+        checked: false,
+        render: Render::One(verbatim),
+    },
+    Figure {
         name: "lab-stage",
         page: "docs/src/results/lab-stage.md",
         runs: LAB_STAGE_RUNS,
