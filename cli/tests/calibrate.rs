@@ -549,9 +549,9 @@ fn the_board_plays_the_decaying_waveform_it_is_asked_for() {
 /// ticks, captured at that decimation), and the drive follows it over the swept range.
 #[test]
 fn the_board_plays_the_excitation_calibrate_streams() {
-    use twinstack::protocol::messages::{CaptureRequest, Trigger, UnderrunPolicy};
+    use twinstack::protocol::messages::{CaptureRequest, Trigger};
     use twinstack::services::recorder::Channel;
-    use twinstack_link::streamer::{stream_setpoints, StreamOptions};
+    use twinstack_link::streamer::stream_setpoints;
     let mut client = sim_client(SimDeviceConfig::paper());
     client.set_mode(Mode::Bypass).unwrap();
     let options = quick();
@@ -568,13 +568,7 @@ fn the_board_plays_the_excitation_calibrate_streams() {
             decimation: divider,
         })
         .unwrap();
-    let stream = StreamOptions {
-        divider,
-        underrun: Some(UnderrunPolicy::Hold),
-        tick_rate_hz: rate,
-        drain: true,
-        ..StreamOptions::default()
-    };
+    let stream = options.stream_options(rate);
     let report = stream_setpoints(&mut client, &planned, &stream, |_| {}).unwrap();
     assert!(!report.underran());
     let (status, window) =

@@ -50,13 +50,7 @@ pub(super) fn measure<T: Transport>(
             decimation,
         })
         .map_err(link("arming the recorder"))?;
-    let stream = StreamOptions {
-        divider,
-        underrun: Some(UnderrunPolicy::Hold),
-        tick_rate_hz: rate,
-        drain: true,
-        ..StreamOptions::default()
-    };
+    let stream = options.stream_options(rate);
     let streamed = match stream_setpoints(client, &samples, &stream, |sent| {
         progress(Progress::Count {
             what: "setpoints sent",

@@ -119,6 +119,19 @@ impl CalibrateOptions {
         }
     }
 
+    /// How calibrate streams (the excitation, the verification runs) to a board ticking at
+    /// `tick_rate_hz`: one setpoint every [`CalibrateOptions::stream_divider`] ticks, holding
+    /// on an empty queue, drained before the capture is read.
+    pub fn stream_options(&self, tick_rate_hz: f64) -> StreamOptions {
+        StreamOptions {
+            divider: self.stream_divider,
+            underrun: Some(UnderrunPolicy::Hold),
+            tick_rate_hz,
+            drain: true,
+            ..StreamOptions::default()
+        }
+    }
+
     /// The lead-in before the excitation, seconds: a quarter cycle from the middle of the
     /// range down to the bottom of the swept range, where the excitation starts.
     pub fn lead_in_s(&self) -> f64 {

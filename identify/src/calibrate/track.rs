@@ -33,13 +33,7 @@ pub(super) fn track<T: Transport>(
             decimation,
         })
         .map_err(link(step))?;
-    let stream = StreamOptions {
-        divider,
-        underrun: Some(UnderrunPolicy::Hold),
-        tick_rate_hz: rate,
-        drain: true,
-        ..StreamOptions::default()
-    };
+    let stream = options.stream_options(rate);
     let r = stream_setpoints(client, &samples, &stream, |_| {})
         .map_err(|source| CalibrateError::Stream { step, source })?;
     let seconds = ticks as f64 / rate;
