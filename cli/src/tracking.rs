@@ -50,11 +50,7 @@ const OUTPUT_UNIT: &str = "um";
 /// The excitation: `calibrate`'s ([`Excitation::DEFAULT`]).
 pub const EXCITATION: Excitation = Excitation::DEFAULT;
 /// Length of the identification record, seconds.
-pub const EXCITATION_S: f64 = (EXCITATION.full_cycles as f64
-    + EXCITATION.decay_cycles as f64
-    + EXCITATION.loop_cycles as f64
-    + EXCITATION.multisine_cycles as f64)
-    / EXCITATION.hz;
+pub const EXCITATION_S: f64 = EXCITATION.duration_s();
 /// Base frequency of the excitation, Hz.
 pub const EXCITATION_HZ: f64 = EXCITATION.hz;
 /// The default `fit_until_s`: everything but the last excitation cycle is fitted.

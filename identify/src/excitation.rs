@@ -87,7 +87,7 @@ impl Excitation {
     };
 
     /// Cycles in all.
-    pub fn cycles(&self) -> u32 {
+    pub const fn cycles(&self) -> u32 {
         self.full_cycles as u32
             + self.decay_cycles as u32
             + self.loop_cycles as u32
@@ -95,7 +95,7 @@ impl Excitation {
     }
 
     /// Length, seconds.
-    pub fn duration_s(&self) -> f64 {
+    pub const fn duration_s(&self) -> f64 {
         self.cycles() as f64 / self.hz
     }
 

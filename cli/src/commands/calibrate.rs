@@ -1,7 +1,8 @@
 //! `twinstack calibrate --port PORT --out PARAMS.json [--model auto|…] [--no-store] [--json]`:
 //! the whole calibration in one command ([`twinstack_identify::calibrate`]): excites the stage with
-//! the identification excitation streamed in bypass ([`twinstack_identify::excitation`]:
-//! the major loop, concentric and nested minor loops, a multisine), records drive and sensor, identifies the best model, writes the
+//! the identification excitation streamed in bypass ([`twinstack_identify::excitation`]: the
+//! major loop and concentric minor loops, nested loops and a multisine where asked), records
+//! drive and sensor, identifies the best model, writes the
 //! parameter file (the format `identify` writes) and a PNG beside it (the fit, the ranking, the
 //! tracking before and after), loads the settings (open loop), verifies them on a test
 //! trajectory and stores them to flash (to boot in bypass unless `--store MODE`).
@@ -60,8 +61,8 @@ pub struct Args {
     /// Cycles' time of nested, off-centre minor loops after them.
     #[arg(long, default_value_t = Excitation::DEFAULT.loop_cycles)]
     pub loop_cycles: u16,
-    /// Cycles' time of a three-tone multisine last (its last cycle is held out to score the
-    /// model).
+    /// Cycles' time of a three-tone multisine last. The excitation's last cycle, whichever
+    /// part it is of, is held out to score the model.
     #[arg(long, default_value_t = Excitation::DEFAULT.multisine_cycles)]
     pub multisine_cycles: u16,
     /// Refuse the model if it predicts the held-out cycle worse than this, % of span (max).
