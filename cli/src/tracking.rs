@@ -4,8 +4,8 @@
 //! 1. **Excite** ([`excite`]): from rest at 0 V, drive the stage over its whole drive range
 //!    with the excitation `twinstack calibrate` streams to a board by default
 //!    ([`twinstack_identify::excitation::Excitation::DEFAULT`], [`EXCITATION_S`] at
-//!    [`EXCITATION_HZ`]: full-range cycles, then cycles decaying about mid-range, so the
-//!    record holds minor loops) and record `t, u, x` as a [`MeasuredData`].
+//!    [`EXCITATION_HZ`]: full-range cycles, cycles decaying about mid-range, nested
+//!    off-centre loops and a multisine, so the record holds minor loops of every kind) and record `t, u, x` as a [`MeasuredData`].
 //! 2. **Identify** ([`twinstack_identify::identification::identify`]) with the caller's
 //!    [`IdentifyOptions`] (fitted on `t < fit_until_s`, by default [`FIT_UNTIL_S`]: the last
 //!    cycle is held out and scored); with a board's control rate, only what the board runs at

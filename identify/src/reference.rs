@@ -8,6 +8,7 @@ use twinstack::models::generalised_pi::{DeadZoneParams, GpiParams};
 use twinstack::models::params::{
     BoucWenParams, CanonicalPi, DuhemParams, ParamError, PiParams, MAX_CANONICAL_OPERATORS,
 };
+use twinstack::models::Rest;
 use twinstack::scaling::Scaling;
 
 /// Play operator: `max(u − r, min(u + r, p))`.
@@ -43,6 +44,18 @@ impl PlaySum {
             .map(|&r| play(u0, r, (lo + r).min((hi - r).max(lo))))
             .collect();
         Self::with_states(model, states)
+    }
+
+    /// At rest at `u0` with the history `rest`: [`PlaySum::at_rest`], or every operator at
+    /// `u0` ([`Rest::Relaxed`], the library's `state_at`).
+    fn resting(model: CanonicalPi, lo: f64, hi: f64, u0: f64, rest: Rest) -> Self {
+        match rest {
+            Rest::Ascending => Self::at_rest(model, lo, hi, u0),
+            Rest::Relaxed => {
+                let states = model.thresholds.iter().map(|_| u0).collect();
+                Self::with_states(model, states)
+            }
+        }
     }
 
     fn step(&mut self, x: f64) -> f64 {
@@ -82,13 +95,24 @@ impl PrandtlIshlinskii {
     /// The model `params`, at rest at input `u0` (volts) on the ascending branch: the drive
     /// went to the top of the input range, down to its bottom, then up to `u0`.
     pub fn new(params: &PiParams, scaling: &Scaling, u0: f64) -> Result<Self, ParamError> {
+        Self::with_rest(params, scaling, u0, Rest::Ascending)
+    }
+
+    /// The model `params` at rest at input `u0` (volts) with the history `rest`.
+    pub fn with_rest(
+        params: &PiParams,
+        scaling: &Scaling,
+        u0: f64,
+        rest: Rest,
+    ) -> Result<Self, ParamError> {
         let u0 = clamp(u0, scaling.input_min, scaling.input_max);
         Ok(Self {
-            sum: PlaySum::at_rest(
+            sum: PlaySum::resting(
                 params.canonical()?,
                 scaling.input_min,
                 scaling.input_max,
                 u0,
+                rest,
             ),
             scaling: *scaling,
         })
@@ -119,10 +143,27 @@ impl InversePrandtlIshlinskii {
     /// with `S_i = Σ_{j≤i} w_j` (the library reaches the same state another way: the
     /// forward's major-loop bottom mapped, then raised to the desired output).
     pub fn new(params: &PiParams, scaling: &Scaling, u0: f64) -> Result<Self, ParamError> {
+        Self::with_rest(params, scaling, u0, Rest::Ascending)
+    }
+
+    /// The inverse of `params`, matching the forward model at rest at drive `u0` (volts) with
+    /// the history `rest` ([`PrandtlIshlinskii::with_rest`]).
+    pub fn with_rest(
+        params: &PiParams,
+        scaling: &Scaling,
+        u0: f64,
+        rest: Rest,
+    ) -> Result<Self, ParamError> {
         let forward = params.canonical()?;
         let inverse = forward.inverse()?;
         let u0 = clamp(u0, scaling.input_min, scaling.input_max);
-        let p = PlaySum::at_rest(forward.clone(), scaling.input_min, scaling.input_max, u0);
+        let p = PlaySum::resting(
+            forward.clone(),
+            scaling.input_min,
+            scaling.input_max,
+            u0,
+            rest,
+        );
         let (w, p) = (&forward.weights, p.states());
         let states = (0..w.len())
             .map(|i| {
@@ -208,9 +249,19 @@ pub struct GeneralisedPi {
 impl GeneralisedPi {
     /// The model `params`, at rest at input `u0` (volts).
     pub fn new(params: &GpiParams, scaling: &Scaling, u0: f64) -> Result<Self, ParamError> {
+        Self::with_rest(params, scaling, u0, Rest::Ascending)
+    }
+
+    /// The model `params`, at rest at input `u0` (volts) with the history `rest`.
+    pub fn with_rest(
+        params: &GpiParams,
+        scaling: &Scaling,
+        u0: f64,
+        rest: Rest,
+    ) -> Result<Self, ParamError> {
         params.validate()?;
         Ok(Self {
-            pi: PrandtlIshlinskii::new(&params.pi, scaling, u0)?,
+            pi: PrandtlIshlinskii::with_rest(&params.pi, scaling, u0, rest)?,
             map: params.dead_zones.clone(),
         })
     }
@@ -234,9 +285,19 @@ pub struct InverseGeneralisedPi {
 impl InverseGeneralisedPi {
     /// The inverse of `params`, its P–I part at rest as [`InversePrandtlIshlinskii::new`] puts it.
     pub fn new(params: &GpiParams, scaling: &Scaling, u0: f64) -> Result<Self, ParamError> {
+        Self::with_rest(params, scaling, u0, Rest::Ascending)
+    }
+
+    /// The inverse of `params`, its P–I part as [`InversePrandtlIshlinskii::with_rest`] puts it.
+    pub fn with_rest(
+        params: &GpiParams,
+        scaling: &Scaling,
+        u0: f64,
+        rest: Rest,
+    ) -> Result<Self, ParamError> {
         params.validate()?;
         Ok(Self {
-            pi: InversePrandtlIshlinskii::new(&params.pi, scaling, u0)?,
+            pi: InversePrandtlIshlinskii::with_rest(&params.pi, scaling, u0, rest)?,
             map: params.dead_zones.clone(),
             scaling: *scaling,
         })
@@ -304,6 +365,33 @@ impl Duhem {
         })
     }
 
+    /// The model `params` at rest at input `u0` (volts): on the anhysteretic curve at the
+    /// range's top, then the drive history of [`rest_history`], as the library's
+    /// `Duhem::state_at_rest`.
+    pub fn at_rest(params: &DuhemParams, scaling: &Scaling, u0: f64) -> Result<Self, ParamError> {
+        Self::with_rest(params, scaling, u0, Rest::Ascending)
+    }
+
+    /// The model `params` at rest at input `u0` (volts) with the history `rest`:
+    /// [`Duhem::at_rest`], or on the anhysteretic curve ([`Rest::Relaxed`]).
+    pub fn with_rest(
+        params: &DuhemParams,
+        scaling: &Scaling,
+        u0: f64,
+        rest: Rest,
+    ) -> Result<Self, ParamError> {
+        if rest == Rest::Relaxed {
+            let u0 = clamp(u0, scaling.input_min, scaling.input_max);
+            return Self::new(params, scaling, u0, params.beta * u0 + params.offset);
+        }
+        let top = scaling.input_max;
+        let mut m = Self::new(params, scaling, top, params.beta * top + params.offset)?;
+        rest_history(scaling, u0, |v| {
+            m.step(v);
+        });
+        Ok(m)
+    }
+
     /// One sample: drive (volts) → displacement (output units): the exact relaxation over
     /// the step, `y += β·Δu + q·e − s·(β − γ)·q/α`, `q = 1 − e^{−α|Δu|}`, `e = βu + δ − y`.
     pub fn step(&mut self, u: f64) -> f64 {
@@ -347,6 +435,23 @@ impl InverseDuhem {
     ) -> Result<Self, ParamError> {
         Ok(Self {
             model: Duhem::new(params, scaling, u0, y0)?,
+        })
+    }
+
+    /// The compensator for `params`, its model at rest at drive `u0` ([`Duhem::at_rest`]).
+    pub fn at_rest(params: &DuhemParams, scaling: &Scaling, u0: f64) -> Result<Self, ParamError> {
+        Self::with_rest(params, scaling, u0, Rest::Ascending)
+    }
+
+    /// The compensator for `params`, its model as [`Duhem::with_rest`] puts it.
+    pub fn with_rest(
+        params: &DuhemParams,
+        scaling: &Scaling,
+        u0: f64,
+        rest: Rest,
+    ) -> Result<Self, ParamError> {
+        Ok(Self {
+            model: Duhem::with_rest(params, scaling, u0, rest)?,
         })
     }
 
@@ -468,6 +573,40 @@ fn heading_sign(h: f64, pull: f64) -> f64 {
     }
 }
 
+/// The drive history of a stage at rest at `u0` (volts), in `scaling`'s input range: the
+/// library's [`twinstack::models::rest_history`] in volts (its turning points the range's
+/// ends; `step` called with each, then with `u0`).
+pub fn rest_history(scaling: &Scaling, u0: f64, mut step: impl FnMut(f64)) {
+    for _ in 0..twinstack::models::REST_CYCLES {
+        step(scaling.input_min);
+        step(scaling.input_max);
+    }
+    step(scaling.input_min);
+    step(u0);
+}
+
+/// The drive at which a model at rest gives `y0`: `output_at_rest(u)` (rising in `u`, the
+/// model monotone) solved by bisection over `scaling`'s input range (60 halvings, to the
+/// `f64`'s resolution), or the range's end nearer where `y0` lies outside what it gives.
+pub fn drive_at_rest(scaling: &Scaling, y0: f64, output_at_rest: impl Fn(f64) -> f64) -> f64 {
+    let (mut lo, mut hi) = (scaling.input_min, scaling.input_max);
+    if output_at_rest(lo) >= y0 {
+        return lo;
+    }
+    if output_at_rest(hi) <= y0 {
+        return hi;
+    }
+    for _ in 0..60 {
+        let mid = 0.5 * (lo + hi);
+        if output_at_rest(mid) < y0 {
+            lo = mid;
+        } else {
+            hi = mid;
+        }
+    }
+    0.5 * (lo + hi)
+}
+
 /// Forward generalised Bouc–Wen, `f64`: `y = k·u + δ + h`, `h` relaxed exactly over each
 /// step toward `s·A/c`: `h ← h − q·h + s·A·q/c`, `q = 1 − e^{−c|Δu|}`,
 /// `c = β + s·sgn(h)·γ + s·ψ` (`s` the sign of `Δu`, `sgn(h)` at the step's start; at
@@ -492,6 +631,30 @@ impl BoucWen {
             u: clamp(u0, scaling.input_min, scaling.input_max),
             h: 0.0,
         })
+    }
+
+    /// The model `params` at rest at input `u0` (volts): relaxed at the range's top, then the
+    /// drive history of [`rest_history`], as the library's `BoucWen::state_at_rest`.
+    pub fn at_rest(params: &BoucWenParams, scaling: &Scaling, u0: f64) -> Result<Self, ParamError> {
+        Self::with_rest(params, scaling, u0, Rest::Ascending)
+    }
+
+    /// The model `params` at rest at input `u0` (volts) with the history `rest`:
+    /// [`BoucWen::at_rest`], or relaxed ([`Rest::Relaxed`], [`BoucWen::new`]).
+    pub fn with_rest(
+        params: &BoucWenParams,
+        scaling: &Scaling,
+        u0: f64,
+        rest: Rest,
+    ) -> Result<Self, ParamError> {
+        if rest == Rest::Relaxed {
+            return Self::new(params, scaling, u0);
+        }
+        let mut m = Self::new(params, scaling, scaling.input_max)?;
+        rest_history(scaling, u0, |v| {
+            m.step(v);
+        });
+        Ok(m)
     }
 
     /// The output in the present state: `k·u + δ + h`.
@@ -538,6 +701,23 @@ impl InverseBoucWen {
     pub fn new(params: &BoucWenParams, scaling: &Scaling, u0: f64) -> Result<Self, ParamError> {
         Ok(Self {
             model: BoucWen::new(params, scaling, u0)?,
+        })
+    }
+
+    /// The compensator for `params`, its model at rest at drive `u0` ([`BoucWen::at_rest`]).
+    pub fn at_rest(params: &BoucWenParams, scaling: &Scaling, u0: f64) -> Result<Self, ParamError> {
+        Self::with_rest(params, scaling, u0, Rest::Ascending)
+    }
+
+    /// The compensator for `params`, its model as [`BoucWen::with_rest`] puts it.
+    pub fn with_rest(
+        params: &BoucWenParams,
+        scaling: &Scaling,
+        u0: f64,
+        rest: Rest,
+    ) -> Result<Self, ParamError> {
+        Ok(Self {
+            model: BoucWen::with_rest(params, scaling, u0, rest)?,
         })
     }
 

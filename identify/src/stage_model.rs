@@ -10,9 +10,9 @@
 //!   between two samples the outputs around it interpolated there (a drive held for a sample
 //!   acts on the stage as at the middle of its hold, half a sample before the reading of its
 //!   end: [`between_samples`]);
-//! * forward runs start relaxed at the first drive value (P–I: every operator there; Duhem:
-//!   on the anhysteretic curve, `y0 = β u0 + δ`; Bouc–Wen: `h = 0`); inverse runs start
-//!   relaxed at the first desired output;
+//! * forward runs start at rest at the first drive value: on the major loop's ascending
+//!   branch, as a stage in use rests (every model's `state_at_rest`; the book's "At rest");
+//!   inverse runs start at rest where their model gives the first desired output;
 //! * with creep, the creep operator runs after the hysteresis model (`predict`) and its
 //!   inverse before the inverse model (`compensate`), discretised at the record's sample
 //!   period (the median interval), its modes at rest at the first value they see.
@@ -338,9 +338,7 @@ impl StageModel {
             }
             Hysteresis::Duhem(p) => {
                 let m = Duhem::new(p, s)?;
-                let u0 = u0.clamp(s.input_min, s.input_max);
-                let y0 = signal_from_f64(s.output_to_norm(p.beta * u0 + p.offset));
-                let mut st = m.state_at(u_norm(u0), y0);
+                let mut st = m.state_at_rest(u_norm(u0));
                 u.iter()
                     .map(|&v| y_phys(creep(m.step(&mut st, u_norm(v)))))
                     .collect()
@@ -354,7 +352,7 @@ impl StageModel {
             }
             Hysteresis::BoucWen(p) => {
                 let m = BoucWen::new(p, s)?;
-                let mut st = m.relaxed(u_norm(u0));
+                let mut st = m.state_at_rest(u_norm(u0));
                 u.iter()
                     .map(|&v| y_phys(creep(m.step(&mut st, u_norm(v)))))
                     .collect()
@@ -373,8 +371,7 @@ impl StageModel {
                 u.iter().map(|&v| m.step(v)).collect()
             }
             Hysteresis::Duhem(p) => {
-                let u0 = u0.clamp(s.input_min, s.input_max);
-                let mut m = reference::Duhem::new(p, s, u0, p.beta * u0 + p.offset)?;
+                let mut m = reference::Duhem::at_rest(p, s, u0)?;
                 u.iter().map(|&v| m.step(v)).collect()
             }
             Hysteresis::GeneralisedPi(p) => {
@@ -382,7 +379,7 @@ impl StageModel {
                 u.iter().map(|&v| m.step(v)).collect()
             }
             Hysteresis::BoucWen(p) => {
-                let mut m = reference::BoucWen::new(p, s, u0)?;
+                let mut m = reference::BoucWen::at_rest(p, s, u0)?;
                 u.iter().map(|&v| m.step(v)).collect()
             }
         };
@@ -432,11 +429,13 @@ impl StageModel {
             Hysteresis::Duhem(p) => {
                 let m = InverseDuhem::new(p, s)?;
                 let y0 = y0.clamp(s.output_min, s.output_max);
-                let u0 = ((y0 - p.offset) / p.beta).clamp(s.input_min, s.input_max);
+                let u_norm = |u: f64| signal_from_f64(s.input_to_norm(u));
+                let at_rest = |u: f64| m.model().state_at_rest(u_norm(u));
+                let u0 = reference::drive_at_rest(s, y0, |u| {
+                    s.norm_to_output(signal_to_f64(at_rest(u).y))
+                });
                 let y0_norm = signal_from_f64(s.output_to_norm(y0));
-                let mut st = m
-                    .model()
-                    .state_at(signal_from_f64(s.input_to_norm(u0)), y0_norm);
+                let mut st = at_rest(u0);
                 let band = NoiseBand::of(&given(), p.normalized(s)?.beta, s);
                 band.around(&targets, y0_norm, s, |y| m.step(&mut st, y))
             }
@@ -451,8 +450,12 @@ impl StageModel {
             Hysteresis::BoucWen(p) => {
                 let m = InverseBoucWen::new(p, s)?;
                 let y0 = y0.clamp(s.output_min, s.output_max);
-                let u0 = ((y0 - p.offset) / p.k).clamp(s.input_min, s.input_max);
-                let mut st = m.model().relaxed(signal_from_f64(s.input_to_norm(u0)));
+                let u_norm = |u: f64| signal_from_f64(s.input_to_norm(u));
+                let at_rest = |u: f64| m.model().state_at_rest(u_norm(u));
+                let u0 = reference::drive_at_rest(s, y0, |u| {
+                    s.norm_to_output(signal_to_f64(m.model().output(&at_rest(u))))
+                });
+                let mut st = at_rest(u0);
                 let band = NoiseBand::of(&given(), p.normalized(s)?.k, s);
                 let y0_norm = signal_from_f64(s.output_to_norm(y0));
                 band.around(&targets, y0_norm, s, |y| m.step(&mut st, y))
@@ -483,8 +486,10 @@ impl StageModel {
                 desired.iter().map(|&v| m.step(v)).collect()
             }
             Hysteresis::Duhem(p) => {
-                let u0 = ((y0 - p.offset) / p.beta).clamp(s.input_min, s.input_max);
-                let mut m = reference::InverseDuhem::new(p, s, u0, y0)?;
+                let at_rest = |u: f64| reference::Duhem::at_rest(p, s, u).map(|m| m.y);
+                p.validate()?;
+                let u0 = reference::drive_at_rest(s, y0, |u| at_rest(u).unwrap_or(f64::NAN));
+                let mut m = reference::InverseDuhem::at_rest(p, s, u0)?;
                 // The band on what the inverse is given (after the inverse creep), as the
                 // fixed-point `compensate` takes it.
                 let band = NoiseBand::of(&desired, p.normalized(s)?.beta, s);
@@ -500,8 +505,10 @@ impl StageModel {
                 desired.iter().map(|&v| m.step(v)).collect()
             }
             Hysteresis::BoucWen(p) => {
-                let u0 = ((y0 - p.offset) / p.k).clamp(s.input_min, s.input_max);
-                let mut m = reference::InverseBoucWen::new(p, s, u0)?;
+                let at_rest = |u: f64| reference::BoucWen::at_rest(p, s, u).map(|m| m.output());
+                p.validate()?;
+                let u0 = reference::drive_at_rest(s, y0, |u| at_rest(u).unwrap_or(f64::NAN));
+                let mut m = reference::InverseBoucWen::at_rest(p, s, u0)?;
                 let band = NoiseBand::of(&desired, p.normalized(s)?.k, s);
                 band.around_reference(&desired, y0, p.k, s, |y| m.step(y))
             }

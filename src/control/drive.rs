@@ -12,6 +12,7 @@
 
 use crate::board::{DacCode, Hardware};
 use crate::fixed_point::{limit, signal_from_f64, signal_to_f64, FULL_SCALE_MAX};
+use crate::models::Rest;
 use crate::refusal::{finite, within, Field, Refusal, Rule};
 use crate::scaling::Scaling;
 
@@ -375,6 +376,12 @@ impl DifferentialDrive {
     /// The model-normalised drive that puts the left stack at the bias (the rest position).
     pub fn rest_drive(&self) -> i32 {
         self.rest_drive
+    }
+
+    /// Where the models' memory stands when the drive rests ([`Rest::of`] the
+    /// configuration): on the loop for the single-ended stack, relaxed for the pair.
+    pub fn rest(&self) -> Rest {
+        Rest::of(self.configuration)
     }
 
     /// Lowest and highest model-normalised drive the limits allow, Q2.30.

@@ -302,8 +302,10 @@ impl Controller {
     }
 
     /// Prepares this controller to take over on `config` with the stacks at `stacks` (board
-    /// units; the running controller's [`Controller::stacks`]): the models relaxed at the
-    /// drive those voltages amount to (within the new limits), the compensator's state derived
+    /// units; the running controller's [`Controller::stacks`]): the models at rest at the
+    /// drive those voltages amount to (within the new limits; on their loop's ascending branch
+    /// for the single-ended stack, relaxed for the differential pair:
+    /// [`crate::models::Rest::of`] the drive's configuration), the compensator's state derived
     /// from the observer's, the setpoint where the observer puts the stage. This is the heavy
     /// part of a reload (thousands of instructions for a large P–I): it runs in the
     /// low-priority task, never in the tick. Returns the observer it relaxed, for the
@@ -315,11 +317,12 @@ impl Controller {
         // observer's where it inverts the observer's model, otherwise relaxed where the
         // observer puts the stage. With creep, its modes settled where the models are relaxed:
         // at the observer's output (which is also the setpoint), so it passes that through.
-        let (observer, y) = config.observer.prepare(config.creep, drive);
+        let rest = d.rest();
+        let (observer, y) = config.observer.prepare(config.creep, drive, rest);
         let compensator = config
             .compensator
-            .prepare(&observer, config.creep, drive, y);
-        let rest_setpoint = config.observer.relaxed_output(d.rest_drive());
+            .prepare(&observer, config.creep, drive, y, rest);
+        let rest_setpoint = config.observer.output_at_rest(d.rest_drive(), rest);
         // The observer runs below the tick ([`crate::services::observer`]): this one prepared
         // the compensator's state and is handed out for it, relaxed once.
         *self = Self {
@@ -792,6 +795,51 @@ mod tests {
 
     /// A mode switch and a reload each cost the tick O(1) work and move neither stack by
     /// more than the slew limit; the drive continues from where the stacks are.
+    /// Every model starts where the drive's configuration leaves the stage at rest: single
+    /// ended on its loop's ascending branch, the differential pair relaxed — the observer's
+    /// estimate (the boot setpoint) is the model's output there, and the two differ.
+    #[test]
+    fn the_models_start_where_the_drive_configuration_leaves_the_stage() {
+        use crate::control::drive::Configuration;
+        use crate::models::{Forward, Rest};
+        for model in [
+            representative_pi(16).unwrap(),
+            crate::config::settings::representative_gpi(16).unwrap(),
+            representative_duhem(),
+            crate::config::settings::representative_bouc_wen(),
+        ] {
+            let mut starts = [0; 2];
+            for (start, (configuration, rest)) in starts.iter_mut().zip([
+                (Configuration::Unidirectional, Rest::Ascending),
+                (Configuration::Differential, Rest::Relaxed),
+            ]) {
+                let mut s = Settings {
+                    compensator: Some(model.clone()),
+                    observer: Some(model.clone()),
+                    ..Settings::default()
+                };
+                s.drive.configuration = configuration;
+                let config = s.build(&hw()).unwrap();
+                let c = Controller::new(config);
+                let u = config.drive.drive_of(config.drive.safe_stacks().left);
+                let want = match config.observer {
+                    Observer::Pi(m) => Forward::at_rest(&m, u, rest).1,
+                    Observer::GeneralisedPi(m) => Forward::at_rest(&m, u, rest).1,
+                    Observer::Duhem(m) => Forward::at_rest(&m, u, rest).1,
+                    Observer::BoucWen(m) => Forward::at_rest(&m, u, rest).1,
+                    Observer::None => unreachable!("an observer was given"),
+                };
+                assert_eq!(c.setpoint(), want, "{configuration:?}, {model:?}");
+                assert_eq!(config.drive.rest(), rest);
+                *start = want;
+            }
+            assert!(
+                (starts[0] - starts[1]).abs() > 1 << 20,
+                "the two rests differ: {starts:?}, {model:?}"
+            );
+        }
+    }
+
     #[test]
     fn mode_switches_and_swaps_continue_from_the_present_drive() {
         let mut s = Settings {

@@ -57,7 +57,7 @@
 
 use crate::fixed_point::{
     clamp_full_scale, gain_from_f64, q60_to_signal_floor, saturate_i64, signal_from_f64,
-    GAIN_FRAC_BITS, SIGNAL_FRAC_BITS,
+    FULL_SCALE_MAX, GAIN_FRAC_BITS, SIGNAL_FRAC_BITS,
 };
 use crate::models::params::{
     BoucWenCoefficient, BoucWenParams, ParamError, BOUC_WEN_MAX_INVERSE_LOOP_GAIN,
@@ -65,7 +65,7 @@ use crate::models::params::{
 use crate::models::relaxation::{
     larger, magnitude, smaller, to_signal, RelaxationRate, Relaxed, SIGNAL_TO_F32, STEP_CAP,
 };
-use crate::models::{Forward, Hysteresis, Inverse};
+use crate::models::{Forward, Hysteresis, Inverse, Rest};
 use crate::scaling::Scaling;
 
 /// State of a Bouc–Wen model: the previous input and the hysteretic state, Q2.30 normalised.
@@ -135,6 +135,16 @@ impl BoucWen {
             u: clamp_full_scale(u),
             h: 0,
         }
+    }
+
+    /// The state of a stage at rest at input `u` (Q2.30 normalised): on its major loop's
+    /// ascending branch, as every model starts ([`crate::models::rest_history`]: relaxed at
+    /// the range's top, cycled over the range, taken to its bottom, then raised to `u`).
+    /// Off the tick.
+    pub fn state_at_rest(&self, u: i32) -> BoucWenState {
+        let mut state = self.relaxed(FULL_SCALE_MAX);
+        crate::models::rest_history(u, |v| self.advance(&mut state, v));
+        state
     }
 
     /// The output in `state`: `k·u + δ + h`, Q2.30 normalised, saturated.
@@ -376,9 +386,12 @@ impl Hysteresis for BoucWen {
 }
 
 impl Forward for BoucWen {
-    /// Relaxed (`h = 0`) at `u`.
-    fn relaxed(&self, u: i32) -> (BoucWenState, i32) {
-        let s = BoucWen::relaxed(self, u);
+    /// On the loop ([`BoucWen::state_at_rest`]) or relaxed (`h = 0`, [`BoucWen::relaxed`]).
+    fn at_rest(&self, u: i32, rest: Rest) -> (BoucWenState, i32) {
+        let s = match rest {
+            Rest::Ascending => self.state_at_rest(u),
+            Rest::Relaxed => BoucWen::relaxed(self, u),
+        };
         (s, self.output(&s))
     }
 }
@@ -397,9 +410,9 @@ impl Hysteresis for InverseBoucWen {
 }
 
 impl Inverse for InverseBoucWen {
-    /// Its own model relaxed (`h = 0`) at the present drive.
-    fn relaxed(&self, u: i32, _y: i32) -> BoucWenState {
-        BoucWen::relaxed(self.model(), u)
+    /// Its own model at rest at the present drive.
+    fn at_rest(&self, u: i32, _y: i32, rest: Rest) -> BoucWenState {
+        Forward::at_rest(self.model(), u, rest).0
     }
 
     /// The observer's state, where it runs this compensator's model.
@@ -430,6 +443,56 @@ mod tests {
             gamma: 0.008,
             psi: 0.006,
         }
+    }
+
+    /// At rest is on the major loop's ascending branch, as the board prepares it: one more
+    /// cycle over the range changes nothing, the state lies where the major loop's rising
+    /// branch passes `u` (not the falling one's), and both the observer and the compensator
+    /// start there; the Duhem special case rests where its Duhem does.
+    #[test]
+    fn at_rest_is_on_the_major_loop_rising() {
+        use crate::fixed_point::SIGNAL_ONE;
+        let s = scaling();
+        let m = BoucWen::new(&asymmetric(), &s).unwrap();
+        let bottom = m.state_at_rest(-SIGNAL_ONE);
+        let mut again = bottom;
+        m.advance(&mut again, FULL_SCALE_MAX);
+        m.advance(&mut again, -SIGNAL_ONE);
+        assert!(
+            (again.h - bottom.h).abs() <= 4,
+            "{again:?} against {bottom:?}"
+        );
+        // Rising to mid-range from the bottom, against falling to it from the top.
+        let rising = m.state_at_rest(0);
+        let mut falling = rising;
+        m.advance(&mut falling, FULL_SCALE_MAX);
+        m.advance(&mut falling, 0);
+        // (A > 0: rising, h heads for +A/c; falling, for −A/c.)
+        assert!(
+            rising.h > q(0.01) && falling.h < -q(0.01),
+            "{rising:?} {falling:?}"
+        );
+        assert_eq!(Forward::at_rest(&m, 0, Rest::Ascending).0, rising);
+        let inverse = InverseBoucWen::new(&asymmetric(), &s).unwrap();
+        assert_eq!(Inverse::at_rest(&inverse, 0, 0, Rest::Ascending), rising);
+        // The differential pair's rest is relaxed, for the observer and the compensator.
+        assert_eq!(Forward::at_rest(&m, 0, Rest::Relaxed).0, m.relaxed(0));
+        assert_eq!(
+            Inverse::at_rest(&inverse, 0, 0, Rest::Relaxed),
+            m.relaxed(0)
+        );
+        // The relaxed state (h = 0) is not on the loop: the rest differs from it.
+        assert!(rising.h.abs() > q(0.01));
+        let d = DuhemParams {
+            alpha: 0.02,
+            beta: 0.5,
+            gamma: 0.35,
+            offset: 0.0,
+        };
+        let duhem = Duhem::new(&d, &s).unwrap();
+        let bw = BoucWen::new(&BoucWenParams::from_duhem(&d), &s).unwrap();
+        let (a, b) = (duhem.state_at_rest(q(0.3)), bw.state_at_rest(q(0.3)));
+        assert!((a.y - bw.output(&b)).abs() < 1 << 12, "{a:?} {b:?}");
     }
 
     /// The Duhem special case runs the same discrete model: the outputs agree to a few LSB

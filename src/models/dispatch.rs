@@ -16,7 +16,7 @@ use crate::models::creep::{Creep, InverseCreep};
 use crate::models::duhem::{Duhem, InverseDuhem};
 use crate::models::generalised_pi::{GeneralisedPi, InverseGeneralisedPi};
 use crate::models::prandtl_ishlinskii::{InversePrandtlIshlinskii, PrandtlIshlinskii};
-use crate::models::{Forward, Hysteresis, Inverse, Running};
+use crate::models::{Forward, Hysteresis, Inverse, Rest, Running};
 
 /// The feedforward compensator: desired displacement → drive.
 // The variants differ in size by design: there is no heap on the board, and the configuration
@@ -149,32 +149,37 @@ impl ObserverRun {
 
 impl Compensator {
     /// What the tick runs of it, after `creep` (not applied without a model), its state from
-    /// `observer`'s (prepared first) where that runs the model this inverts, else relaxed at
-    /// drive `u` with the stage at `y`; the creep's modes settled at `y` (where the models
-    /// are relaxed, so it passes `y` through). Off the tick.
+    /// `observer`'s (prepared first) where that runs the model this inverts, else at rest
+    /// (`rest`) at drive `u` with the stage at `y`; the creep's modes settled at `y` (where
+    /// the models rest, so it passes `y` through). Off the tick.
     pub fn prepare(
         &self,
         observer: &ObserverRun,
         creep: Option<Creep>,
         u: i32,
         y: i32,
+        rest: Rest,
     ) -> CompensatorRun {
         use ForwardRun as F;
         use InverseRun as I;
         let model = match (self, &observer.model) {
             (Self::None, _) => return CompensatorRun::NONE,
-            (Self::InversePi(m), F::Pi(o)) => I::InversePi(inverse(m, Some(o), u, y)),
-            (Self::InversePi(m), _) => I::InversePi(inverse(m, None, u, y)),
-            (Self::InverseDuhem(m), F::Duhem(o)) => I::InverseDuhem(inverse(m, Some(o), u, y)),
-            (Self::InverseDuhem(m), _) => I::InverseDuhem(inverse(m, None, u, y)),
+            (Self::InversePi(m), F::Pi(o)) => I::InversePi(inverse(m, Some(o), u, y, rest)),
+            (Self::InversePi(m), _) => I::InversePi(inverse(m, None, u, y, rest)),
+            (Self::InverseDuhem(m), F::Duhem(o)) => {
+                I::InverseDuhem(inverse(m, Some(o), u, y, rest))
+            }
+            (Self::InverseDuhem(m), _) => I::InverseDuhem(inverse(m, None, u, y, rest)),
             (Self::InverseGeneralisedPi(m), F::GeneralisedPi(o)) => {
-                I::InverseGeneralisedPi(inverse(m, Some(o), u, y))
+                I::InverseGeneralisedPi(inverse(m, Some(o), u, y, rest))
             }
-            (Self::InverseGeneralisedPi(m), _) => I::InverseGeneralisedPi(inverse(m, None, u, y)),
+            (Self::InverseGeneralisedPi(m), _) => {
+                I::InverseGeneralisedPi(inverse(m, None, u, y, rest))
+            }
             (Self::InverseBoucWen(m), F::BoucWen(o)) => {
-                I::InverseBoucWen(inverse(m, Some(o), u, y))
+                I::InverseBoucWen(inverse(m, Some(o), u, y, rest))
             }
-            (Self::InverseBoucWen(m), _) => I::InverseBoucWen(inverse(m, None, u, y)),
+            (Self::InverseBoucWen(m), _) => I::InverseBoucWen(inverse(m, None, u, y, rest)),
         };
         CompensatorRun {
             creep: creep.map(|c| Running {
@@ -199,47 +204,48 @@ impl Compensator {
 }
 
 /// `m` with its state: matched to the observer's where that runs the model `m` inverts,
-/// else relaxed at drive `u` with the stage at `y`.
+/// else at rest (`rest`) at drive `u` with the stage at `y`.
 fn inverse<M: Inverse + Copy>(
     m: &M,
     observer: Option<&Running<M::Forward>>,
     u: i32,
     y: i32,
+    rest: Rest,
 ) -> Running<M> {
     let state = observer
         .and_then(|o| m.matching(&o.model, &o.state))
-        .unwrap_or_else(|| Inverse::relaxed(m, u, y));
+        .unwrap_or_else(|| Inverse::at_rest(m, u, y, rest));
     Running { model: *m, state }
 }
 
-/// `m` relaxed at drive `u`, and its output there.
-fn forward<M: Forward + Copy>(m: &M, u: i32) -> (Running<M>, i32) {
-    let (state, y) = Forward::relaxed(m, u);
+/// `m` at rest (`rest`) at drive `u`, and its output there.
+fn forward<M: Forward + Copy>(m: &M, u: i32, rest: Rest) -> (Running<M>, i32) {
+    let (state, y) = Forward::at_rest(m, u, rest);
     (Running { model: *m, state }, y)
 }
 
 impl Observer {
-    /// What the tick runs of it, followed by `creep` (not applied without a model), relaxed at
-    /// drive `u`, the creep's modes settled at the model's output (so it passes it through);
-    /// and its estimate there (`u` without a model). Off the tick.
-    pub fn prepare(&self, creep: Option<Creep>, u: i32) -> (ObserverRun, i32) {
+    /// What the tick runs of it, followed by `creep` (not applied without a model), at rest
+    /// (`rest`) at drive `u`, the creep's modes settled at the model's output (so it passes
+    /// it through); and its estimate there (`u` without a model). Off the tick.
+    pub fn prepare(&self, creep: Option<Creep>, u: i32, rest: Rest) -> (ObserverRun, i32) {
         use ForwardRun as F;
         let (model, y) = match self {
             Self::None => return (ObserverRun::NONE, u),
             Self::Pi(m) => {
-                let (r, y) = forward(m, u);
+                let (r, y) = forward(m, u, rest);
                 (F::Pi(r), y)
             }
             Self::Duhem(m) => {
-                let (r, y) = forward(m, u);
+                let (r, y) = forward(m, u, rest);
                 (F::Duhem(r), y)
             }
             Self::GeneralisedPi(m) => {
-                let (r, y) = forward(m, u);
+                let (r, y) = forward(m, u, rest);
                 (F::GeneralisedPi(r), y)
             }
             Self::BoucWen(m) => {
-                let (r, y) = forward(m, u);
+                let (r, y) = forward(m, u, rest);
                 (F::BoucWen(r), y)
             }
         };
@@ -250,14 +256,15 @@ impl Observer {
         (ObserverRun { model, creep }, y)
     }
 
-    /// The estimate after the drive has rested at `u` (`u` without a model). Off the tick.
-    pub fn relaxed_output(&self, u: i32) -> i32 {
+    /// The estimate after the drive has rested at `u` with the history `rest` (`u` without a
+    /// model). Off the tick.
+    pub fn output_at_rest(&self, u: i32, rest: Rest) -> i32 {
         match self {
             Self::None => u,
-            Self::Pi(m) => Forward::relaxed(m, u).1,
-            Self::Duhem(m) => Forward::relaxed(m, u).1,
-            Self::GeneralisedPi(m) => Forward::relaxed(m, u).1,
-            Self::BoucWen(m) => Forward::relaxed(m, u).1,
+            Self::Pi(m) => Forward::at_rest(m, u, rest).1,
+            Self::Duhem(m) => Forward::at_rest(m, u, rest).1,
+            Self::GeneralisedPi(m) => Forward::at_rest(m, u, rest).1,
+            Self::BoucWen(m) => Forward::at_rest(m, u, rest).1,
         }
     }
 
@@ -331,8 +338,11 @@ mod tests {
             panic!("the settings build a P–I pair with creep");
         };
         let u0 = crate::fixed_point::signal_from_f64(0.25);
-        let (mut observer, y0) = config.observer.prepare(config.creep, u0);
-        let mut compensator = config.compensator.prepare(&observer, config.creep, u0, y0);
+        let (mut observer, y0) = config.observer.prepare(config.creep, u0, Rest::Ascending);
+        let mut compensator =
+            config
+                .compensator
+                .prepare(&observer, config.creep, u0, y0, Rest::Ascending);
         // By hand: the observer relaxed at u0, the compensator's operators from the
         // observer's, both creeps settled at the observer's output.
         let mut fs = forward.state_at_rest(u0);
@@ -363,29 +373,33 @@ mod tests {
     fn without_creep_a_model_runs_alone_and_without_a_model_creep_does_not_run() {
         let config = config();
         let u0 = 1 << 28;
-        let (mut run, _) = config.observer.prepare(None, u0);
+        let (mut run, _) = config.observer.prepare(None, u0, Rest::Ascending);
         assert!(
             matches!(run.model, ForwardRun::Pi(_)) && run.creep.is_none(),
             "a P–I observer, alone: {run:?}"
         );
         let y = run.step(u0);
-        let alone = config.compensator.prepare(&run, None, u0, y);
+        let alone = config
+            .compensator
+            .prepare(&run, None, u0, y, Rest::Ascending);
         assert!(
             matches!(alone.model, InverseRun::InversePi(_)) && alone.creep.is_none(),
             "without creep the inverse runs alone: {alone:?}"
         );
         assert!(!alone.is_bypass());
-        let (run, y) = Observer::None.prepare(config.creep, u0);
+        let (run, y) = Observer::None.prepare(config.creep, u0, Rest::Ascending);
         assert_eq!((run, y), (ObserverRun::NONE, u0));
         assert_eq!(Observer::None.cycles(), 0);
-        let mut none = Compensator::None.prepare(&run, config.creep, u0, y);
+        let mut none = Compensator::None.prepare(&run, config.creep, u0, y, Rest::Ascending);
         assert_eq!(none, CompensatorRun::NONE, "no creep without a model");
         assert!(none.is_bypass());
         assert_eq!(none.step(12_345), 12_345);
         // With creep, both wrap it.
-        let (run, y) = config.observer.prepare(config.creep, u0);
+        let (run, y) = config.observer.prepare(config.creep, u0, Rest::Ascending);
         assert!(matches!(run.model, ForwardRun::Pi(_)) && run.creep.is_some());
-        let c = config.compensator.prepare(&run, config.creep, u0, y);
+        let c = config
+            .compensator
+            .prepare(&run, config.creep, u0, y, Rest::Ascending);
         assert!(matches!(c.model, InverseRun::InversePi(_)) && c.creep.is_some());
     }
 }

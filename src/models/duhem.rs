@@ -34,7 +34,7 @@ use crate::fixed_point::{
 };
 use crate::models::params::{DuhemParams, ParamError};
 use crate::models::relaxation::{RelaxationRate, SIGNAL_TO_F32, STEP_CAP};
-use crate::models::{Forward, Hysteresis, Inverse};
+use crate::models::{Forward, Hysteresis, Inverse, Rest};
 use crate::scaling::Scaling;
 
 /// Fraction of `min(β, γ)` below which the inverse's slope is floored.
@@ -101,6 +101,19 @@ impl Duhem {
             u: clamp_full_scale(u),
             y,
         }
+    }
+
+    /// The state of a stage at rest at input `u` (Q2.30 normalised): on its major loop's
+    /// ascending branch, as every model starts ([`crate::models::rest_history`]: on the
+    /// anhysteretic curve at the range's top, cycled over the range, taken to its bottom,
+    /// then raised to `u`). Off the tick.
+    pub fn state_at_rest(&self, u: i32) -> DuhemState {
+        let top = crate::fixed_point::FULL_SCALE_MAX;
+        let mut state = self.state_at(top, self.anhysteretic(top));
+        crate::models::rest_history(u, |v| {
+            self.step(&mut state, v);
+        });
+        state
     }
 
     /// The anhysteretic curve at input `u` (Q2.30): `β u + δ`, where the model settles when the
@@ -247,10 +260,14 @@ impl Hysteresis for Duhem {
 }
 
 impl Forward for Duhem {
-    /// On the anhysteretic curve, where the model settles after a long excursion.
-    fn relaxed(&self, u: i32) -> (DuhemState, i32) {
-        let y = self.anhysteretic(u);
-        (self.state_at(u, y), y)
+    /// On the loop ([`Duhem::state_at_rest`]) or on the anhysteretic curve
+    /// ([`Duhem::anhysteretic`]).
+    fn at_rest(&self, u: i32, rest: Rest) -> (DuhemState, i32) {
+        let s = match rest {
+            Rest::Ascending => self.state_at_rest(u),
+            Rest::Relaxed => self.state_at(u, self.anhysteretic(u)),
+        };
+        (s, s.y)
     }
 }
 
@@ -268,8 +285,8 @@ impl Hysteresis for InverseDuhem {
 }
 
 impl Inverse for InverseDuhem {
-    fn relaxed(&self, u: i32, _y: i32) -> DuhemState {
-        Forward::relaxed(self.model(), u).0
+    fn at_rest(&self, u: i32, _y: i32, rest: Rest) -> DuhemState {
+        Forward::at_rest(self.model(), u, rest).0
     }
 
     /// The observer's state, where it runs this compensator's model.

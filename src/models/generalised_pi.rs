@@ -51,7 +51,7 @@ use crate::models::params::{
 };
 use crate::models::prandtl_ishlinskii::bank_cycles;
 use crate::models::prandtl_ishlinskii::{InversePrandtlIshlinskii, PiState, PrandtlIshlinskii};
-use crate::models::{Forward, Hysteresis, Inverse};
+use crate::models::{Forward, Hysteresis, Inverse, Rest};
 use crate::scaling::Scaling;
 use heapless::Vec;
 
@@ -565,8 +565,9 @@ impl Hysteresis for GeneralisedPi {
 }
 
 impl Forward for GeneralisedPi {
-    fn relaxed(&self, u: i32) -> (PiState, i32) {
-        let mut s = self.state_at_rest(u);
+    fn at_rest(&self, u: i32, rest: Rest) -> (PiState, i32) {
+        // The map is static: only the P–I part has memory.
+        let mut s = Forward::at_rest(&self.pi, u, rest).0;
         let y = GeneralisedPi::step(self, &mut s, u);
         (s, y)
     }
@@ -586,8 +587,9 @@ impl Hysteresis for InverseGeneralisedPi {
 }
 
 impl Inverse for InverseGeneralisedPi {
-    fn relaxed(&self, _u: i32, y: i32) -> PiState {
-        self.state_at_rest(y)
+    /// As the P–I's, at the map's output of `y`.
+    fn at_rest(&self, u: i32, y: i32, rest: Rest) -> PiState {
+        Inverse::at_rest(&self.pi, u, self.map.apply(clamp_full_scale(y)), rest)
     }
 
     /// As for the P–I: the map is static, so only the P–I part's operators carry over.

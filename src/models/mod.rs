@@ -44,6 +44,35 @@ pub mod relaxation;
 
 pub use dispatch::{Compensator, CompensatorRun, ForwardRun, InverseRun, Observer, ObserverRun};
 
+/// Full strokes down and up over the input range by which a Duhem-class model (Duhem,
+/// Bouc–Wen) is brought to rest on its major loop ([`rest_history`]).
+pub const REST_CYCLES: usize = 256;
+
+/// The drive history of a stage at rest at `u` (Q2.30 normalised), for the models whose memory
+/// fades rather than wipes (Duhem, Bouc–Wen): `step` is called with each turning point of
+/// [`REST_CYCLES`] full cycles over the input range, from its top (where the caller starts
+/// the model relaxed), then the range's bottom and `u`. A stage in use has been cycled over
+/// its range and last left at 0 V at its bottom (the P–I models' start,
+/// [`prandtl_ishlinskii`]'s `state_at_rest`, "top of the range → bottom → u"); a model whose
+/// state relaxes toward its loop by a factor `e^{−c·|Δu|}` reaches the loop only after
+/// several strokes, so it is cycled until the start is forgotten: at the slowest relaxation
+/// identification fits (a Duhem's `α` of 0.01 per normalised unit, strokes of 2) 256 cycles
+/// leave `e^{−10}` of it. Off the tick (a reload's preparation, about 500 model steps): every
+/// step is one model step of a whole stroke, exact in the input, the same in the `f64`
+/// references.
+pub fn rest_history(u: i32, mut step: impl FnMut(i32)) {
+    let (bottom, top) = (
+        -crate::fixed_point::SIGNAL_ONE,
+        crate::fixed_point::FULL_SCALE_MAX,
+    );
+    for _ in 0..REST_CYCLES {
+        step(bottom);
+        step(top);
+    }
+    step(bottom);
+    step(u);
+}
+
 /// A model in fixed point, in idsp's shape: the configuration is `self` (immutable on the
 /// tick), the state apart, one step per tick.
 pub trait Hysteresis {
@@ -60,17 +89,46 @@ pub trait Hysteresis {
     fn cycles(&self) -> u32;
 }
 
+/// Where a model's memory stands when the drive rests: what the stage has behind it, which
+/// the drive's configuration decides ([`Rest::of`]). Every model starts by it, on the board
+/// ([`crate::control::Controller::prepare`]) and in the references that replay the board.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Rest {
+    /// On the major loop's ascending branch: the stack was cycled over its range and last
+    /// raised from its bottom to the drive ([`rest_history`]; the P–I's "top → bottom → u").
+    /// A single-ended stack, raised from its lowest voltage to where it rests.
+    Ascending,
+    /// Relaxed, no hysteresis stored (Duhem and Bouc–Wen: `h = 0`, on the anhysteretic
+    /// curve; the P–I: every operator at the input, the virgin state). A push-pull pair
+    /// brought to its bias: both stacks rose together, and in the model's coordinate (the
+    /// left stack's voltage, `u_r = 2ū − u_l`) the right stack's rise is a fall, so the two
+    /// halves of the pair's hysteresis cancel.
+    Relaxed,
+}
+
+impl Rest {
+    /// The rest of a stage driven in `configuration`: [`Rest::Relaxed`] for the differential
+    /// pair, [`Rest::Ascending`] for the unidirectional (single-ended) stack.
+    pub const fn of(configuration: crate::control::drive::Configuration) -> Self {
+        match configuration {
+            crate::control::drive::Configuration::Differential => Self::Relaxed,
+            crate::control::drive::Configuration::Unidirectional => Self::Ascending,
+        }
+    }
+}
+
 /// A forward model (the observer: drive in, displacement out).
 pub trait Forward: Hysteresis {
-    /// The state after the drive has rested at `u` (Q2.30), and the output there.
-    fn relaxed(&self, u: i32) -> (Self::State, i32);
+    /// The state after the drive has rested at `u` (Q2.30) with the history `rest`, and the
+    /// output there.
+    fn at_rest(&self, u: i32, rest: Rest) -> (Self::State, i32);
 }
 
 /// An inverse model (the compensator: desired displacement in, drive out).
 pub trait Inverse: Hysteresis {
-    /// The state after the drive has rested at `u` with the stage at `y` (both Q2.30; `y` is
-    /// where the observer puts the stage, or `u` without one).
-    fn relaxed(&self, u: i32, y: i32) -> Self::State;
+    /// The state after the drive has rested at `u` with the history `rest`, the stage at `y`
+    /// (both Q2.30; `y` is where the observer puts the stage, or `u` without one).
+    fn at_rest(&self, u: i32, y: i32, rest: Rest) -> Self::State;
 
     /// The forward model this inverts (the observer that can hand it its history).
     type Forward: Hysteresis;

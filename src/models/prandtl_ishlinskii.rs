@@ -42,7 +42,7 @@ use crate::fixed_point::{
 };
 use crate::models::params::{CanonicalPi, ParamError, PiParams, MAX_CANONICAL_OPERATORS};
 use crate::models::play_operator::{lanes, pack, play, play2, smlald, OFFSET_BINARY};
-use crate::models::{Forward, Hysteresis, Inverse};
+use crate::models::{Forward, Hysteresis, Inverse, Rest};
 use crate::scaling::Scaling;
 
 /// Operator pairs a bank holds: [`MAX_CANONICAL_OPERATORS`] two to a word, rounded up.
@@ -273,9 +273,9 @@ impl PlayOperatorBank {
         self.state_from(Self::major_loop_bottom(&r[..self.len]), x)
     }
 
-    /// State with every operator at `x` (Q1.15; the virgin state, demagnetised at `x`).
-    #[cfg(test)]
-    fn state_at(&self, x: i32) -> PiState {
+    /// State with every operator at `x` (Q1.15; the virgin state, demagnetised at `x`:
+    /// [`crate::models::Rest::Relaxed`]).
+    pub fn state_at(&self, x: i32) -> PiState {
         let x = x.clamp(i16::MIN as i32, i16::MAX as i32);
         PiState {
             pairs: [pack(x, x) ^ OFFSET_BINARY; MAX_PAIRS],
@@ -508,8 +508,11 @@ impl Hysteresis for PrandtlIshlinskii {
 }
 
 impl Forward for PrandtlIshlinskii {
-    fn relaxed(&self, u: i32) -> (PiState, i32) {
-        let mut s = self.state_at_rest(u);
+    fn at_rest(&self, u: i32, rest: Rest) -> (PiState, i32) {
+        let mut s = match rest {
+            Rest::Ascending => self.state_at_rest(u),
+            Rest::Relaxed => self.bank.state_at(signal_to_q15(u)),
+        };
         let y = PrandtlIshlinskii::step(self, &mut s, u);
         (s, y)
     }
@@ -529,8 +532,14 @@ impl Hysteresis for InversePrandtlIshlinskii {
 }
 
 impl Inverse for InversePrandtlIshlinskii {
-    fn relaxed(&self, _u: i32, y: i32) -> PiState {
-        self.state_at_rest(y)
+    /// On the loop ([`InversePrandtlIshlinskii::state_at_rest`]), or every operator at `y`:
+    /// the inverse of the forward's virgin state (its operators `p'_i = S_i p_i + Σ_{j>i}
+    /// w_j p_j` all equal the output when every `p_j` equals the input).
+    fn at_rest(&self, _u: i32, y: i32, rest: Rest) -> PiState {
+        match rest {
+            Rest::Ascending => self.state_at_rest(y),
+            Rest::Relaxed => self.bank.state_at(signal_to_q15(y)),
+        }
     }
 
     /// The operators from the observer's, where the observer is the model this inverts.

@@ -85,7 +85,9 @@ impl ObserverBelow {
             return None;
         }
         let drive = config.drive.drive_of(stacks.left);
-        let (run, output) = config.observer.prepare(config.creep, drive);
+        let (run, output) = config
+            .observer
+            .prepare(config.creep, drive, config.drive.rest());
         Self::from_relaxed(config, RelaxedObserver { run, output })
     }
 

@@ -106,7 +106,8 @@ pub struct StackHysteresis {
 
 impl StackHysteresis {
     /// The hysteresis `config` over the drive range `range` (input and output both in volts),
-    /// at rest at drive `u0` (Duhem: on its anhysteretic curve; P–I: operators relaxed at `u0`).
+    /// at rest at drive `u0` (Duhem: on its loop's ascending branch, as the models start,
+    /// `reference::Duhem::at_rest`; P–I: operators relaxed at `u0`).
     pub fn new(
         config: &HysteresisConfig,
         range: &Scaling,
@@ -118,8 +119,7 @@ impl StackHysteresis {
         let operator = match &config.model {
             HysteresisModel::None => Operator::None,
             HysteresisModel::Duhem(p) => Operator::Duhem(
-                reference::Duhem::new(p, range, u0, p.beta * u0 + p.offset)
-                    .map_err(HysteresisError::Params)?,
+                reference::Duhem::at_rest(p, range, u0).map_err(HysteresisError::Params)?,
             ),
             HysteresisModel::PrandtlIshlinskii(p) => Operator::PrandtlIshlinskii(
                 reference::PrandtlIshlinskii::new(p, range, u0).map_err(HysteresisError::Params)?,

@@ -52,8 +52,8 @@ pub struct CalibrateOptions {
 }
 
 impl Default for CalibrateOptions {
-    /// The excitation [`Excitation::DEFAULT`] at 0.97 of the range (2 s at 10 Hz: 6 full
-    /// cycles, 14 decaying to 15 %), streamed and recorded at up to 10 kHz; the model picked
+    /// The excitation [`Excitation::DEFAULT`] at 0.97 of the range (2 s at 10 Hz: 4 full
+    /// cycles, 6 decaying to 30 %, 5 of nested loops, 5 of multisine), streamed and recorded at up to 10 kHz; the model picked
     /// by `auto`, refused above 5 % held-out max error, stored to boot in bypass;
     /// verification streamed at 10 000 setpoints/s on a 50 kHz board.
     fn default() -> Self {

@@ -76,6 +76,7 @@ use twinstack::control::drive::{Configuration, DriveSettings, SafeState};
 use twinstack::control::feedback::{DRIFT_FILTER_SHIFT, SENSOR_DELAY_TICKS};
 use twinstack::control::TickFlags;
 use twinstack::fixed_point::signal_to_f64;
+use twinstack::models::Rest;
 use twinstack::Scaling;
 use twinstack_golden::{Recipe, VectorSet};
 
@@ -289,72 +290,78 @@ fn saturate(x: f64) -> f64 {
     x.clamp(-2.0, 2.0)
 }
 
+/// Where the board's models start: by the drive's configuration, as `Controller::prepare`
+/// starts them ([`Rest::of`]).
+fn rest(recipe: &Recipe) -> Rest {
+    Rest::of(recipe.settings.drive.configuration)
+}
+
 /// The reference observer at rest at `u0` volts and its output there (output units), or
 /// `None` without an observer.
 fn observer_at_rest(recipe: &Recipe, u0: f64) -> anyhow::Result<(Estimator, Option<f64>)> {
     let s = &recipe.settings.ranges;
+    let rest = rest(recipe);
     Ok(match &recipe.settings.observer {
         None => (Estimator::None, None),
         Some(Model::PrandtlIshlinskii(p)) => {
-            let m = reference::PrandtlIshlinskii::new(p, s, u0)?;
+            let m = reference::PrandtlIshlinskii::with_rest(p, s, u0, rest)?;
             let y = m.clone().step(u0);
             (Estimator::Pi(Box::new(m)), Some(y))
         }
         Some(Model::Duhem(d)) => {
-            let y = d.beta * u0 + d.offset;
-            (
-                Estimator::Duhem(reference::Duhem::new(d, s, u0, y)?),
-                Some(y),
-            )
+            let m = reference::Duhem::with_rest(d, s, u0, rest)?;
+            let y = m.y;
+            (Estimator::Duhem(m), Some(y))
         }
         Some(Model::GeneralisedPi(p)) => {
-            let m = reference::GeneralisedPi::new(p, s, u0)?;
+            let m = reference::GeneralisedPi::with_rest(p, s, u0, rest)?;
             let y = m.clone().step(u0);
             (Estimator::Gpi(Box::new(m)), Some(y))
         }
         Some(Model::BoucWen(p)) => {
-            let m = reference::BoucWen::new(p, s, u0)?;
+            let m = reference::BoucWen::with_rest(p, s, u0, rest)?;
             let y = m.output();
             (Estimator::BoucWen(m), Some(y))
         }
     })
 }
 
-/// The reference compensator relaxed for the start: at desired output `y0` (normalised) for
-/// an inverse P–I, at `(u0, β u0 + δ)` of its own model for an inverse Duhem.
+/// The reference compensator at rest for the start, as `Controller::prepare` starts it
+/// without an observer of its model: an inverse P–I at the desired output `y0`
+/// (normalised), an inverse Duhem or Bouc–Wen its own model at the present drive `u0`.
 fn compensator_at_rest(recipe: &Recipe, u0: f64, y0: f64) -> anyhow::Result<Feedforward> {
     let s = &recipe.settings.ranges;
+    let rest = rest(recipe);
     Ok(match &recipe.settings.compensator {
         None => Feedforward::None,
         Some(Model::PrandtlIshlinskii(p)) => {
-            // Relaxed at the desired output the start gives: the forward model at rest at u
+            // At rest at the desired output the start gives: the forward model at rest at u
             // outputs c + Σw·u, so u = (y − c) / Σw.
             let c = p.canonical()?;
             let total: f64 = c.weights.iter().sum();
             let u = (s.norm_to_output(y0) - c.offset) / total;
-            Feedforward::InversePi(Box::new(reference::InversePrandtlIshlinskii::new(p, s, u)?))
+            Feedforward::InversePi(Box::new(reference::InversePrandtlIshlinskii::with_rest(
+                p, s, u, rest,
+            )?))
         }
-        Some(Model::Duhem(m)) => Feedforward::InverseDuhem(reference::InverseDuhem::new(
-            m,
-            s,
-            u0,
-            m.beta * u0 + m.offset,
-        )?),
+        Some(Model::Duhem(m)) => {
+            Feedforward::InverseDuhem(reference::InverseDuhem::with_rest(m, s, u0, rest)?)
+        }
         Some(Model::GeneralisedPi(p)) => {
-            // As the P–I, with the P–I part relaxed at z = S⁻¹[y].
+            // As the P–I, with the P–I part at rest at z = S⁻¹[y].
             let c = p.pi.canonical()?;
             let total: f64 = c.weights.iter().sum();
             let z =
                 reference::InverseGeneralisedPi::new(p, s, 0.0)?.map_inverse(s.norm_to_output(y0));
-            Feedforward::InverseGpi(Box::new(reference::InverseGeneralisedPi::new(
+            Feedforward::InverseGpi(Box::new(reference::InverseGeneralisedPi::with_rest(
                 p,
                 s,
                 (z - c.offset) / total,
+                rest,
             )?))
         }
-        // Relaxed (h = 0) at the present drive, as `Controller::prepare` relaxes it.
         Some(Model::BoucWen(m)) => {
-            Feedforward::InverseBoucWen(reference::InverseBoucWen::new(m, s, u0)?)
+            Feedforward::InverseBoucWen(reference::InverseBoucWen::with_rest(m, s, u0, rest)?)
         }
     })
 }

@@ -21,7 +21,7 @@
 //! | `ipi16-pi-creep-closed` | inverse P–I, N = 16, + inverse creep (4 modes) | P–I, N = 16, + creep | drift limit 2 % | PI | closed loop | differential, bias | 16-bit, 16-bit |
 //! | `iduhem-pi-open` | inverse Duhem | P–I, N = 16 | none | none | open loop | unidirectional, bias | 16-bit, none |
 //! | `igpi16-gpi-closed` | inverse generalised P–I, N = 16, 6 dead zones | the same | drift limit 2 % | PI | closed loop | differential, bias | 16-bit, 16-bit |
-//! | `ibw-bw-closed` | inverse Bouc–Wen | Bouc–Wen | drift limit 2 % | PI | closed loop | differential, bias | 16-bit, 16-bit |
+//! | `ibw-bw-closed` | inverse Bouc–Wen | Bouc–Wen | drift limit 2 % | PI | closed loop | unidirectional, bias | 16-bit, 16-bit |
 //! | `ipi16-pi-creep-turns-closed` | inverse P–I, N = 16, + inverse creep (4 modes taking turns) | P–I, N = 16, + creep | drift limit 2 % | PI | closed loop | differential, bias | 16-bit, 16-bit |
 //!
 //! The generalised P–I's and the Bouc–Wen's files widen their output ranges a little beyond
@@ -321,8 +321,13 @@ pub fn definitions(dir: &Path) -> anyhow::Result<Vec<SetDefinition>> {
             ..closed("iduhem-pi-open", &duhem, &pi16, &t_pi)
         }),
         def(closed("igpi16-gpi-closed", &gpi16, &gpi16, &t_duhem)),
-        // The observer (Bouc–Wen) and the stage (P–I) differ: the drift check flags.
-        def(closed("ibw-bw-closed", &bouc_wen, &bouc_wen, &t_pi)),
+        // The observer (Bouc–Wen) and the stage (P–I) differ: the drift check flags. Single
+        // ended: the models start on their loop's ascending branch (`Rest::Ascending`), where
+        // the differential sets start them relaxed.
+        def(Set {
+            drive: drive(Unidirectional, Bias),
+            ..closed("ibw-bw-closed", &bouc_wen, &bouc_wen, &t_pi)
+        }),
         // The inverse P–I N = 16 set with creep as identification picks its modes (10 ms …
         // 10 s): they take turns, one a tick.
         def(Set {

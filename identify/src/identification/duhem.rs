@@ -21,8 +21,8 @@
 //!    (so the parameters stay positive; `α` no slower than the output-error grid's, below
 //!    which only `αβ` matters and the search could run off to `α → 0`, `β → ∞`), on the
 //!    rows from `steady_from` on: the model's
-//!    start (on the anhysteretic curve) is an assumption, and fitting the transient out of it
-//!    (the initial loading curve) trades away accuracy on the loops that follow. The refined
+//!    start (at rest on its loop: [`reference::Duhem::at_rest`]) is an assumption, and fitting
+//!    the transient out of it trades away accuracy on the loops that follow. The refined
 //!    model is kept only if it is better on those rows.
 
 use super::least_squares::{LeastSquaresError, NormalEquations};
@@ -61,11 +61,11 @@ pub struct DuhemFit {
     pub simulated: Vec<f64>,
 }
 
-/// Simulates `p` over `u` from rest: `y0 = β u0 + δ` (on the anhysteretic curve), input
-/// clamped to `scaling`'s range — the same start `predict` uses.
+/// Simulates `p` over `u` from rest at its first value (on the major loop's ascending
+/// branch: [`reference::Duhem::at_rest`]), input clamped to `scaling`'s range — the same start
+/// `predict` uses.
 pub fn simulate(p: &DuhemParams, scaling: &Scaling, u: &[f64]) -> Option<Vec<f64>> {
-    let u0 = u.first()?.clamp(scaling.input_min, scaling.input_max);
-    let mut m = reference::Duhem::new(p, scaling, u0, p.beta * u0 + p.offset).ok()?;
+    let mut m = reference::Duhem::at_rest(p, scaling, *u.first()?).ok()?;
     Some(u.iter().map(|&v| m.step(v)).collect())
 }
 
@@ -93,9 +93,10 @@ pub const ALPHA_GRID_POINTS: usize = 21;
 /// For a given `α`, the Duhem model simulated as [`simulate`] runs it is linear in
 /// `(β, δ, γ)`: over each sample's step, with `q_k = 1 − e^{−α|Δu_k|}`, `E_k = 1 − q_k` and
 /// `φ_k = q_k/α` set by `α` and the drive alone,
-/// `y_k = E_k y_{k−1} + β (u_k − E_k u_{k−1} − s_k φ_k) + δ q_k + γ s_k φ_k`, and the start
-/// `y_0 = β u_0 + δ`. So `y = β Y_β + δ + γ Y_γ`, each `Y` the same recursion driven by `u`
-/// (from `u_0`) or by `s φ` (from 0), the `δ` term staying 1. Returns the normal equations
+/// `y_k = E_k y_{k−1} + β (u_k − E_k u_{k−1} − s_k φ_k) + δ q_k + γ s_k φ_k`, from the start
+/// at rest (on the anhysteretic curve at the range's top, `β u_max + δ`, then the strokes of
+/// [`reference::rest_history`] to `u_0`). So `y = β Y_β + δ + γ Y_γ`, each `Y` the same
+/// recursion driven by `u` (from `u_max`) or by `s φ` (from 0), the `δ` term staying 1. Returns the normal equations
 /// of the simulated error in `(β, c, γ)`, drive centred at `uc` and target at `yc`
 /// (`δ = c + yc − β uc`).
 fn output_error_equations(
@@ -111,10 +112,11 @@ fn output_error_equations(
         return ne;
     };
     let clamp = |v: f64| v.clamp(scaling.input_min, scaling.input_max);
-    let mut prev = clamp(u[0]);
+    // The start at rest: on the anhysteretic curve at the range's top, then the rest history
+    // to the first drive value (as `simulate`).
+    let mut prev = scaling.input_max;
     let (mut y_beta, mut y_gamma) = (prev - uc, 0.0);
-    let mut next_row = rows.index.iter().copied().peekable();
-    for (k, &v) in u.iter().enumerate().take(last + 1) {
+    let mut advance = |v: f64| {
         let v = clamp(v);
         let du = v - prev;
         let (q, phi) = reference::relax(alpha, du.abs());
@@ -122,6 +124,14 @@ fn output_error_equations(
         y_beta = (1.0 - q) * y_beta + (v - uc) - (1.0 - q) * (prev - uc) - s_phi;
         y_gamma = (1.0 - q) * y_gamma + s_phi;
         prev = v;
+        (y_beta, y_gamma)
+    };
+    reference::rest_history(scaling, u[0], |v| {
+        advance(v);
+    });
+    let mut next_row = rows.index.iter().copied().peekable();
+    for (k, &v) in u.iter().enumerate().take(last + 1) {
+        let (y_beta, y_gamma) = advance(v);
         if next_row.next_if_eq(&k).is_some() {
             ne.add_row(&[y_beta, 1.0, y_gamma], y[k + rows.lag] - yc, 1.0);
         }
