@@ -277,7 +277,8 @@ fn the_sequence_command_refuses_a_hostile_file_by_its_line_and_runs_a_good_one()
         assert!(err.contains(needle), "{body:?}: {needle} not in {err}");
     }
     let path = dir.join("good.csv");
-    let rows: String = (0..50).map(|k| format!("{}\n", k as f64 * 0.01)).collect();
+    // The first position away from the rest, so that the first edge moves the stage.
+    let rows: String = (1..=50).map(|k| format!("{}\n", k as f64 * 0.01)).collect();
     std::fs::write(&path, format!("setpoint\n{rows}")).unwrap();
     let o = twinstack(&[
         "sequence",

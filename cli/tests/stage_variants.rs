@@ -8,7 +8,7 @@
 //!
 //! It holds, on every variant, what the default stage's test holds on one: `auto` at most
 //! half the textbook P–I's worst error and a quarter of no compensation's; and the number of
-//! variants on which it meets the 1 % goal (17 of 21 when this was written; the four it misses
+//! variants on which it meets the 1 % goal (19 of 21 when this was written; the two it misses
 //! are listed in the book, results/lab-stage.md, "Other stages").
 
 use hal_sim::plant::LabStageConfig;
@@ -18,7 +18,7 @@ use twinstack_cli::tracking::{
 use twinstack_identify::identification::{IdentifyOptions, ModelKind};
 
 /// Variants on which `auto`'s worst error must be within the 1 % goal.
-const WITHIN_GOAL_AT_LEAST: usize = 17;
+const WITHIN_GOAL_AT_LEAST: usize = 19;
 
 #[test]
 #[ignore = "slow: run optimised, see the module doc"]

@@ -214,7 +214,8 @@ const PRE_TRIGGER: u32 = 8;
 
 /// The latency of the edge (`rising` or falling) nearest frame `pre` in a capture of
 /// `[left, triggers]` frames: `None` without such an edge in it, or without a DAC change
-/// after it.
+/// after it and before the next such edge (a position where the stage already is moves
+/// nothing, and a later edge's motion is not this one's).
 ///
 /// ```
 /// use twinstack_link::sequence_run::edge_timing;
@@ -225,6 +226,9 @@ const PRE_TRIGGER: u32 = 8;
 /// let t = edge_timing(&w, 2, true).unwrap();
 /// assert_eq!((t.ticks_to_motion, t.codes), (0, (100, 120)));
 /// assert!(edge_timing(&w, 2, false).is_none());
+/// // The first edge steps to where the stage is; the motion comes with the next edge.
+/// let w = [100, 0, 100, i, 100, 0, 120, i];
+/// assert!(edge_timing(&w, 1, true).is_none());
 /// ```
 pub fn edge_timing(window: &[i16], pre: usize, rising: bool) -> Option<EdgeTiming> {
     let frames: Vec<(i16, bool)> = window
@@ -235,7 +239,10 @@ pub fn edge_timing(window: &[i16], pre: usize, rising: bool) -> Option<EdgeTimin
         .filter(|&k| frames[k].1 == rising && frames[k - 1].1 != rising)
         .min_by_key(|&k| k.abs_diff(pre))?;
     let before = frames[edge - 1].0;
-    let moved = (edge..frames.len()).find(|&k| frames[k].0 != before)?;
+    let next_edge = (edge + 1..frames.len())
+        .find(|&k| frames[k].1 == rising && frames[k - 1].1 != rising)
+        .unwrap_or(frames.len());
+    let moved = (edge..next_edge).find(|&k| frames[k].0 != before)?;
     Some(EdgeTiming {
         ticks_to_motion: (moved - edge) as u32,
         codes: (before, frames[moved].0),

@@ -203,7 +203,9 @@ fn print_report(r: &SequenceReport, total: usize, json: bool) -> anyhow::Result<
             "first edge to the first moved DAC sample: {} ticks after the tick that sampled it (DAC code {} -> {})",
             t.ticks_to_motion, t.codes.0, t.codes.1
         ),
-        None => println!("first edge to motion: no edge captured"),
+        None => println!(
+            "first edge to motion: not measured (no edge in the capture, or its position is where the stage already was)"
+        ),
     }
     Ok(())
 }
