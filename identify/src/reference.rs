@@ -438,11 +438,6 @@ impl InverseDuhem {
         })
     }
 
-    /// The compensator for `params`, its model at rest at drive `u0` ([`Duhem::at_rest`]).
-    pub fn at_rest(params: &DuhemParams, scaling: &Scaling, u0: f64) -> Result<Self, ParamError> {
-        Self::with_rest(params, scaling, u0, Rest::Ascending)
-    }
-
     /// The compensator for `params`, its model as [`Duhem::with_rest`] puts it.
     pub fn with_rest(
         params: &DuhemParams,
@@ -702,11 +697,6 @@ impl InverseBoucWen {
         Ok(Self {
             model: BoucWen::new(params, scaling, u0)?,
         })
-    }
-
-    /// The compensator for `params`, its model at rest at drive `u0` ([`BoucWen::at_rest`]).
-    pub fn at_rest(params: &BoucWenParams, scaling: &Scaling, u0: f64) -> Result<Self, ParamError> {
-        Self::with_rest(params, scaling, u0, Rest::Ascending)
     }
 
     /// The compensator for `params`, its model as [`BoucWen::with_rest`] puts it.

@@ -28,6 +28,7 @@ use twinstack::models::duhem::{Duhem, InverseDuhem};
 use twinstack::models::generalised_pi::{GeneralisedPi, GpiParams, InverseGeneralisedPi};
 use twinstack::models::play_operator::play;
 use twinstack::models::prandtl_ishlinskii::{InversePrandtlIshlinskii, PrandtlIshlinskii};
+use twinstack::models::Rest;
 use twinstack::{BoucWenParams, DuhemParams, ParamError, PiParams, Scaling};
 
 /// The hysteresis model of a stage, in physical units. (Built once per command, so the
@@ -489,7 +490,7 @@ impl StageModel {
                 let at_rest = |u: f64| reference::Duhem::at_rest(p, s, u).map(|m| m.y);
                 p.validate()?;
                 let u0 = reference::drive_at_rest(s, y0, |u| at_rest(u).unwrap_or(f64::NAN));
-                let mut m = reference::InverseDuhem::at_rest(p, s, u0)?;
+                let mut m = reference::InverseDuhem::with_rest(p, s, u0, Rest::Ascending)?;
                 // The band on what the inverse is given (after the inverse creep), as the
                 // fixed-point `compensate` takes it.
                 let band = NoiseBand::of(&desired, p.normalized(s)?.beta, s);
@@ -508,7 +509,7 @@ impl StageModel {
                 let at_rest = |u: f64| reference::BoucWen::at_rest(p, s, u).map(|m| m.output());
                 p.validate()?;
                 let u0 = reference::drive_at_rest(s, y0, |u| at_rest(u).unwrap_or(f64::NAN));
-                let mut m = reference::InverseBoucWen::at_rest(p, s, u0)?;
+                let mut m = reference::InverseBoucWen::with_rest(p, s, u0, Rest::Ascending)?;
                 let band = NoiseBand::of(&desired, p.normalized(s)?.k, s);
                 band.around_reference(&desired, y0, p.k, s, |y| m.step(y))
             }

@@ -26,6 +26,26 @@ pub enum Configuration {
     Unidirectional,
 }
 
+impl Configuration {
+    /// Where the models' memory stands when a stage driven so rests: [`Rest::Relaxed`] for
+    /// the differential pair (both stacks rose together to the bias, and in the models'
+    /// coordinate their hysteresis cancels), [`Rest::Ascending`] for the unidirectional
+    /// (single-ended) stack, raised from its lowest voltage.
+    ///
+    /// ```
+    /// use twinstack::control::drive::Configuration;
+    /// use twinstack::models::Rest;
+    /// assert_eq!(Configuration::Differential.rest(), Rest::Relaxed);
+    /// assert_eq!(Configuration::Unidirectional.rest(), Rest::Ascending);
+    /// ```
+    pub const fn rest(self) -> Rest {
+        match self {
+            Self::Differential => Rest::Relaxed,
+            Self::Unidirectional => Rest::Ascending,
+        }
+    }
+}
+
 /// Where the outputs go on a fault (panic, hard fault, stop).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
@@ -378,10 +398,10 @@ impl DifferentialDrive {
         self.rest_drive
     }
 
-    /// Where the models' memory stands when the drive rests ([`Rest::of`] the
-    /// configuration): on the loop for the single-ended stack, relaxed for the pair.
+    /// Where the models' memory stands when the drive rests ([`Configuration::rest`]): on
+    /// the loop for the single-ended stack, relaxed for the pair.
     pub fn rest(&self) -> Rest {
-        Rest::of(self.configuration)
+        self.configuration.rest()
     }
 
     /// Lowest and highest model-normalised drive the limits allow, Q2.30.

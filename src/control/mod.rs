@@ -305,7 +305,7 @@ impl Controller {
     /// units; the running controller's [`Controller::stacks`]): the models at rest at the
     /// drive those voltages amount to (within the new limits; on their loop's ascending branch
     /// for the single-ended stack, relaxed for the differential pair:
-    /// [`crate::models::Rest::of`] the drive's configuration), the compensator's state derived
+    /// [`crate::control::drive::Configuration::rest`]), the compensator's state derived
     /// from the observer's, the setpoint where the observer puts the stage. This is the heavy
     /// part of a reload (thousands of instructions for a large P–I): it runs in the
     /// low-priority task, never in the tick. Returns the observer it relaxed, for the

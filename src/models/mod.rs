@@ -90,7 +90,8 @@ pub trait Hysteresis {
 }
 
 /// Where a model's memory stands when the drive rests: what the stage has behind it, which
-/// the drive's configuration decides ([`Rest::of`]). Every model starts by it, on the board
+/// the drive's configuration decides (`control::drive::Configuration::rest`). Every model
+/// starts by it, on the board
 /// ([`crate::control::Controller::prepare`]) and in the references that replay the board.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Rest {
@@ -104,17 +105,6 @@ pub enum Rest {
     /// left stack's voltage, `u_r = 2ū − u_l`) the right stack's rise is a fall, so the two
     /// halves of the pair's hysteresis cancel.
     Relaxed,
-}
-
-impl Rest {
-    /// The rest of a stage driven in `configuration`: [`Rest::Relaxed`] for the differential
-    /// pair, [`Rest::Ascending`] for the unidirectional (single-ended) stack.
-    pub const fn of(configuration: crate::control::drive::Configuration) -> Self {
-        match configuration {
-            crate::control::drive::Configuration::Differential => Self::Relaxed,
-            crate::control::drive::Configuration::Unidirectional => Self::Ascending,
-        }
-    }
 }
 
 /// A forward model (the observer: drive in, displacement out).

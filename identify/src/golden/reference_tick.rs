@@ -291,9 +291,9 @@ fn saturate(x: f64) -> f64 {
 }
 
 /// Where the board's models start: by the drive's configuration, as `Controller::prepare`
-/// starts them ([`Rest::of`]).
+/// starts them (`Configuration::rest`).
 fn rest(recipe: &Recipe) -> Rest {
-    Rest::of(recipe.settings.drive.configuration)
+    recipe.settings.drive.configuration.rest()
 }
 
 /// The reference observer at rest at `u0` volts and its output there (output units), or
