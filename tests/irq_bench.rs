@@ -124,13 +124,16 @@ enum Part {
     Duhem,
     /// Bouc–Wen, both directions.
     BoucWen,
+    /// The exponential relaxation in the input that Duhem and Bouc–Wen share
+    /// (`relaxation.rs`: their `q`, `φ` and their compensators' step).
+    Relaxation,
     /// Feedback (PI(D)) and the notch.
     Feedback,
     /// The services below the tick (recorder, telemetry's tap): their task's share per tick.
     Services,
 }
 
-const PARTS: usize = 8;
+const PARTS: usize = 9;
 const PART_NAMES: [&str; PARTS] = [
     "fixed",
     "P–I banks",
@@ -138,6 +141,7 @@ const PART_NAMES: [&str; PARTS] = [
     "creep",
     "Duhem",
     "Bouc–Wen",
+    "relaxation (Duhem, Bouc–Wen)",
     "feedback+notch",
     "services (share)",
 ];
@@ -150,6 +154,7 @@ fn part_of(file: &str) -> Part {
         "creep.rs" => Part::Creep,
         "duhem.rs" => Part::Duhem,
         "bouc_wen.rs" => Part::BoucWen,
+        "relaxation.rs" => Part::Relaxation,
         "feedback.rs" | "notch.rs" => Part::Feedback,
         _ => Part::Fixed,
     }

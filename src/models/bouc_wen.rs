@@ -342,7 +342,7 @@ impl InverseBoucWen {
                     f32::from_bits(self.targets[other]),
                     floor,
                     reach - at_zero,
-                    // Both parts within the series' range: the whole step at the first
+                    // Both parts within the polynomial's range: the whole step at the first
                     // rate, the rest at the other's.
                     smaller(f32::from_bits(self.max_steps[other]), cap - to_zero),
                 );
@@ -365,12 +365,12 @@ impl InverseBoucWen {
 
 /// The forward Bouc–Wen model (the observer) in the tick, cycles at 5 wait states (see
 /// [`Hysteresis::cycles`]).
-pub const BOUC_WEN_CYCLES: u32 = 520;
+pub const BOUC_WEN_CYCLES: u32 = 480;
 
 /// The Bouc–Wen compensator in the tick, cycles at 5 wait states: the forward step and the
 /// step's slope and quotient before it (one `VDIV.F32` and its conversions, as Duhem's
 /// inverse).
-pub const INVERSE_BOUC_WEN_CYCLES: u32 = 620;
+pub const INVERSE_BOUC_WEN_CYCLES: u32 = 580;
 
 impl Hysteresis for BoucWen {
     type State = BoucWenState;

@@ -239,12 +239,12 @@ impl InverseDuhem {
 }
 
 /// The forward Duhem model (the observer) in the tick, cycles at 5 wait states (see
-/// [`Hysteresis::cycles`]): the relaxation's series (one call) and the Q10.54 update.
-pub const DUHEM_CYCLES: u32 = 170;
+/// [`Hysteresis::cycles`]): the relaxation's polynomial (one call) and the Q10.54 update.
+pub const DUHEM_CYCLES: u32 = 150;
 
 /// The Duhem compensator in the tick, cycles at 5 wait states: the step solved (the linear
 /// guess, the relaxation at it and one Halley step: two `VDIV.F32`s) and the forward step.
-pub const INVERSE_DUHEM_CYCLES: u32 = 395;
+pub const INVERSE_DUHEM_CYCLES: u32 = 355;
 
 impl Hysteresis for Duhem {
     type State = DuhemState;
