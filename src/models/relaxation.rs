@@ -45,11 +45,11 @@ pub const SIGNAL_TO_F32: f32 = 1.0 / (1u32 << 30) as f32;
 const F32_TO_SIGNAL: f32 = (1u32 << 30) as f32;
 
 /// `c·m` at and below which the polynomial gives `q` and `φ` directly.
-pub const SERIES_LIMIT: f32 = 1.0;
+pub const POLYNOMIAL_LIMIT: f32 = 1.0;
 
 /// The largest step a compensator takes in one sample, in units of `1/c`: within the
-/// polynomial's range ([`SERIES_LIMIT`]) with room for the rounding, so that the compensator's
-/// own model never takes the longer path of a large step on the tick.
+/// polynomial's range ([`POLYNOMIAL_LIMIT`]) with room for the rounding, so that the
+/// compensator's own model never takes the longer path of a large step on the tick.
 pub const STEP_CAP: f32 = 0.99;
 
 /// `c·m` at and above which `e^{−c·m}` (< 4·10⁻¹¹) is taken as 0.
@@ -131,7 +131,7 @@ impl RelaxationRate {
     #[inline(never)]
     pub fn relax_normalised(&self, m: f32) -> Relaxed {
         let x = self.rate() * m;
-        if x <= SERIES_LIMIT {
+        if x <= POLYNOMIAL_LIMIT {
             let psi = psi(x);
             Relaxed {
                 q: x * psi,
@@ -168,9 +168,10 @@ impl RelaxationRate {
     /// by each compensator's step).
     ///
     /// `cap` is at most [`STEP_CAP`]`/c` (the compensators' caps are), so that `c·m₀` is
-    /// within the polynomial's range: `q(m₀)` is the polynomial alone, with no call to the large
-    /// steps' path (whose call would make this function save and restore eight FPU registers
-    /// on every step). A larger `cap` still gives a step in `[0, cap]`, not an exact one.
+    /// within the polynomial's range: `q(m₀)` is the polynomial alone, with no call to the
+    /// large steps' path (whose call would make this function save and restore eight FPU
+    /// registers on every step). A larger `cap` still gives a step in `[0, cap]`, not an exact
+    /// one.
     #[inline(never)]
     pub fn solve_normalised(&self, k: f32, d: f32, floor: f32, target: f32, cap: f32) -> f32 {
         let c = self.rate();
@@ -419,10 +420,10 @@ mod tests {
         }
     }
 
-    /// A cap beyond the series' range (no compensator passes one) still gives a step in
-    /// `[0, cap]`, whatever the series makes of `c·m₀` out there.
+    /// A cap beyond the polynomial's range (no compensator passes one) still gives a step in
+    /// `[0, cap]`, whatever the polynomial makes of `c·m₀` out there.
     #[test]
-    fn a_cap_beyond_the_series_range_gives_a_bounded_step() {
+    fn a_cap_beyond_the_polynomial_range_gives_a_bounded_step() {
         let rate = RelaxationRate::from_gain(gain_from_f64(4.0));
         for target in [0.05, 0.5, 3.0, 1e6] {
             for d in [0.08, -0.05] {
