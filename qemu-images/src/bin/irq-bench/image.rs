@@ -332,7 +332,7 @@ pub mod configs {
     use twinstack::models::generalised_pi::{DeadZoneParams, GpiParams};
 
     /// How many configurations run.
-    pub const COUNT: usize = 7;
+    pub const COUNT: usize = 9;
 
     /// A named configuration.
     pub struct Config {
@@ -355,6 +355,18 @@ pub mod configs {
             mode: Mode::ClosedLoop,
             ..Settings::default()
         }
+    }
+
+    /// `compensator` with the sensor and PI feedback and no observer (so no drift check: it
+    /// compares the sensor with the observer's estimate), as `twinstack calibrate` loads a
+    /// model at 100 kHz.
+    fn compensator_only(compensator: Model) -> Settings {
+        let mut settings = closed(compensator.clone(), compensator);
+        settings.observer = None;
+        if let Some(sensor) = settings.sensor.as_mut() {
+            sensor.drift_limit = None;
+        }
+        settings
     }
 
     /// A generalised P–I of `n` operators with all 8 dead zones: with 17, the shape
@@ -458,17 +470,32 @@ pub mod configs {
             // tick, so the services serve their snapshots with nothing but the capture and
             // telemetry: their own base cost).
             5 => {
-                let pi = representative_pi(17).ok()?;
-                let mut settings = closed(pi.clone(), pi);
-                settings.observer = None;
-                if let Some(sensor) = settings.sensor.as_mut() {
-                    sensor.drift_limit = None;
-                }
+                let settings = compensator_only(representative_pi(17).ok()?);
                 Config {
                     name: "inverse-pi17+pi",
                     settings,
                 }
             }
+            // What `twinstack calibrate` loads at 100 kHz where the model family's generalised
+            // P–I + creep wins: the compensator only, as above.
+            7 => {
+                let gpi = gpi_with_eight_dead_zones(17)?;
+                Config {
+                    name: "inverse-gpi17x8+creep4+pi",
+                    settings: Settings {
+                        creep: Some(creep4()?),
+                        ..compensator_only(gpi)
+                    },
+                }
+            }
+            // And where Duhem + creep wins: the compensator only.
+            8 => Config {
+                name: "inverse-duhem+creep4+pi",
+                settings: Settings {
+                    creep: Some(creep4()?),
+                    ..compensator_only(representative_duhem())
+                },
+            },
             _ => return None,
         })
     }
