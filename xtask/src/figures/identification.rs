@@ -172,7 +172,14 @@ pub(super) fn ranking_row(line: &str) -> Option<(String, String, [String; 3], St
             .nth(1)
             .and_then(|n| n.split(" cycles").next())
         {
-            Some(cycles) => format!("not admitted: {cycles} cycles per tick"),
+            // Where the run also says what the compensator alone needs, that too.
+            Some(cycles) => match t.split("without the observer, ").nth(1) {
+                Some(alone) if alone.trim().parse::<u32>().is_ok() => format!(
+                    "not admitted: {cycles} cycles per tick, {} as the compensator only",
+                    alone.trim()
+                ),
+                _ => format!("not admitted: {cycles} cycles per tick"),
+            },
             None => format!("not admitted: {t}"),
         }
     } else if tail.is_empty() {
@@ -771,6 +778,7 @@ mod tests {
             "  2.  P-I (4 uniform operators) + creep (1 mode) forward  1.10 % (RMS 0.39 %)  inverse  1.81 %  tracking  1.84 %  (inverse 1.64 × its forward: at the record's noise floor)",
             "  -.  Bouc-Wen + creep (1 mode)                forward  0.90 % (RMS 0.23 %)  inverse 14.58 %  tracking 13.55 %  set aside: inverse max 14.58 % is 16.22 × its forward max 0.90 % and more",
             "  -.  Duhem + creep (1 mode)                   forward  1.11 % (RMS 0.30 %)  inverse 17.58 %  tracking 15.66 %  not admitted: the board at 100 kHz would refuse it: it needs 1732 cycles per tick, more",
+            "  -.  Bouc-Wen                                 forward  1.42 % (RMS 0.54 %)  inverse  1.76 %  tracking  1.04 %  not admitted: the board at 100 kHz would refuse it: it needs 2260 cycles per tick, more than the 1344 that rate leaves; without the observer, 1465",
             "  -.  Duhem                                    not fitted: too few samples",
             "picked: P-I",
             "identified P-I (16 uniform operators) from x",
@@ -792,6 +800,7 @@ mod tests {
                 "|  | P-I (4 uniform operators) + creep (1 mode) | 1.10 % | 1.81 % | 1.84 % | 2. inverse 1.64 × its fit: at the noise floor |",
                 "|  | Bouc-Wen + creep (1 mode) | 0.90 % | 14.58 % | 13.55 % | set aside: inverse 16.22 × its fit, far from the best |",
                 "|  | Duhem + creep (1 mode) | 1.11 % | 17.58 % | 15.66 % | not admitted: 1732 cycles per tick |",
+                "|  | Bouc-Wen | 1.42 % | 1.76 % | 1.04 % | not admitted: 2260 cycles per tick, 1465 as the compensator only |",
                 "|  | Duhem | — | — | — | not fitted: too few samples |",
             ]
         );
