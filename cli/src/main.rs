@@ -28,7 +28,7 @@ enum Command {
     /// Run the fixed-point forward model on a drive record.
     Predict(commands::compensate::Args),
     /// Run the fixed-point inverse model on a desired-output record.
-    Compensate(commands::compensate::Args),
+    Compensate(commands::compensate::CompensateArgs),
     /// Sensor feedback around the compensator on the simulated stage: the tracking table
     /// (none / feedforward / feedback / both) and the step with and without the notch.
     ClosedLoop(commands::closed_loop::Args),
@@ -150,9 +150,12 @@ fn main() -> std::process::ExitCode {
         Command::Predict(a) => {
             commands::compensate::run(a, commands::compensate::Direction::Forward)
         }
-        Command::Compensate(a) => {
-            commands::compensate::run(a, commands::compensate::Direction::Inverse)
-        }
+        Command::Compensate(a) => commands::compensate::run(
+            &a.run,
+            commands::compensate::Direction::Inverse {
+                measured: a.measured,
+            },
+        ),
         Command::ClosedLoop(a) => commands::closed_loop::run(a),
         Command::Learn(a) => commands::learn::run(a),
         Command::Stream(a) => commands::stream::run(a),

@@ -118,8 +118,10 @@ fn identify_and_score(data: &Path, model: &str, fit_until: f64) -> ((f64, f64), 
         predicted.to_str().unwrap(),
     ]);
     let compensated = dir.path().join("compensated.csv");
+    // The record is a measurement: its inverse through the noise band, as `identify` scores it.
     ok(&[
         "compensate",
+        "--measured",
         "--params",
         p,
         "--data",

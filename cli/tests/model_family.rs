@@ -40,7 +40,7 @@ fn figures(
     let n = x.len();
     let predicted = id.model.predict(&data.t, u).unwrap();
     let forward = score(x, &predicted, id.held_out_from..n).unwrap();
-    let drive = id.model.compensate(&data.t, x).unwrap();
+    let drive = id.model.compensate_measured(&data.t, x).unwrap();
     let aimed = n - id.model.lag_samples(&data.t);
     let inverse = score(u, &drive, id.held_out_from..aimed).unwrap();
     (forward.max_pct, inverse.max_pct)

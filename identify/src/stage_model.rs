@@ -362,6 +362,43 @@ impl StageModel {
         Ok(y)
     }
 
+    /// The slope a [`NoiseBand`] passes what it holds back through, normalised: the
+    /// anhysteretic slope of a Duhem (`β`) or Bouc–Wen (`k`); `None` for the P–I family,
+    /// whose inverse takes a measured trajectory as it comes (see [`NoiseBand`]).
+    fn band_slope(&self) -> Result<Option<f64>, ParamError> {
+        let s = &self.scaling;
+        Ok(match &self.hysteresis {
+            Hysteresis::Duhem(p) => Some(p.normalized(s)?.beta),
+            Hysteresis::BoucWen(p) => Some(p.normalized(s)?.k),
+            Hysteresis::Pi(_) | Hysteresis::GeneralisedPi(_) => None,
+        })
+    }
+
+    /// The noise band [`Self::compensate_measured`] follows the measured readings `x` at
+    /// times `t` through (taken on what the hysteresis inverse is given: after the inverse
+    /// creep, whose gain above 1 passes the noise on larger); `None` for a P–I or generalised
+    /// P–I, which takes them as they come.
+    pub fn noise_band(&self, t: &[f64], x: &[f64]) -> Result<Option<NoiseBand>, ParamError> {
+        let s = &self.scaling;
+        let Some(slope) = self.band_slope()? else {
+            return Ok(None);
+        };
+        let mut creep = self.creep_run(t)?;
+        let given: Vec<f64> = self
+            .advance(t, x)
+            .iter()
+            .map(|&v| {
+                let q = signal_from_f64(s.output_to_norm(v));
+                let q = match creep.as_mut() {
+                    Some(c) => c.inverse(q),
+                    None => q,
+                };
+                s.norm_to_output(signal_to_f64(q))
+            })
+            .collect();
+        Ok(Some(NoiseBand::of(&given, slope, s)))
+    }
+
     /// [`Self::predict`] computed by the `f64` reference models.
     pub fn predict_reference(&self, t: &[f64], u: &[f64]) -> Result<Vec<f64>, ParamError> {
         let s = &self.scaling;
@@ -393,11 +430,24 @@ impl StageModel {
     }
 
     /// Inverse model: the drive (volts) that makes the sensor read `x` at times `t`, in the
-    /// library's fixed point. With a sensor lag of `L` samples the drive leads by `L`.
+    /// library's fixed point, every sample inverted exactly, as the board inverts its
+    /// setpoints: `x` is a planned trajectory. With a sensor lag of `L` samples the drive
+    /// leads by `L`.
     pub fn compensate(&self, t: &[f64], x: &[f64]) -> Result<Vec<f64>, ParamError> {
+        self.inverse_run(t, x, false)
+    }
+
+    /// [`Self::compensate`] of a *measured* trajectory `x` (a sensor's record, with its
+    /// noise): followed through its [`NoiseBand`], so that the sensor's noise is not taken
+    /// for motion. What identification scores a candidate's inverse by.
+    pub fn compensate_measured(&self, t: &[f64], x: &[f64]) -> Result<Vec<f64>, ParamError> {
+        self.inverse_run(t, x, true)
+    }
+
+    /// [`Self::compensate`], or with `measured` [`Self::compensate_measured`].
+    fn inverse_run(&self, t: &[f64], x: &[f64], measured: bool) -> Result<Vec<f64>, ParamError> {
         let s = &self.scaling;
         let y_norm = |v: f64| signal_from_f64(s.output_to_norm(v));
-        let u_phys = |q: i32| s.norm_to_input(signal_to_f64(q));
         let desired = self.advance(t, x);
         let y0 = desired.first().copied().unwrap_or(0.0);
         let mut creep = self.creep_run(t)?;
@@ -422,9 +472,10 @@ impl StageModel {
             Hysteresis::Pi(p) => {
                 let m = InversePrandtlIshlinskii::new(p, s)?;
                 let mut st = m.state_at_rest(signal_from_f64(s.output_to_norm(y0)));
+                // Every sample to its memory, measured or not: see `NoiseBand`.
                 targets
                     .iter()
-                    .map(|&y| u_phys(m.step(&mut st, y)))
+                    .map(|&y| s.norm_to_input(signal_to_f64(m.step(&mut st, y))))
                     .collect()
             }
             Hysteresis::Duhem(p) => {
@@ -437,15 +488,15 @@ impl StageModel {
                 });
                 let y0_norm = signal_from_f64(s.output_to_norm(y0));
                 let mut st = at_rest(u0);
-                let band = NoiseBand::of(&given(), p.normalized(s)?.beta, s);
-                band.around(&targets, y0_norm, s, |y| m.step(&mut st, y))
+                let band = NoiseBand::if_measured(measured, given, self.band_slope()?, s);
+                NoiseBand::invert(band, &targets, y0_norm, s, |y| m.step(&mut st, y))
             }
             Hysteresis::GeneralisedPi(p) => {
                 let m = InverseGeneralisedPi::new(p, s)?;
                 let mut st = m.state_at_rest(signal_from_f64(s.output_to_norm(y0)));
                 targets
                     .iter()
-                    .map(|&y| u_phys(m.step(&mut st, y)))
+                    .map(|&y| s.norm_to_input(signal_to_f64(m.step(&mut st, y))))
                     .collect()
             }
             Hysteresis::BoucWen(p) => {
@@ -457,15 +508,35 @@ impl StageModel {
                     s.norm_to_output(signal_to_f64(m.model().output(&at_rest(u))))
                 });
                 let mut st = at_rest(u0);
-                let band = NoiseBand::of(&given(), p.normalized(s)?.k, s);
+                let band = NoiseBand::if_measured(measured, given, self.band_slope()?, s);
                 let y0_norm = signal_from_f64(s.output_to_norm(y0));
-                band.around(&targets, y0_norm, s, |y| m.step(&mut st, y))
+                NoiseBand::invert(band, &targets, y0_norm, s, |y| m.step(&mut st, y))
             }
         })
     }
 
     /// [`Self::compensate`] computed by the `f64` reference models.
     pub fn compensate_reference(&self, t: &[f64], x: &[f64]) -> Result<Vec<f64>, ParamError> {
+        self.inverse_reference(t, x, false)
+    }
+
+    /// [`Self::compensate_measured`] computed by the `f64` reference models.
+    pub fn compensate_measured_reference(
+        &self,
+        t: &[f64],
+        x: &[f64],
+    ) -> Result<Vec<f64>, ParamError> {
+        self.inverse_reference(t, x, true)
+    }
+
+    /// [`Self::compensate_reference`], or with `measured`
+    /// [`Self::compensate_measured_reference`].
+    fn inverse_reference(
+        &self,
+        t: &[f64],
+        x: &[f64],
+        measured: bool,
+    ) -> Result<Vec<f64>, ParamError> {
         let s = &self.scaling;
         let mut desired = self.advance(t, x);
         if let Some(mut c) = self.creep_reference(t)? {
@@ -492,9 +563,10 @@ impl StageModel {
                 let u0 = reference::drive_at_rest(s, y0, |u| at_rest(u).unwrap_or(f64::NAN));
                 let mut m = reference::InverseDuhem::with_rest(p, s, u0, Rest::Ascending)?;
                 // The band on what the inverse is given (after the inverse creep), as the
-                // fixed-point `compensate` takes it.
-                let band = NoiseBand::of(&desired, p.normalized(s)?.beta, s);
-                band.around_reference(&desired, y0, p.beta, s, |y| m.step(y))
+                // fixed-point `compensate_measured` takes it.
+                let band =
+                    NoiseBand::if_measured(measured, || desired.clone(), self.band_slope()?, s);
+                NoiseBand::invert_reference(band, &desired, y0, p.beta, s, |y| m.step(y))
             }
             Hysteresis::GeneralisedPi(p) => {
                 // Relaxed where the P–I part's output is S⁻¹[y0], as for the P–I.
@@ -510,8 +582,9 @@ impl StageModel {
                 p.validate()?;
                 let u0 = reference::drive_at_rest(s, y0, |u| at_rest(u).unwrap_or(f64::NAN));
                 let mut m = reference::InverseBoucWen::with_rest(p, s, u0, Rest::Ascending)?;
-                let band = NoiseBand::of(&desired, p.normalized(s)?.k, s);
-                band.around_reference(&desired, y0, p.k, s, |y| m.step(y))
+                let band =
+                    NoiseBand::if_measured(measured, || desired.clone(), self.band_slope()?, s);
+                NoiseBand::invert_reference(band, &desired, y0, p.k, s, |y| m.step(y))
             }
         })
     }
@@ -520,7 +593,8 @@ impl StageModel {
 /// Band widths in units of the trajectory's noise RMS: reversals smaller than this are noise.
 pub const NOISE_BAND_SIGMAS: f64 = 3.0;
 
-/// The noise band of a measured trajectory given to the inverse Duhem or Bouc–Wen.
+/// The noise band of a measured trajectory given to the inverse Duhem or Bouc–Wen
+/// ([`StageModel::compensate_measured`]).
 ///
 /// A Duhem or Bouc–Wen model relaxes towards its anhysteretic curve whenever its input moves,
 /// whichever way: dithered, it forgets its hysteresis. Its exact inverse, given a *measured*
@@ -529,9 +603,20 @@ pub const NOISE_BAND_SIGMAS: f64 = 3.0;
 /// So the inverse's memory follows the trajectory through a play operator of half-width `3σ`
 /// (`σ` the trajectory's noise RMS, estimated from its second differences, robustly: corners
 /// of a triangle do not count), and what the band holds back passes straight through at the
-/// anhysteretic slope (`1/β` for Duhem, `1/k` for Bouc–Wen). A clean trajectory (a planned one; the board's setpoints) has `σ ≈ 0` and is
-/// inverted exactly; the band exists only for measured ones (`compensate` on recorded data).
-#[derive(Clone, Copy, Debug, PartialEq)]
+/// anhysteretic slope (`1/β` for Duhem, `1/k` for Bouc–Wen).
+///
+/// A P–I's or generalised P–I's memory closes every loop the noise makes (no ratchet), and
+/// its inverse is steepest just after a reversal, where a band would hold back the start of
+/// every real reversal too: it gets none. (A band at the major loop's mean slope helps a P–I
+/// inverse where the noise dominates a record's second differences, and hurts where the
+/// record's own curvature does, as at 200 samples a period.)
+///
+/// A planned trajectory (the board's setpoints, a `compensate` of a desired path) gets no
+/// band: [`StageModel::compensate`] inverts every sample exactly. The estimate cannot tell
+/// noise from a smooth trajectory sampled coarsely (a sine at 20 samples a period has second
+/// differences of 10 % of its amplitude, which a band of `3σ` would hold back as noise), so
+/// the band is asked for, never guessed.
+#[derive(Clone, Debug, PartialEq)]
 pub struct NoiseBand {
     /// Noise RMS of the trajectory, output units.
     pub noise_rms: f64,
@@ -550,6 +635,51 @@ impl NoiseBand {
             noise_rms,
             width_norm: (NOISE_BAND_SIGMAS * noise_rms / scaling.output_half_span()).min(1.0),
             inverse_slope_norm: 1.0 / slope_norm,
+        }
+    }
+
+    /// The band of the trajectory `x()` (output units) if it is `measured`; `None` (every
+    /// sample inverted exactly) for a planned one.
+    fn if_measured(
+        measured: bool,
+        x: impl FnOnce() -> Vec<f64>,
+        slope_norm: Option<f64>,
+        scaling: &Scaling,
+    ) -> Option<Self> {
+        let slope_norm = slope_norm.filter(|_| measured)?;
+        Some(Self::of(&x(), slope_norm, scaling))
+    }
+
+    /// The drive, volts, for the normalised `targets` through `band` ([`Self::around`]), or
+    /// without one, each target inverted exactly by `step`.
+    fn invert(
+        band: Option<Self>,
+        targets: &[i32],
+        y0: i32,
+        scaling: &Scaling,
+        mut step: impl FnMut(i32) -> i32,
+    ) -> Vec<f64> {
+        match band {
+            Some(b) => b.around(targets, y0, scaling, step),
+            None => targets
+                .iter()
+                .map(|&y| scaling.norm_to_input(signal_to_f64(step(y))))
+                .collect(),
+        }
+    }
+
+    /// [`Self::invert`] in `f64` and physical units ([`Self::around_reference`]).
+    fn invert_reference(
+        band: Option<Self>,
+        desired: &[f64],
+        y0: f64,
+        slope: f64,
+        scaling: &Scaling,
+        mut step: impl FnMut(f64) -> f64,
+    ) -> Vec<f64> {
+        match band {
+            Some(b) => b.around_reference(desired, y0, slope, scaling, step),
+            None => desired.iter().map(|&v| step(v)).collect(),
         }
     }
 
@@ -753,6 +883,45 @@ mod tests {
         }
     }
 
+    /// A planned trajectory is inverted exactly by every model, however coarsely it is
+    /// sampled: a sine at 20 samples a period (whose second differences a noise estimate
+    /// would take for noise of 7 % of its span) compensated gives back the drive that
+    /// produced it, within a few LSB16 of the input span.
+    #[test]
+    fn a_coarsely_sampled_planned_trajectory_is_inverted_exactly_by_every_model() {
+        let t: Vec<f64> = (0..600).map(|k| k as f64 * 5e-4).collect();
+        let u: Vec<f64> = t
+            .iter()
+            .map(|&t| 80.0 * (t * 100.0 * std::f64::consts::TAU).sin())
+            .collect();
+        for (name, m) in [
+            ("P–I", pi_model(1.0, 0.0)),
+            ("Duhem", duhem_model()),
+            ("Bouc–Wen", bouc_wen_model()),
+        ] {
+            let x = m.predict(&t, &u).unwrap();
+            // What a band would take for noise (the P–I never has one).
+            if let Some(band) = m.noise_band(&t, &x).unwrap() {
+                assert!(
+                    band.width_norm > 0.01,
+                    "{name}: the estimate sees noise: {band:?}"
+                );
+            }
+            let lsb = (m.scaling.input_max - m.scaling.input_min) / 65536.0;
+            for (run, back) in [
+                ("fixed point", m.compensate(&t, &x).unwrap()),
+                ("reference", m.compensate_reference(&t, &x).unwrap()),
+            ] {
+                for (k, (back, u)) in back.iter().zip(&u).enumerate().skip(1) {
+                    assert!(
+                        (back - u).abs() < 8.0 * lsb,
+                        "{name}, {run}, sample {k}: {back} for {u}"
+                    );
+                }
+            }
+        }
+    }
+
     /// The inverse Duhem and Bouc–Wen on a measured (noisy) trajectory: the drive each
     /// computes stays on the true drive, where the exact inverse on the same samples ratchets
     /// away from it.
@@ -790,8 +959,8 @@ mod tests {
                     / 180.0
                     * 100.0
             };
-            let banded = worst(&m.compensate(&t, &noisy).unwrap());
-            let banded_reference = worst(&m.compensate_reference(&t, &noisy).unwrap());
+            let banded = worst(&m.compensate_measured(&t, &noisy).unwrap());
+            let banded_reference = worst(&m.compensate_measured_reference(&t, &noisy).unwrap());
             let unbanded = worst(&exact_inverse(&m, &noisy));
             eprintln!("{name}: drive error, % of span: banded {banded:.4} (f64 {banded_reference:.4}), exact inverse {unbanded:.4}");
             // Noise of 0.2 % of the output span is 0.22 % of the drive span through the

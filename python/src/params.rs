@@ -98,20 +98,29 @@ impl Params {
         Ok(array(py, x))
     }
 
-    /// The drive (volts) the compensator gives for the desired reading `x`.
-    #[pyo3(signature = (x, t=None, rate=None))]
+    /// The drive (volts) the compensator gives for the desired reading `x`: every sample
+    /// inverted exactly (a planned trajectory), or with `measured` a sensor's record followed
+    /// through its noise band, as `identify` scores an inverse.
+    #[pyo3(signature = (x, t=None, rate=None, measured=false))]
     fn compensate<'py>(
         &self,
         py: Python<'py>,
         x: &Bound<'py, PyAny>,
         t: Option<&Bound<'py, PyAny>>,
         rate: Option<f64>,
+        measured: bool,
     ) -> PyResult<Bound<'py, PyArray1<f64>>> {
         let x = vector(py, x, "x")?;
         let t = times(py, &self.model, x.len(), t, rate)?;
         let model = &self.model;
         let u = py
-            .detach(|| model.compensate(&t, &x))
+            .detach(|| {
+                if measured {
+                    model.compensate_measured(&t, &x)
+                } else {
+                    model.compensate(&t, &x)
+                }
+            })
             .map_err(|e| PyValueError::new_err(e.to_string()))?;
         Ok(array(py, u))
     }

@@ -179,3 +179,25 @@ def test_a_given_lag_is_a_whole_or_half_number_of_samples(micro):
     p = twinstack.identify(t, u, x, model="pi", fit_until=16.0, lag=1.5)
     assert p.identification["lag_samples"] == 1.5
     assert p.sensor_lag_s == pytest.approx(1.5 * np.median(np.diff(t)))
+
+
+def test_a_planned_trajectory_is_inverted_exactly_and_a_measured_one_through_its_band():
+    # A Duhem model of the simulated board's stage, from a noisy record of it.
+    with twinstack.Board("sim") as b:
+        truth = twinstack.Params.from_json(param_json(b.params()))
+    t = np.arange(4000) * 1e-3
+    u = 70.0 + 65.0 * np.sin(2 * np.pi * 2.0 * t)
+    x = truth.predict(u, t=t)
+    noisy = x + 0.002 * np.ptp(x) * np.random.default_rng(1).standard_normal(x.size)
+    duhem = twinstack.identify(t, u, noisy, model="duhem", fit_until=2.8, lag=0)
+    # A planned trajectory at 20 samples a period gives its own drive back: no sample of it is
+    # taken for noise, however far it moves from one to the next.
+    tc = np.arange(400) * 5e-4
+    uc = 70.0 + 60.0 * np.sin(2 * np.pi * 100.0 * tc)
+    xc = duhem.predict(uc, t=tc)
+    assert np.max(np.abs(duhem.compensate(xc, t=tc)[1:] - uc[1:])) < 1e-3 * 140.0
+    # The noisy record, measured: through its band the drive stays nearer the one measured
+    # than the exact inverse, which ratchets on the noise.
+    exact = duhem.compensate(noisy, t=t)
+    banded = duhem.compensate(noisy, t=t, measured=True)
+    assert np.max(np.abs(banded[1000:] - u[1000:])) < np.max(np.abs(exact[1000:] - u[1000:]))

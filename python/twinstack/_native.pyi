@@ -53,10 +53,17 @@ class Params:
         period a creep operator and a sensor lag run at; a model with neither needs neither.
         """
     def compensate(
-        self, x: _ArrayLike, t: Optional[_ArrayLike] = None, rate: Optional[float] = None
+        self,
+        x: _ArrayLike,
+        t: Optional[_ArrayLike] = None,
+        rate: Optional[float] = None,
+        measured: bool = False,
     ) -> np.ndarray:
         """The drive (volts) the board's compensator gives for the desired reading ``x``
-        (output unit), in its fixed point; ``t``/``rate`` as in :meth:`predict`."""
+        (output unit), in its fixed point; ``t``/``rate`` as in :meth:`predict`. Every sample
+        is inverted exactly, as the board inverts its setpoints; with ``measured=True`` ``x``
+        is a sensor's record, followed through its noise band (Duhem, Bouc–Wen) as
+        ``twinstack identify`` scores an inverse."""
     def save(self, path: Union[str, "PathLike[str]"]) -> None:
         """Writes the parameter file (the same JSON ``twinstack identify`` writes)."""
     def to_json(self) -> str:

@@ -6,7 +6,10 @@
 //! * `twinstack compensate --params PARAMS.json --data IN.csv --out OUT.csv`: IN's `t,x` are the
 //!   desired readings; writes `t,u,x` with `u` the drive from the library's fixed-point inverse
 //!   and `x` copied. With a sensor lag of `L` samples the drive leads by `L`; its last `L`
-//!   samples aim at the last desired reading (held), and the run says so.
+//!   samples aim at the last desired reading (held), and the run says so. Every sample is
+//!   inverted exactly, as the board inverts its setpoints; with `--measured` IN's `x` is a
+//!   sensor's record and is followed through its noise band
+//!   ([`twinstack_identify::stage_model::NoiseBand`]), as identification scores an inverse.
 
 use std::path::PathBuf;
 use twinstack_identify::param_file::ParamFile;
@@ -32,13 +35,30 @@ pub struct Args {
     pub out: PathBuf,
 }
 
+/// Arguments of `compensate`: those of `predict`, and what the desired readings are.
+#[derive(Debug, clap::Args)]
+pub struct CompensateArgs {
+    #[command(flatten)]
+    pub run: Args,
+    /// The desired readings are a sensor's record (with its noise), not a planned trajectory:
+    /// follow them through a band of 3σ of their noise (σ from their second differences,
+    /// printed), so that the noise is not taken for motion, as `identify` scores an inverse.
+    /// Without it every sample is inverted exactly, as the board inverts its setpoints.
+    #[arg(long)]
+    pub measured: bool,
+}
+
 /// Which way the model runs.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Direction {
     /// Drive in, predicted reading out (`predict`).
     Forward,
-    /// Desired reading in, drive out (`compensate`).
-    Inverse,
+    /// Desired reading in, drive out (`compensate`): a measured record (`--measured`) or a
+    /// planned trajectory.
+    Inverse {
+        /// The desired readings are a sensor's record.
+        measured: bool,
+    },
 }
 
 /// Runs `predict` ([`Direction::Forward`]) or `compensate` ([`Direction::Inverse`]).
@@ -46,7 +66,7 @@ pub fn run(args: &Args, direction: Direction) -> anyhow::Result<()> {
     let (_, model) = ParamFile::load(&args.params)?;
     let columns = match direction {
         Direction::Forward => Columns::TimeDrive,
-        Direction::Inverse => Columns::TimeOutput,
+        Direction::Inverse { .. } => Columns::TimeOutput,
     };
     let data = MeasuredData::read_with(
         &args.data,
@@ -66,9 +86,24 @@ pub fn run(args: &Args, direction: Direction) -> anyhow::Result<()> {
                 "drive samples outside the model's input range",
             )
         }
-        Direction::Inverse => {
+        Direction::Inverse { measured } => {
             let x = data.x.clone().unwrap_or_default();
-            let u = model.compensate(&data.t, &x).map_err(model_error)?;
+            let u = if measured {
+                match model.noise_band(&data.t, &x).map_err(model_error)? {
+                    Some(band) => eprintln!(
+                        "note: --measured: the readings' noise RMS is {:.4} (second differences), so reversals within ±{:.4} are taken for noise",
+                        band.noise_rms,
+                        band.width_norm * model.scaling.output_half_span()
+                    ),
+                    None => eprintln!(
+                        "note: --measured: a P–I model's inverse takes the readings as they come (its memory closes every loop the noise makes)"
+                    ),
+                }
+                model.compensate_measured(&data.t, &x)
+            } else {
+                model.compensate(&data.t, &x)
+            }
+            .map_err(model_error)?;
             // With a sensor lag of L samples the drive at sample k aims at the reading at
             // k + L (between two readings for a half L); the last ⌈L⌉ samples have none, so
             // they aim at the last reading (held).

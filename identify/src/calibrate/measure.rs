@@ -297,8 +297,8 @@ fn identification_record(
     let lib = |e: twinstack::ParamError| CalibrateError::Model(e.to_string());
     let predicted = model.predict(t, u).map_err(lib)?;
     let reference = model.predict_reference(t, u).map_err(lib)?;
-    let drive = model.compensate(t, x).map_err(lib)?;
-    let drive_reference = model.compensate_reference(t, x).map_err(lib)?;
+    let drive = model.compensate_measured(t, x).map_err(lib)?;
+    let drive_reference = model.compensate_measured_reference(t, x).map_err(lib)?;
     let (fit_from, held) = (id.motion.first_fitted, id.held_out_from);
     let flat = || CalibrateError::Model("the recorded output is flat: cannot score".into());
     let aimed = n - model.lag_samples(t).min(n.saturating_sub(held + 1));

@@ -499,8 +499,10 @@ pub fn identify_and_score(
     let model = &id.model;
     let predicted = model.predict(t, u).map_err(RunError::Params)?;
     let reference = model.predict_reference(t, u).map_err(RunError::Params)?;
-    let drive = model.compensate(t, x).map_err(RunError::Params)?;
-    let drive_reference = model.compensate_reference(t, x).map_err(RunError::Params)?;
+    let drive = model.compensate_measured(t, x).map_err(RunError::Params)?;
+    let drive_reference = model
+        .compensate_measured_reference(t, x)
+        .map_err(RunError::Params)?;
     let fit_from = id.motion.first_fitted;
     let held = id.held_out_from;
     let fit = score(x, &predicted, fit_from..held).ok_or(RunError::Flat)?;

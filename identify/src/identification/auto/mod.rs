@@ -677,7 +677,7 @@ fn score_compensators(
     for (r, model) in ranking.iter_mut().zip(&models) {
         let drive = model.and_then(|m| {
             let aimed = n - m.lag_samples(t).min(n.saturating_sub(split + 1));
-            Some((m.compensate(t, x).ok()?, aimed))
+            Some((m.compensate_measured(t, x).ok()?, aimed))
         });
         r.inverse = drive
             .as_ref()
