@@ -96,7 +96,7 @@ pub fn run(args: &Args, direction: Direction) -> anyhow::Result<()> {
                         band.width_norm * model.scaling.output_half_span()
                     ),
                     None => eprintln!(
-                        "note: --measured: a P–I model's inverse takes the readings as they come (its memory closes every loop the noise makes)"
+                        "note: --measured: a P–I or generalised P–I model's inverse takes the readings as they come (its memory closes every loop the noise makes)"
                     ),
                 }
                 model.compensate_measured(&data.t, &x)
