@@ -607,9 +607,9 @@ pub const NOISE_BAND_SIGMAS: f64 = 3.0;
 ///
 /// A P–I's or generalised P–I's memory closes every loop the noise makes (no ratchet), and
 /// its inverse is steepest just after a reversal, where a band would hold back the start of
-/// every real reversal too: it gets none. (A band at the major loop's mean slope helps a P–I
-/// inverse where the noise dominates a record's second differences, and hurts where the
-/// record's own curvature does, as at 200 samples a period.)
+/// every real reversal too: it gets none. (Tried at the major loop's mean slope, a band made
+/// one shipped record's P–I inverses better and the other's generalised P–I inverse worse:
+/// what it holds back of each real reversal passes at the mean slope, not the steep one.)
 ///
 /// A planned trajectory (the board's setpoints, a `compensate` of a desired path) gets no
 /// band: [`StageModel::compensate`] inverts every sample exactly. The estimate cannot tell
