@@ -67,8 +67,9 @@ const SHIPPED_CONFIGS: [&str; 3] = [
 /// What `twinstack calibrate` (and `identify --tick-rate 100000`) loads at 100 kHz where the
 /// P–I, the model family's generalised P–I + creep or Duhem + creep wins: the model as the
 /// compensator only, a sensor and PI feedback (no observer, so no drift check). Each must be
-/// admitted at 100 kHz by the tick budget, and its measured worst streamed interrupt fit the
-/// period's share ([`twinstack::config::tick_budget::TICK_SHARE_PERCENT`]).
+/// admitted at 100 kHz by the tick budget, and its measured worst interrupt (streamed, or on the
+/// board's waveform generator) fit the period's share
+/// ([`twinstack::config::tick_budget::TICK_SHARE_PERCENT`]).
 const HUNDRED_KHZ_CONFIGS: [&str; 3] = [
     "inverse-pi17+pi",
     "inverse-gpi17x8+creep4+pi",
