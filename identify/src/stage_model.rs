@@ -383,20 +383,8 @@ impl StageModel {
         let Some(slope) = self.band_slope()? else {
             return Ok(None);
         };
-        let mut creep = self.creep_run(t)?;
-        let given: Vec<f64> = self
-            .advance(t, x)
-            .iter()
-            .map(|&v| {
-                let q = signal_from_f64(s.output_to_norm(v));
-                let q = match creep.as_mut() {
-                    Some(c) => c.inverse(q),
-                    None => q,
-                };
-                s.norm_to_output(signal_to_f64(q))
-            })
-            .collect();
-        Ok(Some(NoiseBand::of(&given, slope, s)))
+        let (_, targets) = self.hysteresis_targets(t, x)?;
+        Ok(Some(NoiseBand::of(&given_of(&targets, s), slope, s)))
     }
 
     /// [`Self::predict`] computed by the `f64` reference models.
@@ -444,30 +432,33 @@ impl StageModel {
         self.inverse_run(t, x, true)
     }
 
-    /// [`Self::compensate`], or with `measured` [`Self::compensate_measured`].
-    fn inverse_run(&self, t: &[f64], x: &[f64], measured: bool) -> Result<Vec<f64>, ParamError> {
+    /// What the fixed-point hysteresis inverse is given for the desired readings `x` at times
+    /// `t`: the first desired output (output units), and the trajectory, advanced by the
+    /// sensor's lag and through the inverse creep, normalised.
+    fn hysteresis_targets(&self, t: &[f64], x: &[f64]) -> Result<(f64, Vec<i32>), ParamError> {
         let s = &self.scaling;
         let y_norm = |v: f64| signal_from_f64(s.output_to_norm(v));
         let desired = self.advance(t, x);
         let y0 = desired.first().copied().unwrap_or(0.0);
         let mut creep = self.creep_run(t)?;
-        // What the hysteresis inverse is given: the trajectory through the inverse creep,
-        // normalised.
-        let targets: Vec<i32> = desired
+        let targets = desired
             .iter()
             .map(|&v| match creep.as_mut() {
                 Some(c) => c.inverse(y_norm(v)),
                 None => y_norm(v),
             })
             .collect();
+        Ok((y0, targets))
+    }
+
+    /// [`Self::compensate`], or with `measured` [`Self::compensate_measured`].
+    fn inverse_run(&self, t: &[f64], x: &[f64], measured: bool) -> Result<Vec<f64>, ParamError> {
+        let s = &self.scaling;
+        let u_phys = |q: i32| s.norm_to_input(signal_to_f64(q));
+        let (y0, targets) = self.hysteresis_targets(t, x)?;
         // The noise band of a measured trajectory is taken on what the inverse is given: the
         // inverse creep's gain above 1 passes the sensor's noise on larger.
-        let given = || -> Vec<f64> {
-            targets
-                .iter()
-                .map(|&q| s.norm_to_output(signal_to_f64(q)))
-                .collect()
-        };
+        let given = || given_of(&targets, s);
         Ok(match &self.hysteresis {
             Hysteresis::Pi(p) => {
                 let m = InversePrandtlIshlinskii::new(p, s)?;
@@ -475,7 +466,7 @@ impl StageModel {
                 // Every sample to its memory, measured or not: see `NoiseBand`.
                 targets
                     .iter()
-                    .map(|&y| s.norm_to_input(signal_to_f64(m.step(&mut st, y))))
+                    .map(|&y| u_phys(m.step(&mut st, y)))
                     .collect()
             }
             Hysteresis::Duhem(p) => {
@@ -496,7 +487,7 @@ impl StageModel {
                 let mut st = m.state_at_rest(signal_from_f64(s.output_to_norm(y0)));
                 targets
                     .iter()
-                    .map(|&y| s.norm_to_input(signal_to_f64(m.step(&mut st, y))))
+                    .map(|&y| u_phys(m.step(&mut st, y)))
                     .collect()
             }
             Hysteresis::BoucWen(p) => {
@@ -564,8 +555,7 @@ impl StageModel {
                 let mut m = reference::InverseDuhem::with_rest(p, s, u0, Rest::Ascending)?;
                 // The band on what the inverse is given (after the inverse creep), as the
                 // fixed-point `compensate_measured` takes it.
-                let band =
-                    NoiseBand::if_measured(measured, || desired.clone(), self.band_slope()?, s);
+                let band = NoiseBand::if_measured(measured, || &desired, self.band_slope()?, s);
                 NoiseBand::invert_reference(band, &desired, y0, p.beta, s, |y| m.step(y))
             }
             Hysteresis::GeneralisedPi(p) => {
@@ -582,12 +572,19 @@ impl StageModel {
                 p.validate()?;
                 let u0 = reference::drive_at_rest(s, y0, |u| at_rest(u).unwrap_or(f64::NAN));
                 let mut m = reference::InverseBoucWen::with_rest(p, s, u0, Rest::Ascending)?;
-                let band =
-                    NoiseBand::if_measured(measured, || desired.clone(), self.band_slope()?, s);
+                let band = NoiseBand::if_measured(measured, || &desired, self.band_slope()?, s);
                 NoiseBand::invert_reference(band, &desired, y0, p.k, s, |y| m.step(y))
             }
         })
     }
+}
+
+/// Normalised targets `targets` in output units (what a noise band is estimated on).
+fn given_of(targets: &[i32], s: &Scaling) -> Vec<f64> {
+    targets
+        .iter()
+        .map(|&q| s.norm_to_output(signal_to_f64(q)))
+        .collect()
 }
 
 /// Band widths in units of the trajectory's noise RMS: reversals smaller than this are noise.
@@ -640,14 +637,14 @@ impl NoiseBand {
 
     /// The band of the trajectory `x()` (output units) if it is `measured`; `None` (every
     /// sample inverted exactly) for a planned one.
-    fn if_measured(
+    fn if_measured<X: AsRef<[f64]>>(
         measured: bool,
-        x: impl FnOnce() -> Vec<f64>,
+        x: impl FnOnce() -> X,
         slope_norm: Option<f64>,
         scaling: &Scaling,
     ) -> Option<Self> {
         let slope_norm = slope_norm.filter(|_| measured)?;
-        Some(Self::of(&x(), slope_norm, scaling))
+        Some(Self::of(x().as_ref(), slope_norm, scaling))
     }
 
     /// The drive, volts, for the normalised `targets` through `band` ([`Self::around`]), or
