@@ -16,6 +16,8 @@
 //!   margins; [`zero_order_hold`] — the exact discretisation its loop model and the simulated
 //!   stage share.
 //! * [`golden`] — golden vectors: generating them, and checking them against the `f64` tick.
+//! * [`preview`] — a planned trajectory shaped ahead of time so that the stage's resonance
+//!   (what `tune` fits) does not ring at its corners.
 //! * [`budget`] — what a configuration costs the control tick and the highest rate the board
 //!   admits it at.
 
@@ -26,6 +28,7 @@ pub mod excitation;
 pub mod golden;
 pub mod identification;
 pub mod param_file;
+pub mod preview;
 pub mod reference;
 pub mod stage_model;
 pub mod trajectory;
