@@ -154,6 +154,7 @@ fn main() -> std::process::ExitCode {
             &a.run,
             commands::compensate::Direction::Inverse {
                 measured: a.measured,
+                resonance: a.resonance_hz.zip(a.resonance_damping),
             },
         ),
         Command::ClosedLoop(a) => commands::closed_loop::run(a),

@@ -35,10 +35,14 @@ use twinstack_identify::identification::auto::{identify_admitted, identify_auto_
 use twinstack_identify::identification::run::{board_admission, BoardRate};
 use twinstack_identify::identification::score::{score, ErrorFigures};
 use twinstack_identify::identification::{creep, Identification, IdentifyOptions, ModelKind};
+use twinstack_identify::preview::ResonancePreview;
 use twinstack_identify::stage_model::StageModel;
 use twinstack_identify::trajectory::{
     trajectories, triangle, triangle_fits, Trajectory, MIN_SAMPLES_PER_CYCLE, TRAJECTORY_MARGIN,
 };
+use twinstack_identify::tune::fit::fit as fit_resonance;
+use twinstack_identify::tune::loop_model::C64;
+use twinstack_identify::tune::measure::{coarse_frequencies, phasor, FrequencyPoint, SweepOptions};
 use twinstack_link::measured_data::MeasuredData;
 
 /// The default sample rate of the excitation and of tracking, Hz (see the module docs).
@@ -188,6 +192,79 @@ pub fn track(
     Ok(track_drive(stage, trajectory, &drive, first))
 }
 
+/// [`track`] with the trajectory (after its lead-in) shaped by `preview` first, so that the
+/// stage's resonance does not ring at its corners ([`twinstack_identify::preview`]): the
+/// model's inverse is given the shaped positions.
+pub fn track_previewed(
+    stage: &mut LabStage,
+    model: &StageModel,
+    trajectory: &Trajectory,
+    x_rest: f64,
+    preview: &ResonancePreview,
+) -> Result<TrackingScore, ParamError> {
+    let (t, x, first) = trajectory.with_lead_in(x_rest, 1.0 / stage.sample_period_s());
+    let drive = model.compensate(&t, &preview.shape(&x))?;
+    Ok(track_drive(stage, trajectory, &drive, first))
+}
+
+/// The stage's resonance, measured as `twinstack tune` measures a board's
+/// ([`twinstack_identify::tune::measure::sweep`], its default options): from rest at mid-drive,
+/// a sine of 3 % of the drive's half range at each frequency of the coarse sweep, then about
+/// the largest response, each measured by its phasors after the settling time; fitted by
+/// [`twinstack_identify::tune::fit::fit`]. A reading is the position at the end of its
+/// drive's hold, one sample earlier than the tick's model reads it: the response is taken
+/// that sample later.
+pub fn measure_resonance(
+    config: &LabStageConfig,
+) -> anyhow::Result<twinstack_identify::tune::fit::Fit> {
+    let mut stage = LabStage::new(config)?;
+    let rate = 1.0 / stage.sample_period_s();
+    let half = 0.5 * config.drive_max_volts;
+    let options = SweepOptions::default();
+    let mut measure = |f: f64| -> FrequencyPoint {
+        stage.rest(half);
+        let w = std::f64::consts::TAU * f;
+        let window = options.window_s.max(options.cycles / f);
+        let settle = (options.settle_s * rate).ceil() as usize;
+        let n = settle + (window * rate).ceil() as usize;
+        let amplitude = options.amplitude * half;
+        let (mut t, mut u, mut x) = (Vec::new(), Vec::new(), Vec::new());
+        for k in 0..n {
+            let tk = k as f64 / rate;
+            let uk = half + amplitude * (w * tk).sin();
+            let xk = stage.step(uk);
+            if k >= settle {
+                t.push(tk);
+                u.push(uk);
+                x.push(xk);
+            }
+        }
+        let (pu, px) = (phasor(&t, &u, w), phasor(&t, &x, w));
+        FrequencyPoint {
+            frequency_hz: f,
+            response: px.over(pu).times(C64::cis(-w / rate)),
+            drive_volts: pu.abs(),
+            sensor_amplitude: px.abs(),
+        }
+    };
+    let mut points: Vec<FrequencyPoint> = coarse_frequencies(&options, rate)
+        .into_iter()
+        .map(&mut measure)
+        .collect();
+    let peak = points
+        .iter()
+        .max_by(|a, b| a.response.abs().total_cmp(&b.response.abs()))
+        .map_or(options.lowest_hz, |p| p.frequency_hz);
+    let (lo, hi) = (peak / 1.25, (peak * 1.25).min(0.47 * rate));
+    let n = options.refine_points;
+    for i in 0..n {
+        points.push(measure(lo + (hi - lo) * (i as f64 + 0.5) / n as f64));
+    }
+    points.sort_by(|a, b| a.frequency_hz.total_cmp(&b.frequency_hz));
+    fit_resonance(&points, rate)
+        .ok_or_else(|| anyhow::anyhow!("the stage's measured response has no finite fit"))
+}
+
 /// Uncompensated tracking: the linear map turns the trajectory (after its lead-in) into a
 /// drive.
 pub fn track_linear(
@@ -236,8 +313,24 @@ pub struct TrackingTable {
     pub trajectory_range_um: (f64, f64),
     /// The linear map behind the `none` row.
     pub linear_map: Option<LinearMap>,
-    /// `none` first, then one row per model.
+    /// `none` first, then one row per model (with a preview, each model's row followed by
+    /// its row with the preview).
     pub rows: Vec<TrackingRow>,
+    /// The resonance the preview inverts, as measured on the stage (`None`: no preview).
+    pub resonance: Option<MeasuredResonance>,
+}
+
+/// The stage's resonance as [`measure_resonance`] fitted it.
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize)]
+pub struct MeasuredResonance {
+    /// Hz.
+    pub frequency_hz: f64,
+    /// Damping ratio.
+    pub zeta: f64,
+    /// The fit's RMS magnitude error, dB.
+    pub rms_db: f64,
+    /// The fit's RMS phase error, degrees.
+    pub rms_deg: f64,
 }
 
 impl TrackingTable {
@@ -258,6 +351,13 @@ impl TrackingTable {
             self.trajectory_range_um.0,
             self.trajectory_range_um.1
         )?;
+        if let Some(r) = &self.resonance {
+            writeln!(
+                out,
+                "preview: the resonance measured on the stage, {:.0} Hz, damping {:.4} (fit {:.2} dB, {:.1}° RMS)",
+                r.frequency_hz, r.zeta, r.rms_db, r.rms_deg
+            )?;
+        }
         write!(out, "{:<10} {:>16}", "method", "held-out max/rms")?;
         for name in &self.trajectories {
             write!(out, " {:>16}", name)?;
@@ -457,7 +557,7 @@ pub fn evaluate_variants(
         let tables: Vec<Result<TrackingTable, LabStageError>> = std::thread::scope(|s| {
             let running: Vec<_> = configs
                 .iter()
-                .map(|c| s.spawn(move || evaluate_all(c, methods, &[], board)))
+                .map(|c| s.spawn(move || evaluate_all(c, methods, &[], board, None)))
                 .collect();
             running
                 .into_iter()
@@ -612,7 +712,7 @@ pub fn evaluate_methods(
     config: &LabStageConfig,
     methods: &[Method],
 ) -> Result<TrackingTable, LabStageError> {
-    evaluate_all(config, methods, &[], None)
+    evaluate_all(config, methods, &[], None, None)
 }
 
 /// [`evaluate_methods`] with, after the three trajectories, a triangle at each of
@@ -623,11 +723,17 @@ pub fn evaluate_methods(
 /// With `board`, each model is fitted only as the board runs it at that control rate: `auto`
 /// picks among what the board's tick budget admits (sizing a model down where it allows, as
 /// `identify --tick-rate` and `calibrate` do), and a row names what was made smaller.
+///
+/// With `preview`, the stage's resonance is measured as `twinstack tune` measures a board's
+/// ([`measure_resonance`]) and each model's row is followed by `… + preview`: the same model,
+/// each trajectory shaped first so that the resonance does not ring at its corners
+/// ([`track_previewed`]).
 pub fn evaluate_methods_with_triangles(
     config: &LabStageConfig,
     methods: &[Method],
     triangles_hz: &[f64],
     board: Option<&BoardRate>,
+    preview: bool,
 ) -> anyhow::Result<TrackingTable> {
     let rate = 1.0 / config.sample_period_s;
     for &hz in triangles_hz {
@@ -638,7 +744,28 @@ pub fn evaluate_methods_with_triangles(
             );
         }
     }
-    Ok(evaluate_all(config, methods, triangles_hz, board)?)
+    let preview = if preview {
+        let fit = measure_resonance(config)?;
+        let p = &fit.plant;
+        let shaping = ResonancePreview::new(p.resonance_hz, p.zeta, rate)
+            .map_err(|e| anyhow::anyhow!("the stage's measured resonance: {e}"))?;
+        let measured = MeasuredResonance {
+            frequency_hz: p.resonance_hz,
+            zeta: p.zeta,
+            rms_db: fit.rms_db,
+            rms_deg: fit.rms_deg,
+        };
+        Some((shaping, measured))
+    } else {
+        None
+    };
+    Ok(evaluate_all(
+        config,
+        methods,
+        triangles_hz,
+        board,
+        preview.as_ref(),
+    )?)
 }
 
 /// [`evaluate_methods_with_triangles`] on frequencies it has checked; with `board`, each model
@@ -649,6 +776,7 @@ fn evaluate_all(
     methods: &[Method],
     triangles_hz: &[f64],
     board: Option<&BoardRate>,
+    preview: Option<&(ResonancePreview, MeasuredResonance)>,
 ) -> Result<TrackingTable, LabStageError> {
     let mut stage = LabStage::new(config)?;
     let data = excite(&mut stage);
@@ -724,22 +852,41 @@ fn evaluate_all(
                 .map(|tr| track(&mut stage, &id.model, tr, x_rest))
                 .collect::<Result<Vec<_>, _>>()
                 .map_err(|e| e.to_string())?;
-            Ok((held_out, scores))
+            let previewed = match preview {
+                Some((shaping, _)) => Some(
+                    trajectories
+                        .iter()
+                        .map(|tr| track_previewed(&mut stage, &id.model, tr, x_rest, shaping))
+                        .collect::<Result<Vec<_>, _>>()
+                        .map_err(|e| e.to_string())?,
+                ),
+                None => None,
+            };
+            Ok((held_out, scores, previewed))
         });
-        rows.push(match outcome {
-            Ok((held_out, scores)) => TrackingRow {
-                method,
-                held_out,
-                scores,
-                error: None,
-            },
-            Err(e) => TrackingRow {
+        match outcome {
+            Ok((held_out, scores, previewed)) => {
+                let previewed = previewed.map(|scores| TrackingRow {
+                    method: format!("{method} + preview"),
+                    held_out,
+                    scores,
+                    error: None,
+                });
+                rows.push(TrackingRow {
+                    method,
+                    held_out,
+                    scores,
+                    error: None,
+                });
+                rows.extend(previewed);
+            }
+            Err(e) => rows.push(TrackingRow {
                 method,
                 held_out: None,
                 scores: Vec::new(),
                 error: Some(e),
-            },
-        });
+            }),
+        }
     }
     Ok(TrackingTable {
         seed: config.seed,
@@ -749,6 +896,7 @@ fn evaluate_all(
         trajectory_range_um: (lo + margin, hi - margin),
         linear_map,
         rows,
+        resonance: preview.map(|p| p.1),
     })
 }
 

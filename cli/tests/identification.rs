@@ -898,3 +898,161 @@ fn compensate_says_what_it_did_with_the_last_lag_samples() {
         "{err}"
     );
 }
+
+/// `compensate --resonance-hz F --resonance-damping Z` shapes the planned trajectory first
+/// ([`twinstack_identify::preview`]) and inverts the shaped positions: its drive is exactly
+/// `compensate` of `ResonancePreview::shape` of the trajectory, and differs from the plain
+/// drive at the corners. A record whose samples are not evenly spaced, a resonance its rate
+/// cannot resolve, or the flags with `--measured` are refused, and nothing is written.
+#[test]
+fn compensate_with_a_preview_inverts_the_shaped_trajectory() {
+    use twinstack_identify::param_file::ParamFile;
+    use twinstack_identify::preview::ResonancePreview;
+    let dir = tempfile::tempdir().unwrap();
+    let params = dir.path().join("p.json");
+    let data = measured_data(MICROMANIPULATOR);
+    let p = params.to_str().unwrap();
+    ok(&[
+        "identify",
+        "--model",
+        "pi",
+        "--data",
+        data.to_str().unwrap(),
+        "--fit-until",
+        "16",
+        "--out",
+        p,
+    ]);
+    // A 2 Hz triangle over the middle of the model's output range, sampled at 200 Hz.
+    let (_, model) = ParamFile::load(&params).unwrap();
+    let (lo, hi) = (model.scaling.output_min, model.scaling.output_max);
+    let t: Vec<f64> = (0..400).map(|k| k as f64 / 200.0).collect();
+    let x: Vec<f64> = t
+        .iter()
+        .map(|&t| {
+            let phase = (2.0 * t).fract();
+            let up = if phase < 0.5 {
+                2.0 * phase
+            } else {
+                2.0 - 2.0 * phase
+            };
+            lo + (hi - lo) * (0.3 + 0.4 * up)
+        })
+        .collect();
+    let planned = dir.path().join("planned.csv");
+    let rows: String = t
+        .iter()
+        .zip(&x)
+        .map(|(t, x)| format!("{t},{x}\n"))
+        .collect();
+    std::fs::write(&planned, format!("t,x\n{rows}")).unwrap();
+    let out = |name: &str| dir.path().join(name);
+    let compensate = |extra: &[&str], to: &Path| {
+        let mut args = vec![
+            "compensate",
+            "--params",
+            p,
+            "--data",
+            planned.to_str().unwrap(),
+            "--out",
+            to.to_str().unwrap(),
+        ];
+        args.extend_from_slice(extra);
+        run(&args)
+    };
+    let shaped = compensate(
+        &["--resonance-hz", "60", "--resonance-damping", "0.05"],
+        &out("shaped.csv"),
+    );
+    assert!(shaped.status.success(), "{shaped:?}");
+    assert!(String::from_utf8_lossy(&shaped.stderr)
+        .contains("preview: shaped for a resonance at 60 Hz"));
+    assert!(compensate(&[], &out("plain.csv")).status.success());
+    let (_, u_shaped, _) = read_csv(&out("shaped.csv"));
+    let (_, u_plain, _) = read_csv(&out("plain.csv"));
+    let preview = ResonancePreview::new(60.0, 0.05, 200.0).unwrap();
+    let expected = model.compensate(&t, &preview.shape(&x)).unwrap();
+    let worst = |a: &[f64], b: &[f64]| {
+        a.iter()
+            .zip(b)
+            .map(|(a, b)| (a - b).abs())
+            .fold(0.0, f64::max)
+    };
+    assert!(
+        worst(&u_shaped, &expected) < 1e-6,
+        "the CLI's drive is the library's"
+    );
+    assert!(worst(&u_shaped, &u_plain) > 0.01 * model.scaling.input_half_span());
+
+    let uneven = dir.path().join("uneven.csv");
+    let rows: String = t
+        .iter()
+        .zip(&x)
+        .map(|(t, x)| format!("{},{x}\n", if *t > 1.0 { t + 0.002 } else { *t }))
+        .collect();
+    std::fs::write(&uneven, format!("t,x\n{rows}")).unwrap();
+    for (args, expected) in [
+        (
+            vec![
+                "--data",
+                uneven.to_str().unwrap(),
+                "--resonance-hz",
+                "60",
+                "--resonance-damping",
+                "0.05",
+            ],
+            "evenly spaced",
+        ),
+        (
+            vec![
+                "--data",
+                planned.to_str().unwrap(),
+                "--resonance-hz",
+                "150",
+                "--resonance-damping",
+                "0.05",
+            ],
+            "below half the sample rate (100 Hz)",
+        ),
+        (
+            vec![
+                "--data",
+                planned.to_str().unwrap(),
+                "--resonance-hz",
+                "60",
+                "--resonance-damping",
+                "1.5",
+            ],
+            "damping ratio 1.5",
+        ),
+        (
+            vec![
+                "--data",
+                planned.to_str().unwrap(),
+                "--resonance-hz",
+                "60",
+                "--resonance-damping",
+                "0.05",
+                "--measured",
+            ],
+            "cannot be used with",
+        ),
+    ] {
+        let refused = out("refused.csv");
+        let mut all = vec![
+            "compensate",
+            "--params",
+            p,
+            "--out",
+            refused.to_str().unwrap(),
+        ];
+        all.extend(args);
+        let r = run(&all);
+        let err = String::from_utf8_lossy(&r.stderr);
+        assert!(
+            !r.status.success() && err.contains(expected),
+            "{all:?}: {err}"
+        );
+        assert!(!refused.exists(), "{all:?} wrote its output");
+    }
+}

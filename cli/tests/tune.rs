@@ -255,6 +255,16 @@ fn the_command_tunes_the_simulated_and_the_virtual_board() {
         "{v}"
     );
 
+    // The text output gives the fitted resonance as the preview's flags, for `compensate`.
+    let text = twinstack_bin(&["tune", "--port", "sim", "--rate", "100k"]);
+    let out = String::from_utf8_lossy(&text.stdout);
+    let fitted = format!(
+        "`compensate --resonance-hz {:.0} --resonance-damping {:.4}`",
+        v["fit"]["resonance_hz"].as_f64().unwrap(),
+        v["fit"]["zeta"].as_f64().unwrap()
+    );
+    assert!(text.status.success() && out.contains(&fitted), "{out}");
+
     let bad = twinstack_bin(&[
         "tune", "--port", "sim", "--rate", "100k", "--kp", "0.1", "--ki", "20000",
     ]);

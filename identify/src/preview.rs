@@ -54,6 +54,19 @@ pub enum PreviewError {
     /// The damping ratio is not in `(0, 1)`.
     #[error("damping ratio {0}: must be in (0, 1) (a lightly damped resonance)")]
     Damping(f64),
+    /// The record's times are fewer than two, or not evenly spaced.
+    #[error("t steps by {step_s} s at t = {at_s} s where it steps by {mean_s} s on average: a preview needs evenly spaced samples")]
+    Uneven {
+        /// Where the step is off, s.
+        at_s: f64,
+        /// The step there, s.
+        step_s: f64,
+        /// The mean step, s.
+        mean_s: f64,
+    },
+    /// The record has fewer than two samples: no rate.
+    #[error("fewer than two samples: no sample rate to shape at")]
+    TooShort,
 }
 
 /// The zero-phase inverse of a resonance at one sample rate (see the module doc).
@@ -125,6 +138,40 @@ impl ResonancePreview {
             b1,
             c: b2 / b1,
         })
+    }
+
+    /// [`Self::new`] at the rate of the times `t` (s), which must be evenly spaced: every step
+    /// within 1 % of the mean step, else [`PreviewError::Uneven`] names the first that is not.
+    ///
+    /// ```
+    /// use twinstack_identify::preview::{PreviewError, ResonancePreview};
+    /// let t: Vec<f64> = (0..100).map(|k| k as f64 * 1e-4).collect();
+    /// assert_eq!(ResonancePreview::at_times(3_500.0, 0.03, &t).unwrap().rate_hz.round(), 10_000.0);
+    /// let mut uneven = t.clone();
+    /// uneven[50] += 5e-5;
+    /// assert!(matches!(
+    ///     ResonancePreview::at_times(3_500.0, 0.03, &uneven),
+    ///     Err(PreviewError::Uneven { .. })
+    /// ));
+    /// ```
+    pub fn at_times(resonance_hz: f64, zeta: f64, t: &[f64]) -> Result<Self, PreviewError> {
+        let n = t.len();
+        let mean = match (t.first(), t.last()) {
+            (Some(a), Some(b)) if n > 1 => (b - a) / (n - 1) as f64,
+            _ => return Err(PreviewError::TooShort),
+        };
+        let off = |step: f64| {
+            let d = (step - mean).abs();
+            d.is_nan() || d > 0.01 * mean
+        };
+        if let Some(w) = t.windows(2).find(|w| off(w[1] - w[0])) {
+            return Err(PreviewError::Uneven {
+                at_s: w[1],
+                step_s: w[1] - w[0],
+                mean_s: mean,
+            });
+        }
+        Self::new(resonance_hz, zeta, 1.0 / mean)
     }
 
     /// `c`: the hold's zero, at `−c`, which the preview does not invert (see the module doc).

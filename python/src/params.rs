@@ -16,6 +16,7 @@ use twinstack_identify::identification::run::{
 use twinstack_identify::identification::{
     IdentifyOptions, ModelKind, ThresholdSpread, DEFAULT_OPERATORS,
 };
+use twinstack_identify::preview::ResonancePreview;
 use twinstack_identify::param_file::ParamFile;
 use twinstack_identify::stage_model::{Hysteresis, StageModel};
 use twinstack_link::measured_data::{ColumnsError, MeasuredData};
@@ -100,8 +101,10 @@ impl Params {
 
     /// The drive (volts) the compensator gives for the desired reading `x`: every sample
     /// inverted exactly (a planned trajectory), or with `measured` a sensor's record followed
-    /// through its noise band, as `identify` scores an inverse.
-    #[pyo3(signature = (x, t=None, rate=None, measured=false))]
+    /// through its noise band, as `identify` scores an inverse; with `resonance` (its
+    /// frequency, Hz, and damping ratio) a planned trajectory shaped first so that the
+    /// stage's resonance does not ring at its corners (`twinstack_identify::preview`).
+    #[pyo3(signature = (x, t=None, rate=None, measured=false, resonance=None))]
     fn compensate<'py>(
         &self,
         py: Python<'py>,
@@ -109,17 +112,33 @@ impl Params {
         t: Option<&Bound<'py, PyAny>>,
         rate: Option<f64>,
         measured: bool,
+        resonance: Option<(f64, f64)>,
     ) -> PyResult<Bound<'py, PyArray1<f64>>> {
+        if resonance.is_some() && measured {
+            return Err(PyValueError::new_err(
+                "resonance shapes a planned trajectory: not with measured=True",
+            ));
+        }
+        if resonance.is_some() && t.is_none() && rate.is_none() {
+            return Err(PyValueError::new_err(
+                "resonance needs t or rate: the preview is made at the trajectory's sample rate",
+            ));
+        }
         let x = vector(py, x, "x")?;
         let t = times(py, &self.model, x.len(), t, rate)?;
+        let preview = match resonance {
+            Some((hz, zeta)) => Some(
+                ResonancePreview::at_times(hz, zeta, &t)
+                    .map_err(|e| PyValueError::new_err(format!("resonance: {e}")))?,
+            ),
+            None => None,
+        };
         let model = &self.model;
         let u = py
-            .detach(|| {
-                if measured {
-                    model.compensate_measured(&t, &x)
-                } else {
-                    model.compensate(&t, &x)
-                }
+            .detach(|| match &preview {
+                Some(p) => model.compensate(&t, &p.shape(&x)),
+                None if measured => model.compensate_measured(&t, &x),
+                None => model.compensate(&t, &x),
             })
             .map_err(|e| PyValueError::new_err(e.to_string()))?;
         Ok(array(py, u))

@@ -201,3 +201,37 @@ def test_a_planned_trajectory_is_inverted_exactly_and_a_measured_one_through_its
     exact = duhem.compensate(noisy, t=t)
     banded = duhem.compensate(noisy, t=t, measured=True)
     assert np.max(np.abs(banded[1000:] - u[1000:])) < np.max(np.abs(exact[1000:] - u[1000:]))
+
+
+def test_a_planned_trajectory_shaped_for_the_resonance_as_the_cli_shapes_it(micro, tmp_path, hal_sim):
+    # The micromanipulator's P–I; a 2 Hz triangle at 200 Hz; a resonance at 60 Hz.
+    t, u, x = micro
+    params = twinstack.identify(t, u, x, model="pi", fit_until=16.0)
+    tc = np.arange(400) / 200.0
+    phase = np.mod(2.0 * tc, 1.0)
+    lo, hi = np.min(x), np.max(x)
+    xc = lo + (hi - lo) * (0.3 + 0.4 * np.where(phase < 0.5, 2 * phase, 2 - 2 * phase))
+    plain = params.compensate(xc, t=tc)
+    shaped = params.compensate(xc, t=tc, resonance=(60.0, 0.05))
+    assert np.max(np.abs(shaped - plain)) > 0.01 * np.ptp(plain)
+    # At the rate instead of the times: the same drive.
+    assert np.array_equal(params.compensate(xc, rate=200.0, resonance=(60.0, 0.05)), shaped)
+    # The command line's drive, from the same file and trajectory.
+    params.save(tmp_path / "p.json")
+    np.savetxt(tmp_path / "planned.csv", np.column_stack([tc, xc]), delimiter=",",
+               header="t,x", comments="")
+    run(hal_sim, "compensate", "--params", tmp_path / "p.json", "--data",
+        tmp_path / "planned.csv", "--out", tmp_path / "drive.csv",
+        "--resonance-hz", "60", "--resonance-damping", "0.05")
+    _, cli, _ = read_csv(tmp_path / "drive.csv")
+    assert np.max(np.abs(cli - shaped)) < 1e-6
+    # What it cannot do is refused, naming it.
+    for kwargs, message in [
+        (dict(t=tc, resonance=(150.0, 0.05)), "below half the sample rate"),
+        (dict(t=tc, resonance=(60.0, 1.5)), "damping ratio 1.5"),
+        (dict(t=tc, resonance=(60.0, 0.05), measured=True), "not with measured"),
+        (dict(resonance=(60.0, 0.05)), "needs t or rate"),
+        (dict(t=np.where(tc > 1.0, tc + 0.002, tc), resonance=(60.0, 0.05)), "evenly spaced"),
+    ]:
+        with pytest.raises(ValueError, match=message):
+            params.compensate(xc, **kwargs)

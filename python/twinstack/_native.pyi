@@ -58,12 +58,16 @@ class Params:
         t: Optional[_ArrayLike] = None,
         rate: Optional[float] = None,
         measured: bool = False,
+        resonance: Optional[Tuple[float, float]] = None,
     ) -> np.ndarray:
         """The drive (volts) the board's compensator gives for the desired reading ``x``
         (output unit), in its fixed point; ``t``/``rate`` as in :meth:`predict`. Every sample
         is inverted exactly, as the board inverts its setpoints; with ``measured=True`` ``x``
         is a sensor's record, followed through its noise band (Duhem, Bouc–Wen) as
-        ``twinstack identify`` scores an inverse."""
+        ``twinstack identify`` scores an inverse. With ``resonance=(hz, damping)`` (what
+        ``twinstack tune`` fits) the planned ``x`` is shaped first so that the stage's
+        resonance does not ring at its corners, as ``twinstack compensate --resonance-hz``
+        does: it needs ``t`` (evenly spaced) or ``rate``, and not ``measured``."""
     def save(self, path: Union[str, "PathLike[str]"]) -> None:
         """Writes the parameter file (the same JSON ``twinstack identify`` writes)."""
     def to_json(self) -> str:

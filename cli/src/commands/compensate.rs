@@ -10,9 +10,13 @@
 //!   inverted exactly, as the board inverts its setpoints; with `--measured` IN's `x` is a
 //!   sensor's record and is followed through its noise band
 //!   ([`twinstack_identify::stage_model::NoiseBand`]), as identification scores an inverse.
+//!   With `--resonance-hz F --resonance-damping Z` (what `twinstack tune` fits and prints) the
+//!   planned trajectory is shaped first so that the stage's resonance does not ring at its
+//!   corners ([`twinstack_identify::preview`]): IN's samples must be evenly spaced.
 
 use std::path::PathBuf;
 use twinstack_identify::param_file::ParamFile;
+use twinstack_identify::preview::ResonancePreview;
 use twinstack_link::measured_data::{ColumnNames, Columns, MeasuredData};
 use twinstack_link::output_file::{csv_t_u_x, Staged};
 
@@ -46,10 +50,20 @@ pub struct CompensateArgs {
     /// Without it every sample is inverted exactly, as the board inverts its setpoints.
     #[arg(long)]
     pub measured: bool,
+    /// Shape the planned trajectory ahead of time so that the stage's resonance does not ring
+    /// at its corners: the resonance's frequency, Hz, as `twinstack tune` fits it (with
+    /// --resonance-damping). The desired readings are then what the stage reads a sample's
+    /// end; the t column must be evenly spaced (its rate is the drive's).
+    #[arg(long, requires = "resonance_damping", conflicts_with = "measured")]
+    pub resonance_hz: Option<f64>,
+    /// The resonance's damping ratio, in (0, 1), as `twinstack tune` fits it (with
+    /// --resonance-hz).
+    #[arg(long, requires = "resonance_hz")]
+    pub resonance_damping: Option<f64>,
 }
 
 /// Which way the model runs.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, PartialEq)]
 pub enum Direction {
     /// Drive in, predicted reading out (`predict`).
     Forward,
@@ -58,6 +72,9 @@ pub enum Direction {
     Inverse {
         /// The desired readings are a sensor's record.
         measured: bool,
+        /// The planned trajectory's preview: the resonance's frequency (Hz) and damping
+        /// ratio.
+        resonance: Option<(f64, f64)>,
     },
 }
 
@@ -86,9 +103,25 @@ pub fn run(args: &Args, direction: Direction) -> anyhow::Result<()> {
                 "drive samples outside the model's input range",
             )
         }
-        Direction::Inverse { measured } => {
+        Direction::Inverse {
+            measured,
+            resonance,
+        } => {
             let x = data.x.clone().unwrap_or_default();
-            let u = if measured {
+            let preview = match resonance {
+                Some((hz, zeta)) => Some(
+                    ResonancePreview::at_times(hz, zeta, &data.t)
+                        .map_err(|e| anyhow::anyhow!("--resonance-hz/--resonance-damping: {e}"))?,
+                ),
+                None => None,
+            };
+            let u = if let Some(p) = &preview {
+                eprintln!(
+                    "note: preview: shaped for a resonance at {} Hz, damping {}, at {:.0} Hz (the trajectory taken as resting at its last reading after it)",
+                    p.resonance_hz, p.zeta, p.rate_hz
+                );
+                model.compensate(&data.t, &p.shape(&x))
+            } else if measured {
                 match model.noise_band(&data.t, &x).map_err(model_error)? {
                     Some(band) => eprintln!(
                         "note: --measured: the readings' noise RMS is {:.4} (second differences), so reversals within ±{:.4} are taken for noise",

@@ -68,6 +68,12 @@ pub struct Args {
     /// `--rate`; whole cycles for at least a second and at least four.
     #[arg(long, value_delimiter = ',')]
     pub triangles: Vec<f64>,
+    /// Also track with a preview: the stage's resonance measured as `twinstack tune` measures
+    /// a board's, and each model's row followed by `… + preview`, every trajectory shaped
+    /// first so that the resonance does not ring at its corners (`compensate
+    /// --resonance-hz`).
+    #[arg(long, conflicts_with = "variants")]
+    pub preview: bool,
     /// Fit only what the board runs at this control rate, Hz (10 000 … 100 000), as
     /// `calibrate` does: `auto` picks among the models the board's tick budget admits, sized
     /// down where that lets one in (fewer creep modes or play operators, no observer); a
@@ -246,8 +252,13 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         }
         return Ok(());
     }
-    let table =
-        evaluate_methods_with_triangles(&config, &methods, &args.triangles, board.as_ref())?;
+    let table = evaluate_methods_with_triangles(
+        &config,
+        &methods,
+        &args.triangles,
+        board.as_ref(),
+        args.preview,
+    )?;
     if args.json {
         use std::io::Write;
         serde_json::to_writer_pretty(&mut stdout, &table)?;

@@ -176,6 +176,11 @@ fn run_on<T: Transport>(args: &Args, client: &mut Client<T>) -> anyhow::Result<(
          --shape-q {} --shape-depth {:.4}",
         shape.frequency_hz, shape.q, shape.depth
     );
+    println!(
+        "preview (a planned trajectory shaped ahead of time, open loop): `compensate \
+         --resonance-hz {:.0} --resonance-damping {:.4}`",
+        p.resonance_hz, p.zeta
+    );
     let notch = s.notch.map_or("none".to_string(), |n| {
         format!("{:.0} Hz, Q {}, depth {}", n.frequency_hz, n.q, n.depth)
     });

@@ -471,7 +471,8 @@ pub(super) fn learn_table(runs: &[Run]) -> Result<String, String> {
 }
 
 /// The lab stage's triangles (`twinstack lab-stage --triangles … --json`): a row per method,
-/// a column per triangle frequency, max / RMS % of the span (`*` where the drive clipped).
+/// a column per triangle frequency, max / RMS % of the span (`*` where the drive clipped);
+/// with `--preview`, the resonance measured on the stage above it.
 pub(super) fn triangles_table(out: &str) -> Result<String, String> {
     let v: serde_json::Value =
         serde_json::from_str(out).map_err(|e| format!("lab-stage's JSON: {e}"))?;
@@ -488,7 +489,22 @@ pub(super) fn triangles_table(out: &str) -> Result<String, String> {
     if columns.is_empty() {
         return Err("no `triangle … Hz` trajectory: run with --triangles".into());
     }
-    let mut table = String::from("| method |");
+    let mut table = String::new();
+    if let Some(r) = v["resonance"].as_object() {
+        let figure = |name: &str| {
+            r.get(name)
+                .and_then(|f| f.as_f64())
+                .ok_or(format!("`resonance` without `{name}`"))
+        };
+        table.push_str(&format!(
+            "The preview's resonance, measured on the stage as `tune` measures a board's: {:.0} Hz, damping ratio {:.4} (the fit within {:.2} dB and {:.1}° RMS).\n\n",
+            figure("frequency_hz")?,
+            figure("zeta")?,
+            figure("rms_db")?,
+            figure("rms_deg")?
+        ));
+    }
+    table.push_str("| method |");
     for &i in &columns {
         table.push_str(&format!(" {} |", &names[i]["triangle ".len()..]));
     }
@@ -767,6 +783,20 @@ mod tests {
             ]
         );
         assert!(triangles_table(r#"{"trajectories": ["triangle"], "rows": []}"#).is_err());
+        // With a preview, its measured resonance heads the table; one missing its figure is
+        // refused.
+        let previewed = out.replacen(
+            "{",
+            r#"{"resonance": {"frequency_hz": 3497.2, "zeta": 0.03121, "rms_db": 0.15, "rms_deg": 2.9}, "#,
+            1,
+        );
+        let table = triangles_table(&previewed).unwrap();
+        assert!(
+            table.starts_with("The preview's resonance, measured on the stage as `tune` measures a board's: 3497 Hz, damping ratio 0.0312 (the fit within 0.15 dB and 2.9° RMS).\n\n| method |"),
+            "{table}"
+        );
+        let incomplete = out.replacen("{", r#"{"resonance": {"frequency_hz": 3497.2}, "#, 1);
+        assert!(triangles_table(&incomplete).is_err());
     }
 
     #[test]
