@@ -42,7 +42,9 @@ use twinstack_identify::trajectory::{
 };
 use twinstack_identify::tune::fit::fit as fit_resonance;
 use twinstack_identify::tune::loop_model::C64;
-use twinstack_identify::tune::measure::{coarse_frequencies, phasor, FrequencyPoint, SweepOptions};
+use twinstack_identify::tune::measure::{
+    coarse_frequencies, phasor, refined_frequencies, FrequencyPoint, SweepOptions,
+};
 use twinstack_link::measured_data::MeasuredData;
 
 /// The default sample rate of the excitation and of tracking, Hz (see the module docs).
@@ -251,14 +253,8 @@ pub fn measure_resonance(
         .into_iter()
         .map(&mut measure)
         .collect();
-    let peak = points
-        .iter()
-        .max_by(|a, b| a.response.abs().total_cmp(&b.response.abs()))
-        .map_or(options.lowest_hz, |p| p.frequency_hz);
-    let (lo, hi) = (peak / 1.25, (peak * 1.25).min(0.47 * rate));
-    let n = options.refine_points;
-    for i in 0..n {
-        points.push(measure(lo + (hi - lo) * (i as f64 + 0.5) / n as f64));
+    for f in refined_frequencies(&options, &points, rate) {
+        points.push(measure(f));
     }
     points.sort_by(|a, b| a.frequency_hz.total_cmp(&b.frequency_hz));
     fit_resonance(&points, rate)

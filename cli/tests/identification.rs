@@ -991,52 +991,26 @@ fn compensate_with_a_preview_inverts_the_shaped_trajectory() {
         .map(|(t, x)| format!("{},{x}\n", if *t > 1.0 { t + 0.002 } else { *t }))
         .collect();
     std::fs::write(&uneven, format!("t,x\n{rows}")).unwrap();
+    let flags = |data: &Path, hz: &str, damping: &str| {
+        vec![
+            "--data".to_string(),
+            data.to_str().unwrap().to_string(),
+            "--resonance-hz".into(),
+            hz.into(),
+            "--resonance-damping".into(),
+            damping.into(),
+        ]
+    };
+    let mut measured = flags(&planned, "60", "0.05");
+    measured.push("--measured".into());
     for (args, expected) in [
+        (flags(&uneven, "60", "0.05"), "evenly spaced"),
         (
-            vec![
-                "--data",
-                uneven.to_str().unwrap(),
-                "--resonance-hz",
-                "60",
-                "--resonance-damping",
-                "0.05",
-            ],
-            "evenly spaced",
-        ),
-        (
-            vec![
-                "--data",
-                planned.to_str().unwrap(),
-                "--resonance-hz",
-                "150",
-                "--resonance-damping",
-                "0.05",
-            ],
+            flags(&planned, "150", "0.05"),
             "below half the sample rate (100 Hz)",
         ),
-        (
-            vec![
-                "--data",
-                planned.to_str().unwrap(),
-                "--resonance-hz",
-                "60",
-                "--resonance-damping",
-                "1.5",
-            ],
-            "damping ratio 1.5",
-        ),
-        (
-            vec![
-                "--data",
-                planned.to_str().unwrap(),
-                "--resonance-hz",
-                "60",
-                "--resonance-damping",
-                "0.05",
-                "--measured",
-            ],
-            "cannot be used with",
-        ),
+        (flags(&planned, "60", "1.5"), "damping ratio 1.5"),
+        (measured, "cannot be used with"),
     ] {
         let refused = out("refused.csv");
         let mut all = vec![
@@ -1046,7 +1020,7 @@ fn compensate_with_a_preview_inverts_the_shaped_trajectory() {
             "--out",
             refused.to_str().unwrap(),
         ];
-        all.extend(args);
+        all.extend(args.iter().map(String::as_str));
         let r = run(&all);
         let err = String::from_utf8_lossy(&r.stderr);
         assert!(

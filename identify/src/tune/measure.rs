@@ -350,18 +350,30 @@ pub fn sweep<T: Transport>(
     for f in coarse_frequencies(options, rate) {
         points.push(measure(f)?);
     }
+    for f in refined_frequencies(options, &points, rate) {
+        points.push(measure(f)?);
+    }
+    points.sort_by(|a, b| a.frequency_hz.total_cmp(&b.frequency_hz));
+    Ok((points, facts.tick_rate_hz))
+}
+
+/// The frequencies the sweep adds after the coarse `points` at `rate`:
+/// [`SweepOptions::refine_points`] evenly spaced within ±25 % of the largest response (at
+/// most `0.47 · rate`).
+pub fn refined_frequencies(
+    options: &SweepOptions,
+    points: &[FrequencyPoint],
+    rate: f64,
+) -> Vec<f64> {
     let peak = points
         .iter()
         .max_by(|a, b| a.response.abs().total_cmp(&b.response.abs()))
         .map_or(options.lowest_hz, |p| p.frequency_hz);
     let (lo, hi) = (peak / 1.25, (peak * 1.25).min(0.47 * rate));
     let n = options.refine_points;
-    for i in 0..n {
-        let f = lo + (hi - lo) * (i as f64 + 0.5) / n as f64;
-        points.push(measure(f)?);
-    }
-    points.sort_by(|a, b| a.frequency_hz.total_cmp(&b.frequency_hz));
-    Ok((points, facts.tick_rate_hz))
+    (0..n)
+        .map(|i| lo + (hi - lo) * (i as f64 + 0.5) / n as f64)
+        .collect()
 }
 
 #[cfg(test)]
