@@ -16,15 +16,28 @@
 //! played; its samples are written as `twinstack telemetry` writes them (CSV and PNG, physical
 //! units), and a sample that did not arrive is an error ([`super::telemetry::finish`]).
 //!
+//! `--resonance-hz F --resonance-damping Z` (what `twinstack tune` fits and prints) shapes the
+//! setpoints ahead of time so that the stage's resonance does not ring at their corners
+//! ([`twinstack_identify::preview`]): for a board in open loop (its compensator inverts the
+//! shaped positions; closed loop its feedback would follow them, in bypass they would be the
+//! drive), one setpoint a tick (the board holds each one over its tick; interpolated between
+//! setpoints further apart, shaped ones would not be what the preview assumes). A setpoint is
+//! for the middle of its tick, so the positions shaped are the trajectory's between setpoints,
+//! at the ends of the ticks. Shaped setpoints outside −1…1 (a corner too near the range's
+//! end) are refused, naming the first; nothing is sent.
+//!
 //! Exit codes: [`EXIT_CODES`] (0 played without underrun, 1 error, 2 usage, 3 completed with
 //! underruns: [`Underran`]).
 
 use super::board_link::{connect, PortArgs};
 use std::path::PathBuf;
+use twinstack::control::mode_switch::Mode;
 use twinstack::protocol::messages::{Trigger, UnderrunPolicy};
 use twinstack_identify::param_file::ParamFile;
+use twinstack_identify::preview::ResonancePreview;
+use twinstack_identify::stage_model::between_samples;
 use twinstack_link::capture::signal_mask;
-use twinstack_link::setpoint_file::{self, SetpointUnits};
+use twinstack_link::setpoint_file::{self, q1_15, SetpointUnits};
 use twinstack_link::streamer::{stream_setpoints, StreamOptions};
 
 /// The exit codes of `twinstack stream`, as `twinstack stream --help` lists them.
@@ -102,6 +115,35 @@ pub struct Args {
     /// CSV of the telemetry (physical units); a PNG is written next to it.
     #[arg(long, requires = "telemetry")]
     pub telemetry_out: Option<PathBuf>,
+    /// Shape the setpoints ahead of time so that the stage's resonance does not ring at their
+    /// corners: the resonance's frequency, Hz, as `twinstack tune` fits it (with
+    /// --resonance-damping). For a board in open loop, one setpoint a tick.
+    #[arg(long, requires = "resonance_damping")]
+    pub resonance_hz: Option<f64>,
+    /// The resonance's damping ratio, in (0, 1), as `twinstack tune` fits it (with
+    /// --resonance-hz).
+    #[arg(long, requires = "resonance_hz")]
+    pub resonance_damping: Option<f64>,
+}
+
+/// `samples` (Q1.15, one a tick at `tick_rate` Hz, each for the middle of its tick) shaped by
+/// the preview of a resonance at `hz` with damping ratio `zeta`: the positions between
+/// setpoints (at the ends of the ticks, [`between_samples`]) through
+/// [`ResonancePreview::shape`], back to Q1.15. A shaped value outside −1…1 is refused, naming
+/// its setpoint.
+pub fn shaped(samples: &[i16], hz: f64, zeta: f64, tick_rate: f64) -> anyhow::Result<Vec<i16>> {
+    let preview = ResonancePreview::new(hz, zeta, tick_rate)
+        .map_err(|e| anyhow::anyhow!("--resonance-hz/--resonance-damping: {e}"))?;
+    let x: Vec<f64> = samples.iter().map(|&q| q as f64 / 32768.0).collect();
+    let r = preview.shape(&between_samples(&x));
+    if let Some(k) = r.iter().position(|v| !(-1.0..=1.0).contains(v)) {
+        anyhow::bail!(
+            "--resonance-hz: setpoint {} shaped is {:.4}, outside −1…1 (the preview overshoots a corner there): keep the trajectory further inside the range; nothing was sent",
+            k + 1,
+            r[k]
+        );
+    }
+    Ok(r.into_iter().map(q1_15).collect())
 }
 
 /// `--underrun` values.
@@ -157,6 +199,28 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     } else {
         args.tick_rate
     };
+    let samples = match args.resonance_hz.zip(args.resonance_damping) {
+        Some((hz, zeta)) => {
+            if options.divider != 1 {
+                anyhow::bail!(
+                    "--resonance-hz shapes one setpoint a tick, and the stream plays one every {} ticks (interpolated in between): give a t column at the board's {tick_rate} Hz or --divider 1; nothing was sent",
+                    options.divider
+                );
+            }
+            let mode = client.read_params()?.mode;
+            if mode != Mode::OpenLoop {
+                anyhow::bail!(
+                    "--resonance-hz shapes the setpoints for the board's compensator in open loop, and the board is in {mode:?} (closed loop its feedback would follow the shaped setpoints, in bypass they would be the drive): `twinstack set /mode OpenLoop` first; nothing was sent"
+                );
+            }
+            let shaped = shaped(&sp.samples, hz, zeta, tick_rate)?;
+            eprintln!(
+                "note: setpoints shaped for a resonance at {hz} Hz, damping {zeta}, at the board's {tick_rate} Hz"
+            );
+            shaped
+        }
+        None => sp.samples.clone(),
+    };
     // Arm the capture before the stream starts: its start is the trigger.
     let recording = match (&args.record, &args.record_out) {
         (Some(signals), Some(out)) => {
@@ -196,8 +260,8 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         }
         _ => None,
     };
-    let bar = super::progress::bar(sp.samples.len() as u64, "streaming", "setpoints");
-    let r = stream_setpoints(&mut client, &sp.samples, &options, |n| {
+    let bar = super::progress::bar(samples.len() as u64, "streaming", "setpoints");
+    let r = stream_setpoints(&mut client, &samples, &options, |n| {
         bar.set_position(n as u64)
     });
     bar.finish_and_clear();
@@ -283,4 +347,39 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         .into());
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Setpoints for the middles of the ticks are shaped at the ends of the ticks: the shaped
+    /// stream is the preview of the positions between them. A dip just below the range's top
+    /// turns back up so sharply that the shaped setpoint leaves the range: refused, naming it.
+    #[test]
+    fn the_positions_between_setpoints_are_shaped_and_a_shaped_value_beyond_the_range_is_refused() {
+        let x: Vec<f64> = (0..400).map(|k| 0.5 * (k as f64 * 0.05).sin()).collect();
+        let q: Vec<i16> = x.iter().map(|&v| q1_15(v)).collect();
+        let s = shaped(&q, 3_000.0, 0.03, 50_000.0).unwrap();
+        let p = ResonancePreview::new(3_000.0, 0.03, 50_000.0).unwrap();
+        let xq: Vec<f64> = q.iter().map(|&v| v as f64 / 32768.0).collect();
+        let expected = p.shape(&between_samples(&xq));
+        assert!(s
+            .iter()
+            .zip(&expected)
+            .all(|(&a, &b)| (a as f64 / 32768.0 - b).abs() <= 1.0 / 32768.0));
+        // A V from 0.99 down to 0.9 and back within four ticks.
+        let mut v = vec![0.99; 40];
+        v[20..25].copy_from_slice(&[0.96, 0.93, 0.9, 0.93, 0.96]);
+        let q: Vec<i16> = v.iter().map(|&v| q1_15(v)).collect();
+        let e = shaped(&q, 3_000.0, 0.03, 50_000.0).unwrap_err().to_string();
+        assert!(
+            e.contains("outside −1…1") && e.contains("setpoint 2"),
+            "{e}"
+        );
+        assert!(shaped(&q, 30_000.0, 0.03, 50_000.0)
+            .unwrap_err()
+            .to_string()
+            .contains("below half the sample rate"));
+    }
 }
