@@ -422,13 +422,24 @@ impl StageModel {
     /// setpoints: `x` is a planned trajectory. With a sensor lag of `L` samples the drive
     /// leads by `L`.
     pub fn compensate(&self, t: &[f64], x: &[f64]) -> Result<Vec<f64>, ParamError> {
-        self.inverse_run(t, x, false)
+        Ok(self.inverse_run(t, x, false)?.0)
     }
 
     /// [`Self::compensate`] of a *measured* trajectory `x` (a sensor's record, with its
     /// noise): followed through its [`NoiseBand`], so that the sensor's noise is not taken
     /// for motion. What identification scores a candidate's inverse by.
     pub fn compensate_measured(&self, t: &[f64], x: &[f64]) -> Result<Vec<f64>, ParamError> {
+        Ok(self.inverse_run(t, x, true)?.0)
+    }
+
+    /// [`Self::compensate_measured`] and the [`NoiseBand`] it followed the readings through
+    /// (`None` for a P–I or generalised P–I, which takes them as they come): one estimate of
+    /// the noise for both.
+    pub fn compensate_measured_with_band(
+        &self,
+        t: &[f64],
+        x: &[f64],
+    ) -> Result<(Vec<f64>, Option<NoiseBand>), ParamError> {
         self.inverse_run(t, x, true)
     }
 
@@ -451,8 +462,14 @@ impl StageModel {
         Ok((y0, targets))
     }
 
-    /// [`Self::compensate`], or with `measured` [`Self::compensate_measured`].
-    fn inverse_run(&self, t: &[f64], x: &[f64], measured: bool) -> Result<Vec<f64>, ParamError> {
+    /// [`Self::compensate`], or with `measured` [`Self::compensate_measured`]; and the band
+    /// a measured trajectory was followed through, if any.
+    fn inverse_run(
+        &self,
+        t: &[f64],
+        x: &[f64],
+        measured: bool,
+    ) -> Result<(Vec<f64>, Option<NoiseBand>), ParamError> {
         let s = &self.scaling;
         let u_phys = |q: i32| s.norm_to_input(signal_to_f64(q));
         let (y0, targets) = self.hysteresis_targets(t, x)?;
@@ -464,10 +481,11 @@ impl StageModel {
                 let m = InversePrandtlIshlinskii::new(p, s)?;
                 let mut st = m.state_at_rest(signal_from_f64(s.output_to_norm(y0)));
                 // Every sample to its memory, measured or not: see `NoiseBand`.
-                targets
+                let u = targets
                     .iter()
                     .map(|&y| u_phys(m.step(&mut st, y)))
-                    .collect()
+                    .collect();
+                (u, None)
             }
             Hysteresis::Duhem(p) => {
                 let m = InverseDuhem::new(p, s)?;
@@ -480,15 +498,18 @@ impl StageModel {
                 let y0_norm = signal_from_f64(s.output_to_norm(y0));
                 let mut st = at_rest(u0);
                 let band = NoiseBand::if_measured(measured, given, self.band_slope()?, s);
-                NoiseBand::invert(band, &targets, y0_norm, s, |y| m.step(&mut st, y))
+                let u =
+                    NoiseBand::invert(band.clone(), &targets, y0_norm, s, |y| m.step(&mut st, y));
+                (u, band)
             }
             Hysteresis::GeneralisedPi(p) => {
                 let m = InverseGeneralisedPi::new(p, s)?;
                 let mut st = m.state_at_rest(signal_from_f64(s.output_to_norm(y0)));
-                targets
+                let u = targets
                     .iter()
                     .map(|&y| u_phys(m.step(&mut st, y)))
-                    .collect()
+                    .collect();
+                (u, None)
             }
             Hysteresis::BoucWen(p) => {
                 let m = InverseBoucWen::new(p, s)?;
@@ -501,7 +522,9 @@ impl StageModel {
                 let mut st = at_rest(u0);
                 let band = NoiseBand::if_measured(measured, given, self.band_slope()?, s);
                 let y0_norm = signal_from_f64(s.output_to_norm(y0));
-                NoiseBand::invert(band, &targets, y0_norm, s, |y| m.step(&mut st, y))
+                let u =
+                    NoiseBand::invert(band.clone(), &targets, y0_norm, s, |y| m.step(&mut st, y));
+                (u, band)
             }
         })
     }
@@ -897,13 +920,18 @@ mod tests {
             ("Bouc–Wen", bouc_wen_model()),
         ] {
             let x = m.predict(&t, &u).unwrap();
-            // What a band would take for noise (the P–I never has one).
-            if let Some(band) = m.noise_band(&t, &x).unwrap() {
+            // What a band would take for noise (the P–I never has one); the measured inverse
+            // follows the very band `noise_band` estimates.
+            let band = m.noise_band(&t, &x).unwrap();
+            if let Some(band) = &band {
                 assert!(
                     band.width_norm > 0.01,
                     "{name}: the estimate sees noise: {band:?}"
                 );
             }
+            let (measured, followed) = m.compensate_measured_with_band(&t, &x).unwrap();
+            assert_eq!(followed, band, "{name}");
+            assert_eq!(measured, m.compensate_measured(&t, &x).unwrap(), "{name}");
             let lsb = (m.scaling.input_max - m.scaling.input_min) / 65536.0;
             for (run, back) in [
                 ("fixed point", m.compensate(&t, &x).unwrap()),

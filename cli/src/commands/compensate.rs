@@ -122,17 +122,21 @@ pub fn run(args: &Args, direction: Direction) -> anyhow::Result<()> {
                 );
                 model.compensate(&data.t, &p.shape(&x))
             } else if measured {
-                match model.noise_band(&data.t, &x).map_err(model_error)? {
-                    Some(band) => eprintln!(
-                        "note: --measured: the readings' noise RMS is {:.4} (second differences), so reversals within ±{:.4} are taken for noise",
-                        band.noise_rms,
-                        band.width_norm * model.scaling.output_half_span()
-                    ),
-                    None => eprintln!(
-                        "note: --measured: a P–I or generalised P–I model's inverse takes the readings as they come (its memory closes every loop the noise makes)"
-                    ),
-                }
-                model.compensate_measured(&data.t, &x)
+                model
+                    .compensate_measured_with_band(&data.t, &x)
+                    .map(|(u, band)| {
+                        match band {
+                            Some(band) => eprintln!(
+                                "note: --measured: the readings' noise RMS is {:.4} (second differences), so reversals within ±{:.4} are taken for noise",
+                                band.noise_rms,
+                                band.width_norm * model.scaling.output_half_span()
+                            ),
+                            None => eprintln!(
+                                "note: --measured: a P–I or generalised P–I model's inverse takes the readings as they come (its memory closes every loop the noise makes)"
+                            ),
+                        }
+                        u
+                    })
             } else {
                 model.compensate(&data.t, &x)
             }
