@@ -1,9 +1,12 @@
 //! `twinstack lab-stage [--model pi,duhem] [--seed N] [--json] [--without creep,…] [--set field=value,…]
-//! [--variants] [--tick-rate HZ]`: the tracking table on the simulated laboratory stage
-//! ([`hal_sim::plant::lab_stage`], outside the model family) — identified from 2 s of 10 Hz
-//! excitation, then a triangle, nested minor loops and a multisine tracked open loop with each
-//! model's compensator and with none ([`crate::tracking`]); with `--variants`, the worst error
-//! on each of [`crate::tracking::STAGE_VARIANTS`] (stages the family was not tuned on).
+//! [--variants] [--tick-rate HZ] [--triangles 1,5,…] [--preview]`: the tracking table on the
+//! simulated laboratory stage ([`hal_sim::plant::lab_stage`], outside the model family) —
+//! identified from 2 s of 10 Hz excitation, then a triangle, nested minor loops and a
+//! multisine tracked open loop with each model's compensator and with none
+//! ([`crate::tracking`]); with `--variants`, the worst error on each of
+//! [`crate::tracking::STAGE_VARIANTS`] (stages the family was not tuned on); with
+//! `--preview`, each model again with every trajectory shaped for the stage's resonance,
+//! measured as `tune` measures a board's ([`crate::tracking::measure_resonance`]).
 
 use crate::commands::identify::{parse_model, ModelChoice};
 use crate::tracking::{
