@@ -2,8 +2,8 @@
 //! process over TCP, as a lab's board): refused, with nothing sent, where the shaped setpoints
 //! would not be what the board does with them (in bypass, setpoints interpolated over several
 //! ticks); in open loop the board plays the setpoints shaped
-//! ([`twinstack_cli::commands::stream::shaped`], whose own tests hold its refusal of a shaped
-//! value outside the range), as its recorder shows.
+//! (`twinstack_identify::preview::ResonancePreview::shape_stream`, whose own tests hold its
+//! refusal of a shaped value outside the range), as its recorder shows.
 
 use std::process::{Command, Output};
 
@@ -75,7 +75,7 @@ fn stream_with_a_preview_plays_the_shaped_setpoints_in_open_loop_and_refuses_oth
     let o = stream(&["--divider", "5"]);
     let (_, err) = text(&o);
     assert!(
-        err.contains("one every 5 ticks") && err.contains("nothing was sent"),
+        err.contains("one setpoint every 5 ticks") && err.contains("nothing was sent"),
         "{err}"
     );
     assert_eq!(next_seq(), before, "no setpoint reached the board");
@@ -105,7 +105,10 @@ fn stream_with_a_preview_plays_the_shaped_setpoints_in_open_loop_and_refuses_oth
     let r = &settings.ranges;
     let to_um = |q: i16| r.norm_to_output(q as f64 / 32768.0);
     let q: Vec<i16> = x.iter().map(|&v| (v * 32768.0).round() as i16).collect();
-    let shaped = twinstack_cli::commands::stream::shaped(&q, 21_800.0, 0.017, 50_000.0).unwrap();
+    let shaped = twinstack_identify::preview::ResonancePreview::new(21_800.0, 0.017, 50_000.0)
+        .unwrap()
+        .shape_stream(&q, twinstack::control::mode_switch::Mode::OpenLoop, 1)
+        .unwrap();
     let csv = std::fs::read_to_string(&run).unwrap();
     let recorded: Vec<f64> = csv
         .lines()

@@ -31,8 +31,11 @@
 //! drive is `H⁻¹[C⁻¹[shaped]]`. A sensor's lag stays the model's ([`crate::stage_model`]); the
 //! hold's and the resonance's delays are the preview's.
 
+use crate::stage_model::between_samples;
 use crate::zero_order_hold::ZeroOrderHold;
 use std::f64::consts::TAU;
+use twinstack::control::mode_switch::Mode;
+use twinstack_link::setpoint_file::q1_15;
 
 /// Why a preview cannot be made.
 #[derive(Clone, Debug, PartialEq, thiserror::Error)]
@@ -67,6 +70,20 @@ pub enum PreviewError {
     /// The record has fewer than two samples: no rate.
     #[error("fewer than two samples: no sample rate to shape at")]
     TooShort,
+    /// A board's setpoints shaped leave its range.
+    #[error("setpoint {setpoint} shaped is {value:.4}, outside −1…1 (the preview overshoots a turn there): keep the trajectory further inside the range")]
+    OutOfRange {
+        /// The setpoint, counted from 1.
+        setpoint: usize,
+        /// Its shaped value, normalised.
+        value: f64,
+    },
+    /// The board would not do with shaped setpoints what the preview assumes.
+    #[error("the board is in {0:?}: shaped setpoints are for its compensator in open loop (closed loop its feedback would follow them, in bypass they would be the drive)")]
+    Mode(Mode),
+    /// Setpoints several ticks apart, which the board interpolates.
+    #[error("the stream plays one setpoint every {0} ticks, interpolated in between, and the preview shapes one a tick (held over it)")]
+    Divider(u16),
 }
 
 /// The zero-phase inverse of a resonance at one sample rate (see the module doc).
@@ -193,6 +210,45 @@ impl ResonancePreview {
         (0..n as isize)
             .map(|k| (w(k) + self.c * w(k + 1)) * scale)
             .collect()
+    }
+
+    /// A board's stream shaped: `samples` (Q1.15, one a tick at this preview's rate, each for
+    /// the middle of its tick, as the board takes a setpoint) for a board in `mode` playing one
+    /// every `divider` ticks. The positions between setpoints (at the ends of the ticks,
+    /// [`between_samples`]) go through [`Self::shape`], back to Q1.15. Refused: a board not in
+    /// open loop ([`PreviewError::Mode`]), a divider above 1 ([`PreviewError::Divider`]), a
+    /// shaped value outside −1…1 ([`PreviewError::OutOfRange`], the first).
+    ///
+    /// ```
+    /// use twinstack::control::mode_switch::Mode;
+    /// use twinstack_identify::preview::{PreviewError, ResonancePreview};
+    /// let p = ResonancePreview::new(21_800.0, 0.017, 50_000.0).unwrap();
+    /// let ramp: Vec<i16> = (0..100).map(|k| (k * 100) as i16).collect();
+    /// assert_eq!(p.shape_stream(&ramp, Mode::OpenLoop, 1).unwrap().len(), 100);
+    /// assert_eq!(p.shape_stream(&ramp, Mode::ClosedLoop, 1), Err(PreviewError::Mode(Mode::ClosedLoop)));
+    /// assert_eq!(p.shape_stream(&ramp, Mode::OpenLoop, 5), Err(PreviewError::Divider(5)));
+    /// ```
+    pub fn shape_stream(
+        &self,
+        samples: &[i16],
+        mode: Mode,
+        divider: u16,
+    ) -> Result<Vec<i16>, PreviewError> {
+        if divider != 1 {
+            return Err(PreviewError::Divider(divider));
+        }
+        if mode != Mode::OpenLoop {
+            return Err(PreviewError::Mode(mode));
+        }
+        let x: Vec<f64> = samples.iter().map(|&q| q as f64 / 32768.0).collect();
+        let r = self.shape(&between_samples(&x));
+        if let Some(k) = r.iter().position(|v| !(-1.0..=1.0).contains(v)) {
+            return Err(PreviewError::OutOfRange {
+                setpoint: k + 1,
+                value: r[k],
+            });
+        }
+        Ok(r.into_iter().map(q1_15).collect())
     }
 
     /// What the position does under [`Self::shape`]`(desired)`: the three-tap zero-phase
@@ -324,6 +380,40 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(e.contains("6000 Hz") && e.contains("5000 Hz"), "{e}");
+    }
+
+    /// Setpoints for the middles of the ticks are shaped at the ends of the ticks: the shaped
+    /// stream is the preview of the positions between them. A dip just below the range's top
+    /// turns back up so sharply that the shaped setpoint leaves the range: refused, naming it.
+    #[test]
+    fn a_stream_is_shaped_between_its_setpoints_and_a_shaped_value_beyond_the_range_is_refused() {
+        let p = ResonancePreview::new(3_000.0, 0.03, 50_000.0).unwrap();
+        let x: Vec<f64> = (0..400).map(|k| 0.5 * (k as f64 * 0.05).sin()).collect();
+        let q: Vec<i16> = x.iter().map(|&v| q1_15(v)).collect();
+        let s = p.shape_stream(&q, Mode::OpenLoop, 1).unwrap();
+        let xq: Vec<f64> = q.iter().map(|&v| v as f64 / 32768.0).collect();
+        let expected = p.shape(&between_samples(&xq));
+        assert!(s
+            .iter()
+            .zip(&expected)
+            .all(|(&a, &b)| (a as f64 / 32768.0 - b).abs() <= 1.0 / 32768.0));
+        // A V from 0.99 down to 0.9 and back within four ticks.
+        let mut v = vec![0.99; 40];
+        v[20..25].copy_from_slice(&[0.96, 0.93, 0.9, 0.93, 0.96]);
+        let q: Vec<i16> = v.iter().map(|&v| q1_15(v)).collect();
+        match p.shape_stream(&q, Mode::OpenLoop, 1) {
+            Err(PreviewError::OutOfRange { setpoint, value }) => {
+                assert!(
+                    (19..=26).contains(&setpoint) && value > 1.0,
+                    "{setpoint}: {value}"
+                )
+            }
+            other => panic!("{other:?}"),
+        }
+        assert_eq!(
+            p.shape_stream(&q, Mode::Bypass, 1),
+            Err(PreviewError::Mode(Mode::Bypass))
+        );
     }
 
     #[test]

@@ -22,6 +22,7 @@ use twinstack::protocol::messages::{
 };
 use twinstack::sources::analog_input::{AnalogInputConfig, AnalogRequest, OnFault};
 use twinstack_identify::param_file::ParamFile;
+use twinstack_identify::preview::ResonancePreview;
 use twinstack_link::board_requests::{self, LoadRefused};
 use twinstack_link::capture::{self, CaptureError};
 use twinstack_link::client::{Client, LinkError};
@@ -332,8 +333,11 @@ impl Board {
         self.with(py, |c| c.set_mode(m))
     }
 
-    /// Streams setpoints and waits until they have played.
-    #[pyo3(signature = (setpoints, rate=None, normalised=false, underrun=None, wait=true))]
+    /// Streams setpoints and waits until they have played; with `resonance` (its frequency,
+    /// Hz, and damping ratio) shaped first for the stage's resonance
+    /// (`twinstack_identify::preview::ResonancePreview::shape_stream`).
+    #[pyo3(signature = (setpoints, rate=None, normalised=false, underrun=None, wait=true, resonance=None))]
+    #[allow(clippy::too_many_arguments)] // the Python keyword arguments, one each
     fn stream<'py>(
         &self,
         py: Python<'py>,
@@ -342,6 +346,7 @@ impl Board {
         normalised: bool,
         underrun: Option<&str>,
         wait: bool,
+        resonance: Option<(f64, f64)>,
     ) -> PyResult<Bound<'py, PyDict>> {
         let values = vector(py, setpoints, "setpoints")?;
         let underrun = match underrun {
@@ -360,6 +365,12 @@ impl Board {
         let divider = match rate {
             None => 1,
             Some(r) => divider_for_rate(tick_rate, r).map_err(PyValueError::new_err)?,
+        };
+        let samples = match resonance {
+            Some((hz, zeta)) => ResonancePreview::new(hz, zeta, tick_rate)
+                .and_then(|p| p.shape_stream(&samples, settings.mode, divider))
+                .map_err(|e| PyValueError::new_err(format!("resonance: {e}; nothing was sent")))?,
+            None => samples,
         };
         let options = StreamOptions {
             divider,

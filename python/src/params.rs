@@ -16,8 +16,8 @@ use twinstack_identify::identification::run::{
 use twinstack_identify::identification::{
     IdentifyOptions, ModelKind, ThresholdSpread, DEFAULT_OPERATORS,
 };
-use twinstack_identify::preview::ResonancePreview;
 use twinstack_identify::param_file::ParamFile;
+use twinstack_identify::preview::ResonancePreview;
 use twinstack_identify::stage_model::{Hysteresis, StageModel};
 use twinstack_link::measured_data::{ColumnsError, MeasuredData};
 

@@ -143,6 +143,31 @@ def test_a_stream_out_of_range_or_at_an_odd_rate_is_refused_before_sending(board
     assert board.status()["queue_fill"] == 0, "nothing was sent"
 
 
+def test_a_stream_shaped_for_the_resonance_plays_in_open_loop_and_is_refused_otherwise(board):
+    # A 250 Hz triangle of ±20 µm, one setpoint a tick at 50 kHz; the stage's 21.8 kHz
+    # resonance as `tune` fits it.
+    phase = np.mod(np.arange(2000) / 200.0, 1.0)
+    setpoints = 40.0 * np.where(phase < 0.5, phase, 1.0 - phase) - 10.0
+    resonance = (21800.0, 0.017)
+    with pytest.raises(ValueError, match="the board is in Bypass"):
+        board.stream(setpoints, resonance=resonance)
+    board.mode("open-loop")
+    with pytest.raises(ValueError, match="one setpoint every 5 ticks"):
+        board.stream(setpoints, rate=10000.0, resonance=resonance)
+    with pytest.raises(ValueError, match="below half the sample rate"):
+        board.stream(setpoints, resonance=(30000.0, 0.017))
+    assert board.status()["queue_fill"] == 0, "nothing was sent"
+    board.arm(["setpoint"], samples=2000, trigger="stream")
+    report = board.stream(setpoints, resonance=resonance)
+    assert report["accepted"] == 2000 and not report["underran"]
+    played = board.fetch(timeout=10)["setpoint"]
+    # Shaped: not the file's setpoints at the corners, and the same trajectory between them.
+    lsb = 90.0 / 65536
+    assert np.max(np.abs(played - setpoints)) > 50 * lsb
+    assert np.median(np.abs(played - setpoints)) < 0.05 * np.ptp(setpoints)
+    board.mode("bypass")
+
+
 def test_a_waveform_triggers_a_capture_and_stops(board):
     board.arm("setpoint,sensor", samples=2500, trigger="waveform", pre=100)
     board.waveform(amplitude=0.5, frequency=50.0)

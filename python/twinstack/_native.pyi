@@ -229,6 +229,7 @@ class Board:
         normalised: bool = False,
         underrun: Optional[str] = None,
         wait: bool = True,
+        resonance: Optional[Tuple[float, float]] = None,
     ) -> Dict[str, Any]:
         """Streams ``setpoints`` to the board: in the output unit of the settings in force
         (or -1...1 with ``normalised=True``; a value outside the range raises ``ValueError``,
@@ -236,6 +237,10 @@ class Board:
         number; default: one per tick), within the credits the board grants. Starts the
         stream once the queue is primed and, with ``wait``, waits until it has played and
         stops it. ``underrun``: ``"hold"`` or ``"ramp-to-bias"`` when the queue runs dry.
+        ``resonance=(hz, damping)`` (what ``twinstack tune`` fits) shapes the setpoints first
+        so that the stage's resonance does not ring at their corners, as ``twinstack stream
+        --resonance-hz`` does: for a board in open loop, one setpoint a tick (else
+        ``ValueError``, nothing sent).
 
         Ctrl-C stops the stream, tells the board to stop, and raises ``KeyboardInterrupt``.
         Returns a report: ``accepted``, ``divider``, ``batches``, ``underruns`` (``None`` when

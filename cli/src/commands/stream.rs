@@ -21,23 +21,20 @@
 //! ([`twinstack_identify::preview`]): for a board in open loop (its compensator inverts the
 //! shaped positions; closed loop its feedback would follow them, in bypass they would be the
 //! drive), one setpoint a tick (the board holds each one over its tick; interpolated between
-//! setpoints further apart, shaped ones would not be what the preview assumes). A setpoint is
-//! for the middle of its tick, so the positions shaped are the trajectory's between setpoints,
-//! at the ends of the ticks. Shaped setpoints outside −1…1 (a corner too near the range's
-//! end) are refused, naming the first; nothing is sent.
+//! setpoints further apart, shaped ones would not be what the preview assumes)
+//! ([`ResonancePreview::shape_stream`]). Shaped setpoints outside −1…1 (a turn too near the
+//! range's end) are refused, naming the first; nothing is sent.
 //!
 //! Exit codes: [`EXIT_CODES`] (0 played without underrun, 1 error, 2 usage, 3 completed with
 //! underruns: [`Underran`]).
 
 use super::board_link::{connect, PortArgs};
 use std::path::PathBuf;
-use twinstack::control::mode_switch::Mode;
 use twinstack::protocol::messages::{Trigger, UnderrunPolicy};
 use twinstack_identify::param_file::ParamFile;
-use twinstack_identify::preview::ResonancePreview;
-use twinstack_identify::stage_model::between_samples;
+use twinstack_identify::preview::{PreviewError, ResonancePreview};
 use twinstack_link::capture::signal_mask;
-use twinstack_link::setpoint_file::{self, q1_15, SetpointUnits};
+use twinstack_link::setpoint_file::{self, SetpointUnits};
 use twinstack_link::streamer::{stream_setpoints, StreamOptions};
 
 /// The exit codes of `twinstack stream`, as `twinstack stream --help` lists them.
@@ -126,26 +123,6 @@ pub struct Args {
     pub resonance_damping: Option<f64>,
 }
 
-/// `samples` (Q1.15, one a tick at `tick_rate` Hz, each for the middle of its tick) shaped by
-/// the preview of a resonance at `hz` with damping ratio `zeta`: the positions between
-/// setpoints (at the ends of the ticks, [`between_samples`]) through
-/// [`ResonancePreview::shape`], back to Q1.15. A shaped value outside −1…1 is refused, naming
-/// its setpoint.
-pub fn shaped(samples: &[i16], hz: f64, zeta: f64, tick_rate: f64) -> anyhow::Result<Vec<i16>> {
-    let preview = ResonancePreview::new(hz, zeta, tick_rate)
-        .map_err(|e| anyhow::anyhow!("--resonance-hz/--resonance-damping: {e}"))?;
-    let x: Vec<f64> = samples.iter().map(|&q| q as f64 / 32768.0).collect();
-    let r = preview.shape(&between_samples(&x));
-    if let Some(k) = r.iter().position(|v| !(-1.0..=1.0).contains(v)) {
-        anyhow::bail!(
-            "--resonance-hz: setpoint {} shaped is {:.4}, outside −1…1 (the preview overshoots a corner there): keep the trajectory further inside the range; nothing was sent",
-            k + 1,
-            r[k]
-        );
-    }
-    Ok(r.into_iter().map(q1_15).collect())
-}
-
 /// `--underrun` values.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
 pub enum UnderrunArg {
@@ -201,19 +178,19 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     };
     let samples = match args.resonance_hz.zip(args.resonance_damping) {
         Some((hz, zeta)) => {
-            if options.divider != 1 {
-                anyhow::bail!(
-                    "--resonance-hz shapes one setpoint a tick, and the stream plays one every {} ticks (interpolated in between): give a t column at the board's {tick_rate} Hz or --divider 1; nothing was sent",
-                    options.divider
-                );
-            }
+            let refused = |e: PreviewError| {
+                let fix = match e {
+                    PreviewError::Mode(_) => " (`twinstack set /mode OpenLoop` first)",
+                    PreviewError::Divider(_) => " (a t column at the board's rate, or --divider 1)",
+                    _ => "",
+                };
+                anyhow::anyhow!("--resonance-hz/--resonance-damping: {e}{fix}; nothing was sent")
+            };
+            let preview = ResonancePreview::new(hz, zeta, tick_rate).map_err(refused)?;
             let mode = client.read_params()?.mode;
-            if mode != Mode::OpenLoop {
-                anyhow::bail!(
-                    "--resonance-hz shapes the setpoints for the board's compensator in open loop, and the board is in {mode:?} (closed loop its feedback would follow the shaped setpoints, in bypass they would be the drive): `twinstack set /mode OpenLoop` first; nothing was sent"
-                );
-            }
-            let shaped = shaped(&sp.samples, hz, zeta, tick_rate)?;
+            let shaped = preview
+                .shape_stream(&sp.samples, mode, options.divider)
+                .map_err(refused)?;
             eprintln!(
                 "note: setpoints shaped for a resonance at {hz} Hz, damping {zeta}, at the board's {tick_rate} Hz"
             );
@@ -347,39 +324,4 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         .into());
     }
     Ok(())
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    /// Setpoints for the middles of the ticks are shaped at the ends of the ticks: the shaped
-    /// stream is the preview of the positions between them. A dip just below the range's top
-    /// turns back up so sharply that the shaped setpoint leaves the range: refused, naming it.
-    #[test]
-    fn the_positions_between_setpoints_are_shaped_and_a_shaped_value_beyond_the_range_is_refused() {
-        let x: Vec<f64> = (0..400).map(|k| 0.5 * (k as f64 * 0.05).sin()).collect();
-        let q: Vec<i16> = x.iter().map(|&v| q1_15(v)).collect();
-        let s = shaped(&q, 3_000.0, 0.03, 50_000.0).unwrap();
-        let p = ResonancePreview::new(3_000.0, 0.03, 50_000.0).unwrap();
-        let xq: Vec<f64> = q.iter().map(|&v| v as f64 / 32768.0).collect();
-        let expected = p.shape(&between_samples(&xq));
-        assert!(s
-            .iter()
-            .zip(&expected)
-            .all(|(&a, &b)| (a as f64 / 32768.0 - b).abs() <= 1.0 / 32768.0));
-        // A V from 0.99 down to 0.9 and back within four ticks.
-        let mut v = vec![0.99; 40];
-        v[20..25].copy_from_slice(&[0.96, 0.93, 0.9, 0.93, 0.96]);
-        let q: Vec<i16> = v.iter().map(|&v| q1_15(v)).collect();
-        let e = shaped(&q, 3_000.0, 0.03, 50_000.0).unwrap_err().to_string();
-        assert!(
-            e.contains("outside −1…1") && e.contains("setpoint 2"),
-            "{e}"
-        );
-        assert!(shaped(&q, 30_000.0, 0.03, 50_000.0)
-            .unwrap_err()
-            .to_string()
-            .contains("below half the sample rate"));
-    }
 }
