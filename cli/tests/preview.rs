@@ -5,25 +5,12 @@
 //! (`twinstack_identify::preview::ResonancePreview::shape_stream`, whose own tests hold its
 //! refusal of a shaped value outside the range), as its recorder shows.
 
-use std::process::{Command, Output};
-
+#[path = "support/tool.rs"]
+mod tool;
 #[path = "support/virtual_board_process.rs"]
 mod virtual_board_process;
 
-fn twinstack_bin(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_twinstack"))
-        .env_remove("TWINSTACK_PORT")
-        .args(args)
-        .output()
-        .expect("twinstack runs")
-}
-
-fn text(o: &Output) -> (String, String) {
-    (
-        String::from_utf8_lossy(&o.stdout).into_owned(),
-        String::from_utf8_lossy(&o.stderr).into_owned(),
-    )
-}
+use tool::{text, twinstack as twinstack_bin};
 
 /// A 250 Hz triangle of ±0.5 about 0, one setpoint a tick at 50 kHz: 200 a period.
 fn triangle(n: usize) -> Vec<f64> {
