@@ -32,8 +32,7 @@
 //! hold's and the resonance's delays are the preview's.
 
 use crate::stage_model::between_samples;
-use crate::zero_order_hold::ZeroOrderHold;
-use std::f64::consts::TAU;
+use crate::tune::loop_model::LinearPlant;
 use twinstack::control::mode_switch::Mode;
 use twinstack_link::setpoint_file::q1_15;
 
@@ -134,18 +133,10 @@ impl ResonancePreview {
         if !(zeta > 0.0 && zeta < 1.0) {
             return Err(PreviewError::Damping(zeta));
         }
-        let w = TAU * resonance_hz;
-        let zoh = ZeroOrderHold::<2, 1>::new(
-            &[[0.0, 1.0], [-w * w, -2.0 * zeta * w]],
-            &[[0.0], [w * w]],
-            1.0 / rate_hz,
-        );
-        let ([[p11, p12], [p21, p22]], g) = (*zoh.phi(), zoh.gamma());
-        let (g1, g2) = (g[0][0], g[1][0]);
-        // det(zI − Φ) and the first row of adj(zI − Φ) times Γ: the position a sample after
-        // a held value.
-        let (a1, a2) = (-(p11 + p22), p11 * p22 - p12 * p21);
-        let (b1, b2) = (g1, p12 * g2 - p22 * g1);
+        // The held resonance as `tune` models it (gain 1, the position a sample after a held
+        // value): `(b₂ + b₁z) / (a₂ + a₁z + z²)`, ascending powers.
+        let (num, den) = LinearPlant::resonance(1.0, resonance_hz, zeta, 0, rate_hz).polynomials();
+        let (b2, b1, a2, a1) = (num[0], num[1], den[0], den[1]);
         Ok(Self {
             resonance_hz,
             zeta,
@@ -268,6 +259,8 @@ impl ResonancePreview {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::zero_order_hold::ZeroOrderHold;
+    use std::f64::consts::TAU;
 
     /// The resonance held over each sample, exactly: the position at the end of each hold.
     fn run(resonance_hz: f64, zeta: f64, rate: f64, held: &[f64], start: f64) -> Vec<f64> {
