@@ -436,8 +436,12 @@ pub enum IdentifyError {
 
 /// Most alternations of the creep fit with the hysteresis fit.
 pub const CREEP_ITERATIONS: usize = 40;
-/// The alternation stops once an iterate's fit RMS changes by less than this fraction.
+/// The alternation has settled once an iterate's fit RMS changes by less than this fraction
+/// of the previous one's without making progress ([`CREEP_PROGRESS`]).
 pub const CREEP_CONVERGED: f64 = 0.01;
+/// An iterate of the alternation makes progress when it lowers the lowest fit RMS of the
+/// iterates before it by at least this fraction of it: a slow descent is not a plateau.
+pub const CREEP_PROGRESS: f64 = 0.001;
 
 fn min_max(v: impl Iterator<Item = f64>) -> (f64, f64) {
     v.fold((f64::INFINITY, f64::NEG_INFINITY), |(l, h), x| {
