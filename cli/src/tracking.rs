@@ -886,7 +886,8 @@ fn evaluate_all(
     }
     Ok(TrackingTable {
         seed: config.seed,
-        sample_rate_hz: rate,
+        // The configuration holds the period: 50 kHz comes back as 49 999.999 999 999 99.
+        sample_rate_hz: (rate * 1e6).round() / 1e6,
         trajectories: trajectories.iter().map(|t| t.name.clone()).collect(),
         excitation_range_um: (lo, hi),
         trajectory_range_um: (lo + margin, hi - margin),
