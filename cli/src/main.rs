@@ -154,7 +154,7 @@ fn main() -> std::process::ExitCode {
             &a.run,
             commands::compensate::Direction::Inverse {
                 measured: a.measured,
-                resonance: a.resonance_hz.zip(a.resonance_damping),
+                preview: a.preview(),
             },
         ),
         Command::ClosedLoop(a) => commands::closed_loop::run(a),

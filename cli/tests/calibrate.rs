@@ -9,7 +9,9 @@ use std::process::{Command, Output};
 use std::time::Duration;
 use twinstack::board::Hardware;
 use twinstack::config::settings::{Mode, Settings};
-use twinstack_identify::calibrate::{calibrate, CalibrateError, CalibrateOptions};
+use twinstack_identify::calibrate::{
+    calibrate, CalibrateError, CalibrateOptions, ResonanceOutcome,
+};
 use twinstack_identify::identification::auto::{identify_auto_admitting, Admission};
 use twinstack_identify::identification::{IdentifyError, IdentifyOptions, ModelKind};
 use twinstack_link::client::Client;
@@ -93,6 +95,16 @@ fn the_lab_workflow_calibrates_the_virtual_stage_below_one_percent_then_streams_
         twinstack_identify::param_file::ParamFile::load(&params).expect("a parameter file");
     assert_eq!(file.settings.mode, Mode::OpenLoop);
     assert!(file.identification.is_some());
+    // The stage's resonance measured after the excitation as `tune` measures it (the
+    // simulated stage's 21.8 kHz, damping 0.017), in the report and in the file.
+    let resonance = file.resonance.expect("the resonance in the parameter file");
+    assert!(
+        (resonance.frequency_hz / 21_800.0 - 1.0).abs() < 0.01
+            && (resonance.damping / 0.017 - 1.0).abs() < 0.15,
+        "{resonance:?}"
+    );
+    assert_eq!(v["resonance"]["frequency_hz"], resonance.frequency_hz);
+    assert_eq!(v["resonance"]["damping"], resonance.damping);
     let png = std::fs::read(params.with_extension("png")).expect("the PNG is written");
     assert_eq!(&png[..8], b"\x89PNG\r\n\x1a\n");
 
@@ -119,6 +131,28 @@ fn the_lab_workflow_calibrates_the_virtual_stage_below_one_percent_then_streams_
     }
     let data = dir.path().join("setpoints.csv");
     std::fs::write(&data, text).unwrap();
+    // `--preview` takes the file's resonance: shaped setpoints are one a tick, and this file
+    // plays one every 50 ticks, which it refuses before anything is sent.
+    let refused = twinstack_bin(&[
+        "stream",
+        "--port",
+        &port,
+        "--data",
+        data.to_str().unwrap(),
+        "--params",
+        params.to_str().unwrap(),
+        "--divider",
+        "50",
+        "--preview",
+    ]);
+    let stderr = String::from_utf8_lossy(&refused.stderr);
+    assert!(
+        !refused.status.success()
+            && stderr.contains("--preview: the resonance of")
+            && stderr.contains("one setpoint every 50 ticks")
+            && stderr.contains("nothing was sent"),
+        "{stderr}"
+    );
     let run = dir.path().join("run.csv");
     let out = ok(twinstack_bin(&[
         "stream",
@@ -209,6 +243,21 @@ fn quick() -> CalibrateOptions {
         store: None,
         ..CalibrateOptions::default()
     }
+}
+
+/// Without the resonance's sweep the file holds none, and the report says it was not asked
+/// for.
+#[test]
+fn a_calibration_without_the_resonance_writes_none() {
+    let mut client = sim_client(SimDeviceConfig::paper());
+    let options = CalibrateOptions {
+        resonance: false,
+        ..quick()
+    };
+    let report = calibrate(&mut client, &options, |_| {}).unwrap();
+    assert_eq!(report.resonance, ResonanceOutcome::NotAsked);
+    assert_eq!(report.file.resonance, None);
+    assert!(!report.file.to_json().contains("resonance"));
 }
 
 #[test]

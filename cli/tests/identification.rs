@@ -984,6 +984,58 @@ fn compensate_with_a_preview_inverts_the_shaped_trajectory() {
     );
     assert!(worst(&u_shaped, &u_plain) > 0.01 * model.scaling.input_half_span());
 
+    // `--preview` shapes for the resonance the file holds (what `calibrate` measures): the
+    // same drive; a file that holds none, or one this trajectory's rate cannot resolve, is
+    // refused naming the file, and nothing is written.
+    let refused = compensate(&["--preview"], &out("refused.csv"));
+    let err = String::from_utf8_lossy(&refused.stderr);
+    assert!(
+        !refused.status.success() && err.contains("holds no resonance") && err.contains(p),
+        "{err}"
+    );
+    assert!(!out("refused.csv").exists());
+    let with_resonance = |hz: f64, name: &str| {
+        let mut v: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(p).unwrap()).unwrap();
+        v["resonance"] = serde_json::json!({ "frequency_hz": hz, "damping": 0.05 });
+        let path = dir.path().join(name);
+        std::fs::write(&path, v.to_string()).unwrap();
+        path
+    };
+    let measured_file = with_resonance(60.0, "measured.json");
+    let previewed = run(&[
+        "compensate",
+        "--params",
+        measured_file.to_str().unwrap(),
+        "--data",
+        planned.to_str().unwrap(),
+        "--out",
+        out("previewed.csv").to_str().unwrap(),
+        "--preview",
+    ]);
+    assert!(previewed.status.success(), "{previewed:?}");
+    let (_, u_previewed, _) = read_csv(&out("previewed.csv"));
+    assert_eq!(u_previewed, u_shaped);
+    let too_fast = with_resonance(150.0, "too-fast.json");
+    let refused = run(&[
+        "compensate",
+        "--params",
+        too_fast.to_str().unwrap(),
+        "--data",
+        planned.to_str().unwrap(),
+        "--out",
+        out("refused.csv").to_str().unwrap(),
+        "--preview",
+    ]);
+    let err = String::from_utf8_lossy(&refused.stderr);
+    assert!(
+        !refused.status.success()
+            && err.contains("--preview: the resonance of")
+            && err.contains("below half the sample rate (100 Hz)"),
+        "{err}"
+    );
+    assert!(!out("refused.csv").exists());
+
     let uneven = dir.path().join("uneven.csv");
     let rows: String = t
         .iter()

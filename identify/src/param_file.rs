@@ -17,10 +17,12 @@
 //! ```
 //!
 //! Loading checks, in order: JSON syntax, `format`, `version` (only [`VERSION`] is known),
-//! the fields (unknown ones are refused, at any depth), `output_sign` and `sensor_lag_s`,
+//! the fields (unknown ones are refused, at any depth), `output_sign`, `sensor_lag_s` and
+//! `resonance` (where present: what `calibrate` measured, for a planned trajectory's preview),
 //! that the file has a model, and the settings as the driver board validates them (at
 //! 50 kHz or 100 kHz; the board checks again at its own rate): every refusal names its field.
 
+use crate::preview::Resonance;
 use crate::stage_model::{Hysteresis, StageModel};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
@@ -106,6 +108,11 @@ pub struct ParamFile {
     pub output_sign: f64,
     /// Sensor lag behind the drive, seconds.
     pub sensor_lag_s: f64,
+    /// The stage's resonance as `calibrate` measured it (`tune`'s sweep and fit), for a
+    /// planned trajectory's preview (`compensate --preview`, `stream --preview`): host-side,
+    /// not sent to the board. Absent where it was not measured.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub resonance: Option<Resonance>,
     /// The settings, as a parameter load carries them.
     pub settings: Settings,
     /// How it was identified.
@@ -189,6 +196,7 @@ impl ParamFile {
             },
             output_sign: model.output_sign,
             sensor_lag_s: model.sensor_lag_s,
+            resonance: None,
             settings: Settings {
                 ranges: model.scaling,
                 compensator: Some(m.clone()),
@@ -286,6 +294,15 @@ impl ParamFile {
                 "sensor_lag_s".into(),
                 "must be a finite number >= 0".into(),
             ));
+        }
+        if let Some(r) = &file.resonance {
+            r.check().map_err(|e| {
+                let name = match e {
+                    crate::preview::PreviewError::Damping(_) => "resonance.damping",
+                    _ => "resonance.frequency_hz",
+                };
+                field(name.into(), e.to_string())
+            })?;
         }
         let s = &file.settings;
         // The board's own validation, at either end of its rates: a file is refused only
@@ -417,6 +434,53 @@ mod tests {
             ParamFileError::Field { field, .. } => field,
             _ => "",
         }
+    }
+
+    #[test]
+    fn a_measured_resonance_round_trips_and_a_bad_one_is_named() {
+        let mut f = ParamFile::from_model(&model(), "um", None);
+        assert!(
+            !f.to_json().contains("resonance"),
+            "absent where not measured"
+        );
+        f.resonance = Some(Resonance::new(3_500.0, 0.03).unwrap());
+        let (back, _) = parse(&f.to_json()).unwrap();
+        assert_eq!(back.resonance, f.resonance);
+        let with = |edit: &dyn Fn(&mut serde_json::Value)| {
+            let mut v: serde_json::Value = serde_json::from_str(&f.to_json()).unwrap();
+            edit(&mut v);
+            parse(&v.to_string()).unwrap_err()
+        };
+        for (value, named) in [
+            (
+                serde_json::json!({ "frequency_hz": -3.0, "damping": 0.03 }),
+                "resonance.frequency_hz",
+            ),
+            (
+                serde_json::json!({ "frequency_hz": 0.0, "damping": 0.03 }),
+                "resonance.frequency_hz",
+            ),
+            (
+                serde_json::json!({ "frequency_hz": 3e3, "damping": 1.0 }),
+                "resonance.damping",
+            ),
+            (
+                serde_json::json!({ "frequency_hz": 3e3, "damping": 0.0 }),
+                "resonance.damping",
+            ),
+        ] {
+            let e = with(&|v| v["resonance"] = value.clone());
+            assert_eq!(field_of(&e), named, "{e}");
+        }
+        let e = with(&|v| v["resonance"]["q"] = 2.0.into());
+        assert!(
+            matches!(e, ParamFileError::Json { .. }) && e.to_string().contains('q'),
+            "{e}"
+        );
+        let e = with(&|v| {
+            v["resonance"].as_object_mut().unwrap().remove("damping");
+        });
+        assert!(e.to_string().contains("damping"), "{e}");
     }
 
     #[test]

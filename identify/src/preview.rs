@@ -42,11 +42,12 @@ pub enum PreviewError {
     /// The sample rate is not positive and finite.
     #[error("sample rate {0} Hz: must be positive and finite")]
     Rate(f64),
-    /// The resonance is not positive and finite, or not below half the sample rate (where a
-    /// sampled trajectory cannot tell it from a slower one).
-    #[error(
-        "resonance {hz} Hz: must be positive, finite and below half the sample rate ({nyquist} Hz)"
-    )]
+    /// The resonance's frequency is not positive and finite.
+    #[error("resonance {0} Hz: must be positive and finite")]
+    Frequency(f64),
+    /// The resonance is not below half the sample rate (where a sampled trajectory cannot
+    /// tell it from a slower one).
+    #[error("resonance {hz} Hz: must be below half the sample rate ({nyquist} Hz)")]
     Resonance {
         /// The resonance asked for, Hz.
         hz: f64,
@@ -83,6 +84,64 @@ pub enum PreviewError {
     /// Setpoints several ticks apart, which the board interpolates.
     #[error("the stream plays one setpoint every {0} ticks, interpolated in between, and the preview shapes one a tick (held over it)")]
     Divider(u16),
+}
+
+/// A stage's lightly damped resonance, what a preview is shaped for: as `twinstack tune`
+/// fits it, and as `twinstack calibrate` measures it into the parameter file
+/// ([`crate::param_file::ParamFile::resonance`]). Rate-free: the preview at a sample rate
+/// comes from [`Resonance::preview`].
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Resonance {
+    /// Its frequency, Hz (positive and finite).
+    pub frequency_hz: f64,
+    /// Its damping ratio, in `(0, 1)`.
+    pub damping: f64,
+}
+
+impl Resonance {
+    /// A resonance at `frequency_hz` with damping ratio `damping`, checked as a preview
+    /// needs it (the frequency positive and finite, the damping in `(0, 1)`; whether the
+    /// samples resolve it is for [`Resonance::preview`] at their rate).
+    ///
+    /// ```
+    /// use twinstack_identify::preview::{PreviewError, Resonance};
+    /// let r = Resonance::new(3_500.0, 0.03).unwrap();
+    /// assert!(r.preview(10_000.0).is_ok());
+    /// // Sampled at 5 kHz, a 3.5 kHz resonance cannot be told from a slower one.
+    /// assert!(matches!(r.preview(5_000.0), Err(PreviewError::Resonance { .. })));
+    /// assert!(matches!(Resonance::new(3_500.0, 1.5), Err(PreviewError::Damping(_))));
+    /// ```
+    pub fn new(frequency_hz: f64, damping: f64) -> Result<Self, PreviewError> {
+        let r = Self {
+            frequency_hz,
+            damping,
+        };
+        r.check()?;
+        Ok(r)
+    }
+
+    /// Refuses a frequency that is not positive and finite, or a damping ratio outside
+    /// `(0, 1)` (what [`Resonance::new`] checks; a resonance read from a file is checked so).
+    pub fn check(&self) -> Result<(), PreviewError> {
+        if !(self.frequency_hz.is_finite() && self.frequency_hz > 0.0) {
+            return Err(PreviewError::Frequency(self.frequency_hz));
+        }
+        if !(self.damping > 0.0 && self.damping < 1.0) {
+            return Err(PreviewError::Damping(self.damping));
+        }
+        Ok(())
+    }
+
+    /// Its preview for a trajectory sampled at `rate_hz` ([`ResonancePreview::new`]).
+    pub fn preview(&self, rate_hz: f64) -> Result<ResonancePreview, PreviewError> {
+        ResonancePreview::new(self.frequency_hz, self.damping, rate_hz)
+    }
+
+    /// Its preview for a trajectory sampled at the times `t` ([`ResonancePreview::at_times`]).
+    pub fn preview_at_times(&self, t: &[f64]) -> Result<ResonancePreview, PreviewError> {
+        ResonancePreview::at_times(self.frequency_hz, self.damping, t)
+    }
 }
 
 /// The zero-phase inverse of a resonance at one sample rate (see the module doc).
@@ -123,15 +182,17 @@ impl ResonancePreview {
         if !(rate_hz.is_finite() && rate_hz > 0.0) {
             return Err(PreviewError::Rate(rate_hz));
         }
+        Resonance {
+            frequency_hz: resonance_hz,
+            damping: zeta,
+        }
+        .check()?;
         let nyquist = 0.5 * rate_hz;
-        if !(resonance_hz.is_finite() && resonance_hz > 0.0 && resonance_hz < nyquist) {
+        if resonance_hz >= nyquist {
             return Err(PreviewError::Resonance {
                 hz: resonance_hz,
                 nyquist,
             });
-        }
-        if !(zeta > 0.0 && zeta < 1.0) {
-            return Err(PreviewError::Damping(zeta));
         }
         // The held resonance as `tune` models it (gain 1, the position a sample after a held
         // value): `(b₂ + b₁z) / (a₂ + a₁z + z²)`, ascending powers.
@@ -355,10 +416,12 @@ mod tests {
             ResonancePreview::new(1e3, 0.03, 0.0),
             Err(PreviewError::Rate(0.0))
         );
-        assert!(matches!(
-            ResonancePreview::new(f64::NAN, 0.03, 1e4),
-            Err(PreviewError::Resonance { .. })
-        ));
+        for hz in [f64::NAN, f64::INFINITY, 0.0, -1e3] {
+            assert!(matches!(
+                ResonancePreview::new(hz, 0.03, 1e4),
+                Err(PreviewError::Frequency(_))
+            ));
+        }
         assert!(matches!(
             ResonancePreview::new(5e3, 0.03, 1e4),
             Err(PreviewError::Resonance { .. })

@@ -645,18 +645,25 @@ impl Board {
     /// stores it to flash unless `store` is false. Returns a dict: `params` (a `Params`, the
     /// file `twinstack calibrate` writes), `model`, `reason`, `held_out` / `before` / `after`
     /// (`max_pct`, `rms_pct`), `stored`, `clamped`, `excitation_underran` (the excitation's
-    /// stream found the queue empty: identified on the drive as applied). Board refusals raise `BoardError`; a stage
+    /// stream found the queue empty: identified on the drive as applied), `resonance` (the
+    /// stage's resonance measured after the excitation as `tune` measures it,
+    /// `(frequency_hz, damping)`, also in `params.resonance`; `None` with `resonance=False`
+    /// or where no resonance fitted the response, then `resonance_not_fitted` says why).
+    /// Board refusals raise `BoardError`; a stage
     /// that cannot be calibrated (no sensor, a sensor that does not follow the drive, a fit
     /// that does not fit) raises `RuntimeError` saying which.
-    #[pyo3(signature = (store=true, clamp=false, model=None))]
+    #[pyo3(signature = (store=true, clamp=false, model=None, resonance=true))]
     fn calibrate<'py>(
         &self,
         py: Python<'py>,
         store: bool,
         clamp: bool,
         model: Option<&str>,
+        resonance: bool,
     ) -> PyResult<Bound<'py, PyAny>> {
-        use twinstack_identify::calibrate::{calibrate, CalibrateError, CalibrateOptions};
+        use twinstack_identify::calibrate::{
+            calibrate, CalibrateError, CalibrateOptions, ResonanceOutcome,
+        };
         use twinstack_identify::identification::run::{parse_model, ModelChoice};
         let model = match model
             .map(parse_model)
@@ -670,6 +677,7 @@ impl Board {
             model,
             clamp,
             store: store.then_some(twinstack::config::settings::Mode::Bypass),
+            resonance,
             ..CalibrateOptions::default()
         };
         let report = self.with_py(py, |client| {
@@ -692,6 +700,11 @@ impl Board {
                 "stored": report.stored.is_some(),
                 "clamped": report.clamped,
                 "excitation_underran": report.excitation_underran,
+                "resonance": file.resonance.map(|r| (r.frequency_hz, r.damping)),
+                "resonance_not_fitted": match &report.resonance {
+                    ResonanceOutcome::NotFitted(why) => Some(why.as_str()),
+                    _ => None,
+                },
             }),
         )?;
         out.set_item("params", Params::from_file(file, stage))?;

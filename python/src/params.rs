@@ -203,6 +203,14 @@ impl Params {
         self.model.sensor_lag_s
     }
 
+    /// The stage's resonance as `calibrate` measured it, `(frequency_hz, damping)`, or
+    /// `None` where the file holds none: what `compensate(..., resonance=params.resonance)`
+    /// and `Board.stream(..., resonance=params.resonance)` shape a planned trajectory for.
+    #[getter]
+    fn resonance(&self) -> Option<(f64, f64)> {
+        self.file.resonance.map(|r| (r.frequency_hz, r.damping))
+    }
+
     /// The unit of the model's output (the identified record's `x`).
     #[getter]
     fn output_unit(&self) -> &str {

@@ -258,6 +258,12 @@ def test_calibrate_identifies_loads_and_verifies_the_stage(board):
     assert after < 1.0, report
     assert before > 3.0 * after, report
     assert board.params()["mode"] == "open-loop" or board.status()["mode"] == "open-loop"
+    # The stage's resonance measured after the excitation, as `tune` measures it (the
+    # simulated stage's: 21.8 kHz, damping 0.017), and in the parameters for a preview.
+    hz, damping = report["resonance"]
+    assert hz == pytest.approx(21_800.0, rel=0.01) and damping == pytest.approx(0.017, rel=0.15)
+    assert report["params"].resonance == report["resonance"]
+    assert report["resonance_not_fitted"] is None
 
 
 def test_calibrate_refuses_an_unknown_model_before_touching_the_board(board):

@@ -225,6 +225,19 @@ def test_a_planned_trajectory_shaped_for_the_resonance_as_the_cli_shapes_it(micr
         "--resonance-hz", "60", "--resonance-damping", "0.05")
     _, cli, _ = read_csv(tmp_path / "drive.csv")
     assert np.max(np.abs(cli - shaped)) < 1e-6
+    # A file holding the resonance (as `calibrate` writes it): `--preview` and
+    # `params.resonance` shape for it, the same drive again.
+    assert params.resonance is None
+    text = json.loads(params.to_json())
+    text["resonance"] = {"frequency_hz": 60.0, "damping": 0.05}
+    measured = twinstack.Params.from_json(json.dumps(text))
+    assert measured.resonance == (60.0, 0.05)
+    assert np.array_equal(measured.compensate(xc, t=tc, resonance=measured.resonance), shaped)
+    (tmp_path / "measured.json").write_text(json.dumps(text))
+    run(hal_sim, "compensate", "--params", tmp_path / "measured.json", "--data",
+        tmp_path / "planned.csv", "--out", tmp_path / "previewed.csv", "--preview")
+    _, cli, _ = read_csv(tmp_path / "previewed.csv")
+    assert np.max(np.abs(cli - shaped)) < 1e-6
     # What it cannot do is refused, naming it.
     for kwargs, message in [
         (dict(t=tc, resonance=(150.0, 0.05)), "below half the sample rate"),

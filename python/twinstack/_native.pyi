@@ -95,6 +95,11 @@ class Params:
     def sensor_lag_s(self) -> float:
         """The sensor's lag behind the drive, seconds."""
     @property
+    def resonance(self) -> Optional[Tuple[float, float]]:
+        """The stage's resonance as ``calibrate`` measured it, ``(frequency_hz, damping)``,
+        or ``None``: pass it as ``resonance=`` to :meth:`compensate` or :meth:`Board.stream`
+        to shape a planned trajectory for it."""
+    @property
     def output_unit(self) -> str:
         """The unit of the model's output (the identified record's ``x``)."""
     @property
@@ -328,7 +333,11 @@ class Board:
         (setpoint, sensor, estimate, error) in the output unit of the settings in force. A
         request beyond the board's buffer raises :class:`BoardError` with its ``limit``."""
     def calibrate(
-        self, store: bool = True, clamp: bool = False, model: Optional[str] = None
+        self,
+        store: bool = True,
+        clamp: bool = False,
+        model: Optional[str] = None,
+        resonance: bool = True,
     ) -> Dict[str, Any]:
         """One-command calibration (``twinstack calibrate``): excites the stage with the
         identification excitation streamed in bypass (full-range cycles, decaying minor loops,
@@ -337,7 +346,11 @@ class Board:
         loop), and stores it unless ``store`` is false. Returns ``params`` (a
         :class:`Params`), ``model``, ``reason``, ``held_out`` / ``before`` / ``after``
         (``max_pct``, ``rms_pct``), ``stored``, ``clamped``, ``excitation_underran`` (the
-        excitation's stream found the queue empty: identified on the drive as applied). Board refusals raise
+        excitation's stream found the queue empty: identified on the drive as applied),
+        ``resonance`` (the stage's resonance measured after the excitation as ``tune``
+        measures it, ``(frequency_hz, damping)``, also ``params.resonance``; ``None`` with
+        ``resonance=False`` or where none fitted, then ``resonance_not_fitted`` says why).
+        Board refusals raise
         :class:`BoardError`; a stage that cannot be calibrated raises ``RuntimeError``."""
     def store(self, boot_mode: str = "bypass") -> None:
         """Writes the settings in force to the board's flash, to boot in ``boot_mode``."""

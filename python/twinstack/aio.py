@@ -179,10 +179,14 @@ class AsyncBoard:
         await self._call(self._board.recall)
 
     async def calibrate(
-        self, store: bool = True, clamp: bool = False, model: Optional[str] = None
+        self,
+        store: bool = True,
+        clamp: bool = False,
+        model: Optional[str] = None,
+        resonance: bool = True,
     ) -> Dict[str, Any]:
         """Calibrates the stage in one call, as :meth:`twinstack.Board.calibrate`."""
-        return await self._call(self._board.calibrate, store, clamp, model)
+        return await self._call(self._board.calibrate, store, clamp, model, resonance)
 
     async def sequence(
         self,

@@ -5,7 +5,9 @@
 //! drive and sensor, identifies the best model, writes the
 //! parameter file (the format `identify` writes) and a PNG beside it (the fit, the ranking, the
 //! tracking before and after), loads the settings (open loop), verifies them on a test
-//! trajectory and stores them to flash (to boot in bypass unless `--store MODE`).
+//! trajectory and stores them to flash (to boot in bypass unless `--store MODE`). After the
+//! excitation it measures the stage's resonance as `tune` does (unless `--no-resonance`) and
+//! writes it into the parameter file, for `compensate --preview` and `stream --preview`.
 //!
 //! The files are written only once the calibration has succeeded; a failure changes nothing on
 //! disk and loads nothing on a board it stopped before (see [`twinstack_identify::calibrate`] for which
@@ -18,7 +20,9 @@ use anyhow::bail;
 use plotters::style::RGBColor;
 use std::path::{Path, PathBuf};
 use twinstack::services::recorder::Channel;
-use twinstack_identify::calibrate::{calibrate, CalibrateOptions, CalibrationReport, Progress};
+use twinstack_identify::calibrate::{
+    calibrate, CalibrateOptions, CalibrationReport, Progress, ResonanceOutcome,
+};
 use twinstack_identify::excitation::Excitation;
 use twinstack_identify::identification::auto::{Validation, INVERSE_TO_FORWARD_LIMIT};
 use twinstack_identify::identification::score::ErrorFigures;
@@ -83,6 +87,11 @@ pub struct Args {
     /// larger models this way (`twinstack budget` shows by how much).
     #[arg(long)]
     pub no_observer: bool,
+    /// Do not measure the stage's resonance after the excitation (the sweep `twinstack tune`
+    /// runs, about a second on the board). Measured, it goes into the parameter file, where
+    /// `compensate --preview` and `stream --preview` shape a planned trajectory for it.
+    #[arg(long)]
+    pub no_resonance: bool,
     /// Print the figures as one JSON object on stdout instead of text.
     #[arg(long)]
     pub json: bool,
@@ -108,6 +117,7 @@ impl Args {
             clamp: self.clamp,
             store: (!self.no_store).then(|| self.store.into()),
             observer: !self.no_observer,
+            resonance: !self.no_resonance,
             ..CalibrateOptions::default()
         }
     }
@@ -160,6 +170,16 @@ pub fn report_json(r: &CalibrationReport, out: &Path, png: &Path) -> serde_json:
         "stored": r.stored.map(|m| format!("{m:?}")),
         "clamped": r.clamped,
         "excitation_underran": r.excitation_underran,
+        "resonance": match &r.resonance {
+            ResonanceOutcome::NotAsked => serde_json::Value::Null,
+            ResonanceOutcome::Measured(f) => serde_json::json!({
+                "frequency_hz": f.plant.resonance_hz,
+                "damping": f.plant.zeta,
+                "fit_rms_db": f.rms_db,
+                "fit_rms_deg": f.rms_deg,
+            }),
+            ResonanceOutcome::NotFitted(why) => serde_json::json!({ "not_fitted": why }),
+        },
         "params": out.display().to_string(),
         "png": png.display().to_string(),
     })
@@ -207,6 +227,11 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     if report.clamped {
         eprintln!(
             "warning: the model's input range reaches beyond the drive's (--clamp: loaded anyway)"
+        );
+    }
+    if let ResonanceOutcome::NotFitted(why) = &report.resonance {
+        eprintln!(
+            "warning: the resonance was not measured: {why}; the parameter file holds none (a preview then needs --resonance-hz and --resonance-damping)"
         );
     }
     if args.json {
@@ -257,6 +282,12 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
             } else {
                 ""
             }
+        );
+    }
+    if let ResonanceOutcome::Measured(f) = &report.resonance {
+        println!(
+            "resonance: {:.0} Hz, damping {:.4} (fit {:.2} dB, {:.1}° RMS), in the parameter file for `compensate --preview` and `stream --preview`",
+            f.plant.resonance_hz, f.plant.zeta, f.rms_db, f.rms_deg
         );
     }
     match report.stored {

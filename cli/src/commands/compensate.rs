@@ -10,13 +10,14 @@
 //!   inverted exactly, as the board inverts its setpoints; with `--measured` IN's `x` is a
 //!   sensor's record and is followed through its noise band
 //!   ([`twinstack_identify::stage_model::NoiseBand`]), as identification scores an inverse.
-//!   With `--resonance-hz F --resonance-damping Z` (what `twinstack tune` fits and prints) the
+//!   With `--preview` (the resonance `twinstack calibrate` measured into the parameter file)
+//!   or `--resonance-hz F --resonance-damping Z` (what `twinstack tune` fits and prints) the
 //!   planned trajectory is shaped first so that the stage's resonance does not ring at its
 //!   corners ([`twinstack_identify::preview`]): IN's samples must be evenly spaced.
 
 use std::path::PathBuf;
 use twinstack_identify::param_file::ParamFile;
-use twinstack_identify::preview::ResonancePreview;
+use twinstack_identify::preview::Resonance;
 use twinstack_link::measured_data::{ColumnNames, Columns, MeasuredData};
 use twinstack_link::output_file::{csv_t_u_x, Staged};
 
@@ -54,12 +55,42 @@ pub struct CompensateArgs {
     /// at its corners: the resonance's frequency, Hz, as `twinstack tune` fits it (with
     /// --resonance-damping). The desired readings are then what the stage reads a sample's
     /// end; the t column must be evenly spaced (its rate is the drive's).
-    #[arg(long, requires = "resonance_damping", conflicts_with = "measured")]
+    #[arg(long, requires = "resonance_damping", conflicts_with_all = ["measured", "preview"])]
     pub resonance_hz: Option<f64>,
     /// The resonance's damping ratio, in (0, 1), as `twinstack tune` fits it (with
     /// --resonance-hz).
     #[arg(long, requires = "resonance_hz")]
     pub resonance_damping: Option<f64>,
+    /// Shape the planned trajectory for the resonance the parameter file holds (what
+    /// `twinstack calibrate` measured), as --resonance-hz/--resonance-damping would.
+    #[arg(long, conflicts_with = "measured")]
+    pub preview: bool,
+}
+
+impl CompensateArgs {
+    /// The resonance the trajectory is to be shaped for, as the flags ask it.
+    pub fn preview(&self) -> Preview {
+        match (self.resonance_hz.zip(self.resonance_damping), self.preview) {
+            (Some((frequency_hz, damping)), _) => Preview::Given(Resonance {
+                frequency_hz,
+                damping,
+            }),
+            (None, true) => Preview::FromFile,
+            (None, false) => Preview::None,
+        }
+    }
+}
+
+/// Whether and for which resonance a planned trajectory is shaped
+/// ([`twinstack_identify::preview::ResonancePreview`]).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Preview {
+    /// Not shaped.
+    None,
+    /// For the resonance given on the command line.
+    Given(Resonance),
+    /// For the resonance the parameter file holds.
+    FromFile,
 }
 
 /// Which way the model runs.
@@ -72,15 +103,14 @@ pub enum Direction {
     Inverse {
         /// The desired readings are a sensor's record.
         measured: bool,
-        /// The planned trajectory's preview: the resonance's frequency (Hz) and damping
-        /// ratio.
-        resonance: Option<(f64, f64)>,
+        /// The planned trajectory's preview.
+        preview: Preview,
     },
 }
 
 /// Runs `predict` ([`Direction::Forward`]) or `compensate` ([`Direction::Inverse`]).
 pub fn run(args: &Args, direction: Direction) -> anyhow::Result<()> {
-    let (_, model) = ParamFile::load(&args.params)?;
+    let (file, model) = ParamFile::load(&args.params)?;
     let columns = match direction {
         Direction::Forward => Columns::TimeDrive,
         Direction::Inverse { .. } => Columns::TimeOutput,
@@ -103,17 +133,28 @@ pub fn run(args: &Args, direction: Direction) -> anyhow::Result<()> {
                 "drive samples outside the model's input range",
             )
         }
-        Direction::Inverse {
-            measured,
-            resonance,
-        } => {
+        Direction::Inverse { measured, preview } => {
             let x = data.x.clone().unwrap_or_default();
-            let preview = match resonance {
-                Some((hz, zeta)) => Some(
-                    ResonancePreview::at_times(hz, zeta, &data.t)
+            let preview = match preview {
+                Preview::None => None,
+                Preview::Given(r) => Some(
+                    r.preview_at_times(&data.t)
                         .map_err(|e| anyhow::anyhow!("--resonance-hz/--resonance-damping: {e}"))?,
                 ),
-                None => None,
+                Preview::FromFile => {
+                    let r = file.resonance.ok_or_else(|| {
+                        anyhow::anyhow!(
+                            "--preview: {} holds no resonance (`twinstack calibrate` measures it; or give --resonance-hz and --resonance-damping, as `twinstack tune` prints them)",
+                            args.params.display()
+                        )
+                    })?;
+                    Some(r.preview_at_times(&data.t).map_err(|e| {
+                        anyhow::anyhow!(
+                            "--preview: the resonance of {}: {e}",
+                            args.params.display()
+                        )
+                    })?)
+                }
             };
             let u = if let Some(p) = &preview {
                 eprintln!(

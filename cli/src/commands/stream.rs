@@ -16,13 +16,14 @@
 //! played; its samples are written as `twinstack telemetry` writes them (CSV and PNG, physical
 //! units), and a sample that did not arrive is an error ([`super::telemetry::finish`]).
 //!
+//! `--preview` (the resonance `twinstack calibrate` measured into the `--params` file) or
 //! `--resonance-hz F --resonance-damping Z` (what `twinstack tune` fits and prints) shapes the
 //! setpoints ahead of time so that the stage's resonance does not ring at their corners
 //! ([`twinstack_identify::preview`]): for a board in open loop (its compensator inverts the
 //! shaped positions; closed loop its feedback would follow them, in bypass they would be the
 //! drive), one setpoint a tick (the board holds each one over its tick; interpolated between
 //! setpoints further apart, shaped ones would not be what the preview assumes)
-//! ([`ResonancePreview::shape_stream`]). Shaped setpoints outside −1…1 (a turn too near the
+//! ([`twinstack_identify::preview::ResonancePreview::shape_stream`]). Shaped setpoints outside −1…1 (a turn too near the
 //! range's end) are refused, naming the first; nothing is sent.
 //!
 //! Exit codes: [`EXIT_CODES`] (0 played without underrun, 1 error, 2 usage, 3 completed with
@@ -32,7 +33,7 @@ use super::board_link::{connect, PortArgs};
 use std::path::PathBuf;
 use twinstack::protocol::messages::{Trigger, UnderrunPolicy};
 use twinstack_identify::param_file::ParamFile;
-use twinstack_identify::preview::{PreviewError, ResonancePreview};
+use twinstack_identify::preview::{PreviewError, Resonance};
 use twinstack_link::capture::signal_mask;
 use twinstack_link::setpoint_file::{self, SetpointUnits};
 use twinstack_link::streamer::{stream_setpoints, StreamOptions};
@@ -115,12 +116,16 @@ pub struct Args {
     /// Shape the setpoints ahead of time so that the stage's resonance does not ring at their
     /// corners: the resonance's frequency, Hz, as `twinstack tune` fits it (with
     /// --resonance-damping). For a board in open loop, one setpoint a tick.
-    #[arg(long, requires = "resonance_damping")]
+    #[arg(long, requires = "resonance_damping", conflicts_with = "preview")]
     pub resonance_hz: Option<f64>,
     /// The resonance's damping ratio, in (0, 1), as `twinstack tune` fits it (with
     /// --resonance-hz).
     #[arg(long, requires = "resonance_hz")]
     pub resonance_damping: Option<f64>,
+    /// Shape the setpoints for the resonance the --params file holds (what `twinstack
+    /// calibrate` measured), as --resonance-hz/--resonance-damping would.
+    #[arg(long, requires = "params")]
+    pub preview: bool,
 }
 
 /// `--underrun` values.
@@ -143,9 +148,33 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     if args.divider == Some(0) {
         anyhow::bail!("--divider must be at least 1");
     }
-    let model = match &args.params {
-        Some(p) => Some(ParamFile::load(p)?.1),
-        None => None,
+    let (file, model) = match &args.params {
+        Some(p) => {
+            let (file, model) = ParamFile::load(p)?;
+            (Some(file), Some(model))
+        }
+        None => (None, None),
+    };
+    // The resonance to shape for, and the flags that asked for it (for errors).
+    let resonance = match (args.resonance_hz.zip(args.resonance_damping), args.preview) {
+        (Some((frequency_hz, damping)), _) => Some((
+            Resonance {
+                frequency_hz,
+                damping,
+            },
+            "--resonance-hz/--resonance-damping".to_string(),
+        )),
+        (None, true) => {
+            let path = args.params.as_deref().unwrap_or(std::path::Path::new(""));
+            let r = file.as_ref().and_then(|f| f.resonance).ok_or_else(|| {
+                anyhow::anyhow!(
+                    "--preview: {} holds no resonance (`twinstack calibrate` measures it; or give --resonance-hz and --resonance-damping, as `twinstack tune` prints them); nothing was sent",
+                    path.display()
+                )
+            })?;
+            Some((r, format!("--preview: the resonance of {}", path.display())))
+        }
+        (None, false) => None,
     };
     let units = match &model {
         Some(m) => SetpointUnits::Output(&m.scaling),
@@ -176,17 +205,18 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     } else {
         args.tick_rate
     };
-    let samples = match args.resonance_hz.zip(args.resonance_damping) {
-        Some((hz, zeta)) => {
+    let samples = match resonance {
+        Some((resonance, flags)) => {
             let refused = |e: PreviewError| {
                 let fix = match e {
                     PreviewError::Mode(_) => " (`twinstack set /mode OpenLoop` first)",
                     PreviewError::Divider(_) => " (a t column at the board's rate, or --divider 1)",
                     _ => "",
                 };
-                anyhow::anyhow!("--resonance-hz/--resonance-damping: {e}{fix}; nothing was sent")
+                anyhow::anyhow!("{flags}: {e}{fix}; nothing was sent")
             };
-            let preview = ResonancePreview::new(hz, zeta, tick_rate).map_err(refused)?;
+            let preview = resonance.preview(tick_rate).map_err(refused)?;
+            let (hz, zeta) = (resonance.frequency_hz, resonance.damping);
             let mode = client.read_params()?.mode;
             let shaped = preview
                 .shape_stream(&sp.samples, mode, options.divider)

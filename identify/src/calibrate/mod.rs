@@ -30,6 +30,11 @@
 //!    ([`CalibrateError::SensorSaturated`]), or a model that does not predict the held-out cycle
 //!    within [`CalibrateOptions::max_held_out_pct`] ([`CalibrateError::DoesNotFit`]) stops here,
 //!    before anything is loaded.
+//!    Then, unless [`CalibrateOptions::resonance`] is off, **the resonance**: the sweep and
+//!    fit `twinstack tune` runs ([`crate::tune::measure::sweep`], [`crate::tune::fit::fit`]),
+//!    written into the parameter file ([`ParamFile::resonance`]) for a planned trajectory's
+//!    preview; a response no resonance fits is left out and said
+//!    ([`ResonanceOutcome::NotFitted`]).
 //! 4. **Load**: the parameter file `identify` would write ([`ParamFile::from_model`]), with the
 //!    board's own drive, sensor calibration and feedback gains kept; a model whose input range
 //!    the drive cannot reach is refused as `load` refuses it
@@ -52,7 +57,10 @@ use crate::identification::{
     Identification, IdentifyError, IdentifyOptions, ModelKind, DEFAULT_OPERATORS,
 };
 use crate::param_file::{IdentificationRecord, ParamFile};
+use crate::preview::Resonance;
 use crate::trajectory;
+use crate::tune::fit::{fit, Fit};
+use crate::tune::measure::{sweep, MeasureError, SweepOptions};
 use std::time::Duration;
 use twinstack::config::settings::Settings;
 use twinstack::protocol::messages::{
@@ -73,7 +81,7 @@ mod track;
 
 use measure::{decimation_for, measure, Measured};
 pub use options::CalibrateOptions;
-pub use report::{CalibrateError, CalibrationReport, Candidate, Tracking};
+pub use report::{CalibrateError, CalibrationReport, Candidate, ResonanceOutcome, Tracking};
 use track::track;
 
 /// What [`calibrate`] tells its caller as it goes (for a progress display).
@@ -128,20 +136,32 @@ pub fn calibrate<T: Transport>(
     // Steps 2 and 3, and the checks before a load: a failure there leaves the board's settings
     // as they were, and its mode is restored.
     let previous = status.mode();
-    let Measured {
-        excitation,
-        predicted,
-        id,
-        label,
-        reason,
-        ranking,
-        file,
-        held_out,
-        decimation,
-        tick_rate_hz,
-        clamped,
-        underran,
-    } = match measure(client, options, &board, &mut progress) {
+    let measured = measure(client, options, &board, &mut progress).and_then(|m| {
+        let resonance = if options.resonance {
+            progress(Progress::Step("measuring the resonance"));
+            measure_resonance(client, &board)?
+        } else {
+            ResonanceOutcome::NotAsked
+        };
+        Ok((m, resonance))
+    });
+    let (
+        Measured {
+            excitation,
+            predicted,
+            id,
+            label,
+            reason,
+            ranking,
+            mut file,
+            held_out,
+            decimation,
+            tick_rate_hz,
+            clamped,
+            underran,
+        },
+        resonance,
+    ) = match measured {
         Ok(m) => m,
         Err(e) => {
             // Best effort: the error at hand says more than a failure to restore the mode.
@@ -149,6 +169,12 @@ pub fn calibrate<T: Transport>(
             return Err(e);
         }
     };
+    if let ResonanceOutcome::Measured(f) = &resonance {
+        file.resonance = Some(Resonance {
+            frequency_hz: f.plant.resonance_hz,
+            damping: f.plant.zeta,
+        });
+    }
     let rate = tick_rate_hz.max(1) as f64;
     // 4. Load, first in bypass for the "before".
     progress(Progress::Step("loading"));
@@ -210,6 +236,39 @@ pub fn calibrate<T: Transport>(
         stored: options.store,
         clamped,
         excitation_underran: underran,
+        resonance,
+    })
+}
+
+/// The stage's resonance as `tune` measures and fits it ([`sweep`] with its default options
+/// on the board in bypass, then [`fit`]). A sweep the link or a capture failed stops the
+/// calibration; one that found the stage flat at a frequency, or a response no resonance
+/// fits, leaves the resonance out and says why.
+fn measure_resonance<T: Transport>(
+    client: &mut Client<T>,
+    board: &Settings,
+) -> Result<ResonanceOutcome, CalibrateError> {
+    let (points, rate) = match sweep(client, board, &SweepOptions::default(), |_| {}) {
+        Ok(r) => r,
+        Err(
+            e @ (MeasureError::Link { .. }
+            | MeasureError::Capture { .. }
+            | MeasureError::Convert { .. }),
+        ) => return Err(CalibrateError::Resonance(e)),
+        Err(e) => return Ok(ResonanceOutcome::NotFitted(e.to_string())),
+    };
+    Ok(match fit(&points, rate as f64) {
+        Some(f) if Resonance::new(f.plant.resonance_hz, f.plant.zeta).is_ok() => {
+            ResonanceOutcome::Measured(f)
+        }
+        Some(f) => ResonanceOutcome::NotFitted(format!(
+            "the fit's resonance ({:.0} Hz, damping {:.4}) is not a lightly damped one",
+            f.plant.resonance_hz, f.plant.zeta
+        )),
+        None => ResonanceOutcome::NotFitted(format!(
+            "the response measured at {} frequencies could not be fitted with a resonance and a delay",
+            points.len()
+        )),
     })
 }
 

@@ -49,13 +49,17 @@ pub struct CalibrateOptions {
     /// as well as the compensator; `false`: the compensator only, the observer's cost off the
     /// tick ([`crate::identification::IdentifyOptions::observer`]).
     pub observer: bool,
+    /// Measure the stage's resonance after the excitation (the sweep and fit `twinstack
+    /// tune` runs) and write it into the parameter file, for a planned trajectory's preview
+    /// ([`crate::preview`]).
+    pub resonance: bool,
 }
 
 impl Default for CalibrateOptions {
     /// The excitation [`Excitation::DEFAULT`] at 0.97 of the range (2 s at 10 Hz: 4 full
     /// cycles, 6 decaying to 30 %, 5 of nested loops, 5 of multisine), streamed and recorded at up to 10 kHz; the model picked
-    /// by `auto`, refused above 5 % held-out max error, stored to boot in bypass;
-    /// verification streamed at 10 000 setpoints/s on a 50 kHz board.
+    /// by `auto`, refused above 5 % held-out max error, the resonance measured, stored to
+    /// boot in bypass; verification streamed at 10 000 setpoints/s on a 50 kHz board.
     fn default() -> Self {
         Self {
             excitation_hz: Excitation::DEFAULT.hz,
@@ -75,6 +79,7 @@ impl Default for CalibrateOptions {
             stream_divider: 5,
             output_unit: "um".into(),
             observer: true,
+            resonance: true,
         }
     }
 }

@@ -77,6 +77,21 @@ pub struct CalibrationReport {
     /// than the stream): the record holds the drive as the board applied it, held where the
     /// queue ran dry, so the identification stands, on a record other than the one planned.
     pub excitation_underran: bool,
+    /// The stage's resonance, measured after the excitation where
+    /// [`CalibrateOptions::resonance`] asks (and then in [`CalibrationReport::file`]).
+    pub resonance: ResonanceOutcome,
+}
+
+/// What became of the resonance's measurement ([`CalibrateOptions::resonance`]).
+#[derive(Clone, Debug, PartialEq)]
+pub enum ResonanceOutcome {
+    /// Not asked for.
+    NotAsked,
+    /// Measured and fitted as `tune` fits it; the parameter file holds it.
+    Measured(Fit),
+    /// Swept, but not fitted (why): the parameter file holds none, so a preview needs it
+    /// given (`--resonance-hz`, `--resonance-damping`). The calibration stands.
+    NotFitted(String),
 }
 
 /// Why a calibration stopped. Nothing here panics; each says what to check.
@@ -160,6 +175,9 @@ pub enum CalibrateError {
         /// Samples recorded.
         total: usize,
     },
+    /// The resonance's sweep could not be run (the link, a capture or its conversion).
+    #[error("measuring the resonance: {0}; nothing was loaded (calibrate without measuring it: --no-resonance)")]
+    Resonance(MeasureError),
     /// Identification failed.
     #[error("identification: {0}; nothing was loaded")]
     Identify(#[from] IdentifyError),
