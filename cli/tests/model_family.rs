@@ -8,8 +8,8 @@
 //! Each test holds the figure reached (see the book, results/identification.md and
 //! results/lab-stage.md) and fails when the pick is replaced by the textbook P–I. `auto` picks
 //! by the compensator: held out, the bipolar record's pick (P–I + creep) predicts within
-//! 0.83 % and inverts within 1.29 %, the micromanipulator's (the generalised P–I) 1.44 % and
-//! 1.30 %; tracking on the lab stage is held within 1 %.
+//! 0.81 % and inverts within 1.27 %, the micromanipulator's (the generalised P–I) 1.49 % and
+//! 1.20 %; tracking on the lab stage is held within 1 %.
 //! `stage_variants` holds `auto` on 21 other stages.
 
 use hal_sim::plant::{LabStage, LabStageConfig};

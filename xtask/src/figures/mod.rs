@@ -85,6 +85,31 @@ struct Run {
     out: String,
 }
 
+/// The lab stage's triangles with `auto` and the preview, the record, the identification and
+/// the tracking all sampled at a board's control rate.
+macro_rules! board_rate_triangles {
+    ($name:literal, $rate:literal) => {
+        Figure {
+            name: $name,
+            page: "docs/src/results/lab-stage.md",
+            runs: &[&[
+                "lab-stage",
+                "--rate",
+                $rate,
+                "--model",
+                "auto",
+                "--triangles",
+                "1,5,20,50,100,200",
+                "--preview",
+                "--json",
+            ]],
+            source: Source::Tool,
+            checked: true,
+            render: Render::One(triangles_table),
+        }
+    };
+}
+
 const FIGURES: &[Figure] = &[
     Figure {
         name: "accuracy",
@@ -430,24 +455,8 @@ const FIGURES: &[Figure] = &[
         checked: true,
         render: Render::One(triangles_table),
     },
-    Figure {
-        name: "lab-stage-triangles-50khz",
-        page: "docs/src/results/lab-stage.md",
-        runs: &[&[
-            "lab-stage",
-            "--rate",
-            "50000",
-            "--model",
-            "auto",
-            "--triangles",
-            "1,5,20,50,100,200",
-            "--preview",
-            "--json",
-        ]],
-        source: Source::Tool,
-        checked: true,
-        render: Render::One(triangles_table),
-    },
+    board_rate_triangles!("lab-stage-triangles-50khz", "50000"),
+    board_rate_triangles!("lab-stage-triangles-100khz", "100000"),
     Figure {
         name: "lab-stage-variants",
         page: "docs/src/results/lab-stage.md",
