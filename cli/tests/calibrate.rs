@@ -131,20 +131,25 @@ fn the_lab_workflow_calibrates_the_virtual_stage_below_one_percent_then_streams_
     }
     let data = dir.path().join("setpoints.csv");
     std::fs::write(&data, text).unwrap();
+    // The file streamed through the parameter file's ranges, one setpoint every 50 ticks.
+    let stream = |extra: &[&str]| {
+        let mut args = vec![
+            "stream",
+            "--port",
+            &port,
+            "--data",
+            data.to_str().unwrap(),
+            "--params",
+            params.to_str().unwrap(),
+            "--divider",
+            "50",
+        ];
+        args.extend_from_slice(extra);
+        twinstack_bin(&args)
+    };
     // `--preview` takes the file's resonance: shaped setpoints are one a tick, and this file
     // plays one every 50 ticks, which it refuses before anything is sent.
-    let refused = twinstack_bin(&[
-        "stream",
-        "--port",
-        &port,
-        "--data",
-        data.to_str().unwrap(),
-        "--params",
-        params.to_str().unwrap(),
-        "--divider",
-        "50",
-        "--preview",
-    ]);
+    let refused = stream(&["--preview"]);
     let stderr = String::from_utf8_lossy(&refused.stderr);
     assert!(
         !refused.status.success()
@@ -154,16 +159,7 @@ fn the_lab_workflow_calibrates_the_virtual_stage_below_one_percent_then_streams_
         "{stderr}"
     );
     let run = dir.path().join("run.csv");
-    let out = ok(twinstack_bin(&[
-        "stream",
-        "--port",
-        &port,
-        "--data",
-        data.to_str().unwrap(),
-        "--params",
-        params.to_str().unwrap(),
-        "--divider",
-        "50",
+    let out = ok(stream(&[
         "--record",
         "setpoint,left,sensor,error",
         "--record-out",

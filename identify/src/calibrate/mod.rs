@@ -133,41 +133,33 @@ pub fn calibrate<T: Transport>(
         .set_mode(Mode::Bypass)
         .map_err(link("switching to bypass"))?;
 
-    // Steps 2 and 3, and the checks before a load: a failure there leaves the board's settings
-    // as they were, and its mode is restored.
+    // Steps 2 and 3, the checks before a load and the resonance: a failure there leaves the
+    // board's settings as they were, and its mode is restored (best effort: the error at hand
+    // says more than a failure to restore the mode).
     let previous = status.mode();
-    let measured = measure(client, options, &board, &mut progress).and_then(|m| {
-        let resonance = if options.resonance {
-            progress(Progress::Step("measuring the resonance"));
-            measure_resonance(client, &board)?
-        } else {
-            ResonanceOutcome::NotAsked
-        };
-        Ok((m, resonance))
-    });
-    let (
-        Measured {
-            excitation,
-            predicted,
-            id,
-            label,
-            reason,
-            ranking,
-            mut file,
-            held_out,
-            decimation,
-            tick_rate_hz,
-            clamped,
-            underran,
-        },
-        resonance,
-    ) = match measured {
-        Ok(m) => m,
-        Err(e) => {
-            // Best effort: the error at hand says more than a failure to restore the mode.
-            let _ = client.set_mode(previous);
-            return Err(e);
-        }
+    let restoring = |client: &mut Client<T>, e: CalibrateError| {
+        let _ = client.set_mode(previous);
+        e
+    };
+    let Measured {
+        excitation,
+        predicted,
+        id,
+        label,
+        reason,
+        ranking,
+        mut file,
+        held_out,
+        decimation,
+        tick_rate_hz,
+        clamped,
+        underran,
+    } = measure(client, options, &board, &mut progress).map_err(|e| restoring(client, e))?;
+    let resonance = if options.resonance {
+        progress(Progress::Step("measuring the resonance"));
+        measure_resonance(client, &board).map_err(|e| restoring(client, e))?
+    } else {
+        ResonanceOutcome::NotAsked
     };
     if let ResonanceOutcome::Measured(f) = &resonance {
         file.resonance = Some(Resonance {

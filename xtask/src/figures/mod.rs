@@ -85,19 +85,17 @@ struct Run {
     out: String,
 }
 
-/// The lab stage's triangles with `auto` and the preview, the record, the identification and
-/// the tracking all sampled at a board's control rate.
-macro_rules! board_rate_triangles {
-    ($name:literal, $rate:literal) => {
+/// The lab stage's triangles with the preview (`lab-stage … --triangles … --preview`), the
+/// arguments before the triangles given: the models, and the rate the record, the
+/// identification and the tracking are sampled at.
+macro_rules! triangles_figure {
+    ($name:literal, $($arg:literal),+) => {
         Figure {
             name: $name,
             page: "docs/src/results/lab-stage.md",
             runs: &[&[
                 "lab-stage",
-                "--rate",
-                $rate,
-                "--model",
-                "auto",
+                $($arg,)+
                 "--triangles",
                 "1,5,20,50,100,200",
                 "--preview",
@@ -439,24 +437,21 @@ const FIGURES: &[Figure] = &[
         checked: false,
         render: Render::Many(lab_stage_table),
     },
-    Figure {
-        name: "lab-stage-triangles",
-        page: "docs/src/results/lab-stage.md",
-        runs: &[&[
-            "lab-stage",
-            "--model",
-            "auto,pi,gpi",
-            "--triangles",
-            "1,5,20,50,100,200",
-            "--preview",
-            "--json",
-        ]],
-        source: Source::Tool,
-        checked: true,
-        render: Render::One(triangles_table),
-    },
-    board_rate_triangles!("lab-stage-triangles-50khz", "50000"),
-    board_rate_triangles!("lab-stage-triangles-100khz", "100000"),
+    triangles_figure!("lab-stage-triangles", "--model", "auto,pi,gpi"),
+    triangles_figure!(
+        "lab-stage-triangles-50khz",
+        "--rate",
+        "50000",
+        "--model",
+        "auto"
+    ),
+    triangles_figure!(
+        "lab-stage-triangles-100khz",
+        "--rate",
+        "100000",
+        "--model",
+        "auto"
+    ),
     Figure {
         name: "lab-stage-variants",
         page: "docs/src/results/lab-stage.md",
