@@ -700,12 +700,16 @@ impl Board {
                 "stored": report.stored.is_some(),
                 "clamped": report.clamped,
                 "excitation_underran": report.excitation_underran,
-                "resonance": file.resonance.map(|r| (r.frequency_hz, r.damping)),
                 "resonance_not_fitted": match &report.resonance {
                     ResonanceOutcome::NotFitted(why) => Some(why.as_str()),
                     _ => None,
                 },
             }),
+        )?;
+        // A tuple, as `Params.resonance` gives it.
+        out.set_item(
+            "resonance",
+            file.resonance.map(|r| (r.frequency_hz, r.damping)),
         )?;
         out.set_item("params", Params::from_file(file, stage))?;
         Ok(out)
