@@ -265,6 +265,65 @@ fn the_command_tunes_the_simulated_and_the_virtual_board() {
     );
     assert!(text.status.success() && out.contains(&fitted), "{out}");
 
+    // `--params` writes the fitted resonance into a parameter file, the rest kept; a file
+    // that does not load is refused before the sweep, and one whose check fails is unchanged.
+    let params = dir.path().join("stage.json");
+    let identified = twinstack_identify::param_file::ParamFile::from_model(
+        &twinstack_identify::stage_model::StageModel {
+            hysteresis: twinstack_identify::stage_model::Hysteresis::Pi(
+                twinstack::PiParams::new(0.0, 0.5, &[0.0, 30.0, 60.0], &[0.08, 0.03, 0.02])
+                    .unwrap(),
+            ),
+            scaling: twinstack::Scaling::new(0.0, 140.0, -20.0, 21.0).unwrap(),
+            output_sign: 1.0,
+            sensor_lag_s: 0.0,
+            creep: None,
+        },
+        "um",
+        None,
+    );
+    std::fs::write(&params, identified.to_json()).unwrap();
+    let with_file = |extra: &[&str]| {
+        let mut args = vec!["tune", "--port", "sim", "--rate", "100k"];
+        args.extend_from_slice(extra);
+        twinstack_bin(&args)
+    };
+    let written = with_file(&["--params", params.to_str().unwrap()]);
+    assert!(written.status.success(), "{written:?}");
+    let (file, _) = twinstack_identify::param_file::ParamFile::load(&params).unwrap();
+    let resonance = file.resonance.expect("the resonance written");
+    assert_eq!(
+        resonance.frequency_hz,
+        v["fit"]["resonance_hz"].as_f64().unwrap()
+    );
+    assert_eq!(resonance.damping, v["fit"]["zeta"].as_f64().unwrap());
+    assert_eq!(
+        twinstack_identify::param_file::ParamFile {
+            resonance: None,
+            ..file
+        },
+        identified
+    );
+    let broken = dir.path().join("broken.json");
+    std::fs::write(&broken, "{ \"format\": \"other\" }").unwrap();
+    let refused = with_file(&["--params", broken.to_str().unwrap()]);
+    let err = String::from_utf8_lossy(&refused.stderr);
+    assert!(!refused.status.success() && err.contains("format"), "{err}");
+    std::fs::write(&params, identified.to_json()).unwrap();
+    let refused = with_file(&[
+        "--kp",
+        "0.1",
+        "--ki",
+        "20000",
+        "--params",
+        params.to_str().unwrap(),
+    ]);
+    assert_eq!(refused.status.code(), Some(1));
+    assert_eq!(
+        std::fs::read_to_string(&params).unwrap(),
+        identified.to_json()
+    );
+
     let bad = twinstack_bin(&[
         "tune", "--port", "sim", "--rate", "100k", "--kp", "0.1", "--ki", "20000",
     ]);

@@ -4,7 +4,8 @@
 //! and the loop's delay, places the notch and chooses the PI gains for the margins
 //! ([`twinstack_identify::tune`]), prints the margins and the bandwidth, and with `--load` loads them.
 //! With `--kp`/`--ki` it checks that gain set instead (exit 1 if the fitted model says it is
-//! unstable or short of the margins).
+//! unstable or short of the margins). With `--params PARAMS.json` it writes the fitted
+//! resonance into that parameter file (as `calibrate` does), for `compensate --preview`.
 
 use super::board_link::{connect, PortArgs, UsageError};
 use crate::plot::{draw_panels, Panel, Series};
@@ -14,8 +15,11 @@ use std::path::{Path, PathBuf};
 use std::time::Duration;
 use twinstack::control::feedback::FeedbackSettings;
 use twinstack::control::notch::NotchDesign;
+use twinstack_identify::param_file::ParamFile;
+use twinstack_identify::preview::Resonance;
 use twinstack_identify::tune::loop_model::{loop_response, LoopController};
 use twinstack_identify::tune::{tune, TuneOptions, TuneReport};
+use twinstack_link::output_file::Staged;
 use twinstack_link::{Client, Transport};
 
 /// Arguments of `tune`.
@@ -40,6 +44,11 @@ pub struct Args {
     /// Print the figures as one JSON object on stdout.
     #[arg(long)]
     pub json: bool,
+    /// Write the fitted resonance into this parameter file (its `resonance`, what `calibrate`
+    /// measures), for `compensate --preview` and `stream --preview`; the rest of the file is
+    /// kept. The file is checked before the sweep starts.
+    #[arg(long, value_name = "PARAMS.json")]
+    pub params: Option<PathBuf>,
     /// Write the Bode diagram (measured and fitted, and the loop) to this PNG.
     #[arg(long)]
     pub png: Option<PathBuf>,
@@ -146,6 +155,11 @@ pub fn report_json(r: &TuneReport) -> serde_json::Value {
 
 fn run_on<T: Transport>(args: &Args, client: &mut Client<T>) -> anyhow::Result<()> {
     let options = args.options();
+    // A parameter file to take the resonance: refused before anything moves.
+    let file = match &args.params {
+        Some(path) => Some((path, ParamFile::load(path)?.0)),
+        None => None,
+    };
     let report = tune(client, &options, |p| {
         if !args.json {
             eprintln!(
@@ -159,8 +173,33 @@ fn run_on<T: Transport>(args: &Args, client: &mut Client<T>) -> anyhow::Result<(
     if let Some(png) = &args.png {
         plot(&report, png)?;
     }
+    if let Some((path, mut file)) = file {
+        let p = &report.fit.plant;
+        let resonance = Resonance::new(p.resonance_hz, p.zeta).map_err(|e| {
+            anyhow::anyhow!(
+                "--params {}: the fitted resonance: {e}; the file is unchanged",
+                path.display()
+            )
+        })?;
+        file.resonance = Some(resonance);
+        let mut out = Staged::new();
+        out.write(path, file.to_json().as_bytes())?;
+        out.commit()?;
+        if !args.json {
+            println!(
+                "wrote the resonance ({:.0} Hz, damping {:.4}) into {}: `compensate --preview` and `stream --preview` shape for it",
+                resonance.frequency_hz,
+                resonance.damping,
+                path.display()
+            );
+        }
+    }
     if args.json {
-        println!("{}", report_json(&report));
+        let mut v = report_json(&report);
+        if let Some(path) = &args.params {
+            v["params"] = path.display().to_string().into();
+        }
+        println!("{v}");
         return Ok(());
     }
     let p = &report.fit.plant;
