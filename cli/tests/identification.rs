@@ -1054,6 +1054,15 @@ fn compensate_with_a_preview_inverts_the_shaped_trajectory() {
             "below half the sample rate (100 Hz)",
         ),
         (flags(&planned, "60", "1.5"), "damping ratio 1.5"),
+        (
+            flags(&planned, "1e-300", "0.05"),
+            "too slow to shape at 200 Hz",
+        ),
+        // A resonance far below the trajectory's turns: shaped positions far out of range.
+        (
+            flags(&planned, "0.5", "0.05"),
+            "outside the model's output range",
+        ),
         (measured, "cannot be used with"),
     ] {
         let refused = out("refused.csv");

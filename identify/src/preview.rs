@@ -78,6 +78,27 @@ pub enum PreviewError {
         /// Its shaped value, normalised.
         value: f64,
     },
+    /// A shaped position leaves the model's output range.
+    #[error("sample {sample} shaped is {value:.4}, outside the model's output range {lo}…{hi} (the preview swings past the trajectory at a sharp turn there): keep the trajectory further inside the range or its turns gentler, or check the resonance")]
+    OutsideRange {
+        /// The sample, counted from 1.
+        sample: usize,
+        /// Its shaped value, the trajectory's unit.
+        value: f64,
+        /// The range, the trajectory's unit.
+        lo: f64,
+        /// The range, the trajectory's unit.
+        hi: f64,
+    },
+    /// The resonance is so slow against the sample rate that its held response rounds to
+    /// nothing: there is nothing to shape for.
+    #[error("resonance {hz} Hz: too slow to shape at {rate_hz} Hz (its response over one sample rounds to nothing)")]
+    TooSlow {
+        /// The resonance, Hz.
+        hz: f64,
+        /// The sample rate, Hz.
+        rate_hz: f64,
+    },
     /// The board would not do with shaped setpoints what the preview assumes.
     #[error("the board is in {0:?}: shaped setpoints are for its compensator in open loop (closed loop its feedback would follow them, in bypass they would be the drive)")]
     Mode(Mode),
@@ -198,6 +219,12 @@ impl ResonancePreview {
         // value): `(b₂ + b₁z) / (a₂ + a₁z + z²)`, ascending powers.
         let (num, den) = LinearPlant::resonance(1.0, resonance_hz, zeta, 0, rate_hz).polynomials();
         let (b2, b1, a2, a1) = (num[0], num[1], den[0], den[1]);
+        if !(b1 > 0.0 && [b2, a2, a1, b2 / b1].iter().all(|v| v.is_finite())) {
+            return Err(PreviewError::TooSlow {
+                hz: resonance_hz,
+                rate_hz,
+            });
+        }
         Ok(Self {
             resonance_hz,
             zeta,
@@ -241,6 +268,27 @@ impl ResonancePreview {
             });
         }
         Self::new(resonance_hz, zeta, 1.0 / mean)
+    }
+
+    /// [`ResonancePreview::shape`], refusing a shaped position outside `lo … hi` (a model's
+    /// output range, in the trajectory's unit), naming the first: there the drive would be
+    /// clamped and the corner ring as if unshaped.
+    pub fn shape_within(
+        &self,
+        desired: &[f64],
+        lo: f64,
+        hi: f64,
+    ) -> Result<Vec<f64>, PreviewError> {
+        let r = self.shape(desired);
+        match r.iter().position(|v| !(lo..=hi).contains(v)) {
+            Some(k) => Err(PreviewError::OutsideRange {
+                sample: k + 1,
+                value: r[k],
+                lo,
+                hi,
+            }),
+            None => Ok(r),
+        }
     }
 
     /// `c`: the hold's zero, at `−c`, which the preview does not invert (see the module doc).
@@ -422,6 +470,39 @@ mod tests {
                 Err(PreviewError::Frequency(_))
             ));
         }
+        // So slow against the rate that its held response rounds to nothing (it shaped
+        // every position to NaN).
+        assert!(matches!(
+            ResonancePreview::new(1e-300, 0.03, 1e4),
+            Err(PreviewError::TooSlow { .. })
+        ));
+        // Shaped positions leaving a model's range are named, the first of them. (Sharp turns
+        // swing the shaped values toward the inside of a turn, `Δslope/(ω² T)`, and a ramp is
+        // held part of a sample behind itself: a range as wide as the trajectory is left only
+        // by a little, near its ends.)
+        let p = ResonancePreview::new(10.0, 0.05, 200.0).unwrap();
+        let triangle: Vec<f64> = (0..100)
+            .map(|k| match (k + 10) % 40 {
+                q if q <= 20 => q as f64 - 10.0,
+                q => 30.0 - q as f64,
+            })
+            .collect();
+        assert_eq!(
+            (triangle[0], triangle[10], triangle[30]),
+            (0.0, 10.0, -10.0)
+        );
+        let shaped = p.shape(&triangle);
+        assert_eq!(p.shape_within(&triangle, -100.0, 100.0), Ok(shaped.clone()));
+        let first = shaped.iter().position(|v| v.abs() > 5.0).unwrap();
+        assert_eq!(
+            p.shape_within(&triangle, -5.0, 5.0),
+            Err(PreviewError::OutsideRange {
+                sample: first + 1,
+                value: shaped[first],
+                lo: -5.0,
+                hi: 5.0
+            })
+        );
         assert!(matches!(
             ResonancePreview::new(5e3, 0.03, 1e4),
             Err(PreviewError::Resonance { .. })

@@ -235,11 +235,18 @@ impl StageModel {
     /// How many readings in `x` lie outside the output range once sign-corrected (the
     /// compensator clamps them).
     pub fn reading_outside_range(&self, x: &[f64]) -> usize {
+        let (lo, hi) = self.reading_range();
+        x.iter().filter(|&&v| v < lo || v > hi).count()
+    }
+
+    /// The output range as the sensor reads it (before the sign correction): `lo ≤ hi`.
+    pub fn reading_range(&self) -> (f64, f64) {
         let s = &self.scaling;
-        x.iter()
-            .map(|&v| self.output_sign * v)
-            .filter(|&y| y < s.output_min || y > s.output_max)
-            .count()
+        let (a, b) = (
+            self.output_sign * s.output_min,
+            self.output_sign * s.output_max,
+        );
+        (a.min(b), a.max(b))
     }
 
     /// Checks the library accepts the model for both the observer and the compensator.

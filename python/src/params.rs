@@ -134,9 +134,19 @@ impl Params {
             None => None,
         };
         let model = &self.model;
+        let shaped = match &preview {
+            Some(p) => {
+                let (lo, hi) = model.reading_range();
+                Some(
+                    p.shape_within(&x, lo, hi)
+                        .map_err(|e| PyValueError::new_err(format!("resonance: {e}")))?,
+                )
+            }
+            None => None,
+        };
         let u = py
-            .detach(|| match &preview {
-                Some(p) => model.compensate(&t, &p.shape(&x)),
+            .detach(|| match &shaped {
+                Some(shaped) => model.compensate(&t, shaped),
                 None if measured => model.compensate_measured(&t, &x),
                 None => model.compensate(&t, &x),
             })

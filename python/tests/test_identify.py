@@ -242,6 +242,8 @@ def test_a_planned_trajectory_shaped_for_the_resonance_as_the_cli_shapes_it(micr
     for kwargs, message in [
         (dict(t=tc, resonance=(150.0, 0.05)), "below half the sample rate"),
         (dict(t=tc, resonance=(60.0, 1.5)), "damping ratio 1.5"),
+        (dict(t=tc, resonance=(0.5, 0.05)), "outside the model's output range"),
+        (dict(t=tc, resonance=(1e-300, 0.05)), "too slow to shape"),
         (dict(t=tc, resonance=(60.0, 0.05), measured=True), "not with measured"),
         (dict(resonance=(60.0, 0.05)), "needs t or rate"),
         (dict(t=np.where(tc > 1.0, tc + 0.002, tc), resonance=(60.0, 0.05)), "evenly spaced"),

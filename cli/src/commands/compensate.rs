@@ -161,7 +161,11 @@ pub fn run(args: &Args, direction: Direction) -> anyhow::Result<()> {
                     "note: preview: shaped for a resonance at {} Hz, damping {}, at {:.0} Hz (the trajectory taken as resting at its last reading after it)",
                     p.resonance_hz, p.zeta, p.rate_hz
                 );
-                model.compensate(&data.t, &p.shape(&x))
+                let (lo, hi) = model.reading_range();
+                let shaped = p.shape_within(&x, lo, hi).map_err(|e| {
+                    anyhow::anyhow!("{}: {e}; nothing was written", args.data.display())
+                })?;
+                model.compensate(&data.t, &shaped)
             } else if measured {
                 model
                     .compensate_measured_with_band(&data.t, &x)
