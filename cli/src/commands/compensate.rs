@@ -15,7 +15,7 @@
 //!   planned trajectory is shaped first so that the stage's resonance does not ring at its
 //!   corners ([`twinstack_identify::preview`]): IN's samples must be evenly spaced.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use twinstack_identify::param_file::ParamFile;
 use twinstack_identify::preview::Resonance;
 use twinstack_link::measured_data::{ColumnNames, Columns, MeasuredData};
@@ -70,14 +70,7 @@ pub struct CompensateArgs {
 impl CompensateArgs {
     /// The resonance the trajectory is to be shaped for, as the flags ask it.
     pub fn preview(&self) -> Preview {
-        match (self.resonance_hz.zip(self.resonance_damping), self.preview) {
-            (Some((frequency_hz, damping)), _) => Preview::Given(Resonance {
-                frequency_hz,
-                damping,
-            }),
-            (None, true) => Preview::FromFile,
-            (None, false) => Preview::None,
-        }
+        Preview::from_flags(self.resonance_hz.zip(self.resonance_damping), self.preview)
     }
 }
 
@@ -91,6 +84,44 @@ pub enum Preview {
     Given(Resonance),
     /// For the resonance the parameter file holds.
     FromFile,
+}
+
+impl Preview {
+    /// What `--resonance-hz/--resonance-damping` (`given`) and `--preview` (`from_file`) ask
+    /// for (`compensate` and `stream` alike; clap keeps them apart).
+    pub fn from_flags(given: Option<(f64, f64)>, from_file: bool) -> Self {
+        match (given, from_file) {
+            (Some((frequency_hz, damping)), _) => Self::Given(Resonance {
+                frequency_hz,
+                damping,
+            }),
+            (None, true) => Self::FromFile,
+            (None, false) => Self::None,
+        }
+    }
+
+    /// The resonance to shape for and the flags that asked for it (to name them in an
+    /// error): the one given, or the one the parameter file `file` (read from `path`) holds,
+    /// refused naming the file where it holds none.
+    pub fn resonance(
+        self,
+        file: Option<&ParamFile>,
+        path: &Path,
+    ) -> anyhow::Result<Option<(Resonance, String)>> {
+        Ok(match self {
+            Self::None => None,
+            Self::Given(r) => Some((r, "--resonance-hz/--resonance-damping".into())),
+            Self::FromFile => {
+                let r = file.and_then(|f| f.resonance).ok_or_else(|| {
+                    anyhow::anyhow!(
+                        "--preview: {} holds no resonance (`twinstack calibrate` or `twinstack tune --params` measures it into the file; or give --resonance-hz and --resonance-damping, as `twinstack tune` prints them)",
+                        path.display()
+                    )
+                })?;
+                Some((r, format!("--preview: the resonance of {}", path.display())))
+            }
+        })
+    }
 }
 
 /// Which way the model runs.
@@ -135,26 +166,12 @@ pub fn run(args: &Args, direction: Direction) -> anyhow::Result<()> {
         }
         Direction::Inverse { measured, preview } => {
             let x = data.x.clone().unwrap_or_default();
-            let preview = match preview {
-                Preview::None => None,
-                Preview::Given(r) => Some(
+            let preview = match preview.resonance(Some(&file), &args.params)? {
+                Some((r, flags)) => Some(
                     r.preview_at_times(&data.t)
-                        .map_err(|e| anyhow::anyhow!("--resonance-hz/--resonance-damping: {e}"))?,
+                        .map_err(|e| anyhow::anyhow!("{flags}: {e}"))?,
                 ),
-                Preview::FromFile => {
-                    let r = file.resonance.ok_or_else(|| {
-                        anyhow::anyhow!(
-                            "--preview: {} holds no resonance (`twinstack calibrate` measures it; or give --resonance-hz and --resonance-damping, as `twinstack tune` prints them)",
-                            args.params.display()
-                        )
-                    })?;
-                    Some(r.preview_at_times(&data.t).map_err(|e| {
-                        anyhow::anyhow!(
-                            "--preview: the resonance of {}: {e}",
-                            args.params.display()
-                        )
-                    })?)
-                }
+                None => None,
             };
             let u = if let Some(p) = &preview {
                 eprintln!(

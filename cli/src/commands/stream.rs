@@ -30,10 +30,11 @@
 //! underruns: [`Underran`]).
 
 use super::board_link::{connect, PortArgs};
+use super::compensate::Preview;
 use std::path::PathBuf;
 use twinstack::protocol::messages::{Trigger, UnderrunPolicy};
 use twinstack_identify::param_file::ParamFile;
-use twinstack_identify::preview::{PreviewError, Resonance};
+use twinstack_identify::preview::PreviewError;
 use twinstack_link::capture::signal_mask;
 use twinstack_link::setpoint_file::{self, SetpointUnits};
 use twinstack_link::streamer::{stream_setpoints, StreamOptions};
@@ -156,26 +157,13 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         None => (None, None),
     };
     // The resonance to shape for, and the flags that asked for it (for errors).
-    let resonance = match (args.resonance_hz.zip(args.resonance_damping), args.preview) {
-        (Some((frequency_hz, damping)), _) => Some((
-            Resonance {
-                frequency_hz,
-                damping,
-            },
-            "--resonance-hz/--resonance-damping".to_string(),
-        )),
-        (None, true) => {
-            let path = args.params.as_deref().unwrap_or(std::path::Path::new(""));
-            let r = file.as_ref().and_then(|f| f.resonance).ok_or_else(|| {
-                anyhow::anyhow!(
-                    "--preview: {} holds no resonance (`twinstack calibrate` measures it; or give --resonance-hz and --resonance-damping, as `twinstack tune` prints them); nothing was sent",
-                    path.display()
-                )
-            })?;
-            Some((r, format!("--preview: the resonance of {}", path.display())))
-        }
-        (None, false) => None,
-    };
+    let resonance =
+        Preview::from_flags(args.resonance_hz.zip(args.resonance_damping), args.preview)
+            .resonance(
+                file.as_ref(),
+                args.params.as_deref().unwrap_or(std::path::Path::new("")),
+            )
+            .map_err(|e| anyhow::anyhow!("{e}; nothing was sent"))?;
     let units = match &model {
         Some(m) => SetpointUnits::Output(&m.scaling),
         None => SetpointUnits::Normalised,
