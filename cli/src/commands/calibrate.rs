@@ -88,8 +88,8 @@ pub struct Args {
     #[arg(long)]
     pub no_observer: bool,
     /// Do not measure the stage's resonance after the excitation (the sweep `twinstack tune`
-    /// runs: 36 sine bursts, each captured and read back over the link). Measured, it goes
-    /// into the parameter file, where
+    /// runs: 36 frequencies, each a sine burst captured and read back over the link).
+    /// Measured, it goes into the parameter file, where
     /// `compensate --preview` and `stream --preview` shape a planned trajectory for it.
     #[arg(long)]
     pub no_resonance: bool,
