@@ -47,6 +47,8 @@ pub enum ModelField {
     A,
     /// Bouc–Wen `ψ` (asymmetric term).
     Psi,
+    /// Bouc–Wen `χ` (the term that depends on the state's sign).
+    Chi,
 }
 
 /// A field of the creep operator (`creep`). Wire-stable: append only.
@@ -311,6 +313,7 @@ impl core::fmt::Display for ModelField {
             ModelField::K => write!(f, "k"),
             ModelField::A => write!(f, "a"),
             ModelField::Psi => write!(f, "psi"),
+            ModelField::Chi => write!(f, "chi"),
         }
     }
 }

@@ -556,13 +556,14 @@ fn model_fields(which: &str, model: &Model, field: fn(ModelField) -> Field) -> V
         }
         Model::BoucWen(_) => {
             type Set = fn(&mut twinstack::BoucWenParams, f64);
-            let parts: [(&str, ModelField, Set); 6] = [
+            let parts: [(&str, ModelField, Set); 7] = [
                 ("k", ModelField::K, |p, x| p.k = x),
                 ("offset", ModelField::Offset, |p, x| p.offset = x),
                 ("a", ModelField::A, |p, x| p.a = x),
                 ("beta", ModelField::Beta, |p, x| p.beta = x),
                 ("gamma", ModelField::Gamma, |p, x| p.gamma = x),
                 ("psi", ModelField::Psi, |p, x| p.psi = x),
+                ("chi", ModelField::Chi, |p, x| p.chi = x),
             ];
             for (name, f, set) in parts {
                 let m = w.clone();

@@ -477,16 +477,16 @@ fn a_wrong_byte_or_annotation_in_the_chapter_is_caught() {
     let mutations = [
         // A frame byte.
         (
-            "frame: 02 09 05 b6 a9 1b 90 00",
-            "frame: 02 09 05 b6 a9 1b 91 00",
+            "frame: 02 0a 05 75 fa 36 bb 00",
+            "frame: 02 0a 05 75 fa 36 bc 00",
         ),
         // The version before the current one, with its CRC.
         (
+            "body:  0a (version) | 00 (Status) | CRC 75 fa 36 bb",
             "body:  09 (version) | 00 (Status) | CRC b6 a9 1b 90",
-            "body:  08 (version) | 00 (Status) | CRC f7 98 00 89",
         ),
         // A CRC alone.
-        ("| CRC 5e 3c 61 56", "| CRC 5e 3c 61 57"),
+        ("| CRC b0 93 d4 44", "| CRC b0 93 d4 45"),
         // A variant's name.
         ("0a (Field::Ki)", "0a (Field::Kp)"),
         ("00 (Ack)", "00 (Nack)"),

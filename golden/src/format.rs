@@ -5,7 +5,7 @@
 //! | field | bytes | meaning |
 //! |---|---|---|
 //! | magic | 4 | `TSGV` |
-//! | version | 2 | [`FORMAT_VERSION`], or [`FORMAT_VERSION_WITHOUT_SHAPING`] (read); another version is refused |
+//! | version | 2 | [`FORMAT_VERSION`], or [`FORMAT_VERSION_WITHOUT_CHI`] or [`FORMAT_VERSION_WITHOUT_SHAPING`] (read); another version is refused |
 //! | length | 4 | bytes of the whole record, magic to CRC |
 //! | name length, name | 1 + n | ASCII `[a-z0-9-]`, 1…32 bytes |
 //! | ticks | 4 | tick count `T` (1…[`MAX_TICKS`]) |
@@ -26,8 +26,12 @@ use super::{TickInput, TickOutput, CRC32};
 pub const MAGIC: [u8; 4] = *b"TSGV";
 /// Version of the layout above and of the recipe's encoding ([`super::recipe`]): 2 since the
 /// feedback carries a drift limit, 3 since the settings end with the optional creep, 4 since
-/// they end with the optional input shaping.
-pub const FORMAT_VERSION: u16 = 4;
+/// they end with the optional input shaping, 5 since a Bouc–Wen model's coefficients end
+/// with `χ`.
+pub const FORMAT_VERSION: u16 = 5;
+/// The format before Bouc–Wen's `χ`, still read where neither model is Bouc–Wen (one that is
+/// is refused, [`RecipeError::BoucWenWithoutChi`]); the same layout otherwise.
+pub const FORMAT_VERSION_WITHOUT_CHI: u16 = 4;
 /// The format before input shaping, still read: its recipes' settings end with `creep`
 /// ([`Recipe::decode_without_shaping`]); the same layout otherwise.
 pub const FORMAT_VERSION_WITHOUT_SHAPING: u16 = 3;
@@ -190,11 +194,15 @@ impl<'a> VectorSet<'a> {
     }
     /// The configuration, decoded.
     pub fn recipe(&self) -> Result<Recipe, RecipeError> {
-        if self.version == FORMAT_VERSION_WITHOUT_SHAPING {
-            Recipe::decode_without_shaping(self.recipe)
+        let recipe = if self.version == FORMAT_VERSION_WITHOUT_SHAPING {
+            Recipe::decode_without_shaping(self.recipe)?
         } else {
-            Recipe::decode(self.recipe)
+            Recipe::decode(self.recipe)?
+        };
+        if self.version < FORMAT_VERSION && recipe.has_bouc_wen() {
+            return Err(RecipeError::BoucWenWithoutChi);
         }
+        Ok(recipe)
     }
     /// The stored inputs, tick by tick.
     pub fn inputs(&self) -> impl Iterator<Item = TickInput> + 'a {
@@ -225,7 +233,13 @@ impl<'a> VectorSet<'a> {
             return Err(FormatError::BadMagic { at });
         }
         let version = r.u16()?;
-        if version != FORMAT_VERSION && version != FORMAT_VERSION_WITHOUT_SHAPING {
+        if ![
+            FORMAT_VERSION,
+            FORMAT_VERSION_WITHOUT_CHI,
+            FORMAT_VERSION_WITHOUT_SHAPING,
+        ]
+        .contains(&version)
+        {
             return Err(FormatError::BadVersion { got: version });
         }
         let len = r.u32()? as usize;
@@ -430,7 +444,7 @@ mod tests {
     use super::*;
 
     struct Buf {
-        b: [u8; 512],
+        b: [u8; 2048],
         n: usize,
     }
     impl Extend<u8> for Buf {
@@ -467,7 +481,7 @@ mod tests {
             },
             TickOutput::default(),
         ];
-        let mut buf = Buf { b: [0; 512], n: 0 };
+        let mut buf = Buf { b: [0; 2048], n: 0 };
         encode_record(
             "set-1",
             0xdead_beef,
@@ -513,12 +527,56 @@ mod tests {
             assert!(matches!(r, None | Some(Err(_))), "cut at {cut}");
         }
         for k in 0..file.len() {
-            let mut bad = [0u8; 512];
+            let mut bad = [0u8; 2048];
             bad[..file.len()].copy_from_slice(file);
             bad[k] ^= 0x40;
             let r = VectorSets::new(&bad[..file.len()]).next();
             assert!(matches!(r, Some(Err(_))), "flip at {k}: {r:?}");
         }
+    }
+
+    /// A record of format 4 (before Bouc–Wen's `χ`) is read unless it holds a Bouc–Wen
+    /// model, whose coefficients that format laid out without `χ`.
+    #[test]
+    fn a_format_4_record_is_read_unless_it_holds_a_bouc_wen_model() {
+        use twinstack::board::Hardware;
+        use twinstack::config::settings::{representative_bouc_wen, representative_pi, Settings};
+        let record = |settings: Settings, version: u16| {
+            let recipe = Recipe {
+                hardware: Hardware::driver_board(50_000.0),
+                settings,
+            };
+            let mut bytes = [0u8; 1024];
+            let bytes = recipe.encode(&mut bytes).unwrap();
+            let mut buf = Buf { b: [0; 2048], n: 0 };
+            let (i, o) = ([TickInput::default()], [TickOutput::default()]);
+            encode_record("set", 1, bytes, &i, &o, &mut buf).unwrap();
+            buf.b[4..6].copy_from_slice(&version.to_le_bytes());
+            let crc = CRC32.checksum(&buf.b[..buf.n - 4]);
+            buf.b[buf.n - 4..buf.n].copy_from_slice(&crc.to_le_bytes());
+            buf
+        };
+        let recipe_of = |buf: &Buf| {
+            VectorSets::new(&buf.b[..buf.n])
+                .next()
+                .unwrap()
+                .unwrap()
+                .recipe()
+        };
+        let bouc_wen = Settings {
+            compensator: Some(representative_bouc_wen()),
+            ..Settings::default()
+        };
+        let pi = Settings {
+            compensator: Some(representative_pi(8).unwrap()),
+            ..Settings::default()
+        };
+        assert!(recipe_of(&record(bouc_wen.clone(), FORMAT_VERSION)).is_ok());
+        assert!(recipe_of(&record(pi, FORMAT_VERSION_WITHOUT_CHI)).is_ok());
+        assert_eq!(
+            recipe_of(&record(bouc_wen, FORMAT_VERSION_WITHOUT_CHI)),
+            Err(RecipeError::BoucWenWithoutChi)
+        );
     }
 
     #[test]
@@ -534,8 +592,14 @@ mod tests {
             ));
         }
         assert_eq!(TickInput::from_bytes(&[0x08, 0, 0, 0, 0, 0, 0]), None);
-        assert!(
-            encode_record("Bad Name", 0, &[], &[], &[], &mut Buf { b: [0; 512], n: 0 }).is_none()
-        );
+        assert!(encode_record(
+            "Bad Name",
+            0,
+            &[],
+            &[],
+            &[],
+            &mut Buf { b: [0; 2048], n: 0 }
+        )
+        .is_none());
     }
 }

@@ -6,7 +6,7 @@
 use serde::{Deserialize, Serialize};
 
 use twinstack::board::Hardware;
-use twinstack::config::settings::{Settings, SettingsWithoutShaping};
+use twinstack::config::settings::{Model, Settings, SettingsWithoutShaping};
 use twinstack::control::ControlConfig;
 use twinstack::refusal::Refusal;
 
@@ -30,6 +30,9 @@ pub enum RecipeError {
     Malformed,
     /// The settings were refused on the recipe's hardware.
     Refused(Refusal),
+    /// A record of a format before Bouc–Wen's `χ` holds a Bouc–Wen model, whose
+    /// coefficients that format did not end with `χ`: write the file again.
+    BoucWenWithoutChi,
 }
 
 impl Recipe {
@@ -62,6 +65,12 @@ impl Recipe {
             }),
             _ => Err(RecipeError::Malformed),
         }
+    }
+
+    /// Whether the compensator or the observer is a Bouc–Wen model.
+    pub fn has_bouc_wen(&self) -> bool {
+        let bouc_wen = |m: &Option<Model>| matches!(m, Some(Model::BoucWen(_)));
+        bouc_wen(&self.settings.compensator) || bouc_wen(&self.settings.observer)
     }
 
     /// Validates and builds the tick's configuration.

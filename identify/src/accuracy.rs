@@ -358,9 +358,9 @@ fn measure_creep(
     )
 }
 
-/// A random bounded Bouc–Wen over 0…150 V (`|γ| ≤ 0.4 β`, `|ψ| ≤ 0.7 (β − |γ|)`, either sign of
-/// `A`, the compensator's loop gain below 0.85), with an output range holding `k·u + δ` and
-/// the state bound.
+/// A random bounded Bouc–Wen over 0…150 V (`|γ| ≤ 0.4 β`, `|ψ| ≤ 0.7 (β − |γ|)`,
+/// `|χ| ≤ 0.7 (β − |γ| − |ψ|)`, either sign of `A`, the compensator's loop gain below 0.85),
+/// with an output range holding `k·u + δ` and the state bound.
 fn random_bouc_wen(rng: &mut Rng) -> (BoucWenParams, Scaling) {
     let k = rng.range(0.05, 0.15);
     let beta = rng.range(0.005, 0.05);
@@ -372,9 +372,11 @@ fn random_bouc_wen(rng: &mut Rng) -> (BoucWenParams, Scaling) {
         beta,
         gamma,
         psi: rng.range(-0.7, 0.7) * (beta - gamma.abs()),
+        chi: 0.0,
     };
+    p.chi = rng.range(-0.7, 0.7) * (beta - gamma.abs() - p.psi.abs());
     p.a = rng.range(-0.85, 0.85) * k / (1.0 + p.max_factor() / p.min_factor());
-    // |h| ≤ |A|·max(1/(β − |γ| − |ψ|), 2U) in output units (U = 75 V).
+    // |h| ≤ |A|·max(1/(β − |γ| − |ψ| − |χ|), 2U) in output units (U = 75 V).
     let h = p.a.abs() * (1.0 / p.min_factor()).max(150.0);
     let reach = k * 150.0 + h + 1.0;
     (

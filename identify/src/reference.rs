@@ -664,12 +664,12 @@ impl BoucWen {
         let p = &self.params;
         let s = if du < 0.0 { -1.0 } else { 1.0 };
         let sh = heading_sign(self.h, s * p.a);
-        let c = p.beta + s * sh * p.gamma + s * p.psi;
+        let c = p.factor(s, sh);
         let (q, phi) = relax(c, du.abs());
         let h = self.h + s * p.a * phi - q * self.h;
         self.h = if h * self.h < 0.0 {
             // Through zero: to zero at c, the rest from zero at the other sign's rate.
-            let c_other = p.beta - s * sh * p.gamma + s * p.psi;
+            let c_other = p.factor(s, -sh);
             let to_zero = libm::log1p(self.h.abs() * c / p.a.abs()) / c;
             s * p.a * relax(c_other, (du.abs() - to_zero).max(0.0)).1
         } else {
@@ -723,7 +723,7 @@ impl InverseBoucWen {
         let sign = if r > 0.0 { 1.0 } else { -1.0 };
         let h = self.model.h;
         let sh = heading_sign(h, sign * p.a);
-        let c = p.beta + sign * sh * p.gamma + sign * p.psi;
+        let c = p.factor(sign, sh);
         // As the library's `STEP_CAP`: 0.99/c.
         let cap = |c: f64| (0.99 / c).min(2.0 * s.input_half_span());
         let toward = -sign * h;
@@ -736,7 +736,7 @@ impl InverseBoucWen {
         };
         let m = match at_zero {
             Some((to_zero, change)) if r.abs() > change => {
-                let c_other = p.beta - sign * sh * p.gamma + sign * p.psi;
+                let c_other = p.factor(sign, -sh);
                 to_zero
                     + solve(
                         c_other,

@@ -879,6 +879,7 @@ mod tests {
                 beta: 0.02,
                 gamma: 0.004,
                 psi: 0.003,
+                chi: 0.001,
             }),
             ..duhem_model()
         }

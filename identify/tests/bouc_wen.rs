@@ -28,6 +28,7 @@ fn params() -> BoucWenParams {
         beta: 0.04,
         gamma: 0.008,
         psi: 0.006,
+        chi: 0.002,
     }
 }
 
@@ -44,8 +45,9 @@ impl Noise {
     }
 }
 
-/// A random bounded model (`|γ| < β`, `|ψ| < β − |γ|`, either sign of `A`, the compensator's
-/// loop gain below 0.85) with an output range holding `k·u + δ` and the state bound.
+/// A random bounded model (`|γ| < β`, `|ψ| < β − |γ|`, `|χ| < β − |γ| − |ψ|`, either sign of
+/// `A`, the compensator's loop gain below 0.85) with an output range holding `k·u + δ` and
+/// the state bound.
 fn bouc_wen_model() -> impl Strategy<Value = (BoucWenParams, Scaling)> {
     (
         0.05f64..0.5,
@@ -54,8 +56,9 @@ fn bouc_wen_model() -> impl Strategy<Value = (BoucWenParams, Scaling)> {
         -0.45f64..0.45,
         -0.7f64..0.7,
         -3.0f64..3.0,
+        -0.7f64..0.7,
     )
-        .prop_map(|(k, a, beta, g, psi, offset)| {
+        .prop_map(|(k, a, beta, g, psi, offset, chi)| {
             let gamma = g * beta;
             let mut p = BoucWenParams {
                 k,
@@ -64,7 +67,9 @@ fn bouc_wen_model() -> impl Strategy<Value = (BoucWenParams, Scaling)> {
                 beta,
                 gamma,
                 psi: psi * (beta - gamma.abs()),
+                chi: 0.0,
             };
+            p.chi = chi * (beta - gamma.abs() - p.psi.abs());
             p.a = a * 0.85 * k / (1.0 + p.max_factor() / p.min_factor());
             let h = p.a.abs() * (1.0 / p.min_factor()).max(150.0);
             let reach = k * 150.0 + offset.abs() + h + 1.0;
@@ -118,7 +123,14 @@ const EXACT: f64 = 32.0 / (1u64 << 30) as f64;
 /// neither drifts (no ratchet).
 #[test]
 fn compensation_lands_on_its_model_and_does_not_ratchet_on_noise() {
-    let (p, s) = (params(), scaling());
+    // A < 0: the output's slope falls to 0.29 of k just after a reversal.
+    let (p, s) = (
+        BoucWenParams {
+            a: -0.1,
+            ..params()
+        },
+        scaling(),
+    );
     let inv = InverseBoucWen::new(&p, &s).unwrap();
     let fwd = BoucWen::new(&p, &s).unwrap();
     let period = 2000;
@@ -155,8 +167,12 @@ fn compensation_lands_on_its_model_and_does_not_ratchet_on_noise() {
             worst_drive < 0.99,
             "noise {noise_peak}: drive reached {worst_drive}"
         );
+        // On noise, steps of up to 2 % of the span, some just after a reversal where the slope
+        // falls to 0.29 k: the Newton step's O((c·m)²) of such a step, below 1e-7 (a
+        // three-hundredth of a 16-bit code). Smooth, the rounding alone.
+        let bound = if noise_peak > 0.0 { 1e-7 } else { EXACT };
         assert!(
-            worst_error <= EXACT,
+            worst_error <= bound,
             "noise {noise_peak}: missed its model by {worst_error}"
         );
         // No ratchet: the mean drive over a period is the same at the end as after the first.
@@ -196,7 +212,7 @@ fn the_tick_runs_the_bouc_wen_compensator_and_observer() {
     assert!(worst < 4.0 * LSB16, "{:.2} LSB16", worst / LSB16);
 }
 
-/// A stage that follows a known asymmetric Bouc–Wen (ψ ≠ 0), with a little sensor noise: 6 s
+/// A stage that follows a known asymmetric Bouc–Wen (ψ, χ ≠ 0), with a little sensor noise: 6 s
 /// at 1 kHz of a 1 Hz sine with a decaying amplitude, from rest.
 fn bouc_wen_record() -> (MeasuredData, BoucWenParams) {
     let truth = BoucWenParams {
@@ -204,8 +220,9 @@ fn bouc_wen_record() -> (MeasuredData, BoucWenParams) {
         offset: 0.5,
         a: 0.02,
         beta: 0.03,
-        gamma: 0.006,
-        psi: 0.012,
+        gamma: 0.004,
+        psi: 0.008,
+        chi: 0.004,
     };
     assert!(
         truth.inverse_loop_gain() < 0.8,
@@ -261,12 +278,9 @@ fn identification_recovers_a_known_asymmetric_bouc_wen_and_beats_duhem() {
     for (name, got, want) in [("k", p.k, truth.k), ("a", p.a, truth.a)] {
         assert!((got / want - 1.0).abs() < 0.1, "{name}: {got} vs {want}");
     }
-    assert!(
-        (p.psi / truth.psi - 1.0).abs() < 0.3,
-        "psi {} vs {}",
-        p.psi,
-        truth.psi
-    );
+    for (name, got, want) in [("psi", p.psi, truth.psi), ("chi", p.chi, truth.chi)] {
+        assert!((got / want - 1.0).abs() < 0.3, "{name}: {got} vs {want}");
+    }
     let auto = identify_auto(
         &data,
         &IdentifyOptions::new(ModelKind::Pi, 4.0).candidates(),

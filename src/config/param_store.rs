@@ -20,7 +20,7 @@
 use core::fmt;
 
 use crate::board::Hardware;
-use crate::config::settings::Settings;
+use crate::config::settings::{Model, Settings};
 use crate::control::ControlConfig;
 use crate::refusal::Refusal;
 
@@ -194,8 +194,12 @@ pub fn decode(record: &[u8], expected_version: u16) -> Result<&[u8], StoreError>
     Ok(&record[HEADER_LEN..body_end])
 }
 
-/// Payload layout version of the record (version 6: the control rate, the one [`Settings`]
-/// type, and the analog setpoint input's settings ([`StoredRecord::analog`]); version 5
+/// Payload layout version of the record (version 7: the control rate, the one [`Settings`]
+/// type, and the analog setpoint input's settings ([`StoredRecord::analog`]). Version 7's
+/// Bouc–Wen model ends with `χ` ([`crate::BoucWenParams::chi`]); versions 4 to 6 are laid out
+/// alike but for that, and are still read where neither model is Bouc–Wen (one that is is
+/// refused, [`SettingsError::BoucWenWithoutChi`]: its coefficients would be read shifted).
+/// Version 6 is version 7 without `χ`; version 5
 /// lacked the last and is still read, as no analog input. Version 5's settings end with the
 /// optional input shaping (`shaping`); version 4 lacked
 /// it and is still read, as settings without shaping ([`StoredRecord::decode`]); in version 4
@@ -203,7 +207,18 @@ pub fn decode(record: &[u8], expected_version: u16) -> Result<&[u8], StoreError>
 /// settings the optional creep operator; version 3 lacked all three, and versions 1 and 2 had
 /// a separate board payload and a wire parameter set: none of them is read, such a
 /// board boots on the defaults and says so).
-pub const RECORD_VERSION: u16 = 6;
+pub const RECORD_VERSION: u16 = 7;
+
+/// The last record version whose Bouc–Wen model has no `χ`, still read without one.
+pub const RECORD_VERSION_WITHOUT_CHI: u16 = 6;
+
+/// A payload laid out as [`StoredRecord`] (versions 6 and 7: see [`RECORD_VERSION`]).
+fn decode_current(payload: &[u8]) -> Option<StoredRecord> {
+    match postcard::take_from_bytes::<StoredRecord>(payload) {
+        Ok((r, [])) => Some(r),
+        _ => None,
+    }
+}
 
 /// The last record version without the analog input's settings, still read.
 pub const RECORD_VERSION_WITHOUT_ANALOG: u16 = 5;
@@ -278,6 +293,12 @@ pub enum SettingsError {
     },
     /// The settings were refused on this board.
     Refused(Refusal),
+    /// A record of an older layout (`version`) holds a Bouc–Wen model, whose coefficients
+    /// that layout did not end with `χ`: load its parameter file again.
+    BoucWenWithoutChi {
+        /// The record's layout version.
+        version: u16,
+    },
 }
 
 impl fmt::Display for SettingsError {
@@ -291,6 +312,10 @@ impl fmt::Display for SettingsError {
                 Hardware::MAX_CONTROL_RATE_HZ
             ),
             SettingsError::Refused(r) => write!(f, "stored settings refused: {r}"),
+            SettingsError::BoucWenWithoutChi { version } => write!(
+                f,
+                "record version {version} holds a Bouc-Wen model stored before its chi term: load its parameter file again"
+            ),
         }
     }
 }
@@ -323,28 +348,48 @@ impl StoredRecord {
     /// is ignored). A version-5 record is read as no analog input, a version-4 record (before
     /// input shaping) as settings without shaping.
     pub fn decode(record: &[u8], hardware: &Hardware) -> Result<Self, LoadFailure> {
-        let stored = match decode(record, RECORD_VERSION) {
-            Ok(payload) => match postcard::take_from_bytes::<StoredRecord>(payload) {
-                Ok((r, [])) => Some(r),
-                _ => None,
-            },
+        let (stored, version) = match decode(record, RECORD_VERSION) {
+            Ok(payload) => (decode_current(payload), RECORD_VERSION),
+            Err(StoreError::UnsupportedVersion {
+                found: RECORD_VERSION_WITHOUT_CHI,
+                ..
+            }) => (
+                decode_current(
+                    decode(record, RECORD_VERSION_WITHOUT_CHI).map_err(LoadFailure::Record)?,
+                ),
+                RECORD_VERSION_WITHOUT_CHI,
+            ),
             Err(StoreError::UnsupportedVersion {
                 found: RECORD_VERSION_WITHOUT_ANALOG,
                 ..
-            }) => decode_v5(
-                decode(record, RECORD_VERSION_WITHOUT_ANALOG).map_err(LoadFailure::Record)?,
+            }) => (
+                decode_v5(
+                    decode(record, RECORD_VERSION_WITHOUT_ANALOG).map_err(LoadFailure::Record)?,
+                ),
+                RECORD_VERSION_WITHOUT_ANALOG,
             ),
             Err(StoreError::UnsupportedVersion {
                 found: RECORD_VERSION_WITHOUT_SHAPING,
                 ..
-            }) => decode_v4(
-                decode(record, RECORD_VERSION_WITHOUT_SHAPING).map_err(LoadFailure::Record)?,
+            }) => (
+                decode_v4(
+                    decode(record, RECORD_VERSION_WITHOUT_SHAPING).map_err(LoadFailure::Record)?,
+                ),
+                RECORD_VERSION_WITHOUT_SHAPING,
             ),
             Err(e) => return Err(LoadFailure::Record(e)),
         };
         let Some(stored) = stored else {
             return Err(LoadFailure::Settings(SettingsError::Undecodable));
         };
+        let bouc_wen = |m: &Option<Model>| matches!(m, Some(Model::BoucWen(_)));
+        if version < RECORD_VERSION
+            && (bouc_wen(&stored.settings.compensator) || bouc_wen(&stored.settings.observer))
+        {
+            return Err(LoadFailure::Settings(SettingsError::BoucWenWithoutChi {
+                version,
+            }));
+        }
         let rate = stored.control_rate_hz;
         if !(Hardware::MIN_CONTROL_RATE_HZ..=Hardware::MAX_CONTROL_RATE_HZ).contains(&rate) {
             return Err(LoadFailure::Settings(
@@ -565,7 +610,7 @@ mod tests {
         let mut s = stored(50_000);
         s.settings.compensator = Some(crate::config::settings::representative_pi(8).unwrap());
         s.settings.mode = crate::config::settings::Mode::OpenLoop;
-        // Version 4's payload is version 6's without the last two bytes (`shaping: None`,
+        // Version 4's payload is version 7's without the last two bytes (`shaping: None`,
         // `analog: None`).
         let mut payload = [0u8; MAX_PAYLOAD];
         let used = postcard::to_slice(&s, &mut payload).unwrap().len();
@@ -618,7 +663,7 @@ mod tests {
             load_record(&buf[..n], &HW),
             (s.clone(), ParamSource::Stored)
         );
-        // Version 6 without the byte is malformed.
+        // The present version without the byte is malformed.
         let n = encode(RECORD_VERSION, &payload[..used - 1], &mut buf).unwrap();
         assert_eq!(load_record(&buf[..n], &HW).1.as_str(), "bad-settings");
         let analog = AnalogInputConfig {
@@ -647,14 +692,69 @@ mod tests {
         assert_eq!(source.as_str(), "bad-settings");
     }
 
+    /// A version-6 record (Bouc–Wen without `χ`) still loads where neither model is
+    /// Bouc–Wen; one holding a Bouc–Wen model is refused by name, not read shifted.
+    #[test]
+    fn a_version_6_record_loads_unless_it_holds_a_bouc_wen_model() {
+        use crate::config::settings::{representative_bouc_wen, representative_pi, Mode};
+        let mut s = stored(50_000);
+        s.settings.compensator = Some(representative_pi(8).unwrap());
+        s.settings.mode = Mode::OpenLoop;
+        let mut payload = [0u8; MAX_PAYLOAD];
+        let used = postcard::to_slice(&s, &mut payload).unwrap().len();
+        let mut buf = [0u8; MAX_RECORD];
+        let n = encode(RECORD_VERSION_WITHOUT_CHI, &payload[..used], &mut buf).unwrap();
+        assert_eq!(
+            load_record(&buf[..n], &HW),
+            (s.clone(), ParamSource::Stored)
+        );
+        // Version 6's Bouc–Wen: six coefficients where version 7 has seven (`χ` last, a
+        // postcard `f64` is its 8 bytes): the same payload without `χ`'s bytes after `ψ`'s.
+        s.settings.compensator = Some(representative_bouc_wen());
+        let Some(Model::BoucWen(p)) = s.settings.compensator else {
+            unreachable!()
+        };
+        let used = postcard::to_slice(&s, &mut payload).unwrap().len();
+        let mut coefficients = [0u8; 16];
+        coefficients[..8].copy_from_slice(&p.psi.to_le_bytes());
+        coefficients[8..].copy_from_slice(&p.chi.to_le_bytes());
+        let at = payload[..used]
+            .windows(16)
+            .position(|w| w == coefficients)
+            .unwrap()
+            + 8;
+        let chi = 8;
+        let mut old = [0u8; MAX_PAYLOAD];
+        old[..at].copy_from_slice(&payload[..at]);
+        old[at..used - chi].copy_from_slice(&payload[at + chi..used]);
+        let n = encode(RECORD_VERSION_WITHOUT_CHI, &old[..used - chi], &mut buf).unwrap();
+        let (record, source) = load_record(&buf[..n], &HW);
+        assert_eq!(record, StoredRecord::default());
+        assert_eq!(source.as_str(), "bad-settings");
+        // Where the shifted bytes happen to decode, the Bouc–Wen model in an old layout is
+        // refused by name: the present layout's bytes labelled version 6.
+        let n = encode(RECORD_VERSION_WITHOUT_CHI, &payload[..used], &mut buf).unwrap();
+        let (record, source) = load_record(&buf[..n], &HW);
+        assert_eq!(record, StoredRecord::default());
+        assert_eq!(
+            source,
+            ParamSource::Defaults(LoadFailure::Settings(SettingsError::BoucWenWithoutChi {
+                version: RECORD_VERSION_WITHOUT_CHI
+            }))
+        );
+        // The same model in the present layout loads.
+        let (buf, n) = record_of(&s);
+        assert_eq!(load_record(&buf[..n], &HW), (s, ParamSource::Stored));
+    }
+
     #[test]
     fn bad_version_is_refused_before_the_payload_is_read() {
         let mut buf = [0u8; MAX_RECORD];
-        let n = encode(7, &[1, 2, 3], &mut buf).unwrap();
+        let n = encode(RECORD_VERSION + 1, &[1, 2, 3], &mut buf).unwrap();
         assert_eq!(
             decode(&buf[..n], RECORD_VERSION),
             Err(StoreError::UnsupportedVersion {
-                found: 7,
+                found: RECORD_VERSION + 1,
                 expected: RECORD_VERSION
             })
         );

@@ -316,6 +316,7 @@ impl Settings {
                     finite(field(ModelField::Beta), p.beta)?;
                     finite(field(ModelField::Gamma), p.gamma)?;
                     finite(field(ModelField::Psi), p.psi)?;
+                    finite(field(ModelField::Chi), p.chi)?;
                 }
                 None => {}
             }
@@ -494,6 +495,7 @@ fn bouc_wen_field(c: BoucWenCoefficient) -> ModelField {
         BoucWenCoefficient::Beta => ModelField::Beta,
         BoucWenCoefficient::Gamma => ModelField::Gamma,
         BoucWenCoefficient::Psi => ModelField::Psi,
+        BoucWenCoefficient::Chi => ModelField::Chi,
     }
 }
 
@@ -553,7 +555,8 @@ pub fn representative_duhem() -> Model {
 }
 
 /// The representative Bouc–Wen model: slope 0.42 µm/V, `A = 0.1 µm/V`, `β = 0.04 /V`,
-/// `γ = 0.008 /V` and an asymmetric `ψ = 0.006 /V` (compensator loop gain 0.73).
+/// `γ = 0.008 /V` and an asymmetric `ψ = 0.006 /V`, no `χ` (with `A > 0` the output's slope
+/// is never below `k`: compensator loop gain 0).
 pub fn representative_bouc_wen() -> Model {
     Model::BoucWen(BoucWenParams {
         k: 0.42,
@@ -562,6 +565,7 @@ pub fn representative_bouc_wen() -> Model {
         beta: 0.04,
         gamma: 0.008,
         psi: 0.006,
+        chi: 0.0,
     })
 }
 
@@ -956,14 +960,23 @@ mod tests {
             with(|p| p.a = 1.0),
             Refusal::new(c(ModelField::A), Rule::BeyondFixedPoint)
         );
-        // Within range but a compensator loop gain of 0.2·3.08/0.42 = 1.47.
+        // Within range but, with A < 0, a compensator loop gain of 0.2·(1 + 0.056/0.028)/0.42
+        // = 1.43 (rising just after the falling branch's saturation).
         assert_eq!(
-            with(|p| p.a = 0.2),
+            with(|p| p.a = -0.2),
             Refusal::new(c(ModelField::A), Rule::NotInvertible)
         );
         assert_eq!(
             with(|p| p.psi = f64::NAN),
             Refusal::new(c(ModelField::Psi), Rule::NotFinite)
+        );
+        assert_eq!(
+            with(|p| p.chi = -0.03),
+            Refusal::new(c(ModelField::Chi), Rule::Unbounded)
+        );
+        assert_eq!(
+            with(|p| p.chi = f64::NAN),
+            Refusal::new(c(ModelField::Chi), Rule::NotFinite)
         );
         // The observer's own refusal names the observer.
         let mut s = closed();
@@ -974,6 +987,7 @@ mod tests {
             beta: 0.04,
             gamma: 0.0,
             psi: 0.0,
+            chi: 0.0,
         }));
         assert_eq!(
             s.build(&hw()).unwrap_err(),

@@ -4,12 +4,13 @@
 //! Model (normalised by [`Scaling`], as [`crate::models::duhem`]): `y = k·u + δ + h`, with the
 //! hysteretic state
 //!
-//! `dh = A·du − β·|du|·h − γ·du·|h| − ψ·du·h`
+//! `dh = A·du − β·|du|·h − γ·du·|h| − ψ·du·h − χ·|du|·|h|`
 //!
-//! (exponent `n = 1`; `β, γ` the classical terms, `ψ` the asymmetric one). The last three terms
-//! are one factor times `h`: on a monotone stretch of input (direction `s`) with `h` of one
-//! sign, `dh/dm = s·A − c·h` (`m = |Δu|`), `c = β + s·sgn(h)·γ + s·ψ` one of the four
-//! constants `β ± γ ± ψ`, precomputed: `h` relaxes toward `h* = s·A/c`. The model takes that
+//! (exponent `n = 1`; `β, γ` the classical terms, `ψ` and `χ` the asymmetric ones). The last
+//! four terms are one factor times `h`: on a monotone stretch of input (direction `s`) with
+//! `h` of one sign, `dh/dm = s·A − c·h` (`m = |Δu|`), `c = β + s·sgn(h)·γ + s·ψ + sgn(h)·χ`
+//! ([`BoucWenParams::factor`]) one of four constants `β ± γ ± ψ ± χ`, set independently by the
+//! four coefficients and precomputed: `h` relaxes toward `h* = s·A/c`. The model takes that
 //! exactly over each sample's step ([`crate::models::relaxation`]):
 //!
 //! `h_k = h_{k−1} − q_k·h_{k−1} + s·A·φ_k`, `q_k = 1 − e^{−c·m}`, `φ_k = q_k/c`,
@@ -20,15 +21,15 @@
 //! carries `h` through zero is split where it crosses, the rest taken from zero at the other
 //! sign's rate ([`BoucWen::step`]). For small steps `q ≈ c·m`, `φ ≈ m`
 //! and this is the explicit step `h + A·Δu − c·|Δu|·h`. Validation
-//! ([`BoucWenParams::validate`]) keeps all four factors positive (`|γ| < β`,
+//! ([`BoucWenParams::validate`]) keeps all four factors positive (without `χ`: `|γ| < β`,
 //! `|ψ| < β − |γ|`).
 //!
-//! **Bound.** From rest (`h = 0`), `|h| ≤ H = |A|/(β − |γ| − |ψ|)`: each step moves `h` a
+//! **Bound.** From rest (`h = 0`), `|h| ≤ H = |A|/c_min` (`c_min` the least factor): each step moves `h` a
 //! fraction `q ≤ 1` of the way to `h*`, `|h*| ≤ H`. Validation keeps `H ≤ 1.9` normalised
 //! ([`crate::models::params::BOUC_WEN_MAX_NORM_STATE`]), so `h` never reaches the Q2.30
 //! saturation.
 //!
-//! **Duhem** is the special case `γ = ψ = 0`: with `k = β_D`, `A = γ_D − β_D`, `β = α_D` and
+//! **Duhem** is the special case `γ = ψ = χ = 0`: with `k = β_D`, `A = γ_D − β_D`, `β = α_D` and
 //! `h = y − β_D u − δ` (minus Duhem's distance `e` to the anhysteretic curve), this step is
 //! Duhem's, to the rounding ([`BoucWenParams::from_duhem`]).
 //!
@@ -44,14 +45,15 @@
 //! The quotients are `VDIV.F32`s, as in Duhem's inverse: host and board agree bit for bit.
 //!
 //! **Invertibility.** The slope `g_s` stays positive — the model is monotone, and the step
-//! unique — when the hysteretic slope `|A − c·s·h|` stays below `k`; it is largest just after
-//! a reversal from the other branch's saturation, `|A|·(1 + c_max/c_min)`
-//! ([`BoucWenParams::inverse_loop_gain`] of `k`). The compensator refuses a model at
+//! unique — when the hysteretic slope `A − c·s·h` never falls to `−k`. With `A ≥ 0` it is never
+//! negative; with `A < 0` it is most negative just after a reversal from the other branch's
+//! saturation, `−|A|·(1 + c/c')` with `c` the new direction's rate and `c'` the saturated
+//! branch's, both at that sign of `h` ([`BoucWenParams::inverse_loop_gain`] of `k`). The compensator refuses a model at
 //! [`BOUC_WEN_MAX_INVERSE_LOOP_GAIN`] or above ([`ParamError::BoucWenNotInvertible`]); the
 //! tick floors the slope at `k/16` besides, so that a state beyond the bound (after a
 //! rounding) still gives a bounded step. The observer has no such limit.
 //!
-//! Formats: `u, y, δ, h, A` Q2.30 normalised; `k` and the factors `β ± γ ± ψ` Q8.24; `q`
+//! Formats: `u, y, δ, h, A` Q2.30 normalised; `k` and the factors `β ± γ ± ψ ± χ` Q8.24; `q`
 //! Q0.32 and `φ` Q1.31 (rounded to nearest from `f32`); the update `h − q·h + s·A·φ` summed
 //! in Q4.60 (`i64`) and brought back once, rounding to nearest and saturating.
 
@@ -87,7 +89,7 @@ pub struct BoucWen {
     /// `A`, Q2.30 normalised (`|A| < 2`), so that `A·φ` is a Q2.30 × Q1.31 product.
     a: i32,
     /// The relaxation rates `c` (from the Q8.24 factors, each at least one LSB): index
-    /// `(Δu < 0)·2 + (h < 0)`: `β+γ+ψ`, `β−γ+ψ`, `β−γ−ψ`, `β+γ−ψ`.
+    /// `(Δu < 0)·2 + (h < 0)`: `β+γ+ψ+χ`, `β−γ+ψ−χ`, `β−γ−ψ+χ`, `β+γ−ψ−χ`.
     rates: [RelaxationRate; 4],
     /// `1/A`, `f32` bits (0 for `A = 0`, where `h` never crosses zero).
     a_reciprocal: u32,
@@ -100,7 +102,7 @@ impl BoucWen {
     /// ```
     /// use twinstack::models::bouc_wen::BoucWen;
     /// use twinstack::{BoucWenParams, Scaling};
-    /// let params = BoucWenParams { k: 0.45, offset: 0.0, a: 0.08, beta: 0.03, gamma: 0.01, psi: 0.005 };
+    /// let params = BoucWenParams { k: 0.45, offset: 0.0, a: 0.08, beta: 0.03, gamma: 0.01, psi: 0.005, chi: 0.002 };
     /// let scaling = Scaling::new(0.0, 140.0, 0.0, 70.0).unwrap();
     /// let model = BoucWen::new(&params, &scaling).unwrap();
     /// // Relaxed (h = 0) at mid-range: k·70 V = 31.5 µm, 3.5 µm below the 35 µm mid-output.
@@ -120,10 +122,10 @@ impl BoucWen {
             a,
             a_reciprocal: if a == 0 { 0.0f32 } else { 1.0 / a_f32 }.to_bits(),
             rates: [
-                rate(n.beta + n.gamma + n.psi),
-                rate(n.beta - n.gamma + n.psi),
-                rate(n.beta - n.gamma - n.psi),
-                rate(n.beta + n.gamma - n.psi),
+                rate(n.factor(1.0, 1.0)),
+                rate(n.factor(1.0, -1.0)),
+                rate(n.factor(-1.0, 1.0)),
+                rate(n.factor(-1.0, -1.0)),
             ],
         })
     }
@@ -267,7 +269,7 @@ impl InverseBoucWen {
     /// use twinstack::models::bouc_wen::InverseBoucWen;
     /// use twinstack::fixed_point::{signal_from_f64, signal_to_f64};
     /// use twinstack::{BoucWenParams, Scaling};
-    /// let params = BoucWenParams { k: 0.45, offset: 0.0, a: 0.08, beta: 0.03, gamma: 0.01, psi: 0.005 };
+    /// let params = BoucWenParams { k: 0.45, offset: 0.0, a: 0.08, beta: 0.03, gamma: 0.01, psi: 0.005, chi: 0.002 };
     /// let inverse = InverseBoucWen::new(&params, &Scaling::new(0.0, 140.0, 0.0, 70.0).unwrap()).unwrap();
     /// let mut state = inverse.model().relaxed(0);
     /// // From rest at 70 V (31.5 µm), ask for 40 µm: the drive rises, within the range.
@@ -442,6 +444,7 @@ mod tests {
             beta: 0.04,
             gamma: 0.008,
             psi: 0.006,
+            chi: 0.002,
         }
     }
 
@@ -531,6 +534,7 @@ mod tests {
             let m = BoucWen::new(
                 &BoucWenParams {
                     psi,
+                    chi: 0.0,
                     ..asymmetric()
                 },
                 &s,
@@ -555,14 +559,65 @@ mod tests {
         };
         let (r0, f0) = loop_height(0.0);
         assert!((r0 + f0).abs() < 1e-3, "symmetric without ψ: {r0} {f0}");
-        // Rising, h saturates at A/(β+γ+ψ); falling at −A/(β+γ−ψ).
-        let n = asymmetric().normalized(&s).unwrap();
+        // Rising, h saturates at A/(β+γ+ψ); falling at −A/(β+γ−ψ) (χ = 0 here).
+        let n = BoucWenParams {
+            chi: 0.0,
+            ..asymmetric()
+        }
+        .normalized(&s)
+        .unwrap();
         let expected = n.a / (n.beta + n.gamma + n.psi) - n.a / (n.beta + n.gamma - n.psi);
         let (r1, f1) = loop_height(asymmetric().psi);
         assert!(expected < -0.01, "{expected}");
         assert!(
             (r1 + f1 - expected).abs() < 0.05 * expected.abs(),
             "ψ: {r1} + {f1} against {expected}"
+        );
+    }
+
+    /// `χ` moves the rates after a reversal apart from the saturations: `ψ = 0.006` and
+    /// `ψ = χ = 0.003` saturate both branches alike (`β + γ ± (ψ + χ)`), but fall from the top
+    /// of the range (`h > 0`) at `β − γ − ψ + χ`, 0.026 against 0.032: the output just after
+    /// the reversal is lower where the state decays faster.
+    #[test]
+    fn chi_sets_the_rates_after_a_reversal_apart_from_the_saturations() {
+        let s = scaling();
+        let run = |psi: f64, chi: f64| {
+            let m = BoucWen::new(
+                &BoucWenParams {
+                    psi,
+                    chi,
+                    ..asymmetric()
+                },
+                &s,
+            )
+            .unwrap();
+            let mut st = m.relaxed(q(-1.0));
+            let (mut top, mut bottom, mut after_top) = (0, 0, 0);
+            for _ in 0..3 {
+                for k in 0..=2000 {
+                    m.step(&mut st, q(-1.0 + 2.0 * k as f64 / 2000.0));
+                }
+                top = st.h;
+                for k in 0..=2000 {
+                    let y = m.step(&mut st, q(1.0 - 2.0 * k as f64 / 2000.0));
+                    if k == 200 {
+                        after_top = y;
+                    }
+                }
+                bottom = st.h;
+            }
+            (f(top), f(bottom), f(after_top))
+        };
+        let (top_psi, bottom_psi, after_psi) = run(0.006, 0.0);
+        let (top_chi, bottom_chi, after_chi) = run(0.003, 0.003);
+        assert!(
+            (top_psi - top_chi).abs() < 1e-3 && (bottom_psi - bottom_chi).abs() < 1e-3,
+            "the same saturations: {top_psi} {top_chi}, {bottom_psi} {bottom_chi}"
+        );
+        assert!(
+            after_chi + 1e-3 < after_psi,
+            "the faster decay after the reversal takes h down sooner: {after_chi} against {after_psi}"
         );
     }
 
@@ -590,7 +645,7 @@ mod tests {
     }
 
     /// Whatever the drive (steps across the whole range included), `|h|` stays within the
-    /// documented bound `|A|/(β − |γ| − |ψ|)`, and comes near it.
+    /// documented bound `|A|/c_min`, and comes near it.
     #[test]
     fn the_state_stays_within_its_bound() {
         let s = scaling();

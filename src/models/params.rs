@@ -138,14 +138,15 @@ pub enum ParamError {
     Creep(crate::models::creep::CreepError),
     /// A Bouc–Wen coefficient that must be positive (`k`, `β`) is not.
     BoucWenNotPositive(BoucWenCoefficient),
-    /// A Bouc–Wen coefficient lets the hysteretic state grow without bound: `|γ| < β` and
-    /// `|ψ| < β − |γ|` are needed (every factor `β ± γ ± ψ` multiplying `h` positive).
+    /// A Bouc–Wen coefficient lets the hysteretic state grow without bound: every factor
+    /// `β ± γ ± ψ ± χ` multiplying `h` must be positive (`|γ| < β`, `|ψ| < β`, and without
+    /// `χ`, `|ψ| < β − |γ|`).
     BoucWenUnbounded(BoucWenCoefficient),
     /// A Bouc–Wen coefficient, once normalised, does not fit its fixed-point format (or the
     /// bound on the hysteretic state it implies does not fit Q2.30).
     BoucWenOutOfRange(BoucWenCoefficient),
     /// The Bouc–Wen model may not be monotone, so that its compensator's step is not unique:
-    /// the hysteretic slope `|A|·(1 + c_max/c_min)` reaches [`BOUC_WEN_MAX_INVERSE_LOOP_GAIN`]
+    /// the hysteretic slope just after a reversal reaches [`BOUC_WEN_MAX_INVERSE_LOOP_GAIN`]
     /// of `k` (see [`BoucWenParams::inverse_loop_gain`]).
     BoucWenNotInvertible(BoucWenCoefficient),
 }
@@ -166,6 +167,8 @@ pub enum BoucWenCoefficient {
     Gamma,
     /// `psi`, `ψ` (the asymmetric term).
     Psi,
+    /// `chi`, `χ` (the term that depends on the state's sign).
+    Chi,
 }
 
 impl BoucWenCoefficient {
@@ -178,6 +181,7 @@ impl BoucWenCoefficient {
             BoucWenCoefficient::Beta => "beta",
             BoucWenCoefficient::Gamma => "gamma",
             BoucWenCoefficient::Psi => "psi",
+            BoucWenCoefficient::Chi => "chi",
         }
     }
 }
@@ -283,7 +287,7 @@ impl core::fmt::Display for ParamError {
             BoucWenNotPositive(c) => write!(f, "Bouc-Wen {} must be positive", c.name()),
             BoucWenUnbounded(c) => write!(
                 f,
-                "Bouc-Wen {} lets the hysteretic state grow without bound (need |gamma| < beta, |psi| < beta - |gamma|)",
+                "Bouc-Wen {} lets the hysteretic state grow without bound (need every rate beta +- gamma +- psi +- chi positive: without chi, |psi| < beta - |gamma|)",
                 c.name()
             ),
             BoucWenOutOfRange(c) => write!(
@@ -293,7 +297,7 @@ impl core::fmt::Display for ParamError {
             ),
             BoucWenNotInvertible(c) => write!(
                 f,
-                "Bouc-Wen {}: the hysteretic slope |a|(1 + c_max/c_min) must stay below {BOUC_WEN_MAX_INVERSE_LOOP_GAIN} k for the model to be monotone and its compensator's step unique",
+                "Bouc-Wen {}: the hysteresis bends the output back too steeply (just after a reversal, |a| times 1 + one rate over another must stay below {BOUC_WEN_MAX_INVERSE_LOOP_GAIN} k) for the model to be monotone and its compensator's step unique",
                 c.name()
             ),
         }
@@ -673,7 +677,8 @@ pub const BOUC_WEN_MAX_NORM_STATE: f64 = 1.9;
 /// Smallest normalised Bouc–Wen slope `k`: the compensator multiplies by `1/k` held in Q8.24,
 /// and `1/k ≤ 64` keeps its product with the residual (`|y_d − δ − h| < 4.5`) inside `i64`.
 pub const BOUC_WEN_MIN_NORM_SLOPE: f64 = 1.0 / 64.0;
-/// Largest normalised Bouc–Wen `β` (so that `β + |γ| + |ψ| < 2β` fits Q8.24).
+/// Largest normalised Bouc–Wen `β`; every factor `β ± γ ± ψ ± χ` is held at most twice it,
+/// which Q8.24 holds.
 pub const BOUC_WEN_MAX_NORM_BETA: f64 = 40.0;
 /// Largest hysteretic slope of a Bouc–Wen model the compensator accepts, relative to `k`
 /// ([`BoucWenParams::inverse_loop_gain`]): at 1 the model's slope may reach zero (not
@@ -682,21 +687,29 @@ pub const BOUC_WEN_MAX_INVERSE_LOOP_GAIN: f64 = 0.9;
 
 /// A generalised Bouc–Wen model in physical units (volts in, output units out):
 /// `y = k·u + offset + h`, with the hysteretic state
-/// `dh = a·du − β·|du|·h − γ·du·|h| − ψ·du·h` (exponent `n = 1`), integrated exactly in the
-/// input over each sample's step (see [`crate::models::bouc_wen`]).
+/// `dh = a·du − β·|du|·h − γ·du·|h| − ψ·du·h − χ·|du|·|h|` (exponent `n = 1`), integrated
+/// exactly in the input over each sample's step (see [`crate::models::bouc_wen`]).
 ///
-/// `β, γ` are the classical Bouc–Wen terms; `ψ` is the asymmetric one: it makes the rising
-/// and the falling branches differ. The Duhem model of [`DuhemParams`] is the special case
+/// `β, γ` are the classical Bouc–Wen terms; `ψ` and `χ` the asymmetric ones: `ψ` makes the
+/// rising and the falling branches differ, `χ` a state of one sign decay faster than one of
+/// the other. Together the four set the four rates at which `h` relaxes (by direction and by
+/// the sign of `h`, [`BoucWenParams::factor`]) independently: a stage whose rising branch
+/// saturates before its falling one does has no single `ψ`. The Duhem model of [`DuhemParams`] is the special case
 /// `γ = ψ = 0`, `k = β_D`, `a = γ_D − β_D`, `β = α_D` (see the book,
 /// docs/src/reference/models.md).
 ///
 /// ```
 /// use twinstack::models::params::{BoucWenCoefficient, BoucWenParams};
 /// use twinstack::ParamError;
-/// let p = BoucWenParams { k: 0.4, offset: 0.0, a: 0.15, beta: 0.03, gamma: 0.01, psi: 0.005 };
+/// let p = BoucWenParams { k: 0.4, offset: 0.0, a: 0.15, beta: 0.03, gamma: 0.01, psi: 0.005, chi: 0.004 };
 /// assert_eq!(p.validate(), Ok(()));
-/// let unbounded = BoucWenParams { psi: 0.025, ..p };
+/// // The four rates β ± γ ± ψ ± χ: a rising step relaxes a positive state at β + γ + ψ + χ.
+/// assert!((p.factor(1.0, 1.0) - 0.049).abs() < 1e-12);
+/// let unbounded = BoucWenParams { psi: 0.03, ..p };
 /// assert_eq!(unbounded.validate(), Err(ParamError::BoucWenUnbounded(BoucWenCoefficient::Psi)));
+/// // Rising from a negative state, β − γ + ψ − χ = −0.001: h would grow without bound.
+/// let unbounded = BoucWenParams { chi: 0.026, ..p };
+/// assert_eq!(unbounded.validate(), Err(ParamError::BoucWenUnbounded(BoucWenCoefficient::Chi)));
 /// ```
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -712,16 +725,31 @@ pub struct BoucWenParams {
     pub beta: f64,
     /// `γ`, per volt, `|γ| < β`: the classical `Δu·|h|` term.
     pub gamma: f64,
-    /// `ψ`, per volt, `|ψ| < β − |γ|`: the asymmetric `Δu·h` term.
+    /// `ψ`, per volt, `|ψ| < β`: the asymmetric `Δu·h` term.
     pub psi: f64,
+    /// `χ`, per volt: the `|Δu|·|h|` term, by which a state of one sign decays faster than
+    /// one of the other (0 when absent from a file). Every factor `β ± γ ± ψ ± χ` must be
+    /// positive.
+    #[serde(default)]
+    pub chi: f64,
 }
 
 impl BoucWenParams {
-    /// Checks the model is finite, `k > 0`, and bounded: `β > 0`, `|γ| < β`,
-    /// `|ψ| < β − |γ|` (so that every factor `β ± γ ± ψ` multiplying `h` is positive).
+    /// Checks the model is finite, `k > 0`, and bounded: `β > 0`, `|γ| < β`, `|ψ| < β`, and
+    /// every factor `β ± γ ± ψ ± χ` multiplying `h` ([`BoucWenParams::factors`]) positive
+    /// (without `χ`, `|ψ| < β − |γ|`). A factor that is not is refused naming `χ`, or `ψ` for
+    /// a model without `χ`.
     pub fn validate(&self) -> Result<(), ParamError> {
         use BoucWenCoefficient as C;
-        let all = [self.k, self.offset, self.a, self.beta, self.gamma, self.psi];
+        let all = [
+            self.k,
+            self.offset,
+            self.a,
+            self.beta,
+            self.gamma,
+            self.psi,
+            self.chi,
+        ];
         if !all.iter().all(|v| v.is_finite()) {
             return Err(ParamError::NotFinite);
         }
@@ -734,35 +762,79 @@ impl BoucWenParams {
         if self.gamma.abs() >= self.beta {
             return Err(ParamError::BoucWenUnbounded(C::Gamma));
         }
-        if self.psi.abs() >= self.beta - self.gamma.abs() {
+        if self.psi.abs() >= self.beta {
             return Err(ParamError::BoucWenUnbounded(C::Psi));
+        }
+        if self.min_factor() <= 0.0 {
+            // Without χ the factors are all positive exactly when |ψ| < β − |γ|.
+            let c = if self.chi == 0.0 { C::Psi } else { C::Chi };
+            return Err(ParamError::BoucWenUnbounded(c));
         }
         Ok(())
     }
 
-    /// The smallest factor multiplying `h` per unit `|Δu|`: `β − |γ| − |ψ|` (positive for a
-    /// valid model).
+    /// The four factors multiplying `h` per unit `|Δu|`, [`BoucWenParams::factor`] of (rising,
+    /// `h ≥ 0`), (rising, `h < 0`), (falling, `h ≥ 0`), (falling, `h < 0`).
+    pub fn factors(&self) -> [f64; 4] {
+        [
+            self.factor(1.0, 1.0),
+            self.factor(1.0, -1.0),
+            self.factor(-1.0, 1.0),
+            self.factor(-1.0, -1.0),
+        ]
+    }
+
+    /// The smallest factor multiplying `h` per unit `|Δu|` (positive for a valid model;
+    /// `β − |γ| − |ψ|` without `χ`).
     pub fn min_factor(&self) -> f64 {
-        self.beta - self.gamma.abs() - self.psi.abs()
+        self.factors().into_iter().fold(f64::INFINITY, f64::min)
     }
 
-    /// The largest factor multiplying `h` per unit `|Δu|`: `β + |γ| + |ψ|`.
+    /// The largest factor multiplying `h` per unit `|Δu|` (`β + |γ| + |ψ|` without `χ`).
     pub fn max_factor(&self) -> f64 {
-        self.beta + self.gamma.abs() + self.psi.abs()
+        self.factors().into_iter().fold(f64::NEG_INFINITY, f64::max)
     }
 
-    /// The largest hysteretic slope relative to `k`, `|A|·(1 + c_max/c_min) / k`
-    /// (scale-free): the local slope `∂h/∂u = A − c·s·h` is at most `|A| + c_max·|A|/c_min`
-    /// in magnitude (just after a reversal from the other branch's saturation
-    /// `|h| = |A|/c_min`). Below 1 the model's slope `k + ∂h/∂u` stays positive in both
-    /// directions: the model is monotone and the compensator's step (the drive change that
-    /// gives a desired output change) unique. The name keeps the gain an inverse
+    /// The model whose four factors ([`BoucWenParams::factors`]) are `c`, with this one's `k`,
+    /// offset and `A`: `β` their mean, `γ`, `ψ`, `χ` their contrasts (each factor is
+    /// `β ± γ ± ψ ± χ`, so the four determine the four).
+    pub fn with_factors(&self, c: [f64; 4]) -> Self {
+        Self {
+            beta: (c[0] + c[1] + c[2] + c[3]) / 4.0,
+            gamma: (c[0] - c[1] - c[2] + c[3]) / 4.0,
+            psi: (c[0] + c[1] - c[2] - c[3]) / 4.0,
+            chi: (c[0] - c[1] + c[2] - c[3]) / 4.0,
+            ..*self
+        }
+    }
+
+    /// The factor `c` multiplying `h` per unit `|Δu|` on a step in direction `s` (±1) from a
+    /// state of sign `sh` (±1): `β + s·sh·γ + s·ψ + sh·χ`.
+    pub fn factor(&self, s: f64, sh: f64) -> f64 {
+        self.beta + s * sh * self.gamma + s * self.psi + sh * self.chi
+    }
+
+    /// The steepest the hysteresis bends the output back, relative to `k`: the most negative
+    /// local slope `∂h/∂u = A − c·s·h` over the states the model reaches from rest (`h`
+    /// between the two branches' saturations), negated. With `A ≥ 0` it is never negative
+    /// (0: the output's slope is at least `k`). With `A < 0` it is most negative just after a
+    /// reversal from the other branch's saturation: rising from the falling branch's
+    /// `|A|/c(falling, h ≥ 0)`, `|A|·(1 + c(rising, h ≥ 0)/c(falling, h ≥ 0))`; falling from the
+    /// rising branch's `−|A|/c(rising, h < 0)`, `|A|·(1 + c(falling, h < 0)/c(rising, h < 0))`
+    /// ([`BoucWenParams::factors`]). Below 1 the model's slope `k + ∂h/∂u` stays positive in
+    /// both directions: the model is monotone and the compensator's step (the drive change
+    /// that gives a desired output change) unique. The name keeps the gain an inverse
     /// `u = (y_d − δ − h)/k` would loop with.
     pub fn inverse_loop_gain(&self) -> f64 {
-        self.a.abs() * (1.0 + self.max_factor() / self.min_factor()) / self.k
+        if self.a >= 0.0 {
+            return 0.0;
+        }
+        let [rising_up, rising_down, falling_up, falling_down] = self.factors();
+        let steepest = (rising_up / falling_up).max(falling_down / rising_down);
+        -self.a * (1.0 + steepest) / self.k
     }
 
-    /// The bound on the hysteretic state from rest (`h = 0`): `|h| ≤ |A| / (β − |γ| − |ψ|)`,
+    /// The bound on the hysteretic state from rest (`h = 0`): `|h| ≤ |A| / c_min`,
     /// the farthest of the targets `±A/c` each step relaxes toward (a fraction `q ≤ 1` of the
     /// way). Meaningful in normalised units.
     pub fn state_bound(&self) -> f64 {
@@ -770,7 +842,7 @@ impl BoucWenParams {
     }
 
     /// The model in the normalised coordinates of `scaling`: `k, A → (k, A)·U/Y`,
-    /// `β, γ, ψ → (β, γ, ψ)·U`, `offset → (k·u_mid + offset − y_mid)/Y` (`h` scales by `1/Y`).
+    /// `β, γ, ψ, χ → (β, γ, ψ, χ)·U`, `offset → (k·u_mid + offset − y_mid)/Y` (`h` scales by `1/Y`).
     /// Refuses, naming it, a coefficient that does not fit the fixed point.
     pub fn normalized(&self, scaling: &Scaling) -> Result<BoucWenParams, ParamError> {
         use BoucWenCoefficient as C;
@@ -785,6 +857,7 @@ impl BoucWenParams {
             beta: self.beta * u_half,
             gamma: self.gamma * u_half,
             psi: self.psi * u_half,
+            chi: self.chi * u_half,
         };
         let out = |c| Err(ParamError::BoucWenOutOfRange(c));
         // k·u fits Q2.30 for k < 2; 1/k ≤ 64 (see BOUC_WEN_MIN_NORM_SLOPE).
@@ -798,7 +871,7 @@ impl BoucWenParams {
         if n.a.abs() >= 1.99 {
             return out(C::A);
         }
-        if n.beta > BOUC_WEN_MAX_NORM_BETA {
+        if n.beta > BOUC_WEN_MAX_NORM_BETA || n.max_factor() > 2.0 * BOUC_WEN_MAX_NORM_BETA {
             return out(C::Beta);
         }
         if n.state_bound() > BOUC_WEN_MAX_NORM_STATE {
@@ -808,7 +881,7 @@ impl BoucWenParams {
     }
 
     /// The Bouc–Wen form of a Duhem model (the same discrete model, sample for sample):
-    /// `k = β_D`, `offset = δ_D`, `A = γ_D − β_D`, `β = α_D`, `γ = ψ = 0`.
+    /// `k = β_D`, `offset = δ_D`, `A = γ_D − β_D`, `β = α_D`, `γ = ψ = χ = 0`.
     pub fn from_duhem(d: &DuhemParams) -> Self {
         Self {
             k: d.beta,
@@ -817,6 +890,7 @@ impl BoucWenParams {
             beta: d.alpha,
             gamma: 0.0,
             psi: 0.0,
+            chi: 0.0,
         }
     }
 }
@@ -960,6 +1034,7 @@ mod tests {
             beta: 0.03,
             gamma: 0.01,
             psi: -0.005,
+            chi: 0.004,
         };
         assert_eq!(ok.validate(), Ok(()));
         let bad = |f: fn(&mut BoucWenParams)| {
@@ -980,12 +1055,44 @@ mod tests {
             Err(ParamError::BoucWenUnbounded(C::Gamma))
         );
         assert_eq!(
-            bad(|p| p.psi = 0.02),
+            bad(|p| p.psi = 0.03),
             Err(ParamError::BoucWenUnbounded(C::Psi))
         );
+        // Without χ, |ψ| < β − |γ| is the rule, and ψ is named.
+        assert_eq!(
+            bad(|p| {
+                p.chi = 0.0;
+                p.psi = 0.02
+            }),
+            Err(ParamError::BoucWenUnbounded(C::Psi))
+        );
+        // β = 0.03, γ = 0.01, ψ = −0.005: the factors β ± γ ± ψ ± χ (rising with h ≥ 0, rising
+        // with h < 0, falling with h ≥ 0, falling with h < 0) are 0.035 + χ, 0.015 − χ,
+        // 0.025 + χ, 0.045 − χ: χ = 0.015 makes the second zero, χ = −0.025 the third.
+        assert_eq!(
+            bad(|p| p.chi = 0.015),
+            Err(ParamError::BoucWenUnbounded(C::Chi))
+        );
+        assert_eq!(
+            bad(|p| p.chi = -0.025),
+            Err(ParamError::BoucWenUnbounded(C::Chi))
+        );
+        assert_eq!(bad(|p| p.chi = 0.0149), Ok(()));
+        assert_eq!(bad(|p| p.chi = -0.0249), Ok(()));
+        // Four factors determine the four coefficients, and back.
+        let c = [0.02, 0.014, 0.002, 0.04];
+        let m = ok.with_factors(c);
+        for (got, want) in m.factors().into_iter().zip(c) {
+            assert!((got - want).abs() < 1e-15, "{got} vs {want}");
+        }
+        assert_eq!(ok.with_factors(ok.factors()).validate(), Ok(()));
+        assert_eq!(bad(|p| p.chi = f64::INFINITY), Err(ParamError::NotFinite));
         assert_eq!(bad(|p| p.a = f64::NAN), Err(ParamError::NotFinite));
-        // |A|(1 + c_max/c_min)/k: 0.1·(1 + 0.045/0.015)/0.4 = 1.0.
-        assert!((ok.inverse_loop_gain() - 1.0).abs() < 1e-12);
+        // A < 0: |A|(1 + the larger of c(rising, h ≥ 0)/c(falling, h ≥ 0) and
+        // c(falling, h < 0)/c(rising, h < 0))/k = 0.1·(1 + 0.041/0.011)/0.4; with A > 0 the
+        // hysteresis never bends the output back.
+        assert!((ok.inverse_loop_gain() - 0.1 * (1.0 + 0.041 / 0.011) / 0.4).abs() < 1e-12);
+        assert_eq!(BoucWenParams { a: 0.1, ..ok }.inverse_loop_gain(), 0.0);
         let s = Scaling::new(0.0, 150.0, 0.0, 60.0).unwrap();
         assert!(ok.normalized(&s).is_ok());
         let range = |p: BoucWenParams| p.normalized(&s);
@@ -1008,9 +1115,9 @@ mod tests {
             range(BoucWenParams { beta: 0.6, ..ok }),
             Err(ParamError::BoucWenOutOfRange(C::Beta))
         );
-        // A β barely above |γ| + |ψ| lets h reach |A|/(β − |γ| − |ψ|) ≈ 33 normalised.
+        // A β barely above |γ| + |ψ| + |χ| lets h reach |A|/c_min ≈ 33 normalised.
         assert_eq!(
-            range(BoucWenParams { beta: 0.0151, ..ok }),
+            range(BoucWenParams { beta: 0.0191, ..ok }),
             Err(ParamError::BoucWenOutOfRange(C::A))
         );
     }

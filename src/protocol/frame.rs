@@ -42,8 +42,10 @@ use serde::{Deserialize, Serialize};
 /// (`Request::WatchdogDrill`, `NackReason::Unsupported`, the status flag `WATCHDOG_RESET`:
 /// appended the same way). Version 9 appended the drift count to the status
 /// (`StatusReport::drifts`): a status of another length does not decode, so a version-8
-/// board and a version-9 host refuse each other's frames whole.
-pub const PROTOCOL_VERSION: u8 = 9;
+/// board and a version-9 host refuse each other's frames whole. Version 10: Bouc–Wen's
+/// coefficients end with `chi` (`BoucWenParams::chi`) and `ModelField::Chi` was appended
+/// (the settings' encoding changed, so versions 9 and 10 refuse each other's frames).
+pub const PROTOCOL_VERSION: u8 = 10;
 /// Largest frame body (version + message + CRC), bytes: a load of the largest settings (two
 /// generalised P–I models of 32 operators and 8 dead zones, both notches) fits.
 pub const MAX_BODY: usize = 1568;

@@ -1,7 +1,7 @@
 //! Generalised Bouc–Wen identification: the Duhem fit as the start, refined on the simulated
 //! error.
 //!
-//! 1. **Starts.** Duhem is Bouc–Wen with `γ = ψ = 0` ([`BoucWenParams::from_duhem`]): each
+//! 1. **Starts.** Duhem is Bouc–Wen with `γ = ψ = χ = 0` ([`BoucWenParams::from_duhem`]): each
 //!    Duhem fit ([`super::duhem::fit`]'s refined model and its integrated least squares, and
 //!    the output-error fit) is an exact Bouc–Wen model with the same simulated output. Each
 //!    is made one the board holds: a slope `k` beyond the fixed point is cut (keeping `k + A`,
@@ -14,10 +14,12 @@
 //!    relaxing model's state is as large as that bound allows, and a start so cut fitted the
 //!    micromanipulator record to 9 % where uncut it fits to 2 %.
 //! 2. **Refinement.** A Nelder–Mead simplex ([`super::simplex::minimise`]) minimises the RMS
-//!    of the simulated output against the measurement over `(ln k, δ, A, ln β, γ, ψ)`, on the
-//!    rows after the drive has seen both extremes (as the Duhem refinement), with
-//!    `γ = β·tanh(g)` and `ψ = (β − |γ|)·tanh(p)` so that every trial is a bounded model; a
-//!    trial the compensator would refuse (loop gain at or above
+//!    of the simulated output against the measurement over `ln k`, `δ`, `A` and the logs of
+//!    the four relaxation rates `β ± γ ± ψ ± χ` ([`BoucWenParams::with_factors`]), on the
+//!    rows after the drive has seen both extremes (as the Duhem refinement): every trial is a
+//!    bounded model (each rate positive), and the four rates are free of one another, as a
+//!    stage's are (the rising branch saturating before the falling one, each relaxing after a
+//!    reversal at a rate of its own); a trial the compensator would refuse (loop gain at or above
 //!    [`MAX_FITTED_LOOP_GAIN`]) costs `+∞`. Each start is refined (the simplex finds the
 //!    minimum nearest its start, and on a record the Duhem refinement runs into a valley
 //!    Bouc–Wen cannot follow); the best fit on those rows is kept, a start where no
@@ -81,18 +83,19 @@ fn rms_error(sim: &[f64], y: &[f64], rows: &FitRows) -> f64 {
     }
 }
 
-/// The model a simplex point stands for (see the module doc).
-fn from_point(v: &[f64; 6]) -> BoucWenParams {
-    let beta = v[3].exp();
-    let gamma = beta * v[4].tanh();
+/// The model a simplex point stands for (see the module doc): `ln k`, `δ`, `A` and the logs
+/// of the four factors `β ± γ ± ψ ± χ`.
+fn from_point(v: &[f64; 7]) -> BoucWenParams {
     BoucWenParams {
         k: v[0].exp(),
         offset: v[1],
         a: v[2],
-        beta,
-        gamma,
-        psi: (beta - gamma.abs()) * v[5].tanh(),
+        beta: 1.0,
+        gamma: 0.0,
+        psi: 0.0,
+        chi: 0.0,
     }
+    .with_factors([v[3].exp(), v[4].exp(), v[5].exp(), v[6].exp()])
 }
 
 /// A model and its simulated fit (RMS over the steady rows, the simulated output).
@@ -193,23 +196,18 @@ pub fn fit(
         .collect();
     let refine_from = |start: &BoucWenParams| -> Option<Fitted> {
         let y_span = rows.target_span(y).max(f64::MIN_POSITIVE);
-        let point = [
-            start.k.ln(),
-            start.offset,
-            start.a,
-            start.beta.ln(),
-            0.0,
-            0.0,
-        ];
+        let c = start.factors().map(f64::ln);
+        let point = [start.k.ln(), start.offset, start.a, c[0], c[1], c[2], c[3]];
         let steps = [
             0.05,
             0.02 * y_span,
             0.2 * start.a.abs().max(0.05 * start.k),
             0.2,
-            0.3,
-            0.3,
+            0.2,
+            0.2,
+            0.2,
         ];
-        let cost = |v: &[f64; 6]| evaluate(&from_point(v)).map_or(f64::INFINITY, |e| e.0);
+        let cost = |v: &[f64; 7]| evaluate(&from_point(v)).map_or(f64::INFINITY, |e| e.0);
         let p = from_point(&minimise(cost, point, steps, REFINE_EVALUATIONS, 1e-10));
         evaluate(&p).map(|e| (p, e))
     };
@@ -248,8 +246,9 @@ pub fn fit(
 mod tests {
     use super::*;
 
-    /// A known asymmetric Bouc–Wen (ψ ≠ 0) on a decaying-amplitude sine is recovered from its
-    /// simulated output, and the refined model beats the Duhem start there (Duhem has no ψ).
+    /// A known asymmetric Bouc–Wen (ψ, χ ≠ 0) on a decaying-amplitude sine is recovered from
+    /// its simulated output, and the refined model beats the Duhem start there (Duhem has
+    /// neither).
     #[test]
     fn recovers_an_asymmetric_model_and_beats_the_duhem_start() {
         let s = Scaling::new(0.0, 120.0, -10.0, 70.0).unwrap();
@@ -260,6 +259,7 @@ mod tests {
             beta: 0.05,
             gamma: 0.01,
             psi: 0.015,
+            chi: -0.004,
         };
         assert!(truth.inverse_loop_gain() < MAX_FITTED_LOOP_GAIN);
         let u: Vec<f64> = (0..4000)

@@ -697,7 +697,7 @@ pub fn identify(
                 let f = bouc_wen::fit(u_fit, y, &rows, &provisional, options.refine, steady_from)?;
                 let span = rows.target_span(y);
                 notes.push(format!(
-                    "Bouc-Wen started from the Duhem fit (gamma = psi = 0): RMS {:.3} % of span from t = {:.4} s{}",
+                    "Bouc-Wen started from the Duhem fit (gamma = psi = chi = 0): RMS {:.3} % of span from t = {:.4} s{}",
                     100.0 * f.start_rms / span,
                     data.t[steady_from.min(n_fit - 1)],
                     if f.start_scaled {
@@ -708,10 +708,11 @@ pub fn identify(
                 ));
                 if f.refined {
                     notes.push(format!(
-                        "Bouc-Wen refined on the simulated error: RMS {:.3} % of span (gamma = {:.4e}, psi = {:.4e})",
+                        "Bouc-Wen refined on the simulated error: RMS {:.3} % of span (gamma = {:.4e}, psi = {:.4e}, chi = {:.4e})",
                         100.0 * f.rms / span,
                         f.params.gamma,
-                        f.params.psi
+                        f.params.psi,
+                        f.params.chi
                     ));
                 } else {
                     notes.push(
