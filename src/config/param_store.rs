@@ -212,14 +212,6 @@ pub const RECORD_VERSION: u16 = 7;
 /// The last record version whose Bouc–Wen model has no `χ`, still read without one.
 pub const RECORD_VERSION_WITHOUT_CHI: u16 = 6;
 
-/// A payload laid out as [`StoredRecord`] (versions 6 and 7: see [`RECORD_VERSION`]).
-fn decode_current(payload: &[u8]) -> Option<StoredRecord> {
-    match postcard::take_from_bytes::<StoredRecord>(payload) {
-        Ok((r, [])) => Some(r),
-        _ => None,
-    }
-}
-
 /// The last record version without the analog input's settings, still read.
 pub const RECORD_VERSION_WITHOUT_ANALOG: u16 = 5;
 
@@ -348,36 +340,25 @@ impl StoredRecord {
     /// is ignored). A version-5 record is read as no analog input, a version-4 record (before
     /// input shaping) as settings without shaping.
     pub fn decode(record: &[u8], hardware: &Hardware) -> Result<Self, LoadFailure> {
-        let (stored, version) = match decode(record, RECORD_VERSION) {
-            Ok(payload) => (decode_current(payload), RECORD_VERSION),
-            Err(StoreError::UnsupportedVersion {
-                found: RECORD_VERSION_WITHOUT_CHI,
-                ..
-            }) => (
-                decode_current(
-                    decode(record, RECORD_VERSION_WITHOUT_CHI).map_err(LoadFailure::Record)?,
-                ),
-                RECORD_VERSION_WITHOUT_CHI,
-            ),
-            Err(StoreError::UnsupportedVersion {
-                found: RECORD_VERSION_WITHOUT_ANALOG,
-                ..
-            }) => (
-                decode_v5(
-                    decode(record, RECORD_VERSION_WITHOUT_ANALOG).map_err(LoadFailure::Record)?,
-                ),
-                RECORD_VERSION_WITHOUT_ANALOG,
-            ),
-            Err(StoreError::UnsupportedVersion {
-                found: RECORD_VERSION_WITHOUT_SHAPING,
-                ..
-            }) => (
-                decode_v4(
-                    decode(record, RECORD_VERSION_WITHOUT_SHAPING).map_err(LoadFailure::Record)?,
-                ),
-                RECORD_VERSION_WITHOUT_SHAPING,
-            ),
+        // The record's layout: ours, or an older one still read.
+        let version = match decode(record, RECORD_VERSION) {
+            Ok(_) => RECORD_VERSION,
+            Err(StoreError::UnsupportedVersion { found, .. })
+                if (RECORD_VERSION_WITHOUT_SHAPING..RECORD_VERSION).contains(&found) =>
+            {
+                found
+            }
             Err(e) => return Err(LoadFailure::Record(e)),
+        };
+        let payload = decode(record, version).map_err(LoadFailure::Record)?;
+        let stored = match version {
+            RECORD_VERSION_WITHOUT_SHAPING => decode_v4(payload),
+            RECORD_VERSION_WITHOUT_ANALOG => decode_v5(payload),
+            // Versions 6 and 7: laid out alike but for Bouc–Wen's χ (refused below).
+            _ => match postcard::take_from_bytes::<StoredRecord>(payload) {
+                Ok((r, [])) => Some(r),
+                _ => None,
+            },
         };
         let Some(stored) = stored else {
             return Err(LoadFailure::Settings(SettingsError::Undecodable));

@@ -121,12 +121,7 @@ impl BoucWen {
             offset: signal_from_f64(n.offset),
             a,
             a_reciprocal: if a == 0 { 0.0f32 } else { 1.0 / a_f32 }.to_bits(),
-            rates: [
-                rate(n.factor(1.0, 1.0)),
-                rate(n.factor(1.0, -1.0)),
-                rate(n.factor(-1.0, 1.0)),
-                rate(n.factor(-1.0, -1.0)),
-            ],
+            rates: n.factors().map(rate),
         })
     }
 

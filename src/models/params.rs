@@ -776,11 +776,15 @@ impl BoucWenParams {
     /// The four factors multiplying `h` per unit `|Δu|`, [`BoucWenParams::factor`] of (rising,
     /// `h ≥ 0`), (rising, `h < 0`), (falling, `h ≥ 0`), (falling, `h < 0`).
     pub fn factors(&self) -> [f64; 4] {
+        // c = (β + s·ψ) + sgn(h)·(s·γ + χ), in sums rather than products by ±1 (the board's
+        // f64 arithmetic is software).
+        let (rising, falling) = (self.beta + self.psi, self.beta - self.psi);
+        let (by_sign_rising, by_sign_falling) = (self.gamma + self.chi, self.chi - self.gamma);
         [
-            self.factor(1.0, 1.0),
-            self.factor(1.0, -1.0),
-            self.factor(-1.0, 1.0),
-            self.factor(-1.0, -1.0),
+            rising + by_sign_rising,
+            rising - by_sign_rising,
+            falling + by_sign_falling,
+            falling - by_sign_falling,
         ]
     }
 
@@ -811,7 +815,7 @@ impl BoucWenParams {
     /// The factor `c` multiplying `h` per unit `|Δu|` on a step in direction `s` (±1) from a
     /// state of sign `sh` (±1): `β + s·sh·γ + s·ψ + sh·χ`.
     pub fn factor(&self, s: f64, sh: f64) -> f64 {
-        self.beta + s * sh * self.gamma + s * self.psi + sh * self.chi
+        self.factors()[(usize::from(s < 0.0) << 1) | usize::from(sh < 0.0)]
     }
 
     /// The steepest the hysteresis bends the output back, relative to `k`: the most negative
