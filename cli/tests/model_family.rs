@@ -148,9 +148,9 @@ fn auto_tracks_the_bouc_wen_class_stage_better_than_the_textbook_pi() {
 /// input) are each a coefficient of its own (`χ` beside `ψ`), and its compensator refuses
 /// only a model whose output's slope does bend back to zero (the stage's never bends back
 /// beyond 0.45 of `k`). Identified as a user would, it tracks to its class's floor: 0.15 %
-/// measured, held at 0.3 %. With `ψ` alone the four rates were tied (0.61 % with the bound
-/// below); with the compensator's former bound `|A|·(1 + c_max/c_min)`, 2.4 for this stage,
-/// the fit could not reach it (0.63 % with `χ`).
+/// measured, held at 0.3 %. With `ψ` alone the four rates were tied and the former bound
+/// held (1.04 %); with `χ` but the compensator's former bound `|A|·(1 + c_max/c_min)`, 2.4
+/// for this stage, the fit could not reach it (0.63 %).
 #[test]
 fn the_family_s_bouc_wen_reaches_its_own_class_on_a_bouc_wen_class_stage() {
     let mut config = LabStageConfig {
