@@ -199,7 +199,7 @@ impl<'a> VectorSet<'a> {
         } else {
             Recipe::decode(self.recipe)?
         };
-        if self.version < FORMAT_VERSION && recipe.has_bouc_wen() {
+        if self.version < FORMAT_VERSION && recipe.settings.has_bouc_wen() {
             return Err(RecipeError::BoucWenWithoutChi);
         }
         Ok(recipe)

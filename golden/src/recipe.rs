@@ -6,7 +6,7 @@
 use serde::{Deserialize, Serialize};
 
 use twinstack::board::Hardware;
-use twinstack::config::settings::{Model, Settings, SettingsWithoutShaping};
+use twinstack::config::settings::{Settings, SettingsWithoutShaping};
 use twinstack::control::ControlConfig;
 use twinstack::refusal::Refusal;
 
@@ -65,12 +65,6 @@ impl Recipe {
             }),
             _ => Err(RecipeError::Malformed),
         }
-    }
-
-    /// Whether the compensator or the observer is a Bouc–Wen model.
-    pub fn has_bouc_wen(&self) -> bool {
-        let bouc_wen = |m: &Option<Model>| matches!(m, Some(Model::BoucWen(_)));
-        bouc_wen(&self.settings.compensator) || bouc_wen(&self.settings.observer)
     }
 
     /// Validates and builds the tick's configuration.

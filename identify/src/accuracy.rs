@@ -376,7 +376,7 @@ fn random_bouc_wen(rng: &mut Rng) -> (BoucWenParams, Scaling) {
     };
     p.chi = rng.range(-0.7, 0.7) * (beta - gamma.abs() - p.psi.abs());
     p.a = rng.range(-0.85, 0.85) * k / (1.0 + p.max_factor() / p.min_factor());
-    // |h| ≤ |A|·max(1/(β − |γ| − |ψ| − |χ|), 2U) in output units (U = 75 V).
+    // |h| ≤ |A|·max(1/c_min, 2U) in output units (U = 75 V).
     let h = p.a.abs() * (1.0 / p.min_factor()).max(150.0);
     let reach = k * 150.0 + h + 1.0;
     (

@@ -20,7 +20,7 @@
 use core::fmt;
 
 use crate::board::Hardware;
-use crate::config::settings::{Model, Settings};
+use crate::config::settings::Settings;
 use crate::control::ControlConfig;
 use crate::refusal::Refusal;
 
@@ -363,10 +363,7 @@ impl StoredRecord {
         let Some(stored) = stored else {
             return Err(LoadFailure::Settings(SettingsError::Undecodable));
         };
-        let bouc_wen = |m: &Option<Model>| matches!(m, Some(Model::BoucWen(_)));
-        if version < RECORD_VERSION
-            && (bouc_wen(&stored.settings.compensator) || bouc_wen(&stored.settings.observer))
-        {
+        if version < RECORD_VERSION && stored.settings.has_bouc_wen() {
             return Err(LoadFailure::Settings(SettingsError::BoucWenWithoutChi {
                 version,
             }));
@@ -677,7 +674,7 @@ mod tests {
     /// Bouc–Wen; one holding a Bouc–Wen model is refused by name, not read shifted.
     #[test]
     fn a_version_6_record_loads_unless_it_holds_a_bouc_wen_model() {
-        use crate::config::settings::{representative_bouc_wen, representative_pi, Mode};
+        use crate::config::settings::{representative_bouc_wen, representative_pi, Mode, Model};
         let mut s = stored(50_000);
         s.settings.compensator = Some(representative_pi(8).unwrap());
         s.settings.mode = Mode::OpenLoop;

@@ -153,6 +153,13 @@ impl Default for Settings {
 }
 
 impl Settings {
+    /// Whether the compensator or the observer is a Bouc–Wen model (whose coefficients a
+    /// stored layout before `χ` laid out without it).
+    pub fn has_bouc_wen(&self) -> bool {
+        let bouc_wen = |m: &Option<Model>| matches!(m, Some(Model::BoucWen(_)));
+        bouc_wen(&self.compensator) || bouc_wen(&self.observer)
+    }
+
     /// Validates everything on `hw` and builds the tick's fixed-point configuration. Nothing
     /// is partly accepted: the first refusal is returned, naming its field.
     ///

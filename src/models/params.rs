@@ -799,16 +799,18 @@ impl BoucWenParams {
         self.factors().into_iter().fold(f64::NEG_INFINITY, f64::max)
     }
 
-    /// The model whose four factors ([`BoucWenParams::factors`]) are `c`, with this one's `k`,
-    /// offset and `A`: `β` their mean, `γ`, `ψ`, `χ` their contrasts (each factor is
-    /// `β ± γ ± ψ ± χ`, so the four determine the four).
-    pub fn with_factors(&self, c: [f64; 4]) -> Self {
+    /// The model with slope `k`, `offset`, `a` and the four factors ([`BoucWenParams::factors`])
+    /// `c`: `β` their mean, `γ`, `ψ`, `χ` their contrasts (each factor is `β ± γ ± ψ ± χ`, so
+    /// the four determine the four).
+    pub fn from_factors(k: f64, offset: f64, a: f64, c: [f64; 4]) -> Self {
         Self {
+            k,
+            offset,
+            a,
             beta: (c[0] + c[1] + c[2] + c[3]) / 4.0,
             gamma: (c[0] - c[1] - c[2] + c[3]) / 4.0,
             psi: (c[0] + c[1] - c[2] - c[3]) / 4.0,
             chi: (c[0] - c[1] + c[2] - c[3]) / 4.0,
-            ..*self
         }
     }
 
@@ -1085,11 +1087,14 @@ mod tests {
         assert_eq!(bad(|p| p.chi = -0.0249), Ok(()));
         // Four factors determine the four coefficients, and back.
         let c = [0.02, 0.014, 0.002, 0.04];
-        let m = ok.with_factors(c);
+        let m = BoucWenParams::from_factors(ok.k, ok.offset, ok.a, c);
         for (got, want) in m.factors().into_iter().zip(c) {
             assert!((got - want).abs() < 1e-15, "{got} vs {want}");
         }
-        assert_eq!(ok.with_factors(ok.factors()).validate(), Ok(()));
+        assert_eq!(
+            BoucWenParams::from_factors(ok.k, ok.offset, ok.a, ok.factors()).validate(),
+            Ok(())
+        );
         assert_eq!(bad(|p| p.chi = f64::INFINITY), Err(ParamError::NotFinite));
         assert_eq!(bad(|p| p.a = f64::NAN), Err(ParamError::NotFinite));
         // A < 0: |A|(1 + the larger of c(rising, h ≥ 0)/c(falling, h ≥ 0) and

@@ -15,7 +15,7 @@
 //!    micromanipulator record to 9 % where uncut it fits to 2 %.
 //! 2. **Refinement.** A Nelder–Mead simplex ([`super::simplex::minimise`]) minimises the RMS
 //!    of the simulated output against the measurement over `ln k`, `δ`, `A` and the logs of
-//!    the four relaxation rates `β ± γ ± ψ ± χ` ([`BoucWenParams::with_factors`]), on the
+//!    the four relaxation rates `β ± γ ± ψ ± χ` ([`BoucWenParams::from_factors`]), on the
 //!    rows after the drive has seen both extremes (as the Duhem refinement): every trial is a
 //!    bounded model (each rate positive), and the four rates are free of one another, as a
 //!    stage's are (the rising branch saturating before the falling one, each relaxing after a
@@ -86,16 +86,8 @@ fn rms_error(sim: &[f64], y: &[f64], rows: &FitRows) -> f64 {
 /// The model a simplex point stands for (see the module doc): `ln k`, `δ`, `A` and the logs
 /// of the four factors `β ± γ ± ψ ± χ`.
 fn from_point(v: &[f64; 7]) -> BoucWenParams {
-    BoucWenParams {
-        k: v[0].exp(),
-        offset: v[1],
-        a: v[2],
-        beta: 1.0,
-        gamma: 0.0,
-        psi: 0.0,
-        chi: 0.0,
-    }
-    .with_factors([v[3].exp(), v[4].exp(), v[5].exp(), v[6].exp()])
+    let rates = [v[3].exp(), v[4].exp(), v[5].exp(), v[6].exp()];
+    BoucWenParams::from_factors(v[0].exp(), v[1], v[2], rates)
 }
 
 /// A model and its simulated fit (RMS over the steady rows, the simulated output).

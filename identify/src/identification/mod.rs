@@ -720,7 +720,7 @@ pub fn identify(
                     );
                 }
                 // The fixed-point state is Q2.30: widen the output range until the state bound
-                // |A|·max(1/(β − |γ| − |ψ|), 2U) is within DUHEM_MAX_NORM_DISTANCE of it, and
+                // |A|·max(1/c_min, 2U) is within DUHEM_MAX_NORM_DISTANCE of it, and
                 // the slopes k and A, normalised, within BOUC_WEN_MAX_NORM_SLOPE.
                 let p = f.params;
                 let input_half = provisional.input_half_span();
