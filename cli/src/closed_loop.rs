@@ -42,7 +42,9 @@ use twinstack::Scaling;
 use twinstack_identify::identification::{
     identify, score::score, IdentifyOptions, ModelKind, ThresholdSpread,
 };
+use twinstack_identify::preview::ResonancePreview;
 use twinstack_identify::stage_model::{between_samples, Hysteresis, StageModel};
+use twinstack_identify::tune::TuneReport;
 use twinstack_link::measured_data::MeasuredData;
 
 /// The differential stage's first resonance (see the book, docs/src/reference/physics.md), Hz: where the notch sits.
@@ -63,6 +65,10 @@ pub struct ClosedLoopOptions {
     pub out_dir: Option<PathBuf>,
     /// Which feedback gains run.
     pub gains: Gains,
+    /// Also track with a preview: the feedforward's rows again with the setpoints shaped for
+    /// the resonance `twinstack tune` measures at each rate, as `twinstack stream --preview`
+    /// shapes a stream ([`ResonancePreview::shape_stream`]).
+    pub preview: bool,
 }
 
 /// Which feedback gains the study runs.
@@ -84,6 +90,7 @@ impl Default for ClosedLoopOptions {
             gains: Gains::Tuned,
             sensor_noise_um: 0.002,
             out_dir: Some(PathBuf::from("out")),
+            preview: false,
         }
     }
 }
@@ -116,6 +123,15 @@ impl Configuration4 {
     }
 }
 
+/// The board's mode for `c`.
+fn mode_of(c: Configuration4) -> Mode {
+    match c {
+        Configuration4::None => Mode::Bypass,
+        Configuration4::Feedforward => Mode::OpenLoop,
+        Configuration4::Feedback | Configuration4::Both => Mode::ClosedLoop,
+    }
+}
+
 /// One cell group of the table: a rate, a waveform, a configuration.
 #[derive(Clone, Debug)]
 pub struct TrackingRow {
@@ -125,6 +141,8 @@ pub struct TrackingRow {
     pub waveform: &'static str,
     /// The configuration.
     pub configuration: Configuration4,
+    /// The setpoints were shaped for the resonance first ([`ClosedLoopOptions::preview`]).
+    pub preview: bool,
     /// Largest tracking error, % of the commanded stroke.
     pub max_pct: f64,
     /// RMS tracking error, % of the commanded stroke.
@@ -161,6 +179,9 @@ pub struct StepRow {
 pub struct ClosedLoopReport {
     /// The feedback each rate ran (in the study model's normalised units).
     pub feedback: Vec<(f64, FeedbackSettings)>,
+    /// With [`ClosedLoopOptions::preview`], the resonance measured at each rate (rate, Hz,
+    /// damping ratio), which the preview's rows are shaped for.
+    pub resonance: Vec<(f64, f64, f64)>,
     /// The table.
     pub tracking: Vec<TrackingRow>,
     /// The steps.
@@ -170,11 +191,23 @@ pub struct ClosedLoopReport {
 }
 
 impl ClosedLoopReport {
-    /// The row for `rate`, `waveform`, `configuration`.
+    /// The row for `rate`, `waveform`, `configuration`, the setpoints as they come.
     pub fn row(&self, rate: f64, waveform: &str, c: Configuration4) -> Option<&TrackingRow> {
-        self.tracking
-            .iter()
-            .find(|r| r.rate == rate && r.waveform == waveform && r.configuration == c)
+        self.row_shaped(rate, waveform, c, false)
+    }
+
+    /// The row for `rate`, `waveform`, `configuration`, with the setpoints shaped for the
+    /// resonance (`preview`) or not.
+    pub fn row_shaped(
+        &self,
+        rate: f64,
+        waveform: &str,
+        c: Configuration4,
+        preview: bool,
+    ) -> Option<&TrackingRow> {
+        self.tracking.iter().find(|r| {
+            r.rate == rate && r.waveform == waveform && r.configuration == c && r.preview == preview
+        })
     }
 
     /// Whether feedforward + feedback beats feedforward only and feedback only, on max and on
@@ -182,7 +215,7 @@ impl ClosedLoopReport {
     pub fn both_beats_the_others_everywhere(&self) -> bool {
         self.tracking
             .iter()
-            .filter(|r| r.configuration == Configuration4::Both)
+            .filter(|r| r.configuration == Configuration4::Both && !r.preview)
             .all(|b| {
                 [Configuration4::Feedforward, Configuration4::Feedback]
                     .iter()
@@ -257,28 +290,38 @@ pub fn feedback_settings(rate: f64, notch: bool) -> FeedbackSettings {
 /// its default margins), its gains carried from the board's normalised units (its 70 V input
 /// half span onto ±45 µm) to those of `model`'s scaling.
 pub fn tuned_feedback(rate: f64, model: &StageModel) -> Result<FeedbackSettings> {
+    Ok(feedback_from(&tune_at(rate)?, model))
+}
+
+/// `twinstack tune` at `rate` on the simulated board (the study's stage), default options.
+pub fn tune_at(rate: f64) -> Result<TuneReport> {
     use hal_sim::sim_device::{SimDevice, SimDeviceConfig};
     use twinstack_identify::tune::{tune, TuneOptions};
     use twinstack_link::Client;
     let mut config = SimDeviceConfig::paper();
     config.board.plant.dt = 1.0 / rate;
     let device = SimDevice::new(config).map_err(|e| anyhow!("simulated board: {e}"))?;
+    let mut client = Client::new(device);
+    tune(&mut client, &TuneOptions::default(), |_| {})
+        .map_err(|e| anyhow!("tuning at {rate} Hz: {e}"))
+}
+
+/// The gains `report` picked, rescaled to `model` (see [`tuned_feedback`]).
+fn feedback_from(report: &TuneReport, model: &StageModel) -> FeedbackSettings {
+    use hal_sim::sim_device::SimDeviceConfig;
     let board_ranges =
         SimDeviceConfig::paper_settings(twinstack::protocol::messages::Mode::Bypass).ranges;
-    let mut client = Client::new(device);
-    let report = tune(&mut client, &TuneOptions::default(), |_| {})
-        .map_err(|e| anyhow!("tuning at {rate} Hz: {e}"))?;
     let s = model.scaling;
     // Loop gain per normalised error is the same on both scalings when kp scales by
     // (board's volts per µm) / (model's volts per µm), normalised.
     let k = (s.input_half_span() / s.output_half_span())
         / (board_ranges.input_half_span() / board_ranges.output_half_span());
     let d = report.design.settings;
-    Ok(FeedbackSettings {
+    FeedbackSettings {
         kp: d.kp / k,
         ki: d.ki / k,
         ..d
-    })
+    }
 }
 
 /// The model as the settings carry it.
@@ -337,11 +380,7 @@ fn settings_observed(
         drive: drive_settings(),
         sensor: Some(sensor),
         feedback: Some(feedback_settings(rate, notch)),
-        mode: match c {
-            Configuration4::None => Mode::Bypass,
-            Configuration4::Feedforward => Mode::OpenLoop,
-            Configuration4::Feedback | Configuration4::Both => Mode::ClosedLoop,
-        },
+        mode: mode_of(c),
         creep: model.creep.clone(),
         shaping: None,
     }
@@ -510,10 +549,13 @@ pub fn track(
         shape,
         c,
         &feedback_settings(rate, true),
+        None,
     )
 }
 
-/// [`track`] with the feedback `feedback`.
+/// [`track`] with the feedback `feedback`, the setpoints shaped first by `preview` where there
+/// is one (as [`ResonancePreview::shape_stream`] shapes a stream, the board in `c`'s mode):
+/// scored against the waveform as it comes, not the shaped setpoints.
 pub fn track_with(
     rate: f64,
     options: &ClosedLoopOptions,
@@ -521,6 +563,7 @@ pub fn track_with(
     shape: Shape,
     c: Configuration4,
     feedback: &FeedbackSettings,
+    preview: Option<&ResonancePreview>,
 ) -> Result<TrackingRow> {
     let board0 = board(rate, options.sensor_noise_um)?;
     let sensor = sensor_settings(&board0);
@@ -550,20 +593,34 @@ pub fn track_with(
     let per_cycle = (rate / frequency).round() as usize;
     let ticks = per_cycle * cycles;
     let from = (skip * per_cycle).min(ticks);
-    let run = simulate(
-        rate,
-        options,
-        config,
-        &s,
-        (0..ticks).map(|_| wave.next_sample()),
-        from,
-    )?;
+    let wanted: Vec<i32> = (0..ticks).map(|_| wave.next_sample()).collect();
+    let setpoints = match preview {
+        Some(p) => {
+            let q: Vec<i16> = wanted.iter().map(|&v| (v >> 15) as i16).collect();
+            p.shape_stream(&q, mode_of(c), 1)
+                .map_err(|e| anyhow!("{label}, {}: {e}", c.label()))?
+                .into_iter()
+                .map(|v| (v as i32) << 15)
+                .collect()
+        }
+        None => wanted.clone(),
+    };
+    let mut run = simulate(rate, options, config, &s, setpoints.into_iter(), from)?;
+    if preview.is_some() {
+        // Scored against the waveform, not the shaped setpoints the board was given.
+        let desired: Vec<f64> = wanted
+            .iter()
+            .map(|&v| s.norm_to_output(signal_to_f64(v)))
+            .collect();
+        run.desired = between_samples(&desired);
+    }
     let fig = score(&run.desired, &run.x, from..ticks.saturating_sub(2))
         .ok_or_else(|| anyhow!("nothing to score ({cycles} cycles)"))?;
     Ok(TrackingRow {
         rate,
         waveform: label,
         configuration: c,
+        preview: preview.is_some(),
         max_pct: fig.max_pct,
         rms_pct: fig.rms_pct,
         drift_ticks: observed.then_some(run.drift_ticks),
@@ -661,16 +718,47 @@ pub fn run(options: &ClosedLoopOptions) -> Result<ClosedLoopReport> {
     let mut panels = Vec::new();
     for &rate in &options.rates {
         let model = identify_model(rate, options)?;
-        let feedback = match options.gains {
-            Gains::Tuned => tuned_feedback(rate, &model)?,
-            Gains::Fixed => feedback_settings(rate, true),
+        // `tune` on the stage: the gains it picks, the resonance it measures.
+        let tuned = match (options.gains, options.preview) {
+            (Gains::Fixed, false) => None,
+            _ => Some(tune_at(rate)?),
+        };
+        let feedback = match (options.gains, &tuned) {
+            (Gains::Tuned, Some(t)) => feedback_from(t, &model),
+            _ => feedback_settings(rate, true),
         };
         report.feedback.push((rate, feedback));
+        let preview = match tuned.as_ref().filter(|_| options.preview) {
+            Some(t) => {
+                let p = &t.fit.plant;
+                report.resonance.push((rate, p.resonance_hz, p.zeta));
+                Some(
+                    ResonancePreview::new(p.resonance_hz, p.zeta, rate)
+                        .map_err(|e| anyhow!("the resonance measured at {rate} Hz: {e}"))?,
+                )
+            }
+            None => None,
+        };
         for shape in [Shape::Triangle, Shape::Sine] {
             for c in Configuration4::ALL {
-                report
-                    .tracking
-                    .push(track_with(rate, options, &model, shape, c, &feedback)?);
+                report.tracking.push(track_with(
+                    rate, options, &model, shape, c, &feedback, None,
+                )?);
+            }
+            // The feedforward's rows again, shaped: bypass would shape the drive, and feedback
+            // alone has no compensator to give the shaped positions to.
+            for c in [Configuration4::Feedforward, Configuration4::Both] {
+                if let Some(p) = &preview {
+                    report.tracking.push(track_with(
+                        rate,
+                        options,
+                        &model,
+                        shape,
+                        c,
+                        &feedback,
+                        Some(p),
+                    )?);
+                }
             }
         }
         let mut series = Vec::new();
@@ -727,6 +815,13 @@ pub fn print(report: &ClosedLoopReport, out: &mut impl std::io::Write) -> std::i
             }
         )?;
     }
+    for (rate, hz, zeta) in &report.resonance {
+        writeln!(
+            out,
+            "resonance at {:.0} kHz, as `tune` measures it (the preview's): {hz:.0} Hz, damping ratio {zeta:.4}",
+            rate / 1e3
+        )?;
+    }
     writeln!(
         out,
         "Tracking error over 10–90 % of the stroke (% of the commanded stroke)"
@@ -742,7 +837,11 @@ pub fn print(report: &ClosedLoopReport, out: &mut impl std::io::Write) -> std::i
             "| {:.0} kHz | {} | {} | {:.2} | {:.2} | {} |",
             r.rate / 1e3,
             r.waveform,
-            r.configuration.label(),
+            format_args!(
+                "{}{}",
+                r.configuration.label(),
+                if r.preview { " + preview" } else { "" }
+            ),
             r.max_pct,
             r.rms_pct,
             r.drift_ticks_after_start

@@ -100,7 +100,7 @@ pub enum PreviewError {
         rate_hz: f64,
     },
     /// The board would not do with shaped setpoints what the preview assumes.
-    #[error("the board is in {0:?}: shaped setpoints are for its compensator in open loop (closed loop its feedback would follow them, in bypass they would be the drive)")]
+    #[error("the board is in {0:?}: shaped setpoints are for its compensator, in open or closed loop (in bypass they would be the drive, with no hysteresis compensated)")]
     Mode(Mode),
     /// Setpoints several ticks apart, which the board interpolates.
     #[error("the stream plays one setpoint every {0} ticks, interpolated in between, and the preview shapes one a tick (held over it)")]
@@ -315,9 +315,13 @@ impl ResonancePreview {
     /// A board's stream shaped: `samples` (Q1.15, one a tick at this preview's rate, each for
     /// the middle of its tick, as the board takes a setpoint) for a board in `mode` playing one
     /// every `divider` ticks. The positions between setpoints (at the ends of the ticks,
-    /// [`between_samples`]) go through [`Self::shape`], back to Q1.15. Refused: a board not in
-    /// open loop ([`PreviewError::Mode`]), a divider above 1 ([`PreviewError::Divider`]), a
-    /// shaped value outside −1…1 ([`PreviewError::OutOfRange`], the first).
+    /// [`between_samples`]) go through [`Self::shape`], back to Q1.15. Closed loop, the feedback
+    /// follows the shaped setpoints as the compensator does: they differ from the trajectory
+    /// only for a sample or two about a corner, by `Δslope/(ω² T)`, too briefly for the
+    /// feedback to act on (`twinstack closed-loop --preview` measures it). Refused: a board in
+    /// bypass ([`PreviewError::Mode`]: the shaped values would be the drive), a divider above 1
+    /// ([`PreviewError::Divider`]), a shaped value outside −1…1 ([`PreviewError::OutOfRange`],
+    /// the first).
     ///
     /// ```
     /// use twinstack::control::mode_switch::Mode;
@@ -325,7 +329,8 @@ impl ResonancePreview {
     /// let p = ResonancePreview::new(21_800.0, 0.017, 50_000.0).unwrap();
     /// let ramp: Vec<i16> = (0..100).map(|k| (k * 100) as i16).collect();
     /// assert_eq!(p.shape_stream(&ramp, Mode::OpenLoop, 1).unwrap().len(), 100);
-    /// assert_eq!(p.shape_stream(&ramp, Mode::ClosedLoop, 1), Err(PreviewError::Mode(Mode::ClosedLoop)));
+    /// assert_eq!(p.shape_stream(&ramp, Mode::ClosedLoop, 1).unwrap().len(), 100);
+    /// assert_eq!(p.shape_stream(&ramp, Mode::Bypass, 1), Err(PreviewError::Mode(Mode::Bypass)));
     /// assert_eq!(p.shape_stream(&ramp, Mode::OpenLoop, 5), Err(PreviewError::Divider(5)));
     /// ```
     pub fn shape_stream(
@@ -337,7 +342,7 @@ impl ResonancePreview {
         if divider != 1 {
             return Err(PreviewError::Divider(divider));
         }
-        if mode != Mode::OpenLoop {
+        if mode == Mode::Bypass {
             return Err(PreviewError::Mode(mode));
         }
         let x: Vec<f64> = samples.iter().map(|&q| q as f64 / 32768.0).collect();

@@ -244,7 +244,7 @@ class Board:
         stops it. ``underrun``: ``"hold"`` or ``"ramp-to-bias"`` when the queue runs dry.
         ``resonance=(hz, damping)`` (what ``twinstack tune`` fits) shapes the setpoints first
         so that the stage's resonance does not ring at their corners, as ``twinstack stream
-        --resonance-hz`` does: for a board in open loop, one setpoint a tick (else
+        --resonance-hz`` does: for a board in open or closed loop, one setpoint a tick (else
         ``ValueError``, nothing sent).
 
         Ctrl-C stops the stream, tells the board to stop, and raises ``KeyboardInterrupt``.

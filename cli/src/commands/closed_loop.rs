@@ -31,6 +31,11 @@ pub struct Args {
     /// board) or `fixed` (kp 0.1, ki 0.2 × rate /s, notch at 21.8 kHz, Q 2).
     #[arg(long, value_enum, default_value_t = GainsArg::Tuned)]
     pub gains: GainsArg,
+    /// Also track with the setpoints shaped for the stage's resonance, as `twinstack stream
+    /// --preview` shapes a stream: the resonance `twinstack tune` measures at each rate, and
+    /// the feedforward's rows again (open and closed loop), scored against the waveform.
+    #[arg(long)]
+    pub preview: bool,
 }
 
 /// `--gains` values.
@@ -69,6 +74,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
             GainsArg::Tuned => Gains::Tuned,
             GainsArg::Fixed => Gains::Fixed,
         },
+        preview: args.preview,
     })?;
     print(&report, &mut std::io::stdout().lock())?;
     Ok(())

@@ -19,9 +19,10 @@
 //! `--preview` (the resonance `twinstack calibrate` measured into the `--params` file) or
 //! `--resonance-hz F --resonance-damping Z` (what `twinstack tune` fits and prints) shapes the
 //! setpoints ahead of time so that the stage's resonance does not ring at their corners
-//! ([`twinstack_identify::preview`]): for a board in open loop (its compensator inverts the
-//! shaped positions; closed loop its feedback would follow them, in bypass they would be the
-//! drive), one setpoint a tick (the board holds each one over its tick; interpolated between
+//! ([`twinstack_identify::preview`]): for a board in open or closed loop (its compensator
+//! inverts the shaped positions, and closed loop its feedback follows them, which differ from
+//! the trajectory only for a sample or two at a corner; in bypass they would be the drive), one
+//! setpoint a tick (the board holds each one over its tick; interpolated between
 //! setpoints further apart, shaped ones would not be what the preview assumes)
 //! ([`twinstack_identify::preview::ResonancePreview::shape_stream`]). Shaped setpoints outside −1…1 (a turn too near the
 //! range's end) are refused, naming the first; nothing is sent.
@@ -116,7 +117,7 @@ pub struct Args {
     pub telemetry_out: Option<PathBuf>,
     /// Shape the setpoints ahead of time so that the stage's resonance does not ring at their
     /// corners: the resonance's frequency, Hz, as `twinstack tune` fits it (with
-    /// --resonance-damping). For a board in open loop, one setpoint a tick.
+    /// --resonance-damping). For a board in open or closed loop, one setpoint a tick.
     #[arg(long, requires = "resonance_damping", conflicts_with = "preview")]
     pub resonance_hz: Option<f64>,
     /// The resonance's damping ratio, in (0, 1), as `twinstack tune` fits it (with
@@ -197,7 +198,9 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         Some((resonance, flags)) => {
             let refused = |e: PreviewError| {
                 let fix = match e {
-                    PreviewError::Mode(_) => " (`twinstack set /mode OpenLoop` first)",
+                    PreviewError::Mode(_) => {
+                        " (`twinstack set /mode OpenLoop` or `ClosedLoop` first)"
+                    }
                     PreviewError::Divider(_) => " (a t column at the board's rate, or --divider 1)",
                     _ => "",
                 };

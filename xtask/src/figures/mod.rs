@@ -261,7 +261,7 @@ const FIGURES: &[Figure] = &[
     Figure {
         name: "closed-loop-tuned",
         page: "docs/src/results/closed-loop.md",
-        runs: &[&["closed-loop", "--no-plot"]],
+        runs: &[&["closed-loop", "--preview", "--no-plot"]],
         source: Source::Tool,
         checked: true,
         render: Render::One(markdown),
