@@ -316,9 +316,10 @@ impl ResonancePreview {
     /// the middle of its tick, as the board takes a setpoint) for a board in `mode` playing one
     /// every `divider` ticks. The positions between setpoints (at the ends of the ticks,
     /// [`between_samples`]) go through [`Self::shape`], back to Q1.15. Closed loop, the feedback
-    /// follows the shaped setpoints as the compensator does: they differ from the trajectory
-    /// only for a sample or two about a corner, by `Δslope/(ω² T)`, too briefly for the
-    /// feedback to act on (`twinstack closed-loop --preview` measures it). Refused: a board in
+    /// follows the shaped setpoints as the compensator does: they stand off the trajectory by
+    /// about `2ζẋ/ω + ẍ/ω²`, at a corner for a sample or two (by `Δslope/(ω² T)`), too briefly
+    /// for the feedback to act on, on fast smooth motion all along (`twinstack closed-loop
+    /// --preview` measures both). Refused: a board in
     /// bypass ([`PreviewError::Mode`]: the shaped values would be the drive), a divider above 1
     /// ([`PreviewError::Divider`]), a shaped value outside −1…1 ([`PreviewError::OutOfRange`],
     /// the first).

@@ -20,8 +20,9 @@
 //! `--resonance-hz F --resonance-damping Z` (what `twinstack tune` fits and prints) shapes the
 //! setpoints ahead of time so that the stage's resonance does not ring at their corners
 //! ([`twinstack_identify::preview`]): for a board in open or closed loop (its compensator
-//! inverts the shaped positions, and closed loop its feedback follows them, which differ from
-//! the trajectory only for a sample or two at a corner; in bypass they would be the drive), one
+//! inverts the shaped positions, and closed loop its feedback follows them, which stand off the
+//! trajectory by the resonance's share: briefly at a corner, all along on fast smooth motion;
+//! in bypass they would be the drive), one
 //! setpoint a tick (the board holds each one over its tick; interpolated between
 //! setpoints further apart, shaped ones would not be what the preview assumes)
 //! ([`twinstack_identify::preview::ResonancePreview::shape_stream`]). Shaped setpoints outside −1…1 (a turn too near the
