@@ -1,7 +1,7 @@
 //! `twinstack stream --resonance-hz F --resonance-damping Z` on the virtual board (a separate
 //! process over TCP, as a lab's board): refused, with nothing sent, where the shaped setpoints
 //! would not be what the board does with them (in bypass, setpoints interpolated over several
-//! ticks); in open loop the board plays the setpoints shaped
+//! ticks); in open loop and in closed loop the board plays the setpoints shaped
 //! (`twinstack_identify::preview::ResonancePreview::shape_stream`, whose own tests hold its
 //! refusal of a shaped value outside the range), as its recorder shows.
 
@@ -27,7 +27,8 @@ fn triangle(n: usize) -> Vec<f64> {
 }
 
 #[test]
-fn stream_with_a_preview_plays_the_shaped_setpoints_in_open_loop_and_refuses_otherwise() {
+fn stream_with_a_preview_plays_the_shaped_setpoints_in_open_and_closed_loop_and_refuses_otherwise()
+{
     let (_board, port) = virtual_board_process::start(&["--speed", "0"]);
     let dir = tempfile::tempdir().unwrap();
     let x = triangle(2000);
@@ -117,4 +118,31 @@ fn stream_with_a_preview_plays_the_shaped_setpoints_in_open_loop_and_refuses_oth
     );
     // And not the file's: the corners were shaped.
     assert!(off(&recorded, &q) > 100.0 * lsb);
+
+    // Closed loop: the same shaped setpoints, which the feedback follows as the compensator
+    // does (what that does to the tracking: `twinstack closed-loop --preview`).
+    let o = twinstack_bin(&["set", "/mode", "ClosedLoop", "--port", &port]);
+    let (out, err) = text(&o);
+    assert!(o.status.success(), "{out}{err}");
+    let closed = dir.path().join("closed.csv");
+    let o = stream(&[
+        "--record",
+        "setpoint",
+        "--record-out",
+        closed.to_str().unwrap(),
+    ]);
+    let (out, err) = text(&o);
+    assert_eq!(o.status.code(), Some(0), "{out}{err}");
+    let csv = std::fs::read_to_string(&closed).unwrap();
+    let recorded: Vec<f64> = csv
+        .lines()
+        .skip(1)
+        .map(|l| l.split(',').nth(1).unwrap().parse().unwrap())
+        .collect();
+    assert!(recorded.len() >= 1000, "{} frames", recorded.len());
+    let played = off(&recorded, &shaped);
+    assert!(
+        played <= 2.0 * lsb,
+        "closed loop, the recorded setpoints are the shaped ones: {played} um"
+    );
 }

@@ -143,7 +143,7 @@ def test_a_stream_out_of_range_or_at_an_odd_rate_is_refused_before_sending(board
     assert board.status()["queue_fill"] == 0, "nothing was sent"
 
 
-def test_a_stream_shaped_for_the_resonance_plays_in_open_loop_and_is_refused_otherwise(board):
+def test_a_stream_shaped_for_the_resonance_plays_in_open_and_closed_loop_and_is_refused_in_bypass(board):
     # A 250 Hz triangle of ±20 µm, one setpoint a tick at 50 kHz; the stage's 21.8 kHz
     # resonance as `tune` fits it.
     phase = np.mod(np.arange(2000) / 200.0, 1.0)
@@ -165,6 +165,13 @@ def test_a_stream_shaped_for_the_resonance_plays_in_open_loop_and_is_refused_oth
     lsb = 90.0 / 65536
     assert np.max(np.abs(played - setpoints)) > 50 * lsb
     assert np.median(np.abs(played - setpoints)) < 0.05 * np.ptp(setpoints)
+    # Closed loop the board plays them too (its feedback follows them).
+    board.mode("closed-loop")
+    board.arm(["setpoint"], samples=2000, trigger="stream")
+    report = board.stream(setpoints, resonance=resonance)
+    assert report["accepted"] == 2000 and not report["underran"]
+    closed = board.fetch(timeout=10)["setpoint"]
+    assert np.max(np.abs(closed - played)) <= 2 * lsb
     board.mode("bypass")
 
 
