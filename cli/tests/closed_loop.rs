@@ -218,7 +218,7 @@ fn feedforward_plus_feedback_holds_a_quarter_percent_on_every_row() {
 /// rates, less than half its unshaped error, and the feedforward alone gains as much. The
 /// feedback follows the shaped setpoints, which stand off a ramp by a hundredth of a percent
 /// and swing at a corner only for a sample or two: its RMS stays within 0.05 %. On the sine,
-/// which has no corner, the shaping gains nothing (it costs 0.1–0.2 %, see the book's
+/// which has no corner, the shaping gains nothing (it costs about 0.1 %, see the book's
 /// closed-loop page) and is held within 0.5 %.
 #[test]
 fn a_preview_takes_the_triangle_s_reversal_out_in_closed_loop() {

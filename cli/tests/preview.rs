@@ -73,16 +73,29 @@ fn stream_with_a_preview_plays_the_shaped_setpoints_in_open_and_closed_loop_and_
             .success()
     );
 
+    // A stream with the recorder on its setpoints: what the board printed and what it played.
+    let played_stream = |name: &str| {
+        let run = dir.path().join(name);
+        let o = stream(&[
+            "--record",
+            "setpoint",
+            "--record-out",
+            run.to_str().unwrap(),
+        ]);
+        let (out, err) = text(&o);
+        assert_eq!(o.status.code(), Some(0), "{out}{err}");
+        let csv = std::fs::read_to_string(&run).unwrap();
+        let recorded: Vec<f64> = csv
+            .lines()
+            .skip(1)
+            .map(|l| l.split(',').nth(1).unwrap().parse().unwrap())
+            .collect();
+        assert!(recorded.len() >= 1000, "{} frames", recorded.len());
+        (err, recorded)
+    };
+
     // Open loop: the board plays the shaped setpoints (its recorder's setpoint column).
-    let run = dir.path().join("run.csv");
-    let o = stream(&[
-        "--record",
-        "setpoint",
-        "--record-out",
-        run.to_str().unwrap(),
-    ]);
-    let (out, err) = text(&o);
-    assert_eq!(o.status.code(), Some(0), "{out}{err}");
+    let (err, recorded) = played_stream("run.csv");
     assert!(
         err.contains("setpoints shaped for a resonance at 21800 Hz"),
         "{err}"
@@ -97,13 +110,6 @@ fn stream_with_a_preview_plays_the_shaped_setpoints_in_open_and_closed_loop_and_
         .unwrap()
         .shape_stream(&q, twinstack::control::mode_switch::Mode::OpenLoop, 1)
         .unwrap();
-    let csv = std::fs::read_to_string(&run).unwrap();
-    let recorded: Vec<f64> = csv
-        .lines()
-        .skip(1)
-        .map(|l| l.split(',').nth(1).unwrap().parse().unwrap())
-        .collect();
-    assert!(recorded.len() >= 1000, "{} frames", recorded.len());
     let lsb = r.output_half_span() / 32768.0;
     let off = |a: &[f64], b: &[i16]| {
         a.iter()
@@ -124,22 +130,7 @@ fn stream_with_a_preview_plays_the_shaped_setpoints_in_open_and_closed_loop_and_
     let o = twinstack_bin(&["set", "/mode", "ClosedLoop", "--port", &port]);
     let (out, err) = text(&o);
     assert!(o.status.success(), "{out}{err}");
-    let closed = dir.path().join("closed.csv");
-    let o = stream(&[
-        "--record",
-        "setpoint",
-        "--record-out",
-        closed.to_str().unwrap(),
-    ]);
-    let (out, err) = text(&o);
-    assert_eq!(o.status.code(), Some(0), "{out}{err}");
-    let csv = std::fs::read_to_string(&closed).unwrap();
-    let recorded: Vec<f64> = csv
-        .lines()
-        .skip(1)
-        .map(|l| l.split(',').nth(1).unwrap().parse().unwrap())
-        .collect();
-    assert!(recorded.len() >= 1000, "{} frames", recorded.len());
+    let (_, recorded) = played_stream("closed.csv");
     let played = off(&recorded, &shaped);
     assert!(
         played <= 2.0 * lsb,

@@ -1,6 +1,6 @@
 //! Preview: a planned trajectory shaped ahead of time so that the stage's resonance does not
 //! ring at its corners — the zero-phase inverse of the resonance, which needs the trajectory's
-//! next sample and so can only be made where the trajectory is known in advance (a
+//! next two samples and so can only be made where the trajectory is known in advance (a
 //! `compensate` of a planned path, a stream computed on the host).
 //!
 //! The stage's mechanics are `G(s) = ω² / (s² + 2ζω s + ω²)` (the resonance `twinstack tune`
@@ -16,15 +16,21 @@
 //! between the samples where the sensor does not look. So the zero is not inverted; its
 //! reciprocal takes its place (the zero-phase error tracking controller, Tomizuka 1987):
 //!
-//! `r_k = (w_k + c·w_{k+1}) / (b₁ (1 + c)²)`,  `w_k = d_k + a₁ d_{k−1} + a₂ d_{k−2}`,
+//! `r_k = (w_k + c·w_{k+1}) / (b₁ (1 + c)²)`,  `w_k = d'_k + a₁ d'_{k−1} + a₂ d'_{k−2}`,
 //!
-//! for the desired positions `d`. Then the position is the desired trajectory through the
-//! three-tap, zero-phase average `(c·d_{k−1} + (1 + c²)·d_k + c·d_{k+1}) / (1 + c)²`:
-//! no delay and no ringing, a gain of exactly 1 at rest and 0 only at half the sample rate;
-//! at a corner of a triangle the position misses by a quarter of the slope's change over one
-//! sample (`c/(1+c)² ≈ ¼`). The resonance's own poles are cancelled, so the trajectory must
-//! not reach them: the shaped values swing past the desired ones at a corner by about
-//! `Δslope/(ω² T)`, which the drive's range and slew limits bound as they bound any drive.
+//! for the desired positions `d`, sharpened first: `d' = d − κ·δ²d`, `δ²d` the second
+//! difference `d_{k−1} − 2d_k + d_{k+1}` and `κ = c/(1 + c)² ≈ ¼`. Without the sharpening the
+//! position would be the desired trajectory through the three-tap, zero-phase average
+//! `(c·d_{k−1} + (1 + c²)·d_k + c·d_{k+1}) / (1 + c)² = (1 + κδ²)·d` — a gain of exactly 1 at
+//! rest and 0 only at half the sample rate, a sine's amplitude short by `κ(ωT)²` and a
+//! triangle's corner missed by a quarter of the slope's change over one sample. The
+//! sharpening takes that away to first order (Torfs et al. 1992 extend the bandwidth of the
+//! zero-phase controller the same way): the position is `(1 − κ²δ⁴)·d`, no delay and no
+//! ringing, a sine short by `κ²(ωT)⁴` and a corner missed by an eighth of the slope's change
+//! over one sample. The resonance's own poles are cancelled, so the trajectory must not reach
+//! them: the shaped values swing past the desired ones at a corner by about `Δslope/(ω² T)`
+//! and the sharpening's `κ·Δslope·T`, which the drive's range and slew limits bound as they
+//! bound any drive.
 //!
 //! A model's hysteresis and creep come before the resonance: shaped positions are then what
 //! their inverse is given ([`crate::stage_model::StageModel::compensate`]), so that the whole
@@ -305,7 +311,8 @@ impl ResonancePreview {
             return Vec::new();
         }
         let at = |k: isize| desired[k.clamp(0, n as isize - 1) as usize];
-        let w = |k: isize| at(k) + self.a1 * at(k - 1) + self.a2 * at(k - 2);
+        let d = |k: isize| self.sharpened(at, k);
+        let w = |k: isize| d(k) + self.a1 * d(k - 1) + self.a2 * d(k - 2);
         let scale = 1.0 / (self.b1 * (1.0 + self.c) * (1.0 + self.c));
         (0..n as isize)
             .map(|k| (w(k) + self.c * w(k + 1)) * scale)
@@ -358,16 +365,33 @@ impl ResonancePreview {
     }
 
     /// What the position does under [`Self::shape`]`(desired)`: the three-tap zero-phase
-    /// average of `desired` (the preview's own error is this less `desired`).
+    /// average of the sharpened trajectory, `(1 + κδ²)(1 − κδ²)·d = d − κ²δ⁴d` (the preview's
+    /// own error is this less `desired`).
     pub fn smoothed(&self, desired: &[f64]) -> Vec<f64> {
         let n = desired.len();
         let at = |k: isize| desired[k.clamp(0, n as isize - 1) as usize];
+        let d = |k: isize| self.sharpened(at, k);
         let norm = (1.0 + self.c) * (1.0 + self.c);
         (0..n as isize)
             .map(|k| {
-                (self.c * at(k - 1) + (1.0 + self.c * self.c) * at(k) + self.c * at(k + 1)) / norm
+                (self.c * d(k - 1) + (1.0 + self.c * self.c) * d(k) + self.c * d(k + 1)) / norm
             })
             .collect()
+    }
+
+    /// The desired trajectory `at` sharpened at sample `k` by what the three-tap average takes
+    /// away, to first order: `d_k − κ·(d_{k−1} − 2d_k + d_{k+1})`, `κ = c/(1 + c)²` (about ¼).
+    /// The average is `1 + κδ²`; after it the position is `(1 − κ²δ⁴)·d`: a sine's loss and a
+    /// corner's miss of second order instead of first. Not the average's exact inverse, whose
+    /// gain at half the sample rate, `((1 + c)/(1 − c))²`, would make the stage ring between
+    /// the samples; this one's is `1 + 4κ`, below 2. The first sample is left as it is: the
+    /// drive before it, which its sharpening would need, is the stage's rest.
+    fn sharpened(&self, at: impl Fn(isize) -> f64, k: isize) -> f64 {
+        if k <= 0 {
+            return at(k);
+        }
+        let kappa = self.c / ((1.0 + self.c) * (1.0 + self.c));
+        at(k) - kappa * (at(k - 1) - 2.0 * at(k) + at(k + 1))
     }
 }
 
@@ -446,10 +470,10 @@ mod tests {
         };
         let plain = worst(&run(f, zeta, rate, &desired, 0.0));
         let shaped = worst(&run(f, zeta, rate, &p.shape(&desired), 0.0));
-        // Unshaped: the corner rings by about Δslope/ω (1.8 % of the span). Shaped: a quarter
-        // of the slope's change over a sample, 0.2 %.
+        // Unshaped: the corner rings by about Δslope/ω (1.8 % of the span). Shaped: an eighth
+        // of the slope's change over a sample (`2κ²`), 0.1 %.
         assert!(plain > 0.015, "unshaped {plain}");
-        assert!(shaped < 0.0021, "shaped {shaped}");
+        assert!(shaped < 0.0011, "shaped {shaped}");
     }
 
     #[test]
@@ -547,7 +571,7 @@ mod tests {
         match p.shape_stream(&q, Mode::OpenLoop, 1) {
             Err(PreviewError::OutOfRange { setpoint, value }) => {
                 assert!(
-                    (19..=26).contains(&setpoint) && value > 1.0,
+                    (18..=26).contains(&setpoint) && value > 1.0,
                     "{setpoint}: {value}"
                 )
             }
