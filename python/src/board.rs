@@ -8,6 +8,7 @@ use crate::params::Params;
 use hal_sim::port::{open_send, PortError, PortSpec, DEFAULT_BAUD};
 use hal_sim::sim_camera::CameraConfig;
 use hal_sim::sim_device::{SimDevice, SimDeviceConfig};
+use numpy::PyArray1;
 use pyo3::exceptions::{
     PyConnectionError, PyRuntimeError, PyTimeoutError, PyTypeError, PyValueError,
 };
@@ -126,6 +127,33 @@ impl Board {
             }
             Ok(out)
         })
+    }
+
+    /// What `stream` sends for `values` at `rate`: the board's Q1.15 setpoints (shaped for
+    /// `resonance` if given), the divider and the board's tick rate. Refused, naming the
+    /// value, where `stream` would refuse them; nothing is sent.
+    fn stream_samples(
+        &self,
+        py: Python<'_>,
+        values: &[f64],
+        rate: Option<f64>,
+        normalised: bool,
+        resonance: Option<(f64, f64)>,
+    ) -> PyResult<(Vec<i16>, u16, f64)> {
+        let (status, settings) = self.with(py, |c| Ok((c.status()?, c.read_params()?)))?;
+        let tick_rate = status.tick_rate_hz.max(1) as f64;
+        let samples = wire_values(values, normalised, &settings, "setpoints")?;
+        let divider = match rate {
+            None => 1,
+            Some(r) => divider_for_rate(tick_rate, r).map_err(PyValueError::new_err)?,
+        };
+        let samples = match resonance {
+            Some((hz, zeta)) => ResonancePreview::new(hz, zeta, tick_rate)
+                .and_then(|p| p.shape_stream(&samples, settings.mode, divider))
+                .map_err(|e| PyValueError::new_err(format!("resonance: {e}; nothing was sent")))?,
+            None => samples,
+        };
+        Ok((samples, divider, tick_rate))
     }
 
     fn fetch_dict<'py>(&self, py: Python<'py>, timeout: f64) -> PyResult<Bound<'py, PyDict>> {
@@ -327,6 +355,26 @@ impl Board {
         json_to_py(py, &v)
     }
 
+    /// The setpoints `stream` would send for these arguments, normalised (−1…1, the board's
+    /// Q1.15 values): with `resonance`, shaped for the stage's resonance as `stream` shapes
+    /// them. Nothing is sent; refused as `stream` refuses them.
+    #[pyo3(signature = (setpoints, resonance, rate=None, normalised=false))]
+    fn shaped<'py>(
+        &self,
+        py: Python<'py>,
+        setpoints: &Bound<'py, PyAny>,
+        resonance: Option<(f64, f64)>,
+        rate: Option<f64>,
+        normalised: bool,
+    ) -> PyResult<Bound<'py, PyArray1<f64>>> {
+        let values = vector(py, setpoints, "setpoints")?;
+        let (samples, _, _) = self.stream_samples(py, &values, rate, normalised, resonance)?;
+        Ok(array(
+            py,
+            samples.iter().map(|&q| q as f64 / 32768.0).collect(),
+        ))
+    }
+
     /// Switches the control mode (bumpless).
     fn mode(&self, py: Python<'_>, mode: &str) -> PyResult<()> {
         let m = parse_mode(mode)?;
@@ -359,19 +407,8 @@ impl Board {
                 )))
             }
         };
-        let (status, settings) = self.with(py, |c| Ok((c.status()?, c.read_params()?)))?;
-        let tick_rate = status.tick_rate_hz.max(1) as f64;
-        let samples = wire_values(&values, normalised, &settings, "setpoints")?;
-        let divider = match rate {
-            None => 1,
-            Some(r) => divider_for_rate(tick_rate, r).map_err(PyValueError::new_err)?,
-        };
-        let samples = match resonance {
-            Some((hz, zeta)) => ResonancePreview::new(hz, zeta, tick_rate)
-                .and_then(|p| p.shape_stream(&samples, settings.mode, divider))
-                .map_err(|e| PyValueError::new_err(format!("resonance: {e}; nothing was sent")))?,
-            None => samples,
-        };
+        let (samples, divider, tick_rate) =
+            self.stream_samples(py, &values, rate, normalised, resonance)?;
         let options = StreamOptions {
             divider,
             underrun,

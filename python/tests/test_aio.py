@@ -156,3 +156,36 @@ def test_identify_runs_in_a_worker_thread(monkeypatch):
     assert params.model == "pi"
     assert seen["waited"], "the event loop did not run while the model was fitted"
     assert seen["thread"] != threading.get_ident(), "the fit ran on the event loop's thread"
+
+
+def test_a_stream_shaped_for_the_resonance_is_shaped_whole_then_sent_in_chunks():
+    async def main():
+        async with await AsyncBoard.open("sim") as board:
+            await board.mode("open-loop")
+            tick = float((await board.status())["tick_rate_hz"])
+            ranges = (await board.params())["ranges"]
+            # A 250 Hz triangle of ±20 µm, one setpoint a tick, in chunks of 300 setpoints: the
+            # corners fall inside chunks and at their edges.
+            phase = np.mod(np.arange(2000) / (tick / 250.0), 1.0)
+            setpoints = 40.0 * np.where(phase < 0.5, phase, 1.0 - phase) - 10.0
+            resonance = (21800.0, 0.017)
+            whole = await board.shaped(setpoints, resonance)
+            await board.arm(["setpoint"], samples=2000, trigger="stream")
+            report = await board.stream(setpoints, resonance=resonance, chunk=300)
+            played = (await board.fetch(timeout=10))["setpoint"]
+            await board.mode("bypass")
+            return setpoints, ranges, whole, report, played
+
+    setpoints, ranges, whole, report, played = asyncio.run(main())
+    assert report["accepted"] == 2000 and report["chunks"] == 7
+    lo, hi = float(ranges["output_min"]), float(ranges["output_max"])
+    lsb = (hi - lo) / 65536
+    # The board played the trajectory shaped as a whole (no chunk's edge shaped as an end),
+    # holding its output where the next chunk had not come yet: the recorded setpoints, their
+    # repeats left out, are the whole's, corners and chunk edges included.
+    expected = (lo + hi) / 2 + (hi - lo) / 2 * whole
+    distinct = played[np.r_[True, np.diff(played) != 0]]
+    assert distinct.size >= 600, distinct.size
+    assert np.max(np.abs(distinct - expected[: distinct.size])) <= 2 * lsb
+    # ...which is not the trajectory as it came: its corners were shaped.
+    assert np.max(np.abs(expected - setpoints)) > 50 * lsb

@@ -116,6 +116,31 @@ def test_a_fly_scan_of_a_32_line_raster(board, RE):
     assert fly.report["accepted"] == 32 * 32 * 20 and not fly.report["underran"]
 
 
+def test_a_fly_scan_shaped_for_the_resonance_calibrate_measured(board, stage_params, RE):
+    # One setpoint a tick: the shaping needs the next setpoints where the board holds each.
+    tick = float(board.status()["tick_rate_hz"])
+    resonance = stage_params.resonance
+    assert resonance is not None, "calibrate measured the stage's resonance"
+    with pytest.raises(ValueError, match="one setpoint a tick"):
+        Flyer.raster(board, lines=4, pixels=32, rate=tick / 10, resonance=resonance)
+    fly = Flyer.raster(
+        board, lines=8, pixels=32, amplitude=0.3, per_pixel=20, rate=tick, resonance=resonance
+    )
+    RE(bp.fly([fly]))
+    evs = events(RE.docs, "raster")
+    assert len(evs) == 8 * 32
+    assert fly.report["accepted"] == 8 * 32 * 20 and not fly.report["underran"]
+    # The board played the shaped trajectory, and the stage followed it to the pixel.
+    err = [abs(e["data"]["raster"] - e["data"]["raster_setpoint"]) for e in evs]
+    assert max(err) <= WINDOW, max(err)
+    # The flyer streams with the resonance: in bypass the board's shaping refuses it.
+    board.mode("bypass")
+    bypassed = Flyer.raster(board, lines=2, pixels=8, rate=tick, resonance=resonance)
+    bypassed.kickoff()
+    with pytest.raises(ValueError, match="the board is in Bypass"):
+        bypassed.complete().wait(30.0)
+
+
 def test_status_callbacks_and_failure():
     s = Status("x")
     seen = []

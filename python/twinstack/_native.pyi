@@ -250,6 +250,17 @@ class Board:
         Ctrl-C stops the stream, tells the board to stop, and raises ``KeyboardInterrupt``.
         Returns a report: ``accepted``, ``divider``, ``batches``, ``underruns`` (``None`` when
         they cannot be ruled out), ``underran``, ``seconds`` and link counters."""
+    def shaped(
+        self,
+        setpoints: _ArrayLike,
+        resonance: Optional[Tuple[float, float]],
+        rate: Optional[float] = None,
+        normalised: bool = False,
+    ) -> np.ndarray:
+        """The setpoints :meth:`stream` would send for these arguments, normalised (-1...1, the
+        board's Q1.15 values): with ``resonance``, shaped for the stage's resonance as
+        ``stream`` shapes them. Nothing is sent; refused (``ValueError``) as ``stream`` refuses
+        them."""
     def sequence(
         self,
         positions: _ArrayLike,

@@ -36,7 +36,7 @@ the same exceptions (:class:`~twinstack.BoardError`, ``TimeoutError``, ...).
 import asyncio
 import concurrent.futures
 import functools
-from typing import Any, Callable, Dict, Optional, Sequence, TypeVar, Union
+from typing import Any, Callable, Dict, Optional, Sequence, Tuple, TypeVar, Union
 
 import numpy as np
 
@@ -203,6 +203,17 @@ class AsyncBoard:
             self._board.sequence, positions, window, settle_ticks, edge, normalised, mode, idle
         )
 
+    async def shaped(
+        self,
+        setpoints: Any,
+        resonance: Optional[Tuple[float, float]],
+        rate: Optional[float] = None,
+        normalised: bool = False,
+    ) -> np.ndarray:
+        """The setpoints a stream would send, normalised, shaped for `resonance`, as
+        :meth:`twinstack.Board.shaped`; nothing is sent."""
+        return await self._call(self._board.shaped, setpoints, resonance, rate, normalised)
+
     async def stream(
         self,
         setpoints: Any,
@@ -211,18 +222,25 @@ class AsyncBoard:
         underrun: Optional[str] = None,
         wait: bool = True,
         chunk: Optional[int] = None,
+        resonance: Optional[Tuple[float, float]] = None,
     ) -> Dict[str, Any]:
         """Streams `setpoints` as :meth:`twinstack.Board.stream` does, in chunks of `chunk`
         setpoints (default: :data:`CHUNK_SECONDS` of them, at most the board's setpoint queue),
         letting other
         calls on this board in between two chunks. Returns the blocking call's report summed
         over the chunks (``accepted``, ``batches``, ``underruns``, ``seconds``, ...) plus
-        ``chunks``. Cancelled, it tells the board to stop and raises ``CancelledError``."""
+        ``chunks``. Cancelled, it tells the board to stop and raises ``CancelledError``.
+        `resonance` shapes the whole trajectory first (:meth:`twinstack.Board.shaped`, before
+        it is cut into chunks: the shaping of a setpoint needs the two after it), as
+        ``Board.stream(…, resonance=…)`` does."""
         values = np.asarray(setpoints)
         if values.ndim != 1:
             raise ValueError(f"setpoints must be one-dimensional, got shape {values.shape}")
         if values.size == 0:
             raise ValueError("setpoints is empty")
+        if resonance is not None:
+            values = await self.shaped(values, resonance, rate, normalised)
+            normalised = True
         if chunk is None:
             s = await self.status()
             per_second = rate if rate is not None else float(s["tick_rate_hz"])

@@ -29,7 +29,7 @@ True
 
 import threading
 import time
-from typing import Any, Callable, Dict, Iterator, List, Optional, Sequence
+from typing import Any, Callable, Dict, Iterator, List, Optional, Sequence, Tuple
 
 import numpy as np
 
@@ -285,7 +285,13 @@ class Flyer:
     streamed at `rate` per second, recorded (setpoint, sensor, error) from the stream's
     start, one event every `per_event` setpoints. Before it, the stage is taken to the first
     setpoint and held there for `approach` seconds (not recorded), so the first event is not
-    the jump from wherever it was. :meth:`raster` builds a raster."""
+    the jump from wherever it was. :meth:`raster` builds a raster.
+
+    With `resonance` (``(frequency_hz, damping)``, ``params.resonance`` as ``calibrate``
+    measured it) the trajectory is shaped for the stage's resonance before it is streamed, as
+    :meth:`twinstack.Board.stream` shapes it, so that the stage does not ring at its corners
+    (a raster's turnarounds): one setpoint a tick (`rate` the board's tick rate), the board in
+    open or closed loop. The recorded setpoint and error are then the shaped ones."""
 
     def __init__(
         self,
@@ -299,8 +305,10 @@ class Flyer:
         pixels: Optional[Sequence[int]] = None,
         parent: Any = None,
         approach: float = 0.05,
+        resonance: Optional[Tuple[float, float]] = None,
     ) -> None:
         self._board = board
+        self.resonance = resonance
         self.approach = float(approach)
         self.name = name
         self.parent = parent
@@ -327,6 +335,11 @@ class Flyer:
         if abs(divider - round(divider)) > 1e-9 * divider or divider < 1:
             raise ValueError(f"rate {rate}: not the board's {tick} Hz divided by a whole number")
         self.decimation = int(round(divider)) * self.per_event
+        if resonance is not None and int(round(divider)) != 1:
+            raise ValueError(
+                f"resonance: a shaped trajectory is one setpoint a tick, and rate {rate} is the "
+                f"board's {tick} Hz / {int(round(divider))}: pass rate={tick}"
+            )
         if self.decimation > 65535:
             raise ValueError(f"per_event {per_event}: one event every {self.decimation} ticks is too long")
 
@@ -342,11 +355,13 @@ class Flyer:
         rate: float = 5000.0,
         name: str = "raster",
         units: str = "um",
+        resonance: Optional[Tuple[float, float]] = None,
     ) -> "Flyer":
         """A serpentine raster on the axis: `lines` sweeps across `pixels` pixels, forward then
         back, of `per_pixel` setpoints each at `rate` per second; `amplitude` and `offset`
         normalised (−1…1 over the output range). One event per pixel, with its line and pixel
-        number (the slow axis is the line number: another axis steps it)."""
+        number (the slow axis is the line number: another axis steps it). `resonance`: see
+        :class:`Flyer`."""
         ranges = board.params()["ranges"]
         lo, hi = float(ranges["output_min"]), float(ranges["output_max"])
         mid, half = (lo + hi) / 2, (hi - lo) / 2
@@ -368,6 +383,7 @@ class Flyer:
             units=units,
             lines=line_list,
             pixels=pixel_list,
+            resonance=resonance,
         )
 
     # -- Flyable -------------------------------------------------------------------------
@@ -395,7 +411,9 @@ class Flyer:
                 raise
             self._t0 = time.time()
             started._finish()
-            self._report = self._board.stream(self.setpoints, rate=self.rate)
+            self._report = self._board.stream(
+                self.setpoints, rate=self.rate, resonance=self.resonance
+            )
             self._data = self._board.fetch()
 
         _run(played, fly)
