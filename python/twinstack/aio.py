@@ -229,7 +229,13 @@ class AsyncBoard:
         letting other
         calls on this board in between two chunks. Returns the blocking call's report summed
         over the chunks (``accepted``, ``batches``, ``underruns``, ``seconds``, ...) plus
-        ``chunks``. Cancelled, it tells the board to stop and raises ``CancelledError``.
+        ``chunks``. Each chunk is a stream of its own, ended behind its last setpoint: a chunk
+        that reaches the board after the one before has played out finds it stopped, holding
+        that one's last setpoint until it comes — a pause in the trajectory that the report
+        does not count as an underrun (the in-process simulator shows such pauses even at the
+        default chunk). A trajectory that must play without a pause is for
+        :meth:`twinstack.Board.stream`, one call. Cancelled, it tells the board to stop and
+        raises ``CancelledError``.
         `resonance` shapes the whole trajectory first (:meth:`twinstack.Board.shaped`, before
         it is cut into chunks: the shaping of a setpoint needs the two after it), as
         ``Board.stream(…, resonance=…)`` does."""
