@@ -110,3 +110,55 @@ fn a_jitter_larger_than_the_latency_is_refused() {
     };
     assert!(SimDevice::new(config).is_err());
 }
+
+/// A record streamed in parts, every call but the last with `more` and every one but the first
+/// with `continues`, plays as one stream through the adapter's latency: no underrun, no stop
+/// between the parts, the stream ended by the last. The same parts each streamed as a stream
+/// of their own stop and start again between them: the board holds for round trips there.
+#[test]
+fn a_record_streamed_in_parts_plays_as_one_stream() {
+    let rate = 50_000.0;
+    let n = 60_000;
+    let samples = full_range_triangle(n, 5000);
+    let parts: Vec<&[i16]> = samples.chunks(20_000).collect();
+    // Ticks from before the first part to the drained end, underruns, and whether it streams.
+    let run = |continued: bool| {
+        let mut client = device(rate, hal_sim::port::DEFAULT_BAUD, LinkDelay::ADAPTER);
+        let underruns = client.transport().control().telemetry().underruns;
+        let (mut first, mut end) = (0, 0);
+        for (i, part) in parts.iter().enumerate() {
+            let last = i + 1 == parts.len();
+            let options = StreamOptions {
+                underrun: Some(UnderrunPolicy::Hold),
+                more: continued && !last,
+                continues: continued && i > 0,
+                drain: last,
+                ..StreamOptions::default()
+            };
+            let r = stream_setpoints(&mut client, part, &options, |_| {}).expect("stream");
+            assert_eq!(r.accepted, part.len());
+            if i == 0 {
+                first = r.before.ticks;
+            }
+            if last {
+                end = r.drained.expect("drained").ticks;
+            }
+        }
+        let t = client.transport().control().telemetry();
+        (
+            end.wrapping_sub(first) as usize,
+            t.underruns.wrapping_sub(underruns),
+            t.streaming,
+        )
+    };
+    let (one, underruns, streaming) = run(true);
+    assert_eq!(underruns, 0, "the parts came before the queue ran dry");
+    assert!(!streaming, "the last part ended the stream");
+    assert!(one >= n, "every setpoint played: {one} ticks");
+    let (apart, _, _) = run(false);
+    eprintln!("one stream {one} ticks, parts apart {apart}");
+    assert!(
+        apart > one + 1000,
+        "each part a stream of its own holds between them: {apart} ticks against {one}"
+    );
+}

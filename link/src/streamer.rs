@@ -18,7 +18,10 @@
 //! * **the end**: right behind the last batch goes `Stream(Finish)`: the board plays what is
 //!   queued and then stops by itself, so it counts no underrun after the last setpoint, and
 //!   the change of its underrun counter over the stream ([`StreamReport::underruns_during_stream`]) is
-//!   exactly the stream's underruns.
+//!   exactly the stream's underruns;
+//! * **a record in parts**: a call with [`StreamOptions::more`] sends no `Finish`, and the next
+//!   with [`StreamOptions::continues`] queues its setpoints behind the ones still playing
+//!   instead of stopping them, so the parts play as one stream with no pause between them.
 //!
 //! Setpoints are Q1.15 normalised displacement (the wire format,
 //! [`twinstack::protocol::messages`]), sent as [`Request::PackedSetpoints`]: two bytes a
@@ -56,6 +59,16 @@ pub struct StreamOptions {
     /// Send [`Request::Setpoints`] (zigzag varints, up to three bytes a setpoint) instead of
     /// [`Request::PackedSetpoints`]: for comparisons, and boards that predate packing.
     pub varint: bool,
+    /// More setpoints follow in another call, which continues this stream: no
+    /// `Stream(Finish)` behind the last batch, so the board plays on (counting an underrun
+    /// for each tick its queue is empty before the next call's setpoints come) and
+    /// [`Self::drain`] does not apply.
+    pub more: bool,
+    /// Continue the stream a call with [`Self::more`] left playing: its setpoints are queued
+    /// behind the ones still playing, with no `Stop` and no new `Start` (and the stream's
+    /// divider and underrun policy stay those its first call set). Without it, a stream left
+    /// running is stopped first. Where the board is not streaming, it starts as any stream.
+    pub continues: bool,
 }
 
 impl Default for StreamOptions {
@@ -69,6 +82,8 @@ impl Default for StreamOptions {
             max_retries: 8,
             queue_limit: None,
             varint: false,
+            more: false,
+            continues: false,
         }
     }
 }
@@ -109,7 +124,10 @@ impl StreamReport {
     /// Exact: the stream was stopped when the first status was taken (nothing counted
     /// before its start), and once `Finish` is in force the board stops at the end of the
     /// queue instead of counting (nothing counted after the last setpoint), so every tick
-    /// counted between the two ran dry while setpoints were still to come.
+    /// counted between the two ran dry while setpoints were still to come. A stream in parts
+    /// ([`StreamOptions::more`], [`StreamOptions::continues`]) plays on between the calls, and
+    /// what it counts there is in neither call's figure: its caller takes the board's counter
+    /// before the first part and after the last.
     pub fn underruns_during_stream(&self) -> u32 {
         self.after_last_batch
             .underruns
@@ -216,7 +234,8 @@ fn run<T: Transport>(
 ) -> Result<StreamReport, LinkError> {
     let link_before = client.counters();
     let mut before = client.status()?;
-    if before.flags & StatusReport::STREAMING != 0 {
+    let joined = options.continues && before.flags & StatusReport::STREAMING != 0;
+    if before.flags & StatusReport::STREAMING != 0 && !joined {
         // A stream left running (one not finished): stop it, so that the board counts no
         // underrun of it against this one.
         client.stream(StreamControl::Stop)?;
@@ -234,11 +253,13 @@ fn run<T: Transport>(
             got: "a setpoint queue of capacity 0".into(),
         });
     }
-    client.stream(StreamControl::Rate {
-        divider: options.divider,
-    })?;
-    if let Some(policy) = options.underrun {
-        client.stream(StreamControl::Underrun(policy))?;
+    if !joined {
+        client.stream(StreamControl::Rate {
+            divider: options.divider,
+        })?;
+        if let Some(policy) = options.underrun {
+            client.stream(StreamControl::Underrun(policy))?;
+        }
     }
     let batch_max = options.batch.clamp(1, MAX_BATCH).min(capacity);
     // The board's own rate when it reports one.
@@ -271,9 +292,11 @@ fn run<T: Transport>(
     let mut handshaken = false; // a batch has been accepted: the sequence number is agreed
     let mut rewinding = false; // a batch was refused: waiting out the ones sent after it
     let mut retries = 0u32;
-    let mut started = false;
-    // `Stream(Finish)` sent behind the last batch (sent again if that batch is resent).
-    let mut finish_sent = false;
+    // A stream continued is playing already: it is not started again.
+    let mut started = joined;
+    // `Stream(Finish)` sent behind the last batch (sent again if that batch is resent); with
+    // more to come, never sent, and the stream is done once its batches are.
+    let mut finish_sent = options.more;
     // Waiting for room without a batch accepted: bounded by the response timeout plus twice
     // the time the board needs to play a full queue.
     let mut stalled = Duration::ZERO;
@@ -359,7 +382,7 @@ fn run<T: Transport>(
             // Not waited for. With the whole record queued, `Finish` goes first, in the same
             // write: it is in force before the stream starts.
             report.primed_whole = next == samples.len();
-            if report.primed_whole {
+            if report.primed_whole && !options.more {
                 client.send_together(&[
                     Request::Stream(StreamControl::Finish),
                     Request::Stream(StreamControl::Start),
@@ -435,8 +458,8 @@ fn run<T: Transport>(
                     retries += 1;
                     rewinding = true;
                     // The batches from the refused one are sent again, and `Finish` after
-                    // the last of them.
-                    finish_sent = false;
+                    // the last of them (none with more to come).
+                    finish_sent = options.more;
                     next = first;
                     seq = match reason {
                         NackReason::OutOfSequence { expected } => expected,
@@ -495,7 +518,7 @@ fn run<T: Transport>(
             ),
         });
     }
-    if options.drain {
+    if options.drain && !options.more {
         // Bounded wait: the queue plays in fill × divider ticks; allow twice that plus a
         // second before deciding the board is not playing it.
         let mut status = report.after_last_batch;
