@@ -15,6 +15,7 @@ use pyo3::exceptions::{
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
 use std::path::Path;
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Mutex;
 use std::time::{Duration, Instant};
 use twinstack::config::settings::Mode;
@@ -77,6 +78,8 @@ pub(crate) fn signal_list(signals: &Bound<'_, PyAny>) -> PyResult<String> {
 pub(crate) struct Board {
     port: String,
     client: Mutex<Option<BoardClient>>,
+    /// A stream this board left playing with `more`: the next `stream` continues it.
+    stream_open: AtomicBool,
 }
 
 impl Board {
@@ -232,6 +235,7 @@ impl Board {
         Ok(Self {
             port: port.to_string(),
             client: Mutex::new(Some(client)),
+            stream_open: AtomicBool::new(false),
         })
     }
 
@@ -383,8 +387,10 @@ impl Board {
 
     /// Streams setpoints and waits until they have played; with `resonance` (its frequency,
     /// Hz, and damping ratio) shaped first for the stage's resonance
-    /// (`twinstack_identify::preview::ResonancePreview::shape_stream`).
-    #[pyo3(signature = (setpoints, rate=None, normalised=false, underrun=None, wait=true, resonance=None))]
+    /// (`twinstack_identify::preview::ResonancePreview::shape_stream`). With `more`, more
+    /// setpoints follow in the next call: the stream plays on without its end, and the next
+    /// `stream` queues its setpoints behind these (`StreamOptions::more`, `continues`).
+    #[pyo3(signature = (setpoints, rate=None, normalised=false, underrun=None, wait=true, resonance=None, more=false))]
     #[allow(clippy::too_many_arguments)] // the Python keyword arguments, one each
     fn stream<'py>(
         &self,
@@ -395,7 +401,13 @@ impl Board {
         underrun: Option<&str>,
         wait: bool,
         resonance: Option<(f64, f64)>,
+        more: bool,
     ) -> PyResult<Bound<'py, PyDict>> {
+        if more && wait {
+            return Err(PyValueError::new_err(
+                "more=True: the stream plays on after this call and cannot be waited for: pass wait=False (and wait on the last part)",
+            ));
+        }
         let values = vector(py, setpoints, "setpoints")?;
         let underrun = match underrun {
             None => None,
@@ -414,8 +426,12 @@ impl Board {
             underrun,
             tick_rate_hz: tick_rate,
             drain: wait,
+            more,
+            continues: self.stream_open.load(Ordering::Relaxed),
             ..StreamOptions::default()
         };
+        // Left open only by a part that was sent whole.
+        self.stream_open.store(false, Ordering::Relaxed);
         let report = self.with_py(py, |client| {
             // Ctrl-C: asked of the interpreter every SIGNAL_CHECK, with its lock taken back
             // for the question only.
@@ -464,6 +480,7 @@ impl Board {
                 }
             }
         })?;
+        self.stream_open.store(more, Ordering::Relaxed);
         let end = report.drained.unwrap_or(report.after_last_batch);
         let d = PyDict::new(py);
         d.set_item("accepted", report.accepted)?;

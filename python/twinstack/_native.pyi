@@ -235,6 +235,7 @@ class Board:
         underrun: Optional[str] = None,
         wait: bool = True,
         resonance: Optional[Tuple[float, float]] = None,
+        more: bool = False,
     ) -> Dict[str, Any]:
         """Streams ``setpoints`` to the board: in the output unit of the settings in force
         (or -1...1 with ``normalised=True``; a value outside the range raises ``ValueError``,
@@ -245,7 +246,10 @@ class Board:
         ``resonance=(hz, damping)`` (what ``twinstack tune`` fits) shapes the setpoints first
         so that the stage's resonance does not ring at their corners, as ``twinstack stream
         --resonance-hz`` does: for a board in open or closed loop, one setpoint a tick (else
-        ``ValueError``, nothing sent).
+        ``ValueError``, nothing sent). ``more=True``: more setpoints follow in the next call
+        (with ``wait=False``): the stream plays on without its end, and the next ``stream``
+        queues its setpoints behind these instead of stopping them, so the parts play as one
+        stream.
 
         Ctrl-C stops the stream, tells the board to stop, and raises ``KeyboardInterrupt``.
         Returns a report: ``accepted``, ``divider``, ``batches``, ``underruns`` (``None`` when

@@ -11,7 +11,7 @@ Semantics, which a caller can rely on:
   :class:`asyncio.Lock` (first come, first served) instead of failing as two threads sharing
   a :class:`~twinstack.Board` do. A call that is waiting for its turn can be cancelled freely.
 * **A stream leaves room for other calls.** :meth:`AsyncBoard.stream` sends its setpoints in
-  chunks (by default 0.1 s of setpoints, at most one setpoint queue's worth) and lets
+  chunks (by default 0.5 s of setpoints, at most one setpoint queue's worth) and lets
   go of the board between two chunks, so a :meth:`~AsyncBoard.status` poll is answered within
   one chunk while the stream plays; the board's queue is topped up again right after it.
   Underruns, if a host is too slow for that, are counted in the report as always.
@@ -47,7 +47,10 @@ T = TypeVar("T")
 
 #: Seconds of setpoints :meth:`AsyncBoard.stream` sends per chunk by default (at most one
 #: setpoint queue's worth): how long another call on the board waits at most during a stream.
-CHUNK_SECONDS = 0.1
+#: Each chunk costs a few round trips (two statuses and its batches: about 0.1 s through a
+#: USB–serial adapter's 16 ms each way, more with other calls in between), so a chunk must
+#: play for longer than that, or the queue runs dry between chunks.
+CHUNK_SECONDS = 0.5
 
 __all__ = ["AsyncBoard", "identify"]
 
@@ -229,13 +232,11 @@ class AsyncBoard:
         letting other
         calls on this board in between two chunks. Returns the blocking call's report summed
         over the chunks (``accepted``, ``batches``, ``underruns``, ``seconds``, ...) plus
-        ``chunks``. Each chunk is a stream of its own, ended behind its last setpoint: a chunk
-        that reaches the board after the one before has played out finds it stopped, holding
-        that one's last setpoint until it comes — a pause in the trajectory that the report
-        does not count as an underrun (the in-process simulator shows such pauses even at the
-        default chunk). A trajectory that must play without a pause is for
-        :meth:`twinstack.Board.stream`, one call. Cancelled, it tells the board to stop and
-        raises ``CancelledError``.
+        ``chunks``. The chunks play as one stream (each but the last sent with ``more``, see
+        :meth:`twinstack.Board.stream`): each is queued behind the one still playing, with no
+        stop between them, and ``underruns`` counts the board's empty ticks over the whole
+        stream, between the chunks too. Cancelled, it tells the board to stop and raises
+        ``CancelledError``.
         `resonance` shapes the whole trajectory first (:meth:`twinstack.Board.shaped`, before
         it is cut into chunks: the shaping of a setpoint needs the two after it), as
         ``Board.stream(…, resonance=…)`` does."""
@@ -256,18 +257,33 @@ class AsyncBoard:
             raise ValueError(f"chunk {chunk}: must be at least 1 setpoint")
         total: Dict[str, Any] = {}
         starts = range(0, values.size, chunk)
+        # The board's underrun counter over the whole stream: between two chunks it plays on,
+        # and what it counts there is in neither chunk's report.
+        underruns_before = int((await self.status())["underruns"])
         try:
             for i, start in enumerate(starts):
                 last = i == len(starts) - 1
                 part = values[start : start + chunk]
                 report = await self._call(
-                    self._board.stream, part, rate, normalised, underrun, wait and last
+                    self._board.stream,
+                    part,
+                    rate,
+                    normalised,
+                    underrun,
+                    wait and last,
+                    None,
+                    not last,
                 )
                 _add_report(total, report)
         except asyncio.CancelledError:
             await asyncio.shield(self._stop_after_cancel())
             raise
         total["chunks"] = len(starts)
+        if wait:
+            # Drained: the board stopped at the stream's end and counts no more.
+            counted = (int((await self.status())["underruns"]) - underruns_before) % 2**32
+            total["underruns"] = counted
+            total["underran"] = counted != 0
         return total
 
     async def _stop_after_cancel(self) -> None:
