@@ -298,7 +298,7 @@ where
             let measured = (self.controller.sensor_config().is_some()
                 && !report.flags.contains(TickFlags::ADC_ERROR))
             .then_some(report.measured);
-            self.learning.observe(self.controller.setpoint(), measured);
+            self.learning.observe(self.controller.target(), measured);
         }
         if report.flags.0 & (TickFlags::RANGE_LIMIT | TickFlags::SLEW_LIMIT) != 0 {
             self.limit_hits = self.limit_hits.wrapping_add(1);
@@ -307,7 +307,8 @@ where
         // a fixed-size copy. A full ring refuses it; the sequence number's gap tells the
         // consumer ([`crate::services::consumer::Services::consume`]).
         if self.listening {
-            let setpoint = self.controller.setpoint();
+            // What the tick aimed the stage at (with the preview, four ticks late).
+            let setpoint = self.controller.target();
             let _ = snapshots.enqueue(Snapshot::of(
                 self.seq,
                 setpoint,
@@ -746,7 +747,7 @@ where
 
     /// Sets the learning's state (off, learning, frozen) between two ticks, in O(1).
     pub fn set_learning(&mut self, state: LearnState) {
-        let target = self.controller.setpoint();
+        let target = self.controller.target();
         self.learning.set_state(state, target);
         if state == LearnState::Off {
             self.controller.set_learned(0);

@@ -194,6 +194,10 @@ pub enum Field {
     AnalogOverAbove,
     /// The analog input's ramp rate (faults and recovery), normalised displacement per second.
     AnalogRate,
+    /// `preview.frequency_hz`: the resonance the preview shapes for (protocol v11).
+    PreviewFrequency,
+    /// `preview.damping`: its damping ratio.
+    PreviewDamping,
 }
 
 /// The rule a field broke, with its limit where it has one (in the field's own units).
@@ -395,6 +399,8 @@ impl core::fmt::Display for Field {
             Field::AnalogLostBelow => "analog lost_below",
             Field::AnalogOverAbove => "analog over_above",
             Field::AnalogRate => "analog rate",
+            Field::PreviewFrequency => "preview.frequency_hz",
+            Field::PreviewDamping => "preview.damping",
         };
         f.write_str(name)
     }

@@ -138,7 +138,7 @@ enum Part {
     /// The exponential relaxation in the input that Duhem and Bouc–Wen share
     /// (`relaxation.rs`: their `q`, `φ` and their compensators' step).
     Relaxation,
-    /// Feedback (PI(D)) and the notch.
+    /// Feedback (PI(D)), the notches and the preview.
     Feedback,
     /// The services below the tick (recorder, telemetry's tap): their task's share per tick.
     Services,
@@ -153,7 +153,7 @@ const PART_NAMES: [&str; PARTS] = [
     "Duhem",
     "Bouc–Wen",
     "relaxation (Duhem, Bouc–Wen)",
-    "feedback+notch",
+    "feedback, notches, preview",
     "services (share)",
 ];
 
@@ -166,7 +166,7 @@ fn part_of(file: &str) -> Part {
         "duhem.rs" => Part::Duhem,
         "bouc_wen.rs" => Part::BoucWen,
         "relaxation.rs" => Part::Relaxation,
-        "feedback.rs" | "notch.rs" => Part::Feedback,
+        "feedback.rs" | "notch.rs" | "preview.rs" => Part::Feedback,
         _ => Part::Fixed,
     }
 }

@@ -3,8 +3,8 @@
 
 use proptest::prelude::*;
 use twinstack::config::settings::{
-    representative_duhem, DriveSettings, FeedbackSettings, Model, NotchDesign, SensorSettings,
-    Settings,
+    representative_duhem, DriveSettings, FeedbackSettings, Model, NotchDesign, PreviewDesign,
+    SensorSettings, Settings,
 };
 use twinstack::protocol::decoder::FrameDecoder;
 use twinstack::protocol::frame::{
@@ -96,6 +96,10 @@ fn request() -> impl Strategy<Value = Request> {
                 mode: Mode::OpenLoop,
                 creep: None,
                 shaping: None,
+                preview: (a0 > 0.0).then_some(PreviewDesign {
+                    frequency_hz: 3_500.0,
+                    damping: a0,
+                }),
             })
         }),
         prop_oneof![

@@ -106,8 +106,12 @@ prop_compose! {
         drift in proptest::option::of(0.01f64..0.5),
         feedback in proptest::option::of((0.0f64..1.0, 0.0f64..5000.0, 0.01f64..0.5)),
         mode in 0..3u8,
-        shaping in proptest::option::of((500.0f64..20_000.0, 0.3f64..5.0, 0.0f64..1.0)),
+        shaping_and_preview in (
+            proptest::option::of((500.0f64..20_000.0, 0.3f64..5.0, 0.0f64..1.0)),
+            proptest::option::of((300.0f64..40_000.0, 0.005f64..0.5)),
+        ),
     ) -> Settings {
+        let (shaping, preview) = shaping_and_preview;
         let vmax = (vmin + vspan).min(150.0);
         Settings {
             ranges: Scaling::new(ranges.0, ranges.1, ranges.2, ranges.3).unwrap(),
@@ -133,6 +137,11 @@ prop_compose! {
                 frequency_hz,
                 q,
                 depth,
+            }),
+            // Above half the rate, refused (and skipped below).
+            preview: preview.map(|(frequency_hz, damping)| twinstack::control::preview::PreviewDesign {
+                frequency_hz,
+                damping,
             }),
         }
     }

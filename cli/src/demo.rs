@@ -224,6 +224,7 @@ fn excite(options: &DemoOptions, stage: StageConfiguration, ticks: usize) -> Res
         mode: Mode::Bypass,
         creep: None,
         shaping: None,
+        preview: None,
     };
     let config = settings
         .build(&hardware(options.control_rate))
@@ -299,6 +300,7 @@ fn track(
         },
         creep: model.creep.clone(),
         shaping: None,
+        preview: None,
     };
     let config = settings
         .build(&hardware(options.control_rate))

@@ -5,7 +5,7 @@
 //! | field | bytes | meaning |
 //! |---|---|---|
 //! | magic | 4 | `TSGV` |
-//! | version | 2 | [`FORMAT_VERSION`], or [`FORMAT_VERSION_WITHOUT_CHI`] or [`FORMAT_VERSION_WITHOUT_SHAPING`] (read); another version is refused |
+//! | version | 2 | [`FORMAT_VERSION`], or [`FORMAT_VERSION_WITHOUT_PREVIEW`], [`FORMAT_VERSION_WITHOUT_CHI`] or [`FORMAT_VERSION_WITHOUT_SHAPING`] (read); another version is refused |
 //! | length | 4 | bytes of the whole record, magic to CRC |
 //! | name length, name | 1 + n | ASCII `[a-z0-9-]`, 1…32 bytes |
 //! | ticks | 4 | tick count `T` (1…[`MAX_TICKS`]) |
@@ -27,10 +27,13 @@ pub const MAGIC: [u8; 4] = *b"TSGV";
 /// Version of the layout above and of the recipe's encoding ([`super::recipe`]): 2 since the
 /// feedback carries a drift limit, 3 since the settings end with the optional creep, 4 since
 /// they end with the optional input shaping, 5 since a Bouc–Wen model's coefficients end
-/// with `χ`.
-pub const FORMAT_VERSION: u16 = 5;
+/// with `χ`, 6 since the settings end with the optional preview.
+pub const FORMAT_VERSION: u16 = 6;
+/// The format before the preview, still read: its recipes' settings end with `shaping`
+/// ([`Recipe::decode_without_preview`]); the same layout otherwise.
+pub const FORMAT_VERSION_WITHOUT_PREVIEW: u16 = 5;
 /// The format before Bouc–Wen's `χ`, still read where neither model is Bouc–Wen (one that is
-/// is refused, [`RecipeError::BoucWenWithoutChi`]); the same layout otherwise.
+/// is refused, [`RecipeError::BoucWenWithoutChi`]); laid out as format 5 otherwise.
 pub const FORMAT_VERSION_WITHOUT_CHI: u16 = 4;
 /// The format before input shaping, still read: its recipes' settings end with `creep`
 /// ([`Recipe::decode_without_shaping`]); the same layout otherwise.
@@ -194,12 +197,14 @@ impl<'a> VectorSet<'a> {
     }
     /// The configuration, decoded.
     pub fn recipe(&self) -> Result<Recipe, RecipeError> {
-        let recipe = if self.version == FORMAT_VERSION_WITHOUT_SHAPING {
-            Recipe::decode_without_shaping(self.recipe)?
-        } else {
-            Recipe::decode(self.recipe)?
+        let recipe = match self.version {
+            FORMAT_VERSION_WITHOUT_SHAPING => Recipe::decode_without_shaping(self.recipe)?,
+            FORMAT_VERSION_WITHOUT_CHI | FORMAT_VERSION_WITHOUT_PREVIEW => {
+                Recipe::decode_without_preview(self.recipe)?
+            }
+            _ => Recipe::decode(self.recipe)?,
         };
-        if self.version < FORMAT_VERSION && recipe.settings.has_bouc_wen() {
+        if self.version <= FORMAT_VERSION_WITHOUT_CHI && recipe.settings.has_bouc_wen() {
             return Err(RecipeError::BoucWenWithoutChi);
         }
         Ok(recipe)
@@ -235,6 +240,7 @@ impl<'a> VectorSet<'a> {
         let version = r.u16()?;
         if ![
             FORMAT_VERSION,
+            FORMAT_VERSION_WITHOUT_PREVIEW,
             FORMAT_VERSION_WITHOUT_CHI,
             FORMAT_VERSION_WITHOUT_SHAPING,
         ]
@@ -548,6 +554,12 @@ mod tests {
             };
             let mut bytes = [0u8; 1024];
             let bytes = recipe.encode(&mut bytes).unwrap();
+            // Formats before the preview end before its `None`.
+            let bytes = if version < FORMAT_VERSION {
+                &bytes[..bytes.len() - 1]
+            } else {
+                bytes
+            };
             let mut buf = Buf { b: [0; 2048], n: 0 };
             let (i, o) = ([TickInput::default()], [TickOutput::default()]);
             encode_record("set", 1, bytes, &i, &o, &mut buf).unwrap();
@@ -572,6 +584,7 @@ mod tests {
             ..Settings::default()
         };
         assert!(recipe_of(&record(bouc_wen.clone(), FORMAT_VERSION)).is_ok());
+        assert!(recipe_of(&record(bouc_wen.clone(), FORMAT_VERSION_WITHOUT_PREVIEW)).is_ok());
         assert!(recipe_of(&record(pi, FORMAT_VERSION_WITHOUT_CHI)).is_ok());
         assert_eq!(
             recipe_of(&record(bouc_wen, FORMAT_VERSION_WITHOUT_CHI)),

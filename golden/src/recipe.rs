@@ -6,7 +6,7 @@
 use serde::{Deserialize, Serialize};
 
 use twinstack::board::Hardware;
-use twinstack::config::settings::{Settings, SettingsWithoutShaping};
+use twinstack::config::settings::{Settings, SettingsWithoutPreview, SettingsWithoutShaping};
 use twinstack::control::ControlConfig;
 use twinstack::refusal::Refusal;
 
@@ -67,6 +67,23 @@ impl Recipe {
         }
     }
 
+    /// Decodes a recipe of formats 4 and 5, whose settings end before `preview` (read as
+    /// none).
+    pub fn decode_without_preview(bytes: &[u8]) -> Result<Self, RecipeError> {
+        #[derive(Deserialize)]
+        struct Old {
+            hardware: Hardware,
+            settings: SettingsWithoutPreview,
+        }
+        match postcard::take_from_bytes::<Old>(bytes) {
+            Ok((r, [])) => Ok(Self {
+                hardware: r.hardware,
+                settings: r.settings.into(),
+            }),
+            _ => Err(RecipeError::Malformed),
+        }
+    }
+
     /// Validates and builds the tick's configuration.
     pub fn build(&self) -> Result<ControlConfig, RecipeError> {
         self.settings
@@ -91,11 +108,17 @@ mod tests {
         assert_eq!(Recipe::decode(&buf[..n + 1]), Err(RecipeError::Malformed));
         assert_eq!(Recipe::decode(&buf[..n - 1]), Err(RecipeError::Malformed));
         assert!(r.build().is_ok());
-        // Format 3's recipe is the same without the trailing `shaping: None` byte.
-        assert_eq!(buf[n - 1], 0);
-        assert_eq!(Recipe::decode_without_shaping(&buf[..n - 1]), Ok(r.clone()));
+        // Format 5's recipe is the same without the trailing `preview: None` byte, format
+        // 3's without `shaping: None` too.
+        assert_eq!(buf[n - 2..n], [0, 0]);
+        assert_eq!(Recipe::decode_without_preview(&buf[..n - 1]), Ok(r.clone()));
         assert_eq!(
-            Recipe::decode_without_shaping(&buf[..n]),
+            Recipe::decode_without_preview(&buf[..n]),
+            Err(RecipeError::Malformed)
+        );
+        assert_eq!(Recipe::decode_without_shaping(&buf[..n - 2]), Ok(r.clone()));
+        assert_eq!(
+            Recipe::decode_without_shaping(&buf[..n - 1]),
             Err(RecipeError::Malformed)
         );
     }

@@ -167,6 +167,7 @@ pub(crate) fn piezo_settings(board: &ExternalBoard, ki: f64) -> Settings {
         mode: Mode::ClosedLoop,
         creep: None,
         shaping: None,
+        preview: None,
     }
 }
 

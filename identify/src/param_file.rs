@@ -207,6 +207,7 @@ impl ParamFile {
                 mode: Mode::OpenLoop,
                 creep: model.creep.clone(),
                 shaping: None,
+                preview: None,
             },
             identification,
         }

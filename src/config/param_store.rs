@@ -194,8 +194,10 @@ pub fn decode(record: &[u8], expected_version: u16) -> Result<&[u8], StoreError>
     Ok(&record[HEADER_LEN..body_end])
 }
 
-/// Payload layout version of the record (version 7: the control rate, the one [`Settings`]
-/// type, and the analog setpoint input's settings ([`StoredRecord::analog`]). Version 7's
+/// Payload layout version of the record (version 8: the control rate, the one [`Settings`]
+/// type, and the analog setpoint input's settings ([`StoredRecord::analog`]). Version 8's
+/// settings end with the optional preview ([`Settings::preview`]); version 7 lacked it and
+/// is still read, as settings without a preview, and so are versions 5 and 6. Version 7's
 /// Bouc–Wen model ends with `χ` ([`crate::BoucWenParams::chi`]); versions 4 to 6 are laid out
 /// alike but for that, and are still read where neither model is Bouc–Wen (one that is is
 /// refused, [`SettingsError::BoucWenWithoutChi`]: its coefficients would be read shifted).
@@ -207,7 +209,32 @@ pub fn decode(record: &[u8], expected_version: u16) -> Result<&[u8], StoreError>
 /// settings the optional creep operator; version 3 lacked all three, and versions 1 and 2 had
 /// a separate board payload and a wire parameter set: none of them is read, such a
 /// board boots on the defaults and says so).
-pub const RECORD_VERSION: u16 = 7;
+pub const RECORD_VERSION: u16 = 8;
+
+/// The last record version without the preview, still read.
+pub const RECORD_VERSION_WITHOUT_PREVIEW: u16 = 7;
+
+/// Versions 6 and 7's payload: the rate, the settings without the preview, the analog input
+/// (read only).
+#[derive(serde::Deserialize)]
+struct RecordV7 {
+    control_rate_hz: u32,
+    settings: crate::config::settings::SettingsWithoutPreview,
+    analog: Option<crate::sources::analog_input::AnalogInputConfig>,
+}
+
+/// A version-6 or -7 payload as a record without a preview.
+#[inline(never)]
+fn decode_v7(payload: &[u8]) -> Option<StoredRecord> {
+    match postcard::take_from_bytes::<RecordV7>(payload) {
+        Ok((r, [])) => Some(StoredRecord {
+            control_rate_hz: r.control_rate_hz,
+            settings: r.settings.into(),
+            analog: r.analog,
+        }),
+        _ => None,
+    }
+}
 
 /// The last record version whose Bouc–Wen model has no `χ`, still read without one.
 pub const RECORD_VERSION_WITHOUT_CHI: u16 = 6;
@@ -219,7 +246,7 @@ pub const RECORD_VERSION_WITHOUT_ANALOG: u16 = 5;
 #[derive(serde::Deserialize)]
 struct RecordV5 {
     control_rate_hz: u32,
-    settings: Settings,
+    settings: crate::config::settings::SettingsWithoutPreview,
 }
 
 /// A version-5 payload as a record without an analog input.
@@ -228,7 +255,7 @@ fn decode_v5(payload: &[u8]) -> Option<StoredRecord> {
     match postcard::take_from_bytes::<RecordV5>(payload) {
         Ok((r, [])) => Some(StoredRecord {
             control_rate_hz: r.control_rate_hz,
-            settings: r.settings,
+            settings: r.settings.into(),
             analog: None,
         }),
         _ => None,
@@ -337,8 +364,9 @@ impl StoredRecord {
 
     /// Decodes and checks a record: the envelope, the payload, the control rate, and the
     /// settings and the analog input's on `hardware` at the stored rate (`hardware`'s own rate
-    /// is ignored). A version-5 record is read as no analog input, a version-4 record (before
-    /// input shaping) as settings without shaping.
+    /// is ignored). A version-6 or -7 record is read as settings without a preview, a version-5
+    /// record as no analog input either, a version-4 record (before input shaping) as settings
+    /// without shaping.
     pub fn decode(record: &[u8], hardware: &Hardware) -> Result<Self, LoadFailure> {
         // The record's layout: ours, or an older one still read.
         let version = match decode(record, RECORD_VERSION) {
@@ -355,6 +383,7 @@ impl StoredRecord {
             RECORD_VERSION_WITHOUT_SHAPING => decode_v4(payload),
             RECORD_VERSION_WITHOUT_ANALOG => decode_v5(payload),
             // Versions 6 and 7: laid out alike but for Bouc–Wen's χ (refused below).
+            RECORD_VERSION_WITHOUT_CHI | RECORD_VERSION_WITHOUT_PREVIEW => decode_v7(payload),
             _ => match postcard::take_from_bytes::<StoredRecord>(payload) {
                 Ok((r, [])) => Some(r),
                 _ => None,
@@ -588,15 +617,15 @@ mod tests {
         let mut s = stored(50_000);
         s.settings.compensator = Some(crate::config::settings::representative_pi(8).unwrap());
         s.settings.mode = crate::config::settings::Mode::OpenLoop;
-        // Version 4's payload is version 7's without the last two bytes (`shaping: None`,
-        // `analog: None`).
+        // Version 4's payload is version 8's without the last three bytes (`shaping: None`,
+        // `preview: None`, `analog: None`).
         let mut payload = [0u8; MAX_PAYLOAD];
         let used = postcard::to_slice(&s, &mut payload).unwrap().len();
-        assert_eq!(payload[used - 2..used], [0, 0], "the trailing Nones");
+        assert_eq!(payload[used - 3..used], [0, 0, 0], "the trailing Nones");
         let mut buf = [0u8; MAX_RECORD];
         let n = encode(
             RECORD_VERSION_WITHOUT_SHAPING,
-            &payload[..used - 2],
+            &payload[..used - 3],
             &mut buf,
         )
         .unwrap();
@@ -607,7 +636,7 @@ mod tests {
         // Version 5 with the byte left off is malformed, not silently shaped.
         let n = encode(
             RECORD_VERSION_WITHOUT_ANALOG,
-            &payload[..used - 2],
+            &payload[..used - 3],
             &mut buf,
         )
         .unwrap();
@@ -627,13 +656,15 @@ mod tests {
     fn a_version_5_record_loads_without_an_analog_input() {
         use crate::sources::analog_input::{AnalogInputConfig, OnFault};
         let mut s = stored(50_000);
+        // Version 5's payload is version 8's without the last two bytes (`preview: None`,
+        // `analog: None`).
         let mut payload = [0u8; MAX_PAYLOAD];
         let used = postcard::to_slice(&s, &mut payload).unwrap().len();
-        assert_eq!(payload[used - 1], 0, "the trailing None");
+        assert_eq!(payload[used - 2..used], [0, 0], "the trailing Nones");
         let mut buf = [0u8; MAX_RECORD];
         let n = encode(
             RECORD_VERSION_WITHOUT_ANALOG,
-            &payload[..used - 1],
+            &payload[..used - 2],
             &mut buf,
         )
         .unwrap();
@@ -641,8 +672,8 @@ mod tests {
             load_record(&buf[..n], &HW),
             (s.clone(), ParamSource::Stored)
         );
-        // The present version without the byte is malformed.
-        let n = encode(RECORD_VERSION, &payload[..used - 1], &mut buf).unwrap();
+        // The present version without the bytes is malformed.
+        let n = encode(RECORD_VERSION, &payload[..used - 2], &mut buf).unwrap();
         assert_eq!(load_record(&buf[..n], &HW).1.as_str(), "bad-settings");
         let analog = AnalogInputConfig {
             gain: 2.0,
@@ -670,6 +701,56 @@ mod tests {
         assert_eq!(source.as_str(), "bad-settings");
     }
 
+    /// A record stored before the preview (version 7) still loads, as settings without one; a
+    /// record with a preview round-trips, and one whose preview the rate cannot run is refused.
+    #[test]
+    fn a_version_7_record_loads_without_a_preview() {
+        let mut s = stored(50_000);
+        s.settings.compensator = Some(crate::config::settings::representative_pi(8).unwrap());
+        s.settings.mode = crate::config::settings::Mode::OpenLoop;
+        s.settings.shaping = Some(crate::control::notch::NotchDesign {
+            frequency_hz: 21_807.0,
+            q: 0.5,
+            depth: 0.0173,
+        });
+        let mut payload = [0u8; MAX_PAYLOAD];
+        let used = postcard::to_slice(&s, &mut payload).unwrap().len();
+        assert_eq!(payload[used - 2..used], [0, 0], "the trailing Nones");
+        let mut buf = [0u8; MAX_RECORD];
+        let n = encode(
+            RECORD_VERSION_WITHOUT_PREVIEW,
+            &payload[..used - 1],
+            &mut buf,
+        )
+        .unwrap();
+        assert_eq!(
+            load_record(&buf[..n], &HW),
+            (s.clone(), ParamSource::Stored)
+        );
+        // The present version without the byte is malformed, not read without a preview.
+        let n = encode(RECORD_VERSION, &payload[..used - 1], &mut buf).unwrap();
+        assert_eq!(load_record(&buf[..n], &HW).1.as_str(), "bad-settings");
+        s.settings.preview = Some(crate::control::preview::PreviewDesign {
+            frequency_hz: 3_500.0,
+            damping: 0.03,
+        });
+        let (buf, n) = record_of(&s);
+        assert_eq!(
+            load_record(&buf[..n], &HW),
+            (s.clone(), ParamSource::Stored)
+        );
+        // At or above half the stored rate the preview is refused, and the board boots on
+        // the defaults.
+        s.settings.preview = Some(crate::control::preview::PreviewDesign {
+            frequency_hz: 25_000.0,
+            damping: 0.03,
+        });
+        let (buf, n) = record_of(&s);
+        let (record, source) = load_record(&buf[..n], &HW);
+        assert_eq!(record, StoredRecord::default());
+        assert_eq!(source.as_str(), "bad-settings");
+    }
+
     /// A version-6 record (Bouc–Wen without `χ`) still loads where neither model is
     /// Bouc–Wen; one holding a Bouc–Wen model is refused by name, not read shifted.
     #[test]
@@ -681,7 +762,9 @@ mod tests {
         let mut payload = [0u8; MAX_PAYLOAD];
         let used = postcard::to_slice(&s, &mut payload).unwrap().len();
         let mut buf = [0u8; MAX_RECORD];
-        let n = encode(RECORD_VERSION_WITHOUT_CHI, &payload[..used], &mut buf).unwrap();
+        // Version 6's payload is version 8's without `preview: None` (the byte before the
+        // last, both 0 here).
+        let n = encode(RECORD_VERSION_WITHOUT_CHI, &payload[..used - 1], &mut buf).unwrap();
         assert_eq!(
             load_record(&buf[..n], &HW),
             (s.clone(), ParamSource::Stored)
@@ -705,13 +788,15 @@ mod tests {
         let mut old = [0u8; MAX_PAYLOAD];
         old[..at].copy_from_slice(&payload[..at]);
         old[at..used - chi].copy_from_slice(&payload[at + chi..used]);
-        let n = encode(RECORD_VERSION_WITHOUT_CHI, &old[..used - chi], &mut buf).unwrap();
+        let n = encode(RECORD_VERSION_WITHOUT_CHI, &old[..used - chi - 1], &mut buf).unwrap();
         let (record, source) = load_record(&buf[..n], &HW);
         assert_eq!(record, StoredRecord::default());
         assert_eq!(source.as_str(), "bad-settings");
         // Where the shifted bytes happen to decode, the Bouc–Wen model in an old layout is
         // refused by name: the present layout's bytes labelled version 6.
-        let n = encode(RECORD_VERSION_WITHOUT_CHI, &payload[..used], &mut buf).unwrap();
+        // Version 6's payload is version 8's without `preview: None` (the byte before the
+        // last, both 0 here).
+        let n = encode(RECORD_VERSION_WITHOUT_CHI, &payload[..used - 1], &mut buf).unwrap();
         let (record, source) = load_record(&buf[..n], &HW);
         assert_eq!(record, StoredRecord::default());
         assert_eq!(

@@ -21,6 +21,7 @@ pub use crate::control::feedback::FeedbackSettings;
 pub use crate::control::mode_switch::Mode;
 use crate::control::notch::Notch;
 pub use crate::control::notch::NotchDesign;
+pub use crate::control::preview::PreviewDesign;
 pub use crate::control::sensor::SensorSettings;
 use crate::control::{Compensator, ControlConfig, Observer};
 use crate::models::bouc_wen::{BoucWen, InverseBoucWen};
@@ -90,6 +91,48 @@ pub struct Settings {
     /// `None` (and absent from older parameter files): no shaping.
     #[serde(default)]
     pub shaping: Option<NotchDesign>,
+    /// The preview: every setpoint, whatever its source, shaped for the stage's resonance
+    /// before the compensator, the feedback aiming at the setpoint itself, both
+    /// [`PREVIEW_DELAY_TICKS`](crate::control::preview::PREVIEW_DELAY_TICKS) ticks after it
+    /// is given ([`crate::control::preview`]): a corner without ringing, in open and closed
+    /// loop. Designed at the control rate ([`PreviewDesign::preview`]); `twinstack tune`
+    /// measures the resonance. `None` (and absent from older parameter files): no preview.
+    #[serde(default)]
+    pub preview: Option<PreviewDesign>,
+}
+
+/// [`Settings`] as it was laid out before the preview (every field but the last,
+/// `preview`): what flash records of versions 5 to 7 and golden vector sets of formats 4
+/// and 5 hold. Read only, into [`Settings`] without a preview.
+#[derive(Clone, Debug, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SettingsWithoutPreview {
+    ranges: Scaling,
+    compensator: Option<Model>,
+    observer: Option<Model>,
+    drive: DriveSettings,
+    sensor: Option<SensorSettings>,
+    feedback: Option<FeedbackSettings>,
+    mode: Mode,
+    creep: Option<CreepParams>,
+    shaping: Option<NotchDesign>,
+}
+
+impl From<SettingsWithoutPreview> for Settings {
+    fn from(s: SettingsWithoutPreview) -> Self {
+        Self {
+            ranges: s.ranges,
+            compensator: s.compensator,
+            observer: s.observer,
+            drive: s.drive,
+            sensor: s.sensor,
+            feedback: s.feedback,
+            mode: s.mode,
+            creep: s.creep,
+            shaping: s.shaping,
+            preview: None,
+        }
+    }
 }
 
 /// [`Settings`] as it was laid out before input shaping (every field but the last,
@@ -120,6 +163,7 @@ impl From<SettingsWithoutShaping> for Settings {
             mode: s.mode,
             creep: s.creep,
             shaping: None,
+            preview: None,
         }
     }
 }
@@ -148,6 +192,7 @@ impl Default for Settings {
             mode: Mode::Bypass,
             creep: None,
             shaping: None,
+            preview: None,
         }
     }
 }
@@ -246,6 +291,13 @@ impl Settings {
             })?),
             None => None,
         };
+        let preview = match &self.preview {
+            Some(d) => Some(
+                d.preview(hw.control_rate_hz)
+                    .map_err(|e| crate::control::preview::refusal(d, e, hw.control_rate_hz))?,
+            ),
+            None => None,
+        };
         self.check_mode(self.mode)?;
         let config = ControlConfig {
             compensator,
@@ -256,6 +308,7 @@ impl Settings {
             mode: self.mode,
             creep,
             shaping,
+            preview,
         };
         // Last: what the tick runs must fit its period at this rate.
         crate::config::tick_budget::check(&config, hw.control_rate_hz)?;
@@ -356,6 +409,10 @@ impl Settings {
             finite(Field::ShapingFrequency, n.frequency_hz)?;
             finite(Field::ShapingQ, n.q)?;
             finite(Field::ShapingDepth, n.depth)?;
+        }
+        if let Some(p) = &self.preview {
+            finite(Field::PreviewFrequency, p.frequency_hz)?;
+            finite(Field::PreviewDamping, p.damping)?;
         }
         if let Some(c) = &self.creep {
             for (i, &x) in c.time_constants_s.iter().enumerate() {
@@ -813,6 +870,10 @@ mod tests {
             frequency_hz: 21_807.0,
             q: 0.5,
             depth: 0.0173,
+        });
+        s.preview = Some(PreviewDesign {
+            frequency_hz: 21_807.0,
+            damping: 0.0173,
         });
         assert!(s.build(&hw()).is_ok());
         let mut buf = [0u8; 4096];

@@ -78,6 +78,12 @@ pub const DERIVATIVE_CYCLES: u32 = 50;
 /// The feedback's notch (one biquad); the feedforward's notch (input shaping,
 /// [`ControlConfig::shaping`]) is charged the same.
 pub const NOTCH_CYCLES: u32 = 95;
+/// The preview ([`ControlConfig::preview`], [`crate::control::preview`]): the line's nine
+/// setpoints moved along, eight multiply-adds, the rounding and the limits. Measured by the
+/// whole-interrupt bench (`cargo test --profile host-opt --test irq_bench`, the dearest
+/// configuration, which runs it): 87–88 cycles (5 WS) above the same configuration without
+/// it, streamed and with every feature on; 95 keeps a margin.
+pub const PREVIEW_CYCLES: u32 = 95;
 
 /// The learning feedforward while it plays or learns ([`crate::services::learning`]): one table read,
 /// one error store, the index flips at a period's end. Counted when the learning is switched
@@ -144,7 +150,7 @@ pub fn highest_rate_hz(cycles: u32) -> f64 {
 
 /// The predicted worst case of the control interrupt itself running `config`, cycles at 5
 /// flash wait states: the fixed part, the compensator (each model declares its own cost)
-/// with its creep in series, the feedback's derivative and notch, input shaping. The observer
+/// with its creep in series, the feedback's derivative and notch, input shaping, the preview. The observer
 /// runs below the tick ([`observer_below_cycles`]).
 pub fn interrupt_cycles(config: &ControlConfig) -> u32 {
     let mut cycles = FIXED_CYCLES + config.compensator.cycles();
@@ -165,6 +171,9 @@ pub fn interrupt_cycles(config: &ControlConfig) -> u32 {
     // The feedforward's notch (input shaping) is the same biquad as the feedback's.
     if config.shaping.is_some() {
         cycles += NOTCH_CYCLES;
+    }
+    if config.preview.is_some() {
+        cycles += PREVIEW_CYCLES;
     }
     cycles
 }
@@ -447,6 +456,17 @@ mod tests {
         assert_eq!(
             worst_case_cycles(&build(&shaped)) - worst_case_cycles(&build(&gpi)),
             NOTCH_CYCLES
+        );
+        let previewed = Settings {
+            preview: Some(crate::control::preview::PreviewDesign {
+                frequency_hz: 2_000.0,
+                damping: 0.02,
+            }),
+            ..gpi.clone()
+        };
+        assert_eq!(
+            worst_case_cycles(&build(&previewed)) - worst_case_cycles(&build(&gpi)),
+            PREVIEW_CYCLES
         );
     }
 

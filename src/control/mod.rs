@@ -35,6 +35,7 @@ pub mod feedback;
 pub mod instant;
 pub mod mode_switch;
 pub mod notch;
+pub mod preview;
 pub mod sensor;
 
 use crate::board::{AdcCode, DacCode, DualDac, SensorAdc};
@@ -44,6 +45,7 @@ pub use crate::control::feedback::{Derivative, Feedback};
 pub use crate::control::mode_switch::Mode;
 use crate::control::mode_switch::{BumplessTransfer, ModeError};
 use crate::control::notch::{Notch, NotchState};
+use crate::control::preview::{Preview, PreviewLine};
 pub use crate::control::sensor::Sensor;
 use crate::fixed_point::clamp_full_scale;
 use crate::models::creep::Creep;
@@ -89,6 +91,10 @@ pub struct ControlConfig {
     /// correction), before the range and slew limits, in every mode but bypass, so that the
     /// drive does not excite the stage's resonance ([`crate::config::settings::Settings::shaping`]).
     pub shaping: Option<Notch>,
+    /// The preview: every setpoint shaped for the stage's resonance before the compensator,
+    /// the feedback aiming at the setpoint itself, [`preview::PREVIEW_DELAY_TICKS`] ticks late
+    /// ([`crate::control::preview`]; [`crate::config::settings::Settings::preview`]).
+    pub preview: Option<Preview>,
 }
 
 /// Bit flags of what happened in one tick.
@@ -233,6 +239,10 @@ pub struct Controller {
     /// configuration is prepared, and at the feedforward of the first tick after a swap or a
     /// mode switch (whose transfer then starts from the drive held, as without shaping).
     shaping_state: NotchState,
+    /// The preview ([`ControlConfig::preview`]).
+    preview: Option<Preview>,
+    /// Its line of the last setpoints, Q2.30.
+    preview_line: PreviewLine,
 }
 
 /// What the sensor step does this mode.
@@ -296,6 +306,8 @@ impl Controller {
             learned: 0,
             shaping: None,
             shaping_state: NotchState::default(),
+            preview: None,
+            preview_line: PreviewLine::at(0),
         };
         c.prepare(config, config.drive.safe_stacks());
         c
@@ -346,6 +358,9 @@ impl Controller {
             shaping: config.shaping,
             // Settled at the drive held: the shaped feedforward starts where the stacks are.
             shaping_state: Notch::state_at(drive),
+            preview: config.preview,
+            // As if the setpoint had been held: the preview passes it as it is.
+            preview_line: PreviewLine::at(y),
         };
         RelaxedObserver {
             run: observer,
@@ -363,6 +378,13 @@ impl Controller {
         self.slew = self.drive_limits.slew().min(old.slew);
         self.rebase = true;
         self.reloading = true;
+        // The preview goes on from the setpoints given, or starts as if the one in force had
+        // been held.
+        self.preview_line = if old.preview.is_some() {
+            old.preview_line
+        } else {
+            PreviewLine::at(old.setpoint)
+        };
     }
 
     /// Switches between bypass, open loop and closed loop between two ticks, in O(1) and
@@ -399,9 +421,22 @@ impl Controller {
         &self.feedback_state
     }
 
-    /// The setpoint in force (the last one given, or held), Q2.30 normalised displacement.
+    /// The setpoint in force (the last one given, or held), Q2.30 normalised displacement:
+    /// where a setpoint source goes on from.
     pub fn setpoint(&self) -> i32 {
         self.setpoint
+    }
+
+    /// The setpoint the last tick aimed the stage at (Q2.30): the setpoint in force, or with
+    /// the preview the one given [`preview::PREVIEW_DELAY_TICKS`] ticks before it — what a
+    /// measurement is compared with.
+    #[inline(always)]
+    pub fn target(&self) -> i32 {
+        if self.preview.is_some() {
+            self.preview_line.target()
+        } else {
+            self.setpoint
+        }
     }
 
     /// Where the stage is, as well as the tick knows it after the last tick (Q2.30
@@ -507,12 +542,17 @@ impl Controller {
             Some(s) => self.setpoint = clamp_full_scale(s),
             None => flags |= TickFlags::UNDERRUN,
         }
-        let target = self.setpoint;
+        // With the preview, the feedback aims at the setpoint of four ticks ago and the
+        // compensator is given it shaped for the resonance.
+        let (target, shaped) = match &self.preview {
+            Some(p) => p.step(&mut self.preview_line, self.setpoint),
+            None => (self.setpoint, self.setpoint),
+        };
 
         // 2. Feedforward. The compensator runs in every mode (in bypass on the setpoint, its
         // output unused), so that a switch into open loop finds its state current; with creep,
         // the inverse creep first (setpoint → C⁻¹ → H⁻¹).
-        let compensated = self.compensator.step(target);
+        let compensated = self.compensator.step(shaped);
         // With shaping, the feedforward (the compensator's output plus the learned
         // correction) goes through the notch, in every mode but bypass: Q2.30 normalised drive.
         let feedforward = if self.mode == Mode::Bypass {

@@ -45,7 +45,10 @@ use serde::{Deserialize, Serialize};
 /// board and a version-9 host refuse each other's frames whole. Version 10: Bouc–Wen's
 /// coefficients end with `chi` (`BoucWenParams::chi`) and `ModelField::Chi` was appended
 /// (the settings' encoding changed, so versions 9 and 10 refuse each other's frames).
-pub const PROTOCOL_VERSION: u8 = 10;
+/// Version 11: the settings end with the optional preview (`preview: Option<PreviewDesign>`)
+/// and the `Field`s `PreviewFrequency`, `PreviewDamping` were appended (the settings'
+/// encoding changed again).
+pub const PROTOCOL_VERSION: u8 = 11;
 /// Largest frame body (version + message + CRC), bytes: a load of the largest settings (two
 /// generalised P–I models of 32 operators and 8 dead zones, both notches) fits.
 pub const MAX_BODY: usize = 1568;

@@ -120,6 +120,7 @@ impl SimDeviceConfig {
             mode,
             creep: None,
             shaping: None,
+            preview: None,
         }
     }
 }

@@ -49,7 +49,8 @@
 //! The golden sets have no derivative or notch and start in their mode with no mode switch or
 //! reload, so the bumpless-transfer offset is always 0 in them: the check refuses a closed-loop
 //! recipe with a derivative or a notch, or input shaping outside bypass, rather than ignore
-//! it. Bounds:
+//! it. The preview is modelled: its taps ([`PreviewDesign::taps`]) on the last nine
+//! setpoints, the feedback and bypass on the setpoint four ticks ago. Bounds:
 //!
 //! * **drive** (applied, model-normalised): within [`DRIVE_BOUND_LSB16`] of the reference
 //!   chain — the inverse models' documented bound (README, "Fixed point");
@@ -74,6 +75,7 @@ use crate::stage_model::at_reading;
 use twinstack::config::settings::{Mode, Model};
 use twinstack::control::drive::{Configuration, DriveSettings, SafeState};
 use twinstack::control::feedback::{DRIFT_FILTER_SHIFT, SENSOR_DELAY_TICKS};
+use twinstack::control::preview::{PreviewDesign, PreviewError, PREVIEW_DELAY_TICKS, PREVIEW_TAPS};
 use twinstack::control::TickFlags;
 use twinstack::fixed_point::signal_to_f64;
 use twinstack::models::Rest;
@@ -401,6 +403,31 @@ fn norm(s: &Scaling, y_phys: f64) -> f64 {
     s.output_to_norm(y_phys)
 }
 
+/// The preview in `f64`: the taps [`PreviewDesign::taps`] designs, on the last nine setpoints
+/// (`twinstack::control::preview`).
+struct ReferencePreview {
+    taps: [f64; PREVIEW_TAPS],
+    line: [f64; PREVIEW_TAPS],
+}
+
+impl ReferencePreview {
+    fn new(design: &PreviewDesign, rate_hz: f64, at: f64) -> Result<Self, PreviewError> {
+        Ok(Self {
+            taps: design.taps(rate_hz)?,
+            line: [at; PREVIEW_TAPS],
+        })
+    }
+
+    /// The setpoint `PREVIEW_DELAY_TICKS` ago and it shaped, within full scale.
+    fn step(&mut self, setpoint: f64) -> (f64, f64) {
+        self.line.rotate_left(1);
+        self.line[PREVIEW_TAPS - 1] = setpoint;
+        let mid = self.line[PREVIEW_DELAY_TICKS];
+        let shaped: f64 = self.taps.iter().zip(&self.line).map(|(h, x)| h * x).sum();
+        (mid, shaped.clamp(-1.0, 1.0))
+    }
+}
+
 /// Checks one stored set against the `f64` reference tick.
 pub fn check(set: &VectorSet<'_>) -> anyhow::Result<Agreement> {
     let recipe = set
@@ -448,6 +475,14 @@ pub fn check(set: &VectorSet<'_>) -> anyhow::Result<Agreement> {
     let drift_tol = DRIFT_BOUND_LSB16 * LSB16;
 
     let mut target = y0;
+    // The preview, its line at rest at the start's setpoint.
+    let mut preview = match &st.preview {
+        Some(p) => Some(
+            ReferencePreview::new(p, hw.control_rate_hz, y0)
+                .map_err(|e| anyhow::anyhow!("set {}: the preview: {e:?}", set.name()))?,
+        ),
+        None => None,
+    };
     // The reference chain's stacks, volts.
     let (mut left, mut right) = (safe, safe);
     // The right stack as the split makes it from the stored left voltage (for its code).
@@ -472,19 +507,25 @@ pub fn check(set: &VectorSet<'_>) -> anyhow::Result<Agreement> {
             Some(sp) => target = signal_to_f64(sp).clamp(-1.0, 1.0),
             None => flags |= TickFlags::UNDERRUN,
         }
+        // With the preview, the feedback aims at the setpoint of four ticks ago and the
+        // compensator is given it shaped.
+        let (aimed, shaped) = match &mut preview {
+            Some(p) => p.step(target),
+            None => (target, target),
+        };
         // The compensator steps in every mode; in bypass the drive follows the setpoint.
         let desired = match &mut compensator_creep {
-            Some(c) => c.inverse_step(target),
-            None => target,
+            Some(c) => c.inverse_step(shaped),
+            None => shaped,
         };
         let compensated = match &mut feedforward {
-            Feedforward::None => target,
+            Feedforward::None => shaped,
             Feedforward::InversePi(m) => s.input_to_norm(m.step(s.norm_to_output(desired))),
             Feedforward::InverseDuhem(m) => s.input_to_norm(m.step(s.norm_to_output(desired))),
             Feedforward::InverseGpi(m) => s.input_to_norm(m.step(s.norm_to_output(desired))),
             Feedforward::InverseBoucWen(m) => s.input_to_norm(m.step(s.norm_to_output(desired))),
         };
-        let ff = if bypass { target } else { compensated };
+        let ff = if bypass { aimed } else { compensated };
         let mut command = ff;
         // Flags the stored tick may set either way (its decision lies within its bound).
         let mut loose = 0u8;
@@ -498,7 +539,7 @@ pub fn check(set: &VectorSet<'_>) -> anyhow::Result<Agreement> {
             };
             reading = measured;
             if let Some(fb) = &mut feedback {
-                let (correction, held) = fb.correction(target, measured);
+                let (correction, held) = fb.correction(aimed, measured);
                 a.integrator_holds += usize::from(held);
                 command = saturate(ff + correction);
             }

@@ -23,6 +23,7 @@
 //! | `igpi16-gpi-closed` | inverse generalised P–I, N = 16, 6 dead zones | the same | drift limit 2 % | PI | closed loop | differential, bias | 16-bit, 16-bit |
 //! | `ibw-bw-closed` | inverse Bouc–Wen | Bouc–Wen | drift limit 2 % | PI | closed loop | unidirectional, bias | 16-bit, 16-bit |
 //! | `ipi16-pi-creep-turns-closed` | inverse P–I, N = 16, + inverse creep (4 modes taking turns) | P–I, N = 16, + creep | drift limit 2 % | PI | closed loop | differential, bias | 16-bit, 16-bit |
+//! | `ipi16-pi-preview-closed` | the preview (3 kHz, ζ 0.05), then inverse P–I, N = 16 | P–I, N = 16 | drift limit 2 % | PI (on the setpoint four ticks ago) | closed loop | differential, bias | 16-bit, 16-bit |
 //!
 //! The generalised P–I's and the Bouc–Wen's files widen their output ranges a little beyond
 //! the others' (for the P–I part's output; 5 % beyond its own simulated output); the shared
@@ -44,6 +45,7 @@ use twinstack::config::settings::{
     CreepParams, FeedbackSettings, Mode, Model, SensorSettings, Settings,
 };
 use twinstack::control::drive::{Configuration, DriveSettings, SafeState};
+use twinstack::control::preview::PreviewDesign;
 use twinstack::models::generalised_pi::GpiParams;
 use twinstack::{BoucWenParams, DuhemParams, PiParams, Scaling};
 use twinstack_golden::Recipe;
@@ -226,6 +228,7 @@ pub fn definitions(dir: &Path) -> anyhow::Result<Vec<SetDefinition>> {
         hardware: Hardware,
         truth: Truth,
         creep: Option<CreepParams>,
+        preview: Option<PreviewDesign>,
     }
     let def = |set: Set| SetDefinition {
         name: set.name,
@@ -241,6 +244,7 @@ pub fn definitions(dir: &Path) -> anyhow::Result<Vec<SetDefinition>> {
                 mode: set.mode,
                 creep: set.creep,
                 shaping: None,
+                preview: set.preview,
             },
         },
         truth: set.truth,
@@ -260,6 +264,7 @@ pub fn definitions(dir: &Path) -> anyhow::Result<Vec<SetDefinition>> {
         hardware: hardware(65535, Some(16)),
         truth: truth.clone(),
         creep: None,
+        preview: None,
     };
     let no_drift_limit = Some(sensor(&s, None));
     Ok(vec![
@@ -336,6 +341,16 @@ pub fn definitions(dir: &Path) -> anyhow::Result<Vec<SetDefinition>> {
                 &[0.04, 0.02, 0.02, 0.03],
             )?),
             ..closed("ipi16-pi-creep-turns-closed", &pi16, &pi16, &t_duhem)
+        }),
+        // The inverse P–I N = 16 set with the preview: every setpoint shaped for a 3 kHz
+        // resonance before the compensator, the feedback on the setpoint four ticks ago (the
+        // scenario's steps shape beyond full scale and are held there).
+        def(Set {
+            preview: Some(PreviewDesign {
+                frequency_hz: 3_000.0,
+                damping: 0.05,
+            }),
+            ..closed("ipi16-pi-preview-closed", &pi16, &pi16, &t_duhem)
         }),
     ])
 }

@@ -413,8 +413,8 @@ mod tests {
             "inverse P–I 16 + P–I 16 observer + PI + drift"
         );
         assert_eq!(
-            config_label("inverse-gpi32x8+creep6+gpi32x8-observer+pid+notch+shaping+drift"),
-            "inverse generalised P–I 32 (8 dead zones) + creep 6 + generalised P–I 32 (8 dead zones) observer + PID + notch + shaping + drift"
+            config_label("inverse-gpi32x8+creep6+gpi32x8-observer+pid+notch+shaping+preview+drift"),
+            "inverse generalised P–I 32 (8 dead zones) + creep 6 + generalised P–I 32 (8 dead zones) observer + PID + notch + shaping + preview + drift"
         );
         assert_eq!(
             config_label("inverse-bouc-wen+bouc-wen-observer"),

@@ -326,7 +326,7 @@ pub mod scenarios {
 pub mod configs {
     use twinstack::config::settings::{
         representative_bouc_wen, representative_duhem, representative_pi, FeedbackSettings, Mode,
-        Model, NotchDesign, SensorSettings, Settings,
+        Model, NotchDesign, PreviewDesign, SensorSettings, Settings,
     };
     use twinstack::models::creep::CreepParams;
     use twinstack::models::generalised_pi::{DeadZoneParams, GpiParams};
@@ -436,7 +436,7 @@ pub mod configs {
                 }
             }
             // The dearest configuration a user can load: the largest generalised P–I both
-            // ways, six creep modes, PID feedback with the notch, input shaping.
+            // ways, six creep modes, PID feedback with the notch, input shaping, the preview.
             6 => {
                 let gpi = gpi_with_eight_dead_zones(32)?;
                 let mut settings = Settings {
@@ -459,8 +459,13 @@ pub mod configs {
                     q: 0.5,
                     depth: 0.02,
                 });
+                // And the preview: every setpoint shaped for the resonance.
+                settings.preview = Some(PreviewDesign {
+                    frequency_hz: 12_000.0,
+                    damping: 0.02,
+                });
                 Config {
-                    name: "inverse-gpi32x8+creep6+gpi32x8-observer+pid+notch+shaping+drift",
+                    name: "inverse-gpi32x8+creep6+gpi32x8-observer+pid+notch+shaping+preview+drift",
                     settings,
                 }
             }
