@@ -34,6 +34,7 @@ use twinstack::board::Hardware;
 use twinstack::config::settings::{FeedbackSettings, Mode, Model, SensorSettings, Settings};
 use twinstack::control::drive::{Configuration, DriveSettings, SafeState};
 use twinstack::control::notch::NotchDesign;
+use twinstack::control::preview::{PreviewDesign, PREVIEW_DELAY_TICKS};
 use twinstack::control::{ControlConfig, Controller, TickFlags};
 use twinstack::fixed_point::{signal_from_f64, signal_to_f64};
 use twinstack::services::observer::Observed;
@@ -42,7 +43,6 @@ use twinstack::Scaling;
 use twinstack_identify::identification::{
     identify, score::score, IdentifyOptions, ModelKind, ThresholdSpread,
 };
-use twinstack_identify::preview::ResonancePreview;
 use twinstack_identify::stage_model::{between_samples, Hysteresis, StageModel};
 use twinstack_identify::tune::TuneReport;
 use twinstack_link::measured_data::MeasuredData;
@@ -65,9 +65,10 @@ pub struct ClosedLoopOptions {
     pub out_dir: Option<PathBuf>,
     /// Which feedback gains run.
     pub gains: Gains,
-    /// Also track with a preview: the feedforward's rows again with the setpoints shaped for
-    /// the resonance `twinstack tune` measures at each rate, as `twinstack stream --preview`
-    /// shapes a stream ([`ResonancePreview::shape_stream`]).
+    /// Also track with the board's preview: the feedforward's rows again with the settings'
+    /// preview for the resonance `twinstack tune` measures at each rate
+    /// ([`twinstack::config::settings::Settings::preview`]: every setpoint shaped before the
+    /// compensator, the feedback aiming at the setpoint itself).
     pub preview: bool,
 }
 
@@ -141,7 +142,7 @@ pub struct TrackingRow {
     pub waveform: &'static str,
     /// The configuration.
     pub configuration: Configuration4,
-    /// The setpoints were shaped for the resonance first ([`ClosedLoopOptions::preview`]).
+    /// The board ran the preview ([`ClosedLoopOptions::preview`]).
     pub preview: bool,
     /// Largest tracking error, % of the commanded stroke.
     pub max_pct: f64,
@@ -180,7 +181,7 @@ pub struct ClosedLoopReport {
     /// The feedback each rate ran (in the study model's normalised units).
     pub feedback: Vec<(f64, FeedbackSettings)>,
     /// With [`ClosedLoopOptions::preview`], the resonance measured at each rate (rate, Hz,
-    /// damping ratio), which the preview's rows are shaped for.
+    /// damping ratio), which the preview's rows shape the setpoints for.
     pub resonance: Vec<(f64, f64, f64)>,
     /// The table.
     pub tracking: Vec<TrackingRow>,
@@ -383,6 +384,7 @@ fn settings_observed(
         mode: mode_of(c),
         creep: model.creep.clone(),
         shaping: None,
+        preview: None,
     }
 }
 
@@ -493,6 +495,7 @@ pub fn identify_model(rate: f64, options: &ClosedLoopOptions) -> Result<StageMod
         mode: Mode::Bypass,
         creep: None,
         shaping: None,
+        preview: None,
     };
     let config = settings
         .build(&hardware(rate))
@@ -553,9 +556,9 @@ pub fn track(
     )
 }
 
-/// [`track`] with the feedback `feedback`, the setpoints shaped first by `preview` where there
-/// is one (as [`ResonancePreview::shape_stream`] shapes a stream, the board in `c`'s mode):
-/// scored against the waveform as it comes, not the shaped setpoints.
+/// [`track`] with the feedback `feedback` and the board's preview for the resonance `preview`
+/// where there is one ([`Settings::preview`]): scored against the waveform, which the stage
+/// then follows [`PREVIEW_DELAY_TICKS`] ticks late.
 pub fn track_with(
     rate: f64,
     options: &ClosedLoopOptions,
@@ -563,13 +566,14 @@ pub fn track_with(
     shape: Shape,
     c: Configuration4,
     feedback: &FeedbackSettings,
-    preview: Option<&ResonancePreview>,
+    preview: Option<PreviewDesign>,
 ) -> Result<TrackingRow> {
     let board0 = board(rate, options.sensor_noise_um)?;
     let sensor = sensor_settings(&board0);
     // The observer where the tuned feedback leaves it time ([`settings`]).
     let with = Settings {
         feedback: Some(*feedback),
+        preview,
         ..settings_observed(rate, model, sensor, c, feedback.notch.is_some())
     };
     let config = observer_if_it_fits(with, rate).1?;
@@ -594,25 +598,13 @@ pub fn track_with(
     let ticks = per_cycle * cycles;
     let from = (skip * per_cycle).min(ticks);
     let wanted: Vec<i32> = (0..ticks).map(|_| wave.next_sample()).collect();
-    let setpoints = match preview {
-        Some(p) => {
-            let q: Vec<i16> = wanted.iter().map(|&v| (v >> 15) as i16).collect();
-            p.shape_stream(&q, mode_of(c), 1)
-                .map_err(|e| anyhow!("{label}, {}: {e}", c.label()))?
-                .into_iter()
-                .map(|v| (v as i32) << 15)
-                .collect()
-        }
-        None => wanted.clone(),
-    };
-    let mut run = simulate(rate, options, config, &s, setpoints.into_iter(), from)?;
+    let mut run = simulate(rate, options, config, &s, wanted.into_iter(), from)?;
     if preview.is_some() {
-        // Scored against the waveform, not the shaped setpoints the board was given.
-        let desired: Vec<f64> = wanted
-            .iter()
-            .map(|&v| s.norm_to_output(signal_to_f64(v)))
+        // The preview aims the stage at each setpoint PREVIEW_DELAY_TICKS ticks after it is
+        // given: scored against the waveform that late.
+        run.desired = (0..run.desired.len())
+            .map(|k| run.desired[k.saturating_sub(PREVIEW_DELAY_TICKS)])
             .collect();
-        run.desired = between_samples(&desired);
     }
     let fig = score(&run.desired, &run.x, from..ticks.saturating_sub(2))
         .ok_or_else(|| anyhow!("nothing to score ({cycles} cycles)"))?;
@@ -732,10 +724,10 @@ pub fn run(options: &ClosedLoopOptions) -> Result<ClosedLoopReport> {
             Some(t) => {
                 let p = &t.fit.plant;
                 report.resonance.push((rate, p.resonance_hz, p.zeta));
-                Some(
-                    ResonancePreview::new(p.resonance_hz, p.zeta, rate)
-                        .map_err(|e| anyhow!("the resonance measured at {rate} Hz: {e}"))?,
-                )
+                Some(PreviewDesign {
+                    frequency_hz: p.resonance_hz,
+                    damping: p.zeta,
+                })
             }
             None => None,
         };
@@ -745,10 +737,10 @@ pub fn run(options: &ClosedLoopOptions) -> Result<ClosedLoopReport> {
                     rate, options, &model, shape, c, &feedback, None,
                 )?);
             }
-            // The feedforward's rows again, shaped: bypass would shape the drive, and feedback
-            // alone has no compensator to give the shaped positions to.
-            for c in [Configuration4::Feedforward, Configuration4::Both] {
-                if let Some(p) = &preview {
+            // The feedforward's rows again, with the preview: feedback alone has no compensator
+            // to give the shaped setpoints to.
+            if let Some(p) = preview {
+                for c in [Configuration4::Feedforward, Configuration4::Both] {
                     report.tracking.push(track_with(
                         rate,
                         options,

@@ -74,6 +74,7 @@ fn settings<D: AnalogDualDac, A: AnalogSensorAdc>(
         mode: Mode::ClosedLoop,
         creep: None,
         shaping: None,
+        preview: None,
     }
 }
 
@@ -211,15 +212,14 @@ fn feedforward_plus_feedback_holds_a_quarter_percent_on_every_row() {
     }
 }
 
-/// With the preview (`twinstack closed-loop --preview`): the setpoints shaped for the resonance
-/// `tune` measures, as `twinstack stream --preview` shapes a stream, in closed loop as in open
-/// loop. The reversal's overshoot (`Δv/ω_n`, 0.29 % of the span, above) is what the shaping
-/// takes out: feedforward + feedback then tracks the triangle within 0.25 % (max) at both
-/// rates, less than half its unshaped error, and the feedforward alone gains as much. The
-/// feedback follows the shaped setpoints, which stand off a ramp by a hundredth of a percent
-/// and swing at a corner only for a sample or two: its RMS stays within 0.05 %. On the sine,
-/// which has no corner, the shaping gains nothing (it costs about 0.1 %, see the book's
-/// closed-loop page) and is held within 0.5 %.
+/// With the board's preview (`twinstack closed-loop --preview`: the settings' preview for the
+/// resonance `tune` measures, every setpoint shaped before the compensator, the feedback
+/// aiming at the setpoint itself). The triangle's reversal (`Δv/ω_n`, 0.29 % of the span,
+/// above), which neither the feedforward nor the feedback sees coming, is taken out: under half
+/// its unshaped error. And feedforward + tuned feedback with the preview is one configuration
+/// that tracks every row of the study within 0.25 % (max) at both rates, the triangle's
+/// reversal and the 750 Hz sine alike: the feedback corrects what the model misses, not the
+/// shaping's standoff.
 #[test]
 fn a_preview_takes_the_triangle_s_reversal_out_in_closed_loop() {
     let report = closed_loop::run(&ClosedLoopOptions {
@@ -239,11 +239,11 @@ fn a_preview_takes_the_triangle_s_reversal_out_in_closed_loop() {
         let unshaped = report.row(r.rate, r.waveform, r.configuration).unwrap();
         if r.waveform.contains("triangle") {
             assert!(r.max_pct < 0.5 * unshaped.max_pct, "{text}");
-            if r.configuration == Configuration4::Both {
-                assert!(r.max_pct <= 0.25 && r.rms_pct <= 0.05, "{text}");
-            }
         } else {
             assert!(r.max_pct <= 0.5, "{text}");
+        }
+        if r.configuration == Configuration4::Both {
+            assert!(r.max_pct <= 0.25 && r.rms_pct <= 0.1, "{text}");
         }
     }
     // The rows without it are the study's own.

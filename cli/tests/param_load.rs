@@ -5,11 +5,13 @@
 
 use clap::Parser;
 use hal_sim::sim_device::{SimDevice, SimDeviceConfig};
+use twinstack::config::settings::PreviewDesign;
 use twinstack::config::settings::{representative_duhem, representative_pi, Mode, Model};
 use twinstack::control::drive::DriveSettings;
 use twinstack::Scaling;
-use twinstack_cli::commands::load::{settings_for, Args};
+use twinstack_cli::commands::load::{settings_for, with_preview, Args};
 use twinstack_identify::param_file::{ParamFile, ParamFileError};
+use twinstack_identify::preview::Resonance;
 use twinstack_identify::stage_model::{Hysteresis, StageModel};
 use twinstack_link::client::Client;
 
@@ -192,6 +194,62 @@ fn an_identified_file_loads_onto_the_board_and_reads_back_with_the_board_s_senso
     assert_eq!(back.feedback.unwrap().kp, board.feedback.unwrap().kp);
     assert_eq!(back.mode, Mode::ClosedLoop);
     assert_eq!(client.status().unwrap().mode(), Mode::ClosedLoop);
+}
+
+/// `load --preview` takes the resonance the file holds (what `calibrate` measured) into the
+/// board's preview, which the board then runs; a file without one is refused by name, a later
+/// file without a preview keeps the board's, and `--no-preview` turns it off.
+#[test]
+fn load_preview_runs_the_file_s_resonance_on_the_board_and_no_preview_turns_it_off() {
+    let m = pi_model();
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("p.json");
+    let mut file = ParamFile::from_model(&m, "um", None);
+    file.save(&path).unwrap();
+    let (plain, _) = ParamFile::load(&path).unwrap();
+    let args = load_args(&["--preview"]);
+    let e = with_preview(&args, &plain).unwrap_err().to_string();
+    assert!(
+        e.contains("p.json") && e.contains("--preview needs the stage's resonance"),
+        "{e}"
+    );
+    file.resonance = Some(Resonance::new(21_807.0, 0.0172).unwrap());
+    file.save(&path).unwrap();
+    let (measured, _) = ParamFile::load(&path).unwrap();
+    let with = with_preview(&args, &measured).unwrap();
+    assert_eq!(
+        with.preview,
+        Some(PreviewDesign {
+            frequency_hz: 21_807.0,
+            damping: 0.0172
+        })
+    );
+    // Without the flag the file's settings are as they are.
+    assert_eq!(
+        with_preview(&load_args(&[]), &measured).unwrap().preview,
+        None
+    );
+
+    let mut client = Client::new(SimDevice::new(SimDeviceConfig::paper()).expect("device"));
+    let board = client.read_params().unwrap();
+    let sent = settings_for(&args, &with, Some(&board));
+    client.load_params(&sent).expect("loaded");
+    let back = client.read_params().unwrap();
+    assert_eq!(back.preview, with.preview, "the board runs it");
+    // A file without a preview keeps the board's; --no-preview takes it away.
+    let kept = settings_for(&load_args(&[]), &plain.settings, Some(&back));
+    assert_eq!(kept.preview, with.preview);
+    let off = settings_for(&load_args(&["--no-preview"]), &plain.settings, Some(&back));
+    client.load_params(&off).expect("loaded");
+    assert_eq!(client.read_params().unwrap().preview, None);
+    // One at half the board's rate is refused by the board, on its field.
+    let mut fast = with.clone();
+    fast.preview = Some(PreviewDesign {
+        frequency_hz: 1.0e6,
+        damping: 0.0172,
+    });
+    let e = client.load_params(&settings_for(&load_args(&[]), &fast, Some(&back)));
+    assert!(format!("{e:?}").contains("PreviewFrequency"), "{e:?}");
 }
 
 #[test]

@@ -38,8 +38,8 @@
 //! hold's and the resonance's delays are the preview's.
 
 use crate::stage_model::between_samples;
-use crate::tune::loop_model::LinearPlant;
 use twinstack::control::mode_switch::Mode;
+use twinstack::control::preview::HeldResonance;
 use twinstack_link::setpoint_file::q1_15;
 
 /// Why a preview cannot be made.
@@ -111,6 +111,9 @@ pub enum PreviewError {
     /// Setpoints several ticks apart, which the board interpolates.
     #[error("the stream plays one setpoint every {0} ticks, interpolated in between, and the preview shapes one a tick (held over it)")]
     Divider(u16),
+    /// The board runs its own preview, which would shape the setpoints a second time.
+    #[error("the board runs its own preview (for a resonance at {0} Hz): it shapes every setpoint it is given, so send the trajectory as it is (or load with --no-preview first)")]
+    OnBoard(f64),
 }
 
 /// A stage's lightly damped resonance, what a preview is shaped for: as `twinstack tune`
@@ -185,6 +188,8 @@ pub struct ResonancePreview {
     b1: f64,
     /// `c = b₂/b₁`: the hold's zero is at `−c`.
     c: f64,
+    /// `κ = c/(1 + c)²`: the sharpening's gain.
+    kappa: f64,
 }
 
 impl ResonancePreview {
@@ -221,16 +226,24 @@ impl ResonancePreview {
                 nyquist,
             });
         }
-        // The held resonance as `tune` models it (gain 1, the position a sample after a held
-        // value): `(b₂ + b₁z) / (a₂ + a₁z + z²)`, ascending powers.
-        let (num, den) = LinearPlant::resonance(1.0, resonance_hz, zeta, 0, rate_hz).polynomials();
-        let (b2, b1, a2, a1) = (num[0], num[1], den[0], den[1]);
+        // The held resonance as the board's preview designs it (gain 1, the position a sample
+        // after a held value): `(b₂ + b₁z) / (a₂ + a₁z + z²)`.
+        let design = twinstack::control::preview::PreviewDesign {
+            frequency_hz: resonance_hz,
+            damping: zeta,
+        };
+        let held = HeldResonance::new(&design, rate_hz).map_err(|_| PreviewError::TooSlow {
+            hz: resonance_hz,
+            rate_hz,
+        })?;
+        let (b2, b1, a2, a1) = (held.b2, held.b1, held.a2, held.a1);
         if !(b1 > 0.0 && [b2, a2, a1, b2 / b1].iter().all(|v| v.is_finite())) {
             return Err(PreviewError::TooSlow {
                 hz: resonance_hz,
                 rate_hz,
             });
         }
+        let c = b2 / b1;
         Ok(Self {
             resonance_hz,
             zeta,
@@ -238,7 +251,8 @@ impl ResonancePreview {
             a1,
             a2,
             b1,
-            c: b2 / b1,
+            c,
+            kappa: c / ((1.0 + c) * (1.0 + c)),
         })
     }
 
@@ -320,13 +334,15 @@ impl ResonancePreview {
     }
 
     /// A board's stream shaped: `samples` (Q1.15, one a tick at this preview's rate, each for
-    /// the middle of its tick, as the board takes a setpoint) for a board in `mode` playing one
-    /// every `divider` ticks. The positions between setpoints (at the ends of the ticks,
-    /// [`between_samples`]) go through [`Self::shape`], back to Q1.15. Closed loop, the feedback
-    /// follows the shaped setpoints as the compensator does: they stand off the trajectory by
-    /// about `2ζẋ/ω + ẍ/ω²`, at a corner for a sample or two (by `Δslope/(ω² T)`), too briefly
-    /// for the feedback to act on, on fast smooth motion all along (`twinstack closed-loop
-    /// --preview` measures both). Refused: a board in
+    /// the middle of its tick, as the board takes a setpoint) for a board with the settings
+    /// `board` playing one every `divider` ticks. The positions between setpoints (at the ends
+    /// of the ticks, [`between_samples`]) go through [`Self::shape`], back to Q1.15. Closed
+    /// loop, the feedback follows the shaped setpoints as the compensator does: they stand off
+    /// the trajectory by about `2ζẋ/ω + ẍ/ω²`, at a corner for a sample or two (by
+    /// `Δslope/(ω² T)`), on fast smooth motion all along (the board's own preview,
+    /// [`twinstack::control::preview`], has its feedback aim at the setpoints instead).
+    /// Refused: a board that runs its own preview ([`PreviewError::OnBoard`]: the setpoints
+    /// would be shaped twice), a board in
     /// bypass ([`PreviewError::Mode`]: the shaped values would be the drive), a divider above 1
     /// ([`PreviewError::Divider`]), a shaped value outside −1…1 ([`PreviewError::OutOfRange`],
     /// the first).
@@ -340,7 +356,31 @@ impl ResonancePreview {
     /// assert_eq!(p.shape_stream(&ramp, Mode::ClosedLoop, 1).unwrap().len(), 100);
     /// assert_eq!(p.shape_stream(&ramp, Mode::Bypass, 1), Err(PreviewError::Mode(Mode::Bypass)));
     /// assert_eq!(p.shape_stream(&ramp, Mode::OpenLoop, 5), Err(PreviewError::Divider(5)));
+    /// // A board that runs its own preview is given the trajectory as it is.
+    /// let mut board = twinstack::config::settings::Settings {
+    ///     mode: Mode::ClosedLoop,
+    ///     ..Default::default()
+    /// };
+    /// assert!(p.shape_stream_for(&ramp, &board, 1).is_ok());
+    /// board.preview = Some(twinstack::config::settings::PreviewDesign {
+    ///     frequency_hz: 21_800.0,
+    ///     damping: 0.017,
+    /// });
+    /// assert_eq!(p.shape_stream_for(&ramp, &board, 1), Err(PreviewError::OnBoard(21_800.0)));
     /// ```
+    pub fn shape_stream_for(
+        &self,
+        samples: &[i16],
+        board: &twinstack::config::settings::Settings,
+        divider: u16,
+    ) -> Result<Vec<i16>, PreviewError> {
+        if let Some(p) = &board.preview {
+            return Err(PreviewError::OnBoard(p.frequency_hz));
+        }
+        self.shape_stream(samples, board.mode, divider)
+    }
+
+    /// [`Self::shape_stream_for`] a board in `mode` without a preview of its own.
     pub fn shape_stream(
         &self,
         samples: &[i16],
@@ -390,8 +430,7 @@ impl ResonancePreview {
         if k <= 0 {
             return at(k);
         }
-        let kappa = self.c / ((1.0 + self.c) * (1.0 + self.c));
-        at(k) - kappa * (at(k - 1) - 2.0 * at(k) + at(k + 1))
+        at(k) - self.kappa * (at(k - 1) - 2.0 * at(k) + at(k + 1))
     }
 }
 
@@ -400,6 +439,37 @@ mod tests {
     use super::*;
     use crate::zero_order_hold::ZeroOrderHold;
     use std::f64::consts::TAU;
+
+    /// The board's preview (`twinstack::control::preview`: nine taps on the setpoints, the
+    /// trajectory four ticks late) is this one on a stream ([`ResonancePreview::shape_stream`]'s
+    /// positions between the setpoints), away from the ends.
+    #[test]
+    fn the_board_s_preview_is_the_host_s_on_a_stream() {
+        for rate in [10_000.0, 50_000.0, 100_000.0] {
+            let p = ResonancePreview::new(3_500.0, 0.03, rate).unwrap();
+            let taps = twinstack::control::preview::PreviewDesign {
+                frequency_hz: 3_500.0,
+                damping: 0.03,
+            }
+            .taps(rate)
+            .unwrap();
+            let x: Vec<f64> = (0..400)
+                .map(|k| {
+                    let t = k as f64 / 400.0;
+                    0.5 * (TAU * 3.0 * t).sin() + 0.3 * (1.0 - 4.0 * (t * 7.0 % 1.0 - 0.5).abs())
+                })
+                .collect();
+            let host = p.shape(&between_samples(&x));
+            for k in 8..390 {
+                let board: f64 = (0..9).map(|i| taps[i] * x[k - 4 + i]).sum();
+                assert!(
+                    (board - host[k]).abs() < 1e-9,
+                    "{rate} Hz, sample {k}: {board} vs {}",
+                    host[k]
+                );
+            }
+        }
+    }
 
     /// The resonance held over each sample, exactly: the position at the end of each hold.
     fn run(resonance_hz: f64, zeta: f64, rate: f64, held: &[f64], start: f64) -> Vec<f64> {

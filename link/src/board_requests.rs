@@ -3,7 +3,7 @@
 //! same thing:
 //!
 //! * the settings a parameter load sends ([`keep_from_board`]: the file's, with the sensor
-//!   calibration, feedback gains and input shaping it leaves out kept from the board) and the checks before
+//!   calibration, feedback gains, input shaping and preview it leaves out kept from the board) and the checks before
 //!   sending them ([`check_load`]: closed loop on an inverted sensor, a model whose input range
 //!   the drive cannot reach);
 //! * a waveform request from physical numbers ([`waveform`]);
@@ -16,7 +16,7 @@ use twinstack::control::drive::Configuration;
 use twinstack::protocol::messages::{CaptureRequest, StatusReport, Trigger, WaveShape, Waveform};
 
 /// The settings a parameter load sends for a file's `file` settings: the file's, with the
-/// sensor calibration, the feedback gains and the input shaping it leaves out (a file from
+/// sensor calibration, the feedback gains, the input shaping and the preview it leaves out (a file from
 /// `identify` has none of them: they are the stage's, not the model's) taken from `board`,
 /// the settings in force on the board.
 pub fn keep_from_board(file: &Settings, board: Option<&Settings>) -> Settings {
@@ -29,6 +29,9 @@ pub fn keep_from_board(file: &Settings, board: Option<&Settings>) -> Settings {
     }
     if s.shaping.is_none() {
         s.shaping = board.and_then(|b| b.shaping);
+    }
+    if s.preview.is_none() {
+        s.preview = board.and_then(|b| b.preview);
     }
     s
 }

@@ -152,7 +152,7 @@ impl Board {
         };
         let samples = match resonance {
             Some((hz, zeta)) => ResonancePreview::new(hz, zeta, tick_rate)
-                .and_then(|p| p.shape_stream(&samples, settings.mode, divider))
+                .and_then(|p| p.shape_stream_for(&samples, &settings, divider))
                 .map_err(|e| PyValueError::new_err(format!("resonance: {e}; nothing was sent")))?,
             None => samples,
         };
@@ -252,7 +252,7 @@ impl Board {
     }
 
     /// Loads a parameter file's settings.
-    #[pyo3(signature = (params, clamp=false, mode=None, store=None))]
+    #[pyo3(signature = (params, clamp=false, mode=None, store=None, preview=None))]
     fn load(
         &self,
         py: Python<'_>,
@@ -260,11 +260,27 @@ impl Board {
         clamp: bool,
         mode: Option<&str>,
         store: Option<&str>,
+        preview: Option<bool>,
     ) -> PyResult<()> {
         let mode = mode.map(parse_mode).transpose()?;
         let store = store.map(parse_mode).transpose()?;
+        let mut file = params.file.settings.clone();
+        if preview == Some(true) {
+            let Some(r) = params.file.resonance else {
+                return Err(PyValueError::new_err(
+                    "preview=True needs the stage's resonance, which the parameter file does not hold (calibrate measures it); nothing was loaded",
+                ));
+            };
+            file.preview = Some(twinstack::control::preview::PreviewDesign {
+                frequency_hz: r.frequency_hz,
+                damping: r.damping,
+            });
+        }
         let board = self.with(py, |c| Ok(c.read_params().ok()))?;
-        let mut settings = board_requests::keep_from_board(&params.file.settings, board.as_ref());
+        let mut settings = board_requests::keep_from_board(&file, board.as_ref());
+        if preview == Some(false) {
+            settings.preview = None;
+        }
         if let Some(m) = mode {
             settings.mode = m;
         }

@@ -48,6 +48,25 @@ def test_params_reads_back_what_load_sent(board):
     assert board.status()["mode"] == "bypass"
 
 
+def test_load_with_preview_runs_the_file_s_resonance_and_preview_false_turns_it_off(board):
+    settings = board.params()
+    settings["preview"] = None
+    plain = twinstack.Params.from_json(param_json(settings))
+    board.load(plain)
+    with pytest.raises(ValueError, match="preview=True needs the stage's resonance"):
+        board.load(plain, preview=True)
+    assert board.params()["preview"] is None, "nothing was loaded"
+    measured = json.loads(param_json(settings))
+    measured["resonance"] = {"frequency_hz": 21800.0, "damping": 0.017}
+    board.load(twinstack.Params.from_json(json.dumps(measured)), preview=True)
+    assert board.params()["preview"] == {"frequency_hz": 21800.0, "damping": 0.017}
+    # A file without one keeps the board's; preview=False takes it away.
+    board.load(plain)
+    assert board.params()["preview"] == {"frequency_hz": 21800.0, "damping": 0.017}
+    board.load(plain, preview=False)
+    assert board.params()["preview"] is None
+
+
 def test_a_load_the_board_refuses_raises_board_error_with_field_and_limit(board):
     settings = board.params()
     # Two ticks at 100 kHz, less than two at the board's 50 kHz: the file is valid (a board

@@ -204,10 +204,17 @@ class Board:
         clamp: bool = False,
         mode: Optional[str] = None,
         store: Optional[str] = None,
+        preview: Optional[bool] = None,
     ) -> None:
         """Loads the settings of ``params`` (validated whole by the board, prepared off the
-        control tick and swapped in with the drive continuous); the sensor calibration and
-        feedback gains the file leaves out are kept from the board.
+        control tick and swapped in with the drive continuous); the sensor calibration,
+        feedback gains, input shaping and preview the file leaves out are kept from the board.
+
+        ``preview=True`` runs the preview on the board for the resonance ``params`` holds
+        (``params.resonance``, what ``calibrate`` measured; ``ValueError`` where it holds
+        none): every setpoint shaped for the resonance before the compensator, the feedback
+        aiming at the setpoint itself, the stage following the trajectory four ticks late.
+        ``preview=False`` turns the board's off; ``None`` keeps the file's or the board's.
 
         ``mode`` (``"bypass"``, ``"open-loop"``, ``"closed-loop"``) overrides the file's;
         ``store`` also writes the settings to flash, to boot in that mode. A model whose input

@@ -130,9 +130,10 @@ class AsyncBoard:
         clamp: bool = False,
         mode: Optional[str] = None,
         store: Optional[str] = None,
+        preview: Optional[bool] = None,
     ) -> None:
         """Loads a parameter file's settings, as :meth:`twinstack.Board.load`."""
-        await self._call(self._board.load, params, clamp, mode, store)
+        await self._call(self._board.load, params, clamp, mode, store, preview)
 
     async def stop(self) -> None:
         """Stops the stream or the waveform; the output holds."""
@@ -234,8 +235,9 @@ class AsyncBoard:
         over the chunks (``accepted``, ``batches``, ``underruns``, ``seconds``, ...) plus
         ``chunks``. The chunks play as one stream (each but the last sent with ``more``, see
         :meth:`twinstack.Board.stream`): each is queued behind the one still playing, with no
-        stop between them, and ``underruns`` counts the board's empty ticks over the whole
-        stream, between the chunks too. Cancelled, it tells the board to stop and raises
+        stop between them. With ``wait=True`` ``underruns`` counts the board's empty ticks over
+        the whole stream, between the chunks too; with ``wait=False`` it is the chunks' own
+        counts summed, which miss the gaps between them. Cancelled, it tells the board to stop and raises
         ``CancelledError``.
         `resonance` shapes the whole trajectory first (:meth:`twinstack.Board.shaped`, before
         it is cut into chunks: the shaping of a setpoint needs the two after it), as

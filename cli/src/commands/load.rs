@@ -15,7 +15,7 @@
 use super::board_link::{connect, PortArgs};
 use super::params::ModeArg;
 use std::path::PathBuf;
-use twinstack::config::settings::{FeedbackSettings, Model, Settings};
+use twinstack::config::settings::{FeedbackSettings, Model, PreviewDesign, Settings};
 use twinstack::control::drive::{Configuration, SafeState};
 use twinstack_identify::param_file::ParamFile;
 use twinstack_link::board_requests::{check_load, keep_from_board, LoadRefused};
@@ -75,6 +75,15 @@ pub struct Args {
     /// clipped at its limits), with a warning, instead of refusing it.
     #[arg(long)]
     pub clamp: bool,
+    /// Run the preview on the board: every setpoint, whatever its source, shaped for the
+    /// stage's resonance before the compensator, the feedback aiming at the setpoint itself
+    /// (corners without ringing; the trajectory 4 ticks late). The resonance is the one the
+    /// parameter file holds (what `twinstack calibrate` measured).
+    #[arg(long, conflicts_with = "no_preview")]
+    pub preview: bool,
+    /// No preview, even where the board runs one (which a file without one otherwise keeps).
+    #[arg(long)]
+    pub no_preview: bool,
 }
 
 pub use twinstack_link::board_requests::unreachable_input;
@@ -92,6 +101,9 @@ pub enum SafeArg {
 /// settings in force on the board) and the command line's overrides on top.
 pub fn settings_for(args: &Args, file: &Settings, board: Option<&Settings>) -> Settings {
     let mut s = keep_from_board(file, board);
+    if args.no_preview {
+        s.preview = None;
+    }
     if args.unidirectional {
         s.drive.configuration = Configuration::Unidirectional;
     }
@@ -145,12 +157,34 @@ pub fn settings_with_paths(
     Ok(settings)
 }
 
+/// The file's settings, with `--preview` the preview for the resonance the file holds;
+/// refused, naming the file, where it holds none.
+pub fn with_preview(args: &Args, file: &ParamFile) -> anyhow::Result<Settings> {
+    let mut s = file.settings.clone();
+    if args.preview {
+        let Some(r) = file.resonance else {
+            anyhow::bail!(
+                "{}: --preview needs the stage's resonance, which the file does not hold \
+                 (`twinstack calibrate` measures it into the file; or give it with \
+                 --set '/preview={{\"frequency_hz\":F,\"damping\":Z}}'); nothing was loaded",
+                args.params.display()
+            );
+        };
+        s.preview = Some(PreviewDesign {
+            frequency_hz: r.frequency_hz,
+            damping: r.damping,
+        });
+    }
+    Ok(s)
+}
+
 /// Runs `load`.
 pub fn run(args: &Args) -> anyhow::Result<()> {
     let (file, model) = ParamFile::load(&args.params)?;
+    let file_settings = with_preview(args, &file)?;
     let mut client = connect(&args.port)?;
     let board = client.read_params().ok();
-    let settings = settings_with_paths(args, &file.settings, board.as_ref())
+    let settings = settings_with_paths(args, &file_settings, board.as_ref())
         .map_err(|e| anyhow::anyhow!("--set {e}; nothing was loaded"))?;
     match check_load(&settings, model.output_sign, args.clamp) {
         Ok(None) => {}
@@ -189,6 +223,14 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         d.max_voltage,
         d.bias
     );
+    if let Some(p) = &settings.preview {
+        println!(
+            "preview: setpoints shaped for the resonance at {:.0} Hz, damping {:.4} (the stage follows them {} ticks late)",
+            p.frequency_hz,
+            p.damping,
+            twinstack::control::preview::PREVIEW_DELAY_TICKS
+        );
+    }
     if let Some(boot) = args.store {
         client.store_params(boot.into())?;
         println!(

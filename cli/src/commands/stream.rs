@@ -209,9 +209,9 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
             };
             let preview = resonance.preview(tick_rate).map_err(refused)?;
             let (hz, zeta) = (resonance.frequency_hz, resonance.damping);
-            let mode = client.read_params()?.mode;
+            let board = client.read_params()?;
             let shaped = preview
-                .shape_stream(&sp.samples, mode, options.divider)
+                .shape_stream_for(&sp.samples, &board, options.divider)
                 .map_err(refused)?;
             eprintln!(
                 "note: setpoints shaped for a resonance at {hz} Hz, damping {zeta}, at the board's {tick_rate} Hz"
