@@ -13,12 +13,13 @@ mod support;
 
 use std::time::Duration;
 
-/// Flash budget of the board image, bytes: 128 KiB of the 896 KiB it may use (sectors 0–10),
+/// Flash budget of the board image, bytes: 140 KiB of the 896 KiB it may use (sectors 0–10),
 /// just above the image (the tick-cost page's size table): room for the model family
-/// (generalised P–I, creep, Bouc–Wen), tight enough to catch a path written into every
+/// (generalised P–I, creep, Bouc–Wen) and the preview (its design on the board and the
+/// reading of records stored before it), tight enough to catch a path written into every
 /// caller (a model's or the creep's step inlined once per model variant) or a formatting
 /// machinery pulled in. Raising it is a decision, taken where an image outgrows it.
-const FLASH_BUDGET: u64 = 128 * 1024;
+const FLASH_BUDGET: u64 = 140 * 1024;
 /// Instruction budget of the N = 16 tick.
 const TICK_BUDGET: f64 = 250.0;
 
