@@ -72,15 +72,17 @@ use crate::sources::waveform::WaveformGenerator;
 /// divider 1 — several round trips of a USB–serial adapter (whose latency timer holds bytes
 /// up to 16 ms each way) plus the host's scheduling. On the board it lives in CCM RAM
 /// (`hardware::ccm::setpoint_queue`), taken from the recorder's CCM part. The
-/// emulator image (QEMU models no CCM) keeps 2 048 slots in SRAM: 20 ms at 100 kHz.
+/// emulator image (QEMU models no CCM) keeps 1 536 slots in SRAM: 15 ms at 100 kHz.
 pub const SETPOINT_QUEUE_LEN: usize = if cfg!(feature = "emulator") {
     EMULATOR_SETPOINT_QUEUE_LEN
 } else {
     20_000
 };
-/// Slots of the setpoint queue in the QEMU image: 2 048 in SRAM (QEMU's `netduinoplus2`
-/// models no CCM RAM), 2 047 setpoints, 20 ms at 100 kHz.
-pub const EMULATOR_SETPOINT_QUEUE_LEN: usize = 2048;
+/// Slots of the setpoint queue in the QEMU image: 1 536 in SRAM (QEMU's `netduinoplus2`
+/// models no CCM RAM), 1 535 setpoints, 15 ms at 100 kHz. The dual-stage QEMU image has the
+/// least static RAM to spare of all images (`memory.x`'s stack reserve): its queue is what
+/// gives, not the board's.
+pub const EMULATOR_SETPOINT_QUEUE_LEN: usize = 1536;
 /// Setpoints the queue holds: the credits of an empty queue.
 pub const SETPOINT_CAPACITY: usize = SETPOINT_QUEUE_LEN - 1;
 /// The setpoint queue between the handler (producer) and the tick (consumer): Q1.15 wire

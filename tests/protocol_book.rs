@@ -477,16 +477,16 @@ fn a_wrong_byte_or_annotation_in_the_chapter_is_caught() {
     let mutations = [
         // A frame byte.
         (
-            "frame: 02 0a 05 75 fa 36 bb 00",
-            "frame: 02 0a 05 75 fa 36 bc 00",
+            "frame: 02 0b 05 34 cb 2d a2 00",
+            "frame: 02 0b 05 34 cb 2d a3 00",
         ),
         // The version before the current one, with its CRC.
         (
+            "body:  0b (version) | 00 (Status) | CRC 34 cb 2d a2",
             "body:  0a (version) | 00 (Status) | CRC 75 fa 36 bb",
-            "body:  09 (version) | 00 (Status) | CRC b6 a9 1b 90",
         ),
         // A CRC alone.
-        ("| CRC b0 93 d4 44", "| CRC b0 93 d4 45"),
+        ("| CRC d5 f4 68 fc", "| CRC d5 f4 68 fd"),
         // A variant's name.
         ("0a (Field::Ki)", "0a (Field::Kp)"),
         ("00 (Ack)", "00 (Nack)"),
