@@ -104,40 +104,46 @@ pub struct Settings {
 /// [`Settings`] as it was laid out before the preview (every field but the last,
 /// `preview`): what flash records of versions 5 to 7 and golden vector sets of formats 4
 /// and 5 hold. Read only, into [`Settings`] without a preview.
+///
+/// Each layout is the one before it and the field it added: `postcard` writes a struct as
+/// its fields one after another, so a layout nested in the next reads the same bytes.
 #[derive(Clone, Debug, PartialEq, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct SettingsWithoutPreview {
-    ranges: Scaling,
-    compensator: Option<Model>,
-    observer: Option<Model>,
-    drive: DriveSettings,
-    sensor: Option<SensorSettings>,
-    feedback: Option<FeedbackSettings>,
-    mode: Mode,
-    creep: Option<CreepParams>,
+    before_shaping: SettingsWithoutShaping,
     shaping: Option<NotchDesign>,
 }
 
 impl From<SettingsWithoutPreview> for Settings {
     fn from(s: SettingsWithoutPreview) -> Self {
+        let SettingsWithoutShaping {
+            ranges,
+            compensator,
+            observer,
+            drive,
+            sensor,
+            feedback,
+            mode,
+            creep,
+        } = s.before_shaping;
         Self {
-            ranges: s.ranges,
-            compensator: s.compensator,
-            observer: s.observer,
-            drive: s.drive,
-            sensor: s.sensor,
-            feedback: s.feedback,
-            mode: s.mode,
-            creep: s.creep,
+            ranges,
+            compensator,
+            observer,
+            drive,
+            sensor,
+            feedback,
+            mode,
+            creep,
             shaping: s.shaping,
             preview: None,
         }
     }
 }
 
-/// [`Settings`] as it was laid out before input shaping (every field but the last,
-/// `shaping`): what flash records of version 4 and golden vector sets of format 3 hold. Read
-/// only, into [`Settings`] without shaping.
+/// [`Settings`] as it was laid out before input shaping (every field but the last two,
+/// `shaping` and `preview`): what flash records of version 4 and golden vector sets of
+/// format 3 hold. Read only, into [`Settings`] without shaping or a preview.
 #[derive(Clone, Debug, PartialEq, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct SettingsWithoutShaping {
@@ -153,18 +159,11 @@ pub struct SettingsWithoutShaping {
 
 impl From<SettingsWithoutShaping> for Settings {
     fn from(s: SettingsWithoutShaping) -> Self {
-        Self {
-            ranges: s.ranges,
-            compensator: s.compensator,
-            observer: s.observer,
-            drive: s.drive,
-            sensor: s.sensor,
-            feedback: s.feedback,
-            mode: s.mode,
-            creep: s.creep,
+        SettingsWithoutPreview {
+            before_shaping: s,
             shaping: None,
-            preview: None,
         }
+        .into()
     }
 }
 
