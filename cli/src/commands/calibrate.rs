@@ -7,7 +7,8 @@
 //! tracking before and after), loads the settings (open loop), verifies them on a test
 //! trajectory and stores them to flash (to boot in bypass unless `--store MODE`). After the
 //! excitation it measures the stage's resonance as `tune` does (unless `--no-resonance`) and
-//! writes it into the parameter file, for `compensate --preview` and `stream --preview`.
+//! writes it into the parameter file, for `load --preview` (the board's preview, every
+//! setpoint shaped on the board), `compensate --preview` and `stream --preview`.
 //!
 //! The files are written only once the calibration has succeeded; a failure changes nothing on
 //! disk and loads nothing on a board it stopped before (see [`twinstack_identify::calibrate`] for which
@@ -90,7 +91,8 @@ pub struct Args {
     /// Do not measure the stage's resonance after the excitation (the sweep `twinstack tune`
     /// runs: 36 frequencies, each a sine burst captured and read back over the link).
     /// Measured, it goes into the parameter file, where
-    /// `compensate --preview` and `stream --preview` shape a planned trajectory for it.
+    /// `load --preview` runs the board's preview for it, and `compensate --preview` and
+    /// `stream --preview` shape a planned trajectory for it.
     #[arg(long)]
     pub no_resonance: bool,
     /// Print the figures as one JSON object on stdout instead of text.
@@ -287,7 +289,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     }
     if let ResonanceOutcome::Measured(f) = &report.resonance {
         println!(
-            "resonance: {:.0} Hz, damping {:.4} (fit {:.2} dB, {:.1}° RMS), in the parameter file for `compensate --preview` and `stream --preview`",
+            "resonance: {:.0} Hz, damping {:.4} (fit {:.2} dB, {:.1}° RMS), in the parameter file for `load --preview`, `compensate --preview` and `stream --preview`",
             f.plant.resonance_hz, f.plant.zeta, f.rms_db, f.rms_deg
         );
     }

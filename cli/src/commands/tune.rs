@@ -45,8 +45,8 @@ pub struct Args {
     #[arg(long)]
     pub json: bool,
     /// Write the fitted resonance into this parameter file (its `resonance`, what `calibrate`
-    /// measures), for `compensate --preview` and `stream --preview`; the rest of the file is
-    /// kept. The file is checked before the sweep starts.
+    /// measures), for `load --preview` (the board's preview), `compensate --preview` and
+    /// `stream --preview`; the rest of the file is kept. The file is checked before the sweep starts.
     #[arg(long, value_name = "PARAMS.json")]
     pub params: Option<PathBuf>,
     /// Write the Bode diagram (measured and fitted, and the loop) to this PNG.
