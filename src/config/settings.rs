@@ -116,25 +116,16 @@ pub struct SettingsWithoutPreview {
 
 impl From<SettingsWithoutPreview> for Settings {
     fn from(s: SettingsWithoutPreview) -> Self {
-        let SettingsWithoutShaping {
-            ranges,
-            compensator,
-            observer,
-            drive,
-            sensor,
-            feedback,
-            mode,
-            creep,
-        } = s.before_shaping;
+        let b = s.before_shaping;
         Self {
-            ranges,
-            compensator,
-            observer,
-            drive,
-            sensor,
-            feedback,
-            mode,
-            creep,
+            ranges: b.ranges,
+            compensator: b.compensator,
+            observer: b.observer,
+            drive: b.drive,
+            sensor: b.sensor,
+            feedback: b.feedback,
+            mode: b.mode,
+            creep: b.creep,
             shaping: s.shaping,
             preview: None,
         }
