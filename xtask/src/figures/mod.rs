@@ -452,6 +452,36 @@ const FIGURES: &[Figure] = &[
         "--model",
         "auto"
     ),
+    // What the preview leaves once the stage has no creep (and the model none): the rows
+    // above less the creep's share.
+    triangles_figure!(
+        "lab-stage-triangles-without-creep",
+        "--model",
+        "auto",
+        "--without",
+        "creep"
+    ),
+    Figure {
+        name: "lab-stage-triangles-100khz-without-creep",
+        page: "docs/src/results/lab-stage.md",
+        runs: &[&[
+            "lab-stage",
+            "--rate",
+            "100000",
+            "--model",
+            "auto",
+            "--without",
+            "creep",
+            "--triangles",
+            "1,5,20,50,100,200",
+            "--preview",
+            "--json",
+        ]],
+        // An identification at 100 kHz (two minutes): written, not re-run by the gate.
+        source: Source::Tool,
+        checked: false,
+        render: Render::One(triangles_table),
+    },
     Figure {
         name: "lab-stage-variants",
         page: "docs/src/results/lab-stage.md",
