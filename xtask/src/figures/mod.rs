@@ -87,9 +87,16 @@ struct Run {
 
 /// The lab stage's triangles with the preview (`lab-stage … --triangles … --preview`), the
 /// arguments before the triangles given: the models, and the rate the record, the
-/// identification and the tracking are sampled at.
+/// identification and the tracking are sampled at. Checked by the gate unless `unchecked`
+/// follows the name (written only when named).
 macro_rules! triangles_figure {
+    ($name:literal, unchecked, $($arg:literal),+) => {
+        triangles_figure!(@ $name, false, $($arg),+)
+    };
     ($name:literal, $($arg:literal),+) => {
+        triangles_figure!(@ $name, true, $($arg),+)
+    };
+    (@ $name:literal, $checked:literal, $($arg:literal),+) => {
         Figure {
             name: $name,
             page: "docs/src/results/lab-stage.md",
@@ -102,7 +109,7 @@ macro_rules! triangles_figure {
                 "--json",
             ]],
             source: Source::Tool,
-            checked: true,
+            checked: $checked,
             render: Render::One(triangles_table),
         }
     };
@@ -461,27 +468,17 @@ const FIGURES: &[Figure] = &[
         "--without",
         "creep"
     ),
-    Figure {
-        name: "lab-stage-triangles-100khz-without-creep",
-        page: "docs/src/results/lab-stage.md",
-        runs: &[&[
-            "lab-stage",
-            "--rate",
-            "100000",
-            "--model",
-            "auto",
-            "--without",
-            "creep",
-            "--triangles",
-            "1,5,20,50,100,200",
-            "--preview",
-            "--json",
-        ]],
-        // An identification at 100 kHz (two minutes): written, not re-run by the gate.
-        source: Source::Tool,
-        checked: false,
-        render: Render::One(triangles_table),
-    },
+    // An identification at 100 kHz (two minutes): written, not re-run by the gate.
+    triangles_figure!(
+        "lab-stage-triangles-100khz-without-creep",
+        unchecked,
+        "--rate",
+        "100000",
+        "--model",
+        "auto",
+        "--without",
+        "creep"
+    ),
     Figure {
         name: "lab-stage-variants",
         page: "docs/src/results/lab-stage.md",
@@ -801,29 +798,46 @@ pub fn run(root: &Path, args: &[String]) -> Result<(), String> {
             return Err(format!("no figure `{n}` (known: {})", known.join(", ")));
         }
     }
-    let mut stale = Vec::new();
-    for f in FIGURES {
-        let named = names.contains(&f.name);
-        // Run: what is named, or with no names every checked figure; `--check` only checked ones.
-        let wanted = named || (names.is_empty() && f.checked);
-        if !wanted || (check && !f.checked) {
-            if names.is_empty() && !f.checked && !check {
-                println!(
-                    "{}: {} left as it is (timings: `cargo xtask figures {}` writes it)",
-                    f.page, f.name, f.name
-                );
-            }
-            continue;
+    // Run: what is named, or with no names every checked figure; `--check` only checked ones.
+    let wanted = |f: &Figure| {
+        (names.contains(&f.name) || (names.is_empty() && f.checked)) && (f.checked || !check)
+    };
+    let figures: Vec<&Figure> = FIGURES.iter().filter(|f| wanted(f)).collect();
+    if names.is_empty() && !check {
+        for f in FIGURES.iter().filter(|f| !f.checked) {
+            println!(
+                "{}: {} left as it is (timings: `cargo xtask figures {}` writes it)",
+                f.page, f.name, f.name
+            );
         }
+    }
+    // Every run of every wanted figure, on as many cores as the machine has: the runs are
+    // independent (each writes its own files), the deterministic ones are single-threaded
+    // simulations, and the timings are written only when named, one figure at a time.
+    let jobs: Vec<(&Figure, &'static [&'static str])> = figures
+        .iter()
+        .flat_map(|&f| f.runs.iter().map(move |&args| (f, args)))
+        .collect();
+    let workers = if figures.iter().all(|f| f.checked) {
+        std::thread::available_parallelism().map_or(1, |n| n.get())
+    } else {
+        1
+    };
+    let mut outputs = run_all(&jobs, workers, |&(f, args)| {
+        output(root, f.source, args).map_err(|e| format!("{}: {e}", f.name))
+    })
+    .into_iter();
+    let mut stale = Vec::new();
+    for f in figures {
         let path = root.join(f.page);
         let page = std::fs::read_to_string(&path)
             .map_err(|e| format!("{}: cannot read: {e}", path.display()))?;
         let mut runs = Vec::new();
         for args in f.runs {
-            runs.push(Run {
-                args,
-                out: output(root, f.source, args).map_err(|e| format!("{}: {e}", f.name))?,
-            });
+            let out = outputs
+                .next()
+                .ok_or_else(|| format!("{}: a run's output is missing", f.name))??;
+            runs.push(Run { args, out });
         }
         let body = match (&f.render, &runs[..]) {
             (Render::One(render), [run]) => render(&run.out),
@@ -854,6 +868,29 @@ pub fn run(root: &Path, args: &[String]) -> Result<(), String> {
     }
 }
 
+/// `run` on each of `jobs` on `workers` threads, its results in the jobs' order.
+fn run_all<J: Sync, R: Send>(jobs: &[J], workers: usize, run: impl Fn(&J) -> R + Sync) -> Vec<R> {
+    let next = std::sync::atomic::AtomicUsize::new(0);
+    let results: Vec<std::sync::Mutex<Option<R>>> =
+        jobs.iter().map(|_| std::sync::Mutex::new(None)).collect();
+    std::thread::scope(|scope| {
+        for _ in 0..workers.clamp(1, jobs.len().max(1)) {
+            scope.spawn(|| loop {
+                let i = next.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                let Some(job) = jobs.get(i) else { break };
+                let r = run(job);
+                if let Ok(mut slot) = results[i].lock() {
+                    *slot = Some(r);
+                }
+            });
+        }
+    });
+    results
+        .into_iter()
+        .filter_map(|slot| slot.into_inner().ok().flatten())
+        .collect()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -871,6 +908,18 @@ mod tests {
                 && e.contains("run that first"),
             "{e}"
         );
+    }
+
+    #[test]
+    fn runs_on_several_threads_come_back_in_the_jobs_order() {
+        let jobs: Vec<u64> = (0..40).collect();
+        let out = run_all(&jobs, 3, |&j| {
+            // Later jobs finish first.
+            std::thread::sleep(std::time::Duration::from_millis(40 - j));
+            j * 10
+        });
+        assert_eq!(out, (0..40).map(|j| j * 10).collect::<Vec<_>>());
+        assert_eq!(run_all(&[] as &[u64], 2, |&j| j), Vec::<u64>::new());
     }
 
     #[test]
