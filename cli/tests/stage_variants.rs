@@ -3,7 +3,7 @@
 //! around, and two combinations), identified and tracked as on the default stage.
 //!
 //! Ignored unless asked for (`cargo xtask test` runs it as its own gate, `cargo test --profile
-//! host-opt -p twinstack-cli --test stage_variants -- --ignored`): 21 stages, each identified with
+//! host-opt --workspace --test stage_variants -- --ignored`): 21 stages, each identified with
 //! every candidate, take about half a minute optimised and far too long unoptimised.
 //!
 //! It holds, on every variant, what the default stage's test holds on one: `auto` at most

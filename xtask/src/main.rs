@@ -262,13 +262,15 @@ fn gates() -> Vec<Gate> {
             cargo(&["test", "--profile", HOST_PROFILE, "--test", "irq_bench"]),
         ),
         gate(
-            "the lab stage's variants (cargo test --profile host-opt -p twinstack-cli --test stage_variants -- --ignored)",
+            "the lab stage's variants (cargo test --profile host-opt --workspace --test stage_variants -- --ignored)",
+            // `--workspace`, as the host tests' gate: the same features, so nothing is built
+            // again (`-p twinstack-cli` alone leaves out the library's test doubles, which the
+            // workspace's tests turn on, and rebuilt the tool and every crate under it).
             cargo(&[
                 "test",
                 "--profile",
                 HOST_PROFILE,
-                "-p",
-                "twinstack-cli",
+                "--workspace",
                 "--test",
                 "stage_variants",
                 "--",
