@@ -102,6 +102,8 @@ struct Insn {
     part: Part,
     /// Its source line (an index into the disassembly's [`Code::lines`]).
     line: u32,
+    /// The function it is in (an index into the disassembly's [`Code::functions`]).
+    function: u32,
     /// It masks the tick: `cpsid`, or a `msr basepri_max` whose level (the immediate last
     /// moved into its register) is the tick's priority or above. RTIC's lock on the services'
     /// resource raises `BASEPRI` to priority 2 only, which the tick still preempts.
@@ -117,6 +119,8 @@ struct Code {
     insns: HashMap<u32, Insn>,
     /// `file:line`, by index; the file's path shortened to what follows `src/`.
     lines: Vec<String>,
+    /// The functions' symbols (mangled), by index.
+    functions: Vec<String>,
 }
 
 /// The parts of the tick the bench attributes cycles to, by the source file an instruction's
@@ -218,6 +222,7 @@ fn disassemble(elf: &Path) -> Code {
     let mut index: HashMap<String, u32> = HashMap::new();
     let mut at = 0u32;
     let mut project = String::from("(no line)");
+    let mut functions: Vec<String> = vec![String::new()];
     // The last instructions in address order, within the function: RTIC's lock moves its
     // level into a register (`movs r1, #208`) some instructions before the
     // `msr basepri_max, r1`.
@@ -250,9 +255,16 @@ fn disassemble(elf: &Path) -> Code {
             }
             continue;
         }
-        if line.ends_with(">:") {
-            // A function's label: what a register held before it says nothing inside it.
+        if let Some(label) = line.strip_suffix(">:") {
+            // A label (`08001234 <symbol>:`): a function's, or an ARM mapping symbol (`$t`,
+            // `$d`: Thumb code or data follows) inside one. What a register held before it
+            // says nothing after it.
             recent.clear();
+            if let Some((_, symbol)) = label.split_once(" <") {
+                if !symbol.starts_with('$') {
+                    functions.push(symbol.to_string());
+                }
+            }
             continue;
         }
         let Some((addr, rest)) = line.trim_start().split_once(": ") else {
@@ -304,11 +316,16 @@ fn disassemble(elf: &Path) -> Code {
                 swap: in_swap,
                 part,
                 line: at,
+                function: (functions.len() - 1) as u32,
                 masks_tick,
             },
         );
     }
-    Code { insns: map, lines }
+    Code {
+        insns: map,
+        lines,
+        functions,
+    }
 }
 
 /// Whether the instruction `mnemonic operands` (may) write `register`: its first operand for
@@ -420,29 +437,34 @@ fn unmasks(i: &Insn) -> bool {
 
 /// Reads the trace: the ticks, grouped by the segments between `irq_bench_marker` calls, and
 /// each segment's worst tick (5 WS) by source line.
-fn parse_trace(reader: impl BufRead, code: &HashMap<u32, Insn>) -> Trace {
+fn parse_trace(mut reader: impl BufRead, code: &HashMap<u32, Insn>, functions: &[String]) -> Trace {
+    // The bench image's marker between segments, by its function's index.
+    let marker_function = functions
+        .iter()
+        .position(|f| f == "irq_bench_marker")
+        .map(|i| i as u32);
     let mut segments: Vec<Vec<Tick>> = vec![Vec::new()];
     // The services' task's invocations, by segment (a tick preempting one is the tick's).
     let mut services: Vec<Vec<Tick>> = vec![Vec::new()];
     let mut serving: Option<Tick> = None;
-    let mut serve_previous: Option<(u32, Insn)> = None;
+    let mut serve_previous: Option<(u32, &Insn)> = None;
     // The services' invocation in progress by source line, and the dearest one's (5 WS).
     let mut serve_by_line: HashMap<u32, u64> = HashMap::new();
     let mut serve_worst: (u64, Breakdown) = (0, Vec::new());
     let mut worst: Vec<(u64, Breakdown)> = vec![(0, Vec::new())];
     let mut by_line: HashMap<u32, u64> = HashMap::new();
     let mut current: Option<Tick> = None;
-    let mut previous: Option<(u32, Insn)> = None;
+    let mut previous: Option<(u32, &Insn)> = None;
     let mut in_marker = false;
     // Critical sections outside the tick, by the symbol and source line where each started.
     let mut sections: HashMap<String, Section> = HashMap::new();
     let mut open: Option<(String, Section)> = None;
-    let mut idle_previous: Option<(u32, Insn)> = None;
+    let mut idle_previous: Option<(u32, &Insn)> = None;
     // Sections count from the first tick on (RTIC's `init` runs with interrupts off before).
     let mut ticked = false;
     let settle = |t: &mut Tick,
                   by_line: &mut HashMap<u32, u64>,
-                  prev: &Option<(u32, Insn)>,
+                  prev: &Option<(u32, &Insn)>,
                   next_pc: Option<u32>| {
         if let Some((pc, insn)) = prev {
             let taken = is_branch(insn) && next_pc.is_some_and(|n| n != pc + insn.size);
@@ -456,8 +478,81 @@ fn parse_trace(reader: impl BufRead, code: &HashMap<u32, Insn>) -> Trace {
             *by_line.entry(insn.line).or_insert(0) += c5;
         }
     };
-    for line in reader.lines() {
-        let Ok(line) = line else { break };
+    // Hundreds of millions of lines: read into one buffer, and the instruction lines (nearly
+    // all of them) are told apart by their prefix before any other line is searched.
+    let mut buffer: Vec<u8> = Vec::with_capacity(256);
+    loop {
+        buffer.clear();
+        match reader.read_until(b'\n', &mut buffer) {
+            Ok(0) | Err(_) => break,
+            Ok(_) => {}
+        }
+        let bytes = buffer.strip_suffix(b"\n").unwrap_or(&buffer);
+        if let Some(rest) = bytes.strip_prefix(b"Trace 0: ") {
+            let Some(pc) = instruction(rest) else {
+                continue;
+            };
+            match current.as_mut() {
+                Some(t) => {
+                    t.instructions += 1;
+                    settle(t, &mut by_line, &previous, Some(pc));
+                    previous = code.get(&pc).map(|i| (pc, i));
+                    if previous.is_some_and(|(_, i)| i.swap) {
+                        t.swap = true;
+                    }
+                }
+                None if serving.is_some() => {
+                    if let Some(t) = serving.as_mut() {
+                        t.instructions += 1;
+                        settle(t, &mut serve_by_line, &serve_previous, Some(pc));
+                        serve_previous = code.get(&pc).map(|i| (pc, i));
+                    }
+                }
+                None => {
+                    let insn = code.get(&pc);
+                    if let Some((_, s)) = open.as_mut() {
+                        if let Some((ppc, p)) = idle_previous {
+                            let taken = is_branch(p) && pc != ppc + p.size;
+                            let c = cycles(p, taken);
+                            s.instructions += 1;
+                            s.cycles += c;
+                            s.cycles_ws5 += c + if taken { 5 } else { 0 };
+                        }
+                    }
+                    match insn {
+                        Some(i) if ticked && open.is_none() && masks(i) => {
+                            let site = format!("{} @ {}", functions[i.function as usize], i.line);
+                            open = Some((site, Section::default()));
+                        }
+                        Some(i) if unmasks(i) => {
+                            if let Some((site, mut s)) = open.take() {
+                                // The unmasking instruction itself.
+                                s.instructions += 1;
+                                s.cycles += cycles(i, false);
+                                s.cycles_ws5 += cycles(i, false);
+                                let e = sections.entry(site).or_default();
+                                e.count += 1;
+                                if s.instructions > e.instructions {
+                                    (e.instructions, e.cycles, e.cycles_ws5) =
+                                        (s.instructions, s.cycles, s.cycles_ws5);
+                                }
+                            }
+                        }
+                        _ => {}
+                    }
+                    idle_previous = insn.map(|i| (pc, i));
+                    let marker = insn.is_some_and(|i| Some(i.function) == marker_function);
+                    if marker && !in_marker {
+                        segments.push(Vec::new());
+                        services.push(Vec::new());
+                        worst.push((0, Vec::new()));
+                    }
+                    in_marker = marker;
+                }
+            }
+            continue;
+        }
+        let line = String::from_utf8_lossy(bytes);
         if line.contains("taking pending nonsecure exception 15") {
             // A tick that preempts a section was not held back by it (a lock of a resource
             // the tick does not share).
@@ -527,75 +622,6 @@ fn parse_trace(reader: impl BufRead, code: &HashMap<u32, Insn>) -> Trace {
             previous = None;
             continue;
         }
-        let Some(rest) = line.strip_prefix("Trace 0: ") else {
-            continue;
-        };
-        let Some((fields, symbol)) = rest.split_once("] ") else {
-            continue;
-        };
-        let pc = fields
-            .split('/')
-            .nth(1)
-            .and_then(|p| u32::from_str_radix(p, 16).ok());
-        let Some(pc) = pc else { continue };
-        match current.as_mut() {
-            Some(t) => {
-                t.instructions += 1;
-                settle(t, &mut by_line, &previous, Some(pc));
-                previous = code.get(&pc).cloned().map(|i| (pc, i));
-                if previous.as_ref().is_some_and(|(_, i)| i.swap) {
-                    t.swap = true;
-                }
-            }
-            None if serving.is_some() => {
-                if let Some(t) = serving.as_mut() {
-                    t.instructions += 1;
-                    settle(t, &mut serve_by_line, &serve_previous, Some(pc));
-                    serve_previous = code.get(&pc).cloned().map(|i| (pc, i));
-                }
-            }
-            None => {
-                let insn = code.get(&pc).cloned();
-                if let Some((_, s)) = open.as_mut() {
-                    if let Some((ppc, p)) = &idle_previous {
-                        let taken = is_branch(p) && pc != ppc + p.size;
-                        let c = cycles(p, taken);
-                        s.instructions += 1;
-                        s.cycles += c;
-                        s.cycles_ws5 += c + if taken { 5 } else { 0 };
-                    }
-                }
-                match &insn {
-                    Some(i) if ticked && open.is_none() && masks(i) => {
-                        let site = format!("{} @ {}", symbol.trim(), pc_line(code, pc));
-                        open = Some((site, Section::default()));
-                    }
-                    Some(i) if unmasks(i) => {
-                        if let Some((site, mut s)) = open.take() {
-                            // The unmasking instruction itself.
-                            s.instructions += 1;
-                            s.cycles += cycles(i, false);
-                            s.cycles_ws5 += cycles(i, false);
-                            let e = sections.entry(site).or_default();
-                            e.count += 1;
-                            if s.instructions > e.instructions {
-                                (e.instructions, e.cycles, e.cycles_ws5) =
-                                    (s.instructions, s.cycles, s.cycles_ws5);
-                            }
-                        }
-                    }
-                    _ => {}
-                }
-                idle_previous = insn.map(|i| (pc, i));
-                let marker = symbol.trim() == "irq_bench_marker";
-                if marker && !in_marker {
-                    segments.push(Vec::new());
-                    services.push(Vec::new());
-                    worst.push((0, Vec::new()));
-                }
-                in_marker = marker;
-            }
-        }
     }
     Trace {
         segments,
@@ -604,6 +630,17 @@ fn parse_trace(reader: impl BufRead, code: &HashMap<u32, Insn>) -> Trace {
         breakdowns: worst.into_iter().map(|(_, b)| b).collect(),
         sections,
     }
+}
+
+/// An instruction line's address: QEMU's `-d exec` line after its `Trace 0: `, `<host
+/// address> [<cs base>/<pc>/<flags>/<cflags>] <symbol>` (the symbol empty: QEMU runs the image
+/// without its symbol table, and the functions are the disassembly's).
+fn instruction(rest: &[u8]) -> Option<u32> {
+    let open = rest.iter().position(|&b| b == b'[')?;
+    let fields = &rest[open + 1..];
+    let close = fields.iter().position(|&b| b == b']')?;
+    let pc = fields[..close].split(|&b| b == b'/').nth(1)?;
+    u32::from_str_radix(std::str::from_utf8(pc).ok()?, 16).ok()
 }
 
 /// What [`parse_trace`] reads.
@@ -671,11 +708,6 @@ fn demangled(symbol: &str) -> String {
     }
 }
 
-/// The source line index of the instruction at `pc` (0, "(no line)", if unknown).
-fn pc_line(code: &HashMap<u32, Insn>, pc: u32) -> u32 {
-    code.get(&pc).map_or(0, |i| i.line)
-}
-
 /// No panic path is linked into the tick: nothing the SysTick handler can branch or call to,
 /// directly or through what it calls, is one of `core::panicking`'s (an `i64::clamp` in the
 /// scan's approach used to link `panic_fmt`). Static, from the image's disassembly.
@@ -689,8 +721,27 @@ fn the_tick_links_no_panic_path() {
 #[test]
 fn the_whole_interrupt_in_every_scenario() {
     let elf = support::build_image(support::QEMU_IMAGES, "irq-bench", &[]);
-    let Code { insns: code, lines } = disassemble(&elf);
+    let Code {
+        insns: code,
+        lines,
+        functions,
+    } = disassemble(&elf);
     assert!(code.len() > 1000, "the disassembly is the image's");
+    assert!(
+        functions.iter().any(|f| f == "irq_bench_marker"),
+        "the disassembly names the bench's marker"
+    );
+    // QEMU runs the image without its symbol table: it would look up and print each
+    // instruction's symbol, half of the trace's bytes, which the bench takes from the
+    // disassembly instead.
+    let stripped = elf.with_extension("stripped");
+    let made = Command::new(support::objcopy())
+        .arg("--strip-all")
+        .arg(&elf)
+        .arg(&stripped)
+        .status()
+        .expect("llvm-objcopy runs");
+    assert!(made.success(), "llvm-objcopy --strip-all {}", elf.display());
     let dir = support::firmware_target_dir();
     let fifo = dir.join("irq-bench.trace.fifo");
     let _ = std::fs::remove_file(&fifo);
@@ -699,7 +750,7 @@ fn the_whole_interrupt_in_every_scenario() {
         .status()
         .expect("mkfifo runs");
     assert!(made.success(), "mkfifo {}", fifo.display());
-    let child = support::qemu_command(&elf)
+    let child = support::qemu_command(&stripped)
         .args([
             "-serial",
             "null",
@@ -720,7 +771,7 @@ fn the_whole_interrupt_in_every_scenario() {
         services_worst,
         breakdowns,
         sections,
-    } = parse_trace(BufReader::with_capacity(1 << 20, trace), &code);
+    } = parse_trace(BufReader::with_capacity(1 << 20, trace), &code, &functions);
     // Where the services' dearest invocation goes: its 20 dearest source lines.
     let mut dearest = services_worst.clone();
     dearest.sort_by_key(|&(_, c)| std::cmp::Reverse(c));

@@ -441,12 +441,24 @@ pub fn panic_paths(elf: &Path, root: &str) -> Vec<String> {
 
 /// `llvm-objdump`: on the path, or rustup's llvm-tools in the toolchain's sysroot.
 pub fn objdump() -> PathBuf {
-    if Command::new("llvm-objdump")
-        .arg("--version")
-        .output()
-        .is_ok()
-    {
-        return PathBuf::from("llvm-objdump");
+    llvm_tool("llvm-objdump", &[]).unwrap_or_else(|| {
+        panic!("llvm-objdump is missing: run `cargo xtask setup` (it adds rustup's llvm-tools)")
+    })
+}
+
+/// `llvm-objcopy`: on the path, rustup's llvm-tools, or the `rust-objcopy` every toolchain
+/// ships in its sysroot (LLVM's objcopy under rustc's name).
+pub fn objcopy() -> PathBuf {
+    llvm_tool("llvm-objcopy", &["rust-objcopy"]).unwrap_or_else(|| {
+        panic!("llvm-objcopy is missing: run `cargo xtask setup` (it adds rustup's llvm-tools)")
+    })
+}
+
+/// The LLVM tool `name` on the path, else `name` or one of `others` in the toolchain's
+/// sysroot (`lib/rustlib/<host>/bin`).
+fn llvm_tool(name: &str, others: &[&str]) -> Option<PathBuf> {
+    if Command::new(name).arg("--version").output().is_ok() {
+        return Some(PathBuf::from(name));
     }
     let sysroot = Command::new("rustc")
         .args(["--print", "sysroot"])
@@ -461,13 +473,12 @@ pub fn objdump() -> PathBuf {
         .lines()
         .find_map(|l| l.strip_prefix("host: ").map(str::to_string))
         .expect("rustc -vV names the host");
-    let p = Path::new(&sysroot)
+    let bin = Path::new(&sysroot)
         .join("lib/rustlib")
         .join(host)
-        .join("bin/llvm-objdump");
-    assert!(
-        p.is_file(),
-        "llvm-objdump is missing: run `cargo xtask setup` (it adds rustup's llvm-tools)"
-    );
-    p
+        .join("bin");
+    std::iter::once(name)
+        .chain(others.iter().copied())
+        .map(|tool| bin.join(tool))
+        .find(|p| p.is_file())
 }
