@@ -22,6 +22,7 @@
 mod support;
 
 use std::collections::HashMap;
+use std::hash::{BuildHasherDefault, Hasher};
 
 use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
@@ -94,8 +95,6 @@ const FIGURES_JSON: &str = "target/figures/tick-cost.json";
 #[derive(Clone, Debug)]
 struct Insn {
     size: u32,
-    mnemonic: String,
-    operands: String,
     /// Inlined from the tick's rebase (the first tick after a swap or a mode switch).
     swap: bool,
     /// Which part of the tick its source line belongs to.
@@ -108,15 +107,49 @@ struct Insn {
     /// moved into its register) is the tick's priority or above. RTIC's lock on the services'
     /// resource raises `BASEPRI` to priority 2 only, which the tick still preempts.
     masks_tick: bool,
+    /// It lifts that mask ([`lifts_mask`]).
+    unmasks_tick: bool,
+    /// It can change the flow ([`can_branch`]).
+    branch: bool,
+    /// Its cycles when it does not branch ([`base_cycles`]).
+    base_cycles: u64,
 }
 
 /// `BASEPRI` at the tick's priority (3): RTIC's `(16 − 3) << 4` on the STM32F4's four
 /// priority bits. A level at or below it (numerically) masks the tick.
 const TICK_BASEPRI: u32 = 0xD0;
 
+/// A map keyed by an instruction's address or a source line's index, looked up once or twice
+/// per traced instruction (hundreds of millions): hashed by one multiplication ([`KeyHasher`])
+/// rather than the standard library's SipHash, which guards against keys an adversary picks.
+type KeyMap<V> = HashMap<u32, V, BuildHasherDefault<KeyHasher>>;
+
+/// [`KeyMap`]'s hash of a `u32`: the key times an odd constant (the golden ratio's 64-bit
+/// fraction), its high half folded onto the low one so that every bit of the key reaches the
+/// bucket index (addresses are even: their lowest bit alone would leave half the buckets
+/// empty).
+#[derive(Default)]
+struct KeyHasher(u64);
+
+impl Hasher for KeyHasher {
+    fn write(&mut self, bytes: &[u8]) {
+        for &b in bytes {
+            self.0 = (self.0.rotate_left(8) ^ u64::from(b)).wrapping_mul(0x9E37_79B9_7F4A_7C15);
+        }
+    }
+
+    fn write_u32(&mut self, key: u32) {
+        self.0 = u64::from(key).wrapping_mul(0x9E37_79B9_7F4A_7C15);
+    }
+
+    fn finish(&self) -> u64 {
+        self.0 ^ (self.0 >> 32)
+    }
+}
+
 /// The image's instructions by address, and the source lines they come from.
 struct Code {
-    insns: HashMap<u32, Insn>,
+    insns: KeyMap<Insn>,
     /// `file:line`, by index; the file's path shortened to what follows `src/`.
     lines: Vec<String>,
     /// The functions' symbols (mangled), by index.
@@ -217,7 +250,7 @@ fn disassemble(elf: &Path) -> Code {
     let swap_lines = rebase_lines();
     let mut in_swap = false;
     let mut part = Part::Fixed;
-    let mut map = HashMap::new();
+    let mut map = KeyMap::default();
     let mut lines: Vec<String> = vec!["(no line)".to_string()];
     let mut index: HashMap<String, u32> = HashMap::new();
     let mut at = 0u32;
@@ -301,7 +334,12 @@ fn disassemble(elf: &Path) -> Code {
         } else {
             mnemonic == "cpsid"
         };
-        recent.push_back((mnemonic.clone(), operands.clone()));
+        let (unmasks_tick, branch, base) = (
+            lifts_mask(&mnemonic, &operands),
+            can_branch(&mnemonic, &operands),
+            base_cycles(&mnemonic, &operands),
+        );
+        recent.push_back((mnemonic, operands));
         // A level hoisted out of a read-back loop sits up to about 20 instructions before its
         // `msr` (a `mov.w r6, #224` ahead of the loop's bounds checks).
         if recent.len() > 32 {
@@ -311,13 +349,14 @@ fn disassemble(elf: &Path) -> Code {
             addr,
             Insn {
                 size,
-                mnemonic,
-                operands,
                 swap: in_swap,
                 part,
                 line: at,
                 function: (functions.len() - 1) as u32,
                 masks_tick,
+                unmasks_tick,
+                branch,
+                base_cycles: base,
             },
         );
     }
@@ -363,11 +402,17 @@ fn writes_register(mnemonic: &str, operands: &str, register: &str) -> bool {
 /// load/pop into `pc` adds a pipeline refill of 3 (the TRM's P ranges 1–3; we take the worst);
 /// SDIV/UDIV 12 (worst); multiply and multiply-accumulate (including 64-bit) 1; `IT` 1 (the
 /// TRM lets it fold; we count it); VFP: VDIV/VSQRT 14, VLDR/VSTR 2, VMLA/VMLS 3, others 1.
+///
+/// Computed once per instruction of the image ([`base_cycles`]), not per traced one.
 fn cycles(i: &Insn, taken: bool) -> u64 {
-    let m = i.mnemonic.trim_end_matches(".w").trim_end_matches(".n");
-    let regs = i.operands.matches(',').count() as u64 + 1;
-    let refill = if taken { 3 } else { 0 };
-    let base: u64 = match m {
+    i.base_cycles + if taken { 3 } else { 0 }
+}
+
+/// [`cycles`] of `mnemonic operands` when it does not branch.
+fn base_cycles(mnemonic: &str, operands: &str) -> u64 {
+    let m = mnemonic.trim_end_matches(".w").trim_end_matches(".n");
+    let regs = operands.matches(',').count() as u64 + 1;
+    match m {
         _ if m.starts_with("push") || m.starts_with("pop") => 1 + regs,
         _ if m.starts_with("ldm") || m.starts_with("stm") => 1 + regs.saturating_sub(1),
         _ if m.starts_with("vpush") || m.starts_with("vpop") => 1 + regs,
@@ -379,21 +424,24 @@ fn cycles(i: &Insn, taken: bool) -> u64 {
         _ if m.starts_with("vldr") || m.starts_with("vstr") => 2,
         _ if m.starts_with("vmla") || m.starts_with("vmls") => 3,
         _ => 1,
-    };
-    base + refill
+    }
 }
 
 /// Whether an instruction can change the flow (so `taken` is meaningful for it).
 fn is_branch(i: &Insn) -> bool {
-    let m = i.mnemonic.as_str();
+    i.branch
+}
+
+/// Whether `mnemonic operands` can change the flow.
+fn can_branch(m: &str, operands: &str) -> bool {
     m.starts_with('b') && !m.starts_with("bic") && !m.starts_with("bfc") && !m.starts_with("bfi")
         || m.starts_with("cbz")
         || m.starts_with("cbnz")
         || m.starts_with("tbb")
         || m.starts_with("tbh")
         || (m.starts_with("pop") || m.starts_with("ldm") || m.starts_with("ldr"))
-            && i.operands.contains("pc")
-        || m.starts_with("mov") && i.operands.starts_with("pc")
+            && operands.contains("pc")
+        || m.starts_with("mov") && operands.starts_with("pc")
 }
 
 /// One SysTick invocation.
@@ -429,15 +477,20 @@ fn masks(i: &Insn) -> bool {
     i.masks_tick
 }
 
-/// Whether `i` lifts the mask [`masks`] set (the lock's restore, or interrupts on).
+/// Whether `i` lifts the mask [`masks`] set ([`lifts_mask`]).
 fn unmasks(i: &Insn) -> bool {
-    i.mnemonic == "msr" && (i.operands.starts_with("basepri,") || i.operands.starts_with("primask"))
-        || i.mnemonic == "cpsie"
+    i.unmasks_tick
+}
+
+/// Whether `mnemonic operands` lifts the mask (the lock's restore, or interrupts on).
+fn lifts_mask(mnemonic: &str, operands: &str) -> bool {
+    mnemonic == "msr" && (operands.starts_with("basepri,") || operands.starts_with("primask"))
+        || mnemonic == "cpsie"
 }
 
 /// Reads the trace: the ticks, grouped by the segments between `irq_bench_marker` calls, and
 /// each segment's worst tick (5 WS) by source line.
-fn parse_trace(mut reader: impl BufRead, code: &HashMap<u32, Insn>, functions: &[String]) -> Trace {
+fn parse_trace(mut reader: impl BufRead, code: &KeyMap<Insn>, functions: &[String]) -> Trace {
     // The bench image's marker between segments, by its function's index.
     let marker_function = functions
         .iter()
@@ -449,10 +502,10 @@ fn parse_trace(mut reader: impl BufRead, code: &HashMap<u32, Insn>, functions: &
     let mut serving: Option<Tick> = None;
     let mut serve_previous: Option<(u32, &Insn)> = None;
     // The services' invocation in progress by source line, and the dearest one's (5 WS).
-    let mut serve_by_line: HashMap<u32, u64> = HashMap::new();
+    let mut serve_by_line: KeyMap<u64> = KeyMap::default();
     let mut serve_worst: (u64, Breakdown) = (0, Vec::new());
     let mut worst: Vec<(u64, Breakdown)> = vec![(0, Vec::new())];
-    let mut by_line: HashMap<u32, u64> = HashMap::new();
+    let mut by_line: KeyMap<u64> = KeyMap::default();
     let mut current: Option<Tick> = None;
     let mut previous: Option<(u32, &Insn)> = None;
     let mut in_marker = false;
@@ -463,7 +516,7 @@ fn parse_trace(mut reader: impl BufRead, code: &HashMap<u32, Insn>, functions: &
     // Sections count from the first tick on (RTIC's `init` runs with interrupts off before).
     let mut ticked = false;
     let settle = |t: &mut Tick,
-                  by_line: &mut HashMap<u32, u64>,
+                  by_line: &mut KeyMap<u64>,
                   prev: &Option<(u32, &Insn)>,
                   next_pc: Option<u32>| {
         if let Some((pc, insn)) = prev {
