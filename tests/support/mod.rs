@@ -446,6 +446,49 @@ pub fn objdump() -> PathBuf {
     })
 }
 
+/// The interposer that gives QEMU's trace file a large buffer (`tests/support/trace_buffer.c`,
+/// loaded with `LD_PRELOAD` for the file named by `TWINSTACK_TRACE_FILE`): QEMU line-buffers
+/// its log and flushes it after every line, one `write(2)` per traced instruction. Built once
+/// per test process with the system's C compiler (`cc`, the linker every Rust toolchain on
+/// Linux links with) into [`firmware_target_dir`]. `None` off Linux (it needs glibc's
+/// `dlsym(RTLD_NEXT, …)`), where the trace is the same, written a line at a time; on Linux a
+/// compiler that fails is a failed test, not a silently slower bench.
+pub fn trace_buffer() -> Option<PathBuf> {
+    static BUILT: OnceLock<Option<PathBuf>> = OnceLock::new();
+    BUILT
+        .get_or_init(|| {
+            if !cfg!(target_os = "linux") {
+                return None;
+            }
+            let source = workspace_root().join("tests/support/trace_buffer.c");
+            Some(compile_c(&source, "trace-buffer.so", &["-shared", "-fPIC"]))
+        })
+        .clone()
+}
+
+/// Compiles the C file `source` with `cc -O2 flags… -o firmware_target_dir()/out … -ldl`;
+/// panics naming the file and the compiler's output if it fails.
+pub fn compile_c(source: &Path, out: &str, flags: &[&str]) -> PathBuf {
+    let dir = firmware_target_dir();
+    std::fs::create_dir_all(&dir)
+        .unwrap_or_else(|e| panic!("cannot create {}: {e}", dir.display()));
+    let out = dir.join(out);
+    let mut cmd = Command::new("cc");
+    cmd.arg("-O2")
+        .args(flags)
+        .arg("-o")
+        .arg(&out)
+        .arg(source)
+        .arg("-ldl");
+    if let Err(e) = run_quiet(&mut cmd) {
+        panic!(
+            "cc could not build {} (the C compiler Rust links with on Linux): {e}",
+            source.display()
+        );
+    }
+    out
+}
+
 /// `llvm-objcopy`: on the path, rustup's llvm-tools, or the `rust-objcopy` every toolchain
 /// ships in its sysroot (LLVM's objcopy under rustc's name).
 pub fn objcopy() -> PathBuf {
