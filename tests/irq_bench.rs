@@ -4,7 +4,7 @@
 //! the firmware's SysTick binding and `ControlTick::run`, with an idle task that plays the
 //! host through the command handler), runs it under
 //! `qemu-system-arm -icount shift=0 -singlestep -d exec,nochain,int` with the trace streamed
-//! through a FIFO, and counts, for every SysTick invocation, the instructions from its first
+//! through a FIFO (written 16 KiB at a time: [`support::trace_buffer`]), and counts, for every SysTick invocation, the instructions from its first
 //! to its exception return — RTIC's prologue and epilogue, the stream, the controller, the
 //! recorder, telemetry's tap (six signals every tick), the watchdog. Each instruction is then
 //! costed from the Cortex-M4 TRM's timing table (assumptions in [`cycles`]) for a cycle
