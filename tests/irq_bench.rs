@@ -4,9 +4,10 @@
 //! the firmware's SysTick binding and `ControlTick::run`, with an idle task that plays the
 //! host through the command handler), runs it under
 //! `qemu-system-arm -icount shift=0 -singlestep -d exec,nochain,int` with the trace streamed
-//! through a FIFO (written 16 KiB at a time: [`support::trace_buffer`]), and counts, for every SysTick invocation, the instructions from its first
-//! to its exception return — RTIC's prologue and epilogue, the stream, the controller, the
-//! recorder, telemetry's tap (six signals every tick), the watchdog. Each instruction is then
+//! through a FIFO (written 16 KiB at a time: [`support::trace_buffer`]), and counts, for
+//! every SysTick invocation, the instructions from its first to its exception return —
+//! RTIC's prologue and epilogue, the stream, the controller, the recorder, telemetry's tap
+//! (six signals every tick), the watchdog. Each instruction is then
 //! costed from the Cortex-M4 TRM's timing table (assumptions in [`cycles`]) for a cycle
 //! estimate at 0 and at 5 flash wait states.
 //!
@@ -107,7 +108,7 @@ struct Insn {
     /// moved into its register) is the tick's priority or above. RTIC's lock on the services'
     /// resource raises `BASEPRI` to priority 2 only, which the tick still preempts.
     masks_tick: bool,
-    /// It lifts that mask ([`lifts_mask`]).
+    /// It lifts that mask: the lock's restore, or interrupts on ([`lifts_mask`]).
     unmasks_tick: bool,
     /// It can change the flow ([`can_branch`]).
     branch: bool,
@@ -427,12 +428,7 @@ fn base_cycles(mnemonic: &str, operands: &str) -> u64 {
     }
 }
 
-/// Whether an instruction can change the flow (so `taken` is meaningful for it).
-fn is_branch(i: &Insn) -> bool {
-    i.branch
-}
-
-/// Whether `mnemonic operands` can change the flow.
+/// Whether `mnemonic operands` can change the flow (so `taken` is meaningful for it).
 fn can_branch(m: &str, operands: &str) -> bool {
     m.starts_with('b') && !m.starts_with("bic") && !m.starts_with("bfc") && !m.starts_with("bfi")
         || m.starts_with("cbz")
@@ -469,17 +465,6 @@ struct Section {
     cycles_ws5: u64,
     /// Times a section started at this place.
     count: u64,
-}
-
-/// Whether `i` masks the tick (RTIC's lock raising `BASEPRI` to the tick's level, or
-/// interrupts off): see [`Insn::masks_tick`].
-fn masks(i: &Insn) -> bool {
-    i.masks_tick
-}
-
-/// Whether `i` lifts the mask [`masks`] set ([`lifts_mask`]).
-fn unmasks(i: &Insn) -> bool {
-    i.unmasks_tick
 }
 
 /// Whether `mnemonic operands` lifts the mask (the lock's restore, or interrupts on).
@@ -520,7 +505,7 @@ fn parse_trace(mut reader: impl BufRead, code: &KeyMap<Insn>, functions: &[Strin
                   prev: &Option<(u32, &Insn)>,
                   next_pc: Option<u32>| {
         if let Some((pc, insn)) = prev {
-            let taken = is_branch(insn) && next_pc.is_some_and(|n| n != pc + insn.size);
+            let taken = insn.branch && next_pc.is_some_and(|n| n != pc + insn.size);
             let c = cycles(insn, taken);
             t.cycles += c;
             // 5 wait states, prefetch on, ART cache off: a taken branch's target misses the
@@ -565,7 +550,7 @@ fn parse_trace(mut reader: impl BufRead, code: &KeyMap<Insn>, functions: &[Strin
                     let insn = code.get(&pc);
                     if let Some((_, s)) = open.as_mut() {
                         if let Some((ppc, p)) = idle_previous {
-                            let taken = is_branch(p) && pc != ppc + p.size;
+                            let taken = p.branch && pc != ppc + p.size;
                             let c = cycles(p, taken);
                             s.instructions += 1;
                             s.cycles += c;
@@ -573,11 +558,11 @@ fn parse_trace(mut reader: impl BufRead, code: &KeyMap<Insn>, functions: &[Strin
                         }
                     }
                     match insn {
-                        Some(i) if ticked && open.is_none() && masks(i) => {
+                        Some(i) if ticked && open.is_none() && i.masks_tick => {
                             let site = format!("{} @ {}", functions[i.function as usize], i.line);
                             open = Some((site, Section::default()));
                         }
-                        Some(i) if unmasks(i) => {
+                        Some(i) if i.unmasks_tick => {
                             if let Some((site, mut s)) = open.take() {
                                 // The unmasking instruction itself.
                                 s.instructions += 1;
