@@ -168,6 +168,16 @@ impl BoucWen {
     /// Advances the hysteretic state to input `u` (Q2.30 normalised, clamped to full scale).
     #[inline(always)]
     fn advance(&self, state: &mut BoucWenState, u: i32) {
+        self.advance_knowing(state, u, None);
+    }
+
+    /// [`BoucWen::advance`], given where a state heading across zero reaches it (`to_zero`,
+    /// the input from here to zero at this step's rate, normalised) where the caller has it
+    /// already: the compensator computes it to solve its step, and a step it solved to stop
+    /// short of zero that a rounding carries past does not take the logarithm again. The same
+    /// state either way.
+    #[inline(always)]
+    fn advance_knowing(&self, state: &mut BoucWenState, u: i32, to_zero: Option<f32>) {
         let u = clamp_full_scale(u);
         // |Δu| ≤ 2; a full-range jump saturates 2^-30 short of 2 (QSUB).
         let du = u.saturating_sub(state.u);
@@ -176,7 +186,12 @@ impl BoucWen {
         let h = self.relaxed_by(state.h, self.rates[index].relax(du.unsigned_abs()), falling);
         // A sign change: h crossed zero within the step, past which the other rate holds.
         state.h = if (h ^ state.h) < 0 && state.h != 0 {
-            self.past_zero(state.h, du.unsigned_abs(), index, falling)
+            let rate = &self.rates[index];
+            let to_zero = match to_zero {
+                Some(m) => m,
+                None => rate.step_to_cover(self.crossing_ratio(state.h, rate)),
+            };
+            self.past_zero(du.unsigned_abs(), to_zero, index, falling)
         } else {
             h
         };
@@ -197,7 +212,7 @@ impl BoucWen {
             state.u = u;
         } else {
             // The range clamped the step short of zero.
-            self.advance(state, u);
+            self.advance_knowing(state, u, Some(to_zero));
         }
     }
 
@@ -212,13 +227,12 @@ impl BoucWen {
         q60_to_signal_floor(acc + (1 << (SIGNAL_FRAC_BITS - 1)))
     }
 
-    /// The step of magnitude `m` (Q2.30) from `h` (rate `index`) that carries `h` through
-    /// zero: the part to zero at its own rate, `ln(1 + w)/c` with `w = −h/h*`, the rest from
-    /// zero at the rate of the other sign.
+    /// The state after a step of magnitude `m` (Q2.30) at rate `index` that carries `h`
+    /// through zero, `to_zero` into it (normalised: `ln(1 + w)/c` with `w = −h/h*`, the part
+    /// to zero at its own rate): the rest from zero at the rate of the other sign.
     #[inline(never)] // a crossing of zero only, once per branch
-    fn past_zero(&self, h: i32, m: u32, index: usize, falling: bool) -> i32 {
-        let rate = &self.rates[index];
-        let rest = m as f32 * SIGNAL_TO_F32 - rate.step_to_cover(self.crossing_ratio(h, rate));
+    fn past_zero(&self, m: u32, to_zero: f32, index: usize, falling: bool) -> i32 {
+        let rest = m as f32 * SIGNAL_TO_F32 - to_zero;
         let relaxed = self.rates[index ^ 1].relax_normalised(larger(rest, 0.0));
         self.relaxed_by(0, relaxed, falling)
     }
@@ -327,8 +341,9 @@ impl InverseBoucWen {
         // `h` heads across zero (its target `s·A/c` of the other sign, `s·h·A < 0`) and the
         // output change wanted is more than `|h|` alone gives: the step may pass zero.
         let toward = if falling { h } else { -h };
-        // The step, and where it passes zero (the input from here to zero) if it does.
-        let (step, past) = if toward * target > 0.0 && reach > toward {
+        // The step; where a state heading across zero reaches it (the input from here to
+        // zero), where that was needed; whether the step was solved to pass it.
+        let (step, to_zero, passes) = if toward * target > 0.0 && reach > toward {
             let to_zero = rate.step_to_cover(m.crossing_ratio(state.h, rate));
             // The output change at zero: k·m' + |h|.
             let at_zero = slope * to_zero + toward;
@@ -343,18 +358,23 @@ impl InverseBoucWen {
                     // rate, the rest at the other's.
                     smaller(f32::from_bits(self.max_steps[other]), cap - to_zero),
                 );
-                (to_signal(to_zero + rest), Some(to_zero))
+                (to_signal(to_zero + rest), Some(to_zero), true)
             } else {
-                (rate.solve(slope, d, floor, reach, cap), None)
+                // Short of zero, or a rounding past it: the advance has `to_zero` at hand.
+                (
+                    rate.solve(slope, d, floor, reach, cap),
+                    Some(to_zero),
+                    false,
+                )
             }
         } else {
-            (rate.solve(slope, d, floor, reach, cap), None)
+            (rate.solve(slope, d, floor, reach, cap), None, false)
         };
         let du = if falling { -step } else { step };
         let u = clamp_full_scale(state.u.saturating_add(du));
-        match past {
-            Some(to_zero) => m.advance_past_zero(state, u, to_zero, index),
-            None => m.advance(state, u),
+        match to_zero {
+            Some(to_zero) if passes => m.advance_past_zero(state, u, to_zero, index),
+            known => m.advance_knowing(state, u, known),
         }
         u
     }
