@@ -77,6 +77,9 @@ const HUNDRED_KHZ_CONFIGS: [&str; 3] = [
     "inverse-gpi17x8+creep4+pi",
     "inverse-duhem+creep4+pi",
 ];
+/// How many configurations the image runs (its `configs::COUNT`), each through every
+/// scenario.
+const CONFIGURATIONS: usize = 10;
 /// The most the tick budget's prediction may exceed a configuration's measured worst tick,
 /// as a factor: a prediction looser than this refuses configurations that would fit.
 const LOOSEST_PREDICTION: f64 = 1.25;
@@ -905,7 +908,11 @@ fn the_whole_interrupt_in_every_scenario() {
         }
     }
     assert_eq!(loads.len(), names.len(), "a load per scenario");
-    assert_eq!(names.len(), 9 * 18, "every scenario and load ran: {stdout}");
+    assert_eq!(
+        names.len(),
+        CONFIGURATIONS * 18,
+        "every scenario and load ran: {stdout}"
+    );
     // The stack's high-water mark over the whole run (painted at reset, read back by the image
     // before it exits): within three quarters of the reserve memory.x keeps for it.
     let reserve = support::elf_symbol(&elf, "_stack_reserve")
@@ -972,7 +979,11 @@ fn the_whole_interrupt_in_every_scenario() {
         !stdout.contains("BUDGET-REFUSED"),
         "the budget refused a benched configuration at the bench's 32 kHz: {stdout}"
     );
-    assert_eq!(budgets.len(), 9, "every configuration has a prediction");
+    assert_eq!(
+        budgets.len(),
+        CONFIGURATIONS,
+        "every configuration has a prediction"
+    );
     // What `twinstack budget` prints for each configuration: the pipeline's per tick alone
     // (the interrupt and, with an observer below the tick, the services serving it), and with
     // every feature beside it.

@@ -332,7 +332,7 @@ pub mod configs {
     use twinstack::models::generalised_pi::{DeadZoneParams, GpiParams};
 
     /// How many configurations run.
-    pub const COUNT: usize = 9;
+    pub const COUNT: usize = 10;
 
     /// A named configuration.
     pub struct Config {
@@ -499,6 +499,14 @@ pub mod configs {
                 settings: Settings {
                     creep: Some(creep4()?),
                     ..compensator_only(representative_duhem())
+                },
+            },
+            // And where Bouc–Wen + creep wins: the compensator only.
+            9 => Config {
+                name: "inverse-bouc-wen+creep4+pi",
+                settings: Settings {
+                    creep: Some(creep4()?),
+                    ..compensator_only(representative_bouc_wen())
                 },
             },
             _ => return None,
