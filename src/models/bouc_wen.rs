@@ -452,6 +452,16 @@ mod tests {
         Scaling::new(0.0, 140.0, -5.0, 75.0).unwrap()
     }
 
+    /// Uniform numbers in `[0, 1)` from a xorshift generator seeded with `seed`.
+    fn uniform(mut seed: u64) -> impl FnMut() -> f64 {
+        move || {
+            seed ^= seed << 13;
+            seed ^= seed >> 7;
+            seed ^= seed << 17;
+            (seed >> 11) as f64 / (1u64 << 53) as f64
+        }
+    }
+
     fn asymmetric() -> BoucWenParams {
         BoucWenParams {
             k: 0.42,
@@ -732,13 +742,7 @@ mod tests {
     fn the_compensator_s_crossings_are_its_model_s() {
         let s = scaling();
         let inv = InverseBoucWen::new(&asymmetric(), &s).unwrap();
-        let mut seed = 0x2545_f491_4f6c_dd1du64;
-        let mut next = move || {
-            seed ^= seed << 13;
-            seed ^= seed >> 7;
-            seed ^= seed << 17;
-            (seed >> 11) as f64 / (1u64 << 53) as f64
-        };
+        let mut next = uniform(0x2545_f491_4f6c_dd1d);
         let (mut st, mut plant) = (inv.model().relaxed(0), inv.model().relaxed(0));
         let (mut crossings, mut worst_y) = (0u32, 0.0f64);
         let mut yd = 0.0;
@@ -779,13 +783,7 @@ mod tests {
         let s = scaling();
         let inv = InverseBoucWen::new(&asymmetric(), &s).unwrap();
         let m = inv.model();
-        let mut seed = 0x9e37_79b9_7f4a_7c15u64;
-        let mut next = move || {
-            seed ^= seed << 13;
-            seed ^= seed >> 7;
-            seed ^= seed << 17;
-            (seed >> 11) as f64 / (1u64 << 53) as f64
-        };
+        let mut next = uniform(0x9e37_79b9_7f4a_7c15);
         let (mut at_zero, mut split, mut worst_y) = (0u32, 0u32, 0.0f64);
         for _ in 0..200_000 {
             // A state of either sign, over four decades, at a drive inside the range.
