@@ -257,9 +257,18 @@ fn gates() -> Vec<Gate> {
                 IRQ_BENCH_SCENARIOS,
             ]),
         ),
+        // `--workspace`, as the host tests' gate: the same features, so the bench's test
+        // builds nothing again (the package alone selects other features of the crates under it).
         gate_beside(
-            "the whole interrupt in QEMU (cargo test --profile host-opt --test irq_bench)",
-            cargo(&["test", "--profile", HOST_PROFILE, "--test", "irq_bench"]),
+            "the whole interrupt in QEMU (cargo test --profile host-opt --workspace --test irq_bench)",
+            cargo(&[
+                "test",
+                "--profile",
+                HOST_PROFILE,
+                "--workspace",
+                "--test",
+                "irq_bench",
+            ]),
         ),
         gate(
             "the lab stage's variants (cargo test --profile host-opt --workspace --test stage_variants -- --ignored)",
