@@ -103,9 +103,16 @@ def test_a_known_model_is_recovered():
     assert np.max(np.abs(back[10:] - x[10:])) < 0.02 * span
 
 
-def test_auto_ranks_every_model_and_creep_selects_the_candidates(micro):
+@pytest.fixture(scope="module")
+def micro_auto(micro):
+    """`auto` on the micromanipulator record: identified once for the tests that read it."""
     t, u, x = micro
-    p = twinstack.identify(t, u, x, fit_until=16.0)
+    return twinstack.identify(t, u, x, fit_until=16.0)
+
+
+def test_auto_ranks_every_model_and_creep_selects_the_candidates(micro, micro_auto):
+    t, u, x = micro
+    p = micro_auto
     labels = [r["label"] for r in p.ranking]
     assert len(labels) == 8 and sum("+ creep" in l for l in labels) == 4
     assert p.model == {"P-I": "pi", "Duhem": "duhem", "generalised": "gpi", "Bouc-Wen": "bouc-wen"}[
@@ -120,9 +127,8 @@ def test_auto_ranks_every_model_and_creep_selects_the_candidates(micro):
     assert not any("+ creep" in r["label"] for r in none.ranking) and len(none.ranking) == 4
 
 
-def test_auto_ranks_by_what_the_compensator_does(micro):
-    t, u, x = micro
-    p = twinstack.identify(t, u, x, fit_until=16.0)
+def test_auto_ranks_by_what_the_compensator_does(micro_auto):
+    p = micro_auto
     scored = [r for r in p.ranking if "error" not in r]
     for r in scored:
         # Each candidate carries its compensator's figures beside its fit, and the key is the
