@@ -154,6 +154,14 @@ fn cargo(args: &[&str]) -> Command {
     cmd
 }
 
+/// `cargo test --profile host-opt --workspace` followed by `args`: every host test gate runs
+/// with the workspace's features, so no gate builds a crate again for another feature set.
+fn host_tests(args: &[&str]) -> Command {
+    let mut all = vec!["test", "--profile", HOST_PROFILE, "--workspace"];
+    all.extend_from_slice(args);
+    cargo(&all)
+}
+
 /// A cargo command for the firmware target: RUSTFLAGS from the environment would replace the
 /// target's link arguments in `.cargo/config.toml`, so they are removed.
 fn target_cargo(args: &[&str]) -> Command {
@@ -248,54 +256,24 @@ fn gates() -> Vec<Gate> {
         // after another, and a binary's last long test leaves a core to the bench.
         gate(
             "host tests, built (cargo test --profile host-opt --workspace --no-run)",
-            cargo(&[
-                "test",
-                "--profile",
-                HOST_PROFILE,
-                "--workspace",
-                "--no-run",
-            ]),
+            host_tests(&["--no-run"]),
         ),
         // `--workspace`, as the host tests' gate: the same features, so the bench's test
         // builds nothing again (the package alone selects other features of the crates under it).
         gate_beside(
             "the whole interrupt in QEMU (cargo test --profile host-opt --workspace --test irq_bench)",
-            cargo(&[
-                "test",
-                "--profile",
-                HOST_PROFILE,
-                "--workspace",
-                "--test",
-                "irq_bench",
-            ]),
+            host_tests(&["--test", "irq_bench"]),
         ),
         gate(
             "host tests and doc tests (cargo test --profile host-opt --workspace)",
-            cargo(&[
-                "test",
-                "--profile",
-                HOST_PROFILE,
-                "--workspace",
-                "--",
-                "--skip",
-                IRQ_BENCH_SCENARIOS,
-            ]),
+            host_tests(&["--", "--skip", IRQ_BENCH_SCENARIOS]),
         ),
         gate(
             "the lab stage's variants (cargo test --profile host-opt --workspace --test stage_variants -- --ignored)",
             // `--workspace`, as the host tests' gate: the same features, so nothing is built
             // again (`-p twinstack-cli` alone leaves out the library's test doubles, which the
             // workspace's tests turn on, and rebuilt the tool and every crate under it).
-            cargo(&[
-                "test",
-                "--profile",
-                HOST_PROFILE,
-                "--workspace",
-                "--test",
-                "stage_variants",
-                "--",
-                "--ignored",
-            ]),
+            host_tests(&["--test", "stage_variants", "--", "--ignored"]),
         ),
         // After the bench beside, whose output the tick-cost page's figures are checked against.
         gate_last(
@@ -553,6 +531,33 @@ impl Beside {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_host_test_gate_runs_the_command_its_name_shows() {
+        let mut seen = 0;
+        for g in gates() {
+            let Some(shown) = g.what.split_once("(cargo test ").map(|(_, c)| c) else {
+                continue;
+            };
+            let shown: Vec<&str> = shown.trim_end_matches(')').split(' ').collect();
+            let args: Vec<String> = g
+                .cmd
+                .get_args()
+                .map(|a| a.to_string_lossy().into_owned())
+                .collect();
+            assert_eq!(args[0], "test", "{}", g.what);
+            assert!(
+                args[1..].starts_with(&shown.iter().map(|s| s.to_string()).collect::<Vec<_>>()),
+                "{}: runs {args:?}",
+                g.what
+            );
+            seen += 1;
+        }
+        assert!(
+            seen >= 4,
+            "the host tests' build and run, the bench and the variants"
+        );
+    }
 
     fn shell(script: &str) -> Command {
         let mut cmd = Command::new("sh");
