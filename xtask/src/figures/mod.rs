@@ -85,6 +85,15 @@ struct Run {
     out: String,
 }
 
+/// A figure's run of one host test binary, as the tests' gate builds it: `cargo test --profile
+/// host-opt --workspace --test NAME` and what follows (`-p` alone would select other features
+/// and build every crate under it again).
+macro_rules! host_test {
+    ($test:literal $(, $arg:literal)*) => {
+        &["test", "--profile", "host-opt", "--workspace", "--test", $test $(, $arg)*]
+    };
+}
+
 /// The lab stage's triangles with the preview (`lab-stage … --triangles … --preview`), the
 /// arguments before the triangles given: the models, and the rate the record, the
 /// identification and the tracking are sampled at. Checked by the gate unless `unchecked`
@@ -119,16 +128,7 @@ const FIGURES: &[Figure] = &[
     Figure {
         name: "accuracy",
         page: "docs/src/results/benchmarks.md",
-        runs: &[&[
-            "test",
-            "--profile",
-            "host-opt",
-            "--workspace",
-            "--test",
-            "accuracy",
-            "--",
-            "--nocapture",
-        ]],
+        runs: &[host_test!("accuracy", "--", "--nocapture")],
         source: Source::Cargo,
         checked: true,
         render: Render::One(test_markdown),
@@ -441,16 +441,11 @@ const FIGURES: &[Figure] = &[
     Figure {
         name: "lab-stage-triangles-50khz",
         page: "docs/src/results/lab-stage.md",
-        runs: &[&[
-            "test",
-            "--profile",
-            "host-opt",
-            "--workspace",
-            "--test",
+        runs: &[host_test!(
             "model_family",
             "--",
-            "at_the_board_s_rate_one_calibration",
-        ]],
+            "at_the_board_s_rate_one_calibration"
+        )],
         source: Source::Written("target/figures/lab-stage-triangles-50khz.json"),
         checked: true,
         render: Render::One(triangles_table),
@@ -650,21 +645,15 @@ const FIGURES: &[Figure] = &[
     Figure {
         name: "coarse-board",
         page: "docs/src/results/dual-stage.md",
-        runs: &[&[
-            "test",
-            "--profile",
-            "host-opt",
-            "--workspace",
-            "--test",
+        runs: &[host_test!(
             "coarse_board",
             "--",
             "--nocapture",
             "--test-threads",
-            "1",
-        ]],
+            "1"
+        )],
         // The simulated board runs on simulated time, one test after another: the same
-        // lines every run. `--workspace`, as the tests' gate builds the tests: `-p` alone
-        // selects other features and builds every crate under it again (as for `accuracy`).
+        // lines every run.
         source: Source::Cargo,
         checked: true,
         render: Render::One(test_verbatim),
