@@ -198,6 +198,10 @@ pub enum Field {
     PreviewFrequency,
     /// `preview.damping`: its damping ratio.
     PreviewDamping,
+    /// A field of the static output map after the model (`output_map`, protocol v12): the
+    /// dead-zone fields of [`ModelField`], named as the map's own (`output_map.centre`,
+    /// `output_map.thresholds[0]`, …).
+    OutputMap(ModelField),
 }
 
 /// The rule a field broke, with its limit where it has one (in the field's own units).
@@ -340,6 +344,21 @@ impl core::fmt::Display for Field {
             Field::Compensator(m) => return write!(f, "compensator.{m}"),
             Field::Observer(m) => return write!(f, "observer.{m}"),
             Field::Creep(c) => return write!(f, "{c}"),
+            Field::OutputMap(m) => {
+                return match m {
+                    ModelField::DeadZoneCentre => write!(f, "output_map.centre"),
+                    ModelField::DeadZoneLinear => write!(f, "output_map.linear"),
+                    ModelField::DeadZoneThreshold(i) => write!(
+                        f,
+                        "output_map.thresholds[{}]",
+                        (*i as usize).saturating_sub(1)
+                    ),
+                    ModelField::DeadZoneWeight(i) => {
+                        write!(f, "output_map.weights[{}]", (*i as usize).saturating_sub(1))
+                    }
+                    _ => write!(f, "output_map"),
+                };
+            }
             Field::InputRange => "ranges.input",
             Field::OutputRange => "ranges.output",
             Field::Bias => "drive.bias",

@@ -100,6 +100,15 @@ fn request() -> impl Strategy<Value = Request> {
                     frequency_hz: 3_500.0,
                     damping: a0,
                 }),
+                output_map: (a0 < -0.5).then(|| {
+                    twinstack::config::settings::DeadZoneParams::new(
+                        9.5,
+                        1.0,
+                        &[-5.0, 5.0],
+                        &[a0 * 0.1, -0.1],
+                    )
+                    .unwrap()
+                }),
             })
         }),
         prop_oneof![

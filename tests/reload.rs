@@ -106,12 +106,24 @@ prop_compose! {
         drift in proptest::option::of(0.01f64..0.5),
         feedback in proptest::option::of((0.0f64..1.0, 0.0f64..5000.0, 0.01f64..0.5)),
         mode in 0..3u8,
-        shaping_and_preview in (
+        shaping_preview_map in (
             proptest::option::of((500.0f64..20_000.0, 0.3f64..5.0, 0.0f64..1.0)),
             proptest::option::of((300.0f64..40_000.0, 0.005f64..0.5)),
+            proptest::option::of((-0.2f64..0.2, -0.2f64..0.2)),
         ),
     ) -> Settings {
-        let (shaping, preview) = shaping_and_preview;
+        let (shaping, preview, map) = shaping_preview_map;
+        // A map over the output range: one dead zone a side, a third of the half span out.
+        let (out_mid, out_half) = ((ranges.2 + ranges.3) / 2.0, (ranges.3 - ranges.2) / 2.0);
+        let output_map = map.map(|(below, above)| {
+            twinstack::config::settings::DeadZoneParams::new(
+                out_mid,
+                1.0,
+                &[-out_half / 3.0, out_half / 3.0],
+                &[below, above],
+            )
+            .unwrap()
+        });
         let vmax = (vmin + vspan).min(150.0);
         Settings {
             ranges: Scaling::new(ranges.0, ranges.1, ranges.2, ranges.3).unwrap(),
@@ -143,6 +155,7 @@ prop_compose! {
                 frequency_hz,
                 damping,
             }),
+            output_map,
         }
     }
 }

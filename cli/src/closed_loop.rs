@@ -385,6 +385,7 @@ fn settings_observed(
         creep: model.creep.clone(),
         shaping: None,
         preview: None,
+        output_map: None,
     }
 }
 
@@ -496,6 +497,7 @@ pub fn identify_model(rate: f64, options: &ClosedLoopOptions) -> Result<StageMod
         creep: None,
         shaping: None,
         preview: None,
+        output_map: None,
     };
     let config = settings
         .build(&hardware(rate))

@@ -225,6 +225,7 @@ fn excite(options: &DemoOptions, stage: StageConfiguration, ticks: usize) -> Res
         creep: None,
         shaping: None,
         preview: None,
+        output_map: None,
     };
     let config = settings
         .build(&hardware(options.control_rate))
@@ -301,6 +302,7 @@ fn track(
         creep: model.creep.clone(),
         shaping: None,
         preview: None,
+        output_map: None,
     };
     let config = settings
         .build(&hardware(options.control_rate))

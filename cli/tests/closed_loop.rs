@@ -75,6 +75,7 @@ fn settings<D: AnalogDualDac, A: AnalogSensorAdc>(
         creep: None,
         shaping: None,
         preview: None,
+        output_map: None,
     }
 }
 

@@ -168,6 +168,7 @@ pub(crate) fn piezo_settings(board: &ExternalBoard, ki: f64) -> Settings {
         creep: None,
         shaping: None,
         preview: None,
+        output_map: None,
     }
 }
 

@@ -208,6 +208,7 @@ impl ParamFile {
                 creep: model.creep.clone(),
                 shaping: None,
                 preview: None,
+                output_map: None,
             },
             identification,
         }

@@ -194,8 +194,10 @@ pub fn decode(record: &[u8], expected_version: u16) -> Result<&[u8], StoreError>
     Ok(&record[HEADER_LEN..body_end])
 }
 
-/// Payload layout version of the record (version 8: the control rate, the one [`Settings`]
-/// type, and the analog setpoint input's settings ([`StoredRecord::analog`]). Version 8's
+/// Payload layout version of the record (version 9: the control rate, the one [`Settings`]
+/// type, and the analog setpoint input's settings ([`StoredRecord::analog`]). Version 9's
+/// settings end with the optional output map ([`Settings::output_map`]); version 8 lacked it
+/// and is still read, as settings without an output map. Version 8's
 /// settings end with the optional preview ([`Settings::preview`]); version 7 lacked it and
 /// is still read, as settings without a preview, and so are versions 5 and 6. Version 7's
 /// Bouc–Wen model ends with `χ` ([`crate::BoucWenParams::chi`]); versions 4 to 6 are laid out
@@ -209,7 +211,32 @@ pub fn decode(record: &[u8], expected_version: u16) -> Result<&[u8], StoreError>
 /// settings the optional creep operator; version 3 lacked all three, and versions 1 and 2 had
 /// a separate board payload and a wire parameter set: none of them is read, such a
 /// board boots on the defaults and says so).
-pub const RECORD_VERSION: u16 = 8;
+pub const RECORD_VERSION: u16 = 9;
+
+/// The last record version without the output map, still read.
+pub const RECORD_VERSION_WITHOUT_OUTPUT_MAP: u16 = 8;
+
+/// Version 8's payload: the rate, the settings without the output map, the analog input
+/// (read only).
+#[derive(serde::Deserialize)]
+struct RecordV8 {
+    control_rate_hz: u32,
+    settings: crate::config::settings::SettingsWithoutOutputMap,
+    analog: Option<crate::sources::analog_input::AnalogInputConfig>,
+}
+
+/// A version-8 payload as a record without an output map.
+#[inline(never)]
+fn decode_v8(payload: &[u8]) -> Option<StoredRecord> {
+    match postcard::take_from_bytes::<RecordV8>(payload) {
+        Ok((r, [])) => Some(StoredRecord {
+            control_rate_hz: r.control_rate_hz,
+            settings: r.settings.into(),
+            analog: r.analog,
+        }),
+        _ => None,
+    }
+}
 
 /// The last record version without the preview, still read.
 pub const RECORD_VERSION_WITHOUT_PREVIEW: u16 = 7;
@@ -364,7 +391,8 @@ impl StoredRecord {
 
     /// Decodes and checks a record: the envelope, the payload, the control rate, and the
     /// settings and the analog input's on `hardware` at the stored rate (`hardware`'s own rate
-    /// is ignored). A version-6 or -7 record is read as settings without a preview, a version-5
+    /// is ignored). A version-8 record is read as settings without an output map, a version-6
+    /// or -7 record as settings without a preview either, a version-5
     /// record as no analog input either, a version-4 record (before input shaping) as settings
     /// without shaping.
     pub fn decode(record: &[u8], hardware: &Hardware) -> Result<Self, LoadFailure> {
@@ -384,6 +412,7 @@ impl StoredRecord {
             RECORD_VERSION_WITHOUT_ANALOG => decode_v5(payload),
             // Versions 6 and 7: laid out alike but for Bouc–Wen's χ (refused below).
             RECORD_VERSION_WITHOUT_CHI | RECORD_VERSION_WITHOUT_PREVIEW => decode_v7(payload),
+            RECORD_VERSION_WITHOUT_OUTPUT_MAP => decode_v8(payload),
             _ => match postcard::take_from_bytes::<StoredRecord>(payload) {
                 Ok((r, [])) => Some(r),
                 _ => None,
@@ -392,7 +421,7 @@ impl StoredRecord {
         let Some(stored) = stored else {
             return Err(LoadFailure::Settings(SettingsError::Undecodable));
         };
-        if version < RECORD_VERSION && stored.settings.has_bouc_wen() {
+        if version <= RECORD_VERSION_WITHOUT_CHI && stored.settings.has_bouc_wen() {
             return Err(LoadFailure::Settings(SettingsError::BoucWenWithoutChi {
                 version,
             }));
@@ -617,15 +646,15 @@ mod tests {
         let mut s = stored(50_000);
         s.settings.compensator = Some(crate::config::settings::representative_pi(8).unwrap());
         s.settings.mode = crate::config::settings::Mode::OpenLoop;
-        // Version 4's payload is version 8's without the last three bytes (`shaping: None`,
-        // `preview: None`, `analog: None`).
+        // Version 4's payload is version 9's without the last four bytes (`shaping: None`,
+        // `preview: None`, `output_map: None`, `analog: None`).
         let mut payload = [0u8; MAX_PAYLOAD];
         let used = postcard::to_slice(&s, &mut payload).unwrap().len();
-        assert_eq!(payload[used - 3..used], [0, 0, 0], "the trailing Nones");
+        assert_eq!(payload[used - 4..used], [0, 0, 0, 0], "the trailing Nones");
         let mut buf = [0u8; MAX_RECORD];
         let n = encode(
             RECORD_VERSION_WITHOUT_SHAPING,
-            &payload[..used - 3],
+            &payload[..used - 4],
             &mut buf,
         )
         .unwrap();
@@ -636,7 +665,7 @@ mod tests {
         // Version 5 with the byte left off is malformed, not silently shaped.
         let n = encode(
             RECORD_VERSION_WITHOUT_ANALOG,
-            &payload[..used - 3],
+            &payload[..used - 4],
             &mut buf,
         )
         .unwrap();
@@ -656,15 +685,15 @@ mod tests {
     fn a_version_5_record_loads_without_an_analog_input() {
         use crate::sources::analog_input::{AnalogInputConfig, OnFault};
         let mut s = stored(50_000);
-        // Version 5's payload is version 8's without the last two bytes (`preview: None`,
-        // `analog: None`).
+        // Version 5's payload is version 9's without the last three bytes (`preview: None`,
+        // `output_map: None`, `analog: None`).
         let mut payload = [0u8; MAX_PAYLOAD];
         let used = postcard::to_slice(&s, &mut payload).unwrap().len();
-        assert_eq!(payload[used - 2..used], [0, 0], "the trailing Nones");
+        assert_eq!(payload[used - 3..used], [0, 0, 0], "the trailing Nones");
         let mut buf = [0u8; MAX_RECORD];
         let n = encode(
             RECORD_VERSION_WITHOUT_ANALOG,
-            &payload[..used - 2],
+            &payload[..used - 3],
             &mut buf,
         )
         .unwrap();
@@ -673,7 +702,7 @@ mod tests {
             (s.clone(), ParamSource::Stored)
         );
         // The present version without the bytes is malformed.
-        let n = encode(RECORD_VERSION, &payload[..used - 2], &mut buf).unwrap();
+        let n = encode(RECORD_VERSION, &payload[..used - 3], &mut buf).unwrap();
         assert_eq!(load_record(&buf[..n], &HW).1.as_str(), "bad-settings");
         let analog = AnalogInputConfig {
             gain: 2.0,
@@ -715,11 +744,11 @@ mod tests {
         });
         let mut payload = [0u8; MAX_PAYLOAD];
         let used = postcard::to_slice(&s, &mut payload).unwrap().len();
-        assert_eq!(payload[used - 2..used], [0, 0], "the trailing Nones");
+        assert_eq!(payload[used - 3..used], [0, 0, 0], "the trailing Nones");
         let mut buf = [0u8; MAX_RECORD];
         let n = encode(
             RECORD_VERSION_WITHOUT_PREVIEW,
-            &payload[..used - 1],
+            &payload[..used - 2],
             &mut buf,
         )
         .unwrap();
@@ -727,8 +756,10 @@ mod tests {
             load_record(&buf[..n], &HW),
             (s.clone(), ParamSource::Stored)
         );
-        // The present version without the byte is malformed, not read without a preview.
-        let n = encode(RECORD_VERSION, &payload[..used - 1], &mut buf).unwrap();
+        // Version 7's payload is version 9's without `preview: None` and `output_map: None`
+        // (zeros before the last, `analog: None`). The present version without the bytes is
+        // malformed, not read without a preview.
+        let n = encode(RECORD_VERSION, &payload[..used - 2], &mut buf).unwrap();
         assert_eq!(load_record(&buf[..n], &HW).1.as_str(), "bad-settings");
         s.settings.preview = Some(crate::control::preview::PreviewDesign {
             frequency_hz: 3_500.0,
@@ -751,6 +782,50 @@ mod tests {
         assert_eq!(source.as_str(), "bad-settings");
     }
 
+    /// A record stored before the output map (version 8) still loads, as settings without
+    /// one, and so does its Bouc–Wen model (laid out as today's, `χ` included); a record with
+    /// an output map round-trips, and one whose map is not invertible is refused.
+    #[test]
+    fn a_version_8_record_loads_without_an_output_map() {
+        use crate::config::settings::{representative_bouc_wen, DeadZoneParams, Mode};
+        let mut s = stored(50_000);
+        s.settings.compensator = Some(representative_bouc_wen());
+        s.settings.observer = Some(representative_bouc_wen());
+        s.settings.mode = Mode::OpenLoop;
+        let mut payload = [0u8; MAX_PAYLOAD];
+        let used = postcard::to_slice(&s, &mut payload).unwrap().len();
+        assert_eq!(payload[used - 2..used], [0, 0], "the trailing Nones");
+        // Version 8's payload is version 9's without `output_map: None` (zero, before
+        // `analog: None`).
+        let mut buf = [0u8; MAX_RECORD];
+        let n = encode(
+            RECORD_VERSION_WITHOUT_OUTPUT_MAP,
+            &payload[..used - 1],
+            &mut buf,
+        )
+        .unwrap();
+        assert_eq!(
+            load_record(&buf[..n], &HW),
+            (s.clone(), ParamSource::Stored)
+        );
+        // The present version without the byte is malformed, not read without a map.
+        let n = encode(RECORD_VERSION, &payload[..used - 1], &mut buf).unwrap();
+        assert_eq!(load_record(&buf[..n], &HW).1.as_str(), "bad-settings");
+        s.settings.output_map =
+            Some(DeadZoneParams::new(35.0, 1.0, &[-20.0, 20.0], &[0.05, -0.05]).unwrap());
+        let (buf, n) = record_of(&s);
+        assert_eq!(
+            load_record(&buf[..n], &HW),
+            (s.clone(), ParamSource::Stored)
+        );
+        // A map whose slope falls to zero has no inverse: the board boots on the defaults.
+        s.settings.output_map = Some(DeadZoneParams::new(35.0, 1.0, &[20.0], &[-1.0]).unwrap());
+        let (buf, n) = record_of(&s);
+        let (record, source) = load_record(&buf[..n], &HW);
+        assert_eq!(record, StoredRecord::default());
+        assert_eq!(source.as_str(), "bad-settings");
+    }
+
     /// A version-6 record (Bouc–Wen without `χ`) still loads where neither model is
     /// Bouc–Wen; one holding a Bouc–Wen model is refused by name, not read shifted.
     #[test]
@@ -762,9 +837,9 @@ mod tests {
         let mut payload = [0u8; MAX_PAYLOAD];
         let used = postcard::to_slice(&s, &mut payload).unwrap().len();
         let mut buf = [0u8; MAX_RECORD];
-        // Version 6's payload is version 8's without `preview: None` (the byte before the
-        // last, both 0 here).
-        let n = encode(RECORD_VERSION_WITHOUT_CHI, &payload[..used - 1], &mut buf).unwrap();
+        // Version 6's payload is version 9's without `preview: None` and `output_map: None`
+        // (the bytes before the last, all 0 here).
+        let n = encode(RECORD_VERSION_WITHOUT_CHI, &payload[..used - 2], &mut buf).unwrap();
         assert_eq!(
             load_record(&buf[..n], &HW),
             (s.clone(), ParamSource::Stored)
@@ -788,15 +863,15 @@ mod tests {
         let mut old = [0u8; MAX_PAYLOAD];
         old[..at].copy_from_slice(&payload[..at]);
         old[at..used - chi].copy_from_slice(&payload[at + chi..used]);
-        let n = encode(RECORD_VERSION_WITHOUT_CHI, &old[..used - chi - 1], &mut buf).unwrap();
+        let n = encode(RECORD_VERSION_WITHOUT_CHI, &old[..used - chi - 2], &mut buf).unwrap();
         let (record, source) = load_record(&buf[..n], &HW);
         assert_eq!(record, StoredRecord::default());
         assert_eq!(source.as_str(), "bad-settings");
         // Where the shifted bytes happen to decode, the Bouc–Wen model in an old layout is
         // refused by name: the present layout's bytes labelled version 6.
-        // Version 6's payload is version 8's without `preview: None` (the byte before the
-        // last, both 0 here).
-        let n = encode(RECORD_VERSION_WITHOUT_CHI, &payload[..used - 1], &mut buf).unwrap();
+        // Version 6's payload is version 9's without `preview: None` and `output_map: None`
+        // (the bytes before the last, all 0 here).
+        let n = encode(RECORD_VERSION_WITHOUT_CHI, &payload[..used - 2], &mut buf).unwrap();
         let (record, source) = load_record(&buf[..n], &HW);
         assert_eq!(record, StoredRecord::default());
         assert_eq!(

@@ -34,6 +34,8 @@ use crate::models::duhem::{Duhem, InverseDuhem};
 use crate::models::generalised_pi::{
     GeneralisedPi, GpiParams, InverseGeneralisedPi, MAX_DEAD_ZONES,
 };
+pub use crate::models::output_map::DeadZoneParams;
+use crate::models::output_map::OutputMap;
 use crate::models::params::{
     BoucWenCoefficient, BoucWenParams, DuhemParams, ParamError, PiParams, MAX_OPERATORS,
 };
@@ -99,6 +101,33 @@ pub struct Settings {
     /// measures the resonance. `None` (and absent from older parameter files): no preview.
     #[serde(default)]
     pub preview: Option<PreviewDesign>,
+    /// A static output map after the hysteresis model, before the creep
+    /// ([`crate::models::output_map`]): a monotone dead-zone map in output units, for what
+    /// bends every branch alike (a flexure's stiffening, a lever, a sensor's curve). The
+    /// compensator runs its inverse before the inverse model (`setpoint → C⁻¹ → S⁻¹ → H⁻¹`),
+    /// the observer runs it after the model (`drive → H → S → C`); not applied without a
+    /// model. `None` (and absent from older parameter files): no map.
+    #[serde(default)]
+    pub output_map: Option<DeadZoneParams>,
+}
+
+/// [`Settings`] as it was laid out before the output map (every field but the last,
+/// `output_map`): what flash records of version 8 and golden vector sets of format 6 hold.
+/// Read only, into [`Settings`] without an output map.
+#[derive(Clone, Debug, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SettingsWithoutOutputMap {
+    before_preview: SettingsWithoutPreview,
+    preview: Option<PreviewDesign>,
+}
+
+impl From<SettingsWithoutOutputMap> for Settings {
+    fn from(s: SettingsWithoutOutputMap) -> Self {
+        Self {
+            preview: s.preview,
+            ..Settings::from(s.before_preview)
+        }
+    }
 }
 
 /// [`Settings`] as it was laid out before the preview (every field but the last,
@@ -128,6 +157,7 @@ impl From<SettingsWithoutPreview> for Settings {
             creep: b.creep,
             shaping: s.shaping,
             preview: None,
+            output_map: None,
         }
     }
 }
@@ -183,6 +213,7 @@ impl Default for Settings {
             creep: None,
             shaping: None,
             preview: None,
+            output_map: None,
         }
     }
 }
@@ -288,6 +319,12 @@ impl Settings {
             ),
             None => None,
         };
+        let output_map = match &self.output_map {
+            Some(m) => {
+                Some(OutputMap::new(m, &ranges).map_err(|e| model_refusal(Field::OutputMap, e))?)
+            }
+            None => None,
+        };
         self.check_mode(self.mode)?;
         let config = ControlConfig {
             compensator,
@@ -297,6 +334,7 @@ impl Settings {
             drive,
             mode: self.mode,
             creep,
+            output_map,
             shaping,
             preview,
         };
@@ -349,15 +387,7 @@ impl Settings {
                 }
                 Some(Model::GeneralisedPi(p)) => {
                     check_pi_finite(field, &p.pi)?;
-                    let d = &p.dead_zones;
-                    finite(field(ModelField::DeadZoneCentre), d.centre)?;
-                    finite(field(ModelField::DeadZoneLinear), d.linear)?;
-                    for (i, &x) in d.thresholds.iter().enumerate() {
-                        finite(field(ModelField::DeadZoneThreshold(i as u8 + 1)), x)?;
-                    }
-                    for (i, &x) in d.weights.iter().enumerate() {
-                        finite(field(ModelField::DeadZoneWeight(i as u8 + 1)), x)?;
-                    }
+                    check_map_finite(field, &p.dead_zones)?;
                 }
                 Some(Model::BoucWen(p)) => {
                     finite(field(ModelField::K), p.k)?;
@@ -404,6 +434,9 @@ impl Settings {
             finite(Field::PreviewFrequency, p.frequency_hz)?;
             finite(Field::PreviewDamping, p.damping)?;
         }
+        if let Some(m) = &self.output_map {
+            check_map_finite(Field::OutputMap, m)?;
+        }
         if let Some(c) = &self.creep {
             for (i, &x) in c.time_constants_s.iter().enumerate() {
                 finite(Field::Creep(CreepField::TimeConstant(i as u8 + 1)), x)?;
@@ -414,6 +447,19 @@ impl Settings {
         }
         Ok(())
     }
+}
+
+/// Every float of a dead-zone map is finite, or the first that is not is named.
+fn check_map_finite(field: fn(ModelField) -> Field, d: &DeadZoneParams) -> Result<(), Refusal> {
+    finite(field(ModelField::DeadZoneCentre), d.centre)?;
+    finite(field(ModelField::DeadZoneLinear), d.linear)?;
+    for (i, &x) in d.thresholds.iter().enumerate() {
+        finite(field(ModelField::DeadZoneThreshold(i as u8 + 1)), x)?;
+    }
+    for (i, &x) in d.weights.iter().enumerate() {
+        finite(field(ModelField::DeadZoneWeight(i as u8 + 1)), x)?;
+    }
+    Ok(())
 }
 
 /// Every float of a P–I model is finite, or the first that is not is named.
@@ -621,6 +667,18 @@ pub fn representative_bouc_wen() -> Model {
         psi: 0.006,
         chi: 0.0,
     })
+}
+
+/// The representative output map, over the default 0…70 µm: a flexure's stiffening, the
+/// slope 1 about the middle (35 µm) and 6 % flatter toward either end, in three dead zones a
+/// side (±10, ±20 and ±30 µm).
+pub fn representative_output_map() -> DeadZoneParams {
+    DeadZoneParams {
+        centre: 35.0,
+        linear: 1.0,
+        thresholds: Vec::from_slice(&[-30.0, -20.0, -10.0, 10.0, 20.0, 30.0]).unwrap_or_default(),
+        weights: Vec::from_slice(&[-0.03, -0.02, -0.01, -0.01, -0.02, -0.03]).unwrap_or_default(),
+    }
 }
 
 #[cfg(test)]
@@ -834,7 +892,8 @@ mod tests {
     }
 
     /// The largest settings the wire carries (two generalised P–I models of 32 operators and
-    /// 8 dead zones, a notch) still fit one frame's body and the flash record.
+    /// 8 dead zones, both notches, the preview, an output map of 8 dead zones) still fit one
+    /// frame's body and the flash record.
     #[test]
     fn the_largest_generalised_pi_settings_fit_a_frame() {
         let Model::GeneralisedPi(mut g) = representative_gpi(32).unwrap() else {
@@ -865,6 +924,15 @@ mod tests {
             frequency_hz: 21_807.0,
             damping: 0.0173,
         });
+        s.output_map = Some(
+            DeadZoneParams::new(
+                35.0,
+                1.0,
+                &[-30.0, -20.0, -12.0, -4.0, 4.0, 12.0, 20.0, 30.0],
+                &[-0.01, -0.01, -0.01, -0.01, -0.01, -0.01, -0.02, -0.03],
+            )
+            .unwrap(),
+        );
         assert!(s.build(&hw()).is_ok());
         let mut buf = [0u8; 4096];
         let n = postcard::to_slice(&s, &mut buf).unwrap().len();

@@ -310,7 +310,7 @@ pub struct DeadZoneBank {
 
 impl DeadZoneBank {
     /// The fixed-point form of a normalised map (range-checked first).
-    fn from_normalized(n: &DeadZoneParams) -> Result<Self, ParamError> {
+    pub(crate) fn from_normalized(n: &DeadZoneParams) -> Result<Self, ParamError> {
         n.check_fixed_point_range()?;
         let len = n.thresholds.len().min(MAX_DEAD_ZONES);
         let centre = signal_from_f64(n.centre);

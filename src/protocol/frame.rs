@@ -47,11 +47,14 @@ use serde::{Deserialize, Serialize};
 /// (the settings' encoding changed, so versions 9 and 10 refuse each other's frames).
 /// Version 11: the settings end with the optional preview (`preview: Option<PreviewDesign>`)
 /// and the `Field`s `PreviewFrequency`, `PreviewDamping` were appended (the settings'
-/// encoding changed again).
-pub const PROTOCOL_VERSION: u8 = 11;
+/// encoding changed again). Version 12: the settings end with the optional static output
+/// map after the model (`output_map: Option<DeadZoneParams>`) and the `Field` `OutputMap`
+/// was appended; a body may be 1 728 bytes (the largest settings with an output map).
+pub const PROTOCOL_VERSION: u8 = 12;
 /// Largest frame body (version + message + CRC), bytes: a load of the largest settings (two
-/// generalised P–I models of 32 operators and 8 dead zones, both notches) fits.
-pub const MAX_BODY: usize = 1568;
+/// generalised P–I models of 32 operators and 8 dead zones, both notches, the preview and an
+/// output map of 8 dead zones) fits.
+pub const MAX_BODY: usize = 1728;
 /// Largest frame on the wire, delimiter excluded: the stuffed [`MAX_BODY`]. The sender refuses
 /// a body longer than [`MAX_BODY`] ([`FrameError::TooLarge`]), the receiver a frame longer than
 /// this ([`FrameError::Oversize`]).

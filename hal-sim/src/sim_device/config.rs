@@ -121,6 +121,7 @@ impl SimDeviceConfig {
             creep: None,
             shaping: None,
             preview: None,
+            output_map: None,
         }
     }
 }

@@ -245,6 +245,7 @@ pub fn definitions(dir: &Path) -> anyhow::Result<Vec<SetDefinition>> {
                 creep: set.creep,
                 shaping: None,
                 preview: set.preview,
+                output_map: None,
             },
         },
         truth: set.truth,
