@@ -253,6 +253,8 @@ pub enum Rule {
         /// Cycles the control rate leaves the tick.
         available: u32,
     },
+    /// Takes no output map (protocol v12): a model other than Bouc–Wen with `output_map` set.
+    NoOutputMap,
 }
 
 /// A refusal: the field and the rule it broke. Nothing was applied.
@@ -448,6 +450,10 @@ impl core::fmt::Display for Rule {
                 "is not homed (home it first: power-up and faults unhome it)"
             ),
             Rule::LimitSwitch => write!(f, "would run into an active limit switch"),
+            Rule::NoOutputMap => write!(
+                f,
+                "takes no output_map (Bouc–Wen does; the generalised P–I is the P–I with one)"
+            ),
             Rule::TickOverrun { needs, available } => write!(
                 f,
                 "need {needs} cycles per tick, more than the {available} the control rate leaves \

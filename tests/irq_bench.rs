@@ -202,7 +202,7 @@ fn part_of(file: &str) -> Part {
     let name = file.rsplit('/').next().unwrap_or(file);
     match name {
         "prandtl_ishlinskii.rs" | "play_operator.rs" => Part::PlayOperators,
-        "generalised_pi.rs" => Part::DeadZones,
+        "generalised_pi.rs" | "output_map.rs" => Part::DeadZones,
         "creep.rs" => Part::Creep,
         "duhem.rs" => Part::Duhem,
         "bouc_wen.rs" => Part::BoucWen,

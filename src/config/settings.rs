@@ -105,8 +105,10 @@ pub struct Settings {
     /// ([`crate::models::output_map`]): a monotone dead-zone map in output units, for what
     /// bends every branch alike (a flexure's stiffening, a lever, a sensor's curve). The
     /// compensator runs its inverse before the inverse model (`setpoint → C⁻¹ → S⁻¹ → H⁻¹`),
-    /// the observer runs it after the model (`drive → H → S → C`); not applied without a
-    /// model. `None` (and absent from older parameter files): no map.
+    /// the observer runs it after the model (`drive → H → S → C`). Taken by the Bouc–Wen
+    /// model (compensator and observer); refused with another model ([`Rule::NoOutputMap`]:
+    /// the generalised P–I has its own, and is the P–I with one). `None` (and absent from
+    /// older parameter files): no map.
     #[serde(default)]
     pub output_map: Option<DeadZoneParams>,
 }
@@ -247,6 +249,21 @@ impl Settings {
             self.ranges.output_max,
         )
         .map_err(|e| model_refusal(Field::Compensator, e.into()))?;
+        // The output map, for the models that take one (Bouc–Wen's), before either is built.
+        let output_map = match &self.output_map {
+            Some(m) => {
+                Some(OutputMap::new(m, &ranges).map_err(|e| model_refusal(Field::OutputMap, e))?)
+            }
+            None => None,
+        };
+        for (model, field) in [
+            (&self.compensator, Field::Compensator(ModelField::Model)),
+            (&self.observer, Field::Observer(ModelField::Model)),
+        ] {
+            if output_map.is_some() && matches!(model, Some(m) if !matches!(m, Model::BoucWen(_))) {
+                return Err(Refusal::new(field, Rule::NoOutputMap));
+            }
+        }
         // The compensator first: "not invertible" says more than a range error would.
         let compensator = match &self.compensator {
             None => Compensator::None,
@@ -263,7 +280,8 @@ impl Settings {
             ),
             Some(Model::BoucWen(p)) => Compensator::InverseBoucWen(
                 InverseBoucWen::new(p, &ranges)
-                    .map_err(|e| model_refusal(Field::Compensator, e))?,
+                    .map_err(|e| model_refusal(Field::Compensator, e))?
+                    .with_output_map(output_map.as_ref()),
             ),
         };
         let observer = match &self.observer {
@@ -279,7 +297,9 @@ impl Settings {
                 GeneralisedPi::new(p, &ranges).map_err(|e| model_refusal(Field::Observer, e))?,
             ),
             Some(Model::BoucWen(p)) => Observer::BoucWen(
-                BoucWen::new(p, &ranges).map_err(|e| model_refusal(Field::Observer, e))?,
+                BoucWen::new(p, &ranges)
+                    .map_err(|e| model_refusal(Field::Observer, e))?
+                    .with_output_map(output_map.as_ref()),
             ),
         };
         let drive = self.drive.build(hw, &ranges)?;
@@ -319,12 +339,6 @@ impl Settings {
             ),
             None => None,
         };
-        let output_map = match &self.output_map {
-            Some(m) => {
-                Some(OutputMap::new(m, &ranges).map_err(|e| model_refusal(Field::OutputMap, e))?)
-            }
-            None => None,
-        };
         self.check_mode(self.mode)?;
         let config = ControlConfig {
             compensator,
@@ -334,7 +348,6 @@ impl Settings {
             drive,
             mode: self.mode,
             creep,
-            output_map,
             shaping,
             preview,
         };
@@ -892,8 +905,8 @@ mod tests {
     }
 
     /// The largest settings the wire carries (two generalised P–I models of 32 operators and
-    /// 8 dead zones, both notches, the preview, an output map of 8 dead zones) still fit one
-    /// frame's body and the flash record.
+    /// 8 dead zones, both notches, the preview, and an output map of 8 dead zones, which the
+    /// board refuses with them by name) still fit one frame's body and the flash record.
     #[test]
     fn the_largest_generalised_pi_settings_fit_a_frame() {
         let Model::GeneralisedPi(mut g) = representative_gpi(32).unwrap() else {
@@ -933,7 +946,18 @@ mod tests {
             )
             .unwrap(),
         );
-        assert!(s.build(&hw()).is_ok());
+        // A generalised P–I takes no output map (it has its own): refused by name, on the
+        // board too, since the frame carries it.
+        assert_eq!(
+            s.build(&hw()).unwrap_err(),
+            Refusal::new(Field::Compensator(ModelField::Model), Rule::NoOutputMap)
+        );
+        assert!(Settings {
+            output_map: None,
+            ..s.clone()
+        }
+        .build(&hw())
+        .is_ok());
         let mut buf = [0u8; 4096];
         let n = postcard::to_slice(&s, &mut buf).unwrap().len();
         // Version byte, message tag and CRC around it.

@@ -150,13 +150,15 @@ pub fn highest_rate_hz(cycles: u32) -> f64 {
 
 /// The predicted worst case of the control interrupt itself running `config`, cycles at 5
 /// flash wait states: the fixed part, the compensator (each model declares its own cost)
-/// with its creep and output map in series, the feedback's derivative and notch, input shaping, the preview. The observer
+/// with its creep in series, the feedback's derivative and notch, input shaping, the preview. The observer
 /// runs below the tick ([`observer_below_cycles`]).
 pub fn interrupt_cycles(config: &ControlConfig) -> u32 {
     let mut cycles = FIXED_CYCLES + config.compensator.cycles();
-    if !matches!(config.compensator, Compensator::None) {
-        cycles += config.creep.as_ref().map_or(0, |c| c.cycles());
-        cycles += config.output_map.as_ref().map_or(0, |m| m.cycles());
+    if let (Some(creep), false) = (
+        &config.creep,
+        matches!(config.compensator, Compensator::None),
+    ) {
+        cycles += creep.cycles();
     }
     if let Some(feedback) = &config.feedback {
         if feedback.derivative.is_some() {
@@ -184,7 +186,6 @@ pub fn observer_below_cycles(config: &ControlConfig) -> u32 {
     }
     config.observer.cycles()
         + config.creep.as_ref().map_or(0, |c| c.cycles())
-        + config.output_map.as_ref().map_or(0, |m| m.cycles())
         + OBSERVER_BELOW_CYCLES
 }
 

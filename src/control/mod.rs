@@ -49,8 +49,6 @@ use crate::control::preview::{Preview, PreviewLine};
 pub use crate::control::sensor::Sensor;
 use crate::fixed_point::clamp_full_scale;
 use crate::models::creep::Creep;
-use crate::models::dispatch::Series;
-use crate::models::output_map::OutputMap;
 pub use crate::models::{Compensator, Observer};
 use crate::models::{CompensatorRun, ObserverRun};
 
@@ -89,10 +87,6 @@ pub struct ControlConfig {
     /// The stage's creep, in series after the hysteresis: inverted before the compensator's
     /// model, run after the observer's (not applied where there is no model).
     pub creep: Option<Creep>,
-    /// A static output map between the hysteresis and the creep: inverted before the
-    /// compensator's model, run after the observer's (not applied where there is no model;
-    /// [`crate::models::output_map`]).
-    pub output_map: Option<OutputMap>,
     /// Input shaping: a notch on the feedforward (the compensator's output plus the learned
     /// correction), before the range and slew limits, in every mode but bypass, so that the
     /// drive does not excite the stage's resonance ([`crate::config::settings::Settings::shaping`]).
@@ -101,16 +95,6 @@ pub struct ControlConfig {
     /// the feedback aiming at the setpoint itself, [`preview::PREVIEW_DELAY_TICKS`] ticks late
     /// ([`crate::control::preview`]; [`crate::config::settings::Settings::preview`]).
     pub preview: Option<Preview>,
-}
-
-impl ControlConfig {
-    /// What runs in series with the model, whichever it is: the creep and the output map.
-    pub fn series(&self) -> Series {
-        Series {
-            creep: self.creep,
-            map: self.output_map,
-        }
-    }
 }
 
 /// Bit flags of what happened in one tick.
@@ -346,15 +330,11 @@ impl Controller {
         // observer puts the stage. With creep, its modes settled where the models are relaxed:
         // at the observer's output (which is also the setpoint), so it passes that through.
         let rest = d.rest();
-        let (observer, y) = config.observer.prepare(config.series(), drive, rest);
+        let (observer, y) = config.observer.prepare(config.creep, drive, rest);
         let compensator = config
             .compensator
-            .prepare(&observer, config.series(), drive, y, rest);
-        let at_rest = config.observer.output_at_rest(d.rest_drive(), rest);
-        let rest_setpoint = match (&config.output_map, &config.observer) {
-            (Some(m), o) if !matches!(o, Observer::None) => m.forward(at_rest),
-            _ => at_rest,
-        };
+            .prepare(&observer, config.creep, drive, y, rest);
+        let rest_setpoint = config.observer.output_at_rest(d.rest_drive(), rest);
         // The observer runs below the tick ([`crate::services::observer`]): this one prepared
         // the compensator's state and is handed out for it, relaxed once.
         *self = Self {

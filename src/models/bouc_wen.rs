@@ -61,6 +61,8 @@ use crate::fixed_point::{
     clamp_full_scale, gain_from_f64, q60_to_signal_floor, saturate_i64, signal_from_f64,
     FULL_SCALE_MAX, GAIN_FRAC_BITS, SIGNAL_FRAC_BITS,
 };
+use crate::models::generalised_pi::{DeadZoneBank, DEAD_ZONE_MAP_CYCLES};
+use crate::models::output_map::OutputMap;
 use crate::models::params::{
     BoucWenCoefficient, BoucWenParams, ParamError, BOUC_WEN_MAX_INVERSE_LOOP_GAIN,
 };
@@ -93,6 +95,9 @@ pub struct BoucWen {
     rates: [RelaxationRate; 4],
     /// `1/A`, `f32` bits (0 for `A = 0`, where `h` never crosses zero).
     a_reciprocal: u32,
+    /// The static output map `S` after the model, if any ([`crate::models::output_map`]): the
+    /// model's output is `S(k·u + δ + h)`.
+    map: Option<DeadZoneBank>,
 }
 
 impl BoucWen {
@@ -122,7 +127,22 @@ impl BoucWen {
             a,
             a_reciprocal: if a == 0 { 0.0f32 } else { 1.0 / a_f32 }.to_bits(),
             rates: n.factors().map(rate),
+            map: None,
         })
+    }
+
+    /// The same model followed by the static output map `map` (`None`: none): its output is
+    /// `S(k·u + δ + h)` ([`crate::models::output_map`]). Off the tick.
+    pub fn with_output_map(self, map: Option<&OutputMap>) -> Self {
+        Self {
+            map: map.map(|m| *m.forward_bank()),
+            ..self
+        }
+    }
+
+    /// Whether an output map follows the model.
+    pub fn has_output_map(&self) -> bool {
+        self.map.is_some()
     }
 
     /// The relaxed state at input `u` (Q2.30 normalised): `h = 0`, the output on the line
@@ -144,7 +164,8 @@ impl BoucWen {
         state
     }
 
-    /// The output in `state`: `k·u + δ + h`, Q2.30 normalised, saturated.
+    /// The model's own output in `state`, before any output map: `k·u + δ + h`, Q2.30
+    /// normalised, saturated.
     #[inline(always)]
     pub fn output(&self, state: &BoucWenState) -> i32 {
         // |k·u| < 2^31·2^31 before the shift; the sum of three Q2.30 terms fits i64.
@@ -245,12 +266,23 @@ impl BoucWen {
             * magnitude(f32::from_bits(self.a_reciprocal))
     }
 
+    /// The output in `state`, the output map applied where there is one (Q2.30 normalised,
+    /// saturated).
+    #[inline(always)]
+    pub fn mapped_output(&self, state: &BoucWenState) -> i32 {
+        let z = self.output(state);
+        match &self.map {
+            Some(m) => m.apply(z),
+            None => z,
+        }
+    }
+
     /// One sample: input `u` (Q2.30 normalised drive, clamped to full scale) → estimated
-    /// displacement (Q2.30 normalised, saturated).
+    /// displacement (Q2.30 normalised, saturated), through the output map where there is one.
     #[inline(always)]
     pub fn step(&self, state: &mut BoucWenState, u: i32) -> i32 {
         self.advance(state, u);
-        self.output(state)
+        self.mapped_output(state)
     }
 }
 
@@ -268,6 +300,9 @@ pub struct InverseBoucWen {
     /// The largest drive step per sample for each rate: `0.99/c` ([`STEP_CAP`]), below 2,
     /// `f32` bits.
     max_steps: [u32; 4],
+    /// The output map's inverse `S⁻¹`, run on the desired displacement before the model's
+    /// inverse, where the model has a map.
+    inverse_map: Option<DeadZoneBank>,
 }
 
 impl InverseBoucWen {
@@ -308,7 +343,19 @@ impl InverseBoucWen {
             max_steps: model
                 .rates
                 .map(|r| (STEP_CAP * r.reciprocal()).min(below_two).to_bits()),
+            inverse_map: None,
         })
+    }
+
+    /// The compensator of the model followed by the output map `map` (`None`: none): the
+    /// map's inverse runs on the desired displacement first (`y → S⁻¹ → H⁻¹`), and its own
+    /// model carries the map (so that it matches an observer with the same). Off the tick.
+    pub fn with_output_map(self, map: Option<&OutputMap>) -> Self {
+        Self {
+            model: self.model.with_output_map(map),
+            inverse_map: map.map(|m| *m.inverse_bank()),
+            ..self
+        }
     }
 
     /// The forward model the compensator inverts (its observer).
@@ -322,6 +369,11 @@ impl InverseBoucWen {
     #[inline(always)]
     pub fn step(&self, state: &mut BoucWenState, y_desired: i32) -> i32 {
         let m = &self.model;
+        // Through the output map's inverse: what the model itself is to give.
+        let y_desired = match &self.inverse_map {
+            Some(map) => map.apply(clamp_full_scale(y_desired)),
+            None => y_desired,
+        };
         // Q2.30 in i64: |y_d| ≤ 1 and the model's output is saturated, so |r| < 3·2^30.
         let r = clamp_full_scale(y_desired) as i64 - m.output(state) as i64;
         if r == 0 {
@@ -399,7 +451,7 @@ impl Hysteresis for BoucWen {
     }
 
     fn cycles(&self) -> u32 {
-        BOUC_WEN_CYCLES
+        BOUC_WEN_CYCLES + self.map.map_or(0, |_| DEAD_ZONE_MAP_CYCLES)
     }
 }
 
@@ -410,7 +462,7 @@ impl Forward for BoucWen {
             Rest::Ascending => self.state_at_rest(u),
             Rest::Relaxed => BoucWen::relaxed(self, u),
         };
-        (s, self.output(&s))
+        (s, self.mapped_output(&s))
     }
 }
 
@@ -423,7 +475,7 @@ impl Hysteresis for InverseBoucWen {
     }
 
     fn cycles(&self) -> u32 {
-        INVERSE_BOUC_WEN_CYCLES
+        INVERSE_BOUC_WEN_CYCLES + self.inverse_map.map_or(0, |_| DEAD_ZONE_MAP_CYCLES)
     }
 }
 
@@ -472,6 +524,68 @@ mod tests {
             psi: 0.006,
             chi: 0.002,
         }
+    }
+
+    /// With an output map, the observer's output is the map of the model's, the compensator
+    /// runs the map's inverse on the desired displacement first and then what it ran without
+    /// it, its own model carries the map (so it matches an observer with the same, and not
+    /// one without), and each declares the map's cost.
+    #[test]
+    fn an_output_map_follows_the_model_and_its_inverse_comes_first() {
+        use crate::models::output_map::DeadZoneParams;
+        let s = scaling();
+        let params = DeadZoneParams::new(
+            35.0,
+            1.02,
+            &[-30.0, -15.0, 15.0, 30.0],
+            &[-0.03, -0.02, -0.02, -0.04],
+        )
+        .unwrap();
+        let map = OutputMap::new(&params, &s).unwrap();
+        let plain = BoucWen::new(&asymmetric(), &s).unwrap();
+        let mapped = plain.with_output_map(Some(&map));
+        assert!(mapped.has_output_map() && !plain.has_output_map());
+        assert_eq!(
+            Hysteresis::cycles(&mapped),
+            Hysteresis::cycles(&plain) + DEAD_ZONE_MAP_CYCLES
+        );
+        let inverse = InverseBoucWen::new(&asymmetric(), &s).unwrap();
+        let inverse_mapped = inverse.with_output_map(Some(&map));
+        assert_eq!(inverse_mapped.model(), &mapped);
+        assert_eq!(
+            Hysteresis::cycles(&inverse_mapped),
+            Hysteresis::cycles(&inverse) + DEAD_ZONE_MAP_CYCLES
+        );
+        let (mut a, y0) = Forward::at_rest(&mapped, q(-0.3), Rest::Ascending);
+        let (mut b, z0) = Forward::at_rest(&plain, q(-0.3), Rest::Ascending);
+        assert_eq!((a, y0), (b, map.forward(z0)));
+        let mut c = Inverse::at_rest(&inverse_mapped, q(-0.3), y0, Rest::Ascending);
+        let mut d = c;
+        let mut next = uniform(7);
+        let mut bent = false;
+        for k in 0..3000 {
+            let u = q(2.0 * next() - 1.0);
+            assert_eq!(
+                mapped.step(&mut a, u),
+                map.forward(plain.step(&mut b, u)),
+                "{k}"
+            );
+            let y = q(1.8 * next() - 0.9);
+            let target = map.inverse(y);
+            bent |= target != y;
+            let drive = inverse_mapped.step(&mut c, y);
+            assert_eq!(drive, inverse.step(&mut d, target), "{k}");
+            assert_eq!(c, d, "{k}");
+        }
+        assert!(bent, "the map bends the targets");
+        // The compensator's state carries over from an observer with the same map only.
+        let state = BoucWenState {
+            u: q(0.1),
+            h: q(0.02),
+        };
+        assert_eq!(inverse_mapped.matching(&mapped, &state), Some(state));
+        assert_eq!(inverse_mapped.matching(&plain, &state), None);
+        assert_eq!(inverse.matching(&mapped, &state), None);
     }
 
     /// At rest is on the major loop's ascending branch, as the board prepares it: one more

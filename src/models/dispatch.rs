@@ -5,11 +5,9 @@
 //!
 //! The configuration's enums ([`Compensator`], [`Observer`]) hold the models; the tick's
 //! ([`InverseRun`], [`ForwardRun`]) hold each model with its state ([`Running`]), one tag per
-//! tick. The stage's creep and a static output map ([`OutputMap`]) are composed in series by
-//! a wrapper, once for every model: the compensator ([`CompensatorRun`]) runs the inverse
-//! creep, where the configuration has one, then the inverse map, where it has one, then the
-//! inverse model; the observer ([`ObserverRun`]) the forward model, then the map, then the
-//! creep.
+//! tick. The stage's creep is composed in series by a wrapper, once for every model: the
+//! compensator ([`CompensatorRun`]) runs the inverse creep, where the configuration has one,
+//! then the inverse model; the observer ([`ObserverRun`]) the forward model, then the creep.
 //! A model is written once, and the creep's step once in the tick (written out into each
 //! model's variant, it cost the board image about 1 KiB of flash).
 
@@ -17,7 +15,6 @@ use crate::models::bouc_wen::{BoucWen, InverseBoucWen};
 use crate::models::creep::{Creep, InverseCreep};
 use crate::models::duhem::{Duhem, InverseDuhem};
 use crate::models::generalised_pi::{GeneralisedPi, InverseGeneralisedPi};
-use crate::models::output_map::OutputMap;
 use crate::models::prandtl_ishlinskii::{InversePrandtlIshlinskii, PrandtlIshlinskii};
 use crate::models::{Forward, Hysteresis, Inverse, Rest, Running};
 
@@ -89,47 +86,29 @@ pub enum ForwardRun {
 }
 
 /// The compensator as the tick runs it: the inverse creep (where the stage has creep and the
-/// configuration a model), then the inverse output map (where it has one and a model), then
-/// the inverse model — setpoint → C⁻¹ → S⁻¹ → H⁻¹ → drive.
+/// configuration a model), then the inverse model — setpoint → C⁻¹ → H⁻¹ → drive.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct CompensatorRun {
     /// The inverse creep and its state; `None` without creep or without a model.
     pub creep: Option<Running<InverseCreep>>,
-    /// The output map, run inverse (static: no state); `None` without one or without a
-    /// model.
-    pub map: Option<OutputMap>,
     /// The inverse model and its state.
     pub model: InverseRun,
 }
 
-/// The observer as it runs (see [`CompensatorRun`]): the forward model, then the output map,
-/// then the creep (each where the configuration has it and a model) — drive → H → S → C →
-/// displacement.
+/// The observer as it runs (see [`CompensatorRun`]): the forward model, then the creep
+/// (where the stage has creep and the configuration a model) — drive → H → C → displacement.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct ObserverRun {
     /// The forward model and its state.
     pub model: ForwardRun,
-    /// The output map; `None` without one or without a model.
-    pub map: Option<OutputMap>,
     /// The creep and its state; `None` without creep or without a model.
     pub creep: Option<Running<Creep>>,
-}
-
-/// What a configuration puts in series with its model, whichever it is: the stage's creep
-/// and a static output map (each `None` where it has none).
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
-pub struct Series {
-    /// The creep, after the model and its map.
-    pub creep: Option<Creep>,
-    /// The output map, between the model and the creep.
-    pub map: Option<OutputMap>,
 }
 
 impl CompensatorRun {
     /// No compensation (bypass): the drive is the setpoint.
     pub const NONE: Self = Self {
         creep: None,
-        map: None,
         model: InverseRun::None,
     };
 
@@ -145,11 +124,7 @@ impl CompensatorRun {
             Some(c) => c.step(y),
             None => y,
         };
-        let z = match &self.map {
-            Some(m) => m.inverse(x),
-            None => x,
-        };
-        self.model.step(z)
+        self.model.step(x)
     }
 }
 
@@ -157,7 +132,6 @@ impl ObserverRun {
     /// No observer: the estimate reads 0.
     pub const NONE: Self = Self {
         model: ForwardRun::None,
-        map: None,
         creep: None,
     };
 
@@ -165,11 +139,7 @@ impl ObserverRun {
     /// model, 0.
     #[inline(always)]
     pub fn step(&mut self, u: i32) -> i32 {
-        let z = self.model.step(u);
-        let y = match &self.map {
-            Some(m) => m.forward(z),
-            None => z,
-        };
+        let y = self.model.step(u);
         match &mut self.creep {
             Some(c) => c.step(y),
             None => y,
@@ -178,25 +148,20 @@ impl ObserverRun {
 }
 
 impl Compensator {
-    /// What the tick runs of it, after `series` (the creep, then the output map's inverse;
-    /// neither applied without a model), its state from `observer`'s (prepared first) where
-    /// that runs the model this inverts, else at rest (`rest`) at drive `u` with the stage at
-    /// `y` (the model at the map's inverse of it); the creep's modes settled at `y` (where the
-    /// models rest, so it passes `y` through). Off the tick.
+    /// What the tick runs of it, after `creep` (not applied without a model), its state from
+    /// `observer`'s (prepared first) where that runs the model this inverts, else at rest
+    /// (`rest`) at drive `u` with the stage at `y`; the creep's modes settled at `y` (where
+    /// the models rest, so it passes `y` through). Off the tick.
     pub fn prepare(
         &self,
         observer: &ObserverRun,
-        series: Series,
+        creep: Option<Creep>,
         u: i32,
         y: i32,
         rest: Rest,
     ) -> CompensatorRun {
         use ForwardRun as F;
         use InverseRun as I;
-        let Series { creep, map } = series;
-        // The creep rests at the displacement, the model at what the map makes of it.
-        let settled = y;
-        let y = map.map_or(y, |m| m.inverse(y));
         let model = match (self, &observer.model) {
             (Self::None, _) => return CompensatorRun::NONE,
             (Self::InversePi(m), F::Pi(o)) => I::InversePi(inverse(m, Some(o), u, y, rest)),
@@ -219,9 +184,8 @@ impl Compensator {
         CompensatorRun {
             creep: creep.map(|c| Running {
                 model: InverseCreep(c),
-                state: c.state_at_rest(settled),
+                state: c.state_at_rest(y),
             }),
-            map,
             model,
         }
     }
@@ -261,13 +225,11 @@ fn forward<M: Forward + Copy>(m: &M, u: i32, rest: Rest) -> (Running<M>, i32) {
 }
 
 impl Observer {
-    /// What the tick runs of it, followed by `series` (the output map, then the creep;
-    /// neither applied without a model), at rest (`rest`) at drive `u`, the creep's modes
-    /// settled at the map's output (so it passes it through); and its estimate there (`u`
-    /// without a model). Off the tick.
-    pub fn prepare(&self, series: Series, u: i32, rest: Rest) -> (ObserverRun, i32) {
+    /// What the tick runs of it, followed by `creep` (not applied without a model), at rest
+    /// (`rest`) at drive `u`, the creep's modes settled at the model's output (so it passes
+    /// it through); and its estimate there (`u` without a model). Off the tick.
+    pub fn prepare(&self, creep: Option<Creep>, u: i32, rest: Rest) -> (ObserverRun, i32) {
         use ForwardRun as F;
-        let Series { creep, map } = series;
         let (model, y) = match self {
             Self::None => return (ObserverRun::NONE, u),
             Self::Pi(m) => {
@@ -287,16 +249,15 @@ impl Observer {
                 (F::BoucWen(r), y)
             }
         };
-        let y = map.map_or(y, |m| m.forward(y));
         let creep = creep.map(|c| Running {
             model: c,
             state: c.state_at_rest(y),
         });
-        (ObserverRun { model, map, creep }, y)
+        (ObserverRun { model, creep }, y)
     }
 
-    /// The model's output after the drive has rested at `u` with the history `rest` (`u`
-    /// without a model), before any output map and creep. Off the tick.
+    /// The estimate after the drive has rested at `u` with the history `rest` (`u` without a
+    /// model). Off the tick.
     pub fn output_at_rest(&self, u: i32, rest: Rest) -> i32 {
         match self {
             Self::None => u,
@@ -377,13 +338,11 @@ mod tests {
             panic!("the settings build a P–I pair with creep");
         };
         let u0 = crate::fixed_point::signal_from_f64(0.25);
-        let (mut observer, y0) = config
-            .observer
-            .prepare(config.series(), u0, Rest::Ascending);
+        let (mut observer, y0) = config.observer.prepare(config.creep, u0, Rest::Ascending);
         let mut compensator =
             config
                 .compensator
-                .prepare(&observer, config.series(), u0, y0, Rest::Ascending);
+                .prepare(&observer, config.creep, u0, y0, Rest::Ascending);
         // By hand: the observer relaxed at u0, the compensator's operators from the
         // observer's, both creeps settled at the observer's output.
         let mut fs = forward.state_at_rest(u0);
@@ -410,85 +369,11 @@ mod tests {
         assert!(moved, "the compensator shapes the drive");
     }
 
-    /// With an output map, the compensator runs the inverse creep, the inverse map, the
-    /// inverse model, and the observer the model, the map, the creep, each as alone; at rest
-    /// the compensator's model is where the observer's is, and the map is applied nowhere
-    /// without a model.
-    #[test]
-    fn the_output_map_runs_between_the_model_and_the_creep() {
-        use crate::config::settings::{representative_bouc_wen, representative_output_map};
-        let bw = representative_bouc_wen();
-        let config = Settings {
-            compensator: Some(bw.clone()),
-            observer: Some(bw.clone()),
-            creep: Some(CreepParams::new(&[0.01, 0.1], &[0.02, 0.03]).unwrap()),
-            output_map: Some(representative_output_map()),
-            ..Settings::default()
-        }
-        .build(&Hardware::driver_board(50_000.0))
-        .unwrap();
-        let (
-            Compensator::InverseBoucWen(inverse),
-            Observer::BoucWen(forward),
-            Some(creep),
-            Some(map),
-        ) = (
-            config.compensator,
-            config.observer,
-            config.creep,
-            config.output_map,
-        )
-        else {
-            panic!("the settings build a Bouc–Wen pair with creep and a map");
-        };
-        let u0 = crate::fixed_point::signal_from_f64(-0.4);
-        let (mut observer, y0) = config
-            .observer
-            .prepare(config.series(), u0, Rest::Ascending);
-        let mut compensator =
-            config
-                .compensator
-                .prepare(&observer, config.series(), u0, y0, Rest::Ascending);
-        // By hand: the observer at rest at u0, its map's output the creep's rest; the
-        // compensator's model in the observer's state.
-        let (mut fs, z0) = Forward::at_rest(&forward, u0, Rest::Ascending);
-        assert_eq!(map.forward(z0), y0);
-        let mut is = fs;
-        let (mut cf, mut ci) = (creep.state_at_rest(y0), creep.state_at_rest(y0));
-        let mut bent = false;
-        for k in 0..600 {
-            let x =
-                y0 + crate::fixed_point::signal_from_f64(0.5 * (1.0 - libm::cos(k as f64 * 0.03)));
-            let u = compensator.step(x);
-            let c = creep.inverse_step(&mut ci, x);
-            let z = map.inverse(c);
-            assert_eq!(u, inverse.step(&mut is, z), "tick {k}");
-            bent |= z != c;
-            let y = observer.step(u);
-            assert_eq!(
-                y,
-                creep.forward_step(&mut cf, map.forward(forward.step(&mut fs, u))),
-                "tick {k}"
-            );
-            // The observer's estimate comes back to the setpoint (within the map's rounding
-            // and the compensator's own).
-            assert!((y - x).abs() < 1 << 14, "tick {k}: {y} for {x}");
-        }
-        assert!(bent, "the map bends the setpoint the model is given");
-        // Without a model, neither the map nor the creep runs.
-        let (run, y) = Observer::None.prepare(config.series(), u0, Rest::Ascending);
-        assert_eq!((run, y), (ObserverRun::NONE, u0));
-        let none = Compensator::None.prepare(&run, config.series(), u0, y, Rest::Ascending);
-        assert_eq!(none, CompensatorRun::NONE);
-    }
-
     #[test]
     fn without_creep_a_model_runs_alone_and_without_a_model_creep_does_not_run() {
         let config = config();
         let u0 = 1 << 28;
-        let (mut run, _) = config
-            .observer
-            .prepare(Series::default(), u0, Rest::Ascending);
+        let (mut run, _) = config.observer.prepare(None, u0, Rest::Ascending);
         assert!(
             matches!(run.model, ForwardRun::Pi(_)) && run.creep.is_none(),
             "a P–I observer, alone: {run:?}"
@@ -496,27 +381,25 @@ mod tests {
         let y = run.step(u0);
         let alone = config
             .compensator
-            .prepare(&run, Series::default(), u0, y, Rest::Ascending);
+            .prepare(&run, None, u0, y, Rest::Ascending);
         assert!(
             matches!(alone.model, InverseRun::InversePi(_)) && alone.creep.is_none(),
             "without creep the inverse runs alone: {alone:?}"
         );
         assert!(!alone.is_bypass());
-        let (run, y) = Observer::None.prepare(config.series(), u0, Rest::Ascending);
+        let (run, y) = Observer::None.prepare(config.creep, u0, Rest::Ascending);
         assert_eq!((run, y), (ObserverRun::NONE, u0));
         assert_eq!(Observer::None.cycles(), 0);
-        let mut none = Compensator::None.prepare(&run, config.series(), u0, y, Rest::Ascending);
+        let mut none = Compensator::None.prepare(&run, config.creep, u0, y, Rest::Ascending);
         assert_eq!(none, CompensatorRun::NONE, "no creep without a model");
         assert!(none.is_bypass());
         assert_eq!(none.step(12_345), 12_345);
         // With creep, both wrap it.
-        let (run, y) = config
-            .observer
-            .prepare(config.series(), u0, Rest::Ascending);
+        let (run, y) = config.observer.prepare(config.creep, u0, Rest::Ascending);
         assert!(matches!(run.model, ForwardRun::Pi(_)) && run.creep.is_some());
         let c = config
             .compensator
-            .prepare(&run, config.series(), u0, y, Rest::Ascending);
+            .prepare(&run, config.creep, u0, y, Rest::Ascending);
         assert!(matches!(c.model, InverseRun::InversePi(_)) && c.creep.is_some());
     }
 }

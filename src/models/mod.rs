@@ -5,8 +5,8 @@
 //! Every model has the same shape: its configuration (the immutable, validated model, built
 //! off the tick) apart from its state (what one step changes), one [`Hysteresis::step`] and a
 //! declared cost ([`Hysteresis::cycles`], the cycles it adds to the tick's worst case, which
-//! the [tick budget](crate::config::tick_budget) adds up). Creep and a static output map are
-//! composed in series with whichever model runs, by a wrapper ([`CompensatorRun`]: the inverse creep before the
+//! the [tick budget](crate::config::tick_budget) adds up). Creep is composed in series with
+//! whichever model runs, by a wrapper ([`CompensatorRun`]: the inverse creep before the
 //! inverse model; [`ObserverRun`]: the creep after the forward one), not written into each
 //! model. The tick runs the models by static dispatch ([`dispatch`]: one enum over the
 //! models, no `dyn`: the interrupt branches through no register).
@@ -20,8 +20,6 @@
 //! * [`relaxation`] — the exponential relaxation in the input that Duhem and Bouc–Wen take
 //!   exactly over each sample (what makes them rate-independent), and the step their
 //!   compensators solve for.
-//! * [`output_map`] — a static monotone output map (the generalised P–I's dead-zone map)
-//!   after any model, and its inverse before it.
 //! * [`creep`] — the creep operator (log-spaced first-order modes) in series with a
 //!   hysteresis model, and its exact inverse.
 //! * [`params`] — the models' physical (`f64`) parameters and their own checks.

@@ -1,6 +1,6 @@
-//! A static output map after any hysteresis model: the generalised P–I's monotone dead-zone
-//! map ([`crate::models::generalised_pi`]), composed in series with whichever model runs, by
-//! the same wrapper as the creep ([`crate::models::dispatch`]).
+//! A static output map after a hysteresis model: the generalised P–I's monotone dead-zone map
+//! ([`crate::models::generalised_pi`]) after the Bouc–Wen model
+//! ([`crate::models::bouc_wen::BoucWen::with_output_map`]), before the creep.
 //!
 //! A stage's displacement is rarely the hysteresis alone: the flexure that guides it
 //! stiffens at large deflection, a lever amplifies unevenly, a capacitive sensor reads
@@ -11,8 +11,13 @@
 //! * forward (the observer): `drive → H → S → creep → displacement`;
 //! * inverse (the compensator): `setpoint → creep⁻¹ → S⁻¹ → H⁻¹ → drive`,
 //!
-//! `S` between the model and the creep, where the generalised P–I has its own map (so a
-//! P–I with an output map is the generalised P–I). `S` and `S⁻¹` are [`DeadZoneBank`]s, the
+//! `S` between the model and the creep, where the generalised P–I has its own map (a P–I
+//! with an output map *is* the generalised P–I). The model holds it (the observer applies `S`
+//! to the model's output, the compensator `S⁻¹` to the desired displacement), not a wrapper
+//! around every model: a map field beside the creep in the tick's dispatch made every
+//! configuration's tick dearer, with a map or not (12 cycles at 5 WS in the P–I's, and the
+//! services' reload, which moves the observer, over 100 a tick more in Duhem's), so only the
+//! model that takes one pays for it. `S` and `S⁻¹` are [`DeadZoneBank`]s, the
 //! inverse in closed form ([`DeadZoneParams::inverse`]), both built off the tick; each costs
 //! one segment search and one multiply-accumulate a tick ([`DEAD_ZONE_MAP_CYCLES`]),
 //! whatever the number of dead zones.
@@ -63,6 +68,16 @@ impl OutputMap {
             forward: DeadZoneBank::from_normalized(&forward)?,
             inverse: DeadZoneBank::from_normalized(&forward.inverse()?)?,
         })
+    }
+
+    /// `S` as the models hold it.
+    pub(crate) fn forward_bank(&self) -> &DeadZoneBank {
+        &self.forward
+    }
+
+    /// `S⁻¹` as the compensators hold it.
+    pub(crate) fn inverse_bank(&self) -> &DeadZoneBank {
+        &self.inverse
     }
 
     /// Dead zones besides the linear gain.

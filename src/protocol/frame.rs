@@ -48,8 +48,9 @@ use serde::{Deserialize, Serialize};
 /// Version 11: the settings end with the optional preview (`preview: Option<PreviewDesign>`)
 /// and the `Field`s `PreviewFrequency`, `PreviewDamping` were appended (the settings'
 /// encoding changed again). Version 12: the settings end with the optional static output
-/// map after the model (`output_map: Option<DeadZoneParams>`) and the `Field` `OutputMap`
-/// was appended; a body may be 1 728 bytes (the largest settings with an output map).
+/// map after the model (`output_map: Option<DeadZoneParams>`), the `Field` `OutputMap` and
+/// the `Rule` `NoOutputMap` were appended; a body may be 1 728 bytes (the largest settings
+/// with an output map).
 pub const PROTOCOL_VERSION: u8 = 12;
 /// Largest frame body (version + message + CRC), bytes: a load of the largest settings (two
 /// generalised P–I models of 32 operators and 8 dead zones, both notches, the preview and an

@@ -87,7 +87,7 @@ impl ObserverBelow {
         let drive = config.drive.drive_of(stacks.left);
         let (run, output) = config
             .observer
-            .prepare(config.series(), drive, config.drive.rest());
+            .prepare(config.creep, drive, config.drive.rest());
         Self::from_relaxed(config, RelaxedObserver { run, output })
     }
 

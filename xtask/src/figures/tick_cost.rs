@@ -40,6 +40,8 @@ pub(super) fn config_label(name: &str) -> String {
                 format!("{} observer", model(m))
             } else if let Some(n) = part.strip_prefix("creep") {
                 format!("creep {n}")
+            } else if let Some(n) = part.strip_prefix("map") {
+                format!("output map ({n} dead zones)")
             } else {
                 match part {
                     "pi" => "PI".into(),
