@@ -64,10 +64,12 @@ fn the_vector_sets_cover_every_compensator_observer_and_mode() {
     let mut modes = Vec::new();
     let mut drift_limit_closed = false;
     let mut creep_modes = 0;
+    let mut mapped_with_creep = false;
     for set in &sets {
         let s = set.recipe().expect("recipe decodes").settings;
         if s.compensator.is_some() && s.observer.is_some() {
             creep_modes = creep_modes.max(s.creep.as_ref().map_or(0, |c| c.weights.len()));
+            mapped_with_creep |= s.output_map.is_some() && s.creep.is_some();
         }
         compensators.push(model_name(&s.compensator));
         observers.push(model_name(&s.observer));
@@ -108,6 +110,10 @@ fn the_vector_sets_cover_every_compensator_observer_and_mode() {
     assert!(
         creep_modes >= 4,
         "no set with a compensator, an observer and 4 creep modes"
+    );
+    assert!(
+        mapped_with_creep,
+        "no set with a compensator, an observer, an output map and creep"
     );
     // Every flag the tick can raise is raised somewhere (the drift flag by the set with a
     // drift limit).

@@ -477,16 +477,16 @@ fn a_wrong_byte_or_annotation_in_the_chapter_is_caught() {
     let mutations = [
         // A frame byte.
         (
-            "frame: 02 0b 05 34 cb 2d a2 00",
-            "frame: 02 0b 05 34 cb 2d a3 00",
+            "frame: 02 0c 05 f3 5d 6c ed 00",
+            "frame: 02 0c 05 f3 5d 6c ee 00",
         ),
         // The version before the current one, with its CRC.
         (
+            "body:  0c (version) | 00 (Status) | CRC f3 5d 6c ed",
             "body:  0b (version) | 00 (Status) | CRC 34 cb 2d a2",
-            "body:  0a (version) | 00 (Status) | CRC 75 fa 36 bb",
         ),
         // A CRC alone.
-        ("| CRC d5 f4 68 fc", "| CRC d5 f4 68 fd"),
+        ("| CRC 6c cc bf 61", "| CRC 6c cc bf 62"),
         // A variant's name.
         ("0a (Field::Ki)", "0a (Field::Kp)"),
         ("00 (Ack)", "00 (Nack)"),

@@ -5,7 +5,7 @@
 //! | field | bytes | meaning |
 //! |---|---|---|
 //! | magic | 4 | `TSGV` |
-//! | version | 2 | [`FORMAT_VERSION`], or [`FORMAT_VERSION_WITHOUT_PREVIEW`], [`FORMAT_VERSION_WITHOUT_CHI`] or [`FORMAT_VERSION_WITHOUT_SHAPING`] (read); another version is refused |
+//! | version | 2 | [`FORMAT_VERSION`], or [`FORMAT_VERSION_WITHOUT_OUTPUT_MAP`], [`FORMAT_VERSION_WITHOUT_PREVIEW`], [`FORMAT_VERSION_WITHOUT_CHI`] or [`FORMAT_VERSION_WITHOUT_SHAPING`] (read); another version is refused |
 //! | length | 4 | bytes of the whole record, magic to CRC |
 //! | name length, name | 1 + n | ASCII `[a-z0-9-]`, 1…32 bytes |
 //! | ticks | 4 | tick count `T` (1…[`MAX_TICKS`]) |
@@ -27,8 +27,12 @@ pub const MAGIC: [u8; 4] = *b"TSGV";
 /// Version of the layout above and of the recipe's encoding ([`super::recipe`]): 2 since the
 /// feedback carries a drift limit, 3 since the settings end with the optional creep, 4 since
 /// they end with the optional input shaping, 5 since a Bouc–Wen model's coefficients end
-/// with `χ`, 6 since the settings end with the optional preview.
-pub const FORMAT_VERSION: u16 = 6;
+/// with `χ`, 6 since the settings end with the optional preview, 7 since they end with the
+/// optional output map.
+pub const FORMAT_VERSION: u16 = 7;
+/// The format before the output map, still read: its recipes' settings end with `preview`
+/// ([`Recipe::decode_without_output_map`]); the same layout otherwise.
+pub const FORMAT_VERSION_WITHOUT_OUTPUT_MAP: u16 = 6;
 /// The format before the preview, still read: its recipes' settings end with `shaping`
 /// ([`Recipe::decode_without_preview`]); the same layout otherwise.
 pub const FORMAT_VERSION_WITHOUT_PREVIEW: u16 = 5;
@@ -202,6 +206,7 @@ impl<'a> VectorSet<'a> {
             FORMAT_VERSION_WITHOUT_CHI | FORMAT_VERSION_WITHOUT_PREVIEW => {
                 Recipe::decode_without_preview(self.recipe)?
             }
+            FORMAT_VERSION_WITHOUT_OUTPUT_MAP => Recipe::decode_without_output_map(self.recipe)?,
             _ => Recipe::decode(self.recipe)?,
         };
         if self.version <= FORMAT_VERSION_WITHOUT_CHI && recipe.settings.has_bouc_wen() {
@@ -240,6 +245,7 @@ impl<'a> VectorSet<'a> {
         let version = r.u16()?;
         if ![
             FORMAT_VERSION,
+            FORMAT_VERSION_WITHOUT_OUTPUT_MAP,
             FORMAT_VERSION_WITHOUT_PREVIEW,
             FORMAT_VERSION_WITHOUT_CHI,
             FORMAT_VERSION_WITHOUT_SHAPING,
@@ -554,12 +560,14 @@ mod tests {
             };
             let mut bytes = [0u8; 1024];
             let bytes = recipe.encode(&mut bytes).unwrap();
-            // Formats before the preview end before its `None`.
-            let bytes = if version < FORMAT_VERSION {
-                &bytes[..bytes.len() - 1]
-            } else {
-                bytes
+            // Format 6 ends before the output map's `None`, formats before the preview
+            // before its `None` too.
+            let cut = match version {
+                FORMAT_VERSION => 0,
+                FORMAT_VERSION_WITHOUT_OUTPUT_MAP => 1,
+                _ => 2,
             };
+            let bytes = &bytes[..bytes.len() - cut];
             let mut buf = Buf { b: [0; 2048], n: 0 };
             let (i, o) = ([TickInput::default()], [TickOutput::default()]);
             encode_record("set", 1, bytes, &i, &o, &mut buf).unwrap();
@@ -584,6 +592,11 @@ mod tests {
             ..Settings::default()
         };
         assert!(recipe_of(&record(bouc_wen.clone(), FORMAT_VERSION)).is_ok());
+        assert_eq!(
+            recipe_of(&record(bouc_wen.clone(), FORMAT_VERSION_WITHOUT_OUTPUT_MAP))
+                .map(|r| r.settings),
+            Ok(bouc_wen.clone())
+        );
         assert!(recipe_of(&record(bouc_wen.clone(), FORMAT_VERSION_WITHOUT_PREVIEW)).is_ok());
         assert!(recipe_of(&record(pi, FORMAT_VERSION_WITHOUT_CHI)).is_ok());
         assert_eq!(

@@ -6,7 +6,9 @@
 use serde::{Deserialize, Serialize};
 
 use twinstack::board::Hardware;
-use twinstack::config::settings::{Settings, SettingsWithoutPreview, SettingsWithoutShaping};
+use twinstack::config::settings::{
+    Settings, SettingsWithoutOutputMap, SettingsWithoutPreview, SettingsWithoutShaping,
+};
 use twinstack::control::ControlConfig;
 use twinstack::refusal::Refusal;
 
@@ -84,6 +86,22 @@ impl Recipe {
         }
     }
 
+    /// Decodes a recipe of format 6, whose settings end before `output_map` (read as none).
+    pub fn decode_without_output_map(bytes: &[u8]) -> Result<Self, RecipeError> {
+        #[derive(Deserialize)]
+        struct Old {
+            hardware: Hardware,
+            settings: SettingsWithoutOutputMap,
+        }
+        match postcard::take_from_bytes::<Old>(bytes) {
+            Ok((r, [])) => Ok(Self {
+                hardware: r.hardware,
+                settings: r.settings.into(),
+            }),
+            _ => Err(RecipeError::Malformed),
+        }
+    }
+
     /// Validates and builds the tick's configuration.
     pub fn build(&self) -> Result<ControlConfig, RecipeError> {
         self.settings
@@ -108,18 +126,115 @@ mod tests {
         assert_eq!(Recipe::decode(&buf[..n + 1]), Err(RecipeError::Malformed));
         assert_eq!(Recipe::decode(&buf[..n - 1]), Err(RecipeError::Malformed));
         assert!(r.build().is_ok());
-        // Format 5's recipe is the same without the trailing `preview: None` byte, format
-        // 3's without `shaping: None` too.
-        assert_eq!(buf[n - 2..n], [0, 0]);
-        assert_eq!(Recipe::decode_without_preview(&buf[..n - 1]), Ok(r.clone()));
+        // Format 6's recipe is the same without the trailing `output_map: None` byte, format
+        // 5's without `preview: None` too, format 3's without `shaping: None` too.
+        assert_eq!(buf[n - 3..n], [0, 0, 0]);
         assert_eq!(
-            Recipe::decode_without_preview(&buf[..n]),
+            Recipe::decode_without_output_map(&buf[..n - 1]),
+            Ok(r.clone())
+        );
+        assert_eq!(
+            Recipe::decode_without_output_map(&buf[..n]),
             Err(RecipeError::Malformed)
         );
-        assert_eq!(Recipe::decode_without_shaping(&buf[..n - 2]), Ok(r.clone()));
+        assert_eq!(Recipe::decode_without_preview(&buf[..n - 2]), Ok(r.clone()));
         assert_eq!(
-            Recipe::decode_without_shaping(&buf[..n - 1]),
+            Recipe::decode_without_preview(&buf[..n - 1]),
             Err(RecipeError::Malformed)
         );
+        assert_eq!(Recipe::decode_without_shaping(&buf[..n - 3]), Ok(r.clone()));
+        assert_eq!(
+            Recipe::decode_without_shaping(&buf[..n - 2]),
+            Err(RecipeError::Malformed)
+        );
+    }
+
+    /// A recipe with an output map round-trips and builds it; the format before the map
+    /// cannot read it.
+    #[test]
+    fn a_recipe_with_an_output_map_round_trips() {
+        use twinstack::config::settings::{representative_bouc_wen, representative_output_map};
+        let r = Recipe {
+            hardware: Hardware::driver_board(50_000.0),
+            settings: Settings {
+                compensator: Some(representative_bouc_wen()),
+                observer: Some(representative_bouc_wen()),
+                output_map: Some(representative_output_map()),
+                ..Settings::default()
+            },
+        };
+        let mut buf = [0u8; MAX_RECIPE];
+        let n = r.encode(&mut buf).unwrap().len();
+        assert_eq!(Recipe::decode(&buf[..n]), Ok(r.clone()));
+        let config = r.build().unwrap();
+        assert!(
+            matches!(config.observer, twinstack::control::Observer::BoucWen(m) if m.has_output_map())
+        );
+        assert!(matches!(
+            config.compensator,
+            twinstack::control::Compensator::InverseBoucWen(m) if m.model().has_output_map()
+        ));
+        assert_eq!(
+            Recipe::decode_without_output_map(&buf[..n]),
+            Err(RecipeError::Malformed)
+        );
+    }
+
+    /// The largest recipe fits [`MAX_RECIPE`]: two 32-operator P–I models, six creep modes,
+    /// both notches, the preview and an output map of eight dead zones.
+    #[test]
+    fn the_largest_recipe_fits() {
+        use twinstack::config::settings::{
+            representative_pi, CreepParams, DeadZoneParams, FeedbackSettings, Mode, SensorSettings,
+        };
+        use twinstack::control::notch::NotchDesign;
+        use twinstack::control::preview::PreviewDesign;
+        let notch = NotchDesign {
+            frequency_hz: 1000.0,
+            q: 2.0,
+            depth: 0.1,
+        };
+        let mut feedback = FeedbackSettings::pi(0.1, 1000.0, 0.1);
+        feedback.kd = 1e-6;
+        feedback.notch = Some(notch);
+        let r = Recipe {
+            hardware: Hardware::driver_board(50_000.0),
+            settings: Settings {
+                compensator: Some(representative_pi(32).unwrap()),
+                observer: Some(representative_pi(32).unwrap()),
+                sensor: Some(SensorSettings {
+                    displacement_at_zero: -1.5,
+                    displacement_at_full_scale: 71.5,
+                    drift_limit: Some(0.02),
+                }),
+                feedback: Some(feedback),
+                mode: Mode::ClosedLoop,
+                creep: Some(
+                    CreepParams::new(
+                        &[1e-4, 1e-3, 1e-2, 1e-1, 1.0, 10.0],
+                        &[0.01, 0.01, 0.01, 0.01, 0.01, 0.01],
+                    )
+                    .unwrap(),
+                ),
+                shaping: Some(notch),
+                preview: Some(PreviewDesign {
+                    frequency_hz: 3000.0,
+                    damping: 0.05,
+                }),
+                output_map: Some(
+                    DeadZoneParams::new(
+                        35.0,
+                        1.0,
+                        &[-30.0, -20.0, -12.0, -4.0, 4.0, 12.0, 20.0, 30.0],
+                        &[-0.01, -0.01, -0.01, -0.01, -0.01, -0.01, -0.02, -0.03],
+                    )
+                    .unwrap(),
+                ),
+                ..Settings::default()
+            },
+        };
+        let mut buf = [0u8; 4096];
+        let n = r.encode(&mut buf).unwrap().len();
+        assert!(n <= MAX_RECIPE, "{n} bytes");
     }
 }

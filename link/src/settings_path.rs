@@ -502,6 +502,55 @@ mod tests {
         assert_eq!(set(&t, "/feedback", Value::Null).unwrap().feedback, None);
     }
 
+    /// The output map is addressed as any part: its fields once it is set, `Absent` before.
+    #[test]
+    fn the_output_map_is_addressed_by_its_paths() {
+        use twinstack::config::settings::{representative_bouc_wen, representative_output_map};
+        let unset = Settings {
+            compensator: Some(representative_bouc_wen()),
+            ..Settings::default()
+        };
+        assert_eq!(get(&unset, "/output_map").unwrap(), Value::Null);
+        let e = set(&unset, "/output_map/linear", json!(1.01)).unwrap_err();
+        assert!(
+            matches!(&e, PathError::Absent { at, .. } if at == "/output_map"),
+            "{e}"
+        );
+        let mapped = Settings {
+            output_map: Some(representative_output_map()),
+            ..unset.clone()
+        };
+        assert_eq!(get(&mapped, "/output_map/linear").unwrap(), json!(1.0));
+        let t = set(&mapped, "/output_map/linear", json!(1.01)).unwrap();
+        assert_eq!(t.output_map.as_ref().unwrap().linear, 1.01);
+        let t = set(&t, "/output_map/weights/5", json!(-0.04)).unwrap();
+        assert_eq!(t.output_map.as_ref().unwrap().weights[5], -0.04);
+        let mut back = t.clone();
+        back.output_map = mapped.output_map.clone();
+        assert_eq!(back, mapped, "only the map changed");
+        // Set whole from unset, and unset again.
+        let whole = serde_json::to_value(representative_output_map()).unwrap();
+        assert_eq!(set(&unset, "/output_map", whole).unwrap(), mapped);
+        assert_eq!(
+            set(&mapped, "/output_map", Value::Null).unwrap().output_map,
+            None
+        );
+        // A field the map does not have is named.
+        let e = set(&mapped, "/output_map/gain", json!(1.0)).unwrap_err();
+        assert!(
+            matches!(&e, PathError::NoSuchSetting { at, segment, .. }
+                if at == "/output_map" && segment == "gain"),
+            "{e}"
+        );
+        let schema = schema();
+        let find = |p: &str| schema.iter().find(|e| e.path == p).map(|e| e.kind.as_str());
+        assert!(find("/output_map").unwrap().contains("optional"));
+        assert_eq!(find("/output_map/centre"), Some("f64"));
+        assert_eq!(find("/output_map/linear"), Some("f64"));
+        assert_eq!(find("/output_map/thresholds"), Some("list of f64"));
+        assert_eq!(find("/output_map/weights"), Some("list of f64"));
+    }
+
     #[test]
     fn the_schema_lists_every_path_the_settings_have() {
         let schema = schema();

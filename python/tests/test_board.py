@@ -370,3 +370,51 @@ def test_settings_by_path(board):
     with pytest.raises(twinstack.BoardError, match="max_voltage"):
         board.set("/drive/max_voltage", 1000.0)
     assert board.get("/drive/slew_rate") == 2000.0
+
+
+# A Bouc–Wen model over the board's default 0…140 V, 0…70 µm (the library's representative
+# one) and a flexure's output map after it: 6 % flatter toward either end, three dead zones a
+# side (the library's representative map).
+BOUC_WEN = {
+    "BoucWen": {
+        "k": 0.42,
+        "offset": 0.0,
+        "a": 0.1,
+        "beta": 0.04,
+        "gamma": 0.008,
+        "psi": 0.006,
+        "chi": 0.0,
+    }
+}
+FLEXURE_MAP = {
+    "centre": 35.0,
+    "linear": 1.0,
+    "thresholds": [-30.0, -20.0, -10.0, 10.0, 20.0, 30.0],
+    "weights": [-0.03, -0.02, -0.01, -0.01, -0.02, -0.03],
+}
+
+
+def test_an_output_map_loads_from_a_file_and_is_reached_by_its_paths(board):
+    settings = board.params()
+    settings.update(compensator=BOUC_WEN, observer=BOUC_WEN, mode="OpenLoop", output_map=None)
+    board.load(twinstack.Params.from_json(param_json(settings)))
+    assert board.get("/output_map") is None
+    with pytest.raises(KeyError, match="`/output_map` is not set"):
+        board.set("/output_map/linear", 1.01)
+    settings["output_map"] = FLEXURE_MAP
+    params = twinstack.Params.from_json(param_json(settings))
+    assert params.settings["output_map"] == FLEXURE_MAP
+    board.load(params)
+    assert board.params()["output_map"] == FLEXURE_MAP
+    assert board.get("/output_map/linear") == 1.0
+    assert board.set("/output_map/linear", 1.01) == 1.01
+    assert board.set("/output_map/weights/5", -0.04) == -0.04
+    held = board.params()["output_map"]
+    assert held["linear"] == 1.01 and held["weights"][5] == -0.04
+    assert held["thresholds"] == FLEXURE_MAP["thresholds"]
+    # A map that falls is refused by the board, naming the map's field; nothing changes.
+    with pytest.raises(twinstack.BoardError, match="output_map"):
+        board.set("/output_map/weights/5", -1.5)
+    assert board.get("/output_map/weights/5") == -0.04
+    assert board.set("/output_map", None) is None
+    assert board.params()["output_map"] is None

@@ -2,7 +2,8 @@
 //! generated and written, and how they are checked against the `f64` reference.
 //!
 //! * [`sets`] — the vector sets: each compensator (none, inverse P–I N = 8/16/32, inverse
-//!   Duhem) and each observer (none, P–I, Duhem), in bypass, open and closed loop, each a
+//!   Duhem, generalised P–I, Bouc–Wen) and each observer (none, P–I, Duhem, generalised P–I,
+//!   Bouc–Wen), with creep, the preview and the output map, in bypass, open and closed loop, each a
 //!   [`twinstack_golden::Recipe`] (the board's hardware and the settings a parameter load
 //!   carries), on models identified from the repository's `data/` (parameter files committed in
 //!   `tests/golden/params/`).

@@ -4,8 +4,9 @@
 //! other steps written out in real arithmetic from their documented semantics (`src/control/mod.rs`,
 //! `src/control/sensor.rs`, `src/control/feedback.rs`, `src/control/drive.rs`, the README's "Closed loop"): setpoint
 //! clamp and hold, the compensator (stepped in every mode; in bypass its output is unused and
-//! the drive follows the setpoint; with creep, the inverse creep before it), the observer
-//! (with creep, the creep after it), the creep's modes at rest at the start's setpoint, the sensor reading and the drift check (whenever a sensor
+//! the drive follows the setpoint; with creep, the inverse creep before it; with an output
+//! map, its inverse between the two), the observer (with an output map, the map after it;
+//! with creep, the creep after that), the creep's modes at rest at the start's setpoint, the sensor reading and the drift check (whenever a sensor
 //! is configured, in every mode), the PI feedback (closed loop only), range and slew limits per
 //! stack, the differential split, the observer. It runs on the stored inputs alone, so it
 //! checks the stored outputs independently of the fixed-point code.
@@ -13,7 +14,8 @@
 //! The start: the controller starts with both stacks at the configuration's **safe state**
 //! voltages (both at the bias, or both at 0 V), the models relaxed at the drive the left stack's
 //! voltage amounts to (within the drive window), the setpoint where the observer puts the stage
-//! (the drive itself without an observer).
+//! (the drive itself without an observer; with an output map, the map of the observer's
+//! output), the compensator's model at rest at the map's inverse of it.
 //!
 //! The drive, per tick: the command is limited to the drive window (model-normalised), turned
 //! into the left stack's voltage `u_l`, and `u_l` is slew-limited against the left stack's
@@ -50,7 +52,12 @@
 //! reload, so the bumpless-transfer offset is always 0 in them: the check refuses a closed-loop
 //! recipe with a derivative or a notch, or input shaping outside bypass, rather than ignore
 //! it. The preview is modelled: its taps ([`PreviewDesign::taps`]) on the last nine
-//! setpoints, the feedback and bypass on the setpoint four ticks ago. Bounds:
+//! setpoints, the feedback and bypass on the setpoint four ticks ago. So is the output map
+//! (`twinstack::models::output_map`), in output units: the observer's output mapped by
+//! [`reference::dead_zone_map`] (saturated at ±2 normalised, as the tick's Q2.30), the
+//! compensator's desired output, clamped to the output range, mapped back by
+//! [`reference::dead_zone_map_inverse`] (bisection, independent of the library's closed-form
+//! inverse); neither applied without a model. Bounds:
 //!
 //! * **drive** (applied, model-normalised): within [`DRIVE_BOUND_LSB16`] of the reference
 //!   chain — the inverse models' documented bound (README, "Fixed point");
@@ -72,7 +79,7 @@
 use crate::accuracy::LSB16;
 use crate::reference;
 use crate::stage_model::at_reading;
-use twinstack::config::settings::{Mode, Model};
+use twinstack::config::settings::{DeadZoneParams, Mode, Model};
 use twinstack::control::drive::{Configuration, DriveSettings, SafeState};
 use twinstack::control::feedback::{DRIFT_FILTER_SHIFT, SENSOR_DELAY_TICKS};
 use twinstack::control::preview::{PreviewDesign, PreviewError, PREVIEW_DELAY_TICKS, PREVIEW_TAPS};
@@ -403,6 +410,34 @@ fn norm(s: &Scaling, y_phys: f64) -> f64 {
     s.output_to_norm(y_phys)
 }
 
+/// The output map in `f64` (`twinstack::models::output_map`), as the tick runs it between the
+/// model and the creep.
+struct ReferenceOutputMap<'a> {
+    params: &'a DeadZoneParams,
+    scaling: Scaling,
+}
+
+impl ReferenceOutputMap<'_> {
+    /// `S`: the observer's model output (output units) → the displacement before the creep,
+    /// normalised and saturated at ±2 (the tick's Q2.30).
+    fn forward(&self, z: f64) -> f64 {
+        saturate(norm(
+            &self.scaling,
+            reference::dead_zone_map(self.params, z),
+        ))
+    }
+
+    /// `S⁻¹`: a desired displacement (normalised, clamped to full scale as the tick clamps
+    /// it) → what the compensator's model is to give, output units (within the tick's ±2
+    /// normalised).
+    fn inverse(&self, y: f64) -> f64 {
+        let s = &self.scaling;
+        let y = s.norm_to_output(y.clamp(-1.0, 1.0));
+        let z = reference::dead_zone_map_inverse(self.params, y);
+        s.norm_to_output(saturate(norm(s, z)))
+    }
+}
+
 /// The preview in `f64`: the taps [`PreviewDesign::taps`] designs, on the last nine setpoints
 /// (`twinstack::control::preview`).
 struct ReferencePreview {
@@ -456,9 +491,25 @@ pub fn check(set: &VectorSet<'_>) -> anyhow::Result<Agreement> {
     };
     let d0 = s.input_to_norm(safe).clamp(dmin, dmax);
     let u0 = s.norm_to_input(d0);
+    // The output map, between the model and the creep: where there is a model (each side
+    // applies it only with its own).
+    let map = st
+        .output_map
+        .as_ref()
+        .map(|params| ReferenceOutputMap { params, scaling: s });
+    let observer_map = map.as_ref().filter(|_| st.observer.is_some());
     let (mut estimator, y0) = observer_at_rest(&recipe, u0)?;
-    let y0 = y0.map(|y| norm(&s, y)).unwrap_or(d0);
-    let mut feedforward = compensator_at_rest(&recipe, u0, y0)?;
+    let y0 = match (y0, observer_map) {
+        (Some(y), Some(m)) => m.forward(y),
+        (Some(y), None) => norm(&s, y),
+        (None, _) => d0,
+    };
+    // The compensator's model at rest where the map's inverse puts the start's setpoint.
+    let compensator_y0 = match &map {
+        Some(m) => norm(&s, m.inverse(y0)),
+        None => y0,
+    };
+    let mut feedforward = compensator_at_rest(&recipe, u0, compensator_y0)?;
     // The creep (normalised signals, at the tick's rate), at rest where the models are: its
     // inverse before the compensator's model, itself after the observer's.
     let creep_at_rest = |present: bool| -> anyhow::Result<Option<reference::Creep>> {
@@ -518,12 +569,17 @@ pub fn check(set: &VectorSet<'_>) -> anyhow::Result<Agreement> {
             Some(c) => c.inverse_step(shaped),
             None => shaped,
         };
+        // With an output map, the model is given its inverse of the desired output.
+        let desired = match &map {
+            Some(m) => m.inverse(desired),
+            None => s.norm_to_output(desired),
+        };
         let compensated = match &mut feedforward {
             Feedforward::None => shaped,
-            Feedforward::InversePi(m) => s.input_to_norm(m.step(s.norm_to_output(desired))),
-            Feedforward::InverseDuhem(m) => s.input_to_norm(m.step(s.norm_to_output(desired))),
-            Feedforward::InverseGpi(m) => s.input_to_norm(m.step(s.norm_to_output(desired))),
-            Feedforward::InverseBoucWen(m) => s.input_to_norm(m.step(s.norm_to_output(desired))),
+            Feedforward::InversePi(m) => s.input_to_norm(m.step(desired)),
+            Feedforward::InverseDuhem(m) => s.input_to_norm(m.step(desired)),
+            Feedforward::InverseGpi(m) => s.input_to_norm(m.step(desired)),
+            Feedforward::InverseBoucWen(m) => s.input_to_norm(m.step(desired)),
         };
         let ff = if bypass { aimed } else { compensated };
         let mut command = ff;
@@ -588,12 +644,18 @@ pub fn check(set: &VectorSet<'_>) -> anyhow::Result<Agreement> {
         let drive_err = (stored_drive - applied).abs() / LSB16;
         // Observer and codes against the stored drive.
         let u_volts = s.norm_to_input(stored_drive);
-        let estimate_ref = match &mut estimator {
-            Estimator::None => 0.0,
-            Estimator::Pi(m) => norm(&s, m.step(u_volts)),
-            Estimator::Duhem(m) => norm(&s, m.step(u_volts)),
-            Estimator::Gpi(m) => norm(&s, m.step(u_volts)),
-            Estimator::BoucWen(m) => norm(&s, m.step(u_volts)),
+        // The model's output (output units), then the output map where there is one.
+        let model_output = match &mut estimator {
+            Estimator::None => None,
+            Estimator::Pi(m) => Some(m.step(u_volts)),
+            Estimator::Duhem(m) => Some(m.step(u_volts)),
+            Estimator::Gpi(m) => Some(m.step(u_volts)),
+            Estimator::BoucWen(m) => Some(m.step(u_volts)),
+        };
+        let estimate_ref = match (model_output, observer_map) {
+            (None, _) => 0.0,
+            (Some(y), Some(m)) => m.forward(y),
+            (Some(y), None) => norm(&s, y),
         };
         let estimate_ref = match &mut observer_creep {
             Some(c) => c.step(estimate_ref),
@@ -642,4 +704,55 @@ pub fn check(set: &VectorSet<'_>) -> anyhow::Result<Agreement> {
         }
     }
     Ok(a)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::golden::{default_dir, VECTOR_FILE};
+    use twinstack::config::settings::Settings;
+    use twinstack_golden::format::encode_record;
+    use twinstack_golden::{TickInput, TickOutput, VectorSets, MAX_RECIPE};
+
+    /// The stored set `name`'s inputs and outputs, checked against its recipe changed by `f`.
+    fn recheck(name: &str, f: &dyn Fn(&mut Settings)) -> Agreement {
+        let path = default_dir().join(VECTOR_FILE);
+        let file = std::fs::read(&path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+        let set = VectorSets::new(&file)
+            .map(|s| s.unwrap())
+            .find(|s| s.name() == name)
+            .unwrap_or_else(|| panic!("set {name}"));
+        let inputs: Vec<TickInput> = set.inputs().collect();
+        let outputs: Vec<TickOutput> = set.outputs().collect();
+        let mut recipe = set.recipe().unwrap();
+        f(&mut recipe.settings);
+        let mut buf = [0u8; MAX_RECIPE];
+        let recipe = recipe.encode(&mut buf).unwrap();
+        let mut bytes = Vec::new();
+        encode_record(
+            set.name(),
+            set.config_fingerprint(),
+            recipe,
+            &inputs,
+            &outputs,
+            &mut bytes,
+        )
+        .unwrap();
+        let s = VectorSets::new(&bytes).next().unwrap().unwrap();
+        check(&s).unwrap()
+    }
+
+    /// The check runs the output map where the board runs it: the map set's stored outputs
+    /// hold against its recipe, and fail it without the map or with the map's gain changed by
+    /// half a percent.
+    #[test]
+    fn the_reference_check_depends_on_the_output_map() {
+        let name = "ibw-bw-map-creep-closed";
+        let a = recheck(name, &|_| {});
+        assert!(a.holds(), "{a:?}");
+        let a = recheck(name, &|s| s.output_map = None);
+        assert!(a.first_violation.is_some(), "no map: {a:?}");
+        let a = recheck(name, &|s| s.output_map.as_mut().unwrap().linear *= 1.005);
+        assert!(a.first_violation.is_some(), "linear: {a:?}");
+    }
 }
