@@ -385,7 +385,7 @@ fn settings_observed(
         creep: model.creep.clone(),
         shaping: None,
         preview: None,
-        output_map: None,
+        output_map: model.output_map.clone(),
     }
 }
 

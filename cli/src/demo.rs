@@ -302,7 +302,7 @@ fn track(
         creep: model.creep.clone(),
         shaping: None,
         preview: None,
-        output_map: None,
+        output_map: model.output_map.clone(),
     };
     let config = settings
         .build(&hardware(options.control_rate))

@@ -633,14 +633,18 @@ pub enum Method {
 }
 
 impl Method {
-    /// The row's name: the model (`+creep` with creep), or `auto: ` and what auto picked.
+    /// The row's name: the model (`+map` with an output map, then `+creep` with creep, in
+    /// the order the board runs them: `bouc-wen+map+creep`), or `auto: ` and what auto
+    /// picked.
     fn name(o: &IdentifyOptions) -> String {
-        let kind = model_name(o.model);
-        if o.creep {
-            format!("{kind}+creep")
-        } else {
-            kind
+        let mut name = model_name(o.model);
+        if o.output_map {
+            name.push_str("+map");
         }
+        if o.creep {
+            name.push_str("+creep");
+        }
+        name
     }
 
     /// The options asked for (`auto`: its first candidate's).

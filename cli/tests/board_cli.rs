@@ -354,6 +354,7 @@ fn every_command_runs_against_the_simulated_board() {
         output_sign: 1.0,
         sensor_lag_s: 0.0,
         creep: None,
+        output_map: None,
     };
     let file = twinstack_identify::param_file::ParamFile::from_model(&model, "um", None);
     let params = write(dir.path(), "p.json", &file.to_json());

@@ -149,6 +149,7 @@ fn param_file(dir: &Path, name: &str, lo: f64, hi: f64) -> PathBuf {
         output_sign: 1.0,
         sensor_lag_s: 0.0,
         creep: None,
+        output_map: None,
     };
     let path = dir.join(name);
     std::fs::write(

@@ -218,6 +218,7 @@ fn predict_reads_an_export_through_the_cli() {
         output_sign: 1.0,
         sensor_lag_s: 0.0,
         creep: None,
+        output_map: None,
     };
     let params = dir.path().join("p.json");
     std::fs::write(

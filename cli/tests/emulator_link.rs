@@ -184,6 +184,7 @@ fn the_host_tools_drive_the_emulated_firmware_over_its_uart() {
         output_sign: 1.0,
         sensor_lag_s: 0.0,
         creep: None,
+        output_map: None,
     };
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("params.json");
@@ -379,6 +380,7 @@ fn the_lab_workflow_runs_command_by_command_on_the_emulated_firmware() {
         output_sign: 1.0,
         sensor_lag_s: 0.0,
         creep: None,
+        output_map: None,
     };
     let params = dir.path().join("stage.json");
     std::fs::write(&params, ParamFile::from_model(&model, "um", None).to_json()).unwrap();

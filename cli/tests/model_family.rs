@@ -7,9 +7,9 @@
 //!
 //! Each test holds the figure reached (see the book, results/identification.md and
 //! results/lab-stage.md) and fails when the pick is replaced by the textbook P–I. `auto` picks
-//! by the compensator: held out, the bipolar record's pick (P–I + creep) predicts within
-//! 0.81 % and inverts within 1.27 %, the micromanipulator's (the generalised P–I) 1.49 % and
-//! 1.20 %; tracking on the lab stage is held within 1 %.
+//! by the compensator: held out, the bipolar record's pick (Bouc–Wen with its output map +
+//! creep) predicts within 0.93 % and inverts within 1.11 %, the micromanipulator's (the
+//! generalised P–I) 1.49 % and 1.20 %; tracking on the lab stage is held within 1 %.
 //! `stage_variants` holds `auto` on 21 other stages.
 
 use hal_sim::plant::{LabStage, LabStageConfig};
@@ -111,15 +111,15 @@ fn auto_tracks_the_lab_stage_far_better_than_the_textbook_pi() {
 }
 
 /// On the Bouc–Wen-class stage (outside the family: exponent 1.5, a rising branch that
-/// saturates sooner, minor loops that are not congruent) what `auto` picks tracks better than
-/// the textbook P–I and within 30 % of no compensation; among the candidates with creep (as
-/// `--creep` ranks them) it picks the family's Bouc–Wen + creep, which tracks within 1.25 %
-/// (1.21 % measured). Its compensator tracks a single-ended stage only when it starts where
+/// saturates sooner, minor loops that are not congruent, a flexure that stiffens after it)
+/// what `auto` picks tracks better than the textbook P–I and within 1 % (0.80 % measured);
+/// among the candidates with creep (as `--creep` ranks them) it picks the family's Bouc–Wen
+/// with its output map + creep, which tracks within 1 % (0.80 % measured; the Bouc–Wen +
+/// creep without the map, 1.21 %: a Bouc–Wen's output is linear in its state, and the
+/// flexure's curve after it is what the map takes). Its compensator tracks a single-ended stage only when it starts where
 /// the stage rests, on its loop's ascending branch (`twinstack::models::Rest`): started
-/// relaxed it tracked worse than the P–I (6.0 % against 2.9 %). The default ranking picks
-/// the Bouc–Wen without creep (2.10 %): on the 0.57 s validation part the two are within 6 %
-/// of each other (the creep the stage adds over the trajectories' seconds does not show there),
-/// and the simpler one is kept.
+/// relaxed it tracked worse than the P–I (6.0 % against 2.9 %). Without the output map among
+/// the candidates, the default ranking picked the Bouc–Wen without creep (2.10 %).
 #[test]
 fn auto_tracks_the_bouc_wen_class_stage_better_than_the_textbook_pi() {
     let config = LabStageConfig {
@@ -128,7 +128,7 @@ fn auto_tracks_the_bouc_wen_class_stage_better_than_the_textbook_pi() {
     };
     let (none, auto, pi) = none_auto_textbook(config.clone(), "Bouc-Wen-class stage");
     assert!(auto < pi, "auto {auto} % against the textbook P-I's {pi} %");
-    assert!(auto < 0.3 * none, "auto {auto} % against none {none} %");
+    assert!(auto <= 1.0, "the goal: {auto} % (none {none} %)");
     let base = IdentifyOptions {
         creep: true,
         ..IdentifyOptions::new(ModelKind::Pi, twinstack_cli::tracking::FIT_UNTIL_S)
@@ -138,8 +138,8 @@ fn auto_tracks_the_bouc_wen_class_stage_better_than_the_textbook_pi() {
     assert!(row.error.is_none(), "{}: {:?}", row.method, row.error);
     let with_creep = row.worst_max_pct().unwrap();
     eprintln!("{}: worst max {with_creep:.2} %", row.method);
-    assert!(row.method.contains("bouc-wen+creep"), "{}", row.method);
-    assert!(with_creep <= 1.25, "{with_creep} %");
+    assert!(row.method.contains("bouc-wen+map+creep"), "{}", row.method);
+    assert!(with_creep <= 1.0, "the goal: {with_creep} %");
 }
 
 /// On a Bouc–Wen-class stage with `n = 1`, and nothing else in the way (no creep, a linear

@@ -28,6 +28,7 @@ fn pi_model() -> StageModel {
         output_sign: 1.0,
         sensor_lag_s: 0.0,
         creep: None,
+        output_map: None,
     }
 }
 

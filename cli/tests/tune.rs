@@ -278,6 +278,7 @@ fn the_command_tunes_the_simulated_and_the_virtual_board() {
             output_sign: 1.0,
             sensor_lag_s: 0.0,
             creep: None,
+            output_map: None,
         },
         "um",
         None,

@@ -161,6 +161,7 @@ fn a_parameter_file_loads_and_a_non_invertible_one_is_refused_with_nothing_lost(
         output_sign: 1.0,
         sensor_lag_s: 0.0,
         creep: None,
+        output_map: None,
     };
     let mut good = ParamFile::from_model(&model, "um", None).settings;
     // As `twinstack load` does: the board's sensor and gains, which the file does not carry.

@@ -208,7 +208,7 @@ impl ParamFile {
                 creep: model.creep.clone(),
                 shaping: None,
                 preview: None,
-                output_map: None,
+                output_map: model.output_map.clone(),
             },
             identification,
         }
@@ -343,6 +343,7 @@ impl ParamFile {
             output_sign: file.output_sign,
             sensor_lag_s: file.sensor_lag_s,
             creep: s.creep.clone(),
+            output_map: s.output_map.clone(),
         };
         Ok((file, model))
     }
@@ -371,6 +372,7 @@ mod tests {
             output_sign: -1.0,
             sensor_lag_s: 0.005,
             creep: None,
+            output_map: None,
         }
     }
 
@@ -422,6 +424,69 @@ mod tests {
         v["settings"]["creep"]["weights"][1] = (-0.5).into();
         let e = parse(&v.to_string()).unwrap_err();
         assert_eq!(field_of(&e), "settings.creep.weights[1]", "{e}");
+    }
+
+    /// A Bouc–Wen model on the P–I model's ranges.
+    fn bouc_wen_model() -> StageModel {
+        StageModel {
+            hysteresis: Hysteresis::BoucWen(twinstack::BoucWenParams {
+                k: 0.1,
+                offset: 0.5,
+                a: 0.05,
+                beta: 0.02,
+                gamma: 0.004,
+                psi: 0.003,
+                chi: 0.001,
+            }),
+            ..model()
+        }
+    }
+
+    /// A Bouc–Wen model with an output map writes it into the settings and loads back with
+    /// it; a file without the field loads as no map; a map the board refuses, or a map with
+    /// another model, is refused naming its field.
+    #[test]
+    fn an_output_map_round_trips_and_a_file_without_it_has_none() {
+        use twinstack::models::output_map::DeadZoneParams;
+        let m = StageModel {
+            creep: Some(
+                twinstack::models::creep::CreepParams::new(&[0.01, 0.1], &[0.02, 0.01]).unwrap(),
+            ),
+            output_map: Some(
+                DeadZoneParams::new(
+                    0.5,
+                    1.02,
+                    &[-15.0, -6.0, 6.0, 15.0],
+                    &[-0.1, -0.05, -0.05, -0.1],
+                )
+                .unwrap(),
+            ),
+            ..bouc_wen_model()
+        };
+        m.check().unwrap();
+        let f = ParamFile::from_model(&m, "um", None);
+        assert_eq!(f.settings.output_map, m.output_map);
+        let (back, loaded) = parse(&f.to_json()).unwrap();
+        assert_eq!(back, f);
+        assert_eq!(loaded, m);
+        // Without the field: no map.
+        let mut v: serde_json::Value = serde_json::from_str(&f.to_json()).unwrap();
+        v["settings"].as_object_mut().unwrap().remove("output_map");
+        let (_, loaded) = parse(&v.to_string()).unwrap();
+        assert_eq!(loaded.output_map, None);
+        assert_eq!(loaded.creep, m.creep);
+        // A map that falls is refused, naming the dead zone.
+        let mut v: serde_json::Value = serde_json::from_str(&f.to_json()).unwrap();
+        v["settings"]["output_map"]["weights"][3] = (-1.5).into();
+        let e = parse(&v.to_string()).unwrap_err();
+        assert!(field_of(&e).starts_with("settings.output_map"), "{e}");
+        // The board takes a map after a Bouc–Wen only.
+        let with_pi = StageModel {
+            hysteresis: model().hysteresis,
+            ..m.clone()
+        };
+        let e = parse(&ParamFile::from_model(&with_pi, "um", None).to_json()).unwrap_err();
+        assert!(e.to_string().contains("output_map"), "{e}");
     }
 
     fn edited(f: impl Fn(&mut serde_json::Value)) -> ParamFileError {

@@ -15,7 +15,11 @@
 //!   inverse runs start at rest where their model gives the first desired output;
 //! * with creep, the creep operator runs after the hysteresis model (`predict`) and its
 //!   inverse before the inverse model (`compensate`), discretised at the record's sample
-//!   period (the median interval), its modes at rest at the first value they see.
+//!   period (the median interval), its modes at rest at the first value they see;
+//! * with an output map, the map runs between the hysteresis model and the creep, as the
+//!   board runs it (`twinstack::models::dispatch`): `drive → H → S → creep → reading` in
+//!   `predict`, `reading → creep⁻¹ → S⁻¹ → H⁻¹ → drive` in `compensate`, the inverse model at
+//!   rest where it gives `S⁻¹` of the first desired output.
 
 use crate::reference;
 use twinstack::control::feedback::SENSOR_DELAY_TICKS;
@@ -26,6 +30,7 @@ use twinstack::models::bouc_wen::{BoucWen, InverseBoucWen};
 use twinstack::models::creep::{Creep, CreepParams, CreepState};
 use twinstack::models::duhem::{Duhem, InverseDuhem};
 use twinstack::models::generalised_pi::{GeneralisedPi, GpiParams, InverseGeneralisedPi};
+use twinstack::models::output_map::{DeadZoneParams, OutputMap};
 use twinstack::models::play_operator::play;
 use twinstack::models::prandtl_ishlinskii::{InversePrandtlIshlinskii, PrandtlIshlinskii};
 use twinstack::models::Rest;
@@ -57,8 +62,15 @@ pub struct StageModel {
     pub output_sign: f64,
     /// Sensor lag behind the drive, seconds (`≥ 0`).
     pub sensor_lag_s: f64,
-    /// The stage's creep, in series after the hysteresis model (`None`: no creep).
+    /// The stage's creep, in series after the hysteresis model and its output map (`None`:
+    /// no creep).
     pub creep: Option<CreepParams>,
+    /// A static output map between the hysteresis model and the creep
+    /// (`twinstack::models::output_map`: output units, its centre and thresholds as the
+    /// board takes them; `None`: no map). The board takes one after a Bouc–Wen model only
+    /// (`twinstack::config::settings::Settings::build` refuses it with another, and so does
+    /// loading a parameter file); here it runs after any model.
+    pub output_map: Option<DeadZoneParams>,
 }
 
 /// The value midway between `b` and `c` of four consecutive samples `a, b, c, d`: the cubic
@@ -249,7 +261,8 @@ impl StageModel {
         (a.min(b), a.max(b))
     }
 
-    /// Checks the library accepts the model for both the observer and the compensator.
+    /// Checks the library accepts the model for both the observer and the compensator, and
+    /// its output map where it has one.
     pub fn check(&self) -> Result<(), ParamError> {
         match &self.hysteresis {
             Hysteresis::Pi(p) => {
@@ -267,7 +280,17 @@ impl StageModel {
                 InverseBoucWen::new(p, &self.scaling)?;
             }
         }
+        self.output_map_run()?;
         Ok(())
+    }
+
+    /// The fixed-point output map on this model's scaling, if any (refused as the board
+    /// refuses it: not increasing, or beyond the fixed-point formats).
+    fn output_map_run(&self) -> Result<Option<OutputMap>, ParamError> {
+        self.output_map
+            .as_ref()
+            .map(|m| OutputMap::new(m, &self.scaling))
+            .transpose()
     }
 
     /// The readings the model's outputs `y` give: reading `k` is output `k − λ` (between two
@@ -332,9 +355,14 @@ impl StageModel {
         let y_phys = |q: i32| s.norm_to_output(signal_to_f64(q));
         let u0 = u.first().copied().unwrap_or(0.0);
         let mut creep = self.creep_run(t)?;
-        let mut creep = |q: i32| match creep.as_mut() {
-            Some(c) => c.forward(q),
-            None => q,
+        let map = self.output_map_run()?;
+        // After the model: the map, then the creep (`twinstack::models::dispatch::ObserverRun`).
+        let mut creep = |z: i32| {
+            let q = map.as_ref().map_or(z, |m| m.forward(z));
+            match creep.as_mut() {
+                Some(c) => c.forward(q),
+                None => q,
+            }
         };
         let y: Vec<f64> = match &self.hysteresis {
             Hysteresis::Pi(p) => {
@@ -416,6 +444,12 @@ impl StageModel {
                 u.iter().map(|&v| m.step(v)).collect()
             }
         };
+        if let Some(map) = &self.output_map {
+            map.validate()?;
+            for v in y.iter_mut() {
+                *v = reference::dead_zone_map(map, *v);
+            }
+        }
         if let Some(mut c) = self.creep_reference(t)? {
             for v in y.iter_mut() {
                 *v = c.run(*v)?.step(*v);
@@ -451,19 +485,29 @@ impl StageModel {
     }
 
     /// What the fixed-point hysteresis inverse is given for the desired readings `x` at times
-    /// `t`: the first desired output (output units), and the trajectory, advanced by the
-    /// sensor's lag and through the inverse creep, normalised.
+    /// `t`: the first desired output of the model (output units: with a map, the map's
+    /// inverse of the first desired reading, where the board rests the model), and the
+    /// trajectory, advanced by the sensor's lag, through the inverse creep and the map's
+    /// inverse, normalised.
     fn hysteresis_targets(&self, t: &[f64], x: &[f64]) -> Result<(f64, Vec<i32>), ParamError> {
         let s = &self.scaling;
         let y_norm = |v: f64| signal_from_f64(s.output_to_norm(v));
         let desired = self.advance(t, x);
         let y0 = desired.first().copied().unwrap_or(0.0);
         let mut creep = self.creep_run(t)?;
+        let map = self.output_map_run()?;
+        let y0 = match &map {
+            Some(m) => s.norm_to_output(signal_to_f64(m.inverse(y_norm(y0)))),
+            None => y0,
+        };
         let targets = desired
             .iter()
-            .map(|&v| match creep.as_mut() {
-                Some(c) => c.inverse(y_norm(v)),
-                None => y_norm(v),
+            .map(|&v| {
+                let q = match creep.as_mut() {
+                    Some(c) => c.inverse(y_norm(v)),
+                    None => y_norm(v),
+                };
+                map.as_ref().map_or(q, |m| m.inverse(q))
             })
             .collect();
         Ok((y0, targets))
@@ -563,6 +607,14 @@ impl StageModel {
         if let Some(mut c) = self.creep_reference(t)? {
             for v in desired.iter_mut() {
                 *v = c.run(*v)?.inverse_step(*v);
+            }
+        }
+        // The map's inverse after the creep's, the desired output clamped to the output range
+        // as the fixed-point map clamps it to full scale.
+        if let Some(map) = &self.output_map {
+            map.validate()?;
+            for v in desired.iter_mut() {
+                *v = reference::dead_zone_map_inverse(map, v.clamp(s.output_min, s.output_max));
             }
         }
         let y0 = desired
@@ -788,6 +840,7 @@ mod tests {
             output_sign: sign,
             sensor_lag_s: lag_s,
             creep: None,
+            output_map: None,
         }
     }
 
@@ -826,6 +879,7 @@ mod tests {
             output_sign: 1.0,
             sensor_lag_s: 0.0,
             creep: None,
+            output_map: None,
         }
     }
 
@@ -1045,6 +1099,7 @@ mod tests {
                 output_sign: if negative { -1.0 } else { 1.0 },
                 sensor_lag_s: lag as f64 * 0.01,
                 creep: None,
+                output_map: None,
             };
             // Models whose inverse does not fit Q8.24 are refused (tested elsewhere).
             proptest::prop_assume!(m.check().is_ok());
@@ -1081,6 +1136,7 @@ mod tests {
             output_sign: -1.0,
             sensor_lag_s: 0.02,
             creep: None,
+            output_map: None,
         };
         m.check().unwrap();
         let (t, u) = record();
@@ -1104,6 +1160,92 @@ mod tests {
             "{}",
             worst(&back[..n], &u[..n])
         );
+    }
+
+    /// A flexure's stiffening over the Duhem model's output range (−25 … 25, centre 0).
+    fn flexure_map() -> DeadZoneParams {
+        DeadZoneParams::new(
+            0.5,
+            1.05,
+            &[-16.0, -8.0, 8.0, 16.0],
+            &[-0.1, -0.08, -0.08, -0.15],
+        )
+        .unwrap()
+    }
+
+    /// The output map runs where the board runs it: after the model and before the creep in
+    /// `predict`, its inverse after the inverse creep in `compensate`; fixed point and `f64`
+    /// reference agree, and the compensator fed the prediction gives the drive back.
+    #[test]
+    fn an_output_map_runs_between_the_model_and_the_creep() {
+        let t: Vec<f64> = (0..4000).map(|k| k as f64 * 5e-4).collect();
+        let u: Vec<f64> = t
+            .iter()
+            .map(|&t| 85.0 * (t * 3.0 * std::f64::consts::TAU).sin() * (1.0 - 0.2 * t))
+            .collect();
+        let map = flexure_map();
+        let creep = CreepParams::new(&[0.02, 0.2], &[0.04, 0.03]).unwrap();
+        let worst = |a: &[f64], b: &[f64]| {
+            a.iter()
+                .zip(b)
+                .map(|(a, b)| (a - b).abs())
+                .fold(0.0, f64::max)
+        };
+        // (The board takes a map after a Bouc–Wen only; the host runs it after any model.)
+        for (name, bare) in [("Duhem", duhem_model()), ("Bouc–Wen", bouc_wen_model())] {
+            let mapped = StageModel {
+                output_map: Some(map.clone()),
+                ..bare.clone()
+            };
+            mapped.check().unwrap();
+            // Without creep, the prediction is the map of the model's.
+            let plain = bare.predict_reference(&t, &u).unwrap();
+            let through = mapped.predict_reference(&t, &u).unwrap();
+            for (a, b) in plain.iter().zip(&through) {
+                assert!((map.apply(*a) - b).abs() < 1e-9, "{name}");
+            }
+            let lsb_out = (bare.scaling.output_max - bare.scaling.output_min) / 65536.0;
+            let lsb_in = (bare.scaling.input_max - bare.scaling.input_min) / 65536.0;
+            for (with, m) in [
+                ("map", mapped.clone()),
+                (
+                    "map + creep",
+                    StageModel {
+                        creep: Some(creep.clone()),
+                        sensor_lag_s: 1e-3,
+                        ..mapped.clone()
+                    },
+                ),
+            ] {
+                let x = m.predict(&t, &u).unwrap();
+                let x_ref = m.predict_reference(&t, &u).unwrap();
+                assert!(
+                    worst(&x, &x_ref) < 4.0 * lsb_out,
+                    "{name} + {with}: {}",
+                    worst(&x, &x_ref)
+                );
+                // The last lag's samples have no reading to aim at.
+                let n = t.len() - 2;
+                let back = m.compensate(&t, &x).unwrap();
+                let back_ref = m.compensate_reference(&t, &x_ref).unwrap();
+                assert!(
+                    worst(&back[1..n], &u[1..n]) < 16.0 * lsb_in,
+                    "{name} + {with}: {}",
+                    worst(&back[1..n], &u[1..n])
+                );
+                assert!(
+                    worst(&back_ref[1..n], &u[1..n]) < 16.0 * lsb_in,
+                    "{name} + {with}, f64: {}",
+                    worst(&back_ref[1..n], &u[1..n])
+                );
+            }
+        }
+        // A map that falls is refused by `check`, as the board refuses it.
+        let falling = StageModel {
+            output_map: Some(DeadZoneParams::new(0.0, 1.0, &[10.0], &[-1.5]).unwrap()),
+            ..duhem_model()
+        };
+        assert!(falling.check().is_err());
     }
 
     #[test]

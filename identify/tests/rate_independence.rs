@@ -26,6 +26,7 @@ fn stage(model: Model) -> StageModel {
         output_sign: 1.0,
         sensor_lag_s: 0.0,
         creep: None,
+        output_map: None,
     }
 }
 

@@ -114,12 +114,14 @@ def test_auto_ranks_every_model_and_creep_selects_the_candidates(micro, micro_au
     t, u, x = micro
     p = micro_auto
     labels = [r["label"] for r in p.ranking]
-    assert len(labels) == 8 and sum("+ creep" in l for l in labels) == 4
+    # Every model without and with creep, and the Bouc-Wen with an output map, both ways.
+    assert len(labels) == 10 and sum("+ creep" in l for l in labels) == 5
+    assert sum("+ output map" in l for l in labels) == 2
     assert p.model == {"P-I": "pi", "Duhem": "duhem", "generalised": "gpi", "Bouc-Wen": "bouc-wen"}[
         labels[0].split(" (")[0].split(" +")[0].replace("generalised P-I", "generalised")
     ]
     only = twinstack.identify(t, u, x, fit_until=16.0, creep=True)
-    assert all("+ creep" in r["label"] for r in only.ranking) and len(only.ranking) == 4
+    assert all("+ creep" in r["label"] for r in only.ranking) and len(only.ranking) == 5
     # The record starts with the stage still settling from before it; the creep follows that
     # drift (identify keeps a creep only where it lowers the fit RMS, as it does here).
     assert only.creep

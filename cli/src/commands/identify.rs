@@ -1,4 +1,4 @@
-//! `twinstack identify [--model auto|pi|duhem|gpi|…] [--creep] --data FILE.csv --fit-until SECONDS
+//! `twinstack identify [--model auto|pi|duhem|gpi|…] [--creep] [--output-map] --data FILE.csv --fit-until SECONDS
 //! --out PARAMS.json [--operators N] [--thresholds uniform|geometric] [--lag N]`: fits on
 //! `t < SECONDS`, scores
 //! on the rest, writes the parameter file and a PNG beside it (`PARAMS.png`).
@@ -58,6 +58,16 @@ pub struct Args {
     /// every model with and without creep.
     #[arg(long)]
     pub creep: bool,
+    /// Fit a static output map after a Bouc–Wen model (the board runs it between the model
+    /// and the creep), the model refined with it: a monotone dead-zone curve, four dead zones
+    /// a side, for what bends every branch alike (a flexure's stiffening, a lever, a sensor's
+    /// curve), which a Bouc–Wen output, linear in its state, cannot follow. It is kept only
+    /// where it lowers the fit error, and the run says so. Bouc–Wen only, as the board takes
+    /// it (the generalised P–I has its own map). With `--model auto`, only the Bouc–Wen
+    /// candidates with a map are ranked; without it, auto ranks Bouc–Wen with and without
+    /// one.
+    #[arg(long)]
+    pub output_map: bool,
     /// Keep only a model the board runs at this control rate, Hz (its tick budget, as the
     /// board applies it at load, with the file's settings): `auto` picks among those, a P–I
     /// gets fewer operators where that makes it fit (unless `--operators` is given), a model
@@ -138,6 +148,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         options.given_lag(lag).map_err(|e| anyhow!("--lag: {e}"))?;
     }
     options.observer = !args.no_observer;
+    options.output_map = args.output_map;
     let in_file = |e: RunError| match e {
         RunError::Params(e) => anyhow!("{e}"),
         // The rate or an option refused the models, not the file.
@@ -154,6 +165,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         RunError::Identify(
             e @ (IdentifyError::BadOperatorCount(_) | IdentifyError::BadCreepModes(_)),
         ) => anyhow!("{e}"),
+        RunError::Identify(e @ IdentifyError::NoOutputMapFor(_)) => anyhow!("--output-map: {e}"),
         e => anyhow!("{}: {e}", args.data.display()),
     };
     let run = identify_and_score(
@@ -179,6 +191,9 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         );
         if args.creep {
             println!("  (--creep: only the candidates with creep are ranked)");
+        }
+        if args.output_map {
+            println!("  (--output-map: only the candidates with an output map are ranked)");
         }
         for (i, r) in auto.ranking.iter().enumerate() {
             let place = match (r.validation.admitted(), &r.set_aside) {

@@ -1,4 +1,4 @@
-//! `twinstack lab-stage [--model pi,duhem] [--seed N] [--json] [--without creep,…] [--set field=value,…]
+//! `twinstack lab-stage [--model pi,duhem] [--creep] [--output-map] [--seed N] [--json] [--without creep,…] [--set field=value,…]
 //! [--variants] [--tick-rate HZ] [--triangles 1,5,…] [--preview]`: the tracking table on the
 //! simulated laboratory stage ([`hal_sim::plant::lab_stage`], outside the model family) —
 //! identified from 2 s of 10 Hz excitation, then a triangle, nested minor loops and a
@@ -29,6 +29,12 @@ pub struct Args {
     /// Fit each model with a creep operator in series (for `auto`: only candidates with creep).
     #[arg(long)]
     pub creep: bool,
+    /// Fit a static output map after each Bouc–Wen model, the model refined with it (rows
+    /// `bouc-wen+map`, `bouc-wen+map+creep`; the other models as they are, the board takes a
+    /// map after a Bouc–Wen only); for `auto`: only the Bouc–Wen candidates with a map.
+    /// Without it, auto ranks Bouc–Wen with and without one.
+    #[arg(long)]
+    pub output_map: bool,
     /// Seed of the stage's sensor noise.
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
@@ -222,6 +228,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     let options = |kind: ModelKind| IdentifyOptions {
         operators: args.operators,
         creep: args.creep,
+        output_map: args.output_map && IdentifyOptions::takes_output_map(kind),
         ..IdentifyOptions::new(kind, args.fit_until)
     };
     let methods: Vec<Method> = args
@@ -229,7 +236,13 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         .iter()
         .map(|&m| match m {
             ModelChoice::Only(kind) => Method::One(options(kind)),
-            ModelChoice::Auto => Method::Auto(options(ModelKind::Pi).candidates()),
+            ModelChoice::Auto => Method::Auto(
+                IdentifyOptions {
+                    output_map: args.output_map,
+                    ..options(ModelKind::Pi)
+                }
+                .candidates(),
+            ),
         })
         .collect();
     if let Some(path) = &args.write_excitation {

@@ -135,6 +135,44 @@ fn holding(p: &BoucWenParams, scaling: &Scaling) -> Option<Scaling> {
     Scaling::new(scaling.input_min, scaling.input_max, mid - half, mid + half).ok()
 }
 
+/// Whether the board holds `p` (its state's bound in the fixed point on an output range as
+/// wide as it needs, [`holding`]) and its compensator accepts it (loop gain below
+/// [`MAX_FITTED_LOOP_GAIN`]): what a trial of the refinement must be.
+pub fn held(p: &BoucWenParams, scaling: &Scaling) -> bool {
+    holding(p, scaling).is_some_and(|s| p.normalized(&s).is_ok())
+        && p.inverse_loop_gain() < MAX_FITTED_LOOP_GAIN
+}
+
+/// The refinement's simplex (see the module doc) from `start`, over at most `evaluations`
+/// trials of `cost` (`+∞` for a trial that is no candidate, [`held`]), its offset stepped by a
+/// fiftieth of `y_span` (the target's span): the point it ends at.
+pub fn refine_on(
+    start: &BoucWenParams,
+    y_span: f64,
+    evaluations: usize,
+    cost: impl Fn(&BoucWenParams) -> f64,
+) -> BoucWenParams {
+    let y_span = y_span.max(f64::MIN_POSITIVE);
+    let c = start.factors().map(f64::ln);
+    let point = [start.k.ln(), start.offset, start.a, c[0], c[1], c[2], c[3]];
+    let steps = [
+        0.05,
+        0.02 * y_span,
+        0.2 * start.a.abs().max(0.05 * start.k),
+        0.2,
+        0.2,
+        0.2,
+        0.2,
+    ];
+    from_point(&minimise(
+        |v: &[f64; 7]| cost(&from_point(v)),
+        point,
+        steps,
+        evaluations,
+        1e-10,
+    ))
+}
+
 /// Fits a Bouc–Wen model of `y` (lag-aligned by `rows.lag`) driven by `u`, refined on the
 /// rows from `steady_from` on (see the module doc). `refine = false` returns the start.
 pub fn fit(
@@ -162,8 +200,7 @@ pub fn fit(
     };
     let evaluate = |p: &BoucWenParams| -> Option<(f64, Vec<f64>)> {
         // A trial the board cannot hold (in its fixed point) is no candidate.
-        p.normalized(&holding(p, scaling)?).ok()?;
-        if p.inverse_loop_gain() >= MAX_FITTED_LOOP_GAIN {
+        if !held(p, scaling) {
             return None;
         }
         let sim = simulate(p, scaling, u)?;
@@ -186,21 +223,10 @@ pub fn fit(
         .map(|p| held_by_the_board(BoucWenParams::from_duhem(p), scaling))
         .filter_map(|(p, scaled)| evaluate(&p).map(|e| (p, scaled, e)))
         .collect();
+    let y_span = rows.target_span(y);
     let refine_from = |start: &BoucWenParams| -> Option<Fitted> {
-        let y_span = rows.target_span(y).max(f64::MIN_POSITIVE);
-        let c = start.factors().map(f64::ln);
-        let point = [start.k.ln(), start.offset, start.a, c[0], c[1], c[2], c[3]];
-        let steps = [
-            0.05,
-            0.02 * y_span,
-            0.2 * start.a.abs().max(0.05 * start.k),
-            0.2,
-            0.2,
-            0.2,
-            0.2,
-        ];
-        let cost = |v: &[f64; 7]| evaluate(&from_point(v)).map_or(f64::INFINITY, |e| e.0);
-        let p = from_point(&minimise(cost, point, steps, REFINE_EVALUATIONS, 1e-10));
+        let cost = |p: &BoucWenParams| evaluate(p).map_or(f64::INFINITY, |e| e.0);
+        let p = refine_on(start, y_span, REFINE_EVALUATIONS, cost);
         evaluate(&p).map(|e| (p, e))
     };
     let mut best: Option<Candidate> = None;

@@ -58,8 +58,21 @@ pub struct GpiFit {
     pub dropped: usize,
 }
 
+/// The thresholds of a fitted dead-zone map whose input spans `half` either side of its
+/// centre: [`DEAD_ZONE_FRACTIONS`] of it below the centre (outermost first) and above it,
+/// increasing — the generalised P–I's inverse map's, and the output map's after a Duhem or
+/// Bouc–Wen model ([`super::output_map`]).
+pub fn dead_zone_thresholds(half: f64) -> Vec<f64> {
+    DEAD_ZONE_FRACTIONS
+        .iter()
+        .rev()
+        .map(|f| -f * half)
+        .chain(DEAD_ZONE_FRACTIONS.iter().map(|f| f * half))
+        .collect()
+}
+
 /// The one-sided dead-zone operator (`d ≠ 0`).
-fn dead_zone(x: f64, d: f64) -> f64 {
+pub(super) fn dead_zone(x: f64, d: f64) -> f64 {
     if d > 0.0 {
         (x - d).max(0.0)
     } else {
@@ -118,12 +131,7 @@ pub fn fit(
     if !(half.is_finite() && half > 0.0) {
         return Err(LeastSquaresError::NotFinite);
     }
-    let mut e: Vec<f64> = DEAD_ZONE_FRACTIONS
-        .iter()
-        .rev()
-        .map(|f| -f * half)
-        .chain(DEAD_ZONE_FRACTIONS.iter().map(|f| f * half))
-        .collect();
+    let mut e = dead_zone_thresholds(half);
     let mut dropped = 0;
     let n = columns.len();
     let (weights, offset, inverse_map) = loop {
@@ -259,12 +267,7 @@ mod tests {
         let (mut cy, mut hy) = (0.5 * (lo + hi), 0.5 * (hi - lo));
         let mut map = DeadZoneParams::identity();
         for _ in 0..200 {
-            let e: Vec<f64> = DEAD_ZONE_FRACTIONS
-                .iter()
-                .rev()
-                .map(|f| -f * hy)
-                .chain(DEAD_ZONE_FRACTIONS.iter().map(|f| f * hy))
-                .collect();
+            let e = dead_zone_thresholds(hy);
             map = DeadZoneParams::new(cy, 1.0, &e, &h)
                 .unwrap()
                 .inverse()

@@ -25,7 +25,9 @@
 //!    stability check (an output-error refit where it fails) and a simulated-error refinement
 //!    ([`duhem`]), or a generalised
 //!    (asymmetric) P–I by Kuhnen's linear equation-error fit ([`gpi`]), or the generalised
-//!    Bouc–Wen from that Duhem fit refined on the simulated error ([`bouc_wen`]).
+//!    Bouc–Wen from that Duhem fit refined on the simulated error ([`bouc_wen`]); after a
+//!    Bouc–Wen, where asked for, a static output map, the model refined with it
+//!    ([`output_map`]).
 //! 6. **Scaling**: the input range is the fitted drive range (widened by [`INPUT_MARGIN`],
 //!    zero: the range's ends are the rails the stage was swept between, where the models'
 //!    rest state puts the major loop, see `twinstack::models::prandtl_ishlinskii`), the
@@ -47,6 +49,7 @@ pub mod duhem;
 pub mod gpi;
 pub mod least_squares;
 pub mod motion;
+pub mod output_map;
 pub mod pi;
 pub mod run;
 pub mod score;
@@ -55,6 +58,7 @@ pub mod simplex;
 use crate::stage_model::{between, between_samples, Hysteresis, StageModel};
 use least_squares::LeastSquaresError;
 pub use pi::ThresholdSpread;
+use std::cell::RefCell;
 use twinstack::{ParamError, Scaling};
 use twinstack_link::measured_data::MeasuredData;
 
@@ -235,6 +239,11 @@ pub struct IdentifyOptions {
     /// Fit a creep operator in series with the model ([`creep`]), alternating with the
     /// hysteresis fit.
     pub creep: bool,
+    /// Fit a static output map after a Bouc–Wen model ([`output_map`]), kept where it lowers
+    /// the fit error. Refused for the other models, as the board refuses a map with them: the
+    /// generalised P–I has its own map, a P–I with a map is the generalised P–I, and the
+    /// board's Duhem takes none.
+    pub output_map: bool,
     /// The parameter file runs the model as the board's observer too (its estimate of the
     /// displacement, and the reference of the sensor's drift check), as well as the
     /// compensator. `false`: the compensator only, and the observer's cost off the tick (with
@@ -257,6 +266,7 @@ impl IdentifyOptions {
             max_lag: 10,
             refine: true,
             creep: false,
+            output_map: false,
             observer: true,
         }
     }
@@ -299,6 +309,11 @@ impl IdentifyOptions {
             ),
             ModelKind::BoucWen => "Bouc-Wen".into(),
         };
+        let model = if self.output_map {
+            format!("{model} + output map")
+        } else {
+            model
+        };
         match (self.creep, self.creep_modes) {
             (false, _) => model,
             (true, creep::MODES) => format!("{model} + creep"),
@@ -308,9 +323,20 @@ impl IdentifyOptions {
     }
 
     /// The model a fit with these options gave, in words: [`Self::model_label`], but saying
-    /// what creep the fit kept (a creep is kept only where it lowers the fit error, its
-    /// unweighted modes dropped), never "+ creep" for a model that kept none.
+    /// what creep and output map the fit kept (each is kept only where it lowers the fit
+    /// error, a creep's unweighted modes dropped), never "+ creep" or "+ output map" for a
+    /// model that kept none.
     pub fn label_of_fit(&self, model: &StageModel) -> String {
+        if self.output_map && model.output_map.is_none() {
+            let without = IdentifyOptions {
+                output_map: false,
+                ..self.clone()
+            };
+            return format!(
+                "{} (output map asked for, none kept)",
+                without.label_of_fit(model)
+            );
+        }
         match (self.creep, &model.creep) {
             (true, None) => format!(
                 "{} (creep asked for, none kept)",
@@ -331,19 +357,49 @@ impl IdentifyOptions {
     }
 
     /// `--model auto`'s candidates: every model kind, each without and with creep (only with
-    /// creep when these options ask for it), with these options otherwise.
+    /// creep when these options ask for it), and the Bouc–Wen with an output map besides,
+    /// with these options otherwise. (The Bouc–Wen with a map is fitted from the Bouc–Wen
+    /// without one.) When these options ask for an output map, only the models that take one,
+    /// each with it (the Bouc–Wen, with and without creep).
+    ///
+    /// ```
+    /// use twinstack_identify::identification::{IdentifyOptions, ModelKind};
+    /// let o = IdentifyOptions::new(ModelKind::Pi, 1.0);
+    /// let all = o.candidates();
+    /// assert_eq!(all.len(), 10);
+    /// assert_eq!(all.iter().filter(|c| c.output_map).count(), 2);
+    /// let mapped = IdentifyOptions { output_map: true, ..o }.candidates();
+    /// assert!(mapped.iter().all(|c| c.output_map && c.model == ModelKind::BoucWen));
+    /// assert_eq!(mapped.len(), 2);
+    /// ```
     pub fn candidates(&self) -> Vec<IdentifyOptions> {
         let creep: &[bool] = if self.creep { &[true] } else { &[false, true] };
         ModelKind::ALL
             .iter()
             .flat_map(|&model| {
-                creep.iter().map(move |&creep| IdentifyOptions {
-                    model,
-                    creep,
-                    ..self.clone()
+                let maps: &[bool] = match (self.output_map, model) {
+                    (true, m) if Self::takes_output_map(m) => &[true],
+                    (true, _) => &[],
+                    (false, m) if Self::takes_output_map(m) => &[false, true],
+                    (false, _) => &[false],
+                };
+                maps.iter().flat_map(move |&output_map| {
+                    creep.iter().map(move |&creep| IdentifyOptions {
+                        model,
+                        creep,
+                        output_map,
+                        ..self.clone()
+                    })
                 })
             })
             .collect()
+    }
+
+    /// Whether `model` takes an output map ([`IdentifyOptions::output_map`]): the Bouc–Wen,
+    /// the one model the board runs with a map
+    /// (`twinstack::models::bouc_wen::BoucWen::with_output_map`).
+    pub fn takes_output_map(model: ModelKind) -> bool {
+        model == ModelKind::BoucWen
     }
 }
 
@@ -422,6 +478,9 @@ pub enum IdentifyError {
         /// Its RMS error over the fitted rows, % of span.
         rms_pct: f64,
     },
+    /// An output map was asked for a model that takes none.
+    #[error("an output map is fitted after a Bouc-Wen model only, the one the board runs with a map, not after {0} (the generalised P-I has its own map, and a P-I with a map is the generalised P-I)")]
+    NoOutputMapFor(String),
     /// `--model auto` was given no candidate to try.
     #[error("no candidate model to try")]
     NoCandidates,
@@ -463,6 +522,19 @@ pub fn identify(
     data: &MeasuredData,
     options: &IdentifyOptions,
 ) -> Result<Identification, IdentifyError> {
+    identify_from(data, options, None)
+}
+
+/// [`identify`], the hysteresis model taken from `fitted` rather than fitted again where it
+/// is given: `fitted` must be [`identify`]'s result on the same `data` with the same
+/// `options` but without creep or output map (what `--model auto` has fitted already, its
+/// map and creep fitted after it). Every later fit of the creep's alternation fits the model
+/// afresh.
+fn identify_from(
+    data: &MeasuredData,
+    options: &IdentifyOptions,
+    fitted: Option<&Identification>,
+) -> Result<Identification, IdentifyError> {
     let name = data.path.display().to_string();
     let (u, x) = match (&data.u, &data.x) {
         (Some(u), Some(x)) => (u.as_slice(), x.as_slice()),
@@ -476,6 +548,16 @@ pub fn identify(
             || options.creep_modes > twinstack::models::creep::MAX_CREEP_MODES)
     {
         return Err(IdentifyError::BadCreepModes(options.creep_modes));
+    }
+    if options.output_map && !IdentifyOptions::takes_output_map(options.model) {
+        return Err(IdentifyError::NoOutputMapFor(
+            IdentifyOptions {
+                output_map: false,
+                creep: false,
+                ..options.clone()
+            }
+            .model_label(),
+        ));
     }
     let fit_until_s = options.fit_until_s;
     let n_fit = data.t.iter().take_while(|&&t| t < fit_until_s).count();
@@ -618,6 +700,7 @@ pub fn identify(
             output_sign,
             sensor_lag_s,
             creep: None,
+            output_map: None,
         })
     };
 
@@ -723,10 +806,7 @@ pub fn identify(
                 // |A|·max(1/c_min, 2U) is within DUHEM_MAX_NORM_DISTANCE of it, and
                 // the slopes k and A, normalised, within BOUC_WEN_MAX_NORM_SLOPE.
                 let p = f.params;
-                let input_half = provisional.input_half_span();
-                let bound = p.a.abs() * (1.0 / p.min_factor()).max(2.0 * input_half);
-                let needed = (bound / DUHEM_MAX_NORM_DISTANCE)
-                    .max(p.k.max(p.a.abs()) * input_half / BOUC_WEN_MAX_NORM_SLOPE);
+                let needed = bouc_wen_half_span(&p, provisional.input_half_span());
                 let model = with_output_range(Hysteresis::BoucWen(p), &f.simulated, needed)?;
                 let (lo, hi) = min_max(f.simulated.iter().copied());
                 if needed > (0.5 + OUTPUT_MARGIN) * (hi - lo) {
@@ -738,7 +818,58 @@ pub fn identify(
             }
         })
     };
-    let mut model = fit_model(&y, &mut notes)?;
+    // With an output map, the map after every fit of the model (the creep's alternation
+    // refits both: the creep runs after the map).
+    let steady_from = motion::both_extremes_reached(&u_fit[first..]) + first;
+    let record = output_map::Record {
+        t: &data.t[..n_fit],
+        u: u_fit,
+        rows: &rows,
+        steady_from,
+        refine: options.refine,
+    };
+    // A Bouc–Wen refined with its map is where the alternation's next fit starts: refined
+    // with the map again on the target with the creep undone, rather than fitted afresh from
+    // the Duhem starts (each of which lands elsewhere, and costs a fit and a refinement).
+    let last_mapped: RefCell<Option<StageModel>> = RefCell::new(None);
+    let fit_mapped = |y: &[f64], notes: &mut Vec<String>| -> Result<StageModel, IdentifyError> {
+        if !options.output_map {
+            return fit_model(y, notes);
+        }
+        let warm = last_mapped
+            .borrow()
+            .clone()
+            .filter(|m| matches!(m.hysteresis, Hysteresis::BoucWen(_)) && m.output_map.is_some());
+        let model = match warm {
+            Some(m) => StageModel {
+                output_map: None,
+                ..m
+            },
+            None => fit_model(y, notes)?,
+        };
+        let mapped = output_map::with_map(model, &record, y, notes)?;
+        *last_mapped.borrow_mut() = Some(mapped.clone());
+        Ok(mapped)
+    };
+    let mut model = match fitted {
+        Some(id) => {
+            // Its notes of the model's fit (those of the record, made again above, once).
+            for n in &id.notes {
+                if !notes.contains(n) {
+                    notes.push(n.clone());
+                }
+            }
+            let model = id.model.clone();
+            if options.output_map {
+                let mapped = output_map::with_map(model, &record, &y, &mut notes)?;
+                *last_mapped.borrow_mut() = Some(mapped.clone());
+                mapped
+            } else {
+                model
+            }
+        }
+        None => fit_mapped(&y, &mut notes)?,
+    };
     if options.creep {
         model = alternation::with_creep(
             model,
@@ -748,7 +879,7 @@ pub fn identify(
             n_fit,
             motion.started_at_rest,
             options.creep_modes,
-            &fit_model,
+            &fit_mapped,
             &mut notes,
         )?;
     }
@@ -775,6 +906,15 @@ pub fn identify(
         outliers,
         notes,
     })
+}
+
+/// The half span of output range a Bouc–Wen model `p` on an input range of half span
+/// `input_half` needs in the fixed point: its hysteretic state's bound `|A|·max(1/c_min, 2U)`
+/// within [`DUHEM_MAX_NORM_DISTANCE`] of it, and its slopes `k` and `A`, normalised, within
+/// [`BOUC_WEN_MAX_NORM_SLOPE`].
+fn bouc_wen_half_span(p: &twinstack::BoucWenParams, input_half: f64) -> f64 {
+    let bound = p.a.abs() * (1.0 / p.min_factor()).max(2.0 * input_half);
+    (bound / DUHEM_MAX_NORM_DISTANCE).max(p.k.max(p.a.abs()) * input_half / BOUC_WEN_MAX_NORM_SLOPE)
 }
 
 /// The generalised P–I branch of [`identify`]: the fit ([`gpi::fit`]) on the P–I's rows, its

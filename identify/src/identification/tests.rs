@@ -15,6 +15,7 @@ fn the_label_of_a_fit_says_what_creep_it_kept() {
         output_sign: 1.0,
         sensor_lag_s: 0.0,
         creep: None,
+        output_map: None,
     };
     let mut o = IdentifyOptions::new(ModelKind::Duhem, 1.0);
     assert_eq!(o.label_of_fit(&model), "Duhem");
@@ -365,4 +366,106 @@ fn a_known_generalised_pi_is_recovered_and_beats_the_symmetric_pi() {
     let drive = gpi.model.compensate_measured(&data.t, x).unwrap();
     let inverse = score(u, &drive, 2500..n).unwrap();
     assert!(inverse.max_pct < 1.0, "{inverse:?}");
+}
+
+/// A fit asked for with an output map says whether it kept one; every model but the Bouc–Wen
+/// refuses it, as the board does.
+#[test]
+fn the_label_of_a_fit_says_what_output_map_it_kept_and_the_pi_family_takes_none() {
+    let mut o = IdentifyOptions::new(ModelKind::BoucWen, 1.0);
+    o.output_map = true;
+    o.creep = true;
+    assert_eq!(o.model_label(), "Bouc-Wen + output map + creep");
+    let (data, _) = glitchy_record();
+    for model in [ModelKind::Pi, ModelKind::Gpi, ModelKind::Duhem] {
+        let options = IdentifyOptions {
+            model,
+            output_map: true,
+            ..IdentifyOptions::new(model, 2.0)
+        };
+        let e = identify(&data, &options).unwrap_err();
+        assert!(matches!(e, IdentifyError::NoOutputMapFor(_)), "{e}");
+        assert!(e.to_string().contains("Bouc-Wen model only"), "{e}");
+    }
+}
+
+/// A known Bouc–Wen model followed by a flexure's stiffening (`X tanh(z / X)`, a static curve
+/// no Bouc–Wen follows): identified with an output map, the map is kept, bends as the flexure
+/// does, and the fit is several times closer than the Bouc–Wen's alone.
+#[test]
+fn a_flexure_after_a_bouc_wen_model_is_recovered_as_its_output_map() {
+    let n = 6000;
+    let t: Vec<f64> = (0..n).map(|k| k as f64 * 1e-3).collect();
+    // Full cycles 0…120 V, then cycles decaying about the middle.
+    let u: Vec<f64> = (0..n)
+        .map(|k| {
+            let amp = if k < 2000 {
+                60.0
+            } else {
+                60.0 * (1.0 - 0.6 * (k - 2000) as f64 / 4000.0)
+            };
+            60.0 - amp * (std::f64::consts::TAU * k as f64 / 1000.0).cos()
+        })
+        .collect();
+    let truth = twinstack::BoucWenParams {
+        k: 0.4,
+        offset: 1.0,
+        a: 0.07,
+        beta: 0.05,
+        gamma: 0.01,
+        psi: 0.0,
+        chi: 0.0,
+    };
+    let s = Scaling::new(0.0, 120.0, -10.0, 70.0).unwrap();
+    let z = bouc_wen::simulate(&truth, &s, &u).unwrap();
+    let flexure = |z: f64| 80.0 * (z / 80.0).tanh();
+    let x: Vec<f64> = z.iter().map(|&z| flexure(z)).collect();
+    let data = MeasuredData {
+        path: PathBuf::from("flexure.csv"),
+        t,
+        u: Some(u),
+        x: Some(x.clone()),
+    };
+    let mut options = IdentifyOptions::new(ModelKind::BoucWen, 5.0);
+    options.lag = Some(0);
+    let plain = identify(&data, &options).unwrap();
+    options.output_map = true;
+    let mapped = identify(&data, &options).unwrap();
+    let map = mapped
+        .model
+        .output_map
+        .clone()
+        .unwrap_or_else(|| panic!("no map kept: {:?}", mapped.notes));
+    assert!(plain.model.output_map.is_none());
+    let rms_of = |id: &Identification| {
+        let p = id.model.predict(&data.t, data.u.as_ref().unwrap()).unwrap();
+        score(&x, &p, 0..x.len()).unwrap().rms_pct
+    };
+    let (with, without) = (rms_of(&mapped), rms_of(&plain));
+    assert!(
+        with < 0.3 * without,
+        "{with} % with the map, {without} % without"
+    );
+    // The map bends as the flexure does: over the model's output, its slope falls from
+    // the bottom to the top, as tanh's does (about 1 near 0 V's output, 0.7 near 120 V's).
+    let Hysteresis::BoucWen(p) = &mapped.model.hysteresis else {
+        panic!("a Bouc–Wen was fitted");
+    };
+    let z_fit = bouc_wen::simulate(p, &mapped.model.scaling, data.u.as_ref().unwrap()).unwrap();
+    let (lo, hi) = min_max(z_fit.iter().copied());
+    let slope = |z: f64| (map.apply(z + 0.5) - map.apply(z - 0.5)) / 1.0;
+    let (bottom, top) = (slope(lo + 0.1 * (hi - lo)), slope(hi - 0.1 * (hi - lo)));
+    assert!(
+        top < 0.85 * bottom,
+        "slopes {bottom} at the bottom, {top} at the top: {map:?}"
+    );
+    // And the map with its model gives the flexure's output from the truth's drive, where the
+    // truth's output is `z`: S(H(u)) = N(z) within a fraction of a percent of span.
+    let span = 80.0;
+    let worst = z_fit
+        .iter()
+        .zip(&x)
+        .map(|(&zf, &xv)| (map.apply(zf) - xv).abs())
+        .fold(0.0, f64::max);
+    assert!(worst < 0.005 * span, "worst {worst}");
 }

@@ -58,7 +58,7 @@
 //! and picks, from their figures alone.
 
 use super::score::{score, ErrorFigures};
-use super::{identify, motion, Identification, IdentifyError, IdentifyOptions};
+use super::{identify, identify_from, motion, Identification, IdentifyError, IdentifyOptions};
 use crate::stage_model::StageModel;
 use twinstack_link::measured_data::MeasuredData;
 
@@ -343,6 +343,20 @@ pub fn identify_admitted(
     }
 }
 
+/// Whether `a` and `b` fit the same hysteresis model the same way, whatever creep, output
+/// map and observer they add: a fit of `a` without creep or map is where `b`'s map and creep
+/// start from.
+fn same_model_fit(a: &IdentifyOptions, b: &IdentifyOptions) -> bool {
+    let model_only = |o: &IdentifyOptions| IdentifyOptions {
+        creep: false,
+        creep_modes: 0,
+        output_map: false,
+        observer: true,
+        ..o.clone()
+    };
+    model_only(a) == model_only(b)
+}
+
 /// A candidate's name for the ranking table.
 pub fn label(options: &IdentifyOptions) -> String {
     options.model_label()
@@ -394,9 +408,10 @@ pub fn identify_auto_admitting(
         u: Some(u[..n_fit].to_vec()),
         x: Some(x[..n_fit].to_vec()),
     };
-    // Fitted on the first part of the window, scored on the rest.
-    let fit_and_score = |inner: &IdentifyOptions| {
-        identify(&window, inner)
+    // Fitted on the first part of the window, scored on the rest; a candidate with an output
+    // map from the same model's fit without creep or map, where there is one (`fitted`).
+    let fit_and_score = |inner: &IdentifyOptions, fitted: Option<&Identification>| {
+        identify_from(&window, inner, fitted)
             .map_err(|e| e.to_string())
             .and_then(|id| {
                 let predicted = id
@@ -410,6 +425,8 @@ pub fn identify_auto_admitting(
             })
     };
     let mut fits: Vec<Option<Identification>> = Vec::with_capacity(candidates.len());
+    // The candidates' fits without creep or map, for those with a map to start from.
+    let mut plain: Vec<(IdentifyOptions, Identification)> = Vec::new();
     let mut ranking: Vec<Ranked> = candidates
         .iter()
         .map(|c| {
@@ -418,7 +435,17 @@ pub fn identify_auto_admitting(
             inner.fit_until_s = validation_from_s;
             let mut sized_down_from = None;
             let mut fit = None;
-            let validation = match fit_and_score(&inner) {
+            let start = plain
+                .iter()
+                .find(|(o, _)| inner.output_map && same_model_fit(o, &inner))
+                .map(|(_, id)| id);
+            let fitted = fit_and_score(&inner, start);
+            if let Ok((id, _)) = &fitted {
+                if !inner.creep && !inner.output_map {
+                    plain.push((inner.clone(), id.clone()));
+                }
+            }
+            let validation = match fitted {
                 Err(why) => Validation::NotFitted(why),
                 Ok((id, figures)) => match admit(&inner, &id) {
                     Admission::Admitted => {
@@ -432,7 +459,7 @@ pub fn identify_auto_admitting(
                     Admission::Smaller { resize, why } => {
                         let asked = Size::of(c);
                         let smaller = resize.apply(&inner);
-                        match fit_and_score(&smaller) {
+                        match fit_and_score(&smaller, None) {
                             Ok((small, smaller_figures))
                                 if Size::of(&smaller).is_smaller_than(&asked)
                                     && admit(&smaller, &small) == Admission::Admitted =>

@@ -105,23 +105,27 @@ pub fn rank(ranking: &mut [Ranked]) -> Option<Picked> {
     });
     let best = ranking.iter().find(|r| r.validation.admitted().is_some())?;
     // Parsimony: a simpler candidate — the special case (Duhem for Bouc–Wen), the same model
-    // without creep, or both — wins unless the pick beats it by the margin; the simplest such.
+    // without creep or without its output map, or several — wins unless the pick beats it by
+    // the margin; the simplest such.
     let best_score = best.compensated();
     let special = best.options.model.special_case();
+    let (creep, map) = (best.options.creep, best.options.output_map);
+    let model = Some(best.options.model);
     let simpler_forms = [
-        (special, false),
-        (special, best.options.creep),
-        (Some(best.options.model), false),
+        (special, false, false),
+        (special, creep, false),
+        (model, false, false),
+        (model, creep, false),
+        (model, false, map),
     ];
     let simpler = simpler_forms
         .iter()
-        .filter(|(m, creep)| {
-            m.is_some() && (*m != Some(best.options.model) || *creep != best.options.creep)
-        })
-        .find_map(|&(m, creep)| {
+        .filter(|&&(m, c, o)| m.is_some() && (m, c, o) != (model, creep, map))
+        .find_map(|&(m, creep, map)| {
             ranking.iter().position(|r| {
                 Some(r.options.model) == m
                     && r.options.creep == creep
+                    && r.options.output_map == map
                     && r.validation.admitted().is_some()
                     && r.set_aside.is_none() == best.set_aside.is_none()
                     && r.compensated()
@@ -323,6 +327,31 @@ mod tests {
         assert_eq!(ranking[1].bound, Some(InverseBound::Ratchets));
         assert_eq!(picked, Some(Picked::Best));
         assert_eq!(ranking[0].options.model, ModelKind::BoucWen);
+    }
+
+    /// An output map is a generalisation too: Bouc–Wen + map + creep is picked over
+    /// Bouc–Wen + creep only where it beats it by the margin, else the model without the map.
+    #[test]
+    fn parsimony_weighs_the_output_map() {
+        let with_map = |forward, inverse, tracking| {
+            let mut r = scored(ModelKind::BoucWen, true, forward, inverse, tracking);
+            r.options.output_map = true;
+            r.label = r.options.model_label();
+            r
+        };
+        let (ranking, picked) = ranked(vec![
+            with_map(0.80, 0.85, 0.80),
+            scored(ModelKind::BoucWen, true, 1.10, 1.20, 1.20),
+        ]);
+        assert_eq!(picked, Some(Picked::Best));
+        assert!(ranking[0].options.output_map, "{}", ranking[0].label);
+        assert_eq!(ranking[0].label, "Bouc-Wen + output map + creep");
+        let (ranking, picked) = ranked(vec![
+            with_map(0.80, 1.15, 0.80),
+            scored(ModelKind::BoucWen, true, 1.10, 1.18, 1.18),
+        ]);
+        assert_eq!(picked, Some(Picked::Simpler));
+        assert!(!ranking[0].options.output_map && ranking[0].options.creep);
     }
 
     /// Refused and unfitted candidates are never picked; with none admitted there is no pick.
