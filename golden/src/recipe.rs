@@ -185,7 +185,7 @@ mod tests {
     #[test]
     fn the_largest_recipe_fits() {
         use twinstack::config::settings::{
-            representative_pi, CreepParams, DeadZoneParams, FeedbackSettings, Mode, SensorSettings,
+            representative_pi, CreepParams, FeedbackSettings, Mode, SensorSettings,
         };
         use twinstack::control::notch::NotchDesign;
         use twinstack::control::preview::PreviewDesign;
@@ -221,15 +221,7 @@ mod tests {
                     frequency_hz: 3000.0,
                     damping: 0.05,
                 }),
-                output_map: Some(
-                    DeadZoneParams::new(
-                        35.0,
-                        1.0,
-                        &[-30.0, -20.0, -12.0, -4.0, 4.0, 12.0, 20.0, 30.0],
-                        &[-0.01, -0.01, -0.01, -0.01, -0.01, -0.01, -0.02, -0.03],
-                    )
-                    .unwrap(),
-                ),
+                output_map: Some(twinstack::config::settings::widest_output_map()),
                 ..Settings::default()
             },
         };

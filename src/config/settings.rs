@@ -694,6 +694,19 @@ pub fn representative_output_map() -> DeadZoneParams {
     }
 }
 
+/// An output map with every dead zone the settings hold (8), over the default 0…70 µm: what
+/// the largest settings on the wire and in a golden vector recipe carry.
+pub fn widest_output_map() -> DeadZoneParams {
+    DeadZoneParams {
+        centre: 35.0,
+        linear: 1.0,
+        thresholds: Vec::from_slice(&[-30.0, -20.0, -12.0, -4.0, 4.0, 12.0, 20.0, 30.0])
+            .unwrap_or_default(),
+        weights: Vec::from_slice(&[-0.01, -0.01, -0.01, -0.01, -0.01, -0.01, -0.02, -0.03])
+            .unwrap_or_default(),
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -937,15 +950,7 @@ mod tests {
             frequency_hz: 21_807.0,
             damping: 0.0173,
         });
-        s.output_map = Some(
-            DeadZoneParams::new(
-                35.0,
-                1.0,
-                &[-30.0, -20.0, -12.0, -4.0, 4.0, 12.0, 20.0, 30.0],
-                &[-0.01, -0.01, -0.01, -0.01, -0.01, -0.01, -0.02, -0.03],
-            )
-            .unwrap(),
-        );
+        s.output_map = Some(widest_output_map());
         // A generalised P–I takes no output map (it has its own): refused by name, on the
         // board too, since the frame carries it.
         assert_eq!(

@@ -64,6 +64,25 @@ pub struct BoucWenFit {
     pub simulated: Vec<f64>,
 }
 
+/// The rows from `steady_from` on (after the drive has seen both extremes), where the
+/// refinements judge a trial; all of `rows` where those are too few to fit.
+pub(super) fn steady_rows(rows: &FitRows, steady_from: usize) -> FitRows {
+    let steady = FitRows {
+        index: rows
+            .index
+            .iter()
+            .copied()
+            .filter(|&k| k >= steady_from)
+            .collect(),
+        lag: rows.lag,
+    };
+    if steady.index.len() >= super::MIN_FIT_SAMPLES {
+        steady
+    } else {
+        rows.clone()
+    }
+}
+
 /// Simulates `p` over `u` from rest at its first value (on the major loop's ascending
 /// branch: [`reference::BoucWen::at_rest`]) — the start `predict` uses.
 pub fn simulate(p: &BoucWenParams, scaling: &Scaling, u: &[f64]) -> Option<Vec<f64>> {
@@ -184,20 +203,7 @@ pub fn fit(
     steady_from: usize,
 ) -> Result<BoucWenFit, LeastSquaresError> {
     let d = duhem::fit(u, y, rows, scaling, refine, steady_from)?;
-    let steady = FitRows {
-        index: rows
-            .index
-            .iter()
-            .copied()
-            .filter(|&k| k >= steady_from)
-            .collect(),
-        lag: rows.lag,
-    };
-    let steady = if steady.index.len() >= super::MIN_FIT_SAMPLES {
-        steady
-    } else {
-        rows.clone()
-    };
+    let steady = steady_rows(rows, steady_from);
     let evaluate = |p: &BoucWenParams| -> Option<(f64, Vec<f64>)> {
         // A trial the board cannot hold (in its fixed point) is no candidate.
         if !held(p, scaling) {

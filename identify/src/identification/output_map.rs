@@ -289,20 +289,7 @@ fn refine_bouc_wen(
         return None;
     }
     let rows = record.rows;
-    let steady = FitRows {
-        index: rows
-            .index
-            .iter()
-            .copied()
-            .filter(|&k| k >= record.steady_from)
-            .collect(),
-        lag: rows.lag,
-    };
-    let steady = if steady.index.len() >= super::MIN_FIT_SAMPLES {
-        steady
-    } else {
-        rows.clone()
-    };
+    let steady = bouc_wen::steady_rows(rows, record.steady_from);
     let s = &model.scaling;
     let trial = |p: &BoucWenParams| -> Option<(Vec<f64>, MapFit)> {
         if !bouc_wen::held(p, s) {
