@@ -917,9 +917,10 @@ mod tests {
         assert_eq!(text, "observer.dead_zones.weights[0] is NaN or infinite");
     }
 
-    /// The largest settings the wire carries (two generalised P–I models of 32 operators and
-    /// 8 dead zones, both notches, the preview, and an output map of 8 dead zones, which the
-    /// board refuses with them by name) still fit one frame's body and the flash record.
+    /// The largest settings a board accepts (two generalised P–I models of 32 operators and
+    /// 8 dead zones, both notches, the preview) still fit one frame's body and the flash
+    /// record; an output map is refused with them by name, and a Bouc–Wen pair with the widest
+    /// map, six creep modes and the rest fits too.
     #[test]
     fn the_largest_generalised_pi_settings_fit_a_frame() {
         let Model::GeneralisedPi(mut g) = representative_gpi(32).unwrap() else {
@@ -951,26 +952,30 @@ mod tests {
             damping: 0.0173,
         });
         s.output_map = Some(widest_output_map());
-        // A generalised P–I takes no output map (it has its own): refused by name, on the
-        // board too, since the frame carries it.
+        // A generalised P–I takes no output map (it has its own): refused by name.
         assert_eq!(
             s.build(&hw()).unwrap_err(),
             Refusal::new(Field::Compensator(ModelField::Model), Rule::NoOutputMap)
         );
-        assert!(Settings {
-            output_map: None,
+        let mut bouc_wen = Settings {
+            compensator: Some(representative_bouc_wen()),
+            observer: Some(representative_bouc_wen()),
             ..s.clone()
+        };
+        bouc_wen.creep =
+            Some(CreepParams::new(&[1e-3, 1e-2, 0.1, 1.0, 10.0, 100.0], &[0.01; 6]).unwrap());
+        s.output_map = None;
+        assert!(s.build(&hw()).is_ok());
+        for s in [s, bouc_wen] {
+            let mut buf = [0u8; 4096];
+            let n = postcard::to_slice(&s, &mut buf).unwrap().len();
+            // Version byte, message tag and CRC around it.
+            assert!(
+                n + 1 + 1 + 4 <= crate::protocol::frame::MAX_BODY,
+                "{n} bytes of settings"
+            );
+            assert!(n + 5 <= crate::config::param_store::MAX_PAYLOAD);
         }
-        .build(&hw())
-        .is_ok());
-        let mut buf = [0u8; 4096];
-        let n = postcard::to_slice(&s, &mut buf).unwrap().len();
-        // Version byte, message tag and CRC around it.
-        assert!(
-            n + 1 + 1 + 4 <= crate::protocol::frame::MAX_BODY,
-            "{n} bytes of settings"
-        );
-        assert!(n + 5 <= crate::config::param_store::MAX_PAYLOAD);
     }
 
     /// The feedforward's notch is designed at the board's rate; a design that cannot work

@@ -49,13 +49,16 @@ use serde::{Deserialize, Serialize};
 /// and the `Field`s `PreviewFrequency`, `PreviewDamping` were appended (the settings'
 /// encoding changed again). Version 12: the settings end with the optional static output
 /// map after the model (`output_map: Option<DeadZoneParams>`), the `Field` `OutputMap` and
-/// the `Rule` `NoOutputMap` were appended; a body may be 1 728 bytes (the largest settings
-/// with an output map).
+/// the `Rule` `NoOutputMap` were appended; a body stays at most 1 568 bytes (the largest
+/// settings a board accepts, two generalised P–I models, take no map; a Bouc–Wen pair with
+/// one is far smaller).
 pub const PROTOCOL_VERSION: u8 = 12;
-/// Largest frame body (version + message + CRC), bytes: a load of the largest settings (two
-/// generalised P–I models of 32 operators and 8 dead zones, both notches, the preview and an
-/// output map of 8 dead zones) fits.
-pub const MAX_BODY: usize = 1728;
+/// Largest frame body (version + message + CRC), bytes: a load of the largest settings a
+/// board accepts (two generalised P–I models of 32 operators and 8 dead zones, both notches,
+/// the preview) fits. Each extra byte costs RAM in every frame buffer: at 1 728, for settings
+/// the board would refuse anyway (those models with an output map), the dual-stage image's
+/// static RAM left the stack less than its reserve.
+pub const MAX_BODY: usize = 1568;
 /// Largest frame on the wire, delimiter excluded: the stuffed [`MAX_BODY`]. The sender refuses
 /// a body longer than [`MAX_BODY`] ([`FrameError::TooLarge`]), the receiver a frame longer than
 /// this ([`FrameError::Oversize`]).
