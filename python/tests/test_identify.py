@@ -126,7 +126,7 @@ def test_auto_ranks_every_model_and_creep_selects_the_candidates(micro, micro_au
     # drift (identify keeps a creep only where it lowers the fit RMS, as it does here).
     assert only.creep
     none = twinstack.identify(t, u, x, fit_until=16.0, creep=False)
-    assert not any("+ creep" in r["label"] for r in none.ranking) and len(none.ranking) == 4
+    assert not any("+ creep" in r["label"] for r in none.ranking) and len(none.ranking) == 5
 
 
 def test_auto_ranks_by_what_the_compensator_does(micro_auto):
