@@ -67,15 +67,7 @@ pub struct BoucWenFit {
 /// The rows from `steady_from` on (after the drive has seen both extremes), where the
 /// refinements judge a trial; all of `rows` where those are too few to fit.
 pub(super) fn steady_rows(rows: &FitRows, steady_from: usize) -> FitRows {
-    let steady = FitRows {
-        index: rows
-            .index
-            .iter()
-            .copied()
-            .filter(|&k| k >= steady_from)
-            .collect(),
-        lag: rows.lag,
-    };
+    let steady = rows.from_sample(steady_from);
     if steady.index.len() >= super::MIN_FIT_SAMPLES {
         steady
     } else {

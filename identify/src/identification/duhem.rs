@@ -283,15 +283,7 @@ pub fn fit(
     };
 
     let mut best = (ls, ls_rms, ls_sim);
-    let steady = FitRows {
-        index: rows
-            .index
-            .iter()
-            .copied()
-            .filter(|&k| k >= steady_from)
-            .collect(),
-        lag: rows.lag,
-    };
+    let steady = rows.from_sample(steady_from);
     if refine && steady.index.len() >= super::MIN_FIT_SAMPLES {
         let ls_steady = rms_error(&best.2, y, &steady);
         let start = [ls.alpha.ln(), ls.beta.ln(), ls.gamma.ln(), ls.offset];

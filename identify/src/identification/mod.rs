@@ -189,6 +189,15 @@ pub struct FitRows {
 }
 
 impl FitRows {
+    /// The rows from sample `first` on (where the refinements judge a trial: after the drive
+    /// has seen both extremes).
+    pub fn from_sample(&self, first: usize) -> FitRows {
+        FitRows {
+            index: self.index.iter().copied().filter(|&k| k >= first).collect(),
+            lag: self.lag,
+        }
+    }
+
     /// Mean of the targets `y[k + lag]`.
     pub fn mean_target(&self, y: &[f64]) -> f64 {
         let n = self.index.len().max(1) as f64;
