@@ -147,7 +147,7 @@ fn holding(p: &BoucWenParams, scaling: &Scaling) -> Option<Scaling> {
 }
 
 /// Whether the board holds `p` (its state's bound in the fixed point on an output range as
-/// wide as it needs, [`holding`]) and its compensator accepts it (loop gain below
+/// wide as it needs, `holding`) and its compensator accepts it (loop gain below
 /// [`MAX_FITTED_LOOP_GAIN`]): what a trial of the refinement must be.
 pub fn held(p: &BoucWenParams, scaling: &Scaling) -> bool {
     holding(p, scaling).is_some_and(|s| p.normalized(&s).is_ok())

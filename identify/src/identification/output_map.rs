@@ -19,7 +19,7 @@
 //! A map fitted after a Bouc–Wen fitted without one finds little to take: the model has bent
 //! its loop to follow the curve (on the Bouc–Wen-class lab stage, slopes 1.01 … 0.92 against
 //! the flexure's 1 … 0.89, and the fit RMS 0.405 → 0.364 % of span). So the model is refined
-//! with its map ([`refine_bouc_wen`]): the Bouc–Wen refinement's simplex from the fitted
+//! with its map (`refine_bouc_wen`): the Bouc–Wen refinement's simplex from the fitted
 //! model, each trial's map solved for by least squares on its output (variable projection),
 //! scored on the rows after the drive has seen both extremes (there: slopes 0.99 … 0.80, fit
 //! RMS 0.295 %).
@@ -28,7 +28,7 @@
 //! the fit rows, and only if the board builds it on the model's scaling; the output range is
 //! widened where the map's output leaves it (the compensator clamps a desired output to the
 //! range before the map's inverse). With creep, the creep is fitted after the map (the board
-//! runs it after the map), alternating with the model and its map ([`super::alternation`]):
+//! runs it after the map), alternating with the model and its map (the `alternation` module):
 //! each later step refines the last step's model and map on the target with the creep undone,
 //! rather than fitting the Bouc–Wen afresh from its Duhem starts (which lands elsewhere at
 //! each step: on the lab stage 23 steps whose fit RMS wandered between 0.19 and 0.29 % of span,
@@ -195,7 +195,7 @@ pub(super) struct Record<'a> {
 
 /// `model` (a Bouc–Wen, without creep or map) with the output map fitted to the
 /// (sign-corrected) target `y` over the record's rows — a Bouc–Wen's parameters refined with
-/// the map on the simulated error ([`refine_bouc_wen`]) — or `model` as it is where the map
+/// the map on the simulated error (`refine_bouc_wen`) — or `model` as it is where the map
 /// does not lower the fit RMS or the board would not build it; the notes say which.
 pub(super) fn with_map(
     model: StageModel,
