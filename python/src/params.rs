@@ -14,7 +14,7 @@ use twinstack_identify::identification::run::{
     RunError,
 };
 use twinstack_identify::identification::{
-    IdentifyOptions, ModelKind, ThresholdSpread, DEFAULT_OPERATORS,
+    IdentifyError, IdentifyOptions, ModelKind, ThresholdSpread, DEFAULT_OPERATORS,
 };
 use twinstack_identify::param_file::ParamFile;
 use twinstack_identify::preview::ResonancePreview;
@@ -189,6 +189,13 @@ impl Params {
         self.model.creep.is_some()
     }
 
+    /// Whether a static output map follows the model (a Bouc–Wen's, fitted with
+    /// `output_map=True`, or `twinstack identify --output-map`).
+    #[getter]
+    fn output_map(&self) -> bool {
+        self.model.output_map.is_some()
+    }
+
     /// The model's input range, volts.
     #[getter]
     fn input_range(&self) -> (f64, f64) {
@@ -295,9 +302,10 @@ impl Params {
     fn __repr__(&self) -> String {
         let s = &self.model.scaling;
         format!(
-            "Params(model={:?}, creep={}, input_range=({}, {}), output_range=({}, {}), output_unit={:?})",
+            "Params(model={:?}, creep={}, output_map={}, input_range=({}, {}), output_range=({}, {}), output_unit={:?})",
             self.model(),
             self.creep(),
+            self.output_map(),
             s.input_min,
             s.input_max,
             s.output_min,
@@ -316,7 +324,7 @@ pub(crate) fn load_params(path: PathBuf) -> PyResult<Params> {
 
 /// Identifies a model from a measured record (`t` seconds, `u` drive volts, `x` reading).
 #[pyfunction]
-#[pyo3(signature = (t, u, x, model="auto", creep=None, fit_until=None, operators=None, thresholds="uniform", lag=None, output_unit="um", tick_rate=None, observer=true))]
+#[pyo3(signature = (t, u, x, model="auto", creep=None, fit_until=None, operators=None, thresholds="uniform", lag=None, output_unit="um", tick_rate=None, observer=true, output_map=false))]
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn identify(
     py: Python<'_>,
@@ -332,6 +340,7 @@ pub(crate) fn identify(
     output_unit: &str,
     tick_rate: Option<f64>,
     observer: bool,
+    output_map: bool,
 ) -> PyResult<Params> {
     let choice = parse_model(model).map_err(PyValueError::new_err)?;
     if let Some(rate) = tick_rate {
@@ -368,9 +377,15 @@ pub(crate) fn identify(
         options.given_lag(lag).map_err(PyValueError::new_err)?;
     }
     options.observer = observer;
+    options.output_map = output_map;
     let run: Result<Identified, RunError> =
         py.detach(|| identify_and_score(&data, choice, &options, creep, output_unit, rate));
-    let run = run.map_err(|e| PyValueError::new_err(e.to_string()))?;
+    let run = run.map_err(|e| match e {
+        RunError::Identify(e @ IdentifyError::NoOutputMapFor(_)) => {
+            PyValueError::new_err(format!("output_map: {e}"))
+        }
+        e => PyValueError::new_err(e.to_string()),
+    })?;
     let ranking = run.auto.as_ref().map(|a| a.ranking.clone());
     Ok(Params {
         model: run.identification.model,

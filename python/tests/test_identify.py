@@ -145,6 +145,23 @@ def test_auto_ranks_by_what_the_compensator_does(micro_auto):
     assert all(kept[0]["compensated_pct"] <= r["compensated_pct"] * 1.05 + 1e-9 for r in kept[1:])
 
 
+def test_an_output_map_is_fitted_after_a_bouc_wen_only(micro):
+    t, u, x = micro
+    # With auto, only the Bouc-Wen candidates with a map are ranked (with and without creep).
+    mapped = twinstack.identify(t, u, x, fit_until=16.0, output_map=True)
+    labels = [r["label"] for r in mapped.ranking]
+    assert len(labels) == 2 and all("+ output map" in l for l in labels), labels
+    assert mapped.model == "bouc-wen"
+    # The map is kept where it lowers the fit error (here it does), and the file carries it.
+    assert mapped.output_map and mapped.settings["output_map"]["thresholds"]
+    assert "output_map=" in repr(mapped)
+    # The board runs a map after a Bouc-Wen only: another model is refused, naming the option.
+    with pytest.raises(ValueError, match="output_map: .*Bouc-Wen"):
+        twinstack.identify(t, u, x, model="pi", fit_until=16.0, output_map=True)
+    plain = twinstack.identify(t, u, x, model="pi", fit_until=16.0)
+    assert not plain.output_map and plain.settings["output_map"] is None
+
+
 def test_tick_rate_keeps_a_model_the_board_runs(micro):
     t, u, x = micro
     fast = twinstack.identify(t, u, x, fit_until=16.0, tick_rate=100_000.0)

@@ -83,6 +83,10 @@ class Params:
     def creep(self) -> bool:
         """Whether a creep operator runs in series with the model."""
     @property
+    def output_map(self) -> bool:
+        """Whether a static output map follows the model (a Bouc-Wen's, fitted with
+        ``identify(..., output_map=True)``)."""
+    @property
     def input_range(self) -> Tuple[float, float]:
         """The model's input range, volts."""
     @property
@@ -132,6 +136,7 @@ def identify(
     output_unit: str = "um",
     tick_rate: Optional[float] = None,
     observer: bool = True,
+    output_map: bool = False,
 ) -> Params:
     """Identifies a hysteresis model from a measured record: ``t`` seconds (strictly
     increasing), ``u`` the drive in volts, ``x`` the measured output.
@@ -151,7 +156,11 @@ def identify(
     picks among those, a model asked for by name that does not fit raises ``ValueError``.
     ``observer=False``: the file runs the model as the compensator only (no estimate, no drift
     check on the board, and the observer's cost off its tick, so larger models fit a fast
-    board, as ``twinstack identify --no-observer``). Runs without the
+    board, as ``twinstack identify --no-observer``). ``output_map=True``: a static output map
+    (four dead zones a side) is fitted after the Bouc-Wen model, the model refined with it,
+    and kept only where it lowers the fit error (``twinstack identify --output-map``); with
+    ``"auto"`` only the Bouc-Wen candidates with a map are ranked (without it, ``auto`` ranks
+    Bouc-Wen with and without one); another model raises ``ValueError``. Runs without the
     interpreter's lock. ``ValueError`` says why a record cannot be fitted."""
 
 def settings_schema() -> List[Tuple[str, str]]:
