@@ -765,7 +765,7 @@ fn auto_picks_the_model_whose_compensator_holds() {
     use twinstack_identify::identification::{IdentifyOptions, ModelKind};
     use twinstack_link::measured_data::{Columns, MeasuredData};
     // The ratio aimed at is 1.5 ×. At 50 kHz the bipolar record's pick, Bouc–Wen + output map +
-    // creep, holds it (1.11 % inverse / 0.93 % forward held out). At 100 kHz, where no
+    // creep, holds it (1.11 % inverse / 0.88 % forward held out). At 100 kHz, where no
     // Bouc–Wen runs, it misses it (P–I + creep: 1.27 % inverse / 0.81 % forward = 1.57 × held
     // out, 1.15 / 0.77 % = 1.50 × on the validation part, at the record's noise floor): its
     // largest inverse errors sit just after the drive's reversals, where the loop is flattest
