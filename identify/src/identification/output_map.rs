@@ -211,6 +211,12 @@ pub(super) fn with_map(
     // every row lowered the fit RMS 1.17 → 0.99 % of span and raised the held-out max
     // 1.42 → 2.02 %).
     let rows = &bouc_wen::steady_rows(record.rows, record.steady_from);
+    // Where too few rows follow both extremes, every fit row (`steady_rows`' fallback).
+    let over = if rows.index.len() < record.rows.index.len() {
+        "after the drive has seen both extremes"
+    } else {
+        "over every fit row"
+    };
     let centre = model.scaling.output_mid();
     let z = bare_output(&model, record)?;
     let span = record.rows.target_span(y);
@@ -230,7 +236,7 @@ pub(super) fn with_map(
     };
     if f.rms >= rms_without {
         notes.push(format!(
-            "output map: left out, it did not lower the fit RMS after the drive has seen both extremes ({:.3} % of span without it, {:.3} % with it)",
+            "output map: left out, it did not lower the fit RMS {over} ({:.3} % of span without it, {:.3} % with it)",
             pct(rms_without),
             pct(f.rms)
         ));
@@ -246,7 +252,7 @@ pub(super) fn with_map(
         }
     };
     notes.push(format!(
-        "output map: kept, fit RMS after the drive has seen both extremes {:.3} % of span against {:.3} % without it{} (slopes {}, the model's offset moved by {:.4})",
+        "output map: kept, fit RMS {over} {:.3} % of span against {:.3} % without it{} (slopes {}, the model's offset moved by {:.4})",
         pct(f.rms),
         pct(rms_without),
         if refined {
