@@ -1261,6 +1261,17 @@ fn the_whole_interrupt_in_every_scenario() {
             }
         }
     }
+    if detail > 0 {
+        // The boot row (row 0: bypass, no model): the interrupt's fixed part, line by line.
+        if let Some(b) = breakdowns.first() {
+            let mut dear = b.clone();
+            dear.sort_by(|a, b| b.1.cmp(&a.1).then(a.0.cmp(&b.0)));
+            println!("{}, worst tick by line:", rows[0].0);
+            for &(l, c) in dear.iter().take(detail) {
+                println!("    {c:5}  {}", lines[l as usize]);
+            }
+        }
+    }
     figures["worst_by_file"] = serde_json::Value::Object(figure_files);
     assert_eq!(
         by_config.len(),
