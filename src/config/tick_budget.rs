@@ -67,6 +67,22 @@ pub const TICK_SHARE_PERCENT: u32 = 80;
 /// [`ServicesLoad`] while they listen.
 pub const FIXED_CYCLES: u32 = 885;
 
+/// What a Cortex-M4 pays, once per interrupt, to run floating-point code: the interrupted
+/// code's floating-point registers (`S0`–`S15` and `FPSCR`, 17 words) saved when the handler
+/// executes its first floating-point instruction (lazy stacking: the space is reserved on
+/// entry) and restored by its return, about one cycle a word each way from SRAM. It is due
+/// whenever the interrupted code has a floating-point context of its own — the services'
+/// observer, the command task's settings — which the worst case assumes. The tick is charged
+/// it where its compensator is a floating-point model
+/// ([`crate::models::Hysteresis::uses_fpu`], [`interrupt_uses_fpu`]): the integer models and
+/// the rest of the tick never touch the FPU. The services' task, which runs the observer's
+/// models inline, pays it once a batch whatever the model, within its measured
+/// [`SERVICES_BASE_CYCLES`] and [`SERVICES_EVERY_CYCLES`]. The whole-interrupt bench
+/// (`tests/irq_bench.rs`) charges every invocation that executes a floating-point
+/// instruction this much, and fails a tick that does in a configuration whose prediction does
+/// not charge it.
+pub const FP_CONTEXT_CYCLES: u32 = 34;
+
 pub use crate::services::consumer::{
     ServicesLoad, CAPTURE_FRAME_CYCLES, FIRE_CYCLES, RELOAD_CYCLES, SERVE_CYCLES,
     SERVICES_BASE_CYCLES, SERVICES_EVERY_CYCLES, TELEMETRY_SAMPLE_CYCLES,
@@ -154,6 +170,9 @@ pub fn highest_rate_hz(cycles: u32) -> f64 {
 /// runs below the tick ([`observer_below_cycles`]).
 pub fn interrupt_cycles(config: &ControlConfig) -> u32 {
     let mut cycles = FIXED_CYCLES + config.compensator.cycles();
+    if interrupt_uses_fpu(config) {
+        cycles += FP_CONTEXT_CYCLES;
+    }
     if let (Some(creep), false) = (
         &config.creep,
         matches!(config.compensator, Compensator::None),
@@ -176,6 +195,13 @@ pub fn interrupt_cycles(config: &ControlConfig) -> u32 {
         cycles += PREVIEW_CYCLES;
     }
     cycles
+}
+
+/// Whether the control interrupt running `config` executes floating-point instructions: its
+/// compensator is a floating-point model ([`crate::models::Hysteresis::uses_fpu`]). Nothing
+/// else in the tick does.
+pub fn interrupt_uses_fpu(config: &ControlConfig) -> bool {
+    config.compensator.uses_fpu()
 }
 
 /// What `config`'s observer costs the services a snapshot below the tick: its model, its
@@ -282,6 +308,34 @@ mod tests {
 
     fn build(s: &Settings) -> ControlConfig {
         s.build(&Hardware::driver_board(10_000.0)).unwrap()
+    }
+
+    #[test]
+    fn a_floating_point_model_is_charged_the_fpu_context_and_an_integer_one_is_not() {
+        use crate::config::settings::{representative_bouc_wen, representative_duhem};
+        let pair = |m: crate::config::settings::Model| Settings {
+            compensator: Some(m.clone()),
+            observer: Some(m),
+            ..Settings::default()
+        };
+        for (model, fpu) in [
+            (representative_pi(16).unwrap(), false),
+            (representative_gpi(16).unwrap(), false),
+            (representative_duhem(), true),
+            (representative_bouc_wen(), true),
+        ] {
+            let config = build(&pair(model));
+            assert_eq!(interrupt_uses_fpu(&config), fpu);
+            // The interrupt: the fixed part, the model, and the context once.
+            assert_eq!(
+                interrupt_cycles(&config),
+                FIXED_CYCLES + config.compensator.cycles() + u32::from(fpu) * FP_CONTEXT_CYCLES
+            );
+        }
+        // No model: nothing of the FPU.
+        let bare = build(&Settings::default());
+        assert!(!interrupt_uses_fpu(&bare));
+        assert_eq!(interrupt_cycles(&bare), FIXED_CYCLES);
     }
 
     #[test]

@@ -201,6 +201,18 @@ impl Compensator {
             Self::InverseBoucWen(m) => m.cycles(),
         }
     }
+
+    /// Whether the model computes in floating point ([`Hysteresis::uses_fpu`]); `false`
+    /// without a model.
+    pub fn uses_fpu(&self) -> bool {
+        match self {
+            Self::None => false,
+            Self::InversePi(m) => m.uses_fpu(),
+            Self::InverseDuhem(m) => m.uses_fpu(),
+            Self::InverseGeneralisedPi(m) => m.uses_fpu(),
+            Self::InverseBoucWen(m) => m.uses_fpu(),
+        }
+    }
 }
 
 /// `m` with its state: matched to the observer's where that runs the model `m` inverts,
@@ -279,24 +291,42 @@ impl Observer {
             Self::BoucWen(m) => m.cycles(),
         }
     }
+
+    /// Whether the model computes in floating point ([`Hysteresis::uses_fpu`]); `false`
+    /// without a model.
+    pub fn uses_fpu(&self) -> bool {
+        match self {
+            Self::None => false,
+            Self::Pi(m) => m.uses_fpu(),
+            Self::Duhem(m) => m.uses_fpu(),
+            Self::GeneralisedPi(m) => m.uses_fpu(),
+            Self::BoucWen(m) => m.uses_fpu(),
+        }
+    }
 }
 
 impl InverseRun {
-    /// One tick of the model: `x` (Q2.30) → drive (Q2.30); without a model, `x`.
+    /// One tick of the model: `x` (Q2.30) → drive (Q2.30); without a model, `x`. The
+    /// integer models inline into the tick; the floating-point ones (Duhem, Bouc–Wen) are
+    /// called ([`Running::step_out_of_line`]), so that the tick of any other configuration
+    /// never touches the FPU.
     #[inline(always)]
     pub fn step(&mut self, x: i32) -> i32 {
         match self {
             Self::InversePi(r) => r.step(x),
-            Self::InverseDuhem(r) => r.step(x),
+            Self::InverseDuhem(r) => r.step_out_of_line(x),
             Self::None => x,
             Self::InverseGeneralisedPi(r) => r.step(x),
-            Self::InverseBoucWen(r) => r.step(x),
+            Self::InverseBoucWen(r) => r.step_out_of_line(x),
         }
     }
 }
 
 impl ForwardRun {
     /// One tick of the model: drive `u` (Q2.30) → its output (Q2.30); without a model, 0.
+    /// Every model inline: the services run it on a batch of snapshots at once, below the
+    /// tick, where a call per snapshot would cost more than the floating-point context their
+    /// task saves once a batch.
     #[inline(always)]
     pub fn step(&mut self, u: i32) -> i32 {
         match self {

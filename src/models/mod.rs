@@ -88,6 +88,16 @@ pub trait Hysteresis {
     /// configuration's worst tick under the sum the [tick budget](crate::config::tick_budget)
     /// makes of these).
     fn cycles(&self) -> u32;
+
+    /// Whether the model's step computes in floating point (single precision, on the
+    /// Cortex-M4's FPU): the first floating-point instruction of an interrupt that runs it
+    /// saves the interrupted code's floating-point registers, and its return restores them
+    /// ([`crate::config::tick_budget::FP_CONTEXT_CYCLES`], which the tick budget charges such
+    /// a model beside its [`Hysteresis::cycles`]). The integer models keep the interrupt
+    /// clear of the FPU.
+    fn uses_fpu(&self) -> bool {
+        false
+    }
 }
 
 /// Where a model's memory stands when the drive rests: what the stage has behind it, which
@@ -147,6 +157,17 @@ impl<M: Hysteresis> Running<M> {
     /// One tick of the model on its state.
     #[inline(always)]
     pub fn step(&mut self, x: i32) -> i32 {
+        self.model.step(&mut self.state, x)
+    }
+
+    /// One tick of a floating-point model ([`Hysteresis::uses_fpu`]) on its state, in a
+    /// function of its own: the floating-point registers it uses are saved and restored in
+    /// this call, on the ticks that run it, not in the prologue of the interrupt that calls
+    /// it — where every configuration's tick would pay for them, and touch the FPU (whose
+    /// context the hardware then saves) even with an integer model or none. A direct call:
+    /// the tick branches through no register.
+    #[inline(never)]
+    pub fn step_out_of_line(&mut self, x: i32) -> i32 {
         self.model.step(&mut self.state, x)
     }
 }

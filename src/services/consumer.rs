@@ -24,7 +24,9 @@ use crate::services::telemetry::{TelemetrySample, TelemetryTap};
 /// The services' part of a tick while they listen ([`Services`]: a capture or a record armed
 /// or running, telemetry running) and pass over the snapshots that take nothing: a snapshot
 /// passed over (its dequeue, its sequence, generation and awaited-event checks) and its share
-/// of the services' task's wake (its entry, return and lock, once a batch of [`BATCH`]
+/// of the services' task's wake (its entry, return and lock, and the floating-point context
+/// its task saves and restores — it runs the observer's models inline, the floating-point
+/// ones among them: `config::tick_budget::FP_CONTEXT_CYCLES` — once a batch of [`BATCH`]
 /// snapshots). The snapshot's push in the tick is in the tick budget's `FIXED_CYCLES`.
 ///
 /// The services serve a batch in one of two loops ([`Services::consume_at_most`]), and the
@@ -38,7 +40,7 @@ use crate::services::telemetry::{TelemetrySample, TelemetryTap};
 /// capture and telemetry each on every tick or every eighth (the two loops' dearest
 /// batches), and fails any scenario whose share of that batch a tick exceeds this charge, and
 /// any whose worst tick and share exceed the pipeline's prediction.
-pub const SERVICES_BASE_CYCLES: u32 = 75;
+pub const SERVICES_BASE_CYCLES: u32 = 80;
 
 /// A snapshot the passing loop serves in full (a frame or a sample due, an awaited event, a
 /// gap, a new configuration), beyond a passed one: the loop's checks, the countdowns moved
@@ -60,15 +62,17 @@ pub const FIRE_CYCLES: u32 = 320;
 /// staged observer moved into place, its bank's state with it), beyond its serve. Measured
 /// by the whole-interrupt bench's reload scenario (mid-stream, another configuration and its
 /// observer loaded, then the modes switched: the P–I and the Duhem configurations reload
-/// each other, the rest the P–I one). The dearest batch, the Duhem configuration's taking
-/// over from the P–I one, is 746 cycles a tick with its serves, where 400 here charged 738:
-/// the observer's step tests the creep that follows it on every snapshot, and where the
-/// reload falls moves with the tick's length.
-pub const RELOAD_CYCLES: u32 = 480;
+/// each other, the rest the P–I one). The dearest batch, the Bouc–Wen + output map + creep
+/// configuration's handing over to the P–I one, is 784 cycles a tick with its serves, where
+/// 480 here charged 753: the observer's step tests the creep that follows it on every
+/// snapshot, and where the reload falls, and how many snapshots the batch catches up on,
+/// moves with the ticks' length (the floating-point models' ticks grew by the call that keeps
+/// their registers out of the tick's prologue).
+pub const RELOAD_CYCLES: u32 = 740;
 
 /// A snapshot where every snapshot is served in full, with its share of the wake (see
 /// [`SERVICES_BASE_CYCLES`]); the observer's own cost is the configuration's.
-pub const SERVICES_EVERY_CYCLES: u32 = 175;
+pub const SERVICES_EVERY_CYCLES: u32 = 180;
 
 /// A frame the capture (or a `Record`) stores, all seven signals: its signals computed and
 /// stored (see [`SERVICES_BASE_CYCLES`]).
