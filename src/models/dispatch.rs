@@ -291,18 +291,6 @@ impl Observer {
             Self::BoucWen(m) => m.cycles(),
         }
     }
-
-    /// Whether the model computes in floating point ([`Hysteresis::uses_fpu`]); `false`
-    /// without a model.
-    pub fn uses_fpu(&self) -> bool {
-        match self {
-            Self::None => false,
-            Self::Pi(m) => m.uses_fpu(),
-            Self::Duhem(m) => m.uses_fpu(),
-            Self::GeneralisedPi(m) => m.uses_fpu(),
-            Self::BoucWen(m) => m.uses_fpu(),
-        }
-    }
 }
 
 impl InverseRun {
