@@ -1156,5 +1156,13 @@ fn the_firmware_tick_links_no_panic_path() {
             panics.is_empty(),
             "{bin} {features:?}: {tick} reaches {panics:?}"
         );
+        // Nor does it touch the FPU outside the floating-point models' own steps: the tick
+        // of an integer model, or of none, pays no floating-point context.
+        let fpu = support::floating_point_functions(&elf, tick, "step_out_of_line");
+        assert!(
+            fpu.is_empty(),
+            "{bin} {features:?}: {tick} runs floating-point instructions outside the \
+             floating-point models' steps: {fpu:?}"
+        );
     }
 }

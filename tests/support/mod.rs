@@ -354,7 +354,10 @@ pub fn reachable_functions(objdump: &Path, elf: &Path, root: &str) -> Vec<(Strin
     let mut funcs: Vec<(u32, String, Vec<u32>, Vec<String>)> = Vec::new();
     for line in String::from_utf8_lossy(&out.stdout).lines() {
         if let Some(head) = line.strip_suffix(">:") {
-            if let Some((addr, name)) = head.split_once(" <") {
+            // An ARM mapping symbol (`$t`, `$d`: code or data follows) is not a function:
+            // what follows it belongs to the function it sits in (a jump table's cases are
+            // reached by falling through, not by a branch the walk sees).
+            if let Some((addr, name)) = head.split_once(" <").filter(|(_, n)| !n.starts_with('$')) {
                 if let Ok(a) = u32::from_str_radix(addr.trim(), 16) {
                     funcs.push((a, name.to_string(), Vec::new(), Vec::new()));
                     continue;
@@ -403,6 +406,78 @@ pub fn reachable_functions(objdump: &Path, elf: &Path, root: &str) -> Vec<(Strin
         .zip(seen)
         .filter(|(_, s)| *s)
         .map(|(f, _)| (f.1.clone(), f.3.clone()))
+        .collect()
+}
+
+/// The functions that handler `root` of `elf` reaches by direct branches and calls, not
+/// entering those whose name contains `apart`, that execute floating-point instructions
+/// (`v…`), with how many each holds. The tick keeps its floating-point models' steps in
+/// calls of their own (`twinstack::models::Running::step_out_of_line`), so that no other
+/// configuration's tick touches the FPU and pays its context
+/// (`twinstack::config::tick_budget::FP_CONTEXT_CYCLES`): walked from the tick with that
+/// name apart, nothing is listed.
+pub fn floating_point_functions(elf: &Path, root: &str, apart: &str) -> Vec<(String, usize)> {
+    let out = Command::new(objdump())
+        .args(["-d", "--no-show-raw-insn", "--triple=thumbv7em-none-eabihf"])
+        .arg(elf)
+        .output()
+        .expect("llvm-objdump runs");
+    assert!(out.status.success(), "llvm-objdump failed");
+    // (start address, name, branch targets, floating-point instructions), in address order.
+    let mut funcs: Vec<(u32, String, Vec<u32>, usize)> = Vec::new();
+    for line in String::from_utf8_lossy(&out.stdout).lines() {
+        if let Some(head) = line.strip_suffix(">:") {
+            // An ARM mapping symbol (`$t`, `$d`: code or data follows) is not a function:
+            // what follows it belongs to the function it sits in (a jump table's cases are
+            // reached by falling through, not by a branch the walk sees).
+            if let Some((addr, name)) = head.split_once(" <").filter(|(_, n)| !n.starts_with('$')) {
+                if let Ok(a) = u32::from_str_radix(addr.trim(), 16) {
+                    funcs.push((a, name.to_string(), Vec::new(), 0));
+                    continue;
+                }
+            }
+        }
+        let Some((_, rest)) = line.trim_start().split_once(':') else {
+            continue;
+        };
+        let mut parts = rest.split('\t').map(str::trim).filter(|p| !p.is_empty());
+        let (Some(mnemonic), operands) = (parts.next(), parts.next().unwrap_or("")) else {
+            continue;
+        };
+        let Some(f) = funcs.last_mut() else {
+            continue;
+        };
+        if mnemonic.starts_with('v') {
+            f.3 += 1;
+        } else if mnemonic.starts_with('b') || mnemonic.starts_with("cb") {
+            let hex: String = operands
+                .split("0x")
+                .nth(1)
+                .unwrap_or("")
+                .chars()
+                .take_while(|c| c.is_ascii_hexdigit())
+                .collect();
+            if let Ok(t) = u32::from_str_radix(&hex, 16) {
+                f.2.push(t);
+            }
+        }
+    }
+    funcs.sort_by_key(|f| f.0);
+    let holder = |t: u32| funcs.partition_point(|f| f.0 <= t).checked_sub(1);
+    let mut seen = vec![false; funcs.len()];
+    let mut todo: Vec<usize> = funcs.iter().position(|f| f.1 == root).into_iter().collect();
+    assert!(!todo.is_empty(), "{root} is not in {}", elf.display());
+    while let Some(i) = todo.pop() {
+        if std::mem::replace(&mut seen[i], true) || funcs[i].1.contains(apart) {
+            continue;
+        }
+        todo.extend(funcs[i].2.iter().filter_map(|&t| holder(t)));
+    }
+    funcs
+        .iter()
+        .zip(seen)
+        .filter(|((_, name, _, fp), s)| *s && *fp > 0 && !name.contains(apart))
+        .map(|(f, _)| (f.1.clone(), f.3))
         .collect()
 }
 
