@@ -260,15 +260,28 @@ where
         dac: &mut D,
     ) -> TickReport {
         if self.external.poll(self.input) {
+            crate::rare();
             self.fire_external();
         }
         // One source at a time, one dispatch: the stream (the common tick) goes straight to
         // the queue below.
         let (scanned, events) = match self.source {
             Source::Stream => (None, 0),
-            Source::Scan => self.scan_tick(),
-            Source::Sequence => (Some(self.sequence_tick(queue)), 0),
-            Source::Analog => (Some(self.analog_tick(adc)), 0),
+            Source::Scan => {
+                // The other sources are charged apart (`tick_budget::SCAN_CYCLES`,
+                // `ANALOG_CYCLES`) or cost less than the stream's step they replace: out of
+                // line, so that the stream's tick takes no branch here.
+                crate::rare();
+                self.scan_tick()
+            }
+            Source::Sequence => {
+                crate::rare();
+                (Some(self.sequence_tick(queue)), 0)
+            }
+            Source::Analog => {
+                crate::rare();
+                (Some(self.analog_tick(adc)), 0)
+            }
         };
         #[cfg(not(feature = "dual-stage"))]
         let setpoint = match scanned {
@@ -288,6 +301,9 @@ where
         // starts at zero).
         let learning = self.learning.is_on();
         if learning {
+            // The learning's ticks are charged apart (`tick_budget::LEARNING_CYCLES`): out of
+            // line, so that the tick without it takes no branch here, nor below.
+            crate::rare();
             self.controller.set_learned(self.learning.correction());
         }
         let mut report = self.controller.tick(setpoint, adc, dac);
@@ -296,6 +312,7 @@ where
         #[cfg(feature = "dual-stage")]
         self.coarse.record_measured(report.measured);
         if learning {
+            crate::rare();
             // The error the learning stores: only a reading of a sensor the configuration has.
             let measured = (self.controller.sensor_config().is_some()
                 && !report.flags.contains(TickFlags::ADC_ERROR))

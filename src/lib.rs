@@ -57,3 +57,16 @@ pub use models::params::{
     BoucWenParams, DuhemParams, ParamError, PiParams, Thresholds, MAX_OPERATORS,
 };
 pub use scaling::Scaling;
+
+/// Marks the branch that calls it as the rare one, so that the compiler lays that branch out
+/// of line and the common path runs straight on: on the board every taken branch refills the
+/// pipeline from flash (up to 5 wait states), so a tick that skips what is off must not jump
+/// over it. The tick calls it where what follows is charged apart in the tick budget (a
+/// source other than the stream, the learning, the trigger's armed edge, a trigger pulse) —
+/// never on a path of the tick's own worst case (a limit, a reload), which it would lengthen.
+/// A `#[cold]` call in an arm is what gives the branch its weights (`core::hint::cold_path`
+/// loses them across crates in the toolchain this builds with); the optimiser then removes
+/// the call to the empty function.
+#[cold]
+#[inline(never)]
+pub(crate) fn rare() {}

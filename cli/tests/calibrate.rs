@@ -454,7 +454,7 @@ fn auto_picks_a_model_the_board_runs_at_its_rate() {
 }
 
 /// At 100 kHz a P–I of the default 17 operators with its observer, and the calibration's own
-/// capture of every fifth tick beside it, is too dear for the share of the period the tick
+/// capture of every other tick beside it, is too dear for the share of the period the tick
 /// budget leaves the pipeline: `calibrate --model pi` leaves the observer out (the board has a
 /// sensor; the observer only gives the estimate and the drift check) and, where that is not
 /// enough, fits fewer operators, says so, and loads what the board runs; with `--operators
@@ -466,8 +466,8 @@ fn a_model_is_sized_to_the_boards_rate_unless_its_operators_are_asked_for() {
     config.board.plant.dt = 1.0 / rate;
     let options = CalibrateOptions {
         model: Some(ModelKind::Pi),
-        // A capture of every fifth tick beside the model (the calibration's record at 20 kHz).
-        sample_rate_hz: rate / 5.0,
+        // A capture of every other tick beside the model (the calibration's record at 50 kHz).
+        sample_rate_hz: rate / 2.0,
         // The sizing is under test, not the fit: this stage creeps more than a P–I alone
         // follows over the quick excitation (8 % held out).
         max_held_out_pct: 20.0,

@@ -316,7 +316,9 @@ impl AnalogInput {
 
     /// One tick (running): `reading` the input's conversion (UQ0.16 of the span, `None`:
     /// none), `rest` the rest position (Q2.30); returns this tick's setpoint (Q2.30). O(1).
-    #[inline]
+    // Inlined into the tick, where its source is the rarer branch (`crate::rare`), which the
+    // compiler would otherwise leave a call.
+    #[inline(always)]
     pub fn next(&mut self, reading: Option<u16>, rest: i32) -> i32 {
         let p = self.p;
         let r = reading.unwrap_or(0);

@@ -676,7 +676,9 @@ impl ScanGenerator {
     }
 
     /// The next tick's sample. O(1): no loop, no division, no panic path.
-    #[inline]
+    // Inlined into the tick, where its source is the rarer branch (`crate::rare`), which the
+    // compiler would otherwise leave a call.
+    #[inline(always)]
     pub fn next_sample(&mut self) -> ScanSample {
         match self.phase {
             Phase::Done => ScanSample {
@@ -983,6 +985,9 @@ impl TriggerOutputs {
         if events == 0 && (*p | *l | *f) == 0 {
             return 0;
         }
+        // A pulse starts or runs: the scan's tick, charged with it
+        // (`tick_budget::SCAN_CYCLES`), laid out of line.
+        crate::rare();
         stretch(events, PIXEL, self.width, p)
             | stretch(events, LINE, self.width, l)
             | stretch(events, FRAME, self.width, f)
@@ -1089,6 +1094,9 @@ impl ExternalTrigger {
         if !self.armed {
             return false;
         }
+        // Armed is the rarer tick, and charged as such (`tick_budget::TRIGGER_CYCLES`): laid
+        // out of line, so that the disarmed tick runs straight on without a taken branch.
+        crate::rare();
         let edge = self.edges.poll(level);
         if edge {
             self.armed = false;

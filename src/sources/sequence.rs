@@ -239,7 +239,9 @@ impl SteppedSequence {
     /// One tick (armed): `level` the trigger input now, `position` where the stage is
     /// (Q2.30, the last tick's reading); returns this tick's setpoint (Q2.30). See the module
     /// doc. O(1).
-    #[inline]
+    // Inlined into the tick, where its source is the rarer branch (`crate::rare`), which the
+    // compiler would otherwise leave a call.
+    #[inline(always)]
     pub fn next<const N: usize>(
         &mut self,
         level: bool,
