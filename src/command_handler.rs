@@ -635,10 +635,11 @@ impl<S: RecordStorage> CommandHandler<S> {
         let pulse = control.lock(|c| c.trigger_pulse_ticks());
         let generator = ScanGenerator::new(&r, rate, self.max_scan_step(), pulse)
             .map_err(NackReason::Refused)?;
-        // The scan ends the analog input (another source).
+        // The scan ends the analog input or a sequence (other sources).
         let beside = crate::config::tick_budget::Beside {
             scanning: true,
             analog: false,
+            sequence: false,
             ..beside_now(control)
         };
         if let Some(refusal) = self.over_budget(beside) {
@@ -681,8 +682,18 @@ impl<S: RecordStorage> CommandHandler<S> {
             SequenceRequest::Arm(_) if analog_running(control) => Err(NackReason::Busy),
             SequenceRequest::Arm(config) => {
                 config.check().map_err(NackReason::Refused)?;
+                // The sequence ends a scan (another source); its ticks are charged.
+                let beside = crate::config::tick_budget::Beside {
+                    scanning: false,
+                    sequence: true,
+                    ..beside_now(control)
+                };
+                if let Some(refusal) = self.over_budget(beside) {
+                    return Err(NackReason::Refused(refusal));
+                }
                 let step = crate::sources::sequence::move_step(self.max_scan_step());
-                control.lock(|c| c.arm_sequence(&config, step));
+                let prepared = config.prepare(step);
+                control.lock(|c| c.arm_sequence(&prepared));
                 Ok(None)
             }
             SequenceRequest::Stop => {
@@ -709,10 +720,11 @@ impl<S: RecordStorage> CommandHandler<S> {
                 let prepared = config
                     .prepare(self.hardware.control_rate_hz)
                     .map_err(NackReason::Refused)?;
-                // The input ends a scan (another source).
+                // The input ends a scan or a sequence (other sources).
                 let beside = crate::config::tick_budget::Beside {
                     scanning: false,
                     analog: true,
+                    sequence: false,
                     ..beside_now(control)
                 };
                 if let Some(refusal) = self.over_budget(beside) {

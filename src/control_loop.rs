@@ -62,7 +62,7 @@ use crate::services::recorder::Trigger;
 use crate::services::snapshot::{Events, Snapshot, SnapshotProducer, BATCH};
 use crate::sources::analog_input::{AnalogInput, AnalogStatus, PreparedInput};
 use crate::sources::scan::{ExternalTrigger, ScanGenerator, TriggerConfig, TriggerOutputs, INPUT};
-use crate::sources::sequence::{SequenceConfig, SequenceStatus, SteppedSequence};
+use crate::sources::sequence::{PreparedSequence, SequenceStatus, SteppedSequence};
 use crate::sources::setpoint_stream::UnderrunPolicy;
 use crate::sources::setpoint_stream::{SetpointStream, Underrun};
 use crate::sources::waveform::WaveformGenerator;
@@ -431,13 +431,14 @@ where
         }
     }
 
-    /// Arms a TTL-stepped sequence ([`crate::sources::sequence`]; `config` checked by the caller) over
-    /// the positions queued, moving by at most `max_step` (Q2.30) a tick: the stream, the
-    /// waveform or a scan stops, and the stage holds until the first edge.
-    pub fn arm_sequence(&mut self, config: &SequenceConfig, max_step: i32) {
+    /// Arms a TTL-stepped sequence ([`crate::sources::sequence`]; `config` checked and
+    /// prepared by the caller, [`crate::sources::sequence::SequenceConfig::prepare`]) over the
+    /// positions queued: the stream, the waveform or a scan stops, and the stage holds until
+    /// the first edge.
+    pub fn arm_sequence(&mut self, config: &PreparedSequence) {
         self.stop();
         let from = self.controller.setpoint();
-        self.sequence.arm(config, from, self.input, max_step);
+        self.sequence.arm(config, from, self.input);
         self.source = Source::Sequence;
     }
 
@@ -536,13 +537,15 @@ where
 
     /// What runs beside the controller and costs the tick, as the tick budget charges it
     /// ([`Beside`]): the learning (playing or learning), a scan (running, or waiting for its
-    /// trigger: the edge starts it), the analog input, the armed trigger input (the services'
+    /// trigger: the edge starts it), the analog input, an armed sequence, the armed trigger
+    /// input (the services'
     /// load is the command handler's to add: they are not the loop's).
     pub fn beside(&self) -> Beside {
         Beside {
             learning: self.learning.state() != LearnState::Off,
             scanning: self.scan_pending || self.is_scanning(),
             analog: self.analog.is_running(),
+            sequence: self.sequence.is_armed(),
             trigger: self.external.is_armed(),
             // The services are not the loop's: the command handler adds what they run.
             services: Default::default(),

@@ -1702,6 +1702,40 @@ fn an_analog_start_that_would_overrun_the_tick_is_refused_with_its_cycles() {
     assert!(!b.control.analog_status().running);
 }
 
+/// A TTL-stepped sequence is charged beside the configuration's tick
+/// ([`twinstack::config::tick_budget::SEQUENCE_CYCLES`]: its edge's tick pops a position and
+/// starts the walk to it): at a rate whose period holds the closed-loop configuration but not
+/// the sequence beside it, arming is refused with the cycles it needs and has, and nothing is
+/// armed.
+#[test]
+fn arming_a_sequence_that_would_overrun_the_tick_is_refused_with_its_cycles() {
+    use twinstack::config::tick_budget::{available_cycles, SEQUENCE_CYCLES};
+    use twinstack::sources::scan::TriggerEdge;
+    use twinstack::sources::sequence::{SequenceConfig, SequenceRequest};
+    let (mut b, rate, fits) = closed_loop_board_short_of(SEQUENCE_CYCLES);
+    let config = SequenceConfig {
+        edge: TriggerEdge::Rising,
+        window: 0.01,
+        settle_ticks: 5,
+    };
+    match b.handle(Request::Sequence(SequenceRequest::Arm(config))) {
+        Response::Nack {
+            reason: NackReason::Refused(r),
+        } => {
+            assert_eq!(r.field, Field::Workload, "{r:?}");
+            assert_eq!(
+                r.rule,
+                Rule::TickOverrun {
+                    needs: fits + SEQUENCE_CYCLES,
+                    available: available_cycles(rate)
+                }
+            );
+        }
+        r => panic!("the sequence was not refused: {r:?}"),
+    }
+    assert!(!b.control.sequence_status().armed);
+}
+
 /// The armed trigger input is charged beside the configuration's tick
 /// ([`twinstack::config::tick_budget::TRIGGER_CYCLES`]: its edge's tick starts a scan or the
 /// stream and fires a capture, and the edge may come on any tick): at a rate whose period

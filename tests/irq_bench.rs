@@ -930,7 +930,8 @@ fn the_whole_interrupt_in_every_scenario() {
     assert_eq!(loads.len(), names.len(), "a load per scenario");
     assert_eq!(
         names.len(),
-        CONFIGURATIONS * 18,
+        // The image's 18 scenarios and the load, per configuration.
+        CONFIGURATIONS * 19,
         "every scenario and load ran: {stdout}"
     );
     // The stack's high-water mark over the whole run (painted at reset, read back by the image
@@ -1124,15 +1125,18 @@ fn the_whole_interrupt_in_every_scenario() {
                 budgets.values().copied().max().unwrap_or(0)
             } else if name.contains("/scan-")
                 || name.contains("/analog-")
+                || name.contains("/sequence-")
                 || name.ends_with("-learning")
                 || name.contains("-on-trigger")
             {
                 // What runs beside the configuration, charged as the command handler charges
-                // it: the learning, a scan, the analog input, the armed trigger input.
+                // it: the learning, a scan, the analog input, a sequence, the armed trigger
+                // input.
                 let beside = twinstack::config::tick_budget::Beside {
                     learning: name.ends_with("-learning"),
                     scanning: name.contains("/scan-"),
                     analog: name.contains("/analog-"),
+                    sequence: name.contains("/sequence-"),
                     trigger: name.contains("-on-trigger"),
                     services: ServicesLoad::default(),
                 };

@@ -126,6 +126,18 @@ pub const SCAN_CYCLES: u32 = 165;
 /// runs.
 pub const ANALOG_CYCLES: u32 = 32;
 
+/// A TTL-stepped sequence while it is armed ([`crate::sources::sequence`]): the settle
+/// window's compares, the edge, the queue's pop on it, the walk to the new position. It
+/// replaces the stream's step, which the fixed part already charges; its edge's tick, a
+/// full-range step away, also takes each model's dearest path on the walk's first ticks.
+/// Measured by the whole-interrupt bench (`cargo test --profile host-opt --test irq_bench`,
+/// scenario `sequence-on-edges`: full-range steps, a rising edge every 30 ticks, before the
+/// stage settles, the last edges finding the queue empty) as the worst tick above the
+/// configuration's prediction: 64 cycles (5 WS) for the Duhem configuration with its observer,
+/// 33 for the P–I ones; 80 keeps a margin. Counted when a sequence is armed, and at every
+/// load, trigger or learning start while it is.
+pub const SEQUENCE_CYCLES: u32 = 80;
+
 /// The tick on which the external trigger input's armed edge comes
 /// ([`crate::sources::scan::TriggerConfig`]): the scan waiting for it starts from the setpoint
 /// in force (its approach computed), or the stream starts, and a capture armed on it fires.
@@ -256,6 +268,8 @@ pub struct Beside {
     pub scanning: bool,
     /// The analog setpoint input runs.
     pub analog: bool,
+    /// A TTL-stepped sequence is armed.
+    pub sequence: bool,
     /// The external trigger input is armed: its edge's tick may come on any tick.
     pub trigger: bool,
     /// What the services run (a capture or a record, telemetry): while anything does, the
@@ -265,12 +279,13 @@ pub struct Beside {
 
 impl Beside {
     /// Everything that can run beside a configuration at once: the learning, a scan (the
-    /// analog input is the other board-side source, and cheaper), the armed trigger input, a
-    /// capture and telemetry on every tick.
+    /// analog input and a sequence are the other board-side sources, and cheaper), the armed
+    /// trigger input, a capture and telemetry on every tick.
     pub const EVERY_FEATURE: Self = Self {
         learning: true,
         scanning: true,
         analog: false,
+        sequence: false,
         trigger: true,
         services: ServicesLoad::WORST,
     };
@@ -280,6 +295,7 @@ impl Beside {
         u32::from(self.learning) * LEARNING_CYCLES
             + u32::from(self.scanning) * SCAN_CYCLES
             + u32::from(self.analog) * ANALOG_CYCLES
+            + u32::from(self.sequence) * SEQUENCE_CYCLES
             + u32::from(self.trigger) * TRIGGER_CYCLES
             + self.services.cycles()
     }
@@ -342,6 +358,37 @@ mod tests {
         let bare = build(&Settings::default());
         assert!(!interrupt_uses_fpu(&bare));
         assert_eq!(interrupt_cycles(&bare), FIXED_CYCLES);
+    }
+
+    #[test]
+    fn each_source_beside_the_stream_is_charged_and_the_dearest_makes_every_feature() {
+        let only = |b: Beside| b.cycles();
+        let none = Beside::default();
+        assert_eq!(only(none), 0);
+        assert_eq!(
+            only(Beside {
+                sequence: true,
+                ..none
+            }),
+            SEQUENCE_CYCLES
+        );
+        assert_eq!(
+            only(Beside {
+                analog: true,
+                ..none
+            }),
+            ANALOG_CYCLES
+        );
+        assert_eq!(
+            only(Beside {
+                scanning: true,
+                ..none
+            }),
+            SCAN_CYCLES
+        );
+        // One source at a time: every feature counts the dearest of them, the scan.
+        const { assert!(SCAN_CYCLES >= SEQUENCE_CYCLES && SCAN_CYCLES >= ANALOG_CYCLES) };
+        const { assert!(Beside::EVERY_FEATURE.scanning && !Beside::EVERY_FEATURE.sequence) };
     }
 
     #[test]

@@ -90,6 +90,39 @@ impl SequenceConfig {
         }
         Ok(())
     }
+
+    /// The settings in the tick's fixed point, moving by at most `max_step` (Q2.30, clamped
+    /// to ≥ 1 LSB) per tick: computed before the lock that arms the sequence, so that the
+    /// tick is never held off for the conversion (soft floating point on the board).
+    ///
+    /// ```
+    /// use twinstack::sources::scan::TriggerEdge;
+    /// use twinstack::sources::sequence::SequenceConfig;
+    /// let c = SequenceConfig { edge: TriggerEdge::Rising, window: 0.5, settle_ticks: 0 };
+    /// let p = c.prepare(0);
+    /// assert_eq!((p.window, p.settle_ticks, p.step), (1 << 29, 1, 1));
+    /// ```
+    pub fn prepare(&self, max_step: i32) -> PreparedSequence {
+        PreparedSequence {
+            edge: self.edge,
+            window: signal_from_f64(self.window as f64).unsigned_abs(),
+            settle_ticks: self.settle_ticks.max(1),
+            step: max_step.max(1),
+        }
+    }
+}
+
+/// A sequence's settings as the tick uses them ([`SequenceConfig::prepare`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct PreparedSequence {
+    /// The input's edge that advances the sequence.
+    pub edge: TriggerEdge,
+    /// The settle window's half-width, Q2.30.
+    pub window: u32,
+    /// Ticks in a row within the window before the settled output goes high (≥ 1).
+    pub settle_ticks: u16,
+    /// Largest setpoint change per tick, Q2.30 (≥ 1).
+    pub step: i32,
 }
 
 /// Arm, stop or read a sequence (protocol `Request::Sequence`).
@@ -170,9 +203,9 @@ impl SteppedSequence {
         }
     }
 
-    /// Arms `config` (checked: [`SequenceConfig::check`]) with the setpoint at `from` (Q2.30)
-    /// and the input at `level`, moving by at most `max_step` (Q2.30, clamped to ≥ 1 LSB) per
-    /// tick. Counters restart at zero.
+    /// Arms `config` (checked, [`SequenceConfig::check`], and prepared,
+    /// [`SequenceConfig::prepare`]) with the setpoint at `from` (Q2.30) and the input at
+    /// `level`. Counters restart at zero. A few stores: no conversion, no loop.
     ///
     /// ```
     /// use heapless::spsc::Queue;
@@ -183,20 +216,20 @@ impl SteppedSequence {
     /// p.enqueue(16384).unwrap(); // 0.5
     /// let mut s = SteppedSequence::new();
     /// let config = SequenceConfig { edge: TriggerEdge::Rising, window: 0.01, settle_ticks: 1 };
-    /// s.arm(&config, 0, false, 1 << 28);
+    /// s.arm(&config.prepare(1 << 28), 0, false);
     /// assert_eq!(s.next(false, 0, &mut c), 0); // no edge: holds
     /// assert_eq!(s.next(true, 0, &mut c), 1 << 28); // the edge's own tick moves
     /// assert_eq!(s.next(true, 0, &mut c), 1 << 29); // and arrives
     /// ```
-    pub fn arm(&mut self, config: &SequenceConfig, from: i32, level: bool, max_step: i32) {
+    pub fn arm(&mut self, config: &PreparedSequence, from: i32, level: bool) {
         *self = Self {
             armed: true,
             edges: EdgeDetector::new(config.edge, level),
             current: from,
             target: from,
-            step: max_step.max(1),
-            window: signal_from_f64(config.window as f64).unsigned_abs(),
-            settle_ticks: config.settle_ticks.max(1),
+            step: config.step,
+            window: config.window,
+            settle_ticks: config.settle_ticks,
             ..Self::new()
         };
     }
@@ -329,7 +362,7 @@ mod tests {
             p.enqueue(x).unwrap();
         }
         let mut s = SteppedSequence::new();
-        s.arm(&config(3), 0, false, SIGNAL_ONE);
+        s.arm(&config(3).prepare(SIGNAL_ONE), 0, false);
         let mut level = false;
         let mut toggle = |s: &mut SteppedSequence, c: &mut _, n: usize| {
             for _ in 0..n {
@@ -367,7 +400,7 @@ mod tests {
             p.enqueue(x).unwrap();
         }
         let mut s = SteppedSequence::new();
-        s.arm(&config(10), 0, false, SIGNAL_ONE);
+        s.arm(&config(10).prepare(SIGNAL_ONE), 0, false);
         // Edges every other tick: never 10 ticks within the window.
         for k in 0..6 {
             let pos = s.current;
@@ -385,7 +418,11 @@ mod tests {
         p.enqueue(i16::MAX).unwrap();
         let mut s = SteppedSequence::new();
         let step = 1 << 24;
-        s.arm(&config(1), setpoint_from_wire(i16::MIN), false, step);
+        s.arm(
+            &config(1).prepare(step),
+            setpoint_from_wire(i16::MIN),
+            false,
+        );
         let mut last = s.next(false, 0, &mut c);
         let first = s.next(true, 0, &mut c);
         assert_eq!(first - last, step, "the edge's own tick moves by one step");
@@ -408,7 +445,7 @@ mod tests {
             edge: TriggerEdge::Falling,
             ..config(3)
         };
-        s.arm(&cfg, 0, false, SIGNAL_ONE);
+        s.arm(&cfg.prepare(SIGNAL_ONE), 0, false);
         s.next(true, 0, &mut c);
         assert_eq!(s.status().steps, 0);
         s.next(false, 0, &mut c);

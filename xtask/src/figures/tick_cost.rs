@@ -63,8 +63,9 @@ pub(super) const STREAMED: [&str; 5] = [
     "nested-loops",
 ];
 
-/// The scan, analog-input, generator and trigger-input scenarios, with their columns' titles.
-pub(super) const SCANNED: [(&str, &str); 10] = [
+/// The scan, analog-input, sequence, generator and trigger-input scenarios, with their
+/// columns' titles.
+pub(super) const SCANNED: [(&str, &str); 11] = [
     ("scan-raster-triggers", "raster"),
     ("scan-lissajous-triggers", "Lissajous"),
     ("scan-spiral-triggers", "spiral"),
@@ -75,6 +76,7 @@ pub(super) const SCANNED: [(&str, &str); 10] = [
         "spiral started by the input's edges + learning",
     ),
     ("analog-input", "analog input"),
+    ("sequence-on-edges", "TTL-stepped sequence"),
     ("waveform-sine-decaying", "the board's generator"),
     ("waveform-sine-learning", "the board's generator + learning"),
     ("triangle-on-trigger", "stream, the input's edges"),
@@ -228,9 +230,11 @@ pub(super) fn tick_cost(out: &str) -> Result<String, String> {
         "\nEach scan pattern (200 Hz on x, ±0.8, trigger pulses of 2 ticks), alone and with the \
          learning on; the spiral started by the trigger input's rising edge every 150 ticks (the \
          input armed again before each, a capture armed on the first); the analog setpoint input \
-         as the source (budget's charge: {analog} cycles); and a stream the input's edges start \
-         again, a capture armed on the first (the armed input's charge: {trigger} cycles); worst \
-         tick, instructions / cycles at 5 WS:\n\n"
+         as the source (budget's charge: {analog} cycles); a TTL-stepped sequence of full-range \
+         steps, one a rising edge of the input every 30 ticks, before the stage settles, its last \
+         edges finding no position (charged as the stream it replaces); and a stream the input's \
+         edges start again, a capture armed on the first (the armed input's charge: {trigger} \
+         cycles); worst tick, instructions / cycles at 5 WS:\n\n"
     ));
     t.push_str("| configuration |");
     for (_, title) in SCANNED {
@@ -478,15 +482,15 @@ mod tests {
             t.contains("| inverse P–I 16 + P–I 16 observer + PI + drift | 904 / 1 404 / 1 574 | 910 / 1 410 / 1 580 | 810 | 1 680 | 1 666 | 2 506 | 80 600 Hz | 53 600 Hz |"),
             "{t}"
         );
-        // The scans: raster is index 5, the stream on the trigger index 12 (instructions /
+        // The scans: raster is index 5, the stream on the trigger index 13 (instructions /
         // 5 WS).
         assert!(t.contains("| 905 / 1 575 | 906 / 1 576 | 907 / 1 577 | 908 / 1 578 | 909 / 1 579 | 910 / 1 580 | 911 / 1 581 | 912 / 1 582 |"), "{t}");
         assert!(t.contains("| 1 066 | 507 | 1 573 | 1 666 | 1.06 |"), "{t}");
         // The services' share against their charge: the scenario with the highest ratio
-        // (the last, `load`: 116 of 120).
+        // (the last, `load`: 117 of 120).
         assert!(
             t.contains(
-                "| inverse P–I 16 + P–I 16 observer + PI + drift | load | 116 | 120 | 0.97 |"
+                "| inverse P–I 16 + P–I 16 observer + PI + drift | load | 117 | 120 | 0.97 |"
             ),
             "{t}"
         );

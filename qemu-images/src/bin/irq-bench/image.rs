@@ -29,8 +29,9 @@ pub mod scenarios {
     use twinstack::protocol::messages::{WaveDecay, WaveShape, Waveform};
     use twinstack::sources::analog_input::{AnalogInputConfig, OnFault};
     use twinstack::sources::scan::{
-        LissajousScan, RasterScan, ScanPattern, ScanRequest, SpiralScan,
+        LissajousScan, RasterScan, ScanPattern, ScanRequest, SpiralScan, TriggerEdge,
     };
+    use twinstack::sources::sequence::SequenceConfig;
 
     /// Ticks each scenario streams.
     pub const TICKS: u32 = 1500;
@@ -64,7 +65,26 @@ pub mod scenarios {
         pub on_trigger: bool,
         /// Instead of streaming: the board's own waveform generator for `TICKS` ticks.
         pub waveform: Option<Waveform>,
+        /// Instead of streaming: a TTL-stepped sequence over [`SEQUENCE_POSITIONS`] positions
+        /// (the scenario's setpoints) queued before it is armed, advanced by the input's rising
+        /// edge every [`SEQUENCE_EVERY`] ticks, for `TICKS` ticks: the edges come before the
+        /// stage settles (counted early), and the last ones find the queue empty (missed).
+        pub sequence: Option<SequenceConfig>,
     }
+
+    /// Ticks between the sequence scenario's edges.
+    pub const SEQUENCE_EVERY: u32 = 30;
+
+    /// Positions the sequence scenario queues: two fewer than its edges, so that the last
+    /// edges find the queue empty and the next scenario finds it so too.
+    pub const SEQUENCE_POSITIONS: u32 = TICKS / SEQUENCE_EVERY - 2;
+
+    /// The sequence scenario's settings: a narrow window, settled after 5 ticks in it.
+    pub const SEQUENCE: SequenceConfig = SequenceConfig {
+        edge: TriggerEdge::Rising,
+        window: 0.01,
+        settle_ticks: 5,
+    };
 
     /// Ticks between the trigger scenario's edges (the scan runs most of them).
     pub const TRIGGER_EVERY: u32 = 150;
@@ -231,6 +251,7 @@ pub mod scenarios {
             analog: None,
             on_trigger: false,
             waveform: None,
+            sequence: None,
         }
     }
 
@@ -253,6 +274,7 @@ pub mod scenarios {
             analog: None,
             on_trigger: false,
             waveform: None,
+            sequence: None,
         }
     }
 
@@ -276,6 +298,7 @@ pub mod scenarios {
             analog: None,
             on_trigger: false,
             waveform: Some(waveform),
+            sequence: None,
         }
     }
 
@@ -290,11 +313,20 @@ pub mod scenarios {
             analog: Some(input),
             on_trigger: false,
             waveform: None,
+            sequence: None,
+        }
+    }
+
+    /// The TTL-stepped sequence scenario (the setpoints are its positions).
+    const fn sequenced(name: &'static str, setpoint: fn(u32) -> i16) -> Scenario {
+        Scenario {
+            sequence: Some(SEQUENCE),
+            ..streamed(name, setpoint, false, false)
         }
     }
 
     /// Every scenario, in the order they run.
-    pub const ALL: [Scenario; 17] = [
+    pub const ALL: [Scenario; 18] = [
         streamed("triangle", triangle, false, false),
         streamed("sine-750Hz", sine_750hz, false, false),
         streamed("full-range-steps", steps, false, false),
@@ -311,6 +343,8 @@ pub mod scenarios {
         // capture, beside the learning.
         on_trigger("scan-spiral-on-trigger-learning", SPIRAL, true),
         analog("analog-input", ANALOG),
+        // A camera stepping the stage: full-range steps, one a rising edge.
+        sequenced("sequence-on-edges", steps),
         // The board's own generator, as `twinstack waveform` plays it.
         generated("waveform-sine-decaying", SINE_DECAYING, false),
         generated("waveform-sine-learning", SINE_200HZ, true),
@@ -547,7 +581,8 @@ mod app {
     use twinstack::hardware::watchdog::Watchdog;
     use twinstack::protocol::messages::{
         AnalogRequest, CaptureRequest, CaptureState, LearnRequest, RecordRequest, Request,
-        Response, SetpointBatch, Signal, StreamControl, Trigger, MAX_BATCH, MAX_CAPTURE_CHUNK,
+        Response, SequenceRequest, SetpointBatch, Signal, StreamControl, Trigger, MAX_BATCH,
+        MAX_CAPTURE_CHUNK,
     };
     use twinstack::services::consumer::Services;
     use twinstack::services::learning::{LearnSettings, LearnState};
@@ -811,6 +846,7 @@ mod app {
                 if scenario.scan.is_some()
                     || scenario.analog.is_some()
                     || scenario.waveform.is_some()
+                    || scenario.sequence.is_some()
                 {
                     // A source on the board (a scan, the analog input, the generator) runs
                     // TICKS ticks
@@ -833,6 +869,23 @@ mod app {
                     if let Some(waveform) = scenario.waveform {
                         expect_ack(ask!(Request::Waveform(waveform)), "waveform");
                     }
+                    if let Some(sequence) = scenario.sequence {
+                        // The positions queued (the stream stopped), then the sequence armed,
+                        // the input low.
+                        EMULATED_INPUT.store(false, Ordering::Relaxed);
+                        let samples = (0..scenarios::SEQUENCE_POSITIONS)
+                            .map(scenario.setpoint)
+                            .collect();
+                        expect_ack(
+                            ask!(Request::Setpoints(SetpointBatch { seq, samples })),
+                            "positions",
+                        );
+                        seq = seq.wrapping_add(1);
+                        expect_ack(
+                            ask!(Request::Sequence(SequenceRequest::Arm(sequence))),
+                            "sequence",
+                        );
+                    }
                     loop {
                         let now = match ask!(Request::Status) {
                             Response::Status(s) => s.ticks,
@@ -841,6 +894,11 @@ mod app {
                         let elapsed = now.wrapping_sub(t0);
                         if elapsed >= scenarios::TICKS {
                             break;
+                        }
+                        if scenario.sequence.is_some() {
+                            // A rising edge every SEQUENCE_EVERY ticks.
+                            let half = scenarios::SEQUENCE_EVERY / 2;
+                            EMULATED_INPUT.store((elapsed / half) % 2 == 1, Ordering::Relaxed);
                         }
                         if let (true, Some(scan)) = (scenario.on_trigger, scenario.scan) {
                             if elapsed / scenarios::TRIGGER_EVERY >= cycle {
@@ -879,6 +937,23 @@ mod app {
                     if scenario.on_trigger {
                         EMULATED_INPUT.store(false, Ordering::Relaxed);
                         expect_ack(ask!(Request::Trigger(disarm_input())), "trigger off");
+                    }
+                    if scenario.sequence.is_some() {
+                        // Every position stepped to, and the edges after them missed: the
+                        // scenario ran the sequence's every path (the bench reads the line).
+                        if let Response::Sequence(st) =
+                            ask!(Request::Sequence(SequenceRequest::Status))
+                        {
+                            hprintln!("SEQUENCE {} {} {}", st.steps, st.early, st.missed);
+                            if st.steps != scenarios::SEQUENCE_POSITIONS || st.missed == 0 {
+                                panic!("sequence: {} steps, {} missed", st.steps, st.missed);
+                            }
+                        }
+                        EMULATED_INPUT.store(false, Ordering::Relaxed);
+                        expect_ack(
+                            ask!(Request::Sequence(SequenceRequest::Stop)),
+                            "sequence stop",
+                        );
                     }
                     if scenario.learning {
                         expect_ack(
