@@ -269,8 +269,8 @@ where
             Source::Stream => (None, 0),
             Source::Scan => {
                 // The other sources are charged apart (`tick_budget::SCAN_CYCLES`,
-                // `ANALOG_CYCLES`) or cost less than the stream's step they replace: out of
-                // line, so that the stream's tick takes no branch here.
+                // `SEQUENCE_CYCLES`, `ANALOG_CYCLES`): out of line, so that the stream's tick
+                // takes no branch here.
                 crate::rare();
                 self.scan_tick()
             }
@@ -538,8 +538,7 @@ where
     /// What runs beside the controller and costs the tick, as the tick budget charges it
     /// ([`Beside`]): the learning (playing or learning), a scan (running, or waiting for its
     /// trigger: the edge starts it), the analog input, an armed sequence, the armed trigger
-    /// input (the services'
-    /// load is the command handler's to add: they are not the loop's).
+    /// input (the services' load is the command handler's to add: they are not the loop's).
     pub fn beside(&self) -> Beside {
         Beside {
             learning: self.learning.state() != LearnState::Off,
