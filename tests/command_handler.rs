@@ -1665,13 +1665,33 @@ fn closed_loop_board_short_of(charge: u32) -> (Board<RamStorage>, f64, u32) {
     (b, rate, fits)
 }
 
+/// `response` is the refusal of a request that would overrun the tick: the workload, needing
+/// `needs` cycles of what `rate` leaves.
+fn refused_as_overrun(response: Response, needs: u32, rate: f64) {
+    match response {
+        Response::Nack {
+            reason: NackReason::Refused(r),
+        } => {
+            assert_eq!(r.field, Field::Workload, "{r:?}");
+            assert_eq!(
+                r.rule,
+                Rule::TickOverrun {
+                    needs,
+                    available: twinstack::config::tick_budget::available_cycles(rate)
+                }
+            );
+        }
+        r => panic!("not refused as an overrun: {r:?}"),
+    }
+}
+
 /// The analog input is charged beside the configuration's tick
 /// ([`twinstack::config::tick_budget::ANALOG_CYCLES`]): at a rate whose period holds the closed-loop
 /// configuration but not the input beside it, the load is taken and the start refused with
 /// the cycles it needs and has; nothing starts.
 #[test]
 fn an_analog_start_that_would_overrun_the_tick_is_refused_with_its_cycles() {
-    use twinstack::config::tick_budget::{available_cycles, ANALOG_CYCLES};
+    use twinstack::config::tick_budget::ANALOG_CYCLES;
     use twinstack::sources::analog_input::{AnalogInputConfig, AnalogRequest, OnFault};
     let (mut b, rate, fits) = closed_loop_board_short_of(ANALOG_CYCLES);
     let input = AnalogInputConfig {
@@ -1684,21 +1704,11 @@ fn an_analog_start_that_would_overrun_the_tick_is_refused_with_its_cycles() {
         rate: 10.0,
         start_at_boot: false,
     };
-    match b.handle(Request::Analog(AnalogRequest::Start(input))) {
-        Response::Nack {
-            reason: NackReason::Refused(r),
-        } => {
-            assert_eq!(r.field, Field::Workload, "{r:?}");
-            assert_eq!(
-                r.rule,
-                Rule::TickOverrun {
-                    needs: fits + ANALOG_CYCLES,
-                    available: available_cycles(rate)
-                }
-            );
-        }
-        r => panic!("the start was not refused: {r:?}"),
-    }
+    refused_as_overrun(
+        b.handle(Request::Analog(AnalogRequest::Start(input))),
+        fits + ANALOG_CYCLES,
+        rate,
+    );
     assert!(!b.control.analog_status().running);
 }
 
@@ -1709,7 +1719,7 @@ fn an_analog_start_that_would_overrun_the_tick_is_refused_with_its_cycles() {
 /// armed.
 #[test]
 fn arming_a_sequence_that_would_overrun_the_tick_is_refused_with_its_cycles() {
-    use twinstack::config::tick_budget::{available_cycles, SEQUENCE_CYCLES};
+    use twinstack::config::tick_budget::SEQUENCE_CYCLES;
     use twinstack::sources::scan::TriggerEdge;
     use twinstack::sources::sequence::{SequenceConfig, SequenceRequest};
     let (mut b, rate, fits) = closed_loop_board_short_of(SEQUENCE_CYCLES);
@@ -1718,21 +1728,11 @@ fn arming_a_sequence_that_would_overrun_the_tick_is_refused_with_its_cycles() {
         window: 0.01,
         settle_ticks: 5,
     };
-    match b.handle(Request::Sequence(SequenceRequest::Arm(config))) {
-        Response::Nack {
-            reason: NackReason::Refused(r),
-        } => {
-            assert_eq!(r.field, Field::Workload, "{r:?}");
-            assert_eq!(
-                r.rule,
-                Rule::TickOverrun {
-                    needs: fits + SEQUENCE_CYCLES,
-                    available: available_cycles(rate)
-                }
-            );
-        }
-        r => panic!("the sequence was not refused: {r:?}"),
-    }
+    refused_as_overrun(
+        b.handle(Request::Sequence(SequenceRequest::Arm(config))),
+        fits + SEQUENCE_CYCLES,
+        rate,
+    );
     assert!(!b.control.sequence_status().armed);
 }
 
@@ -1743,7 +1743,7 @@ fn arming_a_sequence_that_would_overrun_the_tick_is_refused_with_its_cycles() {
 /// cycles it needs and has, and nothing is armed; trigger outputs alone (input off) are taken.
 #[test]
 fn arming_the_trigger_input_where_its_edge_would_overrun_the_tick_is_refused() {
-    use twinstack::config::tick_budget::{available_cycles, TRIGGER_CYCLES};
+    use twinstack::config::tick_budget::TRIGGER_CYCLES;
     use twinstack::sources::scan::{TriggerConfig, TriggerEdge};
     let (mut b, rate, fits) = closed_loop_board_short_of(TRIGGER_CYCLES);
     let armed = TriggerConfig {
@@ -1751,21 +1751,11 @@ fn arming_the_trigger_input_where_its_edge_would_overrun_the_tick_is_refused() {
         input: TriggerEdge::Rising,
         start_stream: true,
     };
-    match b.handle(Request::Trigger(armed)) {
-        Response::Nack {
-            reason: NackReason::Refused(r),
-        } => {
-            assert_eq!(r.field, Field::Workload, "{r:?}");
-            assert_eq!(
-                r.rule,
-                Rule::TickOverrun {
-                    needs: fits + TRIGGER_CYCLES,
-                    available: available_cycles(rate)
-                }
-            );
-        }
-        r => panic!("arming was not refused: {r:?}"),
-    }
+    refused_as_overrun(
+        b.handle(Request::Trigger(armed)),
+        fits + TRIGGER_CYCLES,
+        rate,
+    );
     assert!(!b.control.beside().trigger, "nothing armed");
     let outputs_only = TriggerConfig {
         input: TriggerEdge::Off,
