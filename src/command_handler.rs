@@ -42,6 +42,7 @@ use crate::sources::scan::{ScanGenerator, ScanRequest, TriggerConfig};
 use crate::sources::sequence::{SequenceRequest, SequenceStatus};
 use crate::sources::setpoint_stream::setpoint_from_wire;
 use crate::sources::waveform::{Shape, WaveformError, WaveformGenerator};
+use crate::sources::SetpointSource;
 
 use crate::protocol::decoder::FrameDecoder;
 use crate::protocol::frame::{self, FrameError, MAX_ENCODED};
@@ -220,7 +221,7 @@ impl<S: RecordStorage> CommandHandler<S> {
         let prepared = stored?.prepare(self.hardware.control_rate_hz).ok()?;
         self.analog = stored;
         let beside = crate::config::tick_budget::Beside {
-            analog: true,
+            source: SetpointSource::Analog,
             ..Default::default()
         };
         let fits =
@@ -299,6 +300,20 @@ impl<S: RecordStorage> CommandHandler<S> {
             | Request::Trigger(TriggerConfig {
                 start_stream: true, ..
             }) if drilling(control) => Err(NackReason::Busy),
+            // Where the coarse axis owns the piezo's setpoint (a dual-stage image, its task
+            // running), no other source ever plays: refused, so that nothing accepted is
+            // dropped (setpoints queued for a stream that cannot start, a scan's trigger
+            // pulses with the stage not scanning).
+            Request::Setpoints(_)
+            | Request::PackedSetpoints(_)
+            | Request::Stream(StreamControl::Start)
+            | Request::Waveform(_)
+            | Request::Scan(_)
+            | Request::Sequence(SequenceRequest::Arm(_))
+            | Request::Analog(AnalogRequest::Start(_))
+            | Request::Trigger(TriggerConfig {
+                start_stream: true, ..
+            }) if coarse_owns_setpoint(control) => Err(NackReason::Unsupported),
             Request::Setpoints(batch) => self.setpoints(batch, queue),
             Request::PackedSetpoints(batch) => self.setpoints(batch.into(), queue),
             Request::Stream(StreamControl::Start) if analog_running(control) => {
@@ -637,9 +652,7 @@ impl<S: RecordStorage> CommandHandler<S> {
             .map_err(NackReason::Refused)?;
         // The scan ends the analog input or a sequence (other sources).
         let beside = crate::config::tick_budget::Beside {
-            scanning: true,
-            analog: false,
-            sequence: false,
+            source: SetpointSource::Scan,
             ..beside_now(control)
         };
         if let Some(refusal) = self.over_budget(beside) {
@@ -684,8 +697,7 @@ impl<S: RecordStorage> CommandHandler<S> {
                 config.check().map_err(NackReason::Refused)?;
                 // The sequence ends a scan (another source); its ticks are charged.
                 let beside = crate::config::tick_budget::Beside {
-                    scanning: false,
-                    sequence: true,
+                    source: SetpointSource::Sequence,
                     ..beside_now(control)
                 };
                 if let Some(refusal) = self.over_budget(beside) {
@@ -722,9 +734,7 @@ impl<S: RecordStorage> CommandHandler<S> {
                     .map_err(NackReason::Refused)?;
                 // The input ends a scan or a sequence (other sources).
                 let beside = crate::config::tick_budget::Beside {
-                    scanning: false,
-                    analog: true,
-                    sequence: false,
+                    source: SetpointSource::Analog,
                     ..beside_now(control)
                 };
                 if let Some(refusal) = self.over_budget(beside) {
@@ -1056,6 +1066,15 @@ where
     })
 }
 
+/// Whether the coarse axis owns the piezo's setpoint ([`ControlLoop::coarse_owns_setpoint`]:
+/// the other sources are refused).
+fn coarse_owns_setpoint<L>(control: &mut L) -> bool
+where
+    L: Locks,
+{
+    control.lock(|c| c.coarse_owns_setpoint())
+}
+
 /// Whether the analog input is the setpoint source (another source's start is refused).
 fn analog_running<L>(control: &mut L) -> bool
 where
@@ -1210,6 +1229,8 @@ fn coarse_snapshot<L>(control: &mut L) -> Result<(CoarseLimits, CoarseStatus), N
 where
     L: Locks,
 {
+    // Without the feature no coarse task attaches, and the checks below (floating-point
+    // work, several kilobytes) stay out of the image.
     #[cfg(feature = "dual-stage")]
     {
         let (limits, status) = control.lock(|c| (c.coarse().limits(), c.coarse().status()));
@@ -1240,9 +1261,6 @@ where
         CoarseRefusal::Busy => NackReason::Busy,
         CoarseRefusal::Refused(r) => NackReason::Refused(r),
     })?;
-    #[cfg(feature = "dual-stage")]
     control.lock(|c| c.coarse().request(command));
-    #[cfg(not(feature = "dual-stage"))]
-    let _ = command;
     Ok(())
 }

@@ -3,11 +3,12 @@
 //!
 //! One [`ControlLoop::tick`] is:
 //!
-//! 1. the setpoint, from the one source in force (the loop's `Source`, switched only by its
-//!    command methods, so the tick dispatches once): the built-in waveform generator, or the
-//!    next streamed sample from the setpoint queue through [`SetpointStream`] (rate divider
-//!    with linear interpolation; on an empty queue the underrun policy holds or ramps to the
-//!    rest position, and counts), or a scan, a sequence or the analog input (below);
+//! 1. the setpoint, from the one source in force ([`SetpointSource`], switched only by the
+//!    loop's command methods, so the tick dispatches once): the built-in waveform generator,
+//!    or the next streamed sample from the setpoint queue through [`SetpointStream`] (rate
+//!    divider with linear interpolation; on an empty queue the underrun policy holds or ramps
+//!    to the rest position, and counts), or a scan, a sequence, the analog input (below) or,
+//!    in the dual-stage images, the coarse axis's ramp ([`crate::dual_stage::link`]);
 //! 2. [`Controller::tick`] (compensator, sensor, feedback, limits, both DACs);
 //! 3. one [`Snapshot`] of what the tick did onto the snapshot ring, for the services below
 //!    the tick ([`crate::services::consumer`]: the recorder, telemetry's tap). A capture armed
@@ -66,6 +67,7 @@ use crate::sources::sequence::{PreparedSequence, SequenceStatus, SteppedSequence
 use crate::sources::setpoint_stream::UnderrunPolicy;
 use crate::sources::setpoint_stream::{SetpointStream, Underrun};
 use crate::sources::waveform::WaveformGenerator;
+use crate::sources::SetpointSource;
 
 /// Slots of the setpoint queue (`heapless` keeps one free: [`SETPOINT_CAPACITY`] setpoints
 /// fit). 20 000 slots, 40 008 bytes with the indices: 200 ms at 100 kHz (400 ms at 50 kHz),
@@ -120,35 +122,21 @@ pub struct Telemetry {
     pub analog_fault: bool,
 }
 
-/// Where the tick's setpoint comes from. One at a time: starting one stops the others (the
-/// loop's command methods switch it, between two ticks), so the tick dispatches once.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-enum Source {
-    /// The stream: the setpoint queue or the board's waveform generator, or, stopped, the
-    /// setpoint it holds (also while a scan waits for its trigger).
-    Stream,
-    /// The scan generator, started ([`ControlLoop::scan`]).
-    Scan,
-    /// The TTL-stepped sequence, armed ([`ControlLoop::arm_sequence`]).
-    Sequence,
-    /// The analog setpoint input, running ([`ControlLoop::start_analog`]).
-    Analog,
-}
-
 /// Everything the control interrupt owns. `C` is a handle on a
 /// [`Controller`] (`&'static mut Controller` on the board, `Box<Controller>` on the host): the
 /// loop runs one, and passes a second back and forth with the command handler.
 ///
-/// `repr(C)` with the learning's 16 KiB of tables **last**: left to itself the compiler may
-/// place them first, and every other field's offset then exceeds the 4 095 bytes a Thumb-2
-/// load reaches in one instruction (the whole-interrupt bench saw +27 instructions a tick).
+/// `repr(C)` with the learning's 16 KiB of tables **last** but for the coarse link (which only
+/// the coarse ramp's ticks read): left to itself the compiler may place them first, and every
+/// other field's offset then exceeds the 4 095 bytes a Thumb-2 load reaches in one instruction
+/// (the whole-interrupt bench saw +27 instructions a tick).
 #[derive(Debug)]
 #[repr(C)]
 pub struct ControlLoop<C> {
     controller: C,
-    /// Where the setpoint comes from ([`Source`]): one source at a time, switched only by the
-    /// loop's command methods.
-    source: Source,
+    /// Where the setpoint comes from: one source at a time, switched only by the loop's
+    /// command methods.
+    source: SetpointSource,
     /// The controller a swap retired (or the one the handler has not taken yet): the spare.
     spare: Option<C>,
     /// Counts of the controllers retired and taken back (the totals less the running one's and
@@ -171,10 +159,6 @@ pub struct ControlLoop<C> {
     /// The services listen: a capture or a record is armed or running, or telemetry runs
     /// ([`ControlLoop::listen`]). Only then does the tick push its snapshot and wake them.
     listening: bool,
-    /// The coarse axis's mailbox (feature `dual-stage`): once the coarse task has posted a
-    /// ramp, the piezo's setpoint comes from it instead of the stream.
-    #[cfg(feature = "dual-stage")]
-    coarse: crate::dual_stage::CoarseLink,
     /// The scan (protocol v6), running or waiting for the external trigger.
     scan: Option<ScanGenerator>,
     /// The scan waits for the external trigger.
@@ -197,17 +181,28 @@ pub struct ControlLoop<C> {
     /// ([`ControlLoop::drill_watchdog`]).
     drilling: bool,
     /// The learning's tick half: the correction table it plays, the errors it stores
-    /// ([`crate::services::learning`]). Last: see the type's doc, and the assertion after it.
+    /// ([`crate::services::learning`]). After every field the tick reads on every tick: see
+    /// the type's doc, and the assertion after it.
     learning: LearnTick,
+    /// The coarse axis's mailbox: once the coarse task (in the dual-stage images) has posted a
+    /// ramp, the piezo's setpoint comes from it ([`SetpointSource::Coarse`]). Never attached
+    /// in the other images. Behind the learning's tables: only that source's ticks read it
+    /// (an address computed first), and every other field keeps its one-instruction offset.
+    coarse: crate::dual_stage::CoarseLink,
 }
 
-// The learning's tables stay the last field: every other field within a one-instruction
-// load's reach (a field placed after them would cost every tick an extra instruction for
-// each of its accesses).
+// The learning's tables come after every field the tick reads on every tick, each within a
+// one-instruction load's reach (a field placed after them would cost every tick an extra
+// instruction for each of its accesses); only the coarse link, which no other source's tick
+// reads, follows them.
 const _: () = {
     type Board = ControlLoop<&'static mut Controller>;
     let end = core::mem::offset_of!(Board, learning) + core::mem::size_of::<LearnTick>();
-    assert!(end + 8 > core::mem::size_of::<Board>());
+    assert!(core::mem::offset_of!(Board, coarse) >= end);
+    assert!(
+        end + core::mem::size_of::<crate::dual_stage::CoarseLink>() + 8
+            > core::mem::size_of::<Board>()
+    );
     assert!(core::mem::offset_of!(Board, learning) < 1024);
 };
 
@@ -221,7 +216,7 @@ where
         let stream = SetpointStream::new(controller.setpoint());
         Self {
             controller,
-            source: Source::Stream,
+            source: SetpointSource::Stream,
             spare: Some(spare),
             counted: ControlCounters::default(),
             swaps: 0,
@@ -234,9 +229,8 @@ where
             events: Events::NONE,
             seq: 0,
             listening: false,
-            #[cfg(feature = "dual-stage")]
-            coarse: crate::dual_stage::CoarseLink::new(),
             learning: LearnTick::new(),
+            coarse: crate::dual_stage::CoarseLink::new(),
             scan: None,
             scan_pending: false,
             outputs: TriggerOutputs::new(1),
@@ -266,35 +260,29 @@ where
         // One source at a time, one dispatch: the stream (the common tick) goes straight to
         // the queue below.
         let (scanned, events) = match self.source {
-            Source::Stream => (None, 0),
-            Source::Scan => {
-                // The other sources are charged apart (`tick_budget::SCAN_CYCLES`,
-                // `SEQUENCE_CYCLES`, `ANALOG_CYCLES`): out of line, so that the stream's tick
-                // takes no branch here.
+            SetpointSource::Stream => (None, 0),
+            SetpointSource::Scan => {
+                // The other sources are charged apart (`tick_budget::source_cycles`): out of
+                // line, so that the stream's tick takes no branch here.
                 crate::rare();
                 self.scan_tick()
             }
-            Source::Sequence => {
+            SetpointSource::Sequence => {
                 crate::rare();
                 (Some(self.sequence_tick(queue)), 0)
             }
-            Source::Analog => {
+            SetpointSource::Analog => {
                 crate::rare();
                 (Some(self.analog_tick(adc)), 0)
             }
+            SetpointSource::Coarse => {
+                crate::rare();
+                (Some(self.coarse.next_setpoint()), 0)
+            }
         };
-        #[cfg(not(feature = "dual-stage"))]
         let setpoint = match scanned {
             Some(x) => Some(x),
             None => self.stream.next(queue),
-        };
-        #[cfg(feature = "dual-stage")]
-        let setpoint = match self.coarse.next_setpoint() {
-            Some(fine) => Some(fine),
-            None => match scanned {
-                Some(x) => Some(x),
-                None => self.stream.next(queue),
-            },
         };
         // Learning off (the common case) costs one compare here and one below; the
         // controller's correction was zeroed when it was turned off (and a prepared controller
@@ -309,8 +297,6 @@ where
         let mut report = self.controller.tick(setpoint, adc, dac);
         self.levels = self.outputs.tick(events);
         report.triggers = self.levels | if self.input { INPUT } else { 0 };
-        #[cfg(feature = "dual-stage")]
-        self.coarse.record_measured(report.measured);
         if learning {
             crate::rare();
             // The error the learning stores: only a reading of a sensor the configuration has.
@@ -400,7 +386,7 @@ where
         self.stop();
         let from = self.controller.setpoint();
         self.analog.start(prepared, from);
-        self.source = Source::Analog;
+        self.source = SetpointSource::Analog;
     }
 
     /// Starts a watchdog drill: from the next tick on the tick stops feeding the watchdog,
@@ -426,7 +412,7 @@ where
     fn end_analog(&mut self) {
         if self.analog.is_running() {
             self.analog.stop();
-            self.source = Source::Stream;
+            self.source = SetpointSource::Stream;
             self.stream.hold_at_if_stopped(self.controller.setpoint());
         }
     }
@@ -439,7 +425,7 @@ where
         self.stop();
         let from = self.controller.setpoint();
         self.sequence.arm(config, from, self.input);
-        self.source = Source::Sequence;
+        self.source = SetpointSource::Sequence;
     }
 
     /// The sequence's state and counts.
@@ -460,7 +446,7 @@ where
             let from = self.controller.setpoint();
             if let Some(g) = self.scan.as_mut() {
                 g.start(from);
-                self.source = Source::Scan;
+                self.source = SetpointSource::Scan;
             }
             self.events.add(Trigger::ScanStart);
         } else if self.stream_on_trigger {
@@ -517,9 +503,9 @@ where
         self.scan_pending = on_trigger;
         // Waiting for its trigger, the scan is not the source yet: the stopped stream holds.
         self.source = if on_trigger {
-            Source::Stream
+            SetpointSource::Stream
         } else {
-            Source::Scan
+            SetpointSource::Scan
         };
     }
 
@@ -527,8 +513,8 @@ where
     /// setpoint.
     fn end_scan(&mut self) {
         self.scan_pending = false;
-        if self.source == Source::Scan {
-            self.source = Source::Stream;
+        if self.source == SetpointSource::Scan {
+            self.source = SetpointSource::Stream;
         }
         if self.scan.take().is_some() {
             self.stream.hold_at_if_stopped(self.controller.setpoint());
@@ -542,9 +528,12 @@ where
     pub fn beside(&self) -> Beside {
         Beside {
             learning: self.learning.state() != LearnState::Off,
-            scanning: self.scan_pending || self.is_scanning(),
-            analog: self.analog.is_running(),
-            sequence: self.sequence.is_armed(),
+            // A scan waiting for its trigger is charged as running: the edge starts it.
+            source: if self.scan_pending {
+                SetpointSource::Scan
+            } else {
+                self.source
+            },
             trigger: self.external.is_armed(),
             // The services are not the loop's: the command handler adds what they run.
             services: Default::default(),
@@ -561,23 +550,60 @@ where
         self.scan.as_ref()
     }
 
-    /// The coarse axis's mailbox (feature `dual-stage`), for the handler's short lock.
-    #[cfg(feature = "dual-stage")]
+    /// The coarse axis's mailbox, for the handler's short lock (attached only in the
+    /// dual-stage images).
     pub fn coarse(&mut self) -> &mut crate::dual_stage::CoarseLink {
         &mut self.coarse
     }
 
-    /// The coarse task's post (feature `dual-stage`, once per coarse period, under the tick's
-    /// lock): the period's fine setpoints (ramping from the setpoint the tick uses now) and
-    /// the status. See [`crate::dual_stage::link`].
-    #[cfg(feature = "dual-stage")]
+    /// The coarse task's first exchange (once per coarse period, under the tick's lock): the
+    /// handler's pending command, taken, and where the piezo is as the tick knows it
+    /// ([`Controller::position`]: the sensor's last reading; `None` without a sensor).
+    pub fn take_coarse(&mut self) -> (Option<crate::dual_stage::CoarseCommand>, Option<i32>) {
+        let measured = self
+            .controller
+            .sensor_config()
+            .is_some()
+            .then(|| self.controller.position());
+        (self.coarse.take(), measured)
+    }
+
+    /// The coarse task's post (once per coarse period, under the tick's lock): the period's
+    /// fine setpoints (ramping from the setpoint the tick uses now) and the status. The first
+    /// post makes the coarse axis the setpoint source ([`SetpointSource::Coarse`]): whatever ran
+    /// before stops, and the handler refuses the other sources from then on
+    /// ([`ControlLoop::coarse_owns_setpoint`]). See [`crate::dual_stage::link`].
     pub fn post_coarse(
         &mut self,
         fine: &crate::dual_stage::FineSetpoints,
         status: crate::dual_stage::CoarseStatus,
     ) {
+        if self.source != SetpointSource::Coarse {
+            self.stop();
+            // An input edge armed to start the stream would start nothing now.
+            self.stream_on_trigger = false;
+            self.source = SetpointSource::Coarse;
+        }
         let current = self.controller.setpoint();
         self.coarse.post(current, fine, status);
+    }
+
+    /// The coarse axis hands the piezo's setpoint back (its task detached): the stream,
+    /// stopped, holds where the ramp left it, and the other sources may start again; the
+    /// coarse task's next post takes the setpoint over again.
+    pub fn release_coarse(&mut self) {
+        if self.source == SetpointSource::Coarse {
+            self.source = SetpointSource::Stream;
+            self.coarse.release();
+            self.stream.stop();
+            self.stream.hold_at_if_stopped(self.controller.setpoint());
+        }
+    }
+
+    /// Whether the coarse axis owns the piezo's setpoint (its task has posted a ramp): the
+    /// stream, the waveform, a scan, a sequence and the analog input are refused.
+    pub fn coarse_owns_setpoint(&self) -> bool {
+        self.source == SetpointSource::Coarse
     }
 
     /// The spare controller, for the handler to prepare a reload in (outside any lock): the
@@ -657,7 +683,7 @@ where
     fn end_sequence(&mut self) {
         if self.sequence.is_armed() {
             self.sequence.disarm();
-            self.source = Source::Stream;
+            self.source = SetpointSource::Stream;
             self.stream.hold_at_if_stopped(self.controller.setpoint());
         }
     }

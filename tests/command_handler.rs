@@ -26,6 +26,7 @@ use twinstack::services::consumer::Services;
 use twinstack::services::recorder::Channel;
 use twinstack::services::snapshot::SnapshotRing;
 use twinstack::services::telemetry::TelemetryQueue;
+use twinstack::sources::SetpointSource;
 
 struct Dac(DacCode, DacCode);
 impl DualDac for Dac {
@@ -1793,7 +1794,7 @@ fn arming_the_trigger_input_where_its_edge_would_overrun_the_tick_is_refused() {
         b.handle(Request::Scan(waiting)),
         Response::Ack { .. }
     ));
-    assert!(!b.control.is_scanning() && b.control.beside().scanning);
+    assert!(!b.control.is_scanning() && b.control.beside().source == SetpointSource::Scan);
 }
 
 /// While telemetry runs, the tick wakes the command task (the packer) when the queue holds a
@@ -2064,4 +2065,133 @@ fn the_status_counts_the_ticks_the_drift_check_flagged_since_start_up() {
     b.ticks(64);
     assert_eq!(wire_status(&mut b).drifts, bare);
     assert!(bare >= reloaded.drifts);
+}
+
+/// Once the coarse axis owns the piezo's setpoint (a dual-stage image's coarse task has posted
+/// a ramp), every other source is refused as something this image cannot do, setpoints too
+/// (no stream would ever play them): nothing is accepted to be dropped, nor a scan's trigger
+/// pulses sent with the stage not scanning. The tick follows the ramp to its end; handed
+/// back, the stream holds there and takes setpoints again.
+#[test]
+fn once_the_coarse_axis_owns_the_setpoint_no_other_source_is_accepted() {
+    use twinstack::dual_stage::FineSetpoints;
+    use twinstack::sources::analog_input::{AnalogInputConfig, AnalogRequest, OnFault};
+    use twinstack::sources::scan::{RasterScan, ScanPattern, ScanRequest, TriggerEdge};
+    use twinstack::sources::sequence::{SequenceConfig, SequenceRequest};
+    let mut b = board();
+    assert!(matches!(
+        b.handle(batch(0, &[1000, 2000])),
+        Response::Ack { .. }
+    ));
+    assert!(!b.control.coarse_owns_setpoint());
+    // A scan running when the coarse task first posts stops: the ramp takes over.
+    let scan = ScanRequest {
+        pattern: ScanPattern::Raster(RasterScan {
+            lines: 3,
+            pixels: 40,
+            turn_ticks: 20,
+            offset: 0.0,
+            amplitude: 0.5,
+            y_offset: 0.0,
+            y_amplitude: 0.5,
+        }),
+        ticks_per_pixel: 3,
+        frames: 0,
+        on_trigger: false,
+    };
+    assert!(matches!(
+        b.handle(Request::Scan(scan)),
+        Response::Ack { .. }
+    ));
+    b.ticks(3);
+    assert!(b.control.is_scanning());
+    let end = 1 << 28;
+    let status = b.control.coarse().status();
+    b.control.post_coarse(
+        &FineSetpoints {
+            from: 0,
+            to: end,
+            ticks: 4,
+        },
+        status,
+    );
+    assert!(b.control.coarse_owns_setpoint() && !b.control.is_scanning());
+    let refused = [
+        batch(1, &[3000]),
+        Request::Stream(StreamControl::Start),
+        Request::Waveform(Waveform {
+            shape: WaveShape::Triangle,
+            offset: 0,
+            amplitude: 1000,
+            frequency_mhz: 10_000,
+            decay: None,
+        }),
+        Request::Scan(scan),
+        Request::Sequence(SequenceRequest::Arm(SequenceConfig {
+            edge: TriggerEdge::Rising,
+            window: 0.01,
+            settle_ticks: 5,
+        })),
+        Request::Analog(AnalogRequest::Start(AnalogInputConfig {
+            gain: 2.0,
+            offset: -1.0,
+            corner_hz: None,
+            lost_below: 0.0,
+            over_above: 1.0,
+            on_fault: OnFault::Hold,
+            rate: 10.0,
+            start_at_boot: false,
+        })),
+        Request::Trigger(TriggerConfig {
+            pulse_ticks: 2,
+            input: TriggerEdge::Rising,
+            start_stream: true,
+        }),
+    ];
+    for request in refused {
+        let what = format!("{request:?}");
+        assert_eq!(
+            b.handle(request),
+            nack(NackReason::Unsupported),
+            "{what} while the coarse axis owns the setpoint"
+        );
+    }
+    assert_eq!(b.queued(), vec![1000, 2000], "the queue is as it was");
+    // The coarse task's exchange: the command the handler left, and the piezo's position as
+    // the sensor last read it; none without a sensor.
+    let reading = b.control.controller().position();
+    assert_eq!(b.control.take_coarse(), (None, Some(reading)));
+    let mut blind = board();
+    let no_sensor = Settings {
+        sensor: None,
+        ..blind.read_params()
+    };
+    assert!(matches!(
+        blind.handle(Request::LoadParams(no_sensor)),
+        Response::Ack { .. }
+    ));
+    blind.ticks(1);
+    assert_eq!(blind.control.take_coarse(), (None, None));
+    // What does not start a source still works: the trigger outputs alone.
+    assert!(matches!(
+        b.handle(Request::Trigger(TriggerConfig {
+            pulse_ticks: 2,
+            input: TriggerEdge::Off,
+            start_stream: false,
+        })),
+        Response::Ack { .. }
+    ));
+    b.ticks(4);
+    assert_eq!(
+        b.control.controller().setpoint(),
+        end,
+        "the ramp lands on its end"
+    );
+    assert!(!b.control.is_scanning(), "the scan stopped for good");
+    // Handed back: the stream holds where the ramp left the setpoint, and takes setpoints.
+    b.control.release_coarse();
+    assert!(!b.control.coarse_owns_setpoint());
+    b.ticks(2);
+    assert_eq!(b.control.controller().setpoint(), end);
+    assert!(matches!(b.handle(batch(1, &[3000])), Response::Ack { .. }));
 }

@@ -29,6 +29,7 @@ use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 use twinstack::config::tick_budget::{ServicesLoad, FP_CONTEXT_CYCLES};
+use twinstack::sources::SetpointSource;
 
 /// The worst instruction count of any tick, asserted (deterministic under `-icount`): the
 /// figure the bench measures, rounded up by a margin of 1–2 %. Lower it when the tick
@@ -56,8 +57,8 @@ const LEARNING_EXTRA: u64 = 120;
 const FAMILY_CONFIG: &str = "inverse-gpi17x8+creep4+gpi17x8-observer+pi+drift";
 /// Its bound, instructions (the worst measured, rounded up by about 1 %), over the same
 /// scenarios as [`WORST_INSTRUCTIONS`]: the dearest is the spiral scan with the learning
-/// feedforward on (863 measured: its creep's modes take turns, one a tick).
-const FAMILY_WORST_INSTRUCTIONS: u64 = 875;
+/// feedforward on (883 measured: its creep's modes take turns, one a tick).
+const FAMILY_WORST_INSTRUCTIONS: u64 = 890;
 /// The configurations [`WORST_INSTRUCTIONS`] bounds: the P–I and Duhem ones (P–I 16, the
 /// reference configuration of the tick's cost, and P–I 17 without an observer, what `twinstack
 /// calibrate --model pi` loads by default at 100 kHz).
@@ -772,6 +773,23 @@ fn demangled(symbol: &str) -> String {
 /// No panic path is linked into the tick: nothing the SysTick handler can branch or call to,
 /// directly or through what it calls, is one of `core::panicking`'s (an `i64::clamp` in the
 /// scan's approach used to link `panic_fmt`). Static, from the image's disassembly.
+/// The setpoint source a scenario runs, by its name's prefix (`<config>/scan-…`,
+/// `/analog-…`, `/sequence-…`, `/coarse-…`; the stream otherwise).
+fn source_of(name: &str) -> Option<SetpointSource> {
+    let scenario = name.split('/').nth(1)?;
+    Some(
+        [
+            ("scan-", SetpointSource::Scan),
+            ("analog-", SetpointSource::Analog),
+            ("sequence-", SetpointSource::Sequence),
+            ("coarse-", SetpointSource::Coarse),
+        ]
+        .into_iter()
+        .find_map(|(prefix, s)| scenario.starts_with(prefix).then_some(s))
+        .unwrap_or(SetpointSource::Stream),
+    )
+}
+
 #[test]
 fn the_tick_links_no_panic_path() {
     let elf = support::build_image(support::QEMU_IMAGES, "irq-bench", &[]);
@@ -930,8 +948,8 @@ fn the_whole_interrupt_in_every_scenario() {
     assert_eq!(loads.len(), names.len(), "a load per scenario");
     assert_eq!(
         names.len(),
-        // The image's 18 scenarios and the load, per configuration.
-        CONFIGURATIONS * 19,
+        // The image's 19 scenarios and the load, per configuration.
+        CONFIGURATIONS * 20,
         "every scenario and load ran: {stdout}"
     );
     // The stack's high-water mark over the whole run (painted at reset, read back by the image
@@ -957,6 +975,8 @@ fn the_whole_interrupt_in_every_scenario() {
         "scan_cycles": twinstack::config::tick_budget::SCAN_CYCLES,
         "learning_cycles": twinstack::config::tick_budget::LEARNING_CYCLES,
         "analog_cycles": twinstack::config::tick_budget::ANALOG_CYCLES,
+        "sequence_cycles": twinstack::config::tick_budget::SEQUENCE_CYCLES,
+        "coarse_cycles": twinstack::config::tick_budget::COARSE_CYCLES,
         "trigger_cycles": twinstack::config::tick_budget::TRIGGER_CYCLES,
         "services_base_cycles": twinstack::config::tick_budget::SERVICES_BASE_CYCLES,
         "capture_frame_cycles": twinstack::config::tick_budget::CAPTURE_FRAME_CYCLES,
@@ -1123,20 +1143,19 @@ fn the_whole_interrupt_in_every_scenario() {
                 // The previous configuration's last ticks and this one's first: no tick above
                 // the dearest prediction.
                 budgets.values().copied().max().unwrap_or(0)
-            } else if name.contains("/scan-")
-                || name.contains("/analog-")
-                || name.contains("/sequence-")
-                || name.ends_with("-learning")
-                || name.contains("-on-trigger")
+            } else if let Some(source) = source_of(name)
+                .filter(|s| *s != SetpointSource::Stream)
+                .or_else(|| {
+                    (name.ends_with("-learning") || name.contains("-on-trigger"))
+                        .then_some(SetpointSource::Stream)
+                })
             {
                 // What runs beside the configuration, charged as the command handler charges
-                // it: the learning, a scan, the analog input, a sequence, the armed trigger
-                // input.
+                // it: the learning, a scan, the analog input, a sequence, the coarse ramp, the
+                // armed trigger input.
                 let beside = twinstack::config::tick_budget::Beside {
                     learning: name.ends_with("-learning"),
-                    scanning: name.contains("/scan-"),
-                    analog: name.contains("/analog-"),
-                    sequence: name.contains("/sequence-"),
+                    source,
                     trigger: name.contains("-on-trigger"),
                     services: ServicesLoad::default(),
                 };

@@ -265,7 +265,7 @@ impl CoarseRig {
                 upper: carriage >= self.switches.upper_um || self.faults.upper_limit,
                 home: at(self.switches.home_um),
             });
-            let (command, measured) = control.coarse().take();
+            let (command, measured) = control.take_coarse();
             if let Some(command) = command {
                 let _ = self.supervisor.command(command);
             }

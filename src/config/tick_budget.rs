@@ -40,6 +40,7 @@
 use crate::control::{Compensator, ControlConfig, Observer};
 use crate::models::Hysteresis;
 use crate::refusal::{Field, Refusal, Rule};
+use crate::sources::SetpointSource;
 
 /// The core clock the board runs at, Hz.
 pub const SYSCLK_HZ: u32 = 168_000_000;
@@ -137,6 +138,31 @@ pub const ANALOG_CYCLES: u32 = 32;
 /// 33 for the P–I ones; 80 keeps a margin. Counted when a sequence is armed, and at every
 /// load, trigger or learning start while it is.
 pub const SEQUENCE_CYCLES: u32 = 80;
+
+/// The coarse axis's ramp as the setpoint source (the dual-stage images,
+/// [`crate::dual_stage::link`]): an add and a compare a tick, and the branches out of the
+/// tick's straight line to them and back, in place of the stream's step, which the fixed part
+/// charges. Measured by the whole-interrupt bench (`cargo test --profile host-opt --test
+/// irq_bench`, scenario `coarse-ramp`: a ramp posted every 10 ticks, as the coarse task posts
+/// one a coarse period): its worst tick is 29–66 cycles (5 WS) below the configuration's
+/// worst streamed tick, and 70–170 below its prediction, over the ten configurations; that
+/// also covers the emulator's pacing of the coarse task from the tick
+/// (`hardware::setup::CoarsePacer`, a count and a compare). So nothing is charged above the
+/// stream. Counted at every load, trigger or learning start
+/// once the coarse axis owns the setpoint.
+pub const COARSE_CYCLES: u32 = 0;
+
+/// What `source` costs the tick above the stream's step, which the fixed part charges: the
+/// scan's, the sequence's, the analog input's or the coarse ramp's charge; 0 for the stream.
+pub const fn source_cycles(source: SetpointSource) -> u32 {
+    match source {
+        SetpointSource::Stream => 0,
+        SetpointSource::Scan => SCAN_CYCLES,
+        SetpointSource::Sequence => SEQUENCE_CYCLES,
+        SetpointSource::Analog => ANALOG_CYCLES,
+        SetpointSource::Coarse => COARSE_CYCLES,
+    }
+}
 
 /// The tick on which the external trigger input's armed edge comes
 /// ([`crate::sources::scan::TriggerConfig`]): the scan waiting for it starts from the setpoint
@@ -258,18 +284,16 @@ pub fn check(config: &ControlConfig, control_rate_hz: f64) -> Result<(), Refusal
     check_with(config, control_rate_hz, Beside::default())
 }
 
-/// What runs beside the configuration and costs the tick: the learning feedforward, a scan,
-/// the analog setpoint input, the armed trigger input, the services (recorder, telemetry).
+/// What runs beside the configuration and costs the tick: the learning feedforward, the
+/// setpoint source (a scan, a sequence, the analog input, the coarse ramp), the armed trigger
+/// input, the services (recorder, telemetry).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct Beside {
     /// The learning feedforward plays (learning or frozen).
     pub learning: bool,
-    /// A scan runs (or waits for its trigger).
-    pub scanning: bool,
-    /// The analog setpoint input runs.
-    pub analog: bool,
-    /// A TTL-stepped sequence is armed.
-    pub sequence: bool,
+    /// The setpoint source in force ([`source_cycles`]; a scan waiting for its trigger counts
+    /// as running).
+    pub source: SetpointSource,
     /// The external trigger input is armed: its edge's tick may come on any tick.
     pub trigger: bool,
     /// What the services run (a capture or a record, telemetry): while anything does, the
@@ -279,13 +303,11 @@ pub struct Beside {
 
 impl Beside {
     /// Everything that can run beside a configuration at once: the learning, a scan (the
-    /// analog input and a sequence are the other board-side sources, and cheaper), the armed
-    /// trigger input, a capture and telemetry on every tick.
+    /// dearest source: [`source_cycles`]), the armed trigger input, a capture and telemetry
+    /// on every tick.
     pub const EVERY_FEATURE: Self = Self {
         learning: true,
-        scanning: true,
-        analog: false,
-        sequence: false,
+        source: SetpointSource::Scan,
         trigger: true,
         services: ServicesLoad::WORST,
     };
@@ -293,9 +315,7 @@ impl Beside {
     /// Their cost, cycles.
     pub fn cycles(&self) -> u32 {
         u32::from(self.learning) * LEARNING_CYCLES
-            + u32::from(self.scanning) * SCAN_CYCLES
-            + u32::from(self.analog) * ANALOG_CYCLES
-            + u32::from(self.sequence) * SEQUENCE_CYCLES
+            + source_cycles(self.source)
             + u32::from(self.trigger) * TRIGGER_CYCLES
             + self.services.cycles()
     }
@@ -362,33 +382,29 @@ mod tests {
 
     #[test]
     fn each_source_beside_the_stream_is_charged_and_the_dearest_makes_every_feature() {
-        let only = |b: Beside| b.cycles();
-        let none = Beside::default();
-        assert_eq!(only(none), 0);
-        assert_eq!(
-            only(Beside {
-                sequence: true,
-                ..none
-            }),
-            SEQUENCE_CYCLES
-        );
-        assert_eq!(
-            only(Beside {
-                analog: true,
-                ..none
-            }),
-            ANALOG_CYCLES
-        );
-        assert_eq!(
-            only(Beside {
-                scanning: true,
-                ..none
-            }),
-            SCAN_CYCLES
-        );
+        let only = |source| {
+            Beside {
+                source,
+                ..Beside::default()
+            }
+            .cycles()
+        };
+        assert_eq!(Beside::default().cycles(), 0);
+        assert_eq!(only(SetpointSource::Stream), 0);
+        assert_eq!(only(SetpointSource::Sequence), SEQUENCE_CYCLES);
+        assert_eq!(only(SetpointSource::Analog), ANALOG_CYCLES);
+        assert_eq!(only(SetpointSource::Scan), SCAN_CYCLES);
+        assert_eq!(only(SetpointSource::Coarse), COARSE_CYCLES);
         // One source at a time: every feature counts the dearest of them, the scan.
-        const { assert!(SCAN_CYCLES >= SEQUENCE_CYCLES && SCAN_CYCLES >= ANALOG_CYCLES) };
-        const { assert!(Beside::EVERY_FEATURE.scanning && !Beside::EVERY_FEATURE.sequence) };
+        let sources = [
+            SetpointSource::Stream,
+            SetpointSource::Scan,
+            SetpointSource::Sequence,
+            SetpointSource::Analog,
+            SetpointSource::Coarse,
+        ];
+        assert!(sources.iter().all(|s| source_cycles(*s) <= SCAN_CYCLES));
+        assert_eq!(Beside::EVERY_FEATURE.source, SetpointSource::Scan);
     }
 
     #[test]

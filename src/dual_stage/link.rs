@@ -1,14 +1,16 @@
 //! Where the coarse task, the piezo tick and the command handler meet on the board: a
-//! [`CoarseLink`] inside the control loop (feature `dual-stage`), reached by each through the
-//! tick's lock, a few stores at a time.
+//! [`CoarseLink`] inside the control loop (attached in the dual-stage images), reached by each
+//! through the tick's lock, a few stores at a time.
 //!
-//! * The **coarse task** (once per coarse period) first [`CoarseLink::take`]s the handler's
-//!   pending command and the piezo's last measurement, runs its tick, then
-//!   [`CoarseLink::post`]s the piezo's setpoints for the coming period (a [`FineRamp`],
-//!   prepared here — the one division is off the tick) and its status.
+//! * The **coarse task** (once per coarse period) first takes the handler's pending command
+//!   and the piezo's position as the tick knows it
+//!   ([`crate::control_loop::ControlLoop::take_coarse`]), runs its tick, then posts the
+//!   piezo's setpoints for the coming period (a [`FineRamp`], prepared here — the one division
+//!   is off the tick) and its status ([`crate::control_loop::ControlLoop::post_coarse`]). The
+//!   first post makes the ramp the loop's setpoint source for good.
 //! * The **piezo tick** takes its setpoint from the ramp ([`FineRamp::next_setpoint`]: an add and a
-//!   compare, no division) instead of the setpoint stream once the coarse task has posted one,
-//!   and leaves its measurement for the coarse task.
+//!   compare, no division) instead of the setpoint stream, as it would from any other source,
+//!   and stores nothing for the coarse task.
 //! * The **command handler** validates a request against the latest status and the limits
 //!   ([`super::CoarseLimits`]), answers at once, and leaves the command for the coarse task.
 
@@ -32,14 +34,14 @@ pub struct FineRamp {
 }
 
 impl FineRamp {
-    /// Not engaged: the tick takes its setpoint from the stream.
+    /// Not engaged: nothing posted yet (the loop takes its setpoint from another source).
     ///
     /// ```
     /// use twinstack::dual_stage::{FineRamp, FineSetpoints};
     /// let mut ramp = FineRamp::new();
-    /// assert_eq!(ramp.next_setpoint(), None);
+    /// assert!(!ramp.is_engaged());
     /// ramp.post(0, &FineSetpoints { from: 0, to: 1000, ticks: 10 });
-    /// assert_eq!(ramp.next_setpoint(), Some(100));
+    /// assert_eq!(ramp.next_setpoint(), 100);
     /// ```
     pub const fn new() -> Self {
         Self {
@@ -53,25 +55,24 @@ impl FineRamp {
 
     /// A new period's ramp, from the setpoint the tick uses now (`current`, Q2.30: the last
     /// ramp's, or the stream's before the first) to `fine.to` over `fine.ticks` ticks. Off the
-    /// tick (it divides).
+    /// tick (it divides), but under the tick's lock: one 32-bit division (a hardware `SDIV`,
+    /// not a 64-bit library call); a span beyond `i32` saturates, so its steps fall short and
+    /// the last tick lands on `fine.to` all the same.
     pub fn post(&mut self, current: i32, fine: &FineSetpoints) {
         let from = if self.engaged { self.current } else { current };
-        let ticks = fine.ticks.max(1);
-        let span = fine.to as i64 - from as i64;
-        self.step = span.checked_div(ticks as i64).unwrap_or(0) as i32;
+        let ticks = fine.ticks.clamp(1, i32::MAX as u32);
+        let span = fine.to.saturating_sub(from);
+        self.step = span.checked_div(ticks as i32).unwrap_or(0);
         self.current = from;
         self.to = fine.to;
         self.remaining = ticks;
         self.engaged = true;
     }
 
-    /// The setpoint of this tick (Q2.30), or `None` when not engaged. The last tick of a
-    /// ramp lands on its end exactly.
+    /// The setpoint of this tick (Q2.30; 0 before the first post). The last tick of a ramp
+    /// lands on its end exactly.
     #[inline(always)]
-    pub fn next_setpoint(&mut self) -> Option<i32> {
-        if !self.engaged {
-            return None;
-        }
+    pub fn next_setpoint(&mut self) -> i32 {
         if self.remaining > 1 {
             self.remaining -= 1;
             self.current = self.current.saturating_add(self.step);
@@ -79,10 +80,10 @@ impl FineRamp {
             self.remaining = 0;
             self.current = self.to;
         }
-        Some(self.current)
+        self.current
     }
 
-    /// Whether the coarse task owns the piezo's setpoint.
+    /// Whether a ramp has been posted.
     pub fn is_engaged(&self) -> bool {
         self.engaged
     }
@@ -92,7 +93,6 @@ impl FineRamp {
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct CoarseLink {
     ramp: FineRamp,
-    measured: Option<i32>,
     command: Option<CoarseCommand>,
     status: CoarseStatus,
     limits: Option<CoarseLimits>,
@@ -106,12 +106,10 @@ impl CoarseLink {
     /// use twinstack::dual_stage::CoarseLink;
     /// let mut link = CoarseLink::new();
     /// assert!(link.limits().is_none() && !link.is_engaged());
-    /// assert_eq!(link.next_setpoint(), None);
     /// ```
     pub const fn new() -> Self {
         Self {
             ramp: FineRamp::new(),
-            measured: None,
             command: None,
             status: CoarseStatus {
                 state: super::CoarseState::Unhomed,
@@ -149,10 +147,10 @@ impl CoarseLink {
         self.command = Some(command);
     }
 
-    /// The coarse task's side, first, once per period: the handler's pending command (taken)
-    /// and the piezo's last measurement, so the tick that follows acts on both.
-    pub fn take(&mut self) -> (Option<CoarseCommand>, Option<i32>) {
-        (self.command.take(), self.measured)
+    /// The coarse task's side, first, once per period: the handler's pending command, taken
+    /// (the loop adds the piezo's position: [`crate::control_loop::ControlLoop::take_coarse`]).
+    pub fn take(&mut self) -> Option<CoarseCommand> {
+        self.command.take()
     }
 
     /// The coarse task's side, second: posts the period's fine setpoints (ramping from
@@ -162,17 +160,17 @@ impl CoarseLink {
         self.status = status;
     }
 
-    /// The tick's side: this tick's setpoint from the ramp, `None` when the coarse task has
-    /// not engaged it.
-    #[inline(always)]
-    pub fn next_setpoint(&mut self) -> Option<i32> {
-        self.ramp.next_setpoint()
+    /// The ramp dropped (the loop handed the setpoint back to the stream): the next post
+    /// ramps from the setpoint the tick uses then, not from where this ramp was.
+    pub fn release(&mut self) {
+        self.ramp = FineRamp::new();
     }
 
-    /// The tick's side: the piezo's measurement (Q2.30), for the next coarse tick.
+    /// The tick's side: this tick's setpoint from the ramp ([`FineRamp::next_setpoint`]; the
+    /// loop asks only once the coarse task has posted one).
     #[inline(always)]
-    pub fn record_measured(&mut self, measured: i32) {
-        self.measured = Some(measured);
+    pub fn next_setpoint(&mut self) -> i32 {
+        self.ramp.next_setpoint()
     }
 
     /// Whether the coarse task owns the piezo's setpoint.
@@ -188,7 +186,7 @@ mod tests {
     #[test]
     fn the_ramp_starts_where_the_tick_is_and_lands_on_the_end() {
         let mut r = FineRamp::new();
-        assert_eq!(r.next_setpoint(), None);
+        assert!(!r.is_engaged());
         r.post(
             1000,
             &FineSetpoints {
@@ -197,7 +195,7 @@ mod tests {
                 ticks: 10,
             },
         );
-        let v: [i32; 12] = core::array::from_fn(|_| r.next_setpoint().unwrap());
+        let v: [i32; 12] = core::array::from_fn(|_| r.next_setpoint());
         assert_eq!(v[0], 1100);
         assert_eq!(v[9], 2003);
         assert_eq!(v[11], 2003, "holds when the next ramp is late");
@@ -213,7 +211,23 @@ mod tests {
                 ticks: 10,
             },
         );
-        assert_eq!(r.next_setpoint(), Some(2003));
+        assert_eq!(r.next_setpoint(), 2003);
+    }
+
+    #[test]
+    fn a_span_beyond_i32_saturates_and_still_lands_on_its_end() {
+        let mut r = FineRamp::new();
+        r.post(
+            i32::MIN + 1,
+            &FineSetpoints {
+                from: 0,
+                to: i32::MAX,
+                ticks: 4,
+            },
+        );
+        let v: [i32; 4] = core::array::from_fn(|_| r.next_setpoint());
+        assert!(v.windows(2).all(|w| w[1] > w[0]), "{v:?}");
+        assert_eq!(v[3], i32::MAX);
     }
 
     #[test]
@@ -230,6 +244,6 @@ mod tests {
         }
         // Posted early (the coarse period ran short): from 200, not from 400.
         r.post(0, &f(0));
-        assert_eq!(r.next_setpoint(), Some(150));
+        assert_eq!(r.next_setpoint(), 150);
     }
 }

@@ -742,7 +742,7 @@ mod coarse {
             let (steps, motor, linear, switches) = &mut self.io;
             // The handler's command and the piezo's measurement of the last fine tick (the
             // carriage estimate subtracts it from the linear encoder's).
-            let (command, measured) = tick.lock(|t| t.control.coarse().take());
+            let (command, measured) = tick.lock(|t| t.control.take_coarse());
             if let Some(command) = command {
                 // Refused now (the state changed since the handler's check): the status says
                 // what the axis does instead.

@@ -504,7 +504,10 @@ pub enum NackReason {
     /// board: another client owns what this request changes (the stream and settings, or the
     /// telemetry); this client may read.
     NotOwner,
-    /// This build cannot do it (the emulator image has no watchdog to drill).
+    /// This build cannot do it: the emulator image has no watchdog to drill; a dual-stage
+    /// image whose coarse axis owns the piezo's setpoint plays no other setpoint source
+    /// (setpoints, the stream's start, the waveform, a scan, a sequence, the analog input, a
+    /// trigger input armed to start the stream).
     Unsupported,
 }
 

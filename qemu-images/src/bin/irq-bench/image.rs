@@ -70,7 +70,15 @@ pub mod scenarios {
         /// edge every [`SEQUENCE_EVERY`] ticks, for `TICKS` ticks: the edges come before the
         /// stage settles (counted early), and the last ones find the queue empty (missed).
         pub sequence: Option<SequenceConfig>,
+        /// Instead of streaming: the coarse axis's ramp, as the dual-stage images' coarse task
+        /// posts it (one ramp every [`COARSE_EVERY`] ticks, to the scenario's setpoint that
+        /// many ticks on), for `TICKS` ticks; handed back to the stream at the end.
+        pub coarse: bool,
     }
+
+    /// Ticks between the coarse scenario's posts (the coarse task's period, 5 kHz, at a fine
+    /// rate of 50 kHz).
+    pub const COARSE_EVERY: u32 = 10;
 
     /// Ticks between the sequence scenario's edges.
     pub const SEQUENCE_EVERY: u32 = 30;
@@ -252,6 +260,7 @@ pub mod scenarios {
             on_trigger: false,
             waveform: None,
             sequence: None,
+            coarse: false,
         }
     }
 
@@ -275,6 +284,7 @@ pub mod scenarios {
             on_trigger: false,
             waveform: None,
             sequence: None,
+            coarse: false,
         }
     }
 
@@ -299,6 +309,7 @@ pub mod scenarios {
             on_trigger: false,
             waveform: Some(waveform),
             sequence: None,
+            coarse: false,
         }
     }
 
@@ -314,6 +325,7 @@ pub mod scenarios {
             on_trigger: false,
             waveform: None,
             sequence: None,
+            coarse: false,
         }
     }
 
@@ -325,8 +337,16 @@ pub mod scenarios {
         }
     }
 
+    /// The coarse axis's ramp scenario (its ends are the setpoints').
+    const fn coarse_ramp(name: &'static str, setpoint: fn(u32) -> i16) -> Scenario {
+        Scenario {
+            coarse: true,
+            ..streamed(name, setpoint, false, false)
+        }
+    }
+
     /// Every scenario, in the order they run.
-    pub const ALL: [Scenario; 18] = [
+    pub const ALL: [Scenario; 19] = [
         streamed("triangle", triangle, false, false),
         streamed("sine-750Hz", sine_750hz, false, false),
         streamed("full-range-steps", steps, false, false),
@@ -345,6 +365,8 @@ pub mod scenarios {
         analog("analog-input", ANALOG),
         // A camera stepping the stage: full-range steps, one a rising edge.
         sequenced("sequence-on-edges", steps),
+        // The dual-stage images' source: the coarse task's ramp, a triangle's.
+        coarse_ramp("coarse-ramp", triangle),
         // The board's own generator, as `twinstack waveform` plays it.
         generated("waveform-sine-decaying", SINE_DECAYING, false),
         generated("waveform-sine-learning", SINE_200HZ, true),
@@ -570,6 +592,7 @@ mod app {
     };
     use twinstack::control::Controller;
     use twinstack::control_loop::{SetpointQueue, SETPOINT_QUEUE_LEN};
+    use twinstack::dual_stage::FineSetpoints;
     use twinstack::hardware::adc::SensorInput;
     use twinstack::hardware::clocks;
     use twinstack::hardware::control_timer::ControlTimer;
@@ -843,10 +866,12 @@ mod app {
                 // The trigger scenarios' cycle: the input armed (low), raised a few ticks later.
                 let mut cycle = 0u32;
                 let mut armed_at: Option<u32> = None;
+                let mut next_post = 0u32;
                 if scenario.scan.is_some()
                     || scenario.analog.is_some()
                     || scenario.waveform.is_some()
                     || scenario.sequence.is_some()
+                    || scenario.coarse
                 {
                     // A source on the board (a scan, the analog input, the generator) runs
                     // TICKS ticks
@@ -895,6 +920,21 @@ mod app {
                         if elapsed >= scenarios::TICKS {
                             break;
                         }
+                        if scenario.coarse && elapsed >= next_post {
+                            // The coarse task's post: the period's ramp, to where the
+                            // triangle is a period on (Q1.15 → Q2.30), with the status.
+                            next_post = elapsed - elapsed % scenarios::COARSE_EVERY
+                                + scenarios::COARSE_EVERY;
+                            let fine = FineSetpoints {
+                                from: 0,
+                                to: i32::from((scenario.setpoint)(next_post)) << 15,
+                                ticks: scenarios::COARSE_EVERY,
+                            };
+                            lock.lock(|c| {
+                                let status = c.coarse().status();
+                                c.post_coarse(&fine, status);
+                            });
+                        }
                         if scenario.sequence.is_some() {
                             // A rising edge every SEQUENCE_EVERY ticks.
                             let half = scenarios::SEQUENCE_EVERY / 2;
@@ -932,6 +972,9 @@ mod app {
                                 break;
                             }
                         }
+                    }
+                    if scenario.coarse {
+                        lock.lock(|c| c.release_coarse());
                     }
                     expect_ack(ask!(Request::Stream(StreamControl::Stop)), "stop");
                     if scenario.on_trigger {
