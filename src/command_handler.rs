@@ -1224,7 +1224,8 @@ where
 }
 
 /// The coarse axis's limits and latest status, read in one short lock; refused when the image
-/// has no coarse axis (built without `dual-stage`, or its settings refused at boot).
+/// has no coarse axis (built without `dual-stage`, or its settings refused at boot, or the
+/// configuration in force at boot leaving its task no share of the tick).
 fn coarse_snapshot<L>(control: &mut L) -> Result<(CoarseLimits, CoarseStatus), NackReason>
 where
     L: Locks,

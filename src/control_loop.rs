@@ -534,6 +534,7 @@ where
             } else {
                 self.source
             },
+            coarse_task: self.coarse.task_share(),
             trigger: self.external.is_armed(),
             // The services are not the loop's: the command handler adds what they run.
             services: Default::default(),
@@ -556,6 +557,16 @@ where
         &mut self.coarse
     }
 
+    /// Attaches the coarse task (the dual-stage images, at boot; `task` prepared off the
+    /// lock at this loop's control rate, [`crate::dual_stage::PreparedCoarse::new`]): its
+    /// limits, its status, and its share of each tick, which the tick budget charges from
+    /// then on. Whether the configuration in force leaves the task its share is the caller's
+    /// check ([`crate::config::tick_budget::check_with`], as `hardware::setup` does at boot);
+    /// the command handler checks every load and start against it from then on.
+    pub fn attach_coarse(&mut self, task: &crate::dual_stage::PreparedCoarse) {
+        self.coarse.attach(task);
+    }
+
     /// The coarse task's first exchange (once per coarse period, under the tick's lock): the
     /// handler's pending command, taken, and where the piezo is as the tick knows it
     /// ([`Controller::position`]: the sensor's last reading; `None` without a sensor).
@@ -572,12 +583,17 @@ where
     /// fine setpoints (ramping from the setpoint the tick uses now) and the status. The first
     /// post makes the coarse axis the setpoint source ([`SetpointSource::Coarse`]): whatever ran
     /// before stops, and the handler refuses the other sources from then on
-    /// ([`ControlLoop::coarse_owns_setpoint`]). See [`crate::dual_stage::link`].
+    /// ([`ControlLoop::coarse_owns_setpoint`]). A post without an attached task
+    /// ([`ControlLoop::attach_coarse`]) is ignored: no task is charged, none drives the
+    /// setpoint. See [`crate::dual_stage::link`].
     pub fn post_coarse(
         &mut self,
         fine: &crate::dual_stage::FineSetpoints,
         status: crate::dual_stage::CoarseStatus,
     ) {
+        if !self.coarse.is_attached() {
+            return;
+        }
         if self.source != SetpointSource::Coarse {
             self.stop();
             // An input edge armed to start the stream would start nothing now.
@@ -588,13 +604,13 @@ where
         self.coarse.post(current, fine, status);
     }
 
-    /// The coarse axis hands the piezo's setpoint back (its task detached): the stream,
-    /// stopped, holds where the ramp left it, and the other sources may start again; the
-    /// coarse task's next post takes the setpoint over again.
+    /// Detaches the coarse task and hands the piezo's setpoint back: the stream, stopped,
+    /// holds where the ramp left it, the other sources may start again, and the task is no
+    /// longer charged; its posts are ignored until it is attached again.
     pub fn release_coarse(&mut self) {
+        self.coarse.release();
         if self.source == SetpointSource::Coarse {
             self.source = SetpointSource::Stream;
-            self.coarse.release();
             self.stream.stop();
             self.stream.hold_at_if_stopped(self.controller.setpoint());
         }

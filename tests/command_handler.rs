@@ -94,7 +94,7 @@ fn board_on<S: RecordStorage>(storage: S, hw: Hardware) -> Board<S> {
         control: ControlLoop::new(
             Box::new(Controller::new(config)),
             Box::new(Controller::new(config)),
-            RATE,
+            hw.control_rate_hz.round() as u32,
         ),
         services: Services::new(vec![0i16; 2 * RECORD_LEN]),
         queue: Box::leak(Box::new(SetpointQueue::new())),
@@ -911,7 +911,7 @@ fn mode_changes_are_checked_against_the_settings_and_switch_between_two_ticks() 
         control: ControlLoop::new(
             Box::new(Controller::new(config)),
             Box::new(Controller::new(config)),
-            RATE,
+            hw.control_rate_hz.round() as u32,
         ),
         services: Services::new(vec![0i16; 32]),
         queue: Box::leak(Box::new(SetpointQueue::new())),
@@ -2074,7 +2074,7 @@ fn the_status_counts_the_ticks_the_drift_check_flagged_since_start_up() {
 /// back, the stream holds there and takes setpoints again.
 #[test]
 fn once_the_coarse_axis_owns_the_setpoint_no_other_source_is_accepted() {
-    use twinstack::dual_stage::FineSetpoints;
+    use twinstack::dual_stage::{FineSetpoints, PreparedCoarse};
     use twinstack::sources::analog_input::{AnalogInputConfig, AnalogRequest, OnFault};
     use twinstack::sources::scan::{RasterScan, ScanPattern, ScanRequest, TriggerEdge};
     use twinstack::sources::sequence::{SequenceConfig, SequenceRequest};
@@ -2084,6 +2084,22 @@ fn once_the_coarse_axis_owns_the_setpoint_no_other_source_is_accepted() {
         Response::Ack { .. }
     ));
     assert!(!b.control.coarse_owns_setpoint());
+    // A post without an attached coarse task is ignored.
+    let status = b.control.coarse().status();
+    b.control.post_coarse(
+        &FineSetpoints {
+            from: 0,
+            to: 1 << 20,
+            ticks: 4,
+        },
+        status,
+    );
+    assert!(!b.control.coarse_owns_setpoint());
+    b.control.attach_coarse(&PreparedCoarse::new(
+        paper_stage_coarse_limits(),
+        status,
+        RATE,
+    ));
     // A scan running when the coarse task first posts stops: the ramp takes over.
     let scan = ScanRequest {
         pattern: ScanPattern::Raster(RasterScan {
@@ -2162,6 +2178,11 @@ fn once_the_coarse_axis_owns_the_setpoint_no_other_source_is_accepted() {
     let reading = b.control.controller().position();
     assert_eq!(b.control.take_coarse(), (None, Some(reading)));
     let mut blind = board();
+    blind.control.attach_coarse(&PreparedCoarse::new(
+        paper_stage_coarse_limits(),
+        status,
+        RATE,
+    ));
     let no_sensor = Settings {
         sensor: None,
         ..blind.read_params()
@@ -2188,10 +2209,78 @@ fn once_the_coarse_axis_owns_the_setpoint_no_other_source_is_accepted() {
         "the ramp lands on its end"
     );
     assert!(!b.control.is_scanning(), "the scan stopped for good");
-    // Handed back: the stream holds where the ramp left the setpoint, and takes setpoints.
+    // Handed back: the stream holds where the ramp left the setpoint, and takes setpoints;
+    // the task's posts are ignored until it is attached again.
     b.control.release_coarse();
+    assert!(!b.control.coarse_owns_setpoint());
+    b.control.post_coarse(
+        &FineSetpoints {
+            from: 0,
+            to: 0,
+            ticks: 4,
+        },
+        status,
+    );
     assert!(!b.control.coarse_owns_setpoint());
     b.ticks(2);
     assert_eq!(b.control.controller().setpoint(), end);
     assert!(matches!(b.handle(batch(1, &[3000])), Response::Ack { .. }));
+}
+
+/// The coarse axis's limits of the paper stage's supervisor, at its 5 kHz coarse rate (what the
+/// dual-stage images attach).
+fn paper_stage_coarse_limits() -> twinstack::dual_stage::CoarseLimits {
+    use twinstack::dual_stage::{
+        CoarseSupervisor, DualStage, DualStageSettings, SupervisorSettings,
+    };
+    let settings = DualStageSettings::paper_stage();
+    let dual = DualStage::new(settings.build().unwrap(), 0, 0, 0);
+    let supervision = SupervisorSettings::paper_stage()
+        .build(dual.config(), settings.coarse_rate_hz)
+        .unwrap();
+    CoarseSupervisor::new(dual, supervision).limits()
+}
+
+/// The dual-stage images' coarse task runs below the tick once a coarse period: attached, it
+/// is charged its share of every tick (`tick_budget::coarse_task_share`), so a load that fits
+/// the period alone but not beside the task is refused with the cycles it needs, and the
+/// configuration in force stays; detached, the same load is taken.
+#[test]
+fn a_load_that_leaves_the_coarse_task_no_time_is_refused_with_its_cycles() {
+    use twinstack::config::tick_budget::{
+        available_cycles, coarse_task_share, pipeline_cycles, Beside,
+    };
+    use twinstack::dual_stage::PreparedCoarse;
+    let rate = 100_000.0;
+    let hw = Hardware::driver_board(rate);
+    let mut b = board_on(RamStorage::default(), hw);
+    let limits = paper_stage_coarse_limits();
+    let share = coarse_task_share(limits.coarse_rate_hz as u32, rate as u32);
+    assert_eq!(share, 385);
+    let status = b.control.coarse().status();
+    let task = PreparedCoarse::new(limits, status, rate as u32);
+    assert_eq!(task.share(), share);
+    b.control.attach_coarse(&task);
+    assert_eq!(b.control.beside().coarse_task, share);
+    let dear = Settings {
+        compensator: Some(representative_pi(17).unwrap()),
+        mode: Mode::OpenLoop,
+        ..b.read_params()
+    };
+    let config = dear.build(&hw).unwrap();
+    let alone = pipeline_cycles(&config, Beside::default());
+    assert!(alone <= available_cycles(rate) && alone + share > available_cycles(rate));
+    let before = b.read_params();
+    refused_as_overrun(
+        b.handle(Request::LoadParams(dear.clone())),
+        alone + share,
+        rate,
+    );
+    assert_eq!(b.read_params(), before, "the configuration in force stays");
+    b.control.release_coarse();
+    assert_eq!(b.control.beside().coarse_task, 0);
+    assert!(matches!(
+        b.handle(Request::LoadParams(dear)),
+        Response::Ack { .. }
+    ));
 }

@@ -1150,12 +1150,14 @@ fn the_whole_interrupt_in_every_scenario() {
                         .then_some(SetpointSource::Stream)
                 })
             {
-                // What runs beside the configuration, charged as the command handler charges
-                // it: the learning, a scan, the analog input, a sequence, the coarse ramp, the
-                // armed trigger input.
+                // What runs beside the configuration in the interrupt, charged as the command
+                // handler charges it: the learning, a scan, the analog input, a sequence, the
+                // coarse ramp, the armed trigger input (the coarse task's own share runs below
+                // the interrupt, in the dual-stage images).
                 let beside = twinstack::config::tick_budget::Beside {
                     learning: name.ends_with("-learning"),
                     source,
+                    coarse_task: 0,
                     trigger: name.contains("-on-trigger"),
                     services: ServicesLoad::default(),
                 };

@@ -152,6 +152,39 @@ pub const SEQUENCE_CYCLES: u32 = 80;
 /// once the coarse axis owns the setpoint.
 pub const COARSE_CYCLES: u32 = 0;
 
+/// The dual-stage images' coarse task, one coarse period's tick
+/// ([`crate::dual_stage::CoarseSupervisor::tick`]: the encoders, the trajectory's step, the
+/// centring, the step burst's plan, the supervision), cycles at 5 flash wait states. It runs
+/// at priority 2, below the control interrupt, once a coarse period (5 kHz on the paper
+/// stage), so the pipeline's share of the period pays it in fine ticks' shares
+/// ([`coarse_task_share`]). The tick bench counts its instructions on the library's model of
+/// the axis, homing and moving 10 mm and back at the stage's limits (`cargo test --profile
+/// host-opt --test tick_bench`, part `coarse-tick`): 3 842 at worst, 2 316 on average; the
+/// 64-bit integer arithmetic of the trajectory and the centring (library calls for its
+/// divisions and square root) takes most of them. Charged at 2 cycles an instruction (the
+/// whole control interrupt's dearest measured ratio at 5 WS is 1.98): the task's own cycles
+/// are not traced.
+pub const COARSE_TASK_CYCLES: u32 = 7_700;
+
+/// The coarse task's share of each fine tick, cycles at 5 WS: [`COARSE_TASK_CYCLES`] once
+/// every `control_rate_hz / coarse_rate_hz` ticks, rounded up (0 for a coarse rate of 0).
+///
+/// ```
+/// use twinstack::config::tick_budget::coarse_task_share;
+/// // The paper stage's 5 kHz coarse task at 50 kHz and at 100 kHz.
+/// assert_eq!(coarse_task_share(5_000, 50_000), 770);
+/// assert_eq!(coarse_task_share(5_000, 100_000), 385);
+/// ```
+pub const fn coarse_task_share(coarse_rate_hz: u32, control_rate_hz: u32) -> u32 {
+    if control_rate_hz == 0 {
+        return COARSE_TASK_CYCLES;
+    }
+    // Saturating: an absurd coarse rate is charged the most, and refused.
+    COARSE_TASK_CYCLES
+        .saturating_mul(coarse_rate_hz)
+        .div_ceil(control_rate_hz)
+}
+
 /// What `source` costs the tick above the stream's step, which the fixed part charges: the
 /// scan's, the sequence's, the analog input's or the coarse ramp's charge; 0 for the stream.
 pub const fn source_cycles(source: SetpointSource) -> u32 {
@@ -294,6 +327,9 @@ pub struct Beside {
     /// The setpoint source in force ([`source_cycles`]; a scan waiting for its trigger counts
     /// as running).
     pub source: SetpointSource,
+    /// The coarse task's share of each tick (the dual-stage images, while the coarse axis is
+    /// attached: [`coarse_task_share`]), cycles; 0 elsewhere.
+    pub coarse_task: u32,
     /// The external trigger input is armed: its edge's tick may come on any tick.
     pub trigger: bool,
     /// What the services run (a capture or a record, telemetry): while anything does, the
@@ -304,10 +340,12 @@ pub struct Beside {
 impl Beside {
     /// Everything that can run beside a configuration at once: the learning, a scan (the
     /// dearest source: [`source_cycles`]), the armed trigger input, a capture and telemetry
-    /// on every tick.
+    /// on every tick (in an image without a coarse axis: the dual-stage images add the coarse
+    /// task's share, [`coarse_task_share`]).
     pub const EVERY_FEATURE: Self = Self {
         learning: true,
         source: SetpointSource::Scan,
+        coarse_task: 0,
         trigger: true,
         services: ServicesLoad::WORST,
     };
@@ -316,6 +354,7 @@ impl Beside {
     pub fn cycles(&self) -> u32 {
         u32::from(self.learning) * LEARNING_CYCLES
             + source_cycles(self.source)
+            + self.coarse_task
             + u32::from(self.trigger) * TRIGGER_CYCLES
             + self.services.cycles()
     }

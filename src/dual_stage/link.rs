@@ -89,6 +89,40 @@ impl FineRamp {
     }
 }
 
+/// A coarse task ready to attach to the control loop
+/// ([`crate::control_loop::ControlLoop::attach_coarse`]): its limits, its status and its share
+/// of each fine tick ([`crate::config::tick_budget::coarse_task_share`] at its coarse rate and
+/// the loop's control rate), prepared off the tick's lock (the share's conversion and division
+/// are not for a critical section).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct PreparedCoarse {
+    limits: CoarseLimits,
+    status: CoarseStatus,
+    share: u32,
+}
+
+impl PreparedCoarse {
+    /// The task with `limits` and `status`, at the fine `control_rate_hz`.
+    pub fn new(limits: CoarseLimits, status: CoarseStatus, control_rate_hz: u32) -> Self {
+        let coarse_rate = if limits.coarse_rate_hz.is_finite() && limits.coarse_rate_hz > 0.0 {
+            libm::ceil(limits.coarse_rate_hz).min(u32::MAX as f64) as u32
+        } else {
+            0
+        };
+        Self {
+            limits,
+            status,
+            share: crate::config::tick_budget::coarse_task_share(coarse_rate, control_rate_hz),
+        }
+    }
+
+    /// The task's share of each fine tick, cycles at 5 WS: what the tick budget charges
+    /// while it is attached.
+    pub fn share(&self) -> u32 {
+        self.share
+    }
+}
+
 /// The coarse axis's mailbox in the control loop (see the module doc).
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct CoarseLink {
@@ -96,6 +130,9 @@ pub struct CoarseLink {
     command: Option<CoarseCommand>,
     status: CoarseStatus,
     limits: Option<CoarseLimits>,
+    /// The coarse task's share of each fine tick, cycles
+    /// ([`crate::config::tick_budget::coarse_task_share`]), 0 until attached.
+    task_share: u32,
 }
 
 impl CoarseLink {
@@ -123,13 +160,26 @@ impl CoarseLink {
                 ticks: 0,
             },
             limits: None,
+            task_share: 0,
         }
     }
 
-    /// The coarse task is there, with these limits and this status.
-    pub fn attach(&mut self, limits: CoarseLimits, status: CoarseStatus) {
-        self.limits = Some(limits);
-        self.status = status;
+    /// The coarse task is there ([`PreparedCoarse`]: its limits, its status, and the share of
+    /// each fine tick the tick budget charges while it is attached).
+    pub fn attach(&mut self, task: &PreparedCoarse) {
+        self.limits = Some(task.limits);
+        self.status = task.status;
+        self.task_share = task.share;
+    }
+
+    /// Whether a coarse task is attached.
+    pub fn is_attached(&self) -> bool {
+        self.limits.is_some()
+    }
+
+    /// The attached coarse task's share of each fine tick, cycles (0 without one).
+    pub fn task_share(&self) -> u32 {
+        self.task_share
     }
 
     /// The limits requests are validated against, `None` without a coarse axis.
@@ -160,9 +210,15 @@ impl CoarseLink {
         self.status = status;
     }
 
-    /// The ramp dropped (the loop handed the setpoint back to the stream): the next post
-    /// ramps from the setpoint the tick uses then, not from where this ramp was.
+    /// The coarse task gone (the loop handed the setpoint back to the stream): no limits, no
+    /// share, and the next attached task's first post ramps from the setpoint the tick uses
+    /// then, not from where this ramp was.
     pub fn release(&mut self) {
+        // Field by field: a whole-struct assignment is a byte-wise copy of the status and
+        // limits, hundreds of instructions under the tick's lock.
+        self.limits = None;
+        self.task_share = 0;
+        self.command = None;
         self.ramp = FineRamp::new();
     }
 

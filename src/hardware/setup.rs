@@ -237,7 +237,7 @@ pub fn setup(
         tim4: dp.TIM4,
         tim8: dp.TIM8,
     };
-    let (coarse, pacer) = CoarseStage::start(coarse_io, &rcc, &bus, rate, control);
+    let (coarse, pacer) = CoarseStage::start(coarse_io, &rcc, &bus, rate, control, &config);
     // The analog setpoint input (ADC2: PC3, the Feather's A3), after every port's split.
     let adc = adc.with_setpoint_input(super::setpoint_adc::SetpointChannel::new(dp.ADC2, &rcc));
     let Some(setpoint_queue) = setpoint_queue() else {
@@ -524,6 +524,7 @@ pub use no_coarse::{CoarsePacer, CoarseStage};
 #[cfg(not(feature = "dual-stage"))]
 mod no_coarse {
     use super::{CoarseIo, ControlTick, Mutex};
+    use crate::control::ControlConfig;
     use crate::hardware::clocks::BusClocks;
     use crate::hardware::tick::BoardLoop;
     use stm32f4xx_hal::pac::RCC;
@@ -548,6 +549,7 @@ mod no_coarse {
             _bus: &BusClocks,
             _rate: u32,
             _control: &mut BoardLoop,
+            _config: &ControlConfig,
         ) -> (Self, CoarsePacer) {
             (Self, CoarsePacer)
         }
@@ -561,9 +563,13 @@ mod no_coarse {
 mod coarse {
     use super::{CoarseIo, ControlTick, Mutex};
     use crate::board::QuadratureEncoder;
+    use crate::config::tick_budget::{check_with, Beside};
+    use crate::control::ControlConfig;
+    use crate::dual_stage::PreparedCoarse;
     use crate::dual_stage::{CoarseSupervisor, DualStage, DualStageSettings, SupervisorSettings};
     use crate::hardware::clocks::BusClocks;
     use crate::hardware::tick::BoardLoop;
+    use crate::sources::SetpointSource;
     use stm32f4xx_hal::pac::RCC;
 
     #[cfg(feature = "emulator")]
@@ -638,13 +644,16 @@ mod coarse {
 
     impl CoarseStage {
         /// Starts the coarse axis at the paper stage's settings for the fine `rate`, and
-        /// attaches its limits and status to the control loop.
+        /// attaches its limits and status to the control loop, if `config` (the one in
+        /// force) leaves the coarse task its share of each tick
+        /// ([`crate::config::tick_budget::COARSE_TASK_CYCLES`]); else the axis stays idle.
         pub(super) fn start(
             io: CoarseIo,
             rcc: &RCC,
             bus: &BusClocks,
             rate: u32,
             control: &mut BoardLoop,
+            config: &ControlConfig,
         ) -> (Self, CoarsePacer) {
             let dual_settings = DualStageSettings {
                 fine_rate_hz: rate as f64,
@@ -706,6 +715,24 @@ mod coarse {
                     None
                 }
             };
+            // The configuration in force leaves the coarse task its share of every tick, or
+            // the axis stays idle (a load that fits beside it brings it back at the next boot).
+            let supervisor = supervisor.filter(|axis| {
+                let share = PreparedCoarse::new(axis.limits(), axis.status(), rate).share();
+                let beside = Beside {
+                    source: SetpointSource::Coarse,
+                    coarse_task: share,
+                    ..Beside::default()
+                };
+                let fits = check_with(config, rate as f64, beside).is_ok();
+                if !fits {
+                    defmt::warn!(
+                        "coarse stage idle: the configuration in force leaves its task no {=u32} cycles a tick",
+                        share
+                    );
+                }
+                fits
+            });
             #[cfg(feature = "emulator")]
             let pacer = CoarsePacer {
                 every: supervisor
@@ -724,7 +751,7 @@ mod coarse {
                 timer,
             };
             if let Some(axis) = stage.axis.as_mut() {
-                control.coarse().attach(axis.limits(), axis.status());
+                control.attach_coarse(&PreparedCoarse::new(axis.limits(), axis.status(), rate));
             }
             (stage, pacer)
         }

@@ -545,8 +545,22 @@ fn boot(
         Box::new(Controller::new(boot)),
         hw.control_rate_hz.round() as u32,
     );
+    // As the firmware: the coarse axis attached only if the configuration in force leaves its
+    // task its share of each tick.
     if let Some(rig) = coarse {
-        control.coarse().attach(rig.limits(), rig.status());
+        let task = twinstack::dual_stage::PreparedCoarse::new(
+            rig.limits(),
+            rig.status(),
+            control.control_rate_hz(),
+        );
+        let beside = twinstack::config::tick_budget::Beside {
+            source: twinstack::sources::SetpointSource::Coarse,
+            coarse_task: task.share(),
+            ..Default::default()
+        };
+        if twinstack::config::tick_budget::check_with(&boot, hw.control_rate_hz, beside).is_ok() {
+            control.attach_coarse(&task);
+        }
     }
     let mut services = Services::new(vec![0; CAPTURE_SLOTS]);
     start_services(&boot, &mut control, &mut services);

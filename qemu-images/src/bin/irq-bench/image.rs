@@ -76,6 +76,19 @@ pub mod scenarios {
         pub coarse: bool,
     }
 
+    /// The coarse scenario's axis: the paper stage's limits at its 5 kHz coarse rate (what the
+    /// dual-stage images attach).
+    pub const COARSE_LIMITS: twinstack::dual_stage::CoarseLimits =
+        twinstack::dual_stage::CoarseLimits {
+            travel_pm: (-1_000_000_000, 48_000_000_000),
+            coarse: twinstack::dual_stage::MotionLimits {
+                velocity: 6_000_000,
+                acceleration: 60_000,
+            },
+            jog_acceleration: 60_000,
+            coarse_rate_hz: 5_000.0,
+        };
+
     /// Ticks between the coarse scenario's posts (the coarse task's period, 5 kHz, at a fine
     /// rate of 50 kHz).
     pub const COARSE_EVERY: u32 = 10;
@@ -592,7 +605,7 @@ mod app {
     };
     use twinstack::control::Controller;
     use twinstack::control_loop::{SetpointQueue, SETPOINT_QUEUE_LEN};
-    use twinstack::dual_stage::FineSetpoints;
+    use twinstack::dual_stage::{FineSetpoints, PreparedCoarse};
     use twinstack::hardware::adc::SensorInput;
     use twinstack::hardware::clocks;
     use twinstack::hardware::control_timer::ControlTimer;
@@ -867,6 +880,9 @@ mod app {
                 let mut cycle = 0u32;
                 let mut armed_at: Option<u32> = None;
                 let mut next_post = 0u32;
+                // The coarse scenario's task, prepared off the tick's lock.
+                let coarse_task =
+                    PreparedCoarse::new(scenarios::COARSE_LIMITS, Default::default(), RATE_HZ);
                 if scenario.scan.is_some()
                     || scenario.analog.is_some()
                     || scenario.waveform.is_some()
@@ -931,6 +947,11 @@ mod app {
                                 ticks: scenarios::COARSE_EVERY,
                             };
                             lock.lock(|c| {
+                                // Attached at the first post (after the scenario's capture
+                                // was armed: the handler charges the task from then on).
+                                if !c.coarse().is_attached() {
+                                    c.attach_coarse(&coarse_task);
+                                }
                                 let status = c.coarse().status();
                                 c.post_coarse(&fine, status);
                             });

@@ -7,7 +7,7 @@ use cortex_m_semihosting::{debug, hprintln};
 use defmt_rtt as _;
 use stm32f4xx_hal::pac;
 
-use twinstack::board::{DacCode, DualDac, Hardware, SensorAdc};
+use twinstack::board::{DacCode, DualDac, Hardware, QuadratureEncoder, SensorAdc};
 use twinstack::config::settings::{
     representative_bouc_wen, representative_duhem, representative_gpi, representative_pi,
     FeedbackSettings, Mode, Model, SensorSettings, Settings,
@@ -15,6 +15,11 @@ use twinstack::config::settings::{
 use twinstack::control::drive::{DifferentialDrive, DriveOutput, StackVoltages};
 use twinstack::control::notch::NotchDesign;
 use twinstack::control::{Compensator, ControlConfig, Observer, TickReport};
+use twinstack::dual_stage::ideal_axis::{AxisEncoder, AxisSteps, AxisSwitches, IdealAxis};
+use twinstack::dual_stage::{
+    CoarseCommand, CoarseState, CoarseSupervisor, DualStage, DualStageSettings, FineSetpoints,
+    SupervisorSettings,
+};
 use twinstack::fixed_point::SIGNAL_ONE;
 use twinstack::hardware::adc::SensorInput;
 use twinstack::hardware::dac::InternalDac;
@@ -88,6 +93,23 @@ fn gpi_part(m: &GeneralisedPi, s: &mut PiState, u: i32) -> i32 {
 #[inline(never)]
 fn inverse_gpi_part(m: &InverseGeneralisedPi, s: &mut PiState, y: i32) -> i32 {
     m.step(s, y)
+}
+
+/// The dual-stage images' coarse task's tick ([`CoarseSupervisor::tick`]) alone, on the
+/// library's model of the axis, as the emulator image runs it.
+#[inline(never)]
+fn coarse_part(
+    sup: &mut CoarseSupervisor,
+    io: &mut (
+        AxisSteps<'_>,
+        AxisEncoder<'_>,
+        AxisEncoder<'_>,
+        AxisSwitches<'_>,
+    ),
+    measured: Option<i32>,
+) -> FineSetpoints {
+    let (steps, motor, linear, switches) = io;
+    sup.tick(steps, motor, linear, switches, measured)
 }
 
 /// [`DualDac::write_both`] alone.
@@ -368,6 +390,74 @@ fn main() -> ! {
             }
         }
     }
+    // The coarse task's tick (the dual-stage images, once a coarse period): the paper stage's
+    // axis on the library's model (the emulator image's), homed, then moved 10 mm at its
+    // speed and acceleration limits and back; every tick measured, the piezo's position
+    // passed in as a sensor's would be.
+    let coarse_n = {
+        let settings = DualStageSettings {
+            fine_rate_hz: RATE_HZ,
+            ..DualStageSettings::paper_stage()
+        };
+        let axis = IdealAxis::new(
+            312_500,
+            250_000,
+            5_000,
+            (-2_000_000_000, -1_000_000_000, 49_000_000_000),
+        );
+        let mut io = (
+            axis.step_dir(),
+            axis.motor(),
+            axis.linear(),
+            axis.switches(),
+        );
+        let Ok(config) = settings.build() else {
+            panic!("the paper stage's dual-stage settings");
+        };
+        let dual = DualStage::new(config, 0, io.1.count(), io.2.count());
+        let Ok(supervision) =
+            SupervisorSettings::paper_stage().build(dual.config(), settings.coarse_rate_hz)
+        else {
+            panic!("the paper stage's supervisor settings");
+        };
+        let mut sup = CoarseSupervisor::new(dual, supervision);
+        let mut acc = [0u64; 3];
+        let mut measured = Some(0);
+        let mut run = |sup: &mut CoarseSupervisor, max: u32, until: CoarseState| {
+            for _ in 0..max {
+                let t0 = now(&tim);
+                let fine = black_box(coarse_part(sup, &mut io, measured));
+                let t1 = now(&tim);
+                axis.set_piezo_pm(sup.dual().fine_to_pm(fine.to));
+                measured = Some(fine.to);
+                let n = u64::from(t1.wrapping_sub(t0));
+                acc[0] += n;
+                acc[1] = acc[1].max(n);
+                acc[2] += 1;
+                if sup.status().state == until {
+                    break;
+                }
+            }
+        };
+        if sup.command(CoarseCommand::Home).is_err() {
+            panic!("homing refused");
+        }
+        run(&mut sup, 50_000, CoarseState::Idle);
+        for target_pm in [10_000_000_000, 0] {
+            let limits = sup.limits().coarse;
+            if sup
+                .command(CoarseCommand::MoveTo { target_pm, limits })
+                .is_err()
+            {
+                panic!("move refused");
+            }
+            run(&mut sup, 50_000, CoarseState::Idle);
+        }
+        if sup.status().state != CoarseState::Idle || sup.status().position_pm.abs() > 1_000_000 {
+            panic!("the coarse axis did not home and move");
+        }
+        acc
+    };
     for (name, acc) in [
         ("drive-split", split_n),
         ("duhem-observer-step", duhem_n),
@@ -385,6 +475,12 @@ fn main() -> ! {
             acc[1]
         );
     }
+    hprintln!(
+        "PART name=coarse-tick ticks={} total={} max={}",
+        coarse_n[2],
+        coarse_n[0],
+        coarse_n[1]
+    );
     debug::exit(debug::EXIT_SUCCESS);
     loop {
         cortex_m::asm::wfi();
