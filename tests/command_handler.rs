@@ -1775,21 +1775,7 @@ fn arming_the_trigger_input_where_its_edge_would_overrun_the_tick_is_refused() {
     assert!(b.control.beside().trigger);
     // A scan waiting for the edge is charged as a scan (the edge starts it): a load meanwhile
     // is checked with it.
-    use twinstack::sources::scan::{RasterScan, ScanPattern, ScanRequest};
-    let waiting = ScanRequest {
-        pattern: ScanPattern::Raster(RasterScan {
-            lines: 3,
-            pixels: 40,
-            turn_ticks: 20,
-            offset: 0.0,
-            amplitude: 0.5,
-            y_offset: 0.0,
-            y_amplitude: 0.5,
-        }),
-        ticks_per_pixel: 3,
-        frames: 1,
-        on_trigger: true,
-    };
+    let waiting = small_raster(1, true);
     assert!(matches!(
         b.handle(Request::Scan(waiting)),
         Response::Ack { .. }
@@ -2076,7 +2062,7 @@ fn the_status_counts_the_ticks_the_drift_check_flagged_since_start_up() {
 fn once_the_coarse_axis_owns_the_setpoint_no_other_source_is_accepted() {
     use twinstack::dual_stage::{FineSetpoints, PreparedCoarse};
     use twinstack::sources::analog_input::{AnalogInputConfig, AnalogRequest, OnFault};
-    use twinstack::sources::scan::{RasterScan, ScanPattern, ScanRequest, TriggerEdge};
+    use twinstack::sources::scan::TriggerEdge;
     use twinstack::sources::sequence::{SequenceConfig, SequenceRequest};
     let mut b = board();
     assert!(matches!(
@@ -2101,20 +2087,7 @@ fn once_the_coarse_axis_owns_the_setpoint_no_other_source_is_accepted() {
         RATE,
     ));
     // A scan running when the coarse task first posts stops: the ramp takes over.
-    let scan = ScanRequest {
-        pattern: ScanPattern::Raster(RasterScan {
-            lines: 3,
-            pixels: 40,
-            turn_ticks: 20,
-            offset: 0.0,
-            amplitude: 0.5,
-            y_offset: 0.0,
-            y_amplitude: 0.5,
-        }),
-        ticks_per_pixel: 3,
-        frames: 0,
-        on_trigger: false,
-    };
+    let scan = small_raster(0, false);
     assert!(matches!(
         b.handle(Request::Scan(scan)),
         Response::Ack { .. }
@@ -2283,4 +2256,24 @@ fn a_load_that_leaves_the_coarse_task_no_time_is_refused_with_its_cycles() {
         b.handle(Request::LoadParams(dear)),
         Response::Ack { .. }
     ));
+}
+
+/// A raster of 3 lines of 40 pixels, ±0.5, 3 ticks a pixel: `frames` of them (0: until
+/// stopped), started now or by the trigger input's edge.
+fn small_raster(frames: u16, on_trigger: bool) -> twinstack::sources::scan::ScanRequest {
+    use twinstack::sources::scan::{RasterScan, ScanPattern, ScanRequest};
+    ScanRequest {
+        pattern: ScanPattern::Raster(RasterScan {
+            lines: 3,
+            pixels: 40,
+            turn_ticks: 20,
+            offset: 0.0,
+            amplitude: 0.5,
+            y_offset: 0.0,
+            y_amplitude: 0.5,
+        }),
+        ticks_per_pixel: 3,
+        frames,
+        on_trigger,
+    }
 }

@@ -142,7 +142,7 @@ impl CoarseLink {
     /// ```
     /// use twinstack::dual_stage::CoarseLink;
     /// let mut link = CoarseLink::new();
-    /// assert!(link.limits().is_none() && !link.is_engaged());
+    /// assert!(link.limits().is_none() && !link.is_attached());
     /// ```
     pub const fn new() -> Self {
         Self {
@@ -227,11 +227,6 @@ impl CoarseLink {
     #[inline(always)]
     pub fn next_setpoint(&mut self) -> i32 {
         self.ramp.next_setpoint()
-    }
-
-    /// Whether the coarse task owns the piezo's setpoint.
-    pub fn is_engaged(&self) -> bool {
-        self.ramp.is_engaged()
     }
 }
 
