@@ -16,6 +16,10 @@
 
 use std::time::Duration;
 
+use hal_sim::coarse_rig::{DualStageDevice, DualStageDeviceConfig};
+use hal_sim::converters::{
+    AnalogDualDac, AnalogSensorAdc, EmulatedAds8689, EmulatedDac856x, InternalAdc, InternalDac,
+};
 use hal_sim::sim_device::{SimDevice, SimDeviceConfig};
 use proptest::prelude::*;
 use twinstack::config::settings::Mode;
@@ -25,9 +29,15 @@ use twinstack::protocol::frame::{self, MAX_ENCODED};
 use twinstack::protocol::messages::*;
 use twinstack::services::learning::{LearnSettings, LearnState};
 use twinstack::services::recorder::{Signal, Trigger};
-use twinstack::sources::scan::{RasterScan, ScanPattern, ScanRequest, TriggerConfig, TriggerEdge};
+use twinstack::sources::scan::{
+    LissajousScan, RasterScan, ScanPattern, ScanRequest, SpiralScan, TriggerConfig, TriggerEdge,
+};
 use twinstack::sources::setpoint_stream::UnderrunPolicy;
 use twinstack_link::Transport;
+
+/// The dual-stage board's converters (external, on SPI).
+type DualDacs = twinstack::converters::Dac856x<EmulatedDac856x>;
+type DualAdc = twinstack::converters::Ads8689<EmulatedAds8689>;
 
 /// One valid request of every type (and of every variant of the nested requests), the
 /// seeds the mutations start from.
@@ -120,6 +130,57 @@ fn seeds() -> Vec<Request> {
             input: TriggerEdge::Rising,
             start_stream: true,
         }),
+        Request::Scan(ScanRequest {
+            pattern: ScanPattern::Lissajous(LissajousScan {
+                frame_hz: 20.0,
+                x_cycles: 4,
+                y_cycles: 5,
+                y_phase_deg: 90.0,
+                offset: 0.0,
+                amplitude: 0.5,
+                y_offset: 0.0,
+                y_amplitude: 0.5,
+            }),
+            ticks_per_pixel: 4,
+            frames: 2,
+            on_trigger: true,
+        }),
+        Request::Scan(ScanRequest {
+            pattern: ScanPattern::Spiral(SpiralScan {
+                turn_hz: 100.0,
+                turns: 6,
+                offset: 0.1,
+                amplitude: 0.6,
+                y_offset: 0.0,
+            }),
+            ticks_per_pixel: 4,
+            frames: 0,
+            on_trigger: false,
+        }),
+        Request::PackedSetpoints(PackedBatch {
+            seq: 1,
+            samples: heapless::Vec::from_slice(&[0, 16_000, -16_000, 32_767, -32_768, 7]).unwrap(),
+        }),
+        Request::Sequence(SequenceRequest::Arm(SequenceConfig {
+            edge: TriggerEdge::Rising,
+            window: 0.01,
+            settle_ticks: 3,
+        })),
+        Request::Sequence(SequenceRequest::Stop),
+        Request::Sequence(SequenceRequest::Status),
+        Request::Analog(AnalogRequest::Start(AnalogInputConfig {
+            gain: 2.0,
+            offset: -1.0,
+            corner_hz: Some(500.0),
+            lost_below: 0.02,
+            over_above: 0.98,
+            on_fault: OnFault::RampToRest,
+            rate: 10.0,
+            start_at_boot: false,
+        })),
+        Request::Analog(AnalogRequest::Stop),
+        Request::Analog(AnalogRequest::Status),
+        Request::Echo(heapless::Vec::from_slice(&[1, 2, 3, 0, 255]).unwrap()),
     ]
 }
 
@@ -258,8 +319,8 @@ fn frames_in(bytes: &[u8], run: &mut usize) -> usize {
 /// The board under test and what the test has seen of it: the envelope of what it may do
 /// (the union of the voltage limits of every settings it accepted, the largest slew limit in
 /// volts per tick), its last outputs, and the responses it sent.
-struct Watch {
-    dev: SimDevice,
+struct Watch<D = InternalDac, A = InternalAdc> {
+    dev: SimDevice<D, A>,
     rate_hz: f64,
     volts_per_code: f64,
     min_voltage: f64,
@@ -276,8 +337,21 @@ struct Watch {
 }
 
 impl Watch {
+    /// The piezo-only board, on its defaults.
     fn new() -> Self {
-        let dev = SimDevice::new(SimDeviceConfig::paper()).expect("device");
+        Self::of(SimDevice::new(SimDeviceConfig::paper()).expect("device"))
+    }
+}
+
+impl Watch<DualDacs, DualAdc> {
+    /// The dual-stage board (the coarse axis's task beside the tick, unhomed at power-up).
+    fn dual_stage() -> Self {
+        Self::of(DualStageDevice::dual_stage(&DualStageDeviceConfig::paper()).expect("device"))
+    }
+}
+
+impl<D: AnalogDualDac, A: AnalogSensorAdc> Watch<D, A> {
+    fn of(dev: SimDevice<D, A>) -> Self {
         let hw = *dev.handler().hardware();
         let mut w = Self {
             dev,
@@ -379,7 +453,14 @@ impl Watch {
 /// Sends each frame run (`bytes`, then `ticks` ticks) to a fresh board under watch, then the
 /// closing checks: every frame answered, the queue's accounting whole. Returns the watch.
 fn replay(frames: &[(Vec<u8>, u32)]) -> Result<Watch, TestCaseError> {
-    let mut w = Watch::new();
+    replay_on(Watch::new(), frames)
+}
+
+/// [`replay`] on the board `w` watches.
+fn replay_on<D: AnalogDualDac, A: AnalogSensorAdc>(
+    mut w: Watch<D, A>,
+    frames: &[(Vec<u8>, u32)],
+) -> Result<Watch<D, A>, TestCaseError> {
     let (mut run, mut sent) = (0usize, 0usize);
     for (bytes, ticks) in frames {
         sent += frames_in(bytes, &mut run);
@@ -405,9 +486,18 @@ fn replay(frames: &[(Vec<u8>, u32)]) -> Result<Watch, TestCaseError> {
     Ok(w)
 }
 
+/// Cases per property: 96, or `PROPTEST_CASES` where it is set (a deeper campaign).
+fn campaign_cases() -> u32 {
+    std::env::var("PROPTEST_CASES")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(96)
+}
+
 proptest! {
-    // Deterministic work (simulated time), bounded so CI spends seconds here.
-    #![proptest_config(ProptestConfig { cases: 96, ..ProptestConfig::default() })]
+    // Deterministic work (simulated time), bounded so CI spends seconds here; a longer
+    // campaign sets `PROPTEST_CASES`.
+    #![proptest_config(ProptestConfig { cases: campaign_cases(), ..ProptestConfig::default() })]
 
     #[test]
     fn every_request_type_with_any_fields_keeps_the_board_answering_and_its_outputs_in_limits(
@@ -422,6 +512,24 @@ proptest! {
             })
             .collect();
         replay(&frames)?;
+    }
+
+    /// The same on the dual-stage board, whose coarse axis takes the piezo's setpoint from
+    /// its first coarse period: the requests of the other sources are refused then, and the
+    /// coarse requests (home, move, jog, stop) are served beside them.
+    #[test]
+    fn the_dual_stage_board_keeps_answering_and_its_outputs_in_limits(
+        chunks in prop::collection::vec(
+            (any_chunk(seeds().len()), 0u32..400, prop::bool::weighted(0.05)), 1..24),
+    ) {
+        let seeds = seeds();
+        let frames: Vec<_> = chunks
+            .iter()
+            .map(|(chunk, gap_ticks, long_run)| {
+                (bytes_of(chunk, &seeds), if *long_run { 5_000 } else { *gap_ticks })
+            })
+            .collect();
+        replay_on(Watch::dual_stage(), &frames)?;
     }
 }
 
