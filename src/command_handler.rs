@@ -292,28 +292,18 @@ impl<S: RecordStorage> CommandHandler<S> {
             Request::Status => return Response::Status(self.status(queue, control)),
             // A drill was accepted on an idle board so that its reset cuts off no motion: a
             // source start, or an input edge armed to start the stream, waits for the reset.
-            Request::Stream(StreamControl::Start)
-            | Request::Waveform(_)
-            | Request::Scan(_)
-            | Request::Sequence(SequenceRequest::Arm(_))
-            | Request::Analog(AnalogRequest::Start(_))
-            | Request::Trigger(TriggerConfig {
-                start_stream: true, ..
-            }) if drilling(control) => Err(NackReason::Busy),
+            ref r if starts_source(r) && drilling(control) => Err(NackReason::Busy),
             // Where the coarse axis owns the piezo's setpoint (a dual-stage image, its task
             // running), no other source ever plays: refused, so that nothing accepted is
             // dropped (setpoints queued for a stream that cannot start, a scan's trigger
             // pulses with the stage not scanning).
-            Request::Setpoints(_)
-            | Request::PackedSetpoints(_)
-            | Request::Stream(StreamControl::Start)
-            | Request::Waveform(_)
-            | Request::Scan(_)
-            | Request::Sequence(SequenceRequest::Arm(_))
-            | Request::Analog(AnalogRequest::Start(_))
-            | Request::Trigger(TriggerConfig {
-                start_stream: true, ..
-            }) if coarse_owns_setpoint(control) => Err(NackReason::Unsupported),
+            ref r
+                if (starts_source(r)
+                    || matches!(r, Request::Setpoints(_) | Request::PackedSetpoints(_)))
+                    && coarse_owns_setpoint(control) =>
+            {
+                Err(NackReason::Unsupported)
+            }
             Request::Setpoints(batch) => self.setpoints(batch, queue),
             Request::PackedSetpoints(batch) => self.setpoints(batch.into(), queue),
             Request::Stream(StreamControl::Start) if analog_running(control) => {
@@ -1035,6 +1025,23 @@ fn refused(field: Field, rule: Rule) -> NackReason {
 
 fn credits<const N: usize>(queue: &Producer<'_, i16, N>) -> u16 {
     queue.capacity().saturating_sub(queue.len()) as u16
+}
+
+/// Whether `request` starts a setpoint source: the stream, the waveform generator, a scan, a
+/// sequence, the analog input, or an input edge armed to start the stream.
+fn starts_source(request: &Request) -> bool {
+    matches!(
+        request,
+        Request::Stream(StreamControl::Start)
+            | Request::Waveform(_)
+            | Request::Scan(_)
+            | Request::Sequence(SequenceRequest::Arm(_))
+            | Request::Analog(AnalogRequest::Start(_))
+            | Request::Trigger(TriggerConfig {
+                start_stream: true,
+                ..
+            })
+    )
 }
 
 /// Whether a watchdog drill is on (the board resets within the watchdog's timeout): a source
