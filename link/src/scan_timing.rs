@@ -524,6 +524,128 @@ pub fn table(f: &ScanFigures) -> String {
     out
 }
 
+/// A scan the board ran ([`run_scan`]): what it captured from the scan's start, and the
+/// figures against the replay.
+#[derive(Clone, Debug)]
+pub struct ScanRun {
+    /// The figures ([`analyse`]).
+    pub figures: ScanFigures,
+    /// The replay aligned on the capture ([`Replay`]).
+    pub replay: Replay,
+    /// The captured setpoint, Q1.15, one a tick from the scan's start.
+    pub x: Vec<i16>,
+    /// The captured trigger levels ([`PIXEL`], [`LINE`], [`FRAME`] bits), one a tick.
+    pub triggers: Vec<i16>,
+    /// The capture in physical units (`t` from the scan's start; `setpoint` in the output
+    /// unit of the settings in force; `triggers` as bits).
+    pub recording: crate::capture::Recording,
+    /// Ticks the approach and the frames take (an estimate from above: the approach taken at
+    /// the full stroke).
+    pub wanted_ticks: f64,
+}
+
+impl ScanRun {
+    /// Whether the capture ended before the scan did (the board's buffer is shorter than the
+    /// approach and the frames): the rest is not analysed.
+    pub fn truncated(&self) -> bool {
+        (self.x.len() as f64) < self.wanted_ticks
+    }
+}
+
+/// Why a scan could not be run and analysed.
+#[derive(Debug, thiserror::Error)]
+pub enum ScanRunError {
+    /// The scan is refused: the library's check, before anything was sent.
+    #[error("refused: {0}; nothing was sent")]
+    Refused(twinstack::refusal::Refusal),
+    /// The link, or the board's refusal.
+    #[error(transparent)]
+    Link(#[from] crate::client::LinkError),
+    /// The capture did not complete in time.
+    #[error(transparent)]
+    Capture(#[from] crate::capture::CaptureError),
+    /// The capture could not be put in physical units.
+    #[error(transparent)]
+    Convert(#[from] crate::capture::ConvertError),
+    /// The capture could not be analysed.
+    #[error(transparent)]
+    Analyse(#[from] AnalyseError),
+}
+
+/// Runs `request` on the board behind `client` with trigger pulses of `pulse_ticks` and reads
+/// it back, as `twinstack scan` does: the request checked first by the library (a refusal names
+/// the field, nothing sent), the trigger outputs set (input off), the setpoint and the trigger
+/// levels captured from the scan's start for the approach and the frames (as far as the board's
+/// buffer goes), the scan started, the capture awaited for at most `budget` and analysed
+/// against the library's replay. A scan of endless frames (`frames` 0) is stopped once the
+/// capture is read.
+pub fn run_scan<T: crate::Transport>(
+    client: &mut crate::client::Client<T>,
+    request: ScanRequest,
+    pulse_ticks: u16,
+    budget: std::time::Duration,
+) -> Result<ScanRun, ScanRunError> {
+    use twinstack::protocol::messages::{
+        CaptureRequest, Request, StreamControl, Trigger, TriggerConfig, TriggerEdge,
+    };
+    use twinstack::services::recorder::Channel;
+    let settings = client.read_params()?;
+    let rate = client.status()?.tick_rate_hz as f64;
+    let max_step = twinstack::sources::scan::slew_step(
+        settings.drive.slew_rate,
+        settings.drive.min_voltage,
+        settings.drive.max_voltage,
+        rate,
+    );
+    let generator =
+        ScanGenerator::new(&request, rate, max_step, pulse_ticks).map_err(ScanRunError::Refused)?;
+    client.expect_ack(&Request::Trigger(TriggerConfig {
+        pulse_ticks,
+        input: TriggerEdge::Off,
+        start_stream: false,
+    }))?;
+    // Enough frames for the approach (at most the full stroke at a quarter of the slew step)
+    // and the scan, as far as the board's buffer goes.
+    let approach = (2.0 * 4.0 * SIGNAL_ONE as f64 / max_step.max(1) as f64)
+        .ceil()
+        .min(1e7);
+    let frame_ticks = match request.pattern {
+        ScanPattern::Raster(r) => generator.line_ticks() * r.lines as f64,
+        ScanPattern::Lissajous(l) => rate / l.frame_hz,
+        ScanPattern::Spiral(s) => rate / s.turn_hz * 2.0 * s.turns as f64,
+    };
+    let wanted_ticks =
+        approach + frame_ticks * request.frames.max(1) as f64 + 2.0 * generator.line_ticks();
+    let capacity = client.capture_status()?.capacity;
+    let samples = (wanted_ticks.ceil().min(u32::MAX as f64) as u32)
+        .min(capacity / 2)
+        .max(1);
+    client.arm_capture(CaptureRequest {
+        signals: Channel::Setpoint.bit() | Channel::Triggers.bit(),
+        samples,
+        pre_trigger: 0,
+        trigger: Trigger::ScanStart,
+        decimation: 1,
+    })?;
+    client.expect_ack(&Request::Scan(request))?;
+    let (status, window) = crate::capture::wait_and_read(client, budget, |_, _| {})?;
+    if request.frames == 0 {
+        client.stream(StreamControl::Stop)?;
+    }
+    let recording = crate::capture::convert(&status, &settings, &window)?;
+    let x: Vec<i16> = window.iter().step_by(2).copied().collect();
+    let triggers: Vec<i16> = window.iter().skip(1).step_by(2).copied().collect();
+    let (figures, replay) = analyse(&request, rate, max_step, pulse_ticks, &x, &triggers)?;
+    Ok(ScanRun {
+        figures,
+        replay,
+        x,
+        triggers,
+        recording,
+        wanted_ticks,
+    })
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -26,7 +26,8 @@ use crate::client::{Client, LinkError};
 use crate::Transport;
 use std::time::Duration;
 use twinstack::config::settings::Settings;
-use twinstack::protocol::messages::{CaptureState, CaptureStatus, TelemetryFrame};
+use twinstack::protocol::messages::{CaptureState, CaptureStatus, NackReason, TelemetryFrame};
+use twinstack::refusal::{Field, Rule};
 
 /// Why a frame does not belong to the record.
 #[derive(Debug, thiserror::Error, PartialEq, Eq)]
@@ -249,6 +250,263 @@ pub enum WaitError {
     /// A frame that does not belong to the run.
     #[error(transparent)]
     Frame(#[from] TelemetryError),
+}
+
+/// A run's sampling: one sample every `decimation` ticks, `rate_hz` samples a second.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct RunRate {
+    /// Ticks per sample.
+    pub decimation: u16,
+    /// Samples per second (the tick rate over the decimation).
+    pub rate_hz: f64,
+    /// The board's tick rate, Hz.
+    pub tick_rate_hz: u32,
+}
+
+impl RunRate {
+    /// The decimation nearest `rate` samples a second at `tick_rate_hz` (the board samples on
+    /// whole ticks: the rate taken is `tick / decimation`, [`RunRate::rate_hz`]).
+    ///
+    /// ```
+    /// use twinstack_link::telemetry::RunRate;
+    /// let r = RunRate::nearest(50_000, 7_000.0).unwrap();
+    /// assert_eq!((r.decimation, r.rate_hz), (7, 50_000.0 / 7.0));
+    /// assert!(RunRate::nearest(50_000, 60_000.0).is_err());
+    /// ```
+    pub fn nearest(tick_rate_hz: u32, rate: f64) -> Result<Self, RateError> {
+        if !(rate.is_finite() && rate > 0.0) {
+            return Err(RateError::NotPositive { rate });
+        }
+        let tick = tick_rate_hz.max(1) as f64;
+        if rate > tick {
+            return Err(RateError::AboveTick { rate, tick_rate_hz });
+        }
+        let decimation = (tick / rate).round().max(1.0);
+        if decimation > u16::MAX as f64 {
+            return Err(RateError::BelowLeast {
+                rate,
+                least: tick / u16::MAX as f64,
+                tick_rate_hz,
+            });
+        }
+        let decimation = decimation as u16;
+        Ok(Self {
+            decimation,
+            rate_hz: tick / decimation as f64,
+            tick_rate_hz,
+        })
+    }
+
+    /// Whether the rate taken differs from the rate asked for (not the tick rate over a
+    /// whole number).
+    pub fn differs_from(&self, rate: f64) -> bool {
+        (self.rate_hz - rate).abs() > 1e-9 * rate
+    }
+}
+
+/// Why a telemetry rate cannot be had.
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum RateError {
+    /// Not a positive number.
+    #[error("rate {rate}: must be a positive number of samples per second")]
+    NotPositive {
+        /// The rate asked for.
+        rate: f64,
+    },
+    /// Faster than the board ticks.
+    #[error("rate {rate}: the board ticks at {tick_rate_hz} Hz, the most a signal can have")]
+    AboveTick {
+        /// The rate asked for.
+        rate: f64,
+        /// The board's tick rate.
+        tick_rate_hz: u32,
+    },
+    /// Slower than the longest decimation.
+    #[error("rate {rate}: at least {least:.3} samples per second at {tick_rate_hz} Hz")]
+    BelowLeast {
+        /// The rate asked for.
+        rate: f64,
+        /// The least rate there is.
+        least: f64,
+        /// The board's tick rate.
+        tick_rate_hz: u32,
+    },
+}
+
+/// A telemetry run under way on a board: its samples as received, and its rate.
+#[derive(Debug)]
+pub struct TelemetryRun {
+    /// The samples received, and what is missing.
+    pub record: TelemetryRecord,
+    /// Its sampling.
+    pub rate: RunRate,
+}
+
+/// Why a telemetry run could not start or go on.
+#[derive(Debug, thiserror::Error)]
+pub enum RunError {
+    /// The rate asked for.
+    #[error(transparent)]
+    Rate(#[from] RateError),
+    /// More values a second than the board's link carries.
+    #[error(
+        "rate {rate}: the board refused it ({refusal}): {signals} signals at most {most} samples/s each at {tick_rate_hz} Hz ({values} values/s in all, what its link carries)"
+    )]
+    TooFast {
+        /// The rate asked for.
+        rate: f64,
+        /// The board's refusal.
+        refusal: twinstack::refusal::Refusal,
+        /// Signals in the run.
+        signals: u32,
+        /// The most samples a second each.
+        most: f64,
+        /// The board's tick rate.
+        tick_rate_hz: u32,
+        /// The values a second the board's telemetry sends at most.
+        values: u32,
+    },
+    /// Not every sample asked for came within the time allowed.
+    #[error("{got} of {wanted} samples after {waited_s:.1} s: is the board ticking?")]
+    Stalled {
+        /// Samples received or accounted missing.
+        got: u64,
+        /// Samples asked for.
+        wanted: u64,
+        /// Seconds waited.
+        waited_s: f64,
+    },
+    /// The link.
+    #[error(transparent)]
+    Link(#[from] LinkError),
+    /// A frame that does not belong to the run.
+    #[error(transparent)]
+    Frame(#[from] TelemetryError),
+    /// The samples could not be put in physical units.
+    #[error(transparent)]
+    Convert(#[from] ConvertError),
+}
+
+impl From<WaitError> for RunError {
+    fn from(e: WaitError) -> Self {
+        match e {
+            WaitError::Link(l) => Self::Link(l),
+            WaitError::Frame(f) => Self::Frame(f),
+        }
+    }
+}
+
+impl TelemetryRun {
+    /// Starts the board's telemetry of `signals` (a channel mask) at the rate nearest `rate`
+    /// samples a second ([`RunRate::nearest`]). A rate the board's link cannot carry for that
+    /// many signals is refused naming the most it can.
+    pub fn start<T: Transport>(
+        client: &mut Client<T>,
+        signals: u8,
+        rate: f64,
+    ) -> Result<Self, RunError> {
+        let tick_rate_hz = client.status()?.tick_rate_hz.max(1);
+        let run_rate = RunRate::nearest(tick_rate_hz, rate)?;
+        match client.start_telemetry(signals, run_rate.decimation) {
+            Err(LinkError::Nack {
+                request,
+                reason: NackReason::Refused(r),
+            }) if r.field == Field::TelemetryDecimation => {
+                let Rule::AtLeast(least) = r.rule else {
+                    return Err(LinkError::Nack {
+                        request,
+                        reason: NackReason::Refused(r),
+                    }
+                    .into());
+                };
+                return Err(RunError::TooFast {
+                    rate,
+                    refusal: r,
+                    signals: signals.count_ones(),
+                    most: tick_rate_hz as f64 / least.max(1.0),
+                    tick_rate_hz,
+                    values: twinstack::services::telemetry::MAX_VALUES_PER_SECOND,
+                });
+            }
+            other => other?,
+        }
+        Ok(Self {
+            record: TelemetryRecord::new(signals, run_rate.decimation),
+            rate: run_rate,
+        })
+    }
+
+    /// Samples received or accounted missing so far.
+    pub fn reached(&self) -> u64 {
+        self.record.samples() as u64 + self.record.missing()
+    }
+
+    /// Receives until `wanted` samples have come (or are accounted missing), calling
+    /// `progress` with the count as frames arrive. The samples come at their rate: after
+    /// twice their duration plus the link's timeout without them, the board is taken not to
+    /// be sending them ([`RunError::Stalled`], telemetry stopped).
+    pub fn collect<T: Transport>(
+        &mut self,
+        client: &mut Client<T>,
+        wanted: u64,
+        mut progress: impl FnMut(u64),
+    ) -> Result<(), RunError> {
+        let budget =
+            Duration::from_secs_f64(2.0 * wanted as f64 / self.rate.rate_hz) + client.timeout();
+        let step = Duration::from_millis(20);
+        let mut waited = Duration::ZERO;
+        while self.reached() < wanted {
+            if waited > budget {
+                let _ = client.stop_telemetry();
+                return Err(RunError::Stalled {
+                    got: self.reached(),
+                    wanted,
+                    waited_s: waited.as_secs_f64(),
+                });
+            }
+            let frames = client.collect_telemetry(step)?;
+            self.record.add_all(&frames)?;
+            waited += step;
+            progress(self.reached().min(wanted));
+        }
+        Ok(())
+    }
+
+    /// Stops the run and waits (2 s at most) for its end frame; returns the record in
+    /// physical units ([`TelemetryRecord::recording`], with the settings in force) and
+    /// whether the end frame came (without it, samples lost at the tail cannot be ruled
+    /// out). What is missing is [`TelemetryRun::record`]'s to say.
+    pub fn finish<T: Transport>(
+        &mut self,
+        client: &mut Client<T>,
+    ) -> Result<(Recording, bool), RunError> {
+        client.stop_telemetry()?;
+        let ended = wait_for_end(client, &mut self.record, Duration::from_secs(2))?;
+        let settings = client.read_params()?;
+        let facts = client.capture_status()?;
+        Ok((self.record.recording(&facts, &settings)?, ended))
+    }
+
+    /// What did not arrive, in a sentence, or `None` when nothing is missing and the end
+    /// frame came.
+    pub fn shortfall(&self, ended: bool) -> Option<String> {
+        let r = &self.record;
+        if !ended {
+            return Some(
+                "the board's end frame never came, so samples lost at the end cannot be ruled out"
+                    .into(),
+            );
+        }
+        (r.missing() > 0).then(|| {
+            format!(
+                "{} of the {} samples the board took did not arrive ({} dropped on the board, its queue full: a lower rate or fewer signals; the rest in {} frames damaged on the line): the gaps show in t",
+                r.missing(),
+                r.produced().unwrap_or(0),
+                r.lost_on_board(),
+                r.frames_missing()
+            )
+        })
+    }
 }
 
 #[cfg(test)]

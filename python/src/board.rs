@@ -3,7 +3,7 @@
 //! `settings_schema`.
 
 use crate::convert::{array, json_to_py, vector, wire_values};
-use crate::errors::{board_error, link_error, param_file_error, path_error, port_error};
+use crate::errors::{board_error, link_error, param_file_error, path_error, port_error, run_error};
 use crate::params::Params;
 use hal_sim::port::{open_send, PortError, PortSpec, DEFAULT_BAUD};
 use hal_sim::sim_camera::CameraConfig;
@@ -22,16 +22,20 @@ use twinstack::config::settings::Mode;
 use twinstack::protocol::messages::{
     Request, SequenceConfig, StreamControl, Trigger, TriggerEdge, UnderrunPolicy, WaveShape,
 };
+use twinstack::services::recorder::Channel;
 use twinstack::sources::analog_input::{AnalogInputConfig, AnalogRequest, OnFault};
+use twinstack::sources::scan::{ScanRequest, FRAME, LINE, PIXEL};
 use twinstack_identify::param_file::ParamFile;
 use twinstack_identify::preview::ResonancePreview;
 use twinstack_link::board_requests::{self, LoadRefused};
 use twinstack_link::capture::{self, CaptureError};
 use twinstack_link::client::{Client, LinkError};
+use twinstack_link::scan_timing::{parse_pattern, run_scan, ScanRunError};
 use twinstack_link::sequence_run::{run_sequence, SequenceError, SequenceOptions};
 use twinstack_link::setpoint_file::divider_for_rate;
 use twinstack_link::settings_path;
 use twinstack_link::streamer::{stream_setpoints_until, StreamOptions};
+use twinstack_link::telemetry::{RunError, TelemetryRun};
 use twinstack_link::Transport;
 
 // The default baud in `Board`'s signature (a literal, so Python shows it) is the CLI's.
@@ -705,6 +709,142 @@ impl Board {
         seconds(timeout, "timeout")?;
         self.arm(py, signals, samples, trigger, pre, decimation)?;
         self.fetch_dict(py, timeout)
+    }
+
+    /// Continuous telemetry (`twinstack telemetry`): the board sends `signals` (as `record`'s)
+    /// at the rate nearest `rate` samples per second (the tick rate divided by a whole
+    /// number) while it runs whatever it runs, for `seconds` of samples; then telemetry stops
+    /// and its end frame is awaited. Returns a dict of float64 arrays in physical units, `t`
+    /// (s from the first sample; a gap shows as a jump) and one per signal, with `rate_hz`,
+    /// `decimation`, `samples` (received), `missing` (taken by the board, not received),
+    /// `lost_on_board` (of them, dropped on the board: its queue full), `frames_damaged` and
+    /// `complete` (nothing missing, the end frame came). Anything missing also raises a
+    /// `RuntimeWarning` saying how much and why. A rate the board's link cannot carry for
+    /// that many signals raises `BoardError` naming the most it can; a rate beyond the tick
+    /// rate, or `seconds` not positive, `ValueError`.
+    #[pyo3(signature = (signals, rate=10000.0, seconds=1.0))]
+    fn telemetry<'py>(
+        &self,
+        py: Python<'py>,
+        signals: &Bound<'py, PyAny>,
+        rate: f64,
+        seconds: f64,
+    ) -> PyResult<Bound<'py, PyDict>> {
+        if !(seconds.is_finite() && seconds > 0.0) {
+            return Err(PyValueError::new_err(format!(
+                "seconds {seconds}: must be a positive number"
+            )));
+        }
+        let list = signal_list(signals)?;
+        let mask = capture::signal_mask(&list)
+            .map_err(|e| PyValueError::new_err(format!("signals {list:?}: {e}")))?;
+        let (recording, run, ended) = self.with_py(py, |client| {
+            let fail = |e: RunError| Python::attach(|py| run_error(py, e));
+            let mut run = TelemetryRun::start(client, mask, rate).map_err(fail)?;
+            let wanted = (seconds * run.rate.rate_hz).ceil() as u64;
+            run.collect(client, wanted, |_| {}).map_err(fail)?;
+            let (recording, ended) = run.finish(client).map_err(fail)?;
+            Ok((recording, run, ended))
+        })?;
+        if let Some(shortfall) = run.shortfall(ended) {
+            let warnings = py.import("warnings")?;
+            let category = py.get_type::<pyo3::exceptions::PyRuntimeWarning>();
+            warnings.call_method1("warn", (format!("telemetry: {shortfall}"), category, 2))?;
+        }
+        let d = PyDict::new(py);
+        d.set_item("t", array(py, recording.t))?;
+        for c in recording.columns {
+            d.set_item(c.channel.name(), array(py, c.values))?;
+        }
+        let r = &run.record;
+        d.set_item("rate_hz", run.rate.rate_hz)?;
+        d.set_item("decimation", run.rate.decimation)?;
+        d.set_item("samples", r.samples())?;
+        d.set_item("missing", r.missing())?;
+        d.set_item("lost_on_board", r.lost_on_board())?;
+        d.set_item("frames_damaged", r.frames_missing())?;
+        d.set_item("complete", ended && r.missing() == 0)?;
+        Ok(d)
+    }
+
+    /// Runs a scan pattern generated on the board (`twinstack scan`) with its pixel, line and
+    /// frame trigger outputs (pulses of `pulse` ticks; the trigger input off), and reads it
+    /// back: `pattern` as `twinstack scan --pattern` takes it
+    /// (`"raster:lines=64,pixels=64,turn=40"`, `"lissajous:hz=20,x=3,y=2"`,
+    /// `"spiral:hz=200,turns=10"`, with their optional fields), `ticks_per_pixel`, `frames`
+    /// (0: endless, stopped once the capture is read). The setpoint and the trigger levels are
+    /// captured from the scan's start (its approach, then the frames, as far as the board's
+    /// buffer goes) and compared with the library's replay of the pattern. Returns a dict:
+    /// `t` (s from the scan's start), `setpoint` (the output unit of the settings in force),
+    /// `y` (the replay's slow axis, normalised, for another axis to follow; NaN during the
+    /// approach), `pixel`, `line`, `frame` (the outputs' levels, bool arrays), `figures`
+    /// (each clock's pulses, jitter and width against the replay, the turnaround-to-line
+    /// time, as `twinstack scan --json`) and `truncated` (the capture ended before the scan).
+    /// A pattern the board would refuse raises `ValueError` naming the field, nothing sent; a
+    /// scan that differs from the replay raises `RuntimeError`; no capture within `timeout`
+    /// seconds `TimeoutError`.
+    #[pyo3(signature = (pattern, ticks_per_pixel=4, frames=1, pulse=2, timeout=60.0))]
+    fn scan<'py>(
+        &self,
+        py: Python<'py>,
+        pattern: &str,
+        ticks_per_pixel: u16,
+        frames: u16,
+        pulse: u16,
+        timeout: f64,
+    ) -> PyResult<Bound<'py, PyDict>> {
+        let budget = seconds(timeout, "timeout")?;
+        let pattern = parse_pattern(pattern)
+            .map_err(|e| PyValueError::new_err(format!("pattern {pattern:?}: {e}")))?;
+        let request = ScanRequest {
+            pattern,
+            ticks_per_pixel,
+            frames,
+            on_trigger: false,
+        };
+        let run = self.with_py(py, |client| {
+            run_scan(client, request, pulse, budget).map_err(|e| {
+                Python::attach(|py| match e {
+                    ScanRunError::Link(l) => link_error(py, l),
+                    ScanRunError::Capture(CaptureError::Link(l)) => link_error(py, l),
+                    e @ ScanRunError::Capture(CaptureError::NotDone { .. }) => {
+                        PyTimeoutError::new_err(e.to_string())
+                    }
+                    e @ ScanRunError::Refused(_) => PyValueError::new_err(e.to_string()),
+                    e => PyRuntimeError::new_err(e.to_string()),
+                })
+            })
+        })?;
+        let f = &run.figures;
+        if f.x_mismatches > 0 || f.trigger_mismatches > 0 {
+            return Err(PyRuntimeError::new_err(format!(
+                "the board's scan differs from the library's replay: {} setpoints, {} trigger ticks",
+                f.x_mismatches, f.trigger_mismatches
+            )));
+        }
+        let d = PyDict::new(py);
+        let setpoint = run
+            .recording
+            .column(Channel::Setpoint)
+            .map(|c| c.values.clone())
+            .unwrap_or_default();
+        d.set_item("t", array(py, run.recording.t.clone()))?;
+        d.set_item("setpoint", array(py, setpoint))?;
+        let y = run
+            .replay
+            .iter()
+            .map(|r| r.map_or(f64::NAN, |(_, y)| y))
+            .collect();
+        d.set_item("y", array(py, y))?;
+        for (name, bit) in [("pixel", PIXEL), ("line", LINE), ("frame", FRAME)] {
+            let levels: Vec<bool> = run.triggers.iter().map(|&t| t as u8 & bit != 0).collect();
+            d.set_item(name, PyArray1::from_vec(py, levels))?;
+        }
+        let figures = serde_json::to_value(f)
+            .map_err(|e| PyRuntimeError::new_err(format!("the scan's figures: {e}")))?;
+        d.set_item("figures", json_to_py(py, &figures)?)?;
+        d.set_item("truncated", run.truncated())?;
+        Ok(d)
     }
 
     /// Calibrates the stage behind the board in one call (`twinstack calibrate`): excites it

@@ -13,6 +13,7 @@ use twinstack::refusal::Rule;
 use twinstack_identify::param_file::ParamFileError;
 use twinstack_link::client::{nack_text, LinkError};
 use twinstack_link::settings_path;
+use twinstack_link::telemetry::RunError;
 
 /// The rule's limit, where it has one, in the field's own units.
 pub(crate) fn rule_limit(rule: &Rule) -> Option<f64> {
@@ -111,5 +112,26 @@ pub(crate) fn path_error(e: settings_path::PathError) -> PyErr {
     match e {
         settings_path::PathError::Invalid { .. } => PyValueError::new_err(e.to_string()),
         _ => PyKeyError::new_err(e.to_string()),
+    }
+}
+
+/// A telemetry run's error: a rate the link cannot carry is the board's refusal
+/// (`BoardError`, its message naming the most it can), a rate that cannot be had
+/// `ValueError`, a run that stalls `TimeoutError`, the link's as [`link_error`].
+pub(crate) fn run_error(py: Python<'_>, e: RunError) -> PyErr {
+    match e {
+        RunError::Link(l) => link_error(py, l),
+        RunError::Rate(_) => PyValueError::new_err(e.to_string()),
+        RunError::TooFast { refusal, .. } => board_error(
+            py,
+            e.to_string(),
+            "Telemetry",
+            Some(refusal.field.to_string()),
+            refusal.rule.to_string(),
+            Some(rule_name(&refusal.rule)),
+            rule_limit(&refusal.rule),
+        ),
+        RunError::Stalled { .. } => PyTimeoutError::new_err(e.to_string()),
+        RunError::Frame(_) | RunError::Convert(_) => PyRuntimeError::new_err(e.to_string()),
     }
 }

@@ -222,6 +222,72 @@ def test_record_now(board):
         board.record(["sensor"], samples=10, pre=5)
 
 
+def test_telemetry_streams_the_running_waveform_continuously_and_counts_what_is_missing(board):
+    board.waveform(amplitude=0.5, frequency=50.0)
+    try:
+        run = board.telemetry(["setpoint", "sensor"], rate=5000.0, seconds=0.2)
+    finally:
+        board.stop()
+    # 50 kHz / 10: one sample every 0.2 ms, each signal its column in physical units.
+    assert run["rate_hz"] == pytest.approx(5000.0) and run["decimation"] == 10
+    assert run["complete"] and run["missing"] == 0 and run["lost_on_board"] == 0
+    assert run["samples"] >= 1000 and run["t"].shape == (run["samples"],)
+    assert np.allclose(np.diff(run["t"]), 2e-4)
+    # Half the normalised range of ±45 µm, four periods of it in 0.2 s.
+    sp = run["setpoint"]
+    assert sp.max() == pytest.approx(22.5, abs=0.1) and sp.min() == pytest.approx(-22.5, abs=0.1)
+    assert run["sensor"].shape == sp.shape
+    # A rate that is not the tick rate over a whole number: the nearest one.
+    near = board.telemetry("sensor", rate=7000.0, seconds=0.01)
+    assert near["decimation"] == 7 and near["rate_hz"] == pytest.approx(50_000.0 / 7)
+
+
+def test_telemetry_the_link_cannot_carry_or_the_board_cannot_sample_is_refused(board):
+    # Six signals on every tick: 300 000 values a second, six times what the link carries.
+    with pytest.raises(twinstack.BoardError, match="at most") as e:
+        board.telemetry(
+            ["setpoint", "left", "right", "sensor", "estimate", "error"], rate=50_000.0
+        )
+    assert e.value.field == "telemetry decimation" and e.value.limit == 6
+    with pytest.raises(ValueError, match="ticks at 50000 Hz"):
+        board.telemetry("sensor", rate=60_000.0)
+    with pytest.raises(ValueError, match="seconds 0"):
+        board.telemetry("sensor", seconds=0.0)
+    with pytest.raises(ValueError, match="unknown signal"):
+        board.telemetry("volts")
+
+
+def test_the_board_s_raster_runs_with_its_clocks_as_the_library_replays_it(board):
+    run = board.scan("raster:lines=6,pixels=50,turn=40,amplitude=0.6,offset=0.1", ticks_per_pixel=4)
+    f = run["figures"]
+    assert not run["truncated"]
+    # Every setpoint and trigger level as the library's replay has them, tick for tick.
+    assert f["x_mismatches"] == 0 and f["trigger_mismatches"] == 0 and f["x_compared"] > 1000
+    # One frame, six lines, 300 pixels: the clocks counted in the levels returned.
+    rising = lambda levels: int(np.sum(levels[1:] & ~levels[:-1]) + levels[0])
+    assert (rising(run["frame"]), rising(run["line"]), rising(run["pixel"])) == (1, 6, 300)
+    assert f["line"]["pulses"] == 6 and f["line"]["jitter_ticks"] == 0
+    assert f["line"]["width_ticks"] == [2, 2]
+    # One sample a tick from the scan's start; the pixels sweep ±0.6 around 0.1 of ±45 µm (the
+    # turnarounds beyond), 50 to a line: the pixel clocks' positions within a pixel of it.
+    assert np.allclose(np.diff(run["t"]), 2e-5)
+    pixel = np.flatnonzero(run["pixel"][1:] & ~run["pixel"][:-1]) + 1
+    at_pixels = run["setpoint"][pixel]
+    step = 1.2 * 45 / 50
+    assert at_pixels.max() == pytest.approx(0.7 * 45, abs=step)
+    assert at_pixels.min() == pytest.approx(-0.5 * 45, abs=step)
+    assert "scanning" not in board.status()["flags"]
+
+
+def test_a_scan_the_board_would_refuse_is_refused_before_sending(board):
+    with pytest.raises(ValueError, match="lines"):
+        board.scan("raster:lines=0,pixels=50")
+    with pytest.raises(ValueError, match='unknown pattern "zigzag"'):
+        board.scan("zigzag:lines=4")
+    with pytest.raises(ValueError, match="timeout"):
+        board.scan("raster:lines=4,pixels=8", timeout=-1.0)
+
+
 def test_a_capture_beyond_the_buffer_is_refused_with_its_limit(board):
     with pytest.raises(twinstack.BoardError) as e:
         board.record(

@@ -363,6 +363,42 @@ class Board:
         (negative before it), the stacks ``"left"``/``"right"`` in volts, the displacements
         (setpoint, sensor, estimate, error) in the output unit of the settings in force. A
         request beyond the board's buffer raises :class:`BoardError` with its ``limit``."""
+    def scan(
+        self,
+        pattern: str,
+        ticks_per_pixel: int = 4,
+        frames: int = 1,
+        pulse: int = 2,
+        timeout: float = 60.0,
+    ) -> Dict[str, Any]:
+        """Runs a scan pattern generated on the board (as ``twinstack scan``) with its pixel,
+        line and frame trigger outputs (pulses of ``pulse`` ticks) and reads it back:
+        ``pattern`` as ``twinstack scan --pattern`` takes it (``"raster:lines=64,pixels=64"``,
+        ``"lissajous:hz=20,x=3,y=2"``, ``"spiral:hz=200,turns=10"``), ``frames`` (0: endless,
+        stopped once the capture is read). Returns ``"t"`` (seconds from the scan's start),
+        ``"setpoint"`` (output unit), ``"y"`` (the replay's slow axis, normalised; NaN during
+        the approach), ``"pixel"``, ``"line"``, ``"frame"`` (bool arrays of the outputs'
+        levels), ``"figures"`` (the clocks against the library's replay, as ``twinstack scan
+        --json``) and ``"truncated"``. A pattern the board would refuse raises ``ValueError``
+        naming the field (nothing sent); a scan that differs from the replay
+        ``RuntimeError``."""
+    def telemetry(
+        self,
+        signals: _Signals,
+        rate: float = 10000.0,
+        seconds: float = 1.0,
+    ) -> Dict[str, Any]:
+        """Continuous telemetry: the board sends ``signals`` (as :meth:`record`'s) at the rate
+        nearest ``rate`` samples per second (the tick rate divided by a whole number) while it
+        runs whatever it runs, for ``seconds`` of samples; then telemetry stops and its end
+        frame is awaited. Returns float64 arrays in physical units, ``"t"`` (seconds from the
+        first sample; a gap shows as a jump) and one per signal, with ``"rate_hz"``,
+        ``"decimation"``, ``"samples"`` (received), ``"missing"`` (taken, not received),
+        ``"lost_on_board"`` (of them, dropped on the board, its queue full),
+        ``"frames_damaged"`` and ``"complete"``. Anything missing also raises a
+        ``RuntimeWarning``. A rate the board's link cannot carry for that many signals raises
+        :class:`BoardError` naming the most it can; a rate beyond the tick rate, or
+        ``seconds`` not positive, ``ValueError``."""
     def calibrate(
         self,
         store: bool = True,

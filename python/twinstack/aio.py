@@ -160,6 +160,28 @@ class AsyncBoard:
         """Waits for the armed capture and reads it back, as :meth:`twinstack.Board.fetch`."""
         return await self._call(self._board.fetch, timeout)
 
+    async def scan(
+        self,
+        pattern: str,
+        ticks_per_pixel: int = 4,
+        frames: int = 1,
+        pulse: int = 2,
+        timeout: float = 60.0,
+    ) -> Dict[str, Any]:
+        """Runs a scan pattern on the board with its clocks, as :meth:`twinstack.Board.scan`."""
+        return await self._call(
+            self._board.scan, pattern, ticks_per_pixel, frames, pulse, timeout
+        )
+
+    async def telemetry(
+        self,
+        signals: Union[str, Sequence[str]],
+        rate: float = 10000.0,
+        seconds: float = 1.0,
+    ) -> Dict[str, Any]:
+        """Continuous telemetry for `seconds` of samples, as :meth:`twinstack.Board.telemetry`."""
+        return await self._call(self._board.telemetry, signals, rate, seconds)
+
     async def record(
         self,
         signals: Union[str, Sequence[str]],

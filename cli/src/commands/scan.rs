@@ -14,13 +14,9 @@ use plotters::style::{RGBColor, BLACK, BLUE, RED};
 
 use super::board_link::{connect, PortArgs};
 use crate::plot::{draw_panels, Panel, Series};
-use twinstack::protocol::messages::{
-    CaptureRequest, Request, ScanRequest, StreamControl, Trigger, TriggerConfig, TriggerEdge,
-};
-use twinstack::services::recorder::Channel;
-use twinstack::sources::scan::{slew_step, LINE, PIXEL};
-use twinstack_link::capture::wait_and_read;
-use twinstack_link::scan_timing::{analyse, parse_pattern, table, ScanFigures};
+use twinstack::protocol::messages::ScanRequest;
+use twinstack::sources::scan::{LINE, PIXEL};
+use twinstack_link::scan_timing::{parse_pattern, run_scan, table, ScanFigures};
 
 /// Arguments of `scan`.
 #[derive(Debug, clap::Args)]
@@ -64,65 +60,27 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         on_trigger: false,
     };
     let mut client = connect(&args.port)?;
-    let settings = client.read_params()?;
-    let rate = client.status()?.tick_rate_hz as f64;
-    let max_step = slew_step(
-        settings.drive.slew_rate,
-        settings.drive.min_voltage,
-        settings.drive.max_voltage,
-        rate,
-    );
-    // Validate here first, as the board will: the refusal names the field.
-    let generator =
-        twinstack::sources::scan::ScanGenerator::new(&request, rate, max_step, args.pulse)
-            .map_err(|r| anyhow::anyhow!("refused: {r}; nothing was sent"))?;
-    client.expect_ack(&Request::Trigger(TriggerConfig {
-        pulse_ticks: args.pulse,
-        input: TriggerEdge::Off,
-        start_stream: false,
-    }))?;
-    // Enough frames for the approach (at most the full stroke at a quarter of the slew
-    // step) and the scan, as far as the board's buffer goes.
-    let approach = (2.0 * 4.0 * twinstack::fixed_point::SIGNAL_ONE as f64 / max_step as f64)
-        .ceil()
-        .min(1e7);
-    let frame_ticks = match pattern {
-        twinstack::sources::scan::ScanPattern::Raster(r) => generator.line_ticks() * r.lines as f64,
-        twinstack::sources::scan::ScanPattern::Lissajous(l) => rate / l.frame_hz,
-        twinstack::sources::scan::ScanPattern::Spiral(s) => rate / s.turn_hz * 2.0 * s.turns as f64,
-    };
-    let wanted = approach + frame_ticks * args.frames.max(1) as f64 + 2.0 * generator.line_ticks();
-    let signals = Channel::Setpoint.bit() | Channel::Triggers.bit();
-    let capacity = client.capture_status()?.capacity;
-    let samples = (wanted.ceil() as u32).min(capacity / 2).max(1);
-    client.arm_capture(CaptureRequest {
-        signals,
-        samples,
-        pre_trigger: 0,
-        trigger: Trigger::ScanStart,
-        decimation: 1,
-    })?;
-    client.expect_ack(&Request::Scan(request))?;
-    let budget = Duration::from_secs_f64(args.wait_s.max(0.1));
-    let (_, window) = wait_and_read(&mut client, budget, |_, _| {})?;
-    if args.frames == 0 {
-        client.stream(StreamControl::Stop)?;
-    }
-    let x: Vec<i16> = window.iter().step_by(2).copied().collect();
-    let trig: Vec<i16> = window.iter().skip(1).step_by(2).copied().collect();
-    let (figures, replay) = analyse(&request, rate, max_step, args.pulse, &x, &trig)?;
-    draw(&args.out, &figures, &x, &trig, &replay)
+    let run = run_scan(
+        &mut client,
+        request,
+        args.pulse,
+        Duration::from_secs_f64(args.wait_s.max(0.1)),
+    )?;
+    let (figures, x, trig, replay) = (&run.figures, &run.x, &run.triggers, &run.replay);
+    draw(&args.out, figures, x, trig, replay)
         .with_context(|| format!("writing {}", args.out.display()))?;
     if args.json {
-        let mut v = serde_json::to_value(&figures)?;
+        let mut v = serde_json::to_value(figures)?;
         v["figure"] = serde_json::Value::String(args.out.display().to_string());
-        v["truncated"] = serde_json::Value::Bool((samples as f64) < wanted);
+        v["truncated"] = serde_json::Value::Bool(run.truncated());
         println!("{}", serde_json::to_string(&v)?);
     } else {
-        print!("{}", table(&figures));
-        if (samples as f64) < wanted {
+        print!("{}", table(figures));
+        if run.truncated() {
             println!(
-                "(the capture holds {samples} of the {wanted:.0} ticks the scan takes: the rest is not analysed)"
+                "(the capture holds {} of the {:.0} ticks the scan takes: the rest is not analysed)",
+                x.len(),
+                run.wanted_ticks
             );
         }
         println!("wrote {}", args.out.display());

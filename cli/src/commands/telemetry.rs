@@ -19,14 +19,10 @@
 use super::board_link::{connect, BoardClient, PortArgs};
 use anyhow::bail;
 use std::path::{Path, PathBuf};
-use std::time::Duration;
-use twinstack::protocol::messages::NackReason;
-use twinstack::refusal::{Field, Rule};
 use twinstack::services::recorder::Channel;
 use twinstack_link::capture::{self, signal_mask};
 use twinstack_link::output_file::Staged;
-use twinstack_link::telemetry::{wait_for_end, TelemetryRecord};
-use twinstack_link::LinkError;
+use twinstack_link::telemetry::RunError;
 
 /// Arguments of `telemetry`.
 #[derive(Debug, clap::Args)]
@@ -53,15 +49,8 @@ pub struct Args {
 }
 
 /// A telemetry run started on a board.
-#[derive(Debug)]
-pub struct TelemetryRun {
-    /// The frames received so far.
-    pub record: TelemetryRecord,
-    /// Samples per second (the board's tick rate / the decimation).
-    pub rate_hz: f64,
-    /// The board's tick rate, Hz.
-    pub tick_rate_hz: u32,
-}
+/// A run under way: [`twinstack_link::telemetry::TelemetryRun`].
+pub use twinstack_link::telemetry::TelemetryRun;
 
 /// Parses `SIGNALS[:RATE]` (`stream --telemetry`): the signal list and the rate (default
 /// 10 000 samples per second).
@@ -77,57 +66,22 @@ pub fn parse_spec(spec: &str) -> anyhow::Result<(String, f64)> {
     }
 }
 
-/// Starts telemetry of `signals` (names) at about `rate` samples per second on `client`.
+/// Starts the board's telemetry of `signals` (a comma-separated list) at the rate nearest
+/// `rate` samples per second ([`TelemetryRun::start`]), saying so where it is not the rate
+/// asked for. Errors name the flag (`--signals`, `--rate`).
 pub fn start(client: &mut BoardClient, signals: &str, rate: f64) -> anyhow::Result<TelemetryRun> {
     let mask = signal_mask(signals).map_err(|e| anyhow::anyhow!("--signals {signals:?}: {e}"))?;
-    if !(rate.is_finite() && rate > 0.0) {
-        bail!("--rate {rate}: must be a positive number of samples per second");
-    }
-    let tick_rate_hz = client.status()?.tick_rate_hz.max(1);
-    let tick = tick_rate_hz as f64;
-    if rate > tick {
-        bail!("--rate {rate}: the board ticks at {tick_rate_hz} Hz, the most a signal can have");
-    }
-    let decimation = (tick / rate).round().max(1.0);
-    if decimation > u16::MAX as f64 {
-        bail!(
-            "--rate {rate}: at least {:.3} samples per second at {tick_rate_hz} Hz",
-            tick / u16::MAX as f64
-        );
-    }
-    let decimation = decimation as u16;
-    let rate_hz = tick / decimation as f64;
-    if (rate_hz - rate).abs() > 1e-9 * rate {
+    let run = TelemetryRun::start(client, mask, rate).map_err(|e| match e {
+        e @ (RunError::Rate(_) | RunError::TooFast { .. }) => anyhow::anyhow!("--{e}"),
+        e => e.into(),
+    })?;
+    if run.rate.differs_from(rate) {
         eprintln!(
-            "note: {rate} samples/s is not {tick_rate_hz} Hz / a whole number: {rate_hz} samples/s (one every {decimation} ticks)"
+            "note: {rate} samples/s is not {} Hz / a whole number: {} samples/s (one every {} ticks)",
+            run.rate.tick_rate_hz, run.rate.rate_hz, run.rate.decimation
         );
     }
-    match client.start_telemetry(mask, decimation) {
-        Err(LinkError::Nack {
-            reason: NackReason::Refused(r),
-            ..
-        }) if r.field == Field::TelemetryDecimation => {
-            let Rule::AtLeast(least) = r.rule else {
-                return Err(LinkError::Nack {
-                    request: "Telemetry",
-                    reason: NackReason::Refused(r),
-                }
-                .into());
-            };
-            bail!(
-                "--rate {rate}: the board refused it ({r}): {} signals at most {} samples/s each at {tick_rate_hz} Hz ({} values/s in all, what its link carries)",
-                mask.count_ones(),
-                tick / least.max(1.0),
-                twinstack::services::telemetry::MAX_VALUES_PER_SECOND
-            )
-        }
-        other => other?,
-    }
-    Ok(TelemetryRun {
-        record: TelemetryRecord::new(mask, decimation),
-        rate_hz,
-        tick_rate_hz,
-    })
+    Ok(run)
 }
 
 /// Stops the run, waits for its end frame, writes the CSV `out` and the PNG `png` in
@@ -139,12 +93,8 @@ pub fn finish(
     out: &Path,
     png: &Path,
 ) -> anyhow::Result<String> {
-    client.stop_telemetry()?;
-    let ended = wait_for_end(client, &mut telemetry.record, Duration::from_secs(2))?;
+    let (recording, ended) = telemetry.finish(client)?;
     let record = &telemetry.record;
-    let settings = client.read_params()?;
-    let facts = client.capture_status()?;
-    let recording = record.recording(&facts, &settings)?;
     let mut files = Staged::new();
     files.write(out, &capture::csv(&recording)?)?;
     let temp_png = files.temporary_for(png);
@@ -154,7 +104,7 @@ pub fn finish(
         &format!(
             "telemetry, {} samples at {} Hz",
             record.samples(),
-            telemetry.rate_hz
+            telemetry.rate.rate_hz
         ),
     )?;
     files.commit()?;
@@ -167,20 +117,11 @@ pub fn finish(
         png.display(),
         record.samples(),
         names.join(", "),
-        telemetry.rate_hz,
+        telemetry.rate.rate_hz,
         record.frames()
     );
-    if !ended {
-        bail!("{summary}; but the board's end frame never came, so samples lost at the end cannot be ruled out");
-    }
-    if record.missing() > 0 {
-        bail!(
-            "{summary}; but {} of the {} samples the board took did not arrive ({} dropped on the board, its queue full: lower --rate or the signals; the rest in {} frames damaged on the line): the gaps show in t",
-            record.missing(),
-            record.produced().unwrap_or(0),
-            record.lost_on_board(),
-            record.frames_missing()
-        );
+    if let Some(shortfall) = telemetry.shortfall(ended) {
+        bail!("{summary}; but {shortfall}");
     }
     Ok(summary)
 }
@@ -195,28 +136,9 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     }
     let mut client = connect(&args.port)?;
     let mut telemetry = start(&mut client, &args.signals, args.rate)?;
-    let wanted = (args.duration * telemetry.rate_hz).ceil() as u64;
+    let wanted = (args.duration * telemetry.rate.rate_hz).ceil() as u64;
     let bar = super::progress::bar(wanted, "telemetry", "samples");
-    // The samples come at their rate: allow their duration twice over, plus the link's
-    // timeout, before deciding the board is not sending them.
-    let budget = Duration::from_secs_f64(2.0 * args.duration) + client.timeout();
-    let mut waited = Duration::ZERO;
-    let step = Duration::from_millis(20);
-    let reached = |r: &TelemetryRecord| r.samples() as u64 + r.missing();
-    while reached(&telemetry.record) < wanted {
-        if waited > budget {
-            let got = reached(&telemetry.record);
-            let _ = client.stop_telemetry();
-            bail!(
-                "{got} of {wanted} samples after {:.1} s: is the board ticking?",
-                waited.as_secs_f64()
-            );
-        }
-        let frames = client.collect_telemetry(step)?;
-        telemetry.record.add_all(&frames)?;
-        waited += step;
-        bar.set_position(reached(&telemetry.record).min(wanted));
-    }
+    telemetry.collect(&mut client, wanted, |n| bar.set_position(n))?;
     bar.finish_and_clear();
     let png = args
         .png

@@ -217,7 +217,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         "view of {} on http://{addr}/ ({} at {} samples/s)",
         args.port.port.as_deref().unwrap_or("?"),
         args.signals,
-        telemetry.rate_hz
+        telemetry.rate.rate_hz
     );
     let shared = Arc::new(Shared {
         hub: Mutex::new(Hub::default()),
@@ -236,8 +236,8 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     }
     let state = Telemetry {
         mask,
-        decimation: (telemetry.tick_rate_hz as f64 / telemetry.rate_hz).round() as u16,
-        rate_hz: telemetry.rate_hz,
+        decimation: telemetry.rate.decimation,
+        rate_hz: telemetry.rate.rate_hz,
         counts: Counts::default(),
         running: true,
     };
