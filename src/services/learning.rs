@@ -225,6 +225,9 @@ pub struct LearnTick {
     periods: u32,
     /// Ticks whose error could not be measured (ADC error or no sensor) while storing.
     missing: u32,
+    /// Restarts of the period (a motion started, or the period set; wrapping): the task's cue
+    /// that the errors before are another motion's.
+    restarts: u32,
     /// The two tables, Q2.30 normalised drive: `tables[active]` plays.
     tables: [[i32; MAX_BINS]; 2],
     /// The two error buffers, Q2.30: the tick fills `errors[fill]`.
@@ -259,6 +262,7 @@ impl LearnTick {
             targets: ReadingInstant::at(0),
             periods: 0,
             missing: 0,
+            restarts: 0,
         }
     }
 
@@ -335,16 +339,26 @@ impl LearnTick {
         self.state = state;
     }
 
-    /// Sets the period (1 … [`MAX_BINS`] ticks; clamped) and restarts at bin 0.
+    /// Sets the period (1 … [`MAX_BINS`] ticks; clamped) and restarts at bin 0
+    /// ([`LearnTick::restart`]).
     pub fn set_period(&mut self, period: usize) {
         self.period = period.clamp(1, MAX_BINS);
-        self.bin = 0;
+        self.restart();
     }
 
-    /// Restarts the period at bin 0 (the motion starts: a waveform or a stream). The error
-    /// buffer being filled is abandoned (its period is not counted).
+    /// Restarts the period at bin 0 (the motion starts: a waveform or a stream), so that a
+    /// table is aligned with the motion's start and plays again on the same motion started
+    /// again. The error buffer being filled is abandoned (its period is not counted), and the
+    /// task's divergence guard starts again from the next period ([`LearnTick::restarts`]):
+    /// the errors before were another motion's (a stage at rest before the waveform).
     pub fn restart(&mut self) {
         self.bin = 0;
+        self.restarts = self.restarts.wrapping_add(1);
+    }
+
+    /// Restarts of the period since start-up (wrapping; [`LearnTick::restart`]).
+    pub fn restarts(&self) -> u32 {
+        self.restarts
     }
 
     /// Period, ticks.
@@ -428,6 +442,8 @@ pub struct LearnTask {
     work: [i32; MAX_BINS],
     /// The tick's period count at the last period taken.
     seen: u32,
+    /// The tick's restart count ([`LearnTick::restarts`]) the guard last started from.
+    restarts_seen: u32,
     /// Periods learned from (updates posted).
     updates: u32,
     /// Periods missed (the tick completed another before the copy ended).
@@ -451,8 +467,11 @@ pub struct LearnTask {
 /// shaping notch off the resonance, a gain too high) grows it geometrically, and the ringing
 /// it has excited keeps growing for a few periods whatever table plays next (freezing the
 /// table measured 5× the best error on the simulated stage). Off, the stage is back to the
-/// feedforward alone: never worse than without learning. A motion changed while learning
-/// trips it too: configure the learning again (or recall a table) to relearn.
+/// feedforward alone: never worse than without learning. A motion started (a waveform or a
+/// stream: [`LearnTick::restart`]) starts the guard again, so a learning switched on over a
+/// stage at rest is not stopped when the motion begins; a motion changed within a running
+/// source (the stream's setpoints) trips it: configure the learning again (or recall a
+/// table) to relearn.
 pub const DIVERGENCE_FACTOR: i32 = 2;
 
 /// The guard's allowance over [`DIVERGENCE_FACTOR`] × the best, Q2.30 normalised
@@ -479,6 +498,7 @@ impl LearnTask {
             table: [0; MAX_BINS],
             work: [0; MAX_BINS],
             seen: 0,
+            restarts_seen: 0,
             updates: 0,
             missed: 0,
             last: PeriodError { max: 0, rms: 0 },
@@ -786,12 +806,20 @@ where
     H: LearnHost,
     L: rtic_core::Mutex<T = H>,
 {
-    let (periods, state, period, posted) = control.lock(|c| {
+    let (periods, state, period, posted, restarts) = control.lock(|c| {
         let l = c.learning();
-        (l.periods(), l.state(), l.period(), l.is_posted())
+        (
+            l.periods(),
+            l.state(),
+            l.period(),
+            l.is_posted(),
+            l.restarts(),
+        )
     });
-    if state != LearnState::Learning {
+    // Not learning, or a motion started since: the guard measures from the next period.
+    if state != LearnState::Learning || restarts != task.restarts_seen {
         task.restart_guard();
+        task.restarts_seen = restarts;
     }
     if periods == task.seen || state == LearnState::Off || task.config.is_none() {
         task.seen = periods;
@@ -1048,6 +1076,68 @@ mod tests {
         t.work[..40].fill(i32::MAX);
         t.update(40, false);
         assert!(!t.diverged());
+    }
+
+    /// The tick's half as its own host, behind a lock that just lends it (one thread).
+    struct Host(LearnTick);
+
+    impl LearnHost for Host {
+        fn learning(&self) -> &LearnTick {
+            &self.0
+        }
+        fn learning_mut(&mut self) -> &mut LearnTick {
+            &mut self.0
+        }
+        fn set_learning(&mut self, state: LearnState) {
+            self.0.set_state(state, 0);
+        }
+    }
+
+    impl rtic_core::Mutex for Host {
+        type T = Host;
+        fn lock<R>(&mut self, f: impl FnOnce(&mut Host) -> R) -> R {
+            f(self)
+        }
+    }
+
+    /// Learning switched on over a stage at rest, then the motion starts: the errors of the
+    /// motion's first periods are far above those at rest, and the guard, started again with
+    /// the motion, does not take them for a divergence.
+    #[test]
+    fn a_motion_started_after_the_learning_starts_the_guard_again() {
+        let p = 40;
+        let mut host = Host(LearnTick::new());
+        let mut task = LearnTask::new();
+        configure(
+            &mut task,
+            LearnSettings::for_period(p as u16).build(50_000.0).unwrap(),
+            &mut host,
+        );
+        host.0.set_state(LearnState::Learning, 0);
+        let periods = |host: &mut Host, task: &mut LearnTask, error: i32, n: usize| {
+            let mut last = Service::Idle;
+            for _ in 0..n * p {
+                if host.0.observe(error, Some(0)) {
+                    last = service(task, host);
+                }
+            }
+            last
+        };
+        // At rest: the error is the sensor's noise.
+        assert!(matches!(
+            periods(&mut host, &mut task, 1 << 10, 3),
+            Service::Took(_)
+        ));
+        // The waveform starts (the loop restarts the period): errors 2^12 times larger.
+        host.0.restart();
+        let moving = periods(&mut host, &mut task, 1 << 22, 2);
+        assert!(matches!(moving, Service::Took(_)), "{moving:?}");
+        assert_eq!(host.0.state(), LearnState::Learning);
+        assert_eq!(task.guard_stops(), 0);
+        // A motion that changes within the running source still trips it.
+        let changed = periods(&mut host, &mut task, 1 << 26, 1);
+        assert!(matches!(changed, Service::Stopped(_)), "{changed:?}");
+        assert_eq!(host.0.state(), LearnState::Off);
     }
 
     #[test]
