@@ -157,19 +157,8 @@ pub fn run(port: &PortArgs, options: &LearnOptions, amplitude: f64) -> Result<Li
     learn(&mut client, LearnRequest::State(LearnState::Frozen))?;
     let replay = collect(&mut client, 8, period_s, amplitude)?.split_off(3);
     let s = learn_status(&mut client)?;
-    // Read the table back (the host's copy: recall it with WriteTable + PostTable).
-    let mut table = Vec::new();
-    while table.len() < period as usize {
-        match learn(
-            &mut client,
-            LearnRequest::ReadTable {
-                offset: table.len() as u32,
-            },
-        )? {
-            Response::RecordChunk { values, .. } if !values.is_empty() => table.extend(values),
-            other => bail!("unexpected answer to Learn(ReadTable): {other:?}"),
-        }
-    }
+    // Read the table back (the host's copy: played again by `learning::write_table`).
+    let table = twinstack_link::learning::read_table(&mut client)?;
     client.stream(StreamControl::Stop)?;
     let mut report = LinkReport {
         waveform: options.motion.label(),

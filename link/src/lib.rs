@@ -14,8 +14,9 @@
 //!   go-back-N after a refusal;
 //! * [`server`] — [`server::serve`]: one board link shared by several TCP clients, one
 //!   owner of the stream and settings at a time;
-//! * [`capture`], [`telemetry`], [`sequence_run`], [`scan_timing`] — a capture's read-back,
-//!   the telemetry stream, triggered sequences, a scan's line timing;
+//! * [`capture`], [`telemetry`], [`sequence_run`], [`scan_timing`], [`learning`] — a
+//!   capture's read-back, the telemetry stream, triggered sequences, a scan run and its line
+//!   timing, the learning's table kept and played again;
 //! * [`board_requests`] — what the board commands and the Python package share: the settings a
 //!   load sends and its checks, waveform and capture requests, the status as JSON;
 //! * [`setpoint_file`], [`measured_data`], [`csv_table`] — the setpoint and measured-data CSVs;
@@ -26,6 +27,7 @@ pub mod board_requests;
 pub mod capture;
 pub mod client;
 pub mod csv_table;
+pub mod learning;
 pub mod measured_data;
 pub mod output_file;
 pub mod scan_timing;

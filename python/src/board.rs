@@ -3,7 +3,9 @@
 //! `settings_schema`.
 
 use crate::convert::{array, json_to_py, vector, wire_values};
-use crate::errors::{board_error, link_error, param_file_error, path_error, port_error, run_error};
+use crate::errors::{
+    board_error, link_error, param_file_error, path_error, port_error, run_error, table_error,
+};
 use crate::params::Params;
 use hal_sim::port::{open_send, PortError, PortSpec, DEFAULT_BAUD};
 use hal_sim::sim_camera::CameraConfig;
@@ -19,9 +21,12 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Mutex;
 use std::time::{Duration, Instant};
 use twinstack::config::settings::Mode;
+use twinstack::fixed_point::{signal_from_f64, signal_to_f64};
+use twinstack::protocol::messages::LearnState;
 use twinstack::protocol::messages::{
     Request, SequenceConfig, StreamControl, Trigger, TriggerEdge, UnderrunPolicy, WaveShape,
 };
+use twinstack::services::learning::LearnSettings;
 use twinstack::services::recorder::Channel;
 use twinstack::sources::analog_input::{AnalogInputConfig, AnalogRequest, OnFault};
 use twinstack::sources::scan::{ScanRequest, FRAME, LINE, PIXEL};
@@ -30,6 +35,7 @@ use twinstack_identify::preview::ResonancePreview;
 use twinstack_link::board_requests::{self, LoadRefused};
 use twinstack_link::capture::{self, CaptureError};
 use twinstack_link::client::{Client, LinkError};
+use twinstack_link::learning;
 use twinstack_link::scan_timing::{parse_pattern, run_scan, ScanRunError};
 use twinstack_link::sequence_run::{run_sequence, SequenceError, SequenceOptions};
 use twinstack_link::setpoint_file::divider_for_rate;
@@ -845,6 +851,119 @@ impl Board {
         d.set_item("figures", json_to_py(py, &figures)?)?;
         d.set_item("truncated", run.truncated())?;
         Ok(d)
+    }
+
+    /// Starts the board's learning feedforward (the book's chapter "Learning") for a periodic motion
+    /// of `period_ticks` ticks (2 … 512; a whole number of the motion's cycles: 200 for a
+    /// 750 Hz sine at 50 kHz): it learns, period by period, the correction that takes the
+    /// error its sensor sees out of the motion, and plays it on the feedforward. `gain`
+    /// (0 < L ≤ 1.5), `cutoff_hz` (the robustness filter's corner, below half the tick rate),
+    /// `lead_ticks` (0 … 64, below the period), `limit` (the largest correction, a fraction of
+    /// the drive range); `reset` empties the table first (else learning goes on from the table
+    /// in force). Settings checked here first: a refusal raises `ValueError` naming the
+    /// `learning.*` field, nothing sent; a board without a sensor refuses to learn
+    /// (`BoardError`).
+    #[pyo3(signature = (period_ticks, gain=0.3, cutoff_hz=3000.0, lead_ticks=1, limit=0.25, reset=true))]
+    #[allow(clippy::too_many_arguments)]
+    fn learn(
+        &self,
+        py: Python<'_>,
+        period_ticks: u16,
+        gain: f64,
+        cutoff_hz: f64,
+        lead_ticks: u16,
+        limit: f64,
+        reset: bool,
+    ) -> PyResult<()> {
+        let settings = LearnSettings {
+            period_ticks,
+            gain,
+            cutoff_hz,
+            lead_ticks,
+            limit,
+        };
+        let tick_rate = self.with(py, |c| c.status())?.tick_rate_hz as f64;
+        settings
+            .build(tick_rate)
+            .map_err(|r| PyValueError::new_err(format!("refused: {r}; nothing was sent")))?;
+        self.with(py, |c| {
+            learning::configure(c, settings)?;
+            if reset {
+                learning::reset(c)?;
+            }
+            learning::set_state(c, LearnState::Learning)
+        })
+    }
+
+    /// Switches the learning: `"learning"` (its sensor's error updates the table each
+    /// period), `"frozen"` (the table plays as it is; no sensor needed) or `"off"` (nothing
+    /// plays; the table is kept).
+    fn learn_state(&self, py: Python<'_>, state: &str) -> PyResult<()> {
+        let state = match state {
+            "learning" => LearnState::Learning,
+            "frozen" => LearnState::Frozen,
+            "off" => LearnState::Off,
+            other => {
+                return Err(PyValueError::new_err(format!(
+                    "state {other:?}: expected \"learning\", \"frozen\" or \"off\""
+                )))
+            }
+        };
+        self.with(py, |c| learning::set_state(c, state))
+    }
+
+    /// The learning's state: `state`, `period_ticks`, `periods` (completed since it was
+    /// configured), `updates` (tables posted), `missed` (periods its task could not serve),
+    /// and the last period's error as its sensor saw it, `error_max` and `error_rms`, in the
+    /// output unit of the settings in force.
+    fn learn_status<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyDict>> {
+        let (s, settings) = self.with(py, |c| Ok((learning::status(c)?, c.read_params()?)))?;
+        let half = settings.ranges.output_half_span();
+        let d = PyDict::new(py);
+        let state = match s.state {
+            LearnState::Off => "off",
+            LearnState::Learning => "learning",
+            LearnState::Frozen => "frozen",
+        };
+        d.set_item("state", state)?;
+        d.set_item("period_ticks", s.period_ticks)?;
+        d.set_item("periods", s.periods)?;
+        d.set_item("updates", s.updates)?;
+        d.set_item("missed", s.missed)?;
+        d.set_item("error_max", signal_to_f64(s.last.max) * half)?;
+        d.set_item("error_rms", signal_to_f64(s.last.rms) * half)?;
+        Ok(d)
+    }
+
+    /// The learned table playing now: one correction a tick of the period, normalised drive
+    /// (±1 is the drive range's half span), to keep with the motion it was learned on and
+    /// play again with `learn_load_table`.
+    fn learn_table<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArray1<f64>>> {
+        let table = self.with_py(py, |c| {
+            learning::read_table(c).map_err(|e| Python::attach(|py| table_error(py, e)))
+        })?;
+        Ok(array(py, table.into_iter().map(signal_to_f64).collect()))
+    }
+
+    /// Plays `table` (as `learn_table` returns it: one normalised correction a tick of the
+    /// configured period) from the next period boundary, in the learning's state (frozen: as
+    /// it is; learning: as the start of further learning); the board limits each value to the
+    /// configured limit. A table of another length, or a value that is not finite or beyond
+    /// ±2, raises `ValueError` naming its position, nothing sent.
+    fn learn_load_table(&self, py: Python<'_>, table: &Bound<'_, PyAny>) -> PyResult<()> {
+        let values = vector(py, table, "table")?;
+        let mut q = Vec::with_capacity(values.len());
+        for (i, v) in values.iter().enumerate() {
+            if !(v.is_finite() && v.abs() < 2.0) {
+                return Err(PyValueError::new_err(format!(
+                    "table[{i}] = {v}: a correction is a finite normalised drive within ±2"
+                )));
+            }
+            q.push(signal_from_f64(*v));
+        }
+        self.with_py(py, |c| {
+            learning::write_table(c, &q).map_err(|e| Python::attach(|py| table_error(py, e)))
+        })
     }
 
     /// Calibrates the stage behind the board in one call (`twinstack calibrate`): excites it

@@ -12,6 +12,7 @@ use twinstack::protocol::messages::NackReason;
 use twinstack::refusal::Rule;
 use twinstack_identify::param_file::ParamFileError;
 use twinstack_link::client::{nack_text, LinkError};
+use twinstack_link::learning::TableError;
 use twinstack_link::settings_path;
 use twinstack_link::telemetry::RunError;
 
@@ -133,5 +134,16 @@ pub(crate) fn run_error(py: Python<'_>, e: RunError) -> PyErr {
         ),
         RunError::Stalled { .. } => PyTimeoutError::new_err(e.to_string()),
         RunError::Frame(_) | RunError::Convert(_) => PyRuntimeError::new_err(e.to_string()),
+    }
+}
+
+/// A learning table's error: the link's as [`link_error`]; a table the board has no period
+/// for, or of the wrong length, `ValueError`.
+pub(crate) fn table_error(py: Python<'_>, e: TableError) -> PyErr {
+    match e {
+        TableError::Link(l) => link_error(py, l),
+        TableError::NotConfigured | TableError::Length { .. } => {
+            PyValueError::new_err(e.to_string())
+        }
     }
 }

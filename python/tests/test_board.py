@@ -288,6 +288,55 @@ def test_a_scan_the_board_would_refuse_is_refused_before_sending(board):
         board.scan("raster:lines=4,pixels=8", timeout=-1.0)
 
 
+def test_the_learning_takes_the_error_out_of_a_periodic_motion_and_its_table_plays_again(board):
+    # A 750 Hz sine in open loop: 3 cycles in a 200-tick period at 50 kHz. The learning is
+    # configured first: the waveform's start restarts its period, so the table is aligned
+    # with the motion's start, and plays again on the same motion started again.
+    board.mode("open-loop")
+    try:
+        board.learn(200)
+        board.waveform(amplitude=0.5, frequency=750.0)
+        board.record("sensor", samples=20_000)  # 100 periods
+        learned = board.learn_status()
+        assert learned["state"] == "learning" and learned["period_ticks"] == 200
+        assert learned["periods"] >= 100 and learned["missed"] == 0
+        table = board.learn_table()
+        assert table.shape == (200,) and np.abs(table).max() > 0.0
+        board.stop()
+        # The same motion started again: the feedforward alone (the table emptied, frozen),
+        # then the kept table loaded while it runs.
+        board.learn(200, reset=True)
+        board.learn_state("frozen")
+        board.waveform(amplitude=0.5, frequency=750.0)
+        board.record("sensor", samples=2000)
+        empty = board.learn_status()
+        board.learn_load_table(table)
+        board.record("sensor", samples=2000)
+        loaded = board.learn_status()
+        assert np.array_equal(board.learn_table(), table)
+    finally:
+        board.learn_state("off")
+        board.stop()
+    assert empty["state"] == loaded["state"] == "frozen"
+    assert learned["error_rms"] < empty["error_rms"] / 3
+    assert loaded["error_rms"] == pytest.approx(learned["error_rms"], rel=0.5)
+
+
+def test_learning_settings_and_tables_are_refused_before_sending(board):
+    with pytest.raises(ValueError, match="learning.period"):
+        board.learn(1)
+    with pytest.raises(ValueError, match="learning.cutoff_hz must be below 25000"):
+        board.learn(200, cutoff_hz=30_000.0)
+    with pytest.raises(ValueError, match="expected \"learning\""):
+        board.learn_state("maybe")
+    board.learn(200)
+    board.learn_state("off")
+    with pytest.raises(ValueError, match="a table of 3 values for a period of 200 ticks"):
+        board.learn_load_table([0.0, 0.1, 0.2])
+    with pytest.raises(ValueError, match="table\\[3\\]"):
+        board.learn_load_table([0.0, 0.0, 0.0, float("nan")] + [0.0] * 196)
+
+
 def test_a_capture_beyond_the_buffer_is_refused_with_its_limit(board):
     with pytest.raises(twinstack.BoardError) as e:
         board.record(

@@ -363,6 +363,31 @@ class Board:
         (negative before it), the stacks ``"left"``/``"right"`` in volts, the displacements
         (setpoint, sensor, estimate, error) in the output unit of the settings in force. A
         request beyond the board's buffer raises :class:`BoardError` with its ``limit``."""
+    def learn(
+        self,
+        period_ticks: int,
+        gain: float = 0.3,
+        cutoff_hz: float = 3000.0,
+        lead_ticks: int = 1,
+        limit: float = 0.25,
+        reset: bool = True,
+    ) -> None:
+        """Starts the board's learning feedforward for a periodic motion of ``period_ticks``
+        ticks (2 … 512, a whole number of the motion's cycles): it learns, period by period,
+        the correction that takes its sensor's error out of the motion. ``reset`` empties the
+        table first. Settings checked first (``ValueError`` naming the ``learning.*`` field,
+        nothing sent)."""
+    def learn_state(self, state: str) -> None:
+        """``"learning"``, ``"frozen"`` (the table plays as it is) or ``"off"``."""
+    def learn_status(self) -> Dict[str, Any]:
+        """``state``, ``period_ticks``, ``periods``, ``updates``, ``missed`` and the last
+        period's ``error_max`` / ``error_rms`` in the output unit."""
+    def learn_table(self) -> np.ndarray:
+        """The table playing now: one normalised correction a tick of the period."""
+    def learn_load_table(self, table: _ArrayLike) -> None:
+        """Plays ``table`` (as :meth:`learn_table` returns it) from the next period boundary,
+        in the learning's state; another length or a value not finite within ±2 raises
+        ``ValueError``, nothing sent."""
     def scan(
         self,
         pattern: str,

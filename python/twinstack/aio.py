@@ -160,6 +160,36 @@ class AsyncBoard:
         """Waits for the armed capture and reads it back, as :meth:`twinstack.Board.fetch`."""
         return await self._call(self._board.fetch, timeout)
 
+    async def learn(
+        self,
+        period_ticks: int,
+        gain: float = 0.3,
+        cutoff_hz: float = 3000.0,
+        lead_ticks: int = 1,
+        limit: float = 0.25,
+        reset: bool = True,
+    ) -> None:
+        """Starts the learning feedforward, as :meth:`twinstack.Board.learn`."""
+        await self._call(
+            self._board.learn, period_ticks, gain, cutoff_hz, lead_ticks, limit, reset
+        )
+
+    async def learn_state(self, state: str) -> None:
+        """Switches the learning, as :meth:`twinstack.Board.learn_state`."""
+        await self._call(self._board.learn_state, state)
+
+    async def learn_status(self) -> Dict[str, Any]:
+        """The learning's state, as :meth:`twinstack.Board.learn_status`."""
+        return await self._call(self._board.learn_status)
+
+    async def learn_table(self) -> np.ndarray:
+        """The learned table, as :meth:`twinstack.Board.learn_table`."""
+        return await self._call(self._board.learn_table)
+
+    async def learn_load_table(self, table: Any) -> None:
+        """Plays a kept table again, as :meth:`twinstack.Board.learn_load_table`."""
+        await self._call(self._board.learn_load_table, table)
+
     async def scan(
         self,
         pattern: str,
