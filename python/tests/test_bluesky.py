@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 import twinstack
-from twinstack.bluesky import Axis, Flyer, SettleTimeout, Status
+from twinstack.bluesky import Axis, Flyer, ScanFlyer, SettleTimeout, Status
 
 bluesky = pytest.importorskip("bluesky")
 from bluesky import RunEngine  # noqa: E402
@@ -114,6 +114,29 @@ def test_a_fly_scan_of_a_32_line_raster(board, RE):
     # One event every 20 setpoints at 5 kHz: timestamps 4 ms apart on the board's clock.
     assert np.allclose(np.diff(times), 0.004, atol=1e-6)
     assert fly.report["accepted"] == 32 * 32 * 20 and not fly.report["underran"]
+
+
+def test_a_fly_scan_of_the_board_s_own_raster_gives_one_event_per_pixel_clock(board, RE):
+    fly = ScanFlyer(board, "raster:lines=6,pixels=50,turn=40,amplitude=0.6", ticks_per_pixel=4)
+    check_supports(fly, Flyable)
+    RE(bp.fly([fly]))
+    evs = events(RE.docs, "scan")
+    assert len(evs) == 6 * 50
+    assert [e["data"]["scan_frame"] for e in evs] == [0] * 300
+    assert [e["data"]["scan_line"] for e in evs] == [k for k in range(6) for _ in range(50)]
+    pixels = [e["data"]["scan_pixel"] for e in evs]
+    assert pixels[:50] == list(range(50)) and pixels[50:100] == list(range(49, -1, -1))
+    # A pixel's position is its place along the line, whichever way the line runs.
+    x = np.array([e["data"]["scan_setpoint"] for e in evs]).reshape(6, 50)
+    by_place = np.array([row if k % 2 == 0 else row[::-1] for k, row in enumerate(x)])
+    assert np.all(np.diff(by_place[0]) > 0)
+    assert np.abs(by_place - by_place[0]).max() < 2.0 * 0.6 * 45 / 50
+    # One pixel every 4 ticks at 50 kHz on the board's clock, within a line.
+    times = np.array([e["timestamps"]["scan_setpoint"] for e in evs])
+    assert np.allclose(np.diff(times.reshape(6, 50), axis=1), 8e-5, atol=1e-6)
+    assert fly.figures["line"]["jitter_ticks"] == 0
+    with pytest.raises(ValueError, match="frames 0"):
+        ScanFlyer(board, "raster:lines=2,pixels=4", frames=0)
 
 
 def test_a_fly_scan_shaped_for_the_resonance_calibrate_measured(board, stage_params, RE):

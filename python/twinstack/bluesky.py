@@ -11,6 +11,11 @@ duck-typed protocols, so a :class:`bluesky.RunEngine` runs them with no EPICS an
   raster of lines and pixels), ``complete()`` finishes when it has played and the recording
   is read back, ``collect()`` yields one event per recorded sample (per pixel of a raster):
   setpoint, sensor, error, line and pixel, each timestamped from the board's own clock.
+* :class:`ScanFlyer` -- the same protocols over a scan the board generates itself
+  (:meth:`twinstack.Board.scan`: a raster, a Lissajous or a spiral, with its pixel, line and
+  frame trigger outputs for a detector to follow): one event per pixel clock, with the
+  position the board commanded at it, its frame, line and pixel, timestamped from the board's
+  clock.
 
 Nothing here imports bluesky: the devices only follow its protocols
 (``bluesky.protocols``), as ophyd's do. The board calls block, so each device runs them in a
@@ -35,7 +40,7 @@ import numpy as np
 
 from ._native import Board
 
-__all__ = ["Axis", "Flyer", "Status", "SettleTimeout"]
+__all__ = ["Axis", "Flyer", "ScanFlyer", "Status", "SettleTimeout"]
 
 
 class SettleTimeout(TimeoutError):
@@ -474,3 +479,156 @@ class Flyer:
 
     def __repr__(self) -> str:
         return f"Flyer({self._board!r}, name={self.name!r}, events={self.events})"
+
+
+class ScanFlyer:
+    """A scan generated on the board as a bluesky ``Flyable``: `pattern` as
+    :meth:`twinstack.Board.scan` takes it (``"raster:lines=32,pixels=64,turn=40"``,
+    ``"lissajous:hz=20,x=3,y=2"``, ``"spiral:hz=200,turns=10"``), `ticks_per_pixel`, `frames`
+    and the trigger outputs' `pulse` width. The board plays the pattern from its own clock and
+    marks each pixel, line and frame on its trigger outputs, so a detector clocked by them
+    needs no host timing; the flyer's events give each pixel's position as the board commanded
+    it, one event per pixel clock, with its frame, line and pixel numbers (a raster's pixel
+    number is its place along the line, as :meth:`Flyer.raster`'s: its odd lines run back)."""
+
+    def __init__(
+        self,
+        board: Board,
+        pattern: str,
+        ticks_per_pixel: int = 4,
+        frames: int = 1,
+        pulse: int = 2,
+        name: str = "scan",
+        units: str = "um",
+        parent: Any = None,
+        timeout: float = 60.0,
+    ) -> None:
+        if frames < 1:
+            raise ValueError(f"frames {frames}: a fly scan plays a whole number of frames, at least 1")
+        self._board = board
+        self.pattern = pattern
+        self.ticks_per_pixel = int(ticks_per_pixel)
+        self.frames = int(frames)
+        self.pulse = int(pulse)
+        self.name = name
+        self.units = units
+        self.parent = parent
+        self.timeout = float(timeout)
+        self._events: Optional[Dict[str, np.ndarray]] = None
+        self._figures: Optional[Dict[str, Any]] = None
+        self._t0 = 0.0
+        self._played: Optional[Status] = None
+
+    def kickoff(self) -> Status:
+        """Starts the scan on the board: done once it is asked for (the board checks it first;
+        a pattern it refuses fails the status with the refusal)."""
+        self._events = None
+        started = Status(f"{self.name} kickoff")
+        played = Status(f"{self.name} complete")
+        self._played = played
+
+        def fly() -> None:
+            self._t0 = time.time()
+            started._finish()
+            run = self._board.scan(
+                self.pattern, self.ticks_per_pixel, self.frames, self.pulse, self.timeout
+            )
+            if run["truncated"]:
+                raise RuntimeError(
+                    f"{self.name}: the board's capture ended before the scan did (its buffer holds "
+                    f"{run['t'].size} ticks): fewer frames or pixels"
+                )
+            self._figures = run["figures"]
+            self._events = _pixel_events(run, self.pattern.strip().startswith("raster"))
+
+        _run(played, fly)
+        return started
+
+    def complete(self) -> Status:
+        """Done once the scan has played and its capture is read back."""
+        if self._played is None:
+            raise RuntimeError(f"{self.name}: complete() before kickoff()")
+        return self._played
+
+    def stop(self, success: bool = True) -> None:
+        """Stops the scan (the output holds)."""
+        self._board.stop()
+
+    @property
+    def figures(self) -> Optional[Dict[str, Any]]:
+        """The scan's timing figures against the library's replay, once it has played."""
+        return self._figures
+
+    def describe_collect(self) -> Dict[str, Dict[str, Dict[str, Any]]]:
+        """One stream named after the flyer: the commanded position, frame, line, pixel."""
+        src = f"twinstack:{self._board.port}"
+        integer = lambda what: {"source": f"{src}:{what}", "dtype": "integer", "shape": []}
+        return {
+            self.name: {
+                f"{self.name}_setpoint": _key(f"{src}:setpoint", self.units),
+                f"{self.name}_frame": integer("frame"),
+                f"{self.name}_line": integer("line"),
+                f"{self.name}_pixel": integer("pixel"),
+            }
+        }
+
+    def collect(self) -> Iterator[Dict[str, Any]]:
+        """One event per pixel clock, timestamped with the kickoff's time plus the board's
+        own time from the scan's start."""
+        if self._events is None:
+            raise RuntimeError(f"{self.name}: collect() before complete() finished")
+        e = self._events
+        for i in range(e["t"].size):
+            ts = self._t0 + float(e["t"][i])
+            data: Dict[str, Any] = {
+                f"{self.name}_setpoint": float(e["setpoint"][i]),
+                f"{self.name}_frame": int(e["frame"][i]),
+                f"{self.name}_line": int(e["line"][i]),
+                f"{self.name}_pixel": int(e["pixel"][i]),
+            }
+            yield {"data": data, "timestamps": {k: ts for k in data}, "time": ts}
+
+    @property
+    def hints(self) -> Dict[str, List[str]]:
+        """The field a plot shows: the commanded position."""
+        return {"fields": [f"{self.name}_setpoint"]}
+
+    def __repr__(self) -> str:
+        return f"ScanFlyer({self._board!r}, {self.pattern!r}, name={self.name!r})"
+
+
+def _rising(levels: np.ndarray) -> np.ndarray:
+    """The ticks where a clock's level rises (a high first tick counts as one)."""
+    levels = np.asarray(levels, dtype=bool)
+    return np.flatnonzero(levels & ~np.concatenate(([False], levels[:-1])))
+
+
+def _pixel_events(run: Dict[str, Any], serpentine: bool) -> Dict[str, np.ndarray]:
+    """One entry per pixel clock of a :meth:`twinstack.Board.scan` run: its time and commanded
+    position, and its frame, line and pixel numbers, counted from the frame and line clocks
+    (each line's clock comes before its pixels; the board starts the clocks with the pattern,
+    so the approach has none). `serpentine` (a raster): a pixel's number is its place along
+    the line, back on odd lines; else its place in time within its line."""
+    pixels = _rising(run["pixel"])
+    lines = _rising(run["line"])
+    frames = _rising(run["frame"])
+    # A clock's number at each pixel: the edges at or before it, less one.
+    frame = np.searchsorted(frames, pixels, side="right") - 1
+    line_total = np.searchsorted(lines, pixels, side="right") - 1
+    lines_before_frame = np.searchsorted(lines, frames, side="left")
+    line = line_total - lines_before_frame[np.maximum(frame, 0)]
+    first_of_line = np.searchsorted(pixels, lines, side="left")
+    pixel = np.arange(pixels.size) - first_of_line[np.maximum(line_total, 0)]
+    keep = (frame >= 0) & (line_total >= 0)
+    if serpentine:
+        # The raster's odd lines run back: a pixel's number is its place along the line.
+        per_line = np.bincount(line_total[keep], minlength=lines.size)
+        odd = keep & (line % 2 == 1)
+        pixel[odd] = per_line[line_total[odd]] - 1 - pixel[odd]
+    return {
+        "t": run["t"][pixels][keep],
+        "setpoint": run["setpoint"][pixels][keep],
+        "frame": frame[keep],
+        "line": line[keep],
+        "pixel": pixel[keep],
+    }
