@@ -324,6 +324,77 @@ pub fn analog_status_json(s: &twinstack::sources::analog_input::AnalogStatus) ->
     })
 }
 
+/// The coarse axis's status as one JSON object: `state` (`unhomed`, `homing`, `idle`,
+/// `moving`, `jogging`, `stopping`, `fault`), `homed`, `position_mm`, `setpoint_mm`,
+/// `following_error_um`, `faults` and `switches` (lists of names), `fine_setpoint` (the
+/// piezo's, normalised) and `ticks` (coarse periods run).
+pub fn coarse_status_json(s: &twinstack::dual_stage::CoarseStatus) -> serde_json::Value {
+    use twinstack::dual_stage::CoarseStatus;
+    serde_json::json!({
+        "state": s.state.name(),
+        "homed": s.homed,
+        "position_mm": s.position_pm as f64 / 1e9,
+        "setpoint_mm": s.setpoint_pm as f64 / 1e9,
+        "following_error_um": s.following_error_pm as f64 / 1e6,
+        "faults": CoarseStatus::fault_names(s.faults).collect::<Vec<_>>(),
+        "switches": CoarseStatus::switch_names(s.switches).collect::<Vec<_>>(),
+        "fine_setpoint": s.fine_setpoint as f64 / twinstack::fixed_point::SIGNAL_ONE as f64,
+        "ticks": s.ticks,
+    })
+}
+
+/// Why the coarse axis did not come to rest.
+#[derive(Debug, thiserror::Error)]
+pub enum CoarseWaitError {
+    /// The link.
+    #[error(transparent)]
+    Link(#[from] crate::client::LinkError),
+    /// Still homing, moving, jogging or stopping when the time allowed ran out.
+    #[error("the coarse axis is still {state} after {limit:?}")]
+    Busy {
+        /// Its state's name.
+        state: &'static str,
+        /// The time allowed.
+        limit: std::time::Duration,
+    },
+}
+
+/// Polls the coarse axis's status until it is no longer homing, moving, jogging or stopping
+/// (at most `limit`, in the link's time: simulated on the in-process board), and returns it.
+pub fn wait_until_coarse_settled<T: crate::Transport>(
+    client: &mut crate::client::Client<T>,
+    limit: std::time::Duration,
+) -> Result<twinstack::dual_stage::CoarseStatus, CoarseWaitError> {
+    use std::time::{Duration, Instant};
+    use twinstack::dual_stage::CoarseState;
+    let start = Instant::now();
+    // The coarse task takes an acknowledged command at its next period (200 µs): the status
+    // shows it from then on.
+    client.wait(Duration::from_millis(2))?;
+    let mut waited = Duration::ZERO;
+    loop {
+        let s = client.coarse_status()?;
+        if !matches!(
+            s.state,
+            CoarseState::Homing
+                | CoarseState::Moving
+                | CoarseState::Jogging
+                | CoarseState::Stopping
+        ) {
+            return Ok(s);
+        }
+        if waited > limit || start.elapsed() > limit {
+            return Err(CoarseWaitError::Busy {
+                state: s.state.name(),
+                limit,
+            });
+        }
+        let step = Duration::from_millis(20);
+        client.wait(step)?;
+        waited += step;
+    }
+}
+
 /// A mode's name on the command line and in JSON: `bypass`, `open-loop`, `closed-loop`.
 pub fn mode_name(mode: Mode) -> &'static str {
     match mode {

@@ -21,8 +21,9 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Mutex;
 use std::time::{Duration, Instant};
 use twinstack::config::settings::Mode;
+use twinstack::dual_stage::{CoarseState, CoarseStatus};
 use twinstack::fixed_point::{signal_from_f64, signal_to_f64};
-use twinstack::protocol::messages::LearnState;
+use twinstack::protocol::messages::{CoarseMove, LearnState};
 use twinstack::protocol::messages::{
     Request, SequenceConfig, StreamControl, Trigger, TriggerEdge, UnderrunPolicy, WaveShape,
 };
@@ -167,6 +168,43 @@ impl Board {
             None => samples,
         };
         Ok((samples, divider, tick_rate))
+    }
+
+    /// Sends a coarse command and, with `wait`, waits for the axis to come to rest: its
+    /// status, a fault it ended in raised as `RuntimeError`.
+    fn coarse_command<'py>(
+        &self,
+        py: Python<'py>,
+        request: &Request,
+        wait: bool,
+        timeout: f64,
+    ) -> PyResult<Bound<'py, PyAny>> {
+        let limit = seconds(timeout, "timeout")?;
+        let status = self.with_py(py, |c| {
+            let err = |e: LinkError| Python::attach(|py| link_error(py, e));
+            c.coarse(request).map_err(err)?;
+            if !wait {
+                return c.coarse_status().map_err(err);
+            }
+            board_requests::wait_until_coarse_settled(c, limit).map_err(|e| match e {
+                board_requests::CoarseWaitError::Link(l) => err(l),
+                e @ board_requests::CoarseWaitError::Busy { .. } => {
+                    PyTimeoutError::new_err(e.to_string())
+                }
+            })
+        })?;
+        if wait && (status.faults != 0 || status.state == CoarseState::Fault) {
+            let faults: Vec<&str> = CoarseStatus::fault_names(status.faults).collect();
+            return Err(PyRuntimeError::new_err(format!(
+                "the coarse axis ended in a fault: {} (home it again to clear it)",
+                if faults.is_empty() {
+                    "-".to_string()
+                } else {
+                    faults.join(", ")
+                }
+            )));
+        }
+        json_to_py(py, &board_requests::coarse_status_json(&status))
     }
 
     fn fetch_dict<'py>(&self, py: Python<'py>, timeout: f64) -> PyResult<Bound<'py, PyDict>> {
@@ -964,6 +1002,68 @@ impl Board {
         self.with_py(py, |c| {
             learning::write_table(c, &q).map_err(|e| Python::attach(|py| table_error(py, e)))
         })
+    }
+
+    /// Homes the dual-actuated stage's coarse axis (a board with one: the dual-stage images,
+    /// `twinstack virtual-board --dual-stage`): it seeks its home switch and sets its travel
+    /// around it, clearing a latched fault. With `wait`, returns the status once the homing
+    /// has ended (at most `timeout` seconds, else `TimeoutError`), and raises `RuntimeError`
+    /// naming the faults if it did not home; without, returns the status at once.
+    #[pyo3(signature = (wait=true, timeout=120.0))]
+    fn coarse_home<'py>(
+        &self,
+        py: Python<'py>,
+        wait: bool,
+        timeout: f64,
+    ) -> PyResult<Bound<'py, PyAny>> {
+        self.coarse_command(py, &Request::CoarseHome, wait, timeout)
+    }
+
+    /// Moves the coarse axis to `to_mm` (from the home reference; a homed axis, the target
+    /// within the travel) at `speed` mm/s and `accel` mm/s² (at most the stage's). The board
+    /// refuses what it cannot do (`BoardError` naming the field and the limit). With `wait`,
+    /// returns the status once the move has ended (`RuntimeError` naming the faults if it
+    /// ended in one).
+    #[pyo3(signature = (to_mm, speed=10.0, accel=200.0, wait=true, timeout=120.0))]
+    fn coarse_move<'py>(
+        &self,
+        py: Python<'py>,
+        to_mm: f64,
+        speed: f64,
+        accel: f64,
+        wait: bool,
+        timeout: f64,
+    ) -> PyResult<Bound<'py, PyAny>> {
+        let request = Request::CoarseMove(CoarseMove {
+            target_mm: to_mm,
+            velocity_mm_s: speed,
+            acceleration_mm_s2: accel,
+        });
+        self.coarse_command(py, &request, wait, timeout)
+    }
+
+    /// Jogs the coarse axis at `speed` mm/s (positive toward the upper limit) until
+    /// `coarse_stop`, or the soft travel limit.
+    fn coarse_jog(&self, py: Python<'_>, speed: f64) -> PyResult<()> {
+        self.with(py, |c| {
+            c.coarse(&Request::CoarseJog {
+                velocity_mm_s: speed,
+            })
+        })
+    }
+
+    /// Stops the coarse axis: it brakes at the move's acceleration, no step lost, still homed.
+    fn coarse_stop(&self, py: Python<'_>) -> PyResult<()> {
+        self.with(py, |c| c.coarse(&Request::CoarseStop))
+    }
+
+    /// The coarse axis's status: `state` (`unhomed`, `homing`, `idle`, `moving`, `jogging`,
+    /// `stopping`, `fault`), `homed`, `position_mm`, `setpoint_mm`, `following_error_um`,
+    /// `faults` and `switches` (lists of names), `fine_setpoint` (the piezo's, normalised),
+    /// `ticks`. A board without a coarse axis raises `BoardError`.
+    fn coarse_status<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
+        let s = self.with(py, |c| c.coarse_status())?;
+        json_to_py(py, &board_requests::coarse_status_json(&s))
     }
 
     /// Calibrates the stage behind the board in one call (`twinstack calibrate`): excites it

@@ -41,11 +41,10 @@ def hal_sim() -> str:
     return path
 
 
-@pytest.fixture(scope="session")
-def virtual_board(hal_sim):
-    """A `twinstack virtual-board` process on a free TCP port, real-time paced: its port."""
+def _serve_virtual_board(hal_sim, *options):
+    """Starts `twinstack virtual-board` on a free TCP port: the process and its port."""
     proc = subprocess.Popen(
-        [hal_sim, "virtual-board", "--listen", "tcp:127.0.0.1:0"],
+        [hal_sim, "virtual-board", "--listen", "tcp:127.0.0.1:0", *options],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
@@ -56,8 +55,26 @@ def virtual_board(hal_sim):
     if proc.poll() is not None or "listening" not in words:
         proc.kill()
         raise RuntimeError(f"virtual board did not start: {line!r} {proc.stderr.read()!r}")
-    port = words[words.index("on") + 1]
+    return proc, words[words.index("on") + 1]
+
+
+@pytest.fixture(scope="session")
+def virtual_board(hal_sim):
+    """A `twinstack virtual-board` process on a free TCP port, real-time paced: its port."""
+    proc, port = _serve_virtual_board(hal_sim)
     yield port
+    proc.kill()
+    proc.wait()
+
+
+@pytest.fixture
+def dual_stage_board(hal_sim):
+    """A fresh dual-stage virtual board (`--dual-stage`: the piezo stage on a ball screw, its
+    coarse axis unhomed at power-up), connected."""
+    proc, port = _serve_virtual_board(hal_sim, "--dual-stage")
+    board = twinstack.Board(port)
+    yield board
+    board.close()
     proc.kill()
     proc.wait()
 

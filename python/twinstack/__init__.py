@@ -7,13 +7,15 @@ in-process simulated board, identification and parameter file as the ``twinstack
 * :class:`Board` -- a board on a serial port, ``tcp:HOST:PORT`` (a virtual board, QEMU) or
   ``"sim"`` (the simulated board in-process): status, load, params, mode, stream, waveform,
   record, telemetry, scan (the board's own patterns and clocks), sequence, analog, learn
-  (and the learned table kept and played again), store, recall.
+  (and the learned table kept and played again), the coarse axis of a dual-actuated stage,
+  store, recall.
 * :func:`identify` -- a hysteresis model from a measured record, as a :class:`Params`
   (predict, compensate, save); :func:`load_params` reads a parameter file back.
 * :class:`BoardError` -- a refusal, with the field, the reason and the limit the board named.
 * :class:`AsyncBoard` (:mod:`twinstack.aio`) -- the same board from asyncio: every call
   awaitable, none blocking the event loop; a stream leaves room for a status poll.
 * :mod:`twinstack.bluesky` -- an :class:`~twinstack.bluesky.Axis` (Movable, Readable), a
+  :class:`~twinstack.bluesky.CoarseAxis` (a dual-actuated stage's coarse axis), a
   :class:`~twinstack.bluesky.Flyer` (Flyable: a raster or any trajectory, streamed) and a
   :class:`~twinstack.bluesky.ScanFlyer` (Flyable: a pattern the board clocks itself) for
   bluesky's RunEngine.

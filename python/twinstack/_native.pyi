@@ -363,6 +363,26 @@ class Board:
         (negative before it), the stacks ``"left"``/``"right"`` in volts, the displacements
         (setpoint, sensor, estimate, error) in the output unit of the settings in force. A
         request beyond the board's buffer raises :class:`BoardError` with its ``limit``."""
+    def coarse_home(self, wait: bool = True, timeout: float = 120.0) -> Dict[str, Any]:
+        """Homes the dual-actuated stage's coarse axis; with ``wait``, its status once the
+        homing has ended (``RuntimeError`` naming the faults if it did not home)."""
+    def coarse_move(
+        self,
+        to_mm: float,
+        speed: float = 10.0,
+        accel: float = 200.0,
+        wait: bool = True,
+        timeout: float = 120.0,
+    ) -> Dict[str, Any]:
+        """Moves the coarse axis to ``to_mm`` (a homed axis); with ``wait``, its status once
+        the move has ended. The board's refusal raises :class:`BoardError`."""
+    def coarse_jog(self, speed: float) -> None:
+        """Jogs the coarse axis at ``speed`` mm/s until :meth:`coarse_stop`."""
+    def coarse_stop(self) -> None:
+        """Stops the coarse axis (it brakes; still homed)."""
+    def coarse_status(self) -> Dict[str, Any]:
+        """``state``, ``homed``, ``position_mm``, ``setpoint_mm``, ``following_error_um``,
+        ``faults``, ``switches``, ``fine_setpoint``, ``ticks``."""
     def learn(
         self,
         period_ticks: int,

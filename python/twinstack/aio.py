@@ -160,6 +160,33 @@ class AsyncBoard:
         """Waits for the armed capture and reads it back, as :meth:`twinstack.Board.fetch`."""
         return await self._call(self._board.fetch, timeout)
 
+    async def coarse_home(self, wait: bool = True, timeout: float = 120.0) -> Dict[str, Any]:
+        """Homes the coarse axis, as :meth:`twinstack.Board.coarse_home`."""
+        return await self._call(self._board.coarse_home, wait, timeout)
+
+    async def coarse_move(
+        self,
+        to_mm: float,
+        speed: float = 10.0,
+        accel: float = 200.0,
+        wait: bool = True,
+        timeout: float = 120.0,
+    ) -> Dict[str, Any]:
+        """Moves the coarse axis, as :meth:`twinstack.Board.coarse_move`."""
+        return await self._call(self._board.coarse_move, to_mm, speed, accel, wait, timeout)
+
+    async def coarse_jog(self, speed: float) -> None:
+        """Jogs the coarse axis, as :meth:`twinstack.Board.coarse_jog`."""
+        await self._call(self._board.coarse_jog, speed)
+
+    async def coarse_stop(self) -> None:
+        """Stops the coarse axis, as :meth:`twinstack.Board.coarse_stop`."""
+        await self._call(self._board.coarse_stop)
+
+    async def coarse_status(self) -> Dict[str, Any]:
+        """The coarse axis's status, as :meth:`twinstack.Board.coarse_status`."""
+        return await self._call(self._board.coarse_status)
+
     async def learn(
         self,
         period_ticks: int,

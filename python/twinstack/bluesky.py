@@ -6,6 +6,9 @@ duck-typed protocols, so a :class:`bluesky.RunEngine` runs them with no EPICS an
   :class:`Status` that completes when the sensor has stayed within ``window`` of it for
   ``settle_time``; ``read()`` gives the sensor reading (the axis' position), the setpoint and
   the error, averaged over a short recording, with timestamps.
+* :class:`CoarseAxis` -- the dual-actuated stage's coarse axis (millimetres of travel on a
+  ball screw) as a ``Movable`` and ``Readable``: ``set(mm)`` moves it and completes once it
+  has come to rest there; ``read()`` gives its position, setpoint and following error.
 * :class:`Flyer` -- ``Flyable`` and ``EventCollectable``: ``kickoff()`` arms the board's recorder
   on the stream's start and plays a trajectory (:meth:`Flyer.raster` builds a serpentine
   raster of lines and pixels), ``complete()`` finishes when it has played and the recording
@@ -40,7 +43,7 @@ import numpy as np
 
 from ._native import Board
 
-__all__ = ["Axis", "Flyer", "ScanFlyer", "Status", "SettleTimeout"]
+__all__ = ["Axis", "CoarseAxis", "Flyer", "ScanFlyer", "Status", "SettleTimeout"]
 
 
 class SettleTimeout(TimeoutError):
@@ -283,6 +286,109 @@ class Axis:
 
     def __repr__(self) -> str:
         return f"Axis({self._board!r}, name={self.name!r}, window={self.window})"
+
+
+class CoarseAxis:
+    """The dual-actuated stage's coarse axis (:meth:`twinstack.Board.coarse_move`) as a
+    bluesky ``Movable`` and ``Readable``, in millimetres from the home reference: ``set(mm)``
+    moves it at `speed` (mm/s) and `accel` (mm/s²) and completes once it has come to rest
+    (within `timeout` seconds); a move the board refuses (not homed, beyond the travel) or
+    one that ends in a fault fails the status with the reason. Home it first
+    (``board.coarse_home()``)."""
+
+    def __init__(
+        self,
+        board: Board,
+        name: str = "coarse",
+        speed: float = 10.0,
+        accel: float = 200.0,
+        timeout: float = 120.0,
+        parent: Any = None,
+    ) -> None:
+        if not (speed > 0.0 and accel > 0.0 and timeout > 0.0):
+            raise ValueError("speed, accel and timeout must be positive")
+        self._board = board
+        self.name = name
+        self.parent = parent
+        self.speed = float(speed)
+        self.accel = float(accel)
+        self.timeout = float(timeout)
+        self._lock = threading.Lock()
+        self._target: Optional[float] = None
+
+    def set(self, value: float) -> Status:
+        """Moves to `value` mm: a :class:`Status` done once the axis is at rest there."""
+        value = float(value)
+        if not np.isfinite(value):
+            raise ValueError(f"{self.name}: target {value} is not a number of millimetres")
+        self._target = value
+
+        def move() -> None:
+            with self._lock:
+                self._board.coarse_move(value, self.speed, self.accel, True, self.timeout)
+
+        return _run(Status(self.name), move)
+
+    def stop(self, success: bool = True) -> None:
+        """Brakes the axis to rest (no step lost; still homed)."""
+        self._board.coarse_stop()
+
+    @property
+    def position(self) -> Optional[float]:
+        """The last target set (``None`` before the first ``set``)."""
+        return self._target
+
+    def locate(self) -> Dict[str, float]:
+        """``{"setpoint": ..., "readback": ...}``: the axis' setpoint and position now."""
+        r = self.read()
+        return {"setpoint": r[f"{self.name}_setpoint"]["value"], "readback": r[self.name]["value"]}
+
+    def read(self) -> Dict[str, Dict[str, Any]]:
+        """Its position (the linear encoder's), setpoint (mm) and following error (µm)."""
+        with self._lock:
+            s = self._board.coarse_status()
+        now = time.time()
+        return {
+            self.name: {"value": float(s["position_mm"]), "timestamp": now},
+            f"{self.name}_setpoint": {"value": float(s["setpoint_mm"]), "timestamp": now},
+            f"{self.name}_following_error": {
+                "value": float(s["following_error_um"]),
+                "timestamp": now,
+            },
+        }
+
+    def describe(self) -> Dict[str, Dict[str, Any]]:
+        """What :meth:`read` gives."""
+        src = f"twinstack:{self._board.port}:coarse"
+        return {
+            self.name: _key(f"{src}:position", "mm", precision=6),
+            f"{self.name}_setpoint": _key(f"{src}:setpoint", "mm", precision=6),
+            f"{self.name}_following_error": _key(f"{src}:following_error", "um"),
+        }
+
+    def read_configuration(self) -> Dict[str, Dict[str, Any]]:
+        """The move's speed and acceleration."""
+        now = time.time()
+        return {
+            f"{self.name}_speed": {"value": self.speed, "timestamp": now},
+            f"{self.name}_accel": {"value": self.accel, "timestamp": now},
+        }
+
+    def describe_configuration(self) -> Dict[str, Dict[str, Any]]:
+        """What :meth:`read_configuration` gives."""
+        src = f"twinstack:{self._board.port}:coarse"
+        return {
+            f"{self.name}_speed": _key(f"{src}:speed", "mm/s"),
+            f"{self.name}_accel": _key(f"{src}:accel", "mm/s^2"),
+        }
+
+    @property
+    def hints(self) -> Dict[str, List[str]]:
+        """The field a plot shows: the position."""
+        return {"fields": [self.name]}
+
+    def __repr__(self) -> str:
+        return f"CoarseAxis({self._board!r}, name={self.name!r})"
 
 
 class Flyer:

@@ -9,12 +9,12 @@
 //! stage's, a move into an active limit switch) come back from the board with the field and
 //! the limit, and exit with 1.
 
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 use super::board_link::{connect, port_spec, BoardClient, PortArgs};
 use hal_sim::coarse_rig::{DualStageDevice, DualStageDeviceConfig};
 use hal_sim::port::PortSpec;
-use twinstack::dual_stage::{CoarseState, CoarseStatus};
+use twinstack::dual_stage::CoarseStatus;
 use twinstack::protocol::messages::{CoarseMove, Request};
 use twinstack_link::Client;
 
@@ -134,38 +134,15 @@ pub fn format_coarse_status(s: &CoarseStatus) -> String {
 }
 
 /// Polls the status until the axis is no longer homing, moving, jogging or stopping (at most
-/// `limit`, in the link's time: simulated on `sim`).
+/// `limit`, in the link's time: simulated on `sim`):
+/// [`twinstack_link::board_requests::wait_until_coarse_settled`].
 pub fn wait_until_settled(
     client: &mut BoardClient,
     limit: Duration,
 ) -> anyhow::Result<CoarseStatus> {
-    let start = Instant::now();
-    // The coarse task takes an acknowledged command at its next period (200 µs): the status
-    // shows it from then on.
-    client.wait(Duration::from_millis(2))?;
-    let mut waited = Duration::ZERO;
-    loop {
-        let s = client.coarse_status()?;
-        if !matches!(
-            s.state,
-            CoarseState::Homing
-                | CoarseState::Moving
-                | CoarseState::Jogging
-                | CoarseState::Stopping
-        ) {
-            return Ok(s);
-        }
-        if waited > limit || start.elapsed() > limit {
-            anyhow::bail!(
-                "the coarse axis is still {} after {:?}",
-                s.state.name(),
-                limit
-            );
-        }
-        let step = Duration::from_millis(20);
-        client.wait(step)?;
-        waited += step;
-    }
+    Ok(twinstack_link::board_requests::wait_until_coarse_settled(
+        client, limit,
+    )?)
 }
 
 /// Runs `coarse`.
