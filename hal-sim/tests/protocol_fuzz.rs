@@ -486,6 +486,21 @@ fn replay_on<D: AnalogDualDac, A: AnalogSensorAdc>(
     Ok(w)
 }
 
+/// The fuzzer's chunks as frame runs: each chunk's bytes and the ticks run after them (a long
+/// run now and then).
+fn frames_of(chunks: &[(Chunk, u32, bool)]) -> Vec<(Vec<u8>, u32)> {
+    let seeds = seeds();
+    chunks
+        .iter()
+        .map(|(chunk, gap_ticks, long_run)| {
+            (
+                bytes_of(chunk, &seeds),
+                if *long_run { 5_000 } else { *gap_ticks },
+            )
+        })
+        .collect()
+}
+
 /// Cases per property: 96, or `PROPTEST_CASES` where it is set (a deeper campaign).
 fn campaign_cases() -> u32 {
     std::env::var("PROPTEST_CASES")
@@ -504,14 +519,7 @@ proptest! {
         chunks in prop::collection::vec(
             (any_chunk(seeds().len()), 0u32..400, prop::bool::weighted(0.05)), 1..40),
     ) {
-        let seeds = seeds();
-        let frames: Vec<_> = chunks
-            .iter()
-            .map(|(chunk, gap_ticks, long_run)| {
-                (bytes_of(chunk, &seeds), if *long_run { 5_000 } else { *gap_ticks })
-            })
-            .collect();
-        replay(&frames)?;
+        replay(&frames_of(&chunks))?;
     }
 
     /// The same on the dual-stage board, whose coarse axis takes the piezo's setpoint from
@@ -522,14 +530,7 @@ proptest! {
         chunks in prop::collection::vec(
             (any_chunk(seeds().len()), 0u32..400, prop::bool::weighted(0.05)), 1..24),
     ) {
-        let seeds = seeds();
-        let frames: Vec<_> = chunks
-            .iter()
-            .map(|(chunk, gap_ticks, long_run)| {
-                (bytes_of(chunk, &seeds), if *long_run { 5_000 } else { *gap_ticks })
-            })
-            .collect();
-        replay_on(Watch::dual_stage(), &frames)?;
+        replay_on(Watch::dual_stage(), &frames_of(&chunks))?;
     }
 }
 

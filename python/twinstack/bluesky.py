@@ -391,7 +391,25 @@ class CoarseAxis:
         return f"CoarseAxis({self._board!r}, name={self.name!r})"
 
 
-class Flyer:
+class _BoardFlyer:
+    """What the flyers share: the status of the last kickoff's run, and the stop."""
+
+    _board: Board
+    name: str
+    _played: Optional[Status]
+
+    def complete(self) -> Status:
+        """Done once the motion has played and its recording is read back."""
+        if self._played is None:
+            raise RuntimeError(f"{self.name}: complete() before kickoff()")
+        return self._played
+
+    def stop(self, success: bool = True) -> None:
+        """Stops the board's motion (the output holds)."""
+        self._board.stop()
+
+
+class Flyer(_BoardFlyer):
     """A trajectory played by the board as a bluesky ``Flyable``: `setpoints` (output unit)
     streamed at `rate` per second, recorded (setpoint, sensor, error) from the stream's
     start, one event every `per_event` setpoints. Before it, the stage is taken to the first
@@ -530,16 +548,6 @@ class Flyer:
         _run(played, fly)
         return started
 
-    def complete(self) -> Status:
-        """Done once the trajectory has played and the recording is read back."""
-        if self._played is None:
-            raise RuntimeError(f"{self.name}: complete() before kickoff()")
-        return self._played
-
-    def stop(self, success: bool = True) -> None:
-        """Stops the stream (the output holds)."""
-        self._board.stop()
-
     @property
     def report(self) -> Optional[Dict[str, Any]]:
         """The stream's report (``accepted``, ``underruns``, ...) once it has played."""
@@ -587,7 +595,7 @@ class Flyer:
         return f"Flyer({self._board!r}, name={self.name!r}, events={self.events})"
 
 
-class ScanFlyer:
+class ScanFlyer(_BoardFlyer):
     """A scan generated on the board as a bluesky ``Flyable``: `pattern` as
     :meth:`twinstack.Board.scan` takes it (``"raster:lines=32,pixels=64,turn=40"``,
     ``"lissajous:hz=20,x=3,y=2"``, ``"spiral:hz=200,turns=10"``), `ticks_per_pixel`, `frames`
@@ -649,16 +657,6 @@ class ScanFlyer:
 
         _run(played, fly)
         return started
-
-    def complete(self) -> Status:
-        """Done once the scan has played and its capture is read back."""
-        if self._played is None:
-            raise RuntimeError(f"{self.name}: complete() before kickoff()")
-        return self._played
-
-    def stop(self, success: bool = True) -> None:
-        """Stops the scan (the output holds)."""
-        self._board.stop()
 
     @property
     def figures(self) -> Optional[Dict[str, Any]]:
