@@ -129,7 +129,33 @@ def _key(source: str, units: Optional[str] = None, precision: int = 4) -> Dict[s
     return d
 
 
-class Axis:
+class _Positioner:
+    """What the axes share: the last target, where the axis is, and the field a plot shows.
+    :meth:`read` gives the position under the axis' name and its setpoint as ``<name>_setpoint``."""
+
+    name: str
+    _target: Optional[float]
+
+    def read(self) -> Dict[str, Dict[str, Any]]:
+        raise NotImplementedError
+
+    @property
+    def position(self) -> Optional[float]:
+        """The last target set (``None`` before the first ``set``)."""
+        return self._target
+
+    def locate(self) -> Dict[str, float]:
+        """``{"setpoint": ..., "readback": ...}``: the setpoint and the position now."""
+        r = self.read()
+        return {"setpoint": r[f"{self.name}_setpoint"]["value"], "readback": r[self.name]["value"]}
+
+    @property
+    def hints(self) -> Dict[str, List[str]]:
+        """The field a plot shows: the position."""
+        return {"fields": [self.name]}
+
+
+class Axis(_Positioner):
     """The board's axis as a bluesky ``Movable`` and ``Readable``, in the output unit of the
     settings in force (µm for the simulated board).
 
@@ -221,16 +247,6 @@ class Axis:
         with self._lock:
             self._board.stop()
 
-    @property
-    def position(self) -> Optional[float]:
-        """The last target set (``None`` before the first ``set``)."""
-        return self._target
-
-    def locate(self) -> Dict[str, float]:
-        """``{"setpoint": ..., "readback": ...}``: the board's setpoint and sensor now."""
-        r = self.read()
-        return {"setpoint": r[f"{self.name}_setpoint"]["value"], "readback": r[self.name]["value"]}
-
     # -- Readable ------------------------------------------------------------------------
 
     def read(self) -> Dict[str, Dict[str, Any]]:
@@ -279,16 +295,11 @@ class Axis:
             f"{self.name}_mode": {"source": f"{src}:mode", "dtype": "string", "shape": []},
         }
 
-    @property
-    def hints(self) -> Dict[str, List[str]]:
-        """The field a plot shows: the position."""
-        return {"fields": [self.name]}
-
     def __repr__(self) -> str:
         return f"Axis({self._board!r}, name={self.name!r}, window={self.window})"
 
 
-class CoarseAxis:
+class CoarseAxis(_Positioner):
     """The dual-actuated stage's coarse axis (:meth:`twinstack.Board.coarse_move`) as a
     bluesky ``Movable`` and ``Readable``, in millimetres from the home reference: ``set(mm)``
     moves it at `speed` (mm/s) and `accel` (mm/s²) and completes once it has come to rest
@@ -333,16 +344,6 @@ class CoarseAxis:
         """Brakes the axis to rest (no step lost; still homed)."""
         self._board.coarse_stop()
 
-    @property
-    def position(self) -> Optional[float]:
-        """The last target set (``None`` before the first ``set``)."""
-        return self._target
-
-    def locate(self) -> Dict[str, float]:
-        """``{"setpoint": ..., "readback": ...}``: the axis' setpoint and position now."""
-        r = self.read()
-        return {"setpoint": r[f"{self.name}_setpoint"]["value"], "readback": r[self.name]["value"]}
-
     def read(self) -> Dict[str, Dict[str, Any]]:
         """Its position (the linear encoder's), setpoint (mm) and following error (µm)."""
         with self._lock:
@@ -381,11 +382,6 @@ class CoarseAxis:
             f"{self.name}_speed": _key(f"{src}:speed", "mm/s"),
             f"{self.name}_accel": _key(f"{src}:accel", "mm/s^2"),
         }
-
-    @property
-    def hints(self) -> Dict[str, List[str]]:
-        """The field a plot shows: the position."""
-        return {"fields": [self.name]}
 
     def __repr__(self) -> str:
         return f"CoarseAxis({self._board!r}, name={self.name!r})"
