@@ -486,6 +486,12 @@ where
         self.external.fired()
     }
 
+    /// Whether a source waits for the trigger input's armed edge to start it: a scan armed
+    /// on it, or the stream (what a lab's camera, started after the arming, would trigger).
+    pub fn waits_for_trigger(&self) -> bool {
+        self.external.is_armed() && (self.scan_pending || self.stream_on_trigger)
+    }
+
     /// Runs `scan` (validated, [`ScanGenerator::new`]) instead of the stream or the
     /// waveform: now, from the setpoint in force (its approach walks from there), or, with
     /// `on_trigger`, when the armed external trigger fires (the setpoint holds meanwhile).

@@ -3,8 +3,9 @@
 //!
 //! Wired as a lab wires one: the camera's TTL output (a pulse at the end of each frame's
 //! exposure) onto the board's trigger input (PA6). Like an acquisition program that arms the
-//! stage's sequence and then starts the camera, it starts its frames on the tick a sequence
-//! is armed, and stops when the sequence is disarmed or after `frames` frames.
+//! stage and then starts the camera, it starts its frames on the tick a sequence is armed (or
+//! a scan or the stream is armed to start on the input's edge), and stops when that is over
+//! (the sequence disarmed, the scan or the stream started) or after `frames` frames.
 //!
 //! Two timings:
 //! * **free-running** (`on_settled = false`): one frame every `period_ticks`, whatever the
@@ -94,8 +95,8 @@ impl SimCamera {
         self.sent
     }
 
-    /// One tick: `armed` whether the board's sequence is armed, `settled` its settled output
-    /// (as the last tick left it). Returns the TTL output's level for this tick.
+    /// One tick: `armed` whether the board's sequence is armed (or a source waits for the
+    /// input's edge), `settled` its settled output (as the last tick left it). Returns the TTL output's level for this tick.
     pub fn step(&mut self, armed: bool, settled: bool) -> bool {
         if armed && !self.was_armed {
             self.running = true;

@@ -574,21 +574,25 @@ pub enum ScanRunError {
 
 /// Runs `request` on the board behind `client` with trigger pulses of `pulse_ticks` and reads
 /// it back, as `twinstack scan` does: the request checked first by the library (a refusal names
-/// the field, nothing sent), the trigger outputs set (input off), the setpoint and the trigger
-/// levels captured from the scan's start for the approach and the frames (as far as the board's
+/// the field, nothing sent), the trigger outputs set, the setpoint and the trigger levels
+/// captured from the scan's start for the approach and the frames (as far as the board's
 /// buffer goes), the scan started, the capture awaited for at most `budget` and analysed
-/// against the library's replay. A scan of endless frames (`frames` 0) is stopped once the
-/// capture is read.
+/// against the library's replay. With `start_on` an edge (not [`twinstack::sources::scan::TriggerEdge::Off`]), the
+/// trigger input is armed on it and the scan waits for it (a camera's frame starts the scan),
+/// whatever `request.on_trigger` says; with `Off`, it starts at once. A scan of endless frames
+/// (`frames` 0) is stopped once the capture is read.
 pub fn run_scan<T: crate::Transport>(
     client: &mut crate::client::Client<T>,
-    request: ScanRequest,
+    mut request: ScanRequest,
     pulse_ticks: u16,
+    start_on: twinstack::sources::scan::TriggerEdge,
     budget: std::time::Duration,
 ) -> Result<ScanRun, ScanRunError> {
     use twinstack::protocol::messages::{
         CaptureRequest, Request, StreamControl, Trigger, TriggerConfig, TriggerEdge,
     };
     use twinstack::services::recorder::Channel;
+    request.on_trigger = start_on != TriggerEdge::Off;
     let settings = client.read_params()?;
     let rate = client.status()?.tick_rate_hz as f64;
     let max_step = twinstack::sources::scan::slew_step(
@@ -601,7 +605,7 @@ pub fn run_scan<T: crate::Transport>(
         ScanGenerator::new(&request, rate, max_step, pulse_ticks).map_err(ScanRunError::Refused)?;
     client.expect_ack(&Request::Trigger(TriggerConfig {
         pulse_ticks,
-        input: TriggerEdge::Off,
+        input: start_on,
         start_stream: false,
     }))?;
     // Enough frames for the approach (at most the full stroke at a quarter of the slew step)

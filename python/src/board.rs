@@ -824,10 +824,13 @@ impl Board {
     /// approach), `pixel`, `line`, `frame` (the outputs' levels, bool arrays), `figures`
     /// (each clock's pulses, jitter and width against the replay, the turnaround-to-line
     /// time, as `twinstack scan --json`) and `truncated` (the capture ended before the scan).
-    /// A pattern the board would refuse raises `ValueError` naming the field, nothing sent; a
-    /// scan that differs from the replay raises `RuntimeError`; no capture within `timeout`
-    /// seconds `TimeoutError`.
-    #[pyo3(signature = (pattern, ticks_per_pixel=4, frames=1, pulse=2, timeout=60.0))]
+    /// `start_on` `"rising"` or `"falling"` arms the trigger input: the scan waits for that
+    /// edge (a camera's frame starts it), and `timeout` counts from the request. A pattern the
+    /// board would refuse raises `ValueError` naming the field, nothing sent; a scan that
+    /// differs from the replay raises `RuntimeError`; no capture within `timeout` seconds
+    /// `TimeoutError`.
+    #[pyo3(signature = (pattern, ticks_per_pixel=4, frames=1, pulse=2, timeout=60.0, start_on="now"))]
+    #[allow(clippy::too_many_arguments)]
     fn scan<'py>(
         &self,
         py: Python<'py>,
@@ -836,8 +839,19 @@ impl Board {
         frames: u16,
         pulse: u16,
         timeout: f64,
+        start_on: &str,
     ) -> PyResult<Bound<'py, PyDict>> {
         let budget = seconds(timeout, "timeout")?;
+        let start_on = match start_on {
+            "now" => TriggerEdge::Off,
+            "rising" => TriggerEdge::Rising,
+            "falling" => TriggerEdge::Falling,
+            other => {
+                return Err(PyValueError::new_err(format!(
+                    "start_on {other:?}: expected \"now\", \"rising\" or \"falling\""
+                )))
+            }
+        };
         let pattern = parse_pattern(pattern)
             .map_err(|e| PyValueError::new_err(format!("pattern {pattern:?}: {e}")))?;
         let request = ScanRequest {
@@ -847,7 +861,7 @@ impl Board {
             on_trigger: false,
         };
         let run = self.with_py(py, |client| {
-            run_scan(client, request, pulse, budget).map_err(|e| {
+            run_scan(client, request, pulse, start_on, budget).map_err(|e| {
                 Python::attach(|py| match e {
                     ScanRunError::Link(l) => link_error(py, l),
                     ScanRunError::Capture(CaptureError::Link(l)) => link_error(py, l),

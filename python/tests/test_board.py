@@ -279,6 +279,22 @@ def test_the_board_s_raster_runs_with_its_clocks_as_the_library_replays_it(board
     assert "scanning" not in board.status()["flags"]
 
 
+def test_a_scan_started_by_the_camera_s_frame_waits_for_its_edge():
+    # A camera on the simulated board's trigger input at 200 Hz: its first frame starts the
+    # scan, which then runs as the replay has it.
+    with twinstack.Board("sim", sim_camera_hz=200.0) as board:
+        run = board.scan("raster:lines=4,pixels=20,turn=40", start_on="rising", timeout=5.0)
+        f = run["figures"]
+        assert f["x_mismatches"] == 0 and f["trigger_mismatches"] == 0
+        assert f["line"]["pulses"] == 4 and f["pixel"]["pulses"] == 80
+    # No edge ever comes: the scan waits, and the call says so after its timeout.
+    with twinstack.Board("sim") as board:
+        with pytest.raises(TimeoutError):
+            board.scan("raster:lines=4,pixels=20,turn=40", start_on="rising", timeout=0.5)
+        with pytest.raises(ValueError, match="start_on"):
+            board.scan("raster:lines=4,pixels=20", start_on="soon")
+
+
 def test_a_scan_the_board_would_refuse_is_refused_before_sending(board):
     with pytest.raises(ValueError, match="lines"):
         board.scan("raster:lines=0,pixels=50")

@@ -197,7 +197,8 @@ class Board:
     ) -> "Board":
         """Opens ``port`` and cleans the line. With ``port="sim"``, ``sim_camera_hz`` puts a
         simulated camera on the board's trigger input: ``sim_camera_frames`` frames (0: until
-        the sequence is disarmed) from each arming of a sequence, free-running or, with
+        the sequence is disarmed) from each arming of a sequence (or of a scan or the stream
+        on the input's edge, until it starts), free-running or, with
         ``sim_camera_on_settled``, each started by the settled output."""
     @property
     def port(self) -> str:
@@ -415,6 +416,7 @@ class Board:
         frames: int = 1,
         pulse: int = 2,
         timeout: float = 60.0,
+        start_on: str = "now",
     ) -> Dict[str, Any]:
         """Runs a scan pattern generated on the board (as ``twinstack scan``) with its pixel,
         line and frame trigger outputs (pulses of ``pulse`` ticks) and reads it back:
@@ -424,9 +426,10 @@ class Board:
         ``"setpoint"`` (output unit), ``"y"`` (the replay's slow axis, normalised; NaN during
         the approach), ``"pixel"``, ``"line"``, ``"frame"`` (bool arrays of the outputs'
         levels), ``"figures"`` (the clocks against the library's replay, as ``twinstack scan
-        --json``) and ``"truncated"``. A pattern the board would refuse raises ``ValueError``
-        naming the field (nothing sent); a scan that differs from the replay
-        ``RuntimeError``."""
+        --json``) and ``"truncated"``. ``start_on`` ``"rising"`` or ``"falling"``: the scan waits
+        for that edge of the trigger input (a camera's frame starts it). A pattern the board
+        would refuse raises ``ValueError`` naming the field (nothing sent); a scan that differs
+        from the replay ``RuntimeError``."""
     def telemetry(
         self,
         signals: _Signals,

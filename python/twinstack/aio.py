@@ -224,10 +224,11 @@ class AsyncBoard:
         frames: int = 1,
         pulse: int = 2,
         timeout: float = 60.0,
+        start_on: str = "now",
     ) -> Dict[str, Any]:
         """Runs a scan pattern on the board with its clocks, as :meth:`twinstack.Board.scan`."""
         return await self._call(
-            self._board.scan, pattern, ticks_per_pixel, frames, pulse, timeout
+            self._board.scan, pattern, ticks_per_pixel, frames, pulse, timeout, start_on
         )
 
     async def telemetry(

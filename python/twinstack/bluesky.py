@@ -595,7 +595,8 @@ class ScanFlyer(_BoardFlyer):
     """A scan generated on the board as a bluesky ``Flyable``: `pattern` as
     :meth:`twinstack.Board.scan` takes it (``"raster:lines=32,pixels=64,turn=40"``,
     ``"lissajous:hz=20,x=3,y=2"``, ``"spiral:hz=200,turns=10"``), `ticks_per_pixel`, `frames`
-    and the trigger outputs' `pulse` width. The board plays the pattern from its own clock and
+    and the trigger outputs' `pulse` width; `start_on` (``"rising"``, ``"falling"``) makes the
+    scan wait for that edge of the board's trigger input. The board plays the pattern from its own clock and
     marks each pixel, line and frame on its trigger outputs, so a detector clocked by them
     needs no host timing; the flyer's events give each pixel's position as the board commanded
     it, one event per pixel clock, with its frame, line and pixel numbers (a raster's pixel
@@ -612,6 +613,7 @@ class ScanFlyer(_BoardFlyer):
         units: str = "um",
         parent: Any = None,
         timeout: float = 60.0,
+        start_on: str = "now",
     ) -> None:
         if frames < 1:
             raise ValueError(f"frames {frames}: a fly scan plays a whole number of frames, at least 1")
@@ -624,6 +626,7 @@ class ScanFlyer(_BoardFlyer):
         self.units = units
         self.parent = parent
         self.timeout = float(timeout)
+        self.start_on = start_on
         self._events: Optional[Dict[str, np.ndarray]] = None
         self._figures: Optional[Dict[str, Any]] = None
         self._t0 = 0.0
@@ -641,7 +644,12 @@ class ScanFlyer(_BoardFlyer):
             self._t0 = time.time()
             started._finish()
             run = self._board.scan(
-                self.pattern, self.ticks_per_pixel, self.frames, self.pulse, self.timeout
+                self.pattern,
+                self.ticks_per_pixel,
+                self.frames,
+                self.pulse,
+                self.timeout,
+                self.start_on,
             )
             if run["truncated"]:
                 raise RuntimeError(

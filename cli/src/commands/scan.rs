@@ -15,7 +15,7 @@ use plotters::style::{RGBColor, BLACK, BLUE, RED};
 use super::board_link::{connect, PortArgs};
 use crate::plot::{draw_panels, Panel, Series};
 use twinstack::protocol::messages::ScanRequest;
-use twinstack::sources::scan::{LINE, PIXEL};
+use twinstack::sources::scan::{TriggerEdge, LINE, PIXEL};
 use twinstack_link::scan_timing::{parse_pattern, run_scan, table, ScanFigures};
 
 /// Arguments of `scan`.
@@ -48,6 +48,20 @@ pub struct Args {
     /// Longest wait for the capture, seconds.
     #[arg(long, default_value_t = 60.0)]
     pub wait_s: f64,
+    /// Wait for this edge of the trigger input to start the scan (`rising` or `falling`: a
+    /// camera's frame starts it); `off` (the default) starts it at once.
+    #[arg(long, default_value = "off", value_parser = parse_edge)]
+    pub start_on: TriggerEdge,
+}
+
+/// `--start-on`'s value.
+fn parse_edge(s: &str) -> Result<TriggerEdge, String> {
+    match s {
+        "off" => Ok(TriggerEdge::Off),
+        "rising" => Ok(TriggerEdge::Rising),
+        "falling" => Ok(TriggerEdge::Falling),
+        other => Err(format!("{other:?}: expected off, rising or falling")),
+    }
 }
 
 /// Runs `scan`.
@@ -64,6 +78,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         &mut client,
         request,
         args.pulse,
+        args.start_on,
         Duration::from_secs_f64(args.wait_s.max(0.1)),
     )?;
     let (figures, x, trig, replay) = (&run.figures, &run.x, &run.triggers, &run.replay);

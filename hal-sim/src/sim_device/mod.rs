@@ -378,7 +378,10 @@ impl<D: AnalogDualDac, A: AnalogSensorAdc> SimDevice<D, A> {
         let (mut dac, mut adc) = self.board.split();
         let camera = match self.camera.as_mut() {
             Some(c) => {
-                let armed = self.control.sequence_status().armed;
+                // Started by the acquisition program once the stage is ready for it: a
+                // sequence armed, or a scan or the stream waiting for the input's edge.
+                let armed =
+                    self.control.sequence_status().armed || self.control.waits_for_trigger();
                 c.step(armed, self.control.trigger_levels() & SETTLED != 0)
             }
             None => false,
