@@ -448,6 +448,7 @@ where
                 g.start(from);
                 self.source = SetpointSource::Scan;
             }
+            self.learning.restart();
             self.events.add(Trigger::ScanStart);
         } else if self.stream_on_trigger {
             self.start();
@@ -503,6 +504,7 @@ where
         self.stream.hold_at_if_stopped(self.controller.setpoint());
         if !on_trigger {
             scan.start(self.controller.setpoint());
+            self.learning.restart();
             self.events.add(Trigger::ScanStart);
         }
         self.scan = Some(scan);

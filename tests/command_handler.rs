@@ -2277,3 +2277,58 @@ fn small_raster(frames: u16, on_trigger: bool) -> twinstack::sources::scan::Scan
         on_trigger,
     }
 }
+
+/// A scan's start restarts the learning's period at bin 0, as a waveform's or a stream's
+/// does, whether the request starts it or the trigger input's edge: a table learned on a scan
+/// is aligned with the scan's start, and plays again aligned on the same scan started again.
+#[test]
+fn a_scan_s_start_restarts_the_learning_s_period_now_or_on_the_input_s_edge() {
+    use twinstack::services::learning::{LearnSettings, LearnState};
+    use twinstack::sources::scan::{TriggerConfig, TriggerEdge};
+    let mut b = board();
+    for request in [
+        Request::Learn(LearnRequest::Configure(LearnSettings::for_period(200))),
+        Request::Learn(LearnRequest::State(LearnState::Frozen)),
+    ] {
+        assert!(matches!(b.handle(request), Response::Ack { .. }));
+    }
+    b.ticks(37);
+    let before = b.control.learning().restarts();
+    assert_ne!(b.control.learning().bin(), 0, "the period runs");
+    // Started by the request: at bin 0 from the next tick.
+    assert!(matches!(
+        b.handle(Request::Scan(small_raster(1, false))),
+        Response::Ack { .. }
+    ));
+    assert_eq!(b.control.learning().restarts(), before.wrapping_add(1));
+    assert_eq!(b.control.learning().bin(), 0);
+    b.ticks(37);
+    assert_ne!(b.control.learning().bin(), 0);
+    // Waiting for the input's edge: the period runs on until the edge starts the scan.
+    assert!(matches!(
+        b.handle(Request::Trigger(TriggerConfig {
+            pulse_ticks: 2,
+            input: TriggerEdge::Rising,
+            start_stream: false,
+        })),
+        Response::Ack { .. }
+    ));
+    assert!(matches!(
+        b.handle(Request::Scan(small_raster(1, true))),
+        Response::Ack { .. }
+    ));
+    let waiting = b.control.learning().restarts();
+    assert_eq!(
+        waiting,
+        before.wrapping_add(1),
+        "a waiting scan restarts nothing"
+    );
+    b.ticks(5);
+    assert_eq!(b.control.learning().restarts(), waiting);
+    b.control.set_trigger_input(true);
+    b.tick();
+    assert!(b.control.is_scanning(), "the edge started the scan");
+    assert_eq!(b.control.learning().restarts(), waiting.wrapping_add(1));
+    // The edge's tick ran bin 0.
+    assert_eq!(b.control.learning().bin(), 1);
+}

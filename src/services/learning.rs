@@ -346,7 +346,8 @@ impl LearnTick {
         self.restart();
     }
 
-    /// Restarts the period at bin 0 (the motion starts: a waveform or a stream), so that a
+    /// Restarts the period at bin 0 (the motion starts: a waveform, a stream or a scan, now or
+    /// on the trigger input's edge), so that a
     /// table is aligned with the motion's start and plays again on the same motion started
     /// again. The error buffer being filled is abandoned (its period is not counted), and the
     /// task's divergence guard starts again from the next period ([`LearnTick::restarts`]):
