@@ -184,23 +184,9 @@ impl LearnOptions {
 /// The learning's robustness corner with input shaping, Hz.
 pub const SHAPED_CUTOFF_HZ: f64 = 23_000.0;
 
-/// The input shaping for a resonance at `resonance_hz` with damping `zeta` (what `twinstack
-/// tune` fits): a notch whose zeros are the resonance's poles (`depth = 2·Q·ζ`) and whose
-/// poles are critically damped (`Q = ½`). The shaped stage's response has the notch's poles
-/// where the resonance was.
-///
-/// ```
-/// let n = twinstack_cli::learn::shaping_for(21_807.0, 0.01729);
-/// assert_eq!((n.frequency_hz, n.q, n.depth), (21_807.0, 0.5, 0.01729));
-/// ```
-pub fn shaping_for(resonance_hz: f64, zeta: f64) -> NotchDesign {
-    let q = 0.5;
-    NotchDesign {
-        frequency_hz: resonance_hz,
-        q,
-        depth: (2.0 * q * zeta).clamp(0.0, 1.0),
-    }
-}
+// The input shaping for a resonance (what `twinstack tune` fits, and reports in its JSON):
+// the tuning library's.
+pub use twinstack_identify::tune::shaping_for;
 
 /// The simulated differential stage's shaping, from its tuned fit at 50 kHz (21 807 Hz,
 /// ζ = 0.01729; docs/src/results/tuning.md).

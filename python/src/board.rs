@@ -5,6 +5,7 @@
 use crate::convert::{array, json_to_py, vector, wire_values};
 use crate::errors::{
     board_error, link_error, param_file_error, path_error, port_error, run_error, table_error,
+    tune_error,
 };
 use crate::params::Params;
 use hal_sim::port::{open_send, PortError, PortSpec, DEFAULT_BAUD};
@@ -21,6 +22,8 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Mutex;
 use std::time::{Duration, Instant};
 use twinstack::config::settings::Mode;
+use twinstack::control::feedback::FeedbackSettings;
+use twinstack::control::notch::NotchDesign;
 use twinstack::dual_stage::{CoarseState, CoarseStatus};
 use twinstack::fixed_point::{signal_from_f64, signal_to_f64};
 use twinstack::protocol::messages::{CoarseMove, LearnState};
@@ -1156,6 +1159,99 @@ impl Board {
         )?;
         out.set_item("params", Params::from_file(file, stage))?;
         Ok(out)
+    }
+
+    /// Tunes the board's feedback in one call (`twinstack tune`): measures the stage's
+    /// frequency response with the board's generator and recorder (in bypass; the mode is
+    /// restored), fits the resonance and the loop's delay, and designs the PI gains and the
+    /// notch for at least `phase_margin` degrees and `gain_margin` dB (the fit's gain 1.4
+    /// times higher too, and at most 0.5 % ringing of a step on the model); with `kp` and `ki`
+    /// (and `notch_hz`, `notch_q`, `notch_depth`, `limit`) it checks that gain set instead.
+    /// `load` loads the result (the other settings kept). Returns what `twinstack tune --json`
+    /// prints: `rate_hz`, `points` (`frequency_hz`, `magnitude_db`, `phase_deg`), `fit`
+    /// (`gain`, `resonance_hz`, `zeta`, `delay_ticks`, `rms_db`, `rms_deg`), `goals`,
+    /// `feedback` (the settings chosen or checked), `figures` (their margins, bandwidths,
+    /// ringing on the fit), `shaping`, `before` (the board's gains before and their verdict),
+    /// `loaded`, `board_timing`. Margins that are not finite or negative, `kp` without `ki`
+    /// (or the reverse), `notch_hz` without them, or a gain set the board would refuse at its
+    /// rate raise `ValueError` naming it, before anything moves; a checked set the fitted
+    /// model says is unstable or short of the margins `ValueError` (nothing loaded); no gains
+    /// meeting the margins, or a response that does not fit, `RuntimeError`.
+    #[pyo3(signature = (phase_margin=45.0, gain_margin=6.0, load=false, kp=None, ki=None, notch_hz=None, notch_q=2.0, notch_depth=0.0, limit=0.25))]
+    #[allow(clippy::too_many_arguments)] // the Python keyword arguments, one each
+    fn tune<'py>(
+        &self,
+        py: Python<'py>,
+        phase_margin: f64,
+        gain_margin: f64,
+        load: bool,
+        kp: Option<f64>,
+        ki: Option<f64>,
+        notch_hz: Option<f64>,
+        notch_q: f64,
+        notch_depth: f64,
+        limit: f64,
+    ) -> PyResult<Bound<'py, PyAny>> {
+        use twinstack_identify::tune::{tune, TuneError, TuneOptions};
+        for (name, v, unit) in [
+            ("phase_margin", phase_margin, "degrees"),
+            ("gain_margin", gain_margin, "dB"),
+        ] {
+            if !(v.is_finite() && v >= 0.0) {
+                return Err(PyValueError::new_err(format!(
+                    "{name} {v}: must be a finite number of {unit}, at least 0; nothing was measured"
+                )));
+            }
+        }
+        let check = match (kp, ki) {
+            (Some(kp), Some(ki)) => Some(FeedbackSettings {
+                notch: notch_hz.map(|frequency_hz| NotchDesign {
+                    frequency_hz,
+                    q: notch_q,
+                    depth: notch_depth,
+                }),
+                ..FeedbackSettings::pi(kp, ki, limit)
+            }),
+            (None, None) => {
+                if let Some(f) = notch_hz {
+                    return Err(PyValueError::new_err(format!(
+                        "notch_hz {f}: the notch of a gain set to check, given with kp and ki; nothing was measured"
+                    )));
+                }
+                None
+            }
+            _ => {
+                return Err(PyValueError::new_err(
+                    "kp and ki: give both (a gain set to check) or neither (a design); nothing was measured",
+                ))
+            }
+        };
+        // A gain set the board would refuse at its rate is refused before the sweep.
+        if let Some(settings) = &check {
+            let rate = self.with(py, |c| c.status())?.tick_rate_hz as f64;
+            settings.build(rate).map_err(|r| {
+                PyValueError::new_err(format!("refused at {rate} Hz: {r}; nothing was measured"))
+            })?;
+        }
+        let options = TuneOptions {
+            phase_margin_deg: phase_margin,
+            gain_margin_db: gain_margin,
+            check,
+            load,
+            ..TuneOptions::default()
+        };
+        let report = self.with_py(py, |client| {
+            let report = tune(client, &options, |_| {}).map_err(|e| match e {
+                e @ TuneError::Refused(_) => PyValueError::new_err(format!(
+                    "kp {}, ki {}: {e}",
+                    kp.unwrap_or_default(),
+                    ki.unwrap_or_default()
+                )),
+                e => Python::attach(|py| tune_error(py, e)),
+            })?;
+            Ok(report.to_json())
+        })?;
+        json_to_py(py, &report)
     }
 
     /// Writes the settings in force to the board's flash, to boot in `boot_mode`.

@@ -11,6 +11,9 @@ use pyo3::prelude::*;
 use twinstack::protocol::messages::NackReason;
 use twinstack::refusal::Rule;
 use twinstack_identify::param_file::ParamFileError;
+use twinstack_identify::tune::measure::MeasureError;
+use twinstack_identify::tune::TuneError;
+use twinstack_link::capture::CaptureError;
 use twinstack_link::client::{nack_text, LinkError};
 use twinstack_link::learning::TableError;
 use twinstack_link::settings_path;
@@ -145,5 +148,28 @@ pub(crate) fn table_error(py: Python<'_>, e: TableError) -> PyErr {
         TableError::NotConfigured | TableError::Length { .. } => {
             PyValueError::new_err(e.to_string())
         }
+    }
+}
+
+/// A tuning's error: the link's as [`link_error`] (a board's refusal a `BoardError`), a
+/// capture that does not finish `TimeoutError`, a sweep option out of range or a checked gain
+/// set refused on the fitted model `ValueError`, a stage that cannot be measured, fitted or
+/// tuned for the margins `RuntimeError`.
+pub(crate) fn tune_error(py: Python<'_>, e: TuneError) -> PyErr {
+    match e {
+        TuneError::Link { source, .. }
+        | TuneError::Measure(MeasureError::Link { source, .. })
+        | TuneError::Measure(MeasureError::Capture {
+            source: CaptureError::Link(source),
+            ..
+        }) => link_error(py, source),
+        e @ TuneError::Measure(MeasureError::Capture {
+            source: CaptureError::NotDone { .. },
+            ..
+        }) => PyTimeoutError::new_err(e.to_string()),
+        e @ (TuneError::Measure(MeasureError::Option { .. }) | TuneError::Refused(_)) => {
+            PyValueError::new_err(e.to_string())
+        }
+        e => PyRuntimeError::new_err(e.to_string()),
     }
 }

@@ -125,6 +125,19 @@ def test_numpy_in_and_out_and_errors_as_the_blocking_api():
     assert err.field == "record count"
 
 
+def test_tune_is_awaited_as_the_blocking_call():
+    async def main():
+        async with await AsyncBoard.open("sim") as board:
+            checked = await board.tune(kp=0.2, ki=3000.0)
+            with pytest.raises(ValueError, match="kp and ki"):
+                await board.tune(ki=3000.0)
+            return checked
+
+    checked = asyncio.run(main())
+    assert checked["feedback"]["kp"] == 0.2 and checked["figures"]["stable"]
+    assert checked["fit"]["resonance_hz"] == pytest.approx(21_800.0, rel=0.01)
+
+
 def test_identify_runs_in_a_worker_thread(monkeypatch):
     import pathlib
     import threading

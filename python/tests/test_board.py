@@ -1,6 +1,7 @@
 """Every Board method against the in-process board and a virtual board process."""
 
 import json
+import subprocess
 import threading
 import time
 import warnings
@@ -426,6 +427,96 @@ def test_calibrate_identifies_loads_and_verifies_the_stage(board):
 def test_calibrate_refuses_an_unknown_model_before_touching_the_board(board):
     with pytest.raises(ValueError, match="unknown model"):
         board.calibrate(model="preisach")
+
+
+def _cli_tune(hal_sim, *args):
+    """`twinstack tune --port sim --json` with `args`: its one JSON object."""
+    out = subprocess.run(
+        [hal_sim, "tune", "--port", "sim", "--json", *args],
+        check=True,
+        stdout=subprocess.PIPE,
+        text=True,
+    ).stdout
+    return json.loads(out)
+
+
+def test_tune_designs_gains_for_the_margins_asked_on_the_fitted_stage(board, hal_sim):
+    before = board.params()["feedback"]
+    r = board.tune(phase_margin=50.0, gain_margin=8.0)
+    assert r["goals"]["phase_margin_deg"] == 50.0 and r["goals"]["gain_margin_db"] == 8.0
+    f = r["figures"]
+    assert f["stable"] and f["phase_margin_deg"] >= 50.0 and f["gain_margin_db"] >= 8.0, f
+    assert f["ringing_pct"] <= 0.5, f
+    assert r["feedback"]["kp"] > 0.0 and r["feedback"]["ki"] > 0.0, r["feedback"]
+    # The sweep ran at the board's rate, and the board's own gains were judged beside.
+    assert r["rate_hz"] == 50000.0 and len(r["points"]) > 20
+    assert r["before"]["feedback"] == before
+    # Nothing loaded: the board keeps its gains, in the mode it was in.
+    assert r["loaded"] is False
+    assert board.params()["feedback"] == before
+    assert board.status()["mode"] == "bypass"
+    # The stage's resonance as the command line fits it (the simulated stage's 21.8 kHz).
+    cli = _cli_tune(hal_sim, "--phase-margin", "50", "--gain-margin", "8")
+    assert r["fit"]["resonance_hz"] == pytest.approx(cli["fit"]["resonance_hz"], rel=0.002)
+    assert r["fit"]["resonance_hz"] == pytest.approx(21_800.0, rel=0.01)
+    assert r["fit"]["zeta"] == pytest.approx(cli["fit"]["zeta"], rel=0.05)
+    # The command's object, from the same library function.
+    assert set(r) == set(cli) and set(r["fit"]) == set(cli["fit"])
+
+
+def test_tune_with_load_puts_the_gains_on_the_board(board):
+    r = board.tune(load=True)
+    assert r["loaded"] is True
+    fb = board.params()["feedback"]
+    assert fb["kp"] == pytest.approx(r["feedback"]["kp"], rel=1e-6)
+    assert fb["ki"] == pytest.approx(r["feedback"]["ki"], rel=1e-6)
+    assert fb["limit"] == pytest.approx(r["feedback"]["limit"], rel=1e-6)
+    assert board.get("/feedback/kp") == fb["kp"] and fb["kp"] > 0.0
+    assert board.status()["mode"] == "bypass", "the sweep's mode is restored"
+
+
+def test_tune_checks_a_given_gain_set_and_refuses_one_the_fitted_model_says_is_unstable(board, hal_sim):
+    r = board.tune(kp=0.2, ki=3000.0, notch_hz=21800.0, notch_q=1.0, notch_depth=0.1)
+    assert r["feedback"]["kp"] == 0.2 and r["feedback"]["ki"] == 3000.0
+    assert r["feedback"]["notch"] == {"frequency_hz": 21800.0, "q": 1.0, "depth": 0.1}
+    assert r["feedback"]["limit"] == 0.25 and r["loaded"] is False
+    f = r["figures"]
+    assert f["stable"] and f["phase_margin_deg"] >= 45.0 and f["gain_margin_db"] >= 6.0, f
+    # The figures the command line gives for the same set.
+    cli = _cli_tune(
+        hal_sim, "--kp", "0.2", "--ki", "3000", "--notch-hz", "21800", "--notch-q", "1",
+        "--notch-depth", "0.1",
+    )
+    assert cli["feedback"] == r["feedback"]
+    assert f["phase_margin_deg"] == pytest.approx(cli["figures"]["phase_margin_deg"], abs=1.0)
+    assert f["gain_margin_db"] == pytest.approx(cli["figures"]["gain_margin_db"], abs=0.5)
+    before = board.params()["feedback"]
+    with pytest.raises(ValueError, match=r"kp 1\.5, ki 20000(\.0)?: refused: unstable"):
+        board.tune(kp=1.5, ki=20000.0, load=True)
+    assert board.params()["feedback"] == before, "nothing was loaded"
+
+
+def test_tune_refuses_bad_arguments_before_anything_moves():
+    with twinstack.Board("sim") as board:
+        ticks = board.status()["ticks"]
+        with pytest.raises(ValueError, match="kp and ki"):
+            board.tune(kp=0.2)
+        with pytest.raises(ValueError, match="kp and ki"):
+            board.tune(ki=3000.0)
+        with pytest.raises(ValueError, match="notch_hz"):
+            board.tune(notch_hz=21800.0)
+        with pytest.raises(ValueError, match="phase_margin -1"):
+            board.tune(phase_margin=-1.0)
+        with pytest.raises(ValueError, match="gain_margin NaN"):
+            board.tune(gain_margin=float("nan"))
+        with pytest.raises(ValueError, match="phase_margin inf"):
+            board.tune(phase_margin=float("inf"))
+        # A gain set the board refuses at its rate (ki below half the 50 kHz tick rate).
+        with pytest.raises(ValueError, match="feedback.ki"):
+            board.tune(kp=0.2, ki=30000.0)
+        # The simulated board's time runs only while a call waits on it: a sweep is thousands
+        # of ticks, these were a status request or none.
+        assert board.status()["ticks"] - ticks < 200
 
 
 def test_a_sequence_steps_one_position_per_camera_frame_and_counts_early_and_missed():

@@ -7,8 +7,8 @@ in-process simulated board, identification and parameter file as the ``twinstack
 * :class:`Board` -- a board on a serial port, ``tcp:HOST:PORT`` (a virtual board, QEMU) or
   ``"sim"`` (the simulated board in-process): status, load, params, mode, stream, waveform,
   record, telemetry, scan (the board's own patterns and clocks), sequence, analog, learn
-  (and the learned table kept and played again), the coarse axis of a dual-actuated stage,
-  store, recall.
+  (and the learned table kept and played again), tune (the feedback's gains designed or
+  checked on the measured response), the coarse axis of a dual-actuated stage, store, recall.
 * :func:`identify` -- a hysteresis model from a measured record, as a :class:`Params`
   (predict, compensate, save); :func:`load_params` reads a parameter file back.
 * :class:`BoardError` -- a refusal, with the field, the reason and the limit the board named.

@@ -467,6 +467,41 @@ class Board:
         ``resonance=False`` or where none fitted, then ``resonance_not_fitted`` says why).
         Board refusals raise
         :class:`BoardError`; a stage that cannot be calibrated raises ``RuntimeError``."""
+    def tune(
+        self,
+        phase_margin: float = 45.0,
+        gain_margin: float = 6.0,
+        load: bool = False,
+        kp: Optional[float] = None,
+        ki: Optional[float] = None,
+        notch_hz: Optional[float] = None,
+        notch_q: float = 2.0,
+        notch_depth: float = 0.0,
+        limit: float = 0.25,
+    ) -> Dict[str, Any]:
+        """Tunes the feedback in one call (``twinstack tune``): measures the stage's frequency
+        response with the board's generator and recorder (in bypass; the mode is restored),
+        fits its resonance and the loop's delay, and designs the PI gains and the notch for at
+        least ``phase_margin`` degrees and ``gain_margin`` dB (also with the fit's gain 1.4
+        times higher, and at most 0.5 % ringing of a step on the model). With ``kp`` and
+        ``ki`` (and ``notch_hz``, ``notch_q``, ``notch_depth``, ``limit``) it checks that gain
+        set instead. ``load`` loads the result, the other settings kept.
+
+        Returns what ``twinstack tune --json`` prints: ``rate_hz``, ``points``
+        (``frequency_hz``, ``magnitude_db``, ``phase_deg``), ``fit`` (``gain``,
+        ``resonance_hz``, ``zeta``, ``delay_ticks``, ``rms_db``, ``rms_deg``), ``goals``,
+        ``feedback`` (the settings chosen or checked, as :meth:`params`' ``feedback``),
+        ``figures`` (``phase_margin_deg``, ``gain_margin_db``, ``closed_loop_bandwidth_hz``,
+        ``bandwidth_hz``, ``ringing_pct``, ... on the fit), ``shaping`` (the input shaping for
+        the resonance), ``before`` (the board's gains before and their verdict), ``loaded``
+        and ``board_timing``.
+
+        Margins not finite or negative, ``kp`` without ``ki`` (or the reverse), ``notch_hz``
+        without them, or a gain set the board would refuse at its rate raise ``ValueError``
+        naming it, before anything moves; a checked set the fitted model says is unstable or
+        short of the margins ``ValueError`` (nothing loaded); no gains that meet the margins,
+        or a response that does not fit, ``RuntimeError``; the board's refusals
+        :class:`BoardError`."""
     def store(self, boot_mode: str = "bypass") -> None:
         """Writes the settings in force to the board's flash, to boot in ``boot_mode``."""
     def recall(self) -> None:

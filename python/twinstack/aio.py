@@ -272,6 +272,33 @@ class AsyncBoard:
         """Calibrates the stage in one call, as :meth:`twinstack.Board.calibrate`."""
         return await self._call(self._board.calibrate, store, clamp, model, resonance)
 
+    async def tune(
+        self,
+        phase_margin: float = 45.0,
+        gain_margin: float = 6.0,
+        load: bool = False,
+        kp: Optional[float] = None,
+        ki: Optional[float] = None,
+        notch_hz: Optional[float] = None,
+        notch_q: float = 2.0,
+        notch_depth: float = 0.0,
+        limit: float = 0.25,
+    ) -> Dict[str, Any]:
+        """Measures the stage's response, fits it and designs (or checks) the feedback, as
+        :meth:`twinstack.Board.tune`."""
+        return await self._call(
+            self._board.tune,
+            phase_margin,
+            gain_margin,
+            load,
+            kp,
+            ki,
+            notch_hz,
+            notch_q,
+            notch_depth,
+            limit,
+        )
+
     async def sequence(
         self,
         positions: Any,

@@ -5,7 +5,8 @@
 //! ([`twinstack_identify::tune`]), prints the margins and the bandwidth, and with `--load` loads them.
 //! With `--kp`/`--ki` it checks that gain set instead (exit 1 if the fitted model says it is
 //! unstable or short of the margins). With `--params PARAMS.json` it writes the fitted
-//! resonance into that parameter file (as `calibrate` does), for `compensate --preview`.
+//! resonance into that parameter file (as `calibrate` does), for `compensate --preview`. The
+//! `--json` object is the library's ([`TuneReport::to_json`]), what Python's `Board.tune` returns.
 
 use super::board_link::{connect, PortArgs, UsageError};
 use crate::plot::{draw_panels, Panel, Series};
@@ -18,7 +19,7 @@ use twinstack::control::notch::NotchDesign;
 use twinstack_identify::param_file::ParamFile;
 use twinstack_identify::preview::Resonance;
 use twinstack_identify::tune::loop_model::{loop_response, LoopController};
-use twinstack_identify::tune::{tune, TuneOptions, TuneReport};
+use twinstack_identify::tune::{shaping_for, tune, TuneOptions, TuneReport};
 use twinstack_link::output_file::Staged;
 use twinstack_link::{Client, Transport};
 
@@ -109,50 +110,6 @@ impl Args {
     }
 }
 
-/// The board's timing beside a tuned loop: sample to output, s
-/// ([`twinstack::board::sample_to_output_s`]), and the phase the sample's lead
-/// ([`twinstack::board::SAMPLE_LEAD_NS`]) costs at the loop's crossover, degrees — a delay the
-/// whole-tick loop model rounds away and the simulated board does not have.
-pub fn board_timing(r: &TuneReport) -> (f64, f64) {
-    let lead_s = twinstack::board::SAMPLE_LEAD_NS as f64 * 1e-9;
-    (
-        twinstack::board::sample_to_output_s(r.rate),
-        360.0 * r.design.figures.crossover_hz * lead_s,
-    )
-}
-
-/// The figures as one JSON object (what `--json` prints).
-pub fn report_json(r: &TuneReport) -> serde_json::Value {
-    let p = &r.fit.plant;
-    let (latency_s, lead_deg) = board_timing(r);
-    serde_json::json!({
-        "rate_hz": r.rate,
-        "points": r.points.iter().map(|q| serde_json::json!({
-            "frequency_hz": q.frequency_hz,
-            "magnitude_db": 20.0 * q.response.abs().log10(),
-            "phase_deg": q.response.arg().to_degrees(),
-        })).collect::<Vec<_>>(),
-        "fit": {
-            "gain": p.gain, "resonance_hz": p.resonance_hz, "zeta": p.zeta,
-            "delay_ticks": p.delay, "rms_db": r.fit.rms_db, "rms_deg": r.fit.rms_deg,
-        },
-        "goals": r.goals,
-        "feedback": r.design.settings,
-        "shaping": crate::learn::shaping_for(p.resonance_hz, p.zeta),
-        "figures": r.design.figures,
-        "before": r.before.as_ref().map(|(s, f)| serde_json::json!({
-            "feedback": s,
-            "figures": f.as_ref().ok(),
-            "refused": f.as_ref().err().map(|e| e.to_string()),
-        })),
-        "loaded": r.loaded,
-        "board_timing": {
-            "sample_to_output_s": latency_s,
-            "lead_phase_deg": lead_deg,
-        },
-    })
-}
-
 fn run_on<T: Transport>(args: &Args, client: &mut Client<T>) -> anyhow::Result<()> {
     let options = args.options();
     // A parameter file to take the resonance: refused before anything moves.
@@ -195,7 +152,7 @@ fn run_on<T: Transport>(args: &Args, client: &mut Client<T>) -> anyhow::Result<(
         }
     }
     if args.json {
-        let mut v = report_json(&report);
+        let mut v = report.to_json();
         if let Some(path) = &args.params {
             v["params"] = path.display().to_string().into();
         }
@@ -209,7 +166,7 @@ fn run_on<T: Transport>(args: &Args, client: &mut Client<T>) -> anyhow::Result<(
         "fit: gain {:.3}, resonance {:.0} Hz, ζ = {:.4}, delay {} tick(s) (RMS error {:.2} dB, {:.1}°)",
         p.gain, p.resonance_hz, p.zeta, p.delay, report.fit.rms_db, report.fit.rms_deg
     );
-    let shape = crate::learn::shaping_for(p.resonance_hz, p.zeta);
+    let shape = shaping_for(p.resonance_hz, p.zeta);
     println!(
         "input shaping (the feedforward's notch, for open loop and `learn`): --shape-hz {:.0} \
          --shape-q {} --shape-depth {:.4}",
@@ -248,7 +205,7 @@ fn run_on<T: Transport>(args: &Args, client: &mut Client<T>) -> anyhow::Result<(
     );
     // The board's own timing, beside the loop the fit found: the sample's lead is a delay the
     // whole-tick model rounds (and the simulated board does not have).
-    let (latency_s, lead_deg) = board_timing(&report);
+    let (latency_s, lead_deg) = report.board_timing();
     println!(
         "board timing: sample to output {:.0} µs (one period, the DAC latched by the timer, plus \
          the sample's {:.0} µs lead); the lead costs {lead_deg:.1}° of phase at the {:.0} Hz \

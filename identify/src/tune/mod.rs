@@ -23,6 +23,7 @@ use fit::Fit;
 use loop_model::LoopFigures;
 use measure::{FrequencyPoint, MeasureError, SweepOptions};
 use twinstack::control::feedback::FeedbackSettings;
+use twinstack::control::notch::NotchDesign;
 use twinstack::protocol::messages::{Mode, StatusReport, StreamControl};
 use twinstack_link::client::{Client, LinkError};
 use twinstack_link::Transport;
@@ -73,6 +74,74 @@ pub struct TuneReport {
     pub before: Option<(FeedbackSettings, Result<LoopFigures, Refused>)>,
     /// The result was loaded onto the board.
     pub loaded: bool,
+}
+
+impl TuneReport {
+    /// The board's timing beside the tuned loop: sample to output, s
+    /// ([`twinstack::board::sample_to_output_s`]), and the phase the sample's lead
+    /// ([`twinstack::board::SAMPLE_LEAD_NS`]) costs at the loop's crossover, degrees — a delay
+    /// the whole-tick loop model rounds away and the simulated board does not have.
+    pub fn board_timing(&self) -> (f64, f64) {
+        let lead_s = twinstack::board::SAMPLE_LEAD_NS as f64 * 1e-9;
+        (
+            twinstack::board::sample_to_output_s(self.rate),
+            360.0 * self.design.figures.crossover_hz * lead_s,
+        )
+    }
+
+    /// The report as one JSON object: the measured points (magnitude in dB, phase in
+    /// degrees), the fit, the goals, the feedback and its figures, the input shaping for the
+    /// fitted resonance ([`shaping_for`]), the board's feedback before and its verdict, whether
+    /// it was loaded, and the board's timing ([`Self::board_timing`]). What `twinstack tune
+    /// --json` prints and Python's `Board.tune` returns.
+    pub fn to_json(&self) -> serde_json::Value {
+        let p = &self.fit.plant;
+        let (latency_s, lead_deg) = self.board_timing();
+        serde_json::json!({
+            "rate_hz": self.rate,
+            "points": self.points.iter().map(|q| serde_json::json!({
+                "frequency_hz": q.frequency_hz,
+                "magnitude_db": 20.0 * q.response.abs().log10(),
+                "phase_deg": q.response.arg().to_degrees(),
+            })).collect::<Vec<_>>(),
+            "fit": {
+                "gain": p.gain, "resonance_hz": p.resonance_hz, "zeta": p.zeta,
+                "delay_ticks": p.delay, "rms_db": self.fit.rms_db, "rms_deg": self.fit.rms_deg,
+            },
+            "goals": self.goals,
+            "feedback": self.design.settings,
+            "shaping": shaping_for(p.resonance_hz, p.zeta),
+            "figures": self.design.figures,
+            "before": self.before.as_ref().map(|(s, f)| serde_json::json!({
+                "feedback": s,
+                "figures": f.as_ref().ok(),
+                "refused": f.as_ref().err().map(|e| e.to_string()),
+            })),
+            "loaded": self.loaded,
+            "board_timing": {
+                "sample_to_output_s": latency_s,
+                "lead_phase_deg": lead_deg,
+            },
+        })
+    }
+}
+
+/// The input shaping for a resonance at `resonance_hz` with damping `zeta` (what [`tune`]
+/// fits): a notch whose zeros are the resonance's poles (`depth = 2·Q·ζ`) and whose poles are
+/// critically damped (`Q = ½`). The shaped stage's response has the notch's poles where the
+/// resonance was.
+///
+/// ```
+/// let n = twinstack_identify::tune::shaping_for(21_807.0, 0.01729);
+/// assert_eq!((n.frequency_hz, n.q, n.depth), (21_807.0, 0.5, 0.01729));
+/// ```
+pub fn shaping_for(resonance_hz: f64, zeta: f64) -> NotchDesign {
+    let q = 0.5;
+    NotchDesign {
+        frequency_hz: resonance_hz,
+        q,
+        depth: (2.0 * q * zeta).clamp(0.0, 1.0),
+    }
 }
 
 /// Why tuning stopped.
