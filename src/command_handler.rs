@@ -381,6 +381,7 @@ impl<S: RecordStorage> CommandHandler<S> {
                 coarse(control, |l, s| l.check_jog(s, velocity_mm_s))
             }
             Request::CoarseStop => coarse(control, |_, _| Ok(CoarseCommand::Stop)),
+            Request::CoarseRelease => coarse_release(control),
             Request::CoarseStatus => {
                 return match coarse_snapshot(control) {
                     Ok((_, status)) => Response::Coarse(status),
@@ -449,6 +450,7 @@ impl<S: RecordStorage> CommandHandler<S> {
             (t.analog, StatusReport::ANALOG),
             (t.analog_fault, StatusReport::ANALOG_FAULT),
             (self.watchdog_reset, StatusReport::WATCHDOG_RESET),
+            (t.coarse, StatusReport::COARSE),
         ] {
             if on {
                 flags |= flag;
@@ -1269,6 +1271,37 @@ where
         CoarseRefusal::Busy => NackReason::Busy,
         CoarseRefusal::Refused(r) => NackReason::Refused(r),
     })?;
-    control.lock(|c| c.coarse().request(command));
-    Ok(())
+    // A motion command takes a handed-back piezo again: not while one of its own sources
+    // runs or waits for its edge (it would be cut off). Checked and left in one lock, so no
+    // source starts between the two.
+    let engages = !matches!(command, CoarseCommand::Stop);
+    control.lock(|c| {
+        if engages && c.coarse().is_piezo_released() && c.piezo_source_busy() {
+            return Err(NackReason::Busy);
+        }
+        c.coarse().request(command);
+        Ok(())
+    })
+}
+
+/// Hands the piezo back from the coarse axis ([`Request::CoarseRelease`]): only with the axis
+/// at rest (unhomed, idle or faulted: its fine share is not part of a motion), checked on the
+/// latest status and again in the lock against a motion command the task has not taken yet
+/// (the status may be a coarse period old).
+#[inline(never)] // rare: kept out of the handler's common path
+fn coarse_release<L>(control: &mut L) -> Result<(), NackReason>
+where
+    L: Locks,
+{
+    let (_, status) = coarse_snapshot(control)?;
+    if status.state.is_moving() {
+        return Err(NackReason::Busy);
+    }
+    control.lock(|c| {
+        if c.coarse().motion_pending() {
+            return Err(NackReason::Busy);
+        }
+        c.release_piezo();
+        Ok(())
+    })
 }

@@ -120,6 +120,8 @@ pub struct Telemetry {
     pub analog: bool,
     /// Whether the analog input is lost or over-range (while it runs).
     pub analog_fault: bool,
+    /// Whether the coarse axis owns the piezo's setpoint ([`ControlLoop::coarse_owns_setpoint`]).
+    pub coarse: bool,
 }
 
 /// Everything the control interrupt owns. `C` is a handle on a
@@ -578,13 +580,23 @@ where
     /// The coarse task's first exchange (once per coarse period, under the tick's lock): the
     /// handler's pending command, taken, and where the piezo is as the tick knows it
     /// ([`Controller::position`]: the sensor's last reading; `None` without a sensor).
-    pub fn take_coarse(&mut self) -> (Option<crate::dual_stage::CoarseCommand>, Option<i32>) {
-        let measured = self
-            .controller
-            .sensor_config()
-            .is_some()
-            .then(|| self.controller.position());
-        (self.coarse.take(), measured)
+    pub fn take_coarse(&mut self) -> crate::dual_stage::CoarseTake {
+        let released = self.coarse.is_piezo_released();
+        let (command, engages) = self.coarse.take();
+        let measured = if self.controller.sensor_config().is_some() {
+            Some(self.controller.position())
+        } else if released {
+            // Handed back, the piezo moves on its own sources: without a sensor, its setpoint
+            // is the best reading of it the carriage estimate can subtract.
+            Some(self.controller.setpoint())
+        } else {
+            None
+        };
+        crate::dual_stage::CoarseTake {
+            command,
+            measured,
+            resume_fine: engages.then(|| self.controller.setpoint()),
+        }
     }
 
     /// The coarse task's post (once per coarse period, under the tick's lock): the period's
@@ -602,14 +614,39 @@ where
         if !self.coarse.is_attached() {
             return;
         }
-        if self.source != SetpointSource::Coarse {
+        let current = self.controller.setpoint();
+        // Handed back ([`ControlLoop::release_piezo`]): the status only.
+        if self.coarse.post(current, fine, status) && self.source != SetpointSource::Coarse {
             self.stop();
             // An input edge armed to start the stream would start nothing now.
             self.stream_on_trigger = false;
             self.source = SetpointSource::Coarse;
         }
-        let current = self.controller.setpoint();
-        self.coarse.post(current, fine, status);
+    }
+
+    /// Hands the piezo's setpoint back from the coarse axis to the loop's own sources, the
+    /// coarse task running on (attached and charged: it still reads the encoders and the
+    /// switches and holds the carriage): the stream, stopped, holds where the ramp left the
+    /// setpoint, and the stream, the waveform, scans, sequences and the analog input may
+    /// start again. The coarse task's next motion command engages the piezo again
+    /// ([`crate::dual_stage::CoarseLink::take`]). The handler asks it only of an axis at rest.
+    pub fn release_piezo(&mut self) {
+        self.coarse.release_piezo();
+        if self.source == SetpointSource::Coarse {
+            self.source = SetpointSource::Stream;
+            self.stream.stop();
+            self.stream.hold_at_if_stopped(self.controller.setpoint());
+        }
+    }
+
+    /// Whether one of the piezo's own sources runs or waits to start (the stream or the
+    /// waveform, a scan running or waiting for its edge, an armed sequence, the analog input,
+    /// the stream armed to start on the input's edge): what engaging the coarse axis again
+    /// would cut off.
+    pub fn piezo_source_busy(&self) -> bool {
+        self.is_running()
+            || self.scan_pending
+            || (self.stream_on_trigger && self.external.is_armed())
     }
 
     /// Detaches the coarse task and hands the piezo's setpoint back: the stream, stopped,
@@ -624,10 +661,11 @@ where
         }
     }
 
-    /// Whether the coarse axis owns the piezo's setpoint (its task has posted a ramp): the
-    /// stream, the waveform, a scan, a sequence and the analog input are refused.
+    /// Whether the coarse axis owns the piezo's setpoint (its task has posted a ramp, and the
+    /// piezo is not handed back; or a motion command that engages it again waits for the
+    /// task): the stream, the waveform, a scan, a sequence and the analog input are refused.
     pub fn coarse_owns_setpoint(&self) -> bool {
-        self.source == SetpointSource::Coarse
+        self.source == SetpointSource::Coarse || self.coarse.is_engaging()
     }
 
     /// The spare controller, for the handler to prepare a reload in (outside any lock): the
@@ -766,6 +804,7 @@ where
                 let a = self.analog.status();
                 a.running && (a.lost || a.over_range)
             },
+            coarse: self.coarse_owns_setpoint(),
         }
     }
 

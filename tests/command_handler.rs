@@ -2060,7 +2060,7 @@ fn the_status_counts_the_ticks_the_drift_check_flagged_since_start_up() {
 /// back, the stream holds there and takes setpoints again.
 #[test]
 fn once_the_coarse_axis_owns_the_setpoint_no_other_source_is_accepted() {
-    use twinstack::dual_stage::{FineSetpoints, PreparedCoarse};
+    use twinstack::dual_stage::{CoarseTake, FineSetpoints, PreparedCoarse};
     use twinstack::sources::analog_input::{AnalogInputConfig, AnalogRequest, OnFault};
     use twinstack::sources::scan::TriggerEdge;
     use twinstack::sources::sequence::{SequenceConfig, SequenceRequest};
@@ -2149,7 +2149,12 @@ fn once_the_coarse_axis_owns_the_setpoint_no_other_source_is_accepted() {
     // The coarse task's exchange: the command the handler left, and the piezo's position as
     // the sensor last read it; none without a sensor.
     let reading = b.control.controller().position();
-    assert_eq!(b.control.take_coarse(), (None, Some(reading)));
+    let take = |measured| CoarseTake {
+        command: None,
+        measured,
+        resume_fine: None,
+    };
+    assert_eq!(b.control.take_coarse(), take(Some(reading)));
     let mut blind = board();
     blind.control.attach_coarse(&PreparedCoarse::new(
         paper_stage_coarse_limits(),
@@ -2165,7 +2170,7 @@ fn once_the_coarse_axis_owns_the_setpoint_no_other_source_is_accepted() {
         Response::Ack { .. }
     ));
     blind.ticks(1);
-    assert_eq!(blind.control.take_coarse(), (None, None));
+    assert_eq!(blind.control.take_coarse(), take(None));
     // What does not start a source still works: the trigger outputs alone.
     assert!(matches!(
         b.handle(Request::Trigger(TriggerConfig {
@@ -2198,6 +2203,92 @@ fn once_the_coarse_axis_owns_the_setpoint_no_other_source_is_accepted() {
     b.ticks(2);
     assert_eq!(b.control.controller().setpoint(), end);
     assert!(matches!(b.handle(batch(1, &[3000])), Response::Ack { .. }));
+}
+
+/// The piezo handed back from the coarse axis (`ControlLoop::release_piezo`): the coarse task
+/// stays attached and charged, its posts carry only its status, and the piezo's own sources
+/// start again; a motion command left for the task takes the piezo back from the handler's
+/// acknowledgement on (the sources are refused again), and the task is told where the
+/// piezo's setpoint is, so that its ramp leaves from there.
+#[test]
+fn the_piezo_handed_back_from_the_coarse_axis_plays_its_own_sources_until_the_next_motion() {
+    use twinstack::dual_stage::{CoarseCommand, FineSetpoints, MotionLimits, PreparedCoarse};
+    let mut b = board();
+    let status = b.control.coarse().status();
+    let task = PreparedCoarse::new(paper_stage_coarse_limits(), status, RATE);
+    b.control.attach_coarse(&task);
+    let ramp = |to| FineSetpoints {
+        from: 0,
+        to,
+        ticks: 4,
+    };
+    b.control.post_coarse(&ramp(1 << 28), status);
+    b.ticks(4);
+    assert!(b.control.coarse_owns_setpoint());
+    assert!(!b.control.piezo_source_busy());
+    b.control.release_piezo();
+    assert!(!b.control.coarse_owns_setpoint());
+    assert_eq!(
+        b.control.beside().coarse_task,
+        task.share(),
+        "still charged"
+    );
+    // A scan plays; the task's posts update the status and move nothing.
+    assert!(matches!(
+        b.handle(Request::Scan(small_raster(0, false))),
+        Response::Ack { .. }
+    ));
+    assert!(b.control.piezo_source_busy());
+    b.ticks(30);
+    let moved = CoarseStatus {
+        ticks: status.ticks + 7,
+        ..status
+    };
+    b.control.post_coarse(&ramp(0), moved);
+    assert_eq!(b.control.coarse().status(), moved);
+    b.ticks(3);
+    assert!(b.control.is_scanning() && !b.control.coarse_owns_setpoint());
+    let take = b.control.take_coarse();
+    assert_eq!((take.command, take.resume_fine), (None, None));
+    assert!(take.measured.is_some(), "the sensor's reading");
+    // Stopped, the piezo holds; a move left for the task takes it back at once.
+    assert!(matches!(
+        b.handle(Request::Stream(StreamControl::Stop)),
+        Response::Ack { .. }
+    ));
+    let held = b.control.controller().setpoint();
+    let limits = MotionLimits {
+        velocity: 1000,
+        acceleration: 10,
+    };
+    b.control.coarse().request(CoarseCommand::MoveTo {
+        target_pm: 1_000_000,
+        limits,
+    });
+    assert!(b.control.coarse_owns_setpoint());
+    assert_eq!(
+        b.handle(Request::Stream(StreamControl::Start)),
+        nack(NackReason::Unsupported)
+    );
+    let take = b.control.take_coarse();
+    assert!(matches!(take.command, Some(CoarseCommand::MoveTo { .. })));
+    assert_eq!(
+        take.resume_fine,
+        Some(held),
+        "the ramp leaves from the piezo"
+    );
+    b.control.post_coarse(&ramp(held + 400), status);
+    b.tick();
+    assert_eq!(b.control.controller().setpoint(), held + 100, "no jump");
+    assert!(b.control.coarse_owns_setpoint());
+    // A stop taken while handed back engages nothing.
+    b.control.release_piezo();
+    b.control.coarse().request(CoarseCommand::Stop);
+    assert!(!b.control.coarse_owns_setpoint());
+    let take = b.control.take_coarse();
+    assert_eq!(take.resume_fine, None);
+    b.control.post_coarse(&ramp(0), status);
+    assert!(!b.control.coarse_owns_setpoint());
 }
 
 /// The coarse axis's limits of the paper stage's supervisor, at its 5 kHz coarse rate (what the

@@ -7,7 +7,9 @@ use std::time::Duration;
 
 use hal_sim::coarse_rig::{DualStageDevice, DualStageDeviceConfig, InjectedFaults};
 use twinstack::dual_stage::{CoarseState, CoarseStatus};
-use twinstack::protocol::messages::{CoarseMove, NackReason, Request};
+use twinstack::protocol::messages::{
+    CoarseMove, NackReason, Request, Response, StatusReport, StreamControl, WaveShape, Waveform,
+};
 use twinstack::refusal::{Field, Refusal, Rule};
 use twinstack_link::client::{Client, LinkError};
 
@@ -138,6 +140,128 @@ fn a_5_mm_move_over_the_wire_settles_within_the_encoder_resolution() {
         (status.position_pm - -19_000_000_000).abs() <= 10_000,
         "{status:?}"
     );
+}
+
+fn busy(e: LinkError) {
+    assert!(
+        matches!(
+            e,
+            LinkError::Nack {
+                reason: NackReason::Busy,
+                ..
+            }
+        ),
+        "not busy: {e}"
+    );
+}
+
+/// The piezo handed back from the homed axis at rest plays its own source (a waveform) while
+/// the carriage holds; a move is refused while it plays (it would be cut off), and once it
+/// is stopped the move takes the piezo back: its setpoint leaves from where the waveform left
+/// it at the dual stage's slope limit, with no jump, and the move settles as before.
+#[test]
+fn the_piezo_handed_back_plays_its_own_source_and_the_next_move_takes_it_back_without_a_jump() {
+    let mut c = board();
+    home(&mut c);
+    c.wait(Duration::from_millis(50)).unwrap();
+    assert!(c.status().unwrap().has(StatusReport::COARSE));
+    let wave = Waveform {
+        shape: WaveShape::Triangle,
+        offset: 0,
+        amplitude: (0.6 * 32768.0) as i16,
+        frequency_mhz: 2_000,
+        decay: None,
+    };
+    assert!(matches!(
+        c.waveform(wave),
+        Err(LinkError::Nack {
+            reason: NackReason::Unsupported,
+            ..
+        })
+    ));
+    c.coarse(&Request::CoarseRelease).unwrap();
+    assert!(!c.status().unwrap().has(StatusReport::COARSE));
+    let carriage = c.transport().coarse_rig().unwrap().screw().carriage_um();
+    c.waveform(wave).unwrap();
+    // Until the piezo is far out (the triangle's crest, 0.6 of the half stroke).
+    let dev = c.transport_mut();
+    let mut far = 0.0f64;
+    for _ in 0..20_000 {
+        dev.run_for(TICK);
+        far = dev.coarse_rig().unwrap().piezo_um();
+        if far.abs() > 15.0 {
+            break;
+        }
+    }
+    assert!(far.abs() > 15.0, "the piezo plays its waveform: {far} µm");
+    let rig = c.transport().coarse_rig().unwrap();
+    let held = (rig.screw().carriage_um() - carriage).abs();
+    assert!(held < 0.5, "the carriage holds: moved {held} µm");
+    assert_eq!(rig.status().state, CoarseState::Idle);
+    busy(c.coarse(&move_to(-23.0)).unwrap_err());
+    c.expect_ack(&Request::Stream(StreamControl::Stop)).unwrap();
+    // The move sent, then tick by tick: the piezo's setpoint (Q2.30) every tick.
+    let setpoint = |c: &Client<DualStageDevice>| c.transport().control().controller().setpoint();
+    let from = setpoint(&c);
+    c.send(&move_to(-23.0)).unwrap();
+    let mut last = from;
+    let mut largest = 0i64;
+    for _ in 0..5_000 {
+        c.transport_mut().run_for(TICK);
+        let now = setpoint(&c);
+        largest = largest.max((now as i64 - last as i64).abs());
+        last = now;
+    }
+    assert!(matches!(
+        c.receive(Duration::from_secs(1)).unwrap(),
+        Some(Response::Ack { .. })
+    ));
+    // The dual stage's slope limit on the piezo: `fine_step_pm` a coarse period, spread over
+    // its fine ticks (0.6 µm a tick of the ±40 µm range: about 16·10⁶ in Q2.30). A ramp from
+    // the piezo's last coarse ramp, not from where the waveform left it, would have covered
+    // the whole way (15 µm) within one coarse period.
+    let config = *c
+        .transport()
+        .coarse_rig()
+        .unwrap()
+        .supervisor()
+        .dual()
+        .config();
+    let per_tick = config.fine_step_pm as f64 / config.fine_ticks as f64;
+    // In Q2.30, with room for the roundings (the fine setpoint's to Q2.30, and the ramp's last
+    // tick taking its division's remainder, less than a tick's count of LSBs).
+    let bound = (per_tick / config.fine_half_span_pm as f64 * (1u64 << 30) as f64).ceil() as i64
+        + config.fine_ticks as i64
+        + 2;
+    println!(
+        "piezo taken back from {:.3} (normalised): largest step {largest} a tick (slope limit {bound}), now {:.3}",
+        from as f64 / (1u64 << 30) as f64,
+        last as f64 / (1u64 << 30) as f64,
+    );
+    assert!(
+        from > 1 << 28,
+        "the waveform left the piezo far out: {from}"
+    );
+    assert!(
+        largest <= bound,
+        "{largest} in one tick, the slope limit {bound}"
+    );
+    assert!(
+        last.abs() < 1 << 28,
+        "back within the dual stage's share: {last}"
+    );
+    assert!(c.status().unwrap().has(StatusReport::COARSE));
+    busy(c.coarse(&Request::CoarseRelease).unwrap_err());
+    assert!(matches!(
+        c.waveform(wave),
+        Err(LinkError::Nack {
+            reason: NackReason::Unsupported,
+            ..
+        })
+    ));
+    let s = until(&mut c, 5.0, |s| s.state == CoarseState::Idle);
+    assert_eq!(s.faults, 0);
+    assert!((s.position_pm - -23_000_000_000).abs() <= 10_000, "{s:?}");
 }
 
 /// Home, start a 5 mm move up, inject a fault 0.1 s in; checks what every fault must do,

@@ -265,10 +265,14 @@ impl CoarseRig {
                 upper: carriage >= self.switches.upper_um || self.faults.upper_limit,
                 home: at(self.switches.home_um),
             });
-            let (command, measured) = control.take_coarse();
-            if let Some(command) = command {
+            let take = control.take_coarse();
+            if let Some(q) = take.resume_fine {
+                self.supervisor.resume_fine_from(q);
+            }
+            if let Some(command) = take.command {
                 let _ = self.supervisor.command(command);
             }
+            let measured = take.measured;
             let fine = self.supervisor.tick(
                 &mut self.step_dir,
                 &mut self.motor,

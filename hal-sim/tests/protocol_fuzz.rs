@@ -181,6 +181,9 @@ fn seeds() -> Vec<Request> {
         Request::Analog(AnalogRequest::Stop),
         Request::Analog(AnalogRequest::Status),
         Request::Echo(heapless::Vec::from_slice(&[1, 2, 3, 0, 255]).unwrap()),
+        // The dual-stage board hands the piezo back to the sources above, and its moves take
+        // it again.
+        Request::CoarseRelease,
     ]
 }
 

@@ -112,6 +112,7 @@ pub fn request_name(request: &Request) -> &'static str {
         Request::Echo(_) => "Echo",
         Request::Analog(_) => "Analog",
         Request::WatchdogDrill => "WatchdogDrill",
+        Request::CoarseRelease => "CoarseRelease",
     }
 }
 
@@ -595,7 +596,7 @@ impl<T: Transport> Client<T> {
         }
     }
 
-    /// Sends a coarse-axis command (home, move, jog, stop); `Ok` once acknowledged.
+    /// Sends a coarse-axis command (home, move, jog, stop, release); `Ok` once acknowledged.
     pub fn coarse(&mut self, request: &Request) -> Result<(), LinkError> {
         self.expect_ack(request).map(|_| ())
     }

@@ -265,6 +265,14 @@ impl DualStage {
             .saturating_add(linear.saturating_mul(self.config.linear_count_pm))
     }
 
+    /// Continues the fine ramp from `q` (Q2.30 of the piezo controller's range: where the
+    /// piezo's setpoint is after its own sources moved it), so that the next periods' fine
+    /// setpoints leave from there at the slope limit, with no jump.
+    pub fn resume_fine_from(&mut self, q: i32) {
+        self.fine_q = q;
+        self.fine_pm = self.fine_to_pm(q);
+    }
+
     /// The last fine setpoint handed out (Q2.30 of the piezo controller's range): where the
     /// piezo holds when the coarse tick stops.
     pub fn fine_setpoint(&self) -> i32 {

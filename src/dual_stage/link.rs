@@ -7,7 +7,13 @@
 //!   ([`crate::control_loop::ControlLoop::take_coarse`]), runs its tick, then posts the
 //!   piezo's setpoints for the coming period (a [`FineRamp`], prepared here — the one division
 //!   is off the tick) and its status ([`crate::control_loop::ControlLoop::post_coarse`]). The
-//!   first post makes the ramp the loop's setpoint source for good.
+//!   first post makes the ramp the loop's setpoint source.
+//! * The **piezo handed back** ([`CoarseLink::release_piezo`], the handler's
+//!   `Request::CoarseRelease`, the axis at rest): the coarse task runs on (the encoders, the
+//!   switches, the status; the carriage held where it is), but its posts carry only its status,
+//!   and the piezo takes its setpoint from its own sources again. The next motion command the
+//!   task takes (home, move, jog) engages the piezo again: the task is told where the piezo's
+//!   setpoint is ([`CoarseTake::resume_fine`]), so its slope-limited ramp continues from there.
 //! * The **piezo tick** takes its setpoint from the ramp ([`FineRamp::next_setpoint`]: an add and a
 //!   compare, no division) instead of the setpoint stream, as it would from any other source,
 //!   and stores nothing for the coarse task.
@@ -123,6 +129,23 @@ impl PreparedCoarse {
     }
 }
 
+/// What the coarse task takes from the loop at the start of its period
+/// ([`crate::control_loop::ControlLoop::take_coarse`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct CoarseTake {
+    /// The handler's pending command, if any.
+    pub command: Option<CoarseCommand>,
+    /// Where the piezo is (Q2.30 of its controller's range): the sensor's last reading, or,
+    /// while the piezo is handed back and has no sensor, its setpoint (it moves on its own
+    /// then, and the carriage estimate must not follow it); `None` otherwise (the task takes
+    /// its own last fine setpoint).
+    pub measured: Option<i32>,
+    /// Set when this command engages the piezo again after it was handed back: the piezo's
+    /// setpoint now (Q2.30), for the task to continue its fine ramp from
+    /// ([`crate::dual_stage::CoarseSupervisor::resume_fine_from`]).
+    pub resume_fine: Option<i32>,
+}
+
 /// The coarse axis's mailbox in the control loop (see the module doc).
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct CoarseLink {
@@ -133,6 +156,8 @@ pub struct CoarseLink {
     /// The coarse task's share of each fine tick, cycles
     /// ([`crate::config::tick_budget::coarse_task_share`]), 0 until attached.
     task_share: u32,
+    /// The piezo is handed back ([`CoarseLink::release_piezo`]): posts carry the status only.
+    released: bool,
 }
 
 impl CoarseLink {
@@ -161,6 +186,7 @@ impl CoarseLink {
             },
             limits: None,
             task_share: 0,
+            released: false,
         }
     }
 
@@ -198,16 +224,56 @@ impl CoarseLink {
     }
 
     /// The coarse task's side, first, once per period: the handler's pending command, taken
-    /// (the loop adds the piezo's position: [`crate::control_loop::ControlLoop::take_coarse`]).
-    pub fn take(&mut self) -> Option<CoarseCommand> {
-        self.command.take()
+    /// (the loop adds the piezo's position: [`crate::control_loop::ControlLoop::take_coarse`]),
+    /// and whether it engages the piezo again: a motion command (home, move, jog) taken while
+    /// the piezo is handed back ends the hand-back, and the next post ramps from the setpoint
+    /// the tick uses then.
+    pub fn take(&mut self) -> (Option<CoarseCommand>, bool) {
+        let engages = self.is_engaging();
+        let command = self.command.take();
+        if engages {
+            self.released = false;
+            self.ramp = FineRamp::new();
+        }
+        (command, engages)
     }
 
     /// The coarse task's side, second: posts the period's fine setpoints (ramping from
-    /// `current`, the tick's setpoint now) and the status after its tick.
-    pub fn post(&mut self, current: i32, fine: &FineSetpoints, status: CoarseStatus) {
-        self.ramp.post(current, fine);
+    /// `current`, the tick's setpoint now) and the status after its tick; while the piezo is
+    /// handed back, only the status. Returns whether the ramp was posted (the piezo follows
+    /// the coarse axis).
+    pub fn post(&mut self, current: i32, fine: &FineSetpoints, status: CoarseStatus) -> bool {
         self.status = status;
+        if self.released {
+            return false;
+        }
+        self.ramp.post(current, fine);
+        true
+    }
+
+    /// Hands the piezo back to its own sources (the loop switches its source:
+    /// [`crate::control_loop::ControlLoop::release_piezo`]): the task runs on, posting its
+    /// status only, until it takes a motion command ([`CoarseLink::take`]).
+    pub fn release_piezo(&mut self) {
+        self.released = true;
+        self.ramp = FineRamp::new();
+    }
+
+    /// Whether the piezo is handed back ([`CoarseLink::release_piezo`]).
+    pub fn is_piezo_released(&self) -> bool {
+        self.released
+    }
+
+    /// Whether a motion command waits for the task that will engage the piezo again when the
+    /// task takes it: from the handler's acknowledgement on, the piezo is the coarse axis's.
+    pub fn is_engaging(&self) -> bool {
+        self.released && self.motion_pending()
+    }
+
+    /// Whether a motion command (home, move, jog) waits for the task to take it.
+    pub fn motion_pending(&self) -> bool {
+        self.command
+            .is_some_and(|c| !matches!(c, CoarseCommand::Stop))
     }
 
     /// The coarse task gone (the loop handed the setpoint back to the stream): no limits, no
@@ -219,6 +285,7 @@ impl CoarseLink {
         self.limits = None;
         self.task_share = 0;
         self.command = None;
+        self.released = false;
         self.ramp = FineRamp::new();
     }
 

@@ -77,6 +77,15 @@ pub enum CoarseState {
 }
 
 impl CoarseState {
+    /// Whether the axis is in motion (homing, a move, a jog or braking): the states in which
+    /// the piezo's fine share is part of the motion.
+    pub const fn is_moving(self) -> bool {
+        matches!(
+            self,
+            Self::Homing | Self::Moving | Self::Jogging | Self::Stopping
+        )
+    }
+
     /// The name the host prints.
     pub const fn name(self) -> &'static str {
         match self {
@@ -540,6 +549,14 @@ impl CoarseSupervisor {
     /// The dual-stage controller.
     pub fn dual(&self) -> &DualStage {
         &self.dual
+    }
+
+    /// The piezo comes back from its own sources with its setpoint at `q` (Q2.30): the fine
+    /// ramp continues from there ([`DualStage::resume_fine_from`]). The coarse task calls it
+    /// before the tick that takes the command engaging it
+    /// ([`crate::dual_stage::CoarseTake::resume_fine`]).
+    pub fn resume_fine_from(&mut self, q: i32) {
+        self.dual.resume_fine_from(q);
     }
 
     /// The status (user coordinates).

@@ -769,12 +769,18 @@ mod coarse {
             let (steps, motor, linear, switches) = &mut self.io;
             // The handler's command and the piezo's measurement of the last fine tick (the
             // carriage estimate subtracts it from the linear encoder's).
-            let (command, measured) = tick.lock(|t| t.control.take_coarse());
-            if let Some(command) = command {
+            let take = tick.lock(|t| t.control.take_coarse());
+            if let Some(q) = take.resume_fine {
+                // The piezo comes back from its own sources: the fine ramp leaves from where
+                // they left its setpoint.
+                axis.resume_fine_from(q);
+            }
+            if let Some(command) = take.command {
                 // Refused now (the state changed since the handler's check): the status says
                 // what the axis does instead.
                 let _ = axis.command(command);
             }
+            let measured = take.measured;
             // The emulator has no piezo (QEMU's ADC reads 0): no measurement; the model's
             // piezo sits where its setpoint is.
             #[cfg(feature = "emulator")]

@@ -22,7 +22,7 @@ use serde::{Deserialize, Serialize};
 use super::frame::{FrameError, Message, MAX_BODY};
 
 impl Message for Request {
-    const VARIANTS: u32 = 28;
+    const VARIANTS: u32 = 29;
 }
 
 impl Message for Response {
@@ -127,6 +127,16 @@ pub enum Request {
     /// the stream) is refused with `Busy` and an armed input edge starts nothing, so the
     /// reset cuts off no motion.
     WatchdogDrill,
+    /// Hand the piezo's setpoint back from the dual-actuated stage's coarse axis to the
+    /// piezo's own sources (the stream, the waveform, scans, sequences, the analog input): the
+    /// coarse axis holds where it is (its task runs on: encoders, switches, status), and its
+    /// next move, jog or homing takes the piezo again, its fine ramp leaving from where the
+    /// piezo's sources left it. `Ack` (also when already handed back); `Busy` while the axis
+    /// homes, moves, jogs or brakes; `Refused(CoarseAxis, NoHardware)` without a coarse axis.
+    /// While the piezo is handed back, a move, jog or homing is refused with `Busy` as long as
+    /// one of its sources runs or waits for the trigger input (stop it first): nothing the
+    /// board accepted is cut off. [`StatusReport::COARSE`] is clear while it is handed back.
+    CoarseRelease,
 }
 
 /// Most bytes one [`Request::Echo`] carries: what fills a frame body of [`MAX_BODY`]
@@ -575,8 +585,11 @@ impl StatusReport {
     /// Flag: the board last started from a watchdog reset (its tick stopped feeding the
     /// watchdog: a hang, or a [`Request::WatchdogDrill`]); set until the next reset.
     pub const WATCHDOG_RESET: u16 = 1 << 15;
-    // Bit 4 is reserved (protocol v2's "load waiting for the next tick": since v3 a load is
-    // in force when it is acknowledged).
+    /// Flag: the dual-actuated stage's coarse axis owns the piezo's setpoint (the dual-stage
+    /// images, from the coarse task's first post until [`Request::CoarseRelease`], and again
+    /// from the next coarse motion); the piezo's own sources are refused meanwhile. (Bit 4
+    /// was protocol v2's "load waiting for the next tick", unused since v3.)
+    pub const COARSE: u16 = 1 << 4;
     /// Flags bits 8–9: the mode (0 bypass, 1 open loop, 2 closed loop).
     pub const MODE_SHIFT: u16 = 8;
     /// Flags bits 12–13: which build answers ([`Image`]; 0 from images older than the field).

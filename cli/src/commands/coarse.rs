@@ -1,4 +1,4 @@
-//! `twinstack coarse home|move|jog|stop|status --port PORT`: the dual-actuated stage's coarse
+//! `twinstack coarse home|move|jog|stop|release|status --port PORT`: the dual-actuated stage's coarse
 //! axis on a board with it (`cargo build-fw-dual`, the emulator image `cargo build-emu-dual`,
 //! the virtual board `virtual-board --dual-stage`). With `--port sim` the in-process board is
 //! the simulated dual-stage board ([`hal_sim::coarse_rig`]: the piezo stage on the ball screw),
@@ -15,7 +15,7 @@ use super::board_link::{connect, port_spec, BoardClient, PortArgs};
 use hal_sim::coarse_rig::{DualStageDevice, DualStageDeviceConfig};
 use hal_sim::port::PortSpec;
 use twinstack::dual_stage::CoarseStatus;
-use twinstack::protocol::messages::{CoarseMove, Request};
+use twinstack::protocol::messages::{CoarseMove, Request, StatusReport};
 use twinstack_link::Client;
 
 /// Arguments of `coarse`.
@@ -37,7 +37,11 @@ pub enum Action {
     Jog(JogArgs),
     /// Controlled stop (brakes at the move's acceleration).
     Stop(PortOnly),
-    /// Position, state, faults and switches.
+    /// Hand the piezo back to its own sources (stream, waveform, scans, sequences, the
+    /// analog input), the axis at rest holding where it is; the next move, jog or homing
+    /// takes it again (refused while one of those sources runs).
+    Release(PortOnly),
+    /// Position, state, faults and switches, and whether the piezo follows the axis.
     Status(PortOnly),
 }
 
@@ -202,9 +206,16 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
             client.coarse(&Request::CoarseStop)?;
             println!("stopping");
         }
+        Action::Release(a) => {
+            let mut client = connect_coarse(&a.port)?;
+            client.coarse(&Request::CoarseRelease)?;
+            println!("released: the piezo plays its own sources until the next coarse motion");
+        }
         Action::Status(a) => {
             let mut client = connect_coarse(&a.port)?;
             print!("{}", format_coarse_status(&client.coarse_status()?));
+            let follows = client.status()?.has(StatusReport::COARSE);
+            println!("piezo {}", if follows { "coarse" } else { "own" });
         }
     }
     Ok(())
