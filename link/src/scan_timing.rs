@@ -292,6 +292,23 @@ fn clock(measured: &[u8], replayed: &[u8], bit: u8, ideal: f64) -> ClockFigures 
     }
 }
 
+/// The pattern's kind, as [`parse_pattern`] takes it: `"raster"`, `"lissajous"` or
+/// `"spiral"`. A raster's lines run back and forth (serpentine): its odd lines' pixels are
+/// numbered back along the line.
+///
+/// ```
+/// use twinstack_link::scan_timing::{parse_pattern, pattern_kind};
+/// assert_eq!(pattern_kind(&parse_pattern(" Raster:lines=8").unwrap()), "raster");
+/// assert_eq!(pattern_kind(&parse_pattern("spiral:hz=200").unwrap()), "spiral");
+/// ```
+pub fn pattern_kind(pattern: &ScanPattern) -> &'static str {
+    match pattern {
+        ScanPattern::Raster(_) => "raster",
+        ScanPattern::Lissajous(_) => "lissajous",
+        ScanPattern::Spiral(_) => "spiral",
+    }
+}
+
 /// The pattern in words.
 pub fn describe(pattern: &ScanPattern) -> String {
     match pattern {

@@ -40,7 +40,7 @@ use twinstack_link::board_requests::{self, LoadRefused};
 use twinstack_link::capture::{self, CaptureError};
 use twinstack_link::client::{Client, LinkError};
 use twinstack_link::learning;
-use twinstack_link::scan_timing::{parse_pattern, run_scan, ScanRunError};
+use twinstack_link::scan_timing::{parse_pattern, pattern_kind, run_scan, ScanRunError};
 use twinstack_link::sequence_run::{run_sequence, SequenceError, SequenceOptions};
 use twinstack_link::setpoint_file::divider_for_rate;
 use twinstack_link::settings_path;
@@ -826,7 +826,8 @@ impl Board {
     /// `y` (the replay's slow axis, normalised, for another axis to follow; NaN during the
     /// approach), `pixel`, `line`, `frame` (the outputs' levels, bool arrays), `figures`
     /// (each clock's pulses, jitter and width against the replay, the turnaround-to-line
-    /// time, as `twinstack scan --json`) and `truncated` (the capture ended before the scan).
+    /// time, as `twinstack scan --json`), `truncated` (the capture ended before the scan) and
+    /// `kind` (the pattern parsed: `"raster"`, `"lissajous"` or `"spiral"`).
     /// `start_on` `"rising"` or `"falling"` arms the trigger input: the scan waits for that
     /// edge (a camera's frame starts it), and `timeout` counts from the request. A pattern the
     /// board would refuse raises `ValueError` naming the field, nothing sent; a scan that
@@ -857,6 +858,7 @@ impl Board {
         };
         let pattern = parse_pattern(pattern)
             .map_err(|e| PyValueError::new_err(format!("pattern {pattern:?}: {e}")))?;
+        let kind = pattern_kind(&pattern);
         let request = ScanRequest {
             pattern,
             ticks_per_pixel,
@@ -905,6 +907,7 @@ impl Board {
             .map_err(|e| PyRuntimeError::new_err(format!("the scan's figures: {e}")))?;
         d.set_item("figures", json_to_py(py, &figures)?)?;
         d.set_item("truncated", run.truncated())?;
+        d.set_item("kind", kind)?;
         Ok(d)
     }
 

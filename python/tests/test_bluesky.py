@@ -139,6 +139,21 @@ def test_a_fly_scan_of_the_board_s_own_raster_gives_one_event_per_pixel_clock(bo
         ScanFlyer(board, "raster:lines=2,pixels=4", frames=0)
 
 
+def test_a_fly_scan_numbers_pixels_by_the_kind_of_pattern_the_board_parsed(board, RE):
+    # A raster named in capitals is still a raster: its second line's pixels are numbered
+    # back along the line. A Lissajous figure's are numbered in time within each line.
+    raster = ScanFlyer(board, "RASTER:lines=2,pixels=10,turn=40", name="r")
+    lissajous = ScanFlyer(board, "lissajous:hz=500,x=3,y=2", name="l")
+    RE(bp.fly([raster]))
+    RE(bp.fly([lissajous]))
+    pixels = [e["data"]["r_pixel"] for e in events(RE.docs, "r")]
+    assert pixels == list(range(10)) + list(range(9, -1, -1))
+    by_line: dict = {}
+    for e in events(RE.docs, "l"):
+        by_line.setdefault((e["data"]["l_frame"], e["data"]["l_line"]), []).append(e["data"]["l_pixel"])
+    assert by_line and all(p == list(range(len(p))) for p in by_line.values()), by_line
+
+
 def test_a_fly_scan_shaped_for_the_resonance_calibrate_measured(board, stage_params, RE):
     # One setpoint a tick: the shaping needs the next setpoints where the board holds each.
     tick = float(board.status()["tick_rate_hz"])

@@ -261,7 +261,7 @@ def test_telemetry_the_link_cannot_carry_or_the_board_cannot_sample_is_refused(b
 def test_the_board_s_raster_runs_with_its_clocks_as_the_library_replays_it(board):
     run = board.scan("raster:lines=6,pixels=50,turn=40,amplitude=0.6,offset=0.1", ticks_per_pixel=4)
     f = run["figures"]
-    assert not run["truncated"]
+    assert not run["truncated"] and run["kind"] == "raster"
     # Every setpoint and trigger level as the library's replay has them, tick for tick.
     assert f["x_mismatches"] == 0 and f["trigger_mismatches"] == 0 and f["x_compared"] > 1000
     # One frame, six lines, 300 pixels: the clocks counted in the levels returned.
@@ -278,6 +278,18 @@ def test_the_board_s_raster_runs_with_its_clocks_as_the_library_replays_it(board
     assert at_pixels.max() == pytest.approx(0.7 * 45, abs=step)
     assert at_pixels.min() == pytest.approx(-0.5 * 45, abs=step)
     assert "scanning" not in board.status()["flags"]
+
+
+def test_a_scan_returns_the_kind_of_pattern_the_board_parsed(board):
+    # The pattern's kind as parsed (its name in any case, spaces around it), not its text.
+    for pattern, kind in [
+        (" Raster:lines=2,pixels=10,turn=40", "raster"),
+        ("LISSAJOUS:hz=500,x=3,y=2", "lissajous"),
+        ("spiral:hz=2000,turns=2", "spiral"),
+    ]:
+        run = board.scan(pattern)
+        assert run["kind"] == kind, pattern
+        assert not run["truncated"] and run["figures"]["x_mismatches"] == 0, pattern
 
 
 def test_a_scan_started_by_the_camera_s_frame_waits_for_its_edge():

@@ -426,7 +426,8 @@ class Board:
         ``"setpoint"`` (output unit), ``"y"`` (the replay's slow axis, normalised; NaN during
         the approach), ``"pixel"``, ``"line"``, ``"frame"`` (bool arrays of the outputs'
         levels), ``"figures"`` (the clocks against the library's replay, as ``twinstack scan
-        --json``) and ``"truncated"``. ``start_on`` ``"rising"`` or ``"falling"``: the scan waits
+        --json``), ``"truncated"`` and ``"kind"`` (the pattern parsed: ``"raster"``,
+        ``"lissajous"`` or ``"spiral"``). ``start_on`` ``"rising"`` or ``"falling"``: the scan waits
         for that edge of the trigger input (a camera's frame starts it). A pattern the board
         would refuse raises ``ValueError`` naming the field (nothing sent); a scan that differs
         from the replay ``RuntimeError``."""

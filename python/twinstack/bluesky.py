@@ -657,7 +657,7 @@ class ScanFlyer(_BoardFlyer):
                     f"{run['t'].size} ticks): fewer frames or pixels"
                 )
             self._figures = run["figures"]
-            self._events = _pixel_events(run, self.pattern.strip().startswith("raster"))
+            self._events = _pixel_events(run, run["kind"] == "raster")
 
         _run(played, fly)
         return started
