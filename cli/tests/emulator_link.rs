@@ -28,7 +28,7 @@ const RECORD_VALUES: u32 = 9_728;
 use twinstack::protocol::frame::{self, FrameError, MAX_ENCODED};
 use twinstack::protocol::messages::{
     Image, Mode, NackReason, RecordRequest, Request, Response, SetpointBatch, Signal, StatusReport,
-    UnderrunPolicy,
+    StreamControl, UnderrunPolicy, WaveShape, Waveform,
 };
 
 /// QEMU running the emulator image with USART1 on a Unix socket; killed on drop.
@@ -581,6 +581,36 @@ fn the_coarse_axis_of_the_emulated_firmware_homes_and_moves_over_its_uart() {
     assert_eq!((s.state, s.faults), (CoarseState::Idle, 0), "{s:?}");
     // The model's carriage moves in whole microsteps (0.3125 µm) and nothing else moves it.
     assert!((s.position_pm - -20_000_000_000).abs() <= 320_000, "{s:?}");
+    // The piezo handed back: its own waveform plays, a move is refused while it does, and the
+    // carriage holds.
+    assert!(client.status().unwrap().has(StatusReport::COARSE));
+    client.coarse(&Request::CoarseRelease).expect("release");
+    assert!(!client.status().unwrap().has(StatusReport::COARSE));
+    client
+        .waveform(Waveform {
+            shape: WaveShape::Triangle,
+            offset: 0,
+            amplitude: 8192,
+            frequency_mhz: 20_000,
+            decay: None,
+        })
+        .expect("the piezo's own waveform");
+    client.wait(Duration::from_millis(50)).unwrap();
+    assert!(client.status().unwrap().has(StatusReport::WAVEFORM));
+    assert!(matches!(
+        client.coarse(&move_to(-21.0)),
+        Err(LinkError::Nack {
+            reason: NackReason::Busy,
+            ..
+        })
+    ));
+    client.stream(StreamControl::Stop).unwrap();
+    let held = client.coarse_status().unwrap();
+    assert_eq!(held.state, CoarseState::Idle);
+    assert!(
+        (held.position_pm - s.position_pm).abs() <= 320_000,
+        "{held:?}"
+    );
     drop(client);
 
     // The command-line tool on the same UART.
@@ -605,6 +635,16 @@ fn the_coarse_axis_of_the_emulated_firmware_homes_and_moves_over_its_uart() {
         .and_then(|v| v.trim().parse().ok())
         .unwrap_or_else(|| panic!("no position_mm line: {out}"));
     assert!((position - -22.5).abs() <= 0.000_32, "{out}");
+    // The move took the piezo back.
+    let o = std::process::Command::new(env!("CARGO_BIN_EXE_twinstack"))
+        .args(["coarse", "status", "--port", &port])
+        .output()
+        .expect("twinstack runs");
+    let out = String::from_utf8_lossy(&o.stdout);
+    assert!(
+        o.status.success() && out.contains("piezo coarse\n"),
+        "{out}"
+    );
 }
 
 /// `twinstack tune` on the emulated firmware: the whole protocol path runs (bypass, a sine from
