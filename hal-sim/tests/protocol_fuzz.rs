@@ -475,7 +475,16 @@ fn replay_on<D: AnalogDualDac, A: AnalogSensorAdc>(
     sent += frames_in(&[0], &mut run);
     w.dev.send(&[0]).expect("the line takes bytes");
     w.ticks((w.rate_hz * 0.05) as u32)?;
-    prop_assert_eq!(w.answered, sent, "responses for the frames sent");
+    // Every frame has its answer, but for one a watchdog reset may take: the board starts
+    // again with a fresh decoder, so a frame whose first bytes it had taken before the reset
+    // and whose only byte after it is the delimiter is no frame to the new board (the bytes
+    // after a reset are a frame of their own, answered).
+    prop_assert!(
+        w.answered <= sent && sent - w.answered <= w.resets,
+        "{} responses for {sent} frames sent, {} watchdog resets",
+        w.answered,
+        w.resets
+    );
     // The queue's accounting, through the protocol as a host sees it.
     w.dev
         .send(&encoded(&Request::Status))
