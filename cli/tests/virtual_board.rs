@@ -642,3 +642,92 @@ fn ten_seconds_at_50_khz_stream_in_real_time_without_an_underrun() {
 fn ten_seconds_at_100_khz_stream_in_real_time_without_an_underrun() {
     ten_seconds_in_real_time(100_000);
 }
+
+/// `stream --start-on rising`: the queue primed, the input armed, and the stream (and its
+/// recording) starts on the simulated camera's frame; with no camera on the input
+/// (`--port sim`), the wait ends with exit 1, saying the input is disarmed and the setpoints
+/// stay queued.
+#[test]
+fn a_stream_started_by_the_camera_s_edge_plays_and_without_one_waits_then_says_so() {
+    let (_server, port) = virtual_board_process::start(&["--speed", "0", "--camera-hz", "200"]);
+    let dir = tempfile::tempdir().unwrap();
+    let mut text = String::from("setpoint\n");
+    for i in 0..100 {
+        text.push_str(&format!("{}\n", 0.4 * (i as f64 / 100.0)));
+    }
+    let data = dir.path().join("ramp.csv");
+    std::fs::write(&data, text).unwrap();
+    let out = dir.path().join("run.csv");
+    let o = twinstack_bin(&[
+        "stream",
+        "--port",
+        &port,
+        "--data",
+        data.to_str().unwrap(),
+        "--start-on",
+        "rising",
+        "--edge-wait-s",
+        "5",
+        "--record",
+        "setpoint",
+        "--record-out",
+        out.to_str().unwrap(),
+        "--record-samples",
+        "120",
+        "--record-pre",
+        "10",
+    ]);
+    let stdout = String::from_utf8_lossy(&o.stdout);
+    assert!(
+        o.status.success(),
+        "{stdout}{}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    assert!(
+        stdout.contains("underruns during the stream: 0"),
+        "{stdout}"
+    );
+    // The recording starts with the stream, on the edge: before it the setpoint held at the
+    // board's rest, from it the ramp.
+    let csv = std::fs::read_to_string(&out).unwrap();
+    let rows: Vec<Vec<f64>> = csv
+        .lines()
+        .skip(1)
+        .map(|l| l.split(',').map(|c| c.parse().unwrap()).collect())
+        .collect();
+    assert_eq!(rows.len(), 120);
+    assert!(rows[10][0].abs() < 1e-12, "t = 0 at the stream's start");
+    assert!(rows[..10].windows(2).all(|w| w[0][1] == w[1][1]), "held");
+    assert!(
+        rows[12][1] > rows[11][1] && rows[11][1] > rows[10][1],
+        "the ramp plays"
+    );
+
+    let o = twinstack_bin(&[
+        "stream",
+        "--port",
+        "sim",
+        "--data",
+        data.to_str().unwrap(),
+        "--start-on",
+        "rising",
+        "--edge-wait-s",
+        "0.05",
+    ]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert!(
+        err.contains("rising edge did not come within 50ms: the input is disarmed"),
+        "{err}"
+    );
+    let o = twinstack_bin(&[
+        "stream",
+        "--port",
+        "sim",
+        "--data",
+        "x.csv",
+        "--edge-wait-s",
+        "nan",
+    ]);
+    assert_eq!(o.status.code(), Some(2));
+}

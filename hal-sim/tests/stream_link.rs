@@ -162,3 +162,64 @@ fn a_record_streamed_in_parts_plays_as_one_stream() {
         "each part a stream of its own holds between them: {apart} ticks against {one}"
     );
 }
+
+/// A stream started by the trigger input's edge ([`StreamOptions::start_on`]): the queue is
+/// primed, the input armed, and the stream plays from the camera's first frame — a record the
+/// queue holds whole and one four times the queue through the adapter's latency, neither
+/// running dry. With nothing on the input, the wait ends with the input disarmed, nothing
+/// played and the setpoints still queued.
+#[test]
+fn a_stream_started_by_the_input_s_edge_plays_from_the_camera_s_frame() {
+    use hal_sim::sim_camera::CameraConfig;
+    use twinstack::protocol::messages::{StatusReport, TriggerEdge};
+    use twinstack_link::streamer::StartOn;
+    let rate = 50_000.0;
+    let start_on = |wait| StartOn {
+        edge: TriggerEdge::Rising,
+        pulse_ticks: 2,
+        wait,
+    };
+    for n in [2_000, 4 * SETPOINT_CAPACITY] {
+        let mut client = device(rate, hal_sim::port::DEFAULT_BAUD, LinkDelay::ADAPTER);
+        // One frame 10 ms after the stream is armed to start on its edge.
+        let camera = CameraConfig::at_rate(100.0, rate, 1, false).unwrap();
+        client.transport_mut().set_camera(Some(camera));
+        let samples = full_range_triangle(n, 5000);
+        let options = StreamOptions {
+            underrun: Some(UnderrunPolicy::Hold),
+            start_on: Some(start_on(Duration::from_secs(1))),
+            ..StreamOptions::default()
+        };
+        let r = stream_setpoints(&mut client, &samples, &options, |_| {}).expect("stream");
+        assert_eq!(r.accepted, n);
+        assert_eq!(r.underruns_during_stream(), 0, "{n}: {r:?}");
+        assert_eq!(r.primed_whole, n < SETPOINT_CAPACITY);
+        let end = r.drained.expect("drained");
+        assert!(end.ticks.wrapping_sub(r.before.ticks) as usize >= n);
+        let dev = client.transport();
+        assert_eq!(
+            dev.control().trigger_fired(),
+            1,
+            "the camera's edge started it"
+        );
+        assert!(!dev.control().telemetry().streaming, "the stream ended");
+    }
+    // Nothing on the input: the stream never starts.
+    let mut client = device(rate, hal_sim::port::DEFAULT_BAUD, LinkDelay::IDEAL);
+    let samples = full_range_triangle(2_000, 5000);
+    let options = StreamOptions {
+        start_on: Some(start_on(Duration::from_millis(50))),
+        ..StreamOptions::default()
+    };
+    let e = stream_setpoints(&mut client, &samples, &options, |_| {}).unwrap_err();
+    assert!(
+        e.to_string()
+            .contains("rising edge did not come within 50ms"),
+        "{e}"
+    );
+    assert_eq!(e.accepted, 2_000);
+    let s = client.status().unwrap();
+    assert!(!s.has(StatusReport::TRIGGER_ARMED), "disarmed: {s:?}");
+    assert!(!s.has(StatusReport::STREAMING));
+    assert_eq!(s.queue_fill, 2_000, "the setpoints stay queued");
+}

@@ -278,6 +278,7 @@ pub fn flag_names(s: &StatusReport) -> Vec<&'static str> {
         (StatusReport::ANALOG, "analog"),
         (StatusReport::ANALOG_FAULT, "analog-fault"),
         (StatusReport::WATCHDOG_RESET, "watchdog-reset"),
+        (StatusReport::COARSE, "coarse"),
     ]
     .into_iter()
     .filter(|&(bit, _)| s.has(bit))

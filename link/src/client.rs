@@ -79,6 +79,17 @@ pub enum LinkError {
         /// Why.
         reason: FrameError,
     },
+    /// The trigger input's edge a stream was armed to start on did not come in time
+    /// ([`crate::streamer::StreamOptions::start_on`]).
+    #[error("the trigger input's {edge} edge did not come within {wait:?}: {after}")]
+    NoEdge {
+        /// `rising` or `falling`.
+        edge: &'static str,
+        /// How long it was waited for.
+        wait: Duration,
+        /// What was done and what is left on the board.
+        after: String,
+    },
 }
 
 /// A short name for a request, for messages.

@@ -32,8 +32,8 @@ use super::Transport;
 use std::collections::VecDeque;
 use std::time::Duration;
 use twinstack::protocol::messages::{
-    NackReason, PackedBatch, Request, Response, StatusReport, StreamControl, UnderrunPolicy,
-    MAX_BATCH,
+    NackReason, PackedBatch, Request, Response, StatusReport, StreamControl, TriggerConfig,
+    TriggerEdge, UnderrunPolicy, MAX_BATCH,
 };
 
 /// How a record is streamed.
@@ -69,6 +69,24 @@ pub struct StreamOptions {
     /// divider and underrun policy stay those its first call set). Without it, a stream left
     /// running is stopped first. Where the board is not streaming, it starts as any stream.
     pub continues: bool,
+    /// Start on the trigger input's edge instead of at once: the queue is primed, then the
+    /// input is armed to start the stream (`Trigger { start_stream: true }`), and the stream
+    /// plays from the tick the edge comes (a camera's frame, a delay generator). Not with a
+    /// stream continued that is playing already.
+    pub start_on: Option<StartOn>,
+}
+
+/// A stream started by the trigger input's edge ([`StreamOptions::start_on`]).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct StartOn {
+    /// The edge (`Rising` or `Falling`; `Off` starts at once, as with no `StartOn`).
+    pub edge: TriggerEdge,
+    /// The trigger outputs' pulse width the arming sets, ticks (the `Trigger` request sets
+    /// both; a stream pulses no output, a later scan sets its own).
+    pub pulse_ticks: u16,
+    /// How long to wait for the edge before giving up (the input is then disarmed, and the
+    /// setpoints accepted stay queued).
+    pub wait: Duration,
 }
 
 impl Default for StreamOptions {
@@ -84,6 +102,7 @@ impl Default for StreamOptions {
             varint: false,
             more: false,
             continues: false,
+            start_on: None,
         }
     }
 }
@@ -164,6 +183,39 @@ enum InFlight {
     Probe,
     /// A `Stream` request, answered with an ACK.
     Control,
+}
+
+/// Whether the armed input's edge has come: the input no longer armed (it is one-shot), or
+/// the stream playing.
+fn edge_came(s: &StatusReport) -> bool {
+    !s.has(StatusReport::TRIGGER_ARMED) || s.has(StatusReport::STREAMING)
+}
+
+/// The edge did not come within its wait: the input is disarmed (so that a late edge starts
+/// nothing the caller no longer waits for), and the error says what is left on the board.
+fn no_edge<T: Transport>(client: &mut Client<T>, on: &StartOn, accepted: usize) -> LinkError {
+    // The answers to anything in flight are dropped with the line's state: the disarming is
+    // what matters, and its own answer is awaited.
+    let disarmed = client.expect_ack(&Request::Trigger(TriggerConfig {
+        pulse_ticks: on.pulse_ticks,
+        input: TriggerEdge::Off,
+        start_stream: false,
+    }));
+    LinkError::NoEdge {
+        edge: match on.edge {
+            TriggerEdge::Falling => "falling",
+            _ => "rising",
+        },
+        wait: on.wait,
+        after: format!(
+            "{}; the {accepted} setpoints accepted stay queued (`Stream(Start)` plays them)",
+            match disarmed {
+                Ok(_) => "the input is disarmed".to_string(),
+                Err(e) =>
+                    format!("disarming the input failed ({e}): it may still start the stream"),
+            }
+        ),
+    }
 }
 
 fn retryable(reason: &NackReason) -> bool {
@@ -303,6 +355,13 @@ fn run<T: Transport>(
     let stall_limit = client.timeout()
         + Duration::from_secs_f64(2.0 * capacity as f64 * options.divider as f64 * tick);
     let mut sent_ever = vec![false; samples.len().div_ceil(batch_max.max(1)) + 1];
+    // The input armed to start the stream, its edge not seen yet (the status's
+    // `TRIGGER_ARMED` still set, the stream not playing): the wait for credits is bounded by
+    // the wait for the edge instead.
+    let start_on = options
+        .start_on
+        .filter(|on| on.edge != TriggerEdge::Off && !joined);
+    let mut waiting_edge = false;
 
     loop {
         if stop() {
@@ -382,16 +441,27 @@ fn run<T: Transport>(
             // Not waited for. With the whole record queued, `Finish` goes first, in the same
             // write: it is in force before the stream starts.
             report.primed_whole = next == samples.len();
+            // Started now, or by the input's edge (armed here; the board starts the stream
+            // on the edge's tick, from the queue primed).
+            let start = match start_on {
+                Some(on) => {
+                    waiting_edge = true;
+                    stalled = Duration::ZERO;
+                    Request::Trigger(TriggerConfig {
+                        pulse_ticks: on.pulse_ticks,
+                        input: on.edge,
+                        start_stream: true,
+                    })
+                }
+                None => Request::Stream(StreamControl::Start),
+            };
             if report.primed_whole && !options.more {
-                client.send_together(&[
-                    Request::Stream(StreamControl::Finish),
-                    Request::Stream(StreamControl::Start),
-                ])?;
+                client.send_together(&[Request::Stream(StreamControl::Finish), start])?;
                 in_flight.push_back(InFlight::Control);
                 in_flight.push_back(InFlight::Control);
                 finish_sent = true;
             } else {
-                client.send(&Request::Stream(StreamControl::Start))?;
+                client.send(&start)?;
                 in_flight.push_back(InFlight::Control);
             }
             started = true;
@@ -407,7 +477,11 @@ fn run<T: Transport>(
             // Out of credits with nothing to wait for: let the board play a batch's worth,
             // then ask how much room there is.
             let wait = Duration::from_secs_f64(batch_max as f64 * options.divider as f64 * tick);
-            if stalled > stall_limit {
+            if waiting_edge {
+                if let Some(on) = start_on.filter(|on| stalled > on.wait) {
+                    return Err(no_edge(client, &on, *accepted));
+                }
+            } else if stalled > stall_limit {
                 return Err(LinkError::Unexpected {
                     request: "Status",
                     got: format!(
@@ -468,7 +542,8 @@ fn run<T: Transport>(
                 }
             }
             (InFlight::Probe, Response::Status(s)) => {
-                granted = (s.credits as usize).saturating_sub(reserve)
+                granted = (s.credits as usize).saturating_sub(reserve);
+                waiting_edge &= !edge_came(&s);
             }
             (InFlight::Control, Response::Ack { .. }) => {}
             (InFlight::Control, Response::Nack { reason }) => {
@@ -507,6 +582,21 @@ fn run<T: Transport>(
     }
     report.accepted = *accepted;
     report.after_last_batch = client.status()?;
+    if let Some(on) = start_on.filter(|_| waiting_edge) {
+        // The whole record is queued and the input armed: wait for its edge, polling the
+        // status, before the stream's end is looked for.
+        let step = Duration::from_millis(2);
+        let mut waited = Duration::ZERO;
+        while !edge_came(&report.after_last_batch) {
+            stopped(stop)?;
+            if waited > on.wait {
+                return Err(no_edge(client, &on, *accepted));
+            }
+            client.wait(step)?;
+            waited += step;
+            report.after_last_batch = client.status()?;
+        }
+    }
     let end = report.after_last_batch;
     if end.flags & StatusReport::STREAMING == 0 && end.queue_fill > 0 {
         // A `Finish` in force while a refused batch was resent let the queue end early.

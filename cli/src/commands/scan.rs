@@ -54,8 +54,8 @@ pub struct Args {
     pub start_on: TriggerEdge,
 }
 
-/// `--start-on`'s value.
-fn parse_edge(s: &str) -> Result<TriggerEdge, String> {
+/// `--start-on`'s value (here and in `twinstack stream`).
+pub fn parse_edge(s: &str) -> Result<TriggerEdge, String> {
     match s {
         "off" => Ok(TriggerEdge::Off),
         "rising" => Ok(TriggerEdge::Rising),

@@ -34,12 +34,13 @@
 use super::board_link::{connect, PortArgs};
 use super::compensate::Preview;
 use std::path::PathBuf;
-use twinstack::protocol::messages::{Trigger, UnderrunPolicy};
+use std::time::Duration;
+use twinstack::protocol::messages::{Trigger, TriggerEdge, UnderrunPolicy};
 use twinstack_identify::param_file::ParamFile;
 use twinstack_identify::preview::PreviewError;
 use twinstack_link::capture::signal_mask;
 use twinstack_link::setpoint_file::{self, SetpointUnits};
-use twinstack_link::streamer::{stream_setpoints, StreamOptions};
+use twinstack_link::streamer::{stream_setpoints, StartOn, StreamOptions};
 
 /// The exit codes of `twinstack stream`, as `twinstack stream --help` lists them.
 pub const EXIT_CODES: &str = "\
@@ -129,6 +130,23 @@ pub struct Args {
     /// calibrate` measured), as --resonance-hz/--resonance-damping would.
     #[arg(long, requires = "params")]
     pub preview: bool,
+    /// Wait for this edge of the trigger input to start the stream (`rising` or `falling`: a
+    /// camera's frame starts it): the queue is primed, the input armed, and the stream (and
+    /// its --record) starts on the edge's tick; `off` (the default) starts it at once.
+    #[arg(long, default_value = "off", value_parser = super::scan::parse_edge)]
+    pub start_on: TriggerEdge,
+    /// Longest wait for the --start-on edge, seconds (then the input is disarmed and the
+    /// setpoints accepted stay queued).
+    #[arg(long, default_value_t = 60.0, value_parser = parse_wait)]
+    pub edge_wait_s: f64,
+}
+
+/// `--edge-wait-s`: seconds, finite, from 0 to a day.
+fn parse_wait(s: &str) -> Result<f64, String> {
+    match s.trim().parse::<f64>() {
+        Ok(v) if (0.0..=86_400.0).contains(&v) => Ok(v),
+        _ => Err(format!("{s:?}: a number of seconds from 0 to 86400")),
+    }
 }
 
 /// `--underrun` values.
@@ -179,6 +197,11 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         }),
         tick_rate_hz: args.tick_rate,
         drain: !args.no_wait,
+        start_on: (args.start_on != TriggerEdge::Off).then(|| StartOn {
+            edge: args.start_on,
+            pulse_ticks: 2,
+            wait: Duration::from_secs_f64(args.edge_wait_s),
+        }),
         ..StreamOptions::default()
     };
     let mut client = connect(&args.port)?;
