@@ -44,7 +44,7 @@ use twinstack_link::scan_timing::{parse_pattern, pattern_kind, run_scan, ScanRun
 use twinstack_link::sequence_run::{run_sequence, SequenceError, SequenceOptions};
 use twinstack_link::setpoint_file::divider_for_rate;
 use twinstack_link::settings_path;
-use twinstack_link::streamer::{stream_setpoints_until, StreamOptions};
+use twinstack_link::streamer::{stream_setpoints_until, StartOn, StreamOptions};
 use twinstack_link::telemetry::{RunError, TelemetryRun};
 use twinstack_link::Transport;
 
@@ -55,6 +55,18 @@ const _: () = assert!(DEFAULT_BAUD == 3_000_000);
 const SIGNAL_CHECK: Duration = Duration::from_millis(50);
 
 pub(crate) type BoardClient = Client<Box<dyn Transport + Send>>;
+
+/// `start_on`: `"now"`, `"rising"` or `"falling"` (the trigger input's edge).
+fn parse_start_on(start_on: &str) -> PyResult<TriggerEdge> {
+    match start_on {
+        "now" => Ok(TriggerEdge::Off),
+        "rising" => Ok(TriggerEdge::Rising),
+        "falling" => Ok(TriggerEdge::Falling),
+        other => Err(PyValueError::new_err(format!(
+            "start_on {other:?}: expected \"now\", \"rising\" or \"falling\""
+        ))),
+    }
+}
 
 pub(crate) fn parse_mode(name: &str) -> PyResult<Mode> {
     board_requests::parse_mode(name).ok_or_else(|| {
@@ -456,8 +468,11 @@ impl Board {
     /// Hz, and damping ratio) shaped first for the stage's resonance
     /// (`twinstack_identify::preview::ResonancePreview::shape_stream`). With `more`, more
     /// setpoints follow in the next call: the stream plays on without its end, and the next
-    /// `stream` queues its setpoints behind these (`StreamOptions::more`, `continues`).
-    #[pyo3(signature = (setpoints, rate=None, normalised=false, underrun=None, wait=true, resonance=None, more=false))]
+    /// `stream` queues its setpoints behind these (`StreamOptions::more`, `continues`). With
+    /// `start_on` `"rising"` or `"falling"` the queue is primed and the trigger input armed:
+    /// the stream starts on that edge (a camera's frame), waited for at most `edge_timeout`
+    /// seconds (then `TimeoutError`, the input disarmed, the setpoints left queued).
+    #[pyo3(signature = (setpoints, rate=None, normalised=false, underrun=None, wait=true, resonance=None, more=false, start_on="now", edge_timeout=60.0))]
     #[allow(clippy::too_many_arguments)] // the Python keyword arguments, one each
     fn stream<'py>(
         &self,
@@ -469,7 +484,11 @@ impl Board {
         wait: bool,
         resonance: Option<(f64, f64)>,
         more: bool,
+        start_on: &str,
+        edge_timeout: f64,
     ) -> PyResult<Bound<'py, PyDict>> {
+        let edge = parse_start_on(start_on)?;
+        let edge_wait = seconds(edge_timeout, "edge_timeout")?;
         if more && wait {
             return Err(PyValueError::new_err(
                 "more=True: the stream plays on after this call and cannot be waited for: pass wait=False (and wait on the last part)",
@@ -495,6 +514,11 @@ impl Board {
             drain: wait,
             more,
             continues: self.stream_open.load(Ordering::Relaxed),
+            start_on: (edge != TriggerEdge::Off).then_some(StartOn {
+                edge,
+                pulse_ticks: 2,
+                wait: edge_wait,
+            }),
             ..StreamOptions::default()
         };
         // Left open only by a part that was sent whole.
@@ -539,7 +563,9 @@ impl Board {
                                 let _ = err.value(py).setattr("accepted", e.accepted);
                                 err
                             }
-                            LinkError::Timeout { .. } => PyTimeoutError::new_err(message),
+                            LinkError::Timeout { .. } | LinkError::NoEdge { .. } => {
+                                PyTimeoutError::new_err(message)
+                            }
                             LinkError::Io(_) => PyConnectionError::new_err(message),
                             _ => PyRuntimeError::new_err(message),
                         }
@@ -846,16 +872,7 @@ impl Board {
         start_on: &str,
     ) -> PyResult<Bound<'py, PyDict>> {
         let budget = seconds(timeout, "timeout")?;
-        let start_on = match start_on {
-            "now" => TriggerEdge::Off,
-            "rising" => TriggerEdge::Rising,
-            "falling" => TriggerEdge::Falling,
-            other => {
-                return Err(PyValueError::new_err(format!(
-                    "start_on {other:?}: expected \"now\", \"rising\" or \"falling\""
-                )))
-            }
-        };
+        let start_on = parse_start_on(start_on)?;
         let pattern = parse_pattern(pattern)
             .map_err(|e| PyValueError::new_err(format!("pattern {pattern:?}: {e}")))?;
         let kind = pattern_kind(&pattern);
@@ -1077,13 +1094,30 @@ impl Board {
         self.with(py, |c| c.coarse(&Request::CoarseStop))
     }
 
+    /// Hands the piezo back from the coarse axis (at rest) to its own sources: `stream`,
+    /// `waveform`, `scan`, `sequence` and the analog input play on it while the carriage
+    /// holds. The next `coarse_home`, `coarse_move` or `coarse_jog` takes it again (refused,
+    /// `BoardError` busy, while one of those sources runs); `coarse_status()["piezo"]` says
+    /// which owns it.
+    fn coarse_release(&self, py: Python<'_>) -> PyResult<()> {
+        self.with(py, |c| c.coarse(&Request::CoarseRelease))
+    }
+
     /// The coarse axis's status: `state` (`unhomed`, `homing`, `idle`, `moving`, `jogging`,
     /// `stopping`, `fault`), `homed`, `position_mm`, `setpoint_mm`, `following_error_um`,
     /// `faults` and `switches` (lists of names), `fine_setpoint` (the piezo's, normalised),
-    /// `ticks`. A board without a coarse axis raises `BoardError`.
+    /// `ticks`, and `piezo`: `"coarse"` while the piezo follows the coarse axis, `"own"` once
+    /// `coarse_release` handed it back. A board without a coarse axis raises `BoardError`.
     fn coarse_status<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
-        let s = self.with(py, |c| c.coarse_status())?;
-        json_to_py(py, &board_requests::coarse_status_json(&s))
+        let (s, board) = self.with(py, |c| Ok((c.coarse_status()?, c.status()?)))?;
+        let mut v = board_requests::coarse_status_json(&s);
+        v["piezo"] = if board.has(twinstack::protocol::messages::StatusReport::COARSE) {
+            "coarse"
+        } else {
+            "own"
+        }
+        .into();
+        json_to_py(py, &v)
     }
 
     /// Calibrates the stage behind the board in one call (`twinstack calibrate`): excites it

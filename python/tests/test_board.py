@@ -308,6 +308,28 @@ def test_a_scan_started_by_the_camera_s_frame_waits_for_its_edge():
             board.scan("raster:lines=4,pixels=20", start_on="soon")
 
 
+def test_a_stream_started_by_the_camera_s_frame_waits_for_its_edge():
+    # The queue primed and the input armed: the camera's first frame starts the stream, which
+    # plays whole.
+    ramp = np.linspace(0.0, 0.4, 500)
+    with twinstack.Board("sim", sim_camera_hz=200.0) as board:
+        report = board.stream(ramp, normalised=True, start_on="rising", edge_timeout=5.0)
+        assert report["accepted"] == 500 and report["underruns"] == 0
+        assert board.status()["queue_fill"] == 0
+    # No edge ever comes: the call says so after its timeout, the input disarmed and the
+    # setpoints still queued.
+    with twinstack.Board("sim") as board:
+        with pytest.raises(TimeoutError, match="rising edge did not come"):
+            board.stream(ramp, normalised=True, start_on="rising", edge_timeout=0.05)
+        s = board.status()
+        assert s["queue_fill"] == 500 and "streaming" not in s["flags"]
+        assert "trigger-armed" not in s["flags"]
+        with pytest.raises(ValueError, match="start_on"):
+            board.stream(ramp, normalised=True, start_on="soon")
+        with pytest.raises(ValueError, match="edge_timeout"):
+            board.stream(ramp, normalised=True, start_on="rising", edge_timeout=float("nan"))
+
+
 def test_a_scan_the_board_would_refuse_is_refused_before_sending(board):
     with pytest.raises(ValueError, match="lines"):
         board.scan("raster:lines=0,pixels=50")

@@ -33,6 +33,31 @@ def test_the_coarse_axis_homes_moves_and_reports_and_refuses_what_it_cannot_do(d
         board.coarse_home(timeout=0.0)
 
 
+def test_the_piezo_handed_back_scans_on_its_own_and_the_next_move_takes_it_back(dual_stage_board):
+    board = dual_stage_board
+    board.coarse_home()
+    assert board.coarse_status()["piezo"] == "coarse"
+    # Owned by the coarse axis, the piezo's own sources are refused.
+    with pytest.raises(twinstack.BoardError):
+        board.waveform(amplitude=0.2, frequency=20.0)
+    board.coarse_release()
+    held = board.coarse_status()
+    assert held["piezo"] == "own"
+    board.waveform(amplitude=0.2, frequency=20.0)
+    # A move while the piezo's waveform plays would cut it off: refused.
+    with pytest.raises(twinstack.BoardError):
+        board.coarse_move(1.0)
+    board.stop()
+    # The carriage held: the axis's position (the linear scale: carriage and piezo) moved by
+    # no more than the piezo's waveform, 0.2 of its ±40 µm; its setpoint not at all.
+    after = board.coarse_status()
+    assert after["state"] == "idle" and after["setpoint_mm"] == held["setpoint_mm"]
+    assert after["position_mm"] == pytest.approx(held["position_mm"], abs=0.010)
+    moved = board.coarse_move(1.0)
+    assert moved["state"] == "idle" and moved["position_mm"] == pytest.approx(1.0, abs=0.002)
+    assert board.coarse_status()["piezo"] == "coarse"
+
+
 def test_a_board_without_a_coarse_axis_says_so():
     with twinstack.Board("sim") as board, pytest.raises(twinstack.BoardError):
         board.coarse_status()

@@ -253,6 +253,8 @@ class Board:
         wait: bool = True,
         resonance: Optional[Tuple[float, float]] = None,
         more: bool = False,
+        start_on: str = "now",
+        edge_timeout: float = 60.0,
     ) -> Dict[str, Any]:
         """Streams ``setpoints`` to the board: in the output unit of the settings in force
         (or -1...1 with ``normalised=True``; a value outside the range raises ``ValueError``,
@@ -266,7 +268,10 @@ class Board:
         ``ValueError``, nothing sent). ``more=True``: more setpoints follow in the next call
         (with ``wait=False``): the stream plays on without its end, and the next ``stream``
         queues its setpoints behind these instead of stopping them, so the parts play as one
-        stream.
+        stream. ``start_on="rising"`` or ``"falling"``: the queue is primed and the trigger
+        input armed, and the stream starts on that edge (a camera's frame), waited for at most
+        ``edge_timeout`` seconds (then ``TimeoutError``: the input is disarmed and the setpoints
+        accepted stay queued).
 
         Ctrl-C stops the stream, tells the board to stop, and raises ``KeyboardInterrupt``.
         Returns a report: ``accepted``, ``divider``, ``batches``, ``underruns`` (``None`` when
@@ -381,9 +386,15 @@ class Board:
         """Jogs the coarse axis at ``speed`` mm/s until :meth:`coarse_stop`."""
     def coarse_stop(self) -> None:
         """Stops the coarse axis (it brakes; still homed)."""
+    def coarse_release(self) -> None:
+        """Hands the piezo back from the coarse axis (at rest) to its own sources (stream,
+        waveform, scans, sequences, the analog input) while the carriage holds; the next
+        coarse home, move or jog takes it again (:class:`BoardError` busy while one of those
+        sources runs)."""
     def coarse_status(self) -> Dict[str, Any]:
         """``state``, ``homed``, ``position_mm``, ``setpoint_mm``, ``following_error_um``,
-        ``faults``, ``switches``, ``fine_setpoint``, ``ticks``."""
+        ``faults``, ``switches``, ``fine_setpoint``, ``ticks``, and ``piezo``: ``"coarse"``
+        while the piezo follows the coarse axis, ``"own"`` once released."""
     def learn(
         self,
         period_ticks: int,

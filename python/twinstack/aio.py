@@ -183,6 +183,10 @@ class AsyncBoard:
         """Stops the coarse axis, as :meth:`twinstack.Board.coarse_stop`."""
         await self._call(self._board.coarse_stop)
 
+    async def coarse_release(self) -> None:
+        """Hands the piezo back from the coarse axis, as :meth:`twinstack.Board.coarse_release`."""
+        await self._call(self._board.coarse_release)
+
     async def coarse_status(self) -> Dict[str, Any]:
         """The coarse axis's status, as :meth:`twinstack.Board.coarse_status`."""
         return await self._call(self._board.coarse_status)
@@ -334,6 +338,8 @@ class AsyncBoard:
         wait: bool = True,
         chunk: Optional[int] = None,
         resonance: Optional[Tuple[float, float]] = None,
+        start_on: str = "now",
+        edge_timeout: float = 60.0,
     ) -> Dict[str, Any]:
         """Streams `setpoints` as :meth:`twinstack.Board.stream` does, in chunks of `chunk`
         setpoints (default: :data:`CHUNK_SECONDS` of them, at most the board's setpoint queue),
@@ -348,7 +354,8 @@ class AsyncBoard:
         ``CancelledError``.
         `resonance` shapes the whole trajectory first (:meth:`twinstack.Board.shaped`, before
         it is cut into chunks: the shaping of a setpoint needs the two after it), as
-        ``Board.stream(…, resonance=…)`` does."""
+        ``Board.stream(…, resonance=…)`` does. `start_on` and `edge_timeout`: the first chunk
+        waits for the trigger input's edge, as ``Board.stream(…, start_on=…)`` does."""
         values = np.asarray(setpoints)
         if values.ndim != 1:
             raise ValueError(f"setpoints must be one-dimensional, got shape {values.shape}")
@@ -382,6 +389,8 @@ class AsyncBoard:
                     wait and last,
                     None,
                     not last,
+                    start_on if i == 0 else "now",
+                    edge_timeout,
                 )
                 _add_report(total, report)
         except asyncio.CancelledError:
