@@ -159,7 +159,7 @@ pub fn nack_text(reason: &NackReason) -> String {
         }
         NackReason::NothingStored => "no valid settings are stored in flash".into(),
         NackReason::StoreFailed => "writing the flash record failed".into(),
-        NackReason::Unsupported => "this build of the board cannot do it (the emulator image has no watchdog; in a dual-stage image the coarse axis owns the piezo's setpoint: no stream, waveform, scan, sequence or analog input)".into(),
+        NackReason::Unsupported => "this build of the board cannot do it now (the emulator image has no watchdog; in a dual-stage image the coarse axis owns the piezo's setpoint: no stream, waveform, scan, sequence or analog input until `twinstack coarse release` hands it back)".into(),
         NackReason::NotOwner => "another client of the server owns the board's stream and settings (or its telemetry): this one may only read (status, records, settings)".into(),
     }
 }
