@@ -645,3 +645,42 @@ fn the_board_plays_the_excitation_calibrate_streams() {
         "{lo} … {hi}"
     );
 }
+
+/// A dual-stage board with its piezo handed back (`CoarseRelease`) runs its coarse task beside
+/// every model, which the host's tick budget does not see: the first load of the identified
+/// model is refused for the cycles, and `calibrate` identifies again from the same excitation
+/// with the board's own load charged (the observer leaves first), and loads what it runs.
+#[test]
+fn on_a_dual_stage_board_the_model_is_sized_beside_the_coarse_task() {
+    use hal_sim::coarse_rig::{DualStageDevice, DualStageDeviceConfig};
+    use twinstack::protocol::messages::Request;
+    use twinstack_identify::calibrate::Progress;
+    let device = DualStageDevice::dual_stage(&DualStageDeviceConfig::paper()).unwrap();
+    let mut client = Client::new(device);
+    client.set_timeout(Duration::from_secs(10));
+    client.coarse(&Request::CoarseRelease).unwrap();
+    let options = CalibrateOptions {
+        // Bouc–Wen with its observer: within a 50 kHz period alone, not beside the coarse
+        // task's 770 cycles.
+        model: Some(ModelKind::BoucWen),
+        resonance: false,
+        max_held_out_pct: 20.0,
+        ..quick()
+    };
+    let mut steps = Vec::new();
+    let r = calibrate(&mut client, &options, |p| {
+        if let Progress::Step(s) = p {
+            steps.push(s.to_string());
+        }
+    })
+    .expect("sized beside the coarse task");
+    eprintln!("beside the coarse task: {} ({})", r.model, r.reason);
+    assert!(
+        steps.iter().any(|s| s.starts_with("identifying again")),
+        "{steps:?}"
+    );
+    let loaded = client.read_params().unwrap();
+    assert!(loaded.compensator.is_some() && loaded.observer.is_none());
+    assert!(r.reason.contains("no observer"), "{}", r.reason);
+    assert!(r.after.max_pct < r.before.max_pct);
+}

@@ -3,9 +3,8 @@
 
 use super::*;
 
-/// What steps 2 and 3 measured and identified, checked for loading.
+/// What step 3 identified from the excitation, checked for loading.
 pub(super) struct Measured {
-    pub(super) excitation: MeasuredData,
     pub(super) predicted: Vec<f64>,
     pub(super) id: Identification,
     pub(super) label: String,
@@ -13,20 +12,38 @@ pub(super) struct Measured {
     pub(super) ranking: Vec<Candidate>,
     pub(super) file: ParamFile,
     pub(super) held_out: ErrorFigures,
+    pub(super) clamped: bool,
+}
+
+/// What step 2 recorded: the excitation, and how.
+pub(super) struct Excited {
+    pub(super) excitation: MeasuredData,
     pub(super) decimation: u16,
     pub(super) tick_rate_hz: u32,
-    pub(super) clamped: bool,
     pub(super) underran: bool,
 }
 
-/// Steps 2 and 3: excite and record, identify, and the checks before a load (the fit, the
-/// drive's reach). Loads nothing.
+/// Steps 2 and 3: excite and record ([`excite`]), identify what the board runs with `beside`
+/// cycles a tick of its own beside the model, and the checks before a load
+/// ([`identify_excited`]). Loads nothing.
 pub(super) fn measure<T: Transport>(
     client: &mut Client<T>,
     options: &CalibrateOptions,
     board: &Settings,
     progress: &mut impl FnMut(Progress),
-) -> Result<Measured, CalibrateError> {
+) -> Result<(Excited, Measured), CalibrateError> {
+    let excited = excite(client, options, board, progress)?;
+    let measured = identify_excited(&excited, options, board, 0, progress)?;
+    Ok((excited, measured))
+}
+
+/// Step 2: the excitation streamed in bypass and recorded.
+pub(super) fn excite<T: Transport>(
+    client: &mut Client<T>,
+    options: &CalibrateOptions,
+    board: &Settings,
+    progress: &mut impl FnMut(Progress),
+) -> Result<Excited, CalibrateError> {
     // 2. Excite and record.
     progress(Progress::Step("exciting the stage"));
     let facts = client
@@ -85,7 +102,27 @@ pub(super) fn measure<T: Transport>(
             source,
         })?;
     let excitation = excitation_record(&recording, board, &options.output_unit)?;
+    Ok(Excited {
+        excitation,
+        decimation: cap.decimation,
+        tick_rate_hz: facts.tick_rate_hz,
+        underran: streamed.underran(),
+    })
+}
 
+/// Step 3: identify from the excitation what the board runs at its rate with `beside` cycles
+/// a tick of its own beside the model (0, or what its refusal of a first load showed:
+/// a dual-stage image's coarse task), and the checks before a load (the fit, the drive's
+/// reach). Loads nothing.
+pub(super) fn identify_excited(
+    excited: &Excited,
+    options: &CalibrateOptions,
+    board: &Settings,
+    beside: u32,
+    progress: &mut impl FnMut(Progress),
+) -> Result<Measured, CalibrateError> {
+    let excitation = &excited.excitation;
+    let rate = excited.tick_rate_hz.max(1) as f64;
     // 3. Identify.
     progress(Progress::Step("identifying"));
     let fit_until = options.excitation_s() - 1.0 / options.excitation_hz;
@@ -96,7 +133,9 @@ pub(super) fn measure<T: Transport>(
     let least = (rate / options.sample_rate_hz)
         .ceil()
         .clamp(1.0, u16::MAX as f64) as u16;
-    let rate_limit = BoardRate::sizing(rate, options.operators.is_some()).capturing(least);
+    let rate_limit = BoardRate::sizing(rate, options.operators.is_some())
+        .capturing(least)
+        .beside(beside);
     id_options.lag = options.lag;
     // Only a model the board runs at its control rate with its drive, sensor and feedback:
     // the tick budget the board applies at load ([`twinstack::config::tick_budget`]), applied here
@@ -114,7 +153,7 @@ pub(super) fn measure<T: Transport>(
     let (id, operators, observer, label, reason, ranking) = match options.model {
         Some(_) => {
             let asked = Size::of(&id_options);
-            let (fitted, id) = identify_admitted(&excitation, id_options.clone(), &runs_on_board)?;
+            let (fitted, id) = identify_admitted(excitation, id_options.clone(), &runs_on_board)?;
             // What was kept: "+ creep" only if the fit kept one.
             let label = fitted.label_of_fit(&id.model);
             let reason = match Size::of(&fitted).sized_down_note(&asked) {
@@ -132,7 +171,7 @@ pub(super) fn measure<T: Transport>(
         }
         None => {
             let auto =
-                identify_auto_admitting(&excitation, &id_options.candidates(), runs_on_board)?;
+                identify_auto_admitting(excitation, &id_options.candidates(), runs_on_board)?;
             let picked = auto.options.clone();
             let ranking = auto.ranking.iter().map(candidate).collect();
             let label = picked.label_of_fit(&auto.identification.model);
@@ -146,7 +185,7 @@ pub(super) fn measure<T: Transport>(
             )
         }
     };
-    let (record, predicted) = identification_record(&excitation, &id, fit_until, operators)?;
+    let (record, predicted) = identification_record(excitation, &id, fit_until, operators)?;
     if record.held_out.max_pct > options.max_held_out_pct {
         return Err(CalibrateError::DoesNotFit {
             model: label,
@@ -175,7 +214,6 @@ pub(super) fn measure<T: Transport>(
         None => false,
     };
     Ok(Measured {
-        excitation,
         predicted,
         id,
         label,
@@ -183,10 +221,7 @@ pub(super) fn measure<T: Transport>(
         ranking,
         file,
         held_out,
-        decimation: cap.decimation,
-        tick_rate_hz: facts.tick_rate_hz,
         clamped,
-        underran: streamed.underran(),
     })
 }
 

@@ -79,7 +79,7 @@ mod options;
 mod report;
 mod track;
 
-use measure::{decimation_for, measure, Measured};
+use measure::{decimation_for, identify_excited, measure, Excited, Measured};
 pub use options::CalibrateOptions;
 pub use report::{CalibrateError, CalibrationReport, Candidate, ResonanceOutcome, Tracking};
 use track::track;
@@ -100,6 +100,67 @@ pub enum Progress<'a> {
 
 fn link(step: &'static str) -> impl Fn(LinkError) -> CalibrateError {
     move |source| CalibrateError::Link { step, source }
+}
+
+/// Why the board refused the identified settings.
+enum LoadRefusal {
+    /// Its tick budget: `needs` cycles a tick with what it runs beside them.
+    Budget { needs: u32 },
+    /// Anything else.
+    Other(LinkError),
+}
+
+impl LoadRefusal {
+    fn into_error(self) -> CalibrateError {
+        let source = match self {
+            LoadRefusal::Other(e) => e,
+            LoadRefusal::Budget { needs } => LinkError::Unexpected {
+                request: "LoadParams",
+                got: format!(
+                    "refused for the tick budget: the identified settings need {needs} cycles a tick with what the board runs beside them"
+                ),
+            },
+        };
+        CalibrateError::Link {
+            step: "loading the identified settings",
+            source,
+        }
+    }
+}
+
+/// Loads `measured`'s settings in bypass (the "before"): the settings loaded, or why not.
+fn load_bypassed<T: Transport>(
+    client: &mut Client<T>,
+    measured: &Measured,
+) -> Result<Settings, LoadRefusal> {
+    let settings = Settings {
+        mode: Mode::Bypass,
+        ..measured.file.settings.clone()
+    };
+    match client.load_params(&settings) {
+        Ok(()) => Ok(settings),
+        Err(LinkError::Nack {
+            reason:
+                twinstack::protocol::messages::NackReason::Refused(twinstack::refusal::Refusal {
+                    field: twinstack::refusal::Field::Workload,
+                    rule: twinstack::refusal::Rule::TickOverrun { needs, .. },
+                }),
+            ..
+        }) => Err(LoadRefusal::Budget { needs }),
+        Err(e) => Err(LoadRefusal::Other(e)),
+    }
+}
+
+/// What `settings` cost a tick at `rate` by the library's tick budget, nothing beside them
+/// (`None`: they do not build for the driver board at that rate).
+fn alone_cycles(settings: &Settings, rate: f64) -> Option<u32> {
+    let config = settings
+        .build(&twinstack::board::Hardware::driver_board(rate))
+        .ok()?;
+    Some(twinstack::config::tick_budget::pipeline_cycles(
+        &config,
+        twinstack::config::tick_budget::Beside::default(),
+    ))
 }
 
 /// Runs the whole calibration on the board behind `client` (see the module doc).
@@ -141,42 +202,64 @@ pub fn calibrate<T: Transport>(
         let _ = client.set_mode(previous);
         e
     };
-    let Measured {
-        excitation,
-        predicted,
-        id,
-        label,
-        reason,
-        ranking,
-        mut file,
-        held_out,
-        decimation,
-        tick_rate_hz,
-        clamped,
-        underran,
-    } = measure(client, options, &board, &mut progress).map_err(|e| restoring(client, e))?;
+    let (excited, measured) =
+        measure(client, options, &board, &mut progress).map_err(|e| restoring(client, e))?;
     let resonance = if options.resonance {
         progress(Progress::Step("measuring the resonance"));
         measure_resonance(client, &board).map_err(|e| restoring(client, e))?
     } else {
         ResonanceOutcome::NotAsked
     };
-    if let ResonanceOutcome::Measured(f) = &resonance {
-        file.resonance = Some(Resonance {
-            frequency_hz: f.plant.resonance_hz,
-            damping: f.plant.zeta,
-        });
-    }
-    let rate = tick_rate_hz.max(1) as f64;
+    let with_resonance = |mut m: Measured| {
+        if let ResonanceOutcome::Measured(f) = &resonance {
+            m.file.resonance = Some(Resonance {
+                frequency_hz: f.plant.resonance_hz,
+                damping: f.plant.zeta,
+            });
+        }
+        m
+    };
+    let rate = excited.tick_rate_hz.max(1) as f64;
     // 4. Load, first in bypass for the "before".
     progress(Progress::Step("loading"));
-    let settings = Settings {
-        mode: Mode::Bypass,
-        ..file.settings.clone()
+    let measured = with_resonance(measured);
+    let (measured, settings) = match load_bypassed(client, &measured) {
+        Ok(settings) => (measured, settings),
+        // Refused for the tick budget with more cycles than the model costs alone: the board
+        // runs something of its own beside every model (a dual-stage image's coarse task).
+        // Identified again from the same excitation with that charged, and loaded.
+        Err(LoadRefusal::Budget { needs })
+            if needs > alone_cycles(&measured.file.settings, rate).unwrap_or(u32::MAX) =>
+        {
+            let beside = needs - alone_cycles(&measured.file.settings, rate).unwrap_or(needs);
+            progress(Progress::Step(
+                "identifying again, beside the board's own load",
+            ));
+            let again = identify_excited(&excited, options, &board, beside, &mut progress)
+                .map(with_resonance)
+                .map_err(|e| restoring(client, e))?;
+            let settings = load_bypassed(client, &again)
+                .map_err(|refusal| restoring(client, refusal.into_error()))?;
+            (again, settings)
+        }
+        Err(refusal) => return Err(restoring(client, refusal.into_error())),
     };
-    client
-        .load_params(&settings)
-        .map_err(link("loading the identified settings"))?;
+    let Measured {
+        predicted,
+        id,
+        label,
+        reason,
+        ranking,
+        file,
+        held_out,
+        clamped,
+    } = measured;
+    let Excited {
+        excitation,
+        decimation,
+        tick_rate_hz,
+        underran,
+    } = excited;
 
     // 5. Verify: the same trajectory before (bypass) and after (open loop).
     let (lo, hi) = excitation

@@ -174,6 +174,10 @@ pub struct BoardRate {
     /// (the feedback acts on the sensor), so the compensator's accuracy comes first. The
     /// file says what was left out.
     pub observer_optional: bool,
+    /// Cycles a tick the board spends beside the pipeline whatever is loaded (a dual-stage
+    /// image's coarse task: [`twinstack::config::tick_budget::coarse_task_share`]), charged
+    /// beside every model; 0 on a piezo-only board.
+    pub beside: u32,
 }
 
 impl BoardRate {
@@ -185,6 +189,7 @@ impl BoardRate {
             fewer_creep_modes: false,
             capturing: None,
             observer_optional: false,
+            beside: 0,
         }
     }
 
@@ -198,6 +203,7 @@ impl BoardRate {
             fewer_creep_modes: true,
             capturing: None,
             observer_optional: true,
+            beside: 0,
         }
     }
 
@@ -206,6 +212,15 @@ impl BoardRate {
     pub fn capturing(self, decimation: u16) -> Self {
         Self {
             capturing: Some(decimation),
+            ..self
+        }
+    }
+
+    /// The same, with `cycles` a tick of the board's own beside every model
+    /// ([`BoardRate::beside`]).
+    pub fn beside(self, cycles: u32) -> Self {
+        Self {
+            beside: cycles,
             ..self
         }
     }
@@ -290,12 +305,14 @@ pub fn admission_at(settings: &Settings, rate: &BoardRate) -> Admission {
                     } else {
                         capture.cycles()
                     };
+                    *needs = needs.saturating_add(rate.beside);
                 }
                 Err(r)
             }
             Ok(config) => {
                 let services = Beside {
                     services: capture,
+                    coarse_task: rate.beside,
                     ..Beside::default()
                 };
                 tick_budget::check_with(&config, rate.hz, services)
@@ -327,13 +344,18 @@ pub fn admission_at(settings: &Settings, rate: &BoardRate) -> Admission {
     let why = match judge(settings) {
         Err(r) if r.field == Field::Workload => match r.rule {
             Rule::TickOverrun { needs, available } => format!(
-                "the board at {:.0} kHz would refuse it: it needs {needs} cycles per tick{}, \
+                "the board at {:.0} kHz would refuse it: it needs {needs} cycles per tick{}{}, \
                  more than the {available} that rate leaves{}",
                 rate.hz / 1e3,
                 if rate.capturing.is_some() {
                     " with a capture beside it"
                 } else {
                     ""
+                },
+                if rate.beside > 0 {
+                    format!(" and the board's own {} beside every model", rate.beside)
+                } else {
+                    String::new()
                 },
                 alone().unwrap_or_default()
             ),
