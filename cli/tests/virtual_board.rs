@@ -260,6 +260,18 @@ fn twinstack_bin(args: &[&str]) -> std::process::Output {
         .expect("twinstack runs")
 }
 
+/// `twinstack args`, which must succeed: its standard output (the failure shows both).
+fn twinstack_ok(args: &[&str]) -> String {
+    let o = twinstack_bin(args);
+    let out = String::from_utf8_lossy(&o.stdout).into_owned();
+    assert!(
+        o.status.success(),
+        "{args:?}: {out}{}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    out
+}
+
 fn status_field(out: &str, name: &str) -> String {
     out.lines()
         .find_map(|l| l.strip_prefix(&format!("{name} ")))
@@ -367,7 +379,7 @@ fn a_streamed_run_is_recorded_with_four_signals_in_physical_units() {
     let data = dir.path().join("sine.csv");
     std::fs::write(&data, text).unwrap();
     let out = dir.path().join("run.csv");
-    let o = twinstack_bin(&[
+    let stdout = twinstack_ok(&[
         "stream",
         "--port",
         &port,
@@ -382,12 +394,6 @@ fn a_streamed_run_is_recorded_with_four_signals_in_physical_units() {
         "--record-pre",
         "10",
     ]);
-    let stdout = String::from_utf8_lossy(&o.stdout);
-    assert!(
-        o.status.success(),
-        "{stdout}{}",
-        String::from_utf8_lossy(&o.stderr)
-    );
     assert!(
         stdout.contains("150 frames of setpoint, left, sensor, estimate"),
         "{stdout}"
@@ -658,7 +664,7 @@ fn a_stream_started_by_the_camera_s_edge_plays_and_without_one_waits_then_says_s
     let data = dir.path().join("ramp.csv");
     std::fs::write(&data, text).unwrap();
     let out = dir.path().join("run.csv");
-    let o = twinstack_bin(&[
+    let stdout = twinstack_ok(&[
         "stream",
         "--port",
         &port,
@@ -677,12 +683,6 @@ fn a_stream_started_by_the_camera_s_edge_plays_and_without_one_waits_then_says_s
         "--record-pre",
         "10",
     ]);
-    let stdout = String::from_utf8_lossy(&o.stdout);
-    assert!(
-        o.status.success(),
-        "{stdout}{}",
-        String::from_utf8_lossy(&o.stderr)
-    );
     assert!(
         stdout.contains("underruns during the stream: 0"),
         "{stdout}"
