@@ -632,12 +632,6 @@ where
     /// ([`crate::dual_stage::CoarseLink::take`]). The handler asks it only of an axis at rest.
     pub fn release_piezo(&mut self) {
         self.coarse.release_piezo();
-        self.end_coarse();
-    }
-
-    /// The coarse ramp no longer the source: the stream, stopped, holds where it left the
-    /// setpoint.
-    fn end_coarse(&mut self) {
         if self.source == SetpointSource::Coarse {
             self.source = SetpointSource::Stream;
             self.stream.stop();
@@ -660,7 +654,11 @@ where
     /// longer charged; its posts are ignored until it is attached again.
     pub fn release_coarse(&mut self) {
         self.coarse.release();
-        self.end_coarse();
+        if self.source == SetpointSource::Coarse {
+            self.source = SetpointSource::Stream;
+            self.stream.stop();
+            self.stream.hold_at_if_stopped(self.controller.setpoint());
+        }
     }
 
     /// Whether the coarse axis owns the piezo's setpoint (its task has posted a ramp, and the
