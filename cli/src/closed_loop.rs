@@ -303,8 +303,10 @@ pub fn tune_at(rate: f64) -> Result<TuneReport> {
     config.board.plant.dt = 1.0 / rate;
     let device = SimDevice::new(config).map_err(|e| anyhow!("simulated board: {e}"))?;
     let mut client = Client::new(device);
-    tune(&mut client, &TuneOptions::default(), |_| {})
-        .map_err(|e| anyhow!("tuning at {rate} Hz: {e}"))
+    tune(&mut client, &TuneOptions::default(), |_| {
+        std::ops::ControlFlow::Continue(())
+    })
+    .map_err(|e| anyhow!("tuning at {rate} Hz: {e}"))
 }
 
 /// The gains `report` picked, rescaled to `model` (see [`tuned_feedback`]).

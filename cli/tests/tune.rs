@@ -5,11 +5,13 @@
 
 use hal_sim::plant::{true_plant, Configuration, StageParams};
 use hal_sim::sim_device::{SimDevice, SimDeviceConfig};
+use std::ops::ControlFlow;
 use std::process::{Command, Output};
 use twinstack::control::feedback::FeedbackSettings;
+use twinstack::protocol::messages::{Mode, StatusReport};
 use twinstack_cli::closed_loop::{self, ClosedLoopOptions};
 use twinstack_identify::tune::design::{check, Goals, Refused};
-use twinstack_identify::tune::{tune, TuneError, TuneOptions, TuneReport};
+use twinstack_identify::tune::{tune, SweepEvent, TuneError, TuneOptions, TuneReport};
 use twinstack_link::Client;
 
 #[path = "support/virtual_board_process.rs"]
@@ -25,8 +27,13 @@ fn board(rate: f64, stage: Option<StageParams>) -> Client<SimDevice> {
     Client::new(SimDevice::new(config).unwrap())
 }
 
+/// A `progress` that lets the sweep run to its end.
+fn run_on(_: SweepEvent<'_>) -> ControlFlow<()> {
+    ControlFlow::Continue(())
+}
+
 fn tuned(rate: f64, stage: Option<StageParams>) -> TuneReport {
-    tune(&mut board(rate, stage), &TuneOptions::default(), |_| {}).unwrap()
+    tune(&mut board(rate, stage), &TuneOptions::default(), run_on).unwrap()
 }
 
 /// The simulated device's ranges: 0…140 V on the left stack (70 V half span) onto ±45 µm.
@@ -158,7 +165,7 @@ fn an_unstable_gain_set_is_refused_and_not_loaded() {
         load: true,
         ..TuneOptions::default()
     };
-    match tune(&mut client, &options, |_| {}) {
+    match tune(&mut client, &options, run_on) {
         Err(TuneError::Refused(Refused::Unstable { radius, .. })) => assert!(radius > 1.0),
         other => panic!("{:?}", other.map(|r| r.design)),
     }
@@ -168,7 +175,7 @@ fn an_unstable_gain_set_is_refused_and_not_loaded() {
         check: Some(closed_loop::feedback_settings(100_000.0, true)),
         ..TuneOptions::default()
     };
-    let r = tune(&mut client, &options, |_| {});
+    let r = tune(&mut client, &options, run_on);
     assert!(
         !matches!(r, Err(TuneError::Refused(Refused::Unstable { .. }))),
         "{:?}",
@@ -187,13 +194,74 @@ fn load_puts_the_tuned_feedback_on_the_board() {
         load: true,
         ..TuneOptions::default()
     };
-    let r = tune(&mut client, &options, |_| {}).unwrap();
+    let r = tune(&mut client, &options, run_on).unwrap();
     assert!(r.loaded);
     let after = client.read_params().unwrap();
     assert_eq!(after.feedback, Some(r.design.settings));
     assert_eq!(after.ranges, before.ranges);
     assert_eq!(after.compensator, before.compensator);
     assert_eq!(client.status().unwrap().mode(), mode);
+}
+
+/// A sweep its `progress` stops — after the 2nd point, or while it waits on the board for the
+/// 3rd point's capture — ends with `Stopped` there, even with `load`: the board's mode is the
+/// one before (closed loop), its generator stopped, its settings unchanged, and the board
+/// takes the next tune.
+#[test]
+fn a_stopped_sweep_leaves_the_board_as_it_was_and_loads_nothing() {
+    let mut client = board(50_000.0, None);
+    client.set_mode(Mode::ClosedLoop).unwrap();
+    let before = client.read_params().unwrap();
+    let options = TuneOptions {
+        load: true,
+        ..TuneOptions::default()
+    };
+    for stop_while_waiting in [false, true] {
+        let (mut points, mut waits) = (Vec::new(), 0);
+        let r = tune(&mut client, &options, |event| {
+            match event {
+                SweepEvent::Point(p) => points.push(p.frequency_hz),
+                SweepEvent::Waiting { .. } => waits += 1,
+            }
+            let stop = match (stop_while_waiting, event) {
+                (false, SweepEvent::Point(_)) => points.len() == 2,
+                (true, SweepEvent::Waiting { .. }) => points.len() == 2,
+                _ => false,
+            };
+            if stop {
+                ControlFlow::Break(())
+            } else {
+                ControlFlow::Continue(())
+            }
+        });
+        match r {
+            Err(e @ TuneError::Stopped { measured: 2, .. }) => {
+                let message = e.to_string();
+                assert!(
+                    message.contains("stopped") && message.contains("nothing was loaded"),
+                    "{message}"
+                );
+            }
+            other => panic!(
+                "stop while waiting {stop_while_waiting}: {:?}",
+                other.map(|r| r.points.len())
+            ),
+        }
+        assert_eq!(points.len(), 2, "no point measured after the stop");
+        assert!(waits > 0, "the sweep waits on the board for each capture");
+        let status = client.status().unwrap();
+        assert_eq!(status.mode(), Mode::ClosedLoop, "{stop_while_waiting}");
+        assert!(!status.has(StatusReport::WAVEFORM), "{stop_while_waiting}");
+        assert_eq!(client.read_params().unwrap(), before, "nothing was loaded");
+    }
+    // The board takes the next tune, which loads.
+    let r = tune(&mut client, &options, run_on).unwrap();
+    assert!(r.loaded);
+    assert_eq!(
+        client.read_params().unwrap().feedback,
+        Some(r.design.settings)
+    );
+    assert_eq!(client.status().unwrap().mode(), Mode::ClosedLoop);
 }
 
 fn twinstack_bin(args: &[&str]) -> Output {

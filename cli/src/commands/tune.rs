@@ -12,6 +12,7 @@ use super::board_link::{connect, PortArgs, UsageError};
 use crate::plot::{draw_panels, Panel, Series};
 use hal_sim::sim_device::{LinkDelay, SimDevice, SimDeviceConfig};
 use plotters::style::RGBColor;
+use std::ops::ControlFlow;
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 use twinstack::control::feedback::FeedbackSettings;
@@ -19,7 +20,7 @@ use twinstack::control::notch::NotchDesign;
 use twinstack_identify::param_file::ParamFile;
 use twinstack_identify::preview::Resonance;
 use twinstack_identify::tune::loop_model::{loop_response, LoopController};
-use twinstack_identify::tune::{shaping_for, tune, TuneOptions, TuneReport};
+use twinstack_identify::tune::{shaping_for, tune, SweepEvent, TuneOptions, TuneReport};
 use twinstack_link::output_file::Staged;
 use twinstack_link::{Client, Transport};
 
@@ -117,15 +118,18 @@ fn run_on<T: Transport>(args: &Args, client: &mut Client<T>) -> anyhow::Result<(
         Some(path) => Some((path, ParamFile::load(path)?.0)),
         None => None,
     };
-    let report = tune(client, &options, |p| {
-        if !args.json {
-            eprintln!(
-                "  {:>8.0} Hz  {:>7.2} dB  {:>8.1}°",
-                p.frequency_hz,
-                20.0 * p.response.abs().log10(),
-                p.response.arg().to_degrees()
-            );
+    let report = tune(client, &options, |event| {
+        if let SweepEvent::Point(p) = event {
+            if !args.json {
+                eprintln!(
+                    "  {:>8.0} Hz  {:>7.2} dB  {:>8.1}°",
+                    p.frequency_hz,
+                    p.magnitude_db(),
+                    p.phase_deg()
+                );
+            }
         }
+        ControlFlow::Continue(())
     })?;
     if let Some(png) = &args.png {
         plot(&report, png)?;

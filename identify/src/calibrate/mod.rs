@@ -323,7 +323,9 @@ fn measure_resonance<T: Transport>(
     client: &mut Client<T>,
     board: &Settings,
 ) -> Result<ResonanceOutcome, CalibrateError> {
-    let (points, rate) = match sweep(client, board, &SweepOptions::default(), |_| {}) {
+    let (points, rate) = match sweep(client, board, &SweepOptions::default(), |_| {
+        std::ops::ControlFlow::Continue(())
+    }) {
         Ok(r) => r,
         Err(
             e @ (MeasureError::Link { .. }

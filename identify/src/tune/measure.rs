@@ -16,12 +16,20 @@
 //! found (the resonance). Near the resonance the amplitude is lowered so the sensor stays
 //! within a third of its range: a point whose sensor swing is larger is measured again at an
 //! amplitude scaled down to a sixth of the range.
+//!
+//! **Stopping.** The caller's `progress` hears of each point measured and, while the sweep
+//! waits on the board for a capture, of each wait (every [`POLL`]); answering
+//! [`ControlFlow::Break`] stops the sweep there, the generator stopped, with
+//! [`MeasureError::Stopped`].
 
 use super::loop_model::C64;
 use std::f64::consts::PI;
+use std::ops::ControlFlow;
 use std::time::Duration;
 use twinstack::config::settings::Settings;
-use twinstack::protocol::messages::{CaptureRequest, StreamControl, Trigger, WaveShape, Waveform};
+use twinstack::protocol::messages::{
+    CaptureRequest, CaptureState, CaptureStatus, StreamControl, Trigger, WaveShape, Waveform,
+};
 use twinstack::services::recorder::Channel;
 use twinstack_link::capture::{self, CaptureError, ConvertError};
 use twinstack_link::client::{Client, LinkError};
@@ -104,6 +112,36 @@ pub struct FrequencyPoint {
     pub sensor_amplitude: f64,
 }
 
+impl FrequencyPoint {
+    /// The response's magnitude, dB.
+    pub fn magnitude_db(&self) -> f64 {
+        20.0 * self.response.abs().log10()
+    }
+
+    /// The response's phase, degrees.
+    pub fn phase_deg(&self) -> f64 {
+        self.response.arg().to_degrees()
+    }
+}
+
+/// What [`sweep`] tells its caller's `progress` as it goes; the caller answers
+/// [`ControlFlow::Break`] to stop the sweep.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum SweepEvent<'a> {
+    /// A frequency was measured (in the order measured: the coarse sweep, then the points
+    /// about the resonance).
+    Point(&'a FrequencyPoint),
+    /// The sweep is waiting on the board for the capture at `frequency_hz` (every [`POLL`]).
+    Waiting {
+        /// The frequency being measured, Hz.
+        frequency_hz: f64,
+    },
+}
+
+/// How often the sweep asks the board whether a capture is done, and so how often `progress`
+/// hears [`SweepEvent::Waiting`].
+pub const POLL: Duration = Duration::from_millis(20);
+
 /// Why a measurement stopped.
 #[derive(Debug, thiserror::Error)]
 pub enum MeasureError {
@@ -153,6 +191,14 @@ pub enum MeasureError {
         what: &'static str,
         /// What was measured.
         amplitude: f64,
+    },
+    /// The caller's `progress` stopped the sweep.
+    #[error("the sweep was stopped at {frequency_hz:.0} Hz with {measured} frequencies measured; the generator is stopped")]
+    Stopped {
+        /// The frequency being measured (or last measured), Hz.
+        frequency_hz: f64,
+        /// Frequencies measured before the stop.
+        measured: usize,
     },
 }
 
@@ -220,7 +266,64 @@ pub fn coarse_frequencies(options: &SweepOptions, rate: f64) -> Vec<f64> {
         .collect()
 }
 
-/// Measures the response at one frequency (see the module doc).
+/// Polls the recorder every [`POLL`] until its capture is done (for at most `budget`), then
+/// reads its window; asks `progress` between two polls ([`MeasureError::Stopped`] on a
+/// stop, `measured` frequencies before it). Capture errors are at `frequency_hz`.
+fn wait_and_read<T: Transport>(
+    client: &mut Client<T>,
+    budget: Duration,
+    frequency_hz: f64,
+    measured: usize,
+    progress: &mut impl FnMut(SweepEvent<'_>) -> ControlFlow<()>,
+) -> Result<(CaptureStatus, Vec<i16>), MeasureError> {
+    let failed = |source: CaptureError| MeasureError::Capture {
+        frequency_hz,
+        source,
+    };
+    let mut waited = Duration::ZERO;
+    let status = loop {
+        let s = client
+            .capture_status()
+            .map_err(|e| failed(CaptureError::Link(e)))?;
+        if s.state == CaptureState::Done {
+            break s;
+        }
+        if waited >= budget {
+            return Err(failed(CaptureError::NotDone {
+                state: s.state,
+                captured: s.captured,
+                samples: s.samples,
+                waited: waited.as_secs_f64(),
+                hint: match s.state {
+                    CaptureState::Armed => "the sine never started the capture",
+                    CaptureState::Idle => {
+                        "no capture is armed (another client re-armed the recorder?)"
+                    }
+                    _ => "is the board ticking?",
+                },
+            }));
+        }
+        if progress(SweepEvent::Waiting { frequency_hz }).is_break() {
+            return Err(MeasureError::Stopped {
+                frequency_hz,
+                measured,
+            });
+        }
+        client
+            .wait(POLL)
+            .map_err(|e| failed(CaptureError::Link(e)))?;
+        waited += POLL;
+    };
+    let window = client
+        .read_capture_window(status.window_slots, |_| {})
+        .map_err(|e| failed(CaptureError::Link(e)))?;
+    Ok((status, window))
+}
+
+/// Measures the response at one frequency (see the module doc), `measured` frequencies
+/// before it; `progress` can stop it while it waits for the capture. Leaves the generator
+/// stopped.
+#[allow(clippy::too_many_arguments)] // the sweep's state, passed down
 fn one<T: Transport>(
     client: &mut Client<T>,
     board: &Settings,
@@ -229,6 +332,8 @@ fn one<T: Transport>(
     capacity: u32,
     frequency_hz: f64,
     amplitude: f64,
+    measured: usize,
+    progress: &mut impl FnMut(SweepEvent<'_>) -> ControlFlow<()>,
 ) -> Result<FrequencyPoint, MeasureError> {
     let (mhz, f) = realised(frequency_hz, rate);
     let w = 2.0 * PI * f;
@@ -260,12 +365,10 @@ fn one<T: Transport>(
         })
         .map_err(link("starting the sine"))?;
     let budget = Duration::from_secs_f64(2.0 * ticks as f64 / rate + 5.0);
-    let read = capture::wait_and_read(client, budget, |_, _| {});
+    let read = wait_and_read(client, budget, f, measured, progress);
+    // The sine is stopped whatever became of the capture (a stop included).
     let stopped = client.stream(StreamControl::Stop);
-    let (cap, window_values) = read.map_err(|source| MeasureError::Capture {
-        frequency_hz: f,
-        source,
-    })?;
+    let (cap, window_values) = read?;
     stopped.map_err(link("stopping the sine"))?;
     let rec =
         capture::convert(&cap, board, &window_values).map_err(|source| MeasureError::Convert {
@@ -309,13 +412,17 @@ fn one<T: Transport>(
     })
 }
 
-/// Runs the sweep on the board behind `client` (its settings `board`, in bypass), calling
-/// `progress` with each point measured. Leaves the generator stopped.
+/// Runs the sweep on the board behind `client` (its settings `board`, in bypass), telling
+/// `progress` of each point measured and of each wait on the board ([`SweepEvent`]). Leaves
+/// the generator stopped, also when `progress` answers [`ControlFlow::Break`]: then
+/// [`MeasureError::Stopped`], within one [`POLL`] of the answer.
+///
+/// Returns the points in order of frequency and the board's tick rate, Hz.
 pub fn sweep<T: Transport>(
     client: &mut Client<T>,
     board: &Settings,
     options: &SweepOptions,
-    mut progress: impl FnMut(&FrequencyPoint),
+    mut progress: impl FnMut(SweepEvent<'_>) -> ControlFlow<()>,
 ) -> Result<(Vec<FrequencyPoint>, u32), MeasureError> {
     options.check()?;
     if board.sensor.is_none() {
@@ -326,15 +433,28 @@ pub fn sweep<T: Transport>(
         .map_err(link("the recorder's capacity"))?;
     let rate = facts.tick_rate_hz.max(1) as f64;
     let half = board.ranges.output_half_span();
-    let mut measure = |f: f64| -> Result<FrequencyPoint, MeasureError> {
+    let mut measure = |f: f64, measured: usize| -> Result<FrequencyPoint, MeasureError> {
         let mut a = options.amplitude;
-        let mut p = one(client, board, options, rate, facts.capacity, f, a)?;
+        let mut at = |a: f64| {
+            one(
+                client,
+                board,
+                options,
+                rate,
+                facts.capacity,
+                f,
+                a,
+                measured,
+                &mut progress,
+            )
+        };
+        let mut p = at(a)?;
         for _ in 0..3 {
             if p.sensor_amplitude <= half / 3.0 {
                 break;
             }
             a *= (half / 6.0) / p.sensor_amplitude;
-            p = one(client, board, options, rate, facts.capacity, f, a.max(1e-4))?;
+            p = at(a.max(1e-4))?;
         }
         if p.sensor_amplitude < 1e-7 * half {
             return Err(MeasureError::Flat {
@@ -343,15 +463,20 @@ pub fn sweep<T: Transport>(
                 amplitude: p.sensor_amplitude,
             });
         }
-        progress(&p);
+        if progress(SweepEvent::Point(&p)).is_break() {
+            return Err(MeasureError::Stopped {
+                frequency_hz: p.frequency_hz,
+                measured: measured + 1,
+            });
+        }
         Ok(p)
     };
     let mut points = Vec::new();
     for f in coarse_frequencies(options, rate) {
-        points.push(measure(f)?);
+        points.push(measure(f, points.len())?);
     }
     for f in refined_frequencies(options, &points, rate) {
-        points.push(measure(f)?);
+        points.push(measure(f, points.len())?);
     }
     points.sort_by(|a, b| a.frequency_hz.total_cmp(&b.frequency_hz));
     Ok((points, facts.tick_rate_hz))

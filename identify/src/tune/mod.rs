@@ -12,6 +12,10 @@
 //!    the fitted model says it is unstable or short of the margins.
 //! 4. **Load** (optional): the board's settings with the feedback replaced, through the
 //!    normal `LoadParams` path (the board validates them as any load).
+//!
+//! The caller's `progress` hears of each point measured and of each wait on the board
+//! ([`SweepEvent`]) and can stop the sweep ([`ControlFlow::Break`]): the generator is left
+//! stopped, the mode restored, nothing loaded ([`TuneError::Stopped`]).
 
 pub mod design;
 pub mod fit;
@@ -21,7 +25,9 @@ pub mod measure;
 use design::{Design, Goals, Refused};
 use fit::Fit;
 use loop_model::LoopFigures;
+pub use measure::SweepEvent;
 use measure::{FrequencyPoint, MeasureError, SweepOptions};
+use std::ops::ControlFlow;
 use twinstack::control::feedback::FeedbackSettings;
 use twinstack::control::notch::NotchDesign;
 use twinstack::protocol::messages::{Mode, StatusReport, StreamControl};
@@ -101,8 +107,8 @@ impl TuneReport {
             "rate_hz": self.rate,
             "points": self.points.iter().map(|q| serde_json::json!({
                 "frequency_hz": q.frequency_hz,
-                "magnitude_db": 20.0 * q.response.abs().log10(),
-                "phase_deg": q.response.arg().to_degrees(),
+                "magnitude_db": q.magnitude_db(),
+                "phase_deg": q.phase_deg(),
             })).collect::<Vec<_>>(),
             "fit": {
                 "gain": p.gain, "resonance_hz": p.resonance_hz, "zeta": p.zeta,
@@ -181,6 +187,14 @@ pub enum TuneError {
     /// The gain set checked is refused.
     #[error("refused: {0}; nothing was loaded")]
     Refused(Refused),
+    /// The caller's `progress` stopped the sweep.
+    #[error("the tuning sweep was stopped at {frequency_hz:.0} Hz with {measured} frequencies measured: the generator is stopped, the board's mode restored and nothing was loaded")]
+    Stopped {
+        /// The frequency being measured (or last measured), Hz.
+        frequency_hz: f64,
+        /// Frequencies measured before the stop.
+        measured: usize,
+    },
 }
 
 fn link(step: &'static str) -> impl Fn(LinkError) -> TuneError {
@@ -221,19 +235,31 @@ pub fn analyse(
 /// (see the module doc). The board's mode is restored afterwards; its settings change only
 /// with [`TuneOptions::load`].
 ///
+/// `progress` hears of each point measured and of each wait on the board
+/// ([`measure::sweep`]); answering [`ControlFlow::Break`] stops the sweep within one
+/// [`measure::POLL`]: [`TuneError::Stopped`], the generator stopped, the mode restored,
+/// nothing loaded.
+///
 /// ```no_run
-/// use twinstack_identify::tune::{tune, TuneOptions};
+/// use std::ops::ControlFlow;
+/// use twinstack_identify::tune::{tune, SweepEvent, TuneOptions};
 /// use twinstack_link::{socket::SocketTransport, Client};
 /// // A board behind TCP: a virtual board (`twinstack virtual-board`) or QEMU's UART.
 /// let transport = SocketTransport::tcp("127.0.0.1:4000").unwrap();
 /// let mut client = Client::new(transport);
-/// let r = tune(&mut client, &TuneOptions::default(), |_| {}).unwrap();
+/// let r = tune(&mut client, &TuneOptions::default(), |event| {
+///     if let SweepEvent::Point(p) = event {
+///         println!("{:.0} Hz: {:.1} dB", p.frequency_hz, p.magnitude_db());
+///     }
+///     ControlFlow::Continue(())
+/// })
+/// .unwrap();
 /// println!("bandwidth {:.0} Hz", r.design.figures.bandwidth_hz);
 /// ```
 pub fn tune<T: Transport>(
     client: &mut Client<T>,
     options: &TuneOptions,
-    progress: impl FnMut(&FrequencyPoint),
+    progress: impl FnMut(SweepEvent<'_>) -> ControlFlow<()>,
 ) -> Result<TuneReport, TuneError> {
     options.sweep.check()?;
     let status = client.status().map_err(link("status"))?;
@@ -248,9 +274,23 @@ pub fn tune<T: Transport>(
         .set_mode(Mode::Bypass)
         .map_err(link("switching to bypass"))?;
     let measured = measure::sweep(client, &board, &options.sweep, progress);
-    // Best effort: the error at hand says more than a failure to restore the mode.
     let restored = client.set_mode(previous);
-    let (points, rate) = measured?;
+    let (points, rate) = match measured {
+        Ok(m) => m,
+        // A stop is no fault of the board's: a failure to restore the mode says more.
+        Err(MeasureError::Stopped {
+            frequency_hz,
+            measured,
+        }) => {
+            restored.map_err(link("restoring the mode after the stop"))?;
+            return Err(TuneError::Stopped {
+                frequency_hz,
+                measured,
+            });
+        }
+        // Best effort: the error at hand says more than a failure to restore the mode.
+        Err(e) => return Err(e.into()),
+    };
     restored.map_err(link("restoring the mode"))?;
     let rate = rate as f64;
     let (fit, goals, design) = analyse(&points, rate, options)?;
