@@ -1214,7 +1214,14 @@ impl Board {
     /// rate raise `ValueError` naming it, before anything moves; a checked set the fitted
     /// model says is unstable or short of the margins `ValueError` (nothing loaded); no gains
     /// meeting the margins, or a response that does not fit, `RuntimeError`.
-    #[pyo3(signature = (phase_margin=45.0, gain_margin=6.0, load=false, kp=None, ki=None, notch_hz=None, notch_q=2.0, notch_depth=0.0, limit=0.25))]
+    ///
+    /// `progress`, a callable, is given each point as it is measured (the coarse sweep, then
+    /// the points about the resonance), as a dict: `frequency_hz`, `magnitude_db`,
+    /// `phase_deg` (as in `points`), `drive_volts` (the drive's amplitude, left-stack volts)
+    /// and `sensor_amplitude` (the sensor's, output unit). An exception it raises stops the
+    /// sweep and goes up; Ctrl-C stops it too (`KeyboardInterrupt`). After a stop the
+    /// generator is stopped, the board's mode restored and nothing loaded.
+    #[pyo3(signature = (phase_margin=45.0, gain_margin=6.0, load=false, kp=None, ki=None, notch_hz=None, notch_q=2.0, notch_depth=0.0, limit=0.25, progress=None))]
     #[allow(clippy::too_many_arguments)] // the Python keyword arguments, one each
     fn tune<'py>(
         &self,
@@ -1228,8 +1235,18 @@ impl Board {
         notch_q: f64,
         notch_depth: f64,
         limit: f64,
+        progress: Option<Py<PyAny>>,
     ) -> PyResult<Bound<'py, PyAny>> {
-        use twinstack_identify::tune::{tune, TuneError, TuneOptions};
+        use std::ops::ControlFlow;
+        use twinstack_identify::tune::{tune, SweepEvent, TuneError, TuneOptions};
+        if let Some(p) = &progress {
+            if !p.bind(py).is_callable() {
+                return Err(PyTypeError::new_err(format!(
+                    "progress {}: must be a callable taking one point (a dict), or None; nothing was measured",
+                    p.bind(py).get_type().name()?
+                )));
+            }
+        }
         for (name, v, unit) in [
             ("phase_margin", phase_margin, "degrees"),
             ("gain_margin", gain_margin, "dB"),
@@ -1278,13 +1295,50 @@ impl Board {
             ..TuneOptions::default()
         };
         let report = self.with_py(py, |client| {
-            let report = tune(client, &options, |_| {}).map_err(|e| match e {
-                e @ TuneError::Refused(_) => PyValueError::new_err(format!(
+            // The caller's `progress` with each point, and Ctrl-C asked of the interpreter every
+            // SIGNAL_CHECK (its lock taken back for the call or the question only): an
+            // exception from either stops the sweep, and goes up.
+            let mut raised: Option<PyErr> = None;
+            let mut last = Instant::now();
+            let r = tune(client, &options, |event| {
+                if let (SweepEvent::Point(p), Some(callable)) = (event, &progress) {
+                    let called = Python::attach(|py| -> PyResult<()> {
+                        let d = PyDict::new(py);
+                        d.set_item("frequency_hz", p.frequency_hz)?;
+                        d.set_item("magnitude_db", p.magnitude_db())?;
+                        d.set_item("phase_deg", p.phase_deg())?;
+                        d.set_item("drive_volts", p.drive_volts)?;
+                        d.set_item("sensor_amplitude", p.sensor_amplitude)?;
+                        callable.call1(py, (d,))?;
+                        Ok(())
+                    });
+                    if let Err(e) = called {
+                        raised = Some(e);
+                        return ControlFlow::Break(());
+                    }
+                }
+                if last.elapsed() < SIGNAL_CHECK {
+                    return ControlFlow::Continue(());
+                }
+                last = Instant::now();
+                match Python::attach(|py| py.check_signals()) {
+                    Ok(()) => ControlFlow::Continue(()),
+                    Err(e) => {
+                        raised = Some(e);
+                        ControlFlow::Break(())
+                    }
+                }
+            });
+            let report = r.map_err(|e| match (e, raised) {
+                // Stopped by the caller: the generator stopped, the mode restored, nothing
+                // loaded; the caller's exception (or the signal's) goes up.
+                (TuneError::Stopped { .. }, Some(raised)) => raised,
+                (e @ TuneError::Refused(_), _) => PyValueError::new_err(format!(
                     "kp {}, ki {}: {e}",
                     kp.unwrap_or_default(),
                     ki.unwrap_or_default()
                 )),
-                e => Python::attach(|py| tune_error(py, e)),
+                (e, _) => Python::attach(|py| tune_error(py, e)),
             })?;
             Ok(report.to_json())
         })?;

@@ -6,7 +6,7 @@ empty array ``ValueError``. Arrays out are ``numpy.ndarray`` of float64.
 """
 
 from os import PathLike
-from typing import Any, Dict, List, Optional, Sequence, Tuple, Union, final
+from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple, Union, final
 
 import numpy as np
 import numpy.typing as npt
@@ -490,6 +490,7 @@ class Board:
         notch_q: float = 2.0,
         notch_depth: float = 0.0,
         limit: float = 0.25,
+        progress: Optional[Callable[[Dict[str, float]], Any]] = None,
     ) -> Dict[str, Any]:
         """Tunes the feedback in one call (``twinstack tune``): measures the stage's frequency
         response with the board's generator and recorder (in bypass; the mode is restored),
@@ -513,7 +514,14 @@ class Board:
         naming it, before anything moves; a checked set the fitted model says is unstable or
         short of the margins ``ValueError`` (nothing loaded); no gains that meet the margins,
         or a response that does not fit, ``RuntimeError``; the board's refusals
-        :class:`BoardError`."""
+        :class:`BoardError`; a ``progress`` that is not callable ``TypeError``.
+
+        ``progress`` is called with each point as it is measured (the coarse sweep, then the
+        points about the resonance) as a dict: ``frequency_hz``, ``magnitude_db``,
+        ``phase_deg`` (as in ``points``), ``drive_volts`` (the drive's amplitude, left-stack
+        volts) and ``sensor_amplitude`` (the sensor's, output unit). An exception it raises
+        stops the sweep and goes up; Ctrl-C stops it too (``KeyboardInterrupt``). After a stop
+        the generator is stopped, the board's mode restored and nothing loaded."""
     def store(self, boot_mode: str = "bypass") -> None:
         """Writes the settings in force to the board's flash, to boot in ``boot_mode``."""
     def recall(self) -> None:

@@ -287,9 +287,11 @@ class AsyncBoard:
         notch_q: float = 2.0,
         notch_depth: float = 0.0,
         limit: float = 0.25,
+        progress: Optional[Callable[[Dict[str, float]], Any]] = None,
     ) -> Dict[str, Any]:
         """Measures the stage's response, fits it and designs (or checks) the feedback, as
-        :meth:`twinstack.Board.tune`."""
+        :meth:`twinstack.Board.tune`. ``progress`` is called in the worker thread, not in the
+        event loop's."""
         return await self._call(
             self._board.tune,
             phase_margin,
@@ -301,6 +303,7 @@ class AsyncBoard:
             notch_q,
             notch_depth,
             limit,
+            progress,
         )
 
     async def sequence(
