@@ -79,6 +79,48 @@ fn the_json_matches_the_budget_and_says_what_is_admitted() {
     }
 }
 
+/// `--coarse-rate`: the rows of a dual-stage image, the coarse task's share charged beside
+/// each at every rate (the library's `BudgetRow::beside_coarse`): the same cycles, lower
+/// rates, none of the family at 100 kHz with its observer.
+#[test]
+fn beside_a_coarse_task_the_rates_are_the_dual_stage_board_s() {
+    let out = ok(&[
+        "budget",
+        "--json",
+        "--rate",
+        "100000",
+        "--coarse-rate",
+        "5000",
+    ]);
+    let v: serde_json::Value = serde_json::from_str(&out).unwrap();
+    let rows = v.as_array().unwrap();
+    assert_eq!(rows.len(), 8);
+    for ((name, settings), r) in twinstack_identify::budget::family().iter().zip(rows) {
+        let alone = twinstack_identify::budget::BudgetRow::of(name, settings).unwrap();
+        let dual =
+            twinstack_identify::budget::BudgetRow::beside_coarse(name, settings, 5_000).unwrap();
+        assert_eq!(
+            r["loaded"]["cycles"].as_u64(),
+            Some(u64::from(alone.loaded.cycles))
+        );
+        assert_eq!(r["loaded"]["coarse_rate_hz"].as_u64(), Some(5_000), "{r}");
+        let rate = r["loaded"]["highest_rate_hz"].as_f64().unwrap();
+        assert_eq!(rate, dual.loaded.highest_rate_hz, "{r}");
+        assert!(rate < alone.loaded.highest_rate_hz, "{r}");
+        assert_eq!(r["admitted_at_rate"].as_bool(), Some(false), "{r}");
+    }
+    let table = ok(&["budget", "--coarse-rate", "5000"]);
+    assert!(table.contains("coarse task runs at 5000 Hz"), "{table}");
+    // Without it, the JSON names no coarse task.
+    assert!(!ok(&["budget", "--json"]).contains("coarse_rate_hz"));
+    for bad in ["0", "-1", "NaN", "1e9"] {
+        let o = twinstack(&["budget", "--coarse-rate", bad]);
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(1), "{bad}: {err}");
+        assert!(err.contains("--coarse-rate"), "{err}");
+    }
+}
+
 #[test]
 fn a_parameter_files_row_is_its_own_settings() {
     let pi16 = golden("micromanipulator-pi16.json");

@@ -743,6 +743,87 @@ fn identify_at_a_tick_rate_keeps_a_model_the_board_runs() {
     );
 }
 
+/// `identify --tick-rate R --coarse-rate C` sizes the file for a dual-stage image, whose coarse
+/// task's share of each tick the board charges beside every model: on the bipolar set at
+/// 50 kHz the piezo-only pick (Bouc–Wen with its map, creep and observer) would be refused by
+/// a dual-stage board with a 5 kHz coarse task, and the file written with `--coarse-rate`
+/// loads there. A coarse rate without a tick rate, or one the board cannot have, is refused
+/// before anything is fitted.
+#[test]
+fn identify_beside_a_coarse_task_keeps_a_model_the_dual_stage_board_runs() {
+    use twinstack::board::Hardware;
+    use twinstack::config::tick_budget::{check_with, coarse_task_share, Beside};
+    use twinstack_identify::param_file::ParamFile;
+    let dir = tempfile::tempdir().unwrap();
+    let data = measured_data(BIPOLAR);
+    let data = data.display().to_string();
+    let identify = |out: &Path, extra: &[&str]| {
+        let out = out.display().to_string();
+        let mut args = vec![
+            "identify",
+            "--data",
+            &data,
+            "--fit-until",
+            "5.95",
+            "--out",
+            &out,
+        ];
+        args.extend_from_slice(extra);
+        run(&args)
+    };
+    // The board's own check at load on a dual-stage image at 50 kHz, its coarse task at 5 kHz.
+    let dual_board_admits = |out: &Path| {
+        let settings = ParamFile::load(out).unwrap().0.settings;
+        let config = settings.build(&Hardware::driver_board(50_000.0)).unwrap();
+        let beside = Beside {
+            coarse_task: coarse_task_share(5_000, 50_000),
+            ..Beside::default()
+        };
+        check_with(&config, 50_000.0, beside)
+    };
+    let piezo = dir.path().join("piezo.json");
+    let o = identify(&piezo, &["--tick-rate", "50000"]);
+    assert!(o.status.success(), "{o:?}");
+    assert!(dual_board_admits(&piezo).is_err());
+
+    let dual = dir.path().join("dual.json");
+    let o = identify(&dual, &["--tick-rate", "50000", "--coarse-rate", "5000"]);
+    let stdout = String::from_utf8_lossy(&o.stdout);
+    assert!(o.status.success(), "{o:?}");
+    assert!(dual_board_admits(&dual).is_ok(), "{stdout}");
+    // The same model, fitted as large as the board runs beside the task: its observer left
+    // out, and the run says so.
+    assert!(
+        stdout.contains("picked: Bouc-Wen + output map + creep"),
+        "{stdout}"
+    );
+    assert!(
+        stdout.contains("no observer (the model as the compensator only"),
+        "{stdout}"
+    );
+
+    for (extra, says) in [
+        (&["--coarse-rate", "5000"][..], "--tick-rate"),
+        (
+            &["--tick-rate", "50000", "--coarse-rate", "0"][..],
+            "--coarse-rate 0",
+        ),
+        (
+            &["--tick-rate", "50000", "--coarse-rate", "inf"][..],
+            "--coarse-rate inf",
+        ),
+    ] {
+        let out = dir.path().join("refused.json");
+        let o = identify(&out, extra);
+        let stderr = String::from_utf8_lossy(&o.stderr);
+        assert!(
+            !o.status.success() && stderr.contains(says),
+            "{extra:?}: {stderr}"
+        );
+        assert!(!out.exists(), "{extra:?}");
+    }
+}
+
 // ---------------------------------------------------------------------------------------
 // `auto` picks by the compensator.
 

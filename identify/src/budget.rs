@@ -17,7 +17,8 @@ use twinstack::config::settings::{
     Model, SensorSettings, Settings,
 };
 use twinstack::config::tick_budget::{
-    available_cycles, highest_rate_hz, pipeline_cycles, worst_case_cycles, Beside,
+    available_cycles, coarse_task_share, highest_rate_hz, pipeline_cycles, worst_case_cycles,
+    Beside,
 };
 use twinstack::models::creep::CreepParams;
 use twinstack::models::generalised_pi::{DeadZoneParams, GpiParams};
@@ -31,19 +32,93 @@ pub struct Prediction {
     pub cycles: u32,
     /// The highest control rate at which it is admitted, Hz.
     pub highest_rate_hz: f64,
+    /// The rate of the coarse task a dual-stage image runs beside the pipeline, Hz (0: a
+    /// piezo-only image): its share of each tick
+    /// ([`twinstack::config::tick_budget::coarse_task_share`], which falls with the control
+    /// rate) is charged beside `cycles` at every rate, as the board charges it.
+    #[serde(skip_serializing_if = "is_zero")]
+    pub coarse_rate_hz: u32,
+}
+
+fn is_zero(v: &u32) -> bool {
+    *v == 0
 }
 
 impl Prediction {
-    fn of(cycles: u32) -> Self {
-        Self {
+    /// `cycles` on a board whose coarse task runs at `coarse_rate_hz` beside them (0: none).
+    /// With a coarse task the highest rate is a whole number of hertz, as the board's rates
+    /// are.
+    ///
+    /// ```
+    /// use twinstack_identify::budget::Prediction;
+    /// // 1 344 cycles fill 80 % of a 100 kHz period; beside a 5 kHz coarse task
+    /// // (7 700 cycles a coarse period) they fit only up to about 71 kHz.
+    /// let alone = Prediction::beside_coarse(1_344, 0);
+    /// let dual = Prediction::beside_coarse(1_344, 5_000);
+    /// assert!(alone.admitted_at(100_000.0) && !dual.admitted_at(100_000.0));
+    /// assert!(dual.admitted_at(dual.highest_rate_hz));
+    /// assert!(!dual.admitted_at(dual.highest_rate_hz + 1.0));
+    /// assert!((71_000.0..72_000.0).contains(&dual.highest_rate_hz));
+    /// ```
+    pub fn beside_coarse(cycles: u32, coarse_rate_hz: u32) -> Self {
+        let mut p = Self {
             cycles,
             highest_rate_hz: highest_rate_hz(cycles),
+            coarse_rate_hz,
+        };
+        if coarse_rate_hz > 0 {
+            p.highest_rate_hz = p.highest_with_coarse();
         }
+        p
     }
 
-    /// Whether the board runs it at `rate_hz` (within its range of rates and the budget).
+    /// The cycles charged at `rate_hz`: the pipeline's and the coarse task's share.
+    fn charged_at(&self, rate_hz: f64) -> u32 {
+        if self.coarse_rate_hz == 0 {
+            return self.cycles;
+        }
+        // The board's rate is a whole number of hertz (its `u32`).
+        let share = coarse_task_share(self.coarse_rate_hz, rate_hz.max(1.0) as u32);
+        self.cycles.saturating_add(share)
+    }
+
+    /// Whether the cycles (and the coarse task's share) fit the period at `rate_hz`.
+    fn fits(&self, rate_hz: f64) -> bool {
+        available_cycles(rate_hz) >= self.charged_at(rate_hz)
+    }
+
+    /// The highest whole rate at which the pipeline and the coarse task's share fit: the
+    /// share is `COARSE_TASK_CYCLES · coarse / rate` rounded up, so the period's share left is
+    /// `(available · rate − COARSE_TASK_CYCLES · coarse) / rate`, and the rate solves that
+    /// for `cycles`; the roundings move it by a few hertz, which the steps down from above
+    /// it find. 0 when the coarse task alone takes the period's share.
+    fn highest_with_coarse(&self) -> f64 {
+        let per_second = available_cycles(1.0) as f64;
+        let coarse = f64::from(twinstack::config::tick_budget::COARSE_TASK_CYCLES)
+            * f64::from(self.coarse_rate_hz);
+        let estimate = (per_second - coarse) / f64::from(self.cycles.max(1));
+        if estimate.is_nan() || estimate < 1.0 {
+            return 0.0;
+        }
+        // A few hertz above the estimate; steps down to the first rate that fits (bounded:
+        // the roundings are worth a few cycles, far fewer hertz than the steps allowed).
+        let mut rate = estimate.floor() + 8.0;
+        for _ in 0..4_096 {
+            if rate < 1.0 {
+                break;
+            }
+            if self.fits(rate) {
+                return rate;
+            }
+            rate -= 1.0;
+        }
+        0.0
+    }
+
+    /// Whether the board runs it at `rate_hz` (within its range of rates and the budget,
+    /// the coarse task's share beside it).
     pub fn admitted_at(&self, rate_hz: f64) -> bool {
-        available_cycles(rate_hz) >= self.cycles
+        self.fits(rate_hz)
             && (Hardware::MIN_CONTROL_RATE_HZ as f64..=Hardware::MAX_CONTROL_RATE_HZ as f64)
                 .contains(&rate_hz)
     }
@@ -73,8 +148,19 @@ impl BudgetRow {
     /// The budget of `settings`, or the refusal the board would send for them at its slowest
     /// rate (a model out of range, a sensor without feedback, …).
     pub fn of(name: &str, settings: &Settings) -> Result<Self, Refusal> {
+        Self::beside_coarse(name, settings, 0)
+    }
+
+    /// [`BudgetRow::of`] on a dual-stage image whose coarse task runs at `coarse_rate_hz`
+    /// (0: a piezo-only image): its share of each tick is charged beside every prediction.
+    pub fn beside_coarse(
+        name: &str,
+        settings: &Settings,
+        coarse_rate_hz: u32,
+    ) -> Result<Self, Refusal> {
         let hardware = Hardware::driver_board(f64::from(Hardware::MIN_CONTROL_RATE_HZ));
         let config = settings.build(&hardware)?;
+        let predict = |cycles| Prediction::beside_coarse(cycles, coarse_rate_hz);
         let loaded = worst_case_cycles(&config);
         let without_observer = match settings.observer {
             Some(_) => {
@@ -82,15 +168,15 @@ impl BudgetRow {
                     observer: None,
                     ..settings.clone()
                 };
-                Some(Prediction::of(worst_case_cycles(&bare.build(&hardware)?)))
+                Some(predict(worst_case_cycles(&bare.build(&hardware)?)))
             }
             None => None,
         };
         Ok(Self {
             name: name.to_string(),
-            loaded: Prediction::of(loaded),
+            loaded: predict(loaded),
             without_observer,
-            every_feature: Prediction::of(pipeline_cycles(&config, BESIDE_EVERY_FEATURE)),
+            every_feature: predict(pipeline_cycles(&config, BESIDE_EVERY_FEATURE)),
         })
     }
 }
@@ -185,6 +271,41 @@ mod tests {
     }
 
     #[test]
+    fn beside_a_coarse_task_the_highest_rate_is_where_the_dual_stage_board_starts_to_refuse() {
+        use twinstack::config::tick_budget::Beside;
+        // The board's own check, at a whole rate, with the coarse task's share as the
+        // dual-stage image charges it (`PreparedCoarse`).
+        let board_admits = |config: &twinstack::control::ControlConfig, rate: f64, coarse| {
+            let beside = Beside {
+                coarse_task: coarse_task_share(coarse, rate as u32),
+                ..Beside::default()
+            };
+            check_with(config, rate, beside).is_ok()
+        };
+        for (name, settings) in family() {
+            let config = settings.build(&Hardware::driver_board(10_000.0)).unwrap();
+            let alone = BudgetRow::of(&name, &settings).unwrap();
+            for coarse in [1_000, 5_000, 10_000] {
+                let row = BudgetRow::beside_coarse(&name, &settings, coarse).unwrap();
+                let at = row.loaded.highest_rate_hz;
+                assert_eq!(at, at.floor(), "{name}: a whole rate");
+                assert!(at < alone.loaded.highest_rate_hz, "{name}: the task costs");
+                assert!(board_admits(&config, at, coarse), "{name} refused at {at}");
+                // Every whole rate above it up to 10 Hz higher is refused.
+                for up in 1..=10 {
+                    let above = at + f64::from(up);
+                    assert!(!board_admits(&config, above, coarse), "{name} at {above}");
+                    assert!(!row.loaded.admitted_at(above));
+                }
+                assert_eq!(row.loaded.coarse_rate_hz, coarse);
+                assert_eq!(row.loaded.cycles, alone.loaded.cycles);
+            }
+        }
+        // A coarse task that takes the whole share leaves no rate.
+        assert_eq!(Prediction::beside_coarse(100, 20_000).highest_rate_hz, 0.0);
+    }
+
+    #[test]
     fn the_family_is_every_model_with_and_without_creep() {
         let names: Vec<String> = family().into_iter().map(|(n, _)| n).collect();
         assert_eq!(names.len(), 8);
@@ -194,11 +315,11 @@ mod tests {
     #[test]
     fn admitted_is_within_the_boards_rates_and_the_budget() {
         // The share of the period a 100 kHz board leaves the pipeline (80 % of 1 680 cycles).
-        let p = Prediction::of(1_344);
+        let p = Prediction::beside_coarse(1_344, 0);
         assert!(p.admitted_at(100_000.0) && p.admitted_at(10_000.0));
         assert!(!p.admitted_at(100_001.0) && !p.admitted_at(9_999.0));
-        assert!(!Prediction::of(1_345).admitted_at(100_000.0));
-        let dear = Prediction::of(2_688);
+        assert!(!Prediction::beside_coarse(1_345, 0).admitted_at(100_000.0));
+        let dear = Prediction::beside_coarse(2_688, 0);
         assert!(dear.admitted_at(50_000.0) && !dear.admitted_at(50_001.0));
     }
 }

@@ -1,4 +1,4 @@
-//! `twinstack budget [PARAMS.json …] [--rate HZ] [--json]`: what each configuration costs the
+//! `twinstack budget [PARAMS.json …] [--rate HZ] [--coarse-rate HZ] [--json]`: what each configuration costs the
 //! control tick (the whole interrupt's predicted worst case, cycles at 5 flash wait states) and
 //! the highest control rate the board admits it at — as loaded, without its observer, and with
 //! the learning, a scan, the trigger input, a capture and telemetry beside it. Without files, every model
@@ -22,6 +22,25 @@ pub struct Args {
     /// Print JSON (one object per configuration) instead of the table.
     #[arg(long)]
     pub json: bool,
+    /// The board is a dual-stage image whose coarse task runs at this rate, Hz (5000 on the
+    /// shipped images): its share of each tick (7 700 cycles a coarse period) is charged
+    /// beside every configuration, as the board charges it, so the rates are lower.
+    #[arg(long, value_name = "HZ", allow_negative_numbers = true)]
+    pub coarse_rate: Option<f64>,
+}
+
+/// `--coarse-rate` as the board takes it: a positive number of hertz, rounded up to a whole
+/// one (the dual-stage image's rounding, `PreparedCoarse::new`), at most the highest control
+/// rate.
+pub fn coarse_rate_hz(hz: Option<f64>) -> anyhow::Result<u32> {
+    let Some(hz) = hz else {
+        return Ok(0);
+    };
+    let max = f64::from(Hardware::MAX_CONTROL_RATE_HZ);
+    if !(hz.is_finite() && hz > 0.0 && hz <= max) {
+        anyhow::bail!("--coarse-rate {hz}: must be above 0 and at most {max} Hz");
+    }
+    Ok(hz.ceil() as u32)
 }
 
 /// Runs `budget`.
@@ -31,16 +50,20 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
             anyhow::bail!("--rate {rate}: not a positive number of hertz");
         }
     }
+    let coarse = coarse_rate_hz(args.coarse_rate)?;
     let mut rows = Vec::new();
     if args.params.is_empty() {
         for (name, settings) in family() {
-            rows.push(BudgetRow::of(&name, &settings).map_err(|e| anyhow::anyhow!("{name}: {e}"))?);
+            rows.push(
+                BudgetRow::beside_coarse(&name, &settings, coarse)
+                    .map_err(|e| anyhow::anyhow!("{name}: {e}"))?,
+            );
         }
     } else {
         for path in &args.params {
             let (file, _) = ParamFile::load(path)?;
             let name = path.display().to_string();
-            let row = BudgetRow::of(&name, &file.settings)
+            let row = BudgetRow::beside_coarse(&name, &file.settings, coarse)
                 .map_err(|e| anyhow::anyhow!("{e}"))
                 .with_context(|| format!("{name}: the board refuses these settings"))?;
             rows.push(row);
@@ -60,6 +83,11 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         println!("{}", serde_json::to_string_pretty(&out)?);
         return Ok(());
     }
+    if coarse > 0 {
+        println!(
+            "On a dual-stage image whose coarse task runs at {coarse} Hz: its share of each tick is charged beside every configuration.\n"
+        );
+    }
     print!("{}", table(&rows, args.rate));
     Ok(())
 }
@@ -67,7 +95,14 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
 /// `12.3 kHz`, or the board's limit when the budget allows more.
 fn rate(p: &Prediction) -> String {
     let max = f64::from(Hardware::MAX_CONTROL_RATE_HZ);
-    if p.highest_rate_hz >= max {
+    if p.highest_rate_hz < f64::from(Hardware::MIN_CONTROL_RATE_HZ) {
+        // Below the board's slowest rate (beside a coarse task that takes the period: none).
+        if p.highest_rate_hz > 0.0 {
+            format!("none ({})", kilo(p.highest_rate_hz))
+        } else {
+            "none".into()
+        }
+    } else if p.highest_rate_hz >= max {
         format!("{} ({:.1})", kilo(max), p.highest_rate_hz / 1e3)
     } else {
         kilo(p.highest_rate_hz)

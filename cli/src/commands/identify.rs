@@ -75,6 +75,18 @@ pub struct Args {
     /// fast board may refuse the file.
     #[arg(long, value_name = "HZ")]
     pub tick_rate: Option<f64>,
+    /// With `--tick-rate`: the board is a dual-stage image whose coarse task runs at this
+    /// rate, Hz (5000 on the shipped images), and its share of each tick is charged beside
+    /// every model, as the board charges it (`twinstack budget --coarse-rate` prints the
+    /// rates). Without it the file is sized for a piezo-only image, which a dual-stage board
+    /// at the same rate may refuse.
+    #[arg(
+        long,
+        value_name = "HZ",
+        requires = "tick_rate",
+        allow_negative_numbers = true
+    )]
+    pub coarse_rate: Option<f64>,
     /// Write the model as the compensator only, not as the observer too: the board then has
     /// no estimate of the displacement and no drift check of its sensor, and its tick saves
     /// the observer's cost, so that with `--tick-rate` larger models are admitted (a
@@ -86,6 +98,7 @@ pub struct Args {
     pub output_unit: String,
 }
 
+use twinstack::config::tick_budget::coarse_task_share;
 pub use twinstack_identify::identification::run::{parse_model, ModelChoice};
 
 /// `--lag`: a whole or a half number of samples ([`half_samples`]).
@@ -133,6 +146,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     if let Some(rate) = args.tick_rate {
         check_tick_rate(rate).map_err(|e| anyhow!("--tick-rate {e}"))?;
     }
+    let coarse = super::budget::coarse_rate_hz(args.coarse_rate)?;
     let data = MeasuredData::read_with(
         &args.data,
         Columns::TimeDriveOutput,
@@ -174,8 +188,11 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         &options,
         args.creep.then_some(true),
         &args.output_unit,
-        args.tick_rate
-            .map(|hz| BoardRate::sizing(hz, args.operators.is_some())),
+        args.tick_rate.map(|hz| {
+            // The board's rate is a whole number of hertz, as the share is computed there.
+            BoardRate::sizing(hz, args.operators.is_some())
+                .beside(coarse_task_share(coarse, hz as u32))
+        }),
     )
     .map_err(in_file)?;
     if let Some(auto) = &run.auto {
