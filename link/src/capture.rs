@@ -9,6 +9,7 @@
 
 use crate::client::{Client, LinkError};
 use crate::Transport;
+use std::ops::ControlFlow;
 use std::time::Duration;
 use twinstack::config::settings::Settings;
 use twinstack::protocol::messages::{CaptureState, CaptureStatus};
@@ -211,6 +212,16 @@ pub enum CaptureError {
         /// What to check.
         hint: &'static str,
     },
+    /// The caller stopped the wait ([`wait_and_read_or_stop`]).
+    #[error(
+        "the wait for the capture was stopped with {captured} frames captured after {waited:.1} s"
+    )]
+    Stopped {
+        /// Frames captured.
+        captured: u32,
+        /// Seconds waited.
+        waited: f64,
+    },
 }
 
 /// Polls the capture status until the capture is done, for at most `budget`, then reads the
@@ -220,10 +231,34 @@ pub fn wait_and_read<T: Transport>(
     budget: Duration,
     mut progress: impl FnMut(&str, u32),
 ) -> Result<(CaptureStatus, Vec<i16>), CaptureError> {
+    wait_and_read_or_stop(client, budget, |what, n| {
+        progress(what, n);
+        ControlFlow::Continue(())
+    })
+}
+
+/// How often [`wait_and_read_or_stop`] asks the board whether its capture is done.
+pub const POLL: Duration = Duration::from_millis(20);
+
+/// [`wait_and_read`], stopped by its caller: `progress` sees the frames captured at each
+/// poll (every [`POLL`]), then the slots read, and answers [`ControlFlow::Break`] at a poll
+/// to stop the wait ([`CaptureError::Stopped`]; the capture stays as it is on the board).
+pub fn wait_and_read_or_stop<T: Transport>(
+    client: &mut Client<T>,
+    budget: Duration,
+    mut progress: impl FnMut(&str, u32) -> ControlFlow<()>,
+) -> Result<(CaptureStatus, Vec<i16>), CaptureError> {
     let mut waited = Duration::ZERO;
     let status = loop {
         let s = client.capture_status()?;
-        progress("captured", s.captured);
+        // Every answer is honoured, the last poll's too: a caller that stops (a signal taken
+        // while it was asked) is never left running.
+        if progress("captured", s.captured).is_break() {
+            return Err(CaptureError::Stopped {
+                captured: s.captured,
+                waited: waited.as_secs_f64(),
+            });
+        }
         if s.state == CaptureState::Done {
             break s;
         }
@@ -244,11 +279,12 @@ pub fn wait_and_read<T: Transport>(
                 },
             });
         }
-        let step = Duration::from_millis(20);
-        client.wait(step)?;
-        waited += step;
+        client.wait(POLL)?;
+        waited += POLL;
     };
-    let window = client.read_capture_window(status.window_slots, |n| progress("read", n))?;
+    let window = client.read_capture_window(status.window_slots, |n| {
+        let _ = progress("read", n);
+    })?;
     Ok((status, window))
 }
 

@@ -147,6 +147,8 @@ impl Board {
                 capture::wait_and_read(client, timeout, |_, _| {}).map_err(|e| match e {
                     CaptureError::Link(l) => err(l),
                     e @ CaptureError::NotDone { .. } => PyTimeoutError::new_err(e.to_string()),
+                    // Not asked for here (nothing stops this wait).
+                    e @ CaptureError::Stopped { .. } => PyRuntimeError::new_err(e.to_string()),
                 })?;
             let recording = capture::convert(&status, &settings, &window)
                 .map_err(|e| PyRuntimeError::new_err(e.to_string()))?;

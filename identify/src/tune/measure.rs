@@ -28,7 +28,7 @@ use std::ops::ControlFlow;
 use std::time::Duration;
 use twinstack::config::settings::Settings;
 use twinstack::protocol::messages::{
-    CaptureRequest, CaptureState, CaptureStatus, StreamControl, Trigger, WaveShape, Waveform,
+    CaptureRequest, CaptureStatus, StreamControl, Trigger, WaveShape, Waveform,
 };
 use twinstack::services::recorder::Channel;
 use twinstack_link::capture::{self, CaptureError, ConvertError};
@@ -140,7 +140,7 @@ pub enum SweepEvent<'a> {
 
 /// How often the sweep asks the board whether a capture is done, and so how often `progress`
 /// hears [`SweepEvent::Waiting`].
-pub const POLL: Duration = Duration::from_millis(20);
+pub const POLL: Duration = capture::POLL;
 
 /// Why a measurement stopped.
 #[derive(Debug, thiserror::Error)]
@@ -266,9 +266,10 @@ pub fn coarse_frequencies(options: &SweepOptions, rate: f64) -> Vec<f64> {
         .collect()
 }
 
-/// Polls the recorder every [`POLL`] until its capture is done (for at most `budget`), then
-/// reads its window; asks `progress` between two polls ([`MeasureError::Stopped`] on a
-/// stop, `measured` frequencies before it). Capture errors are at `frequency_hz`.
+/// Waits for the recorder's capture (for at most `budget`) and reads its window
+/// ([`capture::wait_and_read_or_stop`]), asking `progress` at each poll
+/// ([`MeasureError::Stopped`] on a stop, `measured` frequencies before it). Capture errors
+/// are at `frequency_hz`.
 fn wait_and_read<T: Transport>(
     client: &mut Client<T>,
     budget: Duration,
@@ -276,48 +277,20 @@ fn wait_and_read<T: Transport>(
     measured: usize,
     progress: &mut impl FnMut(SweepEvent<'_>) -> ControlFlow<()>,
 ) -> Result<(CaptureStatus, Vec<i16>), MeasureError> {
-    let failed = |source: CaptureError| MeasureError::Capture {
-        frequency_hz,
-        source,
-    };
-    let mut waited = Duration::ZERO;
-    let status = loop {
-        let s = client
-            .capture_status()
-            .map_err(|e| failed(CaptureError::Link(e)))?;
-        if s.state == CaptureState::Done {
-            break s;
-        }
-        if waited >= budget {
-            return Err(failed(CaptureError::NotDone {
-                state: s.state,
-                captured: s.captured,
-                samples: s.samples,
-                waited: waited.as_secs_f64(),
-                hint: match s.state {
-                    CaptureState::Armed => "the sine never started the capture",
-                    CaptureState::Idle => {
-                        "no capture is armed (another client re-armed the recorder?)"
-                    }
-                    _ => "is the board ticking?",
-                },
-            }));
-        }
-        if progress(SweepEvent::Waiting { frequency_hz }).is_break() {
-            return Err(MeasureError::Stopped {
-                frequency_hz,
-                measured,
-            });
-        }
-        client
-            .wait(POLL)
-            .map_err(|e| failed(CaptureError::Link(e)))?;
-        waited += POLL;
-    };
-    let window = client
-        .read_capture_window(status.window_slots, |_| {})
-        .map_err(|e| failed(CaptureError::Link(e)))?;
-    Ok((status, window))
+    capture::wait_and_read_or_stop(client, budget, |what, _| match what {
+        "captured" => progress(SweepEvent::Waiting { frequency_hz }),
+        _ => ControlFlow::Continue(()),
+    })
+    .map_err(|source| match source {
+        CaptureError::Stopped { .. } => MeasureError::Stopped {
+            frequency_hz,
+            measured,
+        },
+        source => MeasureError::Capture {
+            frequency_hz,
+            source,
+        },
+    })
 }
 
 /// Measures the response at one frequency (see the module doc), `measured` frequencies
