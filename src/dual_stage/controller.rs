@@ -148,33 +148,58 @@ impl DualStage {
     /// At rest: the total position is `position_pm` at the encoders' present readings, the
     /// piezo at mid-stroke, the motor at step 0, mode coarse only.
     pub fn new(config: DualStageConfig, position_pm: i64, motor_raw: u16, linear_raw: u16) -> Self {
-        let carriage = position_pm.saturating_sub(config.fine_centre_pm);
-        let steps = div(carriage, config.step_pm);
-        Self {
+        // The piezo at mid-stroke and no count yet; the rest as `reset_at` sets it.
+        let mut stage = Self {
             config,
             mode: DualMode::CoarseOnly,
             reference: Reference::Hold,
-            setpoint: position_pm,
-            split: SplitFilter::new(config.split, carriage),
-            follower: TrapezoidalProfile::new(carriage, config.coarse_limits),
+            setpoint: 0,
+            split: SplitFilter::new(config.split, 0),
+            follower: TrapezoidalProfile::new(0, config.coarse_limits),
             correction: 0,
-            steps: StepGenerator::new(steps, config.backlash_steps, config.max_steps_per_burst),
-            motor: EncoderCounter::new(motor_raw),
-            linear: EncoderCounter::new(linear_raw),
-            origin: position_pm,
+            steps: StepGenerator::new(0, config.backlash_steps, config.max_steps_per_burst),
+            motor: EncoderCounter::new(0),
+            linear: EncoderCounter::new(0),
+            origin: 0,
             engaged: 0,
             fine_pm: config.fine_centre_pm,
             fine_q: Self::to_q(&config, config.fine_centre_pm),
-            last_command: carriage,
+            last_command: 0,
             last_command_velocity: 0,
-            tracker: CarriageTracker::new(
-                config.carriage_alpha,
-                config.carriage_alpha_at_rest,
-                carriage,
-            ),
+            tracker: CarriageTracker::new(config.carriage_alpha, config.carriage_alpha_at_rest, 0),
             still_ticks: 0,
             counters: DualStageCounters::default(),
-        }
+        };
+        stage.reset_at(position_pm, motor_raw, linear_raw);
+        stage
+    }
+
+    /// At rest, coarse only, at total position `position_pm` with the encoders' present
+    /// readings and the carriage where the piezo at mid-stroke puts it: every field but the
+    /// configuration, the piezo's setpoint, the hand-over ramp and the counters, set in place
+    /// (the coarse task's tick calls it through [`DualStage::restart`]: no copy of the whole
+    /// controller).
+    fn reset_at(&mut self, position_pm: i64, motor_raw: u16, linear_raw: u16) {
+        let c = &self.config;
+        let carriage = position_pm.saturating_sub(c.fine_centre_pm);
+        self.mode = DualMode::CoarseOnly;
+        self.reference = Reference::Hold;
+        self.setpoint = position_pm;
+        self.split = SplitFilter::new(c.split, carriage);
+        self.follower = TrapezoidalProfile::new(carriage, c.coarse_limits);
+        self.correction = 0;
+        self.steps = StepGenerator::new(
+            div(carriage, c.step_pm),
+            c.backlash_steps,
+            c.max_steps_per_burst,
+        );
+        self.motor = EncoderCounter::new(motor_raw);
+        self.linear = EncoderCounter::new(linear_raw);
+        self.origin = position_pm;
+        self.last_command = carriage;
+        self.last_command_velocity = 0;
+        self.tracker = CarriageTracker::new(c.carriage_alpha, c.carriage_alpha_at_rest, carriage);
+        self.still_ticks = 0;
     }
 
     /// The configuration.
@@ -238,23 +263,12 @@ impl DualStage {
     /// limits and the counters. Used after a fault, whose stop left the follower's and the
     /// step generator's state behind the stage's.
     pub fn restart(&mut self, position_pm: i64, motor_raw: u16, linear_raw: u16) {
-        let (fine_pm, fine_q, counters, engaged) =
-            (self.fine_pm, self.fine_q, self.counters, self.engaged);
         // The carriage is where the total position less the piezo's share puts it (not at
         // `position − centre`, as `new` assumes of a piezo at mid-stroke): the setpoint starts
         // there plus mid-stroke, so the coarse command and the carriage agree.
-        let share = fine_pm.saturating_sub(self.config.fine_centre_pm);
-        *self = Self::new(
-            self.config,
-            position_pm.saturating_sub(share),
-            motor_raw,
-            linear_raw,
-        );
+        let share = self.fine_pm.saturating_sub(self.config.fine_centre_pm);
+        self.reset_at(position_pm.saturating_sub(share), motor_raw, linear_raw);
         self.origin = position_pm;
-        self.fine_pm = fine_pm;
-        self.fine_q = fine_q;
-        self.counters = counters;
-        self.engaged = engaged;
     }
 
     /// Reads the linear encoder only (the total position, pm), without moving anything: for a
@@ -586,6 +600,37 @@ mod tests {
         run(&mut d, &mut axis, 500);
         let target_steps = 100_000_000 / d.config().step_pm;
         assert!((axis.steps - target_steps).abs() <= 1, "{}", axis.steps);
+    }
+
+    #[test]
+    fn a_restart_is_a_fresh_controller_that_keeps_the_piezo_the_ramp_and_the_counts() {
+        let mut d = stage();
+        let mut axis = IdealAxis {
+            steps: 0,
+            refuse: false,
+        };
+        d.set_mode(DualMode::Dual);
+        run(&mut d, &mut axis, 40);
+        d.move_to(2_000_000_000);
+        run(&mut d, &mut axis, 300);
+        d.follow(i64::MAX); // a travel clamp counted
+        let (fine_pm, fine_q, engaged, counters) = (d.fine_pm, d.fine_q, d.engaged, d.counters);
+        assert!(fine_pm != d.config.fine_centre_pm && engaged > 0);
+        let config = d.config;
+        let (position, motor, linear) = (1_234_567_890, 77, 4_321);
+        d.restart(position, motor, linear);
+        // As built afresh where the piezo's share puts the carriage, with the origin at the
+        // position, and the piezo's setpoint, the hand-over and the counters as they were.
+        let share = fine_pm - config.fine_centre_pm;
+        let mut fresh = DualStage::new(config, position - share, motor, linear);
+        fresh.origin = position;
+        fresh.fine_pm = fine_pm;
+        fresh.fine_q = fine_q;
+        fresh.engaged = engaged;
+        fresh.counters = counters;
+        assert_eq!(std::format!("{d:?}"), std::format!("{fresh:?}"));
+        assert_eq!(d.mode(), DualMode::CoarseOnly);
+        assert_eq!(d.counters().travel_clamps, 1);
     }
 
     #[test]
