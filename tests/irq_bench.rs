@@ -115,9 +115,9 @@ struct Insn {
     masks_tick: bool,
     /// It lifts that mask: the lock's restore, or interrupts on ([`lifts_mask`]).
     unmasks_tick: bool,
-    /// It can change the flow ([`can_branch`]).
+    /// It can change the flow ([`support::can_branch`]).
     branch: bool,
-    /// Its cycles when it does not branch ([`base_cycles`]).
+    /// Its cycles when it does not branch ([`support::base_cycles`]).
     base_cycles: u64,
     /// A floating-point instruction (`v…`: the FPU's loads, stores, moves and arithmetic).
     fp: bool,
@@ -344,8 +344,8 @@ fn disassemble(elf: &Path) -> Code {
         };
         let (unmasks_tick, branch, base) = (
             lifts_mask(&mnemonic, &operands),
-            can_branch(&mnemonic, &operands),
-            base_cycles(&mnemonic, &operands),
+            support::can_branch(&mnemonic, &operands),
+            support::base_cycles(&mnemonic, &operands),
         );
         let fp = mnemonic.starts_with('v');
         recent.push_back((mnemonic, operands));
@@ -413,40 +413,9 @@ fn writes_register(mnemonic: &str, operands: &str, register: &str) -> bool {
 /// SDIV/UDIV 12 (worst); multiply and multiply-accumulate (including 64-bit) 1; `IT` 1 (the
 /// TRM lets it fold; we count it); VFP: VDIV/VSQRT 14, VLDR/VSTR 2, VMLA/VMLS 3, others 1.
 ///
-/// Computed once per instruction of the image ([`base_cycles`]), not per traced one.
+/// Computed once per instruction of the image ([`support::base_cycles`]), not per traced one.
 fn cycles(i: &Insn, taken: bool) -> u64 {
     i.base_cycles + if taken { 3 } else { 0 }
-}
-
-/// [`cycles`] of `mnemonic operands` when it does not branch.
-fn base_cycles(mnemonic: &str, operands: &str) -> u64 {
-    let m = mnemonic.trim_end_matches(".w").trim_end_matches(".n");
-    let regs = operands.matches(',').count() as u64 + 1;
-    match m {
-        _ if m.starts_with("push") || m.starts_with("pop") => 1 + regs,
-        _ if m.starts_with("ldm") || m.starts_with("stm") => 1 + regs.saturating_sub(1),
-        _ if m.starts_with("vpush") || m.starts_with("vpop") => 1 + regs,
-        _ if m.starts_with("vldm") || m.starts_with("vstm") => 1 + regs.saturating_sub(1),
-        "ldrd" | "strd" => 3,
-        _ if m.starts_with("ldr") || m.starts_with("str") => 2,
-        _ if m.starts_with("sdiv") || m.starts_with("udiv") => 12,
-        _ if m.starts_with("vdiv") || m.starts_with("vsqrt") => 14,
-        _ if m.starts_with("vldr") || m.starts_with("vstr") => 2,
-        _ if m.starts_with("vmla") || m.starts_with("vmls") => 3,
-        _ => 1,
-    }
-}
-
-/// Whether `mnemonic operands` can change the flow (so `taken` is meaningful for it).
-fn can_branch(m: &str, operands: &str) -> bool {
-    m.starts_with('b') && !m.starts_with("bic") && !m.starts_with("bfc") && !m.starts_with("bfi")
-        || m.starts_with("cbz")
-        || m.starts_with("cbnz")
-        || m.starts_with("tbb")
-        || m.starts_with("tbh")
-        || (m.starts_with("pop") || m.starts_with("ldm") || m.starts_with("ldr"))
-            && operands.contains("pc")
-        || m.starts_with("mov") && operands.starts_with("pc")
 }
 
 /// One SysTick invocation.

@@ -157,13 +157,15 @@ pub const COARSE_CYCLES: u32 = 0;
 /// centring, the step burst's plan, the supervision), cycles at 5 flash wait states. It runs
 /// at priority 2, below the control interrupt, once a coarse period (5 kHz on the paper
 /// stage), so the pipeline's share of the period pays it in fine ticks' shares
-/// ([`coarse_task_share`]). The tick bench counts its instructions on the library's model of
-/// the axis, homing and moving 10 mm and back at the stage's limits (`cargo test --profile
-/// host-opt --test tick_bench`, part `coarse-tick`): 3 842 at worst, 2 316 on average; the
-/// 64-bit integer arithmetic of the trajectory and the centring (library calls for its
-/// divisions and square root) takes most of them. Charged at 2 cycles an instruction (the
-/// whole control interrupt's dearest measured ratio at 5 WS is 1.98): the task's own cycles
-/// are not traced.
+/// ([`coarse_task_share`]). The tick bench runs it on the library's model of the axis, homing
+/// and moving 10 mm and back at the stage's limits, and traces every tick instruction by
+/// instruction, costed as the whole-interrupt bench costs the control tick (`cargo test
+/// --profile host-opt --test tick_bench`, part `coarse-tick`; the tick-cost chapter has the
+/// figures): it fails if the dearest tick, with the exception's entry and return, exceeds this
+/// charge. The 64-bit integer arithmetic of the trajectory and the centring (library calls
+/// for its divisions and square root) takes most of it. The charge stays above the dearest
+/// traced tick by up to half of it (the bench fails a looser one), for the paths the bench
+/// does not run (a jog, a streamed reference, a fault's stop and restart).
 pub const COARSE_TASK_CYCLES: u32 = 7_700;
 
 /// The coarse task's share of each fine tick, cycles at 5 WS: [`COARSE_TASK_CYCLES`] once

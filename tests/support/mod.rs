@@ -600,3 +600,206 @@ fn llvm_tool(name: &str, others: &[&str]) -> Option<PathBuf> {
         .map(|tool| bin.join(tool))
         .find(|p| p.is_file())
 }
+/// Cycles of the instruction `mnemonic operands` when it does not branch, on the Cortex-M4 at 0
+/// wait states (the TRM's instruction set summary): loads and stores 2 (no pipelining of
+/// neighbouring loads assumed), LDM/STM/PUSH/POP 1 + registers, SDIV/UDIV 12 (worst), VDIV/VSQRT
+/// 14, VLDR/VSTR 2, VMLA/VMLS 3, everything else 1. A taken branch adds a pipeline refill of 3
+/// (the TRM's worst), and at 5 wait states the flash's 5 more ([`traced_calls`]).
+pub fn base_cycles(mnemonic: &str, operands: &str) -> u64 {
+    let m = mnemonic.trim_end_matches(".w").trim_end_matches(".n");
+    let regs = operands.matches(',').count() as u64 + 1;
+    match m {
+        _ if m.starts_with("push") || m.starts_with("pop") => 1 + regs,
+        _ if m.starts_with("ldm") || m.starts_with("stm") => 1 + regs.saturating_sub(1),
+        _ if m.starts_with("vpush") || m.starts_with("vpop") => 1 + regs,
+        _ if m.starts_with("vldm") || m.starts_with("vstm") => 1 + regs.saturating_sub(1),
+        "ldrd" | "strd" => 3,
+        _ if m.starts_with("ldr") || m.starts_with("str") => 2,
+        _ if m.starts_with("sdiv") || m.starts_with("udiv") => 12,
+        _ if m.starts_with("vdiv") || m.starts_with("vsqrt") => 14,
+        _ if m.starts_with("vldr") || m.starts_with("vstr") => 2,
+        _ if m.starts_with("vmla") || m.starts_with("vmls") => 3,
+        _ => 1,
+    }
+}
+
+/// Whether `mnemonic operands` can change the flow (so `taken` is meaningful for it).
+pub fn can_branch(m: &str, operands: &str) -> bool {
+    m.starts_with('b') && !m.starts_with("bic") && !m.starts_with("bfc") && !m.starts_with("bfi")
+        || m.starts_with("cbz")
+        || m.starts_with("cbnz")
+        || m.starts_with("tbb")
+        || m.starts_with("tbh")
+        || (m.starts_with("pop") || m.starts_with("ldm") || m.starts_with("ldr"))
+            && operands.contains("pc")
+        || m.starts_with("mov") && operands.starts_with("pc")
+}
+
+/// One invocation of a traced function: instructions and cycles (0 and 5 wait states) from its
+/// first instruction to the return to its caller.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct CallCost {
+    /// Instructions executed.
+    pub instructions: u64,
+    /// Cycles at 0 wait states ([`base_cycles`], a taken branch 3 more).
+    pub cycles: u64,
+    /// Cycles at 5 wait states: every taken branch waits the flash's 5 more.
+    pub cycles_ws5: u64,
+}
+
+/// Runs `elf` in QEMU (`extra` arguments beside `-icount shift=0 -singlestep -d exec,nochain`)
+/// and costs every invocation of the function whose symbol starts with `function` (demangled,
+/// e.g. `tick_bench::image::coarse_part`, which must be `#[inline(never)]` and called with
+/// `bl`), each instruction by [`base_cycles`] and [`can_branch`] on the image's disassembly:
+/// from its entry to the instruction after a `bl` to it. Panics, naming what, if the image
+/// has no such function or QEMU fails.
+pub fn traced_calls(elf: &Path, function: &str, extra: &[&str]) -> Vec<CallCost> {
+    use std::io::BufRead;
+    // The image's instructions: size, whether they can branch, their cycles.
+    let out = Command::new(objdump())
+        .args([
+            "-d",
+            "--demangle",
+            "--no-show-raw-insn",
+            "--triple=thumbv7em-none-eabihf",
+        ])
+        .arg(elf)
+        .output()
+        .expect("llvm-objdump runs");
+    assert!(
+        out.status.success(),
+        "llvm-objdump failed on {}",
+        elf.display()
+    );
+    let mut rows: Vec<(u32, bool, u64)> = Vec::new();
+    let mut entry = None;
+    let mut returns = std::collections::HashSet::new();
+    for line in String::from_utf8_lossy(&out.stdout).lines() {
+        if let Some(label) = line.strip_suffix(">:") {
+            if let Some((addr, symbol)) = label.split_once(" <") {
+                if symbol.starts_with(function) {
+                    entry = u32::from_str_radix(addr.trim(), 16).ok();
+                }
+            }
+            continue;
+        }
+        let Some((addr, rest)) = line.trim_start().split_once(':') else {
+            continue;
+        };
+        let Ok(addr) = u32::from_str_radix(addr, 16) else {
+            continue;
+        };
+        let mut fields = rest.split_whitespace();
+        let Some(mnemonic) = fields.next() else {
+            continue;
+        };
+        let operands = rest
+            .trim_start()
+            .strip_prefix(mnemonic)
+            .unwrap_or("")
+            .split('@')
+            .next()
+            .unwrap_or("")
+            .trim();
+        if mnemonic == "bl" && operands.contains(&format!("<{function}")) {
+            returns.insert(addr + 4);
+        }
+        rows.push((
+            addr,
+            can_branch(mnemonic, operands),
+            base_cycles(mnemonic, operands),
+        ));
+    }
+    let entry = entry.unwrap_or_else(|| panic!("{} has no function {function}", elf.display()));
+    assert!(!returns.is_empty(), "nothing calls {function} with `bl`");
+    // Each instruction's size: the distance to the next (2 or 4 bytes in Thumb-2).
+    let mut code: HashMap<u32, (u32, bool, u64)> = HashMap::new();
+    for (k, &(addr, branch, base)) in rows.iter().enumerate() {
+        let size = rows
+            .get(k + 1)
+            .map(|n| n.0.wrapping_sub(addr))
+            .filter(|&d| d == 2 || d == 4)
+            .unwrap_or(4);
+        code.insert(addr, (size, branch, base));
+    }
+    // The trace, through a FIFO (with the interposer that buffers it, where there is one).
+    let dir = firmware_target_dir();
+    let fifo = dir.join(format!(
+        "traced-calls-{}.fifo",
+        elf.file_name().and_then(|n| n.to_str()).unwrap_or("image")
+    ));
+    let _ = std::fs::remove_file(&fifo);
+    let made = Command::new("mkfifo")
+        .arg(&fifo)
+        .status()
+        .expect("mkfifo runs");
+    assert!(made.success(), "mkfifo {}", fifo.display());
+    let mut qemu = qemu_command(elf);
+    if let Some(buffer) = trace_buffer() {
+        qemu.env("LD_PRELOAD", buffer)
+            .env("TWINSTACK_TRACE_FILE", &fifo);
+    }
+    let child = qemu
+        .args(extra)
+        .args([
+            "-icount",
+            "shift=0",
+            "-singlestep",
+            "-d",
+            "exec,nochain",
+            "-D",
+        ])
+        .arg(&fifo)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("qemu-system-arm starts");
+    let trace = std::fs::File::open(&fifo).expect("open the trace FIFO");
+    let mut calls = Vec::new();
+    let mut current: Option<(CallCost, u32)> = None;
+    for line in std::io::BufReader::with_capacity(1 << 20, trace).split(b'\n') {
+        let Ok(line) = line else { break };
+        // `Trace 0: 0x… [00800408/08000188/…] symbol`: the second field is the PC.
+        let Some(pc) = line
+            .iter()
+            .position(|&b| b == b'[')
+            .and_then(|i| line.get(i + 10..i + 18))
+            .and_then(|h| std::str::from_utf8(h).ok())
+            .and_then(|h| u32::from_str_radix(h, 16).ok())
+        else {
+            continue;
+        };
+        match current.as_mut() {
+            None => {
+                if pc == entry {
+                    current = Some((CallCost::default(), pc));
+                }
+            }
+            Some((cost, previous)) => {
+                // The previous instruction, settled now that its successor is known.
+                if let Some(&(size, branch, base)) = code.get(&*previous) {
+                    let taken = branch && pc != previous.wrapping_add(size);
+                    let c = base + if taken { 3 } else { 0 };
+                    cost.instructions += 1;
+                    cost.cycles += c;
+                    cost.cycles_ws5 += c + if taken { 5 } else { 0 };
+                }
+                *previous = pc;
+                if returns.contains(&pc) {
+                    calls.push(*cost);
+                    current = None;
+                }
+            }
+        }
+    }
+    let out = child.wait_with_output().expect("qemu exits");
+    let _ = std::fs::remove_file(&fifo);
+    assert!(
+        out.status.success(),
+        "{} failed under the trace ({}): {}",
+        elf.display(),
+        out.status,
+        String::from_utf8_lossy(&out.stderr)
+    );
+    calls
+}
