@@ -632,6 +632,12 @@ where
     /// ([`crate::dual_stage::CoarseLink::take`]). The handler asks it only of an axis at rest.
     pub fn release_piezo(&mut self) {
         self.coarse.release_piezo();
+        self.end_coarse_ramp();
+    }
+
+    /// Where the coarse ramp is the setpoint source, hands the setpoint to the stream,
+    /// stopped, holding where the ramp left it.
+    fn end_coarse_ramp(&mut self) {
         if self.source == SetpointSource::Coarse {
             self.source = SetpointSource::Stream;
             self.stream.stop();
@@ -654,11 +660,7 @@ where
     /// longer charged; its posts are ignored until it is attached again.
     pub fn release_coarse(&mut self) {
         self.coarse.release();
-        if self.source == SetpointSource::Coarse {
-            self.source = SetpointSource::Stream;
-            self.stream.stop();
-            self.stream.hold_at_if_stopped(self.controller.setpoint());
-        }
+        self.end_coarse_ramp();
     }
 
     /// Whether the coarse axis owns the piezo's setpoint (its task has posted a ramp, and the

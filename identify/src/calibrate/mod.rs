@@ -225,13 +225,19 @@ pub fn calibrate<T: Transport>(
     let measured = with_resonance(measured);
     let (measured, settings) = match load_bypassed(client, &measured) {
         Ok(settings) => (measured, settings),
-        // Refused for the tick budget with more cycles than the model costs alone: the board
-        // runs something of its own beside every model (a dual-stage image's coarse task).
-        // Identified again from the same excitation with that charged, and loaded.
-        Err(LoadRefusal::Budget { needs })
-            if needs > alone_cycles(&measured.file.settings, rate).unwrap_or(u32::MAX) =>
-        {
-            let beside = needs - alone_cycles(&measured.file.settings, rate).unwrap_or(needs);
+        Err(refusal) => {
+            // Refused for the tick budget with more cycles than the model costs alone: the
+            // board runs something of its own beside every model (a dual-stage image's coarse
+            // task). Identified again from the same excitation with that charged, and loaded.
+            let beside = match refusal {
+                LoadRefusal::Budget { needs } => alone_cycles(&measured.file.settings, rate)
+                    .and_then(|alone| needs.checked_sub(alone))
+                    .filter(|&beside| beside > 0),
+                _ => None,
+            };
+            let Some(beside) = beside else {
+                return Err(restoring(client, refusal.into_error()));
+            };
             progress(Progress::Step(
                 "identifying again, beside the board's own load",
             ));
@@ -242,7 +248,6 @@ pub fn calibrate<T: Transport>(
                 .map_err(|refusal| restoring(client, refusal.into_error()))?;
             (again, settings)
         }
-        Err(refusal) => return Err(restoring(client, refusal.into_error())),
     };
     let Measured {
         predicted,
