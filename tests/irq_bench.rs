@@ -833,22 +833,7 @@ fn the_whole_interrupt_in_every_scenario() {
         .status()
         .expect("llvm-objcopy runs");
     assert!(made.success(), "llvm-objcopy --strip-all {}", elf.display());
-    let dir = support::firmware_target_dir();
-    let fifo = dir.join("irq-bench.trace.fifo");
-    let _ = std::fs::remove_file(&fifo);
-    let made = Command::new("mkfifo")
-        .arg(&fifo)
-        .status()
-        .expect("mkfifo runs");
-    assert!(made.success(), "mkfifo {}", fifo.display());
-    let mut qemu = support::qemu_command(&stripped);
-    // QEMU writes its log a line at a time, flushed: one system call per traced instruction,
-    // most of its time. The interposer buffers the trace's file (the same bytes, 1 MiB at a
-    // time); without it the bench is the same, several times slower.
-    if let Some(buffer) = support::trace_buffer() {
-        qemu.env("LD_PRELOAD", buffer)
-            .env("TWINSTACK_TRACE_FILE", &fifo);
-    }
+    let (mut qemu, fifo) = support::traced_qemu(&stripped, "irq-bench");
     let child = qemu
         .args([
             "-serial",

@@ -635,6 +635,28 @@ pub fn can_branch(m: &str, operands: &str) -> bool {
         || m.starts_with("mov") && operands.starts_with("pc")
 }
 
+/// [`qemu_command`] for `elf` with its trace going to a new FIFO in [`firmware_target_dir`]
+/// named after `name` (returned beside the command: the caller adds `-d … -D` with it, opens
+/// it after spawning QEMU and removes it afterwards). QEMU writes its log a line at a time,
+/// flushed: one system call per traced instruction, most of its time; the interposer
+/// ([`trace_buffer`]) buffers the trace's file, without which the trace is the same, several
+/// times slower.
+pub fn traced_qemu(elf: &Path, name: &str) -> (Command, PathBuf) {
+    let fifo = firmware_target_dir().join(format!("{name}.trace.fifo"));
+    let _ = std::fs::remove_file(&fifo);
+    let made = Command::new("mkfifo")
+        .arg(&fifo)
+        .status()
+        .expect("mkfifo runs");
+    assert!(made.success(), "mkfifo {}", fifo.display());
+    let mut qemu = qemu_command(elf);
+    if let Some(buffer) = trace_buffer() {
+        qemu.env("LD_PRELOAD", buffer)
+            .env("TWINSTACK_TRACE_FILE", &fifo);
+    }
+    (qemu, fifo)
+}
+
 /// One invocation of a traced function: instructions and cycles (0 and 5 wait states) from its
 /// first instruction to the return to its caller.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
@@ -723,22 +745,8 @@ pub fn traced_calls(elf: &Path, function: &str, extra: &[&str]) -> Vec<CallCost>
         code.insert(addr, (size, branch, base));
     }
     // The trace, through a FIFO (with the interposer that buffers it, where there is one).
-    let dir = firmware_target_dir();
-    let fifo = dir.join(format!(
-        "traced-calls-{}.fifo",
-        elf.file_name().and_then(|n| n.to_str()).unwrap_or("image")
-    ));
-    let _ = std::fs::remove_file(&fifo);
-    let made = Command::new("mkfifo")
-        .arg(&fifo)
-        .status()
-        .expect("mkfifo runs");
-    assert!(made.success(), "mkfifo {}", fifo.display());
-    let mut qemu = qemu_command(elf);
-    if let Some(buffer) = trace_buffer() {
-        qemu.env("LD_PRELOAD", buffer)
-            .env("TWINSTACK_TRACE_FILE", &fifo);
-    }
+    let name = elf.file_name().and_then(|n| n.to_str()).unwrap_or("image");
+    let (mut qemu, fifo) = traced_qemu(elf, &format!("traced-calls-{name}"));
     let child = qemu
         .args(extra)
         .args([
