@@ -39,6 +39,7 @@ pub mod config;
 pub mod control;
 pub mod control_loop;
 pub mod converters;
+pub mod divisor;
 pub mod dual_stage;
 pub mod fixed_point;
 #[cfg(target_os = "none")]
