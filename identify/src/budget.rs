@@ -52,13 +52,13 @@ impl Prediction {
     /// ```
     /// use twinstack_identify::budget::Prediction;
     /// // 1 344 cycles fill 80 % of a 100 kHz period; beside a 5 kHz coarse task
-    /// // (7 700 cycles a coarse period) they fit only up to about 71 kHz.
+    /// // (3 600 cycles a coarse period) they fit only up to about 86 kHz.
     /// let alone = Prediction::beside_coarse(1_344, 0);
     /// let dual = Prediction::beside_coarse(1_344, 5_000);
     /// assert!(alone.admitted_at(100_000.0) && !dual.admitted_at(100_000.0));
     /// assert!(dual.admitted_at(dual.highest_rate_hz));
     /// assert!(!dual.admitted_at(dual.highest_rate_hz + 1.0));
-    /// assert!((71_000.0..72_000.0).contains(&dual.highest_rate_hz));
+    /// assert!((86_000.0..87_000.0).contains(&dual.highest_rate_hz));
     /// ```
     pub fn beside_coarse(cycles: u32, coarse_rate_hz: u32) -> Self {
         let mut p = Self {

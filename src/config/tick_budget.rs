@@ -152,21 +152,24 @@ pub const SEQUENCE_CYCLES: u32 = 80;
 /// once the coarse axis owns the setpoint.
 pub const COARSE_CYCLES: u32 = 0;
 
-/// The dual-stage images' coarse task, one coarse period's tick
-/// ([`crate::dual_stage::CoarseSupervisor::tick`]: the encoders, the trajectory's step, the
-/// centring, the step burst's plan, the supervision), cycles at 5 flash wait states. It runs
-/// at priority 2, below the control interrupt, once a coarse period (5 kHz on the paper
-/// stage), so the pipeline's share of the period pays it in fine ticks' shares
-/// ([`coarse_task_share`]). The tick bench runs it on the library's model of the axis, homing
-/// and moving 10 mm and back at the stage's limits, and traces every tick instruction by
-/// instruction, costed as the whole-interrupt bench costs the control tick (`cargo test
-/// --profile host-opt --test tick_bench`, part `coarse-tick`; the tick-cost chapter has the
-/// figures): it fails if the dearest tick, with the exception's entry and return, exceeds this
-/// charge. The 64-bit integer arithmetic of the trajectory and the centring (library calls
-/// for its divisions and square root) takes most of it. The charge stays above the dearest
-/// traced tick by up to half of it (the bench fails a looser one), for the paths the bench
-/// does not run (a jog, a streamed reference, a fault's stop and restart).
-pub const COARSE_TASK_CYCLES: u32 = 7_700;
+/// The dual-stage images' coarse task, one coarse period's tick as the firmware's task runs it
+/// (the command the handler passed, then [`crate::dual_stage::CoarseSupervisor::tick`]: the
+/// encoders, the trajectory's step, the centring, the step burst's plan, the supervision),
+/// cycles at 5 flash wait states. It runs at priority 2, below the control interrupt, once a
+/// coarse period (5 kHz on the paper stage), so the pipeline's share of the period pays it in
+/// fine ticks' shares ([`coarse_task_share`]). The tick bench runs it on the library's model
+/// of the axis (its encoders and switches latched before the tick, as the board's timers and
+/// GPIOs hold them), homing and moving 10 mm and back at the stage's limits, and traces every
+/// tick instruction by instruction, costed as the whole-interrupt bench costs the control tick
+/// (`cargo test --profile host-opt --test tick_bench`, part `coarse-tick`; the tick-cost
+/// chapter has the figures): it fails if the dearest tick, with the exception's entry and
+/// return, exceeds this charge. The tick's arithmetic is 64-bit and saturating, but it calls
+/// no library division: its divisors are settings, prepared with them
+/// ([`crate::divisor::Divisor`], [`crate::dual_stage::PreparedLimits`]; a move's or a jog's
+/// own limits are prepared by the command handler). The charge stays above the dearest traced
+/// tick by up to half of it (the bench fails a looser one), for the paths the bench does not
+/// run (a streamed reference's split filter, a fault's stop).
+pub const COARSE_TASK_CYCLES: u32 = 3_600;
 
 /// The coarse task's share of each fine tick, cycles at 5 WS: [`COARSE_TASK_CYCLES`] once
 /// every `control_rate_hz / coarse_rate_hz` ticks, rounded up (0 for a coarse rate of 0).
@@ -174,8 +177,8 @@ pub const COARSE_TASK_CYCLES: u32 = 7_700;
 /// ```
 /// use twinstack::config::tick_budget::coarse_task_share;
 /// // The paper stage's 5 kHz coarse task at 50 kHz and at 100 kHz.
-/// assert_eq!(coarse_task_share(5_000, 50_000), 770);
-/// assert_eq!(coarse_task_share(5_000, 100_000), 385);
+/// assert_eq!(coarse_task_share(5_000, 50_000), 360);
+/// assert_eq!(coarse_task_share(5_000, 100_000), 180);
 /// ```
 pub const fn coarse_task_share(coarse_rate_hz: u32, control_rate_hz: u32) -> u32 {
     if control_rate_hz == 0 {

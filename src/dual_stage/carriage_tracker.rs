@@ -54,6 +54,13 @@ impl CarriageTracker {
         }
     }
 
+    /// At rest at `position` (pm), with the same gains (no division: the coarse task's
+    /// restart calls it).
+    pub fn reset(&mut self, position: i64) {
+        self.position = position;
+        self.velocity = 0;
+    }
+
     /// Gain `α` (Q8.24) from a value in (0, 1], or `None`.
     pub fn alpha_from_f64(alpha: f64) -> Option<i64> {
         (alpha > 0.0 && alpha <= 1.0)

@@ -234,7 +234,7 @@ impl StepTiming {
         Self {
             prescaler,
             period,
-            pulse: pulse_ticks.clamp(1, period / 2),
+            pulse: pulse_ticks.max(1).min(period / 2),
         }
     }
 }

@@ -19,17 +19,41 @@
 
 use super::carriage_tracker::CarriageTracker;
 use super::split_filter::SplitFilter;
-use super::trapezoid::TrapezoidalProfile;
+use super::trapezoid::{PreparedLimits, TrapezoidalProfile};
 use super::DualStageConfig;
 use crate::board::{QuadratureEncoder, StepDir};
+use crate::divisor::Divisor;
 use crate::dual_stage::coarse_axis::{EncoderCounter, StepGenerator};
 use crate::fixed_point::{limit_i64, saturate_i64, SIGNAL_FRAC_BITS};
 
-/// `a / b`, 0 when `b` is 0 (or the quotient overflows): no panic path. Every divisor here is
-/// a validated positive setting, so the fallback never applies in a built configuration.
-#[inline(always)]
-fn div(a: i64, b: i64) -> i64 {
-    a.checked_div(b).unwrap_or(0)
+/// What the tick needs of the configuration, prepared once when the controller is built: its
+/// divisors ([`Divisor`]: the tick divides by multiplication, with no 64-bit library
+/// division; each is a validated positive setting, and a 0 would divide to 0, no panic path)
+/// and its motion limits' braking arithmetic ([`PreparedLimits`]).
+#[derive(Clone, Copy, Debug)]
+struct Prepared {
+    /// The microstep, pm.
+    step: Divisor,
+    /// The piezo's half-span, pm (to Q2.30).
+    half_span: Divisor,
+    /// The hand-over's length, coarse ticks.
+    handover: Divisor,
+    /// The coarse stage's limits (the follower's).
+    coarse_limits: PreparedLimits,
+    /// A planned move's default limits.
+    move_limits: PreparedLimits,
+}
+
+impl Prepared {
+    fn new(c: &DualStageConfig) -> Self {
+        Self {
+            step: Divisor::new(c.step_pm.max(0) as u64),
+            half_span: Divisor::new(c.fine_half_span_pm.max(0) as u64),
+            handover: Divisor::new(u64::from(c.handover_ticks)),
+            coarse_limits: c.coarse_limits.prepare(),
+            move_limits: c.move_limits.prepare(),
+        }
+    }
 }
 
 /// Who positions the stage.
@@ -117,6 +141,7 @@ pub struct DualStageCounters {
 #[derive(Clone, Debug)]
 pub struct DualStage {
     config: DualStageConfig,
+    prepared: Prepared,
     mode: DualMode,
     reference: Reference,
     /// Total setpoint at the start of the coming coarse period, pm.
@@ -149,13 +174,15 @@ impl DualStage {
     /// piezo at mid-stroke, the motor at step 0, mode coarse only.
     pub fn new(config: DualStageConfig, position_pm: i64, motor_raw: u16, linear_raw: u16) -> Self {
         // The piezo at mid-stroke and no count yet; the rest as `reset_at` sets it.
+        let prepared = Prepared::new(&config);
         let mut stage = Self {
             config,
+            prepared,
             mode: DualMode::CoarseOnly,
             reference: Reference::Hold,
             setpoint: 0,
             split: SplitFilter::new(config.split, 0),
-            follower: TrapezoidalProfile::new(0, config.coarse_limits),
+            follower: TrapezoidalProfile::prepared(0, prepared.coarse_limits),
             correction: 0,
             steps: StepGenerator::new(0, config.backlash_steps, config.max_steps_per_burst),
             motor: EncoderCounter::new(0),
@@ -163,7 +190,7 @@ impl DualStage {
             origin: 0,
             engaged: 0,
             fine_pm: config.fine_centre_pm,
-            fine_q: Self::to_q(&config, config.fine_centre_pm),
+            fine_q: Self::to_q(&config, &prepared, config.fine_centre_pm),
             last_command: 0,
             last_command_velocity: 0,
             tracker: CarriageTracker::new(config.carriage_alpha, config.carriage_alpha_at_rest, 0),
@@ -186,10 +213,10 @@ impl DualStage {
         self.reference = Reference::Hold;
         self.setpoint = position_pm;
         self.split = SplitFilter::new(c.split, carriage);
-        self.follower = TrapezoidalProfile::new(carriage, c.coarse_limits);
+        self.follower = TrapezoidalProfile::prepared(carriage, self.prepared.coarse_limits);
         self.correction = 0;
         self.steps = StepGenerator::new(
-            div(carriage, c.step_pm),
+            self.prepared.step.trunc(carriage),
             c.backlash_steps,
             c.max_steps_per_burst,
         );
@@ -198,7 +225,7 @@ impl DualStage {
         self.origin = position_pm;
         self.last_command = carriage;
         self.last_command_velocity = 0;
-        self.tracker = CarriageTracker::new(c.carriage_alpha, c.carriage_alpha_at_rest, carriage);
+        self.tracker.reset(carriage);
         self.still_ticks = 0;
     }
 
@@ -224,7 +251,7 @@ impl DualStage {
         let target = self.clamp_travel(target_pm);
         let profile = match self.reference {
             Reference::Move { profile, .. } => profile,
-            _ => TrapezoidalProfile::new(self.setpoint, self.config.move_limits),
+            _ => TrapezoidalProfile::prepared(self.setpoint, self.prepared.move_limits),
         };
         self.reference = Reference::Move { profile, target };
     }
@@ -233,10 +260,21 @@ impl DualStage {
     /// acceleration (`limits`, pm per coarse tick (²), valid and within the coarse stage's: the
     /// caller checks). A move already under way is re-targeted from its present velocity.
     pub fn move_to_with(&mut self, target_pm: i64, limits: super::MotionLimits) {
-        self.move_to(target_pm);
-        if let Reference::Move { profile, .. } = &mut self.reference {
-            profile.set_limits(limits);
-        }
+        self.move_to_prepared(target_pm, limits.prepare());
+    }
+
+    /// [`DualStage::move_to_with`] on limits already prepared (the coarse supervisor's
+    /// homing limits, prepared with its settings).
+    pub fn move_to_prepared(&mut self, target_pm: i64, limits: PreparedLimits) {
+        let target = self.clamp_travel(target_pm);
+        let profile = match self.reference {
+            Reference::Move { mut profile, .. } => {
+                profile.set_prepared(limits);
+                profile
+            }
+            _ => TrapezoidalProfile::prepared(self.setpoint, limits),
+        };
+        self.reference = Reference::Move { profile, target };
     }
 
     /// A controlled stop: a planned move brakes at its acceleration to where it comes to rest
@@ -346,11 +384,11 @@ impl DualStage {
     }
 
     /// Piezo displacement (pm) → Q2.30 of the fine controller's range, saturated.
-    fn to_q(config: &DualStageConfig, p: i64) -> i32 {
+    fn to_q(config: &DualStageConfig, prepared: &Prepared, p: i64) -> i32 {
         let d = p.saturating_sub(config.fine_mid_pm);
         let span = config.fine_half_span_pm;
         let d = limit_i64(d, -2 * span, 2 * span);
-        saturate_i64(div(d << SIGNAL_FRAC_BITS, span))
+        saturate_i64(prepared.half_span.trunc(d << SIGNAL_FRAC_BITS))
     }
 
     /// Q2.30 of the fine controller's range → piezo displacement, pm.
@@ -421,11 +459,10 @@ impl DualStage {
         let target = limit_i64(low.saturating_add(self.correction), lo, hi);
         let command = self.follower.follow(target);
         let before = self.steps.motor_position();
-        if let Some(burst) = self.steps.plan(
-            (command + c.step_pm / 2)
-                .checked_div_euclid(c.step_pm)
-                .unwrap_or(0),
-        ) {
+        if let Some(burst) = self
+            .steps
+            .plan(self.prepared.step.floor(command + c.step_pm / 2))
+        {
             match step_dir.emit(burst) {
                 Ok(()) => self.steps.issued(burst),
                 Err(_) => {
@@ -464,7 +501,7 @@ impl DualStage {
             DualMode::Dual => (self.engaged + 1).min(c.handover_ticks),
             DualMode::CoarseOnly => self.engaged.saturating_sub(1),
         };
-        let share = div(clamped * self.engaged as i64, c.handover_ticks as i64);
+        let share = self.prepared.handover.trunc(clamped * self.engaged as i64);
         let wanted = c.fine_centre_pm + share;
         let fine = limit_i64(
             wanted,
@@ -476,7 +513,7 @@ impl DualStage {
         }
         let from = self.fine_q;
         self.fine_pm = fine;
-        self.fine_q = Self::to_q(&c, fine);
+        self.fine_q = Self::to_q(&c, &self.prepared, fine);
         self.setpoint = next;
 
         CoarseReport {
@@ -538,7 +575,7 @@ mod tests {
     fn run(d: &mut DualStage, axis: &mut IdealAxis, ticks: usize) -> Vec<CoarseReport> {
         let c = *d.config();
         let mut out = vec![];
-        let mut piezo_q = DualStage::to_q(&c, c.fine_centre_pm);
+        let mut piezo_q = DualStage::to_q(&c, &d.prepared, c.fine_centre_pm);
         for _ in 0..ticks {
             let x = axis.steps * c.step_pm + d.fine_to_pm(piezo_q);
             let mut lin = FixedEncoder((x / c.linear_count_pm) as u16);

@@ -49,7 +49,7 @@ pub use supervisor::{
     CoarseCommand, CoarseLimits, CoarseRefusal, CoarseState, CoarseStatus, CoarseSupervisor,
     SupervisorConfig, SupervisorSettings,
 };
-pub use trapezoid::{MotionLimits, TrapezoidalProfile};
+pub use trapezoid::{MotionLimits, PreparedLimits, TrapezoidalProfile};
 
 /// Picometres per micrometre.
 pub const PM_PER_UM: f64 = 1e6;

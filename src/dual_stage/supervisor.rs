@@ -47,8 +47,10 @@
 use serde::{Deserialize, Serialize};
 
 use super::controller::{DualMode, DualStage, FineSetpoints};
+use super::trapezoid::PreparedLimits;
 use super::{DualStageConfig, DualStageError, MotionLimits, PM_PER_UM};
 use crate::board::{LimitSwitches, QuadratureEncoder, StepDir, Switches};
+use crate::fixed_point::limit_i64;
 use crate::refusal::{Field, Refusal, Rule};
 
 /// Travel limits while homing, pm: ±1 m, the widest the settings accept.
@@ -184,15 +186,16 @@ pub enum CoarseCommand {
     MoveTo {
         /// Target, pm.
         target_pm: i64,
-        /// Speed and acceleration.
-        limits: MotionLimits,
+        /// Speed and acceleration, prepared where the command is checked (the command
+        /// handler), not on the coarse task that takes it.
+        limits: PreparedLimits,
     },
     /// Jog toward the soft travel limit (`forward`: the upper one) at `limits`.
     Jog {
         /// Toward the upper limit.
         forward: bool,
-        /// Speed and acceleration.
-        limits: MotionLimits,
+        /// Speed and acceleration, prepared as a move's.
+        limits: PreparedLimits,
     },
     /// Controlled stop.
     Stop,
@@ -237,7 +240,7 @@ impl CoarseLimits {
         if mm_s > max_mm_s * (1.0 + 1e-9) {
             return Err(refuse(field, Rule::AtMost(max_mm_s)));
         }
-        Ok(libm::round(mm_s * 1e9 / per).clamp(1.0, max as f64) as i64)
+        Ok(libm::round(mm_s * 1e9 / per).max(1.0).min(max as f64) as i64)
     }
 
     fn finite(field: Field, value: f64) -> Result<(), CoarseRefusal> {
@@ -300,11 +303,12 @@ impl CoarseLimits {
         let forward = target_pm > status.position_pm;
         Self::toward_free_end(status.switches, forward)?;
         Ok(CoarseCommand::MoveTo {
-            target_pm: target_pm.clamp(lo, hi),
+            target_pm: limit_i64(target_pm, lo, hi),
             limits: MotionLimits {
                 velocity,
                 acceleration: acceleration.min(velocity),
-            },
+            }
+            .prepare(),
         })
     }
 
@@ -329,8 +333,9 @@ impl CoarseLimits {
             forward,
             limits: MotionLimits {
                 velocity,
-                acceleration: self.jog_acceleration.clamp(1, velocity),
-            },
+                acceleration: limit_i64(self.jog_acceleration, 1, velocity),
+            }
+            .prepare(),
         })
     }
 
@@ -485,6 +490,8 @@ enum HomePhase {
 pub struct CoarseSupervisor {
     dual: DualStage,
     config: SupervisorConfig,
+    /// `config.home_limits`, prepared once: homing's jogs start on the coarse tick.
+    home_limits: PreparedLimits,
     state: CoarseState,
     homed: bool,
     faults: u16,
@@ -522,6 +529,7 @@ impl CoarseSupervisor {
         let position = dual.setpoint_pm();
         Self {
             dual,
+            home_limits: config.home_limits.prepare(),
             config,
             state: CoarseState::Unhomed,
             homed: false,
@@ -586,9 +594,10 @@ impl CoarseSupervisor {
             CoarseCommand::MoveTo { target_pm, limits } => {
                 CoarseLimits::state_allows_motion(self.state)?;
                 let (lo, hi) = self.config.limits.travel_pm;
-                let target = target_pm.clamp(lo, hi);
+                // Not `i64::clamp`, which panics on an empty range: no panic path.
+                let target = limit_i64(target_pm, lo, hi);
                 self.dual
-                    .move_to_with(target.saturating_sub(self.offset_pm), limits);
+                    .move_to_prepared(target.saturating_sub(self.offset_pm), limits);
                 self.state = CoarseState::Moving;
             }
             CoarseCommand::Jog { forward, limits } => {
@@ -596,7 +605,7 @@ impl CoarseSupervisor {
                 let (lo, hi) = self.config.limits.travel_pm;
                 let edge = if forward { hi } else { lo };
                 self.dual
-                    .move_to_with(edge.saturating_sub(self.offset_pm), limits);
+                    .move_to_prepared(edge.saturating_sub(self.offset_pm), limits);
                 self.state = CoarseState::Jogging;
             }
             CoarseCommand::Stop => match self.state {
@@ -645,16 +654,16 @@ impl CoarseSupervisor {
         } else {
             toward
         };
-        self.jog_raw(forward, self.config.home_limits);
+        self.jog_raw(forward, self.home_limits);
     }
 
-    fn jog_raw(&mut self, forward: bool, limits: MotionLimits) {
+    fn jog_raw(&mut self, forward: bool, limits: PreparedLimits) {
         let edge = if forward {
             HOMING_TRAVEL_PM.1
         } else {
             HOMING_TRAVEL_PM.0
         };
-        self.dual.move_to_with(edge, limits);
+        self.dual.move_to_prepared(edge, limits);
     }
 
     /// One coarse tick: reads the switches, runs the dual stage (unless stopped by a fault),
@@ -763,7 +772,7 @@ impl CoarseSupervisor {
         match self.phase {
             HomePhase::BackOff if !sw.home => {
                 self.phase = HomePhase::Seek;
-                self.jog_raw(self.config.home_forward, self.config.home_limits);
+                self.jog_raw(self.config.home_forward, self.home_limits);
             }
             HomePhase::Seek if sw.home => {
                 self.offset_pm = self.config.home_position_pm.saturating_sub(measured_pm);

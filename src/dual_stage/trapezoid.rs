@@ -13,6 +13,7 @@
 //! target that gives the trapezoid (or triangle, on a short move), ending exactly on the
 //! target; a target that moves is followed as closely as the limits allow.
 
+use crate::divisor::Divisor;
 use crate::fixed_point::limit_i64;
 
 /// Velocity and acceleration limits of a profile.
@@ -35,24 +36,77 @@ impl MotionLimits {
             && self.acceleration <= self.velocity
             && self.velocity <= MAX_VELOCITY_PM_PER_TICK
     }
+}
+
+/// Motion limits with their braking arithmetic prepared ([`MotionLimits::prepare`]): what a
+/// profile runs on. Preparing costs two 64-bit divisions; a profile given prepared limits
+/// ([`TrapezoidalProfile::prepared`], [`TrapezoidalProfile::set_prepared`]) pays nothing on
+/// the tick that takes them.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct PreparedLimits {
+    limits: MotionLimits,
+    braking: Braking,
+}
+
+impl PreparedLimits {
+    /// The limits as given.
+    pub fn limits(&self) -> MotionLimits {
+        self.limits
+    }
+}
+
+impl MotionLimits {
+    /// Prepares the limits for a profile (see [`PreparedLimits`]).
+    pub fn prepare(&self) -> PreparedLimits {
+        PreparedLimits {
+            limits: *self,
+            braking: Braking::new(self),
+        }
+    }
+}
+
+/// The limits' braking arithmetic, prepared when the limits are set (off the tick): the
+/// acceleration as a [`Divisor`], and the braking distance from full speed. The tick then asks
+/// [`Braking::stopping_speed`] with no 64-bit library division.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+struct Braking {
+    /// The acceleration limit ([`Braking::limits`]), prepared for division.
+    per_acceleration: Divisor,
+    /// Distance braking from the speed limit covers, pm.
+    from_full_speed: u64,
+}
+
+impl Braking {
+    fn new(limits: &MotionLimits) -> Self {
+        let (velocity, acceleration) = Self::limits(limits);
+        Self {
+            per_acceleration: Divisor::new(acceleration),
+            from_full_speed: braking_distance(velocity, acceleration),
+        }
+    }
+
+    /// The speed and acceleration limits forced into their valid range (valid limits have
+    /// `1 ≤ a ≤ v ≤` [`MAX_VELOCITY_PM_PER_TICK`]), so that no division or product below can
+    /// panic or overflow.
+    fn limits(limits: &MotionLimits) -> (u64, u64) {
+        let velocity = limits.velocity.clamp(1, MAX_VELOCITY_PM_PER_TICK) as u64;
+        (velocity, (limits.acceleration.max(1) as u64).min(velocity))
+    }
 
     /// The fastest speed from which braking at `acceleration` per tick stops within `distance`:
     /// braking from `v` covers `v + (v − a) + … ≈ v²/(2a) + v/2`, so
     /// `v ≈ (√(a² + 8a·d) − a) / 2` (then settled on the exact sum), capped at the velocity limit.
-    fn stopping_speed(&self, distance: u64) -> i64 {
-        // Valid limits have 1 ≤ a ≤ v ≤ 1e9; anything else is forced into that range here so
-        // that no division or product below can panic or overflow.
-        let v = self.velocity.clamp(1, MAX_VELOCITY_PM_PER_TICK) as u64;
-        let a = (self.acceleration.max(1) as u64).min(v);
+    fn stopping_speed(&self, limits: &MotionLimits, distance: u64) -> i64 {
+        let (v, a) = Self::limits(limits);
         // Beyond the braking distance from full speed the answer is the limit (and the square
         // root's argument would no longer be bounded).
-        if distance >= braking_distance(v, a) {
+        if distance >= self.from_full_speed {
             return v as i64;
         }
         // Exactly: with `u = n·a + r` (0 ≤ r < a) braking covers `(n + 1)(n·a/2 + r)`. Find
         // the largest whole `n` with `(n + 1)·n·a/2 ≤ d` (the square root's estimate, settled
         // by at most a step or two either way), then the largest `r` that still fits.
-        let mut n = ((1 + 8 * distance.checked_div(a).unwrap_or(0)).isqrt() - 1) / 2;
+        let mut n = ((1 + 8 * self.per_acceleration.div(distance)).isqrt() - 1) / 2;
         for _ in 0..4 {
             if (n + 2) * (n + 1) * a / 2 <= distance {
                 n += 1;
@@ -62,11 +116,17 @@ impl MotionLimits {
                 break;
             }
         }
-        let r = (2 * distance)
-            .saturating_sub((n + 1) * n * a)
-            .checked_div(2 * (n + 1))
-            .unwrap_or(0)
-            .min(a - 1);
+        // `r = (2d − (n + 1)·n·a) / (2(n + 1))`. With `n` the largest, `d` short of the braking
+        // distance from full speed gives `n ≤ v/a`, so the remainder (less than `2(n + 1)·a ≤
+        // 2(v + a) ≤ 4e9`) and the divisor fit 32 bits: one hardware `UDIV`. The 64-bit
+        // division is the fallback for a remainder that does not (none, with valid limits).
+        let remainder = (2 * distance).saturating_sub((n + 1) * n * a);
+        let per = 2 * (n + 1);
+        let r = match (u32::try_from(remainder), u32::try_from(per)) {
+            (Ok(remainder), Ok(per)) => u64::from(remainder.checked_div(per).unwrap_or(0)),
+            _ => remainder.checked_div(per).unwrap_or(0),
+        }
+        .min(a - 1);
         let u = n * a + r;
         (u as i64).min(v as i64)
     }
@@ -81,7 +141,7 @@ fn braking_distance(u: u64, a: u64) -> u64 {
 /// The profile's state: where it is and how fast it goes.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct TrapezoidalProfile {
-    limits: MotionLimits,
+    limits: PreparedLimits,
     /// Position, pm.
     position: i64,
     /// Velocity of the last tick, pm per tick.
@@ -94,6 +154,11 @@ impl TrapezoidalProfile {
     /// At rest at `position` (pm). `limits` must be valid ([`MotionLimits::is_valid`]; the
     /// settings check them).
     pub fn new(position: i64, limits: MotionLimits) -> Self {
+        Self::prepared(position, limits.prepare())
+    }
+
+    /// At rest at `position` (pm), on limits already prepared.
+    pub fn prepared(position: i64, limits: PreparedLimits) -> Self {
         Self {
             limits,
             position,
@@ -112,7 +177,7 @@ impl TrapezoidalProfile {
     /// last call, limited to the velocity limit) is fed forward and the profile closes the gap
     /// relative to it, so a target moving at constant speed is followed without lag.
     pub fn follow(&mut self, target: i64) -> i64 {
-        let v = self.limits.velocity;
+        let v = self.limits.limits.velocity;
         let target_velocity = limit_i64(target.saturating_sub(self.last_target), -v, v);
         self.last_target = target;
         self.advance(target, target_velocity)
@@ -125,13 +190,14 @@ impl TrapezoidalProfile {
         let distance = target
             .saturating_sub(self.position)
             .saturating_sub(target_velocity);
-        let a = self.limits.acceleration;
+        let a = self.limits.limits.acceleration;
         let speed = self
             .limits
-            .stopping_speed(distance.unsigned_abs())
+            .braking
+            .stopping_speed(&self.limits.limits, distance.unsigned_abs())
             .min(distance.saturating_abs());
         let closing = if distance >= 0 { speed } else { -speed };
-        let v = self.limits.velocity;
+        let v = self.limits.limits.velocity;
         let wanted = limit_i64(target_velocity.saturating_add(closing), -v, v);
         self.velocity = limit_i64(wanted, self.velocity - a, self.velocity + a);
         self.position = self.position.saturating_add(self.velocity);
@@ -150,12 +216,17 @@ impl TrapezoidalProfile {
 
     /// The limits.
     pub fn limits(&self) -> MotionLimits {
-        self.limits
+        self.limits.limits
     }
 
     /// Changes the limits (a new move's speed and acceleration); the present velocity is kept
     /// and brought within the new limits at the new acceleration, tick by tick.
     pub fn set_limits(&mut self, limits: MotionLimits) {
+        self.set_prepared(limits.prepare());
+    }
+
+    /// [`TrapezoidalProfile::set_limits`] with limits already prepared.
+    pub fn set_prepared(&mut self, limits: PreparedLimits) {
         self.limits = limits;
     }
 
@@ -163,7 +234,7 @@ impl TrapezoidalProfile {
     /// target of a controlled stop).
     pub fn stopping_point(&self) -> i64 {
         let v = self.velocity.unsigned_abs();
-        let a = (self.limits.acceleration.max(1) as u64).min(v.max(1));
+        let a = (self.limits.limits.acceleration.max(1) as u64).min(v.max(1));
         // Braking covers `v − a + v − 2a + …`: the distance from the tick after this one.
         let d = braking_distance(v, a).saturating_sub(v);
         let d = d.min(i64::MAX as u64) as i64;
@@ -200,6 +271,69 @@ mod tests {
             }
         }
         out
+    }
+
+    /// The largest speed `u ≤ v` whose braking (`u + (u − a) + …`) stays within `d`, by
+    /// bisection on the sum itself.
+    fn stopping_speed_by_search(v: u64, a: u64, d: u64) -> u64 {
+        let (mut lo, mut hi) = (0u64, v);
+        while lo < hi {
+            let mid = lo + (hi - lo).div_ceil(2);
+            if braking_distance(mid, a) <= d {
+                lo = mid;
+            } else {
+                hi = mid - 1;
+            }
+        }
+        lo
+    }
+
+    #[test]
+    fn the_stopping_speed_is_the_largest_that_brakes_within_the_distance() {
+        let mut x = 0x51a7_e5c0_ffee_1234u64;
+        let mut next = || {
+            x ^= x << 13;
+            x ^= x >> 7;
+            x ^= x << 17;
+            x
+        };
+        let mut cases = std::vec![
+            (MAX_VELOCITY_PM_PER_TICK as u64, 1),
+            (
+                MAX_VELOCITY_PM_PER_TICK as u64,
+                MAX_VELOCITY_PM_PER_TICK as u64
+            ),
+            (MAX_VELOCITY_PM_PER_TICK as u64, 3),
+            (1, 1),
+            (2_000_000, 4_000),
+        ];
+        for _ in 0..2_000 {
+            let v = next() % MAX_VELOCITY_PM_PER_TICK as u64 + 1;
+            let a = next() % v + 1;
+            cases.push((v, a));
+            // Small accelerations: many braking steps.
+            cases.push((v, a % 1_000 + 1));
+        }
+        for (v, a) in cases {
+            let limits = MotionLimits {
+                velocity: v as i64,
+                acceleration: a as i64,
+            };
+            let braking = Braking::new(&limits);
+            let full = braking_distance(v, a);
+            let stopping_speed = |d| braking.stopping_speed(&limits, d);
+            let mut distances = std::vec![0, 1, a - 1, a, a + 1, full - 1, full, full + 1];
+            for _ in 0..20 {
+                distances.push(next() % full);
+            }
+            for d in distances {
+                assert_eq!(
+                    stopping_speed(d) as u64,
+                    stopping_speed_by_search(v, a, d),
+                    "v {v}, a {a}, d {d}"
+                );
+            }
+        }
     }
 
     #[test]

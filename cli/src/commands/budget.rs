@@ -23,7 +23,7 @@ pub struct Args {
     #[arg(long)]
     pub json: bool,
     /// The board is a dual-stage image whose coarse task runs at this rate, Hz (5000 on the
-    /// shipped images): its share of each tick (7 700 cycles a coarse period) is charged
+    /// shipped images): its share of each tick (3 600 cycles a coarse period) is charged
     /// beside every configuration, as the board charges it, so the rates are lower.
     #[arg(long, value_name = "HZ", allow_negative_numbers = true)]
     pub coarse_rate: Option<f64>,
