@@ -151,6 +151,26 @@ fn load_bypassed<T: Transport>(
     }
 }
 
+/// What `settings` cost a tick at `rate` by the library's tick budget with the services'
+/// `load` beside them, as the board charges a capture it arms (`None`: they do not build for
+/// the driver board at that rate).
+fn cycles_beside(
+    settings: &Settings,
+    rate: f64,
+    load: twinstack::config::tick_budget::ServicesLoad,
+) -> Option<u32> {
+    let config = settings
+        .build(&twinstack::board::Hardware::driver_board(rate))
+        .ok()?;
+    Some(twinstack::config::tick_budget::pipeline_cycles(
+        &config,
+        twinstack::config::tick_budget::Beside {
+            services: load,
+            ..Default::default()
+        },
+    ))
+}
+
 /// What `settings` cost a tick at `rate` by the library's tick budget, nothing beside them
 /// (`None`: they do not build for the driver board at that rate).
 fn alone_cycles(settings: &Settings, rate: f64) -> Option<u32> {
@@ -223,8 +243,13 @@ pub fn calibrate<T: Transport>(
     // 4. Load, first in bypass for the "before".
     progress(Progress::Step("loading"));
     let measured = with_resonance(measured);
-    let (measured, settings) = match load_bypassed(client, &measured) {
-        Ok(settings) => (measured, settings),
+    // Whether the model was identified again beside the board's own load.
+    let mut resized = true;
+    let (mut measured, mut settings) = match load_bypassed(client, &measured) {
+        Ok(settings) => {
+            resized = false;
+            (measured, settings)
+        }
         Err(refusal) => {
             // Refused for the tick budget with more cycles than the model costs alone: the
             // board runs something of its own beside every model (a dual-stage image's coarse
@@ -249,6 +274,75 @@ pub fn calibrate<T: Transport>(
             (again, settings)
         }
     };
+
+    // 5. Verify: the same trajectory before (bypass) and after (open loop).
+    let (lo, hi) = excited
+        .excitation
+        .x
+        .as_deref()
+        .unwrap_or_default()
+        .iter()
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(l, h), &v| {
+            (l.min(v), h.max(v))
+        });
+    let margin = trajectory::TRAJECTORY_MARGIN * (hi - lo);
+    let trajectory_range = (lo + margin, hi - margin);
+    let setpoint_rate = rate / options.stream_divider as f64;
+    let trajectory = trajectory::test_trajectory(trajectory_range, setpoint_rate);
+    let x_rest = settings.ranges.norm_to_output(0.0);
+    let before_step = "tracking in bypass (before)";
+    let before = loop {
+        progress(Progress::Step(before_step));
+        client.set_mode(Mode::Bypass).map_err(link(before_step))?;
+        match track(client, &trajectory, x_rest, options, &settings, before_step) {
+            // The capture the tracking takes, refused for the tick budget: a model that fits
+            // the board alone and beside its own load (a dual-stage image's coarse task) may
+            // not fit beside both. The board's load is what it needs beyond the library's
+            // prediction of the model with that capture: identified again with it charged
+            // (once), and loaded.
+            Err(CalibrateError::Link {
+                source:
+                    LinkError::Nack {
+                        reason:
+                            twinstack::protocol::messages::NackReason::Refused(
+                                twinstack::refusal::Refusal {
+                                    field: twinstack::refusal::Field::Workload,
+                                    rule: twinstack::refusal::Rule::TickOverrun { needs, .. },
+                                },
+                            ),
+                        ..
+                    },
+                ..
+            }) if !resized => {
+                let facts = client.capture_status().map_err(link(before_step))?;
+                let (x, _) = trajectory::with_conditioning(&trajectory, x_rest, setpoint_rate);
+                let (_, decimation, _) = track::tracking_capture(&facts, x.len(), options);
+                let capture = twinstack::config::tick_budget::ServicesLoad {
+                    capture_decimation: Some(decimation),
+                    ..Default::default()
+                };
+                let Some(beside) = cycles_beside(&measured.file.settings, rate, capture)
+                    .and_then(|predicted| needs.checked_sub(predicted))
+                    .filter(|&beside| beside > 0)
+                else {
+                    return Err(restoring(
+                        client,
+                        LoadRefusal::Budget { needs }.into_error(),
+                    ));
+                };
+                progress(Progress::Step(
+                    "identifying again, beside the board's own load",
+                ));
+                measured = identify_excited(&excited, options, &board, beside, &mut progress)
+                    .map(with_resonance)
+                    .map_err(|e| restoring(client, e))?;
+                settings = load_bypassed(client, &measured)
+                    .map_err(|refusal| restoring(client, refusal.into_error()))?;
+                resized = true;
+            }
+            other => break other?,
+        }
+    };
     let Measured {
         predicted,
         id,
@@ -266,29 +360,12 @@ pub fn calibrate<T: Transport>(
         underran,
     } = excited;
 
-    // 5. Verify: the same trajectory before (bypass) and after (open loop).
-    let (lo, hi) = excitation
-        .x
-        .as_deref()
-        .unwrap_or_default()
-        .iter()
-        .fold((f64::INFINITY, f64::NEG_INFINITY), |(l, h), &v| {
-            (l.min(v), h.max(v))
-        });
-    let margin = trajectory::TRAJECTORY_MARGIN * (hi - lo);
-    let trajectory_range = (lo + margin, hi - margin);
-    let setpoint_rate = rate / options.stream_divider as f64;
-    let trajectory = trajectory::test_trajectory(trajectory_range, setpoint_rate);
-    let mut x_rest = settings.ranges.norm_to_output(0.0);
-    let mut run = |client: &mut Client<T>, mode: Mode, step: &'static str| {
-        progress(Progress::Step(step));
-        client.set_mode(mode).map_err(link(step))?;
-        let r = track(client, &trajectory, x_rest, options, &settings, step);
-        x_rest = trajectory.x.last().copied().unwrap_or(x_rest);
-        r
-    };
-    let (before, run_before) = run(client, Mode::Bypass, "tracking in bypass (before)")?;
-    let (after, run_after) = run(client, Mode::OpenLoop, "tracking compensated (after)")?;
+    let (before, run_before) = before;
+    let after_step = "tracking compensated (after)";
+    progress(Progress::Step(after_step));
+    client.set_mode(Mode::OpenLoop).map_err(link(after_step))?;
+    let x_rest = trajectory.x.last().copied().unwrap_or(x_rest);
+    let (after, run_after) = track(client, &trajectory, x_rest, options, &settings, after_step)?;
 
     // 6. Store.
     if let Some(boot) = options.store {

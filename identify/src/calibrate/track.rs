@@ -2,6 +2,19 @@
 
 use super::*;
 
+/// The capture a tracking of `setpoints` conditioned setpoints takes: its ticks, and the
+/// decimation and frames that fit the board's capture slots ([`decimation_for`]).
+pub(super) fn tracking_capture(
+    facts: &CaptureStatus,
+    setpoints: usize,
+    options: &CalibrateOptions,
+) -> (u64, u16, u32) {
+    let rate = facts.tick_rate_hz.max(1) as f64;
+    let ticks = setpoints as u64 * options.stream_divider as u64;
+    let (decimation, frames) = decimation_for(ticks, rate, options.sample_rate_hz, facts, 2);
+    (ticks, decimation, frames)
+}
+
 /// Streams `trajectory` (after [`trajectory::with_conditioning`] from `x_rest`) in the mode in
 /// force, records the setpoint and the sensor from the stream's start and scores the sensor
 /// against the setpoint over the trajectory.
@@ -15,15 +28,13 @@ pub(super) fn track<T: Transport>(
 ) -> Result<(Tracking, Recording), CalibrateError> {
     let facts = client.capture_status().map_err(link(step))?;
     let rate = facts.tick_rate_hz.max(1) as f64;
-    let divider = options.stream_divider;
-    let setpoint_rate = rate / divider as f64;
+    let setpoint_rate = rate / options.stream_divider as f64;
     let (x, first) = trajectory::with_conditioning(trajectory, x_rest, setpoint_rate);
     let samples: Vec<i16> = x
         .iter()
         .map(|&v| q1_15(settings.ranges.output_to_norm(v)))
         .collect();
-    let ticks = samples.len() as u64 * divider as u64;
-    let (decimation, frames) = decimation_for(ticks, rate, options.sample_rate_hz, &facts, 2);
+    let (ticks, decimation, frames) = tracking_capture(&facts, x.len(), options);
     client
         .arm_capture(CaptureRequest {
             signals: Channel::Setpoint.bit() | Channel::Sensor.bit(),
