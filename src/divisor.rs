@@ -137,9 +137,19 @@ fn mul_high(a: u64, b: u64) -> u64 {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     extern crate std;
     use super::*;
+
+    /// xorshift64 from `seed`: deterministic pseudo-random words for the tests' sweeps.
+    pub(crate) fn xorshift(mut x: u64) -> impl FnMut() -> u64 {
+        move || {
+            x ^= x << 13;
+            x ^= x >> 7;
+            x ^= x << 17;
+            x
+        }
+    }
 
     fn check(d: u64, n: u64) {
         let q = Divisor::new(d).div(n);
@@ -174,14 +184,8 @@ mod tests {
 
     #[test]
     fn the_quotient_is_exact_on_random_pairs_of_every_size() {
-        // xorshift64: deterministic, every bit length of both.
-        let mut x = 0x9e37_79b9_7f4a_7c15u64;
-        let mut next = || {
-            x ^= x << 13;
-            x ^= x >> 7;
-            x ^= x << 17;
-            x
-        };
+        // Every bit length of both.
+        let mut next = xorshift(0x9e37_79b9_7f4a_7c15);
         for _ in 0..200_000 {
             let (a, b) = (next(), next());
             let (n, d) = (a >> (b % 64), b >> (a % 64));
@@ -193,13 +197,7 @@ mod tests {
 
     #[test]
     fn signed_quotients_round_down_or_toward_zero_as_rust_s() {
-        let mut x = 0x2545_f491_4f6c_dd1du64;
-        let mut next = || {
-            x ^= x << 13;
-            x ^= x >> 7;
-            x ^= x << 17;
-            x
-        };
+        let mut next = xorshift(0x2545_f491_4f6c_dd1d);
         for d in [1i64, 2, 3, 7, 312_500, 5_000, 1 << 40, i64::MAX] {
             for n in [
                 0,

@@ -647,14 +647,9 @@ fn the_board_plays_the_excitation_calibrate_streams() {
 }
 
 /// Calibrates Bouc–Wen with its observer on a simulated dual-stage board whose piezo runs at
-/// `fine_rate_hz`, its piezo handed back (`CoarseRelease`): the steps `calibrate` reported,
-/// and the report.
-fn calibrate_beside_the_coarse_task(
-    fine_rate_hz: f64,
-) -> (
-    Vec<String>,
-    twinstack_identify::calibrate::CalibrationReport,
-) {
+/// `fine_rate_hz`, its piezo handed back (`CoarseRelease`): the steps `calibrate` reported
+/// before it identified again beside the board's own load (it must have).
+fn calibrate_beside_the_coarse_task(fine_rate_hz: f64) -> Vec<String> {
     use hal_sim::coarse_rig::{DualStageDevice, DualStageDeviceConfig};
     use twinstack::protocol::messages::Request;
     use twinstack_identify::calibrate::Progress;
@@ -684,7 +679,12 @@ fn calibrate_beside_the_coarse_task(
     assert!(loaded.compensator.is_some() && loaded.observer.is_none());
     assert!(r.reason.contains("no observer"), "{}", r.reason);
     assert!(r.after.max_pct < r.before.max_pct);
-    (steps, r)
+    let again = steps
+        .iter()
+        .position(|s| s.starts_with("identifying again"))
+        .unwrap_or_else(|| panic!("{steps:?}"));
+    steps.truncate(again);
+    steps
 }
 
 /// A dual-stage board runs its coarse task beside every model, which the host's tick budget
@@ -694,15 +694,11 @@ fn calibrate_beside_the_coarse_task(
 /// and loads what it runs.
 #[test]
 fn on_a_dual_stage_board_the_model_is_sized_beside_the_coarse_task() {
-    let (steps, _) = calibrate_beside_the_coarse_task(55_000.0);
-    let again = steps
-        .iter()
-        .position(|s| s.starts_with("identifying again"))
-        .unwrap_or_else(|| panic!("{steps:?}"));
+    let before = calibrate_beside_the_coarse_task(55_000.0);
     // Before any tracking: the load's refusal.
     assert!(
-        !steps[..again].iter().any(|s| s.starts_with("tracking")),
-        "{steps:?}"
+        !before.iter().any(|s| s.starts_with("tracking")),
+        "{before:?}"
     );
 }
 
@@ -711,15 +707,9 @@ fn on_a_dual_stage_board_the_model_is_sized_beside_the_coarse_task() {
 /// refusal, identifies again with it charged and loads what runs with its capture too.
 #[test]
 fn on_a_dual_stage_board_the_tracking_s_capture_is_sized_for_too() {
-    let (steps, _) = calibrate_beside_the_coarse_task(50_000.0);
-    let again = steps
-        .iter()
-        .position(|s| s.starts_with("identifying again"))
-        .unwrap_or_else(|| panic!("{steps:?}"));
+    let before = calibrate_beside_the_coarse_task(50_000.0);
     assert!(
-        steps[..again]
-            .iter()
-            .any(|s| s.starts_with("tracking in bypass")),
-        "{steps:?}"
+        before.iter().any(|s| s.starts_with("tracking in bypass")),
+        "{before:?}"
     );
 }

@@ -290,13 +290,7 @@ mod tests {
 
     #[test]
     fn the_stopping_speed_is_the_largest_that_brakes_within_the_distance() {
-        let mut x = 0x51a7_e5c0_ffee_1234u64;
-        let mut next = || {
-            x ^= x << 13;
-            x ^= x >> 7;
-            x ^= x << 17;
-            x
-        };
+        let mut next = crate::divisor::tests::xorshift(0x51a7_e5c0_ffee_1234);
         let mut cases = std::vec![
             (MAX_VELOCITY_PM_PER_TICK as u64, 1),
             (
