@@ -6,8 +6,8 @@
 //! by settings — the microstep, the piezo's half-span, the hand-over's length, the
 //! acceleration — on every coarse tick. Those divisors change only when the settings do, so
 //! the division is prepared there: [`Divisor::new`] takes the reciprocal once (off the tick),
-//! and each quotient is then one 64 × 64 → 128-bit high product, an add, and two shifts —
-//! about 25 instructions, no branch, no call.
+//! and each quotient is then one 64 × 64 → 128-bit high product, an add, and two shifts — a few
+//! dozen instructions, no branch, no call.
 //!
 //! The quotient is **exact** — the same as `/` for every dividend — not an approximation:
 //! with `l = ⌈log₂ d⌉` and the magic number `m = ⌊2⁶⁴·(2ˡ − d)/d⌋ + 1`, `t = ⌊m·n / 2⁶⁴⌋`
