@@ -301,8 +301,12 @@ mod tests {
                 assert_eq!(row.loaded.cycles, alone.loaded.cycles);
             }
         }
-        // A coarse task that takes the whole share leaves no rate.
-        assert_eq!(Prediction::beside_coarse(100, 20_000).highest_rate_hz, 0.0);
+        // A coarse task that takes the whole share leaves no rate: at this coarse rate its
+        // charges alone fill the pipeline's share of every second.
+        use twinstack::config::tick_budget::{COARSE_TASK_CYCLES, SYSCLK_HZ, TICK_SHARE_PERCENT};
+        let whole = (SYSCLK_HZ / 100 * TICK_SHARE_PERCENT).div_ceil(COARSE_TASK_CYCLES);
+        assert_eq!(Prediction::beside_coarse(100, whole).highest_rate_hz, 0.0);
+        assert!(Prediction::beside_coarse(100, whole / 2).highest_rate_hz > 0.0);
     }
 
     #[test]
