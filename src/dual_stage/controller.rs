@@ -258,13 +258,9 @@ impl DualStage {
 
     /// Plans a trapezoidal move to `target_pm` (clamped to the travel) with its own speed and
     /// acceleration (`limits`, pm per coarse tick (²), valid and within the coarse stage's: the
-    /// caller checks). A move already under way is re-targeted from its present velocity.
-    pub fn move_to_with(&mut self, target_pm: i64, limits: super::MotionLimits) {
-        self.move_to_prepared(target_pm, limits.prepare());
-    }
-
-    /// [`DualStage::move_to_with`] on limits already prepared (the coarse supervisor's
-    /// homing limits, prepared with its settings).
+    /// caller checks), prepared off the coarse tick ([`super::MotionLimits::prepare`]: by the
+    /// command handler for a move or a jog, with the supervisor's settings for homing). A move
+    /// already under way is re-targeted from its present velocity.
     pub fn move_to_prepared(&mut self, target_pm: i64, limits: PreparedLimits) {
         let target = self.clamp_travel(target_pm);
         let profile = match self.reference {

@@ -139,21 +139,31 @@ fn load_bypassed<T: Transport>(
     };
     match client.load_params(&settings) {
         Ok(()) => Ok(settings),
-        Err(LinkError::Nack {
+        Err(e) => Err(match budget_needs(&e) {
+            Some(needs) => LoadRefusal::Budget { needs },
+            None => LoadRefusal::Other(e),
+        }),
+    }
+}
+
+/// The cycles a tick the board named when it refused a request for its tick budget.
+fn budget_needs(e: &LinkError) -> Option<u32> {
+    match e {
+        LinkError::Nack {
             reason:
                 twinstack::protocol::messages::NackReason::Refused(twinstack::refusal::Refusal {
                     field: twinstack::refusal::Field::Workload,
                     rule: twinstack::refusal::Rule::TickOverrun { needs, .. },
                 }),
             ..
-        }) => Err(LoadRefusal::Budget { needs }),
-        Err(e) => Err(LoadRefusal::Other(e)),
+        } => Some(*needs),
+        _ => None,
     }
 }
 
 /// What `settings` cost a tick at `rate` by the library's tick budget with the services'
-/// `load` beside them, as the board charges a capture it arms (`None`: they do not build for
-/// the driver board at that rate).
+/// `load` beside them: none, as the board charges a load; a capture's, as it charges the
+/// capture's arming (`None`: they do not build for the driver board at that rate).
 fn cycles_beside(
     settings: &Settings,
     rate: f64,
@@ -168,18 +178,6 @@ fn cycles_beside(
             services: load,
             ..Default::default()
         },
-    ))
-}
-
-/// What `settings` cost a tick at `rate` by the library's tick budget, nothing beside them
-/// (`None`: they do not build for the driver board at that rate).
-fn alone_cycles(settings: &Settings, rate: f64) -> Option<u32> {
-    let config = settings
-        .build(&twinstack::board::Hardware::driver_board(rate))
-        .ok()?;
-    Some(twinstack::config::tick_budget::pipeline_cycles(
-        &config,
-        twinstack::config::tick_budget::Beside::default(),
     ))
 }
 
@@ -255,9 +253,11 @@ pub fn calibrate<T: Transport>(
             // board runs something of its own beside every model (a dual-stage image's coarse
             // task). Identified again from the same excitation with that charged, and loaded.
             let beside = match refusal {
-                LoadRefusal::Budget { needs } => alone_cycles(&measured.file.settings, rate)
-                    .and_then(|alone| needs.checked_sub(alone))
-                    .filter(|&beside| beside > 0),
+                LoadRefusal::Budget { needs } => {
+                    cycles_beside(&measured.file.settings, rate, Default::default())
+                        .and_then(|alone| needs.checked_sub(alone))
+                        .filter(|&beside| beside > 0)
+                }
                 _ => None,
             };
             let Some(beside) = beside else {
@@ -300,20 +300,10 @@ pub fn calibrate<T: Transport>(
             // not fit beside both. The board's load is what it needs beyond the library's
             // prediction of the model with that capture: identified again with it charged
             // (once), and loaded.
-            Err(CalibrateError::Link {
-                source:
-                    LinkError::Nack {
-                        reason:
-                            twinstack::protocol::messages::NackReason::Refused(
-                                twinstack::refusal::Refusal {
-                                    field: twinstack::refusal::Field::Workload,
-                                    rule: twinstack::refusal::Rule::TickOverrun { needs, .. },
-                                },
-                            ),
-                        ..
-                    },
-                ..
-            }) if !resized => {
+            Err(CalibrateError::Link { source, .. })
+                if !resized && budget_needs(&source).is_some() =>
+            {
+                let needs = budget_needs(&source).unwrap_or(0);
                 let facts = client.capture_status().map_err(link(before_step))?;
                 let (x, _) = trajectory::with_conditioning(&trajectory, x_rest, setpoint_rate);
                 let (_, decimation, _) = track::tracking_capture(&facts, x.len(), options);
