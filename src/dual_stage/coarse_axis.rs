@@ -13,7 +13,8 @@
 //!   `max_steps_per_burst` pulses, keeps what it could not send for the next burst, and adds
 //!   the backlash take-up when the direction reverses.
 //! * [`StepTiming`] — prescaler, period and pulse width of a burst on a timer with a repetition
-//!   counter (TIM1 on the board: one-pulse mode, `RCR = steps − 1`).
+//!   counter (TIM1 on the board: one-pulse mode, `RCR = steps − 1`); [`BurstTiming`] prepares
+//!   what does not change from burst to burst.
 
 use crate::board::{StepBurst, StepDirection};
 
@@ -220,21 +221,65 @@ impl StepTiming {
 
     /// Timing of `steps` pulses (1 at least) spread evenly over one coarse period, each high
     /// for `min_pulse_ns` (or half the period, if shorter). The burst ends within the period.
+    /// ([`BurstTiming::burst`], its timer prepared for this burst alone.)
     pub fn for_burst(
         timer_clock_hz: u32,
         coarse_rate_hz: u32,
         steps: u16,
         min_pulse_ns: u32,
     ) -> Self {
-        let prescaler = Self::prescaler_for(timer_clock_hz, coarse_rate_hz);
+        BurstTiming::new(timer_clock_hz, coarse_rate_hz, min_pulse_ns).burst(steps)
+    }
+}
+
+/// A step output's timing, prepared once for its timer's clock, the coarse rate and the
+/// driver's shortest pulse (when the output is set up, off the coarse task): each burst then
+/// costs one 32-bit division ([`BurstTiming::burst`]), where [`StepTiming::for_burst`] from
+/// scratch takes four and a 64-bit product.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct BurstTiming {
+    /// PSC register ([`StepTiming::prescaler_for`]).
+    prescaler: u16,
+    /// Timer ticks in one coarse period, at the prescaled clock.
+    per_period: u32,
+    /// Ticks of the driver's shortest pulse, rounded up (at least 1).
+    min_pulse: u32,
+}
+
+impl BurstTiming {
+    /// The timing of a timer counting at `timer_clock_hz` (before its prescaler), bursts
+    /// spread over a coarse period at `coarse_rate_hz`, each pulse high `min_pulse_ns` at
+    /// least.
+    ///
+    /// ```
+    /// use twinstack::dual_stage::coarse_axis::{BurstTiming, StepTiming};
+    /// let timing = BurstTiming::new(168_000_000, 5_000, 2_000);
+    /// // 10 steps over 200 µs: a pulse every 20 µs, high 2 µs.
+    /// let t = timing.burst(10);
+    /// assert_eq!(t, StepTiming::for_burst(168_000_000, 5_000, 10, 2_000));
+    /// assert_eq!((t.period, t.pulse), (3_360, 336));
+    /// ```
+    pub fn new(timer_clock_hz: u32, coarse_rate_hz: u32, min_pulse_ns: u32) -> Self {
+        let prescaler = StepTiming::prescaler_for(timer_clock_hz, coarse_rate_hz);
         let tick_hz = timer_clock_hz / (prescaler as u32 + 1);
-        let per_period = tick_hz / coarse_rate_hz.max(1);
-        let period = (per_period / steps.max(1) as u32).clamp(2, 65_536);
-        let pulse_ticks = (tick_hz as u64 * min_pulse_ns as u64).div_ceil(1_000_000_000) as u32;
+        let min_pulse = (tick_hz as u64 * min_pulse_ns as u64).div_ceil(1_000_000_000);
         Self {
             prescaler,
+            per_period: tick_hz / coarse_rate_hz.max(1),
+            // A pulse of more than 2^32 ticks (seconds long) saturates.
+            min_pulse: u32::try_from(min_pulse).unwrap_or(u32::MAX).max(1),
+        }
+    }
+
+    /// The timing of `steps` pulses (1 at least) spread evenly over one coarse period, each
+    /// high for the shortest pulse (or half the period, if shorter): one 32-bit division.
+    #[inline]
+    pub fn burst(&self, steps: u16) -> StepTiming {
+        let period = (self.per_period / steps.max(1) as u32).clamp(2, 65_536);
+        StepTiming {
+            prescaler: self.prescaler,
             period,
-            pulse: pulse_ticks.max(1).min(period / 2),
+            pulse: self.min_pulse.min(period / 2),
         }
     }
 }
@@ -305,6 +350,39 @@ mod tests {
         assert_eq!((g.motor_position(), g.carriage_position()), (46, 50));
         run(&mut g, 60);
         assert_eq!((g.motor_position(), g.carriage_position()), (64, 60));
+    }
+
+    /// Each burst's timing from the prepared timer is the one computed from scratch (every
+    /// division done again, as the step output did per burst), for every burst length on
+    /// boards' and odd clocks and rates.
+    #[test]
+    fn a_prepared_timing_gives_every_burst_the_timing_computed_from_scratch() {
+        fn from_scratch(clock: u32, rate: u32, steps: u16, min_pulse_ns: u32) -> StepTiming {
+            let prescaler = StepTiming::prescaler_for(clock, rate);
+            let tick_hz = clock / (prescaler as u32 + 1);
+            let per_period = tick_hz / rate.max(1);
+            let period = (per_period / steps.max(1) as u32).clamp(2, 65_536);
+            let pulse = (tick_hz as u64 * min_pulse_ns as u64).div_ceil(1_000_000_000) as u32;
+            StepTiming {
+                prescaler,
+                period,
+                pulse: pulse.max(1).min(period / 2),
+            }
+        }
+        for clock in [168_000_000, 84_000_000, 16_000_000, 1_000_003] {
+            for rate in [1, 999, 1_000, 5_000, 10_000, 100_000] {
+                for min_pulse_ns in [0, 1, 2_000, 33_333] {
+                    let timing = BurstTiming::new(clock, rate, min_pulse_ns);
+                    for steps in 0..=256u16 {
+                        assert_eq!(
+                            timing.burst(steps),
+                            from_scratch(clock, rate, steps, min_pulse_ns),
+                            "{clock} Hz, {rate} Hz, {min_pulse_ns} ns, {steps} steps"
+                        );
+                    }
+                }
+            }
+        }
     }
 
     #[test]

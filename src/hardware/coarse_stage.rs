@@ -32,7 +32,7 @@ use stm32f4xx_hal::pac::{RCC, TIM1, TIM3, TIM4, TIM8};
 
 use super::clocks::BusClocks;
 use crate::board::{LimitSwitches, QuadratureEncoder, StepBurst, StepDir, StepDirection, Switches};
-use crate::dual_stage::coarse_axis::StepTiming;
+use crate::dual_stage::coarse_axis::{BurstTiming, StepTiming};
 
 /// Shortest STEP high time the driver needs, ns.
 pub const MIN_STEP_PULSE_NS: u32 = 2_000;
@@ -63,8 +63,8 @@ pub enum StepOutputError {
 pub struct StepOutput {
     tim: TIM1,
     dir: Pin<'B', 0, Output<PushPull>>,
-    timer_hz: u32,
-    coarse_rate_hz: u32,
+    /// The bursts' timing, prepared here: a burst costs the coarse task one division.
+    timing: BurstTiming,
 }
 
 impl StepOutput {
@@ -86,8 +86,7 @@ impl StepOutput {
         Self {
             tim,
             dir,
-            timer_hz: apb2_timer_hz(clocks),
-            coarse_rate_hz: coarse_rate_hz.max(1),
+            timing: BurstTiming::new(apb2_timer_hz(clocks), coarse_rate_hz, MIN_STEP_PULSE_NS),
         }
     }
 }
@@ -113,12 +112,7 @@ impl StepDir for StepOutput {
             StepDirection::Forward => self.dir.set_high(),
             StepDirection::Reverse => self.dir.set_low(),
         }
-        let t = StepTiming::for_burst(
-            self.timer_hz,
-            self.coarse_rate_hz,
-            burst.steps,
-            MIN_STEP_PULSE_NS,
-        );
+        let t = self.timing.burst(burst.steps);
         let tim = &self.tim;
         tim.psc().write(|w| unsafe { w.bits(t.prescaler as u32) });
         tim.arr().write(|w| unsafe { w.bits(t.period - 1) });
