@@ -67,7 +67,8 @@ impl MotionLimits {
 
 /// The limits' braking arithmetic, prepared when the limits are set (off the tick): the
 /// acceleration as a [`Divisor`], and the braking distance from full speed. The tick then asks
-/// [`Braking::stopping_speed`] with no 64-bit library division.
+/// [`PreparedLimits::stopping_speed`] and [`PreparedLimits::braking_after`] with no 64-bit
+/// library division.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 struct Braking {
     /// The acceleration limit ([`Braking::limits`]), prepared for division.
@@ -92,49 +93,74 @@ impl Braking {
         let velocity = limits.velocity.clamp(1, MAX_VELOCITY_PM_PER_TICK) as u64;
         (velocity, (limits.acceleration.max(1) as u64).min(velocity))
     }
+}
 
+impl PreparedLimits {
     /// The fastest speed from which braking at `acceleration` per tick stops within `distance`:
     /// braking from `v` covers `v + (v − a) + … ≈ v²/(2a) + v/2`, so
     /// `v ≈ (√(a² + 8a·d) − a) / 2` (then settled on the exact sum), capped at the velocity limit.
-    fn stopping_speed(&self, limits: &MotionLimits, distance: u64) -> i64 {
-        let (v, a) = Self::limits(limits);
+    fn stopping_speed(&self, distance: u64) -> i64 {
+        let (v, a) = Braking::limits(&self.limits);
+        let braking = &self.braking;
         // Beyond the braking distance from full speed the answer is the limit (and the square
         // root's argument would no longer be bounded).
-        if distance >= self.from_full_speed {
+        if distance >= braking.from_full_speed {
             return v as i64;
         }
-        // Exactly: with `u = n·a + r` (0 ≤ r < a) braking covers `(n + 1)(n·a/2 + r)`. Find
-        // the largest whole `n` with `(n + 1)·n·a/2 ≤ d` (the square root's estimate, settled
-        // by at most a step or two either way), then the largest `r` that still fits.
-        let mut n = ((1 + 8 * self.per_acceleration.div(distance)).isqrt() - 1) / 2;
-        for _ in 0..4 {
-            if (n + 2) * (n + 1) * a / 2 <= distance {
-                n += 1;
-            } else if n > 0 && (n + 1) * n * a / 2 > distance {
-                n -= 1;
-            } else {
-                break;
-            }
-        }
-        // `r = (2d − (n + 1)·n·a) / (2(n + 1))`. With `n` the largest, `d` short of the braking
-        // distance from full speed gives `n ≤ v/a`, so the remainder (less than `2(n + 1)·a ≤
-        // 2(v + a) ≤ 4e9`) and the divisor fit 32 bits: one hardware `UDIV`. The 64-bit
-        // division is the fallback for a remainder that does not (none, with valid limits).
+        // Exactly: with `u = n·a + r` (0 ≤ r < a) braking covers `(n + 1)(n·a/2 + r)`. The
+        // largest whole `n` with `(n + 1)·n·a/2 ≤ d` is the square root's: `(n + 1)·n/2 ≤
+        // ⌊d/a⌋ ⇔ 2n + 1 ≤ ⌊√(8⌊d/a⌋ + 1)⌋`, the quotient exact ([`Divisor`]) and the root exact ([`isqrt`])
+        // (`8⌊d/a⌋ < 4·10¹⁸` below the braking distance from full speed: no overflow). Then
+        // the largest `r` that still fits, `r = (2d − (n + 1)·n·a) / (2(n + 1))`: `d` short of
+        // the braking distance from full speed gives `n ≤ v/a`, so the remainder (less than
+        // `2(n + 1)·a ≤ 2(v + a) ≤ 4·10⁹`) and the divisor fit 32 bits: one hardware `UDIV`,
+        // never a 64-bit library division (saturated, were they ever larger).
+        let n = (isqrt(1 + 8 * braking.per_acceleration.div(distance)) - 1) / 2;
         let remainder = (2 * distance).saturating_sub((n + 1) * n * a);
-        let per = 2 * (n + 1);
-        let r = match (u32::try_from(remainder), u32::try_from(per)) {
-            (Ok(remainder), Ok(per)) => u64::from(remainder.checked_div(per).unwrap_or(0)),
-            _ => remainder.checked_div(per).unwrap_or(0),
-        }
-        .min(a - 1);
+        let remainder = u32::try_from(remainder).unwrap_or(u32::MAX);
+        let per = u32::try_from(2 * (n + 1)).unwrap_or(u32::MAX);
+        let r = u64::from(remainder.checked_div(per).unwrap_or(0)).min(a - 1);
         let u = n * a + r;
         (u as i64).min(v as i64)
+    }
+
+    /// The distance braking from speed `u` (pm per tick) covers after the tick at `u`:
+    /// `(u − a) + (u − 2a) + …` while the terms are positive, `a` the acceleration limit. The
+    /// number of terms from the prepared divisor: no 64-bit library division.
+    fn braking_after(&self, u: u64) -> u64 {
+        let (_, a) = Braking::limits(&self.limits);
+        if u <= a {
+            // A speed within one tick's braking stops at the next tick.
+            return 0;
+        }
+        braking_sum(u, self.braking.per_acceleration.div(u), a) - u
     }
 }
 
 /// Distance covered by `u + (u − a) + (u − 2a) + …` while the terms are positive.
 fn braking_distance(u: u64, a: u64) -> u64 {
-    let n = u.checked_div(a).unwrap_or(0);
+    braking_sum(u, u.checked_div(a).unwrap_or(0), a)
+}
+
+/// `⌊√x⌋`, exact, without a 64-bit division (`u64::isqrt` divides in 64 bits: a library call
+/// on the Cortex-M4): `u32::isqrt` (hardware `UDIV`s) of `x`'s top bits at an even shift
+/// `2k`, which is the root's top bits (`⌊√⌊x/4^k⌋⌋ = ⌊√x/2^k⌋`), then the root's `k` low
+/// bits one by one, each kept if its square stays within `x`: no step below 2^32, at most 16.
+fn isqrt(x: u64) -> u64 {
+    let k = (64 - x.leading_zeros()).saturating_sub(32).div_ceil(2);
+    let mut root = u64::from(((x >> (2 * k)) as u32).isqrt()) << k;
+    for bit in (0..k).rev() {
+        // Below 2^32: the square fits.
+        let tried = root | (1 << bit);
+        if tried * tried <= x {
+            root = tried;
+        }
+    }
+    root
+}
+
+/// `u + (u − a) + … + (u − n·a)`: the braking distance from `u` with `n = ⌊u/a⌋`.
+fn braking_sum(u: u64, n: u64, a: u64) -> u64 {
     (n + 1) * u - a * n * (n + 1) / 2
 }
 
@@ -193,8 +219,7 @@ impl TrapezoidalProfile {
         let a = self.limits.limits.acceleration;
         let speed = self
             .limits
-            .braking
-            .stopping_speed(&self.limits.limits, distance.unsigned_abs())
+            .stopping_speed(distance.unsigned_abs())
             .min(distance.saturating_abs());
         let closing = if distance >= 0 { speed } else { -speed };
         let v = self.limits.limits.velocity;
@@ -233,10 +258,7 @@ impl TrapezoidalProfile {
     /// Where the profile comes to rest if it brakes now at its acceleration limit, pm (the
     /// target of a controlled stop).
     pub fn stopping_point(&self) -> i64 {
-        let v = self.velocity.unsigned_abs();
-        let a = (self.limits.limits.acceleration.max(1) as u64).min(v.max(1));
-        // Braking covers `v − a + v − 2a + …`: the distance from the tick after this one.
-        let d = braking_distance(v, a).saturating_sub(v);
+        let d = self.limits.braking_after(self.velocity.unsigned_abs());
         let d = d.min(i64::MAX as u64) as i64;
         if self.velocity >= 0 {
             self.position.saturating_add(d)
@@ -313,9 +335,9 @@ mod tests {
                 velocity: v as i64,
                 acceleration: a as i64,
             };
-            let braking = Braking::new(&limits);
+            let prepared = limits.prepare();
             let full = braking_distance(v, a);
-            let stopping_speed = |d| braking.stopping_speed(&limits, d);
+            let stopping_speed = |d| prepared.stopping_speed(d);
             let mut distances = std::vec![0, 1, a - 1, a, a + 1, full - 1, full, full + 1];
             for _ in 0..20 {
                 distances.push(next() % full);
@@ -328,6 +350,90 @@ mod tests {
                 );
             }
         }
+    }
+
+    /// The root without a 64-bit division is `u64::isqrt`'s: at every power of two and on
+    /// both sides of squares up to `u64::MAX`, and at random.
+    #[test]
+    fn the_integer_square_root_is_exact() {
+        let mut next = crate::divisor::tests::xorshift(0x5eed_0f20_0700_1234);
+        let mut xs = std::vec![0u64, 1, 2, 3, 4, u64::MAX, u64::MAX - 1];
+        for b in 0..64 {
+            let p = 1u64 << b;
+            xs.extend([p - 1, p, p + 1]);
+        }
+        for r in [
+            1u64,
+            2,
+            3,
+            65_535,
+            65_536,
+            65_537,
+            1 << 20,
+            3_037_000_499,
+            u32::MAX as u64,
+        ] {
+            let sq = r * r;
+            xs.extend([sq - 1, sq, sq + 1]);
+        }
+        for _ in 0..100_000 {
+            let x = next();
+            xs.extend([x, x >> (x % 64)]);
+        }
+        for x in xs {
+            assert_eq!(isqrt(x), x.isqrt(), "{x}");
+        }
+    }
+
+    /// The distance a stop covers after the tick at speed `u`, from the prepared divisor, is
+    /// the braking sum `(u − a) + (u − 2a) + …` summed term by term: at the speeds that end
+    /// the sum's terms, on both sides of each multiple of `a`, and at random speeds up to
+    /// beyond the limit (a move whose limits were lowered while it ran).
+    #[test]
+    fn a_stop_s_braking_distance_is_the_sum_of_its_braking_ticks() {
+        let mut next = crate::divisor::tests::xorshift(0x0b5e_55ed_57a1_1e55);
+        let term_by_term = |u: u64, a: u64| {
+            let (mut sum, mut speed) = (0u64, u);
+            while speed > a {
+                speed -= a;
+                sum += speed;
+            }
+            sum
+        };
+        let mut cases = std::vec![(1u64, 1u64), (1_000, 1), (2_000_000, 4_000), (7, 7)];
+        for _ in 0..300 {
+            let v = next() % 200_000 + 1;
+            cases.push((v, next() % v + 1));
+        }
+        for (v, a) in cases {
+            let limits = MotionLimits {
+                velocity: v as i64,
+                acceleration: a as i64,
+            }
+            .prepare();
+            let mut speeds = std::vec![0, 1, a - 1, a, a + 1, 2 * a, 2 * a + 1, v - 1, v, 2 * v];
+            for _ in 0..10 {
+                speeds.push(next() % (2 * v));
+            }
+            for u in speeds {
+                assert_eq!(
+                    limits.braking_after(u),
+                    term_by_term(u, a),
+                    "v {v}, a {a}, u {u}"
+                );
+            }
+        }
+        // At the speed limit the product form is exact where summing is too slow to check.
+        let limits = MotionLimits {
+            velocity: MAX_VELOCITY_PM_PER_TICK,
+            acceleration: 3,
+        };
+        let u = MAX_VELOCITY_PM_PER_TICK as u64;
+        let n = u / 3;
+        assert_eq!(
+            limits.prepare().braking_after(u),
+            n * u - 3 * n * (n + 1) / 2
+        );
     }
 
     #[test]

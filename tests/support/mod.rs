@@ -514,6 +514,32 @@ pub fn panic_paths(elf: &Path, root: &str) -> Vec<String> {
     panics
 }
 
+/// The 64-bit library divisions (`compiler_builtins`' `__aeabi_uldivmod`, `__aeabi_ldivmod`
+/// and what they call) that handler `root` of `elf` reaches by direct branches and calls. The
+/// Cortex-M4 divides 32 bits in hardware (`UDIV`, `SDIV`, at most 12 cycles); a 64-bit
+/// quotient is a library call of up to a few hundred instructions whose time depends on its
+/// operands. A handler's divisions by settings are prepared off it (`twinstack::divisor`), so
+/// that none is reached: a division the bench's paths happen to take with small operands,
+/// cheaply, would still cost its worst on the board.
+pub fn library_divisions(elf: &Path, root: &str) -> Vec<String> {
+    reachable_functions(&objdump(), elf, root)
+        .into_iter()
+        .map(|(f, _)| f)
+        .filter(|f| {
+            [
+                "divmoddi4",
+                "divdi3",
+                "moddi3",
+                "ldivmod",
+                "uldivmod",
+                "64_div_rem",
+            ]
+            .iter()
+            .any(|d| f.contains(d))
+        })
+        .collect()
+}
+
 /// `llvm-objdump`: on the path, or rustup's llvm-tools in the toolchain's sysroot.
 pub fn objdump() -> PathBuf {
     llvm_tool("llvm-objdump", &[]).unwrap_or_else(|| {
