@@ -311,7 +311,8 @@ fn tick_cost_table_and_image_size() {
              task runs it (the handler's command taken, if any, then `CoarseSupervisor::tick`; \
              part `coarse-tick`) on the library's model of the axis, its encoders and switches \
              latched before the tick as the board's timers and GPIOs hold them: homing, then \
-             10 mm and back at the paper stage's limits ({} ticks): {:.1} \
+             10 mm and back at the paper stage's limits, then a stop at full speed in a 20 mm \
+             move and a stopped jog ({} ticks): {:.1} \
              instructions on average, {} at worst. Traced instruction by instruction and costed \
              as the whole-interrupt bench costs the tick: {} cycles at 0 WS and {} at 5 WS at \
              worst ({} instructions; {:.0} cycles at 5 WS on average); with the exception's \

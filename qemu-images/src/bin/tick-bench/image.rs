@@ -415,8 +415,8 @@ fn main() -> ! {
     }
     // The coarse task's tick (the dual-stage images, once a coarse period): the paper stage's
     // axis on the library's model (the emulator image's), homed, then moved 10 mm at its
-    // speed and acceleration limits and back; every tick measured, the piezo's position
-    // passed in as a sensor's would be.
+    // speed and acceleration limits and back, then stopped at full speed in a 20 mm move and
+    // in a jog; every tick measured, the piezo's position passed in as a sensor's would be.
     let coarse_n = {
         let settings = DualStageSettings {
             fine_rate_hz: RATE_HZ,
@@ -449,9 +449,13 @@ fn main() -> ! {
         let mut sup = CoarseSupervisor::new(dual, supervision);
         let mut acc = [0u64; 3];
         let mut measured = Some(0);
-        let mut run = |sup: &mut CoarseSupervisor, command: CoarseCommand, until: CoarseState| {
+        // One command, then ticks until the axis is in `until` or `at_most` ticks have run.
+        let mut run = |sup: &mut CoarseSupervisor,
+                       command: CoarseCommand,
+                       until: CoarseState,
+                       at_most: u32| {
             let mut command = Some(command);
-            for _ in 0..50_000 {
+            for _ in 0..at_most {
                 (io.1, io.2, io.3) = latch(&axis);
                 let this = command.take();
                 let t0 = now(&tim);
@@ -468,21 +472,53 @@ fn main() -> ! {
                 }
             }
         };
-        run(&mut sup, CoarseCommand::Home, CoarseState::Idle);
+        run(&mut sup, CoarseCommand::Home, CoarseState::Idle, 50_000);
         if !sup.status().homed {
             panic!("the coarse axis did not home");
         }
+        // Prepared where the firmware prepares them: the command handler, off the task.
+        let limits = sup.limits().coarse.prepare();
         for target_pm in [10_000_000_000, 0] {
-            // Prepared where the firmware prepares them: the command handler, off the task.
-            let limits = sup.limits().coarse.prepare();
             run(
                 &mut sup,
                 CoarseCommand::MoveTo { target_pm, limits },
                 CoarseState::Idle,
+                50_000,
             );
             let s = sup.status();
             if s.state != CoarseState::Idle || (s.position_pm - target_pm).abs() > 1_000_000 {
                 panic!("the coarse axis did not move to {} pm", target_pm);
+            }
+        }
+        // A controlled stop at full speed, halfway through a move (the braking planned from
+        // the speed), and a jog stopped: each comes to rest short of where it was going.
+        for (what, command, ticks) in [
+            (
+                "move",
+                CoarseCommand::MoveTo {
+                    target_pm: 20_000_000_000,
+                    limits,
+                },
+                3_000,
+            ),
+            (
+                "jog",
+                CoarseCommand::Jog {
+                    forward: false,
+                    limits,
+                },
+                1_000,
+            ),
+        ] {
+            let from = sup.status().position_pm;
+            run(&mut sup, command, CoarseState::Idle, ticks);
+            if sup.status().state == CoarseState::Idle {
+                panic!("the coarse axis ended its {} before its stop", what);
+            }
+            run(&mut sup, CoarseCommand::Stop, CoarseState::Idle, 50_000);
+            let s = sup.status();
+            if s.state != CoarseState::Idle || s.position_pm == from {
+                panic!("the coarse axis did not stop its {}", what);
             }
         }
         acc
