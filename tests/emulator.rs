@@ -1139,9 +1139,9 @@ fn the_board_answers_the_fuzzer_s_findings_as_the_host_build_does() {
 /// Every firmware image's own tick binding (the board's TIM2, the emulator's SysTick, each
 /// feature set the gates build), and the dual-stage images' coarse task (the board's TIM3, the
 /// emulator's EXTI1), reach no panic path: nothing they can branch or call to, directly or
-/// through what they call, panics. Nor does a board's binding, or the emulator's tick, reach a
-/// 64-bit library division ([`support::library_divisions`]): what they divide by a setting is
-/// prepared off them.
+/// through what they call, panics. Nor does any reach a 64-bit library division
+/// ([`support::library_divisions`]): what they divide by a setting is prepared off them (the
+/// emulator's model of the coarse axis, `IdealAxis`, too).
 /// Static, from each image's disassembly.
 #[test]
 fn the_firmware_tick_links_no_panic_path() {
@@ -1171,12 +1171,6 @@ fn the_firmware_tick_links_no_panic_path() {
                 panics.is_empty(),
                 "{bin} {features:?}: {root} reaches {panics:?}"
             );
-            // The emulator's coarse task runs the library's model of the axis behind the
-            // board's traits (`IdealAxis`, whose encoders divide in 64 bits): its divisions
-            // are the model's. The task's own code is the board's, checked on TIM3.
-            if features.contains(&"emulator") && Some(root) == coarse {
-                continue;
-            }
             let divisions = support::library_divisions(&elf, root);
             assert!(
                 divisions.is_empty(),

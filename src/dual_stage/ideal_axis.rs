@@ -15,13 +15,17 @@
 use core::sync::atomic::{AtomicI32, AtomicU32, Ordering::Relaxed};
 
 use crate::board::{LimitSwitches, QuadratureEncoder, StepBurst, StepDir, StepDirection, Switches};
+use crate::divisor::Divisor;
 
 /// The modelled axis (positions of the carriage, pm).
 #[derive(Debug)]
 pub struct IdealAxis {
     step_pm: i64,
-    motor_count_pm: i64,
-    linear_count_pm: i64,
+    /// The motor encoder's resolution, pm per count, prepared for division (the emulator's
+    /// coarse task reads the encoders every coarse tick: no 64-bit library division there).
+    motor_count: Divisor,
+    /// The linear encoder's resolution, pm per count, prepared likewise.
+    linear_count: Divisor,
     /// Carriage at or below: the lower limit switch is active.
     lower_pm: i64,
     /// Carriage at or above: the upper limit switch is active.
@@ -38,7 +42,8 @@ pub struct IdealAxis {
 impl IdealAxis {
     /// An axis at carriage 0 with `step_pm` per microstep, the encoders' resolutions, and
     /// the lower limit, home and upper limit switches at `switches_pm` (`lower < home < upper`
-    /// is not checked: any positions model some wiring).
+    /// is not checked: any positions model some wiring). An encoder's resolution of 0 or less
+    /// counts nothing (it reads 0).
     ///
     /// ```
     /// use twinstack::board::{QuadratureEncoder, StepBurst, StepDir, StepDirection};
@@ -48,16 +53,17 @@ impl IdealAxis {
     /// assert_eq!(axis.carriage_pm(), 5_000_000);
     /// assert_eq!(axis.linear().count(), 1000);
     /// ```
-    pub const fn new(
+    pub fn new(
         step_pm: i64,
         motor_count_pm: i64,
         linear_count_pm: i64,
         switches_pm: (i64, i64, i64),
     ) -> Self {
+        let resolution = |pm: i64| Divisor::new(u64::try_from(pm).unwrap_or(0));
         Self {
             step_pm,
-            motor_count_pm,
-            linear_count_pm,
+            motor_count: resolution(motor_count_pm),
+            linear_count: resolution(linear_count_pm),
             lower_pm: switches_pm.0,
             home_pm: switches_pm.1,
             upper_pm: switches_pm.2,
@@ -91,12 +97,12 @@ impl IdealAxis {
 
     /// The motor encoder.
     pub fn motor(&self) -> AxisEncoder<'_> {
-        AxisEncoder(self, self.motor_count_pm, false)
+        AxisEncoder(self, self.motor_count, false)
     }
 
     /// The linear encoder.
     pub fn linear(&self) -> AxisEncoder<'_> {
-        AxisEncoder(self, self.linear_count_pm, true)
+        AxisEncoder(self, self.linear_count, true)
     }
 
     /// The switches.
@@ -141,7 +147,7 @@ impl StepDir for AxisSteps<'_> {
 /// One of the model's encoders (its resolution, pm per count; whether it sees the piezo too):
 /// the 16-bit counter of a timer in encoder mode.
 #[derive(Debug)]
-pub struct AxisEncoder<'a>(&'a IdealAxis, i64, bool);
+pub struct AxisEncoder<'a>(&'a IdealAxis, Divisor, bool);
 
 impl QuadratureEncoder for AxisEncoder<'_> {
     fn count(&mut self) -> u16 {
@@ -150,11 +156,8 @@ impl QuadratureEncoder for AxisEncoder<'_> {
         } else {
             0
         };
-        self.0
-            .carriage_pm()
-            .saturating_add(piezo)
-            .checked_div_euclid(self.1)
-            .unwrap_or(0) as u16
+        // Rounded down, as a counter counting from position 0 reads.
+        self.1.floor(self.0.carriage_pm().saturating_add(piezo)) as u16
     }
 }
 
@@ -170,5 +173,36 @@ impl LimitSwitches for AxisSwitches<'_> {
             upper: c >= self.0.upper_pm,
             home: c <= self.0.home_pm,
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The encoders count the position rounded down, as `div_euclid` (a counter from 0 reads
+    /// one less on the first edge below it), the linear one with the piezo's displacement.
+    #[test]
+    fn the_encoders_count_the_position_rounded_down() {
+        let axis = IdealAxis::new(312_500, 250_000, 5_000, (-1, 0, 1));
+        for steps in [-3_000_001i32, -17, -1, 0, 1, 15, 4_000_003] {
+            for piezo in [-2_500i64, 0, 4_999, 5_000] {
+                axis.steps.store(steps, Relaxed);
+                axis.set_piezo_pm(piezo);
+                let carriage = steps as i64 * 312_500;
+                assert_eq!(
+                    axis.motor().count(),
+                    carriage.div_euclid(250_000) as u16,
+                    "{steps}"
+                );
+                assert_eq!(
+                    axis.linear().count(),
+                    (carriage + piezo).div_euclid(5_000) as u16,
+                    "{steps}, {piezo}"
+                );
+            }
+        }
+        // A resolution of 0 counts nothing.
+        assert_eq!(IdealAxis::new(312_500, 0, 0, (-1, 0, 1)).motor().count(), 0);
     }
 }
