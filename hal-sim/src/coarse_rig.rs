@@ -265,22 +265,16 @@ impl CoarseRig {
                 upper: carriage >= self.switches.upper_um || self.faults.upper_limit,
                 home: at(self.switches.home_um),
             });
-            let take = control.take_coarse();
-            if let Some(q) = take.resume_fine {
-                self.supervisor.resume_fine_from(q);
-            }
-            if let Some(command) = take.command {
-                let _ = self.supervisor.command(command);
-            }
-            let measured = take.measured;
-            let fine = self.supervisor.tick(
-                &mut self.step_dir,
-                &mut self.motor,
-                &mut self.linear,
-                &mut switches,
-                measured,
+            self.supervisor.period(
+                (
+                    &mut self.step_dir,
+                    &mut self.motor,
+                    &mut self.linear,
+                    &mut switches,
+                ),
+                control,
+                true,
             );
-            control.post_coarse(&fine, self.supervisor.status());
         }
         self.phase = (self.phase + 1) % self.fine_ticks.max(1);
     }

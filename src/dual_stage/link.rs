@@ -20,8 +20,34 @@
 //! * The **command handler** validates a request against the latest status and the limits
 //!   ([`super::CoarseLimits`]), answers at once, and leaves the command for the coarse task.
 
+use core::ops::DerefMut;
+
 use super::controller::FineSetpoints;
 use super::supervisor::{CoarseCommand, CoarseLimits, CoarseStatus};
+use crate::control::Controller;
+use crate::control_loop::ControlLoop;
+
+/// The coarse task's two exchanges with the control loop in a coarse period
+/// ([`crate::dual_stage::CoarseSupervisor::period`]): on the board each is one short lock of
+/// the control tick (the firmware's `hardware::setup::CoarseStage::run`); on a bench or in the
+/// simulator, which own the loop, a plain call ([`ControlLoop`] implements it).
+pub trait LoopExchange {
+    /// The handler's pending command and the piezo's position
+    /// ([`ControlLoop::take_coarse`]).
+    fn take(&mut self) -> CoarseTake;
+    /// The period's fine setpoints and the status ([`ControlLoop::post_coarse`]).
+    fn post(&mut self, fine: &FineSetpoints, status: CoarseStatus);
+}
+
+impl<C: DerefMut<Target = Controller>> LoopExchange for ControlLoop<C> {
+    fn take(&mut self) -> CoarseTake {
+        self.take_coarse()
+    }
+
+    fn post(&mut self, fine: &FineSetpoints, status: CoarseStatus) {
+        self.post_coarse(fine, status);
+    }
+}
 
 /// The piezo's setpoint over one coarse period: a linear ramp from where the tick is to the
 /// period's end value, one step per fine tick; it holds the end value if the next period's

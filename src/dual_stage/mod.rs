@@ -43,7 +43,7 @@ pub mod trapezoid;
 
 use carriage_tracker::CarriageTracker;
 pub use controller::{CoarseReport, DualMode, DualStage, DualStageCounters, FineSetpoints};
-pub use link::{CoarseLink, CoarseTake, FineRamp, PreparedCoarse};
+pub use link::{CoarseLink, CoarseTake, FineRamp, LoopExchange, PreparedCoarse};
 pub use split_filter::{SplitCoefficients, SplitFilter};
 pub use supervisor::{
     CoarseCommand, CoarseLimits, CoarseRefusal, CoarseState, CoarseStatus, CoarseSupervisor,

@@ -565,8 +565,10 @@ mod coarse {
     use crate::board::QuadratureEncoder;
     use crate::config::tick_budget::{check_with, Beside};
     use crate::control::ControlConfig;
-    use crate::dual_stage::PreparedCoarse;
-    use crate::dual_stage::{CoarseSupervisor, DualStage, DualStageSettings, SupervisorSettings};
+    use crate::dual_stage::{
+        CoarseStatus, CoarseSupervisor, CoarseTake, DualStage, DualStageSettings, FineSetpoints,
+        LoopExchange, PreparedCoarse, SupervisorSettings,
+    };
     use crate::hardware::clocks::BusClocks;
     use crate::hardware::tick::BoardLoop;
     use crate::sources::SetpointSource;
@@ -756,10 +758,10 @@ mod coarse {
             (stage, pacer)
         }
 
-        /// One coarse tick: the handler's pending command and the piezo's last measurement
-        /// are taken in one short lock of the control tick, the supervisor runs (a refused
-        /// burst keeps its steps for the next tick), then, in a second short lock, its fine
-        /// setpoints and status are posted to the tick.
+        /// One coarse period ([`CoarseSupervisor::period`]): the handler's pending command and
+        /// the piezo's last measurement taken in one short lock of the control tick, the
+        /// supervisor's tick (a refused burst keeps its steps for the next tick), then, in a
+        /// second short lock, its fine setpoints and status posted to the tick.
         pub fn run(&mut self, tick: &mut impl Mutex<T = ControlTick>) {
             #[cfg(not(feature = "emulator"))]
             self.timer.acknowledge();
@@ -767,32 +769,30 @@ mod coarse {
                 return;
             };
             let (steps, motor, linear, switches) = &mut self.io;
-            // The handler's command and the piezo's measurement of the last fine tick (the
-            // carriage estimate subtracts it from the linear encoder's).
-            let take = tick.lock(|t| t.control.take_coarse());
-            if let Some(q) = take.resume_fine {
-                // The piezo comes back from its own sources: the fine ramp leaves from where
-                // they left its setpoint.
-                axis.resume_fine_from(q);
-            }
-            if let Some(command) = take.command {
-                // Refused now (the state changed since the handler's check): the status says
-                // what the axis does instead.
-                let _ = axis.command(command);
-            }
-            let measured = take.measured;
             // The emulator has no piezo (QEMU's ADC reads 0): no measurement; the model's
             // piezo sits where its setpoint is.
-            #[cfg(feature = "emulator")]
-            let measured = {
-                let _ = measured;
-                None
-            };
-            let fine = axis.tick(steps, motor, linear, switches, measured);
+            let fine = axis.period(
+                (steps, motor, linear, switches),
+                &mut TickLock(tick),
+                !cfg!(feature = "emulator"),
+            );
             #[cfg(feature = "emulator")]
             self.model.set_piezo_pm(axis.dual().fine_to_pm(fine.to));
-            let status = axis.status();
-            tick.lock(|t| t.control.post_coarse(&fine, status));
+            #[cfg(not(feature = "emulator"))]
+            let _ = fine;
+        }
+    }
+
+    /// The coarse task's exchanges with the control loop, each in one short lock of the tick.
+    struct TickLock<'a, M>(&'a mut M);
+
+    impl<M: Mutex<T = ControlTick>> LoopExchange for TickLock<'_, M> {
+        fn take(&mut self) -> CoarseTake {
+            self.0.lock(|t| t.control.take_coarse())
+        }
+
+        fn post(&mut self, fine: &FineSetpoints, status: CoarseStatus) {
+            self.0.lock(|t| t.control.post_coarse(fine, status));
         }
     }
 }
