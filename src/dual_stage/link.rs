@@ -256,7 +256,14 @@ impl CoarseLink {
     /// the tick uses then.
     pub fn take(&mut self) -> (Option<CoarseCommand>, bool) {
         let engages = self.is_engaging();
-        let command = self.command.take();
+        // Taken only when there is one: `Option::take` of the empty slot would still copy
+        // its 56 bytes (a library `memcpy` on the coarse task's every period, under the
+        // tick's lock).
+        let command = if self.command.is_some() {
+            self.command.take()
+        } else {
+            None
+        };
         if engages {
             self.released = false;
             self.ramp = FineRamp::new();

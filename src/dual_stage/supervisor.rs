@@ -179,7 +179,14 @@ fn switch_bits(s: Switches) -> u8 {
 }
 
 /// What the coarse axis is asked to do, validated and in integers.
+///
+/// Its tag is a word (`repr(u32)`), so that the fields after it start word-aligned: a
+/// command moved from the handler to the coarse task is copied a word at a time. With a
+/// one-byte tag the move copied the 55 bytes behind it, misaligned, through the library's
+/// `memcpy` byte path: several hundred instructions of the task's dearest period, half of
+/// them under the control tick's lock.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[repr(u32)]
 pub enum CoarseCommand {
     /// Home (clears a fault).
     Home,
