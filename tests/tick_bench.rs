@@ -307,10 +307,13 @@ fn tick_cost_table_and_image_size() {
         let charged = worst.cycles_ws5 + ENTRY_EXIT_CYCLES;
         out!(
             md,
-            "\nThe dual-stage images' coarse task, one coarse period's tick as the firmware's \
-             task runs it (the handler's command taken, if any, then `CoarseSupervisor::tick`; \
-             part `coarse-tick`) on the library's model of the axis, its encoders and switches \
-             latched before the tick as the board's timers and GPIOs hold them: homing, then \
+            "\nThe dual-stage images' coarse task, one coarse period as the firmware's task \
+             runs it (`CoarseSupervisor::period`: the handler's command and the piezo's \
+             position taken from the control loop, the supervisor's tick, its fine setpoints \
+             and status posted to the loop; part `coarse-tick`; not the two locks' `BASEPRI` \
+             writes nor the timer's acknowledgement) on the library's model of the axis, its \
+             encoders and switches latched before the period as the board's timers and GPIOs \
+             hold them: homing, then \
              10 mm and back at the paper stage's limits, then a stop at full speed in a 20 mm \
              move and a stopped jog ({} ticks): {:.1} \
              instructions on average, {} at worst. Traced instruction by instruction and costed \

@@ -15,11 +15,13 @@ use twinstack::config::settings::{
 };
 use twinstack::control::drive::{DifferentialDrive, DriveOutput, StackVoltages};
 use twinstack::control::notch::NotchDesign;
+use twinstack::control::Controller;
 use twinstack::control::{Compensator, ControlConfig, Observer, TickReport};
+use twinstack::control_loop::ControlLoop;
 use twinstack::dual_stage::ideal_axis::{AxisSteps, IdealAxis};
 use twinstack::dual_stage::{
     CoarseCommand, CoarseState, CoarseSupervisor, DualStage, DualStageSettings, FineSetpoints,
-    SupervisorSettings,
+    PreparedCoarse, SupervisorSettings,
 };
 use twinstack::fixed_point::SIGNAL_ONE;
 use twinstack::hardware::adc::SensorInput;
@@ -116,23 +118,22 @@ impl LimitSwitches for LatchedSwitches {
     }
 }
 
-/// The dual-stage images' coarse task's tick alone, as the firmware's task runs it (the
-/// command the handler passed, if any, then [`CoarseSupervisor::tick`]), on the library's
-/// model of the axis (its step output, and its encoders and switches latched before the
-/// tick, as the board's peripherals hold them).
+/// The dual-stage images' coarse task's period, as the firmware's task runs it
+/// ([`CoarseSupervisor::period`]: the handler's command and the piezo's position taken from
+/// the control loop, the supervisor's tick, the fine setpoints and the status posted to the
+/// loop), on the library's model of the axis (its step output, and its encoders and switches
+/// latched before the period, as the board's peripherals hold them). The lock around each
+/// exchange is the board's `BASEPRI` write, not run here.
 #[inline(never)]
 fn coarse_part(
     sup: &mut CoarseSupervisor,
     io: &mut (AxisSteps<'_>, LatchedCount, LatchedCount, LatchedSwitches),
-    command: Option<&CoarseCommand>,
-    measured: Option<i32>,
+    control: &mut ControlLoop<&mut Controller>,
 ) -> FineSetpoints {
-    if let Some(command) = command {
-        // Refused: the bench's checks of where the axis went fail.
-        let _ = sup.command(*command);
-    }
     let (steps, motor, linear, switches) = io;
-    sup.tick(steps, motor, linear, switches, measured)
+    // As the emulator image runs it: the model's piezo sits where its setpoint is, and the
+    // task takes its own last fine setpoint for it.
+    sup.period((steps, motor, linear, switches), control, false)
 }
 
 /// [`DualDac::write_both`] alone.
@@ -416,7 +417,8 @@ fn main() -> ! {
     // The coarse task's tick (the dual-stage images, once a coarse period): the paper stage's
     // axis on the library's model (the emulator image's), homed, then moved 10 mm at its
     // speed and acceleration limits and back, then stopped at full speed in a 20 mm move and
-    // in a jog; every tick measured, the piezo's position passed in as a sensor's would be.
+    // in a jog; every period measured, the commands left in the control loop as the command
+    // handler leaves them.
     let coarse_n = {
         let settings = DualStageSettings {
             fine_rate_hz: RATE_HZ,
@@ -447,22 +449,28 @@ fn main() -> ! {
             panic!("the paper stage's supervisor settings");
         };
         let mut sup = CoarseSupervisor::new(dual, supervision);
+        // The control loop the task exchanges with, the axis attached as the firmware attaches
+        // it; the handler's commands are left in it.
+        let (mut active, mut spare) = (Controller::new(parts), Controller::new(parts));
+        let mut control = ControlLoop::new(&mut active, &mut spare, RATE_HZ as u32);
+        control.attach_coarse(&PreparedCoarse::new(
+            sup.limits(),
+            sup.status(),
+            RATE_HZ as u32,
+        ));
         let mut acc = [0u64; 3];
-        let mut measured = Some(0);
         // One command, then ticks until the axis is in `until` or `at_most` ticks have run.
         let mut run = |sup: &mut CoarseSupervisor,
                        command: CoarseCommand,
                        until: CoarseState,
                        at_most: u32| {
-            let mut command = Some(command);
+            control.coarse().request(command);
             for _ in 0..at_most {
                 (io.1, io.2, io.3) = latch(&axis);
-                let this = command.take();
                 let t0 = now(&tim);
-                let fine = black_box(coarse_part(sup, &mut io, this.as_ref(), measured));
+                let fine = black_box(coarse_part(sup, &mut io, &mut control));
                 let t1 = now(&tim);
                 axis.set_piezo_pm(sup.dual().fine_to_pm(fine.to));
-                measured = Some(fine.to);
                 let n = u64::from(t1.wrapping_sub(t0));
                 acc[0] += n;
                 acc[1] = acc[1].max(n);
