@@ -41,12 +41,11 @@ use twinstack::sources::SetpointSource;
 /// edges; the dearest scenario is the spiral started by the input's edges with the learning
 /// feedforward on (P–I 17: 947 measured, the firmware's binding of the tick included).
 const WORST_INSTRUCTIONS: u64 = 960;
-/// The longest critical section outside the tick (a lock on its resource, or interrupts
-/// off), instructions: how late a tick can start. The dearest is the board's waveform
-/// generator started under the tick's lock: 140 measured. A capture's or a record's read-back
-/// copies its pieces under the services' lock (`recorder::PIECE_SLOTS`), which masks the
-/// services' priority and below, never the tick.
-const HELD_OFF_INSTRUCTIONS: u64 = 145;
+// The longest critical section outside the tick (`support::HELD_OFF_INSTRUCTIONS`): here the
+// dearest is the board's waveform generator started under the tick's lock, 140 measured. A
+// capture's or a record's read-back copies its pieces under the services' lock
+// (`recorder::PIECE_SLOTS`), which masks the services' priority and below, never the tick.
+use support::HELD_OFF_INSTRUCTIONS;
 /// Most instructions the learning feedforward, on, adds to a configuration's worst tick (its
 /// table read, its error store and, at a period's end, the flips).
 const LEARNING_EXTRA: u64 = 120;

@@ -26,6 +26,11 @@ const TICK_BUDGET: f64 = 250.0;
 /// context not stacked): charged to the coarse task, an interrupt of its own, as the
 /// whole-interrupt bench charges the tick (`tests/irq_bench.rs`).
 const ENTRY_EXIT_CYCLES: u64 = 22;
+/// A lock of the tick's resource from the instruction that masks the tick to the one that
+/// unmasks it, less its body, as the board's TIM3 binding runs it: `MSR BASEPRI_MAX`, two
+/// `ISB`s, `MSR BASEPRI`. (The bench's body is a call of its own, its entry and return
+/// counted with it: a little more than the board's, inlined.)
+const LOCK_INSTRUCTIONS: u64 = 4;
 
 /// One `BENCH` line.
 #[derive(Debug)]
@@ -339,6 +344,34 @@ fn tick_cost_table_and_image_size() {
             u64::from(COARSE_TASK_CYCLES) >= charged,
             "the coarse task's worst tick takes {charged} cycles at 5 WS with its entry and \
              return: more than COARSE_TASK_CYCLES ({COARSE_TASK_CYCLES})"
+        );
+        // Its two exchanges with the loop run under the tick's lock on the board: each holds
+        // the tick off, from the `BASEPRI` write that masks it (then an `ISB`) to the one that
+        // unmasks it.
+        let mut held = Vec::new();
+        for (what, function) in [
+            ("taking the command", "tick_bench::image::coarse_take"),
+            ("posting the period", "tick_bench::image::coarse_post"),
+        ] {
+            let calls = support::traced_calls(&elf, function, &["-serial", "null"]);
+            assert_eq!(calls.len() as u64, p.ticks, "every period {what}");
+            let most = calls.iter().map(|c| c.instructions).max().unwrap_or(0);
+            let locked = most + LOCK_INSTRUCTIONS;
+            assert!(
+                locked <= support::HELD_OFF_INSTRUCTIONS,
+                "the coarse task holds the tick off for {locked} instructions {what} \
+                 (asserted ≤ {})",
+                support::HELD_OFF_INSTRUCTIONS
+            );
+            held.push(format!("{locked} ({what})"));
+        }
+        out!(
+            md,
+            "\nIts two locks of the tick hold the tick off for at most {} instructions (the \
+             exchange traced, with the lock's own {LOCK_INSTRUCTIONS}), within the {} asserted \
+             for every critical section outside the tick.",
+            held.join(" and "),
+            support::HELD_OFF_INSTRUCTIONS
         );
     }
 

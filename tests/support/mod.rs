@@ -514,6 +514,12 @@ pub fn panic_paths(elf: &Path, root: &str) -> Vec<String> {
     panics
 }
 
+/// The longest critical section outside the tick that masks it (a lock on the tick's
+/// resource, or interrupts off), instructions: how late a tick can start. The whole-interrupt
+/// bench asserts it for every lock it runs (`tests/irq_bench.rs`), the tick bench for the
+/// dual-stage coarse task's two exchanges with the loop (`tests/tick_bench.rs`).
+pub const HELD_OFF_INSTRUCTIONS: u64 = 145;
+
 /// The 64-bit library divisions (`compiler_builtins`' `__aeabi_uldivmod`, `__aeabi_ldivmod`
 /// and what they call) that handler `root` of `elf` reaches by direct branches and calls. The
 /// Cortex-M4 divides 32 bits in hardware (`UDIV`, `SDIV`, at most 12 cycles); a 64-bit

@@ -20,8 +20,8 @@ use twinstack::control::{Compensator, ControlConfig, Observer, TickReport};
 use twinstack::control_loop::ControlLoop;
 use twinstack::dual_stage::ideal_axis::{AxisSteps, IdealAxis};
 use twinstack::dual_stage::{
-    CoarseCommand, CoarseState, CoarseSupervisor, DualStage, DualStageSettings, FineSetpoints,
-    PreparedCoarse, SupervisorSettings,
+    CoarseCommand, CoarseState, CoarseStatus, CoarseSupervisor, CoarseTake, DualStage,
+    DualStageSettings, FineSetpoints, LoopExchange, PreparedCoarse, SupervisorSettings,
 };
 use twinstack::fixed_point::SIGNAL_ONE;
 use twinstack::hardware::adc::SensorInput;
@@ -133,7 +133,42 @@ fn coarse_part(
     let (steps, motor, linear, switches) = io;
     // As the emulator image runs it: the model's piezo sits where its setpoint is, and the
     // task takes its own last fine setpoint for it.
-    sup.period((steps, motor, linear, switches), control, false)
+    sup.period(
+        (steps, motor, linear, switches),
+        &mut Exchange(control),
+        false,
+    )
+}
+
+/// The coarse task's exchanges with the loop, each what the board runs under the tick's lock
+/// (`hardware::setup`'s `TickLock`), in a call of its own so that the bench traces how long
+/// each holds the tick off.
+struct Exchange<'a, 'c>(&'a mut ControlLoop<&'c mut Controller>);
+
+impl LoopExchange for Exchange<'_, '_> {
+    fn take(&mut self) -> CoarseTake {
+        coarse_take(self.0)
+    }
+
+    fn post(&mut self, fine: &FineSetpoints, status: CoarseStatus) {
+        coarse_post(self.0, fine, status);
+    }
+}
+
+/// The body of the coarse task's first lock of the tick.
+#[inline(never)]
+fn coarse_take(control: &mut ControlLoop<&mut Controller>) -> CoarseTake {
+    control.take_coarse()
+}
+
+/// The body of the coarse task's second lock of the tick.
+#[inline(never)]
+fn coarse_post(
+    control: &mut ControlLoop<&mut Controller>,
+    fine: &FineSetpoints,
+    status: CoarseStatus,
+) {
+    control.post_coarse(fine, status);
 }
 
 /// [`DualDac::write_both`] alone.
