@@ -867,6 +867,25 @@ where
     }
 }
 
+/// The coarse task's exchanges, called on the loop directly where nothing else runs it
+/// concurrently (the simulator, the bench); the board locks the tick around each.
+impl<C> crate::dual_stage::LoopExchange for ControlLoop<C>
+where
+    C: DerefMut<Target = Controller>,
+{
+    fn take(&mut self) -> crate::dual_stage::CoarseTake {
+        self.take_coarse()
+    }
+
+    fn post(
+        &mut self,
+        fine: &crate::dual_stage::FineSetpoints,
+        status: crate::dual_stage::CoarseStatus,
+    ) {
+        self.post_coarse(fine, status);
+    }
+}
+
 impl<C> LearnHost for ControlLoop<C>
 where
     C: DerefMut<Target = Controller>,

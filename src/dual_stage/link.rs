@@ -20,32 +20,61 @@
 //! * The **command handler** validates a request against the latest status and the limits
 //!   ([`super::CoarseLimits`]), answers at once, and leaves the command for the coarse task.
 
-use core::ops::DerefMut;
-
 use super::controller::FineSetpoints;
-use super::supervisor::{CoarseCommand, CoarseLimits, CoarseStatus};
-use crate::control::Controller;
-use crate::control_loop::ControlLoop;
+use super::supervisor::{CoarseCommand, CoarseLimits, CoarseStatus, CoarseSupervisor};
+use crate::board::{LimitSwitches, QuadratureEncoder, StepDir};
 
 /// The coarse task's two exchanges with the control loop in a coarse period
-/// ([`crate::dual_stage::CoarseSupervisor::period`]): on the board each is one short lock of
-/// the control tick (the firmware's `hardware::setup::CoarseStage::run`); on a bench or in the
-/// simulator, which own the loop, a plain call ([`ControlLoop`] implements it).
+/// ([`CoarseSupervisor::period`]): on the board each is one short lock of the control tick
+/// (the firmware's `hardware::setup::CoarseStage::run`); on a bench or in the simulator, which
+/// own the loop, a plain call ([`crate::control_loop::ControlLoop`] implements it).
 pub trait LoopExchange {
     /// The handler's pending command and the piezo's position
-    /// ([`ControlLoop::take_coarse`]).
+    /// ([`crate::control_loop::ControlLoop::take_coarse`]).
     fn take(&mut self) -> CoarseTake;
-    /// The period's fine setpoints and the status ([`ControlLoop::post_coarse`]).
+    /// The period's fine setpoints and the status
+    /// ([`crate::control_loop::ControlLoop::post_coarse`]).
     fn post(&mut self, fine: &FineSetpoints, status: CoarseStatus);
 }
 
-impl<C: DerefMut<Target = Controller>> LoopExchange for ControlLoop<C> {
-    fn take(&mut self) -> CoarseTake {
-        self.take_coarse()
-    }
-
-    fn post(&mut self, fine: &FineSetpoints, status: CoarseStatus) {
-        self.post_coarse(fine, status);
+impl CoarseSupervisor {
+    /// One coarse period as the firmware's coarse task runs it: the handler's pending command
+    /// and the piezo's position taken from the control loop (`exchange`'s first call: one
+    /// short lock of the tick on the board), the piezo engaged again from its setpoint where
+    /// the command takes it back, the command (a refusal now — the state changed since the
+    /// handler's check — leaves the status to say what the axis does), [`CoarseSupervisor::tick`],
+    /// then the period's fine setpoints and the status posted (the second call). Without
+    /// `measures_piezo` (the emulator, whose ADC reads nothing), the loop's reading is not
+    /// taken: the task takes its own last fine setpoint. Returns the fine setpoints.
+    ///
+    /// The board, the simulator and the tick bench all run this, so the bench's cost of a
+    /// coarse period is the firmware's (less the lock's `BASEPRI` writes and the timer's
+    /// acknowledgement).
+    pub fn period<S, M, L, W>(
+        &mut self,
+        (step_dir, motor, linear, switches): (&mut S, &mut M, &mut L, &mut W),
+        exchange: &mut impl LoopExchange,
+        measures_piezo: bool,
+    ) -> FineSetpoints
+    where
+        S: StepDir,
+        M: QuadratureEncoder,
+        L: QuadratureEncoder,
+        W: LimitSwitches,
+    {
+        let take = exchange.take();
+        if let Some(q) = take.resume_fine {
+            // The piezo comes back from its own sources: the fine ramp leaves from where they
+            // left its setpoint.
+            self.resume_fine_from(q);
+        }
+        if let Some(command) = take.command {
+            let _ = self.command(command);
+        }
+        let measured = if measures_piezo { take.measured } else { None };
+        let fine = self.tick(step_dir, motor, linear, switches, measured);
+        exchange.post(&fine, self.status());
+        fine
     }
 }
 

@@ -47,7 +47,6 @@
 use serde::{Deserialize, Serialize};
 
 use super::controller::{DualMode, DualStage, FineSetpoints};
-use super::link::LoopExchange;
 use super::trapezoid::PreparedLimits;
 use super::{DualStageConfig, DualStageError, MotionLimits, PM_PER_UM};
 use crate::board::{LimitSwitches, QuadratureEncoder, StepDir, Switches};
@@ -672,45 +671,6 @@ impl CoarseSupervisor {
             HOMING_TRAVEL_PM.0
         };
         self.dual.move_to_prepared(edge, limits);
-    }
-
-    /// One coarse period as the firmware's coarse task runs it: the handler's pending command
-    /// and the piezo's position taken from the control loop (`exchange`'s first call: one
-    /// short lock of the tick on the board), the piezo engaged again from its setpoint where
-    /// the command takes it back, the command (a refusal now — the state changed since the
-    /// handler's check — leaves the status to say what the axis does), [`CoarseSupervisor::tick`],
-    /// then the period's fine setpoints and the status posted (the second call). Without
-    /// `measures_piezo` (the emulator, whose ADC reads nothing), the loop's reading is not
-    /// taken: the task takes its own last fine setpoint. Returns the fine setpoints.
-    ///
-    /// The board, the simulator and the tick bench all run this, so the bench's cost of a
-    /// coarse period is the firmware's (less the lock's `BASEPRI` writes and the timer's
-    /// acknowledgement).
-    pub fn period<S, M, L, W>(
-        &mut self,
-        (step_dir, motor, linear, switches): (&mut S, &mut M, &mut L, &mut W),
-        exchange: &mut impl LoopExchange,
-        measures_piezo: bool,
-    ) -> FineSetpoints
-    where
-        S: StepDir,
-        M: QuadratureEncoder,
-        L: QuadratureEncoder,
-        W: LimitSwitches,
-    {
-        let take = exchange.take();
-        if let Some(q) = take.resume_fine {
-            // The piezo comes back from its own sources: the fine ramp leaves from where they
-            // left its setpoint.
-            self.resume_fine_from(q);
-        }
-        if let Some(command) = take.command {
-            let _ = self.command(command);
-        }
-        let measured = if measures_piezo { take.measured } else { None };
-        let fine = self.tick(step_dir, motor, linear, switches, measured);
-        exchange.post(&fine, self.status());
-        fine
     }
 
     /// One coarse tick: reads the switches, runs the dual stage (unless stopped by a fault),
