@@ -1,7 +1,9 @@
 //! The STM32F405's 64 KiB of core-coupled memory (CCM RAM, 0x1000_0000): reachable by the core
 //! only (no DMA), zero wait states, and otherwise unused by the image. It holds the setpoint
-//! queue ([`setpoint_queue`]: 40 008 bytes, only the core touches it) and the second part of
-//! the recorder's capture buffer ([`capture_half`]: 24 KiB); 64 584 of its 65 536 bytes.
+//! queue ([`setpoint_queue`]: 40 008 bytes, only the core touches it), the second part of the
+//! recorder's capture buffer ([`capture_half`]: 24 KiB) and the snapshot ring from the tick to
+//! the services ([`snapshot_ring`]: 776 bytes, core only); 65 360 of its 65 536 bytes, so that
+//! SRAM keeps room beside the stack's reserve for the dual-stage image.
 //!
 //! `memory.x` places the `.ccmram` input sections there as a NOLOAD output section: the
 //! start-up code neither copies nor zeroes it, so the buffer is zeroed here, once, when it is
@@ -12,6 +14,7 @@ use core::sync::atomic::{AtomicBool, Ordering};
 
 use super::tick::HALF_SLOTS;
 use crate::control_loop::SetpointQueue;
+use crate::services::snapshot::SnapshotRing;
 
 #[link_section = ".ccmram"]
 static mut CAPTURE_HALF: MaybeUninit<[i16; HALF_SLOTS]> = MaybeUninit::uninit();
@@ -19,11 +22,28 @@ static mut CAPTURE_HALF: MaybeUninit<[i16; HALF_SLOTS]> = MaybeUninit::uninit();
 #[link_section = ".ccmram"]
 static mut SETPOINT_QUEUE: MaybeUninit<SetpointQueue> = MaybeUninit::uninit();
 
+#[link_section = ".ccmram"]
+static mut SNAPSHOT_RING: MaybeUninit<SnapshotRing> = MaybeUninit::uninit();
+
 /// Whether [`capture_half`] has handed the buffer out (in `.bss`: zeroed at start-up).
 static TAKEN: AtomicBool = AtomicBool::new(false);
 
 /// Whether [`setpoint_queue`] has handed the queue out.
 static QUEUE_TAKEN: AtomicBool = AtomicBool::new(false);
+
+/// Whether [`snapshot_ring`] has handed the ring out.
+static RING_TAKEN: AtomicBool = AtomicBool::new(false);
+
+/// The snapshot ring in CCM RAM, empty: `Some` the first time, `None` after.
+pub fn snapshot_ring() -> Option<&'static mut SnapshotRing> {
+    if RING_TAKEN.swap(true, Ordering::AcqRel) {
+        return None;
+    }
+    // SAFETY: `RING_TAKEN` lets exactly one caller through, so this is the only reference to
+    // the static ever made; it is initialised (an empty ring) before it is handed out.
+    let slot = unsafe { &mut *core::ptr::addr_of_mut!(SNAPSHOT_RING) };
+    Some(slot.write(SnapshotRing::new()))
+}
 
 /// The setpoint queue in CCM RAM, empty: `Some` the first time, `None` after.
 pub fn setpoint_queue() -> Option<&'static mut SetpointQueue> {

@@ -106,8 +106,6 @@ pub struct Statics {
     pub rx_queue: &'static mut Queue<u8, RX_QUEUE>,
     /// Telemetry's queue, from the services' tap to the command task's packer.
     pub telemetry_queue: &'static mut TelemetryQueue,
-    /// The snapshot ring, from the tick to the services.
-    pub snapshot_ring: &'static mut SnapshotRing,
     /// The SRAM part of the capture buffer.
     pub record_buffer: &'static mut [i16; SRAM_SLOTS],
 }
@@ -246,7 +244,10 @@ pub fn setup(
     let (setpoints_in, setpoints) = setpoint_queue.split();
     let (bytes, bytes_in) = statics.rx_queue.split();
     let (telemetry, telemetry_out) = statics.telemetry_queue.split();
-    let (snapshots, snapshots_out) = statics.snapshot_ring.split();
+    let Some(snapshot_ring) = snapshot_ring() else {
+        panic!("snapshot ring already taken");
+    };
+    let (snapshots, snapshots_out) = snapshot_ring.split();
     defmt::info!(
         "{=str} ({=str}) up: sysclk {=u32} Hz, tick {=u32} Hz",
         image,
@@ -363,6 +364,25 @@ fn capture_second_part() -> &'static mut [i16] {
 #[cfg(not(feature = "emulator"))]
 fn setpoint_queue() -> Option<&'static mut SetpointQueue> {
     super::ccm::setpoint_queue()
+}
+
+/// The snapshot ring: in CCM RAM on a board (only the core touches it).
+#[cfg(not(feature = "emulator"))]
+fn snapshot_ring() -> Option<&'static mut SnapshotRing> {
+    super::ccm::snapshot_ring()
+}
+
+/// The snapshot ring: in SRAM in the emulator (QEMU models no CCM); `Some` the first time.
+#[cfg(feature = "emulator")]
+fn snapshot_ring() -> Option<&'static mut SnapshotRing> {
+    use core::sync::atomic::{AtomicBool, Ordering};
+    static TAKEN: AtomicBool = AtomicBool::new(false);
+    static mut RING: SnapshotRing = heapless::spsc::Queue::new();
+    if TAKEN.swap(true, Ordering::AcqRel) {
+        return None;
+    }
+    // SAFETY: `TAKEN` lets exactly one caller through: the only reference ever made.
+    Some(unsafe { &mut *core::ptr::addr_of_mut!(RING) })
 }
 
 /// The setpoint queue: in SRAM in the emulator (QEMU models no CCM); `Some` the first time.

@@ -45,7 +45,6 @@ macro_rules! firmware_app {
                 Uplink, RX_QUEUE,
             };
             use twinstack::hardware::tick::{ControlTick, ServiceSide, SRAM_SLOTS};
-            use twinstack::services::snapshot::SnapshotRing;
             use twinstack::services::telemetry::TelemetryQueue;
 
             #[shared]
@@ -75,14 +74,12 @@ macro_rules! firmware_app {
             #[init(local = [
                 rx_queue: Queue<u8, RX_QUEUE> = Queue::new(),
                 telemetry_queue: TelemetryQueue = Queue::new(),
-                snapshot_ring: SnapshotRing = Queue::new(),
                 record_buffer: [i16; SRAM_SLOTS] = [0; SRAM_SLOTS],
             ])]
             fn init(cx: init::Context) -> (Shared, Local) {
                 let statics = Statics {
                     rx_queue: cx.local.rx_queue,
                     telemetry_queue: cx.local.telemetry_queue,
-                    snapshot_ring: cx.local.snapshot_ring,
                     record_buffer: cx.local.record_buffer,
                 };
                 let Board {
