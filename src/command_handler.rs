@@ -179,6 +179,8 @@ impl<S: RecordStorage> CommandHandler<S> {
     /// A handler whose settings in force are `settings` (already running in the tick, built
     /// on `hardware`); `defaults` says they are the compiled-in ones.
     pub fn new(hardware: Hardware, settings: Settings, defaults: bool, storage: S) -> Self {
+        let mut learn = LearnTask::new();
+        learn.set_resolution(settings.sensor_quantum(&hardware));
         Self {
             decoder: FrameDecoder::new(),
             hardware,
@@ -190,7 +192,7 @@ impl<S: RecordStorage> CommandHandler<S> {
             frame_errors: 0,
             tx: [0; MAX_RESPONSE],
             telemetry: TelemetryPacker::new(),
-            learn: LearnTask::new(),
+            learn,
             analog: None,
             watchdog_reset: false,
         }
@@ -530,6 +532,8 @@ impl<S: RecordStorage> CommandHandler<S> {
         }
         // O(1) under the lock: the stacks' voltages as they are now carry over.
         control.lock(|c| c.post(spare));
+        self.learn
+            .set_resolution(config.sensor.as_ref().map(|s| s.quantum()));
         self.settings = settings;
         self.defaults = false;
         Ok(())

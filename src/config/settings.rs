@@ -228,6 +228,28 @@ impl Settings {
         bouc_wen(&self.compensator) || bouc_wen(&self.observer)
     }
 
+    /// The ranges' scaling (input and output units ↔ normalised), as [`Settings::build`]
+    /// takes it.
+    fn scaling(&self) -> Result<Scaling, Refusal> {
+        Scaling::new(
+            self.ranges.input_min,
+            self.ranges.input_max,
+            self.ranges.output_min,
+            self.ranges.output_max,
+        )
+        .map_err(|e| model_refusal(Field::Compensator, e.into()))
+    }
+
+    /// The position sensor's resolution on `hw`: one ADC code, Q2.30 normalised displacement
+    /// ([`crate::control::sensor::Sensor::quantum`]); `None` without a sensor (or with
+    /// settings [`Settings::build`] refuses). Builds the sensor alone, not the models.
+    pub fn sensor_quantum(&self, hw: &Hardware) -> Option<i32> {
+        let sensor = self.sensor.as_ref()?;
+        let ranges = self.scaling().ok()?;
+        let built = sensor.build(hw.sensor_adc_bits, &ranges, self.observer.is_some());
+        built.ok().map(|s| s.quantum())
+    }
+
     /// Validates everything on `hw` and builds the tick's fixed-point configuration. Nothing
     /// is partly accepted: the first refusal is returned, naming its field.
     ///
@@ -242,13 +264,7 @@ impl Settings {
     /// ```
     pub fn build(&self, hw: &Hardware) -> Result<ControlConfig, Refusal> {
         self.check_finite()?;
-        let ranges = Scaling::new(
-            self.ranges.input_min,
-            self.ranges.input_max,
-            self.ranges.output_min,
-            self.ranges.output_max,
-        )
-        .map_err(|e| model_refusal(Field::Compensator, e.into()))?;
+        let ranges = self.scaling()?;
         // The output map, for the models that take one (Bouc–Wen's), before either is built.
         let output_map = match &self.output_map {
             Some(m) => {

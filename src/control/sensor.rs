@@ -110,6 +110,24 @@ fn mul_shift(a: i32, b: i32, shift: u32) -> i32 {
 }
 
 impl Sensor {
+    /// One ADC code's displacement, Q2.30 normalised (`|gain| / 2^bits`, at least 1): the
+    /// sensor's resolution, below which an error is not measured.
+    ///
+    /// ```
+    /// use twinstack::control::sensor::SensorSettings;
+    /// use twinstack::Scaling;
+    /// let ranges = Scaling::new(0.0, 140.0, 0.0, 70.0).unwrap();
+    /// let cal = SensorSettings { displacement_at_zero: 0.0, displacement_at_full_scale: 70.0, drift_limit: None };
+    /// // 12 bits over the whole range (2 in normalised units): 2 / 2^12 = 2^-11, Q2.30 2^19.
+    /// assert_eq!(cal.build(Some(12), &ranges, false).unwrap().quantum(), 1 << 19);
+    /// ```
+    pub fn quantum(&self) -> i32 {
+        // Q4.28 → Q2.30 is ×4; |gain| < 8, so the product fits 64 bits and the shifted
+        // result 32 (for bits ≥ 3; fewer saturate).
+        let q = ((self.gain as i64).unsigned_abs() << 2) >> self.adc_bits.min(63);
+        q.clamp(1, i32::MAX as u64) as i32
+    }
+
     /// ADC code → normalised displacement (Q2.30, saturated): `offset + gain · code / 2^bits`.
     /// The code is masked to `adc_bits` and read as a Q1.31 fraction in [0, 1); the Q4.28
     /// product and sum fit 32 bits, and the final ×4 to Q2.30 saturates.

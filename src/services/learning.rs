@@ -225,9 +225,9 @@ pub struct LearnTick {
     periods: u32,
     /// Ticks whose error could not be measured (ADC error or no sensor) while storing.
     missing: u32,
-    /// Restarts of the period (a motion started, or the period set; wrapping): the task's cue
-    /// that the errors before are another motion's.
-    restarts: u32,
+    /// [`LearnTick::periods`] at the last restart of the period (a motion started, or the
+    /// period set): the task's cue that the errors before are another motion's.
+    restarted_at: u32,
     /// The two tables, Q2.30 normalised drive: `tables[active]` plays.
     tables: [[i32; MAX_BINS]; 2],
     /// The two error buffers, Q2.30: the tick fills `errors[fill]`.
@@ -262,7 +262,7 @@ impl LearnTick {
             targets: ReadingInstant::at(0),
             periods: 0,
             missing: 0,
-            restarts: 0,
+            restarted_at: 0,
         }
     }
 
@@ -350,16 +350,29 @@ impl LearnTick {
     /// on the trigger input's edge), so that a
     /// table is aligned with the motion's start and plays again on the same motion started
     /// again. The error buffer being filled is abandoned (its period is not counted), and the
-    /// task's divergence guard starts again from the next period ([`LearnTick::restarts`]):
-    /// the errors before were another motion's (a stage at rest before the waveform).
+    /// task's divergence guard starts again from the next period ([`LearnTick::restarted_at`]):
+    /// the errors before were another motion's (a stage at rest before the waveform), so a
+    /// period completed before the restart that the task has not taken yet is dropped
+    /// ([`LearnTick::completed_before_restart`]). O(1): two stores, for it runs under the
+    /// tick's lock.
     pub fn restart(&mut self) {
         self.bin = 0;
-        self.restarts = self.restarts.wrapping_add(1);
+        self.restarted_at = self.periods;
     }
 
-    /// Restarts of the period since start-up (wrapping; [`LearnTick::restart`]).
-    pub fn restarts(&self) -> u32 {
-        self.restarts
+    /// [`LearnTick::periods`] at the last restart: it moves when a motion starts after a
+    /// period has completed. Two restarts with no period completed between them leave it
+    /// where it was, and the task has taken no period between them to forget. (After 2³²
+    /// periods without a restart the count comes round to it again: the task then passes
+    /// over one period, and a restart exactly there is not seen.)
+    pub fn restarted_at(&self) -> u32 {
+        self.restarted_at
+    }
+
+    /// Whether the last completed period (the one [`LearnTick::copy_errors`] copies) ran
+    /// before the last restart: another motion's errors, not to be learned from.
+    pub fn completed_before_restart(&self) -> bool {
+        self.periods == self.restarted_at
     }
 
     /// Period, ticks.
@@ -443,8 +456,8 @@ pub struct LearnTask {
     work: [i32; MAX_BINS],
     /// The tick's period count at the last period taken.
     seen: u32,
-    /// The tick's restart count ([`LearnTick::restarts`]) the guard last started from.
-    restarts_seen: u32,
+    /// The tick's [`LearnTick::restarted_at`] the guard last started from.
+    restart_seen: u32,
     /// Periods learned from (updates posted).
     updates: u32,
     /// Periods missed (the tick completed another before the copy ended).
@@ -453,6 +466,12 @@ pub struct LearnTask {
     /// The lowest period RMS since the learning last started (`i32::MAX`: none yet), for the
     /// divergence guard.
     best: i32,
+    /// The first period's RMS since the learning last started: what the stage did before the
+    /// learning had acted, the level the guard's stop returns it to.
+    start: i32,
+    /// The guard's allowance over twice the best, Q2.30: [`DIVERGENCE_FLOOR`] or the
+    /// sensor's resolution ([`LearnTask::set_resolution`]), whichever is larger.
+    floor: i32,
     /// Whether the last period tripped the divergence guard.
     diverged: bool,
     /// Times the divergence guard stopped the learning.
@@ -461,22 +480,30 @@ pub struct LearnTask {
 
 /// The divergence guard: the learning is switched off (the feedforward alone plays; the
 /// table is kept, as [`LearnState::Off`] keeps it) when a period's RMS error exceeds this many
-/// times the lowest since it started, plus [`DIVERGENCE_FLOOR`].
+/// times the lowest since it started, plus [`DIVERGENCE_FLOOR`], **and** the first period's
+/// since it started (the error before the learning had acted).
 ///
 /// A learning that converges brings its error down period after period, to the sensor's
 /// noise; one that diverges (a robustness filter too wide for the stage: a resonance moved, a
 /// shaping notch off the resonance, a gain too high) grows it geometrically, and the ringing
 /// it has excited keeps growing for a few periods whatever table plays next (freezing the
 /// table measured 5× the best error on the simulated stage). Off, the stage is back to the
-/// feedforward alone: never worse than without learning. A motion started (a waveform or a
+/// feedforward alone: never worse than without learning. A learning still below its first
+/// period's error is not stopped however far it has risen from its best: off would take the
+/// stage back to that first error, worse than it is (a stage held at rest in open loop, its
+/// static error learned down to the sensor's noise, creeps back up to several times that:
+/// far over twice the best, far below where it started). A motion started (a waveform or a
 /// stream: [`LearnTick::restart`]) starts the guard again, so a learning switched on over a
 /// stage at rest is not stopped when the motion begins; a motion changed within a running
 /// source (the stream's setpoints) trips it: configure the learning again (or recall a
 /// table) to relearn.
 pub const DIVERGENCE_FACTOR: i32 = 2;
 
-/// The guard's allowance over [`DIVERGENCE_FACTOR`] × the best, Q2.30 normalised
-/// displacement (2⁻¹⁶ of full scale): fluctuations at the noise floor do not trip it.
+/// The guard's least allowance over [`DIVERGENCE_FACTOR`] × the best, Q2.30 normalised
+/// displacement (2⁻¹⁶ of full scale); a coarser sensor's resolution raises it to one ADC
+/// code ([`LearnTask::set_resolution`]): a period's RMS error at the resolution takes a few
+/// values (most errors 0, some one code) that differ by more than twice from period to
+/// period, and an error within one code in every bin has an RMS within it.
 pub const DIVERGENCE_FLOOR: i32 = 1 << 14;
 
 impl Default for LearnTask {
@@ -499,11 +526,13 @@ impl LearnTask {
             table: [0; MAX_BINS],
             work: [0; MAX_BINS],
             seen: 0,
-            restarts_seen: 0,
+            restart_seen: 0,
             updates: 0,
             missed: 0,
             last: PeriodError { max: 0, rms: 0 },
             best: i32::MAX,
+            start: i32::MAX,
+            floor: DIVERGENCE_FLOOR,
             diverged: false,
             stops: 0,
         }
@@ -570,9 +599,17 @@ impl LearnTask {
         self.stops
     }
 
+    /// Sets the sensor's resolution (one ADC code, Q2.30 normalised displacement:
+    /// [`crate::control::sensor::Sensor::quantum`]; `None`: no sensor): the divergence
+    /// guard's allowance is at least that ([`DIVERGENCE_FLOOR`]).
+    pub fn set_resolution(&mut self, quantum: Option<i32>) {
+        self.floor = quantum.unwrap_or(0).max(DIVERGENCE_FLOOR);
+    }
+
     /// Forgets the best period (the learning starts again: the guard measures from there).
     pub fn restart_guard(&mut self) {
         self.best = i32::MAX;
+        self.start = i32::MAX;
     }
 
     /// Takes the error of a completed period (in `errors`, `period` bins: its max and RMS
@@ -601,17 +638,19 @@ impl LearnTask {
             return;
         }
         let rms = self.last.rms;
+        if self.start == i32::MAX {
+            self.start = rms;
+        }
+        let grown = self
+            .best
+            .saturating_mul(DIVERGENCE_FACTOR)
+            .saturating_add(self.floor);
         if rms < self.best {
             self.best = rms;
-        } else if rms
-            > self
-                .best
-                .saturating_mul(DIVERGENCE_FACTOR)
-                .saturating_add(DIVERGENCE_FLOOR)
-        {
+        } else if rms > grown && rms > self.start {
             self.diverged = true;
             self.stops = self.stops.wrapping_add(1);
-            self.best = i32::MAX;
+            self.restart_guard();
             return;
         }
         // e(n + d + λ) onto bin n.
@@ -807,22 +846,25 @@ where
     H: LearnHost,
     L: rtic_core::Mutex<T = H>,
 {
-    let (periods, state, period, posted, restarts) = control.lock(|c| {
+    let (periods, state, period, posted, restarted_at) = control.lock(|c| {
         let l = c.learning();
         (
             l.periods(),
             l.state(),
             l.period(),
             l.is_posted(),
-            l.restarts(),
+            l.restarted_at(),
         )
     });
     // Not learning, or a motion started since: the guard measures from the next period.
-    if state != LearnState::Learning || restarts != task.restarts_seen {
+    if state != LearnState::Learning || restarted_at != task.restart_seen {
         task.restart_guard();
-        task.restarts_seen = restarts;
+        task.restart_seen = restarted_at;
     }
-    if periods == task.seen || state == LearnState::Off || task.config.is_none() {
+    // A period not yet taken when the motion started (the task ran late) is the previous
+    // motion's: neither the guard's nor the law's.
+    let stale = periods == restarted_at;
+    if periods == task.seen || stale || state == LearnState::Off || task.config.is_none() {
         task.seen = periods;
         return Service::Idle;
     }
@@ -834,13 +876,21 @@ where
         control.lock(|c| c.learning().copy_errors(offset, out));
         offset = end;
     }
-    let now = control.lock(|c| c.learning().periods());
+    let (now, restarted) = control.lock(|c| {
+        let l = c.learning();
+        (l.periods(), l.restarted_at())
+    });
     if now != periods {
         task.seen = now;
         task.missed = task.missed.wrapping_add(1);
         return Service::Missed;
     }
     task.seen = periods;
+    // A motion started during the copy (it marks `periods`, which the copied period is not
+    // stale against): the period copied was the previous motion's.
+    if restarted != restarted_at {
+        return Service::Idle;
+    }
     // A table posted but not yet swapped in: the period just completed played the one before
     // it, as the law expects (see the module doc); a second post would only overwrite it.
     let learn = state == LearnState::Learning && !posted;
@@ -1065,13 +1115,21 @@ mod tests {
         for e in [1 << 24, 1 << 22, 1 << 20, (1 << 21) + DIVERGENCE_FLOOR] {
             assert!(!period(&mut t, e), "{e}");
         }
+        // Far past twice the best, but below the first period's error: off would be worse.
+        for e in [1 << 22, 1 << 23, 1 << 24] {
+            assert!(!period(&mut t, e), "{e}");
+        }
         let updates = t.updates();
         let table = *t.table();
-        // Past twice the best: stopped, the table as it was, counted.
-        assert!(period(&mut t, (1 << 21) + DIVERGENCE_FLOOR + 1));
+        // Past twice the best and the first period's: stopped, the table as it was, counted.
+        assert!(period(&mut t, (1 << 24) + 1));
         assert_eq!((t.updates(), t.guard_stops()), (updates, 1));
         assert_eq!(*t.table(), table);
-        // The guard starts again from the next period (as after a restart).
+        // The guard starts again from the next period (as after a restart): this one is its
+        // first, and a learning that starts at its floor is stopped past twice its best.
+        assert!(!period(&mut t, 1 << 20));
+        assert!(!period(&mut t, (1 << 21) + DIVERGENCE_FLOOR));
+        assert!(period(&mut t, (1 << 21) + DIVERGENCE_FLOOR + 1));
         assert!(!period(&mut t, 1 << 24));
         // Not learning (frozen): measured, never stopped.
         t.work[..40].fill(i32::MAX);
@@ -1079,8 +1137,62 @@ mod tests {
         assert!(!t.diverged());
     }
 
+    /// A stage at rest under a 12-bit sensor: most errors 0, some one code (2^19 in Q2.30).
+    /// From period to period the RMS takes values more than twice apart; at the sensor's
+    /// resolution that is not a divergence, and the guard, given it, does not take it for one.
+    #[test]
+    fn errors_at_the_sensor_s_resolution_do_not_trip_the_guard() {
+        let code = 1 << 19;
+        // Codes in 40 bins: RMS = code · √(n / 40).
+        let rest = |ones: usize| {
+            let mut e = [0i32; 40];
+            e[..ones].fill(code);
+            e
+        };
+        let run = |resolution: Option<i32>| {
+            let mut t = LearnTask::new();
+            t.set_config(LearnSettings::for_period(40).build(50_000.0).unwrap());
+            t.set_resolution(resolution);
+            [12, 3, 12, 40].iter().any(|&ones| {
+                t.work[..40].copy_from_slice(&rest(ones));
+                t.update(40, true);
+                t.diverged()
+            })
+        };
+        assert!(run(None), "without the resolution the noise trips it");
+        assert!(!run(Some(code)));
+        // A growth past one code above twice the best still does.
+        let mut t = LearnTask::new();
+        t.set_config(LearnSettings::for_period(40).build(50_000.0).unwrap());
+        t.set_resolution(Some(code));
+        for (e, tripped) in [(code, false), (code / 2, false), (2 * code + 1, true)] {
+            t.work[..40].fill(e);
+            t.update(40, true);
+            assert_eq!(t.diverged(), tripped, "{e}");
+        }
+    }
+
     /// The tick's half as its own host, behind a lock that just lends it (one thread).
     struct Host(LearnTick);
+
+    /// A host whose tick restarts the period (a motion starts) just before the task's
+    /// `restart_on`-th lock: what the tick's interrupt may do between any two of them.
+    struct Racing {
+        host: Host,
+        locks: usize,
+        restart_on: usize,
+    }
+
+    impl rtic_core::Mutex for Racing {
+        type T = Host;
+        fn lock<R>(&mut self, f: impl FnOnce(&mut Host) -> R) -> R {
+            self.locks += 1;
+            if self.locks == self.restart_on {
+                self.host.0.restart();
+            }
+            f(&mut self.host)
+        }
+    }
 
     impl LearnHost for Host {
         fn learning(&self) -> &LearnTick {
@@ -1139,6 +1251,63 @@ mod tests {
         let changed = periods(&mut host, &mut task, 1 << 26, 1);
         assert!(matches!(changed, Service::Stopped(_)), "{changed:?}");
         assert_eq!(host.0.state(), LearnState::Off);
+    }
+
+    /// The task runs late: a period at rest completes, the motion starts before the task has
+    /// taken it, and the task takes it only then. Whichever of the task's locks the start
+    /// falls before, the period at rest is neither learned from nor made the guard's best, so
+    /// the motion's far larger errors do not trip the guard.
+    #[test]
+    fn a_period_completed_before_the_motion_and_taken_after_it_is_not_learned_from() {
+        let p: usize = 40;
+        // The task's locks for one period: the state, the chunks' copies, the check.
+        let locks = 1 + p.div_ceil(CHUNK) + 1;
+        for restart_on in 1..=locks + 1 {
+            let mut racing = Racing {
+                host: Host(LearnTick::new()),
+                locks: 0,
+                restart_on: usize::MAX,
+            };
+            let mut task = LearnTask::new();
+            configure(
+                &mut task,
+                LearnSettings::for_period(p as u16).build(50_000.0).unwrap(),
+                &mut racing.host,
+            );
+            racing.host.0.set_state(LearnState::Learning, 0);
+            // At rest, taken in time: the sensor's noise.
+            for _ in 0..2 * p {
+                if racing.host.0.observe(1 << 10, Some(0)) {
+                    service(&mut task, &mut racing.host);
+                }
+            }
+            // One more period at rest that the task does not take in time.
+            for _ in 0..p {
+                racing.host.0.observe(1 << 10, Some(0));
+            }
+            let updates = task.updates();
+            // The motion starts before, or while, the task takes it.
+            racing.locks = 0;
+            racing.restart_on = restart_on;
+            let late = service(&mut task, &mut racing);
+            if restart_on <= locks {
+                assert!(matches!(late, Service::Idle), "{restart_on}: {late:?}");
+                assert_eq!(task.updates(), updates, "{restart_on}");
+            } else {
+                // The motion started after the task's last lock: that period was the rest's.
+                racing.host.0.restart();
+            }
+            racing.restart_on = usize::MAX;
+            // The motion: errors 2^12 times larger, the same period after period.
+            for _ in 0..3 * p {
+                if racing.host.0.observe(1 << 22, Some(0)) {
+                    let s = service(&mut task, &mut racing);
+                    assert!(matches!(s, Service::Took(_)), "{restart_on}: {s:?}");
+                }
+            }
+            assert_eq!(racing.host.0.state(), LearnState::Learning, "{restart_on}");
+            assert_eq!(task.guard_stops(), 0, "{restart_on}");
+        }
     }
 
     #[test]
