@@ -381,3 +381,60 @@ fn a_watchdog_drill_refuses_source_starts_until_the_reset() {
         Response::Ack { .. }
     ));
 }
+
+/// A script's order (as the Python package's tests and a lab's scripts do it): open loop, the
+/// learning configured and switched on over the stage at rest, then the waveform it is for,
+/// started after however long the link took. At rest the 12-bit sensor reads errors of zero
+/// or one code, and the learning goes on through every wait (its guard does not take that
+/// noise for a divergence); once the motion starts it learns it.
+#[test]
+fn a_learning_switched_on_at_rest_is_still_on_when_its_motion_starts() {
+    use twinstack::services::learning::{LearnSettings, LearnState};
+    let period = 200u16;
+    for rest_periods in [0u64, 3, 6, 9, 12, 20, 40] {
+        let mut dev = SimDevice::new(SimDeviceConfig::paper()).unwrap();
+        for request in [
+            Request::Mode(Mode::OpenLoop),
+            Request::Learn(LearnRequest::Configure(LearnSettings::for_period(period))),
+            Request::Learn(LearnRequest::Reset),
+            Request::Learn(LearnRequest::State(LearnState::Learning)),
+        ] {
+            assert!(
+                matches!(dev.handle(&request), Response::Ack { .. }),
+                "{request:?}"
+            );
+        }
+        for _ in 0..rest_periods * u64::from(period) + 37 {
+            dev.tick();
+        }
+        let at_rest = dev.handler().learning().updates();
+        assert!(
+            matches!(
+                dev.handle(&Request::Waveform(Waveform {
+                    shape: WaveShape::Sine,
+                    offset: 0,
+                    amplitude: 16_384,
+                    frequency_mhz: 750_000,
+                    decay: None,
+                })),
+                Response::Ack { .. }
+            ),
+            "{rest_periods}"
+        );
+        for _ in 0..50 * u64::from(period) {
+            dev.tick();
+        }
+        let task = dev.handler().learning();
+        assert_eq!(
+            task.guard_stops(),
+            0,
+            "after {rest_periods} periods at rest"
+        );
+        assert_eq!(
+            dev.control().learning().state(),
+            LearnState::Learning,
+            "{rest_periods}"
+        );
+        assert!(task.updates() >= at_rest + 49, "{rest_periods}");
+    }
+}
