@@ -109,8 +109,9 @@ impl PreparedLimits {
         }
         // Exactly: with `u = n·a + r` (0 ≤ r < a) braking covers `(n + 1)(n·a/2 + r)`. The
         // largest whole `n` with `(n + 1)·n·a/2 ≤ d` is the square root's: `(n + 1)·n/2 ≤
-        // ⌊d/a⌋ ⇔ 2n + 1 ≤ ⌊√(8⌊d/a⌋ + 1)⌋`, the quotient exact ([`Divisor`]) and the root exact ([`isqrt`])
-        // (`8⌊d/a⌋ < 4·10¹⁸` below the braking distance from full speed: no overflow). Then
+        // ⌊d/a⌋ ⇔ 2n + 1 ≤ ⌊√(8⌊d/a⌋ + 1)⌋`, the quotient exact ([`Divisor`]) and the root
+        // exact ([`isqrt`]) (`8⌊d/a⌋ < 4·10¹⁸` below the braking distance from full speed:
+        // no overflow). Then
         // the largest `r` that still fits, `r = (2d − (n + 1)·n·a) / (2(n + 1))`: `d` short of
         // the braking distance from full speed gives `n ≤ v/a`, so the remainder (less than
         // `2(n + 1)·a ≤ 2(v + a) ≤ 4·10⁹`) and the divisor fit 32 bits: one hardware `UDIV`,
