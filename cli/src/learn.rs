@@ -272,8 +272,9 @@ pub struct LearnReport {
     pub updates: u32,
     /// Periods the task missed.
     pub missed: u32,
-    /// Times the divergence guard stopped the learning (`twinstack::services::learning::DIVERGENCE_FACTOR`:
-    /// switched off, the feedforward alone plays).
+    /// Times the divergence guard stopped the learning
+    /// (`twinstack::services::learning::DIVERGENCE_FACTOR`: switched off, the feedforward alone
+    /// plays).
     pub guard_stops: u32,
     /// Figures written.
     pub figures: Vec<PathBuf>,
@@ -329,6 +330,9 @@ impl Rig {
             .build(options.rate)
             .map_err(|e| anyhow!("learning settings refused: {e}"))?;
         let mut task = LearnTask::new();
+        // The guard's allowance at the sensor's resolution, as the board's command handler
+        // sets it.
+        task.set_resolution(config.sensor.as_ref().map(|s| s.quantum()));
         configure(&mut task, learn, &mut Exclusive(&mut control));
         Ok(Self {
             board: board(options.rate, options.sensor_noise_um)?,
@@ -643,7 +647,7 @@ pub fn print(report: &LearnReport, out: &mut impl std::io::Write) -> std::io::Re
         report.updates,
         report.missed,
         if report.guard_stops > 0 {
-            "; the learning diverged (its error grew past twice its best) and its guard switched it off: the feedforward alone plays"
+            "; the learning diverged (its error grew past twice its best and past where it started) and its guard switched it off: the feedforward alone plays"
         } else {
             ""
         }
