@@ -36,37 +36,42 @@ static RING_TAKEN: AtomicBool = AtomicBool::new(false);
 
 /// The snapshot ring in CCM RAM, empty: `Some` the first time, `None` after.
 pub fn snapshot_ring() -> Option<&'static mut SnapshotRing> {
-    if RING_TAKEN.swap(true, Ordering::AcqRel) {
-        return None;
-    }
-    // SAFETY: `RING_TAKEN` lets exactly one caller through, so this is the only reference to
-    // the static ever made; it is initialised (an empty ring) before it is handed out.
-    let slot = unsafe { &mut *core::ptr::addr_of_mut!(SNAPSHOT_RING) };
+    // SAFETY: `SNAPSHOT_RING` is reached only here; it is initialised (an empty ring) before
+    // it is handed out.
+    let slot = unsafe { take_once(&RING_TAKEN, core::ptr::addr_of_mut!(SNAPSHOT_RING)) }?;
     Some(slot.write(SnapshotRing::new()))
 }
 
 /// The setpoint queue in CCM RAM, empty: `Some` the first time, `None` after.
 pub fn setpoint_queue() -> Option<&'static mut SetpointQueue> {
-    if QUEUE_TAKEN.swap(true, Ordering::AcqRel) {
-        return None;
-    }
-    // SAFETY: `QUEUE_TAKEN` lets exactly one caller through, so this is the only reference
-    // to the static ever made; it is initialised (an empty queue) before it is handed out.
-    let slot = unsafe { &mut *core::ptr::addr_of_mut!(SETPOINT_QUEUE) };
+    // SAFETY: `SETPOINT_QUEUE` is reached only here; it is initialised (an empty queue)
+    // before it is handed out.
+    let slot = unsafe { take_once(&QUEUE_TAKEN, core::ptr::addr_of_mut!(SETPOINT_QUEUE)) }?;
     Some(slot.write(SetpointQueue::new()))
 }
 
 /// The CCM half of the capture buffer, zeroed: `Some` the first time, `None` after.
 pub fn capture_half() -> Option<&'static mut [i16; HALF_SLOTS]> {
-    if TAKEN.swap(true, Ordering::AcqRel) {
-        return None;
-    }
-    // SAFETY: `TAKEN` lets exactly one caller through, so this is the only reference to the
-    // static ever made; every byte is written before it is read as `[i16; _]` (all bit
-    // patterns are valid `i16`s).
-    let buffer = unsafe { &mut *core::ptr::addr_of_mut!(CAPTURE_HALF) };
+    // SAFETY: `CAPTURE_HALF` is reached only here.
+    let buffer = unsafe { take_once(&TAKEN, core::ptr::addr_of_mut!(CAPTURE_HALF)) }?;
+    // SAFETY: every byte is written before it is read as `[i16; _]` (all bit patterns are
+    // valid `i16`s).
     unsafe {
         core::ptr::write_bytes(buffer.as_mut_ptr(), 0, 1);
         Some(buffer.assume_init_mut())
     }
+}
+
+/// The static at `slot`, handed out once: `Some` the first time `taken` lets a caller through,
+/// `None` after (the CCM statics here, and the emulator's SRAM stand-ins for them).
+///
+/// # Safety
+/// `slot` points to a static that nothing reaches but through this call with this `taken`.
+pub(super) unsafe fn take_once<T>(taken: &AtomicBool, slot: *mut T) -> Option<&'static mut T> {
+    if taken.swap(true, Ordering::AcqRel) {
+        return None;
+    }
+    // SAFETY: `taken` lets exactly one caller through, so this is the only reference to the
+    // static ever made (the caller's promise).
+    Some(unsafe { &mut *slot })
 }

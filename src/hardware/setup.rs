@@ -378,7 +378,7 @@ fn snapshot_ring() -> Option<&'static mut SnapshotRing> {
     static TAKEN: core::sync::atomic::AtomicBool = core::sync::atomic::AtomicBool::new(false);
     static mut RING: SnapshotRing = heapless::spsc::Queue::new();
     // SAFETY: `RING` is reached only here.
-    unsafe { take_once(&TAKEN, core::ptr::addr_of_mut!(RING)) }
+    unsafe { super::ccm::take_once(&TAKEN, core::ptr::addr_of_mut!(RING)) }
 }
 
 /// The setpoint queue: in SRAM in the emulator (QEMU models no CCM); `Some` the first time.
@@ -387,26 +387,7 @@ fn setpoint_queue() -> Option<&'static mut SetpointQueue> {
     static TAKEN: core::sync::atomic::AtomicBool = core::sync::atomic::AtomicBool::new(false);
     static mut QUEUE: SetpointQueue = heapless::spsc::Queue::new();
     // SAFETY: `QUEUE` is reached only here.
-    unsafe { take_once(&TAKEN, core::ptr::addr_of_mut!(QUEUE)) }
-}
-
-/// The static at `slot`, handed out once: `Some` the first time `taken` lets a caller through,
-/// `None` after.
-///
-/// # Safety
-/// `slot` points to an initialised static that nothing reaches but through this call with
-/// this `taken`.
-#[cfg(feature = "emulator")]
-unsafe fn take_once<T>(
-    taken: &core::sync::atomic::AtomicBool,
-    slot: *mut T,
-) -> Option<&'static mut T> {
-    if taken.swap(true, core::sync::atomic::Ordering::AcqRel) {
-        return None;
-    }
-    // SAFETY: `taken` lets exactly one caller through, so this is the only reference to the
-    // static ever made (the caller's promise).
-    Some(unsafe { &mut *slot })
+    unsafe { super::ccm::take_once(&TAKEN, core::ptr::addr_of_mut!(QUEUE)) }
 }
 
 /// The PLL's settings, read back, in the start-up log (a board).
