@@ -352,9 +352,9 @@ impl LearnTick {
     /// again. The error buffer being filled is abandoned (its period is not counted), and the
     /// task's divergence guard starts again from the next period ([`LearnTick::restarted_at`]):
     /// the errors before were another motion's (a stage at rest before the waveform), so a
-    /// period completed before the restart that the task has not taken yet is dropped
-    /// ([`LearnTick::completed_before_restart`]). O(1): two stores, for it runs under the
-    /// tick's lock.
+    /// period completed before the restart that the task has not taken yet is dropped (its
+    /// [`LearnTick::periods`] still equals [`LearnTick::restarted_at`]). O(1): two stores,
+    /// for it runs under the tick's lock.
     pub fn restart(&mut self) {
         self.bin = 0;
         self.restarted_at = self.periods;
@@ -367,12 +367,6 @@ impl LearnTick {
     /// over one period, and a restart exactly there is not seen.)
     pub fn restarted_at(&self) -> u32 {
         self.restarted_at
-    }
-
-    /// Whether the last completed period (the one [`LearnTick::copy_errors`] copies) ran
-    /// before the last restart: another motion's errors, not to be learned from.
-    pub fn completed_before_restart(&self) -> bool {
-        self.periods == self.restarted_at
     }
 
     /// Period, ticks.
