@@ -63,9 +63,14 @@ pub const EXCITATION_HZ: f64 = EXCITATION.hz;
 pub const FIT_UNTIL_S: f64 = EXCITATION_S - 1.0 / EXCITATION_HZ;
 
 /// The excitation drive at `sample_rate_hz` for a stage whose drive range is `0 … drive_max`
-/// volts: [`EXCITATION`] over the whole range, from 0 V. Returns `(t, u)`.
-pub fn excitation_drive(sample_rate_hz: f64, drive_max: f64) -> (Vec<f64>, Vec<f64>) {
-    let x = EXCITATION.sampled(sample_rate_hz);
+/// volts: `excitation` ([`EXCITATION`] unless the user names the fastest motion) over the
+/// whole range, from 0 V. Returns `(t, u)`.
+pub fn excitation_drive(
+    excitation: &Excitation,
+    sample_rate_hz: f64,
+    drive_max: f64,
+) -> (Vec<f64>, Vec<f64>) {
+    let x = excitation.sampled(sample_rate_hz);
     let t = (0..x.len()).map(|k| k as f64 / sample_rate_hz).collect();
     let u = x.iter().map(|v| 0.5 * drive_max * (1.0 + v)).collect();
     (t, u)
@@ -77,11 +82,16 @@ pub fn run_open_loop(stage: &mut LabStage, u: &[f64]) -> Vec<f64> {
     u.iter().map(|&v| stage.step(v)).collect()
 }
 
-/// The identification record: the [`excitation_drive`] played on `stage` from rest, at the
-/// stage's sample rate.
+/// The identification record: the [`excitation_drive`] of [`EXCITATION`] played on `stage`
+/// from rest, at the stage's sample rate.
 pub fn excite(stage: &mut LabStage) -> MeasuredData {
+    excite_with(stage, &EXCITATION)
+}
+
+/// [`excite`] with `excitation`.
+pub fn excite_with(stage: &mut LabStage, excitation: &Excitation) -> MeasuredData {
     let rate = 1.0 / stage.sample_period_s();
-    let (t, u) = excitation_drive(rate, stage.config().drive_max_volts);
+    let (t, u) = excitation_drive(excitation, rate, stage.config().drive_max_volts);
     let x = run_open_loop(stage, &u);
     MeasuredData {
         path: PathBuf::from("lab-stage-excitation"),
@@ -314,6 +324,13 @@ pub struct TrackingTable {
     pub rows: Vec<TrackingRow>,
     /// The resonance the preview inverts, as measured on the stage (`None`: no preview).
     pub resonance: Option<MeasuredResonance>,
+    /// The excitation's sweep top, Hz, where the user named the fastest motion (`None`: the
+    /// default excitation).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub fastest_hz: Option<f64>,
+    /// The excitation's length, seconds.
+    #[serde(skip)]
+    pub excitation_s: f64,
 }
 
 /// The stage's resonance as [`measure_resonance`] fitted it.
@@ -339,11 +356,15 @@ impl TrackingTable {
     pub fn print(&self, out: &mut impl std::io::Write) -> std::io::Result<()> {
         writeln!(
             out,
-            "Lab stage (seed {}, {} Hz): identified from {} s of {} Hz, tracked open loop over {:.2} … {:.2} µm",
+            "Lab stage (seed {}, {} Hz): identified from {} s of {} Hz{}, tracked open loop over {:.2} … {:.2} µm",
             self.seed,
             self.sample_rate_hz,
-            EXCITATION_S,
+            self.excitation_s,
             EXCITATION_HZ,
+            match self.fastest_hz {
+                Some(hz) => format!(" with a sweep up to {hz} Hz"),
+                None => String::new(),
+            },
             self.trajectory_range_um.0,
             self.trajectory_range_um.1
         )?;
@@ -553,7 +574,7 @@ pub fn evaluate_variants(
         let tables: Vec<Result<TrackingTable, LabStageError>> = std::thread::scope(|s| {
             let running: Vec<_> = configs
                 .iter()
-                .map(|c| s.spawn(move || evaluate_all(c, methods, &[], board, None)))
+                .map(|c| s.spawn(move || evaluate_all(c, methods, &[], board, None, &EXCITATION)))
                 .collect();
             running
                 .into_iter()
@@ -712,13 +733,15 @@ pub fn evaluate_methods(
     config: &LabStageConfig,
     methods: &[Method],
 ) -> Result<TrackingTable, LabStageError> {
-    evaluate_all(config, methods, &[], None, None)
+    evaluate_all(config, methods, &[], None, None, &EXCITATION)
 }
 
 /// [`evaluate_methods`] with, after the three trajectories, a triangle at each of
 /// `triangles_hz` over the same span ([`triangle`]): one calibration, tracked from slow
 /// motion (creep) to fast (the stage's dynamics). A frequency [`triangle`] cannot sample at the
-/// stage's rate is refused, naming it.
+/// stage's rate is refused, naming it. The stage is excited with `excitation` (a
+/// frequency in it the stage's rate samples with fewer than [`MIN_SAMPLES_PER_CYCLE`] a
+/// cycle is refused too).
 ///
 /// With `board`, each model is fitted only as the board runs it at that control rate: `auto`
 /// picks among what the board's tick budget admits (sizing a model down where it allows, as
@@ -734,8 +757,19 @@ pub fn evaluate_methods_with_triangles(
     triangles_hz: &[f64],
     board: Option<&BoardRate>,
     preview: bool,
+    excitation: &Excitation,
 ) -> anyhow::Result<TrackingTable> {
     let rate = 1.0 / config.sample_period_s;
+    if let Err((field, rule, value)) = excitation.check() {
+        anyhow::bail!("the excitation's {field} = {value}: must be {rule}");
+    }
+    if excitation.fastest_hz() * MIN_SAMPLES_PER_CYCLE > rate {
+        anyhow::bail!(
+            "the excitation's fastest motion, {} Hz, is sampled with fewer than {MIN_SAMPLES_PER_CYCLE} samples a cycle at {rate} Hz: at most {} Hz",
+            excitation.fastest_hz(),
+            rate / MIN_SAMPLES_PER_CYCLE
+        );
+    }
     for &hz in triangles_hz {
         if !triangle_fits(hz, rate) {
             anyhow::bail!(
@@ -765,6 +799,7 @@ pub fn evaluate_methods_with_triangles(
         triangles_hz,
         board,
         preview.as_ref(),
+        excitation,
     )?)
 }
 
@@ -777,9 +812,10 @@ fn evaluate_all(
     triangles_hz: &[f64],
     board: Option<&BoardRate>,
     preview: Option<&(ResonancePreview, MeasuredResonance)>,
+    excitation: &Excitation,
 ) -> Result<TrackingTable, LabStageError> {
     let mut stage = LabStage::new(config)?;
-    let data = excite(&mut stage);
+    let data = excite_with(&mut stage, excitation);
     let x = data.x.as_deref().unwrap_or_default();
     let (lo, hi) = x
         .iter()
@@ -803,7 +839,7 @@ fn evaluate_all(
             Method::One(o) => Some(o.fit_until_s),
             Method::Auto(c) => c.first().map(|o| o.fit_until_s),
         })
-        .unwrap_or(FIT_UNTIL_S);
+        .unwrap_or(excitation.duration_s() - 1.0 / excitation.hz);
     let linear_map = LinearMap::fit(&data, fit_until);
     let mut rows = vec![match linear_map {
         Some(map) => TrackingRow {
@@ -898,6 +934,8 @@ fn evaluate_all(
         linear_map,
         rows,
         resonance: preview.map(|p| p.1),
+        fastest_hz: (excitation.sweep_cycles > 0).then_some(excitation.sweep_to_hz),
+        excitation_s: excitation.duration_s(),
     })
 }
 
@@ -907,7 +945,7 @@ mod tests {
 
     #[test]
     fn the_excitation_starts_at_rest_covers_the_range_and_ends_inside_it() {
-        let (t, u) = excitation_drive(SAMPLE_RATE_HZ, 150.0);
+        let (t, u) = excitation_drive(&EXCITATION, SAMPLE_RATE_HZ, 150.0);
         assert_eq!(t.len(), 20_000);
         assert_eq!(t.len() as f64, EXCITATION_S * SAMPLE_RATE_HZ);
         assert!(u[0].abs() < 1e-12);

@@ -12,6 +12,7 @@ use twinstack::config::settings::{Mode, Settings};
 use twinstack_identify::calibrate::{
     calibrate, CalibrateError, CalibrateOptions, ResonanceOutcome,
 };
+use twinstack_identify::excitation::SWEEP_CYCLES;
 use twinstack_identify::identification::auto::{identify_auto_admitting, Admission};
 use twinstack_identify::identification::{IdentifyError, IdentifyOptions, ModelKind};
 use twinstack_link::client::Client;
@@ -516,6 +517,72 @@ fn bad_options_are_refused_naming_the_option() {
     let o = twinstack_bin(&["calibrate", "--port", "sim", "--out", "x.png"]);
     assert_eq!(o.status.code(), Some(1));
     assert!(String::from_utf8_lossy(&o.stderr).contains("must not end in .png"));
+}
+
+/// The fastest motion the user names is in what the board streams and records: the
+/// excitation's drive, as recorded, sweeps up to it (its half-periods shorten to that
+/// motion's); one the recording cannot resolve is refused, naming it, before anything is
+/// streamed.
+#[test]
+fn the_fastest_motion_named_is_swept_on_the_board_and_one_it_cannot_record_is_refused() {
+    let mut client = sim_client(SimDeviceConfig::paper());
+    let options = CalibrateOptions {
+        fastest_hz: Some(200.0),
+        resonance: false,
+        ..quick()
+    };
+    let report = calibrate(&mut client, &options, |_| {}).unwrap();
+    let (t, u) = (&report.excitation.t, report.excitation.u.as_ref().unwrap());
+    // The sweep follows the lead-in, the full and decaying cycles and the nested loops.
+    let from = options.lead_in_s() + 9.0 / options.excitation_hz;
+    let to = from + f64::from(SWEEP_CYCLES) / options.excitation_hz;
+    let (lo, hi) = u
+        .iter()
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(l, h), &v| {
+            (l.min(v), h.max(v))
+        });
+    let middle = 0.5 * (lo + hi);
+    let swept: Vec<(f64, f64)> = t
+        .iter()
+        .zip(u)
+        .filter(|(&t, _)| t >= from && t < to)
+        .map(|(&t, &u)| (t, u - middle))
+        .collect();
+    let crossings: Vec<f64> = swept
+        .windows(2)
+        .filter(|w| (w[0].1 < 0.0) != (w[1].1 < 0.0))
+        .map(|w| w[1].0)
+        .collect();
+    let shortest = crossings
+        .windows(2)
+        .map(|w| w[1] - w[0])
+        .fold(f64::INFINITY, f64::min);
+    assert!(
+        (shortest * 2.0 * 200.0 - 1.0).abs() < 0.1,
+        "shortest half-period {shortest} s of {} crossings",
+        crossings.len()
+    );
+
+    let mut client = sim_client(SimDeviceConfig::paper());
+    let before = client.status().unwrap().next_seq;
+    let e = calibrate(
+        &mut client,
+        &CalibrateOptions {
+            fastest_hz: Some(600.0),
+            ..quick()
+        },
+        |_| {},
+    )
+    .unwrap_err();
+    assert!(
+        matches!(e, CalibrateError::FastestUnresolved { fastest_hz, .. } if fastest_hz == 600.0),
+        "{e}"
+    );
+    assert_eq!(
+        client.status().unwrap().next_seq,
+        before,
+        "nothing streamed"
+    );
 }
 
 /// The board's generator decays as the request says (protocol v5): full cycles, then each

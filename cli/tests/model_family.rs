@@ -15,7 +15,8 @@
 use hal_sim::plant::{LabStage, LabStageConfig};
 use std::path::Path;
 use twinstack_cli::tracking::{
-    evaluate_methods, evaluate_methods_with_triangles, excite, Method, FIT_UNTIL_S, SAMPLE_RATE_HZ,
+    evaluate_methods, evaluate_methods_with_triangles, excite, Method, EXCITATION, FIT_UNTIL_S,
+    SAMPLE_RATE_HZ,
 };
 use twinstack_identify::identification::auto::identify_auto;
 use twinstack_identify::identification::score::score;
@@ -210,9 +211,15 @@ fn one_calibration_tracks_slow_triangles_and_the_resonance_limits_fast_ones() {
     let config = LabStageConfig::new(SAMPLE_RATE_HZ, 1);
     let base = IdentifyOptions::new(ModelKind::Pi, twinstack_cli::tracking::FIT_UNTIL_S);
     let methods = [Method::Auto(base.candidates())];
-    let table =
-        evaluate_methods_with_triangles(&config, &methods, &[1.0, 5.0, 20.0, 200.0], None, true)
-            .unwrap();
+    let table = evaluate_methods_with_triangles(
+        &config,
+        &methods,
+        &[1.0, 5.0, 20.0, 200.0],
+        None,
+        true,
+        &EXCITATION,
+    )
+    .unwrap();
     let resonance = table.resonance.expect("the preview's resonance");
     assert!(
         (resonance.frequency_hz / 3_500.0 - 1.0).abs() < 0.01
@@ -253,7 +260,8 @@ fn one_calibration_tracks_slow_triangles_and_the_resonance_limits_fast_ones() {
         max[3]
     );
     let refused =
-        evaluate_methods_with_triangles(&config, &methods, &[600.0], None, false).unwrap_err();
+        evaluate_methods_with_triangles(&config, &methods, &[600.0], None, false, &EXCITATION)
+            .unwrap_err();
     assert!(
         refused.to_string().contains("triangle 600 Hz") && refused.to_string().contains("500 Hz"),
         "{refused}"
@@ -276,7 +284,8 @@ fn at_the_board_s_rate_one_calibration_with_the_preview_tracks_1_to_200_hz_withi
     let base = IdentifyOptions::new(ModelKind::Pi, twinstack_cli::tracking::FIT_UNTIL_S);
     let methods = [Method::Auto(base.candidates())];
     let hz = [1.0, 5.0, 20.0, 50.0, 100.0, 200.0];
-    let table = evaluate_methods_with_triangles(&config, &methods, &hz, None, true).unwrap();
+    let table =
+        evaluate_methods_with_triangles(&config, &methods, &hz, None, true, &EXCITATION).unwrap();
     let previewed = &table.rows[2];
     assert!(
         previewed.method.ends_with(" + preview"),
@@ -348,6 +357,7 @@ fn at_the_boards_rates_auto_picks_what_the_board_runs() {
             &[],
             Some(&BoardRate::sizing(hz, false)),
             false,
+            &EXCITATION,
         )
         .unwrap();
         let (none, auto) = (&table.rows[0], &table.rows[1]);

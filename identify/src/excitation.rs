@@ -3,7 +3,7 @@
 //! bypass, so that the setpoint *is* the drive) and the laboratory stage's study plays it, so
 //! both identify from the same excitation.
 //!
-//! Up to four parts follow each other without a jump, each a whole number of cycles of the
+//! Up to five parts follow each other without a jump, each a whole number of cycles of the
 //! base frequency `hz` ([`Excitation`]):
 //!
 //! 1. **full cycles**: `−cos 2πft` over the whole swept range, from its bottom (where a stage
@@ -14,10 +14,16 @@
 //!    [`REVERSALS`], off the middle, each inside the last and then out again: minor loops
 //!    that do not share a centre, and first-order reversal curves from both branches — what
 //!    separates models that fit the concentric loops alike;
-//! 4. **multisine**: three tones at `hz/5`, `hz/2` and `1.3·hz` ([`TONES`]), so that the
+//! 4. **sweep** (where the user names the fastest motion they will run,
+//!    [`Excitation::reaching`]): a sine about the middle whose frequency rises geometrically
+//!    from `hz` to that motion's ([`Excitation::sweep_to_hz`]), its amplitude
+//!    ([`SWEEP_AMPLITUDE`]) under a half-sine window, so that it starts and ends at the middle
+//!    with no jump: minor loops at every speed between the base and the fastest, so that the
+//!    creep the fit finds is the one fast motion shows, not only the slow one;
+//! 5. **multisine**: three tones at `hz/5`, `hz/2` and `1.3·hz` ([`TONES`]), so that the
 //!    reversals come at irregular points and at the speeds of a user's fastest motion.
 //!
-//! The last cycle is what `calibrate` and `identify` hold out of the fit; `auto` ranks its
+//! The last cycle (the multisine's) is what `calibrate` and `identify` hold out of the fit; `auto` ranks its
 //! candidates on the last part of the rest ([`crate::identification::auto`]).
 //!
 //! [`Excitation::DEFAULT`] plays all four (4 full cycles, 6 decaying to 30 %, 5 of nested
@@ -48,6 +54,17 @@ pub const REVERSALS: [f64; 18] = [
 /// (peaks add to 0.9, inside the swept range).
 pub const TONES: [(f64, f64); 3] = [(0.2, 0.4), (0.5, 0.3), (1.3, 0.2)];
 
+/// The sweep's peak amplitude, normalised about the middle (inside the swept range, as the
+/// multisine's peaks are).
+pub const SWEEP_AMPLITUDE: f64 = 0.8;
+
+/// Cycles' time of the base frequency the sweep takes where the user names the fastest motion
+/// ([`Excitation::reaching`]): four, 0.4 s at 10 Hz.
+pub const SWEEP_CYCLES: u16 = 4;
+
+/// The highest ratio of the sweep's top to the base frequency: three decades.
+pub const MAX_SWEEP_RATIO: f64 = 1_000.0;
+
 /// The excitation's shape (see the module doc). [`Excitation::DEFAULT`] is what `calibrate`
 /// and the laboratory stage play: 2 s at 10 Hz.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -64,6 +81,11 @@ pub struct Excitation {
     pub loop_cycles: u16,
     /// Cycles' time the multisine takes.
     pub multisine_cycles: u16,
+    /// Cycles' time the sweep takes (0: no sweep).
+    pub sweep_cycles: u16,
+    /// The frequency the sweep rises to from `hz`, Hz: the fastest motion the user runs
+    /// (unused without a sweep).
+    pub sweep_to_hz: f64,
 }
 
 impl Excitation {
@@ -75,6 +97,8 @@ impl Excitation {
         final_amplitude: 0.15,
         loop_cycles: 0,
         multisine_cycles: 0,
+        sweep_cycles: 0,
+        sweep_to_hz: 0.0,
     };
 
     /// 10 Hz: 4 full cycles, 6 decaying to 30 %, 5 of nested loops, 5 of multisine (2 s; see
@@ -86,7 +110,40 @@ impl Excitation {
         final_amplitude: 0.3,
         loop_cycles: 5,
         multisine_cycles: 5,
+        sweep_cycles: 0,
+        sweep_to_hz: 0.0,
     };
+
+    /// This excitation with a sweep up to `fastest_hz` before the multisine
+    /// ([`SWEEP_CYCLES`] cycles' time; see the module doc): for a user who names the fastest
+    /// motion they will run. [`Excitation::check`] refuses a `fastest_hz` not above `hz`.
+    ///
+    /// ```
+    /// use twinstack_identify::excitation::Excitation;
+    /// let e = Excitation::DEFAULT.reaching(200.0);
+    /// assert_eq!(e.duration_s(), 2.4);
+    /// assert_eq!(e.fastest_hz(), 200.0);
+    /// assert!(e.check().is_ok());
+    /// ```
+    pub const fn reaching(self, fastest_hz: f64) -> Self {
+        Self {
+            sweep_cycles: SWEEP_CYCLES,
+            sweep_to_hz: fastest_hz,
+            ..self
+        }
+    }
+
+    /// The fastest frequency in the excitation, Hz: the sweep's top where there is one, else
+    /// the multisine's highest tone (or the base frequency without a multisine).
+    pub const fn fastest_hz(&self) -> f64 {
+        if self.sweep_cycles > 0 {
+            self.sweep_to_hz
+        } else if self.multisine_cycles > 0 {
+            TONES[2].0 * self.hz
+        } else {
+            self.hz
+        }
+    }
 
     /// Cycles in all.
     pub const fn cycles(&self) -> u32 {
@@ -94,6 +151,7 @@ impl Excitation {
             + self.decay_cycles as u32
             + self.loop_cycles as u32
             + self.multisine_cycles as u32
+            + self.sweep_cycles as u32
     }
 
     /// Length, seconds.
@@ -124,7 +182,9 @@ impl Excitation {
         let full_n = self.full_cycles as u32;
         let decayed_n = full_n + self.decay_cycles as u32;
         let looped_n = decayed_n + self.loop_cycles as u32;
+        let swept_n = looped_n + self.sweep_cycles as u32;
         let (full, decayed, looped) = (at_cycle(full_n), at_cycle(decayed_n), at_cycle(looped_n));
+        let swept = at_cycle(swept_n);
         let end = at_cycle(self.cycles());
         let t = t.clamp(0.0, end);
         if t < full {
@@ -134,8 +194,10 @@ impl Excitation {
             -a * (TAU * self.hz * t).cos()
         } else if t < looped {
             self.nested_loops((t - decayed) / (looped - decayed))
+        } else if t < swept {
+            self.sweep((t - looped) / (swept - looped), swept - looped)
         } else {
-            let s = t - looped;
+            let s = t - swept;
             TONES
                 .iter()
                 .map(|&(f, a)| a * (TAU * f * self.hz * s).sin())
@@ -148,6 +210,15 @@ impl Excitation {
     pub fn sampled(&self, rate: f64) -> Vec<f64> {
         let n = (self.duration_s() * rate).round() as usize;
         (0..n).map(|k| self.at(k as f64 / rate)).collect()
+    }
+
+    /// The sweep at `phase` (`0 … 1` of its `length`, seconds): a sine whose frequency rises
+    /// geometrically from `hz` to `sweep_to_hz` (its phase `2π·hz·L·(k^p − 1)/ln k`,
+    /// `k = sweep_to_hz/hz`), under a half-sine window from 0 to [`SWEEP_AMPLITUDE`] and back.
+    fn sweep(&self, phase: f64, length: f64) -> f64 {
+        let k = self.sweep_to_hz / self.hz;
+        let angle = TAU * self.hz * length * (k.powf(phase) - 1.0) / k.ln();
+        SWEEP_AMPLITUDE * (core::f64::consts::PI * phase).sin() * angle.sin()
     }
 
     /// The nested loops at `phase` (`0 … 1` of their time): straight sweeps at one speed from
@@ -173,8 +244,10 @@ impl Excitation {
     }
 
     /// Checks the shape (a positive finite frequency, at least one full and two decaying
-    /// cycles, a final amplitude in `(0, 1)`, at most 10 000 cycles and 600 s in all), naming
-    /// the first field that is wrong: `(field, rule, value)`.
+    /// cycles, a final amplitude in `(0, 1)`, a sweep's top above the base frequency and at
+    /// most [`MAX_SWEEP_RATIO`] times it, at most 10 000 cycles and 600 s in all), naming the
+    /// first field that is wrong: `(field, rule, value)`. Whether a sample rate resolves the
+    /// fastest motion is the caller's to check ([`Excitation::fastest_hz`]).
     pub fn check(&self) -> Result<(), (&'static str, &'static str, f64)> {
         if !(self.hz.is_finite() && self.hz > 0.0) {
             return Err(("excitation_hz", "a positive number of Hz", self.hz));
@@ -197,6 +270,15 @@ impl Excitation {
         }
         if !(self.final_amplitude > 0.0 && self.final_amplitude < 1.0) {
             return Err(("final_amplitude", "in (0, 1)", self.final_amplitude));
+        }
+        if self.sweep_cycles > 0
+            && !(self.sweep_to_hz > self.hz && self.sweep_to_hz <= MAX_SWEEP_RATIO * self.hz)
+        {
+            return Err((
+                "fastest_hz",
+                "above the excitation's frequency and at most 1 000 times it",
+                self.sweep_to_hz,
+            ));
         }
         Ok(())
     }
@@ -318,5 +400,47 @@ mod tests {
             "final_amplitude"
         );
         assert!(e.check().is_ok());
+        for top in [10.0, f64::NAN, -200.0, 10_001.0] {
+            assert_eq!(bad(e.reaching(top)), "fastest_hz", "{top}");
+        }
+        assert!(e.reaching(10_000.0).check().is_ok());
+    }
+
+    #[test]
+    fn the_sweep_rises_to_the_fastest_motion_between_the_loops_and_the_multisine() {
+        let rate = 100_000.0;
+        let e = Excitation::DEFAULT.reaching(200.0);
+        let x = e.sampled(rate);
+        let default = Excitation::DEFAULT.sampled(rate);
+        assert_eq!(x.len(), default.len() + 40_000);
+        // The default's parts before it, to the bit; its multisine after it.
+        assert_eq!(x[..150_000], default[..150_000]);
+        for (a, b) in x[190_000..].iter().zip(&default[150_000..]) {
+            assert!((a - b).abs() < 1e-9, "{a} vs {b}");
+        }
+        // The sweep: inside its amplitude, from the middle back to it, no step larger than
+        // its top speed allows (2π·200·0.8 a second, plus the window's share).
+        let sweep = &x[150_000..190_000];
+        assert!(sweep.iter().all(|v| v.abs() <= SWEEP_AMPLITUDE));
+        assert!(sweep.iter().any(|v| v.abs() > 0.95 * SWEEP_AMPLITUDE));
+        let largest = x[149_999..190_001]
+            .windows(2)
+            .map(|w| (w[1] - w[0]).abs())
+            .fold(0.0, f64::max);
+        let top_speed = std::f64::consts::TAU * 200.0 * SWEEP_AMPLITUDE / rate;
+        assert!(largest < 1.05 * top_speed, "{largest} vs {top_speed}");
+        // Its half-periods shorten from about the base's to the fastest motion's.
+        let crossings: Vec<usize> = (1..sweep.len())
+            .filter(|&k| (sweep[k - 1] < 0.0) != (sweep[k] < 0.0))
+            .collect();
+        let halves: Vec<f64> = crossings
+            .windows(2)
+            .map(|w| (w[1] - w[0]) as f64 / rate)
+            .collect();
+        let shortest = halves.iter().copied().fold(f64::INFINITY, f64::min);
+        let longest = halves.iter().copied().fold(0.0, f64::max);
+        assert!((shortest * 2.0 * 200.0 - 1.0).abs() < 0.03, "{shortest}");
+        assert!(longest > 0.5 / 10.0 * 0.6, "{longest}");
+        assert!(halves.windows(2).all(|w| w[1] <= w[0] * 1.01), "{halves:?}");
     }
 }

@@ -70,6 +70,12 @@ pub struct Args {
     /// part it is of, is held out to score the model.
     #[arg(long, default_value_t = Excitation::DEFAULT.multisine_cycles)]
     pub multisine_cycles: u16,
+    /// The fastest motion you will run, Hz (e.g. a 200 Hz scan line): the excitation gains a
+    /// sweep from its frequency up to this one before the multisine (0.4 s more at 10 Hz), so
+    /// that the model and its creep are fitted on the rates the compensator will be asked
+    /// for. Without it, the fastest motion is the multisine's 13 Hz tone
+    #[arg(long, value_name = "HZ")]
+    pub fastest_hz: Option<f64>,
     /// Refuse the model if it predicts the held-out cycle worse than this, % of span (max).
     #[arg(long, default_value_t = 5.0, value_name = "PERCENT")]
     pub max_held_out: f64,
@@ -110,6 +116,7 @@ impl Args {
             final_amplitude: self.final_amplitude,
             loop_cycles: self.loop_cycles,
             multisine_cycles: self.multisine_cycles,
+            fastest_hz: self.fastest_hz,
             model: match self.model {
                 super::identify::ModelChoice::Auto => None,
                 super::identify::ModelChoice::Only(kind) => Some(kind),

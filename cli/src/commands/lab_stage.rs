@@ -10,8 +10,8 @@
 
 use crate::commands::identify::{parse_model, ModelChoice};
 use crate::tracking::{
-    evaluate_methods_with_triangles, evaluate_variants, excite, print_variants, Method,
-    BOUC_WEN_VARIANTS, EXCITATION_S, FIT_UNTIL_S, SAMPLE_RATE_HZ, STAGE_VARIANTS,
+    evaluate_methods_with_triangles, evaluate_variants, excite_with, print_variants, Method,
+    BOUC_WEN_VARIANTS, EXCITATION, SAMPLE_RATE_HZ, STAGE_VARIANTS,
 };
 use hal_sim::plant::{LabStage, LabStageConfig, StageHysteresis};
 use std::path::PathBuf;
@@ -44,9 +44,15 @@ pub struct Args {
     /// Play operators of a P–I model (1 … the library's maximum).
     #[arg(long, default_value_t = 17)]
     pub operators: usize,
-    /// Samples before this time (s) are fitted, the rest of the 2 s excitation held out.
-    #[arg(long, default_value_t = FIT_UNTIL_S)]
-    pub fit_until: f64,
+    /// Samples before this time (s) are fitted, the rest of the excitation held out
+    /// (default: all but its last cycle, 1.9 s of the 2 s; with `--fastest-hz`, 2.3 of 2.4).
+    #[arg(long)]
+    pub fit_until: Option<f64>,
+    /// The fastest motion to be run, Hz: the excitation gains a sweep up to it before its
+    /// multisine, as `calibrate --fastest-hz` streams it (at least 20 samples a cycle at
+    /// `--rate`).
+    #[arg(long, value_name = "HZ", conflicts_with = "variants")]
+    pub fastest_hz: Option<f64>,
     /// Print the table as JSON.
     #[arg(long)]
     pub json: bool,
@@ -192,10 +198,21 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     if !(args.rate.is_finite() && (2_000.0..=100_000.0).contains(&args.rate)) {
         anyhow::bail!("--rate {} is outside 2 000 … 100 000 Hz", args.rate);
     }
-    if !(args.fit_until.is_finite() && args.fit_until > 0.1 && args.fit_until < EXCITATION_S) {
+    let excitation = match args.fastest_hz {
+        Some(hz) => EXCITATION.reaching(hz),
+        None => EXCITATION,
+    };
+    if let Err((_, rule, value)) = excitation.check() {
         anyhow::bail!(
-            "--fit-until {} must lie within 0.1 … {EXCITATION_S} s (the excitation's length), leaving a part to hold out",
-            args.fit_until
+            "--fastest-hz {value}: must be {rule} ({} Hz)",
+            excitation.hz
+        );
+    }
+    let length = excitation.duration_s();
+    let fit_until = args.fit_until.unwrap_or(length - 1.0 / excitation.hz);
+    if !(fit_until.is_finite() && fit_until > 0.1 && fit_until < length) {
+        anyhow::bail!(
+            "--fit-until {fit_until} must lie within 0.1 … {length} s (the excitation's length), leaving a part to hold out",
         );
     }
     if !(1..=twinstack::MAX_OPERATORS).contains(&args.operators) {
@@ -229,7 +246,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         operators: args.operators,
         creep: args.creep,
         output_map: args.output_map && IdentifyOptions::takes_output_map(kind),
-        ..IdentifyOptions::new(kind, args.fit_until)
+        ..IdentifyOptions::new(kind, fit_until)
     };
     let methods: Vec<Method> = args
         .model
@@ -246,7 +263,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         })
         .collect();
     if let Some(path) = &args.write_excitation {
-        let data = excite(&mut LabStage::new(&config)?);
+        let data = excite_with(&mut LabStage::new(&config)?, &excitation);
         let (u, x) = (data.u.unwrap_or_default(), data.x.unwrap_or_default());
         let mut out = Staged::new();
         out.write(path, &csv_t_u_x(&data.t, &u, &x)?)?;
@@ -274,6 +291,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         &args.triangles,
         board.as_ref(),
         args.preview,
+        &excitation,
     )?;
     if args.json {
         use std::io::Write;

@@ -58,6 +58,7 @@ pub(super) fn excite<T: Transport>(
     let ticks = samples.len() as u64 * divider as u64;
     let mask = Channel::Left.bit() | Channel::Sensor.bit();
     let (decimation, frames) = decimation_for(ticks, rate, options.sample_rate_hz, &facts, 2);
+    options.check_resolved(rate / divider as f64, rate / decimation as f64)?;
     client
         .arm_capture(CaptureRequest {
             signals: mask,

@@ -4,6 +4,10 @@
 use super::*;
 use crate::excitation::Excitation;
 
+/// The fewest samples a cycle of the excitation's fastest motion is streamed and recorded
+/// with ([`CalibrateOptions::check_resolved`]): as many as a tracked triangle takes.
+pub const MIN_SAMPLES_PER_FASTEST_CYCLE: f64 = 20.0;
+
 /// How a calibration runs. [`CalibrateOptions::default`] is what `twinstack calibrate` runs.
 #[derive(Clone, Debug, PartialEq)]
 pub struct CalibrateOptions {
@@ -24,6 +28,11 @@ pub struct CalibrateOptions {
     /// Cycles' time of a three-tone multisine last ([`Excitation::multisine_cycles`]). The
     /// excitation's last cycle, whichever part it is of, is held out of the fit and scores it.
     pub multisine_cycles: u16,
+    /// The fastest motion the user will run, Hz: the excitation gains a sweep up to it before
+    /// the multisine ([`Excitation::reaching`]), so that the fit sees the rates its
+    /// compensator will be asked for. `None`: no sweep. The board must stream and record it
+    /// with at least [`MIN_SAMPLES_PER_FASTEST_CYCLE`] samples a cycle.
+    pub fastest_hz: Option<f64>,
     /// Highest rate the excitation and the verification runs are recorded at, Hz (lower if
     /// the board's capture slots do not hold the run at this rate).
     pub sample_rate_hz: f64,
@@ -69,6 +78,7 @@ impl Default for CalibrateOptions {
             final_amplitude: Excitation::DEFAULT.final_amplitude,
             loop_cycles: Excitation::DEFAULT.loop_cycles,
             multisine_cycles: Excitation::DEFAULT.multisine_cycles,
+            fastest_hz: None,
             sample_rate_hz: 10_000.0,
             model: None,
             operators: None,
@@ -114,14 +124,35 @@ impl CalibrateOptions {
 
     /// The excitation's shape.
     pub fn excitation(&self) -> Excitation {
-        Excitation {
+        let shape = Excitation {
             hz: self.excitation_hz,
             full_cycles: self.full_cycles,
             decay_cycles: self.decay_cycles,
             final_amplitude: self.final_amplitude,
             loop_cycles: self.loop_cycles,
             multisine_cycles: self.multisine_cycles,
+            ..Excitation::DEFAULT
+        };
+        match self.fastest_hz {
+            Some(hz) => shape.reaching(hz),
+            None => shape,
         }
+    }
+
+    /// Checks that the excitation's fastest motion is resolved where it is streamed and
+    /// recorded, at `stream_hz` setpoints and `recorded_hz` frames a second: at least
+    /// [`MIN_SAMPLES_PER_FASTEST_CYCLE`] of each a cycle.
+    pub fn check_resolved(&self, stream_hz: f64, recorded_hz: f64) -> Result<(), CalibrateError> {
+        let fastest = self.excitation().fastest_hz();
+        let slowest = stream_hz.min(recorded_hz);
+        if fastest * MIN_SAMPLES_PER_FASTEST_CYCLE > slowest {
+            return Err(CalibrateError::FastestUnresolved {
+                fastest_hz: fastest,
+                stream_hz,
+                recorded_hz,
+            });
+        }
+        Ok(())
     }
 
     /// How calibrate streams (the excitation, the verification runs) to a board ticking at

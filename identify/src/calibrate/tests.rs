@@ -77,6 +77,36 @@ fn bad_options_are_named() {
         .unwrap_err()
         .to_string()
         .contains("final_amplitude"));
+    let bad = CalibrateOptions {
+        fastest_hz: Some(8.0),
+        ..CalibrateOptions::default()
+    };
+    assert!(bad.check().unwrap_err().to_string().contains("fastest_hz"));
+}
+
+#[test]
+fn the_fastest_motion_named_is_swept_and_must_be_resolved_where_it_is_streamed_and_recorded() {
+    let options = CalibrateOptions {
+        fastest_hz: Some(200.0),
+        ..CalibrateOptions::default()
+    };
+    assert!(options.check().is_ok());
+    // The sweep adds its 0.4 s; the lead-in and the rest are the default's.
+    let default = CalibrateOptions::default();
+    assert!((options.excitation_s() - default.excitation_s() - 0.4).abs() < 1e-12);
+    // 200 Hz wants 4 000 samples a second, streamed and recorded.
+    assert!(options.check_resolved(10_000.0, 4_000.0).is_ok());
+    for (stream, recorded) in [(3_999.0, 10_000.0), (10_000.0, 3_999.0)] {
+        let e = options.check_resolved(stream, recorded).unwrap_err();
+        assert!(
+            matches!(e, CalibrateError::FastestUnresolved { fastest_hz, .. } if fastest_hz == 200.0),
+            "{e}"
+        );
+        assert!(e.to_string().contains("fastest_hz = 200"), "{e}");
+    }
+    // Without a sweep the fastest motion is the multisine's 13 Hz tone.
+    assert!(default.check_resolved(260.0, 260.0).is_ok());
+    assert!(default.check_resolved(259.0, 10_000.0).is_err());
 }
 
 #[test]

@@ -457,6 +457,36 @@ const FIGURES: &[Figure] = &[
         "--model",
         "auto"
     ),
+    // The same calibration with its excitation swept up to the fastest triangle
+    // (`--fastest-hz`): the creep fitted on fast motion too.
+    triangles_figure!(
+        "lab-stage-triangles-100khz-swept",
+        "--rate",
+        "100000",
+        "--model",
+        "auto",
+        "--fastest-hz",
+        "200"
+    ),
+    // At the stage's 10 kHz, where the sweep's top has 50 samples a cycle.
+    triangles_figure!(
+        "lab-stage-triangles-swept",
+        "--model",
+        "auto",
+        "--fastest-hz",
+        "200"
+    ),
+    // At the board's default rate (a minute): written, not re-run by the gate.
+    triangles_figure!(
+        "lab-stage-triangles-50khz-swept",
+        unchecked,
+        "--rate",
+        "50000",
+        "--model",
+        "auto",
+        "--fastest-hz",
+        "200"
+    ),
     // What the preview leaves once the stage has no creep (and the model none): the rows
     // above less the creep's share.
     triangles_figure!(
