@@ -1136,8 +1136,11 @@ impl Board {
     /// or where no resonance fitted the response, then `resonance_not_fitted` says why).
     /// Board refusals raise `BoardError`; a stage
     /// that cannot be calibrated (no sensor, a sensor that does not follow the drive, a fit
-    /// that does not fit) raises `RuntimeError` saying which.
-    #[pyo3(signature = (store=true, clamp=false, model=None, resonance=true))]
+    /// that does not fit) raises `RuntimeError` saying which. `fastest_hz` names the fastest
+    /// motion the stage will run (`calibrate --fastest-hz`): the excitation sweeps up to it
+    /// before its multisine; one the board would not stream and record with 20 samples a
+    /// cycle raises `RuntimeError` naming `fastest_hz` before anything moves.
+    #[pyo3(signature = (store=true, clamp=false, model=None, resonance=true, fastest_hz=None))]
     fn calibrate<'py>(
         &self,
         py: Python<'py>,
@@ -1145,6 +1148,7 @@ impl Board {
         clamp: bool,
         model: Option<&str>,
         resonance: bool,
+        fastest_hz: Option<f64>,
     ) -> PyResult<Bound<'py, PyAny>> {
         use twinstack_identify::calibrate::{
             calibrate, CalibrateError, CalibrateOptions, ResonanceOutcome,
@@ -1163,6 +1167,7 @@ impl Board {
             clamp,
             store: store.then_some(twinstack::config::settings::Mode::Bypass),
             resonance,
+            fastest_hz,
             ..CalibrateOptions::default()
         };
         let report = self.with_py(py, |client| {

@@ -463,6 +463,17 @@ def test_calibrate_refuses_an_unknown_model_before_touching_the_board(board):
         board.calibrate(model="preisach")
 
 
+def test_calibrate_refuses_a_fastest_motion_it_cannot_sweep_or_record_naming_it(board):
+    """Not above the excitation's 10 Hz, or faster than the board records with 20 samples
+    a cycle: refused, naming ``fastest_hz``, with nothing streamed."""
+    before = board.status()["next_seq"]
+    with pytest.raises(RuntimeError, match="fastest_hz = 5"):
+        board.calibrate(store=False, fastest_hz=5.0)
+    with pytest.raises(RuntimeError, match="fastest_hz = 5000"):
+        board.calibrate(store=False, fastest_hz=5000.0)
+    assert board.status()["next_seq"] == before
+
+
 def _cli_tune(hal_sim, *args):
     """`twinstack tune --port sim --json` with `args`: its one JSON object."""
     out = subprocess.run(

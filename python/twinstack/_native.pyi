@@ -465,6 +465,7 @@ class Board:
         clamp: bool = False,
         model: Optional[str] = None,
         resonance: bool = True,
+        fastest_hz: Optional[float] = None,
     ) -> Dict[str, Any]:
         """One-command calibration (``twinstack calibrate``): excites the stage with the
         identification excitation streamed in bypass (full-range cycles, decaying minor loops,
@@ -477,7 +478,10 @@ class Board:
         ``resonance`` (the stage's resonance measured after the excitation as ``tune``
         measures it, ``(frequency_hz, damping)``, also ``params.resonance``; ``None`` with
         ``resonance=False`` or where none fitted, then ``resonance_not_fitted`` says why).
-        Board refusals raise
+        ``fastest_hz`` names the fastest motion the stage will run (``calibrate
+        --fastest-hz``): the excitation sweeps up to it before its multisine, and one the board
+        would not stream and record with 20 samples a cycle raises ``RuntimeError`` naming
+        ``fastest_hz`` before anything moves. Board refusals raise
         :class:`BoardError`; a stage that cannot be calibrated raises ``RuntimeError``."""
     def tune(
         self,

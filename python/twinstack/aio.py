@@ -272,9 +272,12 @@ class AsyncBoard:
         clamp: bool = False,
         model: Optional[str] = None,
         resonance: bool = True,
+        fastest_hz: Optional[float] = None,
     ) -> Dict[str, Any]:
         """Calibrates the stage in one call, as :meth:`twinstack.Board.calibrate`."""
-        return await self._call(self._board.calibrate, store, clamp, model, resonance)
+        return await self._call(
+            self._board.calibrate, store, clamp, model, resonance, fastest_hz
+        )
 
     async def tune(
         self,
