@@ -80,7 +80,7 @@ const HUNDRED_KHZ_CONFIGS: [&str; 3] = [
 ];
 /// How many configurations the image runs (its `configs::COUNT`), each through every
 /// scenario.
-const CONFIGURATIONS: usize = 10;
+const CONFIGURATIONS: usize = 11;
 /// The most the tick budget's prediction may exceed a configuration's measured worst tick,
 /// as a factor: a prediction looser than this refuses configurations that would fit.
 const LOOSEST_PREDICTION: f64 = 1.25;

@@ -20,10 +20,10 @@
 //!
 //! The coefficients are **cycles at 5 flash wait states** (the ART cache assumed cold: every
 //! taken branch waits the full 5), measured on the real image: the whole-interrupt bench
-//! (`tests/irq_bench.rs`) traces every tick of seven configurations in QEMU — the smallest and the
-//! largest of each model, every creep mode, the notch and the derivative — and asserts, for each,
-//! that its worst tick stays under this prediction and that the prediction is not loose by more
-//! than a stated factor. Between the measured sizes the prediction is linear in operators, dead
+//! (`tests/irq_bench.rs`) traces every tick of each of its configurations in QEMU — no model,
+//! the smallest and the largest of each model, every creep mode, the notch and the derivative —
+//! and asserts, for each, that its worst tick stays under this prediction and that the
+//! prediction is not loose by more than a stated factor. Between the measured sizes the prediction is linear in operators, dead
 //! zones and modes, as the banks' loops are. A change that makes the tick dearer fails that
 //! bench until the coefficients (here, and each model's beside it) are raised.
 //!

@@ -17,6 +17,9 @@ pub(super) fn grouped(n: u64) -> String {
 /// A bench configuration's name (`inverse-pi16+pi16-observer+pi+drift`) as the book writes it
 /// (`inverse P–I 16 + P–I 16 observer + PI + drift`); a part it does not know stays as it is.
 pub(super) fn config_label(name: &str) -> String {
+    if name == "bypass-no-model" {
+        return "bypass, no model (the defaults)".into();
+    }
     fn model(m: &str) -> String {
         if let Some(gpi) = m.strip_prefix("gpi") {
             if let Some((n, zones)) = gpi.split_once('x') {
@@ -429,6 +432,10 @@ mod tests {
         assert_eq!(
             config_label("inverse-bouc-wen+bouc-wen-observer"),
             "inverse Bouc–Wen + Bouc–Wen observer"
+        );
+        assert_eq!(
+            config_label("bypass-no-model"),
+            "bypass, no model (the defaults)"
         );
         assert_eq!(grouped(7), "7");
         assert_eq!(grouped(1573), "1 573");

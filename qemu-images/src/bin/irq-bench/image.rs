@@ -402,7 +402,7 @@ pub mod configs {
     use twinstack::models::generalised_pi::{DeadZoneParams, GpiParams};
 
     /// How many configurations run.
-    pub const COUNT: usize = 10;
+    pub const COUNT: usize = 11;
 
     /// A named configuration.
     pub struct Config {
@@ -583,6 +583,13 @@ pub mod configs {
                     output_map: Some(representative_output_map()),
                     ..compensator_only(representative_bouc_wen())
                 },
+            },
+            // The board's defaults (bypass, no model, the sensor the learning needs) through
+            // every scenario: the interrupt's fixed part with each feature beside it — the
+            // scans, the learning, the trigger input's edges, the capture and telemetry.
+            10 => Config {
+                name: "bypass-no-model",
+                settings: Settings::default(),
             },
             _ => return None,
         })
