@@ -150,6 +150,16 @@ impl CalibrateOptions {
                 fastest_hz: fastest,
                 stream_hz,
                 recorded_hz,
+                // The stream's rate is the board's tick rate over the stream divider, and the
+                // recorder's at most `sample_rate_hz`; below that, it falls as the excitation
+                // lengthens (the board's slots hold the whole run).
+                remedy: if stream_hz.min(self.sample_rate_hz)
+                    < fastest * MIN_SAMPLES_PER_FASTEST_CYCLE
+                {
+                    "name a slower motion (the board streams and records no faster)"
+                } else {
+                    "name a slower motion, or shorten the excitation (fewer cycles of its parts: `--full-cycles`, `--decay-cycles`, `--loop-cycles`, `--multisine-cycles`) so that the recorder holds it at a higher rate"
+                },
             });
         }
         Ok(())

@@ -109,7 +109,7 @@ pub enum CalibrateError {
     },
     /// The board would stream or record the excitation too coarsely for its fastest motion
     /// ([`CalibrateOptions::check_resolved`]).
-    #[error("calibrate option fastest_hz = {fastest_hz}: the board streams the excitation at {stream_hz:.0} setpoints/s and records it at {recorded_hz:.0} frames/s, fewer than 20 a cycle of {fastest_hz} Hz; name a slower motion, stream faster (a smaller stream divider) or shorten the excitation (fewer cycles) so that the recorder holds it at a higher rate")]
+    #[error("calibrate option fastest_hz = {fastest_hz}: the board streams the excitation at {stream_hz:.0} setpoints/s and records it at {recorded_hz:.0} frames/s, fewer than 20 a cycle of {fastest_hz} Hz; {remedy}")]
     FastestUnresolved {
         /// The excitation's fastest motion, Hz.
         fastest_hz: f64,
@@ -117,6 +117,9 @@ pub enum CalibrateError {
         stream_hz: f64,
         /// Frames recorded a second.
         recorded_hz: f64,
+        /// What would resolve it: a slower motion, or where the recorder is the limit, a
+        /// shorter excitation too.
+        remedy: &'static str,
     },
     /// The link failed, or the board refused a request (the message names the field and its
     /// limit).

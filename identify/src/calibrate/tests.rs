@@ -96,14 +96,30 @@ fn the_fastest_motion_named_is_swept_and_must_be_resolved_where_it_is_streamed_a
     assert!((options.excitation_s() - default.excitation_s() - 0.4).abs() < 1e-12);
     // 200 Hz wants 4 000 samples a second, streamed and recorded.
     assert!(options.check_resolved(10_000.0, 4_000.0).is_ok());
-    for (stream, recorded) in [(3_999.0, 10_000.0), (10_000.0, 3_999.0)] {
+    // Where the stream is the limit only a slower motion helps; where the recorder's slots
+    // are, a shorter excitation does too (the recorder holds it at a higher rate).
+    for (stream, recorded, shorten) in [(3_999.0, 10_000.0, false), (10_000.0, 3_999.0, true)] {
         let e = options.check_resolved(stream, recorded).unwrap_err();
         assert!(
             matches!(e, CalibrateError::FastestUnresolved { fastest_hz, .. } if fastest_hz == 200.0),
             "{e}"
         );
         assert!(e.to_string().contains("fastest_hz = 200"), "{e}");
+        assert_eq!(
+            e.to_string().contains("shorten the excitation"),
+            shorten,
+            "{e}"
+        );
     }
+    // Beyond what calibrate records at all (`sample_rate_hz`), a shorter excitation does not
+    // help.
+    let e = CalibrateOptions {
+        fastest_hz: Some(600.0),
+        ..CalibrateOptions::default()
+    }
+    .check_resolved(20_000.0, 10_000.0)
+    .unwrap_err();
+    assert!(!e.to_string().contains("shorten"), "{e}");
     // Without a sweep the fastest motion is the multisine's 13 Hz tone.
     assert!(default.check_resolved(260.0, 260.0).is_ok());
     assert!(default.check_resolved(259.0, 10_000.0).is_err());
