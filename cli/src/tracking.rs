@@ -60,7 +60,7 @@ pub const EXCITATION_S: f64 = EXCITATION.duration_s();
 /// Base frequency of the excitation, Hz.
 pub const EXCITATION_HZ: f64 = EXCITATION.hz;
 /// The default `fit_until_s`: everything but the last excitation cycle is fitted.
-pub const FIT_UNTIL_S: f64 = EXCITATION_S - 1.0 / EXCITATION_HZ;
+pub const FIT_UNTIL_S: f64 = EXCITATION.held_out_from_s();
 
 /// The excitation drive at `sample_rate_hz` for a stage whose drive range is `0 … drive_max`
 /// volts: `excitation` ([`EXCITATION`] unless the user names the fastest motion) over the
@@ -839,7 +839,7 @@ fn evaluate_all(
             Method::One(o) => Some(o.fit_until_s),
             Method::Auto(c) => c.first().map(|o| o.fit_until_s),
         })
-        .unwrap_or(excitation.duration_s() - 1.0 / excitation.hz);
+        .unwrap_or(excitation.held_out_from_s());
     let linear_map = LinearMap::fit(&data, fit_until);
     let mut rows = vec![match linear_map {
         Some(map) => TrackingRow {
@@ -934,7 +934,7 @@ fn evaluate_all(
         linear_map,
         rows,
         resonance: preview.map(|p| p.1),
-        fastest_hz: (excitation.sweep_cycles > 0).then_some(excitation.sweep_to_hz),
+        fastest_hz: excitation.sweep_top_hz(),
         excitation_s: excitation.duration_s(),
     })
 }

@@ -23,11 +23,12 @@
 //! 5. **multisine**: three tones at `hz/5`, `hz/2` and `1.3·hz` ([`TONES`]), so that the
 //!    reversals come at irregular points and at the speeds of a user's fastest motion.
 //!
-//! The last cycle (the multisine's) is what `calibrate` and `identify` hold out of the fit; `auto` ranks its
-//! candidates on the last part of the rest ([`crate::identification::auto`]).
+//! The last cycle (the multisine's) is what `calibrate` and `identify` hold out of the fit
+//! ([`Excitation::held_out_from_s`]); `auto` ranks its candidates on the last part of the rest
+//! ([`crate::identification::auto`]).
 //!
-//! [`Excitation::DEFAULT`] plays all four (4 full cycles, 6 decaying to 30 %, 5 of nested
-//! loops, 5 of multisine: 2 s at 10 Hz), so that `auto` ranks its candidates on the nested
+//! [`Excitation::DEFAULT`] plays all but the sweep (4 full cycles, 6 decaying to 30 %, 5 of
+//! nested loops, 5 of multisine: 2 s at 10 Hz), so that `auto` ranks its candidates on the nested
 //! loops and the multisine rather than on the smallest concentric loops, where every
 //! candidate is about equally wrong. [`Excitation::DECAYING`] is the first two parts alone
 //! (6 full cycles, 14 decaying to 15 %: the major loop, then concentric loops), the
@@ -133,16 +134,29 @@ impl Excitation {
         }
     }
 
+    /// The sweep's top, Hz, where the excitation has a sweep ([`Excitation::reaching`]).
+    pub const fn sweep_top_hz(&self) -> Option<f64> {
+        if self.sweep_cycles > 0 {
+            Some(self.sweep_to_hz)
+        } else {
+            None
+        }
+    }
+
     /// The fastest frequency in the excitation, Hz: the sweep's top where there is one, else
     /// the multisine's highest tone (or the base frequency without a multisine).
     pub const fn fastest_hz(&self) -> f64 {
-        if self.sweep_cycles > 0 {
-            self.sweep_to_hz
-        } else if self.multisine_cycles > 0 {
-            TONES[2].0 * self.hz
-        } else {
-            self.hz
+        match self.sweep_top_hz() {
+            Some(hz) => hz,
+            None if self.multisine_cycles > 0 => TONES[2].0 * self.hz,
+            None => self.hz,
         }
+    }
+
+    /// Where the last cycle, held out of the fit, starts: the end of the fit window by
+    /// default, seconds from the excitation's start.
+    pub const fn held_out_from_s(&self) -> f64 {
+        self.duration_s() - 1.0 / self.hz
     }
 
     /// Cycles in all.

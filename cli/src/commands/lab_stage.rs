@@ -209,7 +209,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         );
     }
     let length = excitation.duration_s();
-    let fit_until = args.fit_until.unwrap_or(length - 1.0 / excitation.hz);
+    let fit_until = args.fit_until.unwrap_or(excitation.held_out_from_s());
     if !(fit_until.is_finite() && fit_until > 0.1 && fit_until < length) {
         anyhow::bail!(
             "--fit-until {fit_until} must lie within 0.1 … {length} s (the excitation's length), leaving a part to hold out",

@@ -80,7 +80,7 @@ mod report;
 mod track;
 
 use measure::{decimation_for, identify_excited, measure, Excited, Measured};
-pub use options::{CalibrateOptions, MIN_SAMPLES_PER_FASTEST_CYCLE};
+pub use options::CalibrateOptions;
 pub use report::{CalibrateError, CalibrationReport, Candidate, ResonanceOutcome, Tracking};
 use track::track;
 

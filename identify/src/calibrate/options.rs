@@ -3,10 +3,7 @@
 
 use super::*;
 use crate::excitation::Excitation;
-
-/// The fewest samples a cycle of the excitation's fastest motion is streamed and recorded
-/// with ([`CalibrateOptions::check_resolved`]): as many as a tracked triangle takes.
-pub const MIN_SAMPLES_PER_FASTEST_CYCLE: f64 = 20.0;
+use crate::trajectory::MIN_SAMPLES_PER_CYCLE;
 
 /// How a calibration runs. [`CalibrateOptions::default`] is what `twinstack calibrate` runs.
 #[derive(Clone, Debug, PartialEq)]
@@ -31,7 +28,7 @@ pub struct CalibrateOptions {
     /// The fastest motion the user will run, Hz: the excitation gains a sweep up to it before
     /// the multisine ([`Excitation::reaching`]), so that the fit sees the rates its
     /// compensator will be asked for. `None`: no sweep. The board must stream and record it
-    /// with at least [`MIN_SAMPLES_PER_FASTEST_CYCLE`] samples a cycle.
+    /// with at least [`MIN_SAMPLES_PER_CYCLE`] samples a cycle, as a tracked triangle.
     pub fastest_hz: Option<f64>,
     /// Highest rate the excitation and the verification runs are recorded at, Hz (lower if
     /// the board's capture slots do not hold the run at this rate).
@@ -141,11 +138,12 @@ impl CalibrateOptions {
 
     /// Checks that the excitation's fastest motion is resolved where it is streamed and
     /// recorded, at `stream_hz` setpoints and `recorded_hz` frames a second: at least
-    /// [`MIN_SAMPLES_PER_FASTEST_CYCLE`] of each a cycle.
+    /// [`MIN_SAMPLES_PER_CYCLE`] of each a cycle, as a tracked triangle.
     pub fn check_resolved(&self, stream_hz: f64, recorded_hz: f64) -> Result<(), CalibrateError> {
         let fastest = self.excitation().fastest_hz();
         let slowest = stream_hz.min(recorded_hz);
-        if fastest * MIN_SAMPLES_PER_FASTEST_CYCLE > slowest {
+        let needed = fastest * MIN_SAMPLES_PER_CYCLE;
+        if needed > slowest {
             return Err(CalibrateError::FastestUnresolved {
                 fastest_hz: fastest,
                 stream_hz,
@@ -153,9 +151,7 @@ impl CalibrateOptions {
                 // The stream's rate is the board's tick rate over the stream divider, and the
                 // recorder's at most `sample_rate_hz`; below that, it falls as the excitation
                 // lengthens (the board's slots hold the whole run).
-                remedy: if stream_hz.min(self.sample_rate_hz)
-                    < fastest * MIN_SAMPLES_PER_FASTEST_CYCLE
-                {
+                remedy: if stream_hz.min(self.sample_rate_hz) < needed {
                     "name a slower motion (the board streams and records no faster)"
                 } else {
                     "name a slower motion, or shorten the excitation (fewer cycles of its parts: `--full-cycles`, `--decay-cycles`, `--loop-cycles`, `--multisine-cycles`) so that the recorder holds it at a higher rate"
