@@ -98,7 +98,15 @@ impl CalibrateOptions {
             Err(CalibrateError::Option { field, rule, value })
         };
         if let Err((field, rule, value)) = self.excitation().check() {
-            return bad(field, rule, value);
+            // The sweep's top is checked last: the excitation's frequency it is held against
+            // is good by then, and the message names both.
+            return match (field, self.fastest_hz) {
+                ("fastest_hz", Some(fastest_hz)) => Err(CalibrateError::FastestOutOfRange {
+                    fastest_hz,
+                    excitation_hz: self.excitation_hz,
+                }),
+                _ => bad(field, rule, value),
+            };
         }
         if !(self.amplitude > 0.0 && self.amplitude <= 1.0) {
             return bad("amplitude", "in (0, 1]", self.amplitude);

@@ -107,6 +107,15 @@ pub enum CalibrateError {
         /// What it was.
         value: f64,
     },
+    /// The fastest motion named is not above the excitation's frequency, or more than
+    /// [`crate::excitation::MAX_SWEEP_RATIO`] times it (or not a number).
+    #[error("calibrate option fastest_hz = {fastest_hz}: must be above the excitation's frequency, {excitation_hz} Hz (excitation_hz), and at most {} times it, {} Hz", crate::excitation::MAX_SWEEP_RATIO, crate::excitation::MAX_SWEEP_RATIO * excitation_hz)]
+    FastestOutOfRange {
+        /// The fastest motion named, Hz.
+        fastest_hz: f64,
+        /// The excitation's frequency, Hz.
+        excitation_hz: f64,
+    },
     /// The board would stream or record the excitation too coarsely for its fastest motion
     /// ([`CalibrateOptions::check_resolved`]).
     #[error("calibrate option fastest_hz = {fastest_hz}: the board streams the excitation at {stream_hz:.0} setpoints/s and records it at {recorded_hz:.0} frames/s, fewer than 20 a cycle of {fastest_hz} Hz; {remedy}")]

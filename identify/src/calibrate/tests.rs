@@ -77,11 +77,32 @@ fn bad_options_are_named() {
         .unwrap_err()
         .to_string()
         .contains("final_amplitude"));
-    let bad = CalibrateOptions {
-        fastest_hz: Some(8.0),
+    // A fastest motion at or below the excitation's frequency, beyond 1 000 times it, or not
+    // a number: refused, naming both frequencies and the range.
+    for fastest in [8.0, 10.0, 10_001.0, f64::NAN, f64::INFINITY, -5.0] {
+        let bad = CalibrateOptions {
+            fastest_hz: Some(fastest),
+            ..CalibrateOptions::default()
+        };
+        let e = bad.check().unwrap_err();
+        assert!(
+            matches!(e, CalibrateError::FastestOutOfRange { excitation_hz, .. } if excitation_hz == 10.0),
+            "{fastest}: {e}"
+        );
+        let text = e.to_string();
+        assert!(
+            text.contains("fastest_hz")
+                && text.contains("10 Hz (excitation_hz)")
+                && text.contains("10000 Hz"),
+            "{text}"
+        );
+    }
+    // The top of the range is allowed.
+    let top = CalibrateOptions {
+        fastest_hz: Some(10_000.0),
         ..CalibrateOptions::default()
     };
-    assert!(bad.check().unwrap_err().to_string().contains("fastest_hz"));
+    assert!(top.check().is_ok());
 }
 
 #[test]
