@@ -556,15 +556,19 @@ pub struct VariantTable {
     pub table: TrackingTable,
 }
 
-/// [`evaluate_methods`] on each of `variants` applied to `base`, the stages evaluated two at a
-/// time (each is independent and deterministic for its seed); with `board`, as
-/// [`evaluate_methods_with_triangles`] fits them.
+/// [`evaluate_methods`] on each of `variants` applied to `base`, each stage excited with
+/// `excitation`, the stages evaluated two at a time (each is independent and deterministic
+/// for its seed); with `board`, as [`evaluate_methods_with_triangles`] fits them. An
+/// excitation the stage's rate does not resolve is refused as there
+/// ([`check_excitation`]).
 pub fn evaluate_variants(
     base: &LabStageConfig,
     variants: &[StageVariant],
     methods: &[Method],
     board: Option<&BoardRate>,
+    excitation: &Excitation,
 ) -> Result<Vec<VariantTable>, VariantError> {
+    check_excitation(excitation, 1.0 / base.sample_period_s).map_err(VariantError::Excitation)?;
     let configs = variants
         .iter()
         .map(|(_, changes)| variant_config(base, changes))
@@ -574,7 +578,7 @@ pub fn evaluate_variants(
         let tables: Vec<Result<TrackingTable, LabStageError>> = std::thread::scope(|s| {
             let running: Vec<_> = configs
                 .iter()
-                .map(|c| s.spawn(move || evaluate_all(c, methods, &[], board, None, &EXCITATION)))
+                .map(|c| s.spawn(move || evaluate_all(c, methods, &[], board, None, excitation)))
                 .collect();
             running
                 .into_iter()
@@ -601,6 +605,9 @@ pub enum VariantError {
     /// A variant's stage is out of range.
     #[error(transparent)]
     Stage(#[from] LabStageError),
+    /// The excitation is not one the stage's rate resolves ([`check_excitation`]).
+    #[error("{0}")]
+    Excitation(String),
 }
 
 /// Prints one line per variant: its name, the uncompensated worst max and each method's
@@ -609,13 +616,17 @@ pub fn print_variants(
     tables: &[VariantTable],
     out: &mut impl std::io::Write,
 ) -> std::io::Result<()> {
-    writeln!(
-        out,
-        "Worst max tracking error (% of span) over the triangle, minor loops and multisine, per stage"
-    )?;
     let Some(first) = tables.first() else {
         return Ok(());
     };
+    writeln!(
+        out,
+        "Worst max tracking error (% of span) over the triangle, minor loops and multisine, per stage{}",
+        match first.table.fastest_hz {
+            Some(hz) => format!(" (identified with a sweep up to {hz} Hz)"),
+            None => String::new(),
+        }
+    )?;
     write!(out, "{:<22}", "stage")?;
     for row in &first.table.rows {
         let head = row.method.split(':').next().unwrap_or(&row.method);
@@ -736,6 +747,25 @@ pub fn evaluate_methods(
     evaluate_all(config, methods, &[], None, None, &EXCITATION)
 }
 
+/// Whether a stage sampled at `rate` Hz can be excited with `excitation`: the excitation is
+/// well formed ([`Excitation::check`]) and its fastest motion has at least
+/// [`MIN_SAMPLES_PER_CYCLE`] samples a cycle. The error names what is wrong and the limit.
+pub fn check_excitation(excitation: &Excitation, rate: f64) -> Result<(), String> {
+    if let Err((field, rule, value)) = excitation.check() {
+        return Err(format!(
+            "the excitation's {field} = {value}: must be {rule}"
+        ));
+    }
+    if excitation.fastest_hz() * MIN_SAMPLES_PER_CYCLE > rate {
+        return Err(format!(
+            "the excitation's fastest motion, {} Hz, is sampled with fewer than {MIN_SAMPLES_PER_CYCLE} samples a cycle at {rate} Hz: at most {} Hz",
+            excitation.fastest_hz(),
+            rate / MIN_SAMPLES_PER_CYCLE
+        ));
+    }
+    Ok(())
+}
+
 /// [`evaluate_methods`] with, after the three trajectories, a triangle at each of
 /// `triangles_hz` over the same span ([`triangle`]): one calibration, tracked from slow
 /// motion (creep) to fast (the stage's dynamics). A frequency [`triangle`] cannot sample at the
@@ -760,16 +790,7 @@ pub fn evaluate_methods_with_triangles(
     excitation: &Excitation,
 ) -> anyhow::Result<TrackingTable> {
     let rate = 1.0 / config.sample_period_s;
-    if let Err((field, rule, value)) = excitation.check() {
-        anyhow::bail!("the excitation's {field} = {value}: must be {rule}");
-    }
-    if excitation.fastest_hz() * MIN_SAMPLES_PER_CYCLE > rate {
-        anyhow::bail!(
-            "the excitation's fastest motion, {} Hz, is sampled with fewer than {MIN_SAMPLES_PER_CYCLE} samples a cycle at {rate} Hz: at most {} Hz",
-            excitation.fastest_hz(),
-            rate / MIN_SAMPLES_PER_CYCLE
-        );
-    }
+    check_excitation(excitation, rate).map_err(anyhow::Error::msg)?;
     for &hz in triangles_hz {
         if !triangle_fits(hz, rate) {
             anyhow::bail!(

@@ -3,7 +3,10 @@
 //! tracking table on it (`twinstack_cli::tracking`), printed with `--nocapture`.
 
 use hal_sim::plant::{LabStage, LabStageConfig, StageHysteresis};
-use twinstack_cli::tracking::{evaluate, excite, FIT_UNTIL_S, SAMPLE_RATE_HZ};
+use twinstack_cli::tracking::{
+    evaluate, evaluate_variants, excite, print_variants, Method, StageVariant, VariantError,
+    EXCITATION, FIT_UNTIL_S, SAMPLE_RATE_HZ,
+};
 use twinstack_identify::identification::score::score;
 use twinstack_identify::identification::{identify, IdentifyOptions, ModelKind};
 
@@ -256,6 +259,67 @@ fn tracking_table_compensated_pi_beats_no_compensation_on_every_trajectory() {
     // The figures are a function of the seed: the same evaluation again gives the same rows.
     let again = evaluate(&config, &options[..1]).unwrap();
     assert_eq!(again.rows[..], table.rows[..2]);
+}
+
+/// The stage variants are excited with the excitation asked for: with a sweep up to the
+/// fastest motion, each variant's table says so and its fit window is the swept
+/// excitation's; one the stage's rate does not resolve is refused before any stage runs,
+/// naming the limit.
+#[test]
+fn the_variants_are_identified_from_the_excitation_asked_for() {
+    let rate = 2_000.0;
+    let base = LabStageConfig::new(rate, 1);
+    let variants: [StageVariant; 2] = [
+        ("default", &[]),
+        (
+            "linear flexure",
+            &[("flexure_saturation_um", f64::INFINITY)],
+        ),
+    ];
+    let swept = EXCITATION.reaching(50.0);
+    let method = [Method::One(IdentifyOptions::new(
+        ModelKind::Pi,
+        swept.held_out_from_s(),
+    ))];
+    let tables = evaluate_variants(&base, &variants, &method, None, &swept).unwrap();
+    assert_eq!(tables.len(), 2);
+    for v in &tables {
+        assert_eq!(v.table.fastest_hz, Some(50.0), "{}", v.variant);
+        assert_eq!(v.table.excitation_s, swept.duration_s(), "{}", v.variant);
+        assert!(v.table.excitation_s > EXCITATION.duration_s());
+        let pi = v.table.row("pi").unwrap();
+        assert!(pi.error.is_none(), "{}: {:?}", v.variant, pi.error);
+    }
+    let mut text = Vec::new();
+    print_variants(&tables, &mut text).unwrap();
+    let text = String::from_utf8(text).unwrap();
+    assert!(text.contains("sweep up to 50 Hz"), "{text}");
+
+    // 200 Hz at 2 kHz is 10 samples a cycle: refused, naming the limit.
+    let e = evaluate_variants(&base, &variants, &method, None, &EXCITATION.reaching(200.0))
+        .unwrap_err();
+    assert!(matches!(e, VariantError::Excitation(_)), "{e}");
+    assert!(e.to_string().contains("at most 100 Hz"), "{e}");
+
+    // The CLI takes `--fastest-hz` with `--variants` and refuses it the same way.
+    let bad = std::process::Command::new(env!("CARGO_BIN_EXE_twinstack"))
+        .args([
+            "lab-stage",
+            "--variants",
+            "--rate",
+            "2000",
+            "--fastest-hz",
+            "200",
+        ])
+        .output()
+        .unwrap();
+    assert!(!bad.status.success());
+    let err = String::from_utf8_lossy(&bad.stderr);
+    assert!(
+        err.contains("200 Hz") && err.contains("at most 100 Hz"),
+        "{err}"
+    );
+    assert!(bad.stdout.is_empty(), "nothing printed");
 }
 
 /// The Bouc–Wen-class stage (`--hysteresis bouc-wen`): a P–I's and a generalised P–I's

@@ -13,7 +13,8 @@
 
 use hal_sim::plant::LabStageConfig;
 use twinstack_cli::tracking::{
-    evaluate_variants, print_variants, Method, FIT_UNTIL_S, SAMPLE_RATE_HZ, STAGE_VARIANTS,
+    evaluate_variants, print_variants, Method, EXCITATION, FIT_UNTIL_S, SAMPLE_RATE_HZ,
+    STAGE_VARIANTS,
 };
 use twinstack_identify::identification::{IdentifyOptions, ModelKind};
 
@@ -29,6 +30,7 @@ fn auto_holds_on_stages_it_was_not_tuned_on() {
         &STAGE_VARIANTS,
         &[Method::Auto(base.candidates()), Method::One(base.clone())],
         None,
+        &EXCITATION,
     )
     .unwrap();
     print_variants(&tables, &mut std::io::stdout()).unwrap();

@@ -1,8 +1,9 @@
-//! `twinstack lab-stage [--model pi,duhem] [--creep] [--output-map] [--seed N] [--json] [--without creep,…] [--set field=value,…]
-//! [--variants] [--tick-rate HZ] [--triangles 1,5,…] [--preview]`: the tracking table on the
-//! simulated laboratory stage ([`hal_sim::plant::lab_stage`], outside the model family) —
-//! identified from 2 s of 10 Hz excitation, then a triangle, nested minor loops and a
-//! multisine tracked open loop with each model's compensator and with none
+//! `twinstack lab-stage [--model pi,duhem] [--creep] [--output-map] [--seed N] [--json]
+//! [--without creep,…] [--set field=value,…] [--variants] [--tick-rate HZ] [--fastest-hz HZ]
+//! [--triangles 1,5,…] [--preview]`: the tracking table on the simulated laboratory stage
+//! ([`hal_sim::plant::lab_stage`], outside the model family) — identified from 2 s of 10 Hz
+//! excitation (with `--fastest-hz`, a sweep up to it too), then a triangle, nested minor loops
+//! and a multisine tracked open loop with each model's compensator and with none
 //! ([`crate::tracking`]); with `--variants`, the worst error on each of
 //! [`crate::tracking::STAGE_VARIANTS`] (stages the family was not tuned on); with
 //! `--preview`, each model again with every trajectory shaped for the stage's resonance,
@@ -50,8 +51,8 @@ pub struct Args {
     pub fit_until: Option<f64>,
     /// The fastest motion to be run, Hz: the excitation gains a sweep up to it before its
     /// multisine, as `calibrate --fastest-hz` streams it (at least 20 samples a cycle at
-    /// `--rate`).
-    #[arg(long, value_name = "HZ", conflicts_with = "variants")]
+    /// `--rate`); with `--variants`, every variant is identified from it.
+    #[arg(long, value_name = "HZ")]
     pub fastest_hz: Option<f64>,
     /// Print the table as JSON.
     #[arg(long)]
@@ -275,7 +276,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
             StageHysteresis::Preisach => &STAGE_VARIANTS,
             StageHysteresis::BoucWen => &BOUC_WEN_VARIANTS,
         };
-        let tables = evaluate_variants(&config, variants, &methods, board.as_ref())?;
+        let tables = evaluate_variants(&config, variants, &methods, board.as_ref(), &excitation)?;
         if args.json {
             use std::io::Write;
             serde_json::to_writer_pretty(&mut stdout, &tables)?;

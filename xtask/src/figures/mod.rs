@@ -533,6 +533,22 @@ const FIGURES: &[Figure] = &[
         render: Render::One(variants_table),
     },
     Figure {
+        name: "lab-stage-variants-swept",
+        page: "docs/src/results/lab-stage.md",
+        runs: &[&[
+            "lab-stage",
+            "--variants",
+            "--model",
+            "auto,pi",
+            "--fastest-hz",
+            "200",
+        ]],
+        // As `lab-stage-variants`: minutes; written when named, not re-run by the gate.
+        source: Source::Tool,
+        checked: false,
+        render: Render::One(variants_table),
+    },
+    Figure {
         name: "lab-stage-bouc-wen",
         page: "docs/src/results/lab-stage.md",
         runs: &[
