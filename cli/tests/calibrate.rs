@@ -562,6 +562,15 @@ fn the_fastest_motion_named_is_swept_on_the_board_and_one_it_cannot_record_is_re
         "shortest half-period {shortest} s of {} crossings",
         crossings.len()
     );
+    // The file records the motion the model was fitted on: the sweep's, not an octave short
+    // of the 200 Hz named (its window tapers the top).
+    let seen = report
+        .file
+        .identification
+        .as_ref()
+        .and_then(|r| r.fastest_motion_hz)
+        .unwrap();
+    assert!((100.0..=200.0).contains(&seen), "{seen}");
 
     let mut client = sim_client(SimDeviceConfig::paper());
     let before = client.status().unwrap().next_seq;

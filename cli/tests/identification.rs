@@ -417,6 +417,61 @@ fn identify_refuses_a_split_that_leaves_nothing_to_score() {
     );
 }
 
+/// `identify` says how fast the fitted part moves and records it in the file; with
+/// `--fastest-hz` above an octave beyond it, it says the model has not seen that rate and how
+/// to record one that has; a `--fastest-hz` that is not a positive number of Hz is refused by
+/// name, with nothing written.
+#[test]
+fn identify_says_how_fast_the_record_moves_and_advises_where_the_motion_named_is_faster() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = measured_data("piezo-bipolar-150v-1hz.csv");
+    let d = data.to_str().unwrap();
+    let out = dir.path().join("p.json");
+    let o = out.to_str().unwrap();
+    let args = |extra: &[&'static str]| {
+        let mut a = vec![
+            "identify",
+            "--model",
+            "pi",
+            "--data",
+            d,
+            "--fit-until",
+            "5.95",
+            "--out",
+            o,
+        ];
+        a.extend_from_slice(extra);
+        a
+    };
+    // The record is a 1 Hz sine: so it reads, and 200 Hz is far beyond it.
+    let text = ok(&args(&["--fastest-hz", "200"]));
+    assert!(
+        text.contains("swings by a fifth of its span or more at up to about 1.0 Hz"),
+        "{text}"
+    );
+    assert!(
+        text.contains("you will run 200 Hz") && text.contains("calibrate --fastest-hz 200"),
+        "{text}"
+    );
+    let file: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&out).unwrap()).unwrap();
+    let recorded = file["identification"]["fastest_motion_hz"]
+        .as_f64()
+        .unwrap();
+    assert!((recorded - 1.0).abs() < 0.05, "{recorded}");
+    // Within an octave of the record's motion, or not named: no advice.
+    for extra in [&["--fastest-hz", "1.5"][..], &[]] {
+        let text = ok(&args(extra));
+        assert!(text.contains("about 1.0 Hz"), "{text}");
+        assert!(!text.contains("you will run"), "{extra:?}: {text}");
+    }
+    std::fs::remove_file(&out).unwrap();
+    for bad in ["0", "-5", "NaN", "inf"] {
+        let err = fails(&args(&["--fastest-hz", bad]), &[&out]);
+        assert!(err.contains("--fastest-hz"), "{bad}: {err}");
+    }
+}
+
 /// `--lag` takes a whole or a half number of samples (a half: the reading of a held drive's
 /// end) and stores it in seconds; anything else is refused by name, and nothing is written.
 #[test]

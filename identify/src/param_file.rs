@@ -92,6 +92,12 @@ pub struct IdentificationRecord {
     pub inverse_fixed_vs_reference_max_pct: f64,
     /// What the fit had to do.
     pub notes: Vec<String>,
+    /// The fitted part's fastest motion, Hz: the highest rate at which its drive swings by a
+    /// fifth of its span or more between two turning points
+    /// ([`crate::identification::coverage`]) — the fastest the model has seen. Absent where
+    /// the drive never swings that far, and in files from before it was recorded.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub fastest_motion_hz: Option<f64>,
 }
 
 /// The whole file.

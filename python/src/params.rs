@@ -228,6 +228,17 @@ impl Params {
         self.file.resonance.map(|r| (r.frequency_hz, r.damping))
     }
 
+    /// The fastest motion the model was fitted on, Hz: the highest rate at which the fitted
+    /// part's drive swings by a fifth of its span or more; `None` where the file does not
+    /// say (a file written before it was recorded, or by hand).
+    #[getter]
+    fn fastest_motion_hz(&self) -> Option<f64> {
+        self.file
+            .identification
+            .as_ref()
+            .and_then(|r| r.fastest_motion_hz)
+    }
+
     /// The unit of the model's output (the identified record's `x`).
     #[getter]
     fn output_unit(&self) -> &str {

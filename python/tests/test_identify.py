@@ -51,6 +51,8 @@ def test_the_cli_and_python_identify_the_same_model_and_read_each_others_files(
     assert a["identification"]["held_out"] == b["identification"]["held_out"]
     assert b["identification"]["fit_until_s"] == 16.0
     assert ours.identification["held_out"]["max_pct"] < 3.0
+    # Both record the motion the model was fitted on: the record's 1 Hz.
+    assert from_cli.fastest_motion_hz == ours.fastest_motion_hz == pytest.approx(1.0, rel=0.05)
     # Python writes, the CLI reads and runs it: its prediction is Python's.
     py_file = tmp_path / "py.json"
     ours.save(py_file)

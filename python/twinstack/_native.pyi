@@ -99,6 +99,12 @@ class Params:
     def sensor_lag_s(self) -> float:
         """The sensor's lag behind the drive, seconds."""
     @property
+    def fastest_motion_hz(self) -> Optional[float]:
+        """The fastest motion the model was fitted on, Hz: the highest rate at which the
+        fitted part's drive swings by a fifth of its span or more; ``None`` where the file
+        does not say. A model holds at the rates it was fitted on: for faster motion,
+        calibrate with ``Board.calibrate(fastest_hz=...)``."""
+    @property
     def resonance(self) -> Optional[Tuple[float, float]]:
         """The stage's resonance as ``calibrate`` measured it, ``(frequency_hz, damping)``,
         or ``None``: pass it as ``resonance=`` to :meth:`compensate` or :meth:`Board.stream`

@@ -357,6 +357,7 @@ fn identification_record(
             .ok_or_else(flat)?
             .max_pct,
         notes: id.notes.clone(),
+        fastest_motion_hz: crate::identification::coverage::fastest_motion_in(t, u, fit_from..held),
     };
     Ok((record, predicted))
 }

@@ -44,6 +44,7 @@
 mod alternation;
 pub mod auto;
 pub mod bouc_wen;
+pub mod coverage;
 pub mod creep;
 pub mod duhem;
 pub mod gpi;

@@ -6,6 +6,7 @@
 use super::auto::{
     identify_admitted, identify_auto_admitting, Admission, AutoIdentification, Resize,
 };
+use super::coverage::fastest_motion_in;
 use super::score::{score, ErrorFigures};
 use super::{Identification, IdentifyError, IdentifyOptions, ModelKind};
 use crate::param_file::{IdentificationRecord, ParamFile};
@@ -551,6 +552,7 @@ pub fn identify_and_score(
         fixed_vs_reference_max_pct: fixed_vs_reference.max_pct,
         inverse_fixed_vs_reference_max_pct: inverse_fixed_vs_reference.max_pct,
         notes: id.notes.clone(),
+        fastest_motion_hz: fastest_motion_in(t, u, fit_from..held),
     };
     let file = ParamFile::from_model(model, output_unit, Some(record.clone()))
         .with_observer(options.observer);
