@@ -98,8 +98,12 @@ pub fn fastest_motion_hz(t: &[f64], u: &[f64]) -> Option<f64> {
     let mut fastest: Option<f64> = None;
     let mut turn = |k: usize, last: &mut Option<usize>| {
         if let Some(j) = *last {
+            // Times so close that the rate is not a finite number (a hostile time axis) say
+            // nothing.
             let hz = 0.5 / (t[k] - t[j]);
-            fastest = Some(fastest.map_or(hz, |f: f64| f.max(hz)));
+            if hz.is_finite() && hz > 0.0 {
+                fastest = Some(fastest.map_or(hz, |f: f64| f.max(hz)));
+            }
         }
         *last = Some(k);
     };
@@ -209,6 +213,29 @@ mod tests {
         assert!(!falls_short(Some(default), 50.0));
     }
 
+    proptest::proptest! {
+        /// Any record, however hostile (values of any size or none at all, times that jump,
+        /// repeat or go back): an answer or `None`, never a panic; an answer is positive and
+        /// finite.
+        #[test]
+        fn any_record_gives_a_finite_rate_or_none(
+            t in proptest::collection::vec(proptest::num::f64::ANY, 0..200),
+            u in proptest::collection::vec(proptest::num::f64::ANY, 0..200),
+            sorted in proptest::bool::ANY,
+        ) {
+            let mut t = t;
+            if sorted {
+                t.sort_by(f64::total_cmp);
+            }
+            if let Some(hz) = fastest_motion_hz(&t, &u) {
+                proptest::prop_assert!(hz.is_finite() && hz > 0.0, "{hz}");
+            }
+            let n = t.len().min(u.len());
+            proptest::prop_assert_eq!(fastest_motion_in(&t, &u, 0..n), fastest_motion_hz(&t, &u));
+            proptest::prop_assert_eq!(fastest_motion_in(&t, &u, 0..n + 1), None);
+        }
+    }
+
     #[test]
     fn records_it_cannot_read_are_none() {
         let rate = 10_000.0;
@@ -228,6 +255,9 @@ mod tests {
         let mut back = t.clone();
         back[100] = back[98];
         assert_eq!(fastest_motion_hz(&back, &u), None);
+        // Times so close that no rate is finite: none.
+        let u4 = [0.0, 1.0, 0.0, 1.0];
+        assert_eq!(fastest_motion_hz(&[0.0, 1e-320, 2e-320, 3e-320], &u4), None);
         // Mismatched lengths read the common part.
         assert!(fastest_motion_hz(&t, &u[..5_000]).is_some());
     }
