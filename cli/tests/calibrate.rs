@@ -97,7 +97,15 @@ fn the_lab_workflow_calibrates_the_virtual_stage_below_one_percent_then_streams_
     let (file, _) =
         twinstack_identify::param_file::ParamFile::load(&params).expect("a parameter file");
     assert_eq!(file.settings.mode, Mode::OpenLoop);
-    assert!(file.identification.is_some());
+    // The excitation's fastest motion, as fitted, in the file and the report: the default
+    // excitation's nested loops, tens of hertz.
+    let seen = file
+        .identification
+        .as_ref()
+        .and_then(|i| i.fastest_motion_hz)
+        .expect("the fitted motion in the file");
+    assert!((20.0..60.0).contains(&seen), "{seen}");
+    assert_eq!(v["fastest_motion_hz"], seen);
     // The stage's resonance measured after the excitation as `tune` measures it (the
     // simulated stage's 21.8 kHz, damping 0.017), in the report and in the file.
     let resonance = file.resonance.expect("the resonance in the parameter file");

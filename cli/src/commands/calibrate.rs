@@ -170,6 +170,8 @@ pub fn report_json(r: &CalibrationReport, out: &Path, png: &Path) -> serde_json:
             v
         }).collect::<Vec<_>>(),
         "held_out": r.held_out,
+        // The excitation's fastest motion as the model was fitted on it (`identify`'s).
+        "fastest_motion_hz": r.file.identification.as_ref().and_then(|i| i.fastest_motion_hz),
         "tracking_before": r.before,
         "tracking_after": r.after,
         "trajectory_range": [r.trajectory_range.0, r.trajectory_range.1],
@@ -275,6 +277,14 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         "held-out last cycle: max {:.2} %  RMS {:.2} % of span",
         report.held_out.max_pct, report.held_out.rms_pct
     );
+    // What the model has seen of fast motion: the excitation's, the sweep's with
+    // `--fastest-hz` (never an octave short of it, so no advice is due).
+    let seen = report
+        .file
+        .identification
+        .as_ref()
+        .and_then(|r| r.fastest_motion_hz);
+    println!("motion: {}", super::identify::motion_advice(seen, None).0);
     println!(
         "tracking over {:.2} … {:.2} {unit} (triangle + nested minor loops), % of span:",
         report.trajectory_range.0, report.trajectory_range.1

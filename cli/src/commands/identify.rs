@@ -107,7 +107,7 @@ pub struct Args {
 
 /// The record's fastest motion in words, and with `named` (`--fastest-hz`) where it falls
 /// short of that, the advice (`None` where it does not).
-fn motion_advice(fastest: Option<f64>, named: Option<f64>) -> (String, Option<String>) {
+pub(crate) fn motion_advice(fastest: Option<f64>, named: Option<f64>) -> (String, Option<String>) {
     let hz = |f: f64| {
         if f >= 10.0 {
             format!("{f:.0} Hz")
