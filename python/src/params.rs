@@ -14,7 +14,7 @@ use twinstack_identify::identification::run::{
     RunError,
 };
 use twinstack_identify::identification::{
-    IdentifyError, IdentifyOptions, ModelKind, ThresholdSpread, DEFAULT_OPERATORS,
+    coverage, IdentifyError, IdentifyOptions, ModelKind, ThresholdSpread, DEFAULT_OPERATORS,
 };
 use twinstack_identify::param_file::ParamFile;
 use twinstack_identify::preview::ResonancePreview;
@@ -335,7 +335,7 @@ pub(crate) fn load_params(path: PathBuf) -> PyResult<Params> {
 
 /// Identifies a model from a measured record (`t` seconds, `u` drive volts, `x` reading).
 #[pyfunction]
-#[pyo3(signature = (t, u, x, model="auto", creep=None, fit_until=None, operators=None, thresholds="uniform", lag=None, output_unit="um", tick_rate=None, observer=true, output_map=false))]
+#[pyo3(signature = (t, u, x, model="auto", creep=None, fit_until=None, operators=None, thresholds="uniform", lag=None, output_unit="um", tick_rate=None, observer=true, output_map=false, fastest_hz=None))]
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn identify(
     py: Python<'_>,
@@ -352,8 +352,16 @@ pub(crate) fn identify(
     tick_rate: Option<f64>,
     observer: bool,
     output_map: bool,
+    fastest_hz: Option<f64>,
 ) -> PyResult<Params> {
     let choice = parse_model(model).map_err(PyValueError::new_err)?;
+    if let Some(hz) = fastest_hz {
+        if !(hz.is_finite() && hz > 0.0) {
+            return Err(PyValueError::new_err(format!(
+                "fastest_hz {hz}: not a positive number of Hz"
+            )));
+        }
+    }
     if let Some(rate) = tick_rate {
         check_tick_rate(rate).map_err(|e| PyValueError::new_err(format!("tick_rate {e}")))?;
     }
@@ -398,6 +406,26 @@ pub(crate) fn identify(
         e => PyValueError::new_err(e.to_string()),
     })?;
     let ranking = run.auto.as_ref().map(|a| a.ranking.clone());
+    // A record an octave slower than the motion named: the same advice `identify
+    // --fastest-hz` prints, as a `UserWarning` (the model is still returned).
+    if let Some(advice) = fastest_hz.and_then(|n| {
+        coverage::advice(
+            run.file
+                .identification
+                .as_ref()
+                .and_then(|r| r.fastest_motion_hz),
+            n,
+        )
+    }) {
+        let message =
+            std::ffi::CString::new(advice).map_err(|e| PyValueError::new_err(e.to_string()))?;
+        PyErr::warn(
+            py,
+            &py.get_type::<pyo3::exceptions::PyUserWarning>(),
+            &message,
+            1,
+        )?;
+    }
     Ok(Params {
         model: run.identification.model,
         file: run.file,

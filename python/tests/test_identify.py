@@ -2,6 +2,7 @@
 
 import json
 import subprocess
+import warnings
 
 import numpy as np
 import pytest
@@ -53,6 +54,17 @@ def test_the_cli_and_python_identify_the_same_model_and_read_each_others_files(
     assert ours.identification["held_out"]["max_pct"] < 3.0
     # Both record the motion the model was fitted on: the record's 1 Hz.
     assert from_cli.fastest_motion_hz == ours.fastest_motion_hz == pytest.approx(1.0, rel=0.05)
+    # Named faster than an octave beyond it, the run warns (and still returns the model), as
+    # the CLI notes; within an octave, it does not.
+    with pytest.warns(UserWarning, match=r"calibrate --fastest-hz 200"):
+        warned = twinstack.identify(t, u, x, model="pi", fit_until=16.0, fastest_hz=200.0)
+    assert warned.to_json() == ours.to_json()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        twinstack.identify(t, u, x, model="pi", fit_until=16.0, fastest_hz=1.5)
+    for bad in (0.0, -5.0, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="fastest_hz"):
+            twinstack.identify(t, u, x, model="pi", fit_until=16.0, fastest_hz=bad)
     # Python writes, the CLI reads and runs it: its prediction is Python's.
     py_file = tmp_path / "py.json"
     ours.save(py_file)

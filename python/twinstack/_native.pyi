@@ -143,6 +143,7 @@ def identify(
     tick_rate: Optional[float] = None,
     observer: bool = True,
     output_map: bool = False,
+    fastest_hz: Optional[float] = None,
 ) -> Params:
     """Identifies a hysteresis model from a measured record: ``t`` seconds (strictly
     increasing), ``u`` the drive in volts, ``x`` the measured output.
@@ -166,8 +167,12 @@ def identify(
     (four dead zones a side) is fitted after the Bouc-Wen model, the model refined with it,
     and kept only where it lowers the fit error (``twinstack identify --output-map``); with
     ``"auto"`` only the Bouc-Wen candidates with a map are ranked (without it, ``auto`` ranks
-    Bouc-Wen with and without one); another model raises ``ValueError``. Runs without the
-    interpreter's lock. ``ValueError`` says why a record cannot be fitted."""
+    Bouc-Wen with and without one); another model raises ``ValueError``. ``fastest_hz``: the
+    fastest motion the model will run, Hz; where the fitted part's own
+    (:attr:`Params.fastest_motion_hz`) is more than an octave slower, a ``UserWarning`` says
+    so and how to record one that reaches it, as ``twinstack identify --fastest-hz`` does
+    (the model is still returned). Runs without the interpreter's lock. ``ValueError`` says
+    why a record cannot be fitted."""
 
 def settings_schema() -> List[Tuple[str, str]]:
     """Every settings path with what it holds, as ``(path, kind)`` pairs (``twinstack settings

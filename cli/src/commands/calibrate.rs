@@ -284,7 +284,10 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         .identification
         .as_ref()
         .and_then(|r| r.fastest_motion_hz);
-    println!("motion: {}", super::identify::motion_advice(seen, None).0);
+    println!(
+        "motion: {}",
+        twinstack_identify::identification::coverage::seen(seen)
+    );
     println!(
         "tracking over {:.2} … {:.2} {unit} (triangle + nested minor loops), % of span:",
         report.trajectory_range.0, report.trajectory_range.1

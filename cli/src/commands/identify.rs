@@ -7,7 +7,7 @@ use crate::plot::{draw, IdentificationFigure};
 use anyhow::{anyhow, bail};
 use std::path::PathBuf;
 use twinstack_identify::identification::auto::{Size, INVERSE_TO_FORWARD_LIMIT};
-use twinstack_identify::identification::coverage::falls_short;
+use twinstack_identify::identification::coverage;
 use twinstack_identify::identification::run::{
     check_tick_rate, identify_and_score, BoardRate, RunError,
 };
@@ -103,38 +103,6 @@ pub struct Args {
     /// and how to record an excitation that reaches it (`twinstack calibrate --fastest-hz`).
     #[arg(long, value_name = "HZ", allow_negative_numbers = true)]
     pub fastest_hz: Option<f64>,
-}
-
-/// The record's fastest motion in words, and with `named` (`--fastest-hz`) where it falls
-/// short of that, the advice (`None` where it does not).
-pub(crate) fn motion_advice(fastest: Option<f64>, named: Option<f64>) -> (String, Option<String>) {
-    let hz = |f: f64| {
-        if f >= 10.0 {
-            format!("{f:.0} Hz")
-        } else {
-            format!("{f:.1} Hz")
-        }
-    };
-    let seen = match fastest {
-        Some(f) => format!(
-            "the fitted part swings by a fifth of its span or more at up to about {}",
-            hz(f)
-        ),
-        None => "the fitted part's drive never swings by a fifth of its span".into(),
-    };
-    let advice = named.filter(|&n| falls_short(fastest, n)).map(|n| {
-        let seen = match fastest {
-            Some(f) => format!("the model has seen motion up to about {}", hz(f)),
-            None => "the model has seen no swing of a fifth of the span".into(),
-        };
-        format!(
-            "{seen} and you will run {}: creep and dynamics faster than the record are folded \
-             into its gain, and its compensator may not hold there; record an excitation that \
-             reaches it (`twinstack calibrate --fastest-hz {n}` sweeps up to it)",
-            hz(n)
-        )
-    });
-    (seen, advice)
 }
 
 use twinstack::config::tick_budget::coarse_task_share;
@@ -301,9 +269,11 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     for note in &id.notes {
         println!("  note: {note}");
     }
-    let (seen, advice) = motion_advice(record.fastest_motion_hz, args.fastest_hz);
-    println!("  motion: {seen}");
-    if let Some(advice) = advice {
+    println!("  motion: {}", coverage::seen(record.fastest_motion_hz));
+    if let Some(advice) = args
+        .fastest_hz
+        .and_then(|n| coverage::advice(record.fastest_motion_hz, n))
+    {
         println!("  note: {advice}");
     }
     println!("  fit      (predict vs measured x): {}", show(&fit));
@@ -352,26 +322,4 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     out.commit()?;
     println!("wrote {} and {}", args.out.display(), figure_path.display());
     Ok(())
-}
-
-#[cfg(test)]
-mod tests {
-    use super::motion_advice;
-
-    #[test]
-    fn the_motion_is_said_and_advice_given_only_an_octave_short() {
-        let (seen, advice) = motion_advice(Some(12.0), None);
-        assert!(seen.contains("about 12 Hz"), "{seen}");
-        assert_eq!(advice, None);
-        assert_eq!(motion_advice(Some(12.0), Some(20.0)).1, None);
-        let advice = motion_advice(Some(0.5), Some(200.0)).1.unwrap();
-        assert!(
-            advice.contains("up to about 0.5 Hz and you will run 200 Hz")
-                && advice.contains("calibrate --fastest-hz 200"),
-            "{advice}"
-        );
-        let (seen, advice) = motion_advice(None, Some(5.0));
-        assert!(seen.contains("never swings"), "{seen}");
-        assert!(advice.unwrap().starts_with("the model has seen no swing"));
-    }
 }

@@ -43,6 +43,60 @@ pub fn falls_short(fastest: Option<f64>, named_hz: f64) -> bool {
     fastest.is_none_or(|f| f < SHORT_OF * named_hz)
 }
 
+/// A rate in words: whole hertz from 10 Hz up, a tenth below.
+fn hz(f: f64) -> String {
+    if f >= 10.0 {
+        format!("{f:.0} Hz")
+    } else {
+        format!("{f:.1} Hz")
+    }
+}
+
+/// What a record's fastest motion ([`fastest_motion_hz`] of its fitted part) says, in words:
+/// what `identify` and `calibrate` print.
+///
+/// ```
+/// use twinstack_identify::identification::coverage::seen;
+/// assert_eq!(
+///     seen(Some(37.2)),
+///     "the fitted part swings by a fifth of its span or more at up to about 37 Hz"
+/// );
+/// ```
+pub fn seen(fastest: Option<f64>) -> String {
+    match fastest {
+        Some(f) => format!(
+            "the fitted part swings by a fifth of its span or more at up to about {}",
+            hz(f)
+        ),
+        None => "the fitted part's drive never swings by a fifth of its span".into(),
+    }
+}
+
+/// Where a record whose fastest motion is `fastest` falls short of the fastest motion the
+/// user names ([`falls_short`]), the advice, in words (`None` where it does not): what
+/// `identify --fastest-hz` prints and Python's `identify(fastest_hz=…)` warns.
+///
+/// ```
+/// use twinstack_identify::identification::coverage::advice;
+/// assert_eq!(advice(Some(12.0), 20.0), None);
+/// assert!(advice(Some(1.0), 200.0).unwrap().contains("calibrate --fastest-hz 200"));
+/// ```
+pub fn advice(fastest: Option<f64>, named_hz: f64) -> Option<String> {
+    if !falls_short(fastest, named_hz) {
+        return None;
+    }
+    let seen = match fastest {
+        Some(f) => format!("the model has seen motion up to about {}", hz(f)),
+        None => "the model has seen no swing of a fifth of the span".into(),
+    };
+    Some(format!(
+        "{seen} and you will run {}: creep and dynamics faster than the record are folded into \
+         its gain, and its compensator may not hold there; record an excitation that reaches it \
+         (`twinstack calibrate --fastest-hz {named_hz}` sweeps up to it)",
+        hz(named_hz)
+    ))
+}
+
 /// [`fastest_motion_hz`] over `rows` of the record (the fitted part, say): `None` where the
 /// rows are not all in both `t` and `u`.
 pub fn fastest_motion_in(t: &[f64], u: &[f64], rows: core::ops::Range<usize>) -> Option<f64> {
@@ -234,6 +288,22 @@ mod tests {
             proptest::prop_assert_eq!(fastest_motion_in(&t, &u, 0..n), fastest_motion_hz(&t, &u));
             proptest::prop_assert_eq!(fastest_motion_in(&t, &u, 0..n + 1), None);
         }
+    }
+
+    #[test]
+    fn the_motion_is_said_and_advice_given_only_an_octave_short() {
+        assert!(seen(Some(0.52)).ends_with("about 0.5 Hz"));
+        assert!(seen(None).contains("never swings"));
+        assert_eq!(advice(Some(12.0), 24.0), None);
+        let a = advice(Some(0.5), 200.0).unwrap();
+        assert!(
+            a.starts_with("the model has seen motion up to about 0.5 Hz and you will run 200 Hz")
+                && a.contains("calibrate --fastest-hz 200"),
+            "{a}"
+        );
+        assert!(advice(None, 5.0)
+            .unwrap()
+            .starts_with("the model has seen no swing"));
     }
 
     #[test]
