@@ -150,26 +150,14 @@ pub fn fastest_motion_hz(t: &[f64], u: &[f64]) -> Option<f64> {
     let mut rising: Option<bool> = None;
     let mut last_turn: Option<usize> = None;
     let mut fastest: Option<f64> = None;
-    let mut turn = |k: usize, last: &mut Option<usize>| {
-        if let Some(j) = *last {
-            // Times so close that the rate is not a finite number (a hostile time axis) say
-            // nothing.
-            let hz = 0.5 / (t[k] - t[j]);
-            if hz.is_finite() && hz > 0.0 {
-                fastest = Some(fastest.map_or(hz, |f: f64| f.max(hz)));
-            }
-        }
-        *last = Some(k);
-    };
     for (k, &v) in u[..n].iter().enumerate() {
         match rising {
             None => {
-                // Until the first swing: track both extremes; the first turning point is
-                // the one the drive has left by a swing.
+                // Until the first swing: track both extremes, to know which way it goes. The
+                // drive's start is not a turning point (a record may start mid-swing): the
+                // first swing counted is the one after the first turn.
                 low = low.min(v);
                 high = high.max(v);
-                // The drive's start is not a turning point (a record may start mid-swing): the
-                // first swing counted is the one after the first turn.
                 if v - low >= swing {
                     rising = Some(true);
                     (extreme, at) = (v, k);
@@ -182,8 +170,17 @@ pub fn fastest_motion_hz(t: &[f64], u: &[f64]) -> Option<f64> {
                 if (up && v > extreme) || (!up && v < extreme) {
                     (extreme, at) = (v, k);
                 } else if (extreme - v).abs() >= swing {
-                    // The drive has come back a swing from its extremum: that was a turn.
-                    turn(at, &mut last_turn);
+                    // The drive has come back a swing from its extremum: that was a turn, and
+                    // the swing since the turn before it is half a cycle.
+                    if let Some(j) = last_turn {
+                        // Times so close that the rate is not a finite number (a hostile time
+                        // axis) say nothing.
+                        let hz = 0.5 / (t[at] - t[j]);
+                        if hz.is_finite() && hz > 0.0 {
+                            fastest = Some(fastest.map_or(hz, |f| f.max(hz)));
+                        }
+                    }
+                    last_turn = Some(at);
                     rising = Some(!up);
                     (extreme, at) = (v, k);
                 }
