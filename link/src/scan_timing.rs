@@ -42,6 +42,21 @@ pub enum PatternError {
         /// The value given.
         value: String,
     },
+    /// A count (lines, pixels, turn ticks, cycles, turns) that is not a whole number the
+    /// pattern holds.
+    #[error("{key}={value}: must be a whole number from 0 to 65535")]
+    Count {
+        /// The key.
+        key: String,
+        /// The value given.
+        value: f64,
+    },
+    /// A key given twice.
+    #[error("{key} is given twice")]
+    Repeated {
+        /// The key.
+        key: String,
+    },
 }
 
 /// Parses `raster:lines=64,pixels=100,turn=40,amplitude=0.5,offset=0,y-amplitude=0.5,y-offset=0`,
@@ -55,6 +70,10 @@ pub enum PatternError {
 /// let p = parse_pattern("raster:lines=8,turn=20").unwrap();
 /// assert!(matches!(p, ScanPattern::Raster(r) if r.lines == 8 && r.turn_ticks == 20 && r.pixels == 100));
 /// assert!(parse_pattern("raster:lines=x").is_err());
+/// // A count is taken as given or refused: never rounded, clamped, or given twice.
+/// assert!(parse_pattern("raster:lines=4.5").is_err());
+/// assert!(parse_pattern("raster:lines=99999999").is_err());
+/// assert!(parse_pattern("raster:lines=4,lines=5").is_err());
 /// ```
 pub fn parse_pattern(spec: &str) -> Result<ScanPattern, PatternError> {
     let (kind, rest) = spec.split_once(':').unwrap_or((spec, ""));
@@ -71,7 +90,24 @@ pub fn parse_pattern(spec: &str) -> Result<ScanPattern, PatternError> {
             Ok((k.trim().to_ascii_lowercase(), value))
         })
         .collect::<Result<Vec<_>, _>>()?;
-    let int = |v: f64| v.clamp(0.0, u16::MAX as f64).round() as u16;
+    if let Some((_, (key, _))) = pairs
+        .iter()
+        .enumerate()
+        .find(|(i, (k, _))| pairs[..*i].iter().any(|(seen, _)| seen == k))
+    {
+        return Err(PatternError::Repeated { key: key.clone() });
+    }
+    // A count as given: a whole number in range, never rounded or clamped into one.
+    let count = |key: &str, v: f64| {
+        if v.fract() == 0.0 && (0.0..=u16::MAX as f64).contains(&v) {
+            Ok(v as u16)
+        } else {
+            Err(PatternError::Count {
+                key: key.to_string(),
+                value: v,
+            })
+        }
+    };
     match kind.trim().to_ascii_lowercase().as_str() {
         "raster" => {
             let mut r = RasterScan {
@@ -85,9 +121,9 @@ pub fn parse_pattern(spec: &str) -> Result<ScanPattern, PatternError> {
             };
             for (k, v) in pairs {
                 match k.as_str() {
-                    "lines" => r.lines = int(v),
-                    "pixels" => r.pixels = int(v),
-                    "turn" => r.turn_ticks = int(v),
+                    "lines" => r.lines = count(&k, v)?,
+                    "pixels" => r.pixels = count(&k, v)?,
+                    "turn" => r.turn_ticks = count(&k, v)?,
                     "offset" => r.offset = v,
                     "amplitude" => r.amplitude = v,
                     "y-offset" => r.y_offset = v,
@@ -117,8 +153,8 @@ pub fn parse_pattern(spec: &str) -> Result<ScanPattern, PatternError> {
             for (k, v) in pairs {
                 match k.as_str() {
                     "hz" => l.frame_hz = v,
-                    "x" => l.x_cycles = int(v),
-                    "y" => l.y_cycles = int(v),
+                    "x" => l.x_cycles = count(&k, v)?,
+                    "y" => l.y_cycles = count(&k, v)?,
                     "phase" => l.y_phase_deg = v,
                     "offset" => l.offset = v,
                     "amplitude" => l.amplitude = v,
@@ -146,7 +182,7 @@ pub fn parse_pattern(spec: &str) -> Result<ScanPattern, PatternError> {
             for (k, v) in pairs {
                 match k.as_str() {
                     "hz" => s.turn_hz = v,
-                    "turns" => s.turns = int(v),
+                    "turns" => s.turns = count(&k, v)?,
                     "offset" => s.offset = v,
                     "amplitude" => s.amplitude = v,
                     "y-offset" => s.y_offset = v,

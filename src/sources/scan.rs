@@ -515,7 +515,12 @@ impl ScanGenerator {
                 let step = libm::round(s.turn_hz / rate_hz * 4_294_967_296.0) as u32;
                 let e_step = step / (2 * s.turns as u32);
                 if e_step == 0 {
-                    // The envelope would never move: fewer turns, or a faster turn rate.
+                    // The envelope would never move: fewer turns, or a faster turn rate. A
+                    // turn rate so slow that no number of turns moves it is named itself.
+                    if step / 2 == 0 {
+                        let least = 2.0 * s.turns as f64 * rate_hz / 4_294_967_296.0;
+                        return Err(refuse(Field::ScanFrequency, Rule::AtLeast(least)));
+                    }
                     return Err(refuse(Field::ScanLines, Rule::AtMost((step / 2) as f64)));
                 }
                 let m = Spiral {
@@ -1441,6 +1446,24 @@ mod tests {
         assert_eq!(bad(l, 1 << 16, 1).field, Field::ScanFrequency);
         assert_eq!(bad(spiral(0, 1), FAST, 1).field, Field::ScanLines);
         assert_eq!(bad(spiral(3, 1), 1 << 16, 1).field, Field::ScanFrequency);
+        // Too many turns for the turn rate: the turns it holds; a turn rate so slow that no
+        // number of turns moves the envelope: the least turn rate for these turns.
+        let slow = |hz: f64, turns: u16| {
+            let mut r = spiral(turns, 1);
+            if let ScanPattern::Spiral(p) = &mut r.pattern {
+                p.turn_hz = hz;
+            }
+            bad(r, FAST, 1)
+        };
+        let r = slow(1e-4, 10);
+        assert!(matches!(r.rule, Rule::AtMost(x) if x >= 1.0), "{r:?}");
+        assert_eq!(r.field, Field::ScanLines);
+        let r = slow(1e-300, 10);
+        assert_eq!(r.field, Field::ScanFrequency);
+        assert!(
+            matches!(r.rule, Rule::AtLeast(x) if x > 1e-4 && x < 1e-3),
+            "{r:?}"
+        );
     }
 
     #[test]
