@@ -306,6 +306,74 @@ fn bad_parameter_files_and_flags_are_refused_before_anything_is_sent() {
         ],
         "--count must be at least 1",
     );
+    // A wait beyond a day, or not a number of seconds (a huge one used to panic converting
+    // it to a duration): a usage error naming the value.
+    for wait in ["1e20", "nan", "-1", "0"] {
+        let wait = format!("--wait-s={wait}");
+        refused(
+            &[
+                "record",
+                "--port",
+                &pty.path,
+                "--signals",
+                "setpoint",
+                "--samples",
+                "10",
+                &wait,
+                "--out",
+                "x.csv",
+            ],
+            "a number of seconds above 0 and at most 86400",
+        );
+        refused(
+            &[
+                "scan",
+                "--port",
+                &pty.path,
+                "--pattern",
+                "raster:lines=4,pixels=10",
+                &wait,
+                "--out",
+                "x.png",
+            ],
+            "a number of seconds above 0 and at most 86400",
+        );
+    }
+    refused(
+        &[
+            "telemetry",
+            "--port",
+            &pty.path,
+            "--signals",
+            "sensor",
+            "--duration",
+            "1e20",
+            "--out",
+            "x.csv",
+        ],
+        "86400",
+    );
+    // A scan's counts are taken as given or refused, never rounded or clamped.
+    for (pattern, needle) in [
+        ("raster:lines=4.5", "lines=4.5: must be a whole number"),
+        ("raster:lines=99999999", "from 0 to 65535"),
+        ("raster:turn=-5", "turn=-5"),
+        ("raster:lines=4,lines=5", "lines is given twice"),
+        ("spiral:turns=1e9", "turns=1000000000"),
+    ] {
+        refused(
+            &[
+                "scan",
+                "--port",
+                &pty.path,
+                "--pattern",
+                pattern,
+                "--out",
+                "x.png",
+            ],
+            needle,
+        );
+    }
     std::thread::sleep(Duration::from_millis(50));
     assert_eq!(
         *pty.received.lock().unwrap(),

@@ -248,9 +248,12 @@ pub fn wait_and_read_or_stop<T: Transport>(
     budget: Duration,
     mut progress: impl FnMut(&str, u32) -> ControlFlow<()>,
 ) -> Result<(CaptureStatus, Vec<i16>), CaptureError> {
-    let mut waited = Duration::ZERO;
+    // Measured on the link's clock (the board's own for the in-process board), round trips
+    // and all: not the sum of the sleeps between polls.
+    let start = client.now();
     let status = loop {
         let s = client.capture_status()?;
+        let waited = client.now().saturating_sub(start);
         // Every answer is honoured, the last poll's too: a caller that stops (a signal taken
         // while it was asked) is never left running.
         if progress("captured", s.captured).is_break() {
@@ -280,7 +283,6 @@ pub fn wait_and_read_or_stop<T: Transport>(
             });
         }
         client.wait(POLL)?;
-        waited += POLL;
     };
     let window = client.read_capture_window(status.window_slots, |n| {
         let _ = progress("read", n);

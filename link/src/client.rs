@@ -292,8 +292,8 @@ impl<T: Transport> Client<T> {
     }
 
     /// Time on the transport's clock (simulated time for the in-process board), else
-    /// wall-clock time since the client was made.
-    fn now(&self) -> Duration {
+    /// wall-clock time since the client was made: what a wait's budget is measured on.
+    pub fn now(&self) -> Duration {
         self.transport
             .clock()
             .unwrap_or_else(|| self.born.elapsed())

@@ -24,6 +24,7 @@
 use crate::capture::{self, ConvertError, Recording};
 use crate::client::{Client, LinkError};
 use crate::Transport;
+use std::ops::ControlFlow;
 use std::time::Duration;
 use twinstack::config::settings::Settings;
 use twinstack::protocol::messages::{CaptureState, CaptureStatus, NackReason, TelemetryFrame};
@@ -366,6 +367,15 @@ pub enum RunError {
         /// The values a second the board's telemetry sends at most.
         values: u32,
     },
+    /// The caller stopped the run ([`TelemetryRun::collect`]'s `progress` answered
+    /// [`ControlFlow::Break`]); telemetry was told to stop.
+    #[error("stopped after {got} of {wanted} samples")]
+    Stopped {
+        /// Samples received or accounted missing.
+        got: u64,
+        /// Samples asked for.
+        wanted: u64,
+    },
     /// Not every sample asked for came within the time allowed.
     #[error("{got} of {wanted} samples after {waited_s:.1} s: is the board ticking?")]
     Stalled {
@@ -442,20 +452,22 @@ impl TelemetryRun {
     }
 
     /// Receives until `wanted` samples have come (or are accounted missing), calling
-    /// `progress` with the count as frames arrive. The samples come at their rate: after
-    /// twice their duration plus the link's timeout without them, the board is taken not to
-    /// be sending them ([`RunError::Stalled`], telemetry stopped).
+    /// `progress` with the count as frames arrive; its [`ControlFlow::Break`] stops the run
+    /// ([`RunError::Stopped`], telemetry told to stop). The samples come at their rate: after
+    /// twice their duration plus the link's timeout without them (on the link's clock), the
+    /// board is taken not to be sending them ([`RunError::Stalled`], telemetry stopped).
     pub fn collect<T: Transport>(
         &mut self,
         client: &mut Client<T>,
         wanted: u64,
-        mut progress: impl FnMut(u64),
+        mut progress: impl FnMut(u64) -> ControlFlow<()>,
     ) -> Result<(), RunError> {
         let budget =
             Duration::from_secs_f64(2.0 * wanted as f64 / self.rate.rate_hz) + client.timeout();
         let step = Duration::from_millis(20);
-        let mut waited = Duration::ZERO;
+        let start = client.now();
         while self.reached() < wanted {
+            let waited = client.now().saturating_sub(start);
             if waited > budget {
                 let _ = client.stop_telemetry();
                 return Err(RunError::Stalled {
@@ -466,8 +478,13 @@ impl TelemetryRun {
             }
             let frames = client.collect_telemetry(step)?;
             self.record.add_all(&frames)?;
-            waited += step;
-            progress(self.reached().min(wanted));
+            if progress(self.reached().min(wanted)).is_break() {
+                let _ = client.stop_telemetry();
+                return Err(RunError::Stopped {
+                    got: self.reached(),
+                    wanted,
+                });
+            }
         }
         Ok(())
     }

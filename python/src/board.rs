@@ -17,6 +17,7 @@ use pyo3::exceptions::{
 };
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
+use std::ops::ControlFlow;
 use std::path::Path;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Mutex;
@@ -143,13 +144,26 @@ impl Board {
         self.with_py(py, |client| {
             let err = |e: LinkError| Python::attach(|py| link_error(py, e));
             let settings = client.read_params().map_err(err)?;
-            let (status, window) =
-                capture::wait_and_read(client, timeout, |_, _| {}).map_err(|e| match e {
-                    CaptureError::Link(l) => err(l),
-                    e @ CaptureError::NotDone { .. } => PyTimeoutError::new_err(e.to_string()),
-                    // Not asked for here (nothing stops this wait).
-                    e @ CaptureError::Stopped { .. } => PyRuntimeError::new_err(e.to_string()),
-                })?;
+            // Ctrl-C (a signal) stops the wait at the next poll, its exception raised; the
+            // capture stays armed on the board, to be fetched later.
+            let mut interrupt = None;
+            let waited =
+                capture::wait_and_read_or_stop(client, timeout, |_, _| {
+                    match Python::attach(|py| py.check_signals()) {
+                        Ok(()) => ControlFlow::Continue(()),
+                        Err(e) => {
+                            interrupt = Some(e);
+                            ControlFlow::Break(())
+                        }
+                    }
+                });
+            let (status, window) = waited.map_err(|e| match e {
+                CaptureError::Link(l) => err(l),
+                e @ CaptureError::NotDone { .. } => PyTimeoutError::new_err(e.to_string()),
+                e @ CaptureError::Stopped { .. } => interrupt
+                    .take()
+                    .unwrap_or_else(|| PyRuntimeError::new_err(e.to_string())),
+            })?;
             let recording = capture::convert(&status, &settings, &window)
                 .map_err(|e| PyRuntimeError::new_err(e.to_string()))?;
             let mut out = vec![("t".to_string(), recording.t)];
@@ -235,14 +249,17 @@ impl Board {
 }
 
 pub(crate) fn seconds(s: f64, name: &str) -> PyResult<Duration> {
-    if s.is_finite() && s > 0.0 && s < 1e9 {
+    if s > 0.0 && s <= MAX_SECONDS {
         Ok(Duration::from_secs_f64(s))
     } else {
         Err(PyValueError::new_err(format!(
-            "{name} {s}: must be a positive number of seconds"
+            "{name} {s}: must be a number of seconds above 0 and at most 86400"
         )))
     }
 }
+
+/// The longest wait or duration an argument takes, seconds: a day.
+pub(crate) const MAX_SECONDS: f64 = 86_400.0;
 
 #[pymethods]
 impl Board {
@@ -805,11 +822,7 @@ impl Board {
         rate: f64,
         seconds: f64,
     ) -> PyResult<Bound<'py, PyDict>> {
-        if !(seconds.is_finite() && seconds > 0.0) {
-            return Err(PyValueError::new_err(format!(
-                "seconds {seconds}: must be a positive number"
-            )));
-        }
+        self::seconds(seconds, "seconds")?;
         let list = signal_list(signals)?;
         let mask = capture::signal_mask(&list)
             .map_err(|e| PyValueError::new_err(format!("signals {list:?}: {e}")))?;
@@ -817,7 +830,20 @@ impl Board {
             let fail = |e: RunError| Python::attach(|py| run_error(py, e));
             let mut run = TelemetryRun::start(client, mask, rate).map_err(fail)?;
             let wanted = (seconds * run.rate.rate_hz).ceil() as u64;
-            run.collect(client, wanted, |_| {}).map_err(fail)?;
+            // Ctrl-C (a signal) stops the run at the next frame, its exception raised.
+            let mut interrupt = None;
+            let collected = run.collect(client, wanted, |_| {
+                match Python::attach(|py| py.check_signals()) {
+                    Ok(()) => ControlFlow::Continue(()),
+                    Err(e) => {
+                        interrupt = Some(e);
+                        ControlFlow::Break(())
+                    }
+                }
+            });
+            if let Err(e) = collected {
+                return Err(interrupt.take().unwrap_or_else(|| fail(e)));
+            }
             let (recording, ended) = run.finish(client).map_err(fail)?;
             Ok((recording, run, ended))
         })?;
@@ -1244,7 +1270,6 @@ impl Board {
         limit: f64,
         progress: Option<Py<PyAny>>,
     ) -> PyResult<Bound<'py, PyAny>> {
-        use std::ops::ControlFlow;
         use twinstack_identify::tune::{tune, SweepEvent, TuneError, TuneOptions};
         if let Some(p) = &progress {
             if !p.bind(py).is_callable() {

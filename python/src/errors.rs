@@ -136,7 +136,9 @@ pub(crate) fn run_error(py: Python<'_>, e: RunError) -> PyErr {
             rule_limit(&refusal.rule),
         ),
         RunError::Stalled { .. } => PyTimeoutError::new_err(e.to_string()),
-        RunError::Frame(_) | RunError::Convert(_) => PyRuntimeError::new_err(e.to_string()),
+        RunError::Frame(_) | RunError::Convert(_) | RunError::Stopped { .. } => {
+            PyRuntimeError::new_err(e.to_string())
+        }
     }
 }
 

@@ -22,6 +22,29 @@ pub const EXIT_ERROR: u8 = 1;
 /// Exit code of a usage error (clap's, and [`board_link::UsageError`]).
 pub const EXIT_USAGE: u8 = 2;
 
+/// The longest wait or duration a flag takes, seconds: a day.
+pub const MAX_SECONDS: f64 = 86_400.0;
+
+/// A flag's wait that may be none (clap's value parser: a usage error naming the value): a
+/// number of seconds from 0 to [`MAX_SECONDS`].
+pub fn parse_seconds(s: &str) -> Result<f64, String> {
+    match s.trim().parse::<f64>() {
+        Ok(v) if (0.0..=MAX_SECONDS).contains(&v) => Ok(v),
+        _ => Err(format!("{s:?}: a number of seconds from 0 to 86400")),
+    }
+}
+
+/// A flag's wait or duration (clap's value parser: a usage error naming the value): a number
+/// of seconds above 0 and at most [`MAX_SECONDS`].
+pub fn parse_positive_seconds(s: &str) -> Result<f64, String> {
+    match s.trim().parse::<f64>() {
+        Ok(v) if v > 0.0 && v <= MAX_SECONDS => Ok(v),
+        _ => Err(format!(
+            "{s:?}: a number of seconds above 0 and at most 86400"
+        )),
+    }
+}
+
 // The board connection is a library module (the learning over the link uses it too); the
 // commands reach it here as before.
 pub use crate::board_link;

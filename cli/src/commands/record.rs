@@ -44,7 +44,7 @@ pub struct Args {
     #[arg(long, value_enum, default_value_t = TriggerArg::Now, requires = "signals")]
     pub trigger: TriggerArg,
     /// Seconds to wait for a multi-signal capture to complete (the trigger included).
-    #[arg(long, default_value_t = 30.0, requires = "signals")]
+    #[arg(long, default_value_t = 30.0, requires = "signals", value_parser = super::parse_positive_seconds)]
     pub wait_s: f64,
     /// PNG of a multi-signal capture [default: the CSV's name with .png].
     #[arg(long, requires = "signals")]
@@ -223,12 +223,8 @@ pub fn finish_capture(
 
 /// Runs `record`.
 pub fn run(args: &Args) -> anyhow::Result<()> {
-    if !(args.wait_s.is_finite() && args.wait_s > 0.0) {
-        bail!(
-            "--wait-s {}: must be a positive number of seconds",
-            args.wait_s
-        );
-    }
+    super::parse_positive_seconds(&args.wait_s.to_string())
+        .map_err(|e| anyhow::anyhow!("--wait-s {e}"))?;
     let wait = Duration::from_secs_f64(args.wait_s);
     let png_for = |out: &Path| {
         args.png

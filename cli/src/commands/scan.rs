@@ -46,7 +46,7 @@ pub struct Args {
     #[arg(long)]
     pub json: bool,
     /// Longest wait for the capture, seconds.
-    #[arg(long, default_value_t = 60.0)]
+    #[arg(long, default_value_t = 60.0, value_parser = super::parse_positive_seconds)]
     pub wait_s: f64,
     /// Wait for this edge of the trigger input to start the scan (`rising` or `falling`: a
     /// camera's frame starts it); `off` (the default) starts it at once.
@@ -66,6 +66,8 @@ pub fn parse_edge(s: &str) -> Result<TriggerEdge, String> {
 
 /// Runs `scan`.
 pub fn run(args: &Args) -> anyhow::Result<()> {
+    super::parse_positive_seconds(&args.wait_s.to_string())
+        .map_err(|e| anyhow::anyhow!("--wait-s {e}"))?;
     let pattern = parse_pattern(&args.pattern)?;
     let request = ScanRequest {
         pattern,

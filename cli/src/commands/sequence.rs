@@ -54,7 +54,7 @@ pub struct Args {
     #[arg(long)]
     pub mode: Option<String>,
     /// Stop waiting when no edge has advanced the sequence for this long, seconds.
-    #[arg(long, default_value_t = 5.0)]
+    #[arg(long, default_value_t = 5.0, value_parser = super::parse_positive_seconds)]
     pub idle_s: f64,
     /// `--port sim` only: a simulated camera on the trigger input at this frame rate, one
     /// frame per position.
@@ -91,12 +91,8 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     config
         .check()
         .map_err(|r| anyhow::anyhow!("refused: {r}; nothing was sent"))?;
-    if !(args.idle_s.is_finite() && args.idle_s > 0.0 && args.idle_s <= 86_400.0) {
-        anyhow::bail!(
-            "--idle-s {}: must be a number of seconds from 0 to 86400",
-            args.idle_s
-        );
-    }
+    super::parse_positive_seconds(&args.idle_s.to_string())
+        .map_err(|e| anyhow::anyhow!("--idle-s {e}"))?;
     let model = match &args.params {
         Some(p) => Some(ParamFile::load(p)?.1),
         None => None,

@@ -137,16 +137,8 @@ pub struct Args {
     pub start_on: TriggerEdge,
     /// Longest wait for the --start-on edge, seconds (then the input is disarmed and the
     /// setpoints accepted stay queued).
-    #[arg(long, default_value_t = 60.0, value_parser = parse_wait)]
+    #[arg(long, default_value_t = 60.0, value_parser = super::parse_seconds)]
     pub edge_wait_s: f64,
-}
-
-/// `--edge-wait-s`: seconds, finite, from 0 to a day.
-fn parse_wait(s: &str) -> Result<f64, String> {
-    match s.trim().parse::<f64>() {
-        Ok(v) if (0.0..=86_400.0).contains(&v) => Ok(v),
-        _ => Err(format!("{s:?}: a number of seconds from 0 to 86400")),
-    }
 }
 
 /// `--underrun` values.

@@ -38,7 +38,7 @@ pub struct Args {
     #[arg(long, default_value_t = 10_000.0)]
     pub rate: f64,
     /// Seconds of samples to receive.
-    #[arg(long, default_value_t = 1.0)]
+    #[arg(long, default_value_t = 1.0, value_parser = super::parse_positive_seconds)]
     pub duration: f64,
     /// CSV to write (physical units).
     #[arg(long)]
@@ -128,17 +128,16 @@ pub fn finish(
 
 /// Runs `telemetry`.
 pub fn run(args: &Args) -> anyhow::Result<()> {
-    if !(args.duration.is_finite() && args.duration > 0.0) {
-        bail!(
-            "--duration {}: must be a positive number of seconds",
-            args.duration
-        );
-    }
+    super::parse_positive_seconds(&args.duration.to_string())
+        .map_err(|e| anyhow::anyhow!("--duration {e}"))?;
     let mut client = connect(&args.port)?;
     let mut telemetry = start(&mut client, &args.signals, args.rate)?;
     let wanted = (args.duration * telemetry.rate.rate_hz).ceil() as u64;
     let bar = super::progress::bar(wanted, "telemetry", "samples");
-    telemetry.collect(&mut client, wanted, |n| bar.set_position(n))?;
+    telemetry.collect(&mut client, wanted, |n| {
+        bar.set_position(n);
+        std::ops::ControlFlow::Continue(())
+    })?;
     bar.finish_and_clear();
     let png = args
         .png

@@ -75,7 +75,7 @@ pub struct Args {
     #[arg(long)]
     pub calibration: Option<PathBuf>,
     /// Serve for this many seconds, then stop telemetry and exit (default: until killed).
-    #[arg(long)]
+    #[arg(long, value_parser = super::parse_positive_seconds)]
     pub duration: Option<f64>,
 }
 
@@ -172,9 +172,8 @@ struct Telemetry {
 pub fn run(args: &Args) -> anyhow::Result<()> {
     let mask = signal_mask(&args.signals).map_err(|e| anyhow::anyhow!("--signals {e}"))?;
     if let Some(d) = args.duration {
-        if !(d.is_finite() && d > 0.0) {
-            bail!("--duration {d}: must be a positive number of seconds");
-        }
+        super::parse_positive_seconds(&d.to_string())
+            .map_err(|e| anyhow::anyhow!("--duration {e}"))?;
     }
     let read_json = |flag: &str, path: &Option<PathBuf>| -> anyhow::Result<Option<Value>> {
         let Some(path) = path else { return Ok(None) };
