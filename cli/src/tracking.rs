@@ -38,7 +38,8 @@ use twinstack_identify::identification::{creep, Identification, IdentifyOptions,
 use twinstack_identify::preview::ResonancePreview;
 use twinstack_identify::stage_model::StageModel;
 use twinstack_identify::trajectory::{
-    trajectories, triangle, triangle_fits, Trajectory, MIN_SAMPLES_PER_CYCLE, TRAJECTORY_MARGIN,
+    trajectories, triangle, triangle_fits, Trajectory, MIN_SAMPLES_PER_CYCLE, MIN_TRIANGLE_HZ,
+    TRAJECTORY_MARGIN,
 };
 use twinstack_identify::tune::fit::fit as fit_resonance;
 use twinstack_identify::tune::loop_model::C64;
@@ -794,7 +795,7 @@ pub fn evaluate_methods_with_triangles(
     for &hz in triangles_hz {
         if !triangle_fits(hz, rate) {
             anyhow::bail!(
-                "triangle {hz} Hz: a triangle's frequency must be positive and at most {} Hz at {rate} Hz (at least {MIN_SAMPLES_PER_CYCLE} samples a cycle)",
+                "triangle {hz} Hz: a triangle's frequency must be from {MIN_TRIANGLE_HZ} Hz (four cycles in 40 s) to {} Hz at {rate} Hz (at least {MIN_SAMPLES_PER_CYCLE} samples a cycle)",
                 rate / MIN_SAMPLES_PER_CYCLE
             );
         }

@@ -211,8 +211,14 @@ fn a_step_rings_at_the_resonance_with_its_damping() {
 fn bad_configurations_are_refused_naming_the_field() {
     let base = LabStageConfig::new(SAMPLE_RATE_HZ, 1);
     type Spoil = fn(&mut LabStageConfig);
-    let cases: [(&str, Spoil); 7] = [
+    let cases: [(&str, Spoil); 10] = [
         ("sample_period_s", |c| c.sample_period_s = f64::NAN),
+        // A creep span of countless modes (it used to overflow their count).
+        ("creep_fastest_s", |c| c.creep_fastest_s = 1e-310),
+        ("creep_slowest_s", |c| c.creep_slowest_s = 1e308),
+        ("creep_slowest_s", |c| {
+            c.creep_slowest_s = 2e12 * c.creep_fastest_s
+        }),
         ("preisach.levels", |c| c.preisach.levels = 1),
         ("preisach.top_saturation", |c| {
             c.preisach.top_saturation = 1.0

@@ -266,6 +266,14 @@ fn one_calibration_tracks_slow_triangles_and_the_resonance_limits_fast_ones() {
         refused.to_string().contains("triangle 600 Hz") && refused.to_string().contains("500 Hz"),
         "{refused}"
     );
+    // Too slow: refused before anything is allocated (four cycles of 1e-300 Hz used to ask
+    // for more memory than there is).
+    for hz in [1e-300, 0.05] {
+        let refused =
+            evaluate_methods_with_triangles(&config, &methods, &[hz], None, false, &EXCITATION)
+                .unwrap_err();
+        assert!(refused.to_string().contains("from 0.1 Hz"), "{refused}");
+    }
 }
 
 /// The same stage identified from the same excitation recorded at 10 kHz and at 50 kHz gives

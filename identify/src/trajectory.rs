@@ -98,16 +98,19 @@ pub fn trajectories(lo: f64, hi: f64, sample_rate_hz: f64) -> [Trajectory; 3] {
 /// The fewest samples a cycle of [`triangle`] may have.
 pub const MIN_SAMPLES_PER_CYCLE: f64 = 20.0;
 
-/// Whether [`triangle`] makes a triangle of `hz` at `sample_rate_hz`: a positive, finite
-/// frequency with at least [`MIN_SAMPLES_PER_CYCLE`] samples a cycle.
+/// The slowest triangle [`triangle`] makes, Hz: its four cycles last 40 s.
+pub const MIN_TRIANGLE_HZ: f64 = 0.1;
+
+/// Whether [`triangle`] makes a triangle of `hz` at `sample_rate_hz`: a frequency of at
+/// least [`MIN_TRIANGLE_HZ`] with at least [`MIN_SAMPLES_PER_CYCLE`] samples a cycle.
 pub fn triangle_fits(hz: f64, sample_rate_hz: f64) -> bool {
-    hz.is_finite() && hz > 0.0 && sample_rate_hz / hz >= MIN_SAMPLES_PER_CYCLE
+    hz.is_finite() && hz >= MIN_TRIANGLE_HZ && sample_rate_hz / hz >= MIN_SAMPLES_PER_CYCLE
 }
 
 /// A triangle over `lo … hi` µm (its full span) at `hz` cycles per second, sampled at
 /// `sample_rate_hz`, starting at `lo`: whole cycles for at least a second and at least
 /// four (so a 1 Hz triangle lasts 4 s, a 200 Hz one 1 s). Named `triangle HZ Hz`. `None` for
-/// a frequency that is not positive and finite, or leaves a cycle fewer than
+/// a frequency below [`MIN_TRIANGLE_HZ`] or not finite, or one that leaves a cycle fewer than
 /// [`MIN_SAMPLES_PER_CYCLE`] samples.
 ///
 /// ```
@@ -116,6 +119,7 @@ pub fn triangle_fits(hz: f64, sample_rate_hz: f64) -> bool {
 /// assert_eq!(t.name, "triangle 200 Hz");
 /// assert_eq!(t.x.len(), 10_001);
 /// assert!(triangle(10.0, 70.0, 600.0, 10_000.0).is_none());
+/// assert!(triangle(10.0, 70.0, 1e-300, 10_000.0).is_none());
 /// ```
 pub fn triangle(lo: f64, hi: f64, hz: f64, sample_rate_hz: f64) -> Option<Trajectory> {
     if !triangle_fits(hz, sample_rate_hz) {

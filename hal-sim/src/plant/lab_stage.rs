@@ -212,7 +212,7 @@ impl LabStageConfig {
 
 /// A [`LabStageConfig`] field that is out of range.
 #[derive(Clone, Copy, Debug, PartialEq, thiserror::Error)]
-#[error("lab stage: `{field}` = {value}: {rule}")]
+#[error("lab stage: `{field}` = {value:?}: {rule}")]
 pub struct LabStageError {
     /// The field's name.
     pub field: &'static str,
@@ -425,14 +425,15 @@ impl LabStageConfig {
         check(
             "creep_fastest_s",
             c.creep_fastest_s,
-            pos(c.creep_fastest_s),
-            "finite and positive",
+            (1e-9..=1e9).contains(&c.creep_fastest_s),
+            "from 1e-9 to 1e9 s",
         )?;
         check(
             "creep_slowest_s",
             c.creep_slowest_s,
-            c.creep_slowest_s.is_finite() && c.creep_slowest_s >= c.creep_fastest_s,
-            "finite and ≥ creep_fastest_s",
+            c.creep_slowest_s >= c.creep_fastest_s
+                && c.creep_slowest_s <= MAX_CREEP_DECADES_RATIO * c.creep_fastest_s,
+            "≥ creep_fastest_s and at most 12 decades above it",
         )?;
         check(
             "creep_modes_per_decade",
@@ -722,6 +723,10 @@ pub struct LabStage {
     mechanics: [f64; 2],
     noise: GaussianNoise,
 }
+
+/// The creep's span at most: its slowest mode 12 decades above its fastest (the default
+/// spans 8), so that its modes (`creep_modes_per_decade` a decade) stay a bounded few.
+const MAX_CREEP_DECADES_RATIO: f64 = 1e12;
 
 impl LabStage {
     /// A stage from `config`, at rest at 0 V.
