@@ -139,7 +139,25 @@ impl Table {
                         rows: Vec::new(),
                     });
                 }
-                Some(t) => t.rows.push(Row { line, cells }),
+                Some(t) => {
+                    // A cell beyond the header's columns has no column to go to: refused,
+                    // not dropped (an empty one, a trailing delimiter, is nothing).
+                    if cells[t.names.len().min(cells.len())..]
+                        .iter()
+                        .any(|c| !c.is_empty())
+                    {
+                        return Err((
+                            line,
+                            format!(
+                                "{} cells where the header names {} columns ({})",
+                                cells.len(),
+                                t.names.len(),
+                                t.listed()
+                            ),
+                        ));
+                    }
+                    t.rows.push(Row { line, cells })
+                }
             }
         }
         Ok(table)
@@ -151,6 +169,24 @@ impl Table {
         (0..self.names.len())
             .filter(|&i| self.names[i] == want)
             .collect()
+    }
+
+    /// A cell's text as a message quotes it: whole up to 40 characters, else its start and its
+    /// length (an unclosed quote takes the rest of the file into one cell, and the message
+    /// should not be the file).
+    pub fn excerpt(cell: &str) -> String {
+        const MOST: usize = 40;
+        match cell.char_indices().nth(MOST) {
+            None => cell.to_string(),
+            Some((end, _)) => {
+                let hint = if cell.contains('\n') {
+                    ", over several lines: an unclosed quote?"
+                } else {
+                    ""
+                };
+                format!("{}… ({} bytes{hint})", &cell[..end], cell.len())
+            }
+        }
     }
 
     /// The header's names, as written, for messages (`a, b, c`).
@@ -213,5 +249,29 @@ mod tests {
         );
         assert_eq!(t.number(&t.rows[0].cells[1]), Some(0.5));
         assert_eq!(Table::parse("# only\n\n").unwrap(), None);
+    }
+
+    #[test]
+    fn a_long_cell_is_quoted_by_its_start() {
+        assert_eq!(Table::excerpt("1.5x"), "1.5x");
+        let long = format!("1.5\n{}", "0,1,2\n".repeat(1000));
+        let e = Table::excerpt(&long);
+        assert!(
+            e.len() < 120 && e.contains("6004 bytes") && e.contains("unclosed quote"),
+            "{e}"
+        );
+    }
+
+    #[test]
+    fn a_row_longer_than_the_header_is_refused_naming_its_line() {
+        let (line, message) = Table::parse("t,u,x\n0,1,2\n0.1,1,5,-100\n").unwrap_err();
+        assert_eq!(line, 3);
+        assert!(
+            message.contains("4 cells") && message.contains("t, u, x"),
+            "{message}"
+        );
+        // A trailing delimiter on a row (or on every row) holds nothing: read.
+        let t = Table::parse("t,u\n0,1,\n0.1,2\n").unwrap().unwrap();
+        assert_eq!(t.rows.len(), 2);
     }
 }

@@ -148,6 +148,20 @@ pub enum DataError {
         /// The repeated column.
         column: &'static str,
     },
+    /// Two of `t`, `u` and `x` are read from the same column (`--columns u=a,x=a`).
+    #[error("{}:{line}: `{first}` and `{second}` both name column `{name}`", path.display())]
+    SameColumn {
+        /// The file.
+        path: PathBuf,
+        /// Line of the header, 1-based.
+        line: usize,
+        /// The first of the two.
+        first: &'static str,
+        /// The second.
+        second: &'static str,
+        /// The column, as the header names it.
+        name: String,
+    },
     /// A data line has fewer cells than the header needs.
     #[error("{}:{line}: only {found} cells, column `{column}` is missing", path.display())]
     ShortLine {
@@ -390,6 +404,22 @@ impl MeasuredData {
         let t_col = require("t", true)?.unwrap_or(0);
         let u_col = require("u", columns.needs_drive())?;
         let x_col = require("x", columns.needs_output())?;
+        let roles = [("t", Some(t_col)), ("u", u_col), ("x", x_col)];
+        for (i, &(first, a)) in roles.iter().enumerate() {
+            for &(second, b) in &roles[i + 1..] {
+                if let (Some(a), Some(b)) = (a, b) {
+                    if a == b {
+                        return Err(DataError::SameColumn {
+                            path: p(),
+                            line: header_line,
+                            first,
+                            second,
+                            name: table.raw_names[a].clone(),
+                        });
+                    }
+                }
+            }
+        }
 
         let mut t = Vec::new();
         let mut u = Vec::new();
@@ -411,7 +441,7 @@ impl MeasuredData {
                     line,
                     column: name,
                     header: table.raw_names[col].clone(),
-                    text: text.to_string(),
+                    text: Table::excerpt(text),
                 })?;
                 if !v.is_finite() {
                     return Err(DataError::NotFinite {
@@ -499,6 +529,26 @@ mod tests {
         assert_eq!(d.t[3], 3.0);
         assert_eq!(d.u.as_ref().unwrap()[3], 4.0);
         assert_eq!(d.x.as_ref().unwrap()[3], 6.0);
+    }
+
+    #[test]
+    fn two_roles_read_from_one_column_are_refused() {
+        let rows: String = (0..12).map(|i| format!("{i},{i}.5,1\n")).collect();
+        let text = format!("time,drive,x\n{rows}");
+        let read = |names: &str| {
+            let names: ColumnNames = names.parse().unwrap();
+            MeasuredData::parse_with(Path::new("d.csv"), &text, Columns::TimeDriveOutput, &names)
+                .unwrap_err()
+                .to_string()
+        };
+        assert_eq!(
+            read("t=time,u=drive,x=drive"),
+            "d.csv:1: `u` and `x` both name column `drive`"
+        );
+        assert_eq!(
+            read("t=time,u=time"),
+            "d.csv:1: `t` and `u` both name column `time`"
+        );
     }
 
     #[test]

@@ -190,7 +190,11 @@ pub fn parse(
             let v = table.number(text).ok_or_else(|| {
                 err(
                     line,
-                    format!("column `{}`: `{text}` is not a number", table.raw_names[c]),
+                    format!(
+                        "column `{}`: `{}` is not a number",
+                        table.raw_names[c],
+                        Table::excerpt(text)
+                    ),
                 )
             })?;
             if v.is_finite() {
@@ -228,7 +232,15 @@ fn check_times(
     let dt = times[1].1 - times[0].1;
     let ticks = dt * tick_rate_hz;
     let implied = ticks.round();
-    if !(1.0..=u16::MAX as f64).contains(&implied) || (ticks - implied).abs() > 0.01 * implied {
+    if implied > u16::MAX as f64 {
+        return Err((
+            times[1].0,
+            format!(
+                "t steps by {dt} s, {implied} ticks at {tick_rate_hz} Hz: the board plays one setpoint every 65535 ticks at most"
+            ),
+        ));
+    }
+    if implied < 1.0 || (ticks - implied).abs() > 0.01 * implied {
         return Err((
             times[1].0,
             format!(
@@ -319,6 +331,8 @@ mod tests {
             ("t,setpoint\n0,0\n1e-4\n", "sp.csv:3: only 1 cells, column `setpoint` is missing"),
             ("t,setpoint\n0,0\n0.00002,0\n0.00005,0\n", "sp.csv:4: t steps by 0.00003 s here, 0.00002 s before: setpoints must be evenly spaced"),
             ("t,setpoint\n0,0\n0.000031,0\n", "sp.csv:3: t steps by 0.000031 s, which is not a whole number of ticks at 50000 Hz (the board plays one setpoint every 1…65535 ticks)"),
+            ("t,setpoint\n0,0\n1000000,0\n", "sp.csv:3: t steps by 1000000 s, 50000000000 ticks at 50000 Hz: the board plays one setpoint every 65535 ticks at most"),
+            ("setpoint\n0.1\n0.1,0.5\n", "sp.csv:3: 2 cells where the header names 1 columns (setpoint)"),
         ];
         for (text, want) in cases {
             let e = p(text).unwrap_err().to_string();
