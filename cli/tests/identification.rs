@@ -417,6 +417,48 @@ fn identify_refuses_a_split_that_leaves_nothing_to_score() {
     );
 }
 
+/// A fit whose fixed-point compensator departs from its f64 reference (a Duhem whose
+/// anhysteretic slope comes out near zero, on a record that is a linear lag, no hysteresis)
+/// is refused with both figures named, and nothing is written: the board would run the
+/// fixed-point one, and neither computes what the model means.
+#[test]
+fn a_fit_whose_fixed_point_departs_from_its_reference_is_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("lag.csv");
+    let rows: String = (0..20_000)
+        .map(|i| {
+            let p = i as f64 * 1e-2;
+            format!(
+                "{},{},{}\n",
+                i as f64 * 1e-3,
+                p.sin(),
+                p.sin() + 0.1 * p.cos()
+            )
+        })
+        .collect();
+    std::fs::write(&data, format!("t,u,x\n{rows}")).unwrap();
+    let out = dir.path().join("p.json");
+    let err = fails(
+        &[
+            "identify",
+            "--model",
+            "duhem",
+            "--data",
+            data.to_str().unwrap(),
+            "--fit-until",
+            "16",
+            "--out",
+            out.to_str().unwrap(),
+        ],
+        &[&out],
+    );
+    assert!(
+        err.contains("fixed-point compensate departs from its f64 reference")
+            && err.contains("0.1 %"),
+        "{err}"
+    );
+}
+
 /// `identify` says how fast the fitted part moves and records it in the file; with
 /// `--fastest-hz` above an octave beyond it, it says the model has not seen that rate and how
 /// to record one that has; a `--fastest-hz` that is not a positive number of Hz is refused by

@@ -95,7 +95,25 @@ pub enum RunError {
     /// The measured output does not move where the model is scored.
     #[error("the measured output is flat, cannot score")]
     Flat,
+    /// The fixed-point model departs from its `f64` reference by more than arithmetic does
+    /// ([`FIXED_VS_REFERENCE_LIMIT_PCT`]): one of the two does not compute what the model
+    /// means (a degenerate fit, such as an anhysteretic slope near zero), and the board
+    /// would run the fixed-point one. Nothing is written.
+    #[error(
+        "the fitted model's fixed-point {what} departs from its f64 reference by {max_pct:.3} % of span (arithmetic accounts for at most {FIXED_VS_REFERENCE_LIMIT_PCT} %): the fit is degenerate for the board; try another model"
+    )]
+    ReferenceDisagrees {
+        /// `predict` or `compensate`.
+        what: &'static str,
+        /// Their largest difference, % of span.
+        max_pct: f64,
+    },
 }
+
+/// The most the fixed-point `predict` and `compensate` may depart from their `f64` references
+/// over a record, % of span: what the arithmetic accounts for is three decades below (at
+/// most 3·10⁻³ % on every record and stage in the book).
+pub const FIXED_VS_REFERENCE_LIMIT_PCT: f64 = 0.1;
 
 /// `auto`'s candidates for `options`: every model kind with and without creep (`creep =
 /// None`), or only with (`Some(true)`) or only without (`Some(false)`).
@@ -537,6 +555,18 @@ pub fn identify_and_score(
     let inverse_reference = score(u, &drive_reference, held..aimed).ok_or(RunError::Flat)?;
     let inverse_fixed_vs_reference =
         score(&drive_reference, &drive, fit_from..n).ok_or(RunError::Flat)?;
+    for (what, figures) in [
+        ("predict", &fixed_vs_reference),
+        ("compensate", &inverse_fixed_vs_reference),
+    ] {
+        // A figure that is not a number is refused too.
+        if figures.max_pct.is_nan() || figures.max_pct > FIXED_VS_REFERENCE_LIMIT_PCT {
+            return Err(RunError::ReferenceDisagrees {
+                what,
+                max_pct: figures.max_pct,
+            });
+        }
+    }
     let record = IdentificationRecord {
         data: data.path.display().to_string(),
         fit_until_s: options.fit_until_s,
