@@ -92,6 +92,10 @@ impl Params {
     ) -> PyResult<Bound<'py, PyArray1<f64>>> {
         let u = vector(py, u, "u")?;
         let t = times(py, &self.model, u.len(), t, rate)?;
+        // A sample that is not a number would run through the model's memory into every
+        // later one (and, through the sensor lag's alignment, earlier ones).
+        MeasuredData::check_columns(&t, &[("u", &u)])
+            .map_err(|e| PyValueError::new_err(e.to_string()))?;
         let model = &self.model;
         let x = py
             .detach(|| model.predict(&t, &u))
@@ -126,6 +130,8 @@ impl Params {
         }
         let x = vector(py, x, "x")?;
         let t = times(py, &self.model, x.len(), t, rate)?;
+        MeasuredData::check_columns(&t, &[("x", &x)])
+            .map_err(|e| PyValueError::new_err(e.to_string()))?;
         let preview = match resonance {
             Some((hz, zeta)) => Some(
                 ResonancePreview::at_times(hz, zeta, &t)

@@ -200,3 +200,31 @@ def test_a_stream_shaped_for_the_resonance_is_shaped_whole_then_sent_in_chunks()
     assert report["underruns"] == 0 and not report["underran"]
     # ...which is not the trajectory as it came: its corners were shaped.
     assert np.max(np.abs(expected - setpoints)) > 50 * lsb
+
+
+def test_a_bad_setpoint_in_a_later_chunk_is_refused_before_anything_is_sent():
+    # The whole trajectory is checked first: the error names the setpoint's index in it,
+    # and the board has not moved (no chunk sent, nothing queued, no stream running).
+    async def main():
+        async with await AsyncBoard.open("sim") as board:
+            before = await board.status()
+            setpoints = np.r_[np.linspace(0.0, 0.5, 3000), np.nan]
+            with pytest.raises(ValueError, match=r"setpoints\[3000\]"):
+                await board.stream(setpoints, normalised=True, chunk=1000)
+            return before, await board.status()
+
+    before, after = asyncio.run(main())
+    assert "streaming" not in after["flags"]
+    assert after["queue_fill"] == 0
+    assert after["next_seq"] == before["next_seq"]
+
+
+def test_a_closed_board_says_so_and_closes_again_quietly():
+    async def main():
+        board = await AsyncBoard.open("sim")
+        await board.close()
+        await board.close()
+        with pytest.raises(RuntimeError, match="the board is closed"):
+            await board.status()
+
+    asyncio.run(main())

@@ -75,6 +75,24 @@ def test_time_arguments_are_checked(params):
         params.predict(u, rate=-1.0)
 
 
+def test_a_sample_that_is_not_a_number_is_refused_naming_it(params):
+    # It would run through the model's memory into every later sample (and through the
+    # sensor lag's alignment into earlier ones): refused, naming the array and the index.
+    t, u = record(50)
+    x = params.predict(u, t=t)
+    for bad in (np.nan, np.inf):
+        u2 = u.copy()
+        u2[5] = bad
+        with pytest.raises(ValueError, match=r"`u`\[5\] is not finite"):
+            params.predict(u2, t=t)
+        x2 = x.copy()
+        x2[7] = bad
+        with pytest.raises(ValueError, match=r"`x`\[7\] is not finite"):
+            params.compensate(x2, t=t)
+        with pytest.raises(ValueError, match=r"`x`\[7\] is not finite"):
+            params.compensate(x2, t=t, measured=True)
+
+
 def test_identify_checks_its_arrays(params):
     t, u = record()
     x = params.predict(u)

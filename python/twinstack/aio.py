@@ -79,6 +79,7 @@ class AsyncBoard:
         self._worker = concurrent.futures.ThreadPoolExecutor(
             max_workers=1, thread_name_prefix=f"twinstack {board.port}"
         )
+        self._closed = False
 
     @classmethod
     async def open(cls, port: str, baud: int = 2_000_000, timeout: float = 2.0) -> "AsyncBoard":
@@ -99,6 +100,10 @@ class AsyncBoard:
         return self._board.port
 
     async def _call(self, fn: Callable[..., T], *args: Any, **kwargs: Any) -> T:
+        if self._closed:
+            # The closed board answers at once, as the blocking one does ("the board is
+            # closed"): its worker thread is gone.
+            return fn(*args, **kwargs)
         async with self._lock:
             loop = asyncio.get_running_loop()
             future = loop.run_in_executor(self._worker, functools.partial(fn, *args, **kwargs))
@@ -367,9 +372,11 @@ class AsyncBoard:
             raise ValueError(f"setpoints must be one-dimensional, got shape {values.shape}")
         if values.size == 0:
             raise ValueError("setpoints is empty")
-        if resonance is not None:
-            values = await self.shaped(values, resonance, rate, normalised)
-            normalised = True
+        # The whole trajectory is converted (and with `resonance` shaped) before the first
+        # chunk is sent: a bad setpoint anywhere is refused, naming its index in it, with
+        # nothing sent, as the blocking call refuses it.
+        values = await self.shaped(values, resonance, rate, normalised)
+        normalised = True
         if chunk is None:
             s = await self.status()
             per_second = rate if rate is not None else float(s["tick_rate_hz"])
@@ -416,8 +423,12 @@ class AsyncBoard:
             await loop.run_in_executor(self._worker, self._board.stop)
 
     async def close(self) -> None:
-        """Closes the link once the call in flight has returned."""
+        """Closes the link once the call in flight has returned; closing it again does
+        nothing, as :meth:`twinstack.Board.close`."""
+        if self._closed:
+            return
         await self._call(self._board.close)
+        self._closed = True
         self._worker.shutdown(wait=False)
 
     async def __aenter__(self) -> "AsyncBoard":
