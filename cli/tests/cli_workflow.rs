@@ -184,6 +184,24 @@ fn load_refuses_a_model_the_drive_cannot_reach_unless_clamp() {
         err.starts_with("warning: ") && err.contains("--clamp"),
         "{err}"
     );
+    // The drive's own settings wrong: said first, not as what they do to the model.
+    for (flags, said) in [
+        (
+            &["--min-voltage", "100", "--max-voltage", "50"][..],
+            "drive: drive.min_voltage/max_voltage is empty",
+        ),
+        (&["--bias", "1e9"][..], "drive: drive.bias must be at most"),
+    ] {
+        let mut args = vec!["load", "--port", "sim", "--params", wide];
+        args.extend_from_slice(flags);
+        let o = run(&args);
+        let (out, err) = text(&o);
+        assert_eq!(o.status.code(), Some(1), "{out}{err}");
+        assert!(
+            err.contains(said) && err.contains("nothing was sent") && !err.contains("--clamp"),
+            "{err}"
+        );
+    }
     // A model within the drive's reach loads without a word on stderr.
     let fits = param_file(dir.path(), "fits.json", 0.0, 140.0);
     let o = run(&["load", "--port", "sim", "--params", fits.to_str().unwrap()]);

@@ -417,6 +417,55 @@ fn identify_refuses_a_split_that_leaves_nothing_to_score() {
     );
 }
 
+/// `compensate` says where its drive sits at an end of the model's input range (readings the
+/// model reaches only from beyond it), and says nothing for readings inside.
+#[test]
+fn compensate_warns_where_its_drive_runs_into_the_input_range() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let good = csv_with(d, "good.csv", |_| {});
+    let params = d.join("p.json");
+    ok(&[
+        "identify",
+        "--model",
+        "pi",
+        "--data",
+        good.to_str().unwrap(),
+        "--fit-until",
+        "1.5",
+        "--out",
+        params.to_str().unwrap(),
+    ]);
+    let file: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&params).unwrap()).unwrap();
+    let top = file["settings"]["ranges"]["output_max"].as_f64().unwrap();
+    let compensate = |name: &str, x: &dyn Fn(usize) -> f64| {
+        let data = d.join(name);
+        let rows: String = (0..100)
+            .map(|k| format!("{},{}\n", k as f64 * 0.005, x(k)))
+            .collect();
+        std::fs::write(&data, format!("t,x\n{rows}")).unwrap();
+        let out = run(&[
+            "compensate",
+            "--params",
+            params.to_str().unwrap(),
+            "--data",
+            data.to_str().unwrap(),
+            "--out",
+            d.join("u.csv").to_str().unwrap(),
+        ]);
+        assert!(out.status.success());
+        String::from_utf8_lossy(&out.stderr).into_owned()
+    };
+    let err = compensate("top.csv", &|_| top);
+    assert!(
+        err.contains("100 of 100 drive samples sit at an end of the model's input range"),
+        "{err}"
+    );
+    let err = compensate("inside.csv", &|k| 0.2 * top * (k as f64 * 0.1).sin());
+    assert!(!err.contains("warning"), "{err}");
+}
+
 /// A fit whose fixed-point compensator departs from its f64 reference (a Duhem whose
 /// anhysteretic slope comes out near zero, on a record that is a linear lag, no hysteresis)
 /// is refused with both figures named, and nothing is written: the board would run the

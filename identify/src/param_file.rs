@@ -47,6 +47,10 @@ pub const FORMAT: &str = "twinstack-params";
 /// The one version this build reads and writes (2: the board's settings type).
 pub const VERSION: u64 = 2;
 
+/// The longest sensor lag a parameter file holds, seconds: a reading a second behind its
+/// drive is no position sensor (`identify` estimates lags of a few samples).
+pub const MAX_SENSOR_LAG_S: f64 = 1.0;
+
 /// Units of the quantities in the file.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -254,6 +258,8 @@ impl ParamFile {
 
     /// Parses and validates `text` (read from `path`, used in errors).
     pub fn parse(path: &Path, text: &str) -> Result<(Self, StageModel), ParamFileError> {
+        // A byte-order mark (an editor's on Windows) is no part of the JSON, as a CSV's is not.
+        let text = text.strip_prefix('\u{feff}').unwrap_or(text);
         let p = || path.to_path_buf();
         let json_err = |e: serde_json::Error| ParamFileError::Json {
             path: p(),
@@ -297,10 +303,13 @@ impl ParamFile {
                 format!("{} is not 1 or -1", file.output_sign),
             ));
         }
-        if !(file.sensor_lag_s.is_finite() && file.sensor_lag_s >= 0.0) {
+        if !(file.sensor_lag_s >= 0.0 && file.sensor_lag_s <= MAX_SENSOR_LAG_S) {
             return Err(field(
                 "sensor_lag_s".into(),
-                "must be a finite number >= 0".into(),
+                format!(
+                    "{:?}: must be from 0 to {MAX_SENSOR_LAG_S} s",
+                    file.sensor_lag_s
+                ),
             ));
         }
         if let Some(r) = &file.resonance {
@@ -428,6 +437,8 @@ mod tests {
         let (back, loaded) = parse(&f.to_json()).unwrap();
         assert_eq!(back, f);
         assert_eq!(loaded, m);
+        // With a byte-order mark before it, the same file.
+        assert_eq!(parse(&format!("\u{feff}{}", f.to_json())).unwrap().0, f);
         let text = f.to_json();
         assert!(text.contains("30.105882352941176"), "{text}");
         assert!(text.contains("-20.66912244948139"), "{text}");
@@ -601,6 +612,12 @@ mod tests {
         assert!(matches!(e, ParamFileError::Format { .. }), "{e}");
         let e = edited(|v| v["output_sign"] = 0.5.into());
         assert_eq!(field_of(&e), "output_sign", "{e}");
+        // A lag beyond a second (1e308 ran as 9.2e18 samples, the rest of any record).
+        for lag in [-0.001, 3.5, 1e308] {
+            let e = edited(|v| v["sensor_lag_s"] = lag.into());
+            assert_eq!(field_of(&e), "sensor_lag_s", "{e}");
+            assert!(e.to_string().contains("from 0 to 1 s"), "{e}");
+        }
         let e = edited(|v| v["settings"]["ranges"]["input_max"] = (-200.0).into());
         assert_eq!(field_of(&e), "settings.ranges.input", "{e}");
         let e = edited(|v| {

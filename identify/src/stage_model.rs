@@ -236,6 +236,30 @@ impl StageModel {
         self.lag_half_samples(t).div_ceil(2)
     }
 
+    /// How many drive samples in `u` sit at an end of the input range (within a millionth of
+    /// its span): where a compensator's drive ran into it.
+    ///
+    /// ```
+    /// use twinstack::{PiParams, Scaling};
+    /// use twinstack_identify::stage_model::{Hysteresis, StageModel};
+    /// let m = StageModel {
+    ///     hysteresis: Hysteresis::Pi(PiParams::new(0.0, 0.5, &[0.0, 30.0], &[0.08, 0.03]).unwrap()),
+    ///     scaling: Scaling::new(0.0, 140.0, -20.0, 21.0).unwrap(),
+    ///     output_sign: 1.0,
+    ///     sensor_lag_s: 0.0,
+    ///     creep: None,
+    ///     output_map: None,
+    /// };
+    /// assert_eq!(m.drive_at_range_end(&[0.0, 70.0, 140.0, 139.9]), 2);
+    /// ```
+    pub fn drive_at_range_end(&self, u: &[f64]) -> usize {
+        let s = &self.scaling;
+        let near = 1e-6 * (s.input_max - s.input_min);
+        u.iter()
+            .filter(|&&v| v <= s.input_min + near || v >= s.input_max - near)
+            .count()
+    }
+
     /// How many drive samples in `u` lie outside the input range (the models clamp them).
     pub fn drive_outside_range(&self, u: &[f64]) -> usize {
         let s = &self.scaling;

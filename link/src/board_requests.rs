@@ -49,6 +49,10 @@ pub fn unreachable_input(settings: &Settings) -> Option<((f64, f64), (f64, f64))
 /// Why a parameter load is not sent (or, with `clamp`, sent with a warning).
 #[derive(Clone, Debug, PartialEq, thiserror::Error)]
 pub enum LoadRefused {
+    /// The drive's own settings are wrong (an empty voltage window, a bias outside it):
+    /// said first, before what they would do to the model.
+    #[error("drive: {0}")]
+    Drive(twinstack::refusal::Refusal),
     /// Closed loop with a sensor that reads the model's output negated.
     #[error("the file's sensor is inverted (output_sign = -1): closed loop would feed back with the wrong sign; use open loop, or give the board a sensor calibration that reads the model's output")]
     InvertedSensor,
@@ -92,6 +96,20 @@ pub fn check_load(
     if settings.mode == Mode::ClosedLoop && output_sign < 0.0 {
         return Err(LoadRefused::InvertedSensor);
     }
+    let d = &settings.drive;
+    if !(d.max_voltage > d.min_voltage) {
+        return Err(LoadRefused::Drive(twinstack::refusal::Refusal::new(
+            twinstack::refusal::Field::VoltageLimits,
+            twinstack::refusal::Rule::Empty,
+        )));
+    }
+    twinstack::refusal::within(
+        twinstack::refusal::Field::Bias,
+        d.bias,
+        d.min_voltage,
+        d.max_voltage,
+    )
+    .map_err(LoadRefused::Drive)?;
     let Some((model, drive)) = unreachable_input(settings) else {
         return Ok(None);
     };
@@ -128,8 +146,9 @@ pub enum WaveformError {
         /// Amplitude.
         amplitude: f64,
     },
-    /// Below 1 mHz (or beyond the wire's range).
-    #[error("frequency {0} Hz: must be at least 0.001 Hz")]
+    /// Below 1 mHz or beyond the wire's range (its mHz in 32 bits): the board's own limit,
+    /// half its tick rate and below, is the board's to say.
+    #[error("frequency {0} Hz: must be from 0.001 Hz to 4294967.295 Hz (the request's range)")]
     Frequency(f64),
     /// A decay (amplitude kept per cycle) outside 0…1 (below 1).
     #[error("decay {0}: the amplitude kept per cycle must lie in 0…1 (below 1)")]
@@ -145,6 +164,9 @@ pub enum WaveformError {
 /// let w = waveform(WaveShape::Sine, 0.0, 0.5, 2.5, None).unwrap();
 /// assert_eq!((w.amplitude, w.frequency_mhz), (16384, 2500));
 /// assert!(waveform(WaveShape::Sine, 0.6, 0.5, 1.0, None).is_err());
+/// // Beyond the request's range either way, named with both ends.
+/// let e = waveform(WaveShape::Sine, 0.0, 0.5, 1e7, None).unwrap_err().to_string();
+/// assert!(e.contains("from 0.001 Hz to 4294967.295 Hz"), "{e}");
 /// ```
 pub fn waveform(
     shape: WaveShape,

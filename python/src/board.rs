@@ -381,12 +381,13 @@ impl Board {
                 )?;
             }
             Err(e) => {
-                let field = match e {
-                    LoadRefused::InvertedSensor => "output_sign",
-                    LoadRefused::Unreachable { .. } => "ranges.input",
+                let field = match &e {
+                    LoadRefused::Drive(r) => r.field.to_string(),
+                    LoadRefused::InvertedSensor => "output_sign".to_string(),
+                    LoadRefused::Unreachable { .. } => "ranges.input".to_string(),
                 };
                 let hint = match e {
-                    LoadRefused::InvertedSensor => "nothing was sent",
+                    LoadRefused::Drive(_) | LoadRefused::InvertedSensor => "nothing was sent",
                     LoadRefused::Unreachable { .. } => {
                         "identify the model within the drive's range, or pass clamp=True to load it anyway; nothing was loaded"
                     }
@@ -395,7 +396,7 @@ impl Board {
                     py,
                     format!("{e}; {hint}"),
                     "LoadParams",
-                    Some(field.to_string()),
+                    Some(field),
                     e.to_string(),
                     None,
                     None,

@@ -216,6 +216,18 @@ pub fn run(args: &Args, direction: Direction) -> anyhow::Result<()> {
                     data.t.last().copied().unwrap_or_default()
                 );
             }
+            // A drive held at an end of the model's input range is a reading the model cannot
+            // reach from inside it: said, not left to be found on the stage.
+            let railed = model.drive_at_range_end(&u);
+            if railed > 0 {
+                eprintln!(
+                    "warning: {}: {railed} of {} drive samples sit at an end of the model's input range ({}…{} V): the model reaches those desired readings only from beyond it",
+                    args.data.display(),
+                    u.len(),
+                    model.scaling.input_min,
+                    model.scaling.input_max
+                );
+            }
             let outside = model.reading_outside_range(&x);
             (
                 u,

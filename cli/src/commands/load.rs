@@ -192,7 +192,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
             "warning: {}: {warning} (--clamp: loading it anyway)",
             args.params.display()
         ),
-        Err(e @ LoadRefused::InvertedSensor) => {
+        Err(e @ (LoadRefused::InvertedSensor | LoadRefused::Drive(_))) => {
             anyhow::bail!("{}: {e}; nothing was sent", args.params.display())
         }
         Err(e) => anyhow::bail!(
