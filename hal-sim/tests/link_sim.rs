@@ -355,3 +355,22 @@ fn a_short_record_streamed_without_waiting_still_plays() {
     assert_eq!(client.status().unwrap().queue_fill, 0);
     played_in_order(&values, &samples, "--no-wait");
 }
+
+/// A few setpoints at a slow rate drain in their own time: the wait for the queue to play
+/// out is what is left in it, not a whole batch's time (three setpoints at 10 Hz used to
+/// block for 96 of them, 9.6 s).
+#[test]
+fn a_short_slow_stream_drains_in_its_own_time() {
+    let mut client = device();
+    let rate = client.status().expect("status").tick_rate_hz as f64;
+    let options = StreamOptions {
+        divider: (rate / 10.0) as u16,
+        ..StreamOptions::default()
+    };
+    let start = client.now();
+    let r = stream_setpoints(&mut client, &[0, 1000, 2000], &options, |_| {}).expect("stream");
+    let took = (client.now() - start).as_secs_f64();
+    assert_eq!(r.accepted, 3);
+    assert!(r.drained.is_some());
+    assert!((0.3..1.0).contains(&took), "took {took} s");
+}

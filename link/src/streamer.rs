@@ -613,10 +613,11 @@ fn run<T: Transport>(
         // second before deciding the board is not playing it.
         let mut status = report.after_last_batch;
         let budget = status.queue_fill as f64 * options.divider as f64 * tick * 2.0 + 1.0;
-        let step = (batch_max as f64 * options.divider as f64 * tick).max(1e-3);
-        let mut waited = 0.0;
+        // Measured on the link's clock, round trips and all.
+        let start = client.now();
         while status.queue_fill > 0 || status.flags & StatusReport::STREAMING != 0 {
             stopped(stop)?;
+            let waited = client.now().saturating_sub(start).as_secs_f64();
             if waited > budget {
                 return Err(LinkError::Unexpected {
                     request: "Status",
@@ -626,8 +627,12 @@ fn run<T: Transport>(
                     ),
                 });
             }
+            // Wait for what is left to play (the last setpoint's hold while the queue is
+            // empty), at most a batch's time: three setpoints at 10 Hz drain in 0.3 s, not
+            // in a whole batch's 9.6 s.
+            let left = (status.queue_fill as usize).clamp(1, batch_max) as f64;
+            let step = (left * options.divider as f64 * tick).max(1e-3);
             client.wait(Duration::from_secs_f64(step))?;
-            waited += step;
             status = client.status()?;
         }
         client.stream(StreamControl::Stop)?;
