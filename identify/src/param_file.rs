@@ -47,6 +47,9 @@ pub const FORMAT: &str = "twinstack-params";
 /// The one version this build reads and writes (2: the board's settings type).
 pub const VERSION: u64 = 2;
 
+/// The most a parameter file is read of, bytes (one is a few kilobytes).
+pub const MAX_FILE_BYTES: u64 = 16 << 20;
+
 /// The longest sensor lag a parameter file holds, seconds: a reading a second behind its
 /// drive is no position sensor (`identify` estimates lags of a few samples).
 pub const MAX_SENSOR_LAG_S: f64 = 1.0;
@@ -249,10 +252,25 @@ impl ParamFile {
 
     /// Reads and validates `path`.
     pub fn load(path: &Path) -> Result<(Self, StageModel), ParamFileError> {
-        let text = std::fs::read_to_string(path).map_err(|source| ParamFileError::Io {
+        use std::io::Read;
+        let io = |source| ParamFileError::Io {
             path: path.to_path_buf(),
             source,
-        })?;
+        };
+        // Read at most a bound past any parameter file (a device or a pipe that never ends,
+        // `/dev/zero`, is refused, not read for ever).
+        let mut text = String::new();
+        std::fs::File::open(path)
+            .map_err(io)?
+            .take(MAX_FILE_BYTES + 1)
+            .read_to_string(&mut text)
+            .map_err(io)?;
+        if text.len() as u64 > MAX_FILE_BYTES {
+            return Err(io(std::io::Error::new(
+                std::io::ErrorKind::InvalidData,
+                format!("longer than {MAX_FILE_BYTES} bytes: not a parameter file"),
+            )));
+        }
         Self::parse(path, &text)
     }
 
@@ -297,6 +315,19 @@ impl ParamFile {
             field,
             reason,
         };
+        // The quantities are in seconds and volts: a file that says otherwise would be read as
+        // if it did not (a lag in "ms" taken as seconds).
+        for (name, unit, want) in [
+            ("units.time", &file.units.time, "s"),
+            ("units.input", &file.units.input, "V"),
+        ] {
+            if unit != want {
+                return Err(field(
+                    name.into(),
+                    format!("{unit:?}: the file's values are in {want:?}, the only unit read"),
+                ));
+            }
+        }
         if file.output_sign != 1.0 && file.output_sign != -1.0 {
             return Err(field(
                 "output_sign".into(),
@@ -605,6 +636,13 @@ mod tests {
     }
 
     #[test]
+    #[cfg(unix)]
+    fn a_file_that_never_ends_is_refused() {
+        let e = ParamFile::load(Path::new("/dev/zero")).unwrap_err();
+        assert!(e.to_string().contains("not a parameter file"), "{e}");
+    }
+
+    #[test]
     fn each_bad_field_is_named() {
         let e = edited(|v| v["version"] = 1.into());
         assert!(matches!(e, ParamFileError::Version { .. }), "{e}");
@@ -612,6 +650,10 @@ mod tests {
         assert!(matches!(e, ParamFileError::Format { .. }), "{e}");
         let e = edited(|v| v["output_sign"] = 0.5.into());
         assert_eq!(field_of(&e), "output_sign", "{e}");
+        for (unit, value) in [("time", "ms"), ("input", "mV")] {
+            let e = edited(|v| v["units"][unit] = value.into());
+            assert_eq!(field_of(&e), format!("units.{unit}"), "{e}");
+        }
         // A lag beyond a second (1e308 ran as 9.2e18 samples, the rest of any record).
         for lag in [-0.001, 3.5, 1e308] {
             let e = edited(|v| v["sensor_lag_s"] = lag.into());

@@ -438,12 +438,28 @@ impl Board {
         path: &str,
         value: &Bound<'py, PyAny>,
     ) -> PyResult<Bound<'py, PyAny>> {
+        // A numpy scalar or array as the Python number or list it holds; NaN and infinity,
+        // which JSON has not, refused naming the path (as a number beyond f64 is).
+        let value = if value.hasattr("tolist")? {
+            value.call_method0("tolist")?
+        } else {
+            value.clone()
+        };
+        let kwargs = PyDict::new(py);
+        kwargs.set_item("allow_nan", false)?;
         let text: String = py
             .import("json")?
-            .call_method1("dumps", (value,))?
+            .call_method("dumps", (&value,), Some(&kwargs))
+            .map_err(|e| {
+                PyValueError::new_err(format!(
+                    "{path}: {}: not a value the settings hold ({})",
+                    value.repr().map_or_else(|_| "?".into(), |r| r.to_string()),
+                    e.value(py)
+                ))
+            })?
             .extract()?;
-        let value: serde_json::Value =
-            serde_json::from_str(&text).map_err(|e| PyValueError::new_err(e.to_string()))?;
+        let value: serde_json::Value = serde_json::from_str(&text)
+            .map_err(|e| PyValueError::new_err(format!("{path}: {text:.40}: {e}")))?;
         let held = self.with(py, |c| {
             let s = c.read_params()?;
             let new = match settings_path::set(&s, path, value.clone()) {

@@ -637,6 +637,14 @@ def test_settings_by_path(board):
     with pytest.raises(twinstack.BoardError, match="max_voltage"):
         board.set("/drive/max_voltage", 1000.0)
     assert board.get("/drive/slew_rate") == 2000.0
+    # numpy's numbers are numbers; NaN, infinity and a number beyond f64 are refused naming
+    # the path, with nothing changed.
+    assert board.set("/drive/slew_rate", np.float32(1500.0)) == 1500.0
+    assert board.set("/drive/slew_rate", np.int64(2000)) == 2000.0
+    for bad in (float("nan"), np.inf, 10**400):
+        with pytest.raises(ValueError, match="/drive/slew_rate"):
+            board.set("/drive/slew_rate", bad)
+    assert board.get("/drive/slew_rate") == 2000.0
 
 
 # A Bouc–Wen model over the board's default 0…140 V, 0…70 µm (the library's representative
