@@ -65,6 +65,11 @@ use twinstack_link::measured_data::MeasuredData;
 
 /// Residuals beyond this multiple of the RMS residual are dropped as outliers.
 pub const OUTLIER_FACTOR: f64 = 5.0;
+
+/// The widest span of a column (max − min over the fitted part, in its own units) the models
+/// compute in: far beyond any drive in volts or reading in any length unit, well short of
+/// where their arithmetic overflows.
+pub const MAX_SPAN: f64 = 1e12;
 /// The input range is the fitted drive range widened by this fraction of its span each side.
 ///
 /// Zero: the models' rest state ("the drive came down from the top of the input range to
@@ -465,6 +470,19 @@ pub enum IdentifyError {
     /// The drive never moves before `--fit-until`.
     #[error("the drive u does not move before t = {0} s: nothing to identify")]
     NoMotion(f64),
+    /// The reading never moves over the fitted part.
+    #[error(
+        "the reading x does not move from t = {0} s to the end of the fit: nothing to identify"
+    )]
+    OutputFlat(f64),
+    /// A column spans more than the models compute in (`MAX_SPAN`).
+    #[error("the {column} column spans {span:e} over the fitted part, more than the {max:e} the models compute in: are its units right?", max = MAX_SPAN)]
+    SpanTooWide {
+        /// `u` or `x`.
+        column: &'static str,
+        /// Its span (max − min).
+        span: f64,
+    },
     /// The given lag leaves too few rows.
     #[error("lag of {lag} samples leaves too few samples to fit")]
     LagTooLong {
@@ -588,6 +606,16 @@ fn identify_from(
     let u_fit = &u[..n_fit];
     let motion = motion::find(u_fit).ok_or(IdentifyError::NoMotion(fit_until_s))?;
     let first = motion.first_fitted;
+    for (column, values) in [("u", &u[first..n_fit]), ("x", &x[first..n_fit])] {
+        let (lo, hi) = min_max(values.iter().copied());
+        let span = hi - lo;
+        if span.is_nan() || span > MAX_SPAN {
+            return Err(IdentifyError::SpanTooWide { column, span });
+        }
+        if column == "x" && span == 0.0 {
+            return Err(IdentifyError::OutputFlat(data.t[first]));
+        }
+    }
     let mut notes = Vec::new();
     if motion.stepped {
         notes.push(format!(

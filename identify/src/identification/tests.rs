@@ -284,6 +284,25 @@ fn bad_options_and_splits_have_their_own_errors() {
         identify(&still, &o),
         Err(IdentifyError::NoMotion(_))
     ));
+    // A reading that never moves, a column in units beyond what the models compute in:
+    // named, where both came out as "output range is empty or not finite".
+    let mut flat = data.clone();
+    if let Some(x) = flat.x.as_mut() {
+        x.fill(5.0);
+    }
+    let o = IdentifyOptions::new(ModelKind::Pi, 2.0);
+    assert!(matches!(
+        identify(&flat, &o),
+        Err(IdentifyError::OutputFlat(_))
+    ));
+    let mut wide = data.clone();
+    if let Some(u) = wide.u.as_mut() {
+        u.iter_mut().for_each(|v| *v *= 1e300);
+    }
+    assert!(matches!(
+        identify(&wide, &o),
+        Err(IdentifyError::SpanTooWide { column: "u", .. })
+    ));
     let o = IdentifyOptions::new(ModelKind::Pi, 2.995);
     assert!(matches!(
         identify(&data, &o),
