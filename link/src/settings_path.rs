@@ -173,6 +173,7 @@ pub fn set(settings: &Settings, path: &str, value: Value) -> Result<Settings, Pa
         .pointer_mut(&parent_path)
         .expect("walk found the parent");
     let shown = value.to_string();
+    let text = value.as_str().map(str::to_string);
     match parent {
         Value::Object(map) => {
             if !map.contains_key(last) {
@@ -216,7 +217,32 @@ pub fn set(settings: &Settings, path: &str, value: Value) -> Result<Settings, Pa
             })
         }
     }
-    rebuild(tree, path, Some(shown))
+    rebuild(tree, path, Some(shown)).map_err(|e| meant_as_json(e, text.as_deref()))
+}
+
+/// A text value that was meant as JSON (an object, a list, a number, NaN or infinity) but is
+/// not JSON, and so was taken as a string the setting does not take: the error says what the
+/// JSON reader found, where it said "invalid type: string".
+fn meant_as_json(e: PathError, text: Option<&str>) -> PathError {
+    let Some(text) = text else { return e };
+    let t = text.trim();
+    let meant = t.starts_with(['{', '[', '-', '+', '.'])
+        || t.starts_with(|c: char| c.is_ascii_digit())
+        || ["nan", "inf", "infinity", "-inf"].contains(&t.to_ascii_lowercase().as_str());
+    match (e, serde_json::from_str::<Value>(t)) {
+        (PathError::Invalid { path, reason, .. }, Err(json))
+            if meant && reason.starts_with("invalid type: string") =>
+        {
+            PathError::Invalid {
+                path,
+                value: text.to_string(),
+                reason: format!(
+                    "not JSON ({json}): a setting takes a JSON value (a finite number, a list, an object; no NaN or infinity)"
+                ),
+            }
+        }
+        (e, _) => e,
+    }
 }
 
 fn rebuild(tree: Value, path: &str, shown: Option<String>) -> Result<Settings, PathError> {
@@ -479,6 +505,11 @@ mod tests {
         let e = set(&s, "/feedback/kp", json!("fast")).unwrap_err();
         assert!(e.to_string().contains("/feedback/kp"), "{e}");
         assert!(matches!(e, PathError::Invalid { .. }));
+        // A value meant as JSON that is not: what the JSON reader found, not "a string".
+        for text in ["NaN", "1e400", "{\"kp\": NaN}", "[1, 2"] {
+            let e = set(&s, "/drive/slew_rate", parse_value(text)).unwrap_err();
+            assert!(e.to_string().contains("not JSON ("), "{text}: {e}");
+        }
         let e = set(&s, "/mode", parse_value("Sideways")).unwrap_err();
         assert!(matches!(e, PathError::Invalid { .. }), "{e}");
     }
