@@ -362,11 +362,7 @@ pub(crate) fn identify(
 ) -> PyResult<Params> {
     let choice = parse_model(model).map_err(PyValueError::new_err)?;
     if let Some(hz) = fastest_hz {
-        if !(hz.is_finite() && hz > 0.0) {
-            return Err(PyValueError::new_err(format!(
-                "fastest_hz {hz}: not a positive number of Hz"
-            )));
-        }
+        coverage::check_named(hz).map_err(|e| PyValueError::new_err(format!("fastest_hz {e}")))?;
     }
     if let Some(rate) = tick_rate {
         check_tick_rate(rate).map_err(|e| PyValueError::new_err(format!("tick_rate {e}")))?;

@@ -154,9 +154,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         check_tick_rate(rate).map_err(|e| anyhow!("--tick-rate {e}"))?;
     }
     if let Some(hz) = args.fastest_hz {
-        if !(hz.is_finite() && hz > 0.0) {
-            bail!("--fastest-hz {hz}: not a positive number of Hz");
-        }
+        coverage::check_named(hz).map_err(|e| anyhow!("--fastest-hz {e}"))?;
     }
     let coarse = super::budget::coarse_rate_hz(args.coarse_rate)?;
     let data = MeasuredData::read_with(

@@ -72,6 +72,29 @@ pub fn seen(fastest: Option<f64>) -> String {
     }
 }
 
+/// The fastest motion a user may name, Hz: 20 samples a cycle at the board's fastest control
+/// rate (100 kHz), the most `calibrate --fastest-hz` sweeps.
+pub const MAX_NAMED_HZ: f64 = 5_000.0;
+
+/// Checks a fastest motion the user names (`identify --fastest-hz`, Python's `fastest_hz`):
+/// a positive number of Hz, at most [`MAX_NAMED_HZ`]; else the rule it breaks, in words.
+///
+/// ```
+/// use twinstack_identify::identification::coverage::check_named;
+/// assert!(check_named(200.0).is_ok());
+/// assert!(check_named(1e9).unwrap_err().contains("at most 5000 Hz"));
+/// assert!(check_named(f64::NAN).is_err());
+/// ```
+pub fn check_named(named_hz: f64) -> Result<(), String> {
+    if named_hz > 0.0 && named_hz <= MAX_NAMED_HZ {
+        Ok(())
+    } else {
+        Err(format!(
+            "{named_hz}: must be a number of Hz above 0 and at most {MAX_NAMED_HZ} Hz (20 samples a cycle at the board's fastest 100 kHz)"
+        ))
+    }
+}
+
 /// Where a record whose fastest motion is `fastest` falls short of the fastest motion the
 /// user names ([`falls_short`]), the advice, in words (`None` where it does not): what
 /// `identify --fastest-hz` prints and Python's `identify(fastest_hz=…)` warns.
