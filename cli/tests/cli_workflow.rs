@@ -208,6 +208,27 @@ fn load_refuses_a_model_the_drive_cannot_reach_unless_clamp() {
     let (out, err) = text(&o);
     assert!(o.status.success(), "{out}{err}");
     assert!(err.is_empty(), "{err}");
+    // The stage's settings the file leaves out are the board's, and the run says which.
+    assert!(
+        out.contains("kept from the board (the file has none): sensor, feedback (kp "),
+        "{out}"
+    );
+    // Gains given on the command line are not the board's: not listed as kept.
+    let o = run(&[
+        "load",
+        "--port",
+        "sim",
+        "--params",
+        fits.to_str().unwrap(),
+        "--kp",
+        "0.1",
+    ]);
+    let (out, err) = text(&o);
+    assert!(o.status.success(), "{out}{err}");
+    assert!(
+        out.contains("kept from the board (the file has none): sensor\n"),
+        "{out}"
+    );
     // The differential window narrows with the bias: 0…140 V about 50 V reaches 0…100 V.
     let o = run(&[
         "load",

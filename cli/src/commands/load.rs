@@ -223,6 +223,59 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         d.max_voltage,
         d.bias
     );
+    // What the file left to the board (the stage's settings, not the model's): named, so
+    // that a closed loop on gains the file does not hold is not a surprise.
+    let from_board = |file_has: bool, sent_has: bool, same_as_board: bool| {
+        !file_has && sent_has && same_as_board
+    };
+    let b = board.as_ref();
+    let kept: Vec<&str> = [
+        (
+            "sensor",
+            from_board(
+                file_settings.sensor.is_some(),
+                settings.sensor.is_some(),
+                b.is_some_and(|b| b.sensor == settings.sensor),
+            ),
+        ),
+        (
+            "feedback",
+            from_board(
+                file_settings.feedback.is_some(),
+                settings.feedback.is_some(),
+                b.is_some_and(|b| b.feedback == settings.feedback),
+            ),
+        ),
+        (
+            "shaping",
+            from_board(
+                file_settings.shaping.is_some(),
+                settings.shaping.is_some(),
+                b.is_some_and(|b| b.shaping == settings.shaping),
+            ),
+        ),
+        (
+            "preview",
+            from_board(
+                file_settings.preview.is_some(),
+                settings.preview.is_some(),
+                b.is_some_and(|b| b.preview == settings.preview),
+            ),
+        ),
+    ]
+    .into_iter()
+    .filter_map(|(name, kept)| kept.then_some(name))
+    .collect();
+    if !kept.is_empty() {
+        println!(
+            "kept from the board (the file has none): {}{}",
+            kept.join(", "),
+            settings
+                .feedback
+                .filter(|_| kept.contains(&"feedback"))
+                .map_or(String::new(), |f| format!(" (kp {}, ki {})", f.kp, f.ki))
+        );
+    }
     if let Some(p) = &settings.preview {
         println!(
             "preview: setpoints shaped for the resonance at {:.0} Hz, damping {:.4} (the stage follows them {} ticks late)",
