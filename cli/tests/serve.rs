@@ -29,6 +29,11 @@ struct Server {
 
 impl Server {
     fn start() -> Server {
+        Self::start_with(0.0)
+    }
+
+    /// The server on a board whose link damages `error_rate` of its bytes.
+    fn start_with(error_rate: f64) -> Server {
         let listener = TcpListener::bind("127.0.0.1:0").unwrap();
         let address = format!("127.0.0.1:{}", listener.local_addr().unwrap().port());
         let stop = Arc::new(AtomicBool::new(false));
@@ -36,6 +41,7 @@ impl Server {
         let handle = thread::spawn(move || {
             let config = SimDeviceConfig {
                 link: LinkDelay::ADAPTER,
+                link_error_rate: error_rate,
                 ..SimDeviceConfig::paper()
             };
             let mut device = SimDevice::new(config).unwrap();
@@ -152,6 +158,68 @@ fn telemetry_runs_beside_a_stream_owned_by_another_client() {
     assert!(frames
         .windows(2)
         .all(|w| w[1].seq == w[0].seq.wrapping_add(1)));
+}
+
+/// A client that floods requests and never reads its answers is held to its share: another
+/// client's status is answered promptly throughout (it used to wait behind every request the
+/// flood had queued, minutes of the board's time), and the flooder is dropped once its
+/// unread answers pass the server's bound.
+#[test]
+fn a_client_flooding_requests_does_not_hold_up_the_others() {
+    use std::io::Write;
+    let server = Server::start();
+    let mut frame = [0u8; twinstack::protocol::frame::MAX_ENCODED + 1];
+    let n = twinstack::protocol::frame::encode(
+        &twinstack::protocol::messages::Request::Status,
+        &mut frame,
+    )
+    .unwrap();
+    let flood: Vec<u8> = frame[..n].repeat(100_000);
+    let mut flooder = std::net::TcpStream::connect(&server.address).unwrap();
+    let writer = thread::spawn(move || {
+        let _ = flooder.write_all(&flood);
+        flooder
+    });
+    thread::sleep(Duration::from_millis(200));
+    let mut poller = server.client();
+    poller.set_timeout(Duration::from_secs(2));
+    for _ in 0..10 {
+        assert!(poller.status().is_ok(), "a status behind the flood");
+        thread::sleep(Duration::from_millis(50));
+    }
+    drop(writer.join().unwrap());
+    let (_, report) = server.finish();
+    assert!(report.forwarded < 100_000, "{report:?}");
+}
+
+/// On a link that damages bytes (a frame cut in two, two joined), no client is ever handed
+/// another's answer: each gets its own answers or a NACK, which it resends.
+#[test]
+fn a_damaged_link_never_hands_one_client_another_s_answer() {
+    let server = Server::start_with(0.002);
+    let mut a = server.client();
+    let mut b = server.client();
+    a.set_timeout(Duration::from_secs(2));
+    b.set_timeout(Duration::from_secs(2));
+    let reader = thread::spawn(move || {
+        let mut wrong = 0;
+        for _ in 0..150 {
+            if let Err(LinkError::Unexpected { .. }) = b.read_params() {
+                wrong += 1;
+            }
+        }
+        wrong
+    });
+    let mut wrong = 0;
+    for _ in 0..150 {
+        if let Err(LinkError::Unexpected { .. }) = a.status() {
+            wrong += 1;
+        }
+    }
+    let wrong_b = reader.join().unwrap();
+    let (_, report) = server.finish();
+    assert_eq!((wrong, wrong_b), (0, 0), "{report:?}");
+    assert!(report.damaged > 0, "the link damaged nothing: {report:?}");
 }
 
 #[test]

@@ -15,7 +15,15 @@
 //! **Order.** The board answers each request once, in order; the server forwards requests in
 //! the order they arrive and hands each response to the client whose request it answers, so
 //! every client sees its own answers in its own order. A refusal is queued in the same order.
-//! Unsolicited telemetry frames go to the telemetry's owner.
+//! Unsolicited telemetry frames go to the telemetry's owner. A client has at most
+//! [`MAX_IN_FLIGHT`] requests on their way; past that it is not read until answers come.
+//!
+//! **A damaged answer.** Line noise can cut one answer in two or join two, so after a
+//! damaged frame from the board the answers on their way can no longer be matched to their
+//! requests by their order. The server then forwards nothing more and drops the board's
+//! answers until it has sent none for [`QUIET`]; every request that was on its way is then
+//! answered with a `Frame` NACK (the client resends, as it does on a damaged line), and the
+//! order starts afresh. No client is ever handed another's answer.
 //!
 //! **Time.** A simulated board (`--port sim`, whose transport keeps its own clock) is run in
 //! step with the wall clock, as the virtual board is; a real link runs by itself.
@@ -38,6 +46,17 @@ const MAX_BACKLOG: usize = 4 << 20;
 
 /// The longest a turn waits for the board when nothing else happens.
 const TURN: Duration = Duration::from_millis(1);
+
+/// Requests of one client on their way to the board (or to the server's own refusal, in its
+/// place in the order) at most: a client past it is not read
+/// until its answers come (TCP holds its sender back), so a client that floods requests
+/// neither grows the server's memory nor queues minutes of the board's time ahead of the
+/// others' requests.
+pub const MAX_IN_FLIGHT: usize = 32;
+
+/// After a damaged answer from the board, how long the board must send no answer before the
+/// order is taken as known again (see [`serve`]'s resynchronisation).
+pub const QUIET: Duration = Duration::from_millis(50);
 
 /// What a request needs.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -85,6 +104,8 @@ pub struct ServeReport {
     pub refused: u64,
     /// Responses from the board that answered no request (none on a working link).
     pub unmatched: u64,
+    /// Damaged frames from the board (each followed by a resynchronisation).
+    pub damaged: u64,
 }
 
 struct Client {
@@ -93,6 +114,10 @@ struct Client {
     decoder: FrameDecoder,
     out: Vec<u8>,
     open: bool,
+    /// Bytes read and not yet decoded (the client reached [`MAX_IN_FLIGHT`] midway).
+    unread: VecDeque<u8>,
+    /// Its requests on their way to the board.
+    in_flight: usize,
 }
 
 /// Who each answer on the way goes to, in the board's order.
@@ -118,6 +143,9 @@ pub fn serve<T: Transport + ?Sized>(
     let mut telemetry_owner: Option<u64> = None;
     let mut pending: VecDeque<Pending> = VecDeque::new();
     let mut from_board = FrameDecoder::new();
+    // Since when the board has been heard while the order of its answers is being found
+    // again (after a damaged answer).
+    let mut resync: Option<Instant> = None;
     let mut buf = vec![0u8; 8192];
     let mut frame_out = [0u8; MAX_ENCODED + 1];
     let start = Instant::now();
@@ -136,6 +164,8 @@ pub fn serve<T: Transport + ?Sized>(
                         decoder: FrameDecoder::new(),
                         out: Vec::new(),
                         open: true,
+                        unread: VecDeque::new(),
+                        in_flight: 0,
                     });
                     next_id += 1;
                 }
@@ -144,30 +174,40 @@ pub fn serve<T: Transport + ?Sized>(
                 Err(_) => break,
             }
         }
-        // Their requests, in the order they arrive.
+        // Their requests, in the order they arrive (none while the order is being found again
+        // after a damaged answer, and none from a client with its fill on the way).
         let mut busy = false;
-        for c in clients.iter_mut().filter(|c| c.open) {
-            let n = match c.stream.read(&mut buf) {
-                Ok(0) => {
-                    c.open = false;
-                    continue;
-                }
-                Ok(n) => n,
-                Err(e)
-                    if matches!(
-                        e.kind(),
-                        io::ErrorKind::WouldBlock | io::ErrorKind::Interrupted
-                    ) =>
-                {
-                    continue
-                }
-                Err(_) => {
-                    c.open = false;
-                    continue;
-                }
-            };
+        for c in clients
+            .iter_mut()
+            .filter(|c| c.open && resync.is_none() && c.in_flight < MAX_IN_FLIGHT)
+        {
+            if c.unread.is_empty() {
+                let n = match c.stream.read(&mut buf) {
+                    Ok(0) => {
+                        c.open = false;
+                        continue;
+                    }
+                    Ok(n) => n,
+                    Err(e)
+                        if matches!(
+                            e.kind(),
+                            io::ErrorKind::WouldBlock | io::ErrorKind::Interrupted
+                        ) =>
+                    {
+                        continue
+                    }
+                    Err(_) => {
+                        c.open = false;
+                        continue;
+                    }
+                };
+                c.unread.extend(&buf[..n]);
+            }
             busy = true;
-            for &byte in &buf[..n] {
+            while c.in_flight < MAX_IN_FLIGHT {
+                let Some(byte) = c.unread.pop_front() else {
+                    break;
+                };
                 let request = match c.decoder.push(byte) {
                     None => continue,
                     Some(Ok(body)) => frame::decode_body::<Request>(body),
@@ -176,6 +216,7 @@ pub fn serve<T: Transport + ?Sized>(
                 let request = match request {
                     Ok(r) => r,
                     Err(e) => {
+                        c.in_flight += 1;
                         pending.push_back(Pending::Local(c.id, NackReason::Frame(e)));
                         continue;
                     }
@@ -191,10 +232,12 @@ pub fn serve<T: Transport + ?Sized>(
                 };
                 if !allowed {
                     report.refused += 1;
+                    c.in_flight += 1;
                     pending.push_back(Pending::Local(c.id, NackReason::NotOwner));
                     continue;
                 }
                 let Ok(len) = frame::encode(&request, &mut frame_out) else {
+                    c.in_flight += 1;
                     pending.push_back(Pending::Local(
                         c.id,
                         NackReason::Frame(FrameError::TooLarge),
@@ -203,6 +246,7 @@ pub fn serve<T: Transport + ?Sized>(
                 };
                 board.send(&frame_out[..len])?;
                 report.forwarded += 1;
+                c.in_flight += 1;
                 pending.push_back(Pending::Board(c.id));
             }
         }
@@ -231,8 +275,10 @@ pub fn serve<T: Transport + ?Sized>(
                 Some(Err(e)) => Err(e),
             };
             let Ok(response) = decoded else {
-                // A damaged answer still answers the request at the head: pass on a NACK.
-                deliver(&mut pending, &mut clients, &mut report, None);
+                // A damaged answer: the answers on their way no longer match their requests
+                // by order. Wait for the board to go quiet (below).
+                report.damaged += 1;
+                resync = Some(Instant::now());
                 continue;
             };
             if matches!(response, Response::Telemetry(_)) {
@@ -244,7 +290,29 @@ pub fn serve<T: Transport + ?Sized>(
                 }
                 continue;
             }
-            deliver(&mut pending, &mut clients, &mut report, Some(response));
+            if resync.is_some() {
+                // An answer while the order is unknown: to nobody, and the board not quiet yet.
+                resync = Some(Instant::now());
+                continue;
+            }
+            deliver(&mut pending, &mut clients, &mut report, response);
+        }
+        if resync.is_some_and(|since| since.elapsed() >= QUIET) {
+            // Quiet: every request that was on its way is answered with a NACK, in order.
+            while let Some(p) = pending.pop_front() {
+                let (id, reason) = match p {
+                    Pending::Board(id) => (id, NackReason::Frame(FrameError::BadCrc)),
+                    Pending::Local(id, reason) => (id, reason),
+                };
+                if let Some(c) = clients.iter_mut().find(|c| c.id == id) {
+                    c.in_flight = c.in_flight.saturating_sub(1);
+                    if c.open {
+                        push_frame(c, &Response::Nack { reason });
+                    }
+                }
+            }
+            from_board = FrameDecoder::new();
+            resync = None;
         }
         flush_local(&mut pending, &mut clients);
         // Writes, and the clients that left.
@@ -277,24 +345,24 @@ pub fn serve<T: Transport + ?Sized>(
     Ok(report)
 }
 
-/// The board's answer to the oldest request on the way (`None`: it arrived damaged), to its
-/// client, after any refusals queued before it.
+/// The board's answer to the oldest request on the way, to its client, after any refusals
+/// queued before it.
 fn deliver(
     pending: &mut VecDeque<Pending>,
     clients: &mut [Client],
     report: &mut ServeReport,
-    response: Option<Response>,
+    response: Response,
 ) {
     flush_local(pending, clients);
     let Some(Pending::Board(id)) = pending.pop_front() else {
         report.unmatched += 1;
         return;
     };
-    let response = response.unwrap_or(Response::Nack {
-        reason: NackReason::Frame(FrameError::BadCrc),
-    });
-    if let Some(c) = clients.iter_mut().find(|c| c.id == id && c.open) {
-        push_frame(c, &response);
+    if let Some(c) = clients.iter_mut().find(|c| c.id == id) {
+        c.in_flight = c.in_flight.saturating_sub(1);
+        if c.open {
+            push_frame(c, &response);
+        }
     }
     flush_local(pending, clients);
 }
@@ -305,8 +373,11 @@ fn flush_local(pending: &mut VecDeque<Pending>, clients: &mut [Client]) {
         let Some(Pending::Local(id, reason)) = pending.pop_front() else {
             break;
         };
-        if let Some(c) = clients.iter_mut().find(|c| c.id == id && c.open) {
-            push_frame(c, &Response::Nack { reason });
+        if let Some(c) = clients.iter_mut().find(|c| c.id == id) {
+            c.in_flight = c.in_flight.saturating_sub(1);
+            if c.open {
+                push_frame(c, &Response::Nack { reason });
+            }
         }
     }
 }

@@ -37,7 +37,20 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     };
     let spec = port_spec(&args.port)?;
     let link = args.port.link.delay()?;
-    let mut board = port::open_with_link(&spec, args.port.baud, link)?;
+    let error_rate = args.port.link.error_rate()?;
+    // The simulated board with the link's faults asked for, as every other command opens it.
+    let mut board: Box<dyn twinstack_link::Transport + Send> = match spec {
+        PortSpec::Sim => Box::new(
+            hal_sim::sim_device::SimDevice::new(hal_sim::sim_device::SimDeviceConfig {
+                baud: args.port.baud,
+                link,
+                link_error_rate: error_rate,
+                ..hal_sim::sim_device::SimDeviceConfig::paper()
+            })
+            .map_err(|e| anyhow::anyhow!("the simulated board: {e}"))?,
+        ),
+        _ => port::open_with_link(&spec, args.port.baud, link)?,
+    };
     // A clean line: whatever the board sent before is not an answer to anyone.
     board.send(&[0])?;
     let mut sink = [0u8; 512];
