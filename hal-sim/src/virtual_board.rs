@@ -48,6 +48,13 @@ const IDLE: Duration = Duration::from_millis(1);
 /// How long a write to the client may block before the client is dropped.
 const WRITE_TIMEOUT: Duration = Duration::from_secs(2);
 
+/// The most bytes the host → board line holds in flight (sent, not yet arrived): 256 KiB,
+/// over four times what a stream within the board's credits has in flight. Bytes beyond it
+/// are dropped as an adapter's full buffer drops them ([`SimDevice::send`] counts them), so
+/// a client that floods the line costs bounded memory, and its close is seen behind its
+/// flood at once.
+pub const MAX_BACKLOG: usize = 256 << 10;
+
 /// Why the server could not run.
 #[derive(Debug, thiserror::Error)]
 pub enum ServeError {
@@ -71,6 +78,8 @@ pub struct ServeReport {
     pub refused: u64,
     /// Ticks the board ran.
     pub ticks: u64,
+    /// Bytes from clients dropped because the line's backlog was full ([`MAX_BACKLOG`]).
+    pub bytes_dropped: u64,
 }
 
 /// Builds a [`SimDevice`] from `config` and serves it on `listener` (see the module doc) until
@@ -165,6 +174,7 @@ pub fn serve_device<D: AnalogDualDac, A: AnalogSensorAdc>(
         }
     }
     report.ticks = device.ticks();
+    report.bytes_dropped = device.line().bytes_dropped;
     Ok(report)
 }
 
@@ -220,6 +230,7 @@ pub fn serve_pty(
         }
     }
     report.ticks = device.ticks();
+    report.bytes_dropped = device.line().bytes_dropped;
     Ok(report)
 }
 

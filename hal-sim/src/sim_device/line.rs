@@ -40,6 +40,10 @@ impl Delays {
 pub struct LineCounters {
     /// Host → board bytes (sent to the board, arrived or not).
     pub bytes_in: u64,
+    /// Of them, bytes dropped because the line's backlog was full
+    /// ([`crate::virtual_board::MAX_BACKLOG`]): a client sending faster than the line
+    /// carries, without end.
+    pub bytes_dropped: u64,
     /// Board → host bytes put on the line (responses and telemetry).
     pub bytes_out: u64,
     /// Of them, telemetry frames' bytes.
@@ -132,6 +136,11 @@ impl<D: AnalogDualDac, A: AnalogSensorAdc> Transport for SimDevice<D, A> {
         let delay = self.rx_delays.next();
         let mut t = self.rx_line_free_ns.max(self.now_ns + delay);
         self.tx.counters.bytes_in += bytes.len() as u64;
+        // A full adapter drops what does not fit (an overrun): the backlog, and the memory it
+        // takes, stay bounded whatever a client sends.
+        let room = crate::virtual_board::MAX_BACKLOG.saturating_sub(self.rx.len());
+        let (bytes, dropped) = bytes.split_at(bytes.len().min(room));
+        self.tx.counters.bytes_dropped += dropped.len() as u64;
         for &b in bytes {
             t += self.byte_ns;
             let b = self.errors.pass(b);

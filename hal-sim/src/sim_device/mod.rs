@@ -517,6 +517,10 @@ impl<D: AnalogDualDac, A: AnalogSensorAdc> SimDevice<D, A> {
         let dropped = (self.rx.len(), self.tx.bytes.len());
         self.rx.clear();
         self.tx.bytes.clear();
+        // The line is free now: the dropped bytes' time on it is not the next client's wait
+        // (after a flood of 3 MB the next client's requests were scheduled 9 s and more on).
+        self.rx_line_free_ns = self.now_ns;
+        self.tx.delivered_ns = self.tx.delivered_ns.min(self.now_ns);
         dropped
     }
 }
