@@ -105,6 +105,19 @@ fn bad_requests_are_refused_with_a_reason() {
     assert_eq!(code, 400, "{v}");
     let (code, _) = http(&view.addr, b"\x00\x01garbage\r\n\r\n");
     assert_eq!(code, 400);
+    // A head line that never ends is cut at the head's bound (16 KiB), where the server read
+    // to its end first, holding gigabytes; a chunked body is refused, not read as a request.
+    let mut endless = b"GET /".to_vec();
+    endless.resize(16 * 1024 + 1, b'A');
+    let (code, v) = http(&view.addr, &endless);
+    assert_eq!(code, 400, "{v}");
+    assert!(v.contains("over 16384 bytes"), "{v}");
+    let (code, v) = http(
+        &view.addr,
+        b"POST /api/mode HTTP/1.1\r\nTransfer-Encoding: chunked\r\n\r\n",
+    );
+    assert_eq!(code, 400, "{v}");
+    assert!(v.contains("Content-Length"), "{v}");
     // Still serving.
     let (code, _) = get(&view.addr, "/");
     assert_eq!(code, 200);

@@ -28,7 +28,7 @@ use std::io::{BufRead, BufReader, Read, Write};
 use std::net::{TcpListener, TcpStream};
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::mpsc::{self, Receiver, Sender};
+use std::sync::mpsc::{self, Receiver, Sender, SyncSender, TrySendError};
 use std::sync::{Arc, Condvar, Mutex};
 use std::time::{Duration, Instant};
 use twinstack::protocol::messages::{
@@ -49,6 +49,14 @@ const STATUS_EVERY: Duration = Duration::from_millis(250);
 /// The largest request head and body the server reads.
 const MAX_HEAD: usize = 16 * 1024;
 const MAX_BODY: usize = 4 * 1024;
+/// Commands from the page waiting for the board at most: one more is refused at once (503),
+/// not queued without end.
+const COMMAND_QUEUE: usize = 8;
+/// How long a command's request waits for the board's answer; a command still queued then
+/// is not carried out.
+const COMMAND_TIMEOUT: Duration = Duration::from_secs(10);
+/// A command from the page, where its answer goes, and when its request stops waiting.
+type Queued = (Command, Sender<Reply>, Instant);
 
 const INDEX_HTML: &str = include_str!("../../assets/view/index.html");
 const VIEW_JS: &str = include_str!("../../assets/view/view.js");
@@ -223,7 +231,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         changed: Condvar::new(),
         stop: AtomicBool::new(false),
     });
-    let (commands, inbox) = mpsc::channel::<(Command, Sender<Reply>)>();
+    let (commands, inbox) = mpsc::sync_channel::<Queued>(COMMAND_QUEUE);
     let files = Arc::new((tune, calibration));
     {
         let shared = shared.clone();
@@ -261,7 +269,7 @@ fn board_loop(
     client: &mut BoardClient,
     mut tel: Telemetry,
     shared: &Shared,
-    inbox: &Receiver<(Command, Sender<Reply>)>,
+    inbox: &Receiver<Queued>,
     port: &str,
     duration: Option<Duration>,
 ) -> anyhow::Result<()> {
@@ -286,7 +294,13 @@ fn board_loop(
         if duration.is_some_and(|d| wall0.elapsed() >= d) || shared.stop.load(Ordering::SeqCst) {
             return Ok(());
         }
-        while let Ok((command, reply)) = inbox.try_recv() {
+        while let Ok((command, reply, deadline)) = inbox.try_recv() {
+            // A command whose request has been answered "did not answer" is not carried out
+            // after all (the page was told it failed).
+            if Instant::now() >= deadline {
+                let _ = reply.send(Err("not carried out: its request timed out".into()));
+                continue;
+            }
             let restart = matches!(command, Command::Telemetry(true));
             let answer = execute(client, &mut tel, shared, command);
             if answer.is_ok() {
@@ -491,7 +505,7 @@ fn execute(
 fn serve(
     listener: TcpListener,
     shared: Arc<Shared>,
-    commands: Sender<(Command, Sender<Reply>)>,
+    commands: SyncSender<Queued>,
     files: Arc<(Option<Value>, Option<Value>)>,
 ) {
     for stream in listener.incoming() {
@@ -519,7 +533,12 @@ fn read_request(reader: &mut BufReader<TcpStream>) -> Result<Option<HttpRequest>
     let mut head = Vec::new();
     loop {
         let before = head.len();
+        // At most what the head has left, so a line that never ends is cut at the bound
+        // (reading to its end first held all of it: gigabytes from one client).
+        let left = (MAX_HEAD + 1 - before) as u64;
         let n = reader
+            .by_ref()
+            .take(left)
             .read_until(b'\n', &mut head)
             .map_err(|e| e.to_string())?;
         if n == 0 {
@@ -542,6 +561,14 @@ fn read_request(reader: &mut BufReader<TcpStream>) -> Result<Option<HttpRequest>
         Ok(httparse::Status::Complete(_)) => {}
         Ok(httparse::Status::Partial) => return Err("incomplete request head".into()),
         Err(e) => return Err(format!("bad request head: {e}")),
+    }
+    // A chunked body would be read as the next request: refused, not misread.
+    if req
+        .headers
+        .iter()
+        .any(|h| h.name.eq_ignore_ascii_case("transfer-encoding"))
+    {
+        return Err("Transfer-Encoding is not taken: send the body with a Content-Length".into());
     }
     let length = req
         .headers
@@ -594,7 +621,7 @@ fn respond_json(stream: &mut TcpStream, code: u16, v: &Value) -> std::io::Result
 fn handle(
     stream: TcpStream,
     shared: &Shared,
-    commands: &Sender<(Command, Sender<Reply>)>,
+    commands: &SyncSender<Queued>,
     files: &(Option<Value>, Option<Value>),
 ) -> std::io::Result<()> {
     let mut out = stream.try_clone()?;
@@ -649,14 +676,20 @@ fn handle(
                     Err(e) => (400, json!({ "error": e })),
                     Ok(c) => {
                         let (tx, rx) = mpsc::channel();
-                        if commands.send((c, tx)).is_err() {
-                            (503, json!({"error": "the board link has ended"}))
-                        } else {
-                            match rx.recv_timeout(Duration::from_secs(10)) {
+                        let deadline = Instant::now() + COMMAND_TIMEOUT;
+                        match commands.try_send((c, tx, deadline)) {
+                            Err(TrySendError::Disconnected(_)) => {
+                                (503, json!({"error": "the board link has ended"}))
+                            }
+                            Err(TrySendError::Full(_)) => (
+                                503,
+                                json!({"error": format!("{COMMAND_QUEUE} commands are waiting for the board already: not taken, try again")}),
+                            ),
+                            Ok(()) => match rx.recv_timeout(COMMAND_TIMEOUT) {
                                 Ok(Ok(m)) => (200, json!({ "ok": m })),
                                 Ok(Err(e)) => (422, json!({ "error": e })),
                                 Err(_) => (503, json!({"error": "the board did not answer"})),
-                            }
+                            },
                         }
                     }
                 };
