@@ -97,7 +97,7 @@ pub fn check_load(
         return Err(LoadRefused::InvertedSensor);
     }
     let d = &settings.drive;
-    if !(d.max_voltage > d.min_voltage) {
+    if d.max_voltage.is_nan() || d.min_voltage.is_nan() || d.max_voltage <= d.min_voltage {
         return Err(LoadRefused::Drive(twinstack::refusal::Refusal::new(
             twinstack::refusal::Field::VoltageLimits,
             twinstack::refusal::Rule::Empty,
