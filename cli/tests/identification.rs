@@ -199,6 +199,25 @@ fn csv_with(dir: &Path, name: &str, edit: impl FnOnce(&mut Vec<String>)) -> Path
     p
 }
 
+/// `model` identified from the 400 good rows (`good.csv` in `dir`), fitted to 1.5 s: the
+/// parameter file `p.json` in `dir`.
+fn identified(dir: &Path, model: &str) -> PathBuf {
+    let good = csv_with(dir, "good.csv", |_| {});
+    let params = dir.join("p.json");
+    ok(&[
+        "identify",
+        "--model",
+        model,
+        "--data",
+        good.to_str().unwrap(),
+        "--fit-until",
+        "1.5",
+        "--out",
+        params.to_str().unwrap(),
+    ]);
+    params
+}
+
 /// Runs a command that must fail; returns its stderr and checks nothing was written.
 fn fails(args: &[&str], must_not_exist: &[&Path]) -> String {
     let out = run(args);
@@ -342,19 +361,8 @@ fn each_bad_csv_is_refused_with_its_file_and_line_and_nothing_is_written() {
 fn a_bad_parameter_file_is_refused_by_name_and_nothing_is_written() {
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
-    let good = csv_with(d, "good.csv", |_| {});
-    let params = d.join("p.json");
-    ok(&[
-        "identify",
-        "--model",
-        "duhem",
-        "--data",
-        good.to_str().unwrap(),
-        "--fit-until",
-        "1.5",
-        "--out",
-        params.to_str().unwrap(),
-    ]);
+    let good = d.join("good.csv");
+    let params = identified(d, "duhem");
     let text = std::fs::read_to_string(&params).unwrap();
     let result = d.join("result.csv");
     let cases = [
@@ -423,19 +431,7 @@ fn identify_refuses_a_split_that_leaves_nothing_to_score() {
 fn compensate_warns_where_its_drive_runs_into_the_input_range() {
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
-    let good = csv_with(d, "good.csv", |_| {});
-    let params = d.join("p.json");
-    ok(&[
-        "identify",
-        "--model",
-        "pi",
-        "--data",
-        good.to_str().unwrap(),
-        "--fit-until",
-        "1.5",
-        "--out",
-        params.to_str().unwrap(),
-    ]);
+    let params = identified(d, "pi");
     let file: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(&params).unwrap()).unwrap();
     let top = file["settings"]["ranges"]["output_max"].as_f64().unwrap();

@@ -225,47 +225,21 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     );
     // What the file left to the board (the stage's settings, not the model's): named, so
     // that a closed loop on gains the file does not hold is not a surprise.
-    let from_board = |file_has: bool, sent_has: bool, same_as_board: bool| {
-        !file_has && sent_has && same_as_board
-    };
-    let b = board.as_ref();
-    let kept: Vec<&str> = [
-        (
-            "sensor",
-            from_board(
-                file_settings.sensor.is_some(),
-                settings.sensor.is_some(),
-                b.is_some_and(|b| b.sensor == settings.sensor),
-            ),
-        ),
-        (
-            "feedback",
-            from_board(
-                file_settings.feedback.is_some(),
-                settings.feedback.is_some(),
-                b.is_some_and(|b| b.feedback == settings.feedback),
-            ),
-        ),
-        (
-            "shaping",
-            from_board(
-                file_settings.shaping.is_some(),
-                settings.shaping.is_some(),
-                b.is_some_and(|b| b.shaping == settings.shaping),
-            ),
-        ),
-        (
-            "preview",
-            from_board(
-                file_settings.preview.is_some(),
-                settings.preview.is_some(),
-                b.is_some_and(|b| b.preview == settings.preview),
-            ),
-        ),
-    ]
-    .into_iter()
-    .filter_map(|(name, kept)| kept.then_some(name))
-    .collect();
+    // A setting the file has none of, sent as the board holds it.
+    macro_rules! kept_from_board {
+        ($($field:ident),*) => {
+            [$((
+                stringify!($field),
+                file_settings.$field.is_none()
+                    && settings.$field.is_some()
+                    && board.as_ref().is_some_and(|b| b.$field == settings.$field),
+            )),*]
+        };
+    }
+    let kept: Vec<&str> = kept_from_board!(sensor, feedback, shaping, preview)
+        .into_iter()
+        .filter_map(|(name, kept)| kept.then_some(name))
+        .collect();
     if !kept.is_empty() {
         println!(
             "kept from the board (the file has none): {}{}",
