@@ -4,6 +4,7 @@
 //! edge's own tick writing the first moved DAC sample, the slew limit held on a full-stroke
 //! step, and the `sequence` command refusing a hostile positions file by its line.
 
+use std::ops::ControlFlow;
 use std::process::Command;
 use std::time::Duration;
 
@@ -74,7 +75,10 @@ fn ten_thousand_positions_on_a_camera_s_edges_without_a_miss() {
     };
     let mut client = board_without_sensor(Some(camera));
     let positions = z_stack(10_000, 1);
-    let report = run_sequence(&mut client, &positions, &options(0.002, 10), |_| {}).unwrap();
+    let report = run_sequence(&mut client, &positions, &options(0.002, 10), |_| {
+        ControlFlow::Continue(())
+    })
+    .unwrap();
     let s = report.status;
     assert!(report.complete, "{report:?}");
     assert_eq!((s.steps, s.missed, s.early), (10_000, 0, 0), "{s:?}");
@@ -85,6 +89,35 @@ fn ten_thousand_positions_on_a_camera_s_edges_without_a_miss() {
     assert_eq!(s.target, last << 15);
     let status = client.status().unwrap();
     assert!(!status.has(StatusReport::SEQUENCE), "disarmed at the end");
+}
+
+/// The caller stops the wait (Python's Ctrl-C): the sequence is disarmed and the error says
+/// how far it got.
+#[test]
+fn a_stopped_wait_disarms_the_sequence() {
+    let camera = CameraConfig {
+        period_ticks: 10,
+        frames: 100,
+        on_settled: true,
+    };
+    let mut client = board_without_sensor(Some(camera));
+    let positions = z_stack(1_000, 1);
+    let mut polls = 0;
+    let e = run_sequence(&mut client, &positions, &options(0.002, 10), |_| {
+        polls += 1;
+        if polls > 3 {
+            ControlFlow::Break(())
+        } else {
+            ControlFlow::Continue(())
+        }
+    })
+    .unwrap_err();
+    assert!(
+        matches!(e, twinstack_link::sequence_run::SequenceError::Stopped { steps } if steps < 1_000),
+        "{e}"
+    );
+    let status = client.status().unwrap();
+    assert!(!status.has(StatusReport::SEQUENCE), "disarmed when stopped");
 }
 
 #[test]
@@ -101,7 +134,10 @@ fn a_sequence_longer_than_the_queue_is_topped_up_as_edges_consume_it() {
         on_settled: false,
     };
     let mut client = board(Some(camera), Mode::Bypass);
-    let report = run_sequence(&mut client, &positions, &options(0.5, 1), |_| {}).unwrap();
+    let report = run_sequence(&mut client, &positions, &options(0.5, 1), |_| {
+        ControlFlow::Continue(())
+    })
+    .unwrap();
     assert!(report.complete, "{report:?}");
     assert_eq!(report.sent, positions.len());
     assert_eq!(report.status.missed, 0, "{:?}", report.status);
@@ -119,7 +155,13 @@ fn edges_faster_than_the_settle_time_are_counted_early_and_edges_past_the_end_mi
     let positions = z_stack(20, 100);
     let mut opts = options(0.002, 40);
     opts.idle = Duration::from_millis(50);
-    let report = run_sequence(&mut client, &positions, &opts, |_| {}).unwrap();
+    let report = run_sequence(
+        &mut client,
+        &positions,
+        &opts,
+        |_| ControlFlow::Continue(()),
+    )
+    .unwrap();
     let s = report.status;
     assert_eq!(s.steps, 20);
     // The first edge comes 8 ticks after the arming, every other 8 ticks after the one
@@ -356,7 +398,13 @@ fn a_served_virtual_board_steps_a_sequence_on_its_simulated_camera() {
     client.resync(Duration::from_millis(20)).unwrap();
     let mut opts = options(0.002, 10);
     opts.idle = Duration::from_secs(5);
-    let report = run_sequence(&mut client, &positions, &opts, |_| {}).unwrap();
+    let report = run_sequence(
+        &mut client,
+        &positions,
+        &opts,
+        |_| ControlFlow::Continue(()),
+    )
+    .unwrap();
     stop.store(true, Ordering::Relaxed);
     let s = report.status;
     assert_eq!((s.steps, s.early, s.missed), (300, 0, 0), "{s:?}");

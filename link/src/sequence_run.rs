@@ -9,6 +9,7 @@
 //! a `setpoint` column (normalised, −1…1) or `x` (output units, with the parameter file);
 //! every bad row — not a number, NaN, out of range — is refused naming its line.
 
+use std::ops::ControlFlow;
 use std::time::Duration;
 
 use crate::capture::{wait_and_read, CaptureError};
@@ -72,16 +73,25 @@ pub enum SequenceError {
     /// No positions.
     #[error("no positions to sequence")]
     Empty,
+    /// The caller stopped the wait ([`run_sequence`]'s `progress` answered
+    /// [`ControlFlow::Break`]); the sequence was disarmed.
+    #[error("stopped after {steps} positions")]
+    Stopped {
+        /// Positions reached.
+        steps: u32,
+    },
 }
 
 /// Runs `positions` (Q1.15) as a sequence on the board behind `client` (see the module doc);
-/// `progress` sees the positions reached so far. Ends when every position is reached, or when
-/// no edge has come for [`SequenceOptions::idle`]; either way the sequence is then disarmed.
+/// `progress` sees the positions reached so far, and its [`ControlFlow::Break`] stops the
+/// wait ([`SequenceError::Stopped`]). Ends when every position is reached, or when no edge has
+/// come for [`SequenceOptions::idle`] (on the link's clock); either way the sequence is then
+/// disarmed.
 pub fn run_sequence<T: Transport>(
     client: &mut Client<T>,
     positions: &[i16],
     options: &SequenceOptions,
-    mut progress: impl FnMut(&SequenceStatus),
+    mut progress: impl FnMut(&SequenceStatus) -> ControlFlow<()>,
 ) -> Result<SequenceReport, SequenceError> {
     if positions.is_empty() {
         return Err(SequenceError::Empty);
@@ -125,17 +135,20 @@ pub fn run_sequence<T: Transport>(
     }
     client.expect_ack(&Request::Sequence(SequenceRequest::Arm(options.config)))?;
     let mut last_steps = 0u32;
-    let mut idle = Duration::ZERO;
+    let mut since = client.now();
     let end = loop {
         let s = client.sequence_status()?;
-        progress(&s);
+        if progress(&s).is_break() {
+            client.expect_ack(&Request::Sequence(SequenceRequest::Stop))?;
+            return Err(SequenceError::Stopped { steps: s.steps });
+        }
         if s.steps as usize >= positions.len() {
             break s;
         }
         if s.steps != last_steps {
             last_steps = s.steps;
-            idle = Duration::ZERO;
-        } else if idle >= options.idle {
+            since = client.now();
+        } else if client.now().saturating_sub(since) >= options.idle {
             break s;
         }
         if sent < positions.len() {
@@ -144,7 +157,6 @@ pub fn run_sequence<T: Transport>(
             send_positions(client, positions, &mut sent, &mut seq, &mut credits)?;
         }
         client.wait(options.poll)?;
-        idle += options.poll;
     };
     // The last position's settling is what the caller waits for; the counts are final.
     client.expect_ack(&Request::Sequence(SequenceRequest::Stop))?;

@@ -278,6 +278,12 @@ impl Board {
         let timeout = seconds(timeout, "timeout")?;
         let spec: PortSpec = port.parse().map_err(port_error)?;
         let camera = match sim_camera_hz {
+            // The camera's options without the camera: refused, not ignored.
+            None if sim_camera_frames != 0 || sim_camera_on_settled => {
+                return Err(PyValueError::new_err(
+                    "sim_camera_frames and sim_camera_on_settled describe the simulated camera: give its frame rate too (sim_camera_hz)",
+                ))
+            }
             None => None,
             Some(_) if spec != PortSpec::Sim => {
                 return Err(PyValueError::new_err(format!(
@@ -676,8 +682,22 @@ impl Board {
             if let Some(m) = mode {
                 client.set_mode(m).map_err(err)?;
             }
-            run_sequence(client, &samples, &options, |_| {}).map_err(|e| match e {
+            // Ctrl-C (a signal) stops the wait at the next poll, the sequence disarmed.
+            let mut interrupt = None;
+            let run = run_sequence(client, &samples, &options, |_| {
+                match Python::attach(|py| py.check_signals()) {
+                    Ok(()) => ControlFlow::Continue(()),
+                    Err(e) => {
+                        interrupt = Some(e);
+                        ControlFlow::Break(())
+                    }
+                }
+            });
+            run.map_err(|e| match e {
                 SequenceError::Link(l) => err(l),
+                SequenceError::Stopped { .. } if interrupt.is_some() => {
+                    interrupt.take().expect("checked")
+                }
                 other => PyRuntimeError::new_err(other.to_string()),
             })
         })?;

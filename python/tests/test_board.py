@@ -595,6 +595,10 @@ def test_a_bad_sequence_is_refused_before_anything_moves():
         assert b.status()["queue_fill"] == 0
     with pytest.raises(ValueError, match="only with port"):
         twinstack.Board("tcp:127.0.0.1:1", sim_camera_hz=100.0)
+    # The camera's options without its frame rate: refused, not ignored.
+    for options in ({"sim_camera_frames": 5}, {"sim_camera_on_settled": True}):
+        with pytest.raises(ValueError, match="sim_camera_hz"):
+            twinstack.Board("sim", **options)
 
 
 def test_the_analog_input_starts_reports_and_stops(board):

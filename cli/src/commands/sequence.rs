@@ -125,7 +125,9 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         poll: Duration::from_millis(20),
         timing: true,
     };
-    let report = run_sequence(&mut client, &positions, &options, |_| {})?;
+    let report = run_sequence(&mut client, &positions, &options, |_| {
+        std::ops::ControlFlow::Continue(())
+    })?;
     print_report(&report, positions.len(), args.json)?;
     let s = report.status;
     if s.steps == 0 && s.missed == 0 {
