@@ -47,6 +47,23 @@ pub const FORMAT: &str = "twinstack-params";
 /// The one version this build reads and writes (2: the board's settings type).
 pub const VERSION: u64 = 2;
 
+/// serde's message for a list past a bounded list's capacity ("invalid length 33, expected a
+/// sequence": the item that did not fit) in words that say so, with the capacity; any other
+/// message as it is.
+fn list_too_long(message: &str) -> String {
+    let length = message
+        .strip_prefix("invalid length ")
+        .and_then(|rest| rest.strip_suffix(", expected a sequence"))
+        .and_then(|n| n.parse::<usize>().ok());
+    match length {
+        Some(n) if n > 0 => format!(
+            "a list longer than the board holds: at most {} items here",
+            n - 1
+        ),
+        _ => message.to_string(),
+    }
+}
+
 /// The most a parameter file is read of, bytes (one is a few kilobytes).
 pub const MAX_FILE_BYTES: u64 = 16 << 20;
 
@@ -283,12 +300,7 @@ impl ParamFile {
             path: p(),
             line: e.line(),
             column: e.column(),
-            message: e
-                .to_string()
-                .split(" at line ")
-                .next()
-                .unwrap_or("")
-                .to_string(),
+            message: list_too_long(e.to_string().split(" at line ").next().unwrap_or("")),
         };
         let value: serde_json::Value = serde_json::from_str(text).map_err(json_err)?;
         match value.get("format") {
@@ -650,6 +662,17 @@ mod tests {
         assert!(matches!(e, ParamFileError::Format { .. }), "{e}");
         let e = edited(|v| v["output_sign"] = 0.5.into());
         assert_eq!(field_of(&e), "output_sign", "{e}");
+        // A list longer than the board holds: said so, with how many it holds.
+        let e = edited(|v| {
+            let pi = &mut v["settings"]["compensator"]["PrandtlIshlinskii"];
+            pi["thresholds"] = (0..40).map(f64::from).collect::<Vec<_>>().into();
+            pi["weights"] = vec![0.01; 40].into();
+        });
+        assert!(
+            e.to_string()
+                .contains("a list longer than the board holds: at most 32 items here"),
+            "{e}"
+        );
         for (unit, value) in [("time", "ms"), ("input", "mV")] {
             let e = edited(|v| v["units"][unit] = value.into());
             assert_eq!(field_of(&e), format!("units.{unit}"), "{e}");
