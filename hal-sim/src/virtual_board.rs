@@ -48,12 +48,10 @@ const IDLE: Duration = Duration::from_millis(1);
 /// How long a write to the client may block before the client is dropped.
 const WRITE_TIMEOUT: Duration = Duration::from_secs(2);
 
-/// The most bytes the host → board line holds in flight (sent, not yet arrived): 256 KiB,
-/// over four times what a stream within the board's credits has in flight. Bytes beyond it
-/// are dropped as an adapter's full buffer drops them ([`SimDevice::send`] counts them), so
-/// a client that floods the line costs bounded memory, and its close is seen behind its
-/// flood at once.
-pub const MAX_BACKLOG: usize = 256 << 10;
+/// The line's backlog, as the simulated board bounds it (bytes beyond it are dropped, so a
+/// client that floods the line costs bounded memory, and its close is seen behind its flood
+/// at once).
+pub use crate::sim_device::MAX_BACKLOG;
 
 /// Why the server could not run.
 #[derive(Debug, thiserror::Error)]

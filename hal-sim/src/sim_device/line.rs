@@ -35,14 +35,18 @@ impl Delays {
     }
 }
 
+/// The most bytes the host → board line holds in flight (sent, not yet arrived): 256 KiB,
+/// over four times what a stream within the board's credits has in flight. Bytes beyond it
+/// are dropped as an adapter's full buffer drops them ([`LineCounters::bytes_dropped`]).
+pub const MAX_BACKLOG: usize = 256 << 10;
+
 /// Bytes the modelled UART carried, each way.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct LineCounters {
     /// Host → board bytes (sent to the board, arrived or not).
     pub bytes_in: u64,
-    /// Of them, bytes dropped because the line's backlog was full
-    /// ([`crate::virtual_board::MAX_BACKLOG`]): a client sending faster than the line
-    /// carries, without end.
+    /// Of them, bytes dropped because the line's backlog was full ([`MAX_BACKLOG`]): a client
+    /// sending faster than the line carries, without end.
     pub bytes_dropped: u64,
     /// Board → host bytes put on the line (responses and telemetry).
     pub bytes_out: u64,
@@ -138,7 +142,7 @@ impl<D: AnalogDualDac, A: AnalogSensorAdc> Transport for SimDevice<D, A> {
         self.tx.counters.bytes_in += bytes.len() as u64;
         // A full adapter drops what does not fit (an overrun): the backlog, and the memory it
         // takes, stay bounded whatever a client sends.
-        let room = crate::virtual_board::MAX_BACKLOG.saturating_sub(self.rx.len());
+        let room = MAX_BACKLOG.saturating_sub(self.rx.len());
         let (bytes, dropped) = bytes.split_at(bytes.len().min(room));
         self.tx.counters.bytes_dropped += dropped.len() as u64;
         for &b in bytes {

@@ -81,8 +81,8 @@ mod config;
 mod line;
 
 pub use config::{hardware, LinkDelay, SimDeviceConfig, SimDeviceError};
-pub use line::LineCounters;
 use line::{Delays, LinkErrors, TxLine};
+pub use line::{LineCounters, MAX_BACKLOG};
 
 /// A coarse axis run between the ticks, as the firmware's coarse task runs between them (the
 /// dual-stage board's, [`crate::coarse_rig::CoarseRig`]). The device holds it by this trait,
