@@ -147,16 +147,9 @@ impl Board {
             // Ctrl-C (a signal) stops the wait at the next poll, its exception raised; the
             // capture stays armed on the board, to be fetched later.
             let mut interrupt = None;
-            let waited =
-                capture::wait_and_read_or_stop(client, timeout, |_, _| {
-                    match Python::attach(|py| py.check_signals()) {
-                        Ok(()) => ControlFlow::Continue(()),
-                        Err(e) => {
-                            interrupt = Some(e);
-                            ControlFlow::Break(())
-                        }
-                    }
-                });
+            let waited = capture::wait_and_read_or_stop(client, timeout, |_, _| {
+                signal_taken(&mut interrupt)
+            });
             let (status, window) = waited.map_err(|e| match e {
                 CaptureError::Link(l) => err(l),
                 e @ CaptureError::NotDone { .. } => PyTimeoutError::new_err(e.to_string()),
@@ -245,6 +238,18 @@ impl Board {
             d.set_item(name, array(py, values))?;
         }
         Ok(d)
+    }
+}
+
+/// Whether a signal (Ctrl-C) has come, for a wait on the board to stop at its next poll:
+/// its exception is kept in `taken`, to be raised once the wait has stopped.
+fn signal_taken(taken: &mut Option<PyErr>) -> ControlFlow<()> {
+    match Python::attach(|py| py.check_signals()) {
+        Ok(()) => ControlFlow::Continue(()),
+        Err(e) => {
+            *taken = Some(e);
+            ControlFlow::Break(())
+        }
     }
 }
 
@@ -580,13 +585,7 @@ impl Board {
                         return false;
                     }
                     last = Instant::now();
-                    match Python::attach(|py| py.check_signals()) {
-                        Ok(()) => false,
-                        Err(e) => {
-                            interrupt = Some(e);
-                            true
-                        }
-                    }
+                    signal_taken(&mut interrupt).is_break()
                 },
             );
             match r {
@@ -684,15 +683,7 @@ impl Board {
             }
             // Ctrl-C (a signal) stops the wait at the next poll, the sequence disarmed.
             let mut interrupt = None;
-            let run = run_sequence(client, &samples, &options, |_| {
-                match Python::attach(|py| py.check_signals()) {
-                    Ok(()) => ControlFlow::Continue(()),
-                    Err(e) => {
-                        interrupt = Some(e);
-                        ControlFlow::Break(())
-                    }
-                }
-            });
+            let run = run_sequence(client, &samples, &options, |_| signal_taken(&mut interrupt));
             run.map_err(|e| match e {
                 SequenceError::Link(l) => err(l),
                 SequenceError::Stopped { .. } if interrupt.is_some() => {
@@ -869,15 +860,7 @@ impl Board {
             let wanted = (seconds * run.rate.rate_hz).ceil() as u64;
             // Ctrl-C (a signal) stops the run at the next frame, its exception raised.
             let mut interrupt = None;
-            let collected = run.collect(client, wanted, |_| {
-                match Python::attach(|py| py.check_signals()) {
-                    Ok(()) => ControlFlow::Continue(()),
-                    Err(e) => {
-                        interrupt = Some(e);
-                        ControlFlow::Break(())
-                    }
-                }
-            });
+            let collected = run.collect(client, wanted, |_| signal_taken(&mut interrupt));
             if let Err(e) = collected {
                 return Err(interrupt.take().unwrap_or_else(|| fail(e)));
             }
@@ -1390,13 +1373,7 @@ impl Board {
                     return ControlFlow::Continue(());
                 }
                 last = Instant::now();
-                match Python::attach(|py| py.check_signals()) {
-                    Ok(()) => ControlFlow::Continue(()),
-                    Err(e) => {
-                        raised = Some(e);
-                        ControlFlow::Break(())
-                    }
-                }
+                signal_taken(&mut raised)
             });
             let report = r.map_err(|e| match (e, raised) {
                 // Stopped by the caller: the generator stopped, the mode restored, nothing
