@@ -38,11 +38,25 @@ pub fn parse_seconds(s: &str) -> Result<f64, String> {
 /// of seconds above 0 and at most [`MAX_SECONDS`].
 pub fn parse_positive_seconds(s: &str) -> Result<f64, String> {
     match s.trim().parse::<f64>() {
-        Ok(v) if v > 0.0 && v <= MAX_SECONDS => Ok(v),
+        Ok(v) if positive_seconds(v) => Ok(v),
         _ => Err(format!(
             "{s:?}: a number of seconds above 0 and at most 86400"
         )),
     }
+}
+
+/// [`parse_positive_seconds`]'s rule on a value already parsed (arguments built in a
+/// program, not by clap): refused naming `flag`.
+pub fn check_positive_seconds(flag: &str, v: f64) -> anyhow::Result<()> {
+    if positive_seconds(v) {
+        Ok(())
+    } else {
+        anyhow::bail!("{flag} {v}: a number of seconds above 0 and at most 86400")
+    }
+}
+
+fn positive_seconds(v: f64) -> bool {
+    v > 0.0 && v <= MAX_SECONDS
 }
 
 // The board connection is a library module (the learning over the link uses it too); the

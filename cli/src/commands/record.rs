@@ -223,8 +223,7 @@ pub fn finish_capture(
 
 /// Runs `record`.
 pub fn run(args: &Args) -> anyhow::Result<()> {
-    super::parse_positive_seconds(&args.wait_s.to_string())
-        .map_err(|e| anyhow::anyhow!("--wait-s {e}"))?;
+    super::check_positive_seconds("--wait-s", args.wait_s)?;
     let wait = Duration::from_secs_f64(args.wait_s);
     let png_for = |out: &Path| {
         args.png

@@ -66,8 +66,7 @@ pub fn parse_edge(s: &str) -> Result<TriggerEdge, String> {
 
 /// Runs `scan`.
 pub fn run(args: &Args) -> anyhow::Result<()> {
-    super::parse_positive_seconds(&args.wait_s.to_string())
-        .map_err(|e| anyhow::anyhow!("--wait-s {e}"))?;
+    super::check_positive_seconds("--wait-s", args.wait_s)?;
     let pattern = parse_pattern(&args.pattern)?;
     let request = ScanRequest {
         pattern,

@@ -91,8 +91,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     config
         .check()
         .map_err(|r| anyhow::anyhow!("refused: {r}; nothing was sent"))?;
-    super::parse_positive_seconds(&args.idle_s.to_string())
-        .map_err(|e| anyhow::anyhow!("--idle-s {e}"))?;
+    super::check_positive_seconds("--idle-s", args.idle_s)?;
     let model = match &args.params {
         Some(p) => Some(ParamFile::load(p)?.1),
         None => None,

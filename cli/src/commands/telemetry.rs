@@ -128,8 +128,7 @@ pub fn finish(
 
 /// Runs `telemetry`.
 pub fn run(args: &Args) -> anyhow::Result<()> {
-    super::parse_positive_seconds(&args.duration.to_string())
-        .map_err(|e| anyhow::anyhow!("--duration {e}"))?;
+    super::check_positive_seconds("--duration", args.duration)?;
     let mut client = connect(&args.port)?;
     let mut telemetry = start(&mut client, &args.signals, args.rate)?;
     let wanted = (args.duration * telemetry.rate.rate_hz).ceil() as u64;

@@ -180,8 +180,7 @@ struct Telemetry {
 pub fn run(args: &Args) -> anyhow::Result<()> {
     let mask = signal_mask(&args.signals).map_err(|e| anyhow::anyhow!("--signals {e}"))?;
     if let Some(d) = args.duration {
-        super::parse_positive_seconds(&d.to_string())
-            .map_err(|e| anyhow::anyhow!("--duration {e}"))?;
+        super::check_positive_seconds("--duration", d)?;
     }
     let read_json = |flag: &str, path: &Option<PathBuf>| -> anyhow::Result<Option<Value>> {
         let Some(path) = path else { return Ok(None) };
